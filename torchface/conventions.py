@@ -1,0 +1,67 @@
+"""The conventions torchface relies on, written down once.
+
+Every module that depends on one of these points here (``see torchface.conventions``).
+
+Shape vocabulary (used in every docstring)
+------------------------------------------
+``B`` batch (independent streams / samples), ``V`` vertices, ``F`` triangles, ``S`` shape units,
+``A`` animation units, ``L`` illumination terms, ``P`` packed parameters, ``N`` template points,
+``K`` landmarks, ``T`` frames, ``C`` channels, ``H x W`` image height and width.
+Tensors are batch-first; the model's topology and bases are unbatched and broadcast.
+
+Camera frame
+------------
+OpenCV: ``+x`` right in the image, ``+y`` down in the image, ``+z`` forward (away from the camera,
+into the scene). The camera centre is the origin. Points in this frame are named ``*_cam``.
+
+Model (head) frame
+------------------
+Every face model is converted on load into a head frame aligned with the camera frame when the
+face looks straight into the camera: ``+x`` toward the subject's LEFT (image right when frontal),
+``+y`` toward the chin (down), ``+z`` toward the back of the head (away from the viewer).
+Hence the identity rotation is a frontal face, and a pose is the rigid map
+``X_cam = R @ X_model + t`` (``R`` in SO(3), ``t`` in millimetres). CANDIDE-3's own file frame
+(+x subject's left, +y up, +z toward the viewer) is a 180 degree rotation about x away from this one,
+so loading keeps triangle orientation (outward normals stay outward).
+
+Units
+-----
+Model coordinates and translations are millimetres. CANDIDE-3 is stored in normalised units; it is
+scaled by :data:`MM_PER_CANDIDE_UNIT`, which maps the MPEG-4 eye-separation FAPU of the file (0.613
+units, the distance between the pupils) to a typical adult interpupillary distance of 63 mm.
+Animation-unit and shape-unit coefficients are dimensionless (the file's own scale).
+
+Rotations
+---------
+Parameterised as axis-angle vectors ``(B, 3)`` (direction = axis, norm = angle in radians), mapped to
+matrices with the exponential map (Rodrigues). For *reporting only*, a rotation is decomposed into
+yaw, pitch and roll in degrees with the intrinsic order
+
+    ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)``
+
+about the camera axes (all right-handed). With the head frame above, from the camera's point of view:
+positive yaw turns the nose toward image LEFT (the subject turns to their right), positive pitch tips
+the nose DOWN, positive roll rotates the face clockwise in the image. Pitch is kept in [-90, 90].
+
+Images and pixels
+-----------------
+Images are ``(B, C, H, W)`` float tensors in ``[0, 1]``, RGB channel order (OpenCV's BGR is converted
+at the I/O boundary). Pixel ``(u, v)`` (column, row) has its centre at integer coordinates; the image
+covers ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``. The rasterizer samples at pixel centres, and bilinear
+sampling maps pixel coordinates to ``grid_sample``'s normalised coordinates with
+``align_corners=True`` (``x_norm = 2 u / (W - 1) - 1``).
+
+Projection
+----------
+Pinhole, no distortion: ``u = fx X / Z + cx``, ``v = fy Y / Z + cy``. By default
+``fx = fy = max(W, H)`` (about 53 degrees of horizontal field of view at 4:3) and the principal point is
+the image centre ``((W - 1) / 2, (H - 1) / 2)``; see :class:`torchface.geometry.camera.Intrinsics`.
+"""
+
+from __future__ import annotations
+
+#: Millimetres per CANDIDE-3 model unit (eye-separation FAPU 0.613 units == 63 mm).
+MM_PER_CANDIDE_UNIT: float = 63.0 / 0.613
+
+#: Points closer to the camera than this (millimetres) are treated as behind it.
+NEAR_PLANE_MM: float = 1.0

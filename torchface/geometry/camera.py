@@ -1,0 +1,63 @@
+"""Pinhole camera intrinsics and perspective projection (see :mod:`torchface.conventions`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics shared by every sample of a batch.
+
+    Attributes:
+        width: image width W in pixels.
+        height: image height H in pixels.
+        fx: focal length along x in pixels.
+        fy: focal length along y in pixels.
+        cx: principal point column (pixel centres are integers, so the centre is ``(W - 1) / 2``).
+        cy: principal point row.
+
+    Example:
+        >>> cam = Intrinsics.default(640, 480)
+        >>> cam.fx, cam.cx
+        (640.0, 319.5)
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    @classmethod
+    def default(cls, width: int, height: int, focal: float | None = None) -> "Intrinsics":
+        """Intrinsics for a ``width x height`` image: ``f = max(W, H)`` unless given, centred."""
+        f = float(max(width, height)) if focal is None else float(focal)
+        return cls(int(width), int(height), f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(H, W)``."""
+        return (self.height, self.width)
+
+    def matrix(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
+        """The 3x3 calibration matrix ``K``."""
+        return torch.tensor(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device
+        )
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics of the image resized by ``factor`` (pixel-centre convention preserved)."""
+        w = max(1, int(round(self.width * factor)))
+        h = max(1, int(round(self.height * factor)))
+        sx, sy = w / self.width, h / self.height
+        return Intrinsics(w, h, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)

@@ -1,0 +1,1 @@
+"""Dataloader and training-loop integration for torchface (normalised faces inside PyTorch pipelines)."""
