@@ -1,0 +1,222 @@
+"""Robust losses for iteratively re-weighted least squares (IRLS) and a batched robust scale.
+
+The tracker down-weights pixels hit by external occlusion with weights drawn from robust statistics of
+the residual (Anisetti et al. 2006, Section 4, after Xiao, Kanade and Cohn 2002). Every loss here is
+written in the scaled form
+
+    ``rho(r; s) = s**2 * rho_hat(r / s)``,   with ``rho_hat(u) ~ u**2 / 2`` near ``u = 0``,
+
+so that ``NONE`` gives the plain least-squares cost ``r**2 / 2`` whatever the scale, and the IRLS weight
+
+    ``w(r; s) = rho'(r; s) / r = rho_hat'(u) / u``,   ``u = r / s``,
+
+lies in ``[0, 1]`` with ``w -> 1`` as ``r -> 0``. Minimising ``sum_n rho(r_n; s)`` by Gauss-Newton with
+the weights held fixed at the current residuals is IRLS (see :func:`torchface.solver.least_squares`).
+
+Shape vocabulary: ``B`` batch, ``N`` residuals per sample (see :mod:`torchface.conventions`).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["RobustKind", "RobustLoss", "robust_scale", "MAD_TO_SIGMA"]
+
+#: ``1 / Phi^{-1}(3/4)``: makes the median absolute deviation a consistent estimate of a Gaussian sigma.
+MAD_TO_SIGMA: float = 1.482602218505602
+
+
+class RobustKind(enum.Enum):
+    """Which ``rho_hat`` a :class:`RobustLoss` uses (``u = r / s``, tuning constant ``c``).
+
+    ============== ============================================== =============================
+    kind           ``rho_hat(u)``                                 weight ``rho_hat'(u) / u``
+    ============== ============================================== =============================
+    NONE (= L2)    ``u**2 / 2``                                   ``1``
+    HUBER          ``u**2/2`` if ``|u| <= c`` else ``c(|u|-c/2)`` ``min(1, c / |u|)``
+    CAUCHY         ``c**2/2 log(1 + (u/c)**2)``                   ``1 / (1 + (u/c)**2)``
+    TUKEY          ``c**2/6 (1 - (1 - (u/c)**2)**3)``, ``|u|<=c`` ``(1 - (u/c)**2)**2``, 0 beyond
+    GEMAN_MCCLURE  ``(u**2/2) / (1 + (u/c)**2)``                  ``1 / (1 + (u/c)**2)**2``
+    ============== ============================================== =============================
+
+    Tukey's biweight is constant ``c**2/6`` beyond ``|u| = c`` (zero weight: full rejection).
+    """
+
+    NONE = "none"
+    L2 = "none"  # alias of NONE
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    TUKEY = "tukey"
+    GEMAN_MCCLURE = "geman_mcclure"
+
+
+#: Tuning constants giving 95% asymptotic efficiency on Gaussian data (Geman-McClure: unit constant).
+_DEFAULT_C: dict[RobustKind, float] = {
+    RobustKind.NONE: 1.0,
+    RobustKind.HUBER: 1.345,
+    RobustKind.CAUCHY: 2.3849,
+    RobustKind.TUKEY: 4.6851,
+    RobustKind.GEMAN_MCCLURE: 1.0,
+}
+
+
+def _as_scale(scale: torch.Tensor | float, r: torch.Tensor) -> torch.Tensor:
+    """``scale`` as a tensor on ``r``'s device and dtype, clamped to a dtype-tied positive floor."""
+    s = torch.as_tensor(scale, dtype=r.dtype, device=r.device)
+    return s.clamp_min(torch.finfo(r.dtype).tiny ** 0.5)
+
+
+@dataclass(frozen=True)
+class RobustLoss:
+    """A robust loss ``rho(r; s) = s**2 rho_hat(r / s)`` and its IRLS weight.
+
+    Attributes:
+        kind: which ``rho_hat`` (see :class:`RobustKind`).
+        c: tuning constant in units of the scale ``s``; ``None`` picks the usual 95%-efficiency value
+            (Huber 1.345, Cauchy 2.3849, Tukey 4.6851, Geman-McClure 1.0). Ignored by ``NONE``.
+        min_scale: floor on the scale used by :func:`torchface.solver.least_squares` when it estimates
+            ``s`` with :func:`robust_scale` (in residual units); keeps the weights defined on exact data.
+
+    Example:
+        >>> loss = RobustLoss(RobustKind.HUBER)
+        >>> loss.weight(torch.tensor([0.0, 1.0, 2.69]), 1.0)
+        tensor([1.0000, 1.0000, 0.5000])
+    """
+
+    kind: RobustKind = RobustKind.NONE
+    c: float | None = None
+    min_scale: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.kind, RobustKind):
+            raise TypeError(f"kind must be a RobustKind, got {type(self.kind).__name__}")
+        if self.c is None:
+            object.__setattr__(self, "c", _DEFAULT_C[self.kind])
+        if not (isinstance(self.c, (int, float)) and float(self.c) > 0.0):
+            raise ValueError(f"c must be a positive number, got {self.c!r}")
+        object.__setattr__(self, "c", float(self.c))
+        if not (float(self.min_scale) > 0.0):
+            raise ValueError(f"min_scale must be positive, got {self.min_scale!r}")
+
+    def _check(self, r: torch.Tensor) -> None:
+        if not isinstance(r, torch.Tensor) or not r.is_floating_point():
+            got = r.dtype if isinstance(r, torch.Tensor) else type(r).__name__
+            raise TypeError(f"r must be a floating-point tensor, got {got}")
+
+    def rho(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+        """The loss ``rho(r; s) = s**2 rho_hat(r / s)``.
+
+        Args:
+            r: residuals, any shape ``(*)`` (e.g. ``(B, N)``).
+            scale: ``s > 0``, a float or a tensor broadcastable against ``r`` (``(B, 1)`` for a
+                per-sample scale).
+
+        Returns:
+            ``(*)`` losses, ``r**2 / 2`` for ``NONE``; finite and differentiable at ``r = 0``.
+        """
+        self._check(r)
+        if self.kind is RobustKind.NONE:
+            return 0.5 * r * r
+        s = _as_scale(scale, r)
+        c = self.c
+        u = r / s
+        u2 = u * u
+        if self.kind is RobustKind.HUBER:
+            a = u.abs()
+            # Clamp before the branch so both sides stay finite with finite gradients.
+            lin = c * (a.clamp_min(c) - 0.5 * c)
+            out = torch.where(a <= c, 0.5 * u2, lin)
+        elif self.kind is RobustKind.CAUCHY:
+            out = 0.5 * c * c * torch.log1p(u2 / (c * c))
+        elif self.kind is RobustKind.TUKEY:
+            t = (u2 / (c * c)).clamp(max=1.0)
+            out = (c * c / 6.0) * (1.0 - (1.0 - t) ** 3)
+        else:  # GEMAN_MCCLURE
+            out = 0.5 * u2 / (1.0 + u2 / (c * c))
+        return s * s * out
+
+    def weight(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+        """The IRLS weight ``w = rho'(r; s) / r`` in ``[0, 1]``, equal to 1 at ``r = 0``.
+
+        Args:
+            r: residuals, any shape ``(*)``.
+            scale: ``s > 0``, a float or a tensor broadcastable against ``r``.
+
+        Returns:
+            ``(*)`` weights (Tukey: exactly 0 for ``|r| >= c s``).
+        """
+        self._check(r)
+        if self.kind is RobustKind.NONE:
+            return torch.ones_like(r)
+        s = _as_scale(scale, r)
+        c = self.c
+        u = r / s
+        u2 = u * u
+        if self.kind is RobustKind.HUBER:
+            return c / u.abs().clamp_min(c)
+        if self.kind is RobustKind.CAUCHY:
+            return 1.0 / (1.0 + u2 / (c * c))
+        if self.kind is RobustKind.TUKEY:
+            t = (u2 / (c * c)).clamp(max=1.0)
+            return (1.0 - t) ** 2
+        d = 1.0 + u2 / (c * c)  # GEMAN_MCCLURE
+        return 1.0 / (d * d)
+
+
+def _masked_median(x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row-wise median of the entries of ``x (B, N)`` where ``mask (B, N)``; returns (median, count).
+
+    Even counts average the two middle values (as ``numpy.median``); empty rows give 0.
+    """
+    big = torch.full_like(x, torch.inf)
+    srt = torch.where(mask, x, big).sort(dim=1).values
+    count = mask.sum(dim=1)
+    lo = ((count - 1).clamp_min(0) // 2).unsqueeze(1)
+    hi = (count // 2).clamp_max(x.shape[1] - 1).unsqueeze(1)
+    a = srt.gather(1, lo).squeeze(1)
+    b = srt.gather(1, hi).squeeze(1)
+    med = 0.5 * (a + b)
+    zero = torch.zeros_like(med)
+    return torch.where(count > 0, torch.where(torch.isfinite(med), med, zero), zero), count
+
+
+def robust_scale(r: torch.Tensor, mask: torch.Tensor | None = None, *, centered: bool = True) -> torch.Tensor:
+    """Per-sample robust scale ``1.4826 * MAD`` of the valid residuals.
+
+    ``MAD = median_n |r_n - median_m r_m|`` over the entries where ``mask`` is true (``centered=True``),
+    or ``median_n |r_n|`` (``centered=False``, for residuals known to be centred on zero). Non-finite
+    residuals are ignored. A row without any valid finite residual gets the fallback scale 1.
+
+    Args:
+        r: ``(B, N)`` residuals.
+        mask: ``(B, N)`` bool, true where a residual counts; ``None`` means all.
+        centered: subtract the per-sample median before taking absolute values.
+
+    Returns:
+        ``(B,)`` scales, finite and non-negative (0 when more than half the residuals are identical;
+        callers floor it, see :attr:`RobustLoss.min_scale`).
+
+    Example:
+        >>> robust_scale(torch.tensor([[1.0, -1.0, 2.0, -2.0, 100.0]]))
+        tensor([2.9652])
+    """
+    if not isinstance(r, torch.Tensor) or not r.is_floating_point() or r.dim() != 2:
+        got = tuple(r.shape) if isinstance(r, torch.Tensor) else type(r).__name__
+        raise ValueError(f"r must be a (B, N) floating-point tensor, got {got}")
+    if mask is None:
+        mask = torch.ones_like(r, dtype=torch.bool)
+    if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != r.shape:
+        got = (tuple(mask.shape), mask.dtype) if isinstance(mask, torch.Tensor) else type(mask).__name__
+        raise ValueError(f"mask must be a bool tensor of shape {tuple(r.shape)}, got {got}")
+    mask = mask & torch.isfinite(r)
+    if centered:
+        med, _ = _masked_median(r, mask)
+        dev = (r - med.unsqueeze(1)).abs()
+    else:
+        dev = r.abs()
+    mad, count = _masked_median(dev, mask)
+    scale = MAD_TO_SIGMA * mad
+    return torch.where(count > 0, scale, torch.ones_like(scale))
