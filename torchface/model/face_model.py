@@ -1,0 +1,372 @@
+"""The linear face model ``g = g_bar + S sigma + A alpha`` (paper Eq. 1) as a frozen data holder.
+
+:class:`FaceModel` holds the mean shape, topology, shape units, animation units, a landmark table and the
+animation-unit -> FACS link table of any linear face model (CANDIDE-3, ICT-FaceKit, ...), in the head frame
+and in millimetres of :mod:`torchface.conventions`. The computations are the stateless functions of this
+module (:func:`deform_vertices`, :func:`interpolate_landmarks`, :func:`face_normals`,
+:func:`vertex_normals`); the methods of :class:`FaceModel` call them with the model's tensors.
+
+Shapes: ``B`` batch, ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` animation units, ``K`` landmarks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "FaceModel",
+    "deform_vertices",
+    "interpolate_landmarks",
+    "face_normals",
+    "vertex_normals",
+]
+
+
+def _check_coeffs(coeffs: Tensor | None, count: int, what: str, units: Tensor) -> None:
+    """Validate a ``(B, count)`` coefficient tensor against the bases it multiplies."""
+    if coeffs is None:
+        return
+    if not isinstance(coeffs, Tensor):
+        raise TypeError(f"{what} coefficients must be a torch.Tensor of shape (B, {count}), got {type(coeffs).__name__}")
+    if coeffs.ndim != 2 or coeffs.shape[1] != count:
+        raise ValueError(f"{what} coefficients must have shape (B, {count}), got {tuple(coeffs.shape)}")
+    if coeffs.dtype != units.dtype:
+        raise TypeError(
+            f"{what} coefficients must have the model's dtype {units.dtype}, got {coeffs.dtype} "
+            "(convert the model with FaceModel.to(dtype=...))"
+        )
+    if coeffs.device != units.device:
+        raise ValueError(
+            f"{what} coefficients must be on the model's device {units.device}, got {coeffs.device} "
+            "(move the model with FaceModel.to(device=...))"
+        )
+
+
+def deform_vertices(
+    mean: Tensor,
+    shape_units: Tensor,
+    animation_units: Tensor,
+    shape_coeffs: Tensor | None = None,
+    anim_coeffs: Tensor | None = None,
+) -> Tensor:
+    """Vertices of the linear model, ``g = g_bar + S sigma + A alpha`` (paper Eq. 1).
+
+    Args:
+        mean: ``(V, 3)`` mean shape ``g_bar``.
+        shape_units: ``(S, V, 3)`` shape basis ``S`` (displacement per unit coefficient).
+        animation_units: ``(A, V, 3)`` animation basis ``A``.
+        shape_coeffs: ``(B, S)`` shape coefficients ``sigma``, or ``None`` for zeros.
+        anim_coeffs: ``(B, A)`` animation coefficients ``alpha``, or ``None`` for zeros.
+
+    Returns:
+        ``(B, V, 3)`` vertices; ``B`` is taken from the coefficients (1 when both are ``None``).
+
+    Raises:
+        ValueError: a coefficient tensor is not ``(B, S)`` / ``(B, A)``, the two batch sizes differ, or a
+            tensor is on another device than the bases.
+        TypeError: a coefficient tensor is not a tensor or its dtype differs from the bases'.
+
+    Example:
+        >>> mean = torch.zeros(4, 3); su = torch.zeros(0, 4, 3); au = torch.ones(2, 4, 3)
+        >>> deform_vertices(mean, su, au, None, torch.tensor([[1.0, 2.0]]))[0, 0]
+        tensor([3., 3., 3.])
+    """
+    num_v = mean.shape[0]
+    _check_coeffs(shape_coeffs, shape_units.shape[0], "shape", shape_units)
+    _check_coeffs(anim_coeffs, animation_units.shape[0], "animation", animation_units)
+    if shape_coeffs is not None and anim_coeffs is not None and shape_coeffs.shape[0] != anim_coeffs.shape[0]:
+        raise ValueError(
+            f"shape and animation coefficients must share the batch size B, got {shape_coeffs.shape[0]} "
+            f"and {anim_coeffs.shape[0]}"
+        )
+    verts = mean.unsqueeze(0)
+    # Each basis term is one (B, S) @ (S, V*3) matrix product.
+    if shape_coeffs is not None:
+        verts = verts + (shape_coeffs @ shape_units.reshape(shape_units.shape[0], num_v * 3)).view(-1, num_v, 3)
+    if anim_coeffs is not None:
+        verts = verts + (anim_coeffs @ animation_units.reshape(animation_units.shape[0], num_v * 3)).view(
+            -1, num_v, 3
+        )
+    if shape_coeffs is None and anim_coeffs is None:
+        verts = verts.clone()
+    return verts
+
+
+def interpolate_landmarks(verts: Tensor, landmark_vertices: Tensor, landmark_weights: Tensor) -> Tensor:
+    """Landmarks as weighted vertex combinations, ``l_k = sum_j w[k, j] * verts[idx[k, j]]``.
+
+    Args:
+        verts: ``(B, V, 3)`` vertices.
+        landmark_vertices: ``(K, J)`` int64 vertex indices (``J = 3`` for the models here).
+        landmark_weights: ``(K, J)`` weights (rows sum to one; a landmark on a vertex is ``(1, 0, 0)``).
+
+    Returns:
+        ``(B, K, 3)`` landmark positions.
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 0], [2.0, 0, 0]]])
+        >>> interpolate_landmarks(v, torch.tensor([[0, 1, 0]]), torch.tensor([[0.5, 0.5, 0.0]]))
+        tensor([[[1., 0., 0.]]])
+    """
+    picked = verts[:, landmark_vertices]  # (B, K, J, 3)
+    return (picked * landmark_weights.unsqueeze(-1)).sum(dim=2)
+
+
+def _face_cross(verts: Tensor, faces: Tensor) -> Tensor:
+    """``(B, F, 3)`` un-normalised face normals ``(v1 - v0) x (v2 - v0)`` (length = twice the area)."""
+    v0 = verts[:, faces[:, 0]]
+    v1 = verts[:, faces[:, 1]]
+    v2 = verts[:, faces[:, 2]]
+    return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)
+
+
+def _safe_normalize(vec: Tensor) -> Tensor:
+    """Unit vectors along the last axis; zero vectors stay zero with finite gradients."""
+    eps = torch.finfo(vec.dtype).eps
+    sq = (vec * vec).sum(dim=-1, keepdim=True)
+    return vec * torch.rsqrt(sq.clamp_min(eps * eps))
+
+
+def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
+    """Unit face normals ``n = (v1 - v0) x (v2 - v0) / |...|``.
+
+    With the outward winding of :class:`FaceModel` they point out of the head. Degenerate triangles give
+    zero vectors (no NaN, finite gradients).
+
+    Args:
+        verts: ``(B, V, 3)`` vertices.
+        faces: ``(F, 3)`` int64 triangle vertex indices.
+
+    Returns:
+        ``(B, F, 3)`` unit normals.
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]]])
+        >>> face_normals(v, torch.tensor([[0, 1, 2]]))
+        tensor([[[0., 0., 1.]]])
+    """
+    return _safe_normalize(_face_cross(verts, faces))
+
+
+def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
+    """Area-weighted unit vertex normals: the normalised sum of the incident faces' cross products.
+
+    Vertices that no face uses get zero vectors (no NaN, finite gradients).
+
+    Args:
+        verts: ``(B, V, 3)`` vertices.
+        faces: ``(F, 3)`` int64 triangle vertex indices.
+
+    Returns:
+        ``(B, V, 3)`` unit normals.
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0], [5.0, 5, 5]]])
+        >>> vertex_normals(v, torch.tensor([[0, 1, 2]]))[0]
+        tensor([[0., 0., 1.],
+                [0., 0., 1.],
+                [0., 0., 1.],
+                [0., 0., 0.]])
+    """
+    cross = _face_cross(verts, faces)  # (B, F, 3), length 2 * area
+    acc = torch.zeros_like(verts)
+    for corner in range(3):  # three scatter-adds, one per triangle corner
+        acc = acc.index_add(1, faces[:, corner], cross)
+    return _safe_normalize(acc)
+
+
+@dataclass(frozen=True, eq=False)
+class FaceModel:
+    """A linear 3D face model in the head frame and in millimetres (see :mod:`torchface.conventions`).
+
+    Vertices are ``g = mean + sum_s sigma_s shape_units[s] + sum_a alpha_a animation_units[a]`` (paper
+    Eq. 1). Topology and bases are unbatched; coefficients and vertices are batch-first.
+
+    Attributes:
+        name: model name, e.g. ``"CANDIDE-3 v3.1.6"``.
+        mean: ``(V, 3)`` mean shape ``g_bar``, millimetres, head frame.
+        faces: ``(F, 3)`` int64 triangles, wound consistently and outward:
+            ``(v1 - v0) x (v2 - v0)`` points out of the head. Unused vertices are never referenced.
+        shape_units: ``(S, V, 3)`` displacement (mm) per unit shape coefficient.
+        shape_names: ``S`` names.
+        animation_units: ``(A, V, 3)`` displacement (mm) per unit animation coefficient.
+        animation_names: ``A`` names.
+        animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient.
+        landmark_vertices: ``(K, 3)`` int64 vertex indices of each landmark.
+        landmark_weights: ``(K, 3)`` weights, ``l_k = sum_j w[k, j] verts[idx[k, j]]``; rows sum to one.
+        landmark_names: ``K`` names (iBUG-68 order when ``K = 68``).
+        facs_names: FACS action unit names, e.g. ``("AU2", "AU4", ...)``.
+        facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.
+        surface_vertex_mask: ``(V,)`` bool, ``True`` for vertices used by a face.
+
+    Example:
+        >>> from torchface.model import load_candide3
+        >>> model = load_candide3()
+        >>> verts = model.deform(None, torch.zeros(2, model.num_animation))
+        >>> verts.shape, model.landmarks_3d(verts).shape
+        (torch.Size([2, 113, 3]), torch.Size([2, 68, 3]))
+    """
+
+    name: str
+    mean: Tensor
+    faces: Tensor
+    shape_units: Tensor
+    shape_names: tuple[str, ...]
+    animation_units: Tensor
+    animation_names: tuple[str, ...]
+    animation_ranges: Tensor
+    landmark_vertices: Tensor
+    landmark_weights: Tensor
+    landmark_names: tuple[str, ...]
+    facs_names: tuple[str, ...]
+    facs_matrix: Tensor
+    surface_vertex_mask: Tensor
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "name":
+                if not isinstance(value, str):
+                    raise TypeError(f"name must be a str, got {type(value).__name__}")
+            elif f.name.endswith("_names"):
+                if not isinstance(value, tuple) or not all(isinstance(n, str) for n in value):
+                    raise TypeError(f"{f.name} must be a tuple of str, got {type(value).__name__}")
+            elif not isinstance(value, Tensor):
+                raise TypeError(f"{f.name} must be a torch.Tensor, got {type(value).__name__}")
+        mean = self.mean
+        if mean.ndim != 2 or mean.shape[1] != 3 or not mean.is_floating_point():
+            raise ValueError(f"mean must be a float (V, 3) tensor, got {tuple(mean.shape)} {mean.dtype}")
+        num_v = mean.shape[0]
+        expected = {
+            "shape_units": (len(self.shape_names), num_v, 3),
+            "animation_units": (len(self.animation_names), num_v, 3),
+            "animation_ranges": (len(self.animation_names), 2),
+            "landmark_vertices": (len(self.landmark_names), 3),
+            "landmark_weights": (len(self.landmark_names), 3),
+            "facs_matrix": (len(self.facs_names), len(self.animation_names)),
+            "surface_vertex_mask": (num_v,),
+        }
+        for key, shape in expected.items():
+            got = tuple(getattr(self, key).shape)
+            if got != shape:
+                raise ValueError(f"{key} must have shape {shape} (from mean and the name tuples), got {got}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or self.faces.dtype != torch.int64:
+            raise ValueError(f"faces must be an int64 (F, 3) tensor, got {tuple(self.faces.shape)} {self.faces.dtype}")
+        if self.landmark_vertices.dtype != torch.int64:
+            raise ValueError(f"landmark_vertices must be int64, got {self.landmark_vertices.dtype}")
+        if self.surface_vertex_mask.dtype != torch.bool:
+            raise ValueError(f"surface_vertex_mask must be bool, got {self.surface_vertex_mask.dtype}")
+        for key in ("shape_units", "animation_units", "animation_ranges", "landmark_weights", "facs_matrix"):
+            value = getattr(self, key)
+            if value.dtype != mean.dtype or value.device != mean.device:
+                raise ValueError(
+                    f"{key} must share mean's dtype and device ({mean.dtype}, {mean.device}), "
+                    f"got ({value.dtype}, {value.device})"
+                )
+        for key in ("faces", "landmark_vertices", "surface_vertex_mask"):
+            if getattr(self, key).device != mean.device:
+                raise ValueError(f"{key} must be on mean's device {mean.device}, got {getattr(self, key).device}")
+        if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
+            raise ValueError(f"faces index vertices outside [0, {num_v}): [{int(self.faces.min())}, {int(self.faces.max())}]")
+        if self.landmark_vertices.numel() and (
+            int(self.landmark_vertices.min()) < 0 or int(self.landmark_vertices.max()) >= num_v
+        ):
+            raise ValueError(f"landmark_vertices index vertices outside [0, {num_v})")
+
+    # ----------------------------------------------------------------------------------------- sizes
+    @property
+    def num_vertices(self) -> int:
+        """``V``."""
+        return self.mean.shape[0]
+
+    @property
+    def num_faces(self) -> int:
+        """``F``."""
+        return self.faces.shape[0]
+
+    @property
+    def num_shape(self) -> int:
+        """``S``."""
+        return self.shape_units.shape[0]
+
+    @property
+    def num_animation(self) -> int:
+        """``A``."""
+        return self.animation_units.shape[0]
+
+    @property
+    def num_landmarks(self) -> int:
+        """``K``."""
+        return self.landmark_vertices.shape[0]
+
+    V = num_vertices
+    F = num_faces
+    S = num_shape
+    A = num_animation
+    K = num_landmarks
+
+    @property
+    def device(self) -> torch.device:
+        """Device of every tensor of the model."""
+        return self.mean.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of the geometry and bases."""
+        return self.mean.dtype
+
+    # ------------------------------------------------------------------------------------ functions
+    def deform(self, shape_coeffs: Tensor | None = None, anim_coeffs: Tensor | None = None) -> Tensor:
+        """``(B, S)``, ``(B, A)`` coefficients (``None`` = zeros) -> ``(B, V, 3)`` vertices (Eq. 1).
+
+        See :func:`deform_vertices` for the errors raised on bad coefficient shapes, dtypes and devices.
+        """
+        return deform_vertices(self.mean, self.shape_units, self.animation_units, shape_coeffs, anim_coeffs)
+
+    def landmarks_3d(self, verts: Tensor) -> Tensor:
+        """``(B, V, 3)`` vertices -> ``(B, K, 3)`` landmarks (see :func:`interpolate_landmarks`)."""
+        if not isinstance(verts, Tensor) or verts.ndim != 3 or verts.shape[1:] != (self.num_vertices, 3):
+            got = tuple(verts.shape) if isinstance(verts, Tensor) else type(verts).__name__
+            raise ValueError(f"verts must have shape (B, {self.num_vertices}, 3), got {got}")
+        return interpolate_landmarks(verts, self.landmark_vertices, self.landmark_weights.to(verts.dtype))
+
+    def vertex_normals(self, verts: Tensor) -> Tensor:
+        """``(B, V, 3)`` vertices -> ``(B, V, 3)`` outward unit vertex normals (zero on unused vertices)."""
+        if not isinstance(verts, Tensor) or verts.ndim != 3 or verts.shape[1:] != (self.num_vertices, 3):
+            got = tuple(verts.shape) if isinstance(verts, Tensor) else type(verts).__name__
+            raise ValueError(f"verts must have shape (B, {self.num_vertices}, 3), got {got}")
+        return vertex_normals(verts, self.faces)
+
+    def face_normals(self, verts: Tensor) -> Tensor:
+        """``(B, V, 3)`` vertices -> ``(B, F, 3)`` outward unit face normals."""
+        if not isinstance(verts, Tensor) or verts.ndim != 3 or verts.shape[1:] != (self.num_vertices, 3):
+            got = tuple(verts.shape) if isinstance(verts, Tensor) else type(verts).__name__
+            raise ValueError(f"verts must have shape (B, {self.num_vertices}, 3), got {got}")
+        return face_normals(verts, self.faces)
+
+    def facs_values(self, anim_coeffs: Tensor) -> Tensor:
+        """``(B, A)`` animation coefficients -> ``(B, n_facs)`` linked FACS values (``alpha @ M.T``)."""
+        _check_coeffs(anim_coeffs, self.num_animation, "animation", self.facs_matrix)
+        return anim_coeffs @ self.facs_matrix.T
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "FaceModel":
+        """A copy on ``device`` with floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
+        if dtype is not None and not dtype.is_floating_point:
+            raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+        changes = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Tensor):
+                changes[f.name] = value.to(device=device, dtype=dtype if value.is_floating_point() else None)
+            else:
+                changes[f.name] = value
+        return FaceModel(**changes)
+
+    def __repr__(self) -> str:
+        return (
+            f"FaceModel(name={self.name!r}, V={self.num_vertices}, F={self.num_faces}, S={self.num_shape}, "
+            f"A={self.num_animation}, K={self.num_landmarks}, dtype={self.dtype}, device={self.device})"
+        )
