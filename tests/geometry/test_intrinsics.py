@@ -1,0 +1,40 @@
+"""Tests for torchface.geometry.camera.Intrinsics."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from torchface.geometry import Intrinsics, project_points, unproject
+
+
+def test_default_intrinsics_follow_the_conventions() -> None:
+    cam = Intrinsics.default(640, 480)
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (640.0, 640.0, 319.5, 239.5)
+    assert cam.size == (480, 640)
+    assert Intrinsics.default(480, 640).fx == 640.0
+    K = cam.matrix(dtype=torch.float64)
+    assert K.dtype == torch.float64
+    torch.testing.assert_close(K, torch.tensor([[640.0, 0, 319.5], [0, 640.0, 239.5], [0, 0, 1]], dtype=torch.float64))
+
+
+def test_scaled_intrinsics_keep_pixel_centres() -> None:
+    cam = Intrinsics.default(640, 480)
+    half = cam.scaled(0.5)
+    assert (half.width, half.height, half.fx, half.cx, half.cy) == (320, 240, 320.0, 159.5, 119.5)
+    # A 3D point lands on the same place of the image in both resolutions (pixel edges scale).
+    pts = torch.tensor([[[40.0, -25.0, 500.0]]], dtype=torch.float64)
+    uv, uv_half = project_points(pts, cam), project_points(pts, half)
+    torch.testing.assert_close((uv_half + 0.5) * 2.0 - 0.5, uv)
+    torch.testing.assert_close(unproject(uv_half, pts[..., 2], half), pts)
+
+
+def test_intrinsics_validation_and_frozen() -> None:
+    with pytest.raises(ValueError, match="image size"):
+        Intrinsics(0, 480, 500.0, 500.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="focal"):
+        Intrinsics(640, 480, -1.0, 500.0, 0.0, 0.0)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        Intrinsics.default(640, 480).fx = 1.0  # type: ignore[misc]
