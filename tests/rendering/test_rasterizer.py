@@ -1,0 +1,333 @@
+"""Tests for torchface.rendering.rasterizer (fast path) against torchface.rendering.reference (oracle)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import trimesh
+
+import torchface.rendering.rasterizer as rasterizer_module
+from torchface.geometry.camera import Intrinsics
+from torchface.rendering import Fragments, rasterize, rasterize_reference
+
+CAM = Intrinsics.default(32, 24)
+EDGE_TOL = 1e-6
+
+
+def random_soup(seed: int, batch: int, num_faces: int, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """Independent random triangles in front of the camera, overlapping in depth: ``(B, 3F, 3)``, ``(F, 3)``."""
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.rand(batch, num_faces, 1, 3, generator=g, dtype=torch.float64)
+    centres = centres * torch.tensor([90.0, 70.0, 80.0], dtype=torch.float64) + torch.tensor(
+        [-45.0, -35.0, 80.0], dtype=torch.float64
+    )
+    offsets = (torch.rand(batch, num_faces, 3, 3, generator=g, dtype=torch.float64) - 0.5) * 50.0
+    verts = (centres + offsets).reshape(batch, num_faces * 3, 3)
+    faces = torch.arange(num_faces * 3).reshape(num_faces, 3)
+    return verts.to(dtype), faces
+
+
+def random_surface(seed: int, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A jittered open tube (shared edges everywhere) whose opening faces the camera.
+
+    Outward normals point away from the tube's axis, so the inside, seen through the opening, is
+    back-facing, the outer lips are front-facing, and the lips hide part of the inside.
+    """
+    g = torch.Generator().manual_seed(seed)
+    n = 8
+    s = torch.linspace(-0.75 * torch.pi, 0.75 * torch.pi, n, dtype=torch.float64)
+    ys = torch.linspace(-50.0, 50.0, n, dtype=torch.float64)
+    gy, gs = torch.meshgrid(ys, s, indexing="ij")
+    base = torch.stack([50.0 * torch.sin(gs), gy, 150.0 + 50.0 * torch.cos(gs)], -1).reshape(-1, 3)
+    verts = base + (torch.rand(batch, n * n, 3, generator=g, dtype=torch.float64) - 0.5) * 6.0
+    idx = torch.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = torch.cat([torch.stack([a, c, b], -1).reshape(-1, 3), torch.stack([b, c, d], -1).reshape(-1, 3)])
+    return verts, faces
+
+
+def icosphere(radius: float, centre: tuple[float, float, float], subdivisions: int = 2):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    verts = torch.tensor(mesh.vertices, dtype=torch.float64) + torch.tensor(centre, dtype=torch.float64)
+    return verts[None], torch.tensor(mesh.faces, dtype=torch.int64), mesh
+
+
+def min_bary(frag: Fragments) -> torch.Tensor:
+    return frag.bary.amin(-1)
+
+
+def assert_fragments_match(fast: Fragments, ref: Fragments, *, atol: float = 1e-8, max_ambiguous: float = 0.02):
+    """Same triangle wherever neither result is within EDGE_TOL of an edge; same numbers where they agree."""
+    fast_fg, ref_fg = fast.pix_to_face >= 0, ref.pix_to_face >= 0
+    ambiguous = (fast_fg & (min_bary(fast) < EDGE_TOL)) | (ref_fg & (min_bary(ref) < EDGE_TOL))
+    assert ambiguous.double().mean() <= max_ambiguous
+    same = fast.pix_to_face == ref.pix_to_face
+    assert same[~ambiguous].all(), f"{int((~same & ~ambiguous).sum())} unambiguous pixels differ"
+    both = same & fast_fg
+    torch.testing.assert_close(fast.bary[both].double(), ref.bary[both].double(), atol=atol, rtol=0)
+    torch.testing.assert_close(fast.zbuf[both].double(), ref.zbuf[both].double(), atol=0, rtol=atol)
+    assert torch.equal(fast.facing[same], ref.facing[same])
+    assert torch.isinf(fast.zbuf[~fast_fg]).all() and (fast.bary[~fast_fg] == 0).all()
+    assert (fast.facing[~fast_fg] == 0).all()
+
+
+# --------------------------------------------------------------------------------------------- smoke, shapes
+
+
+def test_cardinality_and_dtypes():
+    verts, faces = random_soup(0, 2, 5, torch.float32)
+    frag = rasterize(verts, faces, CAM)
+    assert frag.pix_to_face.shape == (2, 24, 32) and frag.pix_to_face.dtype == torch.int64
+    assert frag.bary.shape == (2, 24, 32, 3) and frag.bary.dtype == torch.float32
+    assert frag.zbuf.shape == (2, 24, 32) and frag.zbuf.dtype == torch.float32
+    assert frag.facing.shape == (2, 24, 32) and frag.facing.dtype == torch.int8
+    fg = frag.foreground
+    assert fg.any() and (~fg).any()
+    torch.testing.assert_close(frag.bary[fg].sum(-1), torch.ones(int(fg.sum())))
+    assert (frag.bary[fg] >= 0).all()
+
+
+@pytest.mark.parametrize(
+    ("verts", "faces", "error"),
+    [
+        (torch.zeros(4, 3), torch.tensor([[0, 1, 2]]), ValueError),
+        (torch.zeros(1, 4, 2), torch.tensor([[0, 1, 2]]), ValueError),
+        (torch.zeros(1, 4, 3, dtype=torch.int64), torch.tensor([[0, 1, 2]]), TypeError),
+        (torch.zeros(1, 4, 3), torch.tensor([0, 1, 2]), ValueError),
+        (torch.zeros(1, 4, 3), torch.tensor([[0.0, 1.0, 2.0]]), TypeError),
+    ],
+)
+def test_exceptions(verts, faces, error):
+    with pytest.raises(error):
+        rasterize(verts, faces, CAM)
+
+
+def test_exception_intrinsics_and_near():
+    verts, faces = random_soup(0, 1, 2)
+    with pytest.raises(TypeError):
+        rasterize(verts, faces, (32, 24))
+    with pytest.raises(ValueError):
+        rasterize(verts, faces, CAM, near=0.0)
+
+
+# ----------------------------------------------------------------------------------------- fast vs reference
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_matches_reference_random_soup(seed):
+    verts, faces = random_soup(seed, 3 if seed % 2 else 2, 20)
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert (ref.pix_to_face >= 0).double().mean() > 0.2
+    assert_fragments_match(fast, ref)
+
+
+@pytest.mark.parametrize("seed", [10, 11])
+def test_matches_reference_folded_surface(seed):
+    verts, faces = random_surface(seed, 2)
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert (ref.facing == -1).any() and (ref.facing == 1).any()
+    assert_fragments_match(fast, ref)
+    culled_fast = rasterize(verts, faces, CAM, cull_backfaces=True)
+    culled_ref = rasterize_reference(verts, faces, CAM, cull_backfaces=True)
+    assert_fragments_match(culled_fast, culled_ref)
+    assert (culled_fast.facing != -1).all()
+
+
+def test_matches_reference_sphere_and_perspective_bary():
+    verts, faces, _ = icosphere(60.0, (10.0, -5.0, 150.0))
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert_fragments_match(fast, ref)
+    # Perspective-correct: barycentric interpolation of the corners lands on the pixel's ray at zbuf.
+    fg = fast.foreground[0]
+    tri = verts[0][faces[fast.pix_to_face[0][fg]]]
+    point = (fast.bary[0][fg].unsqueeze(-1) * tri).sum(-2)
+    ys, xs = fg.nonzero().unbind(-1)
+    torch.testing.assert_close(point[:, 2], fast.zbuf[0][fg])
+    torch.testing.assert_close(point[:, 0] / point[:, 2] * CAM.fx + CAM.cx, xs.double())
+    torch.testing.assert_close(point[:, 1] / point[:, 2] * CAM.fy + CAM.cy, ys.double())
+
+
+# ------------------------------------------------------------------------------------------------ edge cases
+
+
+def test_triangle_partly_behind_camera():
+    # One vertex behind the camera; the visible part spans a region no projected bbox could describe.
+    verts = torch.tensor([[[-30.0, -20.0, 100.0], [30.0, -20.0, 100.0], [0.0, 40.0, -20.0]]], dtype=torch.float64)
+    faces = torch.tensor([[0, 2, 1]])
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert 0 < int(ref.foreground.sum()) < 24 * 32
+    assert_fragments_match(fast, ref)
+    assert (fast.zbuf[fast.foreground] > 1.0).all()
+
+
+def test_triangle_fully_behind_or_offscreen():
+    # Behind the camera: would project into the image if the sign of Z were ignored.
+    behind = torch.tensor([[-40.0, -30.0, -60.0], [40.0, -30.0, -60.0], [0.0, 40.0, -60.0]], dtype=torch.float64)
+    offscreen = torch.tensor([[400.0, 0.0, 100.0], [500.0, 0.0, 100.0], [450.0, 60.0, 100.0]], dtype=torch.float64)
+    within_near = torch.tensor([[-40.0, -30.0, 0.5], [40.0, -30.0, 0.5], [0.0, 40.0, 0.9]], dtype=torch.float64)
+    verts = torch.cat([behind, offscreen, within_near])[None]
+    faces = torch.tensor([[0, 1, 2], [0, 2, 1], [3, 4, 5], [3, 5, 4], [6, 7, 8], [6, 8, 7]])
+    for fn in (rasterize, rasterize_reference):
+        frag = fn(verts, faces, CAM)
+        assert not frag.foreground.any()
+
+
+def test_degenerate_triangles_produce_nothing():
+    verts = torch.tensor(
+        [[
+            [-40.0, -30.0, 100.0], [0.0, 0.0, 100.0], [40.0, 30.0, 100.0],  # collinear
+            [-40.0, 30.0, 90.0], [40.0, -30.0, 90.0],  # with vertex 3 repeated: zero area
+            [-50.0, -50.0, 120.0], [50.0, -50.0, 120.0], [0.0, 50.0, 120.0],  # an ordinary triangle
+        ]],
+        dtype=torch.float64,
+    )  # fmt: skip
+    faces = torch.tensor([[0, 1, 2], [3, 4, 3], [3, 3, 3], [5, 7, 6]])
+    for dtype in (torch.float64, torch.float32):
+        fast = rasterize(verts.to(dtype), faces, CAM)
+        ref = rasterize_reference(verts.to(dtype), faces, CAM)
+        assert set(fast.pix_to_face.unique().tolist()) == {-1, 3}
+        assert_fragments_match(fast, ref, atol=1e-5)
+        alone = rasterize(verts.to(dtype), faces[3:], CAM)
+        assert torch.equal(alone.pix_to_face >= 0, fast.pix_to_face >= 0)
+
+
+def test_exact_depth_ties_lowest_index_wins():
+    # Face 1 duplicates face 3 (bit-identical arithmetic); faces 0 and 2 are different triangles in
+    # the same fronto-parallel plane z = 100 overlapping each other (integer coordinates: exact depths).
+    verts = torch.tensor(
+        [[
+            [-60.0, -40.0, 100.0], [40.0, -40.0, 100.0], [40.0, 40.0, 100.0],
+            [60.0, 40.0, 100.0], [-40.0, 40.0, 100.0], [60.0, -40.0, 100.0],
+            [-30.0, -30.0, 80.0], [30.0, -30.0, 80.0], [0.0, 30.0, 80.0],
+        ]],
+        dtype=torch.float64,
+    )  # fmt: skip
+    faces = torch.tensor([[3, 5, 4], [6, 8, 7], [0, 2, 1], [6, 8, 7]])
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert torch.equal(fast.pix_to_face, ref.pix_to_face)
+    seen = set(fast.pix_to_face.unique().tolist())
+    assert 3 not in seen and {0, 1, 2} <= seen
+    # Where the plane triangles overlap (and the nearer one does not cover), face 0 beats face 2.
+    only_plane = rasterize(verts, faces[[0, 2]], CAM)
+    both = rasterize(verts, faces[[0]], CAM).foreground & rasterize(verts, faces[[2]], CAM).foreground
+    assert both.any() and (only_plane.pix_to_face[both] == 0).all()
+    for dtype in (torch.float32, torch.float64):
+        frag = rasterize(verts.to(dtype), faces, CAM)
+        assert torch.equal(frag.pix_to_face, fast.pix_to_face)
+
+
+def test_tiny_subpixel_triangles():
+    # Project a 0.3 px triangle around pixel centre (10, 7) and one between pixel centres.
+    def around(u: float, v: float, z: float = 100.0) -> torch.Tensor:
+        pts = torch.tensor([[u - 0.15, v - 0.1], [u + 0.15, v - 0.1], [u, v + 0.2]], dtype=torch.float64)
+        xy = (pts - torch.tensor([CAM.cx, CAM.cy], dtype=torch.float64)) / CAM.fx * z
+        return torch.cat([xy, torch.full((3, 1), z, dtype=torch.float64)], -1)
+
+    verts = torch.cat([around(10.0, 7.0), around(20.5, 15.5)])[None]
+    faces = torch.tensor([[0, 2, 1], [3, 5, 4]])
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert fast.foreground.sum() == 1 and fast.pix_to_face[0, 7, 10] == 0
+    assert torch.equal(fast.pix_to_face, ref.pix_to_face)
+    torch.testing.assert_close(fast.bary, ref.bary)
+
+
+def test_huge_triangles_cover_the_image():
+    big = torch.tensor([[-1e4, -1e4, 428.0], [1e4, -1e4, 428.0], [0.0, 1e4, 428.0]], dtype=torch.float64)
+    # A second huge one, tilted through the near plane, crossing the first inside the image.
+    tilted = torch.tensor([[-5e3, -5e3, -50.0], [5e3, -5e3, -50.0], [0.0, 5e3, 900.0]], dtype=torch.float64)
+    verts = torch.cat([big, tilted])[None]
+    faces = torch.tensor([[0, 2, 1], [3, 5, 4]])
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert fast.foreground.all()
+    assert set(fast.pix_to_face.unique().tolist()) == {0, 1}
+    assert_fragments_match(fast, ref)
+
+
+# -------------------------------------------------------------------------------------- batching, culling
+
+
+def test_batched_equals_per_sample():
+    verts, faces = random_soup(5, 3, 10)
+    batched = rasterize(verts, faces, CAM)
+    for b in range(3):
+        single = rasterize(verts[b : b + 1], faces, CAM)
+        assert torch.equal(single.pix_to_face[0], batched.pix_to_face[b])
+        assert torch.equal(single.bary[0], batched.bary[b])
+        assert torch.equal(single.zbuf[0], batched.zbuf[b])
+        assert torch.equal(single.facing[0], batched.facing[b])
+
+
+def test_chunking_gives_identical_result(monkeypatch):
+    verts, faces = random_surface(3, 2)
+    whole = rasterize(verts, faces, CAM)
+    monkeypatch.setattr(rasterizer_module, "_MAX_PAIRS_PER_CHUNK", 37)
+    chunked = rasterize(verts, faces, CAM)
+    for name in ("pix_to_face", "bary", "zbuf", "facing"):
+        assert torch.equal(getattr(whole, name), getattr(chunked, name))
+
+
+def test_facing_values_and_culling():
+    tri = torch.tensor([[-50.0, -50.0, 100.0], [50.0, -50.0, 100.0], [0.0, 50.0, 100.0]], dtype=torch.float64)
+    verts = tri[None]
+    front_faces, back_faces = torch.tensor([[0, 2, 1]]), torch.tensor([[0, 1, 2]])
+    front = rasterize(verts, front_faces, CAM)
+    back = rasterize(verts, back_faces, CAM)
+    assert torch.equal(front.foreground, back.foreground) and front.foreground.any()
+    assert (front.facing[front.foreground] == 1).all() and (back.facing[back.foreground] == -1).all()
+    assert (front.facing[~front.foreground] == 0).all()
+    assert not rasterize(verts, back_faces, CAM, cull_backfaces=True).foreground.any()
+    assert torch.equal(rasterize(verts, front_faces, CAM, cull_backfaces=True).pix_to_face, front.pix_to_face)
+    # A closed mesh: back faces are always hidden behind front faces, so culling changes nothing.
+    sphere, sphere_faces, _ = icosphere(50.0, (0.0, 0.0, 180.0))
+    plain = rasterize(sphere, sphere_faces, CAM)
+    culled = rasterize(sphere, sphere_faces, CAM, cull_backfaces=True)
+    assert torch.equal(plain.pix_to_face, culled.pix_to_face)
+    assert (plain.facing[plain.foreground] == 1).all()
+
+
+def test_float32_agrees_with_float64():
+    verts, faces = random_surface(7, 2)
+    f64 = rasterize(verts, faces, CAM)
+    f32 = rasterize(verts.float(), faces, CAM)
+    fg64, fg32 = f64.foreground, f32.foreground
+    ambiguous = (fg64 & (min_bary(f64) < 1e-4)) | (fg32 & (min_bary(f32).double() < 1e-4))
+    same = f64.pix_to_face == f32.pix_to_face
+    assert same[~ambiguous].all() and ambiguous.double().mean() < 0.02
+    both = same & fg64
+    torch.testing.assert_close(f32.bary[both].double(), f64.bary[both], atol=1e-4, rtol=0)
+    torch.testing.assert_close(f32.zbuf[both].double(), f64.zbuf[both], atol=0, rtol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------ gradients
+
+
+def test_gradcheck_bary_and_depth():
+    verts = torch.tensor(
+        [[[-47.3, -41.1, 95.0], [52.2, -38.7, 110.0], [3.1, 49.4, 120.0]]], dtype=torch.float64, requires_grad=True
+    )
+    faces = torch.tensor([[0, 2, 1]])
+    mask = rasterize(verts, faces, CAM).foreground
+    assert mask.any() and min_bary(rasterize(verts, faces, CAM))[mask].min() > 1e-5
+
+    def fn(v):
+        frag = rasterize(v, faces, CAM)
+        assert torch.equal(frag.foreground, mask)
+        return frag.bary[mask], frag.zbuf[mask]
+
+    assert torch.autograd.gradcheck(fn, (verts,), eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu():
+    verts, faces = random_surface(4, 2)
+    cpu = rasterize(verts.float(), faces, CAM)
+    gpu = rasterize(verts.float().cuda(), faces.cuda(), CAM)
+    assert torch.equal(cpu.pix_to_face, gpu.pix_to_face.cpu())
+    torch.testing.assert_close(cpu.bary, gpu.bary.cpu(), atol=1e-5, rtol=0)

@@ -1,0 +1,188 @@
+"""Normals, back-face tests and point visibility (self-occlusion, the paper's Section 4).
+
+The paper drops template points whose facet turns away from the camera or that a z-buffer hides.
+:func:`backfacing` is the first test per triangle, :func:`points_visible` combines both per point
+against the :class:`~torchface.rendering.rasterizer.Fragments` of the current pose.
+Winding: ``n = (v1 - v0) x (v2 - v0)`` points out of the surface (see :mod:`torchface.conventions`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchface.conventions import NEAR_PLANE_MM
+from torchface.geometry.camera import Intrinsics
+from torchface.rendering.rasterizer import Fragments, _check_mesh, _triangles
+
+__all__ = ["face_normals", "vertex_normals", "backfacing", "points_visible"]
+
+#: Default relative depth tolerance of :func:`points_visible` (fraction of the point's depth).
+DEFAULT_DEPTH_TOLERANCE: float = 1e-2
+
+
+def _unit(vectors: Tensor) -> Tensor:
+    """Normalise ``(..., 3)`` vectors; zero vectors stay zero and have finite gradients."""
+    tiny = torch.finfo(vectors.dtype).tiny
+    norm_sq = (vectors * vectors).sum(-1, keepdim=True)
+    return vectors / norm_sq.clamp_min(tiny).sqrt()
+
+
+def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
+    """Unit outward normals ``n = (v1 - v0) x (v2 - v0) / |...|`` of every triangle.
+
+    Args:
+        verts: ``(B, V, 3)`` vertex positions in any frame.
+        faces: ``(F, 3)`` int vertex indices, counter-clockwise seen from outside.
+
+    Returns:
+        ``(B, F, 3)`` unit normals in the frame of ``verts``; zero for zero-area triangles.
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+        >>> face_normals(v, torch.tensor([[0, 1, 2]]))
+        tensor([[[0., 0., 1.]]])
+    """
+    _check_mesh(verts, faces)
+    tri = _triangles(verts, faces)
+    n = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
+    return _unit(n)
+
+
+def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
+    """Area-weighted unit vertex normals (the paper's per-point normals for the illumination basis, Eq. 19).
+
+    Each vertex normal is the sum of the unnormalised normals ``(v1 - v0) x (v2 - v0)`` (twice the
+    area times the unit normal) of the triangles that use it, normalised.
+
+    Args:
+        verts: ``(B, V, 3)`` vertex positions.
+        faces: ``(F, 3)`` int vertex indices.
+
+    Returns:
+        ``(B, V, 3)`` unit normals; zero for vertices used by no triangle (or only degenerate ones).
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]]])
+        >>> vertex_normals(v, torch.tensor([[0, 1, 2]]))[0, :, 2]
+        tensor([1., 1., 1., 0.])
+    """
+    _check_mesh(verts, faces)
+    tri = _triangles(verts, faces)
+    n = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
+    faces_l = faces.long()
+    acc = torch.zeros_like(verts)
+    for corner in range(3):
+        acc = acc.index_add(1, faces_l[:, corner], n)
+    return _unit(acc)
+
+
+def backfacing(verts_cam: Tensor, faces: Tensor) -> Tensor:
+    """Which triangles turn away from the camera at the origin: ``n . v0 >= 0``.
+
+    With outward normals ``n = (v1 - v0) x (v2 - v0)``, a triangle faces the camera iff its normal
+    points back toward the camera centre, ``n . (0 - v0) > 0``. Zero-area and edge-on triangles count
+    as back-facing.
+
+    Args:
+        verts_cam: ``(B, V, 3)`` vertices in the camera frame (millimetres).
+        faces: ``(F, 3)`` int vertex indices.
+
+    Returns:
+        ``(B, F)`` bool, True where back-facing.
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 100], [1, 0, 100], [0, 1, 100]]])
+        >>> backfacing(v, torch.tensor([[0, 1, 2], [0, 2, 1]]))
+        tensor([[ True, False]])
+    """
+    _check_mesh(verts_cam, faces, "verts_cam")
+    tri = _triangles(verts_cam, faces)
+    n = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
+    return (n * tri[..., 0, :]).sum(-1) >= 0
+
+
+def points_visible(
+    points_cam: Tensor,
+    point_faces: Tensor,
+    fragments: Fragments,
+    intrinsics: Intrinsics,
+    *,
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+    near: float = NEAR_PLANE_MM,
+) -> Tensor:
+    """Which surface points the camera sees, given the fragments of the same pose.
+
+    A point ``X = (X, Y, Z)`` lying on triangle ``point_faces[b, n]`` is visible iff all hold:
+
+    * it is in front of the near plane, ``Z > near``;
+    * it projects inside the image: its nearest pixel centre ``(round(u), round(v))`` with
+      ``u = fx X / Z + cx``, ``v = fy Y / Z + cy`` lies in ``[0, W - 1] x [0, H - 1]``;
+    * the surface seen at that pixel is front-facing (``fragments.facing == +1``), which also rejects
+      points whose pixel is background;
+    * it is not hidden: the pixel shows its own triangle, or the z-buffer there is not closer than
+      its depth by more than ``depth_tolerance * Z``.
+
+    Nearest-pixel sampling makes the answer conservative at silhouettes, where the pixel centre may
+    fall off the mesh.
+
+    Args:
+        points_cam: ``(B, N, 3)`` points in the camera frame (millimetres).
+        point_faces: ``(B, N)`` or ``(N,)`` int64 index of the triangle each point lies on.
+        fragments: :func:`~torchface.rendering.rasterizer.rasterize` output ``(B, H, W)`` for the
+            same vertices and ``intrinsics``.
+        intrinsics: the camera.
+        depth_tolerance: allowed relative depth gap (fraction of ``Z``, non-negative) between the
+            z-buffer and the point.
+        near: points at depth ``Z <= near`` (millimetres) are not visible.
+
+    Returns:
+        ``(B, N)`` bool.
+
+    Example:
+        >>> from torchface.rendering.rasterizer import rasterize
+        >>> cam = Intrinsics.default(32, 24)
+        >>> tri = torch.tensor([[-50.0, -50, 1], [50, -50, 1], [0, 50, 1]])
+        >>> v = torch.cat([tri * torch.tensor([1.0, 1, 100]), tri * torch.tensor([1.0, 1, 150])])[None]
+        >>> faces = torch.tensor([[0, 2, 1], [3, 5, 4]])  # the second triangle is behind the first
+        >>> frag = rasterize(v, faces, cam)
+        >>> pts = torch.tensor([[[0.0, 0.0, 100.0], [0.0, 0.0, 150.0]]])
+        >>> points_visible(pts, torch.tensor([0, 1]), frag, cam)
+        tensor([[ True, False]])
+    """
+    if not isinstance(points_cam, Tensor) or not points_cam.is_floating_point():
+        raise TypeError(f"points_cam must be a floating-point tensor, got {type(points_cam).__name__}")
+    if points_cam.ndim != 3 or points_cam.shape[-1] != 3:
+        raise ValueError(f"points_cam must be (B, N, 3), got {tuple(points_cam.shape)}")
+    B, N = points_cam.shape[:2]
+    if not isinstance(point_faces, Tensor) or point_faces.dtype not in (torch.int32, torch.int64):
+        raise TypeError(f"point_faces must be an int32/int64 tensor, got {getattr(point_faces, 'dtype', type(point_faces))}")
+    if point_faces.shape not in ((N,), (B, N)):
+        raise ValueError(f"point_faces must be (N,) or (B, N) = ({N},) or ({B}, {N}), got {tuple(point_faces.shape)}")
+    H, W = intrinsics.height, intrinsics.width
+    if fragments.pix_to_face.shape != (B, H, W):
+        raise ValueError(
+            f"fragments must be (B, H, W) = ({B}, {H}, {W}) to match points_cam and intrinsics, "
+            f"got {tuple(fragments.pix_to_face.shape)}"
+        )
+    if not depth_tolerance >= 0:
+        raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
+
+    pts = points_cam.detach()
+    z = pts[..., 2]
+    in_front = z > near
+    z_safe = torch.where(in_front, z, torch.ones_like(z))
+    u = pts[..., 0] / z_safe * intrinsics.fx + intrinsics.cx
+    v = pts[..., 1] / z_safe * intrinsics.fy + intrinsics.cy
+    col = torch.floor(u + 0.5)
+    row = torch.floor(v + 0.5)
+    inside = in_front & (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1)
+    col = torch.where(inside, col, torch.zeros_like(col)).long()
+    row = torch.where(inside, row, torch.zeros_like(row)).long()
+    batch = torch.arange(B, device=pts.device).unsqueeze(-1).expand(B, N)
+    seen_face = fragments.pix_to_face[batch, row, col]
+    seen_depth = fragments.zbuf.detach()[batch, row, col].to(pts.dtype)
+    seen_facing = fragments.facing[batch, row, col]
+    own = seen_face == point_faces.to(seen_face.device).long().expand(B, N)
+    not_hidden = own | (seen_depth >= z * (1.0 - depth_tolerance))
+    return inside & (seen_facing == 1) & not_hidden
