@@ -313,11 +313,12 @@ def test_gradcheck_bary_and_depth():
         [[[-47.3, -41.1, 95.0], [52.2, -38.7, 110.0], [3.1, 49.4, 120.0]]], dtype=torch.float64, requires_grad=True
     )
     faces = torch.tensor([[0, 2, 1]])
-    mask = rasterize(verts, faces, CAM).foreground
-    assert mask.any() and min_bary(rasterize(verts, faces, CAM))[mask].min() > 1e-5
+    cam = Intrinsics.default(12, 9)
+    mask = rasterize(verts, faces, cam).foreground
+    assert mask.any() and min_bary(rasterize(verts, faces, cam))[mask].min() > 1e-5
 
     def fn(v):
-        frag = rasterize(v, faces, CAM)
+        frag = rasterize(v, faces, cam)
         assert torch.equal(frag.foreground, mask)
         return frag.bary[mask], frag.zbuf[mask]
 
