@@ -1,0 +1,172 @@
+"""FaceModel: deform (Eq. 1), landmarks, normals, validation, dtype/device handling."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchface.model import FaceModel, deform_vertices, face_normals, interpolate_landmarks, load_candide3, vertex_normals
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3(dtype=torch.float64)
+
+
+def test_zero_coefficients_give_the_mean(model):
+    torch.testing.assert_close(model.deform()[0], model.mean)
+    zeros = model.deform(torch.zeros(3, model.num_shape, dtype=torch.float64), torch.zeros(3, model.num_animation, dtype=torch.float64))
+    assert zeros.shape == (3, model.num_vertices, 3)
+    torch.testing.assert_close(zeros, model.mean.expand(3, -1, -1))
+    # None for one term, B inferred from the other.
+    assert model.deform(None, torch.zeros(5, model.num_animation, dtype=torch.float64)).shape[0] == 5
+    assert model.deform(torch.zeros(4, model.num_shape, dtype=torch.float64), None).shape[0] == 4
+    # The output never aliases the model's mean.
+    out = model.deform()
+    out += 1.0
+    assert not torch.equal(out[0], model.mean)
+
+
+def test_deform_matches_explicit_sum(model):
+    gen = torch.Generator().manual_seed(0)
+    sigma = torch.randn(4, model.num_shape, generator=gen, dtype=torch.float64)
+    alpha = torch.randn(4, model.num_animation, generator=gen, dtype=torch.float64)
+    out = model.deform(sigma, alpha)
+    for b in range(4):  # slow reference, one sample and one unit at a time
+        ref = model.mean.clone()
+        for s in range(model.num_shape):
+            ref = ref + sigma[b, s] * model.shape_units[s]
+        for a in range(model.num_animation):
+            ref = ref + alpha[b, a] * model.animation_units[a]
+        torch.testing.assert_close(out[b], ref)
+        torch.testing.assert_close(model.deform(sigma[b : b + 1], alpha[b : b + 1])[0], out[b])
+
+
+def test_deform_is_linear_with_exact_jacobian(model):
+    alpha = torch.randn(1, model.num_animation, dtype=torch.float64)
+    jac = torch.autograd.functional.jacobian(lambda a: model.deform(None, a)[:, ::8], alpha)
+    expected = model.animation_units[:, ::8].permute(1, 2, 0)  # (V/8, 3, A)
+    torch.testing.assert_close(jac[0, :, :, 0, :], expected)
+    sigma = torch.randn(2, model.num_shape, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s: model.deform(s, alpha.expand(2, -1)), (sigma,), fast_mode=True)
+
+
+@pytest.mark.parametrize(
+    "shape, anim, error, message",
+    [
+        ("vec", None, ValueError, r"shape coefficients must have shape \(B, 14\), got \(14,\)"),
+        (None, "wrong_width", ValueError, r"animation coefficients must have shape \(B, 11\), got \(2, 10\)"),
+        ("batch3", "batch2", ValueError, "share the batch size"),
+        (None, "float32", TypeError, "dtype"),
+        (None, "list", TypeError, "torch.Tensor"),
+    ],
+)
+def test_bad_coefficients_raise(model, shape, anim, error, message):
+    values = {
+        None: None,
+        "vec": torch.zeros(14, dtype=torch.float64),
+        "wrong_width": torch.zeros(2, 10, dtype=torch.float64),
+        "batch3": torch.zeros(3, 14, dtype=torch.float64),
+        "batch2": torch.zeros(2, 11, dtype=torch.float64),
+        "float32": torch.zeros(1, 11, dtype=torch.float32),
+        "list": [[0.0] * 11],
+    }
+    with pytest.raises(error, match=message):
+        model.deform(values[shape], values[anim])
+
+
+def test_landmarks_follow_deformation(model):
+    alpha = torch.zeros(2, model.num_animation, dtype=torch.float64)
+    alpha[1, model.animation_names.index("AUV11 Jaw drop")] = 1.0
+    verts = model.deform(None, alpha)
+    lm = model.landmarks_3d(verts)
+    assert lm.shape == (2, 68, 3)
+    # Chin (iBUG 8 = vertex 10) and lower lip (57 = vertex 8) move down (+y); upper lip (51 = 7) stays.
+    delta = lm[1] - lm[0]
+    assert delta[8, 1] > 10.0 and delta[57, 1] > 20.0
+    torch.testing.assert_close(delta[51], torch.zeros(3, dtype=torch.float64))
+    # Derived landmark = weighted vertices, by hand.
+    k = 5
+    ref = sum(model.landmark_weights[k, j] * verts[:, model.landmark_vertices[k, j]] for j in range(3))
+    torch.testing.assert_close(lm[:, k], ref)
+    with pytest.raises(ValueError, match=r"verts must have shape \(B, 113, 3\)"):
+        model.landmarks_3d(verts[0])
+
+
+def test_dtype_and_device_follow():
+    m32 = load_candide3()
+    assert m32.dtype == torch.float32 and m32.device.type == "cpu"
+    assert m32.deform(None, torch.zeros(1, 11)).dtype == torch.float32
+    m64 = m32.to(dtype=torch.float64)
+    assert m64.dtype == torch.float64 and m64.faces.dtype == torch.int64
+    assert m64.surface_vertex_mask.dtype == torch.bool and m64.landmark_vertices.dtype == torch.int64
+    assert all(t.dtype == torch.float64 for t in (m64.shape_units, m64.animation_units, m64.animation_ranges,
+                                                    m64.landmark_weights, m64.facs_matrix))
+    torch.testing.assert_close(m64.mean.float(), m32.mean)
+    assert m32.to("cpu").device == torch.device("cpu")
+    with pytest.raises(TypeError, match="floating"):
+        m32.to(dtype=torch.int32)
+    if torch.cuda.is_available():
+        mg = m32.to("cuda")
+        assert mg.deform(None, torch.zeros(1, 11, device="cuda")).device.type == "cuda"
+
+
+def test_construction_validates_shapes(model):
+    fields = {f: getattr(model, f) for f in model.__dataclass_fields__}
+    bad = dict(fields, shape_units=model.shape_units[:, :-1])
+    with pytest.raises(ValueError, match=r"shape_units must have shape \(14, 113, 3\)"):
+        FaceModel(**bad)
+    with pytest.raises(ValueError, match="faces must be an int64"):
+        FaceModel(**dict(fields, faces=model.faces.int()))
+    with pytest.raises(TypeError, match="tuple of str"):
+        FaceModel(**dict(fields, shape_names=list(model.shape_names)))
+    with pytest.raises(ValueError, match="faces index vertices outside"):
+        FaceModel(**dict(fields, faces=model.faces + 200))
+
+
+def test_vertex_normals_known_answer_and_zero_safe():
+    # A unit square in the z = 0 plane, wound so that (v1 - v0) x (v2 - v0) is -z, plus an unused vertex.
+    verts = torch.tensor([[[0.0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0], [3, 3, 3]]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    vn = vertex_normals(verts, faces)
+    torch.testing.assert_close(vn[0, :4], torch.tensor([0.0, 0, -1]).expand(4, 3).double())
+    torch.testing.assert_close(vn[0, 4], torch.zeros(3, dtype=torch.float64))
+    torch.testing.assert_close(face_normals(verts, faces)[0], torch.tensor([[0.0, 0, -1], [0, 0, -1]]).double())
+    # Area weighting: a tent; the shared vertex normal leans toward the bigger face's normal.
+    tent = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 0, 1], [0, 3, 0]]], dtype=torch.float64)
+    tf = torch.tensor([[0, 1, 2], [0, 2, 3]])  # normals -y (area 0.5) and -x (area 1.5)
+    n0 = vertex_normals(tent, tf)[0, 0]
+    expected = torch.tensor([-3.0, -1.0, 0.0], dtype=torch.float64) / 10 ** 0.5
+    torch.testing.assert_close(n0, expected)
+    # Gradients stay finite through an unused vertex and a degenerate (zero-area) triangle.
+    deg = verts.clone().requires_grad_(True)
+    out = vertex_normals(deg, torch.tensor([[0, 1, 2], [4, 4, 4]])).sum() + face_normals(deg, torch.tensor([[4, 4, 4]])).sum()
+    out.backward()
+    assert torch.isfinite(deg.grad).all()
+
+
+def test_normals_gradcheck():
+    gen = torch.Generator().manual_seed(1)
+    verts = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [1, 3, 4]])
+    assert torch.autograd.gradcheck(lambda v: vertex_normals(v, faces), (verts,))
+    assert torch.autograd.gradcheck(lambda v: face_normals(v, faces), (verts,))
+
+
+def test_candide_vertex_normals_point_out(model):
+    vn = model.vertex_normals(model.mean[None])[0]
+    mask = model.surface_vertex_mask
+    torch.testing.assert_close(vn[mask].norm(dim=-1), torch.ones(int(mask.sum()), dtype=torch.float64))
+    assert (vn[~mask] == 0).all()
+    # Nose tip (5) faces the viewer (-z in the head frame); the left temple (14) faces +x.
+    assert vn[5, 2] < -0.9 and vn[14, 0] > 0.5
+
+
+def test_functional_core_examples():
+    v = torch.tensor([[[0.0, 0, 0], [2.0, 0, 0]]])
+    out = interpolate_landmarks(v, torch.tensor([[0, 1, 0]]), torch.tensor([[0.25, 0.75, 0.0]]))
+    torch.testing.assert_close(out, torch.tensor([[[1.5, 0.0, 0.0]]]))
+    mean, su, au = torch.zeros(2, 3), torch.zeros(0, 2, 3), torch.ones(1, 2, 3)
+    torch.testing.assert_close(deform_vertices(mean, su, au, None, torch.tensor([[2.0]])), torch.full((1, 2, 3), 2.0))
+    # S = 0 shape coefficients are (B, 0).
+    assert deform_vertices(mean, su, au, torch.zeros(3, 0), None).shape == (3, 2, 3)
