@@ -1,0 +1,75 @@
+"""Illumination basis for a Lambertian face under distant lights (paper Eq. 10-11 and 19).
+
+A Lambertian point with albedo rho and unit normal n under an ambient term a and distant lights has intensity
+``I = rho (a + sum_k s_k max(0, n . l_k))``. Away from shadow boundaries this is linear in the normal,
+``I ~ rho (c0 + c . n)``: first-order spherical harmonics, which contain the paper's basis built from three
+fixed light directions (any three independent directions span the same space). The template intensity
+``T`` stands in for the albedo, so the appearance of a template point under new light is
+
+    ``T(x) + sum_i lambda_i B_i(x)`` with ``B = [T, 1, T n_x, T n_y, T n_z]``
+
+(gain, bias, three directional terms; normals in the camera frame). ``lambda = 0`` reproduces the template.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+#: Names of the illumination parameters, in basis order.
+ILLUMINATION_TERM_NAMES: tuple[str, ...] = ("gain", "bias", "light_x", "light_y", "light_z")
+#: L, the number of illumination terms.
+NUM_ILLUMINATION_TERMS: int = len(ILLUMINATION_TERM_NAMES)
+
+
+def illumination_basis(template: Tensor, normals_cam: Tensor) -> Tensor:
+    """The illumination basis images ``B_i(x)`` of Eq. 11 at template points.
+
+    Args:
+        template: ``(B, N)`` template intensities ``T``.
+        normals_cam: ``(B, N, 3)`` unit surface normals in the camera frame.
+
+    Returns:
+        ``(B, N, L)`` with ``L = 5``: ``[T, 1, T n_x, T n_y, T n_z]``.
+    """
+    if template.dim() != 2 or normals_cam.shape != template.shape + (3,):
+        raise ValueError(
+            f"template must be (B, N) and normals_cam (B, N, 3), got {tuple(template.shape)} and "
+            f"{tuple(normals_cam.shape)}"
+        )
+    t = template.unsqueeze(-1)
+    return torch.cat([t, torch.ones_like(t), t * normals_cam], dim=-1)
+
+
+def apply_illumination(template: Tensor, basis: Tensor, params: Tensor) -> Tensor:
+    """Template under new light, ``T + sum_i lambda_i B_i`` (Eq. 19).
+
+    Args:
+        template: ``(B, N)``; basis: ``(B, N, L)``; params: ``(B, L)``.
+
+    Returns:
+        ``(B, N)``.
+    """
+    return template + torch.einsum("bnl,bl->bn", basis, params)
+
+
+def remove_illumination(observed: Tensor, normals_cam: Tensor, params: Tensor, min_gain: float = 0.05) -> Tensor:
+    """Invert the illumination model: the intensity the point would have under the reference light.
+
+    From ``I = T (1 + g + lambda_d . n) + b`` it returns ``T = (I - b) / (1 + g + lambda_d . n)``, with the
+    denominator clamped to at least ``min_gain`` so the result is always finite.
+
+    Args:
+        observed: ``(B, N)`` or ``(B, C, N)`` observed intensities.
+        normals_cam: ``(B, N, 3)`` unit normals in the camera frame.
+        params: ``(B, L)`` illumination parameters ``[gain, bias, lx, ly, lz]``.
+
+    Returns:
+        Same shape as ``observed``.
+    """
+    gain = 1.0 + params[:, 0:1] + torch.einsum("bnk,bk->bn", normals_cam, params[:, 2:5])  # (B, N)
+    gain = gain.clamp_min(min_gain)
+    bias = params[:, 1:2]
+    if observed.dim() == 3:
+        return (observed - bias.unsqueeze(1)) / gain.unsqueeze(1)
+    return (observed - bias) / gain

@@ -1,0 +1,77 @@
+"""Bilinear sampling of images at pixel coordinates (pixel centres at integers, see torchface.conventions)."""
+
+from __future__ import annotations
+
+import kornia
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def to_gray(images: Tensor) -> Tensor:
+    """Luminance of RGB images.
+
+    Args:
+        images: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in ``[0, 1]``.
+
+    Returns:
+        ``(B, 1, H, W)`` gray images (ITU-R BT.601 weights, as ``kornia.color.rgb_to_grayscale``).
+    """
+    if images.dim() != 4 or images.shape[1] not in (1, 3):
+        raise ValueError(f"images must be (B, 1 or 3, H, W), got {tuple(images.shape)}")
+    if images.shape[1] == 1:
+        return images
+    return kornia.color.rgb_to_grayscale(images)
+
+
+def pixels_to_grid(points_px: Tensor, height: int, width: int) -> Tensor:
+    """Map pixel coordinates ``(u, v)`` to ``grid_sample``'s normalised coordinates (``align_corners=True``).
+
+    Args:
+        points_px: ``(B, N, 2)`` pixel coordinates (column, row).
+
+    Returns:
+        ``(B, N, 2)`` coordinates in ``[-1, 1]`` for points inside the image.
+    """
+    scale = points_px.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
+    return points_px * scale - 1.0
+
+
+def sample_at_pixels(images: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinearly sample images at pixel coordinates.
+
+    Args:
+        images: ``(B, C, H, W)``.
+        points_px: ``(B, N, 2)`` pixel coordinates ``(u, v)``.
+
+    Returns:
+        ``values (B, N, C)`` (border values outside the image) and ``inside (B, N)`` bool, True where the
+        point lies within ``[0, W - 1] x [0, H - 1]`` (where all four bilinear neighbours exist).
+
+    Differentiable with respect to ``images`` and ``points_px``.
+    """
+    if images.dim() != 4:
+        raise ValueError(f"images must be (B, C, H, W), got {tuple(images.shape)}")
+    if points_px.dim() != 3 or points_px.shape[-1] != 2 or points_px.shape[0] != images.shape[0]:
+        raise ValueError(f"points_px must be (B, N, 2) with B={images.shape[0]}, got {tuple(points_px.shape)}")
+    h, w = images.shape[-2:]
+    grid = pixels_to_grid(points_px, h, w).unsqueeze(1)  # (B, 1, N, 2)
+    values = F.grid_sample(images, grid.to(images.dtype), mode="bilinear", padding_mode="border", align_corners=True)
+    u, v = points_px[..., 0], points_px[..., 1]
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & torch.isfinite(points_px).all(-1)
+    return values.squeeze(2).transpose(1, 2), inside
+
+
+def image_with_gradients(gray: Tensor) -> Tensor:
+    """Stack a gray image with its spatial derivatives for one-call sampling in Lucas-Kanade.
+
+    Args:
+        gray: ``(B, 1, H, W)``.
+
+    Returns:
+        ``(B, 3, H, W)``: intensity, d/du and d/dv (central differences, per pixel, replicate border), so that
+        sampling at a point gives ``I`` and ``grad I`` there.
+    """
+    grads = kornia.filters.spatial_gradient(gray, mode="diff", order=1, normalized=False)  # (B, 1, 2, H, W)
+    # kornia's "diff" kernel is [-1, 0, 1] unnormalised: halve it for a central difference per pixel.
+    return torch.cat([gray, 0.5 * grads[:, 0]], dim=1)

@@ -1,0 +1,169 @@
+"""Template points: visible, informative surface points of the fitted model with their appearance.
+
+Each template point lies on one triangle with fixed barycentric coordinates, so its 3D position and its
+expression basis are barycentric interpolations of the triangle's vertices and of the animation units at
+those vertices (paper Eq. 3-9): ``X(alpha) = X_0 + sum_j alpha_j B_j`` for all points at once, with no
+per-iteration triangle search.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchface.appearance.sampling import image_with_gradients
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.transforms import transform_points
+from torchface.model.face_model import FaceModel
+from torchface.rendering.rasterizer import rasterize
+from torchface.rendering.visibility import vertex_normals
+
+
+@dataclass(frozen=True)
+class Template:
+    """Template points of one pyramid level, ``N`` slots per sample (unused slots have ``valid`` False).
+
+    Attributes:
+        face_index: ``(B, N)`` int64 triangle of each point.
+        bary: ``(B, N, 3)`` barycentric coordinates in that triangle.
+        points: ``(B, N, 3)`` head-frame position (mm) with the sample's shape units and zero expression.
+        basis: ``(B, N, A, 3)`` expression basis: displacement of the point per unit of each animation unit.
+        normals: ``(B, N, 3)`` unit head-frame normals (zero expression).
+        intensity: ``(B, N)`` gray value of the reference frame at the point (``T`` in the paper).
+        valid: ``(B, N)`` bool.
+    """
+
+    face_index: Tensor
+    bary: Tensor
+    points: Tensor
+    basis: Tensor
+    normals: Tensor
+    intensity: Tensor
+    valid: Tensor
+
+    @property
+    def num_points(self) -> Tensor:
+        """``(B,)`` number of valid points per sample."""
+        return self.valid.sum(-1)
+
+    def select(self, index: Tensor) -> "Template":
+        """The templates of samples ``index`` (a ``(B',)`` int64 or bool tensor)."""
+        return Template(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
+
+
+def gather_face_attributes(attributes: Tensor, faces: Tensor, face_index: Tensor, bary: Tensor, *, batched: bool) -> Tensor:
+    """Barycentric interpolation of per-vertex attributes at points on triangles.
+
+    Args:
+        attributes: ``(B, V, *D)`` when ``batched`` else ``(V, *D)`` (shared by the batch) per-vertex values.
+        faces: ``(F, 3)`` int64.
+        face_index: ``(B, N)`` int64, a triangle per point (clamped to ``>= 0``: mask invalid points yourself).
+        bary: ``(B, N, 3)``.
+
+    Returns:
+        ``(B, N, *D)``: ``sum_i bary_i * attributes[faces[face_index, i]]``.
+    """
+    B, N = face_index.shape
+    corner = faces[face_index.clamp_min(0)]  # (B, N, 3)
+    if batched:
+        extra = attributes.shape[2:]
+        flat = attributes.reshape(B, attributes.shape[1], -1)
+        idx = corner.reshape(B, N * 3, 1).expand(-1, -1, flat.shape[-1])
+        vals = torch.gather(flat, 1, idx).reshape(B, N, 3, *extra)
+    else:
+        vals = attributes[corner]  # (B, N, 3, *D)
+    w = bary.reshape(B, N, 3, *([1] * (vals.dim() - 3))).to(vals.dtype)
+    return (vals * w).sum(2)
+
+
+def _erode(mask: Tensor, radius: int) -> Tensor:
+    """Binary erosion of ``(B, H, W)`` bool masks by a ``(2 r + 1)^2`` square."""
+    if radius <= 0:
+        return mask
+    k = 2 * radius + 1
+    inv = (~mask).float().unsqueeze(1)
+    return ~(F.max_pool2d(inv, k, stride=1, padding=radius).squeeze(1) > 0)
+
+
+def _selection_keys(height: int, width: int, device: torch.device) -> Tensor:
+    """Deterministic pseudo-random keys in ``[0, 1)`` per pixel, the same for every sample and call.
+
+    Used to pick a uniform subset of the candidate pixels; being a function of the pixel alone, a stream
+    gets the same template whether it is tracked alone or in a batch.
+    """
+    gen = torch.Generator(device="cpu").manual_seed(height * 100003 + width)
+    return torch.rand(height * width, generator=gen).to(device)
+
+
+def build_template(
+    model: FaceModel,
+    shape_coeffs: Tensor,
+    anim_coeffs: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    gray: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    max_points: int,
+    gradient_threshold: float,
+    min_facing_cos: float = 0.15,
+    erode_pixels: int = 1,
+) -> Template:
+    """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
+
+    Rasterizes the posed model, keeps pixels that see a front-facing triangle at an angle steeper than
+    ``acos(min_facing_cos)`` (and not on the silhouette, after eroding the face mask by ``erode_pixels``),
+    keeps those whose gradient magnitude is at least ``gradient_threshold`` (informative points, Section 4)
+    and picks up to ``max_points`` of them uniformly. Each pixel centre becomes a template point on its
+    triangle, with its intensity read from ``gray``.
+
+    Args:
+        model: the face model.
+        shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)`` the frame's expression.
+        rotation: ``(B, 3, 3)`` and translation ``(B, 3)`` the frame's pose (head -> camera, mm).
+        gray: ``(B, 1, H, W)`` the frame, gray in ``[0, 1]``, at ``intrinsics``' size.
+        intrinsics: camera of ``gray``.
+        max_points: N, slots per sample.
+        gradient_threshold: minimum ``|grad I|`` (intensity per pixel) of a kept point; 0 keeps all.
+
+    Returns:
+        :class:`Template` with ``N = max_points`` slots.
+    """
+    if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
+        raise ValueError(f"gray must be (B, 1, {intrinsics.height}, {intrinsics.width}), got {tuple(gray.shape)}")
+    B, _, H, W = gray.shape
+    if not 0 < max_points <= H * W:
+        raise ValueError(f"max_points must be in [1, {H * W}] (the pixels of the image), got {max_points}")
+    verts_model = model.deform(shape_coeffs, anim_coeffs)
+    verts_cam = transform_points(rotation, translation, verts_model)
+    frags = rasterize(verts_cam, model.faces, intrinsics, cull_backfaces=True)
+    face = frags.pix_to_face
+    mask = (face >= 0) & (frags.facing > 0)
+    # Grazing facets sample the image badly: keep points whose normal faces the viewing ray.
+    normals_cam = torch.einsum("bij,bvj->bvi", rotation, vertex_normals(verts_model, model.faces))
+    face_flat = face.reshape(B, -1)
+    bary_flat = frags.bary.reshape(B, -1, 3)
+    n_pix = gather_face_attributes(normals_cam, model.faces, face_flat, bary_flat, batched=True)
+    p_pix = gather_face_attributes(verts_cam, model.faces, face_flat, bary_flat, batched=True)
+    cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(p_pix, dim=-1)).sum(-1)
+    mask = _erode(mask, erode_pixels) & (cos.reshape(B, H, W) >= min_facing_cos)
+    grads = image_with_gradients(gray)[:, 1:]
+    gmag = grads.pow(2).sum(1).sqrt()
+    candidate = mask & (gmag >= gradient_threshold)
+    keys = _selection_keys(H, W, gray.device).expand(B, -1)
+    score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
+    top, pix = torch.topk(score, max_points, dim=1)
+    valid = top >= 0
+    face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
+    bary = torch.gather(bary_flat, 1, pix.unsqueeze(-1).expand(-1, -1, 3)).to(verts_model.dtype)
+    neutral = model.deform(shape_coeffs, None)
+    points = gather_face_attributes(neutral, model.faces, face_index, bary, batched=True)
+    basis = gather_face_attributes(model.animation_units.transpose(0, 1), model.faces, face_index, bary, batched=False)
+    normals = torch.nn.functional.normalize(
+        gather_face_attributes(vertex_normals(neutral, model.faces), model.faces, face_index, bary, batched=True), dim=-1
+    )
+    intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(verts_model.dtype)
+    return Template(face_index, bary, points, basis, normals, intensity, valid)

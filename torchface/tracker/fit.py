@@ -1,0 +1,175 @@
+"""Individual shape and pose from 2D fiducial points (paper Eq. 2).
+
+Minimises ``sum_k w_k || pi(R (g_k + S_k sigma + A_k alpha) + t) - p_k ||^2`` over the rotation
+(axis-angle), the translation, the shape units ``sigma`` (Gaussian prior, bounded) and optionally a starting
+expression ``alpha``, by batched Levenberg-Marquardt, where ``g_k``, ``S_k``, ``A_k`` are the landmark
+positions and bases interpolated from the model's landmark table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
+from torchface.geometry.so3 import axis_angle_to_matrix
+from torchface.model.face_model import FaceModel, interpolate_landmarks
+from torchface.solver.least_squares import SolverConfig, SolveStatus, least_squares
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of :func:`fit_landmarks`.
+
+    Attributes:
+        shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in
+            units of squared pixels of landmark error per unit coefficient squared.
+        shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.
+        fit_expression: also estimate a starting expression (animation units, bounded by the model's ranges).
+        expression_prior_precision: prior precision on the animation units when ``fit_expression``.
+        max_iterations: Levenberg-Marquardt iterations.
+    """
+
+    shape_prior_precision: float = 200.0
+    shape_bound: float = 1.0
+    fit_expression: bool = False
+    expression_prior_precision: float = 200.0
+    max_iterations: int = 50
+
+    def __post_init__(self) -> None:
+        if self.shape_prior_precision < 0 or self.expression_prior_precision < 0:
+            raise ValueError("prior precisions must be non-negative")
+        if not self.shape_bound > 0:
+            raise ValueError(f"shape_bound must be positive, got {self.shape_bound}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+
+
+@dataclass(frozen=True)
+class LandmarkFit:
+    """Result of :func:`fit_landmarks`.
+
+    Attributes:
+        rotation: ``(B, 3, 3)`` head -> camera; axis_angle: ``(B, 3)``; translation: ``(B, 3)`` mm.
+        shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)`` (zeros unless fitted).
+        rms_px: ``(B,)`` weighted RMS landmark reprojection error in pixels.
+        status: ``(B,)`` int64 :class:`~torchface.solver.SolveStatus`.
+    """
+
+    rotation: Tensor
+    axis_angle: Tensor
+    translation: Tensor
+    shape_coeffs: Tensor
+    anim_coeffs: Tensor
+    rms_px: Tensor
+    status: Tensor
+
+
+def _check_landmarks(landmarks_px: Tensor, weights: Tensor | None, k: int, intrinsics: Intrinsics) -> Tensor:
+    if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
+        got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
+        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}")
+    B = landmarks_px.shape[0]
+    w = torch.ones(B, k, dtype=landmarks_px.dtype, device=landmarks_px.device) if weights is None else weights
+    if w.shape != (B, k):
+        raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(w.shape)}")
+    finite = torch.isfinite(landmarks_px).all(-1)
+    w = torch.where(finite & torch.isfinite(w), w.to(landmarks_px.dtype).clamp_min(0), torch.zeros_like(w))
+    if bool(((w > 0).sum(-1) < 4).any()):
+        raise ValueError("every sample needs at least 4 finite landmarks with positive weight")
+    return w
+
+
+def fit_landmarks(
+    model: FaceModel,
+    landmarks_px: Tensor,
+    intrinsics: Intrinsics,
+    weights: Tensor | None = None,
+    *,
+    landmark_indices: Tensor | None = None,
+    config: FitConfig = FitConfig(),
+) -> LandmarkFit:
+    """Fit pose, shape (and optionally expression) to 2D landmarks by weighted least squares (Eq. 2).
+
+    Args:
+        model: the face model; its landmark table gives the 3D points.
+        landmarks_px: ``(B, K, 2)`` pixel positions of the model's landmarks (all of them, or those listed in
+            ``landmark_indices``). NaN marks a missing point.
+        intrinsics: the camera.
+        weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones.
+        landmark_indices: ``(K,)`` int64 rows of the model's landmark table, or None for all.
+        config: :class:`FitConfig`.
+
+    Returns:
+        :class:`LandmarkFit`.
+    """
+    idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
+    k = int(idx.numel())
+    w = _check_landmarks(landmarks_px, weights, k, intrinsics)
+    B = landmarks_px.shape[0]
+    dtype, device = model.dtype, model.device
+    target = torch.nan_to_num(landmarks_px.to(dtype=dtype, device=device))
+    w = w.to(dtype=dtype, device=device)
+    lv, lw = model.landmark_vertices[idx], model.landmark_weights[idx]
+    mean_l = interpolate_landmarks(model.mean.unsqueeze(0), lv, lw)[0]  # (K, 3)
+    shape_l = interpolate_landmarks(model.shape_units, lv, lw)  # (S, K, 3)
+    anim_l = interpolate_landmarks(model.animation_units, lv, lw)  # (A, K, 3)
+    S, A = shape_l.shape[0], anim_l.shape[0] if config.fit_expression else 0
+    sqrt_w = w.sqrt().repeat_interleave(2, dim=1)  # (B, 2K)
+
+    def residual_fn(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        aa, t, sigma = x[:, :3], x[:, 3:6], x[:, 6 : 6 + S]
+        pts = mean_l.unsqueeze(0) + torch.einsum("bs,skj->bkj", sigma, shape_l)
+        if A:
+            pts = pts + torch.einsum("ba,akj->bkj", x[:, 6 + S :], anim_l)
+        R = axis_angle_to_matrix(aa)
+        cam = torch.einsum("bij,bkj->bki", R, pts) + t.unsqueeze(1)
+        uv = project_points(cam, intrinsics)
+        d_aa, d_t = pose_projection_jacobian(aa, t, pts, intrinsics)  # (B, K, 2, 3)
+        d_cam = project_points_jacobian(cam, intrinsics)  # (B, K, 2, 3)
+        d_dir = torch.einsum("bkuj,bji->bkui", d_cam, R)  # d uv / d X_model (B, K, 2, 3)
+        cols = [d_aa, d_t, torch.einsum("bkuj,skj->bkus", d_dir, shape_l)]
+        if A:
+            cols.append(torch.einsum("bkuj,akj->bkua", d_dir, anim_l))
+        J = torch.cat(cols, dim=-1).reshape(B, 2 * k, -1) * sqrt_w.unsqueeze(-1)
+        r = (uv - target).reshape(B, 2 * k) * sqrt_w
+        valid = (w > 0).repeat_interleave(2, dim=1) & (cam[..., 2] > 0).repeat_interleave(2, dim=1)
+        return r, J, valid
+
+    # Start: frontal, distance from the landmarks' spread, centred on their centroid.
+    wk = w / w.sum(-1, keepdim=True)
+    centroid = (target * wk.unsqueeze(-1)).sum(1)
+    spread_px = ((target - centroid.unsqueeze(1)).pow(2).sum(-1) * wk).sum(-1).sqrt()
+    model_c = (mean_l.unsqueeze(0) * wk.unsqueeze(-1)).sum(1)
+    spread_mm = ((mean_l.unsqueeze(0)[..., :2] - model_c.unsqueeze(1)[..., :2]).pow(2).sum(-1) * wk).sum(-1).sqrt()
+    z = intrinsics.fx * spread_mm / spread_px.clamp_min(1e-3)
+    tx = (centroid[:, 0] - intrinsics.cx) * z / intrinsics.fx - model_c[:, 0]
+    ty = (centroid[:, 1] - intrinsics.cy) * z / intrinsics.fy - model_c[:, 1]
+    x0 = torch.zeros(B, 6 + S + A, dtype=dtype, device=device)
+    x0[:, 3], x0[:, 4], x0[:, 5] = tx, ty, z - model_c[:, 2]
+
+    inf = torch.full((6,), float("inf"), dtype=dtype, device=device)
+    lower = [-inf, torch.full((S,), -config.shape_bound, dtype=dtype, device=device)]
+    upper = [inf, torch.full((S,), config.shape_bound, dtype=dtype, device=device)]
+    prior = [torch.zeros(6, dtype=dtype, device=device), torch.full((S,), config.shape_prior_precision, dtype=dtype, device=device)]
+    if A:
+        lower.append(model.animation_ranges[:, 0])
+        upper.append(model.animation_ranges[:, 1])
+        prior.append(torch.full((A,), config.expression_prior_precision, dtype=dtype, device=device))
+    res = least_squares(
+        residual_fn,
+        x0,
+        SolverConfig(max_iterations=config.max_iterations),
+        lower=torch.cat(lower),
+        upper=torch.cat(upper),
+        prior_precision=torch.cat(prior),
+    )
+    x = res.params
+    r, _, valid = residual_fn(x)
+    rms = (r.pow(2) * valid).sum(-1).div(w.sum(-1).clamp_min(1e-12)).sqrt()
+    anim = x[:, 6 + S :] if A else torch.zeros(B, model.num_animation, dtype=dtype, device=device)
+    status = res.status
+    return LandmarkFit(axis_angle_to_matrix(x[:, :3]), x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)

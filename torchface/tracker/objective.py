@@ -1,0 +1,85 @@
+"""The per-frame objective (paper Eq. 12-20): residuals and analytic Jacobian of the joint warp + light model.
+
+For template points ``X_0`` with expression basis ``B_j``, normals ``n`` and intensities ``T``:
+
+    ``X(alpha) = X_0 + sum_j alpha_j B_j``               (Eq. 3-9, head frame)
+    ``x = pi(R(omega) X(alpha) + t)``                    (Eq. 14-16, pinhole projection)
+    ``r = I(x) - T - sum_i lambda_i B^light_i``          (Eq. 19-20)
+
+The Jacobian is ``dr/dp = grad I(x) . dx/dp`` for the warp parameters ``p = (omega, t, alpha)`` (Eq. 17)
+and ``-B^light_i`` for the light. The light basis uses normals rotated by the rotation at the start of the
+frame (held fixed within the frame), so the Jacobian is exact for the residual as defined.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchface.appearance.sampling import sample_at_pixels
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import in_front, project_points, project_points_jacobian
+from torchface.geometry.so3 import axis_angle_to_matrix, rotate_points_jacobian
+from torchface.template.points import Template
+from torchface.tracker.params import ParamLayout
+
+
+def warp_points(template: Template, layout: ParamLayout, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Template points under parameters ``x``.
+
+    Args:
+        template: ``N`` points per sample; layout: the packing of ``x``; x: ``(B, P)``.
+
+    Returns:
+        ``points_model (B, N, 3)``, ``points_cam (B, N, 3)`` and the rotation ``(B, 3, 3)``.
+    """
+    aa, t, alpha, _ = layout.split(x)
+    points_model = template.points + torch.einsum("bnaj,ba->bnj", template.basis, alpha)
+    R = axis_angle_to_matrix(aa)
+    points_cam = torch.einsum("bij,bnj->bni", R, points_model) + t.unsqueeze(1)
+    return points_model, points_cam, R
+
+
+def frame_residuals(
+    x: Tensor,
+    layout: ParamLayout,
+    template: Template,
+    image: Tensor,
+    intrinsics: Intrinsics,
+    light_basis: Tensor,
+    point_mask: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Residuals, Jacobian and validity of Eq. 20 at ``x``.
+
+    Args:
+        x: ``(B, P)`` packed parameters.
+        layout: the packing.
+        template: ``N`` template points per sample.
+        image: ``(B, 3, H, W)`` the frame's gray level and its ``d/du``, ``d/dv``
+            (:func:`~torchface.appearance.sampling.image_with_gradients`) at ``intrinsics``' size.
+        intrinsics: camera of ``image``.
+        light_basis: ``(B, N, L)`` illumination basis (:func:`~torchface.appearance.illumination_basis`).
+        point_mask: ``(B, N)`` bool, points usable this frame (template validity and visibility).
+
+    Returns:
+        ``r (B, N)``, ``J (B, N, P)`` and ``valid (B, N)``: inside the image, in front of the camera,
+        facing the camera, and in ``point_mask``.
+    """
+    aa, t, alpha, light = layout.split(x)
+    points_model, points_cam, R = warp_points(template, layout, x)
+    uv = project_points(points_cam, intrinsics)
+    values, inside = sample_at_pixels(image, uv)
+    intensity, grad = values[..., 0], values[..., 1:3]
+    predicted = template.intensity + torch.einsum("bnl,bl->bn", light_basis, light)
+    r = intensity - predicted
+
+    d_uv = project_points_jacobian(points_cam, intrinsics)  # (B, N, 2, 3)
+    g_cam = torch.einsum("bnk,bnkj->bnj", grad, d_uv)  # dI/dX_cam (B, N, 3)
+    j_rot = torch.einsum("bnj,bnjk->bnk", g_cam, rotate_points_jacobian(aa, points_model))
+    j_anim = torch.einsum("bnj,bjk,bnak->bna", g_cam, R, template.basis)
+    J = torch.cat([j_rot, g_cam, j_anim, -light_basis], dim=-1)
+
+    normals_cam = torch.einsum("bij,bnj->bni", R, template.normals)
+    facing = (normals_cam * points_cam).sum(-1) < 0
+    valid = point_mask & inside & in_front(points_cam) & facing
+    return r, J, valid

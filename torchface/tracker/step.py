@@ -1,0 +1,356 @@
+"""One tracking step as a function of (state, frames) -> (new state, result) (paper Sections 2-4).
+
+Initialisation fits pose and shape to fiducial points (Eq. 2) and builds a template per pyramid level from
+the first frame (Eq. 3-9). Each later frame is one joint minimisation over pose, animation units and
+illumination (Eq. 20), coarse to fine over an image pyramid, with self-occlusion (back-facing and z-buffer)
+and external occlusion (IRLS robust weights) handled per point.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, replace
+
+import kornia
+import torch
+from torch import Tensor
+
+from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
+from torchface.appearance.sampling import image_with_gradients, sample_at_pixels, to_gray
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_euler
+from torchface.model.face_model import FaceModel
+from torchface.rendering.rasterizer import rasterize
+from torchface.rendering.visibility import points_visible
+from torchface.solver.least_squares import SolverConfig, SolverMethod, SolveStatus, least_squares
+from torchface.solver.robust import RobustKind, RobustLoss
+from torchface.template.points import Template, build_template
+from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.objective import frame_residuals, warp_points
+from torchface.tracker.params import ParamLayout
+
+
+class TrackStatus(enum.IntEnum):
+    """Per-sample outcome of a step."""
+
+    #: The minimisation converged.
+    CONVERGED = 0
+    #: It ran out of iterations; the estimate is usable.
+    MAX_ITERATIONS = 1
+    #: No usable estimate (too few points, no contrast, non-finite data); the previous one is kept.
+    FAILED = 2
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of the tracker.
+
+    Attributes:
+        num_levels: pyramid levels (1 = full resolution only); coarse to fine.
+        max_points: template points per level per stream (the coarsest levels use fewer if they have fewer).
+        gradient_threshold: minimum gray-level gradient magnitude (per pixel, in [0, 1] units) of a template
+            point (Section 4: informative points); 0 keeps all pixels.
+        iterations: Levenberg-Marquardt iterations per level, coarse to fine.
+        use_illumination: estimate the illumination terms (else held at zero: the ablation).
+        use_expression: estimate the animation units (else held at the initial values: the ablation).
+        robust: the robust loss for external occlusion (``RobustKind.NONE`` is the ablation).
+        robust_c: its tuning constant (in robust-scale units).
+        zbuffer_visibility: test template points against the z-buffer of the previous estimate each frame.
+        expression_prior_precision: Gaussian prior pulling animation units toward zero (per squared unit).
+        min_points: fewer valid points than this marks a sample FAILED.
+        min_contrast: a sample whose sampled frame intensities have a standard deviation below this is FAILED
+            (black or textureless frame).
+        fit: settings of the initial fit to landmarks.
+    """
+
+    num_levels: int = 3
+    max_points: int = 1500
+    gradient_threshold: float = 0.01
+    iterations: tuple[int, ...] = (8, 6, 4)
+    use_illumination: bool = True
+    use_expression: bool = True
+    robust: RobustKind = RobustKind.TUKEY
+    robust_c: float = 4.685
+    zbuffer_visibility: bool = True
+    expression_prior_precision: float = 1.0
+    min_points: int = 50
+    min_contrast: float = 0.01
+    fit: FitConfig = field(default_factory=FitConfig)
+
+    def __post_init__(self) -> None:
+        if self.num_levels < 1:
+            raise ValueError(f"num_levels must be >= 1, got {self.num_levels}")
+        if len(self.iterations) != self.num_levels or any(i < 1 for i in self.iterations):
+            raise ValueError(
+                f"iterations must give a positive count per level ({self.num_levels}), got {self.iterations}"
+            )
+        if self.max_points < 8:
+            raise ValueError(f"max_points must be >= 8, got {self.max_points}")
+        if self.gradient_threshold < 0 or self.min_contrast < 0:
+            raise ValueError("gradient_threshold and min_contrast must be non-negative")
+        if not isinstance(self.robust, RobustKind):
+            raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What one step reports per stream (see :mod:`torchface.conventions` for frames and units).
+
+    Attributes:
+        rotation: ``(B, 3, 3)`` head -> camera rotation (OpenCV camera frame).
+        axis_angle: ``(B, 3)`` the same as an axis-angle vector (radians).
+        translation: ``(B, 3)`` head origin in the camera frame, millimetres.
+        ypr_deg: ``(B, 3)`` yaw, pitch, roll in degrees (conventions' order and signs).
+        anim_coeffs: ``(B, A)`` animation-unit values; anim_names: their names.
+        facs: ``(B, n_facs)`` linked FACS AU values; facs_names: their names.
+        illumination: ``(B, L)`` illumination parameters; illumination_names: their names.
+        status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level;
+        cost: ``(B,)`` final robust cost per valid point at the finest level.
+        num_points: ``(B,)`` valid template points at the finest level.
+        confidence: ``(B,)`` in ``[0, 1]``.
+    """
+
+    rotation: Tensor
+    axis_angle: Tensor
+    translation: Tensor
+    ypr_deg: Tensor
+    anim_coeffs: Tensor
+    anim_names: tuple[str, ...]
+    facs: Tensor
+    facs_names: tuple[str, ...]
+    illumination: Tensor
+    illumination_names: tuple[str, ...]
+    status: Tensor
+    iterations: Tensor
+    cost: Tensor
+    num_points: Tensor
+    confidence: Tensor
+
+    @property
+    def success(self) -> Tensor:
+        """``(B,)`` bool: not FAILED."""
+        return self.status != int(TrackStatus.FAILED)
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """Everything a step needs from the past.
+
+    Attributes:
+        params: ``(B, P)`` packed parameters of the last frame (:class:`ParamLayout`).
+        shape_coeffs: ``(B, S)`` the person's shape units (fixed after the first frame).
+        templates: one :class:`Template` per pyramid level, finest first.
+        intrinsics: camera of the full-resolution frames.
+        frame_index: frames seen so far.
+    """
+
+    params: Tensor
+    shape_coeffs: Tensor
+    templates: tuple[Template, ...]
+    intrinsics: Intrinsics
+    frame_index: int
+
+
+def level_intrinsics(intrinsics: Intrinsics, level: int, height: int, width: int) -> Intrinsics:
+    """Camera of pyramid level ``level`` (each level halves the previous with pixel-centre alignment)."""
+    s = 0.5**level
+    return Intrinsics(
+        width, height, intrinsics.fx * s, intrinsics.fy * s, (intrinsics.cx + 0.5) * s - 0.5, (intrinsics.cy + 0.5) * s - 0.5
+    )
+
+
+def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
+    """``(B, C, H, W)`` frames -> gray levels, finest first, each ``(B, 1, H_l, W_l)`` (kornia ``pyrdown``)."""
+    gray = to_gray(frames)
+    levels = [gray]
+    for _ in range(num_levels - 1):
+        levels.append(kornia.geometry.transform.pyrdown(levels[-1]))
+    return levels
+
+
+def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None) -> None:
+    """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1]."""
+    if not isinstance(frames, Tensor):
+        raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
+    if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
+        raise ValueError(f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+    if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
+        raise ValueError(
+            f"frames must be {intrinsics.height}x{intrinsics.width} (the tracked size), got "
+            f"{frames.shape[-2]}x{frames.shape[-1]}"
+        )
+
+
+def _layout(model: FaceModel) -> ParamLayout:
+    return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+
+
+def _bounds(model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: ParamLayout) -> tuple[Tensor, Tensor]:
+    """Box bounds: animation units in the model's ranges; disabled terms pinned to their current value."""
+    B, P = x_prev.shape
+    lower = torch.full((B, P), float("-inf"), dtype=x_prev.dtype, device=x_prev.device)
+    upper = torch.full((B, P), float("inf"), dtype=x_prev.dtype, device=x_prev.device)
+    if config.use_expression:
+        lower[:, layout.animation] = model.animation_ranges[:, 0]
+        upper[:, layout.animation] = model.animation_ranges[:, 1]
+    else:
+        lower[:, layout.animation] = x_prev[:, layout.animation]
+        upper[:, layout.animation] = x_prev[:, layout.animation]
+    if not config.use_illumination:
+        lower[:, layout.illumination] = 0.0
+        upper[:, layout.illumination] = 0.0
+    return lower, upper
+
+
+def initialise(
+    model: FaceModel,
+    config: TrackerConfig,
+    frames: Tensor,
+    landmarks_px: Tensor,
+    intrinsics: Intrinsics,
+    weights: Tensor | None = None,
+) -> tuple[TrackerState, TrackResult]:
+    """Fit the first frame from landmarks (Eq. 2) and build the templates (Eq. 3-9).
+
+    Args:
+        model: the face model.
+        config: :class:`TrackerConfig`.
+        frames: ``(B, 3, H, W)`` first frames, float in [0, 1].
+        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing).
+        intrinsics: camera of ``frames``.
+        weights: ``(B, K)`` landmark confidences or None.
+
+    Returns:
+        The state and the first frame's result.
+    """
+    check_frames(frames, intrinsics)
+    frames = frames.to(dtype=model.dtype, device=model.device)
+    fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
+    layout = _layout(model)
+    B = frames.shape[0]
+    x = torch.zeros(B, layout.size, dtype=model.dtype, device=model.device)
+    x[:, layout.rotation] = fit.axis_angle
+    x[:, layout.translation] = fit.translation
+    x[:, layout.animation] = fit.anim_coeffs
+    pyramid = gray_pyramid(frames, config.num_levels)
+    templates = []
+    for level, gray in enumerate(pyramid):
+        intr = level_intrinsics(intrinsics, level, gray.shape[-2], gray.shape[-1])
+        n = min(config.max_points, gray.shape[-2] * gray.shape[-1])
+        templates.append(
+            build_template(
+                model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray, intr,
+                max_points=n, gradient_threshold=config.gradient_threshold,
+            )
+        )
+    state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1)
+    status = torch.where(fit.status == int(SolveStatus.FAILED), int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
+    n_pts = templates[0].num_points
+    status = torch.where(n_pts < config.min_points, torch.full_like(status, int(TrackStatus.FAILED)), status)
+    conf = torch.exp(-fit.rms_px / 5.0) * (status != int(TrackStatus.FAILED))
+    result = _result(model, layout, x, status, torch.zeros_like(status), torch.zeros_like(fit.rms_px), n_pts, conf)
+    return state, result
+
+
+def _result(
+    model: FaceModel, layout: ParamLayout, x: Tensor, status: Tensor, iterations: Tensor, cost: Tensor,
+    num_points: Tensor, confidence: Tensor,
+) -> TrackResult:
+    aa, t, alpha, light = layout.split(x)
+    R = axis_angle_to_matrix(aa)
+    return TrackResult(
+        rotation=R, axis_angle=aa, translation=t, ypr_deg=matrix_to_euler(R), anim_coeffs=alpha,
+        anim_names=model.animation_names, facs=model.facs_values(alpha), facs_names=model.facs_names,
+        illumination=light, illumination_names=ILLUMINATION_TERM_NAMES, status=status.to(torch.int64),
+        iterations=iterations.to(torch.int64), cost=cost, num_points=num_points, confidence=confidence,
+    )
+
+
+def _visibility(model: FaceModel, state: TrackerState, layout: ParamLayout, levels: list[Tensor], level: int) -> list[Tensor]:
+    """Z-buffer visibility of every level's template points at the previous estimate (one rasterization)."""
+    aa, t, alpha, _ = layout.split(state.params)
+    R = axis_angle_to_matrix(aa)
+    verts = torch.einsum("bij,bvj->bvi", R, model.deform(state.shape_coeffs, alpha)) + t.unsqueeze(1)
+    g = levels[level]
+    intr = level_intrinsics(state.intrinsics, level, g.shape[-2], g.shape[-1])
+    frags = rasterize(verts, model.faces, intr)
+    masks = []
+    for tpl in state.templates:
+        _, cam, _ = warp_points(tpl, layout, state.params)
+        masks.append(points_visible(cam, tpl.face_index, frags, intr, depth_tolerance=0.02) & tpl.valid)
+    return masks
+
+
+def track_step(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
+) -> tuple[TrackerState, TrackResult]:
+    """Track one frame per stream: one joint minimisation over pose, expression and light (Eq. 20).
+
+    Args:
+        model: the face model used at initialisation.
+        config: :class:`TrackerConfig`.
+        state: from :func:`initialise` or the previous step.
+        frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+
+    Returns:
+        The new state and the frame's :class:`TrackResult`. A FAILED sample keeps its previous parameters
+        and never produces NaN.
+    """
+    check_frames(frames, state.intrinsics)
+    if frames.shape[0] != state.params.shape[0]:
+        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+    frames = frames.to(dtype=model.dtype, device=model.device)
+    layout = _layout(model)
+    levels = gray_pyramid(frames, config.num_levels)
+    if config.zbuffer_visibility:
+        vis_level = min(1, config.num_levels - 1)
+        masks = _visibility(model, state, layout, levels, vis_level)
+    else:
+        masks = [t.valid for t in state.templates]
+    R_prev = axis_angle_to_matrix(state.params[:, layout.rotation])
+    lower, upper = _bounds(model, config, state.params, layout)
+    prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
+    if config.use_expression:
+        prior[layout.animation] = config.expression_prior_precision
+    robust = None if config.robust is RobustKind.NONE else RobustLoss(config.robust, config.robust_c)
+    x = state.params
+    status = torch.zeros(x.shape[0], dtype=torch.int64, device=x.device)
+    for level in reversed(range(config.num_levels)):
+        gray = levels[level]
+        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        image = image_with_gradients(gray)
+        tpl = state.templates[level]
+        light_basis = illumination_basis(tpl.intensity, torch.einsum("bij,bnj->bni", R_prev, tpl.normals))
+        mask = masks[level]
+
+        def residual_fn(p: Tensor, tpl=tpl, image=image, intr=intr, light_basis=light_basis, mask=mask):
+            return frame_residuals(p, layout, tpl, image, intr, light_basis, mask)
+
+        res = least_squares(
+            residual_fn, x, SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level]),
+            lower=lower, upper=upper, prior_precision=prior, robust=robust,
+        )
+        x = torch.where(res.failed.unsqueeze(-1), x, res.params)
+        status = res.status
+    # Finest-level diagnostics at the final estimate.
+    r, _, valid = frame_residuals(x, layout, tpl, image, intr, light_basis, mask)
+    n_valid = valid.sum(-1)
+    _, cam, _ = warp_points(tpl, layout, x)
+    sampled, _ = sample_at_pixels(image[:, :1], project_points(cam, intr))
+    vf = valid.to(x.dtype)
+    mean_i = (sampled[..., 0] * vf).sum(-1) / n_valid.clamp_min(1)
+    std_i = (((sampled[..., 0] - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
+    rms = ((torch.nan_to_num(r) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
+    failed = (
+        (status == int(SolveStatus.FAILED))
+        | (n_valid < config.min_points)
+        | (std_i < config.min_contrast)
+        | ~torch.isfinite(x).all(-1)
+    )
+    x = torch.where(failed.unsqueeze(-1), state.params, x)
+    status = torch.where(failed, int(TrackStatus.FAILED), status)
+    frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
+    confidence = (frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2))) * (~failed)
+    new_state = replace(state, params=x, frame_index=state.frame_index + 1)
+    return new_state, _result(model, layout, x, status, res.iterations, rms, n_valid, confidence)
