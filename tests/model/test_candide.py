@@ -215,7 +215,8 @@ def test_every_face_points_out_of_the_head(model64, wfm):
     assert np.flatnonzero(~outward).tolist() == flaps
     # The file's own winding fails on most faces: the loader keeps 24 of its triangles as written, and
     # the criterion passes exactly those plus the two flaps (wound the other way in the file).
-    kept = [i for i, (a, b) in enumerate(zip(wfm.faces.tolist(), faces.tolist())) if a in (b, b[1:] + b[:1], b[2:] + b[:2])]
+    rotations = [lambda t: t, lambda t: t[1:] + t[:1], lambda t: t[2:] + t[:2]]
+    kept = [i for i, (a, b) in enumerate(zip(wfm.faces.tolist(), faces.tolist())) if any(a == r(b) for r in rotations)]
     assert len(kept) == 24
     raw = faces_pointing_outward(verts, wfm.faces, TOWARD_VIEWER)
     assert np.flatnonzero(raw).tolist() == sorted(kept + flaps)
@@ -384,3 +385,14 @@ def test_landmarks_mirror_symmetric(model64):
     np.testing.assert_allclose(lm[IBUG_FLIP], lm * np.array([-1.0, 1.0, 1.0]), atol=1e-9)
     # iBUG 0-7 and the right eye (36-41) are on the subject's right (-x).
     assert (lm[0:8, 0] < 0).all() and (lm[36:42, 0] < 0).all() and (lm[42:48, 0] > 0).all()
+
+
+def test_data_table_validation():
+    bad_weights = "ibug_index,v0,w0,v1,w1,v2,w2,source,meaning\n0,1,0.5,2,0.4,3,0,derived,x\n"
+    with pytest.raises(ValueError, match="sum to 1"):
+        read_landmark_table(bad_weights)
+    bad_order = "ibug_index,v0,w0,v1,w1,v2,w2,source,meaning\n1,1,1,1,0,1,0,derived,x\n"
+    with pytest.raises(ValueError, match="ordered"):
+        read_landmark_table(bad_order)
+    with pytest.raises(ValueError, match="lo < hi"):
+        read_auv_facs_table("file_position,auv,name,facs,range_lo,range_hi\n0,0,x,AU10,1,0\n")

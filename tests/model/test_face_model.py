@@ -5,7 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchface.model import FaceModel, deform_vertices, face_normals, interpolate_landmarks, load_candide3, vertex_normals
+from torchface.model import (
+    FaceModel,
+    deform_vertices,
+    face_normals,
+    interpolate_landmarks,
+    load_candide3,
+    vertex_normals,
+)
 
 
 @pytest.fixture(scope="module")
@@ -15,7 +22,8 @@ def model():
 
 def test_zero_coefficients_give_the_mean(model):
     torch.testing.assert_close(model.deform()[0], model.mean)
-    zeros = model.deform(torch.zeros(3, model.num_shape, dtype=torch.float64), torch.zeros(3, model.num_animation, dtype=torch.float64))
+    sigma0 = torch.zeros(3, model.num_shape, dtype=torch.float64)
+    zeros = model.deform(sigma0, torch.zeros(3, model.num_animation, dtype=torch.float64))
     assert zeros.shape == (3, model.num_vertices, 3)
     torch.testing.assert_close(zeros, model.mean.expand(3, -1, -1))
     # None for one term, B inferred from the other.
@@ -140,7 +148,8 @@ def test_vertex_normals_known_answer_and_zero_safe():
     torch.testing.assert_close(n0, expected)
     # Gradients stay finite through an unused vertex and a degenerate (zero-area) triangle.
     deg = verts.clone().requires_grad_(True)
-    out = vertex_normals(deg, torch.tensor([[0, 1, 2], [4, 4, 4]])).sum() + face_normals(deg, torch.tensor([[4, 4, 4]])).sum()
+    out = vertex_normals(deg, torch.tensor([[0, 1, 2], [4, 4, 4]])).sum()
+    out = out + face_normals(deg, torch.tensor([[4, 4, 4]])).sum()
     out.backward()
     assert torch.isfinite(deg.grad).all()
 

@@ -37,7 +37,8 @@ def test_trimesh_input_with_bases():
     shape = np.ones((1, 5, 3))
     model = load_mesh_model(mesh, blendshapes=blend, blendshape_names=["up", "right"], shape_units=shape,
                             landmark_vertices=[3, 1], scale_to_mm=10.0, dtype=torch.float64)
-    assert (model.num_vertices, model.num_faces, model.num_shape, model.num_animation, model.num_landmarks) == (5, 4, 1, 2, 2)
+    sizes = (model.num_vertices, model.num_faces, model.num_shape, model.num_animation, model.num_landmarks)
+    assert sizes == (5, 4, 1, 2, 2)
     assert model.surface_vertex_mask.tolist() == [True, True, True, True, False]
     torch.testing.assert_close(model.mean, torch.as_tensor(TET_V * 10.0))
     verts = model.deform(torch.tensor([[0.5]], dtype=torch.float64), torch.tensor([[1.0, 0.0]], dtype=torch.float64))

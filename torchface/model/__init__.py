@@ -13,6 +13,7 @@ from torchface.model.face_model import (
     interpolate_landmarks,
     vertex_normals,
 )
+from torchface.model.mesh_loader import load_ict_face_model, load_mesh_model
 
 __all__ = [
     "AnimationSet",
@@ -24,6 +25,8 @@ __all__ = [
     "face_normals",
     "interpolate_landmarks",
     "load_candide3",
+    "load_ict_face_model",
+    "load_mesh_model",
     "parse_wfm",
     "vertex_normals",
 ]

@@ -499,8 +499,10 @@ def load_candide3(
     if animation in (AnimationSet.AUV, AnimationSet.AUV_AND_FAP):
         for pos, (unit, rec) in enumerate(zip(auvs, table)):
             match = _AUV_RE.match(unit.name)
-            if match is None or rec.file_position != pos or int(match.group(1)) != rec.auv or match.group(2) != rec.name:
-                raise ValueError(f"candide3_auv_facs.csv row {pos} ({rec}) does not describe the file's AUV {unit.name!r}")
+            parsed = (pos, int(match.group(1)), match.group(2)) if match else None
+            agrees = (rec.file_position, rec.auv, rec.name) == parsed
+            if not agrees:
+                raise ValueError(f"candide3_auv_facs.csv row {pos} ({rec}) does not describe the file's {unit.name!r}")
             names.append(f"AUV{rec.auv} {rec.name}")
             bases.append(_unit_basis(unit, num_v, 1.0))
             ranges.append((rec.range_lo, rec.range_hi))

@@ -30,7 +30,8 @@ def _check_coeffs(coeffs: Tensor | None, count: int, what: str, units: Tensor) -
     if coeffs is None:
         return
     if not isinstance(coeffs, Tensor):
-        raise TypeError(f"{what} coefficients must be a torch.Tensor of shape (B, {count}), got {type(coeffs).__name__}")
+        got = type(coeffs).__name__
+        raise TypeError(f"{what} coefficients must be a torch.Tensor of shape (B, {count}), got {got}")
     if coeffs.ndim != 2 or coeffs.shape[1] != count:
         raise ValueError(f"{what} coefficients must have shape (B, {count}), got {tuple(coeffs.shape)}")
     if coeffs.dtype != units.dtype:
@@ -270,7 +271,8 @@ class FaceModel:
             if getattr(self, key).device != mean.device:
                 raise ValueError(f"{key} must be on mean's device {mean.device}, got {getattr(self, key).device}")
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
-            raise ValueError(f"faces index vertices outside [0, {num_v}): [{int(self.faces.min())}, {int(self.faces.max())}]")
+            got = (int(self.faces.min()), int(self.faces.max()))
+            raise ValueError(f"faces index vertices outside [0, {num_v}): min/max {got}")
         if self.landmark_vertices.numel() and (
             int(self.landmark_vertices.min()) < 0 or int(self.landmark_vertices.max()) >= num_v
         ):

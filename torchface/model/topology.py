@@ -102,7 +102,9 @@ def make_winding_consistent(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                         labels[g] = component
                         queue.append(g)
                     elif same_direction:
-                        raise ValueError(f"the surface is not orientable: triangles {f} and {g} cannot agree on edge {a}-{b}")
+                        raise ValueError(
+                            f"the surface is not orientable: triangles {f} and {g} cannot agree on edge {a}-{b}"
+                        )
         component += 1
     return faces, labels
 
