@@ -1,0 +1,36 @@
+#!/usr/bin/env python
+"""Rebuild the synthetic-scene data shipped in torchface/data from ../shared/assets (development only).
+
+Writes torchface/data/james/{james.npz, james_texture.jpg, LICENSE.txt} and torchface/data/photos/
+{james_render.jpg, candide3_uv_<photo>.npz} (CANDIDE-3 texture mappings), and prints conversion figures.
+Usage: python scripts/build_synth_data.py [--assets ../shared/assets]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from torchface.synth.james import build_james_data
+from torchface.synth.subjects import build_candide_textures
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
+    args = parser.parse_args()
+    james_dir = args.assets / "james"
+    if not james_dir.is_dir():
+        raise SystemExit(f"no James assets at {james_dir}")
+    out = ROOT / "torchface" / "data" / "james"
+    figures = build_james_data(james_dir, out)
+    print(f"wrote {out}: " + ", ".join(f"{k}={v:.2f}" for k, v in figures.items()))
+    photos = ROOT / "torchface" / "data" / "photos"
+    figures = build_candide_textures(photos)
+    print(f"wrote {photos}: " + ", ".join(f"{k}={v:.2f}" for k, v in figures.items()))
+
+
+if __name__ == "__main__":
+    main()

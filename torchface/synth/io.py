@@ -1,0 +1,126 @@
+"""Lossless video files for synthetic sequences (OpenCV at the boundary: BGR uint8 on disk).
+
+Writing goes to a temporary name in the destination folder and is renamed when complete, so a
+reader never sees a half-written file. The codec is the first of :data:`LOSSLESS_CODECS` that this
+OpenCV build can write; FFV1 in AVI is lossless and reads back bit-exactly with ``cv2.VideoCapture``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from types import TracebackType
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["LOSSLESS_CODECS", "VideoSink", "write_video", "read_video", "frames_to_uint8"]
+
+#: FourCC codes tried in order (all lossless); ``MJPG`` (lossy) is the last resort.
+LOSSLESS_CODECS: tuple[str, ...] = ("FFV1", "png ", "HFYU", "MJPG")
+
+
+def frames_to_uint8(frames: Tensor) -> np.ndarray:
+    """``(T, 3, H, W)`` float RGB in ``[0, 1]`` -> ``(T, H, W, 3)`` uint8 BGR for OpenCV."""
+    if frames.ndim != 4 or frames.shape[1] != 3:
+        raise ValueError(f"frames must be (T, 3, H, W), got shape {tuple(frames.shape)}")
+    if frames.dtype == torch.uint8:
+        arr = frames
+    else:
+        arr = (frames.detach().float().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
+    return np.ascontiguousarray(arr.flip(1).permute(0, 2, 3, 1).cpu().numpy())
+
+
+class VideoSink:
+    """Streams frames into a lossless video file; use as a context manager.
+
+    Args:
+        path: destination (``.avi`` recommended); written as ``<path>.partial.avi`` then renamed.
+        width: frame width W.
+        height: frame height H.
+        fps: frames per second stored in the file.
+
+    Example:
+        >>> # with VideoSink("seq.avi", 640, 480) as sink: sink.write(frames)  # frames (T, 3, H, W)
+    """
+
+    def __init__(self, path: str | os.PathLike[str], width: int, height: int, fps: float = 25.0) -> None:
+        self.path = Path(path)
+        self.width, self.height = int(width), int(height)
+        self._tmp = self.path.with_name(self.path.name + ".partial" + self.path.suffix)
+        self._writer: cv2.VideoWriter | None = None
+        self.codec = ""
+        self.frames_written = 0
+        for code in LOSSLESS_CODECS:
+            writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*code), float(fps), (self.width, self.height))
+            if writer.isOpened():
+                self._writer, self.codec = writer, code
+                break
+            writer.release()
+        if self._writer is None:
+            raise RuntimeError(f"no OpenCV video codec among {LOSSLESS_CODECS} could open {self._tmp}")
+
+    def write(self, frames: Tensor) -> None:
+        """Append ``(T, 3, H, W)`` float frames in ``[0, 1]`` (or uint8)."""
+        if self._writer is None:
+            raise RuntimeError("video sink is closed")
+        if frames.ndim != 4 or tuple(frames.shape[1:]) != (3, self.height, self.width):
+            raise ValueError(f"frames must be (T, 3, {self.height}, {self.width}), got {tuple(frames.shape)}")
+        for img in frames_to_uint8(frames):
+            self._writer.write(img)
+        self.frames_written += int(frames.shape[0])
+
+    def close(self) -> Path:
+        """Finish the file and move it to its final name; returns that path."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+            os.replace(self._tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the partial file."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "VideoSink":
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_video(path: str | os.PathLike[str], frames: Tensor, fps: float = 25.0) -> str:
+    """Write ``(T, 3, H, W)`` frames in ``[0, 1]`` to ``path``; returns the FourCC code used."""
+    if frames.ndim != 4 or frames.shape[1] != 3:
+        raise ValueError(f"frames must be (T, 3, H, W), got shape {tuple(frames.shape)}")
+    with VideoSink(path, frames.shape[3], frames.shape[2], fps) as sink:
+        sink.write(frames)
+        return sink.codec
+
+
+def read_video(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
+    """Read a video into ``(T, 3, H, W)`` float32 RGB in ``[0, 1]``."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no video at {path}")
+    cap = cv2.VideoCapture(str(path))
+    frames: list[np.ndarray] = []
+    try:
+        while max_frames is None or len(frames) < max_frames:
+            ok, img = cap.read()
+            if not ok:
+                break
+            frames.append(img)
+    finally:
+        cap.release()
+    if not frames:
+        raise ValueError(f"could not read any frame from {path}")
+    arr = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2).flip(1)
+    return arr.to(torch.float32) / 255.0

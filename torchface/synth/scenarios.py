@@ -1,0 +1,329 @@
+"""Standard synthetic scenarios: each a deterministic function of ``(num_frames, width, height)``.
+
+The face sits about :data:`FACE_DISTANCE_MM` from a camera with the default intrinsics
+(``f = max(W, H)``), so it spans the same fraction of the image at any size.
+
+================  ==========================================================================
+``pose_sweep``    CANDIDE-3, neutral face: yaw to +-45, pitch to +-25, roll to +-20 degrees,
+                  then a combined turn; small lateral drift; static background.
+``expressions``   CANDIDE-3 with moderate head motion: jaw drop, outer brow raise, brow
+                  lowering, eyes closed, lip stretch, then a combination; panning background.
+``light_switch``  CANDIDE-3, moderate head motion, a slowly circling light plus a strong side
+                  light that switches on abruptly at ``T/3`` and off at ``2T/3``.
+``occlusion``     CANDIDE-3, moderate motion; a textured ellipse covers ~32 % (25-40 %) of the
+                  visible face during ``min(40, T/2)`` frames in the middle.
+``scan_motion``   the James scan over the pose range of ``pose_sweep``.
+================  ==========================================================================
+
+Sizes: :data:`SIZES` ``"small"`` (160x120, 20 frames, for tests) and ``"full"`` (640x480, with
+per-scenario lengths in :data:`FULL_FRAMES`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import euler_to_matrix
+from torchface.rendering.shading import LightState
+from torchface.synth.background import BackgroundSpec, OccluderSpec
+from torchface.synth.sequence import SequenceSpec
+from torchface.synth.subjects import get_subject
+
+__all__ = [
+    "FACE_DISTANCE_MM",
+    "SCENARIOS",
+    "SIZES",
+    "FULL_FRAMES",
+    "keyframe_path",
+    "default_light",
+    "pose_sweep",
+    "expressions",
+    "light_switch",
+    "occlusion",
+    "scan_motion",
+    "make_scenario",
+    "scenario_size",
+]
+
+#: Distance from the camera to the head-frame origin (millimetres).
+FACE_DISTANCE_MM: float = 450.0
+
+#: Named sizes: ``(width, height, frames)``; ``frames = None`` means the scenario's full length.
+SIZES: dict[str, tuple[int, int, int | None]] = {"small": (160, 120, 20), "full": (640, 480, None)}
+
+#: Frame counts of the full-size scenarios.
+FULL_FRAMES: dict[str, int] = {
+    "pose_sweep": 240,
+    "expressions": 200,
+    "light_switch": 180,
+    "occlusion": 160,
+    "scan_motion": 240,
+}
+
+# Pose keyframes (yaw, pitch, roll in degrees) of the sweep, shared by pose_sweep and scan_motion.
+_SWEEP_KEYS: tuple[tuple[float, float, float], ...] = (
+    (0, 0, 0), (45, 0, 0), (-45, 0, 0), (0, 0, 0),
+    (0, 25, 0), (0, -25, 0), (0, 0, 0),
+    (0, 0, 20), (0, 0, -20), (0, 0, 0),
+    (30, 15, 10), (-30, -15, -10), (0, 0, 0),
+)
+
+
+def keyframe_path(keys: Tensor, num_frames: int) -> Tensor:
+    """Smooth path through keyframes, time per segment proportional to its largest change.
+
+    Each segment is eased with ``s^2 (3 - 2 s)`` so the motion starts and stops smoothly at keys.
+
+    Args:
+        keys: ``(n, D)`` keyframe values (``n >= 1``).
+        num_frames: ``T``.
+
+    Returns:
+        ``(T, D)`` float64 values; frame 0 is ``keys[0]`` and frame ``T - 1`` is ``keys[-1]``.
+
+    Example:
+        >>> keyframe_path(torch.tensor([[0.0], [10.0]]), 3).flatten()
+        tensor([ 0.,  5., 10.], dtype=torch.float64)
+    """
+    keys = keys.to(torch.float64)
+    if keys.ndim != 2 or keys.shape[0] < 1:
+        raise ValueError(f"keys must be (n, D) with n >= 1, got {tuple(keys.shape)}")
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    if keys.shape[0] == 1 or num_frames == 1:
+        return keys[:1].expand(num_frames, -1).clone()
+    seg = (keys[1:] - keys[:-1]).abs().amax(dim=1).clamp(min=1e-9)
+    knots = torch.cat([seg.new_zeros(1), seg.cumsum(0)]) / seg.sum()
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
+    i = torch.searchsorted(knots, s, right=True).clamp(1, keys.shape[0] - 1) - 1
+    local = ((s - knots[i]) / (knots[i + 1] - knots[i])).clamp(0.0, 1.0)
+    ease = local * local * (3.0 - 2.0 * local)
+    return keys[i] + ease.unsqueeze(-1) * (keys[i + 1] - keys[i])
+
+
+def _unit(v: list[float]) -> Tensor:
+    t = torch.tensor(v, dtype=torch.float64)
+    return t / t.norm()
+
+
+def default_light(num_frames: int) -> LightState:
+    """Ambient 0.45 plus a key light from the upper left of the camera (intensity 0.55)."""
+    d = _unit([-0.35, -0.45, -0.82])
+    return LightState(
+        torch.full((num_frames,), 0.45, dtype=torch.float64),
+        d.view(1, 1, 3).expand(num_frames, 1, 3).clone(),
+        torch.full((num_frames, 1), 0.55, dtype=torch.float64),
+    )
+
+
+def _pose(ypr: Tensor, num_frames: int, drift_mm: tuple[float, float, float]) -> tuple[Tensor, Tensor]:
+    """Rotations from yaw/pitch/roll and a translation drifting around ``(0, 0, FACE_DISTANCE_MM)``."""
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
+    t = torch.stack(
+        [
+            drift_mm[0] * torch.sin(2 * math.pi * s),
+            drift_mm[1] * torch.sin(4 * math.pi * s + 0.5),
+            FACE_DISTANCE_MM + drift_mm[2] * torch.sin(2 * math.pi * s + 1.0),
+        ],
+        dim=-1,
+    )
+    return euler_to_matrix(ypr), t
+
+
+def _moderate_motion(num_frames: int, phase: float = 0.0) -> Tensor:
+    """Gentle head motion: yaw +-15, pitch +-8, roll +-5 degrees (sums of sines)."""
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
+    yaw = 15.0 * torch.sin(2 * math.pi * (s + phase))
+    pitch = 8.0 * torch.sin(2 * math.pi * (1.5 * s + phase) + 0.7)
+    roll = 5.0 * torch.sin(2 * math.pi * (0.75 * s + phase) + 1.9)
+    return torch.stack([yaw, pitch, roll], dim=-1)
+
+
+def _bump(num_frames: int, start: float, end: float) -> Tensor:
+    """Raised cosine from 0 up to 1 and back over the fraction ``[start, end]`` of the sequence."""
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
+    x = ((s - start) / (end - start)).clamp(0.0, 1.0)
+    return 0.5 - 0.5 * torch.cos(2 * math.pi * x)
+
+
+def _au_index(names: tuple[str, ...], needle: str) -> int:
+    hits = [i for i, n in enumerate(names) if needle.lower() in n.lower()]
+    if len(hits) != 1:
+        raise ValueError(f"expected exactly one animation unit named like {needle!r} in {names}, got {len(hits)}")
+    return hits[0]
+
+
+def _camera(width: int, height: int) -> Intrinsics:
+    return Intrinsics.default(width, height)
+
+
+def _check(num_frames: int, width: int, height: int) -> None:
+    if num_frames < 1 or width < 8 or height < 8:
+        raise ValueError(f"need num_frames >= 1 and an image of at least 8x8, got {num_frames}, {width}x{height}")
+
+
+def pose_sweep(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """CANDIDE-3, neutral face, sweeping yaw (+-45), pitch (+-25) and roll (+-20), static background."""
+    _check(num_frames, width, height)
+    ypr = keyframe_path(torch.tensor(_SWEEP_KEYS), num_frames)
+    R, t = _pose(ypr, num_frames, (12.0, 6.0, 10.0))
+    subject = get_subject("candide3")
+    return SequenceSpec(
+        name="pose_sweep",
+        subject="candide3",
+        intrinsics=_camera(width, height),
+        rotation=R,
+        translation=t,
+        anim=torch.zeros(num_frames, subject.num_animation, dtype=torch.float64),
+        light=default_light(num_frames),
+        background=BackgroundSpec(seed=11),
+        description="CANDIDE-3 neutral: yaw to +-45, pitch to +-25, roll to +-20 deg, then combined",
+    )
+
+
+def expressions(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """CANDIDE-3 with moderate head motion and one expression after another, then a mix."""
+    _check(num_frames, width, height)
+    subject = get_subject("candide3")
+    names = subject.animation_names
+    anim = torch.zeros(num_frames, subject.num_animation, dtype=torch.float64)
+    schedule = (
+        ("Jaw drop", 0.02, 0.18, 1.0),
+        ("Outer brow raiser", 0.16, 0.32, 1.0),
+        ("Brow lowerer", 0.30, 0.46, 1.0),
+        ("Eyes closed", 0.44, 0.60, 1.0),
+        ("Lip stretcher", 0.58, 0.74, 1.0),
+        ("Jaw drop", 0.76, 0.98, 0.7),
+        ("Outer brow raiser", 0.76, 0.98, 0.8),
+        ("Lip stretcher", 0.80, 0.96, 0.5),
+    )
+    for needle, start, end, peak in schedule:
+        j = _au_index(names, needle)
+        anim[:, j] = anim[:, j] + peak * _bump(num_frames, start, end)
+    R, t = _pose(_moderate_motion(num_frames), num_frames, (10.0, 5.0, 8.0))
+    return SequenceSpec(
+        name="expressions",
+        subject="candide3",
+        intrinsics=_camera(width, height),
+        rotation=R,
+        translation=t,
+        anim=anim,
+        light=default_light(num_frames),
+        background=BackgroundSpec(seed=23, pan_px_per_frame=(0.4 * width / 640.0, 0.15 * height / 480.0)),
+        description="CANDIDE-3, moderate motion: jaw drop, brow raise, brow lower, eyes closed, lip stretch, mix",
+    )
+
+
+def light_switch(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """CANDIDE-3 under a slowly circling light plus a strong side light switched on at T/3, off at 2T/3."""
+    _check(num_frames, width, height)
+    subject = get_subject("candide3")
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
+    azimuth = math.radians(60.0) * torch.sin(2 * math.pi * s)
+    elevation = math.radians(25.0)
+    moving = torch.stack(
+        [
+            torch.sin(azimuth) * math.cos(elevation),
+            torch.full_like(s, -math.sin(elevation)),
+            -torch.cos(azimuth) * math.cos(elevation),
+        ],
+        dim=-1,
+    )
+    side = _unit([0.95, -0.05, -0.3]).expand(num_frames, 3)
+    on, off = num_frames // 3, (2 * num_frames) // 3
+    side_on = ((torch.arange(num_frames) >= on) & (torch.arange(num_frames) < off)).to(torch.float64)
+    light = LightState(
+        torch.full((num_frames,), 0.3, dtype=torch.float64),
+        torch.stack([moving, side], dim=1),
+        torch.stack([torch.full_like(s, 0.45), 0.75 * side_on], dim=1),
+    )
+    R, t = _pose(_moderate_motion(num_frames, phase=0.2), num_frames, (10.0, 5.0, 8.0))
+    return SequenceSpec(
+        name="light_switch",
+        subject="candide3",
+        intrinsics=_camera(width, height),
+        rotation=R,
+        translation=t,
+        anim=torch.zeros(num_frames, subject.num_animation, dtype=torch.float64),
+        light=light,
+        background=BackgroundSpec(seed=37),
+        events=(("side_light_on", on), ("side_light_off", off)),
+        description="CANDIDE-3, slowly circling light + strong side light on at T/3, off at 2T/3",
+    )
+
+
+def occlusion(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """CANDIDE-3 with a textured ellipse covering 25-40 % of the face for ``min(40, T/2)`` frames."""
+    _check(num_frames, width, height)
+    subject = get_subject("candide3")
+    n_on = max(1, min(40, num_frames // 2))
+    first = (num_frames - n_on) // 2
+    R, t = _pose(_moderate_motion(num_frames, phase=0.45), num_frames, (8.0, 4.0, 6.0))
+    return SequenceSpec(
+        name="occlusion",
+        subject="candide3",
+        intrinsics=_camera(width, height),
+        rotation=R,
+        translation=t,
+        anim=torch.zeros(num_frames, subject.num_animation, dtype=torch.float64),
+        light=default_light(num_frames),
+        background=BackgroundSpec(seed=41, pan_px_per_frame=(0.25 * width / 640.0, 0.0)),
+        occluder=OccluderSpec(first_frame=first, last_frame=first + n_on, target_fraction=0.32),
+        events=(("occluder_on", first), ("occluder_off", first + n_on)),
+        description="CANDIDE-3, moderate motion; textured ellipse over ~32 % of the face in the middle frames",
+    )
+
+
+def scan_motion(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """The James scan over the pose range of :func:`pose_sweep` (rigid: no animation units)."""
+    _check(num_frames, width, height)
+    ypr = keyframe_path(torch.tensor(_SWEEP_KEYS), num_frames)
+    R, t = _pose(ypr, num_frames, (12.0, 6.0, 10.0))
+    return SequenceSpec(
+        name="scan_motion",
+        subject="james",
+        intrinsics=_camera(width, height),
+        rotation=R,
+        translation=t,
+        anim=torch.zeros(num_frames, 0, dtype=torch.float64),
+        light=default_light(num_frames),
+        background=BackgroundSpec(seed=53, pan_px_per_frame=(0.3 * width / 640.0, 0.1 * height / 480.0)),
+        description="James scan: yaw to +-45, pitch to +-25, roll to +-20 deg, then combined",
+    )
+
+
+#: Scenario name -> builder ``(num_frames, width, height) -> SequenceSpec``.
+SCENARIOS: dict[str, Callable[[int, int, int], SequenceSpec]] = {
+    "pose_sweep": pose_sweep,
+    "expressions": expressions,
+    "light_switch": light_switch,
+    "occlusion": occlusion,
+    "scan_motion": scan_motion,
+}
+
+
+def scenario_size(name: str, size: str) -> tuple[int, int, int]:
+    """``(width, height, frames)`` of scenario ``name`` at named size ``"small"`` or ``"full"``."""
+    if size not in SIZES:
+        raise ValueError(f"size must be one of {tuple(SIZES)}, got {size!r}")
+    if name not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {tuple(SCENARIOS)}, got {name!r}")
+    w, h, frames = SIZES[size]
+    return w, h, FULL_FRAMES[name] if frames is None else frames
+
+
+def make_scenario(name: str, num_frames: int, width: int, height: int) -> SequenceSpec:
+    """Build scenario ``name`` (one of :data:`SCENARIOS`).
+
+    Example:
+        >>> make_scenario("light_switch", 30, 160, 120).events
+        (('side_light_on', 10), ('side_light_off', 20))
+    """
+    if name not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {tuple(SCENARIOS)}, got {name!r}")
+    return SCENARIOS[name](int(num_frames), int(width), int(height))

@@ -1,0 +1,468 @@
+"""Synthetic face sequences with exact ground truth: specification, rendering, files.
+
+A :class:`SequenceSpec` fixes, per frame, the head pose (``X_cam = R X_model + t``, see
+:mod:`torchface.conventions`), the animation-unit values, the light (:class:`LightState`, camera
+frame) and the occluder, and per sequence the subject, its shape coefficients, the camera and the
+background. :func:`render_sequence` renders it in memory (frames ``(T, 3, H, W)`` + :class:`GroundTruth`);
+:func:`write_sequence` streams it to a lossless video plus ``<name>.gt.npz`` / ``<name>.gt.json``.
+
+Image formation per frame (all batched over frames):
+
+1. vertices ``g = g_bar + S sigma + A alpha_t`` (paper Eq. 1), moved to the camera frame;
+2. textured Lambertian shading (:mod:`torchface.rendering.shading`) over the panning background;
+3. the occluder (if present) composited in front of everything.
+
+Ground-truth landmarks are the subject's 68 iBUG landmarks (fixed barycentric combinations of
+vertices, so they follow the expression), projected with the ground-truth pose; a landmark is
+visible when :func:`~torchface.rendering.visibility.points_visible` says so for the rendered
+fragments (self-occlusion) and the occluder does not cover its pixel.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
+from torchface.geometry.transforms import transform_points
+from torchface.rendering.shading import LightState, render
+from torchface.rendering.visibility import points_visible
+from torchface.synth.background import BackgroundSpec, OccluderSpec, background_frames, place_occluder
+from torchface.synth.io import VideoSink
+from torchface.synth.subjects import Subject, get_subject
+
+__all__ = [
+    "SequenceSpec",
+    "GroundTruth",
+    "SequenceFiles",
+    "render_sequence",
+    "iter_sequence",
+    "write_sequence",
+    "save_ground_truth",
+    "load_ground_truth",
+]
+
+#: Number of landmarks in the ground truth (iBUG-68).
+NUM_LANDMARKS: int = 68
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """Everything that determines a synthetic sequence.
+
+    Attributes:
+        name: sequence name (file stem).
+        subject: ``"candide3"`` or ``"james"``.
+        intrinsics: camera (the frames are ``intrinsics.height x intrinsics.width``).
+        rotation: ``(T, 3, 3)`` head-to-camera rotations.
+        translation: ``(T, 3)`` millimetres.
+        anim: ``(T, A)`` animation-unit values in the subject's unit order (``A = 0`` for a scan).
+        light: light state with batch ``T``.
+        shape_coeffs: ``(S,)`` shape coefficients; ``None`` uses the subject's own (fitted to its photo).
+        photo: photograph CANDIDE-3 is textured from (``"james"`` or ``"astronaut"``).
+        background: panning backdrop.
+        occluder: optional occluding object.
+        fps: frame rate written to the video.
+        events: ``(label, frame)`` pairs worth knowing (e.g. when a light switches on).
+        description: one line for humans.
+    """
+
+    name: str
+    subject: str
+    intrinsics: Intrinsics
+    rotation: Tensor
+    translation: Tensor
+    anim: Tensor
+    light: LightState
+    shape_coeffs: Tensor | None = None
+    photo: str = "james"
+    background: BackgroundSpec = field(default_factory=BackgroundSpec)
+    occluder: OccluderSpec | None = None
+    fps: float = 25.0
+    events: tuple[tuple[str, int], ...] = ()
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise TypeError(f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}")
+        if not isinstance(self.rotation, Tensor) or self.rotation.ndim != 3 or self.rotation.shape[1:] != (3, 3):
+            raise ValueError(f"rotation must be a (T, 3, 3) tensor, got {getattr(self.rotation, 'shape', self.rotation)}")
+        t = self.rotation.shape[0]
+        if t < 1:
+            raise ValueError("a sequence needs at least one frame")
+        if not isinstance(self.translation, Tensor) or tuple(self.translation.shape) != (t, 3):
+            raise ValueError(f"translation must be ({t}, 3), got {getattr(self.translation, 'shape', self.translation)}")
+        if not isinstance(self.anim, Tensor) or self.anim.ndim != 2 or self.anim.shape[0] != t:
+            raise ValueError(f"anim must be ({t}, A), got {getattr(self.anim, 'shape', self.anim)}")
+        if not isinstance(self.light, LightState) or self.light.batch_size != t:
+            raise ValueError(f"light must be a LightState with batch {t}")
+        if self.shape_coeffs is not None and (not isinstance(self.shape_coeffs, Tensor) or self.shape_coeffs.ndim != 1):
+            raise ValueError("shape_coeffs must be a (S,) tensor or None")
+        if self.occluder is not None and self.occluder.first_frame >= t:
+            raise ValueError(f"occluder starts at frame {self.occluder.first_frame} of a {t}-frame sequence")
+        if self.fps <= 0:
+            raise ValueError(f"fps must be positive, got {self.fps}")
+
+    @property
+    def num_frames(self) -> int:
+        """``T``."""
+        return int(self.rotation.shape[0])
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Per-frame ground truth of a synthetic sequence (float64 CPU tensors).
+
+    Attributes:
+        name: sequence name.
+        model: subject name (``"candide3"`` or ``"james"``).
+        photo: photograph the CANDIDE-3 texture came from.
+        intrinsics: camera.
+        fps: frame rate.
+        rotation: ``(T, 3, 3)`` head-to-camera rotations (``X_cam = R X_model + t``).
+        axis_angle: ``(T, 3)`` the same rotations as axis-angle vectors (radians).
+        translation: ``(T, 3)`` millimetres.
+        ypr_deg: ``(T, 3)`` yaw, pitch, roll in degrees (``R = R_y R_x R_z``).
+        au: ``(T, A)`` animation-unit values.
+        au_names: ``A`` names (the model's, e.g. ``"AUV11 Jaw drop"``).
+        shape_coeffs: ``(S,)`` shape coefficients of the subject.
+        light_ambient: ``(T,)``.
+        light_directions: ``(T, L, 3)`` camera frame, toward the lights.
+        light_intensities: ``(T, L)``.
+        occluder_on: ``(T,)`` bool.
+        occluded_fraction: ``(T,)`` fraction of the face's visible pixels hidden by the occluder.
+        face_pixels: ``(T,)`` number of pixels showing the face (before the occluder).
+        landmarks_3d: ``(T, 68, 3)`` landmarks in the head frame (expression applied).
+        landmarks_px: ``(T, 68, 2)`` pixel positions (``(u, v)``, pixel centres at integers).
+        landmarks_visible: ``(T, 68)`` bool.
+        events: ``(label, frame)`` pairs.
+        description: one line for humans.
+    """
+
+    name: str
+    model: str
+    photo: str
+    intrinsics: Intrinsics
+    fps: float
+    rotation: Tensor
+    axis_angle: Tensor
+    translation: Tensor
+    ypr_deg: Tensor
+    au: Tensor
+    au_names: tuple[str, ...]
+    shape_coeffs: Tensor
+    light_ambient: Tensor
+    light_directions: Tensor
+    light_intensities: Tensor
+    occluder_on: Tensor
+    occluded_fraction: Tensor
+    face_pixels: Tensor
+    landmarks_3d: Tensor
+    landmarks_px: Tensor
+    landmarks_visible: Tensor
+    events: tuple[tuple[str, int], ...] = ()
+    description: str = ""
+
+    @property
+    def num_frames(self) -> int:
+        """``T``."""
+        return int(self.rotation.shape[0])
+
+    @property
+    def light(self) -> LightState:
+        """The per-frame light as a :class:`LightState` with batch ``T``."""
+        return LightState(self.light_ambient, self.light_directions, self.light_intensities)
+
+
+@dataclass(frozen=True)
+class SequenceFiles:
+    """Paths written by :func:`write_sequence`.
+
+    Attributes:
+        video: the video file.
+        ground_truth: the ``.gt.npz`` file.
+        metadata: the ``.gt.json`` file.
+        codec: FourCC code of the video.
+        num_frames: frames written.
+    """
+
+    video: Path
+    ground_truth: Path
+    metadata: Path
+    codec: str
+    num_frames: int
+
+
+_TENSOR_FIELDS = (
+    "rotation",
+    "axis_angle",
+    "translation",
+    "ypr_deg",
+    "au",
+    "shape_coeffs",
+    "light_ambient",
+    "light_directions",
+    "light_intensities",
+    "occluder_on",
+    "occluded_fraction",
+    "face_pixels",
+    "landmarks_3d",
+    "landmarks_px",
+    "landmarks_visible",
+)
+
+
+def _resolve(spec: SequenceSpec) -> tuple[Subject, Tensor]:
+    subject = get_subject(spec.subject, spec.photo)
+    if spec.anim.shape[1] != subject.num_animation:
+        raise ValueError(
+            f"anim must have A={subject.num_animation} columns for subject {spec.subject!r}, got {spec.anim.shape[1]}"
+        )
+    shape = subject.shape_coeffs if spec.shape_coeffs is None else spec.shape_coeffs
+    if shape.shape != (subject.num_shape,):
+        raise ValueError(f"shape_coeffs must be ({subject.num_shape},) for {spec.subject!r}, got {tuple(shape.shape)}")
+    return subject, shape
+
+
+def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Tensor, dict[str, Tensor]]]:
+    """Render ``spec`` in chunks of at most ``batch_size`` frames.
+
+    Yields:
+        ``frames (b, 3, H, W)`` float32 in ``[0, 1]`` and a dict of the chunk's per-frame ground truth
+        (``landmarks_3d``, ``landmarks_px``, ``landmarks_visible``, ``occluded_fraction``,
+        ``face_pixels``, ``occluder_on``).
+    """
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    subject, shape = _resolve(spec)
+    cam = spec.intrinsics
+    h, w = cam.height, cam.width
+    t_all = spec.num_frames
+    for start in range(0, t_all, batch_size):
+        idx = torch.arange(start, min(start + batch_size, t_all))
+        b = idx.shape[0]
+        R = spec.rotation[idx].to(torch.float32)
+        t = spec.translation[idx].to(torch.float32)
+        verts = subject.deform(shape.to(torch.float32).expand(b, -1), spec.anim[idx].to(torch.float32), b)
+        verts_cam = transform_points(R, t, verts)
+        normals_cam = subject.vertex_normals(verts) @ R.transpose(-1, -2)
+        light = spec.light.select(idx).to(dtype=torch.float32)
+        bg = background_frames(spec.background, idx.to(torch.float32), h, w)
+        image, mask, frags = render(verts_cam, subject.faces, subject.uv, subject.texture, normals_cam, light, cam, bg)
+        face_pixels = (mask[:, 0] > 0.5).flatten(1).sum(1)
+        # Ground-truth geometry in float64 from the same parameters.
+        verts64 = subject.deform(shape.to(torch.float64).expand(b, -1), spec.anim[idx].to(torch.float64), b)
+        lm3d = subject.landmarks_3d(verts64.to(torch.float64))
+        R64, t64 = spec.rotation[idx].to(torch.float64), spec.translation[idx].to(torch.float64)
+        lm_cam = transform_points(R64, t64, lm3d)
+        lm_px = project_points(lm_cam, cam)
+        visible = points_visible(lm_cam.to(torch.float32), subject.landmark_faces, frags, cam)
+        occ_on = torch.zeros(b, dtype=torch.bool)
+        occ_frac = torch.zeros(b, dtype=torch.float64)
+        if spec.occluder is not None:
+            alpha, colour, frac = place_occluder(spec.occluder, idx, mask)
+            image = image * (1.0 - alpha) + colour * alpha
+            occ_on = spec.occluder.active(idx) & (face_pixels > 0)
+            occ_frac = frac.to(torch.float64)
+            col = lm_px[..., 0].round().clamp(0, w - 1).long()
+            row = lm_px[..., 1].round().clamp(0, h - 1).long()
+            covered = alpha[torch.arange(b).unsqueeze(-1), 0, row, col] > 0.5
+            visible = visible & ~covered
+        yield image.clamp(0.0, 1.0), {
+            "landmarks_3d": lm3d,
+            "landmarks_px": lm_px,
+            "landmarks_visible": visible,
+            "occluded_fraction": occ_frac,
+            "occluder_on": occ_on,
+            "face_pixels": face_pixels,
+        }
+
+
+def _ground_truth(spec: SequenceSpec, subject: Subject, shape: Tensor, chunks: list[dict[str, Tensor]]) -> GroundTruth:
+    cat = {k: torch.cat([c[k] for c in chunks]) for k in chunks[0]}
+    R = spec.rotation.to(torch.float64)
+    return GroundTruth(
+        name=spec.name,
+        model=subject.name,
+        photo=spec.photo if subject.name == "candide3" else "",
+        intrinsics=spec.intrinsics,
+        fps=float(spec.fps),
+        rotation=R,
+        axis_angle=matrix_to_axis_angle(R),
+        translation=spec.translation.to(torch.float64),
+        ypr_deg=matrix_to_euler(R),
+        au=spec.anim.to(torch.float64),
+        au_names=tuple(subject.animation_names),
+        shape_coeffs=shape.to(torch.float64),
+        light_ambient=spec.light.ambient.to(torch.float64),
+        light_directions=spec.light.directions.to(torch.float64),
+        light_intensities=spec.light.intensities.to(torch.float64),
+        occluder_on=cat["occluder_on"],
+        occluded_fraction=cat["occluded_fraction"],
+        face_pixels=cat["face_pixels"].to(torch.int64),
+        landmarks_3d=cat["landmarks_3d"],
+        landmarks_px=cat["landmarks_px"],
+        landmarks_visible=cat["landmarks_visible"],
+        events=tuple(spec.events),
+        description=spec.description,
+    )
+
+
+def render_sequence(spec: SequenceSpec, batch_size: int = 8) -> tuple[Tensor, GroundTruth]:
+    """Render a whole sequence in memory (for tests and small sequences; no files).
+
+    Args:
+        spec: the sequence.
+        batch_size: frames rendered at once.
+
+    Returns:
+        ``frames (T, 3, H, W)`` float32 RGB in ``[0, 1]`` and the :class:`GroundTruth`.
+
+    Example:
+        >>> from torchface.synth.scenarios import make_scenario
+        >>> frames, gt = render_sequence(make_scenario("pose_sweep", 4, 80, 60))
+        >>> frames.shape, gt.landmarks_px.shape
+        (torch.Size([4, 3, 60, 80]), torch.Size([4, 68, 2]))
+    """
+    subject, shape = _resolve(spec)
+    frames, chunks = [], []
+    for img, gt in iter_sequence(spec, batch_size):
+        frames.append(img)
+        chunks.append(gt)
+    return torch.cat(frames), _ground_truth(spec, subject, shape, chunks)
+
+
+def _metadata(gt: GroundTruth) -> dict[str, object]:
+    cam = gt.intrinsics
+    on = gt.occluder_on
+    return {
+        "name": gt.name,
+        "model": gt.model,
+        "photo": gt.photo,
+        "description": gt.description,
+        "num_frames": gt.num_frames,
+        "fps": gt.fps,
+        "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width, "height": cam.height},
+        "au_names": list(gt.au_names),
+        "shape_coeffs": [round(float(x), 6) for x in gt.shape_coeffs],
+        "num_lights": int(gt.light_directions.shape[1]),
+        "events": [[label, int(frame)] for label, frame in gt.events],
+        "ypr_deg_min": [round(float(x), 3) for x in gt.ypr_deg.amin(0)],
+        "ypr_deg_max": [round(float(x), 3) for x in gt.ypr_deg.amax(0)],
+        "occluder_frames": int(on.sum()),
+        "occluded_fraction_range": (
+            [round(float(gt.occluded_fraction[on].min()), 4), round(float(gt.occluded_fraction[on].max()), 4)] if on.any() else []
+        ),
+        "conventions": "torchface.conventions: X_cam = R X_model + t (mm), OpenCV camera, R = Ry(yaw) Rx(pitch) Rz(roll)",
+    }
+
+
+def save_ground_truth(
+    gt: GroundTruth, stem: str | os.PathLike[str], extra_metadata: dict[str, object] | None = None
+) -> tuple[Path, Path]:
+    """Write ``<stem>.gt.npz`` (all arrays) and ``<stem>.gt.json`` (metadata); returns both paths.
+
+    Both are written to temporary names and renamed when complete. ``extra_metadata`` (JSON-able)
+    is merged into the ``.gt.json``.
+    """
+    stem = Path(stem)
+    npz_path = stem.with_name(stem.name + ".gt.npz")
+    json_path = stem.with_name(stem.name + ".gt.json")
+    arrays = {k: getattr(gt, k).numpy() for k in _TENSOR_FIELDS}
+    cam = gt.intrinsics
+    arrays["intrinsics"] = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height], dtype=np.float64)
+    arrays["au_names"] = np.array(gt.au_names, dtype=np.str_)
+    arrays["event_labels"] = np.array([e[0] for e in gt.events], dtype=np.str_)
+    arrays["event_frames"] = np.array([e[1] for e in gt.events], dtype=np.int64)
+    arrays["strings"] = np.array([gt.name, gt.model, gt.photo, gt.description], dtype=np.str_)
+    arrays["fps"] = np.array(gt.fps, dtype=np.float64)
+    tmp_npz = npz_path.with_name(npz_path.name + ".partial.npz")
+    np.savez_compressed(tmp_npz, **arrays)
+    os.replace(tmp_npz, npz_path)
+    tmp_json = json_path.with_name(json_path.name + ".partial")
+    meta = _metadata(gt)
+    meta.update(extra_metadata or {})
+    tmp_json.write_text(json.dumps(meta, indent=1) + "\n")
+    os.replace(tmp_json, json_path)
+    return npz_path, json_path
+
+
+def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
+    """Read a ground truth written by :func:`save_ground_truth`.
+
+    Args:
+        path: the ``.gt.npz`` file, its ``.gt.json`` sibling, the video, or the common stem.
+
+    Example:
+        >>> # gt = load_ground_truth("out/pose_sweep.gt.npz"); gt.ypr_deg.shape  -> (T, 3)
+    """
+    p = Path(path)
+    name = p.name
+    for suffix in (".gt.npz", ".gt.json", ".avi", ".mkv", ".mp4"):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    npz_path = p.with_name(name + ".gt.npz")
+    if not npz_path.is_file():
+        raise FileNotFoundError(f"no ground truth at {npz_path}")
+    with np.load(npz_path) as z:
+        a = {k: z[k] for k in z.files}
+    fx, fy, cx, cy, width, height = (float(x) for x in a["intrinsics"])
+    strings = [str(s) for s in a["strings"]]
+    tensors = {k: torch.from_numpy(a[k]) for k in _TENSOR_FIELDS}
+    return GroundTruth(
+        name=strings[0],
+        model=strings[1],
+        photo=strings[2],
+        intrinsics=Intrinsics(int(width), int(height), fx, fy, cx, cy),
+        fps=float(a["fps"]),
+        au_names=tuple(str(s) for s in a["au_names"]),
+        events=tuple((str(lbl), int(f)) for lbl, f in zip(a["event_labels"], a["event_frames"])),
+        description=strings[3],
+        **tensors,
+    )
+
+
+def write_sequence(
+    spec: SequenceSpec,
+    out_dir: str | os.PathLike[str],
+    batch_size: int = 8,
+    progress: Callable[[int, int], None] | None = None,
+) -> SequenceFiles:
+    """Render ``spec`` into ``out_dir/<name>.avi`` (lossless) plus its ground truth files.
+
+    Frames are streamed to the video chunk by chunk, so memory does not grow with ``T``.
+
+    Args:
+        spec: the sequence.
+        out_dir: destination folder (created if needed).
+        batch_size: frames rendered at once.
+        progress: called with ``(frames_done, total)`` after each chunk.
+
+    Returns:
+        :class:`SequenceFiles`.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    subject, shape = _resolve(spec)
+    chunks: list[dict[str, Tensor]] = []
+    video_path = out / f"{spec.name}.avi"
+    with VideoSink(video_path, spec.intrinsics.width, spec.intrinsics.height, spec.fps) as sink:
+        for img, gt in iter_sequence(spec, batch_size):
+            sink.write(img)
+            chunks.append(gt)
+            if progress is not None:
+                progress(sink.frames_written, spec.num_frames)
+        codec = sink.codec
+    gt = _ground_truth(spec, subject, shape, chunks)
+    npz_path, json_path = save_ground_truth(gt, out / spec.name, {"video": video_path.name, "codec": codec.strip()})
+    return SequenceFiles(video_path, npz_path, json_path, codec, spec.num_frames)
