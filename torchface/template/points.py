@@ -30,7 +30,8 @@ class Template:
         face_index: ``(B, N)`` int64 triangle of each point.
         bary: ``(B, N, 3)`` barycentric coordinates in that triangle.
         points: ``(B, N, 3)`` head-frame position (mm) with the sample's shape units and zero expression.
-        basis: ``(B, N, A, 3)`` expression basis: displacement of the point per unit of each animation unit.
+        basis: ``(B, N, 3, A)`` expression basis: column ``j`` is the point's displacement per unit of animation
+            unit ``j`` (laid out for ``basis @ alpha``).
         normals: ``(B, N, 3)`` unit head-frame normals (zero expression).
         intensity: ``(B, N)`` gray value of the reference frame at the point (``T`` in the paper).
         valid: ``(B, N)`` bool.
@@ -161,7 +162,7 @@ def build_template(
     bary = torch.gather(bary_flat, 1, pix.unsqueeze(-1).expand(-1, -1, 3)).to(verts_model.dtype)
     neutral = model.deform(shape_coeffs, None)
     points = gather_face_attributes(neutral, model.faces, face_index, bary, batched=True)
-    basis = gather_face_attributes(model.animation_units.transpose(0, 1), model.faces, face_index, bary, batched=False)
+    basis = gather_face_attributes(model.animation_units.permute(1, 2, 0), model.faces, face_index, bary, batched=False)
     normals = torch.nn.functional.normalize(
         gather_face_attributes(vertex_normals(neutral, model.faces), model.faces, face_index, bary, batched=True), dim=-1
     )

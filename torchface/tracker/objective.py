@@ -34,9 +34,9 @@ def warp_points(template: Template, layout: ParamLayout, x: Tensor) -> tuple[Ten
         ``points_model (B, N, 3)``, ``points_cam (B, N, 3)`` and the rotation ``(B, 3, 3)``.
     """
     aa, t, alpha, _ = layout.split(x)
-    points_model = template.points + torch.einsum("bnaj,ba->bnj", template.basis, alpha)
+    points_model = template.points + torch.matmul(template.basis, alpha[:, None, :, None]).squeeze(-1)
     R = axis_angle_to_matrix(aa)
-    points_cam = torch.einsum("bij,bnj->bni", R, points_model) + t.unsqueeze(1)
+    points_cam = torch.matmul(points_model, R.transpose(1, 2)) + t.unsqueeze(1)
     return points_model, points_cam, R
 
 
@@ -70,16 +70,18 @@ def frame_residuals(
     uv = project_points(points_cam, intrinsics)
     values, inside = sample_at_pixels(image, uv)
     intensity, grad = values[..., 0], values[..., 1:3]
-    predicted = template.intensity + torch.einsum("bnl,bl->bn", light_basis, light)
+    predicted = template.intensity + torch.matmul(light_basis, light.unsqueeze(-1)).squeeze(-1)
     r = intensity - predicted
 
     d_uv = project_points_jacobian(points_cam, intrinsics)  # (B, N, 2, 3)
-    g_cam = torch.einsum("bnk,bnkj->bnj", grad, d_uv)  # dI/dX_cam (B, N, 3)
-    j_rot = torch.einsum("bnj,bnjk->bnk", g_cam, rotate_points_jacobian(aa, points_model))
-    j_anim = torch.einsum("bnj,bjk,bnak->bna", g_cam, R, template.basis)
+    g_cam = torch.matmul(grad.unsqueeze(-2), d_uv)  # dI/dX_cam (B, N, 1, 3)
+    j_rot = torch.matmul(g_cam, rotate_points_jacobian(aa, points_model)).squeeze(-2)
+    g_model = torch.matmul(g_cam.squeeze(-2), R)  # dI/dX_model (B, N, 3)
+    j_anim = torch.matmul(g_model.unsqueeze(-2), template.basis).squeeze(-2)
+    g_cam = g_cam.squeeze(-2)
     J = torch.cat([j_rot, g_cam, j_anim, -light_basis], dim=-1)
 
-    normals_cam = torch.einsum("bij,bnj->bni", R, template.normals)
+    normals_cam = torch.matmul(template.normals, R.transpose(1, 2))
     facing = (normals_cam * points_cam).sum(-1) < 0
     valid = point_mask & inside & in_front(points_cam) & facing
     return r, J, valid

@@ -1,0 +1,34 @@
+"""The tracker: initial fit (Eq. 2), per-frame joint minimisation (Eq. 20), batched streams."""
+
+from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.module import FaceTracker
+from torchface.tracker.objective import frame_residuals, warp_points
+from torchface.tracker.params import ParamLayout
+from torchface.tracker.step import (
+    TrackerConfig,
+    TrackerState,
+    TrackResult,
+    TrackStatus,
+    gray_pyramid,
+    initialise,
+    level_intrinsics,
+    track_step,
+)
+
+__all__ = [
+    "FaceTracker",
+    "FitConfig",
+    "LandmarkFit",
+    "ParamLayout",
+    "TrackResult",
+    "TrackStatus",
+    "TrackerConfig",
+    "TrackerState",
+    "fit_landmarks",
+    "frame_residuals",
+    "gray_pyramid",
+    "initialise",
+    "level_intrinsics",
+    "track_step",
+    "warp_points",
+]

@@ -1,0 +1,74 @@
+"""``FaceTracker``: the stateful ``nn.Module`` around :func:`initialise` and :func:`track_step`."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from torchface.geometry.camera import Intrinsics
+from torchface.model.candide import load_candide3
+from torchface.model.face_model import FaceModel
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, initialise, track_step
+
+
+class FaceTracker(nn.Module):
+    """Track B face streams at once; a thin loop over the functional :func:`track_step`.
+
+    The per-sequence state (:class:`TrackerState`) is explicit: :attr:`state` after each call, and
+    :meth:`reset` clears it. The model defaults to CANDIDE-3 with its 11 AUVs.
+
+    Example:
+        >>> tracker = FaceTracker()                                          # doctest: +SKIP
+        >>> first = tracker.initialise(frames[:, 0], landmarks)              # doctest: +SKIP
+        >>> for t in range(1, T):                                            # doctest: +SKIP
+        ...     result = tracker(frames[:, t])                               # (B, 3, H, W) -> TrackResult
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, model: FaceModel | None = None) -> None:
+        super().__init__()
+        self.config = TrackerConfig() if config is None else config
+        if not isinstance(self.config, TrackerConfig):
+            raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
+        self.model = load_candide3() if model is None else model
+        self._state: TrackerState | None = None
+
+    @property
+    def state(self) -> TrackerState | None:
+        """The tracking state after the last call (None before :meth:`initialise`)."""
+        return self._state
+
+    def reset(self) -> None:
+        """Forget the tracked sequence."""
+        self._state = None
+
+    def initialise(
+        self,
+        frames: Tensor,
+        landmarks_px: Tensor,
+        intrinsics: Intrinsics | None = None,
+        weights: Tensor | None = None,
+    ) -> TrackResult:
+        """Start tracking from the first frames and their landmarks.
+
+        Args:
+            frames: ``(B, 3, H, W)`` float in [0, 1].
+            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels.
+            intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
+            weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
+        """
+        if intrinsics is None:
+            if not isinstance(frames, Tensor) or frames.dim() != 4:
+                raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
+            intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+        self._state, result = initialise(self.model, self.config, frames, landmarks_px, intrinsics, weights)
+        return result
+
+    @torch.no_grad()
+    def forward(self, frames: Tensor) -> TrackResult:
+        """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
+        if self._state is None:
+            raise RuntimeError("call initialise(frames, landmarks) before tracking")
+        self._state, result = track_step(self.model, self.config, self._state, frames)
+        return result
+
+    step = forward
