@@ -1,0 +1,231 @@
+"""Known-answer tests of torchface.synth.metrics (tracking accuracy against ground truth)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix
+from torchface.synth.metrics import (
+    active_units,
+    pearson,
+    relative_rotation_error_deg,
+    relative_rotations,
+    relative_ypr_error_deg,
+    sequence_metrics,
+    translation_errors_mm,
+    unit_rmse,
+)
+from torchface.tracker.step import TrackStatus
+
+F64 = torch.float64
+
+
+def _ypr(rows: list[list[float]]) -> torch.Tensor:
+    return euler_to_matrix(torch.tensor(rows, dtype=F64))
+
+
+# --- relative rotations ---------------------------------------------------------------------------
+
+
+def test_relative_rotations_identity_at_frame_zero_and_batched_shape() -> None:
+    R = axis_angle_to_matrix(torch.randn(2, 5, 3, dtype=F64, generator=torch.Generator().manual_seed(0)))
+    rel = relative_rotations(R)
+    assert rel.shape == (2, 5, 3, 3)
+    torch.testing.assert_close(rel[:, 0], torch.eye(3, dtype=F64).expand(2, 3, 3))
+    torch.testing.assert_close(rel[:, 3] @ R[:, 0], R[:, 3])
+
+
+def test_rotation_error_known_answer_yaw() -> None:
+    gt = _ypr([[0, 0, 0], [20, 0, 0], [-10, 0, 0]])
+    est = _ypr([[5, 0, 0], [30, 0, 0], [-5, 0, 0]])
+    err = relative_rotation_error_deg(est, gt)
+    torch.testing.assert_close(err, torch.tensor([0.0, 5.0, 0.0], dtype=F64), atol=1e-9, rtol=0)
+    ypr = relative_ypr_error_deg(est, gt)
+    torch.testing.assert_close(ypr, torch.tensor([[0, 0, 0], [5, 0, 0], [0, 0, 0]], dtype=F64), atol=1e-9, rtol=0)
+
+
+def test_rotation_error_per_axis_signs() -> None:
+    gt = _ypr([[0, 0, 0], [10, 5, -3]])
+    est = _ypr([[0, 0, 0], [12, 2, -4]])
+    ypr = relative_ypr_error_deg(est, gt)
+    torch.testing.assert_close(ypr[1], torch.tensor([2.0, -3.0, -1.0], dtype=F64), atol=1e-9, rtol=0)
+
+
+def test_rotation_error_ignores_a_constant_model_frame_offset() -> None:
+    # est_t = gt_t D (a differently oriented head frame): relative rotations are identical.
+    g = torch.Generator().manual_seed(1)
+    gt = axis_angle_to_matrix(0.5 * torch.randn(6, 3, dtype=F64, generator=g))
+    D = axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.1], dtype=F64))
+    err = relative_rotation_error_deg(gt @ D, gt)
+    assert float(err.abs().max()) < 1e-6
+    ypr = relative_ypr_error_deg(gt @ D, gt)
+    assert float(ypr.abs().max()) < 1e-6
+
+
+def test_per_axis_error_wraps_around_180() -> None:
+    gt = _ypr([[0, 0, 0], [179, 0, 0]])
+    est = _ypr([[0, 0, 0], [-179, 0, 0]])
+    ypr = relative_ypr_error_deg(est, gt)
+    torch.testing.assert_close(ypr[1, 0].abs(), torch.tensor(2.0, dtype=F64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(relative_rotation_error_deg(est, gt)[1], torch.tensor(2.0, dtype=F64), atol=1e-9, rtol=0)
+
+
+def test_rotation_error_float32_against_float64_truth() -> None:
+    gt = _ypr([[0, 0, 0], [0, 0, 10]])
+    est = gt.to(torch.float32)
+    err = relative_rotation_error_deg(est, gt)
+    assert err.dtype == F64 and float(err.max()) < 1e-3
+
+
+# --- translation -----------------------------------------------------------------------------------
+
+
+def test_translation_errors_known_answer_and_constant_offset() -> None:
+    gt = torch.tensor([[0.0, 0, 450], [10, 0, 450], [10, 5, 460]], dtype=F64)
+    est = gt + torch.tensor([3.0, 4.0, 0.0], dtype=F64)
+    absolute, relative = translation_errors_mm(est, gt)
+    torch.testing.assert_close(absolute, torch.full((3,), 5.0, dtype=F64))
+    torch.testing.assert_close(relative, torch.zeros(3, dtype=F64))
+    est2 = est.clone()
+    est2[2, 2] += 12.0
+    absolute2, relative2 = translation_errors_mm(est2, gt)
+    torch.testing.assert_close(absolute2[2], torch.tensor(13.0, dtype=F64))
+    torch.testing.assert_close(relative2[2], torch.tensor(12.0, dtype=F64))
+
+
+# --- animation units -------------------------------------------------------------------------------
+
+
+def test_active_units() -> None:
+    gt = torch.zeros(4, 3, dtype=F64)
+    gt[2, 1] = 0.3
+    assert active_units(gt).tolist() == [False, True, False]
+
+
+def test_unit_rmse_known_answer_and_batch() -> None:
+    gt = torch.zeros(4, 2, dtype=F64)
+    est = torch.tensor([[0.3, 1.0], [-0.3, -1.0], [0.3, 1.0], [-0.3, -1.0]], dtype=F64)
+    ranges = torch.tensor([[0.0, 1.5], [-1.0, 1.0]])
+    torch.testing.assert_close(unit_rmse(est, gt, ranges), torch.tensor([0.2, 0.5], dtype=F64))
+    batched = unit_rmse(torch.stack([est, gt]), torch.stack([gt, gt]), ranges)
+    torch.testing.assert_close(batched, torch.tensor([[0.2, 0.5], [0.0, 0.0]], dtype=F64))
+
+
+def test_pearson_matches_numpy_and_is_nan_for_constant() -> None:
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(50, 3, dtype=F64, generator=g)
+    y = 0.7 * x + 0.5 * torch.randn(50, 3, dtype=F64, generator=g)
+    y[:, 2] = 1.25
+    rho = pearson(x, y)
+    for a in range(2):
+        ref = np.corrcoef(x[:, a].numpy(), y[:, a].numpy())[0, 1]
+        assert math.isclose(float(rho[a]), float(ref), rel_tol=1e-10)
+    assert math.isnan(float(rho[2]))
+    torch.testing.assert_close(pearson(x[:, :1], -3.0 * x[:, :1] + 2.0), torch.tensor([-1.0], dtype=F64))
+
+
+def test_pearson_float32_roundoff_constant_is_nan() -> None:
+    x = torch.linspace(0, 1, 20).unsqueeze(-1)
+    y = torch.full((20, 1), 0.1) + torch.zeros(20, 1)
+    assert math.isnan(float(pearson(x, y)[0]))
+
+
+# --- whole-sequence summary --------------------------------------------------------------------------
+
+
+def _synthetic_run(T: int = 11):
+    ypr_gt = torch.zeros(T, 3, dtype=F64)
+    ypr_gt[:, 0] = torch.linspace(0, 40, T, dtype=F64)
+    R_gt = euler_to_matrix(ypr_gt)
+    t_gt = torch.zeros(T, 3, dtype=F64)
+    t_gt[:, 2] = 450.0
+    ypr_est = ypr_gt.clone()
+    ypr_est[:, 1] += 2.0  # constant pitch offset: cancels in the relative error
+    ypr_est[4, 0] += 15.0  # one lost frame
+    ypr_est[7, 0] += 3.0
+    R_est = euler_to_matrix(ypr_est)
+    t_est = t_gt + torch.tensor([0.0, 0.0, 6.0], dtype=F64)
+    status = torch.full((T,), int(TrackStatus.CONVERGED))
+    status[2] = int(TrackStatus.MAX_ITERATIONS)
+    status[5] = int(TrackStatus.FAILED)
+    au_gt = torch.zeros(T, 3, dtype=F64)
+    au_gt[:, 1] = torch.linspace(0, 1, T, dtype=F64)
+    au_est = au_gt.clone()
+    au_est[:, 1] += 0.1
+    ranges = torch.tensor([[-1.0, 1.0], [0.0, 2.0], [-1.0, 1.0]])
+    return R_est, t_est, R_gt, t_gt, status, au_est, au_gt, ranges
+
+
+def test_sequence_metrics_known_answers() -> None:
+    R_est, t_est, R_gt, t_gt, status, au_est, au_gt, ranges = _synthetic_run()
+    m = sequence_metrics(
+        R_est, t_est, R_gt, t_gt, status, anim_est=au_est, anim_gt=au_gt, anim_ranges=ranges,
+        anim_names=("a", "b", "c"),
+    )
+    assert m.frames == 10
+    # With zero roll the pitch offset is R_gt @ R_x(2): a head-frame offset, which cancels exactly.
+    assert m.lost_frames == 1 and math.isclose(m.lost_fraction, 0.1)
+    assert math.isclose(m.rot_err_max_deg, 15.0, rel_tol=1e-9)
+    assert math.isclose(m.rot_err_mean_deg, 1.8, rel_tol=1e-9)
+    assert m.rot_err_median_deg < 1e-6
+    assert math.isclose(m.yaw_err_deg, 1.8, rel_tol=1e-9) and m.pitch_err_deg < 1e-9 and m.roll_err_deg < 1e-9
+    assert math.isclose(m.trans_err_mm, 6.0) and math.isclose(m.trans_rel_err_mm, 0.0, abs_tol=1e-12)
+    assert math.isclose(m.init_trans_err_mm, 6.0)
+    assert math.isclose(m.init_rot_err_deg, 2.0, rel_tol=1e-9)
+    assert math.isclose(m.converged, 0.8) and math.isclose(m.success, 0.9)
+    assert m.au_names == ("b",)
+    assert math.isclose(m.au_rmse, 0.05, rel_tol=1e-9)
+    assert math.isclose(m.au_corr, 1.0, rel_tol=1e-9)
+    d = m.as_dict()
+    assert d["au_rmse/b"] == m.au_rmse and "au_names" not in d
+
+
+def test_sequence_metrics_exact_rotation_errors_without_offset() -> None:
+    T = 6
+    ypr_gt = torch.zeros(T, 3, dtype=F64)
+    ypr_gt[:, 2] = torch.linspace(-10, 10, T, dtype=F64)
+    ypr_est = ypr_gt.clone()
+    ypr_est[1:, 2] += torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0], dtype=F64)
+    t = torch.zeros(T, 3, dtype=F64)
+    m = sequence_metrics(euler_to_matrix(ypr_est), t, euler_to_matrix(ypr_gt), t, torch.zeros(T, dtype=torch.int64))
+    assert math.isclose(m.rot_err_mean_deg, 3.0, rel_tol=1e-9)
+    assert math.isclose(m.rot_err_median_deg, 3.0, rel_tol=1e-9)
+    assert math.isclose(m.rot_err_max_deg, 5.0, rel_tol=1e-9)
+    assert math.isclose(m.roll_err_deg, 3.0, rel_tol=1e-9)
+    assert m.yaw_err_deg < 1e-9 and m.pitch_err_deg < 1e-9
+    assert math.isnan(m.au_rmse) and m.au_names == ()
+    assert m.converged == 1.0 and m.lost_frames == 0
+
+
+def test_sequence_metrics_constant_estimate_gives_nan_correlation() -> None:
+    R_est, t_est, R_gt, t_gt, status, _, au_gt, ranges = _synthetic_run()
+    m = sequence_metrics(
+        R_est, t_est, R_gt, t_gt, status, anim_est=torch.zeros_like(au_gt), anim_gt=au_gt, anim_ranges=ranges,
+        anim_names=("a", "b", "c"),
+    )
+    assert math.isnan(m.au_corr) and m.au_rmse > 0.2
+
+
+def test_validation_errors() -> None:
+    R = torch.eye(3, dtype=F64).expand(4, 3, 3)
+    with pytest.raises(ValueError, match="same shape"):
+        relative_rotation_error_deg(R, R[:3])
+    with pytest.raises(ValueError, match="rotations"):
+        relative_rotations(torch.zeros(4, 3))
+    with pytest.raises(TypeError, match="torch.Tensor"):
+        translation_errors_mm(np.zeros((4, 3)), torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="ranges"):
+        unit_rmse(torch.zeros(4, 2), torch.zeros(4, 2), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="hi > lo"):
+        unit_rmse(torch.zeros(4, 2), torch.zeros(4, 2), torch.zeros(2, 2))
+    with pytest.raises(ValueError, match="status"):
+        sequence_metrics(R, torch.zeros(4, 3), R, torch.zeros(4, 3), torch.zeros(3))
+    with pytest.raises(ValueError, match="anim_ranges"):
+        sequence_metrics(
+            R, torch.zeros(4, 3), R, torch.zeros(4, 3), torch.zeros(4), anim_est=torch.ones(4, 1),
+            anim_gt=torch.linspace(0, 1, 4).unsqueeze(-1), anim_names=("a",),
+        )

@@ -1,0 +1,377 @@
+"""Accuracy of a tracked sequence against synthetic ground truth (pose, expression, robustness).
+
+All functions take time series with the frame axis ``T`` just before the per-frame dimensions and any
+leading batch dimensions ``*`` (e.g. ``(B, T, 3, 3)`` for ``B`` runs of the same sequence); reductions are
+over ``T``. Rotations are head -> camera (``X_cam = R X_model + t``, millimetres; see
+:mod:`torchface.conventions`).
+
+Pose is scored *relative to frame 0*, ``R_t R_0^T`` of the estimate against the same of the ground truth,
+so that a constant offset of the initial fit (paper Eq. 2) -- e.g. a different head-frame origin when the
+tracked model is not the rendered one -- does not count against every later frame. The absolute errors are
+reported beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor
+
+from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_euler
+from torchface.tracker.step import TrackStatus
+
+__all__ = [
+    "LOST_THRESHOLD_DEG",
+    "relative_rotations",
+    "relative_rotation_error_deg",
+    "relative_ypr_error_deg",
+    "translation_errors_mm",
+    "active_units",
+    "unit_rmse",
+    "pearson",
+    "SequenceMetrics",
+    "sequence_metrics",
+]
+
+#: A frame whose relative rotation error exceeds this (degrees) counts as lost.
+LOST_THRESHOLD_DEG: float = 10.0
+
+
+def _check_rotations(R: Tensor, name: str) -> None:
+    if not isinstance(R, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(R).__name__}")
+    if R.dim() < 3 or tuple(R.shape[-2:]) != (3, 3) or not R.is_floating_point():
+        raise ValueError(f"{name} must be (*, T, 3, 3) float rotations, got {tuple(R.shape)} {R.dtype}")
+
+
+def _check_same(a: Tensor, b: Tensor, names: str) -> None:
+    if a.shape != b.shape:
+        raise ValueError(f"{names} must have the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
+
+
+def relative_rotations(R: Tensor) -> Tensor:
+    """Rotations relative to the first frame, ``R_t R_0^T``.
+
+    Args:
+        R: ``(*, T, 3, 3)`` rotations.
+
+    Returns:
+        ``(*, T, 3, 3)``; frame 0 is the identity.
+
+    Example:
+        >>> R = torch.eye(3).expand(4, 3, 3)
+        >>> relative_rotations(R).shape
+        torch.Size([4, 3, 3])
+    """
+    _check_rotations(R, "R")
+    return R @ R[..., :1, :, :].transpose(-1, -2)
+
+
+def relative_rotation_error_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
+    """Geodesic angle between the estimated and the true rotation relative to frame 0.
+
+    ``e_t = angle((R^est_t R^est_0^T) (R^gt_t R^gt_0^T)^T)`` in degrees (:func:`geodesic_angle_deg`).
+
+    Args:
+        R_est: ``(*, T, 3, 3)`` estimated rotations.
+        R_gt: ``(*, T, 3, 3)`` true rotations.
+
+    Returns:
+        ``(*, T)`` degrees; ``e_0 = 0``.
+
+    Example:
+        >>> from torchface.geometry.so3 import euler_to_matrix
+        >>> gt = euler_to_matrix(torch.tensor([[0.0, 0, 0], [20.0, 0, 0]], dtype=torch.float64))
+        >>> est = euler_to_matrix(torch.tensor([[5.0, 0, 0], [30.0, 0, 0]], dtype=torch.float64))
+        >>> relative_rotation_error_deg(est, gt).round(decimals=6)
+        tensor([0., 5.], dtype=torch.float64)
+    """
+    _check_rotations(R_est, "R_est")
+    _check_rotations(R_gt, "R_gt")
+    _check_same(R_est, R_gt, "R_est and R_gt")
+    dtype = torch.promote_types(R_est.dtype, R_gt.dtype)
+    return geodesic_angle_deg(relative_rotations(R_est.to(dtype)), relative_rotations(R_gt.to(dtype)))
+
+
+def relative_ypr_error_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
+    """Per-axis error of the relative rotations decomposed into yaw, pitch, roll.
+
+    Both ``R_t R_0^T`` are decomposed with :func:`matrix_to_euler` (``R = R_y R_x R_z``) and their
+    difference is wrapped to ``(-180, 180]``.
+
+    Args:
+        R_est: ``(*, T, 3, 3)`` estimated rotations.
+        R_gt: ``(*, T, 3, 3)`` true rotations.
+
+    Returns:
+        ``(*, T, 3)`` signed yaw, pitch, roll errors (estimate minus truth), degrees.
+    """
+    _check_rotations(R_est, "R_est")
+    _check_rotations(R_gt, "R_gt")
+    _check_same(R_est, R_gt, "R_est and R_gt")
+    dtype = torch.promote_types(R_est.dtype, R_gt.dtype)
+    d = matrix_to_euler(relative_rotations(R_est.to(dtype))) - matrix_to_euler(relative_rotations(R_gt.to(dtype)))
+    return torch.remainder(d + 180.0, 360.0) - 180.0
+
+
+def translation_errors_mm(t_est: Tensor, t_gt: Tensor) -> tuple[Tensor, Tensor]:
+    """Absolute and frame-0-relative translation errors (Euclidean, millimetres).
+
+    The relative error compares the displacements ``t_t - t_0`` of the head-frame origin, which removes
+    a constant offset of the initial fit.
+
+    Args:
+        t_est: ``(*, T, 3)`` estimated translations (mm).
+        t_gt: ``(*, T, 3)`` true translations (mm).
+
+    Returns:
+        ``(*, T)`` absolute errors ``|t^est_t - t^gt_t|`` and ``(*, T)`` relative errors
+        ``|(t^est_t - t^est_0) - (t^gt_t - t^gt_0)|``.
+
+    Example:
+        >>> est = torch.tensor([[1.0, 0, 0], [1.0, 2, 0]])
+        >>> gt = torch.tensor([[0.0, 0, 0], [0.0, 0, 0]])
+        >>> translation_errors_mm(est, gt)
+        (tensor([1.0000, 2.2361]), tensor([0., 2.]))
+    """
+    for t, name in ((t_est, "t_est"), (t_gt, "t_gt")):
+        if not isinstance(t, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+        if t.dim() < 2 or t.shape[-1] != 3 or not t.is_floating_point():
+            raise ValueError(f"{name} must be (*, T, 3) float translations, got {tuple(t.shape)} {t.dtype}")
+    _check_same(t_est, t_gt, "t_est and t_gt")
+    dtype = torch.promote_types(t_est.dtype, t_gt.dtype)
+    d = t_est.to(dtype) - t_gt.to(dtype)
+    return d.norm(dim=-1), (d - d[..., :1, :]).norm(dim=-1)
+
+
+def _check_series(x: Tensor, name: str) -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.dim() < 2 or not x.is_floating_point():
+        raise ValueError(f"{name} must be (*, T, A) float, got {tuple(x.shape)} {x.dtype}")
+
+
+def active_units(values_gt: Tensor, tolerance: float = 1e-6) -> Tensor:
+    """Units whose true value varies over the sequence (peak-to-peak above ``tolerance``).
+
+    Args:
+        values_gt: ``(*, T, A)`` true unit values.
+        tolerance: smallest peak-to-peak change that counts as varying.
+
+    Returns:
+        ``(*, A)`` bool.
+    """
+    _check_series(values_gt, "values_gt")
+    return (values_gt.amax(dim=-2) - values_gt.amin(dim=-2)) > tolerance
+
+
+def unit_rmse(values_est: Tensor, values_gt: Tensor, ranges: Tensor) -> Tensor:
+    """Root-mean-square error of each unit over time, as a fraction of its range.
+
+    ``rmse_a = sqrt(mean_t (alpha^est_ta - alpha^gt_ta)^2) / (hi_a - lo_a)``.
+
+    Args:
+        values_est: ``(*, T, A)`` estimated animation-unit values.
+        values_gt: ``(*, T, A)`` true values.
+        ranges: ``(A, 2)`` ``[lo, hi]`` of each unit (e.g. ``FaceModel.animation_ranges``).
+
+    Returns:
+        ``(*, A)`` dimensionless.
+
+    Example:
+        >>> est = torch.tensor([[0.5, 0.0], [0.5, 0.0]])
+        >>> gt = torch.zeros(2, 2)
+        >>> unit_rmse(est, gt, torch.tensor([[0.0, 1.0], [-1.0, 1.0]]))
+        tensor([0.5000, 0.0000])
+    """
+    _check_series(values_est, "values_est")
+    _check_series(values_gt, "values_gt")
+    _check_same(values_est, values_gt, "values_est and values_gt")
+    A = values_gt.shape[-1]
+    if not isinstance(ranges, Tensor) or tuple(ranges.shape) != (A, 2):
+        raise ValueError(f"ranges must be ({A}, 2) [lo, hi] per unit, got {tuple(getattr(ranges, 'shape', ()))}")
+    dtype = torch.promote_types(values_est.dtype, values_gt.dtype)
+    ranges = ranges.to(dtype=dtype, device=values_gt.device)
+    span = ranges[:, 1] - ranges[:, 0]
+    if not bool((span > 0).all()):
+        raise ValueError(f"every range must have hi > lo, got {ranges.tolist()}")
+    d = values_est.to(dtype) - values_gt.to(dtype)
+    return (d * d).mean(dim=-2).sqrt() / span
+
+
+def pearson(x: Tensor, y: Tensor) -> Tensor:
+    """Pearson correlation over time, per unit.
+
+    ``rho = sum_t (x_t - x_mean)(y_t - y_mean) / sqrt(sum_t (x_t - x_mean)^2 sum_t (y_t - y_mean)^2)``;
+    NaN where either series is constant (the correlation is undefined there).
+
+    Args:
+        x: ``(*, T, A)``.
+        y: ``(*, T, A)``.
+
+    Returns:
+        ``(*, A)`` in ``[-1, 1]`` or NaN.
+
+    Example:
+        >>> x = torch.tensor([[0.0], [1.0], [2.0]])
+        >>> pearson(x, 3.0 - 2.0 * x)
+        tensor([-1.])
+    """
+    _check_series(x, "x")
+    _check_series(y, "y")
+    _check_same(x, y, "x and y")
+    dtype = torch.promote_types(x.dtype, y.dtype)
+    xc = x.to(dtype) - x.to(dtype).mean(dim=-2, keepdim=True)
+    yc = y.to(dtype) - y.to(dtype).mean(dim=-2, keepdim=True)
+    sxx, syy, sxy = (xc * xc).sum(-2), (yc * yc).sum(-2), (xc * yc).sum(-2)
+    # Constant series: relative to the data's own scale, so a float round-off residue counts as constant.
+    eps = torch.finfo(dtype).eps
+    scale_x = (x.to(dtype) ** 2).sum(-2) * eps
+    scale_y = (y.to(dtype) ** 2).sum(-2) * eps
+    degenerate = (sxx <= scale_x) | (syy <= scale_y) | (sxx == 0) | (syy == 0)
+    denom = torch.where(degenerate, torch.ones_like(sxx), (sxx * syy).clamp_min(torch.finfo(dtype).tiny).sqrt())
+    rho = (sxy / denom).clamp(-1.0, 1.0)
+    return torch.where(degenerate, torch.full_like(rho, float("nan")), rho)
+
+
+@dataclass(frozen=True)
+class SequenceMetrics:
+    """Summary of one tracked sequence (frames ``1 .. T-1``; frame 0 is the reference).
+
+    Attributes:
+        frames: number of tracked frames ``T - 1``.
+        rot_err_mean_deg, rot_err_median_deg, rot_err_max_deg: geodesic error of the rotation relative to
+            frame 0 (:func:`relative_rotation_error_deg`).
+        yaw_err_deg, pitch_err_deg, roll_err_deg: mean absolute per-axis error (:func:`relative_ypr_error_deg`).
+        trans_err_mm: mean absolute translation error; trans_rel_err_mm: mean frame-0-relative error
+            (:func:`translation_errors_mm`).
+        init_rot_err_deg, init_trans_err_mm: error of the initial fit at frame 0 (absolute).
+        converged: fraction of frames whose status is CONVERGED.
+        success: fraction of frames not FAILED.
+        lost_frames: frames whose relative rotation error exceeds the lost threshold; lost_fraction: the same
+            over ``frames``.
+        au_rmse: RMSE over the active units, each as a fraction of its range, averaged (NaN if none active).
+        au_corr: Pearson correlation over the active units, averaged over the defined ones (NaN if none).
+        au_names: names of the active units; au_rmse_per_unit, au_corr_per_unit: per active unit.
+    """
+
+    frames: int
+    rot_err_mean_deg: float
+    rot_err_median_deg: float
+    rot_err_max_deg: float
+    yaw_err_deg: float
+    pitch_err_deg: float
+    roll_err_deg: float
+    trans_err_mm: float
+    trans_rel_err_mm: float
+    init_rot_err_deg: float
+    init_trans_err_mm: float
+    converged: float
+    success: float
+    lost_frames: int
+    lost_fraction: float
+    au_rmse: float
+    au_corr: float
+    au_names: tuple[str, ...] = ()
+    au_rmse_per_unit: tuple[float, ...] = ()
+    au_corr_per_unit: tuple[float, ...] = ()
+
+    def as_dict(self) -> dict[str, float | int]:
+        """Flat ``{metric: number}``; per-unit values as ``au_rmse/<name>`` and ``au_corr/<name>``."""
+        d = asdict(self)
+        names = d.pop("au_names")
+        rmse = d.pop("au_rmse_per_unit")
+        corr = d.pop("au_corr_per_unit")
+        for n, r, c in zip(names, rmse, corr):
+            d[f"au_rmse/{n}"] = r
+            d[f"au_corr/{n}"] = c
+        return d
+
+
+def sequence_metrics(
+    rotation_est: Tensor,
+    translation_est: Tensor,
+    rotation_gt: Tensor,
+    translation_gt: Tensor,
+    status: Tensor,
+    *,
+    anim_est: Tensor | None = None,
+    anim_gt: Tensor | None = None,
+    anim_ranges: Tensor | None = None,
+    anim_names: tuple[str, ...] = (),
+    lost_threshold_deg: float = LOST_THRESHOLD_DEG,
+) -> SequenceMetrics:
+    """Summarise one tracked sequence against its ground truth.
+
+    Statistics are over the tracked frames ``1 .. T-1`` (frame 0 is the initial fit and the reference of
+    the relative errors); the initial fit's own error is reported separately.
+
+    Args:
+        rotation_est: ``(T, 3, 3)`` estimated head -> camera rotations.
+        translation_est: ``(T, 3)`` estimated translations (mm).
+        rotation_gt: ``(T, 3, 3)`` true rotations.
+        translation_gt: ``(T, 3)`` true translations (mm).
+        status: ``(T,)`` integer per-frame :class:`~torchface.tracker.step.TrackStatus`.
+        anim_est: ``(T, A)`` estimated animation units, or None (no expression metrics).
+        anim_gt: ``(T, A)`` true animation units in the same order, or None.
+        anim_ranges: ``(A, 2)`` ranges the RMSE is normalised by (required with ``anim_est``).
+        anim_names: ``A`` names.
+        lost_threshold_deg: relative rotation error above which a frame is lost.
+
+    Returns:
+        :class:`SequenceMetrics`.
+    """
+    _check_rotations(rotation_est, "rotation_est")
+    if rotation_est.dim() != 3 or rotation_est.shape[0] < 2:
+        raise ValueError(f"rotation_est must be (T, 3, 3) with T >= 2, got {tuple(rotation_est.shape)}")
+    T = rotation_est.shape[0]
+    if not isinstance(status, Tensor) or tuple(status.shape) != (T,):
+        raise ValueError(f"status must be ({T},), got {tuple(getattr(status, 'shape', ()))}")
+    rot = relative_rotation_error_deg(rotation_est, rotation_gt)[1:]
+    ypr = relative_ypr_error_deg(rotation_est, rotation_gt)[1:].abs().mean(0)
+    t_abs, t_rel = translation_errors_mm(translation_est, translation_gt)
+    init_rot = geodesic_angle_deg(rotation_est[0].to(rotation_gt.dtype), rotation_gt[0])
+    st = status[1:]
+    lost = int((rot > lost_threshold_deg).sum())
+    nan = float("nan")
+    au_rmse, au_corr, names, rmse_u, corr_u = nan, nan, (), (), ()
+    if anim_est is not None and anim_gt is not None and anim_gt.shape[-1] > 0:
+        if anim_ranges is None:
+            raise ValueError("anim_ranges is required to score animation units")
+        if len(anim_names) != anim_gt.shape[-1]:
+            raise ValueError(f"anim_names must name {anim_gt.shape[-1]} units, got {len(anim_names)}")
+        est, gt = anim_est[1:], anim_gt[1:]
+        active = active_units(gt)
+        if bool(active.any()):
+            r = unit_rmse(est, gt, anim_ranges)[active]
+            c = pearson(est, gt)[active]
+            names = tuple(n for n, a in zip(anim_names, active.tolist()) if a)
+            rmse_u = tuple(float(v) for v in r)
+            corr_u = tuple(float(v) for v in c)
+            au_rmse = float(r.mean())
+            defined = c[~torch.isnan(c)]
+            au_corr = float(defined.mean()) if defined.numel() else nan
+    return SequenceMetrics(
+        frames=T - 1,
+        rot_err_mean_deg=float(rot.mean()),
+        rot_err_median_deg=float(rot.median()),
+        rot_err_max_deg=float(rot.max()),
+        yaw_err_deg=float(ypr[0]),
+        pitch_err_deg=float(ypr[1]),
+        roll_err_deg=float(ypr[2]),
+        trans_err_mm=float(t_abs[1:].mean()),
+        trans_rel_err_mm=float(t_rel[1:].mean()),
+        init_rot_err_deg=float(init_rot),
+        init_trans_err_mm=float(t_abs[0]),
+        converged=float((st == int(TrackStatus.CONVERGED)).double().mean()),
+        success=float((st != int(TrackStatus.FAILED)).double().mean()),
+        lost_frames=lost,
+        lost_fraction=lost / (T - 1),
+        au_rmse=au_rmse,
+        au_corr=au_corr,
+        au_names=names,
+        au_rmse_per_unit=rmse_u,
+        au_corr_per_unit=corr_u,
+    )
