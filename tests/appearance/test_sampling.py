@@ -1,0 +1,168 @@
+"""Tests for torchface.appearance.sampling: pixel-centre bilinear sampling, gradient images, gray."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchface.appearance import image_with_gradients, pixels_to_grid, sample_at_pixels, to_gray
+
+D = torch.float64
+
+
+def _bilinear_reference(img: torch.Tensor, u: float, v: float) -> torch.Tensor:
+    """Textbook bilinear interpolation of ``img (C, H, W)`` at pixel ``(u, v)`` (centres at integers), clamped."""
+    _, h, w = img.shape
+    u = min(max(u, 0.0), w - 1.0)
+    v = min(max(v, 0.0), h - 1.0)
+    u0, v0 = min(int(math.floor(u)), w - 2), min(int(math.floor(v)), h - 2)
+    a, b = u - u0, v - v0
+    return (
+        (1 - a) * (1 - b) * img[:, v0, u0]
+        + a * (1 - b) * img[:, v0, u0 + 1]
+        + (1 - a) * b * img[:, v0 + 1, u0]
+        + a * b * img[:, v0 + 1, u0 + 1]
+    )
+
+
+# ------------------------------------------------------------------------------------------- cardinality
+
+
+def test_sample_shapes():
+    img = torch.rand(2, 3, 7, 9)
+    pts = torch.rand(2, 5, 2) * 6
+    values, inside = sample_at_pixels(img, pts)
+    assert values.shape == (2, 5, 3) and inside.shape == (2, 5) and inside.dtype == torch.bool
+
+
+def test_image_with_gradients_shape():
+    out = image_with_gradients(torch.rand(3, 1, 6, 8))
+    assert out.shape == (3, 3, 6, 8)
+
+
+# ----------------------------------------------------------------------------------------------- feature
+
+
+def test_integer_coordinates_return_pixel_values_exactly():
+    gen = torch.Generator().manual_seed(0)
+    img = torch.rand(2, 3, 11, 13, generator=gen, dtype=D)
+    u = torch.randint(0, 13, (2, 40), generator=gen)
+    v = torch.randint(0, 11, (2, 40), generator=gen)
+    pts = torch.stack([u, v], -1).to(D)
+    values, inside = sample_at_pixels(img, pts)
+    expected = img[torch.arange(2)[:, None], :, v, u]  # (B, N, C): pixel (u, v) is column u, row v
+    torch.testing.assert_close(values, expected, rtol=0, atol=1e-12)
+    assert bool(inside.all())
+
+
+def test_float32_integer_coordinates_are_exact_enough():
+    """In float32 the normalise/unnormalise round trip of grid_sample costs ~1e-6 px, so values agree to ~1e-4."""
+    img = torch.rand(1, 1, 120, 160)
+    uu, vv = torch.meshgrid(torch.arange(160), torch.arange(120), indexing="xy")
+    pts = torch.stack([uu.flatten(), vv.flatten()], -1).float().unsqueeze(0)
+    values, _ = sample_at_pixels(img, pts)
+    torch.testing.assert_close(values[0, :, 0], img.flatten(), rtol=0, atol=1e-4)
+
+
+def test_matches_manual_bilinear_interpolation():
+    gen = torch.Generator().manual_seed(1)
+    img = torch.rand(2, 2, 8, 10, generator=gen, dtype=D)
+    pts = torch.stack(
+        [torch.rand(2, 30, generator=gen, dtype=D) * 9, torch.rand(2, 30, generator=gen, dtype=D) * 7], -1
+    )
+    values, inside = sample_at_pixels(img, pts)
+    for b in range(2):
+        for n in range(30):
+            ref = _bilinear_reference(img[b], float(pts[b, n, 0]), float(pts[b, n, 1]))
+            torch.testing.assert_close(values[b, n], ref, rtol=0, atol=1e-12)
+    assert bool(inside.all())
+
+
+def test_row_column_order():
+    """``(u, v)`` is (column, row): moving u walks along a row."""
+    img = torch.arange(12, dtype=D).reshape(1, 1, 3, 4)  # value = 4 * row + col
+    values, _ = sample_at_pixels(img, torch.tensor([[[2.5, 1.0], [0.0, 1.5], [3.0, 2.0]]], dtype=D))
+    torch.testing.assert_close(values[0, :, 0], torch.tensor([6.5, 6.0, 11.0], dtype=D))
+
+
+def test_outside_points_flagged_and_clamped_to_border():
+    img = torch.arange(12, dtype=D).reshape(1, 1, 3, 4)
+    pts = torch.tensor([[[-0.5, 1.0], [3.2, 0.0], [1.0, -1.0], [1.0, 2.5], [3.0, 2.0], [0.0, 0.0]]], dtype=D)
+    values, inside = sample_at_pixels(img, pts)
+    assert inside[0].tolist() == [False, False, False, False, True, True]
+    # border padding: outside points take the nearest edge value
+    torch.testing.assert_close(values[0, :4, 0], torch.tensor([4.0, 3.0, 1.0, 9.0], dtype=D))
+
+
+def test_nan_points_are_not_inside():
+    img = torch.rand(1, 1, 5, 5, dtype=D)
+    _, inside = sample_at_pixels(img, torch.tensor([[[float("nan"), 1.0], [1.0, 1.0]]], dtype=D))
+    assert inside[0].tolist() == [False, True]
+
+
+def test_pixels_to_grid_align_corners():
+    g = pixels_to_grid(torch.tensor([[[0.0, 0.0], [9.0, 5.0], [4.5, 2.5]]], dtype=D), 6, 10)
+    torch.testing.assert_close(g[0], torch.tensor([[-1.0, -1.0], [1.0, 1.0], [0.0, 0.0]], dtype=D))
+
+
+def test_image_with_gradients_equals_central_differences():
+    gen = torch.Generator().manual_seed(2)
+    gray = torch.rand(2, 1, 9, 12, generator=gen, dtype=D)
+    out = image_with_gradients(gray)
+    torch.testing.assert_close(out[:, :1], gray)
+    g = gray[:, 0]
+    du = torch.empty_like(g)
+    dv = torch.empty_like(g)
+    du[:, :, 1:-1] = 0.5 * (g[:, :, 2:] - g[:, :, :-2])
+    dv[:, 1:-1, :] = 0.5 * (g[:, 2:, :] - g[:, :-2, :])
+    # replicate border: the missing neighbour is the pixel itself
+    du[:, :, 0] = 0.5 * (g[:, :, 1] - g[:, :, 0])
+    du[:, :, -1] = 0.5 * (g[:, :, -1] - g[:, :, -2])
+    dv[:, 0, :] = 0.5 * (g[:, 1, :] - g[:, 0, :])
+    dv[:, -1, :] = 0.5 * (g[:, -1, :] - g[:, -2, :])
+    torch.testing.assert_close(out[:, 1], du, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[:, 2], dv, rtol=0, atol=1e-12)
+
+
+def test_image_gradients_exact_for_quadratic_image():
+    """Central differences are exact for quadratics: d/du (a u^2 + b u v) = 2 a u + b v."""
+    vv, uu = torch.meshgrid(torch.arange(10, dtype=D), torch.arange(14, dtype=D), indexing="ij")
+    gray = (0.01 * uu**2 + 0.02 * uu * vv - 0.03 * vv**2).view(1, 1, 10, 14)
+    out = image_with_gradients(gray)[0]
+    inner = (slice(1, -1), slice(1, -1))
+    torch.testing.assert_close(out[1][inner], (0.02 * uu + 0.02 * vv)[inner], rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[2][inner], (0.02 * uu - 0.06 * vv)[inner], rtol=0, atol=1e-12)
+
+
+def test_to_gray_bt601_and_passthrough():
+    rgb = torch.tensor([1.0, 0.0, 0.0]).view(1, 3, 1, 1).expand(1, 3, 2, 2)
+    torch.testing.assert_close(to_gray(rgb), torch.full((1, 1, 2, 2), 0.299), rtol=0, atol=1e-6)
+    g = torch.rand(1, 1, 3, 3)
+    assert to_gray(g) is g
+
+
+# -------------------------------------------------------------------------------------------- gradcheck
+
+
+def test_gradcheck_points_and_image():
+    gen = torch.Generator().manual_seed(3)
+    img = torch.rand(1, 2, 5, 6, generator=gen, dtype=D, requires_grad=True)
+    # keep away from integer coordinates where bilinear sampling has kinks
+    pts = (torch.rand(1, 4, 2, generator=gen, dtype=D) * 0.8 + 0.1 + torch.tensor([[1.0, 1.0], [2.0, 3.0], [4.0, 2.0], [3.0, 1.0]], dtype=D)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda i, p: sample_at_pixels(i, p)[0], (img, pts))
+
+
+# -------------------------------------------------------------------------------------------- exception
+
+
+def test_bad_shapes_raise():
+    with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
+        sample_at_pixels(torch.rand(3, 4, 5), torch.rand(1, 2, 2))
+    with pytest.raises(ValueError, match=r"\(B, N, 2\)"):
+        sample_at_pixels(torch.rand(1, 1, 4, 5), torch.rand(1, 2, 3))
+    with pytest.raises(ValueError, match=r"B=2"):
+        sample_at_pixels(torch.rand(2, 1, 4, 5), torch.rand(1, 2, 2))
+    with pytest.raises(ValueError, match="1 or 3"):
+        to_gray(torch.rand(1, 2, 4, 4))
