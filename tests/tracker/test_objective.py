@@ -138,8 +138,8 @@ def test_jacobian_and_residual_against_independent_reference_smooth_image(kind):
     light_basis = _light_basis(tpl, params("nonzero"))
     r, J, valid = frame_residuals(x, LAYOUT, tpl, image, CAM, light_basis, tpl.valid)
     assert bool(valid.all())
-    # residual values: bilinear interpolation of a slowly varying image (error <= h^2/8 |I''| ~ 3e-4)
-    torch.testing.assert_close(r, reference_residual(x, tpl, light_basis), rtol=0, atol=5e-4)
+    # residual values: bilinear interpolation error <= (|I_uu| + |I_vv|) / 8 ~ 5e-4 for this pattern
+    torch.testing.assert_close(r, reference_residual(x, tpl, light_basis), rtol=0, atol=1e-3)
     J_ref = _autograd_jacobian(lambda p: reference_residual(p, tpl, light_basis), x)
     for name, cols in GROUPS.items():
         scale = float(J_ref[..., cols].abs().max())
