@@ -72,6 +72,9 @@ def image_with_gradients(gray: Tensor) -> Tensor:
         ``(B, 3, H, W)``: intensity, d/du and d/dv (central differences, per pixel, replicate border), so that
         sampling at a point gives ``I`` and ``grad I`` there.
     """
-    grads = kornia.filters.spatial_gradient(gray, mode="diff", order=1, normalized=False)  # (B, 1, 2, H, W)
-    # kornia's "diff" kernel is [-1, 0, 1] unnormalised: halve it for a central difference per pixel.
-    return torch.cat([gray, 0.5 * grads[:, 0]], dim=1)
+    # Central differences with replicated borders (kornia's "diff" spatial gradient halved), by slicing:
+    # several times faster than a convolution on the CPU.
+    p = F.pad(gray, (1, 1, 1, 1), mode="replicate")
+    gu = 0.5 * (p[:, :, 1:-1, 2:] - p[:, :, 1:-1, :-2])
+    gv = 0.5 * (p[:, :, 2:, 1:-1] - p[:, :, :-2, 1:-1])
+    return torch.cat([gray, gu, gv], dim=1)

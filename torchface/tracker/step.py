@@ -31,6 +31,16 @@ from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
 
 
+class TrackSolver(enum.Enum):
+    """Which per-frame solver :func:`track_step` uses."""
+
+    #: Gauss-Newton on a local twist over a face crop (:mod:`torchface.tracker.fast`); the default.
+    FAST = "fast"
+    #: The generic Levenberg-Marquardt (:func:`torchface.solver.least_squares`) on the full frame with
+    #: additive axis-angle parameters (:func:`~torchface.tracker.objective.frame_residuals`): slow, a reference.
+    REFERENCE = "reference"
+
+
 class TrackStatus(enum.IntEnum):
     """Per-sample outcome of a step."""
 
@@ -62,6 +72,9 @@ class TrackerConfig:
         min_contrast: a sample whose sampled frame intensities have a standard deviation below this is FAILED
             (black or textureless frame).
         fit: settings of the initial fit to landmarks.
+        solver: :class:`TrackSolver`.
+        crop_margin: the fast solver tracks inside a crop around the previous estimate's face box, enlarged
+            by this fraction of the box size on each side (plus 32 pixels).
     """
 
     num_levels: int = 3
@@ -77,6 +90,8 @@ class TrackerConfig:
     min_points: int = 50
     min_contrast: float = 0.01
     fit: FitConfig = field(default_factory=FitConfig)
+    solver: TrackSolver = TrackSolver.FAST
+    crop_margin: float = 0.25
 
     def __post_init__(self) -> None:
         if self.num_levels < 1:
@@ -301,6 +316,8 @@ def track_step(
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     frames = frames.to(dtype=model.dtype, device=model.device)
+    if config.solver is TrackSolver.FAST:
+        return _track_step_fast(model, config, state, frames)
     layout = _layout(model)
     levels = gray_pyramid(frames, config.num_levels)
     if config.zbuffer_visibility:
@@ -354,3 +371,120 @@ def track_step(
     confidence = (frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2))) * (~failed)
     new_state = replace(state, params=x, frame_index=state.frame_index + 1)
     return new_state, _result(model, layout, x, status, res.iterations, rms, n_valid, confidence)
+
+
+def _round_down(x: Tensor, q: int) -> Tensor:
+    return torch.div(x, q, rounding_mode="floor") * q
+
+
+def face_crop(model: FaceModel, state: TrackerState, layout: ParamLayout, config: TrackerConfig) -> tuple[Tensor, int, int]:
+    """Crop around every stream's face at the previous estimate: offsets ``(B, 2)`` (x0, y0) and size (h, w).
+
+    One size for the batch (the largest face box, enlarged by ``config.crop_margin``); offsets are multiples
+    of ``2**(num_levels - 1)`` so every pyramid level of the crop is pixel-aligned with the full image's.
+    """
+    H, W = state.intrinsics.height, state.intrinsics.width
+    aa, t, alpha, _ = layout.split(state.params)
+    R = axis_angle_to_matrix(aa)
+    verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
+    uv = project_points(verts, state.intrinsics)
+    uv = torch.nan_to_num(uv).clamp(-W, 2 * W)
+    lo, hi = uv.amin(1), uv.amax(1)  # (B, 2)
+    size = (hi - lo).amax(-1)  # (B,)
+    q = 2 ** (config.num_levels - 1)
+    side = int(torch.ceil(size.max() * (1 + 2 * config.crop_margin) + 64).item()) if size.numel() else W
+    side = ((side + q - 1) // q) * q
+    cw, ch = min(W, side), min(H, side)
+    centre = 0.5 * (lo + hi)
+    x0 = _round_down(torch.round(centre[:, 0] - cw / 2).long(), q).clamp(0, (W - cw) // q * q)
+    y0 = _round_down(torch.round(centre[:, 1] - ch / 2).long(), q).clamp(0, (H - ch) // q * q)
+    return torch.stack([x0, y0], dim=-1), ch, cw
+
+
+def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
+    """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets (exact copy)."""
+    B = frames.shape[0]
+    rows = offsets[:, 1:2] + torch.arange(ch, device=frames.device)
+    cols = offsets[:, 0:1] + torch.arange(cw, device=frames.device)
+    bidx = torch.arange(B, device=frames.device)[:, None, None]
+    gray = to_gray(frames)[:, 0]
+    return gray[bidx, rows[:, :, None], cols[:, None, :]].unsqueeze(1)
+
+
+def _track_step_fast(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
+) -> tuple[TrackerState, TrackResult]:
+    """:func:`track_step` with the fast solver (:mod:`torchface.tracker.fast`)."""
+    from torchface.tracker.fast import LevelCamera, solve_level
+
+    layout = _layout(model)
+    B = frames.shape[0]
+    offsets, ch, cw = face_crop(model, state, layout, config)
+    crop = [_crop_gray(frames, offsets, ch, cw)]
+    for _ in range(config.num_levels - 1):
+        crop.append(kornia.geometry.transform.pyrdown(crop[-1]))
+    masks = [t.valid for t in state.templates]
+    if config.zbuffer_visibility:
+        vis_level = config.num_levels - 1
+        H, W = state.intrinsics.height, state.intrinsics.width
+        h_l, w_l = H >> vis_level, W >> vis_level
+        masks = _visibility_at(model, state, layout, vis_level, h_l, w_l)
+    aa, t, alpha, light = (p.clone() for p in layout.split(state.params))
+    R = axis_angle_to_matrix(aa)
+    R_prev = R
+    free = torch.ones(layout.size, dtype=torch.bool, device=R.device)
+    if not config.use_expression:
+        free[layout.animation] = False
+    if not config.use_illumination:
+        free[layout.illumination] = False
+    robust = None if config.robust is RobustKind.NONE else RobustLoss(config.robust, config.robust_c)
+    lo, hi = model.animation_ranges[:, 0], model.animation_ranges[:, 1]
+    intr = state.intrinsics
+    for level in reversed(range(config.num_levels)):
+        s = 0.5**level
+        img = image_with_gradients(crop[level])
+        cam = LevelCamera(
+            intr.fx * s, intr.fy * s, (intr.cx + 0.5) * s - 0.5, (intr.cy + 0.5) * s - 0.5,
+            (offsets >> level).to(R.dtype), img.shape[-2], img.shape[-1],
+        )
+        tpl = state.templates[level]
+        light_basis = illumination_basis(tpl.intensity, torch.matmul(tpl.normals, R_prev.transpose(1, 2)))
+        R, t, alpha, light, out = solve_level(
+            tpl, img, cam, R, t, alpha, light, light_basis, masks[level],
+            iterations=config.iterations[config.num_levels - 1 - level], free=free,
+            alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision, robust=robust,
+        )
+    from torchface.geometry.so3 import matrix_to_axis_angle
+
+    x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
+    valid = out.valid
+    n_valid = valid.sum(-1)
+    vf = valid.to(x.dtype)
+    r = torch.where(valid, out.residual, torch.zeros_like(out.residual))
+    mean_i = (out.sampled * vf).sum(-1) / n_valid.clamp_min(1)
+    std_i = (((out.sampled - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
+    rms = ((r**2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
+    failed = ~out.finite | (n_valid < config.min_points) | (std_i < config.min_contrast) | ~torch.isfinite(x).all(-1)
+    x = torch.where(failed.unsqueeze(-1), state.params, x)
+    status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
+    status = torch.where(failed, int(TrackStatus.FAILED), status)
+    frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
+    confidence = frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2)) * (~failed)
+    new_state = replace(state, params=x, frame_index=state.frame_index + 1)
+    return new_state, _result(model, layout, x, status, out.iterations, rms, n_valid, confidence)
+
+
+def _visibility_at(
+    model: FaceModel, state: TrackerState, layout: ParamLayout, level: int, height: int, width: int
+) -> list[Tensor]:
+    """Z-buffer visibility of every level's template points at the previous estimate (one rasterization)."""
+    aa, t, alpha, _ = layout.split(state.params)
+    R = axis_angle_to_matrix(aa)
+    verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
+    intr = level_intrinsics(state.intrinsics, level, height, width)
+    frags = rasterize(verts, model.faces, intr)
+    masks = []
+    for tpl in state.templates:
+        _, cam, _ = warp_points(tpl, layout, state.params)
+        masks.append(points_visible(cam, tpl.face_index, frags, intr, depth_tolerance=0.02) & tpl.valid)
+    return masks
