@@ -1,0 +1,168 @@
+"""Tests for torchface.tracker.fit (paper Eq. 2): known answers on projected model landmarks, noise, weights,
+missing points, batching and input validation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg
+from torchface.model.candide import load_candide3
+from torchface.tracker import FitConfig, fit_landmarks
+
+D = torch.float64
+CAM = Intrinsics.default(640, 480)
+EXACT = FitConfig(shape_prior_precision=0.0, max_iterations=100)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3(dtype=D)
+
+
+def project_landmarks(model, R, t, shape=None, anim=None):
+    """``(B, 68, 2)`` pixel positions of the model's landmarks for pose ``(R, t)`` and coefficients."""
+    lm3 = model.landmarks_3d(model.deform(shape, anim))
+    return project_points(torch.einsum("bij,bkj->bki", R, lm3) + t[:, None], CAM)
+
+
+def poses():
+    R = euler_to_matrix(torch.tensor([[10.0, -5.0, 3.0], [-20.0, 8.0, -4.0], [0.0, 0.0, 0.0]], dtype=D))
+    t = torch.tensor([[10.0, -5.0, 500.0], [-20.0, 10.0, 450.0], [0.0, 0.0, 600.0]], dtype=D)
+    return R, t
+
+
+def test_exact_landmarks_recover_pose_and_reproject_exactly(model):
+    """Noise-free landmarks of a posed, person-shaped model: pose error ~ 0 (no prior, so no bias)."""
+    R, t = poses()
+    shape = 0.3 * torch.randn(3, model.num_shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    fit = fit_landmarks(model, project_landmarks(model, R, t, shape), CAM, config=EXACT)
+    assert fit.rotation.shape == (3, 3, 3) and fit.shape_coeffs.shape == (3, model.num_shape)
+    assert fit.anim_coeffs.shape == (3, model.num_animation) and bool((fit.anim_coeffs == 0).all())
+    assert fit.status.tolist() == [0, 0, 0]
+    assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-6
+    torch.testing.assert_close(fit.translation, t, rtol=0, atol=1e-6)
+    assert float(fit.rms_px.max()) < 1e-6
+    # The shape is determined where it moves landmarks: the fitted landmarks coincide in 3D (head frame).
+    lm_true = model.landmarks_3d(model.deform(shape, None))
+    lm_fit = model.landmarks_3d(model.deform(fit.shape_coeffs, None))
+    torch.testing.assert_close(lm_fit, lm_true, rtol=0, atol=1e-6)
+
+
+def test_exact_landmarks_with_expression(model):
+    """``fit_expression``: animation units that move landmarks are recovered exactly."""
+    R, t = poses()
+    anim = torch.zeros(3, model.num_animation, dtype=D)
+    jaw = model.animation_names.index("AUV11 Jaw drop")
+    corner = model.animation_names.index("AUV14 Lip corner depressor")
+    anim[:, jaw] = torch.tensor([0.5, 0.8, 0.2], dtype=D)
+    anim[:, corner] = 0.3
+    cfg = FitConfig(shape_prior_precision=0.0, fit_expression=True, expression_prior_precision=0.0, max_iterations=100)
+    fit = fit_landmarks(model, project_landmarks(model, R, t, None, anim), CAM, config=cfg)
+    assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-6
+    torch.testing.assert_close(fit.anim_coeffs[:, [jaw, corner]], anim[:, [jaw, corner]], rtol=0, atol=1e-6)
+
+
+def test_default_prior_is_unbiased_for_the_mean_shape(model):
+    """With the default shape prior, landmarks of the mean face still give the exact pose."""
+    R, t = poses()
+    fit = fit_landmarks(model, project_landmarks(model, R, t), CAM)
+    assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-4
+    torch.testing.assert_close(fit.translation, t, rtol=0, atol=1e-3)
+
+
+def test_two_pixel_noise_frontal_640x480(model):
+    """Gaussian noise of 2 px on every landmark of a frontal face (mean shape) at 450 mm: pose error < 2 deg
+    for each of 8 seeds (fitted at once as a batch of 8)."""
+    B = 8
+    R = euler_to_matrix(torch.zeros(B, 3, dtype=D))
+    t = torch.tensor([0.0, 0.0, 450.0], dtype=D).expand(B, 3)
+    clean = project_landmarks(model, R, t, None)
+    noisy = clean + 2.0 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    fit = fit_landmarks(model, noisy, CAM)
+    err = geodesic_angle_deg(fit.rotation, R)
+    assert float(err.max()) < 2.0, f"rotation errors (deg) over seeds: {err.tolist()}"
+    assert float(err.mean()) < 1.5
+    # the residual is the noise: RMS over x and y close to 2 px per coordinate (sqrt(2) * 2 per point)
+    assert bool(((fit.rms_px > 1.5) & (fit.rms_px < 3.5)).all()), fit.rms_px.tolist()
+
+
+def test_batch_equals_single_samples(model):
+    R, t = poses()
+    lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(3), dtype=D)
+    both = fit_landmarks(model, lm, CAM)
+    for b in (0, 2):
+        one = fit_landmarks(model, lm[b : b + 1], CAM)
+        torch.testing.assert_close(one.axis_angle[0], both.axis_angle[b], rtol=0, atol=1e-9)
+        torch.testing.assert_close(one.translation[0], both.translation[b], rtol=0, atol=1e-6)
+        torch.testing.assert_close(one.shape_coeffs[0], both.shape_coeffs[b], rtol=0, atol=1e-8)
+
+
+def test_missing_and_zero_weight_landmarks_are_ignored(model):
+    """A NaN landmark and a zero-weight gross outlier change nothing: same answer as leaving them out."""
+    R, t = poses()
+    R, t = R[:2], t[:2]
+    lm = project_landmarks(model, R, t) + torch.randn(2, 68, 2, generator=torch.Generator().manual_seed(1), dtype=D)
+    corrupted = lm.clone()
+    corrupted[0, 30] = float("nan")  # nose tip missing in sample 0
+    corrupted[1, 8] = torch.tensor([5000.0, -3000.0], dtype=D)  # chin far off in sample 1 ...
+    weights = torch.ones(2, 68, dtype=D)
+    weights[1, 8] = 0.0  # ... with zero confidence
+    fit = fit_landmarks(model, corrupted, CAM, weights)
+    assert bool(torch.isfinite(fit.axis_angle).all() & torch.isfinite(fit.shape_coeffs).all())
+    for b, drop in ((0, 30), (1, 8)):
+        keep = torch.tensor([k for k in range(68) if k != drop])
+        ref = fit_landmarks(model, lm[b : b + 1, keep], CAM, landmark_indices=keep)
+        torch.testing.assert_close(fit.axis_angle[b], ref.axis_angle[0], rtol=0, atol=1e-8)
+        torch.testing.assert_close(fit.translation[b], ref.translation[0], rtol=0, atol=1e-5)
+        torch.testing.assert_close(fit.rms_px[b], ref.rms_px[0], rtol=1e-6, atol=1e-8)
+
+
+def test_weights_matter(model):
+    """A down-weighted outlier pulls the fit less than a fully weighted one."""
+    R, t = poses()
+    R, t = R[:1].expand(2, 3, 3), t[:1].expand(2, 3)
+    lm = project_landmarks(model, R, t)
+    lm[:, 8, 1] += 40.0  # chin 40 px low
+    w = torch.ones(2, 68, dtype=D)
+    w[1, 8] = 0.05
+    fit = fit_landmarks(model, lm, CAM, w)
+    err = geodesic_angle_deg(fit.rotation, R)
+    assert float(err[1]) < float(err[0])
+
+
+def test_nan_weight_is_ignored(model):
+    R, t = poses()
+    lm = project_landmarks(model, R[:1], t[:1])
+    lm[0, 36] = torch.tensor([1000.0, 1000.0], dtype=D)
+    w = torch.ones(1, 68, dtype=D)
+    w[0, 36] = float("nan")
+    fit = fit_landmarks(model, lm, CAM, w)
+    assert float(geodesic_angle_deg(fit.rotation, R[:1])) < 1e-4
+
+
+def test_bad_inputs_raise(model):
+    lm = torch.zeros(1, 68, 2, dtype=D)
+    with pytest.raises(ValueError, match=r"\(B, 68, 2\)"):
+        fit_landmarks(model, torch.zeros(1, 68, 3, dtype=D), CAM)
+    with pytest.raises(ValueError, match=r"\(B, 68, 2\)"):
+        fit_landmarks(model, torch.zeros(68, 2, dtype=D), CAM)
+    with pytest.raises(ValueError, match=r"\(B, 5, 2\)"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.arange(5))
+    with pytest.raises(ValueError, match=r"weights must be \(B, K\)"):
+        fit_landmarks(model, lm, CAM, torch.ones(1, 67, dtype=D))
+    few = torch.zeros(1, 68, dtype=D)
+    few[0, :3] = 1.0
+    with pytest.raises(ValueError, match="at least 4"):
+        fit_landmarks(model, lm, CAM, few)
+    nan = torch.full((1, 68, 2), float("nan"), dtype=D)
+    with pytest.raises(ValueError, match="at least 4"):
+        fit_landmarks(model, nan, CAM)
+    with pytest.raises(ValueError, match="shape_bound"):
+        FitConfig(shape_bound=0.0)
+    with pytest.raises(ValueError, match="max_iterations"):
+        FitConfig(max_iterations=0)
+    with pytest.raises(ValueError, match="non-negative"):
+        FitConfig(shape_prior_precision=-1.0)
