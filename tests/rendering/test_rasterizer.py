@@ -122,6 +122,26 @@ def test_matches_reference_random_soup(seed):
     assert_fragments_match(fast, ref)
 
 
+def test_matches_reference_slivers():
+    # Long thin triangles (nearly horizontal, vertical and diagonal) stress the scanline spans.
+    g = torch.Generator().manual_seed(42)
+    num = 40
+    start = (torch.rand(2, num, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([80.0, 60.0, 20.0])
+    start = start + torch.tensor([0.0, 0.0, 100.0])
+    direction = torch.randn(2, num, 3, generator=g, dtype=torch.float64)
+    direction[:, : num // 3, 1] *= 1e-3  # nearly horizontal in the image
+    direction[:, num // 3 : 2 * num // 3, 0] *= 1e-3  # nearly vertical
+    end = start + 60.0 * direction / direction.norm(dim=-1, keepdim=True)
+    side = torch.randn(2, num, 3, generator=g, dtype=torch.float64) * 1.5
+    third = (start + end) / 2 + side
+    verts = torch.stack([start, end, third], 2).reshape(2, -1, 3)
+    faces = torch.arange(3 * num).reshape(num, 3)
+    fast = rasterize(verts, faces, CAM)
+    ref = rasterize_reference(verts, faces, CAM)
+    assert ref.foreground.sum() > 50
+    assert_fragments_match(fast, ref, max_ambiguous=0.05)
+
+
 @pytest.mark.parametrize("seed", [10, 11])
 def test_matches_reference_folded_surface(seed):
     verts, faces = random_surface(seed, 2)
@@ -162,6 +182,23 @@ def test_triangle_partly_behind_camera():
     assert 0 < int(ref.foreground.sum()) < 24 * 32
     assert_fragments_match(fast, ref)
     assert (fast.zbuf[fast.foreground] > 1.0).all()
+
+
+def test_near_plane_and_huge_projections():
+    # A tilted triangle cut by a custom near plane, and one whose corner is just beyond the default
+    # near plane so that it projects tens of thousands of pixels away (whole-row candidate path).
+    tilted = torch.tensor([[-40.0, -30.0, 60.0], [40.0, -30.0, 60.0], [0.0, 40.0, 140.0]], dtype=torch.float64)
+    close = torch.tensor([[-400.0, 2.0, 1.05], [30.0, -20.0, 80.0], [35.0, 25.0, 90.0]], dtype=torch.float64)
+    verts = torch.stack([tilted, close])
+    faces = torch.tensor([[0, 2, 1]])
+    for near in (1.0, 90.0):
+        fast = rasterize(verts, faces, CAM, near=near)
+        ref = rasterize_reference(verts, faces, CAM, near=near)
+        assert fast.foreground[0].any()
+        assert_fragments_match(fast, ref)
+        assert (fast.zbuf[fast.foreground] > near).all()
+    cut = rasterize(verts, faces, CAM, near=90.0).foreground[0]
+    assert cut.sum() < rasterize(verts, faces, CAM).foreground[0].sum()
 
 
 def test_triangle_fully_behind_or_offscreen():
@@ -271,6 +308,18 @@ def test_chunking_gives_identical_result(monkeypatch):
     chunked = rasterize(verts, faces, CAM)
     for name in ("pix_to_face", "bary", "zbuf", "facing"):
         assert torch.equal(getattr(whole, name), getattr(chunked, name))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_scanline_spans_lose_no_pixel(monkeypatch, dtype):
+    # The spans only prune candidates: testing every triangle on every pixel gives identical fragments.
+    meshes = [random_soup(8, 2, 30, dtype), random_surface(9, 2)]
+    pruned = [rasterize(v.to(dtype), f, CAM) for v, f in meshes]
+    monkeypatch.setattr(rasterizer_module, "_MAX_PROJECTED_PX", -1.0)  # every triangle takes whole rows
+    for (v, f), expected in zip(meshes, pruned):
+        full = rasterize(v.to(dtype), f, CAM)
+        for name in ("pix_to_face", "bary", "zbuf", "facing"):
+            assert torch.equal(getattr(full, name), getattr(expected, name))
 
 
 def test_facing_values_and_culling():

@@ -24,9 +24,16 @@ front of the camera (``t > 0``) has all of them of the sign of ``n . v0``; each 
 coefficients are multiplied by ``sign(n . v0)`` once; a hit is then ``e_i >= 0`` for all ``i`` and
 ``n . d > 0`` with no per-pixel division.
 
-Candidate (triangle, pixel) pairs come from each triangle's projected bounding box clamped to the
-image (the whole image for a triangle with a vertex at or behind the near plane), enumerated with
-``repeat_interleave``/``cumsum`` arithmetic in chunks of bounded size.
+Candidate (triangle, pixel) pairs are enumerated with ``repeat_interleave``/``cumsum`` arithmetic in
+two levels: first the image rows of each triangle's projected bounding box, then, per row, the columns
+between the row's crossings with the projected edges (a scanline span, widened by a hundredth of a
+pixel so rounding never loses a pixel). A triangle with a vertex at or behind the near plane, whose
+projection is unbounded, is tested on every pixel of the image. The 3D test above, not the spans,
+decides coverage; the spans only keep the candidates close to the covered pixels (for a face-sized
+mesh at 640x480, about one candidate per covered pixel). Pairs are evaluated in chunks of bounded
+size. The float32 z-buffer packs ``(depth bits, face)`` into one int64 key, so one ``scatter_reduce``
+finds the nearest hit and breaks depth ties; other dtypes take the minimum depth, then the minimum
+face among each pixel's hits at that depth.
 
 Tie rules
 ---------
@@ -60,13 +67,12 @@ _MAX_PAIRS_PER_CHUNK: int = 1 << 21
 #: Relative tolerance, in units of the dtype's machine epsilon, for degenerate and edge-on triangles.
 _DEGENERATE_EPS_FACTOR: float = 16.0
 
-#: Margin (pixels) added to projected bounding boxes so rounding never drops a pixel on an edge.
-_BBOX_MARGIN_PX: float = 1e-3
+#: Margin (pixels) added to projected row spans so rounding never drops a pixel on an edge.
+_SPAN_MARGIN_PX: float = 1e-2
 
-# Columns of the per-face coefficient table built by :func:`_face_coefficients`.
-_E0, _E1, _E2, _DEN = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
-_K = 12
-_NUM_COEFFS = 13
+#: Projected corners farther than this from the origin (pixels) make a triangle use whole image rows,
+#: so that span arithmetic never works with coordinates too large for the dtype's precision.
+_MAX_PROJECTED_PX: float = 1e4
 
 
 @dataclass(frozen=True)
@@ -118,16 +124,17 @@ def _triangles(verts: Tensor, faces: Tensor) -> Tensor:
     return verts[:, faces.long()]
 
 
-def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per-triangle ray-test coefficients, oriented so that a hit in front of the camera is positive.
 
     Args:
         tri: ``(B, F, 3, 3)`` triangle corners in the camera frame.
 
     Returns:
-        ``coeffs (B, F, 13)``: for ``d = (a, b, 1)``, ``e_i = coeffs[3i] a + coeffs[3i+1] b + coeffs[3i+2]``
-        (``i = 0, 1, 2``, the triple products ``d . (v_{i+1} x v_{i+2})``), ``den = n . d`` from columns
-        9..11 and ``k = n . v0`` in column 12, all multiplied by ``sign(n . v0)``;
+        ``coeffs (B, F, 4, 3)``: for the ray ``d = (a, b, 1)``, function ``j`` is
+        ``coeffs[..., j, 0] a + (coeffs[..., j, 1] b + coeffs[..., j, 2])``, where functions 0..2 are
+        the triple products ``e_i = d . (v_{i+1} x v_{i+2})`` and function 3 is ``n . d``;
+        ``k (B, F)`` is ``n . v0``; all are multiplied by ``sign(n . v0)``.
         ``front (B, F)`` bool (``n . v0 < 0``); ``usable (B, F)`` bool (finite, non-degenerate,
         not edge-on).
     """
@@ -151,103 +158,132 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         & (n_norm > eps * max_edge_sq)
         & (k.abs() > eps * n_norm * torch.linalg.vector_norm(v0, dim=-1))
     )
-    coeffs = torch.cat([c0, c1, c2, n, k.unsqueeze(-1)], -1) * sign.unsqueeze(-1)
-    return coeffs, front, usable
+    coeffs = torch.stack([c0, c1, c2, n], -2) * sign[..., None, None]
+    return coeffs, k * sign, front, usable
 
 
-def _evaluate(coeffs: Tensor, a: Tensor, b: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Evaluate gathered coefficients ``(P, 13)`` on rays ``(a, b, 1)`` given as ``(P,)`` tensors.
+def _project_corners(tri: Tensor, intrinsics: Intrinsics, near: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Projected corners ``u, v (B, F, 3)`` (pixels), ``wide (B, F)`` and ``behind (B, F)`` bool.
 
-    Returns ``e0, e1, e2, den, k``, each ``(P,)``: oriented triple products, ``n . d`` and ``n . v0``.
+    ``wide``: a corner is at or behind the near plane, or projects beyond :data:`_MAX_PROJECTED_PX` or
+    to a non-finite position; such triangles are tested against whole image rows. ``behind``: all
+    corners are at or behind the near plane, so no point of the triangle can be hit.
     """
-    c = coeffs
-    e0 = c[:, 0] * a + c[:, 1] * b + c[:, 2]
-    e1 = c[:, 3] * a + c[:, 4] * b + c[:, 5]
-    e2 = c[:, 6] * a + c[:, 7] * b + c[:, 8]
-    den = c[:, 9] * a + c[:, 10] * b + c[:, 11]
-    return e0, e1, e2, den, c[:, _K]
-
-
-def _bounding_boxes(
-    tri: Tensor, usable: Tensor, intrinsics: Intrinsics, near: float
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Inclusive pixel ranges ``x0, x1, y0, y1`` (each ``(B, F)`` int64) of candidate pixels per triangle.
-
-    Triangles with a vertex at or behind the near plane get the whole image; triangles entirely
-    behind it, or not ``usable``, get an empty range.
-    """
-    W, H = intrinsics.width, intrinsics.height
     z = tri[..., 2]
-    crosses = (z <= near).any(-1)
-    behind = (z <= near).all(-1)
-    z_safe = torch.where(crosses.unsqueeze(-1), torch.ones_like(z), z)
+    at_or_behind = z <= near
+    crosses = at_or_behind.any(-1)
+    z_safe = torch.where(at_or_behind, torch.ones_like(z), z)
     u = tri[..., 0] / z_safe * intrinsics.fx + intrinsics.cx
     v = tri[..., 1] / z_safe * intrinsics.fy + intrinsics.cy
-    big = float(max(W, H) + 2)
-    u = u.nan_to_num(nan=0.0, posinf=big, neginf=-big).clamp(-big, big)
-    v = v.nan_to_num(nan=0.0, posinf=big, neginf=-big).clamp(-big, big)
-    x0 = torch.ceil(u.amin(-1) - _BBOX_MARGIN_PX).long().clamp(0, W)
-    x1 = torch.floor(u.amax(-1) + _BBOX_MARGIN_PX).long().clamp(-1, W - 1)
-    y0 = torch.ceil(v.amin(-1) - _BBOX_MARGIN_PX).long().clamp(0, H)
-    y1 = torch.floor(v.amax(-1) + _BBOX_MARGIN_PX).long().clamp(-1, H - 1)
-    x0 = torch.where(crosses, torch.zeros_like(x0), x0)
-    y0 = torch.where(crosses, torch.zeros_like(y0), y0)
-    x1 = torch.where(crosses, torch.full_like(x1, W - 1), x1)
-    y1 = torch.where(crosses, torch.full_like(y1, H - 1), y1)
-    empty = behind | ~usable
-    x1 = torch.where(empty, x0 - 1, x1)
-    return x0, x1, y0, y1
+    far = (u.abs() > _MAX_PROJECTED_PX) | (v.abs() > _MAX_PROJECTED_PX) | ~torch.isfinite(u) | ~torch.isfinite(v)
+    wide = crosses | far.any(-1)
+    u = torch.where(wide.unsqueeze(-1), torch.zeros_like(u), u)
+    v = torch.where(wide.unsqueeze(-1), torch.zeros_like(v), v)
+    return u, v, wide, at_or_behind.all(-1)
 
 
-def _zbuffer_chunk(
-    coeffs: Tensor,
-    face_of_bf: Tensor,
-    batch_of_bf: Tensor,
-    x0: Tensor,
-    y0: Tensor,
-    width: Tensor,
-    counts: Tensor,
-    ray_a: Tensor,
-    ray_b: Tensor,
-    near: float,
-    num_pixels: int,
-    image_w: int,
-    image_hw: int,
-) -> tuple[Tensor, Tensor]:
-    """Nearest hit per pixel among the candidate pairs of one chunk of (sample, face) rows.
+def _scan_edges(u: Tensor, v: Tensor) -> Tensor:
+    """Scanline description ``(R, 8)`` of projected triangles ``u, v (R, 3)`` (pixels).
 
-    All arguments indexed by (sample, face) row are ``(R,)`` for the ``R`` rows of the chunk
-    (``coeffs`` is ``(R, 13)``). Returns ``zmin (B*H*W,)`` (``+inf`` where nothing hits) and
-    ``fmin (B*H*W,)`` int64 (the lowest face index among the hits at ``zmin``; ``F`` sentinel
-    where nothing hits is represented by ``int64 max``).
+    Corners sorted by row, ``top <= mid <= bot``: columns are ``v_top, v_mid, v_bot, u_top, u_mid``
+    and the column-per-row slopes of the long edge (top to bottom), the upper short edge (top to mid)
+    and the lower short edge (mid to bottom); a horizontal edge gets slope 0 (it is never the edge
+    that bounds a row strictly inside the triangle's row range).
     """
-    dtype = coeffs.dtype
-    device = coeffs.device
+    v_sorted, order = v.sort(-1)
+    u_sorted = u.gather(-1, order)
+    v_top, v_mid, v_bot = v_sorted.unbind(-1)
+    u_top, u_mid, u_bot = u_sorted.unbind(-1)
+
+    def slope(du: Tensor, dv: Tensor) -> Tensor:
+        flat = dv == 0
+        return torch.where(flat, torch.zeros_like(du), du / torch.where(flat, torch.ones_like(dv), dv))
+
+    return torch.stack(
+        [
+            v_top, v_mid, v_bot, u_top, u_mid,
+            slope(u_bot - u_top, v_bot - v_top), slope(u_mid - u_top, v_mid - v_top), slope(u_bot - u_mid, v_bot - v_mid),
+        ],
+        -1,
+    )  # fmt: skip
+
+
+def _row_spans(scan: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """Column interval ``[x_min, x_max]`` (float, ``(R,)``) of triangles ``scan (R, 8)`` (see
+    :func:`_scan_edges`) on image rows ``y (R,)`` (float).
+
+    The row is clamped into the triangle's row range first, so a row just outside it (within the
+    margin) gets the span of the nearest vertex row.
+    """
+    v_top, v_mid, v_bot, u_top, u_mid, s_long, s_up, s_low = scan.unbind(-1)
+    yc = torch.minimum(torch.maximum(y, v_top), v_bot)
+    x_long = u_top + (yc - v_top) * s_long
+    x_short = torch.where(yc < v_mid, u_top + (yc - v_top) * s_up, u_mid + (yc - v_mid) * s_low)
+    return torch.minimum(x_long, x_short), torch.maximum(x_long, x_short)
+
+
+def _enumerate(counts: Tensor) -> tuple[Tensor, Tensor]:
+    """For ``counts (R,)`` int64, the owner ``(N,)`` and rank within the owner ``(N,)`` of ``N = sum(counts)`` items."""
     total = int(counts.sum())
-    zmin = torch.full((num_pixels,), float("inf"), dtype=dtype, device=device)
-    fmin = torch.full((num_pixels,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=device)
-    if total == 0:
-        return zmin, fmin
-    rows = torch.repeat_interleave(torch.arange(counts.numel(), device=device), counts, output_size=total)
+    owner = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts, output_size=total)
     starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(total, device=device) - starts[rows]
-    w = width[rows]
-    py = torch.div(local, w, rounding_mode="floor")
-    px = local - py * w + x0[rows]
-    py = py + y0[rows]
-    e0, e1, e2, den, k = _evaluate(coeffs[rows], ray_a[px], ray_b[py])
-    depth = k / den
-    hit = (e0 >= 0) & (e1 >= 0) & (e2 >= 0) & (den > 0) & (depth > near)
-    idx = hit.nonzero().squeeze(-1)
-    if idx.numel() == 0:
-        return zmin, fmin
-    pix = batch_of_bf[rows[idx]] * image_hw + py[idx] * image_w + px[idx]
-    depth = depth[idx]
-    face = face_of_bf[rows[idx]]
-    zmin = zmin.scatter_reduce(0, pix, depth, reduce="amin", include_self=True)
-    at_min = depth == zmin[pix]
-    fmin = fmin.scatter_reduce(0, pix[at_min], face[at_min], reduce="amin", include_self=True)
-    return zmin, fmin
+    rank = torch.arange(total, device=counts.device) - starts.index_select(0, owner)
+    return owner, rank
+
+
+def _hits_in_chunk(
+    table: Tensor, x_lo: Tensor, widths: Tensor, ray_a: Tensor, near: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Hits among the candidate pixels of a chunk of (sample, face, row) spans.
+
+    Args:
+        table: ``(9, R)``: rows 0..3 the ``a`` slopes of ``e0, e1, e2, n . d``, rows 4..7 their values
+            at ``a = 0`` on the span's image row, row 8 ``k = n . v0`` (all oriented).
+        x_lo: ``(R,)`` int64 first column of each span; ``widths (R,)`` int64 its length.
+        ray_a: ``(W,)`` ray ``a`` per column.
+
+    Returns:
+        ``span (M,)`` int64 index of the span of each hit, ``col (M,)`` int64 its column and
+        ``depth (M,)`` its depth.
+    """
+    owner, rank = _enumerate(widths)
+    col = x_lo.index_select(0, owner) + rank
+    a = ray_a.index_select(0, col)
+    t = table[:8].index_select(1, owner)
+    e = t[0:4] * a + t[4:8]
+    inside = (e[0:3].amin(0) >= 0) & (e[3] > 0)
+    idx = inside.nonzero().squeeze(-1)
+    owner, col = owner.index_select(0, idx), col.index_select(0, idx)
+    depth = table[8].index_select(0, owner) / e[3].index_select(0, idx)
+    keep = (depth > near).nonzero().squeeze(-1)
+    return owner.index_select(0, keep), col.index_select(0, keep), depth.index_select(0, keep)
+
+
+def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple[Tensor, Tensor]:
+    """The nearest hit per pixel, ties to the lowest face index.
+
+    Args:
+        pix: ``(M,)`` int64 flat pixel index of each hit; ``depth (M,)`` positive; ``face (M,)`` int64.
+
+    Returns:
+        ``pix_idx (N,)`` int64 the covered flat pixel indices, ascending, and ``face (N,)`` int64
+        the winning face at each.
+    """
+    empty = torch.iinfo(torch.int64).max
+    best = torch.full((num_pixels,), empty, dtype=torch.int64, device=pix.device)
+    if depth.dtype == torch.float32:
+        # One pass: positive float32 depths order like their bit patterns, so the int64 key
+        # (depth bits, face) orders by depth, then face.
+        key = (depth.view(torch.int32).long() << 32) | face
+        best.scatter_reduce_(0, pix, key, reduce="amin", include_self=True)
+        pix_idx = (best != empty).nonzero().squeeze(-1)
+        return pix_idx, best.index_select(0, pix_idx) & 0xFFFFFFFF
+    zmin = torch.full((num_pixels,), float("inf"), dtype=depth.dtype, device=pix.device)
+    zmin.scatter_reduce_(0, pix, depth, reduce="amin", include_self=True)
+    at_min = (depth == zmin.index_select(0, pix)).nonzero().squeeze(-1)
+    best.scatter_reduce_(0, pix.index_select(0, at_min), face.index_select(0, at_min), reduce="amin", include_self=True)
+    pix_idx = (best != empty).nonzero().squeeze(-1)
+    return pix_idx, best.index_select(0, pix_idx)
 
 
 def rasterize(
@@ -293,65 +329,87 @@ def rasterize(
     H, W = intrinsics.height, intrinsics.width
     device, dtype = verts_cam.device, verts_cam.dtype
     num_pixels = B * H * W
+    if F >= 2**31:
+        raise ValueError(f"at most 2**31 - 1 faces are supported, got {F}")
 
     tri = _triangles(verts_cam, faces)  # (B, F, 3, 3)
-    coeffs, front, usable = _face_coefficients(tri)
+    coeffs, k, front, usable = _face_coefficients(tri)
     if cull_backfaces:
         usable = usable & front
+    ray_a = (torch.arange(W, device=device, dtype=dtype) - intrinsics.cx) / intrinsics.fx
+    ray_b = (torch.arange(H, device=device, dtype=dtype) - intrinsics.cy) / intrinsics.fy
 
     with torch.no_grad():
-        x0, x1, y0, y1 = _bounding_boxes(tri.detach(), usable, intrinsics, near)
-        width = (x1 - x0 + 1).clamp_min(0).reshape(-1)
-        height = (y1 - y0 + 1).clamp_min(0).reshape(-1)
-        counts = width * height
-        ray_a = (torch.arange(W, device=device, dtype=dtype) - intrinsics.cx) / intrinsics.fx
-        ray_b = (torch.arange(H, device=device, dtype=dtype) - intrinsics.cy) / intrinsics.fy
-        face_of_bf = torch.arange(F, device=device).repeat(B)
-        batch_of_bf = torch.arange(B, device=device).repeat_interleave(F)
-        flat_coeffs = coeffs.detach().reshape(B * F, -1)
-        x0f, y0f = x0.reshape(-1), y0.reshape(-1)
+        # Level 1: the image rows each (sample, face) may cover.
+        u, v, wide, behind = _project_corners(tri.detach(), intrinsics, near)
+        m = _SPAN_MARGIN_PX
+        zero = torch.zeros((), dtype=torch.int64, device=device)
+        x_first = torch.where(wide, zero, torch.ceil(u.amin(-1) - m).long())
+        x_last = torch.where(wide, zero + W - 1, torch.floor(u.amax(-1) + m).long())
+        y_first = torch.where(wide, zero, torch.ceil(v.amin(-1) - m).long()).clamp(0, H)
+        y_last = torch.where(wide, zero + H - 1, torch.floor(v.amax(-1) + m).long()).clamp(-1, H - 1)
+        skip = behind | ~usable | (x_first > W - 1) | (x_last < 0)
+        heights = torch.where(skip, zero, (y_last - y_first + 1).clamp_min(0)).reshape(-1)
+        face_row, row_rank = _enumerate(heights)  # (R,): owner (b * F + f) and rank of each span
+        y = y_first.reshape(-1).index_select(0, face_row) + row_rank
 
-        # Chunk boundaries over (sample, face) rows so that each chunk has at most ~_MAX_PAIRS_PER_CHUNK pairs.
-        ends = torch.cumsum(counts, 0)
+        # Level 2: the columns of each row the projected triangle may cover (whole rows if wide).
+        scan = _scan_edges(u.reshape(-1, 3), v.reshape(-1, 3)).index_select(0, face_row)
+        x_min, x_max = _row_spans(scan, y.to(dtype))
+        wide_r = wide.reshape(-1).index_select(0, face_row)
+        x_lo = torch.where(wide_r, zero, torch.ceil(x_min - m).long()).clamp(0, W)
+        x_hi = torch.where(wide_r, zero + W - 1, torch.floor(x_max + m).long()).clamp(-1, W - 1)
+        widths = (x_hi - x_lo + 1).clamp_min(0)
+
+        # Per-span coefficient table: the b-dependent part is folded in once per row.
+        c = coeffs.detach().reshape(-1, 4, 3).index_select(0, face_row)  # (R, 4, 3)
+        at_row = c[..., 1] * ray_b.index_select(0, y).unsqueeze(-1) + c[..., 2]
+        k_row = k.detach().reshape(-1).index_select(0, face_row)
+        table = torch.cat([c[..., 0].T, at_row.T, k_row.unsqueeze(0)], 0)  # (9, R)
+        row_pixel = (torch.div(face_row, F, rounding_mode="floor") * H + y) * W  # flat index of (b, y, 0)
+        row_face = face_row % F
+
+        # Candidate pairs, in chunks of at most ~_MAX_PAIRS_PER_CHUNK.
+        ends = torch.cumsum(widths, 0)
         total = int(ends[-1]) if ends.numel() else 0
-        n_chunks = max(1, -(-total // _MAX_PAIRS_PER_CHUNK))
-        marks = torch.arange(1, n_chunks, device=device) * _MAX_PAIRS_PER_CHUNK
-        bounds = [0] + torch.searchsorted(ends, marks, right=True).tolist() + [B * F]
-
-        zbest = torch.full((num_pixels,), float("inf"), dtype=dtype, device=device)
-        fbest = torch.full((num_pixels,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=device)
+        n_chunks = -(-total // _MAX_PAIRS_PER_CHUNK)
+        marks = torch.arange(1, max(n_chunks, 1), device=device) * _MAX_PAIRS_PER_CHUNK
+        bounds = [0] + torch.searchsorted(ends, marks, right=True).tolist() + [widths.numel()]
+        hit_pix, hit_depth, hit_face = [], [], []
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             if hi <= lo:
                 continue
-            zc, fc = _zbuffer_chunk(
-                flat_coeffs[lo:hi], face_of_bf[lo:hi], batch_of_bf[lo:hi], x0f[lo:hi], y0f[lo:hi],
-                width[lo:hi], counts[lo:hi], ray_a, ray_b, near, num_pixels, W, H * W,
-            )  # fmt: skip
-            take = (zc < zbest) | ((zc == zbest) & (fc < fbest))
-            zbest = torch.where(take, zc, zbest)
-            fbest = torch.where(take, fc, fbest)
-
-        fg = torch.isfinite(zbest)
-        pix_idx = fg.nonzero().squeeze(-1)
+            span, col, depth = _hits_in_chunk(table[:, lo:hi], x_lo[lo:hi], widths[lo:hi], ray_a, near)
+            span = span + lo
+            hit_pix.append(row_pixel.index_select(0, span) + col)
+            hit_depth.append(depth)
+            hit_face.append(row_face.index_select(0, span))
+        if hit_pix:
+            pix_idx, pix_f = _zbuffer(torch.cat(hit_pix), torch.cat(hit_depth), torch.cat(hit_face), num_pixels)
+        else:
+            pix_idx = pix_f = torch.zeros(0, dtype=torch.int64, device=device)
+        flat_face = torch.full((num_pixels,), -1, dtype=torch.int64, device=device)
+        flat_face.index_put_((pix_idx,), pix_f)
         pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
         pix_yx = pix_idx - pix_b * (H * W)
         pix_y = torch.div(pix_yx, W, rounding_mode="floor")
         pix_x = pix_yx - pix_y * W
-        pix_f = fbest[pix_idx]
-        pix_to_face = torch.where(fg, fbest, torch.full_like(fbest, -1)).reshape(B, H, W)
+        pix_bf = pix_b * F + pix_f
+        is_front = front.reshape(-1).index_select(0, pix_bf)
         facing = torch.zeros(num_pixels, dtype=torch.int8, device=device)
-        is_front = front[pix_b, pix_f]
-        facing[pix_idx] = torch.where(is_front, 1, -1).to(torch.int8)
+        facing.index_put_((pix_idx,), torch.where(is_front, 1, -1).to(torch.int8))
 
     # Re-evaluate the winners with the same arithmetic, now tracking gradients w.r.t. the vertices.
-    e0, e1, e2, den, k = _evaluate(coeffs[pix_b, pix_f], ray_a[pix_x], ray_b[pix_y])
-    e = torch.stack([e0, e1, e2], -1)
-    bary_fg = e / e.sum(-1, keepdim=True)
-    z_fg = k / den
-    bary = torch.zeros(num_pixels, 3, dtype=dtype, device=device).index_put((pix_idx,), bary_fg)
-    zbuf = torch.full((num_pixels,), float("inf"), dtype=dtype, device=device).index_put((pix_idx,), z_fg)
+    cw = coeffs.reshape(-1, 4, 3).index_select(0, pix_bf)  # (M, 4, 3)
+    a = ray_a.index_select(0, pix_x).unsqueeze(-1)
+    b = ray_b.index_select(0, pix_y).unsqueeze(-1)
+    e = cw[..., 0] * a + (cw[..., 1] * b + cw[..., 2])  # (M, 4)
+    bary_fg = e[:, :3] / e[:, :3].sum(-1, keepdim=True)
+    z_fg = k.reshape(-1).index_select(0, pix_bf) / e[:, 3]
+    bary = torch.zeros(num_pixels, 3, dtype=dtype, device=device).index_put_((pix_idx,), bary_fg)
+    zbuf = torch.full((num_pixels,), float("inf"), dtype=dtype, device=device).index_put_((pix_idx,), z_fg)
     return Fragments(
-        pix_to_face=pix_to_face,
+        pix_to_face=flat_face.reshape(B, H, W),
         bary=bary.reshape(B, H, W, 3),
         zbuf=zbuf.reshape(B, H, W),
         facing=facing.reshape(B, H, W),
