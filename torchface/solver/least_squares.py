@@ -164,7 +164,8 @@ def _gauss_newton_system(J: torch.Tensor, r: torch.Tensor, w: torch.Tensor | Non
     wJ = J if w is None else J * w.unsqueeze(2)
     H = torch.bmm(Jt, wJ)
     wr = r if w is None else r * w
-    g = torch.bmm(Jt, wr.unsqueeze(2)).squeeze(2)
+    # (r^T W) J as a row vector: reads J in memory order, several times faster than J^T (W r).
+    g = torch.bmm(wr.unsqueeze(1), J).squeeze(1)
     return H, g
 
 
@@ -298,10 +299,10 @@ def _batched_param(name: str, t: object, B: int, P: int, dtype: torch.dtype) -> 
 class _Point:
     """Everything known at one estimate ``x`` of every sample (internal)."""
 
-    r: torch.Tensor  # (B, N) residuals, 0 where invalid
-    J: torch.Tensor  # (B, N, P) Jacobian, 0 where invalid
-    valid: torch.Tensor  # (B, N) bool
-    good: torch.Tensor  # (B,) finite and enough valid residuals
+    r: torch.Tensor  # (B, N) residuals, 0 where not used
+    J: torch.Tensor  # (B, N, P) Jacobian, finite everywhere (rows not used may hold anything finite)
+    use: torch.Tensor | None  # (B, N) bool, valid and finite; None when every residual is used
+    good: torch.Tensor  # (B,) finite at every valid residual and enough valid residuals
 
 
 def _where_b(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -442,31 +443,42 @@ def _run(
             if valid is not None:
                 _check_tensor("valid returned by residual_fn", valid, (B, r.shape[1]), torch.bool)
             first_call[0] = False
+        # One reduction pass over J finds its non-finite rows (a NaN or inf anywhere makes the sum
+        # non-finite); J is copied only in the rare case it holds such rows.
+        finite = torch.isfinite(r) & torch.isfinite(J.detach().sum(2))
         if valid is None:
-            valid = torch.ones_like(r, dtype=torch.bool)
-        finite_r = torch.isfinite(r)
-        finite_J = torch.isfinite(J).all(2)
-        bad = valid & ~(finite_r & finite_J)
-        good = ~bad.any(1) & (valid.sum(1) >= P)
-        r = torch.where(valid & finite_r, r, torch.zeros_like(r))
-        J = torch.where((valid & finite_J).unsqueeze(2), J, torch.zeros_like(J))
-        return _Point(r, J, valid, good)
+            good = finite.all(1) & (r.shape[1] >= P)
+            use = finite
+        else:
+            good = ~(valid & ~finite).any(1) & (valid.sum(1) >= P)
+            use = valid & finite
+        if not bool(finite.all()):
+            J = torch.where(finite.unsqueeze(2), J, torch.zeros_like(J))
+        r = torch.where(use, r, torch.zeros_like(r))
+        return _Point(r, J, None if bool(use.all()) else use, good)
 
     def scale_of(pt: _Point) -> torch.Tensor | None:
         if robust is None:
             return None
-        return robust_scale(pt.r, pt.valid).clamp_min(robust.min_scale).unsqueeze(1)
+        return robust_scale(pt.r, pt.use).clamp_min(robust.min_scale).unsqueeze(1)
 
     def cost_of(pt: _Point, x: torch.Tensor, s: torch.Tensor | None) -> torch.Tensor:
         rho = 0.5 * pt.r * pt.r if robust is None else robust.rho(pt.r, s)
-        c = torch.where(pt.valid, rho, torch.zeros_like(rho)).sum(1)
+        if pt.use is not None:
+            rho = torch.where(pt.use, rho, torch.zeros_like(rho))
+        c = rho.sum(1)
         if lam is not None:
             d = x if mu is None else x - mu
             c = c + 0.5 * (lam * d * d).sum(1)
         return c
 
     def system(pt: _Point, x: torch.Tensor, s: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        w = pt.valid.to(dtype) if robust is None else torch.where(pt.valid, robust.weight(pt.r, s), torch.zeros_like(pt.r))
+        if robust is None:
+            w = None if pt.use is None else pt.use.to(dtype)
+        else:
+            w = robust.weight(pt.r, s)
+            if pt.use is not None:
+                w = torch.where(pt.use, w, torch.zeros_like(w))
         H, g = _gauss_newton_system(pt.J, pt.r, w)
         if lam is not None:
             H = H + torch.diag_embed(lam)

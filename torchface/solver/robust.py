@@ -169,18 +169,20 @@ class RobustLoss:
 def _masked_median(x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Row-wise median of the entries of ``x (B, N)`` where ``mask (B, N)``; returns (median, count).
 
-    Even counts average the two middle values (as ``numpy.median``); empty rows give 0.
+    Even counts average the two middle values (as ``numpy.median``). ``nanmedian`` (a selection, not a
+    full sort) gives the lower middle value ``s[(k - 1) // 2]`` of the ``k`` sorted valid values; the
+    upper one ``s[k // 2]`` is the same value when more than ``k // 2`` values are <= it, else the
+    smallest value above it. Empty rows give 0.
     """
-    big = torch.full_like(x, torch.inf)
-    srt = torch.where(mask, x, big).sort(dim=1).values
+    xm = torch.where(mask, x, torch.full_like(x, torch.nan))
+    lo = torch.nanmedian(xm, dim=1).values
     count = mask.sum(dim=1)
-    lo = ((count - 1).clamp_min(0) // 2).unsqueeze(1)
-    hi = (count // 2).clamp_max(x.shape[1] - 1).unsqueeze(1)
-    a = srt.gather(1, lo).squeeze(1)
-    b = srt.gather(1, hi).squeeze(1)
-    med = 0.5 * (a + b)
-    zero = torch.zeros_like(med)
-    return torch.where(count > 0, torch.where(torch.isfinite(med), med, zero), zero), count
+    lo = torch.where(count > 0, lo, torch.zeros_like(lo))
+    n_le = (mask & (x <= lo.unsqueeze(1))).sum(dim=1)
+    above = torch.where(mask & (x > lo.unsqueeze(1)), x, torch.full_like(x, torch.inf)).amin(dim=1)
+    same = (count % 2 == 1) | (n_le > count // 2)
+    hi = torch.where(same, lo, above.clamp(max=torch.finfo(x.dtype).max))
+    return 0.5 * (lo + hi), count
 
 
 def robust_scale(r: torch.Tensor, mask: torch.Tensor | None = None, *, centered: bool = True) -> torch.Tensor:
@@ -211,6 +213,8 @@ def robust_scale(r: torch.Tensor, mask: torch.Tensor | None = None, *, centered:
     if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != r.shape:
         got = (tuple(mask.shape), mask.dtype) if isinstance(mask, torch.Tensor) else type(mask).__name__
         raise ValueError(f"mask must be a bool tensor of shape {tuple(r.shape)}, got {got}")
+    if r.shape[1] == 0:
+        return torch.ones(r.shape[0], dtype=r.dtype, device=r.device)
     mask = mask & torch.isfinite(r)
     if centered:
         med, _ = _masked_median(r, mask)

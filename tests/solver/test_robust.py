@@ -1,0 +1,154 @@
+"""Tests for torchface.solver.robust: rho, IRLS weights and the batched robust scale."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.solver.robust import MAD_TO_SIGMA, RobustKind, RobustLoss, robust_scale
+
+KINDS = [RobustKind.NONE, RobustKind.HUBER, RobustKind.CAUCHY, RobustKind.TUKEY, RobustKind.GEMAN_MCCLURE]
+
+
+# ------------------------------------------------------------------------------------------------ smoke
+
+
+def test_l2_is_alias_of_none_and_defaults() -> None:
+    assert RobustKind.L2 is RobustKind.NONE
+    assert RobustLoss(RobustKind.HUBER).c == pytest.approx(1.345)
+    assert RobustLoss(RobustKind.TUKEY).c == pytest.approx(4.6851)
+    assert RobustLoss(RobustKind.CAUCHY, c=3).c == 3.0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_cardinality(kind: RobustKind) -> None:
+    loss = RobustLoss(kind)
+    r = torch.randn(3, 7)
+    s = torch.rand(3, 1) + 0.5
+    assert loss.rho(r, s).shape == (3, 7)
+    assert loss.weight(r, s).shape == (3, 7)
+    assert loss.rho(r).dtype == r.dtype
+
+
+# ------------------------------------------------------------------------------------------------ exceptions
+
+
+def test_exceptions() -> None:
+    with pytest.raises(TypeError):
+        RobustLoss("huber")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        RobustLoss(RobustKind.HUBER, c=0.0)
+    with pytest.raises(ValueError):
+        RobustLoss(RobustKind.HUBER, min_scale=-1.0)
+    with pytest.raises(TypeError):
+        RobustLoss(RobustKind.HUBER).weight(torch.arange(3))
+    with pytest.raises(ValueError):
+        robust_scale(torch.randn(5))
+    with pytest.raises(ValueError):
+        robust_scale(torch.randn(2, 5), torch.ones(2, 5))  # not bool
+
+
+# ------------------------------------------------------------------------------------------------ features
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_weight_at_zero_and_range(kind: RobustKind) -> None:
+    loss = RobustLoss(kind)
+    r = torch.linspace(-50, 50, 2001, dtype=torch.float64)
+    w = loss.weight(r, 1.7)
+    assert torch.all(w >= 0) and torch.all(w <= 1)
+    assert loss.weight(torch.zeros(1, dtype=torch.float64), 1.7).item() == 1.0
+    # w -> 1 as r -> 0
+    assert loss.weight(torch.tensor([1e-4], dtype=torch.float64), 1.7).item() == pytest.approx(1.0, abs=1e-7)
+    # rho ~ r^2 / 2 near 0, and rho(0) = 0
+    assert loss.rho(torch.zeros(1, dtype=torch.float64), 1.7).item() == 0.0
+    r_small = torch.tensor([1e-3], dtype=torch.float64)
+    assert loss.rho(r_small, 1.7).item() == pytest.approx(0.5e-6, rel=1e-5)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_weight_equals_rho_prime_over_r(kind: RobustKind) -> None:
+    loss = RobustLoss(kind)
+    r = (torch.linspace(-9, 9, 37, dtype=torch.float64) + 0.013).requires_grad_(True)
+    scale = 1.3
+    (d,) = torch.autograd.grad(loss.rho(r, scale).sum(), r)
+    w = loss.weight(r.detach(), scale)
+    torch.testing.assert_close(d / r.detach(), w, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_gradient_safe_at_zero(kind: RobustKind) -> None:
+    loss = RobustLoss(kind)
+    r = torch.zeros(4, dtype=torch.float64, requires_grad=True)
+    (g,) = torch.autograd.grad((loss.rho(r, 1.0) + loss.weight(r, 1.0)).sum(), r)
+    assert torch.isfinite(g).all() and torch.all(g == 0)
+    x = torch.tensor([0.0, 0.3, -2.0, 7.0], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: loss.rho(t, 1.1), (x,))
+
+
+def test_limits() -> None:
+    big = torch.tensor([1e6], dtype=torch.float64)
+    assert RobustLoss(RobustKind.NONE).weight(big).item() == 1.0
+    assert RobustLoss(RobustKind.HUBER, c=2.0).weight(big).item() == pytest.approx(2e-6)
+    assert RobustLoss(RobustKind.CAUCHY).weight(big).item() < 1e-10
+    assert RobustLoss(RobustKind.GEMAN_MCCLURE).weight(big).item() < 1e-20
+    # Huber is linear beyond c: rho = c (|r| - c/2)
+    assert RobustLoss(RobustKind.HUBER, c=2.0).rho(big).item() == pytest.approx(2.0 * (1e6 - 1.0))
+    # Tukey and Geman-McClure saturate at c^2/6 and c^2/2
+    assert RobustLoss(RobustKind.TUKEY, c=3.0).rho(big).item() == pytest.approx(1.5)
+    assert RobustLoss(RobustKind.GEMAN_MCCLURE, c=2.0).rho(big).item() == pytest.approx(2.0, rel=1e-9)
+
+
+def test_tukey_zero_weight_beyond_c() -> None:
+    loss = RobustLoss(RobustKind.TUKEY, c=2.0)
+    scale = 1.5  # cut-off at c * scale = 3
+    r = torch.tensor([-10.0, -3.0, 3.0, 3.01, 100.0, 2.99], dtype=torch.float64)
+    w = loss.weight(r, scale)
+    assert torch.all(w[:5] == 0)
+    assert w[5] > 0
+    rho = loss.rho(r, scale)
+    torch.testing.assert_close(rho[:5], torch.full((5,), scale**2 * 4.0 / 6.0, dtype=torch.float64))
+
+
+def test_scale_invariance() -> None:
+    # rho(k r; k s) = k^2 rho(r; s), w(k r; k s) = w(r; s)
+    r = torch.randn(50, dtype=torch.float64) * 3
+    for kind in KINDS:
+        loss = RobustLoss(kind)
+        torch.testing.assert_close(loss.rho(4 * r, 4 * 0.7), 16 * loss.rho(r, 0.7))
+        torch.testing.assert_close(loss.weight(4 * r, 4 * 0.7), loss.weight(r, 0.7))
+
+
+def test_robust_scale_matches_numpy_mad() -> None:
+    g = torch.Generator().manual_seed(0)
+    B, N = 6, 41
+    r = torch.randn(B, N, generator=g, dtype=torch.float64) * torch.arange(1, B + 1, dtype=torch.float64)[:, None]
+    r[:, :5] += 40.0  # outliers
+    mask = torch.rand(B, N, generator=g) > 0.3
+    mask[1, :] = True  # odd count
+    mask[2, :] = torch.arange(N) < 10  # even count
+    r[3, 7] = float("nan")  # a NaN where valid is ignored
+    r[4, ~mask[4]] = float("inf")  # garbage where invalid is ignored
+    for centered in (True, False):
+        got = robust_scale(r, mask, centered=centered)
+        for b in range(B):
+            v = r[b][mask[b]].numpy()
+            v = v[np.isfinite(v)]
+            ref = MAD_TO_SIGMA * np.median(np.abs(v - np.median(v)) if centered else np.abs(v))
+            assert got[b].item() == pytest.approx(ref, rel=1e-12)
+
+
+def test_robust_scale_gaussian_consistency() -> None:
+    g = torch.Generator().manual_seed(1)
+    r = 2.5 * torch.randn(2, 200000, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(robust_scale(r), torch.full((2,), 2.5, dtype=torch.float64), rtol=0.02, atol=0)
+
+
+def test_robust_scale_empty_row_fallback() -> None:
+    r = torch.tensor([[1.0, 2.0, 3.0], [float("nan"), 5.0, 1.0], [float("nan")] * 3])
+    mask = torch.tensor([[False] * 3, [True, False, False], [True] * 3])
+    s = robust_scale(r, mask)
+    assert torch.isfinite(s).all()
+    torch.testing.assert_close(s, torch.ones(3))
+    assert robust_scale(torch.zeros(1, 0)).item() == 1.0
