@@ -1,0 +1,371 @@
+"""Tests of torchface.normalise.face: canonical layout, normalised face (pose, expression and light undone)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, matrix_to_axis_angle
+from torchface.model import load_candide3
+from torchface.normalise import (
+    NormalisedFace,
+    NormalisedFaceLayout,
+    build_normalised_layout,
+    normalised_face,
+)
+from torchface.rendering.shading import LightState, render
+from torchface.synth.subjects import candide_subject
+
+G = 64  # canonical image size of the feature tests
+CAM = Intrinsics.default(320, 240)
+T_FRONT = torch.tensor([[0.0, 0.0, 450.0]])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3()
+
+
+@pytest.fixture(scope="module")
+def subject():
+    return candide_subject("james")
+
+
+@pytest.fixture(scope="module")
+def layout(model):
+    return build_normalised_layout(model, G, 0.05)
+
+
+def _zeros(model, B=1):
+    return torch.zeros(B, model.num_shape), torch.zeros(B, model.num_animation)
+
+
+def _render(subject, shape, alpha, aa, t, cam=CAM, ambient=1.0, dirs=None, inten=None, bg=0.5):
+    """Textured Lambertian render of the CANDIDE-3 subject (same vertex order as the model)."""
+    B = alpha.shape[0]
+    R = axis_angle_to_matrix(aa)
+    v = subject.deform(shape.expand(B, -1), alpha, B)
+    verts_cam = v @ R.transpose(-1, -2) + t[:, None]
+    normals_cam = subject.vertex_normals(v) @ R.transpose(-1, -2)
+    amb = torch.full((B,), ambient)
+    light = LightState.ambient_only(amb) if dirs is None else LightState(amb, dirs, inten)
+    background = torch.full((B, 3, cam.height, cam.width), bg)
+    return render(verts_cam, subject.faces, subject.uv, subject.texture, normals_cam, light, cam, background)
+
+
+@pytest.fixture(scope="module")
+def layout_render(model, subject, layout):
+    """The textured mean shape rendered directly into the layout camera (ambient light 1)."""
+    t = layout.translation[None]
+    return _render(subject, torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation),
+                   torch.zeros(1, 3), t, cam=layout.intrinsics, bg=0.0)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def frontal(model, subject, layout):
+    """A frontal, neutral, evenly lit frame of the subject and its normalised face."""
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    frame = _render(subject, sigma, alpha, torch.zeros(1, 3), T_FRONT).image
+    out = normalised_face(frame, model, layout, sigma, alpha, torch.zeros(1, 3), T_FRONT, None, CAM)
+    return frame, out
+
+
+def _mad(a, b, mask):
+    """Mean over ``mask (G, G)`` of the channel-mean absolute difference of ``(C, G, G)`` images."""
+    return float((a - b).abs().mean(0)[mask].mean())
+
+
+# ------------------------------------------------------------------------------------------- layout
+def test_layout_cardinality_and_framing(layout):
+    assert layout.mask.shape == (G, G) and layout.mask.dtype == torch.bool
+    M = layout.num_pixels
+    assert layout.face_index.shape == (M,) and layout.bary.shape == (M, 3) and layout.pixel_index.shape == (M,)
+    assert int(layout.mask.sum()) == M
+    assert torch.equal(layout.mask.reshape(-1).nonzero().squeeze(-1), layout.pixel_index)
+    torch.testing.assert_close(layout.bary.sum(-1), torch.ones(M), atol=1e-5, rtol=0)
+    assert bool((layout.bary >= -1e-6).all())
+    # The face's bounding box fills (1 - 2 margin) G along its longer side, centred.
+    rows = layout.mask.any(1).nonzero().squeeze(-1)
+    cols = layout.mask.any(0).nonzero().squeeze(-1)
+    span = max(int(rows[-1] - rows[0]) + 1, int(cols[-1] - cols[0]) + 1)
+    assert abs(span - 0.9 * G) <= 2
+    assert abs(float(rows[0] + rows[-1]) / 2 - (G - 1) / 2) <= 1.0
+    assert abs(float(cols[0] + cols[-1]) / 2 - (G - 1) / 2) <= 1.0
+    # The model is left-right symmetric and the layout centres its symmetry plane.
+    agree = (layout.mask == layout.mask.flip(-1)).float().mean()
+    assert agree > 0.99
+
+
+def test_layout_follows_model_dtype(model):
+    lay = build_normalised_layout(model.to(dtype=torch.float64), 16)
+    assert lay.bary.dtype == torch.float64 and lay.translation.dtype == torch.float64
+    assert lay.to(dtype=torch.float32).bary.dtype == torch.float32
+
+
+def test_identity_round_trip_is_exact(model, layout, layout_render):
+    """Normalising the layout's own render with the layout pose reproduces it pixel for pixel."""
+    image = layout_render.image
+    shape, alpha = _zeros(model)
+    out = normalised_face(
+        image, model, layout, shape, alpha, torch.zeros(1, 3), layout.translation[None], None, layout.intrinsics
+    )
+    assert torch.equal(out.mask[0, 0] > 0, layout.mask)
+    torch.testing.assert_close(out.image, image * out.mask, atol=1e-5, rtol=0)
+
+
+# ------------------------------------------------------------------------------------- cardinality
+@pytest.mark.parametrize("channels", [1, 3])
+def test_cardinality(model, channels):
+    lay = build_normalised_layout(model, 24)
+    B = 2
+    shape, alpha = _zeros(model, B)
+    frames = torch.rand(B, channels, CAM.height, CAM.width)
+    out = normalised_face(frames, model, lay, shape, alpha, torch.zeros(B, 3), T_FRONT.expand(B, 3),
+                          torch.zeros(B, 5), CAM)  # fmt: skip
+    image, mask = out
+    assert image.shape == (B, channels, 24, 24) and mask.shape == (B, 1, 24, 24)
+    assert image.dtype == mask.dtype == torch.float32
+    assert set(mask.unique().tolist()) <= {0.0, 1.0}
+    assert bool((image * (1 - mask) == 0).all())
+    assert bool((mask[:, 0] <= lay.mask).all())
+
+
+# ----------------------------------------------------------------------------------------- features
+def test_frontal_matches_direct_layout_render(layout, layout_render, frontal):
+    """The normalised face of a frontal, neutral, evenly lit frame equals the model rendered into the layout."""
+    _, out = frontal
+    mask = out.mask[0, 0] > 0
+    assert mask.sum() >= 0.95 * layout.num_pixels
+    assert _mad(out.image[0], layout_render.image[0], mask) < 0.03
+
+
+def test_expression_is_undone(model, subject, layout, frontal):
+    """A jaw-drop frame sampled at its own expression matches the neutral normalised face in the mouth."""
+    _, neutral = frontal
+    sigma = subject.shape_coeffs[None]
+    jaw = model.animation_names.index("AUV11 Jaw drop")
+    alpha = torch.zeros(1, model.num_animation)
+    alpha[0, jaw] = 1.0
+    rendered = _render(subject, sigma, alpha, torch.zeros(1, 3), T_FRONT)
+    aa = torch.zeros(1, 3)
+    right = normalised_face(rendered.image, model, layout, sigma, alpha, aa, T_FRONT, None, CAM)
+    wrong = normalised_face(rendered.image, model, layout, sigma, torch.zeros_like(alpha), aa, T_FRONT, None, CAM)
+    # The mouth region: canonical pixels on triangles the jaw drop moves.
+    moving_faces = (model.animation_units[jaw].norm(dim=-1) > 0)[model.faces].any(-1)  # (F,)
+    region = torch.zeros(G * G, dtype=torch.bool)
+    region[layout.pixel_index[moving_faces[layout.face_index]]] = True
+    region = region.reshape(G, G) & (neutral.mask[0, 0] > 0) & (right.mask[0, 0] > 0) & (wrong.mask[0, 0] > 0)
+    assert region.sum() > 100
+    err_right = _mad(right.image[0], neutral.image[0], region)
+    err_wrong = _mad(wrong.image[0], neutral.image[0], region)
+    # The raw frames, over the frame pixels showing those triangles in either frame.
+    neutral_frame = _render(subject, sigma, torch.zeros_like(alpha), aa, T_FRONT)
+    shown = lambda r: moving_faces[r.fragments.pix_to_face[0].clamp_min(0)] & (r.fragments.pix_to_face[0] >= 0)
+    raw_region = shown(rendered) | shown(neutral_frame)
+    err_raw = _mad(rendered.image[0], neutral_frame.image[0], raw_region)
+    assert err_right < 0.03
+    assert err_right < 0.3 * err_wrong
+    assert err_right < 0.3 * err_raw
+
+
+def test_light_is_undone(model, subject, layout, frontal):
+    """Gain, bias and a directional light (inside the Eq. 19 model) normalise back to the reference light."""
+    _, reference = frontal
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    aa = torch.zeros(1, 3)
+    d = torch.tensor([[[0.3, -0.3, -0.9]]])
+    d = d / d.norm(dim=-1, keepdim=True)
+    ambient, strength, bias = 0.6, 0.3, 0.05
+    frame = _render(subject, sigma, alpha, aa, T_FRONT, ambient=ambient, dirs=d, inten=torch.tensor([[strength]]))
+    frame = frame.image + bias
+    # I = albedo (a + s n.d) + b = T (1 + (a - 1) + (s d) . n) + b with T = albedo (the reference light is a = 1).
+    light = torch.cat([torch.tensor([[ambient - 1.0, bias]]), strength * d[0]], dim=-1)
+    fixed = normalised_face(frame, model, layout, sigma, alpha, aa, T_FRONT, light, CAM)
+    kept = normalised_face(frame, model, layout, sigma, alpha, aa, T_FRONT, None, CAM)
+    mask = (fixed.mask[0, 0] > 0) & (reference.mask[0, 0] > 0)
+    assert mask.sum() >= 0.95 * layout.num_pixels
+    err_fixed = _mad(fixed.image[0], reference.image[0], mask)
+    err_kept = _mad(kept.image[0], reference.image[0], mask)
+    assert err_fixed < 0.005
+    assert err_fixed < 0.1 * err_kept
+
+
+def test_pose_is_undone_and_self_occlusion_masked(model, subject, layout, frontal):
+    _, reference = frontal
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    aa = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[35.0, 10.0, 8.0]])))
+    t = torch.tensor([[20.0, -10.0, 480.0]])
+    frame = _render(subject, sigma, alpha, aa, t).image
+    out = normalised_face(frame, model, layout, sigma, alpha, aa, t, None, CAM)
+    seen = out.mask[0, 0] > 0
+    common = seen & (reference.mask[0, 0] > 0)
+    assert common.sum() > 0.6 * layout.num_pixels
+    assert _mad(out.image[0], reference.image[0], common) < 0.03
+    # The side turned away loses pixels (self-occlusion behind the nose, grazing cheek).
+    assert seen.sum() < 0.95 * reference.mask.sum()
+    # Seen from behind nothing is visible.
+    back = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[180.0, 0.0, 0.0]])))
+    out_back = normalised_face(frame, model, layout, sigma, alpha, back, t, None, CAM)
+    assert out_back.mask.sum() == 0 and out_back.image.abs().sum() == 0
+
+
+def test_outside_and_behind_camera_are_masked_and_finite(model, layout):
+    shape, alpha = _zeros(model, 3)
+    frames = torch.rand(3, 3, CAM.height, CAM.width)
+    t = torch.tensor([[0.0, 0.0, 450.0], [5000.0, 0.0, 450.0], [0.0, 0.0, 20.0]], requires_grad=True)
+    light = torch.zeros(3, 5, requires_grad=True)
+    out = normalised_face(frames, model, layout, shape, alpha, torch.zeros(3, 3), t, light, CAM)
+    assert out.mask[0].sum() > 0 and out.mask[1].sum() == 0
+    assert torch.isfinite(out.image).all()
+    (out.image.sum() + out.mask.sum()).backward()
+    assert torch.isfinite(t.grad).all() and torch.isfinite(light.grad).all()
+
+
+def test_batch_equals_per_sample(model, subject, layout):
+    B = 3
+    sigma = subject.shape_coeffs[None].expand(B, -1).contiguous()
+    gen = torch.Generator().manual_seed(3)
+    alpha = 0.3 * torch.rand(B, model.num_animation, generator=gen)
+    aa = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[0.0, 0.0, 0.0], [20.0, -5.0, 3.0], [-25.0, 8.0, -4.0]])))
+    t = torch.tensor([[0.0, 0.0, 450.0], [15.0, 5.0, 500.0], [-10.0, 0.0, 420.0]])
+    light = 0.1 * torch.randn(B, 5, generator=gen)
+    frames = _render(subject, sigma[:1], alpha, aa, t).image
+    batched = normalised_face(frames, model, layout, sigma, alpha, aa, t, light, CAM)
+    for b in range(B):
+        sl = slice(b, b + 1)
+        single = normalised_face(frames[sl], model, layout, sigma[sl], alpha[sl], aa[sl], t[sl], light[sl], CAM)
+        torch.testing.assert_close(batched.image[sl], single.image, atol=1e-5, rtol=1e-5)
+        assert torch.equal(batched.mask[sl], single.mask)
+
+
+# ----------------------------------------------------------------------------------------- gradcheck
+@pytest.fixture(scope="module")
+def tiny():
+    """A float64 model, an 8 x 8 layout and a 24 x 20 camera seeing the face."""
+    m64 = load_candide3(dtype=torch.float64)
+    lay = build_normalised_layout(m64, 8, 0.1)
+    cam = Intrinsics.default(24, 20)
+    t = torch.tensor([[0.5, 1.0, 260.0]], dtype=torch.float64)
+    return m64, lay, cam, t
+
+
+def test_gradcheck_frames(tiny):
+    m64, lay, cam, t = tiny
+    shape = torch.zeros(1, m64.num_shape, dtype=torch.float64)
+    alpha = torch.zeros(1, m64.num_animation, dtype=torch.float64)
+    aa = torch.tensor([[0.05, -0.1, 0.02]], dtype=torch.float64)
+    light = torch.tensor([[0.1, 0.05, 0.1, -0.05, 0.2]], dtype=torch.float64)
+    frames = torch.rand(1, 2, 20, 24, dtype=torch.float64, requires_grad=True)
+
+    def fn(f):
+        return normalised_face(f, m64, lay, shape, alpha, aa, t, light, cam).image
+
+    assert normalised_face(frames, m64, lay, shape, alpha, aa, t, light, cam).mask.sum() > 10
+    # The output is linear in the pixels: the fast (random-projection) mode checks the whole Jacobian's action.
+    assert torch.autograd.gradcheck(fn, (frames,), eps=1e-6, atol=1e-8, fast_mode=True)
+
+
+def test_gradcheck_parameters(tiny):
+    m64, lay, cam, t = tiny
+    gen = torch.Generator().manual_seed(1)
+    # A smooth frame, so bilinear sampling is differentiable at every sample point.
+    yy, xx = torch.meshgrid(torch.arange(20.0), torch.arange(24.0), indexing="ij")
+    frames = (0.5 + 0.3 * torch.sin(0.4 * xx + 0.3 * yy) * torch.cos(0.25 * yy)).to(torch.float64)[None, None]
+    shape = 0.1 * torch.randn(1, m64.num_shape, generator=gen, dtype=torch.float64)
+
+    def fn(alpha, aa, tr, light):
+        return normalised_face(frames, m64, lay, shape, alpha, aa, tr, light, cam).image
+
+    alpha = (0.2 * torch.rand(1, m64.num_animation, generator=gen, dtype=torch.float64)).requires_grad_()
+    aa = torch.tensor([[0.05, -0.1, 0.02]], dtype=torch.float64, requires_grad=True)
+    tr = t.clone().requires_grad_()
+    light = torch.tensor([[0.1, 0.05, 0.1, -0.05, 0.2]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(fn, (alpha, aa, tr, light), eps=1e-6, atol=1e-6)
+
+
+# -------------------------------------------------------------------------------------------- module
+def test_module_with_track_result_and_state(model, subject, layout):
+    from torchface.tracker.step import TrackerState, TrackResult
+
+    normaliser = NormalisedFace(model, size=G, margin=0.05)
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    alpha[0, 1] = 0.5
+    aa = torch.tensor([[0.0, 0.2, 0.0]])
+    light = torch.tensor([[0.1, 0.02, 0.0, 0.0, 0.1]])
+    frame = _render(subject, sigma, alpha, aa, T_FRONT).image
+    want = normalised_face(frame, model, layout, sigma, alpha, aa, T_FRONT, light, CAM)
+    zeros = torch.zeros(1)
+    result = TrackResult(
+        rotation=axis_angle_to_matrix(aa), axis_angle=aa, translation=T_FRONT, ypr_deg=torch.zeros(1, 3),
+        anim_coeffs=alpha, anim_names=model.animation_names, facs=model.facs_values(alpha),
+        facs_names=model.facs_names, illumination=light, illumination_names=("g", "b", "x", "y", "z"),
+        status=zeros.long(), iterations=zeros.long(), cost=zeros, num_points=zeros.long(), confidence=zeros,
+    )  # fmt: skip
+    got = normaliser(frame, result, sigma, CAM)
+    torch.testing.assert_close(got.image, want.image)
+    # Default intrinsics are Intrinsics.default of the frame size, as in FaceTracker.
+    torch.testing.assert_close(normaliser(frame, result, sigma).image, want.image)
+    state = TrackerState(torch.cat([aa, T_FRONT, alpha, light], -1), sigma, (), CAM, 1)
+    torch.testing.assert_close(normaliser(frame, state).image, want.image)
+    with pytest.raises(ValueError, match="shape_coeffs"):
+        normaliser(frame, result)
+    with pytest.raises(ValueError, match="from the state"):
+        normaliser(frame, state, sigma)
+    with pytest.raises(TypeError, match="TrackResult or a TrackerState"):
+        normaliser(frame, {"axis_angle": aa})
+
+
+# -------------------------------------------------------------------------------------------- errors
+def test_errors(model, layout):
+    shape, alpha = _zeros(model, 2)
+    aa, t = torch.zeros(2, 3), T_FRONT.expand(2, 3)
+    frames = torch.rand(2, 3, CAM.height, CAM.width)
+
+    def call(**kw):
+        args = dict(frames=frames, model=model, layout=layout, shape_coeffs=shape, anim_coeffs=alpha,
+                    axis_angle=aa, translation=t, illumination=None, intrinsics=CAM)  # fmt: skip
+        args.update(kw)
+        return normalised_face(**args)
+
+    with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
+        call(frames=frames[0])
+    with pytest.raises(ValueError, match="intrinsics' size"):
+        call(frames=torch.rand(2, 3, 100, 100))
+    with pytest.raises(TypeError, match="frames must be a torch.Tensor"):
+        call(frames=frames.numpy())
+    with pytest.raises(ValueError, match=r"shape_coeffs must be \(B, 14\)"):
+        call(shape_coeffs=torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="B=2 like frames"):
+        call(anim_coeffs=torch.zeros(1, model.num_animation))
+    with pytest.raises(ValueError, match="axis_angle"):
+        call(axis_angle=torch.zeros(2, 3, 3))
+    with pytest.raises(TypeError, match="model's dtype"):
+        call(translation=t.double())
+    with pytest.raises(ValueError, match=r"illumination must be \(B, 5\)"):
+        call(illumination=torch.zeros(2, 4))
+    with pytest.raises(TypeError, match="intrinsics"):
+        call(intrinsics=(320, 240))
+    with pytest.raises(TypeError, match="layout must be"):
+        call(layout=None)
+    with pytest.raises(ValueError, match="triangles"):
+        call(layout=dataclasses.replace(layout, num_faces=model.num_faces + 1))
+    with pytest.raises(ValueError, match="min_facing_cos"):
+        normalised_face(frames, model, layout, shape, alpha, aa, t, None, CAM, min_facing_cos=1.0)
+    with pytest.raises(ValueError, match="size must be"):
+        build_normalised_layout(model, 2)
+    with pytest.raises(ValueError, match="margin"):
+        build_normalised_layout(model, 32, margin=0.6)
+    with pytest.raises(ValueError, match="distance_mm"):
+        build_normalised_layout(model, 32, distance_mm=10.0)
+    with pytest.raises(TypeError, match="FaceModel"):
+        build_normalised_layout("candide", 32)
+    with pytest.raises(ValueError, match="mask must be"):
+        NormalisedFaceLayout(8, 0.0, Intrinsics.default(8, 8), torch.zeros(3), 1, torch.zeros(1, dtype=torch.long),
+                             torch.zeros(1, dtype=torch.long), torch.zeros(1, 3), torch.zeros(8, 8))  # fmt: skip

@@ -1,0 +1,484 @@
+"""The normalised face: the frame resampled to a frontal, neutral, evenly lit canonical view (paper Section 4).
+
+The paper measures dissimilarity on "the normalised view of the face (frontal, neutral expression, neutral
+light)" rebuilt from the estimated pose, expression and light. This module produces that view as an image.
+
+Canonical layout
+----------------
+:func:`build_normalised_layout` places the model's MEAN shape (``sigma = 0``, ``alpha = 0``) at the identity
+rotation in front of a long-focal camera (far away, so nearly orthographic) framed so that the face fills a
+``G x G`` image with a margin, and rasterizes it once. Every face pixel ``p`` of that image stores the
+triangle ``f_p`` it sees and the barycentric coordinates ``b_p`` of its surface point. Because the layout
+uses the mean shape, every person and every expression maps to the same canonical image: a pixel always
+shows the same place on the surface (``f_p``, ``b_p``), wherever that place is in a given frame.
+
+Resampling
+----------
+For a frame with estimated shape ``sigma``, expression ``alpha``, pose ``(R, t)`` and illumination
+``lambda``, :func:`normalised_face` moves each canonical surface point with the model (paper Eq. 1 and the
+barycentric point model of Eq. 3-9)
+
+    ``X_p = sum_i b_p,i g_(f_p, i)(sigma, alpha)``,   ``X_p,cam = R X_p + t``   (Eq. 14),
+
+projects it into the frame, ``x_p = pi(X_p,cam)`` (Eq. 15), and samples the frame bilinearly there. Sampling
+at the CURRENT expression reads the texture where the expression moved it, so the canonical image shows
+the neutral face (the expression is undone). The light is then undone with the inverse of Eq. 19,
+``T = (I - lambda_2) / (1 + lambda_1 + (lambda_3, lambda_4, lambda_5) . n_cam)``
+(:func:`torchface.appearance.illumination.remove_illumination`), with ``n_cam`` the surface normal of the
+deformed, posed mesh at the point: the result is the face under the reference light of the template frame.
+
+A canonical pixel is kept (mask 1) when its surface point is visible in the frame: in front of the camera,
+projecting inside the image, on a triangle that faces the camera with its normal at least
+``acos(min_facing_cos)`` away from grazing, and not hidden by another part of the mesh (z-buffer of the posed
+mesh, :func:`torchface.rendering.visibility.points_visible`). Other pixels, and the background of the
+layout, are 0 with mask 0.
+
+The output is differentiable with respect to the frame pixels (it is linear in them) and, almost everywhere,
+with respect to the shape, expression, pose and illumination parameters; the mask is not differentiable.
+
+Shapes: ``B`` batch, ``C`` channels, ``H x W`` frames, ``V`` vertices, ``F`` triangles, ``S`` shape units,
+``A`` animation units, ``L`` illumination terms, ``G x G`` the normalised image (``G = layout.size``), ``M``
+the layout's face pixels. Frames, units and the pixel convention are those of :mod:`torchface.conventions`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
+from torchface.appearance.sampling import sample_at_pixels
+from torchface.conventions import NEAR_PLANE_MM
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import axis_angle_to_matrix
+from torchface.geometry.transforms import transform_points
+from torchface.model.face_model import FaceModel, vertex_normals
+from torchface.rendering.rasterizer import rasterize
+from torchface.rendering.visibility import backfacing, points_visible
+
+if TYPE_CHECKING:
+    from torchface.tracker.step import TrackerState, TrackResult
+
+__all__ = [
+    "NormalisedFaceLayout",
+    "NormalisedFaceResult",
+    "build_normalised_layout",
+    "normalised_face",
+    "NormalisedFace",
+]
+
+#: Default relative depth tolerance of the z-buffer visibility test (fraction of the point's depth).
+DEFAULT_DEPTH_TOLERANCE: float = 0.02
+#: Default minimum cosine between a point's normal and the ray toward the camera (about 84 degrees).
+DEFAULT_MIN_FACING_COS: float = 0.1
+
+
+@dataclass(frozen=True)
+class NormalisedFaceLayout:
+    """The canonical frontal view of a face model, rasterized once (module docstring).
+
+    ``face_index[m] = f`` and ``bary[m]`` say that face pixel ``m`` of the canonical image, the pixel at flat
+    index ``pixel_index[m] = row * G + col``, sees the point ``sum_i bary[m, i] verts[faces[f, i]]`` of the
+    mean shape; ``mask[row, col]`` is True exactly at those ``M`` pixels.
+
+    Attributes:
+        size: ``G``, the canonical image is ``G x G``.
+        margin: fraction of ``G`` left empty on the tighter side of the face's bounding box.
+        intrinsics: the layout camera (``G x G``).
+        translation: ``(3,)`` position (mm) of the head-frame origin in the layout camera; the rotation is the
+            identity, and ``translation[0] = 0`` so the model's symmetry plane ``x = 0`` is the centre column.
+        num_faces: ``F`` of the model the layout was built for.
+        pixel_index: ``(M,)`` int64 flat indices of the face pixels.
+        face_index: ``(M,)`` int64 triangle seen at each face pixel.
+        bary: ``(M, 3)`` barycentric coordinates (of the 3D surface point) in that triangle.
+        mask: ``(G, G)`` bool, True at face pixels.
+
+    Example:
+        >>> from torchface.model import load_candide3
+        >>> layout = build_normalised_layout(load_candide3(), size=64)
+        >>> layout.mask.shape, layout.bary.shape[1]
+        (torch.Size([64, 64]), 3)
+    """
+
+    size: int
+    margin: float
+    intrinsics: Intrinsics
+    translation: Tensor
+    num_faces: int
+    pixel_index: Tensor
+    face_index: Tensor
+    bary: Tensor
+    mask: Tensor
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise TypeError(f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}")
+        g = int(self.size)
+        if self.intrinsics.size != (g, g):
+            got = f"{self.intrinsics.height}x{self.intrinsics.width}"
+            raise ValueError(f"intrinsics must be {g}x{g} like size, got {got}")
+        m = self.pixel_index.shape[0]
+        if self.pixel_index.shape != (m,) or self.face_index.shape != (m,) or self.bary.shape != (m, 3):
+            raise ValueError(
+                f"pixel_index, face_index and bary must be (M,), (M,), (M, 3), got {tuple(self.pixel_index.shape)}, "
+                f"{tuple(self.face_index.shape)}, {tuple(self.bary.shape)}"
+            )
+        if self.mask.shape != (g, g) or self.mask.dtype != torch.bool:
+            raise ValueError(f"mask must be a ({g}, {g}) bool tensor, got {tuple(self.mask.shape)} {self.mask.dtype}")
+        if self.translation.shape != (3,):
+            raise ValueError(f"translation must be (3,), got {tuple(self.translation.shape)}")
+
+    @property
+    def num_pixels(self) -> int:
+        """``M``, the number of face pixels."""
+        return int(self.pixel_index.shape[0])
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "NormalisedFaceLayout":
+        """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
+        return NormalisedFaceLayout(
+            self.size, self.margin, self.intrinsics, self.translation.to(device=device, dtype=dtype), self.num_faces,
+            self.pixel_index.to(device=device), self.face_index.to(device=device),
+            self.bary.to(device=device, dtype=dtype), self.mask.to(device=device),
+        )  # fmt: skip
+
+
+class NormalisedFaceResult(NamedTuple):
+    """What :func:`normalised_face` returns (unpacks as ``image, mask``).
+
+    Attributes:
+        image: ``(B, C, G, G)`` the normalised face, 0 where ``mask`` is 0.
+        mask: ``(B, 1, G, G)`` float, 1 where the canonical point is visible in the frame.
+    """
+
+    image: Tensor
+    mask: Tensor
+
+
+def build_normalised_layout(
+    model: FaceModel, size: int = 128, margin: float = 0.05, distance_mm: float = 2000.0
+) -> NormalisedFaceLayout:
+    """Rasterize the model's mean shape into the canonical frontal view (module docstring).
+
+    The mean shape (used vertices only) is placed at ``(0, -y_c, distance_mm)`` with the identity rotation,
+    ``y_c`` the middle of its vertical extent; the focal length is chosen so that the projected bounding box
+    fills ``(1 - 2 margin) G`` pixels along its longer side, centred in the image (the model's symmetry plane
+    ``x = 0`` on the centre column). A large distance makes the view nearly orthographic.
+
+    Args:
+        model: the face model (its dtype and device are the layout's).
+        size: ``G``, at least 4.
+        margin: in ``[0, 0.45]``.
+        distance_mm: depth of the head-frame origin, larger than the model's depth extent.
+
+    Returns:
+        :class:`NormalisedFaceLayout`.
+
+    Raises:
+        TypeError: ``model`` is not a :class:`FaceModel`.
+        ValueError: a setting is out of range, or no pixel sees the face.
+
+    Example:
+        >>> from torchface.model import load_candide3
+        >>> layout = build_normalised_layout(load_candide3(), size=32, margin=0.1)
+        >>> layout.intrinsics.size, layout.num_pixels > 0
+        ((32, 32), True)
+    """
+    if not isinstance(model, FaceModel):
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    if isinstance(size, bool) or not isinstance(size, int) or size < 4:
+        raise ValueError(f"size must be an int >= 4, got {size!r}")
+    if not 0.0 <= float(margin) <= 0.45:
+        raise ValueError(f"margin must be in [0, 0.45] (a fraction of the image size), got {margin}")
+    used = model.mean[model.surface_vertex_mask]
+    z_extent = float((used[:, 2].amax() - used[:, 2].amin()).abs())
+    if not float(distance_mm) > float(used[:, 2].abs().amax()) + NEAR_PLANE_MM:
+        raise ValueError(
+            f"distance_mm must exceed the model's depth (|z| up to {float(used[:, 2].abs().amax()):.1f} mm, extent "
+            f"{z_extent:.1f} mm), got {distance_mm}"
+        )
+    y_c = 0.5 * float(used[:, 1].amax() + used[:, 1].amin())
+    translation = torch.tensor([0.0, -y_c, float(distance_mm)], dtype=model.dtype, device=model.device)
+    pts = used + translation
+    a = pts[:, 0] / pts[:, 2]
+    b = pts[:, 1] / pts[:, 2]
+    half_x = float(a.abs().amax())
+    b_lo, b_hi = float(b.amin()), float(b.amax())
+    span = max(2.0 * half_x, b_hi - b_lo)
+    focal = (1.0 - 2.0 * float(margin)) * size / span
+    centre = (size - 1) / 2.0
+    cam = Intrinsics(size, size, focal, focal, centre, centre - focal * 0.5 * (b_lo + b_hi))
+    verts_cam = (model.mean + translation).unsqueeze(0)
+    frags = rasterize(verts_cam, model.faces, cam, cull_backfaces=True)
+    seen = (frags.pix_to_face[0] >= 0) & (frags.facing[0] > 0)
+    pixel_index = seen.reshape(-1).nonzero().squeeze(-1)
+    if pixel_index.numel() == 0:
+        raise ValueError("no pixel of the canonical view sees the face (degenerate model?)")
+    face_index = frags.pix_to_face[0].reshape(-1)[pixel_index]
+    bary = frags.bary[0].reshape(-1, 3)[pixel_index].detach()
+    return NormalisedFaceLayout(
+        size=size, margin=float(margin), intrinsics=cam, translation=translation, num_faces=model.num_faces,
+        pixel_index=pixel_index, face_index=face_index, bary=bary, mask=seen,
+    )  # fmt: skip
+
+
+def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
+    """Validate a ``(B, count)`` parameter tensor in the model's dtype and device."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape ({batch}, {count}), got {type(x).__name__}")
+    if x.dim() != 2 or tuple(x.shape) != (batch, count):
+        raise ValueError(f"{name} must be (B, {count}) with B={batch} like frames, got {tuple(x.shape)}")
+    if x.dtype != model.dtype or x.device != model.device:
+        raise TypeError(
+            f"{name} must have the model's dtype and device ({model.dtype}, {model.device}), "
+            f"got ({x.dtype}, {x.device})"
+        )
+    return x
+
+
+def _face_crop(verts_cam: Tensor, used: Tensor, intrinsics: Intrinsics) -> Intrinsics:
+    """The camera of the smallest pixel window of the frame that holds every sample's projected mesh.
+
+    A point on a triangle in front of the camera projects inside its triangle's projection, so the z-buffer
+    of this window (padded by one pixel for nearest-pixel rounding) answers every visibility query of the
+    frame; points projecting outside it are outside the mesh's image. The window lies inside the frame;
+    when a vertex is at or behind the near plane it is the whole frame.
+
+    Args:
+        verts_cam: ``(B, V, 3)`` camera-frame vertices; used: ``(V,)`` bool, the vertices faces refer to.
+
+    Returns:
+        The intrinsics of the window (same focal lengths, shifted principal point).
+    """
+    pts = verts_cam[:, used]
+    if not bool((pts[..., 2] > NEAR_PLANE_MM).all()) or not bool(torch.isfinite(pts).all()):
+        return intrinsics
+    px = project_points(pts, intrinsics).reshape(-1, 2)
+    lo = torch.floor(px.amin(0)) - 1
+    hi = torch.ceil(px.amax(0)) + 1
+    x0 = int(min(max(float(lo[0]), 0.0), intrinsics.width - 1))
+    y0 = int(min(max(float(lo[1]), 0.0), intrinsics.height - 1))
+    x1 = int(min(max(float(hi[0]), float(x0)), intrinsics.width - 1))
+    y1 = int(min(max(float(hi[1]), float(y0)), intrinsics.height - 1))
+    return Intrinsics(
+        x1 - x0 + 1, y1 - y0 + 1, intrinsics.fx, intrinsics.fy, intrinsics.cx - x0, intrinsics.cy - y0
+    )
+
+
+def normalised_face(
+    frames: Tensor,
+    model: FaceModel,
+    layout: NormalisedFaceLayout,
+    shape_coeffs: Tensor,
+    anim_coeffs: Tensor,
+    axis_angle: Tensor,
+    translation: Tensor,
+    illumination: Tensor | None,
+    intrinsics: Intrinsics,
+    *,
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+    min_facing_cos: float = DEFAULT_MIN_FACING_COS,
+) -> NormalisedFaceResult:
+    """The frontal, neutral-expression, light-normalised face of each frame (module docstring).
+
+    Args:
+        frames: ``(B, C, H, W)`` float images in ``[0, 1]`` (any ``C``; cast to the model's dtype).
+        model: the face model the parameters belong to.
+        layout: from :func:`build_normalised_layout` for this model (same triangles, dtype and device).
+        shape_coeffs: ``(B, S)`` the person's shape coefficients ``sigma``.
+        anim_coeffs: ``(B, A)`` the frame's animation coefficients ``alpha`` (undone in the output).
+        axis_angle: ``(B, 3)`` head -> camera rotation (radians).
+        translation: ``(B, 3)`` head origin in the camera frame (mm).
+        illumination: ``(B, L)`` illumination parameters ``[gain, bias, lx, ly, lz]`` of Eq. 19 (undone in
+            the output), or ``None`` to keep the frame's light.
+        intrinsics: camera of ``frames``.
+        depth_tolerance: relative depth gap allowed by the z-buffer test
+            (:func:`~torchface.rendering.visibility.points_visible`).
+        min_facing_cos: minimum cosine between a point's normal and its ray toward the camera; in ``[0, 1)``.
+
+    Returns:
+        :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype.
+
+    Raises:
+        TypeError: an argument has the wrong type, or a parameter tensor is not in the model's dtype/device.
+        ValueError: a shape does not match (the messages say what was expected and what arrived).
+
+    Example:
+        >>> from torchface.model import load_candide3
+        >>> model = load_candide3()
+        >>> layout = build_normalised_layout(model, size=32)
+        >>> cam = Intrinsics.default(64, 48)
+        >>> out = normalised_face(torch.rand(2, 3, 48, 64), model, layout, torch.zeros(2, model.num_shape),
+        ...                       torch.zeros(2, model.num_animation), torch.zeros(2, 3),
+        ...                       torch.tensor([[0.0, 0.0, 600.0]]).expand(2, 3), None, cam)
+        >>> out.image.shape, out.mask.shape
+        (torch.Size([2, 3, 32, 32]), torch.Size([2, 1, 32, 32]))
+    """
+    if not isinstance(model, FaceModel):
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    if not isinstance(layout, NormalisedFaceLayout):
+        raise TypeError(f"layout must be a NormalisedFaceLayout, got {type(layout).__name__}")
+    if not isinstance(intrinsics, Intrinsics):
+        raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
+    if not isinstance(frames, Tensor):
+        raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
+    if frames.dim() != 4 or not frames.is_floating_point():
+        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+    if tuple(frames.shape[-2:]) != intrinsics.size:
+        raise ValueError(
+            f"frames must be {intrinsics.height}x{intrinsics.width} (the intrinsics' size), got "
+            f"{frames.shape[-2]}x{frames.shape[-1]}"
+        )
+    if layout.num_faces != model.num_faces:
+        raise ValueError(
+            f"layout was built for a model with {layout.num_faces} triangles, this one has {model.num_faces}"
+        )
+    if layout.face_index.device != model.device:
+        raise ValueError(f"layout must be on the model's device {model.device}, got {layout.face_index.device}")
+    if not depth_tolerance >= 0:
+        raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
+    if not 0.0 <= min_facing_cos < 1.0:
+        raise ValueError(f"min_facing_cos must be in [0, 1), got {min_facing_cos}")
+    B, C = frames.shape[:2]
+    _check_params("shape_coeffs", shape_coeffs, model.num_shape, B, model)
+    _check_params("anim_coeffs", anim_coeffs, model.num_animation, B, model)
+    _check_params("axis_angle", axis_angle, 3, B, model)
+    _check_params("translation", translation, 3, B, model)
+    if illumination is not None:
+        _check_params("illumination", illumination, NUM_ILLUMINATION_TERMS, B, model)
+    frames = frames.to(dtype=model.dtype, device=model.device)
+
+    # Eq. 1 and 14: the person's mesh at the frame's expression and pose.
+    verts = model.deform(shape_coeffs, anim_coeffs)  # (B, V, 3)
+    rotation = axis_angle_to_matrix(axis_angle)
+    verts_cam = transform_points(rotation, translation, verts)
+    normals_cam = vertex_normals(verts, model.faces) @ rotation.transpose(-1, -2)
+
+    # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle.
+    corners = model.faces[layout.face_index]  # (M, 3)
+    bary = layout.bary.to(verts.dtype).unsqueeze(-1)  # (M, 3, 1)
+    points_cam = (verts_cam[:, corners] * bary).sum(-2)  # (B, M, 3)
+    normals = torch.nn.functional.normalize((normals_cam[:, corners] * bary).sum(-2), dim=-1)
+
+    # Eq. 15 and bilinear sampling at the projections.
+    points_px = project_points(points_cam, intrinsics)
+    values, inside = sample_at_pixels(frames, points_px)  # (B, M, C), (B, M)
+
+    with torch.no_grad():
+        crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
+        frags = rasterize(verts_cam.detach(), model.faces, crop)
+        visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
+        front = ~backfacing(verts_cam.detach(), model.faces)[:, layout.face_index]  # (B, M)
+        ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
+        facing_cos = -(normals.detach() * ray).sum(-1)
+        keep = visible & inside & front & (facing_cos >= min_facing_cos)
+
+    observed = values.transpose(1, 2)  # (B, C, M)
+    if illumination is not None:
+        observed = remove_illumination(observed, normals, illumination)
+    keep_f = keep.to(observed.dtype).unsqueeze(1)  # (B, 1, M)
+    G = layout.size
+    image = observed.new_zeros(B, C, G * G).index_copy(2, layout.pixel_index, observed * keep_f)
+    mask = keep_f.new_zeros(B, 1, G * G).index_copy(2, layout.pixel_index, keep_f)
+    return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
+
+
+class NormalisedFace(nn.Module):
+    """Thin module holding a model and its canonical layout; calls :func:`normalised_face`.
+
+    Args:
+        model: the face model (the tracker's).
+        size: ``G``, the output is ``G x G``.
+        margin: see :func:`build_normalised_layout`.
+        distance_mm: see :func:`build_normalised_layout`.
+        depth_tolerance: see :func:`normalised_face`.
+        min_facing_cos: see :func:`normalised_face`.
+
+    Example:
+        >>> from torchface.model import load_candide3
+        >>> normaliser = NormalisedFace(load_candide3(), size=64)
+        >>> # image, mask = normaliser(frames, tracker.state)                  # a TrackerState, or
+        >>> # image, mask = normaliser(frames, result, shape_coeffs, intrinsics)  # a TrackResult
+    """
+
+    def __init__(
+        self,
+        model: FaceModel,
+        size: int = 128,
+        margin: float = 0.05,
+        distance_mm: float = 2000.0,
+        depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+        min_facing_cos: float = DEFAULT_MIN_FACING_COS,
+    ) -> None:
+        super().__init__()
+        self.model = model
+        self.layout = build_normalised_layout(model, size, margin, distance_mm)
+        self.depth_tolerance = float(depth_tolerance)
+        self.min_facing_cos = float(min_facing_cos)
+
+    def forward(
+        self,
+        frames: Tensor,
+        estimate: "TrackResult | TrackerState",
+        shape_coeffs: Tensor | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> NormalisedFaceResult:
+        """Normalise ``(B, C, H, W)`` frames with a tracker estimate.
+
+        Args:
+            frames: ``(B, C, H, W)`` the frames the estimate belongs to.
+            estimate: a :class:`~torchface.tracker.TrackerState` (its parameters, shape coefficients and
+                intrinsics are used; leave ``shape_coeffs`` and ``intrinsics`` as ``None``) or a
+                :class:`~torchface.tracker.TrackResult` (pose, expression, illumination; then
+                ``shape_coeffs (B, S)`` is required and ``intrinsics`` defaults to
+                :meth:`Intrinsics.default` of the frame size).
+            shape_coeffs: ``(B, S)`` with a TrackResult.
+            intrinsics: camera of ``frames`` with a TrackResult.
+
+        Returns:
+            :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))``.
+        """
+        from torchface.tracker.params import ParamLayout
+        from torchface.tracker.step import TrackerState, TrackResult
+
+        if isinstance(estimate, TrackerState):
+            if shape_coeffs is not None or intrinsics is not None:
+                raise ValueError("with a TrackerState, shape_coeffs and intrinsics come from the state: pass None")
+            layout = ParamLayout(self.model.num_animation, NUM_ILLUMINATION_TERMS)
+            if estimate.params.dim() != 2 or estimate.params.shape[1] != layout.size:
+                raise ValueError(f"state.params must be (B, {layout.size}), got {tuple(estimate.params.shape)}")
+            aa, t, alpha, light = layout.split(estimate.params)
+            return self.from_params(frames, estimate.shape_coeffs, alpha, aa, t, light, estimate.intrinsics)
+        if isinstance(estimate, TrackResult):
+            if shape_coeffs is None:
+                raise ValueError(
+                    "with a TrackResult, shape_coeffs (B, S) is required (e.g. tracker.state.shape_coeffs)"
+                )
+            if intrinsics is None:
+                if not isinstance(frames, Tensor) or frames.dim() != 4:
+                    raise ValueError(f"frames must be (B, C, H, W), got {getattr(frames, 'shape', type(frames))}")
+                intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+            return self.from_params(
+                frames, shape_coeffs, estimate.anim_coeffs, estimate.axis_angle, estimate.translation,
+                estimate.illumination, intrinsics,
+            )  # fmt: skip
+        raise TypeError(f"estimate must be a TrackResult or a TrackerState, got {type(estimate).__name__}")
+
+    def from_params(
+        self,
+        frames: Tensor,
+        shape_coeffs: Tensor,
+        anim_coeffs: Tensor,
+        axis_angle: Tensor,
+        translation: Tensor,
+        illumination: Tensor | None,
+        intrinsics: Intrinsics,
+    ) -> NormalisedFaceResult:
+        """:func:`normalised_face` with explicit parameter tensors and this module's model and layout."""
+        return normalised_face(
+            frames, self.model, self.layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination,
+            intrinsics, depth_tolerance=self.depth_tolerance, min_facing_cos=self.min_facing_cos,
+        )  # fmt: skip
