@@ -540,3 +540,17 @@ def test_float32(config: SolverConfig) -> None:
     assert res.params.dtype == torch.float32
     assert res.status.tolist() == [CONV] * 4
     torch.testing.assert_close(res.params.double(), x_true, rtol=0, atol=1e-4)
+
+
+def test_unrolled_gradients_stay_finite_next_to_a_failed_sample() -> None:
+    t, y, _ = make_exp_data(B=3)
+    y = y.clone()
+    y[1, 3] = float("nan")
+    y.requires_grad_(True)
+    cfg = SolverConfig(differentiable=True)
+    x0 = torch.tensor([1.0, -0.5, 0.0], dtype=D).repeat(3, 1)
+    res = least_squares(exp_problem(y, t), x0, cfg, robust=RobustLoss(RobustKind.TUKEY))
+    assert res.status.tolist() == [CONV, FAIL, CONV]
+    (gy,) = torch.autograd.grad(res.params.sum(), y)
+    assert torch.isfinite(gy).all()
+    assert torch.all(gy[1] == 0) and torch.all(gy[[0, 2]].abs().sum(1) > 0)
