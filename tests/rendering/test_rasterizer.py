@@ -95,11 +95,19 @@ def test_cardinality_and_dtypes():
         (torch.zeros(1, 4, 3, dtype=torch.int64), torch.tensor([[0, 1, 2]]), TypeError),
         (torch.zeros(1, 4, 3), torch.tensor([0, 1, 2]), ValueError),
         (torch.zeros(1, 4, 3), torch.tensor([[0.0, 1.0, 2.0]]), TypeError),
+        (torch.zeros(1, 4, 3), torch.tensor([[0, 1, 4]]), ValueError),
+        (torch.zeros(1, 4, 3), torch.tensor([[0, -1, 2]]), ValueError),
     ],
 )
 def test_exceptions(verts, faces, error):
     with pytest.raises(error):
         rasterize(verts, faces, CAM)
+
+
+def test_empty_mesh_and_empty_batch():
+    frag = rasterize(torch.rand(2, 4, 3) + 1.0, torch.zeros(0, 3, dtype=torch.int64), CAM)
+    assert (frag.pix_to_face == -1).all() and torch.isinf(frag.zbuf).all() and frag.bary.shape == (2, 24, 32, 3)
+    assert rasterize(torch.rand(0, 4, 3), torch.tensor([[0, 1, 2]]), CAM).pix_to_face.shape == (0, 24, 32)
 
 
 def test_exception_intrinsics_and_near():

@@ -117,49 +117,66 @@ def _check_mesh(verts: Tensor, faces: Tensor, name: str = "verts") -> None:
         raise TypeError(f"faces must be int32 or int64, got {faces.dtype}")
     if faces.device != verts.device:
         raise ValueError(f"faces must be on {name}' device {verts.device}, got {faces.device}")
+    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= verts.shape[1]):
+        raise ValueError(
+            f"faces must index the {verts.shape[1]} vertices, got indices in [{int(faces.min())}, {int(faces.max())}]"
+        )
 
 
 def _triangles(verts: Tensor, faces: Tensor) -> Tensor:
     """Corner positions ``(B, F, 3, 3)`` (last-but-one axis: corner 0, 1, 2) of ``faces (F, 3)``."""
-    return verts[:, faces.long()]
+    B, F = verts.shape[0], faces.shape[0]
+    return verts.index_select(1, faces.reshape(-1).long()).reshape(B, F, 3, 3)
 
 
-def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _cross(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """Cross product of two vectors given as component tuples."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _sub(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Per-triangle ray-test coefficients, oriented so that a hit in front of the camera is positive.
 
     Args:
-        tri: ``(B, F, 3, 3)`` triangle corners in the camera frame.
+        tri: ``(N, 3, 3)`` triangle corners in the camera frame (``N = B F`` sample-face rows).
 
     Returns:
-        ``coeffs (B, F, 4, 3)``: for the ray ``d = (a, b, 1)``, function ``j`` is
-        ``coeffs[..., j, 0] a + (coeffs[..., j, 1] b + coeffs[..., j, 2])``, where functions 0..2 are
-        the triple products ``e_i = d . (v_{i+1} x v_{i+2})`` and function 3 is ``n . d``;
-        ``k (B, F)`` is ``n . v0``; all are multiplied by ``sign(n . v0)``.
-        ``front (B, F)`` bool (``n . v0 < 0``); ``usable (B, F)`` bool (finite, non-degenerate,
-        not edge-on).
+        ``table (13, N)``: for the ray ``d = (a, b, 1)``, function ``j = 0..3`` is
+        ``table[j] a + (table[4 + j] b + table[8 + j])``, where functions 0..2 are the triple products
+        ``e_i = d . (v_{i+1} x v_{i+2})`` and function 3 is ``n . d``; ``table[12]`` is ``k = n . v0``;
+        all multiplied by ``sign(n . v0)``. ``front (N,)`` bool (``n . v0 < 0``); ``usable (N,)`` bool
+        (finite, non-degenerate, not edge-on).
     """
-    v0, v1, v2 = tri.unbind(-2)
-    e01, e02 = v1 - v0, v2 - v0
-    n = torch.linalg.cross(e01, e02, dim=-1)
+    x0, y0, z0, x1, y1, z1, x2, y2, z2 = tri.reshape(-1, 9).T.contiguous().unbind(0)
+    v0, v1, v2 = (x0, y0, z0), (x1, y1, z1), (x2, y2, z2)
+    e01, e02, e12 = _sub(v1, v0), _sub(v2, v0), _sub(v2, v1)
+    n = _cross(e01, e02)
     # Cross products of differences keep precision: v1 x v2 = v1 x (v2 - v1), etc.
-    c0 = torch.linalg.cross(v1, v2 - v1, dim=-1)
-    c1 = torch.linalg.cross(v2, v0 - v2, dim=-1)
-    c2 = torch.linalg.cross(v0, e01, dim=-1)
-    k = (n * v0).sum(-1)
+    c0 = _cross(v1, e12)
+    c1 = _cross(v2, _sub(v0, v2))
+    c2 = _cross(v0, e01)
+    k = _dot(n, v0)
     front = k < 0
     sign = torch.where(front, -1.0, 1.0).to(tri.dtype)  # sign(n . v0)
 
     eps = torch.finfo(tri.dtype).eps * _DEGENERATE_EPS_FACTOR
-    n_norm = torch.linalg.vector_norm(n, dim=-1)
-    edge_sq = torch.stack([(e01 * e01).sum(-1), (e02 * e02).sum(-1), ((v2 - v1) ** 2).sum(-1)], -1)
-    max_edge_sq = edge_sq.amax(-1)
+    n_norm = _dot(n, n).sqrt()
+    max_edge_sq = torch.maximum(torch.maximum(_dot(e01, e01), _dot(e02, e02)), _dot(e12, e12))
     usable = (
-        torch.isfinite(tri).flatten(-2).all(-1)
+        torch.isfinite(tri).reshape(-1, 9).all(-1)
         & (n_norm > eps * max_edge_sq)
-        & (k.abs() > eps * n_norm * torch.linalg.vector_norm(v0, dim=-1))
+        & (k.abs() > eps * n_norm * _dot(v0, v0).sqrt())
     )
-    coeffs = torch.stack([c0, c1, c2, n], -2) * sign[..., None, None]
-    return coeffs, k * sign, front, usable
+    rows = [c[i] for i in range(3) for c in (c0, c1, c2, n)] + [k]
+    return torch.stack(rows, 0) * sign, front, usable
 
 
 def _project_corners(tri: Tensor, intrinsics: Intrinsics, near: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -260,14 +277,15 @@ def _hits_in_chunk(
 
 
 def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple[Tensor, Tensor]:
-    """The nearest hit per pixel, ties to the lowest face index.
+    """The nearest hit per pixel, depth ties to the lowest face index.
 
     Args:
-        pix: ``(M,)`` int64 flat pixel index of each hit; ``depth (M,)`` positive; ``face (M,)`` int64.
+        pix: ``(M,)`` int64 flat pixel index of each hit (at most one hit per pixel and face);
+            ``depth (M,)`` positive; ``face (M,)`` int64 in ``[0, 2**31)``.
 
     Returns:
-        ``pix_idx (N,)`` int64 the covered flat pixel indices, ascending, and ``face (N,)`` int64
-        the winning face at each.
+        ``pix_to_face (num_pixels,)`` int64, ``-1`` where nothing hits, and ``winners (N,)`` int64 the
+        indices of the winning hits (one per covered pixel).
     """
     empty = torch.iinfo(torch.int64).max
     best = torch.full((num_pixels,), empty, dtype=torch.int64, device=pix.device)
@@ -276,14 +294,17 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
         # (depth bits, face) orders by depth, then face.
         key = (depth.view(torch.int32).long() << 32) | face
         best.scatter_reduce_(0, pix, key, reduce="amin", include_self=True)
-        pix_idx = (best != empty).nonzero().squeeze(-1)
-        return pix_idx, best.index_select(0, pix_idx) & 0xFFFFFFFF
+        winners = (best.index_select(0, pix) == key).nonzero().squeeze(-1)
+        # Keep the low 32 bits, sign-extended: the face, or -1 for the empty key.
+        best.bitwise_and_(0xFFFFFFFF).add_(2**31).bitwise_and_(0xFFFFFFFF).sub_(2**31)
+        return best, winners
     zmin = torch.full((num_pixels,), float("inf"), dtype=depth.dtype, device=pix.device)
     zmin.scatter_reduce_(0, pix, depth, reduce="amin", include_self=True)
-    at_min = (depth == zmin.index_select(0, pix)).nonzero().squeeze(-1)
-    best.scatter_reduce_(0, pix.index_select(0, at_min), face.index_select(0, at_min), reduce="amin", include_self=True)
-    pix_idx = (best != empty).nonzero().squeeze(-1)
-    return pix_idx, best.index_select(0, pix_idx)
+    at_min = depth == zmin.index_select(0, pix)
+    best.scatter_reduce_(0, pix, torch.where(at_min, face, empty), reduce="amin", include_self=True)
+    winners = (at_min & (best.index_select(0, pix) == face)).nonzero().squeeze(-1)
+    best.masked_fill_(best == empty, -1)
+    return best, winners
 
 
 def rasterize(
@@ -333,7 +354,7 @@ def rasterize(
         raise ValueError(f"at most 2**31 - 1 faces are supported, got {F}")
 
     tri = _triangles(verts_cam, faces)  # (B, F, 3, 3)
-    coeffs, k, front, usable = _face_coefficients(tri)
+    coeffs, front, usable = _face_coefficients(tri)  # (13, B F), (B F,), (B F,)
     if cull_backfaces:
         usable = usable & front
     ray_a = (torch.arange(W, device=device, dtype=dtype) - intrinsics.cx) / intrinsics.fx
@@ -341,7 +362,7 @@ def rasterize(
 
     with torch.no_grad():
         # Level 1: the image rows each (sample, face) may cover.
-        u, v, wide, behind = _project_corners(tri.detach(), intrinsics, near)
+        u, v, wide, behind = _project_corners(tri.detach().reshape(-1, 3, 3), intrinsics, near)
         m = _SPAN_MARGIN_PX
         zero = torch.zeros((), dtype=torch.int64, device=device)
         x_first = torch.where(wide, zero, torch.ceil(u.amin(-1) - m).long())
@@ -349,25 +370,25 @@ def rasterize(
         y_first = torch.where(wide, zero, torch.ceil(v.amin(-1) - m).long()).clamp(0, H)
         y_last = torch.where(wide, zero + H - 1, torch.floor(v.amax(-1) + m).long()).clamp(-1, H - 1)
         skip = behind | ~usable | (x_first > W - 1) | (x_last < 0)
-        heights = torch.where(skip, zero, (y_last - y_first + 1).clamp_min(0)).reshape(-1)
+        heights = torch.where(skip, zero, (y_last - y_first + 1).clamp_min(0))
         face_row, row_rank = _enumerate(heights)  # (R,): owner (b * F + f) and rank of each span
-        y = y_first.reshape(-1).index_select(0, face_row) + row_rank
+        y = y_first.index_select(0, face_row) + row_rank
 
         # Level 2: the columns of each row the projected triangle may cover (whole rows if wide).
-        scan = _scan_edges(u.reshape(-1, 3), v.reshape(-1, 3)).index_select(0, face_row)
+        scan = _scan_edges(u, v).index_select(0, face_row)
         x_min, x_max = _row_spans(scan, y.to(dtype))
-        wide_r = wide.reshape(-1).index_select(0, face_row)
+        wide_r = wide.index_select(0, face_row)
         x_lo = torch.where(wide_r, zero, torch.ceil(x_min - m).long()).clamp(0, W)
         x_hi = torch.where(wide_r, zero + W - 1, torch.floor(x_max + m).long()).clamp(-1, W - 1)
         widths = (x_hi - x_lo + 1).clamp_min(0)
 
-        # Per-span coefficient table: the b-dependent part is folded in once per row.
-        c = coeffs.detach().reshape(-1, 4, 3).index_select(0, face_row)  # (R, 4, 3)
-        at_row = c[..., 1] * ray_b.index_select(0, y).unsqueeze(-1) + c[..., 2]
-        k_row = k.detach().reshape(-1).index_select(0, face_row)
-        table = torch.cat([c[..., 0].T, at_row.T, k_row.unsqueeze(0)], 0)  # (9, R)
-        row_pixel = (torch.div(face_row, F, rounding_mode="floor") * H + y) * W  # flat index of (b, y, 0)
-        row_face = face_row % F
+        # Per-span coefficient table (9, R): the b-dependent part is folded in once per row.
+        c = coeffs.detach().index_select(1, face_row)
+        at_row = c[4:8] * ray_b.index_select(0, y) + c[8:12]
+        table = torch.cat([c[0:4], at_row, c[12:13]], 0)
+        row_batch = torch.div(face_row, F, rounding_mode="floor")
+        row_pixel = (row_batch * H + y) * W  # flat index of (b, y, 0)
+        row_face = face_row - row_batch * F
 
         # Candidate pairs, in chunks of at most ~_MAX_PAIRS_PER_CHUNK.
         ends = torch.cumsum(widths, 0)
@@ -384,32 +405,31 @@ def rasterize(
             hit_pix.append(row_pixel.index_select(0, span) + col)
             hit_depth.append(depth)
             hit_face.append(row_face.index_select(0, span))
-        if hit_pix:
-            pix_idx, pix_f = _zbuffer(torch.cat(hit_pix), torch.cat(hit_depth), torch.cat(hit_face), num_pixels)
-        else:
-            pix_idx = pix_f = torch.zeros(0, dtype=torch.int64, device=device)
-        flat_face = torch.full((num_pixels,), -1, dtype=torch.int64, device=device)
-        flat_face.index_put_((pix_idx,), pix_f)
+        if not hit_pix:
+            hit_pix, hit_depth, hit_face = [zero.reshape(1)[:0]], [ray_a[:0]], [zero.reshape(1)[:0]]
+        hit_pix, hit_face = torch.cat(hit_pix), torch.cat(hit_face)
+        pix_to_face, winners = _zbuffer(hit_pix, torch.cat(hit_depth), hit_face, num_pixels)
+
+        pix_idx = hit_pix.index_select(0, winners)
+        pix_f = hit_face.index_select(0, winners)
         pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
         pix_yx = pix_idx - pix_b * (H * W)
         pix_y = torch.div(pix_yx, W, rounding_mode="floor")
         pix_x = pix_yx - pix_y * W
         pix_bf = pix_b * F + pix_f
-        is_front = front.reshape(-1).index_select(0, pix_bf)
+        is_front = front.index_select(0, pix_bf)
         facing = torch.zeros(num_pixels, dtype=torch.int8, device=device)
         facing.index_put_((pix_idx,), torch.where(is_front, 1, -1).to(torch.int8))
 
     # Re-evaluate the winners with the same arithmetic, now tracking gradients w.r.t. the vertices.
-    cw = coeffs.reshape(-1, 4, 3).index_select(0, pix_bf)  # (M, 4, 3)
-    a = ray_a.index_select(0, pix_x).unsqueeze(-1)
-    b = ray_b.index_select(0, pix_y).unsqueeze(-1)
-    e = cw[..., 0] * a + (cw[..., 1] * b + cw[..., 2])  # (M, 4)
-    bary_fg = e[:, :3] / e[:, :3].sum(-1, keepdim=True)
-    z_fg = k.reshape(-1).index_select(0, pix_bf) / e[:, 3]
+    cw = coeffs.index_select(1, pix_bf)  # (13, M)
+    e = cw[0:4] * ray_a.index_select(0, pix_x) + (cw[4:8] * ray_b.index_select(0, pix_y) + cw[8:12])
+    bary_fg = (e[0:3] / e[0:3].sum(0)).T
+    z_fg = cw[12] / e[3]
     bary = torch.zeros(num_pixels, 3, dtype=dtype, device=device).index_put_((pix_idx,), bary_fg)
     zbuf = torch.full((num_pixels,), float("inf"), dtype=dtype, device=device).index_put_((pix_idx,), z_fg)
     return Fragments(
-        pix_to_face=flat_face.reshape(B, H, W),
+        pix_to_face=pix_to_face.reshape(B, H, W),
         bary=bary.reshape(B, H, W, 3),
         zbuf=zbuf.reshape(B, H, W),
         facing=facing.reshape(B, H, W),
