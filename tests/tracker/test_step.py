@@ -1,0 +1,394 @@
+"""Tests for torchface.tracker.step and torchface.tracker.module: known answers on small rendered sequences
+(pose, animation units, light), batch consistency, failure handling, robust weights under occlusion, the fast
+solver against the reference solver, and the FaceTracker module's contract.
+
+Sequences are rendered at 320x240 (the face spans ~100 px): at 160x120 (~50 px) the per-frame pose error of
+the tracker is already ~2 degrees, too close to the tolerances to be a useful known answer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from torchface.appearance import apply_illumination, illumination_basis, image_with_gradients, to_gray
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, geodesic_angle_deg
+from torchface.model.candide import load_candide3
+from torchface.rendering.shading import LightState
+from torchface.solver.robust import RobustKind
+from torchface.synth.background import BackgroundSpec, OccluderSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.tracker import (
+    FaceTracker,
+    FitConfig,
+    ParamLayout,
+    TrackerConfig,
+    TrackStatus,
+    frame_residuals,
+    initialise,
+    track_step,
+)
+from torchface.tracker.step import TrackSolver
+
+W, H = 320, 240
+T = 6
+D = torch.float64
+FAILED = int(TrackStatus.FAILED)
+# Exact landmarks + no shape prior give the exact first pose (tests/tracker/test_fit.py), so errors below are the
+# tracker's own. Small templates keep the file fast.
+BASE = TrackerConfig(num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0))
+L2 = replace(BASE, robust=RobustKind.NONE)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3()
+
+
+def gentle_spec(
+    name: str,
+    ypr_end: tuple[float, float, float],
+    t_start: tuple[float, float, float],
+    t_move: tuple[float, float, float],
+    aus: dict[str, float],
+    *,
+    num_frames: int = T,
+    light: LightState | None = None,
+    occluder: OccluderSpec | None = None,
+    seed: int = 3,
+) -> SequenceSpec:
+    """Linear motion from a frontal pose to ``ypr_end`` degrees; animation units ramp from 0 to their peaks."""
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=D)[:, None]
+    model = load_candide3()
+    anim = torch.zeros(num_frames, model.num_animation, dtype=D)
+    for au, peak in aus.items():
+        anim[:, model.animation_names.index(au)] = peak * s[:, 0]
+    return SequenceSpec(
+        name=name,
+        subject="candide3",
+        intrinsics=Intrinsics.default(W, H),
+        rotation=euler_to_matrix(s * torch.tensor(ypr_end, dtype=D)),
+        translation=torch.tensor(t_start, dtype=D) + s * torch.tensor(t_move, dtype=D),
+        anim=anim,
+        light=default_light(num_frames) if light is None else light,
+        background=BackgroundSpec(seed=seed),
+        occluder=occluder,
+    )
+
+
+JAW, BROW = "AUV11 Jaw drop", "AUV5 Outer brow raiser"
+
+
+@pytest.fixture(scope="module")
+def two_streams():
+    """Two different 6-frame sequences: ``frames (2, T, 3, H, W)`` and their ground truths."""
+    a = gentle_spec("a", (8.0, -5.0, 4.0), (0.0, 0.0, 450.0), (6.0, -3.0, 10.0), {JAW: 0.7, BROW: 0.6})
+    b = gentle_spec("b", (-7.0, 4.0, -3.0), (-15.0, 5.0, 480.0), (4.0, 3.0, -8.0), {JAW: 0.5}, seed=7)
+    fa, ga = render_sequence(a)
+    fb, gb = render_sequence(b)
+    return torch.stack([fa, fb]), (ga, gb)
+
+
+def run(model, config, frames, landmarks):
+    """Track ``frames (B, T, 3, H, W)`` from ``landmarks (B, 68, 2)`` on frame 0; returns all results and states."""
+    state, res = initialise(model, config, frames[:, 0], landmarks, Intrinsics.default(W, H))
+    results, states = [res], [state]
+    for i in range(1, frames.shape[1]):
+        state, res = track_step(model, config, state, frames[:, i])
+        results.append(res)
+        states.append(state)
+    return results, states
+
+
+def landmarks_of(gts):
+    return torch.stack([g.landmarks_px[0] for g in gts]).float()
+
+
+@pytest.fixture(scope="module")
+def l2_runs(model, two_streams):
+    """The L2 configuration: both streams together, and each alone."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts)
+    together = run(model, L2, frames, lm)
+    alone = [run(model, L2, frames[b : b + 1], lm[b : b + 1]) for b in range(2)]
+    return together, alone
+
+
+def rotation_errors(results, gts):
+    """``(T, B)`` rotation errors in degrees, absolute and relative to frame 0."""
+    absolute, relative = [], []
+    for i, res in enumerate(results):
+        R_est = res.rotation.double()
+        R_gt = torch.stack([g.rotation[i] for g in gts])
+        R0_est = results[0].rotation.double()
+        R0_gt = torch.stack([g.rotation[0] for g in gts])
+        absolute.append(geodesic_angle_deg(R_est, R_gt))
+        relative.append(geodesic_angle_deg(R_est @ R0_est.mT, R_gt @ R0_gt.mT))
+    return torch.stack(absolute), torch.stack(relative)
+
+
+# --------------------------------------------------------------------------------------------- known answers
+
+
+def test_known_answer_pose_and_expression_l2(model, two_streams, l2_runs):
+    """Rotation within 1 degree of the truth (relative to frame 0 too), translation within 8 mm, and the jaw
+    drop and brow raise followed to within 0.2 / 0.3 (they ramp to 0.7 / 0.6; the prior shrinks them a little)."""
+    _, gts = two_streams
+    (results, _), _ = l2_runs
+    assert all(bool(r.success.all()) for r in results)
+    absolute, relative = rotation_errors(results, gts)
+    assert float(absolute.max()) < 1.0, absolute
+    assert float(relative.max()) < 1.0, relative
+    for i, res in enumerate(results):
+        t_gt = torch.stack([g.translation[i] for g in gts])
+        assert float((res.translation.double() - t_gt).norm(dim=-1).max()) < 8.0
+    names = model.animation_names
+    jaw, brow = names.index(JAW), names.index(BROW)
+    est = torch.stack([r.anim_coeffs.double() for r in results])  # (T, B, A)
+    gt = torch.stack([torch.stack([g.au[i] for g in gts]) for i in range(T)])
+    assert float((est[..., jaw] - gt[..., jaw]).abs().max()) < 0.2, (est[..., jaw], gt[..., jaw])
+    assert float((est[:, 0, brow] - gt[:, 0, brow]).abs().max()) < 0.3, (est[:, 0, brow], gt[:, 0, brow])
+    # the expression is really tracked, not merely small: the jaw opens with the truth
+    assert float(est[-1, 0, jaw]) > 0.45 and float(est[-1, 1, jaw]) > 0.3
+    # animation units that do not move stay near zero
+    others = [k for k in range(len(names)) if k not in (jaw, brow)]
+    assert float(est[..., others].abs().max()) < 0.2
+
+
+def test_known_answer_pose_default_robust(model, two_streams):
+    """The default (Tukey) configuration tracks the pose of the same sequences within 1.5 degrees."""
+    frames, gts = two_streams
+    results, _ = run(model, BASE, frames, landmarks_of(gts))
+    absolute, relative = rotation_errors(results, gts)
+    assert float(absolute.max()) < 1.5, absolute
+    assert float(relative.max()) < 1.5, relative
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="KNOWN ISSUE: with Tukey IRLS and a MAD scale (noise-free render: s ~ 0.005-0.015) the residuals of an "
+    "expression change look like outliers and get zero weight, so animation units stay near 0 (jaw 0.01 vs 0.70); "
+    "the reference LM solver does the same. Remove this mark when fixed.",
+)
+def test_default_robust_tracks_expressions(model, two_streams):
+    frames, gts = two_streams
+    results, _ = run(model, BASE, frames[:1], landmarks_of(gts)[:1])
+    jaw = model.animation_names.index(JAW)
+    assert abs(float(results[-1].anim_coeffs[0, jaw]) - float(gts[0].au[-1, jaw])) < 0.2
+
+
+def test_same_frame_reproduces_the_template(model, two_streams):
+    """Tracking the first frame again (identity warp): the estimate does not move and the cost is ~0."""
+    frames, gts = two_streams
+    state, first = initialise(model, BASE, frames[:, 0], landmarks_of(gts), Intrinsics.default(W, H))
+    _, again = track_step(model, BASE, state, frames[:, 0])
+    assert float(geodesic_angle_deg(again.rotation.double(), first.rotation.double()).max()) < 0.02
+    assert float((again.translation - first.translation).norm(dim=-1).max()) < 0.1
+    assert float(again.anim_coeffs.abs().max()) < 0.01 and float(again.illumination.abs().max()) < 0.01
+    assert float(again.cost.max()) < 2e-3
+    assert again.status.tolist() == [int(TrackStatus.CONVERGED)] * 2
+
+
+def test_illumination_follows_a_light_change(model):
+    """Ambient light up by 40 % from frame 2 on (static head): the gain rises, the predicted template brightness
+    ``T + B lambda`` matches the new frame, the pose holds; without the light terms the residual is larger."""
+    n = 4
+    light = default_light(n)
+    ambient = torch.tensor([0.45, 0.45, 0.63, 0.63], dtype=D)
+    light = LightState(ambient, light.directions, light.intensities)
+    spec = gentle_spec("light", (3.0, 2.0, 0.0), (0.0, 0.0, 450.0), (2.0, 0.0, 0.0), {}, num_frames=n, light=light)
+    frames, gt = render_sequence(spec)
+    frames = frames.unsqueeze(0)
+    lm = gt.landmarks_px[:1].float()
+    results, states = run(model, BASE, frames, lm)
+    no_light_results, no_light_states = run(model, replace(BASE, use_illumination=False), frames, lm)
+    layout = ParamLayout(model.num_animation, 5)
+    gain = [float(r.illumination[0, 0]) for r in results]
+    assert abs(gain[1]) < 0.05 and gain[2] > 0.15 and gain[3] > 0.15, gain
+    for i in (2, 3):
+        R_gt = gt.rotation[i : i + 1]
+        assert float(geodesic_angle_deg(results[i].rotation.double(), R_gt)) < 1.0
+        assert float(no_light_results[i].illumination.abs().max()) == 0.0
+        # predicted brightness against the frame at the estimate, over the valid template points
+        state = states[i]
+        tpl, x = state.templates[0], state.params
+        image = image_with_gradients(to_gray(frames[:, i]))
+        R = axis_angle_to_matrix(x[:, layout.rotation])
+        basis = illumination_basis(tpl.intensity, tpl.normals @ R.mT)
+        r, _, valid = frame_residuals(x, layout, tpl, image, state.intrinsics, basis, tpl.valid)
+        predicted = apply_illumination(tpl.intensity, basis, x[:, layout.illumination])
+        observed = predicted + r
+        v = valid[0]
+        ratio_obs = float(observed[0, v].mean() / tpl.intensity[0, v].mean())
+        ratio_pred = float(predicted[0, v].mean() / tpl.intensity[0, v].mean())
+        assert ratio_obs > 1.15, ratio_obs
+        assert abs(ratio_pred - ratio_obs) < 0.03, (ratio_pred, ratio_obs)
+        assert float(results[i].cost[0]) < 0.5 * float(no_light_results[i].cost[0])
+
+
+def test_robust_weights_beat_l2_under_occlusion(model):
+    """A textured occluder over ~30 % of the face from frame 1 on (rigid head): Tukey IRLS stays within 2 degrees,
+    plain least squares is dragged off by more than 5."""
+    occ = OccluderSpec(1, T, 0.3, path_start=(0.2, 0.6), path_end=(0.5, 0.7))
+    spec = gentle_spec("occ", (8.0, -5.0, 4.0), (0.0, 0.0, 450.0), (6.0, -3.0, 10.0), {}, occluder=occ)
+    frames, gt = render_sequence(spec)
+    assert float(gt.occluded_fraction[1:].min()) > 0.25
+    lm = gt.landmarks_px[:1].float()
+    robust, _ = run(model, BASE, frames.unsqueeze(0), lm)
+    plain, _ = run(model, L2, frames.unsqueeze(0), lm)
+    err_robust, _ = rotation_errors(robust, (gt,))
+    err_plain, _ = rotation_errors(plain, (gt,))
+    assert float(err_robust.max()) < 2.0, err_robust.flatten()
+    assert float(err_plain.max()) > 5.0, err_plain.flatten()
+    assert float(err_robust[1:].mean()) < 0.25 * float(err_plain[1:].mean())
+
+
+# ------------------------------------------------------------------------------------------------- batching
+
+
+def _assert_same_stream(a, b_res, b: int, atol: float = 1e-4):
+    """Result ``a`` (one stream) equals sample ``b`` of the batched result ``b_res``."""
+    torch.testing.assert_close(a.axis_angle[0], b_res.axis_angle[b], rtol=0, atol=atol)
+    torch.testing.assert_close(a.translation[0], b_res.translation[b], rtol=0, atol=100 * atol)
+    torch.testing.assert_close(a.anim_coeffs[0], b_res.anim_coeffs[b], rtol=0, atol=10 * atol)
+    torch.testing.assert_close(a.illumination[0], b_res.illumination[b], rtol=0, atol=10 * atol)
+    assert int(a.status[0]) == int(b_res.status[b])
+    assert int(a.num_points[0]) == int(b_res.num_points[b])
+
+
+def test_batch_equals_each_stream_alone(l2_runs):
+    (together, _), alone = l2_runs
+    for b in range(2):
+        for i in range(T):
+            _assert_same_stream(alone[b][0][i], together[i], b)
+
+
+def _assert_finite(res):
+    for name in ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination", "cost",
+                 "confidence"):
+        assert bool(torch.isfinite(getattr(res, name)).all()), name
+
+
+@pytest.mark.parametrize("bad", ["black", "constant", "nan"])
+def test_degenerate_frame_fails_alone_and_spares_the_other_stream(model, two_streams, l2_runs, bad):
+    frames, _ = two_streams
+    (_, states), alone = l2_runs
+    state0 = states[0]
+    fill = {"black": 0.0, "constant": 0.5, "nan": float("nan")}[bad]
+    for broken in (0, 1):
+        batch = frames[:, 1].clone()
+        batch[broken] = fill
+        new_state, res = track_step(model, L2, state0, batch)
+        assert int(res.status[broken]) == FAILED and not bool(res.success[broken])
+        assert float(res.confidence[broken]) == 0.0
+        _assert_finite(res)
+        torch.testing.assert_close(new_state.params[broken], state0.params[broken], rtol=0, atol=0)
+        other = 1 - broken
+        assert bool(res.success[other])
+        _assert_same_stream(alone[other][0][1], res, other)
+        # the failed stream recovers on its next good frame
+        _, res2 = track_step(model, L2, new_state, frames[:, 1])
+        assert bool(res2.success.all())
+        _assert_same_stream(alone[broken][0][1], res2, broken)
+
+
+def test_fast_solver_agrees_with_reference_solver(model, two_streams, l2_runs):
+    """One frame solved to convergence by the fast local-twist Gauss-Newton on a face crop and by the generic
+    Levenberg-Marquardt on additive axis-angle parameters over the full frame (the slow reference).
+
+    Both minimise the same objective (their residuals agree to 1e-5 at the same parameters) but stop at slightly
+    different points of this piecewise-bilinear cost: measured 0.07 / 0.10 degree apart, the reference's cost
+    about 1 % lower. Tolerances: 0.2 degree, 1 mm, 0.05 AU units, cost within 5 %.
+    """
+    frames, _ = two_streams
+    (_, states), _ = l2_runs
+    converged = replace(L2, iterations=(20, 20))
+    _, fast = track_step(model, converged, states[0], frames[:, 1])
+    _, ref = track_step(model, replace(converged, solver=TrackSolver.REFERENCE), states[0], frames[:, 1])
+    assert bool(fast.success.all()) and bool(ref.success.all())
+    assert float(geodesic_angle_deg(ref.rotation.double(), fast.rotation.double()).max()) < 0.2
+    assert float((ref.translation - fast.translation).norm(dim=-1).max()) < 1.0
+    assert float((ref.anim_coeffs - fast.anim_coeffs).abs().max()) < 0.05
+    torch.testing.assert_close(fast.cost, ref.cost, rtol=0.05, atol=0.0)
+
+
+# ------------------------------------------------------------------------------------------ result contract
+
+
+def test_result_fields(model, l2_runs):
+    (results, states), _ = l2_runs
+    res = results[1]
+    A = model.num_animation
+    assert res.rotation.shape == (2, 3, 3) and res.axis_angle.shape == (2, 3) and res.translation.shape == (2, 3)
+    assert res.ypr_deg.shape == (2, 3) and res.anim_coeffs.shape == (2, A) and len(res.anim_names) == A
+    assert res.facs.shape == (2, len(res.facs_names)) and res.illumination.shape == (2, 5)
+    assert res.illumination_names == ("gain", "bias", "light_x", "light_y", "light_z")
+    for name in ("status", "iterations", "num_points"):
+        assert getattr(res, name).shape == (2,)
+    assert res.status.dtype == torch.int64
+    assert bool(((res.confidence >= 0) & (res.confidence <= 1)).all())
+    torch.testing.assert_close(res.rotation, axis_angle_to_matrix(res.axis_angle))
+    assert states[1].frame_index == 2 and states[-1].frame_index == T
+    assert len(states[0].templates) == L2.num_levels
+
+
+# ------------------------------------------------------------------------------------------------- validation
+
+
+def test_track_step_rejects_bad_frames(model, two_streams, l2_runs):
+    frames, _ = two_streams
+    (_, states), _ = l2_runs
+    with pytest.raises(ValueError, match="240x320"):
+        track_step(model, L2, states[0], frames[:, 1, :, :120, :160])
+    with pytest.raises(ValueError, match="one per stream"):
+        track_step(model, L2, states[0], frames[:1, 1])
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
+        track_step(model, L2, states[0], frames[0, 1])
+    with pytest.raises(TypeError, match="torch.Tensor"):
+        track_step(model, L2, states[0], frames[:, 1].numpy())
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="num_levels"):
+        TrackerConfig(num_levels=0, iterations=())
+    with pytest.raises(ValueError, match="iterations"):
+        TrackerConfig(num_levels=2, iterations=(3, 3, 3))
+    with pytest.raises(ValueError, match="max_points"):
+        TrackerConfig(max_points=4)
+    with pytest.raises(ValueError, match="non-negative"):
+        TrackerConfig(gradient_threshold=-1.0)
+    with pytest.raises(TypeError, match="RobustKind"):
+        TrackerConfig(robust="tukey")
+
+
+def test_face_tracker_module(model, two_streams, l2_runs):
+    frames, gts = two_streams
+    (results, _), _ = l2_runs
+    tracker = FaceTracker(L2, model)
+    assert tracker.state is None
+    with pytest.raises(RuntimeError, match="initialise"):
+        tracker(frames[:, 1])
+    first = tracker.initialise(frames[:, 0], landmarks_of(gts))
+    torch.testing.assert_close(first.axis_angle, results[0].axis_angle)
+    res = tracker(frames[:, 1])
+    torch.testing.assert_close(res.axis_angle, results[1].axis_angle)
+    assert tracker.state.frame_index == 2
+    res = tracker.step(frames[:, 2])
+    torch.testing.assert_close(res.axis_angle, results[2].axis_angle)
+    with pytest.raises(ValueError, match="240x320"):
+        tracker(frames[:, 3, :, :120, :160])
+    with pytest.raises(ValueError, match="one per stream"):
+        tracker(frames[:1, 3])
+    assert tracker.state.frame_index == 3, "a rejected call must not change the state"
+    tracker.reset()
+    with pytest.raises(RuntimeError, match="initialise"):
+        tracker(frames[:, 1])
+    with pytest.raises(TypeError, match="TrackerConfig"):
+        FaceTracker(config={"num_levels": 2}, model=model)
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
+        tracker.initialise(frames[0, 0], landmarks_of(gts))
