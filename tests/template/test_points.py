@@ -1,0 +1,244 @@
+"""Tests for torchface.template.points: template points built from a render with a known pose lie on their own
+triangles at pixel centres, carry the frame's intensities, respect the gradient threshold, and the identity warp
+reproduces the template (paper Eq. 3-9, Section 4)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchface.appearance import illumination_basis, image_with_gradients, to_gray
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import euler_to_matrix, matrix_to_axis_angle
+from torchface.model.candide import load_candide3
+from torchface.rendering.rasterizer import rasterize
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.template import Template, build_template, gather_face_attributes
+from torchface.tracker import ParamLayout, frame_residuals
+
+W, H = 160, 120
+D = torch.float64
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Two rendered frames (different poses and expressions) with their exact parameters, in the model's dtype."""
+    model = load_candide3()
+    ypr = torch.tensor([[15.0, -5.0, 3.0], [-10.0, 8.0, -4.0]], dtype=D)
+    anim = torch.zeros(2, model.num_animation, dtype=D)
+    anim[0, model.animation_names.index("AUV11 Jaw drop")] = 0.5
+    anim[1, model.animation_names.index("AUV2 Lip stretcher")] = 0.6
+    spec = SequenceSpec(
+        name="tpl",
+        subject="candide3",
+        intrinsics=Intrinsics.default(W, H),
+        rotation=euler_to_matrix(ypr),
+        translation=torch.tensor([[5.0, -3.0, 430.0], [-8.0, 4.0, 470.0]], dtype=D),
+        anim=anim,
+        light=default_light(2),
+        background=BackgroundSpec(seed=5),
+    )
+    frames, gt = render_sequence(spec)
+    f32 = torch.float32
+    return {
+        "model": model,
+        "gray": to_gray(frames),
+        "R": gt.rotation.to(f32),
+        "t": gt.translation.to(f32),
+        "anim": gt.au.to(f32),
+        "shape": gt.shape_coeffs.to(f32).expand(2, -1).contiguous(),
+        "cam": gt.intrinsics,
+    }
+
+
+def build(scene, max_points=H * W, gradient_threshold=0.0, **kw) -> Template:
+    s = scene
+    return build_template(
+        s["model"], s["shape"], s["anim"], s["R"], s["t"], s["gray"], s["cam"],
+        max_points=max_points, gradient_threshold=gradient_threshold, **kw,
+    )
+
+
+def pixels_of(scene, tpl: Template) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Projection ``(B, N, 2)`` of the template points with the true pose and expression, and its rounding."""
+    s = scene
+    X = tpl.points + torch.matmul(tpl.basis, s["anim"][:, None, :, None]).squeeze(-1)
+    uv = project_points(X @ s["R"].mT + s["t"][:, None], s["cam"])
+    return uv, uv.round().long(), X
+
+
+def test_cardinality(scene):
+    tpl = build(scene, max_points=500)
+    A = scene["model"].num_animation
+    assert tpl.face_index.shape == (2, 500) and tpl.bary.shape == (2, 500, 3) and tpl.points.shape == (2, 500, 3)
+    assert tpl.basis.shape == (2, 500, 3, A) and tpl.normals.shape == (2, 500, 3)
+    assert tpl.intensity.shape == (2, 500) and tpl.valid.shape == (2, 500) and tpl.valid.dtype == torch.bool
+    assert tpl.num_points.tolist() == [500, 500], "a face of ~50x60 px has more than 500 usable pixels"
+    one = tpl.select(torch.tensor([1]))
+    assert one.points.shape == (1, 500, 3)
+    torch.testing.assert_close(one.points[0], tpl.points[1])
+
+
+def test_points_project_to_pixel_centres_on_their_own_triangle(scene):
+    """With the true pose, each template point lands on a pixel centre whose rasterized triangle is its own, with
+    the same barycentric coordinates."""
+    tpl = build(scene)
+    uv, pix, _ = pixels_of(scene, tpl)
+    v = tpl.valid
+    assert int(v.sum()) > 1000
+    assert float((uv - pix)[v].abs().max()) < 1e-3
+    s = scene
+    verts = s["model"].deform(s["shape"], s["anim"]) @ s["R"].mT + s["t"][:, None]
+    frags = rasterize(verts, s["model"].faces, s["cam"], cull_backfaces=True)
+    b = torch.arange(2)[:, None].expand_as(tpl.face_index)
+    seen = frags.pix_to_face[b, pix[..., 1], pix[..., 0]]
+    assert bool((seen[v] == tpl.face_index[v]).all())
+    torch.testing.assert_close(frags.bary[b, pix[..., 1], pix[..., 0]][v], tpl.bary[v], rtol=0, atol=1e-4)
+    # Against the renderer's raster (no culling): CANDIDE-3 has a few back-facing triangles nearest the camera
+    # (e.g. faces 172 and 180 on the frontal mean face, 4 pixels per frame here), where the frame shows that
+    # back face; all other points agree.
+    shown = rasterize(verts, s["model"].faces, s["cam"]).pix_to_face[b, pix[..., 1], pix[..., 0]]
+    mismatch = (shown != tpl.face_index) & v
+    assert int(mismatch.sum()) <= 0.005 * int(v.sum()), int(mismatch.sum())
+    # points on distinct pixels
+    for k in range(2):
+        keys = pix[k][v[k]][:, 1] * W + pix[k][v[k]][:, 0]
+        assert keys.unique().numel() == keys.numel()
+
+
+def test_intensities_are_the_frame_pixels(scene):
+    tpl = build(scene)
+    _, pix, _ = pixels_of(scene, tpl)
+    b = torch.arange(2)[:, None].expand_as(tpl.face_index)
+    frame = scene["gray"][b, 0, pix[..., 1], pix[..., 0]]
+    torch.testing.assert_close(tpl.intensity[tpl.valid], frame[tpl.valid], rtol=0, atol=0)
+
+
+def test_points_basis_normals_interpolate_the_model(scene):
+    """Points, expression basis and normals are the barycentric interpolations of the triangle's vertices."""
+    tpl = build(scene, max_points=300)
+    model, s = scene["model"], scene
+    neutral = model.deform(s["shape"], None)
+    corners = model.faces[tpl.face_index]  # (B, N, 3)
+    b = torch.arange(2)[:, None, None]
+    expected = (neutral[b, corners] * tpl.bary[..., None]).sum(2)
+    torch.testing.assert_close(tpl.points, expected)
+    au = model.animation_units.permute(1, 2, 0)  # (V, 3, A)
+    torch.testing.assert_close(tpl.basis, (au[corners] * tpl.bary[..., None, None]).sum(2))
+    torch.testing.assert_close(tpl.normals.norm(dim=-1)[tpl.valid], torch.ones(int(tpl.valid.sum())))
+    # front-facing at the frame's pose (expression aside, the neutral normals still face the camera)
+    _, _, X = pixels_of(scene, tpl)
+    cam_pts = X @ s["R"].mT + s["t"][:, None]
+    facing = ((tpl.normals @ s["R"].mT) * cam_pts).sum(-1)
+    assert bool((facing[tpl.valid] < 0).all())
+
+
+def test_points_stay_off_the_silhouette(scene):
+    """After the one-pixel erosion every template pixel has face pixels all around it."""
+    tpl = build(scene)
+    _, pix, _ = pixels_of(scene, tpl)
+    s = scene
+    verts = s["model"].deform(s["shape"], s["anim"]) @ s["R"].mT + s["t"][:, None]
+    fg = rasterize(verts, s["model"].faces, s["cam"]).foreground
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            b = torch.arange(2)[:, None].expand_as(tpl.face_index)
+            ok = fg[b, (pix[..., 1] + dy).clamp(0, H - 1), (pix[..., 0] + dx).clamp(0, W - 1)]
+            assert bool(ok[tpl.valid].all())
+
+
+def test_gradient_threshold_keeps_exactly_the_informative_points(scene):
+    """The threshold removes points and keeps exactly those whose gradient magnitude reaches it (Section 4)."""
+    thr = 0.03
+    all_pts = build(scene, gradient_threshold=0.0)
+    strong = build(scene, gradient_threshold=thr)
+    grads = image_with_gradients(scene["gray"])[:, 1:]
+    gmag = grads.pow(2).sum(1).sqrt()  # (B, H, W)
+    for k in range(2):
+        _, pix_all, _ = pixels_of(scene, all_pts)
+        _, pix_strong, _ = pixels_of(scene, strong)
+        keys_all = pix_all[k][all_pts.valid[k]]
+        keys_strong = pix_strong[k][strong.valid[k]]
+        g_all = gmag[k, keys_all[:, 1], keys_all[:, 0]]
+        expected = set((keys_all[g_all >= thr] @ torch.tensor([1, W])).tolist())
+        got = set((keys_strong @ torch.tensor([1, W])).tolist())
+        assert got == expected
+        assert 0 < len(got) < 0.9 * keys_all.shape[0]
+        assert bool((gmag[k, keys_strong[:, 1], keys_strong[:, 0]] >= thr).all())
+
+
+def test_subsampling_is_a_deterministic_subset(scene):
+    full = build(scene)
+    few = build(scene, max_points=200)
+    again = build(scene, max_points=200)
+    assert few.num_points.tolist() == [200, 200]
+    torch.testing.assert_close(few.points, again.points, rtol=0, atol=0)
+    _, pix_full, _ = pixels_of(scene, full)
+    _, pix_few, _ = pixels_of(scene, few)
+    for k in range(2):
+        keys_full = set((pix_full[k][full.valid[k]] @ torch.tensor([1, W])).tolist())
+        keys_few = set((pix_few[k][few.valid[k]] @ torch.tensor([1, W])).tolist())
+        assert keys_few <= keys_full
+    # a stream gets the same template alone as in a batch
+    s = scene
+    alone = build_template(
+        s["model"], s["shape"][1:], s["anim"][1:], s["R"][1:], s["t"][1:], s["gray"][1:], s["cam"],
+        max_points=200, gradient_threshold=0.0,
+    )
+    torch.testing.assert_close(alone.points[0], few.points[1], rtol=0, atol=0)
+    torch.testing.assert_close(alone.intensity[0], few.intensity[1], rtol=0, atol=0)
+
+
+def test_more_slots_than_candidates_marks_the_rest_invalid(scene):
+    tpl = build(scene, gradient_threshold=0.2)
+    n = tpl.num_points
+    assert bool((n > 0).all()) and bool((n < H * W).all())
+    assert bool(torch.isfinite(tpl.points).all()), "unused slots must still hold finite values"
+
+
+def test_identity_warp_reproduces_the_template(scene):
+    """At the template frame's own parameters (zero light), every valid residual of Eq. 20 is ~0."""
+    s = scene
+    model = s["model"]
+    tpl = build(s)
+    layout = ParamLayout(model.num_animation, 5)
+    x = torch.zeros(2, layout.size)
+    x[:, layout.rotation] = matrix_to_axis_angle(s["R"])
+    x[:, layout.translation] = s["t"]
+    x[:, layout.animation] = s["anim"]
+    basis = illumination_basis(tpl.intensity, tpl.normals @ s["R"].mT)
+    r, _, valid = frame_residuals(x, layout, tpl, image_with_gradients(s["gray"]), s["cam"], basis, tpl.valid)
+    assert bool((valid == tpl.valid).all()), "every template point is usable in its own frame"
+    # float32 projection lands within ~1e-4 px of the pixel centre: |r| <= |grad I| * 1e-4 + sampling round-off
+    assert float(r[valid].abs().max()) < 1e-3
+    # and the residual is not trivially zero elsewhere: a 1-pixel shift gives large residuals
+    x_shift = x.clone()
+    x_shift[:, 3] += s["t"][:, 2] / s["cam"].fx
+    r_shift, _, v_shift = frame_residuals(x_shift, layout, tpl, image_with_gradients(s["gray"]), s["cam"], basis, tpl.valid)
+    assert float(r_shift[v_shift].abs().mean()) > 20 * float(r[valid].abs().mean())
+
+
+def test_gather_face_attributes_known_answer():
+    faces = torch.tensor([[0, 1, 2], [1, 3, 2]])
+    attrs = torch.tensor([[0.0, 0.0], [2.0, 0.0], [0.0, 4.0], [6.0, 6.0]])
+    face_index = torch.tensor([[0, 1, -1]])
+    bary = torch.tensor([[[0.2, 0.3, 0.5], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
+    out = gather_face_attributes(attrs, faces, face_index, bary, batched=False)
+    expected = torch.tensor([[[0.6, 2.0], [2.0, 0.0], [2.0, 0.0]]])  # face -1 is clamped to face 0
+    torch.testing.assert_close(out, expected)
+    batched = gather_face_attributes(attrs.expand(1, -1, -1), faces, face_index, bary, batched=True)
+    torch.testing.assert_close(batched, expected)
+
+
+def test_bad_inputs_raise(scene):
+    s = scene
+    with pytest.raises(ValueError, match=r"gray must be \(B, 1, 120, 160\)"):
+        build_template(s["model"], s["shape"], s["anim"], s["R"], s["t"], s["gray"][:, :, :60], s["cam"],
+                       max_points=10, gradient_threshold=0.0)
+    with pytest.raises(ValueError, match="max_points"):
+        build(scene, max_points=0)
+    with pytest.raises(ValueError, match="max_points"):
+        build(scene, max_points=H * W + 1)
