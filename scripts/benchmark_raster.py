@@ -1,8 +1,9 @@
 """Time torchface.rendering.rasterize at 640x480 for a CANDIDE-sized mesh and a ~20k-triangle mesh.
 
 Both meshes are posed 450 mm in front of the camera and scaled to cover about 200 x 250 pixels
-(the face of a tracked subject). Prints the median wall time of several runs after warm-up, per
-call, for B = 1 and B = 8 (eight copies, each slightly rotated so that samples differ).
+(the face of a tracked subject). Prints the median wall time (and process CPU time) of several runs
+after warm-up, per call, for B = 1 and B = 8 (eight copies, each slightly rotated so that samples
+differ).
 
 Usage:
     python scripts/benchmark_raster.py [--threads N] [--runs 15] [--device cpu] [--dtype float32] [--json out.json]
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import statistics
 import time
@@ -70,17 +72,19 @@ def _batch(verts_cam: torch.Tensor, batch: int) -> torch.Tensor:
     return torch.stack(out)
 
 
-def _time(fn, runs: int, warmup: int, sync) -> float:
+def _time(fn, runs: int, warmup: int, sync) -> tuple[float, float]:
+    """Median wall time and median process CPU time (all threads) per call, in milliseconds."""
     for _ in range(warmup):
         fn()
     sync()
-    times = []
+    wall, cpu = [], []
     for _ in range(runs):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         sync()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
 
 
 def main() -> None:
@@ -108,7 +112,7 @@ def main() -> None:
             vb = _batch(verts_cam, batch).to(device=device, dtype=dtype)
             frag = rasterize(vb, faces, cam)
             coverage = frag.foreground[0].sum().item()
-            ms = _time(lambda: rasterize(vb, faces, cam), args.runs, args.warmup, sync)
+            ms, cpu_ms = _time(lambda: rasterize(vb, faces, cam), args.runs, args.warmup, sync)
             rows.append(
                 {
                     "mesh": name,
@@ -118,6 +122,7 @@ def main() -> None:
                     "covered_px": int(coverage),
                     "ms": round(ms, 2),
                     "ms_per_sample": round(ms / batch, 2),
+                    "cpu_ms": round(cpu_ms, 2),
                 }
             )
 
@@ -125,14 +130,15 @@ def main() -> None:
         f"rasterize {WIDTH}x{HEIGHT}, {args.dtype}, device={device}, threads={torch.get_num_threads()}, "
         f"torch {torch.__version__}, median of {args.runs} after {args.warmup} warm-up"
     )
-    header = f"{'mesh':<12} {'V':>6} {'F':>6} {'B':>3} {'covered px':>11} {'ms':>9} {'ms/sample':>10}"
+    header = f"{'mesh':<12} {'V':>6} {'F':>6} {'B':>3} {'covered px':>11} {'ms':>9} {'ms/sample':>10} {'cpu ms':>9}"
     print(header)
     print("-" * len(header))
     for r in rows:
         print(
             f"{r['mesh']:<12} {r['V']:>6} {r['F']:>6} {r['B']:>3} {r['covered_px']:>11} {r['ms']:>9.2f} "
-            f"{r['ms_per_sample']:>10.2f}"
+            f"{r['ms_per_sample']:>10.2f} {r['cpu_ms']:>9.2f}"
         )
+    print("ms: wall-clock median; cpu ms: process CPU time median (all threads), less sensitive to other load")
     if args.json:
         meta = {
             "width": WIDTH,
@@ -144,6 +150,7 @@ def main() -> None:
             "machine": platform.processor() or platform.machine(),
             "runs": args.runs,
             "warmup": args.warmup,
+            "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         }
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump({"meta": meta, "results": rows}, fh, indent=2)

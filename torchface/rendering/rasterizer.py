@@ -62,7 +62,7 @@ from torchface.geometry.camera import Intrinsics
 __all__ = ["Fragments", "rasterize"]
 
 #: Upper bound on the number of (triangle, pixel) candidate pairs evaluated at once.
-_MAX_PAIRS_PER_CHUNK: int = 1 << 21
+_MAX_PAIRS_PER_CHUNK: int = 1 << 19
 
 #: Relative tolerance, in units of the dtype's machine epsilon, for degenerate and edge-on triangles.
 _DEGENERATE_EPS_FACTOR: float = 16.0
@@ -219,7 +219,9 @@ def _scan_edges(u: Tensor, v: Tensor) -> Tensor:
     return torch.stack(
         [
             v_top, v_mid, v_bot, u_top, u_mid,
-            slope(u_bot - u_top, v_bot - v_top), slope(u_mid - u_top, v_mid - v_top), slope(u_bot - u_mid, v_bot - v_mid),
+            slope(u_bot - u_top, v_bot - v_top),
+            slope(u_mid - u_top, v_mid - v_top),
+            slope(u_bot - u_mid, v_bot - v_mid),
         ],
         -1,
     )  # fmt: skip

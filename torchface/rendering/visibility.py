@@ -159,9 +159,14 @@ def points_visible(
         raise ValueError(f"points_cam must be (B, N, 3), got {tuple(points_cam.shape)}")
     B, N = points_cam.shape[:2]
     if not isinstance(point_faces, Tensor) or point_faces.dtype not in (torch.int32, torch.int64):
-        raise TypeError(f"point_faces must be an int32/int64 tensor, got {getattr(point_faces, 'dtype', type(point_faces))}")
+        got = point_faces.dtype if isinstance(point_faces, Tensor) else type(point_faces).__name__
+        raise TypeError(f"point_faces must be an int32/int64 tensor, got {got}")
     if point_faces.shape not in ((N,), (B, N)):
         raise ValueError(f"point_faces must be (N,) or (B, N) = ({N},) or ({B}, {N}), got {tuple(point_faces.shape)}")
+    if not isinstance(fragments, Fragments):
+        raise TypeError(f"fragments must be a Fragments, got {type(fragments).__name__}")
+    if not isinstance(intrinsics, Intrinsics):
+        raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     H, W = intrinsics.height, intrinsics.width
     if fragments.pix_to_face.shape != (B, H, W):
         raise ValueError(
