@@ -1,0 +1,207 @@
+"""Tests for torchface.tracker.fast (the default per-frame solver): its local-twist Jacobian against autograd,
+its residuals against the reference objective (:func:`frame_residuals`) on a crop, the exponential map, and
+known answers of :func:`solve_level` (exact recovery, robust rejection of corrupted points)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg
+from torchface.solver.robust import RobustKind, RobustLoss
+from torchface.template import Template
+from torchface.tracker import frame_residuals
+from torchface.tracker.fast import LevelCamera, exp_so3, linearise, solve_level
+
+# the synthetic template, images and parameters of the objective tests
+from test_objective import (  # noqa: E402  (tests/tracker is on sys.path under pytest's rootdir-less import)
+    A,
+    CAM,
+    GROUPS,
+    LAYOUT,
+    _autograd_jacobian,
+    _light_basis,
+    bilinear_image,
+    make_template,
+    params,
+    rotation_reference,
+    smooth_image,
+)
+
+D = torch.float64
+
+
+def full_camera(B: int = 2, offset: tuple[int, int] = (0, 0)) -> LevelCamera:
+    off = torch.tensor([offset], dtype=D).expand(B, 2)
+    return LevelCamera(CAM.fx, CAM.fy, CAM.cx, CAM.cy, off, CAM.height - offset[1], CAM.width - offset[0])
+
+
+def split(x: torch.Tensor):
+    return axis_angle_to_matrix(x[:, 0:3]), x[:, 3:6], x[:, LAYOUT.animation], x[:, LAYOUT.illumination]
+
+
+def test_exp_so3_matches_matrix_exponential():
+    gen = torch.Generator().manual_seed(0)
+    w = torch.cat([torch.randn(4, 3, generator=gen, dtype=D), 1e-5 * torch.randn(2, 3, generator=gen, dtype=D),
+                   torch.zeros(1, 3, dtype=D)])
+    torch.testing.assert_close(exp_so3(w), rotation_reference(w), rtol=0, atol=1e-12)
+    w0 = torch.zeros(1, 3, dtype=D, requires_grad=True)
+    exp_so3(w0).sum().backward()
+    assert bool(torch.isfinite(w0.grad).all())
+
+
+@pytest.mark.parametrize("kind", ["zero", "nonzero"])
+def test_local_twist_jacobian_equals_autograd(kind):
+    """Columns of ``linearise`` are the derivatives for the left increment ``R <- exp(d_omega) R``,
+    ``t <- exp(d_omega) t + d_t``, ``alpha += d_alpha``, ``lambda += d_lambda`` (exact with the bilinear image)."""
+    tpl, x, image = make_template(), params(kind), bilinear_image()
+    light_basis = _light_basis(tpl, params("nonzero"))
+    R0, t0, a0, l0 = split(x)
+    cam = full_camera()
+    r, J, valid, _ = linearise(tpl, image, cam, R0, t0, a0, l0, light_basis, tpl.valid)
+    assert bool(valid.all()) and J.shape == (2, 40, LAYOUT.size)
+
+    def fn(d):
+        dR = rotation_reference(d[:, 0:3])
+        t = torch.matmul(dR, t0.unsqueeze(-1)).squeeze(-1) + d[:, 3:6]
+        return linearise(tpl, image, cam, dR @ R0, t, a0 + d[:, LAYOUT.animation], l0 + d[:, LAYOUT.illumination],
+                         light_basis, tpl.valid)[0]
+
+    J_auto = _autograd_jacobian(fn, torch.zeros_like(x))
+    for name, cols in GROUPS.items():
+        scale = float(J_auto[..., cols].abs().max())
+        assert scale > 0
+        torch.testing.assert_close(J[..., cols], J_auto[..., cols], rtol=1e-9, atol=1e-12 * scale,
+                                   msg=lambda m, name=name: f"{name} columns: {m}")
+
+
+@pytest.mark.parametrize("kind", ["zero", "nonzero"])
+def test_crop_residuals_equal_the_reference_objective(kind):
+    """On a crop of the frame (offset subtracted after projection) the residuals, validity and the additive
+    columns (translation, expression, light) equal those of ``frame_residuals`` on the full frame."""
+    tpl, x, image = make_template(seed=2), params(kind), smooth_image()
+    light_basis = _light_basis(tpl, params("nonzero"))
+    r_ref, J_ref, valid_ref = frame_residuals(x, LAYOUT, tpl, image, CAM, light_basis, tpl.valid)
+    ox, oy = 40, 24
+    crop = image[:, :, oy:, ox:].contiguous()
+    R0, t0, a0, l0 = split(x)
+    r, J, valid, sampled = linearise(tpl, crop, full_camera(offset=(ox, oy)), R0, t0, a0, l0, light_basis, tpl.valid)
+    assert bool(valid_ref.all()) and bool((valid == valid_ref).all())
+    torch.testing.assert_close(r, r_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(sampled, r + tpl.intensity + (light_basis * l0[:, None]).sum(-1), rtol=0, atol=1e-12)
+    for name in ("translation", "expression", "illumination"):
+        cols = GROUPS[name]
+        torch.testing.assert_close(J[..., cols], J_ref[..., cols], rtol=1e-10, atol=1e-14)
+    # Rotation columns: at the identity, the additive axis-angle column is X_model x g and the left-twist column
+    # X_cam x g = (X_model + t) x g, with g = dI/dX_cam (the translation columns).
+    if kind == "zero":
+        g = J[..., 3:6]
+        expected = J_ref[..., 0:3] + torch.linalg.cross(t0[:, None].expand_as(g), g, dim=-1)
+        torch.testing.assert_close(J[..., 0:3], expected, rtol=1e-9, atol=1e-12)
+
+
+def test_points_outside_the_crop_are_invalid():
+    tpl, x, image = make_template(B=1, N=40), params("zero", B=1), bilinear_image(B=1)
+    R0, t0, a0, l0 = split(x)
+    light_basis = _light_basis(tpl, x)
+    crop = image[:, :, :, 80:].contiguous()  # right half of the frame only
+    _, _, valid, _ = linearise(tpl, crop, full_camera(B=1, offset=(80, 0)), R0, t0, a0, l0, light_basis, tpl.valid)
+    uv_u = CAM.fx * (tpl.points[..., 0] + t0[:, None, 0]) / (tpl.points[..., 2] + t0[:, None, 2]) + CAM.cx
+    assert bool((valid == (uv_u >= 80)).all())
+    assert 0 < int(valid.sum()) < 40
+
+
+def _synthetic_problem(B: int = 2, N: int = 400, seed: int = 3):
+    """Template whose intensities are the smooth image sampled (bilinearly, as the solver does) at the true
+    parameters with the true light: the truth is an exact zero-residual solution."""
+    tpl = make_template(B=B, N=N, seed=seed)
+    x_true = params("nonzero", B=B)
+    light_basis = _light_basis(tpl, x_true)
+    image = smooth_image(B=B)
+    R, t, a, lam = split(x_true)
+    cam = full_camera(B=B)
+    zero_light = torch.zeros_like(lam)
+    tpl0 = Template(tpl.face_index, tpl.bary, tpl.points, tpl.basis, tpl.normals, torch.zeros_like(tpl.intensity), tpl.valid)
+    observed = linearise(tpl0, image, cam, R, t, a, zero_light, light_basis, tpl.valid)[3]
+    # observed = T + B lambda with B = [T, 1, T n] -> T = (observed - bias) / (1 + gain + l.n)
+    n_cam = tpl.normals @ R.mT
+    T = (observed - lam[:, 1:2]) / (1 + lam[:, 0:1] + (n_cam * lam[:, None, 2:5]).sum(-1))
+    tpl = Template(tpl.face_index, tpl.bary, tpl.points, tpl.basis, tpl.normals, T, tpl.valid)
+    from torchface.appearance import illumination_basis
+
+    light_basis = illumination_basis(T, n_cam)
+    return tpl, image, cam, x_true, light_basis
+
+
+def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30):
+    R, t, a, lam = split(x0)
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=iterations, free=free,
+                       alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=robust, step_tolerance=1e-8)
+
+
+def _perturbed(x_true: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """Start ``scale`` x (1.5 degrees, 5.8 mm, 0.1 AU, the light at reference) away from the truth."""
+    x0 = x_true.clone()
+    x0[:, 0:3] += scale * torch.tensor([0.02, -0.015, 0.01], dtype=D)
+    x0[:, 3:6] += scale * torch.tensor([2.0, -1.5, 5.0], dtype=D)
+    x0[:, LAYOUT.animation] += scale * 0.1
+    x0[:, LAYOUT.illumination] *= 1.0 - scale
+    return x0
+
+
+def test_solve_level_recovers_known_parameters():
+    """From a perturbed start (1.5 degrees, 5.8 mm, 0.1 AU, reference light) Gauss-Newton reaches the truth.
+
+    Convergence is linear, not quadratic: the gradient channels are bilinearly interpolated central differences,
+    not the derivative of the bilinear interpolant, so the step is an inexact Newton step (measured: 0.02 degree
+    after 10 iterations, 6e-5 after 30)."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis, iterations=60)
+    R_true, t_true, a_true, lam_true = split(x_true)
+    assert bool(out.finite.all())
+    assert float(geodesic_angle_deg(R, R_true).max()) < 1e-6
+    torch.testing.assert_close(t, t_true, rtol=0, atol=1e-5)
+    torch.testing.assert_close(a, a_true, rtol=0, atol=1e-6)
+    torch.testing.assert_close(lam, lam_true, rtol=0, atol=1e-6)
+    assert float(out.residual[out.valid].abs().max()) < 1e-8
+
+
+def test_solve_level_robust_weights_reject_corrupted_points():
+    """20 % of the template intensities corrupted by +0.3..0.6: from a start 0.4 degree / 1.5 mm off, Tukey IRLS
+    lands on the truth while plain least squares is dragged tens of degrees away (the fast solver has no cost
+    check, so it does not stop at the start either)."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    gen = torch.Generator().manual_seed(9)
+    bad = torch.rand(tpl.intensity.shape, generator=gen, dtype=D) < 0.2
+    T = torch.where(bad, tpl.intensity + 0.3 + 0.3 * torch.rand(tpl.intensity.shape, generator=gen, dtype=D), tpl.intensity)
+    from torchface.appearance import illumination_basis
+
+    R_true = split(x_true)[0]
+    light_basis = illumination_basis(T, tpl.normals @ R_true.mT)  # the light basis follows the template (B_1 = T)
+    tpl = Template(tpl.face_index, tpl.bary, tpl.points, tpl.basis, tpl.normals, T, tpl.valid)
+    x0 = _perturbed(x_true, 0.25)  # from 1.5 degrees off, sample 1 of Tukey also diverges (no cost check)
+    R_rob, t_rob, *_ = _solve(tpl, image, cam, x0, light_basis, robust=RobustLoss(RobustKind.TUKEY, 4.685))
+    R_l2, t_l2, *_ = _solve(tpl, image, cam, x0, light_basis, robust=None)
+    err_rob = geodesic_angle_deg(R_rob, R_true)
+    err_l2 = geodesic_angle_deg(R_l2, R_true)
+    assert float(err_rob.max()) < 1e-3, err_rob
+    assert float(err_l2.min()) > 1.0, (err_l2, err_rob)
+    torch.testing.assert_close(t_rob, split(x_true)[1], rtol=0, atol=1e-3)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="KNOWN ISSUE (fast.solve_level): an animation unit that moves no template point has a zero row in H; "
+    "the Levenberg damping is relative to diag(H) (0 there), so with expression_prior_precision=0 the Cholesky "
+    "fails and the whole sample is reported FAILED (TrackerConfig(expression_prior_precision=0) fails every "
+    "frame). Needs an absolute damping floor. Remove this mark when fixed.",
+)
+def test_solve_level_survives_an_unobservable_animation_unit():
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    basis = tpl.basis.clone()
+    basis[..., 0] = 0.0  # animation unit 0 moves nothing
+    tpl = Template(tpl.face_index, tpl.bary, tpl.points, basis, tpl.normals, tpl.intensity, tpl.valid)
+    *_, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis)
+    assert bool(out.finite.all())
