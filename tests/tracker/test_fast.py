@@ -4,6 +4,9 @@ known answers of :func:`solve_level` (exact recovery, robust rejection of corrup
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -13,8 +16,10 @@ from torchface.template import Template
 from torchface.tracker import frame_residuals
 from torchface.tracker.fast import LevelCamera, exp_so3, linearise, solve_level
 
-# the synthetic template, images and parameters of the objective tests
-from test_objective import (  # noqa: E402  (tests/tracker is on sys.path under pytest's rootdir-less import)
+# The synthetic template, images and parameters of the objective tests (this folder on sys.path, whatever
+# pytest's import mode).
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_objective import (  # noqa: E402
     A,
     CAM,
     GROUPS,
