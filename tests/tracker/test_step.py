@@ -8,7 +8,6 @@ the tracker is already ~2 degrees, too close to the tolerances to be a useful kn
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import pytest
