@@ -223,15 +223,17 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
     if attributes.shape[0] != b:
         raise ValueError(f"attributes must be (B, V, C) with B={b}, got {tuple(attributes.shape)}")
     v, c = attributes.shape[1], attributes.shape[2]
-    covered = p2f >= 0
-    face_idx = p2f.clamp(min=0)
-    corner = faces.to(device=p2f.device, dtype=torch.int64)[face_idx]  # (B, H, W, 3)
-    offset = (torch.arange(b, device=p2f.device, dtype=torch.int64) * v).view(b, 1, 1, 1)
-    flat = attributes.reshape(b * v, c)
-    corner_vals = flat[(corner + offset).reshape(-1)].reshape(b, h, w, 3, c)
-    bary = fragments.bary.to(attributes.dtype)
-    out = (bary.unsqueeze(-1) * corner_vals).sum(dim=-2)
-    return out * covered.unsqueeze(-1).to(out.dtype)
+    # Work on covered pixels only (the face is a fraction of the image), then scatter back.
+    flat_p2f = p2f.reshape(-1)
+    pix = torch.nonzero(flat_p2f >= 0).squeeze(1)
+    face_idx = flat_p2f[pix]
+    batch_idx = torch.div(pix, h * w, rounding_mode="floor")
+    corner = faces.to(device=p2f.device, dtype=torch.int64)[face_idx] + (batch_idx * v).unsqueeze(1)  # (n, 3)
+    corner_vals = attributes.reshape(b * v, c)[corner]  # (n, 3, C)
+    bary = fragments.bary.reshape(-1, 3)[pix].to(attributes.dtype)
+    vals = (bary.unsqueeze(-1) * corner_vals).sum(dim=1)
+    out = attributes.new_zeros(b * h * w, c).index_put((pix,), vals)
+    return out.reshape(b, h, w, c)
 
 
 def sample_texture(texture: Tensor, uv: Tensor) -> Tensor:
@@ -316,9 +318,12 @@ def shade(
     """
     covered = (fragments.pix_to_face >= 0).unsqueeze(1)
     dtype = normals_cam.dtype
-    uv_px = interpolate_vertex_attributes(fragments, faces, uv.to(dtype))
+    b = normals_cam.shape[0]
+    uv_b = uv.to(dtype).unsqueeze(0).expand(b, -1, -1) if uv.ndim == 2 else uv.to(dtype)
+    # One gather for both attributes: texture coordinates (2) and normals (3).
+    both = interpolate_vertex_attributes(fragments, faces, torch.cat([uv_b, normals_cam], dim=-1))
+    uv_px, n_px = both[..., :2], both[..., 2:]
     albedo = sample_texture(texture, uv_px)
-    n_px = interpolate_vertex_attributes(fragments, faces, normals_cam)
     eps = torch.finfo(dtype).eps
     n_px = n_px / n_px.norm(dim=-1, keepdim=True).clamp(min=eps)
     irradiance = lambertian_irradiance(n_px, light).unsqueeze(1)

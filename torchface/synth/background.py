@@ -40,9 +40,17 @@ class BackgroundSpec:
             raise ValueError(f"margin must be in [0, 4], got {self.margin}")
 
 
+#: Backgrounds are generated at most this large (longest side) and upsampled: they are smooth anyway.
+_MAX_GENERATED_SIDE: int = 400
+
+
 @functools.lru_cache(maxsize=8)
 def _cached_background(height: int, width: int, seed: int) -> Tensor:
-    return background_texture(height, width, seed=seed)
+    scale = min(1.0, _MAX_GENERATED_SIDE / max(height, width))
+    if scale >= 1.0:
+        return background_texture(height, width, seed=seed)
+    small = background_texture(max(8, round(height * scale)), max(8, round(width * scale)), seed=seed)
+    return nnf.interpolate(small[None], size=(height, width), mode="bilinear", align_corners=False)[0]
 
 
 @functools.lru_cache(maxsize=8)
@@ -162,21 +170,20 @@ def place_occluder(
     py = spec.path_start[1] + (spec.path_end[1] - spec.path_start[1]) * s
     centre = torch.stack([x_min + px * (x_max - x_min), y_min + py * (y_max - y_min)], dim=-1)
     face_area = face.flatten(1).sum(1).to(dtype).clamp(min=1.0)
-    # Bisection on the radius (vectorised over the batch): coverage grows monotonically with it.
-    lo = torch.zeros(b, dtype=dtype)
-    hi = torch.full((b,), float(max(h, w)), dtype=dtype)
-    for _ in range(24):
-        mid = 0.5 * (lo + hi)
-        cover = ((ellipse_mask(centre, mid, spec.aspect, h, w)[:, 0] > 0.5) & face).flatten(1).sum(1)
-        frac = cover.to(dtype) / face_area
-        too_small = frac < spec.target_fraction
-        lo = torch.where(too_small, mid, lo)
-        hi = torch.where(too_small, hi, mid)
-    radius = 0.5 * (lo + hi)
+    # The ellipse of x radius r covers exactly the pixels with elliptical radius rho <= r, so the
+    # radius that covers a fraction q of the face is the q-quantile of rho over the face pixels.
+    dx = cols - centre[:, 0].view(b, 1, 1)
+    dy = (rows - centre[:, 1].view(b, 1, 1)) / spec.aspect
+    rho = torch.sqrt(dx**2 + dy**2)
+    rho = torch.where(face, rho, torch.full_like(rho, float("inf"))).flatten(1)
+    k = (spec.target_fraction * face_area).ceil().long().clamp(min=1) - 1
+    rho_sorted = rho.sort(dim=1).values
+    radius = rho_sorted.gather(1, k.unsqueeze(1)).squeeze(1)
+    radius = torch.where(torch.isfinite(radius), radius, torch.ones_like(radius)) + 1e-3
     alpha = ellipse_mask(centre, radius, spec.aspect, h, w)
     active = (on & has).to(dtype).view(b, 1, 1, 1)
     alpha = alpha * active
-    fraction = ((alpha[:, 0] > 0.5) & face).flatten(1).sum(1).to(dtype) / face_area
+    fraction = ((alpha[:, 0] > 0.5) & face).flatten(1).sum(1).to(dtype) / face_area * active.view(b)
     # Texture attached to the object: sample a fixed texture in the ellipse's own frame.
     tex = _cached_occluder(spec.seed).to(dtype).unsqueeze(0).expand(b, -1, -1, -1)
     gx = (cols - centre[:, 0].view(b, 1, 1)) / radius.view(b, 1, 1).clamp(min=1.0)

@@ -77,7 +77,8 @@ _SWEEP_KEYS: tuple[tuple[float, float, float], ...] = (
 def keyframe_path(keys: Tensor, num_frames: int) -> Tensor:
     """Smooth path through keyframes, time per segment proportional to its largest change.
 
-    Each segment is eased with ``s^2 (3 - 2 s)`` so the motion starts and stops smoothly at keys.
+    Keys are placed on whole frames, so each key with a frame of its own is reached exactly
+    (a short sequence may skip keys). Each segment is eased with ``s^2 (3 - 2 s)`` so the motion starts and stops smoothly at keys.
 
     Args:
         keys: ``(n, D)`` keyframe values (``n >= 1``).
@@ -98,12 +99,15 @@ def keyframe_path(keys: Tensor, num_frames: int) -> Tensor:
     if keys.shape[0] == 1 or num_frames == 1:
         return keys[:1].expand(num_frames, -1).clone()
     seg = (keys[1:] - keys[:-1]).abs().amax(dim=1).clamp(min=1e-9)
-    knots = torch.cat([seg.new_zeros(1), seg.cumsum(0)]) / seg.sum()
-    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
-    i = torch.searchsorted(knots, s, right=True).clamp(1, keys.shape[0] - 1) - 1
-    local = ((s - knots[i]) / (knots[i + 1] - knots[i])).clamp(0.0, 1.0)
+    # Keys sit on whole frames (rounded), so every key that gets a frame is reached exactly.
+    knots = (torch.cat([seg.new_zeros(1), seg.cumsum(0)]) / seg.sum() * (num_frames - 1)).round()
+    f = torch.arange(num_frames, dtype=torch.float64)
+    i = (torch.searchsorted(knots, f, right=True) - 1).clamp(0, keys.shape[0] - 2)
+    local = ((f - knots[i]) / (knots[i + 1] - knots[i]).clamp(min=1.0)).clamp(0.0, 1.0)
     ease = local * local * (3.0 - 2.0 * local)
-    return keys[i] + ease.unsqueeze(-1) * (keys[i + 1] - keys[i])
+    out = keys[i] + ease.unsqueeze(-1) * (keys[i + 1] - keys[i])
+    out[-1] = keys[-1]
+    return out
 
 
 def _unit(v: list[float]) -> Tensor:

@@ -13,9 +13,11 @@ Image formation per frame (all batched over frames):
 3. the occluder (if present) composited in front of everything.
 
 Ground-truth landmarks are the subject's 68 iBUG landmarks (fixed barycentric combinations of
-vertices, so they follow the expression), projected with the ground-truth pose; a landmark is
-visible when :func:`~torchface.rendering.visibility.points_visible` says so for the rendered
-fragments (self-occlusion) and the occluder does not cover its pixel.
+vertices, so they follow the expression), projected with the ground-truth pose. Visibility is exact,
+not pixel-sampled (:func:`landmark_visibility`): a landmark is visible when it projects inside the
+image, its triangle faces the camera, no triangle crosses the segment from the camera centre to it
+before ``(1 - 1e-2)`` of its depth (the tolerance of
+:func:`~torchface.rendering.visibility.points_visible`), and the occluder does not cover its pixel.
 """
 
 from __future__ import annotations
@@ -35,7 +37,6 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
 from torchface.rendering.shading import LightState, render
-from torchface.rendering.visibility import points_visible
 from torchface.synth.background import BackgroundSpec, OccluderSpec, background_frames, place_occluder
 from torchface.synth.io import VideoSink
 from torchface.synth.subjects import Subject, get_subject
@@ -49,6 +50,7 @@ __all__ = [
     "write_sequence",
     "save_ground_truth",
     "load_ground_truth",
+    "landmark_visibility",
 ]
 
 #: Number of landmarks in the ground truth (iBUG-68).
@@ -221,6 +223,78 @@ _TENSOR_FIELDS = (
 )
 
 
+def landmark_visibility(
+    verts_cam: Tensor,
+    faces: Tensor,
+    points_cam: Tensor,
+    point_faces: Tensor,
+    intrinsics: Intrinsics,
+    depth_tolerance: float = 1e-2,
+) -> Tensor:
+    """Exact self-occlusion test of surface points by ray casting against every triangle.
+
+    Point ``X`` (on triangle ``point_faces[k]``) is visible iff its projection lies in the image
+    ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``, its triangle faces the camera (``n . v0 < 0`` with outward
+    ``n``), and no triangle meets the ray ``s X`` at ``s < 1 - depth_tolerance`` (Moller-Trumbore
+    intersection with the ray from the camera centre through ``X``; the point's own and adjacent
+    triangles meet it at ``s = 1``). Looping over samples only, each one vectorised over points and
+    triangles.
+
+    Args:
+        verts_cam: ``(B, V, 3)`` vertices in the camera frame (millimetres).
+        faces: ``(F, 3)`` int64 triangles.
+        points_cam: ``(B, K, 3)`` points on the surface.
+        point_faces: ``(K,)`` triangle of each point.
+        intrinsics: the camera.
+        depth_tolerance: relative depth below which an intersection does not hide the point.
+
+    Returns:
+        ``(B, K)`` bool.
+    """
+    b = verts_cam.shape[0]
+    dt = torch.float64
+    cam = intrinsics
+    pts = points_cam.to(dt)
+    z = pts[..., 2]
+    u = cam.fx * pts[..., 0] / z.clamp(min=1e-9) + cam.cx
+    v = cam.fy * pts[..., 1] / z.clamp(min=1e-9) + cam.cy
+    inside = (z > 1.0) & (u >= -0.5) & (u <= cam.width - 0.5) & (v >= -0.5) & (v <= cam.height - 0.5)
+    out = torch.zeros(b, pts.shape[1], dtype=torch.bool)
+    for i in range(b):  # per sample, vectorised over the (point, triangle) pairs that can intersect
+        tri = verts_cam[i].to(dt)[faces]  # (F, 3, 3)
+        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        n = torch.linalg.cross(e1, e2, dim=-1)
+        front = (n[point_faces] * v0[point_faces]).sum(-1) < 0
+        # Candidates: triangles partly nearer than the point whose projected box contains it.
+        tz = tri[..., 2].clamp(min=1e-6)
+        tu = cam.fx * tri[..., 0] / tz + cam.cx
+        tv = cam.fy * tri[..., 1] / tz + cam.cy
+        behind = (tri[..., 2] <= 1e-6).any(-1)  # boxes of triangles crossing the camera plane are unbounded
+        cand = (
+            (tri[..., 2].amin(-1).unsqueeze(0) < z[i].unsqueeze(1) * (1.0 - depth_tolerance))
+            & (behind.unsqueeze(0) | (
+                (tu.amin(-1).unsqueeze(0) <= u[i].unsqueeze(1) + 1e-6) & (tu.amax(-1).unsqueeze(0) >= u[i].unsqueeze(1) - 1e-6)
+                & (tv.amin(-1).unsqueeze(0) <= v[i].unsqueeze(1) + 1e-6) & (tv.amax(-1).unsqueeze(0) >= v[i].unsqueeze(1) - 1e-6)
+            ))
+        )
+        k_idx, f_idx = torch.nonzero(cand, as_tuple=True)
+        d = pts[i, k_idx]  # ray direction; the point itself is at s = 1
+        a0, a1, a2 = v0[f_idx], e1[f_idx], e2[f_idx]
+        h = torch.linalg.cross(d, a2, dim=-1)
+        a = (a1 * h).sum(-1)
+        ok = a.abs() > 1e-12
+        f = 1.0 / torch.where(ok, a, torch.ones_like(a))
+        s_vec = -a0  # ray origin (camera centre) minus v0
+        bu = f * (s_vec * h).sum(-1)
+        q = torch.linalg.cross(s_vec, a1, dim=-1)
+        bv = f * (d * q).sum(-1)
+        s = f * (a2 * q).sum(-1)
+        hit = ok & (bu >= 0) & (bv >= 0) & (bu + bv <= 1) & (s > 1e-6) & (s < 1.0 - depth_tolerance)
+        hidden = torch.zeros(pts.shape[1], dtype=torch.bool).index_put((k_idx[hit],), torch.ones((), dtype=torch.bool))
+        out[i] = inside[i] & front & ~hidden
+    return out
+
+
 def _resolve(spec: SequenceSpec) -> tuple[Subject, Tensor]:
     subject = get_subject(spec.subject, spec.photo)
     if spec.anim.shape[1] != subject.num_animation:
@@ -265,10 +339,10 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         R64, t64 = spec.rotation[idx].to(torch.float64), spec.translation[idx].to(torch.float64)
         lm_cam = transform_points(R64, t64, lm3d)
         lm_px = project_points(lm_cam, cam)
-        visible = points_visible(lm_cam.to(torch.float32), subject.landmark_faces, frags, cam)
+        visible = landmark_visibility(verts_cam, subject.faces, lm_cam, subject.landmark_faces, cam)
         occ_on = torch.zeros(b, dtype=torch.bool)
         occ_frac = torch.zeros(b, dtype=torch.float64)
-        if spec.occluder is not None:
+        if spec.occluder is not None and bool(spec.occluder.active(idx).any()):
             alpha, colour, frac = place_occluder(spec.occluder, idx, mask)
             image = image * (1.0 - alpha) + colour * alpha
             occ_on = spec.occluder.active(idx) & (face_pixels > 0)
