@@ -1,0 +1,109 @@
+"""Tests for sequence files: ground-truth round trip, lossless video round trip, write_sequence."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.synth.io import VideoSink, frames_to_uint8, read_video, write_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import (
+    GroundTruth,
+    load_ground_truth,
+    render_sequence,
+    save_ground_truth,
+    write_sequence,
+)
+
+_CACHE: dict[str, tuple] = {}
+
+
+def _light_switch_small():
+    if "ls" not in _CACHE:
+        spec = make_scenario("light_switch", 6, 64, 48)
+        _CACHE["ls"] = (spec, *render_sequence(spec, batch_size=4))
+    return _CACHE["ls"]
+
+
+def _assert_gt_equal(a: GroundTruth, b: GroundTruth) -> None:
+    for f in fields(GroundTruth):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, torch.Tensor):
+            assert x.dtype == y.dtype, f.name
+            torch.testing.assert_close(x, y, rtol=0, atol=0, msg=f.name)
+        else:
+            assert x == y, f.name
+
+
+def test_ground_truth_round_trip(tmp_path):
+    _, _, gt = _light_switch_small()
+    npz, js = save_ground_truth(gt, tmp_path / "seq", {"note": "x"})
+    assert npz.name == "seq.gt.npz" and js.name == "seq.gt.json"
+    for path in (npz, js, tmp_path / "seq", tmp_path / "seq.avi"):
+        _assert_gt_equal(load_ground_truth(path), gt)
+    meta = json.loads(js.read_text())
+    assert meta["note"] == "x" and meta["num_frames"] == 6 and meta["model"] == "candide3"
+    assert meta["intrinsics"]["width"] == 64 and meta["events"] == [["side_light_on", 2], ["side_light_off", 4]]
+    assert len(meta["au_names"]) == gt.au.shape[1]
+    assert not list(tmp_path.glob("*.partial*"))
+
+
+def test_load_ground_truth_missing(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_ground_truth(tmp_path / "nothing.gt.npz")
+
+
+def test_video_round_trip_is_lossless(tmp_path):
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.rand(5, 3, 24, 32, generator=gen)
+    codec = write_video(tmp_path / "v.avi", frames, fps=10)
+    assert codec.strip() in ("FFV1", "png", "HFYU")  # a lossless codec is available here
+    back = read_video(tmp_path / "v.avi")
+    assert back.shape == (5, 3, 24, 32)
+    expected = torch.from_numpy(frames_to_uint8(frames)).flip(-1).permute(0, 3, 1, 2).float() / 255
+    torch.testing.assert_close(back, expected, rtol=0, atol=0)
+    # Channel order: a pure red frame stays red (RGB in memory, BGR only on disk).
+    red = torch.zeros(1, 3, 8, 8)
+    red[:, 0] = 1.0
+    write_video(tmp_path / "r.avi", red)
+    torch.testing.assert_close(read_video(tmp_path / "r.avi"), red, rtol=0, atol=0)
+
+
+def test_video_sink_is_atomic(tmp_path):
+    path = tmp_path / "a.avi"
+    sink = VideoSink(path, 16, 8)
+    sink.write(torch.zeros(2, 3, 8, 16))
+    assert not path.exists()  # still being written under a temporary name
+    sink.close()
+    assert path.exists() and not list(tmp_path.glob("*.partial*"))
+    with pytest.raises(ValueError, match="frames"):
+        with VideoSink(tmp_path / "b.avi", 16, 8) as s2:
+            s2.write(torch.zeros(1, 3, 9, 16))
+    assert not (tmp_path / "b.avi").exists() and not list(tmp_path.glob("*.partial*"))
+
+
+def test_write_sequence_matches_in_memory_render(tmp_path):
+    spec, frames, gt = _light_switch_small()
+    seen = []
+    files = write_sequence(spec, tmp_path, batch_size=4, progress=lambda d, t: seen.append((d, t)))
+    assert seen == [(4, 6), (6, 6)]
+    assert files.num_frames == 6 and files.video.name == "light_switch.avi"
+    video = read_video(files.video)
+    assert video.shape == (6, 3, 48, 64)
+    # Lossless: the file holds exactly the 8-bit quantised in-memory frames.
+    expected = torch.from_numpy(frames_to_uint8(frames)).flip(-1).permute(0, 3, 1, 2).float() / 255
+    torch.testing.assert_close(video, expected, rtol=0, atol=0)
+    _assert_gt_equal(load_ground_truth(files.ground_truth), gt)
+    meta = json.loads(files.metadata.read_text())
+    assert meta["video"] == "light_switch.avi" and meta["codec"] == files.codec.strip()
+
+
+def test_frames_to_uint8_validation():
+    with pytest.raises(ValueError, match="frames"):
+        frames_to_uint8(torch.zeros(2, 4, 4))
+    out = frames_to_uint8(torch.full((1, 3, 2, 2), 0.5))
+    assert out.dtype == np.uint8 and out.shape == (1, 2, 2, 3) and int(out[0, 0, 0, 0]) == 128
