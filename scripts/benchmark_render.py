@@ -1,0 +1,75 @@
+#!/usr/bin/env python
+"""Time the textured renderer per frame at 640x480 for CANDIDE-3 and the James scan, B = 1 and 8.
+
+Two figures per case: `render` (rasterize + shade, torchface.rendering.shading.render) and `frame`
+(the whole synthetic frame: deformation, normals, background, render, ground-truth landmarks and
+their exact visibility). Median over repeats after one warm-up, in milliseconds per frame.
+
+Example:
+    python scripts/benchmark_render.py --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.transforms import transform_points
+from torchface.rendering.shading import render
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import iter_sequence
+from torchface.synth.subjects import get_subject
+
+
+def _median_ms(fn, repeats: int, frames: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000.0 * statistics.median(times) / frames
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave the default)")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    w, h = args.width, args.height
+    cam = Intrinsics.default(w, h)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, median of {args.repeats}")
+    print(f"{'subject':<10} {'B':>3} {'render ms/frame':>16} {'frame ms/frame':>15}")
+    for name, scenario in (("candide3", "pose_sweep"), ("james", "scan_motion")):
+        subject = get_subject(name)
+        for b in (1, 8):
+            spec = make_scenario(scenario, b, w, h)
+            verts = subject.deform(subject.shape_coeffs.expand(b, -1), spec.anim.float(), b)
+            R, t = spec.rotation.float(), spec.translation.float()
+            verts_cam = transform_points(R, t, verts)
+            normals = subject.vertex_normals(verts) @ R.transpose(-1, -2)
+            light = spec.light.to(dtype=torch.float32)
+
+            def run_render() -> None:
+                render(verts_cam, subject.faces, subject.uv, subject.texture, normals, light, cam)
+
+            def run_frame() -> None:
+                for _ in iter_sequence(spec, batch_size=b):
+                    pass
+
+            r = _median_ms(run_render, args.repeats, b)
+            f = _median_ms(run_frame, args.repeats, b)
+            print(f"{name:<10} {b:>3} {r:>16.1f} {f:>15.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
