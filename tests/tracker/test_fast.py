@@ -196,13 +196,6 @@ def test_solve_level_robust_weights_reject_corrupted_points():
     torch.testing.assert_close(t_rob, split(x_true)[1], rtol=0, atol=1e-3)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="KNOWN ISSUE (fast.solve_level): an animation unit that moves no template point has a zero row in H; "
-    "the Levenberg damping is relative to diag(H) (0 there), so with expression_prior_precision=0 the Cholesky "
-    "fails and the whole sample is reported FAILED (TrackerConfig(expression_prior_precision=0) fails every "
-    "frame). Needs an absolute damping floor. Remove this mark when fixed.",
-)
 def test_solve_level_survives_an_unobservable_animation_unit():
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     basis = tpl.basis.clone()

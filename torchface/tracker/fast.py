@@ -125,6 +125,21 @@ def linearise(
     return r, J, valid, intensity
 
 
+def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: float) -> tuple[Tensor, Tensor]:
+    """IRLS weights ``(B, N)`` (zero where invalid) and the robust scale ``(B, 1)``."""
+    s = (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
+    w = valid.to(r.dtype)
+    if robust is not None:
+        w = w * robust.weight(r, s)
+    return w, s
+
+
+def _cost(r: Tensor, valid: Tensor, robust: RobustLoss | None, s: Tensor) -> Tensor:
+    """``(B,)`` robust cost ``sum rho(r; s)`` over valid points (``r**2 / 2`` without a robust loss)."""
+    rho = 0.5 * r * r if robust is None else robust.rho(r, s)
+    return torch.where(valid, rho, torch.zeros_like(rho)).sum(-1)
+
+
 def solve_level(
     tpl: Template,
     image: Tensor,
@@ -142,19 +157,27 @@ def solve_level(
     alpha_upper: Tensor,
     alpha_prior: float,
     robust: RobustLoss | None,
-    damping: float = 1e-4,
+    scale_floor: float = 0.02,
+    damping: float = 1e-3,
     step_tolerance: float = 1e-4,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
-    """Gauss-Newton iterations at one pyramid level for every stream at once.
+    """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
+
+    Each iteration linearises at the current estimate; a step that raised the robust cost (compared at the
+    scale of the last accepted estimate) is undone and retried from the last accepted linearisation with ten
+    times the damping, an accepted one divides the damping by three. The damping is relative to ``diag(H)``
+    with an absolute floor, so a parameter that no point constrains (an animation unit moving no visible
+    point) stays put instead of making the system singular.
 
     Args:
         tpl: the level's template (``N`` points); image: ``(B, 3, h, w)`` gray + gradients of the crop.
         cam: the level camera; R ``(B, 3, 3)``, t ``(B, 3)``, alpha ``(B, A)``, light ``(B, L)``: the start.
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
-        iterations: the most iterations; free: ``(P,)`` bool, the parameters that may change (ablations).
+        iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
         alpha_lower, alpha_upper: ``(A,)`` bounds; alpha_prior: precision of a zero-mean prior on alpha.
-        robust: IRLS loss or None.
-        damping: Levenberg damping relative to ``diag(H)``.
+        robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
+            on clean frames legitimate appearance change (expression) is not rejected as an outlier.
+        damping: initial Levenberg damping relative to ``diag(H)``.
         step_tolerance: converged when every increment is below this (radians, millimetres, units).
 
     Returns:
@@ -163,31 +186,55 @@ def solve_level(
     B, N = mask.shape
     A = alpha.shape[1]
     P = 6 + A + light.shape[1]
-    dtype = R.dtype
+    dtype, device = R.dtype, R.device
     freef = free.to(dtype)
-    prior = torch.zeros(P, dtype=dtype, device=R.device)
+    prior = torch.zeros(P, dtype=dtype, device=device)
     prior[6 : 6 + A] = alpha_prior
     prior = prior * freef
-    fixed_diag = torch.diag_embed((1.0 - freef).expand(B, P))
-    iters = torch.zeros(B, dtype=torch.int64, device=R.device)
-    active = torch.ones(B, dtype=torch.bool, device=R.device)
-    finite = torch.ones(B, dtype=torch.bool, device=R.device)
+    eye = torch.eye(P, dtype=dtype, device=device)
+    fixed_diag = torch.diag(1.0 - freef)
+    iters = torch.zeros(B, dtype=torch.int64, device=device)
+    active = torch.ones(B, dtype=torch.bool, device=device)
+    finite = torch.ones(B, dtype=torch.bool, device=device)
+    lam = torch.full((B, 1, 1), damping, dtype=dtype, device=device)
+    best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for _ in range(iterations):
         r, J, valid, _ = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
         ok = torch.isfinite(r) & torch.isfinite(J).all(-1)
         valid = valid & ok
         r = torch.where(valid, r, torch.zeros_like(r))
         J = torch.where(valid.unsqueeze(-1), J, torch.zeros_like(J)) * freef
-        wgt = valid.to(dtype)
-        if robust is not None:
-            s = (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(1e-3).unsqueeze(-1)
-            wgt = wgt * robust.weight(r, s)
+        if best is None:
+            wgt, s = _weights(r, valid, robust, scale_floor)
+            cost = _cost(r, valid, robust, s) + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
+            accept = torch.ones(B, dtype=torch.bool, device=device)
+        else:
+            cost = _cost(r, valid, robust, best[7]) + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
+            accept = (cost <= best[6]) & torch.isfinite(cost)
+            wgt, s = _weights(r, valid, robust, scale_floor)
+            cost = _cost(r, valid, robust, s) + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
         Jw = J * wgt.unsqueeze(-1)
         H = torch.matmul(Jw.transpose(1, 2), J)
-        grad = torch.matmul(Jw.transpose(1, 2), r.unsqueeze(-1)).squeeze(-1)
-        grad[:, 6 : 6 + A] += prior[6 : 6 + A] * alpha
-        H = H + torch.diag_embed(prior + damping * torch.diagonal(H, dim1=1, dim2=2)) + fixed_diag
-        L, info = torch.linalg.cholesky_ex(H)
+        grad = torch.matmul((wgt * r).unsqueeze(1), J).squeeze(1)
+        grad = grad + torch.cat([grad.new_zeros(B, 6), prior[6 : 6 + A] * alpha, grad.new_zeros(B, P - 6 - A)], -1)
+        H = H + torch.diag(prior)
+        if best is not None:
+            keep = ~accept
+            a3 = accept.view(B, 1, 1)
+            R = torch.where(a3, R, best[0])
+            t = torch.where(accept.unsqueeze(-1), t, best[1])
+            alpha = torch.where(accept.unsqueeze(-1), alpha, best[2])
+            light = torch.where(accept.unsqueeze(-1), light, best[3])
+            H = torch.where(a3, H, best[4])
+            grad = torch.where(accept.unsqueeze(-1), grad, best[5])
+            cost = torch.where(accept, cost, best[6])
+            s = torch.where(accept.unsqueeze(-1), s, best[7])
+            lam = torch.where(a3, (lam / 3.0).clamp_min(1e-6), lam * 10.0)
+        best = (R, t, alpha, light, H, grad, cost, s)
+        diag = torch.diagonal(H, dim1=1, dim2=2)
+        floor = 1e-6 * diag.amax(-1, keepdim=True).clamp_min(1e-12)
+        Hd = H + lam * torch.diag_embed(diag + floor) + fixed_diag
+        L, info = torch.linalg.cholesky_ex(Hd)
         delta = -torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1)
         good = (info == 0) & torch.isfinite(delta).all(-1) & (valid.sum(-1) >= P)
         finite = finite & (good | ~active)
@@ -199,11 +246,21 @@ def solve_level(
         alpha = torch.minimum(torch.maximum(alpha + delta[:, 6 : 6 + A], alpha_lower), alpha_upper)
         light = light + delta[:, 6 + A :]
         iters = iters + active.to(torch.int64)
-        small = delta[:, :6].abs().amax(-1) < step_tolerance
-        small = small & (delta[:, 6:].abs().amax(-1, keepdim=False) < step_tolerance) if P > 6 else small
+        small = delta.abs().amax(-1) < step_tolerance
         active = active & ~small & good
         if not bool(active.any()):
             break
     r, _, valid, sampled = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
+    if best is not None:
+        # The last step is kept only where it did not raise the cost.
+        cost = _cost(torch.where(valid, r, torch.zeros_like(r)), valid, robust, best[7])
+        cost = cost + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
+        accept = (cost <= best[6]) & torch.isfinite(cost)
+        if not bool(accept.all()):
+            R = torch.where(accept.view(B, 1, 1), R, best[0])
+            t = torch.where(accept.unsqueeze(-1), t, best[1])
+            alpha = torch.where(accept.unsqueeze(-1), alpha, best[2])
+            light = torch.where(accept.unsqueeze(-1), light, best[3])
+            r, _, valid, sampled = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
     outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite)
     return R, t, alpha, light, outcome

