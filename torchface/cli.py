@@ -1,11 +1,15 @@
-"""Command-line interface: ``torchface <command>``.
+"""The ``torchface`` command: ``track`` videos, run the ``demo`` on the embedded clip, ``render-demo`` a synthetic one.
 
-Commands:
-    ``demo``   render a short synthetic sequence with ground truth (``pose_sweep``, 320x240, 40
-               frames by default) into ``./torchface-demo/``.
+Examples::
 
-The parser is built by :func:`build_parser`, one sub-parser per command, each with a handler
-``_cmd_<name>(args) -> int``; a ``track`` command registers the same way.
+    torchface demo                                   # -> ./torchface-demo/
+    torchface track clip.mp4 --out results --landmarks clip_first_frame.csv
+    torchface track a.mp4 b.mp4 --out results --detector dlib   # same-size videos are tracked as one batch
+    torchface track clip.mp4 --out results --landmarks lm.csv --resume   # continue an interrupted run
+    torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
+
+Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2;
+an interrupted run exits with status 130 and keeps its rows for ``--resume``.
 """
 
 from __future__ import annotations
@@ -13,13 +17,118 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO
 
-__all__ = ["build_parser", "main"]
+__all__ = ["main", "build_parser", "ProgressDisplay"]
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
 
 
-def _progress(label: str, start: float):
+class ProgressDisplay:
+    """One progress bar per video (frames, fps, confidence) on a terminal; occasional lines otherwise."""
+
+    def __init__(self, stream: TextIO = sys.stderr, width: int = 24) -> None:
+        self.stream = stream
+        self.width = width
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self.lines: dict[int, str] = {}
+        self.drawn = 0
+        self.last_print: dict[int, float] = {}
+
+    def _line(self, p) -> str:
+        if p.total:
+            frac = min(1.0, p.done / p.total)
+            bar = "#" * int(round(frac * self.width))
+            head = f"[{bar:<{self.width}}] {p.done}/{p.total}"
+        else:
+            head = f"{p.done} frames"
+        return f"{p.name[:28]:<28} {head} {p.fps:5.1f} fps conf {p.confidence:.2f}"
+
+    def __call__(self, p) -> None:
+        self.lines[p.index] = self._line(p)
+        if self.tty:
+            if self.drawn:
+                self.stream.write(f"\x1b[{self.drawn}F")
+            keys = sorted(self.lines)
+            for k in keys:
+                self.stream.write("\x1b[2K" + self.lines[k] + "\n")
+            self.drawn = len(keys)
+            self.stream.flush()
+        else:
+            now = time.monotonic()
+            finished = p.total is not None and p.done >= p.total
+            if finished or now - self.last_print.get(p.index, 0.0) > 10.0:
+                self.last_print[p.index] = now
+                self.stream.write(self.lines[p.index] + "\n")
+                self.stream.flush()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``torchface`` command."""
+    parser = argparse.ArgumentParser(prog="torchface", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    track = sub.add_parser("track", help="track the face in one or more videos")
+    track.add_argument("videos", nargs="+", type=Path, help="video files, image folders or .npy frame arrays")
+    track.add_argument("--out", type=Path, required=True, help="output folder")
+    track.add_argument(
+        "--landmarks", type=Path, action="append", default=None,
+        help="68 iBUG landmarks of the first frame (CSV or NPY); give it once per video, in order",
+    )  # fmt: skip
+    track.add_argument("--detector", default=None, help="detector for initialisation and re-initialisation (dlib)")
+    track.add_argument("--focal", type=float, default=None, help="focal length in pixels (default max(W, H))")
+    track.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    track.add_argument("--resume", action="store_true", help="continue after the last complete frame of a previous run")
+    track.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
+    track.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    demo = sub.add_parser("demo", help="track the embedded sample clip and write everything to ./torchface-demo/")
+    demo.add_argument("--out", type=Path, default=Path("torchface-demo"), help="output folder (default ./torchface-demo)")
+    demo.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    demo.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
+    demo.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    render = sub.add_parser("render-demo", help="render a short synthetic sequence with ground truth")
+    render.add_argument("--out", type=Path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)")
+    render.add_argument("--scenario", default="pose_sweep", help="scenario name (default pose_sweep)")
+    render.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
+    render.add_argument("--width", type=int, default=320, help="frame width (default 320)")
+    render.add_argument("--height", type=int, default=240, help="frame height (default 240)")
+    return parser
+
+
+def _print_summary(summaries, out: TextIO) -> None:
+    out.write("\nsummary\n")
+    for s in summaries:
+        if s.skipped:
+            out.write(f"  {s.name}: already complete ({s.frames} frames), skipped\n")
+            continue
+        out.write(
+            f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
+            f"{s.lost} lost frame(s)\n"
+        )
+    if summaries:
+        folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
+        out.write(f"outputs in {folder}/ (per video: .csv, .json, _overlay.mp4, _plot.png, _normalised.mp4)\n")
+    out.flush()
+
+
+def _run_track(videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet) -> int:
+    from torchface.job import JobConfig, track_videos
+
+    config = JobConfig(
+        out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
+        resume=resume, meshes=meshes,
+    )  # fmt: skip
+    display = None if quiet else ProgressDisplay()
+    summaries = track_videos(videos, config, progress=display)
+    _print_summary(summaries, sys.stdout)
+    return 0
+
+
+def _render_progress(label: str, start: float):
     def report(done: int, total: int) -> None:
         rate = done / max(time.perf_counter() - start, 1e-9)
         sys.stdout.write(f"\r{label}: {done}/{total} frames ({rate:.1f} fps)")
@@ -28,16 +137,16 @@ def _progress(label: str, start: float):
     return report
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
+def _render_demo(args: argparse.Namespace) -> int:
+    """Render a synthetic sequence with ground truth (the renderer's former ``demo`` command)."""
     from torchface.synth.scenarios import SCENARIOS, make_scenario
     from torchface.synth.sequence import write_sequence
 
     if args.scenario not in SCENARIOS:
-        print(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}", file=sys.stderr)
-        return 2
+        raise ValueError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)
     start = time.perf_counter()
-    files = write_sequence(spec, args.out, batch_size=8, progress=_progress(f"rendering {spec.name}", start))
+    files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))
     sys.stdout.write("\n")
     took = time.perf_counter() - start
     print(f"wrote {files.num_frames} frames ({args.width}x{args.height}, {spec.subject}) in {took:.1f} s:")
@@ -48,25 +157,36 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``torchface`` argument parser with one sub-command per task."""
-    parser = argparse.ArgumentParser(prog="torchface", description="3D face tracking in PyTorch.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    sub.required = True
-    demo = sub.add_parser("demo", help="render a short synthetic sequence with ground truth")
-    demo.add_argument("--out", type=Path, default=Path("torchface-demo"), help="output folder (default ./torchface-demo)")
-    demo.add_argument("--scenario", default="pose_sweep", help="scenario name (default pose_sweep)")
-    demo.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
-    demo.add_argument("--width", type=int, default=320, help="frame width (default 320)")
-    demo.add_argument("--height", type=int, default=240, help="frame height (default 240)")
-    demo.set_defaults(handler=_cmd_demo)
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchface`` console script; returns the exit status."""
-    args = build_parser().parse_args(list(argv) if argv is not None else None)
-    return int(args.handler(args))
+    args = build_parser().parse_args(argv)
+    from torchface.detect import DetectorUnavailable
+    from torchface.io.errors import InputError, OutputError
+
+    try:
+        if args.command == "track":
+            return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
+                              args.resume, args.meshes, args.quiet)  # fmt: skip
+        if args.command == "demo":
+            from torchface.job import DEMO_ATTRIBUTION, demo_inputs
+
+            video, landmarks = demo_inputs()
+            print(f"torchface demo: tracking the embedded clip ({DEMO_ATTRIBUTION})")
+            return _run_track([video], args.out, [landmarks], None, None, args.device, False, args.meshes, args.quiet)
+        if args.command == "render-demo":
+            return _render_demo(args)
+    except (InputError, OutputError, DetectorUnavailable, ValueError) as exc:
+        message = " ".join(str(exc).split())
+        print(f"torchface: error: {message}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(
+            "\ntorchface: interrupted; complete rows are kept in <out>/<video>.csv.partial: run the same command "
+            "with --resume to continue",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    raise AssertionError(f"unhandled command {args.command}")  # argparse rejects unknown commands
 
 
 if __name__ == "__main__":

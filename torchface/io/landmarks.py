@@ -1,0 +1,107 @@
+"""Landmark files for initialisation: 68 iBUG points of the first frame, as CSV or NPY.
+
+Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:`torchface.conventions`):
+
+- CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
+  136 numbers ``x0, y0, x1, y1, ...``;
+- NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from torchface.io.errors import InputError
+
+__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks"]
+
+#: Points in the iBUG-68 scheme.
+NUM_LANDMARKS: int = 68
+
+
+def _parse_csv(p: Path) -> np.ndarray:
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: cannot read landmarks ({exc.__class__.__name__})") from None
+    rows: list[list[float]] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        cells = [c.strip() for c in line.replace(";", ",").split(",") if c.strip() != ""]
+        try:
+            rows.append([float(c) for c in cells])
+        except ValueError:
+            if rows:
+                raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
+            continue  # a header line
+    if len(rows) == 1:
+        return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
+    widths = {len(r) for r in rows}
+    if len(widths) > 1 or (rows and len(rows[0]) != 2):
+        raise InputError(f"{p}: expected rows of 'x, y', got rows of {sorted(widths)} values")
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+
+
+def check_landmarks(points: np.ndarray, width: int, height: int, where: str) -> np.ndarray:
+    """Check ``(68, 2)`` pixel landmarks against a ``width x height`` frame; returns them as float64.
+
+    Raises:
+        InputError: wrong count, non-finite values, or points outside the frame.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim == 3 and points.shape[0] == 1:
+        points = points[0]
+    if points.ndim == 1 and points.size % 2 == 0:
+        points = points.reshape(-1, 2)
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise InputError(f"{where}: expected {NUM_LANDMARKS} (x, y) points, got an array of shape {points.shape}")
+    if points.shape[0] != NUM_LANDMARKS:
+        raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} are NaN or infinite")
+    outside = (points[:, 0] < -0.5) | (points[:, 0] > width - 0.5) | (points[:, 1] < -0.5) | (points[:, 1] > height - 0.5)
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        raise InputError(
+            f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
+            f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
+        )
+    return points
+
+
+def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.ndarray:
+    """Read and check 68 first-frame landmarks for a ``width x height`` video.
+
+    Args:
+        path: a ``.csv`` (or any text) or ``.npy`` file, see the module docstring.
+        width: frame width W.
+        height: frame height H.
+
+    Returns:
+        ``(68, 2)`` float64 pixel coordinates.
+
+    Raises:
+        InputError: missing or unreadable file, wrong count, NaN, or out-of-frame points.
+
+    Example:
+        >>> # points = read_landmarks("first_frame.csv", 640, 480)   # (68, 2)
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such landmarks file")
+    if p.suffix.lower() == ".npy":
+        try:
+            points = np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{p}: not a readable .npy array ({exc})") from None
+    else:
+        points = _parse_csv(p)
+    if not np.issubdtype(np.asarray(points).dtype, np.number):
+        raise InputError(f"{p}: landmarks must be numbers, got {np.asarray(points).dtype}")
+    return check_landmarks(points, width, height, str(p))

@@ -1,0 +1,241 @@
+"""The per-frame CSV in OpenFace's spirit: columns, rows from a :class:`~torchface.tracker.TrackResult`, and a
+writer that flushes every row and renames the file only when complete.
+
+Columns (units; frames as in :mod:`torchface.conventions`)
+---------------------------------------------------------
+- ``frame`` (0-based index), ``timestamp`` (seconds, ``frame / fps``), ``success`` (1/0: the frame's estimate
+  is usable), ``confidence`` (``[0, 1]``);
+- ``pose_Tx, pose_Ty, pose_Tz``: the head origin in the OpenCV camera frame (x right, y down, z forward), mm;
+- ``pose_Rx, pose_Ry, pose_Rz``: radians, OpenFace's definition: ``R = Rx(pose_Rx) @ Ry(pose_Ry) @ Rz(pose_Rz)``
+  (:func:`openface_euler`), ``R`` the head-to-camera rotation in the OpenCV camera frame, identity = a face
+  looking straight into the camera;
+- ``yaw_deg, pitch_deg, roll_deg``: the same rotation as ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)``, degrees;
+- ``r00 ... r22``: the rotation matrix, row-major (``X_cam = R @ X_head + t``);
+- ``AUxx_r``: one column per FACS action unit linked to a CANDIDE-3 animation unit (intensity in the animation
+  unit's own scale, :meth:`~torchface.model.FaceModel.facs_values`);
+- ``anim_<name>``: one column per CANDIDE-3 animation unit (dimensionless, the model file's scale);
+- ``illum_<name>``: the illumination parameters (gain, bias, three light-direction terms; paper Eq. 19);
+- ``status`` (0 converged, 1 ran out of iterations, 2 failed), ``iterations``, ``num_points`` (template points
+  used), ``cost`` (RMS residual per point, intensity units).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+from types import TracebackType
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchface.io.errors import InputError, OutputError
+
+__all__ = [
+    "POSE_COLUMNS",
+    "ROTATION_COLUMNS",
+    "TrackCsvWriter",
+    "column_name",
+    "openface_euler",
+    "read_track_csv",
+    "result_rows",
+    "track_columns",
+]
+
+#: Pose columns, in order.
+POSE_COLUMNS: tuple[str, ...] = (
+    "pose_Tx", "pose_Ty", "pose_Tz", "pose_Rx", "pose_Ry", "pose_Rz", "yaw_deg", "pitch_deg", "roll_deg",
+)  # fmt: skip
+#: Rotation-matrix columns, row-major.
+ROTATION_COLUMNS: tuple[str, ...] = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+_LEAD = ("frame", "timestamp", "success", "confidence")
+_TAIL = ("status", "iterations", "num_points", "cost")
+_INT_COLUMNS = frozenset({"frame", "success", "status", "iterations", "num_points"})
+
+
+def column_name(prefix: str, name: str) -> str:
+    """``"AUV11 Jaw drop"`` -> ``"anim_AUV11_jaw_drop"``: a CSV-safe column name."""
+    parts = re.findall(r"[A-Za-z0-9]+", name)
+    if not parts:
+        raise ValueError(f"cannot make a column name from {name!r}")
+    head = parts[0] if re.match(r"^[A-Z]+\d+$", parts[0]) else parts[0].lower()
+    return "_".join([prefix, head] + [p.lower() for p in parts[1:]])
+
+
+def track_columns(
+    anim_names: tuple[str, ...], facs_names: tuple[str, ...], illumination_names: tuple[str, ...]
+) -> tuple[str, ...]:
+    """The CSV header for a model with these animation units, FACS AUs and illumination terms."""
+    facs = tuple(f"{n}_r" for n in facs_names)
+    anim = tuple(column_name("anim", n) for n in anim_names)
+    illum = tuple(column_name("illum", n) for n in illumination_names)
+    cols = _LEAD + POSE_COLUMNS + ROTATION_COLUMNS + facs + anim + illum + _TAIL
+    if len(set(cols)) != len(cols):
+        raise ValueError(f"column names collide: {cols}")
+    return cols
+
+
+def openface_euler(R: Tensor) -> Tensor:
+    """``(B, 3, 3)`` rotations -> ``(B, 3)`` OpenFace angles ``(Rx, Ry, Rz)`` in radians with ``R = Rx Ry Rz``.
+
+    ``R[0, 2] = sin(Ry)``, ``R[1, 2] = -sin(Rx) cos(Ry)``, ``R[2, 2] = cos(Rx) cos(Ry)``,
+    ``R[0, 1] = -cos(Ry) sin(Rz)``, ``R[0, 0] = cos(Ry) cos(Rz)``; ``Ry`` is kept in ``[-pi/2, pi/2]``.
+    At ``|Ry| = pi/2`` (gimbal lock) ``Rz`` is set to 0 and ``Rx`` absorbs the remaining rotation.
+
+    Example:
+        >>> openface_euler(torch.eye(3)[None])
+        tensor([[0., 0., 0.]])
+    """
+    if not isinstance(R, Tensor) or R.dim() != 3 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must be a (B, 3, 3) tensor, got {getattr(R, 'shape', type(R))}")
+    s = R[:, 0, 2].clamp(-1.0, 1.0)
+    ry = torch.asin(s)
+    cy = torch.sqrt((R[:, 0, 0] ** 2 + R[:, 0, 1] ** 2))
+    eps = torch.finfo(R.dtype).eps * 16
+    locked = cy < eps
+    rx = torch.where(locked, torch.atan2(R[:, 2, 1], R[:, 1, 1]), torch.atan2(-R[:, 1, 2], R[:, 2, 2]))
+    rz = torch.where(locked, torch.zeros_like(ry), torch.atan2(-R[:, 0, 1], R[:, 0, 0]))
+    return torch.stack([rx, ry, rz], dim=-1)
+
+
+def result_rows(result, frame_indices: Tensor | np.ndarray, fps: float) -> np.ndarray:
+    """``(B, C)`` float64 rows (columns of :func:`track_columns`) for one step's ``TrackResult``.
+
+    Args:
+        result: a :class:`~torchface.tracker.TrackResult` with batch B.
+        frame_indices: ``(B,)`` frame index of each row.
+        fps: frames per second (``timestamp = frame / fps``).
+    """
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    frames = torch.as_tensor(np.asarray(frame_indices), dtype=torch.float64).reshape(-1, 1)
+    R = result.rotation.detach().to("cpu", torch.float64)
+    B = R.shape[0]
+
+    def col(x: Tensor) -> Tensor:
+        return x.detach().to("cpu", torch.float64).reshape(B, -1)
+
+    parts = [
+        frames, frames / fps, col(result.success), col(result.confidence), col(result.translation),
+        openface_euler(R), col(result.ypr_deg), R.reshape(B, 9), col(result.facs), col(result.anim_coeffs),
+        col(result.illumination), col(result.status), col(result.iterations), col(result.num_points), col(result.cost),
+    ]  # fmt: skip
+    return torch.cat(parts, dim=1).numpy()
+
+
+def _format_row(columns: tuple[str, ...], row: np.ndarray) -> str:
+    cells = []
+    for name, v in zip(columns, row):
+        if name in _INT_COLUMNS:
+            cells.append(str(int(v)))
+        elif name == "timestamp":
+            cells.append(f"{v:.3f}")
+        else:
+            cells.append("nan" if not math.isfinite(v) else f"{v:.9g}")
+    return ",".join(cells)
+
+
+def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray]:
+    """Read a track CSV (finished or ``.partial``): ``(columns, (T, C) float64 rows)``.
+
+    Only complete rows (ending in a newline, with every column) are returned, so a file cut off mid-row
+    reads as its complete part.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: cannot read the track CSV ({exc.__class__.__name__})") from None
+    lines = text.split("\n")
+    if len(lines) < 2 or not lines[0]:
+        raise InputError(f"{p}: not a track CSV (no complete header line)")
+    columns = tuple(lines[0].split(","))
+    rows = []
+    for line in lines[1:-1]:  # the last element follows the final newline: incomplete or empty
+        cells = line.split(",")
+        if len(cells) != len(columns):
+            break
+        try:
+            rows.append([float(c) for c in cells])
+        except ValueError:
+            break
+    data = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+    return columns, data
+
+
+class TrackCsvWriter:
+    """Write track rows to ``<path>.partial``, flushing every call; :meth:`close` renames it to ``path``.
+
+    Args:
+        path: the final CSV path.
+        columns: header (:func:`track_columns`).
+        resume: continue an existing ``<path>.partial`` with the same header: its complete rows are kept
+            (a row cut off mid-line is dropped) and :attr:`rows_done` says how many there are.
+
+    Raises:
+        OutputError: the folder cannot be written.
+        InputError: ``resume`` and the partial file has another header.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...], resume: bool = False) -> None:
+        self.path = Path(path)
+        self.columns = tuple(columns)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.rows_done = 0
+        self.previous: np.ndarray = np.zeros((0, len(self.columns)))
+        try:
+            if resume and self.partial.is_file():
+                cols, data = read_track_csv(self.partial)
+                if cols != self.columns:
+                    raise InputError(f"{self.partial}: cannot resume, its columns differ from this run's")
+                self.previous = data
+                self.rows_done = int(data.shape[0])
+                keep = "\n".join([",".join(cols)] + [_format_row(cols, r) for r in data]) + "\n"
+                tmp = self.partial.with_name(self.partial.name + ".tmp")
+                tmp.write_text(keep, encoding="utf-8")
+                os.replace(tmp, self.partial)
+                self._file = open(self.partial, "a", encoding="utf-8")
+            else:
+                self._file = open(self.partial, "w", encoding="utf-8")
+                self._file.write(",".join(self.columns) + "\n")
+                self._file.flush()
+        except OSError as exc:
+            raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
+
+    def write(self, rows: np.ndarray) -> None:
+        """Append ``(n, C)`` rows and flush them to the operating system."""
+        rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(self.columns))
+        if self._file is None:
+            raise RuntimeError("the CSV writer is closed")
+        for r in rows:
+            self._file.write(_format_row(self.columns, r) + "\n")
+        self._file.flush()
+        self.rows_done += int(rows.shape[0])
+
+    def close(self) -> Path:
+        """Sync, close and rename to the final name; returns it."""
+        if self._file is not None:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+            self._file = None
+            os.replace(self.partial, self.path)
+        return self.path
+
+    def stop(self) -> None:
+        """Close without finishing: ``<path>.partial`` stays for ``--resume``."""
+        if self._file is not None:
+            self._file.flush()
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> "TrackCsvWriter":
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.stop()

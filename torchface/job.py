@@ -1,0 +1,539 @@
+"""The tracking job behind ``torchface track``: videos in, per-video CSV, JSON, overlay, plot and normalised face out.
+
+:func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
+into one batch (tracked together as B streams by :func:`torchface.tracker.track_step`), and writes per video
+(``<stem>`` is the input's file name without suffix):
+
+- ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
+- ``<stem>.json``: versions, settings, camera, model, timings, frame count and lost frames;
+- ``<stem>_overlay.mp4``: wireframe, head axes and confidence on each frame;
+- ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
+- ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
+- ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
+
+Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
+last. CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
+complete row: the first frame is initialised again from the same landmarks (deterministic), the parameters
+of the rows already written are read back from the CSV, and the videos are re-drawn from them.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
+from torchface.io.errors import InputError, OutputError
+from torchface.io.landmarks import check_landmarks, read_landmarks
+from torchface.io.sidecar import package_versions, write_json
+from torchface.io.table import TrackCsvWriter, read_track_csv, result_rows, track_columns
+from torchface.io.video import FrameReader, open_frames
+from torchface.model.candide import load_candide3
+from torchface.model.face_model import FaceModel
+from torchface.normalise.face import NormalisedFace
+from torchface.tracker.fit import fit_landmarks
+from torchface.tracker.params import ParamLayout
+from torchface.tracker.step import TrackerConfig, TrackerState, initialise, track_step
+from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
+from torchface.visualise.plot import plot_track
+
+__all__ = [
+    "DEMO_ATTRIBUTION",
+    "JobConfig",
+    "Progress",
+    "VideoSummary",
+    "demo_inputs",
+    "output_paths",
+    "track_videos",
+]
+
+#: Credit line of the embedded demo clip.
+DEMO_ATTRIBUTION: str = (
+    "GRID audio-visual corpus clip bbaf2n (speaker 1), Cooke, Barker, Cunningham and Shao (2006), CC BY 4.0"
+)
+
+
+@dataclass(frozen=True)
+class JobConfig:
+    """Settings of a tracking job.
+
+    Attributes:
+        out_dir: output folder (created if missing).
+        landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
+            detector.
+        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, and to
+            re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
+            ``redetect_after`` frames.
+        focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
+        device: torch device for tracking.
+        resume: continue interrupted videos (see the module docstring).
+        meshes: write one PLY mesh per frame.
+        normalised_size: side ``G`` of the normalised-face video.
+        tracker: :class:`TrackerConfig`.
+        redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
+        redetect_below: the confidence threshold for that.
+    """
+
+    out_dir: Path
+    landmarks: tuple[Path, ...] = ()
+    detector: str | None = None
+    focal: float | None = None
+    device: str = "cpu"
+    resume: bool = False
+    meshes: bool = False
+    normalised_size: int = 128
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    redetect_after: int = 10
+    redetect_below: float = 0.15
+
+    def __post_init__(self) -> None:
+        if self.focal is not None and not self.focal > 0:
+            raise ValueError(f"focal must be positive (pixels), got {self.focal}")
+        if self.normalised_size < 16:
+            raise ValueError(f"normalised_size must be >= 16, got {self.normalised_size}")
+        if self.redetect_after < 0:
+            raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames."""
+
+    index: int
+    count: int
+    name: str
+    done: int
+    total: int | None
+    fps: float
+    confidence: float
+
+
+@dataclass(frozen=True)
+class VideoSummary:
+    """What :func:`track_videos` did for one video.
+
+    Attributes:
+        name: the output stem; input: the input path; outputs: the files written.
+        frames: frames in the CSV; lost: frames whose estimate failed; mean_confidence: over all frames.
+        fps: tracking frames per second of the batch this video was in (all its streams together) divided by
+            its stream count, i.e. this video's own rate; skipped: True when ``resume`` found it complete.
+    """
+
+    name: str
+    input: Path
+    outputs: tuple[Path, ...]
+    frames: int
+    lost: int
+    mean_confidence: float
+    fps: float
+    skipped: bool = False
+
+
+def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
+    """The output files of video ``name`` in ``out_dir``, by kind."""
+    return {
+        "csv": out_dir / f"{name}.csv",
+        "json": out_dir / f"{name}.json",
+        "overlay": out_dir / f"{name}_overlay.mp4",
+        "plot": out_dir / f"{name}_plot.png",
+        "normalised": out_dir / f"{name}_normalised.mp4",
+        "meshes": out_dir / f"{name}_meshes",
+    }
+
+
+def demo_inputs() -> tuple[Path, Path]:
+    """``(video, landmarks)`` of the embedded demo clip (GRID ``bbaf2n``, see :data:`DEMO_ATTRIBUTION`)."""
+    root = Path(str(resources.files("torchface") / "data" / "grid"))
+    return root / "bbaf2n.mpg", root / "bbaf2n_landmarks68.csv"
+
+
+class _VideoOut:
+    """An ``mp4v`` MP4 written to ``<name>.partial.mp4`` and renamed on :meth:`close`."""
+
+    def __init__(self, path: Path, width: int, height: int, fps: float) -> None:
+        self.path = path
+        self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
+        self.size = (int(width), int(height))
+        self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self.size)
+        if not self.writer.isOpened():
+            self.writer.release()
+            self.tmp.unlink(missing_ok=True)
+            raise OutputError(f"{self.tmp}: cannot open an mp4v video writer")
+
+    def write(self, image_bgr: np.ndarray) -> None:
+        self.writer.write(image_bgr)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+            self.writer = None
+            os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+            self.writer = None
+        self.tmp.unlink(missing_ok=True)
+
+
+def _check_out_dir(out_dir: Path) -> None:
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out_dir}: cannot create the output folder ({exc.strerror or exc})") from None
+    probe = out_dir / f".torchface-write-test-{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise OutputError(f"{out_dir}: output folder is not writable ({exc.strerror or exc})") from None
+
+
+def _to_uint8_rgb(frame: Tensor) -> np.ndarray:
+    return (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+
+
+@dataclass
+class _Stream:
+    """Book-keeping of one video in a batch (mutable, private to the job loop)."""
+
+    name: str
+    reader: FrameReader
+    landmarks: np.ndarray
+    landmarks_source: str
+    total: int | None
+    csv: TrackCsvWriter | None = None
+    overlay: _VideoOut | None = None
+    normalised: _VideoOut | None = None
+    replay: np.ndarray | None = None  # rows already in the CSV when resuming
+    frames: int = 0
+    tracked: int = 0
+    done: bool = False
+    last_frame: Tensor | None = None
+    low_count: int = 0
+    redetections: int = 0
+    confidences: list[float] = field(default_factory=list)
+    lost: list[int] = field(default_factory=list)
+
+
+def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamLayout) -> Tensor:
+    """``(B, C)`` CSV rows -> ``(B, P)`` packed parameters (axis-angle from the stored rotation matrix)."""
+    idx = {c: i for i, c in enumerate(columns)}
+    R = torch.as_tensor(rows[:, [idx[f"r{i}{j}"] for i in range(3) for j in range(3)]]).reshape(-1, 3, 3)
+    t = torch.as_tensor(rows[:, [idx["pose_Tx"], idx["pose_Ty"], idx["pose_Tz"]]])
+    anim = torch.as_tensor(rows[:, [i for i, c in enumerate(columns) if c.startswith("anim_")]])
+    light = torch.as_tensor(rows[:, [i for i, c in enumerate(columns) if c.startswith("illum_")]])
+    if anim.shape[1] != layout.num_animation or light.shape[1] != layout.num_illumination:
+        raise InputError("the partial CSV does not match the model's animation/illumination terms")
+    return torch.cat([matrix_to_axis_angle(R), t, anim, light], dim=1)
+
+
+def _first_landmarks(
+    reader: FrameReader, first: Tensor, landmarks: Path | None, detector, detector_name: str | None
+) -> tuple[np.ndarray, str]:
+    W, H = reader.info.width, reader.info.height
+    if landmarks is not None:
+        return read_landmarks(landmarks, W, H), str(landmarks)
+    points = detector(_to_uint8_rgb(first))
+    if points is None:
+        raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame")
+    return check_landmarks(points, W, H, f"{reader.info.path}: detector landmarks"), f"detector:{detector_name}"
+
+
+def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
+    names = [Path(v).stem if not Path(v).is_dir() else Path(v).name for v in videos]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"two inputs would write the same outputs {dup[0]!r}: rename one of them")
+    streams: list[_Stream] = []
+    try:
+        for k, (path, name) in enumerate(zip(videos, names)):
+            reader = open_frames(path)
+            streams.append(_Stream(name, reader, np.zeros((68, 2)), "", reader.info.num_frames))
+            first = next(reader)
+            streams[-1].last_frame = first
+            lm = config.landmarks[k] if config.landmarks else None
+            streams[-1].landmarks, streams[-1].landmarks_source = _first_landmarks(
+                reader, first, lm, detector, config.detector
+            )
+    except BaseException:
+        for s in streams:
+            s.reader.close()
+        raise
+    return streams
+
+
+def track_videos(
+    videos: Sequence[str | os.PathLike[str]],
+    config: JobConfig,
+    progress: Callable[[Progress], None] | None = None,
+) -> list[VideoSummary]:
+    """Track every video and write its outputs (see the module docstring).
+
+    Args:
+        videos: input paths (video files, image folders or ``.npy`` arrays, :func:`torchface.io.open_frames`).
+        config: :class:`JobConfig`.
+        progress: called after every batch step with one :class:`Progress` per stream.
+
+    Returns:
+        One :class:`VideoSummary` per video, in input order.
+
+    Raises:
+        InputError: a bad input (checked for all videos before tracking starts).
+        OutputError: the output folder cannot be written.
+        torchface.detect.DetectorUnavailable: the detector is needed but not installed.
+    """
+    videos = [Path(v) for v in videos]
+    if not videos:
+        raise InputError("no input video given")
+    if config.landmarks and len(config.landmarks) != len(videos):
+        raise InputError(f"give one landmarks file per video: {len(videos)} videos, {len(config.landmarks)} files")
+    detector = None
+    if config.detector is not None:
+        from torchface.detect import load_detector
+
+        detector = load_detector(config.detector)
+    elif not config.landmarks:
+        raise InputError("no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME")
+    out_dir = Path(config.out_dir)
+    _check_out_dir(out_dir)
+    summaries: dict[str, VideoSummary] = {}
+    pending: list[Path] = []
+    pending_lm: list[Path] = []
+    for k, v in enumerate(videos):
+        name = v.name if v.is_dir() else v.stem
+        paths = output_paths(out_dir, name)
+        if config.resume and paths["json"].is_file() and paths["csv"].is_file():
+            cols, rows = read_track_csv(paths["csv"])
+            conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
+            lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
+            outs = tuple(p for p in paths.values() if p.exists())
+            summaries[str(v)] = VideoSummary(name, v, outs, len(rows), lost, float(conf.mean()) if len(conf) else 0.0, 0.0, True)
+            continue
+        pending.append(v)
+        if config.landmarks:
+            pending_lm.append(config.landmarks[k])
+    sub = replace(config, landmarks=tuple(pending_lm))
+    streams = _open_inputs(pending, sub, detector) if pending else []
+    try:
+        model = load_candide3().to(device=torch.device(config.device))
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, s in enumerate(streams):
+            groups.setdefault((s.reader.info.height, s.reader.info.width), []).append(i)
+        for (H, W), members in groups.items():
+            batch = [streams[i] for i in members]
+            for s, summary in zip(batch, _track_group(model, batch, config, detector, progress, len(streams), members)):
+                summaries[str(s.reader.info.path)] = summary
+    finally:
+        for s in streams:
+            s.reader.close()
+    return [summaries[str(v)] for v in videos]
+
+
+def _track_group(
+    model: FaceModel, streams: list[_Stream], config: JobConfig, detector, progress, count: int, members: list[int]
+) -> list[VideoSummary]:
+    """Track one batch of same-size videos to the end and finalise their outputs."""
+    out_dir = Path(config.out_dir)
+    info = streams[0].reader.info
+    H, W = info.height, info.width
+    intr = Intrinsics.default(W, H, config.focal)
+    device, dtype = model.device, model.dtype
+    layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+    columns = track_columns(model.animation_names, model.facs_names, tuple(_illumination_names()))
+    edges = mesh_edges(model.faces)
+    normaliser = NormalisedFace(model, size=config.normalised_size)
+    G = config.normalised_size
+    B = len(streams)
+    paths = [output_paths(out_dir, s.name) for s in streams]
+    mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
+    t_start = time.perf_counter()
+    try:
+        for s, p in zip(streams, paths):
+            s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
+            s.replay = s.csv.previous if s.csv.rows_done else None
+            s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
+            s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
+        if config.meshes:
+            for d in mesh_tmp:
+                d.mkdir(parents=True, exist_ok=True)
+        frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
+        lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
+        state, result = initialise(model, config.tracker, frames, lm, intr)
+        t_init = time.perf_counter() - t_start
+        t_track0 = time.perf_counter()
+        t = 0
+        while True:
+            replaying = [s.replay is not None and t < len(s.replay) for s in streams]
+            if any(replaying):
+                idx = [k for k, r in enumerate(replaying) if r]
+                rows = np.stack([streams[k].replay[t] for k in idx])
+                params = state.params.clone()
+                params[idx] = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
+                state = replace(state, params=params)
+            new_rows = result_rows(result, np.full(B, t), 1.0)
+            _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
+                        normaliser, layout, mesh_tmp if config.meshes else None)  # fmt: skip
+            if detector is not None and config.redetect_after > 0:
+                state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout)
+            if progress is not None:
+                elapsed = max(time.perf_counter() - t_track0, 1e-9)
+                for k, s in enumerate(streams):
+                    progress(Progress(members[k], count, s.name, s.frames, s.total, s.tracked / elapsed,
+                                      s.confidences[-1] if s.confidences else 0.0))  # fmt: skip
+            nxt = []
+            for s in streams:
+                if not s.done:
+                    try:
+                        s.last_frame = next(s.reader)
+                    except StopIteration:
+                        s.done = True
+                nxt.append(s.last_frame)
+            if all(s.done for s in streams):
+                break
+            t += 1
+            frames = torch.stack(nxt).to(device=device, dtype=dtype)
+            if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
+                continue  # every live stream replays this frame from its CSV: nothing to track
+            state, result = track_step(model, config.tracker, state, frames)
+        t_track = time.perf_counter() - t_track0
+    except BaseException:
+        for s in streams:
+            if s.csv is not None:
+                s.csv.stop()
+            for v in (s.overlay, s.normalised):
+                if v is not None:
+                    v.abort()
+        raise
+    summaries = []
+    for s, p, mt in zip(streams, paths, mesh_tmp):
+        s.csv.close()
+        s.overlay.close()
+        s.normalised.close()
+        cols, rows = read_track_csv(p["csv"])
+        plot_track(cols, rows, p["plot"], title=f"{s.name} ({len(rows)} frames)")
+        outs = [p["csv"], p["overlay"], p["plot"], p["normalised"]]
+        if config.meshes:
+            if p["meshes"].exists():
+                for f in p["meshes"].glob("*.ply"):
+                    f.unlink()
+                p["meshes"].rmdir()
+            os.replace(mt, p["meshes"])
+            outs.append(p["meshes"])
+        conf = rows[:, cols.index("confidence")]
+        lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
+        fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0
+        sidecar = {
+            "torchface_output": 1,
+            "input": {"path": str(s.reader.info.path), "kind": s.reader.info.kind, "format": s.reader.info.source_format,
+                      "width": W, "height": H, "fps": s.reader.info.fps},  # fmt: skip
+            "versions": package_versions(),
+            "config": {
+                "tracker": config.tracker, "device": config.device, "focal": config.focal, "detector": config.detector,
+                "landmarks": s.landmarks_source, "resume": config.resume, "batch_streams": B,
+                "normalised_size": G, "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
+            },  # fmt: skip
+            "camera": {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                       "frame": "OpenCV: x right, y down, z forward; millimetres"},  # fmt: skip
+            "model": {"name": "CANDIDE-3", "vertices": model.num_vertices, "triangles": model.num_faces,
+                      "animation_units": list(model.animation_names), "facs": list(model.facs_names),
+                      "shape_units": model.num_shape,
+                      "shape_coeffs": state.shape_coeffs[streams.index(s)].tolist()},  # fmt: skip
+            "initial_landmarks_px": s.landmarks.tolist(),
+            "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": B * fps},
+            "frames": int(len(rows)),
+            "lost_frames": lost,
+            "mean_confidence": float(conf.mean()) if len(conf) else 0.0,
+            "redetections": s.redetections,
+            "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
+        }
+        write_json(p["json"], sidecar)
+        outs.insert(1, p["json"])
+        summaries.append(VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
+                                      float(conf.mean()) if len(conf) else 0.0, fps))  # fmt: skip
+    return summaries
+
+
+def _illumination_names() -> tuple[str, ...]:
+    from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES
+
+    return tuple(ILLUMINATION_TERM_NAMES)
+
+
+def _write_step(
+    model: FaceModel, state: TrackerState, result, frames: Tensor, streams: list[_Stream], replaying: list[bool],
+    columns: tuple[str, ...], rows: np.ndarray, t: int, intr: Intrinsics, edges: np.ndarray,
+    normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None,
+) -> None:
+    """Write frame ``t`` of every live stream: its CSV row (unless replayed), overlay, normalised face, mesh."""
+    live = [not s.done for s in streams]
+    if not any(live):
+        return
+    aa, trans, alpha, light = layout.split(state.params)
+    R = axis_angle_to_matrix(aa)
+    verts_px, axes_px = overlay_geometry(model, state.shape_coeffs, alpha, R, trans, intr)
+    norm = normaliser.from_params(frames, state.shape_coeffs, alpha, aa, trans, light, intr)
+    norm_img = (norm.image * norm.mask).clamp(0, 1)
+    verts_px, axes_px = verts_px.detach().cpu().numpy(), axes_px.detach().cpu().numpy()
+    ci = columns.index("confidence")
+    si = columns.index("success")
+    for k, s in enumerate(streams):
+        if not live[k]:
+            continue
+        if replaying[k]:
+            row = s.replay[t]
+        else:
+            row = rows[k].copy()
+            row[1] = t / s.reader.info.fps
+            s.csv.write(row[None])
+            s.tracked += 1
+        conf, ok = float(row[ci]), bool(row[si] > 0.5)
+        s.confidences.append(conf)
+        if not ok:
+            s.lost.append(t)
+        s.low_count = 0 if conf >= 0.15 else s.low_count + 1
+        bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
+        s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}"))
+        s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
+        if mesh_dirs is not None:
+            import trimesh
+
+            verts = torch.matmul(model.deform(state.shape_coeffs[k : k + 1], alpha[k : k + 1]), R[k].T) + trans[k]
+            mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
+            mesh.export(str(mesh_dirs[k] / f"{t:06d}.ply"))
+        s.frames += 1
+
+
+def _maybe_redetect(
+    model: FaceModel, config: JobConfig, state: TrackerState, frames: Tensor, streams: list[_Stream], detector,
+    intr: Intrinsics, layout: ParamLayout,
+) -> TrackerState:
+    """Ask the detector again for streams whose confidence stayed low; re-fit their pose (shape and template kept)."""
+    params = state.params
+    for k, s in enumerate(streams):
+        if s.done or s.low_count < config.redetect_after:
+            continue
+        s.low_count = 0
+        points = detector(_to_uint8_rgb(frames[k]))
+        if points is None:
+            continue
+        lm = torch.as_tensor(points, dtype=model.dtype, device=model.device).unsqueeze(0)
+        fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)
+        p = params[k].clone()
+        p[layout.rotation] = fit.axis_angle[0]
+        p[layout.translation] = fit.translation[0]
+        params = torch.cat([params[:k], p[None], params[k + 1 :]])
+        s.redetections += 1
+    return state if params is state.params else replace(state, params=params)

@@ -1,0 +1,94 @@
+"""Overlay frames: the tracked mesh as a wireframe, the head axes and the confidence (OpenCV drawing).
+
+Geometry is computed batched in torch (:func:`overlay_geometry`); drawing is per image at the I/O boundary
+(:func:`draw_overlay`), on uint8 BGR arrays as OpenCV stores them.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.model.face_model import FaceModel
+
+__all__ = ["AXIS_LENGTH_MM", "mesh_edges", "overlay_geometry", "draw_overlay"]
+
+#: Length of the drawn head axes in millimetres.
+AXIS_LENGTH_MM: float = 50.0
+
+
+def mesh_edges(faces: Tensor) -> np.ndarray:
+    """``(F, 3)`` triangles -> ``(E, 2)`` int64 unique undirected edges (sorted vertex pairs)."""
+    if not isinstance(faces, Tensor) or faces.dim() != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces must be an (F, 3) tensor, got {getattr(faces, 'shape', type(faces))}")
+    f = faces.detach().cpu().long()
+    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], dim=0).sort(dim=1).values
+    return torch.unique(e, dim=0).numpy()
+
+
+def overlay_geometry(
+    model: FaceModel, shape_coeffs: Tensor, anim_coeffs: Tensor, rotation: Tensor, translation: Tensor,
+    intrinsics: Intrinsics,
+) -> tuple[Tensor, Tensor]:
+    """Project the posed mesh and the head axes.
+
+    Args:
+        model: the face model.
+        shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)``.
+        rotation: ``(B, 3, 3)`` head -> camera; translation: ``(B, 3)`` mm.
+        intrinsics: the camera.
+
+    Returns:
+        ``verts_px (B, V, 2)`` and ``axes_px (B, 4, 2)`` (head origin, then the ends of its +x, +y, +z axes of
+        :data:`AXIS_LENGTH_MM`), pixels; points behind the camera come out non-finite-free but off-image.
+    """
+    verts = model.deform(shape_coeffs, anim_coeffs)  # (B, V, 3)
+    verts_cam = torch.matmul(verts, rotation.transpose(1, 2)) + translation.unsqueeze(1)
+    axes = torch.cat([torch.zeros(1, 3), torch.eye(3) * AXIS_LENGTH_MM]).to(verts)  # (4, 3)
+    axes_cam = torch.matmul(axes, rotation.transpose(1, 2)) + translation.unsqueeze(1)
+    return project_points(verts_cam, intrinsics), project_points(axes_cam, intrinsics)
+
+
+def _pt(p: np.ndarray, limit: float) -> tuple[int, int]:
+    q = np.clip(np.nan_to_num(p, nan=-limit), -limit, limit)
+    return int(round(float(q[0]))), int(round(float(q[1])))
+
+
+def draw_overlay(
+    image_bgr: np.ndarray, verts_px: np.ndarray, edges: np.ndarray, axes_px: np.ndarray, confidence: float,
+    success: bool, label: str = "",
+) -> np.ndarray:
+    """Draw one overlay frame (returns a new uint8 BGR image).
+
+    Args:
+        image_bgr: ``(H, W, 3)`` uint8 BGR frame.
+        verts_px: ``(V, 2)`` projected vertices; edges: ``(E, 2)`` vertex pairs (:func:`mesh_edges`).
+        axes_px: ``(4, 2)`` head origin and axis ends (:func:`overlay_geometry`); x red, y green, z blue.
+        confidence: the frame's tracking confidence in ``[0, 1]``.
+        success: whether the frame's estimate is usable (a lost frame draws the mesh grey).
+        label: text drawn before the confidence (e.g. the frame number).
+    """
+    if image_bgr.ndim != 3 or image_bgr.shape[2] != 3 or image_bgr.dtype != np.uint8:
+        raise ValueError(f"image_bgr must be (H, W, 3) uint8, got {image_bgr.shape} {image_bgr.dtype}")
+    out = image_bgr.copy()
+    H, W = out.shape[:2]
+    limit = 4.0 * max(H, W)
+    v = np.clip(np.nan_to_num(np.asarray(verts_px, dtype=np.float64), nan=-limit), -limit, limit)
+    lines = np.round(v[edges]).astype(np.int32)  # (E, 2, 2)
+    colour = (80, 255, 80) if success else (160, 160, 160)
+    cv2.polylines(out, list(lines), isClosed=False, color=colour, thickness=1, lineType=cv2.LINE_AA)
+    o = _pt(axes_px[0], limit)
+    for k, c in zip(range(1, 4), ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
+        cv2.line(out, o, _pt(axes_px[k], limit), c, 2, cv2.LINE_AA)
+    scale = max(0.35, min(W, H) / 600.0)
+    text = f"{label} conf {confidence:.2f}" + ("" if success else " LOST")
+    bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4)))
+    cv2.rectangle(out, (4, H - 10), (4 + W // 4, H - 4), (60, 60, 60), -1)
+    cv2.rectangle(out, (4, H - 10), (4 + bar, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
+    cv2.putText(out, text.strip(), (4, H - 16), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(out, text.strip(), (4, H - 16), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return out

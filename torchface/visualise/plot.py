@@ -1,0 +1,72 @@
+"""A PNG summary plot of a track: yaw/pitch/roll, the most active AUs and the confidence over time."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_track"]
+
+
+def _matplotlib():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover - matplotlib is a dependency
+        raise ImportError("plotting needs matplotlib: pip install matplotlib") from None
+    return plt
+
+
+def plot_track(
+    columns: tuple[str, ...], rows: np.ndarray, path: str | os.PathLike[str], title: str = "", num_aus: int = 4
+) -> Path:
+    """Plot a track table (:func:`torchface.io.read_track_csv`) to a PNG.
+
+    Args:
+        columns: CSV header; rows: ``(T, C)`` values.
+        path: the PNG (written to ``<path>.partial.png`` then renamed).
+        title: figure title.
+        num_aus: how many ``AUxx_r`` columns to show (those that vary most).
+    """
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+    idx = {c: i for i, c in enumerate(columns)}
+    for need in ("timestamp", "yaw_deg", "pitch_deg", "roll_deg", "confidence", "success"):
+        if need not in idx:
+            raise ValueError(f"track table has no {need!r} column")
+    plt = _matplotlib()
+    t = rows[:, idx["timestamp"]]
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    for name in ("yaw_deg", "pitch_deg", "roll_deg"):
+        axes[0].plot(t, rows[:, idx[name]], label=name.replace("_deg", ""))
+    axes[0].set_ylabel("degrees")
+    axes[0].legend(loc="upper right", fontsize=8)
+    au_cols = [c for c in columns if c.startswith("AU") and c.endswith("_r")]
+    if au_cols and len(rows):
+        spread = np.array([np.nanstd(rows[:, idx[c]]) for c in au_cols])
+        for k in np.argsort(-spread)[:num_aus]:
+            axes[1].plot(t, rows[:, idx[au_cols[k]]], label=au_cols[k])
+        axes[1].legend(loc="upper right", fontsize=8)
+    axes[1].set_ylabel("AU intensity")
+    axes[2].plot(t, rows[:, idx["confidence"]], color="k", label="confidence")
+    lost = rows[:, idx["success"]] < 0.5
+    if lost.any():
+        axes[2].plot(t[lost], np.zeros(int(lost.sum())), "rx", label="lost")
+    axes[2].set_ylim(-0.05, 1.05)
+    axes[2].set_ylabel("confidence")
+    axes[2].set_xlabel("time (s)")
+    axes[2].legend(loc="lower right", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    p = Path(path)
+    tmp = p.with_name(p.stem + ".partial.png")
+    try:
+        fig.savefig(tmp, dpi=100)
+    finally:
+        plt.close(fig)
+    os.replace(tmp, p)
+    return p
