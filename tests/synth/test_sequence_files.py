@@ -107,3 +107,25 @@ def test_frames_to_uint8_validation():
         frames_to_uint8(torch.zeros(2, 4, 4))
     out = frames_to_uint8(torch.full((1, 3, 2, 2), 0.5))
     assert out.dtype == np.uint8 and out.shape == (1, 2, 2, 3) and int(out[0, 0, 0, 0]) == 128
+
+
+def test_landmark_visibility_known_answers():
+    from torchface.geometry.camera import Intrinsics
+    from torchface.synth.sequence import landmark_visibility
+
+    cam = Intrinsics(320, 240, 100.0, 100.0, 159.5, 119.5)
+    tri = torch.tensor([[-50.0, -50, 1], [0, 50, 1], [50, -50, 1]])  # faces the camera (n . v0 < 0)
+    # A front triangle at depth 100 and a three times wider one at depth 150 behind it.
+    verts = torch.cat([tri * torch.tensor([1.0, 1, 100]), tri * torch.tensor([3.0, 3, 150])])[None]
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5], [3, 5, 4]])  # front, behind, behind reversed (back-facing)
+    pts = torch.tensor([[[0.0, 0.0, 100.0], [0.0, 0.0, 150.0], [0.0, 0.0, 150.0], [120.0, -140.0, 150.0], [0.0, 0.0, 100.5]]])
+    pf = torch.tensor([0, 1, 2, 1, 0])
+    vis = landmark_visibility(verts, faces, pts, pf, cam)
+    # front: visible; behind: hidden; back-facing: not visible; outside the front triangle's shadow
+    # (but inside the image): visible; 0.5 % behind the front surface: within the 1 % tolerance.
+    assert vis.tolist() == [[True, False, False, True, True]]
+    far = torch.tensor([[[200.0, 0.0, 100.0]]])  # projects outside the image
+    assert not landmark_visibility(verts, faces, far, torch.tensor([0]), cam).any()
+    # Batched == per sample.
+    both = landmark_visibility(torch.cat([verts, verts.flip(1)]), faces, pts.expand(2, -1, -1), pf, cam)
+    assert both[0].tolist() == vis[0].tolist()

@@ -237,8 +237,8 @@ def landmark_visibility(
     ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``, its triangle faces the camera (``n . v0 < 0`` with outward
     ``n``), and no triangle meets the ray ``s X`` at ``s < 1 - depth_tolerance`` (Moller-Trumbore
     intersection with the ray from the camera centre through ``X``; the point's own and adjacent
-    triangles meet it at ``s = 1``). Looping over samples only, each one vectorised over points and
-    triangles.
+    triangles meet it at ``s = 1``). Vectorised over samples, points and the (point, triangle) pairs
+    that survive a projected bounding-box and depth test.
 
     Args:
         verts_cam: ``(B, V, 3)`` vertices in the camera frame (millimetres).
@@ -259,40 +259,41 @@ def landmark_visibility(
     u = cam.fx * pts[..., 0] / z.clamp(min=1e-9) + cam.cx
     v = cam.fy * pts[..., 1] / z.clamp(min=1e-9) + cam.cy
     inside = (z > 1.0) & (u >= -0.5) & (u <= cam.width - 0.5) & (v >= -0.5) & (v <= cam.height - 0.5)
-    out = torch.zeros(b, pts.shape[1], dtype=torch.bool)
-    for i in range(b):  # per sample, vectorised over the (point, triangle) pairs that can intersect
-        tri = verts_cam[i].to(dt)[faces]  # (F, 3, 3)
-        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        n = torch.linalg.cross(e1, e2, dim=-1)
-        front = (n[point_faces] * v0[point_faces]).sum(-1) < 0
-        # Candidates: triangles partly nearer than the point whose projected box contains it.
-        tz = tri[..., 2].clamp(min=1e-6)
-        tu = cam.fx * tri[..., 0] / tz + cam.cx
-        tv = cam.fy * tri[..., 1] / tz + cam.cy
-        behind = (tri[..., 2] <= 1e-6).any(-1)  # boxes of triangles crossing the camera plane are unbounded
-        cand = (
-            (tri[..., 2].amin(-1).unsqueeze(0) < z[i].unsqueeze(1) * (1.0 - depth_tolerance))
-            & (behind.unsqueeze(0) | (
-                (tu.amin(-1).unsqueeze(0) <= u[i].unsqueeze(1) + 1e-6) & (tu.amax(-1).unsqueeze(0) >= u[i].unsqueeze(1) - 1e-6)
-                & (tv.amin(-1).unsqueeze(0) <= v[i].unsqueeze(1) + 1e-6) & (tv.amax(-1).unsqueeze(0) >= v[i].unsqueeze(1) - 1e-6)
-            ))
-        )
-        k_idx, f_idx = torch.nonzero(cand, as_tuple=True)
-        d = pts[i, k_idx]  # ray direction; the point itself is at s = 1
-        a0, a1, a2 = v0[f_idx], e1[f_idx], e2[f_idx]
-        h = torch.linalg.cross(d, a2, dim=-1)
-        a = (a1 * h).sum(-1)
-        ok = a.abs() > 1e-12
-        f = 1.0 / torch.where(ok, a, torch.ones_like(a))
-        s_vec = -a0  # ray origin (camera centre) minus v0
-        bu = f * (s_vec * h).sum(-1)
-        q = torch.linalg.cross(s_vec, a1, dim=-1)
-        bv = f * (d * q).sum(-1)
-        s = f * (a2 * q).sum(-1)
-        hit = ok & (bu >= 0) & (bv >= 0) & (bu + bv <= 1) & (s > 1e-6) & (s < 1.0 - depth_tolerance)
-        hidden = torch.zeros(pts.shape[1], dtype=torch.bool).index_put((k_idx[hit],), torch.ones((), dtype=torch.bool))
-        out[i] = inside[i] & front & ~hidden
-    return out
+    tri = verts_cam.to(dt)[:, faces]  # (B, F, 3, 3)
+    v0, e1, e2 = tri[:, :, 0], tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+    n = torch.linalg.cross(e1, e2, dim=-1)
+    front = (n[:, point_faces] * v0[:, point_faces]).sum(-1) < 0  # (B, K)
+    # Candidate pairs: triangles partly nearer than the point whose projected box contains it
+    # (triangles reaching behind the camera plane have unbounded boxes and are always candidates).
+    tz = tri[..., 2]
+    tu = cam.fx * tri[..., 0] / tz.clamp(min=1e-6) + cam.cx
+    tv = cam.fy * tri[..., 1] / tz.clamp(min=1e-6) + cam.cy
+    unbounded = (tz <= 1e-6).any(-1).unsqueeze(1)  # (B, 1, F)
+    uu, vv = u.unsqueeze(-1), v.unsqueeze(-1)  # (B, K, 1)
+    in_box = (
+        (tu.amin(-1).unsqueeze(1) <= uu + 1e-6)
+        & (tu.amax(-1).unsqueeze(1) >= uu - 1e-6)
+        & (tv.amin(-1).unsqueeze(1) <= vv + 1e-6)
+        & (tv.amax(-1).unsqueeze(1) >= vv - 1e-6)
+    )
+    nearer = tz.amin(-1).unsqueeze(1) < z.unsqueeze(-1) * (1.0 - depth_tolerance)
+    b_idx, k_idx, f_idx = torch.nonzero(nearer & (in_box | unbounded), as_tuple=True)
+    # Moller-Trumbore on the candidate pairs; the ray is s * X, the point itself at s = 1.
+    d = pts[b_idx, k_idx]
+    a0, a1, a2 = v0[b_idx, f_idx], e1[b_idx, f_idx], e2[b_idx, f_idx]
+    h = torch.linalg.cross(d, a2, dim=-1)
+    a = (a1 * h).sum(-1)
+    ok = a.abs() > 1e-12
+    f = 1.0 / torch.where(ok, a, torch.ones_like(a))
+    s_vec = -a0  # ray origin (camera centre) minus v0
+    bu = f * (s_vec * h).sum(-1)
+    q = torch.linalg.cross(s_vec, a1, dim=-1)
+    bv = f * (d * q).sum(-1)
+    s = f * (a2 * q).sum(-1)
+    hit = ok & (bu >= 0) & (bv >= 0) & (bu + bv <= 1) & (s > 1e-6) & (s < 1.0 - depth_tolerance)
+    hidden = torch.zeros(b, pts.shape[1], dtype=torch.bool, device=pts.device)
+    hidden[b_idx[hit], k_idx[hit]] = True
+    return inside & front & ~hidden
 
 
 def _resolve(spec: SequenceSpec) -> tuple[Subject, Tensor]:
@@ -335,7 +336,7 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         face_pixels = (mask[:, 0] > 0.5).flatten(1).sum(1)
         # Ground-truth geometry in float64 from the same parameters.
         verts64 = subject.deform(shape.to(torch.float64).expand(b, -1), spec.anim[idx].to(torch.float64), b)
-        lm3d = subject.landmarks_3d(verts64.to(torch.float64))
+        lm3d = subject.landmarks_3d(verts64)
         R64, t64 = spec.rotation[idx].to(torch.float64), spec.translation[idx].to(torch.float64)
         lm_cam = transform_points(R64, t64, lm3d)
         lm_px = project_points(lm_cam, cam)

@@ -107,12 +107,17 @@ class Subject:
         return int(self.animation_units.shape[0])
 
     def deform(self, shape_coeffs: Tensor | None, anim_coeffs: Tensor | None, batch: int) -> Tensor:
-        """``(B, S)`` and ``(B, A)`` coefficients (``None`` = zeros) -> ``(B, V, 3)`` vertices (Eq. 1)."""
-        verts = self.mean.unsqueeze(0).expand(batch, -1, -1)
+        """``(B, S)`` and ``(B, A)`` coefficients (``None`` = zeros) -> ``(B, V, 3)`` vertices (Eq. 1).
+
+        Computed in the coefficients' dtype (the model's when both are ``None``).
+        """
+        given = [c for c in (shape_coeffs, anim_coeffs) if c is not None]
+        dt = given[0].dtype if given else self.mean.dtype
+        verts = self.mean.to(dt).unsqueeze(0).expand(batch, -1, -1)
         if shape_coeffs is not None and self.num_shape:
-            verts = verts + torch.einsum("bs,svc->bvc", shape_coeffs.to(self.mean), self.shape_units)
+            verts = verts + torch.einsum("bs,svc->bvc", shape_coeffs.to(dt), self.shape_units.to(dt))
         if anim_coeffs is not None and self.num_animation:
-            verts = verts + torch.einsum("ba,avc->bvc", anim_coeffs.to(self.mean), self.animation_units)
+            verts = verts + torch.einsum("ba,avc->bvc", anim_coeffs.to(dt), self.animation_units.to(dt))
         return verts.contiguous()
 
     def vertex_normals(self, verts: Tensor) -> Tensor:
@@ -128,7 +133,7 @@ class Subject:
     def landmarks_3d(self, verts: Tensor) -> Tensor:
         """``(B, V, 3)`` -> ``(B, K, 3)`` landmark positions."""
         corners = verts[:, self.landmark_vertices]  # (B, K, 3, 3)
-        return (self.landmark_weights.to(verts).unsqueeze(-1) * corners).sum(dim=-2)
+        return (self.landmark_weights.to(verts.dtype).unsqueeze(-1) * corners).sum(dim=-2)
 
 
 @dataclass(frozen=True)
