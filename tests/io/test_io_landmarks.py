@@ -1,0 +1,57 @@
+"""Landmark files: CSV and NPY layouts, and every way they can be wrong."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchface.io import InputError, read_landmarks
+
+
+def _points() -> np.ndarray:
+    rng = np.random.default_rng(1)
+    return rng.uniform(10, 90, size=(68, 2))
+
+
+def test_csv_with_header_and_comments(tmp_path):
+    pts = _points()
+    body = "\n".join(f"{x},{y}" for x, y in pts)
+    (tmp_path / "lm.csv").write_text("# note\nx,y\n" + body + "\n")
+    np.testing.assert_allclose(read_landmarks(tmp_path / "lm.csv", 100, 100), pts)
+
+
+def test_csv_single_row_and_npy_layouts(tmp_path):
+    pts = _points()
+    (tmp_path / "row.csv").write_text(",".join(f"{v}" for v in pts.reshape(-1)) + "\n")
+    np.testing.assert_allclose(read_landmarks(tmp_path / "row.csv", 100, 100), pts)
+    for shape in ((68, 2), (1, 68, 2), (136,)):
+        np.save(tmp_path / "lm.npy", pts.reshape(shape))
+        np.testing.assert_allclose(read_landmarks(tmp_path / "lm.npy", 100, 100), pts)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda p: p[:67], "expected 68 iBUG landmarks, got 67"),
+        (lambda p: np.vstack([p, p[:1]]), "got 69"),
+        (lambda p: np.where(np.arange(68)[:, None] == 5, np.nan, p), r"landmark\(s\) \[5\] are NaN"),
+        (lambda p: np.where(np.arange(68)[:, None] == 3, 150.0, p), "outside the 100x100 frame, e.g. point 3"),
+        (lambda p: np.where(np.arange(68)[:, None] == 0, [-3.0, 50.0], p), "point 0 at \\(-3.0, 50.0\\)"),
+    ],
+)
+def test_bad_landmarks(tmp_path, edit, message):
+    np.save(tmp_path / "lm.npy", edit(_points()))
+    with pytest.raises(InputError, match=message) as info:
+        read_landmarks(tmp_path / "lm.npy", 100, 100)
+    assert "\n" not in str(info.value)
+
+
+def test_missing_and_garbled_files(tmp_path):
+    with pytest.raises(InputError, match="no such landmarks file"):
+        read_landmarks(tmp_path / "nope.csv", 100, 100)
+    (tmp_path / "bad.csv").write_text("x,y\n1,2\nfoo,bar\n")
+    with pytest.raises(InputError, match="line 3 is not numbers"):
+        read_landmarks(tmp_path / "bad.csv", 100, 100)
+    (tmp_path / "three.csv").write_text("1,2,3\n4,5,6\n")
+    with pytest.raises(InputError, match="rows of 'x, y'"):
+        read_landmarks(tmp_path / "three.csv", 100, 100)

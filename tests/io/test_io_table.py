@@ -1,0 +1,88 @@
+"""The track CSV: OpenFace Euler angles, column layout, flushed partial file, truncated-row recovery."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.geometry.so3 import axis_angle_to_matrix
+from torchface.io import InputError, TrackCsvWriter, openface_euler, read_track_csv, track_columns
+from torchface.io.table import column_name
+
+
+def _rx(a):
+    c, s = math.cos(a), math.sin(a)
+    return torch.tensor([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=torch.float64)
+
+
+def _ry(a):
+    c, s = math.cos(a), math.sin(a)
+    return torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+
+
+def _rz(a):
+    c, s = math.cos(a), math.sin(a)
+    return torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64)
+
+
+def test_openface_euler_known_answers():
+    rng = np.random.default_rng(3)
+    angles = rng.uniform([-3, -1.5, -3], [3, 1.5, 3], size=(50, 3))
+    R = torch.stack([_rx(a) @ _ry(b) @ _rz(c) for a, b, c in angles])
+    torch.testing.assert_close(openface_euler(R), torch.from_numpy(angles), atol=1e-9, rtol=0)
+    # Single-axis signs: Rx only, Ry only, Rz only.
+    for k, f in enumerate((_rx, _ry, _rz)):
+        out = openface_euler(f(0.3)[None])[0]
+        torch.testing.assert_close(out, torch.eye(3, dtype=torch.float64)[k] * 0.3)
+
+
+def test_openface_euler_gimbal_lock_reconstructs_the_rotation():
+    R = (_rx(0.4) @ _ry(math.pi / 2) @ _rz(0.1))[None]
+    a, b, c = openface_euler(R)[0].tolist()
+    torch.testing.assert_close(_rx(a) @ _ry(b) @ _rz(c), R[0], atol=1e-7, rtol=0)
+
+
+def test_columns_and_names():
+    cols = track_columns(("AUV11 Jaw drop", "AUV2 Lip stretcher"), ("AU26", "AU20"), ("gain", "light_x"))
+    assert cols[:4] == ("frame", "timestamp", "success", "confidence")
+    assert "pose_Rx" in cols and "r22" in cols and "AU26_r" in cols
+    assert "anim_AUV11_jaw_drop" in cols and "illum_light_x" in cols
+    assert column_name("anim", "AUV0 Upper lip raiser") == "anim_AUV0_upper_lip_raiser"
+    with pytest.raises(ValueError, match="collide"):
+        track_columns(("a b", "a-b"), (), ())
+
+
+def test_writer_partial_then_final(tmp_path):
+    cols = ("frame", "timestamp", "success", "confidence", "x")
+    w = TrackCsvWriter(tmp_path / "v.csv", cols)
+    w.write(np.array([[0, 0.0, 1, 0.5, 1.25], [1, 0.04, 1, 0.6, math.nan]]))
+    assert (tmp_path / "v.csv.partial").is_file() and not (tmp_path / "v.csv").exists()
+    c, rows = read_track_csv(tmp_path / "v.csv.partial")  # flushed: readable while open
+    assert c == cols and rows.shape == (2, 5) and rows[0, 4] == 1.25 and math.isnan(rows[1, 4])
+    w.close()
+    assert (tmp_path / "v.csv").is_file() and not (tmp_path / "v.csv.partial").exists()
+
+
+def test_resume_drops_a_cut_row_and_appends(tmp_path):
+    cols = ("frame", "timestamp", "success", "confidence")
+    part = tmp_path / "v.csv.partial"
+    part.write_text("frame,timestamp,success,confidence\n0,0.000,1,0.9\n1,0.040,1,0.8\n2,0.08")
+    w = TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
+    assert w.rows_done == 2 and w.previous.shape == (2, 4)
+    w.write(np.array([[2, 0.08, 1, 0.7]]))
+    w.close()
+    _, rows = read_track_csv(tmp_path / "v.csv")
+    np.testing.assert_allclose(rows[:, 0], [0, 1, 2])
+    (tmp_path / "w.csv.partial").write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="columns differ"):
+        TrackCsvWriter(tmp_path / "w.csv", cols, resume=True)
+
+
+def test_rotation_columns_match_axis_angle():
+    aa = torch.tensor([[0.1, -0.2, 0.3]], dtype=torch.float64)
+    R = axis_angle_to_matrix(aa)
+    a, b, c = openface_euler(R)[0].tolist()
+    torch.testing.assert_close(_rx(a) @ _ry(b) @ _rz(c), R[0])

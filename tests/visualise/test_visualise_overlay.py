@@ -1,0 +1,57 @@
+"""Overlay geometry and drawing, and the summary plot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.model import load_candide3
+from torchface.visualise import AXIS_LENGTH_MM, draw_overlay, mesh_edges, overlay_geometry, plot_track
+
+
+def test_mesh_edges_against_brute_force():
+    faces = load_candide3().faces
+    ref = {tuple(sorted((int(f[i]), int(f[(i + 1) % 3])))) for f in faces for i in range(3)}
+    edges = mesh_edges(faces)
+    assert {tuple(e) for e in edges.tolist()} == ref and len(edges) == len(ref)
+    with pytest.raises(ValueError, match=r"\(F, 3\)"):
+        mesh_edges(torch.zeros(4, 2, dtype=torch.long))
+
+
+def test_overlay_geometry_known_answer():
+    model = load_candide3()
+    intr = Intrinsics.default(320, 240)
+    R = torch.eye(3).expand(2, 3, 3)
+    t = torch.tensor([[0.0, 0.0, 500.0], [10.0, 0.0, 400.0]])
+    verts_px, axes_px = overlay_geometry(model, torch.zeros(2, model.num_shape), torch.zeros(2, model.num_animation), R, t, intr)
+    assert verts_px.shape == (2, model.num_vertices, 2) and axes_px.shape == (2, 4, 2)
+    f = intr.fx
+    torch.testing.assert_close(axes_px[0, 0], torch.tensor([intr.cx, intr.cy]))
+    torch.testing.assert_close(axes_px[0, 1], torch.tensor([intr.cx + f * AXIS_LENGTH_MM / 500.0, intr.cy]))
+    torch.testing.assert_close(axes_px[1, 0], torch.tensor([intr.cx + f * 10.0 / 400.0, intr.cy]))
+
+
+def test_draw_overlay_draws_and_keeps_input():
+    img = np.zeros((120, 160, 3), np.uint8)
+    verts = np.array([[20.0, 20.0], [140.0, 20.0], [80.0, 100.0], [np.nan, 5.0]])
+    edges = np.array([[0, 1], [1, 2], [2, 0], [0, 3]])
+    axes = np.array([[80.0, 60.0], [120.0, 60.0], [80.0, 100.0], [1e9, -1e9]])
+    out = draw_overlay(img, verts, edges, axes, 0.75, True, "#3")
+    assert out.shape == img.shape and out.dtype == np.uint8 and img.max() == 0
+    assert out[20, 80].any()  # on the top edge
+    assert out[60, 100, 2] > 100  # red x axis (BGR)
+    with pytest.raises(ValueError, match="uint8"):
+        draw_overlay(img.astype(np.float32), verts, edges, axes, 0.5, True)
+
+
+def test_plot_track_writes_png(tmp_path):
+    cols = ("frame", "timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r", "AU2_r")
+    T = 20
+    rows = np.column_stack([np.arange(T), np.arange(T) / 25, np.arange(T) % 7 != 3, np.linspace(0, 1, T),
+                            np.sin(np.arange(T)), np.zeros(T), np.zeros(T), np.linspace(0, 1, T), np.zeros(T)])  # fmt: skip
+    p = plot_track(cols, rows, tmp_path / "plot.png", title="t")
+    assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.partial*"))
+    with pytest.raises(ValueError, match="yaw_deg"):
+        plot_track(("frame", "timestamp"), np.zeros((2, 2)), tmp_path / "x.png")
