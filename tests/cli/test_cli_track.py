@@ -1,0 +1,230 @@
+"""``torchface track`` end to end on a small rendered clip: pose against ground truth, every bad input, resume."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchface.cli import build_parser, main
+from torchface.geometry.so3 import geodesic_angle_deg
+from torchface.io import read_track_csv
+from torchface.io.table import openface_euler
+from torchface.job import JobConfig, output_paths, track_videos
+from torchface.synth.io import read_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+
+T, W, H = 12, 160, 120
+NAME = "expressions"  # CANDIDE-3 textured from a photo, moderate head motion (to 15 deg), one AU after another
+#: Tracker tolerance on this clip (small, 160x120): geodesic rotation error per frame and
+#: translation error (depth dominates at this resolution).
+MAX_ROT_DEG = 6.0
+MAX_TRANS_MM = 15.0
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    root = tmp_path_factory.mktemp("clip")
+    files = write_sequence(make_scenario(NAME, T, W, H), root)
+    gt = load_ground_truth(files.ground_truth)
+    lm = root / "first_frame.csv"
+    np.savetxt(lm, gt.landmarks_px[0].numpy(), delimiter=",", header="x,y", comments="")
+    return files.video, lm, gt
+
+
+@pytest.fixture(scope="module")
+def full_run(clip, tmp_path_factory):
+    video, lm, _ = clip
+    out = tmp_path_factory.mktemp("out")
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet"])
+    return rc, out
+
+
+def _pose(csv):
+    cols, rows = read_track_csv(csv)
+    R = torch.from_numpy(rows[:, [cols.index(f"r{i}{j}") for i in range(3) for j in range(3)]]).reshape(-1, 3, 3)
+    t = rows[:, [cols.index(c) for c in ("pose_Tx", "pose_Ty", "pose_Tz")]]
+    return cols, rows, R, t
+
+
+def test_track_end_to_end_pose_against_ground_truth(clip, full_run):
+    _, _, gt = clip
+    rc, out = full_run
+    assert rc == 0
+    paths = output_paths(out, NAME)
+    cols, rows, R, t = _pose(paths["csv"])
+    assert rows.shape[0] == T and np.array_equal(rows[:, 0], np.arange(T))
+    np.testing.assert_allclose(rows[:, cols.index("timestamp")], np.arange(T) / gt.fps, atol=1e-3)
+    rot_err = geodesic_angle_deg(R, gt.rotation)
+    assert float(rot_err.max()) < MAX_ROT_DEG, rot_err
+    trans_err = np.linalg.norm(t - gt.translation.numpy(), axis=1)
+    assert trans_err.max() < MAX_TRANS_MM, trans_err
+    assert rows[:, cols.index("success")].all()
+    # OpenFace angles and yaw/pitch/roll columns describe the same matrix.
+    rx, ry, rz = (rows[:, cols.index(c)] for c in ("pose_Rx", "pose_Ry", "pose_Rz"))
+    np.testing.assert_allclose(np.stack([rx, ry, rz], 1), openface_euler(R).numpy(), atol=1e-6)
+    ypr = rows[:, [cols.index(c) for c in ("yaw_deg", "pitch_deg", "roll_deg")]]
+    assert np.abs(ypr - gt.ypr_deg.numpy()).max() < MAX_ROT_DEG
+    for c in ("AU26_r", "anim_AUV11_jaw_drop", "illum_gain"):
+        assert c in cols
+
+
+def test_track_writes_every_output(full_run):
+    rc, out = full_run
+    paths = output_paths(out, NAME)
+    side = json.loads(paths["json"].read_text())
+    assert side["frames"] == T and side["lost_frames"] == [] and side["camera"]["fx"] == max(W, H)
+    assert side["versions"]["torch"] and side["config"]["tracker"]["num_levels"] >= 1
+    assert side["timings_s"]["fps"] > 0 and side["model"]["name"] == "CANDIDE-3"
+    assert read_video(paths["overlay"]).shape == (T, 3, H, W)
+    assert read_video(paths["normalised"]).shape == (T, 3, 128, 128)
+    assert paths["plot"].read_bytes()[:4] == b"\x89PNG"
+    assert not [p for p in out.iterdir() if "partial" in p.name]
+
+
+def _assert_clean_failure(rc, capsys, out, message):
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert err.startswith("torchface: error:") and "\n" not in err, err
+    assert message in err, err
+    if out.exists():
+        done = [p.name for p in out.iterdir() if p.suffix in (".csv", ".json", ".mp4", ".png")]
+        assert done == [], done
+
+
+def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
+    video, lm, _ = clip
+    out = tmp_path / "out"
+    pts = np.loadtxt(lm, delimiter=",", skiprows=1)
+
+    def run(*args):
+        return main(["track", *map(str, args), "--out", str(out), "--quiet"])
+
+    _assert_clean_failure(run(tmp_path / "nope.mp4", "--landmarks", lm), capsys, out, "no such file")
+    (tmp_path / "corrupt.mp4").write_bytes(b"not a video" * 50)
+    _assert_clean_failure(run(tmp_path / "corrupt.mp4", "--landmarks", lm), capsys, out, "corrupt")
+    np.save(tmp_path / "empty.npy", np.zeros((0, H, W, 3), np.uint8))
+    _assert_clean_failure(run(tmp_path / "empty.npy", "--landmarks", lm), capsys, out, "zero frames")
+    np.savetxt(tmp_path / "lm67.csv", pts[:67], delimiter=",")
+    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm67.csv"), capsys, out, "expected 68 iBUG landmarks, got 67")
+    nan = pts.copy()
+    nan[30] = np.nan
+    np.save(tmp_path / "lm_nan.npy", nan)
+    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_nan.npy"), capsys, out, "NaN")
+    far = pts + [W, 0]
+    np.save(tmp_path / "lm_far.npy", far)
+    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_far.npy"), capsys, out, "outside the 160x120 frame")
+    _assert_clean_failure(run(video), capsys, out, "--landmarks FILE")
+    _assert_clean_failure(run(video, video, "--landmarks", lm), capsys, out, "one landmarks file per video")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(blocker / "sub"), "--quiet"])
+    _assert_clean_failure(rc, capsys, blocker / "sub", "cannot create the output folder")
+    _assert_clean_failure(
+        main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--focal", "-5", "--quiet"]),
+        capsys, out, "focal must be positive",
+    )  # fmt: skip
+
+
+def test_unavailable_detector_names_the_install_command(clip, tmp_path, capsys):
+    pytest.importorskip("torch")
+    try:
+        import dlib  # noqa: F401
+
+        pytest.skip("dlib is installed here")
+    except ImportError:
+        pass
+    video, _, _ = clip
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "dlib", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "o", 'pip install "torchface[detect]"')
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "nope", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "o", "unknown detector")
+
+
+def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
+    video, lm, _ = clip
+    frames = read_video(video, max_frames=3)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        img = (f.permute(1, 2, 0).flip(-1).numpy() * 255).round().astype(np.uint8)
+        if i == 2:
+            img = img[:-8]
+        cv2.imwrite(str(folder / f"{i:03d}.png"), img)
+    out = tmp_path / "out"
+    rc = main(["track", str(folder), "--out", str(out), "--landmarks", str(lm), "--quiet"])
+    _assert_clean_failure(rc, capsys, out, "frame 2 is 160x112 but the video started at 160x120")
+    assert (out / "frames.csv.partial").is_file()  # the rows tracked so far are kept for --resume
+
+
+def test_gray_16_bit_odd_size_input_is_tracked(clip, tmp_path, capsys):
+    video, lm, _ = clip
+    frames = read_video(video, max_frames=3)[:, :, : H - 1, : W - 1]  # 159x119
+    gray16 = (frames.mean(1) * 65535).round().numpy().astype(np.uint16)  # (T, H, W)
+    np.save(tmp_path / "gray16.npy", gray16)
+    out = tmp_path / "out"
+    assert main(["track", str(tmp_path / "gray16.npy"), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0
+    cols, rows = read_track_csv(out / "gray16.csv")
+    assert rows.shape[0] == 3 and rows[:, cols.index("success")].all()
+    side = json.loads((out / "gray16.json").read_text())
+    assert side["input"]["format"] == "uint16 gray" and side["input"]["width"] == W - 1
+    assert "1 lost" not in capsys.readouterr().out
+
+
+def test_resume_after_interruption(clip, full_run, tmp_path):
+    video, lm, _ = clip
+    _, full_out = full_run
+    out = tmp_path / "out"
+    stop_at = 5
+
+    def interrupt(p):
+        if p.done == stop_at:
+            raise KeyboardInterrupt
+
+    config = JobConfig(out_dir=out, landmarks=(lm,))
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], config, progress=interrupt)
+    paths = output_paths(out, NAME)
+    assert not paths["csv"].exists() and not paths["json"].exists() and not paths["overlay"].exists()
+    assert not list(out.glob("*.partial.mp4"))
+    _, kept = read_track_csv(out / f"{NAME}.csv.partial")
+    assert kept.shape[0] == stop_at
+    # Cut the last row in half, as a kill mid-write would.
+    part = out / f"{NAME}.csv.partial"
+    text = part.read_text()
+    part.write_text(text[: len(text) - 40])
+    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+    cols, rows, R, t = _pose(paths["csv"])
+    _, ref_rows, R_ref, t_ref = _pose(output_paths(full_out, NAME)["csv"])
+    assert rows.shape[0] == T and np.array_equal(rows[:, 0], np.arange(T))
+    np.testing.assert_array_equal(rows[: stop_at - 1], kept[: stop_at - 1])
+    assert float(geodesic_angle_deg(R, R_ref).max()) < 0.5
+    assert np.abs(t - t_ref).max() < 2.0
+    assert read_video(paths["overlay"]).shape[0] == T
+    assert json.loads(paths["json"].read_text())["frames"] == T
+    # A complete video is skipped by --resume.
+    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+
+
+def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
+    import torchface.job
+
+    def boom(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.job, "track_videos", boom)
+    assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 130
+    assert "--resume" in capsys.readouterr().err
+
+
+def test_parser_defaults():
+    args = build_parser().parse_args(["demo"])
+    assert args.out.name == "torchface-demo"
+    args = build_parser().parse_args(["track", "a.mp4", "--out", "o", "--landmarks", "l.csv", "--focal", "500"])
+    assert args.focal == 500.0 and args.landmarks[0].name == "l.csv" and not args.resume
+    assert math.isfinite(args.focal)
