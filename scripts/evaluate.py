@@ -21,6 +21,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -34,12 +35,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import torchface
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.solver.robust import RobustKind
 from torchface.synth.metrics import LOST_THRESHOLD_DEG, SequenceMetrics, relative_rotation_error_deg, sequence_metrics
 from torchface.synth.scenarios import SCENARIOS, make_scenario, scenario_size
-from torchface.synth.sequence import GroundTruth, load_ground_truth, render_sequence, write_sequence
+from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_truth, render_sequence, write_sequence
 from torchface.tracker.step import TrackerConfig, initialise, track_step
 
 #: Ablation name -> how it changes the full configuration.
@@ -101,6 +103,24 @@ def _to_uint8(frames: Tensor) -> Tensor:
     return (frames.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
 
 
+def spec_fingerprint(spec: SequenceSpec) -> str:
+    """Hash of the sequence's specification and of the code and data that render it.
+
+    A cached sequence is reused only while this matches, so a change to the scenarios, the renderer or the
+    packaged subjects re-renders it instead of scoring the tracker against stale frames.
+    """
+    h = hashlib.sha256(repr(spec).encode())
+    for field_name in ("rotation", "translation", "anim"):
+        h.update(getattr(spec, field_name).detach().cpu().to(torch.float64).numpy().tobytes())
+    root = Path(torchface.__file__).parent
+    sources = sorted((root / "synth").glob("*.py")) + sorted((root / "rendering").glob("*.py"))
+    data = sorted(p for p in (root / "data").rglob("*") if p.is_file())
+    for path in sources + data:
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
 def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Path | None) -> Sequence:
     """Read the scenario from ``cache`` or render it there first (in memory when ``cache`` is None)."""
     spec = make_scenario(name, num_frames, width, height)
@@ -112,14 +132,17 @@ def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Pa
     folder = cache / f"{name}_{width}x{height}_{num_frames}f"
     video = folder / f"{name}.avi"
     gt_path = folder / f"{name}.gt.npz"
-    if video.is_file() and gt_path.is_file():
+    stamp = folder / f"{name}.fingerprint"
+    fingerprint = spec_fingerprint(spec)
+    if video.is_file() and gt_path.is_file() and stamp.is_file() and stamp.read_text().strip() == fingerprint:
         gt = load_ground_truth(gt_path)
         frames = _read_video_uint8(video)
         size_ok = tuple(frames.shape[-2:]) == (height, width)
         if frames.shape[0] == num_frames and gt.num_frames == num_frames and size_ok:
             log(f"{name}: loaded {num_frames} frames {width}x{height} from {folder}")
             return Sequence(frames, gt)
-        log(f"{name}: cache at {folder} does not match ({frames.shape[0]} frames); rendering again")
+    if video.is_file():
+        log(f"{name}: cache at {folder} is stale (scenario or renderer changed); rendering again")
     start = time.perf_counter()
 
     def progress(done: int, total: int) -> None:
@@ -127,7 +150,9 @@ def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Pa
             rate = done / max(time.perf_counter() - start, 1e-9)
             log(f"{name}: rendered {done}/{total} frames ({rate:.1f} fps)")
 
+    stamp.unlink(missing_ok=True)
     files = write_sequence(spec, folder, progress=progress)
+    stamp.write_text(fingerprint + "\n")
     log(f"{name}: wrote {files.video} ({files.codec.strip()}) in {time.perf_counter() - start:.1f} s")
     return Sequence(_read_video_uint8(files.video), load_ground_truth(files.ground_truth))
 
