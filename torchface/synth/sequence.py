@@ -15,7 +15,8 @@ Image formation per frame (all batched over frames):
 Ground-truth landmarks are the subject's 68 iBUG landmarks (fixed barycentric combinations of
 vertices, so they follow the expression), projected with the ground-truth pose. Visibility is exact,
 not pixel-sampled (:func:`landmark_visibility`): a landmark is visible when it projects inside the
-image, its triangle faces the camera, no triangle crosses the segment from the camera centre to it
+image, it faces the camera (its triangle does, or its smooth interpolated normal does up to ~6
+degrees past grazing), no triangle crosses the segment from the camera centre to it
 before ``(1 - 1e-2)`` of its depth (the tolerance of
 :func:`~torchface.rendering.visibility.points_visible`), and the occluder does not cover its pixel.
 """
@@ -230,12 +231,16 @@ def landmark_visibility(
     point_faces: Tensor,
     intrinsics: Intrinsics,
     depth_tolerance: float = 1e-2,
+    point_normals: Tensor | None = None,
+    grazing_tolerance: float = 0.1,
 ) -> Tensor:
     """Exact self-occlusion test of surface points by ray casting against every triangle.
 
     Point ``X`` (on triangle ``point_faces[k]``) is visible iff its projection lies in the image
-    ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``, its triangle faces the camera (``n . v0 < 0`` with outward
-    ``n``), and no triangle meets the ray ``s X`` at ``s < 1 - depth_tolerance`` (Moller-Trumbore
+    ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``, it faces the camera, and no triangle meets the ray ``s X``
+    at ``s < 1 - depth_tolerance``. Facing: its triangle's outward normal gives ``n . v0 < 0``, or, with
+    ``point_normals`` (smooth outward normals at the points), ``n . X / |X| < grazing_tolerance`` (a
+    silhouette point on a noisy scan stays visible up to ~6 degrees past grazing). (Moller-Trumbore
     intersection with the ray from the camera centre through ``X``; the point's own and adjacent
     triangles meet it at ``s = 1``). Vectorised over samples, points and the (point, triangle) pairs
     that survive a projected bounding-box and depth test.
@@ -247,6 +252,8 @@ def landmark_visibility(
         point_faces: ``(K,)`` triangle of each point.
         intrinsics: the camera.
         depth_tolerance: relative depth below which an intersection does not hide the point.
+        point_normals: ``(B, K, 3)`` unit outward normals at the points (camera frame), optional.
+        grazing_tolerance: cosine past grazing still counted as facing (with ``point_normals``).
 
     Returns:
         ``(B, K)`` bool.
@@ -263,6 +270,9 @@ def landmark_visibility(
     v0, e1, e2 = tri[:, :, 0], tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
     n = torch.linalg.cross(e1, e2, dim=-1)
     front = (n[:, point_faces] * v0[:, point_faces]).sum(-1) < 0  # (B, K)
+    if point_normals is not None:
+        view = pts / pts.norm(dim=-1, keepdim=True).clamp(min=1e-9)
+        front = front | ((point_normals.to(dt) * view).sum(-1) < grazing_tolerance)
     # Candidate pairs: triangles partly nearer than the point whose projected box contains it
     # (triangles reaching behind the camera plane have unbounded boxes and are always candidates).
     tz = tri[..., 2]
@@ -340,7 +350,9 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         R64, t64 = spec.rotation[idx].to(torch.float64), spec.translation[idx].to(torch.float64)
         lm_cam = transform_points(R64, t64, lm3d)
         lm_px = project_points(lm_cam, cam)
-        visible = landmark_visibility(verts_cam, subject.faces, lm_cam, subject.landmark_faces, cam)
+        lm_normals = subject.landmarks_3d(normals_cam.to(torch.float64))
+        lm_normals = lm_normals / lm_normals.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        visible = landmark_visibility(verts_cam, subject.faces, lm_cam, subject.landmark_faces, cam, point_normals=lm_normals)
         occ_on = torch.zeros(b, dtype=torch.bool)
         occ_frac = torch.zeros(b, dtype=torch.float64)
         if spec.occluder is not None and bool(spec.occluder.active(idx).any()):
