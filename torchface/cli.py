@@ -85,13 +85,17 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--quiet", action="store_true", help="no progress bars")
 
     demo = sub.add_parser("demo", help="track the embedded sample clip and write everything to ./torchface-demo/")
-    demo.add_argument("--out", type=Path, default=Path("torchface-demo"), help="output folder (default ./torchface-demo)")
+    demo.add_argument(
+        "--out", type=Path, default=Path("torchface-demo"), help="output folder (default ./torchface-demo)"
+    )
     demo.add_argument("--device", default="cpu", help="torch device (default cpu)")
     demo.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
 
     render = sub.add_parser("render-demo", help="render a short synthetic sequence with ground truth")
-    render.add_argument("--out", type=Path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)")
+    render.add_argument(
+        "--out", type=Path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)"
+    )
     render.add_argument("--scenario", default="pose_sweep", help="scenario name (default pose_sweep)")
     render.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
     render.add_argument("--width", type=int, default=320, help="frame width (default 320)")

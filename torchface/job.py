@@ -306,7 +306,9 @@ def track_videos(
 
         detector = load_detector(config.detector)
     elif not config.landmarks:
-        raise InputError("no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME")
+        raise InputError(
+            "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"
+        )
     out_dir = Path(config.out_dir)
     _check_out_dir(out_dir)
     summaries: dict[str, VideoSummary] = {}
@@ -320,7 +322,8 @@ def track_videos(
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
             outs = tuple(p for p in paths.values() if p.exists())
-            summaries[str(v)] = VideoSummary(name, v, outs, len(rows), lost, float(conf.mean()) if len(conf) else 0.0, 0.0, True)
+            mean = float(conf.mean()) if len(conf) else 0.0
+            summaries[str(v)] = VideoSummary(name, v, outs, len(rows), lost, mean, 0.0, True)
             continue
         pending.append(v)
         if config.landmarks:
@@ -360,6 +363,10 @@ def _track_group(
     paths = [output_paths(out_dir, s.name) for s in streams]
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
+    if not config.resume:  # a fresh run: earlier complete outputs of these videos must not outlive it
+        for p in paths:
+            for kind in ("json", "csv", "overlay", "plot", "normalised"):
+                p[kind].unlink(missing_ok=True)
     try:
         for s, p in zip(streams, paths):
             s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
@@ -385,7 +392,7 @@ def _track_group(
                 state = replace(state, params=params)
             new_rows = result_rows(result, np.full(B, t), 1.0)
             _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
-                        normaliser, layout, mesh_tmp if config.meshes else None)  # fmt: skip
+                        normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below)  # fmt: skip
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout)
             if progress is not None:
@@ -437,16 +444,20 @@ def _track_group(
         fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0
         sidecar = {
             "torchface_output": 1,
-            "input": {"path": str(s.reader.info.path), "kind": s.reader.info.kind, "format": s.reader.info.source_format,
-                      "width": W, "height": H, "fps": s.reader.info.fps},  # fmt: skip
+            "input": {
+                "path": str(s.reader.info.path), "kind": s.reader.info.kind, "format": s.reader.info.source_format,
+                "width": W, "height": H, "fps": s.reader.info.fps,
+            },  # fmt: skip
             "versions": package_versions(),
             "config": {
                 "tracker": config.tracker, "device": config.device, "focal": config.focal, "detector": config.detector,
                 "landmarks": s.landmarks_source, "resume": config.resume, "batch_streams": B,
                 "normalised_size": G, "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
             },  # fmt: skip
-            "camera": {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
-                       "frame": "OpenCV: x right, y down, z forward; millimetres"},  # fmt: skip
+            "camera": {
+                "width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                "frame": "OpenCV: x right, y down, z forward; millimetres",
+            },  # fmt: skip
             "model": {"name": "CANDIDE-3", "vertices": model.num_vertices, "triangles": model.num_faces,
                       "animation_units": list(model.animation_names), "facs": list(model.facs_names),
                       "shape_units": model.num_shape,
@@ -475,7 +486,7 @@ def _illumination_names() -> tuple[str, ...]:
 def _write_step(
     model: FaceModel, state: TrackerState, result, frames: Tensor, streams: list[_Stream], replaying: list[bool],
     columns: tuple[str, ...], rows: np.ndarray, t: int, intr: Intrinsics, edges: np.ndarray,
-    normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None,
+    normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
 ) -> None:
     """Write frame ``t`` of every live stream: its CSV row (unless replayed), overlay, normalised face, mesh."""
     live = [not s.done for s in streams]
@@ -503,7 +514,7 @@ def _write_step(
         s.confidences.append(conf)
         if not ok:
             s.lost.append(t)
-        s.low_count = 0 if conf >= 0.15 else s.low_count + 1
+        s.low_count = 0 if conf >= redetect_below else s.low_count + 1
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
         s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}"))
         s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))

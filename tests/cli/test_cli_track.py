@@ -111,7 +111,8 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
     np.save(tmp_path / "empty.npy", np.zeros((0, H, W, 3), np.uint8))
     _assert_clean_failure(run(tmp_path / "empty.npy", "--landmarks", lm), capsys, out, "zero frames")
     np.savetxt(tmp_path / "lm67.csv", pts[:67], delimiter=",")
-    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm67.csv"), capsys, out, "expected 68 iBUG landmarks, got 67")
+    rc = run(video, "--landmarks", tmp_path / "lm67.csv")
+    _assert_clean_failure(rc, capsys, out, "expected 68 iBUG landmarks, got 67")
     nan = pts.copy()
     nan[30] = np.nan
     np.save(tmp_path / "lm_nan.npy", nan)
@@ -179,36 +180,38 @@ def test_gray_16_bit_odd_size_input_is_tracked(clip, tmp_path, capsys):
 def test_resume_after_interruption(clip, full_run, tmp_path):
     video, lm, _ = clip
     _, full_out = full_run
+    n, stop_at = 6, 3  # the first 6 frames of the clip (decoded exactly: lossless), interrupted after 3
+    frames = read_video(video, max_frames=n)
+    short = tmp_path / "short.npy"
+    np.save(short, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
     out = tmp_path / "out"
-    stop_at = 5
 
     def interrupt(p):
         if p.done == stop_at:
             raise KeyboardInterrupt
 
-    config = JobConfig(out_dir=out, landmarks=(lm,))
     with pytest.raises(KeyboardInterrupt):
-        track_videos([video], config, progress=interrupt)
-    paths = output_paths(out, NAME)
+        track_videos([short], JobConfig(out_dir=out, landmarks=(lm,)), progress=interrupt)
+    paths = output_paths(out, "short")
     assert not paths["csv"].exists() and not paths["json"].exists() and not paths["overlay"].exists()
     assert not list(out.glob("*.partial.mp4"))
-    _, kept = read_track_csv(out / f"{NAME}.csv.partial")
+    _, kept = read_track_csv(out / "short.csv.partial")
     assert kept.shape[0] == stop_at
     # Cut the last row in half, as a kill mid-write would.
-    part = out / f"{NAME}.csv.partial"
+    part = out / "short.csv.partial"
     text = part.read_text()
     part.write_text(text[: len(text) - 40])
-    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
     cols, rows, R, t = _pose(paths["csv"])
-    _, ref_rows, R_ref, t_ref = _pose(output_paths(full_out, NAME)["csv"])
-    assert rows.shape[0] == T and np.array_equal(rows[:, 0], np.arange(T))
+    _, _, R_ref, t_ref = _pose(output_paths(full_out, NAME)["csv"])
+    assert rows.shape[0] == n and np.array_equal(rows[:, 0], np.arange(n))
     np.testing.assert_array_equal(rows[: stop_at - 1], kept[: stop_at - 1])
-    assert float(geodesic_angle_deg(R, R_ref).max()) < 0.5
-    assert np.abs(t - t_ref).max() < 2.0
-    assert read_video(paths["overlay"]).shape[0] == T
-    assert json.loads(paths["json"].read_text())["frames"] == T
+    assert float(geodesic_angle_deg(R, R_ref[:n]).max()) < 0.5
+    assert np.abs(t - t_ref[:n]).max() < 2.0
+    assert read_video(paths["overlay"]).shape[0] == n
+    assert json.loads(paths["json"].read_text())["frames"] == n
     # A complete video is skipped by --resume.
-    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
 
 
 def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
@@ -228,3 +231,32 @@ def test_parser_defaults():
     args = build_parser().parse_args(["track", "a.mp4", "--out", "o", "--landmarks", "l.csv", "--focal", "500"])
     assert args.focal == 500.0 and args.landmarks[0].name == "l.csv" and not args.resume
     assert math.isfinite(args.focal)
+
+
+def test_detector_initialises_and_redetects_and_meshes_are_written(clip, tmp_path, monkeypatch):
+    import trimesh
+
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=3)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    calls = []
+
+    def fake_detector(image_rgb):
+        calls.append(image_rgb.shape)
+        return gt.landmarks_px[0].numpy().astype(np.float64)
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "fake", lambda: fake_detector)
+    config = JobConfig(out_dir=tmp_path / "out", detector="fake", meshes=True, redetect_after=2, redetect_below=1.01)
+    (summary,) = track_videos([tmp_path / "short.npy"], config)
+    side = json.loads((tmp_path / "out" / "short.json").read_text())
+    assert side["config"]["landmarks"] == "detector:fake" and side["redetections"] == 1
+    assert calls[0] == (H, W, 3) and len(calls) == 2  # first frame, then after two low-confidence frames
+    meshes = sorted((tmp_path / "out" / "short_meshes").glob("*.ply"))
+    assert [m.name for m in meshes] == [f"{i:06d}.ply" for i in range(3)]
+    mesh = trimesh.load(meshes[0], process=False)
+    cols, rows, R, t = _pose(tmp_path / "out" / "short.csv")
+    # The PLY is the posed mesh in the camera frame: its centroid sits in front of the camera near the head.
+    assert mesh.vertices.shape[1] == 3 and np.linalg.norm(mesh.vertices.mean(0) - t[0]) < 100.0
+    assert summary.frames == 3

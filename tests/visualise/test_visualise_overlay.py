@@ -25,7 +25,8 @@ def test_overlay_geometry_known_answer():
     intr = Intrinsics.default(320, 240)
     R = torch.eye(3).expand(2, 3, 3)
     t = torch.tensor([[0.0, 0.0, 500.0], [10.0, 0.0, 400.0]])
-    verts_px, axes_px = overlay_geometry(model, torch.zeros(2, model.num_shape), torch.zeros(2, model.num_animation), R, t, intr)
+    shape, anim = torch.zeros(2, model.num_shape), torch.zeros(2, model.num_animation)
+    verts_px, axes_px = overlay_geometry(model, shape, anim, R, t, intr)
     assert verts_px.shape == (2, model.num_vertices, 2) and axes_px.shape == (2, 4, 2)
     f = intr.fx
     torch.testing.assert_close(axes_px[0, 0], torch.tensor([intr.cx, intr.cy]))
@@ -49,8 +50,10 @@ def test_draw_overlay_draws_and_keeps_input():
 def test_plot_track_writes_png(tmp_path):
     cols = ("frame", "timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r", "AU2_r")
     T = 20
-    rows = np.column_stack([np.arange(T), np.arange(T) / 25, np.arange(T) % 7 != 3, np.linspace(0, 1, T),
-                            np.sin(np.arange(T)), np.zeros(T), np.zeros(T), np.linspace(0, 1, T), np.zeros(T)])  # fmt: skip
+    rows = np.column_stack([
+        np.arange(T), np.arange(T) / 25, np.arange(T) % 7 != 3, np.linspace(0, 1, T),
+        np.sin(np.arange(T)), np.zeros(T), np.zeros(T), np.linspace(0, 1, T), np.zeros(T),
+    ])  # fmt: skip
     p = plot_track(cols, rows, tmp_path / "plot.png", title="t")
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.partial*"))
     with pytest.raises(ValueError, match="yaw_deg"):

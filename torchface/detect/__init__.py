@@ -30,7 +30,8 @@ class Detector(Protocol):
 
 
 def _check_image(image_rgb: np.ndarray) -> None:
-    if not isinstance(image_rgb, np.ndarray) or image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
+    ok = isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[2] == 3
+    if not ok or image_rgb.dtype != np.uint8:
         raise ValueError(
             f"image must be (H, W, 3) uint8 RGB, got {getattr(image_rgb, 'shape', type(image_rgb))} "
             f"{getattr(image_rgb, 'dtype', '')}"

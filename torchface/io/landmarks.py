@@ -65,7 +65,8 @@ def check_landmarks(points: np.ndarray, width: int, height: int, where: str) -> 
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} are NaN or infinite")
-    outside = (points[:, 0] < -0.5) | (points[:, 0] > width - 0.5) | (points[:, 1] < -0.5) | (points[:, 1] > height - 0.5)
+    u, v = points[:, 0], points[:, 1]
+    outside = (u < -0.5) | (u > width - 0.5) | (v < -0.5) | (v > height - 0.5)
     if outside.any():
         k = int(np.flatnonzero(outside)[0])
         raise InputError(

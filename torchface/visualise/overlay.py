@@ -89,6 +89,7 @@ def draw_overlay(
     bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4)))
     cv2.rectangle(out, (4, H - 10), (4 + W // 4, H - 4), (60, 60, 60), -1)
     cv2.rectangle(out, (4, H - 10), (4 + bar, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
-    cv2.putText(out, text.strip(), (4, H - 16), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    (tw, th), base = cv2.getTextSize(text.strip(), cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    cv2.rectangle(out, (2, H - 16 - th - 3), (8 + tw, H - 16 + base), (0, 0, 0), -1)
     cv2.putText(out, text.strip(), (4, H - 16), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
     return out
