@@ -201,6 +201,19 @@ def _check_out_dir(out_dir: Path) -> None:
         raise OutputError(f"{out_dir}: output folder is not writable ({exc.strerror or exc})") from None
 
 
+def _check_device(name: str) -> None:
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"unknown torch device {name!r} (expected e.g. cpu, cuda, cuda:1, mps)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} is not available: this torch build sees no CUDA GPU; use --device cpu")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"device {name!r} is not available: {torch.cuda.device_count()} CUDA device(s) here")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device {name!r} is not available here; use --device cpu")
+
+
 def _to_uint8_rgb(frame: Tensor) -> np.ndarray:
     return (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
 
@@ -309,6 +322,7 @@ def track_videos(
         raise InputError(
             "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"
         )
+    _check_device(config.device)
     out_dir = Path(config.out_dir)
     _check_out_dir(out_dir)
     summaries: dict[str, VideoSummary] = {}

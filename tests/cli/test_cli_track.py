@@ -130,6 +130,13 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
         main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--focal", "-5", "--quiet"]),
         capsys, out, "focal must be positive",
     )  # fmt: skip
+    _assert_clean_failure(
+        main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--device", "gpu0", "--quiet"]),
+        capsys, out, "unknown torch device",
+    )  # fmt: skip
+    if not torch.cuda.is_available():
+        rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--device", "cuda", "--quiet"])
+        _assert_clean_failure(rc, capsys, out, "no CUDA GPU")
 
 
 def test_unavailable_detector_names_the_install_command(clip, tmp_path, capsys):
@@ -260,3 +267,30 @@ def test_detector_initialises_and_redetects_and_meshes_are_written(clip, tmp_pat
     # The PLY is the posed mesh in the camera frame: its centroid sits in front of the camera near the head.
     assert mesh.vertices.shape[1] == 3 and np.linalg.norm(mesh.vertices.mean(0) - t[0]) < 100.0
     assert summary.frames == 3
+
+
+def test_progress_display_terminal_and_log():
+    import io
+
+    from torchface.cli import ProgressDisplay
+    from torchface.job import Progress
+
+    log = io.StringIO()
+    display = ProgressDisplay(log)
+    display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
+    display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))  # within 10 s: not repeated in a log
+    display(Progress(1, 2, "b", 10, 10, 2.0, 0.5))  # finished: always printed
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 2 and "1/10" in lines[0] and "10/10" in lines[1] and "conf 0.50" in lines[1]
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    display = ProgressDisplay(tty)
+    display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
+    display(Progress(1, 2, "b", 1, None, 2.0, 0.9))
+    display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))
+    text = tty.getvalue()
+    assert "\x1b[2F" in text and "1 frames" in text and "2/10" in text  # redraws both bars in place
