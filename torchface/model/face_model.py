@@ -16,6 +16,8 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from torchface.geometry.mesh import face_normals, vertex_normals
+
 __all__ = [
     "FaceModel",
     "deform_vertices",
@@ -114,69 +116,6 @@ def interpolate_landmarks(verts: Tensor, landmark_vertices: Tensor, landmark_wei
     """
     picked = verts[:, landmark_vertices]  # (B, K, J, 3)
     return (picked * landmark_weights.unsqueeze(-1)).sum(dim=2)
-
-
-def _face_cross(verts: Tensor, faces: Tensor) -> Tensor:
-    """``(B, F, 3)`` un-normalised face normals ``(v1 - v0) x (v2 - v0)`` (length = twice the area)."""
-    v0 = verts[:, faces[:, 0]]
-    v1 = verts[:, faces[:, 1]]
-    v2 = verts[:, faces[:, 2]]
-    return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)
-
-
-def _safe_normalize(vec: Tensor) -> Tensor:
-    """Unit vectors along the last axis; zero vectors stay zero with finite gradients."""
-    eps = torch.finfo(vec.dtype).eps
-    sq = (vec * vec).sum(dim=-1, keepdim=True)
-    return vec * torch.rsqrt(sq.clamp_min(eps * eps))
-
-
-def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
-    """Unit face normals ``n = (v1 - v0) x (v2 - v0) / |...|``.
-
-    With the outward winding of :class:`FaceModel` they point out of the head. Degenerate triangles give
-    zero vectors (no NaN, finite gradients).
-
-    Args:
-        verts: ``(B, V, 3)`` vertices.
-        faces: ``(F, 3)`` int64 triangle vertex indices.
-
-    Returns:
-        ``(B, F, 3)`` unit normals.
-
-    Example:
-        >>> v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]]])
-        >>> face_normals(v, torch.tensor([[0, 1, 2]]))
-        tensor([[[0., 0., 1.]]])
-    """
-    return _safe_normalize(_face_cross(verts, faces))
-
-
-def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
-    """Area-weighted unit vertex normals: the normalised sum of the incident faces' cross products.
-
-    Vertices that no face uses get zero vectors (no NaN, finite gradients).
-
-    Args:
-        verts: ``(B, V, 3)`` vertices.
-        faces: ``(F, 3)`` int64 triangle vertex indices.
-
-    Returns:
-        ``(B, V, 3)`` unit normals.
-
-    Example:
-        >>> v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0], [5.0, 5, 5]]])
-        >>> vertex_normals(v, torch.tensor([[0, 1, 2]]))[0]
-        tensor([[0., 0., 1.],
-                [0., 0., 1.],
-                [0., 0., 1.],
-                [0., 0., 0.]])
-    """
-    cross = _face_cross(verts, faces)  # (B, F, 3), length 2 * area
-    acc = torch.zeros_like(verts)
-    for corner in range(3):  # three scatter-adds, one per triangle corner
-        acc = acc.index_add(1, faces[:, corner], cross)
-    return _safe_normalize(acc)
 
 
 @dataclass(frozen=True, eq=False)

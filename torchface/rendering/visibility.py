@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torchface.conventions import NEAR_PLANE_MM
+from torchface.geometry import mesh
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering.rasterizer import Fragments, _check_mesh, _triangles
 
@@ -19,13 +20,6 @@ __all__ = ["face_normals", "vertex_normals", "backfacing", "points_visible"]
 
 #: Default relative depth tolerance of :func:`points_visible` (fraction of the point's depth).
 DEFAULT_DEPTH_TOLERANCE: float = 1e-2
-
-
-def _unit(vectors: Tensor) -> Tensor:
-    """Normalise ``(..., 3)`` vectors; zero vectors stay zero and have finite gradients."""
-    tiny = torch.finfo(vectors.dtype).tiny
-    norm_sq = (vectors * vectors).sum(-1, keepdim=True)
-    return vectors / norm_sq.clamp_min(tiny).sqrt()
 
 
 def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
@@ -44,9 +38,7 @@ def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
         tensor([[[0., 0., 1.]]])
     """
     _check_mesh(verts, faces)
-    tri = _triangles(verts, faces)
-    n = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
-    return _unit(n)
+    return mesh.face_normals(verts, faces.long())
 
 
 def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
@@ -68,13 +60,7 @@ def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
         tensor([1., 1., 1., 0.])
     """
     _check_mesh(verts, faces)
-    tri = _triangles(verts, faces)
-    n = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
-    faces_l = faces.long()
-    acc = torch.zeros_like(verts)
-    for corner in range(3):
-        acc = acc.index_add(1, faces_l[:, corner], n)
-    return _unit(acc)
+    return mesh.vertex_normals(verts, faces.long())
 
 
 def backfacing(verts_cam: Tensor, faces: Tensor) -> Tensor:

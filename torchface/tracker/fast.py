@@ -159,7 +159,7 @@ def solve_level(
     robust: RobustLoss | None,
     scale_floor: float = 0.02,
     damping: float = 1e-3,
-    step_tolerance: float = 1e-4,
+    step_tolerance: float | tuple[float, float, float] = (2e-4, 0.05, 2e-3),
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -178,7 +178,8 @@ def solve_level(
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
         damping: initial Levenberg damping relative to ``diag(H)``.
-        step_tolerance: converged when every increment is below this (radians, millimetres, units).
+        step_tolerance: converged when every increment is below these: rotation (radians), translation
+            (millimetres), animation and illumination coefficients (units); one float applies to all.
 
     Returns:
         The new ``R, t, alpha, light`` and a :class:`LevelOutcome`.
@@ -197,6 +198,13 @@ def solve_level(
     active = torch.ones(B, dtype=torch.bool, device=device)
     finite = torch.ones(B, dtype=torch.bool, device=device)
     lam = torch.full((B, 1, 1), damping, dtype=dtype, device=device)
+    if isinstance(step_tolerance, (int, float)):
+        step_tolerance = (float(step_tolerance),) * 3
+    tol = torch.cat([
+        torch.full((3,), step_tolerance[0], dtype=dtype, device=device),
+        torch.full((3,), step_tolerance[1], dtype=dtype, device=device),
+        torch.full((P - 6,), step_tolerance[2], dtype=dtype, device=device),
+    ])
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for _ in range(iterations):
         r, J, valid, _ = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
@@ -246,7 +254,7 @@ def solve_level(
         alpha = torch.minimum(torch.maximum(alpha + delta[:, 6 : 6 + A], alpha_lower), alpha_upper)
         light = light + delta[:, 6 + A :]
         iters = iters + active.to(torch.int64)
-        small = delta.abs().amax(-1) < step_tolerance
+        small = (delta.abs() < tol).all(-1) & step
         active = active & ~small & good
         if not bool(active.any()):
             break

@@ -31,15 +31,22 @@ class FitConfig:
         fit_expression: also estimate a starting expression (animation units, bounded by the model's ranges).
         expression_prior_precision: prior precision on the animation units when ``fit_expression``.
         max_iterations: Levenberg-Marquardt iterations.
+        refine_shape_prior_precision: when set, a second solve re-estimates the shape alone (pose and expression
+            held at the first solve's values) with this weaker prior. The first, strongly regularised solve gives
+            a pose that noisy points cannot tip; the second lets the shape move away from the mean where the
+            points ask for it, so the template's depth matches a face unlike the mean face.
     """
 
-    shape_prior_precision: float = 200.0
+    shape_prior_precision: float = 2.0
     shape_bound: float = 1.0
     fit_expression: bool = False
     expression_prior_precision: float = 200.0
     max_iterations: int = 50
+    refine_shape_prior_precision: float | None = None
 
     def __post_init__(self) -> None:
+        if self.refine_shape_prior_precision is not None and self.refine_shape_prior_precision < 0:
+            raise ValueError("refine_shape_prior_precision must be non-negative or None")
         if self.shape_prior_precision < 0 or self.expression_prior_precision < 0:
             raise ValueError("prior precisions must be non-negative")
         if not self.shape_bound > 0:
@@ -168,6 +175,18 @@ def fit_landmarks(
         prior_precision=torch.cat(prior),
     )
     x = res.params
+    if config.refine_shape_prior_precision is not None and S > 0:
+        hold = torch.ones(x.shape[1], dtype=torch.bool, device=device)
+        hold[6 : 6 + S] = False
+        lo2 = torch.where(hold, x, torch.cat(lower).expand_as(x))
+        hi2 = torch.where(hold, x, torch.cat(upper).expand_as(x))
+        prior2 = torch.cat(prior).clone()
+        prior2[6 : 6 + S] = config.refine_shape_prior_precision
+        res2 = least_squares(
+            residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
+            prior_precision=prior2,
+        )
+        x = torch.where(res2.failed.unsqueeze(-1), x, res2.params)
     r, _, valid = residual_fn(x)
     rms = (r.pow(2) * valid).sum(-1).div(w.sum(-1).clamp_min(1e-12)).sqrt()
     anim = x[:, 6 + S :] if A else torch.zeros(B, model.num_animation, dtype=dtype, device=device)

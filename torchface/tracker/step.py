@@ -66,11 +66,23 @@ class TrackerConfig:
         use_expression: estimate the animation units (else held at the initial values: the ablation).
         robust: the robust loss for external occlusion (``RobustKind.NONE`` is the ablation).
         robust_c: its tuning constant (in robust-scale units).
+        robust_scale_floor: lower bound of the robust scale (gray levels in [0, 1]) at the coarsest and at the
+            finest level (geometric in between).
+            On clean frames the residual scale is tiny, and an expression change would be rejected as an
+            outlier; a high floor at the coarse levels lets expression and light pull the estimate first, and
+            the low floor at the fine levels then rejects what no parameter explains (external occlusion): a
+            graduated non-convexity schedule.
         zbuffer_visibility: test template points against the z-buffer of the previous estimate each frame.
         expression_prior_precision: Gaussian prior pulling animation units toward zero (per squared unit).
         min_points: fewer valid points than this marks a sample FAILED.
         min_contrast: a sample whose sampled frame intensities have a standard deviation below this is FAILED
             (black or textureless frame).
+        refine_iterations: after the pose is found, iterations of a second pass at the finest level that
+            re-estimates only the animation units and the light with the robust scale floored at
+            ``refine_scale_floor`` (0 disables it). Expression change is a large, structured residual that a
+            tight robust scale rejects as an outlier; with the pose held, a loose scale lets the expression
+            follow while an occluder cannot drag the pose.
+        refine_scale_floor: the robust scale floor of that pass.
         fit: settings of the initial fit to landmarks.
         solver: :class:`TrackSolver`.
         crop_margin: the fast solver tracks inside a crop around the previous estimate's face box, enlarged
@@ -85,6 +97,9 @@ class TrackerConfig:
     use_expression: bool = True
     robust: RobustKind = RobustKind.TUKEY
     robust_c: float = 4.685
+    robust_scale_floor: tuple[float, float] = (0.1, 0.02)
+    refine_iterations: int = 3
+    refine_scale_floor: float = 0.1
     zbuffer_visibility: bool = True
     expression_prior_precision: float = 1.0
     min_points: int = 50
@@ -100,12 +115,23 @@ class TrackerConfig:
             raise ValueError(
                 f"iterations must give a positive count per level ({self.num_levels}), got {self.iterations}"
             )
+        if len(self.robust_scale_floor) != 2 or any(not f > 0 for f in self.robust_scale_floor):
+            raise ValueError(f"robust_scale_floor must be two positive floors (coarsest, finest), got {self.robust_scale_floor}")
         if self.max_points < 8:
             raise ValueError(f"max_points must be >= 8, got {self.max_points}")
         if self.gradient_threshold < 0 or self.min_contrast < 0:
             raise ValueError("gradient_threshold and min_contrast must be non-negative")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
+
+
+def scale_floor(config: TrackerConfig, level: int) -> float:
+    """The robust scale floor at pyramid ``level`` (0 = finest): geometric from coarsest to finest."""
+    coarse, fine = config.robust_scale_floor
+    if config.num_levels == 1:
+        return fine
+    f = level / (config.num_levels - 1)
+    return fine * (coarse / fine) ** f
 
 
 @dataclass(frozen=True)
@@ -344,9 +370,11 @@ def track_step(
         def residual_fn(p: Tensor, tpl=tpl, image=image, intr=intr, light_basis=light_basis, mask=mask):
             return frame_residuals(p, layout, tpl, image, intr, light_basis, mask)
 
+        floor = scale_floor(config, level)
         res = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level]),
-            lower=lower, upper=upper, prior_precision=prior, robust=robust,
+            lower=lower, upper=upper, prior_precision=prior,
+            robust=None if robust is None else RobustLoss(robust.kind, robust.c, min_scale=floor),
         )
         x = torch.where(res.failed.unsqueeze(-1), x, res.params)
         status = res.status
@@ -452,7 +480,17 @@ def _track_step_fast(
         R, t, alpha, light, out = solve_level(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[level],
             iterations=config.iterations[config.num_levels - 1 - level], free=free,
-            alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision, robust=robust,
+            alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision,
+            robust=robust, scale_floor=scale_floor(config, level),
+        )
+    if config.refine_iterations > 0 and config.use_expression:
+        only = free.clone()
+        only[layout.rotation] = False
+        only[layout.translation] = False
+        R, t, alpha, light, out = solve_level(
+            tpl, img, cam, R, t, alpha, light, light_basis, masks[0],
+            iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
+            alpha_prior=config.expression_prior_precision, robust=robust, scale_floor=config.refine_scale_floor,
         )
     from torchface.geometry.so3 import matrix_to_axis_angle
 
