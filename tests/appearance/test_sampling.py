@@ -166,3 +166,22 @@ def test_bad_shapes_raise():
         sample_at_pixels(torch.rand(2, 1, 4, 5), torch.rand(1, 2, 2))
     with pytest.raises(ValueError, match="1 or 3"):
         to_gray(torch.rand(1, 2, 4, 4))
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 40, 60), (1, 3, 24, 32), (1, 1, 41, 33)])
+def test_pyr_down_equals_kornia_pyrdown(shape):
+    """The strided-slice pyramid step equals kornia's pyrdown (blur + half-size bilinear) on even sizes; on odd
+    sizes it keeps the pixel-centre alignment (output j centred on input 2 j + 0.5) and drops the last row."""
+    import kornia
+
+    from torchface.appearance.sampling import pyr_down
+
+    x = torch.rand(shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    ours = pyr_down(x)
+    assert ours.shape == (*shape[:2], shape[2] // 2, shape[3] // 2)
+    if shape[2] % 2 == 0 and shape[3] % 2 == 0:
+        torch.testing.assert_close(ours, kornia.geometry.transform.pyrdown(x), rtol=0, atol=1e-12)
+    else:
+        even = x[..., : shape[2] // 2 * 2 + 2, : shape[3] // 2 * 2 + 2]
+        # away from the dropped border the odd-size result equals the even-size one of a slightly larger crop
+        torch.testing.assert_close(ours[..., :-2, :-2], pyr_down(even)[..., :-2, :-2], rtol=0, atol=1e-12)

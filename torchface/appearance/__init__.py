@@ -7,7 +7,7 @@ from torchface.appearance.illumination import (
     illumination_basis,
     remove_illumination,
 )
-from torchface.appearance.sampling import image_with_gradients, pixels_to_grid, sample_at_pixels, to_gray
+from torchface.appearance.sampling import image_with_gradients, pixels_to_grid, pyr_down, sample_at_pixels, to_gray
 
 __all__ = [
     "ILLUMINATION_TERM_NAMES",
@@ -17,6 +17,7 @@ __all__ = [
     "remove_illumination",
     "image_with_gradients",
     "pixels_to_grid",
+    "pyr_down",
     "sample_at_pixels",
     "to_gray",
 ]

@@ -97,7 +97,8 @@ def linearise(
     Columns of ``J``: ``d_omega (3)``, ``d_t (3)``, ``alpha (A)``, ``light (L)`` (see the module docstring).
     ``image`` is ``(B, 3, h, w)``: gray level, ``d/du``, ``d/dv`` of the crop at this level.
     """
-    Xm = tpl.points + (tpl.basis * alpha[:, None, None, :]).sum(-1)
+    B, N = tpl.valid.shape
+    Xm = tpl.points + torch.bmm(tpl.basis.reshape(B, N * 3, -1), alpha.unsqueeze(-1)).reshape(B, N, 3)
     Xc = torch.matmul(Xm, R.transpose(1, 2)) + t.unsqueeze(1)
     X, Y, Z = Xc.unbind(-1)
     front = Z > NEAR_PLANE_MM
@@ -208,8 +209,9 @@ def solve_level(
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for _ in range(iterations):
         r, J, valid, _ = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
-        ok = torch.isfinite(r) & torch.isfinite(J).all(-1)
-        valid = valid & ok
+        # A non-finite frame makes r non-finite; a non-finite J without r (impossible by construction) would
+        # make the system non-finite and the sample fail below rather than corrupt another sample.
+        valid = valid & torch.isfinite(r)
         r = torch.where(valid, r, torch.zeros_like(r))
         J = torch.where(valid.unsqueeze(-1), J, torch.zeros_like(J)) * freef
         if best is None:

@@ -11,12 +11,11 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field, replace
 
-import kornia
 import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
-from torchface.appearance.sampling import image_with_gradients, sample_at_pixels, to_gray
+from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_euler
@@ -202,11 +201,11 @@ def level_intrinsics(intrinsics: Intrinsics, level: int, height: int, width: int
 
 
 def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
-    """``(B, C, H, W)`` frames -> gray levels, finest first, each ``(B, 1, H_l, W_l)`` (kornia ``pyrdown``)."""
+    """``(B, C, H, W)`` frames -> gray levels, finest first, each ``(B, 1, H_l, W_l)`` (:func:`pyr_down`)."""
     gray = to_gray(frames)
     levels = [gray]
     for _ in range(num_levels - 1):
-        levels.append(kornia.geometry.transform.pyrdown(levels[-1]))
+        levels.append(pyr_down(levels[-1]))
     return levels
 
 
@@ -450,7 +449,7 @@ def _track_step_fast(
     offsets, ch, cw = face_crop(model, state, layout, config)
     crop = [_crop_gray(frames, offsets, ch, cw)]
     for _ in range(config.num_levels - 1):
-        crop.append(kornia.geometry.transform.pyrdown(crop[-1]))
+        crop.append(pyr_down(crop[-1]))
     masks = [t.valid for t in state.templates]
     if config.zbuffer_visibility:
         vis_level = config.num_levels - 1
