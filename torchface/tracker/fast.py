@@ -160,6 +160,7 @@ def solve_level(
     robust: RobustLoss | None,
     scale_floor: float = 0.02,
     damping: float = 1e-3,
+    final_check: bool = True,
     step_tolerance: float | tuple[float, float, float] = (2e-4, 0.05, 2e-3),
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
@@ -179,6 +180,9 @@ def solve_level(
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
         damping: initial Levenberg damping relative to ``diag(H)``.
+        final_check: linearise once more after the last step, to undo it where it raised the cost and to
+            report the outcome there; without it (an intermediate pyramid level, whose result the next level
+            checks) the outcome describes the last linearisation.
         step_tolerance: converged when every increment is below these: rotation (radians), translation
             (millimetres), animation and illumination coefficients (units); one float applies to all.
 
@@ -260,6 +264,9 @@ def solve_level(
         active = active & ~small & good
         if not bool(active.any()):
             break
+    if not final_check:
+        outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite)
+        return R, t, alpha, light, outcome
     r, _, valid, sampled = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
     if best is not None:
         # The last step is kept only where it did not raise the cost.

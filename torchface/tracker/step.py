@@ -57,7 +57,8 @@ class TrackerConfig:
 
     Attributes:
         num_levels: pyramid levels (1 = full resolution only); coarse to fine.
-        max_points: template points per level per stream (the coarsest levels use fewer if they have fewer).
+        max_points: template points per level per stream (fewer where a level has fewer pixels). Fewer points
+            at the coarse levels were measured to lose expression accuracy (jaw drop RMSE 0.04 -> 0.12).
         gradient_threshold: minimum gray-level gradient magnitude (per pixel, in [0, 1] units) of a template
             point (Section 4: informative points); 0 keeps all pixels.
         iterations: Levenberg-Marquardt iterations per level, coarse to fine.
@@ -481,6 +482,7 @@ def _track_step_fast(
             iterations=config.iterations[config.num_levels - 1 - level], free=free,
             alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision,
             robust=robust, scale_floor=scale_floor(config, level),
+            final_check=level == 0 and not (config.refine_iterations > 0 and config.use_expression),
         )
     if config.refine_iterations > 0 and config.use_expression:
         only = free.clone()
