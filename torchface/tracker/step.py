@@ -482,7 +482,6 @@ def _track_step_fast(
             iterations=config.iterations[config.num_levels - 1 - level], free=free,
             alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision,
             robust=robust, scale_floor=scale_floor(config, level),
-            final_check=level == 0 and not (config.refine_iterations > 0 and config.use_expression),
         )
     if config.refine_iterations > 0 and config.use_expression:
         only = free.clone()
