@@ -6,9 +6,11 @@ Examples::
     torchface track clip.mp4 --out results --landmarks clip_first_frame.csv
     torchface track a.mp4 b.mp4 --out results --detector dlib   # same-size videos are tracked as one batch
     torchface track clip.mp4 --out results --landmarks lm.csv --resume   # continue an interrupted run
+    torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
-Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2;
+Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
+(grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given);
 an interrupted run exits with status 130 and keeps its rows for ``--resume``.
 """
 
@@ -81,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--focal", type=float, default=None, help="focal length in pixels (default max(W, H))")
     track.add_argument("--device", default="cpu", help="torch device (default cpu)")
     track.add_argument("--resume", action="store_true", help="continue after the last complete frame of a previous run")
+    track.add_argument(
+        "--convert", action="store_true",
+        help="convert grayscale, RGBA and 16-bit frames to RGB and crop odd sizes to even (default: reject them)",
+    )  # fmt: skip
     track.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
     track.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -119,12 +125,12 @@ def _print_summary(summaries, out: TextIO) -> None:
     out.flush()
 
 
-def _run_track(videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet) -> int:
+def _run_track(videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False) -> int:
     from torchface.job import JobConfig, track_videos
 
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
-        resume=resume, meshes=meshes,
+        resume=resume, convert=convert, meshes=meshes,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = track_videos(videos, config, progress=display)
@@ -170,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "track":
             return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
-                              args.resume, args.meshes, args.quiet)  # fmt: skip
+                              args.resume, args.meshes, args.quiet, args.convert)  # fmt: skip
         if args.command == "demo":
             from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

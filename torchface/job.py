@@ -79,6 +79,8 @@ class JobConfig:
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
         device: torch device for tracking.
         resume: continue interrupted videos (see the module docstring).
+        convert: convert grayscale, RGBA, 16-bit and odd-sized frames (gray to RGB, alpha dropped, 16-bit
+            scaled, last row / column cropped; :func:`torchface.io.open_frames`) instead of rejecting them.
         meshes: write one PLY mesh per frame.
         normalised_size: side ``G`` of the normalised-face video.
         tracker: :class:`TrackerConfig`.
@@ -92,6 +94,7 @@ class JobConfig:
     focal: float | None = None
     device: str = "cpu"
     resume: bool = False
+    convert: bool = False
     meshes: bool = False
     normalised_size: int = 128
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -274,7 +277,7 @@ def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_S
     streams: list[_Stream] = []
     try:
         for k, (path, name) in enumerate(zip(videos, names)):
-            reader = open_frames(path)
+            reader = open_frames(path, convert=config.convert)
             streams.append(_Stream(name, reader, np.zeros((68, 2)), "", reader.info.num_frames))
             first = next(reader)
             streams[-1].last_frame = first
@@ -461,12 +464,12 @@ def _track_group(
             "torchface_output": 1,
             "input": {
                 "path": str(s.reader.info.path), "kind": s.reader.info.kind, "format": s.reader.info.source_format,
-                "width": W, "height": H, "fps": s.reader.info.fps,
+                "conversion": s.reader.info.conversion, "width": W, "height": H, "fps": s.reader.info.fps,
             },  # fmt: skip
             "versions": package_versions(),
             "config": {
                 "tracker": config.tracker, "device": config.device, "focal": config.focal, "detector": config.detector,
-                "landmarks": s.landmarks_source, "resume": config.resume, "batch_streams": B,
+                "landmarks": s.landmarks_source, "resume": config.resume, "convert": config.convert, "batch_streams": B,
                 "normalised_size": G, "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
             },  # fmt: skip
             "camera": {

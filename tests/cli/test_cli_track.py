@@ -139,6 +139,39 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
         _assert_clean_failure(rc, capsys, out, "no CUDA GPU")
 
 
+def _clip_frames_uint8(video, n=3):
+    """The first ``n`` frames of the clip as (T, H, W, 3) uint8 RGB."""
+    frames = read_video(video, max_frames=n)
+    return (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+
+
+def _format_inputs(video, folder):
+    """Gray, RGBA, 16-bit and odd-sized versions of the clip's first frames, each with the problem it names."""
+    rgb = _clip_frames_uint8(video)
+    folder.mkdir(exist_ok=True)
+    cases = {
+        "gray": (rgb.mean(-1).round().astype(np.uint8), "grayscale"),
+        "rgba": (np.concatenate([rgb, np.full(rgb.shape[:3] + (1,), 200, np.uint8)], -1), "RGBA (4 channels)"),
+        "rgb16": (rgb.astype(np.uint16) * 257, "16-bit"),
+        "odd": (rgb[:, : H - 1, : W - 1], f"odd size {W - 1}x{H - 1}"),
+    }
+    for name, (array, _) in cases.items():
+        np.save(folder / f"{name}.npy", array)
+    return {folder / f"{name}.npy": problem for name, (_, problem) in cases.items()}
+
+
+def test_gray_rgba_16_bit_odd_size_are_rejected_without_convert(clip, tmp_path, capsys):
+    video, lm, _ = clip
+    out = tmp_path / "out"
+    for path, problem in _format_inputs(video, tmp_path / "in").items():
+        rc = main(["track", str(path), "--out", str(out), "--landmarks", str(lm), "--quiet"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith("torchface: error:") and "\n" not in err, err
+        assert f"{path.name}: frame 0: frames are {problem}" in err, err
+        assert "--convert" in err and "ffmpeg -i" in err, err
+        assert not out.exists() or not list(out.iterdir())  # rejected before anything is written
+
+
 def test_unavailable_detector_names_the_install_command(clip, tmp_path, capsys):
     pytest.importorskip("torch")
     try:
@@ -170,17 +203,27 @@ def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
     assert (out / "frames.csv.partial").is_file()  # the rows tracked so far are kept for --resume
 
 
-def test_gray_16_bit_odd_size_input_is_tracked(clip, tmp_path, capsys):
+def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp_path, capsys):
     video, lm, _ = clip
     frames = read_video(video, max_frames=3)[:, :, : H - 1, : W - 1]  # 159x119
     gray16 = (frames.mean(1) * 65535).round().numpy().astype(np.uint16)  # (T, H, W)
     np.save(tmp_path / "gray16.npy", gray16)
+    rgba = (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    np.save(tmp_path / "rgba.npy", np.concatenate([rgba, np.full(rgba.shape[:3] + (1,), 9, np.uint8)], -1))
     out = tmp_path / "out"
-    assert main(["track", str(tmp_path / "gray16.npy"), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0
-    cols, rows = read_track_csv(out / "gray16.csv")
-    assert rows.shape[0] == 3 and rows[:, cols.index("success")].all()
-    side = json.loads((out / "gray16.json").read_text())
-    assert side["input"]["format"] == "uint16 gray" and side["input"]["width"] == W - 1
+    inputs = [str(tmp_path / "gray16.npy"), str(tmp_path / "rgba.npy")]
+    rc = main(["track", *inputs, "--out", str(out), "--landmarks", str(lm), "--landmarks", str(lm), "--convert",
+               "--quiet"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    for name, fmt in (("gray16", "uint16 gray"), ("rgba", "uint8 RGBA")):
+        cols, rows = read_track_csv(out / f"{name}.csv")
+        assert rows.shape[0] == 3 and rows[:, cols.index("success")].all()
+        side = json.loads((out / f"{name}.json").read_text())
+        assert side["input"]["format"] == fmt and side["config"]["convert"] is True
+        assert (side["input"]["width"], side["input"]["height"]) == (W - 2, H - 2)  # the last row and column cut
+        assert side["input"]["conversion"] == f"{fmt} -> RGB; cropped {W - 1}x{H - 1} to {W - 2}x{H - 2}"
+        assert read_video(out / f"{name}_overlay.mp4").shape == (3, 3, H - 2, W - 2)
+        assert side["config"]["batch_streams"] == 2
     assert "1 lost" not in capsys.readouterr().out
 
 
@@ -236,7 +279,8 @@ def test_parser_defaults():
     args = build_parser().parse_args(["demo"])
     assert args.out.name == "torchface-demo"
     args = build_parser().parse_args(["track", "a.mp4", "--out", "o", "--landmarks", "l.csv", "--focal", "500"])
-    assert args.focal == 500.0 and args.landmarks[0].name == "l.csv" and not args.resume
+    assert args.focal == 500.0 and args.landmarks[0].name == "l.csv" and not args.resume and not args.convert
+    assert build_parser().parse_args(["track", "a.mp4", "--out", "o", "--convert"]).convert
     assert math.isfinite(args.focal)
 
 

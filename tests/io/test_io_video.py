@@ -1,4 +1,5 @@
-"""Frame reading: formats converted exactly, and bad inputs rejected with one-line errors."""
+"""Frame reading: gray, RGBA, 16-bit and odd-sized frames rejected by default and converted exactly on request;
+bad inputs rejected with one-line errors."""
 
 from __future__ import annotations
 
@@ -26,26 +27,119 @@ def test_rgb_uint8_array_round_trip(tmp_path):
     torch.testing.assert_close(out, torch.from_numpy(arr).permute(0, 3, 1, 2).float() / 255)
 
 
-def test_gray_rgba_and_16_bit_are_converted():
+def _assert_format_error(info, *problems):
+    msg = str(info.value)
+    assert "\n" not in msg, msg
+    for problem in problems:
+        assert problem in msg, msg
+    assert "--convert" in msg and "ffmpeg -i" in msg and "-pix_fmt rgb24" in msg, msg
+
+
+@pytest.mark.parametrize(
+    "array, problems",
+    [
+        (np.zeros((40, 40), np.uint8), ["grayscale"]),
+        (np.zeros((40, 40, 1), np.uint8), ["grayscale"]),
+        (np.zeros((40, 40, 4), np.uint8), ["RGBA (4 channels)"]),
+        (np.zeros((40, 40, 3), np.uint16), ["16-bit"]),
+        (np.zeros((40, 41, 3), np.uint8), ["odd size 41x40"]),
+        (np.zeros((39, 40, 3), np.float32), ["odd size 40x39"]),
+        (np.zeros((41, 57), np.uint16), ["grayscale", "16-bit", "odd size 57x41"]),
+    ],
+)
+def test_gray_rgba_16_bit_and_odd_sizes_are_rejected_by_default(array, problems):
+    with pytest.raises(InputError) as info:
+        frame_to_tensor(array, bgr=True, where="x")
+    _assert_format_error(info, *problems)
+    t, _ = frame_to_tensor(array, bgr=True, where="x", convert=True)
+    assert t.shape == (3, array.shape[0] // 2 * 2, array.shape[1] // 2 * 2)
+
+
+def test_colour_8_bit_even_frames_are_accepted_as_stored():
+    rng = np.random.default_rng(1)
+    bgr = rng.integers(0, 256, size=(40, 42, 3), dtype=np.uint8)
+    t, fmt = frame_to_tensor(bgr, bgr=True, where="x")
+    assert fmt == "uint8 BGR"
+    torch.testing.assert_close(t, torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float() / 255)
+
+
+def test_gray_rgba_and_16_bit_are_converted_with_convert():
     gray16 = np.full((40, 40), 65535 // 5, dtype=np.uint16)
-    t, fmt = frame_to_tensor(gray16, bgr=False, where="x")
+    t, fmt = frame_to_tensor(gray16, bgr=False, where="x", convert=True)
     assert fmt == "uint16 gray" and t.shape == (3, 40, 40)
     torch.testing.assert_close(t, torch.full((3, 40, 40), (65535 // 5) / 65535))
     bgra = np.zeros((40, 40, 4), dtype=np.uint8)
     bgra[..., 0], bgra[..., 3] = 255, 7  # blue, some alpha
-    t, fmt = frame_to_tensor(bgra, bgr=True, where="x")
+    t, fmt = frame_to_tensor(bgra, bgr=True, where="x", convert=True)
     assert fmt == "uint8 BGRA"
     torch.testing.assert_close(t[:, 0, 0], torch.tensor([0.0, 0.0, 1.0]))  # RGB order, alpha dropped
+    odd = np.arange(41 * 43 * 3, dtype=np.float64).reshape(41, 43, 3) / (41 * 43 * 3)
+    t, _ = frame_to_tensor(odd, bgr=False, where="x", convert=True)
+    torch.testing.assert_close(t, torch.from_numpy(odd[:40, :42]).permute(2, 0, 1).float())  # last row/column cut
 
 
 def test_image_folder_16_bit_gray_and_odd_size(tmp_path):
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"f{i:02d}.png"), np.full((41, 57), 1000 * (i + 1), dtype=np.uint16))
-    reader = open_frames(tmp_path)
+    with pytest.raises(InputError) as info:
+        open_frames(tmp_path)
+    _assert_format_error(info, "f00.png", "grayscale, 16-bit, odd size 57x41")
+    reader = open_frames(tmp_path, convert=True)
     assert reader.info.kind == "images" and reader.info.source_format == "uint16 gray"
+    assert (reader.info.width, reader.info.height) == (56, 40)
+    assert reader.info.conversion == "uint16 gray -> RGB; cropped 57x41 to 56x40"
     out = _frames(reader)
-    assert out.shape == (3, 3, 41, 57)
+    assert out.shape == (3, 3, 40, 56)
     torch.testing.assert_close(out[:, 0, 0, 0], torch.tensor([1000.0, 2000.0, 3000.0]) / 65535)
+
+
+def test_gray_frame_mid_folder_is_rejected(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((40, 40, 3), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((40, 40), np.uint8))
+    reader = open_frames(tmp_path)
+    next(reader)
+    with pytest.raises(InputError) as info:
+        next(reader)
+    _assert_format_error(info, "frame 1", "grayscale")
+    reader = open_frames(tmp_path, convert=True)
+    assert _frames(reader).shape == (2, 3, 40, 40)
+
+
+def _write_ffv1(path, frames, params):
+    writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), 25, (64, 48), params)
+    if not writer.isOpened():
+        pytest.skip(f"this OpenCV build cannot write {path.name}")
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    return path
+
+
+def test_video_files_gray_16_bit_and_rgba_are_rejected(tmp_path):
+    gray = _write_ffv1(tmp_path / "gray.mkv", [np.full((48, 64), 50 * i, np.uint8) for i in range(3)],
+                       [cv2.VIDEOWRITER_PROP_IS_COLOR, 0])  # fmt: skip
+    gray16 = _write_ffv1(tmp_path / "gray16.mkv", [np.full((48, 64), 9000 * i, np.uint16) for i in range(3)],
+                         [cv2.VIDEOWRITER_PROP_DEPTH, cv2.CV_16U, cv2.VIDEOWRITER_PROP_IS_COLOR, 0])  # fmt: skip
+    rgba = np.full((48, 64, 4), 100, np.uint8)
+    rgba[..., 3] = 128
+    alpha = _write_ffv1(tmp_path / "rgba.mkv", [rgba] * 3, [cv2.VIDEOWRITER_PROP_ENABLE_ALPHA, 1])
+    opaque = rgba.copy()
+    opaque[..., 3] = 255
+    colour = _write_ffv1(tmp_path / "opaque.mkv", [opaque] * 3, [cv2.VIDEOWRITER_PROP_ENABLE_ALPHA, 1])
+    for path, problems, fmt in [
+        (gray, ["grayscale"], "uint8 gray"),
+        (gray16, ["grayscale, 16-bit"], "uint16 gray"),
+        (alpha, ["RGBA (4 channels)"], "uint8 BGRA"),
+    ]:
+        with pytest.raises(InputError) as info:
+            open_frames(path)
+        _assert_format_error(info, path.name, *problems)
+        reader = open_frames(path, convert=True)
+        assert reader.info.source_format == fmt and reader.info.conversion == f"{fmt} -> RGB"
+        assert _frames(reader).shape == (3, 3, 48, 64)
+    reader = open_frames(colour)  # an opaque alpha channel is colour padding
+    assert reader.info.source_format == "uint8 BGR" and reader.info.conversion == ""
+    torch.testing.assert_close(_frames(reader)[0, :, 0, 0], torch.full((3,), 100 / 255))
 
 
 def test_frame_size_change_mid_video(tmp_path):

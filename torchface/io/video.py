@@ -7,10 +7,21 @@ Three kinds of input are accepted:
   ``cv2.IMREAD_UNCHANGED`` so that 8- and 16-bit, gray, BGR and BGRA images keep what they store;
 - a ``.npy`` array ``(T, H, W)`` (gray) or ``(T, H, W, C)`` with ``C`` in 1, 3 (RGB), 4 (RGBA).
 
-Every frame becomes a ``(3, H, W)`` float32 RGB tensor in ``[0, 1]`` (:mod:`torchface.conventions`):
-gray is replicated to three channels, alpha is dropped, 8-bit is divided by 255 and 16-bit by 65535.
-Anything else (another dtype, float values outside ``[0, 1]`` or non-finite, a frame smaller than
-:data:`MIN_SIZE` on a side, a frame whose size differs from the first frame's) raises
+The tracker takes 8-bit colour frames of even width and height (or float frames in ``[0, 1]``). By default a
+grayscale, RGBA (4-channel) or 16-bit frame, or an odd width or height, raises
+:class:`~torchface.io.errors.InputError` with a one-line message that names the problem and says how to
+proceed (:data:`CONVERT_HINT`). With ``convert=True`` such frames are converted instead: gray is replicated to
+three channels, alpha is dropped, 16-bit is scaled to ``[0, 1]`` (divided by 65535; a video file is decoded to
+8 bits by OpenCV) and an odd-sized frame loses its last row and/or column.
+
+A video file's stored format is read from OpenCV's pixel-format FourCC and the undecoded first frame
+(``CAP_PROP_CONVERT_RGB`` off): gray FourCCs (``Y800``, ``GREY``, 16-bit gray) are grayscale, an undecoded
+uint16 colour frame is 16-bit, and four channels whose alpha is not fully opaque are RGBA (an opaque alpha,
+as in OpenCV's own FFV1 colour videos, is colour padding and accepted).
+
+Every frame becomes a ``(3, H, W)`` float32 RGB tensor in ``[0, 1]`` (:mod:`torchface.conventions`), 8-bit
+values divided by 255. Anything else (another dtype, float values outside ``[0, 1]`` or non-finite, a frame
+smaller than :data:`MIN_SIZE` on a side, a frame whose size differs from the first frame's) raises
 :class:`~torchface.io.errors.InputError` with a one-line message naming the file and the frame.
 """
 
@@ -29,12 +40,33 @@ from torch import Tensor
 
 from torchface.io.errors import InputError
 
-__all__ = ["IMAGE_SUFFIXES", "MIN_SIZE", "FrameReader", "VideoInfo", "open_frames", "frame_to_tensor"]
+__all__ = [
+    "CONVERT_HINT",
+    "IMAGE_SUFFIXES",
+    "MIN_SIZE",
+    "FrameReader",
+    "VideoInfo",
+    "format_problems",
+    "frame_to_tensor",
+    "open_frames",
+]
 
 #: Image file suffixes read from a folder input.
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 #: Smallest accepted frame side in pixels (the tracker's coarsest pyramid level needs a few pixels).
 MIN_SIZE: int = 32
+#: How to proceed when a frame is grayscale, RGBA, 16-bit or odd-sized (ends every such error message).
+CONVERT_HINT: str = (
+    'convert it first, e.g. ffmpeg -i in.mp4 -pix_fmt rgb24 -vf "crop=trunc(iw/2)*2:trunc(ih/2)*2" out.mp4, '
+    "or pass --convert to let torchface convert the frames itself"
+)
+#: OpenCV pixel-format FourCCs of grayscale video (8-bit ``Y800``/``GREY``/``Y8``, 16-bit ``Y1[0][16]``).
+_GRAY_FOURCCS: frozenset[str] = frozenset({"Y800", "GREY", "Y8  ", "Y8\x00\x00", "Y1\x00\x10", "\x10\x001Y", "Y16 "})
+#: FourCCs of packed RGB(A) video (8- and 16-bit) whose undecoded first frame shows alpha and bit depth.
+_RGB_FOURCCS: frozenset[str] = frozenset(
+    {"BGRA", "RGBA", "ARGB", "ABGR", "BGR\x00", "RGB\x00", "RBA@", "BRA@", "@ABR", "@ARB", "RGB0", "BGR0"}
+    | {"0BGR", "0RGB"}
+)
 
 
 @dataclass(frozen=True)
@@ -49,6 +81,8 @@ class VideoInfo:
         fps: frame rate (the container's, else 25).
         num_frames: frame count if the input states it (a container's count can be approximate), else None.
         source_format: what the first frame stored, e.g. ``"uint8 BGR"``, ``"uint16 gray"``.
+        conversion: what ``convert=True`` did to it, e.g. ``"uint16 gray -> uint8-range RGB; cropped 159x119 to
+            158x118"``; empty when the frames are used as stored.
     """
 
     path: Path
@@ -58,36 +92,84 @@ class VideoInfo:
     fps: float
     num_frames: int | None
     source_format: str
+    conversion: str = ""
 
 
-def frame_to_tensor(array: np.ndarray, bgr: bool, where: str) -> tuple[Tensor, str]:
-    """One image array -> ``(3, H, W)`` float32 RGB in ``[0, 1]`` and a description of its format.
-
-    Args:
-        array: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)``; uint8, uint16 or float in [0, 1].
-        bgr: the colour channels are in OpenCV's BGR(A) order (else RGB(A)).
-        where: names the frame in error messages.
-
-    Raises:
-        InputError: unsupported layout, dtype or value range.
-    """
+def _layout(array: np.ndarray, where: str) -> np.ndarray:
+    """``(H, W)`` -> ``(H, W, 1)``; anything but ``(H, W, 1|3|4)`` raises."""
     if not isinstance(array, np.ndarray):
         raise InputError(f"{where}: expected an image array, got {type(array).__name__}")
     if array.ndim == 2:
         array = array[:, :, None]
     if array.ndim != 3 or array.shape[2] not in (1, 3, 4):
         raise InputError(f"{where}: expected an (H, W) or (H, W, 1|3|4) image, got shape {array.shape}")
+    return array
+
+
+def format_problems(array: np.ndarray) -> list[str]:
+    """What the tracker does not take as stored: grayscale, RGBA, 16-bit, odd width or height.
+
+    Args:
+        array: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)`` image.
+
+    Returns:
+        Short descriptions, e.g. ``["grayscale", "16-bit", "odd size 159x119"]``; empty when the frame is
+        8-bit (or float) colour with even width and height.
+    """
+    problems = []
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels == 1:
+        problems.append("grayscale")
+    elif channels == 4:
+        problems.append("RGBA (4 channels)")
+    if array.dtype == np.uint16:
+        problems.append("16-bit")
+    h, w = array.shape[:2]
+    if h % 2 or w % 2:
+        problems.append(f"odd size {w}x{h}")
+    return problems
+
+
+def _problem_message(where: str, problems: list[str]) -> str:
+    what = ", ".join(problems)
+    return f"{where}: frames are {what} (torchface takes 8-bit colour frames of even width and height): {CONVERT_HINT}"
+
+
+def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = False) -> tuple[Tensor, str]:
+    """One image array -> ``(3, H', W')`` float32 RGB in ``[0, 1]`` and a description of its stored format.
+
+    Args:
+        array: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)``; uint8, uint16 or float in [0, 1].
+        bgr: the colour channels are in OpenCV's BGR(A) order (else RGB(A)).
+        where: names the frame in error messages.
+        convert: convert gray (replicated), RGBA (alpha dropped), 16-bit (divided by 65535) and odd sizes
+            (last row / column cropped, so ``H' = H - H % 2``, ``W' = W - W % 2``) instead of raising.
+
+    Raises:
+        InputError: unsupported layout, dtype or value range; with ``convert=False`` also a grayscale, RGBA,
+            16-bit or odd-sized frame (:func:`format_problems`), the message ending in :data:`CONVERT_HINT`.
+
+    Example:
+        >>> frame_to_tensor(np.zeros((40, 50, 3), np.uint8), bgr=True, where="x")[0].shape
+        torch.Size([3, 40, 50])
+    """
+    array = _layout(array, where)
+    if array.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
+    if array.dtype.kind == "f" and not (np.isfinite(array).all() and array.min() >= 0.0 and array.max() <= 1.0):
+        raise InputError(f"{where}: float frames must be finite and in [0, 1]")
+    problems = format_problems(array)
+    if problems and not convert:
+        raise InputError(_problem_message(where, problems))
     channels = {1: "gray", 3: "BGR" if bgr else "RGB", 4: "BGRA" if bgr else "RGBA"}[array.shape[2]]
+    h, w = array.shape[:2]
+    array = array[: h - h % 2, : w - w % 2]
     if array.dtype == np.uint8:
         data = torch.from_numpy(np.ascontiguousarray(array)).to(torch.float32) / 255.0
     elif array.dtype == np.uint16:
         data = torch.from_numpy(array.astype(np.float32)) / 65535.0
-    elif array.dtype in (np.float32, np.float64):
-        data = torch.from_numpy(array.astype(np.float32))
-        if not bool(torch.isfinite(data).all()) or float(data.min()) < 0.0 or float(data.max()) > 1.0:
-            raise InputError(f"{where}: float frames must be finite and in [0, 1]")
     else:
-        raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
+        data = torch.from_numpy(array.astype(np.float32))
     fmt = f"{array.dtype} {channels}"
     if data.shape[2] == 1:
         data = data.expand(-1, -1, 3)
@@ -98,15 +180,39 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str) -> tuple[Tensor, s
     return data.permute(2, 0, 1).contiguous(), fmt
 
 
+def _conversion(array: np.ndarray, fmt: str, problems: list[str]) -> str:
+    """Describe what ``convert=True`` did to a frame with these problems (empty if nothing)."""
+    if not problems:
+        return ""
+    done = []
+    if any(not q.startswith("odd size") for q in problems):
+        done.append(f"{fmt} -> RGB")
+    h, w = array.shape[:2]
+    if h % 2 or w % 2:
+        done.append(f"cropped {w}x{h} to {w - w % 2}x{h - h % 2}")
+    return "; ".join(done)
+
+
 class FrameReader:
     """Iterate the frames of one input as ``(3, H, W)`` float32 RGB tensors; use :func:`open_frames`.
 
-    Validation happens as frames are read: a frame of another size than the first raises
-    :class:`InputError` naming its index. :attr:`frames_read` counts the frames returned so far.
+    Validation happens as frames are read: a frame of another stored size than the first, or (without
+    ``convert``) a grayscale, RGBA, 16-bit or odd-sized frame, raises :class:`InputError` naming its index.
+    :attr:`frames_read` counts the frames returned so far.
     """
 
-    def __init__(self, info: VideoInfo, first: Tensor, rest: Iterator[tuple[np.ndarray, bool]], closer=None) -> None:
+    def __init__(
+        self,
+        info: VideoInfo,
+        first: Tensor,
+        rest: Iterator[tuple[np.ndarray, bool]],
+        closer=None,
+        stored_size: tuple[int, int] | None = None,
+        convert: bool = False,
+    ) -> None:
         self.info = info
+        self.stored_size = stored_size or (info.height, info.width)
+        self.convert = convert
         self._first: Tensor | None = first
         self._rest = rest
         self._closer = closer
@@ -122,12 +228,12 @@ class FrameReader:
             return frame
         array, bgr = next(self._rest)
         where = f"{self.info.path}: frame {self.frames_read}"
-        frame, _ = frame_to_tensor(array, bgr, where)
-        if tuple(frame.shape[-2:]) != (self.info.height, self.info.width):
+        if isinstance(array, np.ndarray) and array.ndim >= 2 and tuple(array.shape[:2]) != self.stored_size:
             raise InputError(
-                f"{where} is {frame.shape[-1]}x{frame.shape[-2]} but the video started at "
-                f"{self.info.width}x{self.info.height} (the frame size must not change)"
+                f"{where} is {array.shape[1]}x{array.shape[0]} but the video started at "
+                f"{self.stored_size[1]}x{self.stored_size[0]} (the frame size must not change)"
             )
+        frame, _ = frame_to_tensor(array, bgr, where, self.convert)
         self.frames_read += 1
         return frame
 
@@ -173,18 +279,53 @@ def _check_size(path: Path, frame: Tensor) -> None:
         raise InputError(f"{path}: frames are {w}x{h}; at least {MIN_SIZE}x{MIN_SIZE} pixels are needed")
 
 
-def open_frames(path: str | os.PathLike[str]) -> FrameReader:
+def _fourcc(cap: cv2.VideoCapture) -> str:
+    code = int(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT) or 0) & 0xFFFFFFFF
+    return "".join(chr((code >> (8 * k)) & 0xFF) for k in range(4))
+
+
+def _stored_layout(p: Path, cap: cv2.VideoCapture, decoded: np.ndarray) -> np.ndarray:
+    """An array with the stored layout (size, channels, dtype) of a video's first frame; values unused.
+
+    Grayscale comes from the pixel-format FourCC; RGBA and 16-bit colour from the undecoded first frame,
+    read through a second capture only for RGB-type FourCCs (OpenCV warns on undecoded YUV frames).
+    """
+    h, w = decoded.shape[:2]
+    tag = _fourcc(cap)
+    if tag in _GRAY_FOURCCS:
+        deep = tag in ("Y1\x00\x10", "\x10\x001Y", "Y16 ")
+        return np.empty((h, w), np.uint16 if deep else np.uint8)
+    if tag not in _RGB_FOURCCS:
+        return decoded
+    probe = cv2.VideoCapture(str(p))
+    try:
+        probe.set(cv2.CAP_PROP_CONVERT_RGB, 0)
+        ok, raw = probe.read()
+    finally:
+        probe.release()
+    if not ok or raw is None or raw.ndim != 3 or tuple(raw.shape[:2]) != (h, w) or raw.shape[2] not in (3, 4):
+        return decoded
+    if raw.shape[2] == 4 and int(raw[..., 3].min()) == np.iinfo(raw.dtype).max:
+        raw = raw[..., :3]  # opaque alpha: colour padding (OpenCV writes FFV1 colour as BGRA)
+    return raw
+
+
+def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameReader:
     """Open a video file, an image folder or a ``.npy`` array and read its first frame.
 
     Args:
         path: the input.
+        convert: convert grayscale, RGBA, 16-bit and odd-sized frames (:func:`frame_to_tensor`) instead of
+            rejecting them.
 
     Returns:
-        A :class:`FrameReader` whose :attr:`~FrameReader.info` describes the input.
+        A :class:`FrameReader` whose :attr:`~FrameReader.info` describes the input (its ``width`` and
+        ``height`` are those of the returned frames, after any crop).
 
     Raises:
-        InputError: missing path, nothing decodable, zero frames, an unsupported frame format or a frame
-            smaller than :data:`MIN_SIZE`.
+        InputError: missing path, nothing decodable, zero frames, an unsupported frame format, a frame
+            smaller than :data:`MIN_SIZE`, or (without ``convert``) a grayscale, RGBA, 16-bit or odd-sized
+            first frame.
 
     Example:
         >>> # with open_frames("clip.mp4") as frames: first = next(frames)   # (3, H, W)
@@ -198,10 +339,11 @@ def open_frames(path: str | os.PathLike[str]) -> FrameReader:
             raise InputError(f"{p}: folder holds no images ({', '.join(IMAGE_SUFFIXES)}): zero frames")
         rest = _image_frames(files)
         first_arr, _ = next(rest)
-        first, fmt = frame_to_tensor(first_arr, True, f"{files[0]}")
+        first, fmt = frame_to_tensor(first_arr, True, f"{files[0]}", convert)
         _check_size(p, first)
-        info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt)
-        return FrameReader(info, first, rest)
+        conv = _conversion(first_arr, fmt, format_problems(first_arr))
+        info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv)
+        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert)
     if p.suffix.lower() == ".npy":
         try:
             array = np.load(p, allow_pickle=False)
@@ -212,10 +354,11 @@ def open_frames(path: str | os.PathLike[str]) -> FrameReader:
         if array.shape[0] == 0:
             raise InputError(f"{p}: zero frames")
         rest = _array_frames(array[1:])
-        first, fmt = frame_to_tensor(array[0], False, f"{p}: frame 0")
+        first, fmt = frame_to_tensor(array[0], False, f"{p}: frame 0", convert)
         _check_size(p, first)
-        info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt)
-        return FrameReader(info, first, rest)
+        conv = _conversion(array[0], fmt, format_problems(array[0]))
+        info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt, conv)
+        return FrameReader(info, first, rest, stored_size=array.shape[1:3], convert=convert)
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: permission denied")
     cap = cv2.VideoCapture(str(p))
@@ -226,13 +369,21 @@ def open_frames(path: str | os.PathLike[str]) -> FrameReader:
     if not ok or img is None:
         cap.release()
         raise InputError(f"{p}: no frame could be decoded (zero frames, or a corrupt video)")
-    first, fmt = frame_to_tensor(img, True, f"{p}: frame 0")
     try:
+        stored = _stored_layout(p, cap, img)
+        problems = format_problems(stored)
+        if problems and not convert:
+            raise InputError(_problem_message(f"{p}", problems))
+        first, _ = frame_to_tensor(img, True, f"{p}: frame 0", convert)
         _check_size(p, first)
     except InputError:
         cap.release()
         raise
+    channels = 1 if stored.ndim == 2 else stored.shape[2]
+    fmt = f"{stored.dtype} {({1: 'gray', 3: 'BGR', 4: 'BGRA'})[channels]}"
+    conv = _conversion(stored, fmt, problems)
     fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps if 0 < fps < 1000 else 25.0, count or None, fmt)
-    return FrameReader(info, first, _video_frames(cap), cap.release)
+    fps = fps if 0 < fps < 1000 else 25.0
+    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, count or None, fmt, conv)
+    return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert)
