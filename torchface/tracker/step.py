@@ -308,21 +308,6 @@ def _result(
     )
 
 
-def _visibility(model: FaceModel, state: TrackerState, layout: ParamLayout, levels: list[Tensor], level: int) -> list[Tensor]:
-    """Z-buffer visibility of every level's template points at the previous estimate (one rasterization)."""
-    aa, t, alpha, _ = layout.split(state.params)
-    R = axis_angle_to_matrix(aa)
-    verts = torch.einsum("bij,bvj->bvi", R, model.deform(state.shape_coeffs, alpha)) + t.unsqueeze(1)
-    g = levels[level]
-    intr = level_intrinsics(state.intrinsics, level, g.shape[-2], g.shape[-1])
-    frags = rasterize(verts, model.faces, intr)
-    masks = []
-    for tpl in state.templates:
-        _, cam, _ = warp_points(tpl, layout, state.params)
-        masks.append(points_visible(cam, tpl.face_index, frags, intr, depth_tolerance=0.02) & tpl.valid)
-    return masks
-
-
 def track_step(
     model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
 ) -> tuple[TrackerState, TrackResult]:
@@ -348,7 +333,8 @@ def track_step(
     levels = gray_pyramid(frames, config.num_levels)
     if config.zbuffer_visibility:
         vis_level = min(1, config.num_levels - 1)
-        masks = _visibility(model, state, layout, levels, vis_level)
+        g = levels[vis_level]
+        masks = _visibility_at(model, state, layout, vis_level, g.shape[-2], g.shape[-1])
     else:
         masks = [t.valid for t in state.templates]
     R_prev = axis_angle_to_matrix(state.params[:, layout.rotation])
@@ -401,6 +387,13 @@ def track_step(
     return new_state, _result(model, layout, x, status, res.iterations, rms, n_valid, confidence)
 
 
+def _posed_vertices(model: FaceModel, state: TrackerState, layout: ParamLayout) -> Tensor:
+    """``(B, V, 3)`` camera-frame vertices of the model at the state's parameters."""
+    aa, t, alpha, _ = layout.split(state.params)
+    R = axis_angle_to_matrix(aa)
+    return torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
+
+
 def _round_down(x: Tensor, q: int) -> Tensor:
     return torch.div(x, q, rounding_mode="floor") * q
 
@@ -412,10 +405,7 @@ def face_crop(model: FaceModel, state: TrackerState, layout: ParamLayout, config
     of ``2**(num_levels - 1)`` so every pyramid level of the crop is pixel-aligned with the full image's.
     """
     H, W = state.intrinsics.height, state.intrinsics.width
-    aa, t, alpha, _ = layout.split(state.params)
-    R = axis_angle_to_matrix(aa)
-    verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
-    uv = project_points(verts, state.intrinsics)
+    uv = project_points(_posed_vertices(model, state, layout), state.intrinsics)
     uv = torch.nan_to_num(uv).clamp(-W, 2 * W)
     lo, hi = uv.amin(1), uv.amax(1)  # (B, 2)
     size = (hi - lo).amax(-1)  # (B,)
@@ -516,11 +506,8 @@ def _visibility_at(
     model: FaceModel, state: TrackerState, layout: ParamLayout, level: int, height: int, width: int
 ) -> list[Tensor]:
     """Z-buffer visibility of every level's template points at the previous estimate (one rasterization)."""
-    aa, t, alpha, _ = layout.split(state.params)
-    R = axis_angle_to_matrix(aa)
-    verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
     intr = level_intrinsics(state.intrinsics, level, height, width)
-    frags = rasterize(verts, model.faces, intr)
+    frags = rasterize(_posed_vertices(model, state, layout), model.faces, intr)
     masks = []
     for tpl in state.templates:
         _, cam, _ = warp_points(tpl, layout, state.params)
