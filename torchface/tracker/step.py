@@ -83,7 +83,9 @@ class TrackerConfig:
             tight robust scale rejects as an outlier; with the pose held, a loose scale lets the expression
             follow while an occluder cannot drag the pose.
         refine_scale_floor: the robust scale floor of that pass.
-        fit: settings of the initial fit to landmarks.
+        fit: settings of the initial fit to landmarks. The default also fits a starting expression (weak
+            prior): on a face unlike CANDIDE-3 (the James scan) the animation units absorb shape the shape units
+            cannot, which lowered scan_motion's mean error from 2.7 to 1.9 degrees.
         solver: :class:`TrackSolver`.
         crop_margin: the fast solver tracks inside a crop around the previous estimate's face box, enlarged
             by this fraction of the box size on each side (plus 32 pixels).
@@ -104,7 +106,7 @@ class TrackerConfig:
     expression_prior_precision: float = 1.0
     min_points: int = 50
     min_contrast: float = 0.01
-    fit: FitConfig = field(default_factory=FitConfig)
+    fit: FitConfig = field(default_factory=lambda: FitConfig(fit_expression=True, expression_prior_precision=2.0))
     solver: TrackSolver = TrackSolver.FAST
     crop_margin: float = 0.25
 
