@@ -30,8 +30,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -39,6 +37,7 @@ import torchface
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.solver.robust import RobustKind
+from torchface.synth.io import read_video_uint8
 from torchface.synth.metrics import LOST_THRESHOLD_DEG, SequenceMetrics, relative_rotation_error_deg, sequence_metrics
 from torchface.synth.scenarios import SCENARIOS, make_scenario, scenario_size
 from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_truth, render_sequence, write_sequence
@@ -82,23 +81,6 @@ class RunOutput:
     init_ms: float
 
 
-def _read_video_uint8(path: Path) -> Tensor:
-    """``(T, 3, H, W)`` uint8 RGB frames of a video (kept as uint8: a full-size sequence is 4x smaller)."""
-    cap = cv2.VideoCapture(str(path))
-    frames: list[np.ndarray] = []
-    try:
-        while True:
-            ok, img = cap.read()
-            if not ok:
-                break
-            frames.append(img)
-    finally:
-        cap.release()
-    if not frames:
-        raise ValueError(f"could not read any frame from {path}")
-    return torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2).flip(1).contiguous()
-
-
 def _to_uint8(frames: Tensor) -> Tensor:
     return (frames.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
 
@@ -136,7 +118,7 @@ def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Pa
     fingerprint = spec_fingerprint(spec)
     if video.is_file() and gt_path.is_file() and stamp.is_file() and stamp.read_text().strip() == fingerprint:
         gt = load_ground_truth(gt_path)
-        frames = _read_video_uint8(video)
+        frames = read_video_uint8(video)
         size_ok = tuple(frames.shape[-2:]) == (height, width)
         if frames.shape[0] == num_frames and gt.num_frames == num_frames and size_ok:
             log(f"{name}: loaded {num_frames} frames {width}x{height} from {folder}")
@@ -154,7 +136,7 @@ def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Pa
     files = write_sequence(spec, folder, progress=progress)
     stamp.write_text(fingerprint + "\n")
     log(f"{name}: wrote {files.video} ({files.codec.strip()}) in {time.perf_counter() - start:.1f} s")
-    return Sequence(_read_video_uint8(files.video), load_ground_truth(files.ground_truth))
+    return Sequence(read_video_uint8(files.video), load_ground_truth(files.ground_truth))
 
 
 def initial_landmarks(gt: GroundTruth, seed: int) -> Tensor:

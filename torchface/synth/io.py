@@ -106,8 +106,8 @@ def write_video(path: str | os.PathLike[str], frames: Tensor, fps: float = 25.0)
         return sink.codec
 
 
-def read_video(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
-    """Read a video into ``(T, 3, H, W)`` float32 RGB in ``[0, 1]``."""
+def read_video_uint8(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
+    """Read a video into ``(T, 3, H, W)`` uint8 RGB (a quarter of the memory of :func:`read_video`)."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"no video at {path}")
     cap = cv2.VideoCapture(str(path))
@@ -122,5 +122,9 @@ def read_video(path: str | os.PathLike[str], max_frames: int | None = None) -> T
         cap.release()
     if not frames:
         raise ValueError(f"could not read any frame from {path}")
-    arr = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2).flip(1)
-    return arr.to(torch.float32) / 255.0
+    return torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2).flip(1).contiguous()
+
+
+def read_video(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
+    """Read a video into ``(T, 3, H, W)`` float32 RGB in ``[0, 1]``."""
+    return read_video_uint8(path, max_frames).to(torch.float32) / 255.0
