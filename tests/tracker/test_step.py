@@ -395,3 +395,15 @@ def test_face_tracker_module(model, two_streams, l2_runs):
         FaceTracker(config={"num_levels": 2}, model=model)
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
         tracker.initialise(frames[0, 0], landmarks_of(gts))
+
+
+def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):
+    """``FaceTracker.to(torch.float64)`` converts the model and forgets the state; tracking then runs in float64."""
+    frames, gts = two_streams
+    tracker = FaceTracker(BASE).to(torch.float64)
+    assert tracker.model.dtype == torch.float64 and tracker.state is None
+    tracker.initialise(frames[:, 0].double(), landmarks_of(gts).double(), Intrinsics.default(W, H))
+    out = tracker(frames[:, 1].double())
+    assert out.rotation.dtype == torch.float64 and bool(torch.isfinite(out.rotation).all())
+    with pytest.raises(TypeError):
+        tracker.to(torch.int64)

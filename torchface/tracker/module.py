@@ -32,6 +32,21 @@ class FaceTracker(nn.Module):
         self.model = load_candide3() if model is None else model
         self._state: TrackerState | None = None
 
+    def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
+        """Move the face model (and forget the tracked state) like ``nn.Module.to``: device and/or float dtype.
+
+        Example:
+            >>> tracker = FaceTracker().to(torch.float64)
+            >>> tracker.model.dtype
+            torch.float64
+        """
+        device, dtype, _, _ = torch._C._nn._parse_to(*args, **kwargs)
+        if dtype is not None and not dtype.is_floating_point:
+            raise TypeError(f"FaceTracker.to only accepts floating point dtypes, got {dtype}")
+        self.model = self.model.to(device=device, dtype=dtype)
+        self._state = None
+        return super().to(*args, **kwargs)
+
     @property
     def state(self) -> TrackerState | None:
         """The tracking state after the last call (None before :meth:`initialise`)."""
