@@ -197,7 +197,6 @@ def solve_level(
     prior = torch.zeros(P, dtype=dtype, device=device)
     prior[6 : 6 + A] = alpha_prior
     prior = prior * freef
-    eye = torch.eye(P, dtype=dtype, device=device)
     fixed_diag = torch.diag(1.0 - freef)
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
@@ -233,16 +232,16 @@ def solve_level(
         grad = grad + torch.cat([grad.new_zeros(B, 6), prior[6 : 6 + A] * alpha, grad.new_zeros(B, P - 6 - A)], -1)
         H = H + torch.diag(prior)
         if best is not None:
-            keep = ~accept
             a3 = accept.view(B, 1, 1)
-            R = torch.where(a3, R, best[0])
-            t = torch.where(accept.unsqueeze(-1), t, best[1])
-            alpha = torch.where(accept.unsqueeze(-1), alpha, best[2])
-            light = torch.where(accept.unsqueeze(-1), light, best[3])
-            H = torch.where(a3, H, best[4])
-            grad = torch.where(accept.unsqueeze(-1), grad, best[5])
-            cost = torch.where(accept, cost, best[6])
-            s = torch.where(accept.unsqueeze(-1), s, best[7])
+            if not bool(accept.all()):  # undo rejected steps (one host sync; most steps are accepted)
+                R = torch.where(a3, R, best[0])
+                t = torch.where(accept.unsqueeze(-1), t, best[1])
+                alpha = torch.where(accept.unsqueeze(-1), alpha, best[2])
+                light = torch.where(accept.unsqueeze(-1), light, best[3])
+                H = torch.where(a3, H, best[4])
+                grad = torch.where(accept.unsqueeze(-1), grad, best[5])
+                cost = torch.where(accept, cost, best[6])
+                s = torch.where(accept.unsqueeze(-1), s, best[7])
             lam = torch.where(a3, (lam / 3.0).clamp_min(1e-6), lam * 10.0)
         best = (R, t, alpha, light, H, grad, cost, s)
         diag = torch.diagonal(H, dim1=1, dim2=2)
