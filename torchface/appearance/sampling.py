@@ -72,12 +72,26 @@ def image_with_gradients(gray: Tensor) -> Tensor:
         ``(B, 3, H, W)``: intensity, d/du and d/dv (central differences, per pixel, replicate border), so that
         sampling at a point gives ``I`` and ``grad I`` there.
     """
-    # Central differences with replicated borders (kornia's "diff" spatial gradient halved), by slicing:
-    # several times faster than a convolution on the CPU.
-    p = F.pad(gray, (1, 1, 1, 1), mode="replicate")
-    gu = 0.5 * (p[:, :, 1:-1, 2:] - p[:, :, 1:-1, :-2])
-    gv = 0.5 * (p[:, :, 2:, 1:-1] - p[:, :, :-2, 1:-1])
-    return torch.cat([gray, gu, gv], dim=1)
+    # Central differences with replicated borders (kornia's "diff" spatial gradient halved), by slicing
+    # straight into the output: several times faster than a convolution on the CPU.
+    if gray.dim() != 4 or gray.shape[1] != 1 or gray.shape[-1] < 2 or gray.shape[-2] < 2:
+        raise ValueError(f"gray must be (B, 1, H, W) with H, W >= 2, got {tuple(gray.shape)}")
+    if gray.requires_grad:  # the differentiable path: plain out-of-place ops
+        p = F.pad(gray, (1, 1, 1, 1), mode="replicate")
+        gu = 0.5 * (p[:, :, 1:-1, 2:] - p[:, :, 1:-1, :-2])
+        gv = 0.5 * (p[:, :, 2:, 1:-1] - p[:, :, :-2, 1:-1])
+        return torch.cat([gray, gu, gv], dim=1)
+    g = gray[:, 0]
+    out = torch.empty((gray.shape[0], 3, *g.shape[-2:]), dtype=gray.dtype, device=gray.device)
+    out[:, 0] = g
+    torch.sub(g[:, :, 2:], g[:, :, :-2], out=out[:, 1, :, 1:-1])
+    torch.sub(g[:, :, 1:2], g[:, :, 0:1], out=out[:, 1, :, 0:1])
+    torch.sub(g[:, :, -1:], g[:, :, -2:-1], out=out[:, 1, :, -1:])
+    torch.sub(g[:, 2:], g[:, :-2], out=out[:, 2, 1:-1])
+    torch.sub(g[:, 1:2], g[:, 0:1], out=out[:, 2, 0:1])
+    torch.sub(g[:, -1:], g[:, -2:-1], out=out[:, 2, -1:])
+    out[:, 1:].mul_(0.5)
+    return out
 
 
 #: Binomial 5-tap Gaussian ``[1, 4, 6, 4, 1] / 16`` convolved with the 2-tap box ``[1, 1] / 2`` of the 2x

@@ -427,8 +427,9 @@ def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
     rows = offsets[:, 1:2] + torch.arange(ch, device=frames.device)
     cols = offsets[:, 0:1] + torch.arange(cw, device=frames.device)
     bidx = torch.arange(B, device=frames.device)[:, None, None]
-    gray = to_gray(frames)[:, 0]
-    return gray[bidx, rows[:, :, None], cols[:, None, :]].unsqueeze(1)
+    # Gather the crop first (B, ch, cw, C), then convert: only the cropped pixels are read.
+    crop = frames[bidx, :, rows[:, :, None], cols[:, None, :]]
+    return to_gray(crop.permute(0, 3, 1, 2))
 
 
 def _track_step_fast(
