@@ -3,3 +3,22 @@
 from torchface.template.points import Template, build_template, gather_face_attributes
 
 __all__ = ["Template", "build_template", "gather_face_attributes"]
+from torchface.template.dissimilarity import (  # noqa: E402
+    DissimilarityConfig,
+    DissimilarityReference,
+    DissimilarityResult,
+    LKResult,
+    build_dissimilarity_reference,
+    dissimilarity,
+    inverse_compositional_lk,
+)
+
+__all__ += [
+    "DissimilarityConfig",
+    "DissimilarityReference",
+    "DissimilarityResult",
+    "LKResult",
+    "build_dissimilarity_reference",
+    "dissimilarity",
+    "inverse_compositional_lk",
+]

@@ -1,0 +1,235 @@
+#!/usr/bin/env python
+"""How well do the tracker's confidences separate good frames from bad ones? (issue 5, AUROC)
+
+For each scenario (read from evaluate.py's sequence cache, rendered there when missing) the tracker runs with
+the default TrackerConfig from frame 0's noisy ground-truth landmarks, as evaluate.py does. Every frame gets
+
+* the geodesic rotation error relative to frame 0 (torchface.synth.metrics.relative_rotation_error_deg),
+* (a) the tracker's own confidence (TrackResult.confidence),
+* (b) the dissimilarity confidence (torchface.template.dissimilarity): the frame's normalised face
+  (torchface.normalise.NormalisedFace with the frame's TrackerState) against frame 0's.
+
+Positives are frames with error < --good (2 deg), negatives frames with error > --bad (5 deg); frames in
+between and frame 0 are left out. The AUROC of each confidence (probability that a random positive scores
+above a random negative, ties counting one half) is printed pooled over the scenarios and per scenario.
+
+Variants (--variants, comma list):
+  standard      the scenarios as they are.
+  no_illum      light_switch tracked with use_illumination=False (a weaker tracker on the hardest light).
+  inject        the standard tracks (the same run), but on every third frame from frame 1 the pose used for
+                scoring and for the normalised face is rotated by a random axis and an angle uniform in [0, 10] deg (seeded);
+                the tracker itself continues from its own estimate. The tracker's confidence cannot see
+                this corruption, so (a) is meaningless there and printed only for completeness.
+
+Examples:
+    python scripts/confidence_auroc.py --scenarios pose_sweep --frames 40 --size 320x240
+    python scripts/confidence_auroc.py                      # all scenarios, full size and length
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import evaluate as ev  # noqa: E402
+
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
+from torchface.model.candide import load_candide3  # noqa: E402
+from torchface.normalise import NormalisedFace  # noqa: E402
+from torchface.synth.metrics import relative_rotation_error_deg  # noqa: E402
+from torchface.synth.scenarios import SCENARIOS, scenario_size  # noqa: E402
+from torchface.template.dissimilarity import (  # noqa: E402
+    DissimilarityConfig,
+    build_dissimilarity_reference,
+    dissimilarity,
+)
+from torchface.tracker.params import ParamLayout  # noqa: E402
+from torchface.tracker.step import TrackerConfig, initialise, track_step  # noqa: E402
+
+VARIANTS = ("standard", "no_illum", "inject")
+INJECT_EVERY = 3
+INJECT_MAX_DEG = 10.0
+
+
+def auroc(scores_pos: Tensor, scores_neg: Tensor) -> float:
+    """Rank-based AUROC: P(positive score > negative score) + 0.5 P(equal) (Mann-Whitney U / (n_pos n_neg)).
+
+    Args:
+        scores_pos: ``(n_pos,)`` scores of positives; scores_neg: ``(n_neg,)`` of negatives.
+
+    Returns:
+        The AUROC in ``[0, 1]``, NaN when either set is empty.
+
+    Example:
+        >>> auroc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.8]))
+        0.875
+    """
+    pos = torch.as_tensor(scores_pos, dtype=torch.float64).reshape(-1)
+    neg = torch.as_tensor(scores_neg, dtype=torch.float64).reshape(-1)
+    n_pos, n_neg = pos.numel(), neg.numel()
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    allv = torch.cat([pos, neg])
+    order = torch.argsort(allv, stable=True)
+    sorted_v = allv[order]
+    # Average ranks (1-based) over ties.
+    _, inverse, counts = torch.unique_consecutive(sorted_v, return_inverse=True, return_counts=True)
+    ends = torch.cumsum(counts, 0).to(torch.float64)
+    avg_rank = ends - (counts.to(torch.float64) - 1.0) / 2.0
+    ranks = torch.empty_like(allv)
+    ranks[order] = avg_rank[inverse]
+    u = float(ranks[:n_pos].sum()) - n_pos * (n_pos + 1) / 2.0
+    return u / (n_pos * n_neg)
+
+
+def _perturb(axis_angle: Tensor, g: torch.Generator) -> tuple[Tensor, float]:
+    """Rotate ``(1, 3)`` axis-angle by a random axis and angle in [0, INJECT_MAX_DEG] degrees (camera side)."""
+    axis = torch.randn(1, 3, generator=g, dtype=torch.float64)
+    axis = axis / axis.norm()
+    angle = float(torch.rand(1, generator=g, dtype=torch.float64)) * INJECT_MAX_DEG
+    delta = axis_angle_to_matrix((axis * math.radians(angle)).to(axis_angle))
+    return matrix_to_axis_angle(delta @ axis_angle_to_matrix(axis_angle)), angle
+
+
+def run(
+    name: str, seq: ev.Sequence, model, config: TrackerConfig, dcfg: DissimilarityConfig, seed: int, inject: bool
+) -> dict[str, dict[str, np.ndarray]]:
+    """Track one sequence; per frame: rotation error, tracker confidence, dissimilarity and its confidence.
+
+    Returns ``{"standard": series}`` and, with ``inject``, also ``{"inject": series}`` from the same track
+    (only the scored pose of every third frame differs).
+    """
+    dev, dt = model.device, model.dtype
+    layout = ParamLayout(model.num_animation, 5)
+    normaliser = NormalisedFace(model)
+    T = seq.frames.shape[0]
+    g = torch.Generator().manual_seed(seed + 1)
+
+    def frame(i: int) -> Tensor:
+        return seq.frames[i : i + 1].to(device=dev).to(dt) / 255.0
+
+    landmarks = ev.initial_landmarks(seq.gt, seed).to(device=dev, dtype=dt)
+    state, res = initialise(model, config, frame(0), landmarks, seq.gt.intrinsics)
+    face0, mask0 = normaliser(frame(0), state)
+    ref = build_dissimilarity_reference(face0, mask0, dcfg)
+    keys = ("standard", "inject") if inject else ("standard",)
+    rot0 = res.rotation.detach().cpu().to(torch.float64)
+    series = {k: {"rot": [rot0], "conf_tracker": [float(res.confidence[0])], "diss": [0.0], "conf_diss": [1.0],
+                  "injected": [0.0]} for k in keys}  # fmt: skip
+    start = time.perf_counter()
+    for i in range(1, T):
+        state, res = track_step(model, config, state, frame(i))
+        for k in keys:
+            scored, rot, angle = state, res.rotation, 0.0
+            if k == "inject" and i % INJECT_EVERY == 1:
+                aa, t, alpha, light = layout.split(state.params)
+                aa_bad, angle = _perturb(aa, g)
+                scored = replace(state, params=torch.cat([aa_bad, t, alpha, light], -1))
+                rot = axis_angle_to_matrix(aa_bad)
+            elif k == "inject":
+                s = series["standard"]
+                for f in ("diss", "conf_diss"):
+                    series[k][f].append(s[f][-1])
+                series[k]["rot"].append(s["rot"][-1])
+                series[k]["conf_tracker"].append(s["conf_tracker"][-1])
+                series[k]["injected"].append(0.0)
+                continue
+            with torch.no_grad():
+                face, mask = normaliser(frame(i), scored)
+                out = dissimilarity(ref, face, mask)
+            series[k]["rot"].append(rot.detach().cpu().to(torch.float64))
+            series[k]["conf_tracker"].append(float(res.confidence[0]))
+            series[k]["diss"].append(float(out.dissimilarity[0]))
+            series[k]["conf_diss"].append(float(out.confidence[0]))
+            series[k]["injected"].append(angle)
+    ms = 1e3 * (time.perf_counter() - start) / max(T - 1, 1)
+    result = {}
+    for k in keys:
+        err = relative_rotation_error_deg(torch.cat(series[k].pop("rot")), seq.gt.rotation.to(torch.float64))
+        result[k] = {"err": err.numpy(), **{f: np.array(x) for f, x in series[k].items()}}
+    ev.log(f"{name}: {T} frames, {ms:.0f} ms/frame, {ref.num_patches.tolist()} patches, "
+           f"max err {float(result['standard']['err'].max()):.2f} deg")  # fmt: skip
+    return result
+
+
+def report(label: str, data: dict[str, np.ndarray], good: float, bad: float) -> str:
+    err = data["err"][1:]
+    pos = err < good
+    neg = err > bad
+    cells = [f"{label:28s} frames {err.size:4d}  <{good:g}: {int(pos.sum()):4d}  >{bad:g}: {int(neg.sum()):4d}"]
+    for key in ("conf_tracker", "conf_diss"):
+        c = torch.from_numpy(data[key][1:])
+        a = auroc(c[torch.from_numpy(pos)], c[torch.from_numpy(neg)])
+        cells.append(f"AUROC {key:12s} {'  n/a' if math.isnan(a) else f'{a:.3f}'}")
+    return "  ".join(cells)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenarios", default="all", help=f"comma list from {', '.join(SCENARIOS)} (default all)")
+    parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {VARIANTS}")
+    parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")
+    parser.add_argument("--size", type=ev._parse_size, default=None, help="WxH (default 640x480)")
+    parser.add_argument("--cache", default="out/sequences", help="sequence cache folder ('none': in memory)")
+    parser.add_argument("--good", type=float, default=2.0, help="positives: error below this (deg)")
+    parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--save", type=Path, help="write the per-frame series here (.npz)")
+    args = parser.parse_args(argv)
+    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",")]
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    for v in variants:
+        if v not in VARIANTS:
+            parser.error(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
+    cache = None if args.cache.lower() == "none" else Path(args.cache)
+    model = load_candide3()
+    base = TrackerConfig()
+    dcfg = DissimilarityConfig()
+    results: dict[str, dict[str, dict[str, np.ndarray]]] = {v: {} for v in variants}
+    for name in names:
+        w, h, t = scenario_size(name, "full")
+        if args.size is not None:
+            w, h = args.size
+        t = args.frames or t
+        seq = ev.load_sequence(name, w, h, t, cache)
+        if "standard" in variants or "inject" in variants:
+            out = run(name, seq, model, base, dcfg, args.seed, inject="inject" in variants)
+            for v, d in out.items():
+                if v in variants:
+                    results[v][name] = d
+                    print(report(f"{v}/{name}", d, args.good, args.bad), flush=True)
+        if "no_illum" in variants and name == "light_switch":
+            out = run(name, seq, model, replace(base, use_illumination=False), dcfg, args.seed, inject=False)
+            results["no_illum"][name] = out["standard"]
+            print(report(f"no_illum/{name}", out["standard"], args.good, args.bad), flush=True)
+    print()
+    for v in variants:
+        if not results[v]:
+            continue
+        pooled = {k: np.concatenate([d[k][1:] for d in results[v].values()]) for k in next(iter(results[v].values()))}
+        pooled = {k: np.concatenate([[0.0], x]) for k, x in pooled.items()}  # report() drops element 0
+        print(report(f"{v}/POOLED", pooled, args.good, args.bad))
+        for name, d in results[v].items():
+            print(report(f"{v}/{name}", d, args.good, args.bad))
+    if "standard" in results and "no_illum" in results and results["no_illum"]:
+        both = [*results["standard"].values(), *results["no_illum"].values()]
+        pooled = {k: np.concatenate([[0.0]] + [d[k][1:] for d in both]) for k in both[0]}
+        print(report("standard+no_illum/POOLED", pooled, args.good, args.bad))
+    if args.save is not None:
+        args.save.parent.mkdir(parents=True, exist_ok=True)
+        flat = {f"{v}/{n}/{k}": x for v, r in results.items() for n, d in r.items() for k, x in d.items()}
+        np.savez(args.save, **flat)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

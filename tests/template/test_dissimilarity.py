@@ -1,0 +1,268 @@
+"""Tests of torchface.template.dissimilarity (IC Lucas-Kanade, dissimilarity, confidence) and the AUROC helper."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from torchface.template.dissimilarity import (
+    DissimilarityConfig,
+    build_dissimilarity_reference,
+    dissimilarity,
+    inverse_compositional_lk,
+)
+
+
+def _texture(batch: int, size: int, seed: int, dtype=torch.float64) -> torch.Tensor:
+    """Smooth random texture ``(B, 1, size, size)`` in [0, 1] (band-limited: bilinear shifts are near exact)."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(batch, 1, size // 4, size // 4, generator=g, dtype=dtype)
+    img = F.interpolate(coarse, size=(size, size), mode="bicubic", align_corners=True)
+    k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=dtype)
+    k = (k / k.sum()).reshape(1, 1, 1, -1)
+    img = F.conv2d(F.pad(img, (2, 2, 0, 0), mode="replicate"), k)
+    img = F.conv2d(F.pad(img, (0, 0, 2, 2), mode="replicate"), k.transpose(-1, -2))
+    return (img - img.amin()) / (img.amax() - img.amin())
+
+
+def _shift(img: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """``out(x) = img(x - shift[b])`` (content moves by ``+shift``), bilinear, ``shift (B, 2)`` in pixels."""
+    B, _, H, W = img.shape
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=img.dtype), torch.arange(W, dtype=img.dtype), indexing="ij"
+    )
+    src_u = u - shift[:, 0, None, None]
+    src_v = v - shift[:, 1, None, None]
+    grid = torch.stack([2 * src_u / (W - 1) - 1, 2 * src_v / (H - 1) - 1], -1)
+    return F.grid_sample(img, grid, mode="bicubic", padding_mode="border", align_corners=True)
+
+
+# ---------------------------------------------------------------- inverse-compositional Lucas-Kanade
+
+
+def _waves(shift: torch.Tensor, size: int) -> torch.Tensor:
+    """``(B, 1, size, size)`` sum of smooth plane waves evaluated exactly at ``x - shift[b]``."""
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
+                          indexing="ij")  # fmt: skip
+    u = u - shift[:, 0, None, None]
+    v = v - shift[:, 1, None, None]
+    img = (torch.sin(0.31 * u + 0.17 * v) + torch.cos(0.23 * u - 0.29 * v + 1.0) + 0.5 * torch.sin(0.41 * v + 0.2))
+    return (0.5 + 0.15 * img).unsqueeze(1)
+
+
+def test_lk_recovers_known_subpixel_translations():
+    shift = torch.tensor([[0.4, -0.7], [1.3, 0.25], [-0.9, -1.6]], dtype=torch.float64)
+    ref = _waves(torch.zeros_like(shift), 64)
+    img = _waves(shift, 64)
+    centres = torch.tensor([[20.0, 20.0], [40.0, 22.0], [30.0, 42.0], [44.0, 44.0]], dtype=torch.float64)
+    centres = centres.expand(3, -1, -1)
+    out = inverse_compositional_lk(ref, img, centres, patch_size=15, iterations=50, tolerance=1e-6)
+    assert out.displacement.shape == (3, 4, 2)
+    assert out.converged.all() and out.valid.all()
+    err = (out.displacement - shift[:, None, :]).abs().max()
+    assert err < 0.03, f"max displacement error {float(err):.4f} px"
+    assert torch.allclose(out.support, torch.ones_like(out.support))
+
+
+def test_lk_identity_and_bias_projection():
+    ref = _texture(2, 48, seed=1)
+    centres = torch.tensor([[[16.0, 16.0], [30.0, 25.0]]], dtype=torch.float64).expand(2, -1, -1)
+    out = inverse_compositional_lk(ref, ref + 0.2, centres, patch_size=11)
+    assert out.displacement.abs().max() < 1e-8
+    assert out.residual.max() < 1e-8  # the bias is projected out
+    biased = inverse_compositional_lk(ref, ref + 0.2, centres, patch_size=11, project_out_bias=False)
+    assert biased.displacement.abs().max() > 0.1  # without the projection the bias misleads the solve
+
+
+def test_lk_batch_equals_per_sample():
+    ref = _texture(3, 48, seed=2)
+    img = _shift(ref, torch.tensor([[0.5, 0.2], [-0.3, 0.8], [1.0, -1.0]], dtype=torch.float64))
+    centres = torch.tensor([[[15.0, 15.0], [30.0, 30.0]], [[20.0, 25.0], [33.0, 14.0]], [[24.0, 24.0], [14.0, 33.0]]],
+                           dtype=torch.float64)  # fmt: skip
+    batch = inverse_compositional_lk(ref, img, centres, patch_size=9, iterations=30)
+    for b in range(3):
+        one = inverse_compositional_lk(ref[b : b + 1], img[b : b + 1], centres[b : b + 1], 9, 30)
+        torch.testing.assert_close(batch.displacement[b], one.displacement[0], atol=1e-10, rtol=0)
+        assert torch.equal(batch.converged[b], one.converged[0])
+
+
+def test_lk_masked_out_patch_has_no_support_and_is_finite():
+    ref = _texture(1, 48, seed=3)
+    centres = torch.tensor([[[12.0, 12.0], [34.0, 34.0]]], dtype=torch.float64)
+    mask = torch.ones(1, 1, 48, 48, dtype=torch.float64)
+    mask[..., 24:, 24:] = 0.0
+    out = inverse_compositional_lk(ref, ref * mask, centres, 11, image_mask=mask)
+    assert torch.isfinite(out.displacement).all() and torch.isfinite(out.residual).all()
+    assert out.support[0, 0] == 1.0 and out.support[0, 1] == 0.0
+    assert not out.valid[0, 1]  # no weight: singular Hessian
+
+
+def test_lk_flat_patch_is_not_valid_and_finite():
+    ref = torch.full((1, 1, 32, 32), 0.5, dtype=torch.float64)
+    out = inverse_compositional_lk(ref, ref, torch.tensor([[[16.0, 16.0]]], dtype=torch.float64), 9)
+    assert not out.valid.any() and torch.isfinite(out.displacement).all()
+
+
+def test_lk_bad_shapes_raise():
+    ref = torch.rand(2, 1, 32, 32)
+    centres = torch.full((2, 3, 2), 16.0)
+    with pytest.raises(ValueError, match="reference must be"):
+        inverse_compositional_lk(ref[0], ref, centres, 9)
+    with pytest.raises(ValueError, match="batch and channels"):
+        inverse_compositional_lk(ref, ref[:1], centres, 9)
+    with pytest.raises(ValueError, match="centres must be"):
+        inverse_compositional_lk(ref, ref, centres[..., :1], 9)
+    with pytest.raises(ValueError, match="patch_size"):
+        inverse_compositional_lk(ref, ref, centres, 2)
+    with pytest.raises(ValueError, match="image_mask"):
+        inverse_compositional_lk(ref, ref, centres, 9, image_mask=torch.ones(2, 1, 16, 16))
+    with pytest.raises(TypeError, match="centres"):
+        inverse_compositional_lk(ref, ref, [[1.0, 2.0]], 9)
+
+
+# ---------------------------------------------------------------- dissimilarity and confidence
+
+
+def _face(batch: int = 2, size: int = 96, seed: int = 4):
+    img = _texture(batch, size, seed).expand(-1, 3, -1, -1).clone()
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
+                          indexing="ij")  # fmt: skip
+    c = (size - 1) / 2
+    mask = (((u - c) / (0.45 * size)) ** 2 + ((v - c) / (0.48 * size)) ** 2 <= 1.0).to(torch.float64)
+    mask = mask.expand(batch, 1, -1, -1).clone()
+    return img * mask, mask
+
+
+def test_reference_patches_inside_mask_and_separated():
+    face, mask = _face()
+    cfg = DissimilarityConfig()
+    ref = build_dissimilarity_reference(face, mask, cfg)
+    assert ref.centres.shape == (2, cfg.num_patches, 2) and ref.patch_valid.all()
+    r = cfg.patch_size // 2
+    for b in range(2):
+        for u, v in ref.centres[b].long().tolist():
+            assert mask[b, 0, v - r : v + r + 1, u - r : u + r + 1].min() == 1.0
+        diff = (ref.centres[b, :, None] - ref.centres[b, None]).abs().amax(-1)
+        diff = diff + torch.eye(cfg.num_patches, dtype=diff.dtype) * 1e9
+        assert diff.min() > cfg.separation
+    assert (ref.score[:, :-1] >= ref.score[:, 1:]).all()  # best first
+
+
+def test_identical_faces_give_zero_dissimilarity_and_full_confidence():
+    face, mask = _face()
+    ref = build_dissimilarity_reference(face, mask)
+    d, conf, disp, present = dissimilarity(ref, face, mask)
+    assert d.shape == (2,) and conf.shape == (2,) and disp.shape == (2, 16, 2)
+    assert present.all()
+    assert d.max() < 1e-6 and conf.min() > 1 - 1e-9
+
+
+def test_shift_and_corruption_lower_confidence():
+    face, mask = _face(batch=1)
+    ref = build_dissimilarity_reference(face, mask)
+    shifts = torch.tensor([[0.3, 0.0], [1.0, 0.5], [2.0, -1.5]], dtype=torch.float64)
+    moved = _shift(face.expand(3, -1, -1, -1), shifts) * mask
+    d, conf = dissimilarity(ref, moved, mask.expand(3, -1, -1, -1))[:2]
+    expected = shifts.norm(dim=-1)
+    assert torch.allclose(d, expected, atol=0.1), (d, expected)
+    assert (conf[1:] < conf[:-1]).all()
+    g = torch.Generator().manual_seed(9)
+    noisy = (face + 0.5 * torch.rand(face.shape, generator=g, dtype=torch.float64)) * mask
+    other = _face(batch=1, seed=11)[0]
+    d2, conf2 = dissimilarity(ref, torch.cat([face, noisy, other]), mask.expand(3, -1, -1, -1))[:2]
+    assert d2[0] < 1e-6 and d2[1] > 0.05 and d2[2] > 1.0
+    assert conf2[0] > conf2[1] > conf2[2]
+
+
+def test_dissimilarity_batch_equals_per_sample_and_broadcast_reference():
+    face, mask = _face(batch=1)
+    ref = build_dissimilarity_reference(face, mask)
+    shifts = torch.tensor([[0.5, 0.5], [-1.2, 0.3]], dtype=torch.float64)
+    moved = _shift(face.expand(2, -1, -1, -1), shifts) * mask
+    masks = mask.expand(2, -1, -1, -1)
+    both = dissimilarity(ref, moved, masks)
+    for b in range(2):
+        one = dissimilarity(ref, moved[b : b + 1], masks[b : b + 1])
+        torch.testing.assert_close(both.dissimilarity[b], one.dissimilarity[0], atol=1e-10, rtol=0)
+        torch.testing.assert_close(both.confidence[b], one.confidence[0], atol=1e-10, rtol=0)
+
+
+def test_masked_or_empty_gives_zero_confidence_and_finite():
+    face, mask = _face()
+    ref = build_dissimilarity_reference(face, mask)
+    empty = torch.zeros_like(mask)
+    half = mask.clone()
+    half[..., :, 48:] = 0.0
+    d, conf, _, present = dissimilarity(ref, torch.cat([face[:1] * 0, face[1:] * half[1:]]),
+                                        torch.cat([empty[:1], half[1:]]))  # fmt: skip
+    assert torch.isfinite(d).all() and torch.isfinite(conf).all()
+    assert conf[0] == 0.0 and d[0] == ref.config.max_displacement and not present[0].any()
+    # Half the face visible: the patches on the visible half still count and match.
+    assert 0 < int(present[1].sum()) < 16 and conf[1] > 0.99
+    # A reference without any texture has no patch: confidence 0, never NaN.
+    flat = build_dissimilarity_reference(torch.full_like(face, 0.5) * mask, mask)
+    assert not flat.patch_valid.any()
+    d3, conf3 = dissimilarity(flat, face, mask)[:2]
+    assert torch.isfinite(d3).all() and (conf3 == 0).all()
+
+
+def test_dissimilarity_bad_inputs_raise():
+    face, mask = _face()
+    ref = build_dissimilarity_reference(face, mask)
+    with pytest.raises(ValueError, match="square"):
+        build_dissimilarity_reference(face[..., :90], mask[..., :90])
+    with pytest.raises(ValueError, match="mask"):
+        dissimilarity(ref, face, mask[:, :, :50, :50])
+    with pytest.raises(ValueError, match="like the reference"):
+        dissimilarity(ref, face[..., :64, :64], mask[..., :64, :64])
+    with pytest.raises(ValueError, match="batch must be 1 or B"):
+        dissimilarity(ref, face[:1].expand(3, -1, -1, -1), mask[:1].expand(3, -1, -1, -1))
+    with pytest.raises(TypeError, match="DissimilarityReference"):
+        dissimilarity(face, face, mask)
+    with pytest.raises(ValueError, match="odd"):
+        DissimilarityConfig(patch_size=10)
+    with pytest.raises(ValueError, match="positive"):
+        DissimilarityConfig(d0=0.0)
+    with pytest.raises(ValueError, match="min_support"):
+        DissimilarityConfig(min_support=0.0)
+
+
+def test_float32_runs():
+    face, mask = _face(batch=1)
+    ref = build_dissimilarity_reference(face.float(), mask.float())
+    d, conf = dissimilarity(ref, face.float(), mask.float())[:2]
+    assert d.dtype == torch.float32 and float(d[0]) < 1e-3 and float(conf[0]) > 0.99
+
+
+# ---------------------------------------------------------------- AUROC of scripts/confidence_auroc.py
+
+
+def _auroc():
+    scripts = Path(__file__).resolve().parents[2] / "scripts"
+    if not (scripts / "confidence_auroc.py").is_file():
+        pytest.skip("scripts/confidence_auroc.py not present")
+    sys.path.insert(0, str(scripts))
+    try:
+        import confidence_auroc
+    finally:
+        sys.path.remove(str(scripts))
+    return confidence_auroc.auroc
+
+
+def test_auroc_known_answers():
+    auroc = _auroc()
+    assert auroc(torch.tensor([3.0, 4.0]), torch.tensor([1.0, 2.0])) == 1.0
+    assert auroc(torch.tensor([1.0, 2.0]), torch.tensor([3.0, 4.0])) == 0.0
+    # Ties count one half: pairs (0.9>0.1) (0.9>0.8) (0.8>0.1) (0.8=0.8) -> 3.5 / 4.
+    assert auroc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.8])) == 0.875
+    assert auroc(torch.ones(3), torch.ones(5)) == 0.5
+    assert math.isnan(auroc(torch.tensor([]), torch.tensor([1.0])))
+    g = torch.Generator().manual_seed(0)
+    pos, neg = torch.rand(40, generator=g), torch.rand(30, generator=g).round(decimals=1)
+    brute = ((pos[:, None] > neg[None]).double() + 0.5 * (pos[:, None] == neg[None]).double()).mean()
+    assert abs(auroc(pos, neg) - float(brute)) < 1e-12

@@ -1,0 +1,564 @@
+"""Dissimilarity between the normalised face and its reference (paper Section 4, "dissimilarity").
+
+With the estimated pose, expression and light, the frame is resampled into the normalised view of the face
+(frontal, neutral expression, neutral light; :mod:`torchface.normalise`). If the estimate is right this view
+matches the reference view built from the first frame; if it is wrong, the face's features appear displaced.
+The paper measures this by tracking a set of fiducial patches of the reference on the current normalised
+view with a 2D inverse-compositional Lucas-Kanade, and reads a large displacement as low confidence.
+
+Inverse-compositional Lucas-Kanade (Baker and Matthews, "Lucas-Kanade 20 years on", 2004)
+-------------------------------------------------------------------------------------------
+Each patch ``k`` is the square ``h x h`` grid of offsets ``x`` around its centre ``c_k`` in the reference
+``T``; the warp is a translation, ``W(x; p) = c_k + x + p``. Each iteration solves
+
+    ``min_dp sum_x w(x) [T(c_k + x + dp) - I(c_k + x + p)]^2``
+
+by linearising ``T`` (whose gradient is fixed, so the steepest-descent images ``grad T(x)`` are computed once),
+
+    ``dp = H^-1 sum_x w(x) grad T(x)^T [I(c_k + x + p) - T(c_k + x)]``,  ``H = sum_x w(x) grad T(x)^T grad T(x)``,
+
+and composes the inverse increment, ``p <- p - dp``. The weights ``w`` are the reference patch's mask times
+the current image's mask (and its inside-image indicator) at the warped grid, so ``H`` is re-summed each
+iteration from the precomputed steepest-descent images (the robust/weighted variant of the same paper,
+Part 2); it is a 2 x 2 sum per patch. A constant intensity offset between the patches (a bias left by the
+illumination estimate) is projected out: the steepest-descent images and the error are taken relative to
+their weighted patch means ("project out" of the bias basis image ``1``).
+
+Dissimilarity and confidence
+----------------------------
+:func:`build_dissimilarity_reference` picks ``K`` fiducial patches on the reference normalised face: the
+positions of highest texture (the smaller eigenvalue of the structure tensor summed over the patch, as in
+Shi and Tomasi's "good features to track"), whose patch lies entirely inside the reference mask, kept apart
+by non-maximum suppression. :func:`dissimilarity` tracks them on the current normalised face, and
+
+    ``d = mean_k min(|p_k|, d_max)``   over the patches present,     ``confidence = exp(-(d / d0)^2)``.
+
+A patch is missing when less than ``min_support`` of its reference pixels are inside the current mask at its
+final position (or when the reference had no patch in that slot); a patch whose solve fails (singular
+Hessian, non-finite) or leaves the search range counts as displaced by ``d_max``. When fewer than
+``min_patches`` patches are present the dissimilarity is ``d_max`` and the confidence 0.
+
+Pixel coordinates are ``(u, v)`` = (column, row) with pixel centres at integers; sampling uses ``grid_sample``
+with ``align_corners=True`` (see :mod:`torchface.conventions`).
+
+Shapes: ``B`` batch, ``C`` channels, ``K`` patches, ``h`` patch size, ``H x W`` images, ``G x G`` the normalised
+face.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = [
+    "LKResult",
+    "DissimilarityConfig",
+    "DissimilarityReference",
+    "DissimilarityResult",
+    "inverse_compositional_lk",
+    "build_dissimilarity_reference",
+    "dissimilarity",
+]
+
+
+class LKResult(NamedTuple):
+    """What :func:`inverse_compositional_lk` returns (per patch).
+
+    Attributes:
+        displacement: ``(B, K, 2)`` pixels ``(du, dv)``: the reference patch at ``c_k`` matches the image
+            at ``c_k + displacement``.
+        converged: ``(B, K)`` bool, the last update was below the tolerance.
+        valid: ``(B, K)`` bool, the solve stayed well-posed (finite, non-singular Hessian) and within
+            ``max_displacement``.
+        support: ``(B, K)`` fraction of the reference patch's weight that is inside the image (and its mask)
+            at the final position, in ``[0, 1]``.
+        residual: ``(B, K)`` weighted RMS intensity error at the final position (bias projected out when
+            requested).
+    """
+
+    displacement: Tensor
+    converged: Tensor
+    valid: Tensor
+    support: Tensor
+    residual: Tensor
+
+
+def _check_image(x: object, name: str) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (B, C, H, W), got {type(x).__name__}")
+    if x.dim() != 4 or not x.is_floating_point():
+        raise ValueError(f"{name} must be (B, C, H, W) float, got {tuple(x.shape)} {x.dtype}")
+    return x
+
+
+def _check_mask(mask: object, name: str, image: Tensor) -> Tensor:
+    if not isinstance(mask, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (B, 1, H, W), got {type(mask).__name__}")
+    want = (image.shape[0], 1, image.shape[2], image.shape[3])
+    if tuple(mask.shape) != want:
+        raise ValueError(f"{name} must be {want} like its image, got {tuple(mask.shape)}")
+    return mask.to(dtype=image.dtype, device=image.device)
+
+
+def _patch_offsets(patch_size: int, like: Tensor) -> Tensor:
+    """``(h * h, 2)`` offsets ``(u, v)`` of a centred ``h x h`` grid, row-major."""
+    r = torch.arange(patch_size, dtype=like.dtype, device=like.device) - (patch_size - 1) / 2.0
+    v, u = torch.meshgrid(r, r, indexing="ij")
+    return torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1)
+
+
+def _sample(image: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinear samples of ``(B, C, H, W)`` at ``(B, K, n, 2)`` pixel positions.
+
+    Returns:
+        ``(B, K, n, C)`` values (0 outside) and ``(B, K, n)`` inside-image indicator (float).
+    """
+    H, W = image.shape[-2:]
+    u, v = points_px[..., 0], points_px[..., 1]
+    sx = 2.0 / max(W - 1, 1)
+    sy = 2.0 / max(H - 1, 1)
+    grid = torch.stack([u * sx - 1.0, v * sy - 1.0], dim=-1)  # (B, K, n, 2)
+    out = F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (B, C, K, n)
+    inside = (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    return out.permute(0, 2, 3, 1), inside.to(image.dtype)
+
+
+def _weighted_mean(x: Tensor, w: Tensor, total: Tensor) -> Tensor:
+    """Mean of ``x (B, K, n, ...)`` over ``n`` with weights ``w (B, K, n)`` summing to ``total (B, K)``."""
+    ww = w.reshape(w.shape + (1,) * (x.dim() - w.dim()))
+    tt = total.reshape(total.shape + (1,) * (x.dim() - total.dim() - 1))
+    return (x * ww).sum(2) / tt
+
+
+def inverse_compositional_lk(
+    reference: Tensor,
+    images: Tensor,
+    centres: Tensor,
+    patch_size: int,
+    iterations: int = 20,
+    *,
+    reference_mask: Tensor | None = None,
+    image_mask: Tensor | None = None,
+    tolerance: float = 1e-3,
+    max_displacement: float | None = None,
+    project_out_bias: bool = True,
+) -> LKResult:
+    """Track ``K`` square patches of ``reference`` into ``images`` by inverse-compositional Lucas-Kanade.
+
+    Translation-only warp, all patches and samples at once (module docstring). Patch ``k`` of sample ``b`` is
+    the ``h x h`` grid centred on ``centres[b, k]`` in ``reference[b]``; the search starts at the same position
+    in ``images[b]`` (zero displacement).
+
+    Args:
+        reference: ``(B, C, h_r, w_r)`` reference images (the template ``T``).
+        images: ``(B, C, H, W)`` current images (``I``), same ``B`` and ``C``.
+        centres: ``(B, K, 2)`` patch centres ``(u, v)`` in reference pixels (and initial positions in ``images``).
+        patch_size: ``h``, an int >= 3.
+        iterations: maximum Gauss-Newton iterations, >= 1 (patches stop once converged).
+        reference_mask: ``(B, 1, h_r, w_r)`` or None; reference pixels with mask <= 0.5 get weight 0.
+        image_mask: ``(B, 1, H, W)`` or None; multiplies the weights at the warped grid (bilinear).
+        tolerance: convergence threshold on ``|dp|`` (pixels).
+        max_displacement: ``|p|`` above which a patch is not valid (and stops); None for no limit.
+        project_out_bias: remove the weighted patch mean from the error and steepest-descent images.
+
+    Returns:
+        :class:`LKResult`.
+
+    Raises:
+        TypeError: an argument is not a tensor / has the wrong dtype.
+        ValueError: shapes do not match or a setting is out of range.
+
+    Example:
+        >>> ref = torch.rand(2, 1, 32, 32)
+        >>> out = inverse_compositional_lk(ref, ref, torch.full((2, 3, 2), 15.0), patch_size=9)
+        >>> out.displacement.shape, bool(out.displacement.abs().max() < 1e-4)
+        (torch.Size([2, 3, 2]), True)
+    """
+    reference = _check_image(reference, "reference")
+    images = _check_image(images, "images")
+    if images.shape[:2] != reference.shape[:2]:
+        raise ValueError(
+            f"images must have the reference's batch and channels {tuple(reference.shape[:2])}, got "
+            f"{tuple(images.shape[:2])}"
+        )
+    if not isinstance(centres, Tensor):
+        raise TypeError(f"centres must be a torch.Tensor of shape (B, K, 2), got {type(centres).__name__}")
+    if centres.dim() != 3 or centres.shape[0] != reference.shape[0] or centres.shape[-1] != 2:
+        raise ValueError(f"centres must be (B, K, 2) with B={reference.shape[0]}, got {tuple(centres.shape)}")
+    if isinstance(patch_size, bool) or not isinstance(patch_size, int) or patch_size < 3:
+        raise ValueError(f"patch_size must be an int >= 3, got {patch_size!r}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations must be an int >= 1, got {iterations!r}")
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be positive, got {tolerance}")
+    if max_displacement is not None and not max_displacement > 0:
+        raise ValueError(f"max_displacement must be positive or None, got {max_displacement}")
+    dtype = torch.promote_types(reference.dtype, images.dtype)
+    reference = reference.to(dtype)
+    images = images.to(dtype=dtype, device=reference.device)
+    centres = centres.to(dtype=dtype, device=reference.device)
+    if reference_mask is not None:
+        reference_mask = _check_mask(reference_mask, "reference_mask", reference)
+    if image_mask is not None:
+        image_mask = _check_mask(image_mask, "image_mask", images)
+    B, K = centres.shape[:2]
+    eps = torch.finfo(dtype).eps
+
+    offsets = _patch_offsets(patch_size, reference)  # (n, 2)
+    grid = centres.unsqueeze(2) + offsets  # (B, K, n, 2)
+
+    # Precomputation: the template, its gradient (central differences) and the reference weights.
+    unit_u = offsets.new_tensor([1.0, 0.0])
+    unit_v = offsets.new_tensor([0.0, 1.0])
+    template, inside_r = _sample(reference, grid)  # (B, K, n, C), (B, K, n)
+    gu = 0.5 * (_sample(reference, grid + unit_u)[0] - _sample(reference, grid - unit_u)[0])
+    gv = 0.5 * (_sample(reference, grid + unit_v)[0] - _sample(reference, grid - unit_v)[0])
+    sd = torch.stack([gu, gv], dim=-1)  # (B, K, n, C, 2) steepest-descent images grad T
+    ref_weight = inside_r
+    if reference_mask is not None:
+        ref_weight = ref_weight * (_sample(reference_mask, grid)[0][..., 0] > 0.5).to(dtype)
+    ref_total = ref_weight.sum(-1)  # (B, K)
+
+    p = torch.zeros(B, K, 2, dtype=dtype, device=reference.device)
+    active = torch.ones(B, K, dtype=torch.bool, device=reference.device)
+    converged = torch.zeros_like(active)
+    valid = torch.ones_like(active)
+
+    def weights_at(p_: Tensor) -> tuple[Tensor, Tensor]:
+        warped, inside = _sample(images, grid + p_.unsqueeze(2))
+        w = ref_weight * inside
+        if image_mask is not None:
+            w = w * _sample(image_mask, grid + p_.unsqueeze(2))[0][..., 0].clamp(0.0, 1.0)
+        return warped, w
+
+    for _ in range(iterations):
+        warped, w = weights_at(p)
+        total = w.sum(-1).clamp_min(eps)  # (B, K)
+        err = warped - template  # (B, K, n, C)
+        sd_i = sd
+        if project_out_bias:
+            err = err - _weighted_mean(err, w, total).unsqueeze(2)
+            sd_i = sd - _weighted_mean(sd, w, total).unsqueeze(2)
+        wsd = sd_i * w[..., None, None]
+        hess = torch.einsum("bknci,bkncj->bkij", wsd, sd_i)  # (B, K, 2, 2)
+        grad = torch.einsum("bknci,bknc->bki", wsd, err)  # (B, K, 2)
+        a, b, c = hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1]
+        det = a * c - b * b
+        scale = (a + c).abs().clamp_min(eps)
+        ok = (det > 1e3 * eps * scale * scale) & torch.isfinite(det) & torch.isfinite(grad).all(-1)
+        det_safe = torch.where(ok, det, torch.ones_like(det))
+        dp = torch.stack([c * grad[..., 0] - b * grad[..., 1], a * grad[..., 1] - b * grad[..., 0]], -1)
+        dp = dp / det_safe.unsqueeze(-1)
+        step = active & ok
+        valid = valid & (ok | ~active)
+        p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
+        small = dp.norm(dim=-1) < tolerance
+        converged = converged | (step & small)
+        far = torch.zeros_like(active)
+        if max_displacement is not None:
+            far = p.norm(dim=-1) > max_displacement
+            valid = valid & ~(step & far)
+        active = active & ok & ~small & ~far
+        if not bool(active.any()):
+            break
+
+    warped, w = weights_at(p)
+    total = w.sum(-1)
+    err = warped - template
+    if project_out_bias:
+        err = err - _weighted_mean(err, w, total.clamp_min(eps)).unsqueeze(2)
+    residual = ((err.square().sum(-1) * w).sum(-1) / (total.clamp_min(eps) * err.shape[-1])).sqrt()
+    support = torch.where(ref_total > 0, total / ref_total.clamp_min(eps), torch.zeros_like(total))
+    valid = valid & torch.isfinite(p).all(-1) & (ref_total > 0)
+    return LKResult(p, converged, valid, support.clamp(0.0, 1.0), residual)
+
+
+@dataclass(frozen=True)
+class DissimilarityConfig:
+    """Settings of the dissimilarity measure (module docstring).
+
+    Attributes:
+        patch_size: ``h``, side of the square fiducial patches (pixels of the normalised face), odd, >= 3.
+        num_patches: ``K``, fiducial patches picked on the reference.
+        min_separation: minimum distance (pixels, per axis) between patch centres (non-maximum suppression
+            window half-width); None means ``patch_size``.
+        border: patch centres stay this far (pixels) from the image border, beyond half a patch.
+        iterations: maximum inverse-compositional Lucas-Kanade iterations.
+        tolerance: convergence threshold on the update (pixels).
+        max_displacement: ``d_max``, search range (pixels); a patch further away or failing counts as ``d_max``.
+        d0: displacement scale (pixels) of the confidence ``exp(-(d / d0)^2)``.
+        min_support: fraction of a patch's reference pixels that must be inside the current mask.
+        min_patches: fewer present patches than this give confidence 0.
+        smoothing_sigma: Gaussian pre-smoothing (pixels) of both normalised faces (0 for none); it widens
+            Lucas-Kanade's basin of convergence.
+        project_out_bias: remove each patch's mean intensity offset (a light-normalisation residual).
+    """
+
+    patch_size: int = 11
+    num_patches: int = 16
+    min_separation: int | None = None
+    border: int = 2
+    iterations: int = 20
+    tolerance: float = 1e-3
+    max_displacement: float = 6.0
+    d0: float = 1.5
+    min_support: float = 0.8
+    min_patches: int = 1
+    smoothing_sigma: float = 1.0
+    project_out_bias: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("patch_size", "num_patches", "iterations", "min_patches", "border"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+        if self.patch_size < 3 or self.patch_size % 2 == 0:
+            raise ValueError(f"patch_size must be an odd int >= 3, got {self.patch_size}")
+        if self.num_patches < 1 or self.iterations < 1 or self.min_patches < 1 or self.border < 0:
+            raise ValueError(
+                "num_patches, iterations and min_patches must be >= 1 and border >= 0, got "
+                f"{self.num_patches}, {self.iterations}, {self.min_patches}, {self.border}"
+            )
+        if self.min_separation is not None and (
+            isinstance(self.min_separation, bool) or not isinstance(self.min_separation, int) or self.min_separation < 1
+        ):
+            raise ValueError(f"min_separation must be an int >= 1 or None, got {self.min_separation!r}")
+        if not (self.tolerance > 0 and self.max_displacement > 0 and self.d0 > 0):
+            raise ValueError(
+                f"tolerance, max_displacement and d0 must be positive, got {self.tolerance}, "
+                f"{self.max_displacement}, {self.d0}"
+            )
+        if not 0.0 < self.min_support <= 1.0:
+            raise ValueError(f"min_support must be in (0, 1], got {self.min_support}")
+        if not self.smoothing_sigma >= 0:
+            raise ValueError(f"smoothing_sigma must be >= 0, got {self.smoothing_sigma}")
+
+    @property
+    def separation(self) -> int:
+        """The non-maximum suppression half-width actually used."""
+        return self.patch_size if self.min_separation is None else self.min_separation
+
+
+@dataclass(frozen=True)
+class DissimilarityReference:
+    """The reference normalised face prepared for :func:`dissimilarity`.
+
+    Attributes:
+        image: ``(B, 1, G, G)`` gray, masked and smoothed reference (the Lucas-Kanade template).
+        mask: ``(B, 1, G, G)`` float reference mask.
+        centres: ``(B, K, 2)`` fiducial patch centres ``(u, v)`` in pixels.
+        patch_valid: ``(B, K)`` bool; False where the reference had fewer than ``K`` textured places.
+        score: ``(B, K)`` texture score (smaller structure-tensor eigenvalue, summed over the patch).
+        config: the :class:`DissimilarityConfig` used.
+    """
+
+    image: Tensor
+    mask: Tensor
+    centres: Tensor
+    patch_valid: Tensor
+    score: Tensor
+    config: DissimilarityConfig
+
+    @property
+    def num_patches(self) -> Tensor:
+        """``(B,)`` number of valid patches per sample."""
+        return self.patch_valid.sum(-1)
+
+
+class DissimilarityResult(NamedTuple):
+    """What :func:`dissimilarity` returns (unpacks as ``dissimilarity, confidence`` plus details).
+
+    Attributes:
+        dissimilarity: ``(B,)`` mean patch displacement (pixels of the normalised face), ``d_max`` when no
+            patch is present.
+        confidence: ``(B,)`` in ``[0, 1]``.
+        displacement: ``(B, K, 2)`` per-patch displacement.
+        present: ``(B, K)`` bool, the patch counted.
+    """
+
+    dissimilarity: Tensor
+    confidence: Tensor
+    displacement: Tensor
+    present: Tensor
+
+
+def _gaussian_kernel(sigma: float, like: Tensor) -> Tensor:
+    radius = max(1, int(round(3.0 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=like.dtype, device=like.device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def _masked_gray(image: Tensor, mask: Tensor, sigma: float) -> Tensor:
+    """``(B, 1, G, G)`` channel mean, Gaussian-smoothed by normalised convolution inside ``mask``, 0 outside."""
+    gray = image.mean(1, keepdim=True) * mask
+    if sigma <= 0:
+        return gray
+    k = _gaussian_kernel(sigma, image)
+    r = k.shape[0] // 2
+    kx = k.reshape(1, 1, 1, -1)
+    ky = k.reshape(1, 1, -1, 1)
+
+    def blur(x: Tensor) -> Tensor:
+        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), kx)
+        return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), ky)
+
+    num = blur(gray)
+    den = blur(mask)
+    eps = torch.finfo(image.dtype).eps
+    return torch.where(den > 1e3 * eps, num / den.clamp_min(1e3 * eps), torch.zeros_like(num)) * mask
+
+
+def _check_face(image: object, mask: object, name: str) -> tuple[Tensor, Tensor]:
+    image = _check_image(image, name)
+    if image.shape[-1] != image.shape[-2]:
+        raise ValueError(f"{name} must be square (B, C, G, G), got {tuple(image.shape)}")
+    mask = _check_mask(mask, f"{name}'s mask", image)
+    return image, (mask > 0.5).to(image.dtype)
+
+
+def build_dissimilarity_reference(
+    image: Tensor, mask: Tensor, config: DissimilarityConfig | None = None
+) -> DissimilarityReference:
+    """Pick the fiducial patches of a reference normalised face.
+
+    The texture score at each pixel is the smaller eigenvalue of the structure tensor ``sum grad g grad g^T``
+    of the smoothed gray image summed over the patch (Shi-Tomasi). Candidates are pixels whose whole patch
+    (plus one pixel for the gradient) is inside ``mask`` and at least ``border`` pixels beyond half a patch from
+    the image border. Greedy non-maximum suppression keeps the ``K`` best (highest score first), each more than
+    ``s = config.separation`` pixels (along ``u`` or ``v``) from every better one.
+
+    Args:
+        image: ``(B, C, G, G)`` reference normalised face (:class:`torchface.normalise.NormalisedFace`).
+        mask: ``(B, 1, G, G)`` its mask.
+        config: :class:`DissimilarityConfig` (defaults when None).
+
+    Returns:
+        :class:`DissimilarityReference`.
+
+    Raises:
+        TypeError, ValueError: bad arguments (the message says what was expected).
+
+    Example:
+        >>> ref = build_dissimilarity_reference(torch.rand(1, 3, 96, 96), torch.ones(1, 1, 96, 96))
+        >>> ref.centres.shape, int(ref.num_patches[0])
+        (torch.Size([1, 16, 2]), 16)
+    """
+    config = DissimilarityConfig() if config is None else config
+    if not isinstance(config, DissimilarityConfig):
+        raise TypeError(f"config must be a DissimilarityConfig, got {type(config).__name__}")
+    image, mask = _check_face(image, mask, "image")
+    B, _, G, _ = image.shape
+    h = config.patch_size
+    r = h // 2
+    gray = _masked_gray(image, mask, config.smoothing_sigma)
+
+    # Structure tensor (central differences), summed over the patch window.
+    gu = torch.zeros_like(gray)
+    gv = torch.zeros_like(gray)
+    gu[..., :, 1:-1] = 0.5 * (gray[..., :, 2:] - gray[..., :, :-2])
+    gv[..., 1:-1, :] = 0.5 * (gray[..., 2:, :] - gray[..., :-2, :])
+    st = torch.cat([gu * gu, gu * gv, gv * gv], dim=1)
+    st = F.avg_pool2d(st, h, stride=1, padding=r, count_include_pad=True) * (h * h)
+    a, b, c = st[:, 0], st[:, 1], st[:, 2]
+    min_eig = 0.5 * (a + c) - torch.sqrt((0.5 * (a - c)).square() + b.square())
+
+    # Eligible centres: the whole patch (plus one pixel for the gradient) inside the mask and the image.
+    full = F.avg_pool2d(mask, h + 2, stride=1, padding=r + 1, count_include_pad=True)[:, 0]
+    eligible = full > 1.0 - 1e-6
+    edge = r + 1 + config.border
+    inner = torch.zeros(G, G, dtype=torch.bool, device=image.device)
+    if G - 2 * edge > 0:
+        inner[edge : G - edge, edge : G - edge] = True
+    eligible = eligible & inner
+    score = torch.where(eligible, min_eig.clamp_min(0.0), torch.full_like(min_eig, -1.0))
+
+    # Greedy non-maximum suppression, all samples at once: take the best remaining candidate, then remove
+    # every candidate within s pixels (per axis) of it. K rounds of (B, G, G) work, once per reference.
+    s = config.separation
+    rows = torch.arange(G, device=image.device)
+    ranked = score.reshape(B, G * G).clone()
+    K = min(config.num_patches, G * G)
+    picks, bests = [], []
+    for _ in range(K):
+        best, index = ranked.max(dim=-1)  # (B,)
+        picks.append(index)
+        bests.append(best)
+        near_u = ((rows.unsqueeze(0) - (index % G).unsqueeze(-1)).abs() <= s)  # (B, G) columns
+        near_v = ((rows.unsqueeze(0) - (index // G).unsqueeze(-1)).abs() <= s)  # (B, G) rows
+        near = (near_v.unsqueeze(-1) & near_u.unsqueeze(-2)).reshape(B, G * G)
+        ranked = ranked.masked_fill(near, -1.0)
+    index = torch.stack(picks, -1)
+    best = torch.stack(bests, -1)
+    centres = torch.stack([(index % G).to(image.dtype), (index // G).to(image.dtype)], dim=-1)
+    if K < config.num_patches:
+        pad = config.num_patches - K
+        centres = torch.cat([centres, centres.new_zeros(B, pad, 2)], 1)
+        best = torch.cat([best, best.new_full((B, pad), -1.0)], 1)
+    patch_valid = best > 0
+    return DissimilarityReference(gray, mask, centres, patch_valid, best.clamp_min(0.0), config)
+
+
+def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: Tensor) -> DissimilarityResult:
+    """Dissimilarity (pixels) and confidence in ``[0, 1]`` of normalised faces against the reference.
+
+    Each of the reference's patches is tracked on ``normalised`` by :func:`inverse_compositional_lk` (both
+    images gray, masked and smoothed alike), and ``d = mean_k min(|p_k|, d_max)`` over the present patches,
+    ``confidence = exp(-(d / d0)^2)`` (module docstring). No patch present gives ``d = d_max`` and
+    confidence 0, never NaN.
+
+    Args:
+        reference: from :func:`build_dissimilarity_reference`, batch ``B`` (or 1, broadcast).
+        normalised: ``(B, C, G, G)`` current normalised faces (same ``G`` as the reference).
+        mask: ``(B, 1, G, G)`` their masks.
+
+    Returns:
+        :class:`DissimilarityResult` ``(dissimilarity (B,), confidence (B,), displacement (B, K, 2),
+        present (B, K))``.
+
+    Raises:
+        TypeError, ValueError: bad arguments (the message says what was expected and what arrived).
+
+    Example:
+        >>> face, m = torch.rand(2, 3, 64, 64), torch.ones(2, 1, 64, 64)
+        >>> ref = build_dissimilarity_reference(face, m)
+        >>> d, conf = dissimilarity(ref, face, m)[:2]
+        >>> bool((d < 1e-3).all()), bool((conf > 0.99).all())
+        (True, True)
+    """
+    if not isinstance(reference, DissimilarityReference):
+        raise TypeError(f"reference must be a DissimilarityReference, got {type(reference).__name__}")
+    normalised, mask = _check_face(normalised, mask, "normalised")
+    cfg = reference.config
+    B = normalised.shape[0]
+    Br, _, G, _ = reference.image.shape
+    if normalised.shape[-1] != G:
+        raise ValueError(f"normalised must be {G}x{G} like the reference, got {tuple(normalised.shape[-2:])}")
+    if Br not in (1, B):
+        raise ValueError(f"the reference's batch must be 1 or B={B}, got {Br}")
+    dtype = torch.promote_types(reference.image.dtype, normalised.dtype)
+    ref_image = reference.image.to(dtype=dtype, device=normalised.device).expand(B, -1, -1, -1)
+    ref_mask = reference.mask.to(dtype=dtype, device=normalised.device).expand(B, -1, -1, -1)
+    centres = reference.centres.to(dtype=dtype, device=normalised.device).expand(B, -1, -1)
+    patch_valid = reference.patch_valid.to(normalised.device).expand(B, -1)
+    normalised, mask = normalised.to(dtype), mask.to(dtype)
+    gray = _masked_gray(normalised, mask, cfg.smoothing_sigma)
+    lk = inverse_compositional_lk(
+        ref_image, gray, centres, cfg.patch_size, cfg.iterations,
+        reference_mask=ref_mask, image_mask=mask, tolerance=cfg.tolerance,
+        max_displacement=cfg.max_displacement, project_out_bias=cfg.project_out_bias,
+    )  # fmt: skip
+    d_max = cfg.max_displacement
+    present = patch_valid & (lk.support >= cfg.min_support)
+    dist = lk.displacement.norm(dim=-1).nan_to_num(nan=d_max, posinf=d_max).clamp(max=d_max)
+    dist = torch.where(lk.valid, dist, torch.full_like(dist, d_max))
+    count = present.sum(-1)
+    mean = (dist * present).sum(-1) / count.clamp_min(1)
+    enough = count >= cfg.min_patches
+    d = torch.where(enough, mean, torch.full_like(mean, d_max))
+    conf = torch.exp(-(d / cfg.d0).square()) * enough
+    return DissimilarityResult(d, conf, lk.displacement, present)
