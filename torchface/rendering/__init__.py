@@ -1,5 +1,19 @@
-"""Rendering: rasterization (which triangle each pixel sees), visibility and normals."""
+"""Rendering: rasterization (which triangle each pixel sees), visibility, normals and Lambertian shading."""
 
 from torchface.rendering.rasterizer import Fragments, rasterize
 from torchface.rendering.reference import rasterize_reference
+from torchface.rendering.shading import LightState, TexturedMesh, render
 from torchface.rendering.visibility import backfacing, face_normals, points_visible, vertex_normals
+
+__all__ = [
+    "Fragments",
+    "LightState",
+    "TexturedMesh",
+    "backfacing",
+    "face_normals",
+    "points_visible",
+    "rasterize",
+    "rasterize_reference",
+    "render",
+    "vertex_normals",
+]

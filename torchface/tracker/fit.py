@@ -17,7 +17,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.model.face_model import FaceModel, interpolate_landmarks
-from torchface.solver.least_squares import SolverConfig, SolveStatus, least_squares
+from torchface.solver.least_squares import SolverConfig, least_squares
 
 
 @dataclass(frozen=True)

@@ -18,14 +18,15 @@ from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUM
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
-from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_euler
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
-from torchface.solver.least_squares import SolverConfig, SolverMethod, SolveStatus, least_squares
+from torchface.solver.least_squares import SolverConfig, SolveStatus, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.template.points import Template, build_template
-from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.fast import LevelCamera, solve_level
+from torchface.tracker.fit import FitConfig, fit_landmarks
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
 
@@ -436,10 +437,7 @@ def _track_step_fast(
     model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`track_step` with the fast solver (:mod:`torchface.tracker.fast`)."""
-    from torchface.tracker.fast import LevelCamera, solve_level
-
     layout = _layout(model)
-    B = frames.shape[0]
     offsets, ch, cw = face_crop(model, state, layout, config)
     crop = [_crop_gray(frames, offsets, ch, cw)]
     for _ in range(config.num_levels - 1):
@@ -485,8 +483,6 @@ def _track_step_fast(
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
             alpha_prior=config.expression_prior_precision, robust=robust, scale_floor=config.refine_scale_floor,
         )
-    from torchface.geometry.so3 import matrix_to_axis_angle
-
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
     valid = out.valid
     n_valid = valid.sum(-1)
