@@ -17,8 +17,8 @@ Variants (--variants, comma list):
   standard      the scenarios as they are.
   no_illum      light_switch tracked with use_illumination=False (a weaker tracker on the hardest light).
   inject        the standard tracks (the same run), but on every third frame from frame 1 the pose used for
-                scoring and for the normalised face is rotated by a random axis and an angle uniform in [0, 10] deg (seeded);
-                the tracker itself continues from its own estimate. The tracker's confidence cannot see
+                scoring and for the normalised face is rotated by a random axis and an angle uniform in
+                [0, 10] deg (seeded); the tracker itself continues from its own estimate. The tracker's confidence cannot see
                 this corruption, so (a) is meaningless there and printed only for completeness.
 
 Examples:
