@@ -242,3 +242,27 @@ def test_bad_inputs_raise(scene):
         build(scene, max_points=0)
     with pytest.raises(ValueError, match="max_points"):
         build(scene, max_points=H * W + 1)
+
+
+def test_expression_priority_keeps_points_that_animation_units_move():
+    """With ``expression_priority`` the template favours pixels an animation unit moves (>= 1 px per unit)."""
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+
+    model = load_candide3()
+    frames, gt = render_sequence(make_scenario("expressions", 1, 320, 240))
+    gray = frames.mean(1, keepdim=True)
+    R, t = gt.rotation.float(), gt.translation.float()
+    shape = gt.shape_coeffs.float().unsqueeze(0)
+    anim = gt.au.float()
+    cam = Intrinsics.default(320, 240)
+
+    def moving_points(priority: float) -> int:
+        tpl = build_template(model, shape, anim, R, t, gray, cam, max_points=150, gradient_threshold=0.01,
+                             expression_priority=priority)
+        px = tpl.basis.norm(dim=2).amax(-1) * cam.fx / 450.0  # pixels per unit coefficient, roughly
+        return int(((px >= 1.0) & tpl.valid).sum())
+
+    plain, favoured = moving_points(0.0), moving_points(1.0)
+    assert favoured > plain, (plain, favoured)
+    assert favoured >= 140  # nearly every slot goes to a point an animation unit moves

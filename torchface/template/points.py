@@ -112,6 +112,7 @@ def build_template(
     gradient_threshold: float,
     min_facing_cos: float = 0.15,
     erode_pixels: int = 1,
+    expression_priority: float = 0.0,
 ) -> Template:
     """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
 
@@ -129,6 +130,8 @@ def build_template(
         intrinsics: camera of ``gray``.
         max_points: N, slots per sample.
         gradient_threshold: minimum ``|grad I|`` (intensity per pixel) of a kept point; 0 keeps all.
+        expression_priority: when positive, candidate pixels that an animation unit moves by at least a pixel
+            per unit coefficient are picked before the others (their selection key is raised by this much).
 
     Returns:
         :class:`Template` with ``N = max_points`` slots.
@@ -155,6 +158,13 @@ def build_template(
     gmag = grads.pow(2).sum(1).sqrt()
     candidate = mask & (gmag >= gradient_threshold)
     keys = _selection_keys(H, W, gray.device).expand(B, -1)
+    if expression_priority > 0 and model.num_animation > 0:
+        # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
+        # small region (eyelids) would otherwise get few of the uniformly drawn points.
+        au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
+        sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
+        px_per_mm = intrinsics.fx / p_pix[..., 2].clamp_min(1.0)
+        keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
     score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
     top, pix = torch.topk(score, max_points, dim=1)
     valid = top >= 0
