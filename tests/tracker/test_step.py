@@ -407,3 +407,9 @@ def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):
     assert out.rotation.dtype == torch.float64 and bool(torch.isfinite(out.rotation).all())
     with pytest.raises(TypeError):
         tracker.to(torch.int64)
+
+
+def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
+    frames, gts = two_streams
+    with pytest.raises(ValueError, match="one set per frame"):
+        initialise(model, BASE, frames[:, 0], landmarks_of(gts)[:1], Intrinsics.default(W, H))

@@ -274,6 +274,9 @@ def initialise(
         The state and the first frame's result.
     """
     check_frames(frames, intrinsics)
+    if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[0] != frames.shape[0]:
+        got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
+        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {frames.shape[0]} (one set per frame), got {got}")
     frames = frames.to(dtype=model.dtype, device=model.device)
     fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
     layout = _layout(model)
