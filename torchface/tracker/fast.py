@@ -1,4 +1,4 @@
-"""The fast per-frame solver: Gauss-Newton on a local twist, over a face crop (paper Eq. 14-20).
+"""The fast per-frame solver: Levenberg-Marquardt on a local twist, over a face crop (paper Eq. 14-20).
 
 The paper linearises the rigid motion in twist form around the current estimate (Eq. 14-17). Here each
 iteration solves for a left increment ``(d_omega, d_t)`` of the camera-frame pose,
@@ -10,9 +10,10 @@ the illumination parameters; the rotation is then updated as ``R <- exp(hat(d_om
 
 which avoid the Jacobian of the exponential map at a general rotation (used by the reference path,
 :func:`torchface.tracker.objective.frame_residuals`, which :mod:`tests` check against this one).
-Weighted normal equations with Tukey/Huber/... IRLS weights (robust scale: MAD of the current residuals),
-a Gaussian prior on the animation units, box bounds by projection, and a small Levenberg damping.
-Everything is batched over streams; the only host synchronisation is one early-exit test per iteration.
+Weighted normal equations with Tukey/Huber/... IRLS weights (robust scale: MAD of the current residuals,
+floored), a Gaussian prior on the animation units, box bounds by projection, and Levenberg-Marquardt step
+acceptance (a step that raises the robust cost is undone and retried with more damping). Everything is
+batched over streams; the host synchronises only for the early-exit and step-rejection tests.
 """
 
 from __future__ import annotations
