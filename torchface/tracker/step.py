@@ -155,7 +155,7 @@ class TrackResult:
         facs: ``(B, n_facs)`` linked FACS AU values; facs_names: their names.
         illumination: ``(B, L)`` illumination parameters; illumination_names: their names.
         status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level;
-        cost: ``(B,)`` final robust cost per valid point at the finest level.
+        cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest level.
         num_points: ``(B,)`` valid template points at the finest level.
         confidence: ``(B,)`` in ``[0, 1]``.
     """
