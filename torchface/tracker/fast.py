@@ -142,6 +142,11 @@ def _cost(r: Tensor, valid: Tensor, robust: RobustLoss | None, s: Tensor) -> Ten
     return torch.where(valid, rho, torch.zeros_like(rho)).sum(-1)
 
 
+def _select(keep: Tensor, new: tuple[Tensor, ...], old: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+    """Per sample, ``new`` where ``keep (B,)`` else ``old`` (tensors of any shape with leading ``B``)."""
+    return tuple(torch.where(keep.view(-1, *([1] * (n.dim() - 1))), n, o) for n, o in zip(new, old))
+
+
 def solve_level(
     tpl: Template,
     image: Tensor,
@@ -235,14 +240,7 @@ def solve_level(
         if best is not None:
             a3 = accept.view(B, 1, 1)
             if not bool(accept.all()):  # undo rejected steps (one host sync; most steps are accepted)
-                R = torch.where(a3, R, best[0])
-                t = torch.where(accept.unsqueeze(-1), t, best[1])
-                alpha = torch.where(accept.unsqueeze(-1), alpha, best[2])
-                light = torch.where(accept.unsqueeze(-1), light, best[3])
-                H = torch.where(a3, H, best[4])
-                grad = torch.where(accept.unsqueeze(-1), grad, best[5])
-                cost = torch.where(accept, cost, best[6])
-                s = torch.where(accept.unsqueeze(-1), s, best[7])
+                R, t, alpha, light, H, grad, cost, s = _select(accept, (R, t, alpha, light, H, grad, cost, s), best)
             lam = torch.where(a3, (lam / 3.0).clamp_min(1e-6), lam * 10.0)
         best = (R, t, alpha, light, H, grad, cost, s)
         diag = torch.diagonal(H, dim1=1, dim2=2)
@@ -274,10 +272,7 @@ def solve_level(
         cost = cost + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
         accept = (cost <= best[6]) & torch.isfinite(cost)
         if not bool(accept.all()):
-            R = torch.where(accept.view(B, 1, 1), R, best[0])
-            t = torch.where(accept.unsqueeze(-1), t, best[1])
-            alpha = torch.where(accept.unsqueeze(-1), alpha, best[2])
-            light = torch.where(accept.unsqueeze(-1), light, best[3])
+            R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
             r, _, valid, sampled = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
     outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite)
     return R, t, alpha, light, outcome

@@ -378,25 +378,10 @@ def track_step(
         status = res.status
     # Finest-level diagnostics at the final estimate.
     r, _, valid = frame_residuals(x, layout, tpl, image, intr, light_basis, mask)
-    n_valid = valid.sum(-1)
     _, cam, _ = warp_points(tpl, layout, x)
     sampled, _ = sample_at_pixels(image[:, :1], project_points(cam, intr))
-    vf = valid.to(x.dtype)
-    mean_i = (sampled[..., 0] * vf).sum(-1) / n_valid.clamp_min(1)
-    std_i = (((sampled[..., 0] - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
-    rms = ((torch.nan_to_num(r) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
-    failed = (
-        (status == int(SolveStatus.FAILED))
-        | (n_valid < config.min_points)
-        | (std_i < config.min_contrast)
-        | ~torch.isfinite(x).all(-1)
-    )
-    x = torch.where(failed.unsqueeze(-1), state.params, x)
-    status = torch.where(failed, int(TrackStatus.FAILED), status)
-    frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
-    confidence = (frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2))) * (~failed)
-    new_state = replace(state, params=x, frame_index=state.frame_index + 1)
-    return new_state, _result(model, layout, x, status, res.iterations, rms, n_valid, confidence)
+    solver_failed = status == int(SolveStatus.FAILED)
+    return _finish(model, config, layout, state, tpl, x, r, valid, sampled[..., 0], solver_failed, status, res.iterations)
 
 
 def _posed_vertices(model: FaceModel, state: TrackerState, layout: ParamLayout) -> Tensor:
@@ -493,21 +478,50 @@ def _track_step_fast(
             alpha_prior=config.expression_prior_precision, robust=robust, scale_floor=config.refine_scale_floor,
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
-    valid = out.valid
+    status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
+    return _finish(
+        model, config, layout, state, tpl, x, out.residual, out.valid, out.sampled, ~out.finite, status, out.iterations
+    )
+
+
+def _finish(
+    model: FaceModel,
+    config: TrackerConfig,
+    layout: ParamLayout,
+    state: TrackerState,
+    tpl: Template,
+    x: Tensor,
+    residual: Tensor,
+    valid: Tensor,
+    sampled: Tensor,
+    solver_failed: Tensor,
+    status: Tensor,
+    iterations: Tensor,
+) -> tuple[TrackerState, TrackResult]:
+    """Failure tests, confidence and the new state, from the finest level's final residuals (both solvers).
+
+    Args:
+        x: ``(B, P)`` the estimate; residual, valid, sampled: ``(B, N)`` at the finest level (``sampled`` the
+            frame's gray values at the points); solver_failed: ``(B,)``; status: ``(B,)`` status codes before
+            the failure tests; iterations: ``(B,)``.
+
+    A sample fails when its solver did, when fewer than ``config.min_points`` points are valid, when the frame
+    has no contrast there (black or textureless) or when the estimate is not finite; it keeps its previous
+    parameters and gets confidence 0.
+    """
     n_valid = valid.sum(-1)
     vf = valid.to(x.dtype)
-    r = torch.where(valid, out.residual, torch.zeros_like(out.residual))
-    mean_i = (out.sampled * vf).sum(-1) / n_valid.clamp_min(1)
-    std_i = (((out.sampled - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
+    r = torch.nan_to_num(torch.where(valid, residual, torch.zeros_like(residual)))
+    mean_i = (sampled * vf).sum(-1) / n_valid.clamp_min(1)
+    std_i = (((sampled - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
     rms = ((r**2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
-    failed = ~out.finite | (n_valid < config.min_points) | (std_i < config.min_contrast) | ~torch.isfinite(x).all(-1)
+    failed = solver_failed | (n_valid < config.min_points) | (std_i < config.min_contrast) | ~torch.isfinite(x).all(-1)
     x = torch.where(failed.unsqueeze(-1), state.params, x)
-    status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
     status = torch.where(failed, int(TrackStatus.FAILED), status)
     frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
     confidence = frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2)) * (~failed)
     new_state = replace(state, params=x, frame_index=state.frame_index + 1)
-    return new_state, _result(model, layout, x, status, out.iterations, rms, n_valid, confidence)
+    return new_state, _result(model, layout, x, status, iterations, rms, n_valid, confidence)
 
 
 def _visibility_at(
