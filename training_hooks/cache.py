@@ -1,0 +1,255 @@
+"""Disk cache of tracked sequences: a second epoch reads instead of tracking again.
+
+Key (:func:`cache_key`): a BLAKE2b hash of
+
+- the video's CONTENT (:func:`content_hash`: the file's bytes; for a folder of frames, every image file's bytes
+  in name order), not its path or time stamp;
+- the :class:`~training_hooks.transforms.FaceTrackingConfig`'s full ``repr`` (the nested
+  :class:`~torchface.tracker.TrackerConfig` and its :class:`~torchface.tracker.FitConfig` included: every field,
+  face size and storage, focal length, thread count);
+- the first-frame landmarks (float64 bytes);
+- any extra text the caller adds (the datasets add their frame-conversion setting);
+- the torchface version and :data:`CACHE_FORMAT`.
+
+So a changed config, video or landmark set is a different file: a stale entry is never read, it is only left
+behind (delete ``cache_dir`` to reclaim the space).
+
+Files: one uncompressed ``<key>.npz`` per sequence (NumPy ``savez``) holding every
+:class:`~training_hooks.transforms.TrackedSequence` array (faces in their storage dtype, masks as bool) and a
+``meta`` JSON record with the key, the format, the torchface version, a BLAKE2b digest of all arrays, the
+config's repr (for people) and the source path. Writing goes to a unique temporary name in the same folder,
+flushed and ``fsync``-ed, then :func:`os.replace`-d into place, so a reader sees a whole file or none. Reading
+checks the zip structure, the digest, the key and the arrays' shapes and dtypes; anything wrong (a truncated,
+partial or corrupted file) is reported with a :class:`CacheWarning`, deleted and treated as a miss, so the
+sequence is tracked again: a damaged file is never used.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import uuid
+import warnings
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import torchface
+from torchface.io.video import IMAGE_SUFFIXES
+from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
+
+__all__ = ["CACHE_FORMAT", "CacheWarning", "CacheStats", "TrackCache", "cache_key", "content_hash"]
+
+#: Version of the file layout; part of every key.
+CACHE_FORMAT: int = 1
+#: Arrays of a :class:`TrackedSequence` stored in a cache file, in digest order.
+_ARRAYS: tuple[str, ...] = (
+    "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
+    "confidence", "status", "shape_coeffs", "landmarks",
+)  # fmt: skip
+_CHUNK = 1 << 20
+#: ``(path, size, mtime_ns, inode)`` -> content hash, per process: an unchanged file is hashed once.
+_HASH_MEMO: dict[tuple[str, int, int, int], str] = {}
+
+
+class CacheWarning(UserWarning):
+    """A cache file was unreadable or damaged; it was deleted and the sequence is tracked again."""
+
+
+def _file_digest(path: Path, h: "hashlib._Hash") -> None:
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            h.update(chunk)
+
+
+def content_hash(path: str | os.PathLike[str]) -> str:
+    """BLAKE2b hex digest of a video's content: a file's bytes, or a folder's image files' bytes in name order.
+
+    For a folder, each image (suffixes of :data:`torchface.io.video.IMAGE_SUFFIXES`, sorted by name, as
+    :func:`torchface.io.open_frames` reads them) contributes its length and bytes; names do not count. The
+    result for an unchanged file (same size, modification time and inode) is remembered per process.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+
+    Example:
+        >>> # content_hash("clip.avi") -> '3f1c...' (64 hex digits)
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file or folder")
+    files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file()) if p.is_dir() else [p]
+    stats = [f.stat() for f in files]
+    memo = (str(p.resolve()), *(v for s in stats for v in (s.st_size, s.st_mtime_ns, s.st_ino)))
+    if memo in _HASH_MEMO:
+        return _HASH_MEMO[memo]
+    h = hashlib.blake2b(digest_size=32)
+    h.update(b"folder" if p.is_dir() else b"file")
+    for f, s in zip(files, stats):
+        h.update(s.st_size.to_bytes(8, "little"))
+        _file_digest(f, h)
+    digest = h.hexdigest()
+    _HASH_MEMO[memo] = digest
+    return digest
+
+
+def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, extra: str = "") -> str:
+    """The cache key of a sequence (module docstring): 64 hex digits.
+
+    Args:
+        content: :func:`content_hash` of the video.
+        config: the tracking settings (their full ``repr`` is hashed).
+        landmarks: ``(68, 2)`` first-frame landmarks in pixels (hashed as float64).
+        extra: anything else that changes the result (e.g. a frame-conversion setting).
+
+    Example:
+        >>> from training_hooks.transforms import FaceTrackingConfig
+        >>> a = cache_key("0" * 64, FaceTrackingConfig(), np.zeros((68, 2)))
+        >>> b = cache_key("0" * 64, FaceTrackingConfig(face_size=64), np.zeros((68, 2)))
+        >>> len(a), a == b
+        (64, False)
+    """
+    if not isinstance(config, FaceTrackingConfig):
+        raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
+    points = np.ascontiguousarray(np.asarray(landmarks, dtype=np.float64))
+    if points.shape != (68, 2):
+        raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
+    h = hashlib.blake2b(digest_size=32)
+    for part in (f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", content, repr(config), extra):
+        data = part.encode("utf-8")
+        h.update(len(data).to_bytes(8, "little"))
+        h.update(data)
+    h.update(points.tobytes())
+    return h.hexdigest()
+
+
+def _arrays_digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.blake2b(digest_size=32)
+    for name in _ARRAYS:
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+        h.update(a.data if a.size else b"")
+    return h.hexdigest()
+
+
+@dataclass
+class CacheStats:
+    """Counters of one :class:`TrackCache` in this process (each ``DataLoader`` worker has its own copy).
+
+    Attributes:
+        hits: sequences read from the cache.
+        misses: sequences not found (tracked, then stored).
+        corrupt: damaged files found, deleted and counted as misses too.
+        writes: files written.
+    """
+
+    hits: int = 0
+    misses: int = 0
+    corrupt: int = 0
+    writes: int = 0
+
+
+class TrackCache:
+    """A folder of tracked sequences keyed by :func:`cache_key` (module docstring).
+
+    Args:
+        root: the folder (created on first write).
+
+    Example:
+        >>> # cache = TrackCache("cache"); seq = cache.load(key) or track(...); cache.store(key, seq)
+    """
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root)
+        self.stats = CacheStats()
+
+    def path(self, key: str) -> Path:
+        """The file of ``key``."""
+        if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
+            raise ValueError(f"key must be 64 lowercase hex digits (cache_key), got {key!r}")
+        return self.root / f"{key}.npz"
+
+    def load(self, key: str) -> TrackedSequence | None:
+        """The stored sequence of ``key``, or None when there is none or the file is damaged (then it is deleted
+        and a :class:`CacheWarning` says why)."""
+        path = self.path(key)
+        if not path.is_file():
+            self.stats.misses += 1
+            return None
+        try:
+            sequence = _read(path, key)
+        except Exception as exc:  # any failure to read back means the file is not trustworthy
+            warnings.warn(
+                f"{path}: damaged cache file ({type(exc).__name__}: {exc}); deleted, tracking again",
+                CacheWarning,
+                stacklevel=2,
+            )
+            path.unlink(missing_ok=True)
+            self.stats.corrupt += 1
+            self.stats.misses += 1
+            return None
+        self.stats.hits += 1
+        return sequence
+
+    def store(self, key: str, sequence: TrackedSequence, source: str = "", config: FaceTrackingConfig | None = None) -> Path:
+        """Write ``sequence`` under ``key`` atomically (temporary file, fsync, :func:`os.replace`); returns the path.
+
+        Args:
+            key: from :func:`cache_key`.
+            sequence: what to store.
+            source: the video's path, recorded for people.
+            config: the settings, their repr recorded for people.
+        """
+        path = self.path(key)
+        self.root.mkdir(parents=True, exist_ok=True)
+        arrays = {name: getattr(sequence, name).numpy() for name in _ARRAYS}
+        meta = {
+            "key": key, "format": CACHE_FORMAT, "torchface": torchface.__version__, "digest": _arrays_digest(arrays),
+            "frame_size": list(sequence.frame_size), "num_frames": sequence.num_frames, "source": str(source),
+            "config": repr(config) if config is not None else "",
+        }  # fmt: skip
+        tmp = self.root / f".{key}.{os.getpid()}.{uuid.uuid4().hex}.partial"
+        try:
+            with open(tmp, "wb") as f:
+                np.savez(f, meta=np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8), **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        self.stats.writes += 1
+        return path
+
+
+def _read(path: Path, key: str) -> TrackedSequence:
+    """Read and verify one cache file; raises on anything unexpected."""
+    data = path.read_bytes()
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        bad = z.testzip()  # CRC of every member
+        if bad is not None:
+            raise ValueError(f"member {bad} fails its CRC check")
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        names = set(z.files)
+        missing = [n for n in (*_ARRAYS, "meta") if n not in names]
+        if missing:
+            raise ValueError(f"missing arrays {missing}")
+        meta = json.loads(bytes(z["meta"]).decode("utf-8"))
+        arrays = {name: z[name] for name in _ARRAYS}
+    if meta.get("key") != key or meta.get("format") != CACHE_FORMAT:
+        raise ValueError(f"the file holds key {meta.get('key')!r} format {meta.get('format')!r}, expected {key!r}")
+    if meta.get("digest") != _arrays_digest(arrays):
+        raise ValueError("the arrays do not match their recorded digest")
+    tensors = {name: torch.from_numpy(np.ascontiguousarray(a)) for name, a in arrays.items()}
+    size = meta.get("frame_size")
+    if not isinstance(size, list) or len(size) != 2:
+        raise ValueError(f"bad frame_size {size!r}")
+    sequence = TrackedSequence(**tensors, frame_size=(int(size[0]), int(size[1])))
+    if sequence.num_frames != meta.get("num_frames"):
+        raise ValueError(f"{sequence.num_frames} frames stored, {meta.get('num_frames')} recorded")
+    return sequence

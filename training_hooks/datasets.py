@@ -1,0 +1,390 @@
+"""``torch.utils.data`` datasets of normalised faces, tracked inside the ``DataLoader`` worker processes.
+
+:class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
+images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
+landmarks (:func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
+normalised face with its parameters; the dataset yields one item per frame, or one per clip of
+:attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames.
+
+Workers: video ``i`` belongs to worker ``i % num_workers`` (``torch.utils.data.get_worker_info()``; the main
+process does everything when ``num_workers = 0``). A worker tracks its videos from start to end, so it owns
+their tracker states; no state crosses processes. Tracking runs with a fixed torch thread count
+(:attr:`~training_hooks.transforms.FaceTrackingConfig.num_threads`), so every item is bit-identical for 0, 1
+or 2 workers (only the order in which a ``DataLoader`` interleaves the workers' items differs).
+
+Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
+(parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
+back in later epochs (:mod:`training_hooks.cache`: content-and-config keys, atomic writes, damaged files
+tracked again). Each item says where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and
+misses in the current process.
+
+Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`) plus
+``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()`` bool. Frame items stack with
+PyTorch's default collate; clip items of different lengths with :func:`~training_hooks.collate.collate_clips`.
+
+Example:
+    >>> from torch.utils.data import DataLoader
+    >>> # data = VideoDataset(["a.avi", "b.avi"], ["a.csv", "b.csv"], DatasetConfig(cache_dir="cache"))
+    >>> # for batch in DataLoader(data, batch_size=64, num_workers=2): batch["face"]  # (64, 3, 128, 128)
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import random
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from torchface.io.errors import InputError
+from torchface.io.landmarks import check_landmarks, read_landmarks
+from torchface.io.video import open_frames
+from torchface.model.face_model import FaceModel
+from torchface.normalise.face import NormalisedFace
+from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
+from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
+
+__all__ = [
+    "DatasetConfig",
+    "DatasetStats",
+    "Detector",
+    "FrameFolderDataset",
+    "LandmarkSource",
+    "VideoDataset",
+    "clip_bounds",
+    "loader_throughput",
+]
+
+#: First-frame landmarks of one video: a ``(68, 2)`` array or tensor in pixels, or a ``.csv`` / ``.npy`` file
+#: (:func:`torchface.io.read_landmarks`).
+LandmarkSource = np.ndarray | Tensor | str | os.PathLike
+#: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).
+Detector = Callable[[np.ndarray], "np.ndarray | None"]
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Settings of :class:`VideoDataset` and :class:`FrameFolderDataset`.
+
+    Attributes:
+        tracking: tracker and normalised-face settings (:class:`~training_hooks.transforms.FaceTrackingConfig`).
+        clip_length: ``None`` yields one item per frame; an int yields clips of that many frames.
+        clip_stride: frames between clip starts (default ``clip_length``: back-to-back clips).
+        keep_short_clips: also yield the last, shorter clip of a video whose end no full clip reaches (and a
+            video shorter than ``clip_length`` as one short clip); otherwise such frames are left out.
+        cache_dir: folder of the tracking cache (:mod:`training_hooks.cache`); None tracks every epoch.
+        convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
+            (:func:`torchface.io.open_frames`) instead of raising.
+        shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
+            shuffles: each epoch (:meth:`VideoDataset.set_epoch`) permutes the videos, and each worker draws its
+            items at random from a buffer of this many (seeded by ``seed``, the epoch and the worker, so an
+            epoch's order is reproducible for a given worker count; the items themselves never change).
+        seed: seed of the shuffling.
+    """
+
+    tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
+    clip_length: int | None = None
+    clip_stride: int | None = None
+    keep_short_clips: bool = False
+    cache_dir: Path | None = None
+    convert: bool = False
+    shuffle_buffer: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.tracking, FaceTrackingConfig):
+            raise TypeError(f"tracking must be a FaceTrackingConfig, got {type(self.tracking).__name__}")
+        for name in ("clip_length", "clip_stride"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ValueError(f"{name} must be a positive int or None, got {v!r}")
+        if self.clip_stride is not None and self.clip_length is None:
+            raise ValueError("clip_stride needs clip_length")
+        if isinstance(self.shuffle_buffer, bool) or not isinstance(self.shuffle_buffer, int) or self.shuffle_buffer < 0:
+            raise ValueError(f"shuffle_buffer must be an int >= 0, got {self.shuffle_buffer!r}")
+        if self.cache_dir is not None:
+            object.__setattr__(self, "cache_dir", Path(self.cache_dir))
+
+
+@dataclass
+class DatasetStats:
+    """What the dataset did in THIS process (each ``DataLoader`` worker counts in its own copy; the items'
+    ``cached`` flag is the cross-process record).
+
+    Attributes:
+        videos: videos processed.
+        frames_tracked: frames tracked (not read from the cache).
+        tracking_s: seconds spent reading and tracking frames.
+        cache: the cache's counters (hits, misses, corrupt, writes).
+    """
+
+    videos: int = 0
+    frames_tracked: int = 0
+    tracking_s: float = 0.0
+    cache: CacheStats = field(default_factory=CacheStats)
+
+
+def clip_bounds(num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool) -> list[tuple[int, int]]:
+    """``(start, stop)`` frame ranges of the items of a ``num_frames``-frame video (:class:`DatasetConfig`).
+
+    Example:
+        >>> clip_bounds(10, 4, 3, False)
+        [(0, 4), (3, 7), (6, 10)]
+        >>> clip_bounds(9, 4, None, True)
+        [(0, 4), (4, 8), (8, 9)]
+        >>> clip_bounds(3, 4, None, False), clip_bounds(3, None, None, False)
+        ([], [(0, 1), (1, 2), (2, 3)])
+    """
+    if clip_length is None:
+        return [(t, t + 1) for t in range(num_frames)]
+    stride = clip_length if stride is None else stride
+    bounds = [(s, s + clip_length) for s in range(0, num_frames - clip_length + 1, stride)]
+    end = bounds[-1][1] if bounds else 0
+    if keep_short and end < num_frames:
+        start = bounds[-1][0] + stride if bounds else 0
+        bounds.append((start, num_frames))
+    return bounds
+
+
+class VideoDataset(IterableDataset):
+    """Normalised faces and tracked parameters of a list of videos (module docstring).
+
+    Args:
+        videos: video files OpenCV decodes (``.avi``, ``.mp4``, ...) or ``.npy`` frame arrays ``(T, H, W, 3)``.
+        landmarks: the first frame's 68 iBUG landmarks per video (:data:`LandmarkSource`: a ``(68, 2)`` array or
+            tensor in pixels, or a ``.csv`` / ``.npy`` file), or one :data:`Detector` applied to every video's
+            first frame (its answer is remembered per process).
+        config: :class:`DatasetConfig`.
+
+    Raises:
+        TypeError, ValueError: bad arguments (checked here); problems with a video's content
+            (:class:`~torchface.io.InputError`) surface when it is read, in the worker, and reach the caller
+            through the ``DataLoader``.
+
+    Example:
+        >>> # data = VideoDataset(["a.avi"], [np.load("a_lm.npy")], DatasetConfig(clip_length=8))
+        >>> # item = next(iter(data)); item["face"].shape -> (8, 3, 128, 128)
+    """
+
+    def __init__(
+        self,
+        videos: Sequence[str | os.PathLike[str]],
+        landmarks: Sequence[LandmarkSource] | Detector,
+        config: DatasetConfig | None = None,
+    ) -> None:
+        super().__init__()
+        self.config = DatasetConfig() if config is None else config
+        if not isinstance(self.config, DatasetConfig):
+            raise TypeError(f"config must be a DatasetConfig, got {type(self.config).__name__}")
+        if isinstance(videos, (str, os.PathLike)) or not isinstance(videos, Sequence):
+            raise TypeError(f"videos must be a sequence of paths, got {type(videos).__name__}")
+        self.videos = tuple(Path(v) for v in videos)
+        if not self.videos:
+            raise ValueError("videos is empty")
+        for v in self.videos:
+            self._check_source(v)
+        if callable(landmarks) and not isinstance(landmarks, (np.ndarray, Tensor)):
+            self.detector: Detector | None = landmarks
+            self.landmarks: tuple[LandmarkSource, ...] | None = None
+        else:
+            if isinstance(landmarks, (str, os.PathLike, np.ndarray, Tensor)) or not isinstance(landmarks, Sequence):
+                raise TypeError(
+                    "landmarks must be a sequence with one (68, 2) array/tensor or landmarks file per video, or a "
+                    f"detector callable, got {type(landmarks).__name__}"
+                )
+            if len(landmarks) != len(self.videos):
+                raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
+            self.detector, self.landmarks = None, tuple(landmarks)
+        self.epoch = 0
+        self.stats = DatasetStats()
+        self._normalise: NormaliseFaces | None = None
+        self._cache: TrackCache | None = None
+        self._detected: dict[str, np.ndarray] = {}
+
+    def _check_source(self, path: Path) -> None:
+        if not path.is_file():
+            raise ValueError(f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)")
+
+    def set_epoch(self, epoch: int) -> None:
+        """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration; with
+        ``persistent_workers=True`` the workers keep the epoch they started with)."""
+        self.epoch = int(epoch)
+
+    @property
+    def transform(self) -> NormaliseFaces:
+        """The :class:`~training_hooks.transforms.NormaliseFaces` this dataset tracks with (built on first use)."""
+        if self._normalise is None:
+            self._normalise = NormaliseFaces(self.config.tracking)
+        return self._normalise
+
+    @property
+    def model(self) -> FaceModel:
+        """The face model tracked with (CANDIDE-3)."""
+        return self.transform.model
+
+    @property
+    def cache(self) -> TrackCache | None:
+        """The tracking cache (None without :attr:`DatasetConfig.cache_dir`)."""
+        if self._cache is None and self.config.cache_dir is not None:
+            self._cache = TrackCache(self.config.cache_dir)
+            self.stats.cache = self._cache.stats
+        return self._cache
+
+    def worker_videos(self, worker_id: int, num_workers: int) -> list[int]:
+        """Indices of the videos worker ``worker_id`` of ``num_workers`` handles: ``i % num_workers == worker_id``,
+        in this epoch's order.
+
+        Example:
+            >>> # VideoDataset(five_videos, ...).worker_videos(1, 2) -> [1, 3]
+        """
+        order = list(range(len(self.videos)))
+        if self.config.shuffle_buffer > 0:
+            random.Random(f"videos:{self.config.seed}:{self.epoch}").shuffle(order)
+        return [i for i in order if i % num_workers == worker_id]
+
+    def _first_landmarks(self, index: int, first: Tensor, content: str) -> np.ndarray:
+        """``(68, 2)`` float64 landmarks of video ``index``, validated against its first frame."""
+        H, W = first.shape[-2:]
+        where = f"{self.videos[index]}: landmarks"
+        if self.detector is not None:
+            if content not in self._detected:
+                image = (first.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).contiguous().numpy()
+                points = self.detector(image)
+                if points is None:
+                    raise InputError(f"{self.videos[index]}: the detector found no face in the first frame")
+                self._detected[content] = check_landmarks(np.asarray(points), W, H, f"{where} (detector)")
+            return self._detected[content]
+        source = self.landmarks[index]  # type: ignore[index]
+        if isinstance(source, (str, os.PathLike)):
+            return read_landmarks(source, W, H)
+        if isinstance(source, Tensor):
+            source = source.detach().cpu().numpy()
+        if not isinstance(source, np.ndarray):
+            raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
+        return check_landmarks(source, W, H, where)
+
+    def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
+        """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
+
+        Raises:
+            torchface.io.InputError: the video or its landmarks cannot be used (the message names the file).
+        """
+        path = self.videos[index]
+        content = content_hash(path)
+        reader = open_frames(path, convert=self.config.convert)
+        try:
+            first = next(reader)
+            landmarks = self._first_landmarks(index, first, content)
+            key = None
+            cache = self.cache
+            if cache is not None:
+                key = cache_key(content, self.config.tracking, landmarks, f"convert={self.config.convert}")
+                stored = cache.load(key)
+                if stored is not None:
+                    self.stats.videos += 1
+                    return stored, True
+            t0 = time.perf_counter()
+            sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
+            self.stats.tracking_s += time.perf_counter() - t0
+        finally:
+            reader.close()
+        self.stats.videos += 1
+        self.stats.frames_tracked += sequence.num_frames
+        if cache is not None and key is not None:
+            cache.store(key, sequence, source=str(path), config=self.config.tracking)
+        return sequence, False
+
+    def _items(self, index: int, rng: random.Random | None) -> Iterator[dict[str, Tensor]]:
+        sequence, cached = self.sequence(index)
+        c = self.config
+        bounds = clip_bounds(sequence.num_frames, c.clip_length, c.clip_stride, c.keep_short_clips)
+        if rng is not None:
+            rng.shuffle(bounds)
+        video = torch.tensor(index, dtype=torch.int64)
+        flag = torch.tensor(cached)
+        for start, stop in bounds:
+            item = sequence.item(start if c.clip_length is None else slice(start, stop))
+            item["video"] = video.clone()
+            item["cached"] = flag.clone()
+            yield item
+
+    def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        info = get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        videos = self.worker_videos(worker, workers)
+        size = self.config.shuffle_buffer
+        if size == 0:
+            for index in videos:
+                yield from self._items(index, None)
+            return
+        rng = random.Random(f"items:{self.config.seed}:{self.epoch}:{worker}:{workers}")
+        buffer: list[dict[str, Tensor]] = []
+        for index in videos:
+            for item in self._items(index, rng):
+                if len(buffer) < size:
+                    buffer.append(item)
+                    continue
+                k = rng.randrange(size)
+                buffer[k], item = item, buffer[k]
+                yield item
+        rng.shuffle(buffer)
+        yield from buffer
+
+
+class FrameFolderDataset(VideoDataset):
+    """:class:`VideoDataset` over folders of frames (``.png``, ``.jpg``, ... read in name order,
+    :func:`torchface.io.open_frames`); the cache key hashes the images' bytes in that order.
+
+    Example:
+        >>> # data = FrameFolderDataset(["clip_a/", "clip_b/"], [lm_a, lm_b], DatasetConfig(cache_dir="cache"))
+    """
+
+    def _check_source(self, path: Path) -> None:
+        if not path.is_dir():
+            raise ValueError(f"{path}: FrameFolderDataset takes folders of frames (use VideoDataset for video files)")
+
+
+def loader_throughput(
+    dataset: VideoDataset,
+    num_workers: int,
+    batch_size: int = 32,
+    collate_fn: Callable[[list[dict[str, Tensor]]], dict[str, Tensor]] | None = None,
+) -> dict[str, float]:
+    """One full pass of a ``DataLoader`` over ``dataset``: normalised faces per second and where they came from.
+
+    Args:
+        dataset: the dataset (its epoch and cache as they are).
+        num_workers: ``DataLoader`` workers (0 = the calling process).
+        batch_size: items per batch.
+        collate_fn: e.g. :func:`~training_hooks.collate.collate_clips` for clips; None is PyTorch's default.
+
+    Returns:
+        ``{"faces": count, "seconds": wall time, "faces_per_s": ..., "cached_fraction": share of faces read from
+        the cache}``; a clip counts its frames (padding excluded).
+    """
+    loader = DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, collate_fn=collate_fn)
+    faces = cached = 0
+    t0 = time.perf_counter()
+    for batch in loader:
+        if "frame_mask" in batch:
+            per_item = batch["frame_mask"].sum(-1)
+        elif batch["face"].dim() == 5:
+            per_item = torch.full((batch["face"].shape[0],), batch["face"].shape[1])
+        else:
+            per_item = torch.ones(batch["face"].shape[0], dtype=torch.int64)
+        faces += int(per_item.sum())
+        cached += int((per_item * batch["cached"].reshape(-1)).sum())
+    seconds = time.perf_counter() - t0
+    return {
+        "faces": float(faces),
+        "seconds": seconds,
+        "faces_per_s": faces / seconds if seconds > 0 else 0.0,
+        "cached_fraction": cached / faces if faces else 0.0,
+    }

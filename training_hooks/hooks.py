@@ -1,0 +1,287 @@
+"""Framework-agnostic helpers for training loops fed by the tracked datasets.
+
+Batches are dicts of batch-first tensors as the datasets and collates make them: frame batches (PyTorch's
+``default_collate`` of frame items: ``confidence`` ``(B,)``) or clip batches (:func:`~training_hooks.collate.collate_clips`:
+``confidence`` ``(B, T)`` plus ``frame_mask`` ``(B, T)``).
+
+- :func:`confidence_weighted_loss`: ``sum_i c_i m_i l_i / sum_i c_i m_i``, the tracker's confidence as a weight;
+- :func:`drop_low_confidence`: keep the samples whose (clip-mean) confidence reaches a threshold;
+- :func:`tracking_quality` and :class:`TrackingQualityLogger`: confidence, success and pose statistics of a
+  batch and of an epoch, as plain floats for any logger (:mod:`training_hooks.lightning` for Lightning).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "FilteredBatch",
+    "TrackingQualityLogger",
+    "confidence_weighted_loss",
+    "drop_low_confidence",
+    "sample_confidence",
+    "tracking_quality",
+]
+
+
+def _check_batch(batch: object) -> Mapping[str, Any]:
+    if not isinstance(batch, Mapping):
+        raise TypeError(f"batch must be a dict of tensors (a dataset batch), got {type(batch).__name__}")
+    if "confidence" not in batch or not isinstance(batch["confidence"], Tensor):
+        raise ValueError(f"batch must hold a 'confidence' tensor, got keys {sorted(batch)}")
+    conf = batch["confidence"]
+    if conf.dim() not in (1, 2):
+        raise ValueError(f"batch['confidence'] must be (B,) or (B, T), got {tuple(conf.shape)}")
+    if "frame_mask" in batch and tuple(batch["frame_mask"].shape) != tuple(conf.shape):
+        raise ValueError(
+            f"frame_mask {tuple(batch['frame_mask'].shape)} must match confidence {tuple(conf.shape)}"
+        )
+    return batch
+
+
+def _valid(batch: Mapping[str, Any]) -> Tensor:
+    """``(B,)`` or ``(B, T)`` bool: the real (not padded) frames."""
+    conf = batch["confidence"]
+    mask = batch.get("frame_mask")
+    return torch.ones_like(conf, dtype=torch.bool) if mask is None else mask.to(torch.bool)
+
+
+def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Mean of a per-sample loss weighted by the tracker's confidence: ``sum c m l / sum c m``.
+
+    The weights are detached (the confidence is data, not a parameter). When every weight is zero the result is
+    ``0 * sum(l)``: zero, finite, and still connected to the graph, never NaN.
+
+    Args:
+        loss: ``(B,)`` or ``(B, T)`` per-sample (per-frame) losses.
+        confidence: the same shape, in ``[0, 1]``.
+        mask: the same shape, bool (e.g. ``frame_mask`` of a clip batch); None counts every entry.
+
+    Returns:
+        A scalar tensor.
+
+    Raises:
+        ValueError: shapes differ, or the confidence is non-finite or outside ``[0, 1]``.
+
+    Example:
+        >>> confidence_weighted_loss(torch.tensor([1.0, 3.0]), torch.tensor([0.75, 0.25]))
+        tensor(1.5000)
+    """
+    if not isinstance(loss, Tensor) or not isinstance(confidence, Tensor):
+        raise TypeError("loss and confidence must be tensors")
+    if loss.shape != confidence.shape or (mask is not None and mask.shape != loss.shape):
+        got = tuple(mask.shape) if mask is not None else None
+        raise ValueError(
+            f"loss, confidence and mask must have one shape, got {tuple(loss.shape)}, {tuple(confidence.shape)}, {got}"
+        )
+    c = confidence.detach().to(loss.dtype)
+    if not bool(torch.isfinite(c).all()) or bool((c < 0).any()) or bool((c > 1).any()):
+        raise ValueError("confidence must be finite and in [0, 1]")
+    if mask is not None:
+        c = c * mask.to(c.dtype)
+    total = c.sum()
+    if float(total) <= 0.0:
+        return (loss * 0.0).sum()
+    return (loss * c).sum() / total
+
+
+def sample_confidence(batch: Mapping[str, Any], require_success: bool = True) -> Tensor:
+    """``(B,)`` one confidence per sample: the frame's, or a clip's mean over its real frames.
+
+    With ``require_success`` a frame whose tracking FAILED (``success`` False) counts as confidence 0.
+
+    Example:
+        >>> sample_confidence({"confidence": torch.tensor([[0.8, 0.4], [0.9, 0.0]]),
+        ...                    "frame_mask": torch.tensor([[True, True], [True, False]])})
+        tensor([0.6000, 0.9000])
+    """
+    batch = _check_batch(batch)
+    conf = batch["confidence"].detach().to(torch.float32)
+    if require_success and "success" in batch:
+        conf = conf * batch["success"].to(conf.dtype)
+    if conf.dim() == 1:
+        return conf
+    valid = _valid(batch).to(conf.dtype)
+    return (conf * valid).sum(1) / valid.sum(1).clamp_min(1.0)
+
+
+class FilteredBatch(NamedTuple):
+    """What :func:`drop_low_confidence` returns (unpacks as ``batch, indices``).
+
+    Attributes:
+        batch: the kept samples (every batch-first value indexed).
+        indices: ``(B',)`` int64 positions of the kept samples in the input batch.
+    """
+
+    batch: dict[str, Any]
+    indices: Tensor
+
+
+def drop_low_confidence(
+    batch: Mapping[str, Any], threshold: float, require_success: bool = True
+) -> FilteredBatch:
+    """Keep the samples whose confidence (:func:`sample_confidence`) is at least ``threshold``.
+
+    Every tensor (and list / tuple) value whose first dimension is the batch size ``B`` is indexed; other values
+    are kept as they are. The result may be empty (``B' = 0``): check ``len(indices)`` before using it.
+
+    Args:
+        batch: a frame or clip batch (module docstring).
+        threshold: in ``[0, 1]``.
+        require_success: failed frames count as confidence 0, and a failed frame (a clip without a successful
+            frame) is dropped even at threshold 0.
+
+    Example:
+        >>> out = drop_low_confidence({"confidence": torch.tensor([0.9, 0.2, 0.6]), "face": torch.zeros(3, 3, 4, 4)}, 0.5)
+        >>> out.indices.tolist(), out.batch["face"].shape[0]
+        ([0, 2], 2)
+    """
+    batch = _check_batch(batch)
+    if not 0.0 <= float(threshold) <= 1.0:
+        raise ValueError(f"threshold must be in [0, 1], got {threshold}")
+    score = sample_confidence(batch, require_success)
+    keep = score >= float(threshold)
+    if require_success and "success" in batch:
+        success = batch["success"].to(torch.bool)  # a clip needs at least one successful real frame
+        keep &= success if success.dim() == 1 else (success & _valid(batch)).any(1)
+    indices = keep.nonzero().squeeze(-1)
+    B = score.shape[0]
+    out: dict[str, Any] = {}
+    for key, value in batch.items():
+        if isinstance(value, Tensor) and value.dim() >= 1 and value.shape[0] == B:
+            out[key] = value[indices.to(value.device)]
+        elif isinstance(value, (list, tuple)) and len(value) == B:
+            out[key] = type(value)(value[int(i)] for i in indices)
+        else:
+            out[key] = value
+    return FilteredBatch(out, indices)
+
+
+@dataclass
+class _Accumulator:
+    """Running sums over the real frames of batches (:func:`tracking_quality`, :class:`TrackingQualityLogger`)."""
+
+    frames: int = 0
+    samples: int = 0
+    conf_sum: float = 0.0
+    conf_min: float = math.inf
+    success: float = 0.0
+    cached: float = 0.0
+    cached_count: int = 0
+    coverage: float = 0.0
+    coverage_count: int = 0
+    moments: dict[str, list[float]] = field(default_factory=dict)  # name -> [n, sum, sum of squares]
+
+    def _moment(self, name: str, values: Tensor) -> None:
+        m = self.moments.setdefault(name, [0.0, 0.0, 0.0])
+        v = values.to(torch.float64)
+        m[0] += v.numel()
+        m[1] += float(v.sum())
+        m[2] += float((v * v).sum())
+
+    def add(self, batch: Mapping[str, Any]) -> "_Accumulator":
+        batch = _check_batch(batch)
+        valid = _valid(batch)
+        conf = batch["confidence"].detach()[valid].to(torch.float64)
+        self.samples += int(batch["confidence"].shape[0])
+        self.frames += int(conf.numel())
+        if conf.numel() == 0:
+            return self
+        self.conf_sum += float(conf.sum())
+        self.conf_min = min(self.conf_min, float(conf.min()))
+        if "success" in batch:
+            self.success += float(batch["success"][valid].to(torch.float64).sum())
+        else:
+            self.success += float(conf.numel())
+        if "cached" in batch:  # per sample; a clip's frames share its flag
+            flag = batch["cached"].to(torch.float64).reshape(-1)
+            per = valid.reshape(valid.shape[0], -1).sum(1).to(torch.float64)
+            self.cached += float((flag * per).sum())
+            self.cached_count += int(per.sum())
+        if "mask" in batch:
+            mask = batch["mask"].detach()[valid]  # (N, 1, S, S)
+            self.coverage += float(mask.reshape(mask.shape[0], -1).to(torch.float64).mean(1).sum())
+            self.coverage_count += int(mask.shape[0])
+        if "ypr_deg" in batch:
+            ypr = batch["ypr_deg"].detach()[valid]
+            for k, name in enumerate(("yaw_deg", "pitch_deg", "roll_deg")):
+                self._moment(name, ypr[:, k])
+        if "translation" in batch:
+            self._moment("depth_mm", batch["translation"].detach()[valid][:, 2])
+        if "anim_coeffs" in batch:
+            self._moment("anim_abs", batch["anim_coeffs"].detach()[valid].abs().mean(-1))
+        return self
+
+    def summary(self) -> dict[str, float]:
+        if self.frames == 0:
+            return {"frames": 0.0, "samples": float(self.samples)}
+        out = {
+            "frames": float(self.frames),
+            "samples": float(self.samples),
+            "confidence_mean": self.conf_sum / self.frames,
+            "confidence_min": self.conf_min,
+            "success_fraction": self.success / self.frames,
+        }
+        if self.cached_count:
+            out["cached_fraction"] = self.cached / self.cached_count
+        if self.coverage_count:
+            out["face_coverage"] = self.coverage / self.coverage_count
+        for name, (n, s, ss) in self.moments.items():
+            mean = s / n
+            out[f"{name}_mean"] = mean
+            out[f"{name}_std"] = math.sqrt(max(ss / n - mean * mean, 0.0))
+        return out
+
+
+def tracking_quality(batch: Mapping[str, Any]) -> dict[str, float]:
+    """Tracking-quality statistics of one batch over its real frames, as floats.
+
+    Keys: ``frames``, ``samples``, ``confidence_mean``, ``confidence_min``, ``success_fraction``; when the batch
+    has them, ``cached_fraction`` (frames read from the cache), ``face_coverage`` (mean fraction of the
+    normalised face that is visible), ``yaw_deg`` / ``pitch_deg`` / ``roll_deg`` / ``depth_mm`` (translation z) /
+    ``anim_abs`` (mean absolute animation unit) ``_mean`` and ``_std`` (population). A batch without real
+    frames gives only ``frames`` (0) and ``samples``.
+
+    Example:
+        >>> q = tracking_quality({"confidence": torch.tensor([0.5, 1.0]), "success": torch.tensor([True, False])})
+        >>> q["confidence_mean"], q["confidence_min"], q["success_fraction"]
+        (0.75, 0.5, 0.5)
+    """
+    return _Accumulator().add(batch).summary()
+
+
+class TrackingQualityLogger:
+    """Accumulates :func:`tracking_quality` over an epoch.
+
+    :meth:`update` adds a batch and returns that batch's statistics; :meth:`compute` gives the statistics of every
+    frame since the last :meth:`reset` (means over frames, not means of batch means; the minimum over all).
+
+    Example:
+        >>> log = TrackingQualityLogger()
+        >>> _ = log.update({"confidence": torch.tensor([0.2, 0.4])})
+        >>> _ = log.update({"confidence": torch.tensor([1.0])})
+        >>> round(log.compute()["confidence_mean"], 4), log.compute()["confidence_min"]
+        (0.5333, 0.2)
+    """
+
+    def __init__(self) -> None:
+        self._epoch = _Accumulator()
+
+    def update(self, batch: Mapping[str, Any]) -> dict[str, float]:
+        """Add a batch; returns its own statistics (:func:`tracking_quality`)."""
+        self._epoch.add(batch)
+        return tracking_quality(batch)
+
+    def compute(self) -> dict[str, float]:
+        """Statistics of all frames added since the last :meth:`reset`."""
+        return self._epoch.summary()
+
+    def reset(self) -> None:
+        """Start a new epoch."""
+        self._epoch = _Accumulator()

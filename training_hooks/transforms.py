@@ -1,0 +1,428 @@
+"""Frames to normalised faces: the tracking core shared by the datasets and the :class:`NormaliseFaces` transform.
+
+A sequence of frames is tracked from its first frame's 68 iBUG landmarks (or continued from a
+:class:`~torchface.tracker.TrackerState`) with the functional tracker (:func:`~torchface.tracker.initialise`,
+:func:`~torchface.tracker.track_step`), one stream at a time (``B = 1``), and every frame is resampled into
+the normalised face (:func:`~torchface.normalise.normalised_face`: frontal, neutral expression, reference
+light) with the state of that frame. The result, :class:`TrackedSequence`, holds per frame the normalised face
+and its mask, the tracked parameters, the confidence and the status: what the disk cache stores
+(:mod:`training_hooks.cache`) and what dataset items are cut from.
+
+Determinism: tracking runs with a fixed number of torch threads (:attr:`FaceTrackingConfig.num_threads`, set
+for the duration of the tracking and restored afterwards), so a sequence gives bit-identical results in the
+main process and in any ``DataLoader`` worker (workers run with one thread by default, the main process with
+as many as there are cores, and float reductions depend on the split).
+
+Storage: faces are kept as :class:`FaceStorage` (uint8 by default: clamped to ``[0, 1]`` and rounded to
+``1 / 255``; items are float32 again), so freshly tracked items equal the cached ones bit for bit.
+
+Shapes: ``T`` frames, ``C = 3`` channels, ``S`` the normalised-face side (:attr:`FaceTrackingConfig.face_size`),
+``A`` animation units, ``L`` illumination terms, ``H x W`` frames; conventions of :mod:`torchface.conventions`.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.geometry.camera import Intrinsics
+from torchface.model.candide import load_candide3
+from torchface.model.face_model import FaceModel
+from torchface.normalise.face import NormalisedFace
+from torchface.tracker.params import ParamLayout
+from torchface.tracker.step import TrackerConfig, TrackerState, initialise, track_step
+
+__all__ = [
+    "FaceStorage",
+    "FaceTrackingConfig",
+    "NormaliseFaces",
+    "PER_FRAME_KEYS",
+    "TrackedSequence",
+    "torch_threads",
+    "track_sequence",
+]
+
+#: Item keys that carry one value per frame (a leading ``T`` in clip items); see :meth:`TrackedSequence.item`.
+PER_FRAME_KEYS: tuple[str, ...] = (
+    "face", "mask", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
+    "confidence", "success", "status", "frame",
+)  # fmt: skip
+
+
+class FaceStorage(enum.Enum):
+    """How normalised faces are stored (in :class:`TrackedSequence` and in the disk cache)."""
+
+    #: Clamped to ``[0, 1]`` and rounded to multiples of ``1 / 255``: a quarter of float32's size, the fastest
+    #: to read back. The default.
+    UINT8 = "uint8"
+    #: Half precision, not clamped (light removal can exceed 1 where the light model does not fit).
+    FLOAT16 = "float16"
+    #: Full precision, not clamped.
+    FLOAT32 = "float32"
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The torch dtype of stored faces."""
+        return {"uint8": torch.uint8, "float16": torch.float16, "float32": torch.float32}[self.value]
+
+
+@dataclass(frozen=True)
+class FaceTrackingConfig:
+    """How a sequence of frames becomes normalised faces (part of the disk cache's key: change any field and
+    cached results are not reused).
+
+    Attributes:
+        tracker: the tracker's settings (:class:`~torchface.tracker.TrackerConfig`; CANDIDE-3 with its 11
+            animation units, float32).
+        face_size: ``S``, the normalised face is ``S x S`` (at least 16).
+        face_margin: fraction of ``S`` left around the face (:func:`~torchface.normalise.build_normalised_layout`).
+        face_storage: :class:`FaceStorage` of the faces.
+        focal: focal length in pixels of the frames' camera; ``None`` is ``max(W, H)``
+            (:meth:`~torchface.geometry.camera.Intrinsics.default`).
+        num_threads: torch threads while tracking (restored afterwards). A fixed count makes the results
+            independent of the process that tracks (module docstring); 1 suits ``DataLoader`` workers.
+    """
+
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    face_size: int = 128
+    face_margin: float = 0.05
+    face_storage: FaceStorage = FaceStorage.UINT8
+    focal: float | None = None
+    num_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.tracker, TrackerConfig):
+            raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
+        if isinstance(self.face_size, bool) or not isinstance(self.face_size, int) or self.face_size < 16:
+            raise ValueError(f"face_size must be an int >= 16, got {self.face_size!r}")
+        if not 0.0 <= float(self.face_margin) <= 0.45:
+            raise ValueError(f"face_margin must be in [0, 0.45], got {self.face_margin}")
+        if not isinstance(self.face_storage, FaceStorage):
+            raise TypeError(f"face_storage must be a FaceStorage, got {type(self.face_storage).__name__}")
+        if self.focal is not None and not float(self.focal) > 0:
+            raise ValueError(f"focal must be positive pixels or None, got {self.focal}")
+        if isinstance(self.num_threads, bool) or not isinstance(self.num_threads, int) or self.num_threads < 1:
+            raise ValueError(f"num_threads must be an int >= 1, got {self.num_threads!r}")
+
+
+@contextmanager
+def torch_threads(num_threads: int) -> Iterator[None]:
+    """Run the block with ``torch.set_num_threads(num_threads)`` and restore the previous count afterwards.
+
+    Example:
+        >>> with torch_threads(1):
+        ...     torch.get_num_threads()
+        1
+    """
+    previous = torch.get_num_threads()
+    if previous != num_threads:
+        torch.set_num_threads(num_threads)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
+
+
+def decode_faces(faces: Tensor) -> Tensor:
+    """Stored faces (any :class:`FaceStorage`) -> float32 in the image range (uint8 divided by 255)."""
+    if faces.dtype == torch.uint8:
+        return faces.to(torch.float32).div_(255.0)
+    return faces.to(torch.float32)
+
+
+def encode_faces(faces: Tensor, storage: FaceStorage) -> Tensor:
+    """Float faces -> :class:`FaceStorage` (uint8: clamped to ``[0, 1]``, rounded to ``1 / 255``)."""
+    if storage is FaceStorage.UINT8:
+        return (faces.detach().clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
+    return faces.detach().to(storage.dtype)
+
+
+@dataclass(frozen=True)
+class TrackedSequence:
+    """Per-frame tracking results and normalised faces of one sequence (CPU tensors, ``T >= 1`` frames).
+
+    Attributes:
+        faces: ``(T, C, S, S)`` normalised faces in :class:`FaceStorage` dtype (:func:`decode_faces` for float).
+        masks: ``(T, 1, S, S)`` bool, True where the canonical point is visible in the frame.
+        rotation: ``(T, 3, 3)`` float32 head -> camera rotation (OpenCV camera frame).
+        axis_angle: ``(T, 3)`` float32 the same as axis-angle vectors (radians).
+        translation: ``(T, 3)`` float32 head origin in the camera frame (mm).
+        ypr_deg: ``(T, 3)`` float32 yaw, pitch, roll in degrees (:mod:`torchface.conventions`).
+        anim_coeffs: ``(T, A)`` float32 animation-unit values.
+        facs: ``(T, F)`` float32 linked FACS action-unit values.
+        illumination: ``(T, L)`` float32 illumination parameters (gain, bias, light x/y/z; paper Eq. 19).
+        confidence: ``(T,)`` float32 in ``[0, 1]``.
+        status: ``(T,)`` int64 :class:`~torchface.tracker.TrackStatus` (2 = FAILED: parameters held).
+        shape_coeffs: ``(S_u,)`` float32 the person's shape units (fixed after the first frame).
+        landmarks: ``(68, 2)`` float64 first-frame landmarks the tracking started from (pixels), or ``(0, 2)``
+            when it continued from a :class:`~torchface.tracker.TrackerState`.
+        frame_size: ``(H, W)`` of the frames.
+    """
+
+    faces: Tensor
+    masks: Tensor
+    rotation: Tensor
+    axis_angle: Tensor
+    translation: Tensor
+    ypr_deg: Tensor
+    anim_coeffs: Tensor
+    facs: Tensor
+    illumination: Tensor
+    confidence: Tensor
+    status: Tensor
+    shape_coeffs: Tensor
+    landmarks: Tensor
+    frame_size: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if f.name != "frame_size" and not isinstance(getattr(self, f.name), Tensor):
+                raise TypeError(f"TrackedSequence.{f.name} must be a torch.Tensor, got {type(getattr(self, f.name)).__name__}")
+        faces = self.faces
+        if faces.dim() != 4 or faces.shape[0] < 1 or faces.shape[-1] != faces.shape[-2]:
+            raise ValueError(f"faces must be (T, C, S, S) with T >= 1, got {tuple(faces.shape)}")
+        if faces.dtype not in (torch.uint8, torch.float16, torch.float32):
+            raise ValueError(f"faces must be uint8, float16 or float32, got {faces.dtype}")
+        T, _, S, _ = faces.shape
+        expected = {
+            "masks": ((T, 1, S, S), torch.bool), "rotation": ((T, 3, 3), torch.float32),
+            "axis_angle": ((T, 3), torch.float32), "translation": ((T, 3), torch.float32),
+            "ypr_deg": ((T, 3), torch.float32), "anim_coeffs": ((T, self.anim_coeffs.shape[-1]), torch.float32),
+            "facs": ((T, self.facs.shape[-1]), torch.float32),
+            "illumination": ((T, NUM_ILLUMINATION_TERMS), torch.float32), "confidence": ((T,), torch.float32),
+            "status": ((T,), torch.int64), "shape_coeffs": ((self.shape_coeffs.shape[-1],), torch.float32),
+            "landmarks": ((self.landmarks.shape[0], 2), torch.float64),
+        }  # fmt: skip
+        for name, (shape, dtype) in expected.items():
+            x = getattr(self, name)
+            if tuple(x.shape) != shape or x.dtype != dtype:
+                raise ValueError(f"{name} must be {shape} {dtype} (T = {T}, S = {S}), got {tuple(x.shape)} {x.dtype}")
+        if self.landmarks.shape[0] not in (0, 68):
+            raise ValueError(f"landmarks must be (68, 2) or (0, 2), got {tuple(self.landmarks.shape)}")
+        if len(self.frame_size) != 2 or any(int(v) < 1 for v in self.frame_size):
+            raise ValueError(f"frame_size must be (H, W), got {self.frame_size}")
+        finite = [self.confidence, self.axis_angle, self.translation, self.anim_coeffs, self.illumination]
+        if not all(bool(torch.isfinite(x).all()) for x in finite):
+            raise ValueError("tracked parameters and confidence must be finite")
+
+    @property
+    def num_frames(self) -> int:
+        """``T``."""
+        return int(self.faces.shape[0])
+
+    @property
+    def success(self) -> Tensor:
+        """``(T,)`` bool: the frame's estimate is usable (status not FAILED)."""
+        return self.status != 2
+
+    def item(self, frames: int | slice) -> dict[str, Tensor]:
+        """The dataset item of one frame (``frames`` an int) or of a clip (a slice, step 1).
+
+        Keys (a clip item has a leading ``T'`` on each): ``face`` ``(C, S, S)`` float32, ``mask`` ``(1, S, S)``
+        float32, ``rotation`` ``(3, 3)``, ``axis_angle`` ``(3,)``, ``translation`` ``(3,)``, ``ypr_deg`` ``(3,)``,
+        ``anim_coeffs`` ``(A,)``, ``facs`` ``(F,)``, ``illumination`` ``(L,)``, ``confidence`` ``()`` float32,
+        ``success`` ``()`` bool, ``status`` ``()`` int64, ``frame`` ``()`` int64 (index in the sequence);
+        per sequence: ``shape_coeffs`` ``(S_u,)``.
+        """
+        if isinstance(frames, slice):
+            start, stop, step = frames.indices(self.num_frames)
+            if step != 1 or stop <= start:
+                raise ValueError(f"a clip is a non-empty slice with step 1, got {frames}")
+            index: int | slice = slice(start, stop)
+            frame = torch.arange(start, stop, dtype=torch.int64)
+        else:
+            index = int(frames)
+            if not 0 <= index < self.num_frames:
+                raise IndexError(f"frame {frames} out of range for a {self.num_frames}-frame sequence")
+            frame = torch.tensor(index, dtype=torch.int64)
+        return {
+            "face": decode_faces(self.faces[index]),
+            "mask": self.masks[index].to(torch.float32),
+            "rotation": self.rotation[index].clone(),
+            "axis_angle": self.axis_angle[index].clone(),
+            "translation": self.translation[index].clone(),
+            "ypr_deg": self.ypr_deg[index].clone(),
+            "anim_coeffs": self.anim_coeffs[index].clone(),
+            "facs": self.facs[index].clone(),
+            "illumination": self.illumination[index].clone(),
+            "confidence": self.confidence[index].clone(),
+            "success": self.success[index],
+            "status": self.status[index].clone(),
+            "frame": frame,
+            "shape_coeffs": self.shape_coeffs.clone(),
+        }
+
+
+def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Tensor:
+    """One frame ``(3, H, W)`` float in [0, 1] or uint8 -> ``(1, 3, H, W)`` float32, validated."""
+    if isinstance(frame, np.ndarray):
+        raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array")
+    if not isinstance(frame, Tensor):
+        raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
+    if frame.dim() != 3 or frame.shape[0] != 3:
+        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}")
+    if frame.dtype == torch.uint8:
+        frame = frame.to(torch.float32) / 255.0
+    elif not frame.is_floating_point():
+        raise ValueError(f"frame {index}: frames must be float in [0, 1] or uint8, got {frame.dtype}")
+    if size is not None and tuple(frame.shape[-2:]) != size:
+        raise ValueError(
+            f"frame {index} is {frame.shape[-1]}x{frame.shape[-2]} but the sequence started at {size[1]}x{size[0]}"
+        )
+    return frame.to(torch.float32).unsqueeze(0)
+
+
+def _landmarks_tensor(landmarks: object) -> Tensor:
+    if isinstance(landmarks, np.ndarray):
+        landmarks = torch.from_numpy(np.asarray(landmarks, dtype=np.float64))
+    if not isinstance(landmarks, Tensor):
+        raise TypeError(f"landmarks must be a (68, 2) array or tensor, or a TrackerState, got {type(landmarks).__name__}")
+    if tuple(landmarks.shape) != (68, 2):
+        raise ValueError(f"landmarks must be (68, 2) iBUG points in pixels, got {tuple(landmarks.shape)}")
+    if not bool(torch.isfinite(landmarks).all()):
+        raise ValueError("landmarks must be finite")
+    return landmarks.to(torch.float64)
+
+
+def track_sequence(
+    frames: Iterable[Tensor],
+    start: Tensor | np.ndarray | TrackerState,
+    config: FaceTrackingConfig,
+    model: FaceModel,
+    normaliser: NormalisedFace,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[TrackedSequence, TrackerState]:
+    """Track a sequence frame by frame and normalise every frame (module docstring).
+
+    Args:
+        frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
+            :class:`~torchface.io.FrameReader`; consumed one at a time.
+        start: ``(68, 2)`` iBUG landmarks of the first frame in pixels (tracking starts with
+            :func:`~torchface.tracker.initialise`), or a :class:`~torchface.tracker.TrackerState` with ``B = 1``
+            whose tracking the frames continue (every frame goes through :func:`~torchface.tracker.track_step`).
+        config: :class:`FaceTrackingConfig` (tracker settings, face size and storage, threads).
+        model: the face model (float32, CPU; normally CANDIDE-3 from :func:`~torchface.model.load_candide3`).
+        normaliser: a :class:`~torchface.normalise.NormalisedFace` of ``model`` with ``config``'s size and margin.
+        progress: called with the number of frames done after each frame.
+
+    Returns:
+        The :class:`TrackedSequence` and the tracker state after the last frame.
+
+    Raises:
+        TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks or state; no frame at all.
+    """
+    if not isinstance(config, FaceTrackingConfig):
+        raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
+    if normaliser.layout.size != config.face_size:
+        raise ValueError(f"normaliser is {normaliser.layout.size}px, config.face_size is {config.face_size}")
+    state: TrackerState | None = None
+    landmarks = torch.zeros(0, 2, dtype=torch.float64)
+    if isinstance(start, TrackerState):
+        if start.params.shape[0] != 1:
+            raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {start.params.shape[0]}")
+        state = start
+    else:
+        landmarks = _landmarks_tensor(start)
+    layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+    per_frame: dict[str, list[Tensor]] = {k: [] for k in (
+        "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
+        "confidence", "status",
+    )}  # fmt: skip
+    size: tuple[int, int] | None = None
+    with torch_threads(config.num_threads), torch.no_grad():
+        for t, raw in enumerate(frames):
+            frame = _frame_tensor(raw, t, size).to(dtype=model.dtype, device=model.device)
+            if size is None:
+                size = (int(frame.shape[-2]), int(frame.shape[-1]))
+            if state is None:
+                intrinsics = Intrinsics.default(size[1], size[0], config.focal)
+                lm = landmarks.to(dtype=model.dtype, device=model.device).unsqueeze(0)
+                state, result = initialise(model, config.tracker, frame, lm, intrinsics)
+            else:
+                if t == 0 and state.intrinsics.size != size:
+                    raise ValueError(
+                        f"the TrackerState tracks {state.intrinsics.width}x{state.intrinsics.height} frames, "
+                        f"got {size[1]}x{size[0]}"
+                    )
+                state, result = track_step(model, config.tracker, state, frame)
+            aa, trans, alpha, light = layout.split(state.params)
+            face = normaliser.from_params(frame, state.shape_coeffs, alpha, aa, trans, light, state.intrinsics)
+            per_frame["faces"].append(encode_faces(face.image[0], config.face_storage))
+            per_frame["masks"].append(face.mask[0] > 0.5)
+            for name in ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
+                         "confidence"):  # fmt: skip
+                per_frame[name].append(getattr(result, name)[0].detach().to("cpu", torch.float32))
+            per_frame["status"].append(result.status[0].to("cpu", torch.int64))
+            if progress is not None:
+                progress(t + 1)
+    if state is None or size is None:
+        raise ValueError("no frames to track: the sequence is empty")
+    sequence = TrackedSequence(
+        **{k: torch.stack(v) for k, v in per_frame.items()},
+        shape_coeffs=state.shape_coeffs[0].detach().to("cpu", torch.float32),
+        landmarks=landmarks,
+        frame_size=size,
+    )
+    return sequence, state
+
+
+class NormaliseFaces:
+    """Transform: ``(frames (T, 3, H, W), landmarks (68, 2) | TrackerState)`` -> normalised faces and parameters.
+
+    A torchvision-style callable for pipelines that already hold frames: it tracks the frames with
+    :func:`track_sequence` and returns the clip item of :meth:`TrackedSequence.item` (``face (T, C, S, S)``
+    float32, ``mask (T, 1, S, S)``, the parameters, ``confidence``, ``success``, ``status``, ``frame``), exactly
+    what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip. The face model and
+    the canonical layout are built on first use.
+
+    Args:
+        config: :class:`FaceTrackingConfig` (default settings when None).
+
+    Example:
+        >>> normalise = NormaliseFaces(FaceTrackingConfig(face_size=64))
+        >>> # item = normalise(frames, landmarks)   # frames (T, 3, H, W), landmarks (68, 2) of frames[0]
+        >>> # item["face"].shape -> (T, 3, 64, 64)
+    """
+
+    def __init__(self, config: FaceTrackingConfig | None = None) -> None:
+        self.config = FaceTrackingConfig() if config is None else config
+        if not isinstance(self.config, FaceTrackingConfig):
+            raise TypeError(f"config must be a FaceTrackingConfig, got {type(self.config).__name__}")
+        self._model: FaceModel | None = None
+        self._normaliser: NormalisedFace | None = None
+
+    @property
+    def model(self) -> FaceModel:
+        """The face model (CANDIDE-3, float32), loaded on first use."""
+        if self._model is None:
+            self._model = load_candide3()
+        return self._model
+
+    @property
+    def normaliser(self) -> NormalisedFace:
+        """The :class:`~torchface.normalise.NormalisedFace` of :attr:`model`, built on first use."""
+        if self._normaliser is None:
+            self._normaliser = NormalisedFace(self.model, size=self.config.face_size, margin=self.config.face_margin)
+        return self._normaliser
+
+    def track(
+        self, frames: Iterable[Tensor], start: Tensor | np.ndarray | TrackerState
+    ) -> tuple[TrackedSequence, TrackerState]:
+        """:func:`track_sequence` with this transform's settings: the sequence and the final tracker state."""
+        return track_sequence(frames, start, self.config, self.model, self.normaliser)
+
+    def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
+        """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
+        if not isinstance(frames, Tensor) or frames.dim() != 4 or frames.shape[1] != 3:
+            got = tuple(frames.shape) if isinstance(frames, Tensor) else type(frames).__name__
+            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {got}")
+        sequence, _ = self.track(frames, start)
+        return sequence.item(slice(0, sequence.num_frames))
