@@ -203,3 +203,17 @@ def test_solve_level_survives_an_unobservable_animation_unit():
     tpl = Template(tpl.face_index, tpl.bary, tpl.points, basis, tpl.normals, tpl.intensity, tpl.valid)
     *_, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis)
     assert bool(out.finite.all())
+
+
+def test_crop_gray_equals_slicing_each_stream():
+    from torchface.appearance.sampling import to_gray
+    from torchface.tracker.step import _crop_gray
+
+    g = torch.Generator().manual_seed(3)
+    frames = torch.rand(3, 3, 40, 56, generator=g)
+    offsets = torch.tensor([[0, 0], [8, 4], [16, 12]])
+    crop = _crop_gray(frames, offsets, 24, 36)
+    for b in range(3):
+        x0, y0 = offsets[b].tolist()
+        ref = to_gray(frames[b : b + 1, :, y0 : y0 + 24, x0 : x0 + 36])
+        assert torch.equal(crop[b : b + 1], ref)

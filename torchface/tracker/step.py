@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -24,11 +25,15 @@ from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
 from torchface.solver.least_squares import SolverConfig, SolveStatus, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss
+from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import LevelCamera, solve_level
 from torchface.tracker.fit import FitConfig, fit_landmarks
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
+
+if TYPE_CHECKING:
+    from torchface.tracker.managed import ManagementState
 
 
 class TrackSolver(enum.Enum):
@@ -50,6 +55,9 @@ class TrackStatus(enum.IntEnum):
     MAX_ITERATIONS = 1
     #: No usable estimate (too few points, no contrast, non-finite data); the previous one is kept.
     FAILED = 2
+    #: The stream is lost (template management, :func:`torchface.tracker.managed.managed_step`): its
+    #: confidence stayed low or the face left the frame, and no recovery has succeeded yet.
+    LOST = 3
 
 
 @dataclass(frozen=True)
@@ -94,6 +102,9 @@ class TrackerConfig:
         solver: :class:`TrackSolver`.
         crop_margin: the fast solver tracks inside a crop around the previous estimate's face box, enlarged
             by this fraction of the box size on each side (plus 32 pixels).
+        template: template management (:class:`~torchface.template.management.TemplateConfig`): dissimilarity
+            confidence, gating, the pose-keyed mosaic, loss and recovery; used by
+            :func:`torchface.tracker.managed.managed_step` (:func:`track_step` alone ignores it).
     """
 
     num_levels: int = 3
@@ -115,6 +126,7 @@ class TrackerConfig:
     fit: FitConfig = field(default_factory=lambda: FitConfig(fit_expression=True, expression_prior_precision=2.0))
     solver: TrackSolver = TrackSolver.FAST
     crop_margin: float = 0.25
+    template: TemplateConfig = field(default_factory=TemplateConfig)
 
     def __post_init__(self) -> None:
         if self.num_levels < 1:
@@ -157,7 +169,15 @@ class TrackResult:
         status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level;
         cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest level.
         num_points: ``(B,)`` valid template points at the finest level.
-        confidence: ``(B,)`` in ``[0, 1]``.
+        confidence: ``(B,)`` in ``[0, 1]``. From :func:`track_step` alone: the residual confidence (fraction of
+            valid points times ``exp(-(rms / 0.1)^2)``); with template management
+            (:func:`~torchface.tracker.managed.managed_step`): the dissimilarity confidence of the normalised
+            face (paper Section 4.1), 0 for a FAILED sample.
+        residual_confidence: ``(B,)`` the residual confidence (set by template management; None otherwise).
+        dissimilarity: ``(B,)`` mean fiducial-patch displacement on the normalised face (its pixels; set by
+            template management, NaN where it was not measured; None otherwise).
+        mosaic_entry: ``(B,)`` int64 the mosaic entry the frame was aligned against (0 = the reference; set by
+            template management; None otherwise).
     """
 
     rotation: Tensor
@@ -175,11 +195,14 @@ class TrackResult:
     cost: Tensor
     num_points: Tensor
     confidence: Tensor
+    residual_confidence: Tensor | None = None
+    dissimilarity: Tensor | None = None
+    mosaic_entry: Tensor | None = None
 
     @property
     def success(self) -> Tensor:
-        """``(B,)`` bool: not FAILED."""
-        return self.status != int(TrackStatus.FAILED)
+        """``(B,)`` bool: the estimate is usable (neither FAILED nor LOST)."""
+        return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
 
 
 @dataclass(frozen=True)
@@ -192,6 +215,8 @@ class TrackerState:
         templates: one :class:`Template` per pyramid level, finest first.
         intrinsics: camera of the full-resolution frames.
         frame_index: frames seen so far.
+        management: template management's state (:class:`~torchface.tracker.managed.ManagementState`: mosaic,
+            confidence counters, last confident parameters), or None without it.
     """
 
     params: Tensor
@@ -199,6 +224,7 @@ class TrackerState:
     templates: tuple[Template, ...]
     intrinsics: Intrinsics
     frame_index: int
+    management: "ManagementState | None" = None
 
 
 def level_intrinsics(intrinsics: Intrinsics, level: int, height: int, width: int) -> Intrinsics:
@@ -417,14 +443,18 @@ def face_crop(model: FaceModel, state: TrackerState, layout: ParamLayout, config
 
 
 def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
-    """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets (exact copy)."""
-    B = frames.shape[0]
+    """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets (exact copy).
+
+    The gray conversion is per pixel, so converting first and gathering the crop's pixels with one flat
+    ``gather`` gives the same values as cropping first; it was measured six times faster than advanced
+    indexing of the colour frames (0.5 vs 3.1 ms for a 480x488 crop of a 640x480 frame, one thread).
+    """
+    B, _, H, W = frames.shape
+    gray = to_gray(frames)
     rows = offsets[:, 1:2] + torch.arange(ch, device=frames.device)
     cols = offsets[:, 0:1] + torch.arange(cw, device=frames.device)
-    bidx = torch.arange(B, device=frames.device)[:, None, None]
-    # Gather the crop first (B, ch, cw, C), then convert: only the cropped pixels are read.
-    crop = frames[bidx, :, rows[:, :, None], cols[:, None, :]]
-    return to_gray(crop.permute(0, 3, 1, 2))
+    idx = (rows[:, :, None] * W + cols[:, None, :]).reshape(B, 1, ch * cw)
+    return gray.reshape(B, 1, H * W).gather(2, idx).reshape(B, 1, ch, cw)
 
 
 def _track_step_fast(
