@@ -281,6 +281,7 @@ def normalised_face(
     *,
     depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
     min_facing_cos: float = DEFAULT_MIN_FACING_COS,
+    zbuffer: bool = True,
 ) -> NormalisedFaceResult:
     """The frontal, neutral-expression, light-normalised face of each frame (module docstring).
 
@@ -298,6 +299,9 @@ def normalised_face(
         depth_tolerance: relative depth gap allowed by the z-buffer test
             (:func:`~torchface.rendering.visibility.points_visible`).
         min_facing_cos: minimum cosine between a point's normal and its ray toward the camera; in ``[0, 1)``.
+        zbuffer: test visibility against the z-buffer of the posed mesh. False keeps only the facing tests
+            (back-facing triangles and ``min_facing_cos``): about 3x faster (no rasterization), and a part of the
+            face hidden behind another (the far cheek behind the nose at a large yaw) is then kept.
 
     Returns:
         :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype.
@@ -368,9 +372,11 @@ def normalised_face(
     values, inside = sample_at_pixels(frames, points_px)  # (B, M, C), (B, M)
 
     with torch.no_grad():
-        crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
-        frags = rasterize(verts_cam.detach(), model.faces, crop)
-        visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
+        visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
+        if zbuffer:
+            crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
+            frags = rasterize(verts_cam.detach(), model.faces, crop)
+            visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
         front = ~backfacing(verts_cam.detach(), model.faces)[:, layout.face_index]  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
         facing_cos = -(normals.detach() * ray).sum(-1)

@@ -1,8 +1,8 @@
 """Template management: template points from a frame (paper Eq. 3-9, Section 4)."""
 
-from torchface.template.points import Template, build_template, gather_face_attributes
+from torchface.template.points import Template, build_template, gather_face_attributes, template_at
 
-__all__ = ["Template", "build_template", "gather_face_attributes"]
+__all__ = ["Template", "build_template", "gather_face_attributes", "template_at"]
 from torchface.template.dissimilarity import (  # noqa: E402
     DissimilarityConfig,
     DissimilarityReference,
@@ -22,3 +22,6 @@ __all__ += [
     "dissimilarity",
     "inverse_compositional_lk",
 ]
+from torchface.template.management import Mosaic, MosaicLevel, TemplateConfig  # noqa: E402
+
+__all__ += ["Mosaic", "MosaicLevel", "TemplateConfig"]

@@ -228,12 +228,16 @@ def inverse_compositional_lk(
     converged = torch.zeros_like(active)
     valid = torch.ones_like(active)
 
+    # The image and its mask are sampled together (one grid_sample per iteration).
+    stacked = images if image_mask is None else torch.cat([images, image_mask], dim=1)
+    C = images.shape[1]
+
     def weights_at(p_: Tensor) -> tuple[Tensor, Tensor]:
-        warped, inside = _sample(images, grid + p_.unsqueeze(2))
+        values, inside = _sample(stacked, grid + p_.unsqueeze(2))
         w = ref_weight * inside
         if image_mask is not None:
-            w = w * _sample(image_mask, grid + p_.unsqueeze(2))[0][..., 0].clamp(0.0, 1.0)
-        return warped, w
+            w = w * values[..., C].clamp(0.0, 1.0)
+        return values[..., :C], w
 
     for _ in range(iterations):
         warped, w = weights_at(p)

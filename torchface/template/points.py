@@ -170,11 +170,30 @@ def build_template(
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     bary = torch.gather(bary_flat, 1, pix.unsqueeze(-1).expand(-1, -1, 3)).to(verts_model.dtype)
+    intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(verts_model.dtype)
+    return template_at(model, shape_coeffs, face_index, bary, intensity, valid)
+
+
+def template_at(
+    model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor, intensity: Tensor, valid: Tensor
+) -> Template:
+    """The :class:`Template` of points given by triangle and barycentric coordinates (Eq. 3-9).
+
+    Positions, expression basis and normals follow from the person's shape and the points' places on the mesh;
+    :func:`build_template` ends here, and a stored template (a mosaic entry) is rebuilt from its compact form.
+
+    Args:
+        model: the face model.
+        shape_coeffs: ``(B, S)``.
+        face_index: ``(B, N)`` int64 triangles; bary: ``(B, N, 3)``; intensity: ``(B, N)``; valid: ``(B, N)`` bool.
+
+    Returns:
+        :class:`Template`.
+    """
     neutral = model.deform(shape_coeffs, None)
     points = gather_face_attributes(neutral, model.faces, face_index, bary, batched=True)
     basis = gather_face_attributes(model.animation_units.permute(1, 2, 0), model.faces, face_index, bary, batched=False)
     normals = torch.nn.functional.normalize(
         gather_face_attributes(vertex_normals(neutral, model.faces), model.faces, face_index, bary, batched=True), dim=-1
     )
-    intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(verts_model.dtype)
     return Template(face_index, bary, points, basis, normals, intensity, valid)

@@ -1,6 +1,7 @@
 """The tracker: initial fit (Eq. 2), per-frame joint minimisation (Eq. 20), batched streams."""
 
 from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.managed import LandmarkDetector, ManagementState, initialise_managed, managed_step
 from torchface.tracker.module import FaceTracker
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -18,7 +19,9 @@ from torchface.tracker.step import (
 __all__ = [
     "FaceTracker",
     "FitConfig",
+    "LandmarkDetector",
     "LandmarkFit",
+    "ManagementState",
     "ParamLayout",
     "TrackResult",
     "TrackStatus",
@@ -28,7 +31,9 @@ __all__ = [
     "frame_residuals",
     "gray_pyramid",
     "initialise",
+    "initialise_managed",
     "level_intrinsics",
+    "managed_step",
     "track_step",
     "warp_points",
 ]

@@ -1,4 +1,4 @@
-"""``FaceTracker``: the stateful ``nn.Module`` around :func:`initialise` and :func:`track_step`."""
+"""``FaceTracker``: the stateful ``nn.Module`` around :func:`initialise_managed` and :func:`managed_step`."""
 
 from __future__ import annotations
 
@@ -8,14 +8,18 @@ from torch import Tensor, nn
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, initialise, track_step
+from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult
 
 
 class FaceTracker(nn.Module):
-    """Track B face streams at once; a thin loop over the functional :func:`track_step`.
+    """Track B face streams at once; a thin loop over the functional :func:`managed_step`.
 
     The per-sequence state (:class:`TrackerState`) is explicit: :attr:`state` after each call, and
-    :meth:`reset` clears it. The model defaults to CANDIDE-3 with its 11 AUVs.
+    :meth:`reset` clears it. The model defaults to CANDIDE-3 with its 11 AUVs. Template management
+    (dissimilarity confidence, mosaic, loss and recovery) follows ``config.template``; ``detector`` (a
+    :data:`~torchface.tracker.managed.LandmarkDetector`, ``frames (B, 3, H, W) -> landmarks (B, K, 2)`` with NaN
+    rows where no face was found) re-initialises lost streams, else they are searched for in the mosaic.
 
     Example:
         >>> tracker = FaceTracker()                                          # doctest: +SKIP
@@ -24,12 +28,18 @@ class FaceTracker(nn.Module):
         ...     result = tracker(frames[:, t])                               # (B, 3, H, W) -> TrackResult
     """
 
-    def __init__(self, config: TrackerConfig | None = None, model: FaceModel | None = None) -> None:
+    def __init__(
+        self, config: TrackerConfig | None = None, model: FaceModel | None = None,
+        detector: LandmarkDetector | None = None,
+    ) -> None:
         super().__init__()
         self.config = TrackerConfig() if config is None else config
         if not isinstance(self.config, TrackerConfig):
             raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
+        if detector is not None and not callable(detector):
+            raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
         self.model = load_candide3() if model is None else model
+        self.detector = detector
         self._state: TrackerState | None = None
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
@@ -75,7 +85,7 @@ class FaceTracker(nn.Module):
             if not isinstance(frames, Tensor) or frames.dim() != 4:
                 raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
-        self._state, result = initialise(self.model, self.config, frames, landmarks_px, intrinsics, weights)
+        self._state, result = initialise_managed(self.model, self.config, frames, landmarks_px, intrinsics, weights)
         return result
 
     @torch.no_grad()
@@ -83,7 +93,7 @@ class FaceTracker(nn.Module):
         """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
         if self._state is None:
             raise RuntimeError("call initialise(frames, landmarks) before tracking")
-        self._state, result = track_step(self.model, self.config, self._state, frames)
+        self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector)
         return result
 
     step = forward

@@ -1,0 +1,541 @@
+"""Template management (paper Section 4): dissimilarity confidence, the pose-keyed mosaic and its search.
+
+The tracker aligns every frame against stored templates, not against the previous frame
+(:func:`torchface.tracker.track_step`). This module keeps those templates and judges the result; the per-frame
+policy that uses it is :func:`torchface.tracker.managed.managed_step`.
+
+Dissimilarity confidence (Section 4.1)
+--------------------------------------
+With a frame's estimated shape, pose, expression and light, the frame is resampled into the normalised face
+(frontal, neutral, reference light; :func:`torchface.normalise.normalised_face`) and its fiducial patches are
+tracked against the reference frame's with the inverse-compositional Lucas-Kanade of
+:mod:`torchface.template.dissimilarity`: :func:`frame_dissimilarity`. A right estimate leaves the patches in
+place (dissimilarity near 0, confidence near 1); a wrong pose, an occluder or another face displaces or
+hides them. Per frame this runs at a small size (:attr:`TemplateConfig.normalised_size`, 64 px) with the
+facing tests only (no z-buffer) so that it stays a fraction of the solve's time.
+
+Mosaic (Section 4.2)
+--------------------
+A :class:`Mosaic` holds, per stream, up to ``E`` entries, each the per-level templates built at one head
+pose, keyed by the pose's bin ``(round(yaw / yaw_bin), round(pitch / pitch_bin))`` (:func:`pose_bins`).
+Entry 0 is the reference (the first frame's templates). An entry's intensities are stored under the
+reference light: a template point seen with illumination ``lambda`` is brought back with the inverse of
+Eq. 19, ``T = (I - lambda_2) / (1 + lambda_1 + (lambda_3, lambda_4, lambda_5) . n_cam)``
+(:func:`torchface.appearance.illumination.remove_illumination`), so the illumination parameters mean the
+same thing against every entry. Entries are stored compactly (triangle, barycentric coordinates,
+intensity, validity per point); :func:`entry_templates` rebuilds the full :class:`Template` (positions,
+expression basis and normals follow from the person's shape, :func:`~torchface.template.points.template_at`).
+The expression basis of a point does not depend on the pose it was seen at, so aligning against an entry
+re-estimates pose and expression together (the paper's "expression re-corrected too").
+
+Search (recovery without a detector)
+------------------------------------
+:func:`search_mosaic` looks for the face anywhere in a (coarse) gray image: every stored entry's template
+(or a subset of its points) is placed at the entry's rotation, at a grid of image positions and a few depths,
+and scored by the zero-mean normalised cross-correlation of its intensities with the image (invariant to
+the gain and bias of the light). The best placement starts a normal solve.
+
+Shapes: ``B`` streams, ``E`` mosaic entries, ``N`` template points, ``S`` shape units, ``A`` animation units,
+``L`` illumination terms, ``G x G`` the normalised face. Frames and units: :mod:`torchface.conventions`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchface.appearance.illumination import remove_illumination
+from torchface.appearance.sampling import sample_at_pixels
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
+from torchface.model.face_model import FaceModel
+from torchface.normalise.face import NormalisedFaceLayout, normalised_face
+from torchface.template.dissimilarity import (
+    DissimilarityConfig,
+    DissimilarityReference,
+    DissimilarityResult,
+    dissimilarity,
+)
+from torchface.template.points import Template, template_at
+
+__all__ = [
+    "TemplateConfig",
+    "MosaicLevel",
+    "Mosaic",
+    "SearchResult",
+    "pose_bins",
+    "frame_dissimilarity",
+    "new_mosaic",
+    "add_entries",
+    "select_entries",
+    "entry_templates",
+    "light_normalised_intensity",
+    "search_mosaic",
+    "face_inside_fraction",
+    "has_bin",
+    "params_from_pose",
+    "reference_face",
+]
+
+
+def _default_dissimilarity() -> DissimilarityConfig:
+    # Scaled from the 128 px defaults to the 64 px normalised face: patches of 7 px, displacement scale
+    # d0 = 0.75 px and search range 3 px; 8 Lucas-Kanade iterations (a patch of a right estimate converges
+    # in 2-3, a wrong one runs to the limit either way).
+    return DissimilarityConfig(patch_size=7, num_patches=16, max_displacement=3.0, d0=0.75, iterations=8,
+                               tolerance=0.01)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class TemplateConfig:
+    """Settings of template management (module docstring; the per-frame policy is
+    :func:`torchface.tracker.managed.managed_step`).
+
+    Attributes:
+        enabled: dissimilarity confidence, confidence gating and loss detection/recovery. False gives the
+            bare tracker (``TrackResult.confidence`` is then the residual confidence).
+        mosaic: keep a pose-keyed mosaic of templates and align against the entry nearest the pose.
+        texture_update: re-sample the intensities of the template in use from confident frames (blended by
+            ``texture_blend``). Off by default: every update copies the frame's estimate error into the
+            template, which is what makes template-updating trackers drift.
+        texture_blend: weight of the new sample in a texture update, in ``(0, 1]``.
+        yaw_bin_deg, pitch_bin_deg: widths of the mosaic's pose bins (degrees).
+        bin_centre_fraction: an entry is added only while the pose is within this fraction of a bin width of
+            the bin's centre (so entries are built near the poses they are keyed by), in ``(0, 0.5]``.
+        max_entries: the most entries a stream's mosaic holds (the reference included).
+        switch_margin_deg: the tracker changes entry only when another is nearer (in yaw and pitch) than the
+            current one by this much: hysteresis, so a head between two bins does not flip every frame.
+        normalised_size: side ``G`` of the normalised face the dissimilarity is measured on (pixels).
+        min_facing_cos: the normalised face keeps surface points facing the camera at least this much
+            (cosine between the normal and the ray toward the camera).
+        dissimilarity: settings of the fiducial patches and their Lucas-Kanade (in pixels of the ``G`` face).
+        confidence_threshold: a frame with dissimilarity confidence below this is not confident: nothing is
+            learnt from it (no mosaic entry, no texture update) and it counts toward a loss.
+        add_confidence: the confidence a frame needs for its templates to become a mosaic entry.
+        lost_after: consecutive non-confident frames after which the stream is declared lost.
+        min_inside_fraction: a stream whose estimated face has fewer than this fraction of its vertices
+            projecting inside the frame (or in front of the camera) is lost at once (the face left the frame).
+        recover_confidence: the confidence that ends a loss (from the continued track or a recovery).
+        recovery_every: a lost stream attempts a recovery every this many frames.
+        search_step_px: grid step of the mosaic search, pixels of the coarsest pyramid level.
+        search_depth_factors: depths tried by the search, as factors of the last confident depth.
+        search_points: template points per entry used by the search (a uniform subset).
+        search_min_inside: a placement needs this fraction of its points inside the image.
+    """
+
+    enabled: bool = True
+    mosaic: bool = True
+    texture_update: bool = False
+    texture_blend: float = 0.5
+    yaw_bin_deg: float = 15.0
+    pitch_bin_deg: float = 15.0
+    bin_centre_fraction: float = 0.25
+    max_entries: int = 16
+    switch_margin_deg: float = 2.0
+    normalised_size: int = 64
+    min_facing_cos: float = 0.2
+    dissimilarity: DissimilarityConfig = field(default_factory=_default_dissimilarity)
+    confidence_threshold: float = 0.5
+    add_confidence: float = 0.8
+    lost_after: int = 15
+    min_inside_fraction: float = 0.6
+    recover_confidence: float = 0.7
+    recovery_every: int = 1
+    search_step_px: float = 3.0
+    search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
+    search_points: int = 300
+    search_min_inside: float = 0.8
+
+    def __post_init__(self) -> None:
+        for name in ("enabled", "mosaic", "texture_update"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be a bool, got {type(getattr(self, name)).__name__}")
+        if not isinstance(self.dissimilarity, DissimilarityConfig):
+            raise TypeError(f"dissimilarity must be a DissimilarityConfig, got {type(self.dissimilarity).__name__}")
+        for name in ("max_entries", "normalised_size", "lost_after", "recovery_every", "search_points"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+        if self.max_entries < 1 or self.lost_after < 1 or self.recovery_every < 1 or self.search_points < 8:
+            raise ValueError(
+                "max_entries, lost_after and recovery_every must be >= 1 and search_points >= 8, got "
+                f"{self.max_entries}, {self.lost_after}, {self.recovery_every}, {self.search_points}"
+            )
+        if self.normalised_size < 16:
+            raise ValueError(f"normalised_size must be >= 16, got {self.normalised_size}")
+        if not (self.yaw_bin_deg > 0 and self.pitch_bin_deg > 0 and self.search_step_px > 0):
+            raise ValueError("yaw_bin_deg, pitch_bin_deg and search_step_px must be positive")
+        if not 0 < self.bin_centre_fraction <= 0.5:
+            raise ValueError(f"bin_centre_fraction must be in (0, 0.5], got {self.bin_centre_fraction}")
+        if not 0 < self.texture_blend <= 1:
+            raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
+        if self.switch_margin_deg < 0:
+            raise ValueError(f"switch_margin_deg must be >= 0, got {self.switch_margin_deg}")
+        for name in ("confidence_threshold", "add_confidence", "recover_confidence", "min_inside_fraction",
+                     "search_min_inside", "min_facing_cos"):  # fmt: skip
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not self.search_depth_factors or any(not f > 0 for f in self.search_depth_factors):
+            raise ValueError(f"search_depth_factors must be positive factors, got {self.search_depth_factors}")
+
+
+@dataclass(frozen=True)
+class MosaicLevel:
+    """One pyramid level of every entry, compact (:func:`entry_templates` rebuilds full templates).
+
+    Attributes:
+        face_index: ``(B, E, N)`` int64 triangle of each point.
+        bary: ``(B, E, N, 3)`` barycentric coordinates in it.
+        intensity: ``(B, E, N)`` gray value under the reference light.
+        valid: ``(B, E, N)`` bool (False in unused slots and unused entries).
+    """
+
+    face_index: Tensor
+    bary: Tensor
+    intensity: Tensor
+    valid: Tensor
+
+
+@dataclass(frozen=True)
+class Mosaic:
+    """The templates of every stream keyed by head pose (module docstring).
+
+    Attributes:
+        levels: one :class:`MosaicLevel` per pyramid level, finest first.
+        rotation: ``(B, E, 3, 3)`` the head pose each entry was built at.
+        bins: ``(B, E, 2)`` int64 (yaw, pitch) bin of each entry.
+        used: ``(B, E)`` bool, the entry slot is filled; entry 0 (the reference) always is.
+        reference: the dissimilarity reference (the first frame's normalised face, batch ``B``).
+    """
+
+    levels: tuple[MosaicLevel, ...]
+    rotation: Tensor
+    bins: Tensor
+    used: Tensor
+    reference: DissimilarityReference
+
+    @property
+    def num_entries(self) -> Tensor:
+        """``(B,)`` entries per stream."""
+        return self.used.sum(-1)
+
+    @property
+    def capacity(self) -> int:
+        """``E``, entry slots allocated per stream."""
+        return int(self.used.shape[1])
+
+
+def pose_bins(ypr_deg: Tensor, config: TemplateConfig) -> tuple[Tensor, Tensor]:
+    """``(B, 3)`` yaw/pitch/roll (degrees) -> ``(B, 2)`` int64 (yaw, pitch) bins and ``(B,)`` "near the centre".
+
+    Bin ``k`` covers ``[(k - 1/2) w, (k + 1/2) w)`` for bin width ``w``; "near the centre" is within
+    ``config.bin_centre_fraction * w`` of ``k w`` on both axes. Roll is ignored: it turns the face in the
+    image plane and changes no part's visibility.
+    """
+    widths = ypr_deg.new_tensor([config.yaw_bin_deg, config.pitch_bin_deg])
+    scaled = ypr_deg[:, :2] / widths
+    bins = torch.floor(scaled + 0.5)
+    near = ((scaled - bins).abs() <= config.bin_centre_fraction).all(-1)
+    return bins.to(torch.int64), near
+
+
+def frame_dissimilarity(
+    frames: Tensor,
+    model: FaceModel,
+    layout: NormalisedFaceLayout,
+    reference: DissimilarityReference,
+    shape_coeffs: Tensor,
+    anim_coeffs: Tensor,
+    axis_angle: Tensor,
+    translation: Tensor,
+    illumination: Tensor,
+    intrinsics: Intrinsics,
+    config: TemplateConfig,
+) -> DissimilarityResult:
+    """Dissimilarity and confidence of each frame's estimate against the reference (Section 4.1).
+
+    Args:
+        frames: ``(B, 3, H, W)`` in [0, 1]; shape_coeffs ``(B, S)``, anim_coeffs ``(B, A)``, axis_angle
+            ``(B, 3)``, translation ``(B, 3)`` mm, illumination ``(B, L)``: the estimate.
+        layout: :func:`~torchface.normalise.build_normalised_layout` of ``config.normalised_size``.
+        reference: :func:`~torchface.template.dissimilarity.build_dissimilarity_reference` of the first frame's
+            normalised face made the same way (:func:`reference_face`).
+
+    Returns:
+        :class:`~torchface.template.dissimilarity.DissimilarityResult` (``dissimilarity (B,)`` in pixels of the
+        normalised face, ``confidence (B,)`` in [0, 1]).
+    """
+    face = normalised_face(
+        frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
+        min_facing_cos=config.min_facing_cos, zbuffer=False,
+    )  # fmt: skip
+    return dissimilarity(reference, face.image, face.mask)
+
+
+def reference_face(
+    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, shape_coeffs: Tensor, anim_coeffs: Tensor,
+    axis_angle: Tensor, translation: Tensor, illumination: Tensor, intrinsics: Intrinsics, config: TemplateConfig,
+) -> tuple[Tensor, Tensor]:
+    """The reference frame's normalised face ``(B, 3, G, G)`` and mask ``(B, 1, G, G)``, made as
+    :func:`frame_dissimilarity` makes every later frame's."""
+    face = normalised_face(
+        frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
+        min_facing_cos=config.min_facing_cos, zbuffer=False,
+    )  # fmt: skip
+    return face.image, face.mask
+
+
+def light_normalised_intensity(template: Template, rotation: Tensor, illumination: Tensor) -> Tensor:
+    """``(B, N)`` the template's intensities brought back to the reference light (inverse of Eq. 19).
+
+    Args:
+        template: intensities as seen under ``illumination``; rotation ``(B, 3, 3)`` the pose they were seen
+            at (the normals are rotated into the camera frame as the solver's illumination basis does);
+            illumination ``(B, L)``.
+    """
+    normals_cam = torch.matmul(template.normals, rotation.transpose(1, 2))
+    return remove_illumination(template.intensity, normals_cam, illumination)
+
+
+def _entry_level(t: Template) -> MosaicLevel:
+    return MosaicLevel(t.face_index.unsqueeze(1), t.bary.unsqueeze(1), t.intensity.unsqueeze(1), t.valid.unsqueeze(1))
+
+
+def new_mosaic(
+    templates: tuple[Template, ...], rotation: Tensor, ypr_deg: Tensor, reference: DissimilarityReference,
+    config: TemplateConfig,
+) -> Mosaic:
+    """A mosaic whose only entry (0) is each stream's reference templates (seen under the reference light).
+
+    Args:
+        templates: per level, finest first, batch ``B``; rotation ``(B, 3, 3)`` and ypr_deg ``(B, 3)`` the pose
+            they were built at; reference: the dissimilarity reference.
+    """
+    bins, _ = pose_bins(ypr_deg, config)
+    B = rotation.shape[0]
+    return Mosaic(
+        tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1), bins.unsqueeze(1),
+        torch.ones(B, 1, dtype=torch.bool, device=rotation.device), reference,
+    )  # fmt: skip
+
+
+def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
+    """The mosaic with ``extra`` more (unused) entry slots per stream."""
+    def pad(x: Tensor, value: float | bool = 0) -> Tensor:
+        shape = list(x.shape)
+        shape[1] = extra
+        return torch.cat([x, x.new_full(shape, value)], dim=1)
+
+    levels = tuple(MosaicLevel(pad(lv.face_index), pad(lv.bary), pad(lv.intensity), pad(lv.valid, False))
+                   for lv in mosaic.levels)  # fmt: skip
+    eye = torch.eye(3, dtype=mosaic.rotation.dtype, device=mosaic.rotation.device)
+    rot = torch.cat([mosaic.rotation, eye.expand(mosaic.rotation.shape[0], extra, 3, 3)], dim=1)
+    return Mosaic(levels, rot, pad(mosaic.bins), pad(mosaic.used, False), mosaic.reference)
+
+
+def add_entries(
+    mosaic: Mosaic, streams: Tensor, templates: tuple[Template, ...], rotation: Tensor, bins: Tensor
+) -> tuple[Mosaic, Tensor]:
+    """Store one new entry for each of ``streams`` in its first free slot (a rare event: not in the hot path).
+
+    Args:
+        mosaic: batch ``B``.
+        streams: ``(B',)`` int64 distinct stream indices.
+        templates: per level, batch ``B'``, intensities already under the reference light.
+        rotation: ``(B', 3, 3)`` and bins ``(B', 2)``: the pose the templates were built at.
+
+    Returns:
+        The new mosaic and ``(B',)`` the entry index each stream's entry got.
+    """
+    slot = mosaic.num_entries[streams]
+    need = int(slot.max()) + 1 if streams.numel() else 0
+    if need > mosaic.capacity:
+        mosaic = _grow(mosaic, need - mosaic.capacity)
+    levels = []
+    for lv, t in zip(mosaic.levels, templates):
+        parts = []
+        for name in ("face_index", "bary", "intensity", "valid"):
+            x = getattr(lv, name).clone()
+            x[streams, slot] = getattr(t, name).to(x.dtype)
+            parts.append(x)
+        levels.append(MosaicLevel(*parts))
+    rot = mosaic.rotation.clone()
+    rot[streams, slot] = rotation.to(rot.dtype)
+    b = mosaic.bins.clone()
+    b[streams, slot] = bins
+    used = mosaic.used.clone()
+    used[streams, slot] = True
+    return Mosaic(tuple(levels), rot, b, used, mosaic.reference), slot
+
+
+def has_bin(mosaic: Mosaic, bins: Tensor) -> Tensor:
+    """``(B,)`` bool: the stream's mosaic already has an entry in bin ``bins (B, 2)``."""
+    return ((mosaic.bins == bins.unsqueeze(1)).all(-1) & mosaic.used).any(-1)
+
+
+def select_entries(
+    mosaic: Mosaic, ypr_deg: Tensor, current: Tensor, margin_deg: float, streams: Tensor | None = None
+) -> Tensor:
+    """``(B,)`` the entry each stream aligns against next: the nearest in (yaw, pitch), with hysteresis.
+
+    Args:
+        ypr_deg: ``(B, 3)`` the current pose estimate; current: ``(B,)`` int64 the entry in use.
+        margin_deg: the current entry is kept unless another is nearer by more than this
+            (:attr:`TemplateConfig.switch_margin_deg`; 0 picks the nearest).
+        streams: ``(B,)`` int64 the mosaic rows of a sub-batch, or None for all.
+    """
+    rotation, used = mosaic.rotation, mosaic.used
+    if streams is not None:
+        rotation, used = rotation[streams], used[streams]
+    entry_ypr = matrix_to_euler(rotation)  # (B, E, 3)
+    d = (entry_ypr[..., :2] - ypr_deg[:, None, :2]).norm(dim=-1)
+    d = torch.where(used, d, torch.full_like(d, float("inf")))
+    best = d.argmin(-1)
+    d_cur = d.gather(1, current.unsqueeze(1)).squeeze(1)
+    d_best = d.gather(1, best.unsqueeze(1)).squeeze(1)
+    return torch.where(d_best + margin_deg < d_cur, best, current)
+
+
+def entry_templates(model: FaceModel, shape_coeffs: Tensor, mosaic: Mosaic, streams: Tensor, entries: Tensor) -> tuple[Template, ...]:
+    """The full templates (every level) of entry ``entries[i]`` of stream ``streams[i]``.
+
+    Args:
+        shape_coeffs: ``(B', S)`` the streams' shape units; streams, entries: ``(B',)`` int64.
+
+    Returns:
+        One :class:`Template` per level with batch ``B'``.
+    """
+    out = []
+    for lv in mosaic.levels:
+        out.append(template_at(
+            model, shape_coeffs, lv.face_index[streams, entries], lv.bary[streams, entries],
+            lv.intensity[streams, entries], lv.valid[streams, entries],
+        ))  # fmt: skip
+    return tuple(out)
+
+
+def face_inside_fraction(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(B,)`` fraction of the model's surface vertices in front of the camera and projecting inside the frame.
+
+    Args:
+        verts_cam: ``(B, V, 3)`` the posed vertices (camera frame, mm).
+    """
+    v = verts_cam[:, model.surface_vertex_mask]
+    uv = project_points(v, intrinsics)
+    W, H = intrinsics.width, intrinsics.height
+    ok = (v[..., 2] > 1.0) & (uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= H - 1)
+    return ok.to(verts_cam.dtype).mean(-1)
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """The best placement :func:`search_mosaic` found for one stream.
+
+    Attributes:
+        rotation: ``(3, 3)`` the entry's rotation; translation: ``(3,)`` mm; entry: the entry index;
+        score: its normalised cross-correlation in ``[-1, 1]`` (-1 when nothing could be placed).
+    """
+
+    rotation: Tensor
+    translation: Tensor
+    entry: int
+    score: float
+
+
+def search_mosaic(
+    model: FaceModel,
+    shape_coeffs: Tensor,
+    mosaic: Mosaic,
+    stream: int,
+    gray: Tensor,
+    intrinsics: Intrinsics,
+    level: int,
+    depth_mm: float,
+    extra_rotation: Tensor | None,
+    config: TemplateConfig,
+) -> SearchResult:
+    """Find the face of ``stream`` in a gray image by placing its mosaic entries (module docstring).
+
+    Every used entry, at its own rotation (and, with ``extra_rotation``, the nearest entry also at that
+    rotation: the last confident pose), is placed with its head origin on a grid of pixels of step
+    ``config.search_step_px`` at the depths ``depth_mm * config.search_depth_factors``, and scored by the
+    zero-mean normalised cross-correlation between a subset of its level-``level`` template intensities and
+    the image sampled at their projections (placements with fewer than ``config.search_min_inside`` of the
+    points inside the image, or facing away, are skipped).
+
+    Args:
+        shape_coeffs: ``(1, S)`` the stream's shape units.
+        stream: the stream's index in ``mosaic``.
+        gray: ``(1, 1, h, w)`` the frame at pyramid level ``level``, gray in [0, 1]; intrinsics: its camera.
+        depth_mm: the last confident depth of the head origin.
+        extra_rotation: ``(3, 3)`` or None.
+
+    Returns:
+        :class:`SearchResult`.
+    """
+    dtype, device = gray.dtype, gray.device
+    lv = mosaic.levels[level]
+    used = mosaic.used[stream].nonzero().squeeze(-1)
+    rots = mosaic.rotation[stream, used]  # (E', 3, 3)
+    ent = used.clone()
+    if extra_rotation is not None:
+        ypr = matrix_to_euler(extra_rotation.unsqueeze(0))
+        d = (matrix_to_euler(rots)[:, :2] - ypr[:, :2]).norm(dim=-1)
+        ent = torch.cat([ent, used[d.argmin()].reshape(1)])
+        rots = torch.cat([rots, extra_rotation.unsqueeze(0).to(rots.dtype)])
+    n_hyp = rots.shape[0]
+    tpl = template_at(
+        model, shape_coeffs.expand(n_hyp, -1), lv.face_index[stream, ent], lv.bary[stream, ent],
+        lv.intensity[stream, ent], lv.valid[stream, ent],
+    )  # fmt: skip
+    # Points facing the camera at the hypothesis' rotation (viewing ray ~ +z for a face near the axis).
+    normals_cam = torch.matmul(tpl.normals, rots.transpose(1, 2))
+    keep = tpl.valid & (normals_cam[..., 2] < -0.2)
+    # A uniform subset of the kept points (template slots are in random order): the first n kept.
+    rank = torch.cumsum(keep.to(torch.int64), dim=-1)
+    keep = keep & (rank <= config.search_points)
+    h, w = gray.shape[-2:]
+    step = config.search_step_px
+    us = torch.arange(0.0, w, step, dtype=dtype, device=device)
+    vs = torch.arange(0.0, h, step, dtype=dtype, device=device)
+    vv, uu = torch.meshgrid(vs, us, indexing="ij")
+    grid = torch.stack([uu.reshape(-1), vv.reshape(-1)], -1)  # (P, 2)
+    best = SearchResult(torch.eye(3, dtype=dtype, device=device), torch.zeros(3, dtype=dtype, device=device), 0, -1.0)
+    for k in range(n_hyp):
+        m = keep[k]
+        n = int(m.sum())
+        if n < 8:
+            continue
+        X = torch.matmul(tpl.points[k, m], rots[k].T)  # (n, 3) rotated, head origin at 0
+        T = tpl.intensity[k, m]
+        for f in config.search_depth_factors:
+            z = depth_mm * f
+            t = torch.stack([(grid[:, 0] - intrinsics.cx) * z / intrinsics.fx,
+                             (grid[:, 1] - intrinsics.cy) * z / intrinsics.fy,
+                             torch.full_like(grid[:, 0], z)], -1)  # (P, 3)  # fmt: skip
+            cam = X.unsqueeze(0) + t.unsqueeze(1)  # (P, n, 3)
+            uv = project_points(cam, intrinsics)
+            vals, inside = sample_at_pixels(gray.expand(uv.shape[0], -1, -1, -1), uv)
+            vals = vals[..., 0]
+            wgt = inside.to(dtype)
+            cnt = wgt.sum(-1)
+            mean_v = (vals * wgt).sum(-1) / cnt.clamp_min(1)
+            mean_t = (T.unsqueeze(0) * wgt).sum(-1) / cnt.clamp_min(1)
+            a = (vals - mean_v.unsqueeze(-1)) * wgt
+            b = (T.unsqueeze(0) - mean_t.unsqueeze(-1)) * wgt
+            ncc = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-6)
+            ncc = torch.where(cnt >= config.search_min_inside * n, ncc, torch.full_like(ncc, -1.0))
+            score, i = ncc.max(0)
+            if float(score) > best.score:
+                best = SearchResult(rots[k], t[i], int(ent[k]), float(score))
+    return best
+
+
+def params_from_pose(rotation: Tensor, translation: Tensor, anim: Tensor, light: Tensor) -> Tensor:
+    """Pack ``(B, 3, 3)``, ``(B, 3)``, ``(B, A)``, ``(B, L)`` into ``(B, 3 + 3 + A + L)`` parameters
+    (:class:`torchface.tracker.params.ParamLayout` order: axis-angle, translation, animation, illumination)."""
+    return torch.cat([matrix_to_axis_angle(rotation), translation, anim, light], dim=-1)
+

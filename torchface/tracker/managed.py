@@ -1,0 +1,462 @@
+"""Template management around the tracking step (paper Section 4): one function of (state, frames).
+
+:func:`managed_step` wraps :func:`~torchface.tracker.step.track_step`, which aligns each frame against stored
+templates, with the policy of the paper's Section 4 (the pieces are in :mod:`torchface.template.management`):
+
+1. **Mosaic entry.** Before the solve, each stream picks the mosaic entry nearest its pose (yaw and pitch,
+   with hysteresis) and aligns against that entry's templates: near a stored pose the solve re-aligns pose
+   and expression against the template seen there (Section 4.2). Entry 0 is the first frame's.
+2. **Dissimilarity confidence.** After the solve, the frame's normalised face is compared with the first
+   frame's by the fiducial patches' inverse-compositional Lucas-Kanade (Section 4.1); its confidence in
+   [0, 1] is ``TrackResult.confidence`` (the solver's residual confidence stays in ``residual_confidence``).
+3. **Confidence gating.** A confident frame (confidence >= ``confidence_threshold``) updates the last
+   confident parameters and may teach the mosaic: when it is confidently (>= ``add_confidence``) near the
+   centre of a pose bin the mosaic lacks, its templates become a new entry, intensities brought back to
+   the reference light. With ``texture_update`` it also re-samples the intensities of the entry in use
+   (off by default: drift). A frame that is not confident teaches nothing and counts toward a loss; its
+   estimate is still the next frame's start: every frame is aligned against stored templates, never against
+   the previous frame, so a poor estimate corrupts no template, and while a head moves behind an occluder
+   the last estimate is nearer the truth than the last confident one.
+4. **Loss and recovery.** A stream is lost when its confidence stayed below ``confidence_threshold`` for
+   ``lost_after`` frames, when its solve FAILED (too few points, no contrast), or when less than
+   ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost frames are reported
+   with status LOST (``success`` False). A lost stream keeps tracking from its estimate (back at the last
+   confident parameters when the estimate left the frame or failed) and, every ``recovery_every`` frames,
+   re-initialises: from the ``detector`` callback's landmarks when one is given, else by searching its
+   mosaic over the coarsest pyramid level (:func:`~torchface.template.management.search_mosaic`); each
+   candidate is refined by a normal solve. The loss ends when the continued track or a candidate reaches
+   ``recover_confidence``.
+
+All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
+the streams concerned (the recovery search loops over its lost streams).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.appearance.sampling import sample_at_pixels
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_euler
+from torchface.model.face_model import FaceModel
+from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
+from torchface.solver.least_squares import SolveStatus
+from torchface.template.dissimilarity import build_dissimilarity_reference
+from torchface.template.management import (
+    Mosaic,
+    MosaicLevel,
+    TemplateConfig,
+    add_entries,
+    entry_templates,
+    face_inside_fraction,
+    frame_dissimilarity,
+    has_bin,
+    light_normalised_intensity,
+    new_mosaic,
+    params_from_pose,
+    pose_bins,
+    reference_face,
+    search_mosaic,
+    select_entries,
+)
+from torchface.template.points import Template, build_template
+from torchface.tracker.fit import fit_landmarks
+from torchface.tracker.params import ParamLayout
+from torchface.tracker.step import (
+    TrackerConfig,
+    TrackerState,
+    TrackResult,
+    TrackStatus,
+    check_frames,
+    gray_pyramid,
+    initialise,
+    level_intrinsics,
+    track_step,
+)
+
+__all__ = ["LandmarkDetector", "ManagementState", "initialise_managed", "managed_step"]
+
+#: A face detector for re-initialisation: ``frames (B, 3, H, W)`` float in [0, 1] -> ``landmarks (B, K, 2)``
+#: pixels of the model's K landmarks (68 iBUG points for CANDIDE-3), a row of NaN where no face was found.
+LandmarkDetector = Callable[[Tensor], Tensor]
+
+_FAILED = int(TrackStatus.FAILED)
+_LOST = int(TrackStatus.LOST)
+
+
+@dataclass(frozen=True)
+class ManagementState:
+    """What template management keeps between frames (in :attr:`TrackerState.management`).
+
+    Attributes:
+        mosaic: the streams' :class:`~torchface.template.management.Mosaic` (and dissimilarity reference).
+        layout: the normalised-face layout the dissimilarity is measured on (shared by the batch).
+        entry: ``(B,)`` int64 the mosaic entry whose templates are ``TrackerState.templates``.
+        low_count: ``(B,)`` int64 consecutive frames below the confidence threshold.
+        lost: ``(B,)`` bool, the stream is lost.
+        confident_params: ``(B, P)`` the parameters of the last confident frame.
+        since_attempt: ``(B,)`` int64 lost frames since the last recovery attempt.
+    """
+
+    mosaic: Mosaic
+    layout: NormalisedFaceLayout
+    entry: Tensor
+    low_count: Tensor
+    lost: Tensor
+    confident_params: Tensor
+    since_attempt: Tensor
+
+
+def _layout(model: FaceModel) -> ParamLayout:
+    return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+
+
+def _plain(result: TrackResult) -> TrackResult:
+    """A bare step's result with the management fields filled (no dissimilarity measured: NaN)."""
+    B = result.status.shape[0]
+    return replace(
+        result, residual_confidence=result.confidence,
+        dissimilarity=torch.full_like(result.confidence, float("nan")),
+        mosaic_entry=torch.zeros(B, dtype=torch.int64, device=result.status.device),
+    )  # fmt: skip
+
+
+def initialise_managed(
+    model: FaceModel,
+    config: TrackerConfig,
+    frames: Tensor,
+    landmarks_px: Tensor,
+    intrinsics: Intrinsics,
+    weights: Tensor | None = None,
+) -> tuple[TrackerState, TrackResult]:
+    """:func:`~torchface.tracker.step.initialise`, then the mosaic and the dissimilarity reference.
+
+    The first frame's normalised face becomes the dissimilarity reference and its templates the mosaic's
+    entry 0. Arguments and returns as :func:`~torchface.tracker.step.initialise`; with
+    ``config.template.enabled`` False the state has no management (``management`` None).
+
+    Example:
+        >>> from torchface.model import load_candide3                                  # doctest: +SKIP
+        >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
+        >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
+    """
+    state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights)
+    tc = config.template
+    if not tc.enabled:
+        return state, _plain(result)
+    frames = frames.to(dtype=model.dtype, device=model.device)
+    layout = build_normalised_layout(model, tc.normalised_size)
+    aa, t, alpha, light = _layout(model).split(state.params)
+    image, mask = reference_face(frames, model, layout, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc)
+    reference = build_dissimilarity_reference(image, mask, tc.dissimilarity)
+    diss = frame_dissimilarity(frames, model, layout, reference, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc)
+    failed = result.status == _FAILED
+    conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
+    mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
+    B = state.params.shape[0]
+    zeros = torch.zeros(B, dtype=torch.int64, device=state.params.device)
+    management = ManagementState(mosaic, layout, zeros, zeros.clone(), failed.clone(), state.params, zeros.clone())
+    result = replace(
+        result, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss.dissimilarity,
+        mosaic_entry=zeros.clone(),
+    )  # fmt: skip
+    return replace(state, management=management), result
+
+
+def _scatter_templates(templates: tuple[Template, ...], index: Tensor, sub: tuple[Template, ...]) -> tuple[Template, ...]:
+    """``templates`` with the samples ``index`` replaced by ``sub`` (batch ``len(index)``)."""
+    out = []
+    for t, s in zip(templates, sub):
+        parts = []
+        for f in fields(Template):
+            x = getattr(t, f.name).clone()
+            x[index] = getattr(s, f.name).to(x.dtype)
+            parts.append(x)
+        out.append(Template(*parts))
+    return tuple(out)
+
+
+def _scatter_result(result: TrackResult, index: Tensor, sub: TrackResult) -> TrackResult:
+    """``result`` with the samples ``index`` replaced by ``sub``'s (tensor fields only)."""
+    changes = {}
+    for f in fields(TrackResult):
+        x = getattr(result, f.name)
+        if isinstance(x, Tensor):
+            x = x.clone()
+            x[index] = getattr(sub, f.name).to(x.dtype)
+            changes[f.name] = x
+    return replace(result, **changes)
+
+
+def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates: tuple[Template, ...]) -> TrackerState:
+    return TrackerState(params, state.shape_coeffs[index], templates, state.intrinsics, state.frame_index)
+
+
+def _confidence(
+    model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
+    result: TrackResult, index: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples) and dissimilarity ``(B,)`` of ``state``'s
+    estimate; ``index`` selects the streams of a sub-batch (the reference's rows)."""
+    aa, t, alpha, light = _layout(model).split(state.params)
+    reference = ms.mosaic.reference
+    if index is not None:
+        reference = replace(
+            reference, image=reference.image[index], mask=reference.mask[index], centres=reference.centres[index],
+            patch_valid=reference.patch_valid[index], score=reference.score[index],
+        )  # fmt: skip
+    diss = frame_dissimilarity(
+        frames, model, ms.layout, reference, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
+        config.template,
+    )  # fmt: skip
+    failed = result.status == _FAILED
+    return torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence), diss.dissimilarity
+
+
+def _inside_fraction(model: FaceModel, state: TrackerState) -> Tensor:
+    aa, t, alpha, _ = _layout(model).split(state.params)
+    R = axis_angle_to_matrix(aa)
+    verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
+    return face_inside_fraction(model, verts, state.intrinsics)
+
+
+def _new_entries(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, index: Tensor
+) -> tuple[Template, ...]:
+    """Templates of streams ``index`` built at their current estimate, intensities under the reference light."""
+    aa, t, alpha, light = _layout(model).split(state.params[index])
+    R = axis_angle_to_matrix(aa)
+    shape = state.shape_coeffs[index]
+    out = []
+    for level, gray in enumerate(gray_pyramid(frames[index], config.num_levels)):
+        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        n = min(config.max_points, gray.shape[-2] * gray.shape[-1])
+        tpl = build_template(
+            model, shape, alpha, R, t, gray, intr, max_points=n, gradient_threshold=config.gradient_threshold,
+            expression_priority=config.expression_priority,
+        )  # fmt: skip
+        out.append(replace(tpl, intensity=light_normalised_intensity(tpl, R, light)))
+    return tuple(out)
+
+
+def _texture_update(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, mask: Tensor
+) -> tuple[tuple[Template, ...], Mosaic]:
+    """Re-sample the intensities of the templates in use from the frame for streams ``mask (B,)``."""
+    aa, t, alpha, light = _layout(model).split(state.params)
+    R = axis_angle_to_matrix(aa)
+    beta = config.template.texture_blend
+    B = mask.shape[0]
+    rows = torch.arange(B, device=mask.device)
+    templates, levels = [], []
+    for level, (tpl, gray, lv) in enumerate(zip(state.templates, gray_pyramid(frames, config.num_levels), ms.mosaic.levels)):
+        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        pts = tpl.points + torch.einsum("bnka,ba->bnk", tpl.basis, alpha)
+        cam = torch.matmul(pts, R.transpose(1, 2)) + t.unsqueeze(1)
+        sampled, inside = sample_at_pixels(gray, project_points(cam, intr))
+        seen = replace(tpl, intensity=sampled[..., 0])
+        fresh = light_normalised_intensity(seen, R, light)
+        normals_cam = torch.matmul(tpl.normals, R.transpose(1, 2))
+        facing = (normals_cam * torch.nn.functional.normalize(cam, dim=-1)).sum(-1) < -config.template.min_facing_cos
+        update = mask.unsqueeze(-1) & tpl.valid & inside & facing
+        intensity = torch.where(update, (1 - beta) * tpl.intensity + beta * fresh, tpl.intensity)
+        templates.append(replace(tpl, intensity=intensity))
+        stored = lv.intensity.clone()
+        stored[rows, ms.entry] = intensity.to(stored.dtype)
+        levels.append(MosaicLevel(lv.face_index, lv.bary, stored, lv.valid))
+    return tuple(templates), replace(ms.mosaic, levels=tuple(levels))
+
+
+def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
+    if not isinstance(landmarks, Tensor) or landmarks.dim() != 3 or tuple(landmarks.shape) != (count, k, 2):
+        got = tuple(landmarks.shape) if isinstance(landmarks, Tensor) else type(landmarks).__name__
+        raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
+    return landmarks
+
+
+def _recovery_starts(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
+    detector: LandmarkDetector | None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Start parameters ``(B', P)``, entries ``(B',)`` and "found" ``(B',)`` for the lost streams ``index``."""
+    layout = _layout(model)
+    conf_params = ms.confident_params[index]
+    aa_c, t_c, alpha_c, light_c = layout.split(conf_params)
+    n = index.shape[0]
+    found = torch.zeros(n, dtype=torch.bool, device=index.device)
+    starts = conf_params.clone()
+    if detector is not None:
+        with torch.no_grad():
+            lm = _check_detector_output(detector(frames[index]), n, model.num_landmarks)
+        lm = lm.to(dtype=model.dtype, device=model.device)
+        ok = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
+        if bool(ok.any()):
+            fit = fit_landmarks(model, lm[ok], state.intrinsics, config=config.fit)
+            good = fit.status != int(SolveStatus.FAILED)
+            rows = ok.nonzero().squeeze(-1)[good]
+            starts[rows] = params_from_pose(fit.rotation[good], fit.translation[good], fit.anim_coeffs[good], light_c[rows])
+            found[rows] = True
+    else:
+        level = config.num_levels - 1
+        gray = gray_pyramid(frames[index], config.num_levels)[level]
+        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        R_c = axis_angle_to_matrix(aa_c)
+        for i in range(n):
+            b = int(index[i])
+            hit = search_mosaic(
+                model, state.shape_coeffs[b : b + 1], ms.mosaic, b, gray[i : i + 1], intr, level,
+                float(t_c[i, 2]), R_c[i], config.template,
+            )  # fmt: skip
+            if hit.score > 0:
+                starts[i] = params_from_pose(hit.rotation[None], hit.translation[None],
+                                             torch.zeros_like(alpha_c[i : i + 1]), light_c[i : i + 1])[0]  # fmt: skip
+                found[i] = True
+    ypr = matrix_to_euler(axis_angle_to_matrix(layout.split(starts)[0]))
+    entries = select_entries(ms.mosaic, ypr, torch.zeros_like(index), 0.0, streams=index)
+    return starts, entries, found
+
+
+def _recover(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
+    detector: LandmarkDetector | None,
+) -> tuple[Tensor, TrackerState, TrackResult, Tensor, Tensor, Tensor]:
+    """Re-initialise the lost streams ``index``: candidates, a normal solve from each, their confidence.
+
+    Returns:
+        found ``(B',)``, the sub-batch's solved state and result, confidence ``(B',)``, dissimilarity ``(B',)``
+        and the entries ``(B',)`` used.
+    """
+    starts, entries, found = _recovery_starts(model, config, state, ms, frames, index, detector)
+    templates = entry_templates(model, state.shape_coeffs[index], ms.mosaic, index, entries)
+    sub = _subset_state(state, index, starts, templates)
+    solved, result = track_step(model, config, sub, frames[index])
+    conf, diss = _confidence(model, config, ms, frames[index], solved, result, index)
+    return found, solved, result, conf, diss, entries
+
+
+def managed_step(
+    model: FaceModel,
+    config: TrackerConfig,
+    state: TrackerState,
+    frames: Tensor,
+    detector: LandmarkDetector | None = None,
+) -> tuple[TrackerState, TrackResult]:
+    """Track one frame per stream with template management (module docstring).
+
+    Args:
+        model: the face model used at initialisation.
+        config: :class:`~torchface.tracker.step.TrackerConfig`; ``config.template`` sets the management.
+        state: from :func:`initialise_managed` or the previous step.
+        frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+        detector: optional :data:`LandmarkDetector` used to re-initialise lost streams (called with the
+            frames of the streams attempting a recovery only); None searches the mosaic instead.
+
+    Returns:
+        The new state and the frame's :class:`~torchface.tracker.step.TrackResult`, whose ``confidence`` is the
+        dissimilarity confidence, ``residual_confidence`` the solver's, ``dissimilarity`` the patch displacement
+        and ``mosaic_entry`` the entry aligned against; lost streams have status LOST (``success`` False).
+        With ``config.template.enabled`` False it is :func:`~torchface.tracker.step.track_step` (confidence =
+        residual confidence, dissimilarity NaN, entry 0).
+
+    Raises:
+        ValueError: bad frames, or a state without management while management is enabled.
+    """
+    tc = config.template
+    if not tc.enabled:
+        new_state, result = track_step(model, config, state, frames)
+        return new_state, _plain(result)
+    ms = state.management
+    if not isinstance(ms, ManagementState):
+        raise ValueError(
+            "template management is enabled but the state has none: start with initialise_managed (or set "
+            "TrackerConfig.template = TemplateConfig(enabled=False))"
+        )
+    check_frames(frames, state.intrinsics)
+    if frames.shape[0] != state.params.shape[0]:
+        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+    frames = frames.to(dtype=model.dtype, device=model.device)
+    layout = _layout(model)
+
+    # 1. The mosaic entry nearest each stream's pose (templates rebuilt only where the entry changes).
+    entry, templates = ms.entry, state.templates
+    if tc.mosaic and ms.mosaic.capacity > 1:
+        ypr = matrix_to_euler(axis_angle_to_matrix(state.params[:, layout.rotation]))
+        entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg)
+        changed = (entry != ms.entry).nonzero().squeeze(-1)
+        if changed.numel():
+            sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed])
+            templates = _scatter_templates(templates, changed, sub)
+
+    # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
+    solved, result = track_step(model, config, replace(state, templates=templates), frames)
+    conf, diss = _confidence(model, config, ms, frames, solved, result)
+
+    # 3. Gating and loss.
+    failed = result.status == _FAILED
+    outside = _inside_fraction(model, solved) < tc.min_inside_fraction
+    confident = (conf >= tc.confidence_threshold) & ~failed & ~outside
+    low_count = torch.where(confident, torch.zeros_like(ms.low_count), ms.low_count + 1)
+    lost = ms.lost | failed | outside | (low_count >= tc.lost_after)
+    lost = lost & ~((conf >= tc.recover_confidence) & ~failed & ~outside)
+    params = torch.where((lost & (failed | outside)).unsqueeze(-1), ms.confident_params, solved.params)
+    since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
+
+    # 4. Recovery of lost streams (rare; only the streams concerned).
+    attempt = lost & (since >= tc.recovery_every)
+    if bool(attempt.any()):
+        index = attempt.nonzero().squeeze(-1)
+        since = torch.where(attempt, torch.zeros_like(since), since)
+        found, r_state, r_result, r_conf, r_diss, r_entry = _recover(model, config, state, ms, frames, index, detector)
+        ok = found & (r_conf >= tc.recover_confidence) & (r_result.status != _FAILED) & (r_conf > conf[index])
+        ok = ok & (_inside_fraction(model, r_state) >= tc.min_inside_fraction)
+        if bool(ok.any()):
+            rows = index[ok]
+            params = params.clone()
+            params[rows] = r_state.params[ok]
+            result = _scatter_result(result, rows, replace(
+                r_result, **{f.name: getattr(r_result, f.name)[ok] for f in fields(TrackResult)
+                             if isinstance(getattr(r_result, f.name), Tensor)},
+            ))  # fmt: skip
+            conf, diss = conf.clone(), diss.clone()
+            conf[rows], diss[rows] = r_conf[ok], r_diss[ok]
+            entry = entry.clone()
+            entry[rows] = r_entry[ok]
+            templates = _scatter_templates(templates, rows, entry_templates(
+                model, state.shape_coeffs[rows], ms.mosaic, rows, r_entry[ok]))  # fmt: skip
+            recovered = torch.zeros_like(lost)
+            recovered[rows] = True
+            lost = lost & ~recovered
+            low_count = torch.where(recovered, torch.zeros_like(low_count), low_count)
+            confident = confident | recovered
+
+    confident = confident & ~lost
+    confident_params = torch.where(confident.unsqueeze(-1), params, ms.confident_params)
+    new_state = replace(solved, params=params, templates=templates)
+    mosaic = ms.mosaic
+
+    # 5. Learning from confident frames: a new mosaic entry, optionally the texture.
+    if tc.mosaic:
+        bins, near = pose_bins(result.ypr_deg, tc)
+        add = confident & (conf >= tc.add_confidence) & near & ~has_bin(mosaic, bins)
+        add = add & (mosaic.num_entries < tc.max_entries)
+        if bool(add.any()):
+            index = add.nonzero().squeeze(-1)
+            mosaic, _ = add_entries(mosaic, index, _new_entries(model, config, new_state, frames, index),
+                                    result.rotation[index], bins[index])  # fmt: skip
+    ms = replace(ms, mosaic=mosaic, entry=entry)
+    if tc.texture_update and bool(confident.any()):
+        templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
+        new_state = replace(new_state, templates=templates)
+    ms = ManagementState(mosaic, ms.layout, entry, low_count, lost, confident_params, since)
+    status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
+    result = replace(
+        result, status=status, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss,
+        mosaic_entry=entry.clone(),
+    )  # fmt: skip
+    return replace(new_state, management=ms), result
