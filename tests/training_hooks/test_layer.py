@@ -1,0 +1,258 @@
+"""Tests of training_hooks.layer: the normalised-face layer with detached and unrolled tracking.
+
+Gradients are checked in float64 against finite differences (``torch.autograd.gradcheck``) on a 32x32 frame
+with an 80-point template, probing a few pixels the template samples (the full frame would be slow). The
+known answers: ``K = 0`` is the detached mode exactly, and from a converged reference solve the unrolled
+Gauss-Newton steps stay at the tracker's estimate (same objective, same fixed point), while their gradient
+differs from the detached one (the tracking contributes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.projection import project_points
+from torchface.geometry.so3 import euler_to_matrix
+from torchface.model.candide import load_candide3
+from torchface.normalise import normalised_face
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.tracker import FitConfig, TrackerConfig, warp_points
+from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer, UnrollStart, unrolled_params
+
+D = torch.float64
+G = 12  # canonical image size of the gradient tests
+SMALL = TrackerConfig(
+    num_levels=1, max_points=80, iterations=(4,), min_points=10, robust_scale_floor=(0.02, 0.02),
+    fit=FitConfig(shape_prior_precision=0.0, fit_expression=True, expression_prior_precision=2.0),
+)
+
+
+def _clip(size: int, num_frames: int = 2, jaw: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A short CANDIDE-3 clip, face ~``size`` px wide: a small turn and shift; jaw drop ramping to ``jaw``."""
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=D)[:, None]
+    model = load_candide3()
+    anim = torch.zeros(num_frames, model.num_animation, dtype=D)
+    anim[:, model.animation_names.index("AUV11 Jaw drop")] = jaw * s[:, 0]
+    spec = SequenceSpec(
+        name="layer", subject="candide3", intrinsics=Intrinsics.default(size, size),
+        rotation=euler_to_matrix(s * torch.tensor([6.0, 3.0, 2.0], dtype=D)),
+        translation=torch.tensor([0.0, 5.0, 170.0], dtype=D) + s * torch.tensor([1.0, 0.0, 0.0], dtype=D),
+        anim=anim, light=default_light(num_frames), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    return frames.to(D), gt.landmarks_px.to(D)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3(dtype=D)
+
+
+@pytest.fixture(scope="module")
+def small(model):
+    """32x32 clip, its state after frame 0, and pixels (x, y) that frame 1's template points sample."""
+    frames, landmarks = _clip(32)
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    state, _ = layer.initialise(frames[:1], landmarks[:1])
+    _, cam, _ = warp_points(state.templates[0], layer.param_layout, state.params)
+    uv = project_points(cam, state.intrinsics)[0].floor().long()
+    pixels = torch.unique(uv, dim=0)
+    pixels = pixels[torch.linspace(0, len(pixels) - 1, 6).round().long()]
+    return frames, state, pixels
+
+
+def _with_pixels(frame: torch.Tensor, pixels: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``frame (1, 3, H, W)`` with channel 0 at ``pixels (n, 2)`` (x, y) replaced by ``values (n,)``."""
+    n = pixels.shape[0]
+    zeros = torch.zeros(n, dtype=torch.long)
+    return frame.index_put((zeros, zeros, pixels[:, 1], pixels[:, 0]), values)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# gradcheck (float64, finite differences)
+# ---------------------------------------------------------------------------------------------------------
+
+
+def test_gradcheck_unrolled_params(model, small):
+    frames, state, pixels = small
+    frame = frames[1:2]
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    start = layer(frame, state).params.detach()  # the tracker's estimate, held fixed
+    base = frame[0, 0, pixels[:, 1], pixels[:, 0]].clone()
+
+    def fn(values):
+        return unrolled_params(model, SMALL, state, _with_pixels(frame, pixels, values), start, iterations=2)
+
+    values = base.clone().requires_grad_(True)
+    grad = torch.autograd.grad(fn(values).sum(), values)[0]
+    assert bool((grad.abs() > 0).any()), "the probed pixels must influence the unrolled estimate"
+    assert torch.autograd.gradcheck(fn, (values,), eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+def test_gradcheck_layer_unrolled_from_previous(model, small):
+    """PREVIOUS start: the whole forward (tracking + resampling) is differentiable in the pixels."""
+    frames, state, pixels = small
+    frame = frames[1:2]
+    cfg = LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=2, start=UnrollStart.PREVIOUS, tracker=SMALL)
+    layer = NormalisedFaceLayer(cfg, model)
+    weights = torch.rand(2, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(0))
+
+    def fn(values):
+        out = layer(_with_pixels(frame, pixels, values), state)
+        return out.params, (out.image * weights).flatten(1).sum(1)
+
+    values = frame[0, 0, pixels[:, 1], pixels[:, 0]].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(fn, (values,), eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# detached vs unrolled
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _grad(layer: NormalisedFaceLayer, frame: torch.Tensor, state, weights: torch.Tensor):
+    frame = frame.clone().requires_grad_(True)
+    out = layer(frame, state)
+    (out.image * weights).sum().backward()
+    return out, frame.grad
+
+
+def test_detached_gradient_is_the_resampling_only(model, small):
+    frames, state, _ = small
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(1))
+    out, grad = _grad(layer, frames[1:2], state, weights)
+    assert not out.params.requires_grad
+    frame = frames[1:2].clone().requires_grad_(True)
+    aa, t, alpha, light = layer.param_layout.split(out.params)
+    ref = normalised_face(frame, model, layer.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics)
+    (ref.image * weights).sum().backward()
+    torch.testing.assert_close(grad, frame.grad)
+    assert grad.abs().sum() > 0
+
+
+def test_unrolled_k0_is_detached(model, small):
+    frames, state, _ = small
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(2))
+    det = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    k0 = NormalisedFaceLayer(
+        LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=0, tracker=SMALL), model
+    )
+    a, ga = _grad(det, frames[1:2], state, weights)
+    b, gb = _grad(k0, frames[1:2], state, weights)
+    torch.testing.assert_close(a.params, b.params, rtol=0, atol=0)
+    torch.testing.assert_close(a.image, b.image, rtol=0, atol=0)
+    torch.testing.assert_close(ga, gb)
+
+
+def test_unrolled_gradient_differs_from_detached(model, small):
+    """The tracking contributes: one unrolled step changes the gradient, and reaches pixels the resampling
+    alone does not read."""
+    frames, state, _ = small
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(3))
+    det = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    unr = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=G, tracker=SMALL), model)
+    a, ga = _grad(det, frames[1:2], state, weights)
+    b, gb = _grad(unr, frames[1:2], state, weights)
+    assert b.params.requires_grad
+    assert (gb - ga).norm() > 0.1 * ga.norm()
+    only_unrolled = (gb.abs() > 0) & (ga == 0)
+    assert int(only_unrolled.sum()) > 0
+
+
+def test_unrolled_at_the_exact_minimum_is_detached(model, small):
+    """Frame 1 == frame 0, fitted without expression (so the expression prior is at its mean too): the
+    template frame's estimate is the exact minimum of the objective (zero residuals), so the tracker stays
+    there and a Gauss-Newton step of the unrolled objective does not move (same objective, same fixed point);
+    its gradient still differs from the detached one."""
+    frames, _, _ = small
+    _, landmarks = _clip(32)
+    cfg = replace(SMALL, fit=FitConfig(shape_prior_precision=0.0, fit_expression=False))
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(4))
+    det = NormalisedFaceLayer(LayerConfig(size=G, tracker=cfg), model)
+    state, _ = det.initialise(frames[:1], landmarks[:1])
+    a, ga = _grad(det, frames[:1], state, weights)
+    torch.testing.assert_close(a.params, state.params, atol=1e-9, rtol=0)
+    for k in (1, 2):
+        unr = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=k, tracker=cfg), model)
+        b, gb = _grad(unr, frames[:1], state, weights)
+        torch.testing.assert_close(b.params.detach(), a.params, atol=1e-9, rtol=0)
+        torch.testing.assert_close(b.image.detach(), a.image, atol=1e-9, rtol=0)
+        assert torch.isfinite(gb).all()
+        assert (gb - ga).norm() > 0.1 * ga.norm()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# features, cardinality, exceptions
+# ---------------------------------------------------------------------------------------------------------
+
+
+def test_keep_expression_keeps_the_expression_visible(model):
+    """With the true parameters, undoing the expression makes an open-mouth frame match the neutral one;
+    keeping it leaves the difference."""
+    frames, landmarks = _clip(64, num_frames=2, jaw=1.0)
+    frames_n, _ = _clip(64, num_frames=2, jaw=0.0)
+    plain = NormalisedFaceLayer(LayerConfig(size=32, tracker=SMALL), model)
+    keep = NormalisedFaceLayer(LayerConfig(size=32, keep_expression=True, tracker=SMALL), model)
+    state, _ = plain.initialise(frames[:1], landmarks[:1])
+    # Ground-truth parameters of frame 1 in the state's layout (light 0 == the template's light).
+    from torchface.geometry.so3 import matrix_to_axis_angle
+
+    s = torch.tensor([[1.0]], dtype=D)
+    aa = matrix_to_axis_angle(euler_to_matrix(s * torch.tensor([6.0, 3.0, 2.0], dtype=D)))
+    t = torch.tensor([[1.0, 5.0, 170.0]], dtype=D)
+    alpha = torch.zeros(1, model.num_animation, dtype=D)
+    alpha[0, model.animation_names.index("AUV11 Jaw drop")] = 1.0
+    x = torch.cat([aa, t, alpha, torch.zeros(1, 5, dtype=D)], dim=1)
+    x_n = torch.cat([aa, t, torch.zeros_like(alpha), torch.zeros(1, 5, dtype=D)], dim=1)
+    ref = plain.normalise(frames_n[1:2], state, x_n)
+
+    def diff(layer):
+        out = layer.normalise(frames[1:2], state, x)
+        both = (out.mask * ref.mask).bool().expand_as(out.image)
+        return (out.image - ref.image)[both].abs().mean()
+
+    assert diff(keep) > 2 * diff(plain)
+
+
+def test_forward_clip_shapes_and_first_frame(model):
+    frames, landmarks = _clip(32, num_frames=2)
+    clips = torch.stack([frames, frames.flip(-1)])  # (2, 2, 3, 32, 32)
+    lms = torch.stack([landmarks[0], landmarks[0] * torch.tensor([-1.0, 1.0], dtype=D) + torch.tensor([31.0, 0.0], dtype=D)])
+    layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=G, tracker=SMALL), model)
+    out = layer.forward_clip(clips, lms)
+    P = layer.param_layout.size
+    assert out.image.shape == (2, 2, 3, G, G) and out.mask.shape == (2, 2, 1, G, G)
+    assert out.params.shape == (2, 2, P) and out.state.frame_index == 2
+    assert torch.isfinite(out.image).all()
+    state, _ = layer.initialise(clips[:, 0], lms)
+    torch.testing.assert_close(out.image[:, 0], layer.normalise(clips[:, 0], state, state.params).image)
+
+
+def test_exceptions(model, small):
+    frames, state, _ = small
+    with pytest.raises(TypeError):
+        LayerConfig(mode="unrolled")
+    with pytest.raises(ValueError):
+        LayerConfig(unrolled_iterations=-1)
+    with pytest.raises(ValueError):
+        LayerConfig(unrolled_levels=4)
+    with pytest.raises(ValueError):
+        LayerConfig(size=2)
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    with pytest.raises(TypeError, match="TrackerState"):
+        layer(frames[1:2], None)
+    with pytest.raises(ValueError, match="32x32"):
+        layer(torch.zeros(1, 3, 30, 32, dtype=D), state)
+    with pytest.raises(ValueError, match="one per stream"):
+        layer(frames, state)
+    with pytest.raises(ValueError, match="start must be"):
+        unrolled_params(model, SMALL, state, frames[1:2], state.params[:, :5], iterations=1)
+    with pytest.raises(ValueError, match="clips must be"):
+        layer.forward_clip(frames, torch.zeros(1, 68, 2, dtype=D))

@@ -1,0 +1,392 @@
+"""The normalised face as a differentiable ``nn.Module`` layer, with detached or unrolled tracking.
+
+:class:`NormalisedFaceLayer` turns frames and a tracker state into normalised faces
+(:func:`torchface.normalise.normalised_face`: frontal, neutral, evenly lit, ``(B, C, G, G)`` plus a mask) for
+use inside a network. The face parameters ``x = (omega, t, alpha, lambda)`` of each frame come from the
+tracker (paper Eq. 20); how gradients reach the frame pixels ``I`` depends on :class:`LayerMode`:
+
+``DETACHED`` (default, fast)
+    ``x`` is estimated by :func:`torchface.tracker.track_step` under ``torch.no_grad`` and treated as a
+    constant. The normalised face is linear in the pixels (bilinear resampling, then the inverse of Eq. 19),
+    so ``d face / d I`` is the resampling alone.
+
+``UNROLLED``
+    ``K`` Gauss-Newton iterations of the tracker's reference objective (Eq. 20,
+    :func:`torchface.tracker.frame_residuals`, the same robust weights, bounds and prior as the REFERENCE
+    path of :func:`~torchface.tracker.track_step`) run with autograd on
+    (:func:`torchface.solver.least_squares` with ``differentiable=True``), so ``x_K`` is a function of the
+    pixels and ``d face / d I`` also holds ``d face / d x_K . d x_K / d I``: the gradient reaches the frames
+    through the tracking. Where the iterations start is :class:`UnrollStart`:
+
+    * ``TRACKED``: from the detached tracker's estimate ``x*`` (held constant). ``K = 0`` is exactly the
+      detached mode; one step from a converged ``x*``, ``x_1 = x* - H^-1 g(x*, I)``, has
+      ``d x_1 / d I = -H^-1 d g / d I`` (``g(x*) = 0``), the implicit-function gradient of the minimiser with
+      the Gauss-Newton Hessian ``H = J^T W J``.
+    * ``PREVIOUS``: from the state's previous-frame estimate, which does not depend on the frame: the
+      ``K`` iterations on each unrolled pyramid level are the whole tracking and the gradient is exact for
+      the output computed.
+
+The mask (visibility) and the tracker state carried to the next frame are not differentiable. The state
+passed in may come from :meth:`NormalisedFaceLayer.initialise` (first frame and its landmarks) or from a
+:class:`~torchface.tracker.FaceTracker`; the layer never stores per-sequence state.
+
+Shapes: ``B`` batch, ``T`` frames, ``C`` channels, ``H x W`` frames, ``K`` landmarks, ``P`` packed parameters
+(:class:`~torchface.tracker.ParamLayout`), ``G x G`` the normalised image; see :mod:`torchface.conventions`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, illumination_basis
+from torchface.appearance.sampling import image_with_gradients
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import axis_angle_to_matrix
+from torchface.model.candide import load_candide3
+from torchface.model.face_model import FaceModel
+from torchface.normalise.face import NormalisedFaceLayout, NormalisedFaceResult, build_normalised_layout, normalised_face
+from torchface.solver.least_squares import SolverConfig, SolverMethod, least_squares
+from torchface.solver.robust import RobustKind, RobustLoss
+from torchface.tracker.objective import frame_residuals
+from torchface.tracker.params import ParamLayout
+from torchface.tracker.step import (
+    TrackerConfig,
+    TrackerState,
+    TrackResult,
+    check_frames,
+    gray_pyramid,
+    initialise,
+    level_intrinsics,
+    scale_floor,
+    track_step,
+)
+
+# The reference path's own helpers, so that the unrolled objective is exactly the tracker's (bounds of the
+# animation units, disabled terms pinned; z-buffer visibility at the previous estimate).
+from torchface.tracker.step import _bounds, _visibility_at  # noqa: E402  (private, same project)
+
+__all__ = [
+    "LayerMode",
+    "UnrollStart",
+    "LayerConfig",
+    "LayerResult",
+    "unrolled_params",
+    "NormalisedFaceLayer",
+]
+
+
+class LayerMode(enum.Enum):
+    """How the face parameters enter the autograd graph (module docstring)."""
+
+    #: Parameters from the tracker under ``no_grad``; gradients reach the pixels through the resampling only.
+    DETACHED = "detached"
+    #: ``K`` differentiable Gauss-Newton iterations of the reference objective; gradients also go through them.
+    UNROLLED = "unrolled"
+
+
+class UnrollStart(enum.Enum):
+    """Where the unrolled iterations start (module docstring)."""
+
+    #: The detached tracker's estimate of this frame (``K = 0`` is the detached mode).
+    TRACKED = "tracked"
+    #: The state's previous-frame estimate (the iterations are the whole tracking; exact gradient).
+    PREVIOUS = "previous"
+
+
+@dataclass(frozen=True)
+class LayerConfig:
+    """Settings of :class:`NormalisedFaceLayer`.
+
+    Attributes:
+        mode: :class:`LayerMode`.
+        size: ``G``, the normalised face is ``G x G``.
+        margin: empty fraction around the face in the canonical view
+            (:func:`~torchface.normalise.build_normalised_layout`).
+        keep_expression: resample at the neutral expression (``alpha = 0``) instead of the estimated one, so
+            the canonical image keeps the expression (texture displaced where the face moved) with pose and
+            light undone: what an expression classifier needs. False undoes the expression too (paper Section 4).
+        normalise_light: undo the estimated light (inverse of Eq. 19); False keeps the frame's light.
+        unrolled_iterations: ``K``, Gauss-Newton iterations per unrolled pyramid level (``UNROLLED`` only).
+        unrolled_levels: how many of the finest pyramid levels are unrolled, coarse to fine (``UNROLLED``).
+        start: :class:`UnrollStart` (``UNROLLED`` only).
+        tracker: the tracker's settings (the detached estimate, and the objective of the unrolled iterations).
+    """
+
+    mode: LayerMode = LayerMode.DETACHED
+    size: int = 64
+    margin: float = 0.05
+    keep_expression: bool = False
+    normalise_light: bool = True
+    unrolled_iterations: int = 1
+    unrolled_levels: int = 1
+    start: UnrollStart = UnrollStart.TRACKED
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.mode, LayerMode):
+            raise TypeError(f"mode must be a LayerMode, got {type(self.mode).__name__}")
+        if not isinstance(self.start, UnrollStart):
+            raise TypeError(f"start must be an UnrollStart, got {type(self.start).__name__}")
+        if not isinstance(self.tracker, TrackerConfig):
+            raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
+        if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 4:
+            raise ValueError(f"size must be an int >= 4, got {self.size!r}")
+        if isinstance(self.unrolled_iterations, bool) or not isinstance(self.unrolled_iterations, int):
+            raise TypeError(f"unrolled_iterations must be an int, got {type(self.unrolled_iterations).__name__}")
+        if self.unrolled_iterations < 0:
+            raise ValueError(f"unrolled_iterations must be >= 0, got {self.unrolled_iterations}")
+        if not 1 <= self.unrolled_levels <= self.tracker.num_levels:
+            raise ValueError(
+                f"unrolled_levels must be in [1, tracker.num_levels = {self.tracker.num_levels}], "
+                f"got {self.unrolled_levels}"
+            )
+
+
+@dataclass(frozen=True)
+class LayerResult:
+    """What :class:`NormalisedFaceLayer` returns.
+
+    Attributes:
+        image: ``(B, C, G, G)`` the normalised faces (0 where ``mask`` is 0); differentiable w.r.t. the frames.
+        mask: ``(B, 1, G, G)`` float, 1 where the canonical point is visible (not differentiable).
+        params: ``(B, P)`` the parameters the faces were resampled with (in the graph in ``UNROLLED`` mode).
+        state: the detached tracker state after this frame (pass it with the next frame).
+        track: the detached tracker's :class:`~torchface.tracker.TrackResult` of this frame (confidence,
+            status, pose, ... of the estimate carried in ``state``).
+    """
+
+    image: Tensor
+    mask: Tensor
+    params: Tensor
+    state: TrackerState
+    track: TrackResult
+
+
+def _unrolled_solver(iterations: int) -> SolverConfig:
+    # Plain Gauss-Newton: every finite step is taken, so the graph is the same for nearby inputs (an LM
+    # accept/reject decision would flip under a finite-difference probe near convergence). No tolerances:
+    # exactly ``iterations`` steps (a sample stops early only if its cost is unchanged to working precision).
+    return SolverConfig(
+        method=SolverMethod.GAUSS_NEWTON, max_iterations=iterations, step_tolerance=0.0, cost_tolerance=0.0,
+        differentiable=True,
+    )
+
+
+def unrolled_params(
+    model: FaceModel,
+    config: TrackerConfig,
+    state: TrackerState,
+    frames: Tensor,
+    start: Tensor,
+    iterations: int,
+    levels: int = 1,
+) -> Tensor:
+    """``iterations`` differentiable Gauss-Newton steps per pyramid level of the reference objective (Eq. 20).
+
+    The objective of each level is the REFERENCE path's of :func:`~torchface.tracker.track_step`: residuals
+    :func:`~torchface.tracker.frame_residuals` of the state's template on the frame's gray pyramid, the light
+    basis with the normals rotated by the previous estimate, z-buffer visibility at the previous estimate
+    (when ``config.zbuffer_visibility``), the animation units boxed to the model's ranges, the expression
+    prior, and IRLS weights of ``config.robust`` with that level's scale floor. Levels run coarse to fine over
+    the ``levels`` finest ones. Everything that depends on the frame (image, its gradients, the residuals,
+    the Jacobian, the robust weights) stays in the autograd graph; visibility is a constant mask.
+
+    Args:
+        model: the face model of the state.
+        config: the tracker settings the state was built with.
+        state: from :func:`~torchface.tracker.initialise` or a previous step (its template and previous
+            estimate).
+        frames: ``(B, C, H, W)`` float in ``[0, 1]`` at the state's size, in the model's dtype (may require grad).
+        start: ``(B, P)`` initial parameters (may require grad).
+        iterations: ``K >= 0`` steps per level (``0`` returns ``start`` projected on the bounds).
+        levels: number of finest pyramid levels unrolled, in ``[1, config.num_levels]``.
+
+    Returns:
+        ``(B, P)`` the parameters after the iterations; a sample whose solve failed keeps its last good value.
+
+    Raises:
+        TypeError, ValueError: on frames or parameters of the wrong shape, dtype or size.
+
+    Example:
+        >>> # x = unrolled_params(model, config, state, frames.requires_grad_(), state.params, iterations=2)
+        >>> # x.sum().backward()   # frames.grad now holds d(sum x)/d(frames) through the tracking
+    """
+    check_frames(frames, state.intrinsics)
+    layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+    B = state.params.shape[0]
+    if frames.shape[0] != B:
+        raise ValueError(f"expected {B} frames (one per stream of the state), got {frames.shape[0]}")
+    if frames.dtype != model.dtype:
+        raise TypeError(f"frames must be in the model's dtype {model.dtype}, got {frames.dtype}")
+    if not isinstance(start, Tensor) or tuple(start.shape) != (B, layout.size) or start.dtype != model.dtype:
+        got = (tuple(start.shape), start.dtype) if isinstance(start, Tensor) else type(start).__name__
+        raise ValueError(f"start must be ({B}, {layout.size}) {model.dtype}, got {got}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
+        raise ValueError(f"iterations must be an int >= 0, got {iterations!r}")
+    if not 1 <= levels <= config.num_levels:
+        raise ValueError(f"levels must be in [1, {config.num_levels}], got {levels}")
+    if len(state.templates) != config.num_levels:
+        raise ValueError(f"the state has {len(state.templates)} template levels, config.num_levels is {config.num_levels}")
+
+    pyramid = gray_pyramid(frames, config.num_levels)
+    with torch.no_grad():
+        if config.zbuffer_visibility:
+            vis_level = min(1, config.num_levels - 1)
+            g = pyramid[vis_level]
+            masks = _visibility_at(model, state, layout, vis_level, g.shape[-2], g.shape[-1])
+        else:
+            masks = [t.valid for t in state.templates]
+        R_prev = axis_angle_to_matrix(state.params[:, layout.rotation].detach())
+        lower, upper = _bounds(model, config, state.params.detach(), layout)
+    prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
+    if config.use_expression:
+        prior[layout.animation] = config.expression_prior_precision
+    x = start
+    if iterations == 0:
+        return torch.minimum(torch.maximum(x, lower), upper)
+    solver = _unrolled_solver(iterations)
+    for level in reversed(range(levels)):
+        gray = pyramid[level]
+        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        image = image_with_gradients(gray)
+        tpl = state.templates[level]
+        light_basis = illumination_basis(tpl.intensity, torch.einsum("bij,bnj->bni", R_prev, tpl.normals))
+        mask = masks[level]
+
+        def residual_fn(p: Tensor, tpl=tpl, image=image, intr=intr, light_basis=light_basis, mask=mask):
+            return frame_residuals(p, layout, tpl, image, intr, light_basis, mask)
+
+        robust = None
+        if config.robust is not RobustKind.NONE:
+            robust = RobustLoss(config.robust, config.robust_c, min_scale=scale_floor(config, level))
+        res = least_squares(
+            residual_fn, x, solver, lower=lower, upper=upper, prior_precision=prior, robust=robust
+        )
+        x = torch.where(res.failed.unsqueeze(-1), x, res.params)
+    return x
+
+
+class NormalisedFaceLayer(nn.Module):
+    """Normalised faces of tracked frames as a layer: ``(frames, state) -> LayerResult`` (module docstring).
+
+    Holds the face model, the canonical layout and the settings; the per-sequence tracker state is passed in
+    and returned, never stored.
+
+    Args:
+        config: :class:`LayerConfig`.
+        model: the face model (CANDIDE-3 when ``None``); its dtype is the layer's.
+
+    Example:
+        >>> layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=48))   # doctest: +SKIP
+        >>> state, _ = layer.initialise(frames0, landmarks0)               # (B, 3, H, W), (B, 68, 2)  # doctest: +SKIP
+        >>> out = layer(frames1.requires_grad_(), state)                   # doctest: +SKIP
+        >>> loss(net(out.image)).backward()       # frames1.grad through resampling and tracking  # doctest: +SKIP
+    """
+
+    def __init__(self, config: LayerConfig | None = None, model: FaceModel | None = None) -> None:
+        super().__init__()
+        self.config = LayerConfig() if config is None else config
+        if not isinstance(self.config, LayerConfig):
+            raise TypeError(f"config must be a LayerConfig, got {type(self.config).__name__}")
+        self.model = load_candide3() if model is None else model
+        if not isinstance(self.model, FaceModel):
+            raise TypeError(f"model must be a FaceModel, got {type(self.model).__name__}")
+        self.layout: NormalisedFaceLayout = build_normalised_layout(self.model, self.config.size, self.config.margin)
+
+    @property
+    def param_layout(self) -> ParamLayout:
+        """The packing of :attr:`LayerResult.params`."""
+        return ParamLayout(self.model.num_animation, NUM_ILLUMINATION_TERMS)
+
+    @torch.no_grad()
+    def initialise(
+        self, frames: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics | None = None
+    ) -> tuple[TrackerState, TrackResult]:
+        """Fit the first frames from their landmarks (Eq. 2) and build the templates (detached).
+
+        Args:
+            frames: ``(B, 3, H, W)`` float in ``[0, 1]``.
+            landmarks_px: ``(B, K, 2)`` the model's landmarks (68 iBUG points for CANDIDE-3), pixels.
+            intrinsics: camera of the frames; default :meth:`Intrinsics.default` of their size.
+
+        Returns:
+            The tracker state and the first frame's result.
+        """
+        check_frames(frames)
+        if intrinsics is None:
+            intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+        frames = frames.detach().to(dtype=self.model.dtype, device=self.model.device)
+        landmarks_px = landmarks_px.detach().to(dtype=self.model.dtype, device=self.model.device)
+        return initialise(self.model, self.config.tracker, frames, landmarks_px, intrinsics)
+
+    def normalise(self, frames: Tensor, state: TrackerState, params: Tensor) -> NormalisedFaceResult:
+        """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera."""
+        aa, t, alpha, light = self.param_layout.split(params)
+        if self.config.keep_expression:
+            alpha = torch.zeros_like(alpha)
+        return normalised_face(
+            frames, self.model, self.layout, state.shape_coeffs.detach(), alpha, aa, t,
+            light if self.config.normalise_light else None, state.intrinsics,
+        )  # fmt: skip
+
+    def forward(self, frames: Tensor, state: TrackerState) -> LayerResult:
+        """Track ``(B, C, H, W)`` frames from ``state`` and return their normalised faces.
+
+        Args:
+            frames: ``(B, 3, H, W)`` float in ``[0, 1]``, the next frame of each stream (may require grad).
+            state: the tracker state after the previous frame (:meth:`initialise` or an earlier call).
+
+        Returns:
+            :class:`LayerResult`; ``result.state`` continues the sequence.
+        """
+        if not isinstance(state, TrackerState):
+            raise TypeError(f"state must be a TrackerState (from initialise), got {type(state).__name__}")
+        check_frames(frames, state.intrinsics)
+        if frames.shape[0] != state.params.shape[0]:
+            raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+        frames = frames.to(dtype=self.model.dtype, device=self.model.device)
+        cfg = self.config
+        with torch.no_grad():
+            new_state, track = track_step(self.model, cfg.tracker, state, frames.detach())
+        params = new_state.params
+        if cfg.mode is LayerMode.UNROLLED:
+            start = params if cfg.start is UnrollStart.TRACKED else state.params.detach()
+            params = unrolled_params(
+                self.model, cfg.tracker, state, frames, start, cfg.unrolled_iterations, cfg.unrolled_levels
+            )
+        image, mask = self.normalise(frames, state, params)
+        return LayerResult(image, mask, params, new_state, track)
+
+    def forward_clip(self, clips: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics | None = None) -> LayerResult:
+        """Normalised faces of whole clips, initialised from their first frames' landmarks.
+
+        Frame 0 is resampled with the landmark fit (its template is built from it; detached); frames
+        ``1 .. T-1`` go through :meth:`forward` one after another.
+
+        Args:
+            clips: ``(B, T, 3, H, W)`` float in ``[0, 1]`` (may require grad).
+            landmarks_px: ``(B, K, 2)`` landmarks of frame 0, pixels.
+            intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
+
+        Returns:
+            :class:`LayerResult` with ``image (B, T, C, G, G)``, ``mask (B, T, 1, G, G)``, ``params (B, T, P)``,
+            the state after the last frame and the last frame's ``track``.
+        """
+        if not isinstance(clips, Tensor) or clips.dim() != 5 or clips.shape[1] < 1:
+            got = tuple(clips.shape) if isinstance(clips, Tensor) else type(clips).__name__
+            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {got}")
+        clips = clips.to(dtype=self.model.dtype, device=self.model.device)
+        state, track = self.initialise(clips[:, 0], landmarks_px, intrinsics)
+        image, mask = self.normalise(clips[:, 0], state, state.params)
+        images, masks, params = [image], [mask], [state.params]
+        for t in range(1, clips.shape[1]):
+            out = self(clips[:, t], state)
+            state, track = out.state, out.track
+            images.append(out.image)
+            masks.append(out.mask)
+            params.append(out.params)
+        return LayerResult(torch.stack(images, 1), torch.stack(masks, 1), torch.stack(params, 1), state, track)
