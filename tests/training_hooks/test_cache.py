@@ -1,0 +1,207 @@
+"""The tracking cache: a second epoch reads it (bit-identical items), a changed config / video / landmark set never
+reads a stale entry, damaged files are detected and tracked again, writes are atomic."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from torchface.synth.io import read_video_uint8, write_video
+from training_hooks import CacheWarning, FaceStorage, TrackCache, VideoDataset, cache_key, content_hash
+from training_hooks.cache import _HASH_MEMO
+
+from th_data import FRAMES, TRACKING
+
+
+def epoch(dataset, num_workers: int = 0) -> dict[tuple[int, int], dict[str, torch.Tensor]]:
+    return {
+        (int(i["video"]), int(i["frame"])): i for i in DataLoader(dataset, batch_size=None, num_workers=num_workers)
+    }
+
+
+def same_items(a, b) -> bool:
+    return a.keys() == b.keys() and all(
+        torch.equal(a[k][n], b[k][n]) for k in a for n in a[k] if n != "cached"
+    )
+
+
+def cached_videos(items) -> dict[int, bool]:
+    flags: dict[int, set[bool]] = {}
+    for (v, _), item in items.items():
+        flags.setdefault(v, set()).add(bool(item["cached"]))
+    assert all(len(f) == 1 for f in flags.values()), "a video's frames disagree on where they came from"
+    return {v: f.pop() for v, f in sorted(flags.items())}
+
+
+@pytest.fixture
+def two(clips, tmp_path):
+    """Copies of two clips' videos (tests modify them) and their landmarks."""
+    videos = []
+    for c in clips[:2]:
+        dst = tmp_path / c.video.name
+        shutil.copy(c.video, dst)
+        videos.append(dst)
+    return videos, [c.landmarks for c in clips[:2]]
+
+
+# --------------------------------------------------------------------------------------------- feature
+
+
+def test_second_epoch_hits_the_cache_with_identical_items(two, config):
+    videos, lms = two
+    data = VideoDataset(videos, lms, config)
+    first = epoch(data, 2)
+    assert cached_videos(first) == {0: False, 1: False}
+    assert len(list(config.cache_dir.glob("*.npz"))) == 2
+    assert not list(config.cache_dir.glob(".*partial"))
+    second = epoch(data, 2)
+    assert cached_videos(second) == {0: True, 1: True}
+    assert same_items(first, second)
+    # in-process counters (num_workers = 0)
+    third = epoch(data, 0)
+    assert same_items(first, third)
+    assert data.stats.cache.hits == 2 and data.stats.cache.misses == 0 and data.stats.frames_tracked == 0
+
+
+def test_changed_config_never_reads_a_stale_cache(two, config):
+    videos, lms = two
+    base = epoch(VideoDataset(videos, lms, config))
+    changes = [
+        replace(TRACKING, tracker=replace(TRACKING.tracker, max_points=400)),  # a tracker field
+        replace(TRACKING, tracker=replace(TRACKING.tracker, fit=replace(TRACKING.tracker.fit, shape_prior_precision=0.5))),
+        replace(TRACKING, face_size=24),
+        replace(TRACKING, face_storage=FaceStorage.FLOAT16),
+        replace(TRACKING, focal=140.0),
+    ]
+    for tracking in changes:
+        items = epoch(VideoDataset(videos, lms, replace(config, tracking=tracking)))
+        assert cached_videos(items) == {0: False, 1: False}, tracking
+    # what the changes produce really differs from the base, so a stale read would have been visible
+    items = epoch(VideoDataset(videos, lms, replace(config, tracking=changes[0])))
+    assert cached_videos(items) == {0: True, 1: True}
+    assert not torch.equal(items[(0, FRAMES - 1)]["axis_angle"], base[(0, FRAMES - 1)]["axis_angle"])
+    assert epoch(VideoDataset(videos, lms, replace(config, tracking=changes[2])))[(0, 0)]["face"].shape[-1] == 24
+    # the original config still hits its own entries
+    assert cached_videos(epoch(VideoDataset(videos, lms, config))) == {0: True, 1: True}
+
+
+def test_changed_video_bytes_or_landmarks_invalidate(two, config, clips):
+    videos, lms = two
+    data = VideoDataset(videos, lms, config)
+    before = epoch(data)
+    # rewrite video 1 with its last frame brightened: same name, size and frame count, different content
+    frames = read_video_uint8(videos[1]).float() / 255
+    frames[-1] = (frames[-1] * 1.1).clamp(0, 1)
+    write_video(videos[1], frames)
+    after = epoch(data)
+    assert cached_videos(after) == {0: True, 1: False}
+    assert not torch.equal(after[(1, FRAMES - 1)]["face"], before[(1, FRAMES - 1)]["face"])
+    assert torch.equal(after[(1, 0)]["face"], before[(1, 0)]["face"])  # the unchanged frames track alike
+    # moved landmarks are another key
+    moved = [lms[0] + 0.5, lms[1]]
+    assert cached_videos(epoch(VideoDataset(videos, moved, config))) == {0: False, 1: True}
+    # a renamed copy with the same bytes hits (the key is the content, not the path)
+    copy = videos[0].with_name("renamed.avi")
+    shutil.copy(videos[0], copy)
+    assert cached_videos(epoch(VideoDataset([copy], lms[:1], config))) == {0: True}
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "garbage", "empty", "swap"])
+def test_damaged_cache_file_is_detected_and_recomputed(two, config, damage):
+    videos, lms = two
+    data = VideoDataset(videos[:1], lms[:1], config)
+    ref = epoch(data)
+    (path,) = config.cache_dir.glob("*.npz")
+    raw = bytearray(path.read_bytes())
+    if damage == "truncate":
+        path.write_bytes(bytes(raw[: len(raw) // 2]))
+    elif damage == "flip":  # one bit inside the stored faces
+        raw[len(raw) // 3] ^= 0x10
+        path.write_bytes(bytes(raw))
+    elif damage == "garbage":
+        path.write_bytes(b"not a cache file" * 10)
+    elif damage == "empty":
+        path.write_bytes(b"")
+    else:  # a valid file of ANOTHER key under this key's name
+        other = epoch(VideoDataset(videos[1:], lms[1:], config))
+        assert other
+        (other_path,) = [p for p in config.cache_dir.glob("*.npz") if p != path]
+        shutil.copy(other_path, path)
+    with pytest.warns(CacheWarning, match="damaged cache file"):
+        again = epoch(data)
+    assert cached_videos(again) == {0: False}
+    assert same_items(ref, again)
+    assert data.stats.cache.corrupt == 1
+    # the rewritten file is good again
+    assert cached_videos(epoch(data)) == {0: True}
+
+
+def test_failed_write_leaves_no_file(two, config, monkeypatch):
+    videos, lms = two
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(OSError, match="disk full"):
+        epoch(VideoDataset(videos[:1], lms[:1], config))
+    assert list(config.cache_dir.iterdir()) == []
+
+
+def test_float_storage_round_trips(two, config):
+    videos, lms = two
+    cfg = replace(config, tracking=replace(TRACKING, face_storage=FaceStorage.FLOAT32))
+    data = VideoDataset(videos[:1], lms[:1], cfg)
+    first, second = epoch(data), epoch(data)
+    assert cached_videos(second) == {0: True} and same_items(first, second)
+    face = first[(0, 0)]["face"]
+    assert not torch.equal((face * 255).round() / 255, face)  # not quantised
+
+
+# --------------------------------------------------------------------------------------------- keys
+
+
+def test_content_hash_and_key(tmp_path, clips):
+    a = tmp_path / "a.bin"
+    a.write_bytes(b"abc")
+    h = content_hash(a)
+    assert len(h) == 64 and content_hash(a) == h
+    a.write_bytes(b"abd")
+    assert content_hash(a) != h
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    (folder / "0.png").write_bytes(b"one")
+    (folder / "1.png").write_bytes(b"two")
+    (folder / "notes.txt").write_bytes(b"ignored")
+    hf = content_hash(folder)
+    (folder / "notes.txt").write_bytes(b"changed")
+    assert content_hash(folder) == hf
+    (folder / "0.png").write_bytes(b"two")
+    (folder / "1.png").write_bytes(b"one")  # same bytes, other order
+    assert content_hash(folder) != hf
+    lm = clips[0].landmarks
+    k = cache_key(h, TRACKING, lm)
+    assert k == cache_key(h, TRACKING, lm.copy())
+    assert k != cache_key(h, TRACKING, lm, extra="convert=True")
+    assert k != cache_key(h, replace(TRACKING, num_threads=2), lm)
+    lm2 = lm.copy()
+    lm2[5, 0] = np.nextafter(lm2[5, 0], np.inf)
+    assert k != cache_key(h, TRACKING, lm2)
+    with pytest.raises(ValueError, match=r"\(68, 2\)"):
+        cache_key(h, TRACKING, lm[:5])
+    with pytest.raises(ValueError, match="64 lowercase hex"):
+        TrackCache(tmp_path).path("../../etc")
+    assert _HASH_MEMO  # the per-process memo is used
+
+
+def test_torchface_version_is_part_of_the_key(monkeypatch, clips):
+    import torchface
+
+    k = cache_key("0" * 64, TRACKING, clips[0].landmarks)
+    monkeypatch.setattr(torchface, "__version__", "99.0")
+    assert cache_key("0" * 64, TRACKING, clips[0].landmarks) != k

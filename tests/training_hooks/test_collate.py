@@ -1,0 +1,104 @@
+"""collate_clips: shapes, masks, padding values, the non-frame keys, bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from training_hooks import collate_clips
+from training_hooks.collate import pad_value
+
+
+def clip(T: int, video: int, S: int = 8, A: int = 11, label: int = 0) -> dict[str, torch.Tensor]:
+    """A clip item shaped like the dataset's, with recognisable values (frame t of video v holds v * 100 + t)."""
+    g = torch.Generator().manual_seed(video)
+    upper = torch.randn(T, 3, 3, generator=g).triu(1)
+    base = (video * 100 + torch.arange(T, dtype=torch.float32)).reshape(T, 1)
+    return {
+        "face": torch.rand(T, 3, S, S, generator=g),
+        "mask": (torch.rand(T, 1, S, S, generator=g) > 0.5).float(),
+        "rotation": torch.linalg.matrix_exp(upper - upper.mT),
+        "axis_angle": base.expand(T, 3).clone(),
+        "translation": base.expand(T, 3) + 400,
+        "ypr_deg": base.expand(T, 3) * 0.1,
+        "anim_coeffs": base.expand(T, A) * 0.01,
+        "facs": base.expand(T, 6) * 0.01,
+        "illumination": base.expand(T, 5) * 0.001,
+        "confidence": torch.linspace(0.5, 1.0, T),
+        "success": torch.ones(T, dtype=torch.bool),
+        "status": torch.zeros(T, dtype=torch.int64),
+        "frame": torch.arange(T) + 10,
+        "shape_coeffs": torch.full((14,), float(video)),
+        "video": torch.tensor(video),
+        "cached": torch.tensor(video % 2 == 0),
+        "label": torch.tensor(label),
+    }
+
+
+def test_shapes_masks_and_padding():
+    items = [clip(3, 0), clip(5, 1, label=2), clip(1, 2, label=1)]
+    out = collate_clips(items)
+    B, T = 3, 5
+    assert out["face"].shape == (B, T, 3, 8, 8) and out["mask"].shape == (B, T, 1, 8, 8)
+    assert out["rotation"].shape == (B, T, 3, 3) and out["anim_coeffs"].shape == (B, T, 11)
+    assert out["confidence"].shape == (B, T) and out["frame"].shape == (B, T)
+    assert out["lengths"].tolist() == [3, 5, 1]
+    assert out["frame_mask"].dtype == torch.bool
+    assert out["frame_mask"].tolist() == [[1, 1, 1, 0, 0], [1, 1, 1, 1, 1], [1, 0, 0, 0, 0]]
+    # the real frames are the items' own, in order
+    for b, item in enumerate(items):
+        n = item["face"].shape[0]
+        for key in ("face", "mask", "rotation", "axis_angle", "confidence", "frame", "status", "success"):
+            assert torch.equal(out[key][b, :n], item[key]), key
+    # padding: black face, no mask, identity rotation, zero confidence, failed, frame -1
+    pad = ~out["frame_mask"]
+    assert float(out["face"][pad].abs().sum()) == 0 and float(out["mask"][pad].sum()) == 0
+    assert torch.equal(out["rotation"][pad], torch.eye(3).expand(int(pad.sum()), 3, 3))
+    assert float(out["confidence"][pad].sum()) == 0 and not bool(out["success"][pad].any())
+    assert (out["status"][pad] == 2).all() and (out["frame"][pad] == -1).all()
+    # per-clip keys are batched, not padded
+    assert out["video"].tolist() == [0, 1, 2] and out["label"].tolist() == [0, 2, 1]
+    assert out["cached"].tolist() == [True, False, True] and out["shape_coeffs"].shape == (B, 14)
+
+
+def test_equal_lengths_match_default_collate():
+    items = [clip(4, 0), clip(4, 1)]
+    out = collate_clips(items)
+    ref = torch.utils.data.default_collate(items)
+    assert out["frame_mask"].all()
+    for key, value in ref.items():
+        assert torch.equal(out[key], value), key
+
+
+def test_extra_per_frame_keys():
+    items = [dict(clip(2, 0), au_label=torch.tensor([1, 2])), dict(clip(3, 1), au_label=torch.tensor([3, 4, 5]))]
+    from training_hooks.transforms import PER_FRAME_KEYS
+
+    out = collate_clips(items, per_frame_keys=(*PER_FRAME_KEYS, "au_label"))
+    assert out["au_label"].tolist() == [[1, 2, 0], [3, 4, 5]]
+
+
+def test_pad_value():
+    assert pad_value("frame", torch.zeros(2, dtype=torch.int64)).tolist() == [-1, -1]
+    assert pad_value("status", torch.zeros(1, dtype=torch.int64)).tolist() == [2]
+    assert pad_value("confidence", torch.ones(3)).tolist() == [0, 0, 0]
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="empty batch"):
+        collate_clips([])
+    with pytest.raises(ValueError, match="keys"):
+        a = clip(2, 0)
+        b = clip(2, 1)
+        del b["label"]
+        collate_clips([a, b])
+    with pytest.raises(ValueError, match="default_collate"):
+        collate_clips([{"face": torch.zeros(3, 8, 8), "confidence": torch.tensor(1.0)}])  # a frame item
+    with pytest.raises(ValueError, match="disagree on the clip length"):
+        a = clip(3, 0)
+        a["confidence"] = a["confidence"][:2]
+        collate_clips([a])
+    with pytest.raises(ValueError, match="frames of shape"):
+        collate_clips([clip(2, 0, S=8), clip(2, 1, S=16)])
+    with pytest.raises(TypeError, match="dict items"):
+        collate_clips([(torch.zeros(2),)])

@@ -1,0 +1,254 @@
+"""VideoDataset / FrameFolderDataset: worker-count invariance, known answers against the rendered ground truth,
+clips, landmark sources, the transform's equality with the dataset, shuffling, bad input."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from torchface.geometry.so3 import geodesic_angle_deg
+from torchface.io import InputError
+from torchface.synth.io import read_video, read_video_uint8
+from training_hooks import (
+    DatasetConfig,
+    FrameFolderDataset,
+    NormaliseFaces,
+    VideoDataset,
+    clip_bounds,
+    collate_clips,
+)
+from training_hooks.transforms import PER_FRAME_KEYS
+
+from th_data import FRAMES, TRACKING
+
+
+def collect(dataset, num_workers: int, key=("video", "frame")) -> dict[tuple[int, ...], dict[str, torch.Tensor]]:
+    """Every item of one epoch keyed by (video, first frame)."""
+    out = {}
+    for item in DataLoader(dataset, batch_size=None, num_workers=num_workers):
+        k = (int(item["video"]), int(item["frame"].reshape(-1)[0]))
+        assert k not in out, f"item {k} delivered twice"
+        out[k] = item
+    return out  # insertion order = delivery order
+
+
+def assert_items_equal(a: dict, b: dict, skip: tuple[str, ...] = ()) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        for name in a[k]:
+            if name in skip:
+                continue
+            assert torch.equal(a[k][name], b[k][name]), f"item {k}: {name} differs"
+
+
+# --------------------------------------------------------------------------------------------- smoke, cardinality
+
+
+def test_frame_items_shapes_and_types(clips, config):
+    data = VideoDataset([c.video for c in clips[:1]], [clips[0].landmarks], replace(config, cache_dir=None))
+    items = list(data)
+    assert len(items) == FRAMES
+    S = TRACKING.face_size
+    it = items[0]
+    assert set(it) == set(PER_FRAME_KEYS) | {"shape_coeffs", "video", "cached"}
+    assert it["face"].shape == (3, S, S) and it["face"].dtype == torch.float32
+    assert it["mask"].shape == (1, S, S) and set(it["mask"].unique().tolist()) <= {0.0, 1.0}
+    assert it["rotation"].shape == (3, 3) and it["axis_angle"].shape == (3,) and it["ypr_deg"].shape == (3,)
+    assert it["anim_coeffs"].shape == (11,) and it["illumination"].shape == (5,)
+    assert it["confidence"].shape == () and it["success"].dtype == torch.bool and it["status"].dtype == torch.int64
+    assert [int(i["frame"]) for i in items] == list(range(FRAMES))
+    assert all(int(i["video"]) == 0 and not bool(i["cached"]) for i in items)
+    # uint8 storage: faces are multiples of 1/255 in [0, 1], and there is a face (not an empty mask)
+    face = items[0]["face"]
+    assert torch.equal((face * 255).round() / 255, face) and 0 <= float(face.min()) and float(face.max()) <= 1
+    assert float(items[0]["mask"].mean()) > 0.3
+    assert data.stats.videos == 1 and data.stats.frames_tracked == FRAMES
+
+
+# --------------------------------------------------------------------------------------------- feature
+
+
+def test_known_answer_parameters_follow_the_rendered_frames(clips, config):
+    """Each item's pose belongs to ITS frame: the rotation relative to frame 0 matches the ground truth of the same
+    frame, far better than that of the neighbouring frame (catches an off-by-one between frames and results)."""
+    data = VideoDataset([c.video for c in clips], [c.landmarks for c in clips], replace(config, cache_dir=None))
+    items = collect(data, 0)
+    for v, clip in enumerate(clips):
+        R = torch.stack([items[(v, t)]["rotation"] for t in range(FRAMES)]).double()
+        rel, rel_gt = R @ R[:1].mT, clip.gt.rotation @ clip.gt.rotation[:1].mT
+        own = geodesic_angle_deg(rel, rel_gt)
+        shifted = geodesic_angle_deg(rel[1:], rel_gt[:-1])
+        assert float(geodesic_angle_deg(R, clip.gt.rotation).max()) < 2.5
+        assert float(own.max()) < 2.0, own
+        assert float(own[1:].mean()) < 0.5 * float(shifted.mean()), (own, shifted)
+        assert all(bool(items[(v, t)]["success"]) for t in range(FRAMES))
+        assert min(float(items[(v, t)]["confidence"]) for t in range(FRAMES)) > 0.5
+
+
+def test_worker_count_invariance(clips, config):
+    """0, 1 and 2 workers give bit-identical items for every (video, frame), and each worker tracks its own
+    videos (i % num_workers)."""
+    data = VideoDataset([c.video for c in clips], [c.landmarks for c in clips], replace(config, cache_dir=None))
+    runs = [collect(data, n) for n in (0, 1, 2)]
+    assert len(runs[0]) == len(clips) * FRAMES
+    assert_items_equal(runs[0], runs[1])
+    assert_items_equal(runs[0], runs[2])
+    assert data.worker_videos(0, 2) == [0, 2] and data.worker_videos(1, 2) == [1]
+    # with 2 workers the DataLoader alternates: the first item comes from worker 0 (video 0), the next from
+    # worker 1 (video 1); worker 0 delivers video 0 then video 2, in time order
+    order = list(runs[2])
+    assert order[:2] == [(0, 0), (1, 0)]
+    assert [k for k in order if k[0] != 1] == [(v, t) for v in (0, 2) for t in range(FRAMES)]
+
+
+def test_main_process_thread_count_is_restored(clips, config):
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        list(data)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_clips_cover_the_same_frames_as_frame_items(clips, config):
+    frames = collect(VideoDataset([clips[0].video], [clips[0].landmarks], config), 0)
+    clip_cfg = replace(config, clip_length=4, clip_stride=3, keep_short_clips=True)
+    clip_items = list(VideoDataset([clips[0].video], [clips[0].landmarks], clip_cfg))
+    assert [i["frame"].tolist() for i in clip_items] == [[0, 1, 2, 3], [3, 4, 5]]
+    for item in clip_items:
+        for k, t in enumerate(item["frame"].tolist()):
+            for name in PER_FRAME_KEYS:
+                assert torch.equal(item[name][k], frames[(0, t)][name]), (t, name)
+        assert torch.equal(item["shape_coeffs"], frames[(0, 0)]["shape_coeffs"])
+    batch = collate_clips(clip_items)
+    assert batch["face"].shape[:2] == (2, 4) and batch["frame_mask"].tolist() == [[True] * 4, [True] * 3 + [False]]
+
+
+def test_clip_bounds():
+    assert clip_bounds(6, 4, 3, True) == [(0, 4), (3, 6)]
+    assert clip_bounds(6, 4, 3, False) == [(0, 4)]
+    assert clip_bounds(8, 4, 2, True) == [(0, 4), (2, 6), (4, 8)]  # the tail is already covered
+    assert clip_bounds(3, 5, None, True) == [(0, 3)]
+    assert clip_bounds(3, 5, None, False) == []
+    assert clip_bounds(0, None, None, True) == []
+
+
+def test_frame_folder_dataset_equals_video_dataset(clips, config, tmp_path):
+    """PNG frames of the same (lossless) video give the same items."""
+    folder = tmp_path / "frames_a"
+    folder.mkdir()
+    for t, img in enumerate(read_video_uint8(clips[0].video)):
+        cv2.imwrite(str(folder / f"{t:04d}.png"), img.permute(1, 2, 0).flip(-1).numpy())
+    cfg = replace(config, cache_dir=None)
+    from_video = collect(VideoDataset([clips[0].video], [clips[0].landmarks], cfg), 0)
+    from_folder = collect(FrameFolderDataset([folder], [clips[0].landmarks], cfg), 0)
+    assert_items_equal(from_video, from_folder)
+
+
+def test_landmark_sources_agree(clips, config, tmp_path):
+    """A (68, 2) array, a tensor, a CSV file, an NPY file and a detector callable give the same items."""
+    clip = clips[1]
+    csv, npy = tmp_path / "lm.csv", tmp_path / "lm.npy"
+    np.savetxt(csv, clip.landmarks, delimiter=",", header="x,y", comments="", fmt="%.17g")
+    np.save(npy, clip.landmarks)
+    seen = []
+
+    def detector(image: np.ndarray) -> np.ndarray:
+        seen.append(image.shape)
+        assert image.dtype == np.uint8 and image.shape == (128, 128, 3)
+        return clip.landmarks
+
+    cfg = replace(config, cache_dir=None)
+    ref = collect(VideoDataset([clip.video], [clip.landmarks], cfg), 0)
+    for source in ([torch.from_numpy(clip.landmarks)], [csv], [str(npy)], detector):
+        assert_items_equal(ref, collect(VideoDataset([clip.video], source, cfg), 0))
+    assert len(seen) == 1
+
+
+def test_transform_equals_dataset_output(clips, config):
+    """NormaliseFaces on the decoded frames and landmarks equals the dataset's whole-video clip; continuing from
+    a TrackerState equals tracking the whole sequence in one go."""
+    clip = clips[2]
+    frames = read_video(clip.video)
+    normalise = NormaliseFaces(TRACKING)
+    out = normalise(frames, clip.landmarks)
+    item = next(iter(VideoDataset([clip.video], [clip.landmarks], replace(config, clip_length=FRAMES))))
+    for name in out:
+        assert torch.equal(out[name], item[name]), name
+    # uint8 frames are accepted too
+    out8 = normalise(read_video_uint8(clip.video), torch.from_numpy(clip.landmarks))
+    assert torch.equal(out8["face"], out["face"])
+    # continue from the state after 3 frames
+    head, state = normalise.track(frames[:3], clip.landmarks)
+    tail = normalise(frames[3:], state)
+    assert tail["face"].shape[0] == FRAMES - 3
+    assert torch.equal(tail["face"], out["face"][3:]) and torch.equal(tail["axis_angle"], out["axis_angle"][3:])
+    assert torch.equal(head.faces.float() / 255, out["face"][:3])
+
+
+def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    shuffled = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
+    order = lambda: [(int(i["video"]), int(i["frame"])) for i in shuffled]  # noqa: E731
+    first, again = order(), order()
+    assert first == again and sorted(first) == sorted(plain)
+    assert first != sorted(first)
+    shuffled.set_epoch(1)
+    assert order() != first
+    assert_items_equal(plain, collect(shuffled, 2), skip=("cached",))
+
+
+# --------------------------------------------------------------------------------------------- exceptions
+
+
+def test_bad_arguments(clips, tmp_path):
+    video, lm = clips[0].video, clips[0].landmarks
+    with pytest.raises(ValueError, match="one entry per video"):
+        VideoDataset([video, video], [lm])
+    with pytest.raises(TypeError, match="sequence with one"):
+        VideoDataset([video], lm)
+    with pytest.raises(ValueError, match="FrameFolderDataset"):
+        VideoDataset([tmp_path], [lm])
+    with pytest.raises(ValueError, match="VideoDataset"):
+        FrameFolderDataset([video], [lm])
+    with pytest.raises(ValueError, match="empty"):
+        VideoDataset([], [])
+    with pytest.raises(ValueError, match="clip_stride needs clip_length"):
+        DatasetConfig(clip_stride=2)
+    with pytest.raises(ValueError, match="clip_length"):
+        DatasetConfig(clip_length=0)
+    with pytest.raises(TypeError, match="FaceTrackingConfig"):
+        DatasetConfig(tracking="fast")
+
+
+def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
+    clip = clips[0]
+    cfg = replace(config, cache_dir=None)
+    with pytest.raises(InputError, match="expected 68"):
+        list(VideoDataset([clip.video], [clip.landmarks[:60]], cfg))
+    outside = clip.landmarks + 500.0
+    with pytest.raises(InputError, match="outside the 128x128 frame"):
+        list(VideoDataset([clip.video], [outside], cfg))
+    with pytest.raises(InputError, match="no face"):
+        list(VideoDataset([clip.video], lambda image: None, cfg))
+    with pytest.raises(InputError, match=str(clip.video.name)):
+        list(DataLoader(VideoDataset([clip.video], [clip.landmarks[:60]], cfg), batch_size=None, num_workers=1))
+
+
+def test_transform_rejects_bad_input(clips):
+    normalise = NormaliseFaces(TRACKING)
+    frames = read_video(clips[0].video)
+    with pytest.raises(ValueError, match=r"\(T, 3, H, W\)"):
+        normalise(frames[0], clips[0].landmarks)
+    with pytest.raises(ValueError, match=r"\(68, 2\)"):
+        normalise(frames, clips[0].landmarks[:10])
+    with pytest.raises(ValueError, match="empty"):
+        normalise(frames[:0], clips[0].landmarks)

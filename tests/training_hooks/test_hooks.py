@@ -1,0 +1,189 @@
+"""Training-loop hooks: the weighted loss's maths and gradients, dropping low-confidence samples from frame and
+clip batches, tracking-quality statistics against a NumPy reference, epoch accumulation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from training_hooks import (
+    TrackingQualityLogger,
+    collate_clips,
+    confidence_weighted_loss,
+    drop_low_confidence,
+    tracking_quality,
+)
+from training_hooks.hooks import sample_confidence
+
+
+def frame_batch(B: int = 6, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "face": torch.rand(B, 3, 4, 4, generator=g),
+        "mask": (torch.rand(B, 1, 4, 4, generator=g) > 0.3).float(),
+        "confidence": torch.rand(B, generator=g),
+        "success": torch.rand(B, generator=g) > 0.2,
+        "ypr_deg": torch.randn(B, 3, generator=g) * 10,
+        "translation": torch.randn(B, 3, generator=g) * 5 + torch.tensor([0.0, 0.0, 500.0]),
+        "anim_coeffs": torch.randn(B, 11, generator=g) * 0.2,
+        "cached": torch.rand(B, generator=g) > 0.5,
+        "video": torch.arange(B),
+        "names": [f"v{i}" for i in range(B)],
+    }
+
+
+# --------------------------------------------------------------------------------------------- loss
+
+
+def test_weighted_loss_known_answer_and_gradient():
+    loss = torch.tensor([1.0, 2.0, 4.0], dtype=torch.float64, requires_grad=True)
+    conf = torch.tensor([0.5, 0.25, 0.0], dtype=torch.float64)
+    out = confidence_weighted_loss(loss, conf)
+    assert math.isclose(float(out.detach()), (0.5 * 1 + 0.25 * 2) / 0.75)
+    out.backward()
+    assert torch.allclose(loss.grad, conf / conf.sum())  # d/dl_i = c_i / sum c
+    assert torch.autograd.gradcheck(lambda l: confidence_weighted_loss(l, conf), (loss.detach().requires_grad_(),))
+
+
+def test_weighted_loss_with_mask_equals_dropping_entries():
+    g = torch.Generator().manual_seed(1)
+    loss, conf = torch.rand(3, 5, generator=g), torch.rand(3, 5, generator=g)
+    mask = torch.rand(3, 5, generator=g) > 0.4
+    got = confidence_weighted_loss(loss, conf, mask)
+    ref = confidence_weighted_loss(loss[mask], conf[mask])
+    assert torch.allclose(got, ref)
+    # uniform confidence is the plain mean
+    assert torch.allclose(confidence_weighted_loss(loss, torch.full_like(loss, 0.3)), loss.mean())
+
+
+def test_weighted_loss_all_zero_weights_is_zero_not_nan():
+    loss = torch.tensor([1.0, 2.0], requires_grad=True)
+    out = confidence_weighted_loss(loss, torch.zeros(2))
+    assert float(out) == 0.0
+    out.backward()
+    assert torch.equal(loss.grad, torch.zeros(2))
+
+
+def test_weighted_loss_bad_input():
+    with pytest.raises(ValueError, match="one shape"):
+        confidence_weighted_loss(torch.ones(3), torch.ones(2))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        confidence_weighted_loss(torch.ones(2), torch.tensor([0.5, 1.5]))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        confidence_weighted_loss(torch.ones(2), torch.tensor([0.5, float("nan")]))
+
+
+# --------------------------------------------------------------------------------------------- dropping
+
+
+def test_drop_low_confidence_frames():
+    batch = frame_batch()
+    out = drop_low_confidence(batch, 0.4)
+    keep = (batch["confidence"] >= 0.4) & batch["success"]
+    assert out.indices.tolist() == keep.nonzero().squeeze(-1).tolist()
+    for key in ("face", "mask", "confidence", "ypr_deg", "video"):
+        assert torch.equal(out.batch[key], batch[key][keep]), key
+    assert out.batch["names"] == [n for n, k in zip(batch["names"], keep.tolist()) if k]
+    # without the success requirement only the threshold counts
+    loose = drop_low_confidence(batch, 0.4, require_success=False)
+    assert loose.indices.tolist() == (batch["confidence"] >= 0.4).nonzero().squeeze(-1).tolist()
+    # threshold 0 still drops failed frames; threshold 1 keeps (almost) nothing
+    assert drop_low_confidence(batch, 0.0).indices.tolist() == batch["success"].nonzero().squeeze(-1).tolist()
+    assert len(drop_low_confidence(batch, 1.0).indices) == 0
+
+
+def test_drop_low_confidence_clips_uses_the_mean_over_real_frames():
+    conf = torch.tensor([[0.9, 0.1, 0.0], [0.6, 0.6, 0.6], [0.2, 0.0, 0.0]])
+    mask = torch.tensor([[True, True, False], [True, True, True], [True, False, False]])
+    success = torch.tensor([[True, True, False], [True, False, True], [False, False, False]])
+    batch = {"confidence": conf, "frame_mask": mask, "success": success, "face": torch.zeros(3, 3, 2, 4, 4)}
+    # clip means: (0.9 + 0.1) / 2 = 0.5; success-weighted (0.6 + 0 + 0.6) / 3 = 0.4; 0.2 but its frame failed
+    assert torch.allclose(sample_confidence(batch), torch.tensor([0.5, 0.4, 0.0]))
+    assert torch.allclose(sample_confidence(batch, require_success=False), torch.tensor([0.5, 0.6, 0.2]))
+    assert drop_low_confidence(batch, 0.45).indices.tolist() == [0]
+    assert drop_low_confidence(batch, 0.45, require_success=False).indices.tolist() == [0, 1]
+    assert drop_low_confidence(batch, 0.0).indices.tolist() == [0, 1]  # clip 2 has no successful frame
+    assert drop_low_confidence(batch, 0.45).batch["face"].shape == (1, 3, 2, 4, 4)
+
+
+def test_drop_bad_input():
+    with pytest.raises(TypeError, match="dict"):
+        drop_low_confidence([torch.ones(2)], 0.5)
+    with pytest.raises(ValueError, match="confidence"):
+        drop_low_confidence({"face": torch.ones(2)}, 0.5)
+    with pytest.raises(ValueError, match="threshold"):
+        drop_low_confidence({"confidence": torch.ones(2)}, 1.5)
+
+
+# --------------------------------------------------------------------------------------------- quality logging
+
+
+def reference_quality(batch: dict) -> dict[str, float]:
+    """The statistics computed plainly with NumPy over the real frames."""
+    valid = batch["frame_mask"].numpy() if "frame_mask" in batch else np.ones(batch["confidence"].shape, bool)
+    conf = batch["confidence"].numpy()[valid].astype(np.float64)
+    out = {
+        "frames": float(valid.sum()),
+        "confidence_mean": conf.mean(),
+        "confidence_min": conf.min(),
+        "success_fraction": batch["success"].numpy()[valid].mean(),
+        "face_coverage": batch["mask"].numpy()[valid].reshape(int(valid.sum()), -1).mean(1).mean(),
+        "depth_mm_mean": batch["translation"].numpy()[valid][:, 2].astype(np.float64).mean(),
+        "depth_mm_std": batch["translation"].numpy()[valid][:, 2].astype(np.float64).std(),
+        "anim_abs_mean": np.abs(batch["anim_coeffs"].numpy()[valid]).mean(-1).mean(),
+    }
+    for k, name in enumerate(("yaw_deg", "pitch_deg", "roll_deg")):
+        v = batch["ypr_deg"].numpy()[valid][:, k].astype(np.float64)
+        out[f"{name}_mean"], out[f"{name}_std"] = v.mean(), v.std()
+    cached = np.broadcast_to(batch["cached"].numpy().reshape(-1, *([1] * (valid.ndim - 1))), valid.shape)[valid]
+    out["cached_fraction"] = cached.mean()
+    return out
+
+
+def check_against_reference(got: dict, batch: dict) -> None:
+    ref = reference_quality(batch)
+    for key, value in ref.items():
+        assert math.isclose(got[key], float(value), rel_tol=1e-6, abs_tol=1e-6), (key, got[key], value)
+
+
+def test_tracking_quality_frame_batch_against_numpy():
+    batch = frame_batch()
+    got = tracking_quality(batch)
+    check_against_reference(got, batch)
+    assert got["samples"] == 6.0
+
+
+def test_tracking_quality_clip_batch_ignores_padding():
+    b1, b2 = frame_batch(3, seed=1), frame_batch(5, seed=2)
+    per_frame = ("face", "mask", "confidence", "success", "ypr_deg", "translation", "anim_coeffs")
+    items = [
+        {**{k: b[k] for k in per_frame}, "cached": b["cached"][0], "video": torch.tensor(i)}
+        for i, b in enumerate((b1, b2))
+    ]
+    batch = collate_clips(items)
+    assert batch["frame_mask"].sum() == 8
+    got = tracking_quality(batch)
+    check_against_reference(got, batch)
+    assert got["frames"] == 8.0 and got["samples"] == 2.0
+
+
+def test_logger_accumulates_over_the_epoch():
+    b1, b2 = frame_batch(4, seed=3), frame_batch(7, seed=4)
+    log = TrackingQualityLogger()
+    assert log.update(b1) == tracking_quality(b1)
+    log.update(b2)
+    both = {k: torch.cat([b1[k], b2[k]]) for k in b1 if isinstance(b1[k], torch.Tensor)}
+    check_against_reference(log.compute(), both)
+    assert log.compute()["confidence_min"] == min(float(b1["confidence"].min()), float(b2["confidence"].min()))
+    log.reset()
+    assert log.compute() == {"frames": 0.0, "samples": 0.0}
+
+
+def test_quality_of_a_batch_without_real_frames():
+    batch = {"confidence": torch.zeros(2, 3), "frame_mask": torch.zeros(2, 3, dtype=torch.bool)}
+    assert tracking_quality(batch) == {"frames": 0.0, "samples": 2.0}
+    with pytest.raises(ValueError, match="frame_mask"):
+        tracking_quality({"confidence": torch.zeros(2, 3), "frame_mask": torch.zeros(2, 2, dtype=torch.bool)})

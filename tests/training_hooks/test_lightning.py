@@ -1,0 +1,88 @@
+"""The Lightning adapter (skipped when Lightning is not installed) and the guarantee that torchface and
+training_hooks import without it."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from training_hooks import VideoDataset, tracking_quality
+from training_hooks.hooks import TrackingQualityLogger
+
+
+def test_imports_do_not_need_lightning():
+    code = (
+        "import sys, torchface, training_hooks, training_hooks.datasets, training_hooks.hooks;"
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('lightning', 'pytorch_lightning')];"
+        "assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+pl = pytest.importorskip("lightning.pytorch", reason="PyTorch Lightning is not installed (optional extra 'lightning')")
+
+
+class TinyModel(pl.LightningModule):
+    """A linear classifier of the mean face colour, trained with the confidence-weighted loss."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.net = torch.nn.Linear(3, 2)
+
+    def training_step(self, batch, batch_idx):
+        from training_hooks import confidence_weighted_loss
+
+        logits = self.net(batch["face"].mean((-1, -2)))
+        loss = torch.nn.functional.cross_entropy(logits, batch["video"] % 2, reduction="none")
+        return confidence_weighted_loss(loss, batch["confidence"])
+
+    def validation_step(self, batch, batch_idx):
+        pass
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def test_callback_logs_batch_and_epoch_quality(clips, config):
+    from training_hooks.lightning import TrackedFaceDataModule, TrackingQualityCallback
+
+    data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], config)
+    items = list(data)  # fills the cache; the reference statistics
+    batches = list(DataLoader(data, batch_size=4))
+    expected = TrackingQualityLogger()
+    for b in batches:
+        expected.update(b)
+    callback = TrackingQualityCallback()
+    trainer = pl.Trainer(
+        max_epochs=1, callbacks=[callback], logger=False, enable_checkpointing=False, enable_progress_bar=False,
+        enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0,
+    )  # fmt: skip
+    module = TrackedFaceDataModule(data, val=data, batch_size=4, num_workers=0)
+    trainer.fit(TinyModel(), datamodule=module)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    epoch = expected.compute()
+    assert epoch["frames"] == len(items)
+    for stage in ("train_epoch", "val_epoch"):
+        for key in ("confidence_mean", "confidence_min", "success_fraction", "yaw_deg_std", "cached_fraction"):
+            name = f"tracking/{stage}/{key}"
+            assert math.isclose(metrics[name], epoch[key], rel_tol=1e-5, abs_tol=1e-6), (name, metrics[name], epoch[key])
+    # the last training batch's own statistics were logged per step
+    last = tracking_quality(batches[-1])
+    assert math.isclose(metrics["tracking/train/confidence_mean"], last["confidence_mean"], rel_tol=1e-5)
+
+
+def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    clip_data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, clip_length=4, keep_short_clips=True))
+    batch = next(iter(TrackedFaceDataModule(clip_data, batch_size=2).train_dataloader()))
+    assert batch["face"].shape[:2] == (2, 4) and batch["frame_mask"].sum(1).tolist() == [4, 2]
+    assert TrackedFaceDataModule(clip_data).val_dataloader() == []
+    with pytest.raises(TypeError, match="VideoDataset"):
+        TrackedFaceDataModule([1, 2, 3])

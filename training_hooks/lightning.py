@@ -1,0 +1,148 @@
+"""PyTorch Lightning adapter (optional: needs ``pip install "torchface[lightning]"``).
+
+- :class:`TrackingQualityCallback` logs :func:`~training_hooks.hooks.tracking_quality` of every batch (per step)
+  and of the epoch through ``pl_module.log_dict``, for training and validation;
+- :class:`TrackedFaceDataModule` wraps the tracked datasets in ``DataLoader`` s (workers, the right collate, the
+  epoch passed to the shuffling).
+
+This module imports Lightning (``lightning.pytorch``, else the older ``pytorch_lightning``); nothing else in
+torchface or :mod:`training_hooks` does, so they work without it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from torch.utils.data import DataLoader
+
+try:
+    import lightning.pytorch as pl
+except ImportError:  # pragma: no cover - depends on what is installed
+    try:
+        import pytorch_lightning as pl  # type: ignore[no-redef]
+    except ImportError:
+        raise ImportError(
+            "training_hooks.lightning needs PyTorch Lightning: pip install \"torchface[lightning]\" (or lightning)"
+        ) from None
+
+from training_hooks.collate import collate_clips
+from training_hooks.datasets import VideoDataset
+from training_hooks.hooks import TrackingQualityLogger
+
+__all__ = ["TrackedFaceDataModule", "TrackingQualityCallback"]
+
+
+class TrackingQualityCallback(pl.Callback):
+    """Log the tracking quality of the batches a module trains and validates on.
+
+    Per batch (``on_step``) it logs ``<prefix>train/<stat>`` (or ``val/``), and at the end of each epoch
+    ``<prefix>train_epoch/<stat>`` over every frame of the epoch (:class:`~training_hooks.hooks.TrackingQualityLogger`),
+    with ``<stat>`` the keys of :func:`~training_hooks.hooks.tracking_quality`.
+
+    Args:
+        prefix: prepended to every logged name.
+        select: maps the batch the module receives to the dataset batch dict (default: the batch itself, which
+            must then be a dict with ``confidence``).
+        log_steps: also log per batch (else only per epoch).
+
+    Example:
+        >>> # trainer = lightning.pytorch.Trainer(callbacks=[TrackingQualityCallback()])
+    """
+
+    def __init__(
+        self,
+        prefix: str = "tracking/",
+        select: Callable[[Any], Mapping[str, Any]] | None = None,
+        log_steps: bool = True,
+    ) -> None:
+        super().__init__()
+        self.prefix = str(prefix)
+        self.select = select
+        self.log_steps = bool(log_steps)
+        self.loggers = {"train": TrackingQualityLogger(), "val": TrackingQualityLogger()}
+
+    def _batch(self, batch: Any) -> Mapping[str, Any]:
+        return self.select(batch) if self.select is not None else batch
+
+    def _on_batch(self, stage: str, pl_module: pl.LightningModule, batch: Any) -> None:
+        stats = self.loggers[stage].update(self._batch(batch))
+        if self.log_steps and stats.get("frames", 0.0) > 0:
+            size = int(stats["samples"])
+            pl_module.log_dict(
+                {f"{self.prefix}{stage}/{k}": v for k, v in stats.items()}, on_step=True, on_epoch=False, batch_size=size
+            )
+
+    def _on_epoch_end(self, stage: str, pl_module: pl.LightningModule) -> None:
+        stats = self.loggers[stage].compute()
+        if stats.get("frames", 0.0) > 0:
+            pl_module.log_dict({f"{self.prefix}{stage}_epoch/{k}": v for k, v in stats.items()}, on_step=False, on_epoch=True)
+        self.loggers[stage].reset()
+
+    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int) -> None:
+        self._on_batch("train", pl_module, batch)
+
+    def on_validation_batch_start(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int, dataloader_idx: int = 0
+    ) -> None:
+        if not trainer.sanity_checking:
+            self._on_batch("val", pl_module, batch)
+
+    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._on_epoch_end("train", pl_module)
+
+    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if trainer.sanity_checking:
+            self.loggers["val"].reset()
+            return
+        self._on_epoch_end("val", pl_module)
+
+
+class TrackedFaceDataModule(pl.LightningDataModule):
+    """``LightningDataModule`` over tracked datasets (:class:`~training_hooks.datasets.VideoDataset` /
+    :class:`~training_hooks.datasets.FrameFolderDataset`).
+
+    Args:
+        train: the training dataset.
+        val: the validation dataset, or None.
+        batch_size: items per batch.
+        num_workers: ``DataLoader`` workers (tracking runs in them).
+        collate_fn: None picks :func:`~training_hooks.collate.collate_clips` for clip datasets and PyTorch's default
+            for frame datasets.
+
+    Before each training epoch's loader is built the trainer's epoch is passed to
+    :meth:`~training_hooks.datasets.VideoDataset.set_epoch` (shuffling); set ``reload_dataloaders_every_n_epochs=1``
+    on the trainer so that happens every epoch.
+    """
+
+    def __init__(
+        self,
+        train: VideoDataset,
+        val: VideoDataset | None = None,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        collate_fn: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None,
+    ) -> None:
+        super().__init__()
+        for name, ds in (("train", train), ("val", val)):
+            if ds is not None and not isinstance(ds, VideoDataset):
+                raise TypeError(f"{name} must be a VideoDataset or FrameFolderDataset, got {type(ds).__name__}")
+        if batch_size < 1 or num_workers < 0:
+            raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {batch_size}, {num_workers}")
+        self.train, self.val = train, val
+        self.batch_size, self.num_workers, self.collate_fn = int(batch_size), int(num_workers), collate_fn
+
+    def _loader(self, dataset: VideoDataset) -> DataLoader:
+        collate = self.collate_fn
+        if collate is None and dataset.config.clip_length is not None:
+            collate = collate_clips
+        return DataLoader(dataset, batch_size=self.batch_size, num_workers=self.num_workers, collate_fn=collate)
+
+    def train_dataloader(self) -> DataLoader:
+        trainer = getattr(self, "trainer", None)
+        if trainer is not None:
+            self.train.set_epoch(trainer.current_epoch)
+        return self._loader(self.train)
+
+    def val_dataloader(self) -> DataLoader | list:
+        return [] if self.val is None else self._loader(self.val)
