@@ -88,6 +88,9 @@ class FaceTrackingConfig:
             (:meth:`~torchface.geometry.camera.Intrinsics.default`).
         num_threads: torch threads while tracking (restored afterwards). A fixed count makes the results
             independent of the process that tracks (module docstring); 1 suits ``DataLoader`` workers.
+        keep_expression: resample at the neutral expression (``alpha = 0``) instead of the tracked one, so the
+            face keeps its expression (pose and light still undone): the input an expression classifier needs.
+            False (the default) undoes the expression too.
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -96,6 +99,7 @@ class FaceTrackingConfig:
     face_storage: FaceStorage = FaceStorage.UINT8
     focal: float | None = None
     num_threads: int = 1
+    keep_expression: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracker, TrackerConfig):
@@ -354,6 +358,8 @@ def track_sequence(
                     )
                 state, result = track_step(model, config.tracker, state, frame)
             aa, trans, alpha, light = layout.split(state.params)
+            if config.keep_expression:
+                alpha = torch.zeros_like(alpha)
             face = normaliser.from_params(frame, state.shape_coeffs, alpha, aa, trans, light, state.intrinsics)
             per_frame["faces"].append(encode_faces(face.image[0], config.face_storage))
             per_frame["masks"].append(face.mask[0] > 0.5)
