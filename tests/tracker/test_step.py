@@ -413,3 +413,23 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
     frames, gts = two_streams
     with pytest.raises(ValueError, match="one set per frame"):
         initialise(model, BASE, frames[:, 0], landmarks_of(gts)[:1], Intrinsics.default(W, H))
+
+
+def test_visibility_interval_reuses_masks_between_rasterizations(model, two_streams):
+    """With ``visibility_interval = 3`` the z-buffer masks of frame 1 serve frames 2 and 3 and are recomputed on
+    frame 4; new templates always get fresh masks; interval 1 recomputes every frame."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts)
+    _, states = run(model, TrackerConfig(visibility_interval=3), frames[:, :5], lm)
+    masks = [s.visibility[1] for s in states[1:]]  # after frames 1, 2, 3, 4
+    assert masks[0] is masks[1] is masks[2]
+    assert masks[3] is not masks[0]
+    assert all(m.dtype == torch.bool and m.shape == t.valid.shape for m, t in zip(masks[3], states[4].templates))
+    _, states1 = run(model, TrackerConfig(), frames[:, :3], lm)
+    assert states1[1].visibility[1] is not states1[2].visibility[1]
+    # Other templates (the mosaic swaps them in) never reuse masks computed for the old ones.
+    swapped = replace(states[1], templates=tuple(replace(t) for t in states[1].templates))
+    new_state, _ = track_step(model, TrackerConfig(visibility_interval=3), swapped, frames[:, 2])
+    assert new_state.visibility[0] is swapped.templates and new_state.visibility[1] is not masks[0]
+    with pytest.raises(ValueError, match="visibility_interval"):
+        TrackerConfig(visibility_interval=0)

@@ -81,7 +81,10 @@ class TrackerConfig:
             outlier; a high floor at the coarse levels lets expression and light pull the estimate first, and
             the low floor at the fine levels then rejects what no parameter explains (external occlusion): a
             graduated non-convexity schedule.
-        zbuffer_visibility: test template points against the z-buffer of the previous estimate each frame.
+        zbuffer_visibility: test template points against the z-buffer of the previous estimate (fast solver:
+            at the coarsest level).
+        visibility_interval: the fast solver re-rasterizes that z-buffer every this many frames and reuses
+            the masks in between (back-facing points are still dropped every iteration).
         expression_prior_precision: Gaussian prior pulling animation units toward zero (per squared unit).
         min_points: fewer valid points than this marks a sample FAILED.
         min_contrast: a sample whose sampled frame intensities have a standard deviation below this is FAILED
@@ -120,6 +123,7 @@ class TrackerConfig:
     refine_scale_floor: float = 0.1
     expression_priority: float = 0.0
     zbuffer_visibility: bool = True
+    visibility_interval: int = 1
     expression_prior_precision: float = 1.0
     min_points: int = 50
     min_contrast: float = 0.01
@@ -137,6 +141,8 @@ class TrackerConfig:
             )
         if len(self.robust_scale_floor) != 2 or any(not f > 0 for f in self.robust_scale_floor):
             raise ValueError(f"robust_scale_floor must be two positive floors (coarsest, finest), got {self.robust_scale_floor}")
+        if self.visibility_interval < 1:
+            raise ValueError(f"visibility_interval must be >= 1, got {self.visibility_interval}")
         if self.max_points < 8:
             raise ValueError(f"max_points must be >= 8, got {self.max_points}")
         if self.gradient_threshold < 0 or self.min_contrast < 0:
@@ -215,6 +221,8 @@ class TrackerState:
         templates: one :class:`Template` per pyramid level, finest first.
         intrinsics: camera of the full-resolution frames.
         frame_index: frames seen so far.
+        visibility: the z-buffer visibility masks last computed (:attr:`TrackerConfig.visibility_interval`),
+            with the templates they belong to (recomputed when the templates change).
         management: template management's state (:class:`~torchface.tracker.managed.ManagementState`: mosaic,
             confidence counters, last confident parameters), or None without it.
     """
@@ -225,6 +233,7 @@ class TrackerState:
     intrinsics: Intrinsics
     frame_index: int
     management: "ManagementState | None" = None
+    visibility: "tuple[tuple[Template, ...], tuple[Tensor, ...]] | None" = None
 
 
 def level_intrinsics(intrinsics: Intrinsics, level: int, height: int, width: int) -> Intrinsics:
@@ -467,11 +476,18 @@ def _track_step_fast(
     for _ in range(config.num_levels - 1):
         crop.append(pyr_down(crop[-1]))
     masks = [t.valid for t in state.templates]
+    visibility = None
     if config.zbuffer_visibility:
-        vis_level = config.num_levels - 1
-        H, W = state.intrinsics.height, state.intrinsics.width
-        h_l, w_l = H >> vis_level, W >> vis_level
-        masks = _visibility_at(model, state, layout, vis_level, h_l, w_l)
+        cached = state.visibility
+        fresh = cached is None or cached[0] is not state.templates
+        if fresh or (state.frame_index - 1) % config.visibility_interval == 0:
+            vis_level = config.num_levels - 1
+            H, W = state.intrinsics.height, state.intrinsics.width
+            h_l, w_l = H >> vis_level, W >> vis_level
+            masks = _visibility_at(model, state, layout, vis_level, h_l, w_l)
+            visibility = (state.templates, tuple(masks))
+        else:
+            masks, visibility = list(cached[1]), cached
     aa, t, alpha, light = (p.clone() for p in layout.split(state.params))
     R = axis_angle_to_matrix(aa)
     R_prev = R
@@ -509,9 +525,10 @@ def _track_step_fast(
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
     status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
-    return _finish(
+    new_state, result = _finish(
         model, config, layout, state, tpl, x, out.residual, out.valid, out.sampled, ~out.finite, status, out.iterations
     )
+    return replace(new_state, visibility=visibility), result
 
 
 def _finish(
