@@ -270,26 +270,54 @@ class VideoDataset(IterableDataset):
             raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
         return check_landmarks(source, W, H, where)
 
+    def _known_landmarks(self, index: int, content: str) -> np.ndarray | None:
+        """Landmarks known without decoding the video (an array or tensor, or a detection remembered in this
+        process), checked for shape and finiteness but not yet against the frame size; None otherwise."""
+        if self.detector is not None:
+            return self._detected.get(content)
+        source = self.landmarks[index]  # type: ignore[index]
+        if isinstance(source, (str, os.PathLike)):
+            return None
+        if isinstance(source, Tensor):
+            source = source.detach().cpu().numpy()
+        if not isinstance(source, np.ndarray):
+            raise InputError(f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}")
+        return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks")
+
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
+
+        With landmarks given as arrays or tensors (or a detection made earlier in this process) a cache hit does not
+        decode the video at all: it hashes the file, reads the cache file and checks the landmarks against the
+        stored frame size.
 
         Raises:
             torchface.io.InputError: the video or its landmarks cannot be used (the message names the file).
         """
         path = self.videos[index]
         content = content_hash(path)
+        cache = self.cache
+        extra = f"convert={self.config.convert}"
+        known = self._known_landmarks(index, content)
+        if cache is not None and known is not None:
+            stored = cache.load(cache_key(content, self.config.tracking, known, extra))
+            if stored is not None:
+                H, W = stored.frame_size
+                check_landmarks(known, W, H, f"{path}: landmarks")
+                self.stats.videos += 1
+                return stored, True
         reader = open_frames(path, convert=self.config.convert)
         try:
             first = next(reader)
             landmarks = self._first_landmarks(index, first, content)
             key = None
-            cache = self.cache
             if cache is not None:
-                key = cache_key(content, self.config.tracking, landmarks, f"convert={self.config.convert}")
-                stored = cache.load(key)
-                if stored is not None:
-                    self.stats.videos += 1
-                    return stored, True
+                key = cache_key(content, self.config.tracking, landmarks, extra)
+                if known is None:  # not looked up yet
+                    stored = cache.load(key)
+                    if stored is not None:
+                        self.stats.videos += 1
+                        return stored, True
             t0 = time.perf_counter()
             sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
             self.stats.tracking_s += time.perf_counter() - t0

@@ -205,3 +205,22 @@ def test_torchface_version_is_part_of_the_key(monkeypatch, clips):
     k = cache_key("0" * 64, TRACKING, clips[0].landmarks)
     monkeypatch.setattr(torchface, "__version__", "99.0")
     assert cache_key("0" * 64, TRACKING, clips[0].landmarks) != k
+
+
+def test_cache_hit_with_array_landmarks_does_not_decode_the_video(two, config, monkeypatch, tmp_path):
+    import training_hooks.datasets as datasets
+
+    videos, lms = two
+    data = VideoDataset(videos, lms, config)
+    first = epoch(data)
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("the video was decoded on a cache hit")
+
+    monkeypatch.setattr(datasets, "open_frames", no_decoding)
+    assert same_items(first, epoch(data))
+    # landmarks from a file need the frame size, so the video is opened for them
+    csv = tmp_path / "lm.csv"
+    np.savetxt(csv, lms[0], delimiter=",", fmt="%.17g")
+    with pytest.raises(AssertionError, match="decoded"):
+        epoch(VideoDataset(videos[:1], [csv], config))
