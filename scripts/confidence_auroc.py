@@ -45,7 +45,7 @@ import evaluate as ev  # noqa: E402
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
 from torchface.normalise import NormalisedFace  # noqa: E402
-from torchface.synth.metrics import relative_rotation_error_deg  # noqa: E402
+from torchface.synth.metrics import auroc, relative_rotation_error_deg  # noqa: E402
 from torchface.synth.scenarios import SCENARIOS, scenario_size  # noqa: E402
 from torchface.template.dissimilarity import (  # noqa: E402
     DissimilarityConfig,
@@ -58,37 +58,6 @@ from torchface.tracker.step import TrackerConfig, initialise, track_step  # noqa
 VARIANTS = ("standard", "no_illum", "inject")
 INJECT_EVERY = 3
 INJECT_MAX_DEG = 10.0
-
-
-def auroc(scores_pos: Tensor, scores_neg: Tensor) -> float:
-    """Rank-based AUROC: P(positive score > negative score) + 0.5 P(equal) (Mann-Whitney U / (n_pos n_neg)).
-
-    Args:
-        scores_pos: ``(n_pos,)`` scores of positives; scores_neg: ``(n_neg,)`` of negatives.
-
-    Returns:
-        The AUROC in ``[0, 1]``, NaN when either set is empty.
-
-    Example:
-        >>> auroc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.8]))
-        0.875
-    """
-    pos = torch.as_tensor(scores_pos, dtype=torch.float64).reshape(-1)
-    neg = torch.as_tensor(scores_neg, dtype=torch.float64).reshape(-1)
-    n_pos, n_neg = pos.numel(), neg.numel()
-    if n_pos == 0 or n_neg == 0:
-        return float("nan")
-    allv = torch.cat([pos, neg])
-    order = torch.argsort(allv, stable=True)
-    sorted_v = allv[order]
-    # Average ranks (1-based) over ties.
-    _, inverse, counts = torch.unique_consecutive(sorted_v, return_inverse=True, return_counts=True)
-    ends = torch.cumsum(counts, 0).to(torch.float64)
-    avg_rank = ends - (counts.to(torch.float64) - 1.0) / 2.0
-    ranks = torch.empty_like(allv)
-    ranks[order] = avg_rank[inverse]
-    u = float(ranks[:n_pos].sum()) - n_pos * (n_pos + 1) / 2.0
-    return u / (n_pos * n_neg)
 
 
 def _perturb(axis_angle: Tensor, g: torch.Generator) -> tuple[Tensor, float]:

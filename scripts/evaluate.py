@@ -10,24 +10,41 @@ correlation over the units that vary in the ground truth, converged / successful
 per frame.
 
 Ablations (one row each): full, no_illumination (TrackerConfig.use_illumination=False), no_expression
-(use_expression=False), no_robust (robust=RobustKind.NONE), all_pixels (gradient_threshold=0).
+(use_expression=False), no_robust (robust=RobustKind.NONE), all_pixels (gradient_threshold=0), no_management
+(TemplateConfig(enabled=False): no dissimilarity confidence, mosaic, loss detection or recovery).
+
+Section (a), the long scenarios (issue 5; torchface.synth.scenarios.LONG_SCENARIOS: long_run with CANDIDE-3,
+long_run_scan with the James scan, 3000 frames): repeated large head turns back to the frontal pose, light
+drifts and switches, occluders and two stretches where the face leaves the image. They are streamed from the
+cache (not held in memory) and tracked once per configuration of LONG_CONFIGS; the table puts the rotation
+error at each return to frontal side by side, then the mean / max error over the frames where the face is in
+view, lost frames, and per stretch out of view the frames from the face being entirely in view again to the
+first run of --hold good frames (successful and error <= 10 deg). Targets: error at the returns <= 1 deg
+with the default configuration; every recovery within 30 frames.
+
+Section (b): how well the tracker's confidence (TrackResult.confidence) separates frames with rotation error
+> 5 deg from frames < 2 deg (AUROC), pooled over every scenario run (in-view frames 1 .. T-1). Target >= 0.9.
 
 Examples:
     python scripts/evaluate.py --scenarios pose_sweep --frames 40 --size 320x240 --ablations none
     python scripts/evaluate.py --scenarios pose_sweep,expressions --ablations none --json out/eval.json
-    python scripts/evaluate.py                     # all five scenarios at 640x480, full length, all ablations
+    python scripts/evaluate.py --long --json out/eval_long.json        # section (a) alone (and (b) over it)
+    python scripts/evaluate.py --only long_run --long-frames 600 --size 320x240     # a quick look
+    python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import math
 import sys
+import tempfile
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -37,11 +54,21 @@ import torchface
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.solver.robust import RobustKind
-from torchface.synth.io import read_video_uint8
-from torchface.synth.metrics import LOST_THRESHOLD_DEG, SequenceMetrics, relative_rotation_error_deg, sequence_metrics
-from torchface.synth.scenarios import SCENARIOS, make_scenario, scenario_size
+from torchface.synth.io import iter_video_uint8, read_video_uint8
+from torchface.synth.metrics import (
+    LOST_THRESHOLD_DEG,
+    RECOVERY_TARGET_FRAMES,
+    LongRunMetrics,
+    SequenceMetrics,
+    auroc,
+    long_run_metrics,
+    relative_rotation_error_deg,
+    sequence_metrics,
+)
+from torchface.synth.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, SCENARIOS, make_scenario, scenario_size
 from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_truth, render_sequence, write_sequence
-from torchface.tracker.step import TrackerConfig, initialise, track_step
+from torchface.tracker.module import FaceTracker
+from torchface.tracker.step import TrackerConfig
 
 #: Ablation name -> how it changes the full configuration.
 ABLATIONS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
@@ -50,10 +77,39 @@ ABLATIONS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "no_expression": lambda c: replace(c, use_expression=False),
     "no_robust": lambda c: replace(c, robust=RobustKind.NONE),
     "all_pixels": lambda c: replace(c, gradient_threshold=0.0),
+    "no_management": lambda c: replace(c, template=replace(c.template, enabled=False)),
 }
+
+#: Configurations of the long runs (section a): name -> how it changes the default configuration. mosaic is the
+#: default (template management with the pose-keyed mosaic); no_mosaic aligns against the reference template
+#: only; texture_update re-samples the template's intensities from confident frames (off by default: drift);
+#: bare is the tracker without template management (the tracker before issue 5).
+LONG_CONFIGS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
+    "mosaic": lambda c: c,
+    "no_mosaic": lambda c: replace(c, template=replace(c.template, mosaic=False)),
+    "texture_update": lambda c: replace(c, template=replace(c.template, texture_update=True)),
+    "bare": lambda c: replace(c, template=replace(c.template, enabled=False)),
+}
+
+#: The long runs' configuration whose returns are held to the target and pooled with the standard scenarios'
+#: "full" runs in section (b).
+LONG_DEFAULT: str = "mosaic"
+
+#: The modules of torchface/synth that make a sequence's frames and ground truth (hashed by spec_fingerprint).
+RENDER_SOURCES: tuple[str, ...] = (
+    "background.py", "io.py", "james.py", "scenarios.py", "sequence.py", "subjects.py", "textures.py",
+)
 
 #: Standard deviation of the noise added to the initial landmarks (pixels).
 LANDMARK_NOISE_PX: float = 2.0
+
+#: Section (a) target: rotation error at every return to frontal with the default configuration (degrees).
+RETURN_TARGET_DEG: float = 1.0
+
+#: Section (b): positives have rotation error below GOOD_DEG, negatives above BAD_DEG; the AUROC target.
+GOOD_DEG: float = 2.0
+BAD_DEG: float = 5.0
+AUROC_TARGET: float = 0.9
 
 
 def log(msg: str) -> None:
@@ -71,7 +127,13 @@ class Sequence:
 
 @dataclass(frozen=True)
 class RunOutput:
-    """Per-frame estimates of one tracked sequence and its timing."""
+    """Per-frame estimates of one tracked sequence and its timing.
+
+    Attributes:
+        rotation: ``(T, 3, 3)``; translation: ``(T, 3)`` mm; anim: ``(T, A)``; status: ``(T,)`` int64;
+        success: ``(T,)`` bool (``TrackResult.success``); confidence: ``(T,)`` in [0, 1];
+        ms_per_frame: mean time of the tracker's calls on frames ``1 .. T-1``; init_ms: of the initialisation.
+    """
 
     rotation: Tensor
     translation: Tensor
@@ -79,6 +141,8 @@ class RunOutput:
     status: Tensor
     ms_per_frame: float
     init_ms: float
+    success: Tensor
+    confidence: Tensor
 
 
 def _to_uint8(frames: Tensor) -> Tensor:
@@ -89,13 +153,14 @@ def spec_fingerprint(spec: SequenceSpec) -> str:
     """Hash of the sequence's specification and of the code and data that render it.
 
     A cached sequence is reused only while this matches, so a change to the scenarios, the renderer or the
-    packaged subjects re-renders it instead of scoring the tracker against stale frames.
+    packaged subjects re-renders it instead of scoring the tracker against stale frames. The sources hashed are
+    :data:`RENDER_SOURCES` of ``torchface/synth`` (not, e.g., the metrics) and all of ``torchface/rendering``.
     """
     h = hashlib.sha256(repr(spec).encode())
     for field_name in ("rotation", "translation", "anim"):
         h.update(getattr(spec, field_name).detach().cpu().to(torch.float64).numpy().tobytes())
     root = Path(torchface.__file__).parent
-    sources = sorted((root / "synth").glob("*.py")) + sorted((root / "rendering").glob("*.py"))
+    sources = [root / "synth" / name for name in RENDER_SOURCES] + sorted((root / "rendering").glob("*.py"))
     data = sorted(p for p in (root / "data").rglob("*") if p.is_file())
     for path in sources + data:
         h.update(path.relative_to(root).as_posix().encode())
@@ -103,14 +168,13 @@ def spec_fingerprint(spec: SequenceSpec) -> str:
     return h.hexdigest()
 
 
-def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Path | None) -> Sequence:
-    """Read the scenario from ``cache`` or render it there first (in memory when ``cache`` is None)."""
+def cache_sequence(name: str, width: int, height: int, num_frames: int, cache: Path) -> tuple[Path, GroundTruth]:
+    """The scenario's video and ground truth in ``cache``, rendered there first unless a current copy exists.
+
+    A copy is current when its fingerprint (:func:`spec_fingerprint`) matches and its ground truth has the
+    requested length and size; the video's frame count is checked by its readers.
+    """
     spec = make_scenario(name, num_frames, width, height)
-    if cache is None:
-        start = time.perf_counter()
-        frames, gt = render_sequence(spec)
-        log(f"{name}: rendered {num_frames} frames {width}x{height} in memory in {time.perf_counter() - start:.1f} s")
-        return Sequence(_to_uint8(frames), gt)
     folder = cache / f"{name}_{width}x{height}_{num_frames}f"
     video = folder / f"{name}.avi"
     gt_path = folder / f"{name}.gt.npz"
@@ -118,25 +182,51 @@ def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Pa
     fingerprint = spec_fingerprint(spec)
     if video.is_file() and gt_path.is_file() and stamp.is_file() and stamp.read_text().strip() == fingerprint:
         gt = load_ground_truth(gt_path)
-        frames = read_video_uint8(video)
-        size_ok = tuple(frames.shape[-2:]) == (height, width)
-        if frames.shape[0] == num_frames and gt.num_frames == num_frames and size_ok:
-            log(f"{name}: loaded {num_frames} frames {width}x{height} from {folder}")
-            return Sequence(frames, gt)
+        if gt.num_frames == num_frames and gt.intrinsics.size == (height, width):
+            log(f"{name}: cached {num_frames} frames {width}x{height} in {folder}")
+            return video, gt
     if video.is_file():
         log(f"{name}: cache at {folder} is stale (scenario or renderer changed); rendering again")
     start = time.perf_counter()
+    every = max(40, num_frames // 20)
 
     def progress(done: int, total: int) -> None:
-        if done == total or done % 40 < 8:
+        if done == total or done % every < 8:
             rate = done / max(time.perf_counter() - start, 1e-9)
-            log(f"{name}: rendered {done}/{total} frames ({rate:.1f} fps)")
+            log(f"{name}: rendered {done}/{total} frames ({rate:.1f} frames/s)")
 
     stamp.unlink(missing_ok=True)
     files = write_sequence(spec, folder, progress=progress)
     stamp.write_text(fingerprint + "\n")
     log(f"{name}: wrote {files.video} ({files.codec.strip()}) in {time.perf_counter() - start:.1f} s")
-    return Sequence(read_video_uint8(files.video), load_ground_truth(files.ground_truth))
+    return files.video, load_ground_truth(files.ground_truth)
+
+
+def load_sequence(name: str, width: int, height: int, num_frames: int, cache: Path | None) -> Sequence:
+    """Read the scenario from ``cache`` or render it there first (in memory when ``cache`` is None)."""
+    if cache is None:
+        spec = make_scenario(name, num_frames, width, height)
+        start = time.perf_counter()
+        frames, gt = render_sequence(spec)
+        log(f"{name}: rendered {num_frames} frames {width}x{height} in memory in {time.perf_counter() - start:.1f} s")
+        return Sequence(_to_uint8(frames), gt)
+    video, gt = cache_sequence(name, width, height, num_frames, cache)
+    frames = read_video_uint8(video)
+    if frames.shape[0] != num_frames or tuple(frames.shape[-2:]) != (height, width):
+        raise RuntimeError(f"{video} holds {tuple(frames.shape)} frames, expected {num_frames} of {width}x{height}")
+    return Sequence(frames, gt)
+
+
+def stream_frames(video: Path, num_frames: int) -> Iterator[Tensor]:
+    """Frames of a cached video one at a time, ``(1, 3, H, W)`` uint8; an error if it holds fewer than expected."""
+    n = 0
+    for frame in iter_video_uint8(video):
+        if n == num_frames:
+            break
+        yield frame
+        n += 1
+    if n < num_frames:
+        raise RuntimeError(f"{video} ended after {n} frames, expected {num_frames}")
 
 
 def initial_landmarks(gt: GroundTruth, seed: int) -> Tensor:
@@ -147,32 +237,55 @@ def initial_landmarks(gt: GroundTruth, seed: int) -> Tensor:
     return torch.where(gt.landmarks_visible[:1].unsqueeze(-1), lm, torch.full_like(lm, float("nan")))
 
 
-def track_sequence(
-    model: FaceModel, config: TrackerConfig, seq: Sequence, landmarks: Tensor, label: str, progress_every: int
+def track_frames(
+    model: FaceModel,
+    config: TrackerConfig,
+    frames: Iterator[Tensor],
+    gt: GroundTruth,
+    landmarks: Tensor,
+    label: str,
+    progress_every: int,
 ) -> RunOutput:
-    """Initialise on frame 0 and track frames ``1 .. T-1`` of one stream."""
-    gt = seq.gt
+    """Initialise a :class:`FaceTracker` on the first frame and track the rest of one stream.
+
+    Args:
+        frames: the ``T = gt.num_frames`` frames in order, each ``(1, 3, H, W)`` uint8 RGB.
+        landmarks: ``(1, K, 2)`` frame-0 landmarks (NaN = missing).
+        progress_every: a progress line (error, status, confidence, frames/s) every this many frames (0: none).
+    """
     dev, dt = model.device, model.dtype
-    T = seq.frames.shape[0]
+    T = gt.num_frames
+    tracker = FaceTracker(config, model=model)
 
-    def frame(i: int) -> Tensor:
-        return seq.frames[i : i + 1].to(device=dev).to(dt) / 255.0
+    def prepared(f: Tensor) -> Tensor:
+        return f.to(device=dev).to(dt) / 255.0
 
+    frames = iter(frames)
     start = time.perf_counter()
-    state, res = initialise(model, config, frame(0), landmarks.to(device=dev, dtype=dt), gt.intrinsics)
+    res = tracker.initialise(prepared(next(frames)), landmarks.to(device=dev, dtype=dt), gt.intrinsics)
     init_ms = 1e3 * (time.perf_counter() - start)
     results = [res]
     R0_est = res.rotation.detach().to("cpu", torch.float64)
-    start = time.perf_counter()
-    for i in range(1, T):
-        state, res = track_step(model, config, state, frame(i))
+    busy = 0.0
+    wall = time.perf_counter()
+    for i, f in enumerate(frames, start=1):
+        x = prepared(f)
+        t0 = time.perf_counter()
+        res = tracker(x)
+        busy += time.perf_counter() - t0
         results.append(res)
         if progress_every and (i % progress_every == 0 or i == T - 1):
             R_pair = torch.cat([R0_est, res.rotation.detach().to("cpu", torch.float64)])
             err = float(relative_rotation_error_deg(R_pair, gt.rotation[[0, i]])[1])
-            ms = 1e3 * (time.perf_counter() - start) / i
-            log(f"  {label}: frame {i}/{T - 1} rot err {err:.2f} deg, status {int(res.status[0])}, {ms:.0f} ms/frame")
-    ms_per_frame = 1e3 * (time.perf_counter() - start) / max(T - 1, 1)
+            fps = i / max(time.perf_counter() - wall, 1e-9)
+            log(
+                f"  {label}: frame {i}/{T - 1} rot err {err:.2f} deg, status {int(res.status[0])}, "
+                f"confidence {float(res.confidence[0]):.2f}, {fps:.1f} frames/s "
+                f"({1e3 * busy / i:.0f} ms/frame tracking)"
+            )
+    if len(results) != T:
+        raise RuntimeError(f"{label}: got {len(results)} frames, expected {T}")
+    ms_per_frame = 1e3 * busy / max(T - 1, 1)
 
     def cat(field: str) -> Tensor:
         return torch.cat([getattr(r, field).detach().cpu() for r in results])
@@ -184,7 +297,17 @@ def track_sequence(
         status=cat("status"),
         ms_per_frame=ms_per_frame,
         init_ms=init_ms,
+        success=cat("success").to(torch.bool),
+        confidence=cat("confidence").to(torch.float64),
     )
+
+
+def track_sequence(
+    model: FaceModel, config: TrackerConfig, seq: Sequence, landmarks: Tensor, label: str, progress_every: int
+) -> RunOutput:
+    """Initialise on frame 0 and track frames ``1 .. T-1`` of one stream held in memory."""
+    frames = (seq.frames[i : i + 1] for i in range(seq.frames.shape[0]))
+    return track_frames(model, config, frames, seq.gt, landmarks, label, progress_every)
 
 
 def score(model: FaceModel, gt: GroundTruth, out: RunOutput) -> SequenceMetrics:
@@ -241,12 +364,217 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
     return "\n".join(lines)
 
 
-def _json_safe(results: dict[str, dict[str, float]]) -> dict[str, dict[str, float | None]]:
-    """NaN (undefined metric) -> null, so the file is strict JSON."""
-    def clean(v: float) -> float | None:
-        return None if isinstance(v, float) and math.isnan(v) else v
+def _json_safe(value: object) -> object:
+    """NaN (undefined metric) -> null, recursively through dicts, lists and tuples, so the file is strict JSON."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
 
-    return {k: {m: clean(v) for m, v in d.items()} for k, d in results.items()}
+
+def write_json(path: Path, results: dict[str, dict[str, object]]) -> None:
+    """Write the figures so far (to a temporary name, then renamed: never a half-written file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(_json_safe(results), indent=1) + "\n")
+    tmp.replace(path)
+
+
+# ------------------------------------------------------------------------------------------ section (a): long runs
+
+
+def return_frames(gt: GroundTruth) -> list[int]:
+    """Frames (in ``1 .. T-1``) of the ground truth's ``frontal_return`` events."""
+    return sorted(f for label, f in gt.events if label == "frontal_return" and 1 <= f < gt.num_frames)
+
+
+def turn_before(gt: GroundTruth, frame: int, previous: int) -> str:
+    """The largest head turn between two returns, e.g. ``"yaw +60 pitch +0"``, and whether the face left the image."""
+    ypr = gt.ypr_deg[previous:frame]
+    peak = ypr[int(ypr.norm(dim=-1).argmax())]
+    text = f"yaw {float(peak[0]):+3.0f} pitch {float(peak[1]):+3.0f}"
+    if not bool(gt.face_visible[previous:frame].all()):
+        text += ", after exit"
+    return text
+
+
+def long_metrics(gt: GroundTruth, out: RunOutput, hold: int) -> LongRunMetrics:
+    """Section (a)'s metrics of one long run (:func:`torchface.synth.metrics.long_run_metrics`)."""
+    return long_run_metrics(out.rotation, gt.rotation, out.success, gt.face_visible, return_frames(gt), hold=hold)
+
+
+def _mark(ok: bool) -> str:
+    return "PASS" if ok else "FAIL"
+
+
+def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[LongRunMetrics, float]], hold: int) -> str:
+    """Section (a)'s table of one long scenario: the configurations side by side."""
+    configs = list(runs)
+    width = max(14, *(len(c) + 2 for c in configs))
+    head = f"{'':34s}" + "".join(c.rjust(width) for c in configs)
+    lines = [
+        f"== (a) {name} ({info}); rotation error relative to frame 0 (deg) at each return to frontal",
+        head,
+        "-" * len(head),
+    ]
+    frames = return_frames(gt)
+    previous = 0
+    for k, f in enumerate(frames):
+        label = f"return {k + 1:2d} @{f:5d} {turn_before(gt, f, previous)}"
+        cells = "".join(_fmt(m.return_errors_deg[k]).rjust(width) for m, _ in runs.values())
+        lines.append(f"{label:34s}{cells}")
+        previous = f
+    lines.append("-" * len(head))
+
+    def row(label: str, cell: Callable[[LongRunMetrics, float], str]) -> None:
+        lines.append(f"{label:34s}" + "".join(cell(m, ms).rjust(width) for m, ms in runs.values()))
+
+    row("max over the returns", lambda m, _: _fmt(max(m.return_errors_deg, default=float("nan"))))
+    row("mean over the returns", lambda m, _: _fmt(sum(m.return_errors_deg) / max(len(m.return_errors_deg), 1)))
+    row("mean, frames in view", lambda m, _: _fmt(m.rot_err_mean_deg))
+    row("max, frames in view", lambda m, _: _fmt(m.rot_err_max_deg))
+    row(f"lost frames (> {LOST_THRESHOLD_DEG:g} deg, in view)", lambda m, _: str(m.lost_frames))
+    row("unsuccessful frames, in view", lambda m, _: str(m.unsuccessful_frames))
+    row("'successful' while out of view", lambda m, _: str(m.success_out_of_view))
+    n_gaps = max(len(m.recoveries) for m, _ in runs.values())
+    for g in range(n_gaps):
+        some = next(m.recoveries[g] for m, _ in runs.values() if len(m.recoveries) > g)
+        label = f"recovery after out {some.gap_start}-{some.gap_end - 1}"
+
+        def cell(m: LongRunMetrics, _: float, g: int = g) -> str:
+            f = m.recoveries[g].frames_to_recover if len(m.recoveries) > g else None
+            return "never" if f is None else str(f)
+
+        row(label, cell)
+    row("longest loss in view (frames)", lambda m, _: str(m.longest_loss_in_view))
+    row("ms/frame", lambda _, ms: _fmt(ms, 0))
+    lines.append(
+        f"   good frame: successful and error <= {LOST_THRESHOLD_DEG:g} deg; recovery: frames from the face being"
+        f" entirely in view again to the first of {hold} good frames in a row"
+    )
+    if LONG_DEFAULT in runs:
+        m, _ = runs[LONG_DEFAULT]
+        worst_return = max(m.return_errors_deg, default=float("nan"))
+        worst = m.worst_recovery
+        lines.append(
+            f"   target ({LONG_DEFAULT}): error at every return <= {RETURN_TARGET_DEG:g} deg: "
+            f"{_mark(worst_return <= RETURN_TARGET_DEG)} (max {_fmt(worst_return)})"
+        )
+        lines.append(
+            f"   target ({LONG_DEFAULT}): every loss recovered within {RECOVERY_TARGET_FRAMES} frames of the face being"
+            f" in view again: {_mark(worst is not None and worst <= RECOVERY_TARGET_FRAMES)} (worst "
+            f"{'never' if worst is None else worst}); longest loss while in view {m.longest_loss_in_view} frames: "
+            f"{_mark(m.longest_loss_in_view <= RECOVERY_TARGET_FRAMES)}"
+        )
+    return "\n".join(lines)
+
+
+def long_json(m: LongRunMetrics, out: RunOutput, width: int, height: int, num_frames: int) -> dict[str, object]:
+    """Section (a)'s figures of one run, for --json."""
+    d = asdict(m)
+    d["recoveries"] = [asdict(r) for r in m.recoveries]
+    d.update(
+        worst_recovery=m.worst_recovery, ms_per_frame=out.ms_per_frame, init_ms=out.init_ms,
+        width=width, height=height, num_frames=num_frames,
+    )
+    return d
+
+
+# ------------------------------------------------------------------------------------------ section (b): AUROC
+
+
+@dataclass(frozen=True)
+class FrameSeries:
+    """Per-frame figures of one run used by section (b).
+
+    Attributes:
+        scenario, config: where they come from; default: the run uses the default configuration.
+        error: ``(T,)`` rotation error relative to frame 0 (deg); confidence: ``(T,)``; success, in_view: ``(T,)``.
+    """
+
+    scenario: str
+    config: str
+    default: bool
+    error: Tensor
+    confidence: Tensor
+    success: Tensor
+    in_view: Tensor
+
+
+def frame_series(scenario: str, config: str, default: bool, gt: GroundTruth, out: RunOutput) -> FrameSeries:
+    err = relative_rotation_error_deg(out.rotation, gt.rotation)
+    return FrameSeries(scenario, config, default, err, out.confidence, out.success, gt.face_visible)
+
+
+def auroc_row(label: str, series: list[FrameSeries], successful_only: bool = False) -> dict[str, float]:
+    """AUROC of the confidence, positives error < GOOD_DEG, negatives > BAD_DEG, over in-view frames 1 .. T-1."""
+    err, conf = [], []
+    for s in series:
+        keep = s.in_view.clone()
+        keep[0] = False
+        if successful_only:
+            keep &= s.success
+        err.append(s.error[keep])
+        conf.append(s.confidence[keep])
+    e, c = torch.cat(err), torch.cat(conf)
+    pos, neg = e < GOOD_DEG, e > BAD_DEG
+    return {
+        "frames": int(e.numel()), "positives": int(pos.sum()), "negatives": int(neg.sum()),
+        "auroc": auroc(c[pos], c[neg]),
+        "mean_confidence_positives": float(c[pos].mean()) if bool(pos.any()) else float("nan"),
+        "mean_confidence_negatives": float(c[neg].mean()) if bool(neg.any()) else float("nan"),
+    }
+
+
+def auroc_section(series: list[FrameSeries]) -> tuple[str, dict[str, dict[str, float]]]:
+    """Section (b)'s table and figures: pooled (default configuration; then with the weaker configurations) and
+    per scenario."""
+    default = [s for s in series if s.default]
+    pools: list[tuple[str, list[FrameSeries], bool]] = [
+        ("POOLED default configuration", default, False),
+        ("POOLED default, successful frames", default, True),
+        ("POOLED all configurations", series, False),
+        ("POOLED all, successful frames", series, True),
+    ]
+    for name in dict.fromkeys(s.scenario for s in series):
+        pools.append((f"{name} (default)", [s for s in default if s.scenario == name], False))
+    others = [s for s in series if not s.default]
+    for key in dict.fromkeys((s.scenario, s.config) for s in others):
+        pools.append((f"{key[0]}/{key[1]}", [s for s in others if (s.scenario, s.config) == key], False))
+    head = f"{'pool':44s}{'frames':>7s}{'<' + format(GOOD_DEG, 'g'):>7s}{'>' + format(BAD_DEG, 'g'):>7s}{'AUROC':>8s}" \
+        f"{'conf+':>7s}{'conf-':>7s}"
+    lines = [
+        f"== (b) confidence (TrackResult.confidence) vs rotation error: positives < {GOOD_DEG:g} deg, negatives > "
+        f"{BAD_DEG:g} deg; frames 1..T-1 with the face in view",
+        head,
+        "-" * len(head),
+    ]
+    figures: dict[str, dict[str, float]] = {}
+    for label, pool, successful in pools:
+        if not pool:
+            continue
+        r = auroc_row(label, pool, successful)
+        figures[label] = r
+        lines.append(
+            f"{label:44s}{r['frames']:7d}{r['positives']:7d}{r['negatives']:7d}{_fmt(r['auroc'], 3):>8s}"
+            f"{_fmt(r['mean_confidence_positives']):>7s}{_fmt(r['mean_confidence_negatives']):>7s}"
+        )
+    lines.append(
+        "   conf+ / conf-: mean confidence of the positives / negatives. Bad frames are the trackers' own: no error"
+        " is injected; 'all configurations' adds the ablations and the long runs' other configurations."
+    )
+    main = figures.get("POOLED default configuration")
+    if main is not None:
+        a = main["auroc"]
+        lines.append(
+            f"   target: AUROC >= {AUROC_TARGET:g} (pooled, default configuration): "
+            f"{'n/a (no frame above ' + format(BAD_DEG, 'g') + ' deg)' if math.isnan(a) else _mark(a >= AUROC_TARGET)}"
+            f" ({main['negatives']} negatives)"
+        )
+    return "\n".join(lines), figures
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -259,26 +587,55 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
+    """Scenario names from --scenarios: a comma list of names and the groups all, standard, long."""
+    groups = {"all": list(ALL_SCENARIOS), "standard": list(SCENARIOS), "long": list(LONG_SCENARIOS)}
+    names: list[str] = []
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        if item in groups:
+            names += groups[item]
+        elif item in ALL_SCENARIOS:
+            names.append(item)
+        else:
+            parser.error(f"unknown scenario {item!r}; choose from {', '.join(ALL_SCENARIOS)}, all, standard or long")
+    return list(dict.fromkeys(names))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenarios", default="all", help=f"comma-separated from {', '.join(SCENARIOS)} (default all)")
-    parser.add_argument("--frames", type=int, help="frames per scenario (default: each scenario's full length)")
+    parser.add_argument(
+        "--scenarios", "--only", default="all",
+        help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long",
+    )
+    parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
+    parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
+    parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
     parser.add_argument("--size", type=_parse_size, default=None, help="WxH (default 640x480)")
     parser.add_argument("--cache", default="out/sequences", help="sequence cache folder; 'none' renders in memory")
     parser.add_argument(
         "--ablations", default="all", help=f"all, none (full only) or a comma list from {', '.join(ABLATIONS)}"
     )
-    parser.add_argument("--json", type=Path, help="write {scenario[/ablation]: {metric: value}} here")
+    parser.add_argument(
+        "--long-configs", default="all",
+        help=f"configurations of the long runs: all or a comma list from {', '.join(LONG_CONFIGS)}",
+    )
+    parser.add_argument("--no-auroc", action="store_true", help="skip section (b)")
+    parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
+    parser.add_argument("--json", type=Path, help="write {scenario[/ablation or config]: {metric: value}} here")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads")
     parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise")
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
+    parser.add_argument(
+        "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
+    )
     args = parser.parse_args(argv)
 
-    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",") if s.strip()]
-    for n in names:
-        if n not in SCENARIOS:
-            parser.error(f"unknown scenario {n!r}; choose from {', '.join(SCENARIOS)}")
+    names = list(LONG_SCENARIOS) if args.long else _names(args.scenarios, parser)
+    if not names:
+        parser.error("no scenario selected")
     if args.ablations == "all":
         ablations = list(ABLATIONS)
     elif args.ablations == "none":
@@ -288,41 +645,87 @@ def main(argv: list[str] | None = None) -> int:
         for a in ablations:
             if a not in ABLATIONS:
                 parser.error(f"unknown ablation {a!r}; choose from {', '.join(ABLATIONS)}, all or none")
+    if args.long_configs == "all":
+        long_configs = list(LONG_CONFIGS)
+    else:
+        long_configs = [c.strip() for c in args.long_configs.split(",") if c.strip()]
+        for c in long_configs:
+            if c not in LONG_CONFIGS:
+                parser.error(f"unknown long configuration {c!r}; choose from {', '.join(LONG_CONFIGS)} or all")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
+    if args.hold < 1:
+        parser.error(f"--hold must be >= 1, got {args.hold}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
-    results: dict[str, dict[str, float]] = {}
+    results: dict[str, dict[str, object]] = {}
+    series: list[FrameSeries] = []
     tables: list[str] = []
-    for name in names:
-        w, h, t = scenario_size(name, "full")
-        if args.size is not None:
-            w, h = args.size
-        t = args.frames or t
-        seq = load_sequence(name, w, h, t, cache)
-        landmarks = initial_landmarks(seq.gt, args.seed)
-        rows: dict[str, dict[str, float]] = {}
-        for abl in ablations:
-            label = f"{name}/{abl}"
-            log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
-            out = track_sequence(model, ABLATIONS[abl](base), seq, landmarks, label, args.progress_every)
-            m = score(model, seq.gt, out).as_dict()
-            m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
-            rows[abl] = m
-            results[name if abl == "full" else label] = m
-            log(
-                f"{label}: rot err mean {_fmt(m['rot_err_mean_deg'])} max {_fmt(m['rot_err_max_deg'])} deg, "
-                f"lost {m['lost_frames']}, AU rmse {_fmt(m['au_rmse'], 3)}, {out.ms_per_frame:.0f} ms/frame"
-            )
-            if args.json is not None:
-                args.json.parent.mkdir(parents=True, exist_ok=True)
-                args.json.write_text(json.dumps(_json_safe(results), indent=1) + "\n")
-        tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
-        print(tables[-1] + "\n", flush=True)
+    with contextlib.ExitStack() as stack:
+        for name in names:
+            w, h, t = scenario_size(name, "full")
+            if args.size is not None:
+                w, h = args.size
+            if name in LONG_SCENARIOS:
+                t = args.long_frames or t
+                # Long sequences are streamed from a cache folder (a temporary one with --cache none).
+                folder = cache if cache is not None else Path(stack.enter_context(tempfile.TemporaryDirectory()))
+                video, gt = cache_sequence(name, w, h, t, folder)
+                landmarks = initial_landmarks(gt, args.seed)
+                runs: dict[str, tuple[LongRunMetrics, float]] = {}
+                for cfg in long_configs:
+                    label = f"{name}/{cfg}"
+                    log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
+                    out = track_frames(
+                        model, LONG_CONFIGS[cfg](base), stream_frames(video, t), gt, landmarks, label,
+                        args.long_progress_every,
+                    )
+                    m = long_metrics(gt, out, args.hold)
+                    runs[cfg] = (m, out.ms_per_frame)
+                    results[label] = long_json(m, out, w, h, t)
+                    series.append(frame_series(name, cfg, cfg == LONG_DEFAULT, gt, out))
+                    log(
+                        f"{label}: returns max {_fmt(max(m.return_errors_deg, default=float('nan')))} deg, mean "
+                        f"{_fmt(m.rot_err_mean_deg)} max {_fmt(m.rot_err_max_deg)} deg in view, lost {m.lost_frames}, "
+                        f"recoveries {[r.frames_to_recover for r in m.recoveries]}, {out.ms_per_frame:.0f} ms/frame"
+                    )
+                    if args.json is not None:
+                        write_json(args.json, results)
+                info = f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"
+                tables.append(long_table(name, info, gt, runs, args.hold))
+                print(tables[-1] + "\n", flush=True)
+                continue
+            t = args.frames or t
+            seq = load_sequence(name, w, h, t, cache)
+            landmarks = initial_landmarks(seq.gt, args.seed)
+            rows: dict[str, dict[str, float]] = {}
+            for abl in ablations:
+                label = f"{name}/{abl}"
+                log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
+                out = track_sequence(model, ABLATIONS[abl](base), seq, landmarks, label, args.progress_every)
+                m = score(model, seq.gt, out).as_dict()
+                m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
+                rows[abl] = m
+                results[name if abl == "full" else label] = m
+                series.append(frame_series(name, abl, abl == "full", seq.gt, out))
+                log(
+                    f"{label}: rot err mean {_fmt(m['rot_err_mean_deg'])} max {_fmt(m['rot_err_max_deg'])} deg, "
+                    f"lost {m['lost_frames']}, AU rmse {_fmt(m['au_rmse'], 3)}, {out.ms_per_frame:.0f} ms/frame"
+                )
+                if args.json is not None:
+                    write_json(args.json, results)
+            tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
+            print(tables[-1] + "\n", flush=True)
+    if not args.no_auroc and series:
+        text, figures = auroc_section(series)
+        print(text + "\n", flush=True)
+        results.update({f"auroc/{k}": v for k, v in figures.items()})
+        if args.json is not None:
+            write_json(args.json, results)
     return 0
 
 

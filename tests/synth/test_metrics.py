@@ -10,13 +10,17 @@ import torch
 
 from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix
 from torchface.synth.metrics import (
+    Recovery,
     active_units,
+    auroc,
+    long_run_metrics,
     pearson,
     relative_rotation_error_deg,
     relative_rotations,
     relative_ypr_error_deg,
     sequence_metrics,
     translation_errors_mm,
+    true_runs,
     unit_rmse,
 )
 from torchface.tracker.step import TrackStatus
@@ -229,3 +233,118 @@ def test_validation_errors() -> None:
             R, torch.zeros(4, 3), R, torch.zeros(4, 3), torch.zeros(4), anim_est=torch.ones(4, 1),
             anim_gt=torch.linspace(0, 1, 4).unsqueeze(-1), anim_names=("a",),
         )
+
+
+# --- long runs: returns to frontal, recovery ---------------------------------------------------------
+
+
+def test_true_runs_known_answers() -> None:
+    t, f = True, False
+    assert true_runs(torch.tensor([t, t, f, t, f, f, t])) == ((0, 2), (3, 4), (6, 7))
+    assert true_runs(torch.tensor([f, f])) == ()
+    assert true_runs(torch.tensor([t, t, t])) == ((0, 3),)
+    assert true_runs(torch.zeros(0, dtype=torch.bool)) == ()
+    with pytest.raises(ValueError, match="bool"):
+        true_runs(torch.tensor([1, 0]))
+
+
+def _long_run(T: int = 40):
+    """Truth: yaw ramps 0 -> 30 -> 0 deg; estimate: truth plus a known yaw error per frame."""
+    yaw = torch.cat([torch.linspace(0, 30, 10, dtype=F64), torch.linspace(30, 0, 11, dtype=F64)[1:],
+                     torch.zeros(T - 20, dtype=F64)])  # fmt: skip
+    err = torch.zeros(T, dtype=F64)
+    err[19] = 0.4  # the first return to frontal (frame 19)
+    err[30] = 0.7  # the second (frame 30)
+    zeros = torch.zeros(T, dtype=F64)
+    gt = euler_to_matrix(torch.stack([yaw, zeros, zeros], -1))
+    est = euler_to_matrix(torch.stack([yaw + err, zeros, zeros], -1))
+    return gt, est, err
+
+
+def test_long_run_metrics_returns_recovery_and_losses() -> None:
+    gt, est, err = _long_run()
+    T = 40
+    visible = torch.ones(T, dtype=torch.bool)
+    visible[22:25] = False  # out of view: frames 22-24, back at 25
+    success = torch.ones(T, dtype=torch.bool)
+    success[22:28] = False  # lost until frame 27: recovered 3 frames after the face is back
+    success[23] = True  # a (bogus) success while out of view
+    est = est.clone()
+    est[10:13] = euler_to_matrix(torch.tensor([[0.0, 15.0, 0.0]], dtype=F64)) @ est[10:13]  # 15 deg off: lost
+    m = long_run_metrics(est, gt, success, visible, [19, 30], hold=3)
+    torch.testing.assert_close(torch.tensor(m.return_errors_deg, dtype=F64), torch.tensor([0.4, 0.7], dtype=F64))
+    assert m.return_frames == (19, 30)
+    assert m.recoveries == (Recovery(22, 25, 3),)
+    assert m.worst_recovery == 3
+    assert m.success_out_of_view == 1
+    assert m.lost_frames == 3 and m.unsuccessful_frames == 3  # frames 10-12; frames 25-27
+    # The loss at 10-12 is one in view; the bad frames 25-27 are the recovery, not a loss in view.
+    assert m.losses_in_view == ((10, 13),) and m.longest_loss_in_view == 3
+    # Mean / max over in-view frames 1 .. T-1 only.
+    keep = visible.clone()
+    keep[0] = False
+    e = relative_rotation_error_deg(est, gt)[keep]
+    assert m.rot_err_mean_deg == pytest.approx(float(e.mean()))
+    assert m.rot_err_max_deg == pytest.approx(15.0, abs=0.5)
+
+
+def test_long_run_metrics_never_recovered_and_hold() -> None:
+    gt, est, _ = _long_run()
+    T = 40
+    visible = torch.ones(T, dtype=torch.bool)
+    visible[5:8] = False
+    visible[30:33] = False
+    success = torch.ones(T, dtype=torch.bool)
+    success[5:] = False  # never again
+    m = long_run_metrics(est, gt, success, visible, [19], hold=1)
+    assert m.recoveries == (Recovery(5, 8, None), Recovery(30, 33, None)) and m.worst_recovery is None
+    # A good run shorter than `hold` does not count; one of `hold` frames does, from its first frame.
+    success = torch.ones(T, dtype=torch.bool)
+    success[5:20] = False
+    success[10:12] = True
+    m3 = long_run_metrics(est, gt, success, visible, [19], hold=3)
+    assert m3.recoveries[0] == Recovery(5, 8, 12)  # frames 20, 21, 22 are the first 3 good in a row
+    m2 = long_run_metrics(est, gt, success, visible, [19], hold=2)
+    assert m2.recoveries[0] == Recovery(5, 8, 2)  # frames 10, 11
+    # The recovery is looked for only before the next stretch out of view.
+    success[8:30] = False
+    assert long_run_metrics(est, gt, success, visible, [19]).recoveries[0].frames_to_recover is None
+    # A sequence ending out of view: the stretch ends at T.
+    visible[35:] = False
+    assert long_run_metrics(est, gt, success, visible, [19]).recoveries[-1] == Recovery(35, 40, None)
+
+
+def test_long_run_metrics_validation() -> None:
+    gt, est, _ = _long_run()
+    ok = torch.ones(40, dtype=torch.bool)
+    with pytest.raises(ValueError, match="return_frames"):
+        long_run_metrics(est, gt, ok, ok, [40])
+    with pytest.raises(ValueError, match="return_frames"):
+        long_run_metrics(est, gt, ok, ok, [0])
+    with pytest.raises(ValueError, match="success"):
+        long_run_metrics(est, gt, ok[:5], ok, [1])
+    with pytest.raises(ValueError, match="visible"):
+        long_run_metrics(est, gt, ok, ok.float(), [1])
+    with pytest.raises(ValueError, match="hold"):
+        long_run_metrics(est, gt, ok, ok, [1], hold=0)
+
+
+# --- AUROC -------------------------------------------------------------------------------------------
+
+
+def test_auroc_known_answers() -> None:
+    assert auroc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.2])) == 1.0
+    assert auroc(torch.tensor([0.1, 0.2]), torch.tensor([0.9, 0.8])) == 0.0
+    assert auroc(torch.tensor([0.5, 0.5]), torch.tensor([0.5])) == 0.5
+    assert auroc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.8])) == 0.875
+    assert math.isnan(auroc(torch.tensor([0.9]), torch.tensor([])))
+    with pytest.raises(ValueError, match="NaN"):
+        auroc(torch.tensor([float("nan")]), torch.tensor([0.1]))
+
+
+def test_auroc_matches_pairwise_count() -> None:
+    g = torch.Generator().manual_seed(3)
+    pos = torch.randint(0, 6, (37,), generator=g).double() / 5  # many ties
+    neg = torch.randint(0, 6, (23,), generator=g).double() / 5 - 0.2
+    pairs = (pos[:, None] > neg[None, :]).double() + 0.5 * (pos[:, None] == neg[None, :]).double()
+    assert auroc(pos, neg) == pytest.approx(float(pairs.mean()), abs=1e-12)

@@ -8,6 +8,7 @@ OpenCV build can write; FFV1 in AVI is lossless and reads back bit-exactly with 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 
@@ -16,7 +17,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["LOSSLESS_CODECS", "VideoSink", "write_video", "read_video", "frames_to_uint8"]
+__all__ = [
+    "LOSSLESS_CODECS",
+    "VideoSink",
+    "write_video",
+    "read_video",
+    "read_video_uint8",
+    "iter_video_uint8",
+    "frames_to_uint8",
+]
 
 #: FourCC codes tried in order (all lossless); ``MJPG`` (lossy) is the last resort.
 LOSSLESS_CODECS: tuple[str, ...] = ("FFV1", "png ", "HFYU", "MJPG")
@@ -123,6 +132,25 @@ def read_video_uint8(path: str | os.PathLike[str], max_frames: int | None = None
     if not frames:
         raise ValueError(f"could not read any frame from {path}")
     return torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2).flip(1).contiguous()
+
+
+def iter_video_uint8(path: str | os.PathLike[str]) -> Iterator[Tensor]:
+    """Stream a video frame by frame as ``(1, 3, H, W)`` uint8 RGB (memory independent of its length).
+
+    Example:
+        >>> # for frame in iter_video_uint8("seq.avi"): ...   # (1, 3, H, W) uint8
+    """
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no video at {path}")
+    cap = cv2.VideoCapture(str(path))
+    try:
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                return
+            yield torch.from_numpy(img).permute(2, 0, 1).flip(0).unsqueeze(0).contiguous()
+    finally:
+        cap.release()
 
 
 def read_video(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:

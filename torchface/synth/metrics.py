@@ -32,10 +32,20 @@ __all__ = [
     "pearson",
     "SequenceMetrics",
     "sequence_metrics",
+    "RECOVERY_TARGET_FRAMES",
+    "true_runs",
+    "Recovery",
+    "LongRunMetrics",
+    "long_run_metrics",
+    "auroc",
 ]
 
 #: A frame whose relative rotation error exceeds this (degrees) counts as lost.
 LOST_THRESHOLD_DEG: float = 10.0
+
+#: Issue 5's target: a track lost while the face was out of view is back within this many frames of the face
+#: being entirely in view again.
+RECOVERY_TARGET_FRAMES: int = 30
 
 
 def _check_rotations(R: Tensor, name: str) -> None:
@@ -375,3 +385,196 @@ def sequence_metrics(
         au_rmse_per_unit=rmse_u,
         au_corr_per_unit=corr_u,
     )
+
+
+# ------------------------------------------------------------------------------------ long runs: returns, recovery
+
+
+def _check_flags(x: Tensor, name: str, T: int | None = None) -> Tensor:
+    if not isinstance(x, Tensor) or x.dim() != 1 or x.dtype != torch.bool:
+        got = f"{tuple(getattr(x, 'shape', ()))} {getattr(x, 'dtype', type(x).__name__)}"
+        raise ValueError(f"{name} must be a (T,) bool tensor, got {got}")
+    if T is not None and x.shape[0] != T:
+        raise ValueError(f"{name} must have T = {T} frames, got {x.shape[0]}")
+    return x
+
+
+def true_runs(mask: Tensor) -> tuple[tuple[int, int], ...]:
+    """Maximal runs of True, as half-open frame ranges ``[start, end)``.
+
+    Args:
+        mask: ``(T,)`` bool.
+
+    Example:
+        >>> true_runs(torch.tensor([True, True, False, True, False, False, True]))
+        ((0, 2), (3, 4), (6, 7))
+    """
+    _check_flags(mask, "mask")
+    padded = torch.cat([mask.new_zeros(1), mask, mask.new_zeros(1)]).to(torch.int8)
+    edges = padded[1:] - padded[:-1]
+    starts = torch.nonzero(edges == 1).flatten().tolist()
+    ends = torch.nonzero(edges == -1).flatten().tolist()
+    return tuple(zip(starts, ends))
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """How tracking came back after one stretch where the face was not (entirely) in view.
+
+    Attributes:
+        gap_start: first frame of the stretch.
+        gap_end: first frame after it (the face is in view again); ``T`` when the sequence ends out of view.
+        frames_to_recover: frames from ``gap_end`` to the first frame that starts ``hold`` consecutive good
+            frames (0: good right away); None when that never happens before the next stretch out of view or
+            the end of the sequence.
+    """
+
+    gap_start: int
+    gap_end: int
+    frames_to_recover: int | None
+
+
+@dataclass(frozen=True)
+class LongRunMetrics:
+    """Drift and recovery on a long sequence (issue 5). Frames ``1 .. T-1`` are scored (frame 0 is the reference).
+
+    A frame is *good* when the tracker calls it successful and its rotation error relative to frame 0
+    (:func:`relative_rotation_error_deg`) is at most the lost threshold.
+
+    Attributes:
+        return_frames: the frames at which the true head is back at the frontal pose after a turn.
+        return_errors_deg: rotation error at each of them.
+        rot_err_mean_deg, rot_err_max_deg: over the frames where the face is in view.
+        lost_frames: in-view frames whose error exceeds the lost threshold.
+        unsuccessful_frames: in-view frames the tracker did not call successful.
+        success_out_of_view: frames where the face was not in view but the tracker called it successful.
+        recoveries: one :class:`Recovery` per stretch out of view.
+        losses_in_view: ``(start, end)`` runs of not-good in-view frames that do not begin where the face comes
+            back into view (those are the recoveries): losses during tracking proper.
+        longest_loss_in_view: frames of the longest of those (0 when none).
+    """
+
+    return_frames: tuple[int, ...]
+    return_errors_deg: tuple[float, ...]
+    rot_err_mean_deg: float
+    rot_err_max_deg: float
+    lost_frames: int
+    unsuccessful_frames: int
+    success_out_of_view: int
+    recoveries: tuple[Recovery, ...]
+    losses_in_view: tuple[tuple[int, int], ...]
+    longest_loss_in_view: int
+
+    @property
+    def worst_recovery(self) -> int | None:
+        """The most frames any recovery took; None if one never recovered (0 when there was no stretch)."""
+        frames = [r.frames_to_recover for r in self.recoveries]
+        return None if any(f is None for f in frames) else max(frames, default=0)
+
+
+def long_run_metrics(
+    rotation_est: Tensor,
+    rotation_gt: Tensor,
+    success: Tensor,
+    visible: Tensor,
+    return_frames: tuple[int, ...] | list[int],
+    *,
+    hold: int = 5,
+    lost_threshold_deg: float = LOST_THRESHOLD_DEG,
+) -> LongRunMetrics:
+    """Errors at the returns to frontal, drift, losses and recovery of one long tracked sequence.
+
+    Args:
+        rotation_est: ``(T, 3, 3)`` estimated head -> camera rotations.
+        rotation_gt: ``(T, 3, 3)`` true rotations.
+        success: ``(T,)`` bool, the tracker's own per-frame success flag.
+        visible: ``(T,)`` bool, the face is entirely in view (:attr:`GroundTruth.face_visible`).
+        return_frames: frames where the true head is frontal again after a turn (in ``1 .. T-1``).
+        hold: consecutive good frames that make a recovery.
+        lost_threshold_deg: rotation error above which a frame is not good.
+
+    Returns:
+        :class:`LongRunMetrics`.
+
+    Example:
+        >>> R = torch.eye(3, dtype=torch.float64).expand(6, 3, 3)
+        >>> vis = torch.tensor([True, True, False, False, True, True])
+        >>> ok = torch.tensor([True, True, False, False, False, True])
+        >>> m = long_run_metrics(R, R, ok, vis, [1], hold=1)
+        >>> m.recoveries, m.unsuccessful_frames
+        ((Recovery(gap_start=2, gap_end=4, frames_to_recover=1),), 1)
+    """
+    _check_rotations(rotation_est, "rotation_est")
+    if rotation_est.dim() != 3 or rotation_est.shape[0] < 2:
+        raise ValueError(f"rotation_est must be (T, 3, 3) with T >= 2, got {tuple(rotation_est.shape)}")
+    T = rotation_est.shape[0]
+    _check_flags(success, "success", T)
+    _check_flags(visible, "visible", T)
+    if hold < 1:
+        raise ValueError(f"hold must be >= 1, got {hold}")
+    frames = tuple(int(f) for f in return_frames)
+    if any(not 1 <= f < T for f in frames):
+        raise ValueError(f"return_frames must lie in 1 .. {T - 1}, got {frames}")
+    err = relative_rotation_error_deg(rotation_est, rotation_gt).cpu()
+    success, visible = success.cpu(), visible.cpu()
+    good = success & (err <= lost_threshold_deg)
+    scored = visible.clone()
+    scored[0] = False
+    e = err[scored]
+    nan = float("nan")
+    # Start of each good run of `hold` frames: good[f : f + hold] all True.
+    window = good.to(torch.int64).unfold(0, hold, 1).sum(-1) == hold if T >= hold else good[:0]
+    recoveries = []
+    gaps = true_runs(~visible)
+    for i, (start, end) in enumerate(gaps):
+        limit = gaps[i + 1][0] if i + 1 < len(gaps) else T
+        hits = torch.nonzero(window[end : max(end, limit - hold + 1)]).flatten()
+        recoveries.append(Recovery(start, end, int(hits[0]) if hits.numel() else None))
+    gap_ends = {end for _, end in gaps}
+    bad_in_view = scored & ~good
+    losses = tuple((a, b) for a, b in true_runs(bad_in_view) if a not in gap_ends)
+    return LongRunMetrics(
+        return_frames=frames,
+        return_errors_deg=tuple(float(err[f]) for f in frames),
+        rot_err_mean_deg=float(e.mean()) if e.numel() else nan,
+        rot_err_max_deg=float(e.max()) if e.numel() else nan,
+        lost_frames=int((scored & (err > lost_threshold_deg)).sum()),
+        unsuccessful_frames=int((scored & ~success).sum()),
+        success_out_of_view=int((~visible & success)[1:].sum()),
+        recoveries=tuple(recoveries),
+        losses_in_view=losses,
+        longest_loss_in_view=max((b - a for a, b in losses), default=0),
+    )
+
+
+def auroc(scores_pos: Tensor, scores_neg: Tensor) -> float:
+    """Area under the ROC curve: ``P(s_pos > s_neg) + P(s_pos = s_neg) / 2`` (Mann-Whitney ``U / (n_pos n_neg)``).
+
+    Args:
+        scores_pos: ``(n_pos,)`` scores of the positives (e.g. the confidence of good frames).
+        scores_neg: ``(n_neg,)`` scores of the negatives.
+
+    Returns:
+        The AUROC in ``[0, 1]``; NaN when either set is empty.
+
+    Example:
+        >>> auroc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.8]))
+        0.875
+    """
+    pos = torch.as_tensor(scores_pos, dtype=torch.float64).reshape(-1)
+    neg = torch.as_tensor(scores_neg, dtype=torch.float64).reshape(-1)
+    if bool(torch.isnan(pos).any() | torch.isnan(neg).any()):
+        raise ValueError("scores must not be NaN")
+    n_pos, n_neg = pos.numel(), neg.numel()
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    allv = torch.cat([pos, neg])
+    order = torch.argsort(allv, stable=True)
+    # Average 1-based ranks over ties.
+    _, inverse, counts = torch.unique_consecutive(allv[order], return_inverse=True, return_counts=True)
+    ends = torch.cumsum(counts, 0).to(torch.float64)
+    avg_rank = ends - (counts.to(torch.float64) - 1.0) / 2.0
+    ranks = torch.empty_like(allv)
+    ranks[order] = avg_rank[inverse]
+    u = float(ranks[:n_pos].sum()) - n_pos * (n_pos + 1) / 2.0
+    return u / (n_pos * n_neg)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -46,6 +47,14 @@ __all__ = [
     "light_switch",
     "occlusion",
     "scan_motion",
+    "LONG_RUN_FRAMES",
+    "LONG_RUN_MIN_FRAMES",
+    "LONG_SCENARIOS",
+    "ALL_SCENARIOS",
+    "LongRunTimeline",
+    "long_run_timeline",
+    "long_run",
+    "long_run_scan",
     "make_scenario",
     "scenario_size",
 ]
@@ -63,6 +72,8 @@ FULL_FRAMES: dict[str, int] = {
     "light_switch": 180,
     "occlusion": 160,
     "scan_motion": 240,
+    "long_run": 3000,
+    "long_run_scan": 3000,
 }
 
 # Pose keyframes (yaw, pitch, roll in degrees) of the sweep, shared by pose_sweep and scan_motion.
@@ -311,23 +322,246 @@ SCENARIOS: dict[str, Callable[[int, int, int], SequenceSpec]] = {
 }
 
 
+# --------------------------------------------------------------------------------------------- long scenarios
+
+#: Nominal length of the long scenarios; their timeline is written in frames of this length and scaled.
+LONG_RUN_FRAMES: int = 3000
+
+#: Fewest frames a long scenario can be rendered with (every turn, return and exit still has frames).
+LONG_RUN_MIN_FRAMES: int = 100
+
+#: Head translation (mm, camera x) that puts either subject's whole head outside a default camera's image:
+#: the image edge is at ``x = 225`` mm at the head's distance and no vertex is farther than ~170 mm from the
+#: head origin.
+EXIT_OFFSET_MM: float = 460.0
+
+# Pose keys of the long timeline: (nominal frame, yaw, pitch, roll [deg], dx, dy [mm], return to frontal?).
+# Turns: yaw +-60 and pitch +-30 alone and combined, each held briefly and undone; frames are at 25 fps.
+_X = EXIT_OFFSET_MM
+_LONG_KEYS: tuple[tuple[float, float, float, float, float, float, bool], ...] = (
+    (0, 0, 0, 0, 0, 0, False), (50, 0, 0, 0, 0, 0, False),
+    (125, 60, 0, 0, 0, 0, False), (140, 60, 0, 0, 0, 0, False), (215, 0, 0, 0, 0, 0, True),
+    (240, 0, 0, 0, 0, 0, False), (315, -60, 0, 0, 0, 0, False), (330, -60, 0, 0, 0, 0, False),
+    (405, 0, 0, 0, 0, 0, True),
+    (430, 0, 0, 0, 0, 0, False), (490, 0, 30, 0, 0, 0, False), (500, 0, 30, 0, 0, 0, False),
+    (560, 0, 0, 0, 0, 0, True),
+    (580, 0, 0, 0, 0, 0, False), (640, 0, -30, 0, 0, 0, False), (650, 0, -30, 0, 0, 0, False),
+    (710, 0, 0, 0, 0, 0, True),
+    (730, 0, 0, 0, 0, 0, False), (800, 45, 20, 10, 0, 0, False), (900, -45, -20, -10, 0, 0, False),
+    (970, 0, 0, 0, 0, 0, True),
+    # Gentle motion under the first occluder.
+    (1000, 0, 0, 0, 0, 0, False), (1040, -12, 6, 0, 0, 0, False), (1080, 0, 0, 0, 0, 0, False),
+    # First exit: to the right; the head turns while out of view and comes back turned.
+    (1100, 0, 0, 0, 0, 0, False), (1160, 0, 0, 0, _X, 0, False), (1260, -15, 5, 0, _X, 0, False),
+    (1320, -15, 5, 0, 0, 0, False), (1370, 0, 0, 0, 0, 0, True),
+    (1400, 0, 0, 0, 0, 0, False), (1475, 60, 0, 0, 0, 0, False), (1490, 60, 0, 0, 0, 0, False),
+    (1570, 0, 0, 0, 0, 0, True),
+    (1600, 0, 0, 0, 0, 0, False), (1680, -40, -30, 0, 0, 0, False), (1695, -40, -30, 0, 0, 0, False),
+    (1770, 0, 0, 0, 0, 0, True),
+    (1800, 0, 0, 0, 0, 0, False), (1875, -60, 0, 0, 0, 0, False), (1890, -60, 0, 0, 0, 0, False),
+    (1965, 0, 0, 0, 0, 0, True),
+    (1990, 0, 0, 0, 0, 0, False), (2050, 0, 30, 0, 0, 0, False), (2060, 0, 30, 0, 0, 0, False),
+    (2120, 0, 0, 0, 0, 0, True),
+    # Gentle motion under the second occluder.
+    (2150, 0, 0, 0, 0, 0, False), (2195, 15, -8, 5, 0, 0, False), (2240, 0, 0, 0, 0, 0, False),
+    # Second exit: to the left and down.
+    (2270, 0, 0, 0, 0, 0, False), (2320, 0, 0, 0, -_X, 60, False), (2400, 10, 0, 0, -_X, 60, False),
+    (2460, 10, 0, 0, 0, 0, False), (2500, 0, 0, 0, 0, 0, True),
+    # The third occluder passes during this turn.
+    (2530, 0, 0, 0, 0, 0, False), (2610, 50, 15, 0, 0, 0, False), (2625, 50, 15, 0, 0, 0, False),
+    (2700, 0, 0, 0, 0, 0, True),
+    (2730, 0, 0, 0, 0, 0, False), (2810, -50, -15, -10, 0, 0, False), (2825, -50, -15, -10, 0, 0, False),
+    (2900, 0, 0, 0, 0, 0, True),
+    (2999, 0, 0, 0, 0, 0, False),
+)
+del _X
+
+# Exits: (nominal frame the head starts leaving, frame it starts coming back).
+_LONG_EXITS: tuple[tuple[int, int], ...] = ((1100, 1260), (2270, 2400))
+# Sudden light switches, [on, off) in nominal frames: a strong side light (twice), the key light dimmed (once).
+_LONG_SIDE_LIGHT: tuple[tuple[int, int], ...] = ((300, 520), (1500, 1700))
+_LONG_KEY_DIM: tuple[int, int] = (2630, 2780)
+# Occluders: (first, last) nominal frames and the fraction of the face they cover.
+_LONG_OCCLUDERS: tuple[tuple[int, int, float], ...] = ((1000, 1080, 0.32), (2150, 2240, 0.35), (2560, 2620, 0.25))
+# Expressions (CANDIDE-3): (unit, nominal first, last frame, peak).
+_LONG_EXPRESSIONS: tuple[tuple[str, int, int, float], ...] = (
+    ("Jaw drop", 60, 200, 1.0), ("Outer brow raiser", 440, 560, 1.0), ("Lip stretcher", 740, 880, 0.8),
+    ("Brow lowerer", 1000, 1090, 1.0), ("Eyes closed", 1380, 1395, 1.0), ("Jaw drop", 1420, 1560, 0.8),
+    ("Brow lowerer", 1590, 1700, 0.8), ("Outer brow raiser", 1820, 1960, 0.8), ("Jaw drop", 2130, 2250, 0.7),
+    ("Eyes closed", 2510, 2525, 1.0), ("Lip stretcher", 2540, 2700, 1.0), ("Outer brow raiser", 2740, 2900, 0.7),
+)
+
+
+@dataclass(frozen=True)
+class LongRunTimeline:
+    """The motion of the long scenarios at a given length (nominal frames scaled to ``T``).
+
+    Attributes:
+        ypr_deg: ``(T, 3)`` yaw, pitch, roll (degrees, :mod:`torchface.conventions`).
+        offset_mm: ``(T, 3)`` translation added to the resting head position (the exits), millimetres.
+        returns: frames at which the head is exactly frontal again after a turn.
+        exits: ``(leave, reenter)`` per exit: the frame the head starts translating out, the frame it starts
+            coming back.
+        events: ``(label, frame)`` pairs sorted by frame: ``frontal_return``, ``face_leaves``,
+            ``face_reenters``, ``side_light_on/off``, ``key_light_dim/restore``, ``occluder_on/off``.
+    """
+
+    ypr_deg: Tensor
+    offset_mm: Tensor
+    returns: tuple[int, ...]
+    exits: tuple[tuple[int, int], ...]
+    events: tuple[tuple[str, int], ...]
+
+
+def _scaled(nominal: float, num_frames: int) -> int:
+    """Frame of nominal frame ``nominal`` (of :data:`LONG_RUN_FRAMES`) in a ``num_frames`` sequence."""
+    return int(round(nominal * (num_frames - 1) / (LONG_RUN_FRAMES - 1)))
+
+
+def _knot_path(knots: Tensor, values: Tensor, num_frames: int) -> Tensor:
+    """Eased path through ``values (n, D)`` placed at whole frames ``knots (n,)`` (non-decreasing).
+
+    Keys sharing a frame: the last one holds there. Each segment is eased with ``s^2 (3 - 2 s)``.
+    """
+    f = torch.arange(num_frames, dtype=torch.float64)
+    kn = knots.to(torch.float64)
+    i = (torch.searchsorted(kn, f, right=True) - 1).clamp(0, kn.shape[0] - 2)
+    local = ((f - kn[i]) / (kn[i + 1] - kn[i]).clamp(min=1.0)).clamp(0.0, 1.0)
+    ease = local * local * (3.0 - 2.0 * local)
+    return values[i] + ease.unsqueeze(-1) * (values[i + 1] - values[i])
+
+
+def long_run_timeline(num_frames: int) -> LongRunTimeline:
+    """The long scenarios' timeline at ``num_frames`` frames (>= :data:`LONG_RUN_MIN_FRAMES`).
+
+    Keys sit on whole frames, so every return to frontal is exactly frontal at its frame.
+
+    Example:
+        >>> tl = long_run_timeline(3000)
+        >>> len(tl.returns), tl.returns[0], tl.ypr_deg[tl.returns[0]].abs().max().item()
+        (13, 215, 0.0)
+    """
+    if num_frames < LONG_RUN_MIN_FRAMES:
+        raise ValueError(f"the long scenarios need at least {LONG_RUN_MIN_FRAMES} frames, got {num_frames}")
+    keys = torch.tensor([k[:6] for k in _LONG_KEYS], dtype=torch.float64)
+    knots = torch.tensor([_scaled(k[0], num_frames) for k in _LONG_KEYS], dtype=torch.float64)
+    path = _knot_path(knots, keys[:, 1:], num_frames)
+    offset = torch.cat([path[:, 3:5], torch.zeros(num_frames, 1, dtype=torch.float64)], dim=-1)
+    returns = tuple(sorted({_scaled(k[0], num_frames) for k in _LONG_KEYS if k[6]}))
+    exits = tuple((_scaled(a, num_frames), _scaled(b, num_frames)) for a, b in _LONG_EXITS)
+    events: list[tuple[str, int]] = [("frontal_return", r) for r in returns]
+    for leave, back in exits:
+        events += [("face_leaves", leave), ("face_reenters", back)]
+    for on, off in _LONG_SIDE_LIGHT:
+        events += [("side_light_on", _scaled(on, num_frames)), ("side_light_off", _scaled(off, num_frames))]
+    events += [("key_light_dim", _scaled(_LONG_KEY_DIM[0], num_frames)),
+               ("key_light_restore", _scaled(_LONG_KEY_DIM[1], num_frames))]  # fmt: skip
+    for first, last, _ in _LONG_OCCLUDERS:
+        events += [("occluder_on", _scaled(first, num_frames)), ("occluder_off", _scaled(last, num_frames))]
+    events.sort(key=lambda e: (e[1], e[0]))
+    return LongRunTimeline(path[:, :3].clone(), offset, returns, exits, tuple(events))
+
+
+def _window(num_frames: int, first: int, last: int) -> Tensor:
+    """``(T,)`` float64 indicator of the frames ``[first, last)`` (nominal frames scaled)."""
+    f = torch.arange(num_frames)
+    return ((f >= _scaled(first, num_frames)) & (f < _scaled(last, num_frames))).to(torch.float64)
+
+
+def _long_light(num_frames: int) -> LightState:
+    """Slowly circling key light of slowly drifting strength, plus the sudden switches of the timeline."""
+    s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
+    azimuth = math.radians(50.0) * torch.sin(2 * math.pi * 2.0 * s)
+    elevation = math.radians(25.0) + math.radians(10.0) * torch.sin(2 * math.pi * 3.0 * s + 0.4)
+    key = torch.stack(
+        [torch.sin(azimuth) * torch.cos(elevation), -torch.sin(elevation), -torch.cos(azimuth) * torch.cos(elevation)],
+        dim=-1,
+    )
+    side = _unit([0.95, -0.05, -0.3]).expand(num_frames, 3)
+    side_on = sum(_window(num_frames, a, b) for a, b in _LONG_SIDE_LIGHT)
+    dim = _window(num_frames, *_LONG_KEY_DIM)
+    key_intensity = (0.55 + 0.15 * torch.sin(2 * math.pi * 1.5 * s + 1.1)) * (1.0 - 0.6 * dim)
+    ambient = 0.4 + 0.08 * torch.sin(2 * math.pi * 2.5 * s + 0.3) + 0.1 * dim
+    return LightState(ambient, torch.stack([key, side], dim=1), torch.stack([key_intensity, 0.7 * side_on], dim=1))
+
+
+def _long_spec(name: str, subject_name: str, num_frames: int, width: int, height: int, seed: int) -> SequenceSpec:
+    _check(num_frames, width, height)
+    tl = long_run_timeline(num_frames)
+    subject = get_subject(subject_name)
+    anim = torch.zeros(num_frames, subject.num_animation, dtype=torch.float64)
+    if subject.num_animation:
+        for needle, first, last, peak in _LONG_EXPRESSIONS:
+            j = _au_index(subject.animation_names, needle)
+            a, b = first / (LONG_RUN_FRAMES - 1), last / (LONG_RUN_FRAMES - 1)
+            anim[:, j] = anim[:, j] + peak * _bump(num_frames, a, b)
+    R, t = _pose(tl.ypr_deg, num_frames, (12.0, 6.0, 10.0))
+    occluders = tuple(
+        OccluderSpec(
+            first_frame=_scaled(a, num_frames), last_frame=_scaled(b, num_frames), target_fraction=q, seed=5 + i
+        )
+        for i, (a, b, q) in enumerate(_LONG_OCCLUDERS)
+    )
+    return SequenceSpec(
+        name=name,
+        subject=subject_name,
+        intrinsics=_camera(width, height),
+        rotation=R,
+        translation=t + tl.offset_mm,
+        anim=anim,
+        light=_long_light(num_frames),
+        background=BackgroundSpec(seed=seed, pan_px_per_frame=(0.3 * width / 640.0, 0.1 * height / 480.0)),
+        occluders=occluders,
+        events=tl.events,
+        description=(
+            f"{subject_name}, {len(tl.returns)} large turns (yaw +-60, pitch +-30) each back to frontal, light "
+            f"drifts and switches, {len(occluders)} occluders, {len(tl.exits)} exits out of the image"
+        ),
+    )
+
+
+def long_run(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """CANDIDE-3 (textured, with expressions) on the long timeline (:func:`long_run_timeline`)."""
+    return _long_spec("long_run", "candide3", num_frames, width, height, seed=61)
+
+
+def long_run_scan(num_frames: int, width: int, height: int) -> SequenceSpec:
+    """The James scan on the long timeline (:func:`long_run_timeline`; rigid: no animation units)."""
+    return _long_spec("long_run_scan", "james", num_frames, width, height, seed=67)
+
+
+#: Long scenario name -> builder; not in :data:`SCENARIOS` (the standard set), in :data:`ALL_SCENARIOS`.
+LONG_SCENARIOS: dict[str, Callable[[int, int, int], SequenceSpec]] = {
+    "long_run": long_run,
+    "long_run_scan": long_run_scan,
+}
+
+#: Every scenario :func:`make_scenario` builds.
+ALL_SCENARIOS: dict[str, Callable[[int, int, int], SequenceSpec]] = {**SCENARIOS, **LONG_SCENARIOS}
+
+
 def scenario_size(name: str, size: str) -> tuple[int, int, int]:
-    """``(width, height, frames)`` of scenario ``name`` at named size ``"small"`` or ``"full"``."""
+    """``(width, height, frames)`` of scenario ``name`` at named size ``"small"`` or ``"full"``.
+
+    A long scenario's small size has :data:`LONG_RUN_MIN_FRAMES` frames (its timeline needs them).
+    """
     if size not in SIZES:
         raise ValueError(f"size must be one of {tuple(SIZES)}, got {size!r}")
-    if name not in SCENARIOS:
-        raise ValueError(f"scenario must be one of {tuple(SCENARIOS)}, got {name!r}")
+    if name not in ALL_SCENARIOS:
+        raise ValueError(f"scenario must be one of {tuple(ALL_SCENARIOS)}, got {name!r}")
     w, h, frames = SIZES[size]
-    return w, h, FULL_FRAMES[name] if frames is None else frames
+    if frames is None:
+        return w, h, FULL_FRAMES[name]
+    return w, h, max(frames, LONG_RUN_MIN_FRAMES) if name in LONG_SCENARIOS else frames
 
 
 def make_scenario(name: str, num_frames: int, width: int, height: int) -> SequenceSpec:
-    """Build scenario ``name`` (one of :data:`SCENARIOS`).
+    """Build scenario ``name`` (one of :data:`ALL_SCENARIOS`).
 
     Example:
         >>> make_scenario("light_switch", 30, 160, 120).events
         (('side_light_on', 10), ('side_light_off', 20))
     """
-    if name not in SCENARIOS:
-        raise ValueError(f"scenario must be one of {tuple(SCENARIOS)}, got {name!r}")
-    return SCENARIOS[name](int(num_frames), int(width), int(height))
+    if name not in ALL_SCENARIOS:
+        raise ValueError(f"scenario must be one of {tuple(ALL_SCENARIOS)}, got {name!r}")
+    return ALL_SCENARIOS[name](int(num_frames), int(width), int(height))

@@ -77,6 +77,7 @@ class SequenceSpec:
         fps: frame rate written to the video.
         events: ``(label, frame)`` pairs worth knowing (e.g. when a light switches on).
         description: one line for humans.
+        occluders: further occluding objects; the frame ranges of ``occluder`` and these must not overlap.
     """
 
     name: str
@@ -93,6 +94,7 @@ class SequenceSpec:
     fps: float = 25.0
     events: tuple[tuple[str, int], ...] = ()
     description: str = ""
+    occluders: tuple[OccluderSpec, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.intrinsics, Intrinsics):
@@ -110,8 +112,15 @@ class SequenceSpec:
             raise ValueError(f"light must be a LightState with batch {t}")
         if self.shape_coeffs is not None and (not isinstance(self.shape_coeffs, Tensor) or self.shape_coeffs.ndim != 1):
             raise ValueError("shape_coeffs must be a (S,) tensor or None")
-        if self.occluder is not None and self.occluder.first_frame >= t:
-            raise ValueError(f"occluder starts at frame {self.occluder.first_frame} of a {t}-frame sequence")
+        if not isinstance(self.occluders, tuple) or not all(isinstance(o, OccluderSpec) for o in self.occluders):
+            raise TypeError("occluders must be a tuple of OccluderSpec")
+        spans = sorted((o.first_frame, o.last_frame) for o in self.all_occluders)
+        for o in self.all_occluders:
+            if o.first_frame >= t:
+                raise ValueError(f"occluder starts at frame {o.first_frame} of a {t}-frame sequence")
+        for (_, end), (start, _) in zip(spans[:-1], spans[1:]):
+            if start < end:
+                raise ValueError(f"occluder frame ranges must not overlap, got {spans}")
         if self.fps <= 0:
             raise ValueError(f"fps must be positive, got {self.fps}")
 
@@ -119,6 +128,11 @@ class SequenceSpec:
     def num_frames(self) -> int:
         """``T``."""
         return int(self.rotation.shape[0])
+
+    @property
+    def all_occluders(self) -> tuple[OccluderSpec, ...]:
+        """``occluder`` (if any) followed by ``occluders``."""
+        return ((self.occluder,) if self.occluder is not None else ()) + self.occluders
 
 
 @dataclass(frozen=True)
@@ -184,6 +198,28 @@ class GroundTruth:
     def light(self) -> LightState:
         """The per-frame light as a :class:`LightState` with batch ``T``."""
         return LightState(self.light_ambient, self.light_directions, self.light_intensities)
+
+    @property
+    def landmarks_in_image(self) -> Tensor:
+        """``(T, 68)`` bool: the landmark projects inside the image ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``
+        (whether or not it is hidden by the head itself or an occluder)."""
+        u, v = self.landmarks_px[..., 0], self.landmarks_px[..., 1]
+        w, h = self.intrinsics.width, self.intrinsics.height
+        return (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+
+    @property
+    def face_in_view(self) -> Tensor:
+        """``(T,)`` float64: fraction of the 68 landmarks that project inside the image."""
+        return self.landmarks_in_image.to(torch.float64).mean(-1)
+
+    @property
+    def face_visible(self) -> Tensor:
+        """``(T,)`` bool: the whole face is in view (every landmark projects inside the image) and rendered.
+
+        A face partly out of the image counts as not visible: when a face comes back into view, the clock of
+        "frames until tracking recovers" starts at its first frame that is entirely inside the image.
+        """
+        return self.landmarks_in_image.all(-1) & (self.face_pixels > 0)
 
 
 @dataclass(frozen=True)
@@ -355,11 +391,14 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         visible = landmark_visibility(verts_cam, subject.faces, lm_cam, subject.landmark_faces, cam, point_normals=lm_normals)
         occ_on = torch.zeros(b, dtype=torch.bool)
         occ_frac = torch.zeros(b, dtype=torch.float64)
-        if spec.occluder is not None and bool(spec.occluder.active(idx).any()):
-            alpha, colour, frac = place_occluder(spec.occluder, idx, mask)
+        for occluder in spec.all_occluders:
+            if not bool(occluder.active(idx).any()):
+                continue
+            # Occluder ranges do not overlap: each frame gets at most one, so the fractions add up.
+            alpha, colour, frac = place_occluder(occluder, idx, mask)
             image = image * (1.0 - alpha) + colour * alpha
-            occ_on = spec.occluder.active(idx) & (face_pixels > 0)
-            occ_frac = frac.to(torch.float64)
+            occ_on = occ_on | (occluder.active(idx) & (face_pixels > 0))
+            occ_frac = occ_frac + frac.to(torch.float64)
             col = lm_px[..., 0].round().clamp(0, w - 1).long()
             row = lm_px[..., 1].round().clamp(0, h - 1).long()
             covered = alpha[torch.arange(b).unsqueeze(-1), 0, row, col] > 0.5
@@ -446,6 +485,7 @@ def _metadata(gt: GroundTruth) -> dict[str, object]:
         "ypr_deg_min": [round(float(x), 3) for x in gt.ypr_deg.amin(0)],
         "ypr_deg_max": [round(float(x), 3) for x in gt.ypr_deg.amax(0)],
         "occluder_frames": int(on.sum()),
+        "face_not_visible_frames": int((~gt.face_visible).sum()),
         "occluded_fraction_range": (
             [round(float(gt.occluded_fraction[on].min()), 4), round(float(gt.occluded_fraction[on].max()), 4)] if on.any() else []
         ),

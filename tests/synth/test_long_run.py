@@ -1,0 +1,238 @@
+"""Tests of the long scenarios (issue 5): their timeline, ground truth of visibility, several occluders.
+
+Rendering all of a long scenario is slow even when short, so the rendered checks take a handful of its frames
+(:func:`_subset`: the same poses, expressions and light, the occluders left out) at a small size.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchface.geometry.so3 import euler_to_matrix
+from torchface.synth.background import OccluderSpec, background_frames
+from torchface.synth.scenarios import (
+    ALL_SCENARIOS,
+    LONG_RUN_FRAMES,
+    LONG_RUN_MIN_FRAMES,
+    LONG_SCENARIOS,
+    SCENARIOS,
+    long_run_timeline,
+    make_scenario,
+    scenario_size,
+)
+from torchface.synth.sequence import SequenceSpec, render_sequence
+
+F64 = torch.float64
+W, H = 80, 60
+
+
+def _subset(spec: SequenceSpec, frames: list[int]) -> SequenceSpec:
+    """The frames ``frames`` of ``spec`` as a sequence of their own (occluders and events dropped)."""
+    idx = torch.tensor(frames)
+    return replace(
+        spec, rotation=spec.rotation[idx], translation=spec.translation[idx], anim=spec.anim[idx],
+        light=spec.light.select(idx), occluder=None, occluders=(), events=(),
+    )
+
+
+def _frames_of_interest(num_frames: int) -> tuple[list[int], dict[str, list[int]]]:
+    """Frames to render from a ``num_frames`` long scenario, grouped by what the timeline says of them."""
+    tl = long_run_timeline(num_frames)
+    out_of_view = (tl.offset_mm[:, 0].abs() == tl.offset_mm[:, 0].abs().max()).nonzero().flatten().tolist()
+    leave, back = tl.exits[0]
+    entering = [f for f in range(back, back + 12) if f not in out_of_view][:6]
+    groups = {"returns": list(tl.returns[:3]), "out": out_of_view[:4], "entering": entering, "start": [0]}
+    frames = sorted({f for g in groups.values() for f in g})
+    return frames, groups
+
+
+_RENDERED: dict[str, tuple] = {}
+
+
+def _rendered(name: str, num_frames: int = LONG_RUN_MIN_FRAMES):
+    if name not in _RENDERED:
+        spec = make_scenario(name, num_frames, W, H)
+        frames, groups = _frames_of_interest(num_frames)
+        images, gt = render_sequence(_subset(spec, frames))
+        _RENDERED[name] = (spec, frames, groups, images, gt)
+    return _RENDERED[name]
+
+
+# ----------------------------------------------------------------------------------------- timeline
+@pytest.mark.parametrize("num_frames", [LONG_RUN_MIN_FRAMES, 457, LONG_RUN_FRAMES])
+def test_timeline_returns_are_exactly_frontal_after_large_turns(num_frames):
+    tl = long_run_timeline(num_frames)
+    assert tl.ypr_deg.shape == (num_frames, 3) and tl.offset_mm.shape == (num_frames, 3)
+    assert len(tl.returns) == 13 and list(tl.returns) == sorted(set(tl.returns))
+    assert (tl.ypr_deg[list(tl.returns)] == 0).all() and (tl.offset_mm[list(tl.returns)] == 0).all()
+    # Reaches yaw +-60 and pitch +-30, several times each.
+    assert tl.ypr_deg[:, 0].max() == 60 and tl.ypr_deg[:, 0].min() == -60
+    assert tl.ypr_deg[:, 1].max() == 30 and tl.ypr_deg[:, 1].min() == -30
+    peaks, previous = [], 0
+    for r in tl.returns:
+        peaks.append(float(tl.ypr_deg[previous:r].abs().amax()))
+        previous = r
+    assert sum(p >= 45 for p in peaks) >= 7 and sum(p >= 30 for p in peaks) >= 10 and min(peaks) >= 10, peaks
+    # Both exits move the head out by the full offset for some frames, turned or not, then back.
+    for leave, back in tl.exits:
+        assert tl.offset_mm[leave].abs().max() == 0 and tl.offset_mm[back].abs().max() > 400
+        assert tl.offset_mm[back:].abs().amax(-1).min() == 0  # it does come back
+    events = dict((label, f) for label, f in tl.events if label != "frontal_return")
+    assert {"face_leaves", "face_reenters", "side_light_on", "occluder_on", "key_light_dim"} <= set(events)
+    assert [f for label, f in tl.events if label == "frontal_return"] == list(tl.returns)
+
+
+def test_timeline_scales_with_length():
+    full, short = long_run_timeline(LONG_RUN_FRAMES), long_run_timeline(300)
+    assert full.returns[0] == 215
+    # Nominal frame k of the 3000 lands on round(k * 299 / 2999) of 300.
+    assert short.returns == tuple(round(r * 299 / 2999) for r in full.returns)
+    with pytest.raises(ValueError, match="at least"):
+        long_run_timeline(LONG_RUN_MIN_FRAMES - 1)
+
+
+def test_long_scenarios_are_registered_apart_from_the_standard_ones():
+    assert set(LONG_SCENARIOS).isdisjoint(SCENARIOS) and set(ALL_SCENARIOS) == set(SCENARIOS) | set(LONG_SCENARIOS)
+    assert scenario_size("long_run", "full") == (640, 480, LONG_RUN_FRAMES)
+    assert scenario_size("long_run_scan", "small")[2] == LONG_RUN_MIN_FRAMES
+    a, b = make_scenario("long_run", 120, W, H), make_scenario("long_run_scan", 120, W, H)
+    assert (a.subject, b.subject) == ("candide3", "james")
+    torch.testing.assert_close(a.rotation, b.rotation, rtol=0, atol=0)
+    torch.testing.assert_close(a.translation, b.translation, rtol=0, atol=0)
+    assert a.anim.abs().amax(0).gt(0.5).sum() >= 4 and b.anim.shape == (120, 0)
+    assert len(a.occluders) == 3 and a.occluder is None
+    # The light switches: the side light is on between its events, off elsewhere.
+    events = [(label, f) for label, f in a.events if label.startswith("side_light")]
+    on = torch.zeros(120, dtype=torch.bool)
+    for (l1, f1), (l2, f2) in zip(events[::2], events[1::2]):
+        assert (l1, l2) == ("side_light_on", "side_light_off")
+        on[f1:f2] = True
+    assert (a.light.intensities[on, 1] > 0.5).all() and (a.light.intensities[~on, 1] == 0).all()
+
+
+# ----------------------------------------------------------------------------------------- rendered ground truth
+@pytest.mark.parametrize("name", list(LONG_SCENARIOS))
+def test_rendered_returns_are_frontal_and_visible(name):
+    spec, frames, groups, images, gt = _rendered(name)
+    rows = [frames.index(f) for f in groups["returns"] + groups["start"]]
+    torch.testing.assert_close(gt.ypr_deg[rows], torch.zeros(len(rows), 3, dtype=F64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(gt.rotation[rows], euler_to_matrix(torch.zeros(len(rows), 3, dtype=F64)))
+    assert gt.face_visible[rows].all() and (gt.face_in_view[rows] == 1).all()
+    assert (gt.face_pixels[rows] > 0.04 * W * H).all()
+    # Frontal: the inner landmarks (brows, nose, eyes, mouth) are seen.
+    assert gt.landmarks_visible[rows][:, 17:].float().mean() > 0.85
+
+
+@pytest.mark.parametrize("name", list(LONG_SCENARIOS))
+def test_rendered_out_of_view_stretch_projects_outside_the_image(name):
+    spec, frames, groups, images, gt = _rendered(name)
+    rows = [frames.index(f) for f in groups["out"]]
+    assert rows and not gt.face_visible[rows].any()
+    # Every landmark projects outside the image, no pixel shows the face, none is visible ...
+    assert not gt.landmarks_in_image[rows].any() and (gt.face_in_view[rows] == 0).all()
+    assert (gt.face_pixels[rows] == 0).all() and not gt.landmarks_visible[rows].any()
+    # ... and the frame is the bare background (known answer).
+    bg = background_frames(spec.background, torch.tensor(rows, dtype=torch.float32), H, W)
+    torch.testing.assert_close(images[rows], bg.clamp(0, 1), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("name", list(LONG_SCENARIOS))
+def test_rendered_visibility_flags_match_the_landmarks_while_the_face_comes_back(name):
+    spec, frames, groups, images, gt = _rendered(name)
+    rows = [frames.index(f) for f in groups["entering"]]
+    inside = gt.landmarks_in_image[rows]
+    # The flag is exactly "every landmark inside the image and some face pixels".
+    assert torch.equal(gt.face_visible[rows], inside.all(-1) & (gt.face_pixels[rows] > 0))
+    torch.testing.assert_close(gt.face_in_view[rows], inside.double().mean(-1))
+    # The face comes in over these frames: partly (not visible, yet rendered), then whole.
+    partial = (gt.face_pixels[rows] > 0) & ~gt.face_visible[rows]
+    assert partial.any() and gt.face_visible[rows].any()
+    first_visible = int(gt.face_visible[rows].nonzero()[0])
+    assert gt.face_visible[rows][first_visible:].all()
+    # A landmark seen by the camera always projects inside the image.
+    assert not (gt.landmarks_visible & ~gt.landmarks_in_image).any()
+
+
+# ----------------------------------------------------------------------------------------- several occluders
+def test_several_occluders_each_cover_their_frames():
+    spec = make_scenario("pose_sweep", 10, 64, 48)
+    occ = (OccluderSpec(1, 3, target_fraction=0.3), OccluderSpec(6, 8, target_fraction=0.3, seed=6))
+    frames, gt = render_sequence(replace(spec, occluders=occ))
+    on = gt.occluder_on
+    assert on.tolist() == [False, True, True, False, False, False, True, True, False, False]
+    assert ((gt.occluded_fraction[on] > 0.2) & (gt.occluded_fraction[on] < 0.45)).all()
+    assert (gt.occluded_fraction[~on] == 0).all()
+    # One occluder given as `occluder` or as `occluders` renders the same frames.
+    a = render_sequence(replace(spec, occluder=occ[0]))[0]
+    b = render_sequence(replace(spec, occluders=occ[:1]))[0]
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    clean = render_sequence(spec)[0]
+    assert (frames[~on] == clean[~on]).all() and (frames[on] != clean[on]).any()
+
+
+def test_overlapping_or_late_occluders_are_rejected():
+    spec = make_scenario("pose_sweep", 10, 64, 48)
+    with pytest.raises(ValueError, match="overlap"):
+        replace(spec, occluder=OccluderSpec(1, 5), occluders=(OccluderSpec(4, 6),))
+    with pytest.raises(ValueError, match="starts at frame"):
+        replace(spec, occluders=(OccluderSpec(12, 14),))
+    with pytest.raises(TypeError, match="occluders"):
+        replace(spec, occluders=[OccluderSpec(1, 2)])
+
+
+# ----------------------------------------------------------------------------------------- evaluate.py sections
+def _load_evaluate():
+    path = Path(__file__).resolve().parents[2] / "scripts" / "evaluate.py"
+    spec = importlib.util.spec_from_file_location("evaluate_under_test", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_evaluate_sections_on_made_up_runs():
+    """Section (a)'s table and section (b)'s AUROC from runs whose errors and confidences are known."""
+    ev = _load_evaluate()
+    spec, frames, groups, images, gt = _rendered("long_run")
+    returns = [frames.index(f) for f in groups["returns"]]
+    gt = replace(gt, events=tuple(("frontal_return", r) for r in returns))
+    T = gt.num_frames
+    in_view = gt.face_visible
+
+    def run(yaw_err: torch.Tensor, success: torch.Tensor, confidence: torch.Tensor):
+        offset = euler_to_matrix(torch.stack([yaw_err, torch.zeros(T, dtype=F64), torch.zeros(T, dtype=F64)], -1))
+        return ev.RunOutput(
+            rotation=offset @ gt.rotation, translation=gt.translation, anim=torch.zeros(T, 0, dtype=F64),
+            status=torch.zeros(T, dtype=torch.int64), ms_per_frame=10.0, init_ms=1.0, success=success,
+            confidence=confidence,
+        )
+
+    good_err = torch.full((T,), 0.5, dtype=F64)
+    good_err[0] = 0.0
+    good = run(good_err, in_view.clone(), torch.where(in_view, 0.9, 0.0).to(F64))
+    drift = torch.linspace(0.0, 12.0, T, dtype=F64)
+    bad = run(drift, torch.ones(T, dtype=torch.bool), (1.0 - drift / 12.0))
+    runs = {"mosaic": (ev.long_metrics(gt, good, 1), 10.0), "bare": (ev.long_metrics(gt, bad, 1), 12.0)}
+    m = runs["mosaic"][0]
+    torch.testing.assert_close(torch.tensor(m.return_errors_deg, dtype=F64), torch.full((3,), 0.5, dtype=F64))
+    assert [r.frames_to_recover for r in m.recoveries] == [0]
+    text = ev.long_table("long_run", "made up", gt, runs, hold=1)
+    assert text.count("return ") >= 3 and "mosaic" in text and "bare" in text
+    assert "error at every return <= 1 deg: PASS (max 0.50)" in text
+    assert "again: PASS (worst 0)" in text
+    json.dumps(ev._json_safe(ev.long_json(m, good, W, H, T)), allow_nan=False)
+    # Section (b): the made-up confidence falls as the error grows, so it separates them perfectly.
+    series = [ev.frame_series("long_run", "mosaic", True, gt, good), ev.frame_series("long_run", "bare", False, gt, bad)]
+    text, figures = ev.auroc_section(series)
+    pooled = figures["POOLED all configurations"]
+    assert pooled["auroc"] == 1.0 and pooled["negatives"] > 0 and pooled["positives"] > 0
+    assert "n/a" in text  # the default runs alone have no frame above 5 degrees
+    flipped = [replace(s, confidence=1.0 - s.confidence) for s in series]
+    assert ev.auroc_section(flipped)[1]["POOLED all configurations"]["auroc"] == 0.0
