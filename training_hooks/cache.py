@@ -196,7 +196,9 @@ class TrackCache:
         self.stats.hits += 1
         return sequence
 
-    def store(self, key: str, sequence: TrackedSequence, source: str = "", config: FaceTrackingConfig | None = None) -> Path:
+    def store(
+        self, key: str, sequence: TrackedSequence, source: str = "", config: FaceTrackingConfig | None = None
+    ) -> Path:
         """Write ``sequence`` under ``key`` atomically (temporary file, fsync, :func:`os.replace`); returns the path.
 
         Args:

@@ -47,7 +47,6 @@ from torchface.io.errors import InputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.video import open_frames
 from torchface.model.face_model import FaceModel
-from torchface.normalise.face import NormalisedFace
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
 
@@ -131,7 +130,9 @@ class DatasetStats:
     cache: CacheStats = field(default_factory=CacheStats)
 
 
-def clip_bounds(num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool) -> list[tuple[int, int]]:
+def clip_bounds(
+    num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool
+) -> list[tuple[int, int]]:
     """``(start, stop)`` frame ranges of the items of a ``num_frames``-frame video (:class:`DatasetConfig`).
 
     Example:
@@ -210,7 +211,9 @@ class VideoDataset(IterableDataset):
 
     def _check_source(self, path: Path) -> None:
         if not path.is_file():
-            raise ValueError(f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)")
+            raise ValueError(
+                f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
+            )
 
     def set_epoch(self, epoch: int) -> None:
         """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration; with
@@ -281,7 +284,9 @@ class VideoDataset(IterableDataset):
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
-            raise InputError(f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}")
+            raise InputError(
+                f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}"
+            )
         return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks")
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:

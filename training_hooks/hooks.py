@@ -1,8 +1,8 @@
 """Framework-agnostic helpers for training loops fed by the tracked datasets.
 
 Batches are dicts of batch-first tensors as the datasets and collates make them: frame batches (PyTorch's
-``default_collate`` of frame items: ``confidence`` ``(B,)``) or clip batches (:func:`~training_hooks.collate.collate_clips`:
-``confidence`` ``(B, T)`` plus ``frame_mask`` ``(B, T)``).
+``default_collate`` of frame items: ``confidence`` ``(B,)``) or clip batches
+(:func:`~training_hooks.collate.collate_clips`: ``confidence`` ``(B, T)`` plus ``frame_mask`` ``(B, T)``).
 
 - :func:`confidence_weighted_loss`: ``sum_i c_i m_i l_i / sum_i c_i m_i``, the tracker's confidence as a weight;
 - :func:`drop_low_confidence`: keep the samples whose (clip-mean) confidence reaches a threshold;
@@ -138,7 +138,8 @@ def drop_low_confidence(
             frame) is dropped even at threshold 0.
 
     Example:
-        >>> out = drop_low_confidence({"confidence": torch.tensor([0.9, 0.2, 0.6]), "face": torch.zeros(3, 3, 4, 4)}, 0.5)
+        >>> batch = {"confidence": torch.tensor([0.9, 0.2, 0.6]), "face": torch.zeros(3, 3, 4, 4)}
+        >>> out = drop_low_confidence(batch, 0.5)
         >>> out.indices.tolist(), out.batch["face"].shape[0]
         ([0, 2], 2)
     """
@@ -266,7 +267,7 @@ class TrackingQualityLogger:
         >>> log = TrackingQualityLogger()
         >>> _ = log.update({"confidence": torch.tensor([0.2, 0.4])})
         >>> _ = log.update({"confidence": torch.tensor([1.0])})
-        >>> round(log.compute()["confidence_mean"], 4), log.compute()["confidence_min"]
+        >>> round(log.compute()["confidence_mean"], 4), round(log.compute()["confidence_min"], 4)
         (0.5333, 0.2)
     """
 

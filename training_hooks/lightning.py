@@ -69,17 +69,19 @@ class TrackingQualityCallback(pl.Callback):
         stats = self.loggers[stage].update(self._batch(batch))
         if self.log_steps and stats.get("frames", 0.0) > 0:
             size = int(stats["samples"])
-            pl_module.log_dict(
-                {f"{self.prefix}{stage}/{k}": v for k, v in stats.items()}, on_step=True, on_epoch=False, batch_size=size
-            )
+            named = {f"{self.prefix}{stage}/{k}": v for k, v in stats.items()}
+            pl_module.log_dict(named, on_step=True, on_epoch=False, batch_size=size)
 
     def _on_epoch_end(self, stage: str, pl_module: pl.LightningModule) -> None:
         stats = self.loggers[stage].compute()
         if stats.get("frames", 0.0) > 0:
-            pl_module.log_dict({f"{self.prefix}{stage}_epoch/{k}": v for k, v in stats.items()}, on_step=False, on_epoch=True)
+            named = {f"{self.prefix}{stage}_epoch/{k}": v for k, v in stats.items()}
+            pl_module.log_dict(named, on_step=False, on_epoch=True)
         self.loggers[stage].reset()
 
-    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int) -> None:
+    def on_train_batch_start(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int
+    ) -> None:
         self._on_batch("train", pl_module, batch)
 
     def on_validation_batch_start(

@@ -193,7 +193,8 @@ class TrackedSequence:
     def __post_init__(self) -> None:
         for f in fields(self):
             if f.name != "frame_size" and not isinstance(getattr(self, f.name), Tensor):
-                raise TypeError(f"TrackedSequence.{f.name} must be a torch.Tensor, got {type(getattr(self, f.name)).__name__}")
+                got = type(getattr(self, f.name)).__name__
+                raise TypeError(f"TrackedSequence.{f.name} must be a torch.Tensor, got {got}")
         faces = self.faces
         if faces.dim() != 4 or faces.shape[0] < 1 or faces.shape[-1] != faces.shape[-2]:
             raise ValueError(f"faces must be (T, C, S, S) with T >= 1, got {tuple(faces.shape)}")
@@ -292,7 +293,8 @@ def _landmarks_tensor(landmarks: object) -> Tensor:
     if isinstance(landmarks, np.ndarray):
         landmarks = torch.from_numpy(np.asarray(landmarks, dtype=np.float64))
     if not isinstance(landmarks, Tensor):
-        raise TypeError(f"landmarks must be a (68, 2) array or tensor, or a TrackerState, got {type(landmarks).__name__}")
+        got = type(landmarks).__name__
+        raise TypeError(f"landmarks must be a (68, 2) array or tensor, or a TrackerState, got {got}")
     if tuple(landmarks.shape) != (68, 2):
         raise ValueError(f"landmarks must be (68, 2) iBUG points in pixels, got {tuple(landmarks.shape)}")
     if not bool(torch.isfinite(landmarks).all()):
@@ -335,7 +337,8 @@ def track_sequence(
     landmarks = torch.zeros(0, 2, dtype=torch.float64)
     if isinstance(start, TrackerState):
         if start.params.shape[0] != 1:
-            raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {start.params.shape[0]}")
+            B = start.params.shape[0]
+            raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {B}")
         state = start
     else:
         landmarks = _landmarks_tensor(start)

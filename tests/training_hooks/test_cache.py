@@ -71,9 +71,10 @@ def test_second_epoch_hits_the_cache_with_identical_items(two, config):
 def test_changed_config_never_reads_a_stale_cache(two, config):
     videos, lms = two
     base = epoch(VideoDataset(videos, lms, config))
+    fit = replace(TRACKING.tracker.fit, shape_prior_precision=0.5)  # a field of a nested dataclass
     changes = [
         replace(TRACKING, tracker=replace(TRACKING.tracker, max_points=400)),  # a tracker field
-        replace(TRACKING, tracker=replace(TRACKING.tracker, fit=replace(TRACKING.tracker.fit, shape_prior_precision=0.5))),
+        replace(TRACKING, tracker=replace(TRACKING.tracker, fit=fit)),
         replace(TRACKING, face_size=24),
         replace(TRACKING, face_storage=FaceStorage.FLOAT16),
         replace(TRACKING, focal=140.0),

@@ -71,7 +71,7 @@ def test_callback_logs_batch_and_epoch_quality(clips, config):
     for stage in ("train_epoch", "val_epoch"):
         for key in ("confidence_mean", "confidence_min", "success_fraction", "yaw_deg_std", "cached_fraction"):
             name = f"tracking/{stage}/{key}"
-            assert math.isclose(metrics[name], epoch[key], rel_tol=1e-5, abs_tol=1e-6), (name, metrics[name], epoch[key])
+            assert math.isclose(metrics[name], epoch[key], rel_tol=1e-5, abs_tol=1e-6), (name, epoch[key])
     # the last training batch's own statistics were logged per step
     last = tracking_quality(batches[-1])
     assert math.isclose(metrics["tracking/train/confidence_mean"], last["confidence_mean"], rel_tol=1e-5)
@@ -80,7 +80,8 @@ def test_callback_logs_batch_and_epoch_quality(clips, config):
 def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
     from training_hooks.lightning import TrackedFaceDataModule
 
-    clip_data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, clip_length=4, keep_short_clips=True))
+    clip_cfg = replace(config, clip_length=4, keep_short_clips=True)
+    clip_data = VideoDataset([clips[0].video], [clips[0].landmarks], clip_cfg)
     batch = next(iter(TrackedFaceDataModule(clip_data, batch_size=2).train_dataloader()))
     assert batch["face"].shape[:2] == (2, 4) and batch["frame_mask"].sum(1).tolist() == [4, 2]
     assert TrackedFaceDataModule(clip_data).val_dataloader() == []
