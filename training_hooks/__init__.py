@@ -5,6 +5,8 @@
 - :mod:`~training_hooks.transforms`: :class:`NormaliseFaces` (frames + landmarks or a tracker state ->
   normalised faces) and the tracking core :func:`track_sequence`;
 - :mod:`~training_hooks.collate`: :func:`collate_clips` (clips of different lengths: padding plus mask);
+- :mod:`~training_hooks.layer`: :class:`NormalisedFaceLayer`, the normalised face as a differentiable layer
+  (detached tracking, or unrolled solver iterations so gradients reach the frames through the tracking);
 - :mod:`~training_hooks.hooks`: confidence-weighted loss, dropping low-confidence samples, tracking-quality
   logging;
 - :mod:`training_hooks.lightning`: a PyTorch Lightning callback and data module (imported only on request; it
@@ -21,6 +23,7 @@ from training_hooks.hooks import (
     drop_low_confidence,
     tracking_quality,
 )
+from training_hooks.layer import LayerConfig, LayerMode, LayerResult, NormalisedFaceLayer, UnrollStart, unrolled_params
 from training_hooks.transforms import FaceStorage, FaceTrackingConfig, NormaliseFaces, TrackedSequence, track_sequence
 
 __all__ = [
@@ -30,10 +33,15 @@ __all__ = [
     "FaceTrackingConfig",
     "FilteredBatch",
     "FrameFolderDataset",
+    "LayerConfig",
+    "LayerMode",
+    "LayerResult",
     "NormaliseFaces",
+    "NormalisedFaceLayer",
     "TrackCache",
     "TrackedSequence",
     "TrackingQualityLogger",
+    "UnrollStart",
     "VideoDataset",
     "cache_key",
     "clip_bounds",
@@ -44,4 +52,5 @@ __all__ = [
     "loader_throughput",
     "track_sequence",
     "tracking_quality",
+    "unrolled_params",
 ]
