@@ -148,8 +148,8 @@ def clip_bounds(
     stride = clip_length if stride is None else stride
     bounds = [(s, s + clip_length) for s in range(0, num_frames - clip_length + 1, stride)]
     end = bounds[-1][1] if bounds else 0
-    if keep_short and end < num_frames:
-        start = bounds[-1][0] + stride if bounds else 0
+    start = bounds[-1][0] + stride if bounds else 0
+    if keep_short and end < num_frames and start < num_frames:
         bounds.append((start, num_frames))
     return bounds
 

@@ -138,6 +138,8 @@ def test_clip_bounds():
     assert clip_bounds(3, 5, None, True) == [(0, 3)]
     assert clip_bounds(3, 5, None, False) == []
     assert clip_bounds(0, None, None, True) == []
+    assert clip_bounds(10, 3, 5, True) == [(0, 3), (5, 8)]  # a stride past the end starts no clip
+    assert clip_bounds(12, 3, 5, True) == [(0, 3), (5, 8), (10, 12)]
 
 
 def test_frame_folder_dataset_equals_video_dataset(clips, config, tmp_path):
