@@ -48,19 +48,30 @@ class LevelCamera:
     width: int
 
 
-def exp_so3(w: Tensor) -> Tensor:
-    """Rodrigues' formula for ``(B, 3)`` rotation vectors (exact, finite at zero) -> ``(B, 3, 3)``."""
+def _so3_generators(like: Tensor) -> Tensor:
+    """``(3, 9)``: row ``i`` is the flattened generator ``hat(e_i)``, so ``hat(w) = (w @ G).view(-1, 3, 3)``."""
+    g = torch.zeros(3, 3, 3, dtype=like.dtype, device=like.device)
+    g[0, 2, 1], g[0, 1, 2] = 1.0, -1.0
+    g[1, 0, 2], g[1, 2, 0] = 1.0, -1.0
+    g[2, 1, 0], g[2, 0, 1] = 1.0, -1.0
+    return g.reshape(3, 9)
+
+
+def exp_so3(w: Tensor, generators: Tensor | None = None) -> Tensor:
+    """Rodrigues' formula for ``(B, 3)`` rotation vectors (exact, finite at zero) -> ``(B, 3, 3)``.
+
+    ``generators``: :func:`_so3_generators` of ``w``'s dtype and device, to reuse across calls.
+    """
     theta2 = (w * w).sum(-1, keepdim=True).unsqueeze(-1)  # (B, 1, 1)
     small = theta2 < 1e-8
-    theta = theta2.clamp_min(1e-8).sqrt()
+    theta2c = theta2.clamp_min(1e-8)
+    theta = theta2c.sqrt()
     a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp_min(1e-8))
-    zero = torch.zeros_like(w[:, 0])
-    K = torch.stack(
-        [zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], dim=-1
-    ).reshape(-1, 3, 3)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2c)
+    G = _so3_generators(w) if generators is None else generators
+    K = torch.matmul(w, G).view(-1, 3, 3)
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye + a * K + b * (K @ K)
+    return eye + a * K + b * torch.matmul(K, K)
 
 
 def _masked_median_abs(r: Tensor, valid: Tensor) -> Tensor:
@@ -82,6 +93,28 @@ class LevelOutcome:
     finite: Tensor  # (B,) bool
 
 
+@dataclass(frozen=True)
+class _LevelConstants:
+    """What :func:`linearise` needs from the camera, computed once per level (not per iteration).
+
+    ``grid = xy * grid_scale + grid_shift`` maps normalised image coordinates ``xy = (X/Z, Y/Z)`` to
+    ``grid_sample``'s ``[-1, 1]`` coordinates of the crop; ``focal`` turns ``d/du, d/dv`` into ``d/dx, d/dy``.
+    """
+
+    focal: Tensor  # (2,)
+    grid_scale: Tensor  # (2,)
+    grid_shift: Tensor  # (B, 1, 2)
+
+
+def _level_constants(cam: LevelCamera, like: Tensor) -> _LevelConstants:
+    dtype, device = like.dtype, like.device
+    focal = torch.tensor([cam.fx, cam.fy], dtype=dtype, device=device)
+    to_grid = torch.tensor([2.0 / max(cam.width - 1, 1), 2.0 / max(cam.height - 1, 1)], dtype=dtype, device=device)
+    centre = torch.tensor([cam.cx, cam.cy], dtype=dtype, device=device)
+    shift = ((centre - cam.offset.to(dtype)) * to_grid - 1.0).unsqueeze(1)
+    return _LevelConstants(focal, focal * to_grid, shift)
+
+
 def linearise(
     tpl: Template,
     image: Tensor,
@@ -92,37 +125,39 @@ def linearise(
     light: Tensor,
     light_basis: Tensor,
     mask: Tensor,
+    constants: _LevelConstants | None = None,
+    neg_light_basis: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Residuals ``r (B, N)``, local Jacobian ``J (B, N, P)``, validity ``(B, N)`` and sampled intensities.
 
     Columns of ``J``: ``d_omega (3)``, ``d_t (3)``, ``alpha (A)``, ``light (L)`` (see the module docstring).
-    ``image`` is ``(B, 3, h, w)``: gray level, ``d/du``, ``d/dv`` of the crop at this level.
+    ``image`` is ``(B, 3, h, w)``: gray level, ``d/du``, ``d/dv`` of the crop at this level. ``constants``
+    and ``neg_light_basis`` (``-light_basis``) may be passed to reuse them across iterations.
     """
     B, N = tpl.valid.shape
-    Xm = tpl.points + torch.bmm(tpl.basis.reshape(B, N * 3, -1), alpha.unsqueeze(-1)).reshape(B, N, 3)
-    Xc = torch.matmul(Xm, R.transpose(1, 2)) + t.unsqueeze(1)
-    X, Y, Z = Xc.unbind(-1)
+    k = _level_constants(cam, R) if constants is None else constants
+    nlb = -light_basis if neg_light_basis is None else neg_light_basis
+    Xm = torch.baddbmm(tpl.points.reshape(B, N * 3, 1), tpl.basis.reshape(B, N * 3, -1), alpha.unsqueeze(-1))
+    Xm = Xm.view(B, N, 3)
+    Xc = torch.baddbmm(t.unsqueeze(1), Xm, R.transpose(1, 2))
+    Z = Xc[..., 2]
     front = Z > NEAR_PLANE_MM
-    iz = 1.0 / Z.clamp_min(NEAR_PLANE_MM)
-    u = cam.fx * X * iz + (cam.cx - cam.offset[:, 0:1])
-    v = cam.fy * Y * iz + (cam.cy - cam.offset[:, 1:2])
-    h, w = cam.height, cam.width
-    grid = torch.stack([u * (2.0 / max(w - 1, 1)) - 1.0, v * (2.0 / max(h - 1, 1)) - 1.0], dim=-1)
+    iz = Z.clamp_min(NEAR_PLANE_MM).reciprocal().unsqueeze(-1)  # (B, N, 1)
+    xy = Xc[..., :2] * iz
+    grid = torch.addcmul(k.grid_shift, xy, k.grid_scale)  # (B, N, 2) in [-1, 1] inside the crop
     vals = F.grid_sample(image, grid.unsqueeze(1), mode="bilinear", padding_mode="border", align_corners=True)
     vals = vals.squeeze(2)  # (B, 3, N)
-    intensity, gu, gv = vals[:, 0], vals[:, 1], vals[:, 2]
-    r = intensity - tpl.intensity - torch.matmul(light_basis, light.unsqueeze(-1)).squeeze(-1)
-    gX = cam.fx * gu * iz
-    gY = cam.fy * gv * iz
-    gZ = -(gX * X + gY * Y) * iz
-    g = torch.stack([gX, gY, gZ], dim=-1)  # dI/dX_cam (B, N, 3)
+    intensity = vals[:, 0]
+    r = torch.baddbmm((intensity - tpl.intensity).unsqueeze(-1), nlb, light.unsqueeze(-1)).squeeze(-1)
+    gxy = vals[:, 1:3].transpose(1, 2) * k.focal * iz  # dI/dX, dI/dY (B, N, 2)
+    gz = (gxy * xy).sum(-1, keepdim=True).neg_()
+    g = torch.cat([gxy, gz], dim=-1)  # dI/dX_cam (B, N, 3)
     j_rot = torch.linalg.cross(Xc, g, dim=-1)
-    g_model = torch.matmul(g, R)  # (B, N, 3)
+    g_model = torch.bmm(g, R)  # (B, N, 3)
     j_anim = (g_model.unsqueeze(-1) * tpl.basis).sum(-2)
-    J = torch.cat([j_rot, g, j_anim, -light_basis], dim=-1)
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    n_cam = torch.matmul(tpl.normals, R.transpose(1, 2))
-    facing = (n_cam * Xc).sum(-1) < 0
+    J = torch.cat([j_rot, g, j_anim, nlb], dim=-1)
+    inside = (grid.abs() <= 1.0).all(-1)
+    facing = (torch.bmm(tpl.normals, R.transpose(1, 2)) * Xc).sum(-1) < 0
     valid = mask & front & inside & facing
     return r, J, valid, intensity
 
@@ -136,10 +171,11 @@ def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: f
     return w, s
 
 
-def _cost(r: Tensor, valid: Tensor, robust: RobustLoss | None, s: Tensor) -> Tensor:
-    """``(B,)`` robust cost ``sum rho(r; s)`` over valid points (``r**2 / 2`` without a robust loss)."""
+def _cost(r: Tensor, robust: RobustLoss | None, s: Tensor) -> Tensor:
+    """``(B,)`` robust cost ``sum rho(r; s)`` (``r**2 / 2`` without a robust loss); ``r`` is 0 where invalid
+    (``rho(0) = 0``, so invalid points add nothing)."""
     rho = 0.5 * r * r if robust is None else robust.rho(r, s)
-    return torch.where(valid, rho, torch.zeros_like(rho)).sum(-1)
+    return rho.sum(-1)
 
 
 def _select(keep: Tensor, new: tuple[Tensor, ...], old: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
@@ -199,11 +235,19 @@ def solve_level(
     A = alpha.shape[1]
     P = 6 + A + light.shape[1]
     dtype, device = R.dtype, R.device
+    # Everything that does not change across iterations is computed once here.
     freef = free.to(dtype)
     prior = torch.zeros(P, dtype=dtype, device=device)
     prior[6 : 6 + A] = alpha_prior
     prior = prior * freef
+    prior_alpha = prior[6 : 6 + A]
+    half_prior_alpha = 0.5 * prior_alpha
+    prior_H = torch.diag(prior)
     fixed_diag = torch.diag(1.0 - freef)
+    free_mask = free.to(torch.bool)
+    generators = _so3_generators(R)
+    constants = _level_constants(cam, R)
+    neg_light_basis = -light_basis
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
     finite = torch.ones(B, dtype=torch.bool, device=device)
@@ -215,47 +259,53 @@ def solve_level(
         torch.full((3,), step_tolerance[1], dtype=dtype, device=device),
         torch.full((P - 6,), step_tolerance[2], dtype=dtype, device=device),
     ])
+
+    def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis)
+
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for _ in range(iterations):
-        r, J, valid, _ = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
+        r, J, valid, _ = lin(R, t, alpha, light)
         # A non-finite frame makes r non-finite; a non-finite J without r (impossible by construction) would
         # make the system non-finite and the sample fail below rather than corrupt another sample.
         valid = valid & torch.isfinite(r)
-        r = torch.where(valid, r, torch.zeros_like(r))
-        J = torch.where(valid.unsqueeze(-1), J, torch.zeros_like(J)) * freef
+        r = torch.where(valid, r, 0.0)
+        J = torch.where(valid.unsqueeze(-1) & free_mask, J, 0.0)
+        prior_cost = (half_prior_alpha * alpha * alpha).sum(-1)
         if best is None:
             wgt, s = _weights(r, valid, robust, scale_floor)
-            cost = _cost(r, valid, robust, s) + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
-            accept = torch.ones(B, dtype=torch.bool, device=device)
+            cost = _cost(r, robust, s) + prior_cost
         else:
-            cost = _cost(r, valid, robust, best[7]) + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
+            cost = _cost(r, robust, best[7]) + prior_cost
             accept = (cost <= best[6]) & torch.isfinite(cost)
             wgt, s = _weights(r, valid, robust, scale_floor)
-            cost = _cost(r, valid, robust, s) + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
+            if robust is not None:  # the cost at the new scale, compared against at the next iteration
+                cost = _cost(r, robust, s) + prior_cost
         Jw = J * wgt.unsqueeze(-1)
-        H = torch.matmul(Jw.transpose(1, 2), J)
-        grad = torch.matmul((wgt * r).unsqueeze(1), J).squeeze(1)
-        grad = grad + torch.cat([grad.new_zeros(B, 6), prior[6 : 6 + A] * alpha, grad.new_zeros(B, P - 6 - A)], -1)
-        H = H + torch.diag(prior)
+        Jw_t = Jw.transpose(1, 2)
+        H = torch.baddbmm(prior_H, Jw_t, J)
+        grad = torch.bmm(Jw_t, r.unsqueeze(-1)).squeeze(-1)
+        grad[:, 6 : 6 + A] += prior_alpha * alpha
         if best is not None:
-            a3 = accept.view(B, 1, 1)
-            if not bool(accept.all()):  # undo rejected steps (one host sync; most steps are accepted)
+            if bool(accept.all()):  # the common case: one host sync, no selection
+                lam = (lam / 3.0).clamp_min(1e-6)
+            else:  # undo rejected steps
                 R, t, alpha, light, H, grad, cost, s = _select(accept, (R, t, alpha, light, H, grad, cost, s), best)
-            lam = torch.where(a3, (lam / 3.0).clamp_min(1e-6), lam * 10.0)
+                lam = torch.where(accept.view(B, 1, 1), (lam / 3.0).clamp_min(1e-6), lam * 10.0)
         best = (R, t, alpha, light, H, grad, cost, s)
         diag = torch.diagonal(H, dim1=1, dim2=2)
         floor = 1e-6 * diag.amax(-1, keepdim=True).clamp_min(1e-12)
         Hd = H + lam * torch.diag_embed(diag + floor) + fixed_diag
         L, info = torch.linalg.cholesky_ex(Hd)
-        delta = -torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1)
+        delta = torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1).neg_()
         good = (info == 0) & torch.isfinite(delta).all(-1) & (valid.sum(-1) >= P)
         finite = finite & (good | ~active)
         step = active & good
-        delta = torch.where(step.unsqueeze(-1), delta * freef, torch.zeros_like(delta))
-        dR = exp_so3(delta[:, 0:3])
-        R = torch.matmul(dR, R)
-        t = torch.matmul(dR, t.unsqueeze(-1)).squeeze(-1) + delta[:, 3:6]
-        alpha = torch.minimum(torch.maximum(alpha + delta[:, 6 : 6 + A], alpha_lower), alpha_upper)
+        delta = torch.where(step.unsqueeze(-1) & free_mask, delta, 0.0)
+        dR = exp_so3(delta[:, 0:3], generators)
+        R = torch.bmm(dR, R)
+        t = torch.baddbmm(delta[:, 3:6].unsqueeze(-1), dR, t.unsqueeze(-1)).squeeze(-1)
+        alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
         light = light + delta[:, 6 + A :]
         iters = iters + active.to(torch.int64)
         small = (delta.abs() < tol).all(-1) & step
@@ -265,14 +315,14 @@ def solve_level(
     if not final_check:
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite)
         return R, t, alpha, light, outcome
-    r, _, valid, sampled = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
+    r, _, valid, sampled = lin(R, t, alpha, light)
     if best is not None:
         # The last step is kept only where it did not raise the cost.
-        cost = _cost(torch.where(valid, r, torch.zeros_like(r)), valid, robust, best[7])
-        cost = cost + 0.5 * (prior[6 : 6 + A] * alpha * alpha).sum(-1)
+        cost = _cost(torch.where(valid, r, 0.0), robust, best[7])
+        cost = cost + (half_prior_alpha * alpha * alpha).sum(-1)
         accept = (cost <= best[6]) & torch.isfinite(cost)
         if not bool(accept.all()):
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
-            r, _, valid, sampled = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask)
+            r, _, valid, sampled = lin(R, t, alpha, light)
     outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite)
     return R, t, alpha, light, outcome
