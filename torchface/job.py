@@ -1,7 +1,7 @@
 """The tracking job behind ``torchface track``: videos in, per-video CSV, JSON, overlay, plot and normalised face out.
 
 :func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
-into one batch (tracked together as B streams by :func:`torchface.tracker.track_step`), and writes per video
+into one batch (tracked together as B streams by :func:`torchface.tracker.managed_step`), and writes per video
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
@@ -44,8 +44,9 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
 from torchface.tracker.fit import fit_landmarks
+from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
-from torchface.tracker.step import TrackerConfig, TrackerState, initialise, track_step
+from torchface.tracker.step import TrackerConfig, TrackerState
 from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
@@ -73,9 +74,10 @@ class JobConfig:
         out_dir: output folder (created if missing).
         landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
             detector.
-        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, and to
+        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
             re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
-            ``redetect_after`` frames.
+            ``redetect_after`` frames, and to recover a stream that template management declares lost
+            (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic).
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
         device: torch device for tracking.
         resume: continue interrupted videos (see the module docstring).
@@ -83,9 +85,10 @@ class JobConfig:
             scaled, last row / column cropped; :func:`torchface.io.open_frames`) instead of rejecting them.
         meshes: write one PLY mesh per frame.
         normalised_size: side ``G`` of the normalised-face video.
-        tracker: :class:`TrackerConfig`.
+        tracker: :class:`TrackerConfig` (its ``template`` field sets template management: the dissimilarity
+            confidence written as ``confidence``, the mosaic, loss and recovery).
         redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
-        redetect_below: the confidence threshold for that.
+        redetect_below: the (dissimilarity) confidence threshold for that.
     """
 
     out_dir: Path
@@ -396,7 +399,8 @@ def _track_group(
                 d.mkdir(parents=True, exist_ok=True)
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
-        state, result = initialise(model, config.tracker, frames, lm, intr)
+        state, result = initialise_managed(model, config.tracker, frames, lm, intr)
+        recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
@@ -410,7 +414,8 @@ def _track_group(
                 state = replace(state, params=params)
             new_rows = result_rows(result, np.full(B, t), 1.0)
             _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
-                        normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below)  # fmt: skip
+                        normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below,
+                        "dissim. conf" if config.tracker.template.enabled else "conf")  # fmt: skip
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout)
             if progress is not None:
@@ -432,7 +437,7 @@ def _track_group(
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
-            state, result = track_step(model, config.tracker, state, frames)
+            state, result = managed_step(model, config.tracker, state, frames, recover)
         t_track = time.perf_counter() - t_track0
     except BaseException:
         for s in streams:
@@ -505,6 +510,7 @@ def _write_step(
     model: FaceModel, state: TrackerState, result, frames: Tensor, streams: list[_Stream], replaying: list[bool],
     columns: tuple[str, ...], rows: np.ndarray, t: int, intr: Intrinsics, edges: np.ndarray,
     normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
+    conf_label: str,
 ) -> None:
     """Write frame ``t`` of every live stream: its CSV row (unless replayed), overlay, normalised face, mesh."""
     live = [not s.done for s in streams]
@@ -534,7 +540,7 @@ def _write_step(
             s.lost.append(t)
         s.low_count = 0 if conf >= redetect_below else s.low_count + 1
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
-        s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}"))
+        s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label))
         s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
         if mesh_dirs is not None:
             import trimesh
@@ -543,6 +549,21 @@ def _write_step(
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
             mesh.export(str(mesh_dirs[k] / f"{t:06d}.ply"))
         s.frames += 1
+
+
+def _batch_detector(detector, num_landmarks: int):
+    """A per-image detector (:mod:`torchface.detect`) as the tracker's batched re-initialisation callback:
+    ``frames (B, 3, H, W)`` -> ``(B, K, 2)`` landmarks, NaN rows where it found no face."""
+
+    def detect(frames: Tensor) -> Tensor:
+        out = torch.full((frames.shape[0], num_landmarks, 2), float("nan"), dtype=frames.dtype, device=frames.device)
+        for b in range(frames.shape[0]):
+            points = detector(_to_uint8_rgb(frames[b]))
+            if points is not None:
+                out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
+        return out
+
+    return detect
 
 
 def _maybe_redetect(

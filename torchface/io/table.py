@@ -4,7 +4,8 @@ writer that flushes every row and renames the file only when complete.
 Columns (units; frames as in :mod:`torchface.conventions`)
 ---------------------------------------------------------
 - ``frame`` (0-based index), ``timestamp`` (seconds, ``frame / fps``), ``success`` (1/0: the frame's estimate
-  is usable), ``confidence`` (``[0, 1]``);
+  is usable: not failed, stream not lost), ``confidence`` (``[0, 1]``; with template management, the default,
+  the dissimilarity confidence of the normalised face, paper Section 4.1; else the residual confidence);
 - ``pose_Tx, pose_Ty, pose_Tz``: the head origin in the OpenCV camera frame (x right, y down, z forward), mm;
 - ``pose_Rx, pose_Ry, pose_Rz``: radians, OpenFace's definition: ``R = Rx(pose_Rx) @ Ry(pose_Ry) @ Rz(pose_Rz)``
   (:func:`openface_euler`), ``R`` the head-to-camera rotation in the OpenCV camera frame, identity = a face
@@ -15,8 +16,11 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   unit's own scale, :meth:`~torchface.model.FaceModel.facs_values`);
 - ``anim_<name>``: one column per CANDIDE-3 animation unit (dimensionless, the model file's scale);
 - ``illum_<name>``: the illumination parameters (gain, bias, three light-direction terms; paper Eq. 19);
-- ``status`` (0 converged, 1 ran out of iterations, 2 failed), ``iterations``, ``num_points`` (template points
-  used), ``cost`` (RMS residual per point, intensity units).
+- ``status`` (0 converged, 1 ran out of iterations, 2 failed, 3 lost), ``iterations``, ``num_points`` (template
+  points used), ``cost`` (RMS residual per point, intensity units);
+- ``residual_confidence`` (``[0, 1]``, from the solver's residual), ``dissimilarity`` (mean fiducial-patch
+  displacement on the normalised face, its pixels; ``nan`` when not measured), ``mosaic_entry`` (the template
+  mosaic entry aligned against, 0 = the first frame's; -1 when not reported).
 """
 
 from __future__ import annotations
@@ -51,8 +55,8 @@ POSE_COLUMNS: tuple[str, ...] = (
 #: Rotation-matrix columns, row-major.
 ROTATION_COLUMNS: tuple[str, ...] = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
 _LEAD = ("frame", "timestamp", "success", "confidence")
-_TAIL = ("status", "iterations", "num_points", "cost")
-_INT_COLUMNS = frozenset({"frame", "success", "status", "iterations", "num_points"})
+_TAIL = ("status", "iterations", "num_points", "cost", "residual_confidence", "dissimilarity", "mosaic_entry")
+_INT_COLUMNS = frozenset({"frame", "success", "status", "iterations", "num_points", "mosaic_entry"})
 
 
 def column_name(prefix: str, name: str) -> str:
@@ -117,10 +121,15 @@ def result_rows(result, frame_indices: Tensor | np.ndarray, fps: float) -> np.nd
     def col(x: Tensor) -> Tensor:
         return x.detach().to("cpu", torch.float64).reshape(B, -1)
 
+    def optional(x: Tensor | None, missing: float) -> Tensor:
+        return torch.full((B, 1), missing, dtype=torch.float64) if x is None else col(x)
+
     parts = [
         frames, frames / fps, col(result.success), col(result.confidence), col(result.translation),
         openface_euler(R), col(result.ypr_deg), R.reshape(B, 9), col(result.facs), col(result.anim_coeffs),
         col(result.illumination), col(result.status), col(result.iterations), col(result.num_points), col(result.cost),
+        optional(result.residual_confidence, math.nan), optional(result.dissimilarity, math.nan),
+        optional(result.mosaic_entry, -1.0),
     ]  # fmt: skip
     return torch.cat(parts, dim=1).numpy()
 

@@ -60,7 +60,7 @@ def _pt(p: np.ndarray, limit: float) -> tuple[int, int]:
 
 def draw_overlay(
     image_bgr: np.ndarray, verts_px: np.ndarray, edges: np.ndarray, axes_px: np.ndarray, confidence: float,
-    success: bool, label: str = "",
+    success: bool, label: str = "", confidence_label: str = "conf",
 ) -> np.ndarray:
     """Draw one overlay frame (returns a new uint8 BGR image).
 
@@ -68,9 +68,12 @@ def draw_overlay(
         image_bgr: ``(H, W, 3)`` uint8 BGR frame.
         verts_px: ``(V, 2)`` projected vertices; edges: ``(E, 2)`` vertex pairs (:func:`mesh_edges`).
         axes_px: ``(4, 2)`` head origin and axis ends (:func:`overlay_geometry`); x red, y green, z blue.
-        confidence: the frame's tracking confidence in ``[0, 1]``.
-        success: whether the frame's estimate is usable (a lost frame draws the mesh grey).
+        confidence: the frame's confidence in ``[0, 1]`` (``TrackResult.confidence``: with template management
+            the dissimilarity confidence).
+        success: whether the frame's estimate is usable (a failed or lost frame draws the mesh grey).
         label: text drawn before the confidence (e.g. the frame number).
+        confidence_label: what the confidence is ("dissim. conf": the dissimilarity confidence; "conf" for the
+            residual confidence of a tracker without template management).
     """
     if image_bgr.ndim != 3 or image_bgr.shape[2] != 3 or image_bgr.dtype != np.uint8:
         raise ValueError(f"image_bgr must be (H, W, 3) uint8, got {image_bgr.shape} {image_bgr.dtype}")
@@ -85,7 +88,7 @@ def draw_overlay(
     for k, c in zip(range(1, 4), ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
         cv2.line(out, o, _pt(axes_px[k], limit), c, 2, cv2.LINE_AA)
     scale = max(0.35, min(W, H) / 600.0)
-    text = f"{label} conf {confidence:.2f}" + ("" if success else " LOST")
+    text = f"{label} {confidence_label} {confidence:.2f}" + ("" if success else " LOST")
     bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4)))
     cv2.rectangle(out, (4, H - 10), (4 + W // 4, H - 4), (60, 60, 60), -1)
     cv2.rectangle(out, (4, H - 10), (4 + bar, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)

@@ -51,7 +51,9 @@ def plot_track(
             axes[1].plot(t, rows[:, idx[au_cols[k]]], label=au_cols[k])
         axes[1].legend(loc="upper right", fontsize=8)
     axes[1].set_ylabel("AU intensity")
-    axes[2].plot(t, rows[:, idx["confidence"]], color="k", label="confidence")
+    measured = "dissimilarity" in idx and bool(np.isfinite(rows[:, idx["dissimilarity"]]).any())
+    kind = "dissimilarity" if measured else "residual"
+    axes[2].plot(t, rows[:, idx["confidence"]], color="k", label=f"confidence ({kind})")
     lost = rows[:, idx["success"]] < 0.5
     if lost.any():
         axes[2].plot(t[lost], np.zeros(int(lost.sum())), "rx", label="lost")
