@@ -1,10 +1,12 @@
 """Frames to normalised faces: the tracking core shared by the datasets and the :class:`NormaliseFaces` transform.
 
 A sequence of frames is tracked from its first frame's 68 iBUG landmarks (or continued from a
-:class:`~torchface.tracker.TrackerState`) with the functional tracker (:func:`~torchface.tracker.initialise`,
-:func:`~torchface.tracker.track_step`), one stream at a time (``B = 1``), and every frame is resampled into
-the normalised face (:func:`~torchface.normalise.normalised_face`: frontal, neutral expression, reference
-light) with the state of that frame. The result, :class:`TrackedSequence`, holds per frame the normalised face
+:class:`~torchface.tracker.TrackerState`) with the functional tracker as :class:`~torchface.tracker.FaceTracker`
+runs it (:func:`~torchface.tracker.managed.initialise_managed`, :func:`~torchface.tracker.managed.managed_step`:
+template management as ``TrackerConfig.template`` says; lost streams recover by the mosaic search, no
+detector), one stream at a time (``B = 1``), and every frame is resampled into the normalised face
+(:func:`~torchface.normalise.normalised_face`: frontal, neutral expression, reference light) with the state
+of that frame. The result, :class:`TrackedSequence`, holds per frame the normalised face
 and its mask, the tracked parameters, the confidence and the status: what the disk cache stores
 (:mod:`training_hooks.cache`) and what dataset items are cut from.
 
@@ -37,7 +39,8 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
 from torchface.tracker.params import ParamLayout
-from torchface.tracker.step import TrackerConfig, TrackerState, initialise, track_step
+from torchface.tracker.managed import initialise_managed, managed_step
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
 
 __all__ = [
     "FaceStorage",
@@ -167,8 +170,9 @@ class TrackedSequence:
         anim_coeffs: ``(T, A)`` float32 animation-unit values.
         facs: ``(T, F)`` float32 linked FACS action-unit values.
         illumination: ``(T, L)`` float32 illumination parameters (gain, bias, light x/y/z; paper Eq. 19).
-        confidence: ``(T,)`` float32 in ``[0, 1]``.
-        status: ``(T,)`` int64 :class:`~torchface.tracker.TrackStatus` (2 = FAILED: parameters held).
+        confidence: ``(T,)`` float32 in ``[0, 1]`` (``TrackResult.confidence``: the dissimilarity confidence with
+            template management, else the solver's residual confidence).
+        status: ``(T,)`` int64 :class:`~torchface.tracker.TrackStatus` (2 = FAILED: parameters held, 3 = LOST).
         shape_coeffs: ``(S_u,)`` float32 the person's shape units (fixed after the first frame).
         landmarks: ``(68, 2)`` float64 first-frame landmarks the tracking started from (pixels), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
@@ -229,8 +233,8 @@ class TrackedSequence:
 
     @property
     def success(self) -> Tensor:
-        """``(T,)`` bool: the frame's estimate is usable (status not FAILED)."""
-        return self.status != 2
+        """``(T,)`` bool: the frame's estimate is usable (status neither FAILED nor LOST)."""
+        return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
 
     def item(self, frames: int | slice) -> dict[str, Tensor]:
         """The dataset item of one frame (``frames`` an int) or of a clip (a slice, step 1).
@@ -316,8 +320,9 @@ def track_sequence(
         frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
             :class:`~torchface.io.FrameReader`; consumed one at a time.
         start: ``(68, 2)`` iBUG landmarks of the first frame in pixels (tracking starts with
-            :func:`~torchface.tracker.initialise`), or a :class:`~torchface.tracker.TrackerState` with ``B = 1``
-            whose tracking the frames continue (every frame goes through :func:`~torchface.tracker.track_step`).
+            :func:`~torchface.tracker.managed.initialise_managed`), or a :class:`~torchface.tracker.TrackerState`
+            with ``B = 1`` (from this function or from the same tracker settings) whose tracking the frames
+            continue (every frame goes through :func:`~torchface.tracker.managed.managed_step`).
         config: :class:`FaceTrackingConfig` (tracker settings, face size and storage, threads).
         model: the face model (float32, CPU; normally CANDIDE-3 from :func:`~torchface.model.load_candide3`).
         normaliser: a :class:`~torchface.normalise.NormalisedFace` of ``model`` with ``config``'s size and margin.
@@ -356,14 +361,14 @@ def track_sequence(
             if state is None:
                 intrinsics = Intrinsics.default(size[1], size[0], config.focal)
                 lm = landmarks.to(dtype=model.dtype, device=model.device).unsqueeze(0)
-                state, result = initialise(model, config.tracker, frame, lm, intrinsics)
+                state, result = initialise_managed(model, config.tracker, frame, lm, intrinsics)
             else:
                 if t == 0 and state.intrinsics.size != size:
                     raise ValueError(
                         f"the TrackerState tracks {state.intrinsics.width}x{state.intrinsics.height} frames, "
                         f"got {size[1]}x{size[0]}"
                     )
-                state, result = track_step(model, config.tracker, state, frame)
+                state, result = managed_step(model, config.tracker, state, frame)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:
                 alpha = torch.zeros_like(alpha)

@@ -254,3 +254,21 @@ def test_transform_rejects_bad_input(clips):
         normalise(frames, clips[0].landmarks[:10])
     with pytest.raises(ValueError, match="empty"):
         normalise(frames[:0], clips[0].landmarks)
+
+
+def test_sequence_success_and_validation(clips):
+    from dataclasses import replace as dc_replace
+
+    sequence, state = NormaliseFaces(TRACKING).track(read_video(clips[0].video)[:3], clips[0].landmarks)
+    assert state.management is not None  # tracked as FaceTracker tracks: with template management
+    marked = dc_replace(sequence, status=torch.tensor([0, 2, 3]))  # converged, FAILED, LOST
+    assert marked.success.tolist() == [True, False, False]
+    assert marked.item(2)["success"].item() is False and marked.item(slice(0, 3))["success"].tolist() == [1, 0, 0]
+    with pytest.raises(ValueError, match="confidence must be"):
+        dc_replace(sequence, confidence=torch.ones(2))
+    with pytest.raises(ValueError, match="finite"):
+        dc_replace(sequence, axis_angle=torch.full((3, 3), float("nan")))
+    with pytest.raises(IndexError):
+        sequence.item(3)
+    with pytest.raises(ValueError, match="step 1"):
+        sequence.item(slice(0, 3, 2))
