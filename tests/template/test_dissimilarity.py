@@ -15,6 +15,7 @@ from torchface.template.dissimilarity import (
     build_dissimilarity_reference,
     dissimilarity,
     inverse_compositional_lk,
+    lk_template,
 )
 
 
@@ -266,3 +267,25 @@ def test_auroc_known_answers():
     pos, neg = torch.rand(40, generator=g), torch.rand(30, generator=g).round(decimals=1)
     brute = ((pos[:, None] > neg[None]).double() + 0.5 * (pos[:, None] == neg[None]).double()).mean()
     assert abs(auroc(pos, neg) - float(brute)) < 1e-12
+
+
+def test_precomputed_reference_side_gives_the_same_answer():
+    """The reference side computed once (DissimilarityReference.lk / lk_template) equals computing it per call."""
+    ref_img = _texture(2, 48, seed=4)
+    img = _shift(ref_img, torch.tensor([[0.6, -0.3], [-1.1, 0.8]], dtype=torch.float64))
+    mask = torch.ones(2, 1, 48, 48, dtype=torch.float64)
+    mask[:, :, :, :6] = 0
+    centres = torch.tensor([[[16.0, 16.0], [30.0, 25.0], [24.0, 34.0]]], dtype=torch.float64).expand(2, -1, -1)
+    plain = inverse_compositional_lk(ref_img, img, centres, 9, reference_mask=mask, image_mask=mask)
+    pre = lk_template(ref_img, centres, 9, mask)
+    fast = inverse_compositional_lk(ref_img, img, centres, 9, reference_mask=mask, image_mask=mask, precomputed=pre)
+    for a, b in zip(plain, fast):
+        assert torch.equal(a, b)
+    ref = build_dissimilarity_reference(ref_img, mask)
+    assert ref.lk is not None
+    without = type(ref)(ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score, ref.config)
+    for a, b in zip(dissimilarity(ref, img, mask), dissimilarity(without, img, mask)):
+        assert torch.equal(a, b)
+    one = ref.select(torch.tensor([1]))
+    for a, b in zip(dissimilarity(one, img[1:], mask[1:]), dissimilarity(ref, img, mask)):
+        assert torch.equal(a[0], b[1])

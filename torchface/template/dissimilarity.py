@@ -56,6 +56,8 @@ from torch import Tensor
 
 __all__ = [
     "LKResult",
+    "LKTemplate",
+    "lk_template",
     "DissimilarityConfig",
     "DissimilarityReference",
     "DissimilarityResult",
@@ -85,6 +87,28 @@ class LKResult(NamedTuple):
     valid: Tensor
     support: Tensor
     residual: Tensor
+
+
+class LKTemplate(NamedTuple):
+    """The reference side of :func:`inverse_compositional_lk`, computed once per reference (:func:`lk_template`).
+
+    Attributes:
+        grid: ``(B, K, n, 2)`` the patches' pixel positions ``c_k + x`` (``n = h * h``).
+        template: ``(B, K, n, C)`` ``T`` at those positions.
+        sd: ``(B, K, n, C, 2)`` the steepest-descent images ``grad T`` (central differences).
+        weight: ``(B, K, n)`` reference weights (inside the reference and its mask).
+        total: ``(B, K)`` their sum per patch.
+    """
+
+    grid: Tensor
+    template: Tensor
+    sd: Tensor
+    weight: Tensor
+    total: Tensor
+
+    def select(self, index: Tensor) -> "LKTemplate":
+        """The rows ``index`` (a ``(B',)`` int64 or bool tensor) of every field."""
+        return LKTemplate(*(x[index] for x in self))
 
 
 def _check_image(x: object, name: str) -> Tensor:
@@ -146,6 +170,7 @@ def inverse_compositional_lk(
     tolerance: float = 1e-3,
     max_displacement: float | None = None,
     project_out_bias: bool = True,
+    precomputed: LKTemplate | None = None,
 ) -> LKResult:
     """Track ``K`` square patches of ``reference`` into ``images`` by inverse-compositional Lucas-Kanade.
 
@@ -164,6 +189,8 @@ def inverse_compositional_lk(
         tolerance: convergence threshold on ``|dp|`` (pixels).
         max_displacement: ``|p|`` above which a patch is not valid (and stops); None for no limit.
         project_out_bias: remove the weighted patch mean from the error and steepest-descent images.
+        precomputed: :func:`lk_template` of the same ``reference``, ``centres``, ``patch_size`` and
+            ``reference_mask`` (in the working dtype), to skip recomputing it; None computes it.
 
     Returns:
         :class:`LKResult`.
@@ -208,20 +235,9 @@ def inverse_compositional_lk(
     B, K = centres.shape[:2]
     eps = torch.finfo(dtype).eps
 
-    offsets = _patch_offsets(patch_size, reference)  # (n, 2)
-    grid = centres.unsqueeze(2) + offsets  # (B, K, n, 2)
-
-    # Precomputation: the template, its gradient (central differences) and the reference weights.
-    unit_u = offsets.new_tensor([1.0, 0.0])
-    unit_v = offsets.new_tensor([0.0, 1.0])
-    template, inside_r = _sample(reference, grid)  # (B, K, n, C), (B, K, n)
-    gu = 0.5 * (_sample(reference, grid + unit_u)[0] - _sample(reference, grid - unit_u)[0])
-    gv = 0.5 * (_sample(reference, grid + unit_v)[0] - _sample(reference, grid - unit_v)[0])
-    sd = torch.stack([gu, gv], dim=-1)  # (B, K, n, C, 2) steepest-descent images grad T
-    ref_weight = inside_r
-    if reference_mask is not None:
-        ref_weight = ref_weight * (_sample(reference_mask, grid)[0][..., 0] > 0.5).to(dtype)
-    ref_total = ref_weight.sum(-1)  # (B, K)
+    if precomputed is None:
+        precomputed = _lk_template(reference, centres, patch_size, reference_mask)
+    grid, template, sd, ref_weight, ref_total = precomputed
 
     p = torch.zeros(B, K, 2, dtype=dtype, device=reference.device)
     active = torch.ones(B, K, dtype=torch.bool, device=reference.device)
@@ -279,6 +295,40 @@ def inverse_compositional_lk(
     support = torch.where(ref_total > 0, total / ref_total.clamp_min(eps), torch.zeros_like(total))
     valid = valid & torch.isfinite(p).all(-1) & (ref_total > 0)
     return LKResult(p, converged, valid, support.clamp(0.0, 1.0), residual)
+
+
+def _lk_template(reference: Tensor, centres: Tensor, patch_size: int, reference_mask: Tensor | None) -> LKTemplate:
+    dtype = reference.dtype
+    offsets = _patch_offsets(patch_size, reference)  # (n, 2)
+    grid = centres.unsqueeze(2) + offsets  # (B, K, n, 2)
+    unit_u = offsets.new_tensor([1.0, 0.0])
+    unit_v = offsets.new_tensor([0.0, 1.0])
+    template, inside_r = _sample(reference, grid)  # (B, K, n, C), (B, K, n)
+    gu = 0.5 * (_sample(reference, grid + unit_u)[0] - _sample(reference, grid - unit_u)[0])
+    gv = 0.5 * (_sample(reference, grid + unit_v)[0] - _sample(reference, grid - unit_v)[0])
+    sd = torch.stack([gu, gv], dim=-1)  # (B, K, n, C, 2) steepest-descent images grad T
+    weight = inside_r
+    if reference_mask is not None:
+        weight = weight * (_sample(reference_mask, grid)[0][..., 0] > 0.5).to(dtype)
+    return LKTemplate(grid, template, sd, weight, weight.sum(-1))
+
+
+def lk_template(
+    reference: Tensor, centres: Tensor, patch_size: int, reference_mask: Tensor | None = None
+) -> LKTemplate:
+    """The reference side of :func:`inverse_compositional_lk` (template patches, ``grad T``, weights).
+
+    Args:
+        reference: ``(B, C, h_r, w_r)``; centres: ``(B, K, 2)`` pixels; patch_size: ``h``;
+        reference_mask: ``(B, 1, h_r, w_r)`` or None.
+
+    Returns:
+        :class:`LKTemplate` in ``reference``'s dtype.
+    """
+    reference = _check_image(reference, "reference")
+    if reference_mask is not None:
+        reference_mask = _check_mask(reference_mask, "reference_mask", reference)
+    return _lk_template(reference, centres.to(reference), patch_size, reference_mask)
 
 
 @dataclass(frozen=True)
@@ -358,6 +408,9 @@ class DissimilarityReference:
         patch_valid: ``(B, K)`` bool; False where the reference had fewer than ``K`` textured places.
         score: ``(B, K)`` texture score (smaller structure-tensor eigenvalue, summed over the patch).
         config: the :class:`DissimilarityConfig` used.
+        lk: the Lucas-Kanade reference side (:func:`lk_template` of ``image``, ``centres`` and ``mask``),
+            computed once here so that :func:`dissimilarity` does not redo it every frame; None to compute it
+            on each call.
     """
 
     image: Tensor
@@ -366,6 +419,14 @@ class DissimilarityReference:
     patch_valid: Tensor
     score: Tensor
     config: DissimilarityConfig
+    lk: LKTemplate | None = None
+
+    def select(self, index: Tensor) -> "DissimilarityReference":
+        """The reference of the samples ``index`` (a ``(B',)`` int64 or bool tensor)."""
+        return DissimilarityReference(
+            self.image[index], self.mask[index], self.centres[index], self.patch_valid[index], self.score[index],
+            self.config, None if self.lk is None else self.lk.select(index),
+        )  # fmt: skip
 
     @property
     def num_patches(self) -> Tensor:
@@ -504,7 +565,8 @@ def build_dissimilarity_reference(
         centres = torch.cat([centres, centres.new_zeros(B, pad, 2)], 1)
         best = torch.cat([best, best.new_full((B, pad), -1.0)], 1)
     patch_valid = best > 0
-    return DissimilarityReference(gray, mask, centres, patch_valid, best.clamp_min(0.0), config)
+    lk = _lk_template(gray, centres, h, mask)
+    return DissimilarityReference(gray, mask, centres, patch_valid, best.clamp_min(0.0), config, lk)
 
 
 def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: Tensor) -> DissimilarityResult:
@@ -551,10 +613,13 @@ def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: T
     patch_valid = reference.patch_valid.to(normalised.device).expand(B, -1)
     normalised, mask = normalised.to(dtype), mask.to(dtype)
     gray = _masked_gray(normalised, mask, cfg.smoothing_sigma)
+    pre = reference.lk
+    if pre is not None and (Br != B or pre.template.dtype != dtype or pre.template.device != normalised.device):
+        pre = None
     lk = inverse_compositional_lk(
         ref_image, gray, centres, cfg.patch_size, cfg.iterations,
         reference_mask=ref_mask, image_mask=mask, tolerance=cfg.tolerance,
-        max_displacement=cfg.max_displacement, project_out_bias=cfg.project_out_bias,
+        max_displacement=cfg.max_displacement, project_out_bias=cfg.project_out_bias, precomputed=pre,
     )  # fmt: skip
     d_max = cfg.max_displacement
     present = patch_valid & (lk.support >= cfg.min_support)

@@ -207,10 +207,7 @@ def _confidence(
     aa, t, alpha, light = _layout(model).split(state.params)
     reference = ms.mosaic.reference
     if index is not None:
-        reference = replace(
-            reference, image=reference.image[index], mask=reference.mask[index], centres=reference.centres[index],
-            patch_valid=reference.patch_valid[index], score=reference.score[index],
-        )  # fmt: skip
+        reference = reference.select(index)
     diss = frame_dissimilarity(
         frames, model, ms.layout, reference, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
         config.template,
