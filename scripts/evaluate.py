@@ -30,6 +30,8 @@ Examples:
     python scripts/evaluate.py --scenarios pose_sweep,expressions --ablations none --json out/eval.json
     python scripts/evaluate.py --long --json out/eval_long.json        # section (a) alone (and (b) over it)
     python scripts/evaluate.py --only long_run --long-frames 600 --size 320x240     # a quick look
+    python scripts/evaluate.py --only long_run --save-series out/a.npz       # split over processes, then pool (b):
+    python scripts/evaluate.py --scenarios standard --add-series out/a.npz
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -47,6 +49,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -413,8 +416,9 @@ def _mark(ok: bool) -> str:
 def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[LongRunMetrics, float]], hold: int) -> str:
     """Section (a)'s table of one long scenario: the configurations side by side."""
     configs = list(runs)
+    label_width = 46
     width = max(14, *(len(c) + 2 for c in configs))
-    head = f"{'':34s}" + "".join(c.rjust(width) for c in configs)
+    head = f"{'':{label_width}s}" + "".join(c.rjust(width) for c in configs)
     lines = [
         f"== (a) {name} ({info}); rotation error relative to frame 0 (deg) at each return to frontal",
         head,
@@ -425,12 +429,12 @@ def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[Long
     for k, f in enumerate(frames):
         label = f"return {k + 1:2d} @{f:5d} {turn_before(gt, f, previous)}"
         cells = "".join(_fmt(m.return_errors_deg[k]).rjust(width) for m, _ in runs.values())
-        lines.append(f"{label:34s}{cells}")
+        lines.append(f"{label:{label_width}s}{cells}")
         previous = f
     lines.append("-" * len(head))
 
     def row(label: str, cell: Callable[[LongRunMetrics, float], str]) -> None:
-        lines.append(f"{label:34s}" + "".join(cell(m, ms).rjust(width) for m, ms in runs.values()))
+        lines.append(f"{label:{label_width}s}" + "".join(cell(m, ms).rjust(width) for m, ms in runs.values()))
 
     row("max over the returns", lambda m, _: _fmt(max(m.return_errors_deg, default=float("nan"))))
     row("mean over the returns", lambda m, _: _fmt(sum(m.return_errors_deg) / max(len(m.return_errors_deg), 1)))
@@ -505,8 +509,37 @@ class FrameSeries:
 
 
 def frame_series(scenario: str, config: str, default: bool, gt: GroundTruth, out: RunOutput) -> FrameSeries:
+    """Section (b)'s per-frame figures of one run."""
     err = relative_rotation_error_deg(out.rotation, gt.rotation)
     return FrameSeries(scenario, config, default, err, out.confidence, out.success, gt.face_visible)
+
+
+_SERIES_FIELDS = ("error", "confidence", "success", "in_view")
+
+
+def save_series(path: Path, series: list[FrameSeries]) -> None:
+    """Write section (b)'s per-frame figures (``.npz``; temporary name, then renamed) for a later --add-series."""
+    arrays: dict[str, np.ndarray] = {}
+    for i, s in enumerate(series):
+        arrays[f"{i}/name"] = np.array([s.scenario, s.config, "default" if s.default else ""])
+        for f in _SERIES_FIELDS:
+            arrays[f"{i}/{f}"] = getattr(s, f).numpy()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+
+
+def load_series(path: Path) -> list[FrameSeries]:
+    """Read what :func:`save_series` wrote."""
+    with np.load(path) as z:
+        count = len({k.split("/")[0] for k in z.files})
+        out = []
+        for i in range(count):
+            scenario, config, default = (str(x) for x in z[f"{i}/name"])
+            fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
+            out.append(FrameSeries(scenario, config, default == "default", **fields))
+    return out
 
 
 def auroc_row(label: str, series: list[FrameSeries], successful_only: bool = False) -> dict[str, float]:
@@ -622,6 +655,10 @@ def main(argv: list[str] | None = None) -> int:
         help=f"configurations of the long runs: all or a comma list from {', '.join(LONG_CONFIGS)}",
     )
     parser.add_argument("--no-auroc", action="store_true", help="skip section (b)")
+    parser.add_argument("--save-series", type=Path, help="write section (b)'s per-frame figures here (.npz)")
+    parser.add_argument(
+        "--add-series", default="", help="comma list of --save-series files of earlier runs to pool into section (b)"
+    )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
     parser.add_argument("--json", type=Path, help="write {scenario[/ablation or config]: {metric: value}} here")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
@@ -659,6 +696,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     cache = None if args.cache.lower() == "none" else Path(args.cache)
+
+    earlier: list[FrameSeries] = []
+    for item in (x.strip() for x in args.add_series.split(",")):
+        if item:
+            if not Path(item).is_file():
+                parser.error(f"--add-series: no file {item}")
+            earlier += load_series(Path(item))
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
@@ -720,8 +764,10 @@ def main(argv: list[str] | None = None) -> int:
                     write_json(args.json, results)
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
-    if not args.no_auroc and series:
-        text, figures = auroc_section(series)
+    if args.save_series is not None:
+        save_series(args.save_series, series)
+    if not args.no_auroc and series + earlier:
+        text, figures = auroc_section(earlier + series)
         print(text + "\n", flush=True)
         results.update({f"auroc/{k}": v for k, v in figures.items()})
         if args.json is not None:

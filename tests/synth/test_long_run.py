@@ -197,7 +197,7 @@ def _load_evaluate():
     return module
 
 
-def test_evaluate_sections_on_made_up_runs():
+def test_evaluate_sections_on_made_up_runs(tmp_path):
     """Section (a)'s table and section (b)'s AUROC from runs whose errors and confidences are known."""
     ev = _load_evaluate()
     spec, frames, groups, images, gt = _rendered("long_run")
@@ -236,3 +236,10 @@ def test_evaluate_sections_on_made_up_runs():
     assert "n/a" in text  # the default runs alone have no frame above 5 degrees
     flipped = [replace(s, confidence=1.0 - s.confidence) for s in series]
     assert ev.auroc_section(flipped)[1]["POOLED all configurations"]["auroc"] == 0.0
+    # The per-frame figures survive a round trip through a file (for pooling runs of several processes).
+    ev.save_series(tmp_path / "s.npz", series)
+    back = ev.load_series(tmp_path / "s.npz")
+    assert [(b.scenario, b.config, b.default) for b in back] == [(s.scenario, s.config, s.default) for s in series]
+    for b, s in zip(back, series):
+        for f in ("error", "confidence", "success", "in_view"):
+            assert torch.equal(getattr(b, f), getattr(s, f))
