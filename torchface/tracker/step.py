@@ -70,7 +70,10 @@ class TrackerConfig:
             at the coarse levels were measured to lose expression accuracy (jaw drop RMSE 0.04 -> 0.12).
         gradient_threshold: minimum gray-level gradient magnitude (per pixel, in [0, 1] units) of a template
             point (Section 4: informative points); 0 keeps all pixels.
-        iterations: Levenberg-Marquardt iterations per level, coarse to fine.
+        iterations: Levenberg-Marquardt iterations per level, coarse to fine. Measured on the 640x480 scenarios:
+            (6, 5, 4) matches (8, 6, 4) within 0.01 deg of mean error (occlusion's max 6.0 -> 6.4 deg) for 3 fewer
+            linearisations per frame; (5, 4, 3), with the coarse levels' final check dropped, costs occlusion
+            0.66 -> 0.86 deg mean (and dropping that check alone fails the sudden-occlusion test).
         use_illumination: estimate the illumination terms (else held at zero: the ablation).
         use_expression: estimate the animation units (else held at the initial values: the ablation).
         robust: the robust loss for external occlusion (``RobustKind.NONE`` is the ablation).
@@ -113,7 +116,7 @@ class TrackerConfig:
     num_levels: int = 3
     max_points: int = 1500
     gradient_threshold: float = 0.01
-    iterations: tuple[int, ...] = (8, 6, 4)
+    iterations: tuple[int, ...] = (6, 5, 4)
     use_illumination: bool = True
     use_expression: bool = True
     robust: RobustKind = RobustKind.TUKEY
