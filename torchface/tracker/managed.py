@@ -18,7 +18,9 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    the previous frame, so a poor estimate corrupts no template, and while a head moves behind an occluder
    the last estimate is nearer the truth than the last confident one.
 4. **Loss and recovery.** A stream is lost when its confidence stayed below ``confidence_threshold`` for
-   ``lost_after`` frames, when its solve FAILED (too few points, no contrast), or when less than
+   ``lost_after`` frames or below ``very_low_confidence`` for ``lost_after_very_low`` frames (nothing of the
+   face matches: the tracker sits on the background), when its solve FAILED (too few points, no contrast),
+   or when less than
    ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost frames are reported
    with status LOST (``success`` False). A lost stream keeps tracking from its estimate (back at the last
    confident parameters when the estimate left the frame or failed) and, every ``recovery_every`` frames,
@@ -99,6 +101,7 @@ class ManagementState:
         layout: the normalised-face layout the dissimilarity is measured on (shared by the batch).
         entry: ``(B,)`` int64 the mosaic entry whose templates are ``TrackerState.templates``.
         low_count: ``(B,)`` int64 consecutive frames below the confidence threshold.
+        very_low_count: ``(B,)`` int64 consecutive frames below the very-low confidence threshold.
         lost: ``(B,)`` bool, the stream is lost.
         confident_params: ``(B, P)`` the parameters of the last confident frame.
         since_attempt: ``(B,)`` int64 lost frames since the last recovery attempt.
@@ -108,6 +111,7 @@ class ManagementState:
     layout: NormalisedFaceLayout
     entry: Tensor
     low_count: Tensor
+    very_low_count: Tensor
     lost: Tensor
     confident_params: Tensor
     since_attempt: Tensor
@@ -161,7 +165,9 @@ def initialise_managed(
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
     B = state.params.shape[0]
     zeros = torch.zeros(B, dtype=torch.int64, device=state.params.device)
-    management = ManagementState(mosaic, layout, zeros, zeros.clone(), failed.clone(), state.params, zeros.clone())
+    management = ManagementState(
+        mosaic, layout, zeros, zeros.clone(), zeros.clone(), failed.clone(), state.params, zeros.clone()
+    )
     result = replace(
         result, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss.dissimilarity,
         mosaic_entry=zeros.clone(),
@@ -315,7 +321,8 @@ def _recovery_starts(
                                              torch.zeros_like(alpha_c[i : i + 1]), light_c[i : i + 1])[0]  # fmt: skip
                 found[i] = True
     ypr = matrix_to_euler(axis_angle_to_matrix(layout.split(starts)[0]))
-    entries = select_entries(ms.mosaic, ypr, torch.zeros_like(index), 0.0, streams=index)
+    entries = select_entries(ms.mosaic, ypr, torch.zeros_like(index), 0.0, config.template.reference_radius_deg,
+                             streams=index)  # fmt: skip
     return starts, entries, found
 
 
@@ -384,7 +391,7 @@ def managed_step(
     entry, templates = ms.entry, state.templates
     if tc.mosaic and ms.mosaic.capacity > 1:
         ypr = matrix_to_euler(axis_angle_to_matrix(state.params[:, layout.rotation]))
-        entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg)
+        entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg, tc.reference_radius_deg)
         changed = (entry != ms.entry).nonzero().squeeze(-1)
         if changed.numel():
             sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed])
@@ -399,7 +406,9 @@ def managed_step(
     outside = _inside_fraction(model, solved) < tc.min_inside_fraction
     confident = (conf >= tc.confidence_threshold) & ~failed & ~outside
     low_count = torch.where(confident, torch.zeros_like(ms.low_count), ms.low_count + 1)
-    lost = ms.lost | failed | outside | (low_count >= tc.lost_after)
+    very_low = (conf < tc.very_low_confidence) | failed | outside
+    very_low_count = torch.where(very_low, ms.very_low_count + 1, torch.zeros_like(ms.very_low_count))
+    lost = ms.lost | failed | outside | (low_count >= tc.lost_after) | (very_low_count >= tc.lost_after_very_low)
     lost = lost & ~((conf >= tc.recover_confidence) & ~failed & ~outside)
     params = torch.where((lost & (failed | outside)).unsqueeze(-1), ms.confident_params, solved.params)
     since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
@@ -430,6 +439,7 @@ def managed_step(
             recovered[rows] = True
             lost = lost & ~recovered
             low_count = torch.where(recovered, torch.zeros_like(low_count), low_count)
+            very_low_count = torch.where(recovered, torch.zeros_like(very_low_count), very_low_count)
             confident = confident | recovered
 
     confident = confident & ~lost
@@ -450,7 +460,7 @@ def managed_step(
     if tc.texture_update and bool(confident.any()):
         templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
         new_state = replace(new_state, templates=templates)
-    ms = ManagementState(mosaic, ms.layout, entry, low_count, lost, confident_params, since)
+    ms = ManagementState(mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since)
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
         result, status=status, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss,

@@ -1,0 +1,238 @@
+"""Tests of torchface.template.management: settings, pose bins, the mosaic's book-keeping, rebuilding stored
+templates, light normalisation, the face-inside test, the dissimilarity confidence of a rendered frame and
+the mosaic search (known answers on a rendered 160x120 frame)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchface.appearance.illumination import apply_illumination, illumination_basis
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, matrix_to_axis_angle, matrix_to_euler
+from torchface.model.candide import load_candide3
+from torchface.normalise.face import build_normalised_layout
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.template.dissimilarity import build_dissimilarity_reference
+from torchface.template.management import (
+    TemplateConfig,
+    add_entries,
+    entry_templates,
+    face_inside_fraction,
+    frame_dissimilarity,
+    has_bin,
+    light_normalised_intensity,
+    new_mosaic,
+    pose_bins,
+    reference_face,
+    search_mosaic,
+    select_entries,
+)
+from torchface.template.points import build_template
+from torchface.tracker.fit import fit_landmarks
+
+W, H = 320, 240
+D = torch.float64
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3(dtype=D)
+
+
+@pytest.fixture(scope="module")
+def scene(model):
+    """Two rendered frames (frontal; yaw 20 deg, moved) with their ground truth and the first frame's templates."""
+    ypr = torch.tensor([[0.0, 0.0, 0.0], [20.0, -5.0, 3.0]], dtype=D)
+    spec = SequenceSpec(
+        name="m", subject="candide3", intrinsics=Intrinsics.default(W, H), rotation=euler_to_matrix(ypr),
+        translation=torch.tensor([[0.0, 0.0, 450.0], [-40.0, 15.0, 470.0]], dtype=D),
+        anim=torch.zeros(2, model.num_animation, dtype=D), light=default_light(2), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    frames = frames.to(D)
+    fit = fit_landmarks(model, gt.landmarks_px[:1].to(D), gt.intrinsics)
+    gray = frames[:1].mean(1, keepdim=True)
+    tpl = build_template(model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray, gt.intrinsics,
+                         max_points=800, gradient_threshold=0.01)  # fmt: skip
+    return frames, gt, fit, tpl
+
+
+# ---------------------------------------------------------------- settings and pose bins
+
+
+def test_config_defaults_and_validation():
+    cfg = TemplateConfig()
+    assert cfg.enabled and cfg.mosaic and not cfg.texture_update
+    with pytest.raises(ValueError):
+        TemplateConfig(lost_after=0)
+    with pytest.raises(ValueError):
+        TemplateConfig(confidence_threshold=1.5)
+    with pytest.raises(ValueError):
+        TemplateConfig(yaw_bin_deg=0.0)
+    with pytest.raises(ValueError):
+        TemplateConfig(search_depth_factors=())
+    with pytest.raises(TypeError):
+        TemplateConfig(enabled=1)  # type: ignore[arg-type]
+    with pytest.raises(TypeError):
+        TemplateConfig(dissimilarity=None)  # type: ignore[arg-type]
+
+
+def test_pose_bins_known_answers():
+    cfg = TemplateConfig(yaw_bin_deg=15.0, pitch_bin_deg=10.0, bin_centre_fraction=0.25)
+    ypr = torch.tensor([[0.0, 0.0, 40.0], [16.0, -9.0, 0.0], [7.4, 2.4, 0.0], [7.6, 0.0, 0.0], [-31.0, 21.0, 0.0]])
+    bins, near = pose_bins(ypr, cfg)
+    assert bins.tolist() == [[0, 0], [1, -1], [0, 0], [1, 0], [-2, 2]]
+    # within 0.25 bin widths of the centre on both axes (roll ignored)
+    assert near.tolist() == [True, True, False, False, True]
+
+
+# ---------------------------------------------------------------- the mosaic
+
+
+def _fake_templates(B: int, N: int, seed: int, levels: int = 2):
+    from torchface.template.points import Template
+
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(levels):
+        out.append(Template(
+            torch.randint(0, 100, (B, N), generator=g), torch.rand(B, N, 3, generator=g, dtype=D),
+            torch.randn(B, N, 3, generator=g, dtype=D), torch.randn(B, N, 3, 2, generator=g, dtype=D),
+            torch.randn(B, N, 3, generator=g, dtype=D), torch.rand(B, N, generator=g, dtype=D),
+            torch.rand(B, N, generator=g) > 0.2,
+        ))  # fmt: skip
+    return tuple(out)
+
+
+def test_mosaic_add_select_and_grow():
+    cfg = TemplateConfig()
+    B, N = 3, 10
+    ref = build_dissimilarity_reference(torch.rand(B, 1, 32, 32, dtype=D), torch.ones(B, 1, 32, 32, dtype=D))
+    ypr0 = torch.zeros(B, 3, dtype=D)
+    m = new_mosaic(_fake_templates(B, N, 0), euler_to_matrix(ypr0), ypr0, ref, cfg)
+    assert m.capacity == 1 and m.num_entries.tolist() == [1, 1, 1]
+    # Stream 1 and 2 get an entry at yaw 30; stream 2 another at yaw -30: capacity grows to 3.
+    ypr = torch.tensor([[30.0, 0.0, 0.0], [30.0, 0.0, 0.0]], dtype=D)
+    bins, _ = pose_bins(ypr, cfg)
+    new = _fake_templates(2, N, 1)
+    m, slots = add_entries(m, torch.tensor([1, 2]), new, euler_to_matrix(ypr), bins)
+    assert slots.tolist() == [1, 1] and m.capacity == 2 and m.num_entries.tolist() == [1, 2, 2]
+    assert torch.equal(m.levels[1].intensity[2, 1], new[1].intensity[1])
+    assert not m.levels[0].valid[0, 1].any()  # stream 0's unused slot holds nothing
+    ypr2 = torch.tensor([[-30.0, 0.0, 0.0]], dtype=D)
+    m, slots = add_entries(m, torch.tensor([2]), _fake_templates(1, N, 2), euler_to_matrix(ypr2), pose_bins(ypr2, cfg)[0])
+    assert slots.tolist() == [2] and m.capacity == 3 and m.num_entries.tolist() == [1, 2, 3]
+    assert has_bin(m, torch.tensor([[2, 0], [2, 0], [-2, 0]])).tolist() == [False, True, True]
+    # Selection: nearest entry in yaw/pitch among the used ones, with hysteresis.
+    now = torch.tensor([[25.0, 0.0, 0.0], [25.0, 0.0, 0.0], [-20.0, 0.0, 0.0]], dtype=D)
+    cur = torch.zeros(B, dtype=torch.int64)
+    assert select_entries(m, now, cur, 2.0).tolist() == [0, 1, 2]
+    mid = torch.tensor([[0.0, 0.0, 0.0], [15.5, 0.0, 0.0], [13.0, 0.0, 0.0]], dtype=D)
+    # 15.5 deg: entry 1 (30) is 14.5 away, entry 0 15.5: within the 2 deg margin, keep the current one (0);
+    # 13 deg from entry 1 (17 away): entry 0 (13 away) is nearer by more than the margin.
+    assert select_entries(m, mid, torch.tensor([0, 0, 1]), 2.0).tolist() == [0, 0, 0]
+    assert select_entries(m, mid, torch.tensor([0, 0, 1]), 0.0).tolist() == [0, 1, 0]
+    sub = select_entries(m, now[1:], torch.zeros(2, dtype=torch.int64), 0.0, streams=torch.tensor([1, 2]))
+    assert sub.tolist() == [1, 2]
+    # Within the reference radius (20) the reference is used although entry 1 is nearer; a stream on entry 1
+    # comes back once the margin (2) inside; beyond the radius the nearest entry.
+    near = torch.tensor([[25.0, 0.0, 0.0], [19.0, 0.0, 0.0], [17.0, 0.0, 0.0]], dtype=D)
+    got = select_entries(m, near, torch.tensor([0, 1, 1]), 2.0, reference_radius_deg=20.0)
+    assert got.tolist() == [0, 1, 0]
+    far = torch.tensor([[25.0, 0.0, 0.0], [25.0, 0.0, 0.0], [-25.0, 0.0, 0.0]], dtype=D)
+    assert select_entries(m, far, cur, 2.0, reference_radius_deg=20.0).tolist() == [0, 1, 2]
+
+
+def test_entry_templates_rebuild_the_stored_template(model, scene):
+    frames, gt, fit, tpl = scene
+    cfg = TemplateConfig()
+    ref = build_dissimilarity_reference(torch.rand(1, 1, 32, 32, dtype=D), torch.ones(1, 1, 32, 32, dtype=D))
+    m = new_mosaic((tpl,), fit.rotation, matrix_to_euler(fit.rotation), ref, cfg)
+    (again,) = entry_templates(model, fit.shape_coeffs, m, torch.tensor([0]), torch.tensor([0]))
+    for name in ("face_index", "bary", "points", "basis", "normals", "intensity", "valid"):
+        assert torch.equal(getattr(again, name), getattr(tpl, name)), name
+
+
+def test_light_normalised_intensity_inverts_eq19(scene):
+    *_, tpl = scene
+    R = euler_to_matrix(torch.tensor([[10.0, 5.0, 0.0]], dtype=D))
+    light = torch.tensor([[0.3, 0.05, 0.1, -0.2, 0.15]], dtype=D)
+    basis = illumination_basis(tpl.intensity, torch.matmul(tpl.normals, R.transpose(1, 2)))
+    seen = apply_illumination(tpl.intensity, basis, light)
+    back = light_normalised_intensity(type(tpl)(*[seen if f == "intensity" else getattr(tpl, f)
+                                                   for f in tpl.__dataclass_fields__]), R, light)  # fmt: skip
+    assert torch.allclose(back, tpl.intensity, atol=1e-10)
+
+
+def test_face_inside_fraction(model, scene):
+    _, gt, fit, _ = scene
+    verts = torch.matmul(model.deform(fit.shape_coeffs, None), fit.rotation.transpose(1, 2)) + fit.translation[:, None]
+    assert float(face_inside_fraction(model, verts, gt.intrinsics)[0]) == 1.0
+    shifted = verts + torch.tensor([400.0, 0.0, 0.0], dtype=D)  # far to the right of the frame
+    behind = verts * torch.tensor([1.0, 1.0, -1.0], dtype=D)
+    out = face_inside_fraction(model, torch.cat([shifted, behind]), gt.intrinsics)
+    assert out.tolist() == [0.0, 0.0]
+    half = verts + torch.tensor([verts[0, :, 2].mean() * (W / 2 - 0.5) / gt.intrinsics.fx - verts[0, :, 0].mean(), 0.0,
+                                 0.0], dtype=D)  # fmt: skip
+    assert 0.3 < float(face_inside_fraction(model, half, gt.intrinsics)[0]) < 0.7
+
+
+# ---------------------------------------------------------------- dissimilarity confidence and search
+
+
+def test_frame_dissimilarity_high_at_truth_low_when_wrong(model, scene):
+    frames, gt, fit, _ = scene
+    cfg = TemplateConfig()
+    layout = build_normalised_layout(model, cfg.normalised_size)
+    alpha = torch.zeros(1, model.num_animation, dtype=D)
+    light = torch.zeros(1, 5, dtype=D)
+    aa0 = matrix_to_axis_angle(gt.rotation[:1].to(D))
+    t0 = gt.translation[:1].to(D)
+    image, mask = reference_face(frames[:1], model, layout, fit.shape_coeffs, alpha, aa0, t0, light, gt.intrinsics, cfg)
+    ref = build_dissimilarity_reference(image, mask, cfg.dissimilarity)
+    # Frame 1 at its true pose, and frame 1 with the pose off by 6 degrees of yaw and 8 mm.
+    aa1 = matrix_to_axis_angle(gt.rotation[1:].to(D))
+    t1 = gt.translation[1:].to(D)
+    R_bad = euler_to_matrix(torch.tensor([[6.0, 0.0, 0.0]], dtype=D)) @ gt.rotation[1:].to(D)
+    aa = torch.cat([aa1, matrix_to_axis_angle(R_bad)])
+    t = torch.cat([t1, t1 + torch.tensor([[8.0, 0.0, 0.0]], dtype=D)])
+    shape = fit.shape_coeffs.expand(2, -1)
+    out = frame_dissimilarity(frames[1:].expand(2, -1, -1, -1), model, layout, ref, shape, alpha.expand(2, -1), aa, t,
+                              light.expand(2, -1), gt.intrinsics, cfg)  # fmt: skip
+    assert out.confidence[0] > 0.5, out.confidence  # the fitted shape is not the rendered one: not exactly 1
+    assert out.confidence[1] < 0.05 and out.dissimilarity[1] > 2 * out.dissimilarity[0], out
+    assert torch.isfinite(out.dissimilarity).all()
+
+
+def test_search_mosaic_finds_the_moved_face(model, scene):
+    frames, gt, fit, tpl = scene
+    cfg = TemplateConfig(search_step_px=2.0)
+    ref = build_dissimilarity_reference(torch.rand(1, 1, 32, 32, dtype=D), torch.ones(1, 1, 32, 32, dtype=D))
+    # One pyramid level at half size: the template of frame 0 at that level.
+    gray0 = torch.nn.functional.avg_pool2d(frames[:1].mean(1, keepdim=True), 2)
+    intr = Intrinsics(W // 2, H // 2, gt.intrinsics.fx / 2, gt.intrinsics.fy / 2, (gt.intrinsics.cx + 0.5) / 2 - 0.5,
+                      (gt.intrinsics.cy + 0.5) / 2 - 0.5)  # fmt: skip
+    tpl0 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray0, intr,
+                          max_points=600, gradient_threshold=0.01)  # fmt: skip
+    m = new_mosaic((tpl0,), fit.rotation, matrix_to_euler(fit.rotation), ref, cfg)
+    # A second entry at yaw 20 (the frame-1 pose) so that the right hypothesis exists.
+    R1 = gt.rotation[1:].to(D)
+    tpl1 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, R1, gt.translation[1:].to(D),
+                          torch.nn.functional.avg_pool2d(frames[1:].mean(1, keepdim=True), 2), intr, max_points=600,
+                          gradient_threshold=0.01)  # fmt: skip
+    m, _ = add_entries(m, torch.tensor([0]), (tpl1,), R1, torch.tensor([[1, 0]]))
+    gray1 = torch.nn.functional.avg_pool2d(frames[1:].mean(1, keepdim=True), 2)
+    hit = search_mosaic(model, fit.shape_coeffs, m, 0, gray1, intr, 0, float(fit.translation[0, 2]), None, cfg)
+    assert hit.entry == 1 and hit.score > 0.5
+    # The head origin projects within a few (half-size) pixels of the truth.
+    def origin_px(t):
+        return torch.stack([intr.fx * t[0] / t[2] + intr.cx, intr.fy * t[1] / t[2] + intr.cy])
+
+    err = (origin_px(hit.translation) - origin_px(gt.translation[1].to(D))).norm()
+    assert float(err) < 4.0, float(err)
+    assert math.isfinite(hit.score)
