@@ -406,7 +406,10 @@ def turn_before(gt: GroundTruth, frame: int, previous: int) -> str:
 
 def long_metrics(gt: GroundTruth, out: RunOutput, hold: int) -> LongRunMetrics:
     """Section (a)'s metrics of one long run (:func:`torchface.synth.metrics.long_run_metrics`)."""
-    return long_run_metrics(out.rotation, gt.rotation, out.success, gt.face_visible, return_frames(gt), hold=hold)
+    err = relative_rotation_error_deg(out.rotation, gt.rotation)
+    return long_run_metrics(
+        err, out.success, gt.face_visible, return_frames(gt), occluded=gt.occluder_on, hold=hold
+    )
 
 
 def _mark(ok: bool) -> str:
@@ -440,13 +443,15 @@ def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[Long
     row("mean over the returns", lambda m, _: _fmt(sum(m.return_errors_deg) / max(len(m.return_errors_deg), 1)))
     row("mean, frames in view", lambda m, _: _fmt(m.rot_err_mean_deg))
     row("max, frames in view", lambda m, _: _fmt(m.rot_err_max_deg))
+    row("mean, successful frames in view", lambda m, _: _fmt(m.rot_err_mean_success_deg))
+    row("max, successful frames in view", lambda m, _: _fmt(m.rot_err_max_success_deg))
     row(f"lost frames (> {LOST_THRESHOLD_DEG:g} deg, in view)", lambda m, _: str(m.lost_frames))
-    row("unsuccessful frames, in view", lambda m, _: str(m.unsuccessful_frames))
-    row("'successful' while out of view", lambda m, _: str(m.success_out_of_view))
+    row("unsuccessful frames in view (occluded)", lambda m, _: f"{m.unsuccessful_frames} ({m.unsuccessful_occluded})")
+    row("'successful' while not all in view", lambda m, _: str(m.success_out_of_view))
     n_gaps = max(len(m.recoveries) for m, _ in runs.values())
     for g in range(n_gaps):
         some = next(m.recoveries[g] for m, _ in runs.values() if len(m.recoveries) > g)
-        label = f"recovery after out {some.gap_start}-{some.gap_end - 1}"
+        label = f"recovery after {some.cause} {some.gap_start}-{some.gap_end - 1}"
 
         def cell(m: LongRunMetrics, _: float, g: int = g) -> str:
             f = m.recoveries[g].frames_to_recover if len(m.recoveries) > g else None
@@ -456,22 +461,32 @@ def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[Long
     row("longest loss in view (frames)", lambda m, _: str(m.longest_loss_in_view))
     row("ms/frame", lambda _, ms: _fmt(ms, 0))
     lines.append(
-        f"   good frame: successful and error <= {LOST_THRESHOLD_DEG:g} deg; recovery: frames from the face being"
-        f" entirely in view again to the first of {hold} good frames in a row"
+        f"   good frame: successful and error <= {LOST_THRESHOLD_DEG:g} deg; in view: every landmark inside the image;"
+        f" recovery: frames from the face being entirely in view (and clear of the occluder) again to the first of"
+        f" {hold} good frames in a row; loss in view: a run of not-good frames while the face is in view and clear"
     )
     if LONG_DEFAULT in runs:
         m, _ = runs[LONG_DEFAULT]
         worst_return = max(m.return_errors_deg, default=float("nan"))
-        worst = m.worst_recovery
+
+        def text(frames: int | None) -> str:
+            return "never" if frames is None else str(frames)
+
+        out_of_view, occluded = m.worst_recovery("out of view"), m.worst_recovery("occluded")
         lines.append(
             f"   target ({LONG_DEFAULT}): error at every return <= {RETURN_TARGET_DEG:g} deg: "
             f"{_mark(worst_return <= RETURN_TARGET_DEG)} (max {_fmt(worst_return)})"
         )
         lines.append(
             f"   target ({LONG_DEFAULT}): every loss recovered within {RECOVERY_TARGET_FRAMES} frames of the face being"
-            f" in view again: {_mark(worst is not None and worst <= RECOVERY_TARGET_FRAMES)} (worst "
-            f"{'never' if worst is None else worst}); longest loss while in view {m.longest_loss_in_view} frames: "
-            f"{_mark(m.longest_loss_in_view <= RECOVERY_TARGET_FRAMES)}"
+            f" in view again: {_mark(out_of_view is not None and out_of_view <= RECOVERY_TARGET_FRAMES)} (worst"
+            f" {text(out_of_view)})"
+        )
+        lines.append(
+            f"   also ({LONG_DEFAULT}): after an occluder within {RECOVERY_TARGET_FRAMES} frames: "
+            f"{_mark(occluded is not None and occluded <= RECOVERY_TARGET_FRAMES)} (worst {text(occluded)}); "
+            f"no loss in view longer than {RECOVERY_TARGET_FRAMES} frames: "
+            f"{_mark(m.longest_loss_in_view <= RECOVERY_TARGET_FRAMES)} (longest {m.longest_loss_in_view})"
         )
     return "\n".join(lines)
 
@@ -481,7 +496,9 @@ def long_json(m: LongRunMetrics, out: RunOutput, width: int, height: int, num_fr
     d = asdict(m)
     d["recoveries"] = [asdict(r) for r in m.recoveries]
     d.update(
-        worst_recovery=m.worst_recovery, ms_per_frame=out.ms_per_frame, init_ms=out.init_ms,
+        worst_recovery_out_of_view=m.worst_recovery("out of view"),
+        worst_recovery_occluded=m.worst_recovery("occluded"),
+        ms_per_frame=out.ms_per_frame, init_ms=out.init_ms,
         width=width, height=height, num_frames=num_frames,
     )
     return d

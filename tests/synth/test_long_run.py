@@ -229,7 +229,9 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
     assert "again: PASS (worst 0)" in text
     json.dumps(ev._json_safe(ev.long_json(m, good, W, H, T)), allow_nan=False)
     # Section (b): the made-up confidence falls as the error grows, so it separates them perfectly.
-    series = [ev.frame_series("long_run", "mosaic", True, gt, good), ev.frame_series("long_run", "bare", False, gt, bad)]
+    series = [
+        ev.frame_series("long_run", "mosaic", True, gt, good), ev.frame_series("long_run", "bare", False, gt, bad)
+    ]
     text, figures = ev.auroc_section(series)
     pooled = figures["POOLED all configurations"]
     assert pooled["auroc"] == 1.0 and pooled["negatives"] > 0 and pooled["positives"] > 0

@@ -248,85 +248,98 @@ def test_true_runs_known_answers() -> None:
         true_runs(torch.tensor([1, 0]))
 
 
-def _long_run(T: int = 40):
-    """Truth: yaw ramps 0 -> 30 -> 0 deg; estimate: truth plus a known yaw error per frame."""
-    yaw = torch.cat([torch.linspace(0, 30, 10, dtype=F64), torch.linspace(30, 0, 11, dtype=F64)[1:],
-                     torch.zeros(T - 20, dtype=F64)])  # fmt: skip
-    err = torch.zeros(T, dtype=F64)
-    err[19] = 0.4  # the first return to frontal (frame 19)
-    err[30] = 0.7  # the second (frame 30)
-    zeros = torch.zeros(T, dtype=F64)
-    gt = euler_to_matrix(torch.stack([yaw, zeros, zeros], -1))
-    est = euler_to_matrix(torch.stack([yaw + err, zeros, zeros], -1))
-    return gt, est, err
+def _long_errors(T: int = 40) -> torch.Tensor:
+    """Rotation errors of a made-up run: 0.3 deg everywhere, 0.4 and 0.7 at the returns (frames 19, 30)."""
+    err = torch.full((T,), 0.3, dtype=F64)
+    err[0] = 0.0
+    err[19] = 0.4
+    err[30] = 0.7
+    return err
 
 
 def test_long_run_metrics_returns_recovery_and_losses() -> None:
-    gt, est, err = _long_run()
     T = 40
+    err = _long_errors(T)
+    err[10:13] = 15.0  # lost (error) while in view
     visible = torch.ones(T, dtype=torch.bool)
     visible[22:25] = False  # out of view: frames 22-24, back at 25
     success = torch.ones(T, dtype=torch.bool)
     success[22:28] = False  # lost until frame 27: recovered 3 frames after the face is back
     success[23] = True  # a (bogus) success while out of view
-    est = est.clone()
-    est[10:13] = euler_to_matrix(torch.tensor([[0.0, 15.0, 0.0]], dtype=F64)) @ est[10:13]  # 15 deg off: lost
-    m = long_run_metrics(est, gt, success, visible, [19, 30], hold=3)
-    torch.testing.assert_close(torch.tensor(m.return_errors_deg, dtype=F64), torch.tensor([0.4, 0.7], dtype=F64))
-    assert m.return_frames == (19, 30)
-    assert m.recoveries == (Recovery(22, 25, 3),)
-    assert m.worst_recovery == 3
+    m = long_run_metrics(err, success, visible, [19, 30], hold=3)
+    assert m.return_errors_deg == (0.4, 0.7) and m.return_frames == (19, 30)
+    assert m.recoveries == (Recovery(22, 25, 3, "out of view"),)
+    assert m.worst_recovery() == 3 and m.worst_recovery("occluded") == 0
     assert m.success_out_of_view == 1
     assert m.lost_frames == 3 and m.unsuccessful_frames == 3  # frames 10-12; frames 25-27
     # The loss at 10-12 is one in view; the bad frames 25-27 are the recovery, not a loss in view.
     assert m.losses_in_view == ((10, 13),) and m.longest_loss_in_view == 3
-    # Mean / max over in-view frames 1 .. T-1 only.
+    # Mean / max over in-view frames 1 .. T-1; and over the successful ones among them.
     keep = visible.clone()
     keep[0] = False
-    e = relative_rotation_error_deg(est, gt)[keep]
-    assert m.rot_err_mean_deg == pytest.approx(float(e.mean()))
-    assert m.rot_err_max_deg == pytest.approx(15.0, abs=0.5)
+    assert m.rot_err_mean_deg == pytest.approx(float(err[keep].mean())) and m.rot_err_max_deg == 15.0
+    assert m.rot_err_mean_success_deg == pytest.approx(float(err[keep & success].mean()))
+
+
+def test_long_run_metrics_occlusion_is_a_hidden_stretch() -> None:
+    T = 40
+    err = _long_errors(T)
+    visible = torch.ones(T, dtype=torch.bool)
+    occluded = torch.zeros(T, dtype=torch.bool)
+    occluded[5:15] = True
+    success = torch.ones(T, dtype=torch.bool)
+    success[8:17] = False  # unsuccessful under the occluder and 2 frames after it
+    m = long_run_metrics(err, success, visible, [19], occluded=occluded, hold=2)
+    assert m.recoveries == (Recovery(5, 15, 2, "occluded"),)
+    assert m.losses_in_view == () and m.unsuccessful_frames == 9 and m.unsuccessful_occluded == 7
+    # Without the occluder flags the same frames are a loss in view.
+    m = long_run_metrics(err, success, visible, [19], hold=2)
+    assert m.recoveries == () and m.losses_in_view == ((8, 17),) and m.longest_loss_in_view == 9
 
 
 def test_long_run_metrics_never_recovered_and_hold() -> None:
-    gt, est, _ = _long_run()
     T = 40
+    err = _long_errors(T)
     visible = torch.ones(T, dtype=torch.bool)
     visible[5:8] = False
     visible[30:33] = False
     success = torch.ones(T, dtype=torch.bool)
     success[5:] = False  # never again
-    m = long_run_metrics(est, gt, success, visible, [19], hold=1)
-    assert m.recoveries == (Recovery(5, 8, None), Recovery(30, 33, None)) and m.worst_recovery is None
+    m = long_run_metrics(err, success, visible, [19], hold=1)
+    assert m.recoveries == (Recovery(5, 8, None), Recovery(30, 33, None)) and m.worst_recovery() is None
     # A good run shorter than `hold` does not count; one of `hold` frames does, from its first frame.
     success = torch.ones(T, dtype=torch.bool)
     success[5:20] = False
     success[10:12] = True
-    m3 = long_run_metrics(est, gt, success, visible, [19], hold=3)
+    m3 = long_run_metrics(err, success, visible, [19], hold=3)
     assert m3.recoveries[0] == Recovery(5, 8, 12)  # frames 20, 21, 22 are the first 3 good in a row
-    m2 = long_run_metrics(est, gt, success, visible, [19], hold=2)
+    m2 = long_run_metrics(err, success, visible, [19], hold=2)
     assert m2.recoveries[0] == Recovery(5, 8, 2)  # frames 10, 11
     # The recovery is looked for only before the next stretch out of view.
     success[8:30] = False
-    assert long_run_metrics(est, gt, success, visible, [19]).recoveries[0].frames_to_recover is None
+    assert long_run_metrics(err, success, visible, [19]).recoveries[0].frames_to_recover is None
     # A sequence ending out of view: the stretch ends at T.
     visible[35:] = False
-    assert long_run_metrics(est, gt, success, visible, [19]).recoveries[-1] == Recovery(35, 40, None)
+    assert long_run_metrics(err, success, visible, [19]).recoveries[-1] == Recovery(35, 40, None)
 
 
 def test_long_run_metrics_validation() -> None:
-    gt, est, _ = _long_run()
+    err = _long_errors()
     ok = torch.ones(40, dtype=torch.bool)
     with pytest.raises(ValueError, match="return_frames"):
-        long_run_metrics(est, gt, ok, ok, [40])
+        long_run_metrics(err, ok, ok, [40])
     with pytest.raises(ValueError, match="return_frames"):
-        long_run_metrics(est, gt, ok, ok, [0])
+        long_run_metrics(err, ok, ok, [0])
     with pytest.raises(ValueError, match="success"):
-        long_run_metrics(est, gt, ok[:5], ok, [1])
+        long_run_metrics(err, ok[:5], ok, [1])
     with pytest.raises(ValueError, match="visible"):
-        long_run_metrics(est, gt, ok, ok.float(), [1])
+        long_run_metrics(err, ok, ok.float(), [1])
+    with pytest.raises(ValueError, match="occluded"):
+        long_run_metrics(err, ok, ok, [1], occluded=ok[:3])
     with pytest.raises(ValueError, match="hold"):
-        long_run_metrics(est, gt, ok, ok, [1], hold=0)
+        long_run_metrics(err, ok, ok, [1], hold=0)
+    with pytest.raises(ValueError, match="NaN"):
+        long_run_metrics(torch.full((40,), float("nan"), dtype=F64), ok, ok, [1])
 
 
 # --- AUROC -------------------------------------------------------------------------------------------

@@ -419,19 +419,23 @@ def true_runs(mask: Tensor) -> tuple[tuple[int, int], ...]:
 
 @dataclass(frozen=True)
 class Recovery:
-    """How tracking came back after one stretch where the face was not (entirely) in view.
+    """How tracking came back after one stretch where the face was hidden (out of view or occluded).
 
     Attributes:
         gap_start: first frame of the stretch.
-        gap_end: first frame after it (the face is in view again); ``T`` when the sequence ends out of view.
+        gap_end: first frame after it (the face is entirely in view and clear again); ``T`` when the sequence
+            ends hidden.
         frames_to_recover: frames from ``gap_end`` to the first frame that starts ``hold`` consecutive good
-            frames (0: good right away); None when that never happens before the next stretch out of view or
-            the end of the sequence.
+            frames (0: good right away); None when that never happens before the next hidden stretch or the
+            end of the sequence.
+        cause: ``"out of view"`` when some frame of the stretch has the face (partly) outside the image, else
+            ``"occluded"``.
     """
 
     gap_start: int
     gap_end: int
     frames_to_recover: int | None
+    cause: str = "out of view"
 
 
 @dataclass(frozen=True)
@@ -439,18 +443,21 @@ class LongRunMetrics:
     """Drift and recovery on a long sequence (issue 5). Frames ``1 .. T-1`` are scored (frame 0 is the reference).
 
     A frame is *good* when the tracker calls it successful and its rotation error relative to frame 0
-    (:func:`relative_rotation_error_deg`) is at most the lost threshold.
+    (:func:`relative_rotation_error_deg`) is at most the lost threshold. The face is *in view* when it is
+    entirely inside the image, and *clear* when it is in view and not occluded.
 
     Attributes:
         return_frames: the frames at which the true head is back at the frontal pose after a turn.
         return_errors_deg: rotation error at each of them.
         rot_err_mean_deg, rot_err_max_deg: over the frames where the face is in view.
+        rot_err_mean_success_deg, rot_err_max_success_deg: over the in-view frames the tracker called successful.
         lost_frames: in-view frames whose error exceeds the lost threshold.
-        unsuccessful_frames: in-view frames the tracker did not call successful.
-        success_out_of_view: frames where the face was not in view but the tracker called it successful.
-        recoveries: one :class:`Recovery` per stretch out of view.
-        losses_in_view: ``(start, end)`` runs of not-good in-view frames that do not begin where the face comes
-            back into view (those are the recoveries): losses during tracking proper.
+        unsuccessful_frames: in-view frames the tracker did not call successful; unsuccessful_occluded: those of
+            them that are occluded.
+        success_out_of_view: frames where the face was not entirely in view but the tracker called it successful.
+        recoveries: one :class:`Recovery` per hidden stretch (out of view or occluded), in order.
+        losses_in_view: ``(start, end)`` runs of not-good clear frames that do not begin where a hidden stretch
+            ends (those are the recoveries): losses during tracking proper.
         longest_loss_in_view: frames of the longest of those (0 when none).
     """
 
@@ -458,38 +465,40 @@ class LongRunMetrics:
     return_errors_deg: tuple[float, ...]
     rot_err_mean_deg: float
     rot_err_max_deg: float
+    rot_err_mean_success_deg: float
+    rot_err_max_success_deg: float
     lost_frames: int
     unsuccessful_frames: int
+    unsuccessful_occluded: int
     success_out_of_view: int
     recoveries: tuple[Recovery, ...]
     losses_in_view: tuple[tuple[int, int], ...]
     longest_loss_in_view: int
 
-    @property
-    def worst_recovery(self) -> int | None:
-        """The most frames any recovery took; None if one never recovered (0 when there was no stretch)."""
-        frames = [r.frames_to_recover for r in self.recoveries]
+    def worst_recovery(self, cause: str | None = None) -> int | None:
+        """The most frames a recovery (of ``cause``, or any) took; None if one never recovered; 0 if none."""
+        frames = [r.frames_to_recover for r in self.recoveries if cause is None or r.cause == cause]
         return None if any(f is None for f in frames) else max(frames, default=0)
 
 
 def long_run_metrics(
-    rotation_est: Tensor,
-    rotation_gt: Tensor,
+    error_deg: Tensor,
     success: Tensor,
     visible: Tensor,
     return_frames: tuple[int, ...] | list[int],
     *,
+    occluded: Tensor | None = None,
     hold: int = 5,
     lost_threshold_deg: float = LOST_THRESHOLD_DEG,
 ) -> LongRunMetrics:
     """Errors at the returns to frontal, drift, losses and recovery of one long tracked sequence.
 
     Args:
-        rotation_est: ``(T, 3, 3)`` estimated head -> camera rotations.
-        rotation_gt: ``(T, 3, 3)`` true rotations.
+        error_deg: ``(T,)`` rotation error relative to frame 0 (:func:`relative_rotation_error_deg`), degrees.
         success: ``(T,)`` bool, the tracker's own per-frame success flag.
         visible: ``(T,)`` bool, the face is entirely in view (:attr:`GroundTruth.face_visible`).
         return_frames: frames where the true head is frontal again after a turn (in ``1 .. T-1``).
+        occluded: ``(T,)`` bool, an occluder covers part of the face (:attr:`GroundTruth.occluder_on`), or None.
         hold: consecutive good frames that make a recovery.
         lost_threshold_deg: rotation error above which a frame is not good.
 
@@ -497,49 +506,63 @@ def long_run_metrics(
         :class:`LongRunMetrics`.
 
     Example:
-        >>> R = torch.eye(3, dtype=torch.float64).expand(6, 3, 3)
+        >>> err = torch.zeros(6, dtype=torch.float64)
         >>> vis = torch.tensor([True, True, False, False, True, True])
         >>> ok = torch.tensor([True, True, False, False, False, True])
-        >>> m = long_run_metrics(R, R, ok, vis, [1], hold=1)
+        >>> m = long_run_metrics(err, ok, vis, [1], hold=1)
         >>> m.recoveries, m.unsuccessful_frames
-        ((Recovery(gap_start=2, gap_end=4, frames_to_recover=1),), 1)
+        ((Recovery(gap_start=2, gap_end=4, frames_to_recover=1, cause='out of view'),), 1)
     """
-    _check_rotations(rotation_est, "rotation_est")
-    if rotation_est.dim() != 3 or rotation_est.shape[0] < 2:
-        raise ValueError(f"rotation_est must be (T, 3, 3) with T >= 2, got {tuple(rotation_est.shape)}")
-    T = rotation_est.shape[0]
+    if not isinstance(error_deg, Tensor) or error_deg.dim() != 1 or error_deg.shape[0] < 2:
+        raise ValueError(f"error_deg must be a (T,) tensor with T >= 2, got {tuple(getattr(error_deg, 'shape', ()))}")
+    T = error_deg.shape[0]
     _check_flags(success, "success", T)
     _check_flags(visible, "visible", T)
+    occluded = torch.zeros(T, dtype=torch.bool) if occluded is None else _check_flags(occluded, "occluded", T)
     if hold < 1:
         raise ValueError(f"hold must be >= 1, got {hold}")
     frames = tuple(int(f) for f in return_frames)
     if any(not 1 <= f < T for f in frames):
         raise ValueError(f"return_frames must lie in 1 .. {T - 1}, got {frames}")
-    err = relative_rotation_error_deg(rotation_est, rotation_gt).cpu()
-    success, visible = success.cpu(), visible.cpu()
+    err = error_deg.detach().cpu().to(torch.float64)
+    if bool(torch.isnan(err).any()):
+        raise ValueError("error_deg must not be NaN")
+    success, visible, occluded = success.cpu(), visible.cpu(), occluded.cpu()
     good = success & (err <= lost_threshold_deg)
     scored = visible.clone()
     scored[0] = False
-    e = err[scored]
+    clear = scored & ~occluded
     nan = float("nan")
+
+    def mean_max(mask: Tensor) -> tuple[float, float]:
+        e = err[mask]
+        return (float(e.mean()), float(e.max())) if e.numel() else (nan, nan)
+
     # Start of each good run of `hold` frames: good[f : f + hold] all True.
     window = good.to(torch.int64).unfold(0, hold, 1).sum(-1) == hold if T >= hold else good[:0]
+    hidden = ~clear
+    hidden[0] = False
+    gaps = true_runs(hidden)
     recoveries = []
-    gaps = true_runs(~visible)
     for i, (start, end) in enumerate(gaps):
         limit = gaps[i + 1][0] if i + 1 < len(gaps) else T
         hits = torch.nonzero(window[end : max(end, limit - hold + 1)]).flatten()
-        recoveries.append(Recovery(start, end, int(hits[0]) if hits.numel() else None))
+        cause = "out of view" if not bool(visible[start:end].all()) else "occluded"
+        recoveries.append(Recovery(start, end, int(hits[0]) if hits.numel() else None, cause))
     gap_ends = {end for _, end in gaps}
-    bad_in_view = scored & ~good
-    losses = tuple((a, b) for a, b in true_runs(bad_in_view) if a not in gap_ends)
+    losses = tuple((a, b) for a, b in true_runs(clear & ~good) if a not in gap_ends)
+    mean_all, max_all = mean_max(scored)
+    mean_ok, max_ok = mean_max(scored & success)
     return LongRunMetrics(
         return_frames=frames,
         return_errors_deg=tuple(float(err[f]) for f in frames),
-        rot_err_mean_deg=float(e.mean()) if e.numel() else nan,
-        rot_err_max_deg=float(e.max()) if e.numel() else nan,
+        rot_err_mean_deg=mean_all,
+        rot_err_max_deg=max_all,
+        rot_err_mean_success_deg=mean_ok,
+        rot_err_max_success_deg=max_ok,
         lost_frames=int((scored & (err > lost_threshold_deg)).sum()),
         unsuccessful_frames=int((scored & ~success).sum()),
+        unsuccessful_occluded=int((scored & ~success & occluded).sum()),
         success_out_of_view=int((~visible & success)[1:].sum()),
         recoveries=tuple(recoveries),
         losses_in_view=losses,
