@@ -2,12 +2,13 @@
 """How well do the tracker's confidences separate good frames from bad ones? (issue 5, AUROC)
 
 For each scenario (read from evaluate.py's sequence cache, rendered there when missing) the tracker runs with
-the default TrackerConfig from frame 0's noisy ground-truth landmarks, as evaluate.py does. Every frame gets
+the default TrackerConfig, template management included (torchface.tracker.managed_step), from frame 0's
+noisy ground-truth landmarks, as evaluate.py does. Every frame gets
 
 * the geodesic rotation error relative to frame 0 (torchface.synth.metrics.relative_rotation_error_deg),
-* (a) the tracker's own confidence (TrackResult.confidence),
-* (b) the dissimilarity confidence (torchface.template.dissimilarity): the frame's normalised face
-  (torchface.normalise.NormalisedFace with the frame's TrackerState) against frame 0's.
+* (a) the solver's residual confidence (TrackResult.residual_confidence),
+* (b) the dissimilarity confidence the tracker reports (TrackResult.confidence): the frame's normalised face
+  against frame 0's (torchface.template.management.frame_dissimilarity).
 
 Positives are frames with error < --good (2 deg), negatives frames with error > --bad (5 deg); frames in
 between and frame 0 are left out. The AUROC of each confidence (probability that a random positive scores
@@ -18,8 +19,9 @@ Variants (--variants, comma list):
   no_illum      light_switch tracked with use_illumination=False (a weaker tracker on the hardest light).
   inject        the standard tracks (the same run), but on every third frame from frame 1 the pose used for
                 scoring and for the normalised face is rotated by a random axis and an angle uniform in
-                [0, 10] deg (seeded); the tracker itself continues from its own estimate. The tracker's confidence cannot see
-                this corruption, so (a) is meaningless there and printed only for completeness.
+                [0, 10] deg (seeded); the tracker itself continues from its own estimate. The residual
+                confidence cannot see this corruption, so (a) is meaningless there and printed only for
+                completeness.
 
 Examples:
     python scripts/confidence_auroc.py --scenarios pose_sweep --frames 40 --size 320x240
@@ -44,16 +46,12 @@ import evaluate as ev  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
-from torchface.normalise import NormalisedFace  # noqa: E402
 from torchface.synth.metrics import auroc, relative_rotation_error_deg  # noqa: E402
 from torchface.synth.scenarios import SCENARIOS, scenario_size  # noqa: E402
-from torchface.template.dissimilarity import (  # noqa: E402
-    DissimilarityConfig,
-    build_dissimilarity_reference,
-    dissimilarity,
-)
+from torchface.template.management import TemplateConfig, frame_dissimilarity  # noqa: E402
 from torchface.tracker.params import ParamLayout  # noqa: E402
-from torchface.tracker.step import TrackerConfig, initialise, track_step  # noqa: E402
+from torchface.tracker.managed import initialise_managed, managed_step  # noqa: E402
+from torchface.tracker.step import TrackerConfig  # noqa: E402
 
 VARIANTS = ("standard", "no_illum", "inject")
 INJECT_EVERY = 3
@@ -70,16 +68,16 @@ def _perturb(axis_angle: Tensor, g: torch.Generator) -> tuple[Tensor, float]:
 
 
 def run(
-    name: str, seq: ev.Sequence, model, config: TrackerConfig, dcfg: DissimilarityConfig, seed: int, inject: bool
+    name: str, seq: ev.Sequence, model, config: TrackerConfig, seed: int, inject: bool
 ) -> dict[str, dict[str, np.ndarray]]:
-    """Track one sequence; per frame: rotation error, tracker confidence, dissimilarity and its confidence.
+    """Track one sequence with template management; per frame: rotation error, the residual confidence, the
+    dissimilarity and its confidence (TrackResult.confidence).
 
     Returns ``{"standard": series}`` and, with ``inject``, also ``{"inject": series}`` from the same track
-    (only the scored pose of every third frame differs).
+    (only the scored pose of every third frame differs; its dissimilarity is measured as managed_step does).
     """
     dev, dt = model.device, model.dtype
     layout = ParamLayout(model.num_animation, 5)
-    normaliser = NormalisedFace(model)
     T = seq.frames.shape[0]
     g = torch.Generator().manual_seed(seed + 1)
 
@@ -87,46 +85,45 @@ def run(
         return seq.frames[i : i + 1].to(device=dev).to(dt) / 255.0
 
     landmarks = ev.initial_landmarks(seq.gt, seed).to(device=dev, dtype=dt)
-    state, res = initialise(model, config, frame(0), landmarks, seq.gt.intrinsics)
-    face0, mask0 = normaliser(frame(0), state)
-    ref = build_dissimilarity_reference(face0, mask0, dcfg)
+    state, res = initialise_managed(model, config, frame(0), landmarks, seq.gt.intrinsics)
     keys = ("standard", "inject") if inject else ("standard",)
     rot0 = res.rotation.detach().cpu().to(torch.float64)
-    series = {k: {"rot": [rot0], "conf_tracker": [float(res.confidence[0])], "diss": [0.0], "conf_diss": [1.0],
-                  "injected": [0.0]} for k in keys}  # fmt: skip
+    series = {k: {"rot": [rot0], "conf_tracker": [float(res.residual_confidence[0])], "diss": [0.0],
+                  "conf_diss": [float(res.confidence[0])], "injected": [0.0]} for k in keys}  # fmt: skip
     start = time.perf_counter()
     for i in range(1, T):
-        state, res = track_step(model, config, state, frame(i))
-        for k in keys:
-            scored, rot, angle = state, res.rotation, 0.0
-            if k == "inject" and i % INJECT_EVERY == 1:
-                aa, t, alpha, light = layout.split(state.params)
-                aa_bad, angle = _perturb(aa, g)
-                scored = replace(state, params=torch.cat([aa_bad, t, alpha, light], -1))
-                rot = axis_angle_to_matrix(aa_bad)
-            elif k == "inject":
-                s = series["standard"]
-                for f in ("diss", "conf_diss"):
-                    series[k][f].append(s[f][-1])
-                series[k]["rot"].append(s["rot"][-1])
-                series[k]["conf_tracker"].append(s["conf_tracker"][-1])
-                series[k]["injected"].append(0.0)
-                continue
+        state, res = managed_step(model, config, state, frame(i))
+        s = series["standard"]
+        s["rot"].append(res.rotation.detach().cpu().to(torch.float64))
+        s["conf_tracker"].append(float(res.residual_confidence[0]))
+        s["diss"].append(float(res.dissimilarity[0]))
+        s["conf_diss"].append(float(res.confidence[0]))
+        s["injected"].append(0.0)
+        if not inject:
+            continue
+        k = series["inject"]
+        if i % INJECT_EVERY == 1:
+            aa, t, alpha, light = layout.split(state.params)
+            aa_bad, angle = _perturb(aa, g)
+            ms = state.management
             with torch.no_grad():
-                face, mask = normaliser(frame(i), scored)
-                out = dissimilarity(ref, face, mask)
-            series[k]["rot"].append(rot.detach().cpu().to(torch.float64))
-            series[k]["conf_tracker"].append(float(res.confidence[0]))
-            series[k]["diss"].append(float(out.dissimilarity[0]))
-            series[k]["conf_diss"].append(float(out.confidence[0]))
-            series[k]["injected"].append(angle)
-    ms = 1e3 * (time.perf_counter() - start) / max(T - 1, 1)
+                out = frame_dissimilarity(frame(i), model, ms.layout, ms.mosaic.reference, state.shape_coeffs, alpha,
+                                          aa_bad, t, light, state.intrinsics, config.template)  # fmt: skip
+            k["rot"].append(axis_angle_to_matrix(aa_bad).detach().cpu().to(torch.float64))
+            k["conf_tracker"].append(s["conf_tracker"][-1])
+            k["diss"].append(float(out.dissimilarity[0]))
+            k["conf_diss"].append(float(out.confidence[0]))
+            k["injected"].append(angle)
+        else:
+            for f in ("rot", "conf_tracker", "diss", "conf_diss", "injected"):
+                k[f].append(s[f][-1])
+    ms_frame = 1e3 * (time.perf_counter() - start) / max(T - 1, 1)
     result = {}
     for k in keys:
         err = relative_rotation_error_deg(torch.cat(series[k].pop("rot")), seq.gt.rotation.to(torch.float64))
         result[k] = {"err": err.numpy(), **{f: np.array(x) for f, x in series[k].items()}}
-    ev.log(f"{name}: {T} frames, {ms:.0f} ms/frame, {ref.num_patches.tolist()} patches, "
-           f"max err {float(result['standard']['err'].max()):.2f} deg")  # fmt: skip
+    ev.log(f"{name}: {T} frames, {ms_frame:.0f} ms/frame, {int(state.management.mosaic.num_entries[0])} mosaic "
+           f"entries, max err {float(result['standard']['err'].max()):.2f} deg")  # fmt: skip
     return result
 
 
@@ -161,8 +158,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
     cache = None if args.cache.lower() == "none" else Path(args.cache)
     model = load_candide3()
-    base = TrackerConfig()
-    dcfg = DissimilarityConfig()
+    base = TrackerConfig(template=TemplateConfig())
     results: dict[str, dict[str, dict[str, np.ndarray]]] = {v: {} for v in variants}
     for name in names:
         w, h, t = scenario_size(name, "full")
@@ -171,13 +167,13 @@ def main(argv: list[str] | None = None) -> int:
         t = args.frames or t
         seq = ev.load_sequence(name, w, h, t, cache)
         if "standard" in variants or "inject" in variants:
-            out = run(name, seq, model, base, dcfg, args.seed, inject="inject" in variants)
+            out = run(name, seq, model, base, args.seed, inject="inject" in variants)
             for v, d in out.items():
                 if v in variants:
                     results[v][name] = d
                     print(report(f"{v}/{name}", d, args.good, args.bad), flush=True)
         if "no_illum" in variants and name == "light_switch":
-            out = run(name, seq, model, replace(base, use_illumination=False), dcfg, args.seed, inject=False)
+            out = run(name, seq, model, replace(base, use_illumination=False), args.seed, inject=False)
             results["no_illum"][name] = out["standard"]
             print(report(f"no_illum/{name}", out["standard"], args.good, args.bad), flush=True)
     print()

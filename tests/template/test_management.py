@@ -11,7 +11,7 @@ import torch
 
 from torchface.appearance.illumination import apply_illumination, illumination_basis
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, matrix_to_axis_angle, matrix_to_euler
+from torchface.geometry.so3 import euler_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.candide import load_candide3
 from torchface.normalise.face import build_normalised_layout
 from torchface.synth.background import BackgroundSpec
@@ -125,7 +125,8 @@ def test_mosaic_add_select_and_grow():
     assert torch.equal(m.levels[1].intensity[2, 1], new[1].intensity[1])
     assert not m.levels[0].valid[0, 1].any()  # stream 0's unused slot holds nothing
     ypr2 = torch.tensor([[-30.0, 0.0, 0.0]], dtype=D)
-    m, slots = add_entries(m, torch.tensor([2]), _fake_templates(1, N, 2), euler_to_matrix(ypr2), pose_bins(ypr2, cfg)[0])
+    bins2 = pose_bins(ypr2, cfg)[0]
+    m, slots = add_entries(m, torch.tensor([2]), _fake_templates(1, N, 2), euler_to_matrix(ypr2), bins2)
     assert slots.tolist() == [2] and m.capacity == 3 and m.num_entries.tolist() == [1, 2, 3]
     assert has_bin(m, torch.tensor([[2, 0], [2, 0], [-2, 0]])).tolist() == [False, True, True]
     # Selection: nearest entry in yaw/pitch among the used ones, with hysteresis.

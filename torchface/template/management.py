@@ -122,7 +122,10 @@ class TemplateConfig:
             0.57 on a 320x240 render, at 0.6 it scores 0.92 (patches there are left out instead).
         dissimilarity: settings of the fiducial patches and their Lucas-Kanade (in pixels of the ``G`` face).
         confidence_threshold: a frame with dissimilarity confidence below this is not confident: nothing is
-            learnt from it (no mosaic entry, no texture update) and it counts toward a loss.
+            learnt from it (no mosaic entry, no texture update) and it counts toward a loss. At 0.5 the
+            light_switch scenario (error about 1 degree, confidence 0.4-0.5 under the strongest light) was
+            declared lost for 10 frames; at 0.3 never, while scan_motion's stretches above 5 degrees of error
+            (confidence 0.04-0.2) still are.
         add_confidence: the confidence a frame needs for its templates to become a mosaic entry.
         lost_after: consecutive non-confident frames after which the stream is declared lost.
         very_low_confidence, lost_after_very_low: a stream is also lost after ``lost_after_very_low``
@@ -132,8 +135,10 @@ class TemplateConfig:
         min_inside_fraction: a stream whose estimated face has fewer than this fraction of its vertices
             projecting inside the frame (or in front of the camera) is lost at once (the face left the frame).
         recover_confidence: the confidence that ends a loss (from the continued track or a recovery).
-        recovery_every: a lost stream attempts a recovery every this many frames.
-        search_step_px: grid step of the mosaic search, pixels of the coarsest pyramid level.
+        recovery_every: a lost stream attempts a recovery when it is lost and then every this many frames (an
+            attempt costs about three frames' time: the search, then a solve).
+        search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
+            halved once more (:func:`search_mosaic`).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
         search_points: template points per entry used by the search (a uniform subset).
         search_min_inside: a placement needs this fraction of its points inside the image.
@@ -152,14 +157,14 @@ class TemplateConfig:
     normalised_size: int = 64
     min_facing_cos: float = 0.6
     dissimilarity: DissimilarityConfig = field(default_factory=_default_dissimilarity)
-    confidence_threshold: float = 0.5
+    confidence_threshold: float = 0.3
     add_confidence: float = 0.8
     lost_after: int = 15
     very_low_confidence: float = 0.1
     lost_after_very_low: int = 3
     min_inside_fraction: float = 0.6
     recover_confidence: float = 0.7
-    recovery_every: int = 1
+    recovery_every: int = 5
     search_step_px: float = 3.0
     search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
     search_points: int = 300
@@ -432,7 +437,9 @@ def select_entries(
     return torch.where(use_ref, torch.zeros_like(choice), choice)
 
 
-def entry_templates(model: FaceModel, shape_coeffs: Tensor, mosaic: Mosaic, streams: Tensor, entries: Tensor) -> tuple[Template, ...]:
+def entry_templates(
+    model: FaceModel, shape_coeffs: Tensor, mosaic: Mosaic, streams: Tensor, entries: Tensor
+) -> tuple[Template, ...]:
     """The full templates (every level) of entry ``entries[i]`` of stream ``streams[i]``.
 
     Args:
@@ -478,6 +485,40 @@ class SearchResult:
     score: float
 
 
+def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, t: Tensor, min_inside: float) -> Tensor:
+    """Zero-mean normalised cross-correlation of placed point sets with an image.
+
+    Args:
+        gray: ``(1, 1, h, w)``; X: ``(H, n, 3)`` rotated points (head origin at 0); T: ``(H, n)`` their
+            intensities; w: ``(H, n)`` 1 for points taking part, else 0; t: ``(H, P, 3)`` placements.
+
+    Returns:
+        ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image.
+    """
+    H, P = t.shape[:2]
+    cam = X.unsqueeze(1) + t.unsqueeze(2)  # (H, P, n, 3)
+    uv = project_points(cam.reshape(1, -1, 3), intrinsics)
+    vals, inside = sample_at_pixels(gray, uv)
+    vals = vals[..., 0].reshape(H, P, -1)
+    wgt = inside.reshape(H, P, -1).to(gray.dtype) * w.unsqueeze(1)
+    cnt = wgt.sum(-1)
+    mean_v = (vals * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
+    mean_t = (T.unsqueeze(1) * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
+    a = (vals - mean_v) * wgt
+    b = (T.unsqueeze(1) - mean_t) * wgt
+    ncc = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-6)
+    return torch.where(cnt >= min_inside * w.sum(-1, keepdim=True), ncc, torch.full_like(ncc, -1.0))
+
+
+def _placements(grid: Tensor, depth: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(P, 2)`` pixels and ``(H,)`` depths -> ``(H, P, 3)`` translations putting the head origin there."""
+    z = depth.reshape(-1, 1)
+    return torch.stack(
+        [(grid[:, 0] - intrinsics.cx) * z / intrinsics.fx, (grid[:, 1] - intrinsics.cy) * z / intrinsics.fy,
+         z.expand(-1, grid.shape[0])], dim=-1,
+    )  # fmt: skip
+
+
 def search_mosaic(
     model: FaceModel,
     shape_coeffs: Tensor,
@@ -492,12 +533,14 @@ def search_mosaic(
 ) -> SearchResult:
     """Find the face of ``stream`` in a gray image by placing its mosaic entries (module docstring).
 
-    Every used entry, at its own rotation (and, with ``extra_rotation``, the nearest entry also at that
-    rotation: the last confident pose), is placed with its head origin on a grid of pixels of step
-    ``config.search_step_px`` at the depths ``depth_mm * config.search_depth_factors``, and scored by the
-    zero-mean normalised cross-correlation between a subset of its level-``level`` template intensities and
-    the image sampled at their projections (placements with fewer than ``config.search_min_inside`` of the
-    points inside the image, or facing away, are skipped).
+    Hypotheses: every used entry at its own rotation (and, with ``extra_rotation``, the entry nearest that
+    rotation placed at it: the last confident pose), each at the depths ``depth_mm * search_depth_factors``.
+    Each is scored by the zero-mean normalised cross-correlation between its level-``level`` template
+    intensities and the image sampled at their projections, over points facing the camera (placements with
+    fewer than ``search_min_inside`` of them inside the image score -1). Two stages: the head origin on a grid
+    of step ``2 * search_step_px`` on the image halved once more (a quarter of ``search_points`` points),
+    then, around the four best placements, a grid of step 1 pixel on ``gray`` itself with ``search_points``
+    points.
 
     Args:
         shape_coeffs: ``(1, S)`` the stream's shape units.
@@ -507,7 +550,7 @@ def search_mosaic(
         extra_rotation: ``(3, 3)`` or None.
 
     Returns:
-        :class:`SearchResult`.
+        :class:`SearchResult` (score -1 when nothing could be placed).
     """
     dtype, device = gray.dtype, gray.device
     lv = mosaic.levels[level]
@@ -519,51 +562,54 @@ def search_mosaic(
         d = (matrix_to_euler(rots)[:, :2] - ypr[:, :2]).norm(dim=-1)
         ent = torch.cat([ent, used[d.argmin()].reshape(1)])
         rots = torch.cat([rots, extra_rotation.unsqueeze(0).to(rots.dtype)])
-    n_hyp = rots.shape[0]
+    n_rot = rots.shape[0]
     tpl = template_at(
-        model, shape_coeffs.expand(n_hyp, -1), lv.face_index[stream, ent], lv.bary[stream, ent],
+        model, shape_coeffs.expand(n_rot, -1), lv.face_index[stream, ent], lv.bary[stream, ent],
         lv.intensity[stream, ent], lv.valid[stream, ent],
     )  # fmt: skip
-    # Points facing the camera at the hypothesis' rotation (viewing ray ~ +z for a face near the axis).
+    # Points facing the camera at the hypothesis' rotation (viewing ray ~ +z for a face near the axis); the
+    # first n of them, a uniform subset (template slots are in random order), packed to the front.
     normals_cam = torch.matmul(tpl.normals, rots.transpose(1, 2))
     keep = tpl.valid & (normals_cam[..., 2] < -0.2)
-    # A uniform subset of the kept points (template slots are in random order): the first n kept.
-    rank = torch.cumsum(keep.to(torch.int64), dim=-1)
-    keep = keep & (rank <= config.search_points)
-    h, w = gray.shape[-2:]
+    order = torch.argsort((~keep).to(torch.int8), dim=-1, stable=True)[:, : config.search_points]
+    w = torch.gather(keep, 1, order).to(dtype)  # (R, n)
+    X = torch.matmul(torch.gather(tpl.points, 1, order.unsqueeze(-1).expand(-1, -1, 3)), rots.transpose(1, 2))
+    T = torch.gather(tpl.intensity, 1, order)
+    # Hypotheses: rotations x depths.
+    factors = torch.tensor(config.search_depth_factors, dtype=dtype, device=device)
+    n_d = factors.shape[0]
+    depth = (depth_mm * factors).repeat(n_rot)  # (H,)
+    Xh, Th, wh = (x.repeat_interleave(n_d, dim=0) for x in (X, T, w))
+    hyp_rot = torch.arange(n_rot, device=device).repeat_interleave(n_d)
+    # Stage 1: coarse grid on the image halved once more, a quarter of the points.
+    half = torch.nn.functional.avg_pool2d(gray, 2)
+    cam_half = Intrinsics(half.shape[-1], half.shape[-2], intrinsics.fx / 2, intrinsics.fy / 2,
+                          (intrinsics.cx + 0.5) / 2 - 0.5, (intrinsics.cy + 0.5) / 2 - 0.5)  # fmt: skip
     step = config.search_step_px
-    us = torch.arange(0.0, w, step, dtype=dtype, device=device)
-    vs = torch.arange(0.0, h, step, dtype=dtype, device=device)
-    vv, uu = torch.meshgrid(vs, us, indexing="ij")
-    grid = torch.stack([uu.reshape(-1), vv.reshape(-1)], -1)  # (P, 2)
+    vv, uu = torch.meshgrid(torch.arange(0.0, half.shape[-2], step, dtype=dtype, device=device),
+                            torch.arange(0.0, half.shape[-1], step, dtype=dtype, device=device), indexing="ij")
+    grid = torch.stack([uu.reshape(-1), vv.reshape(-1)], -1)
+    n1 = max(8, config.search_points // 4)
+    ncc1 = _ncc(half, cam_half, Xh[:, :n1], Th[:, :n1], wh[:, :n1], _placements(grid, depth, cam_half),
+                config.search_min_inside)  # fmt: skip
+    top = torch.topk(ncc1.reshape(-1), min(4, ncc1.numel())).indices
     best = SearchResult(torch.eye(3, dtype=dtype, device=device), torch.zeros(3, dtype=dtype, device=device), 0, -1.0)
-    for k in range(n_hyp):
-        m = keep[k]
-        n = int(m.sum())
-        if n < 8:
+    # Stage 2: around each of the best, step 1 pixel on ``gray``, all the points.
+    r = int(round(step)) + 1
+    offsets = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    ov, ou = torch.meshgrid(offsets, offsets, indexing="ij")
+    local = torch.stack([ou.reshape(-1), ov.reshape(-1)], -1)  # (Q, 2)
+    for flat in top.tolist():
+        h, p = divmod(flat, grid.shape[0])
+        if float(ncc1[h, p]) <= -1.0:
             continue
-        X = torch.matmul(tpl.points[k, m], rots[k].T)  # (n, 3) rotated, head origin at 0
-        T = tpl.intensity[k, m]
-        for f in config.search_depth_factors:
-            z = depth_mm * f
-            t = torch.stack([(grid[:, 0] - intrinsics.cx) * z / intrinsics.fx,
-                             (grid[:, 1] - intrinsics.cy) * z / intrinsics.fy,
-                             torch.full_like(grid[:, 0], z)], -1)  # (P, 3)  # fmt: skip
-            cam = X.unsqueeze(0) + t.unsqueeze(1)  # (P, n, 3)
-            uv = project_points(cam, intrinsics)
-            vals, inside = sample_at_pixels(gray.expand(uv.shape[0], -1, -1, -1), uv)
-            vals = vals[..., 0]
-            wgt = inside.to(dtype)
-            cnt = wgt.sum(-1)
-            mean_v = (vals * wgt).sum(-1) / cnt.clamp_min(1)
-            mean_t = (T.unsqueeze(0) * wgt).sum(-1) / cnt.clamp_min(1)
-            a = (vals - mean_v.unsqueeze(-1)) * wgt
-            b = (T.unsqueeze(0) - mean_t.unsqueeze(-1)) * wgt
-            ncc = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-6)
-            ncc = torch.where(cnt >= config.search_min_inside * n, ncc, torch.full_like(ncc, -1.0))
-            score, i = ncc.max(0)
-            if float(score) > best.score:
-                best = SearchResult(rots[k], t[i], int(ent[k]), float(score))
+        centre = (grid[p] + 0.5) * 2 - 0.5  # the half image's pixel centre in ``gray`` pixels
+        t = _placements(centre + local, depth[h : h + 1], intrinsics)
+        ncc2 = _ncc(gray, intrinsics, Xh[h : h + 1], Th[h : h + 1], wh[h : h + 1], t, config.search_min_inside)[0]
+        score, q = ncc2.max(0)
+        if float(score) > best.score:
+            k = int(hyp_rot[h])
+            best = SearchResult(rots[k], t[0, q], int(ent[k]), float(score))
     return best
 
 

@@ -23,8 +23,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    or when less than
    ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost frames are reported
    with status LOST (``success`` False). A lost stream keeps tracking from its estimate (back at the last
-   confident parameters when the estimate left the frame or failed) and, every ``recovery_every`` frames,
-   re-initialises: from the ``detector`` callback's landmarks when one is given, else by searching its
+   confident parameters when the estimate left the frame or failed) and, when it is lost and then every
+   ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when one is given, else by searching its
    mosaic over the coarsest pyramid level (:func:`~torchface.template.management.search_mosaic`); each
    candidate is refined by a normal solve. The loss ends when the continued track or a candidate reaches
    ``recover_confidence``.
@@ -53,7 +53,6 @@ from torchface.template.dissimilarity import build_dissimilarity_reference
 from torchface.template.management import (
     Mosaic,
     MosaicLevel,
-    TemplateConfig,
     add_entries,
     entry_templates,
     face_inside_fraction,
@@ -159,7 +158,9 @@ def initialise_managed(
     aa, t, alpha, light = _layout(model).split(state.params)
     image, mask = reference_face(frames, model, layout, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc)
     reference = build_dissimilarity_reference(image, mask, tc.dissimilarity)
-    diss = frame_dissimilarity(frames, model, layout, reference, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc)
+    diss = frame_dissimilarity(
+        frames, model, layout, reference, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc
+    )
     failed = result.status == _FAILED
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
@@ -175,7 +176,9 @@ def initialise_managed(
     return replace(state, management=management), result
 
 
-def _scatter_templates(templates: tuple[Template, ...], index: Tensor, sub: tuple[Template, ...]) -> tuple[Template, ...]:
+def _scatter_templates(
+    templates: tuple[Template, ...], index: Tensor, sub: tuple[Template, ...]
+) -> tuple[Template, ...]:
     """``templates`` with the samples ``index`` replaced by ``sub`` (batch ``len(index)``)."""
     out = []
     for t, s in zip(templates, sub):
@@ -258,7 +261,8 @@ def _texture_update(
     B = mask.shape[0]
     rows = torch.arange(B, device=mask.device)
     templates, levels = [], []
-    for level, (tpl, gray, lv) in enumerate(zip(state.templates, gray_pyramid(frames, config.num_levels), ms.mosaic.levels)):
+    pyramid = gray_pyramid(frames, config.num_levels)
+    for level, (tpl, gray, lv) in enumerate(zip(state.templates, pyramid, ms.mosaic.levels)):
         intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
         pts = tpl.points + torch.einsum("bnka,ba->bnk", tpl.basis, alpha)
         cam = torch.matmul(pts, R.transpose(1, 2)) + t.unsqueeze(1)
@@ -303,7 +307,9 @@ def _recovery_starts(
             fit = fit_landmarks(model, lm[ok], state.intrinsics, config=config.fit)
             good = fit.status != int(SolveStatus.FAILED)
             rows = ok.nonzero().squeeze(-1)[good]
-            starts[rows] = params_from_pose(fit.rotation[good], fit.translation[good], fit.anim_coeffs[good], light_c[rows])
+            starts[rows] = params_from_pose(
+                fit.rotation[good], fit.translation[good], fit.anim_coeffs[good], light_c[rows]
+            )
             found[rows] = True
     else:
         level = config.num_levels - 1
@@ -412,6 +418,7 @@ def managed_step(
     lost = lost & ~((conf >= tc.recover_confidence) & ~failed & ~outside)
     params = torch.where((lost & (failed | outside)).unsqueeze(-1), ms.confident_params, solved.params)
     since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
+    since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
 
     # 4. Recovery of lost streams (rare; only the streams concerned).
     attempt = lost & (since >= tc.recovery_every)
