@@ -48,7 +48,12 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
-from torchface.normalise.face import NormalisedFaceLayout, NormalisedFaceResult, build_normalised_layout, normalised_face
+from torchface.normalise.face import (
+    NormalisedFaceLayout,
+    NormalisedFaceResult,
+    build_normalised_layout,
+    normalised_face,
+)
 from torchface.solver.least_squares import SolverConfig, SolverMethod, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.tracker.objective import frame_residuals
@@ -67,7 +72,7 @@ from torchface.tracker.step import (
 
 # The reference path's own helpers, so that the unrolled objective is exactly the tracker's (bounds of the
 # animation units, disabled terms pinned; z-buffer visibility at the previous estimate).
-from torchface.tracker.step import _bounds, _visibility_at  # noqa: E402  (private, same project)
+from torchface.tracker.step import _bounds, _visibility_at  # private helpers of the same project
 
 __all__ = [
     "LayerMode",
@@ -230,7 +235,9 @@ def unrolled_params(
     if not 1 <= levels <= config.num_levels:
         raise ValueError(f"levels must be in [1, {config.num_levels}], got {levels}")
     if len(state.templates) != config.num_levels:
-        raise ValueError(f"the state has {len(state.templates)} template levels, config.num_levels is {config.num_levels}")
+        raise ValueError(
+            f"the state has {len(state.templates)} template levels, config.num_levels is {config.num_levels}"
+        )
 
     pyramid = gray_pyramid(frames, config.num_levels)
     with torch.no_grad():

@@ -95,7 +95,8 @@ def test_render_clip_known_geometry():
     assert float(frames.min()) >= 0 and float(frames.max()) <= 1
     cam = Intrinsics.default(96, 80)
     shape = s.shape_coeffs.to(torch.float64).unsqueeze(0)
-    front = project_points(s.landmarks_3d(s.deform(shape, None, 1)) + torch.tensor([0.0, 0.0, 300.0], dtype=torch.float64), cam)
+    lm3d = s.landmarks_3d(s.deform(shape, None, 1)) + torch.tensor([0.0, 0.0, 300.0], dtype=torch.float64)
+    front = project_points(lm3d, cam)
     torch.testing.assert_close(lm[0], front[0])
     # +yaw turns the nose toward image left: the nose tip moves left of the eye-corner midpoint.
     mid = 0.5 * (lm[:, 36, 0] + lm[:, 45, 0])

@@ -180,7 +180,8 @@ def test_unrolled_at_the_exact_minimum_is_detached(model, small):
     a, ga = _grad(det, frames[:1], state, weights)
     torch.testing.assert_close(a.params, state.params, atol=1e-9, rtol=0)
     for k in (1, 2):
-        unr = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=k, tracker=cfg), model)
+        cfg_k = LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=k, tracker=cfg)
+        unr = NormalisedFaceLayer(cfg_k, model)
         b, gb = _grad(unr, frames[:1], state, weights)
         torch.testing.assert_close(b.params.detach(), a.params, atol=1e-9, rtol=0)
         torch.testing.assert_close(b.image.detach(), a.image, atol=1e-9, rtol=0)
@@ -223,8 +224,8 @@ def test_keep_expression_keeps_the_expression_visible(model):
 
 def test_forward_clip_shapes_and_first_frame(model):
     frames, landmarks = _clip(32, num_frames=2)
-    clips = torch.stack([frames, frames.flip(-1)])  # (2, 2, 3, 32, 32)
-    lms = torch.stack([landmarks[0], landmarks[0] * torch.tensor([-1.0, 1.0], dtype=D) + torch.tensor([31.0, 0.0], dtype=D)])
+    clips = torch.stack([frames, frames.roll(1, dims=-1)])  # (2, 2, 3, 32, 32); the second shifted 1 px right
+    lms = torch.stack([landmarks[0], landmarks[0] + torch.tensor([1.0, 0.0], dtype=D)])
     layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=G, tracker=SMALL), model)
     out = layer.forward_clip(clips, lms)
     P = layer.param_layout.size

@@ -199,7 +199,9 @@ def animated_scan_subject() -> Subject:
     )  # fmt: skip
 
 
-def identity_variant(subject: Subject, shape_offset: Tensor | None = None, colour_gain: Tensor | None = None) -> Subject:
+def identity_variant(
+    subject: Subject, shape_offset: Tensor | None = None, colour_gain: Tensor | None = None
+) -> Subject:
     """Another identity: the subject's shape units plus ``shape_offset (S,)``, its texture times ``colour_gain (3,)``.
 
     Raises:
@@ -268,7 +270,9 @@ _DEFAULT_DIRECTION = (-0.35, -0.45, -0.82)
 def _clip_motion(subject: Subject, spec: ClipSpec) -> tuple[Tensor, Tensor, Tensor, LightState]:
     """Per-frame rotation ``(T, 3, 3)``, translation ``(T, 3)``, animation units ``(T, A)`` (float64) and light."""
     if spec.anim.shape[0] != subject.num_animation:
-        raise ValueError(f"spec.anim must have A = {subject.num_animation} values for this subject, got {spec.anim.shape[0]}")
+        raise ValueError(
+            f"spec.anim must have A = {subject.num_animation} values for this subject, got {spec.anim.shape[0]}"
+        )
     T = spec.num_frames
     s = torch.linspace(0.0, 1.0, T, dtype=torch.float64)
     ease = (s * s * (3.0 - 2.0 * s) if spec.easing else s).unsqueeze(-1)  # (T, 1)
