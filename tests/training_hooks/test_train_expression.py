@@ -22,7 +22,7 @@ def test_quick_run(tmp_path, capsys):
     script = _load()
     out = tmp_path / "run"
     figures_path = tmp_path / "figures.json"
-    assert script.main(["--quick", "--out", str(out), "--json", str(figures_path)]) == 0
+    assert script.main(["--quick", "--crop-single", "--out", str(out), "--json", str(figures_path)]) == 0
     text = capsys.readouterr().out
     for needle in ("epoch 1 (tracking", "epoch 2 (cached)", "pooled", "stage times"):
         assert needle in text
