@@ -8,7 +8,7 @@ noisy ground-truth landmarks, as evaluate.py does. Every frame gets
 * the geodesic rotation error relative to frame 0 (torchface.synth.metrics.relative_rotation_error_deg),
 * (a) the solver's residual confidence (TrackResult.residual_confidence),
 * (b) the dissimilarity confidence the tracker reports (TrackResult.confidence): the frame's normalised face
-  against frame 0's (torchface.template.management.frame_dissimilarity).
+  against that of the mosaic entry nearest the estimate (torchface.tracker.managed.estimate_confidence).
 
 Positives are frames with error < --good (2 deg), negatives frames with error > --bad (5 deg); frames in
 between and frame 0 are left out. The AUROC of each confidence (probability that a random positive scores
@@ -48,9 +48,9 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  #
 from torchface.model.candide import load_candide3  # noqa: E402
 from torchface.synth.metrics import auroc, relative_rotation_error_deg  # noqa: E402
 from torchface.synth.scenarios import SCENARIOS, scenario_size  # noqa: E402
-from torchface.template.management import TemplateConfig, frame_dissimilarity  # noqa: E402
+from torchface.template.management import TemplateConfig  # noqa: E402
 from torchface.tracker.params import ParamLayout  # noqa: E402
-from torchface.tracker.managed import initialise_managed, managed_step  # noqa: E402
+from torchface.tracker.managed import estimate_confidence, initialise_managed, managed_step  # noqa: E402
 from torchface.tracker.step import TrackerConfig  # noqa: E402
 
 VARIANTS = ("standard", "no_illum", "inject")
@@ -105,14 +105,13 @@ def run(
         if i % INJECT_EVERY == 1:
             aa, t, alpha, light = layout.split(state.params)
             aa_bad, angle = _perturb(aa, g)
-            ms = state.management
+            bad = replace(state, params=torch.cat([aa_bad, t, alpha, light], -1))
             with torch.no_grad():
-                out = frame_dissimilarity(frame(i), model, ms.layout, ms.mosaic.reference, state.shape_coeffs, alpha,
-                                          aa_bad, t, light, state.intrinsics, config.template)  # fmt: skip
+                conf_bad, diss_bad = estimate_confidence(model, config, bad, frame(i))
             k["rot"].append(axis_angle_to_matrix(aa_bad).detach().cpu().to(torch.float64))
             k["conf_tracker"].append(s["conf_tracker"][-1])
-            k["diss"].append(float(out.dissimilarity[0]))
-            k["conf_diss"].append(float(out.confidence[0]))
+            k["diss"].append(float(diss_bad[0]))
+            k["conf_diss"].append(float(conf_bad[0]))
             k["injected"].append(angle)
         else:
             for f in ("rot", "conf_tracker", "diss", "conf_diss", "injected"):

@@ -109,10 +109,15 @@ def _fake_templates(B: int, N: int, seed: int, levels: int = 2):
     return tuple(out)
 
 
+def _fake_reference(B: int, seed: int):
+    g = torch.Generator().manual_seed(seed)
+    return build_dissimilarity_reference(torch.rand(B, 1, 32, 32, generator=g, dtype=D), torch.ones(B, 1, 32, 32, dtype=D))
+
+
 def test_mosaic_add_select_and_grow():
     cfg = TemplateConfig()
     B, N = 3, 10
-    ref = build_dissimilarity_reference(torch.rand(B, 1, 32, 32, dtype=D), torch.ones(B, 1, 32, 32, dtype=D))
+    ref = _fake_reference(B, seed=0)
     ypr0 = torch.zeros(B, 3, dtype=D)
     m = new_mosaic(_fake_templates(B, N, 0), euler_to_matrix(ypr0), ypr0, ref, cfg)
     assert m.capacity == 1 and m.num_entries.tolist() == [1, 1, 1]
@@ -120,13 +125,20 @@ def test_mosaic_add_select_and_grow():
     ypr = torch.tensor([[30.0, 0.0, 0.0], [30.0, 0.0, 0.0]], dtype=D)
     bins, _ = pose_bins(ypr, cfg)
     new = _fake_templates(2, N, 1)
-    m, slots = add_entries(m, torch.tensor([1, 2]), new, euler_to_matrix(ypr), bins)
+    new_ref = _fake_reference(2, seed=1)
+    m, slots = add_entries(m, torch.tensor([1, 2]), new, euler_to_matrix(ypr), bins, new_ref)
     assert slots.tolist() == [1, 1] and m.capacity == 2 and m.num_entries.tolist() == [1, 2, 2]
     assert torch.equal(m.levels[1].intensity[2, 1], new[1].intensity[1])
     assert not m.levels[0].valid[0, 1].any()  # stream 0's unused slot holds nothing
+    # Each entry keeps its own dissimilarity reference (Lucas-Kanade side included).
+    got = m.references.select((torch.tensor([0, 2, 2]), torch.tensor([0, 0, 1])))
+    assert torch.equal(got.image[0], ref.image[0]) and torch.equal(got.image[1], ref.image[2])
+    assert torch.equal(got.image[2], new_ref.image[1]) and torch.equal(got.lk.sd[2], new_ref.lk.sd[1])
+    assert not m.references.patch_valid[0, 1].any()
     ypr2 = torch.tensor([[-30.0, 0.0, 0.0]], dtype=D)
     bins2 = pose_bins(ypr2, cfg)[0]
-    m, slots = add_entries(m, torch.tensor([2]), _fake_templates(1, N, 2), euler_to_matrix(ypr2), bins2)
+    m, slots = add_entries(m, torch.tensor([2]), _fake_templates(1, N, 2), euler_to_matrix(ypr2), bins2,
+                           _fake_reference(1, seed=2))  # fmt: skip
     assert slots.tolist() == [2] and m.capacity == 3 and m.num_entries.tolist() == [1, 2, 3]
     assert has_bin(m, torch.tensor([[2, 0], [2, 0], [-2, 0]])).tolist() == [False, True, True]
     # Selection: nearest entry in yaw/pitch among the used ones, with hysteresis.
@@ -226,7 +238,7 @@ def test_search_mosaic_finds_the_moved_face(model, scene):
     tpl1 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, R1, gt.translation[1:].to(D),
                           torch.nn.functional.avg_pool2d(frames[1:].mean(1, keepdim=True), 2), intr, max_points=600,
                           gradient_threshold=0.01)  # fmt: skip
-    m, _ = add_entries(m, torch.tensor([0]), (tpl1,), R1, torch.tensor([[1, 0]]))
+    m, _ = add_entries(m, torch.tensor([0]), (tpl1,), R1, torch.tensor([[1, 0]]), ref)
     gray1 = torch.nn.functional.avg_pool2d(frames[1:].mean(1, keepdim=True), 2)
     hit = search_mosaic(model, fit.shape_coeffs, m, 0, gray1, intr, 0, float(fit.translation[0, 2]), None, cfg)
     assert hit.entry == 1 and hit.score > 0.5

@@ -12,7 +12,10 @@ tracked against the reference frame's with the inverse-compositional Lucas-Kanad
 :mod:`torchface.template.dissimilarity`: :func:`frame_dissimilarity`. A right estimate leaves the patches in
 place (dissimilarity near 0, confidence near 1); a wrong pose, an occluder or another face displaces or
 hides them. Per frame this runs at a small size (:attr:`TemplateConfig.normalised_size`, 64 px) with the
-facing tests only (no z-buffer) so that it stays a fraction of the solve's time.
+facing tests only (no z-buffer) so that it stays a fraction of the solve's time. The reference is that of the
+mosaic entry nearest the estimated pose (each entry stores the normalised face of the frame it was built
+from): far from the first pose the normalised face is resampled from oblique, foreshortened surface, and
+against the first frame's a right estimate would score low.
 
 Mosaic (Section 4.2)
 --------------------
@@ -235,14 +238,17 @@ class Mosaic:
         rotation: ``(B, E, 3, 3)`` the head pose each entry was built at.
         bins: ``(B, E, 2)`` int64 (yaw, pitch) bin of each entry.
         used: ``(B, E)`` bool, the entry slot is filled; entry 0 (the reference) always is.
-        reference: the dissimilarity reference (the first frame's normalised face, batch ``B``).
+        references: the entries' dissimilarity references: a
+            :class:`~torchface.template.dissimilarity.DissimilarityReference` whose tensors have the entry
+            dimension after the batch (``image (B, E, 1, G, G)``, ...); ``references.select((streams,
+            entries))`` gives the ``(B', ...)`` reference of entry ``entries[i]`` of stream ``streams[i]``.
     """
 
     levels: tuple[MosaicLevel, ...]
     rotation: Tensor
     bins: Tensor
     used: Tensor
-    reference: DissimilarityReference
+    references: DissimilarityReference
 
     @property
     def num_entries(self) -> Tensor:
@@ -339,14 +345,21 @@ def new_mosaic(
 
     Args:
         templates: per level, finest first, batch ``B``; rotation ``(B, 3, 3)`` and ypr_deg ``(B, 3)`` the pose
-            they were built at; reference: the dissimilarity reference.
+            they were built at; reference: the dissimilarity reference of that frame (batch ``B``).
     """
     bins, _ = pose_bins(ypr_deg, config)
     B = rotation.shape[0]
     return Mosaic(
         tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1), bins.unsqueeze(1),
-        torch.ones(B, 1, dtype=torch.bool, device=rotation.device), reference,
+        torch.ones(B, 1, dtype=torch.bool, device=rotation.device), _map_reference(reference, lambda x: x.unsqueeze(1)),
     )  # fmt: skip
+
+
+def _map_reference(ref: DissimilarityReference, fn) -> DissimilarityReference:
+    """``ref`` with ``fn`` applied to every tensor, in field order (its Lucas-Kanade side last)."""
+    main = [fn(x) for x in (ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score)]
+    lk = None if ref.lk is None else type(ref.lk)(*(fn(x) for x in ref.lk))
+    return DissimilarityReference(*main, ref.config, lk)
 
 
 def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
@@ -360,11 +373,13 @@ def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
                    for lv in mosaic.levels)  # fmt: skip
     eye = torch.eye(3, dtype=mosaic.rotation.dtype, device=mosaic.rotation.device)
     rot = torch.cat([mosaic.rotation, eye.expand(mosaic.rotation.shape[0], extra, 3, 3)], dim=1)
-    return Mosaic(levels, rot, pad(mosaic.bins), pad(mosaic.used, False), mosaic.reference)
+    refs = _map_reference(mosaic.references, lambda x: pad(x, False) if x.dtype == torch.bool else pad(x))
+    return Mosaic(levels, rot, pad(mosaic.bins), pad(mosaic.used, False), refs)
 
 
 def add_entries(
-    mosaic: Mosaic, streams: Tensor, templates: tuple[Template, ...], rotation: Tensor, bins: Tensor
+    mosaic: Mosaic, streams: Tensor, templates: tuple[Template, ...], rotation: Tensor, bins: Tensor,
+    reference: DissimilarityReference,
 ) -> tuple[Mosaic, Tensor]:
     """Store one new entry for each of ``streams`` in its first free slot (a rare event: not in the hot path).
 
@@ -373,6 +388,7 @@ def add_entries(
         streams: ``(B',)`` int64 distinct stream indices.
         templates: per level, batch ``B'``, intensities already under the reference light.
         rotation: ``(B', 3, 3)`` and bins ``(B', 2)``: the pose the templates were built at.
+        reference: batch ``B'``, the dissimilarity reference of the frame they were built from.
 
     Returns:
         The new mosaic and ``(B',)`` the entry index each stream's entry got.
@@ -395,7 +411,16 @@ def add_entries(
     b[streams, slot] = bins
     used = mosaic.used.clone()
     used[streams, slot] = True
-    return Mosaic(tuple(levels), rot, b, used, mosaic.reference), slot
+    new = iter([reference.image, reference.mask, reference.centres, reference.patch_valid, reference.score]
+               + ([] if reference.lk is None else list(reference.lk)))  # fmt: skip
+
+    def put(x: Tensor) -> Tensor:
+        x = x.clone()
+        x[streams, slot] = next(new).to(x.dtype)
+        return x
+
+    refs = _map_reference(mosaic.references, put)
+    return Mosaic(tuple(levels), rot, b, used, refs), slot
 
 
 def has_bin(mosaic: Mosaic, bins: Tensor) -> Tensor:

@@ -1,7 +1,13 @@
 """The tracker: initial fit (Eq. 2), per-frame joint minimisation (Eq. 20), batched streams."""
 
 from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
-from torchface.tracker.managed import LandmarkDetector, ManagementState, initialise_managed, managed_step
+from torchface.tracker.managed import (
+    LandmarkDetector,
+    ManagementState,
+    estimate_confidence,
+    initialise_managed,
+    managed_step,
+)
 from torchface.tracker.module import FaceTracker
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -27,6 +33,7 @@ __all__ = [
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",
+    "estimate_confidence",
     "fit_landmarks",
     "frame_residuals",
     "gray_pyramid",

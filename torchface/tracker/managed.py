@@ -6,9 +6,10 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
 1. **Mosaic entry.** Before the solve, each stream picks the mosaic entry nearest its pose (yaw and pitch,
    with hysteresis) and aligns against that entry's templates: near a stored pose the solve re-aligns pose
    and expression against the template seen there (Section 4.2). Entry 0 is the first frame's.
-2. **Dissimilarity confidence.** After the solve, the frame's normalised face is compared with the first
-   frame's by the fiducial patches' inverse-compositional Lucas-Kanade (Section 4.1); its confidence in
-   [0, 1] is ``TrackResult.confidence`` (the solver's residual confidence stays in ``residual_confidence``).
+2. **Dissimilarity confidence.** After the solve, the frame's normalised face is compared with that of the
+   mosaic entry nearest the estimated pose (the first frame's near it) by the fiducial patches'
+   inverse-compositional Lucas-Kanade (Section 4.1); its confidence in [0, 1] is ``TrackResult.confidence``
+   (the solver's residual confidence stays in ``residual_confidence``).
 3. **Confidence gating.** A confident frame (confidence >= ``confidence_threshold``) updates the last
    confident parameters and may teach the mosaic: when it is confidently (>= ``add_confidence``) near the
    centre of a pose bin the mosaic lacks, its templates become a new entry, intensities brought back to
@@ -49,7 +50,7 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
 from torchface.solver.least_squares import SolveStatus
-from torchface.template.dissimilarity import build_dissimilarity_reference
+from torchface.template.dissimilarity import DissimilarityReference, build_dissimilarity_reference
 from torchface.template.management import (
     Mosaic,
     MosaicLevel,
@@ -81,7 +82,7 @@ from torchface.tracker.step import (
     track_step,
 )
 
-__all__ = ["LandmarkDetector", "ManagementState", "initialise_managed", "managed_step"]
+__all__ = ["LandmarkDetector", "ManagementState", "estimate_confidence", "initialise_managed", "managed_step"]
 
 #: A face detector for re-initialisation: ``frames (B, 3, H, W)`` float in [0, 1] -> ``landmarks (B, K, 2)``
 #: pixels of the model's K landmarks (68 iBUG points for CANDIDE-3), a row of NaN where no face was found.
@@ -96,7 +97,8 @@ class ManagementState:
     """What template management keeps between frames (in :attr:`TrackerState.management`).
 
     Attributes:
-        mosaic: the streams' :class:`~torchface.template.management.Mosaic` (and dissimilarity reference).
+        mosaic: the streams' :class:`~torchface.template.management.Mosaic` (templates and dissimilarity
+            references per entry).
         layout: the normalised-face layout the dissimilarity is measured on (shared by the batch).
         entry: ``(B,)`` int64 the mosaic entry whose templates are ``TrackerState.templates``.
         low_count: ``(B,)`` int64 consecutive frames below the confidence threshold.
@@ -209,20 +211,44 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
 
 def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
-    result: TrackResult, index: Tensor | None = None,
+    status: Tensor, index: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Dissimilarity confidence ``(B,)`` (0 for FAILED samples) and dissimilarity ``(B,)`` of ``state``'s
-    estimate; ``index`` selects the streams of a sub-batch (the reference's rows)."""
+    estimate against the reference of the mosaic entry nearest it; ``index`` selects the streams of a
+    sub-batch (the mosaic's rows)."""
     aa, t, alpha, light = _layout(model).split(state.params)
-    reference = ms.mosaic.reference
-    if index is not None:
-        reference = reference.select(index)
+    rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
+    nearest = torch.zeros_like(rows)
+    if ms.mosaic.capacity > 1:
+        ypr = matrix_to_euler(axis_angle_to_matrix(aa))
+        nearest = select_entries(ms.mosaic, ypr, nearest, 0.0, streams=rows)
+    reference = ms.mosaic.references.select((rows, nearest))
     diss = frame_dissimilarity(
         frames, model, ms.layout, reference, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
         config.template,
     )  # fmt: skip
-    failed = result.status == _FAILED
+    failed = status == _FAILED
     return torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence), diss.dissimilarity
+
+
+def estimate_confidence(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The dissimilarity confidence ``(B,)`` and dissimilarity ``(B,)`` of ``state``'s parameters on ``frames``,
+    measured as :func:`managed_step` measures its result's (e.g. to score a pose that is not the tracker's).
+
+    Args:
+        state: with management (:func:`initialise_managed` / :func:`managed_step`); its ``params`` are scored.
+        frames: ``(B, 3, H, W)`` the frames those parameters belong to.
+    """
+    ms = state.management
+    if not isinstance(ms, ManagementState):
+        raise ValueError("the state has no template management: start with initialise_managed")
+    check_frames(frames, state.intrinsics)
+    frames = frames.to(dtype=model.dtype, device=model.device)
+    B = state.params.shape[0]
+    status = torch.zeros(B, dtype=torch.int64, device=state.params.device)  # none failed
+    return _confidence(model, config, ms, frames, state, status)
 
 
 def _inside_fraction(model: FaceModel, state: TrackerState) -> Tensor:
@@ -233,12 +259,17 @@ def _inside_fraction(model: FaceModel, state: TrackerState) -> Tensor:
 
 
 def _new_entries(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, index: Tensor
-) -> tuple[Template, ...]:
-    """Templates of streams ``index`` built at their current estimate, intensities under the reference light."""
+    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor
+) -> tuple[tuple[Template, ...], DissimilarityReference]:
+    """Templates of streams ``index`` built at their current estimate, intensities under the reference light,
+    and the dissimilarity reference of their normalised face."""
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
     shape = state.shape_coeffs[index]
+    image, mask = reference_face(
+        frames[index], model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template
+    )
+    reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
     out = []
     for level, gray in enumerate(gray_pyramid(frames[index], config.num_levels)):
         intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
@@ -248,7 +279,7 @@ def _new_entries(
             expression_priority=config.expression_priority,
         )  # fmt: skip
         out.append(replace(tpl, intensity=light_normalised_intensity(tpl, R, light)))
-    return tuple(out)
+    return tuple(out), reference
 
 
 def _texture_update(
@@ -346,7 +377,7 @@ def _recover(
     templates = entry_templates(model, state.shape_coeffs[index], ms.mosaic, index, entries)
     sub = _subset_state(state, index, starts, templates)
     solved, result = track_step(model, config, sub, frames[index])
-    conf, diss = _confidence(model, config, ms, frames[index], solved, result, index)
+    conf, diss = _confidence(model, config, ms, frames[index], solved, result.status, index)
     return found, solved, result, conf, diss, entries
 
 
@@ -405,7 +436,7 @@ def managed_step(
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
     solved, result = track_step(model, config, replace(state, templates=templates), frames)
-    conf, diss = _confidence(model, config, ms, frames, solved, result)
+    conf, diss = _confidence(model, config, ms, frames, solved, result.status)
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
@@ -461,8 +492,8 @@ def managed_step(
         add = add & (mosaic.num_entries < tc.max_entries)
         if bool(add.any()):
             index = add.nonzero().squeeze(-1)
-            mosaic, _ = add_entries(mosaic, index, _new_entries(model, config, new_state, frames, index),
-                                    result.rotation[index], bins[index])  # fmt: skip
+            templates_new, reference_new = _new_entries(model, config, new_state, ms, frames, index)
+            mosaic, _ = add_entries(mosaic, index, templates_new, result.rotation[index], bins[index], reference_new)
     ms = replace(ms, mosaic=mosaic, entry=entry)
     if tc.texture_update and bool(confident.any()):
         templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
