@@ -27,8 +27,10 @@ from torchface.template.management import TemplateConfig
 from torchface.tracker import (
     FaceTracker,
     FitConfig,
+    ParamLayout,
     TrackerConfig,
     TrackStatus,
+    estimate_confidence,
     initialise,
     initialise_managed,
     managed_step,
@@ -304,3 +306,19 @@ def test_face_tracker_module_uses_management(model, gentle):
     res = tracker(frames[:, 1])
     assert first.mosaic_entry is not None and res.dissimilarity is not None
     assert tracker.state.management is not None and float(res.confidence[0]) > 0.6
+
+
+def test_estimate_confidence_matches_the_step_and_sees_a_wrong_pose(model, gentle):
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    state, res = managed_step(model, CFG, state, frames[:, 1])
+    conf, diss = estimate_confidence(model, CFG, state, frames[:, 1])
+    torch.testing.assert_close(conf, res.confidence)
+    torch.testing.assert_close(diss, res.dissimilarity)
+    layout = ParamLayout(model.num_animation, 5)
+    params = state.params.clone()
+    # About 6 degrees of roll (in the image plane: a yaw about a point of the face plane hardly moves the face
+    # in the image, and is as hard to see for the dissimilarity as for any image measure).
+    params[:, layout.rotation] += torch.tensor([0.0, 0.0, 0.1])
+    wrong, _ = estimate_confidence(model, CFG, replace(state, params=params), frames[:, 1])
+    assert float(res.confidence[0]) > 0.6 and float(wrong[0]) < 0.2
