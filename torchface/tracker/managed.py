@@ -21,14 +21,13 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
 4. **Loss and recovery.** A stream is lost when its confidence stayed below ``confidence_threshold`` for
    ``lost_after`` frames or below ``very_low_confidence`` for ``lost_after_very_low`` frames (nothing of the
    face matches: the tracker sits on the background), when its solve FAILED (too few points, no contrast),
-   or when less than
-   ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost frames are reported
-   with status LOST (``success`` False). A lost stream keeps tracking from its estimate (back at the last
-   confident parameters when the estimate left the frame or failed) and, when it is lost and then every
-   ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when one is given, else by searching its
-   mosaic over the coarsest pyramid level (:func:`~torchface.template.management.search_mosaic`); each
-   candidate is refined by a normal solve. The loss ends when the continued track or a candidate reaches
-   ``recover_confidence``.
+   or when less than ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost
+   frames are reported with status LOST (``success`` False). A lost stream keeps tracking from its estimate
+   (back at the last confident parameters when the estimate left the frame or failed) and, when it is lost
+   and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
+   one is given, else by searching its mosaic over the coarsest pyramid level
+   (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. The
+   loss ends when the continued track or a candidate reaches ``recover_confidence``.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
