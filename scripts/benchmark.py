@@ -143,12 +143,13 @@ def _management(args: argparse.Namespace, figures: dict[str, dict[str, float]]) 
         key = f"management_b{batch}_{threads}_threads"
         figures[key] = {"ms_per_frame_off": off["ms_per_step"] / batch, "ms_per_frame_on": on["ms_per_step"] / batch,
                         "overhead_percent": overhead, "peak_mb_off": off["peak_mb"], "peak_mb_on": on["peak_mb"]}
-        rows.append((key, off["ms_per_step"] / batch, on["ms_per_step"] / batch, overhead))
+        rows.append((key, off["ms_per_step"] / batch, on["ms_per_step"] / batch, overhead, off["peak_mb"],
+                     on["peak_mb"]))  # fmt: skip
         print(f"  management B={batch}, {threads} thread(s): {overhead:+.1f}%", file=sys.stderr)
     print("\ntemplate management (dissimilarity confidence, gating, mosaic) on vs off, same frames; target <= 30%")
-    print(f"{'configuration':<32}{'off ms/fr':>10}{'on ms/fr':>10}{'overhead':>10}")
-    for key, off_ms, on_ms, pct in rows:
-        print(f"{key:<32}{off_ms:>10.2f}{on_ms:>10.2f}{pct:>9.1f}%")
+    print(f"{'configuration':<32}{'off ms/fr':>10}{'on ms/fr':>10}{'overhead':>10}{'peak MB off':>12}{'on':>7}")
+    for key, off_ms, on_ms, pct, off_mb, on_mb in rows:
+        print(f"{key:<32}{off_ms:>10.2f}{on_ms:>10.2f}{pct:>9.1f}%{off_mb:>12.0f}{on_mb:>7.0f}")
 
 
 def main() -> None:
