@@ -32,6 +32,7 @@ Examples:
     python scripts/evaluate.py --only long_run --long-frames 600 --size 320x240     # a quick look
     python scripts/evaluate.py --only long_run --save-series out/a.npz       # split over processes, then pool (b):
     python scripts/evaluate.py --scenarios standard --add-series out/a.npz
+    python scripts/evaluate.py --scenarios none --add-series out/a.npz,out/b.npz    # tables again, no tracking
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -404,11 +405,14 @@ def turn_before(gt: GroundTruth, frame: int, previous: int) -> str:
     return text
 
 
-def long_metrics(gt: GroundTruth, out: RunOutput, hold: int) -> LongRunMetrics:
-    """Section (a)'s metrics of one long run (:func:`torchface.synth.metrics.long_run_metrics`)."""
-    err = relative_rotation_error_deg(out.rotation, gt.rotation)
+def long_metrics(gt: GroundTruth, error_deg: Tensor, success: Tensor, hold: int) -> LongRunMetrics:
+    """Section (a)'s metrics of one long run (:func:`torchface.synth.metrics.long_run_metrics`).
+
+    Args:
+        error_deg: ``(T,)`` rotation error relative to frame 0; success: ``(T,)`` the tracker's flags.
+    """
     return long_run_metrics(
-        err, out.success, gt.face_visible, return_frames(gt), occluded=gt.occluder_on, hold=hold
+        error_deg, success, gt.face_visible, return_frames(gt), occluded=gt.occluder_on, hold=hold
     )
 
 
@@ -459,6 +463,7 @@ def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[Long
 
         row(label, cell)
     row("longest loss in view (frames)", lambda m, _: str(m.longest_loss_in_view))
+    row(f"  of them error > {LOST_THRESHOLD_DEG:g} deg (frames)", lambda m, _: str(m.longest_error_loss_in_view))
     row("ms/frame", lambda _, ms: _fmt(ms, 0))
     lines.append(
         f"   good frame: successful and error <= {LOST_THRESHOLD_DEG:g} deg; in view: every landmark inside the image;"
@@ -486,22 +491,50 @@ def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[Long
             f"   also ({LONG_DEFAULT}): after an occluder within {RECOVERY_TARGET_FRAMES} frames: "
             f"{_mark(occluded is not None and occluded <= RECOVERY_TARGET_FRAMES)} (worst {text(occluded)}); "
             f"no loss in view longer than {RECOVERY_TARGET_FRAMES} frames: "
-            f"{_mark(m.longest_loss_in_view <= RECOVERY_TARGET_FRAMES)} (longest {m.longest_loss_in_view})"
+            f"{_mark(m.longest_loss_in_view <= RECOVERY_TARGET_FRAMES)} (longest {m.longest_loss_in_view}; "
+            f"counting only the error: {_mark(m.longest_error_loss_in_view <= RECOVERY_TARGET_FRAMES)}, longest "
+            f"{m.longest_error_loss_in_view})"
         )
     return "\n".join(lines)
 
 
-def long_json(m: LongRunMetrics, out: RunOutput, width: int, height: int, num_frames: int) -> dict[str, object]:
+def long_json(m: LongRunMetrics, ms_per_frame: float, width: int, height: int, num_frames: int) -> dict[str, object]:
     """Section (a)'s figures of one run, for --json."""
     d = asdict(m)
     d["recoveries"] = [asdict(r) for r in m.recoveries]
     d.update(
         worst_recovery_out_of_view=m.worst_recovery("out of view"),
         worst_recovery_occluded=m.worst_recovery("occluded"),
-        ms_per_frame=out.ms_per_frame, init_ms=out.init_ms,
-        width=width, height=height, num_frames=num_frames,
+        ms_per_frame=ms_per_frame, width=width, height=height, num_frames=num_frames,
     )
     return d
+
+
+def long_tables_from_series(
+    series: list[FrameSeries], cache: Path | None, hold: int
+) -> tuple[list[str], dict[str, dict[str, object]]]:
+    """Section (a) again from saved per-frame figures (--add-series) and the cached ground truth: tables and figures.
+
+    Runs whose ground truth is not in ``cache`` are skipped (with a note on stderr).
+    """
+    tables: list[str] = []
+    figures: dict[str, dict[str, object]] = {}
+    for name in dict.fromkeys(s.scenario for s in series if s.scenario in LONG_SCENARIOS):
+        mine = [s for s in series if s.scenario == name]
+        w, h, t = mine[0].width, mine[0].height, int(mine[0].error.shape[0])
+        path = None if cache is None else cache / f"{name}_{w}x{h}_{t}f" / f"{name}.gt.npz"
+        if path is None or not path.is_file():
+            log(f"{name}: no ground truth at {path}; its saved runs are pooled in section (b) only")
+            continue
+        gt = load_ground_truth(path)
+        runs = {}
+        for s in mine:
+            m = long_metrics(gt, s.error, s.success, hold)
+            runs[s.config] = (m, s.ms_per_frame)
+            figures[f"{name}/{s.config}"] = long_json(m, s.ms_per_frame, w, h, t)
+        info = f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px; from saved per-frame figures"
+        tables.append(long_table(name, info, gt, runs, hold))
+    return tables, figures
 
 
 # ------------------------------------------------------------------------------------------ section (b): AUROC
@@ -514,6 +547,7 @@ class FrameSeries:
     Attributes:
         scenario, config: where they come from; default: the run uses the default configuration.
         error: ``(T,)`` rotation error relative to frame 0 (deg); confidence: ``(T,)``; success, in_view: ``(T,)``.
+        ms_per_frame: the run's mean tracking time per frame; width, height: the frames' size.
     """
 
     scenario: str
@@ -523,12 +557,19 @@ class FrameSeries:
     confidence: Tensor
     success: Tensor
     in_view: Tensor
+    ms_per_frame: float
+    width: int
+    height: int
 
 
 def frame_series(scenario: str, config: str, default: bool, gt: GroundTruth, out: RunOutput) -> FrameSeries:
     """Section (b)'s per-frame figures of one run."""
     err = relative_rotation_error_deg(out.rotation, gt.rotation)
-    return FrameSeries(scenario, config, default, err, out.confidence, out.success, gt.face_visible)
+    cam = gt.intrinsics
+    return FrameSeries(
+        scenario, config, default, err, out.confidence, out.success, gt.face_visible, out.ms_per_frame,
+        cam.width, cam.height,
+    )
 
 
 _SERIES_FIELDS = ("error", "confidence", "success", "in_view")
@@ -539,6 +580,7 @@ def save_series(path: Path, series: list[FrameSeries]) -> None:
     arrays: dict[str, np.ndarray] = {}
     for i, s in enumerate(series):
         arrays[f"{i}/name"] = np.array([s.scenario, s.config, "default" if s.default else ""])
+        arrays[f"{i}/meta"] = np.array([s.ms_per_frame, s.width, s.height], dtype=np.float64)
         for f in _SERIES_FIELDS:
             arrays[f"{i}/{f}"] = getattr(s, f).numpy()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -555,7 +597,9 @@ def load_series(path: Path) -> list[FrameSeries]:
         for i in range(count):
             scenario, config, default = (str(x) for x in z[f"{i}/name"])
             fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
-            out.append(FrameSeries(scenario, config, default == "default", **fields))
+            ms, width, height = (float(x) for x in z[f"{i}/meta"])
+            out.append(FrameSeries(scenario, config, default == "default", **fields, ms_per_frame=ms, width=int(width),
+                                   height=int(height)))  # fmt: skip
     return out
 
 
@@ -639,7 +683,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
     """Scenario names from --scenarios: a comma list of names and the groups all, standard, long."""
-    groups = {"all": list(ALL_SCENARIOS), "standard": list(SCENARIOS), "long": list(LONG_SCENARIOS)}
+    groups = {"all": list(ALL_SCENARIOS), "standard": list(SCENARIOS), "long": list(LONG_SCENARIOS), "none": []}
     names: list[str] = []
     for item in (x.strip() for x in text.split(",")):
         if not item:
@@ -649,7 +693,8 @@ def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
         elif item in ALL_SCENARIOS:
             names.append(item)
         else:
-            parser.error(f"unknown scenario {item!r}; choose from {', '.join(ALL_SCENARIOS)}, all, standard or long")
+            choices = ", ".join([*ALL_SCENARIOS, *groups])
+            parser.error(f"unknown scenario {item!r}; choose from {choices}")
     return list(dict.fromkeys(names))
 
 
@@ -674,7 +719,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-auroc", action="store_true", help="skip section (b)")
     parser.add_argument("--save-series", type=Path, help="write section (b)'s per-frame figures here (.npz)")
     parser.add_argument(
-        "--add-series", default="", help="comma list of --save-series files of earlier runs to pool into section (b)"
+        "--add-series", default="",
+        help="comma list of --save-series files of earlier runs: their long runs' tables are printed again (ground"
+        " truth from the cache) and all of them are pooled into section (b)",
     )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
     parser.add_argument("--json", type=Path, help="write {scenario[/ablation or config]: {metric: value}} here")
@@ -688,8 +735,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     names = list(LONG_SCENARIOS) if args.long else _names(args.scenarios, parser)
-    if not names:
-        parser.error("no scenario selected")
+    if not names and not args.add_series:
+        parser.error("no scenario selected (--scenarios none only with --add-series)")
     if args.ablations == "all":
         ablations = list(ABLATIONS)
     elif args.ablations == "none":
@@ -745,10 +792,10 @@ def main(argv: list[str] | None = None) -> int:
                         model, LONG_CONFIGS[cfg](base), stream_frames(video, t), gt, landmarks, label,
                         args.long_progress_every,
                     )
-                    m = long_metrics(gt, out, args.hold)
-                    runs[cfg] = (m, out.ms_per_frame)
-                    results[label] = long_json(m, out, w, h, t)
                     series.append(frame_series(name, cfg, cfg == LONG_DEFAULT, gt, out))
+                    m = long_metrics(gt, series[-1].error, out.success, args.hold)
+                    runs[cfg] = (m, out.ms_per_frame)
+                    results[label] = long_json(m, out.ms_per_frame, w, h, t)
                     log(
                         f"{label}: returns max {_fmt(max(m.return_errors_deg, default=float('nan')))} deg, mean "
                         f"{_fmt(m.rot_err_mean_deg)} max {_fmt(m.rot_err_max_deg)} deg in view, lost {m.lost_frames}, "
@@ -781,6 +828,11 @@ def main(argv: list[str] | None = None) -> int:
                     write_json(args.json, results)
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
+    if earlier:
+        again, figures = long_tables_from_series(earlier, cache, args.hold)
+        for text in again:
+            print(text + "\n", flush=True)
+        results.update({k: v for k, v in figures.items() if k not in results})
     if args.save_series is not None:
         save_series(args.save_series, series)
     if not args.no_auroc and series + earlier:

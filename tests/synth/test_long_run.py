@@ -27,7 +27,7 @@ from torchface.synth.scenarios import (
     make_scenario,
     scenario_size,
 )
-from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.synth.sequence import SequenceSpec, render_sequence, save_ground_truth
 
 F64 = torch.float64
 W, H = 80, 60
@@ -219,19 +219,19 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
     good = run(good_err, in_view.clone(), torch.where(in_view, 0.9, 0.0).to(F64))
     drift = torch.linspace(0.0, 12.0, T, dtype=F64)
     bad = run(drift, torch.ones(T, dtype=torch.bool), (1.0 - drift / 12.0))
-    runs = {"mosaic": (ev.long_metrics(gt, good, 1), 10.0), "bare": (ev.long_metrics(gt, bad, 1), 12.0)}
-    m = runs["mosaic"][0]
-    torch.testing.assert_close(torch.tensor(m.return_errors_deg, dtype=F64), torch.full((3,), 0.5, dtype=F64))
-    assert [r.frames_to_recover for r in m.recoveries] == [0]
-    text = ev.long_table("long_run", "made up", gt, runs, hold=1)
-    assert text.count("return ") >= 3 and "mosaic" in text and "bare" in text
-    assert "error at every return <= 1 deg: PASS (max 0.50)" in text
-    assert "again: PASS (worst 0)" in text
-    json.dumps(ev._json_safe(ev.long_json(m, good, W, H, T)), allow_nan=False)
-    # Section (b): the made-up confidence falls as the error grows, so it separates them perfectly.
     series = [
         ev.frame_series("long_run", "mosaic", True, gt, good), ev.frame_series("long_run", "bare", False, gt, bad)
     ]
+    runs = {s.config: (ev.long_metrics(gt, s.error, s.success, 1), s.ms_per_frame) for s in series}
+    m = runs["mosaic"][0]
+    torch.testing.assert_close(torch.tensor(m.return_errors_deg, dtype=F64), torch.full((3,), 0.5, dtype=F64))
+    assert [r.frames_to_recover for r in m.recoveries] == [0]
+    table = ev.long_table("long_run", "made up", gt, runs, hold=1)
+    assert table.count("return ") >= 3 and "mosaic" in table and "bare" in table
+    assert "error at every return <= 1 deg: PASS (max 0.50)" in table
+    assert "again: PASS (worst 0)" in table
+    json.dumps(ev._json_safe(ev.long_json(m, good.ms_per_frame, W, H, T)), allow_nan=False)
+    # Section (b): the made-up confidence falls as the error grows, so it separates them perfectly.
     text, figures = ev.auroc_section(series)
     pooled = figures["POOLED all configurations"]
     assert pooled["auroc"] == 1.0 and pooled["negatives"] > 0 and pooled["positives"] > 0
@@ -245,3 +245,11 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
     for b, s in zip(back, series):
         for f in ("error", "confidence", "success", "in_view"):
             assert torch.equal(getattr(b, f), getattr(s, f))
+        assert (b.ms_per_frame, b.width, b.height) == (s.ms_per_frame, W, H)
+    # ... and section (a)'s table is printed again from them, with the ground truth from the cache.
+    folder = tmp_path / f"long_run_{W}x{H}_{T}f"
+    folder.mkdir()
+    save_ground_truth(gt, folder / "long_run")
+    tables, figures = ev.long_tables_from_series(back, tmp_path, hold=1)
+    assert len(tables) == 1 and tables[0].splitlines()[1:] == table.splitlines()[1:]
+    assert figures["long_run/mosaic"]["return_errors_deg"] == m.return_errors_deg

@@ -273,7 +273,7 @@ def test_long_run_metrics_returns_recovery_and_losses() -> None:
     assert m.success_out_of_view == 1
     assert m.lost_frames == 3 and m.unsuccessful_frames == 3  # frames 10-12; frames 25-27
     # The loss at 10-12 is one in view; the bad frames 25-27 are the recovery, not a loss in view.
-    assert m.losses_in_view == ((10, 13),) and m.longest_loss_in_view == 3
+    assert m.losses_in_view == ((10, 13),) and m.longest_loss_in_view == 3 and m.longest_error_loss_in_view == 3
     # Mean / max over in-view frames 1 .. T-1; and over the successful ones among them.
     keep = visible.clone()
     keep[0] = False
@@ -295,6 +295,9 @@ def test_long_run_metrics_occlusion_is_a_hidden_stretch() -> None:
     # Without the occluder flags the same frames are a loss in view.
     m = long_run_metrics(err, success, visible, [19], hold=2)
     assert m.recoveries == () and m.losses_in_view == ((8, 17),) and m.longest_loss_in_view == 9
+    assert m.longest_error_loss_in_view == 0  # marked unsuccessful, but the error stayed small
+    err[20:24] = 11.0
+    assert long_run_metrics(err, success, visible, [19], hold=2).longest_error_loss_in_view == 4
 
 
 def test_long_run_metrics_never_recovered_and_hold() -> None:

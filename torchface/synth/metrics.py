@@ -459,6 +459,8 @@ class LongRunMetrics:
         losses_in_view: ``(start, end)`` runs of not-good clear frames that do not begin where a hidden stretch
             ends (those are the recoveries): losses during tracking proper.
         longest_loss_in_view: frames of the longest of those (0 when none).
+        longest_error_loss_in_view: frames of the longest such run counting only the error (above the lost
+            threshold, whatever the tracker says): a run of frames merely marked unsuccessful is not one.
     """
 
     return_frames: tuple[int, ...]
@@ -474,6 +476,7 @@ class LongRunMetrics:
     recoveries: tuple[Recovery, ...]
     losses_in_view: tuple[tuple[int, int], ...]
     longest_loss_in_view: int
+    longest_error_loss_in_view: int
 
     def worst_recovery(self, cause: str | None = None) -> int | None:
         """The most frames a recovery (of ``cause``, or any) took; None if one never recovered; 0 if none."""
@@ -551,6 +554,7 @@ def long_run_metrics(
         recoveries.append(Recovery(start, end, int(hits[0]) if hits.numel() else None, cause))
     gap_ends = {end for _, end in gaps}
     losses = tuple((a, b) for a, b in true_runs(clear & ~good) if a not in gap_ends)
+    error_losses = [b - a for a, b in true_runs(clear & (err > lost_threshold_deg)) if a not in gap_ends]
     mean_all, max_all = mean_max(scored)
     mean_ok, max_ok = mean_max(scored & success)
     return LongRunMetrics(
@@ -567,6 +571,7 @@ def long_run_metrics(
         recoveries=tuple(recoveries),
         losses_in_view=losses,
         longest_loss_in_view=max((b - a for a, b in losses), default=0),
+        longest_error_loss_in_view=max(error_losses, default=0),
     )
 
 
