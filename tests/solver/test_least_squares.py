@@ -554,3 +554,19 @@ def test_unrolled_gradients_stay_finite_next_to_a_failed_sample() -> None:
     (gy,) = torch.autograd.grad(res.params.sum(), y)
     assert torch.isfinite(gy).all()
     assert torch.all(gy[1] == 0) and torch.all(gy[[0, 2]].abs().sum(1) > 0)
+
+
+def test_gradients_through_a_singular_sample_are_zero_not_nan() -> None:
+    """A sample whose normal equations are singular fails with zero gradients; its neighbours keep theirs."""
+    g = torch.Generator().manual_seed(2)
+    B, N, P = 3, 12, 3
+    J = torch.randn(B, N, P, generator=g, dtype=D)
+    J[1, :, 2] = J[1, :, 0]  # duplicate columns: singular
+    J.requires_grad_(True)
+    r = torch.randn(B, N, generator=g, dtype=D, requires_grad=True)
+    delta, ok = solve_normal_equations(J, r)
+    assert ok.tolist() == [True, False, True]
+    gJ, gr = torch.autograd.grad(delta.sum(), (J, r))
+    assert torch.isfinite(gJ).all() and torch.isfinite(gr).all()
+    assert torch.all(gJ[1] == 0) and torch.all(gr[1] == 0)
+    assert gJ[[0, 2]].abs().sum() > 0 and gr[[0, 2]].abs().sum() > 0

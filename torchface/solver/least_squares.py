@@ -195,15 +195,22 @@ def _solve_spd(
         diag = torch.diagonal(H, dim1=1, dim2=2)
     # Jacobi scaling S H S with S = diag(H)^{-1/2}: better accuracy and a scale-free pivot test.
     pos = diag > 0
-    sc = torch.where(pos, diag.clamp_min(torch.finfo(H.dtype).tiny).rsqrt(), torch.ones_like(diag))
+    # rsqrt of a safe value (not of a clamped one), so that no infinite derivative meets a zero in backward.
+    sc = torch.where(pos, torch.where(pos, diag, torch.ones_like(diag)).rsqrt(), torch.ones_like(diag))
     Hs = H * sc.unsqueeze(2) * sc.unsqueeze(1)
-    L, info = torch.linalg.cholesky_ex(Hs)
-    ok = finite & (info == 0) & pos.all(1)
-    piv = torch.diagonal(L, dim1=1, dim2=2).abs()
-    ratio = piv.amin(1) / piv.amax(1).clamp_min(torch.finfo(H.dtype).tiny)
-    thresh = P * torch.finfo(H.dtype).eps if rcond is None else rcond
-    ok = ok & torch.isfinite(ratio) & (ratio * ratio >= thresh)
-    L = torch.where(ok.view(B, 1, 1), L, eye)
+    # Which samples are solvable is decided without autograd; the factorisation autograd records then sees
+    # only well-posed systems (the identity elsewhere), so a singular sample gives zero, not NaN, gradients.
+    with torch.no_grad():
+        L, info = torch.linalg.cholesky_ex(Hs)
+        ok = finite & (info == 0) & pos.all(1)
+        piv = torch.diagonal(L, dim1=1, dim2=2).abs()
+        ratio = piv.amin(1) / piv.amax(1).clamp_min(torch.finfo(H.dtype).tiny)
+        thresh = P * torch.finfo(H.dtype).eps if rcond is None else rcond
+        ok = ok & torch.isfinite(ratio) & (ratio * ratio >= thresh)
+    if Hs.requires_grad:
+        L = torch.linalg.cholesky_ex(torch.where(ok.view(B, 1, 1), Hs, eye))[0]
+    else:
+        L = torch.where(ok.view(B, 1, 1), L, eye)
     delta = -sc * torch.cholesky_solve((sc * g).unsqueeze(2), L).squeeze(2)
     ok = ok & torch.isfinite(delta).all(1)
     delta = torch.where(ok.unsqueeze(1), delta, torch.zeros_like(delta))
