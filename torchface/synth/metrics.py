@@ -259,7 +259,7 @@ class SequenceMetrics:
             (:func:`translation_errors_mm`).
         init_rot_err_deg, init_trans_err_mm: error of the initial fit at frame 0 (absolute).
         converged: fraction of frames whose status is CONVERGED.
-        success: fraction of frames not FAILED.
+        success: fraction of frames neither FAILED nor LOST (``TrackResult.success``).
         lost_frames: frames whose relative rotation error exceeds the lost threshold; lost_fraction: the same
             over ``frames``.
         au_rmse: RMSE over the active units, each as a fraction of its range, averaged (NaN if none active).
@@ -376,7 +376,7 @@ def sequence_metrics(
         init_rot_err_deg=float(init_rot),
         init_trans_err_mm=float(t_abs[0]),
         converged=float((st == int(TrackStatus.CONVERGED)).double().mean()),
-        success=float((st != int(TrackStatus.FAILED)).double().mean()),
+        success=float(((st != int(TrackStatus.FAILED)) & (st != int(TrackStatus.LOST))).double().mean()),
         lost_frames=lost,
         lost_fraction=lost / (T - 1),
         au_rmse=au_rmse,
