@@ -10,6 +10,9 @@ noisy ground-truth landmarks, as evaluate.py does. Every frame gets
 * (b) the dissimilarity confidence the tracker reports (TrackResult.confidence): the frame's normalised face
   against that of the mosaic entry nearest the estimate (torchface.tracker.managed.estimate_confidence).
 
+(scripts/evaluate.py's section (b) measures the tracker's own confidence, pooled over every scenario including
+the long ones; this script keeps the variants below, among them the injected pose errors.)
+
 Positives are frames with error < --good (2 deg), negatives frames with error > --bad (5 deg); frames in
 between and frame 0 are left out. The AUROC of each confidence (probability that a random positive scores
 above a random negative, ties counting one half) is printed pooled over the scenarios and per scenario.
