@@ -25,6 +25,7 @@ from torchface.template.management import (
     face_inside_fraction,
     frame_dissimilarity,
     has_bin,
+    within_reach,
     light_normalised_intensity,
     new_mosaic,
     pose_bins,
@@ -157,6 +158,9 @@ def test_mosaic_add_select_and_grow():
     near = torch.tensor([[25.0, 0.0, 0.0], [19.0, 0.0, 0.0], [17.0, 0.0, 0.0]], dtype=D)
     got = select_entries(m, near, torch.tensor([0, 1, 1]), 2.0, reference_radius_deg=20.0)
     assert got.tolist() == [0, 1, 0]
+    # A new entry must be within 1.5 bins (22.5 deg of yaw or pitch) of one the stream has.
+    reach = within_reach(m, torch.tensor([[30.0, 0.0, 0.0], [50.0, 10.0, 0.0], [-45.0, -20.0, 0.0]], dtype=D), cfg)
+    assert reach.tolist() == [False, True, True]
     far = torch.tensor([[25.0, 0.0, 0.0], [25.0, 0.0, 0.0], [-25.0, 0.0, 0.0]], dtype=D)
     assert select_entries(m, far, cur, 2.0, reference_radius_deg=20.0).tolist() == [0, 1, 2]
 

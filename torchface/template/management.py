@@ -79,6 +79,7 @@ __all__ = [
     "search_mosaic",
     "face_inside_fraction",
     "has_bin",
+    "within_reach",
     "params_from_pose",
     "reference_face",
 ]
@@ -90,8 +91,10 @@ def _default_dissimilarity() -> DissimilarityConfig:
     # (to 0.02 px); the loop runs while any patch is active, and the few that do not settle (a patch whose
     # mask support changes as it moves wanders by 0.1-1 px per iteration) would hold all the others to the
     # limit (5.0 iterations per frame on average with a limit of 8).
+    # At least 4 patches present: one or two patches left at a large yaw can match by chance (a mosaic entry
+    # was once created at 47 degrees with 6 degrees of error on a confidence from a single patch).
     return DissimilarityConfig(patch_size=7, num_patches=16, max_displacement=3.0, d0=0.75, iterations=5,
-                               tolerance=0.02)  # fmt: skip
+                               tolerance=0.02, min_patches=4)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -131,7 +134,10 @@ class TemplateConfig:
             light_switch scenario (error about 1 degree, confidence 0.4-0.5 under the strongest light) was
             declared lost for 10 frames; at 0.3 never, while scan_motion's stretches above 5 degrees of error
             (confidence 0.04-0.2) still are.
-        add_confidence: the confidence a frame needs for its templates to become a mosaic entry.
+        add_confidence: the confidence a frame needs for its templates to become a mosaic entry. The entry must
+            also be within ``entry_reach`` bin widths (in yaw and pitch) of an existing entry: the mosaic grows
+            outward from the first pose, each new entry judged against a reference seen from nearby.
+        entry_reach: see ``add_confidence``.
         lost_after: consecutive non-confident frames after which the stream is declared lost.
         very_low_confidence, lost_after_very_low: a stream is also lost after ``lost_after_very_low``
             consecutive frames below ``very_low_confidence``: a tracker left on the background when the face
@@ -139,7 +145,9 @@ class TemplateConfig:
             matches, and waiting ``lost_after`` frames would let it drift on.
         min_inside_fraction: a stream whose estimated face has fewer than this fraction of its vertices
             projecting inside the frame (or in front of the camera) is lost at once (the face left the frame).
-        recover_confidence: the confidence that ends a loss (from the continued track or a recovery).
+        recover_confidence: the confidence that ends a loss (from the continued track or a recovery). A wrong
+            placement scores near 0; a right one on a face unlike the model (the James scan) scores 0.6-0.7 near
+            frontal, so 0.7 kept such a stream lost for tens of frames.
         recovery_every: a lost stream attempts a recovery when it is lost and then every this many frames (an
             attempt costs about three frames' time: the search, then a solve).
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
@@ -164,11 +172,12 @@ class TemplateConfig:
     dissimilarity: DissimilarityConfig = field(default_factory=_default_dissimilarity)
     confidence_threshold: float = 0.3
     add_confidence: float = 0.8
+    entry_reach: float = 1.5
     lost_after: int = 15
     very_low_confidence: float = 0.1
     lost_after_very_low: int = 3
     min_inside_fraction: float = 0.6
-    recover_confidence: float = 0.7
+    recover_confidence: float = 0.5
     recovery_every: int = 5
     search_step_px: float = 3.0
     search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
@@ -199,6 +208,8 @@ class TemplateConfig:
             raise ValueError("yaw_bin_deg, pitch_bin_deg and search_step_px must be positive")
         if not 0 < self.bin_centre_fraction <= 0.5:
             raise ValueError(f"bin_centre_fraction must be in (0, 0.5], got {self.bin_centre_fraction}")
+        if not self.entry_reach > 0:
+            raise ValueError(f"entry_reach must be positive, got {self.entry_reach}")
         if not 0 < self.texture_blend <= 1:
             raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
         if self.switch_margin_deg < 0 or self.reference_radius_deg < 0:
@@ -423,6 +434,14 @@ def add_entries(
 
     refs = _map_reference(mosaic.references, put)
     return Mosaic(tuple(levels), rot, b, used, refs), slot
+
+
+def within_reach(mosaic: Mosaic, ypr_deg: Tensor, config: TemplateConfig) -> Tensor:
+    """``(B,)`` bool: the pose ``ypr_deg (B, 3)`` is within ``config.entry_reach`` bin widths of a used entry."""
+    widths = ypr_deg.new_tensor([config.yaw_bin_deg, config.pitch_bin_deg])
+    entry_ypr = matrix_to_euler(mosaic.rotation)[..., :2]  # (B, E, 2)
+    d = ((entry_ypr - ypr_deg[:, None, :2]) / widths).abs().amax(-1)
+    return ((d <= config.entry_reach) & mosaic.used).any(-1)
 
 
 def has_bin(mosaic: Mosaic, bins: Tensor) -> Tensor:

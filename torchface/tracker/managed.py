@@ -12,8 +12,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    (the solver's residual confidence stays in ``residual_confidence``).
 3. **Confidence gating.** A confident frame (confidence >= ``confidence_threshold``) updates the last
    confident parameters and may teach the mosaic: when it is confidently (>= ``add_confidence``) near the
-   centre of a pose bin the mosaic lacks, its templates become a new entry, intensities brought back to
-   the reference light. With ``texture_update`` it also re-samples the intensities of the entry in use
+   centre of a pose bin the mosaic lacks, next to a bin it has (``entry_reach``), its templates become a new
+   entry, intensities brought back to the reference light. With ``texture_update`` it also re-samples the intensities of the entry in use
    (off by default: drift). A frame that is not confident teaches nothing and counts toward a loss; its
    estimate is still the next frame's start: every frame is aligned against stored templates, never against
    the previous frame, so a poor estimate corrupts no template, and while a head moves behind an occluder
@@ -65,6 +65,7 @@ from torchface.template.management import (
     reference_face,
     search_mosaic,
     select_entries,
+    within_reach,
 )
 from torchface.template.points import Template, build_template
 from torchface.tracker.fit import fit_landmarks
@@ -488,6 +489,7 @@ def managed_step(
     if tc.mosaic:
         bins, near = pose_bins(result.ypr_deg, tc)
         add = confident & (conf >= tc.add_confidence) & near & ~has_bin(mosaic, bins)
+        add = add & within_reach(mosaic, result.ypr_deg, tc)
         add = add & (mosaic.num_entries < tc.max_entries)
         if bool(add.any()):
             index = add.nonzero().squeeze(-1)
