@@ -91,10 +91,8 @@ def _default_dissimilarity() -> DissimilarityConfig:
     # (to 0.02 px); the loop runs while any patch is active, and the few that do not settle (a patch whose
     # mask support changes as it moves wanders by 0.1-1 px per iteration) would hold all the others to the
     # limit (5.0 iterations per frame on average with a limit of 8).
-    # At least 4 patches present: one or two patches left at a large yaw can match by chance (a mosaic entry
-    # was once created at 47 degrees with 6 degrees of error on a confidence from a single patch).
     return DissimilarityConfig(patch_size=7, num_patches=16, max_displacement=3.0, d0=0.75, iterations=5,
-                               tolerance=0.02, min_patches=4)  # fmt: skip
+                               tolerance=0.02)  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -354,8 +354,10 @@ def _recovery_starts(
                 float(t_c[i, 2]), R_c[i], config.template,
             )  # fmt: skip
             if hit.score > 0:
-                starts[i] = params_from_pose(hit.rotation[None], hit.translation[None],
-                                             torch.zeros_like(alpha_c[i : i + 1]), light_c[i : i + 1])[0]  # fmt: skip
+                # The last confident expression: on a face unlike the model the animation units also absorb
+                # shape (TrackerConfig.fit), and from zero the solve can settle in another minimum.
+                starts[i] = params_from_pose(hit.rotation[None], hit.translation[None], alpha_c[i : i + 1],
+                                             light_c[i : i + 1])[0]  # fmt: skip
                 found[i] = True
     ypr = matrix_to_euler(axis_angle_to_matrix(layout.split(starts)[0]))
     entries = select_entries(ms.mosaic, ypr, torch.zeros_like(index), 0.0, config.template.reference_radius_deg,
