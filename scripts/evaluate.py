@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Evaluate the tracker on the standard synthetic scenarios, with ablations.
+"""Evaluate the tracker on synthetic scenarios: standard tables with ablations, (a) long runs, (b) confidence AUROC.
 
 For each scenario the sequence is rendered once into a cache folder (lossless video + ground truth, see
 torchface.synth.sequence.write_sequence) and read back from there on later runs. The tracker is
@@ -702,7 +702,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--scenarios", "--only", default="all",
-        help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long",
+        help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long; none (with --add-series)",
     )
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
     parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
