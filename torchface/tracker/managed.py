@@ -13,8 +13,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
 3. **Confidence gating.** A confident frame (confidence >= ``confidence_threshold``) updates the last
    confident parameters and may teach the mosaic: when it is confidently (>= ``add_confidence``) near the
    centre of a pose bin the mosaic lacks, next to a bin it has (``entry_reach``), its templates become a new
-   entry, intensities brought back to the reference light. With ``texture_update`` it also re-samples the intensities of the entry in use
-   (off by default: drift). A frame that is not confident teaches nothing and counts toward a loss; its
+   entry, intensities brought back to the reference light. With ``texture_update`` it also re-samples the
+   intensities of the entry in use (off by default: drift). A frame that is not confident teaches nothing and counts toward a loss; its
    estimate is still the next frame's start: every frame is aligned against stored templates, never against
    the previous frame, so a poor estimate corrupts no template, and while a head moves behind an occluder
    the last estimate is nearer the truth than the last confident one.
@@ -258,11 +258,32 @@ def _inside_fraction(model: FaceModel, state: TrackerState) -> Tensor:
     return face_inside_fraction(model, verts, state.intrinsics)
 
 
+def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q: int) -> tuple[int, int, int, int]:
+    """Full-resolution pixel window ``(x0, y0, w, h)`` around one stream's projected face ``verts_cam (V, 3)``,
+    enlarged by 5% of its size and 8 pixels on each side, inside the image, corners on multiples of ``q``
+    (so that every pyramid level's window is pixel-aligned with that level)."""
+    uv = project_points(verts_cam[model.surface_vertex_mask].unsqueeze(0), intrinsics)[0]
+    uv = torch.nan_to_num(uv).clamp(-intrinsics.width, 2 * intrinsics.width)
+    lo, hi = uv.amin(0), uv.amax(0)
+    pad = 0.05 * (hi - lo) + 8
+    W, H = intrinsics.width, intrinsics.height
+    x0 = max(0, int(float(lo[0] - pad[0])) // q * q)
+    y0 = max(0, int(float(lo[1] - pad[1])) // q * q)
+    x1 = min(W, -(-int(float(hi[0] + pad[0])) // q) * q)
+    y1 = min(H, -(-int(float(hi[1] + pad[1])) // q) * q)
+    return x0, y0, max(x1 - x0, q), max(y1 - y0, q)
+
+
 def _new_entries(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor
 ) -> tuple[tuple[Template, ...], DissimilarityReference]:
     """Templates of streams ``index`` built at their current estimate, intensities under the reference light,
-    and the dissimilarity reference of their normalised face."""
+    and the dissimilarity reference of their normalised face.
+
+    Each stream's templates are built from a window of its frame around the face (rasterizing and gathering
+    over the whole 640x480 frame made an entry cost ~110 ms, the window ~40 ms); a rare event, so the streams
+    are looped over.
+    """
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
     shape = state.shape_coeffs[index]
@@ -270,16 +291,30 @@ def _new_entries(
         frames[index], model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template
     )
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
-    out = []
-    for level, gray in enumerate(gray_pyramid(frames[index], config.num_levels)):
-        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
-        n = min(config.max_points, gray.shape[-2] * gray.shape[-1])
-        tpl = build_template(
-            model, shape, alpha, R, t, gray, intr, max_points=n, gradient_threshold=config.gradient_threshold,
-            expression_priority=config.expression_priority,
-        )  # fmt: skip
-        out.append(replace(tpl, intensity=light_normalised_intensity(tpl, R, light)))
-    return tuple(out), reference
+    verts = torch.matmul(model.deform(shape, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
+    q = 2 ** (config.num_levels - 1)
+    per_level: list[list[Template]] = [[] for _ in range(config.num_levels)]
+    for i in range(index.shape[0]):
+        x0, y0, w, h = _face_window(model, verts[i], state.intrinsics, q)
+        for level, gray in enumerate(gray_pyramid(frames[index[i : i + 1]], config.num_levels)):
+            n = ms.mosaic.levels[level].face_index.shape[-1]  # the slots of this level's entries
+            full = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+            s = 2**level
+            xl, yl = x0 // s, y0 // s
+            wl, hl = min(-(-w // s), gray.shape[-1] - xl), min(-(-h // s), gray.shape[-2] - yl)
+            if wl * hl >= n:
+                gray = gray[..., yl : yl + hl, xl : xl + wl]
+                full = Intrinsics(wl, hl, full.fx, full.fy, full.cx - xl, full.cy - yl)
+            tpl = build_template(
+                model, shape[i : i + 1], alpha[i : i + 1], R[i : i + 1], t[i : i + 1], gray, full, max_points=n,
+                gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
+            )  # fmt: skip
+            intensity = light_normalised_intensity(tpl, R[i : i + 1], light[i : i + 1])
+            per_level[level].append(replace(tpl, intensity=intensity))
+    out = tuple(
+        Template(*(torch.cat([getattr(tp, f.name) for tp in tps]) for f in fields(Template))) for tps in per_level
+    )
+    return out, reference
 
 
 def _texture_update(
