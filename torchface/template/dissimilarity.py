@@ -244,28 +244,47 @@ def inverse_compositional_lk(
     converged = torch.zeros_like(active)
     valid = torch.ones_like(active)
 
-    # The image and its mask are sampled together (one grid_sample per iteration).
+    # The image and its mask are sampled together (one grid_sample per iteration), at the patch grid in
+    # grid_sample's [-1, 1] coordinates (converted once; the displacement is scaled each iteration).
     stacked = images if image_mask is None else torch.cat([images, image_mask], dim=1)
     C = images.shape[1]
+    H, W = images.shape[-2:]
+    to_grid = grid.new_tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)])
+    grid_n = grid * to_grid - 1.0  # (B, K, n, 2)
+    n = grid.shape[2]
+    # Per point, the features [grad T (C x 2, flattened), error (C), 1]; their weighted second moments give
+    # H, the gradient and (with the constant) the patch means of the bias projection in one matmul:
+    # sum w (s - s_bar)(e - e_bar) = sum w s e - W s_bar e_bar, and the same for H.
+    sd_flat = sd.reshape(B, K, n, 2 * C)
+    ones = torch.ones(B, K, n, 1, dtype=dtype, device=reference.device)
 
     def weights_at(p_: Tensor) -> tuple[Tensor, Tensor]:
-        values, inside = _sample(stacked, grid + p_.unsqueeze(2))
-        w = ref_weight * inside
+        g = grid_n + (p_ * to_grid).unsqueeze(2)
+        out = F.grid_sample(stacked, g, mode="bilinear", padding_mode="zeros", align_corners=True)  # (B, C', K, n)
+        values = out.permute(0, 2, 3, 1)
+        w = ref_weight * (g.abs() <= 1.0).all(-1).to(dtype)
         if image_mask is not None:
             w = w * values[..., C].clamp(0.0, 1.0)
         return values[..., :C], w
 
+    def normal_equations(err: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+        """``(B, K, 2, 2)`` H and ``(B, K, 2)`` the gradient ``sum w grad T^T e`` (bias projected out)."""
+        feats = torch.cat([sd_flat, err, ones], dim=-1)  # (B, K, n, F + 1), F = 3 C
+        moments = torch.matmul((feats * w.unsqueeze(-1)).transpose(-1, -2), feats)  # (B, K, F + 1, F + 1)
+        cov = moments[..., :-1, :-1]
+        if project_out_bias:
+            mean = moments[..., :-1, -1:]  # (B, K, F, 1) weighted sums
+            total = moments[..., -1:, -1:].clamp_min(eps)
+            cov = cov - mean * mean.transpose(-1, -2) / total
+        s_s = cov[..., : 2 * C, : 2 * C].reshape(B, K, C, 2, C, 2)
+        s_e = cov[..., : 2 * C, 2 * C :].reshape(B, K, C, 2, C)
+        hess = torch.diagonal(s_s, dim1=2, dim2=4).sum(-1)  # sum over channels: (B, K, 2, 2)
+        grad = torch.diagonal(s_e, dim1=2, dim2=4).sum(-1)  # (B, K, 2)
+        return hess, grad
+
     for _ in range(iterations):
         warped, w = weights_at(p)
-        total = w.sum(-1).clamp_min(eps)  # (B, K)
-        err = warped - template  # (B, K, n, C)
-        sd_i = sd
-        if project_out_bias:
-            err = err - _weighted_mean(err, w, total).unsqueeze(2)
-            sd_i = sd - _weighted_mean(sd, w, total).unsqueeze(2)
-        wsd = sd_i * w[..., None, None]
-        hess = torch.einsum("bknci,bkncj->bkij", wsd, sd_i)  # (B, K, 2, 2)
-        grad = torch.einsum("bknci,bknc->bki", wsd, err)  # (B, K, 2)
+        hess, grad = normal_equations(warped - template, w)
         a, b, c = hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1]
         det = a * c - b * b
         scale = (a + c).abs().clamp_min(eps)
@@ -278,11 +297,11 @@ def inverse_compositional_lk(
         p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
         small = dp.norm(dim=-1) < tolerance
         converged = converged | (step & small)
-        far = torch.zeros_like(active)
+        active = active & ok & ~small
         if max_displacement is not None:
             far = p.norm(dim=-1) > max_displacement
             valid = valid & ~(step & far)
-        active = active & ok & ~small & ~far
+            active = active & ~far
         if not bool(active.any()):
             break
 

@@ -8,6 +8,8 @@ per-iteration triangle search.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import torch
@@ -95,8 +97,14 @@ def _selection_keys(height: int, width: int, device: torch.device) -> Tensor:
     Used to pick a uniform subset of the candidate pixels; being a function of the pixel alone, a stream
     gets the same template whether it is tracked alone or in a batch.
     """
+    return _cpu_selection_keys(height, width).to(device)
+
+
+@functools.lru_cache(maxsize=16)
+def _cpu_selection_keys(height: int, width: int) -> Tensor:
+    """:func:`_selection_keys` on the CPU, drawn once per image size (callers must not modify it)."""
     gen = torch.Generator(device="cpu").manual_seed(height * 100003 + width)
-    return torch.rand(height * width, generator=gen).to(device)
+    return torch.rand(height * width, generator=gen)
 
 
 def build_template(
@@ -151,8 +159,13 @@ def build_template(
     face_flat = face.reshape(B, -1)
     bary_flat = frags.bary.reshape(B, -1, 3)
     n_pix = gather_face_attributes(normals_cam, model.faces, face_flat, bary_flat, batched=True)
-    p_pix = gather_face_attributes(verts_cam, model.faces, face_flat, bary_flat, batched=True)
-    cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(p_pix, dim=-1)).sum(-1)
+    # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
+    # its direction is the ray's: no need to interpolate the positions.
+    cols = (torch.arange(W, dtype=verts_cam.dtype, device=gray.device) - intrinsics.cx) / intrinsics.fx
+    rows = (torch.arange(H, dtype=verts_cam.dtype, device=gray.device) - intrinsics.cy) / intrinsics.fy
+    rays = torch.stack(torch.broadcast_tensors(cols[None, :], rows[:, None], torch.ones_like(rows)[:, None]), -1)
+    rays = torch.nn.functional.normalize(rays.reshape(1, H * W, 3), dim=-1)
+    cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * rays).sum(-1)
     mask = _erode(mask, erode_pixels) & (cos.reshape(B, H, W) >= min_facing_cos)
     grads = image_with_gradients(gray)[:, 1:]
     gmag = grads.pow(2).sum(1).sqrt()
@@ -163,7 +176,7 @@ def build_template(
         # small region (eyelids) would otherwise get few of the uniformly drawn points.
         au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
         sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
-        px_per_mm = intrinsics.fx / p_pix[..., 2].clamp_min(1.0)
+        px_per_mm = intrinsics.fx / frags.zbuf.reshape(B, -1).clamp(1.0, 1e30)
         keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
     score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
     top, pix = torch.topk(score, max_points, dim=1)

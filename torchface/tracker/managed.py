@@ -211,16 +211,16 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
 
 def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
-    status: Tensor, index: Tensor | None = None,
+    status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Dissimilarity confidence ``(B,)`` (0 for FAILED samples) and dissimilarity ``(B,)`` of ``state``'s
     estimate against the reference of the mosaic entry nearest it; ``index`` selects the streams of a
-    sub-batch (the mosaic's rows)."""
+    sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)``: the estimate's yaw/pitch/roll when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
     rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
     nearest = torch.zeros_like(rows)
     if ms.mosaic.capacity > 1:
-        ypr = matrix_to_euler(axis_angle_to_matrix(aa))
+        ypr = matrix_to_euler(axis_angle_to_matrix(aa)) if ypr_deg is None else ypr_deg
         nearest = select_entries(ms.mosaic, ypr, nearest, 0.0, streams=rows)
     reference = ms.mosaic.references.select((rows, nearest))
     diss = frame_dissimilarity(
@@ -473,7 +473,7 @@ def managed_step(
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
     solved, result = track_step(model, config, replace(state, templates=templates), frames)
-    conf, diss = _confidence(model, config, ms, frames, solved, result.status)
+    conf, diss = _confidence(model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg)
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
