@@ -266,3 +266,42 @@ def test_expression_priority_keeps_points_that_animation_units_move():
     plain, favoured = moving_points(0.0), moving_points(1.0)
     assert favoured > plain, (plain, favoured)
     assert favoured >= 140  # nearly every slot goes to a point an animation unit moves
+
+
+@pytest.mark.parametrize("priority", [0.0, 1.0])
+def test_window_build_equals_the_whole_image_build(scene, priority):
+    """Per-sample windows around the faces (offsets) give the whole image's template: same pixels, same slots."""
+    s = scene
+    whole = build(scene, max_points=1500, gradient_threshold=0.02, expression_priority=priority)
+    uv, _, _ = pixels_of(scene, whole)
+    # Windows 64x56 placed around each face (different offsets per sample), inside the 160x120 image.
+    lo = torch.where(whole.valid[..., None], uv, torch.full_like(uv, 1e9)).amin(1).floor().long() - 3
+    offsets = lo.clamp(min=0)
+    h, w = 56 + 34, 64 + 20
+    offsets[:, 0] = offsets[:, 0].clamp(max=W - w)
+    offsets[:, 1] = offsets[:, 1].clamp(max=H - h)
+    assert not torch.equal(offsets[0], offsets[1])
+    rows = offsets[:, 1:2, None] + torch.arange(h)[None, :, None]
+    cols = offsets[:, 0:1, None] + torch.arange(w)[None, None, :]
+    crops = torch.stack([s["gray"][b, :, rows[b], cols[b]] for b in range(2)])
+    windowed = build_template(
+        s["model"], s["shape"], s["anim"], s["R"], s["t"], crops, s["cam"], max_points=1500,
+        gradient_threshold=0.02, expression_priority=priority, offsets=offsets,
+    )
+    assert int(whole.valid.sum()) > 500
+    assert torch.equal(windowed.valid, whole.valid)
+    assert torch.equal(windowed.face_index[whole.valid], whole.face_index[whole.valid])
+    torch.testing.assert_close(windowed.bary, whole.bary, atol=1e-4, rtol=0)
+    torch.testing.assert_close(windowed.intensity, whole.intensity)
+
+
+def test_window_build_bad_offsets_raise(scene):
+    s = scene
+    crops = s["gray"][:, :, :50, :60]
+    kw = dict(max_points=10, gradient_threshold=0.0)
+    with pytest.raises(ValueError, match="offsets must be"):
+        build_template(s["model"], s["shape"], s["anim"], s["R"], s["t"], crops, s["cam"],
+                       offsets=torch.zeros(2, 2), **kw)
+    with pytest.raises(ValueError, match="inside the 160x120 image"):
+        build_template(s["model"], s["shape"], s["anim"], s["R"], s["t"], crops, s["cam"],
+                       offsets=torch.tensor([[0, 0], [101, 0]]), **kw)

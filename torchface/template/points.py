@@ -121,6 +121,7 @@ def build_template(
     min_facing_cos: float = 0.15,
     erode_pixels: int = 1,
     expression_priority: float = 0.0,
+    offsets: Tensor | None = None,
 ) -> Template:
     """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
 
@@ -134,24 +135,49 @@ def build_template(
         model: the face model.
         shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)`` the frame's expression.
         rotation: ``(B, 3, 3)`` and translation ``(B, 3)`` the frame's pose (head -> camera, mm).
-        gray: ``(B, 1, H, W)`` the frame, gray in ``[0, 1]``, at ``intrinsics``' size.
-        intrinsics: camera of ``gray``.
+        gray: ``(B, 1, H, W)`` the frame, gray in ``[0, 1]``, at ``intrinsics``' size (or windows of it, see
+            ``offsets``).
+        intrinsics: camera of the frame.
         max_points: N, slots per sample.
         gradient_threshold: minimum ``|grad I|`` (intensity per pixel) of a kept point; 0 keeps all.
         expression_priority: when positive, candidate pixels that an animation unit moves by at least a pixel
             per unit coefficient are picked before the others (their selection key is raised by this much).
+        offsets: ``(B, 2)`` int64 ``(x0, y0)``, or None. When given, ``gray`` ``(B, 1, h, w)`` is per sample the
+            window of the camera's ``intrinsics.height x intrinsics.width`` image whose top-left pixel is at
+            ``offsets``: only the window is rasterized and searched (faster), and the template equals the one
+            the whole image would give provided the window holds the face with a pixel to spare (the pixel
+            selection keys are those of the whole image). None: ``gray`` is the whole image.
 
     Returns:
         :class:`Template` with ``N = max_points`` slots.
     """
-    if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
-        raise ValueError(f"gray must be (B, 1, {intrinsics.height}, {intrinsics.width}), got {tuple(gray.shape)}")
+    full_h, full_w = intrinsics.height, intrinsics.width
+    if offsets is None:
+        if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
+            raise ValueError(f"gray must be (B, 1, {full_h}, {full_w}), got {tuple(gray.shape)}")
+    else:
+        if gray.dim() != 4 or gray.shape[1] != 1 or gray.shape[-2] > full_h or gray.shape[-1] > full_w:
+            raise ValueError(f"gray must be (B, 1, h <= {full_h}, w <= {full_w}) windows, got {tuple(gray.shape)}")
+        if offsets.shape != (gray.shape[0], 2) or offsets.dtype != torch.int64:
+            raise ValueError(f"offsets must be ({gray.shape[0]}, 2) int64, got {tuple(offsets.shape)} {offsets.dtype}")
+        inside = (offsets >= 0).all() & (offsets[:, 0] + gray.shape[-1] <= full_w).all()
+        if not bool(inside & (offsets[:, 1] + gray.shape[-2] <= full_h).all()):
+            raise ValueError(f"every window must lie inside the {full_w}x{full_h} image, got offsets {offsets.tolist()}")
     B, _, H, W = gray.shape
     if not 0 < max_points <= H * W:
         raise ValueError(f"max_points must be in [1, {H * W}] (the pixels of the image), got {max_points}")
     verts_model = model.deform(shape_coeffs, anim_coeffs)
     verts_cam = transform_points(rotation, translation, verts_model)
-    frags = rasterize(verts_cam, model.faces, intrinsics, cull_backfaces=True)
+    off = torch.zeros(B, 2, dtype=verts_cam.dtype, device=gray.device) if offsets is None else offsets.to(verts_cam.dtype)
+    window = Intrinsics(W, H, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    if offsets is None:
+        raster_verts = verts_cam
+    else:
+        # Each sample's window, rasterized through a shear X -= x0 Z / fx, Y -= y0 Z / fy that moves its
+        # projection by -offset and keeps depths, barycentric coordinates and triangle orientation.
+        shift = torch.cat([off / off.new_tensor([intrinsics.fx, intrinsics.fy]), off.new_zeros(B, 1)], -1)
+        raster_verts = verts_cam - verts_cam[..., 2:3] * shift.unsqueeze(1)
+    frags = rasterize(raster_verts, model.faces, window, cull_backfaces=True)
     face = frags.pix_to_face
     mask = (face >= 0) & (frags.facing > 0)
     # Grazing facets sample the image badly: keep points whose normal faces the viewing ray.
@@ -161,16 +187,24 @@ def build_template(
     n_pix = gather_face_attributes(normals_cam, model.faces, face_flat, bary_flat, batched=True)
     # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
     # its direction is the ray's: no need to interpolate the positions.
-    cols = (torch.arange(W, dtype=verts_cam.dtype, device=gray.device) - intrinsics.cx) / intrinsics.fx
-    rows = (torch.arange(H, dtype=verts_cam.dtype, device=gray.device) - intrinsics.cy) / intrinsics.fy
-    rays = torch.stack(torch.broadcast_tensors(cols[None, :], rows[:, None], torch.ones_like(rows)[:, None]), -1)
-    rays = torch.nn.functional.normalize(rays.reshape(1, H * W, 3), dim=-1)
+    cols = torch.arange(W, dtype=verts_cam.dtype, device=gray.device) + off[:, :1]  # (B, W) image columns
+    rows = torch.arange(H, dtype=verts_cam.dtype, device=gray.device) + off[:, 1:]  # (B, H)
+    xr = ((cols - intrinsics.cx) / intrinsics.fx)[:, None, :]
+    yr = ((rows - intrinsics.cy) / intrinsics.fy)[:, :, None]
+    rays = torch.stack(torch.broadcast_tensors(xr, yr, torch.ones_like(yr)), -1)  # (B, H, W, 3)
+    rays = torch.nn.functional.normalize(rays.reshape(B, H * W, 3), dim=-1)
     cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * rays).sum(-1)
     mask = _erode(mask, erode_pixels) & (cos.reshape(B, H, W) >= min_facing_cos)
     grads = image_with_gradients(gray)[:, 1:]
     gmag = grads.pow(2).sum(1).sqrt()
     candidate = mask & (gmag >= gradient_threshold)
-    keys = _selection_keys(H, W, gray.device).expand(B, -1)
+    keys = _selection_keys(full_h, full_w, gray.device)
+    if offsets is None:
+        keys = keys.expand(B, -1)
+    else:  # the whole image's keys at the windows' pixels
+        pix_rows = offsets[:, 1:2] + torch.arange(H, device=gray.device)
+        pix_cols = offsets[:, 0:1] + torch.arange(W, device=gray.device)
+        keys = keys[(pix_rows[:, :, None] * full_w + pix_cols[:, None, :]).reshape(B, H * W)]
     if expression_priority > 0 and model.num_animation > 0:
         # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
         # small region (eyelids) would otherwise get few of the uniformly drawn points.

@@ -280,9 +280,9 @@ def _new_entries(
     """Templates of streams ``index`` built at their current estimate, intensities under the reference light,
     and the dissimilarity reference of their normalised face.
 
-    Each stream's templates are built from a window of its frame around the face (rasterizing and gathering
-    over the whole 640x480 frame made an entry cost ~110 ms, the window ~40 ms); a rare event, so the streams
-    are looped over.
+    The templates are built from a window of the frames around the faces (one size for the streams concerned,
+    each placed around its face): the same templates as from the whole frames (rasterizing and gathering over
+    the whole 640x480 frame made an entry cost ~110 ms).
     """
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
@@ -293,28 +293,31 @@ def _new_entries(
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
     verts = torch.matmul(model.deform(shape, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
     q = 2 ** (config.num_levels - 1)
-    per_level: list[list[Template]] = [[] for _ in range(config.num_levels)]
-    for i in range(index.shape[0]):
-        x0, y0, w, h = _face_window(model, verts[i], state.intrinsics, q)
-        for level, gray in enumerate(gray_pyramid(frames[index[i : i + 1]], config.num_levels)):
-            n = ms.mosaic.levels[level].face_index.shape[-1]  # the slots of this level's entries
-            full = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
-            s = 2**level
-            xl, yl = x0 // s, y0 // s
-            wl, hl = min(-(-w // s), gray.shape[-1] - xl), min(-(-h // s), gray.shape[-2] - yl)
-            if wl * hl >= n:
-                gray = gray[..., yl : yl + hl, xl : xl + wl]
-                full = Intrinsics(wl, hl, full.fx, full.fy, full.cx - xl, full.cy - yl)
-            tpl = build_template(
-                model, shape[i : i + 1], alpha[i : i + 1], R[i : i + 1], t[i : i + 1], gray, full, max_points=n,
-                gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
-            )  # fmt: skip
-            intensity = light_normalised_intensity(tpl, R[i : i + 1], light[i : i + 1])
-            per_level[level].append(replace(tpl, intensity=intensity))
-    out = tuple(
-        Template(*(torch.cat([getattr(tp, f.name) for tp in tps]) for f in fields(Template))) for tps in per_level
-    )
-    return out, reference
+    windows = torch.tensor(
+        [_face_window(model, verts[i], state.intrinsics, q) for i in range(index.shape[0])], device=index.device
+    )  # (n, 4) x0, y0, w, h at full resolution
+    templates = []
+    for level, gray in enumerate(gray_pyramid(frames[index], config.num_levels)):
+        slots = ms.mosaic.levels[level].face_index.shape[-1]  # the slots of this level's entries
+        full = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        s = 2**level
+        hl = min(int(-(-windows[:, 3].max() // s)), full.height)
+        wl = min(int(-(-windows[:, 2].max() // s)), full.width)
+        offsets = None
+        if wl * hl >= slots:
+            x0 = (windows[:, 0] // s).clamp(max=full.width - wl)
+            y0 = (windows[:, 1] // s).clamp(max=full.height - hl)
+            offsets = torch.stack([x0, y0], -1)
+            rows = (y0[:, None] + torch.arange(hl, device=gray.device))[:, :, None]
+            cols = (x0[:, None] + torch.arange(wl, device=gray.device))[:, None, :]
+            flat = (rows * full.width + cols).reshape(-1, 1, hl * wl)
+            gray = gray.reshape(gray.shape[0], 1, -1).gather(2, flat).reshape(-1, 1, hl, wl)
+        tpl = build_template(
+            model, shape, alpha, R, t, gray, full, max_points=slots, gradient_threshold=config.gradient_threshold,
+            expression_priority=config.expression_priority, offsets=offsets,
+        )  # fmt: skip
+        templates.append(replace(tpl, intensity=light_normalised_intensity(tpl, R, light)))
+    return tuple(templates), reference
 
 
 def _texture_update(
