@@ -66,6 +66,7 @@ from torchface.tracker.step import (
     gray_pyramid,
     initialise,
     level_intrinsics,
+    prior_mean_vector,
     scale_floor,
     track_step,
 )
@@ -271,7 +272,8 @@ def unrolled_params(
         if config.robust is not RobustKind.NONE:
             robust = RobustLoss(config.robust, config.robust_c, min_scale=scale_floor(config, level))
         res = least_squares(
-            residual_fn, x, solver, lower=lower, upper=upper, prior_precision=prior, robust=robust
+            residual_fn, x, solver, lower=lower, upper=upper, prior_precision=prior,
+            prior_mean=prior_mean_vector(config, state, layout), robust=robust,
         )
         x = torch.where(res.failed.unsqueeze(-1), x, res.params)
     return x

@@ -205,6 +205,26 @@ def test_solve_level_survives_an_unobservable_animation_unit():
     assert bool(out.finite.all())
 
 
+@pytest.mark.parametrize("centred", [False, True])
+def test_prior_pulls_an_unobservable_animation_unit_to_its_mean(centred):
+    """An animation unit that moves nothing is set by its prior alone: it ends at the prior's mean (the first
+    frame's expression when ``alpha_mean`` is given, zero otherwise), whatever it started from."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    basis = tpl.basis.clone()
+    basis[..., 0] = 0.0
+    tpl = Template(tpl.face_index, tpl.bary, tpl.points, basis, tpl.normals, tpl.intensity, tpl.valid)
+    R, t, a, lam = split(_perturbed(x_true))
+    mean = torch.full_like(a, 0.35) if centred else None
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    *_, a_out, _, out = solve_level(
+        tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=30, free=free, alpha_lower=lo,
+        alpha_upper=hi, alpha_prior=1.0, alpha_mean=mean, robust=None, step_tolerance=1e-9,
+    )
+    assert bool(out.finite.all())
+    torch.testing.assert_close(a_out[:, 0], torch.full_like(a_out[:, 0], 0.35 if centred else 0.0), rtol=0, atol=1e-4)
+
+
 def test_crop_gray_equals_slicing_each_stream():
     from torchface.appearance.sampling import to_gray
     from torchface.tracker.step import _crop_gray

@@ -200,6 +200,7 @@ def solve_level(
     alpha_upper: Tensor,
     alpha_prior: float,
     robust: RobustLoss | None,
+    alpha_mean: Tensor | None = None,
     scale_floor: float = 0.02,
     damping: float = 1e-3,
     final_check: bool = True,
@@ -218,7 +219,8 @@ def solve_level(
         cam: the level camera; R ``(B, 3, 3)``, t ``(B, 3)``, alpha ``(B, A)``, light ``(B, L)``: the start.
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
-        alpha_lower, alpha_upper: ``(A,)`` bounds; alpha_prior: precision of a zero-mean prior on alpha.
+        alpha_lower, alpha_upper: ``(A,)`` bounds; alpha_prior: precision of a Gaussian prior on alpha, centred on
+            ``alpha_mean`` ``(B, A)`` (None: zero).
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
         damping: initial Levenberg damping relative to ``diag(H)``.
@@ -271,7 +273,8 @@ def solve_level(
         valid = valid & torch.isfinite(r)
         r = torch.where(valid, r, 0.0)
         J = torch.where(valid.unsqueeze(-1) & free_mask, J, 0.0)
-        prior_cost = (half_prior_alpha * alpha * alpha).sum(-1)
+        d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
+        prior_cost = (half_prior_alpha * d_alpha * d_alpha).sum(-1)
         if best is None:
             wgt, s = _weights(r, valid, robust, scale_floor)
             cost = _cost(r, robust, s) + prior_cost
@@ -285,7 +288,7 @@ def solve_level(
         Jw_t = Jw.transpose(1, 2)
         H = torch.baddbmm(prior_H, Jw_t, J)
         grad = torch.bmm(Jw_t, r.unsqueeze(-1)).squeeze(-1)
-        grad[:, 6 : 6 + A] += prior_alpha * alpha
+        grad[:, 6 : 6 + A] += prior_alpha * d_alpha
         if best is not None:
             if bool(accept.all()):  # the common case: one host sync, no selection
                 lam = (lam / 3.0).clamp_min(1e-6)
@@ -319,7 +322,8 @@ def solve_level(
     if best is not None:
         # The last step is kept only where it did not raise the cost.
         cost = _cost(torch.where(valid, r, 0.0), robust, best[7])
-        cost = cost + (half_prior_alpha * alpha * alpha).sum(-1)
+        d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
+        cost = cost + (half_prior_alpha * d_alpha * d_alpha).sum(-1)
         accept = (cost <= best[6]) & torch.isfinite(cost)
         if not bool(accept.all()):
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])

@@ -206,7 +206,10 @@ def _scatter_result(result: TrackResult, index: Tensor, sub: TrackResult) -> Tra
 
 
 def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates: tuple[Template, ...]) -> TrackerState:
-    return TrackerState(params, state.shape_coeffs[index], templates, state.intrinsics, state.frame_index)
+    mean = None if state.anim_prior_mean is None else state.anim_prior_mean[index]
+    return TrackerState(
+        params, state.shape_coeffs[index], templates, state.intrinsics, state.frame_index, anim_prior_mean=mean
+    )
 
 
 def _confidence(
