@@ -1,12 +1,16 @@
 #!/usr/bin/env python
-"""Render standard synthetic scenarios to lossless videos with ground truth.
+"""Render synthetic scenarios (the standard set and the long runs) to lossless videos with ground truth.
 
-Writes, per scenario, <out>/<name>.avi (FFV1), <name>.gt.npz and <name>.gt.json.
+Writes, per scenario, <out>/<name>.avi (FFV1), <name>.gt.npz and <name>.gt.json. ``--scenario all`` is the
+five standard scenarios; ``long`` is the two 3000-frame long runs (``long_run``: CANDIDE-3 textured,
+``long_run_scan``: the James scan; large turns back to frontal, light changes, occluders, the face leaving
+the frame); ``everything`` is both. A full-size long run is ~0.5 GB and takes several minutes to render.
 
 Examples:
     python scripts/make_sequence.py --scenario all --size small --out out/synth_small
     python scripts/make_sequence.py --scenario pose_sweep --size full --out out/synth
     python scripts/make_sequence.py --scenario occlusion --width 320 --height 240 --frames 60 --out out/x
+    python scripts/make_sequence.py --scenario long_run --width 320 --height 240 --frames 600 --out out/long
 """
 
 from __future__ import annotations
@@ -16,13 +20,16 @@ import sys
 import time
 from pathlib import Path
 
-from torchface.synth.scenarios import SCENARIOS, SIZES, make_scenario, scenario_size
+from torchface.synth.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, SCENARIOS, SIZES, make_scenario, scenario_size
 from torchface.synth.sequence import write_sequence
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenario", default="all", help=f"one of {', '.join(SCENARIOS)} or 'all'")
+    parser.add_argument(
+        "--scenario", default="all",
+        help=f"one of {', '.join(ALL_SCENARIOS)}, 'all' (the standard five), 'long' or 'everything'",
+    )  # fmt: skip
     parser.add_argument("--size", default="small", choices=tuple(SIZES), help="named size (default small)")
     parser.add_argument("--width", type=int, help="override the width")
     parser.add_argument("--height", type=int, help="override the height")
@@ -30,10 +37,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=8, help="frames rendered at once")
     parser.add_argument("--out", type=Path, default=Path("out/synth"), help="output folder")
     args = parser.parse_args(argv)
-    names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
+    groups = {"all": list(SCENARIOS), "long": list(LONG_SCENARIOS), "everything": list(ALL_SCENARIOS)}
+    names = groups.get(args.scenario, [args.scenario])
     for name in names:
-        if name not in SCENARIOS:
-            parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
+        if name not in ALL_SCENARIOS:
+            parser.error(f"unknown scenario {name!r}; choose from {', '.join(ALL_SCENARIOS)}, all, long or everything")
     for name in names:
         w, h, t = scenario_size(name, args.size)
         w, h, t = args.width or w, args.height or h, args.frames or t

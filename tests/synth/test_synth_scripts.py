@@ -29,3 +29,13 @@ def test_make_sequence_then_overlay(tmp_path, capsys):
     assert "max |reprojected - landmarks_px| = 0.00e+00" in text
     img = cv2.imread(str(tmp_path / "ov" / "expressions_0002.png"))
     assert img is not None and img.shape[1] == 640  # upscaled to about 640 px wide
+
+
+def test_make_sequence_writes_a_long_scenario(tmp_path, capsys):
+    """The long runs are reachable by name (their timeline needs at least 100 frames)."""
+    make = _load("make_sequence")
+    out = tmp_path / "long"
+    args = ["--scenario", "long_run", "--width", "64", "--height", "48", "--frames", "100", "--out", str(out)]
+    assert make.main(args) == 0
+    assert "100/100 frames" in capsys.readouterr().out
+    assert (out / "long_run.avi").stat().st_size > 0 and (out / "long_run.gt.npz").exists()
