@@ -433,3 +433,20 @@ def test_visibility_interval_reuses_masks_between_rasterizations(model, two_stre
     assert new_state.visibility[0] is swapped.templates and new_state.visibility[1] is not masks[0]
     with pytest.raises(ValueError, match="visibility_interval"):
         TrackerConfig(visibility_interval=0)
+
+
+def test_expression_prior_is_centred_on_the_first_frame(model, two_streams, l2_runs):
+    """The state carries the first frame's fitted expression as the prior's centre; a dominant prior holds the
+    animation units there (fast and reference solvers), or at zero with ``expression_prior_at_start=False``."""
+    frames, _ = two_streams
+    (results, states), _ = l2_runs
+    torch.testing.assert_close(states[0].anim_prior_mean, results[0].anim_coeffs)
+    assert states[-1].anim_prior_mean is states[0].anim_prior_mean
+    centre = torch.full_like(results[0].anim_coeffs, 0.3)
+    state = replace(states[0], anim_prior_mean=centre)
+    strong = replace(L2, expression_prior_precision=1e5)
+    for solver in (TrackSolver.FAST, TrackSolver.REFERENCE):
+        _, at_start = track_step(model, replace(strong, solver=solver), state, frames[:, 1])
+        _, at_zero = track_step(model, replace(strong, solver=solver, expression_prior_at_start=False), state, frames[:, 1])
+        torch.testing.assert_close(at_start.anim_coeffs, centre, rtol=0, atol=0.02)
+        assert float(at_zero.anim_coeffs.abs().max()) < 0.02
