@@ -9,7 +9,6 @@ per-iteration triangle search.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 
 import torch
