@@ -366,11 +366,16 @@ def new_mosaic(
     )  # fmt: skip
 
 
+def _reference_tensors(ref: DissimilarityReference) -> list[Tensor]:
+    """``ref``'s tensors in field order, its Lucas-Kanade side last (the order :func:`_map_reference` visits)."""
+    return [ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score] + ([] if ref.lk is None else list(ref.lk))
+
+
 def _map_reference(ref: DissimilarityReference, fn) -> DissimilarityReference:
-    """``ref`` with ``fn`` applied to every tensor, in field order (its Lucas-Kanade side last)."""
-    main = [fn(x) for x in (ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score)]
-    lk = None if ref.lk is None else type(ref.lk)(*(fn(x) for x in ref.lk))
-    return DissimilarityReference(*main, ref.config, lk)
+    """``ref`` with ``fn`` applied to every tensor, in :func:`_reference_tensors` order."""
+    out = [fn(x) for x in _reference_tensors(ref)]
+    lk = None if ref.lk is None else type(ref.lk)(*out[5:])
+    return DissimilarityReference(*out[:5], ref.config, lk)
 
 
 def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
@@ -422,8 +427,7 @@ def add_entries(
     b[streams, slot] = bins
     used = mosaic.used.clone()
     used[streams, slot] = True
-    new = iter([reference.image, reference.mask, reference.centres, reference.patch_valid, reference.score]
-               + ([] if reference.lk is None else list(reference.lk)))  # fmt: skip
+    new = iter(_reference_tensors(reference))
 
     def put(x: Tensor) -> Tensor:
         x = x.clone()

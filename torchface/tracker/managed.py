@@ -76,6 +76,7 @@ from torchface.tracker.step import (
     TrackResult,
     TrackStatus,
     check_frames,
+    crop_windows,
     gray_pyramid,
     initialise,
     level_intrinsics,
@@ -311,10 +312,7 @@ def _new_entries(
             x0 = (windows[:, 0] // s).clamp(max=full.width - wl)
             y0 = (windows[:, 1] // s).clamp(max=full.height - hl)
             offsets = torch.stack([x0, y0], -1)
-            rows = (y0[:, None] + torch.arange(hl, device=gray.device))[:, :, None]
-            cols = (x0[:, None] + torch.arange(wl, device=gray.device))[:, None, :]
-            flat = (rows * full.width + cols).reshape(-1, 1, hl * wl)
-            gray = gray.reshape(gray.shape[0], 1, -1).gather(2, flat).reshape(-1, 1, hl, wl)
+            gray = crop_windows(gray, offsets, hl, wl)
         tpl = build_template(
             model, shape, alpha, R, t, gray, full, max_points=slots, gradient_threshold=config.gradient_threshold,
             expression_priority=config.expression_priority, offsets=offsets,

@@ -478,19 +478,27 @@ def face_crop(model: FaceModel, state: TrackerState, layout: ParamLayout, config
     return torch.stack([x0, y0], dim=-1), ch, cw
 
 
+def crop_windows(images: Tensor, offsets: Tensor, height: int, width: int) -> Tensor:
+    """``(B, C, H, W)`` images -> ``(B, C, height, width)`` windows whose top-left pixels are ``offsets (B, 2)``
+    int64 ``(x0, y0)`` (exact copies; every window must lie inside its image).
+
+    One flat ``gather`` for the batch: measured six times faster than advanced indexing (0.5 vs 3.1 ms for a
+    480x488 crop of a 640x480 frame, one thread).
+    """
+    B, C, H, W = images.shape
+    rows = offsets[:, 1:2] + torch.arange(height, device=images.device)
+    cols = offsets[:, 0:1] + torch.arange(width, device=images.device)
+    idx = (rows[:, :, None] * W + cols[:, None, :]).reshape(B, 1, height * width).expand(-1, C, -1)
+    return images.reshape(B, C, H * W).gather(2, idx).reshape(B, C, height, width)
+
+
 def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
     """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets (exact copy).
 
-    The gray conversion is per pixel, so converting first and gathering the crop's pixels with one flat
-    ``gather`` gives the same values as cropping first; it was measured six times faster than advanced
-    indexing of the colour frames (0.5 vs 3.1 ms for a 480x488 crop of a 640x480 frame, one thread).
+    The gray conversion is per pixel, so converting first and cropping (:func:`crop_windows`) gives the same
+    values as cropping first, with one channel to gather instead of three.
     """
-    B, _, H, W = frames.shape
-    gray = to_gray(frames)
-    rows = offsets[:, 1:2] + torch.arange(ch, device=frames.device)
-    cols = offsets[:, 0:1] + torch.arange(cw, device=frames.device)
-    idx = (rows[:, :, None] * W + cols[:, None, :]).reshape(B, 1, ch * cw)
-    return gray.reshape(B, 1, H * W).gather(2, idx).reshape(B, 1, ch, cw)
+    return crop_windows(to_gray(frames), offsets, ch, cw)
 
 
 def _track_step_fast(
