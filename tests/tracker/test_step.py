@@ -310,7 +310,7 @@ def test_fast_solver_agrees_with_reference_solver(model, two_streams, l2_runs):
     """
     frames, _ = two_streams
     (_, states), _ = l2_runs
-    converged = replace(L2, iterations=(20, 20))
+    converged = replace(L2, iterations=(20, 20), refine_iterations=0)  # the reference has no refinement pass
     _, fast = track_step(model, converged, states[0], frames[:, 1])
     _, ref = track_step(model, replace(converged, solver=TrackSolver.REFERENCE), states[0], frames[:, 1])
     assert bool(fast.success.all()) and bool(ref.success.all())
@@ -444,9 +444,14 @@ def test_expression_prior_is_centred_on_the_first_frame(model, two_streams, l2_r
     assert states[-1].anim_prior_mean is states[0].anim_prior_mean
     centre = torch.full_like(results[0].anim_coeffs, 0.3)
     state = replace(states[0], anim_prior_mean=centre)
-    strong = replace(L2, expression_prior_precision=1e5)
+    strong = replace(L2, expression_prior_precision=1e5, refine_prior_precision=None)
     for solver in (TrackSolver.FAST, TrackSolver.REFERENCE):
         _, at_start = track_step(model, replace(strong, solver=solver), state, frames[:, 1])
         _, at_zero = track_step(model, replace(strong, solver=solver, expression_prior_at_start=False), state, frames[:, 1])
         torch.testing.assert_close(at_start.anim_coeffs, centre, rtol=0, atol=0.02)
         assert float(at_zero.anim_coeffs.abs().max()) < 0.02
+    # The refinement pass has its own prior: dominant there alone, it brings the units back to the centre.
+    _, refined = track_step(model, replace(L2, refine_prior_precision=1e5), state, frames[:, 1])
+    _, free = track_step(model, replace(L2, refine_prior_precision=1e-3), state, frames[:, 1])
+    torch.testing.assert_close(refined.anim_coeffs, centre, rtol=0, atol=0.02)
+    assert float((free.anim_coeffs - centre).abs().max()) > 0.1
