@@ -268,11 +268,42 @@ def test_expression_priority_keeps_points_that_animation_units_move():
     assert favoured >= 140  # nearly every slot goes to a point an animation unit moves
 
 
-@pytest.mark.parametrize("priority", [0.0, 1.0])
-def test_window_build_equals_the_whole_image_build(scene, priority):
+def test_expression_quota_gives_every_animation_unit_points():
+    """With ``expression_quota`` q, every animation unit keeps at least min(q, what it had) template points that it
+    moves (>= 1 px per unit) and the eyelid unit, which the uniform draw nearly misses, gains."""
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+
+    model = load_candide3()
+    frames, gt = render_sequence(make_scenario("expressions", 1, 320, 240))
+    gray = frames.mean(1, keepdim=True)
+    R, t = gt.rotation.float(), gt.translation.float()
+    shape, anim = gt.shape_coeffs.float().unsqueeze(0), gt.au.float()
+    cam = Intrinsics.default(320, 240)
+
+    def per_unit(quota: int) -> torch.Tensor:
+        tpl = build_template(model, shape, anim, R, t, gray, cam, max_points=400, gradient_threshold=0.01,
+                             expression_quota=quota)
+        # the selection's measure: per-vertex displacement norms interpolated at the point, over its depth
+        au_mm = gather_face_attributes(model.animation_units.norm(dim=-1).T, model.faces, tpl.face_index, tpl.bary,
+                                       batched=False)
+        posed = tpl.points + (tpl.basis * anim[:, None, None]).sum(-1)
+        z = (posed @ R.mT + t[:, None])[..., 2:]  # (1, N, 1) depth, mm
+        return ((au_mm * cam.fx / z >= 0.999) & tpl.valid[..., None]).sum(1)[0]  # (A,)
+
+    q = 20
+    plain, quota = per_unit(0), per_unit(q)
+    eyes = model.animation_names.index("AUV6 Eyes closed")
+    # At 320x240 the eyelids have fewer than q candidates: the quota takes them (measured 2 -> 8 points).
+    assert int(quota[eyes]) >= int(plain[eyes]) + 4, (plain.tolist(), quota.tolist())
+    assert bool((quota >= torch.clamp(plain, max=q)).all()), (plain.tolist(), quota.tolist())
+
+
+@pytest.mark.parametrize(("priority", "quota"), [(0.0, 0), (1.0, 0), (0.0, 30)])
+def test_window_build_equals_the_whole_image_build(scene, priority, quota):
     """Per-sample windows around the faces (offsets) give the whole image's template: same pixels, same slots."""
     s = scene
-    whole = build(scene, max_points=1500, gradient_threshold=0.02, expression_priority=priority)
+    whole = build(scene, max_points=1500, gradient_threshold=0.02, expression_priority=priority, expression_quota=quota)
     uv, _, _ = pixels_of(scene, whole)
     # Windows 64x56 placed around each face (different offsets per sample), inside the 160x120 image.
     lo = torch.where(whole.valid[..., None], uv, torch.full_like(uv, 1e9)).amin(1).floor().long() - 3
@@ -286,7 +317,7 @@ def test_window_build_equals_the_whole_image_build(scene, priority):
     crops = torch.stack([s["gray"][b, :, rows[b], cols[b]] for b in range(2)])
     windowed = build_template(
         s["model"], s["shape"], s["anim"], s["R"], s["t"], crops, s["cam"], max_points=1500,
-        gradient_threshold=0.02, expression_priority=priority, offsets=offsets,
+        gradient_threshold=0.02, expression_priority=priority, expression_quota=quota, offsets=offsets,
     )
     assert int(whole.valid.sum()) > 500
     assert torch.equal(windowed.valid, whole.valid)

@@ -367,6 +367,10 @@ def test_config_validation():
         TrackerConfig(gradient_threshold=-1.0)
     with pytest.raises(TypeError, match="RobustKind"):
         TrackerConfig(robust="tukey")
+    with pytest.raises(ValueError, match="expression_quota"):
+        TrackerConfig(expression_quota=40)
+    with pytest.raises(ValueError, match="refine_prior_precision"):
+        TrackerConfig(refine_prior_precision=-1.0)
 
 
 def test_face_tracker_module(model, two_streams, l2_runs):

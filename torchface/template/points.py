@@ -120,6 +120,7 @@ def build_template(
     min_facing_cos: float = 0.15,
     erode_pixels: int = 1,
     expression_priority: float = 0.0,
+    expression_quota: int = 0,
     offsets: Tensor | None = None,
 ) -> Template:
     """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
@@ -141,6 +142,10 @@ def build_template(
         gradient_threshold: minimum ``|grad I|`` (intensity per pixel) of a kept point; 0 keeps all.
         expression_priority: when positive, candidate pixels that an animation unit moves by at least a pixel
             per unit coefficient are picked before the others (their selection key is raised by this much).
+        expression_quota: for each animation unit, up to this many candidate pixels that the unit moves by at
+            least a pixel per unit coefficient are picked before all others (those with the highest selection
+            keys among them). A unit acting on a small region (the eyelids) then gets points; one acting on a
+            large region already has that many among the uniform draw, so the draw barely changes. 0: off.
         offsets: ``(B, 2)`` int64 ``(x0, y0)``, or None. When given, ``gray`` ``(B, 1, h, w)`` is per sample the
             window of the camera's ``intrinsics.height x intrinsics.width`` image whose top-left pixel is at
             ``offsets``: only the window is rasterized and searched (faster), and the template equals the one
@@ -211,6 +216,31 @@ def build_template(
         sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
         px_per_mm = intrinsics.fx / frags.zbuf.reshape(B, -1).clamp(1.0, 1e30)
         keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
+    if expression_quota > 0 and model.num_animation > 0:
+        # Per unit, the candidates it moves by >= 1 px per unit coefficient; the quota with the highest keys
+        # among them are lifted above every key (keys lie in [0, 1)). Only the candidates are looked at.
+        A = model.num_animation
+        flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
+        au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
+        sens = gather_face_attributes(au_mm, model.faces, face_flat.reshape(-1)[flat][None],
+                                      bary_flat.reshape(-1, 3)[flat][None], batched=False)[0]  # (M, A)
+        px_per_mm = intrinsics.fx / frags.zbuf.reshape(-1)[flat].clamp(1.0, 1e30)
+        moved = sens * px_per_mm[:, None] >= 1.0
+        # Each sample's candidates in a (B, A, M_max) block (nonzero lists them sample by sample).
+        b_of = torch.div(flat, H * W, rounding_mode="floor")
+        counts = torch.bincount(b_of, minlength=B)
+        first = torch.cumsum(counts, 0) - counts
+        slot = torch.arange(flat.shape[0], device=flat.device) - first[b_of]
+        m_max = max(int(counts.max()) if B else 0, 1)
+        au_keys = torch.full((B, m_max, A), -1.0, dtype=keys.dtype, device=keys.device)
+        au_keys[b_of, slot] = torch.where(moved, keys.reshape(-1)[flat][:, None], au_keys.new_tensor(-1.0))
+        top_k, top_s = torch.topk(au_keys.transpose(1, 2), min(expression_quota, m_max), dim=-1)  # (B, A, q)
+        pix_of = torch.zeros(B, m_max, dtype=torch.int64, device=keys.device)
+        pix_of[b_of, slot] = flat - b_of * (H * W)
+        lift = torch.zeros(B, H * W, dtype=keys.dtype, device=keys.device)
+        lift.scatter_reduce_(1, torch.gather(pix_of, 1, top_s.flatten(1)), (top_k >= 0).flatten(1).to(keys.dtype),
+                             reduce="amax")
+        keys = keys + 2.0 * lift
     score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
     top, pix = torch.topk(score, max_points, dim=1)
     valid = top >= 0

@@ -315,7 +315,8 @@ def _new_entries(
             gray = crop_windows(gray, offsets, hl, wl)
         tpl = build_template(
             model, shape, alpha, R, t, gray, full, max_points=slots, gradient_threshold=config.gradient_threshold,
-            expression_priority=config.expression_priority, offsets=offsets,
+            expression_priority=config.expression_priority, expression_quota=int(config.expression_quota * slots),
+            offsets=offsets,
         )  # fmt: skip
         templates.append(replace(tpl, intensity=light_normalised_intensity(tpl, R, light)))
     return tuple(templates), reference
@@ -417,7 +418,9 @@ def _recover(
     starts, entries, found = _recovery_starts(model, config, state, ms, frames, index, detector)
     templates = entry_templates(model, state.shape_coeffs[index], ms.mosaic, index, entries)
     sub = _subset_state(state, index, starts, templates)
-    solved, result = track_step(model, config, sub, frames[index])
+    # A candidate is solved conservatively: the refinement pass's weak prior would let the animation units
+    # absorb a wrong candidate's residual, and the face normalised with them would then fail the confidence.
+    solved, result = track_step(model, replace(config, refine_prior_precision=None), sub, frames[index])
     conf, diss = _confidence(model, config, ms, frames[index], solved, result.status, index)
     return found, solved, result, conf, diss, entries
 
