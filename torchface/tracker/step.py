@@ -107,11 +107,13 @@ class TrackerConfig:
         refine_scale_floor: the robust scale floor of that pass.
         refine_prior_precision: the animation units' prior precision in that pass (None: the same as
             ``expression_prior_precision``). The pose is held there, so a weak prior lets the expression follow
-            without letting an occluder or the units' shape-like modes tilt the pose; measured on the 640x480
-            ``expressions`` scenario, 0.1 instead of 1 took the lip stretcher from 0.081 / 0.88 (RMSE fraction of
-            range / r) to 0.045 / 0.97 and the brow lowerer from 0.041 / 0.97 to 0.034 / 1.00, every pose figure
-            within 0.02 degree. The same weak prior in the pose levels too costs the sudden-occluder test
-            (tests/tracker/test_step.py) 2.0 -> 2.65 degrees.
+            without tilting the pose; measured on the 640x480 ``expressions`` scenario, 0.1 took the lip stretcher
+            from 0.081 / 0.88 (RMSE fraction of range / r) to 0.045 / 0.97 and the brow lowerer from 0.041 / 0.97
+            to 0.034 / 1.00, every pose figure within 0.02 degree. Not the default: on the 3000-frame long runs
+            (evaluate.py) the tracker then never recovered after the face left the frame (CANDIDE-3 after frames
+            2291-2435, the James scan after 1125-1294), while the default recovers at once. Template management
+            solves recovery candidates with this pass's prior equal to ``expression_prior_precision``, which
+            fixed the James case but not the CANDIDE one.
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
@@ -146,7 +148,7 @@ class TrackerConfig:
     robust_scale_floor: tuple[float, float] = (0.1, 0.02)
     refine_iterations: int = 3
     refine_scale_floor: float = 0.1
-    refine_prior_precision: float | None = 0.1
+    refine_prior_precision: float | None = None
     expression_priority: float = 0.0
     expression_quota: float = 0.0
     zbuffer_visibility: bool = True
