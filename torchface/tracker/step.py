@@ -122,7 +122,8 @@ class TrackerConfig:
         expression_quota: per animation unit, this fraction of a level's template points is reserved for points
             that the unit moves (``int(expression_quota * points)``, passed to
             :func:`~torchface.template.points.build_template`; 0: off). The uniform draw gave the eyelid unit 6 of
-            1500 points; measured on the 640x480 ``expressions`` scenario, 40 of 1500 (0.027) took eyes closed
+            1500 points; measured on the 640x480 ``expressions`` scenario with ``refine_prior_precision=0.1``,
+            40 of 1500 (0.027) took eyes closed
             from r 0.41 to 0.86 with every other unit within 0.003 of RMSE and the pose within 0.04 degree
             (scan_motion 1.88 -> 1.91 degrees mean, 5.94 -> 5.79 max), for about 4 ms more per whole-frame
             template build. Off by default: eyes closed still misses its RMSE target (0.237 -> 0.209 of range),
