@@ -237,3 +237,24 @@ def test_crop_gray_equals_slicing_each_stream():
         x0, y0 = offsets[b].tolist()
         ref = to_gray(frames[b : b + 1, :, y0 : y0 + 24, x0 : x0 + 36])
         assert torch.equal(crop[b : b + 1], ref)
+
+
+def test_per_stream_prior_equals_each_stream_solved_with_its_own():
+    """``alpha_prior`` as ``(B,)``: each stream ends where solving it with its own float precision ends."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    mean = torch.full_like(a, 0.35)
+
+    def solve(prior):
+        return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=8, free=free,
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=prior, alpha_mean=mean, robust=None)
+
+    mixed = solve(torch.tensor([50.0, 0.01], dtype=D))
+    for b, prior in enumerate((50.0, 0.01)):
+        alone = solve(prior)
+        for got, want in zip(mixed[:4], alone[:4]):
+            torch.testing.assert_close(got[b], want[b], rtol=0, atol=1e-10)
+    # the two precisions really lead to different answers (so the test can tell them apart)
+    assert float((solve(50.0)[2] - solve(0.01)[2]).abs().max()) > 1e-3

@@ -230,6 +230,29 @@ def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detect
         assert calls and all(c[0] == 1 for c in calls)
 
 
+def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, leaves, monkeypatch):
+    """The frame's solve gets ``conservative`` = the streams lost before it (a weak refinement prior let a lost
+    track fit a wrong pose well enough to pass the recovery confidence)."""
+    import torchface.tracker.managed as managed
+
+    frames, gt = leaves
+    seen = []
+    real = managed.track_step
+
+    def spy(model_, config_, state_, frames_, *, conservative=None):
+        if state_.management is not None:  # the frame's solve, not a recovery candidate's
+            seen.append((conservative.clone(), state_.management.lost.clone()))
+        return real(model_, config_, state_, frames_, conservative=conservative)
+
+    monkeypatch.setattr(managed, "track_step", spy)
+    state, _ = initialise_managed(model, LEAVE_CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    for i in range(1, frames.shape[1]):
+        state, _ = managed_step(model, LEAVE_CFG, state, frames[:, i])
+    assert len(seen) == frames.shape[1] - 1
+    assert all(torch.equal(c, lost) for c, lost in seen)
+    assert any(bool(c.any()) for c, _ in seen) and not all(bool(c.any()) for c, _ in seen)
+
+
 def test_batch_equals_each_stream_alone(model, gentle, leaves):
     """A clean stream and one that leaves the frame: each alone equals the same stream in the batch."""
     fa, ga = gentle

@@ -459,3 +459,23 @@ def test_expression_prior_is_centred_on_the_first_frame(model, two_streams, l2_r
     _, free = track_step(model, replace(L2, refine_prior_precision=1e-3), state, frames[:, 1])
     torch.testing.assert_close(refined.anim_coeffs, centre, rtol=0, atol=0.02)
     assert float((free.anim_coeffs - centre).abs().max()) > 0.1
+
+
+def test_conservative_streams_keep_the_pose_levels_prior_in_the_refinement_pass(model, two_streams, l2_runs):
+    """``track_step(conservative=)`` (template management passes its lost streams): a conservative stream's
+    refinement pass uses ``expression_prior_precision``, the others ``refine_prior_precision``, in one batch."""
+    frames, _ = two_streams
+    (_, states), _ = l2_runs
+    state = replace(states[0], anim_prior_mean=torch.full_like(states[0].anim_prior_mean, 0.3))
+    weak = replace(L2, refine_prior_precision=1e-3, expression_prior_precision=1e5)
+    mixed = torch.tensor([True, False])
+    _, out = track_step(model, weak, state, frames[:, 1], conservative=mixed)
+    _, strong = track_step(model, replace(weak, refine_prior_precision=None), state, frames[:, 1])
+    _, loose = track_step(model, weak, state, frames[:, 1])
+    torch.testing.assert_close(out.anim_coeffs[0], strong.anim_coeffs[0], rtol=0, atol=1e-5)
+    torch.testing.assert_close(out.anim_coeffs[1], loose.anim_coeffs[1], rtol=0, atol=1e-5)
+    assert float((strong.anim_coeffs[1] - loose.anim_coeffs[1]).abs().max()) > 0.05  # the two priors differ here
+    _, none_set = track_step(model, weak, state, frames[:, 1], conservative=torch.zeros(2, dtype=torch.bool))
+    torch.testing.assert_close(none_set.anim_coeffs, loose.anim_coeffs, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="conservative"):
+        track_step(model, weak, state, frames[:, 1], conservative=torch.ones(3, dtype=torch.bool))

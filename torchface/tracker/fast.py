@@ -198,7 +198,7 @@ def solve_level(
     free: Tensor,
     alpha_lower: Tensor,
     alpha_upper: Tensor,
-    alpha_prior: float,
+    alpha_prior: float | Tensor,
     robust: RobustLoss | None,
     alpha_mean: Tensor | None = None,
     scale_floor: float = 0.02,
@@ -220,7 +220,7 @@ def solve_level(
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
         alpha_lower, alpha_upper: ``(A,)`` bounds; alpha_prior: precision of a Gaussian prior on alpha, centred on
-            ``alpha_mean`` ``(B, A)`` (None: zero).
+            ``alpha_mean`` ``(B, A)`` (None: zero); a float, or ``(B,)`` for one precision per stream.
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
         damping: initial Levenberg damping relative to ``diag(H)``.
@@ -239,12 +239,16 @@ def solve_level(
     dtype, device = R.dtype, R.device
     # Everything that does not change across iterations is computed once here.
     freef = free.to(dtype)
-    prior = torch.zeros(P, dtype=dtype, device=device)
-    prior[6 : 6 + A] = alpha_prior
+    if isinstance(alpha_prior, Tensor):  # one precision per stream: (B, P) priors, (B, P, P) Hessian terms
+        prior = torch.zeros(B, P, dtype=dtype, device=device)
+        prior[:, 6 : 6 + A] = alpha_prior.to(dtype).unsqueeze(-1)
+    else:
+        prior = torch.zeros(P, dtype=dtype, device=device)
+        prior[6 : 6 + A] = alpha_prior
     prior = prior * freef
-    prior_alpha = prior[6 : 6 + A]
+    prior_alpha = prior[..., 6 : 6 + A]
     half_prior_alpha = 0.5 * prior_alpha
-    prior_H = torch.diag(prior)
+    prior_H = torch.diag_embed(prior)
     fixed_diag = torch.diag(1.0 - freef)
     free_mask = free.to(torch.bool)
     generators = _so3_generators(R)

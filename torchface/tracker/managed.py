@@ -23,7 +23,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    face matches: the tracker sits on the background), when its solve FAILED (too few points, no contrast),
    or when less than ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost
    frames are reported with status LOST (``success`` False). A lost stream keeps tracking from its estimate
-   (back at the last confident parameters when the estimate left the frame or failed) and, when it is lost
+   (back at the last confident parameters when the estimate left the frame or failed), with the
+   refinement pass's prior at ``expression_prior_precision`` (``track_step(conservative=)``), and, when it is lost
    and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
    one is given, else by searching its mosaic over the coarsest pyramid level
    (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. The
@@ -479,7 +480,10 @@ def managed_step(
             templates = _scatter_templates(templates, changed, sub)
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
-    solved, result = track_step(model, config, replace(state, templates=templates), frames)
+    # Lost streams keep the pose levels' prior in the refinement pass: with a weak one (refine_prior_precision)
+    # a lost track's units fitted a wrong pose well enough to pass the recovery confidence, and the stream
+    # stayed lost at that pose (measured on the CANDIDE-3 long run after the face left the frame).
+    solved, result = track_step(model, config, replace(state, templates=templates), frames, conservative=ms.lost)
     conf, diss = _confidence(model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg)
 
     # 3. Gating and loss.

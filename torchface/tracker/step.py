@@ -112,9 +112,18 @@ class TrackerConfig:
             to 0.034 / 1.00; the mean rotation errors moved by at most 0.01 degree (maxima: expressions 1.16 -> 1.27,
             scan_motion 5.87 -> 5.94 degrees). Not the default: on the 3000-frame long runs
             (evaluate.py) the tracker then never recovered after the face left the frame (CANDIDE-3 after frames
-            2291-2435, the James scan after 1125-1294), while the default recovers at once. Template management
-            solves recovery candidates with this pass's prior equal to ``expression_prior_precision``, which
-            fixed the James case but not the CANDIDE one.
+            2291-2435, the James scan after 1125-1294), while the default recovers at once. The cause, found on
+            the CANDIDE run: the lost stream's continued track, with this weak prior, fitted a pose 74 degrees
+            wrong well enough to pass ``recover_confidence``, and recovery then started from that pose.
+            Template management therefore solves recovery candidates and lost streams with this pass's prior
+            equal to ``expression_prior_precision`` (``track_step(conservative=)``), which makes the CANDIDE run
+            recover at once (returns max 0.61 degree, recoveries 0, 0, 0, 0, 0). The James run still fails:
+            with the face two-thirds hidden (frame 1061) the lost track ran to 83 degrees of yaw and 6.5 m of
+            depth, scored 0.58 there (above ``recover_confidence``), was taken as recovered and never came back.
+            A gate losing any estimate beyond twice the last confident depth moved that failure to frame 1214
+            (61/-50/55 degrees of yaw/pitch/roll on the background, the face out of view) and, under the default
+            prior, slowed the James run's recovery after its exit from 12 to 53 frames, so it was not kept: the
+            dissimilarity confidence of an implausible pose off the face is what still stands in the way.
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
@@ -410,7 +419,7 @@ def _result(
 
 
 def track_step(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, *, conservative: Tensor | None = None
 ) -> tuple[TrackerState, TrackResult]:
     """Track one frame per stream: one joint minimisation over pose, expression and light (Eq. 20).
 
@@ -419,6 +428,9 @@ def track_step(
         config: :class:`TrackerConfig`.
         state: from :func:`initialise` or the previous step.
         frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+        conservative: optional ``(B,)`` bool, streams whose refinement pass uses ``expression_prior_precision``
+            instead of ``refine_prior_precision`` (template management passes its lost streams). No effect
+            when ``refine_prior_precision`` is None.
 
     Returns:
         The new state and the frame's :class:`TrackResult`. A FAILED sample keeps its previous parameters
@@ -428,8 +440,10 @@ def track_step(
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     frames = frames.to(dtype=model.dtype, device=model.device)
+    if conservative is not None and tuple(conservative.shape) != (frames.shape[0],):
+        raise ValueError(f"conservative must be ({frames.shape[0]},) bool, got {tuple(conservative.shape)}")
     if config.solver is TrackSolver.FAST:
-        return _track_step_fast(model, config, state, frames)
+        return _track_step_fast(model, config, state, frames, conservative)
     layout = _layout(model)
     levels = gray_pyramid(frames, config.num_levels)
     if config.zbuffer_visibility:
@@ -529,7 +543,7 @@ def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
 
 
 def _track_step_fast(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, conservative: Tensor | None = None
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`track_step` with the fast solver (:mod:`torchface.tracker.fast`)."""
     layout = _layout(model)
@@ -581,11 +595,17 @@ def _track_step_fast(
         only = free.clone()
         only[layout.rotation] = False
         only[layout.translation] = False
+        refine_prior: float | Tensor = config.expression_prior_precision
+        if config.refine_prior_precision is not None:
+            refine_prior = config.refine_prior_precision
+            if conservative is not None and bool(conservative.any()):
+                refine_prior = torch.where(
+                    conservative.to(R.device), config.expression_prior_precision, config.refine_prior_precision
+                ).to(R.dtype)
         R, t, alpha, light, out = solve_level(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[0],
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
-            alpha_prior=config.expression_prior_precision if config.refine_prior_precision is None
-            else config.refine_prior_precision, alpha_mean=alpha_mean, robust=robust,
+            alpha_prior=refine_prior, alpha_mean=alpha_mean, robust=robust,
             scale_floor=config.refine_scale_floor,
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
