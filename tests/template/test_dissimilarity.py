@@ -212,6 +212,28 @@ def test_masked_or_empty_gives_zero_confidence_and_finite():
     assert torch.isfinite(d3).all() and (conf3 == 0).all()
 
 
+def test_too_few_present_patches_give_zero_confidence():
+    """``min_present_fraction``: a face keeping only a corner of its reference's patches scores 0 however well
+    that corner matches; the same face with enough patches present keeps its confidence."""
+    face, mask = _face(batch=1)
+    corner = mask.clone()
+    corner[..., 40:, :] = 0.0
+    corner[..., :, 40:] = 0.0
+    most = mask.clone()
+    most[..., :, 72:] = 0.0  # three quarters of the face
+    for fraction, want_corner_zero in ((0.0, False), (0.5, True)):
+        cfg = DissimilarityConfig(min_present_fraction=fraction)
+        ref = build_dissimilarity_reference(face, mask, cfg)
+        valid = int(ref.patch_valid.sum())
+        _, conf_c, _, present_c = dissimilarity(ref, face * corner, corner)
+        _, conf_m, _, present_m = dissimilarity(ref, face * most, most)
+        assert 0 < int(present_c.sum()) < fraction * valid or fraction == 0.0
+        assert int(present_m.sum()) >= 0.5 * valid and float(conf_m) > 0.99
+        assert (float(conf_c) == 0.0) == want_corner_zero, (fraction, int(present_c.sum()), valid, float(conf_c))
+    with pytest.raises(ValueError, match="min_present_fraction"):
+        DissimilarityConfig(min_present_fraction=1.5)
+
+
 def test_dissimilarity_bad_inputs_raise():
     face, mask = _face()
     ref = build_dissimilarity_reference(face, mask)

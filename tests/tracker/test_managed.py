@@ -253,6 +253,39 @@ def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, 
     assert any(bool(c.any()) for c, _ in seen) and not all(bool(c.any()) for c, _ in seen)
 
 
+@pytest.mark.parametrize(("forced", "angle", "adopted"), [(0.3, 0.0, True), (0.3, 180.0, False), (-1.0, 0.0, False)])
+def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(model, leaves, monkeypatch, forced, angle, adopted):
+    """A recovery candidate below ``recover_confidence`` but above the continued track's confidence, and more
+    than ``adopt_min_angle_deg`` from it, is adopted: the stream stays LOST and goes on from the candidate's
+    parameters. One that does not beat the track, or lies within ``adopt_min_angle_deg`` of it (180: always), is
+    dropped."""
+    import torchface.tracker.managed as managed
+
+    frames, gt = leaves
+    real = managed._recover
+    seen = {}
+
+    def rec(*args, **kwargs):
+        found, r_state, r_result, r_conf, r_diss, r_entry = real(*args, **kwargs)
+        seen["found"], seen["params"] = found.clone(), r_state.params.clone()
+        return found, r_state, r_result, torch.full_like(r_conf, forced), r_diss, r_entry
+
+    monkeypatch.setattr(managed, "_recover", rec)
+    config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=angle))
+    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    checked = 0
+    for i in range(1, frames.shape[1]):
+        seen.clear()
+        state, res = managed_step(model, config, state, frames[:, i])
+        if i >= BACK and seen and bool(seen["found"][0]):  # the face is back: the candidate is on it
+            assert int(res.status[0]) == LOST and bool(state.management.lost[0])
+            assert torch.equal(state.params, seen["params"]) == adopted
+            if adopted:
+                assert float(res.confidence[0]) == pytest.approx(forced)
+            checked += 1
+    assert checked >= 1, checked
+
+
 def test_batch_equals_each_stream_alone(model, gentle, leaves):
     """A clean stream and one that leaves the frame: each alone equals the same stream in the batch."""
     fa, ga = gentle

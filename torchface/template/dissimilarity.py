@@ -36,7 +36,9 @@ by non-maximum suppression. :func:`dissimilarity` tracks them on the current nor
 A patch is missing when less than ``min_support`` of its reference pixels are inside the current mask at its
 final position (or when the reference had no patch in that slot); a patch whose solve fails (singular
 Hessian, non-finite) or leaves the search range counts as displaced by ``d_max``. When fewer than
-``min_patches`` patches are present the dissimilarity is ``d_max`` and the confidence 0.
+``min_patches`` patches, or fewer than ``min_present_fraction`` of the reference's patches, are present the
+dissimilarity is ``d_max`` and the confidence 0: a face seen from a view the reference does not cover keeps
+only a few of its patches, and a mean over one or two of them says nothing.
 
 Pixel coordinates are ``(u, v)`` = (column, row) with pixel centres at integers; sampling uses ``grid_sample``
 with ``align_corners=True`` (see :mod:`torchface.conventions`).
@@ -366,6 +368,8 @@ class DissimilarityConfig:
         d0: displacement scale (pixels) of the confidence ``exp(-(d / d0)^2)``.
         min_support: fraction of a patch's reference pixels that must be inside the current mask.
         min_patches: fewer present patches than this give confidence 0.
+        min_present_fraction: fewer present patches than this fraction of the reference's valid ones give
+            confidence 0 (template management uses 0.5; see :func:`~torchface.template.management.TemplateConfig`).
         smoothing_sigma: Gaussian pre-smoothing (pixels) of both normalised faces (0 for none); it widens
             Lucas-Kanade's basin of convergence.
         project_out_bias: remove each patch's mean intensity offset (a light-normalisation residual).
@@ -381,6 +385,7 @@ class DissimilarityConfig:
     d0: float = 1.5
     min_support: float = 0.8
     min_patches: int = 1
+    min_present_fraction: float = 0.0
     smoothing_sigma: float = 1.0
     project_out_bias: bool = True
 
@@ -407,6 +412,8 @@ class DissimilarityConfig:
             )
         if not 0.0 < self.min_support <= 1.0:
             raise ValueError(f"min_support must be in (0, 1], got {self.min_support}")
+        if not 0.0 <= self.min_present_fraction <= 1.0:
+            raise ValueError(f"min_present_fraction must be in [0, 1], got {self.min_present_fraction}")
         if not self.smoothing_sigma >= 0:
             raise ValueError(f"smoothing_sigma must be >= 0, got {self.smoothing_sigma}")
 
@@ -646,7 +653,7 @@ def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: T
     dist = torch.where(lk.valid, dist, torch.full_like(dist, d_max))
     count = present.sum(-1)
     mean = (dist * present).sum(-1) / count.clamp_min(1)
-    enough = count >= cfg.min_patches
+    enough = (count >= cfg.min_patches) & (count >= cfg.min_present_fraction * patch_valid.sum(-1))
     d = torch.where(enough, mean, torch.full_like(mean, d_max))
     conf = torch.exp(-(d / cfg.d0).square()) * enough
     return DissimilarityResult(d, conf, lk.displacement, present)

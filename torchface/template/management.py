@@ -91,8 +91,12 @@ def _default_dissimilarity() -> DissimilarityConfig:
     # (to 0.02 px); the loop runs while any patch is active, and the few that do not settle (a patch whose
     # mask support changes as it moves wanders by 0.1-1 px per iteration) would hold all the others to the
     # limit (5.0 iterations per frame on average with a limit of 8).
+    # At least half of the reference's patches must be present: on the James scan's long run every frame with
+    # error below 2 degrees and confidence above 0.3 but one kept 5 or more of its reference's 6-9 patches,
+    # while wrong estimates scored 0.3-0.94 on 3 of 9 (and a lost track at 83 degrees of yaw scored 0.58 on
+    # 1 patch and was taken as recovered).
     return DissimilarityConfig(patch_size=7, num_patches=16, max_displacement=3.0, d0=0.75, iterations=5,
-                               tolerance=0.02)  # fmt: skip
+                               tolerance=0.02, min_present_fraction=0.5)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -143,6 +147,13 @@ class TemplateConfig:
             matches, and waiting ``lost_after`` frames would let it drift on.
         min_inside_fraction: a stream whose estimated face has fewer than this fraction of its vertices
             projecting inside the frame (or in front of the camera) is lost at once (the face left the frame).
+        adopt_min_angle_deg: a lost stream goes on from a recovery candidate below ``recover_confidence`` when
+            the candidate scores higher than the continued track and their rotations differ by more than this
+            (the track has gone astray). Nearer, the continued track is kept: under an occluder both score
+            near 0 and a candidate 8.6 degrees off once replaced a track 3.6 degrees off (occlusion scenario).
+            A searched candidate must also lie within the searched depths (``search_depth_factors``, widened by
+            10%): one whose solve ran to twice the depth replaced a track 5.6 degrees off (scan_motion without
+            expression terms).
         recover_confidence: the confidence that ends a loss (from the continued track or a recovery). A wrong
             placement scores near 0; a right one on a face unlike the model (the James scan) scores 0.6-0.7 near
             frontal, so 0.7 kept such a stream lost for tens of frames.
@@ -175,6 +186,7 @@ class TemplateConfig:
     very_low_confidence: float = 0.1
     lost_after_very_low: int = 3
     min_inside_fraction: float = 0.6
+    adopt_min_angle_deg: float = 15.0
     recover_confidence: float = 0.5
     recovery_every: int = 5
     search_step_px: float = 3.0
@@ -210,10 +222,10 @@ class TemplateConfig:
             raise ValueError(f"entry_reach must be positive, got {self.entry_reach}")
         if not 0 < self.texture_blend <= 1:
             raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
-        if self.switch_margin_deg < 0 or self.reference_radius_deg < 0:
+        if self.switch_margin_deg < 0 or self.reference_radius_deg < 0 or not self.adopt_min_angle_deg >= 0:
             raise ValueError(
-                f"switch_margin_deg and reference_radius_deg must be >= 0, got {self.switch_margin_deg}, "
-                f"{self.reference_radius_deg}"
+                "switch_margin_deg, reference_radius_deg and adopt_min_angle_deg must be >= 0, got "
+                f"{self.switch_margin_deg}, {self.reference_radius_deg}, {self.adopt_min_angle_deg}"
             )
         for name in ("confidence_threshold", "add_confidence", "recover_confidence", "min_inside_fraction",
                      "search_min_inside", "min_facing_cos", "very_low_confidence"):  # fmt: skip

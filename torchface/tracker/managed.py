@@ -27,8 +27,9 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    refinement pass's prior at ``expression_prior_precision`` (``track_step(conservative=)``), and, when it is lost
    and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
    one is given, else by searching its mosaic over the coarsest pyramid level
-   (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. The
-   loss ends when the continued track or a candidate reaches ``recover_confidence``.
+   (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
+   candidate whose confidence beats the continued track's replaces it (the stream goes on from the
+   candidate); the loss ends when the continued track or a candidate reaches ``recover_confidence``.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
@@ -46,7 +47,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
-from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_euler
+from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
 from torchface.solver.least_squares import SolveStatus
@@ -505,22 +506,38 @@ def managed_step(
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
         found, r_state, r_result, r_conf, r_diss, r_entry = _recover(model, config, state, ms, frames, index, detector)
-        ok = found & (r_conf >= tc.recover_confidence) & (r_result.status != _FAILED) & (r_conf > conf[index])
-        ok = ok & (_inside_fraction(model, r_state) >= tc.min_inside_fraction)
-        if bool(ok.any()):
-            rows = index[ok]
+        # A candidate that beats the continued track, and disagrees with it by more than adopt_min_angle_deg, is
+        # adopted: the stream goes on from it. It ends the loss only at recover_confidence; below that it stays
+        # lost, but the next frames refine a candidate near the face rather than a track gone astray (James long
+        # run, face back in view at 15 degrees of yaw: the candidates were 1-4 degrees off and scored 0.01-0.48
+        # after one solve, the continued track 50-100 degrees off and 0, and the loss lasted 53 frames).
+        adopt = found & (r_result.status != _FAILED) & (r_conf > conf[index])
+        R_track = axis_angle_to_matrix(params[index][:, layout.rotation])
+        apart = geodesic_angle_deg(axis_angle_to_matrix(r_state.params[:, layout.rotation]), R_track)
+        apart = apart > tc.adopt_min_angle_deg
+        adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
+        if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
+            ratio = r_state.params[:, layout.translation][:, 2] / ms.confident_params[index][:, layout.translation][:, 2]
+            near = (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
+            adopt = adopt & (near | (r_conf >= tc.recover_confidence))
+        adopt = adopt & (_inside_fraction(model, r_state) >= tc.min_inside_fraction)
+        ok = adopt & (r_conf >= tc.recover_confidence)
+        if bool(adopt.any()):
+            rows = index[adopt]
             params = params.clone()
-            params[rows] = r_state.params[ok]
+            params[rows] = r_state.params[adopt]
             result = _scatter_result(result, rows, replace(
-                r_result, **{f.name: getattr(r_result, f.name)[ok] for f in fields(TrackResult)
+                r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
                              if isinstance(getattr(r_result, f.name), Tensor)},
             ))  # fmt: skip
             conf, diss = conf.clone(), diss.clone()
-            conf[rows], diss[rows] = r_conf[ok], r_diss[ok]
+            conf[rows], diss[rows] = r_conf[adopt], r_diss[adopt]
             entry = entry.clone()
-            entry[rows] = r_entry[ok]
+            entry[rows] = r_entry[adopt]
             templates = _scatter_templates(templates, rows, entry_templates(
-                model, state.shape_coeffs[rows], ms.mosaic, rows, r_entry[ok]))  # fmt: skip
+                model, state.shape_coeffs[rows], ms.mosaic, rows, r_entry[adopt]))  # fmt: skip
+        if bool(ok.any()):
+            rows = index[ok]
             recovered = torch.zeros_like(lost)
             recovered[rows] = True
             lost = lost & ~recovered

@@ -110,20 +110,17 @@ class TrackerConfig:
             without tilting the pose; measured on the 640x480 ``expressions`` scenario, 0.1 took the lip stretcher
             from 0.081 / 0.88 (RMSE fraction of range / r) to 0.045 / 0.97 and the brow lowerer from 0.041 / 0.97
             to 0.034 / 1.00; the mean rotation errors moved by at most 0.01 degree (maxima: expressions 1.16 -> 1.27,
-            scan_motion 5.87 -> 5.94 degrees). Not the default: on the 3000-frame long runs
-            (evaluate.py) the tracker then never recovered after the face left the frame (CANDIDE-3 after frames
-            2291-2435, the James scan after 1125-1294), while the default recovers at once. The cause, found on
-            the CANDIDE run: the lost stream's continued track, with this weak prior, fitted a pose 74 degrees
-            wrong well enough to pass ``recover_confidence``, and recovery then started from that pose.
-            Template management therefore solves recovery candidates and lost streams with this pass's prior
-            equal to ``expression_prior_precision`` (``track_step(conservative=)``), which makes the CANDIDE run
-            recover at once (returns max 0.61 degree, recoveries 0, 0, 0, 0, 0). The James run still fails:
-            with the face two-thirds hidden (frame 1061) the lost track ran to 83 degrees of yaw and 6.5 m of
-            depth, scored 0.58 there (above ``recover_confidence``), was taken as recovered and never came back.
-            A gate losing any estimate beyond twice the last confident depth moved that failure to frame 1214
-            (61/-50/55 degrees of yaw/pitch/roll on the background, the face out of view) and, under the default
-            prior, slowed the James run's recovery after its exit from 12 to 53 frames, so it was not kept: the
-            dissimilarity confidence of an implausible pose off the face is what still stands in the way.
+            scan_motion 5.87 -> 5.94 degrees). At first it broke recovery on the 3000-frame long runs
+            (evaluate.py): after the face left the frame the CANDIDE-3 run never recovered, because a lost track
+            with this weak prior fitted a pose 74 degrees wrong well enough to pass ``recover_confidence``; on the
+            James scan a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's
+            patches. Template management now solves recovery candidates and lost streams with
+            ``expression_prior_precision`` here (``track_step(conservative=)``), gives confidence 0 when fewer
+            than half the reference's patches are present (``DissimilarityConfig.min_present_fraction``), and
+            goes on from a recovery candidate that beats the continued track and lies more than
+            ``adopt_min_angle_deg`` from it. With those, and 0.1 as the default, every loss on both long runs is
+            recovered within 13 frames of the face being in view again (CANDIDE-3 returns max 0.61 degree;
+            James 1.54, as with None), and the pooled confidence AUROC is 0.983 (0.975 before).
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
@@ -159,7 +156,7 @@ class TrackerConfig:
     robust_scale_floor: tuple[float, float] = (0.1, 0.02)
     refine_iterations: int = 3
     refine_scale_floor: float = 0.1
-    refine_prior_precision: float | None = None
+    refine_prior_precision: float | None = 0.1
     expression_priority: float = 0.0
     expression_quota: float = 0.0
     zbuffer_visibility: bool = True
