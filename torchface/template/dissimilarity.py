@@ -369,7 +369,7 @@ class DissimilarityConfig:
         min_support: fraction of a patch's reference pixels that must be inside the current mask.
         min_patches: fewer present patches than this give confidence 0.
         min_present_fraction: fewer present patches than this fraction of the reference's valid ones give
-            confidence 0 (template management uses 0.5; see :func:`~torchface.template.management.TemplateConfig`).
+            confidence 0 (0: off; template management keeps it off, and its default settings say why).
         smoothing_sigma: Gaussian pre-smoothing (pixels) of both normalised faces (0 for none); it widens
             Lucas-Kanade's basin of convergence.
         project_out_bias: remove each patch's mean intensity offset (a light-normalisation residual).

@@ -115,12 +115,11 @@ class TrackerConfig:
             with this weak prior fitted a pose 74 degrees wrong well enough to pass ``recover_confidence``; on the
             James scan a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's
             patches. Template management now solves recovery candidates and lost streams with
-            ``expression_prior_precision`` here (``track_step(conservative=)``), gives confidence 0 when fewer
-            than half the reference's patches are present (``DissimilarityConfig.min_present_fraction``), and
-            goes on from a recovery candidate that beats the continued track and lies more than
-            ``adopt_min_angle_deg`` from it. With those, and 0.1 as the default, every loss on both long runs is
-            recovered within 13 frames of the face being in view again (CANDIDE-3 returns max 0.61 degree;
-            James 1.54, as with None), and the pooled confidence AUROC is 0.983 (0.975 before).
+            ``expression_prior_precision`` here (``track_step(conservative=)``), and a lost stream goes on from
+            a recovery candidate that beats the continued track and lies more than ``adopt_min_angle_deg`` from
+            it. With those, and 0.1 as the default, every loss on both long runs is recovered within 13 frames
+            of the face being in view again (CANDIDE-3 returns max 0.61 degree; James 1.54, as with None); the
+            pooled confidence AUROC is 0.972 (0.975 with None).
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
