@@ -29,7 +29,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    one is given, else by searching its mosaic over the coarsest pyramid level
    (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
    candidate whose confidence beats the continued track's replaces it (the stream goes on from the
-   candidate); the loss ends when the continued track or a candidate reaches ``recover_confidence``.
+   candidate) when it lies more than ``adopt_min_angle_deg`` from the track and, when searched, within the
+   searched depths; the loss ends when the continued track or a candidate reaches ``recover_confidence``.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
@@ -517,7 +518,8 @@ def managed_step(
         apart = apart > tc.adopt_min_angle_deg
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
-            ratio = r_state.params[:, layout.translation][:, 2] / ms.confident_params[index][:, layout.translation][:, 2]
+            depth_c = ms.confident_params[index][:, layout.translation][:, 2]
+            ratio = r_state.params[:, layout.translation][:, 2] / depth_c
             near = (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (_inside_fraction(model, r_state) >= tc.min_inside_fraction)
