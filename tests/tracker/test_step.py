@@ -479,3 +479,5 @@ def test_conservative_streams_keep_the_pose_levels_prior_in_the_refinement_pass(
     torch.testing.assert_close(none_set.anim_coeffs, loose.anim_coeffs, rtol=0, atol=0)
     with pytest.raises(ValueError, match="conservative"):
         track_step(model, weak, state, frames[:, 1], conservative=torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="conservative"):
+        track_step(model, weak, state, frames[:, 1], conservative=torch.ones(2))

@@ -423,7 +423,8 @@ def _recover(
     sub = _subset_state(state, index, starts, templates)
     # A candidate is solved conservatively: the refinement pass's weak prior would let the animation units
     # absorb a wrong candidate's residual, and the face normalised with them would then fail the confidence.
-    solved, result = track_step(model, replace(config, refine_prior_precision=None), sub, frames[index])
+    every = torch.ones(index.shape[0], dtype=torch.bool, device=index.device)
+    solved, result = track_step(model, config, sub, frames[index], conservative=every)
     conf, diss = _confidence(model, config, ms, frames[index], solved, result.status, index)
     return found, solved, result, conf, diss, entries
 

@@ -436,8 +436,14 @@ def track_step(
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     frames = frames.to(dtype=model.dtype, device=model.device)
-    if conservative is not None and tuple(conservative.shape) != (frames.shape[0],):
-        raise ValueError(f"conservative must be ({frames.shape[0]},) bool, got {tuple(conservative.shape)}")
+    if conservative is not None and (
+        not isinstance(conservative, Tensor) or conservative.dtype != torch.bool
+        or tuple(conservative.shape) != (frames.shape[0],)
+    ):
+        got = type(conservative).__name__
+        if isinstance(conservative, Tensor):
+            got = f"{conservative.dtype} {tuple(conservative.shape)}"
+        raise ValueError(f"conservative must be a ({frames.shape[0]},) bool tensor, got {got}")
     if config.solver is TrackSolver.FAST:
         return _track_step_fast(model, config, state, frames, conservative)
     layout = _layout(model)
