@@ -79,6 +79,8 @@ def test_config_defaults_and_validation():
         TemplateConfig(search_depth_factors=())
     with pytest.raises(ValueError, match="adopt_min_angle_deg"):
         TemplateConfig(adopt_min_angle_deg=-1.0)
+    with pytest.raises(ValueError, match="adopt_min_confidence"):
+        TemplateConfig(adopt_min_confidence=1.5)
     with pytest.raises(TypeError):
         TemplateConfig(enabled=1)  # type: ignore[arg-type]
     with pytest.raises(TypeError):

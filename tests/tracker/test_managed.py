@@ -253,12 +253,17 @@ def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, 
     assert any(bool(c.any()) for c, _ in seen) and not all(bool(c.any()) for c, _ in seen)
 
 
-@pytest.mark.parametrize(("forced", "angle", "adopted"), [(0.3, 0.0, True), (0.3, 180.0, False), (-1.0, 0.0, False)])
-def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(model, leaves, monkeypatch, forced, angle, adopted):
-    """A recovery candidate below ``recover_confidence`` but above the continued track's confidence, and more
-    than ``adopt_min_angle_deg`` from it, is adopted: the stream stays LOST and goes on from the candidate's
-    parameters. One that does not beat the track, or lies within ``adopt_min_angle_deg`` of it (180: always), is
-    dropped."""
+@pytest.mark.parametrize(
+    ("forced", "angle", "floor", "adopted"),
+    [(0.3, 0.0, 0.01, True), (0.3, 180.0, 0.01, False), (-1.0, 0.0, 0.0, False), (0.3, 0.0, 0.4, False)],
+)
+def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(
+    model, leaves, monkeypatch, forced, angle, floor, adopted
+):
+    """A recovery candidate below ``recover_confidence`` but above the continued track's confidence and
+    ``adopt_min_confidence``, and more than ``adopt_min_angle_deg`` from the track, is adopted: the stream stays
+    LOST and goes on from the candidate's parameters. One that does not beat the track, scores below
+    ``adopt_min_confidence`` or lies within ``adopt_min_angle_deg`` of it (180: always), is dropped."""
     import torchface.tracker.managed as managed
 
     frames, gt = leaves
@@ -271,7 +276,8 @@ def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(model, leaves
         return found, r_state, r_result, torch.full_like(r_conf, forced), r_diss, r_entry
 
     monkeypatch.setattr(managed, "_recover", rec)
-    config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=angle))
+    config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=angle,
+                                                  adopt_min_confidence=floor))
     state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     checked = 0
     for i in range(1, frames.shape[1]):

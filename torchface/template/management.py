@@ -156,6 +156,12 @@ class TemplateConfig:
             A searched candidate must also lie within the searched depths (``search_depth_factors``, widened by
             10%): one whose solve ran to twice the depth replaced a track 5.6 degrees off (scan_motion without
             expression terms).
+        adopt_min_confidence: and the candidate must score at least this. A candidate's solve that ran off
+            the face scores near 0 (1e-4 and below), and so, beside a track judged lost, does a continued
+            track that is right but seen from a view its reference does not cover: in benchmark.py's 32
+            streams, right tracks 0.3-1 degree off at 40-45 degrees of yaw scored below 0.01 and were
+            replaced by candidates 60-100 degrees off that scored 0.000 (the track's confidence was lower
+            still). 0.01 is a mean patch displacement of about 2 d0 (1.6 px of the normalised face).
         recover_confidence: the confidence that ends a loss (from the continued track or a recovery). A wrong
             placement scores near 0; a right one on a face unlike the model (the James scan) scores 0.6-0.7 near
             frontal, so 0.7 kept such a stream lost for tens of frames.
@@ -189,6 +195,7 @@ class TemplateConfig:
     lost_after_very_low: int = 3
     min_inside_fraction: float = 0.6
     adopt_min_angle_deg: float = 15.0
+    adopt_min_confidence: float = 0.01
     recover_confidence: float = 0.5
     recovery_every: int = 5
     search_step_px: float = 3.0
@@ -230,7 +237,7 @@ class TemplateConfig:
                 f"{self.switch_margin_deg}, {self.reference_radius_deg}, {self.adopt_min_angle_deg}"
             )
         for name in ("confidence_threshold", "add_confidence", "recover_confidence", "min_inside_fraction",
-                     "search_min_inside", "min_facing_cos", "very_low_confidence"):  # fmt: skip
+                     "search_min_inside", "min_facing_cos", "very_low_confidence", "adopt_min_confidence"):  # fmt: skip
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not self.search_depth_factors or any(not f > 0 for f in self.search_depth_factors):

@@ -513,7 +513,7 @@ def managed_step(
         # lost, but the next frames refine a candidate near the face rather than a track gone astray (James long
         # run, face back in view at 15 degrees of yaw: the candidates were 1-4 degrees off and scored 0.01-0.48
         # after one solve, the continued track 50-100 degrees off and 0, and the loss lasted 53 frames).
-        adopt = found & (r_result.status != _FAILED) & (r_conf > conf[index])
+        adopt = found & (r_result.status != _FAILED) & (r_conf > conf[index]) & (r_conf >= tc.adopt_min_confidence)
         R_track = axis_angle_to_matrix(params[index][:, layout.rotation])
         apart = geodesic_angle_deg(axis_angle_to_matrix(r_state.params[:, layout.rotation]), R_track)
         apart = apart > tc.adopt_min_angle_deg
