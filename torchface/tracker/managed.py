@@ -28,9 +28,10 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
    one is given, else by searching its mosaic over the coarsest pyramid level
    (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
-   candidate whose confidence beats the continued track's replaces it (the stream goes on from the
-   candidate) when it lies more than ``adopt_min_angle_deg`` from the track and, when searched, within the
-   searched depths; the loss ends when the continued track or a candidate reaches ``recover_confidence``.
+   candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence`` replaces it
+   (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
+   when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
+   ``recover_confidence``.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
@@ -508,7 +509,9 @@ def managed_step(
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
         found, r_state, r_result, r_conf, r_diss, r_entry = _recover(model, config, state, ms, frames, index, detector)
-        # A candidate that beats the continued track, and disagrees with it by more than adopt_min_angle_deg, is
+        # A candidate that beats the continued track and scores at least adopt_min_confidence (below it the
+        # candidate's solve ran off the face: benchmark.py's streams adopted candidates 60-100 degrees off that
+        # scored 0.000 beside right tracks scoring less), and disagrees with it by more than adopt_min_angle_deg, is
         # adopted: the stream goes on from it. It ends the loss only at recover_confidence; below that it stays
         # lost, but the next frames refine a candidate near the face rather than a track gone astray (James long
         # run, face back in view at 15 degrees of yaw: the candidates were 1-4 degrees off and scored 0.01-0.48
