@@ -42,10 +42,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, illumination_basis
-from torchface.appearance.sampling import image_with_gradients
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import (
@@ -54,26 +52,20 @@ from torchface.normalise.face import (
     build_normalised_layout,
     normalised_face,
 )
-from torchface.solver.least_squares import SolverConfig, SolverMethod, least_squares
-from torchface.solver.robust import RobustKind, RobustLoss
-from torchface.tracker.objective import frame_residuals
+from torchface.solver.least_squares import SolverConfig, SolverMethod
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
     TrackerState,
     TrackResult,
     check_frames,
-    gray_pyramid,
     initialise,
-    level_intrinsics,
-    prior_mean_vector,
-    scale_floor,
+    reference_levels,
     track_step,
 )
 
-# The reference path's own helpers, so that the unrolled objective is exactly the tracker's (bounds of the
-# animation units, disabled terms pinned; z-buffer visibility at the previous estimate).
-from torchface.tracker.step import _bounds, _visibility_at  # private helpers of the same project
+# The reference path's bounds (animation units boxed to their ranges, disabled terms pinned), for K = 0.
+from torchface.tracker.step import _bounds  # a private helper of the same project
 
 __all__ = [
     "LayerMode",
@@ -193,7 +185,8 @@ def unrolled_params(
 ) -> Tensor:
     """``iterations`` differentiable Gauss-Newton steps per pyramid level of the reference objective (Eq. 20).
 
-    The objective of each level is the REFERENCE path's of :func:`~torchface.tracker.track_step`: residuals
+    The objective of each level is the REFERENCE path's of :func:`~torchface.tracker.track_step`, solved by
+    the same level loop (:func:`~torchface.tracker.step.reference_levels`): residuals
     :func:`~torchface.tracker.frame_residuals` of the state's template on the frame's gray pyramid, the light
     basis with the normals rotated by the previous estimate, z-buffer visibility at the previous estimate
     (when ``config.zbuffer_visibility``), the animation units boxed to the model's ranges, the expression
@@ -240,42 +233,11 @@ def unrolled_params(
             f"the state has {len(state.templates)} template levels, config.num_levels is {config.num_levels}"
         )
 
-    pyramid = gray_pyramid(frames, config.num_levels)
-    with torch.no_grad():
-        if config.zbuffer_visibility:
-            vis_level = min(1, config.num_levels - 1)
-            g = pyramid[vis_level]
-            masks = _visibility_at(model, state, layout, vis_level, g.shape[-2], g.shape[-1])
-        else:
-            masks = [t.valid for t in state.templates]
-        R_prev = axis_angle_to_matrix(state.params[:, layout.rotation].detach())
-        lower, upper = _bounds(model, config, state.params.detach(), layout)
-    prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
-    if config.use_expression:
-        prior[layout.animation] = config.expression_prior_precision
-    x = start
     if iterations == 0:
-        return torch.minimum(torch.maximum(x, lower), upper)
-    solver = _unrolled_solver(iterations)
-    for level in reversed(range(levels)):
-        gray = pyramid[level]
-        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
-        image = image_with_gradients(gray)
-        tpl = state.templates[level]
-        light_basis = illumination_basis(tpl.intensity, torch.einsum("bij,bnj->bni", R_prev, tpl.normals))
-        mask = masks[level]
-
-        def residual_fn(p: Tensor, tpl=tpl, image=image, intr=intr, light_basis=light_basis, mask=mask):
-            return frame_residuals(p, layout, tpl, image, intr, light_basis, mask)
-
-        robust = None
-        if config.robust is not RobustKind.NONE:
-            robust = RobustLoss(config.robust, config.robust_c, min_scale=scale_floor(config, level))
-        res = least_squares(
-            residual_fn, x, solver, lower=lower, upper=upper, prior_precision=prior,
-            prior_mean=prior_mean_vector(config, state, layout), robust=robust,
-        )
-        x = torch.where(res.failed.unsqueeze(-1), x, res.params)
+        with torch.no_grad():
+            lower, upper = _bounds(model, config, state.params.detach(), layout)
+        return torch.minimum(torch.maximum(start, lower), upper)
+    x, _ = reference_levels(model, config, state, frames, start, [_unrolled_solver(iterations)] * levels)
     return x
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field, replace
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import torch
@@ -23,7 +24,7 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, m
 from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
-from torchface.solver.least_squares import SolverConfig, SolveStatus, least_squares
+from torchface.solver.least_squares import ResidualFn, SolveResult, SolverConfig, SolveStatus, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
@@ -447,23 +448,83 @@ def track_step(
     if config.solver is TrackSolver.FAST:
         return _track_step_fast(model, config, state, frames, conservative)
     layout = _layout(model)
-    levels = gray_pyramid(frames, config.num_levels)
-    if config.zbuffer_visibility:
-        vis_level = min(1, config.num_levels - 1)
-        g = levels[vis_level]
-        masks = _visibility_at(model, state, layout, vis_level, g.shape[-2], g.shape[-1])
-    else:
-        masks = [t.valid for t in state.templates]
-    R_prev = axis_angle_to_matrix(state.params[:, layout.rotation])
-    lower, upper = _bounds(model, config, state.params, layout)
+    solvers = [SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level])
+               for level in reversed(range(config.num_levels))]  # fmt: skip
+    x, last = reference_levels(model, config, state, frames, state.params, solvers)
+    # Finest-level diagnostics at the final estimate.
+    r, _, valid = last.residual_fn(x)
+    _, cam, _ = warp_points(last.template, layout, x)
+    sampled, _ = sample_at_pixels(last.image[:, :1], project_points(cam, last.intrinsics))
+    status = last.result.status
+    solver_failed = status == int(SolveStatus.FAILED)
+    return _finish(
+        model, config, layout, state, last.template, x, r, valid, sampled[..., 0], solver_failed, status,
+        last.result.iterations,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ReferenceLevel:
+    """The finest level solved by :func:`reference_levels`: its template, gray image with gradients
+    ``(B, 3, h, w)``, camera, residual function ``p -> (r, J, valid)`` (:func:`frame_residuals` of that level)
+    and the solver's result there."""
+
+    template: Template
+    image: Tensor
+    intrinsics: Intrinsics
+    residual_fn: ResidualFn
+    result: SolveResult
+
+
+def reference_levels(
+    model: FaceModel,
+    config: TrackerConfig,
+    state: TrackerState,
+    frames: Tensor,
+    start: Tensor,
+    solvers: Sequence[SolverConfig],
+) -> tuple[Tensor, ReferenceLevel]:
+    """The reference path's coarse-to-fine solve of Eq. 20 over the ``len(solvers)`` finest pyramid levels.
+
+    Per level: :func:`frame_residuals` of the state's template on the frame's gray pyramid level, the light
+    basis with the normals rotated by the previous estimate (``state.params``), z-buffer visibility at the
+    previous estimate (when ``config.zbuffer_visibility``, a constant mask), the animation units boxed to the
+    model's ranges (:func:`_bounds`), the expression prior and IRLS weights of ``config.robust`` with the
+    level's scale floor. A sample whose solve fails keeps the previous level's estimate. Shared by
+    :func:`track_step` (``config.solver`` REFERENCE) and the differentiable unrolled layer of ``training_hooks``;
+    everything that depends on ``frames`` and ``start`` stays in the autograd graph when the solvers are
+    differentiable.
+
+    Args:
+        frames: ``(B, C, H, W)`` in ``[0, 1]`` at the state's size; start: ``(B, P)`` initial parameters.
+        solvers: one :class:`SolverConfig` per level, coarsest first; ``len(solvers)`` in
+            ``[1, config.num_levels]``.
+
+    Returns:
+        ``(B, P)`` the estimate and the finest level's :class:`ReferenceLevel`.
+    """
+    if not 1 <= len(solvers) <= config.num_levels:
+        raise ValueError(f"need 1 to {config.num_levels} level solvers, got {len(solvers)}")
+    layout = _layout(model)
+    pyramid = gray_pyramid(frames, config.num_levels)
+    with torch.no_grad():
+        previous = state.params.detach()
+        if config.zbuffer_visibility:
+            vis_level = min(1, config.num_levels - 1)
+            g = pyramid[vis_level]
+            masks = _visibility_at(model, replace(state, params=previous), layout, vis_level, g.shape[-2], g.shape[-1])
+        else:
+            masks = [t.valid for t in state.templates]
+        R_prev = axis_angle_to_matrix(previous[:, layout.rotation])
+        lower, upper = _bounds(model, config, previous, layout)
     prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
     if config.use_expression:
         prior[layout.animation] = config.expression_prior_precision
-    robust = None if config.robust is RobustKind.NONE else RobustLoss(config.robust, config.robust_c)
-    x = state.params
-    status = torch.zeros(x.shape[0], dtype=torch.int64, device=x.device)
-    for level in reversed(range(config.num_levels)):
-        gray = levels[level]
+    prior_mean = prior_mean_vector(config, state, layout)
+    x = start
+    last = None
+    for level, solver in zip(reversed(range(len(solvers))), solvers):
+        gray = pyramid[level]
         intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
         image = image_with_gradients(gray)
         tpl = state.templates[level]
@@ -473,20 +534,17 @@ def track_step(
         def residual_fn(p: Tensor, tpl=tpl, image=image, intr=intr, light_basis=light_basis, mask=mask):
             return frame_residuals(p, layout, tpl, image, intr, light_basis, mask)
 
-        floor = scale_floor(config, level)
+        robust = None
+        if config.robust is not RobustKind.NONE:
+            robust = RobustLoss(config.robust, config.robust_c, min_scale=scale_floor(config, level))
         res = least_squares(
-            residual_fn, x, SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level]),
-            lower=lower, upper=upper, prior_precision=prior, prior_mean=prior_mean_vector(config, state, layout),
-            robust=None if robust is None else RobustLoss(robust.kind, robust.c, min_scale=floor),
-        )
+            residual_fn, x, solver, lower=lower, upper=upper, prior_precision=prior, prior_mean=prior_mean,
+            robust=robust,
+        )  # fmt: skip
         x = torch.where(res.failed.unsqueeze(-1), x, res.params)
-        status = res.status
-    # Finest-level diagnostics at the final estimate.
-    r, _, valid = frame_residuals(x, layout, tpl, image, intr, light_basis, mask)
-    _, cam, _ = warp_points(tpl, layout, x)
-    sampled, _ = sample_at_pixels(image[:, :1], project_points(cam, intr))
-    solver_failed = status == int(SolveStatus.FAILED)
-    return _finish(model, config, layout, state, tpl, x, r, valid, sampled[..., 0], solver_failed, status, res.iterations)
+        last = ReferenceLevel(tpl, image, intr, residual_fn, res)
+    assert last is not None
+    return x, last
 
 
 def _posed_vertices(model: FaceModel, state: TrackerState, layout: ParamLayout) -> Tensor:
