@@ -9,8 +9,8 @@ and external occlusion (IRLS robust weights) handled per point.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field, replace
 from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -117,10 +117,10 @@ class TrackerConfig:
             James scan a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's
             patches. Template management now solves recovery candidates and lost streams with
             ``expression_prior_precision`` here (``track_step(conservative=)``), and a lost stream goes on from
-            a recovery candidate that beats the continued track and lies more than ``adopt_min_angle_deg`` from
-            it. With those, and 0.1 as the default, every loss on both long runs is recovered within 13 frames
-            of the face being in view again (CANDIDE-3 returns max 0.61 degree; James 1.54, as with None); the
-            pooled confidence AUROC is 0.972 (0.975 with None).
+            a recovery candidate that beats the continued track, scores at least ``adopt_min_confidence`` and
+            lies more than ``adopt_min_angle_deg`` from it. With those, and 0.1 as the default, every loss on both
+            long runs is recovered within 12 frames of the face being in view again (CANDIDE-3 returns max 0.61
+            degree; James 1.54, as with None); the pooled confidence AUROC is 0.975.
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
