@@ -87,6 +87,17 @@ def test_gradient_safe_at_zero(kind: RobustKind) -> None:
     assert torch.autograd.gradcheck(lambda t: loss.rho(t, 1.1), (x,))
 
 
+@pytest.mark.parametrize("kind", list(RobustKind))
+def test_rho_and_weight_equal_the_two_methods(kind: RobustKind) -> None:
+    """The one-pass pair the IRLS loop uses is exactly ``(rho, weight)`` (same scale, per-sample scales too)."""
+    g = torch.Generator().manual_seed(4)
+    r = 3.0 * torch.randn(3, 50, generator=g)
+    s = 0.5 + torch.rand(3, 1, generator=g)
+    loss = RobustLoss(kind)
+    rho, w = loss.rho_and_weight(r, s)
+    assert torch.equal(rho, loss.rho(r, s)) and torch.equal(w, loss.weight(r, s))
+
+
 def test_limits() -> None:
     big = torch.tensor([1e6], dtype=torch.float64)
     assert RobustLoss(RobustKind.NONE).weight(big).item() == 1.0

@@ -258,3 +258,36 @@ def test_per_stream_prior_equals_each_stream_solved_with_its_own():
             torch.testing.assert_close(got[b], want[b], rtol=0, atol=1e-10)
     # the two precisions really lead to different answers (so the test can tell them apart)
     assert float((solve(50.0)[2] - solve(0.01)[2]).abs().max()) > 1e-3
+
+
+@pytest.mark.parametrize("robust", [None, RobustLoss(RobustKind.TUKEY, 4.685)])
+def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_again(robust):
+    """``solve_level(start=out.linearisation)`` (the refinement pass after the finest level) gives exactly what
+    linearising at the start again gives, and the linearisation is the one at the returned estimate."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam, first = _solve(tpl, image, cam, _perturbed(x_true), light_basis, robust=robust, iterations=3)
+    r, J, valid, sampled = first.linearisation
+    again = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
+    for got, want in zip((r, J, valid, sampled), again):
+        assert torch.equal(got, want)
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    free[0:6] = False  # a refinement pass: expression and light only
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+
+    def refine(start):
+        return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3, free=free,
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, start=start)
+
+    reused, fresh = refine(first.linearisation), refine(None)
+    for got, want in zip(reused[:4], fresh[:4]):
+        assert torch.equal(got, want)
+    assert torch.equal(reused[4].iterations, fresh[4].iterations)
+    assert float((reused[2] - a).abs().max()) > 1e-6  # the pass moved (so equality says something)
+
+
+def test_round_down_to_a_power_of_two_is_floor_division_also_below_zero():
+    from torchface.tracker.step import _round_down
+
+    x = torch.arange(-37, 41, dtype=torch.int64)
+    for q in (1, 2, 4, 8):
+        assert torch.equal(_round_down(x, q), torch.div(x, q, rounding_mode="floor") * q)

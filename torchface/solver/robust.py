@@ -166,6 +166,26 @@ class RobustLoss:
         return 1.0 / (d * d)
 
 
+    def rho_and_weight(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(rho(r; s), weight(r; s))`` in one pass: the same values as the two methods, sharing ``r / s``.
+
+        Args:
+            r: residuals, any shape ``(*)``; scale: ``s > 0``, a float or a tensor broadcastable against ``r``.
+
+        Returns:
+            Two ``(*)`` tensors, equal to :meth:`rho` and :meth:`weight` (the IRLS loop needs both at the same
+            scale every iteration).
+        """
+        if self.kind is not RobustKind.TUKEY:
+            return self.rho(r, scale), self.weight(r, scale)
+        self._check(r)
+        s = _as_scale(scale, r)
+        c = self.c
+        u = r / s
+        t = ((u * u) / (c * c)).clamp(max=1.0)
+        one_minus_t = 1.0 - t
+        return s * s * ((c * c / 6.0) * (1.0 - one_minus_t**3)), one_minus_t**2
+
 def _masked_median(x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Row-wise median of the entries of ``x (B, N)`` where ``mask (B, N)``; returns (median, count).
 

@@ -18,6 +18,7 @@ batched over streams; the host synchronises only for the early-exit and step-rej
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -27,6 +28,11 @@ from torch import Tensor
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss
 from torchface.template.points import Template
+
+
+#: Default convergence test of :func:`solve_level`: every increment below these, rotation (radians), translation
+#: (millimetres), animation and illumination coefficients (units), at full resolution.
+STEP_TOLERANCE: tuple[float, float, float] = (2e-4, 0.05, 2e-3)
 
 
 @dataclass(frozen=True)
@@ -60,18 +66,18 @@ def _so3_generators(like: Tensor) -> Tensor:
 def exp_so3(w: Tensor, generators: Tensor | None = None) -> Tensor:
     """Rodrigues' formula for ``(B, 3)`` rotation vectors (exact, finite at zero) -> ``(B, 3, 3)``.
 
-    ``generators``: :func:`_so3_generators` of ``w``'s dtype and device, to reuse across calls.
+    ``R = I + a K + b K^2`` with ``K = hat(w)``, ``a = sin t / t = sinc(t / pi)`` and
+    ``b = (1 - cos t) / t^2 = sinc(t / 2 pi)^2 / 2`` (``t = |w|``): ``torch.sinc`` is exact at zero, and the angle
+    is taken from ``t^2`` clamped to a tiny floor so that its gradient is finite there too (``a`` and ``b`` are
+    flat at zero). ``generators``: :func:`_so3_generators` of ``w``'s dtype and device, to reuse across calls.
     """
-    theta2 = (w * w).sum(-1, keepdim=True).unsqueeze(-1)  # (B, 1, 1)
-    small = theta2 < 1e-8
-    theta2c = theta2.clamp_min(1e-8)
-    theta = theta2c.sqrt()
-    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2c)
+    x = (w * w).sum(-1, keepdim=True).clamp_min(torch.finfo(w.dtype).tiny).sqrt().unsqueeze(-1) / math.pi
+    a = torch.sinc(x)  # (B, 1, 1)
+    b = torch.sinc(0.5 * x).square() * 0.5
     G = _so3_generators(w) if generators is None else generators
     K = torch.matmul(w, G).view(-1, 3, 3)
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye + a * K + b * torch.matmul(K, K)
+    return torch.addcmul(torch.addcmul(eye, a, K), b, torch.matmul(K, K))
 
 
 def _masked_median_abs(r: Tensor, valid: Tensor) -> Tensor:
@@ -91,28 +97,35 @@ class LevelOutcome:
     iterations: Tensor  # (B,) int64
     converged: Tensor  # (B,) bool
     finite: Tensor  # (B,) bool
+    #: :func:`linearise`'s output ``(r, J, valid, sampled)`` at the final estimate (with ``final_check``), for a
+    #: following pass at the same level to start from (``solve_level(start=...)``).
+    linearisation: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
 
 
 @dataclass(frozen=True)
 class _LevelConstants:
-    """What :func:`linearise` needs from the camera, computed once per level (not per iteration).
+    """What :func:`linearise` needs from the camera and the template, computed once per level (not per iteration).
 
     ``grid = xy * grid_scale + grid_shift`` maps normalised image coordinates ``xy = (X/Z, Y/Z)`` to
     ``grid_sample``'s ``[-1, 1]`` coordinates of the crop; ``focal`` turns ``d/du, d/dv`` into ``d/dx, d/dy``.
+    ``basis_by_axis`` is the template's expression basis as ``(B, 3, N, A)`` (contiguous per axis), so that the
+    animation columns ``g . B_j`` are three fused multiply-adds instead of a reduction over a size-3 axis.
     """
 
     focal: Tensor  # (2,)
     grid_scale: Tensor  # (2,)
     grid_shift: Tensor  # (B, 1, 2)
+    basis_by_axis: Tensor | None = None  # (B, 3, N, A)
 
 
-def _level_constants(cam: LevelCamera, like: Tensor) -> _LevelConstants:
+def _level_constants(cam: LevelCamera, like: Tensor, tpl: Template | None = None) -> _LevelConstants:
     dtype, device = like.dtype, like.device
     focal = torch.tensor([cam.fx, cam.fy], dtype=dtype, device=device)
     to_grid = torch.tensor([2.0 / max(cam.width - 1, 1), 2.0 / max(cam.height - 1, 1)], dtype=dtype, device=device)
     centre = torch.tensor([cam.cx, cam.cy], dtype=dtype, device=device)
     shift = ((centre - cam.offset.to(dtype)) * to_grid - 1.0).unsqueeze(1)
-    return _LevelConstants(focal, focal * to_grid, shift)
+    by_axis = None if tpl is None else tpl.basis.permute(0, 2, 1, 3).contiguous()
+    return _LevelConstants(focal, focal * to_grid, shift, by_axis)
 
 
 def linearise(
@@ -135,7 +148,7 @@ def linearise(
     and ``neg_light_basis`` (``-light_basis``) may be passed to reuse them across iterations.
     """
     B, N = tpl.valid.shape
-    k = _level_constants(cam, R) if constants is None else constants
+    k = _level_constants(cam, R, tpl) if constants is None or constants.basis_by_axis is None else constants
     nlb = -light_basis if neg_light_basis is None else neg_light_basis
     Xm = torch.baddbmm(tpl.points.reshape(B, N * 3, 1), tpl.basis.reshape(B, N * 3, -1), alpha.unsqueeze(-1))
     Xm = Xm.view(B, N, 3)
@@ -154,7 +167,9 @@ def linearise(
     g = torch.cat([gxy, gz], dim=-1)  # dI/dX_cam (B, N, 3)
     j_rot = torch.linalg.cross(Xc, g, dim=-1)
     g_model = torch.bmm(g, R)  # (B, N, 3)
-    j_anim = (g_model.unsqueeze(-1) * tpl.basis).sum(-2)
+    by_axis = k.basis_by_axis  # (B, 3, N, A)
+    j_anim = torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
+                           g_model[..., 2:3], by_axis[:, 2])
     J = torch.cat([j_rot, g, j_anim, nlb], dim=-1)
     inside = (grid.abs() <= 1.0).all(-1)
     facing = (torch.bmm(tpl.normals, R.transpose(1, 2)) * Xc).sum(-1) < 0
@@ -162,13 +177,15 @@ def linearise(
     return r, J, valid, intensity
 
 
-def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: float) -> tuple[Tensor, Tensor]:
-    """IRLS weights ``(B, N)`` (zero where invalid) and the robust scale ``(B, 1)``."""
+def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: float) -> tuple[Tensor, Tensor, Tensor]:
+    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` and the cost ``(B,)`` at that
+    scale (:func:`_cost`)."""
     s = (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
     w = valid.to(r.dtype)
-    if robust is not None:
-        w = w * robust.weight(r, s)
-    return w, s
+    if robust is None:
+        return w, s, (0.5 * r * r).sum(-1)
+    rho, rw = robust.rho_and_weight(r, s)
+    return w * rw, s, rho.sum(-1)
 
 
 def _cost(r: Tensor, robust: RobustLoss | None, s: Tensor) -> Tensor:
@@ -204,7 +221,8 @@ def solve_level(
     scale_floor: float = 0.02,
     damping: float = 1e-3,
     final_check: bool = True,
-    step_tolerance: float | tuple[float, float, float] = (2e-4, 0.05, 2e-3),
+    step_tolerance: float | tuple[float, float, float] = STEP_TOLERANCE,
+    start: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -229,6 +247,9 @@ def solve_level(
             checks) the outcome describes the last linearisation.
         step_tolerance: converged when every increment is below these: rotation (radians), translation
             (millimetres), animation and illumination coefficients (units); one float applies to all.
+        start: :func:`linearise`'s output at the start estimate with these ``tpl``, ``image``, ``cam``,
+            ``light_basis`` and ``mask`` (:attr:`LevelOutcome.linearisation` of a pass that ended there), used
+            for the first iteration instead of linearising again.
 
     Returns:
         The new ``R, t, alpha, light`` and a :class:`LevelOutcome`.
@@ -251,8 +272,9 @@ def solve_level(
     prior_H = torch.diag_embed(prior)
     fixed_diag = torch.diag(1.0 - freef)
     free_mask = free.to(torch.bool)
+    all_free = bool(free_mask.all())
     generators = _so3_generators(R)
-    constants = _level_constants(cam, R)
+    constants = _level_constants(cam, R, tpl)
     neg_light_basis = -light_basis
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
@@ -270,24 +292,20 @@ def solve_level(
         return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis)
 
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
-    for _ in range(iterations):
-        r, J, valid, _ = lin(R, t, alpha, light)
+    for it in range(iterations):
+        r, J, valid, _ = lin(R, t, alpha, light) if it > 0 or start is None else start
         # A non-finite frame makes r non-finite; a non-finite J without r (impossible by construction) would
         # make the system non-finite and the sample fail below rather than corrupt another sample.
         valid = valid & torch.isfinite(r)
         r = torch.where(valid, r, 0.0)
-        J = torch.where(valid.unsqueeze(-1) & free_mask, J, 0.0)
+        J = torch.where(valid.unsqueeze(-1) if all_free else valid.unsqueeze(-1) & free_mask, J, 0.0)
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
         prior_cost = (half_prior_alpha * d_alpha * d_alpha).sum(-1)
-        if best is None:
-            wgt, s = _weights(r, valid, robust, scale_floor)
-            cost = _cost(r, robust, s) + prior_cost
-        else:
-            cost = _cost(r, robust, best[7]) + prior_cost
-            accept = (cost <= best[6]) & torch.isfinite(cost)
-            wgt, s = _weights(r, valid, robust, scale_floor)
-            if robust is not None:  # the cost at the new scale, compared against at the next iteration
-                cost = _cost(r, robust, s) + prior_cost
+        if best is not None:  # the step is judged at the scale of the last accepted estimate
+            judged = _cost(r, robust, best[7]) + prior_cost
+            accept = (judged <= best[6]) & torch.isfinite(judged)
+        wgt, s, cost = _weights(r, valid, robust, scale_floor)
+        cost = cost + prior_cost  # at the new scale, compared against at the next iteration
         Jw = J * wgt.unsqueeze(-1)
         Jw_t = Jw.transpose(1, 2)
         H = torch.baddbmm(prior_H, Jw_t, J)
@@ -302,35 +320,38 @@ def solve_level(
         best = (R, t, alpha, light, H, grad, cost, s)
         diag = torch.diagonal(H, dim1=1, dim2=2)
         floor = 1e-6 * diag.amax(-1, keepdim=True).clamp_min(1e-12)
-        Hd = H + lam * torch.diag_embed(diag + floor) + fixed_diag
+        Hd = torch.diag_embed(diag + floor).mul_(lam).add_(H)
+        if not all_free:
+            Hd = Hd + fixed_diag
         L, info = torch.linalg.cholesky_ex(Hd)
         delta = torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1).neg_()
-        good = (info == 0) & torch.isfinite(delta).all(-1) & (valid.sum(-1) >= P)
+        good = (info == 0) & torch.isfinite(delta.sum(-1)) & (valid.sum(-1) >= P)
         finite = finite & (good | ~active)
         step = active & good
-        delta = torch.where(step.unsqueeze(-1) & free_mask, delta, 0.0)
+        delta = torch.where(step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask, delta, 0.0)
         dR = exp_so3(delta[:, 0:3], generators)
         R = torch.bmm(dR, R)
         t = torch.baddbmm(delta[:, 3:6].unsqueeze(-1), dR, t.unsqueeze(-1)).squeeze(-1)
         alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
         light = light + delta[:, 6 + A :]
-        iters = iters + active.to(torch.int64)
-        small = (delta.abs() < tol).all(-1) & step
-        active = active & ~small & good
+        iters = iters + active
+        active = active & good & ~(delta.abs() < tol).all(-1)
         if not bool(active.any()):
             break
     if not final_check:
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite)
         return R, t, alpha, light, outcome
-    r, _, valid, sampled = lin(R, t, alpha, light)
+    last = lin(R, t, alpha, light)
     if best is not None:
         # The last step is kept only where it did not raise the cost.
+        r, _, valid, _ = last
         cost = _cost(torch.where(valid, r, 0.0), robust, best[7])
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
         cost = cost + (half_prior_alpha * d_alpha * d_alpha).sum(-1)
         accept = (cost <= best[6]) & torch.isfinite(cost)
         if not bool(accept.all()):
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
-            r, _, valid, sampled = lin(R, t, alpha, light)
-    outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite)
+            last = lin(R, t, alpha, light)
+    r, _, valid, sampled = last
+    outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite, last)
     return R, t, alpha, light, outcome

@@ -24,18 +24,22 @@ from torchface.template.points import Template
 from torchface.tracker.params import ParamLayout
 
 
-def warp_points(template: Template, layout: ParamLayout, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def warp_points(
+    template: Template, layout: ParamLayout, x: Tensor, R: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """Template points under parameters ``x``.
 
     Args:
         template: ``N`` points per sample; layout: the packing of ``x``; x: ``(B, P)``.
+        R: ``(B, 3, 3)`` the rotation of ``x``'s axis-angle, when the caller has it (not differentiated
+            through ``x`` then).
 
     Returns:
         ``points_model (B, N, 3)``, ``points_cam (B, N, 3)`` and the rotation ``(B, 3, 3)``.
     """
     aa, t, alpha, _ = layout.split(x)
     points_model = template.points + torch.matmul(template.basis, alpha[:, None, :, None]).squeeze(-1)
-    R = axis_angle_to_matrix(aa)
+    R = axis_angle_to_matrix(aa) if R is None else R
     points_cam = torch.matmul(points_model, R.transpose(1, 2)) + t.unsqueeze(1)
     return points_model, points_cam, R
 
