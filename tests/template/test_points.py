@@ -170,6 +170,30 @@ def test_gradient_threshold_keeps_exactly_the_informative_points(scene):
         assert bool((gmag[k, keys_strong[:, 1], keys_strong[:, 0]] >= thr).all())
 
 
+def test_facing_threshold_keeps_exactly_the_points_that_face_their_ray(scene):
+    """``min_facing_cos`` keeps exactly the pixels whose interpolated normal (at the frame's expression) makes a
+    cosine of at least that with the reversed viewing ray: a slow per-pixel reference against the build, which
+    interpolates normals only at the candidate pixels."""
+    from torchface.rendering.visibility import vertex_normals
+
+    loose, strict = build(scene, min_facing_cos=0.0), build(scene, min_facing_cos=0.6)
+    s, model = scene, scene["model"]
+    normals = vertex_normals(model.deform(s["shape"], s["anim"]), model.faces) @ s["R"].mT  # (B, V, 3) camera frame
+    for k in range(2):
+        v = loose.valid[k]
+        n = gather_face_attributes(normals, model.faces, loose.face_index, loose.bary, batched=True)[k][v]
+        _, pix, _ = pixels_of(scene, loose)
+        px = pix[k][v].to(n.dtype)
+        cam = s["cam"]
+        ray = torch.stack([(px[:, 0] - cam.cx) / cam.fx, (px[:, 1] - cam.cy) / cam.fy, torch.ones_like(px[:, 0])], -1)
+        cos = -(torch.nn.functional.normalize(n, dim=-1) * torch.nn.functional.normalize(ray, dim=-1)).sum(-1)
+        expected = set((pix[k][v][cos >= 0.6] @ torch.tensor([1, W])).tolist())
+        _, pix_s, _ = pixels_of(scene, strict)
+        got = set((pix_s[k][strict.valid[k]] @ torch.tensor([1, W])).tolist())
+        assert got == expected
+        assert 0 < len(got) < 0.95 * int(v.sum())  # the threshold removed some points, not all
+
+
 def test_subsampling_is_a_deterministic_subset(scene):
     full = build(scene)
     few = build(scene, max_points=200)

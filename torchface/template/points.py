@@ -184,24 +184,28 @@ def build_template(
     frags = rasterize(raster_verts, model.faces, window, cull_backfaces=True)
     face = frags.pix_to_face
     mask = (face >= 0) & (frags.facing > 0)
-    # Grazing facets sample the image badly: keep points whose normal faces the viewing ray.
-    normals_cam = torch.einsum("bij,bvj->bvi", rotation, vertex_normals(verts_model, model.faces))
     face_flat = face.reshape(B, -1)
     bary_flat = frags.bary.reshape(B, -1, 3)
-    n_pix = gather_face_attributes(normals_cam, model.faces, face_flat, bary_flat, batched=True)
-    # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
-    # its direction is the ray's: no need to interpolate the positions.
-    cols = torch.arange(W, dtype=verts_cam.dtype, device=gray.device) + off[:, :1]  # (B, W) image columns
-    rows = torch.arange(H, dtype=verts_cam.dtype, device=gray.device) + off[:, 1:]  # (B, H)
-    xr = ((cols - intrinsics.cx) / intrinsics.fx)[:, None, :]
-    yr = ((rows - intrinsics.cy) / intrinsics.fy)[:, :, None]
-    rays = torch.stack(torch.broadcast_tensors(xr, yr, torch.ones_like(yr)), -1)  # (B, H, W, 3)
-    rays = torch.nn.functional.normalize(rays.reshape(B, H * W, 3), dim=-1)
-    cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * rays).sum(-1)
-    mask = _erode(mask, erode_pixels) & (cos.reshape(B, H, W) >= min_facing_cos)
     grads = image_with_gradients(gray)[:, 1:]
     gmag = grads.pow(2).sum(1).sqrt()
-    candidate = mask & (gmag >= gradient_threshold)
+    candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
+    # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
+    # interpolated at the pixels still candidates (every sample's, listed together), not over the whole window.
+    flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
+    b_of = torch.div(flat, H * W, rounding_mode="floor")
+    pix = flat - b_of * (H * W)
+    normals_cam = torch.einsum("bij,bvj->bvi", rotation, vertex_normals(verts_model, model.faces))
+    corner = model.faces[face_flat.reshape(-1)[flat]]  # (M, 3)
+    bary_c = bary_flat.reshape(-1, 3)[flat].to(normals_cam.dtype)
+    n_pix = (normals_cam[b_of.unsqueeze(-1), corner] * bary_c.unsqueeze(-1)).sum(1)  # (M, 3)
+    # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
+    # its direction is the ray's: no need to interpolate the positions.
+    col = (pix % W).to(verts_cam.dtype) + off[b_of, 0]
+    row = torch.div(pix, W, rounding_mode="floor").to(verts_cam.dtype) + off[b_of, 1]
+    rays = torch.stack([(col - intrinsics.cx) / intrinsics.fx, (row - intrinsics.cy) / intrinsics.fy,
+                        torch.ones_like(col)], -1)  # fmt: skip
+    cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(rays, dim=-1)).sum(-1)
+    candidate = candidate.reshape(-1).index_put((flat,), cos >= min_facing_cos).reshape(B, H, W)
     keys = _selection_keys(full_h, full_w, gray.device)
     if offsets is None:
         keys = keys.expand(B, -1)
