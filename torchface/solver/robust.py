@@ -165,7 +165,6 @@ class RobustLoss:
         d = 1.0 + u2 / (c * c)  # GEMAN_MCCLURE
         return 1.0 / (d * d)
 
-
     def rho_and_weight(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
         """``(rho(r; s), weight(r; s))`` in one pass: the same values as the two methods, sharing ``r / s``.
 
@@ -185,6 +184,7 @@ class RobustLoss:
         t = ((u * u) / (c * c)).clamp(max=1.0)
         one_minus_t = 1.0 - t
         return s * s * ((c * c / 6.0) * (1.0 - one_minus_t**3)), one_minus_t**2
+
 
 def _masked_median(x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Row-wise median of the entries of ``x (B, N)`` where ``mask (B, N)``; returns (median, count).

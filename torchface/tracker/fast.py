@@ -115,17 +115,16 @@ class _LevelConstants:
     focal: Tensor  # (2,)
     grid_scale: Tensor  # (2,)
     grid_shift: Tensor  # (B, 1, 2)
-    basis_by_axis: Tensor | None = None  # (B, 3, N, A)
+    basis_by_axis: Tensor  # (B, 3, N, A)
 
 
-def _level_constants(cam: LevelCamera, like: Tensor, tpl: Template | None = None) -> _LevelConstants:
+def _level_constants(cam: LevelCamera, like: Tensor, tpl: Template) -> _LevelConstants:
     dtype, device = like.dtype, like.device
     focal = torch.tensor([cam.fx, cam.fy], dtype=dtype, device=device)
     to_grid = torch.tensor([2.0 / max(cam.width - 1, 1), 2.0 / max(cam.height - 1, 1)], dtype=dtype, device=device)
     centre = torch.tensor([cam.cx, cam.cy], dtype=dtype, device=device)
     shift = ((centre - cam.offset.to(dtype)) * to_grid - 1.0).unsqueeze(1)
-    by_axis = None if tpl is None else tpl.basis.permute(0, 2, 1, 3).contiguous()
-    return _LevelConstants(focal, focal * to_grid, shift, by_axis)
+    return _LevelConstants(focal, focal * to_grid, shift, tpl.basis.permute(0, 2, 1, 3).contiguous())
 
 
 def linearise(
@@ -148,7 +147,7 @@ def linearise(
     and ``neg_light_basis`` (``-light_basis``) may be passed to reuse them across iterations.
     """
     B, N = tpl.valid.shape
-    k = _level_constants(cam, R, tpl) if constants is None or constants.basis_by_axis is None else constants
+    k = _level_constants(cam, R, tpl) if constants is None else constants
     nlb = -light_basis if neg_light_basis is None else neg_light_basis
     Xm = torch.baddbmm(tpl.points.reshape(B, N * 3, 1), tpl.basis.reshape(B, N * 3, -1), alpha.unsqueeze(-1))
     Xm = Xm.view(B, N, 3)
@@ -183,7 +182,7 @@ def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: f
     s = (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
     w = valid.to(r.dtype)
     if robust is None:
-        return w, s, (0.5 * r * r).sum(-1)
+        return w, s, _cost(r, None, s)
     rho, rw = robust.rho_and_weight(r, s)
     return w * rw, s, rho.sum(-1)
 
