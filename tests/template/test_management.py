@@ -167,6 +167,8 @@ def test_mosaic_add_select_and_grow():
     assert reach.tolist() == [False, True, True]
     far = torch.tensor([[25.0, 0.0, 0.0], [25.0, 0.0, 0.0], [-25.0, 0.0, 0.0]], dtype=D)
     assert select_entries(m, far, cur, 2.0, reference_radius_deg=20.0).tolist() == [0, 1, 2]
+    # The stored yaw/pitch/roll of every used entry is its rotation's, through adding and growing.
+    assert torch.equal(m.ypr_deg[m.used], matrix_to_euler(m.rotation[m.used]))
 
 
 def test_entry_templates_rebuild_the_stored_template(model, scene):

@@ -191,6 +191,23 @@ def test_mosaic_entry_added_at_a_new_pose_and_used_on_return(model, turns):
     assert all(bool(r.success.all()) for r in results)
 
 
+
+def test_cached_pose_angles_change_nothing(model, turns):
+    """The step reuses its result's yaw/pitch/roll as the next step's (ManagementState.params_ypr); without that
+    cache (recomputed from the parameters) every output is the same, bit for bit."""
+    frames, gt = turns
+    config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
+    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    cached = uncached = state
+    for i in range(1, 12):
+        cached, r1 = managed_step(model, config, cached, frames[:, i])
+        assert cached.management.params_ypr is not None and cached.management.params_ypr[0] is cached.params
+        uncached = replace(uncached, management=replace(uncached.management, params_ypr=None))
+        uncached, r2 = managed_step(model, config, uncached, frames[:, i])
+        for name in ("rotation", "translation", "anim_coeffs", "confidence", "mosaic_entry", "status"):
+            assert torch.equal(getattr(r1, name), getattr(r2, name)), (i, name)
+
+
 @pytest.mark.parametrize("with_detector", [False, True])
 def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detector):
     frames, gt = leaves

@@ -56,11 +56,14 @@ def _horner(t: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
     return out
 
 
-def _rotation_coefficients(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _rotation_coefficients(
+    theta2: torch.Tensor, third: bool = True
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """``sin t / t``, ``(1 - cos t) / t^2`` and ``(t - sin t) / t^3`` for ``t = sqrt(theta2)``.
 
     Args:
         theta2: ``(...)`` squared rotation angles.
+        third: compute the third coefficient (else None: :func:`axis_angle_to_matrix` does not need it).
 
     Returns:
         Three ``(...)`` tensors, finite with finite gradients everywhere including ``theta2 = 0``.
@@ -72,6 +75,8 @@ def _rotation_coefficients(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     sin, cos = torch.sin(theta), torch.cos(theta)
     a = torch.where(small, _horner(theta2, _SIN_OVER_T), sin / theta)
     b = torch.where(small, _horner(theta2, _ONE_MINUS_COS_OVER_T2), (1.0 - cos) / theta2_safe)
+    if not third:
+        return a, b, None
     c = torch.where(small, _horner(theta2, _T_MINUS_SIN_OVER_T3), (theta - sin) / (theta2_safe * theta))
     return a, b, c
 
@@ -143,7 +148,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(aa, "aa", (3,))
     theta2 = (aa * aa).sum(-1)
-    a, b, _ = _rotation_coefficients(theta2)
+    a, b, _ = _rotation_coefficients(theta2, third=False)
     k = hat(aa)
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(k)
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)

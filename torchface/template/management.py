@@ -268,6 +268,8 @@ class Mosaic:
     Attributes:
         levels: one :class:`MosaicLevel` per pyramid level, finest first.
         rotation: ``(B, E, 3, 3)`` the head pose each entry was built at.
+        ypr_deg: ``(B, E, 3)`` the same as yaw, pitch, roll in degrees (``matrix_to_euler(rotation)``, kept so
+            that choosing an entry each frame does not convert every entry's rotation again).
         bins: ``(B, E, 2)`` int64 (yaw, pitch) bin of each entry.
         used: ``(B, E)`` bool, the entry slot is filled; entry 0 (the reference) always is.
         references: the entries' dissimilarity references: a
@@ -278,6 +280,7 @@ class Mosaic:
 
     levels: tuple[MosaicLevel, ...]
     rotation: Tensor
+    ypr_deg: Tensor
     bins: Tensor
     used: Tensor
     references: DissimilarityReference
@@ -382,7 +385,8 @@ def new_mosaic(
     bins, _ = pose_bins(ypr_deg, config)
     B = rotation.shape[0]
     return Mosaic(
-        tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1), bins.unsqueeze(1),
+        tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1), matrix_to_euler(rotation).unsqueeze(1),
+        bins.unsqueeze(1),
         torch.ones(B, 1, dtype=torch.bool, device=rotation.device), _map_reference(reference, lambda x: x.unsqueeze(1)),
     )  # fmt: skip
 
@@ -411,7 +415,7 @@ def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
     eye = torch.eye(3, dtype=mosaic.rotation.dtype, device=mosaic.rotation.device)
     rot = torch.cat([mosaic.rotation, eye.expand(mosaic.rotation.shape[0], extra, 3, 3)], dim=1)
     refs = _map_reference(mosaic.references, lambda x: pad(x, False) if x.dtype == torch.bool else pad(x))
-    return Mosaic(levels, rot, pad(mosaic.bins), pad(mosaic.used, False), refs)
+    return Mosaic(levels, rot, pad(mosaic.ypr_deg), pad(mosaic.bins), pad(mosaic.used, False), refs)
 
 
 def add_entries(
@@ -444,6 +448,8 @@ def add_entries(
         levels.append(MosaicLevel(*parts))
     rot = mosaic.rotation.clone()
     rot[streams, slot] = rotation.to(rot.dtype)
+    ypr = mosaic.ypr_deg.clone()
+    ypr[streams, slot] = matrix_to_euler(rot[streams, slot])
     b = mosaic.bins.clone()
     b[streams, slot] = bins
     used = mosaic.used.clone()
@@ -456,13 +462,13 @@ def add_entries(
         return x
 
     refs = _map_reference(mosaic.references, put)
-    return Mosaic(tuple(levels), rot, b, used, refs), slot
+    return Mosaic(tuple(levels), rot, ypr, b, used, refs), slot
 
 
 def within_reach(mosaic: Mosaic, ypr_deg: Tensor, config: TemplateConfig) -> Tensor:
     """``(B,)`` bool: the pose ``ypr_deg (B, 3)`` is within ``config.entry_reach`` bin widths of a used entry."""
     widths = ypr_deg.new_tensor([config.yaw_bin_deg, config.pitch_bin_deg])
-    entry_ypr = matrix_to_euler(mosaic.rotation)[..., :2]  # (B, E, 2)
+    entry_ypr = mosaic.ypr_deg[..., :2]  # (B, E, 2)
     d = ((entry_ypr - ypr_deg[:, None, :2]) / widths).abs().amax(-1)
     return ((d <= config.entry_reach) & mosaic.used).any(-1)
 
@@ -491,10 +497,9 @@ def select_entries(
             once ``margin_deg`` inside.
         streams: ``(B,)`` int64 the mosaic rows of a sub-batch, or None for all.
     """
-    rotation, used = mosaic.rotation, mosaic.used
+    entry_ypr, used = mosaic.ypr_deg, mosaic.used  # (B, E, 3), (B, E)
     if streams is not None:
-        rotation, used = rotation[streams], used[streams]
-    entry_ypr = matrix_to_euler(rotation)  # (B, E, 3)
+        entry_ypr, used = entry_ypr[streams], used[streams]
     d = (entry_ypr[..., :2] - ypr_deg[:, None, :2]).norm(dim=-1)
     d = torch.where(used, d, torch.full_like(d, float("inf")))
     best = d.argmin(-1)
@@ -628,7 +633,7 @@ def search_mosaic(
     ent = used.clone()
     if extra_rotation is not None:
         ypr = matrix_to_euler(extra_rotation.unsqueeze(0))
-        d = (matrix_to_euler(rots)[:, :2] - ypr[:, :2]).norm(dim=-1)
+        d = (mosaic.ypr_deg[stream, used][:, :2] - ypr[:, :2]).norm(dim=-1)
         ent = torch.cat([ent, used[d.argmin()].reshape(1)])
         rots = torch.cat([rots, extra_rotation.unsqueeze(0).to(rots.dtype)])
     n_rot = rots.shape[0]

@@ -111,6 +111,9 @@ class ManagementState:
         lost: ``(B,)`` bool, the stream is lost.
         confident_params: ``(B, P)`` the parameters of the last confident frame.
         since_attempt: ``(B,)`` int64 lost frames since the last recovery attempt.
+        params_ypr: ``(params, ypr_deg)``: the yaw/pitch/roll ``(B, 3)`` of the parameters tensor ``params`` the
+            step ended with (its result's), so that the next step does not convert them again; used only while
+            ``TrackerState.params`` is that very tensor. None: not known.
     """
 
     mosaic: Mosaic
@@ -121,6 +124,7 @@ class ManagementState:
     lost: Tensor
     confident_params: Tensor
     since_attempt: Tensor
+    params_ypr: tuple[Tensor, Tensor] | None = None
 
 
 def _layout(model: FaceModel) -> ParamLayout:
@@ -259,9 +263,10 @@ def estimate_confidence(
     return _confidence(model, config, ms, frames, state, status)
 
 
-def _inside_fraction(model: FaceModel, state: TrackerState) -> Tensor:
+def _inside_fraction(model: FaceModel, state: TrackerState, R: Tensor | None = None) -> Tensor:
+    """:func:`face_inside_fraction` of ``state``'s estimate; ``R (B, 3, 3)``: its rotation when known."""
     aa, t, alpha, _ = _layout(model).split(state.params)
-    R = axis_angle_to_matrix(aa)
+    R = axis_angle_to_matrix(aa) if R is None else R
     verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
     return face_inside_fraction(model, verts, state.intrinsics)
 
@@ -476,7 +481,10 @@ def managed_step(
     # 1. The mosaic entry nearest each stream's pose (templates rebuilt only where the entry changes).
     entry, templates = ms.entry, state.templates
     if tc.mosaic and ms.mosaic.capacity > 1:
-        ypr = matrix_to_euler(axis_angle_to_matrix(state.params[:, layout.rotation]))
+        if ms.params_ypr is not None and ms.params_ypr[0] is state.params:
+            ypr = ms.params_ypr[1]
+        else:
+            ypr = matrix_to_euler(axis_angle_to_matrix(state.params[:, layout.rotation]))
         entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg, tc.reference_radius_deg)
         changed = (entry != ms.entry).nonzero().squeeze(-1)
         if changed.numel():
@@ -492,14 +500,18 @@ def managed_step(
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
-    outside = _inside_fraction(model, solved) < tc.min_inside_fraction
+    outside = _inside_fraction(model, solved, result.rotation) < tc.min_inside_fraction
     confident = (conf >= tc.confidence_threshold) & ~failed & ~outside
     low_count = torch.where(confident, torch.zeros_like(ms.low_count), ms.low_count + 1)
     very_low = (conf < tc.very_low_confidence) | failed | outside
     very_low_count = torch.where(very_low, ms.very_low_count + 1, torch.zeros_like(ms.very_low_count))
     lost = ms.lost | failed | outside | (low_count >= tc.lost_after) | (very_low_count >= tc.lost_after_very_low)
     lost = lost & ~((conf >= tc.recover_confidence) & ~failed & ~outside)
-    params = torch.where((lost & (failed | outside)).unsqueeze(-1), ms.confident_params, solved.params)
+    # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
+    reverted = lost & (failed | outside)
+    params, params_ypr = solved.params, result.ypr_deg
+    if bool(reverted.any()):
+        params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
     since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
     since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
 
@@ -530,7 +542,7 @@ def managed_step(
         ok = adopt & (r_conf >= tc.recover_confidence)
         if bool(adopt.any()):
             rows = index[adopt]
-            params = params.clone()
+            params, params_ypr = params.clone(), None
             params[rows] = r_state.params[adopt]
             result = _scatter_result(result, rows, replace(
                 r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
@@ -570,7 +582,10 @@ def managed_step(
     if tc.texture_update and bool(confident.any()):
         templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
         new_state = replace(new_state, templates=templates)
-    ms = ManagementState(mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since)
+    ms = ManagementState(
+        mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
+        None if params_ypr is None else (params, params_ypr),
+    )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
         result, status=status, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss,
