@@ -100,6 +100,8 @@ class LevelOutcome:
     #: :func:`linearise`'s output ``(r, J, valid, sampled)`` at the final estimate (with ``final_check``), for a
     #: following pass at the same level to start from (``solve_level(start=...)``).
     linearisation: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+    #: The level's :class:`_LevelConstants`, for such a pass to reuse (``solve_level(constants=...)``).
+    constants: _LevelConstants | None = None
 
 
 @dataclass(frozen=True)
@@ -222,6 +224,7 @@ def solve_level(
     final_check: bool = True,
     step_tolerance: float | tuple[float, float, float] = STEP_TOLERANCE,
     start: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
+    constants: _LevelConstants | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -249,6 +252,8 @@ def solve_level(
         start: :func:`linearise`'s output at the start estimate with these ``tpl``, ``image``, ``cam``,
             ``light_basis`` and ``mask`` (:attr:`LevelOutcome.linearisation` of a pass that ended there), used
             for the first iteration instead of linearising again.
+        constants: :attr:`LevelOutcome.constants` of a pass with the same ``tpl`` and ``cam``, to reuse (the
+            per-axis basis is a copy of the template's); None computes them.
 
     Returns:
         The new ``R, t, alpha, light`` and a :class:`LevelOutcome`.
@@ -273,7 +278,7 @@ def solve_level(
     free_mask = free.to(torch.bool)
     all_free = bool(free_mask.all())
     generators = _so3_generators(R)
-    constants = _level_constants(cam, R, tpl)
+    constants = _level_constants(cam, R, tpl) if constants is None else constants
     neg_light_basis = -light_basis
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
@@ -338,7 +343,7 @@ def solve_level(
         if not bool(active.any()):
             break
     if not final_check:
-        outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite)
+        outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite, constants=constants)
         return R, t, alpha, light, outcome
     last = lin(R, t, alpha, light)
     if best is not None:
@@ -352,5 +357,5 @@ def solve_level(
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
             last = lin(R, t, alpha, light)
     r, _, valid, sampled = last
-    outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite, last)
+    outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite, last, constants)
     return R, t, alpha, light, outcome

@@ -678,7 +678,7 @@ def _track_step_fast(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[0],
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
             alpha_prior=refine_prior, alpha_mean=alpha_mean, robust=robust,
-            scale_floor=config.refine_scale_floor, start=out.linearisation,
+            scale_floor=config.refine_scale_floor, start=out.linearisation, constants=out.constants,
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
     status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
