@@ -530,7 +530,7 @@ def managed_step(
         # after one solve, the continued track 50-100 degrees off and 0, and the loss lasted 53 frames).
         adopt = found & (r_result.status != _FAILED) & (r_conf > conf[index]) & (r_conf >= tc.adopt_min_confidence)
         R_track = axis_angle_to_matrix(params[index][:, layout.rotation])
-        apart = geodesic_angle_deg(axis_angle_to_matrix(r_state.params[:, layout.rotation]), R_track)
+        apart = geodesic_angle_deg(r_result.rotation, R_track)
         apart = apart > tc.adopt_min_angle_deg
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
@@ -538,7 +538,7 @@ def managed_step(
             ratio = r_state.params[:, layout.translation][:, 2] / depth_c
             near = (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
-        adopt = adopt & (_inside_fraction(model, r_state) >= tc.min_inside_fraction)
+        adopt = adopt & (_inside_fraction(model, r_state, r_result.rotation) >= tc.min_inside_fraction)
         ok = adopt & (r_conf >= tc.recover_confidence)
         if bool(adopt.any()):
             rows = index[adopt]
