@@ -163,12 +163,15 @@ def test_known_answer_pose_and_expression_l2(model, two_streams, l2_runs):
 
 
 def test_known_answer_pose_default_robust(model, two_streams):
-    """The default (Tukey) configuration tracks the pose of the same sequences within 1.5 degrees."""
+    """The default (Tukey) configuration, with the default template size, tracks the pose of the same sequences
+    within 1 degree (measured 0.80). With ``BASE``'s 600-point templates the error is the small template's own
+    bias: 1.2 degrees even with 20 iterations per level, and 1.42 or 1.55 at the last frame depending on where
+    the solver stops (before and after ``TrackerConfig.function_tolerance``), so they are not used here."""
     frames, gts = two_streams
-    results, _ = run(model, BASE, frames, landmarks_of(gts))
+    results, _ = run(model, replace(BASE, max_points=TrackerConfig().max_points), frames, landmarks_of(gts))
     absolute, relative = rotation_errors(results, gts)
-    assert float(absolute.max()) < 1.5, absolute
-    assert float(relative.max()) < 1.5, relative
+    assert float(absolute.max()) < 1.0, absolute
+    assert float(relative.max()) < 1.0, relative
 
 
 @pytest.mark.xfail(
@@ -371,6 +374,9 @@ def test_config_validation():
         TrackerConfig(expression_quota=40)
     with pytest.raises(ValueError, match="refine_prior_precision"):
         TrackerConfig(refine_prior_precision=-1.0)
+    for bad in (-1e-3, float("nan")):
+        with pytest.raises(ValueError, match="function_tolerance"):
+            TrackerConfig(function_tolerance=bad)
 
 
 def test_face_tracker_module(model, two_streams, l2_runs):

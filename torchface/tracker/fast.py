@@ -1,15 +1,19 @@
 """The fast per-frame solver: Levenberg-Marquardt on a local twist, over a face crop (paper Eq. 14-20).
 
 The paper linearises the rigid motion in twist form around the current estimate (Eq. 14-17). Here each
-iteration solves for a left increment ``(d_omega, d_t)`` of the camera-frame pose,
-``X_cam <- exp(hat(d_omega)) X_cam + d_t``, together with additive increments of the animation units and
-the illumination parameters; the rotation is then updated as ``R <- exp(hat(d_omega)) R`` and
-``t <- exp(hat(d_omega)) t + d_t``. With ``g = dI/dX_cam`` the Jacobian columns are
+iteration solves for an increment ``(d_omega, d_t)`` of the pose that turns the head about its own origin,
+``X_cam <- exp(hat(d_omega)) R X + t + d_t`` (``X`` in the head frame), together with additive increments of the
+animation units and the illumination parameters; the pose is then updated as ``R <- exp(hat(d_omega)) R`` and
+``t <- t + d_t``. With ``g = dI/dX_cam`` the Jacobian columns are
 
-    ``dI/d(d_omega) = X_cam x g``,  ``dI/d(d_t) = g``,  ``dI/d(alpha_j) = g . (R B_j)``,  ``-B^light_i``,
+    ``dI/d(d_omega) = (R X) x g``,  ``dI/d(d_t) = g``,  ``dI/d(alpha_j) = g . (R B_j)``,  ``-B^light_i``,
 
 which avoid the Jacobian of the exponential map at a general rotation (used by the reference path,
-:func:`torchface.tracker.objective.frame_residuals`, which :mod:`tests` check against this one).
+:func:`torchface.tracker.objective.frame_residuals`, which :mod:`tests` check against this one). Turning about the
+head rather than the camera keeps rotation and translation nearly decoupled: a turn about the camera centre moves
+the head sideways by ``d_omega x t`` (``|t|`` is half a metre), which the translation had to undo in the same
+step; measured on the 640x480 scenarios (evaluate.py) it took 5% fewer iterations and the occlusion scenario's
+worst frame went from 6.4 to 5.1 degrees.
 Weighted normal equations with Tukey/Huber/... IRLS weights (robust scale: MAD of the current residuals,
 floored), a Gaussian prior on the animation units, box bounds by projection, and Levenberg-Marquardt step
 acceptance (a step that raises the robust cost is undone and retried with more damping). Everything is
@@ -33,6 +37,10 @@ from torchface.template.points import Template
 #: Default convergence test of :func:`solve_level`: every increment below these, rotation (radians), translation
 #: (millimetres), animation and illumination coefficients (units), at full resolution.
 STEP_TOLERANCE: tuple[float, float, float] = (2e-4, 0.05, 2e-3)
+
+#: Default second convergence test of :func:`solve_level`: the step's predicted cost decrease (of the
+#: linearised, reweighted problem) below this fraction of the cost.
+FUNCTION_TOLERANCE: float = 3e-3
 
 
 @dataclass(frozen=True)
@@ -153,7 +161,8 @@ def linearise(
     nlb = -light_basis if neg_light_basis is None else neg_light_basis
     Xm = torch.baddbmm(tpl.points.reshape(B, N * 3, 1), tpl.basis.reshape(B, N * 3, -1), alpha.unsqueeze(-1))
     Xm = Xm.view(B, N, 3)
-    Xc = torch.baddbmm(t.unsqueeze(1), Xm, R.transpose(1, 2))
+    Xr = torch.bmm(Xm, R.transpose(1, 2))  # turned about the head's origin
+    Xc = Xr + t.unsqueeze(1)
     Z = Xc[..., 2]
     front = Z > NEAR_PLANE_MM
     iz = Z.clamp_min(NEAR_PLANE_MM).reciprocal().unsqueeze(-1)  # (B, N, 1)
@@ -166,7 +175,7 @@ def linearise(
     gxy = vals[:, 1:3].transpose(1, 2) * k.focal * iz  # dI/dX, dI/dY (B, N, 2)
     gz = (gxy * xy).sum(-1, keepdim=True).neg_()
     g = torch.cat([gxy, gz], dim=-1)  # dI/dX_cam (B, N, 3)
-    j_rot = torch.linalg.cross(Xc, g, dim=-1)
+    j_rot = torch.linalg.cross(Xr, g, dim=-1)
     g_model = torch.bmm(g, R)  # (B, N, 3)
     by_axis = k.basis_by_axis  # (B, 3, N, A)
     j_anim = torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
@@ -223,6 +232,7 @@ def solve_level(
     damping: float = 1e-3,
     final_check: bool = True,
     step_tolerance: float | tuple[float, float, float] = STEP_TOLERANCE,
+    function_tolerance: float = FUNCTION_TOLERANCE,
     start: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     constants: _LevelConstants | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
@@ -249,6 +259,14 @@ def solve_level(
             checks) the outcome describes the last linearisation.
         step_tolerance: converged when every increment is below these: rotation (radians), translation
             (millimetres), animation and illumination coefficients (units); one float applies to all.
+        function_tolerance: also converged when the step's predicted decrease of the cost,
+            ``-(grad . delta + delta^T H delta / 2)`` of the reweighted linear model, is below this fraction of
+            the cost (0: off). The parameter test alone is slow to pass along directions the images hardly
+            constrain (a small pitch against a vertical shift): the steps there stay above the tolerance while
+            changing the cost by a fraction of a percent, and the levels ran to their iteration caps. Measured on
+            the 640x480 scenarios (evaluate.py, with the coarse levels at ``2**level`` times this), 3e-3 took the
+            iterations per pass from 4.0 to 3.1 with every mean error within 0.02 degree (occlusion's worst
+            frame 5.1 -> 4.4 degrees).
         start: :func:`linearise`'s output at the start estimate with these ``tpl``, ``image``, ``cam``,
             ``light_basis`` and ``mask`` (:attr:`LevelOutcome.linearisation` of a pass that ended there), used
             for the first iteration instead of linearising again.
@@ -335,11 +353,13 @@ def solve_level(
         delta = torch.where(step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask, delta, 0.0)
         dR = exp_so3(delta[:, 0:3], generators)
         R = torch.bmm(dR, R)
-        t = torch.baddbmm(delta[:, 3:6].unsqueeze(-1), dR, t.unsqueeze(-1)).squeeze(-1)
+        t = t + delta[:, 3:6]
         alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
         light = light + delta[:, 6 + A :]
         iters = iters + active
-        active = active & good & ~(delta.abs() < tol).all(-1)
+        # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
+        pred = -(delta * (grad + 0.5 * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
+        active = active & good & ~(delta.abs() < tol).all(-1) & ~(pred < function_tolerance * cost)
         if not bool(active.any()):
             break
     if not final_check:
