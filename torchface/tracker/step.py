@@ -79,9 +79,13 @@ class TrackerConfig:
             0.66 -> 0.86 deg mean (and dropping that check alone fails the sudden-occlusion test).
         function_tolerance: a pass also stops when its step's predicted cost decrease is below this fraction of
             the cost (:func:`~torchface.tracker.fast.solve_level`; the coarser levels at ``2**level`` times it, as
-            their step tolerance; 0: off). Measured on the 640x480 scenarios, 3e-3 ends the passes after 3.1
-            instead of 4.0 linearisations on average with every mean error within 0.02 degree; 1e-2 (2.9 without
-            the per-level scaling) moved scan_motion's mean from 1.89 to 1.99 degrees.
+            their step tolerance; 0: off). Measured on the 640x480 scenarios (evaluate.py), 3e-3 ends the passes
+            after 3.1 instead of 4.0 linearisations on average with every mean error within 0.02 degree (occlusion's
+            worst frame 5.1 -> 4.4 degrees), and one stream's step took 21.7 instead of 27.0 ms with the change of
+            :mod:`~torchface.tracker.fast`'s rotation increment (same process, benchmark.py's frames). A looser 1e-2
+            (one value at every level, measured before that change) took 2.9 linearisations per pass but moved
+            scan_motion's mean from 1.89 to 1.99 degrees. With many streams the batch iterates while any stream
+            does, so the saving is at small B (32 streams: 12.3 -> 12.1 ms per stream-frame).
         use_illumination: estimate the illumination terms (else held at zero: the ablation).
         use_expression: estimate the animation units (else held at the initial values: the ablation).
         robust: the robust loss for external occlusion (``RobustKind.NONE`` is the ablation).
