@@ -357,9 +357,11 @@ def solve_level(
         alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
         light = light + delta[:, 6 + A :]
         iters = iters + active
-        # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
-        pred = -(delta * (grad + 0.5 * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
-        active = active & good & ~(delta.abs() < tol).all(-1) & ~(pred < function_tolerance * cost)
+        active = active & good & ~(delta.abs() < tol).all(-1)
+        if function_tolerance > 0:  # 0 is off: rounding can make the predicted decrease of a tiny step negative
+            # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
+            pred = -(delta * (grad + 0.5 * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
+            active = active & ~(pred < function_tolerance * cost)
         if not bool(active.any()):
             break
     if not final_check:
