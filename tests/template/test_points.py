@@ -16,7 +16,13 @@ from torchface.rendering.rasterizer import rasterize
 from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
-from torchface.template import Template, build_template, gather_face_attributes
+from torchface.template import (
+    Template,
+    build_template,
+    gather_face_attributes,
+    point_normals,
+    select_template_pixels,
+)
 from torchface.tracker import ParamLayout, frame_residuals
 
 W, H = 160, 120
@@ -134,6 +140,22 @@ def test_points_basis_normals_interpolate_the_model(scene):
     cam_pts = X @ s["R"].mT + s["t"][:, None]
     facing = ((tpl.normals @ s["R"].mT) * cam_pts).sum(-1)
     assert bool((facing[tpl.valid] < 0).all())
+
+
+def test_compact_selection_and_normals_are_the_templates(scene):
+    """select_template_pixels gives exactly build_template's stored fields (what a mosaic entry keeps), and
+    point_normals its normals: a new mosaic entry is made from these alone."""
+    s = scene
+    tpl = build(scene, max_points=400, gradient_threshold=0.01, expression_quota=20)
+    px = select_template_pixels(
+        s["model"], s["shape"], s["anim"], s["R"], s["t"], s["gray"], s["cam"], max_points=400,
+        gradient_threshold=0.01, expression_quota=20,
+    )
+    for name in ("face_index", "bary", "intensity", "valid"):
+        assert torch.equal(getattr(px, name), getattr(tpl, name)), name
+    assert bool(tpl.valid.all())  # 400 points found on each face
+    torch.testing.assert_close(point_normals(s["model"], s["shape"], px.face_index, px.bary), tpl.normals,
+                               rtol=0, atol=0)
 
 
 def test_points_stay_off_the_silhouette(scene):

@@ -1,8 +1,24 @@
 """Template management: template points from a frame (paper Eq. 3-9, Section 4)."""
 
-from torchface.template.points import Template, build_template, gather_face_attributes, template_at
+from torchface.template.points import (
+    Template,
+    TemplatePixels,
+    build_template,
+    gather_face_attributes,
+    point_normals,
+    select_template_pixels,
+    template_at,
+)
 
-__all__ = ["Template", "build_template", "gather_face_attributes", "template_at"]
+__all__ = [
+    "Template",
+    "TemplatePixels",
+    "build_template",
+    "gather_face_attributes",
+    "point_normals",
+    "select_template_pixels",
+    "template_at",
+]
 from torchface.template.dissimilarity import (  # noqa: E402
     DissimilarityConfig,
     DissimilarityReference,

@@ -62,7 +62,7 @@ from torchface.template.dissimilarity import (
     DissimilarityResult,
     dissimilarity,
 )
-from torchface.template.points import Template, template_at
+from torchface.template.points import Template, TemplatePixels, template_at
 
 __all__ = [
     "TemplateConfig",
@@ -419,15 +419,16 @@ def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
 
 
 def add_entries(
-    mosaic: Mosaic, streams: Tensor, templates: tuple[Template, ...], rotation: Tensor, bins: Tensor,
-    reference: DissimilarityReference,
+    mosaic: Mosaic, streams: Tensor, templates: tuple[Template | TemplatePixels, ...], rotation: Tensor,
+    bins: Tensor, reference: DissimilarityReference,
 ) -> tuple[Mosaic, Tensor]:
     """Store one new entry for each of ``streams`` in its first free slot (a rare event: not in the hot path).
 
     Args:
         mosaic: batch ``B``.
         streams: ``(B',)`` int64 distinct stream indices.
-        templates: per level, batch ``B'``, intensities already under the reference light.
+        templates: per level, batch ``B'``, intensities already under the reference light (only the compact
+            form is stored: a :class:`~torchface.template.points.TemplatePixels` is enough).
         rotation: ``(B', 3, 3)`` and bins ``(B', 2)``: the pose the templates were built at.
         reference: batch ``B'``, the dissimilarity reference of the frame they were built from.
 

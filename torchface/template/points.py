@@ -56,6 +56,21 @@ class Template:
         return Template(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
 
+@dataclass(frozen=True)
+class TemplatePixels:
+    """The compact form of a :class:`Template`: where its points lie and what they saw (what a mosaic stores).
+
+    Attributes:
+        face_index: ``(B, N)`` int64; bary: ``(B, N, 3)``; intensity: ``(B, N)``; valid: ``(B, N)`` bool; as in
+            :class:`Template`, whose other fields :func:`template_at` derives from these and the person's shape.
+    """
+
+    face_index: Tensor
+    bary: Tensor
+    intensity: Tensor
+    valid: Tensor
+
+
 def gather_face_attributes(attributes: Tensor, faces: Tensor, face_index: Tensor, bary: Tensor, *, batched: bool) -> Tensor:
     """Barycentric interpolation of per-vertex attributes at points on triangles.
 
@@ -106,7 +121,7 @@ def _cpu_selection_keys(height: int, width: int) -> Tensor:
     return torch.rand(height * width, generator=gen)
 
 
-def build_template(
+def select_template_pixels(
     model: FaceModel,
     shape_coeffs: Tensor,
     anim_coeffs: Tensor,
@@ -122,8 +137,8 @@ def build_template(
     expression_priority: float = 0.0,
     expression_quota: int = 0,
     offsets: Tensor | None = None,
-) -> Template:
-    """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
+) -> TemplatePixels:
+    """The template pixels of a frame whose model parameters are known (paper Section 2-3 and 4).
 
     Rasterizes the posed model, keeps pixels that see a front-facing triangle at an angle steeper than
     ``acos(min_facing_cos)`` (and not on the silhouette, after eroding the face mask by ``erode_pixels``),
@@ -153,7 +168,7 @@ def build_template(
             selection keys are those of the whole image). None: ``gray`` is the whole image.
 
     Returns:
-        :class:`Template` with ``N = max_points`` slots.
+        :class:`TemplatePixels` with ``N = max_points`` slots (:func:`build_template` completes it).
     """
     full_h, full_w = intrinsics.height, intrinsics.width
     if offsets is None:
@@ -251,7 +266,39 @@ def build_template(
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     bary = torch.gather(bary_flat, 1, pix.unsqueeze(-1).expand(-1, -1, 3)).to(verts_model.dtype)
     intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(verts_model.dtype)
-    return template_at(model, shape_coeffs, face_index, bary, intensity, valid)
+    return TemplatePixels(face_index, bary, intensity, valid)
+
+
+def build_template(
+    model: FaceModel,
+    shape_coeffs: Tensor,
+    anim_coeffs: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    gray: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    max_points: int,
+    gradient_threshold: float,
+    min_facing_cos: float = 0.15,
+    erode_pixels: int = 1,
+    expression_priority: float = 0.0,
+    expression_quota: int = 0,
+    offsets: Tensor | None = None,
+) -> Template:
+    """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
+
+    :func:`select_template_pixels` (arguments and selection documented there), then :func:`template_at`.
+
+    Returns:
+        :class:`Template` with ``N = max_points`` slots.
+    """
+    pixels = select_template_pixels(
+        model, shape_coeffs, anim_coeffs, rotation, translation, gray, intrinsics, max_points=max_points,
+        gradient_threshold=gradient_threshold, min_facing_cos=min_facing_cos, erode_pixels=erode_pixels,
+        expression_priority=expression_priority, expression_quota=expression_quota, offsets=offsets,
+    )  # fmt: skip
+    return template_at(model, shape_coeffs, pixels.face_index, pixels.bary, pixels.intensity, pixels.valid)
 
 
 def template_at(
@@ -273,7 +320,16 @@ def template_at(
     neutral = model.deform(shape_coeffs, None)
     points = gather_face_attributes(neutral, model.faces, face_index, bary, batched=True)
     basis = gather_face_attributes(model.animation_units.permute(1, 2, 0), model.faces, face_index, bary, batched=False)
-    normals = torch.nn.functional.normalize(
-        gather_face_attributes(vertex_normals(neutral, model.faces), model.faces, face_index, bary, batched=True), dim=-1
-    )
+    normals = _point_normals(model, neutral, face_index, bary)
     return Template(face_index, bary, points, basis, normals, intensity, valid)
+
+
+def point_normals(model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
+    """``(B, N, 3)`` the unit head-frame normals (zero expression) of points given by triangle ``(B, N)`` and
+    barycentric coordinates ``(B, N, 3)``: :attr:`Template.normals` without the rest of :func:`template_at`."""
+    return _point_normals(model, model.deform(shape_coeffs, None), face_index, bary)
+
+
+def _point_normals(model: FaceModel, neutral: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
+    normals = gather_face_attributes(vertex_normals(neutral, model.faces), model.faces, face_index, bary, batched=True)
+    return torch.nn.functional.normalize(normals, dim=-1)

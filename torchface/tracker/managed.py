@@ -45,7 +45,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
-from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
@@ -71,7 +71,7 @@ from torchface.template.management import (
     select_entries,
     within_reach,
 )
-from torchface.template.points import Template, build_template
+from torchface.template.points import Template, TemplatePixels, point_normals, select_template_pixels
 from torchface.tracker.fit import fit_landmarks
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -289,13 +289,15 @@ def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q:
 
 def _new_entries(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor
-) -> tuple[tuple[Template, ...], DissimilarityReference]:
-    """Templates of streams ``index`` built at their current estimate, intensities under the reference light,
-    and the dissimilarity reference of their normalised face.
+) -> tuple[tuple[TemplatePixels, ...], DissimilarityReference]:
+    """Template pixels of streams ``index`` selected at their current estimate, intensities under the reference
+    light, and the dissimilarity reference of their normalised face.
 
     The templates are built from a window of the frames around the faces (one size for the streams concerned,
     each placed around its face): the same templates as from the whole frames (rasterizing and gathering over
-    the whole 640x480 frame made an entry cost ~110 ms).
+    the whole 640x480 frame made an entry cost ~110 ms). Only their compact form is made (the mosaic stores
+    nothing else; :func:`~torchface.template.management.entry_templates` completes it when the entry is used):
+    the positions and expression bases of a full template took a quarter of an entry's time.
     """
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
@@ -322,12 +324,13 @@ def _new_entries(
             y0 = (windows[:, 1] // s).clamp(max=full.height - hl)
             offsets = torch.stack([x0, y0], -1)
             gray = crop_windows(gray, offsets, hl, wl)
-        tpl = build_template(
+        px = select_template_pixels(
             model, shape, alpha, R, t, gray, full, max_points=slots, gradient_threshold=config.gradient_threshold,
             expression_priority=config.expression_priority, expression_quota=int(config.expression_quota * slots),
             offsets=offsets,
         )  # fmt: skip
-        templates.append(replace(tpl, intensity=light_normalised_intensity(tpl, R, light)))
+        normals_cam = torch.matmul(point_normals(model, shape, px.face_index, px.bary), R.transpose(1, 2))
+        templates.append(replace(px, intensity=remove_illumination(px.intensity, normals_cam, light)))
     return tuple(templates), reference
 
 
