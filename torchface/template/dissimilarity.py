@@ -278,6 +278,8 @@ def inverse_compositional_lk(
             mean = moments[..., :-1, -1:]  # (B, K, F, 1) weighted sums
             total = moments[..., -1:, -1:].clamp_min(eps)
             cov = cov - mean * mean.transpose(-1, -2) / total
+        if C == 1:  # gray images (the dissimilarity's): no sum over channels
+            return cov[..., :2, :2], cov[..., :2, 2]
         s_s = cov[..., : 2 * C, : 2 * C].reshape(B, K, C, 2, C, 2)
         s_e = cov[..., : 2 * C, 2 * C :].reshape(B, K, C, 2, C)
         hess = torch.diagonal(s_s, dim1=2, dim2=4).sum(-1)  # sum over channels: (B, K, 2, 2)
@@ -287,12 +289,13 @@ def inverse_compositional_lk(
     for _ in range(iterations):
         warped, w = weights_at(p)
         hess, grad = normal_equations(warped - template, w)
-        a, b, c = hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1]
+        a, b, _, c = hess.reshape(B, K, 4).unbind(-1)
+        g_u, g_v = grad.unbind(-1)
         det = a * c - b * b
         scale = (a + c).abs().clamp_min(eps)
         ok = (det > 1e3 * eps * scale * scale) & torch.isfinite(det) & torch.isfinite(grad).all(-1)
-        det_safe = torch.where(ok, det, torch.ones_like(det))
-        dp = torch.stack([c * grad[..., 0] - b * grad[..., 1], a * grad[..., 1] - b * grad[..., 0]], -1)
+        det_safe = torch.where(ok, det, 1.0)
+        dp = torch.stack([c * g_u - b * g_v, a * g_v - b * g_u], -1)
         dp = dp / det_safe.unsqueeze(-1)
         step = active & ok
         valid = valid & (ok | ~active)
