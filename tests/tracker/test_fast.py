@@ -55,6 +55,23 @@ def test_exp_so3_matches_matrix_exponential():
     assert bool(torch.isfinite(w0.grad).all())
 
 
+def test_exp_so3_cached_constants_survive_inference_mode():
+    """The generators and identity are cached per dtype and device; made first under inference mode (a tracker
+    run in a dataloader), they must still serve a later differentiable call, and never be modified by one."""
+    from torchface.tracker.fast import _so3_constants
+
+    _so3_constants.cache_clear()
+    w = torch.tensor([[0.1, -0.2, 0.3]], dtype=D)
+    with torch.inference_mode():
+        exp_so3(w)
+    g, eye = _so3_constants(D, w.device)
+    assert not g.is_inference() and not eye.is_inference()
+    w1 = w.clone().requires_grad_(True)
+    torch.autograd.gradcheck(exp_so3, (w1,))
+    torch.testing.assert_close(eye, torch.eye(3, dtype=D), rtol=0, atol=0)
+    assert exp_so3(w).data_ptr() != eye.data_ptr()
+
+
 @pytest.mark.parametrize("kind", ["zero", "nonzero"])
 def test_local_twist_jacobian_equals_autograd(kind):
     """Columns of ``linearise`` are the derivatives for the increment that turns the head about its origin,

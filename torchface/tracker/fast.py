@@ -73,12 +73,14 @@ def _so3_generators(like: Tensor) -> Tensor:
 @functools.lru_cache(maxsize=16)
 def _so3_constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """The generators ``(3, 9)`` of :func:`_so3_generators` and the identity ``(3, 3)``, built once per dtype and
-    device: building them took 9 dispatched operations per call, ~140 per tracked frame."""
-    g = torch.zeros(3, 3, 3, dtype=dtype, device=device)
-    g[0, 2, 1], g[0, 1, 2] = 1.0, -1.0
-    g[1, 0, 2], g[1, 2, 0] = 1.0, -1.0
-    g[2, 1, 0], g[2, 0, 1] = 1.0, -1.0
-    return g.reshape(3, 9), torch.eye(3, dtype=dtype, device=device)
+    device: building them took 9 dispatched operations per call, ~140 per tracked frame. Made outside inference
+    mode even when first asked for inside it, so that a later differentiable call may save them for backward."""
+    with torch.inference_mode(False):
+        g = torch.zeros(3, 3, 3, dtype=dtype, device=device)
+        g[0, 2, 1], g[0, 1, 2] = 1.0, -1.0
+        g[1, 0, 2], g[1, 2, 0] = 1.0, -1.0
+        g[2, 1, 0], g[2, 0, 1] = 1.0, -1.0
+        return g.reshape(3, 9), torch.eye(3, dtype=dtype, device=device)
 
 
 def exp_so3(w: Tensor, generators: Tensor | None = None) -> Tensor:
