@@ -356,16 +356,18 @@ def reference_face(
     return face.image, face.mask
 
 
-def light_normalised_intensity(template: Template, rotation: Tensor, illumination: Tensor) -> Tensor:
-    """``(B, N)`` the template's intensities brought back to the reference light (inverse of Eq. 19).
+def light_normalised_intensity(intensity: Tensor, normals: Tensor, rotation: Tensor, illumination: Tensor) -> Tensor:
+    """``(B, N)`` template intensities brought back to the reference light (inverse of Eq. 19).
 
     Args:
-        template: intensities as seen under ``illumination``; rotation ``(B, 3, 3)`` the pose they were seen
+        intensity: ``(B, N)`` as seen under ``illumination``; normals: ``(B, N, 3)`` the points' head-frame
+            normals (:attr:`~torchface.template.points.Template.normals`, or
+            :func:`~torchface.template.points.point_normals`); rotation ``(B, 3, 3)`` the pose they were seen
             at (the normals are rotated into the camera frame as the solver's illumination basis does);
             illumination ``(B, L)``.
     """
-    normals_cam = torch.matmul(template.normals, rotation.transpose(1, 2))
-    return remove_illumination(template.intensity, normals_cam, illumination)
+    normals_cam = torch.matmul(normals, rotation.transpose(1, 2))
+    return remove_illumination(intensity, normals_cam, illumination)
 
 
 def _entry_level(t: Template) -> MosaicLevel:

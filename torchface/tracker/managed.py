@@ -329,8 +329,8 @@ def _new_entries(
             expression_priority=config.expression_priority, expression_quota=int(config.expression_quota * slots),
             offsets=offsets,
         )  # fmt: skip
-        normals_cam = torch.matmul(point_normals(model, shape, px.face_index, px.bary), R.transpose(1, 2))
-        templates.append(replace(px, intensity=remove_illumination(px.intensity, normals_cam, light)))
+        normals = point_normals(model, shape, px.face_index, px.bary)
+        templates.append(replace(px, intensity=light_normalised_intensity(px.intensity, normals, R, light)))
     return tuple(templates), reference
 
 
@@ -350,9 +350,8 @@ def _texture_update(
         pts = tpl.points + torch.einsum("bnka,ba->bnk", tpl.basis, alpha)
         cam = torch.matmul(pts, R.transpose(1, 2)) + t.unsqueeze(1)
         sampled, inside = sample_at_pixels(gray, project_points(cam, intr))
-        seen = replace(tpl, intensity=sampled[..., 0])
-        fresh = light_normalised_intensity(seen, R, light)
         normals_cam = torch.matmul(tpl.normals, R.transpose(1, 2))
+        fresh = remove_illumination(sampled[..., 0], normals_cam, light)  # light_normalised_intensity, rotated once
         facing = (normals_cam * torch.nn.functional.normalize(cam, dim=-1)).sum(-1) < -config.template.min_facing_cos
         update = mask.unsqueeze(-1) & tpl.valid & inside & facing
         intensity = torch.where(update, (1 - beta) * tpl.intensity + beta * fresh, tpl.intensity)
