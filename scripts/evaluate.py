@@ -33,6 +33,7 @@ Examples:
     python scripts/evaluate.py --only long_run --save-series out/a.npz       # split over processes, then pool (b):
     python scripts/evaluate.py --scenarios standard --add-series out/a.npz
     python scripts/evaluate.py --scenarios none --add-series out/a.npz,out/b.npz    # tables again, no tracking
+    python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3   # seed spread
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -366,6 +367,20 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
             cells = [f"{_fmt(m.get('au_rmse/' + a, nan), 3)} / {_fmt(m.get('au_corr/' + a, nan))}" for a in au]
             lines.append("   " + cfg.ljust(16) + "".join(c.rjust(24) for c in cells))
     return "\n".join(lines)
+
+
+def seed_table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
+    """One scenario tracked once per landmark-noise seed (rows), then the worst seed's figures."""
+    text = table(f"{name} across landmark-noise seeds", rows, info)
+    worst = {
+        "mean": max(m["rot_err_mean_deg"] for m in rows.values()),
+        "max": max(m["rot_err_max_deg"] for m in rows.values()),
+        "lost": max(m["lost_frames"] for m in rows.values()),
+    }
+    return text + (
+        f"\n   worst over {len(rows)} seeds: rot mean {_fmt(worst['mean'])} deg, max {_fmt(worst['max'])} deg, "
+        f"lost {int(worst['lost'])}"
+    )
 
 
 def _json_safe(value: object) -> object:
@@ -728,6 +743,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads")
     parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise")
+    parser.add_argument(
+        "--noise-seeds", default="",
+        help="comma list of landmark-noise seeds: each standard scenario is tracked again (full configuration) "
+        "once per seed and a table of the seeds follows its own (how much the figures depend on the noise draw)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -757,6 +777,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     if args.hold < 1:
         parser.error(f"--hold must be >= 1, got {args.hold}")
+    try:
+        noise_seeds = [int(x) for x in args.noise_seeds.split(",") if x.strip()]
+    except ValueError:
+        parser.error(f"--noise-seeds must be a comma list of integers, got {args.noise_seeds!r}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     cache = None if args.cache.lower() == "none" else Path(args.cache)
@@ -828,6 +852,24 @@ def main(argv: list[str] | None = None) -> int:
                     write_json(args.json, results)
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
+            if noise_seeds:
+                by_seed: dict[str, dict[str, float]] = {}
+                for s in noise_seeds:
+                    if s == args.seed and "full" in rows:
+                        by_seed[f"seed {s}"] = rows["full"]
+                        continue
+                    label = f"{name}/seed{s}"
+                    log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
+                    out = track_sequence(
+                        model, ABLATIONS["full"](base), seq, initial_landmarks(seq.gt, s), label, args.progress_every
+                    )
+                    m = score(model, seq.gt, out).as_dict()
+                    m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
+                    by_seed[f"seed {s}"] = results[label] = m
+                    if args.json is not None:
+                        write_json(args.json, results)
+                tables.append(seed_table(name, by_seed, f"{w}x{h}, {t} frames, full configuration"))
+                print(tables[-1] + "\n", flush=True)
     if earlier:
         again, figures = long_tables_from_series(earlier, cache, args.hold)
         for text in again:

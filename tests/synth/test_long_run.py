@@ -253,3 +253,22 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
     tables, figures = ev.long_tables_from_series(back, tmp_path, hold=1)
     assert len(tables) == 1 and tables[0].splitlines()[1:] == table.splitlines()[1:]
     assert figures["long_run/mosaic"]["return_errors_deg"] == m.return_errors_deg
+
+
+def test_evaluate_noise_seeds_track_each_seed_again(tmp_path, capsys):
+    """--noise-seeds: one full-configuration run per seed (the main seed's run reused), a table of them with the
+    worst seed's figures, and one JSON entry per extra seed whose figures come from its own initial landmarks."""
+    ev = _load_evaluate()
+    out = tmp_path / "e.json"
+    argv = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--ablations", "none", "--cache",
+            "none", "--no-auroc", "--progress-every", "0", "--noise-seeds", "0,1", "--json", str(out)]  # fmt: skip
+    assert ev.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "pose_sweep across landmark-noise seeds" in text and "worst over 2 seeds" in text
+    figures = json.loads(out.read_text())
+    assert set(figures) == {"pose_sweep", "pose_sweep/seed1"}
+    assert figures["pose_sweep"]["rot_err_max_deg"] != figures["pose_sweep/seed1"]["rot_err_max_deg"]
+    worst = max(figures["pose_sweep"]["rot_err_max_deg"], figures["pose_sweep/seed1"]["rot_err_max_deg"])
+    assert f"max {worst:.2f} deg" in text
+    with pytest.raises(SystemExit):
+        ev.main(["--scenarios", "pose_sweep", "--noise-seeds", "1,x"])
