@@ -7,7 +7,9 @@ initialised from frame 0's ground-truth landmarks plus Gaussian noise (fixed see
 ablation), tracks every later frame, and is scored with torchface.synth.metrics: rotation error relative to
 frame 0 (geodesic and per axis), translation error, animation-unit RMSE (fraction of each unit's range) and
 correlation over the units that vary in the ground truth, converged / successful / lost frames, and time
-per frame.
+per frame. With --noise-seeds each standard scenario is tracked again once per listed seed of the landmark
+noise (full configuration) and a table of the seeds follows, with the worst seed's figures: the starting pose
+and expression come from one noisy fit, so one seed's figures can be luckier or unluckier than another's.
 
 Ablations (one row each): full, no_illumination (TrackerConfig.use_illumination=False), no_expression
 (use_expression=False), no_robust (robust=RobustKind.NONE), all_pixels (gradient_threshold=0), no_management
