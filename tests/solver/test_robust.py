@@ -163,3 +163,54 @@ def test_robust_scale_empty_row_fallback() -> None:
     assert torch.isfinite(s).all()
     torch.testing.assert_close(s, torch.ones(3))
     assert robust_scale(torch.zeros(1, 0)).item() == 1.0
+
+
+def test_switched_loss_gives_each_row_its_loss() -> None:
+    from torchface.solver.robust import SwitchedRobustLoss
+
+    tukey, huber = RobustLoss(RobustKind.TUKEY, 4.685), RobustLoss(RobustKind.HUBER, 4.685)
+    r = torch.linspace(-9.0, 9.0, 37, dtype=torch.float64).expand(3, -1)
+    s = torch.tensor([[1.0], [1.5], [0.5]], dtype=torch.float64)
+    loss = SwitchedRobustLoss(tukey, huber, torch.tensor([[True], [False], [True]]))
+    rho, w = loss.rho_and_weight(r, s)
+    for b, chosen in enumerate((huber, tukey, huber)):
+        torch.testing.assert_close(rho[b], chosen.rho(r[b], s[b]), rtol=0, atol=0)
+        torch.testing.assert_close(w[b], chosen.weight(r[b], s[b]), rtol=0, atol=0)
+    torch.testing.assert_close(loss.rho(r, s), rho, rtol=0, atol=0)
+    torch.testing.assert_close(loss.weight(r, s), w, rtol=0, atol=0)
+    assert loss.kind is RobustKind.TUKEY and loss.min_scale == tukey.min_scale
+    assert float(w[1].min()) == 0.0 and float(w[0].min()) > 0.0  # Tukey rejects the far residuals, Huber keeps them
+    with pytest.raises(ValueError, match="switch"):
+        SwitchedRobustLoss(tukey, huber, torch.tensor([True, False]))
+    with pytest.raises(ValueError, match="switch"):
+        SwitchedRobustLoss(tukey, huber, torch.ones(2, 1))
+    with pytest.raises(ValueError, match="min_scale"):
+        SwitchedRobustLoss(tukey, RobustLoss(RobustKind.HUBER, min_scale=0.1), torch.ones(2, 1, dtype=torch.bool))
+    with pytest.raises(TypeError, match="RobustLoss"):
+        SwitchedRobustLoss(tukey, RobustKind.HUBER, torch.ones(2, 1, dtype=torch.bool))  # type: ignore[arg-type]
+
+
+def test_least_squares_with_a_switched_loss_solves_each_row_with_its_loss() -> None:
+    """A line fit with one gross outlier: Tukey rejects it, Huber is pulled by it; a switched loss gives each row
+    the solution of its own loss."""
+    from torchface.solver.least_squares import SolverConfig, least_squares
+    from torchface.solver.robust import SwitchedRobustLoss
+
+    x = torch.linspace(0.0, 1.0, 40, dtype=torch.float64)
+    y = 2.0 * x + 1.0 + 0.01 * torch.sin(37.0 * x)
+    y[5] += 5.0
+
+    def residual_fn(p: torch.Tensor):
+        r = p[:, :1] * x + p[:, 1:] - y
+        J = torch.stack([x.expand_as(r), torch.ones_like(r)], -1)
+        return r, J, torch.ones_like(r, dtype=torch.bool)
+
+    cfg = SolverConfig(max_iterations=50)
+    x0 = torch.zeros(2, 2, dtype=torch.float64)
+    tukey, huber = RobustLoss(RobustKind.TUKEY, 4.685), RobustLoss(RobustKind.HUBER, 4.685)
+    a = least_squares(residual_fn, x0, cfg, robust=tukey).params
+    b = least_squares(residual_fn, x0, cfg, robust=huber).params
+    assert float((a - b).abs().max()) > 1e-3  # the losses disagree here
+    mixed = least_squares(residual_fn, x0, cfg, robust=SwitchedRobustLoss(tukey, huber, torch.tensor([[False], [True]])))
+    torch.testing.assert_close(mixed.params[0], a[0], rtol=0, atol=1e-8)
+    torch.testing.assert_close(mixed.params[1], b[1], rtol=0, atol=1e-8)

@@ -133,17 +133,31 @@ def landmarks(gt, frame: int = 0) -> torch.Tensor:
 # ----------------------------------------------------------------------------- known answers
 
 
-def test_clean_track_is_confident_and_equals_the_bare_step(model, gentle):
+def test_clean_track_is_confident_and_equals_the_bare_step(model, gentle, monkeypatch):
+    import torchface.tracker.managed as managed
+
+    near = []
+    real = managed.track_step
+
+    def spy(*args, **kw):
+        near.append(kw["near_template"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(managed, "track_step", spy)
     frames, gt = gentle
     results, state = track(model, CFG, frames, landmarks(gt))
     conf = torch.stack([r.confidence[0] for r in results])
     assert float(conf.min()) > 0.6, conf
     assert all(bool(r.success.all()) for r in results)
     assert int(state.management.mosaic.num_entries[0]) == 1  # no new pose bin: the reference only
-    # The reference entry in use: the same estimates as track_step alone, bit for bit.
+    # The first frames are within clean_radius_deg (3) of the reference's pose, the last ones (7 degrees of yaw,
+    # 4 of pitch) beyond it.
+    assert bool(near[0].all()) and not bool(near[-1].any())
+    # The reference entry in use: the same estimates as track_step alone (given the same streams near their
+    # template's pose), bit for bit.
     bare_state, _ = initialise(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     for i in range(1, frames.shape[1]):
-        bare_state, bare = track_step(model, CFG, bare_state, frames[:, i])
+        bare_state, bare = track_step(model, CFG, bare_state, frames[:, i], near_template=near[i - 1])
         assert torch.equal(bare.axis_angle, results[i].axis_angle)
         assert torch.equal(bare.confidence, results[i].residual_confidence)
         assert_finite(results[i])
@@ -256,10 +270,10 @@ def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, 
     seen = []
     real = managed.track_step
 
-    def spy(model_, config_, state_, frames_, *, conservative=None):
+    def spy(model_, config_, state_, frames_, *, conservative=None, near_template=None):
         if state_.management is not None:  # the frame's solve, not a recovery candidate's
             seen.append((conservative.clone(), state_.management.lost.clone()))
-        return real(model_, config_, state_, frames_, conservative=conservative)
+        return real(model_, config_, state_, frames_, conservative=conservative, near_template=near_template)
 
     monkeypatch.setattr(managed, "track_step", spy)
     state, _ = initialise_managed(model, LEAVE_CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
@@ -401,3 +415,37 @@ def test_estimate_confidence_matches_the_step_and_sees_a_wrong_pose(model, gentl
     params[:, layout.rotation] += torch.tensor([0.0, 0.0, 0.1])
     wrong, _ = estimate_confidence(model, CFG, replace(state, params=params), frames[:, 1])
     assert float(res.confidence[0]) > 0.6 and float(wrong[0]) < 0.2
+
+
+@pytest.mark.parametrize("radius", [0.0, 3.0, 1000.0])
+def test_streams_near_their_entrys_pose_are_marked_for_the_clean_frame_rule(model, turns, monkeypatch, radius):
+    """``near_template``: None with the rule off; every frame within a huge radius; with the default 3 degrees,
+    the frames at the reference's and at a new entry's pose but not those between (3-degree yaw steps)."""
+    import torchface.tracker.managed as managed
+
+    near = []
+    real = managed.track_step
+
+    def spy(*args, **kw):
+        near.append(kw["near_template"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(managed, "track_step", spy)
+    frames, gt = turns
+    config = replace(CFG, template=TemplateConfig(clean_radius_deg=radius))
+    track(model, config, frames[:, :12], landmarks(gt))
+    if radius == 0.0:
+        assert all(n is None for n in near)
+        return
+    flags = [bool(n[0]) for n in near]
+    if radius == 1000.0:
+        assert all(flags)
+    else:  # frame i + 1 is solved from frame i's estimate, at 3 i degrees of yaw (entry 0 at 0 degrees)
+        assert flags[0] and not any(flags[2:4]), flags
+
+
+def test_clean_frame_rule_settings_are_validated():
+    with pytest.raises(ValueError, match="clean_radius_deg"):
+        TemplateConfig(clean_radius_deg=-1.0)
+    with pytest.raises(ValueError, match="clean_rejected_fraction"):
+        TemplateConfig(clean_rejected_fraction=1.5)

@@ -357,6 +357,11 @@ def test_track_step_rejects_bad_frames(model, two_streams, l2_runs):
         track_step(model, L2, states[0], frames[0, 1])
     with pytest.raises(TypeError, match="torch.Tensor"):
         track_step(model, L2, states[0], frames[:, 1].numpy())
+    for name in ("conservative", "near_template"):
+        with pytest.raises(ValueError, match=name):
+            track_step(model, L2, states[0], frames[:, 1], **{name: torch.ones(3, dtype=torch.bool)})
+        with pytest.raises(ValueError, match=name):
+            track_step(model, L2, states[0], frames[:, 1], **{name: torch.ones(2)})
 
 
 def test_config_validation():
@@ -487,3 +492,54 @@ def test_conservative_streams_keep_the_pose_levels_prior_in_the_refinement_pass(
         track_step(model, weak, state, frames[:, 1], conservative=torch.ones(3, dtype=torch.bool))
     with pytest.raises(ValueError, match="conservative"):
         track_step(model, weak, state, frames[:, 1], conservative=torch.ones(2))
+
+
+# --------------------------------------------------------------------------------------- clean-frame rule
+
+
+def _finest_losses(model, monkeypatch, config, state, frames, near):
+    """The loss the finest pose level of one :func:`track_step` gets: ``solve_level``'s (fast) or
+    ``least_squares``' (reference) ``robust`` argument at level 0 (the second of the two levels)."""
+    import torchface.tracker.step as step
+
+    seen = []
+    for name in ("solve_level", "least_squares"):
+        real = getattr(step, name)
+
+        def spy(*args, _real=real, **kw):
+            seen.append(kw["robust"])
+            return _real(*args, **kw)
+
+        monkeypatch.setattr(step, name, spy)
+    track_step(model, config, state, frames, near_template=near)
+    monkeypatch.undo()
+    return seen[1]  # levels coarse to fine; the fast solver's refinement pass comes after
+
+
+@pytest.mark.parametrize("solver", [TrackSolver.FAST, TrackSolver.REFERENCE])
+def test_clean_frame_rule_huber_at_the_finest_level_near_the_template_only(model, two_streams, monkeypatch, solver):
+    """Streams ``near_template`` on a clean frame get Huber (Tukey's constant) at the finest pose level, the others
+    Tukey; a sudden occluder keeps Tukey (the middle level rejects more than clean_rejected_fraction); no
+    ``near_template``: Tukey."""
+    from torchface.solver.robust import RobustLoss, SwitchedRobustLoss
+
+    frames, gts = two_streams
+    config = replace(BASE, solver=solver)
+    state, _ = initialise(model, config, frames[:, 0], landmarks_of(gts), Intrinsics.default(W, H))
+    mixed = _finest_losses(model, monkeypatch, config, state, frames[:, 1], torch.tensor([True, False]))
+    assert isinstance(mixed, SwitchedRobustLoss)
+    assert mixed.switch.flatten().tolist() == [True, False]
+    assert mixed.alternative.kind is RobustKind.HUBER and mixed.alternative.c == BASE.robust_c
+    assert mixed.base.kind is RobustKind.TUKEY
+    both = _finest_losses(model, monkeypatch, config, state, frames[:, 1], torch.tensor([True, True]))
+    assert isinstance(both, RobustLoss) and both.kind is RobustKind.HUBER
+    for near in (None, torch.tensor([False, False])):
+        kept = _finest_losses(model, monkeypatch, config, state, frames[:, 1], near)
+        assert isinstance(kept, RobustLoss) and kept.kind is RobustKind.TUKEY
+    # An occluder over ~30 % of the face from frame 1 on.
+    occ = OccluderSpec(1, T, 0.3, path_start=(0.2, 0.6), path_end=(0.5, 0.7))
+    spec = gentle_spec("occ", (8.0, -5.0, 4.0), (0.0, 0.0, 450.0), (6.0, -3.0, 10.0), {}, occluder=occ)
+    occluded, gt = render_sequence(spec)
+    state, _ = initialise(model, config, occluded[None, 0], gt.landmarks_px[:1].float(), Intrinsics.default(W, H))
+    kept = _finest_losses(model, monkeypatch, config, state, occluded[None, 1], torch.tensor([True]))
+    assert isinstance(kept, RobustLoss) and kept.kind is RobustKind.TUKEY

@@ -16,7 +16,7 @@ from torchface.solver.least_squares import (
     least_squares,
     solve_normal_equations,
 )
-from torchface.solver.robust import MAD_TO_SIGMA, RobustKind, RobustLoss, robust_scale
+from torchface.solver.robust import MAD_TO_SIGMA, RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 
 __all__ = [
     "MAD_TO_SIGMA",
@@ -27,6 +27,7 @@ __all__ = [
     "SolveStatus",
     "SolverConfig",
     "SolverMethod",
+    "SwitchedRobustLoss",
     "least_squares",
     "robust_scale",
     "solve_normal_equations",

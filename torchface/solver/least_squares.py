@@ -30,7 +30,7 @@ from typing import Callable
 
 import torch
 
-from torchface.solver.robust import RobustKind, RobustLoss, robust_scale
+from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 
 __all__ = [
     "SolverMethod",
@@ -326,7 +326,7 @@ def least_squares(
     upper: torch.Tensor | None = None,
     prior_precision: torch.Tensor | None = None,
     prior_mean: torch.Tensor | None = None,
-    robust: RobustLoss | None = None,
+    robust: RobustLoss | SwitchedRobustLoss | None = None,
 ) -> SolveResult:
     """Minimise ``sum_n rho(r_n(x); s) + 1/2 sum_p lambda_p (x_p - mu_p)**2`` for ``B`` samples at once.
 
@@ -363,7 +363,8 @@ def least_squares(
         upper: ``(P,)`` or ``(B, P)`` upper bounds (``+inf`` allowed), ``None`` for none.
         prior_precision: ``(P,)`` or ``(B, P)`` non-negative diagonal precision ``lambda``.
         prior_mean: ``(P,)`` or ``(B, P)`` prior mean ``mu`` (needs ``prior_precision``).
-        robust: the :class:`RobustLoss`; ``None`` for plain least squares.
+        robust: the :class:`RobustLoss` (or a per-sample :class:`SwitchedRobustLoss`); ``None`` for plain
+            least squares.
 
     Returns:
         :class:`SolveResult` with ``params (B, P)``, ``cost (B,)`` and ``initial_cost (B,)`` (sums, as
@@ -390,8 +391,8 @@ def least_squares(
     if not isinstance(x0, torch.Tensor) or not x0.is_floating_point() or x0.dim() != 2:
         got = (tuple(x0.shape), x0.dtype) if isinstance(x0, torch.Tensor) else type(x0).__name__
         raise ValueError(f"x0 must be a (B, P) floating-point tensor, got {got}")
-    if robust is not None and not isinstance(robust, RobustLoss):
-        raise TypeError(f"robust must be a RobustLoss or None, got {type(robust).__name__}")
+    if robust is not None and not isinstance(robust, (RobustLoss, SwitchedRobustLoss)):
+        raise TypeError(f"robust must be a RobustLoss, a SwitchedRobustLoss or None, got {type(robust).__name__}")
     B, P = x0.shape
     dtype = x0.dtype
     lo = None if lower is None else _batched_param("lower", lower, B, P, dtype)
@@ -419,7 +420,7 @@ def _run(
     hi: torch.Tensor | None,
     lam: torch.Tensor | None,
     mu: torch.Tensor | None,
-    robust: RobustLoss | None,
+    robust: RobustLoss | SwitchedRobustLoss | None,
 ) -> SolveResult:
     B, P = x0.shape
     dtype, device = x0.dtype, x0.device

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["RobustKind", "RobustLoss", "robust_scale", "MAD_TO_SIGMA"]
+__all__ = ["RobustKind", "RobustLoss", "SwitchedRobustLoss", "robust_scale", "MAD_TO_SIGMA"]
 
 #: ``1 / Phi^{-1}(3/4)``: makes the median absolute deviation a consistent estimate of a Gaussian sigma.
 MAD_TO_SIGMA: float = 1.482602218505602
@@ -184,6 +184,64 @@ class RobustLoss:
         t = ((u * u) / (c * c)).clamp(max=1.0)
         one_minus_t = 1.0 - t
         return s * s * ((c * c / 6.0) * (1.0 - one_minus_t**3)), one_minus_t**2
+
+
+@dataclass(frozen=True)
+class SwitchedRobustLoss:
+    """Per sample, one of two robust losses: ``alternative`` for the samples (rows) where ``switch`` is True,
+    ``base`` for the others. It has :class:`RobustLoss`'s interface (``rho``, ``weight``, ``rho_and_weight``,
+    ``kind`` and ``min_scale`` of ``base``) for :func:`torchface.solver.least_squares` and the tracker's solver.
+
+    Attributes:
+        base: the loss of the rows not switched; alternative: the loss of the switched rows (same ``min_scale``).
+        switch: ``(B, 1)`` bool, broadcast against residuals ``(B, N)``.
+
+    Example:
+        >>> loss = SwitchedRobustLoss(RobustLoss(RobustKind.TUKEY, 4.685), RobustLoss(RobustKind.HUBER, 4.685),
+        ...                           torch.tensor([[False], [True]]))
+        >>> loss.weight(torch.full((2, 1), 6.0))  # beyond Tukey's c: rejected by Tukey, kept by Huber
+        tensor([[0.0000],
+                [0.7808]])
+    """
+
+    base: RobustLoss
+    alternative: RobustLoss
+    switch: torch.Tensor
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.base, RobustLoss) or not isinstance(self.alternative, RobustLoss):
+            raise TypeError("base and alternative must be RobustLoss instances")
+        if self.base.min_scale != self.alternative.min_scale:
+            raise ValueError(f"base and alternative need one min_scale, got {self.base.min_scale} and "
+                             f"{self.alternative.min_scale}")  # fmt: skip
+        sw = self.switch
+        if not isinstance(sw, torch.Tensor) or sw.dtype != torch.bool or sw.dim() != 2 or sw.shape[1] != 1:
+            got = (tuple(sw.shape), sw.dtype) if isinstance(sw, torch.Tensor) else type(sw).__name__
+            raise ValueError(f"switch must be a (B, 1) bool tensor, got {got}")
+
+    @property
+    def kind(self) -> RobustKind:
+        """``base``'s kind."""
+        return self.base.kind
+
+    @property
+    def min_scale(self) -> float:
+        """The losses' common scale floor."""
+        return self.base.min_scale
+
+    def rho(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+        """:meth:`RobustLoss.rho` of each row's loss; ``r`` ``(B, N)``."""
+        return torch.where(self.switch, self.alternative.rho(r, scale), self.base.rho(r, scale))
+
+    def weight(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+        """:meth:`RobustLoss.weight` of each row's loss; ``r`` ``(B, N)``."""
+        return torch.where(self.switch, self.alternative.weight(r, scale), self.base.weight(r, scale))
+
+    def rho_and_weight(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(rho, weight)`` of each row's loss."""
+        rho_a, w_a = self.alternative.rho_and_weight(r, scale)
+        rho_b, w_b = self.base.rho_and_weight(r, scale)
+        return torch.where(self.switch, rho_a, rho_b), torch.where(self.switch, w_a, w_b)
 
 
 def _masked_median(x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss
+from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss, SwitchedRobustLoss
 from torchface.template.points import Template
 
 
@@ -192,7 +192,9 @@ def linearise(
     return r, J, valid, intensity
 
 
-def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: float) -> tuple[Tensor, Tensor, Tensor]:
+def _weights(
+    r: Tensor, valid: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, scale_floor: float
+) -> tuple[Tensor, Tensor, Tensor]:
     """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` and the cost ``(B,)`` at that
     scale (:func:`_cost`)."""
     s = (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
@@ -203,7 +205,7 @@ def _weights(r: Tensor, valid: Tensor, robust: RobustLoss | None, scale_floor: f
     return w * rw, s, rho.sum(-1)
 
 
-def _cost(r: Tensor, robust: RobustLoss | None, s: Tensor) -> Tensor:
+def _cost(r: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, s: Tensor) -> Tensor:
     """``(B,)`` robust cost ``sum rho(r; s)`` (``r**2 / 2`` without a robust loss); ``r`` is 0 where invalid
     (``rho(0) = 0``, so invalid points add nothing)."""
     rho = 0.5 * r * r if robust is None else robust.rho(r, s)
@@ -231,7 +233,7 @@ def solve_level(
     alpha_lower: Tensor,
     alpha_upper: Tensor,
     alpha_prior: float | Tensor,
-    robust: RobustLoss | None,
+    robust: RobustLoss | SwitchedRobustLoss | None,
     alpha_mean: Tensor | None = None,
     scale_floor: float = 0.02,
     damping: float = 1e-3,

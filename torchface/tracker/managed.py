@@ -482,11 +482,13 @@ def managed_step(
 
     # 1. The mosaic entry nearest each stream's pose (templates rebuilt only where the entry changes).
     entry, templates = ms.entry, state.templates
-    if tc.mosaic and ms.mosaic.capacity > 1:
+    use_mosaic = tc.mosaic and ms.mosaic.capacity > 1
+    if use_mosaic or tc.clean_radius_deg > 0:
         if ms.params_ypr is not None and ms.params_ypr[0] is state.params:
             ypr = ms.params_ypr[1]
         else:
             ypr = matrix_to_euler(axis_angle_to_matrix(state.params[:, layout.rotation]))
+    if use_mosaic:
         entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg, tc.reference_radius_deg)
         changed = (entry != ms.entry).nonzero().squeeze(-1)
         if changed.numel():
@@ -497,7 +499,15 @@ def managed_step(
     # Lost streams keep the pose levels' prior in the refinement pass: with a weak one (refine_prior_precision)
     # a lost track's units fitted a wrong pose well enough to pass the recovery confidence, and the stream
     # stayed lost at that pose (measured on the CANDIDE-3 long run after the face left the frame).
-    solved, result = track_step(model, config, replace(state, templates=templates), frames, conservative=ms.lost)
+    # Streams near the pose their entry was built at are solved with Huber at the finest level on a clean frame
+    # (TemplateConfig.clean_radius_deg).
+    near = None
+    if tc.clean_radius_deg > 0:
+        rows = torch.arange(entry.shape[0], device=entry.device)
+        near = (ms.mosaic.ypr_deg[rows, entry, :2] - ypr[:, :2]).norm(dim=-1) <= tc.clean_radius_deg
+    solved, result = track_step(
+        model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
+    )
     conf, diss = _confidence(model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg)
 
     # 3. Gating and loss.

@@ -25,10 +25,10 @@ from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
 from torchface.solver.least_squares import ResidualFn, SolveResult, SolverConfig, SolveStatus, least_squares
-from torchface.solver.robust import RobustKind, RobustLoss
+from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
-from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, solve_level
+from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, _weights, solve_level
 from torchface.tracker.fit import FitConfig, fit_landmarks
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -428,7 +428,13 @@ def _result(
 
 
 def track_step(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, *, conservative: Tensor | None = None
+    model: FaceModel,
+    config: TrackerConfig,
+    state: TrackerState,
+    frames: Tensor,
+    *,
+    conservative: Tensor | None = None,
+    near_template: Tensor | None = None,
 ) -> tuple[TrackerState, TrackResult]:
     """Track one frame per stream: one joint minimisation over pose, expression and light (Eq. 20).
 
@@ -440,6 +446,10 @@ def track_step(
         conservative: optional ``(B,)`` bool, streams whose refinement pass uses ``expression_prior_precision``
             instead of ``refine_prior_precision`` (template management passes its lost streams). No effect
             when ``refine_prior_precision`` is None.
+        near_template: optional ``(B,)`` bool, streams whose pose is near the pose their templates were built at
+            (template management passes those within ``config.template.clean_radius_deg`` of their mosaic
+            entry's); on a clean frame (``config.template.clean_rejected_fraction``) their finest pose level uses
+            a Huber loss instead of Tukey's. None: ``config.robust`` throughout.
 
     Returns:
         The new state and the frame's :class:`TrackResult`. A FAILED sample keeps its previous parameters
@@ -449,20 +459,18 @@ def track_step(
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     frames = frames.to(dtype=model.dtype, device=model.device)
-    if conservative is not None and (
-        not isinstance(conservative, Tensor) or conservative.dtype != torch.bool
-        or tuple(conservative.shape) != (frames.shape[0],)
-    ):
-        got = type(conservative).__name__
-        if isinstance(conservative, Tensor):
-            got = f"{conservative.dtype} {tuple(conservative.shape)}"
-        raise ValueError(f"conservative must be a ({frames.shape[0]},) bool tensor, got {got}")
+    for name, mask in (("conservative", conservative), ("near_template", near_template)):
+        if mask is not None and (
+            not isinstance(mask, Tensor) or mask.dtype != torch.bool or tuple(mask.shape) != (frames.shape[0],)
+        ):
+            got = f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, Tensor) else type(mask).__name__
+            raise ValueError(f"{name} must be a ({frames.shape[0]},) bool tensor, got {got}")
     if config.solver is TrackSolver.FAST:
-        return _track_step_fast(model, config, state, frames, conservative)
+        return _track_step_fast(model, config, state, frames, conservative, near_template)
     layout = _layout(model)
     solvers = [SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level])
                for level in reversed(range(config.num_levels))]  # fmt: skip
-    x, last = reference_levels(model, config, state, frames, state.params, solvers)
+    x, last = reference_levels(model, config, state, frames, state.params, solvers, near_template=near_template)
     # Finest-level diagnostics at the final estimate.
     r, _, valid = last.residual_fn(x)
     _, cam, _ = warp_points(last.template, layout, x)
@@ -488,6 +496,40 @@ class ReferenceLevel:
     result: SolveResult
 
 
+
+def _clean_rule(config: TrackerConfig, near_template: Tensor | None) -> bool:
+    """Whether the clean-frame rule of :attr:`~torchface.template.management.TemplateConfig.clean_radius_deg`
+    applies: streams near their template's pose given, a Tukey loss, the rule on, at least two levels."""
+    tc = config.template
+    return (
+        near_template is not None and config.robust is RobustKind.TUKEY and tc.clean_radius_deg > 0
+        and tc.clean_rejected_fraction > 0 and config.num_levels > 1
+    )  # fmt: skip
+
+
+def _clean_streams(
+    config: TrackerConfig, near_template: Tensor, robust: RobustLoss, r: Tensor, valid: Tensor, scale: Tensor
+) -> Tensor:
+    """``(B, 1)`` bool: the streams ``near_template (B,)`` whose residuals ``r (B, N)`` ``robust`` rejects (zero
+    weight at ``scale (B, 1)``) fewer than ``config.template.clean_rejected_fraction`` of the valid ones."""
+    rejected = ((robust.weight(r, scale) == 0) & valid).sum(-1)
+    clean = rejected / valid.sum(-1).clamp_min(1) < config.template.clean_rejected_fraction
+    return (clean & near_template.to(clean.device)).unsqueeze(-1)
+
+
+def _finest_loss(robust: RobustLoss, clean: Tensor | None) -> RobustLoss | SwitchedRobustLoss:
+    """The finest pose level's loss: Huber with ``robust``'s constant for the ``clean (B, 1)`` streams, ``robust``
+    for the others (:attr:`~torchface.template.management.TemplateConfig.clean_radius_deg`); ``robust`` when
+    ``clean`` is None."""
+    if clean is None:
+        return robust
+    huber = RobustLoss(RobustKind.HUBER, robust.c, min_scale=robust.min_scale)
+    n = int(clean.sum())
+    if n == clean.shape[0]:
+        return huber
+    return robust if n == 0 else SwitchedRobustLoss(robust, huber, clean)
+
+
 def reference_levels(
     model: FaceModel,
     config: TrackerConfig,
@@ -495,6 +537,8 @@ def reference_levels(
     frames: Tensor,
     start: Tensor,
     solvers: Sequence[SolverConfig],
+    *,
+    near_template: Tensor | None = None,
 ) -> tuple[Tensor, ReferenceLevel]:
     """The reference path's coarse-to-fine solve of Eq. 20 over the ``len(solvers)`` finest pyramid levels.
 
@@ -511,6 +555,7 @@ def reference_levels(
         frames: ``(B, C, H, W)`` in ``[0, 1]`` at the state's size; start: ``(B, P)`` initial parameters.
         solvers: one :class:`SolverConfig` per level, coarsest first; ``len(solvers)`` in
             ``[1, config.num_levels]``.
+        near_template: as in :func:`track_step` (the finest level's loss on clean frames); None: Tukey.
 
     Returns:
         ``(B, P)`` the estimate and the finest level's :class:`ReferenceLevel`.
@@ -535,6 +580,7 @@ def reference_levels(
     prior_mean = prior_mean_vector(config, state, layout)
     x = start
     last = None
+    clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
     for level, solver in zip(reversed(range(len(solvers))), solvers):
         gray = pyramid[level]
         intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
@@ -551,9 +597,16 @@ def reference_levels(
             robust = RobustLoss(config.robust, config.robust_c, min_scale=scale_floor(config, level))
         res = least_squares(
             residual_fn, x, solver, lower=lower, upper=upper, prior_precision=prior, prior_mean=prior_mean,
-            robust=robust,
+            robust=_finest_loss(robust, clean) if level == 0 and robust is not None else robust,
         )  # fmt: skip
         x = torch.where(res.failed.unsqueeze(-1), x, res.params)
+        if level == 1 and robust is not None and _clean_rule(config, near_template):
+            with torch.no_grad():  # the level's residuals and robust scale at its estimate, as least_squares has them
+                r, _, valid = residual_fn(x.detach())
+                valid = valid & torch.isfinite(r)
+                r = torch.where(valid, r, torch.zeros_like(r))
+                scale = robust_scale(r, valid).clamp_min(robust.min_scale).unsqueeze(1)
+                clean = _clean_streams(config, near_template, robust, r, valid, scale)
         last = ReferenceLevel(tpl, image, intr, residual_fn, res)
     assert last is not None
     return x, last
@@ -622,7 +675,12 @@ def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
 
 
 def _track_step_fast(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, conservative: Tensor | None = None
+    model: FaceModel,
+    config: TrackerConfig,
+    state: TrackerState,
+    frames: Tensor,
+    conservative: Tensor | None = None,
+    near_template: Tensor | None = None,
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`track_step` with the fast solver (:mod:`torchface.tracker.fast`)."""
     layout = _layout(model)
@@ -656,6 +714,7 @@ def _track_step_fast(
     lo, hi = model.animation_ranges[:, 0], model.animation_ranges[:, 1]
     alpha_mean = anim_prior_mean(config, state)
     intr = state.intrinsics
+    clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
     for level in reversed(range(config.num_levels)):
         s = 0.5**level
         img = image_with_gradients(crop[level])
@@ -669,13 +728,17 @@ def _track_step_fast(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[level],
             iterations=config.iterations[config.num_levels - 1 - level], free=free,
             alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision, alpha_mean=alpha_mean,
-            robust=robust, scale_floor=scale_floor(config, level),
+            robust=_finest_loss(robust, clean) if level == 0 and robust is not None else robust,
+            scale_floor=scale_floor(config, level),
             # A coarser level's result is refined by the next one: its convergence tolerance is as coarse as its
             # pixels (2**level full-resolution pixels). Its last step is still checked (without the check, a
             # sudden occluder's first frame went from 1.98 to 2.15 degrees in test_step's occlusion test).
             step_tolerance=tuple(v * 2**level for v in STEP_TOLERANCE),
             function_tolerance=config.function_tolerance * 2**level,
         )
+        if level == 1 and robust is not None and _clean_rule(config, near_template):
+            _, scale, _ = _weights(out.residual, out.valid, None, scale_floor(config, level))
+            clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
     if config.refine_iterations > 0 and config.use_expression:
         only = free.clone()
         only[layout.rotation] = False
