@@ -496,7 +496,6 @@ class ReferenceLevel:
     result: SolveResult
 
 
-
 def _clean_rule(config: TrackerConfig, near_template: Tensor | None) -> bool:
     """Whether the clean-frame rule of :attr:`~torchface.template.management.TemplateConfig.clean_radius_deg`
     applies: streams near their template's pose given, a Tukey loss, the rule on, at least two levels."""
