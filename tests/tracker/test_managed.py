@@ -133,7 +133,8 @@ def landmarks(gt, frame: int = 0) -> torch.Tensor:
 # ----------------------------------------------------------------------------- known answers
 
 
-def test_clean_track_is_confident_and_equals_the_bare_step(model, gentle, monkeypatch):
+def _record_near_template(monkeypatch) -> list:
+    """Make every ``track_step`` call of template management append its ``near_template`` to the list returned."""
     import torchface.tracker.managed as managed
 
     near = []
@@ -144,20 +145,28 @@ def test_clean_track_is_confident_and_equals_the_bare_step(model, gentle, monkey
         return real(*args, **kw)
 
     monkeypatch.setattr(managed, "track_step", spy)
+    return near
+
+
+@pytest.mark.parametrize("radius", [0.0, 3.0])
+def test_clean_track_is_confident_and_equals_the_bare_step(model, gentle, monkeypatch, radius):
+    near = _record_near_template(monkeypatch)
     frames, gt = gentle
-    results, state = track(model, CFG, frames, landmarks(gt))
+    config = replace(CFG, template=TemplateConfig(clean_radius_deg=radius))
+    results, state = track(model, config, frames, landmarks(gt))
     conf = torch.stack([r.confidence[0] for r in results])
     assert float(conf.min()) > 0.6, conf
     assert all(bool(r.success.all()) for r in results)
     assert int(state.management.mosaic.num_entries[0]) == 1  # no new pose bin: the reference only
-    # The first frames are within clean_radius_deg (3) of the reference's pose, the last ones (7 degrees of yaw,
-    # 4 of pitch) beyond it.
-    assert bool(near[0].all()) and not bool(near[-1].any())
+    if radius == 0.0:  # the clean-frame rule off (the default): no mask
+        assert all(n is None for n in near)
+    else:  # the first frames are within 3 degrees of the reference's pose, the last (7 of yaw, 4 of pitch) not
+        assert bool(near[0].all()) and not bool(near[-1].any())
     # The reference entry in use: the same estimates as track_step alone (given the same streams near their
     # template's pose), bit for bit.
-    bare_state, _ = initialise(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    bare_state, _ = initialise(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     for i in range(1, frames.shape[1]):
-        bare_state, bare = track_step(model, CFG, bare_state, frames[:, i], near_template=near[i - 1])
+        bare_state, bare = track_step(model, config, bare_state, frames[:, i], near_template=near[i - 1])
         assert torch.equal(bare.axis_angle, results[i].axis_angle)
         assert torch.equal(bare.confidence, results[i].residual_confidence)
         assert_finite(results[i])
@@ -419,18 +428,9 @@ def test_estimate_confidence_matches_the_step_and_sees_a_wrong_pose(model, gentl
 
 @pytest.mark.parametrize("radius", [0.0, 3.0, 1000.0])
 def test_streams_near_their_entrys_pose_are_marked_for_the_clean_frame_rule(model, turns, monkeypatch, radius):
-    """``near_template``: None with the rule off; every frame within a huge radius; with the default 3 degrees,
+    """``near_template``: None with the rule off; every frame within a huge radius; with 3 degrees,
     the frames at the reference's and at a new entry's pose but not those between (3-degree yaw steps)."""
-    import torchface.tracker.managed as managed
-
-    near = []
-    real = managed.track_step
-
-    def spy(*args, **kw):
-        near.append(kw["near_template"])
-        return real(*args, **kw)
-
-    monkeypatch.setattr(managed, "track_step", spy)
+    near = _record_near_template(monkeypatch)
     frames, gt = turns
     config = replace(CFG, template=TemplateConfig(clean_radius_deg=radius))
     track(model, config, frames[:, :12], landmarks(gt))

@@ -498,11 +498,10 @@ class ReferenceLevel:
 
 def _clean_rule(config: TrackerConfig, near_template: Tensor | None) -> bool:
     """Whether the clean-frame rule of :attr:`~torchface.template.management.TemplateConfig.clean_radius_deg`
-    applies: streams near their template's pose given, a Tukey loss, the rule on, at least two levels."""
-    tc = config.template
+    applies: streams near their template's pose given, a Tukey loss, a positive rejection threshold, two levels."""
     return (
-        near_template is not None and config.robust is RobustKind.TUKEY and tc.clean_radius_deg > 0
-        and tc.clean_rejected_fraction > 0 and config.num_levels > 1
+        near_template is not None and config.robust is RobustKind.TUKEY
+        and config.template.clean_rejected_fraction > 0 and config.num_levels > 1
     )  # fmt: skip
 
 
