@@ -192,12 +192,18 @@ def linearise(
     return r, J, valid, intensity
 
 
+def robust_scale_of(r: Tensor, valid: Tensor, scale_floor: float) -> Tensor:
+    """``(B, 1)`` the IRLS robust scale of residuals ``r (B, N)``: ``1.4826 * median |r|`` over ``valid (B, N)``,
+    floored at ``scale_floor``."""
+    return (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
+
+
 def _weights(
     r: Tensor, valid: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, scale_floor: float
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` and the cost ``(B,)`` at that
-    scale (:func:`_cost`)."""
-    s = (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
+    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` (:func:`robust_scale_of`) and the
+    cost ``(B,)`` at that scale (:func:`_cost`)."""
+    s = robust_scale_of(r, valid, scale_floor)
     w = valid.to(r.dtype)
     if robust is None:
         return w, s, _cost(r, None, s)

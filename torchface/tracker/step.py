@@ -28,7 +28,7 @@ from torchface.solver.least_squares import ResidualFn, SolveResult, SolverConfig
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
-from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, _weights, solve_level
+from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import FitConfig, fit_landmarks
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -735,7 +735,7 @@ def _track_step_fast(
             function_tolerance=config.function_tolerance * 2**level,
         )
         if level == 1 and robust is not None and _clean_rule(config, near_template):
-            _, scale, _ = _weights(out.residual, out.valid, None, scale_floor(config, level))
+            scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
             clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
     if config.refine_iterations > 0 and config.use_expression:
         only = free.clone()
