@@ -158,7 +158,7 @@ def test_clean_track_is_confident_and_equals_the_bare_step(model, gentle, monkey
     assert float(conf.min()) > 0.6, conf
     assert all(bool(r.success.all()) for r in results)
     assert int(state.management.mosaic.num_entries[0]) == 1  # no new pose bin: the reference only
-    if radius == 0.0:  # the clean-frame rule off (the default): no mask
+    if radius == 0.0:  # the clean-frame rule off: no mask
         assert all(n is None for n in near)
     else:  # the first frames are within 3 degrees of the reference's pose, the last (7 of yaw, 4 of pitch) not
         assert bool(near[0].all()) and not bool(near[-1].any())

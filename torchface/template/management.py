@@ -184,9 +184,10 @@ class TemplateConfig:
             moved by at most 0.012 degree (pose_sweep 0.483 -> 0.494). Huber at every clean frame instead (no
             radius) gave the same returns but took pose_sweep to 0.53 and scan_motion from 1.88 to 2.08 degrees
             mean; a radius of 5 degrees took pose_sweep to 0.497 and failed a small-face known-answer test of
-            ``training_hooks``. Off (0) by default: in benchmark.py's 32 streams the managed solve went from 11.8
-            to 16.4 ms per stream-frame with it (3 degrees), taking template management's overhead from 19% to
-            34-60% against its 30% target; one stream was within the run-to-run noise.
+            ``training_hooks``. 0 turns the rule off. Its cost is within the noise: 32 streams of benchmark.py's
+            frames, on and off alternating in one process, took 17.0-17.9 against 17.0-17.7 ms per stream-frame
+            (the managed solve 13.3-14.0 against 13.8-13.9, the same iterations). A slower managed solve measured
+            in separate benchmark.py runs (16.4 against 11.8 ms) did not reproduce in one process.
         clean_rejected_fraction: a frame is clean for a stream when its middle pyramid level ended with fewer
             than this fraction of its valid points rejected (zero Tukey weight at that level's robust scale).
             Measured: 0-0.5% at the James returns, 1.4-7.6% under the ``occlusion`` scenario's occluder.
@@ -220,7 +221,7 @@ class TemplateConfig:
     search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
     search_points: int = 300
     search_min_inside: float = 0.8
-    clean_radius_deg: float = 0.0
+    clean_radius_deg: float = 3.0
     clean_rejected_fraction: float = 0.01
 
     def __post_init__(self) -> None:
