@@ -1,6 +1,7 @@
 """The tracker: initial fit (Eq. 2), per-frame joint minimisation (Eq. 20), batched streams."""
 
 from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit, refine_first_fit, select_keyframes
 from torchface.tracker.managed import (
     LandmarkDetector,
     ManagementState,
@@ -27,6 +28,7 @@ __all__ = [
     "FitConfig",
     "LandmarkDetector",
     "LandmarkFit",
+    "LookaheadConfig",
     "ManagementState",
     "ParamLayout",
     "TrackResult",
@@ -40,7 +42,10 @@ __all__ = [
     "initialise",
     "initialise_managed",
     "level_intrinsics",
+    "lookahead_fit",
     "managed_step",
+    "refine_first_fit",
+    "select_keyframes",
     "track_step",
     "warp_points",
 ]

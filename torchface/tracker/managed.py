@@ -72,7 +72,7 @@ from torchface.template.management import (
     within_reach,
 )
 from torchface.template.points import Template, TemplatePixels, point_normals, select_template_pixels
-from torchface.tracker.fit import fit_landmarks
+from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -148,6 +148,8 @@ def initialise_managed(
     landmarks_px: Tensor,
     intrinsics: Intrinsics,
     weights: Tensor | None = None,
+    *,
+    fit: LandmarkFit | None = None,
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`~torchface.tracker.step.initialise`, then the mosaic and the dissimilarity reference.
 
@@ -160,7 +162,7 @@ def initialise_managed(
         >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
-    state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights)
+    state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template
     if not tc.enabled:
         return state, _plain(result)

@@ -8,6 +8,7 @@ from torch import Tensor, nn
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
+from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult
 
@@ -72,6 +73,8 @@ class FaceTracker(nn.Module):
         landmarks_px: Tensor,
         intrinsics: Intrinsics | None = None,
         weights: Tensor | None = None,
+        *,
+        fit: LandmarkFit | None = None,
     ) -> TrackResult:
         """Start tracking from the first frames and their landmarks.
 
@@ -80,12 +83,16 @@ class FaceTracker(nn.Module):
             landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels.
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
             weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
+            fit: the first frames' fit when already made (e.g. by
+                :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
         """
         if intrinsics is None:
             if not isinstance(frames, Tensor) or frames.dim() != 4:
                 raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
-        self._state, result = initialise_managed(self.model, self.config, frames, landmarks_px, intrinsics, weights)
+        self._state, result = initialise_managed(
+            self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit
+        )
         return result
 
     @torch.no_grad()

@@ -29,7 +29,7 @@ from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, 
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
-from torchface.tracker.fit import FitConfig, fit_landmarks
+from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
 
@@ -366,6 +366,8 @@ def initialise(
     landmarks_px: Tensor,
     intrinsics: Intrinsics,
     weights: Tensor | None = None,
+    *,
+    fit: LandmarkFit | None = None,
 ) -> tuple[TrackerState, TrackResult]:
     """Fit the first frame from landmarks (Eq. 2) and build the templates (Eq. 3-9).
 
@@ -376,6 +378,8 @@ def initialise(
         landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing).
         intrinsics: camera of ``frames``.
         weights: ``(B, K)`` landmark confidences or None.
+        fit: the first frames' fit when already made (batch ``B``; e.g. refined by
+            :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
 
     Returns:
         The state and the first frame's result.
@@ -385,7 +389,10 @@ def initialise(
         got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {frames.shape[0]} (one set per frame), got {got}")
     frames = frames.to(dtype=model.dtype, device=model.device)
-    fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
+    if fit is None:
+        fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
+    elif not isinstance(fit, LandmarkFit) or fit.rotation.shape[0] != frames.shape[0]:
+        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got {type(fit).__name__}")
     layout = _layout(model)
     B = frames.shape[0]
     x = torch.zeros(B, layout.size, dtype=model.dtype, device=model.device)
