@@ -88,6 +88,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="convert grayscale, RGBA and 16-bit frames to RGB and crop odd sizes to even (default: reject them)",
     )  # fmt: skip
     track.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
+    track.add_argument(
+        "--lookahead", action="store_true",
+        help="refine the first frame's pose against the frames where the head turns 20 degrees each way (reads up "
+        "to 150 frames ahead and keeps them in memory; torchface.tracker.lookahead)",
+    )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
 
     demo = sub.add_parser("demo", help="track the embedded sample clip and write everything to ./torchface-demo/")
@@ -125,12 +130,15 @@ def _print_summary(summaries, out: TextIO) -> None:
     out.flush()
 
 
-def _run_track(videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False) -> int:
+def _run_track(
+    videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False
+) -> int:
     from torchface.job import JobConfig, track_videos
+    from torchface.tracker.lookahead import LookaheadConfig
 
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
-        resume=resume, convert=convert, meshes=meshes,
+        resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = track_videos(videos, config, progress=display)
@@ -176,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "track":
             return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
-                              args.resume, args.meshes, args.quiet, args.convert)  # fmt: skip
+                              args.resume, args.meshes, args.quiet, args.convert, args.lookahead)  # fmt: skip
         if args.command == "demo":
             from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

@@ -44,6 +44,7 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
 from torchface.tracker.fit import fit_landmarks
+from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import TrackerConfig, TrackerState
@@ -89,6 +90,10 @@ class JobConfig:
             confidence written as ``confidence``, the mosaic, loss and recovery).
         redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
         redetect_below: the (dissimilarity) confidence threshold for that.
+        lookahead: start each video from the look-ahead fit (:mod:`torchface.tracker.lookahead`: the first
+            frame's pose and expression refined against the frames where the head turns 20 degrees each way),
+            or None for the first frame's landmark fit alone. It reads up to ``lookahead.max_frames`` frames of
+            every video of a batch ahead and keeps them in memory (150 frames of 640x480: about 550 MB each).
     """
 
     out_dir: Path
@@ -103,6 +108,7 @@ class JobConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     redetect_after: int = 10
     redetect_below: float = 0.15
+    lookahead: LookaheadConfig | None = None
 
     def __post_init__(self) -> None:
         if self.focal is not None and not self.focal > 0:
@@ -246,6 +252,7 @@ class _Stream:
     redetections: int = 0
     confidences: list[float] = field(default_factory=list)
     lost: list[int] = field(default_factory=list)
+    ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
 
 
 def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamLayout) -> Tensor:
@@ -399,7 +406,8 @@ def _track_group(
                 d.mkdir(parents=True, exist_ok=True)
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
-        state, result = initialise_managed(model, config.tracker, frames, lm, intr)
+        fit = None if config.lookahead is None else _lookahead_fit(model, config, streams, lm, intr)
+        state, result = initialise_managed(model, config.tracker, frames, lm, intr, fit=fit)
         recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
@@ -427,7 +435,7 @@ def _track_group(
             for s in streams:
                 if not s.done:
                     try:
-                        s.last_frame = next(s.reader)
+                        s.last_frame = s.ahead.pop(0) if s.ahead else next(s.reader)
                     except StopIteration:
                         s.done = True
                 nxt.append(s.last_frame)
@@ -498,6 +506,25 @@ def _track_group(
         summaries.append(VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                                       float(conf.mean()) if len(conf) else 0.0, fps))  # fmt: skip
     return summaries
+
+
+def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics):
+    """Read up to ``config.lookahead.max_frames`` frames of every stream ahead (kept in ``_Stream.ahead`` for the
+    tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit."""
+    la = config.lookahead
+    for s in streams:
+        while len(s.ahead) < la.max_frames - 1:
+            try:
+                s.ahead.append(next(s.reader))
+            except StopIteration:
+                break
+    T = 1 + min(len(s.ahead) for s in streams)  # the batch's common length
+    if T < 2:
+        return None
+    frames = torch.stack([torch.stack([s.last_frame] + s.ahead[: T - 1]) for s in streams])
+    fit, _ = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
+                           config=la)  # fmt: skip
+    return fit
 
 
 def _illumination_names() -> tuple[str, ...]:

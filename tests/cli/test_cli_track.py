@@ -281,6 +281,7 @@ def test_parser_defaults():
     args = build_parser().parse_args(["track", "a.mp4", "--out", "o", "--landmarks", "l.csv", "--focal", "500"])
     assert args.focal == 500.0 and args.landmarks[0].name == "l.csv" and not args.resume and not args.convert
     assert build_parser().parse_args(["track", "a.mp4", "--out", "o", "--convert"]).convert
+    assert not args.lookahead and build_parser().parse_args(["track", "a.mp4", "--out", "o", "--lookahead"]).lookahead
     assert math.isfinite(args.focal)
 
 
@@ -338,3 +339,29 @@ def test_progress_display_terminal_and_log():
     display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))
     text = tty.getvalue()
     assert "\x1b[2F" in text and "1 frames" in text and "2/10" in text  # redraws both bars in place
+
+
+def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, full_run, tmp_path, monkeypatch):
+    """``JobConfig.lookahead``: the frames read ahead go to the look-ahead fit and are then tracked in order.
+    With the fit replaced by the plain landmark fit (a spy), the CSV equals the run without look-ahead."""
+    import torchface.job as job
+    from torchface.tracker import fit_landmarks
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    video, lm, gt = clip
+    seen = []
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        seen.append(frames.clone())
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[]]
+
+    monkeypatch.setattr(job, "lookahead_fit", spy)
+    config = JobConfig(out_dir=tmp_path, landmarks=(lm,), lookahead=LookaheadConfig(max_frames=6))
+    track_videos([video], config)
+    frames = read_video(video, max_frames=6)
+    assert len(seen) == 1 and seen[0].shape == (1, 6, 3, H, W)
+    torch.testing.assert_close(seen[0][0], frames, rtol=0, atol=1e-6)
+    _, rows, _, _ = _pose(output_paths(tmp_path, NAME)["csv"])
+    _, ref, _, _ = _pose(output_paths(full_run[1], NAME)["csv"])
+    assert rows.shape == ref.shape == (T, rows.shape[1])
+    np.testing.assert_array_equal(rows, ref)
