@@ -767,6 +767,11 @@ def main(argv: list[str] | None = None) -> int:
         "expression refined against the frames where the head has turned 20 degrees each way; two passes)",
     )
     parser.add_argument(
+        "--lookahead-frames", type=int, default=LookaheadConfig().max_frames,
+        help="frames read ahead at most by --lookahead (LookaheadConfig.max_frames; held in memory, 3.7 MB each at "
+        "640x480)",
+    )
+    parser.add_argument(
         "--noise-seeds", default="",
         help="comma list of landmark-noise seeds: each standard scenario is tracked again (full configuration) "
         "once per seed and a table of the seeds follows its own (how much the figures depend on the noise draw)",
@@ -807,7 +812,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global LOOKAHEAD
-    LOOKAHEAD = LookaheadConfig() if args.lookahead else None
+    if args.lookahead_frames < 2:
+        parser.error(f"--lookahead-frames must be >= 2, got {args.lookahead_frames}")
+    LOOKAHEAD = LookaheadConfig(max_frames=args.lookahead_frames) if args.lookahead else None
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     earlier: list[FrameSeries] = []

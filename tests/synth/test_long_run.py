@@ -272,3 +272,30 @@ def test_evaluate_noise_seeds_track_each_seed_again(tmp_path, capsys):
     assert f"max {worst:.2f} deg" in text
     with pytest.raises(SystemExit):
         ev.main(["--scenarios", "pose_sweep", "--noise-seeds", "1,x"])
+
+
+def test_evaluate_lookahead_hands_the_frames_read_ahead_to_the_tracking_pass(tmp_path, monkeypatch):
+    """--lookahead: the first --lookahead-frames frames go to lookahead_fit, then every frame is tracked in order
+    from the fit it returns; with that fit replaced by the plain landmark fit (a spy) the figures equal the run
+    without look-ahead."""
+    from torchface.tracker import fit_landmarks
+
+    ev = _load_evaluate()
+    seen = []
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        seen.append((tuple(frames.shape), config.max_frames))
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[]]
+
+    monkeypatch.setattr(ev, "lookahead_fit", spy)
+    base = ["--scenarios", "pose_sweep", "--frames", "6", "--size", "160x120", "--ablations", "none", "--cache",
+            "none", "--no-auroc", "--progress-every", "0"]  # fmt: skip
+    plain, ahead = tmp_path / "p.json", tmp_path / "a.json"
+    assert ev.main(base + ["--json", str(plain)]) == 0
+    assert ev.main(base + ["--json", str(ahead), "--lookahead", "--lookahead-frames", "4"]) == 0
+    assert seen == [((1, 4, 3, 120, 160), 4)]
+    assert json.loads(ahead.read_text())["pose_sweep"] | {"ms_per_frame": 0, "init_ms": 0} == json.loads(
+        plain.read_text())["pose_sweep"] | {"ms_per_frame": 0, "init_ms": 0}  # fmt: skip
+    assert ev.LOOKAHEAD is not None
+    ev.main(base + ["--json", str(plain)])
+    assert ev.LOOKAHEAD is None  # reset by a run without --lookahead
