@@ -119,13 +119,18 @@ def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     torch.testing.assert_close(state.shape_coeffs, fit.shape_coeffs[:1], rtol=0, atol=0)
 
 
-def test_initialise_rejects_a_fit_of_another_batch(model):
+def test_initialise_rejects_a_fit_of_another_batch_and_casts_its_dtype(model):
     frames, gt = render([[0.0, 0.0, 0.0]])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
     lm = gt.landmarks_px.float()[:1]
     fit = fit_landmarks(model, lm.expand(2, -1, -1), gt.intrinsics)
     with pytest.raises(ValueError, match="fit must be a LandmarkFit of batch 1"):
         initialise(model, CFG, frames, lm, gt.intrinsics, fit=fit)
+    # a float64 fit (e.g. made by the caller in double) is taken in the model's dtype
+    one = fit_landmarks(load_candide3(dtype=D), lm.double(), gt.intrinsics)
+    state, first = initialise(model, CFG, frames, lm, gt.intrinsics, fit=one)
+    assert state.params.dtype == model.dtype
+    torch.testing.assert_close(first.rotation, one.rotation.float(), rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize(
