@@ -10,7 +10,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg
 from torchface.model.candide import load_candide3
-from torchface.tracker import FitConfig, TrackerConfig, fit_landmarks
+from torchface.tracker import FitConfig, LandmarkFit, TrackerConfig, fit_landmarks
 
 D = torch.float64
 CAM = Intrinsics.default(640, 480)
@@ -179,3 +179,15 @@ def test_bad_inputs_raise(model):
         FitConfig(max_iterations=0)
     with pytest.raises(ValueError, match="non-negative"):
         FitConfig(shape_prior_precision=-1.0)
+
+
+def test_fit_select_and_to(model):
+    """``LandmarkFit.select`` keeps the chosen streams of every field; ``to`` casts the floating fields only."""
+    R, t = poses()
+    fit = fit_landmarks(model, project_landmarks(model, R, t), CAM)
+    one = fit.select(slice(1, 2))
+    for f in LandmarkFit.__dataclass_fields__:
+        assert torch.equal(getattr(one, f), getattr(fit, f)[1:2])
+    low = fit.to(dtype=torch.float32)
+    assert low.rotation.dtype == torch.float32 and low.status.dtype == torch.int64
+    torch.testing.assert_close(low.translation, fit.translation.float(), rtol=0, atol=0)

@@ -74,6 +74,17 @@ class LandmarkFit:
     rms_px: Tensor
     status: Tensor
 
+    def select(self, index: int | slice | Tensor) -> "LandmarkFit":
+        """The streams ``index`` (over ``B``; a slice keeps the batch dimension)."""
+        return LandmarkFit(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "LandmarkFit":
+        """A copy on ``device`` with the floating tensors in ``dtype`` (``status`` keeps its integer dtype)."""
+        return LandmarkFit(*(
+            v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
+            for v in (getattr(self, f) for f in self.__dataclass_fields__)
+        ))  # fmt: skip
+
 
 def _check_landmarks(landmarks_px: Tensor, weights: Tensor | None, k: int, intrinsics: Intrinsics) -> Tensor:
     if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):

@@ -31,7 +31,7 @@ without a turn to each side in their first frames keep the landmark fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -41,7 +41,7 @@ from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
-from torchface.model.face_model import FaceModel, interpolate_landmarks
+from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
@@ -233,9 +233,9 @@ def refine_first_fit(
     def geometry(x: Tensor, level: int) -> tuple[Tensor, Tensor, Tensor, list[Tensor], Tensor, Tensor]:
         """Points' pixels in frame 0 ``(N, 2)`` and the keyframes ``(K, N, 2)``, landmark pixels, rotations."""
         sig, al = coeffs(x)
-        verts = m.mean + torch.einsum("s,svj->vj", sig, m.shape_units) + torch.einsum("a,avj->vj", al, m.animation_units)
+        verts = m.deform(sig[None], al[None])[0]
         X = gather_face_attributes(verts[None], m.faces, fi, bary, batched=True)[0]
-        lmk = interpolate_landmarks(verts[None], m.landmark_vertices, m.landmark_weights)[0]
+        lmk = m.landmarks_3d(verts[None])[0]
         R0 = axis_angle_to_matrix(x[0:3])
         uv0 = project_points((X @ R0.T + x[3:6])[None], intrs[level])[0]
         uvl = project_points((lmk @ R0.T + x[3:6])[None], intrinsics)[0]
@@ -247,11 +247,12 @@ def refine_first_fit(
             Rk.append(R)
         return uv0, torch.stack(uvk), uvl, Rk, verts, X
 
-    def visibility(x: Tensor, level: int) -> tuple[Tensor, Tensor]:
-        """``(K, N)`` bool: visible, facing and inside in frame 0 and keyframe k; the points' normals."""
+    def visibility(x: Tensor, level: int, geo: tuple) -> tuple[Tensor, Tensor]:
+        """``(K, N)`` bool: visible, facing and inside in frame 0 and keyframe k; the points' normals
+        (``geo``: :func:`geometry` at ``x``)."""
         with torch.no_grad():
             sig, _ = coeffs(x)
-            uv0, uvk, _, Rk, verts, X = geometry(x, level)
+            uv0, uvk, _, Rk, verts, X = geo
             normals = point_normals(m, sig[None], fi, bary)[0]
             poses = [(axis_angle_to_matrix(x[0:3]), x[3:6])] + [(Rk[k], x[o_k + 11 * k + 3 : o_k + 11 * k + 6])
                                                                  for k in range(K)]  # fmt: skip
@@ -270,25 +271,34 @@ def refine_first_fit(
             mask = torch.stack([seen[0] & seen[k + 1] & inside(uv0) & inside(uvk[k]) for k in range(K)])
             return mask, normals
 
-    def photometric(x: Tensor, level: int, lin: tuple[Tensor, ...] | None, normals: Tensor) -> tuple[Tensor, Tensor]:
-        """``(K, N)`` residuals (exact, or linearised in the pixel coordinates at ``lin``) and landmark pixels."""
-        uv0, uvk, uvl, Rk, _, _ = geometry(x, level)
-        if lin is None:
-            s0 = sample_at_pixels(imgs[level][:1], uv0[None])[0][0]
-            sk = sample_at_pixels(imgs[level][1:], uvk)[0]
-            I0, Ik = s0[:, 0], sk[..., 0]
-        else:
-            uv0s, uvks, s0, sk = lin
-            I0 = s0[:, 0] + ((uv0 - uv0s) * s0[:, 1:]).sum(-1)
-            Ik = sk[..., 0] + ((uvk - uvks) * sk[..., 1:]).sum(-1)
+    def samples(level: int, uv0: Tensor, uvk: Tensor) -> tuple[Tensor, Tensor]:
+        """Intensity and gradient ``(N, 3)`` of frame 0 at ``uv0`` and ``(K, N, 3)`` of the keyframes at ``uvk``."""
+        return sample_at_pixels(imgs[level][:1], uv0[None])[0][0], sample_at_pixels(imgs[level][1:], uvk)[0]
+
+    def residual(x: Tensor, I0: Tensor, Ik: Tensor, Rk: list[Tensor], normals: Tensor) -> Tensor:
+        """``(K, N)`` keyframe intensities ``Ik`` minus frame 0's ``I0 (N,)`` under each keyframe's light."""
         res = []
         for k in range(K):
             light = x[o_k + 11 * k + 6 : o_k + 11 * k + 11]
             res.append(Ik[k] - (I0 * (1 + light[0] + (normals @ Rk[k].T) @ light[2:5]) + light[1]))
-        return torch.stack(res), uvl
+        return torch.stack(res)
 
-    def cost(x: Tensor, level: int, mask: Tensor, scale: Tensor, normals: Tensor) -> float:
-        r, uvl = photometric(x, level, None, normals)
+    def photometric(x: Tensor, level: int, lin: tuple[Tensor, ...], normals: Tensor) -> tuple[Tensor, Tensor]:
+        """``(K, N)`` residuals linearised in the pixel coordinates at ``lin`` and the landmark pixels."""
+        uv0, uvk, uvl, Rk, _, _ = geometry(x, level)
+        uv0s, uvks, s0, sk = lin
+        I0 = s0[:, 0] + ((uv0 - uv0s) * s0[:, 1:]).sum(-1)
+        Ik = sk[..., 0] + ((uvk - uvks) * sk[..., 1:]).sum(-1)
+        return residual(x, I0, Ik, Rk, normals), uvl
+
+    def exact(x: Tensor, level: int, normals: Tensor, geo: tuple | None = None) -> tuple[Tensor, Tensor, tuple]:
+        """``(K, N)`` residuals with both images sampled at ``x``'s pixels, the landmark pixels and the samples."""
+        uv0, uvk, uvl, Rk, _, _ = geometry(x, level) if geo is None else geo
+        s0, sk = samples(level, uv0, uvk)
+        return residual(x, s0[:, 0], sk[..., 0], Rk, normals), uvl, (uv0, uvk, s0, sk)
+
+    def cost(x: Tensor, r: Tensor, uvl: Tensor, mask: Tensor, scale: Tensor) -> float:
+        """The minimised cost at ``x`` from its exact residuals ``r`` and landmark pixels ``uvl``."""
         c = config.huber_k * scale[:, None]
         a = r.abs()
         hub = torch.where(a <= c, a * a, 2 * c * a - c * c)
@@ -298,14 +308,13 @@ def refine_first_fit(
     for li, level in enumerate(levels):
         mu = 1e-3
         for _ in range(config.iterations[li]):
-            mask, normals = visibility(x, level)
+            with torch.no_grad():
+                geo = geometry(x, level)
+            mask, normals = visibility(x, level, geo)
             if not bool(mask.any()):
                 break
             with torch.no_grad():
-                uv0, uvk, _, _, _, _ = geometry(x, level)
-                s0 = sample_at_pixels(imgs[level][:1], uv0[None])[0][0]
-                sk = sample_at_pixels(imgs[level][1:], uvk)[0]
-                r, _ = photometric(x, level, None, normals)
+                r, uvl, lin = exact(x, level, normals, geo)
                 scale = torch.stack([
                     (1.4826 * (r[k][mask[k]] - r[k][mask[k]].median()).abs().median()).clamp_min(1e-3)
                     if bool(mask[k].any()) else r.new_tensor(1.0) for k in range(K)
@@ -313,8 +322,7 @@ def refine_first_fit(
                 c = config.huber_k * scale[:, None]
                 irls = torch.where(r.abs() <= c, torch.ones_like(r), c / r.abs().clamp_min(1e-12))
                 sw = (config.photometric_weight * irls * mask).sqrt()
-                before = cost(x, level, mask, scale, normals)
-            lin = (uv0, uvk, s0, sk)
+                before = cost(x, r, uvl, mask, scale)
 
             def residuals(xx: Tensor) -> Tensor:
                 rp, uvl = photometric(xx, level, lin, normals)
@@ -332,7 +340,7 @@ def refine_first_fit(
                     mu *= 10
                     continue
                 with torch.no_grad():
-                    after = cost(x_new, level, mask, scale, normals)
+                    after = cost(x_new, *exact(x_new, level, normals)[:2], mask, scale)
                 if after < before:
                     x, mu, accepted = x_new, max(mu / 10, 1e-9), True
                     break
@@ -342,9 +350,7 @@ def refine_first_fit(
 
     sig, al = coeffs(x)
     R0 = axis_angle_to_matrix(x[0:3])[None]
-    verts = m.mean + torch.einsum("s,svj->vj", sig, m.shape_units) + torch.einsum("a,avj->vj", al, m.animation_units)
-    lmk = interpolate_landmarks(verts[None], m.landmark_vertices, m.landmark_weights)[0]
-    uvl = project_points((lmk @ R0[0].T + x[3:6])[None], intrinsics)[0]
+    uvl = geometry(x, 0)[2]  # landmark pixels (full resolution at every level)
     rms = ((((uvl - target) ** 2).sum(-1) * lw).sum() / lw.sum().clamp_min(1e-12)).sqrt()
     out_dt = model.dtype
     return LandmarkFit(
@@ -366,8 +372,9 @@ def lookahead_fit(
 
     Each stream is tracked (template management as ``tracker_config``) over ``frames[:, 1:]`` until its head has
     turned ``config.yaw_deg`` to both sides or ``config.max_frames`` frames are used; a stream with at least
-    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit`, the others keep :func:`fit_landmarks`'s fit. Start tracking from
-    ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or ``FaceTracker.initialise(..., fit=...)``).
+    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit`, the others keep :func:`fit_landmarks`'s
+    fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
+    ``FaceTracker.initialise(..., fit=...)``).
 
     Args:
         frames: ``(B, T, 3, H, W)`` float in [0, 1], each stream's first ``T >= 2`` frames.
@@ -384,7 +391,7 @@ def lookahead_fit(
     frames = frames.to(dtype=model.dtype, device=model.device)
     fc = tracker_config.fit
     fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=fc)
-    state, first = initialise_managed(model, tracker_config, frames[:, 0], landmarks_px, intrinsics, weights)
+    state, first = initialise_managed(model, tracker_config, frames[:, 0], landmarks_px, intrinsics, weights, fit=fit)
     rotations, translations, confident = [first.rotation], [first.translation], [first.success]
     T = min(frames.shape[1], config.max_frames)
     keys: list[list[int]] = [[] for _ in range(B)]
@@ -393,22 +400,21 @@ def lookahead_fit(
         rotations.append(res.rotation)
         translations.append(res.translation)
         confident.append(res.success & (res.confidence >= config.min_confidence))
-        R = torch.stack(rotations, 1)
-        keys = [select_keyframes(R[b], config.yaw_deg, torch.stack(confident, 1)[b]) for b in range(B)]
+        R, ok = torch.stack(rotations, 1), torch.stack(confident, 1)
+        keys = [select_keyframes(R[b], config.yaw_deg, ok[b]) for b in range(B)]
         if all(len(k) == 2 for k in keys):
             break
     R, t = torch.stack(rotations, 1), torch.stack(translations, 1)
-    fields = {name: getattr(fit, name).clone() for name in LandmarkFit.__dataclass_fields__}
+    streams = []
     for b in range(B):
-        if len(keys[b]) < config.min_keyframes:
-            continue
-        one = LandmarkFit(**{name: v[b : b + 1] for name, v in fields.items()})
-        idx = torch.tensor([0] + keys[b], device=frames.device)
-        refined = refine_first_fit(
-            model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
-            landmark_weights=None if weights is None else weights[b], shape_prior_precision=fc.shape_prior_precision,
-            shape_bound=fc.shape_bound, expression_prior_precision=fc.expression_prior_precision, config=config,
-        )  # fmt: skip
-        for name in fields:
-            fields[name][b] = getattr(refined, name)[0]
-    return replace(fit, **fields), keys
+        one = fit.select(slice(b, b + 1))
+        if len(keys[b]) >= config.min_keyframes:
+            idx = torch.tensor([0] + keys[b], device=frames.device)
+            one = refine_first_fit(
+                model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
+                landmark_weights=None if weights is None else weights[b],
+                shape_prior_precision=fc.shape_prior_precision, shape_bound=fc.shape_bound,
+                expression_prior_precision=fc.expression_prior_precision, config=config,
+            )  # fmt: skip
+        streams.append(one)
+    return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

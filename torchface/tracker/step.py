@@ -394,10 +394,7 @@ def initialise(
     elif not isinstance(fit, LandmarkFit) or fit.rotation.shape[0] != frames.shape[0]:
         raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got {type(fit).__name__}")
     else:  # in the model's dtype and device, as fit_landmarks returns it
-        fit = LandmarkFit(**{
-            name: v.to(device=model.device, dtype=model.dtype) if v.is_floating_point() else v.to(model.device)
-            for name, v in ((n, getattr(fit, n)) for n in LandmarkFit.__dataclass_fields__)
-        })  # fmt: skip
+        fit = fit.to(model.device, model.dtype)
     layout = _layout(model)
     B = frames.shape[0]
     x = torch.zeros(B, layout.size, dtype=model.dtype, device=model.device)
