@@ -244,6 +244,23 @@ def test_batch_equals_per_sample(model, subject, layout):
         assert torch.equal(batched.mask[sl], single.mask)
 
 
+def test_given_rotation_is_the_computed_one(model, subject, layout):
+    """A caller's rotation matrix (the tracker passes its result's) gives exactly the face computed from the
+    axis-angle; a wrong shape is refused."""
+    B = 2
+    sigma = subject.shape_coeffs[None].expand(B, -1).contiguous()
+    alpha = torch.zeros(B, model.num_animation)
+    aa = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[10.0, -5.0, 2.0], [-30.0, 8.0, -4.0]])))
+    t = torch.tensor([[0.0, 0.0, 450.0], [15.0, 5.0, 500.0]])
+    light = torch.tensor([[1.1, 0.02, 0.1, -0.05, 0.0], [0.9, -0.03, 0.0, 0.1, 0.05]])
+    frames = _render(subject, sigma[:1], alpha, aa, t).image
+    computed = normalised_face(frames, model, layout, sigma, alpha, aa, t, light, CAM)
+    given = normalised_face(frames, model, layout, sigma, alpha, aa, t, light, CAM, rotation=axis_angle_to_matrix(aa))
+    assert torch.equal(given.image, computed.image) and torch.equal(given.mask, computed.mask)
+    with pytest.raises(ValueError, match="rotation must be"):
+        normalised_face(frames, model, layout, sigma, alpha, aa, t, light, CAM, rotation=torch.eye(3))
+
+
 # ----------------------------------------------------------------------------------------- gradcheck
 @pytest.fixture(scope="module")
 def tiny():

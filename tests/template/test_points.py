@@ -23,6 +23,8 @@ from torchface.template import (
     point_normals,
     select_template_pixels,
 )
+from torchface.template.points import interpolated_normals, posed_mesh, select_pixels_posed
+from torchface.rendering.visibility import vertex_normals
 from torchface.tracker import ParamLayout, frame_residuals
 
 W, H = 160, 120
@@ -156,6 +158,42 @@ def test_compact_selection_and_normals_are_the_templates(scene):
     assert bool(tpl.valid.all())  # 400 points found on each face
     torch.testing.assert_close(point_normals(s["model"], s["shape"], px.face_index, px.bary), tpl.normals,
                                rtol=0, atol=0)
+
+
+def test_posed_selection_and_interpolated_normals_are_the_same(scene):
+    """What a pyramid's levels share (the posed mesh, the person's vertex normals) computed once gives exactly
+    select_template_pixels and point_normals."""
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    px = select_pixels_posed(s["model"], posed, s["gray"], s["cam"], None, max_points=400, gradient_threshold=0.01,
+                             expression_quota=20)  # fmt: skip
+    ref = select_template_pixels(
+        s["model"], s["shape"], s["anim"], s["R"], s["t"], s["gray"], s["cam"], max_points=400,
+        gradient_threshold=0.01, expression_quota=20,
+    )
+    for name in ("face_index", "bary", "intensity", "valid"):
+        assert torch.equal(getattr(px, name), getattr(ref, name)), name
+    normals = vertex_normals(s["model"].deform(s["shape"], None), s["model"].faces)
+    assert torch.equal(interpolated_normals(normals, s["model"].faces, px.face_index, px.bary),
+                       point_normals(s["model"], s["shape"], px.face_index, px.bary))  # fmt: skip
+
+
+def test_gather_face_attributes_matches_the_definition(scene):
+    """Shared (non-batched) and per-sample attributes: sum_i bary_i * attributes[faces[face, i]]."""
+    s = scene
+    faces = s["model"].faces
+    gen = torch.Generator().manual_seed(0)
+    face_index = torch.randint(0, faces.shape[0], (2, 7), generator=gen)
+    bary = torch.rand(2, 7, 3, generator=gen)
+    shared = torch.randn(s["model"].num_vertices, 3, 4, generator=gen).permute(0, 2, 1)  # not contiguous
+    per_sample = torch.randn(2, s["model"].num_vertices, 3, generator=gen)
+    for attributes, batched in ((shared, False), (per_sample, True)):
+        got = gather_face_attributes(attributes, faces, face_index, bary, batched=batched)
+        for b in range(2):
+            for n in range(7):
+                rows = attributes[b] if batched else attributes
+                want = sum(bary[b, n, i] * rows[faces[face_index[b, n], i]] for i in range(3))
+                torch.testing.assert_close(got[b, n], want, rtol=1e-6, atol=1e-6)
 
 
 def test_points_stay_off_the_silhouette(scene):

@@ -32,7 +32,7 @@ from torchface.tracker import (
     initialise,
     track_step,
 )
-from torchface.tracker.step import TrackSolver
+from torchface.tracker.step import TrackSolver, crop_windows, gray_pyramid
 
 W, H = 320, 240
 T = 6
@@ -543,3 +543,31 @@ def test_clean_frame_rule_huber_at_the_finest_level_near_the_template_only(model
     state, _ = initialise(model, config, occluded[None, 0], gt.landmarks_px[:1].float(), Intrinsics.default(W, H))
     kept = _finest_losses(model, monkeypatch, config, state, occluded[None, 1], torch.tensor([True]))
     assert isinstance(kept, RobustLoss) and kept.kind is RobustKind.TUKEY
+
+
+# ----------------------------------------------------------------------------- pyramid windows
+@pytest.mark.parametrize("size", [(96, 128), (98, 130)])
+def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
+    """Windows of a pyramid computed from a crop equal the whole frame's pyramid there, bit for bit, including
+    windows at the image border (where the crop takes the frame's reflected border) and in the middle (where its
+    own border is 4 coarse pixels away); a frame size the coarsest level does not divide uses the whole frame."""
+    import torchface.tracker.step as step_module
+
+    H, W = size
+    L = 3
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.rand(3, 3, H, W, generator=gen, dtype=torch.float64)
+    whole = gray_pyramid(frames, L)
+    # Level-0 windows (x0, y0) on multiples of 4: middle, top-left corner, bottom-right corner.
+    corners = torch.tensor([[40, 28], [0, 0], [W // 4 * 4 - 48, H // 4 * 4 - 40]])
+    heights, widths = [40 // 2**lv for lv in range(L)], [48 // 2**lv for lv in range(L)]
+    offsets = [torch.div(corners, 2**lv, rounding_mode="floor") for lv in range(L)]
+    seen = []
+    real = step_module.gray_pyramid
+    monkeypatch.setattr(step_module, "gray_pyramid", lambda f, n: seen.append(tuple(f.shape[-2:])) or real(f, n))
+    got = step_module.gray_pyramid_windows(frames, L, offsets, heights, widths)
+    for lv in range(L):
+        want = crop_windows(whole[lv], offsets[lv], heights[lv], widths[lv])
+        assert torch.equal(got[lv], want), lv
+    cropped = seen[0] != (H, W)
+    assert cropped == (H % 4 == 0 and W % 4 == 0)

@@ -282,6 +282,7 @@ def normalised_face(
     depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
     min_facing_cos: float = DEFAULT_MIN_FACING_COS,
     zbuffer: bool = True,
+    rotation: Tensor | None = None,
 ) -> NormalisedFaceResult:
     """The frontal, neutral-expression, light-normalised face of each frame (module docstring).
 
@@ -302,6 +303,8 @@ def normalised_face(
         zbuffer: test visibility against the z-buffer of the posed mesh. False keeps only the facing tests
             (back-facing triangles and ``min_facing_cos``): about 3x faster (no rasterization), and a part of the
             face hidden behind another (the far cheek behind the nose at a large yaw) is then kept.
+        rotation: ``(B, 3, 3)`` the matrix of ``axis_angle`` when the caller has it (not checked against it), or
+            None to compute it.
 
     Returns:
         :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype.
@@ -357,15 +360,21 @@ def normalised_face(
 
     # Eq. 1 and 14: the person's mesh at the frame's expression and pose.
     verts = model.deform(shape_coeffs, anim_coeffs)  # (B, V, 3)
-    rotation = axis_angle_to_matrix(axis_angle)
+    if rotation is None:
+        rotation = axis_angle_to_matrix(axis_angle)
+    elif not isinstance(rotation, Tensor) or tuple(rotation.shape) != (B, 3, 3):
+        got = tuple(rotation.shape) if isinstance(rotation, Tensor) else type(rotation).__name__
+        raise ValueError(f"rotation must be ({B}, 3, 3) like frames, got {got}")
     verts_cam = transform_points(rotation, translation, verts)
     normals_cam = vertex_normals(verts, model.faces) @ rotation.transpose(-1, -2)
 
     # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle.
-    corners = model.faces[layout.face_index]  # (M, 3)
+    corners = model.faces.index_select(0, layout.face_index).reshape(-1)  # (M * 3,)
+    M = layout.face_index.shape[0]
     bary = layout.bary.to(verts.dtype).unsqueeze(-1)  # (M, 3, 1)
-    points_cam = (verts_cam[:, corners] * bary).sum(-2)  # (B, M, 3)
-    normals = torch.nn.functional.normalize((normals_cam[:, corners] * bary).sum(-2), dim=-1)
+    points_cam = (verts_cam.index_select(1, corners).reshape(B, M, 3, 3) * bary).sum(-2)  # (B, M, 3)
+    normals_at = normals_cam.index_select(1, corners).reshape(B, M, 3, 3)
+    normals = torch.nn.functional.normalize((normals_at * bary).sum(-2), dim=-1)
 
     # Eq. 15 and bilinear sampling at the projections.
     points_px = project_points(points_cam, intrinsics)

@@ -346,6 +346,7 @@ def frame_dissimilarity(
     illumination: Tensor,
     intrinsics: Intrinsics,
     config: TemplateConfig,
+    rotation: Tensor | None = None,
 ) -> DissimilarityResult:
     """Dissimilarity and confidence of each frame's estimate against the reference (Section 4.1).
 
@@ -355,6 +356,7 @@ def frame_dissimilarity(
         layout: :func:`~torchface.normalise.build_normalised_layout` of ``config.normalised_size``.
         reference: :func:`~torchface.template.dissimilarity.build_dissimilarity_reference` of a reference
             frame's normalised face made the same way (:func:`reference_face`).
+        rotation: ``(B, 3, 3)`` the matrix of ``axis_angle`` when the caller has it (None: computed).
 
     Returns:
         :class:`~torchface.template.dissimilarity.DissimilarityResult` (``dissimilarity (B,)`` in pixels of the
@@ -362,7 +364,7 @@ def frame_dissimilarity(
     """
     face = normalised_face(
         frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
-        min_facing_cos=config.min_facing_cos, zbuffer=False,
+        min_facing_cos=config.min_facing_cos, zbuffer=False, rotation=rotation,
     )  # fmt: skip
     return dissimilarity(reference, face.image, face.mask)
 

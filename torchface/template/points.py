@@ -90,8 +90,9 @@ def gather_face_attributes(attributes: Tensor, faces: Tensor, face_index: Tensor
         flat = attributes.reshape(B, attributes.shape[1], -1)
         idx = corner.reshape(B, N * 3, 1).expand(-1, -1, flat.shape[-1])
         vals = torch.gather(flat, 1, idx).reshape(B, N, 3, *extra)
-    else:
-        vals = attributes[corner]  # (B, N, 3, *D)
+    else:  # index_select of the flattened rows: several times faster than attributes[corner]
+        extra = attributes.shape[1:]
+        vals = attributes.reshape(attributes.shape[0], -1).index_select(0, corner.reshape(-1)).reshape(B, N, 3, *extra)
     w = bary.reshape(B, N, 3, *([1] * (vals.dim() - 3))).to(vals.dtype)
     return (vals * w).sum(2)
 
@@ -185,8 +186,59 @@ def select_template_pixels(
     B, _, H, W = gray.shape
     if not 0 < max_points <= H * W:
         raise ValueError(f"max_points must be in [1, {H * W}] (the pixels of the image), got {max_points}")
+    return select_pixels_posed(
+        model, posed_mesh(model, shape_coeffs, anim_coeffs, rotation, translation), gray, intrinsics, offsets,
+        max_points=max_points, gradient_threshold=gradient_threshold, min_facing_cos=min_facing_cos,
+        erode_pixels=erode_pixels, expression_priority=expression_priority, expression_quota=expression_quota,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PosedMesh:
+    """The model at one expression and pose, as the pixel selection needs it: one per estimate, shared by the
+    levels of a pyramid (:func:`select_pixels_posed`).
+
+    Attributes:
+        verts_model: ``(B, V, 3)`` head-frame vertices (shape and expression applied, mm).
+        verts_cam: ``(B, V, 3)`` the same in the camera frame.
+        normals_cam: ``(B, V, 3)`` unit vertex normals in the camera frame.
+    """
+
+    verts_model: Tensor
+    verts_cam: Tensor
+    normals_cam: Tensor
+
+
+def posed_mesh(model: FaceModel, shape_coeffs: Tensor, anim_coeffs: Tensor, rotation: Tensor, translation: Tensor
+               ) -> PosedMesh:
+    """:class:`PosedMesh` of ``shape_coeffs (B, S)``, ``anim_coeffs (B, A)``, ``rotation (B, 3, 3)`` and
+    ``translation (B, 3)`` (head -> camera, mm)."""
     verts_model = model.deform(shape_coeffs, anim_coeffs)
     verts_cam = transform_points(rotation, translation, verts_model)
+    normals_cam = torch.einsum("bij,bvj->bvi", rotation, vertex_normals(verts_model, model.faces))
+    return PosedMesh(verts_model, verts_cam, normals_cam)
+
+
+def select_pixels_posed(
+    model: FaceModel,
+    posed: PosedMesh,
+    gray: Tensor,
+    intrinsics: Intrinsics,
+    offsets: Tensor | None,
+    *,
+    max_points: int,
+    gradient_threshold: float,
+    min_facing_cos: float = 0.15,
+    erode_pixels: int = 1,
+    expression_priority: float = 0.0,
+    expression_quota: int = 0,
+) -> TemplatePixels:
+    """:func:`select_template_pixels` of a mesh already posed (:func:`posed_mesh`): the same result, with the
+    posing done once for the levels of a pyramid. The arguments are not checked again (callers inside the
+    package; :func:`select_template_pixels` documents and checks them)."""
+    full_h, full_w = intrinsics.height, intrinsics.width
+    B, _, H, W = gray.shape
+    verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
     off = torch.zeros(B, 2, dtype=verts_cam.dtype, device=gray.device) if offsets is None else offsets.to(verts_cam.dtype)
     window = Intrinsics(W, H, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
     if offsets is None:
@@ -209,10 +261,11 @@ def select_template_pixels(
     flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
     b_of = torch.div(flat, H * W, rounding_mode="floor")
     pix = flat - b_of * (H * W)
-    normals_cam = torch.einsum("bij,bvj->bvi", rotation, vertex_normals(verts_model, model.faces))
-    corner = model.faces[face_flat.reshape(-1)[flat]]  # (M, 3)
-    bary_c = bary_flat.reshape(-1, 3)[flat].to(normals_cam.dtype)
-    n_pix = (normals_cam[b_of.unsqueeze(-1), corner] * bary_c.unsqueeze(-1)).sum(1)  # (M, 3)
+    corner = model.faces.index_select(0, face_flat.reshape(-1).index_select(0, flat))  # (M, 3)
+    bary_c = bary_flat.reshape(-1, 3).index_select(0, flat).to(normals_cam.dtype)
+    V = normals_cam.shape[1]
+    n_corner = normals_cam.reshape(-1, 3).index_select(0, (b_of.unsqueeze(-1) * V + corner).reshape(-1))
+    n_pix = (n_corner.reshape(-1, 3, 3) * bary_c.unsqueeze(-1)).sum(1)  # (M, 3)
     # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
     # its direction is the ray's: no need to interpolate the positions.
     col = (pix % W).to(verts_cam.dtype) + off[b_of, 0]
@@ -331,5 +384,12 @@ def point_normals(model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, ba
 
 
 def _point_normals(model: FaceModel, neutral: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
-    normals = gather_face_attributes(vertex_normals(neutral, model.faces), model.faces, face_index, bary, batched=True)
-    return torch.nn.functional.normalize(normals, dim=-1)
+    return interpolated_normals(vertex_normals(neutral, model.faces), model.faces, face_index, bary)
+
+
+def interpolated_normals(normals: Tensor, faces: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
+    """``(B, N, 3)`` unit normals of points given by triangle ``(B, N)`` and barycentric coordinates
+    ``(B, N, 3)``, interpolated from vertex normals ``(B, V, 3)`` (:func:`point_normals` once the person's
+    vertex normals are known: several point sets of one person, such as a pyramid's levels)."""
+    interpolated = gather_face_attributes(normals, faces, face_index, bary, batched=True)
+    return torch.nn.functional.normalize(interpolated, dim=-1)

@@ -52,6 +52,7 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
+from torchface.rendering.visibility import vertex_normals
 from torchface.solver.least_squares import SolveStatus
 from torchface.template.dissimilarity import DissimilarityReference, build_dissimilarity_reference
 from torchface.template.management import (
@@ -71,7 +72,7 @@ from torchface.template.management import (
     select_entries,
     within_reach,
 )
-from torchface.template.points import Template, TemplatePixels, point_normals, select_template_pixels
+from torchface.template.points import Template, TemplatePixels, interpolated_normals, posed_mesh, select_pixels_posed
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -82,6 +83,7 @@ from torchface.tracker.step import (
     check_frames,
     crop_windows,
     gray_pyramid,
+    gray_pyramid_windows,
     initialise,
     level_intrinsics,
     track_step,
@@ -225,11 +227,12 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
 
 def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
-    status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None,
+    status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None, rotation: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Dissimilarity confidence ``(B,)`` (0 for FAILED samples) and dissimilarity ``(B,)`` of ``state``'s
     estimate against the reference of the mosaic entry nearest it; ``index`` selects the streams of a
-    sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)``: the estimate's yaw/pitch/roll when known."""
+    sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation`` ``(B, 3, 3)``: the estimate's
+    yaw/pitch/roll and rotation matrix when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
     rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
     nearest = torch.zeros_like(rows)
@@ -239,7 +242,7 @@ def _confidence(
     reference = ms.mosaic.references.select((rows, nearest))
     diss = frame_dissimilarity(
         frames, model, ms.layout, reference, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
-        config.template,
+        config.template, rotation=rotation,
     )  # fmt: skip
     failed = status == _FAILED
     return torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence), diss.dissimilarity
@@ -304,36 +307,52 @@ def _new_entries(
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
     shape = state.shape_coeffs[index]
-    image, mask = reference_face(
-        frames[index], model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template
-    )
+    frames = _rows(frames, index)
+    image, mask = reference_face(frames, model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template)
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
-    verts = torch.matmul(model.deform(shape, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
+    posed = posed_mesh(model, shape, alpha, R, t)
     q = 2 ** (config.num_levels - 1)
     windows = torch.tensor(
-        [_face_window(model, verts[i], state.intrinsics, q) for i in range(index.shape[0])], device=index.device
+        [_face_window(model, posed.verts_cam[i], state.intrinsics, q) for i in range(index.shape[0])],
+        device=index.device,
     )  # (n, 4) x0, y0, w, h at full resolution
-    templates = []
-    for level, gray in enumerate(gray_pyramid(frames[index], config.num_levels)):
+    # Each level's window (one size for the streams concerned), or the whole level where it would hold fewer
+    # pixels than the level's slots.
+    sizes, offsets = [], []
+    h, w = state.intrinsics.height, state.intrinsics.width
+    for level in range(config.num_levels):
         slots = ms.mosaic.levels[level].face_index.shape[-1]  # the slots of this level's entries
-        full = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
         s = 2**level
-        hl = min(int(-(-windows[:, 3].max() // s)), full.height)
-        wl = min(int(-(-windows[:, 2].max() // s)), full.width)
-        offsets = None
-        if wl * hl >= slots:
-            x0 = (windows[:, 0] // s).clamp(max=full.width - wl)
-            y0 = (windows[:, 1] // s).clamp(max=full.height - hl)
-            offsets = torch.stack([x0, y0], -1)
-            gray = crop_windows(gray, offsets, hl, wl)
-        px = select_template_pixels(
-            model, shape, alpha, R, t, gray, full, max_points=slots, gradient_threshold=config.gradient_threshold,
-            expression_priority=config.expression_priority, expression_quota=int(config.expression_quota * slots),
-            offsets=offsets,
+        hl = min(int(-(-windows[:, 3].max() // s)), h)
+        wl = min(int(-(-windows[:, 2].max() // s)), w)
+        sizes.append((h, w, hl, wl, slots))
+        x0 = (windows[:, 0] // s).clamp(max=w - wl)
+        y0 = (windows[:, 1] // s).clamp(max=h - hl)
+        offsets.append(torch.stack([x0, y0], -1) if wl * hl >= slots else None)
+        h, w = h // 2, w // 2
+    if all(off is not None for off in offsets):
+        grays = gray_pyramid_windows(frames, config.num_levels, offsets, [z[2] for z in sizes], [z[3] for z in sizes])
+    else:
+        grays = [g if off is None else crop_windows(g, off, z[2], z[3])
+                 for g, off, z in zip(gray_pyramid(frames, config.num_levels), offsets, sizes)]  # fmt: skip
+    vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
+    templates = []
+    for level, (gray, off, (h, w, _, _, slots)) in enumerate(zip(grays, offsets, sizes)):
+        px = select_pixels_posed(
+            model, posed, gray, level_intrinsics(state.intrinsics, level, h, w), off, max_points=slots,
+            gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
+            expression_quota=int(config.expression_quota * slots),
         )  # fmt: skip
-        normals = point_normals(model, shape, px.face_index, px.bary)
+        normals = interpolated_normals(vertex_normals_neutral, model.faces, px.face_index, px.bary)
         templates.append(replace(px, intensity=light_normalised_intensity(px.intensity, normals, R, light)))
     return tuple(templates), reference
+
+
+def _rows(frames: Tensor, index: Tensor) -> Tensor:
+    """``frames[index]`` for an int64 ``index (n,)``, without a copy when it lists every row in order."""
+    if index.shape[0] == frames.shape[0] and bool((index == torch.arange(index.shape[0], device=index.device)).all()):
+        return frames
+    return frames.index_select(0, index)
 
 
 def _texture_update(
@@ -510,7 +529,9 @@ def managed_step(
     solved, result = track_step(
         model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
     )
-    conf, diss = _confidence(model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg)
+    conf, diss = _confidence(
+        model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
+    )
 
     # 3. Gating and loss.
     failed = result.status == _FAILED

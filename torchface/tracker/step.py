@@ -325,6 +325,36 @@ def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
     return levels
 
 
+def gray_pyramid_windows(
+    frames: Tensor, num_levels: int, offsets: Sequence[Tensor], heights: Sequence[int], widths: Sequence[int]
+) -> list[Tensor]:
+    """Windows of :func:`gray_pyramid`: level ``l``'s ``(B, 1, heights[l], widths[l])`` windows whose top-left
+    pixels are ``offsets[l] (B, 2)`` int64 ``(x0, y0)`` in that level's pixels (each inside its level).
+
+    The values are :func:`gray_pyramid`'s exactly, computed from a crop of the frames around the windows: the
+    crop's corners lie on multiples of ``2 ** (num_levels - 1)`` (the levels stay aligned) and it reaches
+    ``4 * 2 ** (num_levels - 1)`` pixels beyond the windows (4 pixels at the coarsest level) unless it meets the
+    image border, so that the pyramid filter's reflected border only touches pixels outside the windows. Where
+    that crop would not fit (a frame size not divisible by that power of two), the whole frames are used.
+    """
+    B, _, H, W = frames.shape
+    q = 2 ** (num_levels - 1)
+    size_hw = frames.new_tensor([W, H], dtype=torch.int64)
+    lo = torch.stack([off * 2**lv for lv, off in enumerate(offsets)]).amin(0)  # (B, 2) level 0 (x, y)
+    hi = torch.stack([(off + off.new_tensor([w, h])) * 2**lv
+                      for lv, (off, h, w) in enumerate(zip(offsets, heights, widths))]).amax(0)  # fmt: skip
+    start = torch.div((lo - 4 * q).clamp_min(0), q, rounding_mode="floor") * q
+    stop = torch.minimum(hi + 4 * q, size_hw)
+    size = -torch.div(-(stop - start).amax(0), q, rounding_mode="floor") * q  # (2,) width, height
+    start = torch.minimum(start, size_hw - size)
+    if bool((start < 0).any() | (start % q != 0).any()):
+        levels = gray_pyramid(frames, num_levels)
+        return [crop_windows(g, off, h, w) for g, off, h, w in zip(levels, offsets, heights, widths)]
+    crop = gray_pyramid(crop_windows(frames, start, int(size[1]), int(size[0])), num_levels)
+    return [crop_windows(g, off - torch.div(start, 2**lv, rounding_mode="floor"), h, w)
+            for lv, (g, off, h, w) in enumerate(zip(crop, offsets, heights, widths))]  # fmt: skip
+
+
 def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None) -> None:
     """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1]."""
     if not isinstance(frames, Tensor):
