@@ -571,3 +571,8 @@ def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
         assert torch.equal(got[lv], want), lv
     cropped = seen[0] != (H, W)
     assert cropped == (H % 4 == 0 and W % 4 == 0)
+    # A level wanted whole (offsets None) comes whole, the others as windows.
+    got = step_module.gray_pyramid_windows(frames, L, [None] + offsets[1:], [H] + heights[1:], [W] + widths[1:])
+    assert torch.equal(got[0], whole[0])
+    for lv in range(1, L):
+        assert torch.equal(got[lv], crop_windows(whole[lv], offsets[lv], heights[lv], widths[lv])), lv

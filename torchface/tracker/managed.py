@@ -81,7 +81,6 @@ from torchface.tracker.step import (
     TrackResult,
     TrackStatus,
     check_frames,
-    crop_windows,
     gray_pyramid,
     gray_pyramid_windows,
     initialise,
@@ -318,28 +317,27 @@ def _new_entries(
     )  # (n, 4) x0, y0, w, h at full resolution
     # Each level's window (one size for the streams concerned), or the whole level where it would hold fewer
     # pixels than the level's slots.
-    sizes, offsets = [], []
+    cameras, heights, widths, offsets = [], [], [], []
     h, w = state.intrinsics.height, state.intrinsics.width
-    for level in range(config.num_levels):
-        slots = ms.mosaic.levels[level].face_index.shape[-1]  # the slots of this level's entries
+    for level, lv in enumerate(ms.mosaic.levels):
         s = 2**level
         hl = min(int(-(-windows[:, 3].max() // s)), h)
         wl = min(int(-(-windows[:, 2].max() // s)), w)
-        sizes.append((h, w, hl, wl, slots))
         x0 = (windows[:, 0] // s).clamp(max=w - wl)
         y0 = (windows[:, 1] // s).clamp(max=h - hl)
-        offsets.append(torch.stack([x0, y0], -1) if wl * hl >= slots else None)
+        whole = wl * hl < lv.face_index.shape[-1]  # fewer pixels than the level's slots
+        cameras.append(level_intrinsics(state.intrinsics, level, h, w))
+        heights.append(h if whole else hl)
+        widths.append(w if whole else wl)
+        offsets.append(None if whole else torch.stack([x0, y0], -1))
         h, w = h // 2, w // 2
-    if all(off is not None for off in offsets):
-        grays = gray_pyramid_windows(frames, config.num_levels, offsets, [z[2] for z in sizes], [z[3] for z in sizes])
-    else:
-        grays = [g if off is None else crop_windows(g, off, z[2], z[3])
-                 for g, off, z in zip(gray_pyramid(frames, config.num_levels), offsets, sizes)]  # fmt: skip
+    grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths)
     vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
     templates = []
-    for level, (gray, off, (h, w, _, _, slots)) in enumerate(zip(grays, offsets, sizes)):
+    for gray, off, cam, lv in zip(grays, offsets, cameras, ms.mosaic.levels):
+        slots = lv.face_index.shape[-1]  # the slots of this level's entries
         px = select_pixels_posed(
-            model, posed, gray, level_intrinsics(state.intrinsics, level, h, w), off, max_points=slots,
+            model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
             expression_quota=int(config.expression_quota * slots),
         )  # fmt: skip

@@ -326,18 +326,23 @@ def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
 
 
 def gray_pyramid_windows(
-    frames: Tensor, num_levels: int, offsets: Sequence[Tensor], heights: Sequence[int], widths: Sequence[int]
+    frames: Tensor, num_levels: int, offsets: Sequence[Tensor | None], heights: Sequence[int], widths: Sequence[int]
 ) -> list[Tensor]:
     """Windows of :func:`gray_pyramid`: level ``l``'s ``(B, 1, heights[l], widths[l])`` windows whose top-left
-    pixels are ``offsets[l] (B, 2)`` int64 ``(x0, y0)`` in that level's pixels (each inside its level).
+    pixels are ``offsets[l] (B, 2)`` int64 ``(x0, y0)`` in that level's pixels (each inside its level); where
+    ``offsets[l]`` is None, the whole level.
 
     The values are :func:`gray_pyramid`'s exactly, computed from a crop of the frames around the windows: the
     crop's corners lie on multiples of ``2 ** (num_levels - 1)`` (the levels stay aligned) and it reaches
     ``4 * 2 ** (num_levels - 1)`` pixels beyond the windows (4 pixels at the coarsest level) unless it meets the
     image border, so that the pyramid filter's reflected border only touches pixels outside the windows. Where
-    that crop would not fit (a frame size not divisible by that power of two), the whole frames are used.
+    that crop would not fit (a frame size not divisible by that power of two), or a level is wanted whole, the
+    whole frames are used.
     """
     B, _, H, W = frames.shape
+    if any(off is None for off in offsets):
+        levels = gray_pyramid(frames, num_levels)
+        return [g if off is None else crop_windows(g, off, h, w) for g, off, h, w in zip(levels, offsets, heights, widths)]
     q = 2 ** (num_levels - 1)
     size_hw = frames.new_tensor([W, H], dtype=torch.int64)
     lo = torch.stack([off * 2**lv for lv, off in enumerate(offsets)]).amin(0)  # (B, 2) level 0 (x, y)
