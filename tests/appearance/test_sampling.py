@@ -136,6 +136,17 @@ def test_image_gradients_exact_for_quadratic_image():
     torch.testing.assert_close(out[2][inner], (0.02 * uu - 0.06 * vv)[inner], rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_to_gray_is_kornias_bit_for_bit(dtype):
+    import kornia
+
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.rand(2, 3, 17, 23, generator=g, dtype=dtype)
+    assert torch.equal(to_gray(rgb), kornia.color.rgb_to_grayscale(rgb))
+    u8 = (rgb * 255).to(torch.uint8)
+    assert torch.equal(to_gray(u8), kornia.color.rgb_to_grayscale(u8))
+
+
 def test_to_gray_bt601_and_passthrough():
     rgb = torch.tensor([1.0, 0.0, 0.0]).view(1, 3, 1, 1).expand(1, 3, 2, 2)
     torch.testing.assert_close(to_gray(rgb), torch.full((1, 1, 2, 2), 0.299), rtol=0, atol=1e-6)

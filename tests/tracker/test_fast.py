@@ -273,18 +273,33 @@ def test_prior_pulls_an_unobservable_animation_unit_to_its_mean(centred):
     torch.testing.assert_close(a_out[:, 0], torch.full_like(a_out[:, 0], 0.35 if centred else 0.0), rtol=0, atol=1e-4)
 
 
-def test_crop_gray_equals_slicing_each_stream():
+@pytest.mark.parametrize("size", [(24, 36), (32, 48)])  # under half the frame (crop, then gray) and over (gray first)
+def test_crop_gray_equals_slicing_each_stream(size):
     from torchface.appearance.sampling import to_gray
     from torchface.tracker.step import _crop_gray
 
     g = torch.Generator().manual_seed(3)
     frames = torch.rand(3, 3, 40, 56, generator=g)
-    offsets = torch.tensor([[0, 0], [8, 4], [16, 12]])
-    crop = _crop_gray(frames, offsets, 24, 36)
+    h, w = size
+    # the last stream's window touches the bottom-right corner: the last run of the flat storage
+    offsets = torch.tensor([[0, 0], [4, 4], [56 - w, 40 - h]])
+    crop = _crop_gray(frames, offsets, h, w)
     for b in range(3):
         x0, y0 = offsets[b].tolist()
-        ref = to_gray(frames[b : b + 1, :, y0 : y0 + 24, x0 : x0 + 36])
+        ref = to_gray(frames[b : b + 1, :, y0 : y0 + h, x0 : x0 + w])
         assert torch.equal(crop[b : b + 1], ref)
+
+
+def test_crop_windows_equals_slicing_of_a_non_contiguous_batch():
+    from torchface.tracker.step import crop_windows
+
+    g = torch.Generator().manual_seed(4)
+    images = torch.rand(2, 5, 30, 3, generator=g, dtype=torch.float64).permute(0, 3, 1, 2)  # (2, 3, 5, 30) strided
+    offsets = torch.tensor([[27, 0], [0, 2]])
+    got = crop_windows(images, offsets, 3, 3)
+    for b in range(2):
+        x0, y0 = offsets[b].tolist()
+        assert torch.equal(got[b], images[b, :, y0 : y0 + 3, x0 : x0 + 3])
 
 
 def test_per_stream_prior_equals_each_stream_solved_with_its_own():

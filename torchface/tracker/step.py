@@ -696,23 +696,33 @@ def crop_windows(images: Tensor, offsets: Tensor, height: int, width: int) -> Te
     """``(B, C, H, W)`` images -> ``(B, C, height, width)`` windows whose top-left pixels are ``offsets (B, 2)``
     int64 ``(x0, y0)`` (exact copies; every window must lie inside its image).
 
-    One flat ``gather`` for the batch: measured six times faster than advanced indexing (0.5 vs 3.1 ms for a
-    480x488 crop of a 640x480 frame, one thread).
+    One ``index_select`` of whole window rows for the batch: the images' storage is viewed (``as_strided``) as
+    the ``width``-long runs starting at every element, and the ``B * C * height`` runs that are window rows are
+    selected. Each row is one contiguous copy, where a flat ``gather`` of every pixel reads an int64 index per
+    value: measured 4 times faster at B = 1 (0.15 against 0.64 ms for a 480x496 window of a 640x480 RGB frame,
+    2 threads) and 1.7 times at B = 32 (advanced indexing was 6 times slower than the gather).
     """
     B, C, H, W = images.shape
-    rows = offsets[:, 1:2] + torch.arange(height, device=images.device)
-    cols = offsets[:, 0:1] + torch.arange(width, device=images.device)
-    idx = (rows[:, :, None] * W + cols[:, None, :]).reshape(B, 1, height * width).expand(-1, C, -1)
-    return images.reshape(B, C, H * W).gather(2, idx).reshape(B, C, height, width)
+    flat = images.contiguous().reshape(-1)
+    runs = flat.as_strided((flat.numel() - width + 1, width), (1, 1))
+    dev = images.device
+    plane = (torch.arange(B, device=dev)[:, None] * C + torch.arange(C, device=dev)) * H  # (B, C) first row of each
+    rows = plane[:, :, None] + (offsets[:, None, 1:2] + torch.arange(height, device=dev))  # (B, C, height)
+    start = (rows * W + offsets[:, None, 0:1]).reshape(-1)
+    return runs.index_select(0, start).reshape(B, C, height, width)
 
 
 def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
     """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets.
 
-    The gray conversion is per pixel, so cropping first (:func:`crop_windows`) gives the same values as
-    converting the whole frame first, while converting only the crop's pixels (at 640x480 the whole-frame
-    conversion cost 6x the crop's at B = 1 and 2x at B = 32).
+    The gray conversion is per pixel, so converting first and cropping the gray frames gives the same values as
+    cropping first (:func:`crop_windows`). It converts whichever has fewer pixels to touch: a crop of at least
+    half the frame is cut from the gray frames (one channel to copy instead of three; at 640x480 and B = 32 with
+    480x496 crops: 0.7 against 3.5 ms per stream), a smaller one is converted after cropping.
     """
+    H, W = frames.shape[-2:]
+    if 2 * ch * cw >= H * W:
+        return crop_windows(to_gray(frames), offsets, ch, cw)
     return to_gray(crop_windows(frames, offsets, ch, cw))
 
 
