@@ -83,6 +83,9 @@ def test_local_twist_jacobian_equals_autograd(kind):
     cam = full_camera()
     r, J, valid, _ = linearise(tpl, image, cam, R0, t0, a0, l0, light_basis, tpl.valid)
     assert bool(valid.all()) and J.shape == (2, 40, LAYOUT.size)
+    # inputs that require grad take the differentiable path (no out= arguments): the same values
+    r_d, J_d, _, _ = linearise(tpl, image, cam, R0.clone().requires_grad_(), t0, a0, l0, light_basis, tpl.valid)
+    assert J_d.requires_grad and torch.equal(J_d.detach(), J) and torch.equal(r_d.detach(), r)
 
     def fn(d):
         dR = rotation_reference(d[:, 0:3])

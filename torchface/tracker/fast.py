@@ -177,18 +177,27 @@ def linearise(
     vals = vals.squeeze(2)  # (B, 3, N)
     intensity = vals[:, 0]
     r = torch.baddbmm((intensity - tpl.intensity).unsqueeze(-1), nlb, light.unsqueeze(-1)).squeeze(-1)
-    # The columns are written into J where they are computed (no concatenation of the pieces afterwards).
     by_axis = k.basis_by_axis  # (B, 3, N, A)
     A = by_axis.shape[-1]
-    J = torch.empty(B, N, 6 + A + nlb.shape[-1], dtype=r.dtype, device=r.device)
-    gxy = torch.mul(vals[:, 1:3].transpose(1, 2) * k.focal, iz, out=J[..., 3:5])  # dI/dX, dI/dY (B, N, 2)
-    torch.sum(gxy * xy, -1, keepdim=True, out=J[..., 5:6]).neg_()
-    g = J[..., 3:6]  # dI/dX_cam (B, N, 3)
-    torch.linalg.cross(Xr, g, dim=-1, out=J[..., 0:3])
-    g_model = torch.bmm(g, R)  # (B, N, 3)
-    torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
-                  g_model[..., 2:3], by_axis[:, 2], out=J[..., 6 : 6 + A])
-    J[..., 6 + A :] = nlb
+    if torch.is_grad_enabled() and any(
+        x.requires_grad for x in (image, R, t, alpha, light, light_basis, nlb, tpl.points, tpl.basis, tpl.intensity)
+    ):  # the differentiable path (out= arguments do not support autograd): the pieces, then one concatenation
+        gxy = vals[:, 1:3].transpose(1, 2) * k.focal * iz
+        g = torch.cat([gxy, (gxy * xy).sum(-1, keepdim=True).neg_()], dim=-1)
+        g_model = torch.bmm(g, R)
+        j_anim = torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
+                               g_model[..., 2:3], by_axis[:, 2])
+        J = torch.cat([torch.linalg.cross(Xr, g, dim=-1), g, j_anim, nlb], dim=-1)
+    else:  # the same values, each column block written into J where it is computed
+        J = torch.empty(B, N, 6 + A + nlb.shape[-1], dtype=r.dtype, device=r.device)
+        gxy = torch.mul(vals[:, 1:3].transpose(1, 2) * k.focal, iz, out=J[..., 3:5])  # dI/dX, dI/dY (B, N, 2)
+        torch.sum(gxy * xy, -1, keepdim=True, out=J[..., 5:6]).neg_()
+        g = J[..., 3:6]  # dI/dX_cam (B, N, 3)
+        torch.linalg.cross(Xr, g, dim=-1, out=J[..., 0:3])
+        g_model = torch.bmm(g, R)  # (B, N, 3)
+        torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
+                      g_model[..., 2:3], by_axis[:, 2], out=J[..., 6 : 6 + A])
+        J[..., 6 + A :] = nlb
     inside = (grid.abs() <= 1.0).all(-1)
     facing = (torch.bmm(tpl.normals, R.transpose(1, 2)) * Xc).sum(-1) < 0
     valid = mask & front & inside & facing
