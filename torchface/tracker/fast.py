@@ -179,24 +179,26 @@ def linearise(
     r = torch.baddbmm((intensity - tpl.intensity).unsqueeze(-1), nlb, light.unsqueeze(-1)).squeeze(-1)
     by_axis = k.basis_by_axis  # (B, 3, N, A)
     A = by_axis.shape[-1]
-    if torch.is_grad_enabled() and any(
+    # Without autograd each column block is written into one J where it is computed; out= arguments do not support
+    # autograd, so a differentiable call (an input requires grad) computes the same blocks and concatenates them.
+    differentiable = torch.is_grad_enabled() and any(
         x.requires_grad for x in (image, R, t, alpha, light, light_basis, nlb, tpl.points, tpl.basis, tpl.intensity)
-    ):  # the differentiable path (out= arguments do not support autograd): the pieces, then one concatenation
-        gxy = vals[:, 1:3].transpose(1, 2) * k.focal * iz
-        g = torch.cat([gxy, (gxy * xy).sum(-1, keepdim=True).neg_()], dim=-1)
-        g_model = torch.bmm(g, R)
-        j_anim = torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
-                               g_model[..., 2:3], by_axis[:, 2])
-        J = torch.cat([torch.linalg.cross(Xr, g, dim=-1), g, j_anim, nlb], dim=-1)
-    else:  # the same values, each column block written into J where it is computed
-        J = torch.empty(B, N, 6 + A + nlb.shape[-1], dtype=r.dtype, device=r.device)
-        gxy = torch.mul(vals[:, 1:3].transpose(1, 2) * k.focal, iz, out=J[..., 3:5])  # dI/dX, dI/dY (B, N, 2)
-        torch.sum(gxy * xy, -1, keepdim=True, out=J[..., 5:6]).neg_()
-        g = J[..., 3:6]  # dI/dX_cam (B, N, 3)
-        torch.linalg.cross(Xr, g, dim=-1, out=J[..., 0:3])
-        g_model = torch.bmm(g, R)  # (B, N, 3)
-        torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
-                      g_model[..., 2:3], by_axis[:, 2], out=J[..., 6 : 6 + A])
+    )
+    J = None if differentiable else torch.empty(B, N, 6 + A + nlb.shape[-1], dtype=r.dtype, device=r.device)
+
+    def block(first: int, stop: int) -> Tensor | None:
+        return None if J is None else J[..., first:stop]
+
+    gxy = torch.mul(vals[:, 1:3].transpose(1, 2) * k.focal, iz, out=block(3, 5))  # dI/dX, dI/dY (B, N, 2)
+    gz = torch.sum(gxy * xy, -1, keepdim=True, out=block(5, 6)).neg_()
+    g = torch.cat([gxy, gz], dim=-1) if J is None else J[..., 3:6]  # dI/dX_cam (B, N, 3)
+    j_rot = torch.linalg.cross(Xr, g, dim=-1, out=block(0, 3))
+    g_model = torch.bmm(g, R)  # (B, N, 3)
+    j_anim = torch.addcmul(torch.addcmul(g_model[..., 0:1] * by_axis[:, 0], g_model[..., 1:2], by_axis[:, 1]),
+                           g_model[..., 2:3], by_axis[:, 2], out=block(6, 6 + A))
+    if J is None:
+        J = torch.cat([j_rot, g, j_anim, nlb], dim=-1)
+    else:
         J[..., 6 + A :] = nlb
     inside = (grid.abs() <= 1.0).all(-1)
     facing = (torch.bmm(tpl.normals, R.transpose(1, 2)) * Xc).sum(-1) < 0

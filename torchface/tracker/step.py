@@ -340,9 +340,13 @@ def gray_pyramid_windows(
     whole frames are used.
     """
     B, _, H, W = frames.shape
-    if any(off is None for off in offsets):
+
+    def from_whole_frames() -> list[Tensor]:
         levels = gray_pyramid(frames, num_levels)
         return [g if off is None else crop_windows(g, off, h, w) for g, off, h, w in zip(levels, offsets, heights, widths)]
+
+    if any(off is None for off in offsets):
+        return from_whole_frames()
     q = 2 ** (num_levels - 1)
     size_hw = frames.new_tensor([W, H], dtype=torch.int64)
     lo = torch.stack([off * 2**lv for lv, off in enumerate(offsets)]).amin(0)  # (B, 2) level 0 (x, y)
@@ -353,9 +357,8 @@ def gray_pyramid_windows(
     size = -torch.div(-(stop - start).amax(0), q, rounding_mode="floor") * q  # (2,) width, height
     start = torch.minimum(start, size_hw - size)
     if bool((start < 0).any() | (start % q != 0).any()):
-        levels = gray_pyramid(frames, num_levels)
-        return [crop_windows(g, off, h, w) for g, off, h, w in zip(levels, offsets, heights, widths)]
-    crop = gray_pyramid(crop_windows(frames, start, int(size[1]), int(size[0])), num_levels)
+        return from_whole_frames()
+    crop = gray_pyramid(_crop_gray(frames, start, int(size[1]), int(size[0])), num_levels)
     return [crop_windows(g, off - torch.div(start, 2**lv, rounding_mode="floor"), h, w)
             for lv, (g, off, h, w) in enumerate(zip(crop, offsets, heights, widths))]  # fmt: skip
 
@@ -740,9 +743,7 @@ def _track_step_fast(
     R = axis_angle_to_matrix(aa)
     verts = _posed_vertices(model, state, layout, R)
     offsets, ch, cw = face_crop(model, state, layout, config, verts)
-    crop = [_crop_gray(frames, offsets, ch, cw)]
-    for _ in range(config.num_levels - 1):
-        crop.append(pyr_down(crop[-1]))
+    crop = gray_pyramid(_crop_gray(frames, offsets, ch, cw), config.num_levels)
     masks = [t.valid for t in state.templates]
     visibility = None
     if config.zbuffer_visibility:
