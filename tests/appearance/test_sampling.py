@@ -196,3 +196,11 @@ def test_pyr_down_equals_kornia_pyrdown(shape):
         even = x[..., : shape[2] // 2 * 2 + 2, : shape[3] // 2 * 2 + 2]
         # away from the dropped border the odd-size result equals the even-size one of a slightly larger crop
         torch.testing.assert_close(ours[..., :-2, :-2], pyr_down(even)[..., :-2, :-2], rtol=0, atol=1e-12)
+
+
+def test_pyr_down_gradcheck():
+    """The in-place accumulation of the taps keeps the pyramid step differentiable (float64 gradcheck)."""
+    from torchface.appearance.sampling import pyr_down
+
+    x = torch.rand(1, 1, 7, 8, generator=torch.Generator().manual_seed(3), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(pyr_down, (x,))

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from torchface.appearance import image_with_gradients
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg
 from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.template import Template
@@ -34,6 +35,12 @@ from test_objective import (  # noqa: E402
 )
 
 D = torch.float64
+
+
+def gray(image: torch.Tensor) -> torch.Tensor:
+    """The intensity channel of the objective tests' ``(B, 3, H, W)`` images: the fast solver takes the gray image
+    and finds the gradients itself, by sampling either side of each point."""
+    return image[:, :1].contiguous()
 
 
 def full_camera(B: int = 2, offset: tuple[int, int] = (0, 0)) -> LevelCamera:
@@ -76,8 +83,8 @@ def test_exp_so3_cached_constants_survive_inference_mode():
 def test_local_twist_jacobian_equals_autograd(kind):
     """Columns of ``linearise`` are the derivatives for the increment that turns the head about its origin,
     ``R <- exp(d_omega) R``, ``t <- t + d_t``, ``alpha += d_alpha``, ``lambda += d_lambda`` (exact with the
-    bilinear image)."""
-    tpl, x, image = make_template(), params(kind), bilinear_image()
+    bilinear image: its central differences are its derivatives)."""
+    tpl, x, image = make_template(), params(kind), gray(bilinear_image())
     light_basis = _light_basis(tpl, params("nonzero"))
     R0, t0, a0, l0 = split(x)
     cam = full_camera()
@@ -104,10 +111,12 @@ def test_local_twist_jacobian_equals_autograd(kind):
 @pytest.mark.parametrize("kind", ["zero", "nonzero"])
 def test_crop_residuals_equal_the_reference_objective(kind):
     """On a crop of the frame (offset subtracted after projection) the residuals, validity and the additive
-    columns (translation, expression, light) equal those of ``frame_residuals`` on the full frame."""
-    tpl, x, image = make_template(seed=2), params(kind), smooth_image()
+    columns (translation, expression, light) equal those of ``frame_residuals`` on the full frame, whose image
+    gradients are the central-difference images of ``image_with_gradients`` (the fast path's sampled differences
+    either side of each point are the same values)."""
+    tpl, x, image = make_template(seed=2), params(kind), gray(smooth_image())
     light_basis = _light_basis(tpl, params("nonzero"))
-    r_ref, J_ref, valid_ref = frame_residuals(x, LAYOUT, tpl, image, CAM, light_basis, tpl.valid)
+    r_ref, J_ref, valid_ref = frame_residuals(x, LAYOUT, tpl, image_with_gradients(image), CAM, light_basis, tpl.valid)
     ox, oy = 40, 24
     crop = image[:, :, oy:, ox:].contiguous()
     R0, t0, a0, l0 = split(x)
@@ -129,7 +138,7 @@ def test_crop_residuals_equal_the_reference_objective(kind):
 
 
 def test_points_outside_the_crop_are_invalid():
-    tpl, x, image = make_template(B=1, N=40), params("zero", B=1), bilinear_image(B=1)
+    tpl, x, image = make_template(B=1, N=40), params("zero", B=1), gray(bilinear_image(B=1))
     R0, t0, a0, l0 = split(x)
     light_basis = _light_basis(tpl, x)
     crop = image[:, :, :, 80:].contiguous()  # right half of the frame only
@@ -139,13 +148,38 @@ def test_points_outside_the_crop_are_invalid():
     assert 0 < int(valid.sum()) < 40
 
 
+def test_sampled_gradients_at_the_crop_border_equal_the_gradient_image():
+    """Within one pixel of the crop's edge the sampled differences are clamped by the sampler as the gradient
+    image replicates its border: the fast path's residuals and translation columns equal ``frame_residuals`` with
+    the crop's own central-difference image and a camera moved onto the crop."""
+    from torchface.geometry.camera import Intrinsics
+
+    tpl, x, image = make_template(B=1, N=600, seed=4), params("nonzero", B=1), gray(smooth_image(B=1))
+    light_basis = _light_basis(tpl, x)
+    ox, oy = 80, 50
+    crop = image[:, :, oy:, ox:].contiguous()
+    crop_cam = Intrinsics(CAM.width - ox, CAM.height - oy, CAM.fx, CAM.fy, CAM.cx - ox, CAM.cy - oy)
+    r_ref, J_ref, valid_ref = frame_residuals(x, LAYOUT, tpl, image_with_gradients(crop), crop_cam, light_basis, tpl.valid)
+    R0, t0, a0, l0 = split(x)
+    r, J, valid, _ = linearise(tpl, crop, full_camera(B=1, offset=(ox, oy)), R0, t0, a0, l0, light_basis, tpl.valid)
+    assert bool((valid == valid_ref).all())
+    Xc = (tpl.points + (tpl.basis * a0[:, None, None]).sum(-1)) @ R0.mT + t0[:, None]
+    u = CAM.fx * Xc[..., 0] / Xc[..., 2] + CAM.cx - ox
+    v = CAM.fy * Xc[..., 1] / Xc[..., 2] + CAM.cy - oy
+    near_edge = valid & ((u < 1) | (v < 1))
+    assert int(near_edge.sum()) >= 3  # the case under test is there
+    torch.testing.assert_close(r[valid], r_ref[valid], rtol=0, atol=1e-12)
+    cols = GROUPS["translation"]
+    torch.testing.assert_close(J[valid][:, cols], J_ref[valid][:, cols], rtol=1e-10, atol=1e-14)
+
+
 def _synthetic_problem(B: int = 2, N: int = 400, seed: int = 3):
     """Template whose intensities are the smooth image sampled (bilinearly, as the solver does) at the true
     parameters with the true light: the truth is an exact zero-residual solution."""
     tpl = make_template(B=B, N=N, seed=seed)
     x_true = params("nonzero", B=B)
     light_basis = _light_basis(tpl, x_true)
-    image = smooth_image(B=B)
+    image = gray(smooth_image(B=B))
     R, t, a, lam = split(x_true)
     cam = full_camera(B=B)
     zero_light = torch.zeros_like(lam)

