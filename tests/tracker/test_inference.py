@@ -1,0 +1,179 @@
+"""Tests of torchface.tracker.inference: the tracking steps run in inference mode and hand back normal tensors
+(nothing the caller gets is an inference tensor, unchanged parts of the state are the same objects), give the
+same numbers as outside it, and leave inference mode alone where a gradient is wanted."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import euler_to_matrix
+from torchface.model.candide import load_candide3
+from torchface.normalise import build_normalised_layout, normalised_face
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.tracker import (
+    FitConfig,
+    ParamLayout,
+    TrackerConfig,
+    initialise,
+    initialise_managed,
+    managed_step,
+    track_step,
+)
+from torchface.tracker.inference import normal_tensors, run_without_autograd
+
+W, H = 320, 240
+D = torch.float64
+CFG = TrackerConfig(num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0),
+                    robust_scale_floor=(0.045, 0.02))  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- normal_tensors
+
+
+@dataclasses.dataclass(frozen=True)
+class _Box:
+    a: torch.Tensor
+    b: torch.Tensor
+    rest: tuple
+    posts = [0]
+
+    def __post_init__(self) -> None:
+        _Box.posts[0] += 1
+
+
+class _Pair(NamedTuple):
+    x: torch.Tensor
+    y: object
+
+
+def test_normal_tensors_copies_only_inference_tensors_and_keeps_the_rest():
+    kept = torch.arange(3.0)
+    untouched = _Box(kept, kept, ("label", 2, None))
+    with torch.inference_mode():
+        new = torch.ones(2) * 2
+    tree = {"box": _Box(new, new, (_Pair(new, kept), [kept, new])), "old": untouched, "n": 1}
+    posts = _Box.posts[0]
+    out = normal_tensors(tree)
+    assert _Box.posts[0] == posts  # copies do not run __init__ / __post_init__ again
+    assert out["old"] is untouched and out["n"] == 1  # nothing to copy: the same objects
+    box = out["box"]
+    assert not box.a.is_inference() and torch.equal(box.a, new)
+    assert box.a is box.b and box.rest[0].x is box.a and box.rest[1][1] is box.a  # one copy per tensor
+    assert isinstance(box.rest[0], _Pair) and box.rest[0].y is kept and box.rest[1][0] is kept
+    box.a.add_(1)  # a normal tensor: in-place outside inference mode is allowed
+    assert normal_tensors(untouched) is untouched
+
+
+def test_run_without_autograd_modes():
+    def probe(x):
+        return torch.is_inference_mode_enabled(), x * 2
+
+    x = torch.ones(3)
+    inside, y = run_without_autograd(probe, (x,), x)
+    assert inside and not y.is_inference()
+    xg = torch.ones(3, requires_grad=True)
+    inside, y = run_without_autograd(probe, (xg,), xg)
+    assert not inside and y.requires_grad  # a gradient is wanted: autograd stays
+    with torch.no_grad():
+        assert run_without_autograd(probe, (xg,), xg)[0]
+    with torch.inference_mode():  # a caller's inference mode: run as it is, no copy
+        inside, y = run_without_autograd(probe, (x,), x)
+    assert inside and y.is_inference()
+
+
+# ----------------------------------------------------------------------------- the tracking steps
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3()
+
+
+@pytest.fixture(scope="module")
+def turn():
+    """Yaw 0 -> 27 degrees in 3 degree steps: template management adds a mosaic entry on the way."""
+    yaw = [3.0 * i for i in range(10)]
+    T = len(yaw)
+    spec = SequenceSpec(
+        name="turn", subject="candide3", intrinsics=Intrinsics.default(W, H),
+        rotation=euler_to_matrix(torch.tensor([[y, 0.0, 0.0] for y in yaw], dtype=D)),
+        translation=torch.tensor([[0.0, 0.0, 450.0]] * T, dtype=D),
+        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
+        background=BackgroundSpec(seed=3), photo="james",
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    return frames[None], gt.landmarks_px[:1].float()
+
+
+def _tensors(tree) -> list[torch.Tensor]:
+    found = []
+
+    def walk(x):
+        if isinstance(x, torch.Tensor):
+            found.append(x)
+        elif dataclasses.is_dataclass(x) and not isinstance(x, type):
+            for f in dataclasses.fields(x):
+                walk(getattr(x, f.name))
+        elif isinstance(x, (tuple, list)):
+            for v in x:
+                walk(v)
+        elif isinstance(x, dict):
+            for v in x.values():
+                walk(v)
+
+    walk(tree)
+    return found
+
+
+def test_managed_step_hands_back_normal_tensors_equal_to_an_outer_inference_mode(model, turn):
+    frames, lm = turn
+    state, _ = initialise_managed(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    outer = state
+    for i in range(1, frames.shape[1]):
+        templates = state.templates
+        state, res = managed_step(model, CFG, state, frames[:, i])
+        with torch.inference_mode():
+            outer, res_outer = managed_step(model, CFG, outer, frames[:, i])
+        assert not any(t.is_inference() for t in _tensors((state, res))), f"frame {i}"
+        if int(res.mosaic_entry[0]) == 0:
+            assert state.templates is templates  # unchanged: the same objects, not copies
+        for name in ("rotation", "translation", "anim_coeffs", "illumination", "confidence", "status"):
+            assert torch.equal(getattr(res, name), getattr(res_outer, name)), (i, name)
+        res.rotation.mul_(1.0)  # a caller may modify what it gets in place
+    assert int(state.management.mosaic.num_entries[0]) > 1  # an entry was added (made in inference mode) on the way
+
+
+def test_track_step_results_serve_a_differentiable_normalised_face(model, turn):
+    """Parameters from a step (made in inference mode) go into a normalised face whose gradient reaches the
+    frame's pixels: autograd would refuse to save an inference tensor."""
+    frames, lm = turn
+    state, _ = initialise(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    state, _ = track_step(model, CFG, state, frames[:, 1])
+    aa, t, alpha, light = ParamLayout(model.num_animation, 5).split(state.params)
+    layout = build_normalised_layout(model, 32, 0.1)
+    pixels = frames[:, 1].clone().requires_grad_(True)
+    face = normalised_face(pixels, model, layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics)
+    face.image.sum().backward()
+    assert pixels.grad is not None and float(pixels.grad.abs().sum()) > 0
+
+
+def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, monkeypatch):
+    import torchface.tracker.step as step_module
+
+    frames, lm = turn
+    state, _ = initialise(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    seen = []
+    real = step_module._track_step_fast
+    monkeypatch.setattr(
+        step_module, "_track_step_fast", lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or real(*a, **k)
+    )
+    track_step(model, CFG, state, frames[:, 1])
+    track_step(model, CFG, state, frames[:, 1].clone().requires_grad_(True))
+    assert seen == [True, False]
