@@ -131,6 +131,30 @@ def test_axis_angle_to_matrix_backward_at_exact_zero_matches_finite_differences(
     torch.testing.assert_close(grad[0], expected, atol=1e-14, rtol=0)
 
 
+def test_axis_angle_to_matrix_matches_the_matrix_exponential_near_zero() -> None:
+    """Against ``torch.linalg.matrix_exp`` of the skew matrix, at small, tiny and zero angles."""
+    gen = torch.Generator().manual_seed(0)
+    w = torch.cat([torch.randn(4, 3, generator=gen, dtype=F64), 1e-5 * torch.randn(2, 3, generator=gen, dtype=F64),
+                   1e-12 * torch.randn(2, 3, generator=gen, dtype=F64), torch.zeros(1, 3, dtype=F64)])
+    torch.testing.assert_close(axis_angle_to_matrix(w), torch.linalg.matrix_exp(hat(w)), rtol=0, atol=1e-12)
+
+
+def test_cached_generators_survive_inference_mode() -> None:
+    """The generators and identity are cached per dtype and device; made first under inference mode (a tracker
+    run in a dataloader), they must still serve a later differentiable call, and never be modified by one."""
+    from torchface.geometry.so3 import _so3_generators
+
+    _so3_generators.cache_clear()
+    w = torch.tensor([[0.1, -0.2, 0.3]], dtype=F64)
+    with torch.inference_mode():
+        axis_angle_to_matrix(w)
+    g, eye = _so3_generators(F64, w.device)
+    assert not g.is_inference() and not eye.is_inference()
+    assert torch.autograd.gradcheck(axis_angle_to_matrix, (w.clone().requires_grad_(True),))
+    torch.testing.assert_close(eye, torch.eye(3, dtype=F64), rtol=0, atol=0)
+    assert axis_angle_to_matrix(w).data_ptr() != eye.data_ptr()
+
+
 @pytest.mark.parametrize("case", ["zero", "tiny", "small", "switch", "general"])
 def test_axis_angle_to_matrix_gradcheck(case: str) -> None:
     aa = {

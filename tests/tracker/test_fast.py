@@ -15,7 +15,7 @@ from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg
 from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.template import Template
 from torchface.tracker import frame_residuals
-from torchface.tracker.fast import FUNCTION_TOLERANCE, LevelCamera, exp_so3, linearise, solve_level
+from torchface.tracker.fast import FUNCTION_TOLERANCE, LevelCamera, linearise, solve_level
 
 # The synthetic template, images and parameters of the objective tests (this folder on sys.path, whatever
 # pytest's import mode).
@@ -50,33 +50,6 @@ def full_camera(B: int = 2, offset: tuple[int, int] = (0, 0)) -> LevelCamera:
 
 def split(x: torch.Tensor):
     return axis_angle_to_matrix(x[:, 0:3]), x[:, 3:6], x[:, LAYOUT.animation], x[:, LAYOUT.illumination]
-
-
-def test_exp_so3_matches_matrix_exponential():
-    gen = torch.Generator().manual_seed(0)
-    w = torch.cat([torch.randn(4, 3, generator=gen, dtype=D), 1e-5 * torch.randn(2, 3, generator=gen, dtype=D),
-                   torch.zeros(1, 3, dtype=D)])
-    torch.testing.assert_close(exp_so3(w), rotation_reference(w), rtol=0, atol=1e-12)
-    w0 = torch.zeros(1, 3, dtype=D, requires_grad=True)
-    exp_so3(w0).sum().backward()
-    assert bool(torch.isfinite(w0.grad).all())
-
-
-def test_exp_so3_cached_constants_survive_inference_mode():
-    """The generators and identity are cached per dtype and device; made first under inference mode (a tracker
-    run in a dataloader), they must still serve a later differentiable call, and never be modified by one."""
-    from torchface.tracker.fast import _so3_constants
-
-    _so3_constants.cache_clear()
-    w = torch.tensor([[0.1, -0.2, 0.3]], dtype=D)
-    with torch.inference_mode():
-        exp_so3(w)
-    g, eye = _so3_constants(D, w.device)
-    assert not g.is_inference() and not eye.is_inference()
-    w1 = w.clone().requires_grad_(True)
-    torch.autograd.gradcheck(exp_so3, (w1,))
-    torch.testing.assert_close(eye, torch.eye(3, dtype=D), rtol=0, atol=0)
-    assert exp_so3(w).data_ptr() != eye.data_ptr()
 
 
 @pytest.mark.parametrize("kind", ["zero", "nonzero"])

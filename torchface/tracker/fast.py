@@ -22,8 +22,6 @@ batched over streams; the host synchronises only for the early-exit and step-rej
 
 from __future__ import annotations
 
-import functools
-import math
 from dataclasses import dataclass
 
 import torch
@@ -31,6 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchface.conventions import NEAR_PLANE_MM
+from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss, SwitchedRobustLoss
 from torchface.template.points import Template
 
@@ -61,36 +60,6 @@ class LevelCamera:
     offset: Tensor
     height: int
     width: int
-
-
-@functools.lru_cache(maxsize=16)
-def _so3_constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    """The SO(3) generators ``(3, 9)`` (row ``i`` is the flattened ``hat(e_i)``, so ``hat(w) = (w @ G).view(-1, 3,
-    3)``) and the identity ``(3, 3)``: cached constants (never modify them), built once per dtype and device, where
-    building them per call took ~140 dispatched operations per tracked frame. Made outside inference mode even when
-    first asked for inside it, so that a later differentiable call may save them for backward."""
-    with torch.inference_mode(False):
-        g = torch.zeros(3, 3, 3, dtype=dtype, device=device)
-        g[0, 2, 1], g[0, 1, 2] = 1.0, -1.0
-        g[1, 0, 2], g[1, 2, 0] = 1.0, -1.0
-        g[2, 1, 0], g[2, 0, 1] = 1.0, -1.0
-        return g.reshape(3, 9), torch.eye(3, dtype=dtype, device=device)
-
-
-def exp_so3(w: Tensor) -> Tensor:
-    """Rodrigues' formula for ``(B, 3)`` rotation vectors (exact, finite at zero) -> ``(B, 3, 3)``.
-
-    ``R = I + a K + b K^2`` with ``K = hat(w)``, ``a = sin t / t = sinc(t / pi)`` and
-    ``b = (1 - cos t) / t^2 = sinc(t / 2 pi)^2 / 2`` (``t = |w|``): ``torch.sinc`` is exact at zero, and the angle
-    is taken from ``t^2`` clamped to a tiny floor so that its gradient is finite there too (``a`` and ``b`` are
-    flat at zero). The generators and the identity are :func:`_so3_constants` (made once per dtype and device).
-    """
-    x = (w * w).sum(-1, keepdim=True).clamp_min(torch.finfo(w.dtype).tiny).sqrt().unsqueeze(-1) / math.pi
-    a = torch.sinc(x)  # (B, 1, 1)
-    b = torch.sinc(0.5 * x).square() * 0.5
-    G, eye = _so3_constants(w.dtype, w.device)
-    K = torch.matmul(w, G).view(-1, 3, 3)
-    return torch.addcmul(torch.addcmul(eye, a, K), b, torch.matmul(K, K))
 
 
 def _masked_median_abs(r: Tensor, valid: Tensor) -> Tensor:
@@ -415,7 +384,7 @@ def solve_level(
         finite = finite & (good | ~active)
         step = active & good
         delta = torch.where(step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask, delta, 0.0)
-        dR = exp_so3(delta[:, 0:3])
+        dR = axis_angle_to_matrix(delta[:, 0:3])
         R = torch.bmm(dR, R)
         t = t + delta[:, 3:6]
         alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
