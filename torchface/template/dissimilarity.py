@@ -254,55 +254,54 @@ def inverse_compositional_lk(
     to_grid = grid.new_tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)])
     grid_n = grid * to_grid - 1.0  # (B, K, n, 2)
     n = grid.shape[2]
-    # Per point, the features [grad T (C x 2, flattened), error (C), 1]; their weighted second moments give
+    # Per point, the features [grad T (C x 2, flattened), error (C), 1]: their weighted second moments give
     # H, the gradient and (with the constant) the patch means of the bias projection in one matmul:
-    # sum w (s - s_bar)(e - e_bar) = sum w s e - W s_bar e_bar, and the same for H.
-    sd_flat = sd.reshape(B, K, n, 2 * C)
-    ones = torch.ones(B, K, n, 1, dtype=dtype, device=reference.device)
+    # sum w (s - s_bar)(e - e_bar) = sum w s e - W s_bar e_bar, and the same for H. grad T and the constant are
+    # written once; each iteration writes its error into the buffer.
+    F3 = 3 * C
+    feats = torch.empty(B, K, n, F3 + 1, dtype=dtype, device=reference.device)
+    feats[..., : 2 * C] = sd.reshape(B, K, n, 2 * C)
+    feats[..., F3] = 1.0
+    err_slot = feats[..., 2 * C : F3]
 
     def weights_at(p_: Tensor) -> tuple[Tensor, Tensor]:
-        g = grid_n + (p_ * to_grid).unsqueeze(2)
+        g = torch.addcmul(grid_n, p_.unsqueeze(2), to_grid)
         out = F.grid_sample(stacked, g, mode="bilinear", padding_mode="zeros", align_corners=True)  # (B, C', K, n)
         values = out.permute(0, 2, 3, 1)
-        w = ref_weight * (g.abs() <= 1.0).all(-1).to(dtype)
-        if image_mask is not None:
-            w = w * values[..., C].clamp(0.0, 1.0)
-        return values[..., :C], w
+        inside = g.abs().amax(-1) <= 1.0
+        w = ref_weight if image_mask is None else values[..., C].clamp(0.0, 1.0) * ref_weight
+        return values[..., :C], torch.where(inside, w, 0.0)
 
-    def normal_equations(err: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
-        """``(B, K, 2, 2)`` H and ``(B, K, 2)`` the gradient ``sum w grad T^T e`` (bias projected out)."""
-        feats = torch.cat([sd_flat, err, ones], dim=-1)  # (B, K, n, F + 1), F = 3 C
+    def normal_equations(w: Tensor) -> tuple[Tensor, Tensor]:
+        """``(B, K, 2, 2)`` H and ``(B, K, 2)`` the gradient ``sum w grad T^T e`` (bias projected out), with the
+        error in the features' buffer."""
         moments = torch.matmul((feats * w.unsqueeze(-1)).transpose(-1, -2), feats)  # (B, K, F + 1, F + 1)
-        cov = moments[..., :-1, :-1]
-        if project_out_bias:
-            mean = moments[..., :-1, -1:]  # (B, K, F, 1) weighted sums
-            total = moments[..., -1:, -1:].clamp_min(eps)
-            cov = cov - mean * mean.transpose(-1, -2) / total
+        if project_out_bias:  # m_ij - m_i1 m_1j / m_11 (the last row and column become 0 and are not used)
+            moments = moments - moments[..., :, F3:] * (moments[..., F3:, :] / moments[..., F3:, F3:].clamp_min(eps))
         if C == 1:  # gray images (the dissimilarity's): no sum over channels
-            return cov[..., :2, :2], cov[..., :2, 2]
-        s_s = cov[..., : 2 * C, : 2 * C].reshape(B, K, C, 2, C, 2)
-        s_e = cov[..., : 2 * C, 2 * C :].reshape(B, K, C, 2, C)
+            return moments[..., :2, :2], moments[..., :2, 2]
+        s_s = moments[..., : 2 * C, : 2 * C].reshape(B, K, C, 2, C, 2)
+        s_e = moments[..., : 2 * C, 2 * C : F3].reshape(B, K, C, 2, C)
         hess = torch.diagonal(s_s, dim1=2, dim2=4).sum(-1)  # sum over channels: (B, K, 2, 2)
         grad = torch.diagonal(s_e, dim1=2, dim2=4).sum(-1)  # (B, K, 2)
         return hess, grad
 
     for _ in range(iterations):
         warped, w = weights_at(p)
-        hess, grad = normal_equations(warped - template, w)
-        a, b, _, c = hess.reshape(B, K, 4).unbind(-1)
-        g_u, g_v = grad.unbind(-1)
+        torch.sub(warped, template, out=err_slot)
+        hess, grad = normal_equations(w)
+        a, b, c = hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1]
         det = a * c - b * b
-        scale = (a + c).abs().clamp_min(eps)
-        ok = (det > 1e3 * eps * scale * scale) & torch.isfinite(det) & torch.isfinite(grad).all(-1)
-        det_safe = torch.where(ok, det, 1.0)
-        dp = torch.stack([c * g_u - b * g_v, a * g_v - b * g_u], -1)
-        dp = dp / det_safe.unsqueeze(-1)
+        # Well-posed: det above a relative floor (det <= trace^2 / 4) and everything finite (NaN fails the first
+        # test, an infinite H or gradient the second).
+        ok = (det > (1e3 * eps) * (a + c).square()) & torch.isfinite(det + grad.sum(-1))
+        dp = torch.linalg.solve_ex(hess, grad.unsqueeze(-1))[0].squeeze(-1)  # used only where ok
         step = active & ok
         valid = valid & (ok | ~active)
         p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
         small = dp.norm(dim=-1) < tolerance
         converged = converged | (step & small)
-        active = active & ok & ~small
+        active = step & ~small
         if max_displacement is not None:
             far = p.norm(dim=-1) > max_displacement
             valid = valid & ~(step & far)
