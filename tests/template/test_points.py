@@ -420,3 +420,35 @@ def test_window_build_bad_offsets_raise(scene):
     with pytest.raises(ValueError, match="inside the 160x120 image"):
         build_template(s["model"], s["shape"], s["anim"], s["R"], s["t"], crops, s["cam"],
                        offsets=torch.tensor([[0, 0], [101, 0]]), **kw)
+
+
+def test_point_last_copies_are_kept_normal_and_not_kept_with_a_gradient():
+    """The fast solver's point-last copies: equal to the fields, made once per template even when first asked for
+    under inference mode (and then normal tensors, so a later differentiable call can save them), made again on
+    each use when a template tensor requires grad (the gradient must reach it), and not carried into a copy."""
+    from torchface.template import Template
+    from torchface.tracker.inference import normal_tensors
+
+    gen = torch.Generator().manual_seed(0)
+    B, N, A = 2, 5, 3
+
+    def make(requires_grad: bool = False) -> Template:
+        pts = torch.randn(B, N, 3, generator=gen, requires_grad=requires_grad)
+        return Template(torch.zeros(B, N, dtype=torch.int64), torch.rand(B, N, 3, generator=gen), pts,
+                        torch.randn(B, N, 3, A, generator=gen), torch.randn(B, N, 3, generator=gen),
+                        torch.rand(B, N, generator=gen), torch.ones(B, N, dtype=torch.bool))  # fmt: skip
+
+    tpl = make()
+    with torch.inference_mode():
+        first = tpl.point_last
+    assert not any(t.is_inference() for t in first) and tpl.point_last is first
+    points_t, normals_t, basis_t = first
+    assert torch.equal(points_t, tpl.points.transpose(1, 2)) and torch.equal(normals_t, tpl.normals.transpose(1, 2))
+    assert torch.equal(basis_t, tpl.basis.permute(0, 3, 2, 1)) and basis_t.is_contiguous()
+    live = make(requires_grad=True)
+    assert live.point_last is not live.point_last and live.point_last[0].requires_grad
+    with torch.inference_mode():
+        inner = Template(*(getattr(tpl, f) * 1 for f in tpl.__dataclass_fields__))
+        inner.point_last
+    copy = normal_tensors(inner)
+    assert copy is not inner and "_point_last" not in copy.__dict__

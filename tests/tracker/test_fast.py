@@ -364,3 +364,29 @@ def test_round_down_to_a_power_of_two_is_floor_division_also_below_zero():
     x = torch.arange(-37, 41, dtype=torch.int64)
     for q in (1, 2, 4, 8):
         assert torch.equal(_round_down(x, q), torch.div(x, q, rounding_mode="floor") * q)
+
+
+@pytest.mark.parametrize("robust", [None, RobustLoss(RobustKind.TUKEY, 4.685)])
+def test_a_residual_only_final_check_gives_the_same_pass(robust):
+    """``keep_linearisation=False``: the final check linearises residuals only (one sample per point, no Jacobian)
+    and the pass ends exactly where the full check ends, with the same outcome but no linearisation to hand on."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    full = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
+    cheap = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, jacobian=False)
+    assert cheap[1] is None
+    for i in (0, 2, 3):
+        assert torch.equal(cheap[i], full[i])
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+
+    def solve(keep):
+        return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3, free=free,
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, keep_linearisation=keep)
+
+    kept, checked = solve(True), solve(False)
+    for got, want in zip(checked[:4], kept[:4]):
+        assert torch.equal(got, want)
+    for name in ("residual", "valid", "sampled", "iterations", "converged", "finite"):
+        assert torch.equal(getattr(checked[4], name), getattr(kept[4], name)), name
+    assert kept[4].linearisation is not None and checked[4].linearisation is None

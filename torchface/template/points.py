@@ -55,6 +55,23 @@ class Template:
         """The templates of samples ``index`` (a ``(B',)`` int64 or bool tensor)."""
         return Template(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
+    @property
+    def point_last(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Contiguous point-last copies ``points (B, 3, N)``, ``normals (B, 3, N)`` and ``basis (B, A, 3, N)``, the
+        layout of the fast solver (:mod:`torchface.tracker.fast`). Made on first use and kept with the template (a
+        template serves many frames), as normal tensors (usable in and out of inference mode); a copy that carries
+        a gradient (a template tensor requires grad) is made again on each use instead."""
+        cached = self.__dict__.get("_point_last")
+        if cached is None:
+            with torch.inference_mode(False):
+                cached = (
+                    self.points.transpose(1, 2).contiguous(), self.normals.transpose(1, 2).contiguous(),
+                    self.basis.permute(0, 3, 2, 1).contiguous(),
+                )
+            if not any(t.requires_grad for t in cached):
+                object.__setattr__(self, "_point_last", cached)  # not a field: equality, copies and repr ignore it
+        return cached
+
 
 @dataclass(frozen=True)
 class TemplatePixels:

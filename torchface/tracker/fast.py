@@ -79,8 +79,8 @@ class LevelOutcome:
     iterations: Tensor  # (B,) int64
     converged: Tensor  # (B,) bool
     finite: Tensor  # (B,) bool
-    #: :func:`linearise`'s output ``(r, J, valid, sampled)`` at the final estimate (with ``final_check``), for a
-    #: following pass at the same level to start from (``solve_level(start=...)``).
+    #: :func:`linearise`'s output ``(r, J, valid, sampled)`` at the final estimate (with ``final_check`` and
+    #: ``keep_linearisation``), for a following pass at the same level to start from (``solve_level(start=...)``).
     linearisation: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
     #: The level's :class:`_LevelConstants`, for such a pass to reuse (``solve_level(constants=...)``).
     constants: _LevelConstants | None = None
@@ -124,8 +124,7 @@ def _level_constants(cam: LevelCamera, like: Tensor, tpl: Template) -> _LevelCon
     stencil = torch.tensor(_STENCIL, dtype=dtype, device=device) * to_grid.unsqueeze(-1)  # (2, 5)
     return _LevelConstants(
         (0.5 * focal).view(1, 2, 1), (focal * to_grid).view(1, 2, 1, 1), (shift.unsqueeze(-1) + stencil).unsqueeze(-1),
-        tpl.points.transpose(1, 2).contiguous(), tpl.normals.transpose(1, 2).contiguous(),
-        tpl.basis.permute(0, 3, 2, 1).contiguous(),
+        *tpl.point_last,
     )
 
 
@@ -141,7 +140,8 @@ def linearise(
     mask: Tensor,
     constants: _LevelConstants | None = None,
     neg_light_basis_t: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    jacobian: bool = True,
+) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
     """Residuals ``r (B, N)``, local Jacobian ``J (B, N, P)``, validity ``(B, N)`` and sampled intensities.
 
     Columns of ``J``: ``d_omega (3)``, ``d_t (3)``, ``alpha (A)``, ``light (L)`` (see the module docstring).
@@ -153,7 +153,8 @@ def linearise(
     interpolation, and at the crop's border too (the sampler clamps as that image replicates). Sampling five
     points of the gray crop instead of one point of a three-channel image spares building the gradient images:
     at B = 128 and a 480x520 crop that took about 1 ms per stream-frame. ``constants`` and ``neg_light_basis_t``
-    (``-light_basis`` as a contiguous ``(B, L, N)``) may be passed to reuse them across iterations.
+    (``-light_basis`` as a contiguous ``(B, L, N)``) may be passed to reuse them across iterations. With
+    ``jacobian`` False only the points themselves are sampled and ``J`` is None (a step's cost check).
     """
     B, N = tpl.valid.shape
     if image.shape[1] != 1:
@@ -168,12 +169,18 @@ def linearise(
     front = Z > NEAR_PLANE_MM
     iz = Z.clamp_min(NEAR_PLANE_MM).reciprocal().unsqueeze(1)  # (B, 1, N)
     xy = Xc[:, :2] * iz  # (B, 2, N)
-    grid = torch.addcmul(k.grid_shift, xy.unsqueeze(2), k.grid_scale)  # (B, 2, 5, N) in [-1, 1] inside the crop
+    shift = k.grid_shift if jacobian else k.grid_shift[:, :, :1]  # the stencil, or the points alone
+    grid = torch.addcmul(shift, xy.unsqueeze(2), k.grid_scale)  # (B, 2, 5 or 1, N) in [-1, 1] inside the crop
     vals = F.grid_sample(
         image, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
-    ).view(B, 5, N)
+    ).view(B, -1, N)
     intensity = vals[:, 0]
     r = torch.baddbmm((intensity - tpl.intensity).unsqueeze(1), light.unsqueeze(1), nlb).view(B, N)
+    inside = (grid[:, :, 0].abs() <= 1.0).all(1)
+    facing = (torch.bmm(R, k.normals_t) * Xc).sum(1) < 0
+    valid = mask & front & inside & facing
+    if not jacobian:
+        return r, None, valid, intensity
     # Without autograd each row block is written into one (B, P, N) tensor where it is computed; out= arguments do
     # not support autograd, so a differentiable call (an input requires grad) computes the same blocks and
     # concatenates them.
@@ -198,9 +205,6 @@ def linearise(
     else:
         j_anim.addcmul_(basis[:, :, 1], g_model[:, :, 1]).addcmul_(basis[:, :, 2], g_model[:, :, 2])
         Jt[:, 6 + A :] = nlb
-    inside = (grid[:, :, 0].abs() <= 1.0).all(1)
-    facing = (torch.bmm(R, k.normals_t) * Xc).sum(1) < 0
-    valid = mask & front & inside & facing
     return r, Jt.transpose(1, 2), valid, intensity
 
 
@@ -260,6 +264,7 @@ def solve_level(
     function_tolerance: float = FUNCTION_TOLERANCE,
     start: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     constants: _LevelConstants | None = None,
+    keep_linearisation: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -295,8 +300,11 @@ def solve_level(
         start: :func:`linearise`'s output at the start estimate with these ``tpl``, ``image``, ``cam``,
             ``light_basis`` and ``mask`` (:attr:`LevelOutcome.linearisation` of a pass that ended there), used
             for the first iteration instead of linearising again.
-        constants: :attr:`LevelOutcome.constants` of a pass with the same ``tpl`` and ``cam``, to reuse (the
-            per-axis basis is a copy of the template's); None computes them.
+        constants: :attr:`LevelOutcome.constants` of a pass with the same ``tpl`` and ``cam``, to reuse; None
+            computes them.
+        keep_linearisation: the final check linearises in full and hands it on
+            (:attr:`LevelOutcome.linearisation`, for a following pass at this level); False: residuals only there
+            (no Jacobian, one sample per point) and ``linearisation`` None.
 
     Returns:
         The new ``R, t, alpha, light`` and a :class:`LevelOutcome`.
@@ -335,8 +343,8 @@ def solve_level(
         torch.full((P - 6,), step_tolerance[2], dtype=dtype, device=device),
     ])
 
-    def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t)
+    def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor, jacobian: bool = True) -> tuple[Tensor, ...]:
+        return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t, jacobian)
 
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for it in range(iterations):
@@ -400,7 +408,7 @@ def solve_level(
     if not final_check:
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite, constants=constants)
         return R, t, alpha, light, outcome
-    last = lin(R, t, alpha, light)
+    last = lin(R, t, alpha, light, keep_linearisation)
     if best is not None:
         # The last step is kept only where it did not raise the cost.
         r, _, valid, _ = last
@@ -410,7 +418,10 @@ def solve_level(
         accept = (cost <= best[6]) & torch.isfinite(cost)
         if not bool(accept.all()):
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
-            last = lin(R, t, alpha, light)
+            last = lin(R, t, alpha, light, keep_linearisation)
     r, _, valid, sampled = last
-    outcome = LevelOutcome(r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite, last, constants)
+    outcome = LevelOutcome(
+        r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite, last if keep_linearisation else None,
+        constants,
+    )
     return R, t, alpha, light, outcome

@@ -14,7 +14,6 @@ unchanged (a state's templates, its mosaic) is returned as it was, the same obje
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
@@ -33,8 +32,9 @@ def normal_tensors(tree: T) -> T:
     """``tree`` with each inference tensor in it replaced by a normal copy (``clone`` outside inference mode).
 
     Walks tensors, dataclass instances, tuples (named tuples too), lists and dicts. An object holding no inference
-    tensor is returned as it is (the same object), one that does as a shallow copy with those members replaced; an
-    object reached twice is copied once (aliasing is kept). Other values are returned as they are.
+    tensor is returned as it is (the same object), one that does as a shallow copy with those members replaced (a
+    dataclass: its fields only, so values cached on the instance are made again from the copies); an object reached
+    twice is copied once (aliasing is kept). Other values are returned as they are.
     """
     memo: dict[int, Any] = {}
 
@@ -54,10 +54,10 @@ def normal_tensors(tree: T) -> T:
                 if new is not value:
                     changed[f.name] = new
             out = x
-            if changed:  # a shallow copy: no __init__ / __post_init__ to run again
-                out = copy.copy(x)
-                for name, value in changed.items():
-                    object.__setattr__(out, name, value)
+            if changed:  # a copy of the fields alone (no __init__ / __post_init__ to run again, no cached values)
+                out = object.__new__(type(x))
+                for f in dataclasses.fields(x):
+                    object.__setattr__(out, f.name, changed.get(f.name, getattr(x, f.name)))
         elif isinstance(x, (tuple, list)):
             items = [walk(v) for v in x]
             out = x

@@ -788,6 +788,7 @@ def _track_step_fast(
     alpha_mean = anim_prior_mean(config, state)
     intr = state.intrinsics
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
+    refine = config.refine_iterations > 0 and config.use_expression
     for level in reversed(range(config.num_levels)):
         s = 0.5**level
         img = crop[level]
@@ -808,11 +809,12 @@ def _track_step_fast(
             # sudden occluder's first frame went from 1.98 to 2.15 degrees in test_step's occlusion test).
             step_tolerance=tuple(v * 2**level for v in STEP_TOLERANCE),
             function_tolerance=config.function_tolerance * 2**level,
+            keep_linearisation=level == 0 and refine,  # the refinement pass starts from it
         )
         if level == 1 and robust is not None and _clean_rule(config, near_template):
             scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
             clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
-    if config.refine_iterations > 0 and config.use_expression:
+    if refine:
         only = free.clone()
         only[layout.rotation] = False
         only[layout.translation] = False
@@ -828,7 +830,7 @@ def _track_step_fast(
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
             alpha_prior=refine_prior, alpha_mean=alpha_mean, robust=robust,
             scale_floor=config.refine_scale_floor, start=out.linearisation, constants=out.constants,
-            function_tolerance=config.function_tolerance,
+            function_tolerance=config.function_tolerance, keep_linearisation=False,
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
     status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
