@@ -483,30 +483,34 @@ class DissimilarityResult(NamedTuple):
 
 @functools.lru_cache(maxsize=16)
 def _gaussian_kernels(sigma: float, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    """The normalised 1D Gaussian of ``sigma`` (radius ``round(3 sigma)``, at least 1) as the ``(2, 1, 1, k)`` and
-    ``(2, 1, k, 1)`` weights of a two-group convolution along rows and columns: cached constants (never modify
-    them), made outside inference mode."""
+    """The normalised 1D Gaussian of ``sigma`` (radius ``round(3 sigma)``, at least 1) as ``(1, 1, 1, k)`` and
+    ``(1, 1, k, 1)`` convolution weights along rows and columns: cached constants (never modify them), made
+    outside inference mode."""
     with torch.inference_mode(False):
         radius = max(1, int(round(3.0 * sigma)))
         x = torch.arange(-radius, radius + 1, dtype=dtype, device=device)
         k = torch.exp(-0.5 * (x / sigma) ** 2)
         k = k / k.sum()
-        return k.reshape(1, 1, 1, -1).repeat(2, 1, 1, 1), k.reshape(1, 1, -1, 1).repeat(2, 1, 1, 1)
+        return k.reshape(1, 1, 1, -1), k.reshape(1, 1, -1, 1)
 
 
 def _masked_gray(image: Tensor, mask: Tensor, sigma: float) -> Tensor:
     """``(B, 1, G, G)`` channel mean, Gaussian-smoothed by normalised convolution inside ``mask``, 0 outside.
 
-    The masked gray image and the mask are blurred together, as the two groups of one separable convolution."""
+    The gray image and the mask are blurred by separate single-channel convolutions: one two-group convolution
+    (or the two as a batch of two) took several times longer on the CPU (64 x 64: 50 against 7 microseconds)."""
     gray = image.mean(1, keepdim=True) * mask
     if sigma <= 0:
         return gray
     kx, ky = _gaussian_kernels(float(sigma), image.dtype, image.device)
     r = kx.shape[-1] // 2
-    both = torch.cat([gray, mask], 1)
-    both = F.conv2d(F.pad(both, (r, r, 0, 0), mode="replicate"), kx, groups=2)
-    both = F.conv2d(F.pad(both, (0, 0, r, r), mode="replicate"), ky, groups=2)
-    num, den = both[:, :1], both[:, 1:]
+
+    def blur(x: Tensor) -> Tensor:
+        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), kx)
+        return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), ky)
+
+    num = blur(gray)
+    den = blur(mask)
     eps = torch.finfo(image.dtype).eps
     return torch.where(den > 1e3 * eps, num / den.clamp_min(1e3 * eps), 0.0) * mask
 
