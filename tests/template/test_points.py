@@ -452,3 +452,21 @@ def test_point_last_copies_are_kept_normal_and_not_kept_with_a_gradient():
         inner.point_last
     copy = normal_tensors(inner)
     assert copy is not inner and "_point_last" not in copy.__dict__
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_erode_equals_the_square_minimum_filter(radius):
+    """The separable erosion keeps exactly the pixels whose (2 r + 1)^2 square is set, outside the image counting
+    as set (the minimum filter written out, at the borders too)."""
+    from torchface.template.points import _erode
+
+    gen = torch.Generator().manual_seed(radius)
+    mask = torch.rand(2, 17, 23, generator=gen) > 0.15
+    pad = torch.nn.functional.pad(mask, (radius, radius, radius, radius), value=True)
+    k = 2 * radius + 1
+    want = torch.ones_like(mask)
+    for dy in range(k):
+        for dx in range(k):
+            want &= pad[:, dy : dy + 17, dx : dx + 23]
+    assert torch.equal(_erode(mask, radius), want)
+    assert torch.equal(_erode(mask, 0), mask)
