@@ -177,3 +177,23 @@ def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, mon
     track_step(model, CFG, state, frames[:, 1])
     track_step(model, CFG, state, frames[:, 1].clone().requires_grad_(True))
     assert seen == [True, False]
+
+
+def test_state_pieces_made_in_inference_mode_are_normal_tensors(model, turn):
+    """The mosaic with a new entry and the templates of a switched entry persist in the state: made in a step's
+    inference mode they are normal tensors already, so handing the state back copies none of them."""
+    from torchface.template.management import add_entries
+    from torchface.tracker.managed import _scatter_templates
+
+    frames, lm = turn
+    state, first = initialise_managed(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    ms = state.management
+    streams = torch.zeros(1, dtype=torch.int64)
+    with torch.inference_mode():
+        mosaic, slot = add_entries(ms.mosaic, streams, state.templates, first.rotation, torch.zeros(1, 2, dtype=torch.int64),
+                                   ms.mosaic.references.select(streams))  # fmt: skip
+        templates = _scatter_templates(state.templates, streams, tuple(t.select(streams) for t in state.templates))
+    assert int(slot[0]) == 1 and int(mosaic.num_entries[0]) == 2
+    assert not any(t.is_inference() for t in _tensors((mosaic, templates)))
+    out = normal_tensors((mosaic, templates))
+    assert out[0] is mosaic and out[1] is templates  # nothing to copy

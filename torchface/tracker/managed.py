@@ -194,15 +194,17 @@ def initialise_managed(
 def _scatter_templates(
     templates: tuple[Template, ...], index: Tensor, sub: tuple[Template, ...]
 ) -> tuple[Template, ...]:
-    """``templates`` with the samples ``index`` replaced by ``sub`` (batch ``len(index)``)."""
+    """``templates`` with the samples ``index`` replaced by ``sub`` (batch ``len(index)``), made as normal tensors
+    even in inference mode (they persist in the state: see :func:`~torchface.template.management.add_entries`)."""
     out = []
-    for t, s in zip(templates, sub):
-        parts = []
-        for f in fields(Template):
-            x = getattr(t, f.name).clone()
-            x[index] = getattr(s, f.name).to(x.dtype)
-            parts.append(x)
-        out.append(Template(*parts))
+    with torch.inference_mode(False):
+        for t, s in zip(templates, sub):
+            parts = []
+            for f in fields(Template):
+                x = getattr(t, f.name).clone()
+                x[index] = getattr(s, f.name).to(x.dtype)
+                parts.append(x)
+            out.append(Template(*parts))
     return tuple(out)
 
 
