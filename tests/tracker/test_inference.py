@@ -5,33 +5,24 @@ same numbers as outside it, and leave inference mode alone where a gradient is w
 from __future__ import annotations
 
 import dataclasses
+import sys
+from pathlib import Path
 from typing import NamedTuple
 
 import pytest
 import torch
 
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import euler_to_matrix
 from torchface.model.candide import load_candide3
 from torchface.normalise import build_normalised_layout, normalised_face
-from torchface.synth.background import BackgroundSpec
-from torchface.synth.scenarios import default_light
-from torchface.synth.sequence import SequenceSpec, render_sequence
-from torchface.tracker import (
-    FitConfig,
-    ParamLayout,
-    TrackerConfig,
-    initialise,
-    initialise_managed,
-    managed_step,
-    track_step,
-)
+from torchface.synth.sequence import render_sequence
+from torchface.tracker import ParamLayout, initialise, initialise_managed, managed_step, track_step
 from torchface.tracker.inference import normal_tensors, run_without_autograd
 
-W, H = 320, 240
-D = torch.float64
-CFG = TrackerConfig(num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0),
-                    robust_scale_floor=(0.045, 0.02))  # fmt: skip
+# The small-sequence settings and renderer of the template management tests (this folder on sys.path, whatever
+# pytest's import mode).
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_managed import CFG, H, W, spec_of  # noqa: E402
 
 
 # ----------------------------------------------------------------------------- normal_tensors
@@ -100,14 +91,7 @@ def model():
 def turn():
     """Yaw 0 -> 27 degrees in 3 degree steps: template management adds a mosaic entry on the way."""
     yaw = [3.0 * i for i in range(10)]
-    T = len(yaw)
-    spec = SequenceSpec(
-        name="turn", subject="candide3", intrinsics=Intrinsics.default(W, H),
-        rotation=euler_to_matrix(torch.tensor([[y, 0.0, 0.0] for y in yaw], dtype=D)),
-        translation=torch.tensor([[0.0, 0.0, 450.0]] * T, dtype=D),
-        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
-        background=BackgroundSpec(seed=3), photo="james",
-    )  # fmt: skip
+    spec = spec_of("turn", [[y, 0.0, 0.0] for y in yaw], [[0.0, 0.0, 450.0]] * len(yaw))
     frames, gt = render_sequence(spec)
     return frames[None], gt.landmarks_px[:1].float()
 

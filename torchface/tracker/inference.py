@@ -15,13 +15,14 @@ unchanged (a state's templates, its mosaic) is returned as it was, the same obje
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
 
 import torch
 from torch import Tensor
 
-__all__ = ["normal_tensors", "run_without_autograd"]
+__all__ = ["normal_tensors", "run_without_autograd", "without_autograd"]
 
 T = TypeVar("T")
 
@@ -93,3 +94,25 @@ def run_without_autograd(fn: Callable[..., T], inputs: Iterable[object], *args: 
     with torch.inference_mode():
         out = fn(*args, **kwargs)
     return normal_tensors(out)
+
+
+def without_autograd(inputs_of: Callable[..., Iterable[object]]) -> Callable[[Callable[..., T]], Callable[..., T]]:
+    """Decorator: the function runs as :func:`run_without_autograd` with ``inputs_of(*args, **kwargs)`` as the
+    tensors through which a caller could want gradients.
+
+    Example:
+        >>> @without_autograd(lambda x: (x,))
+        ... def double(x):
+        ...     return x * 2
+        >>> double(torch.ones(2)).is_inference()
+        False
+    """
+
+    def decorate(fn: Callable[..., T]) -> Callable[..., T]:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> T:
+            return run_without_autograd(fn, inputs_of(*args, **kwargs), *args, **kwargs)
+
+        return wrapper
+
+    return decorate

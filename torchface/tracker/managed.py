@@ -74,7 +74,7 @@ from torchface.template.management import (
 )
 from torchface.template.points import Template, TemplatePixels, interpolated_normals, posed_mesh, select_pixels_posed
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
-from torchface.tracker.inference import run_without_autograd
+from torchface.tracker.inference import without_autograd
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -86,6 +86,7 @@ from torchface.tracker.step import (
     gray_pyramid_windows,
     initialise,
     level_intrinsics,
+    step_grad_inputs,
     track_step,
 )
 
@@ -459,6 +460,7 @@ def _recover(
     return found, solved, result, conf, diss, entries
 
 
+@without_autograd(step_grad_inputs)
 def managed_step(
     model: FaceModel,
     config: TrackerConfig,
@@ -489,19 +491,6 @@ def managed_step(
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
     require grad with grad mode on; the tensors handed back are normal tensors.
     """
-    return run_without_autograd(
-        _managed_step, (frames, state.params, state.shape_coeffs), model, config, state, frames, detector
-    )
-
-
-def _managed_step(
-    model: FaceModel,
-    config: TrackerConfig,
-    state: TrackerState,
-    frames: Tensor,
-    detector: LandmarkDetector | None = None,
-) -> tuple[TrackerState, TrackResult]:
-    """:func:`managed_step` itself (as called, in or out of inference mode)."""
     tc = config.template
     if not tc.enabled:
         new_state, result = track_step(model, config, state, frames)

@@ -30,7 +30,7 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
-from torchface.tracker.inference import run_without_autograd
+from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
 
@@ -475,6 +475,15 @@ def _result(
     )
 
 
+def step_grad_inputs(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, *args: object, **kwargs: object
+) -> tuple[object, ...]:
+    """The tensors of a step's arguments through which a caller could want gradients (:func:`track_step`,
+    :func:`~torchface.tracker.managed.managed_step`; see :mod:`torchface.tracker.inference`)."""
+    return frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)
+
+
+@without_autograd(step_grad_inputs)
 def track_step(
     model: FaceModel,
     config: TrackerConfig,
@@ -506,22 +515,6 @@ def track_step(
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
     require grad with grad mode on; the tensors handed back are normal tensors.
     """
-    return run_without_autograd(
-        _track_step, (frames, state.params, state.shape_coeffs), model, config, state, frames,
-        conservative=conservative, near_template=near_template,
-    )
-
-
-def _track_step(
-    model: FaceModel,
-    config: TrackerConfig,
-    state: TrackerState,
-    frames: Tensor,
-    *,
-    conservative: Tensor | None = None,
-    near_template: Tensor | None = None,
-) -> tuple[TrackerState, TrackResult]:
-    """:func:`track_step` itself (as called, in or out of inference mode)."""
     check_frames(frames, state.intrinsics)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
