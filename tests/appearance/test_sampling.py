@@ -145,6 +145,13 @@ def test_to_gray_is_kornias_bit_for_bit(dtype):
     assert torch.equal(to_gray(rgb), kornia.color.rgb_to_grayscale(rgb))
     u8 = (rgb * 255).to(torch.uint8)
     assert torch.equal(to_gray(u8), kornia.color.rgb_to_grayscale(u8))
+    # out=: written into a slot of a bigger tensor, from a strided window, the same values
+    out = torch.full((3, 1, 9, 11), -1.0, dtype=dtype)
+    window = rgb[1:2, :, 4:13, 5:16]
+    assert to_gray(window, out=out[2:3]) is not None and torch.equal(out[2:3], kornia.color.rgb_to_grayscale(window))
+    assert bool((out[:2] == -1).all())
+    with pytest.raises(ValueError, match="out="):
+        to_gray(u8, out=out[:2])
 
 
 def test_to_gray_bt601_and_passthrough():
