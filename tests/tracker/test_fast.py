@@ -283,7 +283,7 @@ def test_prior_pulls_an_unobservable_animation_unit_to_its_mean(centred):
     torch.testing.assert_close(a_out[:, 0], torch.full_like(a_out[:, 0], 0.35 if centred else 0.0), rtol=0, atol=1e-4)
 
 
-@pytest.mark.parametrize("size", [(24, 36), (32, 48)])  # under half the frame (crop, then gray) and over (gray first)
+@pytest.mark.parametrize("size", [(24, 36), (32, 48)])
 def test_crop_gray_equals_slicing_each_stream(size):
     from torchface.appearance.sampling import to_gray
     from torchface.tracker.step import _crop_gray
@@ -298,6 +298,12 @@ def test_crop_gray_equals_slicing_each_stream(size):
         x0, y0 = offsets[b].tolist()
         ref = to_gray(frames[b : b + 1, :, y0 : y0 + h, x0 : x0 + w])
         assert torch.equal(crop[b : b + 1], ref)
+    # frames that require grad take the differentiable path: the same values, and the gradient reaches the pixels
+    live = frames.clone().requires_grad_(True)
+    crop_d = _crop_gray(live, offsets, h, w)
+    assert torch.equal(crop_d.detach(), crop)
+    crop_d.sum().backward()
+    assert float(live.grad.sum()) > 0
 
 
 def test_crop_windows_equals_slicing_of_a_non_contiguous_batch():

@@ -739,9 +739,12 @@ def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
     B, C = frames.shape[:2]
     if C == 1:
         return crop_windows(frames, offsets, ch, cw)
+    windows = [frames[b : b + 1, :, y0 : y0 + ch, x0 : x0 + cw] for b, (x0, y0) in enumerate(offsets.tolist())]
+    if torch.is_grad_enabled() and frames.requires_grad:  # out= does not support autograd: the same values, joined
+        return torch.cat([to_gray(w) for w in windows])
     out = torch.empty(B, 1, ch, cw, dtype=frames.dtype, device=frames.device)
-    for b, (x0, y0) in enumerate(offsets.tolist()):
-        to_gray(frames[b : b + 1, :, y0 : y0 + ch, x0 : x0 + cw], out=out[b : b + 1])
+    for b, w in enumerate(windows):
+        to_gray(w, out=out[b : b + 1])
     return out
 
 
