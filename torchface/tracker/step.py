@@ -890,8 +890,9 @@ def _visibility_at(
     intr = level_intrinsics(state.intrinsics, level, height, width)
     verts = _posed_vertices(model, state, layout, R) if verts is None else verts
     frags = rasterize(verts, model.faces, intr)
-    masks = []
-    for tpl in state.templates:
-        _, cam, _ = warp_points(tpl, layout, state.params, R)
-        masks.append(points_visible(cam, tpl.face_index, frags, intr, depth_tolerance=0.02) & tpl.valid)
-    return masks
+    # The levels' points are tested together (one call instead of one per level: the test is per point).
+    cams = [warp_points(tpl, layout, state.params, R)[1] for tpl in state.templates]
+    faces = torch.cat([tpl.face_index for tpl in state.templates], 1)
+    visible = points_visible(torch.cat(cams, 1), faces, frags, intr, depth_tolerance=0.02)
+    sizes = [c.shape[1] for c in cams]
+    return [v & tpl.valid for v, tpl in zip(visible.split(sizes, 1), state.templates)]
