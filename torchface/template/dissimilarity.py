@@ -50,7 +50,6 @@ face.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 from typing import NamedTuple
 
