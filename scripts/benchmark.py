@@ -132,7 +132,8 @@ def _run_child(
            "--frames", str(args.frames), "--width", str(args.width), "--height", str(args.height), "--cache", args.cache]
     if managed:
         cmd.append("--managed")
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=None if env is None else {**os.environ, **env})
+    child_env = None if env is None else {**os.environ, **env}
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=child_env)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -302,7 +303,8 @@ def main() -> None:
         print(f"  B={b}, MALLOC_MMAP_THRESHOLD_=256 MB: {r['fps']:.0f} frames/s", file=sys.stderr)
     mp = _mediapipe(args)
     print(f"\ntorchface tracker benchmark, {args.width}x{args.height}, CPU ({os.cpu_count()} cores)")
-    print(f"{'configuration':<44}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}{'MB/stream':>10}")
+    print(f"{'configuration':<44}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}"
+          f"{'MB/stream':>10}")
     for key, r in figures.items():
         per_stream = f"{r['mb_per_stream']:.1f}" if "mb_per_stream" in r else "-"
         b = int(key.split("_")[1]) if key.startswith("batch") else 1
