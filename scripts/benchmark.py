@@ -287,20 +287,18 @@ def main() -> None:
         r = _run_child(args, 1, threads)
         figures[f"single_stream_{threads}_threads"] = r
         print(f"  B=1, {threads} thread(s): {r['ms_per_step']:.1f} ms/frame", file=sys.stderr)
-    for b in (int(x) for x in args.batches.split(",")):
-        r = _run_child(args, b, 2)
+    rows = [(b, f"batch_{b}", None, "") for b in (int(x) for x in args.batches.split(","))]
+    malloc = [int(x) for x in args.malloc_batches.split(",") if x.strip()]
+    if malloc and not (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"):
+        print("  allocator rows skipped: not Linux with glibc", file=sys.stderr)
+        malloc = []
+    env = {"MALLOC_MMAP_THRESHOLD_": str(MALLOC_MMAP_THRESHOLD)}
+    rows += [(b, f"batch_{b}_malloc_mmap_threshold_256MB", env, ", MALLOC_MMAP_THRESHOLD_=256 MB") for b in malloc]
+    for b, key, child_env, label in rows:
+        r = _run_child(args, b, 2, env=child_env)
         r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
-        figures[f"batch_{b}"] = r
-        print(f"  B={b}: {r['fps']:.0f} frames/s", file=sys.stderr)
-    glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
-    for b in (int(x) for x in args.malloc_batches.split(",") if x.strip()):
-        if not glibc:
-            print("  allocator rows skipped: not Linux with glibc", file=sys.stderr)
-            break
-        r = _run_child(args, b, 2, env={"MALLOC_MMAP_THRESHOLD_": str(MALLOC_MMAP_THRESHOLD)})
-        r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
-        figures[f"batch_{b}_malloc_mmap_threshold_256MB"] = r
-        print(f"  B={b}, MALLOC_MMAP_THRESHOLD_=256 MB: {r['fps']:.0f} frames/s", file=sys.stderr)
+        figures[key] = r
+        print(f"  B={b}{label}: {r['fps']:.0f} frames/s", file=sys.stderr)
     mp = _mediapipe(args)
     print(f"\ntorchface tracker benchmark, {args.width}x{args.height}, CPU ({os.cpu_count()} cores)")
     print(f"{'configuration':<44}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}"
