@@ -96,6 +96,21 @@ def test_pose_bins_known_answers():
     assert near.tolist() == [True, True, False, False, True]
 
 
+def test_pose_bins_relative_to_an_origin():
+    """With an origin, the bins are those of the angles less the origin's (the mosaic's reference pose)."""
+    cfg = TemplateConfig(yaw_bin_deg=15.0, pitch_bin_deg=10.0, bin_centre_fraction=0.25)
+    ypr = torch.tensor([[0.0, 0.0, 40.0], [16.0, -9.0, 0.0], [7.4, 2.4, 0.0], [7.6, 0.0, 0.0], [-35.0, 16.0, 0.0]])
+    origin = torch.tensor([[-5.0, 6.0, 30.0]]).expand(5, 3)
+    bins, near = pose_bins(ypr, cfg, origin_deg=origin)
+    want_bins, want_near = pose_bins(ypr - origin, cfg)
+    assert torch.equal(bins, want_bins) and torch.equal(near, want_near)
+    assert bins.tolist() == [[0, -1], [1, -1], [1, 0], [1, -1], [-2, 1]]
+    assert near.tolist() == [False, False, False, False, True]
+    # A pose is in bin (0, 0), at its centre, against itself.
+    bins, near = pose_bins(ypr, cfg, origin_deg=ypr)
+    assert bins.eq(0).all() and near.all()
+
+
 # ---------------------------------------------------------------- the mosaic
 
 

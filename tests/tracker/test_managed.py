@@ -109,6 +109,16 @@ def turns():
     return frames[None], gt
 
 
+@pytest.fixture(scope="module")
+def turns_pitched():
+    """``turns`` with the head pitched 6 degrees throughout: 0.4 of a 15 degree bin from the camera's bin
+    centres, so only bins keyed to the first pose have a centre the head passes."""
+    up = [3.0 * i for i in range(11)]
+    ypr = [[y, 6.0, 0.0] for y in up]
+    frames, gt = render_sequence(spec_of("turns_pitched", ypr, [[0.0, 0.0, 450.0]] * len(up)))
+    return frames[None], gt
+
+
 #: The face moves a little (frames 0-3), is gone (4-7: out of the image to the right) and comes back on the
 #: left (8-15). The tracker, left on the background, is lost after ``lost_after_very_low`` (3) frames.
 OUT_FRAMES = range(6, 8)
@@ -213,6 +223,19 @@ def test_mosaic_entry_added_at_a_new_pose_and_used_on_return(model, turns):
     assert float(err[list(second_visit)].max()) < 2.0
     assert all(bool(r.success.all()) for r in results)
 
+
+def test_mosaic_bins_are_keyed_to_the_first_pose(model, turns_pitched):
+    """A head that starts 6 degrees off the camera's axis in pitch (the usual case: the bins' pitch never comes
+    within ``bin_centre_fraction`` of a camera-keyed centre) still grows its mosaic as it turns: the bins are
+    counted from the reference entry's pose, which is bin (0, 0)."""
+    frames, gt = turns_pitched
+    config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
+    results, state = track(model, config, frames, landmarks(gt))
+    mosaic = state.management.mosaic
+    bins = mosaic.bins[0, mosaic.used[0]].tolist()
+    assert bins[0] == [0, 0]
+    assert [1, 0] in bins or [2, 0] in bins, bins  # 15 or 30 degrees of yaw from the first pose, same pitch
+    assert float(rel_error(results, gt).max()) < 2.0
 
 
 def test_cached_pose_angles_change_nothing(model, turns):

@@ -20,10 +20,13 @@ against the first frame's a right estimate would score low.
 Mosaic (Section 4.2)
 --------------------
 A :class:`Mosaic` holds, per stream, up to ``E`` entries, each the per-level templates built at one head
-pose, keyed by the pose's bin ``(round(yaw / yaw_bin), round(pitch / pitch_bin))`` (:func:`pose_bins`).
-Entry 0 is the reference (the first frame's templates). An entry's intensities are stored under the
-reference light: a template point seen with illumination ``lambda`` is brought back with the inverse of
-Eq. 19, ``T = (I - lambda_2) / (1 + lambda_1 + (lambda_3, lambda_4, lambda_5) . n_cam)``
+pose, keyed by the pose's bin ``(round(dyaw / yaw_bin), round(dpitch / pitch_bin))`` where ``dyaw, dpitch`` are
+the angles less the reference's (:func:`pose_bins`). Entry 0 is the reference (the first frame's templates), in
+bin ``(0, 0)``. The bins are keyed to the first pose, not to the camera's axis: a head that rests a few degrees
+off that axis (the James scan's fit starts at 5 degrees of pitch) would otherwise never come within
+``bin_centre_fraction`` of a bin centre on that axis, and its mosaic would never grow. An entry's
+intensities are stored under the reference light: a template point seen with illumination ``lambda`` is
+brought back with the inverse of Eq. 19, ``T = (I - lambda_2) / (1 + lambda_1 + (lambda_3, lambda_4, lambda_5) . n_cam)``
 (:func:`torchface.appearance.illumination.remove_illumination`), so the illumination parameters mean the
 same thing against every entry. Entries are stored compactly (triangle, barycentric coordinates,
 intensity, validity per point); :func:`entry_templates` rebuilds the full :class:`Template` (positions,
@@ -140,7 +143,14 @@ class TemplateConfig:
             (confidence 0.04-0.2) still are.
         add_confidence: the confidence a frame needs for its templates to become a mosaic entry. The entry must
             also be within ``entry_reach`` bin widths (in yaw and pitch) of an existing entry: the mosaic grows
-            outward from the first pose, each new entry judged against a reference seen from nearby.
+            outward from the first pose, each new entry judged against a reference seen from nearby. On a face
+            unlike the model a right estimate scores less away from the reference's view: the James scan's
+            long run scores 0.5-0.7 at its first bin centre (15 degrees of yaw, error under 1 degree). At 0.8 its
+            mosaic never grew there, the confidence kept falling with the turn and the stream was marked lost at
+            30-60 degrees with errors of 3-7 (longest loss in view 105 frames), and ``scan_motion``'s max error
+            was 5.5 degrees; at 0.75 entries are added (scan_motion max 4.85, mean 1.65; longest James loss 58).
+            Lower, pose_sweep's mean error rose from 0.492 to 0.501-0.504 degrees (0.5, 0.65, 0.7: entries built
+            from less exact frames) with no gain on scan_motion.
         entry_reach: see ``add_confidence``.
         lost_after: consecutive non-confident frames after which the stream is declared lost.
         very_low_confidence, lost_after_very_low: a stream is also lost after ``lost_after_very_low``
@@ -164,7 +174,9 @@ class TemplateConfig:
             still). 0.01 is a mean patch displacement of about 2 d0 (1.6 px of the normalised face).
         recover_confidence: the confidence that ends a loss (from the continued track or a recovery). A wrong
             placement scores near 0; a right one on a face unlike the model (the James scan) scores 0.6-0.7 near
-            frontal, so 0.7 kept such a stream lost for tens of frames.
+            frontal, so 0.7 kept such a stream lost for tens of frames, and 0.3-0.45 at 45-50 degrees of yaw
+            from its nearest entry, so 0.5 kept the James long run lost through a whole turn with errors of 4-5
+            degrees (frames 2777-2866; 0.35: 2777-2800 and 2849-2866; both with ``add_confidence`` 0.5).
         recovery_every: a lost stream attempts a recovery when it is lost and then every this many frames (an
             attempt costs about three frames' time: the search, then a solve).
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
@@ -207,7 +219,7 @@ class TemplateConfig:
     min_facing_cos: float = 0.6
     dissimilarity: DissimilarityConfig = field(default_factory=_default_dissimilarity)
     confidence_threshold: float = 0.3
-    add_confidence: float = 0.8
+    add_confidence: float = 0.75
     entry_reach: float = 1.5
     lost_after: int = 15
     very_low_confidence: float = 0.1
@@ -215,7 +227,7 @@ class TemplateConfig:
     min_inside_fraction: float = 0.6
     adopt_min_angle_deg: float = 15.0
     adopt_min_confidence: float = 0.01
-    recover_confidence: float = 0.5
+    recover_confidence: float = 0.35
     recovery_every: int = 5
     search_step_px: float = 3.0
     search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
@@ -294,7 +306,8 @@ class Mosaic:
         rotation: ``(B, E, 3, 3)`` the head pose each entry was built at.
         ypr_deg: ``(B, E, 3)`` the same as yaw, pitch, roll in degrees (``matrix_to_euler(rotation)``, kept so
             that choosing an entry each frame does not convert every entry's rotation again).
-        bins: ``(B, E, 2)`` int64 (yaw, pitch) bin of each entry.
+        bins: ``(B, E, 2)`` int64 (yaw, pitch) bin of each entry, counted from the reference entry's pose
+            (:func:`pose_bins` with ``origin_deg = ypr_deg[:, 0]``; entry 0 is bin ``(0, 0)``).
         used: ``(B, E)`` bool, the entry slot is filled; entry 0 (the reference) always is.
         references: the entries' dissimilarity references: a
             :class:`~torchface.template.dissimilarity.DissimilarityReference` whose tensors have the entry
@@ -320,15 +333,22 @@ class Mosaic:
         return int(self.used.shape[1])
 
 
-def pose_bins(ypr_deg: Tensor, config: TemplateConfig) -> tuple[Tensor, Tensor]:
+def pose_bins(ypr_deg: Tensor, config: TemplateConfig, origin_deg: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``(B, 3)`` yaw/pitch/roll (degrees) -> ``(B, 2)`` int64 (yaw, pitch) bins and ``(B,)`` "near the centre".
 
-    Bin ``k`` covers ``[(k - 1/2) w, (k + 1/2) w)`` for bin width ``w``; "near the centre" is within
-    ``config.bin_centre_fraction * w`` of ``k w`` on both axes. Roll is ignored: it turns the face in the
-    image plane and changes no part's visibility.
+    Bin ``k`` covers ``[(k - 1/2) w, (k + 1/2) w)`` of the angle less the origin's, for bin width ``w``; "near
+    the centre" is within ``config.bin_centre_fraction * w`` of ``k w`` on both axes. Roll is ignored: it turns
+    the face in the image plane and changes no part's visibility.
+
+    Args:
+        ypr_deg: ``(B, 3)`` the poses.
+        config: the bin widths and centre fraction.
+        origin_deg: ``(B, 3)`` the pose of bin ``(0, 0)``'s centre (roll ignored); None for the camera's axis.
+            The mosaic keys its entries relative to its reference entry's pose (:class:`Mosaic`).
     """
     widths = ypr_deg.new_tensor([config.yaw_bin_deg, config.pitch_bin_deg])
-    scaled = ypr_deg[:, :2] / widths
+    angles = ypr_deg[:, :2] if origin_deg is None else ypr_deg[:, :2] - origin_deg[:, :2]
+    scaled = angles / widths
     bins = torch.floor(scaled + 0.5)
     near = ((scaled - bins).abs() <= config.bin_centre_fraction).all(-1)
     return bins.to(torch.int64), near
@@ -410,7 +430,7 @@ def new_mosaic(
         templates: per level, finest first, batch ``B``; rotation ``(B, 3, 3)`` and ypr_deg ``(B, 3)`` the pose
             they were built at; reference: the dissimilarity reference of that frame (batch ``B``).
     """
-    bins, _ = pose_bins(ypr_deg, config)
+    bins, _ = pose_bins(ypr_deg, config, origin_deg=ypr_deg)  # the reference is bin (0, 0)
     B = rotation.shape[0]
     return Mosaic(
         tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1), matrix_to_euler(rotation).unsqueeze(1),

@@ -611,7 +611,7 @@ def managed_step(
 
     # 5. Learning from confident frames: a new mosaic entry, optionally the texture.
     if tc.mosaic:
-        bins, near = pose_bins(result.ypr_deg, tc)
+        bins, near = pose_bins(result.ypr_deg, tc, origin_deg=mosaic.ypr_deg[:, 0])
         add = confident & (conf >= tc.add_confidence) & near & ~has_bin(mosaic, bins)
         add = add & within_reach(mosaic, result.ypr_deg, tc)
         add = add & (mosaic.num_entries < tc.max_entries)
