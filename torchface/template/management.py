@@ -26,7 +26,8 @@ bin ``(0, 0)``. The bins are keyed to the first pose, not to the camera's axis: 
 off that axis (the James scan's fit starts at 5 degrees of pitch) would otherwise never come within
 ``bin_centre_fraction`` of a bin centre on that axis, and its mosaic would never grow. An entry's
 intensities are stored under the reference light: a template point seen with illumination ``lambda`` is
-brought back with the inverse of Eq. 19, ``T = (I - lambda_2) / (1 + lambda_1 + (lambda_3, lambda_4, lambda_5) . n_cam)``
+brought back with the inverse of Eq. 19,
+``T = (I - lambda_2) / (1 + lambda_1 + (lambda_3, lambda_4, lambda_5) . n_cam)``
 (:func:`torchface.appearance.illumination.remove_illumination`), so the illumination parameters mean the
 same thing against every entry. Entries are stored compactly (triangle, barycentric coordinates,
 intensity, validity per point); :func:`entry_templates` rebuilds the full :class:`Template` (positions,
