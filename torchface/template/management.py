@@ -148,7 +148,7 @@ class TemplateConfig:
             unlike the model a right estimate scores less away from the reference's view: the James scan's
             long run scores 0.5-0.7 at its first bin centre (15 degrees of yaw, error under 1 degree). At 0.8 its
             mosaic never grew there, the confidence kept falling with the turn and the stream was marked lost at
-            30-60 degrees with errors of 3-7 (longest loss in view 105 frames), and ``scan_motion``'s max error
+            30-60 degrees with errors of 3-7 degrees (longest loss in view 105 frames), and ``scan_motion``'s max error
             was 5.5 degrees; at 0.75 entries are added (scan_motion max 4.85, mean 1.65; longest James loss 58).
             Lower, pose_sweep's mean error rose from 0.492 to 0.501-0.504 degrees (0.5, 0.65, 0.7: entries built
             from less exact frames) with no gain on scan_motion.
