@@ -80,6 +80,26 @@ def test_normals_batched_and_exceptions():
             fn(verts, faces.double())
 
 
+def test_posed_normals_and_backfacing_are_the_separate_computations():
+    """vertex_normals_and_backfacing of a rotated, translated mesh: the rotated head-frame vertex normals and
+    backfacing of the posed mesh; float64 gradcheck (the normalised face's gradients go through it)."""
+    from torchface.geometry.mesh import vertex_normals_and_backfacing
+    from torchface.geometry.so3 import axis_angle_to_matrix
+
+    verts, faces, _ = sphere(40.0, (0.0, 0.0, 0.0), subdivisions=2)
+    verts = verts * torch.tensor([1.0, 1.3, 0.8], dtype=verts.dtype)  # an ellipsoid: normals not radial
+    R = axis_angle_to_matrix(torch.tensor([[0.3, -0.5, 0.2], [0.0, 1.2, 0.0]], dtype=verts.dtype))
+    t = torch.tensor([[10.0, -5.0, 300.0], [0.0, 0.0, 250.0]], dtype=verts.dtype)
+    posed = verts @ R.mT + t[:, None]
+    normals, back = vertex_normals_and_backfacing(posed, faces)
+    torch.testing.assert_close(normals, vertex_normals(verts.expand(2, -1, -1), faces) @ R.mT, atol=1e-12, rtol=0)
+    assert torch.equal(back, backfacing(posed, faces))
+    assert 0 < int(back.sum()) < back.numel()
+    small, small_faces, _ = sphere(30.0, (0.0, 0.0, 200.0), subdivisions=0)
+    x = small.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda v: vertex_normals_and_backfacing(v, small_faces)[0], (x,))
+
+
 # ------------------------------------------------------------------------------------------------- backfacing
 
 

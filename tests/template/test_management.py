@@ -31,6 +31,7 @@ from torchface.template.management import (
     pose_bins,
     reference_face,
     search_mosaic,
+    nearest_entries,
     select_entries,
 )
 from torchface.template.points import build_template
@@ -172,6 +173,13 @@ def test_mosaic_add_select_and_grow():
     assert select_entries(m, mid, torch.tensor([0, 0, 1]), 0.0).tolist() == [0, 1, 0]
     sub = select_entries(m, now[1:], torch.zeros(2, dtype=torch.int64), 0.0, streams=torch.tensor([1, 2]))
     assert sub.tolist() == [1, 2]
+    # nearest_entries: select_entries with no margin or radius from entry 0 (halfway between entries 0 and 1,
+    # 15 deg of yaw, either may be nearer by rounding: both pick the same).
+    half = torch.tensor([[15.0, 0.0, 0.0], [15.0, 0.0, 0.0], [-15.0, 5.0, 0.0]], dtype=D)
+    for poses in (now, mid, half, now + torch.tensor([0.0, 9.0, 0.0], dtype=D)):
+        assert torch.equal(nearest_entries(m, poses), select_entries(m, poses, cur, 0.0))
+    assert nearest_entries(m, now).tolist() == [0, 1, 2]
+    assert torch.equal(nearest_entries(m, now[1:], streams=torch.tensor([1, 2])), sub)
     # Within the reference radius (20) the reference is used although entry 1 is nearer; a stream on entry 1
     # comes back once the margin (2) inside; beyond the radius the nearest entry.
     near = torch.tensor([[25.0, 0.0, 0.0], [19.0, 0.0, 0.0], [17.0, 0.0, 0.0]], dtype=D)

@@ -23,7 +23,8 @@ from torchface.template import (
     point_normals,
     select_template_pixels,
 )
-from torchface.template.points import interpolated_normals, posed_mesh, select_pixels_posed
+from torchface.template.points import interpolated_normals, posed_mesh, rasterize_windows, select_pixels_posed
+from torchface.tracker.step import level_intrinsics
 from torchface.rendering.visibility import vertex_normals
 from torchface.tracker import ParamLayout, frame_residuals
 
@@ -408,6 +409,34 @@ def test_window_build_equals_the_whole_image_build(scene, priority, quota):
     assert torch.equal(windowed.face_index[whole.valid], whole.face_index[whole.valid])
     torch.testing.assert_close(windowed.bary, whole.bary, atol=1e-4, rtol=0)
     torch.testing.assert_close(windowed.intensity, whole.intensity)
+
+
+def test_windows_rasterized_together_are_the_windows_rasterized_alone(scene):
+    """rasterize_windows (a pyramid's levels, each sample's window, one call) gives each window's back-face-culled
+    fragments as rasterizing it alone: the same triangles (bar pixel centres on a shared edge, where rounding
+    may pick either neighbour), barycentric coordinates and depths to rounding."""
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    offsets = [torch.tensor([[40, 20], [30, 28]]), torch.tensor([[20, 10], [15, 14]]), None]
+    cams, windows = [], []
+    for level, (off, (h, w)) in enumerate(zip(offsets, [(70, 80), (35, 40), (H // 4, W // 4)])):
+        full = level_intrinsics(s["cam"], level, H >> level, W >> level)
+        cams.append(Intrinsics(w, h, full.fx, full.fy, full.cx, full.cy))
+        windows.append(off)
+    together = rasterize_windows(s["model"], posed.verts_cam, cams, windows)
+    for cam, off, frags in zip(cams, windows, together):
+        shift = torch.zeros(2, 3) if off is None else torch.cat([off / torch.tensor([cam.fx, cam.fy]),
+                                                                   torch.zeros(2, 1)], -1)  # fmt: skip
+        alone = rasterize(posed.verts_cam - posed.verts_cam[..., 2:3] * shift[:, None], s["model"].faces, cam,
+                          cull_backfaces=True)  # fmt: skip
+        assert frags.pix_to_face.shape == (2, cam.height, cam.width)
+        same = frags.pix_to_face == alone.pix_to_face
+        assert int((alone.pix_to_face >= 0).sum()) > 200
+        assert float(same.float().mean()) > 0.995
+        both = same & (alone.pix_to_face >= 0)
+        torch.testing.assert_close(frags.bary[both], alone.bary[both], atol=1e-4, rtol=0)
+        torch.testing.assert_close(frags.zbuf[both], alone.zbuf[both], atol=1e-3, rtol=0)
+        assert torch.equal(frags.facing[same], alone.facing[same])
 
 
 def test_window_build_bad_offsets_raise(scene):

@@ -70,3 +70,25 @@ def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
     for corner in range(3):  # three scatter-adds, one per triangle corner
         acc = acc.index_add(1, faces[:, corner], cross)
     return _safe_normalize(acc)
+
+
+def vertex_normals_and_backfacing(verts_cam: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`vertex_normals` and the back-facing triangles of camera-frame vertices, from one computation of the
+    triangles' cross products (the normals of a posed mesh are its rotated head-frame normals).
+
+    Args:
+        verts_cam: ``(B, V, 3)`` vertices in the camera frame (camera at the origin).
+        faces: ``(F, 3)`` int64 triangle vertex indices.
+
+    Returns:
+        ``(B, V, 3)`` unit vertex normals and ``(B, F)`` bool, True where the triangle turns away from the camera
+        (``n . v0 >= 0``, as :func:`~torchface.rendering.visibility.backfacing`).
+    """
+    B, F = verts_cam.shape[0], faces.shape[0]
+    tri = verts_cam.index_select(1, faces.reshape(-1)).view(B, F, 3, 3)
+    v0 = tri[:, :, 0]
+    cross = torch.linalg.cross(tri[:, :, 1] - v0, tri[:, :, 2] - v0, dim=-1)  # (B, F, 3), length 2 * area
+    back = (cross * v0).sum(-1) >= 0
+    # One scatter-add over the three corners of every triangle (faces row-major: corner k of face f at 3 f + k).
+    summed = torch.zeros_like(verts_cam).index_add(1, faces.reshape(-1), cross.repeat_interleave(3, dim=1))
+    return _safe_normalize(summed), back

@@ -6,6 +6,7 @@ from torchface.normalise.face import (
     NormalisedFaceResult,
     build_normalised_layout,
     normalised_face,
+    normalised_face_posed,
 )
 
 __all__ = [
@@ -14,4 +15,5 @@ __all__ = [
     "NormalisedFaceResult",
     "build_normalised_layout",
     "normalised_face",
+    "normalised_face_posed",
 ]

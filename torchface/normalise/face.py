@@ -53,12 +53,13 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_ill
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.camera import Intrinsics
+from torchface.geometry.mesh import vertex_normals_and_backfacing
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.geometry.transforms import transform_points
-from torchface.model.face_model import FaceModel, vertex_normals
+from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize
-from torchface.rendering.visibility import backfacing, points_visible
+from torchface.rendering.visibility import points_visible
 
 if TYPE_CHECKING:
     from torchface.tracker.step import TrackerState, TrackResult
@@ -68,6 +69,7 @@ __all__ = [
     "NormalisedFaceResult",
     "build_normalised_layout",
     "normalised_face",
+    "normalised_face_posed",
     "NormalisedFace",
 ]
 
@@ -366,12 +368,34 @@ def normalised_face(
         got = tuple(rotation.shape) if isinstance(rotation, Tensor) else type(rotation).__name__
         raise ValueError(f"rotation must be ({B}, 3, 3) like frames, got {got}")
     verts_cam = transform_points(rotation, translation, verts)
-    normals_cam = vertex_normals(verts, model.faces) @ rotation.transpose(-1, -2)
+    return normalised_face_posed(
+        frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance=depth_tolerance,
+        min_facing_cos=min_facing_cos, zbuffer=zbuffer,
+    )  # fmt: skip
+
+
+def normalised_face_posed(
+    frames: Tensor,
+    model: FaceModel,
+    layout: NormalisedFaceLayout,
+    verts_cam: Tensor,
+    illumination: Tensor | None,
+    intrinsics: Intrinsics,
+    *,
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+    min_facing_cos: float = DEFAULT_MIN_FACING_COS,
+    zbuffer: bool = True,
+) -> NormalisedFaceResult:
+    """:func:`normalised_face` of a mesh already posed: ``verts_cam (B, V, 3)``, the model's vertices at the
+    frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. The
+    arguments are not checked (callers inside the package; :func:`normalised_face` documents and checks them)."""
+    B, C = frames.shape[:2]
+    normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
 
     # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle.
     corners = model.faces.index_select(0, layout.face_index).reshape(-1)  # (M * 3,)
     M = layout.face_index.shape[0]
-    bary = layout.bary.to(verts.dtype).unsqueeze(-1)  # (M, 3, 1)
+    bary = layout.bary.to(verts_cam.dtype).unsqueeze(-1)  # (M, 3, 1)
     points_cam = (verts_cam.index_select(1, corners).reshape(B, M, 3, 3) * bary).sum(-2)  # (B, M, 3)
     normals_at = normals_cam.index_select(1, corners).reshape(B, M, 3, 3)
     normals = torch.nn.functional.normalize((normals_at * bary).sum(-2), dim=-1)
@@ -386,7 +410,7 @@ def normalised_face(
             crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
             frags = rasterize(verts_cam.detach(), model.faces, crop)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
-        front = ~backfacing(verts_cam.detach(), model.faces)[:, layout.face_index]  # (B, M)
+        front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
         facing_cos = -(normals.detach() * ray).sum(-1)
         keep = visible & inside & front & (facing_cos >= min_facing_cos)

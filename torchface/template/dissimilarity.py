@@ -245,7 +245,6 @@ def inverse_compositional_lk(
     p = torch.zeros(B, K, 2, dtype=dtype, device=reference.device)
     active = torch.ones(B, K, dtype=torch.bool, device=reference.device)
     converged = torch.zeros_like(active)
-    valid = torch.ones_like(active)
 
     # The image and its mask are sampled together (one grid_sample per iteration), at the patch grid in
     # grid_sample's [-1, 1] coordinates (converted once; the displacement is scaled each iteration).
@@ -273,43 +272,50 @@ def inverse_compositional_lk(
         w = ref_weight if image_mask is None else values[..., C].clamp(0.0, 1.0) * ref_weight
         return values[..., :C], torch.where(inside, w, 0.0)
 
-    def normal_equations(w: Tensor) -> tuple[Tensor, Tensor]:
-        """``(B, K, 2, 2)`` H and ``(B, K, 2)`` the gradient ``sum w grad T^T e`` (bias projected out), with the
-        error in the features' buffer."""
+    def normal_equations(w: Tensor) -> tuple[Tensor, ...]:
+        """``a, b, c, g0, g1`` ``(B, K)`` each: ``H = [[a, b], [b, c]]`` and the gradient ``sum w grad T^T e``
+        (bias projected out), with the error in the features' buffer."""
         moments = torch.matmul((feats * w.unsqueeze(-1)).transpose(-1, -2), feats)  # (B, K, F + 1, F + 1)
-        if project_out_bias:  # m_ij - m_i1 m_1j / m_11 (the last row and column become 0 and are not used)
+        if C == 1:  # gray images (the dissimilarity's): rows [grad T], columns [grad T, e], read in one go
+            m = moments[..., :2, :3]
+            if project_out_bias:  # m_ij - m_i1 m_1j / m_11 (the constant's row and column are not used)
+                m = m - moments[..., :2, 3:] * (moments[..., 3:, :3] / moments[..., 3:, 3:].clamp_min(eps))
+            a, b, g0, _, c, g1 = m.reshape(B, K, 6).unbind(-1)
+            return a, b, c, g0, g1
+        if project_out_bias:
             moments = moments - moments[..., :, F3:] * (moments[..., F3:, :] / moments[..., F3:, F3:].clamp_min(eps))
-        if C == 1:  # gray images (the dissimilarity's): no sum over channels
-            return moments[..., :2, :2], moments[..., :2, 2]
         s_s = moments[..., : 2 * C, : 2 * C].reshape(B, K, C, 2, C, 2)
         s_e = moments[..., : 2 * C, 2 * C : F3].reshape(B, K, C, 2, C)
         hess = torch.diagonal(s_s, dim1=2, dim2=4).sum(-1)  # sum over channels: (B, K, 2, 2)
         grad = torch.diagonal(s_e, dim1=2, dim2=4).sum(-1)  # (B, K, 2)
-        return hess, grad
+        return hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1], grad[..., 0], grad[..., 1]
 
+    # Each patch iterates until its update is below the tolerance (converged), its system is ill-posed or it
+    # moves beyond max_displacement (both end it as not valid, found from its final state below).
     for _ in range(iterations):
         warped, w = weights_at(p)
         torch.sub(warped, template, out=err_slot)
-        hess, grad = normal_equations(w)
-        a, b, c = hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1]
+        a, b, c, g0, g1 = normal_equations(w)
         det = a * c - b * b
         # Well-posed: det above a relative floor (det <= trace^2 / 4) and everything finite (NaN fails the first
         # test, an infinite H or gradient the second).
-        ok = (det > (1e3 * eps) * (a + c).square()) & torch.isfinite(det + grad.sum(-1))
-        dp = torch.linalg.solve_ex(hess, grad.unsqueeze(-1))[0].squeeze(-1)  # used only where ok
+        ok = (det > (1e3 * eps) * (a + c).square()) & torch.isfinite(det + g0 + g1)
+        dp = torch.stack([c * g0 - b * g1, a * g1 - b * g0], -1) / det.unsqueeze(-1)  # H^-1 g; used only where ok
         step = active & ok
-        valid = valid & (ok | ~active)
         p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
         small = dp.norm(dim=-1) < tolerance
         converged = converged | (step & small)
         active = step & ~small
         if max_displacement is not None:
-            far = p.norm(dim=-1) > max_displacement
-            valid = valid & ~(step & far)
-            active = active & ~far
+            active = active & (p.norm(dim=-1) <= max_displacement)  # p is finite: a step needs a finite dp
         if not bool(active.any()):
             break
 
+    # Valid: converged or still iterating (not stopped by an ill-posed system), within max_displacement (p no
+    # longer changes once a patch stops, so its final norm is the one that stopped it).
+    valid = active | converged
+    if max_displacement is not None:
+        valid = valid & (p.norm(dim=-1) <= max_displacement)
     warped, w = weights_at(p)
     total = w.sum(-1)
     err = warped - template

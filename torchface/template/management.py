@@ -59,7 +59,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
-from torchface.normalise.face import NormalisedFaceLayout, normalised_face
+from torchface.normalise.face import NormalisedFaceLayout, normalised_face, normalised_face_posed
 from torchface.template.dissimilarity import (
     DissimilarityConfig,
     DissimilarityReference,
@@ -77,6 +77,7 @@ __all__ = [
     "frame_dissimilarity",
     "new_mosaic",
     "add_entries",
+    "nearest_entries",
     "select_entries",
     "entry_templates",
     "light_normalised_intensity",
@@ -368,6 +369,7 @@ def frame_dissimilarity(
     intrinsics: Intrinsics,
     config: TemplateConfig,
     rotation: Tensor | None = None,
+    verts_cam: Tensor | None = None,
 ) -> DissimilarityResult:
     """Dissimilarity and confidence of each frame's estimate against the reference (Section 4.1).
 
@@ -378,15 +380,21 @@ def frame_dissimilarity(
         reference: :func:`~torchface.template.dissimilarity.build_dissimilarity_reference` of a reference
             frame's normalised face made the same way (:func:`reference_face`).
         rotation: ``(B, 3, 3)`` the matrix of ``axis_angle`` when the caller has it (None: computed).
+        verts_cam: ``(B, V, 3)`` the estimate's posed vertices (camera frame, mm) when the caller has them (e.g.
+            shared with :func:`face_inside_fraction`); the parameters' shapes are then not checked again.
 
     Returns:
         :class:`~torchface.template.dissimilarity.DissimilarityResult` (``dissimilarity (B,)`` in pixels of the
         normalised face, ``confidence (B,)`` in [0, 1]).
     """
-    face = normalised_face(
-        frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
-        min_facing_cos=config.min_facing_cos, zbuffer=False, rotation=rotation,
-    )  # fmt: skip
+    if verts_cam is None:
+        face = normalised_face(
+            frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
+            min_facing_cos=config.min_facing_cos, zbuffer=False, rotation=rotation,
+        )  # fmt: skip
+    else:
+        face = normalised_face_posed(frames, model, layout, verts_cam, illumination, intrinsics,
+                                     min_facing_cos=config.min_facing_cos, zbuffer=False)  # fmt: skip
     return dissimilarity(reference, face.image, face.mask)
 
 
@@ -538,6 +546,25 @@ def has_bin(mosaic: Mosaic, bins: Tensor) -> Tensor:
     return ((mosaic.bins == bins.unsqueeze(1)).all(-1) & mosaic.used).any(-1)
 
 
+def _entry_distances(mosaic: Mosaic, ypr_deg: Tensor, streams: Tensor | None) -> Tensor:
+    """``(B, E)`` (yaw, pitch) distances (degrees) of ``ypr_deg (B, 3)`` to the streams' entries, inf where unused."""
+    entry_ypr, used = mosaic.ypr_deg, mosaic.used  # (B, E, 3), (B, E)
+    if streams is not None:
+        entry_ypr, used = entry_ypr[streams], used[streams]
+    d = (entry_ypr[..., :2] - ypr_deg[:, None, :2]).norm(dim=-1)
+    return torch.where(used, d, float("inf"))
+
+
+def nearest_entries(mosaic: Mosaic, ypr_deg: Tensor, streams: Tensor | None = None) -> Tensor:
+    """``(B,)`` the entry nearest each pose in (yaw, pitch), the lowest index on a tie (entry 0 first):
+    :func:`select_entries` with no margin, no reference radius and entry 0 as the current one.
+
+    Args:
+        ypr_deg: ``(B, 3)`` poses; streams: ``(B,)`` int64 the mosaic rows of a sub-batch, or None for all.
+    """
+    return _entry_distances(mosaic, ypr_deg, streams).argmin(-1)
+
+
 def select_entries(
     mosaic: Mosaic,
     ypr_deg: Tensor,
@@ -557,11 +584,7 @@ def select_entries(
             once ``margin_deg`` inside.
         streams: ``(B,)`` int64 the mosaic rows of a sub-batch, or None for all.
     """
-    entry_ypr, used = mosaic.ypr_deg, mosaic.used  # (B, E, 3), (B, E)
-    if streams is not None:
-        entry_ypr, used = entry_ypr[streams], used[streams]
-    d = (entry_ypr[..., :2] - ypr_deg[:, None, :2]).norm(dim=-1)
-    d = torch.where(used, d, torch.full_like(d, float("inf")))
+    d = _entry_distances(mosaic, ypr_deg, streams)
     best = d.argmin(-1)
     d_cur = d.gather(1, current.unsqueeze(1)).squeeze(1)
     d_best = d.gather(1, best.unsqueeze(1)).squeeze(1)

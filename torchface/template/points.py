@@ -18,7 +18,7 @@ from torchface.appearance.sampling import image_with_gradients
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import rasterize
+from torchface.rendering.rasterizer import Fragments, rasterize
 from torchface.rendering.visibility import vertex_normals
 
 
@@ -245,6 +245,52 @@ def posed_mesh(model: FaceModel, shape_coeffs: Tensor, anim_coeffs: Tensor, rota
     return PosedMesh(verts_model, verts_cam, normals_cam)
 
 
+def _window_verts(verts_cam: Tensor, intrinsics: Intrinsics, offsets: Tensor | None, canvas: Intrinsics) -> Tensor:
+    """``verts_cam (B, V, 3)`` moved so that ``canvas``' projection of them is ``intrinsics``' shifted by
+    ``-offsets (B, 2)`` (each sample's window; None: no shift): ``X' = (fx / fx_c) X + ((cx - x0 - cx_c) / fx_c) Z``,
+    and the same for ``Y``. A linear map with positive determinant that keeps depths: barycentric coordinates,
+    depth order and triangle orientation are those of the window seen through ``intrinsics``."""
+    B = verts_cam.shape[0]
+    off = verts_cam.new_zeros(B, 2) if offsets is None else offsets.to(verts_cam.dtype)
+    focal = verts_cam.new_tensor([canvas.fx, canvas.fy])
+    scale = verts_cam.new_tensor([intrinsics.fx / canvas.fx, intrinsics.fy / canvas.fy, 1.0])
+    shear = (verts_cam.new_tensor([intrinsics.cx - canvas.cx, intrinsics.cy - canvas.cy]) - off) / focal  # (B, 2)
+    shear = torch.cat([shear, shear.new_zeros(B, 1)], -1)
+    return verts_cam * scale + verts_cam[..., 2:3] * shear.unsqueeze(1)
+
+
+def rasterize_windows(
+    model: FaceModel, verts_cam: Tensor, cameras: list[Intrinsics], offsets: list[Tensor | None],
+) -> list[Fragments]:
+    """Back-face-culled :func:`~torchface.rendering.rasterizer.rasterize` of the same posed meshes in several
+    windows (the levels of a pyramid), in one call.
+
+    Args:
+        verts_cam: ``(B, V, 3)`` camera-frame vertices (mm).
+        cameras: per window, the camera of its image; its ``height x width`` is the window's size.
+        offsets: per window, ``(B, 2)`` int64 ``(x0, y0)`` of each sample's window in that camera's image, or None
+            (the whole image).
+
+    Returns:
+        Per window, the :class:`~torchface.rendering.rasterizer.Fragments` ``rasterize`` gives for it (up to
+        rounding): the windows are stacked along the batch on a canvas of the largest size, each through
+        :func:`_window_verts` (one call's fixed cost instead of one per level: an entry's coarse levels cost
+        nearly as much as its finest when rasterized alone).
+    """
+    first = cameras[0]  # the canvas projects as the first camera (its window's vertices are only shifted)
+    canvas = Intrinsics(max(c.width for c in cameras), max(c.height for c in cameras), first.fx, first.fy, first.cx,
+                        first.cy)  # fmt: skip
+    stacked = torch.cat([_window_verts(verts_cam, c, o, canvas) for c, o in zip(cameras, offsets)])
+    frags = rasterize(stacked, model.faces, canvas, cull_backfaces=True)
+    B = verts_cam.shape[0]
+    out = []
+    for i, c in enumerate(cameras):
+        part = slice(i * B, (i + 1) * B)
+        out.append(Fragments(*(getattr(frags, name)[part, : c.height, : c.width] for name in
+                               ("pix_to_face", "bary", "zbuf", "facing"))))  # fmt: skip
+    return out
+
+
 def select_pixels_posed(
     model: FaceModel,
     posed: PosedMesh,
@@ -258,23 +304,19 @@ def select_pixels_posed(
     erode_pixels: int = 1,
     expression_priority: float = 0.0,
     expression_quota: int = 0,
+    frags: Fragments | None = None,
 ) -> TemplatePixels:
     """:func:`select_template_pixels` of a mesh already posed (:func:`posed_mesh`): the same result, with the
     posing done once for the levels of a pyramid. The arguments are not checked again (callers inside the
-    package; :func:`select_template_pixels` documents and checks them)."""
+    package; :func:`select_template_pixels` documents and checks them). ``frags``: the back-face-culled
+    fragments of ``gray``'s windows when the caller has them (:func:`rasterize_windows`), else rasterized here."""
     full_h, full_w = intrinsics.height, intrinsics.width
     B, _, H, W = gray.shape
     verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
     off = torch.zeros(B, 2, dtype=verts_cam.dtype, device=gray.device) if offsets is None else offsets.to(verts_cam.dtype)
-    window = Intrinsics(W, H, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
-    if offsets is None:
-        raster_verts = verts_cam
-    else:
-        # Each sample's window, rasterized through a shear X -= x0 Z / fx, Y -= y0 Z / fy that moves its
-        # projection by -offset and keeps depths, barycentric coordinates and triangle orientation.
-        shift = torch.cat([off / off.new_tensor([intrinsics.fx, intrinsics.fy]), off.new_zeros(B, 1)], -1)
-        raster_verts = verts_cam - verts_cam[..., 2:3] * shift.unsqueeze(1)
-    frags = rasterize(raster_verts, model.faces, window, cull_backfaces=True)
+    if frags is None:
+        window = Intrinsics(W, H, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+        frags = rasterize_windows(model, verts_cam, [window], [offsets])[0]
     face = frags.pix_to_face
     mask = (face >= 0) & (frags.facing > 0)
     face_flat = face.reshape(B, -1)

@@ -50,6 +50,7 @@ from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_euler
+from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
 from torchface.rendering.visibility import vertex_normals
@@ -64,6 +65,7 @@ from torchface.template.management import (
     frame_dissimilarity,
     has_bin,
     light_normalised_intensity,
+    nearest_entries,
     new_mosaic,
     params_from_pose,
     pose_bins,
@@ -72,7 +74,14 @@ from torchface.template.management import (
     select_entries,
     within_reach,
 )
-from torchface.template.points import Template, TemplatePixels, interpolated_normals, posed_mesh, select_pixels_posed
+from torchface.template.points import (
+    Template,
+    TemplatePixels,
+    interpolated_normals,
+    posed_mesh,
+    rasterize_windows,
+    select_pixels_posed,
+)
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.params import ParamLayout
@@ -231,24 +240,28 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
 def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
     status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None, rotation: Tensor | None = None,
-) -> tuple[Tensor, Tensor]:
-    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples) and dissimilarity ``(B,)`` of ``state``'s
-    estimate against the reference of the mosaic entry nearest it; ``index`` selects the streams of a
-    sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation`` ``(B, 3, 3)``: the estimate's
-    yaw/pitch/roll and rotation matrix when known."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples), dissimilarity ``(B,)`` and
+    :func:`face_inside_fraction` ``(B,)`` of ``state``'s estimate, compared with the reference of the mosaic
+    entry nearest it (one posing of the mesh serves both); ``index`` selects the streams of a sub-batch (the
+    mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation`` ``(B, 3, 3)``: the estimate's yaw/pitch/roll and
+    rotation matrix when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
     rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
     nearest = torch.zeros_like(rows)
     if ms.mosaic.capacity > 1:
         ypr = matrix_to_euler(axis_angle_to_matrix(aa)) if ypr_deg is None else ypr_deg
-        nearest = select_entries(ms.mosaic, ypr, nearest, 0.0, streams=rows)
+        nearest = nearest_entries(ms.mosaic, ypr, streams=rows)
     reference = ms.mosaic.references.select((rows, nearest))
+    R = axis_angle_to_matrix(aa) if rotation is None else rotation
+    verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
     diss = frame_dissimilarity(
         frames, model, ms.layout, reference, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
-        config.template, rotation=rotation,
+        config.template, verts_cam=verts_cam,
     )  # fmt: skip
     failed = status == _FAILED
-    return torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence), diss.dissimilarity
+    conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
+    return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics)
 
 
 def estimate_confidence(
@@ -268,15 +281,7 @@ def estimate_confidence(
     frames = frames.to(dtype=model.dtype, device=model.device)
     B = state.params.shape[0]
     status = torch.zeros(B, dtype=torch.int64, device=state.params.device)  # none failed
-    return _confidence(model, config, ms, frames, state, status)
-
-
-def _inside_fraction(model: FaceModel, state: TrackerState, R: Tensor | None = None) -> Tensor:
-    """:func:`face_inside_fraction` of ``state``'s estimate; ``R (B, 3, 3)``: its rotation when known."""
-    aa, t, alpha, _ = _layout(model).split(state.params)
-    R = axis_angle_to_matrix(aa) if R is None else R
-    verts = torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
-    return face_inside_fraction(model, verts, state.intrinsics)
+    return _confidence(model, config, ms, frames, state, status)[:2]
 
 
 def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q: int) -> tuple[int, int, int, int]:
@@ -336,14 +341,16 @@ def _new_entries(
         offsets.append(None if whole else torch.stack([x0, y0], -1))
         h, w = h // 2, w // 2
     grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths)
+    windows_cam = [Intrinsics(wl, hl, c.fx, c.fy, c.cx, c.cy) for c, hl, wl in zip(cameras, heights, widths)]
+    fragments = rasterize_windows(model, posed.verts_cam, windows_cam, offsets)  # every level in one call
     vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
     templates = []
-    for gray, off, cam, lv in zip(grays, offsets, cameras, ms.mosaic.levels):
+    for gray, off, cam, lv, frags in zip(grays, offsets, cameras, ms.mosaic.levels, fragments):
         slots = lv.face_index.shape[-1]  # the slots of this level's entries
         px = select_pixels_posed(
             model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
-            expression_quota=int(config.expression_quota * slots),
+            expression_quota=int(config.expression_quota * slots), frags=frags,
         )  # fmt: skip
         normals = interpolated_normals(vertex_normals_neutral, model.faces, px.face_index, px.bary)
         templates.append(replace(px, intensity=light_normalised_intensity(px.intensity, normals, R, light)))
@@ -446,8 +453,8 @@ def _recover(
     """Re-initialise the lost streams ``index``: candidates, a normal solve from each, their confidence.
 
     Returns:
-        found ``(B',)``, the sub-batch's solved state and result, confidence ``(B',)``, dissimilarity ``(B',)``
-        and the entries ``(B',)`` used.
+        found ``(B',)``, the sub-batch's solved state and result, confidence ``(B',)``, dissimilarity ``(B',)``,
+        the fraction of the face inside the frame ``(B',)`` and the entries ``(B',)`` used.
     """
     starts, entries, found = _recovery_starts(model, config, state, ms, frames, index, detector)
     templates = entry_templates(model, state.shape_coeffs[index], ms.mosaic, index, entries)
@@ -456,8 +463,9 @@ def _recover(
     # absorb a wrong candidate's residual, and the face normalised with them would then fail the confidence.
     every = torch.ones(index.shape[0], dtype=torch.bool, device=index.device)
     solved, result = track_step(model, config, sub, frames[index], conservative=every)
-    conf, diss = _confidence(model, config, ms, frames[index], solved, result.status, index)
-    return found, solved, result, conf, diss, entries
+    conf, diss, inside = _confidence(model, config, ms, frames[index], solved, result.status, index,
+                                     rotation=result.rotation)  # fmt: skip
+    return found, solved, result, conf, diss, inside, entries
 
 
 @without_autograd(step_grad_inputs)
@@ -535,13 +543,13 @@ def managed_step(
     solved, result = track_step(
         model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
     )
-    conf, diss = _confidence(
+    conf, diss, inside = _confidence(
         model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
     )
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
-    outside = _inside_fraction(model, solved, result.rotation) < tc.min_inside_fraction
+    outside = inside < tc.min_inside_fraction
     confident = (conf >= tc.confidence_threshold) & ~failed & ~outside
     low_count = torch.where(confident, torch.zeros_like(ms.low_count), ms.low_count + 1)
     very_low = (conf < tc.very_low_confidence) | failed | outside
@@ -561,7 +569,9 @@ def managed_step(
     if bool(attempt.any()):
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
-        found, r_state, r_result, r_conf, r_diss, r_entry = _recover(model, config, state, ms, frames, index, detector)
+        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = _recover(
+            model, config, state, ms, frames, index, detector
+        )
         # A candidate that beats the continued track and scores at least adopt_min_confidence (below it the
         # candidate's solve ran off the face: benchmark.py's streams adopted candidates 60-100 degrees off that
         # scored 0.000 beside right tracks scoring less), and disagrees with it by more than adopt_min_angle_deg, is
@@ -579,7 +589,7 @@ def managed_step(
             ratio = r_state.params[:, layout.translation][:, 2] / depth_c
             near = (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
-        adopt = adopt & (_inside_fraction(model, r_state, r_result.rotation) >= tc.min_inside_fraction)
+        adopt = adopt & (r_inside >= tc.min_inside_fraction)
         ok = adopt & (r_conf >= tc.recover_confidence)
         if bool(adopt.any()):
             rows = index[adopt]
