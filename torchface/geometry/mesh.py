@@ -89,6 +89,7 @@ def vertex_normals_and_backfacing(verts_cam: Tensor, faces: Tensor) -> tuple[Ten
     v0 = tri[:, :, 0]
     cross = torch.linalg.cross(tri[:, :, 1] - v0, tri[:, :, 2] - v0, dim=-1)  # (B, F, 3), length 2 * area
     back = (cross * v0).sum(-1) >= 0
-    # One scatter-add over the three corners of every triangle (faces row-major: corner k of face f at 3 f + k).
-    summed = torch.zeros_like(verts_cam).index_add(1, faces.reshape(-1), cross.repeat_interleave(3, dim=1))
-    return _safe_normalize(summed), back
+    acc = torch.zeros_like(verts_cam)
+    for corner in range(3):  # as vertex_normals (the same sums in the same order)
+        acc = acc.index_add(1, faces[:, corner], cross)
+    return _safe_normalize(acc), back
