@@ -65,7 +65,13 @@ def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
                 [0., 0., 1.],
                 [0., 0., 0.]])
     """
-    cross = _face_cross(verts, faces)  # (B, F, 3), length 2 * area
+    return _vertex_sums_normalized(_face_cross(verts, faces), faces, verts)
+
+
+def _vertex_sums_normalized(cross: Tensor, faces: Tensor, verts: Tensor) -> Tensor:
+    """``(B, V, 3)`` unit sums of the cross products ``(B, F, 3)`` of the faces that use each vertex (zero where
+    none does). Both vertex-normal functions sum through here, in one order: a different order changes the
+    normals at the rounding level, which moved benchmark results (``vertex_normals_and_backfacing``)."""
     acc = torch.zeros_like(verts)
     for corner in range(3):  # three scatter-adds, one per triangle corner
         acc = acc.index_add(1, faces[:, corner], cross)
@@ -89,7 +95,4 @@ def vertex_normals_and_backfacing(verts_cam: Tensor, faces: Tensor) -> tuple[Ten
     v0 = tri[:, :, 0]
     cross = torch.linalg.cross(tri[:, :, 1] - v0, tri[:, :, 2] - v0, dim=-1)  # (B, F, 3), length 2 * area
     back = (cross * v0).sum(-1) >= 0
-    acc = torch.zeros_like(verts_cam)
-    for corner in range(3):  # as vertex_normals (the same sums in the same order)
-        acc = acc.index_add(1, faces[:, corner], cross)
-    return _safe_normalize(acc), back
+    return _vertex_sums_normalized(cross, faces, verts_cam), back

@@ -387,6 +387,20 @@ def frame_dissimilarity(
         :class:`~torchface.template.dissimilarity.DissimilarityResult` (``dissimilarity (B,)`` in pixels of the
         normalised face, ``confidence (B,)`` in [0, 1]).
     """
+    image, mask = reference_face(
+        frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics, config,
+        rotation=rotation, verts_cam=verts_cam,
+    )  # fmt: skip
+    return dissimilarity(reference, image, mask)
+
+
+def reference_face(
+    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, shape_coeffs: Tensor, anim_coeffs: Tensor,
+    axis_angle: Tensor, translation: Tensor, illumination: Tensor, intrinsics: Intrinsics, config: TemplateConfig,
+    rotation: Tensor | None = None, verts_cam: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The normalised face ``(B, 3, G, G)`` and mask ``(B, 1, G, G)`` of a frame as template management makes it:
+    a reference frame's, and every later frame's in :func:`frame_dissimilarity` (arguments as there)."""
     if verts_cam is None:
         face = normalised_face(
             frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
@@ -395,19 +409,6 @@ def frame_dissimilarity(
     else:
         face = normalised_face_posed(frames, model, layout, verts_cam, illumination, intrinsics,
                                      min_facing_cos=config.min_facing_cos, zbuffer=False)  # fmt: skip
-    return dissimilarity(reference, face.image, face.mask)
-
-
-def reference_face(
-    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, shape_coeffs: Tensor, anim_coeffs: Tensor,
-    axis_angle: Tensor, translation: Tensor, illumination: Tensor, intrinsics: Intrinsics, config: TemplateConfig,
-) -> tuple[Tensor, Tensor]:
-    """The reference frame's normalised face ``(B, 3, G, G)`` and mask ``(B, 1, G, G)``, made as
-    :func:`frame_dissimilarity` makes every later frame's."""
-    face = normalised_face(
-        frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
-        min_facing_cos=config.min_facing_cos, zbuffer=False,
-    )  # fmt: skip
     return face.image, face.mask
 
 

@@ -316,9 +316,12 @@ def _new_entries(
     R = axis_angle_to_matrix(aa)
     shape = state.shape_coeffs[index]
     frames = _rows(frames, index)
-    image, mask = reference_face(frames, model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template)
+    posed = posed_mesh(model, shape, alpha, R, t)  # posed once, for the reference face and the pixels
+    image, mask = reference_face(
+        frames, model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template,
+        verts_cam=posed.verts_cam,
+    )  # fmt: skip
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
-    posed = posed_mesh(model, shape, alpha, R, t)
     q = 2 ** (config.num_levels - 1)
     windows = torch.tensor(
         [_face_window(model, posed.verts_cam[i], state.intrinsics, q) for i in range(index.shape[0])],
