@@ -15,6 +15,7 @@ from torchface.normalise import (
     NormalisedFaceLayout,
     build_normalised_layout,
     normalised_face,
+    normalised_face_posed,
 )
 from torchface.rendering.shading import LightState, render
 from torchface.synth.subjects import candide_subject
@@ -386,3 +387,28 @@ def test_errors(model, layout):
     with pytest.raises(ValueError, match="mask must be"):
         NormalisedFaceLayout(8, 0.0, Intrinsics.default(8, 8), torch.zeros(3), 1, torch.zeros(1, dtype=torch.long),
                              torch.zeros(1, dtype=torch.long), torch.zeros(1, 3), torch.zeros(8, 8))  # fmt: skip
+
+
+def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject, layout):
+    """normalised_face_posed on the mesh normalised_face poses gives its output exactly; a mesh of the wrong
+    shape or batch is a clear ValueError."""
+    from torchface.geometry.transforms import transform_points
+
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    aa = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[20.0, -5.0, 3.0]])))
+    t = torch.tensor([[5.0, -4.0, 470.0]])
+    frame = _render(subject, sigma, alpha, aa, t).image
+    light = torch.tensor([[0.1, 0.02, 0.05, -0.05, 0.1]])
+    verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(sigma, alpha))
+    for zbuffer in (True, False):
+        want = normalised_face(frame, model, layout, sigma, alpha, aa, t, light, CAM, zbuffer=zbuffer)
+        got = normalised_face_posed(frame, model, layout, verts_cam, light, CAM, zbuffer=zbuffer)
+        assert want.mask.sum() > 0.5 * layout.num_pixels
+        assert torch.equal(got.image, want.image) and torch.equal(got.mask, want.mask)
+    with pytest.raises(ValueError, match="verts_cam"):
+        normalised_face_posed(frame, model, layout, verts_cam[:, :-1], light, CAM)
+    with pytest.raises(ValueError, match="verts_cam"):
+        normalised_face_posed(frame.expand(2, -1, -1, -1), model, layout, verts_cam, light, CAM)
+    with pytest.raises(ValueError, match="frames"):
+        normalised_face_posed(frame[0], model, layout, verts_cam, light, CAM)

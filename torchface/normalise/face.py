@@ -387,9 +387,18 @@ def normalised_face_posed(
     zbuffer: bool = True,
 ) -> NormalisedFaceResult:
     """:func:`normalised_face` of a mesh already posed: ``verts_cam (B, V, 3)``, the model's vertices at the
-    frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. The
-    arguments are not checked (callers inside the package; :func:`normalised_face` documents and checks them)."""
-    B, C = frames.shape[:2]
+    frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
+    shapes of ``frames`` and ``verts_cam`` are checked here (:func:`normalised_face` documents and checks the rest).
+
+    Raises:
+        ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``.
+    """
+    B, C = frames.shape[:2] if isinstance(frames, Tensor) and frames.dim() == 4 else (-1, -1)
+    want = (B, model.num_vertices, 3)
+    if B < 0 or not isinstance(verts_cam, Tensor) or tuple(verts_cam.shape) != want:
+        got = tuple(verts_cam.shape) if isinstance(verts_cam, Tensor) else type(verts_cam).__name__
+        raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
+                         f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
 
     # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle.
