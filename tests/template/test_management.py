@@ -86,6 +86,10 @@ def test_config_defaults_and_validation():
         TemplateConfig(enabled=1)  # type: ignore[arg-type]
     with pytest.raises(TypeError):
         TemplateConfig(dissimilarity=None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="entry_stride"):
+        TemplateConfig(entry_stride=0)
+    with pytest.raises(TypeError, match="entry_stride"):
+        TemplateConfig(entry_stride=2.0)  # type: ignore[arg-type]
 
 
 def test_pose_bins_known_answers():

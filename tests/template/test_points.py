@@ -23,7 +23,14 @@ from torchface.template import (
     point_normals,
     select_template_pixels,
 )
-from torchface.template.points import interpolated_normals, posed_mesh, rasterize_windows, select_pixels_posed
+from torchface.template.points import (
+    _selection_keys,
+    interpolated_normals,
+    posed_mesh,
+    rasterize_windows,
+    select_pixels_posed,
+    strided_window,
+)
 from torchface.tracker.step import level_intrinsics
 from torchface.rendering.visibility import vertex_normals
 from torchface.tracker import ParamLayout, frame_residuals
@@ -437,6 +444,79 @@ def test_windows_rasterized_together_are_the_windows_rasterized_alone(scene):
         torch.testing.assert_close(frags.bary[both], alone.bary[both], atol=1e-4, rtol=0)
         torch.testing.assert_close(frags.zbuf[both], alone.zbuf[both], atol=1e-3, rtol=0)
         assert torch.equal(frags.facing[same], alone.facing[same])
+
+
+@pytest.mark.parametrize("windowed", [False, True])
+def test_strided_window_rasterizes_every_other_pixel(scene, windowed):
+    """strided_window's camera sees at its pixel (i, j) what the window's camera sees at (2i, 2j): the same
+    triangles (bar pixel centres on a shared edge), barycentric coordinates and depths, for whole images and
+    for windows (offsets, odd ones too: they become fractional)."""
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    off = torch.tensor([[41, 20], [30, 27]]) if windowed else None
+    h, w = (70, 81) if windowed else (H, W)
+    cam = Intrinsics(w, h, s["cam"].fx, s["cam"].fy, s["cam"].cx, s["cam"].cy)
+    full = rasterize_windows(s["model"], posed.verts_cam, [cam], [off])[0]
+    grid_cam, grid_off = strided_window(cam, off, 2)
+    assert (grid_cam.width, grid_cam.height) == (-(-w // 2), -(-h // 2))
+    strided = rasterize_windows(s["model"], posed.verts_cam, [grid_cam], [grid_off])[0]
+    sub = full.pix_to_face[:, ::2, ::2]
+    same = strided.pix_to_face == sub
+    assert int((sub >= 0).sum()) > 100
+    assert float(same.float().mean()) > 0.99
+    both = same & (sub >= 0)
+    torch.testing.assert_close(strided.bary[both], full.bary[:, ::2, ::2][both], atol=1e-4, rtol=0)
+    torch.testing.assert_close(strided.zbuf[both], full.zbuf[:, ::2, ::2][both], atol=1e-3, rtol=0)
+    assert strided_window(cam, off, 1) == (cam, off)
+
+
+def _pixel_of(s, posed, px, b):
+    """Integer (x, y) image pixels of sample ``b``'s valid points (projected surface points: pixel centres)."""
+    corners = posed.verts_cam[b][s["model"].faces[px.face_index[b][px.valid[b]]]]  # (n, 3, 3)
+    point = (corners * px.bary[b][px.valid[b]].unsqueeze(-1)).sum(1)
+    uv = project_points(point[None], s["cam"])[0]
+    assert float((uv - uv.round()).abs().max()) < 1e-2
+    return uv.round().long()
+
+
+@pytest.mark.parametrize("windowed", [False, True])
+def test_strided_selection_picks_among_the_window_pixels_of_its_grid(scene, windowed):
+    """select_pixels_posed(stride=2) against a slow reference (no erosion, whose radius counts in grid steps):
+    its candidates are the full-resolution candidates at the window's even rows and columns, with their
+    triangle, barycentric coordinates and intensity, and it picks the n with the highest selection keys."""
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    off = torch.tensor([[40, 20], [30, 28]]) if windowed else None
+    gray = s["gray"] if off is None else torch.stack([s["gray"][b, :, y:y + 70, x:x + 80]
+                                                     for b, (x, y) in enumerate(off.tolist())])  # fmt: skip
+    kw = dict(gradient_threshold=0.01, erode_pixels=0)
+    every = select_pixels_posed(s["model"], posed, gray, s["cam"], off, max_points=gray.shape[-1] * gray.shape[-2],
+                                **kw)  # fmt: skip
+    grid_pixels = -(-gray.shape[-1] // 2) * -(-gray.shape[-2] // 2)
+    all_grid = select_pixels_posed(s["model"], posed, gray, s["cam"], off, max_points=grid_pixels, stride=2, **kw)
+    n = 300
+    strided = select_pixels_posed(s["model"], posed, gray, s["cam"], off, max_points=n, stride=2, **kw)
+    assert int(strided.valid.sum()) == 2 * n
+    keys = _selection_keys(H, W, torch.device("cpu")).view(H, W)
+    for b in range(2):
+        origin = torch.zeros(2, dtype=torch.long) if off is None else off[b]
+        pix_every = _pixel_of(s, posed, every, b)
+        on_grid = ((pix_every - origin) % 2 == 0).all(-1)
+        pix_grid = _pixel_of(s, posed, all_grid, b)
+        # The same pixels, and at each the same triangle, barycentric coordinates and intensity.
+        order_e = torch.argsort(pix_every[on_grid, 1] * W + pix_every[on_grid, 0])
+        order_g = torch.argsort(pix_grid[:, 1] * W + pix_grid[:, 0])
+        assert torch.equal(pix_every[on_grid][order_e], pix_grid[order_g])
+        assert torch.equal(every.face_index[b][every.valid[b]][on_grid][order_e],
+                           all_grid.face_index[b][all_grid.valid[b]][order_g])  # fmt: skip
+        torch.testing.assert_close(every.bary[b][every.valid[b]][on_grid][order_e],
+                                   all_grid.bary[b][all_grid.valid[b]][order_g], atol=1e-4, rtol=0)  # fmt: skip
+        assert torch.equal(every.intensity[b][every.valid[b]][on_grid][order_e],
+                           all_grid.intensity[b][all_grid.valid[b]][order_g])  # fmt: skip
+        # The n picks are the n grid candidates with the highest keys.
+        grid_keys = keys[pix_grid[:, 1], pix_grid[:, 0]]
+        want = set(map(tuple, pix_grid[torch.topk(grid_keys, n).indices].tolist()))
+        assert set(map(tuple, _pixel_of(s, posed, strided, b).tolist())) == want
 
 
 def test_window_build_bad_offsets_raise(scene):

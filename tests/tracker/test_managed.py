@@ -224,6 +224,32 @@ def test_mosaic_entry_added_at_a_new_pose_and_used_on_return(model, turns):
     assert all(bool(r.success.all()) for r in results)
 
 
+def test_new_entry_reuses_the_confidences_normalised_face_exactly(model, turns, monkeypatch):
+    """A new mosaic entry's dissimilarity reference is built from the normalised face the step's confidence was
+    measured on (no second sampling of the frame): the same reference and templates as made afresh."""
+    import torchface.tracker.managed as managed_module
+
+    real, calls = managed_module._new_entries, []
+
+    def both(model_, config_, state_, ms_, frames_, index_, face=None):
+        assert face is not None  # the step hands its faces over
+        got = real(model_, config_, state_, ms_, frames_, index_, face)
+        fresh = real(model_, config_, state_, ms_, frames_, index_, None)
+        for a, b in zip(got[0], fresh[0]):
+            for name in ("face_index", "bary", "intensity", "valid"):
+                assert torch.equal(getattr(a, name), getattr(b, name)), name
+        for name in ("image", "mask", "centres", "patch_valid", "score"):
+            assert torch.equal(getattr(got[1], name), getattr(fresh[1], name)), name
+        calls.append(int(index_.shape[0]))
+        return got
+
+    monkeypatch.setattr(managed_module, "_new_entries", both)
+    frames, gt = turns
+    config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
+    track(model, config, frames[:, :20], landmarks(gt))
+    assert calls  # entries were added
+
+
 def test_mosaic_bins_are_keyed_to_the_first_pose(model, turns_pitched):
     """A head that starts 6 degrees off the camera's axis in pitch (the usual case: the bins' pitch never comes
     within ``bin_centre_fraction`` of a camera-keyed centre) still grows its mosaic as it turns: the bins are

@@ -259,6 +259,19 @@ def _window_verts(verts_cam: Tensor, intrinsics: Intrinsics, offsets: Tensor | N
     return verts_cam * scale + verts_cam[..., 2:3] * shear.unsqueeze(1)
 
 
+def strided_window(camera: Intrinsics, offsets: Tensor | None, stride: int) -> tuple[Intrinsics, Tensor | None]:
+    """The camera and ``(B, 2)`` offsets whose pixel ``(i, j)`` is pixel ``(stride i, stride j)`` of the windows
+    of ``camera`` at ``offsets`` (int64 ``(x0, y0)``, None: the whole image): what :func:`rasterize_windows`
+    takes to rasterize :func:`select_pixels_posed`'s grid of ``stride``. The offsets may become fractional
+    (float). ``stride`` 1 returns the arguments."""
+    if stride == 1:
+        return camera, offsets
+    s = float(stride)
+    cam = Intrinsics(-(-camera.width // stride), -(-camera.height // stride), camera.fx / s, camera.fy / s,
+                     camera.cx / s, camera.cy / s)  # fmt: skip
+    return cam, None if offsets is None else offsets.to(torch.float64) / s
+
+
 def rasterize_windows(
     model: FaceModel, verts_cam: Tensor, cameras: list[Intrinsics], offsets: list[Tensor | None],
 ) -> list[Fragments]:
@@ -268,8 +281,8 @@ def rasterize_windows(
     Args:
         verts_cam: ``(B, V, 3)`` camera-frame vertices (mm).
         cameras: per window, the camera of its image; its ``height x width`` is the window's size.
-        offsets: per window, ``(B, 2)`` int64 ``(x0, y0)`` of each sample's window in that camera's image, or None
-            (the whole image).
+        offsets: per window, ``(B, 2)`` ``(x0, y0)`` of each sample's window in that camera's image (int64, or
+            float for a :func:`strided_window`), or None (the whole image).
 
     Returns:
         Per window, the :class:`~torchface.rendering.rasterizer.Fragments` ``rasterize`` gives for it (up to
@@ -305,23 +318,34 @@ def select_pixels_posed(
     expression_priority: float = 0.0,
     expression_quota: int = 0,
     frags: Fragments | None = None,
+    stride: int = 1,
 ) -> TemplatePixels:
     """:func:`select_template_pixels` of a mesh already posed (:func:`posed_mesh`): the same result, with the
     posing done once for the levels of a pyramid. The arguments are not checked again (callers inside the
     package; :func:`select_template_pixels` documents and checks them). ``frags``: the back-face-culled
-    fragments of ``gray``'s windows when the caller has them (:func:`rasterize_windows`), else rasterized here."""
+    fragments of ``gray``'s windows when the caller has them (:func:`rasterize_windows`), else rasterized here.
+
+    ``stride``: the candidates are only the window's pixels on every ``stride``-th row and column (rows and
+    columns ``0, stride, ...`` of ``gray``), with the gradients and selection keys those pixels have in the
+    whole window; ``frags`` is then the rasterization of that grid (:func:`strided_window` of the window's
+    camera and offsets) and the mask erosion counts in grid steps. 1: every pixel."""
     full_h, full_w = intrinsics.height, intrinsics.width
-    B, _, H, W = gray.shape
+    B = gray.shape[0]
     verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
     off = torch.zeros(B, 2, dtype=verts_cam.dtype, device=gray.device) if offsets is None else offsets.to(verts_cam.dtype)
+    grads = image_with_gradients(gray)[:, 1:]  # at the window's pixels, before any striding
+    if stride > 1:
+        gray, grads = gray[..., ::stride, ::stride], grads[..., ::stride, ::stride]
+    H, W = gray.shape[-2:]
     if frags is None:
-        window = Intrinsics(W, H, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
-        frags = rasterize_windows(model, verts_cam, [window], [offsets])[0]
+        window = Intrinsics(gray.shape[-1] * stride, gray.shape[-2] * stride, intrinsics.fx, intrinsics.fy,
+                            intrinsics.cx, intrinsics.cy)  # fmt: skip
+        cam, cam_off = strided_window(window, offsets, stride)
+        frags = rasterize_windows(model, verts_cam, [cam], [cam_off])[0]
     face = frags.pix_to_face
     mask = (face >= 0) & (frags.facing > 0)
     face_flat = face.reshape(B, -1)
     bary_flat = frags.bary.reshape(B, -1, 3)
-    grads = image_with_gradients(gray)[:, 1:]
     gmag = grads.pow(2).sum(1).sqrt()
     candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
     # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
@@ -336,18 +360,20 @@ def select_pixels_posed(
     n_pix = torch.bmm(bary_c.unsqueeze(1), n_corner.view(-1, 3, 3)).squeeze(1)  # (M, 3): 2.5x the weighted sum
     # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
     # its direction is the ray's: no need to interpolate the positions.
-    col = (pix % W).to(verts_cam.dtype) + off[b_of, 0]
-    row = torch.div(pix, W, rounding_mode="floor").to(verts_cam.dtype) + off[b_of, 1]
+    col = (pix % W * stride).to(verts_cam.dtype) + off[b_of, 0]
+    row = (torch.div(pix, W, rounding_mode="floor") * stride).to(verts_cam.dtype) + off[b_of, 1]
     rays = torch.stack([(col - intrinsics.cx) / intrinsics.fx, (row - intrinsics.cy) / intrinsics.fy,
                         torch.ones_like(col)], -1)  # fmt: skip
     cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(rays, dim=-1)).sum(-1)
     candidate = candidate.reshape(-1).index_put((flat,), cos >= min_facing_cos).reshape(B, H, W)
     keys = _selection_keys(full_h, full_w, gray.device)
     if offsets is None:
+        if stride > 1:
+            keys = keys.view(full_h, full_w)[::stride, ::stride].reshape(-1)
         keys = keys.expand(B, -1)
     else:  # the whole image's keys at the windows' pixels
-        pix_rows = offsets[:, 1:2] + torch.arange(H, device=gray.device)
-        pix_cols = offsets[:, 0:1] + torch.arange(W, device=gray.device)
+        pix_rows = offsets[:, 1:2] + stride * torch.arange(H, device=gray.device)
+        pix_cols = offsets[:, 0:1] + stride * torch.arange(W, device=gray.device)
         keys = keys[(pix_rows[:, :, None] * full_w + pix_cols[:, None, :]).reshape(B, H * W)]
     if expression_priority > 0 and model.num_animation > 0:
         # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a

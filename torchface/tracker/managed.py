@@ -55,7 +55,7 @@ from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
 from torchface.rendering.visibility import vertex_normals
 from torchface.solver.least_squares import SolveStatus
-from torchface.template.dissimilarity import DissimilarityReference, build_dissimilarity_reference
+from torchface.template.dissimilarity import DissimilarityReference, build_dissimilarity_reference, dissimilarity
 from torchface.template.management import (
     Mosaic,
     MosaicLevel,
@@ -81,6 +81,7 @@ from torchface.template.points import (
     posed_mesh,
     rasterize_windows,
     select_pixels_posed,
+    strided_window,
 )
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
@@ -241,9 +242,10 @@ def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
     status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None, rotation: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples), dissimilarity ``(B,)`` and
+    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples), dissimilarity ``(B,)``,
     :func:`face_inside_fraction` ``(B,)`` of ``state``'s estimate, compared with the reference of the mosaic
-    entry nearest it (one posing of the mesh serves both); ``index`` selects the streams of a sub-batch (the
+    entry nearest it (one posing of the mesh serves both), and the normalised face and mask it was measured on
+    (:func:`~torchface.template.management.reference_face`: ``(B, 3, G, G)``, ``(B, 1, G, G)``); ``index`` selects the streams of a sub-batch (the
     mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation`` ``(B, 3, 3)``: the estimate's yaw/pitch/roll and
     rotation matrix when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
@@ -255,13 +257,13 @@ def _confidence(
     reference = ms.mosaic.references.select((rows, nearest))
     R = axis_angle_to_matrix(aa) if rotation is None else rotation
     verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
-    diss = frame_dissimilarity(
-        frames, model, ms.layout, reference, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
-        config.template, verts_cam=verts_cam,
-    )  # fmt: skip
+    # frame_dissimilarity's two halves, so that the normalised face can also serve a new mosaic entry.
+    face = reference_face(frames, model, ms.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
+                          config.template, verts_cam=verts_cam)  # fmt: skip
+    diss = dissimilarity(reference, *face)
     failed = status == _FAILED
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
-    return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics)
+    return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics), face
 
 
 def estimate_confidence(
@@ -301,7 +303,8 @@ def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q:
 
 
 def _new_entries(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor
+    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
+    face: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[tuple[TemplatePixels, ...], DissimilarityReference]:
     """Template pixels of streams ``index`` selected at their current estimate, intensities under the reference
     light, and the dissimilarity reference of their normalised face.
@@ -310,17 +313,18 @@ def _new_entries(
     each placed around its face): the same templates as from the whole frames (rasterizing and gathering over
     the whole 640x480 frame made an entry cost ~110 ms). Only their compact form is made (the mosaic stores
     nothing else; :func:`~torchface.template.management.entry_templates` completes it when the entry is used):
-    the positions and expression bases of a full template took a quarter of an entry's time.
+    the positions and expression bases of a full template took a quarter of an entry's time. ``face``: the
+    streams' normalised face and mask at this estimate when the caller has them (:func:`_confidence`'s).
     """
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
     shape = state.shape_coeffs[index]
     frames = _rows(frames, index)
     posed = posed_mesh(model, shape, alpha, R, t)  # posed once, for the reference face and the pixels
-    image, mask = reference_face(
-        frames, model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template,
-        verts_cam=posed.verts_cam,
-    )  # fmt: skip
+    if face is None:
+        face = reference_face(frames, model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template,
+                              verts_cam=posed.verts_cam)  # fmt: skip
+    image, mask = face
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
     q = 2 ** (config.num_levels - 1)
     windows = torch.tensor(
@@ -329,7 +333,7 @@ def _new_entries(
     )  # (n, 4) x0, y0, w, h at full resolution
     # Each level's window (one size for the streams concerned), or the whole level where it would hold fewer
     # pixels than the level's slots.
-    cameras, heights, widths, offsets = [], [], [], []
+    cameras, heights, widths, offsets, strides = [], [], [], [], []
     h, w = state.intrinsics.height, state.intrinsics.width
     for level, lv in enumerate(ms.mosaic.levels):
         s = 2**level
@@ -337,23 +341,28 @@ def _new_entries(
         wl = min(int(-(-windows[:, 2].max() // s)), w)
         x0 = (windows[:, 0] // s).clamp(max=w - wl)
         y0 = (windows[:, 1] // s).clamp(max=h - hl)
-        whole = wl * hl < lv.face_index.shape[-1]  # fewer pixels than the level's slots
+        slots = lv.face_index.shape[-1]
+        whole = wl * hl < slots  # fewer pixels than the level's slots
         cameras.append(level_intrinsics(state.intrinsics, level, h, w))
         heights.append(h if whole else hl)
         widths.append(w if whole else wl)
         offsets.append(None if whole else torch.stack([x0, y0], -1))
+        # The finest level's candidates on a sparser grid where it still holds 4x the slots (TemplateConfig).
+        k = config.template.entry_stride if level == 0 else 1
+        strides.append(k if (-(-heights[-1] // k)) * (-(-widths[-1] // k)) >= 4 * slots else 1)
         h, w = h // 2, w // 2
     grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths)
-    windows_cam = [Intrinsics(wl, hl, c.fx, c.fy, c.cx, c.cy) for c, hl, wl in zip(cameras, heights, widths)]
-    fragments = rasterize_windows(model, posed.verts_cam, windows_cam, offsets)  # every level in one call
+    grids = [strided_window(Intrinsics(wl, hl, c.fx, c.fy, c.cx, c.cy), off, k)
+             for c, hl, wl, off, k in zip(cameras, heights, widths, offsets, strides)]  # fmt: skip
+    fragments = rasterize_windows(model, posed.verts_cam, [g[0] for g in grids], [g[1] for g in grids])  # one call
     vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
     templates = []
-    for gray, off, cam, lv, frags in zip(grays, offsets, cameras, ms.mosaic.levels, fragments):
+    for gray, off, cam, lv, frags, k in zip(grays, offsets, cameras, ms.mosaic.levels, fragments, strides):
         slots = lv.face_index.shape[-1]  # the slots of this level's entries
         px = select_pixels_posed(
             model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
-            expression_quota=int(config.expression_quota * slots), frags=frags,
+            expression_quota=int(config.expression_quota * slots), frags=frags, stride=k,
         )  # fmt: skip
         normals = interpolated_normals(vertex_normals_neutral, model.faces, px.face_index, px.bary)
         templates.append(replace(px, intensity=light_normalised_intensity(px.intensity, normals, R, light)))
@@ -466,8 +475,8 @@ def _recover(
     # absorb a wrong candidate's residual, and the face normalised with them would then fail the confidence.
     every = torch.ones(index.shape[0], dtype=torch.bool, device=index.device)
     solved, result = track_step(model, config, sub, frames[index], conservative=every)
-    conf, diss, inside = _confidence(model, config, ms, frames[index], solved, result.status, index,
-                                     rotation=result.rotation)  # fmt: skip
+    conf, diss, inside, _ = _confidence(model, config, ms, frames[index], solved, result.status, index,
+                                        rotation=result.rotation)  # fmt: skip
     return found, solved, result, conf, diss, inside, entries
 
 
@@ -546,7 +555,7 @@ def managed_step(
     solved, result = track_step(
         model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
     )
-    conf, diss, inside = _confidence(
+    conf, diss, inside, face = _confidence(
         model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
     )
 
@@ -596,7 +605,7 @@ def managed_step(
         ok = adopt & (r_conf >= tc.recover_confidence)
         if bool(adopt.any()):
             rows = index[adopt]
-            params, params_ypr = params.clone(), None
+            params, params_ypr, face = params.clone(), None, None  # the normalised faces are the track's
             params[rows] = r_state.params[adopt]
             result = _scatter_result(result, rows, replace(
                 r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
@@ -630,7 +639,8 @@ def managed_step(
         add = add & (mosaic.num_entries < tc.max_entries)
         if bool(add.any()):
             index = add.nonzero().squeeze(-1)
-            templates_new, reference_new = _new_entries(model, config, new_state, ms, frames, index)
+            faces = None if face is None else (face[0][index], face[1][index])
+            templates_new, reference_new = _new_entries(model, config, new_state, ms, frames, index, faces)
             mosaic, _ = add_entries(mosaic, index, templates_new, result.rotation[index], bins[index], reference_new)
     ms = replace(ms, mosaic=mosaic, entry=entry)
     if tc.texture_update and bool(confident.any()):
