@@ -92,6 +92,20 @@ def test_lk_batch_equals_per_sample():
         assert torch.equal(batch.converged[b], one.converged[0])
 
 
+def test_lk_without_residual_is_the_same_solve():
+    """with_residual=False (what dissimilarity asks for) leaves the residual out and changes nothing else."""
+    ref = _texture(3, 48, seed=2)
+    img = _shift(ref, torch.tensor([[0.5, 0.2], [-0.3, 0.8], [1.0, -1.0]], dtype=torch.float64))
+    centres = torch.tensor([[[15.0, 15.0], [30.0, 30.0]]], dtype=torch.float64).expand(3, -1, -1)
+    mask = torch.ones(3, 1, 48, 48, dtype=torch.float64)
+    mask[..., 30:, 30:] = 0.0
+    full = inverse_compositional_lk(ref, img, centres, 9, 10, image_mask=mask)
+    lean = inverse_compositional_lk(ref, img, centres, 9, 10, image_mask=mask, with_residual=False)
+    assert lean.residual is None and full.residual is not None
+    for name in ("displacement", "converged", "valid", "support"):
+        assert torch.equal(getattr(lean, name), getattr(full, name)), name
+
+
 def test_lk_masked_out_patch_has_no_support_and_is_finite():
     ref = _texture(1, 48, seed=3)
     centres = torch.tensor([[[12.0, 12.0], [34.0, 34.0]]], dtype=torch.float64)

@@ -82,14 +82,14 @@ class LKResult(NamedTuple):
         support: ``(B, K)`` fraction of the reference patch's weight that is inside the image (and its mask)
             at the final position, in ``[0, 1]``.
         residual: ``(B, K)`` weighted RMS intensity error at the final position (bias projected out when
-            requested).
+            requested); None when not asked for (``with_residual=False``).
     """
 
     displacement: Tensor
     converged: Tensor
     valid: Tensor
     support: Tensor
-    residual: Tensor
+    residual: Tensor | None
 
 
 class LKTemplate(NamedTuple):
@@ -174,6 +174,7 @@ def inverse_compositional_lk(
     max_displacement: float | None = None,
     project_out_bias: bool = True,
     precomputed: LKTemplate | None = None,
+    with_residual: bool = True,
 ) -> LKResult:
     """Track ``K`` square patches of ``reference`` into ``images`` by inverse-compositional Lucas-Kanade.
 
@@ -194,6 +195,8 @@ def inverse_compositional_lk(
         project_out_bias: remove the weighted patch mean from the error and steepest-descent images.
         precomputed: :func:`lk_template` of the same ``reference``, ``centres``, ``patch_size`` and
             ``reference_mask`` (in the working dtype), to skip recomputing it; None computes it.
+        with_residual: compute :attr:`LKResult.residual` (False: None, some 16 tensor operations fewer for a
+            caller that does not read it, as :func:`dissimilarity`).
 
     Returns:
         :class:`LKResult`.
@@ -318,10 +321,12 @@ def inverse_compositional_lk(
         valid = valid & (p.norm(dim=-1) <= max_displacement)
     warped, w = weights_at(p)
     total = w.sum(-1)
-    err = warped - template
-    if project_out_bias:
-        err = err - _weighted_mean(err, w, total.clamp_min(eps)).unsqueeze(2)
-    residual = ((err.square().sum(-1) * w).sum(-1) / (total.clamp_min(eps) * err.shape[-1])).sqrt()
+    residual = None
+    if with_residual:
+        err = warped - template
+        if project_out_bias:
+            err = err - _weighted_mean(err, w, total.clamp_min(eps)).unsqueeze(2)
+        residual = ((err.square().sum(-1) * w).sum(-1) / (total.clamp_min(eps) * err.shape[-1])).sqrt()
     support = torch.where(ref_total > 0, total / ref_total.clamp_min(eps), torch.zeros_like(total))
     valid = valid & torch.isfinite(p).all(-1) & (ref_total > 0)
     return LKResult(p, converged, valid, support.clamp(0.0, 1.0), residual)
@@ -662,6 +667,7 @@ def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: T
         ref_image, gray, centres, cfg.patch_size, cfg.iterations,
         reference_mask=ref_mask, image_mask=mask, tolerance=cfg.tolerance,
         max_displacement=cfg.max_displacement, project_out_bias=cfg.project_out_bias, precomputed=pre,
+        with_residual=False,
     )  # fmt: skip
     d_max = cfg.max_displacement
     present = patch_valid & (lk.support >= cfg.min_support)
