@@ -10,6 +10,8 @@ correlation over the units that vary in the ground truth, converged / successful
 per frame. With --noise-seeds each standard scenario is tracked again once per listed seed of the landmark
 noise (full configuration) and a table of the seeds follows, with the worst seed's figures: the starting pose
 and expression come from one noisy fit, so one seed's figures can be luckier or unluckier than another's.
+--selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
+default landmark noise.
 
 Ablations (one row each): full, no_illumination (TrackerConfig.use_illumination=False), no_expression
 (use_expression=False), no_robust (robust=RobustKind.NONE), all_pixels (gradient_threshold=0), no_management
@@ -36,6 +38,7 @@ Examples:
     python scripts/evaluate.py --scenarios standard --add-series out/a.npz
     python scripts/evaluate.py --scenarios none --add-series out/a.npz,out/b.npz    # tables again, no tracking
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3   # seed spread
+    python scripts/evaluate.py --scenarios pose_sweep,scan_motion --ablations none --selection-seeds 0,1,2
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -387,9 +390,9 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
     return "\n".join(lines)
 
 
-def seed_table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
-    """One scenario tracked once per landmark-noise seed (rows), then the worst seed's figures."""
-    text = table(f"{name} across landmark-noise seeds", rows, info)
+def seed_table(name: str, rows: dict[str, dict[str, float]], info: str, what: str = "landmark-noise seeds") -> str:
+    """One scenario tracked once per seed (rows; ``what`` the seeds drawn), then the worst seed's figures."""
+    text = table(f"{name} across {what}", rows, info)
     worst = {
         "mean": max(m["rot_err_mean_deg"] for m in rows.values()),
         "max": max(m["rot_err_max_deg"] for m in rows.values()),
@@ -776,6 +779,12 @@ def main(argv: list[str] | None = None) -> int:
         help="comma list of landmark-noise seeds: each standard scenario is tracked again (full configuration) "
         "once per seed and a table of the seeds follows its own (how much the figures depend on the noise draw)",
     )
+    parser.add_argument(
+        "--selection-seeds", default="",
+        help="comma list of template selection seeds (TrackerConfig.selection_seed: which candidate pixels become "
+        "template points): each standard scenario is tracked again (full configuration) once per seed and a table "
+        "of the seeds follows (how much the figures depend on the draw of the points)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -809,6 +818,12 @@ def main(argv: list[str] | None = None) -> int:
         noise_seeds = [int(x) for x in args.noise_seeds.split(",") if x.strip()]
     except ValueError:
         parser.error(f"--noise-seeds must be a comma list of integers, got {args.noise_seeds!r}")
+    try:
+        selection_seeds = [int(x) for x in args.selection_seeds.split(",") if x.strip()]
+    except ValueError:
+        parser.error(f"--selection-seeds must be a comma list of integers, got {args.selection_seeds!r}")
+    if any(x < 0 for x in selection_seeds):
+        parser.error(f"--selection-seeds must be integers >= 0, got {args.selection_seeds!r}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global LOOKAHEAD
@@ -901,6 +916,24 @@ def main(argv: list[str] | None = None) -> int:
                     if args.json is not None:
                         write_json(args.json, results)
                 tables.append(seed_table(name, by_seed, f"{w}x{h}, {t} frames, full configuration"))
+                print(tables[-1] + "\n", flush=True)
+            if selection_seeds:
+                by_draw: dict[str, dict[str, float]] = {}
+                for s in selection_seeds:
+                    if s == base.selection_seed and "full" in rows:
+                        by_draw[f"draw {s}"] = rows["full"]
+                        continue
+                    label = f"{name}/draw{s}"
+                    log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
+                    out = track_sequence(model, replace(ABLATIONS["full"](base), selection_seed=s), seq, landmarks,
+                                         label, args.progress_every)  # fmt: skip
+                    m = score(model, seq.gt, out).as_dict()
+                    m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
+                    by_draw[f"draw {s}"] = results[label] = m
+                    if args.json is not None:
+                        write_json(args.json, results)
+                tables.append(seed_table(name, by_draw, f"{w}x{h}, {t} frames, full configuration",
+                                         "template selection seeds"))  # fmt: skip
                 print(tables[-1] + "\n", flush=True)
     if earlier:
         again, figures = long_tables_from_series(earlier, cache, args.hold)

@@ -274,6 +274,32 @@ def test_evaluate_noise_seeds_track_each_seed_again(tmp_path, capsys):
         ev.main(["--scenarios", "pose_sweep", "--noise-seeds", "1,x"])
 
 
+def test_evaluate_selection_seeds_track_each_draw_again(tmp_path, capsys, monkeypatch):
+    """--selection-seeds: one full-configuration run per draw of the template points (the default draw's run
+    reused), each with that TrackerConfig.selection_seed and the default landmarks, and a table of them."""
+    ev = _load_evaluate()
+    seen = []
+    real = ev.track_sequence
+
+    def spy(model, config, seq, landmarks, label, every):
+        seen.append((label, config.selection_seed))
+        return real(model, config, seq, landmarks, label, every)
+
+    monkeypatch.setattr(ev, "track_sequence", spy)
+    out = tmp_path / "e.json"
+    argv = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--ablations", "none", "--cache",
+            "none", "--no-auroc", "--progress-every", "0", "--selection-seeds", "0,2", "--json", str(out)]  # fmt: skip
+    assert ev.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "pose_sweep across template selection seeds" in text and "worst over 2 seeds" in text
+    assert seen == [("pose_sweep/full", 0), ("pose_sweep/draw2", 2)]
+    figures = json.loads(out.read_text())
+    assert set(figures) == {"pose_sweep", "pose_sweep/draw2"}
+    for bad in ("1,x", "-1"):
+        with pytest.raises(SystemExit):
+            ev.main(["--scenarios", "pose_sweep", "--selection-seeds", bad])
+
+
 def test_evaluate_lookahead_hands_the_frames_read_ahead_to_the_tracking_pass(tmp_path, monkeypatch):
     """--lookahead: the first --lookahead-frames frames go to lookahead_fit, then every frame is tracked in order
     from the fit it returns; with that fit replaced by the plain landmark fit (a spy) the figures equal the run

@@ -186,6 +186,33 @@ def test_posed_selection_and_interpolated_normals_are_the_same(scene):
                        point_normals(s["model"], s["shape"], px.face_index, px.bary))  # fmt: skip
 
 
+def test_selection_seed_draws_another_subset_of_the_same_candidates(scene):
+    """seed 0 is the default draw; another seed picks another max_points of the same candidate pixels (every
+    pick of either draw is a candidate of the full selection, with the same triangle, coordinates and
+    intensity); a bad seed is refused."""
+    s = scene
+    args = (s["model"], s["shape"], s["anim"], s["R"], s["t"], s["gray"], s["cam"])
+    kw = dict(gradient_threshold=0.01)
+    default = select_template_pixels(*args, max_points=300, **kw)
+    zero = select_template_pixels(*args, max_points=300, seed=0, **kw)
+    other = select_template_pixels(*args, max_points=300, seed=3, **kw)
+    every = select_template_pixels(*args, max_points=H * W, **kw)
+    for name in ("face_index", "bary", "intensity", "valid"):
+        assert torch.equal(getattr(zero, name), getattr(default, name)), name
+    assert int(other.valid.sum()) == int(default.valid.sum()) == 600
+    for b in range(2):
+        a_keys = {(f, round(float(x), 4), round(float(y), 4)) for f, (x, y, _) in
+                  zip(default.face_index[b].tolist(), default.bary[b])}  # fmt: skip
+        o_keys = {(f, round(float(x), 4), round(float(y), 4)) for f, (x, y, _) in
+                  zip(other.face_index[b].tolist(), other.bary[b])}  # fmt: skip
+        all_keys = {(f, round(float(x), 4), round(float(y), 4)) for f, (x, y, _), v in
+                    zip(every.face_index[b].tolist(), every.bary[b], every.valid[b]) if v}  # fmt: skip
+        assert a_keys <= all_keys and o_keys <= all_keys
+        assert len(a_keys & o_keys) < 0.5 * len(a_keys)  # mostly other points
+    with pytest.raises(ValueError, match="seed"):
+        select_template_pixels(*args, max_points=300, seed=-1, **kw)
+
+
 def test_gather_face_attributes_matches_the_definition(scene):
     """Shared (non-batched) and per-sample attributes: sum_i bary_i * attributes[faces[face, i]]."""
     s = scene

@@ -371,6 +371,9 @@ def test_config_validation():
         TrackerConfig(num_levels=2, iterations=(3, 3, 3))
     with pytest.raises(ValueError, match="max_points"):
         TrackerConfig(max_points=4)
+    for bad in (-1, 1.0, True):
+        with pytest.raises(ValueError, match="selection_seed"):
+            TrackerConfig(selection_seed=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="non-negative"):
         TrackerConfig(gradient_threshold=-1.0)
     with pytest.raises(TypeError, match="RobustKind"):

@@ -132,19 +132,20 @@ def _erode(mask: Tensor, radius: int) -> Tensor:
     return out
 
 
-def _selection_keys(height: int, width: int, device: torch.device) -> Tensor:
+def _selection_keys(height: int, width: int, device: torch.device, seed: int = 0) -> Tensor:
     """Deterministic pseudo-random keys in ``[0, 1)`` per pixel, the same for every sample and call.
 
     Used to pick a uniform subset of the candidate pixels; being a function of the pixel alone, a stream
-    gets the same template whether it is tracked alone or in a batch.
+    gets the same template whether it is tracked alone or in a batch. ``seed`` draws another set of keys
+    (:attr:`~torchface.tracker.TrackerConfig.selection_seed`; 0 the default draw).
     """
-    return _cpu_selection_keys(height, width).to(device)
+    return _cpu_selection_keys(height, width, seed).to(device)
 
 
 @functools.lru_cache(maxsize=16)
-def _cpu_selection_keys(height: int, width: int) -> Tensor:
-    """:func:`_selection_keys` on the CPU, drawn once per image size (callers must not modify it)."""
-    gen = torch.Generator(device="cpu").manual_seed(height * 100003 + width)
+def _cpu_selection_keys(height: int, width: int, seed: int = 0) -> Tensor:
+    """:func:`_selection_keys` on the CPU, drawn once per image size and seed (callers must not modify it)."""
+    gen = torch.Generator(device="cpu").manual_seed(height * 100003 + width + seed)
     return torch.rand(height * width, generator=gen)
 
 
@@ -164,6 +165,7 @@ def select_template_pixels(
     expression_priority: float = 0.0,
     expression_quota: int = 0,
     offsets: Tensor | None = None,
+    seed: int = 0,
 ) -> TemplatePixels:
     """The template pixels of a frame whose model parameters are known (paper Section 2-3 and 4).
 
@@ -193,11 +195,15 @@ def select_template_pixels(
             ``offsets``: only the window is rasterized and searched (faster), and the template equals the one
             the whole image would give provided the window holds the face with a pixel to spare (the pixel
             selection keys are those of the whole image). None: ``gray`` is the whole image.
+        seed: which draw of the pixels' selection keys picks the uniform subset (0: the default draw; another
+            seed picks another subset of the same candidates).
 
     Returns:
         :class:`TemplatePixels` with ``N = max_points`` slots (:func:`build_template` completes it).
     """
     full_h, full_w = intrinsics.height, intrinsics.width
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
     if offsets is None:
         if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
             raise ValueError(f"gray must be (B, 1, {full_h}, {full_w}), got {tuple(gray.shape)}")
@@ -216,6 +222,7 @@ def select_template_pixels(
         model, posed_mesh(model, shape_coeffs, anim_coeffs, rotation, translation), gray, intrinsics, offsets,
         max_points=max_points, gradient_threshold=gradient_threshold, min_facing_cos=min_facing_cos,
         erode_pixels=erode_pixels, expression_priority=expression_priority, expression_quota=expression_quota,
+        seed=seed,
     )  # fmt: skip
 
 
@@ -319,6 +326,7 @@ def select_pixels_posed(
     expression_quota: int = 0,
     frags: Fragments | None = None,
     stride: int = 1,
+    seed: int = 0,
 ) -> TemplatePixels:
     """:func:`select_template_pixels` of a mesh already posed (:func:`posed_mesh`): the same result, with the
     posing done once for the levels of a pyramid. The arguments are not checked again (callers inside the
@@ -328,7 +336,8 @@ def select_pixels_posed(
     ``stride``: the candidates are only the window's pixels on every ``stride``-th row and column (rows and
     columns ``0, stride, ...`` of ``gray``), with the gradients and selection keys those pixels have in the
     whole window; ``frags`` is then the rasterization of that grid (:func:`strided_window` of the window's
-    camera and offsets) and the mask erosion counts in grid steps. 1: every pixel."""
+    camera and offsets) and the mask erosion counts in grid steps. 1: every pixel. ``seed``: the selection keys'
+    draw (:func:`select_template_pixels`)."""
     full_h, full_w = intrinsics.height, intrinsics.width
     B = gray.shape[0]
     verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
@@ -366,7 +375,7 @@ def select_pixels_posed(
                         torch.ones_like(col)], -1)  # fmt: skip
     cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(rays, dim=-1)).sum(-1)
     candidate = candidate.reshape(-1).index_put((flat,), cos >= min_facing_cos).reshape(B, H, W)
-    keys = _selection_keys(full_h, full_w, gray.device)
+    keys = _selection_keys(full_h, full_w, gray.device, seed)
     if offsets is None:
         if stride > 1:
             keys = keys.view(full_h, full_w)[::stride, ::stride].reshape(-1)
@@ -432,6 +441,7 @@ def build_template(
     expression_priority: float = 0.0,
     expression_quota: int = 0,
     offsets: Tensor | None = None,
+    seed: int = 0,
 ) -> Template:
     """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
 
@@ -443,7 +453,7 @@ def build_template(
     pixels = select_template_pixels(
         model, shape_coeffs, anim_coeffs, rotation, translation, gray, intrinsics, max_points=max_points,
         gradient_threshold=gradient_threshold, min_facing_cos=min_facing_cos, erode_pixels=erode_pixels,
-        expression_priority=expression_priority, expression_quota=expression_quota, offsets=offsets,
+        expression_priority=expression_priority, expression_quota=expression_quota, offsets=offsets, seed=seed,
     )  # fmt: skip
     return template_at(model, shape_coeffs, pixels.face_index, pixels.bary, pixels.intensity, pixels.valid)
 

@@ -362,7 +362,7 @@ def _new_entries(
         px = select_pixels_posed(
             model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
-            expression_quota=int(config.expression_quota * slots), frags=frags, stride=k,
+            expression_quota=int(config.expression_quota * slots), frags=frags, stride=k, seed=config.selection_seed,
         )  # fmt: skip
         normals = interpolated_normals(vertex_normals_neutral, model.faces, px.face_index, px.bary)
         templates.append(replace(px, intensity=light_normalised_intensity(px.intensity, normals, R, light)))
