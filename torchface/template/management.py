@@ -141,7 +141,7 @@ class TemplateConfig:
             about 13 to 8 ms and template management from 3.5 to 3.0 ms per frame (benchmark.py's frames, one
             stream). It stays 1 (every pixel, as the first frame's template): at 2, scan_motion's max error was
             5.08 against 4.85 degrees (target 5), within the spread of drawing the points at all. Over three
-            draws of the selection keys (seeds 0, 1, 2), 1 against 2 gave pose_sweep's mean 0.492 / 0.512 /
+            draws of the selection keys (``TrackerConfig.selection_seed`` 0, 1, 2; one thread), 1 against 2 gave pose_sweep's mean 0.492 / 0.512 /
             0.490 against 0.494 / 0.494 / 0.474 degrees and scan_motion's max 4.85 / 5.49 / 5.35 against 5.08 /
             6.10 / 5.18: no accuracy difference either way, but the default's draw (seed 0) is the only one of
             the six runs that meets both targets.
