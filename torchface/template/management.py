@@ -141,10 +141,10 @@ class TemplateConfig:
             about 13 to 8 ms and template management from 3.5 to 3.0 ms per frame (benchmark.py's frames, one
             stream). It stays 1 (every pixel, as the first frame's template): at 2, scan_motion's max error was
             5.08 against 4.85 degrees (target 5), within the spread of drawing the points at all. Over three
-            draws of the selection keys (``TrackerConfig.selection_seed`` 0, 1, 2; one thread), 1 against 2 gave pose_sweep's mean 0.492 / 0.512 /
-            0.490 against 0.494 / 0.494 / 0.474 degrees and scan_motion's max 4.85 / 5.49 / 5.35 against 5.08 /
-            6.10 / 5.18: no accuracy difference either way, but the default's draw (seed 0) is the only one of
-            the six runs that meets both targets.
+            draws of the selection keys (``TrackerConfig.selection_seed`` 0, 1, 2; one thread), 1 against 2
+            gave pose_sweep's mean 0.492 / 0.512 / 0.490 against 0.494 / 0.494 / 0.474 degrees and
+            scan_motion's max 4.85 / 5.49 / 5.35 against 5.08 / 6.10 / 5.18: no accuracy difference either way,
+            but the default's draw (seed 0) is the only one of the six runs that meets both targets.
         min_facing_cos: the normalised face keeps surface points facing the camera at least this much
             (cosine between the normal and the ray toward the camera). Oblique parts are resampled blurred and
             foreshortened and read as displaced patches: at 0.2 a right estimate at 30 degrees of yaw scored
