@@ -241,13 +241,13 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
 def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
     status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None, rotation: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
     """Dissimilarity confidence ``(B,)`` (0 for FAILED samples), dissimilarity ``(B,)``,
     :func:`face_inside_fraction` ``(B,)`` of ``state``'s estimate, compared with the reference of the mosaic
     entry nearest it (one posing of the mesh serves both), and the normalised face and mask it was measured on
     (:func:`~torchface.template.management.reference_face`: ``(B, 3, G, G)``, ``(B, 1, G, G)``); ``index``
-    selects the streams of a sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation`` ``(B, 3, 3)``: the estimate's yaw/pitch/roll and
-    rotation matrix when known."""
+    selects the streams of a sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation``
+    ``(B, 3, 3)``: the estimate's yaw/pitch/roll and rotation matrix when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
     rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
     nearest = torch.zeros_like(rows)
