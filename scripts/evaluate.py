@@ -844,6 +844,29 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, dict[str, object]] = {}
     series: list[FrameSeries] = []
     tables: list[str] = []
+
+    def rerun_full(
+        seq: Sequence, size: tuple[int, int, int], rows: dict[str, dict[str, float]],
+        variants: list[tuple[str, str, TrackerConfig, Tensor, bool]],
+    ) -> dict[str, dict[str, float]]:
+        """The full configuration tracked once per ``(row, label, config, landmarks, is_main)`` of ``variants`` (the
+        main run's row reused where ``is_main``) on ``seq`` of ``size`` ``(w, h, t)``, each figure stored under its
+        label: the seed tables' rows."""
+        by: dict[str, dict[str, float]] = {}
+        for row, label, config, lms, is_main in variants:
+            if is_main and "full" in rows:
+                by[row] = rows["full"]
+                continue
+            w, h, t = size
+            log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
+            out = track_sequence(model, ABLATIONS["full"](config), seq, lms, label, args.progress_every)
+            m = score(model, seq.gt, out).as_dict()
+            m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
+            by[row] = results[label] = m
+            if args.json is not None:
+                write_json(args.json, results)
+        return by
+
     with contextlib.ExitStack() as stack:
         for name in names:
             w, h, t = scenario_size(name, "full")
@@ -899,41 +922,18 @@ def main(argv: list[str] | None = None) -> int:
                     write_json(args.json, results)
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
+            # The full configuration again per landmark-noise seed, then per draw of the template points.
+            info = f"{w}x{h}, {t} frames, full configuration"
             if noise_seeds:
-                by_seed: dict[str, dict[str, float]] = {}
-                for s in noise_seeds:
-                    if s == args.seed and "full" in rows:
-                        by_seed[f"seed {s}"] = rows["full"]
-                        continue
-                    label = f"{name}/seed{s}"
-                    log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
-                    out = track_sequence(
-                        model, ABLATIONS["full"](base), seq, initial_landmarks(seq.gt, s), label, args.progress_every
-                    )
-                    m = score(model, seq.gt, out).as_dict()
-                    m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
-                    by_seed[f"seed {s}"] = results[label] = m
-                    if args.json is not None:
-                        write_json(args.json, results)
-                tables.append(seed_table(name, by_seed, f"{w}x{h}, {t} frames, full configuration"))
+                variants = [(f"seed {s}", f"{name}/seed{s}", base, initial_landmarks(seq.gt, s), s == args.seed)
+                            for s in noise_seeds]  # fmt: skip
+                tables.append(seed_table(name, rerun_full(seq, (w, h, t), rows, variants), info))
                 print(tables[-1] + "\n", flush=True)
             if selection_seeds:
-                by_draw: dict[str, dict[str, float]] = {}
-                for s in selection_seeds:
-                    if s == base.selection_seed and "full" in rows:
-                        by_draw[f"draw {s}"] = rows["full"]
-                        continue
-                    label = f"{name}/draw{s}"
-                    log(f"{label}: tracking {t} frames {w}x{h} on {args.device}")
-                    out = track_sequence(model, replace(ABLATIONS["full"](base), selection_seed=s), seq, landmarks,
-                                         label, args.progress_every)  # fmt: skip
-                    m = score(model, seq.gt, out).as_dict()
-                    m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
-                    by_draw[f"draw {s}"] = results[label] = m
-                    if args.json is not None:
-                        write_json(args.json, results)
-                tables.append(seed_table(name, by_draw, f"{w}x{h}, {t} frames, full configuration",
-                                         "template selection seeds"))  # fmt: skip
+                variants = [(f"draw {s}", f"{name}/draw{s}", replace(base, selection_seed=s), landmarks,
+                             s == base.selection_seed) for s in selection_seeds]  # fmt: skip
+                by_draw = rerun_full(seq, (w, h, t), rows, variants)
+                tables.append(seed_table(name, by_draw, info, "template selection seeds"))
                 print(tables[-1] + "\n", flush=True)
     if earlier:
         again, figures = long_tables_from_series(earlier, cache, args.hold)
