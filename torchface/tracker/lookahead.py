@@ -169,6 +169,30 @@ def refine_first_fit(
     Returns:
         The refined :class:`LandmarkFit` (batch 1, the model's dtype); ``rms_px`` is its landmark RMS.
     """
+    return _refine_first_fit(
+        model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, landmark_weights=landmark_weights,
+        shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
+        expression_prior_precision=expression_prior_precision, config=config,
+    )[0]  # fmt: skip
+
+
+def _refine_first_fit(
+    model: FaceModel,
+    frames: Tensor,
+    intrinsics: Intrinsics,
+    landmarks_px: Tensor,
+    fit: LandmarkFit,
+    key_rotation: Tensor,
+    key_translation: Tensor,
+    *,
+    landmark_weights: Tensor | None,
+    shape_prior_precision: float,
+    shape_bound: float,
+    expression_prior_precision: float,
+    config: LookaheadConfig,
+) -> tuple[LandmarkFit, Tensor, Tensor]:
+    """:func:`refine_first_fit`, also returning the keyframes' refined poses: rotation ``(K, 3, 3)`` and
+    translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose."""
     K = frames.shape[0] - 1
     if frames.dim() != 4 or K < 1 or frames.shape[1] != 3:
         raise ValueError(f"frames must be (1 + K, 3, H, W) with K >= 1 keyframes, got {tuple(frames.shape)}")
@@ -353,10 +377,12 @@ def refine_first_fit(
     uvl = geometry(x, 0)[2]  # landmark pixels (full resolution at every level)
     rms = ((((uvl - target) ** 2).sum(-1) * lw).sum() / lw.sum().clamp_min(1e-12)).sqrt()
     out_dt = model.dtype
-    return LandmarkFit(
+    refined = LandmarkFit(
         R0.to(out_dt), x[0:3][None].to(out_dt), x[3:6][None].to(out_dt), sig[None].to(out_dt), al[None].to(out_dt),
         rms[None].to(out_dt), fit.status.clone(),
     )
+    key = x[o_k:].reshape(K, 11)
+    return refined, axis_angle_to_matrix(key[:, 0:3]).to(out_dt), key[:, 3:6].to(out_dt)
 
 
 def lookahead_fit(

@@ -49,7 +49,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_ill
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
-from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_euler
+from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
@@ -59,6 +59,8 @@ from torchface.template.dissimilarity import DissimilarityReference, build_dissi
 from torchface.template.management import (
     Mosaic,
     MosaicLevel,
+    _map_reference,
+    _reference_tensors,
     add_entries,
     entry_templates,
     face_inside_fraction,
@@ -85,6 +87,7 @@ from torchface.template.points import (
 )
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
+from torchface.tracker.lookahead import LookaheadConfig, _refine_first_fit
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -100,7 +103,9 @@ from torchface.tracker.step import (
     track_step,
 )
 
-__all__ = ["LandmarkDetector", "ManagementState", "estimate_confidence", "initialise_managed", "managed_step"]
+__all__ = [
+    "FirstPoseWatch", "LandmarkDetector", "ManagementState", "estimate_confidence", "initialise_managed", "managed_step",
+]
 
 #: A face detector for re-initialisation: ``frames (B, 3, H, W)`` float in [0, 1] -> ``landmarks (B, K, 2)``
 #: pixels of the model's K landmarks (68 iBUG points for CANDIDE-3), a row of NaN where no face was found.
@@ -138,6 +143,40 @@ class ManagementState:
     confident_params: Tensor
     since_attempt: Tensor
     params_ypr: tuple[Tensor, Tensor] | None = None
+    first: "FirstPoseWatch | None" = None
+    head_rotation: Tensor | None = None
+    head_translation: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class FirstPoseWatch:
+    """The online look-ahead start (``initialise_managed(refine_first=...)``): what a stream keeps until its head
+    has turned to each side, when its first frame's pose is re-estimated and the stream re-anchored.
+
+    Attributes:
+        config: :class:`~torchface.tracker.lookahead.LookaheadConfig` (``yaw_deg``, ``min_keyframes``,
+            ``min_confidence``, ``max_frames`` and the refinement's settings).
+        frame0: ``(B, 3, H, W)`` the first frames (model dtype).
+        landmarks: ``(B, K, 2)`` their landmarks; weights: ``(B, K)`` or None.
+        fit: the first frames' :class:`~torchface.tracker.fit.LandmarkFit`.
+        yaw0: ``(B,)`` the first frame's yaw (degrees).
+        keys: per stream, its keyframes in the order found, each ``(frame (3, H, W), rotation (3, 3), translation
+            (3,))`` (then None): the first confident frame whose yaw passed ``yaw_deg`` on each side.
+        sides: ``(B, 2)`` bool, the stream has its keyframe of the yaw-up, yaw-down side.
+        pending: ``(B,)`` bool, the stream still waits for its keyframes.
+        frames_seen: frames of the sequence so far (the first included).
+    """
+
+    config: LookaheadConfig
+    frame0: Tensor
+    landmarks: Tensor
+    weights: Tensor | None
+    fit: LandmarkFit
+    yaw0: Tensor
+    keys: tuple[tuple[tuple[Tensor, Tensor, Tensor] | None, ...], ...]
+    sides: Tensor
+    pending: Tensor
+    frames_seen: int = 1
 
 
 def _layout(model: FaceModel) -> ParamLayout:
@@ -163,6 +202,7 @@ def initialise_managed(
     weights: Tensor | None = None,
     *,
     fit: LandmarkFit | None = None,
+    refine_first: LookaheadConfig | None = None,
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`~torchface.tracker.step.initialise`, then the mosaic and the dissimilarity reference.
 
@@ -170,11 +210,31 @@ def initialise_managed(
     entry 0. Arguments and returns as :func:`~torchface.tracker.step.initialise`; with
     ``config.template.enabled`` False the state has no management (``management`` None).
 
+    ``refine_first``: the online look-ahead start, None for none (the default). From one frontal view the
+    landmark fit cannot tell the head's pitch from the face's proportions, and the error of the first frame's pose
+    becomes pose error wherever the head turns (:mod:`~torchface.tracker.lookahead`). With a
+    :class:`~torchface.tracker.lookahead.LookaheadConfig`, each stream keeps its first frame (``(3, H, W)`` in
+    memory) until it has confidently turned ``yaw_deg`` to each side (``min_keyframes``; at most ``max_frames``
+    frames); then :func:`~torchface.tracker.lookahead.refine_first_fit` re-estimates the first frame's pose from
+    those keyframes, the stream's templates and mosaic are rebuilt from the first frame at that pose, and from
+    the next frame on its reported pose (``rotation``, ``axis_angle``, ``translation``, ``ypr_deg``) is the
+    re-anchored estimate expressed in the head frame of its first result: reported poses stay continuous and
+    relative to the first frame's, while the mesh placed by the state's parameters (overlays, normalised faces)
+    follows the refined estimate.
+
     Example:
         >>> from torchface.model import load_candide3                                  # doctest: +SKIP
         >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
+    if refine_first is not None:
+        if not isinstance(refine_first, LookaheadConfig):
+            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
+        if not config.template.enabled:
+            raise ValueError("refine_first needs template management (config.template.enabled)")
+        if fit is None:
+            check_frames(frames, intrinsics)
+            fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
     state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template
     if not tc.enabled:
@@ -195,6 +255,17 @@ def initialise_managed(
     management = ManagementState(
         mosaic, layout, zeros, zeros.clone(), zeros.clone(), failed.clone(), state.params, zeros.clone()
     )
+    if refine_first is not None:
+        with torch.inference_mode(False):  # kept in the state: normal tensors
+            watch = FirstPoseWatch(
+                refine_first, frames.clone(), landmarks_px.to(dtype=model.dtype, device=model.device).clone(),
+                None if weights is None else weights.to(dtype=model.dtype, device=model.device).clone(),
+                fit.to(model.device, model.dtype), result.ypr_deg[:, 0].clone(), ((None, None),) * B,
+                torch.zeros(B, 2, dtype=torch.bool, device=model.device), ~failed.clone(),
+            )  # fmt: skip
+            eye = torch.eye(3, dtype=model.dtype, device=model.device).expand(B, 3, 3).clone()
+            management = replace(management, first=watch, head_rotation=eye,
+                                 head_translation=torch.zeros(B, 3, dtype=model.dtype, device=model.device))
     result = replace(
         result, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss.dissimilarity,
         mosaic_entry=zeros.clone(),
@@ -648,11 +719,158 @@ def managed_step(
         new_state = replace(new_state, templates=templates)
     ms = ManagementState(
         mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
-        None if params_ypr is None else (params, params_ypr),
+        None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
     )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
         result, status=status, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss,
         mosaic_entry=entry.clone(),
     )  # fmt: skip
-    return replace(new_state, management=ms), result
+    new_state = replace(new_state, management=ms)
+    reported = _in_head_frame(result, ms)  # the offsets this frame was tracked under
+    if ms.first is not None:  # the online look-ahead start (initialise_managed(refine_first=...))
+        new_state = _watch_first_pose(model, config, new_state, frames, result)
+    return new_state, reported
+
+
+def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:
+    """``result`` with its pose expressed in the head frame of the stream's first result: ``R D`` and
+    ``R d + t`` for the estimate ``(R, t)`` and the re-anchoring offset ``(D, d)`` (``head_rotation``,
+    ``head_translation``; identity until a stream is re-anchored, whose rows are left untouched)."""
+    if ms.head_rotation is None:
+        return result
+    moved = (ms.head_rotation - torch.eye(3, dtype=ms.head_rotation.dtype, device=ms.head_rotation.device)).abs()
+    moved = (moved.flatten(1).amax(-1) > 0) | (ms.head_translation.abs().amax(-1) > 0)
+    if not bool(moved.any()):
+        return result
+    D, d = ms.head_rotation.to(result.rotation.dtype), ms.head_translation.to(result.translation.dtype)
+    R = torch.matmul(result.rotation, D)
+    t = torch.matmul(result.rotation, d.unsqueeze(-1)).squeeze(-1) + result.translation
+    m3, m33 = moved[:, None], moved[:, None, None]
+    return replace(
+        result, rotation=torch.where(m33, R, result.rotation), translation=torch.where(m3, t, result.translation),
+        axis_angle=torch.where(m3, matrix_to_axis_angle(R), result.axis_angle),
+        ypr_deg=torch.where(m3, matrix_to_euler(R), result.ypr_deg),
+    )  # fmt: skip
+
+
+def _reset_mosaic_rows(mosaic: Mosaic, index: Tensor, sub: Mosaic) -> Mosaic:
+    """``mosaic`` whose streams ``index`` hold only ``sub``'s entry 0 (``sub`` has batch ``len(index)``)."""
+
+    def put(x: Tensor, y: Tensor, empty: object = None) -> Tensor:
+        x = x.clone()
+        if empty is not None:
+            x[index] = empty
+        x[index, 0] = y[:, 0].to(x.dtype)
+        return x
+
+    with torch.inference_mode(False):
+        levels = tuple(
+            MosaicLevel(put(a.face_index, b.face_index), put(a.bary, b.bary), put(a.intensity, b.intensity),
+                        put(a.valid, b.valid, False))  # fmt: skip
+            for a, b in zip(mosaic.levels, sub.levels)
+        )
+        pairs = zip(_reference_tensors(mosaic.references), _reference_tensors(sub.references))
+        ref = iter([put(x, y) for x, y in pairs])
+        return Mosaic(
+            levels, put(mosaic.rotation, sub.rotation), put(mosaic.ypr_deg, sub.ypr_deg), put(mosaic.bins, sub.bins),
+            put(mosaic.used, sub.used, False), _map_reference(mosaic.references, lambda _: next(ref)),
+        )  # fmt: skip
+
+
+def _watch_first_pose(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, result: TrackResult
+) -> TrackerState:
+    """Keyframes for the streams still waiting (``result`` in the internal frame), and the re-anchoring of those
+    that have them all (:func:`initialise_managed`'s ``refine_first``)."""
+    ms = state.management
+    w = ms.first
+    lc = w.config
+    rel = result.ypr_deg[:, 0] - w.yaw0.to(result.ypr_deg.dtype)
+    ok = w.pending & result.success & (result.confidence >= lc.min_confidence)
+    keys = list(w.keys)
+    with torch.inference_mode(False):
+        sides = w.sides.clone()
+        for side, sign in enumerate((1.0, -1.0)):
+            for b in (ok & (sign * rel >= lc.yaw_deg)).nonzero().squeeze(-1).tolist():
+                if not bool(sides[b, side]):
+                    sides[b, side] = True  # the newest keyframe goes last: it is this frame
+                    entry = (frames[b].clone(), result.rotation[b].clone(), result.translation[b].clone())
+                    keys[b] = tuple(k for k in keys[b] if k is not None) + (entry,)
+                    keys[b] = keys[b] + (None,) * (2 - len(keys[b]))
+    ready = w.pending & (sides.sum(-1) >= lc.min_keyframes)
+    seen = w.frames_seen + 1
+    pending = w.pending & ~ready & (seen < lc.max_frames)
+    if bool(ready.any()):
+        state = _reanchor(model, config, state, w, keys, ready.nonzero().squeeze(-1), frames)
+        ms = state.management
+    first = None if not bool(pending.any()) else replace(w, keys=tuple(keys), sides=sides, pending=pending,
+                                                          frames_seen=seen)  # fmt: skip
+    return replace(state, management=replace(ms, first=first))
+
+
+def _reanchor(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, w: FirstPoseWatch,
+    keys: list[tuple[tuple[Tensor, Tensor, Tensor] | None, ...]], index: Tensor, frames: Tensor,
+) -> TrackerState:
+    """Streams ``index`` re-anchored at this frame (``frames``), their newest keyframe: their first frame's fit
+    refined against their keyframes, their templates and mosaic rebuilt from the first frame at the refined pose,
+    this frame's pose replaced by its refined one and added to the mosaic, and the offset that keeps their
+    reported poses in the head frame of their first result."""
+    ms = state.management
+    fc = config.fit
+    fits, now_R, now_t = [], [], []
+    with torch.inference_mode(False):
+        for b in index.tolist():
+            ks = [k for k in keys[b] if k is not None]
+            one, key_R, key_t = _refine_first_fit(
+                model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
+                w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
+                landmark_weights=None if w.weights is None else w.weights[b],
+                shape_prior_precision=fc.shape_prior_precision, shape_bound=fc.shape_bound,
+                expression_prior_precision=fc.expression_prior_precision, config=w.config,
+            )  # fmt: skip
+            fits.append(one)
+            now_R.append(key_R[-1])
+            now_t.append(key_t[-1])
+        fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))
+        fit = fit.to(model.device, model.dtype)
+    weights = None if w.weights is None else w.weights[index]
+    sub, _ = initialise_managed(model, config, w.frame0[index], w.landmarks[index], state.intrinsics, weights, fit=fit)
+    templates = _scatter_templates(state.templates, index, sub.templates)
+    with torch.inference_mode(False):
+        shape = state.shape_coeffs.clone()
+        shape[index] = sub.shape_coeffs
+        prior = None
+        if state.anim_prior_mean is not None:
+            prior = state.anim_prior_mean.clone()
+            prior[index] = sub.anim_prior_mean
+        R0, t0 = w.fit.rotation[index], w.fit.translation[index]  # the first result's pose
+        R0c, t0c = fit.rotation, fit.translation
+        head_R, head_t = ms.head_rotation.clone(), ms.head_translation.clone()
+        head_R[index] = torch.matmul(R0c.transpose(1, 2), R0).to(head_R.dtype)
+        head_t[index] = torch.matmul(R0c.transpose(1, 2), (t0 - t0c).unsqueeze(-1)).squeeze(-1).to(head_t.dtype)
+        entry = ms.entry.clone()
+        entry[index] = 0
+        layout = _layout(model)
+        params = state.params.clone()
+        R_now = torch.stack(now_R).to(params.dtype)
+        params[index, layout.rotation] = matrix_to_axis_angle(R_now)
+        params[index, layout.translation] = torch.stack(now_t).to(params.dtype)
+    mosaic = _reset_mosaic_rows(ms.mosaic, index, sub.management.mosaic)
+    ms = replace(ms, mosaic=mosaic, entry=entry, head_rotation=head_R, head_translation=head_t, params_ypr=None)
+    state = replace(state, params=params, templates=templates, shape_coeffs=shape, anim_prior_mean=prior,
+                    management=ms)  # fmt: skip
+    # This frame, at its refined pose, becomes the stream's second mosaic entry (the head is turned: without it
+    # the stream would be measured against the frontal entry alone until its mosaic grows again).
+    tc = config.template
+    if tc.mosaic and ms.mosaic.capacity >= 1 and tc.max_entries > 1:
+        ypr = matrix_to_euler(R_now)
+        bins, _ = pose_bins(ypr, tc, origin_deg=ms.mosaic.ypr_deg[index, 0])
+        fresh = ~((ms.mosaic.bins[index] == bins.unsqueeze(1)).all(-1) & ms.mosaic.used[index]).any(-1)
+        if bool(fresh.any()):
+            rows = index[fresh]
+            tpl, ref = _new_entries(model, config, state, ms, frames, rows, None)
+            mosaic, _ = add_entries(ms.mosaic, rows, tpl, R_now[fresh], bins[fresh], ref)
+            state = replace(state, management=replace(ms, mosaic=mosaic))
+    return state

@@ -9,6 +9,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.tracker.fit import LandmarkFit
+from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult
 
@@ -21,6 +22,8 @@ class FaceTracker(nn.Module):
     (dissimilarity confidence, mosaic, loss and recovery) follows ``config.template``; ``detector`` (a
     :data:`~torchface.tracker.managed.LandmarkDetector`, ``frames (B, 3, H, W) -> landmarks (B, K, 2)`` with NaN
     rows where no face was found) re-initialises lost streams, else they are searched for in the mosaic.
+    ``refine_first`` (a :class:`~torchface.tracker.lookahead.LookaheadConfig`, None: off) turns on the online
+    look-ahead start of :func:`~torchface.tracker.managed.initialise_managed`.
 
     Example:
         >>> tracker = FaceTracker()                                          # doctest: +SKIP
@@ -31,7 +34,7 @@ class FaceTracker(nn.Module):
 
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
-        detector: LandmarkDetector | None = None,
+        detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = None,
     ) -> None:
         super().__init__()
         self.config = TrackerConfig() if config is None else config
@@ -41,6 +44,9 @@ class FaceTracker(nn.Module):
             raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
         self.model = load_candide3() if model is None else model
         self.detector = detector
+        if refine_first is not None and not isinstance(refine_first, LookaheadConfig):
+            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
+        self.refine_first = refine_first
         self._state: TrackerState | None = None
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
@@ -91,7 +97,7 @@ class FaceTracker(nn.Module):
                 raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
         self._state, result = initialise_managed(
-            self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit
+            self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=self.refine_first
         )
         return result
 
