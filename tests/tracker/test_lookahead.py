@@ -186,7 +186,8 @@ def test_online_refinement_reanchors_after_a_turn_each_side(model):
     yaw = up + up[-2::-1] + [-v for v in up[1:]] + [-v for v in up[-2::-1]]
     frames, gt = render([[y, 0.0, 0.0] for y in yaw])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
-    lm = gt.landmarks_px.float()[:1] + 1.5 * torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(0))
+    noise = torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(0))
+    lm = gt.landmarks_px.float()[:1] + 1.5 * noise
     cut = frames.clone()
     cut[len(up):] = frames[len(up) - 1]
     both = torch.stack([frames, cut])

@@ -104,7 +104,8 @@ from torchface.tracker.step import (
 )
 
 __all__ = [
-    "FirstPoseWatch", "LandmarkDetector", "ManagementState", "estimate_confidence", "initialise_managed", "managed_step",
+    "FirstPoseWatch", "LandmarkDetector", "ManagementState", "estimate_confidence", "initialise_managed",
+    "managed_step",
 ]
 
 #: A face detector for re-initialisation: ``frames (B, 3, H, W)`` float in [0, 1] -> ``landmarks (B, K, 2)``
