@@ -166,6 +166,8 @@ def test_mosaic_add_select_and_grow():
                            _fake_reference(1, seed=2))  # fmt: skip
     assert slots.tolist() == [2] and m.capacity == 3 and m.num_entries.tolist() == [1, 2, 3]
     assert has_bin(m, torch.tensor([[2, 0], [2, 0], [-2, 0]])).tolist() == [False, True, True]
+    # a subset of the streams, in any order: the same answers as their rows of the whole batch
+    assert has_bin(m, torch.tensor([[-2, 0], [2, 0]]), streams=torch.tensor([2, 0])).tolist() == [True, False]
     # Selection: nearest entry in yaw/pitch among the used ones, with hysteresis.
     now = torch.tensor([[25.0, 0.0, 0.0], [25.0, 0.0, 0.0], [-20.0, 0.0, 0.0]], dtype=D)
     cur = torch.zeros(B, dtype=torch.int64)

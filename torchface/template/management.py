@@ -557,9 +557,13 @@ def within_reach(mosaic: Mosaic, ypr_deg: Tensor, config: TemplateConfig) -> Ten
     return ((d <= config.entry_reach) & mosaic.used).any(-1)
 
 
-def has_bin(mosaic: Mosaic, bins: Tensor) -> Tensor:
-    """``(B,)`` bool: the stream's mosaic already has an entry in bin ``bins (B, 2)``."""
-    return ((mosaic.bins == bins.unsqueeze(1)).all(-1) & mosaic.used).any(-1)
+def has_bin(mosaic: Mosaic, bins: Tensor, streams: Tensor | None = None) -> Tensor:
+    """``(B,)`` bool: the stream's mosaic already has an entry in bin ``bins (B, 2)``; with ``streams (B',)``
+    (int64), the streams ``streams[i]`` for ``bins (B', 2)``."""
+    entry_bins, used = mosaic.bins, mosaic.used
+    if streams is not None:
+        entry_bins, used = entry_bins[streams], used[streams]
+    return ((entry_bins == bins.unsqueeze(1)).all(-1) & used).any(-1)
 
 
 def _entry_distances(mosaic: Mosaic, ypr_deg: Tensor, streams: Tensor | None) -> Tensor:

@@ -162,7 +162,7 @@ class FirstPoseWatch:
         fit: the first frames' :class:`~torchface.tracker.fit.LandmarkFit`.
         yaw0: ``(B,)`` the first frame's yaw (degrees).
         keys: per stream, its keyframes in the order found, each ``(frame (3, H, W), rotation (3, 3), translation
-            (3,))`` (then None): the first confident frame whose yaw passed ``yaw_deg`` on each side.
+            (3,))``: the first confident frame whose yaw passed ``yaw_deg`` on each side.
         sides: ``(B, 2)`` bool, the stream has its keyframe of the yaw-up, yaw-down side.
         pending: ``(B,)`` bool, the stream still waits for its keyframes.
         frames_seen: frames of the sequence so far (the first included).
@@ -174,7 +174,7 @@ class FirstPoseWatch:
     weights: Tensor | None
     fit: LandmarkFit
     yaw0: Tensor
-    keys: tuple[tuple[tuple[Tensor, Tensor, Tensor] | None, ...], ...]
+    keys: tuple[tuple[tuple[Tensor, Tensor, Tensor], ...], ...]
     sides: Tensor
     pending: Tensor
     frames_seen: int = 1
@@ -261,12 +261,10 @@ def initialise_managed(
             watch = FirstPoseWatch(
                 refine_first, frames.clone(), landmarks_px.to(dtype=model.dtype, device=model.device).clone(),
                 None if weights is None else weights.to(dtype=model.dtype, device=model.device).clone(),
-                fit.to(model.device, model.dtype), result.ypr_deg[:, 0].clone(), ((None, None),) * B,
+                fit.to(model.device, model.dtype), result.ypr_deg[:, 0].clone(), ((),) * B,
                 torch.zeros(B, 2, dtype=torch.bool, device=model.device), ~failed.clone(),
             )  # fmt: skip
-            eye = torch.eye(3, dtype=model.dtype, device=model.device).expand(B, 3, 3).clone()
-            management = replace(management, first=watch, head_rotation=eye,
-                                 head_translation=torch.zeros(B, 3, dtype=model.dtype, device=model.device))
+        management = replace(management, first=watch)
     result = replace(
         result, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss.dissimilarity,
         mosaic_entry=zeros.clone(),
@@ -737,7 +735,8 @@ def managed_step(
 def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:
     """``result`` with its pose expressed in the head frame of the stream's first result: ``R D`` and
     ``R d + t`` for the estimate ``(R, t)`` and the re-anchoring offset ``(D, d)`` (``head_rotation``,
-    ``head_translation``; identity until a stream is re-anchored, whose rows are left untouched)."""
+    ``head_translation``: None until a stream is re-anchored; identity in the rows of the others, which are left
+    untouched)."""
     if ms.head_rotation is None:
         return result
     moved = (ms.head_rotation - torch.eye(3, dtype=ms.head_rotation.dtype, device=ms.head_rotation.device)).abs()
@@ -796,9 +795,8 @@ def _watch_first_pose(
             for b in (ok & (sign * rel >= lc.yaw_deg)).nonzero().squeeze(-1).tolist():
                 if not bool(sides[b, side]):
                     sides[b, side] = True  # the newest keyframe goes last: it is this frame
-                    entry = (frames[b].clone(), result.rotation[b].clone(), result.translation[b].clone())
-                    keys[b] = tuple(k for k in keys[b] if k is not None) + (entry,)
-                    keys[b] = keys[b] + (None,) * (2 - len(keys[b]))
+                    key = (frames[b].clone(), result.rotation[b].clone(), result.translation[b].clone())
+                    keys[b] = keys[b] + (key,)
     ready = w.pending & (sides.sum(-1) >= lc.min_keyframes)
     seen = w.frames_seen + 1
     pending = w.pending & ~ready & (seen < lc.max_frames)
@@ -812,7 +810,7 @@ def _watch_first_pose(
 
 def _reanchor(
     model: FaceModel, config: TrackerConfig, state: TrackerState, w: FirstPoseWatch,
-    keys: list[tuple[tuple[Tensor, Tensor, Tensor] | None, ...]], index: Tensor, frames: Tensor,
+    keys: list[tuple[tuple[Tensor, Tensor, Tensor], ...]], index: Tensor, frames: Tensor,
 ) -> TrackerState:
     """Streams ``index`` re-anchored at this frame (``frames``), their newest keyframe: their first frame's fit
     refined against their keyframes, their templates and mosaic rebuilt from the first frame at the refined pose,
@@ -823,7 +821,7 @@ def _reanchor(
     fits, now_R, now_t = [], [], []
     with torch.inference_mode(False):
         for b in index.tolist():
-            ks = [k for k in keys[b] if k is not None]
+            ks = keys[b]
             one, key_R, key_t = _refine_first_fit(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
@@ -848,7 +846,12 @@ def _reanchor(
             prior[index] = sub.anim_prior_mean
         R0, t0 = w.fit.rotation[index], w.fit.translation[index]  # the first result's pose
         R0c, t0c = fit.rotation, fit.translation
-        head_R, head_t = ms.head_rotation.clone(), ms.head_translation.clone()
+        if ms.head_rotation is None:  # the first re-anchoring: every stream's offset starts as the identity
+            B = state.params.shape[0]
+            head_R = torch.eye(3, dtype=model.dtype, device=model.device).expand(B, 3, 3).clone()
+            head_t = torch.zeros(B, 3, dtype=model.dtype, device=model.device)
+        else:
+            head_R, head_t = ms.head_rotation.clone(), ms.head_translation.clone()
         head_R[index] = torch.matmul(R0c.transpose(1, 2), R0).to(head_R.dtype)
         head_t[index] = torch.matmul(R0c.transpose(1, 2), (t0 - t0c).unsqueeze(-1)).squeeze(-1).to(head_t.dtype)
         entry = ms.entry.clone()
@@ -865,10 +868,9 @@ def _reanchor(
     # This frame, at its refined pose, becomes the stream's second mosaic entry (the head is turned: without it
     # the stream would be measured against the frontal entry alone until its mosaic grows again).
     tc = config.template
-    if tc.mosaic and ms.mosaic.capacity >= 1 and tc.max_entries > 1:
-        ypr = matrix_to_euler(R_now)
-        bins, _ = pose_bins(ypr, tc, origin_deg=ms.mosaic.ypr_deg[index, 0])
-        fresh = ~((ms.mosaic.bins[index] == bins.unsqueeze(1)).all(-1) & ms.mosaic.used[index]).any(-1)
+    if tc.mosaic and tc.max_entries > 1:
+        bins, _ = pose_bins(matrix_to_euler(R_now), tc, origin_deg=ms.mosaic.ypr_deg[index, 0])
+        fresh = ~has_bin(ms.mosaic, bins, streams=index)
         if bool(fresh.any()):
             rows = index[fresh]
             tpl, ref = _new_entries(model, config, state, ms, frames, rows, None)
