@@ -11,7 +11,9 @@ per frame. With --noise-seeds each standard scenario is tracked again once per l
 noise (full configuration) and a table of the seeds follows, with the worst seed's figures: the starting pose
 and expression come from one noisy fit, so one seed's figures can be luckier or unluckier than another's.
 --selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
-default landmark noise.
+default landmark noise. --online-refine tracks every managed run with the online look-ahead start
+(FaceTracker(refine_first=LookaheadConfig()), torchface.tracker.managed); --lookahead instead refines the first
+fit from frames read ahead before tracking (two passes).
 
 Ablations (one row each): full, no_illumination (TrackerConfig.use_illumination=False), no_expression
 (use_expression=False), no_robust (robust=RobustKind.NONE), all_pixels (gradient_threshold=0), no_management
@@ -39,6 +41,7 @@ Examples:
     python scripts/evaluate.py --scenarios none --add-series out/a.npz,out/b.npz    # tables again, no tracking
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3   # seed spread
     python scripts/evaluate.py --scenarios pose_sweep,scan_motion --ablations none --selection-seeds 0,1,2
+    python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3 --online-refine
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -251,6 +254,8 @@ def initial_landmarks(gt: GroundTruth, seed: int) -> Tensor:
 
 # --lookahead: the look-ahead initialisation's settings, or None for the plain first-frame fit.
 LOOKAHEAD: LookaheadConfig | None = None
+# --online-refine: the online look-ahead start's settings (FaceTracker(refine_first=...)), or None for none.
+ONLINE_REFINE: LookaheadConfig | None = None
 
 
 def track_frames(
@@ -271,7 +276,9 @@ def track_frames(
     """
     dev, dt = model.device, model.dtype
     T = gt.num_frames
-    tracker = FaceTracker(config, model=model)
+    # The online start needs template management (the no_management ablation runs without it).
+    refine = ONLINE_REFINE if config.template.enabled else None
+    tracker = FaceTracker(config, model=model, refine_first=refine)
 
     def prepared(f: Tensor) -> Tensor:
         return f.to(device=dev).to(dt) / 255.0
@@ -771,8 +778,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--lookahead-frames", type=int, default=LookaheadConfig().max_frames,
-        help="frames read ahead at most by --lookahead (LookaheadConfig.max_frames; held in memory, 3.7 MB each at "
-        "640x480)",
+        help="frames read ahead at most by --lookahead, or watched at most by --online-refine "
+        "(LookaheadConfig.max_frames; --lookahead holds them in memory, 3.7 MB each at 640x480)",
+    )
+    parser.add_argument(
+        "--online-refine", action="store_true",
+        help="track with the online look-ahead start (FaceTracker(refine_first=LookaheadConfig())): each run "
+        "keeps its first frame until the head has confidently turned 20 degrees each way, then re-estimates the "
+        "first pose from those frames and goes on from it in one pass; the runs without template management "
+        "(the no_management ablation) go without it",
     )
     parser.add_argument(
         "--noise-seeds", default="",
@@ -826,10 +840,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--selection-seeds must be integers >= 0, got {args.selection_seeds!r}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    global LOOKAHEAD
+    global LOOKAHEAD, ONLINE_REFINE
     if args.lookahead_frames < 2:
         parser.error(f"--lookahead-frames must be >= 2, got {args.lookahead_frames}")
+    if args.lookahead and args.online_refine:
+        parser.error("--lookahead and --online-refine are two ways to refine the first pose: choose one")
     LOOKAHEAD = LookaheadConfig(max_frames=args.lookahead_frames) if args.lookahead else None
+    ONLINE_REFINE = LookaheadConfig(max_frames=args.lookahead_frames) if args.online_refine else None
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     earlier: list[FrameSeries] = []

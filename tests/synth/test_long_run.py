@@ -325,3 +325,29 @@ def test_evaluate_lookahead_hands_the_frames_read_ahead_to_the_tracking_pass(tmp
     assert ev.LOOKAHEAD is not None
     ev.main(base + ["--json", str(plain)])
     assert ev.LOOKAHEAD is None  # reset by a run without --lookahead
+
+
+def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(tmp_path, monkeypatch):
+    """--online-refine: every tracker with template management is built with refine_first (its max_frames from
+    --lookahead-frames), the no_management ablation without; the flag is reset by a run without it and cannot be
+    combined with --lookahead."""
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    ev = _load_evaluate()
+    seen = []
+    real = ev.FaceTracker
+
+    def spy(config, model=None, refine_first=None, **kwargs):
+        seen.append((config.template.enabled, refine_first))
+        return real(config, model=model, refine_first=refine_first, **kwargs)
+
+    monkeypatch.setattr(ev, "FaceTracker", spy)
+    base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--cache", "none", "--no-auroc",
+            "--progress-every", "0", "--ablations", "no_management"]  # fmt: skip
+    assert ev.main(base + ["--online-refine", "--lookahead-frames", "7"]) == 0
+    assert seen == [(True, LookaheadConfig(max_frames=7)), (False, None)]
+    seen.clear()
+    assert ev.main(base) == 0
+    assert seen == [(True, None), (False, None)]
+    with pytest.raises(SystemExit):
+        ev.main(base + ["--online-refine", "--lookahead"])
