@@ -90,6 +90,32 @@ def test_photometric_term_alone_brings_a_wrong_first_frame_pitch_back(model):
     assert torch.equal(out.anim_coeffs, start.anim_coeffs)  # fit_expression off
 
 
+def test_photometric_term_alone_brings_wrong_free_units_back(model):
+    """Known answer with free units (the points and landmarks are moved by the units' gathered displacements,
+    not by deforming the mesh): the true poses, but a start with the jaw dropped 0.4 and the eyes' vertical
+    position at 0.3 where the render has 0; with every landmark missing and no prior, the photometric term
+    takes both most of the way back (to 0 and -0.09)."""
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    R = gt.rotation.to(torch.float32)
+    jaw, eyes = model.animation_names.index("AUV11 Jaw drop"), model.shape_names.index("Eyes vertical position")
+    shape, anim = torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation)
+    shape[0, eyes], anim[0, jaw] = 0.3, 0.4
+    start = LandmarkFit(R[:1], matrix_to_axis_angle(R[:1]), gt.translation[:1].float(), shape, anim, torch.zeros(1),
+                        torch.zeros(1, dtype=torch.int64))  # fmt: skip
+    lm = torch.full((model.num_landmarks, 2), float("nan"))
+    cfg = LookaheadConfig(shape_units=(eyes,), iterations=(8, 6), max_points=1500)
+    out = refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(), config=cfg,
+                           shape_prior_precision=0.0, expression_prior_precision=0.0)  # fmt: skip
+    assert abs(float(out.anim_coeffs[0, jaw])) < 0.1 and abs(float(out.shape_coeffs[0, eyes])) < 0.15, (
+        float(out.anim_coeffs[0, jaw]), float(out.shape_coeffs[0, eyes]))
+    others = torch.ones(model.num_shape, dtype=torch.bool)
+    others[eyes] = False
+    assert torch.equal(out.shape_coeffs[0, others], shape[0, others])  # only the free unit moves
+    # The true start pose stays within 2 degrees (1.5: the eyes' height trades a little with pitch).
+    assert float(geodesic_angle_deg(out.rotation.double(), gt.rotation[:1])) < 2.0
+
+
 def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     """A head turning to +24 then -24 degrees of yaw in 3-degree steps: keyframes at the first frame past 20
     degrees each way; the refined first-frame pose is much nearer the truth than the landmark fit's (1.5 px of
