@@ -789,6 +789,12 @@ def main(argv: list[str] | None = None) -> int:
         "(the no_management ablation) go without it",
     )
     parser.add_argument(
+        "--expression-quota", type=float,
+        help="TrackerConfig.expression_quota of every run (default: TrackerConfig's, 0): the fraction of each "
+        "level's template points reserved for each animation unit's region (README, Known limitations: eyes "
+        "closed)",
+    )
+    parser.add_argument(
         "--noise-seeds", default="",
         help="comma list of landmark-noise seeds: each standard scenario is tracked again (full configuration) "
         "once per seed and a table of the seeds follows its own (how much the figures depend on the noise draw)",
@@ -828,6 +834,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     if args.hold < 1:
         parser.error(f"--hold must be >= 1, got {args.hold}")
+    if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
+        parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     try:
         noise_seeds = [int(x) for x in args.noise_seeds.split(",") if x.strip()]
     except ValueError:
@@ -858,6 +866,8 @@ def main(argv: list[str] | None = None) -> int:
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
+    if args.expression_quota is not None:  # every run's configuration (ablations and long ones included)
+        base = replace(base, expression_quota=args.expression_quota)
     results: dict[str, dict[str, object]] = {}
     series: list[FrameSeries] = []
     tables: list[str] = []

@@ -351,3 +351,26 @@ def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(tmp_path
     assert seen == [(True, None), (False, None)]
     with pytest.raises(SystemExit):
         ev.main(base + ["--online-refine", "--lookahead"])
+
+
+def test_evaluate_expression_quota_sets_every_runs_config(tmp_path, monkeypatch):
+    """--expression-quota: every run (each ablation, each noise seed) gets that TrackerConfig.expression_quota;
+    without it the default's; out of [0, 1] is refused."""
+    ev = _load_evaluate()
+    seen = []
+    real = ev.track_sequence
+
+    def spy(model, config, seq, landmarks, label, every):
+        seen.append((label, config.expression_quota))
+        return real(model, config, seq, landmarks, label, every)
+
+    monkeypatch.setattr(ev, "track_sequence", spy)
+    base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--cache", "none", "--no-auroc",
+            "--progress-every", "0", "--ablations", "no_robust", "--noise-seeds", "0,1"]  # fmt: skip
+    assert ev.main(base + ["--expression-quota", "0.05"]) == 0
+    assert seen == [("pose_sweep/full", 0.05), ("pose_sweep/no_robust", 0.05), ("pose_sweep/seed1", 0.05)]
+    seen.clear()
+    assert ev.main(base) == 0
+    assert [q for _, q in seen] == [ev.TrackerConfig().expression_quota] * 3
+    with pytest.raises(SystemExit):
+        ev.main(base + ["--expression-quota", "1.5"])
