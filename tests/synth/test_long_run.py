@@ -274,18 +274,24 @@ def test_evaluate_noise_seeds_track_each_seed_again(tmp_path, capsys):
         ev.main(["--scenarios", "pose_sweep", "--noise-seeds", "1,x"])
 
 
-def test_evaluate_selection_seeds_track_each_draw_again(tmp_path, capsys, monkeypatch):
-    """--selection-seeds: one full-configuration run per draw of the template points (the default draw's run
-    reused), each with that TrackerConfig.selection_seed and the default landmarks, and a table of them."""
-    ev = _load_evaluate()
+def _spy_track_sequence(ev, monkeypatch, field: str) -> list:
+    """Replace ``ev.track_sequence`` by a spy recording ``(label, getattr(config, field))`` of every run."""
     seen = []
     real = ev.track_sequence
 
     def spy(model, config, seq, landmarks, label, every):
-        seen.append((label, config.selection_seed))
+        seen.append((label, getattr(config, field)))
         return real(model, config, seq, landmarks, label, every)
 
     monkeypatch.setattr(ev, "track_sequence", spy)
+    return seen
+
+
+def test_evaluate_selection_seeds_track_each_draw_again(tmp_path, capsys, monkeypatch):
+    """--selection-seeds: one full-configuration run per draw of the template points (the default draw's run
+    reused), each with that TrackerConfig.selection_seed and the default landmarks, and a table of them."""
+    ev = _load_evaluate()
+    seen = _spy_track_sequence(ev, monkeypatch, "selection_seed")
     out = tmp_path / "e.json"
     argv = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--ablations", "none", "--cache",
             "none", "--no-auroc", "--progress-every", "0", "--selection-seeds", "0,2", "--json", str(out)]  # fmt: skip
@@ -327,7 +333,7 @@ def test_evaluate_lookahead_hands_the_frames_read_ahead_to_the_tracking_pass(tmp
     assert ev.LOOKAHEAD is None  # reset by a run without --lookahead
 
 
-def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(tmp_path, monkeypatch):
+def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(monkeypatch):
     """--online-refine: every tracker with template management is built with refine_first (its max_frames from
     --lookahead-frames), the no_management ablation without; the flag is reset by a run without it and cannot be
     combined with --lookahead."""
@@ -353,18 +359,11 @@ def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(tmp_path
         ev.main(base + ["--online-refine", "--lookahead"])
 
 
-def test_evaluate_expression_quota_sets_every_runs_config(tmp_path, monkeypatch):
+def test_evaluate_expression_quota_sets_every_runs_config(monkeypatch):
     """--expression-quota: every run (each ablation, each noise seed) gets that TrackerConfig.expression_quota;
     without it the default's; out of [0, 1] is refused."""
     ev = _load_evaluate()
-    seen = []
-    real = ev.track_sequence
-
-    def spy(model, config, seq, landmarks, label, every):
-        seen.append((label, config.expression_quota))
-        return real(model, config, seq, landmarks, label, every)
-
-    monkeypatch.setattr(ev, "track_sequence", spy)
+    seen = _spy_track_sequence(ev, monkeypatch, "expression_quota")
     base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--cache", "none", "--no-auroc",
             "--progress-every", "0", "--ablations", "no_robust", "--noise-seeds", "0,1"]  # fmt: skip
     assert ev.main(base + ["--expression-quota", "0.05"]) == 0
