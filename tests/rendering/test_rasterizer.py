@@ -14,6 +14,15 @@ CAM = Intrinsics.default(32, 24)
 EDGE_TOL = 1e-6
 
 
+@pytest.fixture(autouse=True, params=["boxes", "spans"])
+def candidate_path(request, monkeypatch):
+    """Every test runs with both ways of finding candidate pixels: whole bounding boxes (what the small images
+    here get by default) and scanline spans (what larger images get)."""
+    limit = 1 << 40 if request.param == "boxes" else -1
+    monkeypatch.setattr(rasterizer_module, "_BBOX_MAX_PAIRS", limit)
+    return request.param
+
+
 def random_soup(seed: int, batch: int, num_faces: int, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
     """Independent random triangles in front of the camera, overlapping in depth: ``(B, 3F, 3)``, ``(F, 3)``."""
     g = torch.Generator().manual_seed(seed)
@@ -316,6 +325,22 @@ def test_chunking_gives_identical_result(monkeypatch):
     chunked = rasterize(verts, faces, CAM)
     for name in ("pix_to_face", "bary", "zbuf", "facing"):
         assert torch.equal(getattr(whole, name), getattr(chunked, name))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_boxes_and_spans_give_identical_fragments(monkeypatch, dtype):
+    # The two candidate paths differ only in which pixels they test; the test and its arithmetic are the same.
+    near_plane = torch.tensor([[[-30.0, -20.0, -10.0], [40.0, -20.0, 90.0], [0.0, 40.0, 90.0]]], dtype=torch.float64)
+    meshes = [random_soup(8, 2, 30), random_surface(9, 2), (near_plane, torch.tensor([[0, 1, 2]]))]
+    cam = Intrinsics.default(160, 120)
+    for verts, faces in meshes:
+        out = {}
+        for path, limit in (("boxes", 1 << 40), ("spans", -1)):
+            monkeypatch.setattr(rasterizer_module, "_BBOX_MAX_PAIRS", limit)
+            out[path] = rasterize(verts.to(dtype), faces, cam)
+        assert (out["spans"].pix_to_face >= 0).any()
+        for name in ("pix_to_face", "bary", "zbuf", "facing"):
+            assert torch.equal(getattr(out["boxes"], name), getattr(out["spans"], name)), name
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
