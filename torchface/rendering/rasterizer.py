@@ -162,28 +162,29 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         all multiplied by ``sign(n . v0)``. ``front (N,)`` bool (``n . v0 < 0``); ``usable (N,)`` bool
         (finite, non-degenerate, not edge-on).
     """
-    x0, y0, z0, x1, y1, z1, x2, y2, z2 = tri.reshape(-1, 9).T.contiguous().unbind(0)
-    v0, v1, v2 = (x0, y0, z0), (x1, y1, z1), (x2, y2, z2)
-    e01, e02, e12 = _sub(v1, v0), _sub(v2, v0), _sub(v2, v1)
-    n = _cross(e01, e02)
-    # Cross products of differences keep precision: v1 x v2 = v1 x (v2 - v1), etc.
-    c0 = _cross(v1, e12)
-    c1 = _cross(v2, _sub(v0, v2))
-    c2 = _cross(v0, e01)
-    k = _dot(n, v0)
+    corners = tri.reshape(-1, 3, 3).permute(1, 2, 0)  # (corner, xyz, N)
+    v0, v1, v2 = corners.unbind(0)  # (3, N) each
+    e01, e02, e12, e20 = v1 - v0, v2 - v0, v2 - v1, v0 - v2
+    # The four cross products c0 = v1 x v2 = v1 x e12, c1 = v2 x v0 = v2 x e20, c2 = v0 x v1 = v0 x e01 (cross
+    # products of differences keep precision) and n = e01 x e02, componentwise (a_i+1 b_i+2 - a_i+2 b_i+1) at once.
+    a, b = torch.stack([v1, v2, v0, e01]), torch.stack([e12, e20, e01, e02])  # (4, 3, N)
+    nxt, prv = [1, 2, 0], [2, 0, 1]
+    cr = a[:, nxt] * b[:, prv] - a[:, prv] * b[:, nxt]  # (4, 3, N): c0, c1, c2, n
+    n = cr[3]
+    k = (n * v0).sum(0)
     front = k < 0
     sign = torch.where(front, -1.0, 1.0).to(tri.dtype)  # sign(n . v0)
 
     eps = torch.finfo(tri.dtype).eps * _DEGENERATE_EPS_FACTOR
-    n_norm = _dot(n, n).sqrt()
-    max_edge_sq = torch.maximum(torch.maximum(_dot(e01, e01), _dot(e02, e02)), _dot(e12, e12))
+    n_norm = (n * n).sum(0).sqrt()
+    max_edge_sq = torch.stack([e01, e02, e12]).square().sum(1).amax(0)
     usable = (
         torch.isfinite(tri).reshape(-1, 9).all(-1)
         & (n_norm > eps * max_edge_sq)
-        & (k.abs() > eps * n_norm * _dot(v0, v0).sqrt())
+        & (k.abs() > eps * n_norm * (v0 * v0).sum(0).sqrt())
     )
-    rows = [c[i] for i in range(3) for c in (c0, c1, c2, n)] + [k]
-    return torch.stack(rows, 0) * sign, front, usable
+    # Rows j + 4 i: function j (c0, c1, c2, n) times component i of the ray; then k.
+    return torch.cat([cr.transpose(0, 1).reshape(12, -1), k.unsqueeze(0)]) * sign, front, usable
 
 
 def _project_corners(tri: Tensor, intrinsics: Intrinsics, near: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
