@@ -147,6 +147,25 @@ def test_fit_landmarks_recovers_a_known_pose_and_shape():
 
 
 # ----------------------------------------------------------------------------------------- scene layers
+def test_backdrop_does_not_depend_on_the_thread_count():
+    # The full-size scenarios' backdrop (600x800, upsampled from 300x400): with PyTorch's own thread count the
+    # upsampling changed half of its values by one unit in the last place between 1 and 2 threads, and 1089
+    # values of the rendered pose_sweep video by one gray level. Needs 2 cores to fail without the fix.
+    from torchface.synth.background import _cached_background
+
+    threads = torch.get_num_threads()
+    try:
+        out = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            out.append(_cached_background.__wrapped__(600, 800, 11))
+            out.append(smooth_noise(150, 203, 3, seed=1, cell=40.0, octaves=5))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(out[0], out[2]) and torch.equal(out[1], out[3])
+    assert torch.get_num_threads() == threads
+
+
 def test_textures_are_deterministic_and_in_range():
     for fn in (lambda: background_texture(30, 40, seed=3), lambda: occluder_texture(16, 16, seed=1)):
         a, b = fn(), fn()

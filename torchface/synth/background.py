@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor
 
-from torchface.synth.textures import background_texture, occluder_texture
+from torchface.synth.textures import background_texture, occluder_texture, serial
 
 __all__ = ["BackgroundSpec", "background_frames", "OccluderSpec", "ellipse_mask", "place_occluder"]
 
@@ -50,7 +50,8 @@ def _cached_background(height: int, width: int, seed: int) -> Tensor:
     if scale >= 1.0:
         return background_texture(height, width, seed=seed)
     small = background_texture(max(8, round(height * scale)), max(8, round(width * scale)), seed=seed)
-    return nnf.interpolate(small[None], size=(height, width), mode="bilinear", align_corners=False)[0]
+    with serial():  # the same backdrop whatever the core count (torchface.synth.textures)
+        return nnf.interpolate(small[None], size=(height, width), mode="bilinear", align_corners=False)[0]
 
 
 @functools.lru_cache(maxsize=8)

@@ -1,19 +1,37 @@
 """Deterministic procedural textures for synthetic scenes (backgrounds, occluders).
 
 Every function is a pure function of its arguments: randomness comes from a ``torch.Generator``
-seeded by the caller, on the CPU, so the same seed gives the same image on every machine.
+seeded by the caller, on the CPU, so the same seed gives the same image on every machine. The resampling
+runs on one thread (:func:`serial`): PyTorch's CPU upsampling kernels round differently with other thread
+counts (a 300x400 -> 600x800 bilinear upsampling changed half its values by one unit in the last place
+between 1 and 2 threads), and a scene rendered on a 2-core and on an 8-core machine must be the same.
 Images are ``(3, H, W)`` float RGB in ``[0, 1]`` (see :mod:`torchface.conventions`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as nnf
 from torch import Tensor
 
 __all__ = ["smooth_noise", "background_texture", "occluder_texture"]
+
+
+@contextlib.contextmanager
+def serial() -> Iterator[None]:
+    """Run the enclosed CPU operations on one thread (PyTorch's intra-op thread count is restored after),
+    so that their rounding does not depend on the machine's core count (module docstring). The setting is the
+    process's: torch work in other Python threads also runs on one thread meanwhile."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _check_size(height: int, width: int) -> None:
@@ -51,7 +69,8 @@ def smooth_noise(
         gh = max(2, int(math.ceil(height / spacing)) + 2)
         gw = max(2, int(math.ceil(width / spacing)) + 2)
         lattice = torch.rand(1, channels, gh, gw, generator=gen)
-        up = nnf.interpolate(lattice, size=(height, width), mode="bicubic", align_corners=True)
+        with serial():
+            up = nnf.interpolate(lattice, size=(height, width), mode="bicubic", align_corners=True)
         total = total + up * 0.5**k
     lo = total.amin(dim=(2, 3), keepdim=True)
     hi = total.amax(dim=(2, 3), keepdim=True)
