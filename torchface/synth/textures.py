@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor
 
-__all__ = ["smooth_noise", "background_texture", "occluder_texture"]
+__all__ = ["smooth_noise", "background_texture", "occluder_texture", "serial"]
 
 
 @contextlib.contextmanager
