@@ -33,9 +33,10 @@ decides coverage; the spans only keep the candidates close to the covered pixels
 mesh at 640x480, about one candidate per covered pixel). Pairs are evaluated in chunks of bounded
 size. Where the triangles' bounding boxes hold few pixels in all (:data:`_BBOX_MAX_PAIRS`, e.g. a face
 at 160x120), every pixel of each box is a candidate instead: the same test on the same arithmetic, so the
-same fragments, without the cost of working out the spans. The float32 z-buffer packs ``(depth bits, face)`` into one int64 key, so one ``scatter_reduce``
-finds the nearest hit and breaks depth ties; other dtypes take the minimum depth, then the minimum
-face among each pixel's hits at that depth.
+same fragments, without the cost of working out the spans. The float32 z-buffer packs
+``(depth bits, face)`` into one int64 key, so one ``scatter_reduce`` finds the nearest hit and breaks
+depth ties; other dtypes take the minimum depth, then the minimum face among each pixel's hits at that
+depth.
 
 Tie rules
 ---------
@@ -134,19 +135,6 @@ def _triangles(verts: Tensor, faces: Tensor) -> Tensor:
     """Corner positions ``(B, F, 3, 3)`` (last-but-one axis: corner 0, 1, 2) of ``faces (F, 3)``."""
     B, F = verts.shape[0], faces.shape[0]
     return verts.index_select(1, faces.reshape(-1).long()).reshape(B, F, 3, 3)
-
-
-def _cross(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-    """Cross product of two vectors given as component tuples."""
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _dot(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> Tensor:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _sub(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
 def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -288,19 +276,19 @@ def _hits_in_chunk(
 
 def _bbox_hits(
     coeffs: Tensor, x_first: Tensor, y_first: Tensor, box_w: Tensor, area: Tensor, ray_a: Tensor, ray_b: Tensor,
-    near: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    F: int, H: int, W: int, near: float,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Hits among every pixel of each (sample, face) row's bounding box (few pixels in all).
 
     Args:
         coeffs: ``(13, N)`` :func:`_face_coefficients` of the ``N = B F`` rows.
         x_first, y_first: ``(N,)`` int64 first column and row of each box (inside the image);
             ``box_w (N,)`` its width and ``area (N,)`` its pixel count (0 for a row not tested).
-        ray_a: ``(W,)`` and ``ray_b (H,)`` ray ``a`` per column and ``b`` per row.
+        ray_a: ``(W,)`` and ``ray_b (H,)`` ray ``a`` per column and ``b`` per row; ``F``, ``H``, ``W`` as in
+            :func:`_span_hits`.
 
     Returns:
-        ``row (M,)`` int64 the (sample, face) row of each hit, ``y (M,)`` and ``col (M,)`` its pixel and
-        ``depth (M,)`` its depth, in the order of :func:`_hits_in_chunk`'s (row, then image row, then column).
+        As :func:`_span_hits`, in the same order (sample-face row, then image row, then column).
     """
     owner, rank = _enumerate(area)
     w_o = box_w.index_select(0, owner)
@@ -315,7 +303,10 @@ def _bbox_hits(
     depth = c[12].index_select(0, idx) / e[3].index_select(0, idx)
     front = (depth > near).nonzero().squeeze(-1)
     keep = idx.index_select(0, front)
-    return owner.index_select(0, keep), y.index_select(0, keep), col.index_select(0, keep), depth.index_select(0, front)
+    row = owner.index_select(0, keep)
+    b = torch.div(row, F, rounding_mode="floor")
+    pix = (b * H + y.index_select(0, keep)) * W + col.index_select(0, keep)
+    return pix, depth.index_select(0, front), row - b * F
 
 
 def _span_hits(
@@ -327,7 +318,8 @@ def _span_hits(
     Args:
         coeffs: ``(13, N)`` :func:`_face_coefficients` of the ``N = B F`` rows; ``u, v (N, 3)``, ``wide (N,)``:
             :func:`_project_corners`; ``y_first (N,)`` int64 first image row of each and ``heights (N,)`` its
-            number of rows (0 for a row not tested); ``ray_a (W,)``, ``ray_b (H,)`` as in :func:`_bbox_hits`.
+            number of rows (0 for a row not tested); ``ray_a (W,)``, ``ray_b (H,)`` as in :func:`_bbox_hits`;
+            ``F`` faces per sample, ``H x W`` the image.
 
     Returns:
         ``pix (M,)`` int64 flat pixel index ``(b H + y) W + x``, ``depth (M,)`` and ``face (M,)`` int64 of each hit.
@@ -473,9 +465,9 @@ def rasterize(
         box_w = (x_last.clamp(-1, W - 1) - box_first + 1).clamp_min(0)
         area = heights * box_w
         if int(area.sum()) <= _BBOX_MAX_PAIRS:  # few candidates: whole boxes (module docstring)
-            row, y, col, hit_depth = _bbox_hits(coeffs.detach(), box_first, y_first, box_w, area, ray_a, ray_b, near)
-            row_b = torch.div(row, F, rounding_mode="floor")
-            hit_pix, hit_face = (row_b * H + y) * W + col, row - row_b * F
+            hit_pix, hit_depth, hit_face = _bbox_hits(
+                coeffs.detach(), box_first, y_first, box_w, area, ray_a, ray_b, F, H, W, near
+            )
         else:
             hit_pix, hit_depth, hit_face = _span_hits(
                 coeffs.detach(), u, v, wide, y_first, heights, ray_a, ray_b, F, H, W, near
