@@ -8,7 +8,7 @@ import trimesh
 
 import torchface.rendering.rasterizer as rasterizer_module
 from torchface.geometry.camera import Intrinsics
-from torchface.rendering import Fragments, rasterize, rasterize_reference
+from torchface.rendering import Fragments, rasterize, rasterize_coverage, rasterize_reference
 
 CAM = Intrinsics.default(32, 24)
 EDGE_TOL = 1e-6
@@ -388,6 +388,51 @@ def test_float32_agrees_with_float64():
 
 
 # ------------------------------------------------------------------------------------------------ gradients
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cull", [False, True])
+def test_coverage_evaluates_rasterize_fragments_bit_for_bit(dtype, cull):
+    # rasterize_coverage leaves the barycentric coordinates and depths to be evaluated where asked; wherever
+    # that is (covered or background pixels, all pixels, a part of the batch), they are rasterize's exactly.
+    for verts, faces in (random_soup(12, 3, 25), random_surface(13, 3)):
+        verts = verts.to(dtype)
+        full = rasterize(verts, faces, CAM, cull_backfaces=cull)
+        cov = rasterize_coverage(verts, faces, CAM, cull_backfaces=cull)
+        assert torch.equal(cov.pix_to_face, full.pix_to_face) and torch.equal(cov.facing, full.facing)
+        every = cov.fragments()
+        for name in ("pix_to_face", "bary", "zbuf", "facing"):
+            assert torch.equal(getattr(every, name), getattr(full, name)), name
+        g = torch.Generator().manual_seed(0)
+        b, y, x = (torch.randint(0, n, (500,), generator=g) for n in (3, CAM.height, CAM.width))
+        covered = full.pix_to_face[b, y, x] >= 0
+        assert covered.any() and (~covered).any()
+        assert torch.equal(cov.barycentrics(b, y, x), full.bary[b, y, x])
+        face = full.pix_to_face[b, y, x][covered]
+        got = cov.covered_barycentrics(b[covered], face, y[covered], x[covered])
+        assert torch.equal(got, full.bary[b, y, x][covered])
+        # A part: samples 1..2, the top-left 20 x 30 pixels, indexed from its own origin.
+        part = cov.part(slice(1, 3), 20, 30)
+        assert torch.equal(part.pix_to_face, full.pix_to_face[1:3, :20, :30])
+        for name in ("bary", "zbuf", "facing"):
+            assert torch.equal(getattr(part.fragments(), name), getattr(full, name)[1:3, :20, :30]), name
+        inside = (b >= 1) & (y < 20) & (x < 30)
+        assert torch.equal(part.barycentrics(b[inside] - 1, y[inside], x[inside]), full.bary[b, y, x][inside])
+
+
+def test_coverage_barycentrics_are_differentiable():
+    verts = torch.tensor(
+        [[[-47.3, -41.1, 95.0], [52.2, -38.7, 110.0], [3.1, 49.4, 120.0]]], dtype=torch.float64, requires_grad=True
+    )
+    faces = torch.tensor([[0, 2, 1]])
+    cam = Intrinsics.default(12, 9)
+    at = rasterize(verts, faces, cam).foreground[0].nonzero()
+    b = torch.zeros(at.shape[0], dtype=torch.int64)
+
+    def fn(v):
+        return rasterize_coverage(v, faces, cam).barycentrics(b, at[:, 0], at[:, 1])
+
+    assert torch.autograd.gradcheck(fn, (verts,), eps=1e-6, atol=1e-6)
 
 
 def test_gradcheck_bary_and_depth():

@@ -458,7 +458,8 @@ def test_windows_rasterized_together_are_the_windows_rasterized_alone(scene):
         cams.append(Intrinsics(w, h, full.fx, full.fy, full.cx, full.cy))
         windows.append(off)
     together = rasterize_windows(s["model"], posed.verts_cam, cams, windows)
-    for cam, off, frags in zip(cams, windows, together):
+    for cam, off, coverage in zip(cams, windows, together):
+        frags = coverage.fragments()
         shift = torch.zeros(2, 3) if off is None else torch.cat([off / torch.tensor([cam.fx, cam.fy]),
                                                                    torch.zeros(2, 1)], -1)  # fmt: skip
         alone = rasterize(posed.verts_cam - posed.verts_cam[..., 2:3] * shift[:, None], s["model"].faces, cam,
@@ -483,10 +484,10 @@ def test_strided_window_rasterizes_every_other_pixel(scene, windowed):
     off = torch.tensor([[41, 20], [30, 27]]) if windowed else None
     h, w = (70, 81) if windowed else (H, W)
     cam = Intrinsics(w, h, s["cam"].fx, s["cam"].fy, s["cam"].cx, s["cam"].cy)
-    full = rasterize_windows(s["model"], posed.verts_cam, [cam], [off])[0]
+    full = rasterize_windows(s["model"], posed.verts_cam, [cam], [off])[0].fragments()
     grid_cam, grid_off = strided_window(cam, off, 2)
     assert (grid_cam.width, grid_cam.height) == (-(-w // 2), -(-h // 2))
-    strided = rasterize_windows(s["model"], posed.verts_cam, [grid_cam], [grid_off])[0]
+    strided = rasterize_windows(s["model"], posed.verts_cam, [grid_cam], [grid_off])[0].fragments()
     sub = full.pix_to_face[:, ::2, ::2]
     same = strided.pix_to_face == sub
     assert int((sub >= 0).sum()) > 100

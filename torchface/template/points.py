@@ -18,7 +18,7 @@ from torchface.appearance.sampling import image_with_gradients
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import Fragments, rasterize
+from torchface.rendering.rasterizer import Coverage, rasterize_coverage
 from torchface.rendering.visibility import vertex_normals
 
 
@@ -281,9 +281,9 @@ def strided_window(camera: Intrinsics, offsets: Tensor | None, stride: int) -> t
 
 def rasterize_windows(
     model: FaceModel, verts_cam: Tensor, cameras: list[Intrinsics], offsets: list[Tensor | None],
-) -> list[Fragments]:
-    """Back-face-culled :func:`~torchface.rendering.rasterizer.rasterize` of the same posed meshes in several
-    windows (the levels of a pyramid), in one call.
+) -> list[Coverage]:
+    """Back-face-culled :func:`~torchface.rendering.rasterizer.rasterize_coverage` of the same posed meshes in
+    several windows (the levels of a pyramid), in one call.
 
     Args:
         verts_cam: ``(B, V, 3)`` camera-frame vertices (mm).
@@ -292,23 +292,19 @@ def rasterize_windows(
             float for a :func:`strided_window`), or None (the whole image).
 
     Returns:
-        Per window, the :class:`~torchface.rendering.rasterizer.Fragments` ``rasterize`` gives for it (up to
-        rounding): the windows are stacked along the batch on a canvas of the largest size, each through
-        :func:`_window_verts` (one call's fixed cost instead of one per level: an entry's coarse levels cost
-        nearly as much as its finest when rasterized alone).
+        Per window, the :class:`~torchface.rendering.rasterizer.Coverage` ``rasterize_coverage`` gives for it (up
+        to rounding; its barycentric coordinates and depths are evaluated where the caller asks): the windows are
+        stacked along the batch on a canvas of the largest size, each through :func:`_window_verts` (one call's
+        fixed cost instead of one per level: an entry's coarse levels cost nearly as much as its finest when
+        rasterized alone).
     """
     first = cameras[0]  # the canvas projects as the first camera (its window's vertices are only shifted)
     canvas = Intrinsics(max(c.width for c in cameras), max(c.height for c in cameras), first.fx, first.fy, first.cx,
                         first.cy)  # fmt: skip
     stacked = torch.cat([_window_verts(verts_cam, c, o, canvas) for c, o in zip(cameras, offsets)])
-    frags = rasterize(stacked, model.faces, canvas, cull_backfaces=True)
+    coverage = rasterize_coverage(stacked, model.faces, canvas, cull_backfaces=True)
     B = verts_cam.shape[0]
-    out = []
-    for i, c in enumerate(cameras):
-        part = slice(i * B, (i + 1) * B)
-        out.append(Fragments(*(getattr(frags, name)[part, : c.height, : c.width] for name in
-                               ("pix_to_face", "bary", "zbuf", "facing"))))  # fmt: skip
-    return out
+    return [coverage.part(slice(i * B, (i + 1) * B), c.height, c.width) for i, c in enumerate(cameras)]
 
 
 def select_pixels_posed(
@@ -324,14 +320,14 @@ def select_pixels_posed(
     erode_pixels: int = 1,
     expression_priority: float = 0.0,
     expression_quota: int = 0,
-    frags: Fragments | None = None,
+    frags: Coverage | None = None,
     stride: int = 1,
     seed: int = 0,
 ) -> TemplatePixels:
     """:func:`select_template_pixels` of a mesh already posed (:func:`posed_mesh`): the same result, with the
     posing done once for the levels of a pyramid. The arguments are not checked again (callers inside the
     package; :func:`select_template_pixels` documents and checks them). ``frags``: the back-face-culled
-    fragments of ``gray``'s windows when the caller has them (:func:`rasterize_windows`), else rasterized here.
+    coverage of ``gray``'s windows when the caller has it (:func:`rasterize_windows`), else rasterized here.
 
     ``stride``: the candidates are only the window's pixels on every ``stride``-th row and column (rows and
     columns ``0, stride, ...`` of ``gray``), with the gradients and selection keys those pixels have in the
@@ -354,23 +350,26 @@ def select_pixels_posed(
     face = frags.pix_to_face
     mask = (face >= 0) & (frags.facing > 0)
     face_flat = face.reshape(B, -1)
-    bary_flat = frags.bary.reshape(B, -1, 3)
     gmag = grads.pow(2).sum(1).sqrt()
     candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
     # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
-    # interpolated at the pixels still candidates (every sample's, listed together), not over the whole window.
+    # interpolated at the pixels still candidates (every sample's, listed together), not over the whole window,
+    # with their barycentric coordinates alone.
     flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
     b_of = torch.div(flat, H * W, rounding_mode="floor")
     pix = flat - b_of * (H * W)
-    corner = model.faces.index_select(0, face_flat.reshape(-1).index_select(0, flat))  # (M, 3)
-    bary_c = bary_flat.reshape(-1, 3).index_select(0, flat).to(normals_cam.dtype)
+    pix_row = torch.div(pix, W, rounding_mode="floor")
+    pix_col = pix - pix_row * W
+    face_c = face_flat.reshape(-1).index_select(0, flat)
+    corner = model.faces.index_select(0, face_c)  # (M, 3)
+    bary_c = frags.covered_barycentrics(b_of, face_c, pix_row, pix_col).to(normals_cam.dtype)
     V = normals_cam.shape[1]
     n_corner = normals_cam.reshape(-1, 3).index_select(0, (b_of.unsqueeze(-1) * V + corner).reshape(-1))
     n_pix = torch.bmm(bary_c.unsqueeze(1), n_corner.view(-1, 3, 3)).squeeze(1)  # (M, 3): 2.5x the weighted sum
     # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
     # its direction is the ray's: no need to interpolate the positions.
-    col = (pix % W * stride).to(verts_cam.dtype) + off[b_of, 0]
-    row = (torch.div(pix, W, rounding_mode="floor") * stride).to(verts_cam.dtype) + off[b_of, 1]
+    col = (pix_col * stride).to(verts_cam.dtype) + off[b_of, 0]
+    row = (pix_row * stride).to(verts_cam.dtype) + off[b_of, 1]
     rays = torch.stack([(col - intrinsics.cx) / intrinsics.fx, (row - intrinsics.cy) / intrinsics.fy,
                         torch.ones_like(col)], -1)  # fmt: skip
     cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(rays, dim=-1)).sum(-1)
@@ -384,12 +383,15 @@ def select_pixels_posed(
         pix_rows = offsets[:, 1:2] + stride * torch.arange(H, device=gray.device)
         pix_cols = offsets[:, 0:1] + stride * torch.arange(W, device=gray.device)
         keys = keys[(pix_rows[:, :, None] * full_w + pix_cols[:, None, :]).reshape(B, H * W)]
+    if (expression_priority > 0 or expression_quota > 0) and model.num_animation > 0:
+        full = frags.fragments()  # every pixel's barycentric coordinates and depth
+        bary_flat, zbuf = full.bary.reshape(B, -1, 3), full.zbuf
     if expression_priority > 0 and model.num_animation > 0:
         # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
         # small region (eyelids) would otherwise get few of the uniformly drawn points.
         au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
         sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
-        px_per_mm = intrinsics.fx / frags.zbuf.reshape(B, -1).clamp(1.0, 1e30)
+        px_per_mm = intrinsics.fx / zbuf.reshape(B, -1).clamp(1.0, 1e30)
         keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
     if expression_quota > 0 and model.num_animation > 0:
         # Per unit, the candidates it moves by >= 1 px per unit coefficient; the quota with the highest keys
@@ -399,7 +401,7 @@ def select_pixels_posed(
         au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
         sens = gather_face_attributes(au_mm, model.faces, face_flat.reshape(-1)[flat][None],
                                       bary_flat.reshape(-1, 3)[flat][None], batched=False)[0]  # (M, A)
-        px_per_mm = intrinsics.fx / frags.zbuf.reshape(-1)[flat].clamp(1.0, 1e30)
+        px_per_mm = intrinsics.fx / zbuf.reshape(-1)[flat].clamp(1.0, 1e30)
         moved = sens * px_per_mm[:, None] >= 1.0
         # Each sample's candidates in a (B, A, M_max) block (nonzero lists them sample by sample).
         b_of = torch.div(flat, H * W, rounding_mode="floor")
@@ -420,7 +422,10 @@ def select_pixels_posed(
     top, pix = torch.topk(score, max_points, dim=1)
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
-    bary = torch.gather(bary_flat, 1, pix.unsqueeze(-1).expand(-1, -1, 3)).to(verts_model.dtype)
+    rows = torch.arange(B, device=pix.device).repeat_interleave(pix.shape[1])
+    pix_row = torch.div(pix.reshape(-1), W, rounding_mode="floor")
+    bary = frags.barycentrics(rows, pix_row, pix.reshape(-1) - pix_row * W).reshape(B, -1, 3)
+    bary = bary.to(verts_model.dtype)
     intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(verts_model.dtype)
     return TemplatePixels(face_index, bary, intensity, valid)
 
