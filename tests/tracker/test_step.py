@@ -579,3 +579,11 @@ def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
     assert torch.equal(got[0], whole[0])
     for lv in range(1, L):
         assert torch.equal(got[lv], crop_windows(whole[lv], offsets[lv], heights[lv], widths[lv])), lv
+    # Windows of some of the frames (rows), without their copy: those frames' windows.
+    rows = torch.tensor([2, 0])
+    for offs in (offsets, [None] + offsets[1:]):
+        hw = (heights, widths) if offs[0] is not None else ([H] + heights[1:], [W] + widths[1:])
+        got = step_module.gray_pyramid_windows(frames, L, [o if o is None else o[rows] for o in offs], *hw, rows=rows)
+        want = step_module.gray_pyramid_windows(frames[rows], L, [o if o is None else o[rows] for o in offs], *hw)
+        for lv in range(L):
+            assert torch.equal(got[lv], want[lv]), lv

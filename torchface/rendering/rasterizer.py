@@ -475,8 +475,8 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float
 ) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor, Tensor]]:
-    """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, column of
-    their triangle in the coefficient table ``(M,)``, image row and column ``(M,)`` (int64 each)."""
+    """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, sample
+    ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each)."""
     _check_mesh(verts_cam, faces, "verts_cam")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -523,15 +523,12 @@ def _cover(
         pix_idx = hit_pix.index_select(0, winners)
         pix_f = hit_face.index_select(0, winners)
         pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
-        pix_yx = pix_idx - pix_b * (H * W)
-        pix_y = torch.div(pix_yx, W, rounding_mode="floor")
-        pix_x = pix_yx - pix_y * W
         pix_bf = pix_b * F + pix_f
         is_front = front.index_select(0, pix_bf)
         facing = torch.zeros(num_pixels, dtype=torch.int8, device=device)
         facing.index_put_((pix_idx,), torch.where(is_front, 1, -1).to(torch.int8))
     coverage = Coverage(pix_to_face.reshape(B, H, W), facing.reshape(B, H, W), coeffs, ray_a, ray_b, F)
-    return coverage, (pix_idx, pix_bf, pix_y, pix_x)
+    return coverage, (pix_idx, pix_b, pix_bf)
 
 
 def rasterize(
@@ -568,7 +565,12 @@ def rasterize(
         >>> frag.pix_to_face.shape, int(frag.facing[0, 12, 16])
         (torch.Size([1, 24, 32]), 1)
     """
-    coverage, (pix_idx, pix_bf, pix_y, pix_x) = _cover(verts_cam, faces, intrinsics, cull_backfaces, near)
+    coverage, (pix_idx, pix_b, pix_bf) = _cover(verts_cam, faces, intrinsics, cull_backfaces, near)
+    H, W = intrinsics.height, intrinsics.width
+    with torch.no_grad():
+        pix_yx = pix_idx - pix_b * (H * W)
+        pix_y = torch.div(pix_yx, W, rounding_mode="floor")
+        pix_x = pix_yx - pix_y * W
     return coverage._fragments(pix_idx, pix_bf, pix_y, pix_x)
 
 

@@ -591,8 +591,10 @@ def build_dissimilarity_reference(
 
     # Greedy non-maximum suppression, all samples at once: take the best remaining candidate, then remove
     # every candidate within s pixels (per axis) of it. K rounds of (B, G, G) work, once per reference.
+    # The neighbourhood of a pick is the outer product of a row and a column of ``within (G, G)``, |i - j| <= s.
     s = config.separation
     rows = torch.arange(G, device=image.device)
+    within = (rows.unsqueeze(0) - rows.unsqueeze(1)).abs() <= s
     ranked = score.reshape(B, G * G).clone()
     K = min(config.num_patches, G * G)
     picks, bests = [], []
@@ -600,10 +602,9 @@ def build_dissimilarity_reference(
         best, index = ranked.max(dim=-1)  # (B,)
         picks.append(index)
         bests.append(best)
-        near_u = ((rows.unsqueeze(0) - (index % G).unsqueeze(-1)).abs() <= s)  # (B, G) columns
-        near_v = ((rows.unsqueeze(0) - (index // G).unsqueeze(-1)).abs() <= s)  # (B, G) rows
-        near = (near_v.unsqueeze(-1) & near_u.unsqueeze(-2)).reshape(B, G * G)
-        ranked = ranked.masked_fill(near, -1.0)
+        v = torch.div(index, G, rounding_mode="floor")
+        near = within.index_select(0, v).unsqueeze(-1) & within.index_select(0, index - v * G).unsqueeze(-2)
+        ranked.masked_fill_(near.view(B, G * G), -1.0)
     index = torch.stack(picks, -1)
     best = torch.stack(bests, -1)
     centres = torch.stack([(index % G).to(image.dtype), (index // G).to(image.dtype)], dim=-1)

@@ -389,11 +389,10 @@ def _new_entries(
     aa, t, alpha, light = _layout(model).split(state.params[index])
     R = axis_angle_to_matrix(aa)
     shape = state.shape_coeffs[index]
-    frames = _rows(frames, index)
     posed = posed_mesh(model, shape, alpha, R, t)  # posed once, for the reference face and the pixels
     if face is None:
-        face = reference_face(frames, model, ms.layout, shape, alpha, aa, t, light, state.intrinsics, config.template,
-                              verts_cam=posed.verts_cam)  # fmt: skip
+        face = reference_face(_rows(frames, index), model, ms.layout, shape, alpha, aa, t, light, state.intrinsics,
+                              config.template, verts_cam=posed.verts_cam)  # fmt: skip
     image, mask = face
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
     q = 2 ** (config.num_levels - 1)
@@ -421,7 +420,7 @@ def _new_entries(
         k = config.template.entry_stride if level == 0 else 1
         strides.append(k if (-(-heights[-1] // k)) * (-(-widths[-1] // k)) >= 4 * slots else 1)
         h, w = h // 2, w // 2
-    grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths)
+    grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths, rows=index)
     grids = [strided_window(Intrinsics(wl, hl, c.fx, c.fy, c.cx, c.cy), off, k)
              for c, hl, wl, off, k in zip(cameras, heights, widths, offsets, strides)]  # fmt: skip
     fragments = rasterize_windows(model, posed.verts_cam, [g[0] for g in grids], [g[1] for g in grids])  # one call

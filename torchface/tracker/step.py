@@ -336,11 +336,13 @@ def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
 
 
 def gray_pyramid_windows(
-    frames: Tensor, num_levels: int, offsets: Sequence[Tensor | None], heights: Sequence[int], widths: Sequence[int]
+    frames: Tensor, num_levels: int, offsets: Sequence[Tensor | None], heights: Sequence[int], widths: Sequence[int],
+    rows: Tensor | None = None,
 ) -> list[Tensor]:
     """Windows of :func:`gray_pyramid`: level ``l``'s ``(B, 1, heights[l], widths[l])`` windows whose top-left
     pixels are ``offsets[l] (B, 2)`` int64 ``(x0, y0)`` in that level's pixels (each inside its level); where
-    ``offsets[l]`` is None, the whole level.
+    ``offsets[l]`` is None, the whole level. ``rows``: ``(B,)`` int64, the windows are those of
+    ``frames[rows]`` (without copying those frames); None: of ``frames``.
 
     The values are :func:`gray_pyramid`'s exactly, computed from a crop of the frames around the windows: the
     crop's corners lie on multiples of ``2 ** (num_levels - 1)`` (the levels stay aligned) and it reaches
@@ -349,10 +351,10 @@ def gray_pyramid_windows(
     that crop would not fit (a frame size not divisible by that power of two), or a level is wanted whole, the
     whole frames are used.
     """
-    B, _, H, W = frames.shape
+    _, _, H, W = frames.shape
 
     def from_whole_frames() -> list[Tensor]:
-        levels = gray_pyramid(frames, num_levels)
+        levels = gray_pyramid(frames if rows is None else frames.index_select(0, rows), num_levels)
         return [g if off is None else crop_windows(g, off, h, w) for g, off, h, w in zip(levels, offsets, heights, widths)]
 
     if any(off is None for off in offsets):
@@ -368,7 +370,7 @@ def gray_pyramid_windows(
     start = torch.minimum(start, size_hw - size)
     if bool((start < 0).any() | (start % q != 0).any()):
         return from_whole_frames()
-    crop = gray_pyramid(_crop_gray(frames, start, int(size[1]), int(size[0])), num_levels)
+    crop = gray_pyramid(_crop_gray(frames, start, int(size[1]), int(size[0]), rows), num_levels)
     return [crop_windows(g, off - torch.div(start, 2**lv, rounding_mode="floor"), h, w)
             for lv, (g, off, h, w) in enumerate(zip(crop, offsets, heights, widths))]  # fmt: skip
 
@@ -738,18 +740,21 @@ def crop_windows(images: Tensor, offsets: Tensor, height: int, width: int) -> Te
     return runs.index_select(0, start).reshape(B, C, height, width)
 
 
-def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int) -> Tensor:
-    """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets ``(B, 2)`` int64 ``(x0, y0)``.
+def _crop_gray(frames: Tensor, offsets: Tensor, ch: int, cw: int, rows: Tensor | None = None) -> Tensor:
+    """``(B, C, H, W)`` frames -> ``(B, 1, ch, cw)`` gray crops at per-stream offsets ``(B, 2)`` int64 ``(x0, y0)``
+    (of the frames ``rows (B,)`` int64 when given).
 
     Each stream's window of the colour frame is converted straight into its slot of one output (:func:`to_gray`
     with ``out=``; a loop over the streams, a few operations each): only the window's pixels are read, and no
     whole-frame gray image or crop copy is made. Converting whole frames and then cropping the gray ones cost
     2.5 times the memory traffic and its fresh pages at 128 streams.
     """
-    B, C = frames.shape[:2]
+    C = frames.shape[1]
     if C == 1:
-        return crop_windows(frames, offsets, ch, cw)
-    windows = [frames[b : b + 1, :, y0 : y0 + ch, x0 : x0 + cw] for b, (x0, y0) in enumerate(offsets.tolist())]
+        return crop_windows(frames if rows is None else frames.index_select(0, rows), offsets, ch, cw)
+    B = offsets.shape[0]
+    at = range(B) if rows is None else rows.tolist()
+    windows = [frames[b : b + 1, :, y0 : y0 + ch, x0 : x0 + cw] for b, (x0, y0) in zip(at, offsets.tolist())]
     if torch.is_grad_enabled() and frames.requires_grad:  # out= does not support autograd: the same values, joined
         return torch.cat([to_gray(w) for w in windows])
     out = torch.empty(B, 1, ch, cw, dtype=frames.dtype, device=frames.device)
