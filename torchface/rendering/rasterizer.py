@@ -3,7 +3,8 @@
 The rasterizer answers, for every pixel centre of every sample, which triangle is nearest along the
 pixel's ray, where on that triangle the ray lands (perspective-correct barycentric coordinates) and
 at which camera depth. Shading, template sampling and self-occlusion tests (the paper's Section 4,
-"facets that a z-buffer hides") consume these :class:`Fragments`.
+"facets that a z-buffer hides") consume these :class:`Fragments`. :func:`rasterize_coverage` stops at which
+triangle each pixel sees (a :class:`Coverage`) and evaluates the rest only at the pixels its caller asks for.
 
 Method
 ------
@@ -474,7 +475,7 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
 
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float
-) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor, Tensor]]:
+) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor]]:
     """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, sample
     ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each)."""
     _check_mesh(verts_cam, faces, "verts_cam")
