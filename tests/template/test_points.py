@@ -30,6 +30,7 @@ from torchface.template.points import (
     rasterize_windows,
     select_pixels_posed,
     strided_window,
+    template_at,
 )
 from torchface.tracker.step import level_intrinsics
 from torchface.rendering.visibility import vertex_normals
@@ -166,6 +167,22 @@ def test_compact_selection_and_normals_are_the_templates(scene):
     assert bool(tpl.valid.all())  # 400 points found on each face
     torch.testing.assert_close(point_normals(s["model"], s["shape"], px.face_index, px.bary), tpl.normals,
                                rtol=0, atol=0)
+
+
+def test_template_at_with_the_persons_neutral_mesh_given(scene):
+    """template_at with the neutral vertices and vertex normals handed in (as a mosaic entry's levels share them)
+    is template_at computing them."""
+    s = scene
+    px = select_template_pixels(s["model"], s["shape"], s["anim"], s["R"], s["t"], s["gray"], s["cam"],
+                                max_points=300, gradient_threshold=0.01)  # fmt: skip
+    args = (s["model"], s["shape"], px.face_index, px.bary, px.intensity, px.valid)
+    verts = s["model"].deform(s["shape"], None)
+    given = template_at(*args, neutral=(verts, vertex_normals(verts, s["model"].faces)))
+    alone = template_at(*args)
+    for name in ("points", "basis", "normals"):
+        assert torch.equal(getattr(given, name), getattr(alone, name)), name
+    other = template_at(*args, neutral=(verts * 1.1, vertex_normals(verts, s["model"].faces)))
+    assert not torch.equal(other.points, alone.points)  # the handed-in vertices are the ones used
 
 
 def test_posed_selection_and_interpolated_normals_are_the_same(scene):

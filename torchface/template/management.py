@@ -60,6 +60,7 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, normalised_face, normalised_face_posed
+from torchface.rendering.visibility import vertex_normals
 from torchface.template.dissimilarity import (
     DissimilarityConfig,
     DissimilarityReference,
@@ -625,11 +626,13 @@ def entry_templates(
     Returns:
         One :class:`Template` per level with batch ``B'``.
     """
+    verts = model.deform(shape_coeffs, None)
+    neutral = verts, vertex_normals(verts, model.faces)  # the person's, once for every level
     out = []
     for lv in mosaic.levels:
         out.append(template_at(
             model, shape_coeffs, lv.face_index[streams, entries], lv.bary[streams, entries],
-            lv.intensity[streams, entries], lv.valid[streams, entries],
+            lv.intensity[streams, entries], lv.valid[streams, entries], neutral=neutral,
         ))  # fmt: skip
     return tuple(out)
 

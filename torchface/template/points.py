@@ -464,7 +464,8 @@ def build_template(
 
 
 def template_at(
-    model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor, intensity: Tensor, valid: Tensor
+    model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor, intensity: Tensor, valid: Tensor,
+    *, neutral: tuple[Tensor, Tensor] | None = None,
 ) -> Template:
     """The :class:`Template` of points given by triangle and barycentric coordinates (Eq. 3-9).
 
@@ -475,14 +476,20 @@ def template_at(
         model: the face model.
         shape_coeffs: ``(B, S)``.
         face_index: ``(B, N)`` int64 triangles; bary: ``(B, N, 3)``; intensity: ``(B, N)``; valid: ``(B, N)`` bool.
+        neutral: the person's neutral vertices ``(B, V, 3)`` (``model.deform(shape_coeffs, None)``) and their
+            vertex normals ``(B, V, 3)`` when the caller has them (several point sets of one person, such as a
+            pyramid's levels); None computes them.
 
     Returns:
         :class:`Template`.
     """
-    neutral = model.deform(shape_coeffs, None)
-    points = gather_face_attributes(neutral, model.faces, face_index, bary, batched=True)
+    if neutral is None:
+        verts = model.deform(shape_coeffs, None)
+        neutral = verts, vertex_normals(verts, model.faces)
+    verts, vertex_normals_neutral = neutral
+    points = gather_face_attributes(verts, model.faces, face_index, bary, batched=True)
     basis = gather_face_attributes(model.animation_units.permute(1, 2, 0), model.faces, face_index, bary, batched=False)
-    normals = _point_normals(model, neutral, face_index, bary)
+    normals = interpolated_normals(vertex_normals_neutral, model.faces, face_index, bary)
     return Template(face_index, bary, points, basis, normals, intensity, valid)
 
 
