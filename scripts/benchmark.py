@@ -59,9 +59,26 @@ def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Ten
     return d["frames"], d["landmarks"], d["intrinsics"]
 
 
+def _streams(args: argparse.Namespace) -> tuple[object, torch.Tensor, torch.Tensor, torch.Tensor, object, int]:
+    """A child run's setting: its thread count, then the model, the frames, the streams' first-frame indices
+    ``(B,)``, their first landmarks ``(B, 68, 2)`` with 2 px of noise, the intrinsics and the number of steps
+    (stream b uses frames b .. b + steps)."""
+    from torchface.model.candide import load_candide3
+
+    torch.set_num_threads(args.threads)
+    frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
+    B, T = args.batch, frames.shape[0]
+    steps = T - B
+    if steps < 4:
+        raise SystemExit(f"need more frames than streams: {T} frames for B={B}")
+    idx = torch.arange(B)
+    gen = torch.Generator().manual_seed(0)
+    lm0 = landmarks[idx] + 2.0 * torch.randn(B, landmarks.shape[1], 2, generator=gen)
+    return load_candide3(), frames, idx, lm0, intr, steps
+
+
 def _child(args: argparse.Namespace) -> dict[str, float]:
     import torchface.tracker.managed as managed_module
-    from torchface.model.candide import load_candide3
     from torchface.template.management import TemplateConfig
     from torchface.tracker.managed import initialise_managed, managed_step
     from torchface.tracker.step import TrackerConfig
@@ -88,19 +105,11 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
 
     managed_module.track_step, managed_module._recover = timed_track_step, flagged_recover
     if args.interleaved:
-        return _interleaved(args, solve_s, in_recovery)
+        return _interleaved(args, solve_s)
 
-    torch.set_num_threads(args.threads)
-    frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
-    B, T = args.batch, frames.shape[0]
-    steps = T - B  # stream b uses frames b .. b + steps
-    if steps < 4:
-        raise SystemExit(f"need more frames than streams: {T} frames for B={B}")
-    idx = torch.arange(B)
-    model = load_candide3()
+    model, frames, idx, lm0, intr, steps = _streams(args)
+    B = args.batch
     cfg = TrackerConfig(template=TemplateConfig(enabled=args.managed))
-    gen = torch.Generator().manual_seed(0)
-    lm0 = landmarks[idx] + 2.0 * torch.randn(B, landmarks.shape[1], 2, generator=gen)
     state, _ = initialise_managed(model, cfg, frames[idx], lm0, intr)
     warm = 2
     pts, its, n = 0.0, 0.0, 0
@@ -124,25 +133,16 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
             "iterations": its / n, "peak_mb": peak_mb, "solve_ms_per_step": 1000 * solve_s[0] / n}
 
 
-def _interleaved(args: argparse.Namespace, solve_s: list[float], in_recovery: list[bool]) -> dict[str, float]:
+def _interleaved(args: argparse.Namespace, solve_s: list[float]) -> dict[str, float]:
     """The bare and the managed step on the same frames in one process, frame by frame, alternating which goes
-    first: ms per step of each, and of the managed step's own solve. Both see the machine at the same moments, so
-    a slow or fast phase of a shared machine moves them together (separate processes differ by 10-20%)."""
-    from torchface.model.candide import load_candide3
+    first: ms per step of each, and of the managed step's own solve (``solve_s``: :func:`_child`'s running total).
+    Both see the machine at the same moments, so a slow or fast phase of a shared machine moves them together
+    (separate processes differ by 10-20%)."""
     from torchface.template.management import TemplateConfig
     from torchface.tracker.managed import initialise_managed, managed_step
     from torchface.tracker.step import TrackerConfig
 
-    torch.set_num_threads(args.threads)
-    frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
-    B, T = args.batch, frames.shape[0]
-    steps = T - B
-    if steps < 4:
-        raise SystemExit(f"need more frames than streams: {T} frames for B={B}")
-    idx = torch.arange(B)
-    model = load_candide3()
-    gen = torch.Generator().manual_seed(0)
-    lm0 = landmarks[idx] + 2.0 * torch.randn(B, landmarks.shape[1], 2, generator=gen)
+    model, frames, idx, lm0, intr, steps = _streams(args)
     configs = {False: TrackerConfig(template=TemplateConfig(enabled=False)), True: TrackerConfig()}
     states = {m: initialise_managed(model, c, frames[idx], lm0, intr)[0] for m, c in configs.items()}
     warm = 2
