@@ -151,10 +151,7 @@ class Coverage:
     def covered_barycentrics(self, batch: Tensor, face: Tensor, row: Tensor, col: Tensor) -> Tensor:
         """:meth:`barycentrics` at pixels known to be covered, with the triangle ``face`` that covers each (its
         :attr:`pix_to_face`, int64 ``(N,)``): without looking them up."""
-        cw = torch.cat([self.coefficients[0:3], self.coefficients[4:7], self.coefficients[8:11]])
-        cw = cw.index_select(1, (batch + self.batch_offset) * self.num_faces + face)  # (9, N)
-        e = cw[0:3] * self.ray_a.index_select(0, col) + (cw[3:6] * self.ray_b.index_select(0, row) + cw[6:9])
-        return (e / e.sum(0)).T
+        return self._evaluate((batch + self.batch_offset) * self.num_faces + face, row, col, depth=False)[0]
 
     def fragments(self) -> Fragments:
         """The :class:`Fragments` of every pixel (what :func:`rasterize` returns)."""
@@ -162,21 +159,29 @@ class Coverage:
         flat = self.pix_to_face.reshape(-1)
         pix_idx = (flat >= 0).nonzero().squeeze(-1)
         pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
-        pix_yx = pix_idx - pix_b * (H * W)
-        pix_y = torch.div(pix_yx, W, rounding_mode="floor")
         column = (pix_b + self.batch_offset) * self.num_faces + flat.index_select(0, pix_idx)
-        return self._fragments(pix_idx, column, pix_y, pix_yx - pix_y * W)
+        return self._fragments(pix_idx, pix_b, column)
 
-    def _fragments(self, pix_idx: Tensor, column: Tensor, row: Tensor, col: Tensor) -> Fragments:
-        """Fragments with the covered pixels ``pix_idx`` (flat over ``B H W``), their triangles' ``column`` in the
-        coefficient table, their ``row`` and ``col`` (int64 ``(M,)`` each)."""
+    def _evaluate(self, column: Tensor, row: Tensor, col: Tensor, depth: bool) -> tuple[Tensor, Tensor | None]:
+        """The module docstring's arithmetic for triangles ``column`` (of the coefficient table) at pixels
+        ``(row, col)`` (int64 ``(M,)`` each, covered by them): barycentric coordinates ``(M, 3)`` and, when
+        ``depth``, the depths ``(M,)`` (else None). Only the coefficient rows it needs are gathered."""
+        c, n = self.coefficients, 4 if depth else 3  # n: e0, e1, e2 (and n . d for the depth)
+        cw = torch.cat([c[0:n], c[4 : 4 + n], c[8 : 8 + n]] + ([c[12:13]] if depth else []))
+        cw = cw.index_select(1, column)
+        a, b = self.ray_a.index_select(0, col), self.ray_b.index_select(0, row)
+        e = cw[0:n] * a + (cw[n : 2 * n] * b + cw[2 * n : 3 * n])
+        return (e[0:3] / e[0:3].sum(0)).T, (cw[3 * n] / e[3] if depth else None)
+
+    def _fragments(self, pix_idx: Tensor, pix_b: Tensor, column: Tensor) -> Fragments:
+        """Fragments with the covered pixels ``pix_idx`` (flat over ``B H W``), their sample ``pix_b`` and their
+        triangles' ``column`` in the coefficient table (int64 ``(M,)`` each)."""
         B, H, W = self.pix_to_face.shape
         num_pixels, dtype, device = B * H * W, self.coefficients.dtype, self.coefficients.device
+        pix_yx = pix_idx - pix_b * (H * W)
+        row = torch.div(pix_yx, W, rounding_mode="floor")
         # Re-evaluate the winners with the same arithmetic, now tracking gradients w.r.t. the vertices.
-        cw = self.coefficients.index_select(1, column)  # (13, M)
-        e = cw[0:4] * self.ray_a.index_select(0, col) + (cw[4:8] * self.ray_b.index_select(0, row) + cw[8:12])
-        bary_fg = (e[0:3] / e[0:3].sum(0)).T
-        z_fg = cw[12] / e[3]
+        bary_fg, z_fg = self._evaluate(column, row, pix_yx - row * W, depth=True)
         bary = torch.zeros(num_pixels, 3, dtype=dtype, device=device).index_put_((pix_idx,), bary_fg)
         zbuf = torch.full((num_pixels,), float("inf"), dtype=dtype, device=device).index_put_((pix_idx,), z_fg)
         return Fragments(
@@ -567,12 +572,7 @@ def rasterize(
         (torch.Size([1, 24, 32]), 1)
     """
     coverage, (pix_idx, pix_b, pix_bf) = _cover(verts_cam, faces, intrinsics, cull_backfaces, near)
-    H, W = intrinsics.height, intrinsics.width
-    with torch.no_grad():
-        pix_yx = pix_idx - pix_b * (H * W)
-        pix_y = torch.div(pix_yx, W, rounding_mode="floor")
-        pix_x = pix_yx - pix_y * W
-    return coverage._fragments(pix_idx, pix_bf, pix_y, pix_x)
+    return coverage._fragments(pix_idx, pix_b, pix_bf)
 
 
 def rasterize_coverage(

@@ -496,11 +496,8 @@ def template_at(
 def point_normals(model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
     """``(B, N, 3)`` the unit head-frame normals (zero expression) of points given by triangle ``(B, N)`` and
     barycentric coordinates ``(B, N, 3)``: :attr:`Template.normals` without the rest of :func:`template_at`."""
-    return _point_normals(model, model.deform(shape_coeffs, None), face_index, bary)
-
-
-def _point_normals(model: FaceModel, neutral: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
-    return interpolated_normals(vertex_normals(neutral, model.faces), model.faces, face_index, bary)
+    return interpolated_normals(vertex_normals(model.deform(shape_coeffs, None), model.faces), model.faces, face_index,
+                                bary)  # fmt: skip
 
 
 def interpolated_normals(normals: Tensor, faces: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
