@@ -183,6 +183,8 @@ def test_template_at_with_the_persons_neutral_mesh_given(scene):
         assert torch.equal(getattr(given, name), getattr(alone, name)), name
     other = template_at(*args, neutral=(verts * 1.1, vertex_normals(verts, s["model"].faces)))
     assert not torch.equal(other.points, alone.points)  # the handed-in vertices are the ones used
+    with pytest.raises(ValueError, match="neutral must be two"):
+        template_at(*args, neutral=(verts[:1], vertex_normals(verts, s["model"].faces)))
 
 
 def test_posed_selection_and_interpolated_normals_are_the_same(scene):

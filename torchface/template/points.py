@@ -482,11 +482,18 @@ def template_at(
 
     Returns:
         :class:`Template`.
+
+    Raises:
+        ValueError: ``neutral`` is not two ``(B, V, 3)`` tensors.
     """
     if neutral is None:
         verts = model.deform(shape_coeffs, None)
         neutral = verts, vertex_normals(verts, model.faces)
     verts, vertex_normals_neutral = neutral
+    want = (face_index.shape[0], model.num_vertices, 3)
+    if tuple(verts.shape) != want or tuple(vertex_normals_neutral.shape) != want:
+        raise ValueError(f"neutral must be two {want} tensors (vertices, vertex normals), got "
+                         f"{tuple(verts.shape)} and {tuple(vertex_normals_neutral.shape)}")  # fmt: skip
     points = gather_face_attributes(verts, model.faces, face_index, bary, batched=True)
     basis = gather_face_attributes(model.animation_units.permute(1, 2, 0), model.faces, face_index, bary, batched=False)
     normals = interpolated_normals(vertex_normals_neutral, model.faces, face_index, bary)
