@@ -145,7 +145,8 @@ class RunOutput:
     """Per-frame estimates of one tracked sequence and its timing.
 
     Attributes:
-        rotation: ``(T, 3, 3)``; translation: ``(T, 3)`` mm; anim: ``(T, A)``; status: ``(T,)`` int64;
+        rotation: ``(T, 3, 3)``; translation: ``(T, 3)`` mm; anim: ``(T, A)`` the expression
+        (``TrackResult.expression``, which the animation-unit scores compare with the truth); status: ``(T,)`` int64;
         success: ``(T,)`` bool (``TrackResult.success``); confidence: ``(T,)`` in [0, 1];
         ms_per_frame: mean time of the tracker's calls on frames ``1 .. T-1``; init_ms: of the initialisation.
     """
@@ -326,7 +327,7 @@ def track_frames(
     return RunOutput(
         rotation=cat("rotation").to(torch.float64),
         translation=cat("translation").to(torch.float64),
-        anim=cat("anim_coeffs").to(torch.float64),
+        anim=cat("expression").to(torch.float64),
         status=cat("status"),
         ms_per_frame=ms_per_frame,
         init_ms=init_ms,

@@ -322,7 +322,7 @@ def test_module_with_track_result_and_state(model, subject, layout):
     zeros = torch.zeros(1)
     result = TrackResult(
         rotation=axis_angle_to_matrix(aa), axis_angle=aa, translation=T_FRONT, ypr_deg=torch.zeros(1, 3),
-        anim_coeffs=alpha, anim_names=model.animation_names, facs=model.facs_values(alpha),
+        anim_coeffs=alpha, anim_names=model.animation_names, expression=alpha, facs=model.facs_values(alpha),
         facs_names=model.facs_names, illumination=light, illumination_names=("g", "b", "x", "y", "z"),
         status=zeros.long(), iterations=zeros.long(), cost=zeros, num_points=zeros.long(), confidence=zeros,
     )  # fmt: skip

@@ -475,6 +475,33 @@ def test_expression_prior_is_centred_on_the_first_frame(model, two_streams, l2_r
     assert float((free.anim_coeffs - centre).abs().max()) > 0.1
 
 
+def test_expression_is_measured_from_the_first_frames_fit(model, two_streams, l2_runs):
+    """``TrackResult.expression`` is ``anim_coeffs`` minus the first frame's fitted coefficients (the state's
+    ``anim_prior_mean``, taken as the person's neutral): 0 on the first frame whatever the landmark noise put in the
+    fit, the FACS values linked to it, and ``anim_coeffs`` itself where the state has no such centre."""
+    frames, gts = two_streams
+    (results, states), _ = l2_runs
+    # With the tracker's default fit (a starting expression, weak prior), 2 px of landmark noise puts expression
+    # into the first fit of these neutral first frames; the reported expression starts at 0 all the same.
+    g = torch.Generator().manual_seed(0)
+    lm = landmarks_of(gts) + 2.0 * torch.randn(landmarks_of(gts).shape, generator=g)
+    config = replace(L2, fit=TrackerConfig().fit)
+    state, first = initialise(model, config, frames[:, 0], lm, Intrinsics.default(W, H))
+    assert float(first.anim_coeffs.abs().max()) > 0.05, first.anim_coeffs
+    torch.testing.assert_close(state.anim_prior_mean, first.anim_coeffs, rtol=0, atol=0)
+    assert float(first.expression.abs().max()) == 0.0 and float(first.facs.abs().max()) == 0.0
+    state, nxt = track_step(model, config, state, frames[:, 1])
+    torch.testing.assert_close(nxt.expression, nxt.anim_coeffs - first.anim_coeffs, rtol=0, atol=0)
+    torch.testing.assert_close(nxt.facs, model.facs_values(nxt.expression))
+    assert float((nxt.facs - model.facs_values(nxt.anim_coeffs)).abs().max()) > 0.05
+    # Any centre the state carries is the reference; none (a state built by hand) leaves the coefficients.
+    centre = torch.full_like(states[0].anim_prior_mean, 0.3)
+    _, res = track_step(model, L2, replace(states[0], anim_prior_mean=centre), frames[:, 1])
+    torch.testing.assert_close(res.expression, res.anim_coeffs - 0.3, rtol=0, atol=1e-6)
+    _, res = track_step(model, L2, replace(states[0], anim_prior_mean=None), frames[:, 1])
+    torch.testing.assert_close(res.expression, res.anim_coeffs, rtol=0, atol=0)
+
+
 def test_conservative_streams_keep_the_pose_levels_prior_in_the_refinement_pass(model, two_streams, l2_runs):
     """``track_step(conservative=)`` (template management passes its lost streams): a conservative stream's
     refinement pass uses ``expression_prior_precision``, the others ``refine_prior_precision``, in one batch."""

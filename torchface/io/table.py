@@ -12,9 +12,12 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   looking straight into the camera;
 - ``yaw_deg, pitch_deg, roll_deg``: the same rotation as ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)``, degrees;
 - ``r00 ... r22``: the rotation matrix, row-major (``X_cam = R @ X_head + t``);
-- ``AUxx_r``: one column per FACS action unit linked to a CANDIDE-3 animation unit (intensity in the animation
-  unit's own scale, :meth:`~torchface.model.FaceModel.facs_values`);
-- ``anim_<name>``: one column per CANDIDE-3 animation unit (dimensionless, the model file's scale);
+- ``AUxx_r``: one column per FACS action unit linked to a CANDIDE-3 animation unit: the expression's intensity in
+  the animation unit's own scale (:meth:`~torchface.model.FaceModel.facs_values` of
+  :attr:`~torchface.tracker.TrackResult.expression`, measured from the first frame, which is taken as neutral);
+- ``anim_<name>``: one column per CANDIDE-3 animation unit, the model's coefficients
+  (:attr:`~torchface.tracker.TrackResult.anim_coeffs`: dimensionless, the model file's scale; with the shape units
+  they place the mesh, and they include the first frame's fitted coefficients);
 - ``illum_<name>``: the illumination parameters (gain, bias, three light-direction terms; paper Eq. 19);
 - ``status`` (0 converged, 1 ran out of iterations, 2 failed, 3 lost), ``iterations``, ``num_points`` (template
   points used), ``cost`` (RMS residual per point, intensity units);

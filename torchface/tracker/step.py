@@ -233,8 +233,17 @@ class TrackResult:
         axis_angle: ``(B, 3)`` the same as an axis-angle vector (radians).
         translation: ``(B, 3)`` head origin in the camera frame, millimetres.
         ypr_deg: ``(B, 3)`` yaw, pitch, roll in degrees (conventions' order and signs).
-        anim_coeffs: ``(B, A)`` animation-unit values; anim_names: their names.
-        facs: ``(B, n_facs)`` linked FACS AU values; facs_names: their names.
+        anim_coeffs: ``(B, A)`` the model's animation-unit coefficients: with the shape units they place the
+            mesh (:meth:`~torchface.model.FaceModel.deform`). They include the first frame's fitted expression
+            (:attr:`TrackerConfig.fit`), which on a face unlike the model carries shape the shape units cannot.
+        anim_names: the animation units' names.
+        expression: ``(B, A)`` the expression: ``anim_coeffs`` minus the first frame's fitted coefficients
+            (:attr:`TrackerState.anim_prior_mean`), so 0 on the first frame. The tracker takes the first frame as
+            the person's neutral face, as the paper does (Section 2.1: the template comes from a frontal,
+            neutral view); the first fit's coefficients are then the person's neutral, not an expression, and
+            the landmark noise in them does not become a constant expression offset. Equal to ``anim_coeffs``
+            when that fit estimates no expression.
+        facs: ``(B, n_facs)`` FACS AU values linked to ``expression``; facs_names: their names.
         illumination: ``(B, L)`` illumination parameters; illumination_names: their names.
         status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level;
         cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest level.
@@ -256,6 +265,7 @@ class TrackResult:
     ypr_deg: Tensor
     anim_coeffs: Tensor
     anim_names: tuple[str, ...]
+    expression: Tensor
     facs: Tensor
     facs_names: tuple[str, ...]
     illumination: Tensor
@@ -290,7 +300,8 @@ class TrackerState:
         management: template management's state (:class:`~torchface.tracker.managed.ManagementState`: mosaic,
             confidence counters, last confident parameters), or None without it.
         anim_prior_mean: ``(B, A)`` the first frame's fitted expression, where the animation units' prior is
-            centred when :attr:`TrackerConfig.expression_prior_at_start` (None: zero).
+            centred when :attr:`TrackerConfig.expression_prior_at_start` (None: zero), and the person's neutral
+            that :attr:`TrackResult.expression` is measured from.
     """
 
     params: Tensor
@@ -469,19 +480,25 @@ def initialise(
     n_pts = templates[0].num_points
     status = torch.where(n_pts < config.min_points, torch.full_like(status, int(TrackStatus.FAILED)), status)
     conf = torch.exp(-fit.rms_px / 5.0) * (status != int(TrackStatus.FAILED))
-    result = _result(model, layout, x, status, torch.zeros_like(status), torch.zeros_like(fit.rms_px), n_pts, conf)
+    result = _result(
+        model, layout, x, status, torch.zeros_like(status), torch.zeros_like(fit.rms_px), n_pts, conf, fit.anim_coeffs
+    )
     return state, result
 
 
 def _result(
     model: FaceModel, layout: ParamLayout, x: Tensor, status: Tensor, iterations: Tensor, cost: Tensor,
-    num_points: Tensor, confidence: Tensor,
+    num_points: Tensor, confidence: Tensor, neutral: Tensor | None,
 ) -> TrackResult:
+    """The result of estimate ``x (B, P)``; ``neutral``: ``(B, A)`` the first frame's fitted animation
+    coefficients (None: zero), which :attr:`TrackResult.expression` is measured from."""
     aa, t, alpha, light = layout.split(x)
     R = axis_angle_to_matrix(aa)
+    expression = alpha if neutral is None else alpha - neutral.to(alpha.dtype)
     return TrackResult(
         rotation=R, axis_angle=aa, translation=t, ypr_deg=matrix_to_euler(R), anim_coeffs=alpha,
-        anim_names=model.animation_names, facs=model.facs_values(alpha), facs_names=model.facs_names,
+        anim_names=model.animation_names, expression=expression, facs=model.facs_values(expression),
+        facs_names=model.facs_names,
         illumination=light, illumination_names=ILLUMINATION_TERM_NAMES, status=status.to(torch.int64),
         iterations=iterations.to(torch.int64), cost=cost, num_points=num_points, confidence=confidence,
     )
@@ -891,7 +908,7 @@ def _finish(
     frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
     confidence = frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2)) * (~failed)
     new_state = replace(state, params=x, frame_index=state.frame_index + 1)
-    return new_state, _result(model, layout, x, status, iterations, rms, n_valid, confidence)
+    return new_state, _result(model, layout, x, status, iterations, rms, n_valid, confidence, state.anim_prior_mean)
 
 
 def _visibility_at(
