@@ -91,7 +91,8 @@ class FaceTrackingConfig:
             (:meth:`~torchface.geometry.camera.Intrinsics.default`).
         num_threads: torch threads while tracking (restored afterwards). A fixed count makes the results
             independent of the process that tracks (module docstring); 1 suits ``DataLoader`` workers.
-        keep_expression: resample at the neutral expression (``alpha = 0``) instead of the tracked one, so the
+        keep_expression: resample at the person's neutral expression (the first frame's fitted coefficients,
+            ``TrackerState.anim_prior_mean``) instead of the tracked one, so the
             face keeps its expression (pose and light still undone): the input an expression classifier needs.
             False (the default) undoes the expression too.
     """
@@ -370,8 +371,9 @@ def track_sequence(
                     )
                 state, result = managed_step(model, config.tracker, state, frame)
             aa, trans, alpha, light = layout.split(state.params)
-            if config.keep_expression:
-                alpha = torch.zeros_like(alpha)
+            if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
+                neutral = state.anim_prior_mean
+                alpha = torch.zeros_like(alpha) if neutral is None else neutral.to(alpha.dtype)
             face = normaliser.from_params(frame, state.shape_coeffs, alpha, aa, trans, light, state.intrinsics)
             per_frame["faces"].append(encode_faces(face.image[0], config.face_storage))
             per_frame["masks"].append(face.mask[0] > 0.5)

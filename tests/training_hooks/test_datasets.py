@@ -275,3 +275,29 @@ def test_sequence_success_and_validation(clips):
         sequence.item(3)
     with pytest.raises(ValueError, match="step 1"):
         sequence.item(slice(0, 3, 2))
+
+
+def test_keep_expression_resamples_at_the_persons_neutral(clips):
+    """``FaceTrackingConfig(keep_expression=True)`` resamples each frame at the state's neutral (the first
+    frame's fitted coefficients, which ``TrackResult.expression`` is measured from), not at zero."""
+    from torchface.model.candide import load_candide3
+    from torchface.normalise import NormalisedFace
+    from torchface.tracker.step import _layout
+    from training_hooks.transforms import FaceStorage, track_sequence
+
+    model = load_candide3()
+    config = replace(TRACKING, keep_expression=True, face_storage=FaceStorage.FLOAT32)
+    normaliser = NormalisedFace(model, config.face_size, config.face_margin)
+    frames = read_video(clips[0].video)[:3]
+    _, state = track_sequence(frames[:2], torch.as_tensor(clips[0].landmarks), config, model, normaliser)
+    neutral = torch.zeros_like(state.anim_prior_mean)
+    neutral[0, model.animation_names.index("AUV11 Jaw drop")] = 0.3
+    seq, after = track_sequence(frames[2:], replace(state, anim_prior_mean=neutral), config, model, normaliser)
+    aa, t, _, light = _layout(model).split(after.params)
+    frame = frames[2:].to(model.dtype)
+
+    def face(alpha):
+        return normaliser.from_params(frame, after.shape_coeffs, alpha, aa, t, light, after.intrinsics).image[0]
+
+    torch.testing.assert_close(seq.faces[0], face(neutral))
+    assert not torch.allclose(seq.faces[0], face(torch.zeros_like(neutral)))

@@ -222,6 +222,31 @@ def test_keep_expression_keeps_the_expression_visible(model):
     assert diff(keep) > 2 * diff(plain)
 
 
+def test_keep_expression_resamples_at_the_persons_neutral(model):
+    """The neutral that ``keep_expression`` resamples at is the first frame's fitted coefficients (what
+    ``TrackResult.expression`` is measured from), zero where the state carries none."""
+    frames, landmarks = _clip(64, num_frames=2, jaw=1.0)
+    plain = NormalisedFaceLayer(LayerConfig(size=32, tracker=SMALL), model)
+    keep = NormalisedFaceLayer(LayerConfig(size=32, keep_expression=True, tracker=SMALL), model)
+    state, _ = plain.initialise(frames[:1], landmarks[:1])
+    lay = plain.param_layout
+    x = state.params.clone()
+    x[:, lay.animation] = 0.4  # an estimate other than the neutral
+    neutral = torch.zeros_like(state.anim_prior_mean)
+    neutral[0, model.animation_names.index("AUV11 Jaw drop")] = 0.3
+    state = replace(state, anim_prior_mean=neutral)
+    at_neutral = x.clone()
+    at_neutral[:, lay.animation] = neutral
+    torch.testing.assert_close(keep.normalise(frames[1:2], state, x).image,
+                               plain.normalise(frames[1:2], state, at_neutral).image)  # fmt: skip
+    at_zero = x.clone()
+    at_zero[:, lay.animation] = 0.0
+    assert not torch.allclose(keep.normalise(frames[1:2], state, x).image,
+                              plain.normalise(frames[1:2], state, at_zero).image)  # fmt: skip
+    torch.testing.assert_close(keep.normalise(frames[1:2], replace(state, anim_prior_mean=None), x).image,
+                               plain.normalise(frames[1:2], state, at_zero).image)  # fmt: skip
+
+
 def test_forward_clip_shapes_and_first_frame(model):
     frames, landmarks = _clip(32, num_frames=2)
     clips = torch.stack([frames, frames.roll(1, dims=-1)])  # (2, 2, 3, 32, 32); the second shifted 1 px right
