@@ -105,9 +105,8 @@ class LayerConfig:
         margin: empty fraction around the face in the canonical view
             (:func:`~torchface.normalise.build_normalised_layout`).
         keep_expression: resample at the person's neutral expression (the first frame's fitted coefficients,
-            :attr:`~torchface.tracker.TrackerState.anim_prior_mean`; 0 where the state has none) instead of the
-            estimated one, so
-            the canonical image keeps the expression (texture displaced where the face moved) with pose and
+            :meth:`~torchface.tracker.TrackerState.neutral_anim_coeffs`) instead of the estimated one, so the
+            canonical image keeps the expression (texture displaced where the face moved) with pose and
             light undone: what an expression classifier needs. False undoes the expression too (paper Section 4).
         normalise_light: undo the estimated light (inverse of Eq. 19); False keeps the frame's light.
         unrolled_iterations: ``K``, Gauss-Newton iterations per unrolled pyramid level (``UNROLLED`` only).
@@ -300,8 +299,7 @@ class NormalisedFaceLayer(nn.Module):
         """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera."""
         aa, t, alpha, light = self.param_layout.split(params)
         if self.config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
-            neutral = state.anim_prior_mean
-            alpha = torch.zeros_like(alpha) if neutral is None else neutral.detach().to(alpha.dtype).expand_as(alpha)
+            alpha = state.neutral_anim_coeffs(alpha).detach()
         return normalised_face(
             frames, self.model, self.layout, state.shape_coeffs.detach(), alpha, aa, t,
             light if self.config.normalise_light else None, state.intrinsics,

@@ -92,9 +92,9 @@ class FaceTrackingConfig:
         num_threads: torch threads while tracking (restored afterwards). A fixed count makes the results
             independent of the process that tracks (module docstring); 1 suits ``DataLoader`` workers.
         keep_expression: resample at the person's neutral expression (the first frame's fitted coefficients,
-            ``TrackerState.anim_prior_mean``) instead of the tracked one, so the
-            face keeps its expression (pose and light still undone): the input an expression classifier needs.
-            False (the default) undoes the expression too.
+            ``TrackerState.neutral_anim_coeffs``) instead of the tracked one, so the face keeps its expression
+            (pose and light still undone): the input an expression classifier needs. False (the default) undoes
+            the expression too.
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -372,8 +372,7 @@ def track_sequence(
                 state, result = managed_step(model, config.tracker, state, frame)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
-                neutral = state.anim_prior_mean
-                alpha = torch.zeros_like(alpha) if neutral is None else neutral.to(alpha.dtype)
+                alpha = state.neutral_anim_coeffs(alpha)
             face = normaliser.from_params(frame, state.shape_coeffs, alpha, aa, trans, light, state.intrinsics)
             per_frame["faces"].append(encode_faces(face.image[0], config.face_storage))
             per_frame["masks"].append(face.mask[0] > 0.5)

@@ -17,7 +17,8 @@ def _result(B: int = 2) -> TrackResult:
     A, F, L = 3, 2, 5
     return TrackResult(
         rotation=torch.eye(3).expand(B, 3, 3), axis_angle=torch.zeros(B, 3), translation=torch.zeros(B, 3),
-        ypr_deg=torch.zeros(B, 3), anim_coeffs=torch.zeros(B, A), anim_names=("a b", "c d", "e f"), expression=torch.zeros(B, A),
+        ypr_deg=torch.zeros(B, 3), anim_coeffs=torch.zeros(B, A), anim_names=("a b", "c d", "e f"),
+        expression=torch.zeros(B, A),
         facs=torch.zeros(B, F), facs_names=("AU1", "AU2"), illumination=torch.zeros(B, L),
         illumination_names=("gain", "bias", "light_x", "light_y", "light_z"),
         status=torch.tensor([int(TrackStatus.CONVERGED), int(TrackStatus.LOST)])[:B],

@@ -313,6 +313,13 @@ class TrackerState:
     visibility: "tuple[tuple[Template, ...], tuple[Tensor, ...]] | None" = None
     anim_prior_mean: Tensor | None = None
 
+    def neutral_anim_coeffs(self, like: Tensor) -> Tensor:
+        """The person's neutral animation coefficients (``anim_prior_mean``; zero where the state has none) in the
+        dtype and device of ``like`` ``(B, A)`` and broadcast to its shape."""
+        if self.anim_prior_mean is None:
+            return torch.zeros_like(like)
+        return self.anim_prior_mean.to(dtype=like.dtype, device=like.device).expand_as(like)
+
 
 def anim_prior_mean(config: TrackerConfig, state: TrackerState) -> Tensor | None:
     """``(B, A)`` the centre of the animation units' prior for ``state`` under ``config`` (None: zero)."""
