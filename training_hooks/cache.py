@@ -46,11 +46,11 @@ from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 __all__ = ["CACHE_FORMAT", "CacheWarning", "CacheStats", "TrackCache", "cache_key", "content_hash"]
 
 #: Version of the file layout; part of every key.
-CACHE_FORMAT: int = 1
+CACHE_FORMAT: int = 2
 #: Arrays of a :class:`TrackedSequence` stored in a cache file, in digest order.
 _ARRAYS: tuple[str, ...] = (
-    "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
-    "confidence", "status", "shape_coeffs", "landmarks",
+    "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",
+    "illumination", "confidence", "status", "shape_coeffs", "landmarks",
 )  # fmt: skip
 _CHUNK = 1 << 20
 #: ``(path, size, mtime_ns, inode)`` -> content hash, per process: an unchanged file is hashed once.

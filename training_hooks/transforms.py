@@ -54,8 +54,8 @@ __all__ = [
 
 #: Item keys that carry one value per frame (a leading ``T`` in clip items); see :meth:`TrackedSequence.item`.
 PER_FRAME_KEYS: tuple[str, ...] = (
-    "face", "mask", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
-    "confidence", "success", "status", "frame",
+    "face", "mask", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",
+    "illumination", "confidence", "success", "status", "frame",
 )  # fmt: skip
 
 
@@ -168,8 +168,10 @@ class TrackedSequence:
         axis_angle: ``(T, 3)`` float32 the same as axis-angle vectors (radians).
         translation: ``(T, 3)`` float32 head origin in the camera frame (mm).
         ypr_deg: ``(T, 3)`` float32 yaw, pitch, roll in degrees (:mod:`torchface.conventions`).
-        anim_coeffs: ``(T, A)`` float32 animation-unit values.
-        facs: ``(T, F)`` float32 linked FACS action-unit values.
+        anim_coeffs: ``(T, A)`` float32 the model's animation-unit coefficients (they place the mesh).
+        expression: ``(T, A)`` float32 the animation units measured from the person's neutral, the first frame's
+            fitted coefficients (``TrackResult.expression``: 0 on the first frame).
+        facs: ``(T, F)`` float32 linked FACS action-unit values (of ``expression``).
         illumination: ``(T, L)`` float32 illumination parameters (gain, bias, light x/y/z; paper Eq. 19).
         confidence: ``(T,)`` float32 in ``[0, 1]`` (``TrackResult.confidence``: the dissimilarity confidence with
             template management, else the solver's residual confidence).
@@ -187,6 +189,7 @@ class TrackedSequence:
     translation: Tensor
     ypr_deg: Tensor
     anim_coeffs: Tensor
+    expression: Tensor
     facs: Tensor
     illumination: Tensor
     confidence: Tensor
@@ -210,7 +213,7 @@ class TrackedSequence:
             "masks": ((T, 1, S, S), torch.bool), "rotation": ((T, 3, 3), torch.float32),
             "axis_angle": ((T, 3), torch.float32), "translation": ((T, 3), torch.float32),
             "ypr_deg": ((T, 3), torch.float32), "anim_coeffs": ((T, self.anim_coeffs.shape[-1]), torch.float32),
-            "facs": ((T, self.facs.shape[-1]), torch.float32),
+            "expression": ((T, self.anim_coeffs.shape[-1]), torch.float32), "facs": ((T, self.facs.shape[-1]), torch.float32),
             "illumination": ((T, NUM_ILLUMINATION_TERMS), torch.float32), "confidence": ((T,), torch.float32),
             "status": ((T,), torch.int64), "shape_coeffs": ((self.shape_coeffs.shape[-1],), torch.float32),
             "landmarks": ((self.landmarks.shape[0], 2), torch.float64),
@@ -223,7 +226,8 @@ class TrackedSequence:
             raise ValueError(f"landmarks must be (68, 2) or (0, 2), got {tuple(self.landmarks.shape)}")
         if len(self.frame_size) != 2 or any(int(v) < 1 for v in self.frame_size):
             raise ValueError(f"frame_size must be (H, W), got {self.frame_size}")
-        finite = [self.confidence, self.axis_angle, self.translation, self.anim_coeffs, self.illumination]
+        finite = [self.confidence, self.axis_angle, self.translation, self.anim_coeffs, self.expression,
+                  self.illumination]
         if not all(bool(torch.isfinite(x).all()) for x in finite):
             raise ValueError("tracked parameters and confidence must be finite")
 
@@ -242,7 +246,8 @@ class TrackedSequence:
 
         Keys (a clip item has a leading ``T'`` on each): ``face`` ``(C, S, S)`` float32, ``mask`` ``(1, S, S)``
         float32, ``rotation`` ``(3, 3)``, ``axis_angle`` ``(3,)``, ``translation`` ``(3,)``, ``ypr_deg`` ``(3,)``,
-        ``anim_coeffs`` ``(A,)``, ``facs`` ``(F,)``, ``illumination`` ``(L,)``, ``confidence`` ``()`` float32,
+        ``anim_coeffs`` ``(A,)``, ``expression`` ``(A,)`` (the units measured from the person's neutral, which
+        ``facs`` ``(F,)`` is linked to), ``illumination`` ``(L,)``, ``confidence`` ``()`` float32,
         ``success`` ``()`` bool, ``status`` ``()`` int64, ``frame`` ``()`` int64 (index in the sequence);
         per sequence: ``shape_coeffs`` ``(S_u,)``.
         """
@@ -265,6 +270,7 @@ class TrackedSequence:
             "translation": self.translation[index].clone(),
             "ypr_deg": self.ypr_deg[index].clone(),
             "anim_coeffs": self.anim_coeffs[index].clone(),
+            "expression": self.expression[index].clone(),
             "facs": self.facs[index].clone(),
             "illumination": self.illumination[index].clone(),
             "confidence": self.confidence[index].clone(),
@@ -350,8 +356,8 @@ def track_sequence(
         landmarks = _landmarks_tensor(start)
     layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
     per_frame: dict[str, list[Tensor]] = {k: [] for k in (
-        "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
-        "confidence", "status",
+        "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",
+        "illumination", "confidence", "status",
     )}  # fmt: skip
     size: tuple[int, int] | None = None
     with torch_threads(config.num_threads), torch.no_grad():
@@ -376,8 +382,8 @@ def track_sequence(
             face = normaliser.from_params(frame, state.shape_coeffs, alpha, aa, trans, light, state.intrinsics)
             per_frame["faces"].append(encode_faces(face.image[0], config.face_storage))
             per_frame["masks"].append(face.mask[0] > 0.5)
-            for name in ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "facs", "illumination",
-                         "confidence"):  # fmt: skip
+            for name in ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",
+                         "illumination", "confidence"):  # fmt: skip
                 per_frame[name].append(getattr(result, name)[0].detach().to("cpu", torch.float32))
             per_frame["status"].append(result.status[0].to("cpu", torch.int64))
             if progress is not None:

@@ -59,7 +59,7 @@ def test_frame_items_shapes_and_types(clips, config):
     assert it["face"].shape == (3, S, S) and it["face"].dtype == torch.float32
     assert it["mask"].shape == (1, S, S) and set(it["mask"].unique().tolist()) <= {0.0, 1.0}
     assert it["rotation"].shape == (3, 3) and it["axis_angle"].shape == (3,) and it["ypr_deg"].shape == (3,)
-    assert it["anim_coeffs"].shape == (11,) and it["illumination"].shape == (5,)
+    assert it["anim_coeffs"].shape == (11,) and it["expression"].shape == (11,) and it["illumination"].shape == (5,)
     assert it["confidence"].shape == () and it["success"].dtype == torch.bool and it["status"].dtype == torch.int64
     assert [int(i["frame"]) for i in items] == list(range(FRAMES))
     assert all(int(i["video"]) == 0 and not bool(i["cached"]) for i in items)
@@ -275,6 +275,24 @@ def test_sequence_success_and_validation(clips):
         sequence.item(3)
     with pytest.raises(ValueError, match="step 1"):
         sequence.item(slice(0, 3, 2))
+
+
+def test_items_carry_the_expression_measured_from_the_first_frame(clips):
+    """``expression`` is ``TrackResult.expression``: the coefficients less the first frame's fitted ones (0 on the
+    first frame), and ``facs`` is linked to it, not to the coefficients."""
+    from torchface.model.candide import load_candide3
+
+    sequence, state = NormaliseFaces(TRACKING).track(read_video(clips[0].video)[:3], clips[0].landmarks)
+    neutral = state.anim_prior_mean[0].to(torch.float32)
+    assert float(sequence.anim_coeffs[0].abs().max()) > 1e-3  # the fitted start is not zero: the test can fail
+    torch.testing.assert_close(sequence.expression, sequence.anim_coeffs - neutral, atol=1e-6, rtol=0)
+    assert float(sequence.expression[0].abs().max()) == 0.0
+    facs = load_candide3().facs_values(sequence.expression)
+    torch.testing.assert_close(sequence.facs, facs, atol=1e-6, rtol=0)
+    item = sequence.item(slice(0, 3))
+    torch.testing.assert_close(item["expression"], sequence.expression)
+    with pytest.raises(ValueError, match="expression must be"):
+        replace(sequence, expression=torch.zeros(3, 10))
 
 
 def test_keep_expression_resamples_at_the_persons_neutral(clips):
