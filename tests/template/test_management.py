@@ -5,6 +5,7 @@ the mosaic search (known answers on a rendered 160x120 frame)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -198,6 +199,49 @@ def test_mosaic_add_select_and_grow():
     assert select_entries(m, far, cur, 2.0, reference_radius_deg=20.0).tolist() == [0, 1, 2]
     # The stored yaw/pitch/roll of every used entry is its rotation's, through adding and growing.
     assert torch.equal(m.ypr_deg[m.used], matrix_to_euler(m.rotation[m.used]))
+
+
+def test_add_entries_shares_storage_only_where_no_other_mosaic_wrote():
+    """add_entries writes in place into storage it shares with the mosaic it was given only at slots never
+    written there: the given mosaic keeps its value, and a second entry added from it (a branch) is copied rather
+    than overwrite the first branch's entry; with a gradient involved it always copies."""
+    cfg = TemplateConfig()
+    B, N = 3, 10
+    ypr0 = torch.zeros(B, 3, dtype=D)
+    m0 = new_mosaic(_fake_templates(B, N, 0), euler_to_matrix(ypr0), ypr0, _fake_reference(B, seed=0), cfg)
+    ypr = torch.tensor([[30.0, 0.0, 0.0]], dtype=D)
+    bins, one = pose_bins(ypr, cfg)[0], torch.tensor([0])
+
+    def add(m, seed, stream=one):
+        t, r = _fake_templates(1, N, seed), _fake_reference(1, seed=seed)
+        return add_entries(m, stream, t, euler_to_matrix(ypr), bins, r)[0], t, r
+
+    m1, t1, _ = add(m0, 1)  # grows: new storage
+    assert m1.levels[0].intensity is not m0.levels[0].intensity
+    snapshot = [x.clone() for lv in m1.levels for x in (lv.face_index, lv.bary, lv.intensity, lv.valid)]
+    m2, t2, r2 = add(m1, 2, torch.tensor([1]))  # stream 1's slot 1 was never written: in place
+    assert m2.levels[0].intensity is m1.levels[0].intensity and m2.references.image is m1.references.image
+    assert m1.num_entries.tolist() == [2, 1, 1] and m2.num_entries.tolist() == [2, 2, 1]
+    for x, y in zip((x for lv in m1.levels for x in (lv.face_index, lv.bary, lv.intensity, lv.valid)), snapshot):
+        assert torch.equal(x[0], y[0]) and torch.equal(x[1, 0], y[1, 0])  # m1's used entries unchanged
+    # A branch from m1 writing stream 1's slot 1 again copies: m2's entry survives.
+    m3, t3, r3 = add(m1, 3, torch.tensor([1]))
+    assert m3.levels[0].intensity is not m1.levels[0].intensity
+    assert torch.equal(m2.levels[1].intensity[1, 1], t2[1].intensity[0])
+    assert torch.equal(m3.levels[1].intensity[1, 1], t3[1].intensity[0])
+    assert torch.equal(m2.references.image[1, 1], r2.image[0]) and torch.equal(m3.references.image[1, 1], r3.image[0])
+    # m3 owns its copy: its next entry goes in place, and m2 is not touched by it.
+    m4, t4, _ = add(m3, 4, torch.tensor([2]))
+    assert m4.levels[0].intensity is m3.levels[0].intensity
+    assert torch.equal(m4.levels[0].intensity[2, 1], t4[0].intensity[0])
+    assert torch.equal(m2.levels[1].intensity[1, 1], t2[1].intensity[0]) and m2.num_entries.tolist() == [2, 2, 1]
+    # Templates that require grad: copied, and the gradient reaches them.
+    t = _fake_templates(1, N, 5)
+    t = tuple(replace(x, intensity=x.intensity.clone().requires_grad_()) for x in t)
+    m5, _ = add_entries(m2, torch.tensor([2]), t, euler_to_matrix(ypr), bins, _fake_reference(1, seed=5))
+    assert m5.levels[0].intensity is not m2.levels[0].intensity
+    m5.levels[0].intensity[2, 1].sum().backward()
+    assert torch.equal(t[0].intensity.grad, torch.ones(1, N, dtype=D))
 
 
 def test_entry_templates_rebuild_the_stored_template(model, scene):

@@ -43,7 +43,7 @@ the layout's face pixels. Frames, units and the pixel convention are those of :m
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
@@ -115,6 +115,7 @@ class NormalisedFaceLayout:
     face_index: Tensor
     bary: Tensor
     mask: Tensor
+    _weights: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.intrinsics, Intrinsics):
@@ -138,6 +139,23 @@ class NormalisedFaceLayout:
     def num_pixels(self) -> int:
         """``M``, the number of face pixels."""
         return int(self.pixel_index.shape[0])
+
+    def vertex_weights(self, faces: Tensor, num_vertices: int, dtype: torch.dtype) -> Tensor:
+        """``(M, V)`` the barycentric coordinates as a matrix over the mesh's vertices: row ``m`` holds
+        ``bary[m]`` at the corners of triangle ``face_index[m]`` of ``faces (F, 3)``, so that ``weights @ X``
+        interpolates any per-vertex attribute ``X (V, D)`` at the face pixels. Made once per ``faces`` tensor
+        and dtype, on ``faces``' device, and kept with the layout (a mesh's topology does not change)."""
+        key = (num_vertices, dtype, faces.device)
+        held = self._weights.get(key)
+        if held is not None and held[0] is faces:
+            return held[1]
+        m = self.face_index.shape[0]
+        corners = faces.index_select(0, self.face_index.to(faces.device)).reshape(-1)  # (M * 3,)
+        rows = torch.arange(m, device=faces.device).repeat_interleave(3)
+        weights = torch.zeros(m, num_vertices, dtype=dtype, device=faces.device)
+        weights.index_put_((rows, corners), self.bary.to(device=faces.device, dtype=dtype).reshape(-1), accumulate=True)
+        self._weights[key] = (faces, weights)  # the faces held too: their id is not reused while the entry lives
+        return weights
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "NormalisedFaceLayout":
         """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
@@ -401,13 +419,15 @@ def normalised_face_posed(
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
 
-    # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle.
-    corners = model.faces.index_select(0, layout.face_index).reshape(-1)  # (M * 3,)
-    M = layout.face_index.shape[0]
-    bary = layout.bary.to(verts_cam.dtype).unsqueeze(-1)  # (M, 3, 1)
-    points_cam = (verts_cam.index_select(1, corners).reshape(B, M, 3, 3) * bary).sum(-2)  # (B, M, 3)
-    normals_at = normals_cam.index_select(1, corners).reshape(B, M, 3, 3)
-    normals = torch.nn.functional.normalize((normals_at * bary).sum(-2), dim=-1)
+    # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle: positions
+    # and normals interpolated by one product with the layout's (M, V) weights, the batch's vertices side by side
+    # (B = 32: 2.7 against 12 ms for gathering the corners and summing them).
+    V = model.num_vertices
+    weights = layout.vertex_weights(model.faces, V, verts_cam.dtype)
+    both = torch.cat([verts_cam, normals_cam], -1).transpose(0, 1).reshape(V, B * 6)
+    at = torch.mm(weights, both).reshape(-1, B, 6).transpose(0, 1).contiguous()  # (B, M, 6)
+    points_cam = at[..., :3]
+    normals = torch.nn.functional.normalize(at[..., 3:], dim=-1)
 
     # Eq. 15 and bilinear sampling at the projections.
     points_px = project_points(points_cam, intrinsics)
