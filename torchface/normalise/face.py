@@ -115,7 +115,9 @@ class NormalisedFaceLayout:
     face_index: Tensor
     bary: Tensor
     mask: Tensor
-    _weights: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _weights: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )  # vertex_weights, made once per faces tensor and dtype
 
     def __post_init__(self) -> None:
         if not isinstance(self.intrinsics, Intrinsics):
