@@ -48,7 +48,7 @@ Shapes: ``B`` streams, ``E`` mosaic entries, ``N`` template points, ``S`` shape 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import torch
 from torch import Tensor
@@ -646,13 +646,17 @@ def entry_templates(
     """
     verts = model.deform(shape_coeffs, None)
     neutral = verts, vertex_normals(verts, model.faces)  # the person's, once for every level
-    out = []
-    for lv in mosaic.levels:
-        out.append(template_at(
-            model, shape_coeffs, lv.face_index[streams, entries], lv.bary[streams, entries],
-            lv.intensity[streams, entries], lv.valid[streams, entries], neutral=neutral,
-        ))  # fmt: skip
-    return tuple(out)
+    # Every level's points in one template_at call (its work is per point: the same values as level by level, in
+    # one set of operations instead of one per level; 2.1-2.3 against 2.8-2.9 ms for one stream).
+    sizes = [lv.face_index.shape[-1] for lv in mosaic.levels]
+
+    def joined(name: str) -> Tensor:
+        return torch.cat([getattr(lv, name)[streams, entries] for lv in mosaic.levels], 1)
+
+    whole = template_at(model, shape_coeffs, joined("face_index"), joined("bary"), joined("intensity"),
+                        joined("valid"), neutral=neutral)  # fmt: skip
+    parts = [getattr(whole, f.name).split(sizes, 1) for f in fields(Template)]
+    return tuple(Template(*(p[i].contiguous() for p in parts)) for i in range(len(sizes)))
 
 
 def face_inside_fraction(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics) -> Tensor:

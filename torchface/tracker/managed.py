@@ -425,17 +425,21 @@ def _new_entries(
              for c, hl, wl, off, k in zip(cameras, heights, widths, offsets, strides)]  # fmt: skip
     fragments = rasterize_windows(model, posed.verts_cam, [g[0] for g in grids], [g[1] for g in grids])  # one call
     vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
-    templates = []
+    pixels = []
     for gray, off, cam, lv, frags, k in zip(grays, offsets, cameras, ms.mosaic.levels, fragments, strides):
         slots = lv.face_index.shape[-1]  # the slots of this level's entries
-        px = select_pixels_posed(
+        pixels.append(select_pixels_posed(
             model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
             expression_quota=int(config.expression_quota * slots), frags=frags, stride=k, seed=config.selection_seed,
-        )  # fmt: skip
-        normals = interpolated_normals(vertex_normals_neutral, model.faces, px.face_index, px.bary)
-        templates.append(replace(px, intensity=light_normalised_intensity(px.intensity, normals, R, light)))
-    return tuple(templates), reference
+        ))  # fmt: skip
+    # The intensities under the reference light, every level's points at once (the work is per point).
+    sizes = [px.face_index.shape[-1] for px in pixels]
+    normals = interpolated_normals(vertex_normals_neutral, model.faces, torch.cat([px.face_index for px in pixels], 1),
+                                   torch.cat([px.bary for px in pixels], 1))  # fmt: skip
+    intensity = light_normalised_intensity(torch.cat([px.intensity for px in pixels], 1), normals, R, light)
+    templates = tuple(replace(px, intensity=i.contiguous()) for px, i in zip(pixels, intensity.split(sizes, 1)))
+    return templates, reference
 
 
 def _rows(frames: Tensor, index: Tensor) -> Tensor:
