@@ -427,7 +427,7 @@ def normalised_face_posed(
     V = model.num_vertices
     weights = layout.vertex_weights(model.faces, V, verts_cam.dtype)
     both = torch.cat([verts_cam, normals_cam], -1).transpose(0, 1).reshape(V, B * 6)
-    at = torch.mm(weights, both).reshape(-1, B, 6).transpose(0, 1).contiguous()  # (B, M, 6)
+    at = torch.mm(weights, both).reshape(weights.shape[0], B, 6).transpose(0, 1).contiguous()  # (B, M, 6)
     points_cam = at[..., :3]
     normals = torch.nn.functional.normalize(at[..., 3:], dim=-1)
 

@@ -306,7 +306,8 @@ class MosaicLevel:
         face_index: ``(B, E, N)`` int64 triangle of each point.
         bary: ``(B, E, N, 3)`` barycentric coordinates in it.
         intensity: ``(B, E, N)`` gray value under the reference light.
-        valid: ``(B, E, N)`` bool (False in unused slots and unused entries).
+        valid: ``(B, E, N)`` bool (False in unused point slots; an unused entry's values are not defined:
+            see :class:`Mosaic`).
     """
 
     face_index: Tensor
