@@ -412,3 +412,20 @@ def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject
         normalised_face_posed(frame.expand(2, -1, -1, -1), model, layout, verts_cam, light, CAM)
     with pytest.raises(ValueError, match="frames"):
         normalised_face_posed(frame[0], model, layout, verts_cam, light, CAM)
+
+
+def test_layout_vertex_weights_interpolate_like_the_barycentric_gather(model, layout):
+    """The layout's (M, V) weights times per-vertex values equal the barycentric sum over each face pixel's
+    triangle corners (the slow reference); they are made once per faces tensor and dtype; an empty batch gives
+    an empty normalised face."""
+    X = torch.randn(model.num_vertices, 5, dtype=torch.float64)
+    w = layout.vertex_weights(model.faces, model.num_vertices, torch.float64)
+    corners = model.faces[layout.face_index]  # (M, 3)
+    want = (X[corners] * layout.bary.to(torch.float64).unsqueeze(-1)).sum(1)
+    torch.testing.assert_close(w @ X, want, rtol=0, atol=1e-12)
+    assert layout.vertex_weights(model.faces, model.num_vertices, torch.float64) is w
+    assert layout.vertex_weights(model.faces.clone(), model.num_vertices, torch.float64) is not w
+    assert layout.vertex_weights(model.faces, model.num_vertices, torch.float32).dtype == torch.float32
+    empty = normalised_face_posed(torch.rand(0, 3, CAM.height, CAM.width), model, layout,
+                                  torch.zeros(0, model.num_vertices, 3), None, CAM, zbuffer=False)  # fmt: skip
+    assert empty.image.shape == (0, 3, G, G) and empty.mask.shape == (0, 1, G, G)
