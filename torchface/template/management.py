@@ -541,9 +541,9 @@ def _add_entries(
         mosaic = _grow(mosaic, need - mosaic.capacity)  # new storage, this mosaic's alone
         claimed = mosaic.used.clone()
     new_ref = _reference_tensors(reference)
-    storage = [x for lv in mosaic.levels for x in (lv.face_index, lv.bary, lv.intensity, lv.valid)]
-    storage += _reference_tensors(mosaic.references)
-    values = [getattr(t, name) for t in templates for name in ("face_index", "bary", "intensity", "valid")] + new_ref
+    names = [f.name for f in fields(MosaicLevel)]  # a template holds the same fields (and more)
+    storage = [getattr(lv, name) for lv in mosaic.levels for name in names] + _reference_tensors(mosaic.references)
+    values = [getattr(t, name) for t in templates for name in names] + new_ref
     in_place = (
         claimed is not None and not bool(claimed[streams, slot].any())
         and not any(x.requires_grad or x.is_inference() for x in storage)
@@ -556,7 +556,7 @@ def _add_entries(
         x[streams, slot] = v.to(x.dtype)
     claimed[streams, slot] = True
     parts = iter(storage)
-    levels = tuple(MosaicLevel(next(parts), next(parts), next(parts), next(parts)) for _ in mosaic.levels)
+    levels = tuple(MosaicLevel(*(next(parts) for _ in names)) for _ in mosaic.levels)
     refs = _map_reference(mosaic.references, lambda _: next(parts))
     rot = mosaic.rotation.clone()
     rot[streams, slot] = rotation.to(rot.dtype)
