@@ -597,11 +597,10 @@ def build_dissimilarity_reference(
     score = torch.where(eligible, min_eig.clamp_min(0.0), torch.full_like(min_eig, -1.0))
 
     # Greedy non-maximum suppression, all samples at once: take the best remaining candidate, then remove
-    # every candidate within s pixels (per axis) of it. K rounds of (B, G, G) work, once per reference.
-    # The neighbourhood of a pick is the outer product of a row and a column of ``within (G, G)``, |i - j| <= s.
+    # every candidate within s pixels (per axis) of it, once per reference. The neighbourhood of a pick is the
+    # (2 s + 1)^2 cells around it, clamped into the image (a clamped cell is still one of them).
     s = config.separation
-    rows = torch.arange(G, device=image.device)
-    within = (rows.unsqueeze(0) - rows.unsqueeze(1)).abs() <= s
+    around = torch.arange(-s, s + 1, device=image.device)
     ranked = score.reshape(B, G * G).clone()
     K = min(config.num_patches, G * G)
     picks, bests = [], []
@@ -610,8 +609,9 @@ def build_dissimilarity_reference(
         picks.append(index)
         bests.append(best)
         v = torch.div(index, G, rounding_mode="floor")
-        near = within.index_select(0, v).unsqueeze(-1) & within.index_select(0, index - v * G).unsqueeze(-2)
-        ranked.masked_fill_(near.view(B, G * G), -1.0)
+        rows = (v.unsqueeze(-1) + around).clamp(0, G - 1)
+        cols = (index - v * G).unsqueeze(-1).add(around).clamp(0, G - 1)
+        ranked.scatter_(1, (rows.unsqueeze(-1) * G + cols.unsqueeze(-2)).view(B, -1), -1.0)
     index = torch.stack(picks, -1)
     best = torch.stack(bests, -1)
     centres = torch.stack([(index % G).to(image.dtype), (index // G).to(image.dtype)], dim=-1)
