@@ -92,6 +92,35 @@ def test_lk_batch_equals_per_sample():
         assert torch.equal(batch.converged[b], one.converged[0])
 
 
+@pytest.mark.parametrize("channels", [1, 3])
+def test_lk_last_active_patches_going_on_alone_is_the_same_solve(monkeypatch, channels):
+    """Once at most a quarter of a large batch's patches are active they iterate alone (one patch per batch
+    row): bit for bit the solve of the whole batch to the end (the slow reference)."""
+    D = sys.modules["torchface.template.dissimilarity"]  # the package re-exports a function of that name
+    g = torch.Generator().manual_seed(0)
+    B, K, d = 8, 16, torch.float64
+    ref = F.avg_pool2d(torch.rand(B, channels, 64, 64, generator=g, dtype=d), 5, 1, 2)  # rough texture
+    img = torch.roll(ref, shifts=(1, 1), dims=(2, 3)) + 0.01 * torch.rand(ref.shape, generator=g, dtype=d)
+    centres = 12 + 40 * torch.rand(B, K, 2, generator=g, dtype=d)
+    mask = (torch.rand(B, 1, 64, 64, generator=g) > 0.01).to(d)
+    kw = dict(reference_mask=mask, image_mask=mask, max_displacement=6.0)
+    assert B * K >= D._COMPACT_MIN_PATCHES
+    # The first iteration count i that leaves at most a quarter of the patches active (where they go on alone)
+    # leaves some; with one more iteration allowed, some are still active at the end (the budget counts).
+    for i in range(1, 20):
+        part = inverse_compositional_lk(ref, img, centres, 11, i, **kw)
+        left = int((part.valid & ~part.converged).sum())
+        if left <= B * K // 4:
+            break
+    assert 0 < left <= B * K // 4, (i, left)
+    out = inverse_compositional_lk(ref, img, centres, 11, i + 1, **kw)
+    monkeypatch.setattr(D, "_COMPACT_MIN_PATCHES", 10**9)
+    slow = inverse_compositional_lk(ref, img, centres, 11, i + 1, **kw)
+    assert bool((slow.valid & ~slow.converged).any())
+    for name in ("displacement", "converged", "valid", "support", "residual"):
+        assert torch.equal(getattr(out, name), getattr(slow, name)), name
+
+
 def test_lk_without_residual_is_the_same_solve():
     """with_residual=False (what dissimilarity asks for) leaves the residual out and changes nothing else."""
     ref = _texture(3, 48, seed=2)

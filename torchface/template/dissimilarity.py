@@ -131,6 +131,11 @@ def _check_mask(mask: object, name: str, image: Tensor) -> Tensor:
     return mask.to(dtype=image.dtype, device=image.device)
 
 
+#: :func:`inverse_compositional_lk` goes on with its last active patches alone (a batch of one patch each) from
+#: this many patches in all (fewer: the whole batch iterates to the end).
+_COMPACT_MIN_PATCHES = 64
+
+
 def _patch_offsets(patch_size: int, like: Tensor) -> Tensor:
     """``(h * h, 2)`` offsets ``(u, v)`` of a centred ``h x h`` grid, row-major."""
     r = torch.arange(patch_size, dtype=like.dtype, device=like.device) - (patch_size - 1) / 2.0
@@ -265,9 +270,8 @@ def inverse_compositional_lk(
     feats = torch.empty(B, K, n, F3 + 1, dtype=dtype, device=reference.device)
     feats[..., : 2 * C] = sd.reshape(B, K, n, 2 * C)
     feats[..., F3] = 1.0
-    err_slot = feats[..., 2 * C : F3]
 
-    def weights_at(p_: Tensor) -> tuple[Tensor, Tensor]:
+    def weights_at(stacked: Tensor, grid_n: Tensor, ref_weight: Tensor, p_: Tensor) -> tuple[Tensor, Tensor]:
         g = torch.addcmul(grid_n, p_.unsqueeze(2), to_grid)
         out = F.grid_sample(stacked, g, mode="bilinear", padding_mode="zeros", align_corners=True)  # (B, C', K, n)
         values = out.permute(0, 2, 3, 1)
@@ -275,51 +279,86 @@ def inverse_compositional_lk(
         w = ref_weight if image_mask is None else values[..., C].clamp(0.0, 1.0) * ref_weight
         return values[..., :C], torch.where(inside, w, 0.0)
 
-    def normal_equations(w: Tensor) -> tuple[Tensor, ...]:
+    def normal_equations(feats: Tensor, w: Tensor) -> tuple[Tensor, ...]:
         """``a, b, c, g0, g1`` ``(B, K)`` each: ``H = [[a, b], [b, c]]`` and the gradient ``sum w grad T^T e``
         (bias projected out), with the error in the features' buffer."""
+        Bs, Ks = w.shape[:2]
         moments = torch.matmul((feats * w.unsqueeze(-1)).transpose(-1, -2), feats)  # (B, K, F + 1, F + 1)
         if C == 1:  # gray images (the dissimilarity's): rows [grad T], columns [grad T, e], read in one go
             m = moments[..., :2, :3]
             if project_out_bias:  # m_ij - m_i1 m_1j / m_11 (the constant's row and column are not used)
                 m = m - moments[..., :2, 3:] * (moments[..., 3:, :3] / moments[..., 3:, 3:].clamp_min(eps))
-            a, b, g0, _, c, g1 = m.reshape(B, K, 6).unbind(-1)
+            a, b, g0, _, c, g1 = m.reshape(Bs, Ks, 6).unbind(-1)
             return a, b, c, g0, g1
         if project_out_bias:
             moments = moments - moments[..., :, F3:] * (moments[..., F3:, :] / moments[..., F3:, F3:].clamp_min(eps))
-        s_s = moments[..., : 2 * C, : 2 * C].reshape(B, K, C, 2, C, 2)
-        s_e = moments[..., : 2 * C, 2 * C : F3].reshape(B, K, C, 2, C)
+        s_s = moments[..., : 2 * C, : 2 * C].reshape(Bs, Ks, C, 2, C, 2)
+        s_e = moments[..., : 2 * C, 2 * C : F3].reshape(Bs, Ks, C, 2, C)
         hess = torch.diagonal(s_s, dim1=2, dim2=4).sum(-1)  # sum over channels: (B, K, 2, 2)
         grad = torch.diagonal(s_e, dim1=2, dim2=4).sum(-1)  # (B, K, 2)
         return hess[..., 0, 0], hess[..., 0, 1], hess[..., 1, 1], grad[..., 0], grad[..., 1]
 
-    # Each patch iterates until its update is below the tolerance (converged), its system is ill-posed or it
-    # moves beyond max_displacement (both end it as not valid, found from its final state below).
-    for _ in range(iterations):
-        warped, w = weights_at(p)
-        torch.sub(warped, template, out=err_slot)
-        a, b, c, g0, g1 = normal_equations(w)
-        det = a * c - b * b
-        # Well-posed: det above a relative floor (det <= trace^2 / 4) and everything finite (NaN fails the first
-        # test, an infinite H or gradient the second).
-        ok = (det > (1e3 * eps) * (a + c).square()) & torch.isfinite(det + g0 + g1)
-        dp = torch.stack([c * g0 - b * g1, a * g1 - b * g0], -1) / det.unsqueeze(-1)  # H^-1 g; used only where ok
-        step = active & ok
-        p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
-        small = dp.norm(dim=-1) < tolerance
-        converged = converged | (step & small)
-        active = step & ~small
-        if max_displacement is not None:
-            active = active & (p.norm(dim=-1) <= max_displacement)  # p is finite: a step needs a finite dp
-        if not bool(active.any()):
-            break
+    def iterate(
+        stacked: Tensor, grid_n: Tensor, feats: Tensor, template: Tensor, ref_weight: Tensor, p: Tensor,
+        active: Tensor, converged: Tensor, budget: int, few: int,
+    ) -> tuple[Tensor, Tensor, Tensor, int]:
+        """Up to ``budget`` iterations of the patches laid out ``(B', K')`` in these tensors (``stacked``
+        ``(B', C', H, W)``), until none is active or (``few`` > 0) at most ``few`` are: ``p``, ``active``,
+        ``converged`` and the iterations made. Each patch iterates until its update is below the tolerance
+        (converged), its system is ill-posed or it moves beyond max_displacement (both end it as not valid,
+        found from its final state); a patch that stopped no longer changes, so only the active ones matter."""
+        err_slot = feats[..., 2 * C : F3]
+        made = 0
+        while made < budget:
+            warped, w = weights_at(stacked, grid_n, ref_weight, p)
+            torch.sub(warped, template, out=err_slot)
+            a, b, c, g0, g1 = normal_equations(feats, w)
+            det = a * c - b * b
+            # Well-posed: det above a relative floor (det <= trace^2 / 4) and everything finite (NaN fails the
+            # first test, an infinite H or gradient the second).
+            ok = (det > (1e3 * eps) * (a + c).square()) & torch.isfinite(det + g0 + g1)
+            dp = torch.stack([c * g0 - b * g1, a * g1 - b * g0], -1) / det.unsqueeze(-1)  # H^-1 g; used where ok
+            step = active & ok
+            p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
+            small = dp.norm(dim=-1) < tolerance
+            converged = converged | (step & small)
+            active = step & ~small
+            if max_displacement is not None:
+                active = active & (p.norm(dim=-1) <= max_displacement)  # p is finite: a step needs a finite dp
+            made += 1
+            left = int(active.sum())
+            if left == 0 or left <= few:
+                break
+        return p, active, converged, made
+
+    p = torch.zeros(B, K, 2, dtype=dtype, device=reference.device)
+    active = torch.ones(B, K, dtype=torch.bool, device=reference.device)
+    converged = torch.zeros_like(active)
+    # Most patches converge in a few iterations and a few take many: once at most a quarter of a large batch's
+    # patches are still active, those go on alone, each as a batch of one patch (the same arithmetic per patch).
+    few = (B * K) // 4 if B * K >= _COMPACT_MIN_PATCHES else 0
+    p, active, converged, made = iterate(stacked, grid_n, feats, template, ref_weight, p, active, converged,
+                                         iterations, few)  # fmt: skip
+    if made < iterations and bool(active.any()):
+        at = active.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * K
+
+        def rows(x: Tensor) -> Tensor:  # (B, K, ...) -> the active patches' (M, 1, ...)
+            return x.reshape(B * K, *x.shape[2:]).index_select(0, at).unsqueeze(1)
+
+        sub = iterate(
+            stacked.index_select(0, torch.div(at, K, rounding_mode="floor")), rows(grid_n), rows(feats),
+            rows(template), rows(ref_weight), rows(p), rows(active), rows(converged), iterations - made, 0,
+        )  # fmt: skip
+        p = p.reshape(B * K, 2).index_copy(0, at, sub[0].reshape(-1, 2)).view(B, K, 2)
+        active = active.reshape(-1).index_copy(0, at, sub[1].reshape(-1)).view(B, K)
+        converged = converged.reshape(-1).index_copy(0, at, sub[2].reshape(-1)).view(B, K)
 
     # Valid: converged or still iterating (not stopped by an ill-posed system), within max_displacement (p no
     # longer changes once a patch stops, so its final norm is the one that stopped it).
     valid = active | converged
     if max_displacement is not None:
         valid = valid & (p.norm(dim=-1) <= max_displacement)
-    warped, w = weights_at(p)
+    warped, w = weights_at(stacked, grid_n, ref_weight, p)
     total = w.sum(-1)
     residual = None
     if with_residual:
