@@ -330,60 +330,6 @@ def test_subsampling_is_a_deterministic_subset(scene):
     torch.testing.assert_close(alone.intensity[0], few.intensity[1], rtol=0, atol=0)
 
 
-def test_selection_keys_are_all_different_and_keep_the_draws_order():
-    """The keys are the float32 draw with ties broken towards the lower pixel index: all different, in [0, 1),
-    ordered as the draw wherever the draw differs."""
-    import torchface.template.points as P
-
-    h, w = 480, 640
-    keys = _selection_keys(h, w, torch.device("cpu"))
-    gen = torch.Generator(device="cpu").manual_seed(h * 100003 + w)
-    draw = torch.rand(h * w, generator=gen)
-    assert keys.dtype == torch.float64 and float(keys.min()) >= 0.0 and float(keys.max()) < 1.0
-    assert torch.unique(keys).numel() == keys.numel()
-    assert torch.unique(draw).numel() < draw.numel()  # the draw alone has ties: the case this is for
-    order = torch.argsort(keys, descending=True)
-    sorted_draw = draw[order]
-    assert bool((sorted_draw[:-1] >= sorted_draw[1:]).all())  # the draw's order
-    tied = sorted_draw[:-1] == sorted_draw[1:]
-    assert bool(tied.any()) and bool((order[:-1][tied] < order[1:][tied]).all())  # ties: lower index first
-    assert torch.equal(keys, P._cpu_selection_keys(h, w, 0)) and not torch.equal(keys, _selection_keys(h, w, "cpu", 1))
-
-
-@pytest.mark.parametrize("min_facing_cos", [0.15, 0.9])
-def test_preselected_facing_test_equals_testing_every_candidate(scene, monkeypatch, min_facing_cos):
-    """select_pixels_posed tests the facing of a sample's highest-keyed candidates first
-    (``_PRESELECT_FACTOR`` times the slots) and settles the selection from them when it can: against the slow
-    reference that tests every candidate (the factor made too large to apply), the same points in the same
-    slots. At a strict facing threshold most of the first candidates fail, so it falls back to the reference."""
-    import torchface.template.points as P
-
-    s = scene
-    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
-    calls = []
-    preselected = P._preselected
-
-    def counted(*args):
-        out = preselected(*args)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(P, "_preselected", counted)
-    for n in (50, 400, 2000):
-        kw = dict(max_points=n, gradient_threshold=0.01, min_facing_cos=min_facing_cos)
-        fast = select_pixels_posed(s["model"], posed, s["gray"], s["cam"], None, **kw)
-        monkeypatch.setattr(P, "_PRESELECT_FACTOR", 10**9)
-        slow = select_pixels_posed(s["model"], posed, s["gray"], s["cam"], None, **kw)
-        monkeypatch.setattr(P, "_PRESELECT_FACTOR", 1.5)
-        for f in ("face_index", "bary", "intensity", "valid"):
-            assert torch.equal(getattr(fast, f), getattr(slow, f)), (n, f)
-    settled = calls[0::2]  # the preselecting calls
-    if min_facing_cos < 0.5:
-        assert settled == [True, True, False]  # 2000 slots: more than the candidates, every one tested
-    else:
-        assert not all(settled) and int(fast.valid.sum()) > 0
-
-
 def test_more_slots_than_candidates_marks_the_rest_invalid(scene):
     tpl = build(scene, gradient_threshold=0.2)
     n = tpl.num_points

@@ -9,7 +9,6 @@ per-iteration triangle search.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -134,8 +133,7 @@ def _erode(mask: Tensor, radius: int) -> Tensor:
 
 
 def _selection_keys(height: int, width: int, device: torch.device, seed: int = 0) -> Tensor:
-    """Deterministic pseudo-random keys in ``[0, 1)`` per pixel, all different, the same for every sample and
-    call (float64).
+    """Deterministic pseudo-random keys in ``[0, 1)`` per pixel, the same for every sample and call.
 
     Used to pick a uniform subset of the candidate pixels; being a function of the pixel alone, a stream
     gets the same template whether it is tracked alone or in a batch. ``seed`` draws another set of keys
@@ -146,17 +144,9 @@ def _selection_keys(height: int, width: int, device: torch.device, seed: int = 0
 
 @functools.lru_cache(maxsize=16)
 def _cpu_selection_keys(height: int, width: int, seed: int = 0) -> Tensor:
-    """:func:`_selection_keys` on the CPU, drawn once per image size and seed (callers must not modify it).
-
-    The draw is float32's (multiples of ``2**-24``, so some pixels draw the same value); each key adds its
-    pixel's place in reverse order in units below that resolution, so that equal draws go to the lower pixel
-    index first and the keys are all different: which pixels and in what order a selection keeps never
-    depends on how a sort breaks ties (exact in float64 up to ``2**29`` pixels)."""
+    """:func:`_selection_keys` on the CPU, drawn once per image size and seed (callers must not modify it)."""
     gen = torch.Generator(device="cpu").manual_seed(height * 100003 + width + seed)
-    draw = torch.rand(height * width, generator=gen)
-    n = height * width
-    unit = 2.0 ** -(24 + max(1, (n - 1).bit_length()))  # (n - 1) * unit < 2**-24
-    return draw.double() + torch.arange(n - 1, -1, -1, dtype=torch.float64) * unit
+    return torch.rand(height * width, generator=gen)
 
 
 def select_template_pixels(
@@ -317,41 +307,6 @@ def rasterize_windows(
     return [coverage.part(slice(i * B, (i + 1) * B), c.height, c.width) for i, c in enumerate(cameras)]
 
 
-#: :func:`select_pixels_posed` first tests the facing of this many times ``max_points`` of each sample's
-#: highest-keyed candidates, and of every candidate only where that cannot settle the selection
-#: (:func:`_preselected`).
-_PRESELECT_FACTOR = 1.5
-
-
-def _preselected(
-    candidate: Tensor, keys: Tensor, max_points: int, facing: Callable[[Tensor], Tensor]
-) -> tuple[Tensor, Tensor] | None:
-    """The ``max_points`` highest ``keys`` among the candidates that pass ``facing``, found by testing only the
-    :data:`_PRESELECT_FACTOR` ``* max_points`` highest-keyed candidates of each sample: ``(top, pix)``, both
-    ``(B, max_points)``, what ``torch.topk`` gives over the scores of every candidate tested (the keys are all
-    different, so there is one answer), or None where the candidates tested cannot tell it (a sample with fewer
-    than ``max_points`` passing among them): the caller then tests every candidate.
-
-    Args:
-        candidate: ``(B, P)`` bool; keys: ``(B, P)`` in ``[0, 1)``, all different within a sample.
-        facing: bool ``(M,)`` for candidates given as flat indices ``(M,)`` over ``B * P``.
-    """
-    B, P = candidate.shape
-    K = int(_PRESELECT_FACTOR * max_points)
-    if B == 0 or max_points == 0 or K >= P:
-        return None
-    top_k, pix_k = torch.topk(torch.where(candidate, keys, torch.full_like(keys, -1.0)), K, dim=1)  # sorted
-    live = (top_k >= 0).reshape(-1).nonzero().squeeze(-1)  # over B * K
-    flat = torch.div(live, K, rounding_mode="floor") * P + pix_k.reshape(-1).index_select(0, live)
-    passing = torch.zeros(B * K, dtype=torch.bool, device=keys.device).index_put((live,), facing(flat)).view(B, K)
-    top, at = torch.topk(torch.where(passing, top_k, torch.full_like(top_k, -1.0)), max_points, dim=1)
-    # Settled where each sample's last kept key beats every untested candidate's (at most top_k[:, -1]; -1 when
-    # every candidate was tested), which also means max_points passed.
-    if not bool((top[:, -1] > top_k[:, -1]).all()):
-        return None
-    return top, torch.gather(pix_k, 1, at)
-
-
 def select_pixels_posed(
     model: FaceModel,
     posed: PosedMesh,
@@ -397,6 +352,28 @@ def select_pixels_posed(
     face_flat = face.reshape(B, -1)
     gmag = grads.pow(2).sum(1).sqrt()
     candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
+    # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
+    # interpolated at the pixels still candidates (every sample's, listed together), not over the whole window,
+    # with their barycentric coordinates alone.
+    flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
+    b_of = torch.div(flat, H * W, rounding_mode="floor")
+    pix = flat - b_of * (H * W)
+    pix_row = torch.div(pix, W, rounding_mode="floor")
+    pix_col = pix - pix_row * W
+    face_c = face_flat.reshape(-1).index_select(0, flat)
+    corner = model.faces.index_select(0, face_c)  # (M, 3)
+    bary_c = frags.covered_barycentrics(b_of, face_c, pix_row, pix_col).to(normals_cam.dtype)
+    V = normals_cam.shape[1]
+    n_corner = normals_cam.reshape(-1, 3).index_select(0, (b_of.unsqueeze(-1) * V + corner).reshape(-1))
+    n_pix = torch.bmm(bary_c.unsqueeze(1), n_corner.view(-1, 3, 3)).squeeze(1)  # (M, 3): 2.5x the weighted sum
+    # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
+    # its direction is the ray's: no need to interpolate the positions.
+    col = (pix_col * stride).to(verts_cam.dtype) + off[b_of, 0]
+    row = (pix_row * stride).to(verts_cam.dtype) + off[b_of, 1]
+    rays = torch.stack([(col - intrinsics.cx) / intrinsics.fx, (row - intrinsics.cy) / intrinsics.fy,
+                        torch.ones_like(col)], -1)  # fmt: skip
+    cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(rays, dim=-1)).sum(-1)
+    candidate = candidate.reshape(-1).index_put((flat,), cos >= min_facing_cos).reshape(B, H, W)
     keys = _selection_keys(full_h, full_w, gray.device, seed)
     if offsets is None:
         if stride > 1:
@@ -406,74 +383,43 @@ def select_pixels_posed(
         pix_rows = offsets[:, 1:2] + stride * torch.arange(H, device=gray.device)
         pix_cols = offsets[:, 0:1] + stride * torch.arange(W, device=gray.device)
         keys = keys[(pix_rows[:, :, None] * full_w + pix_cols[:, None, :]).reshape(B, H * W)]
-
-    def facing(flat: Tensor) -> Tensor:
-        # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is
-        # only interpolated at the candidates asked about (flat (M,) over B * H * W, every sample's listed
-        # together), not over the whole window, with their barycentric coordinates alone.
+    if (expression_priority > 0 or expression_quota > 0) and model.num_animation > 0:
+        full = frags.fragments()  # every pixel's barycentric coordinates and depth
+        bary_flat, zbuf = full.bary.reshape(B, -1, 3), full.zbuf
+    if expression_priority > 0 and model.num_animation > 0:
+        # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
+        # small region (eyelids) would otherwise get few of the uniformly drawn points.
+        au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
+        sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
+        px_per_mm = intrinsics.fx / zbuf.reshape(B, -1).clamp(1.0, 1e30)
+        keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
+    if expression_quota > 0 and model.num_animation > 0:
+        # Per unit, the candidates it moves by >= 1 px per unit coefficient; the quota with the highest keys
+        # among them are lifted above every key (keys lie in [0, 1)). Only the candidates are looked at.
+        A = model.num_animation
+        flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
+        au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
+        sens = gather_face_attributes(au_mm, model.faces, face_flat.reshape(-1)[flat][None],
+                                      bary_flat.reshape(-1, 3)[flat][None], batched=False)[0]  # (M, A)
+        px_per_mm = intrinsics.fx / zbuf.reshape(-1)[flat].clamp(1.0, 1e30)
+        moved = sens * px_per_mm[:, None] >= 1.0
+        # Each sample's candidates in a (B, A, M_max) block (nonzero lists them sample by sample).
         b_of = torch.div(flat, H * W, rounding_mode="floor")
-        pix = flat - b_of * (H * W)
-        pix_row = torch.div(pix, W, rounding_mode="floor")
-        pix_col = pix - pix_row * W
-        face_c = face_flat.reshape(-1).index_select(0, flat)
-        corner = model.faces.index_select(0, face_c)  # (M, 3)
-        bary_c = frags.covered_barycentrics(b_of, face_c, pix_row, pix_col).to(normals_cam.dtype)
-        V = normals_cam.shape[1]
-        n_corner = normals_cam.reshape(-1, 3).index_select(0, (b_of.unsqueeze(-1) * V + corner).reshape(-1))
-        n_pix = torch.bmm(bary_c.unsqueeze(1), n_corner.view(-1, 3, 3)).squeeze(1)  # (M, 3): 2.5x the weighted sum
-        # The surface point seen at a pixel centre lies on that pixel's ray (perspective-correct barycentrics), so
-        # its direction is the ray's: no need to interpolate the positions.
-        col = (pix_col * stride).to(verts_cam.dtype) + off[b_of, 0]
-        row = (pix_row * stride).to(verts_cam.dtype) + off[b_of, 1]
-        rays = torch.stack([(col - intrinsics.cx) / intrinsics.fx, (row - intrinsics.cy) / intrinsics.fy,
-                            torch.ones_like(col)], -1)  # fmt: skip
-        cos = -(torch.nn.functional.normalize(n_pix, dim=-1) * torch.nn.functional.normalize(rays, dim=-1)).sum(-1)
-        return cos >= min_facing_cos
-
-    reweighted = (expression_priority > 0 or expression_quota > 0) and model.num_animation > 0
-    picked = None if reweighted else _preselected(candidate.reshape(B, -1), keys, max_points, facing)
-    if picked is None:  # every candidate tested
-        flat = candidate.reshape(-1).nonzero().squeeze(-1)
-        candidate = candidate.reshape(-1).index_put((flat,), facing(flat)).reshape(B, H, W)
-        if (expression_priority > 0 or expression_quota > 0) and model.num_animation > 0:
-            full = frags.fragments()  # every pixel's barycentric coordinates and depth
-            bary_flat, zbuf = full.bary.reshape(B, -1, 3), full.zbuf
-        if expression_priority > 0 and model.num_animation > 0:
-            # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
-            # small region (eyelids) would otherwise get few of the uniformly drawn points.
-            au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
-            sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
-            px_per_mm = intrinsics.fx / zbuf.reshape(B, -1).clamp(1.0, 1e30)
-            keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
-        if expression_quota > 0 and model.num_animation > 0:
-            # Per unit, the candidates it moves by >= 1 px per unit coefficient; the quota with the highest keys
-            # among them are lifted above every key (keys lie in [0, 1)). Only the candidates are looked at.
-            A = model.num_animation
-            flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
-            au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
-            sens = gather_face_attributes(au_mm, model.faces, face_flat.reshape(-1)[flat][None],
-                                          bary_flat.reshape(-1, 3)[flat][None], batched=False)[0]  # (M, A)
-            px_per_mm = intrinsics.fx / zbuf.reshape(-1)[flat].clamp(1.0, 1e30)
-            moved = sens * px_per_mm[:, None] >= 1.0
-            # Each sample's candidates in a (B, A, M_max) block (nonzero lists them sample by sample).
-            b_of = torch.div(flat, H * W, rounding_mode="floor")
-            counts = torch.bincount(b_of, minlength=B)
-            first = torch.cumsum(counts, 0) - counts
-            slot = torch.arange(flat.shape[0], device=flat.device) - first[b_of]
-            m_max = max(int(counts.max()) if B else 0, 1)
-            au_keys = torch.full((B, m_max, A), -1.0, dtype=keys.dtype, device=keys.device)
-            au_keys[b_of, slot] = torch.where(moved, keys.reshape(-1)[flat][:, None], au_keys.new_tensor(-1.0))
-            top_k, top_s = torch.topk(au_keys.transpose(1, 2), min(expression_quota, m_max), dim=-1)  # (B, A, q)
-            pix_of = torch.zeros(B, m_max, dtype=torch.int64, device=keys.device)
-            pix_of[b_of, slot] = flat - b_of * (H * W)
-            lift = torch.zeros(B, H * W, dtype=keys.dtype, device=keys.device)
-            lift.scatter_reduce_(1, torch.gather(pix_of, 1, top_s.flatten(1)), (top_k >= 0).flatten(1).to(keys.dtype),
-                                 reduce="amax")
-            keys = keys + 2.0 * lift
-        score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
-        top, pix = torch.topk(score, max_points, dim=1)
-    else:
-        top, pix = picked
+        counts = torch.bincount(b_of, minlength=B)
+        first = torch.cumsum(counts, 0) - counts
+        slot = torch.arange(flat.shape[0], device=flat.device) - first[b_of]
+        m_max = max(int(counts.max()) if B else 0, 1)
+        au_keys = torch.full((B, m_max, A), -1.0, dtype=keys.dtype, device=keys.device)
+        au_keys[b_of, slot] = torch.where(moved, keys.reshape(-1)[flat][:, None], au_keys.new_tensor(-1.0))
+        top_k, top_s = torch.topk(au_keys.transpose(1, 2), min(expression_quota, m_max), dim=-1)  # (B, A, q)
+        pix_of = torch.zeros(B, m_max, dtype=torch.int64, device=keys.device)
+        pix_of[b_of, slot] = flat - b_of * (H * W)
+        lift = torch.zeros(B, H * W, dtype=keys.dtype, device=keys.device)
+        lift.scatter_reduce_(1, torch.gather(pix_of, 1, top_s.flatten(1)), (top_k >= 0).flatten(1).to(keys.dtype),
+                             reduce="amax")
+        keys = keys + 2.0 * lift
+    score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
+    top, pix = torch.topk(score, max_points, dim=1)
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     rows = torch.arange(B, device=pix.device).repeat_interleave(pix.shape[1])
