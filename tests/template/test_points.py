@@ -308,6 +308,47 @@ def test_facing_threshold_keeps_exactly_the_points_that_face_their_ray(scene):
         assert 0 < len(got) < 0.95 * int(v.sum())  # the threshold removed some points, not all
 
 
+def test_facing_bound_of_a_triangle_holds_at_its_points(scene):
+    """The bound select_pixels_posed passes whole triangles on: at every point of a triangle, the cosine of the
+    interpolated normal with the reversed ray is at least the smallest cosine of a corner normal with a corner's
+    direction (where that is >= 0). Both kinds of triangle occur here at min_facing_cos = 0.6."""
+    from torchface.rendering.visibility import vertex_normals
+
+    s, model = scene, scene["model"]
+    tpl = build(scene, min_facing_cos=0.0)
+    posed = posed_mesh(model, s["shape"], s["anim"], s["R"], s["t"])
+    normals = vertex_normals(model.deform(s["shape"], s["anim"]), model.faces) @ s["R"].mT  # (B, V, 3)
+    corner_rays = torch.nn.functional.normalize(posed.verts_cam[:, model.faces], dim=-1)  # (B, F, 3, 3)
+    bound = -(normals[:, model.faces] @ corner_rays.mT).flatten(-2).amax(-1)  # (B, F)
+    n = gather_face_attributes(normals, model.faces, tpl.face_index, tpl.bary, batched=True)
+    _, _, X = pixels_of(scene, tpl)
+    X = X @ s["R"].mT + s["t"][:, None]  # camera frame
+    cos = -(torch.nn.functional.normalize(n, dim=-1) * torch.nn.functional.normalize(X, dim=-1)).sum(-1)
+    at = torch.gather(bound, 1, tpl.face_index)
+    use = tpl.valid & (at >= 0)
+    assert bool((cos[use] >= at[use] - 1e-5).all())
+    assert int((use & (at >= 0.61)).sum()) > 100 and int((tpl.valid & (at < 0.61)).sum()) > 100
+
+
+@pytest.mark.parametrize("min_facing_cos", [0.15, 0.6])
+def test_facing_tested_per_point_only_near_the_threshold_is_the_same_selection(scene, monkeypatch, min_facing_cos):
+    """select_pixels_posed tests the facing point by point only on triangles whose bound is within
+    _FACING_MARGIN of the threshold: the same selection, bit for bit, as testing every candidate (the margin
+    made too large to skip any: the slow reference)."""
+    import torchface.template.points as P
+
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    for n in (300, H * W):
+        kw = dict(max_points=n, gradient_threshold=0.01, min_facing_cos=min_facing_cos)
+        fast = select_pixels_posed(s["model"], posed, s["gray"], s["cam"], None, **kw)
+        monkeypatch.setattr(P, "_FACING_MARGIN", 10.0)
+        slow = select_pixels_posed(s["model"], posed, s["gray"], s["cam"], None, **kw)
+        monkeypatch.undo()
+        for f in ("face_index", "bary", "intensity", "valid"):
+            assert torch.equal(getattr(fast, f), getattr(slow, f)), (n, f)
+
+
 def test_subsampling_is_a_deterministic_subset(scene):
     full = build(scene)
     few = build(scene, max_points=200)

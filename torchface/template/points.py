@@ -307,6 +307,11 @@ def rasterize_windows(
     return [coverage.part(slice(i * B, (i + 1) * B), c.height, c.width) for i, c in enumerate(cameras)]
 
 
+#: :func:`select_pixels_posed` tests the facing of every point of a triangle only where the triangle's lower
+#: bound on that cosine is within this of the threshold (far more than the cosine's rounding error).
+_FACING_MARGIN = 0.01
+
+
 def select_pixels_posed(
     model: FaceModel,
     posed: PosedMesh,
@@ -354,13 +359,24 @@ def select_pixels_posed(
     candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
     # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
     # interpolated at the pixels still candidates (every sample's, listed together), not over the whole window,
-    # with their barycentric coordinates alone.
+    # with their barycentric coordinates alone, and only on the triangles that some of their points may fail:
+    # the cosine at a point of a triangle is at least the smallest cosine of a corner's (unit) normal with a
+    # corner's direction from the camera (the point and its interpolated normal are convex combinations of the
+    # corners'; where that bound is non-negative), so a triangle whose bound clears the threshold by
+    # _FACING_MARGIN passes whole, as the per-point test would pass each of its points.
     flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
     b_of = torch.div(flat, H * W, rounding_mode="floor")
+    face_c = face_flat.reshape(-1).index_select(0, flat)
+    num_faces = model.faces.shape[0]
+    corner_normals = normals_cam[:, model.faces]  # (B, F, 3, 3)
+    corner_rays = torch.nn.functional.normalize(verts_cam[:, model.faces], dim=-1)  # (B, F, 3, 3)
+    bound = -torch.matmul(corner_normals, corner_rays.transpose(-1, -2)).flatten(-2).amax(-1)  # (B, F)
+    unsure = (bound < min_facing_cos + _FACING_MARGIN).reshape(-1)
+    test = unsure.index_select(0, b_of * num_faces + face_c).nonzero().squeeze(-1)
+    flat, b_of, face_c = flat.index_select(0, test), b_of.index_select(0, test), face_c.index_select(0, test)
     pix = flat - b_of * (H * W)
     pix_row = torch.div(pix, W, rounding_mode="floor")
     pix_col = pix - pix_row * W
-    face_c = face_flat.reshape(-1).index_select(0, flat)
     corner = model.faces.index_select(0, face_c)  # (M, 3)
     bary_c = frags.covered_barycentrics(b_of, face_c, pix_row, pix_col).to(normals_cam.dtype)
     V = normals_cam.shape[1]
