@@ -330,11 +330,12 @@ def test_facing_bound_of_a_triangle_holds_at_its_points(scene):
     assert int((use & (at >= 0.61)).sum()) > 100 and int((tpl.valid & (at < 0.61)).sum()) > 100
 
 
-@pytest.mark.parametrize("min_facing_cos", [0.15, 0.6])
+@pytest.mark.parametrize("min_facing_cos", [-0.3, 0.15, 0.6])
 def test_facing_tested_per_point_only_near_the_threshold_is_the_same_selection(scene, monkeypatch, min_facing_cos):
     """select_pixels_posed tests the facing point by point only on triangles whose bound is within
     _FACING_MARGIN of the threshold: the same selection, bit for bit, as testing every candidate (the margin
-    made too large to skip any: the slow reference)."""
+    made too large to skip any: the slow reference). A negative threshold is bounded by 0 (below it the bound
+    does not hold)."""
     import torchface.template.points as P
 
     s = scene

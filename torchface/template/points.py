@@ -362,7 +362,7 @@ def select_pixels_posed(
     # with their barycentric coordinates alone, and only on the triangles that some of their points may fail:
     # the cosine at a point of a triangle is at least the smallest cosine of a corner's (unit) normal with a
     # corner's direction from the camera (the point and its interpolated normal are convex combinations of the
-    # corners'; where that bound is non-negative), so a triangle whose bound clears the threshold by
+    # corners'; where that bound is non-negative), so a triangle whose bound clears the threshold (and 0) by
     # _FACING_MARGIN passes whole, as the per-point test would pass each of its points.
     flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
     b_of = torch.div(flat, H * W, rounding_mode="floor")
@@ -371,7 +371,7 @@ def select_pixels_posed(
     corner_normals = normals_cam[:, model.faces]  # (B, F, 3, 3)
     corner_rays = torch.nn.functional.normalize(verts_cam[:, model.faces], dim=-1)  # (B, F, 3, 3)
     bound = -torch.matmul(corner_normals, corner_rays.transpose(-1, -2)).flatten(-2).amax(-1)  # (B, F)
-    unsure = (bound < min_facing_cos + _FACING_MARGIN).reshape(-1)
+    unsure = ~(bound >= max(min_facing_cos, 0.0) + _FACING_MARGIN).reshape(-1)  # NaN: unsure
     test = unsure.index_select(0, b_of * num_faces + face_c).nonzero().squeeze(-1)
     flat, b_of, face_c = flat.index_select(0, test), b_of.index_select(0, test), face_c.index_select(0, test)
     pix = flat - b_of * (H * W)
