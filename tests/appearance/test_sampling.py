@@ -205,6 +205,22 @@ def test_pyr_down_equals_kornia_pyrdown(shape):
         torch.testing.assert_close(ours[..., :-2, :-2], pyr_down(even)[..., :-2, :-2], rtol=0, atol=1e-12)
 
 
+def test_pyr_down_out_is_the_same_step():
+    """``out=`` writes the same values bit for bit, also into a strided slot of a larger tensor, and returns it;
+    an ``out`` of the wrong shape or dtype is refused."""
+    from torchface.appearance.sampling import pyr_down
+
+    x = torch.rand(3, 1, 30, 44, generator=torch.Generator().manual_seed(4))
+    big = torch.full((5, 1, 15, 22), -1.0)
+    got = pyr_down(x, out=big[1:4])
+    assert got.data_ptr() == big[1:4].data_ptr() and torch.equal(got, pyr_down(x))
+    assert bool((big[0] == -1).all()) and bool((big[4] == -1).all())
+    with pytest.raises(ValueError, match="out must be"):
+        pyr_down(x, out=torch.empty(3, 1, 15, 21))
+    with pytest.raises(ValueError, match="out must be"):
+        pyr_down(x, out=torch.empty(3, 1, 15, 22, dtype=torch.float64))
+
+
 def test_pyr_down_gradcheck():
     """The in-place accumulation of the taps keeps the pyramid step differentiable (float64 gradcheck)."""
     from torchface.appearance.sampling import pyr_down

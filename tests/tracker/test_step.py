@@ -576,6 +576,41 @@ def test_clean_frame_rule_huber_at_the_finest_level_near_the_template_only(model
 
 
 # ----------------------------------------------------------------------------- pyramid windows
+@pytest.mark.parametrize("channels", [3, 1])
+def test_gray_crop_pyramid_in_chunks_equals_the_whole_batch(channels, monkeypatch):
+    """Built a chunk of streams at a time (19 streams: chunks of 8, 8 and 3), the crops' pyramid equals the whole
+    batch's bit for bit, with and without ``rows``; with autograd on the frames it is the whole batch's path and
+    differentiable."""
+    import torchface.appearance.sampling as sampling_module
+    import torchface.tracker.step as step_module
+
+    gen = torch.Generator().manual_seed(5)
+    B, H, W, ch, cw, L = 19, 64, 80, 40, 48, 3
+    frames = torch.rand(B, channels, H, W, generator=gen)
+    offsets = torch.stack([torch.randint(0, (W - cw) // 4 + 1, (B,), generator=gen) * 4,
+                           torch.randint(0, (H - ch) // 4 + 1, (B,), generator=gen) * 4], -1)  # fmt: skip
+    calls = []
+    real = sampling_module.pyr_down
+    monkeypatch.setattr(step_module, "pyr_down", lambda x, out=None: calls.append(x.shape[0]) or real(x, out=out))
+    got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L)
+    assert calls == [8, 8, 8, 8, 3, 3]  # the chunked path ran
+    want = gray_pyramid(step_module._crop_gray(frames, offsets, ch, cw), L)
+    assert [g.shape for g in got] == [(B, 1, 40, 48), (B, 1, 20, 24), (B, 1, 10, 12)]
+    for lv in range(L):
+        assert torch.equal(got[lv], want[lv]), lv
+    rows = torch.randint(0, B, (B,), generator=gen)
+    got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, rows)
+    want = gray_pyramid(step_module._crop_gray(frames[rows], offsets, ch, cw), L)
+    for lv in range(L):
+        assert torch.equal(got[lv], want[lv]), lv
+    calls.clear()
+    leaf = frames[:10].double().requires_grad_()
+    out = step_module.gray_crop_pyramid(leaf, offsets[:10], ch, cw, L)
+    assert calls == [10, 10]
+    out[2].sum().backward()
+    assert leaf.grad is not None and bool(torch.isfinite(leaf.grad).all()) and float(leaf.grad.abs().sum()) > 0
+
+
 @pytest.mark.parametrize("size", [(96, 128), (98, 130)])
 def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
     """Windows of a pyramid computed from a crop equal the whole frame's pyramid there, bit for bit, including

@@ -115,7 +115,7 @@ def image_with_gradients(gray: Tensor) -> Tensor:
 _PYR_TAPS: tuple[float, ...] = (1 / 32, 5 / 32, 10 / 32, 10 / 32, 5 / 32, 1 / 32)
 
 
-def pyr_down(images: Tensor) -> Tensor:
+def pyr_down(images: Tensor, out: Tensor | None = None) -> Tensor:
     """One Gaussian-pyramid step: blur with ``[1, 4, 6, 4, 1] / 16`` (reflect border), halve by 2x2 averaging.
 
     Equal to ``kornia.geometry.transform.pyrdown`` (Gaussian blur, then bilinear resize by 1/2 with
@@ -131,18 +131,27 @@ def pyr_down(images: Tensor) -> Tensor:
 
     Args:
         images: ``(B, C, H, W)`` with ``H, W >= 3``.
+        out: optional ``(B, C, H // 2, W // 2)`` tensor of ``images``' dtype and device to write the result into
+            (not differentiable, like every ``out=``).
 
     Returns:
-        ``(B, C, H // 2, W // 2)``.
+        ``(B, C, H // 2, W // 2)`` (``out`` when given).
     """
     if images.dim() != 4 or images.shape[-1] < 3 or images.shape[-2] < 3:
         raise ValueError(f"images must be (B, C, H, W) with H, W >= 3, got {tuple(images.shape)}")
     h2, w2 = images.shape[-2] // 2, images.shape[-1] // 2
+    if out is not None and (
+        out.shape != (*images.shape[:2], h2, w2) or out.dtype != images.dtype or out.device != images.device
+    ):
+        raise ValueError(
+            f"out must be {(*images.shape[:2], h2, w2)} {images.dtype} on {images.device}, "
+            f"got {tuple(out.shape)} {out.dtype} on {out.device}"
+        )
     p = F.pad(images, (2, 2, 2, 2), mode="reflect")
     rows = torch.mul(p[..., 0 : 2 * h2 : 2, :], _PYR_TAPS[0])
     for k in range(1, len(_PYR_TAPS)):
         rows.add_(p[..., k : k + 2 * h2 : 2, :], alpha=_PYR_TAPS[k])
-    out = torch.mul(rows[..., 0 : 2 * w2 : 2], _PYR_TAPS[0])
+    out = torch.mul(rows[..., 0 : 2 * w2 : 2], _PYR_TAPS[0], out=out)
     for k in range(1, len(_PYR_TAPS)):
         out.add_(rows[..., k : k + 2 * w2 : 2], alpha=_PYR_TAPS[k])
     return out
