@@ -23,6 +23,7 @@ import math
 
 import torch
 
+from torchface._scalar import scalar
 from torchface.geometry._checks import check_batch, check_exact_dim, check_tensor
 
 __all__ = [
@@ -160,9 +161,10 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
                  [ 0.,  0.,  1.]]])
     """
     check_tensor(aa, "aa", (3,))
-    x = (aa * aa).sum(-1, keepdim=True).clamp_min(torch.finfo(aa.dtype).tiny).sqrt().unsqueeze(-1) / math.pi
+    half = scalar(0.5, aa)  # cached constants (torchface._scalar): the same values, cheaper operations
+    x = (aa * aa).sum(-1, keepdim=True).clamp_min(torch.finfo(aa.dtype).tiny).sqrt().unsqueeze(-1) / scalar(math.pi, aa)
     a = torch.sinc(x)  # (..., 1, 1)
-    b = torch.sinc(0.5 * x).square() * 0.5
+    b = torch.sinc(half * x).square() * half
     G, eye = _so3_generators(aa.dtype, aa.device)
     k = torch.matmul(aa, G).view(*aa.shape[:-1], 3, 3)
     return torch.addcmul(torch.addcmul(eye, a, k), b, torch.matmul(k, k))

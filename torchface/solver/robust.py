@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import torch
 
+from torchface._scalar import scalar
+
 __all__ = ["RobustKind", "RobustLoss", "SwitchedRobustLoss", "robust_scale", "MAD_TO_SIGMA"]
 
 #: ``1 / Phi^{-1}(3/4)``: makes the median absolute deviation a consistent estimate of a Gaussian sigma.
@@ -131,9 +133,10 @@ class RobustLoss:
             out = torch.where(a <= c, 0.5 * u2, lin)
         elif self.kind is RobustKind.CAUCHY:
             out = 0.5 * c * c * torch.log1p(u2 / (c * c))
-        elif self.kind is RobustKind.TUKEY:
-            t = (u2 / (c * c)).clamp(max=1.0)
-            out = (c * c / 6.0) * (1.0 - (1.0 - t) ** 3)
+        elif self.kind is RobustKind.TUKEY:  # the tracker's default: its constants as cached tensors (_scalar)
+            one = scalar(1.0, u2)
+            t = (u2 / scalar(c * c, u2)).clamp(max=1.0)
+            out = scalar(c * c / 6.0, u2) * (one - (one - t) ** 3)
         else:  # GEMAN_MCCLURE
             out = 0.5 * u2 / (1.0 + u2 / (c * c))
         return s * s * out
@@ -181,9 +184,10 @@ class RobustLoss:
         s = _as_scale(scale, r)
         c = self.c
         u = r / s
-        t = ((u * u) / (c * c)).clamp(max=1.0)
-        one_minus_t = 1.0 - t
-        return s * s * ((c * c / 6.0) * (1.0 - one_minus_t**3)), one_minus_t**2
+        one = scalar(1.0, u)
+        t = ((u * u) / scalar(c * c, u)).clamp(max=1.0)
+        one_minus_t = one - t
+        return s * s * (scalar(c * c / 6.0, u) * (one - one_minus_t**3)), one_minus_t**2
 
 
 @dataclass(frozen=True)

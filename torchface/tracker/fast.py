@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchface._scalar import isfinite, scalar
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss, SwitchedRobustLoss
@@ -64,7 +65,7 @@ class LevelCamera:
 
 def _masked_median_abs(r: Tensor, valid: Tensor) -> Tensor:
     """``(B,)`` median of ``|r|`` over valid entries (1 where a row has none)."""
-    x = torch.where(valid, r.abs(), torch.full_like(r, float("nan")))
+    x = torch.where(valid, r.abs(), scalar(float("nan"), r))
     med = torch.nanmedian(x, dim=-1).values
     return torch.nan_to_num(med, nan=1.0)
 
@@ -166,7 +167,7 @@ def linearise(
     Xr = torch.bmm(R, Xm)  # turned about the head's origin, (B, 3, N)
     Xc = Xr + t.unsqueeze(-1)
     Z = Xc[:, 2]
-    front = Z > NEAR_PLANE_MM
+    front = Z > scalar(NEAR_PLANE_MM, Z)
     iz = Z.clamp_min(NEAR_PLANE_MM).reciprocal().unsqueeze(1)  # (B, 1, N)
     xy = Xc[:, :2] * iz  # (B, 2, N)
     shift = k.grid_shift if jacobian else k.grid_shift[:, :, :1]  # the stencil, or the points alone
@@ -176,8 +177,8 @@ def linearise(
     ).view(B, -1, N)
     intensity = vals[:, 0]
     r = torch.baddbmm((intensity - tpl.intensity).unsqueeze(1), light.unsqueeze(1), nlb).view(B, N)
-    inside = (grid[:, :, 0].abs() <= 1.0).all(1)
-    facing = (torch.bmm(R, k.normals_t) * Xc).sum(1) < 0
+    inside = (grid[:, :, 0].abs() <= scalar(1.0, grid)).all(1)
+    facing = (torch.bmm(R, k.normals_t) * Xc).sum(1) < scalar(0.0, Xc)
     valid = mask & front & inside & facing
     if not jacobian:
         return r, None, valid, intensity
@@ -211,7 +212,8 @@ def linearise(
 def robust_scale_of(r: Tensor, valid: Tensor, scale_floor: float) -> Tensor:
     """``(B, 1)`` the IRLS robust scale of residuals ``r (B, N)``: ``1.4826 * median |r|`` over ``valid (B, N)``,
     floored at ``scale_floor``."""
-    return (MAD_TO_SIGMA * _masked_median_abs(r, valid)).clamp_min(scale_floor).unsqueeze(-1)
+    med = _masked_median_abs(r, valid)
+    return (scalar(MAD_TO_SIGMA, med) * med).clamp_min(scale_floor).unsqueeze(-1)
 
 
 def _weights(
@@ -230,7 +232,7 @@ def _weights(
 def _cost(r: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, s: Tensor) -> Tensor:
     """``(B,)`` robust cost ``sum rho(r; s)`` (``r**2 / 2`` without a robust loss); ``r`` is 0 where invalid
     (``rho(0) = 0``, so invalid points add nothing)."""
-    rho = 0.5 * r * r if robust is None else robust.rho(r, s)
+    rho = scalar(0.5, r) * r * r if robust is None else robust.rho(r, s)
     return rho.sum(-1)
 
 
@@ -350,16 +352,16 @@ def solve_level(
     for it in range(iterations):
         r, J, valid, _ = lin(R, t, alpha, light) if it > 0 or start is None else start
         # A non-finite frame makes r non-finite there: those points are left out.
-        valid = valid & torch.isfinite(r)
-        r = torch.where(valid, r, 0.0)
+        valid = valid & isfinite(r)
+        r = torch.where(valid, r, scalar(0.0, r))
         Jt = J.transpose(1, 2)  # (B, P, N), contiguous: see _LevelConstants
         if not all_free:
-            Jt = torch.where(free_rows, Jt, 0.0)
+            Jt = torch.where(free_rows, Jt, scalar(0.0, Jt))
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
         prior_cost = (half_prior_alpha * d_alpha * d_alpha).sum(-1)
         if best is not None:  # the step is judged at the scale of the last accepted estimate
             judged = _cost(r, robust, best[7]) + prior_cost
-            accept = (judged <= best[6]) & torch.isfinite(judged)
+            accept = (judged <= best[6]) & isfinite(judged)
         wgt, s, cost = _weights(r, valid, robust, scale_floor)
         cost = cost + prior_cost  # at the new scale, compared against at the next iteration
         # The weights are zero at invalid points, which so add nothing: J is not masked (a select over J cost 28
@@ -368,30 +370,33 @@ def solve_level(
         # the system is built again from a masked J, so those points are left out instead of failing the sample.
         Jw = Jt * wgt.unsqueeze(1)
         H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
-        if not bool(torch.isfinite(H).all()):
-            Jt = torch.where(valid.unsqueeze(1), Jt, 0.0)
+        if not bool(isfinite(H).all()):
+            Jt = torch.where(valid.unsqueeze(1), Jt, scalar(0.0, Jt))
             Jw = Jt * wgt.unsqueeze(1)
             H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
         grad = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)
         grad[:, 6 : 6 + A] += prior_alpha * d_alpha
         if best is not None:
             if bool(accept.all()):  # the common case: one host sync, no selection
-                lam = (lam / 3.0).clamp_min(1e-6)
+                lam = (lam / scalar(3.0, lam)).clamp_min(1e-6)
             else:  # undo rejected steps
                 R, t, alpha, light, H, grad, cost, s = _select(accept, (R, t, alpha, light, H, grad, cost, s), best)
-                lam = torch.where(accept.view(B, 1, 1), (lam / 3.0).clamp_min(1e-6), lam * 10.0)
+                lam = torch.where(
+                    accept.view(B, 1, 1), (lam / scalar(3.0, lam)).clamp_min(1e-6), lam * scalar(10.0, lam)
+                )
         best = (R, t, alpha, light, H, grad, cost, s)
         diag = torch.diagonal(H, dim1=1, dim2=2)
-        floor = 1e-6 * diag.amax(-1, keepdim=True).clamp_min(1e-12)
+        floor = scalar(1e-6, diag) * diag.amax(-1, keepdim=True).clamp_min(1e-12)
         Hd = torch.diag_embed(diag + floor).mul_(lam).add_(H)
         if not all_free:
             Hd = Hd + fixed_diag
         L, info = torch.linalg.cholesky_ex(Hd)
         delta = torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1).neg_()
-        good = (info == 0) & torch.isfinite(delta.sum(-1)) & (valid.sum(-1) >= P)
+        n_valid = valid.sum(-1)
+        good = (info == scalar(0, info)) & isfinite(delta.sum(-1)) & (n_valid >= scalar(P, n_valid))
         finite = finite & (good | ~active)
         step = active & good
-        delta = torch.where(step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask, delta, 0.0)
+        delta = torch.where(step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask, delta, scalar(0.0, delta))
         dR = axis_angle_to_matrix(delta[:, 0:3])
         R = torch.bmm(dR, R)
         t = t + delta[:, 3:6]
@@ -401,8 +406,8 @@ def solve_level(
         active = active & good & ~(delta.abs() < tol).all(-1)
         if function_tolerance > 0:  # 0 is off: rounding can make the predicted decrease of a tiny step negative
             # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
-            pred = -(delta * (grad + 0.5 * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
-            active = active & ~(pred < function_tolerance * cost)
+            pred = -(delta * (grad + scalar(0.5, H) * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
+            active = active & ~(pred < scalar(function_tolerance, cost) * cost)
         if not bool(active.any()):
             break
     if not final_check:
@@ -412,16 +417,16 @@ def solve_level(
     if best is not None:
         # The last step is kept only where it did not raise the cost.
         r, _, valid, _ = last
-        cost = _cost(torch.where(valid, r, 0.0), robust, best[7])
+        cost = _cost(torch.where(valid, r, scalar(0.0, r)), robust, best[7])
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
         cost = cost + (half_prior_alpha * d_alpha * d_alpha).sum(-1)
-        accept = (cost <= best[6]) & torch.isfinite(cost)
+        accept = (cost <= best[6]) & isfinite(cost)
         if not bool(accept.all()):
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
             last = lin(R, t, alpha, light, keep_linearisation)
     r, _, valid, sampled = last
     outcome = LevelOutcome(
-        r, valid & torch.isfinite(r), sampled, iters, ~active & finite, finite, last if keep_linearisation else None,
+        r, valid & isfinite(r), sampled, iters, ~active & finite, finite, last if keep_linearisation else None,
         constants,
     )
     return R, t, alpha, light, outcome
