@@ -57,6 +57,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchface._scalar import isfinite, scalar
+
 __all__ = [
     "LKResult",
     "LKTemplate",
@@ -275,9 +277,9 @@ def inverse_compositional_lk(
         g = torch.addcmul(grid_n, p_.unsqueeze(2), to_grid)
         out = F.grid_sample(stacked, g, mode="bilinear", padding_mode="zeros", align_corners=True)  # (B, C', K, n)
         values = out.permute(0, 2, 3, 1)
-        inside = g.abs().amax(-1) <= 1.0
+        inside = g.abs().amax(-1) <= scalar(1.0, g)
         w = ref_weight if image_mask is None else values[..., C].clamp(0.0, 1.0) * ref_weight
-        return values[..., :C], torch.where(inside, w, 0.0)
+        return values[..., :C], torch.where(inside, w, scalar(0.0, w))
 
     def normal_equations(feats: Tensor, w: Tensor) -> tuple[Tensor, ...]:
         """``a, b, c, g0, g1`` ``(B, K)`` each: ``H = [[a, b], [b, c]]`` and the gradient ``sum w grad T^T e``
@@ -316,15 +318,15 @@ def inverse_compositional_lk(
             det = a * c - b * b
             # Well-posed: det above a relative floor (det <= trace^2 / 4) and everything finite (NaN fails the
             # first test, an infinite H or gradient the second).
-            ok = (det > (1e3 * eps) * (a + c).square()) & torch.isfinite(det + g0 + g1)
+            ok = (det > scalar(1e3 * eps, det) * (a + c).square()) & isfinite(det + g0 + g1)
             dp = torch.stack([c * g0 - b * g1, a * g1 - b * g0], -1) / det.unsqueeze(-1)  # H^-1 g; used where ok
             step = active & ok
             p = torch.where(step.unsqueeze(-1), p - dp, p)  # compose with the inverse increment
-            small = dp.norm(dim=-1) < tolerance
+            small = dp.norm(dim=-1) < scalar(tolerance, dp)
             converged = converged | (step & small)
             active = step & ~small
             if max_displacement is not None:
-                active = active & (p.norm(dim=-1) <= max_displacement)  # p is finite: a step needs a finite dp
+                active = active & (p.norm(dim=-1) <= scalar(max_displacement, p))  # p is finite: a step needs a finite dp
             made += 1
             left = int(active.sum())
             if left == 0 or left <= few:
