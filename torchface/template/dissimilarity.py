@@ -326,7 +326,8 @@ def inverse_compositional_lk(
             converged = converged | (step & small)
             active = step & ~small
             if max_displacement is not None:
-                active = active & (p.norm(dim=-1) <= scalar(max_displacement, p))  # p is finite: a step needs a finite dp
+                # p is finite: a step needs a finite dp
+                active = active & (p.norm(dim=-1) <= scalar(max_displacement, p))
             made += 1
             left = int(active.sum())
             if left == 0 or left <= few:

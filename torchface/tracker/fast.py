@@ -396,7 +396,8 @@ def solve_level(
         good = (info == scalar(0, info)) & isfinite(delta.sum(-1)) & (n_valid >= scalar(P, n_valid))
         finite = finite & (good | ~active)
         step = active & good
-        delta = torch.where(step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask, delta, scalar(0.0, delta))
+        moves = step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask
+        delta = torch.where(moves, delta, scalar(0.0, delta))
         dR = axis_angle_to_matrix(delta[:, 0:3])
         R = torch.bmm(dR, R)
         t = t + delta[:, 3:6]
