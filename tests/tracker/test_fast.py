@@ -396,3 +396,34 @@ def test_a_residual_only_final_check_gives_the_same_pass(robust):
     for name in ("residual", "valid", "sampled", "iterations", "converged", "finite"):
         assert torch.equal(getattr(checked[4], name), getattr(kept[4], name)), name
     assert kept[4].linearisation is not None and checked[4].linearisation is None
+
+
+def test_cached_constants_first_made_in_inference_mode_serve_a_differentiable_pass():
+    """The per-camera and per-setting constants (cached on first use) are made outside inference mode: a pass run
+    first under ``torch.inference_mode`` leaves them usable by a later differentiable one (gradients flow), and a
+    pass with other settings (a fixed parameter, another prior) gets its own, not the first one's."""
+    from torchface.tracker import fast
+
+    fast._camera_constants.cache_clear()
+    fast._solver_constants.cache_clear()
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    x0 = _perturbed(x_true)
+    with torch.inference_mode():
+        first = _solve(tpl, image, cam, x0, light_basis, iterations=3)
+    assert fast._camera_constants.cache_info().currsize == 1 and fast._solver_constants.cache_info().currsize == 1
+    R, t, a, lam = split(x0)
+    R = R.clone().requires_grad_()
+    r, J, valid, _ = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
+    (r * r).sum().backward()
+    assert R.grad is not None and bool(torch.isfinite(R.grad).all()) and float(R.grad.abs().sum()) > 0
+    again = _solve(tpl, image, cam, x0, light_basis, iterations=3)  # outside inference mode, from the cache
+    assert all(torch.equal(p, q) for p, q in zip(first[:4], again[:4]))
+    # A fixed translation: its own constants, and the translation does not move.
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    free[3:6] = False
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    R0, t0, a0, l0 = split(x0)
+    out = solve_level(tpl, image, cam, R0, t0, a0, l0, light_basis, tpl.valid, iterations=3, free=free,
+                      alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None)
+    assert fast._solver_constants.cache_info().currsize == 2
+    assert torch.equal(out[1], t0) and not torch.equal(out[0], R0)

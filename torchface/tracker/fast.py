@@ -22,6 +22,7 @@ batched over streams; the host synchronises only for the early-exit and step-rej
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -116,17 +117,55 @@ class _LevelConstants:
 _STENCIL: tuple[tuple[float, ...], tuple[float, ...]] = ((0.0, 1.0, 0.0, -1.0, 0.0), (0.0, 0.0, 1.0, 0.0, -1.0))
 
 
+@functools.lru_cache(maxsize=64)
+def _camera_constants(
+    fx: float, fy: float, cx: float, cy: float, width: int, height: int, dtype: torch.dtype, device: torch.device
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """What :func:`_level_constants` takes from a level camera's intrinsics alone (not its per-stream offsets):
+    ``centre (2,)``, ``to_grid (2,)``, ``stencil (2, 5)``, ``half_focal`` and ``grid_scale``. Cached per camera
+    (a tracked video's levels keep theirs), made outside inference mode as :mod:`torchface._scalar`'s constants
+    are; never modified in place."""
+    with torch.inference_mode(False):
+        focal = torch.tensor([fx, fy], dtype=dtype, device=device)
+        to_grid = torch.tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)], dtype=dtype, device=device)
+        centre = torch.tensor([cx, cy], dtype=dtype, device=device)
+        stencil = torch.tensor(_STENCIL, dtype=dtype, device=device) * to_grid.unsqueeze(-1)  # (2, 5)
+        return centre, to_grid, stencil, (0.5 * focal).view(1, 2, 1), (focal * to_grid).view(1, 2, 1, 1)
+
+
 def _level_constants(cam: LevelCamera, like: Tensor, tpl: Template) -> _LevelConstants:
     dtype, device = like.dtype, like.device
-    focal = torch.tensor([cam.fx, cam.fy], dtype=dtype, device=device)
-    to_grid = torch.tensor([2.0 / max(cam.width - 1, 1), 2.0 / max(cam.height - 1, 1)], dtype=dtype, device=device)
-    centre = torch.tensor([cam.cx, cam.cy], dtype=dtype, device=device)
-    shift = (centre - cam.offset.to(dtype)) * to_grid - 1.0  # (B, 2)
-    stencil = torch.tensor(_STENCIL, dtype=dtype, device=device) * to_grid.unsqueeze(-1)  # (2, 5)
-    return _LevelConstants(
-        (0.5 * focal).view(1, 2, 1), (focal * to_grid).view(1, 2, 1, 1), (shift.unsqueeze(-1) + stencil).unsqueeze(-1),
-        *tpl.point_last,
+    centre, to_grid, stencil, half_focal, grid_scale = _camera_constants(
+        cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, dtype, device
     )
+    shift = (centre - cam.offset.to(dtype)) * to_grid - 1.0  # (B, 2)
+    return _LevelConstants(half_focal, grid_scale, (shift.unsqueeze(-1) + stencil).unsqueeze(-1), *tpl.point_last)
+
+
+@functools.lru_cache(maxsize=64)
+def _solver_constants(
+    free: tuple[bool, ...], num_animation: int, alpha_prior: float, step_tolerance: tuple[float, float, float],
+    dtype: torch.dtype, device: torch.device,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`solve_level`'s constants for a float prior precision (one for every stream): the prior ``(P,)``, its
+    animation part and half of it ``(A,)``, its Hessian term ``(P, P)``, the fixed parameters' unit diagonal
+    ``(P, P)``, the free mask as a ``(P, 1)`` bool column and the step tolerances ``(P,)``. Cached per setting,
+    made outside inference mode; never modified in place."""
+    P, A = len(free), num_animation
+    with torch.inference_mode(False):
+        free_mask = torch.tensor(free, dtype=torch.bool, device=device)
+        freef = free_mask.to(dtype)
+        prior = torch.zeros(P, dtype=dtype, device=device)
+        prior[6 : 6 + A] = alpha_prior
+        prior = prior * freef
+        prior_alpha = prior[..., 6 : 6 + A]
+        tol = torch.cat([
+            torch.full((3,), step_tolerance[0], dtype=dtype, device=device),
+            torch.full((3,), step_tolerance[1], dtype=dtype, device=device),
+            torch.full((P - 6,), step_tolerance[2], dtype=dtype, device=device),
+        ])  # fmt: skip
+        return (prior_alpha, 0.5 * prior_alpha, torch.diag_embed(prior), torch.diag(1.0 - freef),
+                free_mask.unsqueeze(-1), free_mask, tol)  # fmt: skip
 
 
 def linearise(
@@ -315,35 +354,33 @@ def solve_level(
     A = alpha.shape[1]
     P = 6 + A + light.shape[1]
     dtype, device = R.dtype, R.device
-    # Everything that does not change across iterations is computed once here.
-    freef = free.to(dtype)
+    # Everything that does not change across iterations is computed once here (what depends on the settings alone
+    # once per setting: _solver_constants).
+    if isinstance(step_tolerance, (int, float)):
+        step_tolerance = (float(step_tolerance),) * 3
+    free_key = tuple(bool(v) for v in free.tolist())
+    all_free = all(free_key)
     if isinstance(alpha_prior, Tensor):  # one precision per stream: (B, P) priors, (B, P, P) Hessian terms
+        freef = free.to(dtype)
         prior = torch.zeros(B, P, dtype=dtype, device=device)
         prior[:, 6 : 6 + A] = alpha_prior.to(dtype).unsqueeze(-1)
+        prior = prior * freef
+        prior_alpha = prior[..., 6 : 6 + A]
+        half_prior_alpha = 0.5 * prior_alpha
+        prior_H = torch.diag_embed(prior)
+        _, _, _, fixed_diag, free_rows, free_mask, tol = _solver_constants(
+            free_key, A, 0.0, tuple(step_tolerance), dtype, device
+        )
     else:
-        prior = torch.zeros(P, dtype=dtype, device=device)
-        prior[6 : 6 + A] = alpha_prior
-    prior = prior * freef
-    prior_alpha = prior[..., 6 : 6 + A]
-    half_prior_alpha = 0.5 * prior_alpha
-    prior_H = torch.diag_embed(prior)
-    fixed_diag = torch.diag(1.0 - freef)
-    free_mask = free.to(torch.bool)
-    all_free = bool(free_mask.all())
+        prior_alpha, half_prior_alpha, prior_H, fixed_diag, free_rows, free_mask, tol = _solver_constants(
+            free_key, A, float(alpha_prior), tuple(step_tolerance), dtype, device
+        )
     constants = _level_constants(cam, R, tpl) if constants is None else constants
     neg_light_basis_t = light_basis.transpose(1, 2).neg()  # (B, L, N), contiguous
-    free_rows = free_mask.unsqueeze(-1)  # (P, 1)
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
     finite = torch.ones(B, dtype=torch.bool, device=device)
     lam = torch.full((B, 1, 1), damping, dtype=dtype, device=device)
-    if isinstance(step_tolerance, (int, float)):
-        step_tolerance = (float(step_tolerance),) * 3
-    tol = torch.cat([
-        torch.full((3,), step_tolerance[0], dtype=dtype, device=device),
-        torch.full((3,), step_tolerance[1], dtype=dtype, device=device),
-        torch.full((P - 6,), step_tolerance[2], dtype=dtype, device=device),
-    ])
 
     def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor, jacobian: bool = True) -> tuple[Tensor, ...]:
         return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t, jacobian)
