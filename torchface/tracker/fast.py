@@ -147,10 +147,10 @@ def _solver_constants(
     free: tuple[bool, ...], num_animation: int, alpha_prior: float, step_tolerance: tuple[float, float, float],
     dtype: torch.dtype, device: torch.device,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """:func:`solve_level`'s constants for a float prior precision (one for every stream): the prior ``(P,)``, its
-    animation part and half of it ``(A,)``, its Hessian term ``(P, P)``, the fixed parameters' unit diagonal
-    ``(P, P)``, the free mask as a ``(P, 1)`` bool column and the step tolerances ``(P,)``. Cached per setting,
-    made outside inference mode; never modified in place."""
+    """:func:`solve_level`'s constants for a float prior precision (one for every stream), in this order: the
+    prior's animation part and half of it ``(A,)``, the prior's Hessian term ``(P, P)``, the fixed parameters'
+    unit diagonal ``(P, P)``, the free mask as a ``(P, 1)`` bool column and as ``(P,)``, and the step tolerances
+    ``(P,)``. Cached per setting, made outside inference mode; never modified in place."""
     P, A = len(free), num_animation
     with torch.inference_mode(False):
         free_mask = torch.tensor(free, dtype=torch.bool, device=device)
