@@ -22,6 +22,7 @@ batched over streams; the host synchronises only for the early-exit and step-rej
 
 from __future__ import annotations
 
+import enum
 import functools
 from dataclasses import dataclass
 
@@ -29,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchface import _native
 from torchface._scalar import isfinite, scalar
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.so3 import axis_angle_to_matrix
@@ -39,6 +41,24 @@ from torchface.template.points import Template
 #: Default convergence test of :func:`solve_level`: every increment below these, rotation (radians), translation
 #: (millimetres), animation and illumination coefficients (units), at full resolution.
 STEP_TOLERANCE: tuple[float, float, float] = (2e-4, 0.05, 2e-3)
+
+class SolverBackend(enum.Enum):
+    """Which implementation runs :func:`solve_level`.
+
+    Both run the same algorithm; the native one (:mod:`torchface._native`, C compiled at first use) iterates each
+    stream on its own, as the torch code does for a batch of one, and accumulates the normal equations in double
+    precision, so the two agree to rounding (tests/tracker/test_native.py). Measured on benchmark.py's frames, one
+    stream's level solves take about a sixth of the torch code's time.
+    """
+
+    #: The native solver where it can run (CPU tensors of float32 or float64, no gradient asked for, a C compiler
+    #: on the machine), else the torch code.
+    AUTO = "auto"
+    #: Always the torch code (differentiable, any device).
+    TORCH = "torch"
+    #: Always the native solver: an error where it cannot run.
+    NATIVE = "native"
+
 
 #: Default second convergence test of :func:`solve_level`: the step's predicted cost decrease (of the
 #: linearised, reweighted problem) below this fraction of the cost.
@@ -306,6 +326,7 @@ def solve_level(
     start: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     constants: _LevelConstants | None = None,
     keep_linearisation: bool = True,
+    backend: SolverBackend = SolverBackend.AUTO,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -346,6 +367,11 @@ def solve_level(
         keep_linearisation: the final check linearises in full and hands it on
             (:attr:`LevelOutcome.linearisation`, for a following pass at this level); False: residuals only there
             (no Jacobian, one sample per point) and ``linearisation`` None.
+        backend: :class:`SolverBackend`: the native solver (each stream iterated on its own, in parallel over
+            ``torch.get_num_threads()`` threads) or this torch code, whose batch iterates while any stream does
+            (a stream that has stopped keeps its estimate; only where the loop goes on for others can its last
+            step still be undone in the loop rather than by the final check, which gives the same estimate with
+            ``final_check``).
 
     Returns:
         The new ``R, t, alpha, light`` and a :class:`LevelOutcome`.
@@ -354,10 +380,19 @@ def solve_level(
     A = alpha.shape[1]
     P = 6 + A + light.shape[1]
     dtype, device = R.dtype, R.device
-    # Everything that does not change across iterations is computed once here (what depends on the settings alone
-    # once per setting: _solver_constants).
     if isinstance(step_tolerance, (int, float)):
         step_tolerance = (float(step_tolerance),) * 3
+    if _use_native(backend, (tpl.points, tpl.basis, tpl.normals, tpl.intensity, image, R, t, alpha, light,
+                             light_basis, alpha_lower, alpha_upper, alpha_mean, alpha_prior, cam.offset), P):
+        return _solve_level_native(
+            tpl, image, cam, R, t, alpha, light, light_basis, mask, iterations=iterations, free=free,
+            alpha_lower=alpha_lower, alpha_upper=alpha_upper, alpha_prior=alpha_prior, robust=robust,
+            alpha_mean=alpha_mean, scale_floor=scale_floor, damping=damping, final_check=final_check,
+            step_tolerance=step_tolerance, function_tolerance=function_tolerance, start=start, constants=constants,
+            keep_linearisation=keep_linearisation,
+        )
+    # Everything that does not change across iterations is computed once here (what depends on the settings alone
+    # once per setting: _solver_constants).
     free_key = tuple(bool(v) for v in free.tolist())
     all_free = all(free_key)
     if isinstance(alpha_prior, Tensor):  # one precision per stream: (B, P) priors, (B, P, P) Hessian terms
@@ -468,3 +503,143 @@ def solve_level(
         constants,
     )
     return R, t, alpha, light, outcome
+
+
+def _use_native(backend: SolverBackend, tensors: tuple[Tensor | float | None, ...], num_params: int) -> bool:
+    """Whether :func:`solve_level` runs natively: ``backend`` allows it and the inputs suit it (CPU, one dtype of
+    float32 or float64, no gradient asked for). With :attr:`SolverBackend.NATIVE`, inputs that do not suit it
+    are an error."""
+    if backend is SolverBackend.TORCH:
+        return False
+    if not isinstance(backend, SolverBackend):
+        raise TypeError(f"backend must be a SolverBackend, got {backend!r}")
+    arrays = [x for x in tensors if isinstance(x, Tensor)]
+    dtype = arrays[0].dtype
+    why = None
+    if dtype not in (torch.float32, torch.float64) or any(x.dtype != dtype for x in arrays):
+        why = f"needs tensors of one dtype, float32 or float64 (got {sorted({str(x.dtype) for x in arrays})})"
+    elif any(x.device.type != "cpu" for x in arrays):
+        why = "runs on the CPU only"
+    elif torch.is_grad_enabled() and any(x.requires_grad for x in arrays):
+        why = "does not propagate gradients (use SolverBackend.TORCH)"
+    elif num_params > 64:
+        why = f"supports at most 64 parameters, got {num_params}"
+    elif _native.level_solver() is None:
+        why = f"is unavailable: {_native.unavailable_reason()}"
+    if why is None:
+        return True
+    if backend is SolverBackend.NATIVE:
+        raise RuntimeError(f"the native level solver {why}")
+    return False
+
+
+def _loss_codes(robust: RobustLoss | SwitchedRobustLoss | None, B: int) -> tuple[Tensor, Tensor]:
+    """Per stream, the native solver's loss code ``(B,)`` int32 and tuning constant ``(B,)`` float64."""
+    if robust is None:
+        return torch.zeros(B, dtype=torch.int32), torch.ones(B, dtype=torch.float64)
+    if isinstance(robust, SwitchedRobustLoss):
+        kinds = [robust.base, robust.alternative]
+        switch = robust.switch.reshape(B).cpu()
+    else:
+        kinds = [robust, robust]
+        switch = torch.zeros(B, dtype=torch.bool)
+    code = torch.tensor([_native.LOSS_CODES[k.kind.value] for k in kinds], dtype=torch.int32)
+    c = torch.tensor([k.c for k in kinds], dtype=torch.float64)
+    which = switch.long()
+    return code[which].contiguous(), c[which].contiguous()
+
+
+def _solve_level_native(
+    tpl: Template,
+    image: Tensor,
+    cam: LevelCamera,
+    R: Tensor,
+    t: Tensor,
+    alpha: Tensor,
+    light: Tensor,
+    light_basis: Tensor,
+    mask: Tensor,
+    *,
+    iterations: int,
+    free: Tensor,
+    alpha_lower: Tensor,
+    alpha_upper: Tensor,
+    alpha_prior: float | Tensor,
+    robust: RobustLoss | SwitchedRobustLoss | None,
+    alpha_mean: Tensor | None,
+    scale_floor: float,
+    damping: float,
+    final_check: bool,
+    step_tolerance: tuple[float, float, float],
+    function_tolerance: float,
+    start: tuple[Tensor, Tensor, Tensor, Tensor] | None,
+    constants: _LevelConstants | None,
+    keep_linearisation: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
+    """:func:`solve_level` by the native solver (:mod:`torchface._native`); the same arguments and results."""
+    B, N = mask.shape
+    A, L = alpha.shape[1], light.shape[1]
+    P = 6 + A + L
+    dtype = R.dtype
+    k = _level_constants(cam, R, tpl) if constants is None else constants
+    if image.shape[1] != 1:
+        raise ValueError(f"image must be the (B, 1, h, w) gray crop, got {tuple(image.shape)}")
+    image = image.contiguous()
+    h, w = image.shape[-2:]
+    points_t, normals_t, basis_t = (x.contiguous() for x in (k.points_t, k.normals_t, k.basis_t))
+    intensity = tpl.intensity.contiguous()
+    nlb = light_basis.transpose(1, 2).neg().contiguous()  # (B, L, N)
+    offsets = cam.offset.to(dtype).contiguous()
+    mask_c = mask.contiguous()
+    free_u8 = free.to(device="cpu", dtype=torch.uint8).contiguous()
+    R_out, t_out, alpha_out, light_out = (x.detach().clone(memory_format=torch.contiguous_format)
+                                          for x in (R, t, alpha, light))  # fmt: skip
+    lower, upper = alpha_lower.to(dtype).contiguous(), alpha_upper.to(dtype).contiguous()
+    mean = None if alpha_mean is None else alpha_mean.to(dtype).expand(B, A).contiguous()
+    if isinstance(alpha_prior, Tensor):
+        prior = alpha_prior.to(torch.float64).expand(B).contiguous()
+    else:
+        prior = torch.full((B,), float(alpha_prior), dtype=torch.float64)
+    loss_kind, loss_c = _loss_codes(robust, B)
+    # the tolerances as the torch code compares them: rounded to the dtype
+    tol = torch.tensor(
+        [step_tolerance[0]] * 3 + [step_tolerance[1]] * 3 + [step_tolerance[2]] * (P - 6), dtype=dtype
+    ).to(torch.float64)
+    if start is not None:
+        start_r = start[0].to(dtype).contiguous()
+        start_J = start[1].transpose(1, 2).to(dtype).contiguous()  # (B, P, N)
+        start_valid = start[2].contiguous()
+    residual = torch.empty(B, N, dtype=dtype)
+    sampled = torch.empty(B, N, dtype=dtype)
+    valid = torch.empty(B, N, dtype=torch.bool)
+    converged = torch.empty(B, dtype=torch.bool)
+    finite = torch.empty(B, dtype=torch.bool)
+    iters = torch.empty(B, dtype=torch.int64)
+    keep = final_check and keep_linearisation
+    J_out = torch.empty(B, P, N, dtype=dtype) if keep else None
+
+    def ptr(x: Tensor | None) -> int | None:
+        return None if x is None else x.data_ptr()
+
+    prob = _native.LevelProblem(
+        B=B, N=N, A=A, L=L, P=P, height=h, width=w, iterations=int(iterations), final_check=int(final_check),
+        fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, scale_floor=float(scale_floor), damping=float(damping),
+        function_tolerance=float(function_tolerance),
+        image=ptr(image), points=ptr(points_t), normals=ptr(normals_t), basis=ptr(basis_t), intensity=ptr(intensity),
+        neg_light_basis=ptr(nlb), offsets=ptr(offsets), mask=ptr(mask_c), free=ptr(free_u8), R=ptr(R_out),
+        t=ptr(t_out), alpha=ptr(alpha_out), light=ptr(light_out), alpha_lower=ptr(lower), alpha_upper=ptr(upper),
+        alpha_mean=ptr(mean), alpha_prior=ptr(prior), loss_c=ptr(loss_c), step_tolerance=ptr(tol),
+        loss_kind=ptr(loss_kind),
+        start_r=ptr(start_r) if start is not None else None,
+        start_J=ptr(start_J) if start is not None else None,
+        start_valid=ptr(start_valid) if start is not None else None,
+        out_residual=ptr(residual), out_sampled=ptr(sampled), out_J=ptr(J_out), out_valid=ptr(valid),
+        out_converged=ptr(converged), out_finite=ptr(finite), out_iterations=ptr(iters),
+    )  # fmt: skip
+    lib = _native.level_solver()
+    fn = lib.tf_solve_level_f32 if dtype == torch.float32 else lib.tf_solve_level_f64
+    if B > 0:
+        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    linearisation = (residual, J_out.transpose(1, 2), valid, sampled) if keep else None
+    outcome = LevelOutcome(residual, valid & isfinite(residual), sampled, iters, converged, finite, linearisation, k)
+    return R_out, t_out, alpha_out, light_out, outcome

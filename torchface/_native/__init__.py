@@ -1,0 +1,176 @@
+"""Compiled kernels of torchface's hot loops, built from C source at first use and called through ctypes.
+
+At one stream a tracking step's level solves are thousands of small tensor operations, and their dispatch, not
+their arithmetic, is most of the step's time; at many streams the same loops stream every intermediate through
+memory. :func:`level_solver` compiles ``level_solver.c`` (one pyramid level's Levenberg-Marquardt solve per
+stream, the algorithm of :func:`torchface.tracker.fast.solve_level`) with the machine's C compiler into a
+shared library, caches it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH,
+or ``$CC``); where there is none, or the build fails, the callers use their torch code instead
+(:func:`unavailable_reason` says why).
+
+The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
+hash of the source, the compiler and its flags, so a changed source is built again; it is built into a temporary
+file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
+partial file. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
+
+Floating-point: compiled with ``-ffp-contract=off`` (no fused multiply-adds), so a build gives the same results
+on any x86-64 machine for the same inputs; the normal equations are accumulated in double precision.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+__all__ = ["level_solver", "unavailable_reason", "run_chunks", "LevelProblem", "LOSS_CODES"]
+
+_SOURCE_DIR = Path(__file__).resolve().parent
+_SOURCES = ("level_solver.c", "level_solver.h")
+#: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
+_ABI_VERSION = 1
+_FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
+#: Tried first, then left out if the compiler refuses it.
+_ARCH_FLAGS = ("-march=native",)
+
+#: ``torchface.solver.robust.RobustKind`` value -> the kernel's loss code.
+LOSS_CODES = {"none": 0, "huber": 1, "cauchy": 2, "tukey": 3, "geman_mcclure": 4}
+
+_lock = threading.Lock()
+_library: ctypes.CDLL | None = None
+_reason: str | None = None
+_tried = False
+
+
+class LevelProblem(ctypes.Structure):
+    """``TFLevelProblem`` of ``level_solver.c`` (same field order): one level solve's sizes, settings, input and
+    output arrays (pointers to contiguous tensors; see ``level_solver.h`` for their shapes)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "N", "A", "L", "P", "height", "width", "iterations", "final_check")),
+        *((name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "scale_floor", "damping",
+                                               "function_tolerance")),  # fmt: skip
+        *((name, ctypes.c_void_p) for name in (
+            "image", "points", "normals", "basis", "intensity", "neg_light_basis", "offsets", "mask", "free",
+            "R", "t", "alpha", "light", "alpha_lower", "alpha_upper", "alpha_mean", "alpha_prior", "loss_c",
+            "step_tolerance", "loss_kind", "start_r", "start_J", "start_valid", "out_residual", "out_sampled",
+            "out_J", "out_valid", "out_converged", "out_finite", "out_iterations",
+        )),  # fmt: skip
+    ]
+
+
+def _compiler() -> str | None:
+    cc = os.environ.get("CC")
+    if cc:
+        return cc
+    for name in ("cc", "gcc", "clang"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TORCHFACE_CACHE_DIR")
+    return (Path(root) if root else Path.home() / ".cache" / "torchface") / "native"
+
+
+def _build(cc: str) -> Path:
+    """Compile the library (or find it built) and return its path; raises ``RuntimeError`` on failure."""
+    source = b"".join((_SOURCE_DIR / name).read_bytes() for name in _SOURCES)
+    errors = []
+    for arch in (_ARCH_FLAGS, ()):
+        flags = (*_FLAGS, *arch)
+        key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION)).encode()).hexdigest()[:16]
+        target = _cache_dir() / f"level_solver-{key}.so"
+        if target.is_file():
+            return target
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
+        os.close(fd)
+        try:
+            cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "level_solver.c"), "-lm"]
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+            if out.returncode == 0:
+                os.replace(tmp, target)
+                return target
+            errors.append(f"{' '.join(cmd)}: {out.stderr.strip()[-500:]}")
+        except (OSError, subprocess.SubprocessError) as exc:
+            errors.append(f"{cc}: {exc}")
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    raise RuntimeError("; ".join(errors))
+
+
+def _load() -> None:
+    global _library, _reason, _tried
+    _tried = True
+    if os.environ.get("TORCHFACE_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
+        _reason = "turned off by TORCHFACE_NATIVE=0"
+        return
+    cc = _compiler()
+    if cc is None:
+        _reason = "no C compiler found (cc, gcc, clang or $CC)"
+        return
+    try:
+        lib = ctypes.CDLL(str(_build(cc)))
+        if lib.tf_abi_version() != _ABI_VERSION:
+            raise RuntimeError(f"library ABI {lib.tf_abi_version()}, expected {_ABI_VERSION}")
+    except (OSError, RuntimeError, AttributeError) as exc:
+        _reason = f"the native level solver could not be built or loaded: {exc}"
+        return
+    for name in ("tf_solve_level_f32", "tf_solve_level_f64"):
+        fn = getattr(lib, name)
+        fn.argtypes = [ctypes.POINTER(LevelProblem), ctypes.c_int, ctypes.c_int]
+        fn.restype = ctypes.c_int
+    _library = lib
+
+
+def level_solver() -> ctypes.CDLL | None:
+    """The loaded library (built on the first call), or None where it is unavailable (see
+    :func:`unavailable_reason`). Thread-safe."""
+    if not _tried:
+        with _lock:
+            if not _tried:
+                _load()
+    return _library
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`level_solver` is None (None when it is available or was not asked for yet)."""
+    return _reason
+
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def run_chunks(fn, problem: LevelProblem, batch: int, threads: int) -> None:
+    """``fn(problem, b0, b1)`` over ``[0, batch)`` in up to ``threads`` contiguous chunks, in parallel (ctypes
+    releases the GIL during the call; each chunk writes only its own streams' outputs). Raises ``MemoryError``
+    when a chunk could not allocate its workspace."""
+    global _pool, _pool_size
+    ref = ctypes.byref(problem)
+    chunks = max(1, min(threads, batch))
+    if chunks == 1:
+        codes = [fn(ref, 0, batch)]
+    else:
+        with _lock:
+            if _pool is None or _pool_size < chunks:
+                if _pool is not None:
+                    _pool.shutdown(wait=False)
+                _pool, _pool_size = ThreadPoolExecutor(max_workers=chunks, thread_name_prefix="torchface"), chunks
+            pool = _pool
+        bounds = [batch * k // chunks for k in range(chunks + 1)]
+        futures = [pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
+        codes = [fn(ref, bounds[0], bounds[1])] + [f.result() for f in futures]
+    if any(code != 0 for code in codes):
+        raise MemoryError("the native level solver could not allocate its workspace")

@@ -1,0 +1,52 @@
+/* torchface's native level solver: see level_solver.h. Compiled at first use by torchface._native (the C
+ * compiler of the machine, no other dependency) and called through ctypes; float and double variants. */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define TF_NEAR_PLANE_MM 1.0 /* torchface.conventions.NEAR_PLANE_MM */
+#define TF_MAD_TO_SIGMA 1.482602218505602
+#define TF_MAX_P 64
+enum { TF_LOSS_NONE = 0, TF_LOSS_HUBER = 1, TF_LOSS_CAUCHY = 2, TF_LOSS_TUKEY = 3, TF_LOSS_GEMAN_MCCLURE = 4 };
+
+/* Mirrored by torchface._native._LevelProblem (ctypes): keep the two in the same order. Arrays of the dtype are
+ * void pointers; see level_solver.h for their shapes. */
+typedef struct {
+    int B, N, A, L, P, height, width, iterations, final_check;
+    double fx, fy, cx, cy, scale_floor, damping, function_tolerance;
+    const void *image, *points, *normals, *basis, *intensity, *neg_light_basis, *offsets;
+    const uint8_t *mask, *free;
+    void *R, *t, *alpha, *light;
+    const void *alpha_lower, *alpha_upper, *alpha_mean;
+    const double *alpha_prior, *loss_c, *step_tolerance;
+    const int32_t *loss_kind;
+    const void *start_r, *start_J;
+    const uint8_t *start_valid;
+    void *out_residual, *out_sampled, *out_J;
+    uint8_t *out_valid, *out_converged, *out_finite;
+    int64_t *out_iterations;
+} TFLevelProblem;
+
+/* Each thread's workspace (see tf_solve_level), kept between calls. */
+static _Thread_local void *tf_workspace = NULL;
+static _Thread_local size_t tf_workspace_size = 0;
+
+int tf_abi_version(void) { return 1; }
+int tf_max_parameters(void) { return TF_MAX_P; }
+
+#define REAL float
+#define TF_FMA fmaf
+#define FN(name) name##_f32
+#include "level_solver.h"
+#undef REAL
+#undef TF_FMA
+#undef FN
+
+#define REAL double
+#define TF_FMA fma
+#define FN(name) name##_f64
+#include "level_solver.h"
+#undef REAL
+#undef TF_FMA
+#undef FN
