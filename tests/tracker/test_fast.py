@@ -1,6 +1,7 @@
 """Tests for torchface.tracker.fast (the default per-frame solver): its local-twist Jacobian against autograd,
 its residuals against the reference objective (:func:`frame_residuals`) on a crop, the exponential map, and
-known answers of :func:`solve_level` (exact recovery, robust rejection of corrupted points)."""
+known answers of :func:`solve_level` (exact recovery, robust rejection of corrupted points), each for both of its
+backends (the torch code and the native solver; tests/tracker/test_native.py compares the two directly)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg
 from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.template import Template
 from torchface.tracker import frame_residuals
-from torchface.tracker.fast import FUNCTION_TOLERANCE, LevelCamera, linearise, solve_level
+from torchface import _native
+from torchface.tracker.fast import FUNCTION_TOLERANCE, LevelCamera, SolverBackend, linearise, solve_level
 
 # The synthetic template, images and parameters of the objective tests (this folder on sys.path, whatever
 # pytest's import mode).
@@ -35,6 +37,17 @@ from test_objective import (  # noqa: E402
 )
 
 D = torch.float64
+
+requires_native = pytest.mark.skipif(
+    _native.level_solver() is None, reason=f"native solver unavailable: {_native.unavailable_reason()}"
+)
+BACKENDS = [SolverBackend.TORCH, pytest.param(SolverBackend.NATIVE, marks=requires_native)]
+
+
+@pytest.fixture(params=BACKENDS, ids=lambda b: b.value)
+def backend(request):
+    """Each :func:`solve_level` test runs with the torch code and with the native solver."""
+    return request.param
 
 
 def gray(image: torch.Tensor) -> torch.Tensor:
@@ -168,13 +181,13 @@ def _synthetic_problem(B: int = 2, N: int = 400, seed: int = 3):
     return tpl, image, cam, x_true, light_basis
 
 
-def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30):
+def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30, backend=SolverBackend.TORCH):
     R, t, a, lam = split(x0)
     free = torch.ones(LAYOUT.size, dtype=torch.bool)
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
     return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=iterations, free=free,
                        alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=robust, step_tolerance=1e-8,
-                       function_tolerance=0.0)
+                       function_tolerance=0.0, backend=backend)
 
 
 def _perturbed(x_true: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
@@ -187,14 +200,14 @@ def _perturbed(x_true: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
     return x0
 
 
-def test_solve_level_recovers_known_parameters():
+def test_solve_level_recovers_known_parameters(backend):
     """From a perturbed start (1.5 degrees, 5.8 mm, 0.1 AU, reference light) Gauss-Newton reaches the truth.
 
     Convergence is linear, not quadratic: the gradient channels are bilinearly interpolated central differences,
     not the derivative of the bilinear interpolant, so the step is an inexact Newton step (measured: 0.02 degree
     after 10 iterations, 6e-5 after 30)."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
-    R, t, a, lam, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis, iterations=60)
+    R, t, a, lam, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis, iterations=60, backend=backend)
     R_true, t_true, a_true, lam_true = split(x_true)
     assert bool(out.finite.all())
     assert float(geodesic_angle_deg(R, R_true).max()) < 1e-6
@@ -204,7 +217,7 @@ def test_solve_level_recovers_known_parameters():
     assert float(out.residual[out.valid].abs().max()) < 1e-8
 
 
-def test_function_tolerance_stops_a_pass_once_the_predicted_decrease_is_small():
+def test_function_tolerance_stops_a_pass_once_the_predicted_decrease_is_small(backend):
     """The predicted decrease of a Gauss-Newton step never exceeds the cost, so a function tolerance of 1 stops
     every sample after one step (converged); 0 leaves the parameter test alone; with noise on the template (a
     cost that levels off above zero, where the parameter test is slow to pass) the default stops on the way,
@@ -219,7 +232,7 @@ def test_function_tolerance_stops_a_pass_once_the_predicted_decrease_is_small():
     def solve(ftol):
         return solve_level(tpl, image, cam, R0, t0, a0, l0, light_basis, tpl.valid, iterations=40, free=free,
                            alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None, step_tolerance=1e-9,
-                           function_tolerance=ftol)
+                           function_tolerance=ftol, backend=backend)
 
     one, full, default = solve(1.0), solve(0.0), solve(FUNCTION_TOLERANCE)
     assert one[4].iterations.tolist() == [1, 1] and bool(one[4].converged.all())
@@ -231,7 +244,7 @@ def test_function_tolerance_stops_a_pass_once_the_predicted_decrease_is_small():
     assert float(geodesic_angle_deg(default[0], full[0]).max()) < 0.01
 
 
-def test_solve_level_robust_weights_reject_corrupted_points():
+def test_solve_level_robust_weights_reject_corrupted_points(backend):
     """20 % of the template intensities corrupted by +0.3..0.6: from a start 0.4 degree / 1.5 mm off, Tukey IRLS
     lands on the truth while plain least squares is dragged tens of degrees away (the fast solver has no cost
     check, so it does not stop at the start either)."""
@@ -245,8 +258,8 @@ def test_solve_level_robust_weights_reject_corrupted_points():
     light_basis = illumination_basis(T, tpl.normals @ R_true.mT)  # the light basis follows the template (B_1 = T)
     tpl = Template(tpl.face_index, tpl.bary, tpl.points, tpl.basis, tpl.normals, T, tpl.valid)
     x0 = _perturbed(x_true, 0.25)  # from 1.5 degrees off, sample 1 of Tukey also diverges (no cost check)
-    R_rob, t_rob, *_ = _solve(tpl, image, cam, x0, light_basis, robust=RobustLoss(RobustKind.TUKEY, 4.685))
-    R_l2, t_l2, *_ = _solve(tpl, image, cam, x0, light_basis, robust=None)
+    R_rob, t_rob, *_ = _solve(tpl, image, cam, x0, light_basis, robust=RobustLoss(RobustKind.TUKEY, 4.685), backend=backend)
+    R_l2, t_l2, *_ = _solve(tpl, image, cam, x0, light_basis, robust=None, backend=backend)
     err_rob = geodesic_angle_deg(R_rob, R_true)
     err_l2 = geodesic_angle_deg(R_l2, R_true)
     assert float(err_rob.max()) < 1e-3, err_rob
@@ -254,17 +267,17 @@ def test_solve_level_robust_weights_reject_corrupted_points():
     torch.testing.assert_close(t_rob, split(x_true)[1], rtol=0, atol=1e-3)
 
 
-def test_solve_level_survives_an_unobservable_animation_unit():
+def test_solve_level_survives_an_unobservable_animation_unit(backend):
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     basis = tpl.basis.clone()
     basis[..., 0] = 0.0  # animation unit 0 moves nothing
     tpl = Template(tpl.face_index, tpl.bary, tpl.points, basis, tpl.normals, tpl.intensity, tpl.valid)
-    *_, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis)
+    *_, out = _solve(tpl, image, cam, _perturbed(x_true), light_basis, backend=backend)
     assert bool(out.finite.all())
 
 
 @pytest.mark.parametrize("centred", [False, True])
-def test_prior_pulls_an_unobservable_animation_unit_to_its_mean(centred):
+def test_prior_pulls_an_unobservable_animation_unit_to_its_mean(centred, backend):
     """An animation unit that moves nothing is set by its prior alone: it ends at the prior's mean (the first
     frame's expression when ``alpha_mean`` is given, zero otherwise), whatever it started from."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
@@ -277,7 +290,7 @@ def test_prior_pulls_an_unobservable_animation_unit_to_its_mean(centred):
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
     *_, a_out, _, out = solve_level(
         tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=30, free=free, alpha_lower=lo,
-        alpha_upper=hi, alpha_prior=1.0, alpha_mean=mean, robust=None, step_tolerance=1e-9,
+        alpha_upper=hi, alpha_prior=1.0, alpha_mean=mean, robust=None, step_tolerance=1e-9, backend=backend,
     )
     assert bool(out.finite.all())
     torch.testing.assert_close(a_out[:, 0], torch.full_like(a_out[:, 0], 0.35 if centred else 0.0), rtol=0, atol=1e-4)
@@ -318,7 +331,7 @@ def test_crop_windows_equals_slicing_of_a_non_contiguous_batch():
         assert torch.equal(got[b], images[b, :, y0 : y0 + 3, x0 : x0 + 3])
 
 
-def test_per_stream_prior_equals_each_stream_solved_with_its_own():
+def test_per_stream_prior_equals_each_stream_solved_with_its_own(backend):
     """``alpha_prior`` as ``(B,)``: each stream ends where solving it with its own float precision ends."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
@@ -328,7 +341,8 @@ def test_per_stream_prior_equals_each_stream_solved_with_its_own():
 
     def solve(prior):
         return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=8, free=free,
-                           alpha_lower=lo, alpha_upper=hi, alpha_prior=prior, alpha_mean=mean, robust=None)
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=prior, alpha_mean=mean, robust=None,
+                           backend=backend)
 
     mixed = solve(torch.tensor([50.0, 0.01], dtype=D))
     for b, prior in enumerate((50.0, 0.01)):
@@ -340,22 +354,30 @@ def test_per_stream_prior_equals_each_stream_solved_with_its_own():
 
 
 @pytest.mark.parametrize("robust", [None, RobustLoss(RobustKind.TUKEY, 4.685)])
-def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_again(robust):
+def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_again(robust, backend):
     """``solve_level(start=out.linearisation)`` (the refinement pass after the finest level) gives exactly what
     linearising at the start again gives, and the linearisation is the one at the returned estimate."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
-    R, t, a, lam, first = _solve(tpl, image, cam, _perturbed(x_true), light_basis, robust=robust, iterations=3)
+    R, t, a, lam, first = _solve(tpl, image, cam, _perturbed(x_true), light_basis, robust=robust, iterations=3, backend=backend)
     r, J, valid, sampled = first.linearisation
     again = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
-    for got, want in zip((r, J, valid, sampled), again):
-        assert torch.equal(got, want)
+    if backend is SolverBackend.TORCH:
+        for got, want in zip((r, J, valid, sampled), again):
+            assert torch.equal(got, want)
+    else:  # the native solver's own linearisation: the torch code's to rounding, its Jacobian zero where not valid
+        assert torch.equal(valid, again[2])
+        torch.testing.assert_close(r, again[0], rtol=0, atol=1e-12)
+        torch.testing.assert_close(sampled, again[3], rtol=0, atol=1e-12)
+        torch.testing.assert_close(J[valid], again[1][valid], rtol=1e-9, atol=1e-12)
+        assert bool((J[~valid] == 0).all())
     free = torch.ones(LAYOUT.size, dtype=torch.bool)
     free[0:6] = False  # a refinement pass: expression and light only
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
 
     def refine(start):
         return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3, free=free,
-                           alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, start=start)
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, start=start,
+                           backend=backend)
 
     reused, fresh = refine(first.linearisation), refine(None)
     for got, want in zip(reused[:4], fresh[:4]):
@@ -373,7 +395,7 @@ def test_round_down_to_a_power_of_two_is_floor_division_also_below_zero():
 
 
 @pytest.mark.parametrize("robust", [None, RobustLoss(RobustKind.TUKEY, 4.685)])
-def test_a_residual_only_final_check_gives_the_same_pass(robust):
+def test_a_residual_only_final_check_gives_the_same_pass(robust, backend):
     """``keep_linearisation=False``: the final check linearises residuals only (one sample per point, no Jacobian)
     and the pass ends exactly where the full check ends, with the same outcome but no linearisation to hand on."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
@@ -388,7 +410,8 @@ def test_a_residual_only_final_check_gives_the_same_pass(robust):
 
     def solve(keep):
         return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3, free=free,
-                           alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, keep_linearisation=keep)
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, keep_linearisation=keep,
+                           backend=backend)
 
     kept, checked = solve(True), solve(False)
     for got, want in zip(checked[:4], kept[:4]):
@@ -424,6 +447,6 @@ def test_cached_constants_first_made_in_inference_mode_serve_a_differentiable_pa
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
     R0, t0, a0, l0 = split(x0)
     out = solve_level(tpl, image, cam, R0, t0, a0, l0, light_basis, tpl.valid, iterations=3, free=free,
-                      alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None)
+                      alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None, backend=SolverBackend.TORCH)
     assert fast._solver_constants.cache_info().currsize == 2
     assert torch.equal(out[1], t0) and not torch.equal(out[0], R0)

@@ -36,17 +36,13 @@ static inline REAL FN(sample_border)(const REAL *img, int h, int w, REAL x, REAL
     x = x < (REAL)0 ? (REAL)0 : (x > xmax ? xmax : x);
     y = y < (REAL)0 ? (REAL)0 : (y > ymax ? ymax : y);
     int x0 = (int)x, y0 = (int)y; /* floor: x, y >= 0 */
-    int x1 = x0 + 1, y1 = y0 + 1;
-    REAL fx1 = (REAL)x1 - x, fx0 = x - (REAL)x0, fy1 = (REAL)y1 - y, fy0 = y - (REAL)y0;
-    const REAL *row0 = img + (size_t)y0 * w;
-    REAL v = fx1 * fy1 * row0[x0];
-    if (x1 < w) v += fx0 * fy1 * row0[x1];
-    if (y1 < h) {
-        const REAL *row1 = row0 + w;
-        v += fx1 * fy0 * row1[x0];
-        if (x1 < w) v += fx0 * fy0 * row1[x1];
-    }
-    return v;
+    REAL ax = x - (REAL)x0, ay = y - (REAL)y0, bx = (REAL)1 - ax, by = (REAL)1 - ay;
+    /* a neighbour past the last row or column has weight 0 (x or y is clamped onto the last one) */
+    const REAL *q0 = img + (size_t)y0 * w + x0, *q1 = y0 + 1 < h ? q0 + w : q0;
+    int right = x0 + 1 < w;
+    REAL h0 = bx * q0[0] + ax * (right ? q0[1] : (REAL)0);
+    REAL h1 = bx * q1[0] + ax * (right ? q1[1] : (REAL)0);
+    return by * h0 + ay * (y0 + 1 < h ? h1 : (REAL)0);
 }
 
 /* linearise's geometry, point by point (vectorised; the arrays are separate, as restrict says): R X, the
