@@ -1,0 +1,287 @@
+"""Tests for the native level solver (torchface._native, :class:`~torchface.tracker.fast.SolverBackend`): the fast
+path against the slow reference (the torch code of :func:`~torchface.tracker.fast.solve_level`, one stream at a
+time), batch and thread consistency, non-finite frames, the fallbacks and the build."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchface import _native
+from torchface.geometry.so3 import geodesic_angle_deg
+from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss
+from torchface.template import Template
+from torchface.tracker.fast import LevelCamera, SolverBackend, solve_level
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_fast import D, LAYOUT, A, _perturbed, _synthetic_problem, split  # noqa: E402
+
+pytestmark = pytest.mark.skipif(
+    _native.level_solver() is None, reason=f"native solver unavailable: {_native.unavailable_reason()}"
+)
+
+TORCH, NATIVE = SolverBackend.TORCH, SolverBackend.NATIVE
+
+
+def _noisy_problem(B: int = 3, seed: int = 5):
+    """The synthetic problem of test_fast with noise and 15 % gross outliers on the template, so that the robust
+    weights, the scale and the step acceptance all have work to do, and a start 1.5 degrees off."""
+    parts = [_synthetic_problem(B=2, N=400, seed=seed + k) for k in range((B + 1) // 2)]  # two streams each
+
+    def cat(xs):
+        return torch.cat(list(xs))[:B]
+
+    tpl = Template(*(cat(getattr(p[0], f) for p in parts) for f in parts[0][0].__dataclass_fields__))
+    image, x_true, light_basis = (cat(p[i] for p in parts) for i in (1, 3, 4))
+    c = parts[0][2]
+    cam = LevelCamera(c.fx, c.fy, c.cx, c.cy, cat(p[2].offset for p in parts), c.height, c.width)
+    g = torch.Generator().manual_seed(seed)
+    T = tpl.intensity + 0.003 * torch.randn(tpl.intensity.shape, generator=g, dtype=D)
+    bad = torch.rand(T.shape, generator=g, dtype=D) < 0.15
+    T = torch.where(bad, T + 0.4, T)
+    tpl = Template(tpl.face_index, tpl.bary, tpl.points, tpl.basis, tpl.normals, T, tpl.valid)
+    x0 = _perturbed(x_true)
+    if B > 1:
+        x0[1] = _perturbed(x_true, 0.5)[1]  # the streams start at different distances from the truth
+    return tpl, image, cam, x0, light_basis
+
+
+def _select(tpl: Template, image, cam: LevelCamera, b: int):
+    one = Template(*(getattr(tpl, f)[b : b + 1] for f in tpl.__dataclass_fields__))
+    return one, image[b : b + 1], LevelCamera(cam.fx, cam.fy, cam.cx, cam.cy, cam.offset[b : b + 1], cam.height, cam.width)
+
+
+SETTINGS = {
+    "l2": dict(robust=None),
+    "tukey": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685)),
+    "huber": dict(robust=RobustLoss(RobustKind.HUBER, 1.345)),
+    "cauchy": dict(robust=RobustLoss(RobustKind.CAUCHY)),
+    "geman_mcclure": dict(robust=RobustLoss(RobustKind.GEMAN_MCCLURE)),
+    "none_kind": dict(robust=RobustLoss(RobustKind.NONE)),
+    "switched": dict(robust="switched"),
+    "prior_centred": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), alpha_prior=1.0, alpha_mean=0.2),
+    "prior_per_stream": dict(robust=None, alpha_prior="per_stream"),
+    "pose_fixed": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), free="pose_fixed", alpha_prior=0.1),
+    "no_light": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), free="no_light"),
+    "intermediate": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), final_check=False),
+    "residuals_only": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), keep_linearisation=False),
+    "ftol": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), function_tolerance=3e-3, step_tolerance=(2e-4, 0.05, 2e-3)),
+    "no_iterations": dict(robust=None, iterations=0),
+}
+
+
+def _arguments(setting: dict, B: int, dtype=D) -> dict:
+    s = dict(setting)
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    kind = s.pop("free", None)
+    if kind == "pose_fixed":
+        free[0:6] = False
+    elif kind == "no_light":
+        free[LAYOUT.illumination] = False
+    prior = s.pop("alpha_prior", 0.0)
+    if prior == "per_stream":
+        prior = torch.tensor([50.0, 0.01, 1.0][:B], dtype=dtype)
+    mean = s.pop("alpha_mean", None)
+    robust = s.pop("robust")
+    if robust == "switched":
+        switch = torch.tensor([[True], [False], [True]][:B])
+        robust = SwitchedRobustLoss(RobustLoss(RobustKind.TUKEY, 4.685), RobustLoss(RobustKind.HUBER, 4.685), switch)
+    args = dict(
+        iterations=s.pop("iterations", 8), free=free, alpha_lower=torch.full((A,), -5.0, dtype=dtype),
+        alpha_upper=torch.full((A,), 5.0, dtype=dtype), alpha_prior=prior, robust=robust,
+        alpha_mean=None if mean is None else torch.full((B, A), mean, dtype=dtype), scale_floor=0.002,
+        step_tolerance=s.pop("step_tolerance", 1e-8), function_tolerance=s.pop("function_tolerance", 0.0),
+    )
+    args.update(s)
+    return args
+
+
+def _stream_args(args: dict, b: int) -> dict:
+    """``args`` for stream ``b`` alone."""
+    out = dict(args)
+    if isinstance(args["alpha_prior"], torch.Tensor):
+        out["alpha_prior"] = args["alpha_prior"][b : b + 1]
+    if args["alpha_mean"] is not None:
+        out["alpha_mean"] = args["alpha_mean"][b : b + 1]
+    if isinstance(args["robust"], SwitchedRobustLoss):
+        sw = args["robust"]
+        out["robust"] = sw.alternative if bool(sw.switch[b, 0]) else sw.base
+    return out
+
+
+@pytest.mark.parametrize("name", list(SETTINGS))
+def test_native_equals_the_torch_code_stream_by_stream_float64(name):
+    """In float64 the native solver on the batch gives what the torch code gives on each stream alone (its batch
+    semantics), to rounding: the estimate, the iteration counts, the flags, the final residuals and the
+    linearisation handed on (whose Jacobian the native solver zeroes where a point is not valid)."""
+    tpl, image, cam, x0, light_basis = _noisy_problem()
+    B = x0.shape[0]
+    args = _arguments(SETTINGS[name], B)
+    R, t, a, lam = split(x0)
+    nat = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+    moved = False
+    for b in range(B):
+        tb, ib, cb = _select(tpl, image, cam, b)
+        ref = solve_level(tb, ib, cb, R[b : b + 1], t[b : b + 1], a[b : b + 1], lam[b : b + 1], light_basis[b : b + 1],
+                          tb.valid, backend=TORCH, **_stream_args(args, b))  # fmt: skip
+        assert float(geodesic_angle_deg(nat[0][b : b + 1], ref[0])) < 1e-7
+        for got, want in zip(nat[1:4], ref[1:4]):
+            torch.testing.assert_close(got[b : b + 1], want, rtol=0, atol=1e-8)
+        o, r = nat[4], ref[4]
+        for field in ("iterations", "converged", "finite", "valid"):
+            assert torch.equal(getattr(o, field)[b : b + 1], getattr(r, field)), field
+        v = r.valid
+        torch.testing.assert_close(o.residual[b : b + 1][v], r.residual[v], rtol=0, atol=1e-9)
+        torch.testing.assert_close(o.sampled[b : b + 1], r.sampled, rtol=0, atol=1e-9)
+        assert (o.linearisation is None) == (r.linearisation is None)
+        if r.linearisation is not None:
+            vr = r.linearisation[2]
+            assert torch.equal(o.linearisation[2][b : b + 1], vr)
+            torch.testing.assert_close(o.linearisation[1][b : b + 1][vr], r.linearisation[1][vr], rtol=1e-7, atol=1e-9)
+        moved |= float((nat[2][b] - a[b]).abs().max()) > 1e-4
+    assert moved or args["iterations"] == 0  # the solve did something (so agreement says something)
+
+
+def test_native_batch_is_each_stream_alone_and_independent_of_threads():
+    """Streams are solved independently: the batch equals each stream alone bit for bit, with 1 or 3 threads."""
+    tpl, image, cam, x0, light_basis = _noisy_problem()
+    args = _arguments(SETTINGS["tukey"], 3)
+    R, t, a, lam = split(x0)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+        torch.set_num_threads(3)
+        three = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+    finally:
+        torch.set_num_threads(threads)
+    for got, want in zip(one[:4], three[:4]):
+        assert torch.equal(got, want)
+    assert torch.equal(one[4].residual, three[4].residual)
+    for b in range(3):
+        tb, ib, cb = _select(tpl, image, cam, b)
+        alone = solve_level(tb, ib, cb, R[b : b + 1], t[b : b + 1], a[b : b + 1], lam[b : b + 1], light_basis[b : b + 1],
+                            tb.valid, backend=NATIVE, **args)  # fmt: skip
+        for got, want in zip(one[:4], alone[:4]):
+            assert torch.equal(got[b : b + 1], want)
+
+
+def test_native_float32_is_the_torch_code_to_float_rounding():
+    tpl, image, cam, x0, light_basis = _noisy_problem()
+    f = torch.float32
+    tpl32 = Template(*(x.float() if x.is_floating_point() else x for x in (getattr(tpl, k) for k in tpl.__dataclass_fields__)))
+    cam32 = LevelCamera(cam.fx, cam.fy, cam.cx, cam.cy, cam.offset.float(), cam.height, cam.width)
+    args = _arguments(SETTINGS["tukey"], 3, dtype=f)
+    R, t, a, lam = (p.float() for p in split(x0))
+    outs = [solve_level(tpl32, image.float(), cam32, R, t, a, lam, light_basis.float(), tpl.valid, backend=be, **args)
+            for be in (NATIVE, TORCH)]  # fmt: skip
+    nat, ref = outs
+    assert nat[0].dtype == torch.float32 and nat[4].residual.dtype == torch.float32
+    assert float(geodesic_angle_deg(nat[0].double(), ref[0].double()).max()) < 2e-3
+    torch.testing.assert_close(nat[1], ref[1], rtol=0, atol=2e-3)
+    torch.testing.assert_close(nat[2], ref[2], rtol=0, atol=2e-4)
+    torch.testing.assert_close(nat[3], ref[3], rtol=0, atol=2e-4)
+
+
+def test_a_non_finite_frame_is_reported_as_the_torch_code_reports_it():
+    """A frame of NaN: no point is valid, the solve is reported failed (not finite), the estimate does not move,
+    nothing is NaN in it; as the torch code does."""
+    tpl, image, cam, x0, light_basis = _noisy_problem(B=2)
+    image = image.clone()
+    image[0] = float("nan")
+    args = _arguments(SETTINGS["tukey"], 2)
+    R, t, a, lam = split(x0)
+    nat = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+    ref = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)
+    for out in (nat, ref):
+        assert not bool(out[4].finite[0]) and bool(out[4].finite[1])
+        assert int(out[4].valid[0].sum()) == 0
+        assert torch.equal(out[0][0], R[0]) and torch.equal(out[2][0], a[0])
+        assert all(bool(torch.isfinite(p).all()) for p in out[:4])
+
+
+def test_inputs_that_ask_for_gradients_take_the_torch_code_and_native_refuses_them():
+    tpl, image, cam, x0, light_basis = _noisy_problem(B=1)
+    args = _arguments(SETTINGS["l2"], 1)
+    args["iterations"] = 2
+    R, t, a, lam = split(x0)
+    live = image.clone().requires_grad_(True)
+    auto = solve_level(tpl, live, cam, R, t, a, lam, light_basis, tpl.valid, backend=SolverBackend.AUTO, **args)
+    ref = solve_level(tpl, live, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)
+    for got, want in zip(auto[:4], ref[:4]):  # AUTO ran the torch code (bit for bit its result)
+        assert torch.equal(got, want)
+    assert auto[4].residual.requires_grad  # and autograd recorded it
+    with pytest.raises(RuntimeError, match="gradients"):
+        solve_level(tpl, live, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+    with pytest.raises(RuntimeError, match="one dtype"):
+        solve_level(tpl, image.float(), cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+
+
+def test_without_the_library_auto_runs_the_torch_code_and_native_says_why(monkeypatch):
+    tpl, image, cam, x0, light_basis = _noisy_problem(B=2)
+    args = _arguments(SETTINGS["tukey"], 2)
+    R, t, a, lam = split(x0)
+    ref = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)
+    monkeypatch.setattr(_native, "_library", None)
+    monkeypatch.setattr(_native, "_reason", "no C compiler found (test)")
+    auto = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=SolverBackend.AUTO, **args)
+    for got, want in zip(auto[:4], ref[:4]):
+        assert torch.equal(got, want)
+    with pytest.raises(RuntimeError, match="no C compiler found"):
+        solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+
+
+_PROBE = (
+    "import torchface._native as n; lib = n.level_solver(); print('OK' if lib is not None else 'NONE', "
+    "n.unavailable_reason())"
+)
+
+
+def _probe(env: dict[str, str]) -> str:
+    out = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, env={**os.environ, **env},
+                         timeout=600)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
+    env = {"TORCHFACE_CACHE_DIR": str(tmp_path)}
+    assert _probe(env).startswith("OK")
+    built = list((tmp_path / "native").glob("level_solver-*.so"))
+    assert len(built) == 1 and not list((tmp_path / "native").glob("*.partial"))
+    stamp = built[0].stat().st_mtime_ns
+    assert _probe(env).startswith("OK")  # found, not built again
+    assert built[0].stat().st_mtime_ns == stamp
+
+
+def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
+    assert _probe({"TORCHFACE_NATIVE": "0"}).startswith("NONE turned off by TORCHFACE_NATIVE=0")
+    missing = _probe({"TORCHFACE_CACHE_DIR": str(tmp_path), "CC": str(tmp_path / "no-such-cc")})
+    assert missing.startswith("NONE the native level solver could not be built"), missing
+
+
+def test_tracking_with_either_backend_gives_the_same_poses():
+    """A short rendered sequence tracked with the default configuration (native) and with the torch code: the
+    same poses to a small fraction of a degree, the same statuses."""
+    from test_step import BASE, gentle_spec, landmarks_of, run  # noqa: E402
+
+    from torchface.model.candide import load_candide3
+    from torchface.synth.sequence import render_sequence
+
+    model = load_candide3()
+    spec = gentle_spec("n", (10.0, -6.0, 3.0), (0.0, 0.0, 450.0), (5.0, -2.0, 8.0), {"AUV11 Jaw drop": 0.6})
+    frames, gt = render_sequence(spec)
+    frames, lm = frames.unsqueeze(0), landmarks_of((gt,))
+    native, _ = run(model, replace(BASE, solver_backend=NATIVE), frames, lm)
+    torch_, _ = run(model, replace(BASE, solver_backend=TORCH), frames, lm)
+    for n, r in zip(native, torch_):
+        assert float(geodesic_angle_deg(n.rotation.double(), r.rotation.double()).max()) < 0.02
+        assert float((n.translation - r.translation).abs().max()) < 0.1
+        assert torch.equal(n.status, r.status)
+
