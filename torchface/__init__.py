@@ -7,9 +7,10 @@ shading) -> ``appearance`` -> ``solver`` -> ``template`` -> ``tracker`` -> ``nor
 
 __version__ = "0.1.0"
 
+from torchface.backend import Backend  # noqa: E402
 from torchface.geometry.camera import Intrinsics  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
 from torchface.normalise import NormalisedFace  # noqa: E402
 from torchface.tracker import FaceTracker, TrackerConfig, TrackResult  # noqa: E402
 
-__all__ = ["FaceTracker", "Intrinsics", "NormalisedFace", "TrackResult", "TrackerConfig", "load_candide3"]
+__all__ = ["Backend", "FaceTracker", "Intrinsics", "NormalisedFace", "TrackResult", "TrackerConfig", "load_candide3"]

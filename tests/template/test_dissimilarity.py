@@ -10,12 +10,20 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from torchface import _native
+from torchface.backend import Backend
 from torchface.template.dissimilarity import (
     DissimilarityConfig,
     build_dissimilarity_reference,
     dissimilarity,
     inverse_compositional_lk,
     lk_template,
+)
+
+
+TORCH, NATIVE = Backend.TORCH, Backend.NATIVE
+requires_native = pytest.mark.skipif(
+    _native.library() is None, reason=f"native kernels unavailable: {_native.unavailable_reason()}"
 )
 
 
@@ -349,8 +357,84 @@ def test_precomputed_reference_side_gives_the_same_answer():
     ref = build_dissimilarity_reference(ref_img, mask)
     assert ref.lk is not None
     without = type(ref)(ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score, ref.config)
-    for a, b in zip(dissimilarity(ref, img, mask), dissimilarity(without, img, mask)):
+    for a, b in zip(dissimilarity(ref, img, mask, TORCH), dissimilarity(without, img, mask, TORCH)):
         assert torch.equal(a, b)
     one = ref.select(torch.tensor([1]))
-    for a, b in zip(dissimilarity(one, img[1:], mask[1:]), dissimilarity(ref, img, mask)):
+    for a, b in zip(dissimilarity(one, img[1:], mask[1:], TORCH), dissimilarity(ref, img, mask, TORCH)):
         assert torch.equal(a[0], b[1])
+
+
+# ---------------------------------------------------------------- the native kernel against the torch code
+
+
+def _native_cases():
+    """Faces against one reference per stream: moved by sub-pixel to 2.5 pixel shifts, noisy, half masked, a
+    different face, flat (ill-posed patches), empty, NaN, and moved beyond ``max_displacement``."""
+    face, mask = _face(batch=1)
+    shifts = torch.tensor([[0.3, 0.0], [1.0, 0.5], [2.0, -1.5], [-2.5, 0.7]], dtype=torch.float64)
+    faces = [_shift(face.expand(4, -1, -1, -1), shifts) * mask]
+    masks = [mask.expand(4, -1, -1, -1)]
+    g = torch.Generator().manual_seed(9)
+    faces.append((face + 0.3 * torch.rand(face.shape, generator=g, dtype=torch.float64)) * mask)
+    masks.append(mask)
+    half = mask.clone()
+    half[..., :, 48:] = 0.0
+    faces += [face * half, _face(batch=1, seed=11)[0], torch.full_like(face, 0.5) * mask, face * 0,
+              torch.full_like(face, float("nan")), _shift(face, torch.tensor([[6.0, 4.0]], dtype=torch.float64)) * mask]
+    masks += [half, mask, mask, torch.zeros_like(mask), mask, mask]
+    faces, masks = torch.cat(faces), torch.cat(masks)
+    ref = build_dissimilarity_reference(face.expand(faces.shape[0], -1, -1, -1), mask.expand(faces.shape[0], -1, -1, -1))
+    return ref, faces, masks
+
+
+@requires_native
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_native_dissimilarity_equals_the_torch_code(dtype):
+    """The native smoothing and patch tracking (each patch on its own) give the torch code's displacements,
+    flags and supports, so the same dissimilarity and confidence: to rounding in float64, to float tolerance in
+    float32; the cases include ill-posed, empty, NaN and runaway patches."""
+    ref, faces, masks = _native_cases()
+    if dtype == torch.float32:
+        face0, mask0 = _face(batch=1)
+        ref = build_dissimilarity_reference(face0.expand(faces.shape[0], -1, -1, -1).float(),
+                                            mask0.expand(faces.shape[0], -1, -1, -1).float())  # fmt: skip
+        faces, masks = faces.float(), masks.float()
+    nat = dissimilarity(ref, faces, masks, NATIVE)
+    tor = dissimilarity(ref, faces, masks, TORCH)
+    tol, rtol = (1e-9, 0.0) if dtype == torch.float64 else (2e-4, 1e-4)
+    assert torch.equal(nat.present, tor.present)
+    both = torch.isfinite(tor.displacement)
+    assert torch.equal(both, torch.isfinite(nat.displacement))
+    torch.testing.assert_close(nat.displacement[both], tor.displacement[both], rtol=rtol, atol=tol)
+    torch.testing.assert_close(nat.dissimilarity, tor.dissimilarity, rtol=0, atol=tol)
+    torch.testing.assert_close(nat.confidence, tor.confidence, rtol=0, atol=tol)
+    assert bool(torch.isfinite(nat.confidence).all())
+    # the cases do what they are for: small shifts found, runaway and empty faces at zero confidence
+    assert float(nat.confidence[0]) > 0.9 and float(nat.confidence[-1]) < 0.05 and float(nat.confidence[-3]) == 0.0
+
+
+@requires_native
+def test_native_dissimilarity_is_each_stream_alone_and_independent_of_threads():
+    ref, faces, masks = _native_cases()
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = dissimilarity(ref, faces, masks, NATIVE)
+        torch.set_num_threads(3)
+        three = dissimilarity(ref, faces, masks, NATIVE)
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(one, three):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
+    for b in (0, 5):
+        alone = dissimilarity(ref.select(torch.tensor([b])), faces[b : b + 1], masks[b : b + 1], NATIVE)
+        for x, y in zip(alone, one):
+            assert torch.equal(x[0].nan_to_num(), y[b].nan_to_num())
+
+
+def test_backend_native_without_precomputed_patches_is_an_error():
+    face, mask = _face(batch=1)
+    ref = build_dissimilarity_reference(face, mask)
+    without = type(ref)(ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score, ref.config)
+    with pytest.raises(RuntimeError, match="native"):
+        dissimilarity(without, face, mask, NATIVE)

@@ -17,7 +17,8 @@ from torchface.solver.robust import RobustKind, RobustLoss
 from torchface.template import Template
 from torchface.tracker import frame_residuals
 from torchface import _native
-from torchface.tracker.fast import FUNCTION_TOLERANCE, LevelCamera, SolverBackend, linearise, solve_level
+from torchface.backend import Backend
+from torchface.tracker.fast import FUNCTION_TOLERANCE, LevelCamera, linearise, solve_level
 
 # The synthetic template, images and parameters of the objective tests (this folder on sys.path, whatever
 # pytest's import mode).
@@ -39,9 +40,9 @@ from test_objective import (  # noqa: E402
 D = torch.float64
 
 requires_native = pytest.mark.skipif(
-    _native.level_solver() is None, reason=f"native solver unavailable: {_native.unavailable_reason()}"
+    _native.library() is None, reason=f"native solver unavailable: {_native.unavailable_reason()}"
 )
-BACKENDS = [SolverBackend.TORCH, pytest.param(SolverBackend.NATIVE, marks=requires_native)]
+BACKENDS = [Backend.TORCH, pytest.param(Backend.NATIVE, marks=requires_native)]
 
 
 @pytest.fixture(params=BACKENDS, ids=lambda b: b.value)
@@ -181,7 +182,7 @@ def _synthetic_problem(B: int = 2, N: int = 400, seed: int = 3):
     return tpl, image, cam, x_true, light_basis
 
 
-def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30, backend=SolverBackend.TORCH):
+def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30, backend=Backend.TORCH):
     R, t, a, lam = split(x0)
     free = torch.ones(LAYOUT.size, dtype=torch.bool)
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
@@ -361,7 +362,7 @@ def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_a
     R, t, a, lam, first = _solve(tpl, image, cam, _perturbed(x_true), light_basis, robust=robust, iterations=3, backend=backend)
     r, J, valid, sampled = first.linearisation
     again = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
-    if backend is SolverBackend.TORCH:
+    if backend is Backend.TORCH:
         for got, want in zip((r, J, valid, sampled), again):
             assert torch.equal(got, want)
     else:  # the native solver's own linearisation: the torch code's to rounding, its Jacobian zero where not valid
@@ -447,6 +448,6 @@ def test_cached_constants_first_made_in_inference_mode_serve_a_differentiable_pa
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
     R0, t0, a0, l0 = split(x0)
     out = solve_level(tpl, image, cam, R0, t0, a0, l0, light_basis, tpl.valid, iterations=3, free=free,
-                      alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None, backend=SolverBackend.TORCH)
+                      alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None, backend=Backend.TORCH)
     assert fast._solver_constants.cache_info().currsize == 2
     assert torch.equal(out[1], t0) and not torch.equal(out[0], R0)

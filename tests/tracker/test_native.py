@@ -1,4 +1,4 @@
-"""Tests for the native level solver (torchface._native, :class:`~torchface.tracker.fast.SolverBackend`): the fast
+"""Tests for the native level solver (torchface._native, :class:`~torchface.backend.Backend`): the fast
 path against the slow reference (the torch code of :func:`~torchface.tracker.fast.solve_level`, one stream at a
 time), batch and thread consistency, non-finite frames, the fallbacks and the build."""
 
@@ -17,16 +17,17 @@ from torchface import _native
 from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss
 from torchface.template import Template
-from torchface.tracker.fast import LevelCamera, SolverBackend, solve_level
+from torchface.backend import Backend
+from torchface.tracker.fast import LevelCamera, solve_level
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_fast import D, LAYOUT, A, _perturbed, _synthetic_problem, split  # noqa: E402
 
 pytestmark = pytest.mark.skipif(
-    _native.level_solver() is None, reason=f"native solver unavailable: {_native.unavailable_reason()}"
+    _native.library() is None, reason=f"native solver unavailable: {_native.unavailable_reason()}"
 )
 
-TORCH, NATIVE = SolverBackend.TORCH, SolverBackend.NATIVE
+TORCH, NATIVE = Backend.TORCH, Backend.NATIVE
 
 
 def _noisy_problem(B: int = 3, seed: int = 5):
@@ -212,7 +213,7 @@ def test_inputs_that_ask_for_gradients_take_the_torch_code_and_native_refuses_th
     args["iterations"] = 2
     R, t, a, lam = split(x0)
     live = image.clone().requires_grad_(True)
-    auto = solve_level(tpl, live, cam, R, t, a, lam, light_basis, tpl.valid, backend=SolverBackend.AUTO, **args)
+    auto = solve_level(tpl, live, cam, R, t, a, lam, light_basis, tpl.valid, backend=Backend.AUTO, **args)
     ref = solve_level(tpl, live, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)
     for got, want in zip(auto[:4], ref[:4]):  # AUTO ran the torch code (bit for bit its result)
         assert torch.equal(got, want)
@@ -230,7 +231,7 @@ def test_without_the_library_auto_runs_the_torch_code_and_native_says_why(monkey
     ref = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)
     monkeypatch.setattr(_native, "_library", None)
     monkeypatch.setattr(_native, "_reason", "no C compiler found (test)")
-    auto = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=SolverBackend.AUTO, **args)
+    auto = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=Backend.AUTO, **args)
     for got, want in zip(auto[:4], ref[:4]):
         assert torch.equal(got, want)
     with pytest.raises(RuntimeError, match="no C compiler found"):
@@ -238,7 +239,7 @@ def test_without_the_library_auto_runs_the_torch_code_and_native_says_why(monkey
 
 
 _PROBE = (
-    "import torchface._native as n; lib = n.level_solver(); print('OK' if lib is not None else 'NONE', "
+    "import torchface._native as n; lib = n.library(); print('OK' if lib is not None else 'NONE', "
     "n.unavailable_reason())"
 )
 
@@ -253,7 +254,7 @@ def _probe(env: dict[str, str]) -> str:
 def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     env = {"TORCHFACE_CACHE_DIR": str(tmp_path)}
     assert _probe(env).startswith("OK")
-    built = list((tmp_path / "native").glob("level_solver-*.so"))
+    built = list((tmp_path / "native").glob("torchface_native-*.so"))
     assert len(built) == 1 and not list((tmp_path / "native").glob("*.partial"))
     stamp = built[0].stat().st_mtime_ns
     assert _probe(env).startswith("OK")  # found, not built again
@@ -263,7 +264,7 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
 def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
     assert _probe({"TORCHFACE_NATIVE": "0"}).startswith("NONE turned off by TORCHFACE_NATIVE=0")
     missing = _probe({"TORCHFACE_CACHE_DIR": str(tmp_path), "CC": str(tmp_path / "no-such-cc")})
-    assert missing.startswith("NONE the native level solver could not be built"), missing
+    assert missing.startswith("NONE the native kernels could not be built"), missing
 
 
 def test_tracking_with_either_backend_gives_the_same_poses():
@@ -278,8 +279,8 @@ def test_tracking_with_either_backend_gives_the_same_poses():
     spec = gentle_spec("n", (10.0, -6.0, 3.0), (0.0, 0.0, 450.0), (5.0, -2.0, 8.0), {"AUV11 Jaw drop": 0.6})
     frames, gt = render_sequence(spec)
     frames, lm = frames.unsqueeze(0), landmarks_of((gt,))
-    native, _ = run(model, replace(BASE, solver_backend=NATIVE), frames, lm)
-    torch_, _ = run(model, replace(BASE, solver_backend=TORCH), frames, lm)
+    native, _ = run(model, replace(BASE, backend=NATIVE), frames, lm)
+    torch_, _ = run(model, replace(BASE, backend=TORCH), frames, lm)
     for n, r in zip(native, torch_):
         assert float(geodesic_angle_deg(n.rotation.double(), r.rotation.double()).max()) < 0.02
         assert float((n.translation - r.translation).abs().max()) < 0.1

@@ -2,11 +2,12 @@
 
 At one stream a tracking step's level solves are thousands of small tensor operations, and their dispatch, not
 their arithmetic, is most of the step's time; at many streams the same loops stream every intermediate through
-memory. :func:`level_solver` compiles ``level_solver.c`` (one pyramid level's Levenberg-Marquardt solve per
-stream, the algorithm of :func:`torchface.tracker.fast.solve_level`) with the machine's C compiler into a
-shared library, caches it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH,
-or ``$CC``); where there is none, or the build fails, the callers use their torch code instead
-(:func:`unavailable_reason` says why).
+memory. :func:`library` compiles ``kernels.c`` (one pyramid level's Levenberg-Marquardt solve per stream, the
+algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the dissimilarity confidence's
+smoothing and patch tracking: ``dissimilarity.h``) with the machine's C compiler into a shared library, caches
+it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
+none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
+:mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
 hash of the source, the compiler and its flags, so a changed source is built again; it is built into a temporary
@@ -30,12 +31,12 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-__all__ = ["level_solver", "unavailable_reason", "run_chunks", "LevelProblem", "LOSS_CODES"]
+__all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
-_SOURCES = ("level_solver.c", "level_solver.h")
+_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 1
+_ABI_VERSION = 2
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -47,6 +48,21 @@ _lock = threading.Lock()
 _library: ctypes.CDLL | None = None
 _reason: str | None = None
 _tried = False
+
+
+class LKProblem(ctypes.Structure):
+    """``TFLKProblem`` of ``kernels.c`` (same field order): the dissimilarity's smoothing and patch tracking of a
+    batch of normalised faces (see ``dissimilarity.h`` for the arrays' shapes)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "C", "G", "K", "n", "radius", "iterations", "project_out_bias",
+                                            "has_max_displacement")),  # fmt: skip
+        *((name, ctypes.c_double) for name in ("eps", "tolerance", "max_displacement")),
+        *((name, ctypes.c_void_p) for name in (
+            "normalised", "mask", "kernel", "grid", "templ", "sd", "ref_weight", "ref_total", "out_gray", "out_p",
+            "out_support", "out_converged", "out_valid",
+        )),  # fmt: skip
+    ]
 
 
 class LevelProblem(ctypes.Structure):
@@ -89,14 +105,14 @@ def _build(cc: str) -> Path:
     for arch in (_ARCH_FLAGS, ()):
         flags = (*_FLAGS, *arch)
         key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION)).encode()).hexdigest()[:16]
-        target = _cache_dir() / f"level_solver-{key}.so"
+        target = _cache_dir() / f"torchface_native-{key}.so"
         if target.is_file():
             return target
         target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
         os.close(fd)
         try:
-            cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "level_solver.c"), "-lm"]
+            cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
             out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             if out.returncode == 0:
                 os.replace(tmp, target)
@@ -125,16 +141,17 @@ def _load() -> None:
         if lib.tf_abi_version() != _ABI_VERSION:
             raise RuntimeError(f"library ABI {lib.tf_abi_version()}, expected {_ABI_VERSION}")
     except (OSError, RuntimeError, AttributeError) as exc:
-        _reason = f"the native level solver could not be built or loaded: {exc}"
+        _reason = f"the native kernels could not be built or loaded: {exc}"
         return
-    for name in ("tf_solve_level_f32", "tf_solve_level_f64"):
-        fn = getattr(lib, name)
-        fn.argtypes = [ctypes.POINTER(LevelProblem), ctypes.c_int, ctypes.c_int]
-        fn.restype = ctypes.c_int
+    for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem)):
+        for suffix in ("_f32", "_f64"):
+            fn = getattr(lib, name + suffix)
+            fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]
+            fn.restype = ctypes.c_int
     _library = lib
 
 
-def level_solver() -> ctypes.CDLL | None:
+def library() -> ctypes.CDLL | None:
     """The loaded library (built on the first call), or None where it is unavailable (see
     :func:`unavailable_reason`). Thread-safe."""
     if not _tried:
@@ -145,7 +162,7 @@ def level_solver() -> ctypes.CDLL | None:
 
 
 def unavailable_reason() -> str | None:
-    """Why :func:`level_solver` is None (None when it is available or was not asked for yet)."""
+    """Why :func:`library` is None (None when it is available or was not asked for yet)."""
     return _reason
 
 
@@ -153,7 +170,7 @@ _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 
 
-def run_chunks(fn, problem: LevelProblem, batch: int, threads: int) -> None:
+def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
     """``fn(problem, b0, b1)`` over ``[0, batch)`` in up to ``threads`` contiguous chunks, in parallel (ctypes
     releases the GIL during the call; each chunk writes only its own streams' outputs). Raises ``MemoryError``
     when a chunk could not allocate its workspace."""
@@ -173,4 +190,4 @@ def run_chunks(fn, problem: LevelProblem, batch: int, threads: int) -> None:
         futures = [pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
         codes = [fn(ref, bounds[0], bounds[1])] + [f.result() for f in futures]
     if any(code != 0 for code in codes):
-        raise MemoryError("the native level solver could not allocate its workspace")
+        raise MemoryError("a native kernel could not allocate its workspace")

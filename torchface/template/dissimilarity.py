@@ -57,7 +57,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchface import _native
 from torchface._scalar import isfinite, scalar
+from torchface.backend import Backend, use_native
 
 __all__ = [
     "LKResult",
@@ -666,7 +668,9 @@ def build_dissimilarity_reference(
     return DissimilarityReference(gray, mask, centres, patch_valid, best.clamp_min(0.0), config, lk)
 
 
-def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: Tensor) -> DissimilarityResult:
+def dissimilarity(
+    reference: DissimilarityReference, normalised: Tensor, mask: Tensor, backend: Backend = Backend.AUTO
+) -> DissimilarityResult:
     """Dissimilarity (pixels) and confidence in ``[0, 1]`` of normalised faces against the reference.
 
     Each of the reference's patches is tracked on ``normalised`` by :func:`inverse_compositional_lk` (both
@@ -678,6 +682,9 @@ def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: T
         reference: from :func:`build_dissimilarity_reference`, batch ``B`` (or 1, broadcast).
         normalised: ``(B, C, G, G)`` current normalised faces (same ``G`` as the reference).
         mask: ``(B, 1, G, G)`` their masks.
+        backend: :class:`~torchface.backend.Backend` of the smoothing and the patch tracking: the native kernel
+            (``torchface/_native/dissimilarity.h``, each patch on its own) needs the reference's precomputed
+            patches (:attr:`DissimilarityReference.lk`, as built) in the working dtype.
 
     Returns:
         :class:`DissimilarityResult` ``(dissimilarity (B,), confidence (B,), displacement (B, K, 2),
@@ -709,16 +716,25 @@ def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: T
     centres = reference.centres.to(dtype=dtype, device=normalised.device).expand(B, -1, -1)
     patch_valid = reference.patch_valid.to(normalised.device).expand(B, -1)
     normalised, mask = normalised.to(dtype), mask.to(dtype)
-    gray = _masked_gray(normalised, mask, cfg.smoothing_sigma)
     pre = reference.lk
     if pre is not None and (Br != B or pre.template.dtype != dtype or pre.template.device != normalised.device):
         pre = None
-    lk = inverse_compositional_lk(
-        ref_image, gray, centres, cfg.patch_size, cfg.iterations,
-        reference_mask=ref_mask, image_mask=mask, tolerance=cfg.tolerance,
-        max_displacement=cfg.max_displacement, project_out_bias=cfg.project_out_bias, precomputed=pre,
-        with_residual=False,
-    )  # fmt: skip
+    native = pre is not None and pre.template.shape[-1] == 1 and use_native(
+        backend, (normalised, mask, *pre), "dissimilarity"
+    )
+    if backend is Backend.NATIVE and not native:
+        raise RuntimeError("the native dissimilarity needs the reference's gray patches (DissimilarityReference.lk) "
+                           "in the faces' dtype and batch")  # fmt: skip
+    if native:
+        lk = _native_lk(normalised, mask, pre, cfg)
+    else:
+        gray = _masked_gray(normalised, mask, cfg.smoothing_sigma)
+        lk = inverse_compositional_lk(
+            ref_image, gray, centres, cfg.patch_size, cfg.iterations,
+            reference_mask=ref_mask, image_mask=mask, tolerance=cfg.tolerance,
+            max_displacement=cfg.max_displacement, project_out_bias=cfg.project_out_bias, precomputed=pre,
+            with_residual=False,
+        )  # fmt: skip
     d_max = cfg.max_displacement
     present = patch_valid & (lk.support >= cfg.min_support)
     dist = lk.displacement.norm(dim=-1).nan_to_num(nan=d_max, posinf=d_max).clamp(max=d_max)
@@ -729,3 +745,40 @@ def dissimilarity(reference: DissimilarityReference, normalised: Tensor, mask: T
     d = torch.where(enough, mean, torch.full_like(mean, d_max))
     conf = torch.exp(-(d / cfg.d0).square()) * enough
     return DissimilarityResult(d, conf, lk.displacement, present)
+
+
+def _native_lk(normalised: Tensor, mask: Tensor, pre: LKTemplate, cfg: DissimilarityConfig) -> LKResult:
+    """:func:`dissimilarity`'s smoothing and patch tracking by the native kernel (``_masked_gray`` and
+    :func:`inverse_compositional_lk` of one gray channel, each patch on its own): the :class:`LKResult` without
+    its residual. ``normalised`` ``(B, C, G, G)`` and ``mask`` ``(B, 1, G, G)`` of 0 / 1 in the working dtype."""
+    B, C, G, _ = normalised.shape
+    dtype = normalised.dtype
+    grid, template, sd, ref_weight, ref_total = pre
+    K, n = grid.shape[1], grid.shape[2]
+    if cfg.smoothing_sigma > 0:
+        kernel = _gaussian_kernels(float(cfg.smoothing_sigma), dtype, normalised.device)[0].reshape(-1).contiguous()
+    else:
+        kernel = torch.ones(1, dtype=dtype)
+    inputs = [x.contiguous() for x in (normalised, mask, grid, template.reshape(B, K, n), sd.reshape(B, K, n, 2),
+                                       ref_weight, ref_total)]  # fmt: skip
+    gray = torch.empty(B, 1, G, G, dtype=dtype)
+    p = torch.empty(B, K, 2, dtype=dtype)
+    support = torch.empty(B, K, dtype=dtype)
+    converged = torch.empty(B, K, dtype=torch.bool)
+    valid = torch.empty(B, K, dtype=torch.bool)
+    prob = _native.LKProblem(
+        B=B, C=C, G=G, K=K, n=n, radius=kernel.numel() // 2, iterations=cfg.iterations,
+        project_out_bias=int(cfg.project_out_bias), has_max_displacement=int(cfg.max_displacement is not None),
+        eps=torch.finfo(dtype).eps, tolerance=float(cfg.tolerance),
+        max_displacement=float(cfg.max_displacement) if cfg.max_displacement is not None else 0.0,
+        normalised=inputs[0].data_ptr(), mask=inputs[1].data_ptr(), kernel=kernel.data_ptr(),
+        grid=inputs[2].data_ptr(), templ=inputs[3].data_ptr(), sd=inputs[4].data_ptr(),
+        ref_weight=inputs[5].data_ptr(), ref_total=inputs[6].data_ptr(), out_gray=gray.data_ptr(),
+        out_p=p.data_ptr(), out_support=support.data_ptr(), out_converged=converged.data_ptr(),
+        out_valid=valid.data_ptr(),
+    )  # fmt: skip
+    lib = _native.library()
+    fn = lib.tf_dissimilarity_f32 if dtype == torch.float32 else lib.tf_dissimilarity_f64
+    if B > 0:
+        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    return LKResult(p, converged, valid, support, None)

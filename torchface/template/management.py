@@ -55,6 +55,7 @@ from torch import Tensor
 
 from torchface.appearance.illumination import remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
+from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -395,6 +396,7 @@ def frame_dissimilarity(
     config: TemplateConfig,
     rotation: Tensor | None = None,
     verts_cam: Tensor | None = None,
+    backend: Backend = Backend.AUTO,
 ) -> DissimilarityResult:
     """Dissimilarity and confidence of each frame's estimate against the reference (Section 4.1).
 
@@ -407,6 +409,7 @@ def frame_dissimilarity(
         rotation: ``(B, 3, 3)`` the matrix of ``axis_angle`` when the caller has it (None: computed).
         verts_cam: ``(B, V, 3)`` the estimate's posed vertices (camera frame, mm) when the caller has them (e.g.
             shared with :func:`face_inside_fraction`); the parameters' shapes are then not checked again.
+        backend: of the smoothing and patch tracking (:func:`~torchface.template.dissimilarity.dissimilarity`).
 
     Returns:
         :class:`~torchface.template.dissimilarity.DissimilarityResult` (``dissimilarity (B,)`` in pixels of the
@@ -416,7 +419,7 @@ def frame_dissimilarity(
         frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics, config,
         rotation=rotation, verts_cam=verts_cam,
     )  # fmt: skip
-    return dissimilarity(reference, image, mask)
+    return dissimilarity(reference, image, mask, backend=backend)
 
 
 def reference_face(

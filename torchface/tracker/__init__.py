@@ -1,6 +1,6 @@
 """The tracker: initial fit (Eq. 2), per-frame joint minimisation (Eq. 20), batched streams."""
 
-from torchface.tracker.fast import SolverBackend
+from torchface.backend import Backend
 from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit, refine_first_fit, select_keyframes
 from torchface.tracker.managed import (
@@ -25,6 +25,7 @@ from torchface.tracker.step import (
 )
 
 __all__ = [
+    "Backend",
     "FaceTracker",
     "FitConfig",
     "LandmarkDetector",
@@ -32,7 +33,6 @@ __all__ = [
     "LookaheadConfig",
     "ManagementState",
     "ParamLayout",
-    "SolverBackend",
     "TrackResult",
     "TrackStatus",
     "TrackerConfig",

@@ -22,7 +22,6 @@ batched over streams; the host synchronises only for the early-exit and step-rej
 
 from __future__ import annotations
 
-import enum
 import functools
 from dataclasses import dataclass
 
@@ -32,6 +31,7 @@ from torch import Tensor
 
 from torchface import _native
 from torchface._scalar import isfinite, scalar
+from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss, SwitchedRobustLoss
@@ -41,24 +41,6 @@ from torchface.template.points import Template
 #: Default convergence test of :func:`solve_level`: every increment below these, rotation (radians), translation
 #: (millimetres), animation and illumination coefficients (units), at full resolution.
 STEP_TOLERANCE: tuple[float, float, float] = (2e-4, 0.05, 2e-3)
-
-class SolverBackend(enum.Enum):
-    """Which implementation runs :func:`solve_level`.
-
-    Both run the same algorithm; the native one (:mod:`torchface._native`, C compiled at first use) iterates each
-    stream on its own, as the torch code does for a batch of one, and accumulates the normal equations in double
-    precision, so the two agree to rounding (tests/tracker/test_native.py). Measured on benchmark.py's frames, one
-    stream's level solves take about a sixth of the torch code's time.
-    """
-
-    #: The native solver where it can run (CPU tensors of float32 or float64, no gradient asked for, a C compiler
-    #: on the machine), else the torch code.
-    AUTO = "auto"
-    #: Always the torch code (differentiable, any device).
-    TORCH = "torch"
-    #: Always the native solver: an error where it cannot run.
-    NATIVE = "native"
-
 
 #: Default second convergence test of :func:`solve_level`: the step's predicted cost decrease (of the
 #: linearised, reweighted problem) below this fraction of the cost.
@@ -326,7 +308,7 @@ def solve_level(
     start: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     constants: _LevelConstants | None = None,
     keep_linearisation: bool = True,
-    backend: SolverBackend = SolverBackend.AUTO,
+    backend: Backend = Backend.AUTO,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -367,7 +349,7 @@ def solve_level(
         keep_linearisation: the final check linearises in full and hands it on
             (:attr:`LevelOutcome.linearisation`, for a following pass at this level); False: residuals only there
             (no Jacobian, one sample per point) and ``linearisation`` None.
-        backend: :class:`SolverBackend`: the native solver (each stream iterated on its own, in parallel over
+        backend: :class:`~torchface.backend.Backend`: the native solver (each stream iterated on its own, in parallel over
             ``torch.get_num_threads()`` threads) or this torch code, whose batch iterates while any stream does
             (a stream that has stopped keeps its estimate; only where the loop goes on for others can its last
             step still be undone in the loop rather than by the final check, which gives the same estimate with
@@ -382,8 +364,8 @@ def solve_level(
     dtype, device = R.dtype, R.device
     if isinstance(step_tolerance, (int, float)):
         step_tolerance = (float(step_tolerance),) * 3
-    if _use_native(backend, (tpl.points, tpl.basis, tpl.normals, tpl.intensity, image, R, t, alpha, light,
-                             light_basis, alpha_lower, alpha_upper, alpha_mean, alpha_prior, cam.offset), P):
+    if use_native(backend, (tpl.points, tpl.basis, tpl.normals, tpl.intensity, image, R, t, alpha, light, light_basis,
+                            alpha_lower, alpha_upper, alpha_mean, alpha_prior, cam.offset), "level solver", 64, P):
         return _solve_level_native(
             tpl, image, cam, R, t, alpha, light, light_basis, mask, iterations=iterations, free=free,
             alpha_lower=alpha_lower, alpha_upper=alpha_upper, alpha_prior=alpha_prior, robust=robust,
@@ -505,34 +487,6 @@ def solve_level(
     return R, t, alpha, light, outcome
 
 
-def _use_native(backend: SolverBackend, tensors: tuple[Tensor | float | None, ...], num_params: int) -> bool:
-    """Whether :func:`solve_level` runs natively: ``backend`` allows it and the inputs suit it (CPU, one dtype of
-    float32 or float64, no gradient asked for). With :attr:`SolverBackend.NATIVE`, inputs that do not suit it
-    are an error."""
-    if backend is SolverBackend.TORCH:
-        return False
-    if not isinstance(backend, SolverBackend):
-        raise TypeError(f"backend must be a SolverBackend, got {backend!r}")
-    arrays = [x for x in tensors if isinstance(x, Tensor)]
-    dtype = arrays[0].dtype
-    why = None
-    if dtype not in (torch.float32, torch.float64) or any(x.dtype != dtype for x in arrays):
-        why = f"needs tensors of one dtype, float32 or float64 (got {sorted({str(x.dtype) for x in arrays})})"
-    elif any(x.device.type != "cpu" for x in arrays):
-        why = "runs on the CPU only"
-    elif torch.is_grad_enabled() and any(x.requires_grad for x in arrays):
-        why = "does not propagate gradients (use SolverBackend.TORCH)"
-    elif num_params > 64:
-        why = f"supports at most 64 parameters, got {num_params}"
-    elif _native.level_solver() is None:
-        why = f"is unavailable: {_native.unavailable_reason()}"
-    if why is None:
-        return True
-    if backend is SolverBackend.NATIVE:
-        raise RuntimeError(f"the native level solver {why}")
-    return False
-
-
 def _loss_codes(robust: RobustLoss | SwitchedRobustLoss | None, B: int) -> tuple[Tensor, Tensor]:
     """Per stream, the native solver's loss code ``(B,)`` int32 and tuning constant ``(B,)`` float64."""
     if robust is None:
@@ -636,7 +590,7 @@ def _solve_level_native(
         out_residual=ptr(residual), out_sampled=ptr(sampled), out_J=ptr(J_out), out_valid=ptr(valid),
         out_converged=ptr(converged), out_finite=ptr(finite), out_iterations=ptr(iters),
     )  # fmt: skip
-    lib = _native.level_solver()
+    lib = _native.library()
     fn = lib.tf_solve_level_f32 if dtype == torch.float32 else lib.tf_solve_level_f64
     if B > 0:
         _native.run_chunks(fn, prob, B, torch.get_num_threads())

@@ -246,7 +246,8 @@ def initialise_managed(
     image, mask = reference_face(frames, model, layout, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc)
     reference = build_dissimilarity_reference(image, mask, tc.dissimilarity)
     diss = frame_dissimilarity(
-        frames, model, layout, reference, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc
+        frames, model, layout, reference, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc,
+        backend=config.backend,
     )
     failed = result.status == _FAILED
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
@@ -330,7 +331,7 @@ def _confidence(
     # frame_dissimilarity's two halves, so that the normalised face can also serve a new mosaic entry.
     face = reference_face(frames, model, ms.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
                           config.template, verts_cam=verts_cam)  # fmt: skip
-    diss = dissimilarity(reference, *face)
+    diss = dissimilarity(reference, *face, backend=config.backend)
     failed = status == _FAILED
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics), face

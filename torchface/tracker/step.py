@@ -18,6 +18,7 @@ from torch import Tensor
 
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
+from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
@@ -32,7 +33,6 @@ from torchface.tracker.fast import (
     FUNCTION_TOLERANCE,
     STEP_TOLERANCE,
     LevelCamera,
-    SolverBackend,
     robust_scale_of,
     solve_level,
 )
@@ -155,11 +155,11 @@ class TrackerConfig:
             prior): on a face unlike CANDIDE-3 (the James scan) the animation units absorb shape the shape units
             cannot, which lowered scan_motion's mean error from 2.7 to 1.9 degrees.
         solver: :class:`TrackSolver`.
-        solver_backend: which implementation runs the fast solver's level solves
-            (:class:`~torchface.tracker.fast.SolverBackend`): by default the native one (C compiled at first use,
-            :mod:`torchface._native`) where it can run (CPU, no gradient asked for, a C compiler on the machine),
-            else the torch code. The two agree to rounding; measured on benchmark.py's frames, one stream's step
-            took 3.8-4.2 instead of 8.5 ms per frame.
+        backend: which implementation runs the hot loops (:class:`~torchface.backend.Backend`): the fast solver's
+            level solves and template management's dissimilarity. By default the native kernels (C compiled at
+            first use, :mod:`torchface._native`) where they can run (CPU, no gradient asked for, a C compiler on
+            the machine), else the torch code. The two agree to rounding; measured on benchmark.py's frames, one
+            stream's bare step took 3.7 instead of 8.5 ms per frame.
         crop_margin: the fast solver tracks inside a crop around the previous estimate's face box, enlarged
             by this fraction of the box size on each side (plus 32 pixels).
         selection_seed: which draw of the pixels' selection keys picks each template's ``max_points`` among its
@@ -196,7 +196,7 @@ class TrackerConfig:
     min_contrast: float = 0.01
     fit: FitConfig = field(default_factory=lambda: FitConfig(fit_expression=True, expression_prior_precision=2.0))
     solver: TrackSolver = TrackSolver.FAST
-    solver_backend: SolverBackend = SolverBackend.AUTO
+    backend: Backend = Backend.AUTO
     crop_margin: float = 0.25
     selection_seed: int = 0
     template: TemplateConfig = field(default_factory=TemplateConfig)
@@ -226,8 +226,8 @@ class TrackerConfig:
             raise ValueError("gradient_threshold and min_contrast must be non-negative")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
-        if not isinstance(self.solver_backend, SolverBackend):
-            raise TypeError(f"solver_backend must be a SolverBackend, got {type(self.solver_backend).__name__}")
+        if not isinstance(self.backend, Backend):
+            raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
 
 
 def scale_floor(config: TrackerConfig, level: int) -> float:
@@ -909,7 +909,7 @@ def _track_step_fast(
             step_tolerance=tuple(v * 2**level for v in STEP_TOLERANCE),
             function_tolerance=config.function_tolerance * 2**level,
             keep_linearisation=level == 0 and refine,  # the refinement pass starts from it
-            backend=config.solver_backend,
+            backend=config.backend,
         )
         if level == 1 and robust is not None and _clean_rule(config, near_template):
             scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
@@ -930,7 +930,7 @@ def _track_step_fast(
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
             alpha_prior=refine_prior, alpha_mean=alpha_mean, robust=robust,
             scale_floor=config.refine_scale_floor, start=out.linearisation, constants=out.constants,
-            function_tolerance=config.function_tolerance, keep_linearisation=False, backend=config.solver_backend,
+            function_tolerance=config.function_tolerance, keep_linearisation=False, backend=config.backend,
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
     status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))

@@ -1,5 +1,6 @@
-/* torchface's native level solver: see level_solver.h. Compiled at first use by torchface._native (the C
- * compiler of the machine, no other dependency) and called through ctypes; float and double variants. */
+/* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
+ * and patch tracking (dissimilarity.h). Compiled at first use by torchface._native (the C compiler of the
+ * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -10,7 +11,7 @@
 #define TF_MAX_P 64
 enum { TF_LOSS_NONE = 0, TF_LOSS_HUBER = 1, TF_LOSS_CAUCHY = 2, TF_LOSS_TUKEY = 3, TF_LOSS_GEMAN_MCCLURE = 4 };
 
-/* Mirrored by torchface._native._LevelProblem (ctypes): keep the two in the same order. Arrays of the dtype are
+/* Mirrored by torchface._native.LevelProblem (ctypes): keep the two in the same order. Arrays of the dtype are
  * void pointers; see level_solver.h for their shapes. */
 typedef struct {
     int B, N, A, L, P, height, width, iterations, final_check;
@@ -28,17 +29,27 @@ typedef struct {
     int64_t *out_iterations;
 } TFLevelProblem;
 
+/* Mirrored by torchface._native.LKProblem (ctypes): keep the two in the same order; see dissimilarity.h. */
+typedef struct {
+    int B, C, G, K, n, radius, iterations, project_out_bias, has_max_displacement;
+    double eps, tolerance, max_displacement;
+    const void *normalised, *mask, *kernel, *grid, *templ, *sd, *ref_weight, *ref_total;
+    void *out_gray, *out_p, *out_support;
+    uint8_t *out_converged, *out_valid;
+} TFLKProblem;
+
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 1; }
+int tf_abi_version(void) { return 2; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
 #define TF_FMA fmaf
 #define FN(name) name##_f32
 #include "level_solver.h"
+#include "dissimilarity.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -47,6 +58,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #define TF_FMA fma
 #define FN(name) name##_f64
 #include "level_solver.h"
+#include "dissimilarity.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

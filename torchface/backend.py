@@ -1,0 +1,65 @@
+"""Which implementation runs torchface's hot loops: the torch code or the native kernels (:mod:`torchface._native`).
+
+The per-frame work of a tracking step is mostly small operations: at one stream their dispatch, not their
+arithmetic, is most of the time, and at many streams every intermediate goes through memory. The native kernels
+(C, compiled at first use by the machine's C compiler) run the same algorithms one stream (or patch) at a time:
+the fast solver's level solves (:func:`torchface.tracker.fast.solve_level`) and the dissimilarity confidence's
+smoothing and Lucas-Kanade (:func:`torchface.template.dissimilarity.dissimilarity`). Each is tested against its
+torch code (``tests/tracker/test_native.py``, ``tests/template/test_dissimilarity.py``).
+
+:attr:`Backend.AUTO` (the default of :class:`~torchface.tracker.TrackerConfig`) takes the native kernels where
+they can run: CPU tensors of float32 or float64 that ask for no gradient, on a machine with a C compiler;
+elsewhere, and whenever the environment sets ``TORCHFACE_NATIVE=0``, the torch code runs.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import torch
+from torch import Tensor
+
+from torchface import _native
+
+__all__ = ["Backend", "use_native"]
+
+
+class Backend(enum.Enum):
+    """Which implementation runs a kernel (module docstring)."""
+
+    #: The native kernel where it can run (CPU, float32 or float64, no gradient asked for, a C compiler on the
+    #: machine), else the torch code.
+    AUTO = "auto"
+    #: Always the torch code (differentiable, any device).
+    TORCH = "torch"
+    #: Always the native kernel: an error where it cannot run.
+    NATIVE = "native"
+
+
+def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], what: str, max_params: int = 0,
+               num_params: int = 0) -> bool:  # fmt: skip
+    """Whether ``what`` (a kernel's name, for messages) runs natively: ``backend`` allows it and the inputs suit it
+    (CPU, one dtype of float32 or float64, no gradient asked for; with ``max_params``, at most that many
+    parameters). With :attr:`Backend.NATIVE`, inputs that do not suit it raise ``RuntimeError``."""
+    if backend is Backend.TORCH:
+        return False
+    if not isinstance(backend, Backend):
+        raise TypeError(f"backend must be a Backend, got {backend!r}")
+    arrays = [x for x in tensors if isinstance(x, Tensor)]
+    dtype = arrays[0].dtype if arrays else torch.float32
+    why = None
+    if dtype not in (torch.float32, torch.float64) or any(x.dtype != dtype for x in arrays):
+        why = f"needs tensors of one dtype, float32 or float64 (got {sorted({str(x.dtype) for x in arrays})})"
+    elif any(x.device.type != "cpu" for x in arrays):
+        why = "runs on the CPU only"
+    elif torch.is_grad_enabled() and any(x.requires_grad for x in arrays):
+        why = "does not propagate gradients (use Backend.TORCH)"
+    elif max_params and num_params > max_params:
+        why = f"supports at most {max_params} parameters, got {num_params}"
+    elif _native.library() is None:
+        why = f"is unavailable: {_native.unavailable_reason()}"
+    if why is None:
+        return True
+    if backend is Backend.NATIVE:
+        raise RuntimeError(f"the native {what} {why}")
+    return False
