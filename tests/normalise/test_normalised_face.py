@@ -429,3 +429,50 @@ def test_layout_vertex_weights_interpolate_like_the_barycentric_gather(model, la
     empty = normalised_face_posed(torch.rand(0, 3, CAM.height, CAM.width), model, layout,
                                   torch.zeros(0, model.num_vertices, 3), None, CAM, zbuffer=False)  # fmt: skip
     assert empty.image.shape == (0, 3, G, G) and empty.mask.shape == (0, 1, G, G)
+
+
+# ---------------------------------------------------------------- the native kernel against the torch code
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_native_normalised_face_without_zbuffer_equals_the_torch_code(model, subject, layout, dtype):
+    """``zbuffer=False`` (template management's): the native kernel gives the torch code's image and mask, to
+    rounding, with and without illumination, over poses that turn away, leave the frame and go behind the
+    camera; the batch equals each stream alone."""
+    from torchface import _native
+    from torchface.backend import Backend
+    from torchface.geometry.transforms import transform_points
+
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    m = load_candide3(dtype=dtype)
+    lay = build_normalised_layout(m, G, 0.05)
+    B = 5
+    sigma = subject.shape_coeffs[None].expand(B, -1).to(dtype)
+    gen = torch.Generator().manual_seed(5)
+    alpha = (0.3 * torch.rand(B, m.num_animation, generator=gen)).to(dtype)
+    ypr = torch.tensor([[0.0, 0.0, 0.0], [35.0, -10.0, 6.0], [-60.0, 8.0, -4.0], [10.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    aa = matrix_to_axis_angle(euler_to_matrix(ypr)).to(dtype)
+    t = torch.tensor([[0.0, 0.0, 450.0], [15.0, 5.0, 500.0], [-10.0, 0.0, 420.0], [260.0, 0.0, 450.0],
+                      [0.0, 0.0, -200.0]], dtype=dtype)  # fmt: skip
+    frames = _render(subject, subject.shape_coeffs[None], alpha.float(), aa.float(), t.float()).image.to(dtype)
+    verts = transform_points(axis_angle_to_matrix(aa), t, m.deform(sigma, alpha))
+    light = (0.1 * torch.randn(B, 5, generator=gen)).to(dtype)
+    for illum in (None, light):
+        nat = normalised_face_posed(frames, m, lay, verts, illum, CAM, zbuffer=False, min_facing_cos=0.6,
+                                    backend=Backend.NATIVE)  # fmt: skip
+        ref = normalised_face_posed(frames, m, lay, verts, illum, CAM, zbuffer=False, min_facing_cos=0.6,
+                                    backend=Backend.TORCH)  # fmt: skip
+        assert torch.equal(nat.mask, ref.mask)
+        tol = 1e-10 if dtype == torch.float64 else 1e-5
+        torch.testing.assert_close(nat.image, ref.image, rtol=0, atol=tol)
+        counts = nat.mask.sum((1, 2, 3))
+        assert float(counts[0]) > 0.6 * lay.num_pixels and 0 < float(counts[2]) < float(counts[0])
+        assert float(counts[4]) == 0.0 and float(counts[3]) < float(counts[0])  # behind the camera; half out
+        for b in (1, 3):
+            one = normalised_face_posed(frames[b : b + 1], m, lay, verts[b : b + 1], None if illum is None else
+                                        illum[b : b + 1], CAM, zbuffer=False, min_facing_cos=0.6,
+                                        backend=Backend.NATIVE)  # fmt: skip
+            assert torch.equal(one.image[0], nat.image[b]) and torch.equal(one.mask[0], nat.mask[b])
+    with pytest.raises(RuntimeError, match="z-buffer"):
+        normalised_face_posed(frames, m, lay, verts, None, CAM, backend=Backend.NATIVE)

@@ -1,5 +1,5 @@
 /* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
- * and patch tracking (dissimilarity.h). Compiled at first use by torchface._native (the C compiler of the
+ * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <math.h>
 #include <stdint.h>
@@ -38,11 +38,22 @@ typedef struct {
     uint8_t *out_converged, *out_valid;
 } TFLKProblem;
 
+/* Mirrored by torchface._native.FaceProblem (ctypes): keep the two in the same order; see normalised_face.h. */
+typedef struct {
+    int B, V, F, M, C, G, height, width;
+    double fx, fy, cx, cy, min_facing_cos, min_gain, depth_eps;
+    const void *verts, *normals;
+    const uint8_t *back;
+    const int64_t *faces, *face_index, *pixel_index;
+    const void *bary, *frames, *illumination;
+    void *out_image, *out_mask;
+} TFFaceProblem;
+
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 2; }
+int tf_abi_version(void) { return 3; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -50,6 +61,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #define FN(name) name##_f32
 #include "level_solver.h"
 #include "dissimilarity.h"
+#include "normalised_face.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -59,6 +71,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #define FN(name) name##_f64
 #include "level_solver.h"
 #include "dissimilarity.h"
+#include "normalised_face.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

@@ -51,7 +51,9 @@ from torch import Tensor, nn
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
+from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
+from torchface.geometry._checks import check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.mesh import vertex_normals_and_backfacing
 from torchface.geometry.projection import project_points
@@ -405,10 +407,15 @@ def normalised_face_posed(
     depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
     min_facing_cos: float = DEFAULT_MIN_FACING_COS,
     zbuffer: bool = True,
+    backend: Backend = Backend.AUTO,
 ) -> NormalisedFaceResult:
     """:func:`normalised_face` of a mesh already posed: ``verts_cam (B, V, 3)``, the model's vertices at the
     frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
     shapes of ``frames`` and ``verts_cam`` are checked here (:func:`normalised_face` documents and checks the rest).
+    Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
+    gradients, :class:`~torchface.backend.Backend` ``AUTO`` samples with the native kernel
+    (``torchface/_native/normalised_face.h``: each pixel from its triangle's three corners); the values are the
+    torch code's to rounding.
 
     Raises:
         ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``.
@@ -420,6 +427,11 @@ def normalised_face_posed(
         raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
+    if not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face"):
+        return _normalised_face_native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics,
+                                       min_facing_cos)  # fmt: skip
+    if backend is Backend.NATIVE and zbuffer:
+        raise RuntimeError("the native normalised face has no z-buffer test: pass zbuffer=False")
 
     # Eq. 3-9: each canonical pixel's surface point is a fixed barycentric combination of its triangle: positions
     # and normals interpolated by one product with the layout's (M, V) weights, the batch's vertices side by side
@@ -453,6 +465,42 @@ def normalised_face_posed(
     G = layout.size
     image = observed.new_zeros(B, C, G * G).index_copy(2, layout.pixel_index, observed * keep_f)
     mask = keep_f.new_zeros(B, 1, G * G).index_copy(2, layout.pixel_index, keep_f)
+    return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
+
+
+def _normalised_face_native(
+    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, verts_cam: Tensor, normals_cam: Tensor,
+    back: Tensor, illumination: Tensor | None, intrinsics: Intrinsics, min_facing_cos: float,
+) -> NormalisedFaceResult:
+    """:func:`normalised_face_posed` without the z-buffer by the native kernel (its arguments, and the posed mesh's
+    unit vertex normals ``(B, V, 3)`` and back-facing triangles ``(B, F)``)."""
+    from torchface import _native
+
+    B, C, H, W = frames.shape
+    dtype = verts_cam.dtype
+    G = layout.size
+    cam = check_intrinsics(intrinsics)
+    faces = model.faces.to(torch.int64).contiguous()
+    face_index, pixel_index = layout.face_index.contiguous(), layout.pixel_index.contiguous()
+    bary = layout.bary.to(dtype).contiguous()
+    frames_c, verts_c, normals_c = frames.contiguous(), verts_cam.contiguous(), normals_cam.to(dtype).contiguous()
+    back_c = back.contiguous()
+    light = None if illumination is None else illumination.to(dtype).contiguous()
+    image = torch.zeros(B, C, G * G, dtype=dtype)
+    mask = torch.zeros(B, 1, G * G, dtype=dtype)
+    prob = _native.FaceProblem(
+        B=B, V=verts_cam.shape[1], F=faces.shape[0], M=face_index.shape[0], C=C, G=G, height=H, width=W,
+        fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, min_facing_cos=float(min_facing_cos), min_gain=0.05,
+        depth_eps=torch.finfo(dtype).eps, verts=verts_c.data_ptr(), normals=normals_c.data_ptr(),
+        back=back_c.data_ptr(), faces=faces.data_ptr(), face_index=face_index.data_ptr(),
+        pixel_index=pixel_index.data_ptr(), bary=bary.data_ptr(), frames=frames_c.data_ptr(),
+        illumination=None if light is None else light.data_ptr(), out_image=image.data_ptr(),
+        out_mask=mask.data_ptr(),
+    )  # fmt: skip
+    lib = _native.library()
+    fn = lib.tf_normalised_face_f32 if dtype == torch.float32 else lib.tf_normalised_face_f64
+    if B > 0:
+        _native.run_chunks(fn, prob, B, torch.get_num_threads())
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
 
 

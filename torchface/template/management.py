@@ -417,7 +417,7 @@ def frame_dissimilarity(
     """
     image, mask = reference_face(
         frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics, config,
-        rotation=rotation, verts_cam=verts_cam,
+        rotation=rotation, verts_cam=verts_cam, backend=backend,
     )  # fmt: skip
     return dissimilarity(reference, image, mask, backend=backend)
 
@@ -425,10 +425,11 @@ def frame_dissimilarity(
 def reference_face(
     frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, shape_coeffs: Tensor, anim_coeffs: Tensor,
     axis_angle: Tensor, translation: Tensor, illumination: Tensor, intrinsics: Intrinsics, config: TemplateConfig,
-    rotation: Tensor | None = None, verts_cam: Tensor | None = None,
+    rotation: Tensor | None = None, verts_cam: Tensor | None = None, backend: Backend = Backend.AUTO,
 ) -> tuple[Tensor, Tensor]:
     """The normalised face ``(B, 3, G, G)`` and mask ``(B, 1, G, G)`` of a frame as template management makes it:
-    a reference frame's, and every later frame's in :func:`frame_dissimilarity` (arguments as there)."""
+    a reference frame's, and every later frame's in :func:`frame_dissimilarity` (arguments as there; ``backend``
+    of the sampling with ``verts_cam`` given, :func:`~torchface.normalise.normalised_face_posed`)."""
     if verts_cam is None:
         face = normalised_face(
             frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
@@ -436,7 +437,7 @@ def reference_face(
         )  # fmt: skip
     else:
         face = normalised_face_posed(frames, model, layout, verts_cam, illumination, intrinsics,
-                                     min_facing_cos=config.min_facing_cos, zbuffer=False)  # fmt: skip
+                                     min_facing_cos=config.min_facing_cos, zbuffer=False, backend=backend)  # fmt: skip
     return face.image, face.mask
 
 

@@ -330,7 +330,7 @@ def _confidence(
     verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
     # frame_dissimilarity's two halves, so that the normalised face can also serve a new mosaic entry.
     face = reference_face(frames, model, ms.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
-                          config.template, verts_cam=verts_cam)  # fmt: skip
+                          config.template, verts_cam=verts_cam, backend=config.backend)  # fmt: skip
     diss = dissimilarity(reference, *face, backend=config.backend)
     failed = status == _FAILED
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)

@@ -1,0 +1,66 @@
+/* The normalised face of a posed mesh without the z-buffer test (torchface.normalise.face.normalised_face_posed
+ * with zbuffer=False, as template management makes it every frame): each canonical pixel's surface point and
+ * normal interpolated from its triangle's corners, projected, the frame sampled there (bilinear, border), kept
+ * where in front of the near plane, inside the frame, on a front-facing triangle and facing the camera enough,
+ * and the illumination removed (paper Eq. 19 inverted). The same algorithm as the torch code, which the tests
+ * compare against.
+ *
+ * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
+ * Layouts (C order): verts, normals (B, V, 3) camera frame (unit vertex normals); back (B, F) uint8; faces (F, 3),
+ * face_index (M,), pixel_index (M,) int64; bary (M, 3); frames (B, C, H, W); illumination (B, 5) or NULL;
+ * out image (B, C, G * G) and mask (B, G * G), written only at the face pixels (the caller zeroes them).
+ */
+
+static void FN(normalised_face_one)(const TFFaceProblem *p, int b) {
+    const int V = p->V, F = p->F, M = p->M, C = p->C, H = p->height, W = p->width;
+    const size_t GG = (size_t)p->G * p->G, HW = (size_t)H * W;
+    const REAL *verts = (const REAL *)p->verts + (size_t)b * V * 3, *nrm = (const REAL *)p->normals + (size_t)b * V * 3;
+    const uint8_t *back = p->back + (size_t)b * F;
+    const REAL *bary = (const REAL *)p->bary, *img = (const REAL *)p->frames + (size_t)b * C * HW;
+    const REAL *light = p->illumination ? (const REAL *)p->illumination + 5 * (size_t)b : NULL;
+    REAL *out = (REAL *)p->out_image + (size_t)b * C * GG, *out_mask = (REAL *)p->out_mask + (size_t)b * GG;
+    const REAL fx = (REAL)p->fx, fy = (REAL)p->fy, cx = (REAL)p->cx, cy = (REAL)p->cy;
+    const REAL near = (REAL)TF_NEAR_PLANE_MM, zmin = (REAL)p->depth_eps, min_cos = (REAL)p->min_facing_cos;
+    for (int m = 0; m < M; ++m) {
+        const int64_t f = p->face_index[m], *tri = p->faces + 3 * f;
+        const REAL *w = bary + 3 * (size_t)m;
+        REAL X[3] = {0, 0, 0}, N[3] = {0, 0, 0};
+        for (int i = 0; i < 3; ++i)
+            for (int c = 0; c < 3; ++c) {
+                X[c] += w[i] * verts[3 * tri[i] + c];
+                N[c] += w[i] * nrm[3 * tri[i] + c];
+            }
+        REAL nn = (REAL)sqrt((double)(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]));
+        nn = nn > (REAL)1e-12 ? nn : (REAL)1e-12;
+        for (int c = 0; c < 3; ++c) N[c] /= nn;
+        REAL z = X[2] > zmin ? X[2] : zmin;
+        REAL u = fx * X[0] / z + cx, v = fy * X[1] / z + cy;
+        int inside = u >= (REAL)0 && u <= (REAL)(W - 1) && v >= (REAL)0 && v <= (REAL)(H - 1);
+        REAL xn = (REAL)sqrt((double)(X[0] * X[0] + X[1] * X[1] + X[2] * X[2]));
+        xn = xn > (REAL)1e-12 ? xn : (REAL)1e-12;
+        REAL facing = -(N[0] * X[0] + N[1] * X[1] + N[2] * X[2]) / xn;
+        int keep = X[2] > near && inside && !back[f] && facing >= min_cos;
+        const int64_t at = p->pixel_index[m];
+        out_mask[at] = keep ? (REAL)1 : (REAL)0;
+        if (!keep) {
+            for (int c = 0; c < C; ++c) out[c * GG + at] = (REAL)0;
+            continue;
+        }
+        REAL gain = 1, bias = 0;
+        if (light) {
+            gain = (REAL)1 + light[0] + N[0] * light[2] + N[1] * light[3] + N[2] * light[4];
+            gain = gain > (REAL)p->min_gain ? gain : (REAL)p->min_gain;
+            bias = light[1];
+        }
+        for (int c = 0; c < C; ++c) {
+            REAL val = FN(sample_border)(img + c * HW, H, W, u, v);
+            out[c * GG + at] = light ? (val - bias) / gain : val;
+        }
+    }
+}
+
+/* Streams [b0, b1). Returns 0. */
+int FN(tf_normalised_face)(const TFFaceProblem *p, int b0, int b1) {
+    for (int b = b0; b < b1; ++b) FN(normalised_face_one)(p, b);
+    return 0;
+}
