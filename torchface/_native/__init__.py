@@ -5,7 +5,7 @@ their arithmetic, is most of the step's time; at many streams the same loops str
 memory. :func:`library` compiles ``kernels.c`` (one pyramid level's Levenberg-Marquardt solve per stream, the
 algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the dissimilarity confidence's
 smoothing and patch tracking: ``dissimilarity.h``; the normalised face without the z-buffer:
-``normalised_face.h``) with the machine's C compiler into a shared library, caches
+``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``) with the machine's C compiler into a shared library, caches
 it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
 none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
 :mod:`torchface.backend` decides).
@@ -32,12 +32,13 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-__all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "LOSS_CODES"]
+__all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
+           "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
-_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h")
+_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 3
+_ABI_VERSION = 4
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -75,6 +76,26 @@ class FaceProblem(ctypes.Structure):
         *((name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "min_facing_cos", "min_gain", "depth_eps")),
         *((name, ctypes.c_void_p) for name in ("verts", "normals", "back", "faces", "face_index", "pixel_index", "bary",
                                                "frames", "illumination", "out_image", "out_mask")),  # fmt: skip
+    ]
+
+
+class ConfProblem(ctypes.Structure):
+    """``TFConfProblem`` of ``kernels.c`` (same field order): template management's per-frame confidence (see
+    ``confidence.h`` for the arrays' shapes)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "V", "F", "M", "C", "G", "height", "width", "K", "n", "radius",
+                                            "iterations", "project_out_bias", "has_max_displacement",
+                                            "min_patches")),  # fmt: skip
+        *((name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "min_facing_cos", "min_gain", "depth_eps", "eps",
+                                               "tolerance", "max_displacement", "max_displacement_or_inf",
+                                               "min_support", "min_present_fraction", "d0")),  # fmt: skip
+        *((name, ctypes.c_void_p) for name in (
+            "verts", "faces", "surface", "face_index", "pixel_index", "bary", "frames", "illumination", "entry",
+            "kernel", "patch_valid", "grid", "templ", "sd", "ref_weight", "ref_total", "out_image", "out_mask",
+            "out_p", "out_support", "out_converged", "out_valid", "out_present", "out_dissimilarity",
+            "out_confidence", "out_inside",
+        )),  # fmt: skip
     ]
 
 
@@ -157,7 +178,7 @@ def _load() -> None:
         _reason = f"the native kernels could not be built or loaded: {exc}"
         return
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
-                          ("tf_normalised_face", FaceProblem)):
+                          ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

@@ -1,6 +1,8 @@
 /* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
- * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h). Compiled at first use by torchface._native (the C compiler of the
+ * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
+ * three together as template management's per-frame confidence (confidence.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -49,11 +51,33 @@ typedef struct {
     void *out_image, *out_mask;
 } TFFaceProblem;
 
+/* Mirrored by torchface._native.ConfProblem (ctypes): keep the two in the same order; see confidence.h. */
+typedef struct {
+    int B, V, F, M, C, G, height, width, K, n, radius, iterations, project_out_bias, has_max_displacement,
+        min_patches;
+    double fx, fy, cx, cy, min_facing_cos, min_gain, depth_eps, eps, tolerance, max_displacement,
+        max_displacement_or_inf, min_support, min_present_fraction, d0;
+    const void *verts;
+    const int64_t *faces;
+    const uint8_t *surface;
+    const int64_t *face_index, *pixel_index;
+    const void *bary, *frames, *illumination;
+    const int64_t *entry;
+    const void *kernel;
+    const uint8_t *patch_valid;
+    const void *grid, *templ, *sd, *ref_weight, *ref_total;
+    void *out_image, *out_mask, *out_p, *out_support;
+    uint8_t *out_converged, *out_valid, *out_present;
+    void *out_dissimilarity, *out_confidence, *out_inside;
+} TFConfProblem;
+
+#define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
+
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 3; }
+int tf_abi_version(void) { return 4; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -62,6 +86,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "level_solver.h"
 #include "dissimilarity.h"
 #include "normalised_face.h"
+#include "confidence.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -72,6 +97,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "level_solver.h"
 #include "dissimilarity.h"
 #include "normalised_face.h"
+#include "confidence.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

@@ -67,6 +67,7 @@ from torchface.template.management import (
     frame_dissimilarity,
     has_bin,
     light_normalised_intensity,
+    native_mosaic_confidence,
     nearest_entries,
     new_mosaic,
     params_from_pose,
@@ -325,14 +326,19 @@ def _confidence(
     if ms.mosaic.capacity > 1:
         ypr = matrix_to_euler(axis_angle_to_matrix(aa)) if ypr_deg is None else ypr_deg
         nearest = nearest_entries(ms.mosaic, ypr, streams=rows)
-    reference = ms.mosaic.references.select((rows, nearest))
     R = axis_angle_to_matrix(aa) if rotation is None else rotation
     verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
+    failed = status == _FAILED
+    native = native_mosaic_confidence(frames, model, ms.layout, ms.mosaic, rows, nearest, verts_cam, light,
+                                      state.intrinsics, config.template, config.backend)  # fmt: skip
+    if native is not None:
+        diss, conf, inside, face = native
+        return torch.where(failed, torch.zeros_like(conf), conf), diss, inside, face
+    reference = ms.mosaic.references.select((rows, nearest))
     # frame_dissimilarity's two halves, so that the normalised face can also serve a new mosaic entry.
     face = reference_face(frames, model, ms.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
                           config.template, verts_cam=verts_cam, backend=config.backend)  # fmt: skip
     diss = dissimilarity(reference, *face, backend=config.backend)
-    failed = status == _FAILED
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics), face
 
