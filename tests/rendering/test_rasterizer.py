@@ -7,6 +7,8 @@ import torch
 import trimesh
 
 import torchface.rendering.rasterizer as rasterizer_module
+from torchface import _native
+from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering import Fragments, rasterize, rasterize_coverage, rasterize_reference
 
@@ -14,10 +16,16 @@ CAM = Intrinsics.default(32, 24)
 EDGE_TOL = 1e-6
 
 
-@pytest.fixture(autouse=True, params=["boxes", "spans"])
+@pytest.fixture(autouse=True, params=["boxes", "spans", "native"])
 def candidate_path(request, monkeypatch):
-    """Every test runs with both ways of finding candidate pixels: whole bounding boxes (what the small images
-    here get by default) and scanline spans (what larger images get)."""
+    """Every test runs with both of the torch code's ways of finding candidate pixels, whole bounding boxes (what
+    the small images here get by default) and scanline spans (what larger images get), and with the native
+    z-buffer (``torchface/_native/coverage.h``, the default where it can run)."""
+    if request.param == "native":
+        if _native.library() is None:
+            pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+        return request.param
+    monkeypatch.setattr(rasterizer_module, "use_native", lambda *args, **kwargs: False)
     limit = 1 << 40 if request.param == "boxes" else -1
     monkeypatch.setattr(rasterizer_module, "_BBOX_MAX_PAIRS", limit)
     return request.param
@@ -459,3 +467,36 @@ def test_cuda_matches_cpu():
     gpu = rasterize(verts.float().cuda(), faces.cuda(), CAM)
     assert torch.equal(cpu.pix_to_face, gpu.pix_to_face.cpu())
     torch.testing.assert_close(cpu.bary, gpu.bary.cpu(), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypatch, dtype):
+    """The native z-buffer tests every pixel of each box with the torch code's arithmetic: the same fragments bit
+    for bit as either torch path, on random soups and surfaces, triangles crossing the near plane, and the
+    CANDIDE-3 mesh at random poses (turned away, close to the camera, partly off the image), with and without
+    back-face culling."""
+    if candidate_path != "native":
+        pytest.skip("compares the native path with the torch paths itself")
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model.candide import load_candide3
+
+    model = load_candide3(dtype=torch.float64)
+    g = torch.Generator().manual_seed(5)
+    ypr = (torch.rand(6, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([180.0, 90.0, 60.0])
+    t = torch.tensor([0.0, 0.0, 450.0]) + (torch.rand(6, 3, generator=g, dtype=torch.float64) - 0.5) * 300.0
+    t[0, 2] = 30.0  # close: triangles cross the near plane
+    face = model.mean @ euler_to_matrix(ypr).mT + t[:, None]
+    near_plane = torch.tensor([[[-30.0, -20.0, -10.0], [40.0, -20.0, 90.0], [0.0, 40.0, 90.0]]], dtype=torch.float64)
+    meshes = [random_soup(8, 2, 30), random_surface(9, 2), (near_plane, torch.tensor([[0, 1, 2]])), (face, model.faces)]
+    for verts, faces in meshes:
+        covered = False
+        for cam in (CAM, Intrinsics.default(160, 120), Intrinsics.default(320, 240)):
+            for cull in (False, True):
+                native = rasterize(verts.to(dtype), faces, cam, cull_backfaces=cull, backend=Backend.NATIVE)
+                covered |= bool((native.pix_to_face >= 0).any())
+                for path, limit in (("boxes", 1 << 40), ("spans", -1)):
+                    monkeypatch.setattr(rasterizer_module, "_BBOX_MAX_PAIRS", limit)
+                    ref = rasterize(verts.to(dtype), faces, cam, cull_backfaces=cull, backend=Backend.TORCH)
+                    for name in ("pix_to_face", "bary", "zbuf", "facing"):
+                        assert torch.equal(getattr(native, name), getattr(ref, name)), (name, path, cull)
+        assert covered  # the mesh is seen (so equality says something)

@@ -5,7 +5,8 @@ their arithmetic, is most of the step's time; at many streams the same loops str
 memory. :func:`library` compiles ``kernels.c`` (one pyramid level's Levenberg-Marquardt solve per stream, the
 algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the dissimilarity confidence's
 smoothing and patch tracking: ``dissimilarity.h``; the normalised face without the z-buffer:
-``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``) with the machine's C compiler into a shared library, caches
+``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``; the rasterizer's coverage:
+``coverage.h``) with the machine's C compiler into a shared library, caches
 it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
 none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
 :mod:`torchface.backend` decides).
@@ -33,12 +34,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
-           "LOSS_CODES"]
+           "CoverProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
-_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h")
+_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 4
+_ABI_VERSION = 5
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -96,6 +97,17 @@ class ConfProblem(ctypes.Structure):
             "out_p", "out_support", "out_converged", "out_valid", "out_present", "out_dissimilarity",
             "out_confidence", "out_inside",
         )),  # fmt: skip
+    ]
+
+
+class CoverProblem(ctypes.Structure):
+    """``TFCoverProblem`` of ``kernels.c`` (same field order): the rasterizer's coverage (see ``coverage.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "F", "H", "W")),
+        ("near", ctypes.c_double),
+        *((name, ctypes.c_void_p) for name in ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last",
+                                               "y_first", "y_last", "pix_to_face", "facing", "depth")),  # fmt: skip
     ]
 
 
@@ -178,7 +190,8 @@ def _load() -> None:
         _reason = f"the native kernels could not be built or loaded: {exc}"
         return
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
-                          ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem)):
+                          ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
+                          ("tf_coverage", CoverProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

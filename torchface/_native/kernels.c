@@ -1,6 +1,7 @@
 /* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
- * three together as template management's per-frame confidence (confidence.h). Compiled at first use by torchface._native (the C compiler of the
+ * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
+ * (coverage.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -71,13 +72,25 @@ typedef struct {
     void *out_dissimilarity, *out_confidence, *out_inside;
 } TFConfProblem;
 
+/* Mirrored by torchface._native.CoverProblem (ctypes): keep the two in the same order; see coverage.h. */
+typedef struct {
+    int B, F, H, W;
+    double near;
+    const void *coefficients, *ray_a, *ray_b;
+    const uint8_t *skip, *front;
+    const int64_t *x_first, *x_last, *y_first, *y_last;
+    int64_t *pix_to_face;
+    int8_t *facing;
+    void *depth;
+} TFCoverProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 4; }
+int tf_abi_version(void) { return 5; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -87,6 +100,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "dissimilarity.h"
 #include "normalised_face.h"
 #include "confidence.h"
+#include "coverage.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -98,6 +112,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "dissimilarity.h"
 #include "normalised_face.h"
 #include "confidence.h"
+#include "coverage.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

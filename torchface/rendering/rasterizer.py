@@ -61,6 +61,7 @@ import torch
 from torch import Tensor
 
 from torchface._scalar import isfinite
+from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.camera import Intrinsics
 
@@ -481,8 +482,34 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
     return best, winners
 
 
+def _native_cover(
+    coeffs: Tensor, front: Tensor, skip: Tensor, x_first: Tensor, x_last: Tensor, y_first: Tensor, y_last: Tensor,
+    ray_a: Tensor, ray_b: Tensor, B: int, F: int, H: int, W: int, near: float,
+) -> tuple[Tensor, Tensor]:
+    """``pix_to_face (B H W,)`` int64 and ``facing (B H W,)`` int8 by the native kernel (``_native/coverage.h``):
+    every pixel of each ``(sample, face)`` row's box ``[x_first, x_last] x [y_first, y_last]`` (int64 ``(B F,)``
+    each, inside the image) tested with the torch code's arithmetic, unless ``skip``."""
+    from torchface import _native
+
+    dtype = coeffs.dtype
+    args = [x.contiguous() for x in (coeffs, ray_a, ray_b, skip.to(torch.uint8), front.to(torch.uint8), x_first,
+                                     x_last, y_first, y_last)]  # fmt: skip
+    pix_to_face = torch.empty(B * H * W, dtype=torch.int64)
+    facing = torch.empty(B * H * W, dtype=torch.int8)
+    depth = torch.empty(B * H * W, dtype=dtype)
+    names = ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last", "y_first", "y_last")
+    prob = _native.CoverProblem(B=B, F=F, H=H, W=W, near=float(near), **{n: x.data_ptr() for n, x in zip(names, args)},
+                                pix_to_face=pix_to_face.data_ptr(), facing=facing.data_ptr(), depth=depth.data_ptr())
+    lib = _native.library()
+    fn = lib.tf_coverage_f32 if dtype == torch.float32 else lib.tf_coverage_f64
+    if B > 0:
+        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    return pix_to_face, facing
+
+
 def _cover(
-    verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float
+    verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
+    backend: Backend = Backend.AUTO,
 ) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor]]:
     """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, sample
     ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each)."""
@@ -517,6 +544,16 @@ def _cover(
         skip = behind | ~usable | (x_first > W - 1) | (x_last < 0)
         heights = torch.where(skip, zero, (y_last - y_first + 1).clamp_min(0))
         box_first = x_first.clamp(0, W)
+        if use_native(backend, (verts_cam.detach(),), "rasterizer"):  # the same coverage, bit for bit (tests)
+            pix_to_face, facing = _native_cover(
+                coeffs.detach(), front, skip | (heights == 0), box_first, x_last.clamp(-1, W - 1), y_first, y_last,
+                ray_a, ray_b, B, F, H, W, near,
+            )  # fmt: skip
+            pix_idx = (pix_to_face >= 0).nonzero().squeeze(-1)
+            pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
+            pix_bf = pix_b * F + pix_to_face.index_select(0, pix_idx)
+            coverage = Coverage(pix_to_face.reshape(B, H, W), facing.reshape(B, H, W), coeffs, ray_a, ray_b, F)
+            return coverage, (pix_idx, pix_b, pix_bf)
         box_w = (x_last.clamp(-1, W - 1) - box_first + 1).clamp_min(0)
         area = heights * box_w
         if int(area.sum()) <= _BBOX_MAX_PAIRS:  # few candidates: whole boxes (module docstring)
@@ -547,6 +584,7 @@ def rasterize(
     *,
     cull_backfaces: bool = False,
     near: float = NEAR_PLANE_MM,
+    backend: Backend = Backend.AUTO,
 ) -> Fragments:
     """Rasterize a batch of triangle meshes at the pixel centres of a pinhole camera.
 
@@ -561,6 +599,10 @@ def rasterize(
         intrinsics: the camera; the output is ``H x W = intrinsics.height x intrinsics.width``.
         cull_backfaces: drop triangles with ``n . v0 >= 0`` before the depth test.
         near: hits at depth ``Z <= near`` (millimetres) are discarded.
+        backend: :class:`~torchface.backend.Backend` of the z-buffer (which triangle each pixel sees): the native
+            kernel tests every pixel of each triangle's bounding box with the same arithmetic, so the fragments
+            are the same bit for bit; the barycentric coordinates and depths are then evaluated (differentiably)
+            by the torch code either way.
 
     Returns:
         :class:`Fragments` with ``(B, H, W)`` ``pix_to_face``/``zbuf``/``facing`` and ``(B, H, W, 3)``
@@ -574,7 +616,7 @@ def rasterize(
         >>> frag.pix_to_face.shape, int(frag.facing[0, 12, 16])
         (torch.Size([1, 24, 32]), 1)
     """
-    coverage, (pix_idx, pix_b, pix_bf) = _cover(verts_cam, faces, intrinsics, cull_backfaces, near)
+    coverage, (pix_idx, pix_b, pix_bf) = _cover(verts_cam, faces, intrinsics, cull_backfaces, near, backend)
     return coverage._fragments(pix_idx, pix_b, pix_bf)
 
 
@@ -585,6 +627,7 @@ def rasterize_coverage(
     *,
     cull_backfaces: bool = False,
     near: float = NEAR_PLANE_MM,
+    backend: Backend = Backend.AUTO,
 ) -> Coverage:
     """:func:`rasterize` without its per-pixel barycentric coordinates and depths: which triangle each pixel
     centre sees, and the means to evaluate the rest at the pixels a caller picks (:meth:`Coverage.barycentrics`,
@@ -603,4 +646,4 @@ def rasterize_coverage(
         >>> torch.equal(cov.barycentrics(*at.T), full.bary[at[:, 0], at[:, 1], at[:, 2]])
         True
     """
-    return _cover(verts_cam, faces, intrinsics, cull_backfaces, near)[0]
+    return _cover(verts_cam, faces, intrinsics, cull_backfaces, near, backend)[0]

@@ -1,0 +1,58 @@
+/* The rasterizer's coverage (torchface.rendering.rasterizer._cover): which triangle each pixel centre sees, by
+ * the same ray test with the same arithmetic as the torch code, so the same triangles bit for bit. Candidate
+ * pixels are every pixel of each triangle's bounding box (the torch code's path for small boxes; its scanline
+ * spans for large ones keep a superset of the covered pixels, so they decide the same); the z-buffer keeps the
+ * nearest hit and, on an exact depth tie, the lower face index.
+ *
+ * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
+ * Layouts: coefficients (13, B F) (rasterizer._face_coefficients: row j + 4 i, function j times ray component i;
+ * row 12 k = n . v0; oriented); skip (B F) uint8, the rows not tested; x_first, x_last, y_first, y_last (B F)
+ * int64, each row's pixel box (clamped by the caller); ray_a (W), ray_b (H); out: pix_to_face (B, H, W) int64
+ * and facing (B, H, W) int8 from front (B F) uint8; depth (B, H, W) REAL workspace.
+ */
+
+/* Streams [b0, b1). Returns 0. */
+int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
+    const int F = p->F, H = p->H, W = p->W;
+    const size_t N = (size_t)p->B * F, HW = (size_t)H * W;
+    const REAL *c = (const REAL *)p->coefficients, *ray_a = (const REAL *)p->ray_a, *ray_b = (const REAL *)p->ray_b;
+    const REAL near = (REAL)p->near;
+    for (int b = b0; b < b1; ++b) {
+        int64_t *face = p->pix_to_face + (size_t)b * HW;
+        int8_t *facing = p->facing + (size_t)b * HW;
+        REAL *depth = (REAL *)p->depth + (size_t)b * HW;
+        for (size_t i = 0; i < HW; ++i) {
+            face[i] = -1;
+            depth[i] = (REAL)INFINITY;
+        }
+        for (int f = 0; f < F; ++f) {
+            const size_t r = (size_t)b * F + f;
+            if (p->skip[r]) continue;
+            const REAL a0 = c[0 * N + r], a1 = c[1 * N + r], a2 = c[2 * N + r], a3 = c[3 * N + r];
+            const REAL b0c = c[4 * N + r], b1c = c[5 * N + r], b2c = c[6 * N + r], b3c = c[7 * N + r];
+            const REAL c0 = c[8 * N + r], c1 = c[9 * N + r], c2 = c[10 * N + r], c3 = c[11 * N + r];
+            const REAL k = c[12 * N + r];
+            const int64_t x0 = p->x_first[r], x1 = p->x_last[r], y0 = p->y_first[r], y1 = p->y_last[r];
+            for (int64_t y = y0; y <= y1; ++y) {
+                const REAL by = ray_b[y];
+                /* the per-row part (c[4:8] b + c[8:12]), as both torch paths compute it */
+                const REAL r0 = b0c * by + c0, r1 = b1c * by + c1, r2 = b2c * by + c2, r3 = b3c * by + c3;
+                for (int64_t x = x0; x <= x1; ++x) {
+                    const REAL ax = ray_a[x];
+                    REAL e0 = a0 * ax + r0, e1 = a1 * ax + r1, e2 = a2 * ax + r2, e3 = a3 * ax + r3;
+                    if (!(e0 >= (REAL)0 && e1 >= (REAL)0 && e2 >= (REAL)0 && e3 > (REAL)0)) continue;
+                    REAL z = k / e3;
+                    if (!(z > near)) continue;
+                    size_t i = (size_t)y * W + x;
+                    if (z < depth[i] || (z == depth[i] && f < face[i])) {
+                        depth[i] = z;
+                        face[i] = f;
+                    }
+                }
+            }
+        }
+        for (size_t i = 0; i < HW; ++i)
+            facing[i] = face[i] < 0 ? 0 : (p->front[(size_t)b * F + face[i]] ? 1 : -1);
+    }
+    return 0;
+}
