@@ -4,6 +4,7 @@ time), batch and thread consistency, non-finite frames, the fallbacks and the bu
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -286,3 +287,70 @@ def test_tracking_with_either_backend_gives_the_same_poses():
         assert float((n.translation - r.translation).abs().max()) < 0.1
         assert torch.equal(n.status, r.status)
 
+
+
+@pytest.fixture(scope="module")
+def sweep():
+    """A short pose sweep (320x240, 36 frames, head turning to +-45 degrees) and its first landmarks."""
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+
+    frames, gt = render_sequence(make_scenario("pose_sweep", 36, 320, 240))
+    return frames, gt
+
+
+def test_native_confidence_equals_the_torch_path(sweep):
+    """Template management's per-frame confidence in one native pass (``native_mosaic_confidence``) against the
+    torch path (normalised face, dissimilarity against the entry's reference, inside fraction), frame by frame
+    over a managed track whose mosaic grows to several entries, two streams (one offset): the same confidence,
+    dissimilarity, inside fraction and normalised face to float32 rounding; in float64 on the last frame, to
+    1e-9."""
+    from torchface.geometry.camera import Intrinsics
+    from torchface.model.candide import load_candide3
+    from torchface.tracker import TrackerConfig
+    from torchface.tracker.managed import _confidence, initialise_managed, managed_step
+
+    frames, gt = sweep
+    model = load_candide3()
+    cfg = TrackerConfig()
+    torch_cfg = replace(cfg, backend=TORCH)
+    two = torch.stack([frames[:30], frames[6:36]])  # (2, 30, 3, H, W)
+    lm = torch.stack([gt.landmarks_px[0], gt.landmarks_px[6]]).float()
+    intr = Intrinsics.default(320, 240)
+    state, _ = initialise_managed(model, cfg, two[:, 0], lm, intr)
+    status = torch.zeros(2, dtype=torch.int64)
+    worst = [0.0, 0.0, 0.0, 0.0]
+    for i in range(1, two.shape[1]):
+        state, _ = managed_step(model, cfg, state, two[:, i])
+        ms = state.management
+        nat = _confidence(model, cfg, ms, two[:, i], state, status)
+        ref = _confidence(model, torch_cfg, ms, two[:, i], state, status)
+        for k in range(3):
+            worst[k] = max(worst[k], float((nat[k] - ref[k]).abs().max()))
+        assert torch.equal(nat[3][1], ref[3][1])  # the same mask
+        worst[3] = max(worst[3], float((nat[3][0] - ref[3][0]).abs().max()))
+    assert int(ms.mosaic.num_entries.max()) >= 3 and int(ms.mosaic.num_entries.min()) >= 2  # entries aligned against
+    assert max(worst) < 2e-4, worst
+    # float64: the last frame's state in double precision
+    m64 = load_candide3(dtype=torch.float64)
+
+    def double(x):
+        return x.double() if isinstance(x, torch.Tensor) and x.is_floating_point() else x
+
+    def cast(obj):
+        if isinstance(obj, torch.Tensor):
+            return double(obj)
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            return type(obj)(**{f.name: cast(getattr(obj, f.name)) for f in dataclasses.fields(obj) if f.init})
+        if isinstance(obj, tuple):
+            return type(obj)(*(cast(v) for v in obj)) if hasattr(obj, "_fields") else tuple(cast(v) for v in obj)
+        return obj
+
+    s64 = cast(state)
+    f64 = two[:, -1].double()
+    nat = _confidence(m64, cfg, s64.management, f64, s64, status)
+    ref = _confidence(m64, torch_cfg, s64.management, f64, s64, status)
+    for k in range(3):
+        torch.testing.assert_close(nat[k], ref[k], rtol=0, atol=1e-9)
+    torch.testing.assert_close(nat[3][0], ref[3][0], rtol=0, atol=1e-9)
+    assert float(nat[0].min()) > 0.5  # the track is confident (so agreement says something)
