@@ -39,7 +39,7 @@ __all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKPro
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 5
+_ABI_VERSION = 6
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -87,15 +87,16 @@ class ConfProblem(ctypes.Structure):
     _fields_ = [
         *((name, ctypes.c_int) for name in ("B", "V", "F", "M", "C", "G", "height", "width", "K", "n", "radius",
                                             "iterations", "project_out_bias", "has_max_displacement",
-                                            "min_patches")),  # fmt: skip
+                                            "min_patches", "S", "A", "E")),  # fmt: skip
         *((name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "min_facing_cos", "min_gain", "depth_eps", "eps",
                                                "tolerance", "max_displacement", "max_displacement_or_inf",
                                                "min_support", "min_present_fraction", "d0")),  # fmt: skip
         *((name, ctypes.c_void_p) for name in (
-            "verts", "faces", "surface", "face_index", "pixel_index", "bary", "frames", "illumination", "entry",
-            "kernel", "patch_valid", "grid", "templ", "sd", "ref_weight", "ref_total", "out_image", "out_mask",
-            "out_p", "out_support", "out_converged", "out_valid", "out_present", "out_dissimilarity",
-            "out_confidence", "out_inside",
+            "mean", "shape_units", "anim_units", "faces", "surface", "shape", "alpha", "R", "t", "ypr", "face_index",
+            "pixel_index", "bary", "frames", "illumination", "rows", "mosaic_ypr", "used", "kernel", "patch_valid",
+            "grid", "templ", "sd", "ref_weight", "ref_total", "out_entry", "out_image", "out_mask", "out_p",
+            "out_support", "out_converged", "out_valid", "out_present", "out_dissimilarity", "out_confidence",
+            "out_inside",
         )),  # fmt: skip
     ]
 

@@ -1,17 +1,21 @@
 /* Template management's per-frame confidence in one pass per stream (torchface.tracker.managed._confidence): the
- * posed mesh's vertex normals and back-facing triangles (geometry.mesh.vertex_normals_and_backfacing), its
- * normalised face without the z-buffer (normalised_face.h), the dissimilarity against the reference of the
- * stream's mosaic entry (dissimilarity.h, then dissimilarity()'s mean displacement and confidence) and the
- * fraction of surface vertices inside the frame (template.management.face_inside_fraction). The same algorithms
- * as the torch code, which the tests compare against.
+ * mesh at the estimate (the model's Eq. 1 deformation, turned and moved into the camera frame), the mosaic entry
+ * nearest the estimate's (yaw, pitch) (template.management.nearest_entries), the posed mesh's vertex normals and
+ * back-facing triangles (geometry.mesh.vertex_normals_and_backfacing), its normalised face without the z-buffer
+ * (normalised_face.h), the dissimilarity against that entry's reference (dissimilarity.h, then dissimilarity()'s
+ * mean displacement and confidence) and the fraction of surface vertices inside the frame
+ * (template.management.face_inside_fraction). The same algorithms as the torch code, which the tests compare
+ * against.
  *
  * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
- * Layouts (C order): verts (B, V, 3) posed, camera frame; faces (F, 3) int64; surface (V) uint8; the layout's
- * face_index, pixel_index (M) int64 and bary (M, 3); frames (B, C, H, W); illumination (B, 5) or NULL; the
- * references of the mosaic's R = rows x entries: patch_valid (R, K) uint8, grid (R, K, n, 2), templ (R, K, n),
- * sd (R, K, n, 2), ref_weight (R, K, n), ref_total (R, K), and entry (B) int64 the one of each stream (its flat
- * index row * entries + entry); out: image (B, C, G * G) and mask (B, G * G) zeroed by the caller, p (B, K, 2),
- * support (B, K), converged, valid, present (B, K) uint8, dissimilarity, confidence, inside (B).
+ * Layouts (C order): the model's mean (V, 3), shape_units (S, V, 3), anim_units (A, V, 3), faces (F, 3) int64,
+ * surface (V) uint8; the estimate's shape (B, S), alpha (B, A), R (B, 3, 3), t (B, 3), illumination (B, 5) and
+ * ypr (B, 3) degrees (NULL: entry 0); the layout's face_index, pixel_index (M) int64 and bary (M, 3); frames
+ * (B, C, H, W); the mosaic's rows (B) int64 (each stream's row), entry poses mosaic_ypr (rows, E, 3), used
+ * (rows, E) uint8 and references of its rows x E entries: patch_valid (rows E, K) uint8, grid (rows E, K, n, 2),
+ * templ (rows E, K, n), sd (rows E, K, n, 2), ref_weight (rows E, K, n), ref_total (rows E, K); out: entry (B)
+ * int64, image (B, C, G * G) and mask (B, G * G) zeroed by the caller, p (B, K, 2), support (B, K), converged,
+ * valid, present (B, K) uint8, dissimilarity, confidence, inside (B).
  */
 
 /* vertex_normals_and_backfacing for one stream: the triangles' cross products (v1 - v0) x (v2 - v0), back where
@@ -42,14 +46,57 @@ static void FN(normals_and_back)(const REAL *verts, const int64_t *faces, int V,
     }
 }
 
+/* The model's vertices at shape and expression coefficients (Eq. 1: mean + sum_s sigma_s S_s + sum_a alpha_a A_a),
+ * turned and moved into the camera frame: R X + t. */
+static void FN(posed_vertices)(const TFConfProblem *p, int b, REAL *verts) {
+    const int V = p->V, S = p->S, A = p->A;
+    const REAL *mean = (const REAL *)p->mean, *su = (const REAL *)p->shape_units, *au = (const REAL *)p->anim_units;
+    const REAL *sigma = (const REAL *)p->shape + (size_t)b * S, *alpha = (const REAL *)p->alpha + (size_t)b * A;
+    const REAL *R = (const REAL *)p->R + 9 * (size_t)b, *t = (const REAL *)p->t + 3 * (size_t)b;
+    for (int i = 0; i < 3 * V; ++i) verts[i] = mean[i];
+    for (int s = 0; s < S; ++s)
+        if (sigma[s] != (REAL)0)
+            for (int i = 0; i < 3 * V; ++i) verts[i] += sigma[s] * su[(size_t)s * 3 * V + i];
+    for (int a = 0; a < A; ++a)
+        if (alpha[a] != (REAL)0)
+            for (int i = 0; i < 3 * V; ++i) verts[i] += alpha[a] * au[(size_t)a * 3 * V + i];
+    for (int v = 0; v < V; ++v) {
+        REAL x = verts[3 * v], y = verts[3 * v + 1], z = verts[3 * v + 2];
+        for (int r = 0; r < 3; ++r) verts[3 * v + r] = R[3 * r] * x + R[3 * r + 1] * y + R[3 * r + 2] * z + t[r];
+    }
+}
+
+/* nearest_entries: the used entry nearest the pose in (yaw, pitch), the lowest index on a tie. */
+static int64_t FN(nearest_entry)(const TFConfProblem *p, int b) {
+    if (!p->ypr) return 0;
+    const int E = p->E;
+    const int64_t row = p->rows[b];
+    const REAL *ypr = (const REAL *)p->ypr + 3 * (size_t)b, *ey = (const REAL *)p->mosaic_ypr + (size_t)row * E * 3;
+    const uint8_t *used = p->used + (size_t)row * E;
+    int64_t best = 0;
+    REAL d_best = (REAL)INFINITY;
+    for (int e = 0; e < E; ++e) {
+        if (!used[e]) continue;
+        REAL dy = ey[3 * e] - ypr[0], dp = ey[3 * e + 1] - ypr[1];
+        REAL d = (REAL)sqrt((double)(dy * dy + dp * dp));
+        if (d < d_best) {
+            d_best = d;
+            best = e;
+        }
+    }
+    return best;
+}
+
 static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
     const int V = p->V, F = p->F, K = p->K, n = p->n, G = p->G;
     const size_t GG = (size_t)G * G;
-    const REAL *verts = (const REAL *)p->verts + (size_t)b * V * 3;
-    REAL *normals = work, *cross = normals + 3 * (size_t)V, *gray = cross + 3 * (size_t)F, *tmp = gray + GG;
-    REAL *err = tmp + 3 * GG, *w = err + n;
+    REAL *verts = work, *normals = verts + 3 * (size_t)V, *cross = normals + 3 * (size_t)V, *gray = cross + 3 * (size_t)F;
+    REAL *tmp = gray + GG, *err = tmp + 3 * GG, *w = err + n;
     uint8_t *back = (uint8_t *)(w + n);
+    FN(posed_vertices)(p, b, verts);
     FN(normals_and_back)(verts, p->faces, V, F, normals, back, cross);
+    const int64_t entry = FN(nearest_entry)(p, b);
+    p->out_entry[b] = entry;
 
     /* the normalised face: normalised_face.h's kernel on this stream alone */
     REAL *image = (REAL *)p->out_image + (size_t)b * p->C * GG, *mask = (REAL *)p->out_mask + (size_t)b * GG;
@@ -61,7 +108,7 @@ static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
     FN(normalised_face_one)(&face, 0);
 
     /* the dissimilarity against the entry's reference: dissimilarity.h's kernels on this stream alone */
-    const size_t ek = (size_t)p->entry[b] * K, ekn = ek * n;
+    const size_t ek = ((size_t)p->rows[b] * p->E + (size_t)entry) * K, ekn = ek * n;
     TFLKProblem lk = {1, p->C, G, K, n, p->radius, p->iterations, p->project_out_bias, p->has_max_displacement,
                       p->eps, p->tolerance, p->max_displacement, image, mask, p->kernel,
                       (const REAL *)p->grid + 2 * ekn, (const REAL *)p->templ + ekn, (const REAL *)p->sd + 2 * ekn,
@@ -113,7 +160,7 @@ static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
 /* Streams [b0, b1). Returns 0, or -1 without memory. */
 int FN(tf_confidence)(const TFConfProblem *p, int b0, int b1) {
     const size_t GG = (size_t)p->G * p->G;
-    size_t reals = 3 * (size_t)p->V + 3 * (size_t)p->F + 4 * GG + 2 * (size_t)p->n + (size_t)p->F / sizeof(REAL) + 16;
+    size_t reals = 6 * (size_t)p->V + 3 * (size_t)p->F + 4 * GG + 2 * (size_t)p->n + (size_t)p->F / sizeof(REAL) + 16;
     REAL *work = (REAL *)malloc(sizeof(REAL) * reals);
     if (!work) return -1;
     for (int b = b0; b < b1; ++b) FN(confidence_one)(p, b, work);

@@ -55,18 +55,22 @@ typedef struct {
 /* Mirrored by torchface._native.ConfProblem (ctypes): keep the two in the same order; see confidence.h. */
 typedef struct {
     int B, V, F, M, C, G, height, width, K, n, radius, iterations, project_out_bias, has_max_displacement,
-        min_patches;
+        min_patches, S, A, E;
     double fx, fy, cx, cy, min_facing_cos, min_gain, depth_eps, eps, tolerance, max_displacement,
         max_displacement_or_inf, min_support, min_present_fraction, d0;
-    const void *verts;
+    const void *mean, *shape_units, *anim_units;
     const int64_t *faces;
     const uint8_t *surface;
+    const void *shape, *alpha, *R, *t, *ypr;
     const int64_t *face_index, *pixel_index;
     const void *bary, *frames, *illumination;
-    const int64_t *entry;
+    const int64_t *rows;
+    const void *mosaic_ypr;
+    const uint8_t *used;
     const void *kernel;
     const uint8_t *patch_valid;
     const void *grid, *templ, *sd, *ref_weight, *ref_total;
+    int64_t *out_entry;
     void *out_image, *out_mask, *out_p, *out_support;
     uint8_t *out_converged, *out_valid, *out_present;
     void *out_dissimilarity, *out_confidence, *out_inside;
@@ -90,7 +94,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 5; }
+int tf_abi_version(void) { return 6; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float

@@ -678,22 +678,41 @@ def face_inside_fraction(model: FaceModel, verts_cam: Tensor, intrinsics: Intrin
     return ok.to(verts_cam.dtype).mean(-1)
 
 
+def _native_layout_constants(model: FaceModel, layout: NormalisedFaceLayout, dtype: torch.dtype) -> tuple[Tensor, ...]:
+    """The model's and the layout's tensors the native confidence reads, contiguous in ``dtype`` (int64 indices,
+    the surface mask as bytes): made once per layout, model and dtype and kept on the layout."""
+    cache = layout.__dict__.setdefault("_native_constants", {})
+    key = (id(model), dtype)
+    if key not in cache:
+        with torch.inference_mode(False):
+            cache[key] = (
+                model.mean.to(dtype).contiguous(), model.shape_units.to(dtype).contiguous(),
+                model.animation_units.to(dtype).contiguous(), model.faces.to(torch.int64).contiguous(),
+                model.surface_vertex_mask.to(torch.uint8).contiguous(), layout.face_index.to(torch.int64).contiguous(),
+                layout.pixel_index.to(torch.int64).contiguous(), layout.bary.to(dtype).contiguous(), model,
+            )  # fmt: skip
+    return cache[key]
+
+
 def native_mosaic_confidence(
-    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, mosaic: "Mosaic", rows: Tensor, entries: Tensor,
-    verts_cam: Tensor, illumination: Tensor, intrinsics: Intrinsics, config: TemplateConfig, backend: Backend,
-) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]] | None:
+    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, mosaic: "Mosaic", rows: Tensor,
+    ypr_deg: Tensor | None, shape_coeffs: Tensor, anim_coeffs: Tensor, rotation: Tensor, translation: Tensor,
+    illumination: Tensor, intrinsics: Intrinsics, config: TemplateConfig, backend: Backend,
+) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor], Tensor] | None:
     """The per-frame confidence of template management in one native pass per stream (``_native/confidence.h``):
-    :func:`reference_face` of the posed meshes (no z-buffer), :func:`~torchface.template.dissimilarity.dissimilarity`
-    against the reference of each stream's entry, and :func:`face_inside_fraction`; the torch code's values to
-    rounding (tests/tracker/test_native.py).
+    the mesh posed at the estimate, the mosaic entry nearest its (yaw, pitch) (:func:`nearest_entries`),
+    :func:`reference_face` (no z-buffer), :func:`~torchface.template.dissimilarity.dissimilarity` against that
+    entry's reference, and :func:`face_inside_fraction`; the torch code's values to rounding
+    (tests/tracker/test_native.py).
 
     Args:
-        frames: ``(B, C, H, W)``; rows: ``(B,)`` int64 the streams' rows of ``mosaic``; entries: ``(B,)`` int64
-            the entry of each; verts_cam: ``(B, V, 3)`` the posed meshes; illumination: ``(B, L)``.
+        frames: ``(B, C, H, W)``; rows: ``(B,)`` int64 the streams' rows of ``mosaic``; ypr_deg: ``(B, 3)`` the
+            estimate's yaw/pitch/roll (None: entry 0 for every stream); shape_coeffs ``(B, S)``, anim_coeffs
+            ``(B, A)``, rotation ``(B, 3, 3)``, translation ``(B, 3)``, illumination ``(B, L)``: the estimate.
 
     Returns:
-        ``(dissimilarity (B,), confidence (B,), inside (B,), (image (B, C, G, G), mask (B, 1, G, G)))``, or None
-        where the native kernel cannot run and ``backend`` lets the torch code run instead
+        ``(dissimilarity (B,), confidence (B,), inside (B,), (image (B, C, G, G), mask (B, 1, G, G)), entry (B,))``,
+        or None where the native kernel cannot run and ``backend`` lets the torch code run instead
         (:func:`~torchface.backend.use_native`; a reference without precomputed patches counts as unsuitable).
     """
     from torchface import _native
@@ -701,59 +720,63 @@ def native_mosaic_confidence(
 
     refs = mosaic.references
     lk = refs.lk
-    suitable = lk is not None and lk.template.shape[-1] == 1 and lk.template.dtype == verts_cam.dtype
+    dtype = rotation.dtype
+    suitable = lk is not None and lk.template.shape[-1] == 1 and lk.template.dtype == dtype
     if not suitable:
         if backend is Backend.NATIVE:
             raise RuntimeError("the native confidence needs the mosaic's references with their gray patches")
         return None
-    if not use_native(backend, (frames, verts_cam, illumination, *lk), "confidence"):
+    if not use_native(backend, (frames, rotation, translation, anim_coeffs, illumination, lk.template), "confidence"):
         return None
     B, C, H, W = frames.shape
-    dtype = verts_cam.dtype
     G = layout.size
     cam = check_intrinsics(intrinsics)
     dc = refs.config
+    mean, shape_units, anim_units, faces, surface, face_index, pixel_index, bary, _ = _native_layout_constants(
+        model, layout, dtype
+    )
     grid, template, sd, ref_weight, ref_total = (x.contiguous() for x in lk)
-    R_, E, K, n = grid.shape[:4]
-    patch_valid = refs.patch_valid.contiguous()
-    flat = (rows * E + entries).to(torch.int64).contiguous()
+    E, K, n = grid.shape[1:4]
     sigma = float(dc.smoothing_sigma)
     kernel = (_gaussian_kernels(sigma, dtype, frames.device)[0].reshape(-1) if sigma > 0
               else torch.ones(1, dtype=dtype)).contiguous()  # fmt: skip
-    faces = model.faces.to(torch.int64).contiguous()
-    surface = model.surface_vertex_mask.to(torch.uint8).contiguous()
-    bary = layout.bary.to(dtype).contiguous()
-    frames_c, verts_c, light = frames.contiguous(), verts_cam.contiguous(), illumination.contiguous()
+    inputs = [x.contiguous() for x in (shape_coeffs.to(dtype), anim_coeffs, rotation, translation, frames, illumination,
+                                       rows, mosaic.ypr_deg.to(dtype), mosaic.used, refs.patch_valid)]  # fmt: skip
+    ypr = None if ypr_deg is None else ypr_deg.to(dtype).contiguous()
+    entry = torch.empty(B, dtype=torch.int64)
     image = torch.zeros(B, C, G * G, dtype=dtype)
     mask = torch.zeros(B, 1, G * G, dtype=dtype)
     p = torch.empty(B, K, 2, dtype=dtype)
     support = torch.empty(B, K, dtype=dtype)
-    converged, valid, present = (torch.empty(B, K, dtype=torch.bool) for _ in range(3))
-    diss, conf, inside = (torch.empty(B, dtype=dtype) for _ in range(3))
+    flags = torch.empty(3, B, K, dtype=torch.bool)  # converged, valid, present
+    out = torch.empty(3, B, dtype=dtype)  # dissimilarity, confidence, inside
     dmax = dc.max_displacement
+    ptr = [x.data_ptr() for x in inputs]
     prob = _native.ConfProblem(
-        B=B, V=verts_cam.shape[1], F=faces.shape[0], M=layout.face_index.shape[0], C=C, G=G, height=H, width=W, K=K,
-        n=n, radius=kernel.numel() // 2 if sigma > 0 else 0, iterations=dc.iterations,
+        B=B, V=mean.shape[0], F=faces.shape[0], M=face_index.shape[0], C=C, G=G, height=H, width=W, K=K, n=n,
+        radius=kernel.numel() // 2 if sigma > 0 else 0, iterations=dc.iterations,
         project_out_bias=int(dc.project_out_bias), has_max_displacement=int(dmax is not None),
-        min_patches=int(dc.min_patches), fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
-        min_facing_cos=float(config.min_facing_cos), min_gain=0.05, depth_eps=torch.finfo(dtype).eps,
-        eps=torch.finfo(dtype).eps, tolerance=float(dc.tolerance), max_displacement=float(dmax or 0.0),
-        max_displacement_or_inf=float("inf") if dmax is None else float(dmax), min_support=float(dc.min_support),
-        min_present_fraction=float(dc.min_present_fraction), d0=float(dc.d0), verts=verts_c.data_ptr(),
-        faces=faces.data_ptr(), surface=surface.data_ptr(), face_index=layout.face_index.contiguous().data_ptr(),
-        pixel_index=layout.pixel_index.contiguous().data_ptr(), bary=bary.data_ptr(), frames=frames_c.data_ptr(),
-        illumination=light.data_ptr(), entry=flat.data_ptr(), kernel=kernel.data_ptr(),
-        patch_valid=patch_valid.data_ptr(), grid=grid.data_ptr(), templ=template.data_ptr(), sd=sd.data_ptr(),
-        ref_weight=ref_weight.data_ptr(), ref_total=ref_total.data_ptr(), out_image=image.data_ptr(),
-        out_mask=mask.data_ptr(), out_p=p.data_ptr(), out_support=support.data_ptr(),
-        out_converged=converged.data_ptr(), out_valid=valid.data_ptr(), out_present=present.data_ptr(),
-        out_dissimilarity=diss.data_ptr(), out_confidence=conf.data_ptr(), out_inside=inside.data_ptr(),
+        min_patches=int(dc.min_patches), S=shape_units.shape[0], A=anim_units.shape[0], E=E, fx=cam.fx, fy=cam.fy,
+        cx=cam.cx, cy=cam.cy, min_facing_cos=float(config.min_facing_cos), min_gain=0.05,
+        depth_eps=torch.finfo(dtype).eps, eps=torch.finfo(dtype).eps, tolerance=float(dc.tolerance),
+        max_displacement=float(dmax or 0.0), max_displacement_or_inf=float("inf") if dmax is None else float(dmax),
+        min_support=float(dc.min_support), min_present_fraction=float(dc.min_present_fraction), d0=float(dc.d0),
+        mean=mean.data_ptr(), shape_units=shape_units.data_ptr(), anim_units=anim_units.data_ptr(),
+        faces=faces.data_ptr(), surface=surface.data_ptr(), shape=ptr[0], alpha=ptr[1], R=ptr[2], t=ptr[3],
+        ypr=None if ypr is None else ypr.data_ptr(), face_index=face_index.data_ptr(),
+        pixel_index=pixel_index.data_ptr(), bary=bary.data_ptr(), frames=ptr[4], illumination=ptr[5], rows=ptr[6],
+        mosaic_ypr=ptr[7], used=ptr[8], kernel=kernel.data_ptr(), patch_valid=ptr[9], grid=grid.data_ptr(),
+        templ=template.data_ptr(), sd=sd.data_ptr(), ref_weight=ref_weight.data_ptr(),
+        ref_total=ref_total.data_ptr(), out_entry=entry.data_ptr(), out_image=image.data_ptr(),
+        out_mask=mask.data_ptr(), out_p=p.data_ptr(), out_support=support.data_ptr(), out_converged=flags[0].data_ptr(),
+        out_valid=flags[1].data_ptr(), out_present=flags[2].data_ptr(), out_dissimilarity=out[0].data_ptr(),
+        out_confidence=out[1].data_ptr(), out_inside=out[2].data_ptr(),
     )  # fmt: skip
     lib = _native.library()
     fn = lib.tf_confidence_f32 if dtype == torch.float32 else lib.tf_confidence_f64
     if B > 0:
         _native.run_chunks(fn, prob, B, torch.get_num_threads())
-    return diss, conf, inside, (image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
+    return out[0], out[1], out[2], (image.reshape(B, C, G, G), mask.reshape(B, 1, G, G)), entry
 
 
 @dataclass(frozen=True)

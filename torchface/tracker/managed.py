@@ -322,18 +322,18 @@ def _confidence(
     ``(B, 3, 3)``: the estimate's yaw/pitch/roll and rotation matrix when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
     rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
-    nearest = torch.zeros_like(rows)
+    ypr = None
     if ms.mosaic.capacity > 1:
         ypr = matrix_to_euler(axis_angle_to_matrix(aa)) if ypr_deg is None else ypr_deg
-        nearest = nearest_entries(ms.mosaic, ypr, streams=rows)
     R = axis_angle_to_matrix(aa) if rotation is None else rotation
-    verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
     failed = status == _FAILED
-    native = native_mosaic_confidence(frames, model, ms.layout, ms.mosaic, rows, nearest, verts_cam, light,
-                                      state.intrinsics, config.template, config.backend)  # fmt: skip
+    native = native_mosaic_confidence(frames, model, ms.layout, ms.mosaic, rows, ypr, state.shape_coeffs, alpha, R,
+                                      t, light, state.intrinsics, config.template, config.backend)  # fmt: skip
     if native is not None:
-        diss, conf, inside, face = native
+        diss, conf, inside, face, _ = native
         return torch.where(failed, torch.zeros_like(conf), conf), diss, inside, face
+    nearest = torch.zeros_like(rows) if ypr is None else nearest_entries(ms.mosaic, ypr, streams=rows)
+    verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
     reference = ms.mosaic.references.select((rows, nearest))
     # frame_dissimilarity's two halves, so that the normalised face can also serve a new mosaic entry.
     face = reference_face(frames, model, ms.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
