@@ -226,7 +226,8 @@ def test_mosaic_entry_added_at_a_new_pose_and_used_on_return(model, turns):
 
 def test_new_entry_reuses_the_confidences_normalised_face_exactly(model, turns, monkeypatch):
     """A new mosaic entry's dissimilarity reference is built from the normalised face the step's confidence was
-    measured on (no second sampling of the frame): the same reference and templates as made afresh."""
+    measured on (no second sampling of the frame): the same reference and templates as made afresh (to rounding:
+    the native confidence poses the mesh itself, the fresh face is sampled at the torch code's posed mesh)."""
     import torchface.tracker.managed as managed_module
 
     real, calls = managed_module._new_entries, []
@@ -238,8 +239,10 @@ def test_new_entry_reuses_the_confidences_normalised_face_exactly(model, turns, 
         for a, b in zip(got[0], fresh[0]):
             for name in ("face_index", "bary", "intensity", "valid"):
                 assert torch.equal(getattr(a, name), getattr(b, name)), name
-        for name in ("image", "mask", "centres", "patch_valid", "score"):
+        for name in ("mask", "centres", "patch_valid"):
             assert torch.equal(getattr(got[1], name), getattr(fresh[1], name)), name
+        for name in ("image", "score"):
+            torch.testing.assert_close(getattr(got[1], name), getattr(fresh[1], name), rtol=1e-4, atol=1e-5)
         calls.append(int(index_.shape[0]))
         return got
 
