@@ -668,3 +668,35 @@ def test_erode_equals_the_square_minimum_filter(radius):
             want &= pad[:, dy : dy + 17, dx : dx + 23]
     assert torch.equal(_erode(mask, radius), want)
     assert torch.equal(_erode(mask, 0), mask)
+
+
+@pytest.mark.parametrize("min_facing_cos", [-0.3, 0.15, 0.6])
+def test_native_candidates_give_the_torch_codes_selection(scene, min_facing_cos):
+    """The native kernel's candidate tests and scores (``torchface/_native/select_pixels.h``) give the torch
+    code's selection bit for bit: whole images and per-sample windows, at several thresholds (the facing test on
+    many triangles at 0.6), with few and with many slots."""
+    from torchface import _native
+    from torchface.backend import Backend
+    from torchface.template.points import rasterize_windows
+
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    offsets = torch.tensor([[40, 20], [30, 25]])
+    h, w = 80, 90
+    rows = offsets[:, 1:2, None] + torch.arange(h)[None, :, None]
+    cols = offsets[:, 0:1, None] + torch.arange(w)[None, None, :]
+    crops = torch.stack([s["gray"][b, :, rows[b], cols[b]] for b in range(2)])
+    window = Intrinsics(w, h, s["cam"].fx, s["cam"].fy, s["cam"].cx, s["cam"].cy)
+    frags = rasterize_windows(s["model"], posed.verts_cam, [window], [offsets])[0]
+    chosen = 0
+    for gray, off, fr in ((s["gray"], None, None), (crops, offsets, frags)):
+        for n, threshold in ((300, 0.01), (gray.shape[-1] * gray.shape[-2], 0.0), (800, 0.03)):
+            kw = dict(max_points=n, gradient_threshold=threshold, min_facing_cos=min_facing_cos, frags=fr)
+            nat = select_pixels_posed(s["model"], posed, gray, s["cam"], off, backend=Backend.NATIVE, **kw)
+            ref = select_pixels_posed(s["model"], posed, gray, s["cam"], off, backend=Backend.TORCH, **kw)
+            for f in ("face_index", "bary", "intensity", "valid"):
+                assert torch.equal(getattr(nat, f), getattr(ref, f)), (n, threshold, f)
+            chosen += int(nat.valid.sum())
+    assert chosen > 1000

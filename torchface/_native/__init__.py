@@ -6,7 +6,7 @@ memory. :func:`library` compiles ``kernels.c`` (one pyramid level's Levenberg-Ma
 algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the dissimilarity confidence's
 smoothing and patch tracking: ``dissimilarity.h``; the normalised face without the z-buffer:
 ``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``; the rasterizer's coverage:
-``coverage.h``) with the machine's C compiler into a shared library, caches
+``coverage.h``; a template's candidate pixels: ``select_pixels.h``) with the machine's C compiler into a shared library, caches
 it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
 none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
 :mod:`torchface.backend` decides).
@@ -34,12 +34,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
-           "CoverProblem", "LOSS_CODES"]
+           "CoverProblem", "SelectProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
-_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h")
+_SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
+            "select_pixels.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 6
+_ABI_VERSION = 7
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -109,6 +110,20 @@ class CoverProblem(ctypes.Structure):
         ("near", ctypes.c_double),
         *((name, ctypes.c_void_p) for name in ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last",
                                                "y_first", "y_last", "pix_to_face", "facing", "depth")),  # fmt: skip
+    ]
+
+
+class SelectProblem(ctypes.Structure):
+    """``TFSelectProblem`` of ``kernels.c`` (same field order): a template's candidate pixels and scores (see
+    ``select_pixels.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "H", "W", "V", "F", "erode", "full_w", "batch_offset",
+                                            "num_columns")),  # fmt: skip
+        *((name, ctypes.c_double) for name in ("gradient_threshold", "min_facing_cos", "facing_margin", "fx", "fy", "cx",
+                                               "cy")),  # fmt: skip
+        *((name, ctypes.c_void_p) for name in ("gray", "pix_to_face", "facing", "coefficients", "ray_a", "ray_b",
+                                               "verts", "normals", "faces", "offsets", "keys", "out_score")),
     ]
 
 
@@ -192,7 +207,7 @@ def _load() -> None:
         return
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
-                          ("tf_coverage", CoverProblem)):
+                          ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

@@ -1,7 +1,7 @@
 /* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
- * (coverage.h). Compiled at first use by torchface._native (the C compiler of the
+ * (coverage.h) and a template's candidate pixels (select_pixels.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -88,13 +88,27 @@ typedef struct {
     void *depth;
 } TFCoverProblem;
 
+/* Mirrored by torchface._native.SelectProblem (ctypes): keep the two in the same order; see select_pixels.h. */
+typedef struct {
+    int B, H, W, V, F, erode, full_w, batch_offset, num_columns;
+    double gradient_threshold, min_facing_cos, facing_margin, fx, fy, cx, cy;
+    const void *gray;
+    const int64_t *pix_to_face;
+    const int8_t *facing;
+    const void *coefficients, *ray_a, *ray_b, *verts, *normals;
+    const int64_t *faces;
+    const void *offsets;
+    const float *keys;
+    float *out_score;
+} TFSelectProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 6; }
+int tf_abi_version(void) { return 7; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -105,6 +119,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "normalised_face.h"
 #include "confidence.h"
 #include "coverage.h"
+#include "select_pixels.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -117,6 +132,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "normalised_face.h"
 #include "confidence.h"
 #include "coverage.h"
+#include "select_pixels.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.sampling import image_with_gradients
+from torchface.backend import Backend, use_native
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
@@ -328,6 +329,7 @@ def select_pixels_posed(
     frags: Coverage | None = None,
     stride: int = 1,
     seed: int = 0,
+    backend: Backend = Backend.AUTO,
 ) -> TemplatePixels:
     """:func:`select_template_pixels` of a mesh already posed (:func:`posed_mesh`): the same result, with the
     posing done once for the levels of a pyramid. The arguments are not checked again (callers inside the
@@ -338,13 +340,16 @@ def select_pixels_posed(
     columns ``0, stride, ...`` of ``gray``), with the gradients and selection keys those pixels have in the
     whole window; ``frags`` is then the rasterization of that grid (:func:`strided_window` of the window's
     camera and offsets) and the mask erosion counts in grid steps. 1: every pixel. ``seed``: the selection keys'
-    draw (:func:`select_template_pixels`)."""
+    draw (:func:`select_template_pixels`). ``backend``: the candidates' tests and scores by the native kernel
+    (``torchface/_native/select_pixels.h``, the same tests with the same arithmetic; every pixel, no expression
+    priority or quota) or the torch code; the top-k choice and what follows are the torch code's either way."""
     full_h, full_w = intrinsics.height, intrinsics.width
     B = gray.shape[0]
     verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
     off = torch.zeros(B, 2, dtype=verts_cam.dtype, device=gray.device) if offsets is None else offsets.to(verts_cam.dtype)
-    grads = image_with_gradients(gray)[:, 1:]  # at the window's pixels, before any striding
-    if stride > 1:
+    grads = None
+    if stride > 1:  # the gradients at the window's pixels, before the striding
+        grads = image_with_gradients(gray)[:, 1:]
         gray, grads = gray[..., ::stride, ::stride], grads[..., ::stride, ::stride]
     H, W = gray.shape[-2:]
     if frags is None:
@@ -353,8 +358,15 @@ def select_pixels_posed(
         cam, cam_off = strided_window(window, offsets, stride)
         frags = rasterize_windows(model, verts_cam, [cam], [cam_off])[0]
     face = frags.pix_to_face
-    mask = (face >= 0) & (frags.facing > 0)
     face_flat = face.reshape(B, -1)
+    if (stride == 1 and expression_priority <= 0 and expression_quota <= 0
+            and use_native(backend, (gray, verts_cam, normals_cam, frags.coefficients.detach()), "pixel selection")):
+        score = _native_scores(model, posed, gray, intrinsics, off, frags, gradient_threshold, min_facing_cos,
+                               erode_pixels, seed)  # fmt: skip
+        return _top_pixels(score, face_flat, frags, gray, max_points, verts_model.dtype)
+    mask = (face >= 0) & (frags.facing > 0)
+    if grads is None:
+        grads = image_with_gradients(gray)[:, 1:]
     gmag = grads.pow(2).sum(1).sqrt()
     candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
     # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
@@ -435,15 +447,55 @@ def select_pixels_posed(
                              reduce="amax")
         keys = keys + 2.0 * lift
     score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
+    return _top_pixels(score, face_flat, frags, gray, max_points, verts_model.dtype)
+
+
+def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor, max_points: int,
+                dtype: torch.dtype) -> TemplatePixels:  # fmt: skip
+    """The ``max_points`` highest-scoring pixels ``score (B, H W)`` (-1: not a candidate) as
+    :class:`TemplatePixels`: their triangle (``face_flat (B, H W)``), barycentric coordinates (``frags``) and
+    gray value (``gray (B, 1, H, W)``), in ``dtype``."""
+    B, W = gray.shape[0], gray.shape[-1]
     top, pix = torch.topk(score, max_points, dim=1)
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     rows = torch.arange(B, device=pix.device).repeat_interleave(pix.shape[1])
     pix_row = torch.div(pix.reshape(-1), W, rounding_mode="floor")
     bary = frags.barycentrics(rows, pix_row, pix.reshape(-1) - pix_row * W).reshape(B, -1, 3)
-    bary = bary.to(verts_model.dtype)
-    intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(verts_model.dtype)
+    bary = bary.to(dtype)
+    intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(dtype)
     return TemplatePixels(face_index, bary, intensity, valid)
+
+
+def _native_scores(
+    model: FaceModel, posed: PosedMesh, gray: Tensor, intrinsics: Intrinsics, offsets: Tensor, frags: Coverage,
+    gradient_threshold: float, min_facing_cos: float, erode_pixels: int, seed: int,
+) -> Tensor:
+    """:func:`select_pixels_posed`'s scores ``(B, H W)`` float32 by the native kernel: the selection key at each
+    candidate pixel of the windows ``gray (B, 1, H, W)`` at ``offsets (B, 2)``, -1 elsewhere."""
+    from torchface import _native
+
+    B, _, H, W = gray.shape
+    dtype = posed.verts_cam.dtype
+    keys = _cpu_selection_keys(intrinsics.height, intrinsics.width, seed)
+    inputs = [x.contiguous() for x in (gray.to(dtype), frags.pix_to_face, frags.facing, frags.coefficients.detach(),
+                                       frags.ray_a, frags.ray_b, posed.verts_cam, posed.normals_cam,
+                                       model.faces.to(torch.int64), offsets.to(dtype), keys)]  # fmt: skip
+    score = torch.empty(B, H * W, dtype=torch.float32)
+    names = ("gray", "pix_to_face", "facing", "coefficients", "ray_a", "ray_b", "verts", "normals", "faces", "offsets",
+             "keys")  # fmt: skip
+    prob = _native.SelectProblem(
+        B=B, H=H, W=W, V=posed.verts_cam.shape[1], F=model.faces.shape[0], erode=int(erode_pixels),
+        full_w=intrinsics.width, batch_offset=frags.batch_offset, num_columns=frags.coefficients.shape[1],
+        gradient_threshold=float(gradient_threshold), min_facing_cos=float(min_facing_cos),
+        facing_margin=_FACING_MARGIN, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+        **{n: x.data_ptr() for n, x in zip(names, inputs)}, out_score=score.data_ptr(),
+    )  # fmt: skip
+    lib = _native.library()
+    fn = lib.tf_select_pixels_f32 if dtype == torch.float32 else lib.tf_select_pixels_f64
+    if B > 0:
+        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    return score
 
 
 def build_template(
