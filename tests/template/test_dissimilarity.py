@@ -438,3 +438,31 @@ def test_backend_native_without_precomputed_patches_is_an_error():
     without = type(ref)(ref.image, ref.mask, ref.centres, ref.patch_valid, ref.score, ref.config)
     with pytest.raises(RuntimeError, match="native"):
         dissimilarity(without, face, mask, NATIVE)
+
+
+@requires_native
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_native_reference_picks_the_torch_codes_patches(dtype):
+    """The native smoothing, texture score and suppression pick the torch code's patches (the same centres and
+    validity, scores and template to rounding): textured faces, half-masked ones, a flat one (no patch) and one
+    with few textured places (fewer patches than asked for)."""
+    face, mask = _face(batch=2)
+    half = mask.clone()
+    half[1, :, :, 48:] = 0.0
+    flat = torch.full_like(face[:1], 0.5) * mask[:1]
+    small = mask[:1].clone()
+    small[..., :30, :] = 0.0
+    small[..., 60:, :] = 0.0
+    faces = torch.cat([face, face[1:] * half[1:], flat, face[:1] * small]).to(dtype)
+    masks = torch.cat([mask, half[1:], mask[:1], small]).to(dtype)
+    for cfg in (DissimilarityConfig(), DissimilarityConfig(patch_size=9, num_patches=24, border=1)):
+        nat = build_dissimilarity_reference(faces, masks, cfg, NATIVE)
+        ref = build_dissimilarity_reference(faces, masks, cfg, TORCH)
+        assert torch.equal(nat.centres, ref.centres) and torch.equal(nat.patch_valid, ref.patch_valid)
+        tol = 1e-10 if dtype == torch.float64 else 2e-5
+        torch.testing.assert_close(nat.image, ref.image, rtol=0, atol=tol)
+        torch.testing.assert_close(nat.score, ref.score, rtol=1e-4, atol=tol)
+        for a, b in zip(nat.lk, ref.lk):
+            torch.testing.assert_close(a, b, rtol=0, atol=tol)
+        valid = nat.patch_valid.sum(-1)
+        assert int(valid[0]) == cfg.num_patches and int(valid[3]) == 0 and 0 < int(valid[4]) < cfg.num_patches

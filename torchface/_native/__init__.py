@@ -40,7 +40,7 @@ _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
             "select_pixels.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 7
+_ABI_VERSION = 8
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -66,6 +66,7 @@ class LKProblem(ctypes.Structure):
             "normalised", "mask", "kernel", "grid", "templ", "sd", "ref_weight", "ref_total", "out_gray", "out_p",
             "out_support", "out_converged", "out_valid",
         )),  # fmt: skip
+        ("radius_border", ctypes.c_int),
     ]
 
 
@@ -207,7 +208,8 @@ def _load() -> None:
         return
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
-                          ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem)):
+                          ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
+                          ("tf_reference_patches", LKProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

@@ -114,7 +114,7 @@ static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
                       (const REAL *)p->grid + 2 * ekn, (const REAL *)p->templ + ekn, (const REAL *)p->sd + 2 * ekn,
                       (const REAL *)p->ref_weight + ekn, (const REAL *)p->ref_total + ek, gray,
                       (REAL *)p->out_p + 2 * (size_t)b * K, (REAL *)p->out_support + (size_t)b * K,
-                      p->out_converged + (size_t)b * K, p->out_valid + (size_t)b * K};
+                      p->out_converged + (size_t)b * K, p->out_valid + (size_t)b * K, 0};
     FN(masked_gray)(&lk, 0, gray, tmp);
     for (int k = 0; k < K; ++k) FN(track_patch)(&lk, 0, k, gray, mask, err, w);
 

@@ -176,3 +176,85 @@ int FN(tf_dissimilarity)(const TFLKProblem *p, int b0, int b1) {
     free(tmp);
     return 0;
 }
+
+/* build_dissimilarity_reference's fiducial patches for streams [b0, b1): the masked, smoothed gray image (out_gray,
+ * as masked_gray), its structure tensor summed over each patch window (central differences, zero at the image
+ * border; avg_pool2d with zero padding times the window's area), the smaller eigenvalue as the texture score
+ * where the whole patch (plus one pixel) is inside the mask and the image's inner part, -1 elsewhere, and the
+ * greedy non-maximum suppression (the best remaining pixel, the first on a tie, then every pixel within the
+ * separation along both axes cleared): out_p holds each pick's flat pixel index (as REAL) and out_support its
+ * score. Returns 0, or -1 without memory. */
+int FN(tf_reference_patches)(const TFLKProblem *p, int b0, int b1) {
+    const int G = p->G, h = p->n, r = h / 2, K = p->K, s = p->iterations, border = p->radius_border;
+    const size_t GG = (size_t)G * G;
+    REAL *tmp = (REAL *)malloc(sizeof(REAL) * 6 * GG); /* masked_gray's 3 GG, then gu, gv, score */
+    if (!tmp) return -1;
+    REAL *gu = tmp + 3 * GG, *gv = gu + GG, *score = gv + GG;
+    for (int b = b0; b < b1; ++b) {
+        REAL *gray = (REAL *)p->out_gray + (size_t)b * GG;
+        const REAL *mask = (const REAL *)p->mask + (size_t)b * GG;
+        FN(masked_gray)(p, b, gray, tmp);
+        for (int y = 0; y < G; ++y)
+            for (int x = 0; x < G; ++x) {
+                size_t i = (size_t)y * G + x;
+                gu[i] = (x > 0 && x < G - 1) ? (REAL)0.5 * (gray[i + 1] - gray[i - 1]) : (REAL)0;
+                gv[i] = (y > 0 && y < G - 1) ? (REAL)0.5 * (gray[i + G] - gray[i - G]) : (REAL)0;
+            }
+        /* the window sums (zero outside), as avg_pool2d's mean times the window's area */
+        const REAL area = (REAL)(h * h), area_m = (REAL)((h + 2) * (h + 2));
+        for (int y = 0; y < G; ++y)
+            for (int x = 0; x < G; ++x) {
+                REAL a = 0, bb = 0, c = 0, m = 0;
+                for (int dy = -r; dy <= r; ++dy) {
+                    int yy = y + dy;
+                    if (yy < 0 || yy >= G) continue;
+                    for (int dx = -r; dx <= r; ++dx) {
+                        int xx = x + dx;
+                        if (xx < 0 || xx >= G) continue;
+                        size_t j = (size_t)yy * G + xx;
+                        a += gu[j] * gu[j];
+                        bb += gu[j] * gv[j];
+                        c += gv[j] * gv[j];
+                    }
+                }
+                for (int dy = -r - 1; dy <= r + 1; ++dy) {
+                    int yy = y + dy;
+                    if (yy < 0 || yy >= G) continue;
+                    for (int dx = -r - 1; dx <= r + 1; ++dx) {
+                        int xx = x + dx;
+                        if (xx >= 0 && xx < G) m += mask[(size_t)yy * G + xx];
+                    }
+                }
+                a = a / area * area;
+                bb = bb / area * area;
+                c = c / area * area;
+                REAL half = (REAL)0.5 * (a - c);
+                REAL min_eig = (REAL)0.5 * (a + c) - (REAL)sqrt((double)(half * half + bb * bb));
+                int edge = r + 1 + border;
+                int eligible = m / area_m > (REAL)(1.0 - 1e-6) && x >= edge && x < G - edge && y >= edge && y < G - edge;
+                score[(size_t)y * G + x] = eligible ? (min_eig > (REAL)0 ? min_eig : (REAL)0) : (REAL)-1;
+            }
+        REAL *idx_out = (REAL *)p->out_p + (size_t)b * K, *best_out = (REAL *)p->out_support + (size_t)b * K;
+        for (int k = 0; k < K; ++k) {
+            size_t best_i = 0;
+            REAL best = score[0];
+            for (size_t i = 1; i < GG; ++i)
+                if (score[i] > best) {
+                    best = score[i];
+                    best_i = i;
+                }
+            idx_out[k] = (REAL)best_i;
+            best_out[k] = best;
+            int v = (int)(best_i / G), u = (int)(best_i % G);
+            for (int dy = -s; dy <= s; ++dy) {
+                int yy = v + dy < 0 ? 0 : (v + dy > G - 1 ? G - 1 : v + dy);
+                for (int dx = -s; dx <= s; ++dx) {
+                    int xx = u + dx < 0 ? 0 : (u + dx > G - 1 ? G - 1 : u + dx);
+                    score[(size_t)yy * G + xx] = (REAL)-1;
+                }
+            }
+        }
+    }
+    free(tmp);
+    return 0;
+}

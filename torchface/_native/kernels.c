@@ -39,6 +39,7 @@ typedef struct {
     const void *normalised, *mask, *kernel, *grid, *templ, *sd, *ref_weight, *ref_total;
     void *out_gray, *out_p, *out_support;
     uint8_t *out_converged, *out_valid;
+    int radius_border; /* tf_reference_patches: the border (n: the patch size, iterations: the separation) */
 } TFLKProblem;
 
 /* Mirrored by torchface._native.FaceProblem (ctypes): keep the two in the same order; see normalised_face.h. */
@@ -108,7 +109,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 7; }
+int tf_abi_version(void) { return 8; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float

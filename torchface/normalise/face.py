@@ -307,6 +307,7 @@ def normalised_face(
     min_facing_cos: float = DEFAULT_MIN_FACING_COS,
     zbuffer: bool = True,
     rotation: Tensor | None = None,
+    backend: Backend = Backend.AUTO,
 ) -> NormalisedFaceResult:
     """The frontal, neutral-expression, light-normalised face of each frame (module docstring).
 
@@ -392,7 +393,7 @@ def normalised_face(
     verts_cam = transform_points(rotation, translation, verts)
     return normalised_face_posed(
         frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance=depth_tolerance,
-        min_facing_cos=min_facing_cos, zbuffer=zbuffer,
+        min_facing_cos=min_facing_cos, zbuffer=zbuffer, backend=backend,
     )  # fmt: skip
 
 

@@ -585,7 +585,7 @@ def _check_face(image: object, mask: object, name: str) -> tuple[Tensor, Tensor]
 
 
 def build_dissimilarity_reference(
-    image: Tensor, mask: Tensor, config: DissimilarityConfig | None = None
+    image: Tensor, mask: Tensor, config: DissimilarityConfig | None = None, backend: Backend = Backend.AUTO
 ) -> DissimilarityReference:
     """Pick the fiducial patches of a reference normalised face.
 
@@ -599,6 +599,8 @@ def build_dissimilarity_reference(
         image: ``(B, C, G, G)`` reference normalised face (:class:`torchface.normalise.NormalisedFace`).
         mask: ``(B, 1, G, G)`` its mask.
         config: :class:`DissimilarityConfig` (defaults when None).
+        backend: :class:`~torchface.backend.Backend` of the smoothing, the texture score and the suppression
+            (``torchface/_native/dissimilarity.h``, the same steps; the scores agree to rounding).
 
     Returns:
         :class:`DissimilarityReference`.
@@ -618,6 +620,10 @@ def build_dissimilarity_reference(
     B, _, G, _ = image.shape
     h = config.patch_size
     r = h // 2
+    K = min(config.num_patches, G * G)
+    if use_native(backend, (image, mask), "dissimilarity reference"):
+        gray, index, best = _native_patches(image, mask, config, K)
+        return _reference(image, gray, mask, index, best, config, K)
     gray = _masked_gray(image, mask, config.smoothing_sigma)
 
     # Structure tensor (central differences), summed over the patch window.
@@ -646,7 +652,6 @@ def build_dissimilarity_reference(
     s = config.separation
     around = torch.arange(-s, s + 1, device=image.device)
     ranked = score.reshape(B, G * G).clone()
-    K = min(config.num_patches, G * G)
     picks, bests = [], []
     for _ in range(K):
         best, index = ranked.max(dim=-1)  # (B,)
@@ -656,8 +661,14 @@ def build_dissimilarity_reference(
         rows = (v.unsqueeze(-1) + around).clamp(0, G - 1)
         cols = (index - v * G).unsqueeze(-1).add(around).clamp(0, G - 1)
         ranked.scatter_(1, (rows.unsqueeze(-1) * G + cols.unsqueeze(-2)).view(B, -1), -1.0)
-    index = torch.stack(picks, -1)
-    best = torch.stack(bests, -1)
+    return _reference(image, gray, mask, torch.stack(picks, -1), torch.stack(bests, -1), config, K)
+
+
+def _reference(image: Tensor, gray: Tensor, mask: Tensor, index: Tensor, best: Tensor, config: DissimilarityConfig,
+               K: int) -> DissimilarityReference:  # fmt: skip
+    """The :class:`DissimilarityReference` of ``K`` picks: flat pixel ``index (B, K)`` int64 and score
+    ``best (B, K)`` (-1: no textured place left), on the smoothed ``gray (B, 1, G, G)``."""
+    B, G, h = image.shape[0], image.shape[-1], config.patch_size
     centres = torch.stack([(index % G).to(image.dtype), (index // G).to(image.dtype)], dim=-1)
     if K < config.num_patches:
         pad = config.num_patches - K
@@ -782,3 +793,28 @@ def _native_lk(normalised: Tensor, mask: Tensor, pre: LKTemplate, cfg: Dissimila
     if B > 0:
         _native.run_chunks(fn, prob, B, torch.get_num_threads())
     return LKResult(p, converged, valid, support, None)
+
+
+def _native_patches(image: Tensor, mask: Tensor, config: DissimilarityConfig, K: int) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`build_dissimilarity_reference`'s smoothing, texture score and suppression by the native kernel:
+    ``gray (B, 1, G, G)``, the picks' flat pixel index ``(B, K)`` int64 and their scores ``(B, K)``."""
+    B, C, G, _ = image.shape
+    dtype = image.dtype
+    sigma = float(config.smoothing_sigma)
+    kernel = (_gaussian_kernels(sigma, dtype, image.device)[0].reshape(-1) if sigma > 0
+              else torch.ones(1, dtype=dtype)).contiguous()  # fmt: skip
+    image_c, mask_c = image.contiguous(), mask.contiguous()
+    gray = torch.empty(B, 1, G, G, dtype=dtype)
+    index = torch.empty(B, K, dtype=dtype)
+    best = torch.empty(B, K, dtype=dtype)
+    prob = _native.LKProblem(
+        B=B, C=C, G=G, K=K, n=config.patch_size, radius=kernel.numel() // 2 if sigma > 0 else 0,
+        iterations=config.separation, eps=torch.finfo(dtype).eps, normalised=image_c.data_ptr(),
+        mask=mask_c.data_ptr(), kernel=kernel.data_ptr(), out_gray=gray.data_ptr(), out_p=index.data_ptr(),
+        out_support=best.data_ptr(), radius_border=config.border,
+    )  # fmt: skip
+    lib = _native.library()
+    fn = lib.tf_reference_patches_f32 if dtype == torch.float32 else lib.tf_reference_patches_f64
+    if B > 0:
+        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    return gray, index.round().long(), best

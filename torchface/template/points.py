@@ -167,6 +167,7 @@ def select_template_pixels(
     expression_quota: int = 0,
     offsets: Tensor | None = None,
     seed: int = 0,
+    backend: Backend = Backend.AUTO,
 ) -> TemplatePixels:
     """The template pixels of a frame whose model parameters are known (paper Section 2-3 and 4).
 
@@ -198,6 +199,8 @@ def select_template_pixels(
             selection keys are those of the whole image). None: ``gray`` is the whole image.
         seed: which draw of the pixels' selection keys picks the uniform subset (0: the default draw; another
             seed picks another subset of the same candidates).
+        backend: :class:`~torchface.backend.Backend` of the rasterization and the candidates' tests (the same
+            selection either way: :func:`select_pixels_posed`).
 
     Returns:
         :class:`TemplatePixels` with ``N = max_points`` slots (:func:`build_template` completes it).
@@ -223,7 +226,7 @@ def select_template_pixels(
         model, posed_mesh(model, shape_coeffs, anim_coeffs, rotation, translation), gray, intrinsics, offsets,
         max_points=max_points, gradient_threshold=gradient_threshold, min_facing_cos=min_facing_cos,
         erode_pixels=erode_pixels, expression_priority=expression_priority, expression_quota=expression_quota,
-        seed=seed,
+        seed=seed, backend=backend,
     )  # fmt: skip
 
 
@@ -282,6 +285,7 @@ def strided_window(camera: Intrinsics, offsets: Tensor | None, stride: int) -> t
 
 def rasterize_windows(
     model: FaceModel, verts_cam: Tensor, cameras: list[Intrinsics], offsets: list[Tensor | None],
+    backend: Backend = Backend.AUTO,
 ) -> list[Coverage]:
     """Back-face-culled :func:`~torchface.rendering.rasterizer.rasterize_coverage` of the same posed meshes in
     several windows (the levels of a pyramid), in one call.
@@ -291,6 +295,7 @@ def rasterize_windows(
         cameras: per window, the camera of its image; its ``height x width`` is the window's size.
         offsets: per window, ``(B, 2)`` ``(x0, y0)`` of each sample's window in that camera's image (int64, or
             float for a :func:`strided_window`), or None (the whole image).
+        backend: of the z-buffer (:func:`~torchface.rendering.rasterizer.rasterize_coverage`).
 
     Returns:
         Per window, the :class:`~torchface.rendering.rasterizer.Coverage` ``rasterize_coverage`` gives for it (up
@@ -303,7 +308,7 @@ def rasterize_windows(
     canvas = Intrinsics(max(c.width for c in cameras), max(c.height for c in cameras), first.fx, first.fy, first.cx,
                         first.cy)  # fmt: skip
     stacked = torch.cat([_window_verts(verts_cam, c, o, canvas) for c, o in zip(cameras, offsets)])
-    coverage = rasterize_coverage(stacked, model.faces, canvas, cull_backfaces=True)
+    coverage = rasterize_coverage(stacked, model.faces, canvas, cull_backfaces=True, backend=backend)
     B = verts_cam.shape[0]
     return [coverage.part(slice(i * B, (i + 1) * B), c.height, c.width) for i, c in enumerate(cameras)]
 
@@ -356,7 +361,7 @@ def select_pixels_posed(
         window = Intrinsics(gray.shape[-1] * stride, gray.shape[-2] * stride, intrinsics.fx, intrinsics.fy,
                             intrinsics.cx, intrinsics.cy)  # fmt: skip
         cam, cam_off = strided_window(window, offsets, stride)
-        frags = rasterize_windows(model, verts_cam, [cam], [cam_off])[0]
+        frags = rasterize_windows(model, verts_cam, [cam], [cam_off], backend)[0]
     face = frags.pix_to_face
     face_flat = face.reshape(B, -1)
     if (stride == 1 and expression_priority <= 0 and expression_quota <= 0
@@ -515,10 +520,12 @@ def build_template(
     expression_quota: int = 0,
     offsets: Tensor | None = None,
     seed: int = 0,
+    backend: Backend = Backend.AUTO,
 ) -> Template:
     """Template points of a frame whose model parameters are known (paper Section 2-3 and 4).
 
-    :func:`select_template_pixels` (arguments and selection documented there), then :func:`template_at`.
+    :func:`select_template_pixels` (arguments and selection documented there; ``backend`` of its rasterization
+    and candidate tests), then :func:`template_at`.
 
     Returns:
         :class:`Template` with ``N = max_points`` slots.
@@ -527,6 +534,7 @@ def build_template(
         model, shape_coeffs, anim_coeffs, rotation, translation, gray, intrinsics, max_points=max_points,
         gradient_threshold=gradient_threshold, min_facing_cos=min_facing_cos, erode_pixels=erode_pixels,
         expression_priority=expression_priority, expression_quota=expression_quota, offsets=offsets, seed=seed,
+        backend=backend,
     )  # fmt: skip
     return template_at(model, shape_coeffs, pixels.face_index, pixels.bary, pixels.intensity, pixels.valid)
 

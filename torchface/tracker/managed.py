@@ -244,8 +244,9 @@ def initialise_managed(
     frames = frames.to(dtype=model.dtype, device=model.device)
     layout = build_normalised_layout(model, tc.normalised_size)
     aa, t, alpha, light = _layout(model).split(state.params)
-    image, mask = reference_face(frames, model, layout, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc)
-    reference = build_dissimilarity_reference(image, mask, tc.dissimilarity)
+    image, mask = reference_face(frames, model, layout, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc,
+                                 backend=config.backend)
+    reference = build_dissimilarity_reference(image, mask, tc.dissimilarity, config.backend)
     diss = frame_dissimilarity(
         frames, model, layout, reference, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc,
         backend=config.backend,
@@ -399,9 +400,9 @@ def _new_entries(
     posed = posed_mesh(model, shape, alpha, R, t)  # posed once, for the reference face and the pixels
     if face is None:
         face = reference_face(_rows(frames, index), model, ms.layout, shape, alpha, aa, t, light, state.intrinsics,
-                              config.template, verts_cam=posed.verts_cam)  # fmt: skip
+                              config.template, verts_cam=posed.verts_cam, backend=config.backend)  # fmt: skip
     image, mask = face
-    reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity)
+    reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity, config.backend)
     q = 2 ** (config.num_levels - 1)
     windows = torch.tensor(
         [_face_window(model, posed.verts_cam[i], state.intrinsics, q) for i in range(index.shape[0])],
@@ -430,7 +431,8 @@ def _new_entries(
     grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths, rows=index)
     grids = [strided_window(Intrinsics(wl, hl, c.fx, c.fy, c.cx, c.cy), off, k)
              for c, hl, wl, off, k in zip(cameras, heights, widths, offsets, strides)]  # fmt: skip
-    fragments = rasterize_windows(model, posed.verts_cam, [g[0] for g in grids], [g[1] for g in grids])  # one call
+    fragments = rasterize_windows(model, posed.verts_cam, [g[0] for g in grids], [g[1] for g in grids],
+                                  config.backend)  # one call
     vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
     pixels = []
     for gray, off, cam, lv, frags, k in zip(grays, offsets, cameras, ms.mosaic.levels, fragments, strides):
@@ -439,6 +441,7 @@ def _new_entries(
             model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
             expression_quota=int(config.expression_quota * slots), frags=frags, stride=k, seed=config.selection_seed,
+            backend=config.backend,
         ))  # fmt: skip
     # The intensities under the reference light, every level's points at once (the work is per point).
     sizes = [px.face_index.shape[-1] for px in pixels]

@@ -494,7 +494,7 @@ def initialise(
                 model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray, intr,
                 max_points=n, gradient_threshold=config.gradient_threshold,
                 expression_priority=config.expression_priority, expression_quota=int(config.expression_quota * n),
-                seed=config.selection_seed,
+                seed=config.selection_seed, backend=config.backend,
             )
         )
     state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1, anim_prior_mean=fit.anim_coeffs.clone())
@@ -872,7 +872,7 @@ def _track_step_fast(
             vis_level = config.num_levels - 1
             H, W = state.intrinsics.height, state.intrinsics.width
             h_l, w_l = H >> vis_level, W >> vis_level
-            masks = _visibility_at(model, state, layout, vis_level, h_l, w_l, R, verts)
+            masks = _visibility_at(model, state, layout, vis_level, h_l, w_l, R, verts, config.backend)
             visibility = (state.templates, tuple(masks))
         else:
             masks, visibility = list(cached[1]), cached
@@ -982,7 +982,7 @@ def _finish(
 
 def _visibility_at(
     model: FaceModel, state: TrackerState, layout: ParamLayout, level: int, height: int, width: int,
-    R: Tensor | None = None, verts: Tensor | None = None,
+    R: Tensor | None = None, verts: Tensor | None = None, backend: Backend = Backend.AUTO,
 ) -> list[Tensor]:
     """Z-buffer visibility of every level's template points at the previous estimate (one rasterization).
 
@@ -990,7 +990,7 @@ def _visibility_at(
     caller has them."""
     intr = level_intrinsics(state.intrinsics, level, height, width)
     verts = _posed_vertices(model, state, layout, R) if verts is None else verts
-    frags = rasterize(verts, model.faces, intr)
+    frags = rasterize(verts, model.faces, intr, backend=backend)
     # The levels' points are tested together (one call instead of one per level: the test is per point).
     cams = [warp_points(tpl, layout, state.params, R)[1] for tpl in state.templates]
     faces = torch.cat([tpl.face_index for tpl in state.templates], 1)
