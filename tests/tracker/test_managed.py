@@ -501,3 +501,34 @@ def test_clean_frame_rule_settings_are_validated():
         TemplateConfig(clean_radius_deg=-1.0)
     with pytest.raises(ValueError, match="clean_rejected_fraction"):
         TemplateConfig(clean_rejected_fraction=1.5)
+
+
+def test_native_decisions_equal_the_torch_codes(model, turns, leaves, monkeypatch):
+    """The per-frame decisions made by the native kernels (entry selection, clean radius, gating, losses,
+    recovery schedule, new entries; ``torchface/_native/management.h``) are the torch code's: the same tracks,
+    statuses, entries and counters, frame by frame, on turns that grow the mosaic and on a face that leaves the
+    frame and comes back (lost, recovery attempts)."""
+    import torchface.tracker.managed as managed_module
+    from torchface import _native
+
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    real = managed_module.use_native
+
+    def torch_decisions(backend, tensors, what, *args, **kwargs):
+        return False if what == "template management" else real(backend, tensors, what, *args, **kwargs)
+
+    for (frames, gt), config in ((turns, replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))),
+                                 (leaves, LEAVE_CFG)):  # fmt: skip
+        native = track(model, config, frames, landmarks(gt))
+        monkeypatch.setattr(managed_module, "use_native", torch_decisions)
+        reference = track(model, config, frames, landmarks(gt))
+        monkeypatch.undo()
+        for a, b in zip(native[0], reference[0]):
+            for name in ("rotation", "translation", "status", "mosaic_entry", "confidence"):
+                assert torch.equal(getattr(a, name), getattr(b, name)), name
+        ma, mb = native[1].management, reference[1].management
+        for name in ("low_count", "very_low_count", "lost", "since_attempt", "entry"):
+            assert torch.equal(getattr(ma, name), getattr(mb, name)), name
+        assert torch.equal(ma.mosaic.bins, mb.mosaic.bins) and torch.equal(ma.mosaic.used, mb.mosaic.used)
+    assert any(int(r.status[0]) == LOST for r in native[0])  # the losses were exercised

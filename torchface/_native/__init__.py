@@ -6,7 +6,8 @@ memory. :func:`library` compiles ``kernels.c`` (one pyramid level's Levenberg-Ma
 algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the dissimilarity confidence's
 smoothing and patch tracking: ``dissimilarity.h``; the normalised face without the z-buffer:
 ``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``; the rasterizer's coverage:
-``coverage.h``; a template's candidate pixels: ``select_pixels.h``) with the machine's C compiler into a shared library, caches
+``coverage.h``; a template's candidate pixels: ``select_pixels.h``; template management's
+per-frame decisions: ``management.h``) with the machine's C compiler into a shared library, caches
 it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
 none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
 :mod:`torchface.backend` decides).
@@ -34,13 +35,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
-           "CoverProblem", "SelectProblem", "LOSS_CODES"]
+           "CoverProblem", "SelectProblem", "ManageProblem",
+           "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
-            "select_pixels.h")
+            "select_pixels.h", "management.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 8
+_ABI_VERSION = 9
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -128,6 +130,26 @@ class SelectProblem(ctypes.Structure):
     ]
 
 
+class ManageProblem(ctypes.Structure):
+    """``TFManageProblem`` of ``kernels.c`` (same field order): template management's per-frame decisions (see
+    ``management.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "E", "lost_after", "lost_after_very_low", "recovery_every",
+                                            "max_entries")),  # fmt: skip
+        *((name, ctypes.c_double) for name in (
+            "switch_margin_deg", "reference_radius_deg", "clean_radius_deg", "min_inside_fraction",
+            "confidence_threshold", "very_low_confidence", "recover_confidence", "yaw_bin_deg", "pitch_bin_deg",
+            "bin_centre_fraction", "entry_reach", "add_confidence",
+        )),  # fmt: skip
+        *((name, ctypes.c_void_p) for name in (
+            "mosaic_ypr", "bins", "used", "ypr", "entry", "confidence", "inside", "failed", "lost", "low_count",
+            "very_low_count", "since", "out_entry", "out_near", "out_confident", "out_low_count",
+            "out_very_low_count", "out_lost", "out_reverted", "out_since", "out_attempt", "out_bins", "out_add",
+        )),  # fmt: skip
+    ]
+
+
 class LevelProblem(ctypes.Structure):
     """``TFLevelProblem`` of ``level_solver.c`` (same field order): one level solve's sizes, settings, input and
     output arrays (pointers to contiguous tensors; see ``level_solver.h`` for their shapes)."""
@@ -209,7 +231,8 @@ def _load() -> None:
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
                           ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
-                          ("tf_reference_patches", LKProblem)):
+                          ("tf_reference_patches", LKProblem), ("tf_select_entries", ManageProblem),
+                          ("tf_gate", ManageProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

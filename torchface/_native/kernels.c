@@ -1,7 +1,8 @@
 /* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
- * (coverage.h) and a template's candidate pixels (select_pixels.h). Compiled at first use by torchface._native (the C compiler of the
+ * (coverage.h), a template's candidate pixels (select_pixels.h) and template management's per-frame decisions
+ * (management.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -103,13 +104,37 @@ typedef struct {
     float *out_score;
 } TFSelectProblem;
 
+/* Mirrored by torchface._native.ManageProblem (ctypes): keep the two in the same order; see management.h. */
+typedef struct {
+    int B, E, lost_after, lost_after_very_low, recovery_every, max_entries;
+    double switch_margin_deg, reference_radius_deg, clean_radius_deg, min_inside_fraction, confidence_threshold,
+        very_low_confidence, recover_confidence, yaw_bin_deg, pitch_bin_deg, bin_centre_fraction, entry_reach,
+        add_confidence;
+    const void *mosaic_ypr;
+    const int64_t *bins;
+    const uint8_t *used;
+    const void *ypr;
+    const int64_t *entry;
+    const void *confidence, *inside;
+    const uint8_t *failed, *lost;
+    const int64_t *low_count, *very_low_count, *since;
+    int64_t *out_entry;
+    uint8_t *out_near, *out_confident;
+    int64_t *out_low_count, *out_very_low_count;
+    uint8_t *out_lost, *out_reverted;
+    int64_t *out_since;
+    uint8_t *out_attempt;
+    int64_t *out_bins;
+    uint8_t *out_add;
+} TFManageProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 8; }
+int tf_abi_version(void) { return 9; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -121,6 +146,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "confidence.h"
 #include "coverage.h"
 #include "select_pixels.h"
+#include "management.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -134,6 +160,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "confidence.h"
 #include "coverage.h"
 #include "select_pixels.h"
+#include "management.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

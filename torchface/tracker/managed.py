@@ -45,8 +45,10 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
+from torchface import _native
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
+from torchface.backend import use_native
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
@@ -59,6 +61,7 @@ from torchface.template.dissimilarity import DissimilarityReference, build_dissi
 from torchface.template.management import (
     Mosaic,
     MosaicLevel,
+    TemplateConfig,
     _map_reference,
     _reference_tensors,
     add_entries,
@@ -618,8 +621,13 @@ def managed_step(
             ypr = ms.params_ypr[1]
         else:
             ypr = matrix_to_euler(axis_angle_to_matrix(state.params[:, layout.rotation]))
-    if use_mosaic:
+    near = None
+    native = use_mosaic and use_native(config.backend, (ypr, ms.mosaic.ypr_deg), "template management")
+    if native:  # the same decisions in one native call (torchface/_native/management.h)
+        entry, near = _native_select_entries(ms, ypr, tc)
+    elif use_mosaic:
         entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg, tc.reference_radius_deg)
+    if use_mosaic:
         changed = (entry != ms.entry).nonzero().squeeze(-1)
         if changed.numel():
             sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed])
@@ -631,8 +639,7 @@ def managed_step(
     # stayed lost at that pose (measured on the CANDIDE-3 long run after the face left the frame).
     # Streams near the pose their entry was built at are solved with Huber at the finest level on a clean frame
     # (TemplateConfig.clean_radius_deg).
-    near = None
-    if tc.clean_radius_deg > 0:
+    if tc.clean_radius_deg > 0 and near is None:
         rows = torch.arange(entry.shape[0], device=entry.device)
         near = (ms.mosaic.ypr_deg[rows, entry, :2] - ypr[:, :2]).norm(dim=-1) <= tc.clean_radius_deg
     solved, result = track_step(
@@ -644,24 +651,29 @@ def managed_step(
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
-    outside = inside < tc.min_inside_fraction
-    confident = (conf >= tc.confidence_threshold) & ~failed & ~outside
-    low_count = torch.where(confident, torch.zeros_like(ms.low_count), ms.low_count + 1)
-    very_low = (conf < tc.very_low_confidence) | failed | outside
-    very_low_count = torch.where(very_low, ms.very_low_count + 1, torch.zeros_like(ms.very_low_count))
-    lost = ms.lost | failed | outside | (low_count >= tc.lost_after) | (very_low_count >= tc.lost_after_very_low)
-    lost = lost & ~((conf >= tc.recover_confidence) & ~failed & ~outside)
+    gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
+    if gate is not None:
+        confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
+    else:
+        outside = inside < tc.min_inside_fraction
+        confident = (conf >= tc.confidence_threshold) & ~failed & ~outside
+        low_count = torch.where(confident, torch.zeros_like(ms.low_count), ms.low_count + 1)
+        very_low = (conf < tc.very_low_confidence) | failed | outside
+        very_low_count = torch.where(very_low, ms.very_low_count + 1, torch.zeros_like(ms.very_low_count))
+        lost = ms.lost | failed | outside | (low_count >= tc.lost_after) | (very_low_count >= tc.lost_after_very_low)
+        lost = lost & ~((conf >= tc.recover_confidence) & ~failed & ~outside)
+        reverted = lost & (failed | outside)
+        since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
+        since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
+        attempt = lost & (since >= tc.recovery_every)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
-    reverted = lost & (failed | outside)
     params, params_ypr = solved.params, result.ypr_deg
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
-    since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
-    since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
 
     # 4. Recovery of lost streams (rare; only the streams concerned).
-    attempt = lost & (since >= tc.recovery_every)
-    if bool(attempt.any()):
+    recovery = bool(attempt.any())
+    if recovery:
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
         found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = _recover(
@@ -716,10 +728,13 @@ def managed_step(
 
     # 5. Learning from confident frames: a new mosaic entry, optionally the texture.
     if tc.mosaic:
-        bins, near = pose_bins(result.ypr_deg, tc, origin_deg=mosaic.ypr_deg[:, 0])
-        add = confident & (conf >= tc.add_confidence) & near & ~has_bin(mosaic, bins)
-        add = add & within_reach(mosaic, result.ypr_deg, tc)
-        add = add & (mosaic.num_entries < tc.max_entries)
+        if gate is not None and not recovery:  # no recovery changed a stream: the kernel's decision stands
+            add, bins = add_if_kept, bins_if_kept
+        else:
+            bins, near = pose_bins(result.ypr_deg, tc, origin_deg=mosaic.ypr_deg[:, 0])
+            add = confident & (conf >= tc.add_confidence) & near & ~has_bin(mosaic, bins)
+            add = add & within_reach(mosaic, result.ypr_deg, tc)
+            add = add & (mosaic.num_entries < tc.max_entries)
         if bool(add.any()):
             index = add.nonzero().squeeze(-1)
             faces = None if face is None else (face[0][index], face[1][index])
@@ -743,6 +758,58 @@ def managed_step(
     if ms.first is not None:  # the online look-ahead start (initialise_managed(refine_first=...))
         new_state = _watch_first_pose(model, config, new_state, frames, result)
     return new_state, reported
+
+
+def _native_select_entries(ms: ManagementState, ypr: Tensor, tc: TemplateConfig) -> tuple[Tensor, Tensor | None]:
+    """:func:`~torchface.template.management.select_entries` and the clean-radius test of the chosen entries
+    (``(B,)`` int64, ``(B,)`` bool or None when the radius is 0) by the native kernel."""
+    m = ms.mosaic
+    B, E = m.used.shape
+    dtype = m.ypr_deg.dtype
+    inputs = [x.contiguous() for x in (m.ypr_deg, m.bins, m.used, ypr.to(dtype), ms.entry)]
+    entry = torch.empty(B, dtype=torch.int64)
+    near = torch.empty(B, dtype=torch.bool) if tc.clean_radius_deg > 0 else None
+    prob = _native.ManageProblem(
+        B=B, E=E, switch_margin_deg=tc.switch_margin_deg, reference_radius_deg=tc.reference_radius_deg,
+        clean_radius_deg=tc.clean_radius_deg, mosaic_ypr=inputs[0].data_ptr(), bins=inputs[1].data_ptr(),
+        used=inputs[2].data_ptr(), ypr=inputs[3].data_ptr(), entry=inputs[4].data_ptr(), out_entry=entry.data_ptr(),
+        out_near=None if near is None else near.data_ptr(),
+    )  # fmt: skip
+    lib = _native.library()
+    _native.run_chunks(lib.tf_select_entries_f32 if dtype == torch.float32 else lib.tf_select_entries_f64, prob, B, 1)
+    return entry, near
+
+
+def _native_gate(
+    ms: ManagementState, ypr: Tensor, conf: Tensor, inside: Tensor, failed: Tensor, tc: TemplateConfig
+) -> tuple[Tensor, ...]:
+    """managed_step's gating (confident, low and very-low counts, lost, reverted, frames since the last recovery
+    attempt, attempt) and, for a stream no recovery changes, whether its frame becomes a mosaic entry and its pose
+    bin, by the native kernel: ``(B,)`` tensors and bins ``(B, 2)`` int64."""
+    m = ms.mosaic
+    B, E = m.used.shape
+    dtype = m.ypr_deg.dtype
+    inputs = [x.contiguous() for x in (m.ypr_deg, m.bins, m.used, ypr.to(dtype), conf.to(dtype), inside.to(dtype),
+                                       failed, ms.lost, ms.low_count, ms.very_low_count, ms.since_attempt)]  # fmt: skip
+    flags = torch.empty(5, B, dtype=torch.bool)  # confident, lost, reverted, attempt, add
+    counts = torch.empty(3, B, dtype=torch.int64)  # low, very low, since
+    bins = torch.empty(B, 2, dtype=torch.int64)
+    names = ("mosaic_ypr", "bins", "used", "ypr", "confidence", "inside", "failed", "lost", "low_count",
+             "very_low_count", "since")  # fmt: skip
+    prob = _native.ManageProblem(
+        B=B, E=E, lost_after=tc.lost_after, lost_after_very_low=tc.lost_after_very_low,
+        recovery_every=tc.recovery_every, max_entries=tc.max_entries, min_inside_fraction=tc.min_inside_fraction,
+        confidence_threshold=tc.confidence_threshold, very_low_confidence=tc.very_low_confidence,
+        recover_confidence=tc.recover_confidence, yaw_bin_deg=tc.yaw_bin_deg, pitch_bin_deg=tc.pitch_bin_deg,
+        bin_centre_fraction=tc.bin_centre_fraction, entry_reach=tc.entry_reach, add_confidence=tc.add_confidence,
+        **{n: x.data_ptr() for n, x in zip(names, inputs)}, out_confident=flags[0].data_ptr(),
+        out_low_count=counts[0].data_ptr(), out_very_low_count=counts[1].data_ptr(), out_lost=flags[1].data_ptr(),
+        out_reverted=flags[2].data_ptr(), out_since=counts[2].data_ptr(), out_attempt=flags[3].data_ptr(),
+        out_bins=bins.data_ptr(), out_add=flags[4].data_ptr(),
+    )  # fmt: skip
+    lib = _native.library()
+    _native.run_chunks(lib.tf_gate_f32 if dtype == torch.float32 else lib.tf_gate_f64, prob, B, 1)
+    return flags[0], counts[0], counts[1], flags[1], flags[2], counts[2], flags[3], flags[4], bins
 
 
 def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:
