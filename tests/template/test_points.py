@@ -165,8 +165,9 @@ def test_compact_selection_and_normals_are_the_templates(scene):
     for name in ("face_index", "bary", "intensity", "valid"):
         assert torch.equal(getattr(px, name), getattr(tpl, name)), name
     assert bool(tpl.valid.all())  # 400 points found on each face
+    # the same normals (to rounding: build_template's may come from the native interpolation)
     torch.testing.assert_close(point_normals(s["model"], s["shape"], px.face_index, px.bary), tpl.normals,
-                               rtol=0, atol=0)
+                               rtol=0, atol=1e-6)
 
 
 def test_template_at_with_the_persons_neutral_mesh_given(scene):
@@ -700,3 +701,32 @@ def test_native_candidates_give_the_torch_codes_selection(scene, min_facing_cos)
                 assert torch.equal(getattr(nat, f), getattr(ref, f)), (n, threshold, f)
             chosen += int(nat.valid.sum())
     assert chosen > 1000
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_template_at_is_the_torch_codes_with_its_point_last_copies(scene, dtype):
+    """The native interpolation (``torchface/_native/template_at.h``) gives the torch code's template (positions and
+    basis bit for bit, normals to rounding) and the point-last copies the solver reads, made in the same pass."""
+    from torchface import _native
+    from torchface.backend import Backend
+    from torchface.template.points import template_at
+
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    s = scene
+    model = load_candide3(dtype=dtype)
+    px = select_pixels_posed(s["model"], posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"]), s["gray"],
+                             s["cam"], None, max_points=700, gradient_threshold=0.01)  # fmt: skip
+    face_index = px.face_index.clone()
+    face_index[0, -5:] = -1  # unused slots
+    args = (model, s["shape"].to(dtype), face_index, px.bary.to(dtype), px.intensity.to(dtype), px.valid)
+    nat = template_at(*args, backend=Backend.NATIVE)
+    ref = template_at(*args, backend=Backend.TORCH)
+    for f in ("face_index", "bary", "points", "basis", "intensity", "valid"):
+        assert torch.equal(getattr(nat, f), getattr(ref, f)), f
+    torch.testing.assert_close(nat.normals, ref.normals, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14)
+    cached = nat.__dict__.get("_point_last")
+    assert cached is not None
+    for got, want in zip(cached, (ref.points.transpose(1, 2), ref.normals.transpose(1, 2),
+                                  ref.basis.permute(0, 3, 2, 1))):  # fmt: skip
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14)

@@ -7,7 +7,7 @@ algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the
 smoothing and patch tracking: ``dissimilarity.h``; the normalised face without the z-buffer:
 ``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``; the rasterizer's coverage:
 ``coverage.h``; a template's candidate pixels: ``select_pixels.h``; template management's
-per-frame decisions: ``management.h``) with the machine's C compiler into a shared library, caches
+per-frame decisions: ``management.h``; a template from its compact form: ``template_at.h``) with the machine's C compiler into a shared library, caches
 it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
 none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
 :mod:`torchface.backend` decides).
@@ -36,13 +36,13 @@ from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
            "CoverProblem", "SelectProblem", "ManageProblem",
-           "LOSS_CODES"]
+           "TemplateProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
-            "select_pixels.h", "management.h")
+            "select_pixels.h", "management.h", "template_at.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 9
+_ABI_VERSION = 10
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -150,6 +150,18 @@ class ManageProblem(ctypes.Structure):
     ]
 
 
+class TemplateProblem(ctypes.Structure):
+    """``TFTemplateProblem`` of ``kernels.c`` (same field order): a template from its compact form (see
+    ``template_at.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "V", "A", "N")),
+        *((name, ctypes.c_void_p) for name in ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary",
+                                               "out_points", "out_basis", "out_normals", "out_points_t",
+                                               "out_normals_t", "out_basis_t")),  # fmt: skip
+    ]
+
+
 class LevelProblem(ctypes.Structure):
     """``TFLevelProblem`` of ``level_solver.c`` (same field order): one level solve's sizes, settings, input and
     output arrays (pointers to contiguous tensors; see ``level_solver.h`` for their shapes)."""
@@ -232,7 +244,7 @@ def _load() -> None:
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
                           ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
                           ("tf_reference_patches", LKProblem), ("tf_select_entries", ManageProblem),
-                          ("tf_gate", ManageProblem)):
+                          ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

@@ -1,8 +1,8 @@
 /* torchface's native kernels: the fast solver's level solve (level_solver.h) and the dissimilarity's smoothing
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
- * (coverage.h), a template's candidate pixels (select_pixels.h) and template management's per-frame decisions
- * (management.h). Compiled at first use by torchface._native (the C compiler of the
+ * (coverage.h), a template's candidate pixels (select_pixels.h), template management's per-frame decisions
+ * (management.h) and a template from its compact form (template_at.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -128,13 +128,22 @@ typedef struct {
     uint8_t *out_add;
 } TFManageProblem;
 
+/* Mirrored by torchface._native.TemplateProblem (ctypes): keep the two in the same order; see template_at.h. */
+typedef struct {
+    int B, V, A, N;
+    const void *verts, *vertex_normals, *anim_units;
+    const int64_t *faces, *face_index;
+    const void *bary;
+    void *out_points, *out_basis, *out_normals, *out_points_t, *out_normals_t, *out_basis_t;
+} TFTemplateProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 9; }
+int tf_abi_version(void) { return 10; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -147,6 +156,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "coverage.h"
 #include "select_pixels.h"
 #include "management.h"
+#include "template_at.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -161,6 +171,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "coverage.h"
 #include "select_pixels.h"
 #include "management.h"
+#include "template_at.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

@@ -640,12 +640,14 @@ def select_entries(
 
 
 def entry_templates(
-    model: FaceModel, shape_coeffs: Tensor, mosaic: Mosaic, streams: Tensor, entries: Tensor
+    model: FaceModel, shape_coeffs: Tensor, mosaic: Mosaic, streams: Tensor, entries: Tensor,
+    backend: Backend = Backend.AUTO,
 ) -> tuple[Template, ...]:
     """The full templates (every level) of entry ``entries[i]`` of stream ``streams[i]``.
 
     Args:
         shape_coeffs: ``(B', S)`` the streams' shape units; streams, entries: ``(B',)`` int64.
+        backend: of :func:`~torchface.template.points.template_at`.
 
     Returns:
         One :class:`Template` per level with batch ``B'``.
@@ -659,8 +661,12 @@ def entry_templates(
     def joined(name: str) -> Tensor:
         return torch.cat([getattr(lv, name)[streams, entries] for lv in mosaic.levels], 1)
 
+    levels = [tuple(getattr(lv, name)[streams, entries] for name in ("face_index", "bary", "intensity", "valid"))
+              for lv in mosaic.levels]  # fmt: skip
+    if use_native(backend, (neutral[0], levels[0][1]), "template"):  # level by level: each with its point-last copies
+        return tuple(template_at(model, shape_coeffs, *lv, neutral=neutral, backend=backend) for lv in levels)
     whole = template_at(model, shape_coeffs, joined("face_index"), joined("bary"), joined("intensity"),
-                        joined("valid"), neutral=neutral)  # fmt: skip
+                        joined("valid"), neutral=neutral, backend=Backend.TORCH)  # fmt: skip
     parts = [getattr(whole, f.name).split(sizes, 1) for f in fields(Template)]
     return tuple(Template(*(p[i].contiguous() for p in parts)) for i in range(len(sizes)))
 

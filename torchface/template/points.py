@@ -541,7 +541,7 @@ def build_template(
 
 def template_at(
     model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor, intensity: Tensor, valid: Tensor,
-    *, neutral: tuple[Tensor, Tensor] | None = None,
+    *, neutral: tuple[Tensor, Tensor] | None = None, backend: Backend = Backend.AUTO,
 ) -> Template:
     """The :class:`Template` of points given by triangle and barycentric coordinates (Eq. 3-9).
 
@@ -555,6 +555,9 @@ def template_at(
         neutral: the person's neutral vertices ``(B, V, 3)`` (``model.deform(shape_coeffs, None)``) and their
             vertex normals ``(B, V, 3)`` when the caller has them (several point sets of one person, such as a
             pyramid's levels); None computes them.
+        backend: :class:`~torchface.backend.Backend` of the interpolation: the native kernel
+            (``torchface/_native/template_at.h``, the same arithmetic) also makes the template's point-last copies
+            (:attr:`Template.point_last`) in the same pass.
 
     Returns:
         :class:`Template`.
@@ -570,10 +573,45 @@ def template_at(
     if tuple(verts.shape) != want or tuple(vertex_normals_neutral.shape) != want:
         raise ValueError(f"neutral must be two {want} tensors (vertices, vertex normals), got "
                          f"{tuple(verts.shape)} and {tuple(vertex_normals_neutral.shape)}")  # fmt: skip
+    if use_native(backend, (verts, vertex_normals_neutral, bary, model.animation_units), "template"):
+        return _template_at_native(model, verts, vertex_normals_neutral, face_index, bary, intensity, valid)
     points = gather_face_attributes(verts, model.faces, face_index, bary, batched=True)
     basis = gather_face_attributes(model.animation_units.permute(1, 2, 0), model.faces, face_index, bary, batched=False)
     normals = interpolated_normals(vertex_normals_neutral, model.faces, face_index, bary)
     return Template(face_index, bary, points, basis, normals, intensity, valid)
+
+
+def _template_at_native(
+    model: FaceModel, verts: Tensor, vertex_normals_neutral: Tensor, face_index: Tensor, bary: Tensor,
+    intensity: Tensor, valid: Tensor,
+) -> Template:
+    """:func:`template_at` by the native kernel, with its :attr:`Template.point_last` copies made in the same pass
+    (as normal tensors, kept with the template)."""
+    from torchface import _native
+
+    B, N = face_index.shape
+    V, A = model.num_vertices, model.num_animation
+    dtype = verts.dtype
+    with torch.inference_mode(False):  # the point-last copies are kept with the template: normal tensors
+        inputs = [x.contiguous() for x in (verts, vertex_normals_neutral, model.animation_units,
+                                           model.faces.to(torch.int64), face_index.to(torch.int64), bary)]  # fmt: skip
+        points, normals = torch.empty(B, N, 3, dtype=dtype), torch.empty(B, N, 3, dtype=dtype)
+        basis = torch.empty(B, N, 3, A, dtype=dtype)
+        points_t, normals_t = torch.empty(B, 3, N, dtype=dtype), torch.empty(B, 3, N, dtype=dtype)
+        basis_t = torch.empty(B, A, 3, N, dtype=dtype)
+        names = ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary")
+        prob = _native.TemplateProblem(
+            B=B, V=V, A=A, N=N, **{n: x.data_ptr() for n, x in zip(names, inputs)}, out_points=points.data_ptr(),
+            out_basis=basis.data_ptr(), out_normals=normals.data_ptr(), out_points_t=points_t.data_ptr(),
+            out_normals_t=normals_t.data_ptr(), out_basis_t=basis_t.data_ptr(),
+        )  # fmt: skip
+        lib = _native.library()
+        fn = lib.tf_template_at_f32 if dtype == torch.float32 else lib.tf_template_at_f64
+        if B > 0:
+            _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    tpl = Template(face_index, bary, points, basis, normals, intensity, valid)
+    object.__setattr__(tpl, "_point_last", (points_t, normals_t, basis_t))
+    return tpl
 
 
 def point_normals(model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
