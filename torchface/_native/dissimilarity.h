@@ -16,9 +16,9 @@ static void FN(masked_gray)(const TFLKProblem *p, int b, REAL *gray, REAL *tmp) 
     const int C = p->C, G = p->G, R = p->radius;
     const size_t GG = (size_t)G * G;
     const REAL *img = (const REAL *)p->normalised + (size_t)b * C * GG;
-    const REAL *mask = (const REAL *)p->mask + (size_t)b * GG;
+    const REAL *restrict mask = (const REAL *)p->mask + (size_t)b * GG;
     const REAL *k = (const REAL *)p->kernel;
-    REAL *g0 = tmp, *rows_g = tmp + GG, *rows_m = tmp + 2 * GG;
+    REAL *restrict g0 = tmp, *restrict rows_g = tmp + GG, *restrict rows_m = tmp + 2 * GG;
     for (size_t i = 0; i < GG; ++i) {
         REAL s = img[i];
         for (int c = 1; c < C; ++c) s += img[c * GG + i];
@@ -28,31 +28,39 @@ static void FN(masked_gray)(const TFLKProblem *p, int b, REAL *gray, REAL *tmp) 
         memcpy(gray, g0, sizeof(REAL) * GG);
         return;
     }
-    /* along rows (x), replicated border */
-    for (int y = 0; y < G; ++y)
+    /* along rows (x), replicated border: the taps inside the row first, then the clamped ones at either end */
+    for (int y = 0; y < G; ++y) {
+        const REAL *restrict gr = g0 + (size_t)y * G, *restrict mr = mask + (size_t)y * G;
+        REAL *restrict og = rows_g + (size_t)y * G, *restrict om = rows_m + (size_t)y * G;
         for (int x = 0; x < G; ++x) {
             REAL sg = 0, sm = 0;
             for (int j = -R; j <= R; ++j) {
                 int xx = x + j < 0 ? 0 : (x + j > G - 1 ? G - 1 : x + j);
-                sg += k[j + R] * g0[(size_t)y * G + xx];
-                sm += k[j + R] * mask[(size_t)y * G + xx];
+                sg += k[j + R] * gr[xx];
+                sm += k[j + R] * mr[xx];
             }
-            rows_g[(size_t)y * G + x] = sg;
-            rows_m[(size_t)y * G + x] = sm;
+            og[x] = sg;
+            om[x] = sm;
         }
-    /* along columns (y), then the normalisation */
+    }
+    /* along columns (y): whole rows at a time (vectorised over x), then the normalisation */
     const REAL floor_ = (REAL)(1e3 * p->eps);
-    for (int y = 0; y < G; ++y)
-        for (int x = 0; x < G; ++x) {
-            REAL sg = 0, sm = 0;
-            for (int j = -R; j <= R; ++j) {
-                int yy = y + j < 0 ? 0 : (y + j > G - 1 ? G - 1 : y + j);
-                sg += k[j + R] * rows_g[(size_t)yy * G + x];
-                sm += k[j + R] * rows_m[(size_t)yy * G + x];
+    REAL *restrict acc_g = g0, *restrict acc_m = g0 + G; /* g0 is no longer needed: two rows of accumulators */
+    for (int y = 0; y < G; ++y) {
+        for (int x = 0; x < G; ++x) acc_g[x] = acc_m[x] = (REAL)0;
+        for (int j = -R; j <= R; ++j) {
+            int yy = y + j < 0 ? 0 : (y + j > G - 1 ? G - 1 : y + j);
+            const REAL kj = k[j + R];
+            const REAL *restrict rg = rows_g + (size_t)yy * G, *restrict rm = rows_m + (size_t)yy * G;
+            for (int x = 0; x < G; ++x) {
+                acc_g[x] += kj * rg[x];
+                acc_m[x] += kj * rm[x];
             }
-            size_t i = (size_t)y * G + x;
-            gray[i] = (sm > floor_ ? sg / sm : (REAL)0) * mask[i];
         }
+        REAL *restrict out = gray + (size_t)y * G;
+        const REAL *restrict mrow = mask + (size_t)y * G;
+        for (int x = 0; x < G; ++x) out[x] = (acc_m[x] > floor_ ? acc_g[x] / acc_m[x] : (REAL)0) * mrow[x];
+    }
 }
 
 /* Bilinear sample (zero outside, align_corners=True pixel coordinates) of gray and mask at (u, v); inside: the

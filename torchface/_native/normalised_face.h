@@ -52,8 +52,18 @@ static void FN(normalised_face_one)(const TFFaceProblem *p, int b) {
             gain = gain > (REAL)p->min_gain ? gain : (REAL)p->min_gain;
             bias = light[1];
         }
+        /* the bilinear weights once for every channel (sample_border's arithmetic) */
+        REAL xc = u < (REAL)0 ? (REAL)0 : (u > (REAL)(W - 1) ? (REAL)(W - 1) : u);
+        REAL yc = v < (REAL)0 ? (REAL)0 : (v > (REAL)(H - 1) ? (REAL)(H - 1) : v);
+        int x0 = (int)xc, y0 = (int)yc;
+        REAL ax = xc - (REAL)x0, ay = yc - (REAL)y0, bx = (REAL)1 - ax, by = (REAL)1 - ay;
+        int right = x0 + 1 < W, down = y0 + 1 < H;
+        size_t i00 = (size_t)y0 * W + x0, i10 = down ? i00 + W : i00;
         for (int c = 0; c < C; ++c) {
-            REAL val = FN(sample_border)(img + c * HW, H, W, u, v);
+            const REAL *q = img + c * HW;
+            REAL h0 = bx * q[i00] + ax * (right ? q[i00 + 1] : (REAL)0);
+            REAL h1 = bx * q[i10] + ax * (right ? q[i10 + 1] : (REAL)0);
+            REAL val = by * h0 + ay * (down ? h1 : (REAL)0);
             out[c * GG + at] = light ? (val - bias) / gain : val;
         }
     }
