@@ -14,7 +14,7 @@ from torch import Tensor
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry import mesh
 from torchface.geometry.camera import Intrinsics
-from torchface.rendering.rasterizer import Fragments, _check_mesh, _triangles
+from torchface.rendering.rasterizer import Coverage, Fragments, _check_mesh, _triangles
 
 __all__ = ["face_normals", "vertex_normals", "backfacing", "points_visible"]
 
@@ -116,7 +116,8 @@ def points_visible(
         points_cam: ``(B, N, 3)`` points in the camera frame (millimetres).
         point_faces: ``(B, N)`` or ``(N,)`` int64 index of the triangle each point lies on.
         fragments: :func:`~torchface.rendering.rasterizer.rasterize` output ``(B, H, W)`` for the
-            same vertices and ``intrinsics``.
+            same vertices and ``intrinsics``, or their :func:`~torchface.rendering.rasterizer.rasterize_coverage`
+            (the depth is then evaluated at the points' pixels alone: the same answer).
         intrinsics: the camera.
         depth_tolerance: allowed relative depth gap (fraction of ``Z``, non-negative) between the
             z-buffer and the point. The surface seen at the pixel centre differs in depth from a point
@@ -149,8 +150,8 @@ def points_visible(
         raise TypeError(f"point_faces must be an int32/int64 tensor, got {got}")
     if point_faces.shape not in ((N,), (B, N)):
         raise ValueError(f"point_faces must be (N,) or (B, N) = ({N},) or ({B}, {N}), got {tuple(point_faces.shape)}")
-    if not isinstance(fragments, Fragments):
-        raise TypeError(f"fragments must be a Fragments, got {type(fragments).__name__}")
+    if not isinstance(fragments, (Fragments, Coverage)):
+        raise TypeError(f"fragments must be a Fragments or a Coverage, got {type(fragments).__name__}")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     H, W = intrinsics.height, intrinsics.width
@@ -176,7 +177,16 @@ def points_visible(
     # One flat index for the three gathers (advanced indexing by (batch, row, col) cost 3x as much at one stream).
     flat = (torch.arange(B, device=pts.device).unsqueeze(-1) * H + row) * W + col
     seen_face = fragments.pix_to_face.reshape(-1).take(flat)
-    seen_depth = fragments.zbuf.detach().reshape(-1).take(flat).to(pts.dtype)
+    if isinstance(fragments, Coverage):  # the z-buffer's depth evaluated at these pixels alone, by its arithmetic
+        covered = (seen_face >= 0).reshape(-1).nonzero().squeeze(-1)
+        b_of = torch.arange(B, device=pts.device).repeat_interleave(N).index_select(0, covered)
+        column = (b_of + fragments.batch_offset) * fragments.num_faces + seen_face.reshape(-1).index_select(0, covered)
+        depth = fragments._evaluate(column, row.reshape(-1).index_select(0, covered),
+                                    col.reshape(-1).index_select(0, covered), depth=True)[1]  # fmt: skip
+        seen_depth = torch.full((B * N,), float("inf"), dtype=pts.dtype, device=pts.device)
+        seen_depth = seen_depth.index_put((covered,), depth.detach().to(pts.dtype)).reshape(B, N)
+    else:
+        seen_depth = fragments.zbuf.detach().reshape(-1).take(flat).to(pts.dtype)
     seen_facing = fragments.facing.reshape(-1).take(flat)
     own = seen_face == point_faces.to(seen_face.device).long().expand(B, N)
     not_hidden = own | (seen_depth >= z * (1.0 - depth_tolerance))

@@ -35,14 +35,13 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-from torch.func import jacfwd
 
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
-from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
+from torchface.geometry.so3 import axis_angle_to_matrix, hat, left_jacobian, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import rasterize
+from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
@@ -190,9 +189,11 @@ def _refine_first_fit(
     shape_bound: float,
     expression_prior_precision: float,
     config: LookaheadConfig,
+    analytic: bool = True,
 ) -> tuple[LandmarkFit, Tensor, Tensor]:
     """:func:`refine_first_fit`, also returning the keyframes' refined poses: rotation ``(K, 3, 3)`` and
-    translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose."""
+    translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose. ``analytic``: the
+    Jacobian in closed form (False: by forward-mode autograd, the reference the tests compare it with)."""
     K = frames.shape[0] - 1
     if frames.dim() != 4 or K < 1 or frames.shape[1] != 3:
         raise ValueError(f"frames must be (1 + K, 3, H, W) with K >= 1 keyframes, got {tuple(frames.shape)}")
@@ -298,7 +299,7 @@ def _refine_first_fit(
                                                                  for k in range(K)]  # fmt: skip
             seen = []
             for R, t in poses:  # one rasterization each: stacked, the (1 + K)-frame buffers cost more to allocate
-                frags = rasterize((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True)
+                frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True)
                 pts = X @ R.T + t
                 vis = points_visible(pts[None], fi, frags, intrinsics)[0]
                 cos = -((normals @ R.T) * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)
@@ -337,6 +338,68 @@ def _refine_first_fit(
         s0, sk = samples(level, uv0, uvk)
         return residual(x, s0[:, 0], sk[..., 0], Rk, normals), uvl, (uv0, uvk, s0, sk)
 
+    def jacobian(x: Tensor, level: int, lin: tuple[Tensor, ...], normals: Tensor, sw: Tensor) -> Tensor:
+        """The Jacobian of ``residuals`` at ``x`` in closed form: the chain rule through the projections and
+        rotations (``d(R X) / d w = -hat(R X) J_l(w)`` for axis-angle ``w``, :func:`left_jacobian`), the same
+        values as forward-mode autograd (tests/tracker/test_lookahead.py) in one pass instead of one per
+        parameter."""
+        with torch.no_grad():
+            uv0s, uvks, s0, sk = lin
+            d = x[o_sig:o_k] - x_start
+            X = X_start + torch.einsum("c,ncd->nd", d, X_units)  # (N, 3) head frame
+            lmk = L_start + torch.einsum("c,lcd->ld", d, L_units)  # (L, 3)
+            intr = intrs[level]
+            R0 = axis_angle_to_matrix(x[0:3])
+            Jl0 = left_jacobian(x[0:3])
+
+            def proj_jac(Pc: Tensor, cam: Intrinsics) -> Tensor:
+                """``(M, 2, 3)`` d(u, v) / d(camera point) (project_points)."""
+                z = Pc[:, 2].clamp_min(torch.finfo(Pc.dtype).eps)
+                out = Pc.new_zeros(Pc.shape[0], 2, 3)
+                out[:, 0, 0] = cam.fx / z
+                out[:, 0, 2] = -cam.fx * Pc[:, 0] / (z * z)
+                out[:, 1, 1] = cam.fy / z
+                out[:, 1, 2] = -cam.fy * Pc[:, 1] / (z * z)
+                return out
+
+            RX0 = X @ R0.T
+            uv0 = project_points((RX0 + x[3:6])[None], intr)[0]
+            gp0 = torch.einsum("nu,nud->nd", s0[:, 1:], proj_jac(RX0 + x[3:6], intr))  # (N, 3) dI0 / dP0
+            units_cam0 = torch.einsum("ij,ncj->nci", R0, X_units)  # (N, C, 3)
+            dI0 = torch.cat([
+                -torch.einsum("nd,nde->ne", gp0, hat(RX0)) @ Jl0,  # rotation (N, 3)
+                gp0,  # translation
+                torch.einsum("nd,ncd->nc", gp0, units_cam0),  # shape / expression units
+            ], 1)  # (N, 6 + C)  # fmt: skip
+            rows = []
+            for k in range(K):
+                b = o_k + 11 * k
+                Rk, Jlk = axis_angle_to_matrix(x[b : b + 3]), left_jacobian(x[b : b + 3])
+                light = x[b + 6 : b + 11]
+                RXk = X @ Rk.T
+                nk = normals @ Rk.T  # (N, 3)
+                gpk = torch.einsum("nu,nud->nd", sk[k, :, 1:], proj_jac(RXk + x[b + 3 : b + 6], intr))
+                I0 = s0[:, 0] + ((uv0 - uv0s) * s0[:, 1:]).sum(-1)  # frame 0 linearised, as in photometric
+                gain = 1 + light[0] + nk @ light[2:5]  # (N,)
+                Jk = x.new_zeros(X.shape[0], P)
+                Jk[:, : o_k] = -gain[:, None] * dI0
+                Jk[:, o_sig:o_k] += torch.einsum("nd,ncd->nc", gpk, torch.einsum("ij,ncj->nci", Rk, X_units))
+                Jk[:, b : b + 3] = -torch.einsum("nd,nde->ne", gpk, hat(RXk)) @ Jlk
+                Jk[:, b : b + 3] -= I0[:, None] * (-(torch.einsum("d,nde->ne", light[2:5], hat(nk)) @ Jlk))
+                Jk[:, b + 3 : b + 6] = gpk
+                Jk[:, b + 6] = -I0
+                Jk[:, b + 7] = -1.0
+                Jk[:, b + 8 : b + 11] = -I0[:, None] * nk
+                rows.append(Jk * sw[k][:, None])
+            PL = lmk @ R0.T + x[3:6]
+            jl = proj_jac(PL, intrinsics)  # (L, 2, 3)
+            Jlm = x.new_zeros(lmk.shape[0], 2, P)
+            Jlm[:, :, 0:3] = -torch.einsum("lud,lde->lue", jl, hat(lmk @ R0.T)) @ Jl0
+            Jlm[:, :, 3:6] = jl
+            Jlm[:, :, o_sig:o_k] = torch.einsum("lud,lcd->luc", jl, torch.einsum("ij,lcj->lci", R0, L_units))
+            Jlm = Jlm * lw.sqrt()[:, None, None]
+            return torch.cat([torch.cat(rows), Jlm.reshape(-1, P), torch.diag(prior.sqrt())])
+
     def cost(x: Tensor, r: Tensor, uvl: Tensor, mask: Tensor, scale: Tensor) -> float:
         """The minimised cost at ``x`` from its exact residuals ``r`` and landmark pixels ``uvl``."""
         c = config.huber_k * scale[:, None]
@@ -369,7 +432,12 @@ def _refine_first_fit(
                 return torch.cat([(rp * sw).reshape(-1), ((uvl - target) * lw.sqrt()[:, None]).reshape(-1),
                                   prior.sqrt() * xx])  # fmt: skip
 
-            J = jacfwd(residuals)(x)
+            if analytic:
+                J = jacobian(x, level, lin, normals, sw)
+            else:
+                from torch.func import jacfwd  # imported here: its first use imports torch._dynamo (1.5 s)
+
+                J = jacfwd(residuals)(x)
             res0 = residuals(x).detach()
             H, g = J.T @ J, J.T @ res0
             accepted = False
