@@ -11,9 +11,9 @@ per frame. With --noise-seeds each standard scenario is tracked again once per l
 noise (full configuration) and a table of the seeds follows, with the worst seed's figures: the starting pose
 and expression come from one noisy fit, so one seed's figures can be luckier or unluckier than another's.
 --selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
-default landmark noise. --online-refine tracks every managed run with the online look-ahead start
-(FaceTracker(refine_first=LookaheadConfig()), torchface.tracker.managed); --lookahead instead refines the first
-fit from frames read ahead before tracking (two passes).
+default landmark noise. Every managed run tracks with the online look-ahead start, the tracker's default
+(FaceTracker(refine_first=LookaheadConfig()), torchface.tracker.managed); --no-online-refine turns it off, and
+--lookahead instead refines the first fit from frames read ahead before tracking (two passes).
 
 Ablations (one row each): full, no_illumination (TrackerConfig.use_illumination=False), no_expression
 (use_expression=False), no_robust (robust=RobustKind.NONE), all_pixels (gradient_threshold=0), no_management
@@ -41,7 +41,7 @@ Examples:
     python scripts/evaluate.py --scenarios none --add-series out/a.npz,out/b.npz    # tables again, no tracking
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3   # seed spread
     python scripts/evaluate.py --scenarios pose_sweep,scan_motion --ablations none --selection-seeds 0,1,2
-    python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3 --online-refine
+    python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3 --no-online-refine
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -255,8 +255,9 @@ def initial_landmarks(gt: GroundTruth, seed: int) -> Tensor:
 
 # --lookahead: the look-ahead initialisation's settings, or None for the plain first-frame fit.
 LOOKAHEAD: LookaheadConfig | None = None
-# --online-refine: the online look-ahead start's settings (FaceTracker(refine_first=...)), or None for none.
-ONLINE_REFINE: LookaheadConfig | None = None
+# The online look-ahead start's settings (FaceTracker(refine_first=...), the default), or None for none
+# (--no-online-refine, --lookahead).
+ONLINE_REFINE: LookaheadConfig | None = LookaheadConfig()
 
 
 def track_frames(
@@ -779,15 +780,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--lookahead-frames", type=int, default=LookaheadConfig().max_frames,
-        help="frames read ahead at most by --lookahead, or watched at most by --online-refine "
+        help="frames read ahead at most by --lookahead, or watched at most by the online look-ahead start "
         "(LookaheadConfig.max_frames; --lookahead holds them in memory, 3.7 MB each at 640x480)",
     )
     parser.add_argument(
-        "--online-refine", action="store_true",
-        help="track with the online look-ahead start (FaceTracker(refine_first=LookaheadConfig())): each run "
-        "keeps its first frame until the head has confidently turned 20 degrees each way, then re-estimates the "
-        "first pose from those frames and goes on from it in one pass; the runs without template management "
-        "(the no_management ablation) go without it",
+        "--no-online-refine", action="store_true",
+        help="track without the online look-ahead start, which is the tracker's default (FaceTracker(refine_first="
+        "LookaheadConfig())): each run keeps its first frame until the head has confidently turned 20 degrees "
+        "each way, then re-estimates the first pose from those frames and goes on from it in one pass; the runs "
+        "without template management (the no_management ablation) go without it",
     )
     parser.add_argument(
         "--expression-quota", type=float,
@@ -852,10 +853,10 @@ def main(argv: list[str] | None = None) -> int:
     global LOOKAHEAD, ONLINE_REFINE
     if args.lookahead_frames < 2:
         parser.error(f"--lookahead-frames must be >= 2, got {args.lookahead_frames}")
-    if args.lookahead and args.online_refine:
-        parser.error("--lookahead and --online-refine are two ways to refine the first pose: choose one")
     LOOKAHEAD = LookaheadConfig(max_frames=args.lookahead_frames) if args.lookahead else None
-    ONLINE_REFINE = LookaheadConfig(max_frames=args.lookahead_frames) if args.online_refine else None
+    # --lookahead is the other way to refine the first pose: the runs start from its fit, without the online start
+    online = not (args.no_online_refine or args.lookahead)
+    ONLINE_REFINE = LookaheadConfig(max_frames=args.lookahead_frames) if online else None
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     earlier: list[FrameSeries] = []

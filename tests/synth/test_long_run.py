@@ -333,10 +333,10 @@ def test_evaluate_lookahead_hands_the_frames_read_ahead_to_the_tracking_pass(tmp
     assert ev.LOOKAHEAD is None  # reset by a run without --lookahead
 
 
-def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(monkeypatch):
-    """--online-refine: every tracker with template management is built with refine_first (its max_frames from
-    --lookahead-frames), the no_management ablation without; the flag is reset by a run without it and cannot be
-    combined with --lookahead."""
+def test_evaluate_gives_the_managed_runs_the_online_start_unless_told_not_to(monkeypatch):
+    """The online start is the default: every tracker with template management is built with refine_first (its
+    max_frames from --lookahead-frames), the no_management ablation without; --no-online-refine and --lookahead
+    (the other way to refine the first pose) run without it, and the setting is reset by the next run."""
     from torchface.tracker.lookahead import LookaheadConfig
 
     ev = _load_evaluate()
@@ -350,13 +350,17 @@ def test_evaluate_online_refine_gives_the_managed_runs_the_online_start(monkeypa
     monkeypatch.setattr(ev, "FaceTracker", spy)
     base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--cache", "none", "--no-auroc",
             "--progress-every", "0", "--ablations", "no_management"]  # fmt: skip
-    assert ev.main(base + ["--online-refine", "--lookahead-frames", "7"]) == 0
+    assert ev.main(base + ["--lookahead-frames", "7"]) == 0
     assert seen == [(True, LookaheadConfig(max_frames=7)), (False, None)]
     seen.clear()
-    assert ev.main(base) == 0
+    assert ev.main(base + ["--no-online-refine"]) == 0
     assert seen == [(True, None), (False, None)]
-    with pytest.raises(SystemExit):
-        ev.main(base + ["--online-refine", "--lookahead"])
+    seen.clear()
+    assert ev.main(base) == 0
+    assert seen == [(True, LookaheadConfig()), (False, None)]
+    seen.clear()
+    assert ev.main(base + ["--lookahead"]) == 0
+    assert seen == [(True, None), (False, None)]
 
 
 def test_evaluate_expression_quota_sets_every_runs_config(monkeypatch):

@@ -24,6 +24,7 @@ from torchface.tracker import (
     TrackerConfig,
     fit_landmarks,
     initialise,
+    initialise_managed,
     lookahead_fit,
     refine_first_fit,
     select_keyframes,
@@ -245,8 +246,13 @@ def test_online_refinement_settings_are_checked(model):
     frames, gt = render([[0.0, 0.0, 0.0]])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
     with pytest.raises(ValueError, match="template management"):
-        FaceTracker(off, model=model, refine_first=LookaheadConfig()).initialise(
-            frames, gt.landmarks_px.float()[:1], gt.intrinsics)
+        initialise_managed(model, off, frames, gt.landmarks_px.float()[:1], gt.intrinsics,
+                           refine_first=LookaheadConfig())
+    # FaceTracker starts with the online refinement by default, and without template management goes without it
+    tracker = FaceTracker(off, model=model)
+    assert tracker.refine_first == LookaheadConfig()
+    tracker.initialise(frames, gt.landmarks_px.float()[:1], gt.intrinsics)
+    assert tracker.state.management is None
 
 
 def test_closed_form_jacobian_refines_as_forward_mode_autograd(model):

@@ -22,8 +22,12 @@ class FaceTracker(nn.Module):
     (dissimilarity confidence, mosaic, loss and recovery) follows ``config.template``; ``detector`` (a
     :data:`~torchface.tracker.managed.LandmarkDetector`, ``frames (B, 3, H, W) -> landmarks (B, K, 2)`` with NaN
     rows where no face was found) re-initialises lost streams, else they are searched for in the mosaic.
-    ``refine_first`` (a :class:`~torchface.tracker.lookahead.LookaheadConfig`, None: off) turns on the online
-    look-ahead start of :func:`~torchface.tracker.managed.initialise_managed`.
+    ``refine_first`` (a :class:`~torchface.tracker.lookahead.LookaheadConfig`, on by default; None: off; used with
+    template management) is the online look-ahead start of :func:`~torchface.tracker.managed.initialise_managed`:
+    once a stream's head has turned 20 degrees each way, its first pose is re-estimated from those views (a
+    one-off stall of about 0.4 s on a 2-core CPU) and the rest of the stream is tracked from it. Measured with
+    ``scripts/evaluate.py --noise-seeds 0,1,2,3``: ``pose_sweep``'s mean error 0.51 / 0.89 / 0.35 / 0.59 ->
+    0.31 / 0.47 / 0.28 / 0.27 degrees.
 
     Example:
         >>> tracker = FaceTracker()                                          # doctest: +SKIP
@@ -34,7 +38,7 @@ class FaceTracker(nn.Module):
 
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
-        detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = None,
+        detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = LookaheadConfig(),
     ) -> None:
         super().__init__()
         self.config = TrackerConfig() if config is None else config
@@ -96,8 +100,9 @@ class FaceTracker(nn.Module):
             if not isinstance(frames, Tensor) or frames.dim() != 4:
                 raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+        refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
         self._state, result = initialise_managed(
-            self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=self.refine_first
+            self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )
         return result
 
