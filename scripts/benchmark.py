@@ -104,6 +104,8 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
             in_recovery[0] = False
 
     managed_module.track_step, managed_module._recover = timed_track_step, flagged_recover
+    if args.online_refine:
+        return _online_refine(args)
     if args.interleaved:
         return _interleaved(args, solve_s)
 
@@ -163,13 +165,54 @@ def _interleaved(args: argparse.Namespace, solve_s: list[float]) -> dict[str, fl
             "solve_ms_per_step_on": 1000 * solve / n}
 
 
+def _online_refine(args: argparse.Namespace) -> dict[str, float]:
+    """The managed step with and without the online look-ahead start (:class:`~torchface.FaceTracker`'s default
+    ``refine_first=LookaheadConfig()``) on the same frames in one process, frame by frame, alternating which goes
+    first, the initialisation included: total ms of each over the sequence, ms of the re-anchoring itself (the
+    first frame's refinement and the templates rebuilt, once per stream) and the frame at which it ran."""
+    import torchface.tracker.managed as managed_module
+    from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.managed import initialise_managed, managed_step
+    from torchface.tracker.step import TrackerConfig
+
+    model, frames, idx, lm0, intr, steps = _streams(args)
+    reanchor_s, reanchor_at, k_now = [0.0], [-1], [0]
+    reanchor = managed_module._reanchor
+
+    def timed_reanchor(*a, **k):
+        t = time.perf_counter()
+        out = reanchor(*a, **k)
+        reanchor_s[0] += time.perf_counter() - t
+        reanchor_at[0] = k_now[0]
+        return out
+
+    managed_module._reanchor = timed_reanchor
+    cfg = TrackerConfig()
+    total = {False: 0.0, True: 0.0}
+    states = {}
+    for refine in (False, True):
+        t0 = time.perf_counter()
+        states[refine] = initialise_managed(model, cfg, frames[idx], lm0, intr,
+                                            refine_first=LookaheadConfig() if refine else None)[0]  # fmt: skip
+        total[refine] += time.perf_counter() - t0
+    for k in range(1, steps):
+        k_now[0] = k
+        batch = frames[idx + k]
+        for refine in (False, True) if k % 2 else (True, False):
+            t0 = time.perf_counter()
+            states[refine], _ = managed_step(model, cfg, states[refine], batch)
+            total[refine] += time.perf_counter() - t0
+    return {"ms_total_off": 1000 * total[False], "ms_total_on": 1000 * total[True], "frames": steps,
+            "reanchor_ms": 1000 * reanchor_s[0], "reanchor_frame": reanchor_at[0]}
+
+
 #: glibc's ``MALLOC_MMAP_THRESHOLD_`` of the allocator rows (bytes): above the largest tensor of a B = 128 step.
 MALLOC_MMAP_THRESHOLD = 256 * 2**20
 
 
 def _run_child(
     args: argparse.Namespace, batch: int, threads: int, managed: bool = False, env: dict[str, str] | None = None,
-    interleaved: bool = False,
+    interleaved: bool = False, online_refine: bool = False,
 ) -> dict[str, float]:
     cmd = [sys.executable, __file__, "--child", "--batch", str(batch), "--threads", str(threads),
            "--frames", str(args.frames), "--width", str(args.width), "--height", str(args.height), "--cache", args.cache]
@@ -177,6 +220,8 @@ def _run_child(
         cmd.append("--managed")
     if interleaved:
         cmd.append("--interleaved")
+    if online_refine:
+        cmd.append("--online-refine")
     child_env = None if env is None else {**os.environ, **env}
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=child_env)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -305,6 +350,26 @@ def _management(args: argparse.Namespace, figures: dict[str, dict[str, float]]) 
           "solve over the time inside it; sep.: the same comparison across separate processes (off and on "
           "alternating; one process's time moves by 10-20% on a shared machine), with their CPU time (all "
           "threads) and peak memory")
+    _online_refine_row(args, figures)
+
+
+def _online_refine_row(args: argparse.Namespace, figures: dict[str, dict[str, float]]) -> None:
+    """The online look-ahead start's cost (FaceTracker's default; the management rows above run without it):
+    one stream, one thread, median of ``args.repeats`` runs."""
+    runs = [_run_child(args, 1, 1, online_refine=True) for _ in range(args.repeats)]
+    extra = statistics.median(r["ms_total_on"] - r["ms_total_off"] for r in runs)
+    off = statistics.median(r["ms_total_off"] for r in runs)
+    reanchor = statistics.median(r["reanchor_ms"] for r in runs)
+    frames = runs[0]["frames"]
+    figures["online_refine_b1_1_thread"] = {
+        "extra_ms_total": extra, "reanchor_ms": reanchor, "reanchor_frame": runs[0]["reanchor_frame"],
+        "frames": frames, "ms_total_off": off, "extra_percent": 100.0 * extra / off, "runs": runs,
+    }  # fmt: skip
+    at = runs[0]["reanchor_frame"]
+    where = f"at frame {at}" if at >= 0 else "not reached"
+    print(f"\nonline look-ahead start (FaceTracker default; not in the rows above), B=1, 1 thread, {frames} frames: "
+          f"+{extra:.0f} ms in all ({100.0 * extra / off:+.1f}% of the managed run's {off:.0f} ms), of which the "
+          f"one-off re-anchoring {where}: {reanchor:.0f} ms")  # fmt: skip
 
 
 def main() -> None:
@@ -322,6 +387,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--managed", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--interleaved", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--online-refine", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--management-only", action="store_true", help="only the template management rows")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each kind per management row (median)")
     ap.add_argument("--mediapipe-python", default=None,
