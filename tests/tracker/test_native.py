@@ -245,10 +245,12 @@ _PROBE = (
 )
 
 
-def _probe(env: dict[str, str]) -> str:
+def _probe(env: dict[str, str], stderr: list[str] | None = None) -> str:
     out = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, env={**os.environ, **env},
                          timeout=600)  # fmt: skip
     assert out.returncode == 0, out.stderr
+    if stderr is not None:
+        stderr.append(out.stderr)
     return out.stdout.strip()
 
 
@@ -263,9 +265,12 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
 
 
 def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
-    assert _probe({"TORCHFACE_NATIVE": "0"}).startswith("NONE turned off by TORCHFACE_NATIVE=0")
-    missing = _probe({"TORCHFACE_CACHE_DIR": str(tmp_path), "CC": str(tmp_path / "no-such-cc")})
+    err: list[str] = []
+    assert _probe({"TORCHFACE_NATIVE": "0"}, err).startswith("NONE turned off by TORCHFACE_NATIVE=0")
+    assert "RuntimeWarning" not in err[-1]  # the user's own choice: no warning
+    missing = _probe({"TORCHFACE_CACHE_DIR": str(tmp_path), "CC": str(tmp_path / "no-such-cc")}, err)
     assert missing.startswith("NONE the native kernels could not be built"), missing
+    assert err[-1].count("RuntimeWarning: torchface: native kernels unavailable") == 1, err[-1]  # said once
 
 
 def test_tracking_with_either_backend_gives_the_same_poses():
