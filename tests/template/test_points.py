@@ -480,6 +480,39 @@ def test_expression_quota_gives_every_animation_unit_points():
     assert bool((quota >= torch.clamp(plain, max=q)).all()), (plain.tolist(), quota.tolist())
 
 
+def test_quota_lift_at_the_candidates_is_the_whole_windows_fragments(scene):
+    """The expression quota's lift, evaluated at the candidate pixels alone, is the one computed from the whole
+    window's fragments (every pixel's barycentric coordinates and depth: the slow reference written here)."""
+    from torchface.template.points import _quota_lift, rasterize_windows
+
+    s = scene
+    model = s["model"]
+    posed = posed_mesh(model, s["shape"], s["anim"], s["R"], s["t"])
+    frags = rasterize_windows(model, posed.verts_cam, [s["cam"]], [torch.zeros(2, 2, dtype=torch.int64)])[0]
+    B, H, W = frags.pix_to_face.shape
+    gen = torch.Generator().manual_seed(3)
+    keys = torch.rand(B, H * W, generator=gen)
+    candidate = (frags.pix_to_face >= 0) & (torch.rand(B, H, W, generator=gen) < 0.5)
+    flat = candidate.reshape(-1).nonzero().squeeze(-1)
+    for q in (1, 20, 10_000):
+        got = _quota_lift(model, frags, flat, keys, s["cam"].fx, q)
+        # the reference: fragments of every pixel; per sample and unit, the q highest keys of the moved candidates
+        full = frags.fragments()
+        au_mm = model.animation_units.norm(dim=-1).T  # (V, A)
+        sens = gather_face_attributes(au_mm, model.faces, frags.pix_to_face.reshape(B, -1),
+                                      full.bary.reshape(B, -1, 3), batched=False)  # fmt: skip
+        moved = (sens * (s["cam"].fx / full.zbuf.reshape(B, -1, 1).clamp(1.0, 1e30)) >= 1.0)
+        moved &= candidate.reshape(B, -1, 1)
+        want = torch.zeros(B, H * W)
+        for b in range(B):
+            for a in range(model.num_animation):
+                idx = moved[b, :, a].nonzero().squeeze(-1)
+                top = idx[torch.argsort(keys[b, idx], descending=True)[:q]]
+                want[b, top] = 1.0
+        assert torch.equal(got, want), q
+        assert 0 < int(got.sum()) <= min(q, H * W) * B * model.num_animation
+
+
 @pytest.mark.parametrize(("priority", "quota"), [(0.0, 0), (1.0, 0), (0.0, 30)])
 def test_window_build_equals_the_whole_image_build(scene, priority, quota):
     """Per-sample windows around the faces (offsets) give the whole image's template: same pixels, same slots."""
@@ -671,11 +704,11 @@ def test_erode_equals_the_square_minimum_filter(radius):
     assert torch.equal(_erode(mask, 0), mask)
 
 
-@pytest.mark.parametrize("min_facing_cos", [-0.3, 0.15, 0.6])
-def test_native_candidates_give_the_torch_codes_selection(scene, min_facing_cos):
+@pytest.mark.parametrize(("min_facing_cos", "quota"), [(-0.3, 0), (0.15, 0), (0.6, 0), (0.15, 20)])
+def test_native_candidates_give_the_torch_codes_selection(scene, min_facing_cos, quota):
     """The native kernel's candidate tests and scores (``torchface/_native/select_pixels.h``) give the torch
     code's selection bit for bit: whole images and per-sample windows, at several thresholds (the facing test on
-    many triangles at 0.6), with few and with many slots."""
+    many triangles at 0.6), with few and with many slots, and with the expression quota."""
     from torchface import _native
     from torchface.backend import Backend
     from torchface.template.points import rasterize_windows
@@ -694,7 +727,8 @@ def test_native_candidates_give_the_torch_codes_selection(scene, min_facing_cos)
     chosen = 0
     for gray, off, fr in ((s["gray"], None, None), (crops, offsets, frags)):
         for n, threshold in ((300, 0.01), (gray.shape[-1] * gray.shape[-2], 0.0), (800, 0.03)):
-            kw = dict(max_points=n, gradient_threshold=threshold, min_facing_cos=min_facing_cos, frags=fr)
+            kw = dict(max_points=n, gradient_threshold=threshold, min_facing_cos=min_facing_cos, frags=fr,
+                      expression_quota=quota)
             nat = select_pixels_posed(s["model"], posed, gray, s["cam"], off, backend=Backend.NATIVE, **kw)
             ref = select_pixels_posed(s["model"], posed, gray, s["cam"], off, backend=Backend.TORCH, **kw)
             for f in ("face_index", "bary", "intensity", "valid"):

@@ -364,10 +364,14 @@ def select_pixels_posed(
         frags = rasterize_windows(model, verts_cam, [cam], [cam_off], backend)[0]
     face = frags.pix_to_face
     face_flat = face.reshape(B, -1)
-    if (stride == 1 and expression_priority <= 0 and expression_quota <= 0
+    if (stride == 1 and expression_priority <= 0
             and use_native(backend, (gray, verts_cam, normals_cam, frags.coefficients.detach()), "pixel selection")):
         score = _native_scores(model, posed, gray, intrinsics, off, frags, gradient_threshold, min_facing_cos,
                                erode_pixels, seed)  # fmt: skip
+        if expression_quota > 0 and model.num_animation > 0:  # keys + 2 lift at the candidates, as below
+            flat = (score.reshape(-1) >= 0).nonzero().squeeze(-1)
+            lift = _quota_lift(model, frags, flat, score, intrinsics.fx, expression_quota)
+            score = torch.where(score >= 0, score + 2.0 * lift, score)
         return _top_pixels(score, face_flat, frags, gray, max_points, verts_model.dtype)
     mask = (face >= 0) & (frags.facing > 0)
     if grads is None:
@@ -416,43 +420,56 @@ def select_pixels_posed(
         pix_rows = offsets[:, 1:2] + stride * torch.arange(H, device=gray.device)
         pix_cols = offsets[:, 0:1] + stride * torch.arange(W, device=gray.device)
         keys = keys[(pix_rows[:, :, None] * full_w + pix_cols[:, None, :]).reshape(B, H * W)]
-    if (expression_priority > 0 or expression_quota > 0) and model.num_animation > 0:
-        full = frags.fragments()  # every pixel's barycentric coordinates and depth
-        bary_flat, zbuf = full.bary.reshape(B, -1, 3), full.zbuf
     if expression_priority > 0 and model.num_animation > 0:
         # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
         # small region (eyelids) would otherwise get few of the uniformly drawn points.
+        full = frags.fragments()  # every pixel's barycentric coordinates and depth
+        bary_flat, zbuf = full.bary.reshape(B, -1, 3), full.zbuf
         au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
         sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
         px_per_mm = intrinsics.fx / zbuf.reshape(B, -1).clamp(1.0, 1e30)
         keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
     if expression_quota > 0 and model.num_animation > 0:
-        # Per unit, the candidates it moves by >= 1 px per unit coefficient; the quota with the highest keys
-        # among them are lifted above every key (keys lie in [0, 1)). Only the candidates are looked at.
-        A = model.num_animation
-        flat = candidate.reshape(-1).nonzero().squeeze(-1)  # (M,) over B * H * W
-        au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
-        sens = gather_face_attributes(au_mm, model.faces, face_flat.reshape(-1)[flat][None],
-                                      bary_flat.reshape(-1, 3)[flat][None], batched=False)[0]  # (M, A)
-        px_per_mm = intrinsics.fx / zbuf.reshape(-1)[flat].clamp(1.0, 1e30)
-        moved = sens * px_per_mm[:, None] >= 1.0
-        # Each sample's candidates in a (B, A, M_max) block (nonzero lists them sample by sample).
-        b_of = torch.div(flat, H * W, rounding_mode="floor")
-        counts = torch.bincount(b_of, minlength=B)
-        first = torch.cumsum(counts, 0) - counts
-        slot = torch.arange(flat.shape[0], device=flat.device) - first[b_of]
-        m_max = max(int(counts.max()) if B else 0, 1)
-        au_keys = torch.full((B, m_max, A), -1.0, dtype=keys.dtype, device=keys.device)
-        au_keys[b_of, slot] = torch.where(moved, keys.reshape(-1)[flat][:, None], au_keys.new_tensor(-1.0))
-        top_k, top_s = torch.topk(au_keys.transpose(1, 2), min(expression_quota, m_max), dim=-1)  # (B, A, q)
-        pix_of = torch.zeros(B, m_max, dtype=torch.int64, device=keys.device)
-        pix_of[b_of, slot] = flat - b_of * (H * W)
-        lift = torch.zeros(B, H * W, dtype=keys.dtype, device=keys.device)
-        lift.scatter_reduce_(1, torch.gather(pix_of, 1, top_s.flatten(1)), (top_k >= 0).flatten(1).to(keys.dtype),
-                             reduce="amax")
-        keys = keys + 2.0 * lift
+        keys = keys + 2.0 * _quota_lift(model, frags, candidate.reshape(-1).nonzero().squeeze(-1), keys,
+                                        intrinsics.fx, expression_quota)  # fmt: skip
     score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
     return _top_pixels(score, face_flat, frags, gray, max_points, verts_model.dtype)
+
+
+def _quota_lift(model: FaceModel, frags: Coverage, flat: Tensor, keys: Tensor, fx: float, quota: int) -> Tensor:
+    """The expression quota's lift ``(B, H W)`` in ``keys``' dtype: 1 at the ``quota`` candidates with the highest
+    ``keys`` among those each animation unit moves by >= 1 px per unit coefficient, 0 elsewhere.
+
+    ``flat``: the candidate pixels ``(M,)`` over ``B H W`` (ascending); ``keys (B, H W)`` their selection keys
+    (any values elsewhere). Each candidate's barycentric coordinates and depth are evaluated at it alone
+    (:class:`~torchface.rendering.rasterizer.Coverage`'s arithmetic, the values :meth:`Coverage.fragments` gives
+    there), not over the whole window."""
+    B, H, W = frags.pix_to_face.shape
+    A = model.num_animation
+    b_of = torch.div(flat, H * W, rounding_mode="floor")
+    pix = flat - b_of * (H * W)
+    row = torch.div(pix, W, rounding_mode="floor")
+    face_c = frags.pix_to_face.reshape(-1).index_select(0, flat)
+    bary, depth = frags._evaluate((b_of + frags.batch_offset) * frags.num_faces + face_c, row, pix - row * W,
+                                  depth=True)  # fmt: skip
+    au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
+    sens = gather_face_attributes(au_mm, model.faces, face_c[None], bary[None], batched=False)[0]  # (M, A)
+    px_per_mm = fx / depth.clamp(1.0, 1e30)
+    moved = sens * px_per_mm[:, None] >= 1.0
+    # Each sample's candidates in a (B, A, M_max) block (nonzero lists them sample by sample).
+    counts = torch.bincount(b_of, minlength=B)
+    first = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(flat.shape[0], device=flat.device) - first[b_of]
+    m_max = max(int(counts.max()) if B else 0, 1)
+    au_keys = torch.full((B, m_max, A), -1.0, dtype=keys.dtype, device=keys.device)
+    au_keys[b_of, slot] = torch.where(moved, keys.reshape(-1)[flat][:, None], au_keys.new_tensor(-1.0))
+    top_k, top_s = torch.topk(au_keys.transpose(1, 2), min(quota, m_max), dim=-1)  # (B, A, q)
+    pix_of = torch.zeros(B, m_max, dtype=torch.int64, device=keys.device)
+    pix_of[b_of, slot] = pix
+    lift = torch.zeros(B, H * W, dtype=keys.dtype, device=keys.device)
+    lift.scatter_reduce_(1, torch.gather(pix_of, 1, top_s.flatten(1)), (top_k >= 0).flatten(1).to(keys.dtype),
+                         reduce="amax")
+    return lift
 
 
 def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor, max_points: int,
