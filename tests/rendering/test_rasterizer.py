@@ -419,6 +419,8 @@ def test_coverage_evaluates_rasterize_fragments_bit_for_bit(dtype, cull):
         face = full.pix_to_face[b, y, x][covered]
         got = cov.covered_barycentrics(b[covered], face, y[covered], x[covered])
         assert torch.equal(got, full.bary[b, y, x][covered])
+        got, depth = cov.covered_depths(b[covered], face, y[covered], x[covered])
+        assert torch.equal(got, full.bary[b, y, x][covered]) and torch.equal(depth, full.zbuf[b, y, x][covered])
         # A part: samples 1..2, the top-left 20 x 30 pixels, indexed from its own origin.
         part = cov.part(slice(1, 3), 20, 30)
         assert torch.equal(part.pix_to_face, full.pix_to_face[1:3, :20, :30])

@@ -155,6 +155,11 @@ class Coverage:
         :attr:`pix_to_face`, int64 ``(N,)``): without looking them up."""
         return self._evaluate((batch + self.batch_offset) * self.num_faces + face, row, col, depth=False)[0]
 
+    def covered_depths(self, batch: Tensor, face: Tensor, row: Tensor, col: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`covered_barycentrics` and the depths ``(N,)`` (mm) at those pixels: the values
+        :meth:`fragments` gives there (``bary`` and ``zbuf``), bit for bit, evaluated at these pixels alone."""
+        return self._evaluate((batch + self.batch_offset) * self.num_faces + face, row, col, depth=True)
+
     def fragments(self) -> Fragments:
         """The :class:`Fragments` of every pixel (what :func:`rasterize` returns)."""
         B, H, W = self.pix_to_face.shape

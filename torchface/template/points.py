@@ -450,8 +450,7 @@ def _quota_lift(model: FaceModel, frags: Coverage, flat: Tensor, keys: Tensor, f
     pix = flat - b_of * (H * W)
     row = torch.div(pix, W, rounding_mode="floor")
     face_c = frags.pix_to_face.reshape(-1).index_select(0, flat)
-    bary, depth = frags._evaluate((b_of + frags.batch_offset) * frags.num_faces + face_c, row, pix - row * W,
-                                  depth=True)  # fmt: skip
+    bary, depth = frags.covered_depths(b_of, face_c, row, pix - row * W)
     au_mm = model.animation_units.norm(dim=-1).T  # (V, A) displacement per unit coefficient
     sens = gather_face_attributes(au_mm, model.faces, face_c[None], bary[None], batched=False)[0]  # (M, A)
     px_per_mm = fx / depth.clamp(1.0, 1e30)
