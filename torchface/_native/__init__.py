@@ -35,7 +35,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-__all__ = ["library", "unavailable_reason", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
+__all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
            "CoverProblem", "SelectProblem", "ManageProblem",
            "TemplateProblem", "LOSS_CODES"]
 
@@ -304,3 +304,10 @@ def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
         codes = [fn(ref, bounds[0], bounds[1])] + [f.result() for f in futures]
     if any(code != 0 for code in codes):
         raise MemoryError("a native kernel could not allocate its workspace")
+
+
+def run(kernel: str, double: bool, problem: ctypes.Structure, batch: int, threads: int) -> None:
+    """The kernel ``tf_<kernel>`` (its float64 build where ``double``, else its float32 one) over ``[0, batch)`` by
+    :func:`run_chunks`; nothing for an empty batch. The library must be available (:func:`library`)."""
+    if batch > 0:
+        run_chunks(getattr(library(), f"tf_{kernel}_{'f64' if double else 'f32'}"), problem, batch, threads)

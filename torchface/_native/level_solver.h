@@ -514,30 +514,28 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
             wgt[n] = (REAL)wt;
         }
         FN(normal_equations)(p, &lin, wgt, prior, d_alpha, Jw, H, grad);
-        if (have_best) {
-            if (accept) {
-                lam = lam / 3.0 > 1e-6 ? lam / 3.0 : 1e-6;
-            } else { /* undo the rejected step */
-                memcpy(R, bestR, sizeof(bestR));
-                memcpy(t, bestt, sizeof(bestt));
-                memcpy(alpha, best_alpha, sizeof(REAL) * A);
-                memcpy(light, best_light, sizeof(REAL) * L);
-                memcpy(H, bestH, sizeof(double) * P * P);
-                memcpy(grad, best_grad, sizeof(double) * P);
-                cost = best_cost;
-                s = best_s;
-                lam *= 10.0;
-            }
+        if (accept) { /* always the first point; later, a step that did not raise the cost */
+            if (have_best) lam = lam / 3.0 > 1e-6 ? lam / 3.0 : 1e-6;
+            memcpy(bestR, R, sizeof(bestR));
+            memcpy(bestt, t, sizeof(bestt));
+            memcpy(best_alpha, alpha, sizeof(REAL) * A);
+            memcpy(best_light, light, sizeof(REAL) * L);
+            memcpy(bestH, H, sizeof(double) * P * P);
+            memcpy(best_grad, grad, sizeof(double) * P);
+            best_cost = cost;
+            best_s = s;
+            have_best = 1;
+        } else { /* undo the rejected step */
+            memcpy(R, bestR, sizeof(bestR));
+            memcpy(t, bestt, sizeof(bestt));
+            memcpy(alpha, best_alpha, sizeof(REAL) * A);
+            memcpy(light, best_light, sizeof(REAL) * L);
+            memcpy(H, bestH, sizeof(double) * P * P);
+            memcpy(grad, best_grad, sizeof(double) * P);
+            cost = best_cost;
+            s = best_s;
+            lam *= 10.0;
         }
-        memcpy(bestR, R, sizeof(bestR));
-        memcpy(bestt, t, sizeof(bestt));
-        memcpy(best_alpha, alpha, sizeof(REAL) * A);
-        memcpy(best_light, light, sizeof(REAL) * L);
-        memcpy(bestH, H, sizeof(double) * P * P);
-        memcpy(best_grad, grad, sizeof(double) * P);
-        best_cost = cost;
-        best_s = s;
-        have_best = 1;
 
         double dmax = 1e-12;
         for (int i = 0; i < P; ++i) dmax = H[i * P + i] > dmax ? H[i * P + i] : dmax;

@@ -498,10 +498,7 @@ def _normalised_face_native(
         illumination=None if light is None else light.data_ptr(), out_image=image.data_ptr(),
         out_mask=mask.data_ptr(),
     )  # fmt: skip
-    lib = _native.library()
-    fn = lib.tf_normalised_face_f32 if dtype == torch.float32 else lib.tf_normalised_face_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("normalised_face", dtype == torch.float64, prob, B, torch.get_num_threads())
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
 
 

@@ -505,10 +505,7 @@ def _native_cover(
     names = ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last", "y_first", "y_last")
     prob = _native.CoverProblem(B=B, F=F, H=H, W=W, near=float(near), **{n: x.data_ptr() for n, x in zip(names, args)},
                                 pix_to_face=pix_to_face.data_ptr(), facing=facing.data_ptr(), depth=depth.data_ptr())
-    lib = _native.library()
-    fn = lib.tf_coverage_f32 if dtype == torch.float32 else lib.tf_coverage_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("coverage", dtype == torch.float64, prob, B, torch.get_num_threads())
     return pix_to_face, facing
 
 

@@ -788,10 +788,7 @@ def _native_lk(normalised: Tensor, mask: Tensor, pre: LKTemplate, cfg: Dissimila
         out_p=p.data_ptr(), out_support=support.data_ptr(), out_converged=converged.data_ptr(),
         out_valid=valid.data_ptr(),
     )  # fmt: skip
-    lib = _native.library()
-    fn = lib.tf_dissimilarity_f32 if dtype == torch.float32 else lib.tf_dissimilarity_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("dissimilarity", dtype == torch.float64, prob, B, torch.get_num_threads())
     return LKResult(p, converged, valid, support, None)
 
 
@@ -813,8 +810,5 @@ def _native_patches(image: Tensor, mask: Tensor, config: DissimilarityConfig, K:
         mask=mask_c.data_ptr(), kernel=kernel.data_ptr(), out_gray=gray.data_ptr(), out_p=index.data_ptr(),
         out_support=best.data_ptr(), radius_border=config.border,
     )  # fmt: skip
-    lib = _native.library()
-    fn = lib.tf_reference_patches_f32 if dtype == torch.float32 else lib.tf_reference_patches_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("reference_patches", dtype == torch.float64, prob, B, torch.get_num_threads())
     return gray, index.round().long(), best

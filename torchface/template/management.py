@@ -778,10 +778,7 @@ def native_mosaic_confidence(
         out_valid=flags[1].data_ptr(), out_present=flags[2].data_ptr(), out_dissimilarity=out[0].data_ptr(),
         out_confidence=out[1].data_ptr(), out_inside=out[2].data_ptr(),
     )  # fmt: skip
-    lib = _native.library()
-    fn = lib.tf_confidence_f32 if dtype == torch.float32 else lib.tf_confidence_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("confidence", dtype == torch.float64, prob, B, torch.get_num_threads())
     return out[0], out[1], out[2], (image.reshape(B, C, G, G), mask.reshape(B, 1, G, G)), entry
 
 

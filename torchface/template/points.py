@@ -512,10 +512,7 @@ def _native_scores(
         facing_margin=_FACING_MARGIN, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
         **{n: x.data_ptr() for n, x in zip(names, inputs)}, out_score=score.data_ptr(),
     )  # fmt: skip
-    lib = _native.library()
-    fn = lib.tf_select_pixels_f32 if dtype == torch.float32 else lib.tf_select_pixels_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("select_pixels", dtype == torch.float64, prob, B, torch.get_num_threads())
     return score
 
 
@@ -621,10 +618,7 @@ def _template_at_native(
             out_basis=basis.data_ptr(), out_normals=normals.data_ptr(), out_points_t=points_t.data_ptr(),
             out_normals_t=normals_t.data_ptr(), out_basis_t=basis_t.data_ptr(),
         )  # fmt: skip
-        lib = _native.library()
-        fn = lib.tf_template_at_f32 if dtype == torch.float32 else lib.tf_template_at_f64
-        if B > 0:
-            _native.run_chunks(fn, prob, B, torch.get_num_threads())
+        _native.run("template_at", dtype == torch.float64, prob, B, torch.get_num_threads())
     tpl = Template(face_index, bary, points, basis, normals, intensity, valid)
     object.__setattr__(tpl, "_point_last", (points_t, normals_t, basis_t))
     return tpl

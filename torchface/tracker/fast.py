@@ -590,10 +590,7 @@ def _solve_level_native(
         out_residual=ptr(residual), out_sampled=ptr(sampled), out_J=ptr(J_out), out_valid=ptr(valid),
         out_converged=ptr(converged), out_finite=ptr(finite), out_iterations=ptr(iters),
     )  # fmt: skip
-    lib = _native.library()
-    fn = lib.tf_solve_level_f32 if dtype == torch.float32 else lib.tf_solve_level_f64
-    if B > 0:
-        _native.run_chunks(fn, prob, B, torch.get_num_threads())
+    _native.run("solve_level", dtype == torch.float64, prob, B, torch.get_num_threads())
     linearisation = (residual, J_out.transpose(1, 2), valid, sampled) if keep else None
     outcome = LevelOutcome(residual, valid & isfinite(residual), sampled, iters, converged, finite, linearisation, k)
     return R_out, t_out, alpha_out, light_out, outcome

@@ -811,8 +811,7 @@ def _native_select_entries(ms: ManagementState, ypr: Tensor, tc: TemplateConfig)
         used=inputs[2].data_ptr(), ypr=inputs[3].data_ptr(), entry=inputs[4].data_ptr(), out_entry=entry.data_ptr(),
         out_near=None if near is None else near.data_ptr(),
     )  # fmt: skip
-    lib = _native.library()
-    _native.run_chunks(lib.tf_select_entries_f32 if dtype == torch.float32 else lib.tf_select_entries_f64, prob, B, 1)
+    _native.run("select_entries", dtype == torch.float64, prob, B, 1)
     return entry, near
 
 
@@ -843,8 +842,7 @@ def _native_gate(
         out_reverted=flags[2].data_ptr(), out_since=counts[2].data_ptr(), out_attempt=flags[3].data_ptr(),
         out_bins=bins.data_ptr(), out_add=flags[4].data_ptr(),
     )  # fmt: skip
-    lib = _native.library()
-    _native.run_chunks(lib.tf_gate_f32 if dtype == torch.float32 else lib.tf_gate_f64, prob, B, 1)
+    _native.run("gate", dtype == torch.float64, prob, B, 1)
     return flags[0], counts[0], counts[1], flags[1], flags[2], counts[2], flags[3], flags[4], bins
 
 
