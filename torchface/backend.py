@@ -2,10 +2,11 @@
 
 The per-frame work of a tracking step is mostly small operations: at one stream their dispatch, not their
 arithmetic, is most of the time, and at many streams every intermediate goes through memory. The native kernels
-(C, compiled at first use by the machine's C compiler) run the same algorithms one stream (or patch) at a time:
-the fast solver's level solves (:func:`torchface.tracker.fast.solve_level`) and the dissimilarity confidence's
-smoothing and Lucas-Kanade (:func:`torchface.template.dissimilarity.dissimilarity`). Each is tested against its
-torch code (``tests/tracker/test_native.py``, ``tests/template/test_dissimilarity.py``).
+(C, compiled at first use by the machine's C compiler; listed in :mod:`torchface._native`) run the same
+algorithms one stream (or patch) at a time: the fast solver's level solves, the rasterizer's coverage, a
+template's candidate pixels and points, the normalised face, the dissimilarity confidence and its references,
+and template management's per-frame decisions. Each is tested against its torch code
+(``tests/tracker/test_native.py`` and the tests of each module).
 
 :attr:`Backend.AUTO` (the default of :class:`~torchface.tracker.TrackerConfig`) takes the native kernels where
 they can run: CPU tensors of float32 or float64 that ask for no gradient, on a machine with a C compiler;

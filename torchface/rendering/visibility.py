@@ -180,9 +180,9 @@ def points_visible(
     if isinstance(fragments, Coverage):  # the z-buffer's depth evaluated at these pixels alone, by its arithmetic
         covered = (seen_face >= 0).reshape(-1).nonzero().squeeze(-1)
         b_of = torch.arange(B, device=pts.device).repeat_interleave(N).index_select(0, covered)
-        column = (b_of + fragments.batch_offset) * fragments.num_faces + seen_face.reshape(-1).index_select(0, covered)
-        depth = fragments._evaluate(column, row.reshape(-1).index_select(0, covered),
-                                    col.reshape(-1).index_select(0, covered), depth=True)[1]  # fmt: skip
+        depth = fragments.covered_depths(b_of, seen_face.reshape(-1).index_select(0, covered),
+                                         row.reshape(-1).index_select(0, covered),
+                                         col.reshape(-1).index_select(0, covered))[1]  # fmt: skip
         seen_depth = torch.full((B * N,), float("inf"), dtype=pts.dtype, device=pts.device)
         seen_depth = seen_depth.index_put((covered,), depth.detach().to(pts.dtype)).reshape(B, N)
     else:

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.projection import project_points
+from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix, hat, left_jacobian, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize_coverage
@@ -353,14 +353,8 @@ def _refine_first_fit(
             Jl0 = left_jacobian(x[0:3])
 
             def proj_jac(Pc: Tensor, cam: Intrinsics) -> Tensor:
-                """``(M, 2, 3)`` d(u, v) / d(camera point) (project_points)."""
-                z = Pc[:, 2].clamp_min(torch.finfo(Pc.dtype).eps)
-                out = Pc.new_zeros(Pc.shape[0], 2, 3)
-                out[:, 0, 0] = cam.fx / z
-                out[:, 0, 2] = -cam.fx * Pc[:, 0] / (z * z)
-                out[:, 1, 1] = cam.fy / z
-                out[:, 1, 2] = -cam.fy * Pc[:, 1] / (z * z)
-                return out
+                """``(M, 2, 3)`` d(u, v) / d(camera point) of ``(M, 3)`` points."""
+                return project_points_jacobian(Pc[None], cam)[0]
 
             RX0 = X @ R0.T
             uv0 = project_points((RX0 + x[3:6])[None], intr)[0]
