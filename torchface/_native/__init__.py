@@ -2,15 +2,22 @@
 
 At one stream a tracking step's level solves are thousands of small tensor operations, and their dispatch, not
 their arithmetic, is most of the step's time; at many streams the same loops stream every intermediate through
-memory. :func:`library` compiles ``kernels.c`` (one pyramid level's Levenberg-Marquardt solve per stream, the
-algorithm of :func:`torchface.tracker.fast.solve_level`: ``level_solver.h``; the dissimilarity confidence's
-smoothing and patch tracking: ``dissimilarity.h``; the normalised face without the z-buffer:
-``normalised_face.h``; the three as template management's per-frame confidence: ``confidence.h``; the rasterizer's coverage:
-``coverage.h``; a template's candidate pixels: ``select_pixels.h``; template management's
-per-frame decisions: ``management.h``; a template from its compact form: ``template_at.h``) with the machine's C compiler into a shared library, caches
-it, and loads it. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or ``$CC``); where there is
-none, or the build fails, the callers use their torch code instead (:func:`unavailable_reason` says why;
-:mod:`torchface.backend` decides).
+memory. :func:`library` compiles ``kernels.c`` with the machine's C compiler into a shared library, caches it,
+and loads it. ``kernels.c`` includes, each as its torch code computes it:
+
+- ``level_solver.h``: one pyramid level's Levenberg-Marquardt solve per stream
+  (:func:`torchface.tracker.fast.solve_level`);
+- ``dissimilarity.h``: the dissimilarity confidence's smoothing and patch tracking, and a reference's patches;
+- ``normalised_face.h``: the normalised face without the z-buffer;
+- ``confidence.h``: the last two (and the nearest mosaic entry) as template management's per-frame confidence;
+- ``coverage.h``: the rasterizer's coverage (z-buffer);
+- ``select_pixels.h``: a template's candidate pixels and their selection scores;
+- ``management.h``: template management's per-frame decisions (entry selection, gating);
+- ``template_at.h``: a template from its compact form.
+
+:func:`run` calls a kernel over a batch. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or
+``$CC``); where there is none, or the build fails, the callers use their torch code instead
+(:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
 hash of the source, the compiler and its flags, so a changed source is built again; it is built into a temporary
@@ -35,9 +42,8 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-__all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem", "ConfProblem",
-           "CoverProblem", "SelectProblem", "ManageProblem",
-           "TemplateProblem", "LOSS_CODES"]
+__all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem",
+           "ConfProblem", "CoverProblem", "SelectProblem", "ManageProblem", "TemplateProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",

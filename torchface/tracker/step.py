@@ -29,13 +29,7 @@ from torchface.solver.least_squares import ResidualFn, SolveResult, SolverConfig
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
-from torchface.tracker.fast import (
-    FUNCTION_TOLERANCE,
-    STEP_TOLERANCE,
-    LevelCamera,
-    robust_scale_of,
-    solve_level,
-)
+from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -156,10 +150,12 @@ class TrackerConfig:
             cannot, which lowered scan_motion's mean error from 2.7 to 1.9 degrees.
         solver: :class:`TrackSolver`.
         backend: which implementation runs the hot loops (:class:`~torchface.backend.Backend`): the fast solver's
-            level solves and template management's dissimilarity. By default the native kernels (C compiled at
-            first use, :mod:`torchface._native`) where they can run (CPU, no gradient asked for, a C compiler on
-            the machine), else the torch code. The two agree to rounding; measured on benchmark.py's frames, one
-            stream's bare step took 3.7 instead of 8.5 ms per frame.
+            level solves, the rasterizer's coverage, template building, the normalised face, the dissimilarity
+            confidence and template management's per-frame decisions. By default the native kernels (C compiled
+            at first use, :mod:`torchface._native`) where they can run (CPU, no gradient asked for, a C compiler
+            on the machine), else the torch code. The two agree to rounding (the same template points and
+            management decisions); measured on benchmark.py's frames, one stream's bare step took 3.2-3.9 instead
+            of about 8.5 ms per frame.
         crop_margin: the fast solver tracks inside a crop around the previous estimate's face box, enlarged
             by this fraction of the box size on each side (plus 32 pixels).
         selection_seed: which draw of the pixels' selection keys picks each template's ``max_points`` among its
