@@ -31,7 +31,10 @@ from torchface.template.points import (
     select_pixels_posed,
     strided_window,
     template_at,
+    top_scores,
 )
+from torchface import _native
+from torchface.backend import Backend
 from torchface.tracker.step import level_intrinsics
 from torchface.rendering.visibility import vertex_normals
 from torchface.tracker import ParamLayout, frame_residuals
@@ -764,3 +767,26 @@ def test_native_template_at_is_the_torch_codes_with_its_point_last_copies(scene,
     for got, want in zip(cached, (ref.points.transpose(1, 2), ref.normals.transpose(1, 2),
                                   ref.basis.permute(0, 3, 2, 1))):  # fmt: skip
         torch.testing.assert_close(got, want, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14)
+
+
+@pytest.mark.parametrize("backend", [Backend.TORCH, Backend.NATIVE])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_top_scores_is_a_stable_descending_sort(backend, dtype):
+    """The k highest scores in a stable descending sort's order (equal scores by index), with many ties, negative
+    non-candidates of several values, and k beyond the candidates' count; the values are torch.topk's."""
+    if backend is Backend.NATIVE and _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    g = torch.Generator().manual_seed(5)
+    for n, k, frac in ((20000, 1500, 0.3), (3000, 400, 0.05), (300, 290, 0.5), (40, 40, 0.0), (9, 4, 1.0)):
+        score = (torch.randint(0, 150, (3, n), generator=g).to(dtype) / 150)  # about n / 150 equal copies of each
+        drop = torch.rand(3, n, generator=g) > frac
+        score[drop] = -1.0 - torch.randint(0, 3, (3, n), generator=g).to(dtype)[drop]
+        value, index = top_scores(score, k, backend)
+        assert value.shape == index.shape == (3, k) and index.dtype == torch.int64
+        for b in range(3):  # the reference: Python's stable sort on (-score, index)
+            order = sorted(range(n), key=lambda j: (-float(score[b, j]), j))[:k]
+            assert index[b].tolist() == order
+            torch.testing.assert_close(value[b], score[b, order], rtol=0, atol=0)
+        torch.testing.assert_close(value, torch.topk(score, k, dim=1).values, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="k must be"):
+        top_scores(torch.zeros(1, 5), 6, backend)

@@ -13,7 +13,8 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 - ``coverage.h``: the rasterizer's coverage (z-buffer);
 - ``select_pixels.h``: a template's candidate pixels and their selection scores;
 - ``management.h``: template management's per-frame decisions (entry selection, gating);
-- ``template_at.h``: a template from its compact form.
+- ``template_at.h``: a template from its compact form;
+- ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k).
 
 :func:`run` calls a kernel over a batch. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or
 ``$CC``); where there is none, or the build fails, the callers use their torch code instead
@@ -47,9 +48,9 @@ __all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem",
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
-            "select_pixels.h", "management.h", "template_at.h")
+            "select_pixels.h", "management.h", "template_at.h", "top_pixels.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 10
+_ABI_VERSION = 11
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -169,6 +170,16 @@ class TemplateProblem(ctypes.Structure):
     ]
 
 
+class TopProblem(ctypes.Structure):
+    """``TFTopProblem`` of ``kernels.c`` (same field order): the k highest scores of each row (see
+    ``top_pixels.h``)."""
+
+    _fields_ = [
+        ("B", ctypes.c_int), ("N", ctypes.c_int64), ("k", ctypes.c_int64),
+        *((name, ctypes.c_void_p) for name in ("score", "out_index", "out_value")),
+    ]
+
+
 class LevelProblem(ctypes.Structure):
     """``TFLevelProblem`` of ``level_solver.c`` (same field order): one level solve's sizes, settings, input and
     output arrays (pointers to contiguous tensors; see ``level_solver.h`` for their shapes)."""
@@ -253,7 +264,8 @@ def _load() -> None:
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
                           ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
                           ("tf_reference_patches", LKProblem), ("tf_select_entries", ManageProblem),
-                          ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem)):
+                          ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem),
+                          ("tf_top_pixels", TopProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

@@ -2,7 +2,8 @@
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
  * (coverage.h), a template's candidate pixels (select_pixels.h), template management's per-frame decisions
- * (management.h) and a template from its compact form (template_at.h). Compiled at first use by torchface._native (the C compiler of the
+ * (management.h), a template from its compact form (template_at.h) and the top-k of its candidates
+ * (top_pixels.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -137,13 +138,22 @@ typedef struct {
     void *out_points, *out_basis, *out_normals, *out_points_t, *out_normals_t, *out_basis_t;
 } TFTemplateProblem;
 
+/* Mirrored by torchface._native.TopProblem (ctypes): keep the two in the same order; see top_pixels.h. */
+typedef struct {
+    int B;
+    int64_t N, k;
+    const void *score;
+    int64_t *out_index;
+    void *out_value;
+} TFTopProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 10; }
+int tf_abi_version(void) { return 11; }
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
@@ -157,6 +167,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "select_pixels.h"
 #include "management.h"
 #include "template_at.h"
+#include "top_pixels.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -172,6 +183,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "select_pixels.h"
 #include "management.h"
 #include "template_at.h"
+#include "top_pixels.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
