@@ -264,6 +264,37 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     assert built[0].stat().st_mtime_ns == stamp
 
 
+_OPENMP_PROBE = """
+import torch
+torch.set_num_threads(2)
+torch.ones(1000, 1000).sum()  # torch's threads started
+from torchface import _native
+from tests.tracker.test_native import _noisy_problem, _arguments, SETTINGS, NATIVE, solve_level, split
+tpl, image, cam, x0, light_basis = _noisy_problem()
+R, t, a, lam = split(x0)
+out = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **_arguments(SETTINGS["tukey"], 3))
+print(_native.uses_openmp(), len(_native._process_libgomp()), torch.cat([out[0].flatten(), out[1].flatten()]).tolist())
+"""
+
+
+def test_openmp_dispatch_shares_torchs_runtime_and_changes_no_result(tmp_path):
+    """Where torch runs on GNU OpenMP (one libgomp in the process), the kernels' chunks run on its threads (no
+    second runtime loaded); ``TORCHFACE_OPENMP=0`` keeps the thread pool. Both give the same solve, bit for bit."""
+    env = {"TORCHFACE_CACHE_DIR": str(tmp_path), "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    results = []
+    for flag in ("1", "0"):
+        out = subprocess.run([sys.executable, "-c", _OPENMP_PROBE], capture_output=True, text=True,
+                             env={**os.environ, **env, "TORCHFACE_OPENMP": flag}, timeout=600)  # fmt: skip
+        assert out.returncode == 0, out.stderr
+        uses, runtimes, values = out.stdout.strip().split(" ", 2)
+        results.append(values)
+        if flag == "0":
+            assert uses == "False"
+        elif sys.platform.startswith("linux") and "gomp" in " ".join(sorted(_native._process_libgomp())):
+            assert uses == "True" and runtimes == "1"  # torch's runtime, and no other
+    assert results[0] == results[1]
+
+
 def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
     err: list[str] = []
     assert _probe({"TORCHFACE_NATIVE": "0"}, err).startswith("NONE turned off by TORCHFACE_NATIVE=0")

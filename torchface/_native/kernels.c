@@ -154,6 +154,30 @@ static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
 int tf_abi_version(void) { return 11; }
+
+/* The chunks [batch k / n, batch (k + 1) / n) of a kernel's streams on OpenMP's threads (n of them, at most
+ * threads), where built with -fopenmp: the runtime torch's own threads use (torchface._native.run_chunks). */
+typedef int (*tf_kernel_fn)(const void *, int, int);
+#ifdef _OPENMP
+#include <omp.h>
+int tf_has_openmp(void) { return 1; }
+int tf_parallel(tf_kernel_fn fn, const void *problem, int batch, int threads) {
+    int status = 0;
+#pragma omp parallel num_threads(threads) reduction(| : status)
+    {
+        const long long n = omp_get_num_threads(), k = omp_get_thread_num();
+        const int b0 = (int)(batch * k / n), b1 = (int)(batch * (k + 1) / n);
+        if (b1 > b0) status |= fn(problem, b0, b1) != 0;
+    }
+    return status;
+}
+#else
+int tf_has_openmp(void) { return 0; }
+int tf_parallel(tf_kernel_fn fn, const void *problem, int batch, int threads) {
+    (void)threads;
+    return fn(problem, 0, batch);
+}
+#endif
 int tf_max_parameters(void) { return TF_MAX_P; }
 
 #define REAL float
