@@ -445,7 +445,7 @@ def _track_group(
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
-            state, result = managed_step(model, config.tracker, state, frames, recover)
+            state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
         t_track = time.perf_counter() - t_track0
     except BaseException:
         for s in streams:

@@ -376,7 +376,7 @@ def track_sequence(
                         f"the TrackerState tracks {state.intrinsics.width}x{state.intrinsics.height} frames, "
                         f"got {size[1]}x{size[0]}"
                     )
-                state, result = managed_step(model, config.tracker, state, frame)
+                state, result = managed_step(model, config.tracker, state, frame, donate=True)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
                 alpha = state.neutral_anim_coeffs(alpha)

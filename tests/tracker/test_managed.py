@@ -384,6 +384,45 @@ def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(
     assert checked >= 1, checked
 
 
+def test_donated_state_gives_the_same_track_and_a_kept_state_is_left_as_it_was(model, turns, gentle):
+    """Two streams, one turning (its mosaic entry changes) and one nearly still: with ``donate=False`` every state
+    handed to ``managed_step`` keeps its templates' values; with ``donate=True`` the templates are written in place
+    and the track is the same, bit for bit."""
+    ft, gt_t = turns
+    fg, gt_g = gentle
+    T = ft.shape[1]
+    frames = torch.cat([ft, torch.cat([fg, fg[:, -1:].expand(-1, T - fg.shape[1], -1, -1, -1)], 1)])
+    lm = torch.cat([landmarks(gt_t), landmarks(gt_g)])
+    config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
+
+    def fields_of(state):
+        out = []
+        for t in state.templates:
+            out += [getattr(t, f) for f in t.__dataclass_fields__] + list(t.__dict__.get("_point_last") or ())
+        return out
+
+    runs = {}
+    for donate in (False, True):
+        state, res = initialise_managed(model, config, frames[:, 0], lm, Intrinsics.default(W, H))
+        results, switched = [res], 0
+        for i in range(1, T):
+            before = [x.clone() for x in fields_of(state)]
+            kept = fields_of(state)
+            entry = state.management.entry.clone()
+            state, res = managed_step(model, config, state, frames[:, i], donate=donate)
+            results.append(res)
+            changed = state.management.entry != entry
+            switched += int(changed[0]) and not bool(changed[1])
+            if not donate:  # the handed state's tensors still hold what they held
+                assert all(torch.equal(a, b) for a, b in zip(kept, before)), i
+        assert switched >= 1  # stream 0 changed entry alone at least once (the in-place rows were exercised)
+        runs[donate] = (results, [x.clone() for x in fields_of(state)])
+    for a, b in zip(runs[False][0], runs[True][0]):
+        assert torch.equal(a.axis_angle, b.axis_angle) and torch.equal(a.mosaic_entry, b.mosaic_entry)
+        assert torch.equal(a.confidence, b.confidence)
+    assert all(torch.equal(a, b) for a, b in zip(runs[False][1], runs[True][1]))
+
+
 def test_batch_equals_each_stream_alone(model, gentle, leaves):
     """A clean stream and one that leaves the frame: each alone equals the same stream in the batch."""
     fa, ga = gentle

@@ -284,7 +284,7 @@ def initialise_managed(
 
 
 def _scatter_templates(
-    templates: tuple[Template, ...], index: Tensor, sub: tuple[Template, ...]
+    templates: tuple[Template, ...], index: Tensor, sub: tuple[Template, ...], in_place: bool = False
 ) -> tuple[Template, ...]:
     """``templates`` with the samples ``index`` replaced by ``sub`` (batch ``len(index)``), made as normal tensors
     even in inference mode (they persist in the state: see :func:`~torchface.template.management.add_entries`).
@@ -292,16 +292,23 @@ def _scatter_templates(
     Where a template already holds its point-last copies (:attr:`~torchface.template.points.Template.point_last`,
     made by the solver on first use), the new one gets them the same way, rows ``index`` replaced by ``sub``'s:
     made again from the whole batch, they cost the solver a transposed copy of every stream's points and
-    expression basis each time one stream changed entry (2 ms per step at 32 streams)."""
+    expression basis each time one stream changed entry (2 ms per step at 32 streams).
+
+    ``in_place``: write the rows into ``templates``' own tensors (normal ones; inference tensors are copied as
+    without it) instead of copies of them, for a caller that hands over the state they belong to
+    (:func:`managed_step`'s ``donate``): a copy of every stream's template, to replace a few streams', cost 2 ms
+    per step at 32 streams, 3% of the step."""
     B = templates[0].valid.shape[0]
     if index.shape[0] == B and bool((index == torch.arange(B, device=index.device)).all()):
         return tuple(_normal_template(s) for s in sub)  # every stream replaced, in order: the templates are sub's
     out = []
     with torch.inference_mode(False):
         for t, s in zip(templates, sub):
+            reuse = in_place and not any(getattr(t, f.name).is_inference() for f in fields(Template))
             parts = []
             for f in fields(Template):
-                x = getattr(t, f.name).clone()
+                x = getattr(t, f.name)
+                x = x if reuse else x.clone()
                 x[index] = getattr(s, f.name).to(x.dtype)
                 parts.append(x)
             new = Template(*parts)
@@ -309,7 +316,7 @@ def _scatter_templates(
             if cached is not None:
                 lasts = []
                 for x, y in zip(cached, s.point_last):
-                    x = x.clone()
+                    x = x if reuse and not x.is_inference() else x.clone()
                     x[index] = y.to(x.dtype)
                     lasts.append(x)
                 object.__setattr__(new, "_point_last", tuple(lasts))
@@ -608,6 +615,8 @@ def managed_step(
     state: TrackerState,
     frames: Tensor,
     detector: LandmarkDetector | None = None,
+    *,
+    donate: bool = False,
 ) -> tuple[TrackerState, TrackResult]:
     """Track one frame per stream with template management (module docstring).
 
@@ -618,6 +627,9 @@ def managed_step(
         frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
         detector: optional :data:`LandmarkDetector` used to re-initialise lost streams (called with the
             frames of the streams attempting a recovery only); None searches the mosaic instead.
+        donate: the caller hands ``state`` over and will not use it again (:class:`~torchface.FaceTracker` does):
+            where streams change mosaic entry, their new templates are written into ``state``'s template tensors
+            instead of into copies of every stream's (which then also change). False: ``state`` is left as it was.
 
     Returns:
         The new state and the frame's :class:`~torchface.tracker.step.TrackResult`, whose ``confidence`` is the
@@ -667,7 +679,7 @@ def managed_step(
         if changed.numel():
             sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed],
                                   config.backend)
-            templates = _scatter_templates(templates, changed, sub)
+            templates = _scatter_templates(templates, changed, sub, in_place=donate)
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
     # Lost streams keep the pose levels' prior in the refinement pass: with a weak one (refine_prior_precision)
@@ -747,7 +759,8 @@ def managed_step(
             entry = entry.clone()
             entry[rows] = r_entry[adopt]
             templates = _scatter_templates(templates, rows, entry_templates(
-                model, state.shape_coeffs[rows], ms.mosaic, rows, r_entry[adopt], config.backend))  # fmt: skip
+                model, state.shape_coeffs[rows], ms.mosaic, rows, r_entry[adopt], config.backend),
+                in_place=donate or templates is not state.templates)  # fmt: skip
         if bool(ok.any()):
             rows = index[ok]
             recovered = torch.zeros_like(lost)

@@ -70,7 +70,9 @@ class FaceTracker(nn.Module):
 
     @property
     def state(self) -> TrackerState | None:
-        """The tracking state after the last call (None before :meth:`initialise`)."""
+        """The tracking state after the last call (None before :meth:`initialise`). The next call hands it to
+        :func:`~torchface.tracker.managed.managed_step` with ``donate=True``, which may write into its template
+        tensors: keep a ``copy.deepcopy`` of a state you want to use again."""
         return self._state
 
     def reset(self) -> None:
@@ -111,7 +113,7 @@ class FaceTracker(nn.Module):
         """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
         if self._state is None:
             raise RuntimeError("call initialise(frames, landmarks) before tracking")
-        self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector)
+        self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector, donate=True)
         return result
 
     step = forward
