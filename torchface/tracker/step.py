@@ -605,10 +605,12 @@ class ReferenceLevel:
 
 def _clean_rule(config: TrackerConfig, near_template: Tensor | None) -> bool:
     """Whether the clean-frame rule of :attr:`~torchface.template.management.TemplateConfig.clean_radius_deg`
-    applies: streams near their template's pose given, a Tukey loss, a positive rejection threshold, two levels."""
+    applies: streams near their template's pose given (and one of them is), a Tukey loss, a positive rejection
+    threshold, two levels. With no stream near, no stream is clean and the rule's robust scale and rejection count
+    (0.07 ms per frame at one stream) would change nothing."""
     return (
         near_template is not None and config.robust is RobustKind.TUKEY
-        and config.template.clean_rejected_fraction > 0 and config.num_levels > 1
+        and config.template.clean_rejected_fraction > 0 and config.num_levels > 1 and bool(near_template.any())
     )  # fmt: skip
 
 
