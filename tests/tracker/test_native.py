@@ -295,6 +295,44 @@ def test_openmp_dispatch_shares_torchs_runtime_and_changes_no_result(tmp_path):
     assert results[0] == results[1]
 
 
+def _top_in_child(queue, score: torch.Tensor, k: int) -> None:
+    torch.set_num_threads(1)  # as a data-loader worker: torch's own OpenMP threads do not survive the fork either
+    index = torch.empty(score.shape[0], k, dtype=torch.int64)
+    value = torch.empty(score.shape[0], k)
+    prob = _native.TopProblem(B=score.shape[0], N=score.shape[1], k=k, score=score.data_ptr(),
+                              out_index=index.data_ptr(), out_value=value.data_ptr())  # fmt: skip
+    _native.run("top_pixels", False, prob, score.shape[0], 2)  # two chunks
+    queue.put((_native.uses_openmp(), index.tolist()))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_forked_child_runs_the_kernels_in_two_chunks():
+    """After the parent ran a kernel in 2 chunks (on OpenMP's threads where it uses them), a forked child (a
+    data-loader worker) runs it in 2 chunks on a thread pool of its own (OpenMP's threads, which stay with the
+    parent, would hang it), with the parent's result."""
+    import multiprocessing
+
+    score = torch.rand(4, 5000, generator=torch.Generator().manual_seed(0))
+    index = torch.empty(4, 100, dtype=torch.int64)
+    value = torch.empty(4, 100)
+    prob = _native.TopProblem(B=4, N=5000, k=100, score=score.data_ptr(), out_index=index.data_ptr(),
+                              out_value=value.data_ptr())  # fmt: skip
+    _native.run("top_pixels", False, prob, 4, 2)
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_top_in_child, args=(queue, score, 100))
+    child.start()
+    try:
+        uses_openmp, child_index = queue.get(timeout=60)  # a hang fails here
+    finally:
+        child.join(timeout=30)
+        if child.is_alive():
+            child.kill()
+    assert child.exitcode == 0
+    assert not uses_openmp
+    assert child_index == index.tolist() == torch.topk(score, 100, dim=1).indices.tolist()
+
+
 def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
     err: list[str] = []
     assert _probe({"TORCHFACE_NATIVE": "0"}, err).startswith("NONE turned off by TORCHFACE_NATIVE=0")

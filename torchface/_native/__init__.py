@@ -62,8 +62,10 @@ LOSS_CODES = {"none": 0, "huber": 1, "cauchy": 2, "tukey": 3, "geman_mcclure": 4
 
 _lock = threading.Lock()
 _library: ctypes.CDLL | None = None
-#: ``tf_parallel`` where the library was built with OpenMP and shares torch's runtime (:func:`run_chunks`).
+#: ``tf_parallel`` where the library was built with OpenMP and shares torch's runtime (:func:`run_chunks`), and
+#: the process that loaded it (GNU OpenMP's threads do not survive a fork: a forked child uses the thread pool).
 _parallel = None
+_parallel_pid = -1
 _reason: str | None = None
 _tried = False
 
@@ -295,10 +297,10 @@ def _load() -> None:
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]
             fn.restype = ctypes.c_int
-    global _parallel
+    global _parallel, _parallel_pid
     # OpenMP's dispatch only where the library shares torch's runtime (no second libgomp came with it).
     if lib.tf_has_openmp() and _process_libgomp() == runtimes:
-        _parallel = lib.tf_parallel
+        _parallel, _parallel_pid = lib.tf_parallel, os.getpid()
         _parallel.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, ctypes.c_int]
         _parallel.restype = ctypes.c_int
     _library = lib
@@ -330,6 +332,7 @@ def unavailable_reason() -> str | None:
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+_pool_pid = -1
 
 
 def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
@@ -340,20 +343,22 @@ def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
     threads, the ones torch's own operations use: after each parallel operation they spin for a while waiting for
     the next, and threads of another pool (the fallback here: a ``ThreadPoolExecutor``, ctypes releasing the GIL)
     then share the cores with them. Measured at 32 streams on 2 cores, the level solves took 34 ms per step on
-    such a pool against 36 on one thread."""
-    global _pool, _pool_size
+    such a pool against 36 on one thread, and 19 on OpenMP's threads. A process forked from the one that loaded the
+    library (a data-loader worker) uses the pool: GNU OpenMP's threads are not carried over a fork."""
+    global _pool, _pool_size, _pool_pid
     chunks = max(1, min(threads, batch))
     if chunks == 1:
         codes = [fn(ctypes.byref(problem), 0, batch)]
-    elif _parallel is not None:
+    elif _parallel is not None and os.getpid() == _parallel_pid:
         codes = [_parallel(ctypes.cast(fn, ctypes.c_void_p), ctypes.addressof(problem), batch, chunks)]
     else:
         ref = ctypes.byref(problem)
         with _lock:
-            if _pool is None or _pool_size < chunks:
-                if _pool is not None:
+            if _pool is None or _pool_size < chunks or _pool_pid != os.getpid():  # a forked child: a pool of its own
+                if _pool is not None and _pool_pid == os.getpid():
                     _pool.shutdown(wait=False)
                 _pool, _pool_size = ThreadPoolExecutor(max_workers=chunks, thread_name_prefix="torchface"), chunks
+                _pool_pid = os.getpid()
             pool = _pool
         bounds = [batch * k // chunks for k in range(chunks + 1)]
         futures = [pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
@@ -365,9 +370,9 @@ def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
 def uses_openmp() -> bool:
     """Whether :func:`run_chunks` runs the chunks on torch's OpenMP threads (built with ``-fopenmp`` where torch
     uses GNU OpenMP, the Linux wheels; ``TORCHFACE_OPENMP=0`` turns it off) rather than on a thread pool of its
-    own. Loads the library."""
+    own; not in a process forked from the one that loaded the library). Loads the library."""
     library()
-    return _parallel is not None
+    return _parallel is not None and os.getpid() == _parallel_pid
 
 
 def run(kernel: str, double: bool, problem: ctypes.Structure, batch: int, threads: int) -> None:
