@@ -511,10 +511,11 @@ def _native_cover(
 
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
-    backend: Backend = Backend.AUTO,
-) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor]]:
+    backend: Backend = Backend.AUTO, pixels: bool = True,
+) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor] | None]:
     """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, sample
-    ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each)."""
+    ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each); None without ``pixels``
+    where the native kernel found the coverage (listing them is a pass over every pixel)."""
     _check_mesh(verts_cam, faces, "verts_cam")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -551,10 +552,12 @@ def _cover(
                 coeffs.detach(), front, skip | (heights == 0), box_first, x_last.clamp(-1, W - 1), y_first, y_last,
                 ray_a, ray_b, B, F, H, W, near,
             )  # fmt: skip
+            coverage = Coverage(pix_to_face.reshape(B, H, W), facing.reshape(B, H, W), coeffs, ray_a, ray_b, F)
+            if not pixels:
+                return coverage, None
             pix_idx = (pix_to_face >= 0).nonzero().squeeze(-1)
             pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
             pix_bf = pix_b * F + pix_to_face.index_select(0, pix_idx)
-            coverage = Coverage(pix_to_face.reshape(B, H, W), facing.reshape(B, H, W), coeffs, ray_a, ray_b, F)
             return coverage, (pix_idx, pix_b, pix_bf)
         box_w = (x_last.clamp(-1, W - 1) - box_first + 1).clamp_min(0)
         area = heights * box_w
@@ -648,4 +651,4 @@ def rasterize_coverage(
         >>> torch.equal(cov.barycentrics(*at.T), full.bary[at[:, 0], at[:, 1], at[:, 2]])
         True
     """
-    return _cover(verts_cam, faces, intrinsics, cull_backfaces, near, backend)[0]
+    return _cover(verts_cam, faces, intrinsics, cull_backfaces, near, backend, pixels=False)[0]
