@@ -354,6 +354,32 @@ def test_per_stream_prior_equals_each_stream_solved_with_its_own(backend):
     assert float((solve(50.0)[2] - solve(0.01)[2]).abs().max()) > 1e-3
 
 
+def test_per_unit_prior_is_the_per_stream_prior_where_equal_and_pins_a_heavily_weighted_unit(backend):
+    """``alpha_prior`` as ``(B, A)``: equal across units it is the ``(B,)`` prior; a unit given a huge precision
+    stays at its prior mean while the others move as before (to the solve's tolerance)."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    mean = torch.full_like(a, 0.35)
+
+    def solve(prior):
+        return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=8, free=free,
+                           alpha_lower=lo, alpha_upper=hi, alpha_prior=prior, alpha_mean=mean, robust=None,
+                           backend=backend)
+
+    per_stream = torch.tensor([50.0, 0.01], dtype=D)
+    same = solve(per_stream[:, None].expand(2, A).contiguous())
+    for got, want in zip(same[:4], solve(per_stream)[:4]):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    pinned = torch.full((2, A), 0.01, dtype=D)
+    pinned[:, 0] = 1e9
+    out = solve(pinned)
+    torch.testing.assert_close(out[2][:, 0], mean[:, 0], rtol=0, atol=1e-6)
+    free_run = solve(0.01)
+    assert float((free_run[2][:, 0] - mean[:, 0]).abs().max()) > 1e-3  # without the weight it moves
+
+
 @pytest.mark.parametrize("robust", [None, RobustLoss(RobustKind.TUKEY, 4.685)])
 def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_again(robust, backend):
     """``solve_level(start=out.linearisation)`` (the refinement pass after the finest level) gives exactly what

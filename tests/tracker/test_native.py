@@ -69,6 +69,7 @@ SETTINGS = {
     "switched": dict(robust="switched"),
     "prior_centred": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), alpha_prior=1.0, alpha_mean=0.2),
     "prior_per_stream": dict(robust=None, alpha_prior="per_stream"),
+    "prior_per_unit": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), alpha_prior="per_unit", alpha_mean=0.1),
     "pose_fixed": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), free="pose_fixed", alpha_prior=0.1),
     "no_light": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), free="no_light"),
     "intermediate": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), final_check=False),
@@ -89,6 +90,8 @@ def _arguments(setting: dict, B: int, dtype=D) -> dict:
     prior = s.pop("alpha_prior", 0.0)
     if prior == "per_stream":
         prior = torch.tensor([50.0, 0.01, 1.0][:B], dtype=dtype)
+    elif prior == "per_unit":  # (B, A): each stream and unit its own precision
+        prior = torch.logspace(-2, 2, B * A, dtype=dtype).reshape(B, A).flip(-1)
     mean = s.pop("alpha_mean", None)
     robust = s.pop("robust")
     if robust == "switched":

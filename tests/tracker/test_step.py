@@ -649,3 +649,44 @@ def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
         want = step_module.gray_pyramid_windows(frames[rows], L, [o if o is None else o[rows] for o in offs], *hw)
         for lv in range(L):
             assert torch.equal(got[lv], want[lv]), lv
+
+
+def test_expression_prior_weights_are_validated_and_sized_to_the_model():
+    with pytest.raises(ValueError, match="expression_prior_weights"):
+        TrackerConfig(expression_prior_weights=(1.0, -1.0))
+    with pytest.raises(ValueError, match="expression_prior_weights"):
+        TrackerConfig(expression_prior_weights=(1.0, float("nan")))
+    assert TrackerConfig(expression_prior_weights=[1, 2]).expression_prior_weights == (1.0, 2.0)
+    from torchface.tracker.step import expression_prior
+
+    like = torch.zeros(2, 3)
+    config = TrackerConfig(expression_prior_weights=(1.0, 0.5, 4.0))
+    torch.testing.assert_close(expression_prior(config, 2.0, like), torch.tensor([[2.0, 1.0, 8.0]] * 2))
+    torch.testing.assert_close(expression_prior(config, torch.tensor([1.0, 3.0]), like),
+                               torch.tensor([[1.0, 0.5, 4.0], [3.0, 1.5, 12.0]]))  # fmt: skip
+    assert expression_prior(TrackerConfig(), 2.0, like) == 2.0
+    with pytest.raises(ValueError, match="3 factors for a model with 4"):
+        expression_prior(config, 2.0, torch.zeros(2, 4))
+
+
+def test_expression_prior_weights_hold_one_unit_and_leave_the_others(model, two_streams, l2_runs):
+    """A dominant weight on the jaw alone holds it at the prior's centre in both passes (fast and reference
+    solvers), while the brow still moves; all-ones weights are no weights (to float32 rounding: the weighted
+    precisions are tensors of the model's dtype, 0.1 there is 0.1 + 1.5e-9)."""
+    frames, _ = two_streams
+    (_, states), _ = l2_runs
+    centre = torch.zeros_like(states[0].anim_prior_mean)
+    state = replace(states[0], anim_prior_mean=centre)
+    A = model.num_animation
+    jaw, brow = model.animation_names.index(JAW), model.animation_names.index(BROW)
+    jaw_held = tuple(1e7 if j == jaw else 1.0 for j in range(A))
+    for solver in (TrackSolver.FAST, TrackSolver.REFERENCE):
+        config = replace(L2, solver=solver)
+        _, plain = track_step(model, config, state, frames[:, 3])
+        _, ones = track_step(model, replace(config, expression_prior_weights=(1.0,) * A), state, frames[:, 3])
+        torch.testing.assert_close(ones.anim_coeffs, plain.anim_coeffs, rtol=0, atol=1e-6)
+        torch.testing.assert_close(ones.axis_angle, plain.axis_angle, rtol=0, atol=1e-6)
+        _, held = track_step(model, replace(config, expression_prior_weights=jaw_held), state, frames[:, 3])
+        assert float(held.anim_coeffs[:, jaw].abs().max()) < 1e-3, held.anim_coeffs[:, jaw]
+        assert float(plain.anim_coeffs[:, jaw].abs().max()) > 0.1  # unweighted, the jaw opens
+        assert float(held.anim_coeffs[0, brow]) > 0.1  # stream 0's brow still moves

@@ -50,7 +50,7 @@ _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 11
+_ABI_VERSION = 12
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)

@@ -153,7 +153,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 11; }
+int tf_abi_version(void) { return 12; }
 
 /* The chunks [batch k / n, batch (k + 1) / n) of a kernel's streams on OpenMP's threads (n of them, at most
  * threads), where built with -fopenmp: the runtime torch's own threads use (torchface._native.run_chunks). */

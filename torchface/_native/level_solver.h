@@ -9,7 +9,8 @@
  * Included twice by level_solver.c: REAL is float or double and FN(name) appends the dtype to a name.
  * Layouts (C order, every array contiguous): image (B, h, w); points, normals (B, 3, N); basis (B, A, 3, N);
  * intensity, mask (B, N); neg_light_basis (B, L, N); offsets (B, 2); R (B, 3, 3); t (B, 3); alpha (B, A);
- * light (B, L); Jacobians (B, P, N) with P = 6 + A + L, columns d_omega (3), d_t (3), alpha (A), light (L).
+ * light (B, L); Jacobians (B, P, N) with P = 6 + A + L, columns d_omega (3), d_t (3), alpha (A), light (L);
+ * alpha_prior (B, A) float64, the prior precision of each stream's animation units.
  *
  * Inside, per-point quantities are rows of NP = N rounded up to a multiple of 8 values (the padding zero), and
  * every pass over the points that needs no gather is a plain loop over a row, which the compiler vectorises; only
@@ -460,7 +461,7 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
     double best_cost = 0.0, best_s = 1.0;
     int have_best = 0, all_free = 1;
     for (int i = 0; i < P; ++i) {
-        prior[i] = (i >= 6 && i < 6 + A && p->free[i]) ? p->alpha_prior[b] : 0.0;
+        prior[i] = (i >= 6 && i < 6 + A && p->free[i]) ? p->alpha_prior[(size_t)b * A + (i - 6)] : 0.0;
         all_free &= p->free[i] != 0;
     }
     double lam = p->damping;

@@ -324,7 +324,8 @@ def solve_level(
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
         alpha_lower, alpha_upper: ``(A,)`` bounds; alpha_prior: precision of a Gaussian prior on alpha, centred on
-            ``alpha_mean`` ``(B, A)`` (None: zero); a float, or ``(B,)`` for one precision per stream.
+            ``alpha_mean`` ``(B, A)`` (None: zero); a float, ``(B,)`` for one precision per stream, or ``(B, A)``
+            for one per stream and unit.
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
         damping: initial Levenberg damping relative to ``diag(H)``.
@@ -380,7 +381,8 @@ def solve_level(
     if isinstance(alpha_prior, Tensor):  # one precision per stream: (B, P) priors, (B, P, P) Hessian terms
         freef = free.to(dtype)
         prior = torch.zeros(B, P, dtype=dtype, device=device)
-        prior[:, 6 : 6 + A] = alpha_prior.to(dtype).unsqueeze(-1)
+        ap = alpha_prior.to(dtype)
+        prior[:, 6 : 6 + A] = ap.unsqueeze(-1) if ap.dim() == 1 else ap.expand(B, A)
         prior = prior * freef
         prior_alpha = prior[..., 6 : 6 + A]
         half_prior_alpha = 0.5 * prior_alpha
@@ -550,10 +552,11 @@ def _solve_level_native(
                                           for x in (R, t, alpha, light))  # fmt: skip
     lower, upper = alpha_lower.to(dtype).contiguous(), alpha_upper.to(dtype).contiguous()
     mean = None if alpha_mean is None else alpha_mean.to(dtype).expand(B, A).contiguous()
-    if isinstance(alpha_prior, Tensor):
-        prior = alpha_prior.to(torch.float64).expand(B).contiguous()
+    if isinstance(alpha_prior, Tensor):  # (B, A) for the kernel
+        ap = alpha_prior.to(torch.float64)
+        prior = (ap.unsqueeze(-1) if ap.dim() == 1 else ap).expand(B, A).contiguous()
     else:
-        prior = torch.full((B,), float(alpha_prior), dtype=torch.float64)
+        prior = torch.full((B, A), float(alpha_prior), dtype=torch.float64)
     loss_kind, loss_c = _loss_codes(robust, B)
     # the tolerances as the torch code compares them: rounded to the dtype
     tol = torch.tensor(

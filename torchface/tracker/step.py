@@ -9,6 +9,7 @@ and external occlusion (IRLS robust weights) handled per point.
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -103,6 +104,10 @@ class TrackerConfig:
         visibility_interval: the fast solver re-rasterizes that z-buffer every this many frames and reuses
             the masks in between (back-facing points are still dropped every iteration).
         expression_prior_precision: precision (per squared unit) of the Gaussian prior on the animation units.
+        expression_prior_weights: one factor per animation unit (the model's order) on that precision and on
+            ``refine_prior_precision``: units the image can hardly tell apart can be weighted so that their
+            shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the eyelid
+            vertices nearly as Eyes closed does; README, Known limitations). None: 1 for every unit.
         expression_prior_at_start: centre that prior on the first frame's fitted expression
             (:attr:`TrackerState.anim_prior_mean`) rather than on zero. On a face unlike CANDIDE-3 the fitted
             expression carries shape the shape units cannot, and a prior pulling it to zero tilts the pose:
@@ -187,6 +192,7 @@ class TrackerConfig:
     zbuffer_visibility: bool = True
     visibility_interval: int = 1
     expression_prior_precision: float = 1.0
+    expression_prior_weights: tuple[float, ...] | None = None
     expression_prior_at_start: bool = True
     min_points: int = 50
     min_contrast: float = 0.01
@@ -200,6 +206,11 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.refine_prior_precision is not None and not self.refine_prior_precision >= 0.0:
             raise ValueError(f"refine_prior_precision must be >= 0 or None, got {self.refine_prior_precision}")
+        if self.expression_prior_weights is not None:
+            weights = tuple(float(w) for w in self.expression_prior_weights)
+            if not weights or not all(math.isfinite(w) and w >= 0.0 for w in weights):
+                raise ValueError(f"expression_prior_weights must be finite factors >= 0, got {self.expression_prior_weights}")
+            object.__setattr__(self, "expression_prior_weights", weights)
         if not 0.0 <= self.expression_quota <= 1.0:
             raise ValueError(f"expression_quota must be a fraction in [0, 1], got {self.expression_quota}")
         if self.num_levels < 1:
@@ -224,6 +235,21 @@ class TrackerConfig:
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
         if not isinstance(self.backend, Backend):
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
+
+
+def expression_prior(config: TrackerConfig, precision: float | Tensor, like: Tensor) -> float | Tensor:
+    """The animation units' prior precision for the solvers: ``precision`` (a float, or ``(B,)`` per stream) as it
+    is without :attr:`TrackerConfig.expression_prior_weights`, else ``(B, A)`` (``like``: ``(B, A)`` in the
+    solve's dtype and device) with each unit's weight applied."""
+    weights = config.expression_prior_weights
+    if weights is None:
+        return precision
+    B, A = like.shape
+    if len(weights) != A:
+        raise ValueError(f"expression_prior_weights has {len(weights)} factors for a model with {A} animation units")
+    w = torch.tensor(weights, dtype=like.dtype, device=like.device)
+    base = precision.to(like.dtype).unsqueeze(-1) if isinstance(precision, Tensor) else precision
+    return (base * w).expand(B, A).contiguous()
 
 
 def scale_floor(config: TrackerConfig, level: int) -> float:
@@ -683,7 +709,15 @@ def reference_levels(
         lower, upper = _bounds(model, config, previous, layout)
     prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
     if config.use_expression:
-        prior[layout.animation] = config.expression_prior_precision
+        weights = config.expression_prior_weights
+        if weights is not None and len(weights) != model.num_animation:
+            raise ValueError(
+                f"expression_prior_weights has {len(weights)} factors for a model with {model.num_animation} "
+                "animation units"
+            )
+        prior[layout.animation] = config.expression_prior_precision * (
+            1.0 if weights is None else torch.tensor(weights, dtype=model.dtype, device=model.device)
+        )
     prior_mean = prior_mean_vector(config, state, layout)
     x = start
     last = None
@@ -886,6 +920,7 @@ def _track_step_fast(
     intr = state.intrinsics
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
     refine = config.refine_iterations > 0 and config.use_expression
+    pose_prior = expression_prior(config, config.expression_prior_precision, alpha)
     for level in reversed(range(config.num_levels)):
         s = 0.5**level
         img = crop[level]
@@ -898,7 +933,7 @@ def _track_step_fast(
         R, t, alpha, light, out = solve_level(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[level],
             iterations=config.iterations[config.num_levels - 1 - level], free=free,
-            alpha_lower=lo, alpha_upper=hi, alpha_prior=config.expression_prior_precision, alpha_mean=alpha_mean,
+            alpha_lower=lo, alpha_upper=hi, alpha_prior=pose_prior, alpha_mean=alpha_mean,
             robust=_finest_loss(robust, clean) if level == 0 and robust is not None else robust,
             scale_floor=scale_floor(config, level),
             # A coarser level's result is refined by the next one: its convergence tolerance is as coarse as its
@@ -926,7 +961,7 @@ def _track_step_fast(
         R, t, alpha, light, out = solve_level(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[0],
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
-            alpha_prior=refine_prior, alpha_mean=alpha_mean, robust=robust,
+            alpha_prior=expression_prior(config, refine_prior, alpha), alpha_mean=alpha_mean, robust=robust,
             scale_floor=config.refine_scale_floor, start=out.linearisation, constants=out.constants,
             function_tolerance=config.function_tolerance, keep_linearisation=False, backend=config.backend,
         )
