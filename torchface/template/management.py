@@ -457,7 +457,9 @@ def light_normalised_intensity(intensity: Tensor, normals: Tensor, rotation: Ten
 
 
 def _entry_level(t: Template) -> MosaicLevel:
-    return MosaicLevel(t.face_index.unsqueeze(1), t.bary.unsqueeze(1), t.intensity.unsqueeze(1), t.valid.unsqueeze(1))
+    """A one-entry mosaic level holding ``t``'s compact form: copies, not views, so that a template written in
+    place (``managed_step(donate=True)``) never changes a stored entry."""
+    return MosaicLevel(*(x.unsqueeze(1).clone() for x in (t.face_index, t.bary, t.intensity, t.valid)))
 
 
 def new_mosaic(
