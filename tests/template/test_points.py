@@ -790,3 +790,5 @@ def test_top_scores_is_a_stable_descending_sort(backend, dtype):
         torch.testing.assert_close(value, torch.topk(score, k, dim=1).values, rtol=0, atol=0)
     with pytest.raises(ValueError, match="k must be"):
         top_scores(torch.zeros(1, 5), 6, backend)
+    with pytest.raises(ValueError, match="score must be"):
+        top_scores(torch.zeros(5), 2, backend)

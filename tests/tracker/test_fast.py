@@ -332,8 +332,9 @@ def test_crop_windows_equals_slicing_of_a_non_contiguous_batch():
         assert torch.equal(got[b], images[b, :, y0 : y0 + 3, x0 : x0 + 3])
 
 
-def test_per_stream_prior_equals_each_stream_solved_with_its_own(backend):
-    """``alpha_prior`` as ``(B,)``: each stream ends where solving it with its own float precision ends."""
+def _prior_solver(backend):
+    """``solve(prior)``: one synthetic level solve (two streams, no robust loss, prior centred at 0.35) with the
+    given ``alpha_prior``, and that centre ``(B, A)``."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
     free = torch.ones(LAYOUT.size, dtype=torch.bool)
@@ -345,6 +346,12 @@ def test_per_stream_prior_equals_each_stream_solved_with_its_own(backend):
                            alpha_lower=lo, alpha_upper=hi, alpha_prior=prior, alpha_mean=mean, robust=None,
                            backend=backend)
 
+    return solve, mean
+
+
+def test_per_stream_prior_equals_each_stream_solved_with_its_own(backend):
+    """``alpha_prior`` as ``(B,)``: each stream ends where solving it with its own float precision ends."""
+    solve, _ = _prior_solver(backend)
     mixed = solve(torch.tensor([50.0, 0.01], dtype=D))
     for b, prior in enumerate((50.0, 0.01)):
         alone = solve(prior)
@@ -357,17 +364,7 @@ def test_per_stream_prior_equals_each_stream_solved_with_its_own(backend):
 def test_per_unit_prior_is_the_per_stream_prior_where_equal_and_pins_a_heavily_weighted_unit(backend):
     """``alpha_prior`` as ``(B, A)``: equal across units it is the ``(B,)`` prior; a unit given a huge precision
     stays at its prior mean while the others move as before (to the solve's tolerance)."""
-    tpl, image, cam, x_true, light_basis = _synthetic_problem()
-    R, t, a, lam = split(_perturbed(x_true))
-    free = torch.ones(LAYOUT.size, dtype=torch.bool)
-    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
-    mean = torch.full_like(a, 0.35)
-
-    def solve(prior):
-        return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=8, free=free,
-                           alpha_lower=lo, alpha_upper=hi, alpha_prior=prior, alpha_mean=mean, robust=None,
-                           backend=backend)
-
+    solve, mean = _prior_solver(backend)
     per_stream = torch.tensor([50.0, 0.01], dtype=D)
     same = solve(per_stream[:, None].expand(2, A).contiguous())
     for got, want in zip(same[:4], solve(per_stream)[:4]):

@@ -477,9 +477,11 @@ def top_scores(score: Tensor, k: int, backend: Backend = Backend.AUTO) -> tuple[
 
     ``torch.topk`` leaves the order of equal scores unspecified, and the pixel selection keys of a 640x480 image
     hold equal pairs, which would make a template's point order (and its sums' rounding) depend on the
-    implementation. The native kernel (``torchface/_native/top_pixels.h``: quickselect, then a sort of the ``k``)
-    gives the same result as the torch code's stable sort; at 1500 of a face window's pixels it takes a fraction
-    of ``torch.topk``'s time."""
+    implementation. The native kernel (``torchface/_native/top_pixels.h``: a histogram of the scores finds the
+    ``k``-th's bucket, and only the scores from that bucket up are sorted) gives the same result as the torch
+    code's stable sort; at 1500 of a face window's pixels it takes a fraction of ``torch.topk``'s time."""
+    if score.dim() != 2:
+        raise ValueError(f"score must be (B, N), got {tuple(score.shape)}")
     if not 1 <= k <= score.shape[-1]:
         raise ValueError(f"k must be in [1, {score.shape[-1]}], got {k}")
     if use_native(backend, (score,), "top-k"):

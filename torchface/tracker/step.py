@@ -237,17 +237,27 @@ class TrackerConfig:
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
 
 
+def _unit_weights(config: TrackerConfig, num_animation: int, like: Tensor) -> Tensor | None:
+    """:attr:`TrackerConfig.expression_prior_weights` as an ``(A,)`` tensor of ``like``'s dtype and device (None
+    without them); ``ValueError`` when their count is not the model's ``num_animation``."""
+    weights = config.expression_prior_weights
+    if weights is None:
+        return None
+    if len(weights) != num_animation:
+        raise ValueError(
+            f"expression_prior_weights has {len(weights)} factors for a model with {num_animation} animation units"
+        )
+    return torch.tensor(weights, dtype=like.dtype, device=like.device)
+
+
 def expression_prior(config: TrackerConfig, precision: float | Tensor, like: Tensor) -> float | Tensor:
     """The animation units' prior precision for the solvers: ``precision`` (a float, or ``(B,)`` per stream) as it
     is without :attr:`TrackerConfig.expression_prior_weights`, else ``(B, A)`` (``like``: ``(B, A)`` in the
     solve's dtype and device) with each unit's weight applied."""
-    weights = config.expression_prior_weights
-    if weights is None:
-        return precision
     B, A = like.shape
-    if len(weights) != A:
-        raise ValueError(f"expression_prior_weights has {len(weights)} factors for a model with {A} animation units")
-    w = torch.tensor(weights, dtype=like.dtype, device=like.device)
+    w = _unit_weights(config, A, like)
+    if w is None:
+        return precision
     base = precision.to(like.dtype).unsqueeze(-1) if isinstance(precision, Tensor) else precision
     return (base * w).expand(B, A).contiguous()
 
@@ -709,15 +719,8 @@ def reference_levels(
         lower, upper = _bounds(model, config, previous, layout)
     prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
     if config.use_expression:
-        weights = config.expression_prior_weights
-        if weights is not None and len(weights) != model.num_animation:
-            raise ValueError(
-                f"expression_prior_weights has {len(weights)} factors for a model with {model.num_animation} "
-                "animation units"
-            )
-        prior[layout.animation] = config.expression_prior_precision * (
-            1.0 if weights is None else torch.tensor(weights, dtype=model.dtype, device=model.device)
-        )
+        weights = _unit_weights(config, model.num_animation, prior)
+        prior[layout.animation] = config.expression_prior_precision * (1.0 if weights is None else weights)
     prior_mean = prior_mean_vector(config, state, layout)
     x = start
     last = None
