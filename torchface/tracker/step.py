@@ -108,6 +108,13 @@ class TrackerConfig:
             ``refine_prior_precision``: units the image can hardly tell apart can be weighted so that their
             shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the eyelid
             vertices nearly as Eyes closed does; README, Known limitations). None: 1 for every unit.
+        expression_sparsity: ``delta`` > 0 turns that Gaussian prior into a reweighted L1 (Laplace) prior,
+            which prefers few active units: before each pass, unit ``j``'s precision is multiplied by
+            ``delta / max(|alpha_j - mu_j|, delta)`` (``alpha``: the estimate the pass starts from, i.e. the
+            previous frame's for the pyramid levels and the levels' result for the refinement pass; ``mu``:
+            the prior's centre). A unit at rest keeps the full precision; an active one is shrunk less, in
+            proportion to its size. Units whose motions are nearly the same then settle on one of them, where
+            a Gaussian prior spreads the motion over all of them (its minimum-norm split). None: Gaussian.
         expression_prior_at_start: centre that prior on the first frame's fitted expression
             (:attr:`TrackerState.anim_prior_mean`) rather than on zero. On a face unlike CANDIDE-3 the fitted
             expression carries shape the shape units cannot, and a prior pulling it to zero tilts the pose:
@@ -193,6 +200,7 @@ class TrackerConfig:
     visibility_interval: int = 1
     expression_prior_precision: float = 1.0
     expression_prior_weights: tuple[float, ...] | None = None
+    expression_sparsity: float | None = 0.1
     expression_prior_at_start: bool = True
     min_points: int = 50
     min_contrast: float = 0.01
@@ -211,6 +219,10 @@ class TrackerConfig:
             if not weights or not all(math.isfinite(w) and w >= 0.0 for w in weights):
                 raise ValueError(f"expression_prior_weights must be finite factors >= 0, got {self.expression_prior_weights}")
             object.__setattr__(self, "expression_prior_weights", weights)
+        if self.expression_sparsity is not None and not (
+            math.isfinite(self.expression_sparsity) and self.expression_sparsity > 0.0
+        ):
+            raise ValueError(f"expression_sparsity must be a finite delta > 0 or None, got {self.expression_sparsity}")
         if not 0.0 <= self.expression_quota <= 1.0:
             raise ValueError(f"expression_quota must be a fraction in [0, 1], got {self.expression_quota}")
         if self.num_levels < 1:
@@ -250,16 +262,32 @@ def _unit_weights(config: TrackerConfig, num_animation: int, like: Tensor) -> Te
     return torch.tensor(weights, dtype=like.dtype, device=like.device)
 
 
-def expression_prior(config: TrackerConfig, precision: float | Tensor, like: Tensor) -> float | Tensor:
-    """The animation units' prior precision for the solvers: ``precision`` (a float, or ``(B,)`` per stream) as it
-    is without :attr:`TrackerConfig.expression_prior_weights`, else ``(B, A)`` (``like``: ``(B, A)`` in the
-    solve's dtype and device) with each unit's weight applied."""
-    B, A = like.shape
-    w = _unit_weights(config, A, like)
-    if w is None:
+def expression_prior(
+    config: TrackerConfig, precision: float | Tensor, alpha: Tensor, mean: Tensor | None = None
+) -> float | Tensor:
+    """The animation units' prior precision for the solvers.
+
+    Args:
+        precision: a float, or ``(B,)`` per stream.
+        alpha: ``(B, A)`` the estimate the pass starts from, in the solve's dtype and device.
+        mean: ``(B, A)`` the prior's centre (None: zero).
+
+    Returns:
+        ``precision`` as it is without :attr:`TrackerConfig.expression_prior_weights` and
+        :attr:`TrackerConfig.expression_sparsity`, else ``(B, A)``: each unit's weight applied, and with
+        sparsity ``delta`` each unit's precision times ``delta / max(|alpha - mean|, delta)``.
+    """
+    B, A = alpha.shape
+    w = _unit_weights(config, A, alpha)
+    delta = config.expression_sparsity
+    if w is None and delta is None:
         return precision
-    base = precision.to(like.dtype).unsqueeze(-1) if isinstance(precision, Tensor) else precision
-    return (base * w).expand(B, A).contiguous()
+    base = precision.to(alpha.dtype).unsqueeze(-1) if isinstance(precision, Tensor) else precision
+    out = torch.ones_like(alpha) * base if w is None else base * w
+    if delta is not None:
+        size = (alpha if mean is None else alpha - mean.to(alpha)).abs()
+        out = out * (delta / size.clamp_min(delta))
+    return out.expand(B, A).contiguous()
 
 
 def scale_floor(config: TrackerConfig, level: int) -> float:
@@ -718,10 +746,15 @@ def reference_levels(
         R_prev = axis_angle_to_matrix(previous[:, layout.rotation])
         lower, upper = _bounds(model, config, previous, layout)
     prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
-    if config.use_expression:
-        weights = _unit_weights(config, model.num_animation, prior)
-        prior[layout.animation] = config.expression_prior_precision * (1.0 if weights is None else weights)
     prior_mean = prior_mean_vector(config, state, layout)
+    if config.use_expression:
+        units = expression_prior(
+            config, config.expression_prior_precision, previous[:, layout.animation],
+            None if prior_mean is None else prior_mean[:, layout.animation],
+        )  # fmt: skip
+        if isinstance(units, Tensor):  # (B, A): per stream and unit
+            prior = prior.expand(previous.shape[0], -1).clone()
+        prior[..., layout.animation] = units
     x = start
     last = None
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
@@ -923,7 +956,7 @@ def _track_step_fast(
     intr = state.intrinsics
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
     refine = config.refine_iterations > 0 and config.use_expression
-    pose_prior = expression_prior(config, config.expression_prior_precision, alpha)
+    pose_prior = expression_prior(config, config.expression_prior_precision, alpha, alpha_mean)
     for level in reversed(range(config.num_levels)):
         s = 0.5**level
         img = crop[level]
@@ -964,7 +997,7 @@ def _track_step_fast(
         R, t, alpha, light, out = solve_level(
             tpl, img, cam, R, t, alpha, light, light_basis, masks[0],
             iterations=config.refine_iterations, free=only, alpha_lower=lo, alpha_upper=hi,
-            alpha_prior=expression_prior(config, refine_prior, alpha), alpha_mean=alpha_mean, robust=robust,
+            alpha_prior=expression_prior(config, refine_prior, alpha, alpha_mean), alpha_mean=alpha_mean, robust=robust,
             scale_floor=config.refine_scale_floor, start=out.linearisation, constants=out.constants,
             function_tolerance=config.function_tolerance, keep_linearisation=False, backend=config.backend,
         )
