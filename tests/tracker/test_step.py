@@ -685,6 +685,9 @@ def test_expression_sparsity_is_validated_and_reweights_each_unit():
     mean = torch.full((2, 4), 0.3)  # distances from the prior's centre, not from zero
     torch.testing.assert_close(expression_prior(sparse, torch.tensor([1.0, 3.0]), alpha, mean),
                                torch.tensor([[1 / 3, 0.4, 0.5, 1 / 13], [3.0, 3.0, 3.0, 3.0]]))  # fmt: skip
+    plain_rows = torch.tensor([True, False])  # stream 0 kept Gaussian (template management's lost streams)
+    torch.testing.assert_close(expression_prior(sparse, 2.0, alpha, plain=plain_rows),
+                               torch.tensor([[2.0, 2.0, 2.0, 2.0], [2 / 3, 2 / 3, 2 / 3, 2 / 3]]))  # fmt: skip
     both = replace(sparse, expression_prior_weights=(1.0, 0.5, 4.0, 1.0))
     torch.testing.assert_close(expression_prior(both, 2.0, alpha),
                                torch.tensor([[2.0, 1.0, 1.6, 0.2], [2 / 3, 1 / 3, 8 / 3, 2 / 3]]))  # fmt: skip
