@@ -714,6 +714,23 @@ def test_expression_sparsity_follows_active_units_and_holds_the_others(model, tw
         assert inactive[0.1] < inactive[None], (solver, inactive)
 
 
+def test_conservative_streams_keep_the_gaussian_prior(model, two_streams, l2_runs):
+    """``track_step(conservative=)`` streams (template management's lost streams) are solved as without
+    ``expression_sparsity``; the others as with it."""
+    frames, _ = two_streams
+    (_, states), _ = l2_runs
+    state = states[3]  # expressions under way: the reweighting changes the precisions
+    config = replace(L2, expression_sparsity=0.1)
+    only_first = torch.tensor([True, False])
+    _, mixed = track_step(model, config, state, frames[:, 4], conservative=only_first)
+    _, gaussian = track_step(model, replace(config, expression_sparsity=None), state, frames[:, 4],
+                             conservative=only_first)  # fmt: skip
+    _, sparse = track_step(model, config, state, frames[:, 4])
+    torch.testing.assert_close(mixed.anim_coeffs[0], gaussian.anim_coeffs[0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(mixed.anim_coeffs[1], sparse.anim_coeffs[1], rtol=0, atol=1e-6)
+    assert float((gaussian.anim_coeffs[0] - sparse.anim_coeffs[0]).abs().max()) > 1e-3  # the test can tell
+
+
 def test_expression_prior_weights_hold_one_unit_and_leave_the_others(model, two_streams, l2_runs):
     """A dominant weight on the jaw alone holds it at the prior's centre in both passes (fast and reference
     solvers), while the brow still moves; all-ones weights are no weights (to float32 rounding: the weighted
