@@ -24,7 +24,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    or when less than ``min_inside_fraction`` of its face projects inside the frame (the face left). Lost
    frames are reported with status LOST (``success`` False). A lost stream keeps tracking from its estimate
    (back at the last confident parameters when the estimate left the frame or failed), with the
-   refinement pass's prior at ``expression_prior_precision`` (``track_step(conservative=)``), and, when it is lost
+   refinement pass's prior at ``expression_prior_precision`` and a Gaussian expression prior (no
+   ``expression_sparsity``; ``track_step(conservative=)``), and, when it is lost
    and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
    one is given, else by searching its mosaic over the coarsest pyramid level
    (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
