@@ -797,6 +797,11 @@ def main(argv: list[str] | None = None) -> int:
         "closed)",
     )
     parser.add_argument(
+        "--expression-sparsity", default=None,
+        help="TrackerConfig.expression_sparsity of every run (default: TrackerConfig's, 0.1): the delta of the "
+        "animation units' reweighted L1 prior, or 'none' for the Gaussian prior",
+    )
+    parser.add_argument(
         "--noise-seeds", default="",
         help="comma list of landmark-noise seeds: each standard scenario is tracked again (full configuration) "
         "once per seed and a table of the seeds follows its own (how much the figures depend on the noise draw)",
@@ -838,6 +843,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--hold must be >= 1, got {args.hold}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
+    sparsity: float | None = None
+    if args.expression_sparsity is not None and args.expression_sparsity.strip().lower() != "none":
+        try:
+            sparsity = float(args.expression_sparsity)
+        except ValueError:
+            parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
+        if not (math.isfinite(sparsity) and sparsity > 0.0):
+            parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
     try:
         noise_seeds = [int(x) for x in args.noise_seeds.split(",") if x.strip()]
     except ValueError:
@@ -870,6 +883,8 @@ def main(argv: list[str] | None = None) -> int:
     base = TrackerConfig()
     if args.expression_quota is not None:  # every run's configuration (ablations and long ones included)
         base = replace(base, expression_quota=args.expression_quota)
+    if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior
+        base = replace(base, expression_sparsity=sparsity)
     results: dict[str, dict[str, object]] = {}
     series: list[FrameSeries] = []
     tables: list[str] = []

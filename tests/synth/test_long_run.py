@@ -377,3 +377,23 @@ def test_evaluate_expression_quota_sets_every_runs_config(monkeypatch):
     assert [q for _, q in seen] == [ev.TrackerConfig().expression_quota] * 3
     with pytest.raises(SystemExit):
         ev.main(base + ["--expression-quota", "1.5"])
+
+
+def test_evaluate_expression_sparsity_sets_every_runs_config(monkeypatch):
+    """--expression-sparsity: every run gets that TrackerConfig.expression_sparsity, 'none' the Gaussian prior;
+    without it the default's; a delta that is not a number > 0 is refused."""
+    ev = _load_evaluate()
+    seen = _spy_track_sequence(ev, monkeypatch, "expression_sparsity")
+    base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--cache", "none", "--no-auroc",
+            "--progress-every", "0", "--ablations", "no_robust", "--noise-seeds", "0,1"]  # fmt: skip
+    assert ev.main(base + ["--expression-sparsity", "0.03"]) == 0
+    assert [d for _, d in seen] == [0.03] * 3
+    seen.clear()
+    assert ev.main(base + ["--expression-sparsity", "none"]) == 0
+    assert [d for _, d in seen] == [None] * 3
+    seen.clear()
+    assert ev.main(base) == 0
+    assert [d for _, d in seen] == [ev.TrackerConfig().expression_sparsity] * 3
+    for bad in ("0", "-1", "abc", "nan"):
+        with pytest.raises(SystemExit):
+            ev.main(base + ["--expression-sparsity", bad])
