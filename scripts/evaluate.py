@@ -792,9 +792,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--expression-quota", type=float,
-        help="TrackerConfig.expression_quota of every run (default: TrackerConfig's, 0): the fraction of each "
-        "level's template points reserved for each animation unit's region (README, Known limitations: eyes "
-        "closed)",
+        help="TrackerConfig.expression_quota of every run (default: TrackerConfig's, 0): the fraction of the "
+        "first templates' finest-level points reserved for each animation unit's region (README, Known "
+        "limitations: eyes closed)",
     )
     parser.add_argument(
         "--expression-sparsity", default=None,

@@ -571,3 +571,29 @@ def test_native_decisions_equal_the_torch_codes(model, turns, leaves, monkeypatc
             assert torch.equal(getattr(ma, name), getattr(mb, name)), name
         assert torch.equal(ma.mosaic.bins, mb.mosaic.bins) and torch.equal(ma.mosaic.used, mb.mosaic.used)
     assert any(int(r.status[0]) == LOST for r in native[0])  # the losses were exercised
+
+
+def test_expression_quota_is_the_first_templates_finest_level_only(model, turns, monkeypatch):
+    """``expression_quota`` reserves points at the finest level of the templates built at initialisation; the
+    coarser levels are those without it, and the mosaic's new entries select without it."""
+    import torchface.tracker.managed as managed_module
+
+    frames, gt = turns
+    config = replace(CFG, expression_quota=0.1, template=TemplateConfig(reference_radius_deg=10.0))
+    lm = landmarks(gt)
+    with_quota, _ = initialise(model, config, frames[:, 0], lm, Intrinsics.default(W, H))
+    without, _ = initialise(model, replace(config, expression_quota=0.0), frames[:, 0], lm, Intrinsics.default(W, H))
+    assert not torch.equal(with_quota.templates[0].face_index, without.templates[0].face_index)
+    for a, b in zip(with_quota.templates[1:], without.templates[1:]):
+        assert torch.equal(a.face_index, b.face_index) and torch.equal(a.bary, b.bary)
+    quotas = []
+    real = managed_module.select_pixels_posed
+
+    def spy(*args, **kwargs):
+        quotas.append(kwargs["expression_quota"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(managed_module, "select_pixels_posed", spy)
+    _, state = track(model, config, frames, lm)
+    assert int(state.management.mosaic.num_entries[0]) >= 2  # entries were added ...
+    assert quotas and all(q == 0 for q in quotas), quotas  # ... without the quota

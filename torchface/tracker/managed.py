@@ -481,12 +481,15 @@ def _new_entries(
                                   config.backend)  # one call
     vertex_normals_neutral = vertex_normals(model.deform(shape, None), model.faces)
     pixels = []
+    # Without TrackerConfig.expression_quota: it is the first template's (its finest level), where the expression
+    # is refined; reserving points for every unit here took management's overhead from 24-26% to 37-56%
+    # (benchmark.py --management-only), and the mosaic's entries are for the pose.
     for gray, off, cam, lv, frags, k in zip(grays, offsets, cameras, ms.mosaic.levels, fragments, strides):
         slots = lv.face_index.shape[-1]  # the slots of this level's entries
         pixels.append(select_pixels_posed(
             model, posed, gray, cam, off, max_points=slots,
             gradient_threshold=config.gradient_threshold, expression_priority=config.expression_priority,
-            expression_quota=int(config.expression_quota * slots), frags=frags, stride=k, seed=config.selection_seed,
+            expression_quota=0, frags=frags, stride=k, seed=config.selection_seed,
             backend=config.backend,
         ))  # fmt: skip
     # The intensities under the reference light, every level's points at once (the work is per point).

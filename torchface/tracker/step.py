@@ -154,15 +154,19 @@ class TrackerConfig:
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
             but costs pose accuracy (pose_sweep mean 0.49 -> 0.63 deg, scan_motion 1.93 -> 2.66 deg).
-        expression_quota: per animation unit, this fraction of a level's template points is reserved for points
-            that the unit moves (``int(expression_quota * points)``, passed to
-            :func:`~torchface.template.points.build_template`; 0: off). The uniform draw gave the eyelid unit 6 of
-            1500 points; measured on the 640x480 ``expressions`` scenario with ``refine_prior_precision=0.1``,
-            40 of 1500 (0.027) took eyes closed
-            from r 0.41 to 0.86 with every other unit within 0.003 of RMSE and the pose within 0.04 degree
-            (scan_motion 1.88 -> 1.91 degrees mean, 5.94 -> 5.79 max), for about 4 ms more per whole-frame
-            template build. Off by default: eyes closed still misses its RMSE target (0.237 -> 0.209 of range),
-            and the sudden-occluder test's first occluded frame went from 1.98 to 2.09 degrees (its bar is 2).
+        expression_quota: per animation unit, this fraction of the finest level's template points is reserved
+            for points that the unit moves (``int(expression_quota * points)``, passed to
+            :func:`~torchface.template.points.build_template`; 0: off), in the templates built at initialisation
+            (and at a re-anchoring or a detector's re-initialisation). The coarser levels, which serve the pose,
+            and the mosaic's entries select without it (in the entries it took management's overhead from 24-26%
+            to 37-56%, benchmark.py --management-only). The uniform draw gives the eyelid unit about 7 of 1500
+            points. Measured with 0.027 (40 of 1500) on the 640x480 ``expressions`` scenario: eyes closed RMSE
+            0.231 -> 0.152 and r 0.45 -> 0.83 (landmark-noise draw 0; r -0.03 -> 0.67 and -0.12 -> 0.48 on
+            draws 1 and 2), the other units and the five standard scenarios' rotation errors within their
+            draw-to-draw spread (scan_motion 0.91 -> 0.88 degrees mean), the long runs' targets held (returns
+            max 0.65 and 0.82 degrees, every loss recovered within 17 frames). Off by default: eyes closed still
+            misses its targets, and the native and torch confidence paths then part on one borderline frame of
+            tests/tracker/test_native.py's sweep (dissimilarity 1.34 against 1.07 on a badly tracked stream).
         fit: settings of the initial fit to landmarks. The default also fits a starting expression (weak
             prior): on a face unlike CANDIDE-3 (the James scan) the animation units absorb shape the shape units
             cannot, which lowered scan_motion's mean error from 2.7 to 1.9 degrees.
@@ -567,7 +571,8 @@ def initialise(
             build_template(
                 model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray, intr,
                 max_points=n, gradient_threshold=config.gradient_threshold,
-                expression_priority=config.expression_priority, expression_quota=int(config.expression_quota * n),
+                expression_priority=config.expression_priority,
+                expression_quota=int(config.expression_quota * n) if level == 0 else 0,  # the finest level's
                 seed=config.selection_seed, backend=config.backend,
             )
         )
