@@ -143,19 +143,25 @@ def landmarks(gt, frame: int = 0) -> torch.Tensor:
 # ----------------------------------------------------------------------------- known answers
 
 
-def _record_near_template(monkeypatch) -> list:
-    """Make every ``track_step`` call of template management append its ``near_template`` to the list returned."""
+def _record_keyword(monkeypatch, function: str, keyword: str) -> list:
+    """Make every call of template management's ``function`` (a name in :mod:`torchface.tracker.managed`) append
+    its ``keyword`` argument to the list returned."""
     import torchface.tracker.managed as managed
 
-    near = []
-    real = managed.track_step
+    seen = []
+    real = getattr(managed, function)
 
     def spy(*args, **kw):
-        near.append(kw["near_template"])
+        seen.append(kw[keyword])
         return real(*args, **kw)
 
-    monkeypatch.setattr(managed, "track_step", spy)
-    return near
+    monkeypatch.setattr(managed, function, spy)
+    return seen
+
+
+def _record_near_template(monkeypatch) -> list:
+    """Make every ``track_step`` call of template management append its ``near_template`` to the list returned."""
+    return _record_keyword(monkeypatch, "track_step", "near_template")
 
 
 @pytest.mark.parametrize("radius", [0.0, 3.0])
@@ -576,8 +582,6 @@ def test_native_decisions_equal_the_torch_codes(model, turns, leaves, monkeypatc
 def test_expression_quota_is_the_first_templates_finest_level_only(model, turns, monkeypatch):
     """``expression_quota`` reserves points at the finest level of the templates built at initialisation; the
     coarser levels are those without it, and the mosaic's new entries select without it."""
-    import torchface.tracker.managed as managed_module
-
     frames, gt = turns
     config = replace(CFG, expression_quota=0.1, template=TemplateConfig(reference_radius_deg=10.0))
     lm = landmarks(gt)
@@ -586,14 +590,7 @@ def test_expression_quota_is_the_first_templates_finest_level_only(model, turns,
     assert not torch.equal(with_quota.templates[0].face_index, without.templates[0].face_index)
     for a, b in zip(with_quota.templates[1:], without.templates[1:]):
         assert torch.equal(a.face_index, b.face_index) and torch.equal(a.bary, b.bary)
-    quotas = []
-    real = managed_module.select_pixels_posed
-
-    def spy(*args, **kwargs):
-        quotas.append(kwargs["expression_quota"])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(managed_module, "select_pixels_posed", spy)
+    quotas = _record_keyword(monkeypatch, "select_pixels_posed", "expression_quota")
     _, state = track(model, config, frames, lm)
     assert int(state.management.mosaic.num_entries[0]) >= 2  # entries were added ...
     assert quotas and all(q == 0 for q in quotas), quotas  # ... without the quota

@@ -370,7 +370,7 @@ def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
 def uses_openmp() -> bool:
     """Whether :func:`run_chunks` runs the chunks on torch's OpenMP threads (built with ``-fopenmp`` where torch
     uses GNU OpenMP, the Linux wheels; ``TORCHFACE_OPENMP=0`` turns it off) rather than on a thread pool of its
-    own; not in a process forked from the one that loaded the library). Loads the library."""
+    own (as in a process forked from the one that loaded the library). Loads the library."""
     library()
     return _parallel is not None and os.getpid() == _parallel_pid
 
