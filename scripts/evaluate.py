@@ -6,8 +6,9 @@ torchface.synth.sequence.write_sequence) and read back from there on later runs.
 initialised from frame 0's ground-truth landmarks plus Gaussian noise (fixed seed, the same for every
 ablation), tracks every later frame, and is scored with torchface.synth.metrics: rotation error relative to
 frame 0 (geodesic and per axis), translation error, animation-unit RMSE (fraction of each unit's range) and
-correlation over the units that vary in the ground truth, converged / successful / lost frames, and time
-per frame. With --noise-seeds each standard scenario is tracked again once per listed seed of the landmark
+correlation over the units that vary in the ground truth, and over the units it leaves at rest the RMSE
+(pooled) and the worst error, i.e. the motion reported where there is none; converged / successful / lost
+frames, and time per frame. With --noise-seeds each standard scenario is tracked again once per listed seed of the landmark
 noise (full configuration) and a table of the seeds follows, with the worst seed's figures: the starting pose
 and expression come from one noisy fit, so one seed's figures can be luckier or unluckier than another's.
 --selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
@@ -396,6 +397,12 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
             nan = float("nan")
             cells = [f"{_fmt(m.get('au_rmse/' + a, nan), 3)} / {_fmt(m.get('au_corr/' + a, nan))}" for a in au]
             lines.append("   " + cfg.ljust(16) + "".join(c.rjust(24) for c in cells))
+    if any(math.isfinite(m.get("au_inactive_rmse", float("nan"))) for m in rows.values()):
+        lines.append("   AUs the truth leaves at rest: RMSE pooled over them / worst |error| (fractions of range)")
+        for cfg, m in rows.items():
+            nan = float("nan")
+            cell = f"{_fmt(m.get('au_inactive_rmse', nan), 3)} / {_fmt(m.get('au_inactive_max', nan), 3)}"
+            lines.append("   " + cfg.ljust(16) + cell.rjust(24))
     return "\n".join(lines)
 
 

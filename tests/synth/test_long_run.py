@@ -255,6 +255,19 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
     assert figures["long_run/mosaic"]["return_errors_deg"] == m.return_errors_deg
 
 
+def test_evaluate_table_reports_units_at_rest():
+    """A scenario's table adds the units the truth leaves at rest (pooled RMSE / worst error) when scored."""
+    ev = _load_evaluate()
+    base = dict(rot_err_mean_deg=0.4, rot_err_median_deg=0.4, rot_err_max_deg=0.9, yaw_err_deg=0.1,
+                pitch_err_deg=0.1, roll_err_deg=0.1, trans_err_mm=1.0, trans_rel_err_mm=1.0, au_rmse=0.05,
+                au_corr=0.9, converged=1.0, success=1.0, lost_frames=0, ms_per_frame=5.0)  # fmt: skip
+    rows = {"full": dict(base, au_inactive_rmse=0.0123, au_inactive_max=0.3456)}
+    text = ev.table("expressions", rows, "made up")
+    assert "AUs the truth leaves at rest" in text and "0.012 / 0.346" in text
+    plain = ev.table("pose_sweep", {"full": dict(base, au_inactive_rmse=float("nan"))}, "made up")
+    assert "at rest" not in plain
+
+
 def test_evaluate_noise_seeds_track_each_seed_again(tmp_path, capsys):
     """--noise-seeds: one full-configuration run per seed (the main seed's run reused), a table of them with the
     worst seed's figures, and one JSON entry per extra seed whose figures come from its own initial landmarks."""

@@ -187,6 +187,31 @@ def test_sequence_metrics_known_answers() -> None:
     assert math.isclose(m.au_corr, 1.0, rel_tol=1e-9)
     d = m.as_dict()
     assert d["au_rmse/b"] == m.au_rmse and "au_names" not in d
+    assert m.au_inactive_rmse == 0.0 and m.au_inactive_max == 0.0  # units a and c are estimated at rest
+
+
+def test_sequence_metrics_inactive_units() -> None:
+    """Motion reported on units the truth leaves at rest: pooled RMSE and worst error, as fractions of range."""
+    R_est, t_est, R_gt, t_gt, status, au_est, au_gt, ranges = _synthetic_run()
+    au_est = au_est.clone()
+    au_est[1:, 0] = 0.2  # unit a (range 2): 0.1 of its range on every scored frame
+    au_est[3, 2] = -0.8  # unit c (range 2): 0.4 of its range on one of the 10 scored frames
+    au_est[0, 2] = 5.0  # frame 0 (the initial fit) is not scored
+    m = sequence_metrics(
+        R_est, t_est, R_gt, t_gt, status, anim_est=au_est, anim_gt=au_gt, anim_ranges=ranges,
+        anim_names=("a", "b", "c"),
+    )
+    rmse_a, rmse_c = 0.1, math.sqrt(0.4**2 / 10)
+    assert math.isclose(m.au_inactive_rmse, math.sqrt((rmse_a**2 + rmse_c**2) / 2), rel_tol=1e-9)
+    assert math.isclose(m.au_inactive_max, 0.4, rel_tol=1e-9)
+    assert m.au_names == ("b",) and math.isclose(m.au_rmse, 0.05, rel_tol=1e-9)  # the active unit is unchanged
+    everything = au_gt.clone()
+    everything[:, [0, 2]] = torch.linspace(0, 1, au_gt.shape[0], dtype=F64)[:, None]
+    m_all = sequence_metrics(
+        R_est, t_est, R_gt, t_gt, status, anim_est=everything, anim_gt=everything, anim_ranges=ranges,
+        anim_names=("a", "b", "c"),
+    )
+    assert math.isnan(m_all.au_inactive_rmse) and math.isnan(m_all.au_inactive_max)
 
 
 def test_sequence_metrics_exact_rotation_errors_without_offset() -> None:

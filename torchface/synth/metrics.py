@@ -265,6 +265,11 @@ class SequenceMetrics:
         au_rmse: RMSE over the active units, each as a fraction of its range, averaged (NaN if none active).
         au_corr: Pearson correlation over the active units, averaged over the defined ones (NaN if none).
         au_names: names of the active units; au_rmse_per_unit, au_corr_per_unit: per active unit.
+        au_inactive_rmse: RMSE over the units the truth leaves at rest (those :func:`active_units` does not
+            list), each as a fraction of its range, pooled as their quadratic mean: how much motion the tracker
+            reports where there is none (NaN if every unit is active or none is scored).
+        au_inactive_max: the largest ``|estimate - truth|`` of such a unit over the frames, as a fraction of its
+            range (NaN likewise).
     """
 
     frames: int
@@ -287,6 +292,8 @@ class SequenceMetrics:
     au_names: tuple[str, ...] = ()
     au_rmse_per_unit: tuple[float, ...] = ()
     au_corr_per_unit: tuple[float, ...] = ()
+    au_inactive_rmse: float = float("nan")
+    au_inactive_max: float = float("nan")
 
     def as_dict(self) -> dict[str, float | int]:
         """Flat ``{metric: number}``; per-unit values as ``au_rmse/<name>`` and ``au_corr/<name>``."""
@@ -347,6 +354,7 @@ def sequence_metrics(
     lost = int((rot > lost_threshold_deg).sum())
     nan = float("nan")
     au_rmse, au_corr, names, rmse_u, corr_u = nan, nan, (), (), ()
+    inactive_rmse, inactive_max = nan, nan
     if anim_est is not None and anim_gt is not None and anim_gt.shape[-1] > 0:
         if anim_ranges is None:
             raise ValueError("anim_ranges is required to score animation units")
@@ -363,6 +371,10 @@ def sequence_metrics(
             au_rmse = float(r.mean())
             defined = c[~torch.isnan(c)]
             au_corr = float(defined.mean()) if defined.numel() else nan
+        if bool((~active).any()):
+            span = (anim_ranges[:, 1] - anim_ranges[:, 0]).to(est)
+            inactive_rmse = float(unit_rmse(est, gt, anim_ranges)[~active].pow(2).mean().sqrt())
+            inactive_max = float(((est - gt).abs() / span)[:, ~active].max())
     return SequenceMetrics(
         frames=T - 1,
         rot_err_mean_deg=float(rot.mean()),
@@ -384,6 +396,8 @@ def sequence_metrics(
         au_names=names,
         au_rmse_per_unit=rmse_u,
         au_corr_per_unit=corr_u,
+        au_inactive_rmse=inactive_rmse,
+        au_inactive_max=inactive_max,
     )
 
 
