@@ -8,9 +8,10 @@ ablation), tracks every later frame, and is scored with torchface.synth.metrics:
 frame 0 (geodesic and per axis), translation error, animation-unit RMSE (fraction of each unit's range) and
 correlation over the units that vary in the ground truth, and over the units it leaves at rest the RMSE
 (pooled) and the worst error, i.e. the motion reported where there is none; converged / successful / lost
-frames, and time per frame. With --noise-seeds each standard scenario is tracked again once per listed seed of the landmark
-noise (full configuration) and a table of the seeds follows, with the worst seed's figures: the starting pose
-and expression come from one noisy fit, so one seed's figures can be luckier or unluckier than another's.
+frames, and time per frame. With --noise-seeds each standard scenario is tracked again once per listed seed
+of the landmark noise (full configuration) and a table of the seeds follows, with the worst seed's figures:
+the starting pose and expression come from one noisy fit, so one seed's figures can be luckier or unluckier
+than another's.
 --selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
 default landmark noise. Every managed run tracks with the online look-ahead start, the tracker's default
 (FaceTracker(refine_first=LookaheadConfig()), torchface.tracker.managed); --no-online-refine turns it off, and
