@@ -239,6 +239,26 @@ def test_online_refinement_reanchors_after_a_turn_each_side(model):
     torch.testing.assert_close(R_alone[0], R_on[0], rtol=0, atol=1e-4)
 
 
+def test_online_keyframes_need_min_confidence(model):
+    """A turned frame becomes a keyframe only at ``LookaheadConfig.min_confidence`` or above: the same turn to each
+    side is re-anchored with a floor below its frames' confidences and never with one above them."""
+    up = [4.0 * i for i in range(7)]
+    yaw = up + up[-2::-1] + [-v for v in up[1:]] + [-v for v in up[-2::-1]]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = gt.landmarks_px.float()[:1]
+    la = LookaheadConfig(iterations=(4,), max_points=800, max_frames=len(yaw))
+    tracker = FaceTracker(CFG, model=model, refine_first=None)
+    tracker.initialise(frames[None, 0], lm, gt.intrinsics)
+    conf = torch.cat([tracker(frames[None, i]).confidence for i in range(1, len(yaw))])
+    turned = torch.tensor([abs(y) >= la.yaw_deg for y in yaw[1:]])
+    low, high = float(conf[turned].min()), float(conf[turned].max())
+    assert high < 1.0, conf  # a floor above every turned frame's confidence exists
+    _, at_low, _ = _track(model, frames[None], lm, gt.intrinsics, replace(la, min_confidence=0.5 * low))
+    _, at_high, _ = _track(model, frames[None], lm, gt.intrinsics, replace(la, min_confidence=0.5 * (high + 1.0)))
+    assert at_low[0] is not None and at_high == [None], (at_low, at_high, conf)
+
+
 def test_online_refinement_settings_are_checked(model):
     with pytest.raises(TypeError, match="refine_first"):
         FaceTracker(CFG, model=model, refine_first={"yaw_deg": 20})
