@@ -856,7 +856,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             sparsity = float(args.expression_sparsity)
         except ValueError:
-            parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
+            sparsity = float("nan")  # refused below, with the same message
         if not (math.isfinite(sparsity) and sparsity > 0.0):
             parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
     try:

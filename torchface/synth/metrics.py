@@ -362,8 +362,9 @@ def sequence_metrics(
             raise ValueError(f"anim_names must name {anim_gt.shape[-1]} units, got {len(anim_names)}")
         est, gt = anim_est[1:], anim_gt[1:]
         active = active_units(gt)
+        rmse_all = unit_rmse(est, gt, anim_ranges)  # (A,): both groups' figures come from it
         if bool(active.any()):
-            r = unit_rmse(est, gt, anim_ranges)[active]
+            r = rmse_all[active]
             c = pearson(est, gt)[active]
             names = tuple(n for n, a in zip(anim_names, active.tolist()) if a)
             rmse_u = tuple(float(v) for v in r)
@@ -373,7 +374,7 @@ def sequence_metrics(
             au_corr = float(defined.mean()) if defined.numel() else nan
         if bool((~active).any()):
             span = (anim_ranges[:, 1] - anim_ranges[:, 0]).to(est)
-            inactive_rmse = float(unit_rmse(est, gt, anim_ranges)[~active].pow(2).mean().sqrt())
+            inactive_rmse = float(rmse_all[~active].pow(2).mean().sqrt())
             inactive_max = float(((est - gt).abs() / span)[:, ~active].max())
     return SequenceMetrics(
         frames=T - 1,
