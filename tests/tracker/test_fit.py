@@ -3,6 +3,8 @@ missing points, batching and input validation."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -106,6 +108,52 @@ def test_two_pixel_noise_frontal_640x480(model, which):
     assert bool(((fit.rms_px > 1.5) & (fit.rms_px < 3.5)).all()), fit.rms_px.tolist()
 
 
+VERTICAL = ("Eyebrows vertical position", "Eyes vertical position", "Nose vertical position", "Mouth vertical position")
+
+
+def vertical_prior(model, strong: float) -> tuple[float, ...]:
+    """Per-unit shape precisions: ``strong`` on the units that move features vertically, 2 on the others."""
+    return tuple(strong if name in VERTICAL else 2.0 for name in model.shape_names)
+
+
+@pytest.mark.parametrize("which", ["fit_default", "tracker_default"])
+def test_two_pixel_noise_with_the_vertical_units_held(model, which):
+    """The per-unit prior of FitConfig's docstring (256 on the four vertical-position units, 2 elsewhere) meets
+    deliverable 1 on the same 8 draws as the test above (< 2 deg each, 1.5 mean), with and without the starting
+    expression; at a uniform 2 the draws reach 2.75 and 6.41 deg (the xfail above)."""
+    assert [model.shape_names.index(n) for n in VERTICAL] == [1, 2, 8, 10]  # the indices the docstring names
+    B = 8
+    R = euler_to_matrix(torch.zeros(B, 3, dtype=D))
+    t = torch.tensor([0.0, 0.0, 450.0], dtype=D).expand(B, 3)
+    noisy = project_landmarks(model, R, t, None)
+    noisy = noisy + 2.0 * torch.randn(noisy.shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    base = FitConfig() if which == "fit_default" else TrackerConfig().fit
+    fit = fit_landmarks(model, noisy, CAM, config=replace(base, shape_prior_precision=vertical_prior(model, 256.0)))
+    err = geodesic_angle_deg(fit.rotation, R)
+    assert float(err.max()) < 2.0 and float(err.mean()) < 1.5, f"rotation errors (deg) over seeds: {err.tolist()}"
+
+
+def test_per_unit_shape_prior(model):
+    """A tuple of equal precisions is the scalar; a strong precision on one unit holds that unit at 0 while a
+    free fit recovers it from exact landmarks."""
+    R, t = poses()
+    shape = torch.zeros(3, model.num_shape, dtype=D)
+    eyes, mouth = model.shape_names.index("Eyes vertical position"), model.shape_names.index("Mouth width")
+    shape[:, eyes], shape[:, mouth] = 0.4, -0.3
+    lm = project_landmarks(model, R, t, shape)
+    scalar = fit_landmarks(model, lm, CAM, config=FitConfig(shape_prior_precision=2.0))
+    per_unit = fit_landmarks(model, lm, CAM, config=FitConfig(shape_prior_precision=(2.0,) * model.num_shape))
+    for name in LandmarkFit.__dataclass_fields__:
+        assert torch.equal(getattr(scalar, name), getattr(per_unit, name)), name
+    free = fit_landmarks(model, lm, CAM, config=EXACT)
+    torch.testing.assert_close(free.shape_coeffs[:, eyes], shape[:, eyes], rtol=0, atol=1e-4)
+    held = [0.0] * model.num_shape
+    held[eyes] = 1e9
+    fit = fit_landmarks(model, lm, CAM, config=replace(EXACT, shape_prior_precision=tuple(held)))
+    assert float(fit.shape_coeffs[:, eyes].abs().max()) < 1e-3
+    assert float(fit.rms_px.min()) > 0.1  # the held unit leaves a residual: the prior did hold it
+
+
 def test_batch_equals_single_samples(model):
     R, t = poses()
     lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(3), dtype=D)
@@ -183,6 +231,15 @@ def test_bad_inputs_raise(model):
         FitConfig(max_iterations=0)
     with pytest.raises(ValueError, match="non-negative"):
         FitConfig(shape_prior_precision=-1.0)
+    with pytest.raises(ValueError, match="non-negative"):
+        FitConfig(shape_prior_precision=(2.0,) * 13 + (-1.0,))
+    with pytest.raises(ValueError, match="non-negative"):
+        FitConfig(shape_prior_precision=float("nan"))
+    for bad in ((), (2.0, "2"), True, "2"):
+        with pytest.raises(ValueError, match="a number or a non-empty tuple"):
+            FitConfig(shape_prior_precision=bad)
+    with pytest.raises(ValueError, match="13 values; the model has 14 shape units"):
+        fit_landmarks(model, torch.rand(1, 68, 2, dtype=D) * 100 + 200, CAM, config=FitConfig(shape_prior_precision=(2.0,) * 13))
 
 
 def test_fit_select_and_to(model):

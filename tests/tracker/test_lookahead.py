@@ -117,6 +117,35 @@ def test_photometric_term_alone_brings_wrong_free_units_back(model):
     assert float(geodesic_angle_deg(out.rotation.double(), gt.rotation[:1])) < 2.0
 
 
+def test_refinement_takes_per_unit_shape_precisions(model):
+    """FitConfig's per-unit shape precisions reach the refinement: a tuple of zeros refines as the scalar 0 (the
+    free unit comes back from 0.3 as in the test above), a huge precision on the free unit holds it at the prior's
+    0, and a tuple of the wrong length is refused."""
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    R = gt.rotation.to(torch.float32)
+    eyes = model.shape_names.index("Eyes vertical position")
+    shape = torch.zeros(1, model.num_shape)
+    shape[0, eyes] = 0.3
+    start = LandmarkFit(R[:1], matrix_to_axis_angle(R[:1]), gt.translation[:1].float(), shape,
+                        torch.zeros(1, model.num_animation), torch.zeros(1), torch.zeros(1, dtype=torch.int64))  # fmt: skip
+    lm = torch.full((model.num_landmarks, 2), float("nan"))
+    cfg = LookaheadConfig(shape_units=(eyes,), fit_expression=False, iterations=(4, 3), max_points=800)
+
+    def refine(precision):
+        return refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
+                                config=cfg, shape_prior_precision=precision)  # fmt: skip
+
+    scalar, per_unit = refine(0.0), refine((0.0,) * model.num_shape)
+    assert torch.equal(scalar.shape_coeffs, per_unit.shape_coeffs) and torch.equal(scalar.axis_angle, per_unit.axis_angle)
+    assert float(scalar.shape_coeffs[0, eyes]) < 0.2  # moved back toward the render's 0 by the images
+    held = [0.0] * model.num_shape
+    held[eyes] = 1e9
+    assert abs(float(refine(tuple(held)).shape_coeffs[0, eyes])) < 1e-3
+    with pytest.raises(ValueError, match="the model has 14 shape units"):
+        refine((0.0,) * 3)
+
+
 def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     """A head turning to +24 then -24 degrees of yaw in 3-degree steps: keyframes at the first frame past 20
     degrees each way; the refined first-frame pose is much nearer the truth than the landmark fit's (1.5 px of

@@ -8,6 +8,7 @@ positions and bases interpolated from the model's landmark table.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -26,7 +27,12 @@ class FitConfig:
 
     Attributes:
         shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in
-            units of squared pixels of landmark error per unit coefficient squared.
+            units of squared pixels of landmark error per unit coefficient squared: one value for every unit, or
+            a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks it). Per unit, a
+            strong prior can hold the units that trade with the pose: for CANDIDE-3, 256 on the four that move
+            features vertically (eyebrows, eyes, nose and mouth vertical position, indices 1, 2, 8, 10) and 2 on
+            the others keeps 2 px of landmark noise from tipping the pose by 2 degrees (README, "Known
+            limitations", gives what it does to tracking).
         shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.
         fit_expression: also estimate a starting expression (animation units, bounded by the model's ranges).
         expression_prior_precision: prior precision on the animation units when ``fit_expression``.
@@ -37,7 +43,7 @@ class FitConfig:
             points ask for it, so the template's depth matches a face unlike the mean face.
     """
 
-    shape_prior_precision: float = 2.0
+    shape_prior_precision: float | tuple[float, ...] = 2.0
     shape_bound: float = 1.0
     fit_expression: bool = False
     expression_prior_precision: float = 200.0
@@ -47,8 +53,15 @@ class FitConfig:
     def __post_init__(self) -> None:
         if self.refine_shape_prior_precision is not None and self.refine_shape_prior_precision < 0:
             raise ValueError("refine_shape_prior_precision must be non-negative or None")
-        if self.shape_prior_precision < 0 or self.expression_prior_precision < 0:
-            raise ValueError("prior precisions must be non-negative")
+        shape = self.shape_prior_precision
+        if isinstance(shape, tuple):
+            if not shape or not all(isinstance(p, (int, float)) and not isinstance(p, bool) for p in shape):
+                raise ValueError(f"shape_prior_precision must be a number or a non-empty tuple of numbers, got {shape!r}")
+        elif isinstance(shape, bool) or not isinstance(shape, (int, float)):
+            raise ValueError(f"shape_prior_precision must be a number or a non-empty tuple of numbers, got {shape!r}")
+        precisions = shape if isinstance(shape, tuple) else (shape,)
+        if any(not math.isfinite(p) or p < 0 for p in (*precisions, self.expression_prior_precision)):
+            raise ValueError("prior precisions must be finite and non-negative")
         if not self.shape_bound > 0:
             raise ValueError(f"shape_bound must be positive, got {self.shape_bound}")
         if self.max_iterations < 1:
@@ -84,6 +97,24 @@ class LandmarkFit:
             v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
             for v in (getattr(self, f) for f in self.__dataclass_fields__)
         ))  # fmt: skip
+
+
+def shape_prior_vector(
+    precision: float | tuple[float, ...], num_shape: int, dtype: torch.dtype, device: torch.device | str | None
+) -> Tensor:
+    """``(S,)`` the shape units' prior precisions from :attr:`FitConfig.shape_prior_precision` (one value for all,
+    or one per unit).
+
+    Raises:
+        ValueError: a tuple whose length is not ``num_shape``.
+    """
+    if isinstance(precision, tuple):
+        if len(precision) != num_shape:
+            raise ValueError(
+                f"shape_prior_precision has {len(precision)} values; the model has {num_shape} shape units"
+            )
+        return torch.tensor(precision, dtype=dtype, device=device)
+    return torch.full((num_shape,), float(precision), dtype=dtype, device=device)
 
 
 def _check_landmarks(landmarks_px: Tensor, weights: Tensor | None, k: int, intrinsics: Intrinsics) -> Tensor:
@@ -172,7 +203,7 @@ def fit_landmarks(
     inf = torch.full((6,), float("inf"), dtype=dtype, device=device)
     lower = [-inf, torch.full((S,), -config.shape_bound, dtype=dtype, device=device)]
     upper = [inf, torch.full((S,), config.shape_bound, dtype=dtype, device=device)]
-    prior = [torch.zeros(6, dtype=dtype, device=device), torch.full((S,), config.shape_prior_precision, dtype=dtype, device=device)]
+    prior = [torch.zeros(6, dtype=dtype, device=device), shape_prior_vector(config.shape_prior_precision, S, dtype, device)]
     if A:
         lower.append(model.animation_ranges[:, 0])
         upper.append(model.animation_ranges[:, 1])

@@ -44,7 +44,7 @@ from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
-from torchface.tracker.fit import LandmarkFit, fit_landmarks
+from torchface.tracker.fit import LandmarkFit, fit_landmarks, shape_prior_vector
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
 __all__ = ["LookaheadConfig", "select_keyframes", "refine_first_fit", "lookahead_fit"]
@@ -150,7 +150,7 @@ def refine_first_fit(
     key_translation: Tensor,
     *,
     landmark_weights: Tensor | None = None,
-    shape_prior_precision: float = 2.0,
+    shape_prior_precision: float | tuple[float, ...] = 2.0,
     shape_bound: float = 1.0,
     expression_prior_precision: float = 2.0,
     config: LookaheadConfig = LookaheadConfig(),
@@ -189,7 +189,7 @@ def _refine_first_fit(
     key_translation: Tensor,
     *,
     landmark_weights: Tensor | None,
-    shape_prior_precision: float,
+    shape_prior_precision: float | tuple[float, ...],
     shape_bound: float,
     expression_prior_precision: float,
     config: LookaheadConfig,
@@ -249,7 +249,8 @@ def _refine_first_fit(
     lo = torch.full((P,), -float("inf"), dtype=dt, device=dev)
     hi = -lo
     prior = torch.zeros(P, dtype=dt, device=dev)
-    lo[o_sig:o_al], hi[o_sig:o_al], prior[o_sig:o_al] = -shape_bound, shape_bound, shape_prior_precision
+    lo[o_sig:o_al], hi[o_sig:o_al] = -shape_bound, shape_bound
+    prior[o_sig:o_al] = shape_prior_vector(shape_prior_precision, S, dt, dev)[free_su]
     if nA:
         lo[o_al:o_k], hi[o_al:o_k] = m.animation_ranges[:, 0], m.animation_ranges[:, 1]
         prior[o_al:o_k] = expression_prior_precision
