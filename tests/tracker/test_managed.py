@@ -482,6 +482,31 @@ def test_texture_update_changes_the_template_only_when_asked(model, gentle):
         assert torch.equal(updated.management.mosaic.levels[level].intensity[:, 0], updated.templates[level].intensity)
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_a_lost_track_off_the_searched_depths_does_not_end_its_loss(model, gentle, native, monkeypatch):
+    """A lost stream on a clean frame ends its loss from its own track; the same stream whose last confident
+    depth was half the track's (outside the searched depths, search_depth_factors widened by 10 %) scores 0 and
+    stays lost, in the native and the torch gating alike."""
+    if not native:
+        monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    ms = state.management
+    lost = replace(ms, lost=torch.ones(1, dtype=torch.bool), since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype))
+    _, ended = managed_step(model, CFG, replace(state, management=lost), frames[:, 1])
+    assert bool(ended.success[0]) and float(ended.confidence[0]) > 0.5  # the control: the loss ends
+    near = ms.confident_params.clone()
+    near[:, 5] *= 1.25  # the track at 0.8 of that depth: inside the widened range, the loss still ends
+    _, inside = managed_step(model, CFG, replace(state, management=replace(lost, confident_params=near)), frames[:, 1])
+    assert bool(inside.success[0])
+    far = ms.confident_params.clone()
+    far[:, 5] *= 0.5  # the track at twice its last confident depth
+    after, kept = managed_step(model, CFG, replace(state, management=replace(lost, confident_params=far)), frames[:, 1])
+    assert not bool(kept.success[0]) and float(kept.confidence[0]) == 0.0
+    assert bool(after.management.lost[0])
+    torch.testing.assert_close(kept.rotation, ended.rotation)  # the same solve; only the gating differs
+
+
 def test_errors(model, gentle):
     frames, gt = gentle
     bare_state, _ = initialise(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))

@@ -194,6 +194,11 @@ class TemplateConfig:
             frontal, so 0.7 kept such a stream lost for tens of frames, and 0.3-0.45 at 45-50 degrees of yaw
             from its nearest entry, so 0.5 kept the James long run lost through a whole turn with errors of 4-5
             degrees (frames 2777-2866; 0.35: 2777-2800 and 2849-2866; both with ``add_confidence`` 0.5).
+            A lost stream's continued track outside the searched depths (``search_depth_factors`` of its last
+            confident depth, widened by 10%) scores 0, whatever its patches say: on the CANDIDE-3 long run with
+            landmark-noise draw 2 (and README's per-unit shape prior with ``LookaheadConfig(min_keyframes=1,
+            yaw_deg=10)``), lost under an occluder, the track drifted to twice the depth and 51 degrees
+            off, scored 0.58 and ended the loss.
         recovery_every: a lost stream attempts a recovery when it is lost and then every this many frames (an
             attempt costs about three frames' time: the search, then a solve).
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level

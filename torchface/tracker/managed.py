@@ -32,7 +32,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence`` replaces it
    (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
    when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
-   ``recover_confidence``.
+   ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went
+   astray, however well its patches match).
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
@@ -703,6 +704,15 @@ def managed_step(
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
+    # A lost stream's track that has left the depths its recovery searches (search_depth_factors of its last
+    # confident depth, widened by 10 %) went astray, whatever its confidence: it scores 0, so it neither ends the
+    # loss nor counts as confident (CANDIDE-3 long run, landmark-noise draw 2, with README's per-unit shape prior
+    # and early re-anchoring: lost under an occluder, the track drifted to twice the true depth and 51 degrees
+    # off, scored 0.58 there and ended the loss for good).
+    if bool(ms.lost.any()):
+        ratio = solved.params[:, layout.translation][:, 2] / ms.confident_params[:, layout.translation][:, 2]
+        lo, hi = min(tc.search_depth_factors) / 1.1, max(tc.search_depth_factors) * 1.1
+        conf = torch.where(ms.lost & ((ratio < lo) | (ratio > hi)), torch.zeros_like(conf), conf)
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
         confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
