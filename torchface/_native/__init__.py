@@ -50,7 +50,7 @@ _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 12
+_ABI_VERSION = 13
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -108,7 +108,7 @@ class ConfProblem(ctypes.Structure):
                                             "min_patches", "S", "A", "E")),  # fmt: skip
         *((name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "min_facing_cos", "min_gain", "depth_eps", "eps",
                                                "tolerance", "max_displacement", "max_displacement_or_inf",
-                                               "min_support", "min_present_fraction", "d0")),  # fmt: skip
+                                               "min_support", "min_present_fraction", "d0", "trim_fraction")),  # fmt: skip
         *((name, ctypes.c_void_p) for name in (
             "mean", "shape_units", "anim_units", "faces", "surface", "shape", "alpha", "R", "t", "ypr", "face_index",
             "pixel_index", "bary", "frames", "illumination", "rows", "mosaic_ypr", "used", "kernel", "patch_valid",

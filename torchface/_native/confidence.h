@@ -118,12 +118,13 @@ static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
     FN(masked_gray)(&lk, 0, gray, tmp);
     for (int k = 0; k < K; ++k) FN(track_patch)(&lk, 0, k, gray, mask, err, w);
 
-    /* dissimilarity(): mean of min(|p|, d_max) over the present patches, confidence exp(-(d / d0)^2) */
+    /* dissimilarity(): mean of min(|p|, d_max) over the present patches less the largest floor(trim_fraction *
+     * count) of them (trimmed_mean; at least one kept), confidence exp(-(d / d0)^2) */
     const uint8_t *patch_valid = p->patch_valid + ek;
     const REAL *pk = (const REAL *)p->out_p + 2 * (size_t)b * K, *support = (const REAL *)p->out_support + (size_t)b * K;
     const double dmax = p->max_displacement_or_inf;
     int count = 0, valid_patches = 0;
-    double sum = 0.0;
+    REAL kept[K > 0 ? K : 1]; /* the present patches' displacements, ascending */
     for (int k = 0; k < K; ++k) {
         valid_patches += patch_valid[k] != 0;
         int present = patch_valid[k] && (double)support[k] >= p->min_support;
@@ -133,11 +134,17 @@ static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
         if (!(d == d)) d = dmax; /* NaN */
         d = d < dmax ? d : dmax;
         if (!lk.out_valid[k]) d = dmax;
-        sum += (double)(REAL)d;
-        ++count;
+        /* insertion into the ascending list of the present patches' displacements */
+        int i = count++;
+        for (; i > 0 && kept[i - 1] > (REAL)d; --i) kept[i] = kept[i - 1];
+        kept[i] = (REAL)d;
     }
     int enough = count >= p->min_patches && (double)count >= p->min_present_fraction * valid_patches;
-    double mean = sum / (count > 1 ? count : 1);
+    int keep = count - (int)floor((double)(REAL)count * p->trim_fraction);
+    if (keep < 1) keep = 1;
+    double sum = 0.0;
+    for (int i = 0; i < keep && i < count; ++i) sum += (double)kept[i];
+    double mean = sum / keep;
     double d = enough ? mean : dmax;
     ((REAL *)p->out_dissimilarity)[b] = (REAL)d;
     ((REAL *)p->out_confidence)[b] = enough ? (REAL)exp(-(d / p->d0) * (d / p->d0)) : (REAL)0;

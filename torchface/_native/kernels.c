@@ -60,7 +60,7 @@ typedef struct {
     int B, V, F, M, C, G, height, width, K, n, radius, iterations, project_out_bias, has_max_displacement,
         min_patches, S, A, E;
     double fx, fy, cx, cy, min_facing_cos, min_gain, depth_eps, eps, tolerance, max_displacement,
-        max_displacement_or_inf, min_support, min_present_fraction, d0;
+        max_displacement_or_inf, min_support, min_present_fraction, d0, trim_fraction;
     const void *mean, *shape_units, *anim_units;
     const int64_t *faces;
     const uint8_t *surface;
@@ -153,7 +153,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 12; }
+int tf_abi_version(void) { return 13; }
 
 /* The chunks [batch k / n, batch (k + 1) / n) of a kernel's streams on OpenMP's threads (n of them, at most
  * threads), where built with -fopenmp: the runtime torch's own threads use (torchface._native.run_chunks). */

@@ -774,6 +774,7 @@ def native_mosaic_confidence(
         depth_eps=torch.finfo(dtype).eps, eps=torch.finfo(dtype).eps, tolerance=float(dc.tolerance),
         max_displacement=float(dmax or 0.0), max_displacement_or_inf=float("inf") if dmax is None else float(dmax),
         min_support=float(dc.min_support), min_present_fraction=float(dc.min_present_fraction), d0=float(dc.d0),
+        trim_fraction=float(dc.trim_fraction),
         mean=mean.data_ptr(), shape_units=shape_units.data_ptr(), anim_units=anim_units.data_ptr(),
         faces=faces.data_ptr(), surface=surface.data_ptr(), shape=ptr[0], alpha=ptr[1], R=ptr[2], t=ptr[3],
         ypr=None if ypr is None else ypr.data_ptr(), face_index=face_index.data_ptr(),
