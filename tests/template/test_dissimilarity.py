@@ -18,6 +18,7 @@ from torchface.template.dissimilarity import (
     dissimilarity,
     inverse_compositional_lk,
     lk_template,
+    trimmed_mean,
 )
 
 
@@ -229,6 +230,42 @@ def test_shift_and_corruption_lower_confidence():
     d2, conf2 = dissimilarity(ref, torch.cat([face, noisy, other]), mask.expand(3, -1, -1, -1))[:2]
     assert d2[0] < 1e-6 and d2[1] > 0.05 and d2[2] > 1.0
     assert conf2[0] > conf2[1] > conf2[2]
+
+
+def test_trimmed_mean_known_answers():
+    """The largest floor(trim * count) present displacements are left out; absent patches never count; at least
+    one patch is kept; trim 0 is the plain mean."""
+    dist = torch.tensor([[0.2, 2.9, 0.5, 0.2, 1.0, 0.9, 0.4, 2.3], [5.0, 1.0, 3.0, 9.0, 2.0, 0.0, 0.0, 0.0],
+                         [4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)  # fmt: skip
+    present = torch.tensor([[True] * 8, [True, True, True, False, True, False, False, False],
+                            [True] + [False] * 7])  # fmt: skip
+    count = present.sum(-1)
+    got = trimmed_mean(dist, present, count, 0.25)
+    # 8 present: the two largest (2.9, 2.3) out; 4 present: floor(1) = the 5.0 out; 1 present: kept.
+    expected = torch.tensor([(0.2 + 0.5 + 0.2 + 1.0 + 0.9 + 0.4) / 6, (1.0 + 3.0 + 2.0) / 3, 4.0], dtype=torch.float64)
+    torch.testing.assert_close(got, expected)
+    plain = (dist * present).sum(-1) / count
+    torch.testing.assert_close(trimmed_mean(dist, present, count, 0.0), plain)
+    with pytest.raises(ValueError, match="trim_fraction"):
+        DissimilarityConfig(trim_fraction=1.0)
+
+
+def test_trimming_keeps_a_few_displaced_patches_from_deciding():
+    """A quarter of the patches of an otherwise matching face replaced by another texture: with the default trim
+    (0.25) the confidence stays at the clean face's; without it, it falls."""
+    face, mask = _face(batch=1)
+    ref = build_dissimilarity_reference(face, mask)
+    centres = ref.centres[0]
+    K = int(centres.shape[0])
+    other = _face(batch=1, seed=11)[0]
+    spoiled = face.clone()
+    for cx, cy in centres[: K // 4].round().long().tolist():
+        spoiled[..., cy - 6 : cy + 7, cx - 6 : cx + 7] = other[..., cy - 6 : cy + 7, cx - 6 : cx + 7]
+    spoiled = spoiled * mask
+    trimmed = dissimilarity(ref, spoiled, mask)
+    plain = dissimilarity(build_dissimilarity_reference(face, mask, DissimilarityConfig(trim_fraction=0.0)), spoiled, mask)
+    assert float(plain.dissimilarity[0]) > float(trimmed.dissimilarity[0])
+    assert float(trimmed.confidence[0]) > 0.9 and float(plain.confidence[0]) < 0.8, (trimmed, plain)
 
 
 def test_dissimilarity_batch_equals_per_sample_and_broadcast_reference():

@@ -702,8 +702,9 @@ def dissimilarity(
     """Dissimilarity (pixels) and confidence in ``[0, 1]`` of normalised faces against the reference.
 
     Each of the reference's patches is tracked on ``normalised`` by :func:`inverse_compositional_lk` (both
-    images gray, masked and smoothed alike), and ``d = mean_k min(|p_k|, d_max)`` over the present patches,
-    ``confidence = exp(-(d / d0)^2)`` (module docstring). No patch present gives ``d = d_max`` and
+    images gray, masked and smoothed alike), and ``d = mean_k min(|p_k|, d_max)`` over the present patches
+    less the largest ``trim_fraction`` of them (:func:`trimmed_mean`), ``confidence = exp(-(d / d0)^2)``
+    (module docstring). No patch present gives ``d = d_max`` and
     confidence 0, never NaN.
 
     Args:
