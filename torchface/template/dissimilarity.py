@@ -31,7 +31,9 @@ positions of highest texture (the smaller eigenvalue of the structure tensor sum
 Shi and Tomasi's "good features to track"), whose patch lies entirely inside the reference mask, kept apart
 by non-maximum suppression. :func:`dissimilarity` tracks them on the current normalised face, and
 
-    ``d = mean_k min(|p_k|, d_max)``   over the patches present,     ``confidence = exp(-(d / d0)^2)``.
+    ``d = mean_k min(|p_k|, d_max)``   over the patches present,     ``confidence = exp(-(d / d0)^2)``,
+
+the mean leaving out the largest ``trim_fraction`` (a quarter) of the present patches' displacements.
 
 A patch is missing when less than ``min_support`` of its reference pixels are inside the current mask at its
 final position (or when the reference had no patch in that slot); a patch whose solve fails (singular
