@@ -72,6 +72,7 @@ __all__ = [
     "DissimilarityResult",
     "inverse_compositional_lk",
     "build_dissimilarity_reference",
+    "trimmed_mean",
     "dissimilarity",
 ]
 
