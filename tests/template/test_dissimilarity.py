@@ -250,6 +250,16 @@ def test_trimmed_mean_known_answers():
         DissimilarityConfig(trim_fraction=1.0)
 
 
+def test_gaussian_kernels_are_cached_and_trimmed_mean_is_not():
+    """The smoothing kernels are cached constants (one build per sigma, dtype, device); the trimmed mean, whose
+    arguments are per-frame tensors, is a plain function."""
+    from torchface.template.dissimilarity import _gaussian_kernels
+
+    a = _gaussian_kernels(1.0, torch.float64, torch.device("cpu"))
+    assert _gaussian_kernels(1.0, torch.float64, torch.device("cpu")) is a
+    assert not hasattr(trimmed_mean, "cache_info")
+
+
 def test_trimming_keeps_a_few_displaced_patches_from_deciding():
     """A quarter of the patches of an otherwise matching face replaced by another texture: with the default trim
     (0.25) the confidence stays at the clean face's; without it, it falls."""

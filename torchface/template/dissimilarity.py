@@ -553,7 +553,6 @@ class DissimilarityResult(NamedTuple):
     present: Tensor
 
 
-@functools.lru_cache(maxsize=16)
 def trimmed_mean(dist: Tensor, present: Tensor, count: Tensor, trim_fraction: float) -> Tensor:
     """``(B,)`` the mean of ``dist`` ``(B, K)`` over the ``present`` patches after leaving out the largest
     ``floor(trim_fraction * count)`` of them (``count`` ``(B,)`` present per row; at least one kept)."""
@@ -563,6 +562,7 @@ def trimmed_mean(dist: Tensor, present: Tensor, count: Tensor, trim_fraction: fl
     return torch.where(used, ordered, torch.zeros_like(ordered)).sum(-1) / keep.to(dist.dtype)
 
 
+@functools.lru_cache(maxsize=16)
 def _gaussian_kernels(sigma: float, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """The normalised 1D Gaussian of ``sigma`` (radius ``round(3 sigma)``, at least 1) as ``(1, 1, 1, k)`` and
     ``(1, 1, k, 1)`` convolution weights along rows and columns: cached constants (never modify them), made
