@@ -140,7 +140,7 @@ static void FN(confidence_one)(const TFConfProblem *p, int b, REAL *work) {
         kept[i] = (REAL)d;
     }
     int enough = count >= p->min_patches && (double)count >= p->min_present_fraction * valid_patches;
-    int keep = count - (int)floor((double)(REAL)count * p->trim_fraction);
+    int keep = count - (int)floor((double)count * p->trim_fraction);
     if (keep < 1) keep = 1;
     double sum = 0.0;
     for (int i = 0; i < keep && i < count; ++i) sum += (double)kept[i];

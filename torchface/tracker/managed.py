@@ -614,6 +614,13 @@ def _recover(
 
 
 @without_autograd(step_grad_inputs)
+def _within_searched_depths(params: Tensor, confident_params: Tensor, layout: ParamLayout, tc: TemplateConfig) -> Tensor:
+    """``(B,)`` bool: the depth of ``params`` ``(B, P)`` lies within the depths the recovery search tries
+    (``search_depth_factors`` of the depth of ``confident_params`` ``(B, P)``, widened by 10%)."""
+    ratio = params[:, layout.translation][:, 2] / confident_params[:, layout.translation][:, 2]
+    return (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
+
+
 def managed_step(
     model: FaceModel,
     config: TrackerConfig,
@@ -710,9 +717,8 @@ def managed_step(
     # and early re-anchoring: lost under an occluder, the track drifted to twice the true depth and 51 degrees
     # off, scored 0.58 there and ended the loss for good).
     if bool(ms.lost.any()):
-        ratio = solved.params[:, layout.translation][:, 2] / ms.confident_params[:, layout.translation][:, 2]
-        lo, hi = min(tc.search_depth_factors) / 1.1, max(tc.search_depth_factors) * 1.1
-        conf = torch.where(ms.lost & ((ratio < lo) | (ratio > hi)), torch.zeros_like(conf), conf)
+        near = _within_searched_depths(solved.params, ms.confident_params, layout, tc)
+        conf = torch.where(ms.lost & ~near, torch.zeros_like(conf), conf)
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
         confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
@@ -754,9 +760,7 @@ def managed_step(
         apart = apart > tc.adopt_min_angle_deg
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
-            depth_c = ms.confident_params[index][:, layout.translation][:, 2]
-            ratio = r_state.params[:, layout.translation][:, 2] / depth_c
-            near = (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
+            near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
         ok = adopt & (r_conf >= tc.recover_confidence)
