@@ -36,7 +36,7 @@ from torchface.template.management import (
     select_entries,
 )
 from torchface.template.points import build_template
-from torchface.tracker.fit import fit_landmarks
+from torchface.tracker.fit import FitConfig, fit_landmarks
 
 W, H = 320, 240
 D = torch.float64
@@ -58,7 +58,8 @@ def scene(model):
     )  # fmt: skip
     frames, gt = render_sequence(spec)
     frames = frames.to(D)
-    fit = fit_landmarks(model, gt.landmarks_px[:1].to(D), gt.intrinsics)
+    # exact landmarks: nothing to hold against noise (FitConfig.held_shape_units), so the shape fits the render's
+    fit = fit_landmarks(model, gt.landmarks_px[:1].to(D), gt.intrinsics, config=FitConfig(held_shape_units=()))
     gray = frames[:1].mean(1, keepdim=True)
     tpl = build_template(model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray, gt.intrinsics,
                          max_points=800, gradient_threshold=0.01)  # fmt: skip

@@ -12,11 +12,14 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg
 from torchface.model.candide import load_candide3
-from torchface.tracker import FitConfig, LandmarkFit, TrackerConfig, fit_landmarks
+from torchface.tracker import (
+    CANDIDE3_VERTICAL_UNITS, FitConfig, LandmarkFit, TrackerConfig, fit_landmarks, held_shape_indices,
+)
+from torchface.tracker.fit import shape_precisions
 
 D = torch.float64
 CAM = Intrinsics.default(640, 480)
-EXACT = FitConfig(shape_prior_precision=0.0, max_iterations=100, refine_shape_prior_precision=None)
+EXACT = FitConfig(shape_prior_precision=0.0, held_shape_units=(), max_iterations=100, refine_shape_prior_precision=None)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +73,7 @@ def test_exact_landmarks_with_expression(model):
     corner = model.animation_names.index("AUV14 Lip corner depressor")
     anim[:, jaw] = torch.tensor([0.5, 0.8, 0.2], dtype=D)
     anim[:, corner] = 0.3
-    cfg = FitConfig(shape_prior_precision=0.0, fit_expression=True, expression_prior_precision=0.0, max_iterations=100)
+    cfg = FitConfig(shape_prior_precision=0.0, held_shape_units=(), fit_expression=True, expression_prior_precision=0.0, max_iterations=100)
     fit = fit_landmarks(model, project_landmarks(model, R, t, None, anim), CAM, config=cfg)
     assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-6
     torch.testing.assert_close(fit.anim_coeffs[:, [jaw, corner]], anim[:, [jaw, corner]], rtol=0, atol=1e-6)
@@ -84,27 +87,13 @@ def test_default_prior_is_unbiased_for_the_mean_shape(model):
     torch.testing.assert_close(fit.translation, t, rtol=0, atol=1e-3)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="KNOWN SHORTFALL: the default shape prior (FitConfig.shape_prior_precision=2) is weak so that the shape "
-    "fits faces unlike the mean (it lowers pose_sweep's tracking error from 0.63 to 0.47 deg and scan_motion's from "
-    "3.2 to 2.5 deg), and it lets 2 px of noise tip the pose: 2.75 deg worst / 1.68 mean over these 8 seeds (1.91 / "
-    "1.37 at precision 50, 1.7 at 200). The tracker's own fit (TrackerConfig().fit, which also fits a starting "
-    "expression with a weak prior) tips it further: 6.41 worst / 2.77 mean. A two-stage fit (shape precision 200, "
-    "then the shape alone at 2: refine_shape_prior_precision) meets it here (1.56 / 1.17) but tracks worse "
-    "(evaluate.py: pose_sweep mean 0.47 -> 0.54 deg, lip stretcher RMSE 0.045 -> 0.093, scan_motion mean 1.89 -> "
-    "3.07 deg). The pose is tipped through the units that move features vertically (eyebrows, eyes, nose and mouth "
-    "vertical position): a precision of 512 on those four alone gives 1.24 / 1.02 with the tracker's fit (1.33 / "
-    "1.00 without the expression) and tracks pose_sweep better (mean 0.31 -> 0.23 deg), but on the James scan it "
-    "pitches the first frame further and scan_motion's first turn, before the online re-anchoring, reaches 7.35 deg "
-    "(3.95 now; target 5). test_two_pixel_noise_with_the_vertical_units_held below meets it with that per-unit "
-    "prior at 256; README, 'Known limitations', gives its tracking trade-off. Remove this mark when the default "
-    "meets < 2 deg.",
-)
 @pytest.mark.parametrize("which", ["fit_default", "tracker_default"])
 def test_two_pixel_noise_frontal_640x480(model, which):
-    """Gaussian noise of 2 px on every landmark of a frontal face (mean shape) at 450 mm: pose error < 2 deg
-    for each of 8 seeds (fitted at once as a batch of 8), with FitConfig() and with the tracker's fit."""
+    """Deliverable 1: Gaussian noise of 2 px on every landmark of a frontal face (mean shape) at 450 mm, pose error
+    < 2 deg for each of 8 seeds (fitted at once as a batch of 8), with FitConfig() and with the tracker's fit (which
+    also fits a starting expression). Measured 1.42 / 1.46 worst, 1.05 / 1.12 mean. Without the held units
+    (``held_shape_units=()``, the default before) the noise tips the pose through the units that move features
+    vertically: 2.75 / 6.41 worst."""
     R, noisy = frontal_two_pixel_draws(model)
     config = FitConfig() if which == "fit_default" else TrackerConfig().fit
     fit = fit_landmarks(model, noisy, CAM, config=config)
@@ -113,27 +102,40 @@ def test_two_pixel_noise_frontal_640x480(model, which):
     assert float(err.mean()) < 1.5
     # the residual is the noise: RMS over x and y close to 2 px per coordinate (sqrt(2) * 2 per point)
     assert bool(((fit.rms_px > 1.5) & (fit.rms_px < 3.5)).all()), fit.rms_px.tolist()
+    free = fit_landmarks(model, noisy, CAM, config=replace(config, held_shape_units=()))
+    assert float(geodesic_angle_deg(free.rotation, R).max()) > 2.5  # what holding them buys
 
 
-VERTICAL = ("Eyebrows vertical position", "Eyes vertical position", "Nose vertical position", "Mouth vertical position")
-
-
-def vertical_prior(model, strong: float) -> tuple[float, ...]:
-    """Per-unit shape precisions: ``strong`` on the units that move features vertically, 2 on the others."""
-    return tuple(strong if name in VERTICAL else 2.0 for name in model.shape_names)
-
-
-@pytest.mark.parametrize("which", ["fit_default", "tracker_default"])
-def test_two_pixel_noise_with_the_vertical_units_held(model, which):
-    """The per-unit prior of FitConfig's docstring (256 on the four vertical-position units, 2 elsewhere) meets
-    deliverable 1 on the same 8 draws as the test above (< 2 deg each, 1.5 mean), with and without the starting
-    expression; at a uniform 2 the draws reach 2.75 and 6.41 deg (the xfail above)."""
-    assert [model.shape_names.index(n) for n in VERTICAL] == [1, 2, 8, 10]  # the indices the docstring names
-    R, noisy = frontal_two_pixel_draws(model)
-    base = FitConfig() if which == "fit_default" else TrackerConfig().fit
-    fit = fit_landmarks(model, noisy, CAM, config=replace(base, shape_prior_precision=vertical_prior(model, 256.0)))
-    err = geodesic_angle_deg(fit.rotation, R)
-    assert float(err.max()) < 2.0 and float(err.mean()) < 1.5, f"rotation errors (deg) over seeds: {err.tolist()}"
+def test_held_shape_units(model):
+    """``held_shape_units``: None holds CANDIDE-3's four vertical-position units (the per-unit tuple with
+    ``held_shape_precision`` there gives the same fit), a model without those names holds none, explicit names
+    are the model's or refused, and ``()`` holds none."""
+    assert CANDIDE3_VERTICAL_UNITS == (
+        "Eyebrows vertical position", "Eyes vertical position", "Nose vertical position", "Mouth vertical position")
+    assert held_shape_indices(FitConfig(), model.shape_names) == (1, 2, 8, 10)
+    assert held_shape_indices(FitConfig(), ("shape0", "shape1")) == ()  # e.g. a mesh model's default names
+    assert held_shape_indices(FitConfig(held_shape_units=()), model.shape_names) == ()
+    mouth = FitConfig(held_shape_units=("Mouth width", "Head height"))
+    assert held_shape_indices(mouth, model.shape_names) == (0, 11)
+    with pytest.raises(ValueError, match="not among the model's shape units"):
+        held_shape_indices(FitConfig(held_shape_units=("Nose length",)), model.shape_names)
+    R, noisy = frontal_two_pixel_draws(model, draws=3)
+    per_unit = tuple(256.0 if i in (1, 2, 8, 10) else 2.0 for i in range(model.num_shape))
+    a = fit_landmarks(model, noisy, CAM, config=FitConfig())
+    b = fit_landmarks(model, noisy, CAM, config=FitConfig(held_shape_units=(), shape_prior_precision=per_unit))
+    for name in LandmarkFit.__dataclass_fields__:
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    torch.testing.assert_close(
+        shape_precisions(mouth, model.shape_names, D, "cpu"),
+        torch.tensor([256.0] + [2.0] * 10 + [256.0] + [2.0] * 2, dtype=D),
+    )
+    with pytest.raises(ValueError, match="not among"):
+        fit_landmarks(model, noisy, CAM, config=FitConfig(held_shape_units=("Nose length",)))
+    for bad in (["Mouth width"], ("Mouth width", "Mouth width"), (3,)):
+        with pytest.raises(ValueError, match="held_shape_units"):
+            FitConfig(held_shape_units=bad)
+    with pytest.raises(ValueError, match="precisions"):
+        FitConfig(held_shape_precision=-1.0)
 
 
 def test_per_unit_shape_prior(model):

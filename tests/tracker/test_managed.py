@@ -41,7 +41,7 @@ W, H = 320, 240
 D = torch.float64
 LOST = int(TrackStatus.LOST)
 CFG = TrackerConfig(
-    num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0),
+    num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
     robust_scale_floor=(0.045, 0.02),
 )
 

@@ -41,7 +41,7 @@ FAILED = int(TrackStatus.FAILED)
 # Exact landmarks + no shape prior give the exact first pose (tests/tracker/test_fit.py), so errors below are the
 # tracker's own. Small templates keep the file fast.
 BASE = TrackerConfig(
-    num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0),
+    num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
     robust_scale_floor=(0.045, 0.02),  # the two finest levels of the default three-level schedule
 )
 L2 = replace(BASE, robust=RobustKind.NONE)

@@ -29,7 +29,7 @@ D = torch.float64
 G = 12  # canonical image size of the gradient tests
 SMALL = TrackerConfig(
     num_levels=1, max_points=80, iterations=(4,), min_points=10, robust_scale_floor=(0.02, 0.02),
-    fit=FitConfig(shape_prior_precision=0.0, fit_expression=True, expression_prior_precision=2.0),
+    fit=FitConfig(shape_prior_precision=0.0, held_shape_units=(), fit_expression=True, expression_prior_precision=2.0),
 )
 
 
@@ -173,7 +173,7 @@ def test_unrolled_at_the_exact_minimum_is_detached(model, small):
     its gradient still differs from the detached one."""
     frames, _, _ = small
     _, landmarks = _clip(32)
-    cfg = replace(SMALL, fit=FitConfig(shape_prior_precision=0.0, fit_expression=False))
+    cfg = replace(SMALL, fit=FitConfig(shape_prior_precision=0.0, held_shape_units=(), fit_expression=False))
     weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(4))
     det = NormalisedFaceLayer(LayerConfig(size=G, tracker=cfg), model)
     state, _ = det.initialise(frames[:1], landmarks[:1])

@@ -1,7 +1,7 @@
 """The tracker: initial fit (Eq. 2), per-frame joint minimisation (Eq. 20), batched streams."""
 
 from torchface.backend import Backend
-from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.fit import CANDIDE3_VERTICAL_UNITS, FitConfig, LandmarkFit, fit_landmarks, held_shape_indices
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit, refine_first_fit, select_keyframes
 from torchface.tracker.managed import (
     LandmarkDetector,
@@ -25,6 +25,7 @@ from torchface.tracker.step import (
 )
 
 __all__ = [
+    "CANDIDE3_VERTICAL_UNITS",
     "Backend",
     "FaceTracker",
     "FitConfig",
@@ -41,6 +42,7 @@ __all__ = [
     "fit_landmarks",
     "frame_residuals",
     "gray_pyramid",
+    "held_shape_indices",
     "initialise",
     "initialise_managed",
     "level_intrinsics",

@@ -9,6 +9,7 @@ positions and bases interpolated from the model's landmark table.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -28,12 +29,17 @@ class FitConfig:
     Attributes:
         shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in
             units of squared pixels of landmark error per unit coefficient squared: one value for every unit, or
-            a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks it). Per unit, a
-            strong prior can hold the units that trade with the pose: for CANDIDE-3, 256 on the four that move
-            features vertically (eyebrows, eyes, nose and mouth vertical position, indices 1, 2, 8, 10) and 2 on
-            the others keeps the pose error from 2 px of landmark noise on a frontal face under 2 degrees (1.42
-            worst over 8 draws, against 2.75 at a uniform 2); README, "Known limitations", gives what it does to
-            tracking.
+            a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks it). Weak (2) so
+            that the shape fits faces unlike the mean.
+        held_shape_units: names of the shape units whose precision is ``held_shape_precision`` instead. From
+            one frontal view the units that move features vertically trade with the head's pitch, and 2 px of
+            landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting expression);
+            held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has (none for a
+            model without those names); ``()``: none. Names given must be the model's (:func:`fit_landmarks`
+            checks). The online look-ahead start lets these units go again once the head has turned
+            (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from the
+            pitch.
+        held_shape_precision: the precision of ``held_shape_units``.
         shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.
         fit_expression: also estimate a starting expression (animation units, bounded by the model's ranges).
         expression_prior_precision: prior precision on the animation units when ``fit_expression``.
@@ -45,6 +51,8 @@ class FitConfig:
     """
 
     shape_prior_precision: float | tuple[float, ...] = 2.0
+    held_shape_units: tuple[str, ...] | None = None
+    held_shape_precision: float = 256.0
     shape_bound: float = 1.0
     fit_expression: bool = False
     expression_prior_precision: float = 200.0
@@ -58,7 +66,14 @@ class FitConfig:
         precisions = shape if isinstance(shape, tuple) else (shape,)
         if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
             raise ValueError(f"shape_prior_precision must be a number or a non-empty tuple of numbers, got {shape!r}")
-        if any(not math.isfinite(p) or p < 0 for p in (*precisions, self.expression_prior_precision)):
+        held = self.held_shape_units
+        if held is not None and (not isinstance(held, tuple) or any(not isinstance(n, str) for n in held)
+                                 or len(set(held)) != len(held)):
+            raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
+        if any(
+            isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0
+            for p in (*precisions, self.expression_prior_precision, self.held_shape_precision)
+        ):
             raise ValueError("prior precisions must be finite and non-negative")
         if not self.shape_bound > 0:
             raise ValueError(f"shape_bound must be positive, got {self.shape_bound}")
@@ -95,6 +110,40 @@ class LandmarkFit:
             v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
             for v in (getattr(self, f) for f in self.__dataclass_fields__)
         ))  # fmt: skip
+
+
+#: The shape units :class:`FitConfig` holds by default (``held_shape_units=None``): CANDIDE-3's units that move
+#: features vertically, which one frontal view cannot tell from the head's pitch.
+CANDIDE3_VERTICAL_UNITS: tuple[str, ...] = (
+    "Eyebrows vertical position", "Eyes vertical position", "Nose vertical position", "Mouth vertical position",
+)
+
+
+def held_shape_indices(config: FitConfig, shape_names: Sequence[str]) -> tuple[int, ...]:
+    """Indices (into ``shape_names``, the model's) of :attr:`FitConfig.held_shape_units`, ascending.
+
+    Raises:
+        ValueError: an explicitly given name that is not the model's.
+    """
+    names = list(shape_names)
+    if config.held_shape_units is None:
+        return tuple(i for i, n in enumerate(names) if n in CANDIDE3_VERTICAL_UNITS)
+    missing = [n for n in config.held_shape_units if n not in names]
+    if missing:
+        raise ValueError(f"held_shape_units {missing} are not among the model's shape units {tuple(names)}")
+    return tuple(sorted(names.index(n) for n in config.held_shape_units))
+
+
+def shape_precisions(
+    config: FitConfig, shape_names: Sequence[str], dtype: torch.dtype, device: torch.device | str | None
+) -> Tensor:
+    """``(S,)`` the landmark fit's shape prior precisions: :attr:`FitConfig.shape_prior_precision`, with
+    :attr:`FitConfig.held_shape_precision` on the held units (:func:`held_shape_indices`)."""
+    precision = shape_prior_vector(config.shape_prior_precision, len(shape_names), dtype, device)
+    held = held_shape_indices(config, shape_names)
+    if held:
+        precision[list(held)] = config.held_shape_precision
+    return precision
 
 
 def shape_prior_vector(
@@ -201,7 +250,7 @@ def fit_landmarks(
     inf = torch.full((6,), float("inf"), dtype=dtype, device=device)
     lower = [-inf, torch.full((S,), -config.shape_bound, dtype=dtype, device=device)]
     upper = [inf, torch.full((S,), config.shape_bound, dtype=dtype, device=device)]
-    prior = [torch.zeros(6, dtype=dtype, device=device), shape_prior_vector(config.shape_prior_precision, S, dtype, device)]
+    prior = [torch.zeros(6, dtype=dtype, device=device), shape_precisions(config, model.shape_names, dtype, device)]
     if A:
         lower.append(model.animation_ranges[:, 0])
         upper.append(model.animation_ranges[:, 1])

@@ -44,7 +44,9 @@ from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
-from torchface.tracker.fit import LandmarkFit, fit_landmarks, shape_prior_vector
+from torchface.tracker.fit import (
+    FitConfig, LandmarkFit, fit_landmarks, held_shape_indices, shape_precisions, shape_prior_vector,
+)
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
 __all__ = ["LookaheadConfig", "select_keyframes", "refine_first_fit", "lookahead_fit"]
@@ -58,18 +60,25 @@ class LookaheadConfig:
 
     Attributes:
         yaw_deg: a keyframe is the first frame whose tracked yaw, relative to the first frame's, reaches this on
-            one side; one keyframe per side.
+            one side; one keyframe per side. 10: with the landmark fit's vertical units held
+            (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`), the James scan's first frame is pitched
+            and its first turn drifts before the head has turned 20 degrees (``scan_motion`` max 7.35 degrees);
+            re-anchored at 10 degrees the largest error over landmark-noise draws 0-3 is 2.9-3.5.
         max_frames: frames tracked at most while looking for the keyframes (the first frame included).
-        min_keyframes: a stream with fewer keyframes keeps the landmark fit. Two (a turn to each side) by
-            default: with one side only the refinement was unreliable (``light_switch``, noise seed 1: mean error
-            0.44 -> 1.17 degrees with its one keyframe; James scan, seed 3: max 3.96 against 2.54 with both).
+        min_keyframes: a stream with fewer keyframes keeps the landmark fit. One (the first side the head turns
+            to) by default, so that the re-anchoring comes early; 2 waits for a turn to each side.
         min_confidence: a frame is a keyframe candidate only with at least this tracking confidence. 0.3: on the
             James scan with noise draw 1 the first frame's pitch is so far off that the confidence falls below
             0.5 before the head has turned 20 degrees, so at 0.5 that stream never had its first keyframe and was
             never re-anchored (``scan_motion`` mean 2.30 degrees; 1.13 at 0.3). The other draws and scenarios,
             and both long runs, track the same at 0.3 as at 0.5.
         shape_units: indices of the shape units re-estimated (the others keep the landmark fit's values); empty:
-            none. Measured on the James scan (seeds 0-3, max error): none 1.9-2.6 degrees, all 1.7-3.0.
+            none; None: the units the landmark fit held (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`,
+            the ``held_shape_units`` argument of :func:`refine_first_fit`). A keyframe sees the face from the
+            side, which separates the pitch from the vertical proportions that the frontal view confounds.
+        shape_prior_precision: prior precision of the re-estimated shape units (one value, or one per unit of
+            the model as :attr:`~torchface.tracker.fit.FitConfig.shape_prior_precision`); None: the landmark
+            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go.
         fit_expression: re-estimate the starting expression (shared by the first frame and the keyframes).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
             1e3 and 1e5 tracked worse than 1e4 on the James scan.
@@ -80,11 +89,12 @@ class LookaheadConfig:
         min_facing_cos: a point is used where its normal faces the viewing ray at least this much in both frames.
     """
 
-    yaw_deg: float = 20.0
+    yaw_deg: float = 10.0
     max_frames: int = 150
-    min_keyframes: int = 2
+    min_keyframes: int = 1
     min_confidence: float = 0.3
-    shape_units: tuple[int, ...] = ()
+    shape_units: tuple[int, ...] | None = None
+    shape_prior_precision: float | tuple[float, ...] | None = 2.0
     fit_expression: bool = True
     photometric_weight: float = 1e4
     iterations: tuple[int, ...] = (10, 8, 6)
@@ -112,8 +122,14 @@ class LookaheadConfig:
         if self.max_points < 1 or self.gradient_threshold < 0:
             raise ValueError(f"max_points must be >= 1 and gradient_threshold >= 0, got {self.max_points}, "
                              f"{self.gradient_threshold}")  # fmt: skip
-        if len(set(self.shape_units)) != len(self.shape_units) or any(s < 0 for s in self.shape_units):
+        units = self.shape_units
+        if units is not None and (
+            not isinstance(units, tuple) or len(set(units)) != len(units)
+            or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in units)
+        ):  # fmt: skip
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")
+        if self.shape_prior_precision is not None:
+            FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation
 
 
 def select_keyframes(rotation: Tensor, yaw_deg: float, confident: Tensor | None = None) -> list[int]:
@@ -140,6 +156,17 @@ def select_keyframes(rotation: Tensor, yaw_deg: float, confident: Tensor | None 
     return sorted(out)
 
 
+def landmark_fit_priors(model: FaceModel, fit_config: FitConfig) -> dict:
+    """The landmark fit's settings as :func:`refine_first_fit` takes them (keyword arguments): its shape
+    precisions per unit, bounds, expression precision and held units, for ``model``."""
+    precision = shape_precisions(fit_config, model.shape_names, torch.float64, "cpu")
+    return dict(
+        shape_prior_precision=tuple(precision.tolist()), shape_bound=fit_config.shape_bound,
+        expression_prior_precision=fit_config.expression_prior_precision,
+        held_shape_units=held_shape_indices(fit_config, model.shape_names),
+    )
+
+
 def refine_first_fit(
     model: FaceModel,
     frames: Tensor,
@@ -153,6 +180,7 @@ def refine_first_fit(
     shape_prior_precision: float | tuple[float, ...] = 2.0,
     shape_bound: float = 1.0,
     expression_prior_precision: float = 2.0,
+    held_shape_units: tuple[int, ...] = (),
     config: LookaheadConfig = LookaheadConfig(),
 ) -> LandmarkFit:
     """One stream's first-frame fit refined against keyframes (module docstring).
@@ -166,7 +194,11 @@ def refine_first_fit(
         key_rotation: ``(K, 3, 3)`` and key_translation ``(K, 3)``: the keyframes' tracked poses (the start).
         landmark_weights: ``(L,)`` or None, as given to :func:`fit_landmarks`.
         shape_prior_precision, shape_bound, expression_prior_precision: the landmark fit's
-            (:class:`~torchface.tracker.fit.FitConfig`).
+            (:class:`~torchface.tracker.fit.FitConfig`; the shape precisions as
+            :func:`~torchface.tracker.fit.shape_precisions` gives them).
+        held_shape_units: the shape units the landmark fit held
+            (:func:`~torchface.tracker.fit.held_shape_indices`): those re-estimated when ``config.shape_units``
+            is None.
         config: :class:`LookaheadConfig`.
 
     Returns:
@@ -175,7 +207,7 @@ def refine_first_fit(
     return _refine_first_fit(
         model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, landmark_weights=landmark_weights,
         shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
-        expression_prior_precision=expression_prior_precision, config=config,
+        expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units, config=config,
     )[0]  # fmt: skip
 
 
@@ -193,6 +225,7 @@ def _refine_first_fit(
     shape_bound: float,
     expression_prior_precision: float,
     config: LookaheadConfig,
+    held_shape_units: tuple[int, ...] = (),
     analytic: bool = True,
 ) -> tuple[LandmarkFit, Tensor, Tensor]:
     """:func:`refine_first_fit`, also returning the keyframes' refined poses: rotation ``(K, 3, 3)`` and
@@ -207,12 +240,13 @@ def _refine_first_fit(
     if fit.rotation.shape[0] != 1:
         raise ValueError(f"fit must be one stream's (batch 1), got batch {fit.rotation.shape[0]}")
     S, A = model.num_shape, model.num_animation
-    if any(s >= S for s in config.shape_units):
-        raise ValueError(f"shape_units must be < {S} (the model's shape units), got {config.shape_units}")
+    units = held_shape_units if config.shape_units is None else config.shape_units
+    if any(s >= S for s in units):
+        raise ValueError(f"shape_units must be < {S} (the model's shape units), got {units}")
     dt, dev = torch.float64, model.device
     m = model.to(dtype=dt)
-    free_su = torch.tensor(config.shape_units, dtype=torch.long, device=dev)
-    nf = len(config.shape_units)
+    free_su = torch.tensor(units, dtype=torch.long, device=dev)
+    nf = len(units)
     nA = A if config.fit_expression else 0
     levels = list(reversed(range(len(config.iterations))))
     pyramid = gray_pyramid(frames.to(device=dev, dtype=dt), len(levels))  # the tracker's levels
@@ -250,6 +284,8 @@ def _refine_first_fit(
     hi = -lo
     prior = torch.zeros(P, dtype=dt, device=dev)
     lo[o_sig:o_al], hi[o_sig:o_al] = -shape_bound, shape_bound
+    if config.shape_prior_precision is not None:
+        shape_prior_precision = config.shape_prior_precision
     prior[o_sig:o_al] = shape_prior_vector(shape_prior_precision, S, dt, dev)[free_su]
     if nA:
         lo[o_al:o_k], hi[o_al:o_k] = m.animation_ranges[:, 0], m.animation_ranges[:, 1]
@@ -521,9 +557,8 @@ def lookahead_fit(
             idx = torch.tensor([0] + keys[b], device=frames.device)
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b],
-                shape_prior_precision=fc.shape_prior_precision, shape_bound=fc.shape_bound,
-                expression_prior_precision=fc.expression_prior_precision, config=config,
+                landmark_weights=None if weights is None else weights[b], config=config,
+                **landmark_fit_priors(model, fc),
             )  # fmt: skip
         streams.append(one)
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

@@ -93,7 +93,7 @@ from torchface.template.points import (
 )
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
-from torchface.tracker.lookahead import LookaheadConfig, _refine_first_fit
+from torchface.tracker.lookahead import LookaheadConfig, _refine_first_fit, landmark_fit_priors
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -970,9 +970,8 @@ def _reanchor(
             one, key_R, key_t = _refine_first_fit(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
-                landmark_weights=None if w.weights is None else w.weights[b],
-                shape_prior_precision=fc.shape_prior_precision, shape_bound=fc.shape_bound,
-                expression_prior_precision=fc.expression_prior_precision, config=w.config,
+                landmark_weights=None if w.weights is None else w.weights[b], config=w.config,
+                **landmark_fit_priors(model, fc),
             )  # fmt: skip
             fits.append(one)
             now_R.append(key_R[-1])
