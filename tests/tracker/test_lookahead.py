@@ -16,6 +16,7 @@ from torchface.model.candide import load_candide3
 from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.synth.subjects import get_subject
 from torchface.tracker import (
     CANDIDE3_VERTICAL_UNITS,
     FaceTracker,
@@ -42,12 +43,12 @@ def model():
     return load_candide3()
 
 
-def render(ypr: list[list[float]]):
+def render(ypr: list[list[float]], anim: torch.Tensor | None = None):
     T = len(ypr)
     spec = SequenceSpec(
         name="la", subject="candide3", intrinsics=Intrinsics.default(W, H),
         rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor([[0.0, 0.0, 450.0]] * T, dtype=D),
-        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
+        anim=torch.zeros(T, load_candide3().num_animation, dtype=D) if anim is None else anim, light=default_light(T),
         background=BackgroundSpec(seed=3), photo="james",
     )  # fmt: skip
     return render_sequence(spec)
@@ -116,6 +117,39 @@ def test_photometric_term_alone_brings_wrong_free_units_back(model):
     assert torch.equal(out.shape_coeffs[0, others], shape[0, others])  # only the free unit moves
     # The true start pose stays within 2 degrees (1.5: the eyes' height trades a little with pitch).
     assert float(geodesic_angle_deg(out.rotation.double(), gt.rotation[:1])) < 2.0
+
+
+def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
+    """Keyframes at +-20 degrees with the jaw dropped 0.6 after a neutral first frame (the render's face, true
+    poses, exact landmarks). Untold, the refinement pulls the jaw the keyframes show into the starting
+    expression: the lip corner depressor, which moves the lower lip as the jaw does, comes out at -0.47 where
+    neutral keyframes give 0.14. Told the keyframes' expression change (``key_expression``, as the tracker measures
+    it), it comes out at 0.17, and the first pose stays within a degree."""
+    jaw, lcd = model.animation_names.index("AUV11 Jaw drop"), model.animation_names.index("AUV14 Lip corner depressor")
+    shape = get_subject("candide3").shape_coeffs.float()[None]  # the render's face
+    cfg = LookaheadConfig(iterations=(8, 6), max_points=1500)
+    out = {}
+    for name, peak in (("neutral", 0.0), ("jaw", 0.6)):
+        anim = torch.zeros(3, model.num_animation, dtype=D)
+        anim[1:, jaw] = peak
+        frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]], anim)
+        frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+        R = gt.rotation.to(torch.float32)
+        start = LandmarkFit(R[:1], matrix_to_axis_angle(R[:1]), gt.translation[:1].float(), shape,
+                            torch.zeros(1, model.num_animation), torch.zeros(1), torch.zeros(1, dtype=torch.int64))  # fmt: skip
+        for told in (False, True):
+            out[name, told] = refine_first_fit(
+                model, frames, gt.intrinsics, gt.landmarks_px[0].float(), start, R[1:], gt.translation[1:].float(),
+                config=cfg, key_expression=anim[1:].float() if told else None,
+            )  # fmt: skip
+    neutral = float(out["neutral", False].anim_coeffs[0, lcd])
+    assert torch.equal(out["neutral", True].anim_coeffs, out["neutral", False].anim_coeffs)  # zeros change nothing
+    assert abs(float(out["jaw", True].anim_coeffs[0, lcd]) - neutral) < 0.1, (out["jaw", True].anim_coeffs, neutral)
+    assert abs(float(out["jaw", False].anim_coeffs[0, lcd]) - neutral) > 0.3, (out["jaw", False].anim_coeffs, neutral)
+    assert float(geodesic_angle_deg(out["jaw", True].rotation.double(), gt.rotation[:1])) < 1.0
+    with pytest.raises(ValueError, match="key_expression"):
+        refine_first_fit(model, frames, gt.intrinsics, gt.landmarks_px[0].float(), start, R[1:],
+                         gt.translation[1:].float(), config=cfg, key_expression=anim[1:2].float())  # fmt: skip
 
 
 def test_refinement_takes_per_unit_shape_precisions(model):
@@ -326,12 +360,13 @@ def test_closed_form_jacobian_refines_as_forward_mode_autograd(model):
     start = LandmarkFit(R0, matrix_to_axis_angle(R0), gt.translation[:1].float() + 2.0, torch.zeros(1, model.num_shape),
                         anim, torch.zeros(1), torch.zeros(1, dtype=torch.int64))  # fmt: skip
     cfg = LookaheadConfig(shape_units=(eyes,), iterations=(4, 3), max_points=800)
+    key_expression = 0.2 * torch.rand(2, model.num_animation, generator=g)  # each keyframe's own expression offset
     out = {}
     for analytic in (True, False):
         out[analytic] = _refine_first_fit(
             model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(), landmark_weights=None,
             shape_prior_precision=2.0, shape_bound=1.0, expression_prior_precision=2.0, config=cfg,
-            analytic=analytic,
+            key_expression=key_expression, analytic=analytic,
         )  # fmt: skip
     (a, Ra, ta), (b, Rb, tb) = out[True], out[False]
     for name in ("axis_angle", "translation", "shape_coeffs", "anim_coeffs"):

@@ -7,9 +7,11 @@ because every later pose is measured against the first frame's template, that pi
 what the first frame's texture must look like there fixes the pitch.
 
 :func:`lookahead_fit` tracks a stream's first frames as usual until the head has turned by
-``LookaheadConfig.yaw_deg`` to each side (the two *keyframes*, :func:`select_keyframes`), then
-:func:`refine_first_fit` minimises jointly over the first frame's pose, its starting expression (optional
-shape units) and each keyframe's pose and illumination (gain, bias, three directional terms)::
+``LookaheadConfig.yaw_deg`` to each side (the *keyframes*, :func:`select_keyframes`; with one side only, the
+stream is refined from that one when ``min_keyframes`` is 1, the default), then :func:`refine_first_fit`
+minimises jointly over the first frame's pose, its starting expression, the shape units the landmark fit held
+(:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`, or those listed) and each keyframe's pose and
+illumination (gain, bias, three directional terms)::
 
     sum_k sum_p w * 2 huber( I_k(pi(P_k X_p)) - I_0(pi(P_0 X_p)) (1 + g_k + n_p^k . l_k) - b_k )
       + sum_landmarks |pi(P_0 L) - l|^2 + priors                      (the landmark fit's own terms, Eq. 2)
@@ -21,12 +23,13 @@ caller then starts tracking at the first frame again from the refined fit
 (``initialise(..., fit=...)``): a two-pass start for a video whose frames are all at hand (files,
 dataloaders, evaluation), not for a live stream.
 
-Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3`` (max rotation error relative to frame 0,
+Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3``, with the earlier defaults (no held shape units,
+two keyframes at 20 degrees; max rotation error relative to frame 0,
 seeds 0 / 1 / 2 / 3, degrees): ``scan_motion`` 5.70 / 7.05 / 4.21 / 5.46 -> 2.24 / 2.02 / 1.93 / 2.54 (mean
 1.89 / 2.41 / 1.38 / 1.54 -> 0.42 / 0.44 / 0.39 / 0.51); ``pose_sweep`` 1.28 / 2.05 / 0.87 / 1.31 -> 0.73 / 0.97 /
 0.88 / 0.65. The first frame's own rotation error on the James scan: 4.0-7.8 -> 1.2-1.7 degrees. Its depth can
 move by several millimetres (``pose_sweep`` seed 3: first-frame translation error 0.6 -> 9.5 mm). Scenarios
-without a turn to each side in their first frames keep the landmark fit.
+without a turn in their first frames keep the landmark fit.
 """
 
 from __future__ import annotations
@@ -176,6 +179,7 @@ def refine_first_fit(
     key_rotation: Tensor,
     key_translation: Tensor,
     *,
+    key_expression: Tensor | None = None,
     landmark_weights: Tensor | None = None,
     shape_prior_precision: float | tuple[float, ...] = 2.0,
     shape_bound: float = 1.0,
@@ -192,6 +196,11 @@ def refine_first_fit(
         landmarks_px: ``(L, 2)`` the first frame's landmarks (NaN = missing), as given to :func:`fit_landmarks`.
         fit: the first frame's :class:`LandmarkFit` (batch 1): the start, and the shape units kept.
         key_rotation: ``(K, 3, 3)`` and key_translation ``(K, 3)``: the keyframes' tracked poses (the start).
+        key_expression: ``(K, A)`` the keyframes' tracked expressions relative to the first frame's
+            (:attr:`~torchface.tracker.step.TrackResult.expression`): each keyframe's points are placed with the
+            refined starting expression plus its own. None: zeros, the first frame's expression in every keyframe.
+            A face whose expression changed between the first frame and a keyframe otherwise pulls that change
+            into the starting expression.
         landmark_weights: ``(L,)`` or None, as given to :func:`fit_landmarks`.
         shape_prior_precision, shape_bound, expression_prior_precision: the landmark fit's
             (:class:`~torchface.tracker.fit.FitConfig`; the shape precisions as
@@ -205,7 +214,8 @@ def refine_first_fit(
         The refined :class:`LandmarkFit` (batch 1, the model's dtype); ``rms_px`` is its landmark RMS.
     """
     return _refine_first_fit(
-        model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, landmark_weights=landmark_weights,
+        model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, key_expression=key_expression,
+        landmark_weights=landmark_weights,
         shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
         expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units, config=config,
     )[0]  # fmt: skip
@@ -220,6 +230,7 @@ def _refine_first_fit(
     key_rotation: Tensor,
     key_translation: Tensor,
     *,
+    key_expression: Tensor | None = None,
     landmark_weights: Tensor | None,
     shape_prior_precision: float | tuple[float, ...],
     shape_bound: float,
@@ -237,6 +248,8 @@ def _refine_first_fit(
     if key_rotation.shape != (K, 3, 3) or key_translation.shape != (K, 3):
         raise ValueError(f"key poses must be ({K}, 3, 3) and ({K}, 3), got {tuple(key_rotation.shape)}, "
                          f"{tuple(key_translation.shape)}")  # fmt: skip
+    if key_expression is not None and key_expression.shape != (K, model.num_animation):
+        raise ValueError(f"key_expression must be ({K}, {model.num_animation}), got {tuple(key_expression.shape)}")
     if fit.rotation.shape[0] != 1:
         raise ValueError(f"fit must be one stream's (batch 1), got batch {fit.rotation.shape[0]}")
     S, A = model.num_shape, model.num_animation
@@ -310,6 +323,13 @@ def _refine_first_fit(
     else:  # nothing free but the poses
         X_units, L_units = X_start.new_zeros(X_start.shape[0], 0, 3), L_start.new_zeros(L_start.shape[0], 0, 3)
     x_start = torch.cat([sig0[0, free_su], al0[0, :nA]])
+    # Each keyframe's own expression change (key_expression): a fixed offset of its points, ``(K, N, 3)``.
+    key_alpha = X_start.new_zeros(K, A) if key_expression is None else key_expression.to(device=dev, dtype=dt)
+    if bool((key_alpha != 0).any()):
+        X_anim = gather_face_attributes(m.animation_units.permute(1, 0, 2), m.faces, fi, bary, batched=False)[0]
+        key_delta = torch.einsum("ka,nad->knd", key_alpha, X_anim)
+    else:
+        key_delta = X_start.new_zeros(K, X_start.shape[0], 3)
 
     def geometry(x: Tensor, level: int) -> tuple[Tensor, Tensor, Tensor, list[Tensor], Tensor]:
         """Points' pixels in frame 0 ``(N, 2)`` and the keyframes ``(K, N, 2)``, landmark pixels, rotations and
@@ -324,7 +344,7 @@ def _refine_first_fit(
         for k in range(K):
             b = o_k + 11 * k
             R = axis_angle_to_matrix(x[b : b + 3])
-            uvk.append(project_points((X @ R.T + x[b + 3 : b + 6])[None], intrs[level])[0])
+            uvk.append(project_points(((X + key_delta[k]) @ R.T + x[b + 3 : b + 6])[None], intrs[level])[0])
             Rk.append(R)
         return uv0, torch.stack(uvk), uvl, Rk, X
 
@@ -334,14 +354,16 @@ def _refine_first_fit(
         with torch.no_grad():
             sig, al = coeffs(x)
             uv0, uvk, _, Rk, X = geo
-            verts = m.deform(sig[None], al[None])[0]
             normals = point_normals(m, sig[None], fi, bary)[0]
             poses = [(axis_angle_to_matrix(x[0:3]), x[3:6])] + [(Rk[k], x[o_k + 11 * k + 3 : o_k + 11 * k + 6])
                                                                  for k in range(K)]  # fmt: skip
+            alphas = [al] + [al + key_alpha[k] for k in range(K)]
+            points = [X] + [X + key_delta[k] for k in range(K)]
             seen = []
-            for R, t in poses:  # one rasterization each: stacked, the (1 + K)-frame buffers cost more to allocate
+            for (R, t), a, Xf in zip(poses, alphas, points):  # one rasterization each: stacked, the (1 + K)-frame
+                verts = m.deform(sig[None], a[None])[0]  # buffers cost more to allocate
                 frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True)
-                pts = X @ R.T + t
+                pts = Xf @ R.T + t
                 vis = points_visible(pts[None], fi, frags, intrinsics)[0]
                 cos = -((normals @ R.T) * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)
                 seen.append(vis & (cos >= config.min_facing_cos))
@@ -411,7 +433,7 @@ def _refine_first_fit(
                 b = o_k + 11 * k
                 Rk, Jlk = axis_angle_to_matrix(x[b : b + 3]), left_jacobian(x[b : b + 3])
                 light = x[b + 6 : b + 11]
-                RXk = X @ Rk.T
+                RXk = (X + key_delta[k]) @ Rk.T
                 nk = normals @ Rk.T  # (N, 3)
                 gpk = torch.einsum("nu,nud->nd", sk[k, :, 1:], proj_jac(RXk + x[b + 3 : b + 6], intr))
                 I0 = s0[:, 0] + ((uv0 - uv0s) * s0[:, 1:]).sum(-1)  # frame 0 linearised, as in photometric
@@ -538,18 +560,20 @@ def lookahead_fit(
     fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=fc)
     state, first = initialise_managed(model, tracker_config, frames[:, 0], landmarks_px, intrinsics, weights, fit=fit)
     rotations, translations, confident = [first.rotation], [first.translation], [first.success]
+    expressions = [first.expression]
     T = min(frames.shape[1], config.max_frames)
     keys: list[list[int]] = [[] for _ in range(B)]
     for i in range(1, T):
         state, res = managed_step(model, tracker_config, state, frames[:, i])
         rotations.append(res.rotation)
         translations.append(res.translation)
+        expressions.append(res.expression)
         confident.append(res.success & (res.confidence >= config.min_confidence))
         R, ok = torch.stack(rotations, 1), torch.stack(confident, 1)
         keys = [select_keyframes(R[b], config.yaw_deg, ok[b]) for b in range(B)]
         if all(len(k) == 2 for k in keys):
             break
-    R, t = torch.stack(rotations, 1), torch.stack(translations, 1)
+    R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
     streams = []
     for b in range(B):
         one = fit.select(slice(b, b + 1))
@@ -557,6 +581,7 @@ def lookahead_fit(
             idx = torch.tensor([0] + keys[b], device=frames.device)
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
+                key_expression=expr[b, keys[b]],
                 landmark_weights=None if weights is None else weights[b], config=config,
                 **landmark_fit_priors(model, fc),
             )  # fmt: skip

@@ -168,7 +168,8 @@ class FirstPoseWatch:
         fit: the first frames' :class:`~torchface.tracker.fit.LandmarkFit`.
         yaw0: ``(B,)`` the first frame's yaw (degrees).
         keys: per stream, its keyframes in the order found, each ``(frame (3, H, W), rotation (3, 3), translation
-            (3,))``: the first confident frame whose yaw passed ``yaw_deg`` on each side.
+            (3,), expression (A,))``: the first confident frame whose yaw passed ``yaw_deg`` on each side, with its
+            tracked pose and expression (relative to the first frame's).
         sides: ``(B, 2)`` bool, the stream has its keyframe of the yaw-up, yaw-down side.
         pending: ``(B,)`` bool, the stream still waits for its keyframes.
         frames_seen: frames of the sequence so far (the first included).
@@ -180,7 +181,7 @@ class FirstPoseWatch:
     weights: Tensor | None
     fit: LandmarkFit
     yaw0: Tensor
-    keys: tuple[tuple[tuple[Tensor, Tensor, Tensor], ...], ...]
+    keys: tuple[tuple[tuple[Tensor, Tensor, Tensor, Tensor], ...], ...]
     sides: Tensor
     pending: Tensor
     frames_seen: int = 1
@@ -940,7 +941,8 @@ def _watch_first_pose(
             for b in (ok & (sign * rel >= lc.yaw_deg)).nonzero().squeeze(-1).tolist():
                 if not bool(sides[b, side]):
                     sides[b, side] = True  # the newest keyframe goes last: it is this frame
-                    key = (frames[b].clone(), result.rotation[b].clone(), result.translation[b].clone())
+                    key = (frames[b].clone(), result.rotation[b].clone(), result.translation[b].clone(),
+                           result.expression[b].clone())
                     keys[b] = keys[b] + (key,)
     ready = w.pending & (sides.sum(-1) >= lc.min_keyframes)
     seen = w.frames_seen + 1
@@ -955,7 +957,7 @@ def _watch_first_pose(
 
 def _reanchor(
     model: FaceModel, config: TrackerConfig, state: TrackerState, w: FirstPoseWatch,
-    keys: list[tuple[tuple[Tensor, Tensor, Tensor], ...]], index: Tensor, frames: Tensor,
+    keys: list[tuple[tuple[Tensor, Tensor, Tensor, Tensor], ...]], index: Tensor, frames: Tensor,
 ) -> TrackerState:
     """Streams ``index`` re-anchored at this frame (``frames``), their newest keyframe: their first frame's fit
     refined against their keyframes, their templates and mosaic rebuilt from the first frame at the refined pose,
@@ -970,6 +972,7 @@ def _reanchor(
             one, key_R, key_t = _refine_first_fit(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
+                key_expression=torch.stack([k[3] for k in ks]),
                 landmark_weights=None if w.weights is None else w.weights[b], config=w.config,
                 **landmark_fit_priors(model, fc),
             )  # fmt: skip
