@@ -784,7 +784,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--lookahead", action="store_true",
         help="start every run from the look-ahead fit (torchface.tracker.lookahead: the first frame's pose and "
-        "expression refined against the frames where the head has turned 20 degrees each way; two passes)",
+        "expression refined against the frames where the head has turned 10 degrees to each side, one side being "
+        "enough; two passes)",
     )
     parser.add_argument(
         "--lookahead-frames", type=int, default=LookaheadConfig().max_frames,
@@ -794,8 +795,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-online-refine", action="store_true",
         help="track without the online look-ahead start, which is the tracker's default (FaceTracker(refine_first="
-        "LookaheadConfig())): each run keeps its first frame until the head has confidently turned 20 degrees "
-        "each way, then re-estimates the first pose from those frames and goes on from it in one pass; the runs "
+        "LookaheadConfig())): each run keeps its first frame until the head has confidently turned 10 degrees, "
+        "then re-estimates the first pose from that frame and goes on from it in one pass; the runs "
         "without template management (the no_management ablation) go without it",
     )
     parser.add_argument(

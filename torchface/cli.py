@@ -90,8 +90,13 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
     track.add_argument(
         "--lookahead", action="store_true",
-        help="refine the first frame's pose against the frames where the head turns 20 degrees each way (reads up "
-        "to 150 frames ahead and keeps them in memory; torchface.tracker.lookahead)",
+        help="refine the first frame's pose against the frames where the head turns 10 degrees to each side (one "
+        "side is enough; reads up to 150 frames ahead and keeps them in memory; torchface.tracker.lookahead)",
+    )  # fmt: skip
+    track.add_argument(
+        "--no-online-refine", action="store_true",
+        help="track without the online look-ahead start (on by default: once the head has turned 10 degrees, the "
+        "first pose and the shape units the landmark fit held are re-estimated from that view, in one pass)",
     )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -131,7 +136,8 @@ def _print_summary(summaries, out: TextIO) -> None:
 
 
 def _run_track(
-    videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False
+    videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
+    online_refine=True,
 ) -> int:
     from torchface.job import JobConfig, track_videos
     from torchface.tracker.lookahead import LookaheadConfig
@@ -139,6 +145,7 @@ def _run_track(
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
+        refine_first=LookaheadConfig() if online_refine else None,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = track_videos(videos, config, progress=display)
@@ -184,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "track":
             return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
-                              args.resume, args.meshes, args.quiet, args.convert, args.lookahead)  # fmt: skip
+                              args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
+                              not args.no_online_refine)  # fmt: skip
         if args.command == "demo":
             from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

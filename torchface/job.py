@@ -91,9 +91,14 @@ class JobConfig:
         redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
         redetect_below: the (dissimilarity) confidence threshold for that.
         lookahead: start each video from the look-ahead fit (:mod:`torchface.tracker.lookahead`: the first
-            frame's pose and expression refined against the frames where the head turns 20 degrees each way),
+            frame's pose, expression and held shape units refined against the frames where the head turns 10
+            degrees to each side, one side being enough),
             or None for the first frame's landmark fit alone. It reads up to ``lookahead.max_frames`` frames of
             every video of a batch ahead and keeps them in memory (150 frames of 640x480: about 550 MB each).
+        refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
+            :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
+            and template management is on. A resumed batch with rows to replay goes without it: the rows written
+            before the interruption are in the frame of the first result, which is the landmark fit's.
     """
 
     out_dir: Path
@@ -109,8 +114,11 @@ class JobConfig:
     redetect_after: int = 10
     redetect_below: float = 0.15
     lookahead: LookaheadConfig | None = None
+    refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
 
     def __post_init__(self) -> None:
+        if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
+            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         if self.focal is not None and not self.focal > 0:
             raise ValueError(f"focal must be positive (pixels), got {self.focal}")
         if self.normalised_size < 16:
@@ -407,7 +415,9 @@ def _track_group(
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
         fit = None if config.lookahead is None else _lookahead_fit(model, config, streams, lm, intr)
-        state, result = initialise_managed(model, config.tracker, frames, lm, intr, fit=fit)
+        online = fit is None and config.tracker.template.enabled and all(s.replay is None for s in streams)
+        state, result = initialise_managed(model, config.tracker, frames, lm, intr, fit=fit,
+                                           refine_first=config.refine_first if online else None)  # fmt: skip
         recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()

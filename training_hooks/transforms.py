@@ -38,6 +38,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
+from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
@@ -95,6 +96,10 @@ class FaceTrackingConfig:
             ``TrackerState.neutral_anim_coeffs``) instead of the tracked one, so the face keeps its expression
             (pose and light still undone): the input an expression classifier needs. False (the default) undoes
             the expression too.
+        refine_first: the online look-ahead start of a sequence tracked from landmarks
+            (:func:`~torchface.tracker.managed.initialise_managed`, as :class:`~torchface.tracker.FaceTracker`
+            starts by default: the first pose and the shape units the landmark fit held are re-estimated once the
+            head has turned), or None. Used with template management on.
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -104,10 +109,13 @@ class FaceTrackingConfig:
     focal: float | None = None
     num_threads: int = 1
     keep_expression: bool = False
+    refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
+        if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
+            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         if isinstance(self.face_size, bool) or not isinstance(self.face_size, int) or self.face_size < 16:
             raise ValueError(f"face_size must be an int >= 16, got {self.face_size!r}")
         if not 0.0 <= float(self.face_margin) <= 0.45:
@@ -369,7 +377,8 @@ def track_sequence(
             if state is None:
                 intrinsics = Intrinsics.default(size[1], size[0], config.focal)
                 lm = landmarks.to(dtype=model.dtype, device=model.device).unsqueeze(0)
-                state, result = initialise_managed(model, config.tracker, frame, lm, intrinsics)
+                refine = config.refine_first if config.tracker.template.enabled else None
+                state, result = initialise_managed(model, config.tracker, frame, lm, intrinsics, refine_first=refine)
             else:
                 if t == 0 and state.intrinsics.size != size:
                     raise ValueError(

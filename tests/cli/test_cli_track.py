@@ -45,6 +45,15 @@ def full_run(clip, tmp_path_factory):
     return rc, out
 
 
+@pytest.fixture(scope="module")
+def plain_run(clip, tmp_path_factory):
+    """The same run without the online look-ahead start (``--no-online-refine``)."""
+    video, lm, _ = clip
+    out = tmp_path_factory.mktemp("plain")
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"])
+    return rc, out
+
+
 def _pose(csv):
     cols, rows = read_track_csv(csv)
     R = torch.from_numpy(rows[:, [cols.index(f"r{i}{j}") for i in range(3) for j in range(3)]]).reshape(-1, 3, 3)
@@ -227,9 +236,11 @@ def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp
     assert "1 lost" not in capsys.readouterr().out
 
 
-def test_resume_after_interruption(clip, full_run, tmp_path):
+def test_resume_after_interruption(clip, plain_run, tmp_path):
+    """An interrupted run resumed: the rows written are kept, the rest tracked after them. A resumed batch goes
+    without the online look-ahead start (JobConfig.refine_first), so it matches the run without it."""
     video, lm, _ = clip
-    _, full_out = full_run
+    _, full_out = plain_run
     n, stop_at = 6, 3  # the first 6 frames of the clip (decoded exactly: lossless), interrupted after 3
     frames = read_video(video, max_frames=n)
     short = tmp_path / "short.npy"
@@ -341,9 +352,10 @@ def test_progress_display_terminal_and_log():
     assert "\x1b[2F" in text and "1 frames" in text and "2/10" in text  # redraws both bars in place
 
 
-def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, full_run, tmp_path, monkeypatch):
+def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, tmp_path, monkeypatch):
     """``JobConfig.lookahead``: the frames read ahead go to the look-ahead fit and are then tracked in order.
-    With the fit replaced by the plain landmark fit (a spy), the CSV equals the run without look-ahead."""
+    With the fit replaced by the plain landmark fit (a spy), the CSV equals the run without look-ahead (which,
+    given a fit, goes without the online start too)."""
     import torchface.job as job
     from torchface.tracker import fit_landmarks
     from torchface.tracker.lookahead import LookaheadConfig
@@ -362,6 +374,22 @@ def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, full_run, t
     assert len(seen) == 1 and seen[0].shape == (1, 6, 3, H, W)
     torch.testing.assert_close(seen[0][0], frames, rtol=0, atol=1e-6)
     _, rows, _, _ = _pose(output_paths(tmp_path, NAME)["csv"])
-    _, ref, _, _ = _pose(output_paths(full_run[1], NAME)["csv"])
+    _, ref, _, _ = _pose(output_paths(plain_run[1], NAME)["csv"])
     assert rows.shape == ref.shape == (T, rows.shape[1])
     np.testing.assert_array_equal(rows, ref)
+
+
+def test_online_start_is_on_by_default(clip, full_run, plain_run):
+    """``torchface track`` starts with the online look-ahead start (``JobConfig.refine_first``): once the head has
+    turned 10 degrees the stream is re-anchored, so its rows part from the run with ``--no-online-refine`` there,
+    and not before."""
+    _, _, gt = clip
+    _, rows, R, _ = _pose(output_paths(full_run[1], NAME)["csv"])
+    _, ref, R_ref, _ = _pose(output_paths(plain_run[1], NAME)["csv"])
+    moved = ~np.all(rows == ref, axis=1)
+    assert moved.any() and not moved[0], moved
+    first = int(np.argmax(moved))
+    assert np.all(moved[first:]), moved  # from the re-anchoring on
+    # the keyframe is the frame before: the first whose yaw (tracked; the truth's here) passed 10 degrees
+    yaw = (gt.ypr_deg[:first, 0] - gt.ypr_deg[0, 0]).abs()
+    assert float(yaw[:-1].max()) < 10.0 <= float(yaw[-1]), yaw

@@ -158,7 +158,7 @@ class ManagementState:
 @dataclass(frozen=True)
 class FirstPoseWatch:
     """The online look-ahead start (``initialise_managed(refine_first=...)``): what a stream keeps until its head
-    has turned to each side, when its first frame's pose is re-estimated and the stream re-anchored.
+    has turned (``min_keyframes`` sides), when its first frame's pose is re-estimated and the stream re-anchored.
 
     Attributes:
         config: :class:`~torchface.tracker.lookahead.LookaheadConfig` (``yaw_deg``, ``min_keyframes``,
@@ -219,21 +219,22 @@ def initialise_managed(
     ``config.template.enabled`` False the state has no management (``management`` None).
 
     ``refine_first``: the online look-ahead start, None for none (the default here; :class:`FaceTracker` starts with
-    it by default). From one frontal view the landmark fit cannot tell the head's pitch from the face's proportions, and the error
-    of the first frame's pose becomes pose error wherever the head turns (:mod:`~torchface.tracker.lookahead`).
-    With a :class:`~torchface.tracker.lookahead.LookaheadConfig`, each stream keeps its first frame (``(3, H, W)``
-    in memory) until it has confidently turned ``yaw_deg`` to each side (``min_keyframes``; at most ``max_frames``
-    frames); then :func:`~torchface.tracker.lookahead.refine_first_fit` re-estimates the first frame's pose from
-    those keyframes, the stream's templates and mosaic are rebuilt from the first frame at that pose, and from
-    the next frame on its reported pose (``rotation``, ``axis_angle``, ``translation``, ``ypr_deg``) is the
-    re-anchored estimate expressed in the head frame of its first result: reported poses stay continuous and
-    relative to the first frame's, while the mesh placed by the state's parameters (overlays, normalised faces)
-    follows the refined estimate. The re-anchoring is a one-off stall of the stream's step (about 0.4 s on a
-    2-core CPU: the refinement and a new start); the frames before it keep the plain start's error. Measured with
-    ``scripts/evaluate.py --noise-seeds 0,1,2,3``: ``pose_sweep``'s mean error 0.51 / 0.89 / 0.35 / 0.59 ->
-    0.31 / 0.47 / 0.28 / 0.27 degrees, ``scan_motion``'s max 4.85 / 7.01 / 4.56 / 4.71 -> 4.21 / 7.01 / 3.93 /
-    3.45 (draw 1 never turns confidently past 20 degrees on one side and is not re-anchored); the scenarios
-    that do not turn that far track as without it.
+    it by default). From one frontal view the landmark fit cannot tell the head's pitch from the face's vertical
+    proportions (:mod:`~torchface.tracker.lookahead`): it holds the units that move features vertically
+    (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`), so that landmark noise cannot tip the pose, and a
+    face whose proportions differ then starts pitched. With a :class:`~torchface.tracker.lookahead.LookaheadConfig`,
+    each stream keeps its first frame (``(3, H, W)`` in memory) until it has confidently turned ``yaw_deg`` (10) to
+    one side (``min_keyframes`` 1; or to each side with 2; at most ``max_frames`` frames); then
+    :func:`~torchface.tracker.lookahead.refine_first_fit` re-estimates the first frame's pose, its starting
+    expression and the held shape units from those keyframes (each with its tracked expression change), the
+    stream's templates and mosaic are rebuilt from the first frame at that pose, and from the next frame on its
+    reported pose (``rotation``, ``axis_angle``, ``translation``, ``ypr_deg``) is the re-anchored estimate expressed
+    in the head frame of its first result: reported poses stay continuous and relative to the first frame's, while
+    the mesh placed by the state's parameters (overlays, normalised faces) follows the refined estimate. The
+    re-anchoring is a one-off stall of the stream's step (about 0.4 s on a 2-core CPU: the refinement and a new
+    start); the frames before it keep the plain start's error, and a stream that never turns keeps the landmark
+    fit. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3`` (README, "Known limitations"):
+    ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.2.
 
     Example:
         >>> from torchface.model import load_candide3                                  # doctest: +SKIP
