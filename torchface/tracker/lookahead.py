@@ -1,9 +1,10 @@
 """Look-ahead initialisation: the first frame's pose re-estimated photometrically from later frames.
 
 From one frontal view the landmark fit (Eq. 2) cannot separate the head's pitch from the face's vertical
-proportions: on a face unlike the model's mean (the James scan) it comes out pitched by 4-8 degrees, and
-because every later pose is measured against the first frame's template, that pitch becomes pose error of
-4-8 degrees at +-45 degrees of yaw. Frames where the head has turned see the face from another side, and
+proportions: on a face unlike the model's mean (the James scan) it comes out pitched by 4-8 degrees with every
+shape unit free, and further with the vertical ones held (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`),
+and because every later pose is measured against the first frame's template, that pitch becomes pose error of
+several degrees at +-45 degrees of yaw. Frames where the head has turned see the face from another side, and
 what the first frame's texture must look like there fixes the pitch.
 
 :func:`lookahead_fit` tracks a stream's first frames as usual until the head has turned by
@@ -65,8 +66,8 @@ class LookaheadConfig:
         yaw_deg: a keyframe is the first frame whose tracked yaw, relative to the first frame's, reaches this on
             one side; one keyframe per side. 10: with the landmark fit's vertical units held
             (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`), the James scan's first frame is pitched
-            and its first turn drifts before the head has turned 20 degrees (``scan_motion`` max 7.35 degrees);
-            re-anchored at 10 degrees the largest error over landmark-noise draws 0-3 is 2.9-3.5.
+            and its first turn drifts before the head has turned 20 degrees (``scan_motion`` max 5.4-7.6 degrees
+            over landmark-noise draws 0-3 without the re-anchoring); re-anchored at 10 degrees, 2.7-3.2.
         max_frames: frames tracked at most while looking for the keyframes (the first frame included).
         min_keyframes: a stream with fewer keyframes keeps the landmark fit. One (the first side the head turns
             to) by default, so that the re-anchoring comes early; 2 waits for a turn to each side.
