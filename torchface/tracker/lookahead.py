@@ -83,7 +83,8 @@ class LookaheadConfig:
         shape_prior_precision: prior precision of the re-estimated shape units (one value, or one per unit of
             the model as :attr:`~torchface.tracker.fit.FitConfig.shape_prior_precision`); None: the landmark
             fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go.
-        fit_expression: re-estimate the starting expression (shared by the first frame and the keyframes).
+        fit_expression: re-estimate the starting expression (the first frame's; each keyframe's points add the
+            expression change the tracker measured there, ``key_expression`` of :func:`refine_first_fit`).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
             1e3 and 1e5 tracked worse than 1e4 on the James scan.
         iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0).
