@@ -24,13 +24,13 @@ caller then starts tracking at the first frame again from the refined fit
 (``initialise(..., fit=...)``): a two-pass start for a video whose frames are all at hand (files,
 dataloaders, evaluation), not for a live stream.
 
-Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3``, with the earlier defaults (no held shape units,
-two keyframes at 20 degrees; max rotation error relative to frame 0,
-seeds 0 / 1 / 2 / 3, degrees): ``scan_motion`` 5.70 / 7.05 / 4.21 / 5.46 -> 2.24 / 2.02 / 1.93 / 2.54 (mean
-1.89 / 2.41 / 1.38 / 1.54 -> 0.42 / 0.44 / 0.39 / 0.51); ``pose_sweep`` 1.28 / 2.05 / 0.87 / 1.31 -> 0.73 / 0.97 /
-0.88 / 0.65. The first frame's own rotation error on the James scan: 4.0-7.8 -> 1.2-1.7 degrees. Its depth can
-move by several millimetres (``pose_sweep`` seed 3: first-frame translation error 0.6 -> 9.5 mm). Scenarios
-without a turn in their first frames keep the landmark fit.
+Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3`` (max rotation error relative to frame 0, seeds
+0 / 1 / 2 / 3, degrees): ``scan_motion`` 2.14 / 2.13 / 1.86 / 2.06 (mean 0.51 / 0.67 / 0.51 / 0.51), against
+7.19 / 7.56 / 5.41 / 5.75 without any refinement; ``pose_sweep`` 0.41 / 0.77 / 0.61 / 0.71. With the earlier
+defaults (no held shape units, two keyframes at 20 degrees) the first frame's own rotation error on the James
+scan went from 4.0-7.8 to 1.2-1.7 degrees, and its depth could move by several millimetres (``pose_sweep`` seed
+3: first-frame translation error 0.6 -> 9.5 mm). Scenarios without a turn in their first frames keep the
+landmark fit.
 """
 
 from __future__ import annotations
