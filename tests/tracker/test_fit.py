@@ -73,7 +73,8 @@ def test_exact_landmarks_with_expression(model):
     corner = model.animation_names.index("AUV14 Lip corner depressor")
     anim[:, jaw] = torch.tensor([0.5, 0.8, 0.2], dtype=D)
     anim[:, corner] = 0.3
-    cfg = FitConfig(shape_prior_precision=0.0, held_shape_units=(), fit_expression=True, expression_prior_precision=0.0, max_iterations=100)
+    cfg = FitConfig(shape_prior_precision=0.0, held_shape_units=(), fit_expression=True, expression_prior_precision=0.0,
+                    max_iterations=100)
     fit = fit_landmarks(model, project_landmarks(model, R, t, None, anim), CAM, config=cfg)
     assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-6
     torch.testing.assert_close(fit.anim_coeffs[:, [jaw, corner]], anim[:, [jaw, corner]], rtol=0, atol=1e-6)

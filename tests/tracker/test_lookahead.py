@@ -34,7 +34,8 @@ from torchface.tracker import (
 
 W, H = 320, 240
 D = torch.float64
-CFG = TrackerConfig(num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
+CFG = TrackerConfig(num_levels=2, max_points=600, iterations=(6, 4),
+                    fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
                     robust_scale_floor=(0.045, 0.02))  # fmt: skip
 
 
@@ -386,7 +387,8 @@ def test_default_start_lets_the_held_units_go_at_the_first_turn(model):
     up = [3.0 * i for i in range(9)]
     frames, gt = render([[y, 0.0, 0.0] for y in up])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
-    lm = gt.landmarks_px.float()[:1] + 1.5 * torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(1))
+    noise = torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(1))
+    lm = gt.landmarks_px.float()[:1] + 1.5 * noise
     cfg = replace(CFG, fit=FitConfig())
     la = LookaheadConfig(iterations=(6, 4), max_points=1500)
     assert (la.yaw_deg, la.min_keyframes, la.shape_units, la.shape_prior_precision) == (10.0, 1, None, 2.0)
