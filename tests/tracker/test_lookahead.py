@@ -184,8 +184,8 @@ def test_refinement_takes_per_unit_shape_precisions(model):
 
 
 def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
-    """A head turning to +24 then -24 degrees of yaw in 3-degree steps: keyframes at the first frame past 20
-    degrees each way; the refined first-frame pose is much nearer the truth than the landmark fit's (1.5 px of
+    """A head turning to +24 then -24 degrees of yaw in 3-degree steps, with ``yaw_deg=20, min_keyframes=2``
+    (the default is 10 and one side): keyframes at the first frame past 20 degrees each way; the refined first-frame pose is much nearer the truth than the landmark fit's (1.5 px of
     landmark noise) and the tracker starts from it (``initialise(fit=...)``). A batch of two streams: the second one's frames stop before the turn
     back, so it gets one keyframe and keeps the landmark fit (``min_keyframes`` 2), unless one is enough."""
     up = [3.0 * i for i in range(9)]
@@ -270,8 +270,8 @@ def _track(model, frames, lm, intr, refine_first):
 
 
 def test_online_refinement_reanchors_after_a_turn_each_side(model):
-    """``FaceTracker(refine_first=...)``: the head turns to +24, back, to -24 and back (3-degree steps). Stream 0
-    is re-anchored at its second keyframe (-21 degrees); stream 1, whose frames stop at +24, never is and tracks
+    """``FaceTracker(refine_first=...)`` with ``yaw_deg=20, min_keyframes=2`` (a turn each way): the head turns to
+    +24, back, to -24 and back (3-degree steps). Stream 0 is re-anchored at its second keyframe (-21 degrees); stream 1, whose frames stop at +24, never is and tracks
     exactly as without the option. After the re-anchoring stream 0's poses relative to its first reported pose are
     nearer the truth than the plain tracker's; its first pose is the landmark fit's; it tracks in the batch as
     alone; the kept frames are dropped once no stream waits."""
