@@ -163,6 +163,22 @@ def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, mon
     assert seen == [True, False]
 
 
+def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
+    """managed_step, like track_step, runs its work in inference mode when the state and frames ask for no
+    gradient (``without_autograd``), and the caller's mode is as it was afterwards."""
+    import torchface.tracker.managed as managed_module
+
+    frames, lm = turn
+    state, _ = initialise_managed(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    seen = []
+    real = managed_module._confidence
+    monkeypatch.setattr(
+        managed_module, "_confidence", lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or real(*a, **k)
+    )
+    managed_step(model, CFG, state, frames[:, 1])
+    assert seen == [True] and not torch.is_inference_mode_enabled(), seen
+
+
 def test_state_pieces_made_in_inference_mode_are_normal_tensors(model, turn):
     """The mosaic with a new entry and the templates of a switched entry persist in the state: made in a step's
     inference mode they are normal tensors already, so handing the state back copies none of them."""

@@ -576,7 +576,7 @@ def lookahead_fit(
         if all(len(k) == 2 for k in keys):
             break
     R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
-    streams = []
+    streams, priors = [], landmark_fit_priors(model, fc)
     for b in range(B):
         one = fit.select(slice(b, b + 1))
         if len(keys[b]) >= config.min_keyframes:
@@ -584,8 +584,7 @@ def lookahead_fit(
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
                 key_expression=expr[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b], config=config,
-                **landmark_fit_priors(model, fc),
+                landmark_weights=None if weights is None else weights[b], config=config, **priors,
             )  # fmt: skip
         streams.append(one)
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

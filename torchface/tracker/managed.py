@@ -615,7 +615,6 @@ def _recover(
     return found, solved, result, conf, diss, inside, entries
 
 
-@without_autograd(step_grad_inputs)
 def _within_searched_depths(params: Tensor, confident_params: Tensor, layout: ParamLayout, tc: TemplateConfig) -> Tensor:
     """``(B,)`` bool: the depth of ``params`` ``(B, P)`` lies within the depths the recovery search tries
     (``search_depth_factors`` of the depth of ``confident_params`` ``(B, P)``, widened by 10%)."""
@@ -623,6 +622,7 @@ def _within_searched_depths(params: Tensor, confident_params: Tensor, layout: Pa
     return (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
 
 
+@without_autograd(step_grad_inputs)
 def managed_step(
     model: FaceModel,
     config: TrackerConfig,
@@ -967,6 +967,7 @@ def _reanchor(
     ms = state.management
     fc = config.fit
     fits, now_R, now_t = [], [], []
+    priors = landmark_fit_priors(model, fc)
     with torch.inference_mode(False):
         for b in index.tolist():
             ks = keys[b]
@@ -974,8 +975,7 @@ def _reanchor(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
                 key_expression=torch.stack([k[3] for k in ks]),
-                landmark_weights=None if w.weights is None else w.weights[b], config=w.config,
-                **landmark_fit_priors(model, fc),
+                landmark_weights=None if w.weights is None else w.weights[b], config=w.config, **priors,
             )  # fmt: skip
             fits.append(one)
             now_R.append(key_R[-1])
