@@ -151,6 +151,10 @@ def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
     with pytest.raises(ValueError, match="key_expression"):
         refine_first_fit(model, frames, gt.intrinsics, gt.landmarks_px[0].float(), start, R[1:],
                          gt.translation[1:].float(), config=cfg, key_expression=anim[1:2].float())  # fmt: skip
+    with pytest.raises(ValueError, match="key_expression must be finite"):
+        refine_first_fit(model, frames, gt.intrinsics, gt.landmarks_px[0].float(), start, R[1:],
+                         gt.translation[1:].float(), config=cfg,
+                         key_expression=torch.full((2, model.num_animation), float("nan")))  # fmt: skip
 
 
 def test_refinement_takes_per_unit_shape_precisions(model):

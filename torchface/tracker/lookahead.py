@@ -252,6 +252,8 @@ def _refine_first_fit(
                          f"{tuple(key_translation.shape)}")  # fmt: skip
     if key_expression is not None and key_expression.shape != (K, model.num_animation):
         raise ValueError(f"key_expression must be ({K}, {model.num_animation}), got {tuple(key_expression.shape)}")
+    if key_expression is not None and not bool(torch.isfinite(key_expression).all()):
+        raise ValueError("key_expression must be finite")
     if fit.rotation.shape[0] != 1:
         raise ValueError(f"fit must be one stream's (batch 1), got batch {fit.rotation.shape[0]}")
     S, A = model.num_shape, model.num_animation
