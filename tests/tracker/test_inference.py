@@ -159,8 +159,13 @@ def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, mon
         step_module, "_track_step_fast", lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or real(*a, **k)
     )
     track_step(model, CFG, state, frames[:, 1])
-    track_step(model, CFG, state, frames[:, 1].clone().requires_grad_(True))
+    frame = frames[:, 1].clone().requires_grad_(True)
+    _, result = track_step(model, CFG, state, frame)
     assert seen == [True, False]
+    # The gradient of the unrolled solve reaches the frame (the solver's step was negated in place, which
+    # autograd refuses for cholesky_solve's output).
+    (grad,) = torch.autograd.grad(result.translation.sum(), frame)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
 
 
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
@@ -177,6 +182,33 @@ def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
     )
     managed_step(model, CFG, state, frames[:, 1])
     assert seen == [True] and not torch.is_inference_mode_enabled(), seen
+
+
+def test_managed_step_tracks_frames_that_require_grad(model, turn):
+    """Frames that require grad (a caller's differentiable preprocessing upstream) run through the whole turn,
+    mosaic entries added on the way: the estimates equal those of the same frames without grad and carry
+    gradients to the frames, and what template management keeps (mosaic, confident parameters, templates) holds
+    no graph. Before, the dissimilarity's Lucas-Kanade failed on an ``out=`` argument under autograd."""
+    from torchface.backend import Backend
+
+    frames, lm = turn
+    cam = Intrinsics.default(W, H)
+    cfg = dataclasses.replace(CFG, backend=Backend.TORCH)  # the native kernels run only where no gradient is asked
+    plain, _ = initialise_managed(model, cfg, frames[:, 0], lm, cam)
+    graded, _ = initialise_managed(model, cfg, frames[:, 0], lm, cam)
+    for i in range(1, frames.shape[1]):
+        plain, want = managed_step(model, cfg, plain, frames[:, i])
+        frame = frames[:, i].clone().requires_grad_(True)
+        graded, got = managed_step(model, cfg, graded, frame)
+        torch.testing.assert_close(got.rotation, want.rotation, rtol=0, atol=1e-5)
+        torch.testing.assert_close(got.confidence, want.confidence, rtol=0, atol=1e-4)
+        assert torch.equal(got.status, want.status) and torch.equal(got.mosaic_entry, want.mosaic_entry)
+        assert got.translation.requires_grad and not got.confidence.requires_grad
+        (grad,) = torch.autograd.grad(got.translation.sum() + got.expression.sum(), frame)
+        assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+        kept = graded.management
+        assert not any(t.requires_grad for t in _tensors((kept.mosaic, kept.confident_params, graded.templates)))
+    assert int(graded.management.mosaic.num_entries[0]) >= 2  # entries were added from the detached frames
 
 
 def test_state_pieces_made_in_inference_mode_are_normal_tensors(model, turn):

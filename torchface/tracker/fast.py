@@ -447,7 +447,7 @@ def solve_level(
         if not all_free:
             Hd = Hd + fixed_diag
         L, info = torch.linalg.cholesky_ex(Hd)
-        delta = torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1).neg_()
+        delta = torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1).neg()  # not in place: autograd keeps the output
         n_valid = valid.sum(-1)
         good = (info == scalar(0, info)) & isfinite(delta.sum(-1)) & (n_valid >= scalar(P, n_valid))
         finite = finite & (good | ~active)

@@ -656,7 +656,10 @@ def managed_step(
         ValueError: bad frames, or a state without management while management is enabled.
 
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
-    require grad with grad mode on; the tensors handed back are normal tensors.
+    require grad with grad mode on; the tensors handed back are normal tensors. With gradients asked for, the
+    solver's estimates (pose, expression, light) carry them as :func:`~torchface.tracker.step.track_step`'s do
+    (through the unrolled solve), in the streams whose estimate is the solver's; the management's decisions and
+    what it keeps (confidence, mosaic entries, confident parameters) are made from detached copies.
     """
     tc = config.template
     if not tc.enabled:
@@ -707,6 +710,16 @@ def managed_step(
     solved, result = track_step(
         model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
     )
+    # Where the caller asked for gradients (frames or parameters that require grad, with grad mode on), the
+    # solver's estimates carry them, as track_step's do; template management is a decision layer and works on
+    # detached copies, so that nothing it keeps (mosaic entries, confident parameters, the look-ahead's keyframes)
+    # holds a graph from frame to frame. The gradients go back into the result and the state's parameters at the
+    # end, for the streams whose estimate is the solver's (not reverted, not a recovery candidate's).
+    graded = _graded(solved, result)
+    if graded is not None:
+        frames = frames.detach()
+        solved, result = replace(solved, params=solved.params.detach()), _detached(result)
+    own = torch.ones_like(result.status, dtype=torch.bool)  # streams whose parameters are the solver's
     conf, diss, inside, face = _confidence(
         model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
     )
@@ -740,6 +753,7 @@ def managed_step(
     params, params_ypr = solved.params, result.ypr_deg
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
+        own = own & ~reverted
 
     # 4. Recovery of lost streams (rare; only the streams concerned).
     recovery = bool(attempt.any())
@@ -770,6 +784,8 @@ def managed_step(
             rows = index[adopt]
             params, params_ypr, face = params.clone(), None, None  # the normalised faces are the track's
             params[rows] = r_state.params[adopt]
+            own = own.clone()
+            own[rows] = False
             result = _scatter_result(result, rows, replace(
                 r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
                              if isinstance(getattr(r_result, f.name), Tensor)},
@@ -823,10 +839,48 @@ def managed_step(
         mosaic_entry=entry.clone(),
     )  # fmt: skip
     new_state = replace(new_state, management=ms)
+    watched = result
+    if graded is not None:
+        result = _regraded(result, graded[1], own)
     reported = _in_head_frame(result, ms)  # the offsets this frame was tracked under
     if ms.first is not None:  # the online look-ahead start (initialise_managed(refine_first=...))
-        new_state = _watch_first_pose(model, config, new_state, frames, result)
+        new_state = _watch_first_pose(model, config, new_state, frames, watched)
+    if graded is not None:
+        new_state = replace(new_state, params=torch.where(own.unsqueeze(-1), graded[0], new_state.params))
     return new_state, reported
+
+
+def _graded(solved: TrackerState, result: TrackResult) -> tuple[Tensor, TrackResult] | None:
+    """``(params, result)`` of a solve whose estimates carry gradients (:func:`managed_step`), else None."""
+    if not solved.params.requires_grad and not any(
+        isinstance(v, Tensor) and v.requires_grad for v in (getattr(result, f.name) for f in fields(TrackResult))
+    ):
+        return None
+    return solved.params, result
+
+
+def _detached(result: TrackResult) -> TrackResult:
+    """``result`` with every tensor detached."""
+    return replace(result, **{f.name: v.detach() for f in fields(TrackResult)
+                              if isinstance(v := getattr(result, f.name), Tensor)})  # fmt: skip
+
+
+#: TrackResult's fields that template management sets (the solver's estimates are the others).
+_DECISIONS = frozenset({"status", "confidence", "residual_confidence", "dissimilarity", "mosaic_entry"})
+
+
+def _regraded(result: TrackResult, graded: TrackResult, own: Tensor) -> TrackResult:
+    """``result`` whose estimates that carry gradients in ``graded`` (the solver's; not the fields management sets)
+    are ``graded``'s in the streams ``own`` ``(B,)`` (equal values: ``result`` is the detached solve there) and
+    ``result``'s elsewhere."""
+    out = {}
+    for f in fields(TrackResult):
+        if f.name in _DECISIONS:
+            continue
+        g, v = getattr(graded, f.name), getattr(result, f.name)
+        if isinstance(g, Tensor) and g.requires_grad and isinstance(v, Tensor) and v.shape == g.shape:
+            out[f.name] = torch.where(own.reshape(-1, *([1] * (g.dim() - 1))), g, v)
+    return replace(result, **out)
 
 
 def _native_select_entries(ms: ManagementState, ypr: Tensor, tc: TemplateConfig) -> tuple[Tensor, Tensor | None]:
