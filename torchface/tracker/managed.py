@@ -852,6 +852,8 @@ def managed_step(
 
 def _graded(solved: TrackerState, result: TrackResult) -> tuple[Tensor, TrackResult] | None:
     """``(params, result)`` of a solve whose estimates carry gradients (:func:`managed_step`), else None."""
+    if not torch.is_grad_enabled():  # inference mode or no_grad: the usual case, nothing to look at
+        return None
     if not solved.params.requires_grad and not any(
         isinstance(v, Tensor) and v.requires_grad for v in (getattr(result, f.name) for f in fields(TrackResult))
     ):
