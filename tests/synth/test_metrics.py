@@ -18,6 +18,7 @@ from torchface.synth.metrics import (
     relative_rotation_error_deg,
     relative_rotations,
     relative_ypr_error_deg,
+    rotation_jitter_deg,
     sequence_metrics,
     translation_errors_mm,
     true_runs,
@@ -83,6 +84,30 @@ def test_rotation_error_float32_against_float64_truth() -> None:
     est = gt.to(torch.float32)
     err = relative_rotation_error_deg(est, gt)
     assert err.dtype == F64 and float(err.max()) < 1e-3
+
+
+def test_rotation_jitter_ignores_bias_and_drift_and_measures_a_spike() -> None:
+    T = 12
+    yaw = torch.linspace(0, 33, T, dtype=F64)
+    gt = _ypr([[float(y), 5.0, 0.0] for y in yaw])
+    drifting = _ypr([[float(y) + 2.0 + 0.5 * t, 5.0, 0.0] for t, y in enumerate(yaw)])  # bias plus steady drift
+    assert float(rotation_jitter_deg(drifting, gt)) < 1e-9
+    spiked = _ypr([[float(y) + (4.0 if t == 6 else 0.0), 5.0, 0.0] for t, y in enumerate(yaw)])
+    # second differences 4, -8, 4 at frames 5-7: sqrt(96 / (T - 2) / 6) = 4 / sqrt(T - 2)
+    assert math.isclose(float(rotation_jitter_deg(spiked, gt)), 4.0 / math.sqrt(T - 2), rel_tol=1e-9)
+
+
+def test_rotation_jitter_is_the_rms_angle_of_white_noise() -> None:
+    g = torch.Generator().manual_seed(3)
+    T, sigma = 4000, 0.2  # per-axis standard deviation in degrees
+    gt = axis_angle_to_matrix(torch.linspace(0, 1, T, dtype=F64)[:, None] * torch.tensor([0.2, 0.9, 0.1], dtype=F64))
+    noise = axis_angle_to_matrix(torch.deg2rad(sigma * torch.randn(T, 3, dtype=F64, generator=g)))
+    est = noise @ gt  # camera-frame noise on a smooth turn
+    assert abs(float(rotation_jitter_deg(est, gt)) - math.sqrt(3) * sigma) < 0.03 * math.sqrt(3) * sigma
+    both = rotation_jitter_deg(torch.stack([est, gt]), torch.stack([gt, gt]))  # batched: (2,)
+    assert both.shape == (2,) and float(both[1]) < 1e-9
+    with pytest.raises(ValueError, match="T >= 3"):
+        rotation_jitter_deg(gt[:2], gt[:2])
 
 
 # --- translation -----------------------------------------------------------------------------------
@@ -188,6 +213,9 @@ def test_sequence_metrics_known_answers() -> None:
     d = m.as_dict()
     assert d["au_rmse/b"] == m.au_rmse and "au_names" not in d
     assert m.au_inactive_rmse == 0.0 and m.au_inactive_max == 0.0  # units a and c are estimated at rest
+    # The yaw errors 0,0,0,0,15,0,0,3,0,0,0: second differences 15,-30,15 and 3,-6,3 over 9 frames.
+    assert math.isclose(m.rot_jitter_deg, math.sqrt((2 * 225 + 900 + 2 * 9 + 36) / 9 / 6), rel_tol=1e-9)
+    assert d["rot_jitter_deg"] == m.rot_jitter_deg
 
 
 def test_sequence_metrics_inactive_units() -> None:

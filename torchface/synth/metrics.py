@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_euler
+from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
 from torchface.tracker.step import TrackStatus
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "relative_rotations",
     "relative_rotation_error_deg",
     "relative_ypr_error_deg",
+    "rotation_jitter_deg",
     "translation_errors_mm",
     "active_units",
     "unit_rmse",
@@ -123,6 +124,41 @@ def relative_ypr_error_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
     dtype = torch.promote_types(R_est.dtype, R_gt.dtype)
     d = matrix_to_euler(relative_rotations(R_est.to(dtype))) - matrix_to_euler(relative_rotations(R_gt.to(dtype)))
     return torch.remainder(d + 180.0, 360.0) - 180.0
+
+
+def rotation_jitter_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
+    """Frame-to-frame noise of the rotation error: how much an estimate jitters around the truth.
+
+    The error ``E_t = (R^est_t R^est_0^T) (R^gt_t R^gt_0^T)^T`` (as in :func:`relative_rotation_error_deg`) is
+    taken as its rotation vector ``e_t`` (degrees), and its second differences ``e_{t+1} - 2 e_t + e_{t-1}``
+    remove what varies slowly (a bias, a drift). For an error that is smooth plus independent noise ``n_t`` per
+    frame, ``E |Δ² n|² = 6 E |n|²``, so the result, ``sqrt(mean |Δ² e|² / 6)``, is the RMS angle of that noise;
+    a smooth error gives about 0. It measures what a user sees as jitter, apart from the error itself.
+
+    Args:
+        R_est: ``(*, T, 3, 3)`` estimated rotations, ``T >= 3``.
+        R_gt: ``(*, T, 3, 3)`` true rotations.
+
+    Returns:
+        ``(*)`` degrees.
+
+    Example:
+        >>> from torchface.geometry.so3 import euler_to_matrix
+        >>> gt = euler_to_matrix(torch.tensor([[2.0 * t, 0.0, 0.0] for t in range(10)], dtype=torch.float64))
+        >>> est = euler_to_matrix(torch.tensor([[2.0 * t + 1.0, 0.0, 0.0] for t in range(10)], dtype=torch.float64))
+        >>> float(rotation_jitter_deg(est, gt)) < 1e-9  # a constant bias is no jitter
+        True
+    """
+    _check_rotations(R_est, "R_est")
+    _check_rotations(R_gt, "R_gt")
+    _check_same(R_est, R_gt, "R_est and R_gt")
+    if R_est.shape[-3] < 3:
+        raise ValueError(f"jitter needs T >= 3 frames, got {R_est.shape[-3]}")
+    dtype = torch.promote_types(torch.promote_types(R_est.dtype, R_gt.dtype), torch.float64)
+    err = relative_rotations(R_est.to(dtype)) @ relative_rotations(R_gt.to(dtype)).transpose(-1, -2)
+    e = torch.rad2deg(matrix_to_axis_angle(err))  # (*, T, 3)
+    d2 = e[..., 2:, :] - 2.0 * e[..., 1:-1, :] + e[..., :-2, :]
+    return (d2.pow(2).sum(-1).mean(-1) / 6.0).sqrt()
 
 
 def translation_errors_mm(t_est: Tensor, t_gt: Tensor) -> tuple[Tensor, Tensor]:
@@ -270,6 +306,7 @@ class SequenceMetrics:
             reports where there is none (NaN if every unit is active or none is scored).
         au_inactive_max: the largest ``|estimate - truth|`` of such a unit over the frames, as a fraction of its
             range (NaN likewise).
+        rot_jitter_deg: :func:`rotation_jitter_deg` over the frames ``0 .. T-1`` (NaN for ``T < 3``).
     """
 
     frames: int
@@ -294,6 +331,7 @@ class SequenceMetrics:
     au_corr_per_unit: tuple[float, ...] = ()
     au_inactive_rmse: float = float("nan")
     au_inactive_max: float = float("nan")
+    rot_jitter_deg: float = float("nan")
 
     def as_dict(self) -> dict[str, float | int]:
         """Flat ``{metric: number}``; per-unit values as ``au_rmse/<name>`` and ``au_corr/<name>``."""
@@ -399,6 +437,7 @@ def sequence_metrics(
         au_corr_per_unit=corr_u,
         au_inactive_rmse=inactive_rmse,
         au_inactive_max=inactive_max,
+        rot_jitter_deg=float(rotation_jitter_deg(rotation_est, rotation_gt)) if T >= 3 else nan,
     )
 
 

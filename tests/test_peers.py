@@ -1,0 +1,63 @@
+"""Tests of scripts/peers.py: MediaPipe's pose turned into torchface's camera frame, and a missing MediaPipe
+reported as None (the scripts then print no peer row or ratio)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.geometry.so3 import matrix_to_euler
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+peers = pytest.importorskip("peers")
+
+
+def _gl_pose(yaw_deg: float, scale: float = 1.0) -> np.ndarray:
+    """A facial transformation matrix: the head turned ``yaw_deg`` about the OpenGL camera's y axis (up)."""
+    a = math.radians(yaw_deg)
+    m = np.eye(4)
+    m[:3, :3] = scale * np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+    m[:3, 3] = [1.0, 2.0, -40.0]
+    return m
+
+
+def test_opencv_rotations_flip_the_vertical_axis_and_drop_the_scale():
+    # The same physical turn about the vertical axis is -yaw about OpenCV's y (down); the matrix's scale goes.
+    matrices = np.stack([_gl_pose(0.0, 3.0), _gl_pose(20.0, 3.0), _gl_pose(-35.0, 0.5)])
+    R, found = peers.opencv_rotations(matrices)
+    assert found.all() and R.shape == (3, 3, 3)
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.tile(np.eye(3), (3, 1, 1)), atol=1e-12)
+    yaw = matrix_to_euler(torch.from_numpy(R))[:, 0]
+    np.testing.assert_allclose(yaw.numpy(), [0.0, -20.0, 35.0], atol=1e-9)
+
+
+def test_opencv_rotations_hold_the_last_pose_where_no_face_was_found():
+    matrices = np.stack([_gl_pose(10.0)] * 4)
+    matrices[0] = np.nan  # before the first face: the first found pose
+    matrices[2] = np.nan  # later: the previous pose
+    matrices[3] = _gl_pose(30.0)
+    R, found = peers.opencv_rotations(matrices)
+    assert found.tolist() == [False, True, False, True]
+    np.testing.assert_allclose(R[0], R[1])
+    np.testing.assert_allclose(R[2], R[1])
+    assert not np.allclose(R[3], R[1])
+    with pytest.raises(ValueError, match="no face"):
+        peers.opencv_rotations(np.full((3, 4, 4), np.nan))
+    with pytest.raises(ValueError, match=r"\(T, 4, 4\)"):
+        peers.opencv_rotations(np.eye(4))
+
+
+def test_run_mediapipe_is_none_without_mediapipe_and_checks_frames():
+    try:
+        import mediapipe  # noqa: F401
+    except ImportError:
+        assert peers.run_mediapipe(np.zeros((4, 32, 32, 3), np.uint8)) is None
+    else:
+        pytest.skip("mediapipe is installed in this environment")
+    with pytest.raises(ValueError, match="uint8"):
+        peers.run_mediapipe(np.zeros((4, 32, 32, 3), np.float32))
