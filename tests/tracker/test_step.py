@@ -611,6 +611,59 @@ def test_gray_crop_pyramid_in_chunks_equals_the_whole_batch(channels, monkeypatc
     assert leaf.grad is not None and bool(torch.isfinite(leaf.grad).all()) and float(leaf.grad.abs().sum()) > 0
 
 
+def test_gray_crop_pyramid_in_a_workspace_equals_new_memory_and_reuses_it():
+    """In a StepWorkspace the chunked levels equal new tensors' bit for bit; a smaller crop next reuses the same
+    memory, a larger one grows it; buffers made in inference mode are normal tensors."""
+    import torchface.tracker.step as step_module
+
+    gen = torch.Generator().manual_seed(6)
+    B, H, W, L = 19, 64, 80, 3
+    frames = torch.rand(B, 3, H, W, generator=gen)
+    offsets = torch.zeros(B, 2, dtype=torch.int64)
+    ws = step_module.StepWorkspace()
+    pointers = []
+    for ch, cw in [(40, 48), (32, 40), (48, 64)]:
+        with torch.inference_mode():
+            got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, workspace=ws)
+        want = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L)
+        assert all(torch.equal(g, w) for g, w in zip(got, want))
+        assert not any(g.is_inference() for g in got)
+        pointers.append(got[0].data_ptr())
+    assert pointers[1] == pointers[0] and pointers[2] != pointers[0]  # 48x64 > 40x48 + 25 %: grown
+    assert "MB" in repr(ws)
+
+
+def test_steps_of_a_large_batch_share_a_workspace_and_equal_steps_in_new_memory(model, two_streams):
+    """More than _PYRAMID_CHUNK streams: the first step gives the state a StepWorkspace that later states share;
+    the steps equal those that find it borrowed (another thread's, here held by the test) and allocate their own.
+    The workspace is not part of the state's value: equality ignores it, a deep copy gets an empty one."""
+    import copy
+    import pickle
+
+    import torchface.tracker.step as step_module
+
+    frames, gts = two_streams
+    reps = step_module._PYRAMID_CHUNK // 2 + 1  # 10 streams
+    frames, lm = frames.repeat(reps, 1, 1, 1, 1), landmarks_of(gts).repeat(reps, 1, 1)
+    state, _ = initialise(model, L2, frames[:, 0], lm, Intrinsics.default(W, H))
+    assert state.workspace is None
+    reused, fresh = state, state
+    for i in range(1, 4):
+        reused, want = track_step(model, L2, reused, frames[:, i])
+        ws = reused.workspace
+        assert isinstance(ws, step_module.StepWorkspace) and ws.acquire()  # held: the next step cannot borrow it
+        try:
+            fresh, got = track_step(model, L2, replace(fresh, workspace=ws), frames[:, i])
+        finally:
+            ws.release()
+        assert fresh.workspace is ws
+        assert torch.equal(got.rotation, want.rotation) and torch.equal(got.expression, want.expression)
+    twin = copy.deepcopy(reused)
+    assert twin.workspace is not reused.workspace and "0 MB" in repr(twin.workspace)
+    assert replace(reused, workspace=None) == reused
+    assert pickle.loads(pickle.dumps(reused.workspace)).acquire()
+
+
 @pytest.mark.parametrize("size", [(96, 128), (98, 130)])
 def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
     """Windows of a pyramid computed from a crop equal the whole frame's pyramid there, bit for bit, including
