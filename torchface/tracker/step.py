@@ -910,7 +910,7 @@ class StepWorkspace:
     At 128 streams a step's pyramid takes about 170 MB (the finest level 126 MB at a 480x512 crop), more than
     glibc's largest automatic ``mmap`` threshold (32 MB), so without reuse every step maps it afresh and faults
     its pages in: measured at B = 128, 2 threads (``benchmark.py``'s frames), 245 ms per step, of which 82 ms in
-    the pyramid, against 183 and 46 ms when the levels are reused (521 -> 698 frames/s; glibc's
+    the pyramid, against 181 and 51 ms with the workspace (521 -> 708 frames/s; glibc's
     ``MALLOC_MMAP_THRESHOLD_=268435456`` in the environment, which keeps every large block, gave 775).
 
     A :class:`TrackerState` holds one (``workspace``) and the states its steps make share it. A step borrows it
