@@ -388,10 +388,13 @@ def mediapipe_row(seq: Sequence, python: str | None) -> dict[str, float] | None:
     """The figures of MediaPipe's FaceLandmarker (:func:`peers.run_mediapipe`) on ``seq``'s frames: its rotations
     (:func:`peers.opencv_rotations`) scored as torchface's are; translation and the initial fit's absolute error
     NaN (MediaPipe's units and head frame are its own); frames where it found no face are FAILED (their rotation is
-    the last found). None when MediaPipe is not installed in ``python``'s environment."""
+    the last found). None when MediaPipe is not installed in ``python``'s environment or found no face."""
     frames = seq.frames.permute(0, 2, 3, 1).contiguous().numpy()  # (T, H, W, 3) uint8 RGB
     run = run_mediapipe(frames, python, poses=True)
     if run is None:
+        return None
+    if run.frames_with_face == 0:  # nothing to score: every figure would be the first found pose's
+        log(f"{seq.gt.name}/mediapipe: MediaPipe found no face in any of the {run.frames} frames")
         return None
     R, found = opencv_rotations(run.matrices)
     T = R.shape[0]
@@ -1012,7 +1015,8 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"{name}/mediapipe: MediaPipe FaceLandmarker on {t} frames {w}x{h}")
                 mp_figures = mediapipe_row(seq, args.mediapipe_python)
                 if mp_figures is None:
-                    log(f"{name}/mediapipe: MediaPipe or its model bundle is not installed for {args.mediapipe_python}")
+                    log(f"{name}/mediapipe: no row (MediaPipe or its model bundle missing for {args.mediapipe_python}, "
+                        "or no face found)")
                 else:
                     rows["mediapipe"] = results[f"{name}/mediapipe"] = mp_figures
                     if args.json is not None:

@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         extra = ""
         if args.mediapipe_python:
             run = run_mediapipe(_rgb_frames(clip), args.mediapipe_python, poses=True)
-            if run is None:
+            if run is None or run.frames_with_face == 0:  # not installed there, or no face to score
                 extra = f"{'-':>11}"
             else:
                 row["mediapipe_jitter_deg"] = pose_jitter_deg(opencv_rotations(run.matrices)[0])
