@@ -27,3 +27,22 @@ def test_parser_requires_a_command():
     with pytest.raises(SystemExit):
         build_parser().parse_args([])
     assert build_parser().parse_args(["demo"]).out.name == "torchface-demo"
+
+
+def test_track_threads_sets_torchs_threads_and_rejects_non_positive(monkeypatch, tmp_path, capsys):
+    import torch
+
+    import torchface.cli as cli
+
+    seen = []
+    monkeypatch.setattr(cli, "_run_track", lambda *a, **k: seen.append(torch.get_num_threads()) or 0)
+    before = torch.get_num_threads()
+    try:
+        assert main(["track", "clip.mp4", "--out", str(tmp_path), "--threads", "1"]) == 0
+        assert seen == [1]
+    finally:
+        torch.set_num_threads(before)
+    for bad in ("0", "-2", "two"):
+        with pytest.raises(SystemExit):
+            main(["track", "clip.mp4", "--out", str(tmp_path), "--threads", bad])
+        assert "--threads: must be an integer >= 1" in capsys.readouterr().err

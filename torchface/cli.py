@@ -99,6 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
         "first pose and the shape units the landmark fit held are re-estimated from that view, in one pass)",
     )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
+    track.add_argument(
+        "--threads", type=_threads, default=None,
+        help="torch threads of this process (default: torch's, one per core). Give several torchface processes on "
+        "the same cores 1 each: two runs at once on 2 cores tracked the demo clip at 14 frames/s each with torch's "
+        "default, 80 with --threads 1",
+    )  # fmt: skip
 
     demo = sub.add_parser("demo", help="track the embedded sample clip and write everything to ./torchface-demo/")
     demo.add_argument(
@@ -182,9 +188,24 @@ def _render_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _threads(text: str) -> int:
+    """``--threads``: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchface`` console script; returns the exit status."""
     args = build_parser().parse_args(argv)
+    if getattr(args, "threads", None) is not None:
+        import torch
+
+        torch.set_num_threads(args.threads)
     from torchface.detect import DetectorUnavailable
     from torchface.io.errors import InputError, OutputError
 
