@@ -27,6 +27,7 @@ import torch
 from torchface.cli import ProgressDisplay
 from torchface.io import read_track_csv
 from torchface.job import JobConfig, output_paths, track_videos
+from torchface.synth.io import read_video_uint8
 from torchface.synth.metrics import rotation_jitter_deg
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
@@ -41,20 +42,6 @@ def pose_jitter_deg(rotations: np.ndarray) -> float:
     R = torch.from_numpy(np.ascontiguousarray(rotations, dtype=np.float64))
     return float(rotation_jitter_deg(R, torch.eye(3, dtype=torch.float64).expand_as(R)))
 
-
-def _rgb_frames(clip: Path) -> np.ndarray:
-    """``(T, H, W, 3)`` uint8 RGB frames of a clip."""
-    cap = cv2.VideoCapture(str(clip))
-    frames = []
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
-    cap.release()
-    if not frames:
-        raise RuntimeError(f"no frames read from {clip}")
-    return np.stack(frames)
 
 GRID = Path(__file__).resolve().parents[2] / "shared" / "assets" / "grid"
 
@@ -91,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
                "min_confidence": float(conf.min()), "jitter_deg": jitter, "fps": s.fps}  # fmt: skip
         extra = ""
         if args.mediapipe_python:
-            run = run_mediapipe(_rgb_frames(clip), args.mediapipe_python, poses=True)
+            run = run_mediapipe(read_video_uint8(clip).permute(0, 2, 3, 1).numpy(), args.mediapipe_python, poses=True)
             if run is None or run.frames_with_face == 0:  # not installed there, or no face to score
                 extra = f"{'-':>11}"
             else:

@@ -148,16 +148,20 @@ def test_track_step_results_serve_a_differentiable_normalised_face(model, turn):
     assert pixels.grad is not None and float(pixels.grad.abs().sum()) > 0
 
 
+def _record_inference_mode(monkeypatch, module, name: str) -> list[bool]:
+    """Wrap ``module.name`` so that each call appends whether inference mode was on; returns that list."""
+    seen: list[bool] = []
+    real = getattr(module, name)
+    monkeypatch.setattr(module, name, lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or real(*a, **k))
+    return seen
+
+
 def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, monkeypatch):
     import torchface.tracker.step as step_module
 
     frames, lm = turn
     state, _ = initialise(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
-    seen = []
-    real = step_module._track_step_fast
-    monkeypatch.setattr(
-        step_module, "_track_step_fast", lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or real(*a, **k)
-    )
+    seen = _record_inference_mode(monkeypatch, step_module, "_track_step_fast")
     track_step(model, CFG, state, frames[:, 1])
     frame = frames[:, 1].clone().requires_grad_(True)
     _, result = track_step(model, CFG, state, frame)
@@ -175,11 +179,7 @@ def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
 
     frames, lm = turn
     state, _ = initialise_managed(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
-    seen = []
-    real = managed_module._confidence
-    monkeypatch.setattr(
-        managed_module, "_confidence", lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or real(*a, **k)
-    )
+    seen = _record_inference_mode(monkeypatch, managed_module, "_confidence")
     managed_step(model, CFG, state, frames[:, 1])
     assert seen == [True] and not torch.is_inference_mode_enabled(), seen
 

@@ -719,7 +719,7 @@ def managed_step(
     if graded is not None:
         frames = frames.detach()
         solved, result = replace(solved, params=solved.params.detach()), _detached(result)
-    own = torch.ones_like(result.status, dtype=torch.bool)  # streams whose parameters are the solver's
+    adopted = None  # the streams that go on from a recovery candidate (rows), if any
     conf, diss, inside, face = _confidence(
         model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
     )
@@ -753,7 +753,6 @@ def managed_step(
     params, params_ypr = solved.params, result.ypr_deg
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
-        own = own & ~reverted
 
     # 4. Recovery of lost streams (rare; only the streams concerned).
     recovery = bool(attempt.any())
@@ -784,8 +783,7 @@ def managed_step(
             rows = index[adopt]
             params, params_ypr, face = params.clone(), None, None  # the normalised faces are the track's
             params[rows] = r_state.params[adopt]
-            own = own.clone()
-            own[rows] = False
+            adopted = rows
             result = _scatter_result(result, rows, replace(
                 r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
                              if isinstance(getattr(r_result, f.name), Tensor)},
@@ -840,7 +838,10 @@ def managed_step(
     )  # fmt: skip
     new_state = replace(new_state, management=ms)
     watched = result
-    if graded is not None:
+    if graded is not None:  # the streams whose parameters are the solver's: not reverted, not adopted
+        own = ~reverted
+        if adopted is not None:
+            own[adopted] = False
         result = _regraded(result, graded[1], own)
     reported = _in_head_frame(result, ms)  # the offsets this frame was tracked under
     if ms.first is not None:  # the online look-ahead start (initialise_managed(refine_first=...))
