@@ -191,6 +191,22 @@ def test_missing_and_zero_weight_landmarks_are_ignored(model):
         torch.testing.assert_close(fit.rms_px[b], ref.rms_px[0], rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.parametrize("value", [float("inf"), -float("inf")])
+def test_infinite_landmark_counts_as_missing(model, value):
+    """A landmark with an infinite coordinate is missing, as a NaN one is: the same fit. (Its target used to be
+    nan_to_num's largest float, whose square overflowed: a NaN start and an identity-pose, failed fit.)"""
+    R, t = poses()
+    noise = torch.randn(1, 68, 2, generator=torch.Generator().manual_seed(2), dtype=D)
+    lm = project_landmarks(model, R[:1], t[:1]) + noise
+    missing, infinite = lm.clone(), lm.clone()
+    missing[0, 30] = float("nan")
+    infinite[0, 30, 0] = value
+    ref, fit = fit_landmarks(model, missing, CAM), fit_landmarks(model, infinite, CAM)
+    assert int(fit.status[0]) == int(ref.status[0])
+    for field in ("axis_angle", "translation", "shape_coeffs", "anim_coeffs", "rms_px"):
+        torch.testing.assert_close(getattr(fit, field), getattr(ref, field), rtol=0, atol=0)
+
+
 def test_weights_matter(model):
     """A down-weighted outlier pulls the fit less than a fully weighted one."""
     R, t = poses()

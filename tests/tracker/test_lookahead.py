@@ -157,6 +157,29 @@ def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
                          key_expression=torch.full((2, model.num_animation), float("nan")))  # fmt: skip
 
 
+def test_infinite_landmark_counts_as_missing_in_the_refinement(model):
+    """The refinement's landmark term treats a landmark with an infinite coordinate as missing, as a NaN one: the
+    same refined fit. (Its target used to be nan_to_num's largest float: 0 * inf**2 made the cost NaN.)"""
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    R = gt.rotation.to(torch.float32)
+    start = LandmarkFit(R[:1], matrix_to_axis_angle(R[:1]), gt.translation[:1].float(), torch.zeros(1, model.num_shape),
+                        torch.zeros(1, model.num_animation), torch.zeros(1), torch.zeros(1, dtype=torch.int64))  # fmt: skip
+    cfg = LookaheadConfig(iterations=(3, 2), max_points=600)
+    out = {}
+    for value in ("nan", "inf", "-inf"):
+        lm = gt.landmarks_px[0].float().clone()
+        lm[30, 1] = float(value)
+        out[value] = refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
+                                      config=cfg)  # fmt: skip
+    ref = out["nan"]
+    assert bool(torch.isfinite(ref.translation).all())
+    assert float(geodesic_angle_deg(ref.rotation.double(), gt.rotation[:1])) < 1.0
+    for value in ("inf", "-inf"):
+        for field in ("axis_angle", "translation", "anim_coeffs", "rms_px"):
+            torch.testing.assert_close(getattr(out[value], field), getattr(ref, field), rtol=0, atol=0)
+
+
 def test_refinement_takes_per_unit_shape_precisions(model):
     """FitConfig's per-unit shape precisions reach the refinement: a tuple of zeros refines as the scalar 0 (the
     free unit comes back from 0.3 as in the test above), a huge precision on the free unit holds it at the prior's

@@ -25,11 +25,13 @@ from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.tracker import (
     FaceTracker,
     FitConfig,
+    LookaheadConfig,
     ParamLayout,
     TrackerConfig,
     TrackStatus,
     frame_residuals,
     initialise,
+    initialise_managed,
     track_step,
 )
 from torchface.tracker.step import TrackSolver, crop_windows, gray_pyramid
@@ -413,6 +415,30 @@ def test_face_tracker_module(model, two_streams, l2_runs):
         FaceTracker(config={"num_levels": 2}, model=model)
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
         tracker.initialise(frames[0, 0], landmarks_of(gts))
+
+
+def test_initialise_refuses_frames_on_another_value_scale(model, two_streams):
+    """0-255 float frames, or mean/std-normalised ones, are refused at initialisation with the values seen (the
+    tracker's thresholds are for [0, 1]); a resampling's small overshoot and NaN pixels are not refused."""
+    frames, gts = two_streams
+    lm, cam = landmarks_of(gts), Intrinsics.default(W, H)
+    first = frames[:, 0]
+    with pytest.raises(ValueError, match=r"divide by 255"):
+        initialise(model, BASE, first * 255.0, lm, cam)
+    with pytest.raises(ValueError, match=r"values from -2"):
+        initialise(model, BASE, (first - 0.5) / 0.25, lm, cam)
+    with pytest.raises(ValueError, match=r"divide by 255"):  # also before the online start's landmark fit
+        initialise_managed(model, TrackerConfig(), first * 255.0, lm, cam, refine_first=LookaheadConfig())
+    with pytest.raises(ValueError, match=r"divide by 255"):
+        FaceTracker(BASE, model=model).initialise(first * 255.0, lm, cam)
+    overshoot = first.clone()
+    overshoot[0, 0, 0, 0], overshoot[1, 0, 0, 0] = 1.04, -0.03  # a corner pixel, outside the face
+    nan = first.clone()
+    nan[:, :, :2, :2] = float("nan")
+    ref = initialise(model, BASE, first, lm, cam)[1]
+    for ok in (overshoot, nan):
+        res = initialise(model, BASE, ok, lm, cam)[1]
+        assert bool((res.status == ref.status).all()) and bool(torch.isfinite(res.rotation).all())
 
 
 def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):

@@ -207,7 +207,9 @@ def fit_landmarks(
     w = _check_landmarks(landmarks_px, weights, k, intrinsics)
     B = landmarks_px.shape[0]
     dtype, device = model.dtype, model.device
-    target = torch.nan_to_num(landmarks_px.to(dtype=dtype, device=device))
+    lm = landmarks_px.to(dtype=dtype, device=device)
+    # Missing points (NaN, or +-inf) weigh 0; their targets must be finite too, or 0 * inf**2 poisons the sums.
+    target = torch.where(torch.isfinite(lm), lm, torch.zeros_like(lm))
     w = w.to(dtype=dtype, device=device)
     lv, lw = model.landmark_vertices[idx], model.landmark_weights[idx]
     mean_l = interpolate_landmarks(model.mean.unsqueeze(0), lv, lw)[0]  # (K, 3)

@@ -279,7 +279,8 @@ def _refine_first_fit(
     )  # fmt: skip
     keep = px.valid[0]
     fi, bary = px.face_index[:, keep], px.bary[:, keep]
-    target = torch.nan_to_num(landmarks_px.to(device=dev, dtype=dt))
+    lm = landmarks_px.to(device=dev, dtype=dt)
+    target = torch.where(torch.isfinite(lm), lm, torch.zeros_like(lm))  # missing (NaN or +-inf): weight 0
     lw = torch.isfinite(landmarks_px.to(device=dev)).all(-1).to(dt)
     if landmark_weights is not None:
         lw = lw * landmark_weights.to(device=dev, dtype=dt)

@@ -247,7 +247,7 @@ def initialise_managed(
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
         if fit is None:
-            check_frames(frames, intrinsics)
+            check_frames(frames, intrinsics, values=True)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
     state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template

@@ -92,8 +92,10 @@ class FaceTracker(nn.Module):
         """Start tracking from the first frames and their landmarks.
 
         Args:
-            frames: ``(B, 3, H, W)`` float in [0, 1].
-            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels.
+            frames: ``(B, 3, H, W)`` float in [0, 1] (values outside
+                :data:`~torchface.tracker.step.FRAME_VALUE_RANGE` are refused: divide 0-255 frames by 255).
+            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; NaN or
+                infinite: missing.
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
             weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
             fit: the first frames' fit when already made (e.g. by

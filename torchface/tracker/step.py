@@ -491,8 +491,19 @@ def gray_pyramid_windows(
             for lv, (g, off, h, w) in enumerate(zip(crop, offsets, heights, widths))]  # fmt: skip
 
 
-def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None) -> None:
-    """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1]."""
+#: :func:`check_frames` with ``values=True`` refuses frames with values outside this interval: [0, 1] frames,
+#: with room for a resampling's overshoot (a bicubic resize can pass 1 by a few percent).
+FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
+
+
+def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False) -> None:
+    """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1].
+
+    With ``values`` (at initialisation: one pass over the first frames, not every step's), also refuse values
+    outside :data:`FRAME_VALUE_RANGE`: 0-255 frames, or frames normalised with a mean and standard deviation,
+    would otherwise be tracked with every threshold (gradient, contrast, robust scale) 255 times too small.
+    NaN pixels are left to the tracker (they are never template points; a frame of them is a failed sample).
+    """
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
@@ -502,6 +513,11 @@ def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None) -> None:
             f"frames must be {intrinsics.height}x{intrinsics.width} (the tracked size), got "
             f"{frames.shape[-2]}x{frames.shape[-1]}"
         )
+    if values and frames.numel():
+        lo, hi = (float(v) for v in torch.aminmax(frames.detach()))  # NaN pixels make both NaN: no refusal
+        if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
+            hint = " (0-255 values? divide by 255)" if hi > FRAME_VALUE_RANGE[1] and lo >= FRAME_VALUE_RANGE[0] else ""
+            raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
 def _layout(model: FaceModel) -> ParamLayout:
@@ -550,7 +566,7 @@ def initialise(
     Returns:
         The state and the first frame's result.
     """
-    check_frames(frames, intrinsics)
+    check_frames(frames, intrinsics, values=True)
     if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[0] != frames.shape[0]:
         got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {frames.shape[0]} (one set per frame), got {got}")
