@@ -23,6 +23,26 @@ def test_render_demo_rejects_unknown_scenario(tmp_path, capsys):
     assert "unknown scenario" in capsys.readouterr().err
 
 
+def test_render_demo_rejects_odd_sizes_and_a_file_as_out(tmp_path, capsys):
+    """An odd size used to be written cropped to an even one by the video codec while the ground truth kept the
+    size asked for; a file as --out used to end in a traceback. Both are one-line errors, nothing written."""
+    for w, h in (("65", "48"), ("64", "47"), ("8", "8")):
+        assert main(["render-demo", "--out", str(tmp_path / "odd"), "--frames", "2", "--width", w, "--height", h]) == 2
+        assert "must be even numbers >= 16" in capsys.readouterr().err
+    assert not (tmp_path / "odd").exists()
+    (tmp_path / "afile").write_text("x")
+    assert main(["render-demo", "--out", str(tmp_path / "afile"), "--frames", "2"]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+
+
+def test_video_sink_refuses_odd_sizes(tmp_path):
+    from torchface.synth.io import VideoSink
+
+    with pytest.raises(ValueError, match="even width and height"):
+        VideoSink(tmp_path / "odd.avi", 65, 48)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_parser_requires_a_command():
     with pytest.raises(SystemExit):
         build_parser().parse_args([])
@@ -39,6 +59,12 @@ def test_track_threads_sets_torchs_threads_and_rejects_non_positive(monkeypatch,
     before = torch.get_num_threads()
     try:
         assert main(["track", "clip.mp4", "--out", str(tmp_path), "--threads", "1"]) == 0
+        assert seen == [1]
+    finally:
+        torch.set_num_threads(before)
+    seen.clear()
+    try:
+        assert main(["demo", "--out", str(tmp_path), "--threads", "1"]) == 0  # demo takes it too
         assert seen == [1]
     finally:
         torch.set_num_threads(before)

@@ -113,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--device", default="cpu", help="torch device (default cpu)")
     demo.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    demo.add_argument("--threads", type=_threads, default=None, help="torch threads of this process (as for track)")
 
     render = sub.add_parser("render-demo", help="render a short synthetic sequence with ground truth")
     render.add_argument(
@@ -175,6 +176,12 @@ def _render_demo(args: argparse.Namespace) -> int:
 
     if args.scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
+    if args.width < 16 or args.height < 16 or args.width % 2 or args.height % 2:
+        raise ValueError(f"--width and --height must be even numbers >= 16, got {args.width}x{args.height}")
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    if args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a file, not a folder")
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)
     start = time.perf_counter()
     files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))
@@ -225,6 +232,10 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, OutputError, DetectorUnavailable, ValueError) as exc:
         message = " ".join(str(exc).split())
         print(f"torchface: error: {message}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:  # a file system refusal the checks before tracking could not foresee
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"torchface: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(

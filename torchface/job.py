@@ -20,7 +20,10 @@ of the rows already written are read back from the CSV, and the videos are re-dr
 
 from __future__ import annotations
 
+import json
+import math
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -119,8 +122,8 @@ class JobConfig:
     def __post_init__(self) -> None:
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
-        if self.focal is not None and not self.focal > 0:
-            raise ValueError(f"focal must be positive (pixels), got {self.focal}")
+        if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
+            raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
         if self.normalised_size < 16:
             raise ValueError(f"normalised_size must be >= 16, got {self.normalised_size}")
         if self.redetect_after < 0:
@@ -172,6 +175,22 @@ def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
         "normalised": out_dir / f"{name}_normalised.mp4",
         "meshes": out_dir / f"{name}_meshes",
     }
+
+
+def output_name(video: str | os.PathLike[str]) -> str:
+    """The stem of video ``video``'s outputs: a file's stem, a folder's name (``.`` and ``..`` resolved first).
+
+    Raises:
+        InputError: the path names no folder or file (the file system's root).
+    """
+    path = Path(video)
+    if path.is_dir():
+        name = path.resolve().name
+    else:
+        name = path.stem
+    if not name:
+        raise InputError(f"{video}: cannot name outputs after this input; give a folder or file with a name")
+    return name
 
 
 def demo_inputs() -> tuple[Path, Path]:
@@ -287,11 +306,27 @@ def _first_landmarks(
     return check_landmarks(points, W, H, f"{reader.info.path}: detector landmarks"), f"detector:{detector_name}"
 
 
-def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
-    names = [Path(v).stem if not Path(v).is_dir() else Path(v).name for v in videos]
+def _check_unique(names: Sequence[str]) -> None:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise InputError(f"two inputs would write the same outputs {dup[0]!r}: rename one of them")
+
+
+def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
+    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input."""
+    try:
+        made_from = json.loads(paths["json"].read_text(encoding="utf-8"))["input"]["path"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
+    if Path(made_from).resolve() != video.resolve():
+        raise InputError(
+            f"{paths['csv']} was made from {made_from}, not {video}: use another --out, or run without --resume"
+        )
+
+
+def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
+    names = [output_name(v) for v in videos]
+    _check_unique(names)
     streams: list[_Stream] = []
     try:
         for k, (path, name) in enumerate(zip(videos, names)):
@@ -350,10 +385,16 @@ def track_videos(
     summaries: dict[str, VideoSummary] = {}
     pending: list[Path] = []
     pending_lm: list[Path] = []
-    for k, v in enumerate(videos):
-        name = v.name if v.is_dir() else v.stem
+    names = [output_name(v) for v in videos]
+    _check_unique(names)
+    for v, name in zip(videos, names):
+        for kind, path in output_paths(out_dir, name).items():
+            if kind != "meshes" and path.is_dir():
+                raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
+    for k, (v, name) in enumerate(zip(videos, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
+            _check_resumable(v, paths)
             cols, rows = read_track_csv(paths["csv"])
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
@@ -400,12 +441,18 @@ def _track_group(
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
     if not config.resume:  # a fresh run: earlier complete outputs of these videos must not outlive it
-        for p in paths:
+        for p, mt in zip(paths, mesh_tmp):
             for kind in ("json", "csv", "overlay", "plot", "normalised"):
                 p[kind].unlink(missing_ok=True)
+            for folder in (p["meshes"], mt):  # an earlier run's meshes, complete or interrupted
+                if folder.is_dir():
+                    shutil.rmtree(folder)
     try:
         for s, p in zip(streams, paths):
             s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
+            if s.total is not None and s.csv.rows_done > s.total:
+                raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
+                                 f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
             s.replay = s.csv.previous if s.csv.rows_done else None
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)

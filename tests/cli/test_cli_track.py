@@ -135,10 +135,16 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
     blocker.write_text("x")
     rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(blocker / "sub"), "--quiet"])
     _assert_clean_failure(rc, capsys, blocker / "sub", "cannot create the output folder")
-    _assert_clean_failure(
-        main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--focal", "-5", "--quiet"]),
-        capsys, out, "focal must be positive",
-    )  # fmt: skip
+    for focal in ("-5", "inf", "nan"):
+        _assert_clean_failure(
+            main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--focal", focal, "--quiet"]),
+            capsys, out, "focal must be a positive number",
+        )  # fmt: skip
+    taken = tmp_path / "taken"
+    (taken / f"{video.stem}.csv").mkdir(parents=True)  # an output's name taken by a folder: refused before tracking
+    rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(taken), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "but it is a folder")
+    assert [p.name for p in taken.iterdir()] == [f"{video.stem}.csv"]
     _assert_clean_failure(
         main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--device", "gpu0", "--quiet"]),
         capsys, out, "unknown torch device",
@@ -273,6 +279,39 @@ def test_resume_after_interruption(clip, plain_run, tmp_path):
     assert json.loads(paths["json"].read_text())["frames"] == n
     # A complete video is skipped by --resume.
     assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+
+
+def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_path, capsys, monkeypatch):
+    """A folder given as ``.`` names its outputs after the folder (they used to be hidden files named '.csv'...);
+    --resume refuses two inputs of one name, complete results made from another input, and a partial CSV longer
+    than the video; a fresh run removes an earlier run's meshes (they used to outlive it)."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 4)
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(shots / f"{k:03d}.png"), f[..., ::-1])
+    out = tmp_path / "out"
+    monkeypatch.chdir(shots)
+    assert main(["track", ".", "--out", str(out), "--landmarks", str(lm), "--quiet", "--meshes"]) == 0
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith("shots")) == []
+    assert output_paths(out, "shots")["csv"].is_file() and len(list((out / "shots_meshes").glob("*.ply"))) == 4
+    monkeypatch.chdir(tmp_path)
+    np.save(tmp_path / "shots.npy", frames[:2])  # another input with the same output name
+    capsys.readouterr()
+    rc = main(["track", "shots", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--landmarks", str(lm),
+               "--resume", "--quiet"])  # fmt: skip
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "same outputs 'shots'")
+    rc = main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "was made from")
+    assert main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0  # fresh
+    _, rows = read_track_csv(output_paths(out, "shots")["csv"])
+    assert rows.shape[0] == 2 and not (out / "shots_meshes").exists()  # the 4-frame run's meshes are gone
+    header, *body = output_paths(out, "shots")["csv"].read_text().splitlines(keepends=True)
+    (out / "shots.csv.partial").write_text(header + "".join(body * 2))  # 4 rows for a 2-frame input
+    output_paths(out, "shots")["json"].unlink()
+    rc = main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "has 2 frames")
 
 
 def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):

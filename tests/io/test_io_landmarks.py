@@ -20,6 +20,22 @@ def test_csv_with_header_and_comments(tmp_path):
     np.testing.assert_allclose(read_landmarks(tmp_path / "lm.csv", 100, 100), pts)
 
 
+def test_csv_as_spreadsheets_and_numpy_write_it(tmp_path):
+    """A byte order mark without a header (Excel's "CSV UTF-8"), np.savetxt's space-separated rows, a tab-separated
+    file with a header, and quoted cells all read as the same 68 points; a second non-numeric line before the
+    numbers is named rather than skipped (it used to be skipped silently, and the BOM cost the first point)."""
+    pts = _points()
+    np.savetxt(tmp_path / "savetxt.csv", pts)  # "x y" rows, '%.18e'
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + "\n".join(f"{x},{y}" for x, y in pts).encode())
+    (tmp_path / "tabs.csv").write_text("x\ty\n" + "\n".join(f"{x}\t{y}" for x, y in pts) + "\n")
+    (tmp_path / "quoted.csv").write_text('"x","y"\n' + "\n".join(f'"{x}","{y}"' for x, y in pts) + "\r\n")
+    for name in ("savetxt.csv", "bom.csv", "tabs.csv", "quoted.csv"):
+        np.testing.assert_allclose(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+    (tmp_path / "two.csv").write_text("landmarks of clip.mp4\nx,y\n" + "\n".join(f"{x},{y}" for x, y in pts))
+    with pytest.raises(InputError, match=r"line 2 is not numbers: 'x,y'"):
+        read_landmarks(tmp_path / "two.csv", 100, 100)
+
+
 def test_csv_single_row_and_npy_layouts(tmp_path):
     pts = _points()
     (tmp_path / "row.csv").write_text(",".join(f"{v}" for v in pts.reshape(-1)) + "\n")

@@ -431,6 +431,14 @@ def test_initialise_refuses_frames_on_another_value_scale(model, two_streams):
         initialise_managed(model, TrackerConfig(), first * 255.0, lm, cam, refine_first=LookaheadConfig())
     with pytest.raises(ValueError, match=r"divide by 255"):
         FaceTracker(BASE, model=model).initialise(first * 255.0, lm, cam)
+    nan_255 = first * 255.0
+    nan_255[0, 0, 0, 0] = float("nan")  # one NaN pixel must not hide the scale
+    with pytest.raises(ValueError, match=r"divide by 255"):
+        initialise(model, BASE, nan_255, lm, cam)
+    inf = first.clone()
+    inf[1, 2, 5, 5] = float("inf")
+    with pytest.raises(ValueError, match=r"to inf"):
+        initialise(model, BASE, inf, lm, cam)
     overshoot = first.clone()
     overshoot[0, 0, 0, 0], overshoot[1, 0, 0, 0] = 1.04, -0.03  # a corner pixel, outside the face
     nan = first.clone()

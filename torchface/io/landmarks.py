@@ -3,7 +3,8 @@
 Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:`torchface.conventions`):
 
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
-  136 numbers ``x0, y0, x1, y1, ...``;
+  136 numbers ``x0, y0, x1, y1, ...``; cells separated by commas, semicolons, tabs or spaces, optionally
+  quoted; UTF-8 with or without a byte order mark;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
 """
 
@@ -22,23 +23,33 @@ __all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks"]
 NUM_LANDMARKS: int = 68
 
 
+def _cells(line: str) -> list[str]:
+    """A line's cells: separated by commas, semicolons, tabs or spaces; quotes around a cell dropped."""
+    for sep in (";", "\t"):
+        line = line.replace(sep, ",")
+    if "," not in line:
+        line = ",".join(line.split())
+    return [c.strip().strip("\"'").strip() for c in line.split(",") if c.strip() != ""]
+
+
 def _parse_csv(p: Path) -> np.ndarray:
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read landmarks ({exc.__class__.__name__})") from None
     rows: list[list[float]] = []
+    header: str | None = None
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        cells = [c.strip() for c in line.replace(";", ",").split(",") if c.strip() != ""]
+        cells = _cells(line)
         try:
             rows.append([float(c) for c in cells])
         except ValueError:
-            if rows:
+            if rows or header is not None:  # one header line at most, before the numbers
                 raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
-            continue  # a header line
+            header = line
     if len(rows) == 1:
         return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}

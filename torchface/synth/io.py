@@ -58,6 +58,10 @@ class VideoSink:
     def __init__(self, path: str | os.PathLike[str], width: int, height: int, fps: float = 25.0) -> None:
         self.path = Path(path)
         self.width, self.height = int(width), int(height)
+        if self.width < 2 or self.height < 2 or self.width % 2 or self.height % 2:
+            # FFV1 and the other 4:2:0 codecs write odd sizes cropped to even ones without a word, so the file
+            # would no longer match the ground truth's intrinsics and landmarks
+            raise ValueError(f"video frames must have an even width and height >= 2, got {self.width}x{self.height}")
         self._tmp = self.path.with_name(self.path.name + ".partial" + self.path.suffix)
         self._writer: cv2.VideoWriter | None = None
         self.codec = ""

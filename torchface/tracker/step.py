@@ -502,7 +502,8 @@ def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None, *, values
     With ``values`` (at initialisation: one pass over the first frames, not every step's), also refuse values
     outside :data:`FRAME_VALUE_RANGE`: 0-255 frames, or frames normalised with a mean and standard deviation,
     would otherwise be tracked with every threshold (gradient, contrast, robust scale) 255 times too small.
-    NaN pixels are left to the tracker (they are never template points; a frame of them is a failed sample).
+    NaN pixels are left out of that range (they are never template points; a frame of them is a failed sample);
+    infinite ones are refused.
     """
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
@@ -514,7 +515,8 @@ def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None, *, values
             f"{frames.shape[-2]}x{frames.shape[-1]}"
         )
     if values and frames.numel():
-        lo, hi = (float(v) for v in torch.aminmax(frames.detach()))  # NaN pixels make both NaN: no refusal
+        seen = frames.detach().nan_to_num(nan=0.5, posinf=math.inf, neginf=-math.inf)  # NaN: inside the range
+        lo, hi = (float(v) for v in torch.aminmax(seen))
         if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
             hint = " (0-255 values? divide by 255)" if hi > FRAME_VALUE_RANGE[1] and lo >= FRAME_VALUE_RANGE[0] else ""
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
