@@ -243,11 +243,13 @@ def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp
 
 
 def test_resume_after_interruption(clip, plain_run, tmp_path):
-    """An interrupted run resumed: the rows written are kept, the rest tracked after them. A resumed batch goes
-    without the online look-ahead start (JobConfig.refine_first), so it matches the run without it."""
+    """An interrupted run resumed: the rows written are kept, the rest tracked after them. Interrupted before the
+    online look-ahead start re-anchored the stream (at frame 2, the first past 10 degrees of yaw), the resumed
+    batch goes without it (JobConfig.refine_first), so it matches the run without it. (After a re-anchoring:
+    the test below.)"""
     video, lm, _ = clip
     _, full_out = plain_run
-    n, stop_at = 6, 3  # the first 6 frames of the clip (decoded exactly: lossless), interrupted after 3
+    n, stop_at = 6, 2  # the first 6 frames of the clip (decoded exactly: lossless), interrupted after 2
     frames = read_video(video, max_frames=n)
     short = tmp_path / "short.npy"
     np.save(short, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
@@ -264,6 +266,7 @@ def test_resume_after_interruption(clip, plain_run, tmp_path):
     assert not list(out.glob("*.partial.mp4"))
     _, kept = read_track_csv(out / "short.csv.partial")
     assert kept.shape[0] == stop_at
+    assert json.loads((out / "short.record.partial").read_text())["anchor"] is None  # not re-anchored yet
     # Cut the last row in half, as a kill mid-write would.
     part = out / "short.csv.partial"
     text = part.read_text()
@@ -312,6 +315,39 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     output_paths(out, "shots")["json"].unlink()
     rc = main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "has 2 frames")
+
+
+def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
+    """Interrupted after the online start re-anchored the stream, a resumed run starts from the recorded refined
+    fit and offset: its rows go on as the uninterrupted run's and its sidecar has the refined shape. (Resumed
+    from the landmark fit, it used to jump 3.7 mm in depth at the resumed frame, and the sidecar's shape was not
+    the one the first rows were tracked with.)"""
+    video, lm, _ = clip
+    _, full_out = full_run
+    frames = read_video(video)
+    whole = tmp_path / f"{NAME}.npy"
+    np.save(whole, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    out, stop_at = tmp_path / "out", T - 2
+    _, ref, R_ref, t_ref = _pose(output_paths(full_out, NAME)["csv"])
+
+    def interrupt(p):
+        if p.done == stop_at:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([whole], JobConfig(out_dir=out, landmarks=(lm,)), progress=interrupt)
+    record = json.loads((out / f"{NAME}.record.partial").read_text())
+    assert record["anchor"] is not None, "the clip's stream is re-anchored before the interruption"
+    _, kept = read_track_csv(out / f"{NAME}.csv.partial")
+    np.testing.assert_allclose(kept, ref[:stop_at], rtol=0, atol=1e-9)  # the same run up to there
+    assert main(["track", str(whole), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+    _, rows, R, t = _pose(output_paths(out, NAME)["csv"])
+    assert rows.shape[0] == T and not (out / f"{NAME}.record.partial").exists()
+    assert float(geodesic_angle_deg(R[stop_at:], R_ref[stop_at:]).max()) < 0.3
+    assert np.abs(t[stop_at:] - t_ref[stop_at:]).max() < 0.5, np.abs(t - t_ref).max(0)
+    shape = json.loads(output_paths(out, NAME)["json"].read_text())["model"]["shape_coeffs"]
+    shape_ref = json.loads(output_paths(full_out, NAME)["json"].read_text())["model"]["shape_coeffs"]
+    np.testing.assert_allclose(shape, shape_ref, rtol=0, atol=1e-6)
 
 
 def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
