@@ -340,6 +340,11 @@ def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, ful
     assert record["anchor"] is not None, "the clip's stream is re-anchored before the interruption"
     _, kept = read_track_csv(out / f"{NAME}.csv.partial")
     np.testing.assert_allclose(kept, ref[:stop_at], rtol=0, atol=1e-9)  # the same run up to there
+    (tmp_path / "other").mkdir()
+    np.save(tmp_path / "other" / whole.name, np.load(whole)[::-1])  # another input of the same name
+    rc = main(["track", str(tmp_path / "other" / whole.name), "--out", str(out), "--landmarks", str(lm), "--resume",
+               "--quiet"])  # fmt: skip
+    assert rc == 2 and (out / f"{NAME}.csv.partial").is_file()  # refused: the partial results are another input's
     assert main(["track", str(whole), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
     _, rows, R, t = _pose(output_paths(out, NAME)["csv"])
     assert rows.shape[0] == T and not (out / f"{NAME}.record.partial").exists()
