@@ -46,9 +46,10 @@ def test_openface_euler_gimbal_lock_reconstructs_the_rotation():
 
 
 def test_columns_and_names():
-    cols = track_columns(("AUV11 Jaw drop", "AUV2 Lip stretcher"), ("AU26", "AU20"), ("gain", "light_x"))
+    cols = track_columns(("AUV11 Jaw drop", "AUV2 Lip stretcher"), ("AU26", "AU2", "AU45"), ("gain", "light_x"))
     assert cols[:4] == ("frame", "timestamp", "success", "confidence")
-    assert "pose_Rx" in cols and "r22" in cols and "AU26_r" in cols
+    assert "pose_Rx" in cols and "r22" in cols
+    assert [c for c in cols if c.endswith("_r")] == ["AU26_r", "AU02_r", "AU45_r"]  # OpenFace's two digits
     assert "anim_AUV11_jaw_drop" in cols and "illum_light_x" in cols
     assert column_name("anim", "AUV0 Upper lip raiser") == "anim_AUV0_upper_lip_raiser"
     with pytest.raises(ValueError, match="collide"):

@@ -12,7 +12,8 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   looking straight into the camera;
 - ``yaw_deg, pitch_deg, roll_deg``: the same rotation as ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)``, degrees;
 - ``r00 ... r22``: the rotation matrix, row-major (``X_cam = R @ X_head + t``);
-- ``AUxx_r``: one column per FACS action unit linked to a CANDIDE-3 animation unit: the expression's intensity in
+- ``AUxx_r`` (two digits, as OpenFace: ``AU02_r``): one column per FACS action unit linked to a CANDIDE-3
+  animation unit: the expression's intensity in
   the animation unit's own scale (:meth:`~torchface.model.FaceModel.facs_values` of
   :attr:`~torchface.tracker.TrackResult.expression`, measured from the first frame, which is taken as neutral);
 - ``anim_<name>``: one column per CANDIDE-3 animation unit, the model's coefficients
@@ -71,11 +72,18 @@ def column_name(prefix: str, name: str) -> str:
     return "_".join([prefix, head] + [p.lower() for p in parts[1:]])
 
 
+def facs_column_stem(name: str) -> str:
+    """OpenFace's spelling of a FACS AU in column names, two digits at least: ``"AU2"`` -> ``"AU02"``, ``"AU26"``
+    unchanged; a name of another form unchanged."""
+    m = re.fullmatch(r"AU(\d+)", name)
+    return f"AU{int(m.group(1)):02d}" if m else name
+
+
 def track_columns(
     anim_names: tuple[str, ...], facs_names: tuple[str, ...], illumination_names: tuple[str, ...]
 ) -> tuple[str, ...]:
     """The CSV header for a model with these animation units, FACS AUs and illumination terms."""
-    facs = tuple(f"{n}_r" for n in facs_names)
+    facs = tuple(f"{facs_column_stem(n)}_r" for n in facs_names)
     anim = tuple(column_name("anim", n) for n in anim_names)
     illum = tuple(column_name("illum", n) for n in illumination_names)
     cols = _LEAD + POSE_COLUMNS + ROTATION_COLUMNS + facs + anim + illum + _TAIL
