@@ -136,6 +136,9 @@ def _print_summary(summaries, out: TextIO) -> None:
             f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
             f"{s.lost} lost frame(s)\n"
         )
+        if s.declared_frames is not None:
+            out.write(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
+                      "(truncated or damaged?)\n")  # fmt: skip
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
         out.write(f"outputs in {folder}/ (per video: .csv, .json, _overlay.mp4, _plot.png, _normalised.mp4)\n")

@@ -156,6 +156,8 @@ class VideoSummary:
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output; the streams of one batch share that time, so the batch
             as a whole runs at ``B * fps``); skipped: True when ``resume`` found it complete.
+        declared_frames: the frame count the input declares (a video container's), when known and the frames
+            decoded fell short of it (a truncated or damaged file); None otherwise.
     """
 
     name: str
@@ -166,6 +168,7 @@ class VideoSummary:
     mean_confidence: float
     fps: float
     skipped: bool = False
+    declared_frames: int | None = None
 
 
 def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
@@ -671,6 +674,7 @@ def _track_group(
             "initial_landmarks_px": s.landmarks.tolist(),
             "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": B * fps},
             "frames": int(len(rows)),
+            "declared_frames": s.total,
             "lost_frames": lost,
             "mean_confidence": float(conf.mean()) if len(conf) else 0.0,
             "redetections": s.redetections,
@@ -678,8 +682,9 @@ def _track_group(
         }
         write_json(p["json"], sidecar)
         outs.insert(1, p["json"])
+        short = s.total if s.total is not None and len(rows) < s.total else None
         summaries.append(VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
-                                      float(conf.mean()) if len(conf) else 0.0, fps))  # fmt: skip
+                                      float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short))  # fmt: skip
     return summaries
 
 

@@ -355,6 +355,27 @@ def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, ful
     np.testing.assert_allclose(shape, shape_ref, rtol=0, atol=1e-6)
 
 
+def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
+    """A video cut short (its container still declares every frame) is tracked as far as it decodes, and the
+    summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word)."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, T)
+    avi = tmp_path / "cut.avi"
+    writer = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+    for f in frames:
+        writer.write(np.ascontiguousarray(f[..., ::-1]))
+    writer.release()
+    data = avi.read_bytes()
+    avi.write_bytes(data[: len(data) * 2 // 5])
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["track", str(avi), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    sidecar = json.loads(output_paths(out, "cut")["json"].read_text())
+    assert 0 < sidecar["frames"] < T and sidecar["declared_frames"] == T
+    assert f"declares {T} frames, {sidecar['frames']} could be decoded" in text, text
+
+
 def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     import torchface.job
 
