@@ -162,6 +162,7 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "i.npy", np.zeros((2, 40, 40, 3), np.int32)) or p / "i.npy", "unsupported pixel type"),
         (lambda p: np.save(p / "f.npy", np.full((2, 40, 40), 2.0, np.float32)) or p / "f.npy", r"in \[0, 1\]"),
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),
+        (lambda p: np.save(p / "one.npy", np.zeros((48, 64, 3), np.uint8)) or p / "one.npy", r"one colour image"),
         (lambda p: (p / "d").mkdir() or p / "d", "no images"),
     ],
 )

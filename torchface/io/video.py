@@ -353,6 +353,10 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             raise InputError(f"{p}: expected a (T, H, W) or (T, H, W, C) array, got shape {array.shape}")
         if array.shape[0] == 0:
             raise InputError(f"{p}: zero frames")
+        if array.ndim == 3 and array.shape[2] in (3, 4) and min(array.shape[:2]) > 4:
+            # (H, W, C): one colour image, not a clip of W-pixel-high gray frames
+            raise InputError(f"{p}: shape {array.shape} looks like one colour image; a clip is (T, H, W, C): save "
+                             "it as array[None] (or (T, H, W) for gray frames)")  # fmt: skip
         rest = _array_frames(array[1:])
         first, fmt = frame_to_tensor(array[0], False, f"{p}: frame 0", convert)
         _check_size(p, first)
