@@ -22,7 +22,7 @@ __all__ = ["collate_clips", "pad_value"]
 
 
 def pad_value(key: str, example: Tensor) -> Tensor:
-    """What a padded frame holds under ``key`` (shape of one frame, ``example``'s dtype).
+    """What a padded frame holds under ``key`` (shape of one frame, ``example``'s dtype and device).
 
     ``frame`` -1, ``status`` FAILED (2), ``success`` False, ``rotation`` the identity (a valid rotation, so code that
     applies it stays finite); everything else 0 (``confidence`` 0, ``mask`` 0, ``face`` black).
@@ -38,7 +38,7 @@ def pad_value(key: str, example: Tensor) -> Tensor:
     if key == "status":
         return torch.full_like(example, int(TrackStatus.FAILED))
     if key == "rotation" and example.shape[-2:] == (3, 3):
-        return torch.eye(3, dtype=example.dtype).expand_as(example).clone()
+        return torch.eye(3, dtype=example.dtype, device=example.device).expand_as(example).clone()
     return torch.zeros_like(example)
 
 
@@ -62,7 +62,8 @@ def collate_clips(
 
     Raises:
         ValueError: an empty batch, items with different keys, a per-frame tensor without a time axis, lengths
-            that differ within an item, or trailing shapes that differ between items.
+            that differ within an item, or trailing shapes or dtypes that differ between items (a ``uint8`` face
+            in ``[0, 255]`` and a float one in ``[0, 1]`` do not batch).
 
     Example:
         >>> a = {"face": torch.ones(3, 3, 8, 8), "confidence": torch.ones(3), "video": torch.tensor(0)}
@@ -103,11 +104,14 @@ def collate_clips(
     out: dict[str, Tensor] = {}
     for key in frame_keys:
         tail = tuple(batch[0][key].shape[1:])
+        dtype = batch[0][key].dtype
         for k, item in enumerate(batch):
             if tuple(item[key].shape[1:]) != tail:
                 raise ValueError(
                     f"{key!r}: item {k} has frames of shape {tuple(item[key].shape[1:])}, item 0 has {tail}"
                 )
+            if item[key].dtype != dtype:
+                raise ValueError(f"{key!r}: item {k} is {item[key].dtype}, item 0 is {dtype}: convert the items alike")
         ref = batch[0][key]
         padded = pad_value(key, ref[:1]).expand(B, T, *tail).clone()
         for k, item in enumerate(batch):

@@ -55,8 +55,9 @@ def _valid(batch: Mapping[str, Any]) -> Tensor:
 def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | None = None) -> Tensor:
     """Mean of a per-sample loss weighted by the tracker's confidence: ``sum c m l / sum c m``.
 
-    The weights are detached (the confidence is data, not a parameter). When every weight is zero the result is
-    ``0 * sum(l)``: zero, finite, and still connected to the graph, never NaN.
+    The weights are detached (the confidence is data, not a parameter). An entry of weight zero (confidence 0,
+    or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and the gradient, even where its
+    loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph, never NaN.
 
     Args:
         loss: ``(B,)`` or ``(B, T)`` per-sample (per-frame) losses.
@@ -85,10 +86,12 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         raise ValueError("confidence must be finite and in [0, 1]")
     if mask is not None:
         c = c * mask.to(c.dtype)
+    # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
+    weighted = torch.where(c > 0, loss * c, 0.0).sum()
     total = c.sum()
     if float(total) <= 0.0:
-        return (loss * 0.0).sum()
-    return (loss * c).sum() / total
+        return weighted  # 0, in the graph
+    return weighted / total
 
 
 def sample_confidence(batch: Mapping[str, Any], require_success: bool = True) -> Tensor:

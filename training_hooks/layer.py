@@ -37,6 +37,7 @@ Shapes: ``B`` batch, ``T`` frames, ``C`` channels, ``H x W`` frames, ``K`` landm
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -49,6 +50,7 @@ from torchface.model.face_model import FaceModel
 from torchface.normalise.face import (
     NormalisedFaceLayout,
     NormalisedFaceResult,
+    apply_to_model_and_layout,
     build_normalised_layout,
     normalised_face,
 )
@@ -250,7 +252,8 @@ class NormalisedFaceLayer(nn.Module):
 
     Args:
         config: :class:`LayerConfig`.
-        model: the face model (CANDIDE-3 when ``None``); its dtype is the layer's.
+        model: the face model (CANDIDE-3 when ``None``); its dtype and device are the layer's, and move with
+            ``.to(...)``, ``.double()``, ``.float()``, ``.cuda()``.
 
     Example:
         >>> layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=48))   # doctest: +SKIP
@@ -268,6 +271,11 @@ class NormalisedFaceLayer(nn.Module):
         if not isinstance(self.model, FaceModel):
             raise TypeError(f"model must be a FaceModel, got {type(self.model).__name__}")
         self.layout: NormalisedFaceLayout = build_normalised_layout(self.model, self.config.size, self.config.margin)
+
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFaceLayer":
+        """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""
+        self.model, self.layout = apply_to_model_and_layout(fn, self.model, self.layout)
+        return super()._apply(fn, recurse)
 
     @property
     def param_layout(self) -> ParamLayout:

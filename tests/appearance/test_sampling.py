@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
@@ -100,6 +103,28 @@ def test_nan_points_are_not_inside():
     img = torch.rand(1, 1, 5, 5, dtype=D)
     _, inside = sample_at_pixels(img, torch.tensor([[[float("nan"), 1.0], [1.0, 1.0]]], dtype=D))
     assert inside[0].tolist() == [False, True]
+
+
+def test_nan_points_backward_does_not_crash_and_gradients_are_finite():
+    """grid_sample's CPU backward (border padding) kills the process on a NaN grid point: run it in a child so
+    that a regression fails this test instead of the whole session."""
+    code = textwrap.dedent("""
+        import torch
+        torch.set_num_threads(1)
+        from torchface.appearance import sample_at_pixels
+        img = torch.rand(2, 3, 6, 7, dtype=torch.float64, requires_grad=True)
+        pts = torch.tensor([[[float("nan"), 1.0], [2.5, 3.0]], [[float("inf"), 2.0], [1.0, float("-inf")]]],
+                           dtype=torch.float64, requires_grad=True)
+        values, inside = sample_at_pixels(img, pts)
+        assert inside.tolist() == [[False, True], [False, False]], inside
+        assert torch.isfinite(values).all()
+        (values * inside.unsqueeze(-1)).sum().backward()
+        assert torch.isfinite(img.grad).all() and torch.isfinite(pts.grad).all()
+        assert torch.equal(pts.grad[0, 0], torch.zeros(2, dtype=torch.float64)) and bool(pts.grad[0, 1].ne(0).any())
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
 
 
 def test_pixels_to_grid_align_corners():

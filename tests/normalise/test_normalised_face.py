@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
@@ -340,6 +343,73 @@ def test_module_with_track_result_and_state(model, subject, layout):
         normaliser(frame, {"axis_angle": aa})
 
 
+def test_module_moves_model_and_layout_with_to(model):
+    normaliser = NormalisedFace(model, size=16).double()
+    assert normaliser.model.dtype == torch.float64 and normaliser.layout.bary.dtype == torch.float64
+    assert normaliser.layout.translation.dtype == torch.float64
+    assert normaliser.model.faces.dtype == torch.int64 and normaliser.layout.pixel_index.dtype == torch.int64
+    assert normaliser.layout.mask.dtype == torch.bool
+    D = torch.float64
+    out = normaliser.from_params(
+        torch.rand(1, 3, CAM.height, CAM.width, dtype=D), torch.zeros(1, model.num_shape, dtype=D),
+        torch.zeros(1, model.num_animation, dtype=D), torch.zeros(1, 3, dtype=D), T_FRONT.to(D), None, CAM,
+    )  # fmt: skip
+    assert out.image.dtype == D and out.mask.dtype == D and out.mask.sum() > 0
+    assert normaliser.float().model.dtype == torch.float32 and normaliser.layout.bary.dtype == torch.float32
+    assert normaliser.to(torch.float64).model.dtype == torch.float64
+    assert normaliser.to(device="cpu", dtype=torch.float32).layout.translation.dtype == torch.float32
+    assert model.dtype == torch.float32  # the model passed in is not changed in place
+
+
+def test_nan_geometry_backward_does_not_crash_and_gradients_are_finite():
+    """A NaN pose used to crash the process in grid_sample's backward: run it in a child so that a regression
+    fails this test instead of the whole session. A sample with non-finite geometry is masked out whole, its
+    parameters get gradient 0, and the other samples are unaffected."""
+    code = textwrap.dedent("""
+        import torch
+        torch.set_num_threads(1)
+        from torchface.geometry.camera import Intrinsics
+        from torchface.model import load_candide3
+        from torchface.normalise import build_normalised_layout, normalised_face
+        m = load_candide3()
+        lay = build_normalised_layout(m, 16)
+        cam = Intrinsics.default(80, 60)
+        nan = float("nan")
+        for zbuffer in (True, False):
+            for light in (None, torch.tensor([[0.1, 0.05, 0.1, 0.0, 0.2]]).expand(3, 5).clone()):
+                aa = torch.tensor([[nan, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.0]], requires_grad=True)
+                t = torch.tensor([[0.0, 0.0, 450.0], [0.0, 0.0, 450.0], [0.0, float("inf"), 450.0]],
+                                 requires_grad=True)
+                shape = torch.zeros(3, m.num_shape, requires_grad=True)
+                frames = torch.rand(3, 3, 60, 80, requires_grad=True)
+                if light is not None:
+                    light.requires_grad_()
+                out = normalised_face(frames, m, lay, shape, torch.zeros(3, m.num_animation), aa, t, light, cam,
+                                      zbuffer=zbuffer)
+                (out.image * out.mask).sum().backward()
+                assert out.mask.flatten(1).sum(1).tolist()[::2] == [0.0, 0.0] and out.mask[1].sum() > 0
+                assert torch.isfinite(out.image).all() and out.image[0::2].abs().sum() == 0
+                for x in (aa, t, shape, frames) + (() if light is None else (light,)):
+                    assert torch.isfinite(x.grad).all(), x.grad
+                    assert x.grad[0::2].abs().sum() == 0
+                one = normalised_face(frames[1:2], m, lay, shape[1:2], torch.zeros(1, m.num_animation), aa[1:2],
+                                      t[1:2], None if light is None else light[1:2], cam, zbuffer=zbuffer)
+                assert torch.equal(one.mask[0], out.mask[1])
+                torch.testing.assert_close(one.image[0], out.image[1])
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
+
+
+@pytest.mark.parametrize("zbuffer", [True, False])
+def test_empty_batch_gives_empty_result(model, layout, zbuffer):
+    shape, alpha = _zeros(model, 0)
+    out = normalised_face(torch.rand(0, 3, CAM.height, CAM.width), model, layout, shape, alpha, torch.zeros(0, 3),
+                          torch.zeros(0, 3), None, CAM, zbuffer=zbuffer)  # fmt: skip
+    assert out.image.shape == (0, 3, G, G) and out.mask.shape == (0, 1, G, G)
+
+
 # -------------------------------------------------------------------------------------------- errors
 def test_errors(model, layout):
     shape, alpha = _zeros(model, 2)
@@ -476,3 +546,26 @@ def test_native_normalised_face_without_zbuffer_equals_the_torch_code(model, sub
             assert torch.equal(one.image[0], nat.image[b]) and torch.equal(one.mask[0], nat.mask[b])
     with pytest.raises(RuntimeError, match="z-buffer"):
         normalised_face_posed(frames, m, lay, verts, None, CAM, backend=Backend.NATIVE)
+
+
+def test_image_is_zero_where_mask_is_zero_on_nan_input_torch_and_native(model, layout):
+    """NaN frame pixels and NaN parameters: image 0 wherever mask is 0, the same in the torch and native paths."""
+    from torchface import _native
+    from torchface.backend import Backend
+
+    shape, alpha = _zeros(model, 3)
+    frames = torch.rand(3, 3, CAM.height, CAM.width)
+    frames[0] = float("nan")  # a NaN frame seen at a large yaw (turned-away pixels are masked)
+    frames[1, :, :, : CAM.width // 2] = float("nan")  # half a frame
+    aa = torch.tensor([[0.0, 0.9, 0.0], [0.0, 0.3, 0.0], [float("nan"), 0.0, 0.0]])
+    t = T_FRONT.expand(3, 3)
+    backends = [Backend.TORCH] + ([Backend.NATIVE] if _native.library() is not None else [])
+    outs = [normalised_face(frames, model, layout, shape, alpha, aa, t, None, CAM, zbuffer=False, backend=b)
+            for b in backends]  # fmt: skip
+    for out in outs:
+        off = out.mask.expand_as(out.image) == 0
+        assert off.any() and out.image[off].eq(0).all()  # 0 exactly, not NaN
+        assert out.mask[2].sum() == 0 and (out.mask[0].sum() > 0)
+    if len(outs) == 2:
+        assert torch.equal(outs[0].mask, outs[1].mask)
+        torch.testing.assert_close(outs[0].image, outs[1].image, rtol=0, atol=1e-4, equal_nan=True)

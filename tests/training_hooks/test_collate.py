@@ -102,3 +102,20 @@ def test_bad_input():
         collate_clips([clip(2, 0, S=8), clip(2, 1, S=16)])
     with pytest.raises(TypeError, match="dict items"):
         collate_clips([(torch.zeros(2),)])
+
+
+def test_items_of_different_dtypes_raise():
+    a, b = clip(2, 0), clip(3, 1)
+    a["face"] = (a["face"] * 255).to(torch.uint8)  # 0-255 uint8, then a [0, 1] float face
+    with pytest.raises(ValueError, match=r"'face': item 1 is torch.float32, item 0 is torch.uint8"):
+        collate_clips([a, b])
+
+
+def test_rotation_padding_follows_the_items_dtype_and_device():
+    items = [{k: v.double() if k == "rotation" else v for k, v in clip(T, T).items()} for T in (2, 4)]
+    out = collate_clips(items)
+    assert out["rotation"].dtype == torch.float64
+    assert torch.equal(out["rotation"][0, 2:], torch.eye(3, dtype=torch.float64).expand(2, 3, 3))
+    example = torch.zeros(2, 3, 3, dtype=torch.float64, device="meta")  # a device other than the CPU
+    pad = pad_value("rotation", example)
+    assert pad.device == example.device and pad.dtype == torch.float64 and pad.shape == (2, 3, 3)

@@ -67,6 +67,23 @@ def test_weighted_loss_all_zero_weights_is_zero_not_nan():
     assert torch.equal(loss.grad, torch.zeros(2))
 
 
+def test_weighted_loss_zero_weight_entries_with_nan_loss_contribute_nothing():
+    """Padded frames (mask False), confidence 0: their NaN / inf losses add exactly 0 to value and gradient."""
+    nan, inf = float("nan"), float("inf")
+    loss = torch.tensor([[1.0, nan, inf], [3.0, nan, 2.0]], requires_grad=True)
+    conf = torch.tensor([[0.5, 0.0, 0.9], [0.5, 0.7, 0.0]])
+    mask = torch.tensor([[True, True, False], [True, False, True]])
+    out = confidence_weighted_loss(loss, conf, mask)
+    assert float(out.detach()) == 2.0
+    out.backward()
+    assert torch.equal(loss.grad, torch.tensor([[0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]))
+    loss = torch.tensor([nan, inf], requires_grad=True)
+    out = confidence_weighted_loss(loss, torch.zeros(2))  # every weight zero
+    assert float(out.detach()) == 0.0
+    out.backward()
+    assert torch.equal(loss.grad, torch.zeros(2))
+
+
 def test_weighted_loss_bad_input():
     with pytest.raises(ValueError, match="one shape"):
         confidence_weighted_loss(torch.ones(3), torch.ones(2))

@@ -261,6 +261,18 @@ def test_forward_clip_shapes_and_first_frame(model):
     torch.testing.assert_close(out.image[:, 0], layer.normalise(clips[:, 0], state, state.params).image)
 
 
+def test_double_moves_the_layer_model_and_layout(small):
+    frames, state, _ = small  # float64 frames and state
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL)).double()  # CANDIDE-3, float32 until .double()
+    assert layer.model.dtype == D and layer.layout.bary.dtype == D and layer.layout.translation.dtype == D
+    assert layer.layout.face_index.dtype == torch.int64 and layer.model.faces.dtype == torch.int64
+    out = layer(frames[1:2], state)
+    assert out.image.dtype == D and out.params.dtype == D and torch.isfinite(out.image).all()
+    assert out.mask.sum() > 0
+    layer.to(torch.float32)
+    assert layer.model.dtype == torch.float32 and layer.layout.bary.dtype == torch.float32
+
+
 def test_exceptions(model, small):
     frames, state, _ = small
     with pytest.raises(TypeError):

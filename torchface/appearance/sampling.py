@@ -62,7 +62,9 @@ def sample_at_pixels(images: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]
 
     Returns:
         ``values (B, N, C)`` (border values outside the image) and ``inside (B, N)`` bool, True where the
-        point lies within ``[0, W - 1] x [0, H - 1]`` (where all four bilinear neighbours exist).
+        point lies within ``[0, W - 1] x [0, H - 1]`` (where all four bilinear neighbours exist). A non-finite
+        point (NaN or inf coordinate) is not inside; it is sampled at pixel ``(0, 0)`` instead, so its values
+        and every gradient stay finite (its own gradient is 0).
 
     Differentiable with respect to ``images`` and ``points_px``.
     """
@@ -71,10 +73,14 @@ def sample_at_pixels(images: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]
     if points_px.dim() != 3 or points_px.shape[-1] != 2 or points_px.shape[0] != images.shape[0]:
         raise ValueError(f"points_px must be (B, N, 2) with B={images.shape[0]}, got {tuple(points_px.shape)}")
     h, w = images.shape[-2:]
+    finite = torch.isfinite(points_px).all(-1, keepdim=True)  # (B, N, 1)
+    # grid_sample's CPU backward with border padding crashes the process on a NaN grid point (PyTorch bug):
+    # non-finite points go to pixel (0, 0), a torch.where so that their gradient is 0, not NaN.
+    points_px = torch.where(finite, points_px, 0.0)
     grid = pixels_to_grid(points_px, h, w).unsqueeze(1)  # (B, 1, N, 2)
     values = F.grid_sample(images, grid.to(images.dtype), mode="bilinear", padding_mode="border", align_corners=True)
     u, v = points_px[..., 0], points_px[..., 1]
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & torch.isfinite(points_px).all(-1)
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & finite.squeeze(-1)
     return values.squeeze(2).transpose(1, 2), inside
 
 

@@ -31,7 +31,8 @@ A canonical pixel is kept (mask 1) when its surface point is visible in the fram
 projecting inside the image, on a triangle that faces the camera with its normal at least
 ``acos(min_facing_cos)`` away from grazing, and not hidden by another part of the mesh (z-buffer of the posed
 mesh, :func:`torchface.rendering.visibility.points_visible`). Other pixels, and the background of the
-layout, are 0 with mask 0.
+layout, are 0 with mask 0. A sample whose geometry is not finite (a NaN or inf parameter or vertex) shows no
+face: image and mask 0, and its geometry parameters get gradient 0 (never NaN).
 
 The output is differentiable with respect to the frame pixels (it is linear in them) and, almost everywhere,
 with respect to the shape, expression, pose and illumination parameters; the mask is not differentiable.
@@ -43,8 +44,10 @@ the layout's face pixels. Frames, units and the pixel convention are those of :m
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -170,6 +173,37 @@ class NormalisedFaceLayout:
         )  # fmt: skip
 
 
+_Frozen = TypeVar("_Frozen", FaceModel, NormalisedFaceLayout)
+
+
+def _apply_to_tensors(fn: Callable[[Tensor], Tensor], obj: _Frozen) -> _Frozen:
+    """A copy of the frozen dataclass ``obj`` with ``fn`` (an ``nn.Module._apply`` function: ``.to``, ``.double``,
+    ``.cuda``, ...) applied to each of its tensor fields; integer and bool tensors keep their dtype (``fn`` may
+    only move them)."""
+    changes: dict[str, Tensor] = {}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if f.init and isinstance(value, Tensor):
+            out = fn(value)
+            changes[f.name] = out if value.is_floating_point() or out.dtype == value.dtype else out.to(value.dtype)
+    return dataclasses.replace(obj, **changes)
+
+
+def apply_to_model_and_layout(
+    fn: Callable[[Tensor], Tensor], model: FaceModel, layout: NormalisedFaceLayout
+) -> tuple[FaceModel, NormalisedFaceLayout]:
+    """``model`` and ``layout`` with ``fn`` applied to their tensors: what a module holding them (as plain
+    attributes) does in its ``_apply``, so that ``.to(...)``, ``.double()``, ``.float()`` and ``.cuda()`` move them.
+
+    Raises:
+        TypeError: ``fn`` makes the model's floating tensors non-floating (e.g. ``.to(torch.complex64)``).
+    """
+    new_model = _apply_to_tensors(fn, model)
+    if not new_model.mean.is_floating_point():
+        raise TypeError(f"the face model's dtype must be floating point, got {new_model.mean.dtype}")
+    return new_model, _apply_to_tensors(fn, layout)  # the layout's weight cache starts afresh
+
+
 class NormalisedFaceResult(NamedTuple):
     """What :func:`normalised_face` returns (unpacks as ``image, mask``).
 
@@ -278,6 +312,8 @@ def _face_crop(verts_cam: Tensor, used: Tensor, intrinsics: Intrinsics) -> Intri
         The intrinsics of the window (same focal lengths, shifted principal point).
     """
     pts = verts_cam[:, used]
+    if pts.numel() == 0:  # an empty batch: no window to fit
+        return intrinsics
     if not bool((pts[..., 2] > NEAR_PLANE_MM).all()) or not bool(torch.isfinite(pts).all()):
         return intrinsics
     px = project_points(pts, intrinsics).reshape(-1, 2)
@@ -332,7 +368,9 @@ def normalised_face(
             None to compute it.
 
     Returns:
-        :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype.
+        :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype. A sample
+        with a non-finite ``shape_coeffs``, ``anim_coeffs``, ``axis_angle``, ``translation`` or ``rotation`` entry
+        has image and mask 0, and those parameters of it get gradient 0. ``B = 0`` gives empty tensors.
 
     Raises:
         TypeError: an argument has the wrong type, or a parameter tensor is not in the model's dtype/device.
@@ -381,19 +419,36 @@ def normalised_face(
     _check_params("translation", translation, 3, B, model)
     if illumination is not None:
         _check_params("illumination", illumination, NUM_ILLUMINATION_TERMS, B, model)
+    if rotation is not None and (not isinstance(rotation, Tensor) or tuple(rotation.shape) != (B, 3, 3)):
+        got = tuple(rotation.shape) if isinstance(rotation, Tensor) else type(rotation).__name__
+        raise ValueError(f"rotation must be ({B}, 3, 3) like frames, got {got}")
     frames = frames.to(dtype=model.dtype, device=model.device)
+
+    # A sample with a non-finite geometry parameter is posed at the layout's canonical pose instead (finite
+    # everywhere, so no NaN reaches the sampling or the backward pass) and masked out; torch.where gives its
+    # parameters gradient 0 where a product with 0 would give NaN.
+    geometry = [shape_coeffs, anim_coeffs, axis_angle, translation]
+    if rotation is not None:
+        geometry.append(rotation.flatten(1))
+    valid = torch.stack([torch.isfinite(x).all(1) for x in geometry]).all(0)  # (B,)
+    if not bool(valid.all()):
+        ok = valid.unsqueeze(1)
+        shape_coeffs = torch.where(ok, shape_coeffs, 0.0)
+        anim_coeffs = torch.where(ok, anim_coeffs, 0.0)
+        axis_angle = torch.where(ok, axis_angle, 0.0)
+        translation = torch.where(ok, translation, layout.translation.to(translation))
+        if rotation is not None:
+            eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device)
+            rotation = torch.where(ok.unsqueeze(2), rotation, eye)
 
     # Eq. 1 and 14: the person's mesh at the frame's expression and pose.
     verts = model.deform(shape_coeffs, anim_coeffs)  # (B, V, 3)
     if rotation is None:
         rotation = axis_angle_to_matrix(axis_angle)
-    elif not isinstance(rotation, Tensor) or tuple(rotation.shape) != (B, 3, 3):
-        got = tuple(rotation.shape) if isinstance(rotation, Tensor) else type(rotation).__name__
-        raise ValueError(f"rotation must be ({B}, 3, 3) like frames, got {got}")
     verts_cam = transform_points(rotation, translation, verts)
-    return normalised_face_posed(
-        frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance=depth_tolerance,
-        min_facing_cos=min_facing_cos, zbuffer=zbuffer, backend=backend,
+    return _normalised_face_posed(
+        frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance, min_facing_cos, zbuffer,
+        backend, valid,
     )  # fmt: skip
 
 
@@ -416,7 +471,7 @@ def normalised_face_posed(
     Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
     gradients, :class:`~torchface.backend.Backend` ``AUTO`` samples with the native kernel
     (``torchface/_native/normalised_face.h``: each pixel from its triangle's three corners); the values are the
-    torch code's to rounding.
+    torch code's to rounding. A sample with a non-finite vertex has image and mask 0 (and gradient 0).
 
     Raises:
         ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``.
@@ -427,10 +482,34 @@ def normalised_face_posed(
         got = tuple(verts_cam.shape) if isinstance(verts_cam, Tensor) else type(verts_cam).__name__
         raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
+    return _normalised_face_posed(
+        frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance, min_facing_cos, zbuffer,
+        backend, None,
+    )  # fmt: skip
+
+
+def _normalised_face_posed(
+    frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, verts_cam: Tensor, illumination: Tensor | None,
+    intrinsics: Intrinsics, depth_tolerance: float, min_facing_cos: float, zbuffer: bool, backend: Backend,
+    valid: Tensor | None,
+) -> NormalisedFaceResult:
+    """:func:`normalised_face_posed` after its checks; ``valid (B,)`` bool, or None, marks the samples whose
+    parameters were finite (the others are masked out like a sample with a non-finite vertex)."""
+    B, C = frames.shape[:2]
+    finite = torch.isfinite(verts_cam).flatten(1).all(1)  # (B,)
+    valid = finite if valid is None else valid & finite
+    all_valid = bool(valid.all())
+    if not all_valid:  # the canonical pose's mesh in their place: finite everywhere, masked out below
+        canonical = model.mean.to(verts_cam) + layout.translation.to(verts_cam)
+        verts_cam = torch.where(valid[:, None, None], verts_cam, canonical)
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
     if not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face"):
-        return _normalised_face_native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics,
-                                       min_facing_cos)  # fmt: skip
+        out = _normalised_face_native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics,
+                                      min_facing_cos)  # fmt: skip
+        if all_valid:
+            return out
+        keep = valid[:, None, None, None]
+        return NormalisedFaceResult(torch.where(keep, out.image, 0.0), torch.where(keep, out.mask, 0.0))
     if backend is Backend.NATIVE and zbuffer:
         raise RuntimeError("the native normalised face has no z-buffer test: pass zbuffer=False")
 
@@ -457,14 +536,17 @@ def normalised_face_posed(
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
         facing_cos = -(normals.detach() * ray).sum(-1)
-        keep = visible & inside & front & (facing_cos >= min_facing_cos)
+        keep = visible & inside & front & (facing_cos >= min_facing_cos) & valid.unsqueeze(1)
 
     observed = values.transpose(1, 2)  # (B, C, M)
     if illumination is not None:
         observed = remove_illumination(observed, normals, illumination)
     keep_f = keep.to(observed.dtype).unsqueeze(1)  # (B, 1, M)
     G = layout.size
-    image = observed.new_zeros(B, C, G * G).index_copy(2, layout.pixel_index, observed * keep_f)
+    # torch.where, not a product with the mask: 0 (value and gradient) where the mask is 0, even where the
+    # frame or the light made the sample NaN.
+    kept = torch.where(keep.unsqueeze(1), observed, 0.0)
+    image = observed.new_zeros(B, C, G * G).index_copy(2, layout.pixel_index, kept)
     mask = keep_f.new_zeros(B, 1, G * G).index_copy(2, layout.pixel_index, keep_f)
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
 
@@ -534,6 +616,11 @@ class NormalisedFace(nn.Module):
         self.layout = build_normalised_layout(model, size, margin, distance_mm)
         self.depth_tolerance = float(depth_tolerance)
         self.min_facing_cos = float(min_facing_cos)
+
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
+        """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""
+        self.model, self.layout = apply_to_model_and_layout(fn, self.model, self.layout)
+        return super()._apply(fn, recurse)
 
     def forward(
         self,
