@@ -459,6 +459,12 @@ def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):
     assert out.rotation.dtype == torch.float64 and bool(torch.isfinite(out.rotation).all())
     with pytest.raises(TypeError):
         tracker.to(torch.int64)
+    tracker.float()  # .float() / .double() move the model too (they used to leave it as it was)
+    assert tracker.model.dtype == torch.float32 and tracker.state is None
+    assert tracker.model.faces.dtype == torch.int64  # index tensors keep their dtype
+    tracker.initialise(frames[:, 0], landmarks_of(gts), Intrinsics.default(W, H))
+    tracker.double()
+    assert tracker.model.dtype == torch.float64 and tracker.state is None
 
 
 def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):

@@ -176,7 +176,7 @@ class NormalisedFaceLayout:
 _Frozen = TypeVar("_Frozen", FaceModel, NormalisedFaceLayout)
 
 
-def _apply_to_tensors(fn: Callable[[Tensor], Tensor], obj: _Frozen) -> _Frozen:
+def apply_to_tensor_fields(fn: Callable[[Tensor], Tensor], obj: _Frozen) -> _Frozen:
     """A copy of the frozen dataclass ``obj`` with ``fn`` (an ``nn.Module._apply`` function: ``.to``, ``.double``,
     ``.cuda``, ...) applied to each of its tensor fields; integer and bool tensors keep their dtype (``fn`` may
     only move them)."""
@@ -198,10 +198,10 @@ def apply_to_model_and_layout(
     Raises:
         TypeError: ``fn`` makes the model's floating tensors non-floating (e.g. ``.to(torch.complex64)``).
     """
-    new_model = _apply_to_tensors(fn, model)
+    new_model = apply_to_tensor_fields(fn, model)
     if not new_model.mean.is_floating_point():
         raise TypeError(f"the face model's dtype must be floating point, got {new_model.mean.dtype}")
-    return new_model, _apply_to_tensors(fn, layout)  # the layout's weight cache starts afresh
+    return new_model, apply_to_tensor_fields(fn, layout)  # the layout's weight cache starts afresh
 
 
 class NormalisedFaceResult(NamedTuple):

@@ -65,9 +65,16 @@ class FaceTracker(nn.Module):
         device, dtype, _, _ = torch._C._nn._parse_to(*args, **kwargs)
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"FaceTracker.to only accepts floating point dtypes, got {dtype}")
-        self.model = self.model.to(device=device, dtype=dtype)
-        self._state = None
         return super().to(*args, **kwargs)
+
+    def _apply(self, fn, recurse: bool = True) -> "FaceTracker":
+        """What ``.to``, ``.double()``, ``.float()``, ``.cuda()`` and ``.cpu()`` do: move the face model (a plain
+        attribute, not a parameter) and forget the tracked state (its tensors are the old dtype's and device's)."""
+        from torchface.normalise.face import apply_to_tensor_fields
+
+        self.model = apply_to_tensor_fields(fn, self.model)
+        self._state = None
+        return super()._apply(fn, recurse)
 
     @property
     def state(self) -> TrackerState | None:
