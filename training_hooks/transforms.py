@@ -41,7 +41,7 @@ from torchface.normalise.face import NormalisedFace
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus, check_frames
 
 __all__ = [
     "FaceStorage",
@@ -302,6 +302,11 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
         frame = frame.to(torch.float32) / 255.0
     elif not frame.is_floating_point():
         raise ValueError(f"frame {index}: frames must be float in [0, 1] or uint8, got {frame.dtype}")
+    else:  # every frame, not only the first: a clip continued from a TrackerState has no initialisation
+        try:
+            check_frames(frame.unsqueeze(0), values=True)
+        except ValueError as exc:
+            raise ValueError(f"frame {index}: {exc}") from None
     if size is not None and tuple(frame.shape[-2:]) != size:
         raise ValueError(
             f"frame {index} is {frame.shape[-1]}x{frame.shape[-2]} but the sequence started at {size[1]}x{size[0]}"

@@ -257,6 +257,11 @@ def test_transform_rejects_bad_input(clips):
         normalise(frames, clips[0].landmarks[:10])
     with pytest.raises(ValueError, match="empty"):
         normalise(frames[:0], clips[0].landmarks)
+    with pytest.raises(ValueError, match=r"frame 0: .*divide by 255"):  # 0-255 floats: refused, not tracked
+        normalise(frames[:2] * 255.0, clips[0].landmarks)
+    _, state = normalise.track(frames[:1], clips[0].landmarks)
+    with pytest.raises(ValueError, match=r"frame 1: .*divide by 255"):  # also when a clip continues a state
+        normalise.track(torch.cat([frames[1:2], frames[2:3] * 255.0]), state)
 
 
 def test_sequence_success_and_validation(clips):
