@@ -38,3 +38,15 @@ def test_intrinsics_validation_and_frozen() -> None:
         Intrinsics(640, 480, -1.0, 500.0, 0.0, 0.0)
     with pytest.raises(dataclasses.FrozenInstanceError):
         Intrinsics.default(640, 480).fx = 1.0  # type: ignore[misc]
+    # Sizes are stored as ints (32.0 used to be kept and failed later inside the rasterizer); the rest must be
+    # finite numbers (a NaN centre made every projection NaN and the rasterizer silently empty).
+    cam = Intrinsics(32.0, 24, 32, 32.0, 15.5, 11.5)
+    assert type(cam.width) is int and cam.width == 32 and type(cam.fx) is float
+    for bad in ("32", 32.5, True):
+        with pytest.raises(TypeError, match="whole number"):
+            Intrinsics(bad, 24, 32.0, 32.0, 15.5, 11.5)
+    for k, bad in ((2, float("inf")), (4, float("nan")), (5, "11.5")):
+        args = [32, 24, 32.0, 32.0, 15.5, 11.5]
+        args[k] = bad
+        with pytest.raises(ValueError, match="finite number"):
+            Intrinsics(*args)

@@ -112,6 +112,9 @@ def test_dtype_and_device_follow():
                                                     m64.landmark_weights, m64.facs_matrix))
     torch.testing.assert_close(m64.mean.float(), m32.mean)
     assert m32.to("cpu").device == torch.device("cpu")
+    assert m32.to(torch.float64).dtype == torch.float64  # a dtype first, as nn.Module.to takes it
+    with pytest.raises(TypeError, match="two dtypes"):
+        m32.to(torch.float64, torch.float32)
     with pytest.raises(TypeError, match="floating"):
         m32.to(dtype=torch.int32)
     if torch.cuda.is_available():

@@ -77,6 +77,8 @@ def test_per_axis_error_wraps_around_180() -> None:
     ypr = relative_ypr_error_deg(est, gt)
     torch.testing.assert_close(ypr[1, 0].abs(), torch.tensor(2.0, dtype=F64), atol=1e-9, rtol=0)
     torch.testing.assert_close(relative_rotation_error_deg(est, gt)[1], torch.tensor(2.0, dtype=F64), atol=1e-9, rtol=0)
+    half = relative_ypr_error_deg(_ypr([[0, 0, 0], [90, 0, 0]]), _ypr([[0, 0, 0], [-90, 0, 0]]))
+    assert float(half[1, 0]) == 180.0  # (-180, 180] as documented: +180, not -180
 
 
 def test_rotation_error_float32_against_float64_truth() -> None:
@@ -161,6 +163,18 @@ def test_pearson_float32_roundoff_constant_is_nan() -> None:
     x = torch.linspace(0, 1, 20).unsqueeze(-1)
     y = torch.full((20, 1), 0.1) + torch.zeros(20, 1)
     assert math.isnan(float(pearson(x, y)[0]))
+    big = torch.full((20, 1), 450.0) + torch.zeros(20, 1)  # a large constant: its centring residue is not a swing
+    assert math.isnan(float(pearson(x, big)[0]))
+
+
+def test_pearson_float32_small_swing_on_a_large_offset() -> None:
+    """A real swing of std/|mean| ~ 1.6e-4 (below sqrt(float32 eps)) is correlated as float64 correlates it (it
+    used to count as constant: NaN)."""
+    t = torch.arange(100.0)
+    x = (450 + 0.1 * torch.sin(t / 5))[:, None]
+    y = x + 0.01 * torch.cos(t)[:, None]
+    ref = pearson(y.double(), x.double())
+    torch.testing.assert_close(pearson(y, x).double(), ref, atol=2e-3, rtol=0)
 
 
 # --- whole-sequence summary --------------------------------------------------------------------------

@@ -45,6 +45,9 @@ def test_draw_overlay_draws_and_keeps_input():
     assert out[60, 100, 2] > 100  # red x axis (BGR)
     with pytest.raises(ValueError, match="uint8"):
         draw_overlay(img.astype(np.float32), verts, edges, axes, 0.5, True)
+    bar = (slice(112, 116), slice(30, 40))  # the confidence bar's right part (full bar: x 4..44)
+    assert not (draw_overlay(img, verts, edges, axes, 1.0, True)[bar] == 60).all()  # the bar over the grey track
+    assert (draw_overlay(img, verts, edges, axes, float("nan"), True)[bar] == 60).all()  # NaN: no bar (was full)
 
 
 def test_plot_track_writes_png(tmp_path):

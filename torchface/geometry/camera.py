@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -33,8 +35,21 @@ class Intrinsics:
     cy: float
 
     def __post_init__(self) -> None:
-        if int(self.width) <= 0 or int(self.height) <= 0:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                if isinstance(value, bool) or not (isinstance(value, numbers.Real) and float(value).is_integer()):
+                    raise TypeError(f"{name} must be a whole number of pixels, got {value!r}")
+                object.__setattr__(self, name, int(value))  # 32.0 -> 32: sizes index tensors
+            elif not isinstance(value, int):
+                object.__setattr__(self, name, int(value))  # numpy integers
+        if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise ValueError(f"{name} must be a finite number, got {value!r}")
+            object.__setattr__(self, name, float(value))
         if not (self.fx > 0 and self.fy > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
 

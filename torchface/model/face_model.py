@@ -293,8 +293,15 @@ class FaceModel:
         _check_coeffs(anim_coeffs, self.num_animation, "animation", self.facs_matrix)
         return anim_coeffs @ self.facs_matrix.T
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "FaceModel":
-        """A copy on ``device`` with floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
+    def to(
+        self, device: torch.device | str | torch.dtype | None = None, dtype: torch.dtype | None = None
+    ) -> "FaceModel":
+        """A copy on ``device`` with floating tensors in ``dtype`` (index and mask tensors keep theirs).
+        ``model.to(torch.float64)`` (a dtype first, as ``nn.Module.to`` takes it) converts the dtype alone."""
+        if isinstance(device, torch.dtype):
+            if dtype is not None:
+                raise TypeError(f"two dtypes given: {device} and {dtype}")
+            device, dtype = None, device
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"dtype must be a floating dtype, got {dtype}")
         changes = {}

@@ -6,6 +6,8 @@ Geometry is computed batched in torch (:func:`overlay_geometry`); drawing is per
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import torch
@@ -89,7 +91,7 @@ def draw_overlay(
         cv2.line(out, o, _pt(axes_px[k], limit), c, 2, cv2.LINE_AA)
     scale = max(0.35, min(W, H) / 600.0)
     text = f"{label} {confidence_label} {confidence:.2f}" + ("" if success else " LOST")
-    bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4)))
+    bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4))) if math.isfinite(confidence) else 0  # NaN: none
     cv2.rectangle(out, (4, H - 10), (4 + W // 4, H - 4), (60, 60, 60), -1)
     cv2.rectangle(out, (4, H - 10), (4 + bar, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
     (tw, th), base = cv2.getTextSize(text.strip(), cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
