@@ -29,6 +29,7 @@ from torchface.tracker import (
     ParamLayout,
     TrackerConfig,
     TrackStatus,
+    fit_landmarks,
     frame_residuals,
     initialise,
     initialise_managed,
@@ -387,6 +388,17 @@ def test_config_validation():
     for bad in (-1e-3, float("nan")):
         with pytest.raises(ValueError, match="function_tolerance"):
             TrackerConfig(function_tolerance=bad)
+    # Each of these used to be accepted and to fail later, or to track wrongly without a word.
+    with pytest.raises(ValueError, match="min_points"):
+        TrackerConfig(max_points=20)  # the default min_points 50: every frame FAILED
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="expression_prior_precision"):
+            TrackerConfig(expression_prior_precision=bad)
+        with pytest.raises(ValueError, match="crop_margin"):
+            TrackerConfig(crop_margin=bad)
+    for bad in ("fast", 0, None):
+        with pytest.raises(TypeError, match="TrackSolver"):
+            TrackerConfig(solver=bad)  # type: ignore[arg-type]  # "fast" ran the reference solver
 
 
 def test_face_tracker_module(model, two_streams, l2_runs):
@@ -465,12 +477,43 @@ def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):
     tracker.initialise(frames[:, 0], landmarks_of(gts), Intrinsics.default(W, H))
     tracker.double()
     assert tracker.model.dtype == torch.float64 and tracker.state is None
+    for half in (lambda t: t.half(), lambda t: t.to(torch.bfloat16)):
+        with pytest.raises(TypeError, match="float32 or float64"):  # initialise used to fail inside the solver
+            half(tracker)
+    assert tracker.model.dtype == torch.float64
 
 
 def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
     frames, gts = two_streams
+    cam, lm = Intrinsics.default(W, H), landmarks_of(gts)
     with pytest.raises(ValueError, match="one set per frame"):
-        initialise(model, BASE, frames[:, 0], landmarks_of(gts)[:1], Intrinsics.default(W, H))
+        initialise(model, BASE, frames[:, 0], lm[:1], cam)
+    # Each of these used to be accepted, then fail later (mid-stream at the online start's re-anchoring, or
+    # deep inside torch) with a message that did not say what was wrong.
+    with pytest.raises(ValueError, match="at least one stream"):
+        initialise(model, BASE, frames[:0, 0], lm[:0], cam)
+    subset = fit_landmarks(model, lm[:, 17:], cam, landmark_indices=torch.arange(17, 68), config=BASE.fit)
+    with pytest.raises(ValueError, match="NaN rows for missing ones"):
+        initialise(model, BASE, frames[:, 0], lm[:, 17:], cam, fit=subset)
+    with pytest.raises(TypeError, match="weights must be a"):
+        initialise(model, BASE, frames[:, 0], lm, cam, [[1.0] * 68] * 2)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="weights must be"):
+        initialise(model, BASE, frames[:, 0], lm, cam, torch.ones(2, 60))
+    with pytest.raises(ValueError, match="expression_prior_weights has 5 factors"):
+        initialise(model, replace(BASE, expression_prior_weights=(1.0,) * 5), frames[:, 0], lm, cam)
+
+
+def test_failed_initialise_forgets_the_previous_video(model, two_streams):
+    """A FaceTracker whose initialise raises does not track on against the previous video's templates."""
+    frames, gts = two_streams
+    tracker = FaceTracker(BASE, model=model)
+    tracker.initialise(frames[:, 0], landmarks_of(gts))
+    tracker(frames[:, 1])
+    with pytest.raises(ValueError, match="4 finite landmarks"):
+        tracker.initialise(frames[:, 0], torch.full_like(landmarks_of(gts), float("nan")))
+    assert tracker.state is None
+    with pytest.raises(RuntimeError, match="initialise"):
+        tracker(frames[:, 2])
 
 
 def test_visibility_interval_reuses_masks_between_rasterizations(model, two_streams):

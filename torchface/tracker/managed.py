@@ -101,6 +101,7 @@ from torchface.tracker.step import (
     TrackResult,
     TrackStatus,
     check_frames,
+    check_initialise_inputs,
     gray_pyramid,
     gray_pyramid_windows,
     initialise,
@@ -247,7 +248,7 @@ def initialise_managed(
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
         if fit is None:
-            check_frames(frames, intrinsics, values=True)
+            check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
     state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template

@@ -72,6 +72,9 @@ class FaceTracker(nn.Module):
         attribute, not a parameter) and forget the tracked state (its tensors are the old dtype's and device's)."""
         from torchface.normalise.face import apply_to_tensor_fields
 
+        target = fn(torch.zeros(1, dtype=self.model.dtype)).dtype  # the floating dtype this call converts to
+        if target not in (torch.float32, torch.float64):
+            raise TypeError(f"FaceTracker tracks in float32 or float64, not {target} (its solver factorises matrices)")
         self.model = apply_to_tensor_fields(fn, self.model)
         self._state = None
         return super()._apply(fn, recurse)
@@ -113,6 +116,7 @@ class FaceTracker(nn.Module):
                 raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
         refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
+        self._state = None  # a failed initialisation must not leave the previous video's state to track on
         self._state, result = initialise_managed(
             self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )

@@ -250,6 +250,13 @@ class TrackerConfig:
             raise ValueError(f"visibility_interval must be >= 1, got {self.visibility_interval}")
         if self.max_points < 8:
             raise ValueError(f"max_points must be >= 8, got {self.max_points}")
+        if not 0 <= self.min_points <= self.max_points:
+            raise ValueError(f"min_points must be in [0, max_points = {self.max_points}] (with more, every frame fails), "
+                             f"got {self.min_points}")  # fmt: skip
+        if not (math.isfinite(self.expression_prior_precision) and self.expression_prior_precision >= 0.0):
+            raise ValueError(f"expression_prior_precision must be finite and >= 0, got {self.expression_prior_precision}")
+        if not (math.isfinite(self.crop_margin) and self.crop_margin >= 0.0):
+            raise ValueError(f"crop_margin must be finite and >= 0 (a fraction of the face's size), got {self.crop_margin}")
         if isinstance(self.selection_seed, bool) or not isinstance(self.selection_seed, int) or self.selection_seed < 0:
             raise ValueError(f"selection_seed must be an int >= 0, got {self.selection_seed!r}")
         if self.gradient_threshold < 0 or self.min_contrast < 0:
@@ -258,6 +265,8 @@ class TrackerConfig:
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
         if not isinstance(self.backend, Backend):
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
+        if not isinstance(self.solver, TrackSolver):  # "fast" ran the reference solver without a word
+            raise TypeError(f"solver must be a TrackSolver, got {self.solver!r}")
 
 
 def _unit_weights(config: TrackerConfig, num_animation: int, like: Tensor) -> Tensor | None:
@@ -522,6 +531,31 @@ def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None, *, values
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
+def check_initialise_inputs(
+    model: FaceModel, config: TrackerConfig, frames: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics,
+    weights: Tensor | None,
+) -> None:
+    """The checks of :func:`initialise` (and of :func:`~torchface.tracker.managed.initialise_managed` before its
+    landmark fit): frames (:func:`check_frames` with values), at least one stream, ``(B, K, 2)`` landmarks of the
+    model's ``K`` points (NaN: missing; the online start and recovery use them all, so a subset is given as NaN
+    rows), ``(B, K)`` tensor weights, and ``config.expression_prior_weights`` of the model's length."""
+    check_frames(frames, intrinsics, values=True)
+    B, K = frames.shape[0], model.num_landmarks
+    if B == 0:
+        raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
+    if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
+        got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
+        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}")
+    if tuple(landmarks_px.shape[1:]) != (K, 2):
+        raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
+                         f"got {tuple(landmarks_px.shape)}")  # fmt: skip
+    if weights is not None and not isinstance(weights, Tensor):
+        raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
+    if weights is not None and tuple(weights.shape) != (B, K):
+        raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
+    _unit_weights(config, model.num_animation, frames)  # their count, before any work
+
+
 def _layout(model: FaceModel) -> ParamLayout:
     return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
 
@@ -568,10 +602,7 @@ def initialise(
     Returns:
         The state and the first frame's result.
     """
-    check_frames(frames, intrinsics, values=True)
-    if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[0] != frames.shape[0]:
-        got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
-        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {frames.shape[0]} (one set per frame), got {got}")
+    check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
     frames = frames.to(dtype=model.dtype, device=model.device)
     if fit is None:
         fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
