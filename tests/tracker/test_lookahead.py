@@ -180,6 +180,40 @@ def test_infinite_landmark_counts_as_missing_in_the_refinement(model):
             torch.testing.assert_close(getattr(out[value], field), getattr(ref, field), rtol=0, atol=0)
 
 
+def test_refinement_takes_gray_frames_and_reads_bad_weights_as_zero(model):
+    """Gray (1-channel) frames, which the tracker takes, refine as their RGB frames do (they used to be refused at
+    the online start's re-anchoring, mid-stream); NaN, inf and negative landmark weights count as 0, as in the
+    landmark fit (they made the cost NaN, so the refinement never moved)."""
+    from torchface.appearance import to_gray
+
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    R = gt.rotation.to(torch.float32)
+    tilt = euler_to_matrix(torch.tensor([[0.0, 3.0, 0.0]], dtype=D)).to(torch.float32)
+    start = LandmarkFit(tilt @ R[:1], matrix_to_axis_angle(tilt @ R[:1]), gt.translation[:1].float(),
+                        torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation), torch.zeros(1),
+                        torch.zeros(1, dtype=torch.int64))  # fmt: skip
+    cfg = LookaheadConfig(fit_expression=False, iterations=(3, 2), max_points=600)
+    lm = gt.landmarks_px[0].float()
+
+    def refine(f, weights=None):
+        return refine_first_fit(model, f, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(), config=cfg,
+                                landmark_weights=weights)  # fmt: skip
+
+    rgb, gray = refine(frames), refine(to_gray(frames))
+    torch.testing.assert_close(gray.axis_angle, rgb.axis_angle, rtol=0, atol=1e-6)
+    zero = torch.ones(model.num_landmarks)
+    zero[30] = 0.0
+    ref = refine(frames, zero)
+    assert float(geodesic_angle_deg(ref.rotation.double(), start.rotation.double())) > 1.0  # it moves
+    for bad in (float("nan"), float("inf"), -1.0):
+        w = torch.ones(model.num_landmarks)
+        w[30] = bad
+        out = refine(frames, w)
+        torch.testing.assert_close(out.axis_angle, ref.axis_angle, rtol=0, atol=1e-6)
+        assert bool(torch.isfinite(out.rms_px).all())
+
+
 def test_refinement_takes_per_unit_shape_precisions(model):
     """FitConfig's per-unit shape precisions reach the refinement: a tuple of zeros refines as the scalar 0 (the
     free unit comes back from 0.3 as in the test above), a huge precision on the free unit holds it at the prior's
@@ -331,6 +365,30 @@ def test_online_refinement_reanchors_after_a_turn_each_side(model):
     R_alone, at_alone, _ = _track(model, frames[None], lm, gt.intrinsics, la)
     assert at_alone == [at[0]]
     torch.testing.assert_close(R_alone[0], R_on[0], rtol=0, atol=1e-4)
+
+
+def test_online_reanchoring_without_expression_and_on_gray_frames(model):
+    """A stream re-anchored by the online start while the tracker does not estimate the expression
+    (``use_expression=False``) keeps reporting no expression (it used to report the old neutral's difference from
+    the refined one, a constant false expression, from the re-anchoring on); gray frames go through the
+    re-anchoring too (they used to be refused there, mid-stream)."""
+    from torchface.appearance import to_gray
+
+    yaw = [0.0, 4.0, 8.0, 12.0, 16.0, 12.0, 8.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    noise = torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(3))
+    lm = gt.landmarks_px.float()[:1] + 2.0 * noise
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+    for cfg, clip in ((replace(CFG, use_expression=False), frames), (CFG, to_gray(frames))):
+        tracker = FaceTracker(cfg, model=model, refine_first=la)
+        results = [tracker.initialise(clip[:1], lm, gt.intrinsics)]
+        results += [tracker(clip[i : i + 1]) for i in range(1, len(yaw))]
+        ms = tracker.state.management
+        assert ms.head_rotation is not None and not torch.equal(ms.head_rotation[0], torch.eye(3)), "re-anchored"
+        assert all(bool(torch.isfinite(r.rotation).all()) for r in results)
+        if not cfg.use_expression:
+            assert max(float(r.expression.abs().max()) for r in results) == 0.0
 
 
 def test_online_keyframes_need_min_confidence(model):

@@ -245,7 +245,7 @@ def _refine_first_fit(
     translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose. ``analytic``: the
     Jacobian in closed form (False: by forward-mode autograd, the reference the tests compare it with)."""
     K = frames.shape[0] - 1
-    if frames.dim() != 4 or K < 1 or frames.shape[1] != 3:
+    if frames.dim() != 4 or K < 1 or frames.shape[1] not in (1, 3):  # gray frames too, as the tracker takes them
         raise ValueError(f"frames must be (1 + K, 3, H, W) with K >= 1 keyframes, got {tuple(frames.shape)}")
     if key_rotation.shape != (K, 3, 3) or key_translation.shape != (K, 3):
         raise ValueError(f"key poses must be ({K}, 3, 3) and ({K}, 3), got {tuple(key_rotation.shape)}, "
@@ -282,8 +282,9 @@ def _refine_first_fit(
     lm = landmarks_px.to(device=dev, dtype=dt)
     target = torch.where(torch.isfinite(lm), lm, torch.zeros_like(lm))  # missing (NaN or +-inf): weight 0
     lw = torch.isfinite(landmarks_px.to(device=dev)).all(-1).to(dt)
-    if landmark_weights is not None:
-        lw = lw * landmark_weights.to(device=dev, dtype=dt)
+    if landmark_weights is not None:  # as fit_landmarks reads them: NaN, inf or negative weights are 0
+        w = landmark_weights.to(device=dev, dtype=dt)
+        lw = lw * torch.where(torch.isfinite(w), w.clamp_min(0.0), torch.zeros_like(w))
 
     # x = [aa0 (3), t0 (3), free shape units (nf), expression (nA), per keyframe: aa, t, light (11)]
     o_sig, o_al = 6, 6 + nf
