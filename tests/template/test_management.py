@@ -92,6 +92,10 @@ def test_config_defaults_and_validation():
         TemplateConfig(entry_stride=0)
     with pytest.raises(TypeError, match="entry_stride"):
         TemplateConfig(entry_stride=2.0)  # type: ignore[arg-type]
+    for small in (16, 47):  # 16 used to pass: no fiducial patch fitted, so every frame's confidence was 0
+        with pytest.raises(ValueError, match="too few fiducial patches"):
+            TemplateConfig(normalised_size=small)
+    assert TemplateConfig(normalised_size=48).normalised_size == 48
 
 
 def test_pose_bins_known_answers():

@@ -135,7 +135,10 @@ class TemplateConfig:
             scenario (head up to 20 degrees from the first pose) aligned against a 15 degree entry while the
             occluder passed and diverged to 25 degrees (6.4 against the reference); with 30, pose_sweep's
             max error is 1.42 degrees (1.52 without the mosaic, 1.24 with no radius).
-        normalised_size: side ``G`` of the normalised face the dissimilarity is measured on (pixels).
+        normalised_size: side ``G`` of the normalised face the dissimilarity is measured on (pixels), >= 48: the
+            default fiducial patches (11 px) found on a rendered face 0 of the 16 asked at 16 and 20 px, 1-2 at 24-40,
+            3 at 48, 8 at the default 64; with none the confidence is 0 on every frame and a good track is
+            declared lost.
         entry_stride: a new mosaic entry picks its finest level's points among the pixels on every
             ``entry_stride``-th row and column of the face's window (where that grid still holds four times the
             level's points; else every pixel), with the gradients and selection keys of the whole level. The
@@ -279,8 +282,9 @@ class TemplateConfig:
             raise ValueError(f"entry_stride must be >= 1, got {self.entry_stride}")
         if self.search_points < 8:
             raise ValueError(f"search_points must be >= 8, got {self.search_points}")
-        if self.normalised_size < 16:
-            raise ValueError(f"normalised_size must be >= 16, got {self.normalised_size}")
+        if self.normalised_size < 48:
+            raise ValueError(f"normalised_size must be >= 48 (smaller faces hold too few fiducial patches for a "
+                             f"confidence), got {self.normalised_size}")  # fmt: skip
         if not (self.yaw_bin_deg > 0 and self.pitch_bin_deg > 0 and self.search_step_px > 0):
             raise ValueError("yaw_bin_deg, pitch_bin_deg and search_step_px must be positive")
         if not 0 < self.bin_centre_fraction <= 0.5:
