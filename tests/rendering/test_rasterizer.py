@@ -462,6 +462,22 @@ def test_gradcheck_bary_and_depth():
     assert torch.autograd.gradcheck(fn, (verts,), eps=1e-6, atol=1e-6)
 
 
+def test_a_triangle_with_a_nan_corner_gives_its_shared_vertices_no_nan_gradient():
+    """A triangle with a NaN corner produces no fragment, and the vertices it shares with visible triangles get
+    the gradient they get without it (they used to get NaN: a zero gradient times its NaN coefficients)."""
+    cam = Intrinsics.default(8, 6, focal=8.0)
+    faces = torch.tensor([[0, 2, 1], [0, 1, 3]])
+    for backend in (Backend.TORCH, Backend.AUTO):
+        v = torch.tensor([[[-5.0, -4, 10], [6, -3, 11], [0, 5, 12], [1, 1, float("nan")]]], requires_grad=True)
+        frag = rasterize(v, faces, cam, backend=backend)
+        assert bool((frag.pix_to_face[frag.foreground] == 0).all())
+        frag.zbuf[frag.foreground].sum().backward()
+        alone = v.detach()[:, :3].clone().requires_grad_(True)
+        ref = rasterize(alone, faces[:1], cam, backend=backend)
+        ref.zbuf[ref.foreground].sum().backward()
+        torch.testing.assert_close(v.grad[0, :3], alone.grad[0], rtol=0, atol=1e-6)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_matches_cpu():
     verts, faces = random_surface(4, 2)

@@ -238,7 +238,12 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         all multiplied by ``sign(n . v0)``. ``front (N,)`` bool (``n . v0 < 0``); ``usable (N,)`` bool
         (finite, non-degenerate, not edge-on).
     """
-    corners = tri.reshape(-1, 3, 3).permute(1, 2, 0)  # (corner, xyz, N)
+    tri = tri.reshape(-1, 3, 3)
+    finite = isfinite(tri).reshape(-1, 9).all(-1)  # (N,)
+    # A triangle with a non-finite corner is unusable; its corners are zeroed (torch.where, not a product) so that
+    # no NaN reaches the coefficients: a zero gradient times a NaN coefficient would be NaN for the shared vertices.
+    tri = torch.where(finite[:, None, None], tri, torch.zeros((), dtype=tri.dtype, device=tri.device))
+    corners = tri.permute(1, 2, 0)  # (corner, xyz, N)
     v0, v1, v2 = corners.unbind(0)  # (3, N) each
     e01, e02, e12, e20 = v1 - v0, v2 - v0, v2 - v1, v0 - v2
     # The four cross products c0 = v1 x v2 = v1 x e12, c1 = v2 x v0 = v2 x e20, c2 = v0 x v1 = v0 x e01 (cross
@@ -256,7 +261,7 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     n_norm = (n * n).sum(0).sqrt()
     max_edge_sq = torch.stack([e01, e02, e12]).square().sum(1).amax(0)
     usable = (
-        isfinite(tri).reshape(-1, 9).all(-1)
+        finite
         & (n_norm > eps * max_edge_sq)
         & (k.abs() > eps * n_norm * (v0 * v0).sum(0).sqrt())
     )
