@@ -97,6 +97,16 @@ def test_obj_keeps_file_vertex_order():
     assert model.num_faces == sum(1 for line in lines if line.startswith("f "))
 
 
+def test_obj_keeps_unreferenced_vertices_at_its_end(tmp_path):
+    """An OBJ with texture coordinates whose last vertices no face uses keeps them (trimesh's order-keeping read
+    drops them, and bases sized from the file were refused)."""
+    obj = tmp_path / "t.obj"
+    obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nv 9 9 9\nvt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\n"
+                   "f 1/1 2/2 3/3\nf 2/2 4/4 3/3\n")  # fmt: skip
+    model = load_mesh_model(obj, blendshapes=np.ones((1, 5, 3)), dtype=torch.float64)
+    assert model.num_vertices == 5 and model.mean[4].tolist() == [9.0, 9.0, 9.0] and model.num_faces == 2
+
+
 @pytest.mark.skipif(not ICT_NPZ.exists(), reason="../shared/assets/ict_facekit is absent")
 def test_ict_face_model():
     model = load_ict_face_model(ICT_NPZ, num_expressions=3, num_identities=2, dtype=torch.float64)
@@ -123,6 +133,8 @@ def test_ict_face_model():
     # the subject's right eye (36) at -x, outer eye corners about 9 cm apart.
     assert lm[8, 1] > lm[36, 1] + 50 and lm[30, 2] < lm[36, 2] - 30
     assert lm[36, 0] < 0 < lm[45, 0]
+    with pytest.raises(TypeError, match="num_expressions must be an int"):
+        load_ict_face_model(ICT_NPZ, num_expressions=3.7)  # type: ignore[arg-type]  # was read as 3
     assert 80.0 < float((lm[45] - lm[36]).norm()) < 100.0
     # ARKit names link to FACS: browDown_L/_R -> AU4, browInnerUp_L -> AU1.
     assert model.facs_names == ("AU1", "AU4")

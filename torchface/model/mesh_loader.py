@@ -10,6 +10,7 @@ Shapes: ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` animation unit
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -78,6 +79,16 @@ def _as_names(names: Sequence[str] | None, count: int, what: str, prefix: str) -
     return names
 
 
+def _obj_vertices(path: Path) -> np.ndarray | None:
+    """``(V, 3)`` the positions of an OBJ file's ``v`` lines, in order (None when it cannot be read as text)."""
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        rows = [line.split()[1:4] for line in lines if line.startswith("v ") or line.startswith("v\t")]
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+    except (OSError, ValueError):
+        return None
+
+
 def load_mesh_model(
     mesh: object,
     *,
@@ -140,15 +151,27 @@ def load_mesh_model(
 
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
+    obj_vertices = None
     if isinstance(mesh, (str, Path)):
         default_name = Path(mesh).stem
-        options = {"maintain_order": True, "skip_materials": True} if Path(mesh).suffix.lower() == ".obj" else {}
+        is_obj = Path(mesh).suffix.lower() == ".obj"
+        options = {"maintain_order": True, "skip_materials": True} if is_obj else {}
+        obj_vertices = _obj_vertices(Path(mesh)) if is_obj else None
         mesh = trimesh.load(str(mesh), process=False, force="mesh", **options)
     else:
         default_name = "mesh"
     if not isinstance(mesh, trimesh.Trimesh):
         raise TypeError(f"mesh must be a trimesh.Trimesh or a path to a mesh file, got {type(mesh).__name__}")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if obj_vertices is not None and obj_vertices.shape[0] != vertices.shape[0]:
+        # trimesh's maintain_order path drops unreferenced vertices at the end of an OBJ with texture
+        # coordinates; bases and landmark indices count the file's vertices, so they are put back
+        n = vertices.shape[0]
+        if obj_vertices.shape[0] > n and np.allclose(obj_vertices[:n], vertices, rtol=0, atol=1e-9):
+            vertices = obj_vertices
+        else:
+            raise ValueError(f"{default_name}: trimesh read {n} of the file's {obj_vertices.shape[0]} vertices, not "
+                             "in the file's order: the model's vertices would not be the file's")  # fmt: skip
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if faces.ndim != 2 or faces.shape[0] == 0:
         raise ValueError(f"the mesh must hold triangles, got faces of shape {faces.shape}")
@@ -247,6 +270,8 @@ def load_ict_face_model(
         for what, key, n in (("num_expressions", "expression_deltas", num_expressions),
                              ("num_identities", "identity_deltas", num_identities)):
             total = data[key].shape[0]
+            if n is not None and (isinstance(n, bool) or not isinstance(n, numbers.Integral)):
+                raise TypeError(f"{what} must be an int or None, got {n!r}")  # 3.7 was read as 3
             if n is not None and not 0 <= int(n) <= total:
                 raise ValueError(f"{what} must be in [0, {total}], got {n}")
             counts[key] = total if n is None else int(n)
