@@ -353,3 +353,15 @@ def test_batched_calls_equal_per_sample_calls() -> None:
         torch.testing.assert_close(J[b : b + 1], rotate_points_jacobian(aa[b : b + 1], X[b : b + 1]))
         torch.testing.assert_close(matrix_to_axis_angle(R)[b], matrix_to_axis_angle(R[b]))
         torch.testing.assert_close(matrix_to_euler(R)[b], matrix_to_euler(R[b]))
+
+
+def test_geodesic_angle_and_relative_rotation_promote_mixed_dtypes() -> None:
+    """float32 against float64 rotations give a float64 answer, as transform_points does (a matmul dtype error
+    before)."""
+    from torchface.geometry.transforms import relative_rotation
+
+    R64 = euler_to_matrix(torch.tensor([[10.0, 0.0, 0.0]], dtype=torch.float64))
+    R32 = torch.eye(3)[None]
+    angle = geodesic_angle_deg(R64, R32)
+    assert angle.dtype == torch.float64 and abs(float(angle[0]) - 10.0) < 1e-9
+    assert relative_rotation(R32, R64).dtype == torch.float64

@@ -347,7 +347,8 @@ def geodesic_angle_deg(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(R1, "R1", (3, 3))
     check_tensor(R2, "R2", (3, 3))
-    m = R1 @ R2.transpose(-1, -2)
+    dtype = torch.promote_types(R1.dtype, R2.dtype)  # float32 against float64: in float64, as transform_points
+    m = R1.to(dtype) @ R2.to(dtype).transpose(-1, -2)
     finfo = torch.finfo(m.dtype)
     cos = (0.5 * (m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2] - 1.0)).clamp(-1.0, 1.0)
     w = vee(m)

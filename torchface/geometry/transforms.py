@@ -110,4 +110,5 @@ def relative_rotation(R_t: torch.Tensor, R_0: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(R_t, "R_t", (3, 3))
     check_tensor(R_0, "R_0", (3, 3))
-    return R_t @ R_0.transpose(-1, -2)
+    dtype = torch.promote_types(R_t.dtype, R_0.dtype)  # mixed float32 / float64: promoted, as transform_points
+    return R_t.to(dtype) @ R_0.to(dtype).transpose(-1, -2)
