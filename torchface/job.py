@@ -100,8 +100,8 @@ class JobConfig:
             every video of a batch ahead and keeps them in memory (150 frames of 640x480: about 550 MB each).
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
-            and template management is on. A resumed batch with rows to replay goes without it; a stream that the
-            interrupted run had re-anchored (recorded in ``<name>.record.partial`` beside its partial CSV) starts
+            and template management is on. A resumed video goes without it (the batch's new videos keep it); one that
+            the interrupted run had re-anchored (recorded in ``<name>.record.partial`` beside its partial CSV) starts
             from that run's refined fit and offset, so its rows go on as an uninterrupted run's (measured: the
             test clip's translations within 3e-5 mm; 3-5 mm off when it was resumed from the landmark fit); one
             not yet re-anchored is tracked on without the online start.
@@ -496,6 +496,18 @@ def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, dict[s
     return replace(state, management=replace(ms, head_rotation=head_R, head_translation=head_t))
 
 
+def _without_online_start(state: TrackerState, resumed: list[bool]) -> TrackerState:
+    """``state`` whose resumed streams (``resumed``) no longer wait for the online start: their rows so far were
+    tracked with or without it, and the record (:func:`_write_record`) has put a re-anchored one back in its frame;
+    the batch's new videos keep it."""
+    ms = state.management
+    if ms is None or ms.first is None:
+        return state
+    pending = ms.first.pending & ~torch.tensor(resumed, dtype=torch.bool, device=ms.first.pending.device)
+    first = replace(ms.first, pending=pending) if bool(pending.any()) else None
+    return replace(state, management=replace(ms, first=first))
+
+
 def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dict[str, Path]], first_R: Tensor,
                     first_t: Tensor) -> None:  # fmt: skip
     """Write the record (:func:`_write_record`) of each stream the online start has just re-anchored: its first
@@ -569,7 +581,7 @@ def _track_group(
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
         fit = None if config.lookahead is None else _lookahead_fit(model, config, streams, lm, intr)
-        online = fit is None and config.tracker.template.enabled and all(s.replay is None for s in streams)
+        online = fit is None and config.tracker.template.enabled and config.refine_first is not None
         anchored = [k for k, s in enumerate(streams) if s.anchor is not None]
         if anchored:  # resumed streams the interrupted run had re-anchored: start from their refined fits
             fit = fit_landmarks(model, lm, intr, config=config.tracker.fit) if fit is None else fit
@@ -578,6 +590,8 @@ def _track_group(
                                            refine_first=config.refine_first if online else None)  # fmt: skip
         if anchored:
             state = _with_recorded_offsets(state, [(k, streams[k].anchor) for k in anchored])
+        if online and any(s.replay is not None for s in streams):
+            state = _without_online_start(state, [s.replay is not None for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
         t_init = time.perf_counter() - t_start
@@ -660,6 +674,7 @@ def _track_group(
             "versions": package_versions(),
             "config": {
                 "tracker": config.tracker, "device": config.device, "focal": config.focal, "detector": config.detector,
+                "lookahead": config.lookahead, "online_start": config.refine_first,
                 "landmarks": s.landmarks_source, "resume": config.resume, "convert": config.convert, "batch_streams": B,
                 "normalised_size": G, "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
             },  # fmt: skip

@@ -345,9 +345,17 @@ def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, ful
     rc = main(["track", str(tmp_path / "other" / whole.name), "--out", str(out), "--landmarks", str(lm), "--resume",
                "--quiet"])  # fmt: skip
     assert rc == 2 and (out / f"{NAME}.csv.partial").is_file()  # refused: the partial results are another input's
-    assert main(["track", str(whole), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+    fresh = tmp_path / "fresh.npy"  # a new video in the same batch keeps the online start (it went without)
+    fresh.write_bytes(whole.read_bytes())
+    rc = main(["track", str(whole), str(fresh), "--out", str(out), "--landmarks", str(lm), "--landmarks", str(lm),
+               "--resume", "--quiet"])  # fmt: skip
+    assert rc == 0
     _, rows, R, t = _pose(output_paths(out, NAME)["csv"])
     assert rows.shape[0] == T and not (out / f"{NAME}.record.partial").exists()
+    _, rows_new, R_new, t_new = _pose(output_paths(out, "fresh")["csv"])
+    assert float(geodesic_angle_deg(R_new, R_ref).max()) < 1e-3 and np.abs(t_new - t_ref).max() < 1e-2
+    sidecar = json.loads(output_paths(out, "fresh")["json"].read_text())
+    assert sidecar["config"]["online_start"] is not None and sidecar["config"]["lookahead"] is None
     assert float(geodesic_angle_deg(R[stop_at:], R_ref[stop_at:]).max()) < 0.3
     assert np.abs(t[stop_at:] - t_ref[stop_at:]).max() < 0.5, np.abs(t - t_ref).max(0)
     shape = json.loads(output_paths(out, NAME)["json"].read_text())["model"]["shape_coeffs"]
