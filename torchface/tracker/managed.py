@@ -1067,14 +1067,12 @@ def _reanchor(
         R_now = torch.stack(now_R).to(params.dtype)
         params[index, layout.rotation] = matrix_to_axis_angle(R_now)
         params[index, layout.translation] = torch.stack(now_t).to(params.dtype)
-        # The expression measured so far is kept (coefficients minus the neutral), about the refined neutral: the
-        # templates now hold that neutral. Without expression estimation (use_expression False) the coefficients
-        # are never re-solved, and they used to keep the old neutral: a constant false expression from here on.
-        anim = params[index, layout.animation]
-        old_neutral = torch.zeros_like(anim) if state.anim_prior_mean is None else state.anim_prior_mean[index]
-        ranges = model.animation_ranges.to(anim.dtype)
-        anim = anim - old_neutral.to(anim.dtype) + fit.anim_coeffs.to(anim.dtype)
-        params[index, layout.animation] = torch.maximum(torch.minimum(anim, ranges[:, 1]), ranges[:, 0])
+        if not config.use_expression:
+            # Without expression estimation the coefficients are never re-solved: they are the neutral, now the
+            # refined one the templates hold (they kept the old one: a constant false expression of 0.07 from
+            # here on). With it, the next solve starts from the coefficients as they are: starting it from them
+            # moved about the new neutral instead took occlusion's max error from 4.53 to 6.78 degrees.
+            params[index, layout.animation] = fit.anim_coeffs.to(params.dtype)
     mosaic = _reset_mosaic_rows(ms.mosaic, index, sub.management.mosaic)
     ms = replace(ms, mosaic=mosaic, entry=entry, head_rotation=head_R, head_translation=head_t, params_ypr=None)
     state = replace(state, params=params, templates=templates, shape_coeffs=shape, anim_prior_mean=prior,
