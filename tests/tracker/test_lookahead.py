@@ -30,6 +30,7 @@ from torchface.tracker import (
     lookahead_fit,
     refine_first_fit,
     select_keyframes,
+    view_yaw_deg,
 )
 
 W, H = 320, 240
@@ -67,6 +68,27 @@ def test_select_keyframes_first_frame_past_the_threshold_each_side():
     assert select_keyframes(R, 20.0, confident) == [8]  # 4 and 7 not allowed: no other frame past +20
     with pytest.raises(ValueError, match="rotation"):
         select_keyframes(torch.zeros(4, 3), 20.0)
+
+
+def test_a_camera_pan_is_no_keyframe_turn():
+    """A camera pan turns the head in the camera frame (its yaw changes by the pan's angle) but not about the ray the
+    camera sees it along (:func:`view_yaw_deg` is unchanged), so it gives no keyframe; the same yaw from a head turn
+    does, at the frame it does without translations. (A GRID clip's 120 px sideways jump used to re-anchor the
+    stream on a view that adds nothing: 0.66 degrees mean off the clean run for the rest of the clip.)"""
+    yaw = torch.tensor([0.0, 4.0, 8.0, 12.0, 16.0], dtype=D)
+    zeros = torch.zeros_like(yaw)
+    pan = euler_to_matrix(torch.stack([yaw, zeros, zeros], -1))  # the camera turns about its centre
+    R0 = euler_to_matrix(torch.tensor([3.0, -5.0, 2.0], dtype=D))
+    t0 = torch.tensor([20.0, -10.0, 500.0], dtype=D)
+    R_pan, t_pan = pan @ R0, (pan @ t0.unsqueeze(-1)).squeeze(-1)
+    # (to 0.02 degrees: the smallest rotation to a ray off the horizontal plane turns it a little about itself)
+    torch.testing.assert_close(view_yaw_deg(R_pan, t_pan), view_yaw_deg(R0, t0).expand(5), atol=0.05, rtol=0)
+    assert select_keyframes(R_pan, 10.0) == [3]  # the camera-frame yaw alone would take the pan for a turn
+    assert select_keyframes(R_pan, 10.0, translation=t_pan) == []
+    R_turn, t_fixed = euler_to_matrix(torch.stack([yaw, zeros, zeros], -1)) @ R0, t0.expand(5, 3)
+    assert select_keyframes(R_turn, 10.0, translation=t_fixed) == select_keyframes(R_turn, 10.0) == [3]
+    with pytest.raises(ValueError, match="translation"):
+        select_keyframes(R_turn, 10.0, translation=t_fixed[:2])
 
 
 def test_photometric_term_alone_brings_a_wrong_first_frame_pitch_back(model):

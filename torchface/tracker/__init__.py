@@ -2,7 +2,9 @@
 
 from torchface.backend import Backend
 from torchface.tracker.fit import CANDIDE3_VERTICAL_UNITS, FitConfig, LandmarkFit, fit_landmarks, held_shape_indices
-from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit, refine_first_fit, select_keyframes
+from torchface.tracker.lookahead import (
+    LookaheadConfig, lookahead_fit, refine_first_fit, select_keyframes, view_yaw_deg,
+)
 from torchface.tracker.managed import (
     LandmarkDetector,
     ManagementState,
@@ -50,6 +52,7 @@ __all__ = [
     "managed_step",
     "refine_first_fit",
     "select_keyframes",
+    "view_yaw_deg",
     "track_step",
     "warp_points",
 ]

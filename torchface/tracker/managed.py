@@ -93,7 +93,9 @@ from torchface.template.points import (
 )
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
-from torchface.tracker.lookahead import LookaheadConfig, _refine_first_fit, landmark_fit_priors
+from torchface.tracker.lookahead import (
+    LookaheadConfig, _refine_first_fit, is_keyframe_turn, landmark_fit_priors, view_yaw_deg,
+)
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -174,6 +176,9 @@ class FirstPoseWatch:
         sides: ``(B, 2)`` bool, the stream has its keyframe of the yaw-up, yaw-down side.
         pending: ``(B,)`` bool, the stream still waits for its keyframes.
         frames_seen: frames of the sequence so far (the first included).
+        view_yaw0: ``(B,)`` float64, the first frame's yaw seen along the camera's ray to the head
+            (:func:`~torchface.tracker.lookahead.view_yaw_deg`; a keyframe's turn must also show there,
+            :func:`~torchface.tracker.lookahead.is_keyframe_turn`); None: not checked.
     """
 
     config: LookaheadConfig
@@ -186,6 +191,7 @@ class FirstPoseWatch:
     sides: Tensor
     pending: Tensor
     frames_seen: int = 1
+    view_yaw0: Tensor | None = None
 
 
 def _layout(model: FaceModel) -> ParamLayout:
@@ -279,6 +285,7 @@ def initialise_managed(
                 None if weights is None else weights.to(dtype=model.dtype, device=model.device).clone(),
                 fit.to(model.device, model.dtype), result.ypr_deg[:, 0].clone(), ((),) * B,
                 torch.zeros(B, 2, dtype=torch.bool, device=model.device), ~failed.clone(),
+                view_yaw0=view_yaw_deg(result.rotation, result.translation),
             )  # fmt: skip
         management = replace(management, first=watch)
     result = replace(
@@ -992,12 +999,15 @@ def _watch_first_pose(
     w = ms.first
     lc = w.config
     rel = result.ypr_deg[:, 0] - w.yaw0.to(result.ypr_deg.dtype)
+    view_rel = rel.to(torch.float64) if w.view_yaw0 is None else (
+        view_yaw_deg(result.rotation, result.translation) - w.view_yaw0.to(torch.float64))
     ok = w.pending & result.success & (result.confidence >= lc.min_confidence)
     keys = list(w.keys)
     with torch.inference_mode(False):
         sides = w.sides.clone()
         for side, sign in enumerate((1.0, -1.0)):
-            for b in (ok & (sign * rel >= lc.yaw_deg)).nonzero().squeeze(-1).tolist():
+            turned = is_keyframe_turn(sign * rel.to(torch.float64), sign * view_rel, lc.yaw_deg).to(ok.device)
+            for b in (ok & turned).nonzero().squeeze(-1).tolist():
                 if not bool(sides[b, side]):
                     sides[b, side] = True  # the newest keyframe goes last: it is this frame
                     key = (frames[b].clone(), result.rotation[b].clone(), result.translation[b].clone(),
