@@ -62,8 +62,9 @@ def collate_clips(
 
     Raises:
         ValueError: an empty batch, items with different keys, a per-frame tensor without a time axis, lengths
-            that differ within an item, or trailing shapes or dtypes that differ between items (a ``uint8`` face
-            in ``[0, 255]`` and a float one in ``[0, 1]`` do not batch).
+            that differ within an item, or trailing shapes that differ between items, or an integer and a float
+            dtype under one key (a ``uint8`` face in ``[0, 255]`` and a float one in ``[0, 1]`` do not batch; float32
+            and float64 batch as float64).
 
     Example:
         >>> a = {"face": torch.ones(3, 3, 8, 8), "confidence": torch.ones(3), "video": torch.tensor(0)}
@@ -110,9 +111,10 @@ def collate_clips(
                 raise ValueError(
                     f"{key!r}: item {k} has frames of shape {tuple(item[key].shape[1:])}, item 0 has {tail}"
                 )
-            if item[key].dtype != dtype:
+            if item[key].dtype.is_floating_point != dtype.is_floating_point:  # uint8 0-255 against float 0-1
                 raise ValueError(f"{key!r}: item {k} is {item[key].dtype}, item 0 is {dtype}: convert the items alike")
-        ref = batch[0][key]
+            dtype = torch.promote_types(dtype, item[key].dtype)  # float32 with float64: float64
+        ref = batch[0][key].to(dtype)
         padded = pad_value(key, ref[:1]).expand(B, T, *tail).clone()
         for k, item in enumerate(batch):
             padded[k, : lengths[k]] = item[key]

@@ -45,8 +45,14 @@ def test_intrinsics_validation_and_frozen() -> None:
     for bad in ("32", 32.5, True):
         with pytest.raises(TypeError, match="whole number"):
             Intrinsics(bad, 24, 32.0, 32.0, 15.5, 11.5)
-    for k, bad in ((2, float("inf")), (4, float("nan")), (5, "11.5")):
+    for k, bad in ((2, float("inf")), (4, float("nan")), (5, torch.tensor(float("nan")))):
         args = [32, 24, 32.0, 32.0, 15.5, 11.5]
         args[k] = bad
         with pytest.raises(ValueError, match="finite number"):
             Intrinsics(*args)
+    with pytest.raises(TypeError, match="cy must be a number"):
+        Intrinsics(32, 24, 32.0, 32.0, 15.5, "11.5")
+    # Entries of a calibration tensor work as before (a focal length that requires grad keeps it).
+    K = torch.tensor([[50.0, 0.0, 15.5], [0.0, 50.0, 11.5], [0.0, 0.0, 1.0]], requires_grad=True)
+    cam = Intrinsics(torch.tensor(32), 24, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    assert cam.width == 32 and cam.fx.requires_grad

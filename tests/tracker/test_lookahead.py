@@ -413,6 +413,39 @@ def test_online_reanchoring_without_expression_and_on_gray_frames(model):
             assert max(float(r.expression.abs().max()) for r in results) == 0.0
 
 
+def test_online_start_takes_no_camera_pan_for_a_turn(model, monkeypatch):
+    """The online start on a rendered camera pan (the head's rotation and translation both turned about the camera's
+    centre by up to 16 degrees of yaw): no re-anchoring, though the camera-frame yaw passes 10 degrees; with the
+    view check off (``VIEW_TURN_FRACTION = 0``) the same frames are re-anchored, so the check is what holds."""
+    import torchface.tracker.lookahead as la_module
+
+    yaw = [0.0, 4.0, 8.0, 12.0, 16.0, 16.0]
+    T = len(yaw)
+    pan = euler_to_matrix(torch.tensor([[y, 0.0, 0.0] for y in yaw], dtype=D))
+    spec = SequenceSpec(
+        name="pan", subject="candide3", intrinsics=Intrinsics.default(W, H), rotation=pan,
+        translation=(pan @ torch.tensor([0.0, 0.0, 450.0], dtype=D).unsqueeze(-1)).squeeze(-1),
+        anim=torch.zeros(T, model.num_animation, dtype=D), light=default_light(T),
+        background=BackgroundSpec(seed=3), photo="james",
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = gt.landmarks_px.float()[:1]
+    la = LookaheadConfig(iterations=(3, 2), max_points=600)
+
+    def reanchored() -> bool:
+        tracker = FaceTracker(CFG, model=model, refine_first=la)
+        tracker.initialise(frames[:1], lm, gt.intrinsics)
+        for i in range(1, T):
+            tracker(frames[i : i + 1])
+        ms = tracker.state.management
+        return ms.head_rotation is not None and not torch.equal(ms.head_rotation[0], torch.eye(3))
+
+    assert not reanchored()
+    monkeypatch.setattr(la_module, "VIEW_TURN_FRACTION", 0.0)
+    assert reanchored()
+
+
 def test_online_keyframes_need_min_confidence(model):
     """A turned frame becomes a keyframe only at ``LookaheadConfig.min_confidence`` or above: the same turn to each
     side is re-anchored with a floor below its frames' confidences and never with one above them."""

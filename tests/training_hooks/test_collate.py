@@ -109,6 +109,10 @@ def test_items_of_different_dtypes_raise():
     a["face"] = (a["face"] * 255).to(torch.uint8)  # 0-255 uint8, then a [0, 1] float face
     with pytest.raises(ValueError, match=r"'face': item 1 is torch.float32, item 0 is torch.uint8"):
         collate_clips([a, b])
+    c, d = clip(2, 0), clip(3, 1)
+    d["face"] = d["face"].double()  # float32 then float64: promoted, nothing lost
+    out = collate_clips([c, d])
+    assert out["face"].dtype == torch.float64 and torch.equal(out["face"][1, :3], d["face"])
 
 
 def test_rotation_padding_follows_the_items_dtype_and_device():

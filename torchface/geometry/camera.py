@@ -37,19 +37,27 @@ class Intrinsics:
     def __post_init__(self) -> None:
         for name in ("width", "height"):
             value = getattr(self, name)
+            if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_floating_point():
+                value = int(value)  # a 0-d integer tensor
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                 if isinstance(value, bool) or not (isinstance(value, numbers.Real) and float(value).is_integer()):
                     raise TypeError(f"{name} must be a whole number of pixels, got {value!r}")
-                object.__setattr__(self, name, int(value))  # 32.0 -> 32: sizes index tensors
-            elif not isinstance(value, int):
-                object.__setattr__(self, name, int(value))  # numpy integers
+            object.__setattr__(self, name, int(value))  # 32.0 -> 32, numpy integers -> int: sizes index tensors
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         for name in ("fx", "fy", "cx", "cy"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            if isinstance(value, torch.Tensor):  # a 0-d tensor is kept as it is (a focal length may carry a gradient)
+                if value.numel() != 1 or not value.is_floating_point():
+                    raise TypeError(f"{name} must be a number or a one-element float tensor, got {value!r}")
+                finite = bool(torch.isfinite(value.detach()).all())
+            elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise TypeError(f"{name} must be a number, got {value!r}")
+            else:
+                finite = math.isfinite(value)
+                object.__setattr__(self, name, float(value))
+            if not finite:
                 raise ValueError(f"{name} must be a finite number, got {value!r}")
-            object.__setattr__(self, name, float(value))
         if not (self.fx > 0 and self.fy > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
 

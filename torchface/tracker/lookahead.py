@@ -178,7 +178,8 @@ def is_keyframe_turn(rel_yaw: Tensor, rel_view_yaw: Tensor, yaw_deg: float) -> T
 def select_keyframes(
     rotation: Tensor, yaw_deg: float, confident: Tensor | None = None, translation: Tensor | None = None
 ) -> list[int]:
-    """The first frame whose yaw relative to frame 0 reaches ``+yaw_deg``, and the first reaching ``-yaw_deg``.
+    """The first frame whose yaw relative to frame 0 reaches ``+yaw_deg``, and the first reaching ``-yaw_deg`` (with
+    ``translation``: whose turn also shows along the camera's ray, :func:`is_keyframe_turn`).
 
     Args:
         rotation: ``(T, 3, 3)`` one stream's rotations, frame 0 first.
@@ -292,7 +293,7 @@ def _refine_first_fit(
     Jacobian in closed form (False: by forward-mode autograd, the reference the tests compare it with)."""
     K = frames.shape[0] - 1
     if frames.dim() != 4 or K < 1 or frames.shape[1] not in (1, 3):  # gray frames too, as the tracker takes them
-        raise ValueError(f"frames must be (1 + K, 3, H, W) with K >= 1 keyframes, got {tuple(frames.shape)}")
+        raise ValueError(f"frames must be (1 + K, 3 or 1, H, W) with K >= 1 keyframes, got {tuple(frames.shape)}")
     if key_rotation.shape != (K, 3, 3) or key_translation.shape != (K, 3):
         raise ValueError(f"key poses must be ({K}, 3, 3) and ({K}, 3), got {tuple(key_rotation.shape)}, "
                          f"{tuple(key_translation.shape)}")  # fmt: skip
