@@ -332,10 +332,15 @@ def _read_record(path: Path, video: Path) -> dict[str, list] | None:
         made_from, anchor = record["input"], record["anchor"]
     except (OSError, ValueError, KeyError, TypeError):
         raise InputError(f"{path}: cannot resume, this record is unreadable: run without --resume") from None
-    if Path(made_from).resolve() != video.resolve():
-        raise InputError(f"{path}: the partial results were made from {made_from}, not {video}: use another --out, "
-                         "or run without --resume")  # fmt: skip
+    _check_made_from(made_from, video, f"{path}: the partial results were")
     return anchor
+
+
+def _check_made_from(made_from: str, video: Path, subject: str) -> None:
+    """Refuse to resume results made from ``made_from``, not from ``video`` (``subject``: what the message says
+    they are, with its verb: "<csv> was", "<record>: the partial results were")."""
+    if Path(made_from).resolve() != video.resolve():
+        raise InputError(f"{subject} made from {made_from}, not {video}: use another --out, or run without --resume")
 
 
 def _rows_to_internal(params: Tensor, head_R: Tensor, head_t: Tensor, layout: ParamLayout) -> Tensor:
@@ -374,15 +379,11 @@ def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
         made_from = made.get("resolved_path", made["path"])  # sidecars before resolved_path: the path as given
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
-    if Path(made_from).resolve() != video.resolve():
-        raise InputError(
-            f"{paths['csv']} was made from {made_from}, not {video}: use another --out, or run without --resume"
-        )
+    _check_made_from(made_from, video, f"{paths['csv']} was")
 
 
 def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
-    names = [output_name(v) for v in videos]
-    _check_unique(names)
+    names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
     try:
         for k, (path, name) in enumerate(zip(videos, names)):
@@ -513,7 +514,7 @@ def _without_online_start(state: TrackerState, resumed: list[bool]) -> TrackerSt
 
 
 def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dict[str, Path]], first_R: Tensor,
-                    first_t: Tensor) -> None:  # fmt: skip
+                    first_t: Tensor, layout: ParamLayout) -> None:  # fmt: skip
     """Write the record (:func:`_write_record`) of each stream the online start has just re-anchored: its first
     frame's refined fit, recovered from the offsets ``D = R0c^T R0``, ``d = R0c^T (t0 - t0c)`` between the refined
     first pose ``(R0c, t0c)`` and the first result's ``(R0, t0)``, with the state's shape and starting expression."""
@@ -524,23 +525,17 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
     eye = torch.eye(3, dtype=ms.head_rotation.dtype, device=ms.head_rotation.device)
     rows = torch.tensor(todo, device=ms.head_rotation.device)
     moved = ((ms.head_rotation[rows] - eye).abs().flatten(1).amax(1) > 0) | (ms.head_translation[rows].abs().amax(1) > 0)
+    neutral = state.neutral_anim_coeffs(state.params[:, layout.animation])
     for k in [todo[i] for i in moved.nonzero().flatten().tolist()]:  # one host sync per frame
         s, D, d = streams[k], ms.head_rotation[k], ms.head_translation[k]
         R0c = torch.matmul(first_R[k].to(D.dtype), D.transpose(0, 1))
         t0c = first_t[k].to(d.dtype) - torch.matmul(R0c, d)
         s.anchor = {
             "axis_angle": matrix_to_axis_angle(R0c[None])[0].tolist(), "translation": t0c.tolist(),
-            "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": _neutral(state, k),
+            "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": neutral[k].tolist(),
             "head_rotation": D.tolist(), "head_translation": d.tolist(),
         }  # fmt: skip
         _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor)
-
-
-def _neutral(state: TrackerState, k: int) -> list[float]:
-    """Stream ``k``'s first-frame expression (the fit's, :attr:`TrackerState.anim_prior_mean`; zeros without)."""
-    if state.anim_prior_mean is None:
-        return [0.0] * int(state.templates[0].basis.shape[-1])
-    return state.anim_prior_mean[k].tolist()
 
 
 def _track_group(
@@ -646,7 +641,7 @@ def _track_group(
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
             state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
-            _record_anchors(state, streams, paths, first_R, first_t)
+            _record_anchors(state, streams, paths, first_R, first_t, layout)
         t_track = time.perf_counter() - t_track0
     except BaseException:
         for s in streams:

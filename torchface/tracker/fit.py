@@ -164,19 +164,39 @@ def shape_prior_vector(
     return torch.full((num_shape,), float(precision), dtype=dtype, device=device)
 
 
-def _check_landmarks(landmarks_px: Tensor, weights: Tensor | None, k: int, intrinsics: Intrinsics) -> Tensor:
+def landmark_targets(landmarks_px: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """What the landmark terms fit (:func:`fit_landmarks`, the look-ahead refinement): ``(targets, weights)``.
+
+    Args:
+        landmarks_px: ``(..., K, 2)`` pixels; a point with a NaN or infinite coordinate is missing.
+        weights: ``(..., K)`` confidences, or None for ones.
+
+    Returns:
+        ``targets (..., K, 2)``: the landmarks, non-finite coordinates set to 0 (they weigh 0, and a product of 0
+        with an infinite target's square would be NaN); ``weights (..., K)``: 0 for a missing point and for a NaN,
+        infinite or negative weight, the weight elsewhere; both in ``landmarks_px``' dtype and device.
+    """
+    finite = torch.isfinite(landmarks_px)
+    w = torch.ones_like(landmarks_px[..., 0]) if weights is None else weights.to(landmarks_px)
+    w = torch.where(finite.all(-1) & torch.isfinite(w), w.clamp_min(0), torch.zeros_like(w))
+    return torch.where(finite, landmarks_px, torch.zeros_like(landmarks_px)), w
+
+
+def _check_landmarks(
+    landmarks_px: Tensor, weights: Tensor | None, k: int, dtype: torch.dtype, device: torch.device
+) -> tuple[Tensor, Tensor]:
+    """:func:`landmark_targets` of ``(B, k, 2)`` landmarks and ``(B, k)`` weights in ``dtype`` on ``device``, after
+    checking their shapes and that every sample has 4 usable points."""
     if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
         got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
         raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}")
     B = landmarks_px.shape[0]
-    w = torch.ones(B, k, dtype=landmarks_px.dtype, device=landmarks_px.device) if weights is None else weights
-    if w.shape != (B, k):
-        raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(w.shape)}")
-    finite = torch.isfinite(landmarks_px).all(-1)
-    w = torch.where(finite & torch.isfinite(w), w.to(landmarks_px.dtype).clamp_min(0), torch.zeros_like(w))
+    if weights is not None and weights.shape != (B, k):
+        raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}")
+    target, w = landmark_targets(landmarks_px.to(dtype=dtype, device=device), weights)
     if bool(((w > 0).sum(-1) < 4).any()):
         raise ValueError("every sample needs at least 4 finite landmarks with positive weight")
-    return w
+    return target, w
 
 
 def fit_landmarks(
@@ -193,7 +213,7 @@ def fit_landmarks(
     Args:
         model: the face model; its landmark table gives the 3D points.
         landmarks_px: ``(B, K, 2)`` pixel positions of the model's landmarks (all of them, or those listed in
-            ``landmark_indices``). NaN marks a missing point.
+            ``landmark_indices``). A NaN or infinite coordinate marks a missing point.
         intrinsics: the camera.
         weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones.
         landmark_indices: ``(K,)`` int64 rows of the model's landmark table, or None for all.
@@ -204,13 +224,9 @@ def fit_landmarks(
     """
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
     k = int(idx.numel())
-    w = _check_landmarks(landmarks_px, weights, k, intrinsics)
-    B = landmarks_px.shape[0]
     dtype, device = model.dtype, model.device
-    lm = landmarks_px.to(dtype=dtype, device=device)
-    # Missing points (NaN, or +-inf) weigh 0; their targets must be finite too, or 0 * inf**2 poisons the sums.
-    target = torch.where(torch.isfinite(lm), lm, torch.zeros_like(lm))
-    w = w.to(dtype=dtype, device=device)
+    target, w = _check_landmarks(landmarks_px, weights, k, dtype, device)
+    B = target.shape[0]
     lv, lw = model.landmark_vertices[idx], model.landmark_weights[idx]
     mean_l = interpolate_landmarks(model.mean.unsqueeze(0), lv, lw)[0]  # (K, 3)
     shape_l = interpolate_landmarks(model.shape_units, lv, lw)  # (S, K, 3)

@@ -49,7 +49,7 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, fit_landmarks, held_shape_indices, shape_precisions, shape_prior_vector,
+    FitConfig, LandmarkFit, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions, shape_prior_vector,
 )
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
@@ -326,13 +326,7 @@ def _refine_first_fit(
     )  # fmt: skip
     keep = px.valid[0]
     fi, bary = px.face_index[:, keep], px.bary[:, keep]
-    lm = landmarks_px.to(device=dev, dtype=dt)
-    target = torch.where(torch.isfinite(lm), lm, torch.zeros_like(lm))  # missing (NaN or +-inf): weight 0
-    lw = torch.isfinite(landmarks_px.to(device=dev)).all(-1).to(dt)
-    if landmark_weights is not None:  # as fit_landmarks reads them: NaN, inf or negative weights are 0
-        w = landmark_weights.to(device=dev, dtype=dt)
-        lw = lw * torch.where(torch.isfinite(w), w.clamp_min(0.0), torch.zeros_like(w))
-
+    target, lw = landmark_targets(landmarks_px.to(device=dev, dtype=dt), landmark_weights)  # as fit_landmarks
     # x = [aa0 (3), t0 (3), free shape units (nf), expression (nA), per keyframe: aa, t, light (11)]
     o_sig, o_al = 6, 6 + nf
     o_k = o_al + nA
