@@ -9,7 +9,8 @@ Key (:func:`cache_key`): a BLAKE2b hash of
   face size and storage, focal length, thread count);
 - the first-frame landmarks (float64 bytes);
 - any extra text the caller adds (the datasets add their frame-conversion setting);
-- the torchface version and :data:`CACHE_FORMAT`.
+- the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
+  and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`.
 
 So a changed config, video or landmark set is a different file: a stale entry is never read, it is only left
 behind (delete ``cache_dir`` to reclaim the space).
@@ -18,7 +19,9 @@ Files: one uncompressed ``<key>.npz`` per sequence (NumPy ``savez``) holding eve
 :class:`~training_hooks.transforms.TrackedSequence` array (faces in their storage dtype, masks as bool) and a
 ``meta`` JSON record with the key, the format, the torchface version, a BLAKE2b digest of all arrays, the
 config's repr (for people) and the source path. Writing goes to a unique temporary name in the same folder,
-flushed and ``fsync``-ed, then :func:`os.replace`-d into place, so a reader sees a whole file or none. Reading
+flushed and ``fsync``-ed, then :func:`os.replace`-d into place, so a reader sees a whole file or none. A temporary
+file left by a writer that was killed (``.<key>.<pid>.<id>.partial``) is never read; the first write of a
+:class:`TrackCache` deletes such files older than a day. Reading
 checks the zip structure, the digest, the key and the arrays' shapes and dtypes; anything wrong (a truncated,
 partial or corrupted file) is reported with a :class:`CacheWarning`, deleted and treated as a miss, so the
 sequence is tracked again: a damaged file is never used.
@@ -30,6 +33,7 @@ import hashlib
 import io
 import json
 import os
+import time
 import uuid
 import warnings
 import zipfile
@@ -40,6 +44,8 @@ import numpy as np
 import torch
 
 import torchface
+from torchface import _native
+from torchface.backend import Backend
 from torchface.io.video import IMAGE_SUFFIXES
 from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 
@@ -53,6 +59,8 @@ _ARRAYS: tuple[str, ...] = (
     "illumination", "confidence", "status", "shape_coeffs", "landmarks",
 )  # fmt: skip
 _CHUNK = 1 << 20
+#: Age (seconds) after which a killed writer's temporary file is deleted.
+_STALE_PARTIAL_S = 24 * 3600.0
 #: ``(path, size, mtime_ns, inode)`` -> content hash, per process: an unchanged file is hashed once.
 _HASH_MEMO: dict[tuple[str, int, int, int], str] = {}
 
@@ -120,7 +128,11 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     if points.shape != (68, 2):
         raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
     h = hashlib.blake2b(digest_size=32)
-    for part in (f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", content, repr(config), extra):
+    parts = (
+        f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
+        f"native={config.tracker.backend is not Backend.TORCH and _native.library() is not None}", content, repr(config), extra,
+    )  # fmt: skip
+    for part in parts:
         data = part.encode("utf-8")
         h.update(len(data).to_bytes(8, "little"))
         h.update(data)
@@ -167,6 +179,18 @@ class TrackCache:
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root)
         self.stats = CacheStats()
+        self._swept = False
+
+    def _sweep_partials(self) -> None:
+        """Delete temporary files older than a day (left by a writer killed mid-write), once per instance."""
+        self._swept = True
+        limit = time.time() - _STALE_PARTIAL_S
+        for tmp in self.root.glob(".*.partial"):
+            try:
+                if tmp.stat().st_mtime < limit:
+                    tmp.unlink()
+            except OSError:  # another process removed or renamed it meanwhile
+                pass
 
     def path(self, key: str) -> Path:
         """The file of ``key``."""
@@ -209,6 +233,8 @@ class TrackCache:
         """
         path = self.path(key)
         self.root.mkdir(parents=True, exist_ok=True)
+        if not self._swept:
+            self._sweep_partials()
         arrays = {name: getattr(sequence, name).numpy() for name in _ARRAYS}
         meta = {
             "key": key, "format": CACHE_FORMAT, "torchface": torchface.__version__, "digest": _arrays_digest(arrays),

@@ -122,7 +122,8 @@ def collate_clips(
     rest = [key for key in keys if key not in frame_keys]
     if rest:
         out.update(default_collate([{key: item[key] for key in rest} for item in batch]))
-    length = torch.tensor(lengths, dtype=torch.int64)
+    device = batch[0][frame_keys[0]].device  # the clips' device, as the padded keys
+    length = torch.tensor(lengths, dtype=torch.int64, device=device)
     out["lengths"] = length
-    out["frame_mask"] = torch.arange(T).unsqueeze(0) < length.unsqueeze(1)
+    out["frame_mask"] = torch.arange(T, device=device).unsqueeze(0) < length.unsqueeze(1)
     return out

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from torchface._autocast import full_precision
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
@@ -177,6 +178,7 @@ def _unrolled_solver(iterations: int) -> SolverConfig:
     )
 
 
+@full_precision
 def unrolled_params(
     model: FaceModel,
     config: TrackerConfig,

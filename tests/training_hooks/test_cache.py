@@ -14,6 +14,7 @@ from torch.utils.data import DataLoader
 from torchface.synth.io import read_video_uint8, write_video
 from training_hooks import CacheWarning, FaceStorage, TrackCache, VideoDataset, cache_key, content_hash
 from training_hooks.cache import _HASH_MEMO
+from training_hooks.transforms import TrackedSequence
 
 from th_data import FRAMES, TRACKING
 
@@ -206,6 +207,49 @@ def test_torchface_version_is_part_of_the_key(monkeypatch, clips):
     k = cache_key("0" * 64, TRACKING, clips[0].landmarks)
     monkeypatch.setattr(torchface, "__version__", "99.0")
     assert cache_key("0" * 64, TRACKING, clips[0].landmarks) != k
+
+
+def test_torch_version_and_native_kernels_are_part_of_the_key(monkeypatch, clips):
+    """The native kernels and the torch code agree to float tolerance only: a run with ``TORCHFACE_NATIVE=0`` (or
+    another torch) must not read the other's entry."""
+    from torchface import _native
+    from torchface.backend import Backend
+
+    lm = clips[0].landmarks
+    k = cache_key("0" * 64, TRACKING, lm)
+    torch_only = replace(TRACKING, tracker=replace(TRACKING.tracker, backend=Backend.TORCH))
+    k_torch = cache_key("0" * 64, torch_only, lm)
+    monkeypatch.setattr(torch, "__version__", "0.0.1")
+    assert cache_key("0" * 64, TRACKING, lm) != k
+    monkeypatch.undo()
+    if _native.library() is not None:  # the kernels run here: turned off, the key changes
+        monkeypatch.setattr(_native, "library", lambda: None)
+        k_off = cache_key("0" * 64, TRACKING, lm)
+        assert k_off != k
+        assert cache_key("0" * 64, torch_only, lm) == k_torch  # Backend.TORCH never used them
+
+
+def test_a_killed_writers_temporary_files_are_swept(tmp_path):
+    """A writer killed mid-write leaves ``.<key>.<pid>.<id>.partial``; the next cache's first write deletes those
+    older than a day and keeps younger ones (a writer still at work)."""
+    import os
+    import time
+
+    old, young = tmp_path / f".{'a' * 64}.1.x.partial", tmp_path / f".{'b' * 64}.2.y.partial"
+    for f in (old, young):
+        f.write_bytes(b"half a file")
+    day = time.time() - 25 * 3600
+    os.utime(old, (day, day))
+    seq = TrackedSequence(
+        faces=torch.zeros(1, 3, 4, 4, dtype=torch.uint8), masks=torch.zeros(1, 1, 4, 4, dtype=torch.bool),
+        rotation=torch.eye(3)[None], axis_angle=torch.zeros(1, 3), translation=torch.zeros(1, 3),
+        ypr_deg=torch.zeros(1, 3), anim_coeffs=torch.zeros(1, 11), expression=torch.zeros(1, 11),
+        facs=torch.zeros(1, 11), illumination=torch.zeros(1, 5), confidence=torch.zeros(1),
+        status=torch.zeros(1, dtype=torch.int64), shape_coeffs=torch.zeros(14),
+        landmarks=torch.zeros(68, 2, dtype=torch.float64), frame_size=(4, 4),
+    )  # fmt: skip
+    TrackCache(tmp_path).store("c" * 64, seq)
+    assert not old.exists() and young.exists() and (tmp_path / f"{'c' * 64}.npz").is_file()
 
 
 def test_cache_hit_with_array_landmarks_does_not_decode_the_video(two, config, monkeypatch, tmp_path):

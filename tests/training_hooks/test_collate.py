@@ -123,3 +123,13 @@ def test_rotation_padding_follows_the_items_dtype_and_device():
     example = torch.zeros(2, 3, 3, dtype=torch.float64, device="meta")  # a device other than the CPU
     pad = pad_value("rotation", example)
     assert pad.device == example.device and pad.dtype == torch.float64 and pad.shape == (2, 3, 3)
+
+
+def test_lengths_and_frame_mask_are_on_the_clips_device():
+    """``lengths`` and ``frame_mask`` follow the clips' device (they were made on the CPU, so a mask product with
+    clips already on a GPU failed); "meta" stands in for another device."""
+    items = [{k: v.to("meta") for k, v in clip(T, T).items()} for T in (2, 4)]
+    out = collate_clips(items)
+    assert {k: v.device.type for k, v in out.items()} == {k: "meta" for k in out}
+    ref = collate_clips([clip(T, T) for T in (2, 4)])
+    assert ref["frame_mask"].tolist() == [[True, True, False, False], [True] * 4] and ref["lengths"].tolist() == [2, 4]

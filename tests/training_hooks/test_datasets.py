@@ -324,3 +324,18 @@ def test_keep_expression_resamples_at_the_persons_neutral(clips):
 
     torch.testing.assert_close(seq.faces[0], face(neutral))
     assert not torch.allclose(seq.faces[0], face(torch.zeros_like(neutral)))
+
+
+def test_transform_inside_autocast_equals_full_precision(clips):
+    """A transform called inside a training step's ``torch.autocast`` region tracks in full precision: the items
+    equal those made outside it bit for bit (bfloat16 products changed faces, poses and statuses, and the cache
+    would keep them)."""
+    clip = clips[1]
+    frames = read_video(clip.video)
+    normalise = NormaliseFaces(TRACKING)
+    ref = normalise(frames, clip.landmarks)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = normalise(frames, clip.landmarks)
+        assert torch.is_autocast_enabled("cpu")  # the caller's region is back on afterwards
+    for name in ref:
+        assert torch.equal(out[name], ref[name]), name

@@ -294,3 +294,20 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params[:, :5], iterations=1)
     with pytest.raises(ValueError, match="clips must be"):
         layer.forward_clip(frames, torch.zeros(1, 68, 2, dtype=D))
+
+
+def test_layer_inside_autocast_equals_full_precision():
+    """Under ``torch.autocast`` (CPU bfloat16) the float32 layer tracks, unrolls and resamples in float32: the
+    same images and parameters as outside it, while the caller's own products still autocast."""
+    frames, landmarks = _clip(32)
+    frames, landmarks = frames.float(), landmarks.float()
+    for mode in (LayerMode.DETACHED, LayerMode.UNROLLED):
+        layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=G, tracker=SMALL))
+        state, _ = layer.initialise(frames[:1], landmarks[:1])
+        ref = layer(frames[1:2], state)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            state_amp, _ = layer.initialise(frames[:1], landmarks[:1])
+            out = layer(frames[1:2], state_amp)
+            assert (out.image.flatten(1) @ torch.ones(G * G * 3, 1)).dtype == torch.bfloat16
+        assert torch.equal(state_amp.params, state.params), mode
+        assert torch.equal(out.params, ref.params) and torch.equal(out.image, ref.image), mode

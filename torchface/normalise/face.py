@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeVar
 import torch
 from torch import Tensor, nn
 
+from torchface._autocast import full_precision
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -328,6 +329,7 @@ def _face_crop(verts_cam: Tensor, used: Tensor, intrinsics: Intrinsics) -> Intri
     )
 
 
+@full_precision
 def normalised_face(
     frames: Tensor,
     model: FaceModel,
@@ -452,6 +454,7 @@ def normalised_face(
     )  # fmt: skip
 
 
+@full_precision
 def normalised_face_posed(
     frames: Tensor,
     model: FaceModel,

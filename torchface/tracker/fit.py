@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchface._autocast import full_precision
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
@@ -199,6 +200,7 @@ def _check_landmarks(
     return target, w
 
 
+@full_precision
 def fit_landmarks(
     model: FaceModel,
     landmarks_px: Tensor,

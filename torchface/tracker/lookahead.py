@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
@@ -219,6 +220,7 @@ def landmark_fit_priors(model: FaceModel, fit_config: FitConfig) -> dict:
     )
 
 
+@full_precision
 def refine_first_fit(
     model: FaceModel,
     frames: Tensor,
@@ -573,6 +575,7 @@ def _refine_first_fit(
     return refined, axis_angle_to_matrix(key[:, 0:3]).to(out_dt), key[:, 3:6].to(out_dt)
 
 
+@full_precision
 def lookahead_fit(
     model: FaceModel,
     tracker_config: TrackerConfig,

@@ -47,6 +47,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
+from torchface._autocast import full_precision
 from torchface import _native
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
@@ -208,6 +209,7 @@ def _plain(result: TrackResult) -> TrackResult:
     )  # fmt: skip
 
 
+@full_precision
 def initialise_managed(
     model: FaceModel,
     config: TrackerConfig,
@@ -630,6 +632,7 @@ def _within_searched_depths(params: Tensor, confident_params: Tensor, layout: Pa
     return (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
 
 
+@full_precision
 @without_autograd(step_grad_inputs)
 def managed_step(
     model: FaceModel,

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from torchface._autocast import full_precision
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
@@ -583,6 +584,7 @@ def _bounds(model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: Par
     return lower, upper
 
 
+@full_precision
 def initialise(
     model: FaceModel,
     config: TrackerConfig,
@@ -673,6 +675,7 @@ def step_grad_inputs(
     return frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)
 
 
+@full_precision
 @without_autograd(step_grad_inputs)
 def track_step(
     model: FaceModel,

@@ -1,0 +1,57 @@
+"""Run torchface's numerics in the dtype of their inputs, also inside a caller's ``torch.autocast`` region.
+
+A training step usually runs under ``torch.autocast`` (bfloat16 on the CPU, float16 on CUDA). Autocast would
+run the tracker's and the normalised face's matrix products in that low precision while their outputs stay
+float32: the poses, expressions and faces change without any sign (a pose 0.3 mm and a face 0.5 gray level off,
+a frame's status flipped), and a track cached by ``training_hooks`` would hold the degraded result. The public
+entry points of the tracker and the normalised face are therefore wrapped in :func:`full_precision`: autocast is
+off inside them and back on for the caller's own modules afterwards. Their results are bit-identical with and
+without an enclosing autocast region.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Callable, Iterator
+from typing import TypeVar
+
+import torch
+
+F = TypeVar("F", bound=Callable)
+
+_DEVICE_TYPES = ("cpu", "cuda", "xpu", "mps")
+
+
+def _autocast_enabled(device_type: str) -> bool:
+    try:
+        return bool(torch.is_autocast_enabled(device_type))
+    except (TypeError, RuntimeError):  # torch < 2.4 has no device argument; unknown device types
+        if device_type == "cpu":
+            return bool(torch.is_autocast_cpu_enabled())
+        if device_type == "cuda":
+            return bool(torch.is_autocast_enabled())
+        return False
+
+
+@contextlib.contextmanager
+def autocast_disabled() -> Iterator[None]:
+    """Turn off every enabled ``torch.autocast`` region for the block (nothing to do, and no cost, when none is)."""
+    with contextlib.ExitStack() as stack:
+        for device_type in _DEVICE_TYPES:
+            if _autocast_enabled(device_type):
+                stack.enter_context(torch.autocast(device_type=device_type, enabled=False))
+        yield
+
+
+def full_precision(fn: F) -> F:
+    """Decorator: run ``fn`` with autocast off (:func:`autocast_disabled`)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if not any(_autocast_enabled(d) for d in _DEVICE_TYPES):
+            return fn(*args, **kwargs)
+        with autocast_disabled():
+            return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
