@@ -46,7 +46,7 @@ import torch
 import torchface
 from torchface import _native
 from torchface.backend import Backend
-from torchface.io.video import IMAGE_SUFFIXES
+from torchface.io.video import image_files
 from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 
 __all__ = ["CACHE_FORMAT", "CacheWarning", "CacheStats", "TrackCache", "cache_key", "content_hash"]
@@ -78,7 +78,7 @@ def _file_digest(path: Path, h: "hashlib._Hash") -> None:
 def content_hash(path: str | os.PathLike[str]) -> str:
     """BLAKE2b hex digest of a video's content: a file's bytes, or a folder's image files' bytes in name order.
 
-    For a folder, each image (suffixes of :data:`torchface.io.video.IMAGE_SUFFIXES`, sorted by name, as
+    For a folder, each image (:func:`torchface.io.video.image_files`, in the order
     :func:`torchface.io.open_frames` reads them) contributes its length and bytes; names do not count. The
     result for an unchanged file (same size, modification time and inode) is remembered per process.
 
@@ -91,7 +91,7 @@ def content_hash(path: str | os.PathLike[str]) -> str:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file or folder")
-    files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file()) if p.is_dir() else [p]
+    files = image_files(p) if p.is_dir() else [p]
     stats = [f.stat() for f in files]
     memo = (str(p.resolve()), *(v for s in stats for v in (s.st_size, s.st_mtime_ns, s.st_ino)))
     if memo in _HASH_MEMO:

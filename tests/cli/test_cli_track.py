@@ -214,7 +214,7 @@ def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
         cv2.imwrite(str(folder / f"{i:03d}.png"), img)
     out = tmp_path / "out"
     rc = main(["track", str(folder), "--out", str(out), "--landmarks", str(lm), "--quiet"])
-    _assert_clean_failure(rc, capsys, out, "frame 2 is 160x112 but the video started at 160x120")
+    _assert_clean_failure(rc, capsys, out, "frame 2 (002.png) is 160x112 but the video started at 160x120")
     assert (out / "frames.csv.partial").is_file()  # the rows tracked so far are kept for --resume
 
 

@@ -147,7 +147,7 @@ def test_frame_size_change_mid_video(tmp_path):
     cv2.imwrite(str(tmp_path / "b.png"), np.zeros((48, 40, 3), np.uint8))
     reader = open_frames(tmp_path)
     next(reader)
-    with pytest.raises(InputError, match="frame 1 is 40x48 but the video started at 40x40"):
+    with pytest.raises(InputError, match=r"frame 1 \(b\.png\) is 40x48 but the video started at 40x40"):
         next(reader)
 
 
@@ -170,3 +170,26 @@ def test_bad_inputs(tmp_path, make, message):
     with pytest.raises(InputError, match=message) as info:
         open_frames(make(tmp_path))
     assert "\n" not in str(info.value)
+
+
+def test_image_folder_order_is_numeric_and_hidden_files_are_skipped(tmp_path):
+    """``ffmpeg ... %d.png`` names frames 1.png ... 12.png: read 1, 2, ..., 12 (a plain string sort read 1, 10,
+    11, 12, 2, ...); macOS's ``._1.png`` companions are not frames; a bad frame's error names its file."""
+    from torchface.io.video import image_files
+
+    for k in range(1, 13):
+        cv2.imwrite(str(tmp_path / f"{k}.png"), np.full((40, 40, 3), 10 * k, np.uint8))
+    (tmp_path / "._1.png").write_bytes(b"\x00\x05\x16\x07AppleDouble")
+    (tmp_path / "notes.txt").write_text("not a frame")
+    assert [f.name for f in image_files(tmp_path)] == [f"{k}.png" for k in range(1, 13)]
+    frames = _frames(open_frames(tmp_path))
+    assert frames.shape == (12, 3, 40, 40)
+    torch.testing.assert_close(frames[:, 0, 0, 0] * 255, torch.arange(1, 13, dtype=torch.float32) * 10)
+    cv2.imwrite(str(tmp_path / "13.png"), np.zeros((30, 40, 3), np.uint8))
+    with pytest.raises(InputError, match=r"frame 12 \(13\.png\) is 40x30"):
+        _frames(open_frames(tmp_path))
+    names = ["img10.png", "img9.png", "img010b.png", "a.png", "frame_0002.png", "frame_0010.png"]
+    for n in names:
+        (tmp_path / n).write_bytes(b"")
+    order = [f.name for f in image_files(tmp_path) if not f.name[0].isdigit()]
+    assert order == ["a.png", "frame_0002.png", "frame_0010.png", "img9.png", "img10.png", "img010b.png"]

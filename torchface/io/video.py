@@ -3,8 +3,8 @@
 Three kinds of input are accepted:
 
 - a video file that OpenCV can decode (``.mp4``, ``.avi``, ``.mpg``, ...);
-- a folder of images (``.png``, ``.jpg``, ``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``), read in name order with
-  ``cv2.IMREAD_UNCHANGED`` so that 8- and 16-bit, gray, BGR and BGRA images keep what they store;
+- a folder of images (``.png``, ``.jpg``, ``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``), read in name order (runs of digits
+  compared as numbers, hidden files left out: :func:`image_files`) with ``cv2.IMREAD_UNCHANGED`` so that 8- and 16-bit, gray, BGR and BGRA images keep what they store;
 - a ``.npy`` array ``(T, H, W)`` (gray) or ``(T, H, W, C)`` with ``C`` in 1, 3 (RGB), 4 (RGBA).
 
 The tracker takes 8-bit colour frames of even width and height (or float frames in ``[0, 1]``). By default a
@@ -28,6 +28,7 @@ smaller than :data:`MIN_SIZE` on a side, a frame whose size differs from the fir
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +44,7 @@ from torchface.io.errors import InputError
 __all__ = [
     "CONVERT_HINT",
     "IMAGE_SUFFIXES",
+    "image_files",
     "MIN_SIZE",
     "FrameReader",
     "VideoInfo",
@@ -209,8 +211,10 @@ class FrameReader:
         closer=None,
         stored_size: tuple[int, int] | None = None,
         convert: bool = False,
+        files: list[Path] | None = None,
     ) -> None:
         self.info = info
+        self._files = files
         self.stored_size = stored_size or (info.height, info.width)
         self.convert = convert
         self._first: Tensor | None = first
@@ -228,6 +232,8 @@ class FrameReader:
             return frame
         array, bgr = next(self._rest)
         where = f"{self.info.path}: frame {self.frames_read}"
+        if self._files is not None:  # an image folder: name the file too
+            where += f" ({self._files[self.frames_read].name})"
         if isinstance(array, np.ndarray) and array.ndim >= 2 and tuple(array.shape[:2]) != self.stored_size:
             raise InputError(
                 f"{where} is {array.shape[1]}x{array.shape[0]} but the video started at "
@@ -258,6 +264,27 @@ def _video_frames(cap: cv2.VideoCapture) -> Iterator[tuple[np.ndarray, bool]]:
         if not ok:
             return
         yield img, True
+
+
+def _natural_key(name: str) -> tuple:
+    """Sort key that compares runs of digits as numbers: ``2.png`` before ``10.png``."""
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(x), "") if x.isdigit() else (1, 0, x) for x in parts if x), name
+
+
+def image_files(folder: str | os.PathLike[str]) -> list[Path]:
+    """The frames of an image folder in playing order: files with a suffix of :data:`IMAGE_SUFFIXES` (any case),
+    hidden files (names starting with ``.``, e.g. macOS's ``._0001.png``) left out, sorted by name with runs of
+    digits compared as numbers (``1.png, 2.png, ..., 10.png``, as ``ffmpeg -i clip.mp4 %d.png`` names them;
+    zero-padded names sort as they read).
+
+    Example:
+        >>> # image_files("frames") -> [frames/1.png, frames/2.png, frames/10.png]
+    """
+    files = [
+        f for f in Path(folder).iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".") and f.is_file()
+    ]
+    return sorted(files, key=lambda f: _natural_key(f.name))
 
 
 def _image_frames(files: list[Path]) -> Iterator[tuple[np.ndarray, bool]]:
@@ -334,7 +361,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     if not p.exists():
         raise InputError(f"{p}: no such file or folder")
     if p.is_dir():
-        files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file())
+        files = image_files(p)
         if not files:
             raise InputError(f"{p}: folder holds no images ({', '.join(IMAGE_SUFFIXES)}): zero frames")
         rest = _image_frames(files)
@@ -343,7 +370,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         _check_size(p, first)
         conv = _conversion(first_arr, fmt, format_problems(first_arr))
         info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv)
-        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert)
+        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files)
     if p.suffix.lower() == ".npy":
         try:
             array = np.load(p, allow_pickle=False)
