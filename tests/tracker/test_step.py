@@ -888,3 +888,30 @@ def test_expression_prior_weights_hold_one_unit_and_leave_the_others(model, two_
         assert float(held.anim_coeffs[:, jaw].abs().max()) < 1e-3, held.anim_coeffs[:, jaw]
         assert float(plain.anim_coeffs[:, jaw].abs().max()) > 0.1  # unweighted, the jaw opens
         assert float(held.anim_coeffs[0, brow]) > 0.1  # stream 0's brow still moves
+
+
+def test_face_crop_in_a_frame_taller_than_twice_its_width(model):
+    """The crop around the face clamps each image axis by its own size: in a 112x400 frame a face around row 300
+    (below row 2W = 224) was cropped at rows 0-... (its rows clamped by the width) and tracked from a window
+    without it; now the window holds the face and the pose follows the render."""
+    from torchface.tracker.step import face_crop
+
+    tall = Intrinsics(112, 400, 300.0, 300.0, 55.5, 199.5)
+    spec = replace(
+        gentle_spec("tall", (6.0, -3.0, 2.0), (0.0, 0.0, 450.0), (2.0, 0.0, 0.0), {}, num_frames=3),
+        intrinsics=tall,
+    )
+    spec = replace(spec, translation=spec.translation + torch.tensor([0.0, 150.0, 0.0], dtype=D))  # face near row 300
+    frames, gt = render_sequence(spec)
+    lm = gt.landmarks_px[:1].float()
+    assert lm[0, :, 1].min() > 2 * tall.width
+    state, _ = initialise(model, BASE, frames[:1].float(), lm, tall)
+    layout = ParamLayout(model.num_animation, state.params.shape[1] - 6 - model.num_animation)
+    offsets, ch, cw = face_crop(model, state, layout, BASE)
+    y0 = int(offsets[0, 1])
+    assert y0 <= lm[0, :, 1].min() and lm[0, :, 1].max() <= y0 + ch
+    for t in (1, 2):
+        state, res = track_step(model, BASE, state, frames[t : t + 1].float())
+        assert int(res.status[0]) != FAILED
+        err = geodesic_angle_deg(res.rotation[0].double() @ gt.rotation[0].T, gt.rotation[t] @ gt.rotation[0].T)
+        assert float(err) < 1.0

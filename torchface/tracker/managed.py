@@ -428,10 +428,11 @@ def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q:
     enlarged by 5% of its size and 8 pixels on each side, inside the image, corners on multiples of ``q``
     (so that every pyramid level's window is pixel-aligned with that level)."""
     uv = project_points(verts_cam[model.surface_vertex_mask].unsqueeze(0), intrinsics)[0]
-    uv = torch.nan_to_num(uv).clamp(-intrinsics.width, 2 * intrinsics.width)
+    W, H = intrinsics.width, intrinsics.height
+    uv = torch.nan_to_num(uv)
+    uv = torch.stack([uv[:, 0].clamp(-W, 2 * W), uv[:, 1].clamp(-H, 2 * H)], dim=-1)  # each axis by its size
     lo, hi = uv.amin(0), uv.amax(0)
     pad = 0.05 * (hi - lo) + 8
-    W, H = intrinsics.width, intrinsics.height
     x0 = max(0, int(float(lo[0] - pad[0])) // q * q)
     y0 = max(0, int(float(lo[1] - pad[1])) // q * q)
     x1 = min(W, -(-int(float(hi[0] + pad[0])) // q) * q)

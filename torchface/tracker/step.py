@@ -897,7 +897,8 @@ def face_crop(
     H, W = state.intrinsics.height, state.intrinsics.width
     verts = _posed_vertices(model, state, layout) if verts is None else verts
     uv = project_points(verts, state.intrinsics)
-    uv = torch.nan_to_num(uv).clamp(-W, 2 * W)
+    uv = torch.nan_to_num(uv)
+    uv = torch.stack([uv[..., 0].clamp(-W, 2 * W), uv[..., 1].clamp(-H, 2 * H)], dim=-1)  # each axis by its size
     lo, hi = uv.amin(1), uv.amax(1)  # (B, 2)
     size = (hi - lo).amax(-1)  # (B,)
     q = 2 ** (config.num_levels - 1)
