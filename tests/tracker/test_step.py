@@ -915,3 +915,33 @@ def test_face_crop_in_a_frame_taller_than_twice_its_width(model):
         assert int(res.status[0]) != FAILED
         err = geodesic_angle_deg(res.rotation[0].double() @ gt.rotation[0].T, gt.rotation[t] @ gt.rotation[0].T)
         assert float(err) < 1.0
+
+
+@pytest.mark.parametrize("backend", ["native", "torch"])
+def test_a_few_nan_pixels_on_the_face_leave_their_points_out(model, two_streams, l2_runs, backend):
+    """NaN pixels inside the face are never template points: the points whose sample or gradient stencil touches
+    them are left out and the frame is tracked from the rest (a point whose own sample was finite but whose
+    stencil was not gave a NaN Jacobian row, and the whole frame FAILED)."""
+    from torchface.backend import Backend
+
+    if backend == "native" and not _native_available():
+        pytest.skip("no native kernels here")
+    frames, gts = two_streams
+    (_, states), _ = l2_runs
+    config = replace(L2, backend=Backend.NATIVE if backend == "native" else Backend.TORCH)
+    clean_state, clean = track_step(model, config, states[0], frames[:, 1])
+    batch = frames[:, 1].clone()
+    u, v = gts[0].landmarks_px[1, 30].round().long().tolist()  # the nose tip of stream 0
+    batch[0, :, v - 1 : v + 2, u - 12 : u + 13 : 8] = float("nan")  # four 3x3 NaN blots across the face
+    _, res = track_step(model, config, states[0], batch)
+    assert bool(res.success.all()), res.status
+    _assert_finite(res)
+    assert int(res.num_points[0]) < int(clean.num_points[0])  # the blots' points are left out...
+    assert float(geodesic_angle_deg(res.rotation[0], clean.rotation[0])) < 0.1  # ...and the pose hardly moves
+    torch.testing.assert_close(res.translation[0], clean.translation[0], rtol=0, atol=0.1)
+
+
+def _native_available() -> bool:
+    from torchface import _native
+
+    return _native.library() is not None

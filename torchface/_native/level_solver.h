@@ -199,7 +199,12 @@ static void FN(linearise)(const TFLevelProblem *p, int b, const REAL *R, const R
     /* Jacobian columns: d_omega = (R X) x g, d_t = g, alpha_a = g . (R B_a), light_l = -B_l, with g = dI/dX_cam;
      * zero where the point is left out (ok: 1 where valid and r finite, as a REAL for a vectorised select) */
     REAL *restrict ok = s0; /* s0 is no longer needed: it is in sampled */
-    for (int n = 0; n < N; ++n) ok[n] = ((valid[n] != 0) & (fabs(r[n]) <= (REAL)INFINITY)) ? (REAL)1 : (REAL)0;
+    for (int n = 0; n < N; ++n) {
+        /* a point whose gradient stencil touches a non-finite pixel is left out (as fast.linearise) */
+        const REAL stencil = s1[n] + s2[n] + s3[n] + s4[n];
+        valid[n] = (uint8_t)((valid[n] != 0) & (fabs(stencil) <= (REAL)INFINITY));
+        ok[n] = ((valid[n] != 0) & (fabs(r[n]) <= (REAL)INFINITY)) ? (REAL)1 : (REAL)0;
+    }
     REAL *J = out->J;
     REAL *restrict Jr0 = J, *restrict Jr1 = J + NP, *restrict Jr2 = J + 2 * NP;
     REAL *restrict Jt0 = J + 3 * NP, *restrict Jt1 = J + 4 * NP, *restrict Jt2 = J + 5 * NP;

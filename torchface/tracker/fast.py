@@ -223,6 +223,9 @@ def linearise(
     valid = mask & front & inside & facing
     if not jacobian:
         return r, None, valid, intensity
+    # A point whose gradient stencil touches a non-finite pixel (r itself may be finite) is left out: its Jacobian
+    # row would make the sample's normal equations non-finite (one NaN pixel failed the whole frame).
+    valid = valid & isfinite(vals).all(1)
     # Without autograd each row block is written into one (B, P, N) tensor where it is computed; out= arguments do
     # not support autograd, so a differentiable call (an input requires grad) computes the same blocks and
     # concatenates them.
@@ -421,13 +424,21 @@ def solve_level(
         wgt, s, cost = _weights(r, valid, robust, scale_floor)
         cost = cost + prior_cost  # at the new scale, compared against at the next iteration
         # The weights are zero at invalid points, which so add nothing: J is not masked (a select over J cost 28
-        # microseconds against 3 for the product at one stream, 1500 points). Unless J is not finite there: a
-        # gradient sampled next to a non-finite pixel, where r itself is finite (never on finite frames); then
-        # the system is built again from a masked J, so those points are left out instead of failing the sample.
+        # microseconds against 3 for the product at one stream, 1500 points). Unless J is not finite there (a
+        # gradient next to a non-finite pixel is already left out by linearise; a non-finite start handed on, or
+        # template): then the points whose J rows are not finite are left out too and the system built again,
+        # instead of failing the sample.
         Jw = Jt * wgt.unsqueeze(1)
         H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
         if not bool(isfinite(H).all()):
+            valid = valid & isfinite(Jt).all(1)
+            r = torch.where(valid, r, scalar(0.0, r))
             Jt = torch.where(valid.unsqueeze(1), Jt, scalar(0.0, Jt))
+            if best is not None:
+                judged = _cost(r, robust, best[7]) + prior_cost
+                accept = (judged <= best[6]) & isfinite(judged)
+            wgt, s, cost = _weights(r, valid, robust, scale_floor)
+            cost = cost + prior_cost
             Jw = Jt * wgt.unsqueeze(1)
             H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
         grad = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)
