@@ -557,3 +557,27 @@ def test_default_start_lets_the_held_units_go_at_the_first_turn(model):
     e_on, e_off = rel_err(R_on), rel_err(R_off)
     assert float(e_on.mean()) < 0.5 * float(e_off.mean()), (e_on, e_off)
     torch.testing.assert_close(R_on[: at + 1], R_off[: at + 1], rtol=0, atol=0)  # the same track up to the keyframe
+
+
+def test_frames_that_require_grad_go_through_initialisation_and_reanchoring(model):
+    """Frames that require grad (a differentiable pipeline feeding the tracker): the managed initialisation used to
+    fail in the dissimilarity's patch search (``out=`` under autograd), and with that mended, the re-anchoring's
+    mosaic rows carried a graph. The state is built from detached frames, the dissimilarity runs without autograd,
+    and the track equals the one of plain frames."""
+    yaw = [0.0, 4.0, 8.0, 12.0, 16.0, 12.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    noise = torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(3))
+    lm = gt.landmarks_px.float()[:1] + 2.0 * noise
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+    runs = []
+    for grad in (False, True):
+        tracker = FaceTracker(CFG, model=model, refine_first=la)
+        clip = frames.clone().requires_grad_(grad)
+        results = [tracker.initialise(clip[:1], lm, gt.intrinsics)]
+        results += [tracker(clip[i : i + 1]) for i in range(1, len(yaw))]
+        assert tracker.state.management.head_rotation is not None, "re-anchored"
+        runs.append((clip, results))
+    (_, plain), (clip, graded) = runs
+    for a, b in zip(plain, graded):
+        torch.testing.assert_close(b.rotation.detach(), a.rotation, rtol=0, atol=1e-6)

@@ -475,8 +475,14 @@ def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):
     assert tracker.model.dtype == torch.float32 and tracker.state is None
     assert tracker.model.faces.dtype == torch.int64  # index tensors keep their dtype
     tracker.initialise(frames[:, 0], landmarks_of(gts), Intrinsics.default(W, H))
+    tracker.cpu().float().share_memory()  # changes neither dtype nor device: the state is kept (it was dropped)
+    assert tracker.state is not None and bool(tracker(frames[:, 1]).success.all())
+    nn_parent = torch.nn.Sequential(tracker).to("cpu")
+    assert nn_parent[0].state is not None
     tracker.double()
     assert tracker.model.dtype == torch.float64 and tracker.state is None
+    with pytest.raises(RuntimeError, match="moved from torch.float32 on cpu to torch.float64 on cpu"):
+        tracker(frames[:, 1].double())
     for half in (lambda t: t.half(), lambda t: t.to(torch.bfloat16)):
         with pytest.raises(TypeError, match="float32 or float64"):  # initialise used to fail inside the solver
             half(tracker)
@@ -945,3 +951,14 @@ def _native_available() -> bool:
     from torchface import _native
 
     return _native.library() is not None
+
+
+def test_a_config_with_other_pyramid_levels_than_the_state_is_refused(model, two_streams, l2_runs):
+    """A config of more levels than the state's templates ended in a bare IndexError; fewer ran silently on the
+    wrong templates. Both are refused, naming the two counts."""
+    frames, _ = two_streams
+    (_, states), _ = l2_runs  # initialised with L2's two levels
+    for levels, iterations in ((3, (4, 4, 4)), (1, (4,))):
+        other = replace(L2, num_levels=levels, iterations=iterations)
+        with pytest.raises(ValueError, match=f"templates for 2 pyramid levels, the config has num_levels = {levels}"):
+            track_step(model, other, states[0], frames[:, 1])

@@ -601,8 +601,8 @@ class NormalisedFace(nn.Module):
     Example:
         >>> from torchface.model import load_candide3
         >>> normaliser = NormalisedFace(load_candide3(), size=64)
-        >>> # image, mask = normaliser(frames, tracker.state)                  # a TrackerState, or
-        >>> # image, mask = normaliser(frames, result, shape_coeffs, intrinsics)  # a TrackResult
+        >>> # image, mask = normaliser(frames, tracker.state)                  # a TrackerState (preferred), or
+        >>> # image, mask = normaliser(frames, result, shape_coeffs, intrinsics)  # a TrackResult without re-anchoring
     """
 
     def __init__(
@@ -640,7 +640,11 @@ class NormalisedFace(nn.Module):
                 intrinsics are used; leave ``shape_coeffs`` and ``intrinsics`` as ``None``) or a
                 :class:`~torchface.tracker.TrackResult` (pose, expression, illumination; then
                 ``shape_coeffs (B, S)`` is required and ``intrinsics`` defaults to
-                :meth:`Intrinsics.default` of the frame size).
+                :meth:`Intrinsics.default` of the frame size). Prefer the state: once a
+                :class:`~torchface.tracker.FaceTracker`'s online start has re-anchored a stream (its default),
+                a result's pose is reported in the head frame of the first result
+                (:attr:`~torchface.tracker.TrackResult.rotation`) and, with the state's shape coefficients, places
+                the mesh off the face (1.5 degrees and 4 mm on a rendered head turn).
             shape_coeffs: ``(B, S)`` with a TrackResult.
             intrinsics: camera of ``frames`` with a TrackResult.
 
@@ -661,7 +665,8 @@ class NormalisedFace(nn.Module):
         if isinstance(estimate, TrackResult):
             if shape_coeffs is None:
                 raise ValueError(
-                    "with a TrackResult, shape_coeffs (B, S) is required (e.g. tracker.state.shape_coeffs)"
+                    "with a TrackResult, shape_coeffs (B, S) is required; pass tracker.state instead of the result "
+                    "(after the online start re-anchors, a result's pose is in its first result's head frame)"
                 )
             if intrinsics is None:
                 if not isinstance(frames, Tensor) or frames.dim() != 4:

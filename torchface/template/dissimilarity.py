@@ -604,10 +604,11 @@ def _check_face(image: object, mask: object, name: str) -> tuple[Tensor, Tensor]
     return image, (mask > 0.5).to(image.dtype)
 
 
+@torch.no_grad()
 def build_dissimilarity_reference(
     image: Tensor, mask: Tensor, config: DissimilarityConfig | None = None, backend: Backend = Backend.AUTO
 ) -> DissimilarityReference:
-    """Pick the fiducial patches of a reference normalised face.
+    """Pick the fiducial patches of a reference normalised face (no gradient: the reference is fixed data).
 
     The texture score at each pixel is the smaller eigenvalue of the structure tensor ``sum grad g grad g^T``
     of the smoothed gray image summed over the patch (Shi-Tomasi). Candidates are pixels whose whole patch
@@ -699,10 +700,14 @@ def _reference(image: Tensor, gray: Tensor, mask: Tensor, index: Tensor, best: T
     return DissimilarityReference(gray, mask, centres, patch_valid, best.clamp_min(0.0), config, lk)
 
 
+@torch.no_grad()
 def dissimilarity(
     reference: DissimilarityReference, normalised: Tensor, mask: Tensor, backend: Backend = Backend.AUTO
 ) -> DissimilarityResult:
     """Dissimilarity (pixels) and confidence in ``[0, 1]`` of normalised faces against the reference.
+
+    A decision measure: it runs without autograd (faces that require grad are read, the results carry no
+    gradient; the patch search is iterative and its displacements are clamped, so it has no useful one).
 
     Each of the reference's patches is tracked on ``normalised`` by :func:`inverse_compositional_lk` (both
     images gray, masked and smoothed alike), and ``d = mean_k min(|p_k|, d_max)`` over the present patches

@@ -105,6 +105,7 @@ from torchface.tracker.step import (
     TrackStatus,
     check_frames,
     check_initialise_inputs,
+    check_state_levels,
     gray_pyramid,
     gray_pyramid_windows,
     initialise,
@@ -258,9 +259,13 @@ def initialise_managed(
         if fit is None:
             check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
+    if tc_enabled := config.template.enabled:
+        # What the state keeps (templates, mosaic, reference, the look-ahead's first frame) is fixed data: built
+        # from the frames without autograd, as managed_step reads later frames.
+        frames = frames.detach()
     state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template
-    if not tc.enabled:
+    if not tc_enabled:
         return state, _plain(result)
     frames = frames.to(dtype=model.dtype, device=model.device)
     layout = build_normalised_layout(model, tc.normalised_size)
@@ -686,6 +691,7 @@ def managed_step(
     check_frames(frames, state.intrinsics)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+    check_state_levels(config, state)
     frames = frames.to(dtype=model.dtype, device=model.device)
     layout = _layout(model)
 

@@ -30,6 +30,11 @@ class FaceTracker(nn.Module):
     ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.2 (5.4-7.6 without the start,
     from the held landmark fit).
 
+    Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty and holds no tracked sequence.
+    To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or pickle it) and load it with
+    ``torch.load(path, weights_only=False)`` (trusted files only); ``copy.deepcopy(tracker)`` forks a stream. Both
+    continue exactly as the original would.
+
     Example:
         >>> tracker = FaceTracker()                                          # doctest: +SKIP
         >>> first = tracker.initialise(frames[:, 0], landmarks)              # doctest: +SKIP
@@ -53,6 +58,7 @@ class FaceTracker(nn.Module):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
         self.refine_first = refine_first
         self._state: TrackerState | None = None
+        self._dropped: str | None = None  # why the state was forgotten by a move (for the next step's error)
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
         """Move the face model (and forget the tracked state) like ``nn.Module.to``: device and/or float dtype.
@@ -69,14 +75,20 @@ class FaceTracker(nn.Module):
 
     def _apply(self, fn, recurse: bool = True) -> "FaceTracker":
         """What ``.to``, ``.double()``, ``.float()``, ``.cuda()`` and ``.cpu()`` do: move the face model (a plain
-        attribute, not a parameter) and forget the tracked state (its tensors are the old dtype's and device's)."""
+        attribute, not a parameter); a call that changes its dtype or device forgets the tracked state (its tensors
+        are the old dtype's and device's; the next step says so), one that changes neither (``.cpu()`` on the CPU,
+        ``share_memory()``, a parent module's ``.to`` to where the tracker already is) keeps it."""
         from torchface.normalise.face import apply_to_tensor_fields
 
         target = fn(torch.zeros(1, dtype=self.model.dtype)).dtype  # the floating dtype this call converts to
         if target not in (torch.float32, torch.float64):
             raise TypeError(f"FaceTracker tracks in float32 or float64, not {target} (its solver factorises matrices)")
+        before = (self.model.dtype, self.model.device)
         self.model = apply_to_tensor_fields(fn, self.model)
-        self._state = None
+        after = (self.model.dtype, self.model.device)
+        if after != before and self._state is not None:
+            self._state = None
+            self._dropped = f"the tracker was moved from {before[0]} on {before[1]} to {after[0]} on {after[1]}"
         return super()._apply(fn, recurse)
 
     @property
@@ -89,6 +101,7 @@ class FaceTracker(nn.Module):
     def reset(self) -> None:
         """Forget the tracked sequence."""
         self._state = None
+        self._dropped = None
 
     def initialise(
         self,
@@ -117,6 +130,7 @@ class FaceTracker(nn.Module):
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
         refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
         self._state = None  # a failed initialisation must not leave the previous video's state to track on
+        self._dropped = None
         self._state, result = initialise_managed(
             self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )
@@ -126,7 +140,8 @@ class FaceTracker(nn.Module):
     def forward(self, frames: Tensor) -> TrackResult:
         """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
         if self._state is None:
-            raise RuntimeError("call initialise(frames, landmarks) before tracking")
+            why = f" ({self._dropped}, which forgets the tracked state)" if self._dropped else ""
+            raise RuntimeError(f"call initialise(frames, landmarks) before tracking{why}")
         self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector, donate=True)
         return result
 

@@ -333,7 +333,11 @@ class TrackResult:
     """What one step reports per stream (see :mod:`torchface.conventions` for frames and units).
 
     Attributes:
-        rotation: ``(B, 3, 3)`` head -> camera rotation (OpenCV camera frame).
+        rotation: ``(B, 3, 3)`` head -> camera rotation (OpenCV camera frame). Once the online look-ahead start
+            has re-anchored a stream (:func:`~torchface.tracker.managed.initialise_managed`), the pose (rotation,
+            axis-angle, translation, angles) is reported in the head frame of the stream's first result, so that
+            it stays continuous; the mesh is then placed by the state's parameters (``TrackerState.params``), not
+            by these: normalise or draw with the state.
         axis_angle: ``(B, 3)`` the same as an axis-angle vector (radians).
         translation: ``(B, 3)`` head origin in the camera frame, millimetres.
         ypr_deg: ``(B, 3)`` yaw, pitch, roll in degrees (conventions' order and signs).
@@ -675,6 +679,15 @@ def step_grad_inputs(
     return frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)
 
 
+def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
+    """Refuse a config whose pyramid has another number of levels than the state's templates."""
+    if len(state.templates) != config.num_levels:
+        raise ValueError(
+            f"the state holds templates for {len(state.templates)} pyramid levels, the config has num_levels = "
+            f"{config.num_levels}: track with the config the state was initialised with (or initialise again)"
+        )
+
+
 @full_precision
 @without_autograd(step_grad_inputs)
 def track_step(
@@ -712,6 +725,7 @@ def track_step(
     check_frames(frames, state.intrinsics)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+    check_state_levels(config, state)
     frames = frames.to(dtype=model.dtype, device=model.device)
     for name, mask in (("conservative", conservative), ("near_template", near_template)):
         if mask is not None and (
