@@ -11,14 +11,19 @@ Examples::
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
 (grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given);
-an interrupted run exits with status 130 and keeps its rows for ``--resume``.
+an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
+SIGTERM) and keeps its rows for ``--resume``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TextIO
 
@@ -26,6 +31,28 @@ __all__ = ["main", "build_parser", "ProgressDisplay"]
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the job is so that it stops as on Ctrl-C (partial files kept for --resume)."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`_Terminated` (main thread only; the previous handler after)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class ProgressDisplay:
@@ -220,18 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     from torchface.io.errors import InputError, OutputError
 
     try:
-        if args.command == "track":
-            return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
-                              args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
-                              not args.no_online_refine)  # fmt: skip
-        if args.command == "demo":
-            from torchface.job import DEMO_ATTRIBUTION, demo_inputs
-
-            video, landmarks = demo_inputs()
-            print(f"torchface demo: tracking the embedded clip ({DEMO_ATTRIBUTION})")
-            return _run_track([video], args.out, [landmarks], None, None, args.device, False, args.meshes, args.quiet)
-        if args.command == "render-demo":
-            return _render_demo(args)
+        with _sigterm_as_interrupt():
+            return _dispatch(args)
     except (InputError, OutputError, DetectorUnavailable, ValueError) as exc:
         message = " ".join(str(exc).split())
         print(f"torchface: error: {message}", file=sys.stderr)
@@ -240,13 +257,31 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"torchface: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print(
-            "\ntorchface: interrupted; complete rows are kept in <out>/<video>.csv.partial: run the same command "
-            "with --resume to continue",
-            file=sys.stderr,
-        )
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        how = "terminated" if isinstance(exc, _Terminated) else "interrupted"
+        if args.command == "track":
+            then = (f"complete rows are kept in {args.out}/<video>.csv.partial: run the same command with --resume "
+                    "to continue")  # fmt: skip
+        else:
+            then = "run it again to start over"
+        print(f"\ntorchface: {how}; {then}", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(exc, _Terminated) else EXIT_INTERRUPTED
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Run the parsed command; returns its exit status."""
+    if args.command == "track":
+        return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
+                          args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
+                          not args.no_online_refine)  # fmt: skip
+    if args.command == "demo":
+        from torchface.job import DEMO_ATTRIBUTION, demo_inputs
+
+        video, landmarks = demo_inputs()
+        print(f"torchface demo: tracking the embedded clip ({DEMO_ATTRIBUTION})")
+        return _run_track([video], args.out, [landmarks], None, None, args.device, False, args.meshes, args.quiet)
+    if args.command == "render-demo":
+        return _render_demo(args)
     raise AssertionError(f"unhandled command {args.command}")  # argparse rejects unknown commands
 
 

@@ -502,3 +502,139 @@ def test_online_start_is_on_by_default(clip, full_run, plain_run):
     # the keyframe is the frame before: the first whose yaw (tracked; the truth's here) passed 10 degrees
     yaw = (gt.ypr_deg[:first, 0] - gt.ypr_deg[0, 0]).abs()
     assert float(yaw[:-1].max()) < 10.0 <= float(yaw[-1]), yaw
+
+
+def _short_npy(video, path, n):
+    frames = read_video(video, max_frames=n)
+    np.save(path, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    return path
+
+
+def _interrupted(path, out, lm, stop_at, **kwargs):
+    def interrupt(p):
+        if p.done == stop_at:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([path], JobConfig(out_dir=out, landmarks=(lm,), **kwargs), progress=interrupt)
+
+
+def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys):
+    """The resume record holds what the rows depend on: resuming with another --focal (rows 0-59 made at one focal
+    length, the rest at another, the JSON claiming one) or after the input file was replaced at the same path is
+    refused, naming what differs; the same settings resume."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    _interrupted(short, out, lm, 2, focal=300.0)
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]
+    assert main(args + ["--focal", "320"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume" in err and "--focal 300.0 then, 320.0 now" in err
+    assert main(args + ["--focal", "300", "--no-online-refine"]) == 2
+    assert "online start" in capsys.readouterr().err
+    np.save(short, np.load(short)[:3])  # another clip at the same path
+    assert main(args + ["--focal", "300"]) == 2
+    assert "input file" in capsys.readouterr().err
+    _short_npy(video, short, 4)
+    _interrupted(short, out := tmp_path / "out2", lm, 2, focal=300.0)
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet",
+                 "--focal", "300"]) == 0  # fmt: skip
+    assert json.loads((out / "short.json").read_text())["frames"] == 4
+
+
+def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch):
+    """Ctrl-C after the CSV got its final name but before the JSON (written last) used to leave a CSV that --resume
+    ignored (it tracked the whole video again) and, in a batch, the other videos' partial MP4s: now the CSV is
+    resumed as partial (all its rows replayed) and the unfinished videos leave no partial MP4."""
+    import torchface.job
+
+    video, lm, _ = clip
+    a = _short_npy(video, tmp_path / "a.npy", 3)
+    b = _short_npy(video, tmp_path / "b.npy", 3)
+    out = tmp_path / "out"
+    real = torchface.job.write_json
+
+    def interrupted_json(path, data):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.job, "write_json", interrupted_json)
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm)))
+    assert (out / "a.csv").is_file() and not (out / "a.json").exists()
+    assert not list(out.glob("*.partial.mp4"))
+    _, rows_before = read_track_csv(out / "a.csv")
+    monkeypatch.setattr(torchface.job, "write_json", real)
+    tracked = []
+    real_step = torchface.job.managed_step
+
+    def counting_step(*args, **kwargs):
+        tracked.append(1)
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "managed_step", counting_step)
+    summaries = track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), resume=True))
+    assert [s.frames for s in summaries] == [3, 3] and not tracked  # replayed, nothing tracked again
+    _, rows_after = read_track_csv(out / "a.csv")
+    np.testing.assert_array_equal(rows_after, rows_before)
+    assert json.loads((out / "b.json").read_text())["frames"] == 3
+
+
+def test_meshes_folder_keeps_the_users_files(clip, tmp_path):
+    """``<name>_meshes`` holding other files: the run used to fail after tracking ('Directory not empty') with the
+    CSV complete and no JSON, or delete a user's .ply there; now the frame meshes go in beside them."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    folder = out / "short_meshes"
+    folder.mkdir(parents=True)
+    (folder / "notes.txt").write_text("mine")
+    (folder / "reference_scan.ply").write_text("mine too")
+    (folder / "000007.ply").write_text("an earlier run's frame mesh")
+    for resume in (False, True):
+        track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), meshes=True, resume=resume))
+        names = sorted(f.name for f in folder.iterdir())
+        assert names == ["000000.ply", "000001.ply", "notes.txt", "reference_scan.ply"]
+        assert (out / "short.json").is_file() and not (out / "short_meshes.partial").exists()
+
+
+@pytest.mark.parametrize("device, message", [("meta", "holds no data"), ("xpu", "not available here")])
+def test_devices_this_torch_cannot_use_are_one_line_errors(clip, tmp_path, capsys, device, message):
+    video, lm, _ = clip
+    if device == "xpu" and hasattr(torch, "xpu") and torch.xpu.is_available():
+        pytest.skip("this machine has an XPU")
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--landmarks", str(lm), "--device", device])
+    assert rc == 2 and message in capsys.readouterr().err
+
+
+def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path):
+    """SIGTERM (``timeout``, ``docker stop``) ends the run as Ctrl-C does (partial rows kept for --resume), with
+    status 143; it used to kill the process with the partial videos left unplayable and no message."""
+    import os
+    import signal
+
+    import torchface.job
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("SIGTERM did not stop the job")
+
+    class Unhandled(Exception):
+        pass
+
+    def outside(signum, frame):  # what SIGTERM does outside main(): never the default, which kills pytest
+        raise Unhandled
+
+    before = signal.signal(signal.SIGTERM, outside)
+    try:
+        monkeypatch.setattr(torchface.job, "track_videos", terminated)
+        assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 143
+        err = capsys.readouterr().err
+        assert "terminated" in err and "--resume" in err and str(tmp_path) in err
+        assert signal.getsignal(signal.SIGTERM) is outside  # restored
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    monkeypatch.setattr(torchface.job, "track_videos", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt()))
+    assert main(["demo", "--out", str(tmp_path)]) == 130
+    err = capsys.readouterr().err
+    assert "--resume" not in err and "start over" in err
