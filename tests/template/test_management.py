@@ -336,3 +336,27 @@ def test_search_mosaic_finds_the_moved_face(model, scene):
     err = (origin_px(hit.translation) - origin_px(gt.translation[1].to(D))).norm()
     assert float(err) < 4.0, float(err)
     assert math.isfinite(hit.score)
+
+
+def test_search_mosaic_widened_depths_find_a_face_that_came_back_farther(model, scene):
+    """A lost face back at 1.6 times its last confident depth lies outside the searched depths (0.85-1.2 of it):
+    the later attempts' widened depths (``search_depth_widening``, here 1.45) find it where it is."""
+    frames, gt, fit, _ = scene
+    cfg = TemplateConfig(search_step_px=2.0)
+    ref = build_dissimilarity_reference(torch.rand(1, 1, 32, 32, dtype=D), torch.ones(1, 1, 32, 32, dtype=D))
+    gray0 = torch.nn.functional.avg_pool2d(frames[:1].mean(1, keepdim=True), 2)
+    intr = Intrinsics(W // 2, H // 2, gt.intrinsics.fx / 2, gt.intrinsics.fy / 2, (gt.intrinsics.cx + 0.5) / 2 - 0.5,
+                      (gt.intrinsics.cy + 0.5) / 2 - 0.5)  # fmt: skip
+    tpl0 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray0, intr,
+                          max_points=600, gradient_threshold=0.01)  # fmt: skip
+    m = new_mosaic((tpl0,), fit.rotation, matrix_to_euler(fit.rotation), ref, cfg)
+    true_depth = float(fit.translation[0, 2])
+    last = true_depth / 1.6  # the depth the stream was confident at before it was lost
+    plain = search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, last, None, cfg)
+    wide = search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, last, None, cfg, depth_scale=1.45)
+    assert float(plain.translation[2]) <= 1.2 * last + 1e-6  # it cannot look farther
+    assert abs(float(wide.translation[2]) / true_depth - 1) < 0.1 and wide.score > plain.score
+    assert [cfg.depth_scale(c) for c in (0, 4, 5, 10, 15, 20, 25)] == [1.0, 1.0, 0.7, 1.45, 0.5, 2.0, 0.7]
+    assert TemplateConfig(search_depth_widening=()).depth_scale(20) == 1.0
+    with pytest.raises(ValueError, match="search_depth_widening"):
+        TemplateConfig(search_depth_widening=(0.0,))

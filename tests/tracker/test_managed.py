@@ -619,3 +619,29 @@ def test_expression_quota_is_the_first_templates_finest_level_only(model, turns,
     _, state = track(model, config, frames, lm)
     assert int(state.management.mosaic.num_entries[0]) >= 2  # entries were added ...
     assert quotas and all(q == 0 for q in quotas), quotas  # ... without the quota
+
+
+def test_a_face_back_at_another_depth_is_found_by_the_widened_search(model):
+    """Lost while out of the frame, the face comes back at 0.6 times its depth (nearer): the base search (0.85-1.2
+    of the last confident depth) cannot place it and the stream stayed lost to the end; the later attempts'
+    widened depths (``TemplateConfig.search_depth_widening``) find it and tracking goes on."""
+    x = [0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-30.0] * 10
+    z = [450.0] * 8 + [270.0] * 10
+    frames, gt = render_sequence(spec_of("nearer", [[0.0, 0.0, 0.0]] * len(x), [[a, 0.0, b] for a, b in zip(x, z)]))
+    runs = {}
+    for widening in ((), TemplateConfig().search_depth_widening):
+        config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, search_depth_widening=widening))
+        state, res = initialise_managed(model, config, frames[None, 0], landmarks(gt), Intrinsics.default(W, H))
+        results = [res]
+        for i in range(1, frames.shape[0]):
+            state, res = managed_step(model, config, state, frames[None, i])
+            results.append(res)
+            assert_finite(res)
+        runs[widening] = results
+    plain, wide = runs.values()
+    assert all(int(r.status[0]) == LOST for r in plain[BACK:]), "the base search alone cannot find it"
+    ok = [i for i in range(BACK, len(wide)) if bool(wide[i].success[0])]
+    assert ok and ok[0] <= BACK + 6 and all(bool(r.success[0]) for r in wide[ok[0] :]), [int(r.status[0]) for r in wide]
+    err = rel_error(wide, gt)
+    assert float(err[ok[0] :].max()) < 2.0, err
+    assert abs(float(wide[-1].translation[0, 2]) - 270.0) < 15.0

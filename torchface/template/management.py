@@ -48,6 +48,7 @@ Shapes: ``B`` streams, ``E`` mosaic entries, ``N`` template points, ``S`` shape 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 
 import torch
@@ -207,6 +208,12 @@ class TemplateConfig:
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
             halved once more (:func:`search_mosaic`).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
+        search_depth_widening: from a loss's later recovery attempts on (the stream's ``low_count`` of at least
+            ``recovery_every`` frames), each search also tries ``search_depth_factors`` scaled by the next of these
+            in turn, and a candidate found there may be adopted (its depth within the depths that attempt tried,
+            widened by 10%). Without it a face that came back nearer or farther than 0.77-1.32 times its last
+            confident depth was never found again (a face leaving the frame and returning at 1.6 or 0.6 times
+            its depth stayed lost to the end). Empty: the searched depths stay ``search_depth_factors``.
         search_points: template points per entry used by the search (a uniform subset).
         search_min_inside: a placement needs this fraction of its points inside the image.
         clean_radius_deg: a stream whose pose is within this (yaw, pitch) distance of the pose its mosaic entry
@@ -257,6 +264,7 @@ class TemplateConfig:
     recovery_every: int = 5
     search_step_px: float = 3.0
     search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
+    search_depth_widening: tuple[float, ...] = (0.7, 1.45, 0.5, 2.0)
     search_points: int = 300
     search_min_inside: float = 0.8
     clean_radius_deg: float = 3.0
@@ -307,6 +315,16 @@ class TemplateConfig:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not self.search_depth_factors or any(not f > 0 for f in self.search_depth_factors):
             raise ValueError(f"search_depth_factors must be positive factors, got {self.search_depth_factors}")
+        if any(not (isinstance(f, (int, float)) and math.isfinite(f) and f > 0) for f in self.search_depth_widening):
+            raise ValueError(f"search_depth_widening must be positive factors, got {self.search_depth_widening}")
+
+    def depth_scale(self, low_count: int) -> float:
+        """The factor a recovery attempt scales ``search_depth_factors`` by besides 1 (``search_depth_widening``
+        in turn, from ``low_count >= recovery_every`` on), or 1.0 for none."""
+        n = int(low_count) // self.recovery_every
+        if n < 1 or not self.search_depth_widening:
+            return 1.0
+        return float(self.search_depth_widening[(n - 1) % len(self.search_depth_widening)])
 
 
 @dataclass(frozen=True)
@@ -854,6 +872,7 @@ def search_mosaic(
     depth_mm: float,
     extra_rotation: Tensor | None,
     config: TemplateConfig,
+    depth_scale: float = 1.0,
 ) -> SearchResult:
     """Find the face of ``stream`` in a gray image by placing its mosaic entries (module docstring).
 
@@ -872,6 +891,8 @@ def search_mosaic(
         gray: ``(1, 1, h, w)`` the frame at pyramid level ``level``, gray in [0, 1]; intrinsics: its camera.
         depth_mm: the last confident depth of the head origin.
         extra_rotation: ``(3, 3)`` or None.
+        depth_scale: other than 1, the depths ``depth_mm * depth_scale * search_depth_factors`` are tried too
+            (:meth:`TemplateConfig.depth_scale`).
 
     Returns:
         :class:`SearchResult` (score -1 when nothing could be placed).
@@ -900,7 +921,10 @@ def search_mosaic(
     X = torch.matmul(torch.gather(tpl.points, 1, order.unsqueeze(-1).expand(-1, -1, 3)), rots.transpose(1, 2))
     T = torch.gather(tpl.intensity, 1, order)
     # Hypotheses: rotations x depths.
-    factors = torch.tensor(config.search_depth_factors, dtype=dtype, device=device)
+    factors = config.search_depth_factors
+    if depth_scale != 1.0:
+        factors = (*factors, *(depth_scale * f for f in factors))
+    factors = torch.tensor(factors, dtype=dtype, device=device)
     n_d = factors.shape[0]
     depth = (depth_mm * factors).repeat(n_rot)  # (H,)
     Xh, Th, wh = (x.repeat_interleave(n_d, dim=0) for x in (X, T, w))

@@ -564,9 +564,10 @@ def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
 
 def _recovery_starts(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
-    detector: LandmarkDetector | None,
+    detector: LandmarkDetector | None, depth_scales: list[float],
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Start parameters ``(B', P)``, entries ``(B',)`` and "found" ``(B',)`` for the lost streams ``index``."""
+    """Start parameters ``(B', P)``, entries ``(B',)`` and "found" ``(B',)`` for the lost streams ``index``
+    (``depth_scales``: each one's :meth:`~torchface.template.management.TemplateConfig.depth_scale`)."""
     layout = _layout(model)
     conf_params = ms.confident_params[index]
     aa_c, t_c, alpha_c, light_c = layout.split(conf_params)
@@ -595,7 +596,7 @@ def _recovery_starts(
             b = int(index[i])
             hit = search_mosaic(
                 model, state.shape_coeffs[b : b + 1], ms.mosaic, b, gray[i : i + 1], intr, level,
-                float(t_c[i, 2]), R_c[i], config.template,
+                float(t_c[i, 2]), R_c[i], config.template, depth_scale=depth_scales[i],
             )  # fmt: skip
             if hit.score > 0:
                 # The last confident expression: on a face unlike the model the animation units also absorb
@@ -611,7 +612,7 @@ def _recovery_starts(
 
 def _recover(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
-    detector: LandmarkDetector | None,
+    detector: LandmarkDetector | None, depth_scales: list[float],
 ) -> tuple[Tensor, TrackerState, TrackResult, Tensor, Tensor, Tensor]:
     """Re-initialise the lost streams ``index``: candidates, a normal solve from each, their confidence.
 
@@ -619,7 +620,7 @@ def _recover(
         found ``(B',)``, the sub-batch's solved state and result, confidence ``(B',)``, dissimilarity ``(B',)``,
         the fraction of the face inside the frame ``(B',)`` and the entries ``(B',)`` used.
     """
-    starts, entries, found = _recovery_starts(model, config, state, ms, frames, index, detector)
+    starts, entries, found = _recovery_starts(model, config, state, ms, frames, index, detector, depth_scales)
     templates = entry_templates(model, state.shape_coeffs[index], ms.mosaic, index, entries, config.backend)
     sub = _subset_state(state, index, starts, templates)
     # A candidate is solved conservatively: the refinement pass's weak prior would let the animation units
@@ -631,11 +632,17 @@ def _recover(
     return found, solved, result, conf, diss, inside, entries
 
 
-def _within_searched_depths(params: Tensor, confident_params: Tensor, layout: ParamLayout, tc: TemplateConfig) -> Tensor:
+def _within_searched_depths(
+    params: Tensor, confident_params: Tensor, layout: ParamLayout, tc: TemplateConfig, scales: Tensor | None = None
+) -> Tensor:
     """``(B,)`` bool: the depth of ``params`` ``(B, P)`` lies within the depths the recovery search tries
-    (``search_depth_factors`` of the depth of ``confident_params`` ``(B, P)``, widened by 10%)."""
+    (``search_depth_factors`` of the depth of ``confident_params`` ``(B, P)``, widened by 10%; with ``scales``
+    ``(B,)``, those factors scaled by it too: the depths that attempt tried)."""
     ratio = params[:, layout.translation][:, 2] / confident_params[:, layout.translation][:, 2]
-    return (ratio >= min(tc.search_depth_factors) / 1.1) & (ratio <= max(tc.search_depth_factors) * 1.1)
+    lo, hi = min(tc.search_depth_factors) / 1.1, max(tc.search_depth_factors) * 1.1
+    if scales is None:
+        return (ratio >= lo) & (ratio <= hi)
+    return (ratio >= lo * scales.clamp(max=1.0)) & (ratio <= hi * scales.clamp(min=1.0))
 
 
 @full_precision
@@ -777,8 +784,9 @@ def managed_step(
     if recovery:
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
+        scales = [tc.depth_scale(c) for c in low_count[index].tolist()] if detector is None else [1.0] * len(index)
         found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = _recover(
-            model, config, state, ms, frames, index, detector
+            model, config, state, ms, frames, index, detector, scales
         )
         # A candidate that beats the continued track and scores at least adopt_min_confidence (below it the
         # candidate's solve ran off the face: benchmark.py's streams adopted candidates 60-100 degrees off that
@@ -793,7 +801,8 @@ def managed_step(
         apart = apart > tc.adopt_min_angle_deg
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
-            near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc)
+            tried = torch.tensor(scales, dtype=r_state.params.dtype, device=r_state.params.device)
+            near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
         ok = adopt & (r_conf >= tc.recover_confidence)
