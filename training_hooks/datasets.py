@@ -191,6 +191,10 @@ class VideoDataset(IterableDataset):
             raise ValueError("videos is empty")
         for v in self.videos:
             self._check_source(v)
+        cache_dir = self.config.cache_dir
+        if cache_dir is not None and cache_dir.exists() and not cache_dir.is_dir():
+            # (found here, not after the first video has been tracked)
+            raise ValueError(f"{cache_dir}: cache_dir exists and is not a folder")
         if callable(landmarks) and not isinstance(landmarks, (np.ndarray, Tensor)):
             self.detector: Detector | None = landmarks
             self.landmarks: tuple[LandmarkSource, ...] | None = None

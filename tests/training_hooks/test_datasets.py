@@ -232,6 +232,9 @@ def test_bad_arguments(clips, tmp_path):
         DatasetConfig(clip_length=0)
     with pytest.raises(TypeError, match="FaceTrackingConfig"):
         DatasetConfig(tracking="fast")
+    (tmp_path / "cache").write_text("a file")  # refused at once (it failed after the first video was tracked)
+    with pytest.raises(ValueError, match="not a folder"):
+        VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
 
 
 def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
