@@ -305,6 +305,7 @@ class _Stream:
     confidences: list[float] = field(default_factory=list)
     lost: list[int] = field(default_factory=list)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
+    error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
 
 
 def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamLayout) -> Tensor:
@@ -470,7 +471,8 @@ def track_videos(
         One :class:`VideoSummary` per video, in input order.
 
     Raises:
-        InputError: a bad input (checked for all videos before tracking starts).
+        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
+            later frame that cannot be read stops that video, raised once every other video is complete.
         OutputError: the output folder cannot be written.
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
@@ -524,10 +526,16 @@ def track_videos(
         for (H, W), members in groups.items():
             batch = [streams[i] for i in members]
             for s, summary in zip(batch, _track_group(model, batch, config, detector, progress, len(streams), members)):
-                summaries[str(s.reader.info.path)] = summary
+                if summary is not None:
+                    summaries[str(s.reader.info.path)] = summary
     finally:
         for s in streams:
             s.reader.close()
+    failed = [s for s in streams if s.error is not None]
+    if failed:  # after every other video is complete
+        done = [s.name for s in streams if s.error is None]
+        rest = f"; the other videos were completed ({', '.join(done)})" if done else ""
+        raise InputError(f"{failed[0].error} (its rows so far are kept for --resume){rest}")
     return [summaries[str(v)] for v in videos]
 
 
@@ -592,8 +600,9 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
 
 def _track_group(
     model: FaceModel, streams: list[_Stream], config: JobConfig, detector, progress, count: int, members: list[int]
-) -> list[VideoSummary]:
-    """Track one batch of same-size videos to the end and finalise their outputs."""
+) -> list[VideoSummary | None]:
+    """Track one batch of same-size videos to the end and finalise their outputs; per video its summary, or None
+    for one stopped by a frame that could not be read (``_Stream.error``; its partial CSV kept)."""
     out_dir = Path(config.out_dir)
     info = streams[0].reader.info
     H, W = info.height, info.width
@@ -690,6 +699,8 @@ def _track_group(
                         s.last_frame = s.ahead.pop(0) if s.ahead else next(s.reader)
                     except StopIteration:
                         s.done = True
+                    except InputError as exc:  # this video stops; the others of the batch go on
+                        s.done, s.error = True, exc
                 nxt.append(s.last_frame)
             if all(s.done for s in streams):
                 break
@@ -712,7 +723,13 @@ def _track_group(
     finished = 0
     try:
         for s, p, mt in zip(streams, paths, mesh_tmp):
-            summaries.append(_finalise(model, s, p, mt, config, state, streams, intr, t_init, t_track))
+            if s.error is None:
+                summaries.append(_finalise(model, s, p, mt, config, state, streams, intr, t_init, t_track))
+            else:  # its rows so far stay in the partial CSV; nothing else of it is kept
+                s.csv.stop()
+                for v in (s.overlay, s.normalised):
+                    v.abort()
+                summaries.append(None)
             finished += 1
     except BaseException:  # interrupted while finalising: the videos not finalised leave no partial video files
         for s in streams[finished:]:

@@ -216,6 +216,17 @@ def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
     rc = main(["track", str(folder), "--out", str(out), "--landmarks", str(lm), "--quiet"])
     _assert_clean_failure(rc, capsys, out, "frame 2 (002.png) is 160x112 but the video started at 160x120")
     assert (out / "frames.csv.partial").is_file()  # the rows tracked so far are kept for --resume
+    # A good video of the same size in the same batch is completed (the bad frame used to abort the whole batch).
+    good = tmp_path / "good.npy"
+    np.save(good, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    out2 = tmp_path / "out2"
+    rc = main(["track", str(folder), str(good), "--out", str(out2), "--landmarks", str(lm), "--landmarks", str(lm),
+               "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "002.png" in err and "other videos were completed (good)" in err
+    assert json.loads((out2 / "good.json").read_text())["frames"] == 3 and (out2 / "good.csv").is_file()
+    assert (out2 / "frames.csv.partial").is_file() and not (out2 / "frames.csv").exists()
+    assert not list(out2.glob("*.partial.mp4")) and not (out2 / "frames_overlay.mp4").exists()
 
 
 def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp_path, capsys):
