@@ -207,6 +207,10 @@ class TrackCache:
             return None
         try:
             sequence = _read(path, key)
+        except OSError as exc:  # the file could not be read now (too many open files, I/O error): keep it
+            warnings.warn(f"{path}: cache file unreadable now ({exc}); tracking again", CacheWarning, stacklevel=2)
+            self.stats.misses += 1
+            return None
         except Exception as exc:  # any failure to read back means the file is not trustworthy
             warnings.warn(
                 f"{path}: damaged cache file ({type(exc).__name__}: {exc}); deleted, tracking again",

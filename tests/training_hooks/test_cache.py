@@ -269,3 +269,22 @@ def test_cache_hit_with_array_landmarks_does_not_decode_the_video(two, config, m
     np.savetxt(csv, lms[0], delimiter=",", fmt="%.17g")
     with pytest.raises(AssertionError, match="decoded"):
         epoch(VideoDataset(videos[:1], [csv], config))
+
+
+def test_a_file_that_cannot_be_read_now_is_kept(two, config, monkeypatch):
+    """An OS error while reading (too many open files, an I/O error) is no proof of damage: the entry is tracked
+    again but the file is kept (it used to be deleted as corrupt)."""
+    import training_hooks.cache as cache_module
+
+    videos, lms = two
+    data = VideoDataset(videos[:1], lms[:1], config)
+    epoch(data)
+    (stored,) = list(config.cache_dir.glob("*.npz"))
+
+    def emfile(path, key):
+        raise OSError(24, "Too many open files")
+
+    monkeypatch.setattr(cache_module, "_read", emfile)
+    with pytest.warns(CacheWarning, match="unreadable now"):
+        assert cache_module.TrackCache(config.cache_dir).load(stored.stem) is None
+    assert stored.is_file()

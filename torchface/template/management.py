@@ -208,9 +208,9 @@ class TemplateConfig:
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
             halved once more (:func:`search_mosaic`).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
-        search_depth_widening: from a loss's later recovery attempts on (the stream's ``low_count`` of at least
-            ``recovery_every`` frames), each search also tries ``search_depth_factors`` scaled by the next of these
-            in turn, and a candidate found there may be adopted (its depth within the depths that attempt tried,
+        search_depth_widening: from a loss's second recovery attempt on (without a detector), each search also
+            tries ``search_depth_factors`` scaled by the next of these in turn, and a candidate found there may be
+            adopted (its depth within the depths that attempt tried,
             widened by 10%). Without it a face that came back nearer or farther than 0.77-1.32 times its last
             confident depth was never found again (a face leaving the frame and returning at 1.6 or 0.6 times
             its depth stayed lost to the end). Empty: the searched depths stay ``search_depth_factors``.
@@ -318,10 +318,10 @@ class TemplateConfig:
         if any(not (isinstance(f, (int, float)) and math.isfinite(f) and f > 0) for f in self.search_depth_widening):
             raise ValueError(f"search_depth_widening must be positive factors, got {self.search_depth_widening}")
 
-    def depth_scale(self, low_count: int) -> float:
-        """The factor a recovery attempt scales ``search_depth_factors`` by besides 1 (``search_depth_widening``
-        in turn, from ``low_count >= recovery_every`` on), or 1.0 for none."""
-        n = int(low_count) // self.recovery_every
+    def depth_scale(self, attempts: int) -> float:
+        """The factor a recovery attempt scales ``search_depth_factors`` by besides 1, after ``attempts`` attempts
+        in the same loss: 1.0 (none) for the first, then ``search_depth_widening`` in turn."""
+        n = int(attempts)
         if n < 1 or not self.search_depth_widening:
             return 1.0
         return float(self.search_depth_widening[(n - 1) % len(self.search_depth_widening)])

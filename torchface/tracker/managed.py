@@ -141,6 +141,8 @@ class ManagementState:
         lost: ``(B,)`` bool, the stream is lost.
         confident_params: ``(B, P)`` the parameters of the last confident frame.
         since_attempt: ``(B,)`` int64 lost frames since the last recovery attempt.
+        attempts: ``(B,)`` int64 recovery attempts made in the stream's current loss (0 when not lost; None:
+            none yet), which sets the depths a search tries (:meth:`TemplateConfig.depth_scale`).
         params_ypr: ``(params, ypr_deg)``: the yaw/pitch/roll ``(B, 3)`` of the parameters tensor ``params`` the
             step ended with (its result's), so that the next step does not convert them again; used only while
             ``TrackerState.params`` is that very tensor. None: not known.
@@ -158,6 +160,7 @@ class ManagementState:
     first: "FirstPoseWatch | None" = None
     head_rotation: Tensor | None = None
     head_translation: Tensor | None = None
+    attempts: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -784,7 +787,8 @@ def managed_step(
     if recovery:
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
-        scales = [tc.depth_scale(c) for c in low_count[index].tolist()] if detector is None else [1.0] * len(index)
+        made = torch.zeros_like(index) if ms.attempts is None else ms.attempts[index]
+        scales = [tc.depth_scale(n) for n in made.tolist()] if detector is None else [1.0] * len(index)
         found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = _recover(
             model, config, state, ms, frames, index, detector, scales
         )
@@ -854,9 +858,12 @@ def managed_step(
     if tc.texture_update and bool(confident.any()):
         templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
         new_state = replace(new_state, templates=templates)
+    attempts = torch.zeros_like(ms.low_count) if ms.attempts is None else ms.attempts
+    attempts = torch.where(lost, attempts + attempt, torch.zeros_like(attempts))  # in the current loss
     ms = ManagementState(
         mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
         None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
+        attempts,
     )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
