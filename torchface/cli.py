@@ -41,14 +41,15 @@ class _Terminated(KeyboardInterrupt):
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`_Terminated` (main thread only; the previous handler after)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+    if previous is None or previous is signal.SIG_IGN:  # not the main thread, a handler set outside Python, or
+        yield  # a parent that chose to ignore SIGTERM: left as it is
         return
 
     def handler(signum, frame):
         raise _Terminated()
 
-    previous = signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGTERM, handler)
     try:
         yield
     finally:

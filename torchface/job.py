@@ -31,6 +31,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -244,6 +245,11 @@ class _VideoOut:
         self.tmp.unlink(missing_ok=True)
 
 
+def _frame_meshes(folder: Path) -> list[Path]:
+    """The per-frame meshes a run wrote in ``folder`` (``NNNNNN.ply``, six or more digits), not other files."""
+    return [f for f in folder.glob("*.ply") if re.fullmatch(r"\d{6,}\.ply", f.name) and f.is_file()]
+
+
 def _check_out_dir(out_dir: Path) -> None:
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -339,7 +345,7 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, str]:
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16],
-        "--focal": repr(config.focal), "--convert": repr(config.convert), "--lookahead": repr(config.lookahead),
+        "--focal": repr(None if config.focal is None else float(config.focal)), "--convert": repr(config.convert), "--lookahead": repr(config.lookahead),
         "online start": repr(config.refine_first), "tracker settings": repr(config.tracker),
         "--detector": repr(config.detector), "re-detection": repr((config.redetect_after, config.redetect_below)),
         "normalised size": repr(config.normalised_size),
@@ -502,6 +508,8 @@ def track_videos(
         for kind, path in output_paths(out_dir, name).items():
             if kind != "meshes" and path.is_dir():
                 raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
+            if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
+                raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
     for k, (v, name) in enumerate(zip(videos, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
@@ -534,8 +542,9 @@ def track_videos(
     failed = [s for s in streams if s.error is not None]
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
-        rest = f"; the other videos were completed ({', '.join(done)})" if done else ""
-        raise InputError(f"{failed[0].error} (its rows so far are kept for --resume){rest}")
+        rest = f"; the other videos were completed ({', '.join(done)}): --resume skips them" if done else ""
+        what = "; ".join(str(s.error) for s in failed)
+        raise InputError(f"{what} (mend or remove the frame and track that video again without --resume){rest}")
     return [summaries[str(v)] for v in videos]
 
 
@@ -623,7 +632,7 @@ def _track_group(
                 p[kind].unlink(missing_ok=True)
             for folder in (p["meshes"], mt):  # an earlier run's meshes, complete or interrupted: its PLY files only
                 if folder.is_dir():
-                    for f in folder.glob("[0-9]*.ply"):
+                    for f in _frame_meshes(folder):
                         f.unlink()
                     if not any(folder.iterdir()):
                         folder.rmdir()
@@ -696,7 +705,12 @@ def _track_group(
             for s in streams:
                 if not s.done:
                     try:
-                        s.last_frame = s.ahead.pop(0) if s.ahead else next(s.reader)
+                        if s.ahead:
+                            s.last_frame = s.ahead.pop(0)
+                        elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
+                            s.done = True
+                        else:
+                            s.last_frame = next(s.reader)
                     except StopIteration:
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
@@ -733,6 +747,7 @@ def _track_group(
             finished += 1
     except BaseException:  # interrupted while finalising: the videos not finalised leave no partial video files
         for s in streams[finished:]:
+            s.csv.stop()
             for v in (s.overlay, s.normalised):
                 v.abort()
         raise
@@ -754,7 +769,7 @@ def _finalise(
     outs = [p["csv"], p["overlay"], p["plot"], p["normalised"]]
     if config.meshes:
         if p["meshes"].is_dir():  # keep what else the folder holds: replace an earlier run's frame meshes only
-            for f in p["meshes"].glob("[0-9]*.ply"):
+            for f in _frame_meshes(p["meshes"]):
                 f.unlink()
             for f in sorted(mt.iterdir()):
                 os.replace(f, p["meshes"] / f.name)
@@ -809,11 +824,13 @@ def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], 
     tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit."""
     la = config.lookahead
     for s in streams:
-        while len(s.ahead) < la.max_frames - 1:
+        while len(s.ahead) < la.max_frames - 1 and s.error is None:
             try:
                 s.ahead.append(next(s.reader))
             except StopIteration:
                 break
+            except InputError as exc:  # this video stops after the frames read; the others go on
+                s.error = exc
     T = 1 + min(len(s.ahead) for s in streams)  # the batch's common length
     if T < 2:
         return None

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from torchface.cli import build_parser, main
+from torchface.io import OutputError
 from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.io import read_track_csv
 from torchface.io.table import openface_euler
@@ -227,6 +228,13 @@ def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
     assert json.loads((out2 / "good.json").read_text())["frames"] == 3 and (out2 / "good.csv").is_file()
     assert (out2 / "frames.csv.partial").is_file() and not (out2 / "frames.csv").exists()
     assert not list(out2.glob("*.partial.mp4")) and not (out2 / "frames_overlay.mp4").exists()
+    # the same with --lookahead, whose reading ahead meets the bad frame first
+    out3 = tmp_path / "out3"
+    rc = main(["track", str(folder), str(good), "--out", str(out3), "--landmarks", str(lm), "--landmarks", str(lm),
+               "--quiet", "--lookahead"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2 and "002.png" in err and "other videos were completed (good)" in err
+    assert json.loads((out3 / "good.json").read_text())["frames"] == 3 and not (out3 / "frames.csv").exists()
 
 
 def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp_path, capsys):
@@ -548,7 +556,7 @@ def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys
     assert main(args + ["--focal", "300"]) == 2
     assert "input file" in capsys.readouterr().err
     _short_npy(video, short, 4)
-    _interrupted(short, out := tmp_path / "out2", lm, 2, focal=300.0)
+    _interrupted(short, out := tmp_path / "out2", lm, 2, focal=300)  # an int from the API, 300.0 from the CLI
     assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet",
                  "--focal", "300"]) == 0  # fmt: skip
     assert json.loads((out / "short.json").read_text())["frames"] == 4
@@ -601,12 +609,19 @@ def test_meshes_folder_keeps_the_users_files(clip, tmp_path):
     folder.mkdir(parents=True)
     (folder / "notes.txt").write_text("mine")
     (folder / "reference_scan.ply").write_text("mine too")
+    (folder / "3d_head.ply").write_text("mine, starting with a digit")
     (folder / "000007.ply").write_text("an earlier run's frame mesh")
     for resume in (False, True):
         track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), meshes=True, resume=resume))
         names = sorted(f.name for f in folder.iterdir())
-        assert names == ["000000.ply", "000001.ply", "notes.txt", "reference_scan.ply"]
+        assert names == ["000000.ply", "000001.ply", "3d_head.ply", "notes.txt", "reference_scan.ply"]
         assert (out / "short.json").is_file() and not (out / "short_meshes.partial").exists()
+    # a file where the meshes folder would go is refused before tracking (it failed after it)
+    (out / "other_meshes").write_text("a file")
+    other = _short_npy(video, tmp_path / "other.npy", 2)
+    with pytest.raises(OutputError, match="it is a file"):
+        track_videos([other], JobConfig(out_dir=out, landmarks=(lm,), meshes=True))
+    assert not (out / "other.csv.partial").exists()
 
 
 @pytest.mark.parametrize("device, message", [("meta", "holds no data"), ("xpu", "not available here")])
@@ -624,6 +639,7 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     import os
     import signal
 
+    import torchface.cli
     import torchface.job
 
     def terminated(*args, **kwargs):
@@ -636,8 +652,14 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     def outside(signum, frame):  # what SIGTERM does outside main(): never the default, which kills pytest
         raise Unhandled
 
-    before = signal.signal(signal.SIGTERM, outside)
+    before = signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a parent that ignores SIGTERM: left ignored
     try:
+        seen = []
+        monkeypatch.setattr(torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM)))
+        monkeypatch.setattr(torchface.cli, "_print_summary", lambda *a: None)
+        assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 0
+        assert seen == [signal.SIG_IGN]
+        signal.signal(signal.SIGTERM, outside)
         monkeypatch.setattr(torchface.job, "track_videos", terminated)
         assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 143
         err = capsys.readouterr().err

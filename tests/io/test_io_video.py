@@ -193,3 +193,5 @@ def test_image_folder_order_is_numeric_and_hidden_files_are_skipped(tmp_path):
         (tmp_path / n).write_bytes(b"")
     order = [f.name for f in image_files(tmp_path) if not f.name[0].isdigit()]
     assert order == ["a.png", "frame_0002.png", "frame_0010.png", "img9.png", "img10.png", "img010b.png"]
+    (tmp_path / "1\u00b22.png").write_bytes(b"")  # '1²2': a superscript is a digit to str.isdigit, not a number
+    assert "1\u00b22.png" in [f.name for f in image_files(tmp_path)]

@@ -546,6 +546,10 @@ def test_estimate_confidence_matches_the_step_and_sees_a_wrong_pose(model, gentl
     params[:, layout.rotation] += torch.tensor([0.0, 0.0, 0.1])
     wrong, _ = estimate_confidence(model, CFG, replace(state, params=params), frames[:, 1])
     assert float(res.confidence[0]) > 0.6 and float(wrong[0]) < 0.2
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # full precision inside a caller's autocast region
+        amp = estimate_confidence(model, CFG, state, frames[:, 1].float())
+    ref = estimate_confidence(model, CFG, state, frames[:, 1].float())
+    assert torch.equal(amp[0], ref[0]) and torch.equal(amp[1], ref[1])
 
 
 @pytest.mark.parametrize("radius", [0.0, 3.0, 1000.0])
@@ -621,27 +625,49 @@ def test_expression_quota_is_the_first_templates_finest_level_only(model, turns,
     assert quotas and all(q == 0 for q in quotas), quotas  # ... without the quota
 
 
-def test_a_face_back_at_another_depth_is_found_by_the_widened_search(model):
+def test_a_face_back_at_another_depth_is_found_by_the_widened_search(model, monkeypatch):
     """Lost while out of the frame, the face comes back at 0.6 times its depth (nearer): the base search (0.85-1.2
     of the last confident depth) cannot place it and the stream stayed lost to the end; the later attempts'
-    widened depths (``TemplateConfig.search_depth_widening``) find it and tracking goes on."""
-    x = [0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-30.0] * 10
-    z = [450.0] * 8 + [270.0] * 10
+    widened depths (``TemplateConfig.search_depth_widening``) find it and tracking goes on. The attempts are
+    counted per loss: the first attempt of the next loss (out again, back at the same depth) searches the base
+    depths and finds the face at once."""
+    import torchface.tracker.managed as managed
+
+    x = [0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-30.0] * 10 + [400.0] * 4 + [-20.0] * 4
+    z = [450.0] * 8 + [270.0] * 22
     frames, gt = render_sequence(spec_of("nearer", [[0.0, 0.0, 0.0]] * len(x), [[a, 0.0, b] for a, b in zip(x, z)]))
+    second = 22  # the face is back from its second trip out of the frame
+    scales, frame = [], [0]
+    real = managed.search_mosaic
+
+    def spy(*args, depth_scale=1.0, **kwargs):
+        scales.append((frame[0], depth_scale))
+        return real(*args, depth_scale=depth_scale, **kwargs)
+
+    monkeypatch.setattr(managed, "search_mosaic", spy)
     runs = {}
     for widening in ((), TemplateConfig().search_depth_widening):
+        scales.clear()
         config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, search_depth_widening=widening))
         state, res = initialise_managed(model, config, frames[None, 0], landmarks(gt), Intrinsics.default(W, H))
         results = [res]
         for i in range(1, frames.shape[0]):
+            frame[0] = i
             state, res = managed_step(model, config, state, frames[None, i])
             results.append(res)
             assert_finite(res)
         runs[widening] = results
     plain, wide = runs.values()
-    assert all(int(r.status[0]) == LOST for r in plain[BACK:]), "the base search alone cannot find it"
-    ok = [i for i in range(BACK, len(wide)) if bool(wide[i].success[0])]
-    assert ok and ok[0] <= BACK + 6 and all(bool(r.success[0]) for r in wide[ok[0] :]), [int(r.status[0]) for r in wide]
+    assert all(int(r.status[0]) == LOST for r in plain[BACK:second]), "the base search alone cannot find it"
+    first_loss = [sc for f, sc in scales if f < second - 4]
+    assert first_loss[:3] == [1.0, 0.7, 1.45][: len(first_loss[:3])] and len(first_loss) >= 2, scales
+    ok = [i for i in range(BACK, second - 4) if bool(wide[i].success[0])]
+    assert ok and ok[0] <= BACK + 6 and all(bool(r.success[0]) for r in wide[ok[0] : second - 4]), (
+        [int(r.status[0]) for r in wide]
+    )
+    second_loss = [sc for f, sc in scales if f >= second - 4]
+    assert second_loss and second_loss[0] == 1.0, scales  # a new loss starts with the base depths
+    assert all(bool(r.success[0]) for r in wide[second + 1 :]), [int(r.status[0]) for r in wide]
     err = rel_error(wide, gt)
-    assert float(err[ok[0] :].max()) < 2.0, err
+    assert float(err[ok[0] : second - 4].max()) < 2.0 and float(err[second + 1 :].max()) < 2.0, err
     assert abs(float(wide[-1].translation[0, 2]) - 270.0) < 15.0

@@ -268,8 +268,8 @@ def _video_frames(cap: cv2.VideoCapture) -> Iterator[tuple[np.ndarray, bool]]:
 
 def _natural_key(name: str) -> tuple:
     """Sort key that compares runs of digits as numbers: ``2.png`` before ``10.png``."""
-    parts = re.split(r"(\d+)", name)
-    return tuple((0, int(x), "") if x.isdigit() else (1, 0, x) for x in parts if x), name
+    parts = re.split(r"([0-9]+)", name)  # ASCII digits only ('²' is a digit to str.isdigit but no number)
+    return tuple((0, int(x), "") if x.isascii() and x.isdecimal() else (1, 0, x) for x in parts if x), name
 
 
 def image_files(folder: str | os.PathLike[str]) -> list[Path]:

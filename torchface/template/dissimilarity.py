@@ -59,6 +59,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchface._autocast import full_precision
 from torchface import _native
 from torchface._scalar import isfinite, scalar
 from torchface.backend import Backend, use_native
@@ -604,6 +605,7 @@ def _check_face(image: object, mask: object, name: str) -> tuple[Tensor, Tensor]
     return image, (mask > 0.5).to(image.dtype)
 
 
+@full_precision
 @torch.no_grad()
 def build_dissimilarity_reference(
     image: Tensor, mask: Tensor, config: DissimilarityConfig | None = None, backend: Backend = Backend.AUTO
@@ -700,6 +702,7 @@ def _reference(image: Tensor, gray: Tensor, mask: Tensor, index: Tensor, best: T
     return DissimilarityReference(gray, mask, centres, patch_valid, best.clamp_min(0.0), config, lk)
 
 
+@full_precision
 @torch.no_grad()
 def dissimilarity(
     reference: DissimilarityReference, normalised: Tensor, mask: Tensor, backend: Backend = Backend.AUTO

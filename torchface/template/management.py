@@ -110,6 +110,11 @@ def _default_dissimilarity() -> DissimilarityConfig:
                                tolerance=0.02)  # fmt: skip
 
 
+#: How much better a placement at a widened depth (:attr:`TemplateConfig.search_depth_widening`) must correlate
+#: than the best at the base depths to be chosen by :func:`search_mosaic`.
+_WIDENED_DEPTH_MARGIN = 0.1
+
+
 @dataclass(frozen=True)
 class TemplateConfig:
     """Settings of template management (module docstring; the per-frame policy is
@@ -922,11 +927,15 @@ def search_mosaic(
     T = torch.gather(tpl.intensity, 1, order)
     # Hypotheses: rotations x depths.
     factors = config.search_depth_factors
+    n_base = len(factors)
     if depth_scale != 1.0:
         factors = (*factors, *(depth_scale * f for f in factors))
     factors = torch.tensor(factors, dtype=dtype, device=device)
     n_d = factors.shape[0]
     depth = (depth_mm * factors).repeat(n_rot)  # (H,)
+    # A widened depth must out-score the base depths by a margin to be chosen (ranking only; the score reported
+    # is the correlation itself): a wrong placement at another depth can correlate about as well as the face.
+    handicap = (torch.arange(n_d, device=device) >= n_base).to(dtype).repeat(n_rot) * _WIDENED_DEPTH_MARGIN
     Xh, Th, wh = (x.repeat_interleave(n_d, dim=0) for x in (X, T, w))
     hyp_rot = torch.arange(n_rot, device=device).repeat_interleave(n_d)
     # Stage 1: coarse grid on the image halved once more, a quarter of the points.
@@ -940,8 +949,9 @@ def search_mosaic(
     n1 = max(8, config.search_points // 4)
     ncc1 = _ncc(half, cam_half, Xh[:, :n1], Th[:, :n1], wh[:, :n1], _placements(grid, depth, cam_half),
                 config.search_min_inside)  # fmt: skip
-    top = torch.topk(ncc1.reshape(-1), min(4, ncc1.numel())).indices
+    top = torch.topk((ncc1 - handicap.unsqueeze(-1)).reshape(-1), min(4, ncc1.numel())).indices
     best = SearchResult(torch.eye(3, dtype=dtype, device=device), torch.zeros(3, dtype=dtype, device=device), 0, -1.0)
+    best_rank = -math.inf
     # Stage 2: around each of the best, step 1 pixel on ``gray``, all the points.
     r = int(round(step)) + 1
     offsets = torch.arange(-r, r + 1, dtype=dtype, device=device)
@@ -955,9 +965,10 @@ def search_mosaic(
         t = _placements(centre + local, depth[h : h + 1], intrinsics)
         ncc2 = _ncc(gray, intrinsics, Xh[h : h + 1], Th[h : h + 1], wh[h : h + 1], t, config.search_min_inside)[0]
         score, q = ncc2.max(0)
-        if float(score) > best.score:
+        rank = float(score) - float(handicap[h])
+        if rank > best_rank:
             k = int(hyp_rot[h])
-            best = SearchResult(rots[k], t[0, q], int(ent[k]), float(score))
+            best, best_rank = SearchResult(rots[k], t[0, q], int(ent[k]), float(score)), rank
     return best
 
 

@@ -225,7 +225,7 @@ def linearise(
         return r, None, valid, intensity
     # A point whose gradient stencil touches a non-finite pixel (r itself may be finite) is left out: its Jacobian
     # row would make the sample's normal equations non-finite (one NaN pixel failed the whole frame).
-    valid = valid & isfinite(vals).all(1)
+    valid = valid & isfinite(vals.sum(1))  # the sum: one test per point (as the native solver's)
     # Without autograd each row block is written into one (B, P, N) tensor where it is computed; out= arguments do
     # not support autograd, so a differentiable call (an input requires grad) computes the same blocks and
     # concatenates them.

@@ -143,6 +143,9 @@ class ManagementState:
         since_attempt: ``(B,)`` int64 lost frames since the last recovery attempt.
         attempts: ``(B,)`` int64 recovery attempts made in the stream's current loss (0 when not lost; None:
             none yet), which sets the depths a search tries (:meth:`TemplateConfig.depth_scale`).
+        adopted_scale: ``(B,)`` the depth scale of the attempt whose candidate the stream adopted in its current
+            loss (1.0: none, or the base depths; None: none yet): its continued track is judged within the depths
+            that attempt searched, so that the frames after it can end the loss.
         params_ypr: ``(params, ypr_deg)``: the yaw/pitch/roll ``(B, 3)`` of the parameters tensor ``params`` the
             step ended with (its result's), so that the next step does not convert them again; used only while
             ``TrackerState.params`` is that very tensor. None: not known.
@@ -161,6 +164,7 @@ class ManagementState:
     head_rotation: Tensor | None = None
     head_translation: Tensor | None = None
     attempts: Tensor | None = None
+    adopted_scale: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -411,6 +415,7 @@ def _confidence(
     return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics), face
 
 
+@full_precision
 def estimate_confidence(
     model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor
 ) -> tuple[Tensor, Tensor]:
@@ -755,12 +760,12 @@ def managed_step(
     # 3. Gating and loss.
     failed = result.status == _FAILED
     # A lost stream's track that has left the depths its recovery searches (search_depth_factors of its last
-    # confident depth, widened by 10 %) went astray, whatever its confidence: it scores 0, so it neither ends the
-    # loss nor counts as confident (CANDIDE-3 long run, landmark-noise draw 2, with README's per-unit shape prior
-    # and early re-anchoring: lost under an occluder, the track drifted to twice the true depth and 51 degrees
-    # off, scored 0.58 there and ended the loss for good).
+    # confident depth, widened by 10 %; scaled as the attempt whose candidate it adopted) went astray, whatever its
+    # confidence: it scores 0, so it neither ends the loss nor counts as confident (CANDIDE-3 long run,
+    # landmark-noise draw 2, with README's per-unit shape prior and early re-anchoring: lost under an occluder,
+    # the track drifted to twice the true depth and 51 degrees off, scored 0.58 there and ended the loss for good).
     if bool(ms.lost.any()):
-        near = _within_searched_depths(solved.params, ms.confident_params, layout, tc)
+        near = _within_searched_depths(solved.params, ms.confident_params, layout, tc, ms.adopted_scale)
         conf = torch.where(ms.lost & ~near, torch.zeros_like(conf), conf)
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
@@ -783,12 +788,14 @@ def managed_step(
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
 
     # 4. Recovery of lost streams (rare; only the streams concerned).
+    adopted_scale = ms.adopted_scale if ms.adopted_scale is not None else torch.ones_like(conf)
     recovery = bool(attempt.any())
     if recovery:
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
         made = torch.zeros_like(index) if ms.attempts is None else ms.attempts[index]
         scales = [tc.depth_scale(n) for n in made.tolist()] if detector is None else [1.0] * len(index)
+        tried = torch.tensor(scales, dtype=state.params.dtype, device=state.params.device)
         found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = _recover(
             model, config, state, ms, frames, index, detector, scales
         )
@@ -805,7 +812,6 @@ def managed_step(
         apart = apart > tc.adopt_min_angle_deg
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
-            tried = torch.tensor(scales, dtype=r_state.params.dtype, device=r_state.params.device)
             near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
@@ -823,6 +829,8 @@ def managed_step(
             conf[rows], diss[rows] = r_conf[adopt], r_diss[adopt]
             entry = entry.clone()
             entry[rows] = r_entry[adopt]
+            adopted_scale = adopted_scale.clone()
+            adopted_scale[rows] = tried[adopt]
             templates = _scatter_templates(templates, rows, entry_templates(
                 model, state.shape_coeffs[rows], ms.mosaic, rows, r_entry[adopt], config.backend),
                 in_place=donate or templates is not state.templates)  # fmt: skip
@@ -860,10 +868,11 @@ def managed_step(
         new_state = replace(new_state, templates=templates)
     attempts = torch.zeros_like(ms.low_count) if ms.attempts is None else ms.attempts
     attempts = torch.where(lost, attempts + attempt, torch.zeros_like(attempts))  # in the current loss
+    adopted_scale = torch.where(lost, adopted_scale, torch.ones_like(adopted_scale))
     ms = ManagementState(
         mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
         None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
-        attempts,
+        attempts, adopted_scale,
     )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(

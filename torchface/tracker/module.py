@@ -61,7 +61,8 @@ class FaceTracker(nn.Module):
         self._dropped: str | None = None  # why the state was forgotten by a move (for the next step's error)
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
-        """Move the face model (and forget the tracked state) like ``nn.Module.to``: device and/or float dtype.
+        """Move the face model like ``nn.Module.to``: device and/or float dtype (a move that changes either
+        forgets the tracked state: :meth:`_apply`).
 
         Example:
             >>> tracker = FaceTracker().to(torch.float64)

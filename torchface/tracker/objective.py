@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchface._autocast import full_precision
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import in_front, project_points, project_points_jacobian
@@ -44,6 +45,7 @@ def warp_points(
     return points_model, points_cam, R
 
 
+@full_precision
 def frame_residuals(
     x: Tensor,
     layout: ParamLayout,
