@@ -106,6 +106,7 @@ from torchface.tracker.step import (
     check_frames,
     check_initialise_inputs,
     check_state_levels,
+    clamp_projection,
     gray_pyramid,
     gray_pyramid_windows,
     initialise,
@@ -442,8 +443,7 @@ def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q:
     (so that every pyramid level's window is pixel-aligned with that level)."""
     uv = project_points(verts_cam[model.surface_vertex_mask].unsqueeze(0), intrinsics)[0]
     W, H = intrinsics.width, intrinsics.height
-    uv = torch.nan_to_num(uv)
-    uv = torch.stack([uv[:, 0].clamp(-W, 2 * W), uv[:, 1].clamp(-H, 2 * H)], dim=-1)  # each axis by its size
+    uv = clamp_projection(uv, W, H)
     lo, hi = uv.amin(0), uv.amax(0)
     pad = 0.05 * (hi - lo) + 8
     x0 = max(0, int(float(lo[0] - pad[0])) // q * q)

@@ -894,6 +894,13 @@ def _posed_vertices(model: FaceModel, state: TrackerState, layout: ParamLayout, 
     return torch.matmul(model.deform(state.shape_coeffs, alpha), R.transpose(1, 2)) + t.unsqueeze(1)
 
 
+def clamp_projection(uv: Tensor, width: int, height: int) -> Tensor:
+    """Projected points ``(..., 2)`` made finite (NaN to 0) and kept within one image size of the image on each
+    axis (u in ``[-W, 2W]``, v in ``[-H, 2H]``), for the boxes around a projected face."""
+    uv = torch.nan_to_num(uv)
+    return torch.stack([uv[..., 0].clamp(-width, 2 * width), uv[..., 1].clamp(-height, 2 * height)], dim=-1)
+
+
 def _round_down(x: Tensor, q: int) -> Tensor:
     """Round int64 ``x`` down to a multiple of the power of two ``q`` (two's complement: also below zero)."""
     return x & -q
@@ -911,8 +918,7 @@ def face_crop(
     H, W = state.intrinsics.height, state.intrinsics.width
     verts = _posed_vertices(model, state, layout) if verts is None else verts
     uv = project_points(verts, state.intrinsics)
-    uv = torch.nan_to_num(uv)
-    uv = torch.stack([uv[..., 0].clamp(-W, 2 * W), uv[..., 1].clamp(-H, 2 * H)], dim=-1)  # each axis by its size
+    uv = clamp_projection(uv, W, H)
     lo, hi = uv.amin(1), uv.amax(1)  # (B, 2)
     size = (hi - lo).amax(-1)  # (B,)
     q = 2 ** (config.num_levels - 1)
