@@ -345,7 +345,8 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, str]:
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16],
-        "--focal": repr(None if config.focal is None else float(config.focal)), "--convert": repr(config.convert), "--lookahead": repr(config.lookahead),
+        "--focal": repr(None if config.focal is None else float(config.focal)), "--convert": repr(config.convert),
+        "--lookahead": repr(config.lookahead),
         "online start": repr(config.refine_first), "tracker settings": repr(config.tracker),
         "--detector": repr(config.detector), "re-detection": repr((config.redetect_after, config.redetect_below)),
         "normalised size": repr(config.normalised_size),

@@ -128,9 +128,10 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     if points.shape != (68, 2):
         raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
     h = hashlib.blake2b(digest_size=32)
+    native = config.tracker.backend is not Backend.TORCH and _native.library() is not None
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
-        f"native={config.tracker.backend is not Backend.TORCH and _native.library() is not None}", content, repr(config), extra,
+        f"native={native}", content, repr(config), extra,
     )  # fmt: skip
     for part in parts:
         data = part.encode("utf-8")

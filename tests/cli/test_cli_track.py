@@ -655,7 +655,9 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     before = signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a parent that ignores SIGTERM: left ignored
     try:
         seen = []
-        monkeypatch.setattr(torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM)))
+        monkeypatch.setattr(
+            torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM))
+        )
         monkeypatch.setattr(torchface.cli, "_print_summary", lambda *a: None)
         assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 0
         assert seen == [signal.SIG_IGN]

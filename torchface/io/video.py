@@ -3,8 +3,9 @@
 Three kinds of input are accepted:
 
 - a video file that OpenCV can decode (``.mp4``, ``.avi``, ``.mpg``, ...);
-- a folder of images (``.png``, ``.jpg``, ``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``), read in name order (runs of digits
-  compared as numbers, hidden files left out: :func:`image_files`) with ``cv2.IMREAD_UNCHANGED`` so that 8- and 16-bit, gray, BGR and BGRA images keep what they store;
+- a folder of images (``.png``, ``.jpg``, ``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``), read in name order (runs of
+  digits compared as numbers, hidden files left out: :func:`image_files`) with ``cv2.IMREAD_UNCHANGED`` so that 8-
+  and 16-bit, gray, BGR and BGRA images keep what they store;
 - a ``.npy`` array ``(T, H, W)`` (gray) or ``(T, H, W, C)`` with ``C`` in 1, 3 (RGB), 4 (RGBA).
 
 The tracker takes 8-bit colour frames of even width and height (or float frames in ``[0, 1]``). By default a
@@ -282,7 +283,8 @@ def image_files(folder: str | os.PathLike[str]) -> list[Path]:
         >>> # image_files("frames") -> [frames/1.png, frames/2.png, frames/10.png]
     """
     files = [
-        f for f in Path(folder).iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".") and f.is_file()
+        f for f in Path(folder).iterdir()
+        if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".") and f.is_file()
     ]
     return sorted(files, key=lambda f: _natural_key(f.name))
 
