@@ -309,17 +309,22 @@ def test_frame_dissimilarity_high_at_truth_low_when_wrong(model, scene):
     assert torch.isfinite(out.dissimilarity).all()
 
 
-def test_search_mosaic_finds_the_moved_face(model, scene):
-    frames, gt, fit, tpl = scene
-    cfg = TemplateConfig(search_step_px=2.0)
+def _half_size_mosaic(model, scene, cfg):
+    """One pyramid level at half size: its camera, frame 0's gray image and a mosaic of frame 0's template."""
+    frames, gt, fit, _ = scene
     ref = build_dissimilarity_reference(torch.rand(1, 1, 32, 32, dtype=D), torch.ones(1, 1, 32, 32, dtype=D))
-    # One pyramid level at half size: the template of frame 0 at that level.
     gray0 = torch.nn.functional.avg_pool2d(frames[:1].mean(1, keepdim=True), 2)
     intr = Intrinsics(W // 2, H // 2, gt.intrinsics.fx / 2, gt.intrinsics.fy / 2, (gt.intrinsics.cx + 0.5) / 2 - 0.5,
                       (gt.intrinsics.cy + 0.5) / 2 - 0.5)  # fmt: skip
     tpl0 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray0, intr,
                           max_points=600, gradient_threshold=0.01)  # fmt: skip
-    m = new_mosaic((tpl0,), fit.rotation, matrix_to_euler(fit.rotation), ref, cfg)
+    return intr, gray0, ref, new_mosaic((tpl0,), fit.rotation, matrix_to_euler(fit.rotation), ref, cfg)
+
+
+def test_search_mosaic_finds_the_moved_face(model, scene):
+    frames, gt, fit, tpl = scene
+    cfg = TemplateConfig(search_step_px=2.0)
+    intr, _, ref, m = _half_size_mosaic(model, scene, cfg)
     # A second entry at yaw 20 (the frame-1 pose) so that the right hypothesis exists.
     R1 = gt.rotation[1:].to(D)
     tpl1 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, R1, gt.translation[1:].to(D),
@@ -341,15 +346,9 @@ def test_search_mosaic_finds_the_moved_face(model, scene):
 def test_search_mosaic_widened_depths_find_a_face_that_came_back_farther(model, scene):
     """A lost face back at 1.6 times its last confident depth lies outside the searched depths (0.85-1.2 of it):
     the later attempts' widened depths (``search_depth_widening``, here 1.45) find it where it is."""
-    frames, gt, fit, _ = scene
+    _, _, fit, _ = scene
     cfg = TemplateConfig(search_step_px=2.0)
-    ref = build_dissimilarity_reference(torch.rand(1, 1, 32, 32, dtype=D), torch.ones(1, 1, 32, 32, dtype=D))
-    gray0 = torch.nn.functional.avg_pool2d(frames[:1].mean(1, keepdim=True), 2)
-    intr = Intrinsics(W // 2, H // 2, gt.intrinsics.fx / 2, gt.intrinsics.fy / 2, (gt.intrinsics.cx + 0.5) / 2 - 0.5,
-                      (gt.intrinsics.cy + 0.5) / 2 - 0.5)  # fmt: skip
-    tpl0 = build_template(model, fit.shape_coeffs, fit.anim_coeffs, fit.rotation, fit.translation, gray0, intr,
-                          max_points=600, gradient_threshold=0.01)  # fmt: skip
-    m = new_mosaic((tpl0,), fit.rotation, matrix_to_euler(fit.rotation), ref, cfg)
+    intr, gray0, _, m = _half_size_mosaic(model, scene, cfg)
     true_depth = float(fit.translation[0, 2])
     last = true_depth / 1.6  # the depth the stream was confident at before it was lost
     plain = search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, last, None, cfg)
