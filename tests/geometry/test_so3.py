@@ -365,3 +365,34 @@ def test_geodesic_angle_and_relative_rotation_promote_mixed_dtypes() -> None:
     angle = geodesic_angle_deg(R64, R32)
     assert angle.dtype == torch.float64 and abs(float(angle[0]) - 10.0) < 1e-9
     assert relative_rotation(R32, R64).dtype == torch.float64
+
+
+def test_euler_yaw_and_roll_are_never_minus_180() -> None:
+    """``atan2`` of a -0.0 or rounding-level negative sine gives -180: reported as +180, as documented
+    ((-180, 180]); the rotation is the same."""
+    for dtype in (torch.float32, F64):
+        for ypr in ([180.0, 0.0, 0.0], [0.0, 89.0, 180.0], [-180.0, 10.0, -180.0], [0.0, 90.0, 180.0]):
+            R = euler_to_matrix(torch.tensor(ypr, dtype=dtype))
+            out = matrix_to_euler(R)
+            assert bool((out[[0, 2]] > -180.0).all()) and bool((out[[0, 2]] <= 180.0).all()), (ypr, out)
+            tol = 1e-5 if dtype == torch.float32 else 1e-12
+            torch.testing.assert_close(euler_to_matrix(out), R, atol=tol, rtol=0)
+    R = torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=F64))  # yaw 180 with signed zeros
+    R[0, 2], R[2, 0] = -0.0, -0.0
+    assert float(matrix_to_euler(R)[0]) == 180.0
+
+
+def test_euler_round_trip_near_the_lock_keeps_the_rotation() -> None:
+    """Within 0.02 degrees of +-90 pitch the lock branch (roll 0) cost up to 0.04 degrees in float32; the free
+    formulas keep the rotation to rounding until cos(pitch) reaches the machine epsilon."""
+    gen = torch.Generator().manual_seed(0)
+    for dtype, tol in ((torch.float32, 1e-3), (F64, 1e-9)):
+        n = 2000
+        ypr = torch.empty(n, 3, dtype=dtype)
+        ypr[:, 0] = torch.rand(n, generator=gen, dtype=dtype) * 360 - 180
+        ypr[:, 2] = torch.rand(n, generator=gen, dtype=dtype) * 360 - 180
+        side = torch.where(torch.rand(n, generator=gen) < 0.5, 1.0, -1.0).to(dtype)
+        ypr[:, 1] = side * (90.0 - 0.02 * torch.rand(n, generator=gen, dtype=dtype))  # within 0.02 deg of the lock
+        R = euler_to_matrix(ypr)
+        err = geodesic_angle_deg(euler_to_matrix(matrix_to_euler(R)), R)
+        assert float(err.max()) < tol, (dtype, float(err.max()))

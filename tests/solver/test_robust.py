@@ -214,3 +214,28 @@ def test_least_squares_with_a_switched_loss_solves_each_row_with_its_loss() -> N
     mixed = least_squares(residual_fn, x0, cfg, robust=SwitchedRobustLoss(tukey, huber, torch.tensor([[False], [True]])))
     torch.testing.assert_close(mixed.params[0], a[0], rtol=0, atol=1e-8)
     torch.testing.assert_close(mixed.params[1], b[1], rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("kind", [RobustKind.CAUCHY, RobustKind.GEMAN_MCCLURE])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_rho_stays_finite_far_beyond_the_scale(kind: RobustKind, dtype: torch.dtype) -> None:
+    """A residual far beyond the scale (a zero scale is floored at sqrt(tiny)) made (r/s)^2 overflow: Cauchy's rho
+    was inf and Geman-McClure's NaN, their gradients too. Both saturate there: finite, and equal to rho at the
+    largest |r / s| the dtype squares safely."""
+    loss = RobustLoss(kind)
+    r = torch.tensor([1e-20, 3.0, -3.0, 1e30], dtype=dtype, requires_grad=True)
+    for scale in (0.0, 1e-30):
+        rho = loss.rho(r, scale)
+        (g,) = torch.autograd.grad(rho.sum(), r)
+        assert bool(torch.isfinite(rho).all()) and bool(torch.isfinite(g).all()), (rho, g)
+        rho2, w = loss.rho_and_weight(r.detach(), scale)
+        torch.testing.assert_close(rho2, rho.detach())
+        assert bool(torch.isfinite(w).all())
+    # an ordinary residual is untouched
+    x = torch.linspace(-5, 5, 11, dtype=dtype)
+    c = loss.c
+    if kind is RobustKind.CAUCHY:
+        expected = 0.5 * c * c * torch.log1p(x * x / (c * c))
+    else:
+        expected = 0.5 * x * x / (1 + x * x / (c * c))
+    torch.testing.assert_close(loss.rho(x, 1.0), expected)

@@ -60,8 +60,9 @@ def in_front(points_cam: torch.Tensor, near: float = NEAR_PLANE_MM) -> torch.Ten
 def project_points(points_cam: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
     """Perspective projection to pixel coordinates (the paper's Eq. 15).
 
-    Depth is clamped to the dtype's machine epsilon, so the result is always finite; it is only
-    meaningful where :func:`in_front` holds.
+    Depth is clamped to the dtype's machine epsilon, so the result is always finite in float32 and float64 (not
+    in float16, whose range a focal length times millimetres exceeds); it is only meaningful where
+    :func:`in_front` holds.
 
     Args:
         points_cam: ``(B, N, 3)`` points in the camera frame (millimetres).

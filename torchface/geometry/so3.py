@@ -293,8 +293,10 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     From the product, ``R[1] = (cos p sin r, cos p cos r, -sin p)`` and
     ``R[:, 2] = (sin y cos p, -sin p, cos y cos p)``, so
     ``pitch = atan2(-R12, hypot(R10, R11))``, ``yaw = atan2(R02, R22)``, ``roll = atan2(R10, R11)``.
-    At gimbal lock (``cos p`` below ``sqrt(eps)``) roll is set to 0 and yaw absorbs it:
-    ``yaw = atan2(sign(sin p) R01, R00)``. See :mod:`torchface.conventions`.
+    At gimbal lock (``cos p`` below ``eps``, the dtype's machine epsilon: nearer the lock the free formulas still
+    give yaw and roll whose rotation is right to rounding, and a wider lock would cost its ``cos p`` in accuracy)
+    roll is set to 0 and yaw absorbs it: ``yaw = atan2(sign(sin p) R01, R00)``. Yaw and roll of -180 degrees
+    (``atan2`` of a -0.0 or a rounding-level negative sine) are reported as +180. See :mod:`torchface.conventions`.
 
     Args:
         R: ``(..., 3, 3)`` rotation matrices.
@@ -314,7 +316,7 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     cos_p2 = r10 * r10 + r11 * r11
     cos_p = cos_p2.clamp(min=finfo.tiny).sqrt()
     pitch = torch.atan2(-r12, cos_p)
-    locked = cos_p2 < finfo.eps
+    locked = cos_p2 < finfo.eps * finfo.eps
     one = torch.ones_like(r00)
     # Clamp before torch.where: each branch's atan2 only sees arguments away from (0, 0).
     yaw_free = torch.atan2(torch.where(locked, 0.0 * one, r02), torch.where(locked, one, r22))
@@ -323,7 +325,9 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     yaw_locked = torch.atan2(torch.where(locked, sign_p * r01, 0.0 * one), torch.where(locked, r00, one))
     yaw = torch.where(locked, yaw_locked, yaw_free)
     roll = torch.where(locked, 0.0 * one, roll_free)
-    return torch.rad2deg(torch.stack((yaw, pitch, roll), dim=-1))
+    ypr = torch.rad2deg(torch.stack((yaw, pitch, roll), dim=-1))
+    half_turn = torch.tensor([180.0, 1e30, 180.0], dtype=ypr.dtype, device=ypr.device)  # (pitch never wraps)
+    return torch.where(ypr <= -half_turn, ypr + 2 * half_turn, ypr)  # -180 -> +180: yaw and roll in (-180, 180]
 
 
 def geodesic_angle_deg(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
