@@ -584,7 +584,7 @@ def _without_online_start(state: TrackerState, resumed: list[bool]) -> TrackerSt
 
 
 def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dict[str, Path]], first_R: Tensor,
-                    first_t: Tensor, layout: ParamLayout) -> None:  # fmt: skip
+                    first_t: Tensor, layout: ParamLayout, frame: int) -> None:  # fmt: skip
     """Write the record (:func:`_write_record`) of each stream the online start has just re-anchored: its first
     frame's refined fit, recovered from the offsets ``D = R0c^T R0``, ``d = R0c^T (t0 - t0c)`` between the refined
     first pose ``(R0c, t0c)`` and the first result's ``(R0, t0)``, with the state's shape and starting expression."""
@@ -603,7 +603,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
         s.anchor = {
             "axis_angle": matrix_to_axis_angle(R0c[None])[0].tolist(), "translation": t0c.tolist(),
             "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": neutral[k].tolist(),
-            "head_rotation": D.tolist(), "head_translation": d.tolist(),
+            "head_rotation": D.tolist(), "head_translation": d.tolist(), "frame": frame,
         }  # fmt: skip
         _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings)
 
@@ -724,7 +724,7 @@ def _track_group(
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
             state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
-            _record_anchors(state, streams, paths, first_R, first_t, layout)
+            _record_anchors(state, streams, paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
     except BaseException:
         for s in streams:
@@ -803,6 +803,7 @@ def _finalise(
                   "animation_units": list(model.animation_names), "facs": list(model.facs_names),
                   "shape_units": model.num_shape,
                   "shape_coeffs": state.shape_coeffs[streams.index(s)].tolist()},  # fmt: skip
+        "start": _start_record(model, config, s, state, streams.index(s)),
         "initial_landmarks_px": s.landmarks.tolist(),
         "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": B * fps},
         "frames": int(len(rows)),
@@ -818,6 +819,37 @@ def _finalise(
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short)  # fmt: skip
+
+
+def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: TrackerState, k: int) -> dict:
+    """The sidecar's ``start``: how the video's first pose was found and, once the online start re-anchored it,
+    what turns the CSV's pose into the pose that places the mesh.
+
+    ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
+    (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
+    ``reanchored_at_frame``: the frame after which the online start re-anchored the stream (None: not). Then the
+    CSV's pose (rotation ``R``, translation ``t``) is reported in the head frame of the first row, and the mesh is
+    placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with
+    ``model.shape_coeffs``; the ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated
+    starting expression), ``anim_*`` are the coefficients that place the mesh.
+    """
+    online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
+    if config.lookahead is not None:
+        method = "lookahead"
+    elif online and (s.replay is None or s.anchor is not None):
+        method = "online"
+    else:
+        method = "landmark fit"
+    alpha = state.params[:, ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS).animation]
+    neutral = state.neutral_anim_coeffs(alpha)[k].tolist()
+    anchor = s.anchor
+    return {
+        "method": method,
+        "reanchored_at_frame": None if anchor is None else anchor.get("frame"),
+        "head_rotation": None if anchor is None else anchor["head_rotation"],
+        "head_translation": None if anchor is None else anchor["head_translation"],
+        "neutral_anim_coeffs": neutral,
+    }
 
 
 def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics):

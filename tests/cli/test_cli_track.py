@@ -673,3 +673,38 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     assert main(["demo", "--out", str(tmp_path)]) == 130
     err = capsys.readouterr().err
     assert "--resume" not in err and "start over" in err
+
+
+def test_sidecar_says_how_the_video_started_and_how_to_place_the_mesh(clip, plain_run, tmp_path):
+    """The sidecar's ``start`` records the start used and, once the online start re-anchored the stream, the head
+    offset and the neutral that turn the CSV's rows (reported in the first row's head frame) into the mesh the
+    overlay and the PLY files show (they used to be written nowhere but a record deleted at the end)."""
+    import trimesh
+
+    from torchface.model.candide import load_candide3
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 6)
+    out = tmp_path / "out"
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), meshes=True))
+    side = json.loads((out / "short.json").read_text())
+    start = side["start"]
+    assert start["method"] == "online" and isinstance(start["reanchored_at_frame"], int)
+    D = np.array(start["head_rotation"])
+    d = np.array(start["head_translation"])
+    assert np.abs(D - np.eye(3)).max() > 1e-4  # re-anchored: the offset is not the identity
+    cols, rows, R, t = _pose(out / "short.csv")
+    model = load_candide3(dtype=torch.float64)
+    shape = torch.tensor(side["model"]["shape_coeffs"], dtype=torch.float64)
+    anim_cols = [i for i, c in enumerate(cols) if c.startswith("anim_")]
+    au_cols = [i for i, c in enumerate(cols) if c.startswith("AU") and c.endswith("_r")]
+    last = len(rows) - 1
+    R_mesh = np.asarray(R[last], dtype=np.float64) @ D.T
+    t_mesh = np.asarray(t[last], dtype=np.float64) - R_mesh @ d
+    anim = torch.tensor(rows[last, anim_cols], dtype=torch.float64)
+    verts = model.deform(shape[None], anim[None])[0].numpy() @ R_mesh.T + t_mesh
+    ply = trimesh.load(out / "short_meshes" / f"{last:06d}.ply", process=False)
+    assert np.abs(ply.vertices - verts).max() < 1e-2  # mm (the CSV's float precision)
+    assert len(start["neutral_anim_coeffs"]) == len(anim_cols) and au_cols
+    plain = json.loads(output_paths(plain_run[1], NAME)["json"].read_text())["start"]
+    assert plain["method"] == "landmark fit" and plain["reanchored_at_frame"] is None and plain["head_rotation"] is None

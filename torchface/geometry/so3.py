@@ -155,7 +155,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
 
     Example:
         >>> R = axis_angle_to_matrix(torch.tensor([[0.0, 0.0, math.pi / 2]]))
-        >>> R.round(decimals=4)
+        >>> R.round(decimals=4) + 0.0  # (+ 0.0 turns a -0. into 0.)
         tensor([[[ 0., -1.,  0.],
                  [ 1.,  0.,  0.],
                  [ 0.,  0.,  1.]]])

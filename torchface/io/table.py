@@ -11,7 +11,10 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   (:func:`openface_euler`), ``R`` the head-to-camera rotation in the OpenCV camera frame, identity = a face
   looking straight into the camera;
 - ``yaw_deg, pitch_deg, roll_deg``: the same rotation as ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)``, degrees;
-- ``r00 ... r22``: the rotation matrix, row-major (``X_cam = R @ X_head + t``);
+- ``r00 ... r22``: the rotation matrix, row-major (``X_cam = R @ X_head + t``). After the online start has
+  re-anchored a stream, the pose columns are the re-anchored estimate in the head frame of the first row (they stay
+  continuous); the mesh is placed by ``R @ D^T`` and ``t - R @ D^T @ d`` with the offsets the job's JSON records
+  (``start.head_rotation``, ``start.head_translation``; :attr:`~torchface.tracker.TrackResult.rotation`);
 - ``AUxx_r`` (two digits, as OpenFace: ``AU02_r``): one column per FACS action unit linked to a CANDIDE-3
   animation unit: the expression's intensity in
   the animation unit's own scale (:meth:`~torchface.model.FaceModel.facs_values` of
@@ -100,7 +103,7 @@ def openface_euler(R: Tensor) -> Tensor:
     At ``|Ry| = pi/2`` (gimbal lock) ``Rz`` is set to 0 and ``Rx`` absorbs the remaining rotation.
 
     Example:
-        >>> openface_euler(torch.eye(3)[None])
+        >>> openface_euler(torch.eye(3)[None]) + 0.0  # (+ 0.0 turns a -0. into 0.)
         tensor([[0., 0., 0.]])
     """
     if not isinstance(R, Tensor) or R.dim() != 3 or R.shape[-2:] != (3, 3):

@@ -393,7 +393,7 @@ class TrackResult:
 
         With template management a stream is declared LOST only after a few frames of low confidence
         (:attr:`~torchface.template.management.TemplateConfig.lost_after`, ``lost_after_very_low``: 3 frames below
-        0.05 by default), so the first frames of a loss are still successful, with their low ``confidence``:
+        0.1 by default), so the first frames of a loss are still successful, with their low ``confidence``:
         where single frames matter, threshold the confidence as well (e.g. a face turned upside down for 10
         frames read success True, confidence 0.00, 28 degrees off, on its first 2)."""
         return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
