@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import resource
@@ -227,8 +228,52 @@ def _run_child(
     if online_refine:
         cmd.append("--online-refine")
     child_env = None if env is None else {**os.environ, **env}
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=child_env)
+    out = subprocess.run(cmd, capture_output=True, text=True, env=child_env)
+    if out.returncode != 0:  # the child's own message, not only its exit status
+        raise SystemExit(f"benchmark.py: a timing run (B={batch}) failed:\n{out.stderr.strip()[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _write_json(path: Path, figures: dict) -> None:
+    """Strict JSON (NaN as null) through a temporary file: never a half-written file under the name."""
+
+    def safe(x):
+        if isinstance(x, dict):
+            return {k: safe(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [safe(v) for v in x]
+        return None if isinstance(x, float) and not math.isfinite(x) else x
+
+    tmp = path.with_name(path.name + ".partial")
+    try:
+        tmp.write_text(json.dumps(safe(figures), indent=2, allow_nan=False))
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """One-line errors for what would fail later (after minutes of timing runs)."""
+    if not 4 <= args.frames <= 150:
+        ap.error(f"--frames must be in 4..150 (the sweep's slow first half), got {args.frames}")
+    if args.width < 64 or args.height < 64 or args.width % 2 or args.height % 2:
+        ap.error(f"--width and --height must be even and >= 64, got {args.width}x{args.height}")
+    try:
+        batches = [int(x) for x in args.batches.split(",") if x.strip()]
+        batches += [int(x) for x in args.malloc_batches.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--batches and --malloc-batches must be comma lists of integers, got {args.batches!r}, "
+                 f"{args.malloc_batches!r}")  # fmt: skip
+    if any(b < 1 for b in batches) or (batches and args.frames - max(batches) < 4):
+        ap.error(f"every batch must be >= 1 and leave 4 frames of the {args.frames} (streams are offset copies)")
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
+        ap.error(f"--json {args.json}: not a file path in an existing folder")
+    if args.mediapipe_python is not None and not (
+        Path(args.mediapipe_python).is_file() and os.access(args.mediapipe_python, os.X_OK)
+    ):
+        ap.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
 
 
 def _baseline_mb(args: argparse.Namespace) -> float:
@@ -346,7 +391,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
-    ap.add_argument("--frames", type=int, default=160, help="frames rendered (streams are offset copies)")
+    ap.add_argument("--frames", type=int, default=150,
+                    help="frames of the sweep used, at most 150 (streams are offset copies)")
     ap.add_argument("--batches", default="1,8,32,128")
     ap.add_argument("--malloc-batches", default="128",
                     help="batches run again with glibc's MALLOC_MMAP_THRESHOLD_=256 MB (comma list; '' for none)")
@@ -366,13 +412,14 @@ def main() -> None:
     if args.child:
         print(json.dumps(_child(args)))
         return
+    _check_arguments(ap, args)
     print(f"rendering / loading {args.frames} frames at {args.width}x{args.height} ...", file=sys.stderr)
     _frames(Path(args.cache), args.width, args.height, args.frames)
     if args.management_only:
         figures = {}
         _management(args, figures)
         if args.json:
-            Path(args.json).write_text(json.dumps(figures, indent=2))
+            _write_json(Path(args.json), figures)
         return
     base = _baseline_mb(args)
     figures: dict[str, dict[str, float]] = {}
@@ -418,7 +465,7 @@ def main() -> None:
         figures["mediapipe"] = mp
     _management(args, figures)
     if args.json:
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+        _write_json(Path(args.json), figures)
 
 
 if __name__ == "__main__":

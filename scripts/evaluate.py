@@ -59,6 +59,7 @@ import hashlib
 import itertools
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -469,8 +470,11 @@ def write_json(path: Path, results: dict[str, dict[str, object]]) -> None:
     """Write the figures so far (to a temporary name, then renamed: never a half-written file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(_json_safe(results), indent=1) + "\n")
-    tmp.replace(path)
+    try:
+        tmp.write_text(json.dumps(_json_safe(results), indent=1) + "\n")
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 # ------------------------------------------------------------------------------------------ section (a): long runs
@@ -671,8 +675,11 @@ def save_series(path: Path, series: list[FrameSeries]) -> None:
             arrays[f"{i}/{f}"] = getattr(s, f).numpy()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    try:
+        np.savez_compressed(tmp, **arrays)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def load_series(path: Path) -> list[FrameSeries]:
@@ -751,10 +758,17 @@ def auroc_section(series: list[FrameSeries]) -> tuple[str, dict[str, dict[str, f
         a = main["auroc"]
         lines.append(
             f"   target: AUROC >= {AUROC_TARGET:g} (pooled, default configuration): "
-            f"{'n/a (no frame above ' + format(BAD_DEG, 'g') + ' deg)' if math.isnan(a) else _mark(a >= AUROC_TARGET)}"
+            f"{_why_no_auroc(main) if math.isnan(a) else _mark(a >= AUROC_TARGET)}"
             f" ({main['negatives']} negatives)"
         )
     return "\n".join(lines), figures
+
+
+def _why_no_auroc(row: dict) -> str:
+    """Why a pool has no AUROC: one of its two classes is empty."""
+    if not row["negatives"]:
+        return f"n/a (no frame above {BAD_DEG:g} deg)"
+    return f"n/a (no frame below {GOOD_DEG:g} deg)"
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -762,8 +776,8 @@ def _parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
-    if w < 8 or h < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
+    if w < 8 or h < 8 or w % 2 or h % 2:
+        raise argparse.ArgumentTypeError(f"size must be even and at least 8x8 (the video frames), got {text!r}")
     return w, h
 
 
@@ -908,6 +922,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--selection-seeds must be a comma list of integers, got {args.selection_seeds!r}")
     if any(x < 0 for x in selection_seeds):
         parser.error(f"--selection-seeds must be integers >= 0, got {args.selection_seeds!r}")
+    if args.threads is not None and args.threads < 1:
+        parser.error(f"--threads must be >= 1, got {args.threads}")
+    if args.long_frames is not None and args.long_frames < 100:
+        parser.error(f"--long-frames must be >= 100 (a long run's events need them), got {args.long_frames}")
+    for option, path in (("--json", args.json), ("--save-series", args.save_series)):
+        if path is not None and (path.is_dir() or (path.parent.exists() and not path.parent.is_dir())):
+            parser.error(f"{option} {path}: not a file path (a folder, or under a file)")
+    if args.mediapipe_python is not None and not (
+        Path(args.mediapipe_python).is_file() and os.access(args.mediapipe_python, os.X_OK)
+    ):
+        parser.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
+    if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
+        parser.error(f"--cache {args.cache}: not a folder")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global LOOKAHEAD, ONLINE_REFINE
@@ -964,7 +991,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.size is not None:
                 w, h = args.size
             if name in LONG_SCENARIOS:
-                t = args.long_frames or t
+                t = args.long_frames if args.long_frames is not None else t
                 # Long sequences are streamed from a cache folder (a temporary one with --cache none).
                 folder = cache if cache is not None else Path(stack.enter_context(tempfile.TemporaryDirectory()))
                 video, gt = cache_sequence(name, w, h, t, folder)

@@ -104,7 +104,10 @@ def run_mediapipe(frames_rgb: np.ndarray | Path, python: str | None = None, *, p
             np.save(path, frames_rgb)
         out_path = Path(tmp) / "matrices.npy"
         cmd = [python or sys.executable, "-c", _RUNNER, str(path)] + ([str(out_path)] if poses else [])
-        out = subprocess.run(cmd, capture_output=True, text=True)
+        try:
+            out = subprocess.run(cmd, capture_output=True, text=True)
+        except OSError:  # no such interpreter (or not executable): no run, as for one without MediaPipe
+            return None
         words = out.stdout.strip().split()
         if out.returncode != 0 or len(words) != 4:
             return None

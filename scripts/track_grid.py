@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -25,7 +26,8 @@ import numpy as np
 import torch
 
 from torchface.cli import ProgressDisplay
-from torchface.io import read_track_csv
+from torchface.detect import DetectorUnavailable
+from torchface.io import InputError, OutputError, read_track_csv
 from torchface.job import JobConfig, output_paths, track_videos
 from torchface.synth.io import read_video_uint8
 from torchface.synth.metrics import rotation_jitter_deg
@@ -61,10 +63,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no GRID clips at {args.grid}", file=sys.stderr)
         return 2
     clips = sorted(args.grid.glob("*.mpg"))
+    if not clips:
+        parser.error(f"--grid {args.grid}: no .mpg clips there")
+    if args.landmarks_dir is None and args.detector is None:
+        parser.error("give --landmarks-dir (first-frame landmarks <stem>.csv) or --detector NAME")
+    if args.landmarks_dir is not None and not args.landmarks_dir.is_dir():
+        parser.error(f"--landmarks-dir {args.landmarks_dir}: no such folder")
+    if args.mediapipe_python is not None and not (
+        Path(args.mediapipe_python).is_file() and os.access(args.mediapipe_python, os.X_OK)
+    ):
+        parser.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
     landmarks = tuple(args.landmarks_dir / f"{c.stem}.csv" for c in clips) if args.landmarks_dir else ()
     config = JobConfig(out_dir=args.out, landmarks=landmarks, detector=args.detector)
     start = time.perf_counter()
-    summaries = track_videos(clips, config, progress=ProgressDisplay())
+    try:
+        summaries = track_videos(clips, config, progress=ProgressDisplay())
+    except (InputError, OutputError, DetectorUnavailable, ValueError) as exc:
+        print(f"track_grid.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
     wall = time.perf_counter() - start
     table = []
     peer = "  mp jitter" if args.mediapipe_python else ""
@@ -73,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         cols, rows = read_track_csv(output_paths(args.out, s.name)["csv"])
         ok = rows[:, cols.index("success")]
         conf = rows[:, cols.index("confidence")]
-        jitter = pose_jitter_deg(rows[:, [cols.index(c) for c in _ROTATION_COLUMNS]].reshape(-1, 3, 3))
+        rotations = rows[:, [cols.index(c) for c in _ROTATION_COLUMNS]].reshape(-1, 3, 3)
+        jitter = pose_jitter_deg(rotations) if len(rows) >= 3 else float("nan")  # jitter needs three frames
         row = {"clip": s.name, "frames": s.frames, "success": float(ok.mean()), "mean_confidence": float(conf.mean()),
                "min_confidence": float(conf.min()), "jitter_deg": jitter, "fps": s.fps}  # fmt: skip
         extra = ""
@@ -100,13 +117,17 @@ def main(argv: list[str] | None = None) -> int:
         cap.release()
         if images:
             cv2.imwrite(str(args.out / f"{s.name}_frames.png"), np.hstack(images))
-    jitters = [r["jitter_deg"] for r in table]
+    jitters = [r["jitter_deg"] for r in table if np.isfinite(r["jitter_deg"])]
     peers_jitter = [r["mediapipe_jitter_deg"] for r in table if "mediapipe_jitter_deg" in r]
-    print(f"mean jitter over the clips: {np.mean(jitters):.3f} deg" +
+    print(f"mean jitter over the clips: {np.mean(jitters) if jitters else float('nan'):.3f} deg" +
           (f" (MediaPipe, {len(peers_jitter)} clips: {np.mean(peers_jitter):.3f} deg)" if peers_jitter else ""))
     total = sum(s.frames for s in summaries)
     print(f"all {len(summaries)} clips: {total} frames in {wall:.1f} s wall ({total / wall:.2f} frames/s overall, batched)")
-    (args.out / "grid_summary.json").write_text(json.dumps({"clips": table, "wall_s": wall, "frames": total}, indent=2))
+    summary = {"clips": [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
+                         for r in table], "wall_s": wall, "frames": total}  # fmt: skip
+    tmp = args.out / "grid_summary.json.partial"
+    tmp.write_text(json.dumps(summary, indent=2, allow_nan=False))  # strict JSON: no NaN tokens
+    tmp.replace(args.out / "grid_summary.json")
     return 0
 
 

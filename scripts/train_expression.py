@@ -46,6 +46,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import sys
 import time
@@ -395,6 +396,29 @@ def train_and_test(
 # ---------------------------------------------------------------------------------------------------------
 
 
+
+#: Marks a folder this script made (and so may empty on the next run).
+_OWN_MARK = ".made-by-train_expression"
+
+
+#: Names of the files this script writes into its folders (runs before the mark file existed left only these).
+_OWN_FILES = re.compile(r"\d{5}_.+_\d+(\.avi|_lm\.npy)|[0-9a-f]{64}\.npz|\..+\.partial")
+
+
+def _clear_own_folder(folder: Path) -> None:
+    """Empty ``folder`` for a new run if this script made it (its mark file, or only files of the names it writes),
+    create it marked otherwise; a folder of the user's is refused rather than deleted."""
+    if folder.exists():
+        own = (folder / _OWN_MARK).is_file() or all(_OWN_FILES.fullmatch(f.name) for f in folder.iterdir())
+        if not own:
+            raise SystemExit(
+                f"train_expression.py: error: {folder} exists and was not made by this script: choose another --out"
+            )
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    (folder / _OWN_MARK).write_text("train_expression.py empties this folder on its next run\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("out/expression"), help="working folder (videos, cache)")
@@ -419,9 +443,7 @@ def main(argv: list[str] | None = None) -> int:
     # 2. render
     t0 = time.perf_counter()
     video_dir = args.out / "videos"
-    if video_dir.exists():
-        shutil.rmtree(video_dir)
-    video_dir.mkdir(parents=True)
+    _clear_own_folder(video_dir)
     clips = make_clips(cfg, _SUBJECTS, rng, video_dir)
     crops = render_all(cfg, clips)
     times["render"] = time.perf_counter() - t0
@@ -431,8 +453,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # 3-4. the dataloader: epoch 1 tracks (cache emptied first), epoch 2 reads the cache
     cache_dir = args.out / "cache"
-    if cache_dir.exists():
-        shutil.rmtree(cache_dir)
+    _clear_own_folder(cache_dir)
     tracking = FaceTrackingConfig(face_size=cfg.face_size, keep_expression=True)
     data = VideoDataset(
         [c.video for c in clips], [c.landmarks for c in clips],

@@ -39,3 +39,21 @@ def test_quick_run(tmp_path, capsys):
     best_crop = max(acc["crop"], acc["crop_single"])
     assert abs(figures["gain_points"] - 100 * (acc["normalised"] - best_crop)) < 1e-9
     assert len(list((out / "videos").glob("*.avi"))) == clips
+
+
+def test_a_users_folder_is_never_emptied(tmp_path):
+    """``<out>/videos`` and ``<out>/cache`` are emptied on a new run only when the script made them (a mark file):
+    a user's folder of that name is refused before anything runs (it was deleted without a word)."""
+    import pytest
+
+    script = _load()
+    (tmp_path / "videos").mkdir()
+    (tmp_path / "videos" / "keep.txt").write_text("my data")
+    with pytest.raises(SystemExit, match="was not made by this script"):
+        script._clear_own_folder(tmp_path / "videos")
+    assert (tmp_path / "videos" / "keep.txt").read_text() == "my data"
+    own = tmp_path / "cache"
+    script._clear_own_folder(own)  # made and marked
+    (own / "entry.npz").write_bytes(b"x")
+    script._clear_own_folder(own)  # the script's own: emptied for the new run
+    assert [f.name for f in own.iterdir()] == [script._OWN_MARK]
