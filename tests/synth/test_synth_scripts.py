@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import cv2
@@ -13,6 +14,7 @@ SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
 def _load(name: str):
     spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up by name
     spec.loader.exec_module(module)
     return module
 
@@ -39,3 +41,37 @@ def test_make_sequence_writes_a_long_scenario(tmp_path, capsys):
     assert make.main(args) == 0
     assert "100/100 frames" in capsys.readouterr().out
     assert (out / "long_run.avi").stat().st_size > 0 and (out / "long_run.gt.npz").exists()
+
+
+def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, capsys):
+    """Mistakes found before any work, as argparse's one-line errors (exit 2): they used to run 3000 frames
+    (--long-frames 0), crash after the tracking (a --json folder, a missing MediaPipe interpreter, odd sizes) or
+    show a traceback (an empty GRID folder)."""
+    import pytest
+
+    evaluate = _load("evaluate")
+    (tmp_path / "jdir").mkdir()
+    base = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--ablations", "none", "--threads", "1",
+            "--cache", str(tmp_path / "c"), "--no-auroc"]  # fmt: skip
+    cases = [
+        (["--long-frames", "0"], "--long-frames must be >= 100"),
+        (["--json", str(tmp_path / "jdir")], "not a file path"),
+        (["--mediapipe-python", str(tmp_path / "nope")], "no such executable"),
+        (["--threads", "0"], "--threads must be >= 1"),
+    ]
+    for extra, message in cases:
+        with pytest.raises(SystemExit) as info:
+            evaluate.main(base + extra)
+        assert info.value.code == 2 and message in capsys.readouterr().err, extra
+    with pytest.raises(SystemExit):
+        evaluate.main([*base[:4], "--size", "63x47"])
+    assert "even" in capsys.readouterr().err
+    grid = _load("track_grid")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit) as info:
+        grid.main(["--grid", str(tmp_path / "empty"), "--out", str(tmp_path / "g")])
+    assert info.value.code == 2 and "no .mpg clips" in capsys.readouterr().err
+    peers = _load("peers")
+    import numpy as np
+
+    assert peers.run_mediapipe(np.zeros((1, 8, 8, 3), np.uint8), str(tmp_path / "nope")) is None
