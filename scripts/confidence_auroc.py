@@ -158,6 +158,11 @@ def main(argv: list[str] | None = None) -> int:
     for v in variants:
         if v not in VARIANTS:
             parser.error(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
+    for name in names:
+        if name not in SCENARIOS:
+            parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
+    if args.frames is not None and args.frames < 2:
+        parser.error(f"--frames must be >= 2, got {args.frames}")
     cache = None if args.cache.lower() == "none" else Path(args.cache)
     model = load_candide3()
     base = TrackerConfig(template=TemplateConfig())
@@ -166,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         w, h, t = scenario_size(name, "full")
         if args.size is not None:
             w, h = args.size
-        t = args.frames or t
+        t = args.frames if args.frames is not None else t
         seq = ev.load_sequence(name, w, h, t, cache)
         if "standard" in variants or "inject" in variants:
             out = run(name, seq, model, base, args.seed, inject="inject" in variants)
@@ -194,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.save is not None:
         args.save.parent.mkdir(parents=True, exist_ok=True)
         flat = {f"{v}/{n}/{k}": x for v, r in results.items() for n, d in r.items() for k, x in d.items()}
-        np.savez(args.save, **flat)
+        np.savez(args.save, **flat)  # (numpy adds .npz to a name without it)
     return 0
 
 

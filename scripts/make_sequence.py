@@ -42,9 +42,20 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         if name not in ALL_SCENARIOS:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(ALL_SCENARIOS)}, all, long or everything")
+    for option, value in (("--width", args.width), ("--height", args.height)):
+        if value is not None and (value < 8 or value % 2):
+            parser.error(f"{option} must be even and >= 8 (a video's frames), got {value}")
+    if args.frames is not None and args.frames < 1:
+        parser.error(f"--frames must be >= 1, got {args.frames}")
+    if args.batch < 1:
+        parser.error(f"--batch must be >= 1, got {args.batch}")
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: not a folder")
     for name in names:
         w, h, t = scenario_size(name, args.size)
-        w, h, t = args.width or w, args.height or h, args.frames or t
+        w = args.width if args.width is not None else w
+        h = args.height if args.height is not None else h
+        t = args.frames if args.frames is not None else t
         spec = make_scenario(name, t, w, h)
         start = time.perf_counter()
 

@@ -53,7 +53,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale", type=int, default=0, help="upscaling factor (default: to about 640 px wide)")
     parser.add_argument("--out", type=Path, default=Path("out/overlay"))
     args = parser.parse_args(argv)
-    gt = load_ground_truth(args.video)
+    if args.scale < 0:
+        parser.error(f"--scale must be >= 1 (or 0 for about 640 px wide), got {args.scale}")
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: not a folder")
+    try:
+        gt = load_ground_truth(args.video)
+    except (OSError, ValueError) as exc:
+        parser.error(f"{args.video}: no ground truth beside it (a video written by make_sequence.py): {exc}")
+    if args.frames and any(not 0 <= f < gt.num_frames for f in args.frames):
+        parser.error(f"--frames must be in 0..{gt.num_frames - 1}, got {args.frames}")
     frames = read_video(args.video)
     if frames.shape[0] != gt.num_frames:
         raise SystemExit(f"video has {frames.shape[0]} frames, ground truth {gt.num_frames}")
@@ -71,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{gt.name} #{i} ypr=({ypr[0]:.0f},{ypr[1]:.0f},{ypr[2]:.0f})"
         cv2.putText(out, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         path = args.out / f"{gt.name}_{i:04d}.png"
-        cv2.imwrite(str(path), out)
+        if not cv2.imwrite(str(path), out):
+            raise SystemExit(f"overlay_landmarks.py: error: cannot write {path}")
         print(f"  wrote {path} ({int(gt.landmarks_visible[i].sum())}/68 landmarks visible)")
     return 0
 
