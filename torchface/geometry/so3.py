@@ -326,8 +326,7 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     yaw = torch.where(locked, yaw_locked, yaw_free)
     roll = torch.where(locked, 0.0 * one, roll_free)
     ypr = torch.rad2deg(torch.stack((yaw, pitch, roll), dim=-1))
-    half_turn = torch.tensor([180.0, 1e30, 180.0], dtype=ypr.dtype, device=ypr.device)  # (pitch never wraps)
-    return torch.where(ypr <= -half_turn, ypr + 2 * half_turn, ypr)  # -180 -> +180: yaw and roll in (-180, 180]
+    return torch.where(ypr <= -180.0, ypr + 360.0, ypr)  # yaw and roll: -180 -> +180 (pitch is in [-90, 90])
 
 
 def geodesic_angle_deg(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
