@@ -35,6 +35,7 @@ import math
 import os
 import platform
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -259,8 +260,10 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
     if args.width < 64 or args.height < 64 or args.width % 2 or args.height % 2:
         ap.error(f"--width and --height must be even and >= 64, got {args.width}x{args.height}")
     try:
-        batches = [int(x) for x in args.batches.split(",") if x.strip()]
-        batches += [int(x) for x in args.malloc_batches.split(",") if x.strip()]
+        batches = [1, 32]  # the template-management rows
+        if not args.management_only:
+            batches += [int(x) for x in args.batches.split(",") if x.strip()]
+            batches += [int(x) for x in args.malloc_batches.split(",") if x.strip()]
     except ValueError:
         ap.error(f"--batches and --malloc-batches must be comma lists of integers, got {args.batches!r}, "
                  f"{args.malloc_batches!r}")  # fmt: skip
@@ -270,9 +273,7 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
     if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
         ap.error(f"--json {args.json}: not a file path in an existing folder")
-    if args.mediapipe_python is not None and not (
-        Path(args.mediapipe_python).is_file() and os.access(args.mediapipe_python, os.X_OK)
-    ):
+    if args.mediapipe_python is not None and shutil.which(args.mediapipe_python) is None:
         ap.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
 
 

@@ -59,7 +59,7 @@ import hashlib
 import itertools
 import json
 import math
-import os
+import shutil
 import sys
 import tempfile
 import time
@@ -927,11 +927,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.long_frames is not None and args.long_frames < 100:
         parser.error(f"--long-frames must be >= 100 (a long run's events need them), got {args.long_frames}")
     for option, path in (("--json", args.json), ("--save-series", args.save_series)):
-        if path is not None and (path.is_dir() or (path.parent.exists() and not path.parent.is_dir())):
+        if path is not None and (path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents)):
             parser.error(f"{option} {path}: not a file path (a folder, or under a file)")
-    if args.mediapipe_python is not None and not (
-        Path(args.mediapipe_python).is_file() and os.access(args.mediapipe_python, os.X_OK)
-    ):
+    if args.mediapipe_python is not None and shutil.which(args.mediapipe_python) is None:
         parser.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
     if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
         parser.error(f"--cache {args.cache}: not a folder")

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -69,9 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --landmarks-dir (first-frame landmarks <stem>.csv) or --detector NAME")
     if args.landmarks_dir is not None and not args.landmarks_dir.is_dir():
         parser.error(f"--landmarks-dir {args.landmarks_dir}: no such folder")
-    if args.mediapipe_python is not None and not (
-        Path(args.mediapipe_python).is_file() and os.access(args.mediapipe_python, os.X_OK)
-    ):
+    if args.mediapipe_python is not None and shutil.which(args.mediapipe_python) is None:
         parser.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
     landmarks = tuple(args.landmarks_dir / f"{c.stem}.csv" for c in clips) if args.landmarks_dir else ()
     config = JobConfig(out_dir=args.out, landmarks=landmarks, detector=args.detector)

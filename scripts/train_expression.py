@@ -402,12 +402,17 @@ _OWN_MARK = ".made-by-train_expression"
 
 
 #: Names of the files this script writes into its folders (runs before the mark file existed left only these).
-_OWN_FILES = re.compile(r"\d{5}_.+_\d+(\.avi|_lm\.npy)|[0-9a-f]{64}\.npz|\..+\.partial")
+_OWN_FILES = re.compile(
+    rf"\d{{5}}_.+_({'|'.join(map(re.escape, EXPRESSION_CLASSES))})_\d+(\.avi|_lm\.npy)|[0-9a-f]{{64}}\.npz"
+    r"|\.[0-9a-f]{64}\.\d+\.[0-9a-f]{32}\.partial"
+)
 
 
 def _clear_own_folder(folder: Path) -> None:
     """Empty ``folder`` for a new run if this script made it (its mark file, or only files of the names it writes),
     create it marked otherwise; a folder of the user's is refused rather than deleted."""
+    if folder.exists() and not folder.is_dir():
+        raise SystemExit(f"train_expression.py: error: {folder} is a file: choose another --out")
     if folder.exists():
         own = (folder / _OWN_MARK).is_file() or all(_OWN_FILES.fullmatch(f.name) for f in folder.iterdir())
         if not own:

@@ -307,6 +307,7 @@ class _Stream:
     low_count: int = 0
     anchor: dict[str, list] | None = None  # the online start's re-anchoring, once recorded (_write_record)
     settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
+    first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
     confidences: list[float] = field(default_factory=list)
     lost: list[int] = field(default_factory=list)
@@ -674,6 +675,8 @@ def _track_group(
         if online and any(s.replay is not None for s in streams):
             state = _without_online_start(state, [s.replay is not None for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
+        for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
+            s.first_shape = state.shape_coeffs[k].tolist()
         recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
@@ -827,11 +830,13 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
-    ``reanchored_at_frame``: the frame after which the online start re-anchored the stream (None: not). Then the
-    CSV's pose (rotation ``R``, translation ``t``) is reported in the head frame of the first row, and the mesh is
-    placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with
-    ``model.shape_coeffs``; the ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated
-    starting expression), ``anim_*`` are the coefficients that place the mesh.
+    ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
+    earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
+    first row, and the mesh is placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``,
+    ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their ``AUxx_r`` columns are measured
+    from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*`` are the coefficients that place
+    the mesh. The rows up to that frame were tracked with ``first_shape_coeffs`` and place the mesh with their own
+    pose (the re-anchoring frame's overlay and mesh already show the re-anchored placement).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
@@ -849,6 +854,7 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
         "head_rotation": None if anchor is None else anchor["head_rotation"],
         "head_translation": None if anchor is None else anchor["head_translation"],
         "neutral_anim_coeffs": neutral,
+        "first_shape_coeffs": s.first_shape,
     }
 
 

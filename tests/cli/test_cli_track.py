@@ -698,13 +698,16 @@ def test_sidecar_says_how_the_video_started_and_how_to_place_the_mesh(clip, plai
     shape = torch.tensor(side["model"]["shape_coeffs"], dtype=torch.float64)
     anim_cols = [i for i, c in enumerate(cols) if c.startswith("anim_")]
     au_cols = [i for i, c in enumerate(cols) if c.startswith("AU") and c.endswith("_r")]
-    last = len(rows) - 1
-    R_mesh = np.asarray(R[last], dtype=np.float64) @ D.T
-    t_mesh = np.asarray(t[last], dtype=np.float64) - R_mesh @ d
-    anim = torch.tensor(rows[last, anim_cols], dtype=torch.float64)
-    verts = model.deform(shape[None], anim[None])[0].numpy() @ R_mesh.T + t_mesh
-    ply = trimesh.load(out / "short_meshes" / f"{last:06d}.ply", process=False)
-    assert np.abs(ply.vertices - verts).max() < 1e-2  # mm (the CSV's float precision)
+    first_shape = torch.tensor(start["first_shape_coeffs"], dtype=torch.float64)
+    at = start["reanchored_at_frame"]
+    for row in [f for f in range(len(rows)) if f != at]:  # (the re-anchoring frame's mesh is already the new one)
+        after = row > at
+        R_mesh = np.asarray(R[row], dtype=np.float64) @ (D.T if after else np.eye(3))
+        t_mesh = np.asarray(t[row], dtype=np.float64) - (R_mesh @ d if after else 0.0)
+        anim = torch.tensor(rows[row, anim_cols], dtype=torch.float64)
+        verts = model.deform((shape if after else first_shape)[None], anim[None])[0].numpy() @ R_mesh.T + t_mesh
+        ply = trimesh.load(out / "short_meshes" / f"{row:06d}.ply", process=False)
+        assert np.abs(ply.vertices - verts).max() < 1e-2, row  # mm (the CSV's float precision)
     assert len(start["neutral_anim_coeffs"]) == len(anim_cols) and au_cols
     plain = json.loads(output_paths(plain_run[1], NAME)["json"].read_text())["start"]
     assert plain["method"] == "landmark fit" and plain["reanchored_at_frame"] is None and plain["head_rotation"] is None

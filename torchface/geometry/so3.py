@@ -293,10 +293,12 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     From the product, ``R[1] = (cos p sin r, cos p cos r, -sin p)`` and
     ``R[:, 2] = (sin y cos p, -sin p, cos y cos p)``, so
     ``pitch = atan2(-R12, hypot(R10, R11))``, ``yaw = atan2(R02, R22)``, ``roll = atan2(R10, R11)``.
-    At gimbal lock (``cos p`` below ``eps``, the dtype's machine epsilon: nearer the lock the free formulas still
-    give yaw and roll whose rotation is right to rounding, and a wider lock would cost its ``cos p`` in accuracy)
-    roll is set to 0 and yaw absorbs it: ``yaw = atan2(sign(sin p) R01, R00)``. Yaw and roll of -180 degrees
-    (``atan2`` of a -0.0 or a rounding-level negative sine) are reported as +180. See :mod:`torchface.conventions`.
+    At gimbal lock (``cos p`` below ``sqrt(eps)``) roll is set to 0 and yaw absorbs it:
+    ``yaw = atan2(sign(sin p) R01, R00)``. Nearer the lock the free formulas would divide a matrix's rounding error
+    by ``cos p`` (a float32 rotation from :func:`axis_angle_to_matrix` at 89.99999 degrees of pitch came back 6
+    degrees off); the lock's roll of 0 costs at most about ``sqrt(eps)`` of rotation instead (0.06 degrees in
+    float32). Yaw and roll of -180 degrees (``atan2`` of a -0.0 or a rounding-level negative sine) are reported as
+    +180. See :mod:`torchface.conventions`.
 
     Args:
         R: ``(..., 3, 3)`` rotation matrices.
@@ -316,7 +318,7 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     cos_p2 = r10 * r10 + r11 * r11
     cos_p = cos_p2.clamp(min=finfo.tiny).sqrt()
     pitch = torch.atan2(-r12, cos_p)
-    locked = cos_p2 < finfo.eps * finfo.eps
+    locked = cos_p2 < finfo.eps
     one = torch.ones_like(r00)
     # Clamp before torch.where: each branch's atan2 only sees arguments away from (0, 0).
     yaw_free = torch.atan2(torch.where(locked, 0.0 * one, r02), torch.where(locked, one, r22))

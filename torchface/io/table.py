@@ -12,9 +12,10 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   looking straight into the camera;
 - ``yaw_deg, pitch_deg, roll_deg``: the same rotation as ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)``, degrees;
 - ``r00 ... r22``: the rotation matrix, row-major (``X_cam = R @ X_head + t``). After the online start has
-  re-anchored a stream, the pose columns are the re-anchored estimate in the head frame of the first row (they stay
-  continuous); the mesh is placed by ``R @ D^T`` and ``t - R @ D^T @ d`` with the offsets the job's JSON records
-  (``start.head_rotation``, ``start.head_translation``; :attr:`~torchface.tracker.TrackResult.rotation`);
+  re-anchored a stream, the pose columns of the later rows are the re-anchored estimate in the head frame of the
+  first row (they stay continuous); their mesh is placed by ``R @ D^T`` and ``t - R @ D^T @ d`` with the offsets the
+  job's JSON records (``start.head_rotation``, ``start.head_translation``, after ``start.reanchored_at_frame``;
+  :attr:`~torchface.tracker.TrackResult.rotation`);
 - ``AUxx_r`` (two digits, as OpenFace: ``AU02_r``): one column per FACS action unit linked to a CANDIDE-3
   animation unit: the expression's intensity in
   the animation unit's own scale (:meth:`~torchface.model.FaceModel.facs_values` of

@@ -71,14 +71,14 @@ def _as_scale(scale: torch.Tensor | float, r: torch.Tensor) -> torch.Tensor:
     return s.clamp_min(torch.finfo(r.dtype).tiny ** 0.5)
 
 
-def _bounded_square(u: torch.Tensor) -> torch.Tensor:
-    """``u**2`` with ``|u|`` clamped below ``max ** 0.25`` of its dtype, where Cauchy's and Geman-McClure's
-    ``rho_hat`` have long saturated (to within 1e-16 of it for Geman-McClure; the logarithm grows by 2 per decade of
-    ``u``): a residual far beyond the scale (a zero scale is floored at ``sqrt(tiny)``) made ``u**2`` (or ``u``)
-    overflow, and ``rho`` inf (Cauchy) or NaN (Geman-McClure, inf / inf), gradients too."""
-    bound = torch.finfo(u.dtype).max ** 0.25
-    ub = u.clamp(-bound, bound)
-    return ub * ub
+def _bounded_square_over_c(u: torch.Tensor, c: float) -> torch.Tensor:
+    """``(u / c)**2`` with ``|u / c|`` clamped below ``sqrt(max) / 2`` of its dtype, where Cauchy's and
+    Geman-McClure's ``rho_hat`` (functions of ``(u / c)**2``) have long saturated: a residual far beyond the scale (a
+    zero scale is floored at ``sqrt(tiny)``) made ``u**2`` overflow, and ``rho`` inf (Cauchy) or NaN (Geman-McClure,
+    inf / inf), gradients too. Relative to ``c``, so that float16 keeps its range (|u / c| up to 128)."""
+    bound = torch.finfo(u.dtype).max ** 0.5 / 2
+    v = (u / c).clamp(-bound, bound)
+    return v * v
 
 
 @dataclass(frozen=True)
@@ -142,14 +142,14 @@ class RobustLoss:
             lin = c * (a.clamp_min(c) - 0.5 * c)
             out = torch.where(a <= c, 0.5 * u2, lin)
         elif self.kind is RobustKind.CAUCHY:
-            out = 0.5 * c * c * torch.log1p(_bounded_square(u) / (c * c))
+            out = 0.5 * c * c * torch.log1p(_bounded_square_over_c(u, c))
         elif self.kind is RobustKind.TUKEY:  # the tracker's default: its constants as cached tensors (_scalar)
             one = scalar(1.0, u2)
             t = (u2 / scalar(c * c, u2)).clamp(max=1.0)
             out = scalar(c * c / 6.0, u2) * (one - (one - t) ** 3)
         else:  # GEMAN_MCCLURE
-            b = _bounded_square(u)
-            out = 0.5 * b / (1.0 + b / (c * c))
+            v2 = _bounded_square_over_c(u, c)
+            out = 0.5 * c * c * v2 / (1.0 + v2)
         return s * s * out
 
     def weight(self, r: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
