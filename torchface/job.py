@@ -49,7 +49,7 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, write_json
-from torchface.io.table import TrackCsvWriter, read_track_csv, result_rows, track_columns
+from torchface.io.table import TrackCsvWriter, partial_path, read_track_csv, result_rows, track_columns
 from torchface.io.video import FrameReader, image_files, open_frames
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -642,7 +642,7 @@ def _track_group(
     try:
         for s, p in zip(streams, paths):
             s.settings = _settings(config, s)
-            partial = p["csv"].with_name(p["csv"].name + ".partial")
+            partial = partial_path(p["csv"])
             if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
                 os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
             s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
@@ -731,11 +731,7 @@ def _track_group(
         t_track = time.perf_counter() - t_track0
     except BaseException:
         for s in streams:
-            if s.csv is not None:
-                s.csv.stop()
-            for v in (s.overlay, s.normalised):
-                if v is not None:
-                    v.abort()
+            _abandon(s)
         raise
     summaries = []
     finished = 0
@@ -744,18 +740,23 @@ def _track_group(
             if s.error is None:
                 summaries.append(_finalise(model, s, p, mt, config, state, streams, intr, t_init, t_track))
             else:  # its rows so far stay in the partial CSV; nothing else of it is kept
-                s.csv.stop()
-                for v in (s.overlay, s.normalised):
-                    v.abort()
+                _abandon(s)
                 summaries.append(None)
             finished += 1
     except BaseException:  # interrupted while finalising: the videos not finalised leave no partial video files
         for s in streams[finished:]:
-            s.csv.stop()
-            for v in (s.overlay, s.normalised):
-                v.abort()
+            _abandon(s)
         raise
     return summaries
+
+
+def _abandon(s: _Stream) -> None:
+    """Stop a video's outputs unfinished: its partial CSV kept (for --resume), its partial videos deleted."""
+    if s.csv is not None:
+        s.csv.stop()
+    for v in (s.overlay, s.normalised):
+        if v is not None:
+            v.abort()
 
 
 def _finalise(

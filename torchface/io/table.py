@@ -51,6 +51,7 @@ __all__ = [
     "TrackCsvWriter",
     "column_name",
     "openface_euler",
+    "partial_path",
     "read_track_csv",
     "result_rows",
     "track_columns",
@@ -189,6 +190,12 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     return columns, data
 
 
+def partial_path(path: str | os.PathLike[str]) -> Path:
+    """Where :class:`TrackCsvWriter` keeps the rows of ``path`` until it is complete: ``<path>.partial``."""
+    path = Path(path)
+    return path.with_name(path.name + ".partial")
+
+
 class TrackCsvWriter:
     """Write track rows to ``<path>.partial``, flushing every call; :meth:`close` renames it to ``path``.
 
@@ -206,7 +213,7 @@ class TrackCsvWriter:
     def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...], resume: bool = False) -> None:
         self.path = Path(path)
         self.columns = tuple(columns)
-        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.partial = partial_path(self.path)
         self.rows_done = 0
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))
         try:
