@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import resource
@@ -43,6 +42,8 @@ import time
 from pathlib import Path
 
 import torch
+
+from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
 from peers import run_mediapipe  # noqa: E402
@@ -235,24 +236,6 @@ def _run_child(
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _write_json(path: Path, figures: dict) -> None:
-    """Strict JSON (NaN as null) through a temporary file: never a half-written file under the name."""
-
-    def safe(x):
-        if isinstance(x, dict):
-            return {k: safe(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [safe(v) for v in x]
-        return None if isinstance(x, float) and not math.isfinite(x) else x
-
-    tmp = path.with_name(path.name + ".partial")
-    try:
-        tmp.write_text(json.dumps(safe(figures), indent=2, allow_nan=False))
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """One-line errors for what would fail later (after minutes of timing runs)."""
     if not 4 <= args.frames <= 150:
@@ -420,7 +403,7 @@ def main() -> None:
         figures = {}
         _management(args, figures)
         if args.json:
-            _write_json(Path(args.json), figures)
+            write_json(Path(args.json), figures)
         return
     base = _baseline_mb(args)
     figures: dict[str, dict[str, float]] = {}
@@ -466,7 +449,7 @@ def main() -> None:
         figures["mediapipe"] = mp
     _management(args, figures)
     if args.json:
-        _write_json(Path(args.json), figures)
+        write_json(Path(args.json), figures)
 
 
 if __name__ == "__main__":

@@ -72,6 +72,7 @@ import torch
 from torch import Tensor
 
 import torchface
+from torchface.io import sidecar
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.solver.robust import RobustKind
@@ -455,26 +456,11 @@ def seed_table(name: str, rows: dict[str, dict[str, float]], info: str, what: st
     )
 
 
-def _json_safe(value: object) -> object:
-    """NaN (undefined metric) -> null, recursively through dicts, lists and tuples, so the file is strict JSON."""
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
-
-
 def write_json(path: Path, results: dict[str, dict[str, object]]) -> None:
-    """Write the figures so far (to a temporary name, then renamed: never a half-written file)."""
+    """Write the figures so far as strict JSON (NaN as null; to a temporary name, then renamed: never a
+    half-written file; :func:`torchface.io.sidecar.write_json`)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    try:
-        tmp.write_text(json.dumps(_json_safe(results), indent=1) + "\n")
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    sidecar.write_json(path, results)
 
 
 # ------------------------------------------------------------------------------------------ section (a): long runs

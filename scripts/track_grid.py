@@ -15,7 +15,6 @@ Example:
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import time
@@ -28,6 +27,7 @@ import torch
 from torchface.cli import ProgressDisplay
 from torchface.detect import DetectorUnavailable
 from torchface.io import InputError, OutputError, read_track_csv
+from torchface.io.sidecar import write_json
 from torchface.job import JobConfig, output_paths, track_videos
 from torchface.synth.io import read_video_uint8
 from torchface.synth.metrics import rotation_jitter_deg
@@ -121,11 +121,7 @@ def main(argv: list[str] | None = None) -> int:
           (f" (MediaPipe, {len(peers_jitter)} clips: {np.mean(peers_jitter):.3f} deg)" if peers_jitter else ""))
     total = sum(s.frames for s in summaries)
     print(f"all {len(summaries)} clips: {total} frames in {wall:.1f} s wall ({total / wall:.2f} frames/s overall, batched)")
-    summary = {"clips": [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
-                         for r in table], "wall_s": wall, "frames": total}  # fmt: skip
-    tmp = args.out / "grid_summary.json.partial"
-    tmp.write_text(json.dumps(summary, indent=2, allow_nan=False))  # strict JSON: no NaN tokens
-    tmp.replace(args.out / "grid_summary.json")
+    write_json(args.out / "grid_summary.json", {"clips": table, "wall_s": wall, "frames": total})  # NaN as null
     return 0
 
 

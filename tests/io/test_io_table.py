@@ -87,3 +87,22 @@ def test_rotation_columns_match_axis_angle():
     R = axis_angle_to_matrix(aa)
     a, b, c = openface_euler(R)[0].tolist()
     torch.testing.assert_close(_rx(a) @ _ry(b) @ _rz(c), R[0])
+
+
+def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
+    """The one JSON writer of the job and the scripts (evaluate, benchmark, track_grid): NaN or infinite figures
+    (an AUROC without negatives, a jitter of a 2-frame clip) become null, in numpy and torch values too; the file
+    is written whole or not at all."""
+    import json
+
+    import numpy as np
+    import torch
+
+    from torchface.io.sidecar import write_json
+
+    payload = {"a": float("nan"), "b": np.float32("inf"), "c": torch.tensor([1.0, float("nan")]), "d": {"e": (2.5, -1e999)}}
+    path = write_json(tmp_path / "f.json", payload)
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"a": None, "b": None, "c": [1.0, None], "d": {"e": [2.5, None]}}
+    assert not (tmp_path / "f.json.partial").exists()

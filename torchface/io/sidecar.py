@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import json
+import math
 import os
 import platform
 from importlib import metadata
@@ -33,7 +34,10 @@ def package_versions() -> dict[str, str | None]:
 
 
 def to_jsonable(value: Any) -> Any:
-    """Dataclasses, enums, paths, tuples and numpy/torch scalars -> plain JSON values."""
+    """Dataclasses, enums, paths, tuples and numpy/torch scalars -> plain JSON values; a NaN or infinite number
+    (an undefined figure) -> None, so that the file is strict JSON (``null``)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, enum.Enum):
@@ -45,9 +49,9 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [to_jsonable(v) for v in value]
     if hasattr(value, "item") and callable(value.item) and getattr(value, "ndim", 1) == 0:
-        return value.item()
+        return to_jsonable(value.item())
     if hasattr(value, "tolist"):
-        return value.tolist()
+        return to_jsonable(value.tolist())
     return value
 
 
