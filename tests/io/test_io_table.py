@@ -100,7 +100,9 @@ def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
 
     from torchface.io.sidecar import write_json
 
-    payload = {"a": float("nan"), "b": np.float32("inf"), "c": torch.tensor([1.0, float("nan")]), "d": {"e": (2.5, -1e999)}}
+    payload = {
+        "a": float("nan"), "b": np.float32("inf"), "c": torch.tensor([1.0, float("nan")]), "d": {"e": (2.5, -1e999)},
+    }  # fmt: skip
     path = write_json(tmp_path / "f.json", payload)
     text = path.read_text()
     assert "NaN" not in text and "Infinity" not in text
