@@ -34,7 +34,6 @@ import json
 import os
 import platform
 import resource
-import shutil
 import statistics
 import subprocess
 import sys
@@ -46,7 +45,7 @@ import torch
 from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from peers import run_mediapipe  # noqa: E402
+from peers import check_python, run_mediapipe  # noqa: E402
 
 
 def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
@@ -256,8 +255,7 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
     if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
         ap.error(f"--json {args.json}: not a file path in an existing folder")
-    if args.mediapipe_python is not None and shutil.which(args.mediapipe_python) is None:
-        ap.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
+    check_python(ap, args.mediapipe_python)
 
 
 def _baseline_mb(args: argparse.Namespace) -> float:

@@ -59,7 +59,6 @@ import hashlib
 import itertools
 import json
 import math
-import shutil
 import sys
 import tempfile
 import time
@@ -94,7 +93,7 @@ from torchface.tracker.module import FaceTracker
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from peers import opencv_rotations, run_mediapipe  # noqa: E402
+from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration.
 ABLATIONS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
@@ -915,8 +914,7 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--json", args.json), ("--save-series", args.save_series)):
         if path is not None and (path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents)):
             parser.error(f"{option} {path}: not a file path (a folder, or under a file)")
-    if args.mediapipe_python is not None and shutil.which(args.mediapipe_python) is None:
-        parser.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
+    check_python(parser, args.mediapipe_python)
     if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
         parser.error(f"--cache {args.cache}: not a folder")
     if args.threads is not None:

@@ -15,6 +15,8 @@ tool's head frame.
 
 from __future__ import annotations
 
+import argparse
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -81,6 +83,13 @@ class MediaPipeRun:
     frames: int
     version: str
     matrices: np.ndarray | None = None
+
+
+def check_python(parser: argparse.ArgumentParser, python: str | None) -> None:
+    """``--mediapipe-python``: a command or path that exists (else the parser's one-line error, before any work;
+    a missing one used to end the run after the tracking)."""
+    if python is not None and shutil.which(python) is None:
+        parser.error(f"--mediapipe-python {python}: no such executable")
 
 
 def run_mediapipe(frames_rgb: np.ndarray | Path, python: str | None = None, *, poses: bool = False) -> MediaPipeRun | None:

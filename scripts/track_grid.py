@@ -15,7 +15,6 @@ Example:
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,7 @@ from torchface.synth.io import read_video_uint8
 from torchface.synth.metrics import rotation_jitter_deg
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from peers import opencv_rotations, run_mediapipe  # noqa: E402
+from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
 _ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
@@ -69,8 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --landmarks-dir (first-frame landmarks <stem>.csv) or --detector NAME")
     if args.landmarks_dir is not None and not args.landmarks_dir.is_dir():
         parser.error(f"--landmarks-dir {args.landmarks_dir}: no such folder")
-    if args.mediapipe_python is not None and shutil.which(args.mediapipe_python) is None:
-        parser.error(f"--mediapipe-python {args.mediapipe_python}: no such executable")
+    check_python(parser, args.mediapipe_python)
     landmarks = tuple(args.landmarks_dir / f"{c.stem}.csv" for c in clips) if args.landmarks_dir else ()
     config = JobConfig(out_dir=args.out, landmarks=landmarks, detector=args.detector)
     start = time.perf_counter()
