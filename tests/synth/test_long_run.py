@@ -230,7 +230,8 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
     assert table.count("return ") >= 3 and "mosaic" in table and "bare" in table
     assert "error at every return <= 1 deg: PASS (max 0.50)" in table
     assert "again: PASS (worst 0)" in table
-    json.dumps(ev._json_safe(ev.long_json(m, good.ms_per_frame, W, H, T)), allow_nan=False)
+    ev.write_json(tmp_path / "long.json", {"long_run/mosaic": ev.long_json(m, good.ms_per_frame, W, H, T)})
+    json.loads((tmp_path / "long.json").read_text(), parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
     # Section (b): the made-up confidence falls as the error grows, so it separates them perfectly.
     text, figures = ev.auroc_section(series)
     pooled = figures["POOLED all configurations"]
