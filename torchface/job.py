@@ -18,7 +18,9 @@ complete row: the first frame is initialised again from the same landmarks (dete
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
 input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
 the rows depend on: a resume with other settings, or after the input file changed, is refused); the parameters of
-the rows already written are read back from the CSV, and the videos are re-drawn from them. A CSV under its final
+the rows already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
+bookkeeping (lost or not, the frames of low confidence counted, the last confident parameters), so that a video
+interrupted while its face was lost goes on lost, as the uninterrupted run would. A CSV under its final
 name without its JSON (interrupted while finalising) is resumed as a partial one. The template mosaic built
 before the interruption is not restored: on a clip whose head turns, the resumed rows can part from the
 uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4 degrees of yaw and
@@ -58,7 +60,7 @@ from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
-from torchface.tracker.step import TrackerConfig, TrackerState
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
 from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
@@ -584,6 +586,49 @@ def _without_online_start(state: TrackerState, resumed: list[bool]) -> TrackerSt
     return replace(state, management=replace(ms, first=first))
 
 
+def _with_replayed_loss(
+    state: TrackerState, ended: list[tuple[int, np.ndarray]], columns: tuple[str, ...], layout: ParamLayout,
+    config: TrackerConfig,
+) -> TrackerState:
+    """``state`` whose streams ``k`` of ``ended`` (``(k, rows)``: every row replayed from its CSV, the last one this
+    frame's) carry the loss bookkeeping those rows say: lost when the last row is LOST (the next step then goes on
+    with the loss, attempting a recovery at once, as the interrupted run would have, instead of starting afresh and
+    reporting frames on the background successful), the counts of trailing frames below the confidence thresholds,
+    and the last confident row's parameters (status converged or iteration limit, confidence at least
+    ``confidence_threshold``) as the parameters a loss falls back to."""
+    ms = state.management
+    if ms is None or not ended:
+        return state
+    tc = config.template
+    status_col, conf_col = columns.index("status"), columns.index("confidence")
+    lost, low, very_low = ms.lost.clone(), ms.low_count.clone(), ms.very_low_count.clone()
+    since, confident = ms.since_attempt.clone(), ms.confident_params.clone()
+    attempts = None if ms.attempts is None else ms.attempts.clone()
+    for k, rows in ended:
+        status, conf = rows[:, status_col], rows[:, conf_col]
+        failed = status == int(TrackStatus.FAILED)
+        ok = (conf >= tc.confidence_threshold) & ~failed & (status != int(TrackStatus.LOST))
+        n_low = n_very_low = 0
+        for c, f in zip(conf.tolist(), failed.tolist()):  # the counts managed_step keeps, from the first row on
+            n_low = 0 if (c >= tc.confidence_threshold and not f) else n_low + 1
+            n_very_low = n_very_low + 1 if (c < tc.very_low_confidence or f) else 0
+        low[k], very_low[k] = n_low, n_very_low
+        lost[k] = bool(status[-1] == int(TrackStatus.LOST))
+        since[k] = tc.recovery_every if bool(lost[k]) else 0  # a lost stream attempts a recovery at once
+        if attempts is not None:
+            attempts[k] = 0
+        if ok.any():
+            params = _params_from_rows(rows[np.flatnonzero(ok)[-1:]], columns, layout)
+            params = params.to(dtype=confident.dtype, device=confident.device)
+            if ms.head_rotation is not None:  # a re-anchored stream: its own frame
+                params = _rows_to_internal(params, ms.head_rotation[k : k + 1].to(params.dtype),
+                                           ms.head_translation[k : k + 1].to(params.dtype), layout)  # fmt: skip
+            confident[k] = params[0]
+    ms = replace(ms, lost=lost, low_count=low, very_low_count=very_low, since_attempt=since,
+                 confident_params=confident, attempts=attempts)  # fmt: skip
+    return replace(state, management=ms)
+
+
 def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dict[str, Path]], first_R: Tensor,
                     first_t: Tensor, layout: ParamLayout, frame: int) -> None:  # fmt: skip
     """Write the record (:func:`_write_record`) of each stream the online start has just re-anchored: its first
@@ -694,6 +739,8 @@ def _track_group(
                                                  ms.head_translation[idx].to(dtype), layout)  # fmt: skip
                 params[idx] = replayed
                 state = replace(state, params=params)
+                ended = [(k, streams[k].replay) for k in idx if t == len(streams[k].replay) - 1]
+                state = _with_replayed_loss(state, ended, columns, layout, config.tracker)
             new_rows = result_rows(result, np.full(B, t), 1.0)
             _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
                         normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below,

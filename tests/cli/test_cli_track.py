@@ -382,6 +382,37 @@ def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, ful
     np.testing.assert_allclose(shape, shape_ref, rtol=0, atol=1e-6)
 
 
+def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
+    """A run interrupted while its face is lost (or about to be: frames of noise after the clip's first frames) and
+    resumed reports the frames after the interruption as the uninterrupted run does: LOST. (The resumed stream used
+    to start afresh, with no loss and no low-confidence frames counted, and reported its next two frames of noise
+    successful at confidence 0.)"""
+    video, lm, _ = clip
+    face = _clip_frames_uint8(video, 6)
+    noise = (np.random.default_rng(0).random((6, H, W, 3)) * 255).round().astype(np.uint8)
+    cut = tmp_path / "cut.npy"
+    np.save(cut, np.concatenate([face[:4], noise, face[4:]]))  # frames 4-9: noise
+    track_videos([cut], JobConfig(out_dir=tmp_path / "full", landmarks=(lm,)))
+    cols, ref = read_track_csv(output_paths(tmp_path / "full", "cut")["csv"])
+    status, success = cols.index("status"), cols.index("success")
+    assert (ref[6:10, status] == 3).all() and ref[-1, status] != 3, ref[:, status]  # the clip as expected
+    lost = json.loads(output_paths(tmp_path / "full", "cut")["json"].read_text())["lost_frames"]
+    for stop_at in (6, 9):  # before the loss (two frames of noise counted), and in it
+        out = tmp_path / f"out{stop_at}"
+
+        def interrupt(p):
+            if p.done == stop_at:
+                raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            track_videos([cut], JobConfig(out_dir=out, landmarks=(lm,)), progress=interrupt)
+        track_videos([cut], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
+        _, rows = read_track_csv(output_paths(out, "cut")["csv"])
+        np.testing.assert_array_equal(rows[:, status], ref[:, status])
+        np.testing.assert_array_equal(rows[:, success], ref[:, success])
+        assert json.loads(output_paths(out, "cut")["json"].read_text())["lost_frames"] == lost
+
+
 def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     """A video cut short (its container still declares every frame) is tracked as far as it decodes, and the
     summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word)."""
