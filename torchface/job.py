@@ -311,8 +311,7 @@ class _Stream:
     settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
-    confidences: list[float] = field(default_factory=list)
-    lost: list[int] = field(default_factory=list)
+    confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
 
@@ -751,7 +750,7 @@ def _track_group(
                 elapsed = max(time.perf_counter() - t_track0, 1e-9)
                 for k, s in enumerate(streams):
                     progress(Progress(members[k], count, s.name, s.frames, s.total, s.tracked / elapsed,
-                                      s.confidences[-1] if s.confidences else 0.0))  # fmt: skip
+                                      s.confidence))  # fmt: skip
             nxt = []
             for s in streams:
                 if not s.done:
@@ -962,9 +961,7 @@ def _write_step(
             s.csv.write(row[None])
             s.tracked += 1
         conf, ok = float(row[ci]), bool(row[si] > 0.5)
-        s.confidences.append(conf)
-        if not ok:
-            s.lost.append(t)
+        s.confidence = conf
         s.low_count = 0 if conf >= redetect_below else s.low_count + 1
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
         s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label))

@@ -413,6 +413,28 @@ def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
         assert json.loads(output_paths(out, "cut")["json"].read_text())["lost_frames"] == lost
 
 
+def test_the_job_keeps_nothing_per_frame_in_memory(clip, tmp_path, monkeypatch):
+    """A video's book-keeping holds no list that grows with its frames (the rows are on disk): it used to keep
+    every frame's confidence and every lost frame's index for the length of the video (a day of video at 30
+    frames/s: 2.6 million floats), of which it read the last confidence only."""
+    import torchface.job
+
+    video, lm, _ = clip
+    seen = []
+    real = torchface.job._finalise
+
+    def spy(model, s, *args, **kwargs):
+        seen.append({k: len(v) for k, v in vars(s).items() if isinstance(v, (list, tuple, dict))})
+        return real(model, s, *args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "_finalise", spy)
+    frames = _clip_frames_uint8(video, T)
+    clip_npy = tmp_path / "all.npy"
+    np.save(clip_npy, np.concatenate([frames, frames[::-1]]))  # 2T frames
+    track_videos([clip_npy], JobConfig(out_dir=tmp_path / "out", landmarks=(lm,)))
+    assert len(seen) == 1 and all(n < 2 * T for n in seen[0].values()), seen  # (the record's fields, the shape)
+
+
 def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     """A video cut short (its container still declares every frame) is tracked as far as it decodes, and the
     summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word)."""
