@@ -195,3 +195,25 @@ def test_image_folder_order_is_numeric_and_hidden_files_are_skipped(tmp_path):
     assert order == ["a.png", "frame_0002.png", "frame_0010.png", "img9.png", "img10.png", "img010b.png"]
     (tmp_path / "1\u00b22.png").write_bytes(b"")  # '1²2': a superscript is a digit to str.isdigit, not a number
     assert "1\u00b22.png" in [f.name for f in image_files(tmp_path)]
+
+
+def test_npy_clip_is_read_a_frame_at_a_time(tmp_path):
+    """A ``.npy`` clip is mapped, not loaded: opening it and reading its frames holds about one frame in memory
+    (it used to load the whole array first, so a clip larger than the memory could not be tracked)."""
+    import tracemalloc
+
+    T, H, W = 120, 120, 160  # 6.9 MB of frames, 58 KB each
+    clip = np.random.default_rng(0).integers(0, 256, (T, H, W, 3), dtype=np.uint8)
+    path = tmp_path / "clip.npy"
+    np.save(path, clip)
+    tracemalloc.start()
+    try:
+        with open_frames(path) as frames:
+            got = [next(frames) for _ in range(T)]
+            assert frames.info.num_frames == T
+            _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < clip.nbytes / 4, peak  # (the tensors kept here are torch's, which tracemalloc does not see)
+    for k in (0, 1, T - 1):
+        np.testing.assert_array_equal((got[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), clip[k])

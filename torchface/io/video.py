@@ -6,7 +6,8 @@ Three kinds of input are accepted:
 - a folder of images (``.png``, ``.jpg``, ``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``), read in name order (runs of
   digits compared as numbers, hidden files left out: :func:`image_files`) with ``cv2.IMREAD_UNCHANGED`` so that 8-
   and 16-bit, gray, BGR and BGRA images keep what they store;
-- a ``.npy`` array ``(T, H, W)`` (gray) or ``(T, H, W, C)`` with ``C`` in 1, 3 (RGB), 4 (RGBA).
+- a ``.npy`` array ``(T, H, W)`` (gray) or ``(T, H, W, C)`` with ``C`` in 1, 3 (RGB), 4 (RGBA), memory-mapped and
+  read a frame at a time as the other inputs are (a clip larger than the memory can be tracked).
 
 The tracker takes 8-bit colour frames of even width and height (or float frames in ``[0, 1]``). By default a
 grayscale, RGBA (4-channel) or 16-bit frame, or an odd width or height, raises
@@ -299,7 +300,7 @@ def _image_frames(files: list[Path]) -> Iterator[tuple[np.ndarray, bool]]:
 
 def _array_frames(array: np.ndarray) -> Iterator[tuple[np.ndarray, bool]]:
     for frame in array:
-        yield frame, False
+        yield np.array(frame), False  # read from the mapped file one frame at a time
 
 
 def _check_size(path: Path, frame: Tensor) -> None:
@@ -375,7 +376,9 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files)
     if p.suffix.lower() == ".npy":
         try:
-            array = np.load(p, allow_pickle=False)
+            # Mapped, not read: frames are read as they are tracked, so that a long clip does not have to fit in
+            # memory (it used to be loaded whole before the first frame was tracked).
+            array = np.load(p, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError) as exc:
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
         if array.ndim not in (3, 4):
@@ -387,7 +390,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             raise InputError(f"{p}: shape {array.shape} looks like one colour image; a clip is (T, H, W, C): save "
                              "it as array[None] (or (T, H, W) for gray frames)")  # fmt: skip
         rest = _array_frames(array[1:])
-        first, fmt = frame_to_tensor(array[0], False, f"{p}: frame 0", convert)
+        first, fmt = frame_to_tensor(np.array(array[0]), False, f"{p}: frame 0", convert)
         _check_size(p, first)
         conv = _conversion(array[0], fmt, format_problems(array[0]))
         info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt, conv)
