@@ -603,6 +603,7 @@ def _with_replayed_loss(
     lost, low, very_low = ms.lost.clone(), ms.low_count.clone(), ms.very_low_count.clone()
     since, confident = ms.since_attempt.clone(), ms.confident_params.clone()
     attempts = None if ms.attempts is None else ms.attempts.clone()
+    scale = None if ms.adopted_scale is None else ms.adopted_scale.clone()
     for k, rows in ended:
         status, conf = rows[:, status_col], rows[:, conf_col]
         failed = status == int(TrackStatus.FAILED)
@@ -614,8 +615,10 @@ def _with_replayed_loss(
         low[k], very_low[k] = n_low, n_very_low
         lost[k] = bool(status[-1] == int(TrackStatus.LOST))
         since[k] = tc.recovery_every if bool(lost[k]) else 0  # a lost stream attempts a recovery at once
-        if attempts is not None:
+        if attempts is not None:  # (the interrupted run's attempts are not known: the search starts again)
             attempts[k] = 0
+        if scale is not None:
+            scale[k] = 1.0
         if ok.any():
             params = _params_from_rows(rows[np.flatnonzero(ok)[-1:]], columns, layout)
             params = params.to(dtype=confident.dtype, device=confident.device)
@@ -624,7 +627,7 @@ def _with_replayed_loss(
                                            ms.head_translation[k : k + 1].to(params.dtype), layout)  # fmt: skip
             confident[k] = params[0]
     ms = replace(ms, lost=lost, low_count=low, very_low_count=very_low, since_attempt=since,
-                 confident_params=confident, attempts=attempts)  # fmt: skip
+                 confident_params=confident, attempts=attempts, adopted_scale=scale)  # fmt: skip
     return replace(state, management=ms)
 
 
