@@ -405,7 +405,12 @@ def test_online_reanchoring_without_expression_and_on_gray_frames(model):
     for cfg, clip in ((replace(CFG, use_expression=False), frames), (CFG, to_gray(frames))):
         tracker = FaceTracker(cfg, model=model, refine_first=la)
         results = [tracker.initialise(clip[:1], lm, gt.intrinsics)]
-        results += [tracker(clip[i : i + 1]) for i in range(1, len(yaw))]
+        for i in range(1, len(yaw)):
+            results.append(tracker(clip[i : i + 1]))
+            ms = tracker.state.management
+            if ms.head_rotation is not None and i == next(j for j in range(len(yaw)) if yaw[j] >= 10):
+                # the re-anchoring frame: a loss from the next frame on falls back to its refined parameters
+                assert torch.equal(ms.confident_params, tracker.state.params)
         ms = tracker.state.management
         assert ms.head_rotation is not None and not torch.equal(ms.head_rotation[0], torch.eye(3)), "re-anchored"
         assert all(bool(torch.isfinite(r.rotation).all()) for r in results)
