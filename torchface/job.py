@@ -12,7 +12,9 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
 - ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
-last. CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+last. Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
+input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
+keeps ``<stem>.csv.partial``; with
 ``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
 complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
@@ -433,6 +435,30 @@ def _check_unique(names: Sequence[str]) -> None:
         raise InputError(f"two inputs would write the same outputs {dup[0]!r}: rename one of them")
 
 
+def _check_inputs_kept(
+    videos: Sequence[Path], names: Sequence[str], landmarks: Sequence[Path], out_dir: Path, meshes: bool
+) -> None:
+    """Refuse a run whose outputs would replace what it reads: an output with the path of an input or of a
+    landmarks file (``clip.csv`` beside ``clip.mp4`` with ``--out`` their folder; a fresh run deletes it before
+    tracking), or an output folder that is an image-folder input (the next run would read the plot PNG as a frame).
+
+    Raises:
+        OutputError: naming the output and what it would replace.
+    """
+    read = {Path(v).resolve(): f"the input {v}" for v in videos}
+    read.update({Path(f).resolve(): f"the landmarks file {f}" for f in landmarks})
+    for v in videos:
+        if v.is_dir() and v.resolve() == out_dir.resolve():
+            raise OutputError(f"{out_dir}: the output folder is the image folder {v}, whose frames are every image "
+                              "in it (the plot PNG would be one): give another --out")  # fmt: skip
+    for v, name in zip(videos, names):
+        for kind, path in output_paths(out_dir, name).items():
+            what = read.get(path.resolve()) if kind != "meshes" or meshes else None
+            if what is not None:
+                raise OutputError(f"{path}: the {kind} output of {v} would replace {what}: give another --out, or "
+                                  "rename that file")  # fmt: skip
+
+
 def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input."""
     try:
@@ -506,6 +532,7 @@ def track_videos(
     pending_lm: list[Path] = []
     names = [output_name(v) for v in videos]
     _check_unique(names)
+    _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
     for v, name in zip(videos, names):
         for kind, path in output_paths(out_dir, name).items():
             if kind != "meshes" and path.is_dir():

@@ -336,6 +336,38 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "has 2 frames")
 
 
+def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
+    """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
+    input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
+    an image folder given as its own ``--out`` had its plot PNG read as a frame by the next run: all refused."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    here = tmp_path / "here"
+    here.mkdir()
+    np.save(here / "clip.npy", frames)
+    marks = here / "clip.csv"
+    marks.write_bytes(lm.read_bytes())
+    rc = main(["track", str(here / "clip.npy"), "--landmarks", str(marks), "--out", str(here), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "would replace the landmarks file")
+    assert marks.read_bytes() == lm.read_bytes()
+    writer = cv2.VideoWriter(str(here / "clip_overlay.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25.0, (W, H))
+    for f in frames:
+        writer.write(np.ascontiguousarray(f[..., ::-1]))
+    writer.release()
+    before = (here / "clip_overlay.mp4").read_bytes()
+    rc = main(["track", str(here / "clip_overlay.mp4"), str(here / "clip.npy"), "--landmarks", str(lm),
+               "--landmarks", str(lm), "--out", str(here), "--quiet"])  # fmt: skip
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "would replace the input")
+    assert (here / "clip_overlay.mp4").read_bytes() == before
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(shots / f"{k:03d}.png"), f[..., ::-1])
+    rc = main(["track", str(shots), "--landmarks", str(lm), "--out", str(shots), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "is the image folder")
+    assert sorted(p.name for p in shots.iterdir()) == ["000.png", "001.png"]
+
+
 def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
     """Interrupted after the online start re-anchored the stream, a resumed run starts from the recorded refined
     fit and offset: its rows go on as the uninterrupted run's and its sidecar has the refined shape. (Resumed
