@@ -87,7 +87,7 @@ class JobConfig:
     Attributes:
         out_dir: output folder (created if missing).
         landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
-            detector.
+            detector; a sequence even for one video (a single path raises TypeError).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
             re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
             ``redetect_after`` frames, and to recover a stream that template management declares lost
@@ -136,6 +136,8 @@ class JobConfig:
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
 
     def __post_init__(self) -> None:
+        if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
+            raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
@@ -505,11 +507,14 @@ def track_videos(
         One :class:`VideoSummary` per video, in input order.
 
     Raises:
+        TypeError: ``videos`` is one path, not a sequence of them.
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
             later frame that cannot be read stops that video, raised once every other video is complete.
         OutputError: the output folder cannot be written.
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
+    if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
+        raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
     videos = [Path(v) for v in videos]
     if not videos:
         raise InputError("no input video given")

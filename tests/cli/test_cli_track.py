@@ -446,6 +446,19 @@ def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     assert "--resume" in capsys.readouterr().err
 
 
+def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
+    """``track_videos("clip.avi", ...)`` took each character as an input ("same outputs 'p'"), a Path gave
+    "'PosixPath' object is not iterable", and ``JobConfig(landmarks="lm.csv")`` asked for one file per character."""
+    video, lm, _ = clip
+    for one in (str(lm), lm):
+        with pytest.raises(TypeError, match="landmarks must be a tuple of paths"):
+            JobConfig(out_dir=tmp_path, landmarks=one)
+    for one in (str(video), video):
+        with pytest.raises(TypeError, match=r"videos must be a sequence of paths, e.g. \["):
+            track_videos(one, JobConfig(out_dir=tmp_path, landmarks=(lm,)))
+    assert not any(tmp_path.iterdir())
+
+
 def test_parser_defaults():
     args = build_parser().parse_args(["demo"])
     assert args.out.name == "torchface-demo"
