@@ -98,7 +98,7 @@ class JobConfig:
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames (gray to RGB, alpha dropped, 16-bit
             scaled, last row / column cropped; :func:`torchface.io.open_frames`) instead of rejecting them.
         meshes: write one PLY mesh per frame.
-        normalised_size: side ``G`` of the normalised-face video.
+        normalised_size: side ``G`` of the normalised-face video (even, >= 16).
         tracker: :class:`TrackerConfig` (its ``template`` field sets template management: the dissimilarity
             confidence written as ``confidence``, the mosaic, loss and recovery).
         redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
@@ -142,8 +142,8 @@ class JobConfig:
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
-        if self.normalised_size < 16:
-            raise ValueError(f"normalised_size must be >= 16, got {self.normalised_size}")
+        if self.normalised_size < 16 or self.normalised_size % 2:  # mp4v keeps even sides: 17 was written 16x16
+            raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
         if self.redetect_after < 0:
             raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
 

@@ -459,6 +459,15 @@ def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+def test_normalised_size_is_even(clip, tmp_path):
+    """An odd ``normalised_size`` (17) gave a 16x16 normalised video, not the G x G the docs promise."""
+    _, lm, _ = clip
+    for bad in (15, 17, 129):
+        with pytest.raises(ValueError, match="normalised_size must be an even number >= 16"):
+            JobConfig(out_dir=tmp_path, landmarks=(lm,), normalised_size=bad)
+    assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
+
+
 def test_parser_defaults():
     args = build_parser().parse_args(["demo"])
     assert args.out.name == "torchface-demo"
