@@ -694,7 +694,9 @@ def _track_group(
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
         fit = None if config.lookahead is None else _lookahead_fit(model, config, streams, lm, intr)
-        online = fit is None and config.tracker.template.enabled and config.refine_first is not None
+        # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
+        # from the landmark fit, not the online start its sidecar would not mention)
+        online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
         anchored = [k for k, s in enumerate(streams) if s.anchor is not None and config.tracker.template.enabled]
         if anchored:  # resumed streams the interrupted run had re-anchored: start from their refined fits

@@ -561,6 +561,31 @@ def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, 
     np.testing.assert_array_equal(rows, ref)
 
 
+def test_lookahead_never_falls_back_to_the_online_start(clip, tmp_path, monkeypatch):
+    """A 1-frame video in a ``--lookahead`` batch leaves nothing to look ahead at: the batch was started with the
+    online start instead (which ``refine_first`` documents as used only without ``lookahead``), while the
+    sidecars said "lookahead"; it starts from the landmark fit."""
+    import torchface.job as job
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    video, lm, _ = clip
+    given = []
+
+    def spy(*args, refine_first=None, **kwargs):
+        given.append(refine_first)
+        return job.initialise_managed.__wrapped__(*args, refine_first=refine_first, **kwargs)
+
+    spy.__wrapped__ = job.initialise_managed
+    monkeypatch.setattr(job, "initialise_managed", spy)
+    one, three = _short_npy(video, tmp_path / "one.npy", 1), _short_npy(video, tmp_path / "three.npy", 3)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), lookahead=LookaheadConfig(max_frames=6))
+    assert [s.frames for s in track_videos([one, three], config)] == [1, 3]
+    assert given == [None]
+    for name in ("one", "three"):
+        start = json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]
+        assert start["method"] == "lookahead" and start["reanchored_at_frame"] is None
+
+
 def test_online_start_is_on_by_default(clip, full_run, plain_run):
     """``torchface track`` starts with the online look-ahead start (``JobConfig.refine_first``): once the head has
     turned 10 degrees the stream is re-anchored, so its rows part from the run with ``--no-online-refine`` there,
