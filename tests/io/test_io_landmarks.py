@@ -89,6 +89,9 @@ def test_missing_and_garbled_files(tmp_path):
     (tmp_path / "bad.csv").write_text("x,y\n1,2\nfoo,bar\n")
     with pytest.raises(InputError, match="line 3 is not numbers"):
         read_landmarks(tmp_path / "bad.csv", 100, 100)
+    (tmp_path / "empty.npy").write_bytes(b"")  # an interrupted np.save: it raised EOFError
+    with pytest.raises(InputError, match="not a readable .npy array"):
+        read_landmarks(tmp_path / "empty.npy", 100, 100)
     (tmp_path / "three.csv").write_text("1,2,3\n4,5,6\n")
     with pytest.raises(InputError, match="rows of 'x, y'"):
         read_landmarks(tmp_path / "three.csv", 100, 100)

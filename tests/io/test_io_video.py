@@ -178,6 +178,7 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),
         (lambda p: np.save(p / "one.npy", np.zeros((48, 64, 3), np.uint8)) or p / "one.npy", r"one colour image"),
         (lambda p: (p / "d").mkdir() or p / "d", "no images"),
+        (lambda p: (p / "e.npy").write_bytes(b"") == 0 and p / "e.npy", "not a readable .npy"),  # was EOFError
     ],
 )
 def test_bad_inputs(tmp_path, make, message):

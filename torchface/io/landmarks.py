@@ -131,7 +131,7 @@ def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.
     if p.suffix.lower() == ".npy":
         try:
             points = np.load(p, allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
     else:
         points = _parse_csv(p)

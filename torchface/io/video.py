@@ -378,7 +378,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     if p.suffix.lower() == ".npy":
         try:
             array = np.load(p, allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
         if array.ndim not in (3, 4):
             raise InputError(f"{p}: expected a (T, H, W) or (T, H, W, C) array, got shape {array.shape}")
