@@ -895,7 +895,8 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
 
 def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics):
     """Read up to ``config.lookahead.max_frames`` frames of every stream ahead (kept in ``_Stream.ahead`` for the
-    tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit."""
+    tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit (None when no
+    video has a second frame); a video shorter than the batch's longest is looked at with its last frame repeated."""
     la = config.lookahead
     for s in streams:
         while len(s.ahead) < la.max_frames - 1 and s.error is None:
@@ -905,10 +906,15 @@ def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], 
                 break
             except InputError as exc:  # this video stops after the frames read; the others go on
                 s.error = exc
-    T = 1 + min(len(s.ahead) for s in streams)  # the batch's common length
-    if T < 2:
+    longest = max(len(s.ahead) for s in streams)
+    if longest < 1:  # nothing to look ahead at
         return None
-    frames = torch.stack([torch.stack([s.last_frame] + s.ahead[: T - 1]) for s in streams])
+    # (a shorter video repeats its last frame, as the tracking loop does once it has ended: the batch's shortest
+    # length capped the look-ahead of every video, and a 1-frame video turned it off)
+    frames = torch.stack([
+        torch.stack([s.last_frame] + s.ahead + [([s.last_frame] + s.ahead)[-1]] * (longest - len(s.ahead)))
+        for s in streams
+    ])  # fmt: skip
     fit, _ = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
                            config=la)  # fmt: skip
     return fit

@@ -562,9 +562,9 @@ def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, 
 
 
 def test_lookahead_never_falls_back_to_the_online_start(clip, tmp_path, monkeypatch):
-    """A 1-frame video in a ``--lookahead`` batch leaves nothing to look ahead at: the batch was started with the
-    online start instead (which ``refine_first`` documents as used only without ``lookahead``), while the
-    sidecars said "lookahead"; it starts from the landmark fit."""
+    """A batch of 1-frame videos leaves ``--lookahead`` nothing to look at: it was started with the online start
+    instead (which ``refine_first`` documents as used only without ``lookahead``), while the sidecars said
+    "lookahead"; it starts from the landmark fit."""
     import torchface.job as job
     from torchface.tracker.lookahead import LookaheadConfig
 
@@ -577,13 +577,38 @@ def test_lookahead_never_falls_back_to_the_online_start(clip, tmp_path, monkeypa
 
     spy.__wrapped__ = job.initialise_managed
     monkeypatch.setattr(job, "initialise_managed", spy)
-    one, three = _short_npy(video, tmp_path / "one.npy", 1), _short_npy(video, tmp_path / "three.npy", 3)
+    one, two = _short_npy(video, tmp_path / "one.npy", 1), _short_npy(video, tmp_path / "two.npy", 1)
     config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), lookahead=LookaheadConfig(max_frames=6))
-    assert [s.frames for s in track_videos([one, three], config)] == [1, 3]
+    assert [s.frames for s in track_videos([one, two], config)] == [1, 1]
     assert given == [None]
-    for name in ("one", "three"):
+    for name in ("one", "two"):
         start = json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]
         assert start["method"] == "lookahead" and start["reanchored_at_frame"] is None
+
+
+def test_lookahead_of_a_batch_is_not_capped_by_its_shortest_video(clip, tmp_path, monkeypatch):
+    """The look-ahead of a batch used its shortest video's length for every video: with a 2-frame video beside it
+    the clip's look-ahead saw 2 of its frames. Each video is looked at over its own frames, a shorter one's last
+    frame repeated."""
+    import torchface.job as job
+    from torchface.tracker import fit_landmarks
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    video, lm, _ = clip
+    seen = []
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        seen.append(frames.clone())
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[], []]
+
+    monkeypatch.setattr(job, "lookahead_fit", spy)
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), lookahead=LookaheadConfig(max_frames=6))
+    assert [s.frames for s in track_videos([short, video], config)] == [2, T]
+    frames = read_video(video, max_frames=6)
+    assert len(seen) == 1 and seen[0].shape == (2, 6, 3, H, W)
+    torch.testing.assert_close(seen[0][1], frames, rtol=0, atol=1e-6)
+    torch.testing.assert_close(seen[0][0], frames[[0, 1, 1, 1, 1, 1]], rtol=0, atol=3e-3)  # (the npy is 8-bit)
 
 
 def test_online_start_is_on_by_default(clip, full_run, plain_run):
