@@ -93,7 +93,7 @@ class JobConfig:
             ``redetect_after`` frames, and to recover a stream that template management declares lost
             (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic).
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
-        device: torch device for tracking.
+        device: torch device for tracking (a name or a ``torch.device``).
         resume: continue interrupted videos (see the module docstring).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames (gray to RGB, alpha dropped, 16-bit
             scaled, last row / column cropped; :func:`torchface.io.open_frames`) instead of rejecting them.
@@ -124,7 +124,7 @@ class JobConfig:
     landmarks: tuple[Path, ...] = ()
     detector: str | None = None
     focal: float | None = None
-    device: str = "cpu"
+    device: str | torch.device = "cpu"
     resume: bool = False
     convert: bool = False
     meshes: bool = False

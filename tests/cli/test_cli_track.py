@@ -468,6 +468,16 @@ def test_normalised_size_is_even(clip, tmp_path):
     assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
 
 
+def test_a_torch_device_in_the_job_config_reaches_the_sidecar(clip, tmp_path):
+    """``JobConfig(device=torch.device("cpu"))`` tracked the whole video and then failed writing the JSON
+    ("Object of type device is not JSON serializable"), its other outputs left without it."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), device=torch.device("cpu"), refine_first=None)
+    assert track_videos([short], config)[0].frames == 2
+    assert json.loads(output_paths(tmp_path / "out", "short")["json"].read_text())["config"]["device"] == "cpu"
+
+
 def test_parser_defaults():
     args = build_parser().parse_args(["demo"])
     assert args.out.name == "torchface-demo"
