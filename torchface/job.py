@@ -510,7 +510,8 @@ def track_videos(
         TypeError: ``videos`` is one path, not a sequence of them.
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
             later frame that cannot be read stops that video, raised once every other video is complete.
-        OutputError: the output folder cannot be written.
+        OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
+            file, or the output folder is an image-folder input.
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
