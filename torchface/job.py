@@ -12,7 +12,9 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
 - ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
-last. CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+last. Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
+input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
+keeps ``<stem>.csv.partial``; with
 ``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
 complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
@@ -87,18 +89,18 @@ class JobConfig:
     Attributes:
         out_dir: output folder (created if missing).
         landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
-            detector.
+            detector; a sequence even for one video (a single path raises TypeError).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
             re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
             ``redetect_after`` frames, and to recover a stream that template management declares lost
             (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic).
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
-        device: torch device for tracking.
+        device: torch device for tracking (a name or a ``torch.device``).
         resume: continue interrupted videos (see the module docstring).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames (gray to RGB, alpha dropped, 16-bit
             scaled, last row / column cropped; :func:`torchface.io.open_frames`) instead of rejecting them.
         meshes: write one PLY mesh per frame.
-        normalised_size: side ``G`` of the normalised-face video.
+        normalised_size: side ``G`` of the normalised-face video (even, >= 16).
         tracker: :class:`TrackerConfig` (its ``template`` field sets template management: the dissimilarity
             confidence written as ``confidence``, the mosaic, loss and recovery).
         redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
@@ -124,7 +126,7 @@ class JobConfig:
     landmarks: tuple[Path, ...] = ()
     detector: str | None = None
     focal: float | None = None
-    device: str = "cpu"
+    device: str | torch.device = "cpu"
     resume: bool = False
     convert: bool = False
     meshes: bool = False
@@ -136,12 +138,14 @@ class JobConfig:
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
 
     def __post_init__(self) -> None:
+        if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
+            raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
-        if self.normalised_size < 16:
-            raise ValueError(f"normalised_size must be >= 16, got {self.normalised_size}")
+        if self.normalised_size < 16 or self.normalised_size % 2:  # mp4v keeps even sides: 17 was written 16x16
+            raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
         if self.redetect_after < 0:
             raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
 
@@ -434,6 +438,30 @@ def _check_unique(names: Sequence[str]) -> None:
         raise InputError(f"two inputs would write the same outputs {dup[0]!r}: rename one of them")
 
 
+def _check_inputs_kept(
+    videos: Sequence[Path], names: Sequence[str], landmarks: Sequence[Path], out_dir: Path, meshes: bool
+) -> None:
+    """Refuse a run whose outputs would replace what it reads: an output with the path of an input or of a
+    landmarks file (``clip.csv`` beside ``clip.mp4`` with ``--out`` their folder; a fresh run deletes it before
+    tracking), or an output folder that is an image-folder input (the next run would read the plot PNG as a frame).
+
+    Raises:
+        OutputError: naming the output and what it would replace.
+    """
+    read = {Path(v).resolve(): f"the input {v}" for v in videos}
+    read.update({Path(f).resolve(): f"the landmarks file {f}" for f in landmarks})
+    for v in videos:
+        if v.is_dir() and v.resolve() == out_dir.resolve():
+            raise OutputError(f"{out_dir}: the output folder is the image folder {v}, whose frames are every image "
+                              "in it (the plot PNG would be one): give another --out")  # fmt: skip
+    for v, name in zip(videos, names):
+        for kind, path in output_paths(out_dir, name).items():
+            what = read.get(path.resolve()) if kind != "meshes" or meshes else None
+            if what is not None:
+                raise OutputError(f"{path}: the {kind} output of {v} would replace {what}: give another --out, or "
+                                  "rename that file")  # fmt: skip
+
+
 def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input."""
     try:
@@ -480,11 +508,15 @@ def track_videos(
         One :class:`VideoSummary` per video, in input order.
 
     Raises:
+        TypeError: ``videos`` is one path, not a sequence of them.
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
             later frame that cannot be read stops that video, raised once every other video is complete.
-        OutputError: the output folder cannot be written.
+        OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
+            file, or the output folder is an image-folder input.
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
+    if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
+        raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
     videos = [Path(v) for v in videos]
     if not videos:
         raise InputError("no input video given")
@@ -507,6 +539,7 @@ def track_videos(
     pending_lm: list[Path] = []
     names = [output_name(v) for v in videos]
     _check_unique(names)
+    _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
     for v, name in zip(videos, names):
         for kind, path in output_paths(out_dir, name).items():
             if kind != "meshes" and path.is_dir():
@@ -709,7 +742,9 @@ def _track_group(
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
         fit = None if config.lookahead is None else _lookahead_fit(model, config, streams, lm, intr)
-        online = fit is None and config.tracker.template.enabled and config.refine_first is not None
+        # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
+        # from the landmark fit, not the online start its sidecar would not mention)
+        online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
         anchored = [k for k, s in enumerate(streams) if s.anchor is not None and config.tracker.template.enabled]
         if anchored:  # resumed streams the interrupted run had re-anchored: start from their refined fits
@@ -910,7 +945,8 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
 
 def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics):
     """Read up to ``config.lookahead.max_frames`` frames of every stream ahead (kept in ``_Stream.ahead`` for the
-    tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit."""
+    tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit (None when no
+    video has a second frame); a video shorter than the batch's longest is looked at with its last frame repeated."""
     la = config.lookahead
     for s in streams:
         while len(s.ahead) < la.max_frames - 1 and s.error is None:
@@ -920,10 +956,15 @@ def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], 
                 break
             except InputError as exc:  # this video stops after the frames read; the others go on
                 s.error = exc
-    T = 1 + min(len(s.ahead) for s in streams)  # the batch's common length
-    if T < 2:
+    longest = max(len(s.ahead) for s in streams)
+    if longest < 1:  # nothing to look ahead at
         return None
-    frames = torch.stack([torch.stack([s.last_frame] + s.ahead[: T - 1]) for s in streams])
+    # (a shorter video repeats its last frame, as the tracking loop does once it has ended: the batch's shortest
+    # length capped the look-ahead of every video, and a 1-frame video turned it off)
+    frames = torch.stack([
+        torch.stack([s.last_frame] + s.ahead + [([s.last_frame] + s.ahead)[-1]] * (longest - len(s.ahead)))
+        for s in streams
+    ])  # fmt: skip
     fit, _ = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
                            config=la)  # fmt: skip
     return fit

@@ -336,6 +336,38 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "has 2 frames")
 
 
+def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
+    """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
+    input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
+    an image folder given as its own ``--out`` had its plot PNG read as a frame by the next run: all refused."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    here = tmp_path / "here"
+    here.mkdir()
+    np.save(here / "clip.npy", frames)
+    marks = here / "clip.csv"
+    marks.write_bytes(lm.read_bytes())
+    rc = main(["track", str(here / "clip.npy"), "--landmarks", str(marks), "--out", str(here), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "would replace the landmarks file")
+    assert marks.read_bytes() == lm.read_bytes()
+    writer = cv2.VideoWriter(str(here / "clip_overlay.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25.0, (W, H))
+    for f in frames:
+        writer.write(np.ascontiguousarray(f[..., ::-1]))
+    writer.release()
+    before = (here / "clip_overlay.mp4").read_bytes()
+    rc = main(["track", str(here / "clip_overlay.mp4"), str(here / "clip.npy"), "--landmarks", str(lm),
+               "--landmarks", str(lm), "--out", str(here), "--quiet"])  # fmt: skip
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "would replace the input")
+    assert (here / "clip_overlay.mp4").read_bytes() == before
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(shots / f"{k:03d}.png"), f[..., ::-1])
+    rc = main(["track", str(shots), "--landmarks", str(lm), "--out", str(shots), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", "is the image folder")
+    assert sorted(p.name for p in shots.iterdir()) == ["000.png", "001.png"]
+
+
 def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
     """Interrupted after the online start re-anchored the stream, a resumed run starts from the recorded refined
     fit and offset: its rows go on as the uninterrupted run's and its sidecar has the refined shape. (Resumed
@@ -467,6 +499,38 @@ def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     assert "--resume" in capsys.readouterr().err
 
 
+def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
+    """``track_videos("clip.avi", ...)`` took each character as an input ("same outputs 'p'"), a Path gave
+    "'PosixPath' object is not iterable", and ``JobConfig(landmarks="lm.csv")`` asked for one file per character."""
+    video, lm, _ = clip
+    for one in (str(lm), lm):
+        with pytest.raises(TypeError, match="landmarks must be a tuple of paths"):
+            JobConfig(out_dir=tmp_path, landmarks=one)
+    for one in (str(video), video):
+        with pytest.raises(TypeError, match=r"videos must be a sequence of paths, e.g. \["):
+            track_videos(one, JobConfig(out_dir=tmp_path, landmarks=(lm,)))
+    assert not any(tmp_path.iterdir())
+
+
+def test_normalised_size_is_even(clip, tmp_path):
+    """An odd ``normalised_size`` (17) gave a 16x16 normalised video, not the G x G the docs promise."""
+    _, lm, _ = clip
+    for bad in (15, 17, 129):
+        with pytest.raises(ValueError, match="normalised_size must be an even number >= 16"):
+            JobConfig(out_dir=tmp_path, landmarks=(lm,), normalised_size=bad)
+    assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
+
+
+def test_a_torch_device_in_the_job_config_reaches_the_sidecar(clip, tmp_path):
+    """``JobConfig(device=torch.device("cpu"))`` tracked the whole video and then failed writing the JSON
+    ("Object of type device is not JSON serializable"), its other outputs left without it."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), device=torch.device("cpu"), refine_first=None)
+    assert track_videos([short], config)[0].frames == 2
+    assert json.loads(output_paths(tmp_path / "out", "short")["json"].read_text())["config"]["device"] == "cpu"
+
+
 def test_parser_defaults():
     args = build_parser().parse_args(["demo"])
     assert args.out.name == "torchface-demo"
@@ -558,6 +622,56 @@ def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, 
     _, ref, _, _ = _pose(output_paths(plain_run[1], NAME)["csv"])
     assert rows.shape == ref.shape == (T, rows.shape[1])
     np.testing.assert_array_equal(rows, ref)
+
+
+def test_lookahead_never_falls_back_to_the_online_start(clip, tmp_path, monkeypatch):
+    """A batch of 1-frame videos leaves ``--lookahead`` nothing to look at: it was started with the online start
+    instead (which ``refine_first`` documents as used only without ``lookahead``), while the sidecars said
+    "lookahead"; it starts from the landmark fit."""
+    import torchface.job as job
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    video, lm, _ = clip
+    given = []
+
+    def spy(*args, refine_first=None, **kwargs):
+        given.append(refine_first)
+        return job.initialise_managed.__wrapped__(*args, refine_first=refine_first, **kwargs)
+
+    spy.__wrapped__ = job.initialise_managed
+    monkeypatch.setattr(job, "initialise_managed", spy)
+    one, two = _short_npy(video, tmp_path / "one.npy", 1), _short_npy(video, tmp_path / "two.npy", 1)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), lookahead=LookaheadConfig(max_frames=6))
+    assert [s.frames for s in track_videos([one, two], config)] == [1, 1]
+    assert given == [None]
+    for name in ("one", "two"):
+        start = json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]
+        assert start["method"] == "lookahead" and start["reanchored_at_frame"] is None
+
+
+def test_lookahead_of_a_batch_is_not_capped_by_its_shortest_video(clip, tmp_path, monkeypatch):
+    """The look-ahead of a batch used its shortest video's length for every video: with a 2-frame video beside it
+    the clip's look-ahead saw 2 of its frames. Each video is looked at over its own frames, a shorter one's last
+    frame repeated."""
+    import torchface.job as job
+    from torchface.tracker import fit_landmarks
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    video, lm, _ = clip
+    seen = []
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        seen.append(frames.clone())
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[], []]
+
+    monkeypatch.setattr(job, "lookahead_fit", spy)
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), lookahead=LookaheadConfig(max_frames=6))
+    assert [s.frames for s in track_videos([short, video], config)] == [2, T]
+    frames = read_video(video, max_frames=6)
+    assert len(seen) == 1 and seen[0].shape == (2, 6, 3, H, W)
+    torch.testing.assert_close(seen[0][1], frames, rtol=0, atol=1e-6)
+    torch.testing.assert_close(seen[0][0], frames[[0, 1, 1, 1, 1, 1]], rtol=0, atol=3e-3)  # (the npy is 8-bit)
 
 
 def test_online_start_is_on_by_default(clip, full_run, plain_run):

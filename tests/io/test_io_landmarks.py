@@ -36,6 +36,27 @@ def test_csv_as_spreadsheets_and_numpy_write_it(tmp_path):
         read_landmarks(tmp_path / "two.csv", 100, 100)
 
 
+def test_csv_single_row_in_the_order_its_header_names(tmp_path):
+    """OpenFace writes one row of ``x_0..x_67, y_0..y_67``: read as interleaved ``x0, y0, ...`` it gave other points,
+    all inside the frame, with no error. A header naming every cell places them; an interleaved header, one
+    that does not name them, or one from 1 reads as before."""
+    pts = _points()
+    xs_then_ys = ",".join(f"{v}" for v in np.r_[pts[:, 0], pts[:, 1]])
+    (tmp_path / "openface.csv").write_text(
+        ", ".join([f"x_{k}" for k in range(68)] + [f"y_{k}" for k in range(68)]) + "\n" + xs_then_ys + "\n"
+    )
+    np.testing.assert_allclose(read_landmarks(tmp_path / "openface.csv", 100, 100), pts)
+    (tmp_path / "from1.csv").write_text(
+        ",".join([f"X{k}" for k in range(1, 69)] + [f"Y{k}" for k in range(1, 69)]) + "\n" + xs_then_ys + "\n"
+    )
+    np.testing.assert_allclose(read_landmarks(tmp_path / "from1.csv", 100, 100), pts)
+    interleaved = ",".join(f"{v}" for v in pts.reshape(-1))
+    (tmp_path / "xy.csv").write_text(",".join(f"{c}{k}" for k in range(68) for c in "xy") + "\n" + interleaved)
+    (tmp_path / "other.csv").write_text(",".join(f"p{k}" for k in range(136)) + "\n" + interleaved)
+    for name in ("xy.csv", "other.csv"):
+        np.testing.assert_allclose(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+
+
 def test_csv_single_row_and_npy_layouts(tmp_path):
     pts = _points()
     (tmp_path / "row.csv").write_text(",".join(f"{v}" for v in pts.reshape(-1)) + "\n")
@@ -68,6 +89,9 @@ def test_missing_and_garbled_files(tmp_path):
     (tmp_path / "bad.csv").write_text("x,y\n1,2\nfoo,bar\n")
     with pytest.raises(InputError, match="line 3 is not numbers"):
         read_landmarks(tmp_path / "bad.csv", 100, 100)
+    (tmp_path / "empty.npy").write_bytes(b"")  # an interrupted np.save: it raised EOFError
+    with pytest.raises(InputError, match="not a readable .npy array"):
+        read_landmarks(tmp_path / "empty.npy", 100, 100)
     (tmp_path / "three.csv").write_text("1,2,3\n4,5,6\n")
     with pytest.raises(InputError, match="rows of 'x, y'"):
         read_landmarks(tmp_path / "three.csv", 100, 100)

@@ -108,3 +108,6 @@ def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text) == {"a": None, "b": None, "c": [1.0, None], "d": {"e": [2.5, None]}}
     assert not (tmp_path / "f.json.partial").exists()
+    # a torch device or dtype (JobConfig(device=torch.device("cpu"))) is its name; it raised TypeError
+    write_json(tmp_path / "g.json", {"device": torch.device("cpu"), "dtype": torch.float64})
+    assert json.loads((tmp_path / "g.json").read_text()) == {"device": "cpu", "dtype": "torch.float64"}

@@ -142,6 +142,20 @@ def test_video_files_gray_16_bit_and_rgba_are_rejected(tmp_path):
     torch.testing.assert_close(_frames(reader)[0, :, 0, 0], torch.full((3,), 100 / 255))
 
 
+def test_a_stream_without_a_frame_count_declares_none(tmp_path):
+    """A raw MJPEG stream has no frame count: OpenCV reports -192153584101141, which was kept as the declared count
+    (the progress bar read "1/-192153584101141" and the JSON's declared_frames that number)."""
+    path = tmp_path / "raw.mjpeg"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))
+    assert writer.isOpened()
+    for k in range(3):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+    reader = open_frames(path)
+    assert reader.info.num_frames is None or reader.info.num_frames == 3, reader.info.num_frames
+    assert _frames(reader).shape[0] == 3
+
+
 def test_frame_size_change_mid_video(tmp_path):
     cv2.imwrite(str(tmp_path / "a.png"), np.zeros((40, 40, 3), np.uint8))
     cv2.imwrite(str(tmp_path / "b.png"), np.zeros((48, 40, 3), np.uint8))
@@ -164,6 +178,7 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),
         (lambda p: np.save(p / "one.npy", np.zeros((48, 64, 3), np.uint8)) or p / "one.npy", r"one colour image"),
         (lambda p: (p / "d").mkdir() or p / "d", "no images"),
+        (lambda p: (p / "e.npy").write_bytes(b"") == 0 and p / "e.npy", "not a readable .npy"),  # was EOFError
     ],
 )
 def test_bad_inputs(tmp_path, make, message):

@@ -61,3 +61,8 @@ def test_plot_track_writes_png(tmp_path):
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.partial*"))
     with pytest.raises(ValueError, match="yaw_deg"):
         plot_track(("frame", "timestamp"), np.zeros((2, 2)), tmp_path / "x.png")
+    # the suffix names the format (PNG bytes were written whatever it said); none: PNG
+    assert plot_track(cols, rows, tmp_path / "plot.pdf").read_bytes()[:5] == b"%PDF-"
+    assert b"<svg" in plot_track(cols, rows, tmp_path / "plot.svg").read_bytes()[:1000]
+    assert plot_track(cols, rows, tmp_path / "plot").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["plot", "plot.pdf", "plot.png", "plot.svg"]

@@ -3,14 +3,16 @@
 Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:`torchface.conventions`):
 
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
-  136 numbers ``x0, y0, x1, y1, ...``; cells separated by commas, semicolons, tabs or spaces, optionally
-  quoted; UTF-8 with or without a byte order mark;
+  136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
+  ``y<k>``, e.g. OpenFace's ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
+  spaces, optionally quoted; UTF-8 with or without a byte order mark;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +34,22 @@ def _cells(line: str) -> list[str]:
     return [c.strip().strip("\"'").strip() for c in line.split(",") if c.strip() != ""]
 
 
+def _named_row(header: str, row: list[float]) -> np.ndarray | None:
+    """One row's values placed by a header naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``, ...; ``k`` from 0
+    or 1, each once): ``(K, 2)``; None when the header does not name them so."""
+    names = _cells(header)
+    keys = [re.fullmatch(r"([xy])[_ ]?(\d+)", n.lower()) for n in names]
+    if len(names) != len(row) or len(row) % 2 or not all(keys):
+        return None
+    index = {(m.group(1), int(m.group(2))): v for m, v in zip(keys, row)}
+    first = min(k for _, k in index)
+    K = len(row) // 2
+    wanted = [(c, first + k) for k in range(K) for c in "xy"]
+    if first not in (0, 1) or set(index) != set(wanted):
+        return None
+    return np.asarray([index[w] for w in wanted], dtype=np.float64).reshape(K, 2)
+
+
 def _parse_csv(p: Path) -> np.ndarray:
     try:
         text = p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
@@ -51,6 +69,9 @@ def _parse_csv(p: Path) -> np.ndarray:
                 raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
             header = line
     if len(rows) == 1:
+        named = None if header is None else _named_row(header, rows[0])
+        if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
+            return named
         return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
@@ -110,7 +131,7 @@ def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.
     if p.suffix.lower() == ".npy":
         try:
             points = np.load(p, allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
     else:
         points = _parse_csv(p)

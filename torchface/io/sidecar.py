@@ -34,10 +34,15 @@ def package_versions() -> dict[str, str | None]:
 
 
 def to_jsonable(value: Any) -> Any:
-    """Dataclasses, enums, paths, tuples and numpy/torch scalars -> plain JSON values; a NaN or infinite number
-    (an undefined figure) -> None, so that the file is strict JSON (``null``)."""
+    """Dataclasses, enums, paths, tuples and numpy/torch scalars -> plain JSON values, torch devices and dtypes ->
+    their names (``"cpu"``, ``"torch.float64"``); a NaN or infinite number (an undefined figure) -> None, so that
+    the file is strict JSON (``null``)."""
+    import torch
+
     if isinstance(value, float):
         return value if math.isfinite(value) else None
+    if isinstance(value, (torch.device, torch.dtype)):  # JobConfig(device=torch.device(...)): the sidecar raised
+        return str(value)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, enum.Enum):

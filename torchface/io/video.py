@@ -29,6 +29,7 @@ smaller than :data:`MIN_SIZE` on a side, a frame whose size differs from the fir
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Iterator
@@ -83,7 +84,8 @@ class VideoInfo:
         width: W of the first frame.
         height: H of the first frame.
         fps: frame rate (the container's, else 25).
-        num_frames: frame count if the input states it (a container's count can be approximate), else None.
+        num_frames: frame count if the input states it (a container's count can be approximate; a stream's
+            unknown count, which OpenCV gives as -1 or a huge negative number, is None), else None.
         source_format: what the first frame stored, e.g. ``"uint8 BGR"``, ``"uint16 gray"``.
         conversion: what ``convert=True`` did to it, e.g. ``"uint16 gray -> uint8-range RGB; cropped 159x119 to
             158x118"``; empty when the frames are used as stored.
@@ -379,7 +381,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             # Mapped, not read: frames are read as they are tracked, so that a long clip does not have to fit in
             # memory (it used to be loaded whole before the first frame was tracked).
             array = np.load(p, mmap_mode="r", allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
         if array.ndim not in (3, 4):
             raise InputError(f"{p}: expected a (T, H, W) or (T, H, W, C) array, got shape {array.shape}")
@@ -419,7 +421,8 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     fmt = f"{stored.dtype} {({1: 'gray', 3: 'BGR', 4: 'BGRA'})[channels]}"
     conv = _conversion(stored, fmt, problems)
     fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)  # -1 or garbage (-1.9e14: a raw .mjpeg) when unknown
     fps = fps if 0 < fps < 1000 else 25.0
-    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, count or None, fmt, conv)
+    declared = int(count) if math.isfinite(count) and count >= 1 else None
+    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv)
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert)

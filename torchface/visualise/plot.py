@@ -24,11 +24,12 @@ def _matplotlib():
 def plot_track(
     columns: tuple[str, ...], rows: np.ndarray, path: str | os.PathLike[str], title: str = "", num_aus: int = 4
 ) -> Path:
-    """Plot a track table (:func:`torchface.io.read_track_csv`) to a PNG.
+    """Plot a track table (:func:`torchface.io.read_track_csv`) to a PNG (or the format ``path``'s suffix names).
 
     Args:
         columns: CSV header; rows: ``(T, C)`` values.
-        path: the PNG (written to ``<path>.partial.png`` then renamed).
+        path: the image, PNG unless its suffix names another format matplotlib writes (``.pdf``, ``.svg``, ...;
+            written to ``<stem>.partial<suffix>`` then renamed).
         title: figure title.
         num_aus: how many ``AUxx_r`` columns to show (those that vary most).
     """
@@ -65,9 +66,9 @@ def plot_track(
         fig.suptitle(title)
     fig.tight_layout()
     p = Path(path)
-    tmp = p.with_name(p.stem + ".partial.png")
-    try:
-        fig.savefig(tmp, dpi=100)
+    tmp = p.with_name(p.stem + ".partial" + p.suffix)
+    try:  # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf")
+        fig.savefig(tmp, dpi=100, format=p.suffix[1:].lower() or "png")
     finally:
         plt.close(fig)
     os.replace(tmp, p)
