@@ -242,6 +242,35 @@ def test_without_the_library_auto_runs_the_torch_code_and_native_says_why(monkey
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
 
 
+def test_a_thread_asking_while_another_builds_the_library_waits_for_it(monkeypatch):
+    """The first :func:`_native.library` calls from two threads at once: the second waits for the first's build
+    and gets the library too (it used to get None, with no reason, and ran the torch code or raised)."""
+    import threading
+    import time
+
+    build = _native._build
+
+    def slow_build(*args, **kwargs):
+        time.sleep(0.3)  # a compiler run: seconds
+        return build(*args, **kwargs)
+
+    for name, value in (("_library", None), ("_reason", None), ("_tried", False), ("_parallel", None),
+                        ("_parallel_pid", -1), ("_build", slow_build)):  # fmt: skip
+        monkeypatch.setattr(_native, name, value)
+    got: list[tuple[bool, str | None]] = []
+
+    def ask() -> None:
+        got.append((_native.library() is not None, _native.unavailable_reason()))
+
+    threads = [threading.Thread(target=ask) for _ in range(2)]
+    threads[0].start()
+    time.sleep(0.1)  # the first is building
+    threads[1].start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert got == [(True, None), (True, None)]
+
+
 _PROBE = (
     "import torchface._native as n; lib = n.library(); print('OK' if lib is not None else 'NONE', "
     "n.unavailable_reason())"

@@ -268,8 +268,7 @@ def _build(cc: str, openmp: bool = False) -> Path:
 
 
 def _load() -> None:
-    global _library, _reason, _tried
-    _tried = True
+    global _library, _reason
     if os.environ.get("TORCHFACE_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
         _reason = "turned off by TORCHFACE_NATIVE=0"
         return
@@ -317,11 +316,16 @@ def _warn_fallback() -> None:
 
 def library() -> ctypes.CDLL | None:
     """The loaded library (built on the first call), or None where it is unavailable (see
-    :func:`unavailable_reason`). Thread-safe."""
+    :func:`unavailable_reason`). Thread-safe: a thread that asks while another builds or loads it waits for that
+    to finish."""
+    global _tried
     if not _tried:
         with _lock:
             if not _tried:
-                _load()
+                try:
+                    _load()
+                finally:  # set last: the check above must not let another thread past before the load has ended
+                    _tried = True
     return _library
 
 
