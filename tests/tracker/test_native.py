@@ -296,6 +296,20 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     assert built[0].stat().st_mtime_ns == stamp
 
 
+def test_a_march_native_build_is_cached_per_cpu(tmp_path, monkeypatch):
+    """A cache folder shared by machines of different CPUs (a home folder on a cluster) must not hand one CPU's
+    ``-march=native`` build (AVX-512 here) to another, which dies of an illegal instruction: that build's name
+    depends on the CPU's model and features; the portable build's does not."""
+    info = tmp_path / "cpuinfo"
+    monkeypatch.setattr(_native, "_CPUINFO", str(info))
+    native, portable = (*_native._FLAGS, *_native._ARCH_FLAGS), _native._FLAGS
+    names = []
+    for flags in ("fpu sse2 avx2 avx512f", "fpu sse2 avx2"):
+        info.write_text(f"processor\t: 0\nvendor_id\t: X\nflags\t\t: {flags}\n\nprocessor\t: 1\nflags\t\t: other\n")
+        names.append((_native._target("cc", native, b"src").name, _native._target("cc", portable, b"src").name))
+    assert names[0][0] != names[1][0] and names[0][1] == names[1][1]
+
+
 _OPENMP_PROBE = """
 import torch
 torch.set_num_threads(2)

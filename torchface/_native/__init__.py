@@ -21,7 +21,10 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 (:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
-hash of the source, the compiler and its flags, so a changed source is built again; it is built into a temporary
+hash of the source, the compiler and its flags (and, for a ``-march=native`` build, the CPU's model and features:
+a cache folder shared by machines of different CPUs, a home folder on a cluster, holds one build per CPU rather
+than one that kills another CPU's processes with an illegal instruction), so a changed source is built again; it
+is built into a temporary
 file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
 partial file. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
@@ -219,6 +222,37 @@ def _cache_dir() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchface") / "native"
 
 
+#: Where :func:`_cpu_id` reads the CPU's description (Linux).
+_CPUINFO = "/proc/cpuinfo"
+#: The fields of a processor's ``/proc/cpuinfo`` block that say what code it runs (x86 and ARM).
+_CPU_FIELDS = ("vendor_id", "cpu family", "model", "model name", "flags", "CPU implementer", "CPU architecture",
+               "CPU variant", "CPU part", "Features")  # fmt: skip
+
+
+def _cpu_id() -> str:
+    """What a ``-march=native`` build was made for: the first processor's vendor, model and feature flags in
+    ``/proc/cpuinfo`` (Linux), else ``platform.processor()``. Part of that build's cache key (module docstring)."""
+    try:
+        with open(_CPUINFO) as info:
+            fields = []
+            for line in info:
+                if not line.strip():  # the end of the first processor's block
+                    break
+                name, _, value = line.partition(":")
+                if name.strip() in _CPU_FIELDS:
+                    fields.append(f"{name.strip()}: {' '.join(value.split())}")
+    except OSError:
+        return platform.processor()
+    return "\n".join(fields) or platform.processor()
+
+
+def _target(cc: str, flags: tuple[str, ...], source: bytes) -> Path:
+    """The cached library's path for ``source`` built by ``cc`` with ``flags``."""
+    cpu = (_cpu_id(),) if any(flag.startswith("-march=native") for flag in flags) else ()
+    key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION, *cpu)).encode()).hexdigest()
+    return _cache_dir() / f"torchface_native-{key[:16]}.so"
+
+
 def _process_libgomp() -> set[str]:
     """The paths of the GNU OpenMP runtimes (``libgomp``) loaded in this process (Linux; empty elsewhere)."""
     try:
@@ -245,8 +279,7 @@ def _build(cc: str, openmp: bool = False) -> Path:
     for omp in ((_OPENMP_FLAGS, ()) if openmp else ((),)):
         for arch in (_ARCH_FLAGS, ()):
             flags = (*_FLAGS, *arch, *omp)
-            key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION)).encode()).hexdigest()
-            target = _cache_dir() / f"torchface_native-{key[:16]}.so"
+            target = _target(cc, flags, source)
             if target.is_file():
                 return target
             target.parent.mkdir(parents=True, exist_ok=True)
