@@ -271,6 +271,45 @@ def test_a_thread_asking_while_another_builds_the_library_waits_for_it(monkeypat
     assert got == [(True, None), (True, None)]
 
 
+def _library_in_child(queue) -> None:
+    queue.put(_native.library() is not None)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_child_forked_while_a_thread_builds_the_library_does_not_hang(monkeypatch):
+    """A data-loader worker forked while another thread of the parent builds the library: the child has no such
+    thread to release the lock it held; it takes a lock of its own and loads the library itself (it hung)."""
+    import multiprocessing
+    import threading
+    import time
+
+    build = _native._build
+
+    def slow_build(*args, **kwargs):
+        time.sleep(0.6)  # a compiler run: seconds
+        return build(*args, **kwargs)
+
+    for name, value in (("_library", None), ("_reason", None), ("_tried", False), ("_parallel", None),
+                        ("_parallel_pid", -1), ("_build", slow_build)):  # fmt: skip
+        monkeypatch.setattr(_native, name, value)
+    monkeypatch.setattr(_native, "_lock", threading.Lock())  # restored after, whichever lock the fork left
+    builder = threading.Thread(target=_native.library)
+    builder.start()
+    time.sleep(0.2)  # the thread holds the lock, building
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_library_in_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=20)  # a hang fails here
+    finally:
+        child.join(timeout=10)
+        if child.is_alive():
+            child.kill()
+        builder.join(timeout=60)
+    assert child.exitcode == 0
+
+
 _PROBE = (
     "import torchface._native as n; lib = n.library(); print('OK' if lib is not None else 'NONE', "
     "n.unavailable_reason())"

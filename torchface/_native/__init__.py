@@ -64,6 +64,17 @@ _OPENMP_FLAGS = ("-fopenmp",)
 LOSS_CODES = {"none": 0, "huber": 1, "cauchy": 2, "tukey": 3, "geman_mcclure": 4}
 
 _lock = threading.Lock()
+
+
+def _lock_of_its_own() -> None:
+    """In a forked child (a data-loader worker): a new :data:`_lock`. The parent's may be held by one of its
+    threads (one building the library), which the child does not have: the child would wait for it for ever."""
+    global _lock
+    _lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_lock_of_its_own)
 _library: ctypes.CDLL | None = None
 #: ``tf_parallel`` where the library was built with OpenMP and shares torch's runtime (:func:`run_chunks`), and
 #: the process that loaded it (GNU OpenMP's threads do not survive a fork: a forked child uses the thread pool).
