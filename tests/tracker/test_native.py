@@ -330,6 +330,11 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     assert _probe(env).startswith("OK")
     built = list((tmp_path / "native").glob("torchface_native-*.so"))
     assert len(built) == 1 and not list((tmp_path / "native").glob("*.partial"))
+    umask = os.umask(0o022)
+    os.umask(umask)
+    # Readable by whom the umask allows, as any file the compiler writes (a shared cache folder serves every user):
+    # it was built into a mkstemp file, readable by its builder alone.
+    assert built[0].stat().st_mode & 0o444 == 0o444 & ~umask
     stamp = built[0].stat().st_mtime_ns
     assert _probe(env).startswith("OK")  # found, not built again
     assert built[0].stat().st_mtime_ns == stamp

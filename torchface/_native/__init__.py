@@ -40,8 +40,8 @@ import os
 import platform
 import shutil
 import subprocess
-import tempfile
 import threading
+import uuid
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -294,8 +294,9 @@ def _build(cc: str, openmp: bool = False) -> Path:
             if target.is_file():
                 return target
             target.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
-            os.close(fd)
+            # A unique name the compiler creates (as any file it writes: readable where the umask allows, so a
+            # cache folder shared by several users serves them all; a mkstemp file was the builder's alone).
+            tmp = str(target.parent / f"{target.name}.{os.getpid()}.{uuid.uuid4().hex}.partial")
             try:
                 cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
                 out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
