@@ -423,6 +423,47 @@ def test_a_forked_child_runs_the_kernels_in_two_chunks():
     assert child_index == index.tolist() == torch.topk(score, 100, dim=1).indices.tolist()
 
 
+def test_threads_that_grow_the_chunk_pool_at_once_all_get_their_results(monkeypatch):
+    """Kernels run from several Python threads at once on the thread pool (TORCHFACE_OPENMP=0, a forked child),
+    with different chunk counts: a thread that grows the pool shuts the old one down, and a thread that had taken
+    the old one but not yet submitted its chunks raised 'cannot schedule new futures after shutdown'."""
+    import threading
+
+    score = torch.rand(64, 50, generator=torch.Generator().manual_seed(0))
+    want = torch.topk(score, 5, dim=1).indices
+    monkeypatch.setattr(_native, "_parallel", None)  # the pool, as without OpenMP's threads
+    for name in ("_pool", "_pool_size", "_pool_pid"):  # restored after the trials
+        monkeypatch.setattr(_native, name, getattr(_native, name))
+    errors: list[str] = []
+    wrong = []
+
+    def top(chunks: int, barrier: threading.Barrier) -> None:
+        index = torch.empty(64, 5, dtype=torch.int64)
+        value = torch.empty(64, 5)
+        prob = _native.TopProblem(B=64, N=50, k=5, score=score.data_ptr(), out_index=index.data_ptr(),
+                                  out_value=value.data_ptr())  # fmt: skip
+        barrier.wait()
+        try:
+            _native.run("top_pixels", False, prob, 64, chunks)
+        except RuntimeError as exc:
+            errors.append(str(exc))
+            return
+        if not torch.equal(index, want):
+            wrong.append(chunks)
+
+    for _ in range(30):
+        monkeypatch.setattr(_native, "_pool", None)  # each trial as a fresh process's first kernels
+        counts = (2, 3, 5, 9)
+        barrier = threading.Barrier(len(counts))
+        threads = [threading.Thread(target=top, args=(c, barrier)) for c in counts]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+        _native._pool.shutdown(wait=True)
+    assert not errors and not wrong, (errors[:1], wrong)
+
+
 def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
     err: list[str] = []
     assert _probe({"TORCHFACE_NATIVE": "0"}, err).startswith("NONE turned off by TORCHFACE_NATIVE=0")

@@ -402,15 +402,14 @@ def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
         codes = [_parallel(ctypes.cast(fn, ctypes.c_void_p), ctypes.addressof(problem), batch, chunks)]
     else:
         ref = ctypes.byref(problem)
-        with _lock:
+        bounds = [batch * k // chunks for k in range(chunks + 1)]
+        with _lock:  # submitted under the lock: another thread that grows the pool shuts the old one down
             if _pool is None or _pool_size < chunks or _pool_pid != os.getpid():  # a forked child: a pool of its own
                 if _pool is not None and _pool_pid == os.getpid():
-                    _pool.shutdown(wait=False)
+                    _pool.shutdown(wait=False)  # what was submitted to it still runs
                 _pool, _pool_size = ThreadPoolExecutor(max_workers=chunks, thread_name_prefix="torchface"), chunks
                 _pool_pid = os.getpid()
-            pool = _pool
-        bounds = [batch * k // chunks for k in range(chunks + 1)]
-        futures = [pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
+            futures = [_pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
         codes = [fn(ref, bounds[0], bounds[1])] + [f.result() for f in futures]
     if any(code != 0 for code in codes):
         raise MemoryError("a native kernel could not allocate its workspace")
