@@ -242,6 +242,74 @@ def test_without_the_library_auto_runs_the_torch_code_and_native_says_why(monkey
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
 
 
+def test_a_thread_asking_while_another_builds_the_library_waits_for_it(monkeypatch):
+    """The first :func:`_native.library` calls from two threads at once: the second waits for the first's build
+    and gets the library too (it used to get None, with no reason, and ran the torch code or raised)."""
+    import threading
+    import time
+
+    build = _native._build
+
+    def slow_build(*args, **kwargs):
+        time.sleep(0.3)  # a compiler run: seconds
+        return build(*args, **kwargs)
+
+    for name, value in (("_library", None), ("_reason", None), ("_tried", False), ("_parallel", None),
+                        ("_parallel_pid", -1), ("_build", slow_build)):  # fmt: skip
+        monkeypatch.setattr(_native, name, value)
+    got: list[tuple[bool, str | None]] = []
+
+    def ask() -> None:
+        got.append((_native.library() is not None, _native.unavailable_reason()))
+
+    threads = [threading.Thread(target=ask) for _ in range(2)]
+    threads[0].start()
+    time.sleep(0.1)  # the first is building
+    threads[1].start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert got == [(True, None), (True, None)]
+
+
+def _library_in_child(queue) -> None:
+    queue.put(_native.library() is not None)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_child_forked_while_a_thread_builds_the_library_does_not_hang(monkeypatch):
+    """A data-loader worker forked while another thread of the parent builds the library: the child has no such
+    thread to release the lock it held; it takes a lock of its own and loads the library itself (it hung)."""
+    import multiprocessing
+    import threading
+    import time
+
+    build = _native._build
+
+    def slow_build(*args, **kwargs):
+        time.sleep(0.6)  # a compiler run: seconds
+        return build(*args, **kwargs)
+
+    for name, value in (("_library", None), ("_reason", None), ("_tried", False), ("_parallel", None),
+                        ("_parallel_pid", -1), ("_build", slow_build)):  # fmt: skip
+        monkeypatch.setattr(_native, name, value)
+    monkeypatch.setattr(_native, "_lock", threading.Lock())  # restored after, whichever lock the fork left
+    builder = threading.Thread(target=_native.library)
+    builder.start()
+    time.sleep(0.2)  # the thread holds the lock, building
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_library_in_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=20)  # a hang fails here
+    finally:
+        child.join(timeout=10)
+        if child.is_alive():
+            child.kill()
+        builder.join(timeout=60)
+    assert child.exitcode == 0
+
+
 _PROBE = (
     "import torchface._native as n; lib = n.library(); print('OK' if lib is not None else 'NONE', "
     "n.unavailable_reason())"
@@ -262,9 +330,28 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     assert _probe(env).startswith("OK")
     built = list((tmp_path / "native").glob("torchface_native-*.so"))
     assert len(built) == 1 and not list((tmp_path / "native").glob("*.partial"))
+    umask = os.umask(0o022)
+    os.umask(umask)
+    # Readable by whom the umask allows, as any file the compiler writes (a shared cache folder serves every user):
+    # it was built into a mkstemp file, readable by its builder alone.
+    assert built[0].stat().st_mode & 0o444 == 0o444 & ~umask
     stamp = built[0].stat().st_mtime_ns
     assert _probe(env).startswith("OK")  # found, not built again
     assert built[0].stat().st_mtime_ns == stamp
+
+
+def test_a_march_native_build_is_cached_per_cpu(tmp_path, monkeypatch):
+    """A cache folder shared by machines of different CPUs (a home folder on a cluster) must not hand one CPU's
+    ``-march=native`` build (AVX-512 here) to another, which dies of an illegal instruction: that build's name
+    depends on the CPU's model and features; the portable build's does not."""
+    info = tmp_path / "cpuinfo"
+    monkeypatch.setattr(_native, "_CPUINFO", str(info))
+    native, portable = (*_native._FLAGS, *_native._ARCH_FLAGS), _native._FLAGS
+    names = []
+    for flags in ("fpu sse2 avx2 avx512f", "fpu sse2 avx2"):
+        info.write_text(f"processor\t: 0\nvendor_id\t: X\nflags\t\t: {flags}\n\nprocessor\t: 1\nflags\t\t: other\n")
+        names.append((_native._target("cc", native, b"src").name, _native._target("cc", portable, b"src").name))
+    assert names[0][0] != names[1][0] and names[0][1] == names[1][1]
 
 
 _OPENMP_PROBE = """
@@ -334,6 +421,47 @@ def test_a_forked_child_runs_the_kernels_in_two_chunks():
     assert child.exitcode == 0
     assert not uses_openmp
     assert child_index == index.tolist() == torch.topk(score, 100, dim=1).indices.tolist()
+
+
+def test_threads_that_grow_the_chunk_pool_at_once_all_get_their_results(monkeypatch):
+    """Kernels run from several Python threads at once on the thread pool (TORCHFACE_OPENMP=0, a forked child),
+    with different chunk counts: a thread that grows the pool shuts the old one down, and a thread that had taken
+    the old one but not yet submitted its chunks raised 'cannot schedule new futures after shutdown'."""
+    import threading
+
+    score = torch.rand(64, 50, generator=torch.Generator().manual_seed(0))
+    want = torch.topk(score, 5, dim=1).indices
+    monkeypatch.setattr(_native, "_parallel", None)  # the pool, as without OpenMP's threads
+    for name in ("_pool", "_pool_size", "_pool_pid"):  # restored after the trials
+        monkeypatch.setattr(_native, name, getattr(_native, name))
+    errors: list[str] = []
+    wrong = []
+
+    def top(chunks: int, barrier: threading.Barrier) -> None:
+        index = torch.empty(64, 5, dtype=torch.int64)
+        value = torch.empty(64, 5)
+        prob = _native.TopProblem(B=64, N=50, k=5, score=score.data_ptr(), out_index=index.data_ptr(),
+                                  out_value=value.data_ptr())  # fmt: skip
+        barrier.wait()
+        try:
+            _native.run("top_pixels", False, prob, 64, chunks)
+        except RuntimeError as exc:
+            errors.append(str(exc))
+            return
+        if not torch.equal(index, want):
+            wrong.append(chunks)
+
+    for _ in range(30):
+        monkeypatch.setattr(_native, "_pool", None)  # each trial as a fresh process's first kernels
+        counts = (2, 3, 5, 9)
+        barrier = threading.Barrier(len(counts))
+        threads = [threading.Thread(target=top, args=(c, barrier)) for c in counts]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+        _native._pool.shutdown(wait=True)
+    assert not errors and not wrong, (errors[:1], wrong)
 
 
 def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):

@@ -66,3 +66,21 @@ def test_plot_track_writes_png(tmp_path):
     assert b"<svg" in plot_track(cols, rows, tmp_path / "plot.svg").read_bytes()[:1000]
     assert plot_track(cols, rows, tmp_path / "plot").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(f.name for f in tmp_path.iterdir()) == ["plot", "plot.pdf", "plot.png", "plot.svg"]
+
+
+def test_plot_track_leaves_the_callers_matplotlib_backend_and_figures_alone(tmp_path):
+    """A caller's backend (a notebook's inline one; svg stands for it) and open figures are kept: the plot used
+    to switch the process's backend to Agg (``matplotlib.use``), so the caller's later figures were not shown."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    before = matplotlib.get_backend()
+    plt.switch_backend("svg")
+    fig = plt.figure()
+    try:
+        cols = ("timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg")
+        plot_track(cols, np.zeros((3, len(cols))), tmp_path / "plot.png")
+        assert matplotlib.get_backend() == "svg" and plt.get_fignums() == [fig.number]
+    finally:
+        plt.close(fig)
+        plt.switch_backend(before)

@@ -21,7 +21,10 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 (:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
-hash of the source, the compiler and its flags, so a changed source is built again; it is built into a temporary
+hash of the source, the compiler and its flags (and, for a ``-march=native`` build, the CPU's model and features:
+a cache folder shared by machines of different CPUs, a home folder on a cluster, holds one build per CPU rather
+than one that kills another CPU's processes with an illegal instruction), so a changed source is built again; it
+is built into a temporary
 file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
 partial file. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
@@ -37,8 +40,8 @@ import os
 import platform
 import shutil
 import subprocess
-import tempfile
 import threading
+import uuid
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -61,6 +64,17 @@ _OPENMP_FLAGS = ("-fopenmp",)
 LOSS_CODES = {"none": 0, "huber": 1, "cauchy": 2, "tukey": 3, "geman_mcclure": 4}
 
 _lock = threading.Lock()
+
+
+def _lock_of_its_own() -> None:
+    """In a forked child (a data-loader worker): a new :data:`_lock`. The parent's may be held by one of its
+    threads (one building the library), which the child does not have: the child would wait for it for ever."""
+    global _lock
+    _lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_lock_of_its_own)
 _library: ctypes.CDLL | None = None
 #: ``tf_parallel`` where the library was built with OpenMP and shares torch's runtime (:func:`run_chunks`), and
 #: the process that loaded it (GNU OpenMP's threads do not survive a fork: a forked child uses the thread pool).
@@ -219,6 +233,37 @@ def _cache_dir() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchface") / "native"
 
 
+#: Where :func:`_cpu_id` reads the CPU's description (Linux).
+_CPUINFO = "/proc/cpuinfo"
+#: The fields of a processor's ``/proc/cpuinfo`` block that say what code it runs (x86 and ARM).
+_CPU_FIELDS = ("vendor_id", "cpu family", "model", "model name", "flags", "CPU implementer", "CPU architecture",
+               "CPU variant", "CPU part", "Features")  # fmt: skip
+
+
+def _cpu_id() -> str:
+    """What a ``-march=native`` build was made for: the first processor's vendor, model and feature flags in
+    ``/proc/cpuinfo`` (Linux), else ``platform.processor()``. Part of that build's cache key (module docstring)."""
+    try:
+        with open(_CPUINFO) as info:
+            fields = []
+            for line in info:
+                if not line.strip():  # the end of the first processor's block
+                    break
+                name, _, value = line.partition(":")
+                if name.strip() in _CPU_FIELDS:
+                    fields.append(f"{name.strip()}: {' '.join(value.split())}")
+    except OSError:
+        return platform.processor()
+    return "\n".join(fields) or platform.processor()
+
+
+def _target(cc: str, flags: tuple[str, ...], source: bytes) -> Path:
+    """The cached library's path for ``source`` built by ``cc`` with ``flags``."""
+    cpu = (_cpu_id(),) if any(flag.startswith("-march=native") for flag in flags) else ()
+    key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION, *cpu)).encode()).hexdigest()
+    return _cache_dir() / f"torchface_native-{key[:16]}.so"
+
+
 def _process_libgomp() -> set[str]:
     """The paths of the GNU OpenMP runtimes (``libgomp``) loaded in this process (Linux; empty elsewhere)."""
     try:
@@ -245,13 +290,13 @@ def _build(cc: str, openmp: bool = False) -> Path:
     for omp in ((_OPENMP_FLAGS, ()) if openmp else ((),)):
         for arch in (_ARCH_FLAGS, ()):
             flags = (*_FLAGS, *arch, *omp)
-            key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION)).encode()).hexdigest()
-            target = _cache_dir() / f"torchface_native-{key[:16]}.so"
+            target = _target(cc, flags, source)
             if target.is_file():
                 return target
             target.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
-            os.close(fd)
+            # A unique name the compiler creates (as any file it writes: readable where the umask allows, so a
+            # cache folder shared by several users serves them all; a mkstemp file was the builder's alone).
+            tmp = str(target.parent / f"{target.name}.{os.getpid()}.{uuid.uuid4().hex}.partial")
             try:
                 cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
                 out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -268,8 +313,7 @@ def _build(cc: str, openmp: bool = False) -> Path:
 
 
 def _load() -> None:
-    global _library, _reason, _tried
-    _tried = True
+    global _library, _reason
     if os.environ.get("TORCHFACE_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
         _reason = "turned off by TORCHFACE_NATIVE=0"
         return
@@ -317,11 +361,16 @@ def _warn_fallback() -> None:
 
 def library() -> ctypes.CDLL | None:
     """The loaded library (built on the first call), or None where it is unavailable (see
-    :func:`unavailable_reason`). Thread-safe."""
+    :func:`unavailable_reason`). Thread-safe: a thread that asks while another builds or loads it waits for that
+    to finish."""
+    global _tried
     if not _tried:
         with _lock:
             if not _tried:
-                _load()
+                try:
+                    _load()
+                finally:  # set last: the check above must not let another thread past before the load has ended
+                    _tried = True
     return _library
 
 
@@ -353,15 +402,14 @@ def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
         codes = [_parallel(ctypes.cast(fn, ctypes.c_void_p), ctypes.addressof(problem), batch, chunks)]
     else:
         ref = ctypes.byref(problem)
-        with _lock:
+        bounds = [batch * k // chunks for k in range(chunks + 1)]
+        with _lock:  # submitted under the lock: another thread that grows the pool shuts the old one down
             if _pool is None or _pool_size < chunks or _pool_pid != os.getpid():  # a forked child: a pool of its own
                 if _pool is not None and _pool_pid == os.getpid():
-                    _pool.shutdown(wait=False)
+                    _pool.shutdown(wait=False)  # what was submitted to it still runs
                 _pool, _pool_size = ThreadPoolExecutor(max_workers=chunks, thread_name_prefix="torchface"), chunks
                 _pool_pid = os.getpid()
-            pool = _pool
-        bounds = [batch * k // chunks for k in range(chunks + 1)]
-        futures = [pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
+            futures = [_pool.submit(fn, ref, bounds[k], bounds[k + 1]) for k in range(1, chunks)]
         codes = [fn(ref, bounds[0], bounds[1])] + [f.result() for f in futures]
     if any(code != 0 for code in codes):
         raise MemoryError("a native kernel could not allocate its workspace")

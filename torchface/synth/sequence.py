@@ -8,7 +8,8 @@ background. :func:`render_sequence` renders it in memory (frames ``(T, 3, H, W)`
 
 Image formation per frame (all batched over frames):
 
-1. vertices ``g = g_bar + S sigma + A alpha_t`` (paper Eq. 1), moved to the camera frame;
+1. vertices ``g = g_bar + S sigma + A alpha_t`` (paper Eq. 1), moved to the camera frame (on one thread,
+   :func:`~torchface.synth.textures.serial`, so that the frames do not depend on the core count);
 2. textured Lambertian shading (:mod:`torchface.rendering.shading`) over the panning background;
 3. the occluder (if present) composited in front of everything.
 
@@ -41,6 +42,7 @@ from torchface.rendering.shading import LightState, render
 from torchface.synth.background import BackgroundSpec, OccluderSpec, background_frames, place_occluder
 from torchface.synth.io import VideoSink
 from torchface.synth.subjects import Subject, get_subject
+from torchface.synth.textures import serial
 
 __all__ = [
     "SequenceSpec",
@@ -373,9 +375,11 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         b = idx.shape[0]
         R = spec.rotation[idx].to(torch.float32)
         t = spec.translation[idx].to(torch.float32)
-        verts = subject.deform(shape.to(torch.float32).expand(b, -1), spec.anim[idx].to(torch.float32), b)
-        verts_cam = transform_points(R, t, verts)
-        normals_cam = subject.vertex_normals(verts) @ R.transpose(-1, -2)
+        with serial():  # the same frames whatever the core count: the (b, S) @ (S, 3V) deformation rounds
+            # differently on 2 threads than on 1 for some chunk sizes (5-7, 9-11 frames: MKL's sgemm)
+            verts = subject.deform(shape.to(torch.float32).expand(b, -1), spec.anim[idx].to(torch.float32), b)
+            verts_cam = transform_points(R, t, verts)
+            normals_cam = subject.vertex_normals(verts) @ R.transpose(-1, -2)
         light = spec.light.select(idx).to(dtype=torch.float32)
         bg = background_frames(spec.background, idx.to(torch.float32), h, w)
         image, mask, frags = render(verts_cam, subject.faces, subject.uv, subject.texture, normals_cam, light, cam, bg)

@@ -1,4 +1,8 @@
-"""A PNG summary plot of a track: yaw/pitch/roll, the most active AUs and the confidence over time."""
+"""A PNG summary plot of a track: yaw/pitch/roll, the most active AUs and the confidence over time.
+
+Drawn with matplotlib's object API on its Agg renderer, without pyplot: the caller's matplotlib backend and open
+figures are left as they were (a notebook's inline plots go on being shown).
+"""
 
 from __future__ import annotations
 
@@ -10,15 +14,13 @@ import numpy as np
 __all__ = ["plot_track"]
 
 
-def _matplotlib():
+def _figure_class():
+    """matplotlib's ``Figure`` (not pyplot, whose backend is the process's: ``matplotlib.use`` would switch it)."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         raise ImportError("plotting needs matplotlib: pip install matplotlib") from None
-    return plt
+    return Figure
 
 
 def plot_track(
@@ -38,9 +40,9 @@ def plot_track(
     for need in ("timestamp", "yaw_deg", "pitch_deg", "roll_deg", "confidence", "success"):
         if need not in idx:
             raise ValueError(f"track table has no {need!r} column")
-    plt = _matplotlib()
     t = rows[:, idx["timestamp"]]
-    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    fig = _figure_class()(figsize=(9, 7))
+    axes = fig.subplots(3, 1, sharex=True)
     for name in ("yaw_deg", "pitch_deg", "roll_deg"):
         axes[0].plot(t, rows[:, idx[name]], label=name.replace("_deg", ""))
     axes[0].set_ylabel("degrees")
@@ -67,9 +69,7 @@ def plot_track(
     fig.tight_layout()
     p = Path(path)
     tmp = p.with_name(p.stem + ".partial" + p.suffix)
-    try:  # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf")
-        fig.savefig(tmp, dpi=100, format=p.suffix[1:].lower() or "png")
-    finally:
-        plt.close(fig)
+    # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf")
+    fig.savefig(tmp, dpi=100, format=p.suffix[1:].lower() or "png")
     os.replace(tmp, p)
     return p
