@@ -267,6 +267,32 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     assert built[0].stat().st_mtime_ns == stamp
 
 
+def _fake_compiler(folder: Path) -> Path:
+    """A stand-in C compiler that writes an empty output file (``-o FILE``) and logs its calls."""
+    cc = folder / "fake-cc"
+    cc.write_text('#!/bin/sh\necho "$@" >> "$0.log"\nwhile [ "$#" -gt 1 ]; do [ "$1" = -o ] && : > "$2"; shift; done\n')
+    cc.chmod(0o755)
+    return cc
+
+
+def test_a_cached_build_is_named_by_the_cpu_it_was_built_for(tmp_path, monkeypatch):
+    # The build asks for -march=native: a cache folder shared by machines with other CPUs (a network home folder)
+    # must not hand one of them the other's library (AVX-512 instructions on a CPU without them: SIGILL).
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    cc = _fake_compiler(tmp_path)
+    built = {}
+    for cpu, flags in (("a", "fpu sse2 avx2"), ("b", "fpu sse2 avx2 avx512f"), ("a again", "fpu sse2 avx2")):
+        info = tmp_path / f"cpuinfo-{cpu}"
+        info.write_text(f"processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: X\nflags\t\t: {flags}\n"
+                        f"cpu MHz\t\t: {len(cpu)}000.0\n\nprocessor\t: 1\n")  # fmt: skip
+        monkeypatch.setattr(_native, "_CPUINFO", info, raising=False)
+        built[cpu] = _native._build(str(cc))
+    assert "-march=native" in Path(str(cc) + ".log").read_text()
+    assert built["a"] != built["b"]  # another CPU's features: built again
+    assert built["a again"] == built["a"]  # the same CPU (its clock aside): found in the cache
+    assert len(Path(str(cc) + ".log").read_text().splitlines()) == 2
+
+
 _OPENMP_PROBE = """
 import torch
 torch.set_num_threads(2)

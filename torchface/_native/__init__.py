@@ -21,7 +21,9 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 (:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
-hash of the source, the compiler and its flags, so a changed source is built again; it is built into a temporary
+hash of the source, the compiler and its flags and the CPU it was built for (``-march=native``: a cache shared by
+machines with other CPUs, such as a network home folder, builds one library per CPU instead of handing a machine
+instructions it lacks), so a changed source is built again; it is built into a temporary
 file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
 partial file. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
@@ -214,6 +216,25 @@ def _compiler() -> str | None:
     return None
 
 
+#: Where :func:`_cpu_signature` reads the CPU's model and features (Linux).
+_CPUINFO = Path("/proc/cpuinfo")
+#: The ``/proc/cpuinfo`` fields that say what ``-march=native`` compiles for (x86, then ARM, RISC-V, POWER).
+_CPU_FIELDS = ("vendor_id", "cpu family", "model", "model name", "flags", "CPU implementer", "CPU architecture",
+               "CPU variant", "CPU part", "Features", "isa", "uarch", "cpu")  # fmt: skip
+
+
+def _cpu_signature() -> str:
+    """The CPU a ``-march=native`` build is for: the model and feature fields of ``/proc/cpuinfo``'s first
+    processor (Linux), else :func:`platform.processor`. Part of the cached library's name, so that machines with
+    other CPUs sharing a cache folder do not load a build with instructions they lack (``Illegal instruction``)."""
+    try:
+        first = _CPUINFO.read_text(errors="replace").split("\n\n")[0]
+    except OSError:
+        return platform.processor()
+    fields = (line.partition(":") for line in first.splitlines())
+    return "\n".join(f"{key.strip()}:{value.strip()}" for key, _, value in fields if key.strip() in _CPU_FIELDS)
+
+
 def _cache_dir() -> Path:
     root = os.environ.get("TORCHFACE_CACHE_DIR")
     return (Path(root) if root else Path.home() / ".cache" / "torchface") / "native"
@@ -245,7 +266,8 @@ def _build(cc: str, openmp: bool = False) -> Path:
     for omp in ((_OPENMP_FLAGS, ()) if openmp else ((),)):
         for arch in (_ARCH_FLAGS, ()):
             flags = (*_FLAGS, *arch, *omp)
-            key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION)).encode()).hexdigest()
+            cpu = _cpu_signature() if arch else ""
+            key = hashlib.sha256(source + repr((cc, flags, platform.machine(), cpu, _ABI_VERSION)).encode()).hexdigest()
             target = _cache_dir() / f"torchface_native-{key[:16]}.so"
             if target.is_file():
                 return target
