@@ -293,6 +293,15 @@ def test_a_cached_build_is_named_by_the_cpu_it_was_built_for(tmp_path, monkeypat
     assert len(Path(str(cc) + ".log").read_text().splitlines()) == 2
 
 
+def test_a_compiler_given_with_arguments_as_make_takes_it(tmp_path, monkeypatch):
+    # CC="ccache gcc" or "gcc -m64": the command and its arguments, as make and setuptools read $CC.
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    cc = _fake_compiler(tmp_path)
+    target = _native._build(f"{cc} -DTORCHFACE_TEST=1")
+    assert target.is_file()
+    assert Path(str(cc) + ".log").read_text().startswith("-DTORCHFACE_TEST=1 -O3")
+
+
 _OPENMP_PROBE = """
 import torch
 torch.set_num_threads(2)

@@ -17,8 +17,8 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 - ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k).
 
 :func:`run` calls a kernel over a batch. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or
-``$CC``); where there is none, or the build fails, the callers use their torch code instead
-(:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
+``$CC``, which may carry arguments as in make: ``CC="ccache gcc"``); where there is none, or the build fails, the
+callers use their torch code instead (:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
 hash of the source, the compiler and its flags and the CPU it was built for (``-march=native``: a cache shared by
@@ -37,6 +37,7 @@ import ctypes
 import hashlib
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -275,7 +276,7 @@ def _build(cc: str, openmp: bool = False) -> Path:
             fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
             os.close(fd)
             try:
-                cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
+                cmd = [*shlex.split(cc), *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
                 out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
                 if out.returncode == 0:
                     os.replace(tmp, target)
