@@ -50,7 +50,7 @@ def repo(tmp_path):
     """A copy of the scripts in a folder whose path has spaces, and a PATH of the basic tools and no Python."""
     repo = tmp_path / "a repo with spaces"
     (repo / "scripts").mkdir(parents=True)
-    for name in ("_venv.sh", "test.sh"):
+    for name in ("_venv.sh", "test.sh", "demo.sh"):
         shutil.copy2(ROOT / "scripts" / name, repo / "scripts" / name)
     (repo / "pyproject.toml").write_text("[project]\nname = 'x'\n")
     tools = tmp_path / "tools"
@@ -62,10 +62,10 @@ def repo(tmp_path):
     return repo, tools
 
 
-def _run(repo: Path, path: list[Path], *args: str) -> subprocess.CompletedProcess:
+def _run(repo: Path, path: list[Path], *args: str, script: str = "test.sh", cwd: Path | None = None):
     env = {"PATH": ":".join(str(p) for p in path), "HOME": str(repo)}
-    return subprocess.run([shutil.which("bash"), str(repo / "scripts" / "test.sh"), *args], capture_output=True, text=True,
-                          env=env, cwd=repo.parent, timeout=60)  # fmt: skip
+    return subprocess.run([shutil.which("bash"), str(repo / "scripts" / script), *args], capture_output=True,
+                          text=True, env=env, cwd=cwd or repo.parent, timeout=60)  # fmt: skip
 
 
 def _log(repo: Path) -> list[str]:
@@ -121,3 +121,19 @@ def test_a_venv_of_another_python_is_made_again(repo):
     out = _run(repo, [bin_, tools])
     assert out.returncode == 0, out.stderr
     assert _log(repo)[-1] == "run 3.11 pytest -q" and len(_log(repo)) == 4
+
+
+def test_demo_runs_in_the_callers_folder(repo):
+    # `bash path/to/scripts/demo.sh --out results` from another folder wrote path/to/results, and printed
+    # "outputs in results/".
+    repo, tools = repo
+    bin_ = _fake_python(repo.parent / "bin" / "python3.11", "3.11").parent
+    assert _run(repo, [bin_, tools]).returncode == 0  # .venv made
+    cli = repo / ".venv" / "bin" / "torchface"
+    cli.write_text('#!/bin/sh\necho "$PWD" "$@" > "$(dirname "$0")/../demo-log"\n')
+    cli.chmod(0o755)
+    elsewhere = repo.parent / "else where"
+    elsewhere.mkdir()
+    out = _run(repo, [bin_, tools], "--out", "results", script="demo.sh", cwd=elsewhere)
+    assert out.returncode == 0, out.stderr
+    assert (repo / ".venv" / "demo-log").read_text().strip() == f"{elsewhere} demo --out results"
