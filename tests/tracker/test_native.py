@@ -302,6 +302,21 @@ def test_a_compiler_given_with_arguments_as_make_takes_it(tmp_path, monkeypatch)
     assert Path(str(cc) + ".log").read_text().startswith("-DTORCHFACE_TEST=1 -O3")
 
 
+def test_an_unwritable_cache_folder_builds_for_the_process_alone(tmp_path, monkeypatch):
+    # A read-only home or a TORCHFACE_CACHE_DIR that cannot hold the folder: the kernels were given up (the torch
+    # code ran, about twice as slow) with a warning to install a C compiler.
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("")
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(not_a_folder))
+    monkeypatch.setattr(_native, "_private", None, raising=False)
+    with pytest.warns(RuntimeWarning, match="cannot be written.*TORCHFACE_CACHE_DIR"):
+        target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.is_file() and target.parent.name.startswith("torchface-native-")
+    assert _native._build(str(tmp_path / "fake-cc")) == target  # found there by a later try
+    _native._remove_private(target.parent, os.getpid())
+    assert not target.parent.exists()
+
+
 _OPENMP_PROBE = """
 import torch
 torch.set_num_threads(2)

@@ -25,7 +25,8 @@ hash of the source, the compiler and its flags and the CPU it was built for (``-
 machines with other CPUs, such as a network home folder, builds one library per CPU instead of handing a machine
 instructions it lacks), so a changed source is built again; it is built into a temporary
 file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
-partial file. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
+partial file. Where that folder cannot be written (a read-only home), the library is built for the process alone
+in a temporary folder, with a ``RuntimeWarning``. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
 Floating-point: compiled with ``-ffp-contract=off`` (no fused multiply-adds), so a build gives the same results
 on any x86-64 machine for the same inputs; the normal equations are accumulated in double precision.
@@ -33,6 +34,7 @@ on any x86-64 machine for the same inputs; the normal equations are accumulated 
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import hashlib
 import os
@@ -259,21 +261,53 @@ def _openmp_wanted() -> bool:
     return len(_process_libgomp()) == 1
 
 
+_private: Path | None = None
+
+
+def _private_dir(cache: Path, exc: OSError) -> Path:
+    """Where the library is built when the cache folder ``cache`` cannot be written (``exc``: a read-only home, a
+    ``TORCHFACE_CACHE_DIR`` that is a file): a temporary folder of this process, made once and removed at its exit.
+    A ``RuntimeWarning`` says so once. Raises ``OSError`` where no temporary folder can be made either."""
+    global _private
+    if _private is None:
+        _private = Path(tempfile.mkdtemp(prefix="torchface-native-"))
+        atexit.register(_remove_private, _private, os.getpid())
+        warnings.warn(
+            f"torchface: the native kernels' cache folder {cache} cannot be written ({exc}); they are built for this "
+            f"process only, in {_private} (a few seconds at each start). Set TORCHFACE_CACHE_DIR to a writable "
+            "folder to keep them.", RuntimeWarning, stacklevel=5,
+        )  # fmt: skip
+    return _private
+
+
+def _remove_private(folder: Path, pid: int) -> None:
+    if os.getpid() == pid:  # not in a forked child that exits normally
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def _build(cc: str, openmp: bool = False) -> Path:
     """Compile the library (or find it built) and return its path; raises ``RuntimeError`` on failure. With
     ``openmp``, a build with ``-fopenmp`` is tried first (:func:`run` then dispatches on OpenMP's threads)."""
     source = b"".join((_SOURCE_DIR / name).read_bytes() for name in _SOURCES)
+    folder = _cache_dir()
     errors = []
     for omp in ((_OPENMP_FLAGS, ()) if openmp else ((),)):
         for arch in (_ARCH_FLAGS, ()):
             flags = (*_FLAGS, *arch, *omp)
             cpu = _cpu_signature() if arch else ""
             key = hashlib.sha256(source + repr((cc, flags, platform.machine(), cpu, _ABI_VERSION)).encode()).hexdigest()
-            target = _cache_dir() / f"torchface_native-{key[:16]}.so"
+            target = folder / f"torchface_native-{key[:16]}.so"
             if target.is_file():
                 return target
-            target.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
+            except OSError as exc:  # a read-only home, a cache path that is a file: built for this process only
+                folder = _private_dir(folder, exc)
+                target = folder / target.name
+                if target.is_file():
+                    return target
+                fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
             os.close(fd)
             try:
                 cmd = [*shlex.split(cc), *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
