@@ -293,6 +293,14 @@ def test_a_cached_build_is_named_by_the_cpu_it_was_built_for(tmp_path, monkeypat
     assert len(Path(str(cc) + ".log").read_text().splitlines()) == 2
 
 
+def test_the_built_library_is_readable_by_those_sharing_the_cache(tmp_path, monkeypatch):
+    # Built in a mkstemp file (0600; 0711 once the linker has marked it executable), the library could not be loaded
+    # by another user of a shared TORCHFACE_CACHE_DIR: "Permission denied", and the torch code ran.
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.stat().st_mode & 0o777 == 0o755
+
+
 def test_a_compiler_given_with_arguments_as_make_takes_it(tmp_path, monkeypatch):
     # CC="ccache gcc" or "gcc -m64": the command and its arguments, as make and setuptools read $CC.
     monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))

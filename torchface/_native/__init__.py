@@ -313,6 +313,8 @@ def _build(cc: str, openmp: bool = False) -> Path:
                 cmd = [*shlex.split(cc), *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
                 out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
                 if out.returncode == 0:
+                    # mkstemp's 0600 (0711 once linked): others sharing the cache folder could not load it.
+                    os.chmod(tmp, 0o755)
                     os.replace(tmp, target)
                     return target
                 errors.append(f"{' '.join(cmd)}: {out.stderr.strip()[-500:]}")
