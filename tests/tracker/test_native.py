@@ -293,6 +293,23 @@ def test_a_cached_build_is_named_by_the_cpu_it_was_built_for(tmp_path, monkeypat
     assert len(Path(str(cc) + ".log").read_text().splitlines()) == 2
 
 
+def test_without_a_home_folder_the_library_is_built_for_the_process_alone(tmp_path, monkeypatch):
+    # HOME unset and a user id without a passwd entry (a container's arbitrary user): Path.home() raised
+    # "Could not determine home directory" and the kernels were given up.
+    monkeypatch.delenv("TORCHFACE_CACHE_DIR", raising=False)
+    monkeypatch.delenv("HOME", raising=False)
+
+    def no_home():
+        raise RuntimeError("Could not determine home directory.")
+
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    monkeypatch.setattr(_native, "_private", None, raising=False)
+    with pytest.warns(RuntimeWarning, match="Could not determine home directory.*TORCHFACE_CACHE_DIR"):
+        target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.is_file() and target.parent.name.startswith("torchface-native-")
+    _native._remove_private(target.parent, os.getpid())
+
+
 def test_the_built_library_is_readable_by_those_sharing_the_cache(tmp_path, monkeypatch):
     # Built in a mkstemp file (0600; 0711 once the linker has marked it executable), the library could not be loaded
     # by another user of a shared TORCHFACE_CACHE_DIR: "Permission denied", and the torch code ran.

@@ -289,7 +289,10 @@ def _build(cc: str, openmp: bool = False) -> Path:
     """Compile the library (or find it built) and return its path; raises ``RuntimeError`` on failure. With
     ``openmp``, a build with ``-fopenmp`` is tried first (:func:`run` then dispatches on OpenMP's threads)."""
     source = b"".join((_SOURCE_DIR / name).read_bytes() for name in _SOURCES)
-    folder = _cache_dir()
+    try:
+        folder = _cache_dir()
+    except RuntimeError as exc:  # no home folder (HOME unset, a user id without a passwd entry) to put it in
+        folder = _private_dir(Path("~/.cache/torchface/native"), OSError(str(exc)))
     errors = []
     for omp in ((_OPENMP_FLAGS, ()) if openmp else ((),)):
         for arch in (_ARCH_FLAGS, ()):
