@@ -21,10 +21,19 @@ else
     exit 1
   fi
 fi
-# A .venv whose creation was interrupted (no working pip) or made by another Python is made again.
+# A .venv made in another folder (moved or copied with the repository: its scripts and editable install still run
+# that folder's code), as venv's pyvenv.cfg records it.
+_made_here() {
+  here=" $(pwd -P)/.venv" awk 'index($0, "command = ") == 1 { made = 1; n = length(ENVIRON["here"])
+    if (substr($0, length($0) - n + 1) == ENVIRON["here"]) here = 1 } END { exit made && !here }' .venv/pyvenv.cfg
+}
+# A .venv whose creation was interrupted (no working pip), made by another Python or elsewhere is made again.
 if [ -e .venv ] || [ -L .venv ]; then
   if ! { _is_py311 .venv/bin/python && .venv/bin/python -m pip --version >/dev/null 2>&1; }; then
     echo "[setup] .venv is incomplete or not Python 3.11: making it again" >&2
+    "$PY" -m venv --clear .venv
+  elif ! _made_here; then
+    echo "[setup] .venv was made in another folder (moved or copied here): making it again" >&2
     "$PY" -m venv --clear .venv
   fi
 else

@@ -27,7 +27,8 @@ case "$1" in
       venv)
         for last in "$@"; do :; done
         [ "$3" = --clear ] && rm -rf "$last"
-        mkdir -p "$last/bin" && cp "$0" "$last/bin/python" ;;
+        mkdir -p "$last/bin" && cp "$0" "$last/bin/python"
+        echo "command = $0 -m venv $(cd "$last" && pwd -P)" > "$last/pyvenv.cfg" ;;
       pip)
         if [ -e "$here/../no-pip" ]; then echo "$here/python: No module named pip" >&2; exit 1; fi
         shift 2; [ "$1" = --version ] && exit 0; echo "pip {version} $*" >> "$here/../log" ;;
@@ -55,7 +56,7 @@ def repo(tmp_path):
     (repo / "pyproject.toml").write_text("[project]\nname = 'x'\n")
     tools = tmp_path / "tools"
     tools.mkdir()
-    for tool in ("dirname", "touch", "rm", "mkdir", "cp", "cat", "pwd"):
+    for tool in ("dirname", "touch", "rm", "mkdir", "cp", "cat", "pwd", "awk"):
         found = shutil.which(tool)
         if found:
             (tools / tool).symlink_to(found)
@@ -137,3 +138,19 @@ def test_demo_runs_in_the_callers_folder(repo):
     out = _run(repo, [bin_, tools], "--out", "results", script="demo.sh", cwd=elsewhere)
     assert out.returncode == 0, out.stderr
     assert (repo / ".venv" / "demo-log").read_text().strip() == f"{elsewhere} demo --out results"
+
+
+def test_a_venv_moved_or_copied_with_the_repository_is_made_again(repo):
+    # Its scripts and editable install still pointed to the folder it was made in: a copy's demo.sh ran the
+    # original's code, and a moved one's failed with "exec: .../old/.venv/bin/python: not found".
+    repo, tools = repo
+    bin_ = _fake_python(repo.parent / "bin" / "python3.11", "3.11").parent
+    assert _run(repo, [bin_, tools]).returncode == 0
+    copy = repo.parent / "a copy"
+    shutil.copytree(repo, copy, symlinks=True)
+    out = _run(copy, [bin_, tools])
+    assert out.returncode == 0, out.stderr
+    assert (copy / ".venv" / "pyvenv.cfg").read_text().strip().endswith(f" {copy.resolve()}/.venv")
+    assert [line.split()[:3] for line in _log(copy)] == [["pip", "3.11", "install"]] * 3 + [["run", "3.11", "pytest"]]
+    out = _run(repo, [bin_, tools])  # the original: left as it is
+    assert out.returncode == 0 and "making it again" not in out.stderr and len(_log(repo)) == 5
