@@ -310,6 +310,16 @@ def test_without_a_home_folder_the_library_is_built_for_the_process_alone(tmp_pa
     _native._remove_private(target.parent, os.getpid())
 
 
+def test_a_cache_folder_given_with_a_tilde_is_in_the_home_folder(tmp_path, monkeypatch):
+    # TORCHFACE_CACHE_DIR="~/cache" from a .env file or a container's environment (no shell to expand it): the
+    # library went to a folder named "~" in the working folder.
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", "~/cache")
+    monkeypatch.chdir(tmp_path)
+    target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.parent == tmp_path / "home" / "cache" / "native" and not (tmp_path / "~").exists()
+
+
 def test_the_built_library_is_readable_by_those_sharing_the_cache(tmp_path, monkeypatch):
     # Built in a mkstemp file (0600; 0711 once the linker has marked it executable), the library could not be loaded
     # by another user of a shared TORCHFACE_CACHE_DIR: "Permission denied", and the torch code ran.

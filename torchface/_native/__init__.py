@@ -239,8 +239,11 @@ def _cpu_signature() -> str:
 
 
 def _cache_dir() -> Path:
+    """``$TORCHFACE_CACHE_DIR/native`` (a leading ``~`` expanded: set where no shell expands it, in a ``.env`` file
+    or a container's environment, it made a folder named ``~`` in the working folder), else
+    ``~/.cache/torchface/native``."""
     root = os.environ.get("TORCHFACE_CACHE_DIR")
-    return (Path(root) if root else Path.home() / ".cache" / "torchface") / "native"
+    return (Path(root).expanduser() if root else Path.home() / ".cache" / "torchface") / "native"
 
 
 def _process_libgomp() -> set[str]:
