@@ -335,6 +335,8 @@ def test_a_compiler_given_with_arguments_as_make_takes_it(tmp_path, monkeypatch)
     target = _native._build(f"{cc} -DTORCHFACE_TEST=1")
     assert target.is_file()
     assert Path(str(cc) + ".log").read_text().startswith("-DTORCHFACE_TEST=1 -O3")
+    with pytest.raises(RuntimeError, match="No closing quotation"):  # a reason, not a ValueError from the loader
+        _native._build(f'{cc} "-DX')
 
 
 def test_an_unwritable_cache_folder_builds_for_the_process_alone(tmp_path, monkeypatch):

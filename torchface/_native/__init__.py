@@ -324,7 +324,7 @@ def _build(cc: str, openmp: bool = False) -> Path:
                     os.replace(tmp, target)
                     return target
                 errors.append(f"{' '.join(cmd)}: {out.stderr.strip()[-500:]}")
-            except (OSError, subprocess.SubprocessError) as exc:
+            except (OSError, ValueError, subprocess.SubprocessError) as exc:  # ValueError: $CC unbalanced quotes
                 errors.append(f"{cc}: {exc}")
             finally:
                 if os.path.exists(tmp):
