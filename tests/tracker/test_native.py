@@ -340,18 +340,91 @@ def test_the_library_is_built_into_the_cache_folder_once(tmp_path):
     assert built[0].stat().st_mtime_ns == stamp
 
 
-def test_a_march_native_build_is_cached_per_cpu(tmp_path, monkeypatch):
-    """A cache folder shared by machines of different CPUs (a home folder on a cluster) must not hand one CPU's
-    ``-march=native`` build (AVX-512 here) to another, which dies of an illegal instruction: that build's name
-    depends on the CPU's model and features; the portable build's does not."""
-    info = tmp_path / "cpuinfo"
-    monkeypatch.setattr(_native, "_CPUINFO", str(info))
-    native, portable = (*_native._FLAGS, *_native._ARCH_FLAGS), _native._FLAGS
-    names = []
-    for flags in ("fpu sse2 avx2 avx512f", "fpu sse2 avx2"):
-        info.write_text(f"processor\t: 0\nvendor_id\t: X\nflags\t\t: {flags}\n\nprocessor\t: 1\nflags\t\t: other\n")
-        names.append((_native._target("cc", native, b"src").name, _native._target("cc", portable, b"src").name))
-    assert names[0][0] != names[1][0] and names[0][1] == names[1][1]
+def _fake_compiler(folder: Path) -> Path:
+    """A stand-in C compiler that writes an empty output file (``-o FILE``) and logs its calls."""
+    cc = folder / "fake-cc"
+    cc.write_text('#!/bin/sh\necho "$@" >> "$0.log"\nwhile [ "$#" -gt 1 ]; do [ "$1" = -o ] && : > "$2"; shift; done\n')
+    cc.chmod(0o755)
+    return cc
+
+
+def test_a_cached_build_is_named_by_the_cpu_it_was_built_for(tmp_path, monkeypatch):
+    # The build asks for -march=native: a cache folder shared by machines with other CPUs (a network home folder)
+    # must not hand one of them the other's library (AVX-512 instructions on a CPU without them: SIGILL).
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    cc = _fake_compiler(tmp_path)
+    built = {}
+    for cpu, flags in (("a", "fpu sse2 avx2"), ("b", "fpu sse2 avx2 avx512f"), ("a again", "fpu sse2 avx2")):
+        info = tmp_path / f"cpuinfo-{cpu}"
+        info.write_text(f"processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: X\nflags\t\t: {flags}\n"
+                        f"cpu MHz\t\t: {len(cpu)}000.0\n\nprocessor\t: 1\n")  # fmt: skip
+        monkeypatch.setattr(_native, "_CPUINFO", info, raising=False)
+        built[cpu] = _native._build(str(cc))
+    assert "-march=native" in Path(str(cc) + ".log").read_text()
+    assert built["a"] != built["b"]  # another CPU's features: built again
+    assert built["a again"] == built["a"]  # the same CPU (its clock aside): found in the cache
+    assert len(Path(str(cc) + ".log").read_text().splitlines()) == 2
+
+
+def test_without_a_home_folder_the_library_is_built_for_the_process_alone(tmp_path, monkeypatch):
+    # HOME unset and a user id without a passwd entry (a container's arbitrary user): Path.home() raised
+    # "Could not determine home directory" and the kernels were given up.
+    monkeypatch.delenv("TORCHFACE_CACHE_DIR", raising=False)
+    monkeypatch.delenv("HOME", raising=False)
+
+    def no_home():
+        raise RuntimeError("Could not determine home directory.")
+
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    monkeypatch.setattr(_native, "_private", None, raising=False)
+    with pytest.warns(RuntimeWarning, match="Could not determine home directory.*TORCHFACE_CACHE_DIR"):
+        target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.is_file() and target.parent.name.startswith("torchface-native-")
+    _native._remove_private(target.parent, os.getpid())
+
+
+def test_a_cache_folder_given_with_a_tilde_is_in_the_home_folder(tmp_path, monkeypatch):
+    # TORCHFACE_CACHE_DIR="~/cache" from a .env file or a container's environment (no shell to expand it): the
+    # library went to a folder named "~" in the working folder.
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", "~/cache")
+    monkeypatch.chdir(tmp_path)
+    target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.parent == tmp_path / "home" / "cache" / "native" and not (tmp_path / "~").exists()
+
+
+def test_the_built_library_is_readable_by_those_sharing_the_cache(tmp_path, monkeypatch):
+    # Built in a mkstemp file (0600; 0711 once the linker has marked it executable), the library could not be loaded
+    # by another user of a shared TORCHFACE_CACHE_DIR: "Permission denied", and the torch code ran.
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.stat().st_mode & 0o777 == 0o755
+
+
+def test_a_compiler_given_with_arguments_as_make_takes_it(tmp_path, monkeypatch):
+    # CC="ccache gcc" or "gcc -m64": the command and its arguments, as make and setuptools read $CC.
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    cc = _fake_compiler(tmp_path)
+    target = _native._build(f"{cc} -DTORCHFACE_TEST=1")
+    assert target.is_file()
+    assert Path(str(cc) + ".log").read_text().startswith("-DTORCHFACE_TEST=1 -O3")
+    with pytest.raises(RuntimeError, match="No closing quotation"):  # a reason, not a ValueError from the loader
+        _native._build(f'{cc} "-DX')
+
+
+def test_an_unwritable_cache_folder_builds_for_the_process_alone(tmp_path, monkeypatch):
+    # A read-only home or a TORCHFACE_CACHE_DIR that cannot hold the folder: the kernels were given up (the torch
+    # code ran, about twice as slow) with a warning to install a C compiler.
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("")
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(not_a_folder))
+    monkeypatch.setattr(_native, "_private", None, raising=False)
+    with pytest.warns(RuntimeWarning, match="cannot be written.*TORCHFACE_CACHE_DIR"):
+        target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.is_file() and target.parent.name.startswith("torchface-native-")
+    assert _native._build(str(tmp_path / "fake-cc")) == target  # found there by a later try
+    _native._remove_private(target.parent, os.getpid())
+    assert not target.parent.exists()
 
 
 _OPENMP_PROBE = """

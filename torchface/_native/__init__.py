@@ -17,16 +17,16 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 - ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k).
 
 :func:`run` calls a kernel over a batch. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or
-``$CC``); where there is none, or the build fails, the callers use their torch code instead
-(:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
+``$CC``, which may carry arguments as in make: ``CC="ccache gcc"``); where there is none, or the build fails, the
+callers use their torch code instead (:func:`unavailable_reason` says why; :mod:`torchface.backend` decides).
 
 The library is cached under ``$TORCHFACE_CACHE_DIR/native`` (default ``~/.cache/torchface/native``), named by a
-hash of the source, the compiler and its flags (and, for a ``-march=native`` build, the CPU's model and features:
-a cache folder shared by machines of different CPUs, a home folder on a cluster, holds one build per CPU rather
-than one that kills another CPU's processes with an illegal instruction), so a changed source is built again; it
-is built into a temporary
+hash of the source, the compiler and its flags and the CPU it was built for (``-march=native``: a cache shared by
+machines with other CPUs, such as a network home folder, builds one library per CPU instead of handing a machine
+instructions it lacks), so a changed source is built again; it is built into a temporary
 file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
-partial file. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
+partial file. Where that folder cannot be written (a read-only home), the library is built for the process alone
+in a temporary folder, with a ``RuntimeWarning``. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
 Floating-point: compiled with ``-ffp-contract=off`` (no fused multiply-adds), so a build gives the same results
 on any x86-64 machine for the same inputs; the normal equations are accumulated in double precision.
@@ -34,14 +34,16 @@ on any x86-64 machine for the same inputs; the normal equations are accumulated 
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import hashlib
 import os
 import platform
+import shlex
 import shutil
 import subprocess
+import tempfile
 import threading
-import uuid
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -228,40 +230,31 @@ def _compiler() -> str | None:
     return None
 
 
-def _cache_dir() -> Path:
-    root = os.environ.get("TORCHFACE_CACHE_DIR")
-    return (Path(root) if root else Path.home() / ".cache" / "torchface") / "native"
-
-
-#: Where :func:`_cpu_id` reads the CPU's description (Linux).
-_CPUINFO = "/proc/cpuinfo"
-#: The fields of a processor's ``/proc/cpuinfo`` block that say what code it runs (x86 and ARM).
+#: Where :func:`_cpu_signature` reads the CPU's model and features (Linux).
+_CPUINFO = Path("/proc/cpuinfo")
+#: The ``/proc/cpuinfo`` fields that say what ``-march=native`` compiles for (x86, then ARM, RISC-V, POWER).
 _CPU_FIELDS = ("vendor_id", "cpu family", "model", "model name", "flags", "CPU implementer", "CPU architecture",
-               "CPU variant", "CPU part", "Features")  # fmt: skip
+               "CPU variant", "CPU part", "Features", "isa", "uarch", "cpu")  # fmt: skip
 
 
-def _cpu_id() -> str:
-    """What a ``-march=native`` build was made for: the first processor's vendor, model and feature flags in
-    ``/proc/cpuinfo`` (Linux), else ``platform.processor()``. Part of that build's cache key (module docstring)."""
+def _cpu_signature() -> str:
+    """The CPU a ``-march=native`` build is for: the model and feature fields of ``/proc/cpuinfo``'s first
+    processor (Linux), else :func:`platform.processor`. Part of the cached library's name, so that machines with
+    other CPUs sharing a cache folder do not load a build with instructions they lack (``Illegal instruction``)."""
     try:
-        with open(_CPUINFO) as info:
-            fields = []
-            for line in info:
-                if not line.strip():  # the end of the first processor's block
-                    break
-                name, _, value = line.partition(":")
-                if name.strip() in _CPU_FIELDS:
-                    fields.append(f"{name.strip()}: {' '.join(value.split())}")
+        first = _CPUINFO.read_text(errors="replace").split("\n\n")[0]
     except OSError:
         return platform.processor()
-    return "\n".join(fields) or platform.processor()
+    fields = (line.partition(":") for line in first.splitlines())
+    return "\n".join(f"{key.strip()}:{value.strip()}" for key, _, value in fields if key.strip() in _CPU_FIELDS)
 
 
-def _target(cc: str, flags: tuple[str, ...], source: bytes) -> Path:
-    """The cached library's path for ``source`` built by ``cc`` with ``flags``."""
-    cpu = (_cpu_id(),) if any(flag.startswith("-march=native") for flag in flags) else ()
-    key = hashlib.sha256(source + repr((cc, flags, platform.machine(), _ABI_VERSION, *cpu)).encode()).hexdigest()
-    return _cache_dir() / f"torchface_native-{key[:16]}.so"
+def _cache_dir() -> Path:
+    """``$TORCHFACE_CACHE_DIR/native`` (a leading ``~`` expanded: set where no shell expands it, in a ``.env`` file
+    or a container's environment, it made a folder named ``~`` in the working folder), else
+    ``~/.cache/torchface/native``."""
+    root = os.environ.get("TORCHFACE_CACHE_DIR")
+    return (Path(root).expanduser() if root else Path.home() / ".cache" / "torchface") / "native"
 
 
 def _process_libgomp() -> set[str]:
@@ -282,29 +275,67 @@ def _openmp_wanted() -> bool:
     return len(_process_libgomp()) == 1
 
 
+_private: Path | None = None
+
+
+def _private_dir(cache: Path, exc: OSError) -> Path:
+    """Where the library is built when the cache folder ``cache`` cannot be written (``exc``: a read-only home, a
+    ``TORCHFACE_CACHE_DIR`` that is a file): a temporary folder of this process, made once and removed at its exit.
+    A ``RuntimeWarning`` says so once. Raises ``OSError`` where no temporary folder can be made either."""
+    global _private
+    if _private is None:
+        _private = Path(tempfile.mkdtemp(prefix="torchface-native-"))
+        atexit.register(_remove_private, _private, os.getpid())
+        warnings.warn(
+            f"torchface: the native kernels' cache folder {cache} cannot be written ({exc}); they are built for this "
+            f"process only, in {_private} (a few seconds at each start). Set TORCHFACE_CACHE_DIR to a writable "
+            "folder to keep them.", RuntimeWarning, stacklevel=5,
+        )  # fmt: skip
+    return _private
+
+
+def _remove_private(folder: Path, pid: int) -> None:
+    if os.getpid() == pid:  # not in a forked child that exits normally
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def _build(cc: str, openmp: bool = False) -> Path:
     """Compile the library (or find it built) and return its path; raises ``RuntimeError`` on failure. With
     ``openmp``, a build with ``-fopenmp`` is tried first (:func:`run` then dispatches on OpenMP's threads)."""
     source = b"".join((_SOURCE_DIR / name).read_bytes() for name in _SOURCES)
+    try:
+        folder = _cache_dir()
+    except RuntimeError as exc:  # no home folder (HOME unset, a user id without a passwd entry) to put it in
+        folder = _private_dir(Path("~/.cache/torchface/native"), OSError(str(exc)))
     errors = []
     for omp in ((_OPENMP_FLAGS, ()) if openmp else ((),)):
         for arch in (_ARCH_FLAGS, ()):
             flags = (*_FLAGS, *arch, *omp)
-            target = _target(cc, flags, source)
+            cpu = _cpu_signature() if arch else ""
+            key = hashlib.sha256(source + repr((cc, flags, platform.machine(), cpu, _ABI_VERSION)).encode()).hexdigest()
+            target = folder / f"torchface_native-{key[:16]}.so"
             if target.is_file():
                 return target
-            target.parent.mkdir(parents=True, exist_ok=True)
-            # A unique name the compiler creates (as any file it writes: readable where the umask allows, so a
-            # cache folder shared by several users serves them all; a mkstemp file was the builder's alone).
-            tmp = str(target.parent / f"{target.name}.{os.getpid()}.{uuid.uuid4().hex}.partial")
             try:
-                cmd = [cc, *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
+                target.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
+            except OSError as exc:  # a read-only home, a cache path that is a file: built for this process only
+                folder = _private_dir(folder, exc)
+                target = folder / target.name
+                if target.is_file():
+                    return target
+                fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
+            os.close(fd)
+            try:
+                cmd = [*shlex.split(cc), *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
                 out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
                 if out.returncode == 0:
+                    # mkstemp's 0600 (0711 once linked): others sharing the cache folder could not load it.
+                    os.chmod(tmp, 0o755)
                     os.replace(tmp, target)
                     return target
                 errors.append(f"{' '.join(cmd)}: {out.stderr.strip()[-500:]}")
-            except (OSError, subprocess.SubprocessError) as exc:
+            except (OSError, ValueError, subprocess.SubprocessError) as exc:  # ValueError: $CC unbalanced quotes
                 errors.append(f"{cc}: {exc}")
             finally:
                 if os.path.exists(tmp):

@@ -12,6 +12,8 @@ package registry and runs offline. When it is not installed the error names the 
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
@@ -38,17 +40,40 @@ def _check_image(image_rgb: np.ndarray) -> None:
         )
 
 
+def _predictor_path() -> Path | None:
+    """The 68-point predictor's file inside the ``face_recognition_models`` package, found without importing the
+    package: its ``__init__`` imports ``pkg_resources``, which setuptools no longer ships (81 and later), so the
+    import fails in a fresh environment although the model file is installed. None: the package is not installed.
+    """
+    spec = importlib.util.find_spec("face_recognition_models")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for folder in spec.submodule_search_locations:
+        path = Path(folder) / "models" / "shape_predictor_68_face_landmarks.dat"
+        if path.is_file():
+            return path
+    return None
+
+
 def _dlib() -> Detector:
+    install = (
+        "run  pip install \"torchface[detect]\"  (dlib-bin and face-recognition-models), or give the first "
+        "frame's 68 landmarks with --landmarks FILE"
+    )
     try:
         import dlib
-        import face_recognition_models
-    except ImportError:
+    except ImportError as exc:
+        if exc.name == "dlib":
+            raise DetectorUnavailable(f"the 'dlib' detector is not installed: {install}") from None
+        raise DetectorUnavailable(f"the 'dlib' detector's dlib could not be imported ({exc}): {install}") from None
+    model = _predictor_path()
+    if model is None:
         raise DetectorUnavailable(
-            "the 'dlib' detector is not installed: run  pip install \"torchface[detect]\"  (dlib-bin and "
-            "face-recognition-models), or give the first frame's 68 landmarks with --landmarks FILE"
-        ) from None
+            f"the 'dlib' detector's model (face-recognition-models' shape_predictor_68_face_landmarks.dat) is not "
+            f"installed: {install}"
+        )
     face_detector = dlib.get_frontal_face_detector()
-    predictor = dlib.shape_predictor(face_recognition_models.pose_predictor_model_location())
+    predictor = dlib.shape_predictor(str(model))
 
     def detect(image_rgb: np.ndarray) -> np.ndarray | None:
         _check_image(image_rgb)

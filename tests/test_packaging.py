@@ -1,0 +1,59 @@
+"""The package's metadata as a build makes it (pyproject.toml): version, licence, extras, command, no deprecated
+fields."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from email.parser import Parser
+from pathlib import Path
+
+import pytest
+
+import torchface
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_the_built_metadata_declares_what_the_readme_says_without_deprecations(tmp_path):
+    setuptools = pytest.importorskip("setuptools")
+    if int(setuptools.__version__.split(".")[0]) < 77:
+        pytest.skip("pyproject.toml's build needs setuptools 77")
+    # A table `license = { text = ... }` made setuptools warn that such builds stop working on 2027-02-18.
+    code = "import sys, setuptools.build_meta as b; print(b.prepare_metadata_for_build_wheel(sys.argv[1]))"
+    out = subprocess.run([sys.executable, "-W", "always", "-c", code, str(tmp_path)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "deprecated" not in out.stderr.lower(), out.stderr
+    info = tmp_path / out.stdout.strip().splitlines()[-1]
+    meta = Parser().parsestr((info / "METADATA").read_text())
+    assert meta["Name"] == "torchface" and meta["Version"] == torchface.__version__
+    assert meta["License-Expression"] == "MIT"
+    assert set(meta.get_all("Provides-Extra")) == {"dev", "lightning", "detect", "bench"}
+    requires = meta.get_all("Requires-Dist")
+    assert any(r.startswith("dlib-bin") and 'extra == "detect"' in r for r in requires)
+    assert any(r.startswith("mediapipe") and 'extra == "bench"' in r for r in requires)
+    assert "torchface = torchface.cli:main" in (info / "entry_points.txt").read_text()
+
+
+def test_the_source_distribution_carries_the_tests_and_scripts(tmp_path):
+    # Without MANIFEST.in setuptools put only tests/test_*.py in the sdist: 6 of the suite's files, and none of the
+    # scripts that tests/test_peers.py and tests/test_venv_setup.py exercise.
+    import tarfile
+
+    pytest.importorskip("setuptools")
+    source = tmp_path / "source"  # a copy without an earlier build's egg-info, whose file list setuptools reuses
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", ".venv", "*.egg-info", "build", "out",
+                                                                 "__pycache__", "*.pyc", "torchface-demo"))  # fmt: skip
+    code = "import sys, setuptools.build_meta as b; print(b.build_sdist(sys.argv[1]))"
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], cwd=source, capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    with tarfile.open(tmp_path / out.stdout.strip().splitlines()[-1]) as sdist:
+        names = {name.split("/", 1)[1] for name in sdist.getnames() if "/" in name}
+    wanted = {str(p.relative_to(ROOT)) for folder in ("tests", "scripts") for p in (ROOT / folder).rglob("*")
+              if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}  # fmt: skip
+    assert "tests/tracker/test_native.py" in wanted and "scripts/_venv.sh" in wanted
+    assert not wanted - names, sorted(wanted - names)[:10]
+    assert not any(name.endswith(".pyc") for name in names)
