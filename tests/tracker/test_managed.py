@@ -671,3 +671,16 @@ def test_a_face_back_at_another_depth_is_found_by_the_widened_search(model, monk
     err = rel_error(wide, gt)
     assert float(err[ok[0] : second - 4].max()) < 2.0 and float(err[second + 1 :].max()) < 2.0, err
     assert abs(float(wide[-1].translation[0, 2]) - 270.0) < 15.0
+
+
+def test_nan_pixels_on_a_rightly_tracked_face_keep_its_confidence(model, gentle):
+    """NaN frame pixels are missing data (never template points): on a face at its right pose, a NaN block scores
+    as a black one does, not as displaced patches (it gave confidence 0.02, and three such frames a LOST stream)."""
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    scores = {}
+    for value in (0.0, float("nan")):
+        f = frames[:, 0].clone()
+        f[:, :, 105:135, 145:175] = value
+        scores[value == value] = estimate_confidence(model, CFG, state, f)[0]
+    assert float(scores[True][0]) > 0.95 and float(scores[False][0]) > 0.95, scores
