@@ -684,3 +684,14 @@ def test_nan_pixels_on_a_rightly_tracked_face_keep_its_confidence(model, gentle)
         f[:, :, 105:135, 145:175] = value
         scores[value == value] = estimate_confidence(model, CFG, state, f)[0]
     assert float(scores[True][0]) > 0.95 and float(scores[False][0]) > 0.95, scores
+
+
+def test_a_lost_stream_is_recovered_by_the_search_in_frames_with_nan_pixels(model, leaves):
+    """One NaN row at the top of every frame (missing data, far from the face) used to leave every mosaic search
+    empty: the face that left and came back was never found again."""
+    frames, gt = leaves
+    frames = frames.clone()
+    frames[..., :1, :] = float("nan")
+    results, _ = track(model, LEAVE_CFG, frames, landmarks(gt))
+    assert any(int(r.status[0]) == LOST for r in results[:BACK])
+    assert all(bool(r.success[0]) for r in results[BACK + 2 :]), [int(r.status[0]) for r in results]

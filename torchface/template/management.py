@@ -840,14 +840,19 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
             intensities; w: ``(H, n)`` 1 for points taking part, else 0; t: ``(H, P, 3)`` placements.
 
     Returns:
-        ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image.
+        ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image
+        (a point whose sample touches a NaN pixel, missing data, is not inside).
     """
     H, P = t.shape[:2]
     cam = X.unsqueeze(1) + t.unsqueeze(2)  # (H, P, n, 3)
     uv = project_points(cam.reshape(1, -1, 3), intrinsics)
     vals, inside = sample_at_pixels(gray, uv)
     vals = vals[..., 0].reshape(H, P, -1)
-    wgt = inside.reshape(H, P, -1).to(gray.dtype) * w.unsqueeze(1)
+    # A NaN sample would make its placement's score NaN, which topk ranks first and no comparison then accepts:
+    # one NaN row in the frame left every search empty.
+    finite = torch.isfinite(vals)
+    vals = torch.where(finite, vals, 0.0)
+    wgt = (inside.reshape(H, P, -1) & finite).to(gray.dtype) * w.unsqueeze(1)
     cnt = wgt.sum(-1)
     mean_v = (vals * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
     mean_t = (T.unsqueeze(1) * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
