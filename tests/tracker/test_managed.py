@@ -695,3 +695,17 @@ def test_a_lost_stream_is_recovered_by_the_search_in_frames_with_nan_pixels(mode
     results, _ = track(model, LEAVE_CFG, frames, landmarks(gt))
     assert any(int(r.status[0]) == LOST for r in results[:BACK])
     assert all(bool(r.success[0]) for r in results[BACK + 2 :]), [int(r.status[0]) for r in results]
+
+
+def test_texture_update_leaves_nan_pixels_out_of_the_template(model, gentle):
+    """A texture update does not blend NaN (missing) frame pixels into the templates: they stayed NaN there and
+    in the mosaic entry for good (19 and 39 points here, lost to every later frame and to the mosaic search)."""
+    frames, gt = gentle
+    frames = frames.clone()
+    frames[:, 3:5, :, 110:125, 150:165] = float("nan")
+    config = replace(CFG, template=TemplateConfig(texture_update=True))
+    results, state = track(model, config, frames, landmarks(gt))
+    assert all(bool(r.success[0]) for r in results)
+    assert not any(bool(torch.isnan(t.intensity).any()) for t in state.templates)
+    assert not any(bool(torch.isnan(lv.intensity).any()) for lv in state.management.mosaic.levels)
+    assert int(results[-1].num_points[0]) >= 595  # the points under the hole are back (600 slots)

@@ -554,7 +554,8 @@ def _texture_update(
         normals_cam = torch.matmul(tpl.normals, R.transpose(1, 2))
         fresh = remove_illumination(sampled[..., 0], normals_cam, light)  # light_normalised_intensity, rotated once
         facing = (normals_cam * torch.nn.functional.normalize(cam, dim=-1)).sum(-1) < -config.template.min_facing_cos
-        update = mask.unsqueeze(-1) & tpl.valid & inside & facing
+        # Not from a NaN (missing) pixel: blended in, it would stay NaN in the template and its mosaic entry for good.
+        update = mask.unsqueeze(-1) & tpl.valid & inside & facing & torch.isfinite(fresh)
         intensity = torch.where(update, (1 - beta) * tpl.intensity + beta * fresh, tpl.intensity)
         templates.append(replace(tpl, intensity=intensity))
         stored = lv.intensity.clone()
