@@ -709,3 +709,26 @@ def test_texture_update_leaves_nan_pixels_out_of_the_template(model, gentle):
     assert not any(bool(torch.isnan(t.intensity).any()) for t in state.templates)
     assert not any(bool(torch.isnan(lv.intensity).any()) for lv in state.management.mosaic.levels)
     assert int(results[-1].num_points[0]) >= 595  # the points under the hole are back (600 slots)
+
+
+def test_torch_backend_runs_no_native_kernel(model, turns, leaves, monkeypatch):
+    """``Backend.TORCH`` is always the torch code: the first templates' points, the online start's re-anchoring
+    (its template pixels), the mosaic search and the normalised face's layout ran the native kernels whatever the
+    backend, so a TORCH track differed (by 1e-7 rad) between machines with and without a C compiler."""
+    from torchface import _native
+    from torchface.backend import Backend
+    from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
+
+    ran = []
+    real = _native.run
+    monkeypatch.setattr(_native, "run", lambda kernel, *args: (ran.append(kernel), real(kernel, *args))[1])
+    config = replace(CFG, backend=Backend.TORCH, template=TemplateConfig(recovery_every=2, reference_radius_deg=10.0))
+    T = BACK + 1
+    frames = torch.cat([turns[0][:, :T], leaves[0][:, :T]])
+    tracker = FaceTracker(config, refine_first=LookaheadConfig())
+    results = [tracker.initialise(frames[:, 0], torch.cat([landmarks(turns[1]), landmarks(leaves[1])]))]
+    results += [tracker(frames[:, i]) for i in range(1, T)]
+    lookahead_fit(model, config, turns[0][:, :5], landmarks(turns[1]), Intrinsics.default(W, H))
+    assert ran == [], sorted(set(ran))
+    assert tracker.state.management.first.pending.tolist() == [False, True]  # stream 0 was re-anchored
+    assert int(results[BACK - 1].status[1]) == LOST and bool(results[-1].success[1])  # stream 1 found again

@@ -219,7 +219,8 @@ class NormalisedFaceResult(NamedTuple):
 
 
 def build_normalised_layout(
-    model: FaceModel, size: int = 128, margin: float = 0.05, distance_mm: float = 2000.0
+    model: FaceModel, size: int = 128, margin: float = 0.05, distance_mm: float = 2000.0,
+    backend: Backend = Backend.AUTO,
 ) -> NormalisedFaceLayout:
     """Rasterize the model's mean shape into the canonical frontal view (module docstring).
 
@@ -233,6 +234,7 @@ def build_normalised_layout(
         size: ``G``, at least 4.
         margin: in ``[0, 0.45]``.
         distance_mm: depth of the head-frame origin, larger than the model's depth extent.
+        backend: :class:`~torchface.backend.Backend` of the rasterization (the same coverage either way).
 
     Returns:
         :class:`NormalisedFaceLayout`.
@@ -272,7 +274,7 @@ def build_normalised_layout(
     centre = (size - 1) / 2.0
     cam = Intrinsics(size, size, focal, focal, centre, centre - focal * 0.5 * (b_lo + b_hi))
     verts_cam = (model.mean + translation).unsqueeze(0)
-    frags = rasterize(verts_cam, model.faces, cam, cull_backfaces=True)
+    frags = rasterize(verts_cam, model.faces, cam, cull_backfaces=True, backend=backend)
     seen = (frags.pix_to_face[0] >= 0) & (frags.facing[0] > 0)
     pixel_index = seen.reshape(-1).nonzero().squeeze(-1)
     if pixel_index.numel() == 0:

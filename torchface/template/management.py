@@ -883,6 +883,7 @@ def search_mosaic(
     extra_rotation: Tensor | None,
     config: TemplateConfig,
     depth_scale: float = 1.0,
+    backend: Backend = Backend.AUTO,
 ) -> SearchResult:
     """Find the face of ``stream`` in a gray image by placing its mosaic entries (module docstring).
 
@@ -903,6 +904,7 @@ def search_mosaic(
         extra_rotation: ``(3, 3)`` or None.
         depth_scale: other than 1, the depths ``depth_mm * depth_scale * search_depth_factors`` are tried too
             (:meth:`TemplateConfig.depth_scale`).
+        backend: :class:`~torchface.backend.Backend` of the entries' template points (the tracker's).
 
     Returns:
         :class:`SearchResult` (score -1 when nothing could be placed).
@@ -920,7 +922,7 @@ def search_mosaic(
     n_rot = rots.shape[0]
     tpl = template_at(
         model, shape_coeffs.expand(n_rot, -1), lv.face_index[stream, ent], lv.bary[stream, ent],
-        lv.intensity[stream, ent], lv.valid[stream, ent],
+        lv.intensity[stream, ent], lv.valid[stream, ent], backend=backend,
     )  # fmt: skip
     # Points facing the camera at the hypothesis' rotation (viewing ray ~ +z for a face near the axis); the
     # first n of them, a uniform subset (template slots are in random order), packed to the front.
