@@ -841,15 +841,18 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
 
     Returns:
         ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image
-        (a point whose sample touches a NaN pixel, missing data, is not inside).
+        (a point whose sample touches a NaN pixel, missing data, is not inside). Points whose intensity ``T`` is not
+        finite take no part.
     """
     H, P = t.shape[:2]
+    usable = torch.isfinite(T)  # an entry built from a frame with infinite pixels (only first frames are checked)
+    T, w = torch.where(usable, T, 0.0), w * usable.to(w.dtype)
     cam = X.unsqueeze(1) + t.unsqueeze(2)  # (H, P, n, 3)
     uv = project_points(cam.reshape(1, -1, 3), intrinsics)
     vals, inside = sample_at_pixels(gray, uv)
     vals = vals[..., 0].reshape(H, P, -1)
-    # A NaN sample would make its placement's score NaN, which topk ranks first and no comparison then accepts:
-    # one NaN row in the frame left every search empty.
+    # A NaN (or infinite) sample would make its placement's score NaN, which topk ranks first and no comparison
+    # then accepts: one NaN row in the frame left every search empty.
     finite = torch.isfinite(vals)
     vals = torch.where(finite, vals, 0.0)
     wgt = (inside.reshape(H, P, -1) & finite).to(gray.dtype) * w.unsqueeze(1)
