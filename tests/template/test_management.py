@@ -343,6 +343,43 @@ def test_search_mosaic_finds_the_moved_face(model, scene):
     assert math.isfinite(hit.score)
 
 
+def test_search_mosaic_leaves_out_nan_pixels(model, scene):
+    """NaN frame pixels are missing data: the search finds the face as in the same frame without them. A NaN
+    sample made its placement's score NaN, which topk ranked first and no comparison accepted, so one NaN row far
+    from the face left the search empty (score -1) and a lost stream without a detector was never recovered."""
+    frames, gt, fit, _ = scene
+    cfg = TemplateConfig(search_step_px=2.0)
+    intr, gray0, _, m = _half_size_mosaic(model, scene, cfg)
+    depth = float(fit.translation[0, 2])
+    clean = search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, depth, None, cfg)
+    holed = gray0.clone()
+    holed[..., :1, :] = float("nan")  # the top row
+    holed[..., 50:53, 70:73] = float("nan")  # and a few pixels on the face
+    hit = search_mosaic(model, fit.shape_coeffs, m, 0, holed, intr, 0, depth, None, cfg)
+    assert clean.score > 0.5 and hit.score > 0.5 and hit.entry == clean.entry, (clean.score, hit.score)
+    assert float((hit.translation - clean.translation).norm()) < 3.0
+
+
+def test_search_mosaic_leaves_out_non_finite_template_intensities(model, scene):
+    """An entry point with an infinite intensity (an entry built from a frame with infinite pixels: only the first
+    frames are range-checked) is left out of the correlation; it made every placement of that entry NaN, and the
+    search came back empty."""
+    from dataclasses import replace
+
+    frames, gt, fit, _ = scene
+    cfg = TemplateConfig(search_step_px=2.0)
+    intr, gray0, _, m = _half_size_mosaic(model, scene, cfg)
+    depth = float(fit.translation[0, 2])
+    clean = search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, depth, None, cfg)
+    lv = m.levels[0]
+    bad = lv.intensity.clone()
+    bad[0, 0, :3] = float("inf")
+    m = replace(m, levels=(replace(lv, intensity=bad),) + m.levels[1:])
+    hit = search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, depth, None, cfg)
+    assert clean.score > 0.5 and hit.score > 0.5, (clean.score, hit.score)
+    assert float((hit.translation - clean.translation).norm()) < 3.0
+
+
 def test_search_mosaic_widened_depths_find_a_face_that_came_back_farther(model, scene):
     """A lost face back at 1.6 times its last confident depth lies outside the searched depths (0.85-1.2 of it):
     the later attempts' widened depths (``search_depth_widening``, here 1.45) find it where it is."""

@@ -671,3 +671,64 @@ def test_a_face_back_at_another_depth_is_found_by_the_widened_search(model, monk
     err = rel_error(wide, gt)
     assert float(err[ok[0] : second - 4].max()) < 2.0 and float(err[second + 1 :].max()) < 2.0, err
     assert abs(float(wide[-1].translation[0, 2]) - 270.0) < 15.0
+
+
+def test_nan_pixels_on_a_rightly_tracked_face_keep_its_confidence(model, gentle):
+    """NaN frame pixels are missing data (never template points): on a face at its right pose, a NaN block scores
+    as a black one does, not as displaced patches (it gave confidence 0.02, and three such frames a LOST stream)."""
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    scores = {}
+    for value in (0.0, float("nan")):
+        f = frames[:, 0].clone()
+        f[:, :, 105:135, 145:175] = value
+        scores[value == value] = estimate_confidence(model, CFG, state, f)[0]
+    assert float(scores[True][0]) > 0.95 and float(scores[False][0]) > 0.95, scores
+
+
+def test_a_lost_stream_is_recovered_by_the_search_in_frames_with_nan_pixels(model, leaves):
+    """One NaN row at the top of every frame (missing data, far from the face) used to leave every mosaic search
+    empty: the face that left and came back was never found again."""
+    frames, gt = leaves
+    frames = frames.clone()
+    frames[..., :1, :] = float("nan")
+    results, _ = track(model, LEAVE_CFG, frames, landmarks(gt))
+    assert any(int(r.status[0]) == LOST for r in results[:BACK])
+    assert all(bool(r.success[0]) for r in results[BACK + 2 :]), [int(r.status[0]) for r in results]
+
+
+def test_texture_update_leaves_nan_pixels_out_of_the_template(model, gentle):
+    """A texture update does not blend NaN (missing) frame pixels into the templates: they stayed NaN there and
+    in the mosaic entry for good (19 and 39 points here, lost to every later frame and to the mosaic search)."""
+    frames, gt = gentle
+    frames = frames.clone()
+    frames[:, 3:5, :, 110:125, 150:165] = float("nan")
+    config = replace(CFG, template=TemplateConfig(texture_update=True))
+    results, state = track(model, config, frames, landmarks(gt))
+    assert all(bool(r.success[0]) for r in results)
+    assert not any(bool(torch.isnan(t.intensity).any()) for t in state.templates)
+    assert not any(bool(torch.isnan(lv.intensity).any()) for lv in state.management.mosaic.levels)
+    assert int(results[-1].num_points[0]) >= 595  # the points under the hole are back (600 slots)
+
+
+def test_torch_backend_runs_no_native_kernel(model, turns, leaves, monkeypatch):
+    """``Backend.TORCH`` is always the torch code: the first templates' points, the online start's re-anchoring
+    (its template pixels), the mosaic search and the normalised face's layout ran the native kernels whatever the
+    backend, so a TORCH track differed (by 1e-7 rad) between machines with and without a C compiler."""
+    from torchface import _native
+    from torchface.backend import Backend
+    from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
+
+    ran = []
+    real = _native.run
+    monkeypatch.setattr(_native, "run", lambda kernel, *args: (ran.append(kernel), real(kernel, *args))[1])
+    config = replace(CFG, backend=Backend.TORCH, template=TemplateConfig(recovery_every=2, reference_radius_deg=10.0))
+    T = BACK + 1
+    frames = torch.cat([turns[0][:, :T], leaves[0][:, :T]])
+    tracker = FaceTracker(config, refine_first=LookaheadConfig())
+    results = [tracker.initialise(frames[:, 0], torch.cat([landmarks(turns[1]), landmarks(leaves[1])]))]
+    results += [tracker(frames[:, i]) for i in range(1, T)]
+    lookahead_fit(model, config, turns[0][:, :5], landmarks(turns[1]), Intrinsics.default(W, H))
+    assert ran == [], sorted(set(ran))
+    assert tracker.state.management.first.pending.tolist() == [False, True]  # stream 0 was re-anchored
+    assert int(results[BACK - 1].status[1]) == LOST and bool(results[-1].success[1])  # stream 1 found again

@@ -211,6 +211,28 @@ def test_a_non_finite_frame_is_reported_as_the_torch_code_reports_it():
         assert all(bool(torch.isfinite(p).all()) for p in out[:4])
 
 
+@pytest.mark.parametrize("value", [float("inf"), -float("inf"), float("nan")])
+def test_non_finite_pixels_are_left_out_as_the_torch_code_leaves_them_out(value):
+    """A block of infinite (or NaN) pixels where the face is: the points whose samples or gradient stencils touch
+    it are left out and the rest is solved, as the torch code does. The native solver's finiteness tests were
+    ``|x| <= inf``, true for an infinite pixel: its residual entered the cost and the whole frame FAILED (with
+    template management, LOST) where the torch code tracked it."""
+    tpl, clean, cam, x0, light_basis = _noisy_problem(B=2)
+    image = clean.clone()
+    h, w = image.shape[-2:]
+    image[0, :, h // 2 - 4 : h // 2 + 4, w // 2 - 4 : w // 2 + 4] = value
+    args = _arguments(SETTINGS["tukey"], 2)
+    R, t, a, lam = split(x0)
+    whole = solve_level(tpl, clean, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)[4].valid
+    nat = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
+    ref = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=TORCH, **args)
+    assert bool(nat[4].finite.all()) and bool(ref[4].finite.all())
+    assert torch.equal(nat[4].valid, ref[4].valid)
+    assert 0 < int(ref[4].valid[0].sum()) < int(whole[0].sum())  # points were left out, not all
+    assert float(geodesic_angle_deg(nat[0], ref[0]).max()) < 1e-7
+    torch.testing.assert_close(nat[1], ref[1], rtol=0, atol=1e-8)
+
+
 def test_inputs_that_ask_for_gradients_take_the_torch_code_and_native_refuses_them():
     tpl, image, cam, x0, light_basis = _noisy_problem(B=1)
     args = _arguments(SETTINGS["l2"], 1)

@@ -202,8 +202,8 @@ static void FN(linearise)(const TFLevelProblem *p, int b, const REAL *R, const R
     for (int n = 0; n < N; ++n) {
         /* a point whose gradient stencil touches a non-finite pixel is left out (as fast.linearise) */
         const REAL stencil = s1[n] + s2[n] + s3[n] + s4[n];
-        valid[n] = (uint8_t)((valid[n] != 0) & (fabs(stencil) <= (REAL)INFINITY));
-        ok[n] = ((valid[n] != 0) & (fabs(r[n]) <= (REAL)INFINITY)) ? (REAL)1 : (REAL)0;
+        valid[n] = (uint8_t)((valid[n] != 0) & (fabs(stencil) < (REAL)INFINITY));
+        ok[n] = ((valid[n] != 0) & (fabs(r[n]) < (REAL)INFINITY)) ? (REAL)1 : (REAL)0;
     }
     REAL *J = out->J;
     REAL *restrict Jr0 = J, *restrict Jr1 = J + NP, *restrict Jr2 = J + 2 * NP;

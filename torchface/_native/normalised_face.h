@@ -2,8 +2,8 @@
  * with zbuffer=False, as template management makes it every frame): each canonical pixel's surface point and
  * normal interpolated from its triangle's corners, projected, the frame sampled there (bilinear, border), kept
  * where in front of the near plane, inside the frame, on a front-facing triangle and facing the camera enough,
- * and the illumination removed (paper Eq. 19 inverted). The same algorithm as the torch code, which the tests
- * compare against.
+ * and its sampled value finite (a NaN frame pixel is missing data), and the illumination removed (paper Eq. 19
+ * inverted). The same algorithm as the torch code, which the tests compare against.
  *
  * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
  * Layouts (C order): verts, normals (B, V, 3) camera frame (unit vertex normals); back (B, F) uint8; faces (F, 3),
@@ -59,12 +59,19 @@ static void FN(normalised_face_one)(const TFFaceProblem *p, int b) {
         REAL ax = xc - (REAL)x0, ay = yc - (REAL)y0, bx = (REAL)1 - ax, by = (REAL)1 - ay;
         int right = x0 + 1 < W, down = y0 + 1 < H;
         size_t i00 = (size_t)y0 * W + x0, i10 = down ? i00 + W : i00;
+        int finite = 1;
         for (int c = 0; c < C; ++c) {
             const REAL *q = img + c * HW;
             REAL h0 = bx * q[i00] + ax * (right ? q[i00 + 1] : (REAL)0);
             REAL h1 = bx * q[i10] + ax * (right ? q[i10 + 1] : (REAL)0);
             REAL val = by * h0 + ay * (down ? h1 : (REAL)0);
-            out[c * GG + at] = light ? (val - bias) / gain : val;
+            val = light ? (val - bias) / gain : val;
+            finite = finite && isfinite(val);
+            out[c * GG + at] = val;
+        }
+        if (!finite) { /* a NaN (missing) frame pixel: not seen, as outside the frame */
+            out_mask[at] = (REAL)0;
+            for (int c = 0; c < C; ++c) out[c * GG + at] = (REAL)0;
         }
     }
 }

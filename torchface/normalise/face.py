@@ -30,9 +30,10 @@ deformed, posed mesh at the point: the result is the face under the reference li
 A canonical pixel is kept (mask 1) when its surface point is visible in the frame: in front of the camera,
 projecting inside the image, on a triangle that faces the camera with its normal at least
 ``acos(min_facing_cos)`` away from grazing, and not hidden by another part of the mesh (z-buffer of the posed
-mesh, :func:`torchface.rendering.visibility.points_visible`). Other pixels, and the background of the
-layout, are 0 with mask 0. A sample whose geometry is not finite (a NaN or inf parameter or vertex) shows no
-face: image and mask 0, and its geometry parameters get gradient 0 (never NaN).
+mesh, :func:`torchface.rendering.visibility.points_visible`), and its sampled value is finite (NaN frame pixels
+are missing data, as the tracker takes them). Other pixels, and the background of the layout, are 0 with mask 0.
+A sample whose geometry is not finite (a NaN or inf parameter or vertex) shows no face: image and mask 0, and its
+geometry parameters get gradient 0 (never NaN).
 
 The output is differentiable with respect to the frame pixels (it is linear in them) and, almost everywhere,
 with respect to the shape, expression, pose and illumination parameters; the mask is not differentiable.
@@ -218,7 +219,8 @@ class NormalisedFaceResult(NamedTuple):
 
 
 def build_normalised_layout(
-    model: FaceModel, size: int = 128, margin: float = 0.05, distance_mm: float = 2000.0
+    model: FaceModel, size: int = 128, margin: float = 0.05, distance_mm: float = 2000.0,
+    backend: Backend = Backend.AUTO,
 ) -> NormalisedFaceLayout:
     """Rasterize the model's mean shape into the canonical frontal view (module docstring).
 
@@ -232,6 +234,7 @@ def build_normalised_layout(
         size: ``G``, at least 4.
         margin: in ``[0, 0.45]``.
         distance_mm: depth of the head-frame origin, larger than the model's depth extent.
+        backend: :class:`~torchface.backend.Backend` of the rasterization (the same coverage either way).
 
     Returns:
         :class:`NormalisedFaceLayout`.
@@ -271,7 +274,7 @@ def build_normalised_layout(
     centre = (size - 1) / 2.0
     cam = Intrinsics(size, size, focal, focal, centre, centre - focal * 0.5 * (b_lo + b_hi))
     verts_cam = (model.mean + translation).unsqueeze(0)
-    frags = rasterize(verts_cam, model.faces, cam, cull_backfaces=True)
+    frags = rasterize(verts_cam, model.faces, cam, cull_backfaces=True, backend=backend)
     seen = (frags.pix_to_face[0] >= 0) & (frags.facing[0] > 0)
     pixel_index = seen.reshape(-1).nonzero().squeeze(-1)
     if pixel_index.numel() == 0:
@@ -544,6 +547,7 @@ def _normalised_face_posed(
     observed = values.transpose(1, 2)  # (B, C, M)
     if illumination is not None:
         observed = remove_illumination(observed, normals, illumination)
+    keep = keep & torch.isfinite(observed.detach()).all(1)  # a NaN (missing) frame pixel is not seen
     keep_f = keep.to(observed.dtype).unsqueeze(1)  # (B, 1, M)
     G = layout.size
     # torch.where, not a product with the mask: 0 (value and gradient) where the mask is 0, even where the

@@ -840,14 +840,22 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
             intensities; w: ``(H, n)`` 1 for points taking part, else 0; t: ``(H, P, 3)`` placements.
 
     Returns:
-        ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image.
+        ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image
+        (a point whose sample touches a NaN pixel, missing data, is not inside). Points whose intensity ``T`` is not
+        finite take no part.
     """
     H, P = t.shape[:2]
+    usable = torch.isfinite(T)  # an entry built from a frame with infinite pixels (only first frames are checked)
+    T, w = torch.where(usable, T, 0.0), w * usable.to(w.dtype)
     cam = X.unsqueeze(1) + t.unsqueeze(2)  # (H, P, n, 3)
     uv = project_points(cam.reshape(1, -1, 3), intrinsics)
     vals, inside = sample_at_pixels(gray, uv)
     vals = vals[..., 0].reshape(H, P, -1)
-    wgt = inside.reshape(H, P, -1).to(gray.dtype) * w.unsqueeze(1)
+    # A NaN (or infinite) sample would make its placement's score NaN, which topk ranks first and no comparison
+    # then accepts: one NaN row in the frame left every search empty.
+    finite = torch.isfinite(vals)
+    vals = torch.where(finite, vals, 0.0)
+    wgt = (inside.reshape(H, P, -1) & finite).to(gray.dtype) * w.unsqueeze(1)
     cnt = wgt.sum(-1)
     mean_v = (vals * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
     mean_t = (T.unsqueeze(1) * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
@@ -878,6 +886,7 @@ def search_mosaic(
     extra_rotation: Tensor | None,
     config: TemplateConfig,
     depth_scale: float = 1.0,
+    backend: Backend = Backend.AUTO,
 ) -> SearchResult:
     """Find the face of ``stream`` in a gray image by placing its mosaic entries (module docstring).
 
@@ -898,6 +907,7 @@ def search_mosaic(
         extra_rotation: ``(3, 3)`` or None.
         depth_scale: other than 1, the depths ``depth_mm * depth_scale * search_depth_factors`` are tried too
             (:meth:`TemplateConfig.depth_scale`).
+        backend: :class:`~torchface.backend.Backend` of the entries' template points (the tracker's).
 
     Returns:
         :class:`SearchResult` (score -1 when nothing could be placed).
@@ -915,7 +925,7 @@ def search_mosaic(
     n_rot = rots.shape[0]
     tpl = template_at(
         model, shape_coeffs.expand(n_rot, -1), lv.face_index[stream, ent], lv.bary[stream, ent],
-        lv.intensity[stream, ent], lv.valid[stream, ent],
+        lv.intensity[stream, ent], lv.valid[stream, ent], backend=backend,
     )  # fmt: skip
     # Points facing the camera at the hypothesis' rotation (viewing ray ~ +z for a face near the axis); the
     # first n of them, a uniform subset (template slots are in random order), packed to the front.

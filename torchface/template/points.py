@@ -577,7 +577,8 @@ def build_template(
         expression_priority=expression_priority, expression_quota=expression_quota, offsets=offsets, seed=seed,
         backend=backend,
     )  # fmt: skip
-    return template_at(model, shape_coeffs, pixels.face_index, pixels.bary, pixels.intensity, pixels.valid)
+    return template_at(model, shape_coeffs, pixels.face_index, pixels.bary, pixels.intensity, pixels.valid,
+                       backend=backend)
 
 
 def template_at(

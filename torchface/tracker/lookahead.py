@@ -42,6 +42,7 @@ from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
+from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix, hat, left_jacobian, matrix_to_axis_angle, matrix_to_euler
@@ -237,6 +238,7 @@ def refine_first_fit(
     expression_prior_precision: float = 2.0,
     held_shape_units: tuple[int, ...] = (),
     config: LookaheadConfig = LookaheadConfig(),
+    backend: Backend = Backend.AUTO,
 ) -> LandmarkFit:
     """One stream's first-frame fit refined against keyframes (module docstring).
 
@@ -260,6 +262,8 @@ def refine_first_fit(
             (:func:`~torchface.tracker.fit.held_shape_indices`): those re-estimated when ``config.shape_units``
             is None.
         config: :class:`LookaheadConfig`.
+        backend: :class:`~torchface.backend.Backend` of the first frame's template points (the tracker's
+            :attr:`~torchface.tracker.step.TrackerConfig.backend`).
 
     Returns:
         The refined :class:`LandmarkFit` (batch 1, the model's dtype); ``rms_px`` is its landmark RMS.
@@ -269,6 +273,7 @@ def refine_first_fit(
         landmark_weights=landmark_weights,
         shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
         expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units, config=config,
+        backend=backend,
     )[0]  # fmt: skip
 
 
@@ -289,6 +294,7 @@ def _refine_first_fit(
     config: LookaheadConfig,
     held_shape_units: tuple[int, ...] = (),
     analytic: bool = True,
+    backend: Backend = Backend.AUTO,
 ) -> tuple[LandmarkFit, Tensor, Tensor]:
     """:func:`refine_first_fit`, also returning the keyframes' refined poses: rotation ``(K, 3, 3)`` and
     translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose. ``analytic``: the
@@ -324,7 +330,7 @@ def _refine_first_fit(
     px = select_template_pixels(
         m, sig0, al0, fit.rotation.to(dt), fit.translation.to(dt), gray[:1], intrinsics,
         max_points=min(config.max_points, gray.shape[-2] * gray.shape[-1]),
-        gradient_threshold=config.gradient_threshold,
+        gradient_threshold=config.gradient_threshold, backend=backend,
     )  # fmt: skip
     keep = px.valid[0]
     fi, bary = px.face_index[:, keep], px.bary[:, keep]
@@ -411,7 +417,8 @@ def _refine_first_fit(
             seen = []
             for (R, t), a, Xf in zip(poses, alphas, points):  # one rasterization each: stacked, the (1 + K)-frame
                 verts = m.deform(sig[None], a[None])[0]  # buffers cost more to allocate
-                frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True)
+                frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True,
+                                           backend=backend)
                 pts = Xf @ R.T + t
                 vis = points_visible(pts[None], fi, frags, intrinsics)[0]
                 cos = -((normals @ R.T) * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)
@@ -632,7 +639,8 @@ def lookahead_fit(
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
                 key_expression=expr[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b], config=config, **priors,
+                landmark_weights=None if weights is None else weights[b], config=config,
+                backend=tracker_config.backend, **priors,
             )  # fmt: skip
         streams.append(one)
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

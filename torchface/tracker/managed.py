@@ -276,7 +276,7 @@ def initialise_managed(
     if not tc_enabled:
         return state, _plain(result)
     frames = frames.to(dtype=model.dtype, device=model.device)
-    layout = build_normalised_layout(model, tc.normalised_size)
+    layout = build_normalised_layout(model, tc.normalised_size, backend=config.backend)
     aa, t, alpha, light = _layout(model).split(state.params)
     image, mask = reference_face(frames, model, layout, state.shape_coeffs, alpha, aa, t, light, intrinsics, tc,
                                  backend=config.backend)
@@ -554,7 +554,8 @@ def _texture_update(
         normals_cam = torch.matmul(tpl.normals, R.transpose(1, 2))
         fresh = remove_illumination(sampled[..., 0], normals_cam, light)  # light_normalised_intensity, rotated once
         facing = (normals_cam * torch.nn.functional.normalize(cam, dim=-1)).sum(-1) < -config.template.min_facing_cos
-        update = mask.unsqueeze(-1) & tpl.valid & inside & facing
+        # Not from a NaN (missing) pixel: blended in, it would stay NaN in the template and its mosaic entry for good.
+        update = mask.unsqueeze(-1) & tpl.valid & inside & facing & torch.isfinite(fresh)
         intensity = torch.where(update, (1 - beta) * tpl.intensity + beta * fresh, tpl.intensity)
         templates.append(replace(tpl, intensity=intensity))
         stored = lv.intensity.clone()
@@ -604,7 +605,7 @@ def _recovery_starts(
             b = int(index[i])
             hit = search_mosaic(
                 model, state.shape_coeffs[b : b + 1], ms.mosaic, b, gray[i : i + 1], intr, level,
-                float(t_c[i, 2]), R_c[i], config.template, depth_scale=depth_scales[i],
+                float(t_c[i, 2]), R_c[i], config.template, depth_scale=depth_scales[i], backend=config.backend,
             )  # fmt: skip
             if hit.score > 0:
                 # The last confident expression: on a face unlike the model the animation units also absorb
@@ -1078,7 +1079,8 @@ def _reanchor(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
                 key_expression=torch.stack([k[3] for k in ks]),
-                landmark_weights=None if w.weights is None else w.weights[b], config=w.config, **priors,
+                landmark_weights=None if w.weights is None else w.weights[b], config=w.config,
+                backend=config.backend, **priors,
             )  # fmt: skip
             fits.append(one)
             now_R.append(key_R[-1])
