@@ -30,6 +30,8 @@ def test_the_built_metadata_declares_what_the_readme_says_without_deprecations(t
     meta = Parser().parsestr((info / "METADATA").read_text())
     assert meta["Name"] == "torchface" and meta["Version"] == torchface.__version__
     assert meta["License-Expression"] == "MIT"
+    assert meta.get_all("License-File") == ["LICENSE"]  # the MIT licence's text ships with the package
+    assert "Permission is hereby granted" in (info / "licenses" / "LICENSE").read_text()
     assert set(meta.get_all("Provides-Extra")) == {"dev", "lightning", "detect", "bench"}
     requires = meta.get_all("Requires-Dist")
     assert any(r.startswith("dlib-bin") and 'extra == "detect"' in r for r in requires)
@@ -55,5 +57,6 @@ def test_the_source_distribution_carries_the_tests_and_scripts(tmp_path):
     wanted = {str(p.relative_to(ROOT)) for folder in ("tests", "scripts") for p in (ROOT / folder).rglob("*")
               if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}  # fmt: skip
     assert "tests/tracker/test_native.py" in wanted and "scripts/_venv.sh" in wanted
+    assert "LICENSE" in names
     assert not wanted - names, sorted(wanted - names)[:10]
     assert not any(name.endswith(".pyc") for name in names)
