@@ -875,6 +875,7 @@ def _finalise(
             "path": str(s.reader.info.path), "resolved_path": str(Path(s.reader.info.path).resolve()),
             "kind": s.reader.info.kind, "format": s.reader.info.source_format,
             "conversion": s.reader.info.conversion, "width": W, "height": H, "fps": s.reader.info.fps,
+            "fps_assumed": s.reader.info.fps_assumed,
         },  # fmt: skip
         "versions": package_versions(),
         "config": {

@@ -156,6 +156,25 @@ def test_a_stream_without_a_frame_count_declares_none(tmp_path):
     assert _frames(reader).shape[0] == 3
 
 
+def test_an_assumed_frame_rate_is_said_so(tmp_path):
+    """fps is the container's where it is plausible, else 25 with ``fps_assumed`` (it was replaced silently: a
+    5000 frames/s file's timestamps were frame / 25 with nothing saying the rate was not the file's)."""
+    got = {}
+    for rate in (30.0, 5000.0):
+        path = tmp_path / f"clip{int(rate)}.mp4"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), rate, (64, 48))
+        assert writer.isOpened()
+        for k in range(2):
+            writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+        writer.release()
+        info = open_frames(path).info
+        got[rate] = (info.fps, info.fps_assumed)
+    assert got == {30.0: (30.0, False), 5000.0: (25.0, True)}, got
+    cv2.imwrite(str(tmp_path / "0.png"), np.zeros((40, 40, 3), np.uint8))
+    folder = open_frames(tmp_path).info
+    assert (folder.fps, folder.fps_assumed) == (25.0, True)
+
+
 def test_frame_size_change_mid_video(tmp_path):
     cv2.imwrite(str(tmp_path / "a.png"), np.zeros((40, 40, 3), np.uint8))
     cv2.imwrite(str(tmp_path / "b.png"), np.zeros((48, 40, 3), np.uint8))

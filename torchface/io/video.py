@@ -83,12 +83,14 @@ class VideoInfo:
         kind: ``"video"``, ``"images"`` or ``"array"``.
         width: W of the first frame.
         height: H of the first frame.
-        fps: frame rate (the container's, else 25).
+        fps: frame rate (the container's, else 25: see ``fps_assumed``).
         num_frames: frame count if the input states it (a container's count can be approximate; a stream's
             unknown count, which OpenCV gives as -1 or a huge negative number, is None), else None.
         source_format: what the first frame stored, e.g. ``"uint8 BGR"``, ``"uint16 gray"``.
         conversion: what ``convert=True`` did to it, e.g. ``"uint16 gray -> uint8-range RGB; cropped 159x119 to
             158x118"``; empty when the frames are used as stored.
+        fps_assumed: True when ``fps`` is the default 25, not the input's: image folders, arrays, and videos whose
+            container gives no frame rate or one outside (0, 1000) frames/s.
     """
 
     path: Path
@@ -99,6 +101,7 @@ class VideoInfo:
     num_frames: int | None
     source_format: str
     conversion: str = ""
+    fps_assumed: bool = False
 
 
 def _layout(array: np.ndarray, where: str) -> np.ndarray:
@@ -374,7 +377,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         first, fmt = frame_to_tensor(first_arr, True, f"{files[0]}", convert)
         _check_size(p, first)
         conv = _conversion(first_arr, fmt, format_problems(first_arr))
-        info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv)
+        info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv, True)
         return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files)
     if p.suffix.lower() == ".npy":
         try:
@@ -395,7 +398,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         first, fmt = frame_to_tensor(np.array(array[0]), False, f"{p}: frame 0", convert)
         _check_size(p, first)
         conv = _conversion(array[0], fmt, format_problems(array[0]))
-        info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt, conv)
+        info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt, conv, True)
         return FrameReader(info, first, rest, stored_size=array.shape[1:3], convert=convert)
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: permission denied")
@@ -422,7 +425,8 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     conv = _conversion(stored, fmt, problems)
     fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)  # -1 or garbage (-1.9e14: a raw .mjpeg) when unknown
-    fps = fps if 0 < fps < 1000 else 25.0
+    assumed = not (math.isfinite(fps) and 0 < fps < 1000)
+    fps = 25.0 if assumed else fps
     declared = int(count) if math.isfinite(count) and count >= 1 else None
-    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv)
+    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv, assumed)
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert)
