@@ -144,3 +144,16 @@ def test_ict_face_model():
     assert outward_flux(model.mean, model.faces[face_region]).sum() > 0
     with pytest.raises(ValueError, match="num_expressions"):
         load_ict_face_model(ICT_NPZ, num_expressions=54)
+
+
+def test_facs_link_given_as_one_name_is_one_au():
+    """A blendshape linked to one AU written as a str ({"jawOpen": "AU26"}) is linked to AU26; it was split into
+    the FACS 'units' A, U, 2 and 6."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    blend = np.zeros((2, 5, 3))
+    model = load_mesh_model(mesh, blendshapes=blend, blendshape_names=["jawOpen", "smile"],
+                            facs_links={"jawOpen": "AU26", "smile": ["AU12", "AU6"]})
+    assert model.facs_names == ("AU6", "AU12", "AU26")
+    assert model.facs_matrix.tolist() == [[0.0, 1.0], [0.0, 1.0], [1.0, 0.0]]
+    with pytest.raises(TypeError, match=r"facs_links\['smile'\] must be an AU name"):
+        load_mesh_model(mesh, blendshapes=blend, blendshape_names=["jawOpen", "smile"], facs_links={"smile": 12})

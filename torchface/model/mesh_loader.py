@@ -79,6 +79,16 @@ def _as_names(names: Sequence[str] | None, count: int, what: str, prefix: str) -
     return names
 
 
+def _facs_link(link: object, name: str) -> tuple[str, ...]:
+    """One blendshape's FACS link: a collection of AU names, or one name (a str is one AU, not its letters)."""
+    if isinstance(link, str):
+        return (link,)
+    aus = tuple(link) if isinstance(link, (tuple, list, set, frozenset)) else None
+    if aus is None or not all(isinstance(au, str) for au in aus):
+        raise TypeError(f"facs_links[{name!r}] must be an AU name or a tuple of them, got {link!r}")
+    return aus
+
+
 def _obj_vertices(path: Path) -> np.ndarray | None:
     """``(V, 3)`` the positions of an OBJ file's ``v`` lines, in order (None when it cannot be read as text)."""
     try:
@@ -125,7 +135,8 @@ def load_mesh_model(
         landmark_names: ``K`` names (default ``"landmark{k}"``).
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
-        facs_links: blendshape name -> FACS AUs it is linked to (names not listed link to nothing).
+        facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
+            is one AU, not four; names not listed link to nothing).
         scale_to_mm: millimetres per mesh unit.
         to_head_frame: ``(3, 3)`` orthogonal matrix from the mesh frame to the head frame (default identity).
         name: model name (default: the file name, or ``"mesh"``).
@@ -136,7 +147,8 @@ def load_mesh_model(
         The model; ``A = 0`` and ``S = 0`` give ``(0, V, 3)`` bases.
 
     Raises:
-        TypeError: ``mesh`` is neither a Trimesh nor a path, or ``dtype`` is not floating.
+        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, or a ``facs_links``
+            value is neither an AU name nor a collection of them.
         ValueError: a basis, name list, landmark index or range has the wrong size, the file holds no
             triangles, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive.
 
@@ -202,7 +214,7 @@ def load_mesh_model(
         ranges = np.asarray(animation_ranges, dtype=np.float64)
         if ranges.shape != (anim.shape[0], 2):
             raise ValueError(f"animation_ranges must have shape ({anim.shape[0]}, 2), got {ranges.shape}")
-    links = [tuple((facs_links or {}).get(n, ())) for n in anim_names]
+    links = [_facs_link((facs_links or {}).get(n, ()), n) for n in anim_names]
     facs_names = tuple(sorted({au for link in links for au in link}, key=lambda au: (len(au), au)))
     facs_matrix = np.zeros((len(facs_names), anim.shape[0]))
     for a, link in enumerate(links):
