@@ -157,3 +157,20 @@ def test_facs_link_given_as_one_name_is_one_au():
     assert model.facs_matrix.tolist() == [[0.0, 1.0], [0.0, 1.0], [1.0, 0.0]]
     with pytest.raises(TypeError, match=r"facs_links\['smile'\] must be an AU name"):
         load_mesh_model(mesh, blendshapes=blend, blendshape_names=["jawOpen", "smile"], facs_links={"smile": 12})
+
+
+def test_landmark_vertices_must_be_whole_indices_one_per_landmark():
+    """A (K, 3) table of indices was flattened into 3K landmarks and fractional indices were truncated, silently;
+    whole-number floats (np.loadtxt's) are still vertex indices."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    with pytest.raises(ValueError, match=r"\(K,\) vertex indices, one per landmark, got shape \(2, 3\)"):
+        load_mesh_model(mesh, landmark_vertices=np.array([[0, 1, 2], [1, 2, 3]]))
+    with pytest.raises(ValueError, match="whole vertex indices"):
+        load_mesh_model(mesh, landmark_vertices=np.array([0.6, 2.9]))
+    with pytest.raises(ValueError, match="whole vertex indices"):
+        load_mesh_model(mesh, landmark_vertices=np.array([0.0, np.nan]))
+    with pytest.raises(TypeError, match="integer vertex indices"):
+        load_mesh_model(mesh, landmark_vertices=np.array([True, False]))
+    model = load_mesh_model(mesh, landmark_vertices=np.array([3.0, 1.0]))
+    assert model.landmark_vertices[:, 0].tolist() == [3, 1]
+    assert load_mesh_model(mesh, landmark_vertices=np.array([[3], [1]])).num_landmarks == 2

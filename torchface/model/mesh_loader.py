@@ -131,7 +131,8 @@ def load_mesh_model(
         blendshape_names: ``A`` names (default ``"blendshape{i}"``).
         shape_units: ``(S, V, 3)`` identity displacements, or ``None``.
         shape_names: ``S`` names (default ``"shape{i}"``).
-        landmark_vertices: ``(K,)`` int vertex index per landmark, or ``None`` for ``K = 0``.
+        landmark_vertices: ``(K,)`` int vertex index per landmark (floats only when whole numbers, as
+            ``np.loadtxt`` reads them), or ``None`` for ``K = 0``.
         landmark_names: ``K`` names (default ``"landmark{k}"``).
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
@@ -147,10 +148,11 @@ def load_mesh_model(
         The model; ``A = 0`` and ``S = 0`` give ``(0, V, 3)`` bases.
 
     Raises:
-        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, or a ``facs_links``
-            value is neither an AU name nor a collection of them.
-        ValueError: a basis, name list, landmark index or range has the wrong size, the file holds no
-            triangles, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive.
+        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a ``facs_links``
+            value is neither an AU name nor a collection of them, or ``landmark_vertices`` are not integers.
+        ValueError: a basis, name list, landmark index or range has the wrong size, ``landmark_vertices`` is not
+            1-D or holds fractions, the file holds no triangles, ``to_head_frame`` is not orthogonal, or
+            ``scale_to_mm`` is not positive.
 
     Example:
         >>> import trimesh
@@ -204,7 +206,17 @@ def load_mesh_model(
     if landmark_vertices is None:
         lm = np.zeros((0,), dtype=np.int64)
     else:
-        lm = np.asarray(landmark_vertices).astype(np.int64).reshape(-1)
+        raw = np.asarray(landmark_vertices)
+        if raw.ndim not in (1, 2) or (raw.ndim == 2 and raw.shape[1] != 1):
+            raise ValueError(
+                f"landmark_vertices must be (K,) vertex indices, one per landmark, got shape {raw.shape} (a landmark "
+                "between vertices needs a FaceModel built with landmark_vertices and landmark_weights)"
+            )
+        if raw.dtype == bool or not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
+            raise TypeError(f"landmark_vertices must be integer vertex indices, got dtype {raw.dtype}")
+        if np.issubdtype(raw.dtype, np.floating) and not np.array_equal(raw, np.round(raw)):
+            raise ValueError("landmark_vertices must be whole vertex indices, got non-integer (or non-finite) values")
+        lm = raw.astype(np.int64).reshape(-1)
         if lm.size and (lm.min() < 0 or lm.max() >= num_v):
             raise ValueError(f"landmark_vertices must index vertices in [0, {num_v}), got [{lm.min()}, {lm.max()}]")
     lm_names = _as_names(landmark_names, lm.shape[0], "landmark_names", "landmark")
