@@ -174,3 +174,13 @@ def test_landmark_vertices_must_be_whole_indices_one_per_landmark():
     model = load_mesh_model(mesh, landmark_vertices=np.array([3.0, 1.0]))
     assert model.landmark_vertices[:, 0].tolist() == [3, 1]
     assert load_mesh_model(mesh, landmark_vertices=np.array([[3], [1]])).num_landmarks == 2
+
+
+@pytest.mark.parametrize("scale, error", [(float("inf"), ValueError), (float("nan"), ValueError), ("10", TypeError),
+                                          (True, TypeError), (-1.0, ValueError)])
+def test_scale_to_mm_must_be_a_finite_positive_number(scale, error):
+    """An infinite scale made every position NaN without a word; a str failed in a comparison."""
+    with pytest.raises(error, match="scale_to_mm must be"):
+        load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), scale_to_mm=scale)
+    model = load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), scale_to_mm=np.float32(10.0))
+    assert model.mean[1].tolist() == [10.0, 0.0, 0.0]

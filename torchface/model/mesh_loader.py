@@ -10,6 +10,7 @@ Shapes: ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` animation unit
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Sequence
 from pathlib import Path
@@ -149,10 +150,11 @@ def load_mesh_model(
 
     Raises:
         TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a ``facs_links``
-            value is neither an AU name nor a collection of them, or ``landmark_vertices`` are not integers.
+            value is neither an AU name nor a collection of them, ``scale_to_mm`` is not a number, or
+            ``landmark_vertices`` are not integers.
         ValueError: a basis, name list, landmark index or range has the wrong size, ``landmark_vertices`` is not
             1-D or holds fractions, the file holds no triangles, ``to_head_frame`` is not orthogonal, or
-            ``scale_to_mm`` is not positive.
+            ``scale_to_mm`` is not positive and finite.
 
     Example:
         >>> import trimesh
@@ -190,8 +192,14 @@ def load_mesh_model(
     if faces.ndim != 2 or faces.shape[0] == 0:
         raise ValueError(f"the mesh must hold triangles, got faces of shape {faces.shape}")
     num_v = vertices.shape[0]
-    if not scale_to_mm > 0:
-        raise ValueError(f"scale_to_mm must be positive, got {scale_to_mm}")
+    try:
+        if isinstance(scale_to_mm, (str, bytes, bool)):
+            raise TypeError
+        scale_to_mm = float(scale_to_mm)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise TypeError(f"scale_to_mm must be a number (millimetres per mesh unit), got {scale_to_mm!r}") from None
+    if not 0 < scale_to_mm < math.inf:
+        raise ValueError(f"scale_to_mm must be positive and finite, got {scale_to_mm}")
     rot = np.eye(3) if to_head_frame is None else np.asarray(to_head_frame, dtype=np.float64)
     if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6):
         raise ValueError(f"to_head_frame must be a (3, 3) orthogonal matrix, got {np.array2string(rot)}")
