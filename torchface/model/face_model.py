@@ -142,6 +142,10 @@ class FaceModel:
         facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.
         surface_vertex_mask: ``(V,)`` bool, ``True`` for vertices used by a face.
 
+    Construction checks the shapes, dtypes and devices above, that the floating tensors are finite, that each
+    animation range has ``lo <= hi`` and that the landmark weights' rows sum to one (within 1e-3), and raises
+    ``ValueError`` (``TypeError`` for a field of the wrong type) otherwise.
+
     Example:
         >>> from torchface.model import load_candide3
         >>> model = load_candide3()
@@ -209,6 +213,18 @@ class FaceModel:
         for key in ("faces", "landmark_vertices", "surface_vertex_mask"):
             if getattr(self, key).device != mean.device:
                 raise ValueError(f"{key} must be on mean's device {mean.device}, got {getattr(self, key).device}")
+        for key in ("mean", "shape_units", "animation_units", "animation_ranges", "landmark_weights", "facs_matrix"):
+            value = getattr(self, key)
+            if value.numel() and not bool(torch.isfinite(value).all()):
+                raise ValueError(f"{key} holds non-finite values (NaN or inf)")
+        reversed_ranges = (self.animation_ranges[:, 0] > self.animation_ranges[:, 1]).nonzero().flatten().tolist()
+        if reversed_ranges:
+            names = [self.animation_names[a] for a in reversed_ranges]
+            raise ValueError(f"animation_ranges must be [lo, hi] with lo <= hi, reversed for {names}")
+        row_sums = self.landmark_weights.sum(dim=1)
+        if row_sums.numel() and float((row_sums - 1.0).abs().max()) > 1e-3:
+            raise ValueError(f"landmark_weights rows must sum to one, got sums in [{float(row_sums.min()):.4g}, "
+                             f"{float(row_sums.max()):.4g}]")  # fmt: skip
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
             got = (int(self.faces.min()), int(self.faces.max()))
             raise ValueError(f"faces index vertices outside [0, {num_v}): min/max {got}")
