@@ -9,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from torchface.model.mesh_loader import ICT_MM_PER_UNIT, load_ict_face_model, load_mesh_model
+from torchface.model.mesh_loader import ICT_MM_PER_UNIT, ICT_TO_HEAD, load_ict_face_model, load_mesh_model
 
 ASSETS = Path(__file__).resolve().parents[3] / "shared" / "assets"
 ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
@@ -91,9 +91,9 @@ def test_bad_arguments_raise(kwargs, error, message):
 def test_obj_keeps_file_vertex_order():
     lines = JAMES_OBJ.read_text().splitlines()
     file_verts = np.array([[float(t) for t in line.split()[1:4]] for line in lines if line.startswith("v ")])
-    model = load_mesh_model(JAMES_OBJ, dtype=torch.float64)
+    model = load_mesh_model(JAMES_OBJ, dtype=torch.float64, to_head_frame=ICT_TO_HEAD)  # +y up, +z to the viewer
     assert model.num_vertices == len(file_verts) == 6393  # not split at UV seams
-    torch.testing.assert_close(model.mean, torch.as_tensor(file_verts))
+    torch.testing.assert_close(model.mean, torch.as_tensor(file_verts @ ICT_TO_HEAD.T))
     assert model.num_faces == sum(1 for line in lines if line.startswith("f "))
 
 
@@ -102,7 +102,7 @@ def test_obj_keeps_unreferenced_vertices_at_its_end(tmp_path):
     drops them, and bases sized from the file were refused)."""
     obj = tmp_path / "t.obj"
     obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nv 9 9 9\nvt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\n"
-                   "f 1/1 2/2 3/3\nf 2/2 4/4 3/3\n")  # fmt: skip
+                   "f 1/1 3/3 2/2\nf 2/2 3/3 4/4\n")  # fmt: skip (wound toward -z: the head frame's front)
     model = load_mesh_model(obj, blendshapes=np.ones((1, 5, 3)), dtype=torch.float64)
     assert model.num_vertices == 5 and model.mean[4].tolist() == [9.0, 9.0, 9.0] and model.num_faces == 2
 
@@ -184,3 +184,26 @@ def test_scale_to_mm_must_be_a_finite_positive_number(scale, error):
         load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), scale_to_mm=scale)
     model = load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), scale_to_mm=np.float32(10.0))
     assert model.mean[1].tolist() == [10.0, 0.0, 0.0]
+
+
+def test_winding_must_be_consistent_and_the_face_must_look_toward_minus_z():
+    """A mesh wound inward, one a third of whose triangles were flipped, or a y-up file loaded without to_head_frame
+    was taken as it was: the first failed in the normalised face ('no pixel of the canonical view sees the face'),
+    the others were tracked, 180 degrees turned or with a shrunken normalised face, until the stream was lost."""
+    from torchface.model import load_candide3
+
+    candide = load_candide3()
+    mean, faces = candide.mean.double().numpy(), candide.faces.numpy()
+    load_mesh_model(trimesh.Trimesh(mean, faces, process=False))  # CANDIDE-3 itself passes
+    with pytest.raises(ValueError, match="faces away from the viewer: its triangles are wound inward"):
+        load_mesh_model(trimesh.Trimesh(mean, faces[:, ::-1], process=False))
+    with pytest.raises(ValueError, match="faces away from the viewer"):
+        load_mesh_model(trimesh.Trimesh(mean @ ICT_TO_HEAD.T, faces, process=False))  # a +y up, +z to the viewer file
+    load_mesh_model(trimesh.Trimesh(mean @ ICT_TO_HEAD.T, faces, process=False), to_head_frame=ICT_TO_HEAD)
+    partly = faces.copy()
+    partly[::3] = partly[::3, ::-1]
+    with pytest.raises(ValueError, match=r"not wound consistently: \d+ edges shared by two triangles"):
+        load_mesh_model(trimesh.Trimesh(mean, partly, process=False))
+    # a repeated triangle or one with a repeated vertex is not a flip
+    extra = np.concatenate([faces, faces[:5], [[0, 0, 1]]])
+    assert load_mesh_model(trimesh.Trimesh(mean, extra, process=False)).num_faces == candide.num_faces + 6

@@ -90,6 +90,52 @@ def _facs_link(link: object, name: str) -> tuple[str, ...]:
     return aus
 
 
+def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Raise ``ValueError`` unless the ``(F, 3)`` triangles on the ``(V, 3)`` head-frame vertices are wound
+    consistently (no edge shared by two triangles is traversed by both in the same direction; a repeated
+    triangle or one with a repeated vertex is no evidence either way) and the face looks toward ``-z``: of the
+    pixels of a frontal, nearly orthographic 32 x 32 view that the mesh covers, at least half see the front of
+    a triangle (:func:`~torchface.rendering.rasterizer.rasterize`'s ``facing``)."""
+    from torchface.backend import Backend
+    from torchface.geometry.camera import Intrinsics
+    from torchface.rendering.rasterizer import rasterize
+
+    proper = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    _, first = np.unique(np.sort(proper, axis=1), axis=0, return_index=True)
+    tri = proper[np.sort(first)]
+    directed = np.stack([tri, np.roll(tri, -1, axis=1)], axis=-1).reshape(-1, 2)
+    _, u_inv, u_counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    _, d_inv, d_counts = np.unique(directed, axis=0, return_inverse=True, return_counts=True)
+    same_way = (u_counts[u_inv.reshape(-1)] == 2) & (d_counts[d_inv.reshape(-1)] == 2)
+    if same_way.any():
+        a, b = directed[same_way][0].tolist()
+        raise ValueError(
+            f"the mesh's triangles are not wound consistently: {int(same_way.sum()) // 2} edges shared by two "
+            f"triangles are traversed by both in the same direction (e.g. {a}-{b}); wind them all one way, outward "
+            "(torchface.model.topology.make_winding_consistent and orient_outward do it)"
+        )
+    used = vertices[np.unique(faces)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    extent = float(max(hi[0] - lo[0], hi[1] - lo[1]))
+    if not extent > 0:
+        return  # seen edge-on: nothing to judge by
+    size, distance = 32, 10.0 * (extent + float(hi[2] - lo[2]))
+    focal = 0.9 * size * distance / extent
+    shift = np.array([-0.5 * (lo[0] + hi[0]), -0.5 * (lo[1] + hi[1]), distance - lo[2]])
+    camera = Intrinsics(size, size, focal, focal, (size - 1) / 2.0, (size - 1) / 2.0)
+    verts = torch.as_tensor(vertices + shift, dtype=torch.float64).unsqueeze(0)
+    frags = rasterize(verts, torch.as_tensor(faces, dtype=torch.int64), camera, backend=Backend.TORCH)  # no compiling
+    hit = frags.pix_to_face[0] >= 0
+    if int(hit.sum()) and float((frags.facing[0][hit] > 0).double().mean()) < 0.5:
+        away = 100.0 * float((frags.facing[0][hit] <= 0).double().mean())
+        raise ValueError(
+            f"seen from the front (the head frame's -z side, torchface.conventions) {away:.0f}% of the mesh's "
+            "surface faces away from the viewer: its triangles are wound inward (reverse them: faces[:, ::-1]) or "
+            "the face does not look toward -z (pass to_head_frame, e.g. ICT_TO_HEAD for a +y up, +z toward the "
+            "viewer file)"
+        )
+
+
 def _obj_vertices(path: Path) -> np.ndarray | None:
     """``(V, 3)`` the positions of an OBJ file's ``v`` lines, in order (None when it cannot be read as text)."""
     try:
@@ -122,7 +168,12 @@ def load_mesh_model(
     Each position and displacement ``x`` becomes ``scale_to_mm * (to_head_frame @ x)``. When
     ``to_head_frame`` is a reflection (determinant -1) the triangles are re-wound so that their normals
     keep pointing the same way relative to the surface. The mesh's own winding is kept otherwise: it must
-    already be consistent and outward.
+    already be consistent and outward, and the face must look toward ``-z`` in the head frame (the camera's side
+    when the head is frontal, :mod:`torchface.conventions`). Both are checked: two triangles that traverse a
+    shared edge in the same direction, or a frontal view (32 x 32 pixels, of the used vertices) in which most of
+    the surface seen faces away from the viewer (a mesh wound inward, or a ``+y`` up, ``+z`` toward the viewer
+    file loaded without ``to_head_frame``), raise ``ValueError``: the tracker's normalised face and templates
+    are built from that view, and such a model was tracked with its head turned 180 degrees, then lost.
 
     Args:
         mesh: a ``trimesh.Trimesh`` or a path to any file trimesh reads (loaded with ``process=False``;
@@ -153,8 +204,9 @@ def load_mesh_model(
             value is neither an AU name nor a collection of them, ``scale_to_mm`` is not a number, or
             ``landmark_vertices`` are not integers.
         ValueError: a basis, name list, landmark index or range has the wrong size, ``landmark_vertices`` is not
-            1-D or holds fractions, the file holds no triangles, ``to_head_frame`` is not orthogonal, or
-            ``scale_to_mm`` is not positive and finite.
+            1-D or holds fractions, the file holds no triangles, they are not wound consistently or the frontal
+            view sees mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive
+            and finite.
 
     Example:
         >>> import trimesh
@@ -240,6 +292,7 @@ def load_mesh_model(
     for a, link in enumerate(links):
         for au in link:
             facs_matrix[facs_names.index(au), a] = 1.0
+    _check_winding(vertices @ linear, faces)
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 
