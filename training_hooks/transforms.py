@@ -342,9 +342,10 @@ def track_sequence(
         frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
             :class:`~torchface.io.FrameReader`; consumed one at a time.
         start: ``(K, 2)`` the model's ``K`` landmarks of the first frame in pixels (the 68 iBUG points for
-            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a :class:`~torchface.tracker.TrackerState`
-            with ``B = 1`` (from this function or from the same tracker settings) whose tracking the frames
-            continue (every frame goes through :func:`~torchface.tracker.managed.managed_step`).
+            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a
+            :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
+            settings) whose tracking the frames continue (every frame goes through
+            :func:`~torchface.tracker.managed.managed_step`).
         config: :class:`FaceTrackingConfig` (tracker settings, face size and storage, threads).
         model: the face model (float32, CPU; normally CANDIDE-3 from :func:`~torchface.model.load_candide3`).
         normaliser: a :class:`~torchface.normalise.NormalisedFace` of ``model`` with ``config``'s size and margin.
