@@ -207,3 +207,21 @@ def test_winding_must_be_consistent_and_the_face_must_look_toward_minus_z():
     # a repeated triangle or one with a repeated vertex is not a flip
     extra = np.concatenate([faces, faces[:5], [[0, 0, 1]]])
     assert load_mesh_model(trimesh.Trimesh(mean, extra, process=False)).num_faces == candide.num_faces + 6
+
+
+def test_blendshape_targets_given_as_whole_meshes_are_refused():
+    """Blendshapes passed as target meshes (what a folder of OBJ targets holds) instead of target - neutral were
+    taken as displacements: every unit moved the whole head by its own size, and CANDIDE-3 loaded so was tracked
+    at 36-129 degrees of yaw and lost."""
+    from torchface.model import load_candide3
+
+    candide = load_candide3()
+    mean, faces = candide.mean.double().numpy(), candide.faces.numpy()
+    mesh = trimesh.Trimesh(mean, faces, process=False)
+    deltas = candide.animation_units.double().numpy()
+    with pytest.raises(ValueError, match=r"blendshapes\[0\] \('AUV0 Upper lip raiser'\) is a whole mesh"):
+        load_mesh_model(mesh, blendshapes=mean[None] + deltas, blendshape_names=candide.animation_names)
+    with pytest.raises(ValueError, match=r"shape_units\[0\] \('shape0'\) is a whole mesh"):
+        load_mesh_model(mesh, shape_units=mean[None] + candide.shape_units.double().numpy()[:1])
+    model = load_mesh_model(mesh, blendshapes=deltas, blendshape_names=candide.animation_names)
+    torch.testing.assert_close(model.animation_units, candide.animation_units)

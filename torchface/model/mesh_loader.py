@@ -90,6 +90,23 @@ def _facs_link(link: object, name: str) -> tuple[str, ...]:
     return aus
 
 
+def _check_displacements(basis: np.ndarray, names: tuple[str, ...], vertices: np.ndarray, what: str) -> None:
+    """Raise ``ValueError`` when a ``(n, V, 3)`` basis entry is a whole mesh (a blendshape target) rather than a
+    displacement: when it is within half its own size of the ``(V, 3)`` mesh (RMS over the vertices). A
+    displacement is far from the mesh (about the mesh's own distance from the origin) unless it is the mesh."""
+    if basis.shape[0] == 0:
+        return
+    size = np.sqrt((basis**2).sum(axis=2).mean(axis=1))
+    off = np.sqrt(((basis - vertices[None]) ** 2).sum(axis=2).mean(axis=1))
+    whole = np.flatnonzero((size > 0) & (off < 0.5 * size))
+    if whole.size:
+        i = int(whole[0])
+        raise ValueError(
+            f"{what}[{i}] ({names[i]!r}) is a whole mesh, not a displacement: it is {off[i]:.3g} (RMS, mesh units) "
+            f"from the mesh and {size[i]:.3g} from zero; pass each target minus the neutral mesh"
+        )
+
+
 def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
     """Raise ``ValueError`` unless the ``(F, 3)`` triangles on the ``(V, 3)`` head-frame vertices are wound
     consistently (no edge shared by two triangles is traversed by both in the same direction; a repeated
@@ -179,9 +196,10 @@ def load_mesh_model(
         mesh: a ``trimesh.Trimesh`` or a path to any file trimesh reads (loaded with ``process=False``;
             OBJ files also with ``maintain_order=True`` so that vertices keep the file's order and count,
             which trimesh otherwise splits at texture seams and prunes when unreferenced).
-        blendshapes: ``(A, V, 3)`` animation displacements per unit weight (mesh units and frame), or ``None``.
+        blendshapes: ``(A, V, 3)`` animation displacements per unit weight (mesh units and frame: a target
+            shape minus the neutral mesh; a whole target mesh is refused), or ``None``.
         blendshape_names: ``A`` names (default ``"blendshape{i}"``).
-        shape_units: ``(S, V, 3)`` identity displacements, or ``None``.
+        shape_units: ``(S, V, 3)`` identity displacements (not whole meshes, as ``blendshapes``), or ``None``.
         shape_names: ``S`` names (default ``"shape{i}"``).
         landmark_vertices: ``(K,)`` int vertex index per landmark (floats only when whole numbers, as
             ``np.loadtxt`` reads them), or ``None`` for ``K = 0``.
@@ -203,10 +221,10 @@ def load_mesh_model(
         TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a ``facs_links``
             value is neither an AU name nor a collection of them, ``scale_to_mm`` is not a number, or
             ``landmark_vertices`` are not integers.
-        ValueError: a basis, name list, landmark index or range has the wrong size, ``landmark_vertices`` is not
-            1-D or holds fractions, the file holds no triangles, they are not wound consistently or the frontal
-            view sees mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive
-            and finite.
+        ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
+            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D or holds
+            fractions, the file holds no triangles, they are not wound consistently or the frontal view sees
+            mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive and finite.
 
     Example:
         >>> import trimesh
@@ -263,6 +281,8 @@ def load_mesh_model(
     shape = _as_basis(shape_units, "shape_units", num_v)
     anim_names = _as_names(blendshape_names, anim.shape[0], "blendshape_names", "blendshape")
     shp_names = _as_names(shape_names, shape.shape[0], "shape_names", "shape")
+    _check_displacements(anim, anim_names, vertices, "blendshapes")
+    _check_displacements(shape, shp_names, vertices, "shape_units")
     if landmark_vertices is None:
         lm = np.zeros((0,), dtype=np.int64)
     else:
