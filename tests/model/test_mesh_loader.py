@@ -225,3 +225,21 @@ def test_blendshape_targets_given_as_whole_meshes_are_refused():
         load_mesh_model(mesh, shape_units=mean[None] + candide.shape_units.double().numpy()[:1])
     model = load_mesh_model(mesh, blendshapes=deltas, blendshape_names=candide.animation_names)
     torch.testing.assert_close(model.animation_units, candide.animation_units)
+
+
+def test_a_face_of_implausible_size_warns_about_scale_to_mm():
+    """A face in metres loaded with the default scale_to_mm=1 was taken as a 0.15 mm face without a word; the
+    tracker's landmark fit then failed (status FAILED) and every later frame was LOST, with no reason given (a face
+    in centimetres is tracked, with translations a tenth of the truth)."""
+    import warnings
+
+    from torchface.model import load_candide3
+
+    candide = load_candide3()
+    mean, faces = candide.mean.double().numpy(), candide.faces.numpy()
+    with pytest.warns(UserWarning, match=r"spans 0.1\d+ mm with scale_to_mm=1; a face is 100-300 mm"):
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), scale_to_mm=1000.0)
+        load_mesh_model(trimesh.Trimesh(mean, faces, process=False))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,6 +28,9 @@ ICT_TO_HEAD = np.diag([1.0, -1.0, -1.0])
 
 #: The ICT Face Model is in centimetres (outer eye corners 8.9 apart, head 24.8 wide).
 ICT_MM_PER_UNIT = 10.0
+
+#: The largest side (mm) of a face model's bounding box that :func:`load_mesh_model` takes without a warning.
+_FACE_SPAN_MM = (50.0, 2000.0)
 
 #: FACS action units commonly associated with the ARKit-style blendshapes of the ICT model
 #: (``_L`` / ``_R`` suffixes dropped). Eye-gaze shapes map to the FACS eye-position codes AU61-AU64.
@@ -208,7 +212,10 @@ def load_mesh_model(
             convention).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
             is one AU, not four; names not listed link to nothing).
-        scale_to_mm: millimetres per mesh unit.
+        scale_to_mm: millimetres per mesh unit (1000 for a mesh in metres, 10 in centimetres). A model whose used
+            vertices then span less than 50 mm or more than 2 m (a face is 100-300 mm) is loaded with a
+            ``UserWarning``: the pose is found at any scale, but translations come out scaled by the mistake, and
+            a face in metres (0.2 mm) fails the tracker's landmark fit.
         to_head_frame: ``(3, 3)`` orthogonal matrix from the mesh frame to the head frame (default identity).
         name: model name (default: the file name, or ``"mesh"``).
         dtype: floating dtype of the model tensors.
@@ -229,9 +236,9 @@ def load_mesh_model(
     Example:
         >>> import trimesh
         >>> tri = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 2, 1]], process=False)
-        >>> model = load_mesh_model(tri, blendshapes=np.ones((1, 3, 3)), scale_to_mm=10.0)
+        >>> model = load_mesh_model(tri, blendshapes=np.ones((1, 3, 3)), scale_to_mm=100.0)
         >>> model.deform(None, torch.ones(1, 1))[0, 1]
-        tensor([20., 10., 10.])
+        tensor([200., 100., 100.])
     """
     import trimesh  # imported lazily: only the generic loader needs it
 
@@ -313,6 +320,16 @@ def load_mesh_model(
         for au in link:
             facs_matrix[facs_names.index(au), a] = 1.0
     _check_winding(vertices @ linear, faces)
+    used = vertices[np.unique(faces)] @ linear
+    span = float((used.max(axis=0) - used.min(axis=0)).max())
+    if not _FACE_SPAN_MM[0] <= span <= _FACE_SPAN_MM[1]:
+        warnings.warn(
+            f"the mesh spans {span:.3g} mm with scale_to_mm={scale_to_mm:g}; a face is 100-300 mm: is scale_to_mm "
+            "the millimetres per mesh unit (1000 for metres, 10 for centimetres)? Tracked translations come out "
+            "scaled by the same mistake, and a face of a few millimetres fails the landmark fit",
+            UserWarning,
+            stacklevel=2,
+        )
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 
