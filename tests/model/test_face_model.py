@@ -204,3 +204,19 @@ def test_construction_refuses_non_finite_values_reversed_ranges_and_unnormalised
     with pytest.raises(ValueError, match="landmark_weights rows must sum to one"):
         FaceModel(**dict(fields, landmark_weights=model.landmark_weights * 2.0))
     assert FaceModel(**fields).to(torch.float64).num_animation == 11  # the model itself passes, in any dtype
+
+
+def test_construction_refuses_repeated_unit_names(model):
+    """Two units of one name were accepted: held_shape_units held the first of them only, and the CSV's columns
+    collided after the tracking, when the writer was made."""
+    fields = {f: getattr(model, f) for f in model.__dataclass_fields__}
+    names = list(model.shape_names)
+    names[3] = names[2]
+    with pytest.raises(ValueError, match=r"shape_names must be distinct .* repeated: \['Eyes vertical position'\]"):
+        FaceModel(**dict(fields, shape_names=tuple(names)))
+    names = list(model.animation_names)
+    names[0] = names[1]
+    with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['AUV11 Jaw drop'\]"):
+        FaceModel(**dict(fields, animation_names=tuple(names)))
+    with pytest.raises(ValueError, match="facs_names must be distinct"):
+        FaceModel(**dict(fields, facs_names=("AU2",) * model.facs_matrix.shape[0]))

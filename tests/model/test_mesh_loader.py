@@ -243,3 +243,9 @@ def test_a_face_of_implausible_size_warns_about_scale_to_mm():
         warnings.simplefilter("error")
         load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), scale_to_mm=1000.0)
         load_mesh_model(trimesh.Trimesh(mean, faces, process=False))
+
+
+def test_repeated_blendshape_names_are_refused_at_load():
+    with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['browDown'\]"):
+        load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), blendshapes=np.zeros((2, 5, 3)),
+                        blendshape_names=["browDown", "browDown"])

@@ -11,6 +11,7 @@ Shapes: ``B`` batch, ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` a
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, fields
 
 import torch
@@ -142,9 +143,10 @@ class FaceModel:
         facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.
         surface_vertex_mask: ``(V,)`` bool, ``True`` for vertices used by a face.
 
-    Construction checks the shapes, dtypes and devices above, that the floating tensors are finite, that each
-    animation range has ``lo <= hi`` and that the landmark weights' rows sum to one (within 1e-3), and raises
-    ``ValueError`` (``TypeError`` for a field of the wrong type) otherwise.
+    Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
+    distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
+    and that the landmark weights' rows sum to one (within 1e-3), and raises ``ValueError`` (``TypeError`` for a
+    field of the wrong type) otherwise.
 
     Example:
         >>> from torchface.model import load_candide3
@@ -180,6 +182,11 @@ class FaceModel:
                     raise TypeError(f"{f.name} must be a tuple of str, got {type(value).__name__}")
             elif not isinstance(value, Tensor):
                 raise TypeError(f"{f.name} must be a torch.Tensor, got {type(value).__name__}")
+        for key in ("shape_names", "animation_names", "facs_names"):
+            names = getattr(self, key)
+            repeated = sorted(n for n, count in Counter(names).items() if count > 1)
+            if repeated:
+                raise ValueError(f"{key} must be distinct (units are looked up by name), repeated: {repeated}")
         mean = self.mean
         if mean.ndim != 2 or mean.shape[1] != 3 or not mean.is_floating_point():
             raise ValueError(f"mean must be a float (V, 3) tensor, got {tuple(mean.shape)} {mean.dtype}")
