@@ -152,8 +152,8 @@ def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
         raise ValueError(
             f"seen from the front (the head frame's -z side, torchface.conventions) {away:.0f}% of the mesh's "
             "surface faces away from the viewer: its triangles are wound inward (reverse them: faces[:, ::-1]) or "
-            "the face does not look toward -z (pass to_head_frame, e.g. ICT_TO_HEAD for a +y up, +z toward the "
-            "viewer file)"
+            "the face does not look toward -z (pass to_head_frame: torchface.model.mesh_loader.ICT_TO_HEAD for a "
+            "+y up, +z toward the viewer file)"
         )
 
 
