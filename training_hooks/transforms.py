@@ -185,7 +185,8 @@ class TrackedSequence:
             template management, else the solver's residual confidence).
         status: ``(T,)`` int64 :class:`~torchface.tracker.TrackStatus` (2 = FAILED: parameters held, 3 = LOST).
         shape_coeffs: ``(S_u,)`` float32 the person's shape units (fixed after the first frame).
-        landmarks: ``(68, 2)`` float64 first-frame landmarks the tracking started from (pixels), or ``(0, 2)``
+        landmarks: ``(K, 2)`` float64 first-frame landmarks the tracking started from (pixels; the model's ``K``,
+            68 for CANDIDE-3), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
         frame_size: ``(H, W)`` of the frames.
     """
@@ -231,8 +232,6 @@ class TrackedSequence:
             x = getattr(self, name)
             if tuple(x.shape) != shape or x.dtype != dtype:
                 raise ValueError(f"{name} must be {shape} {dtype} (T = {T}, S = {S}), got {tuple(x.shape)} {x.dtype}")
-        if self.landmarks.shape[0] not in (0, 68):
-            raise ValueError(f"landmarks must be (68, 2) or (0, 2), got {tuple(self.landmarks.shape)}")
         if len(self.frame_size) != 2 or any(int(v) < 1 for v in self.frame_size):
             raise ValueError(f"frame_size must be (H, W), got {self.frame_size}")
         finite = [self.confidence, self.axis_angle, self.translation, self.anim_coeffs, self.expression,
@@ -314,14 +313,16 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
     return frame.to(torch.float32).unsqueeze(0)
 
 
-def _landmarks_tensor(landmarks: object) -> Tensor:
+def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
+    """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated."""
     if isinstance(landmarks, np.ndarray):
         landmarks = torch.from_numpy(np.asarray(landmarks, dtype=np.float64))
     if not isinstance(landmarks, Tensor):
         got = type(landmarks).__name__
-        raise TypeError(f"landmarks must be a (68, 2) array or tensor, or a TrackerState, got {got}")
-    if tuple(landmarks.shape) != (68, 2):
-        raise ValueError(f"landmarks must be (68, 2) iBUG points in pixels, got {tuple(landmarks.shape)}")
+        raise TypeError(f"landmarks must be a ({count}, 2) array or tensor, or a TrackerState, got {got}")
+    if tuple(landmarks.shape) != (count, 2):
+        what = "iBUG points" if count == 68 else "points, the model's landmarks,"
+        raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
     if not bool(torch.isfinite(landmarks).all()):
         raise ValueError("landmarks must be finite")
     return landmarks.to(torch.float64)
@@ -340,10 +341,11 @@ def track_sequence(
     Args:
         frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
             :class:`~torchface.io.FrameReader`; consumed one at a time.
-        start: ``(68, 2)`` iBUG landmarks of the first frame in pixels (tracking starts with
-            :func:`~torchface.tracker.managed.initialise_managed`), or a :class:`~torchface.tracker.TrackerState`
-            with ``B = 1`` (from this function or from the same tracker settings) whose tracking the frames
-            continue (every frame goes through :func:`~torchface.tracker.managed.managed_step`).
+        start: ``(K, 2)`` the model's ``K`` landmarks of the first frame in pixels (the 68 iBUG points for
+            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a
+            :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
+            settings) whose tracking the frames continue (every frame goes through
+            :func:`~torchface.tracker.managed.managed_step`).
         config: :class:`FaceTrackingConfig` (tracker settings, face size and storage, threads).
         model: the face model (float32, CPU; normally CANDIDE-3 from :func:`~torchface.model.load_candide3`).
         normaliser: a :class:`~torchface.normalise.NormalisedFace` of ``model`` with ``config``'s size and margin.
@@ -367,7 +369,7 @@ def track_sequence(
             raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {B}")
         state = start
     else:
-        landmarks = _landmarks_tensor(start)
+        landmarks = _landmarks_tensor(start, model.num_landmarks)
     layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
     per_frame: dict[str, list[Tensor]] = {k: [] for k in (
         "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",

@@ -111,3 +111,23 @@ def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
     # a torch device or dtype (JobConfig(device=torch.device("cpu"))) is its name; it raised TypeError
     write_json(tmp_path / "g.json", {"device": torch.device("cpu"), "dtype": torch.float64})
     assert json.loads((tmp_path / "g.json").read_text()) == {"device": "cpu", "dtype": "torch.float64"}
+
+
+def test_columns_of_a_model_with_any_names_make_a_csv_that_reads_back(tmp_path):
+    """A FACS name with a comma or a quote went into the header as it was (the file read back with one column more
+    than its rows, so with no rows); a name in another script was refused ('cannot make a column name') and one
+    with an umlaut mangled ('anim_l_cheln'); colliding names were reported as the whole header."""
+    cols = track_columns(("smile, left", "微笑", "lächeln", "jawOpen"), ("AU12,AU6", 'AU"6', "AU12L", "AU 1"),
+                         ("gain",))  # fmt: skip
+    assert [c for c in cols if c.endswith("_r")] == ["AU12_AU6_r", "AU_6_r", "AU12L_r", "AU_1_r"]
+    assert [c for c in cols if c.startswith("anim_")] == ["anim_smile_left", "anim_微笑", "anim_lächeln", "anim_jawopen"]
+    with TrackCsvWriter(tmp_path / "v.csv", cols) as w:
+        w.write(np.arange(len(cols), dtype=np.float64)[None])
+    read_cols, rows = read_track_csv(tmp_path / "v.csv")
+    assert read_cols == cols and rows.shape == (1, len(cols))
+    with pytest.raises(ValueError, match=r"'anim_smile_l' from \['smile L', 'smile_L'\]"):
+        track_columns(("smile L", "smile_L", "frown"), (), ())
+    with pytest.raises(ValueError, match=r"'AU02_r' from \['AU2', 'AU02'\]"):
+        track_columns((), ("AU2", "AU02"), ())
+    with pytest.raises(ValueError, match="no letter or digit"):
+        track_columns(("--",), (), ())

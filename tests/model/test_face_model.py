@@ -182,3 +182,41 @@ def test_functional_core_examples():
     torch.testing.assert_close(deform_vertices(mean, su, au, None, torch.tensor([[2.0]])), torch.full((1, 2, 3), 2.0))
     # S = 0 shape coefficients are (B, 0).
     assert deform_vertices(mean, su, au, torch.zeros(3, 0), None).shape == (3, 2, 3)
+
+
+def test_construction_refuses_non_finite_values_reversed_ranges_and_unnormalised_landmark_weights(model):
+    """A NaN or inf in the model, or a range with lo > hi, was accepted: an inf blendshape tracked until the stream
+    was lost without a word, a reversed range failed deep in the landmark fit's solver, a NaN mean in the normalised
+    face's distance check."""
+    fields = {f: getattr(model, f) for f in model.__dataclass_fields__}
+    mean = model.mean.clone()
+    mean[100, 1] = float("nan")
+    with pytest.raises(ValueError, match="mean holds non-finite values"):
+        FaceModel(**dict(fields, mean=mean))
+    units = model.animation_units.clone()
+    units[0, 5, 2] = float("inf")
+    with pytest.raises(ValueError, match="animation_units holds non-finite values"):
+        FaceModel(**dict(fields, animation_units=units))
+    ranges = model.animation_ranges.clone()
+    ranges[1] = ranges[1].flip(0)
+    with pytest.raises(ValueError, match=r"lo <= hi, reversed for \['AUV11 Jaw drop'\]"):
+        FaceModel(**dict(fields, animation_ranges=ranges))
+    with pytest.raises(ValueError, match="landmark_weights rows must sum to one"):
+        FaceModel(**dict(fields, landmark_weights=model.landmark_weights * 2.0))
+    assert FaceModel(**fields).to(torch.float64).num_animation == 11  # the model itself passes, in any dtype
+
+
+def test_construction_refuses_repeated_unit_names(model):
+    """Two units of one name were accepted: held_shape_units held the first of them only, and the CSV's columns
+    collided after the tracking, when the writer was made."""
+    fields = {f: getattr(model, f) for f in model.__dataclass_fields__}
+    names = list(model.shape_names)
+    names[3] = names[2]
+    with pytest.raises(ValueError, match=r"shape_names must be distinct .* repeated: \['Eyes vertical position'\]"):
+        FaceModel(**dict(fields, shape_names=tuple(names)))
+    names = list(model.animation_names)
+    names[0] = names[1]
+    with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['AUV11 Jaw drop'\]"):
+        FaceModel(**dict(fields, animation_names=tuple(names)))
+    with pytest.raises(ValueError, match="facs_names must be distinct"):
+        FaceModel(**dict(fields, facs_names=("AU2",) * model.facs_matrix.shape[0]))

@@ -9,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from torchface.model.mesh_loader import ICT_MM_PER_UNIT, load_ict_face_model, load_mesh_model
+from torchface.model.mesh_loader import ICT_MM_PER_UNIT, ICT_TO_HEAD, load_ict_face_model, load_mesh_model
 
 ASSETS = Path(__file__).resolve().parents[3] / "shared" / "assets"
 ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
@@ -91,9 +91,9 @@ def test_bad_arguments_raise(kwargs, error, message):
 def test_obj_keeps_file_vertex_order():
     lines = JAMES_OBJ.read_text().splitlines()
     file_verts = np.array([[float(t) for t in line.split()[1:4]] for line in lines if line.startswith("v ")])
-    model = load_mesh_model(JAMES_OBJ, dtype=torch.float64)
+    model = load_mesh_model(JAMES_OBJ, dtype=torch.float64, to_head_frame=ICT_TO_HEAD)  # +y up, +z to the viewer
     assert model.num_vertices == len(file_verts) == 6393  # not split at UV seams
-    torch.testing.assert_close(model.mean, torch.as_tensor(file_verts))
+    torch.testing.assert_close(model.mean, torch.as_tensor(file_verts @ ICT_TO_HEAD.T))
     assert model.num_faces == sum(1 for line in lines if line.startswith("f "))
 
 
@@ -102,7 +102,7 @@ def test_obj_keeps_unreferenced_vertices_at_its_end(tmp_path):
     drops them, and bases sized from the file were refused)."""
     obj = tmp_path / "t.obj"
     obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nv 9 9 9\nvt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\n"
-                   "f 1/1 2/2 3/3\nf 2/2 4/4 3/3\n")  # fmt: skip
+                   "f 1/1 3/3 2/2\nf 2/2 3/3 4/4\n")  # fmt: skip (wound toward -z: the head frame's front)
     model = load_mesh_model(obj, blendshapes=np.ones((1, 5, 3)), dtype=torch.float64)
     assert model.num_vertices == 5 and model.mean[4].tolist() == [9.0, 9.0, 9.0] and model.num_faces == 2
 
@@ -144,3 +144,108 @@ def test_ict_face_model():
     assert outward_flux(model.mean, model.faces[face_region]).sum() > 0
     with pytest.raises(ValueError, match="num_expressions"):
         load_ict_face_model(ICT_NPZ, num_expressions=54)
+
+
+def test_facs_link_given_as_one_name_is_one_au():
+    """A blendshape linked to one AU written as a str ({"jawOpen": "AU26"}) is linked to AU26; it was split into
+    the FACS 'units' A, U, 2 and 6."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    blend = np.zeros((2, 5, 3))
+    model = load_mesh_model(mesh, blendshapes=blend, blendshape_names=["jawOpen", "smile"],
+                            facs_links={"jawOpen": "AU26", "smile": ["AU12", "AU6"]})
+    assert model.facs_names == ("AU6", "AU12", "AU26")
+    assert model.facs_matrix.tolist() == [[0.0, 1.0], [0.0, 1.0], [1.0, 0.0]]
+    with pytest.raises(TypeError, match=r"facs_links\['smile'\] must be an AU name"):
+        load_mesh_model(mesh, blendshapes=blend, blendshape_names=["jawOpen", "smile"], facs_links={"smile": 12})
+
+
+def test_landmark_vertices_must_be_whole_indices_one_per_landmark():
+    """A (K, 3) table of indices was flattened into 3K landmarks and fractional indices were truncated, silently;
+    whole-number floats (np.loadtxt's) are still vertex indices."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    with pytest.raises(ValueError, match=r"\(K,\) vertex indices, one per landmark, got shape \(2, 3\)"):
+        load_mesh_model(mesh, landmark_vertices=np.array([[0, 1, 2], [1, 2, 3]]))
+    with pytest.raises(ValueError, match="whole vertex indices"):
+        load_mesh_model(mesh, landmark_vertices=np.array([0.6, 2.9]))
+    with pytest.raises(ValueError, match="whole vertex indices"):
+        load_mesh_model(mesh, landmark_vertices=np.array([0.0, np.nan]))
+    with pytest.raises(TypeError, match="integer vertex indices"):
+        load_mesh_model(mesh, landmark_vertices=np.array([True, False]))
+    model = load_mesh_model(mesh, landmark_vertices=np.array([3.0, 1.0]))
+    assert model.landmark_vertices[:, 0].tolist() == [3, 1]
+    assert load_mesh_model(mesh, landmark_vertices=np.array([[3], [1]])).num_landmarks == 2
+
+
+@pytest.mark.parametrize("scale, error", [(float("inf"), ValueError), (float("nan"), ValueError), ("10", TypeError),
+                                          (True, TypeError), (-1.0, ValueError)])
+def test_scale_to_mm_must_be_a_finite_positive_number(scale, error):
+    """An infinite scale made every position NaN without a word; a str failed in a comparison."""
+    with pytest.raises(error, match="scale_to_mm must be"):
+        load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), scale_to_mm=scale)
+    model = load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), scale_to_mm=np.float32(10.0))
+    assert model.mean[1].tolist() == [10.0, 0.0, 0.0]
+
+
+def test_winding_must_be_consistent_and_the_face_must_look_toward_minus_z():
+    """A mesh wound inward, one a third of whose triangles were flipped, or a y-up file loaded without to_head_frame
+    was taken as it was: the first failed in the normalised face ('no pixel of the canonical view sees the face'),
+    the others were tracked, 180 degrees turned or with a shrunken normalised face, until the stream was lost."""
+    from torchface.model import load_candide3
+
+    candide = load_candide3()
+    mean, faces = candide.mean.double().numpy(), candide.faces.numpy()
+    load_mesh_model(trimesh.Trimesh(mean, faces, process=False))  # CANDIDE-3 itself passes
+    with pytest.raises(ValueError, match="faces away from the viewer: its triangles are wound inward"):
+        load_mesh_model(trimesh.Trimesh(mean, faces[:, ::-1], process=False))
+    with pytest.raises(ValueError, match="faces away from the viewer"):
+        load_mesh_model(trimesh.Trimesh(mean @ ICT_TO_HEAD.T, faces, process=False))  # a +y up, +z to the viewer file
+    load_mesh_model(trimesh.Trimesh(mean @ ICT_TO_HEAD.T, faces, process=False), to_head_frame=ICT_TO_HEAD)
+    partly = faces.copy()
+    partly[::3] = partly[::3, ::-1]
+    with pytest.raises(ValueError, match=r"not wound consistently: \d+ edges shared by two triangles"):
+        load_mesh_model(trimesh.Trimesh(mean, partly, process=False))
+    # a repeated triangle or one with a repeated vertex is not a flip
+    extra = np.concatenate([faces, faces[:5], [[0, 0, 1]]])
+    assert load_mesh_model(trimesh.Trimesh(mean, extra, process=False)).num_faces == candide.num_faces + 6
+
+
+def test_blendshape_targets_given_as_whole_meshes_are_refused():
+    """Blendshapes passed as target meshes (what a folder of OBJ targets holds) instead of target - neutral were
+    taken as displacements: every unit moved the whole head by its own size, and CANDIDE-3 loaded so was tracked
+    at 36-129 degrees of yaw and lost."""
+    from torchface.model import load_candide3
+
+    candide = load_candide3()
+    mean, faces = candide.mean.double().numpy(), candide.faces.numpy()
+    mesh = trimesh.Trimesh(mean, faces, process=False)
+    deltas = candide.animation_units.double().numpy()
+    with pytest.raises(ValueError, match=r"blendshapes\[0\] \('AUV0 Upper lip raiser'\) is a whole mesh"):
+        load_mesh_model(mesh, blendshapes=mean[None] + deltas, blendshape_names=candide.animation_names)
+    with pytest.raises(ValueError, match=r"shape_units\[0\] \('shape0'\) is a whole mesh"):
+        load_mesh_model(mesh, shape_units=mean[None] + candide.shape_units.double().numpy()[:1])
+    model = load_mesh_model(mesh, blendshapes=deltas, blendshape_names=candide.animation_names)
+    torch.testing.assert_close(model.animation_units, candide.animation_units)
+
+
+def test_a_face_of_implausible_size_warns_about_scale_to_mm():
+    """A face in metres loaded with the default scale_to_mm=1 was taken as a 0.15 mm face without a word; the
+    tracker's landmark fit then failed (status FAILED) and every later frame was LOST, with no reason given (a face
+    in centimetres is tracked, with translations a tenth of the truth)."""
+    import warnings
+
+    from torchface.model import load_candide3
+
+    candide = load_candide3()
+    mean, faces = candide.mean.double().numpy(), candide.faces.numpy()
+    with pytest.warns(UserWarning, match=r"spans 0.1\d+ mm with scale_to_mm=1; a face is 100-300 mm"):
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), scale_to_mm=1000.0)
+        load_mesh_model(trimesh.Trimesh(mean, faces, process=False))
+
+
+def test_repeated_blendshape_names_are_refused_at_load():
+    with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['browDown'\]"):
+        load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), blendshapes=np.zeros((2, 5, 3)),
+                        blendshape_names=["browDown", "browDown"])

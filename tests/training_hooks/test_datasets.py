@@ -342,3 +342,24 @@ def test_transform_inside_autocast_equals_full_precision(clips):
         assert torch.is_autocast_enabled("cpu")  # the caller's region is back on afterwards
     for name in ref:
         assert torch.equal(out[name], ref[name]), name
+
+
+def test_track_sequence_takes_its_models_landmark_count(clips):
+    """track_sequence takes a model, but refused any first-frame landmarks but 68 ('(68, 2) iBUG points'): a model
+    with another landmark table (here CANDIDE-3 with the 51 inner iBUG points) could not be tracked."""
+    from dataclasses import replace as dc_replace
+
+    from torchface.model.candide import load_candide3
+    from torchface.normalise import NormalisedFace
+    from training_hooks.transforms import track_sequence
+
+    candide = load_candide3()
+    inner = dc_replace(candide, landmark_vertices=candide.landmark_vertices[17:],
+                       landmark_weights=candide.landmark_weights[17:], landmark_names=candide.landmark_names[17:])
+    normaliser = NormalisedFace(inner, size=TRACKING.face_size, margin=TRACKING.face_margin)
+    frames = read_video(clips[0].video)[:2]
+    sequence, _ = track_sequence(frames, clips[0].landmarks[17:], TRACKING, inner, normaliser)
+    assert sequence.num_frames == 2 and sequence.landmarks.shape == (51, 2)
+    assert bool(sequence.success.all())
+    with pytest.raises(ValueError, match=r"\(51, 2\) points, the model's landmarks"):
+        track_sequence(frames, clips[0].landmarks, TRACKING, inner, normaliser)

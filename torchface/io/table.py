@@ -69,31 +69,50 @@ _INT_COLUMNS = frozenset({"frame", "success", "status", "iterations", "num_point
 
 
 def column_name(prefix: str, name: str) -> str:
-    """``"AUV11 Jaw drop"`` -> ``"anim_AUV11_jaw_drop"``: a CSV-safe column name."""
-    parts = re.findall(r"[A-Za-z0-9]+", name)
+    """``"AUV11 Jaw drop"`` -> ``"anim_AUV11_jaw_drop"``: a CSV-safe column name (the name's runs of letters and
+    digits, any script's: ``"lächeln"`` -> ``"anim_lächeln"``, lower-cased, joined by ``_``)."""
+    parts = re.findall(r"[^\W_]+", name)
     if not parts:
-        raise ValueError(f"cannot make a column name from {name!r}")
+        raise ValueError(f"cannot make a column name from {name!r}: it has no letter or digit")
     head = parts[0] if re.match(r"^[A-Z]+\d+$", parts[0]) else parts[0].lower()
     return "_".join([prefix, head] + [p.lower() for p in parts[1:]])
 
 
 def facs_column_stem(name: str) -> str:
     """OpenFace's spelling of a FACS AU in column names, two digits at least: ``"AU2"`` -> ``"AU02"``, ``"AU26"``
-    unchanged; a name of another form unchanged."""
+    unchanged; a name of another form unchanged when it is letters, digits and ``_`` only (``"AU12L"``), else its
+    runs of letters and digits joined by ``_`` (``"AU 12"`` -> ``"AU_12"``: a comma or a quote in a header cell
+    would break the CSV)."""
     m = re.fullmatch(r"AU(\d+)", name)
-    return f"AU{int(m.group(1)):02d}" if m else name
+    if m:
+        return f"AU{int(m.group(1)):02d}"
+    if re.fullmatch(r"\w+", name):
+        return name
+    parts = re.findall(r"[^\W_]+", name)
+    if not parts:
+        raise ValueError(f"cannot make a column name from the FACS name {name!r}: it has no letter or digit")
+    return "_".join(parts)
 
 
 def track_columns(
     anim_names: tuple[str, ...], facs_names: tuple[str, ...], illumination_names: tuple[str, ...]
 ) -> tuple[str, ...]:
-    """The CSV header for a model with these animation units, FACS AUs and illumination terms."""
+    """The CSV header for a model with these animation units, FACS AUs and illumination terms (any model's: the
+    names become CSV-safe column names, :func:`column_name` and :func:`facs_column_stem`).
+
+    Raises:
+        ValueError: a name has no letter or digit, or two names give the same column (the message names them).
+    """
     facs = tuple(f"{facs_column_stem(n)}_r" for n in facs_names)
     anim = tuple(column_name("anim", n) for n in anim_names)
     illum = tuple(column_name("illum", n) for n in illumination_names)
     cols = _LEAD + POSE_COLUMNS + ROTATION_COLUMNS + facs + anim + illum + _TAIL
     if len(set(cols)) != len(cols):
-        raise ValueError(f"column names collide: {cols}")
+        sources = (_LEAD + POSE_COLUMNS + ROTATION_COLUMNS + tuple(facs_names) + tuple(anim_names)
+                   + tuple(illumination_names) + _TAIL)  # fmt: skip
+        clashes = {c: [s for s, d in zip(sources, cols) if d == c] for c in cols if cols.count(c) > 1}
+        detail = "; ".join(f"{c!r} from {names!r}" for c, names in clashes.items())
+        raise ValueError(f"column names collide (rename the model's units or AUs): {detail}")
     return cols
 
 

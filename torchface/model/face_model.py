@@ -11,6 +11,7 @@ Shapes: ``B`` batch, ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` a
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, fields
 
 import torch
@@ -142,6 +143,11 @@ class FaceModel:
         facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.
         surface_vertex_mask: ``(V,)`` bool, ``True`` for vertices used by a face.
 
+    Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
+    distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
+    and that the landmark weights' rows sum to one (within 1e-3), and raises ``ValueError`` (``TypeError`` for a
+    field of the wrong type) otherwise.
+
     Example:
         >>> from torchface.model import load_candide3
         >>> model = load_candide3()
@@ -176,6 +182,11 @@ class FaceModel:
                     raise TypeError(f"{f.name} must be a tuple of str, got {type(value).__name__}")
             elif not isinstance(value, Tensor):
                 raise TypeError(f"{f.name} must be a torch.Tensor, got {type(value).__name__}")
+        for key in ("shape_names", "animation_names", "facs_names"):
+            names = getattr(self, key)
+            repeated = sorted(n for n, count in Counter(names).items() if count > 1)
+            if repeated:
+                raise ValueError(f"{key} must be distinct (units are looked up by name), repeated: {repeated}")
         mean = self.mean
         if mean.ndim != 2 or mean.shape[1] != 3 or not mean.is_floating_point():
             raise ValueError(f"mean must be a float (V, 3) tensor, got {tuple(mean.shape)} {mean.dtype}")
@@ -209,6 +220,18 @@ class FaceModel:
         for key in ("faces", "landmark_vertices", "surface_vertex_mask"):
             if getattr(self, key).device != mean.device:
                 raise ValueError(f"{key} must be on mean's device {mean.device}, got {getattr(self, key).device}")
+        for key in ("mean", "shape_units", "animation_units", "animation_ranges", "landmark_weights", "facs_matrix"):
+            value = getattr(self, key)
+            if value.numel() and not bool(torch.isfinite(value).all()):
+                raise ValueError(f"{key} holds non-finite values (NaN or inf)")
+        reversed_ranges = (self.animation_ranges[:, 0] > self.animation_ranges[:, 1]).nonzero().flatten().tolist()
+        if reversed_ranges:
+            names = [self.animation_names[a] for a in reversed_ranges]
+            raise ValueError(f"animation_ranges must be [lo, hi] with lo <= hi, reversed for {names}")
+        row_sums = self.landmark_weights.sum(dim=1)
+        if row_sums.numel() and float((row_sums - 1.0).abs().max()) > 1e-3:
+            raise ValueError(f"landmark_weights rows must sum to one, got sums in [{float(row_sums.min()):.4g}, "
+                             f"{float(row_sums.max()):.4g}]")  # fmt: skip
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
             got = (int(self.faces.min()), int(self.faces.max()))
             raise ValueError(f"faces index vertices outside [0, {num_v}): min/max {got}")

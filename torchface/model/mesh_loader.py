@@ -10,7 +10,9 @@ Shapes: ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` animation unit
 
 from __future__ import annotations
 
+import math
 import numbers
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -26,6 +28,9 @@ ICT_TO_HEAD = np.diag([1.0, -1.0, -1.0])
 
 #: The ICT Face Model is in centimetres (outer eye corners 8.9 apart, head 24.8 wide).
 ICT_MM_PER_UNIT = 10.0
+
+#: The largest side (mm) of a face model's bounding box that :func:`load_mesh_model` takes without a warning.
+_FACE_SPAN_MM = (50.0, 2000.0)
 
 #: FACS action units commonly associated with the ARKit-style blendshapes of the ICT model
 #: (``_L`` / ``_R`` suffixes dropped). Eye-gaze shapes map to the FACS eye-position codes AU61-AU64.
@@ -79,6 +84,79 @@ def _as_names(names: Sequence[str] | None, count: int, what: str, prefix: str) -
     return names
 
 
+def _facs_link(link: object, name: str) -> tuple[str, ...]:
+    """One blendshape's FACS link: a collection of AU names, or one name (a str is one AU, not its letters)."""
+    if isinstance(link, str):
+        return (link,)
+    aus = tuple(link) if isinstance(link, (tuple, list, set, frozenset)) else None
+    if aus is None or not all(isinstance(au, str) for au in aus):
+        raise TypeError(f"facs_links[{name!r}] must be an AU name or a tuple of them, got {link!r}")
+    return aus
+
+
+def _check_displacements(basis: np.ndarray, names: tuple[str, ...], vertices: np.ndarray, what: str) -> None:
+    """Raise ``ValueError`` when a ``(n, V, 3)`` basis entry is a whole mesh (a blendshape target) rather than a
+    displacement: when it is within half its own size of the ``(V, 3)`` mesh (RMS over the vertices). A
+    displacement is far from the mesh (about the mesh's own distance from the origin) unless it is the mesh."""
+    if basis.shape[0] == 0:
+        return
+    size = np.sqrt((basis**2).sum(axis=2).mean(axis=1))
+    off = np.sqrt(((basis - vertices[None]) ** 2).sum(axis=2).mean(axis=1))
+    whole = np.flatnonzero((size > 0) & (off < 0.5 * size))
+    if whole.size:
+        i = int(whole[0])
+        raise ValueError(
+            f"{what}[{i}] ({names[i]!r}) is a whole mesh, not a displacement: it is {off[i]:.3g} (RMS, mesh units) "
+            f"from the mesh and {size[i]:.3g} from zero; pass each target minus the neutral mesh"
+        )
+
+
+def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Raise ``ValueError`` unless the ``(F, 3)`` triangles on the ``(V, 3)`` head-frame vertices are wound
+    consistently (no edge shared by two triangles is traversed by both in the same direction; a repeated
+    triangle or one with a repeated vertex is no evidence either way) and the face looks toward ``-z``: of the
+    pixels of a frontal, nearly orthographic 32 x 32 view that the mesh covers, at least half see the front of
+    a triangle (:func:`~torchface.rendering.rasterizer.rasterize`'s ``facing``)."""
+    from torchface.backend import Backend
+    from torchface.geometry.camera import Intrinsics
+    from torchface.rendering.rasterizer import rasterize
+
+    proper = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    _, first = np.unique(np.sort(proper, axis=1), axis=0, return_index=True)
+    tri = proper[np.sort(first)]
+    directed = np.stack([tri, np.roll(tri, -1, axis=1)], axis=-1).reshape(-1, 2)
+    _, u_inv, u_counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    _, d_inv, d_counts = np.unique(directed, axis=0, return_inverse=True, return_counts=True)
+    same_way = (u_counts[u_inv.reshape(-1)] == 2) & (d_counts[d_inv.reshape(-1)] == 2)
+    if same_way.any():
+        a, b = directed[same_way][0].tolist()
+        raise ValueError(
+            f"the mesh's triangles are not wound consistently: {int(same_way.sum()) // 2} edges shared by two "
+            f"triangles are traversed by both in the same direction (e.g. {a}-{b}); wind them all one way, outward "
+            "(torchface.model.topology.make_winding_consistent and orient_outward do it)"
+        )
+    used = vertices[np.unique(faces)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    extent = float(max(hi[0] - lo[0], hi[1] - lo[1]))
+    if not extent > 0:
+        return  # seen edge-on: nothing to judge by
+    size, distance = 32, 10.0 * (extent + float(hi[2] - lo[2]))
+    focal = 0.9 * size * distance / extent
+    shift = np.array([-0.5 * (lo[0] + hi[0]), -0.5 * (lo[1] + hi[1]), distance - lo[2]])
+    camera = Intrinsics(size, size, focal, focal, (size - 1) / 2.0, (size - 1) / 2.0)
+    verts = torch.as_tensor(vertices + shift, dtype=torch.float64).unsqueeze(0)
+    frags = rasterize(verts, torch.as_tensor(faces, dtype=torch.int64), camera, backend=Backend.TORCH)  # no compiling
+    hit = frags.pix_to_face[0] >= 0
+    if int(hit.sum()) and float((frags.facing[0][hit] > 0).double().mean()) < 0.5:
+        away = 100.0 * float((frags.facing[0][hit] <= 0).double().mean())
+        raise ValueError(
+            f"seen from the front (the head frame's -z side, torchface.conventions) {away:.0f}% of the mesh's "
+            "surface faces away from the viewer: its triangles are wound inward (reverse them: faces[:, ::-1]) or "
+            "the face does not look toward -z (pass to_head_frame: torchface.model.mesh_loader.ICT_TO_HEAD for a "
+            "+y up, +z toward the viewer file)"
+        )
+
+
 def _obj_vertices(path: Path) -> np.ndarray | None:
     """``(V, 3)`` the positions of an OBJ file's ``v`` lines, in order (None when it cannot be read as text)."""
     try:
@@ -111,22 +189,33 @@ def load_mesh_model(
     Each position and displacement ``x`` becomes ``scale_to_mm * (to_head_frame @ x)``. When
     ``to_head_frame`` is a reflection (determinant -1) the triangles are re-wound so that their normals
     keep pointing the same way relative to the surface. The mesh's own winding is kept otherwise: it must
-    already be consistent and outward.
+    already be consistent and outward, and the face must look toward ``-z`` in the head frame (the camera's side
+    when the head is frontal, :mod:`torchface.conventions`). Both are checked: two triangles that traverse a
+    shared edge in the same direction, or a frontal view (32 x 32 pixels, of the used vertices) in which most of
+    the surface seen faces away from the viewer (a mesh wound inward, or a ``+y`` up, ``+z`` toward the viewer
+    file loaded without ``to_head_frame``), raise ``ValueError``: the tracker's normalised face and templates
+    are built from that view, and such a model was tracked with its head turned 180 degrees, then lost.
 
     Args:
         mesh: a ``trimesh.Trimesh`` or a path to any file trimesh reads (loaded with ``process=False``;
             OBJ files also with ``maintain_order=True`` so that vertices keep the file's order and count,
             which trimesh otherwise splits at texture seams and prunes when unreferenced).
-        blendshapes: ``(A, V, 3)`` animation displacements per unit weight (mesh units and frame), or ``None``.
+        blendshapes: ``(A, V, 3)`` animation displacements per unit weight (mesh units and frame: a target
+            shape minus the neutral mesh; a whole target mesh is refused), or ``None``.
         blendshape_names: ``A`` names (default ``"blendshape{i}"``).
-        shape_units: ``(S, V, 3)`` identity displacements, or ``None``.
+        shape_units: ``(S, V, 3)`` identity displacements (not whole meshes, as ``blendshapes``), or ``None``.
         shape_names: ``S`` names (default ``"shape{i}"``).
-        landmark_vertices: ``(K,)`` int vertex index per landmark, or ``None`` for ``K = 0``.
+        landmark_vertices: ``(K,)`` int vertex index per landmark (floats only when whole numbers, as
+            ``np.loadtxt`` reads them), or ``None`` for ``K = 0``.
         landmark_names: ``K`` names (default ``"landmark{k}"``).
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
-        facs_links: blendshape name -> FACS AUs it is linked to (names not listed link to nothing).
-        scale_to_mm: millimetres per mesh unit.
+        facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
+            is one AU, not four; names not listed link to nothing).
+        scale_to_mm: millimetres per mesh unit (1000 for a mesh in metres, 10 in centimetres). A model whose used
+            vertices then span less than 50 mm or more than 2 m (a face is 100-300 mm) is loaded with a
+            ``UserWarning``: the pose is found at any scale, but translations come out scaled by the mistake, and
+            a face in metres (0.2 mm) fails the tracker's landmark fit.
         to_head_frame: ``(3, 3)`` orthogonal matrix from the mesh frame to the head frame (default identity).
         name: model name (default: the file name, or ``"mesh"``).
         dtype: floating dtype of the model tensors.
@@ -136,16 +225,20 @@ def load_mesh_model(
         The model; ``A = 0`` and ``S = 0`` give ``(0, V, 3)`` bases.
 
     Raises:
-        TypeError: ``mesh`` is neither a Trimesh nor a path, or ``dtype`` is not floating.
-        ValueError: a basis, name list, landmark index or range has the wrong size, the file holds no
-            triangles, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive.
+        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a ``facs_links``
+            value is neither an AU name nor a collection of them, ``scale_to_mm`` is not a number, or
+            ``landmark_vertices`` are not integers.
+        ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
+            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D or holds
+            fractions, the file holds no triangles, they are not wound consistently or the frontal view sees
+            mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive and finite.
 
     Example:
         >>> import trimesh
         >>> tri = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 2, 1]], process=False)
-        >>> model = load_mesh_model(tri, blendshapes=np.ones((1, 3, 3)), scale_to_mm=10.0)
+        >>> model = load_mesh_model(tri, blendshapes=np.ones((1, 3, 3)), scale_to_mm=100.0)
         >>> model.deform(None, torch.ones(1, 1))[0, 1]
-        tensor([20., 10., 10.])
+        tensor([200., 100., 100.])
     """
     import trimesh  # imported lazily: only the generic loader needs it
 
@@ -176,8 +269,14 @@ def load_mesh_model(
     if faces.ndim != 2 or faces.shape[0] == 0:
         raise ValueError(f"the mesh must hold triangles, got faces of shape {faces.shape}")
     num_v = vertices.shape[0]
-    if not scale_to_mm > 0:
-        raise ValueError(f"scale_to_mm must be positive, got {scale_to_mm}")
+    try:
+        if isinstance(scale_to_mm, (str, bytes, bool)):
+            raise TypeError
+        scale_to_mm = float(scale_to_mm)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise TypeError(f"scale_to_mm must be a number (millimetres per mesh unit), got {scale_to_mm!r}") from None
+    if not 0 < scale_to_mm < math.inf:
+        raise ValueError(f"scale_to_mm must be positive and finite, got {scale_to_mm}")
     rot = np.eye(3) if to_head_frame is None else np.asarray(to_head_frame, dtype=np.float64)
     if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6):
         raise ValueError(f"to_head_frame must be a (3, 3) orthogonal matrix, got {np.array2string(rot)}")
@@ -189,10 +288,22 @@ def load_mesh_model(
     shape = _as_basis(shape_units, "shape_units", num_v)
     anim_names = _as_names(blendshape_names, anim.shape[0], "blendshape_names", "blendshape")
     shp_names = _as_names(shape_names, shape.shape[0], "shape_names", "shape")
+    _check_displacements(anim, anim_names, vertices, "blendshapes")
+    _check_displacements(shape, shp_names, vertices, "shape_units")
     if landmark_vertices is None:
         lm = np.zeros((0,), dtype=np.int64)
     else:
-        lm = np.asarray(landmark_vertices).astype(np.int64).reshape(-1)
+        raw = np.asarray(landmark_vertices)
+        if raw.ndim not in (1, 2) or (raw.ndim == 2 and raw.shape[1] != 1):
+            raise ValueError(
+                f"landmark_vertices must be (K,) vertex indices, one per landmark, got shape {raw.shape} (a landmark "
+                "between vertices needs a FaceModel built with landmark_vertices and landmark_weights)"
+            )
+        if raw.dtype == bool or not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
+            raise TypeError(f"landmark_vertices must be integer vertex indices, got dtype {raw.dtype}")
+        if np.issubdtype(raw.dtype, np.floating) and not np.array_equal(raw, np.round(raw)):
+            raise ValueError("landmark_vertices must be whole vertex indices, got non-integer (or non-finite) values")
+        lm = raw.astype(np.int64).reshape(-1)
         if lm.size and (lm.min() < 0 or lm.max() >= num_v):
             raise ValueError(f"landmark_vertices must index vertices in [0, {num_v}), got [{lm.min()}, {lm.max()}]")
     lm_names = _as_names(landmark_names, lm.shape[0], "landmark_names", "landmark")
@@ -202,12 +313,23 @@ def load_mesh_model(
         ranges = np.asarray(animation_ranges, dtype=np.float64)
         if ranges.shape != (anim.shape[0], 2):
             raise ValueError(f"animation_ranges must have shape ({anim.shape[0]}, 2), got {ranges.shape}")
-    links = [tuple((facs_links or {}).get(n, ())) for n in anim_names]
+    links = [_facs_link((facs_links or {}).get(n, ()), n) for n in anim_names]
     facs_names = tuple(sorted({au for link in links for au in link}, key=lambda au: (len(au), au)))
     facs_matrix = np.zeros((len(facs_names), anim.shape[0]))
     for a, link in enumerate(links):
         for au in link:
             facs_matrix[facs_names.index(au), a] = 1.0
+    _check_winding(vertices @ linear, faces)
+    used = vertices[np.unique(faces)] @ linear
+    span = float((used.max(axis=0) - used.min(axis=0)).max())
+    if not _FACE_SPAN_MM[0] <= span <= _FACE_SPAN_MM[1]:
+        warnings.warn(
+            f"the mesh spans {span:.3g} mm with scale_to_mm={scale_to_mm:g}; a face is 100-300 mm: is scale_to_mm "
+            "the millimetres per mesh unit (1000 for metres, 10 for centimetres)? Tracked translations come out "
+            "scaled by the same mistake, and a face of a few millimetres fails the landmark fit",
+            UserWarning,
+            stacklevel=2,
+        )
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 
