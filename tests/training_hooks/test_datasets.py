@@ -198,6 +198,30 @@ def test_transform_equals_dataset_output(clips, config):
     assert torch.equal(head.faces.float() / 255, out["face"][:3])
 
 
+def test_a_continued_sequence_numbers_its_frames_on(clips, tmp_path):
+    """Frames that continue a TrackerState are frames ``frame_index ..`` of the sequence: a video tracked in two
+    parts gives the items of one tracking, ``frame`` included (the second part said 0, 1, 2: per-frame labels
+    looked up by ``frame`` were the first part's), and the cache keeps the numbering."""
+    from training_hooks import TrackCache
+
+    clip = clips[2]
+    frames = read_video(clip.video)
+    normalise = NormaliseFaces(TRACKING)
+    whole = normalise(frames, clip.landmarks)
+    head, state = normalise.track(frames[:3], clip.landmarks)
+    parts = [head.item(slice(0, 3)), normalise(frames[3:], state)]
+    assert parts[1]["frame"].tolist() == [3, 4, 5]
+    for name in whole:
+        if name != "shape_coeffs":
+            assert torch.equal(torch.cat([p[name] for p in parts]), whole[name]), name
+    tail, _ = normalise.track(frames[3:], state)
+    assert head.first_frame == 0 and tail.first_frame == 3 == state.frame_index
+    assert [int(tail.item(t)["frame"]) for t in range(FRAMES - 3)] == [3, 4, 5]
+    cache = TrackCache(tmp_path / "cache")
+    cache.store("a" * 64, tail)
+    assert cache.load("a" * 64).first_frame == 3
+
+
 def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
