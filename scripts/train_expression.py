@@ -432,6 +432,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a tiny run for a smoke test")
     p.add_argument("--crop-single", action="store_true", help="also train on the labelled crop alone (slower)")
     args = p.parse_args(argv)
+    # Checked before anything runs: a --json folder failed only at the very end, after the whole run, and left
+    # a <json>.partial file behind; an --out under a file failed with a traceback.
+    if args.seed < 0:
+        p.error(f"--seed must be an integer >= 0, got {args.seed}")
+    if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
+        p.error(f"--out {args.out}: not a folder path (a file, or under a file)")
+    if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
+        p.error(f"--json {args.json}: not a file path (a folder, or under a file)")
     cfg = QUICK if args.quick else RunConfig()
     rng = np.random.default_rng(args.seed)
     times: dict[str, float] = {}
@@ -556,8 +564,12 @@ def main(argv: list[str] | None = None) -> int:
             "times_s": times,
         }  # fmt: skip
         tmp = args.json.with_name(args.json.name + ".partial")
-        tmp.write_text(json.dumps(figures, indent=1) + "\n")
-        os.replace(tmp, args.json)
+        try:
+            tmp.write_text(json.dumps(figures, indent=1) + "\n")
+            os.replace(tmp, args.json)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     return 0
 
 

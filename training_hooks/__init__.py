@@ -15,7 +15,14 @@
 
 from training_hooks.cache import CacheWarning, TrackCache, cache_key, content_hash
 from training_hooks.collate import collate_clips
-from training_hooks.datasets import DatasetConfig, FrameFolderDataset, VideoDataset, clip_bounds, loader_throughput
+from training_hooks.datasets import (
+    DatasetConfig,
+    DistributedWarning,
+    FrameFolderDataset,
+    VideoDataset,
+    clip_bounds,
+    loader_throughput,
+)
 from training_hooks.hooks import (
     FilteredBatch,
     TrackingQualityLogger,
@@ -29,6 +36,7 @@ from training_hooks.transforms import FaceStorage, FaceTrackingConfig, Normalise
 __all__ = [
     "CacheWarning",
     "DatasetConfig",
+    "DistributedWarning",
     "FaceStorage",
     "FaceTrackingConfig",
     "FilteredBatch",

@@ -244,6 +244,7 @@ class TrackCache:
         meta = {
             "key": key, "format": CACHE_FORMAT, "torchface": torchface.__version__, "digest": _arrays_digest(arrays),
             "frame_size": list(sequence.frame_size), "num_frames": sequence.num_frames, "source": str(source),
+            "first_frame": sequence.first_frame,
             "config": repr(config) if config is not None else "",
         }  # fmt: skip
         tmp = self.root / f".{key}.{os.getpid()}.{uuid.uuid4().hex}.partial"
@@ -282,7 +283,8 @@ def _read(path: Path, key: str) -> TrackedSequence:
     size = meta.get("frame_size")
     if not isinstance(size, list) or len(size) != 2:
         raise ValueError(f"bad frame_size {size!r}")
-    sequence = TrackedSequence(**tensors, frame_size=(int(size[0]), int(size[1])))
+    first = meta.get("first_frame", 0)  # files written before it was recorded hold sequences tracked from landmarks
+    sequence = TrackedSequence(**tensors, frame_size=(int(size[0]), int(size[1])), first_frame=first)
     if sequence.num_frames != meta.get("num_frames"):
         raise ValueError(f"{sequence.num_frames} frames stored, {meta.get('num_frames')} recorded")
     return sequence

@@ -12,6 +12,12 @@ their tracker states; no state crosses processes. Tracking runs with a fixed tor
 (:attr:`~training_hooks.transforms.FaceTrackingConfig.num_threads`), so every item is bit-identical for 0, 1
 or 2 workers (only the order in which a ``DataLoader`` interleaves the workers' items differs).
 
+Distributed training: the datasets do not split the videos between ``torch.distributed`` ranks (the ranks' item
+counts would differ, and DDP hangs on uneven inputs): every rank yields every item, so each rank tracks every
+video and an epoch shows every item once per rank. Give each rank its own list of videos (with equal item
+counts) instead; iterating in a process group of more than one rank warns (:class:`DistributedWarning`) once
+per dataset.
+
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
 back in later epochs (:mod:`training_hooks.cache`: content-and-config keys, atomic writes, damaged files
@@ -34,6 +40,7 @@ import itertools
 import os
 import random
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +59,7 @@ from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, Tracke
 
 __all__ = [
     "DatasetConfig",
+    "DistributedWarning",
     "DatasetStats",
     "Detector",
     "FrameFolderDataset",
@@ -66,6 +74,17 @@ __all__ = [
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
+
+
+class DistributedWarning(UserWarning):
+    """A dataset is iterated in a ``torch.distributed`` process group: every rank yields every item (module
+    docstring)."""
+
+
+def _world_size() -> int:
+    """Ranks of the default ``torch.distributed`` process group (1 without one)."""
+    dist = torch.distributed
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
 
 
 @dataclass(frozen=True)
@@ -208,6 +227,7 @@ class VideoDataset(IterableDataset):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             self.detector, self.landmarks = None, tuple(landmarks)
         self.epoch = 0
+        self._warned_distributed = False
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
         self._cache: TrackCache | None = None
@@ -353,6 +373,16 @@ class VideoDataset(IterableDataset):
             yield item
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        world = _world_size()
+        if world > 1 and not self._warned_distributed:
+            self._warned_distributed = True  # (a worker process warns once per epoch: its copy starts afresh)
+            warnings.warn(
+                f"{type(self).__name__} is iterated in a torch.distributed group of {world} ranks: it does not split "
+                "the videos between ranks, so every rank yields every item (and tracks every video); give each "
+                "rank its own list of videos",
+                DistributedWarning,
+                stacklevel=2,
+            )
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
         videos = self.worker_videos(worker, workers)

@@ -131,8 +131,11 @@ def drop_low_confidence(
 ) -> FilteredBatch:
     """Keep the samples whose confidence (:func:`sample_confidence`) is at least ``threshold``.
 
-    Every tensor (and list / tuple) value whose first dimension is the batch size ``B`` is indexed; other values
-    are kept as they are. The result may be empty (``B' = 0``): check ``len(indices)`` before using it.
+    Every tensor value whose first dimension is the batch size ``B`` is indexed, and the values PyTorch's
+    ``default_collate`` batches per sample are filtered as it built them: a nested dict key by key, a list or
+    tuple of tensors that all have ``B`` rows (a tuple of tensors in each item) tensor by tensor, any other list
+    or tuple of ``B`` entries (strings, say) entry by entry; other values are kept as they are. The result may
+    be empty (``B' = 0``): check ``len(indices)`` before using it.
 
     Args:
         batch: a frame or clip batch (module docstring).
@@ -156,15 +159,31 @@ def drop_low_confidence(
         keep &= success if success.dim() == 1 else (success & _valid(batch)).any(1)
     indices = keep.nonzero().squeeze(-1)
     B = score.shape[0]
-    out: dict[str, Any] = {}
-    for key, value in batch.items():
-        if isinstance(value, Tensor) and value.dim() >= 1 and value.shape[0] == B:
-            out[key] = value[indices.to(value.device)]
-        elif isinstance(value, (list, tuple)) and len(value) == B:
-            out[key] = type(value)(value[int(i)] for i in indices)
-        else:
-            out[key] = value
+    out = {key: _select(value, indices, B) for key, value in batch.items()}
     return FilteredBatch(out, indices)
+
+
+def _batched(value: object, B: int) -> bool:
+    return isinstance(value, Tensor) and value.dim() >= 1 and value.shape[0] == B
+
+
+def _rebuild(value: list | tuple, entries: list[Any]) -> list | tuple:
+    """A list or tuple of ``value``'s type (a named tuple too) holding ``entries``."""
+    return type(value)(*entries) if hasattr(value, "_fields") else type(value)(entries)
+
+
+def _select(value: Any, indices: Tensor, B: int) -> Any:
+    """The rows ``indices`` of a batch value (:func:`drop_low_confidence`)."""
+    if _batched(value, B):
+        return value[indices.to(value.device)]
+    if isinstance(value, Mapping):  # a dict in each item: default_collate batched it key by key
+        return {k: _select(v, indices, B) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        if value and all(_batched(v, B) for v in value):  # a tuple of tensors in each item, batched element-wise
+            return _rebuild(value, [v[indices.to(v.device)] for v in value])
+        if len(value) == B:  # one entry per sample (strings, file names)
+            return _rebuild(value, [value[int(i)] for i in indices])
+    return value
 
 
 @dataclass

@@ -255,7 +255,8 @@ class NormalisedFaceLayer(nn.Module):
     Args:
         config: :class:`LayerConfig`.
         model: the face model (CANDIDE-3 when ``None``); its dtype and device are the layer's, and move with
-            ``.to(...)``, ``.double()``, ``.float()``, ``.cuda()``.
+            ``.to(...)``, ``.double()``, ``.float()``, ``.cuda()``. Tracking needs float32 or float64: a layer
+            cast to float16 or bfloat16 (``.half()`` of the network) raises a TypeError when called.
 
     Example:
         >>> layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=48))   # doctest: +SKIP
@@ -279,6 +280,16 @@ class NormalisedFaceLayer(nn.Module):
         self.model, self.layout = apply_to_model_and_layout(fn, self.model, self.layout)
         return super()._apply(fn, recurse)
 
+    def _check_precision(self) -> None:
+        # The tracker's solves (Cholesky) have no float16 / bfloat16 kernels: say so instead of torch's
+        # '"cholesky_cpu" not implemented for 'Half'' from deep inside the landmark fit or the step.
+        if self.model.dtype not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"NormalisedFaceLayer tracks in float32 or float64, it is {self.model.dtype} (a .half() or "
+                ".to(bfloat16) of the network?): keep the layer in float32 (layer.float()) and cast its image, "
+                "or run the network under torch.autocast, which leaves the layer in full precision"
+            )
+
     @property
     def param_layout(self) -> ParamLayout:
         """The packing of :attr:`LayerResult.params`."""
@@ -297,7 +308,11 @@ class NormalisedFaceLayer(nn.Module):
 
         Returns:
             The tracker state and the first frame's result.
+
+        Raises:
+            TypeError: the layer is not float32 or float64 (e.g. after ``.half()``).
         """
+        self._check_precision()
         check_frames(frames)
         if intrinsics is None:
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
@@ -324,7 +339,11 @@ class NormalisedFaceLayer(nn.Module):
 
         Returns:
             :class:`LayerResult`; ``result.state`` continues the sequence.
+
+        Raises:
+            TypeError: a state of another kind, or the layer is not float32 or float64 (e.g. after ``.half()``).
         """
+        self._check_precision()
         if not isinstance(state, TrackerState):
             raise TypeError(f"state must be a TrackerState (from initialise), got {type(state).__name__}")
         check_frames(frames, state.intrinsics)

@@ -115,6 +115,9 @@ class TrackedFaceDataModule(pl.LightningDataModule):
     Before each training epoch's loader is built the trainer's epoch is passed to
     :meth:`~training_hooks.datasets.VideoDataset.set_epoch` (shuffling); set ``reload_dataloaders_every_n_epochs=1``
     on the trainer so that happens every epoch.
+
+    Distributed (DDP) training: the datasets do not split their videos between ranks, so every rank gets every
+    item (:class:`~training_hooks.datasets.DistributedWarning`); build each rank's module with its own videos.
     """
 
     def __init__(

@@ -189,6 +189,9 @@ class TrackedSequence:
             68 for CANDIDE-3), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
         frame_size: ``(H, W)`` of the frames.
+        first_frame: index of the first frame in the tracked sequence: 0 when the tracking started here from
+            landmarks, the state's :attr:`~torchface.tracker.TrackerState.frame_index` (frames it had seen) when
+            it continued a :class:`~torchface.tracker.TrackerState`; items' ``frame`` counts from it.
     """
 
     faces: Tensor
@@ -206,10 +209,11 @@ class TrackedSequence:
     shape_coeffs: Tensor
     landmarks: Tensor
     frame_size: tuple[int, int]
+    first_frame: int = 0
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name != "frame_size" and not isinstance(getattr(self, f.name), Tensor):
+            if f.name not in ("frame_size", "first_frame") and not isinstance(getattr(self, f.name), Tensor):
                 got = type(getattr(self, f.name)).__name__
                 raise TypeError(f"TrackedSequence.{f.name} must be a torch.Tensor, got {got}")
         faces = self.faces
@@ -234,6 +238,8 @@ class TrackedSequence:
                 raise ValueError(f"{name} must be {shape} {dtype} (T = {T}, S = {S}), got {tuple(x.shape)} {x.dtype}")
         if len(self.frame_size) != 2 or any(int(v) < 1 for v in self.frame_size):
             raise ValueError(f"frame_size must be (H, W), got {self.frame_size}")
+        if isinstance(self.first_frame, bool) or not isinstance(self.first_frame, int) or self.first_frame < 0:
+            raise ValueError(f"first_frame must be an int >= 0, got {self.first_frame!r}")
         finite = [self.confidence, self.axis_angle, self.translation, self.anim_coeffs, self.expression,
                   self.illumination]
         if not all(bool(torch.isfinite(x).all()) for x in finite):
@@ -256,20 +262,20 @@ class TrackedSequence:
         float32, ``rotation`` ``(3, 3)``, ``axis_angle`` ``(3,)``, ``translation`` ``(3,)``, ``ypr_deg`` ``(3,)``,
         ``anim_coeffs`` ``(A,)``, ``expression`` ``(A,)`` (the units measured from the person's neutral, which
         ``facs`` ``(F,)`` is linked to), ``illumination`` ``(L,)``, ``confidence`` ``()`` float32,
-        ``success`` ``()`` bool, ``status`` ``()`` int64, ``frame`` ``()`` int64 (index in the sequence);
-        per sequence: ``shape_coeffs`` ``(S_u,)``.
+        ``success`` ``()`` bool, ``status`` ``()`` int64, ``frame`` ``()`` int64 (index in the tracked sequence:
+        :attr:`first_frame` plus the position ``frames`` selects); per sequence: ``shape_coeffs`` ``(S_u,)``.
         """
         if isinstance(frames, slice):
             start, stop, step = frames.indices(self.num_frames)
             if step != 1 or stop <= start:
                 raise ValueError(f"a clip is a non-empty slice with step 1, got {frames}")
             index: int | slice = slice(start, stop)
-            frame = torch.arange(start, stop, dtype=torch.int64)
+            frame = torch.arange(start, stop, dtype=torch.int64) + self.first_frame
         else:
             index = int(frames)
             if not 0 <= index < self.num_frames:
                 raise IndexError(f"frame {frames} out of range for a {self.num_frames}-frame sequence")
-            frame = torch.tensor(index, dtype=torch.int64)
+            frame = torch.tensor(index + self.first_frame, dtype=torch.int64)
         return {
             "face": decode_faces(self.faces[index]),
             "mask": self.masks[index].to(torch.float32),
@@ -352,7 +358,9 @@ def track_sequence(
         progress: called with the number of frames done after each frame.
 
     Returns:
-        The :class:`TrackedSequence` and the tracker state after the last frame.
+        The :class:`TrackedSequence` and the tracker state after the last frame. Continuing a state, the
+        sequence's :attr:`~TrackedSequence.first_frame` is the state's ``frame_index`` (so its items' ``frame``
+        numbers the frames as one tracking of the whole sequence does).
 
     Raises:
         TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks or state; no frame at all.
@@ -363,11 +371,13 @@ def track_sequence(
         raise ValueError(f"normaliser is {normaliser.layout.size}px, config.face_size is {config.face_size}")
     state: TrackerState | None = None
     landmarks = torch.zeros(0, 2, dtype=torch.float64)
+    first_frame = 0
     if isinstance(start, TrackerState):
         if start.params.shape[0] != 1:
             B = start.params.shape[0]
             raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {B}")
         state = start
+        first_frame = int(start.frame_index)
     else:
         landmarks = _landmarks_tensor(start, model.num_landmarks)
     layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
@@ -412,6 +422,7 @@ def track_sequence(
         shape_coeffs=state.shape_coeffs[0].detach().to("cpu", torch.float32),
         landmarks=landmarks,
         frame_size=size,
+        first_frame=first_frame,
     )
     return sequence, state
 
@@ -422,8 +433,9 @@ class NormaliseFaces:
     A torchvision-style callable for pipelines that already hold frames: it tracks the frames with
     :func:`track_sequence` and returns the clip item of :meth:`TrackedSequence.item` (``face (T, C, S, S)``
     float32, ``mask (T, 1, S, S)``, the parameters, ``confidence``, ``success``, ``status``, ``frame``), exactly
-    what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip. The face model and
-    the canonical layout are built on first use.
+    what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip. Frames that continue
+    a :class:`~torchface.tracker.TrackerState` are numbered on from it (``frame`` starts at its ``frame_index``).
+    The face model and the canonical layout are built on first use.
 
     Args:
         config: :class:`FaceTrackingConfig` (default settings when None).

@@ -198,6 +198,30 @@ def test_transform_equals_dataset_output(clips, config):
     assert torch.equal(head.faces.float() / 255, out["face"][:3])
 
 
+def test_a_continued_sequence_numbers_its_frames_on(clips, tmp_path):
+    """Frames that continue a TrackerState are frames ``frame_index ..`` of the sequence: a video tracked in two
+    parts gives the items of one tracking, ``frame`` included (the second part said 0, 1, 2: per-frame labels
+    looked up by ``frame`` were the first part's), and the cache keeps the numbering."""
+    from training_hooks import TrackCache
+
+    clip = clips[2]
+    frames = read_video(clip.video)
+    normalise = NormaliseFaces(TRACKING)
+    whole = normalise(frames, clip.landmarks)
+    head, state = normalise.track(frames[:3], clip.landmarks)
+    parts = [head.item(slice(0, 3)), normalise(frames[3:], state)]
+    assert parts[1]["frame"].tolist() == [3, 4, 5]
+    for name in whole:
+        if name != "shape_coeffs":
+            assert torch.equal(torch.cat([p[name] for p in parts]), whole[name]), name
+    tail, _ = normalise.track(frames[3:], state)
+    assert head.first_frame == 0 and tail.first_frame == 3 == state.frame_index
+    assert [int(tail.item(t)["frame"]) for t in range(FRAMES - 3)] == [3, 4, 5]
+    cache = TrackCache(tmp_path / "cache")
+    cache.store("a" * 64, tail)
+    assert cache.load("a" * 64).first_frame == 3
+
+
 def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
@@ -212,6 +236,29 @@ def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
 
 
 # --------------------------------------------------------------------------------------------- exceptions
+
+
+def test_a_distributed_group_is_warned_that_every_rank_gets_every_item(clips, config, monkeypatch):
+    """In a torch.distributed group of several ranks (Lightning DDP) every rank yielded every item without a word
+    (each rank tracked every video and an epoch showed each item once per rank): the dataset warns, once."""
+    import warnings
+
+    def every_rank_warnings() -> tuple[list, list[str]]:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            items = list(data)
+        return items, [type(w.message).__name__ for w in caught if "every rank yields every item" in str(w.message)]
+
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None))
+    single, caught = every_rank_warnings()
+    assert caught == []  # no process group: no warning
+    monkeypatch.setattr(torch.distributed, "is_available", lambda: True)
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.distributed, "get_world_size", lambda group=None: 2)
+    items, caught = every_rank_warnings()
+    assert caught == ["DistributedWarning"]
+    assert len(items) == len(single)  # the items are unchanged
+    assert every_rank_warnings()[1] == []  # once per dataset
 
 
 def test_bad_arguments(clips, tmp_path):

@@ -126,6 +126,32 @@ def test_drop_low_confidence_clips_uses_the_mean_over_real_frames():
     assert drop_low_confidence(batch, 0.45).batch["face"].shape == (1, 3, 2, 4, 4)
 
 
+def test_drop_low_confidence_keeps_collated_labels_with_their_samples():
+    """Labels that ``default_collate`` batched from a nested dict or a tuple in each item stay with their samples
+    (the dict was kept whole, and a tuple of as many tensors as samples was cut as if it were one per sample:
+    the kept face was paired with another sample's label)."""
+    from collections import namedtuple
+
+    from torch.utils.data import default_collate
+
+    Pair = namedtuple("Pair", "cls intensity")
+    conf = [0.9, 0.1, 0.8]
+    items = [
+        {"confidence": torch.tensor(c), "face": torch.full((2,), float(i)), "target": {"label": torch.tensor(i)},
+         "pair": (torch.tensor(i), torch.tensor(10.0 * i), torch.tensor(-i)), "named": Pair(i, 0.5 * i),
+         "path": f"v{i}.avi"}
+        for i, c in enumerate(conf)
+    ]  # fmt: skip
+    out = drop_low_confidence(default_collate(items), 0.5)
+    kept = [0, 2]
+    assert out.indices.tolist() == kept and out.batch["face"][:, 0].tolist() == kept
+    assert out.batch["target"]["label"].tolist() == kept
+    assert [p.tolist() for p in out.batch["pair"]] == [kept, [0.0, 20.0], [0, -2]]
+    assert isinstance(out.batch["named"], Pair) and out.batch["named"].cls.tolist() == kept
+    assert out.batch["named"].intensity.tolist() == [0.0, 1.0]
+    assert out.batch["path"] == ["v0.avi", "v2.avi"]
+
+
 def test_drop_bad_input():
     with pytest.raises(TypeError, match="dict"):
         drop_low_confidence([torch.ones(2)], 0.5)

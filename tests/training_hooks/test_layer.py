@@ -296,6 +296,21 @@ def test_exceptions(model, small):
         layer.forward_clip(frames, torch.zeros(1, 68, 2, dtype=D))
 
 
+def test_a_half_precision_layer_says_it_needs_float32(small):
+    """``.half()`` / ``.to(bfloat16)`` of a network holding the layer: calling it is a TypeError that says what to
+    do (it was torch's '"cholesky_cpu" not implemented for 'Half'' from inside the landmark fit)."""
+    frames, state, _ = small
+    _, landmarks = _clip(32)
+    for dtype in (torch.float16, torch.bfloat16):
+        layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL)).to(dtype)
+        with pytest.raises(TypeError, match="float32 or float64"):
+            layer.initialise(frames[:1].to(dtype), landmarks[:1].to(dtype))
+        with pytest.raises(TypeError, match="float32 or float64"):
+            layer(frames[1:2].to(dtype), state)
+        layer.float()  # and back: it tracks again
+        assert torch.isfinite(layer(frames[1:2].float(), layer.initialise(frames[:1], landmarks[:1])[0]).image).all()
+
+
 def test_layer_inside_autocast_equals_full_precision():
     """Under ``torch.autocast`` (CPU bfloat16) the float32 layer tracks, unrolls and resamples in float32: the
     same images and parameters as outside it, while the caller's own products still autocast."""

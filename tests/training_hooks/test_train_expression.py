@@ -57,3 +57,28 @@ def test_a_users_folder_is_never_emptied(tmp_path):
     (own / "entry.npz").write_bytes(b"x")
     script._clear_own_folder(own)  # the script's own: emptied for the new run
     assert [f.name for f in own.iterdir()] == [script._OWN_MARK]
+
+
+def test_bad_out_and_json_paths_are_refused_before_the_run(tmp_path, capsys):
+    """A ``--json`` folder (or a path under a file), an ``--out`` under a file and a negative seed are one-line
+    errors before anything runs: the ``--json`` folder failed only after the whole run, leaving ``<json>.partial``."""
+    import pytest
+
+    script = _load()
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    (tmp_path / "a_folder").mkdir()
+    out = tmp_path / "run"
+    for argv, needle in (
+        (["--out", str(out), "--json", str(tmp_path / "a_folder")], "--json"),
+        (["--out", str(out), "--json", str(a_file / "figures.json")], "--json"),
+        (["--out", str(a_file)], "--out"),
+        (["--out", str(a_file / "run")], "--out"),
+        (["--out", str(out), "--seed", "-1"], "--seed"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            script.main(["--quick", *argv])
+        assert exc.value.code == 2, argv
+        assert needle in capsys.readouterr().err, argv
+    assert not out.exists()  # nothing ran
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a_file", "a_folder"]
