@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,15 @@ def test_path_input_no_bases_and_reflection(tmp_path):
     rotated = load_mesh_model(path, to_head_frame=rot, dtype=torch.float64)
     assert torch.equal(rotated.faces, model.faces)
     assert (outward_flux(rotated.mean, rotated.faces) > 0).all()
+
+
+def test_any_path_like_is_a_path(tmp_path):
+    # Only str and Path were taken as paths: an os.DirEntry (os.scandir), an os.PathLike like them, raised
+    # "TypeError: mesh must be a trimesh.Trimesh or a path to a mesh file, got DirEntry".
+    trimesh.Trimesh(TET_V, TET_F, process=False).export(tmp_path / "tet.obj")
+    (entry,) = os.scandir(tmp_path)
+    model = load_mesh_model(entry)
+    assert model.name == "tet" and torch.equal(model.mean, load_mesh_model(tmp_path / "tet.obj").mean)
 
 
 @pytest.mark.parametrize(

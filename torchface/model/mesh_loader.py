@@ -11,6 +11,7 @@ Shapes: ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` animation unit
 from __future__ import annotations
 
 import numbers
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -114,9 +115,9 @@ def load_mesh_model(
     already be consistent and outward.
 
     Args:
-        mesh: a ``trimesh.Trimesh`` or a path to any file trimesh reads (loaded with ``process=False``;
-            OBJ files also with ``maintain_order=True`` so that vertices keep the file's order and count,
-            which trimesh otherwise splits at texture seams and prunes when unreferenced).
+        mesh: a ``trimesh.Trimesh`` or a path (``str`` or any ``os.PathLike``) to any file trimesh reads (loaded
+            with ``process=False``; OBJ files also with ``maintain_order=True`` so that vertices keep the file's
+            order and count, which trimesh otherwise splits at texture seams and prunes when unreferenced).
         blendshapes: ``(A, V, 3)`` animation displacements per unit weight (mesh units and frame), or ``None``.
         blendshape_names: ``A`` names (default ``"blendshape{i}"``).
         shape_units: ``(S, V, 3)`` identity displacements, or ``None``.
@@ -152,12 +153,12 @@ def load_mesh_model(
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
     obj_vertices = None
-    if isinstance(mesh, (str, Path)):
+    if isinstance(mesh, (str, os.PathLike)):  # any path-like (an os.DirEntry too), not only a Path
         default_name = Path(mesh).stem
         is_obj = Path(mesh).suffix.lower() == ".obj"
         options = {"maintain_order": True, "skip_materials": True} if is_obj else {}
         obj_vertices = _obj_vertices(Path(mesh)) if is_obj else None
-        mesh = trimesh.load(str(mesh), process=False, force="mesh", **options)
+        mesh = trimesh.load(os.fspath(mesh), process=False, force="mesh", **options)
     else:
         default_name = "mesh"
     if not isinstance(mesh, trimesh.Trimesh):
