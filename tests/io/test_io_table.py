@@ -111,3 +111,19 @@ def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
     # a torch device or dtype (JobConfig(device=torch.device("cpu"))) is its name; it raised TypeError
     write_json(tmp_path / "g.json", {"device": torch.device("cpu"), "dtype": torch.float64})
     assert json.loads((tmp_path / "g.json").read_text()) == {"device": "cpu", "dtype": "torch.float64"}
+
+
+def test_to_jsonable_writes_any_path_as_its_text(tmp_path):
+    """``to_jsonable`` promises paths as text but took only ``Path``: a ``PurePosixPath`` or an ``os.DirEntry`` went
+    through unchanged and ``write_json`` raised "Object of type PurePosixPath is not JSON serializable"."""
+    import json
+    import os
+    from pathlib import PurePosixPath
+
+    from torchface.io.sidecar import to_jsonable, write_json
+
+    (tmp_path / "clip.mp4").touch()
+    (entry,) = os.scandir(tmp_path)
+    assert to_jsonable({"a": PurePosixPath("/data/a.mp4"), "b": [entry]}) == {"a": "/data/a.mp4", "b": [entry.path]}
+    write_json(tmp_path / "h.json", {"input": PurePosixPath("/data/a.mp4"), "path": tmp_path})
+    assert json.loads((tmp_path / "h.json").read_text()) == {"input": "/data/a.mp4", "path": str(tmp_path)}
