@@ -88,6 +88,11 @@ def test_any_path_like_is_a_path(tmp_path):
         ({"to_head_frame": np.eye(3) * 2}, ValueError, "orthogonal"),
         ({"scale_to_mm": 0.0}, ValueError, "positive"),
         ({"dtype": torch.int64}, TypeError, "floating"),
+        # One string where a sequence is expected was taken character by character, silently: three units named
+        # 'j', 'a', 'w'; a unit linked to the FACS AUs '1', '2', 'A' and 'U'.
+        ({"blendshapes": np.zeros((3, 5, 3)), "blendshape_names": "jaw"}, TypeError, r"\('jaw',\), not one string"),
+        ({"blendshapes": np.zeros((1, 5, 3)), "blendshape_names": ["smile"], "facs_links": {"smile": "AU12"}},
+         TypeError, r"facs_links\['smile'\] must be a tuple"),
     ],
 )
 def test_bad_arguments_raise(kwargs, error, message):

@@ -74,6 +74,8 @@ def _as_basis(value: object, what: str, num_v: int) -> np.ndarray:
 def _as_names(names: Sequence[str] | None, count: int, what: str, prefix: str) -> tuple[str, ...]:
     if names is None:
         return tuple(f"{prefix}{i}" for i in range(count))
+    if isinstance(names, str):  # a str is a Sequence[str]: its characters were taken as the names
+        raise TypeError(f"{what} must be a sequence of names, e.g. ({names!r},), not one string")
     names = tuple(str(n) for n in names)
     if len(names) != count:
         raise ValueError(f"{what} must hold {count} names (one per unit), got {len(names)}")
@@ -137,7 +139,8 @@ def load_mesh_model(
         The model; ``A = 0`` and ``S = 0`` give ``(0, V, 3)`` bases.
 
     Raises:
-        TypeError: ``mesh`` is neither a Trimesh nor a path, or ``dtype`` is not floating.
+        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, or a name list or a
+            ``facs_links`` value is one string (a sequence of names is expected).
         ValueError: a basis, name list, landmark index or range has the wrong size, the file holds no
             triangles, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive.
 
@@ -203,6 +206,9 @@ def load_mesh_model(
         ranges = np.asarray(animation_ranges, dtype=np.float64)
         if ranges.shape != (anim.shape[0], 2):
             raise ValueError(f"animation_ranges must have shape ({anim.shape[0]}, 2), got {ranges.shape}")
+    for unit, link in (facs_links or {}).items():
+        if isinstance(link, str):  # its characters were taken as AUs: "AU12" linked the unit to 'A', 'U', '1', '2'
+            raise TypeError(f"facs_links[{unit!r}] must be a tuple of FACS AU names, e.g. ({link!r},), not one string")
     links = [tuple((facs_links or {}).get(n, ())) for n in anim_names]
     facs_names = tuple(sorted({au for link in links for au in link}, key=lambda au: (len(au), au)))
     facs_matrix = np.zeros((len(facs_names), anim.shape[0]))
