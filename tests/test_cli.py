@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from torchface.cli import build_parser, main
@@ -72,3 +76,18 @@ def test_track_threads_sets_torchs_threads_and_rejects_non_positive(monkeypatch,
         with pytest.raises(SystemExit):
             main(["track", "clip.mp4", "--out", str(tmp_path), "--threads", bad])
         assert "--threads: must be an integer >= 1" in capsys.readouterr().err
+
+
+def test_the_command_runs_without_docstrings(tmp_path):
+    """Under ``python -OO`` (``PYTHONOPTIMIZE=2``, set in some container images) docstrings are None: the parser's
+    description was ``__doc__.splitlines()[0]`` and every ``torchface`` command ended in an AttributeError."""
+    root = Path(__file__).resolve().parent.parent
+    code = "import sys; from torchface.cli import main; sys.exit(main(sys.argv[1:]))"
+    args = ["render-demo", "--out", str(tmp_path), "--frames", "2", "--width", "32", "--height", "32"]
+    out = subprocess.run([sys.executable, "-OO", "-c", code, *args], cwd=root, capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert (tmp_path / "pose_sweep.avi").is_file()
+    help_text = subprocess.run([sys.executable, "-OO", "-c", code, "--help"], cwd=root, capture_output=True,
+                               text=True, timeout=120)  # fmt: skip
+    assert help_text.returncode == 0 and "usage: torchface" in help_text.stdout, help_text.stderr[-2000:]

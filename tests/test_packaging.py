@@ -60,3 +60,25 @@ def test_the_source_distribution_carries_the_tests_and_scripts(tmp_path):
     assert "LICENSE" in names
     assert not wanted - names, sorted(wanted - names)[:10]
     assert not any(name.endswith(".pyc") for name in names)
+
+
+def test_the_wheel_marks_both_packages_typed(tmp_path):
+    # PEP 561: without a py.typed marker in the installed package, mypy skips it ("module is installed, but missing
+    # library stubs or py.typed marker") and pyright infers from the code: the annotations were not used.
+    import zipfile
+
+    pytest.importorskip("setuptools")
+    source = tmp_path / "source"
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md", "MANIFEST.in"):
+        shutil.copy(ROOT / name, source / name)
+    for package in ("torchface", "training_hooks"):
+        shutil.copytree(ROOT / package, source / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    code = "import sys, setuptools.build_meta as b; print(b.build_wheel(sys.argv[1]))"
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], cwd=source, capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    with zipfile.ZipFile(tmp_path / out.stdout.strip().splitlines()[-1]) as wheel:
+        names = set(wheel.namelist())
+    assert {"torchface/py.typed", "training_hooks/py.typed"} <= names, sorted(n for n in names if "typed" in n)
+    assert "torchface/data/candide3.wfm" in names

@@ -97,7 +97,10 @@ class ProgressDisplay:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchface`` command."""
-    parser = argparse.ArgumentParser(prog="torchface", description=__doc__.splitlines()[0])
+    # (python -OO / PYTHONOPTIMIZE=2 strips docstrings: __doc__ is None there)
+    description = (__doc__ or "The torchface command: track videos, run the demo, render a synthetic clip.")
+    description = description.splitlines()[0]
+    parser = argparse.ArgumentParser(prog="torchface", description=description)
     sub = parser.add_subparsers(dest="command", required=True)
 
     track = sub.add_parser("track", help="track the face in one or more videos")

@@ -87,7 +87,7 @@ class JobConfig:
     """Settings of a tracking job.
 
     Attributes:
-        out_dir: output folder (created if missing).
+        out_dir: output folder (created if missing); a ``str`` or any ``os.PathLike``, as the paths below.
         landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
             detector; a sequence even for one video (a single path raises TypeError).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
@@ -122,8 +122,8 @@ class JobConfig:
             tracked on without the online start.
     """
 
-    out_dir: Path
-    landmarks: tuple[Path, ...] = ()
+    out_dir: str | os.PathLike[str]
+    landmarks: tuple[str | os.PathLike[str], ...] = ()
     detector: str | None = None
     focal: float | None = None
     device: str | torch.device = "cpu"
@@ -421,11 +421,11 @@ def _rows_to_internal(params: Tensor, head_R: Tensor, head_t: Tensor, layout: Pa
 
 
 def _first_landmarks(
-    reader: FrameReader, first: Tensor, landmarks: Path | None, detector, detector_name: str | None
+    reader: FrameReader, first: Tensor, landmarks: str | os.PathLike[str] | None, detector, detector_name: str | None
 ) -> tuple[np.ndarray, str]:
     W, H = reader.info.width, reader.info.height
-    if landmarks is not None:
-        return read_landmarks(landmarks, W, H), str(landmarks)
+    if landmarks is not None:  # (str() of an os.PathLike that is not a Path, an os.DirEntry, is its repr)
+        return read_landmarks(landmarks, W, H), os.fspath(landmarks)
     points = detector(_to_uint8_rgb(first))
     if points is None:
         raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame")
@@ -439,7 +439,8 @@ def _check_unique(names: Sequence[str]) -> None:
 
 
 def _check_inputs_kept(
-    videos: Sequence[Path], names: Sequence[str], landmarks: Sequence[Path], out_dir: Path, meshes: bool
+    videos: Sequence[Path], names: Sequence[str], landmarks: Sequence[str | os.PathLike[str]], out_dir: Path,
+    meshes: bool,
 ) -> None:
     """Refuse a run whose outputs would replace what it reads: an output with the path of an input or of a
     landmarks file (``clip.csv`` beside ``clip.mp4`` with ``--out`` their folder; a fresh run deletes it before
@@ -449,7 +450,7 @@ def _check_inputs_kept(
         OutputError: naming the output and what it would replace.
     """
     read = {Path(v).resolve(): f"the input {v}" for v in videos}
-    read.update({Path(f).resolve(): f"the landmarks file {f}" for f in landmarks})
+    read.update({Path(f).resolve(): f"the landmarks file {Path(f)}" for f in landmarks})
     for v in videos:
         if v.is_dir() and v.resolve() == out_dir.resolve():
             raise OutputError(f"{out_dir}: the output folder is the image folder {v}, whose frames are every image "
@@ -536,7 +537,7 @@ def track_videos(
     _check_out_dir(out_dir)
     summaries: dict[str, VideoSummary] = {}
     pending: list[Path] = []
-    pending_lm: list[Path] = []
+    pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in videos]
     _check_unique(names)
     _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)

@@ -97,7 +97,8 @@ class DatasetConfig:
         clip_stride: frames between clip starts (default ``clip_length``: back-to-back clips).
         keep_short_clips: also yield the last, shorter clip of a video whose end no full clip reaches (and a
             video shorter than ``clip_length`` as one short clip); otherwise such frames are left out.
-        cache_dir: folder of the tracking cache (:mod:`training_hooks.cache`); None tracks every epoch.
+        cache_dir: folder of the tracking cache (:mod:`training_hooks.cache`), a ``str`` or path-like kept as a
+            ``Path``; None tracks every epoch.
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
@@ -111,7 +112,7 @@ class DatasetConfig:
     clip_length: int | None = None
     clip_stride: int | None = None
     keep_short_clips: bool = False
-    cache_dir: Path | None = None
+    cache_dir: str | os.PathLike[str] | None = None  # stored as a Path (__post_init__)
     convert: bool = False
     shuffle_buffer: int = 0
     seed: int = 0
@@ -210,7 +211,7 @@ class VideoDataset(IterableDataset):
             raise ValueError("videos is empty")
         for v in self.videos:
             self._check_source(v)
-        cache_dir = self.config.cache_dir
+        cache_dir = None if self.config.cache_dir is None else Path(self.config.cache_dir)
         if cache_dir is not None and cache_dir.exists() and not cache_dir.is_dir():
             # (found here, not after the first video has been tracked)
             raise ValueError(f"{cache_dir}: cache_dir exists and is not a folder")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import typing
 
 import cv2
 import numpy as np
@@ -530,6 +532,21 @@ def test_a_torch_device_in_the_job_config_reaches_the_sidecar(clip, tmp_path):
     config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), device=torch.device("cpu"), refine_first=None)
     assert track_videos([short], config)[0].frames == 2
     assert json.loads(output_paths(tmp_path / "out", "short")["json"].read_text())["config"]["device"] == "cpu"
+
+
+def test_job_config_paths_may_be_any_path_like(clip, tmp_path):
+    """``JobConfig``'s paths were annotated ``Path`` (a type checker refused ``out_dir="results"``), and a
+    landmarks file given as an ``os.PathLike`` that is not a Path (an ``os.DirEntry``) was recorded in the sidecar
+    as its repr, ``"<DirEntry 'first_frame.csv'>"``, not its path."""
+    video, lm, _ = clip
+    hints = typing.get_type_hints(JobConfig)
+    assert str in typing.get_args(hints["out_dir"])
+    assert os.PathLike[str] in typing.get_args(typing.get_args(hints["landmarks"])[0])
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    (entry,) = [e for e in os.scandir(lm.parent) if e.name == lm.name]
+    config = JobConfig(out_dir=str(tmp_path / "out"), landmarks=(entry,), refine_first=None)
+    assert track_videos([short], config)[0].frames == 2
+    assert json.loads(output_paths(tmp_path / "out", "short")["json"].read_text())["config"]["landmarks"] == str(lm)
 
 
 def test_parser_defaults():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import pytest
 import torch
@@ -56,3 +57,11 @@ def test_intrinsics_validation_and_frozen() -> None:
     K = torch.tensor([[50.0, 0.0, 15.5], [0.0, 50.0, 11.5], [0.0, 0.0, 1.0]], requires_grad=True)
     cam = Intrinsics(torch.tensor(32), 24, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     assert cam.width == 32 and cam.fx.requires_grad
+    # ... and so does the matrix made from them: it was rebuilt with torch.tensor(), detached (with only a warning).
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = cam.matrix(torch.float64)
+    assert back.dtype == torch.float64 and back.requires_grad
+    torch.testing.assert_close(back, K.detach().double(), rtol=0, atol=0)
+    back.sum().backward()
+    torch.testing.assert_close(K.grad, torch.tensor([[1.0, 0, 1], [0, 1, 1], [0, 0, 0]]), rtol=0, atol=0)

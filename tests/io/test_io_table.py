@@ -131,3 +131,19 @@ def test_columns_of_a_model_with_any_names_make_a_csv_that_reads_back(tmp_path):
         track_columns((), ("AU2", "AU02"), ())
     with pytest.raises(ValueError, match="no letter or digit"):
         track_columns(("--",), (), ())
+
+
+def test_to_jsonable_writes_any_path_as_its_text(tmp_path):
+    """``to_jsonable`` promises paths as text but took only ``Path``: a ``PurePosixPath`` or an ``os.DirEntry`` went
+    through unchanged and ``write_json`` raised "Object of type PurePosixPath is not JSON serializable"."""
+    import json
+    import os
+    from pathlib import PurePosixPath
+
+    from torchface.io.sidecar import to_jsonable, write_json
+
+    (tmp_path / "clip.mp4").touch()
+    (entry,) = os.scandir(tmp_path)
+    assert to_jsonable({"a": PurePosixPath("/data/a.mp4"), "b": [entry]}) == {"a": "/data/a.mp4", "b": [entry.path]}
+    write_json(tmp_path / "h.json", {"input": PurePosixPath("/data/a.mp4"), "path": tmp_path})
+    assert json.loads((tmp_path / "h.json").read_text()) == {"input": "/data/a.mp4", "path": str(tmp_path)}

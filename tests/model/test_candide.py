@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 from importlib import resources
 
 import numpy as np
@@ -118,6 +119,9 @@ def test_latin1_required_and_accepted(tmp_path):
     from_str_path = parse_wfm(str(path))
     assert any("Link\xf6ping" in h for h in from_path.header)
     np.testing.assert_array_equal(from_path.vertices, from_str_path.vertices)
+    # Any os.PathLike is a path: an os.DirEntry raised "path_or_text must be a path, the file's text or its bytes".
+    (entry,) = os.scandir(tmp_path)
+    np.testing.assert_array_equal(parse_wfm(entry).vertices, from_path.vertices)
 
 
 def test_unit_rows_and_fapu_comments(wfm):

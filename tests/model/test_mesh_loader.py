@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,15 @@ def test_path_input_no_bases_and_reflection(tmp_path):
     assert (outward_flux(rotated.mean, rotated.faces) > 0).all()
 
 
+def test_any_path_like_is_a_path(tmp_path):
+    # Only str and Path were taken as paths: an os.DirEntry (os.scandir), an os.PathLike like them, raised
+    # "TypeError: mesh must be a trimesh.Trimesh or a path to a mesh file, got DirEntry".
+    trimesh.Trimesh(TET_V, TET_F, process=False).export(tmp_path / "tet.obj")
+    (entry,) = os.scandir(tmp_path)
+    model = load_mesh_model(entry)
+    assert model.name == "tet" and torch.equal(model.mean, load_mesh_model(tmp_path / "tet.obj").mean)
+
+
 @pytest.mark.parametrize(
     "kwargs, error, message",
     [
@@ -78,6 +88,9 @@ def test_path_input_no_bases_and_reflection(tmp_path):
         ({"to_head_frame": np.eye(3) * 2}, ValueError, "orthogonal"),
         ({"scale_to_mm": 0.0}, ValueError, "positive"),
         ({"dtype": torch.int64}, TypeError, "floating"),
+        # One string where a sequence is expected was taken character by character, silently: three units named
+        # 'j', 'a', 'w' (a facs_links value that is one string is one AU: test_facs_link_given_as_one_name_is_one_au).
+        ({"blendshapes": np.zeros((3, 5, 3)), "blendshape_names": "jaw"}, TypeError, r"\('jaw',\), not one string"),
     ],
 )
 def test_bad_arguments_raise(kwargs, error, message):

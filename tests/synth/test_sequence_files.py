@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import fields
 
 import numpy as np
 import pytest
 import torch
 
-from torchface.synth.io import VideoSink, frames_to_uint8, read_video, write_video
+from torchface.synth.io import VideoSink, frames_to_uint8, iter_video_uint8, read_video, read_video_uint8, write_video
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import (
     GroundTruth,
@@ -71,6 +72,17 @@ def test_video_round_trip_is_lossless(tmp_path):
     red[:, 0] = 1.0
     write_video(tmp_path / "r.avi", red)
     torch.testing.assert_close(read_video(tmp_path / "r.avi"), red, rtol=0, atol=0)
+
+
+def test_videos_are_read_from_any_path_like(tmp_path):
+    # str() of an os.PathLike that is not a Path is its repr (an os.DirEntry's is "<DirEntry 'v.avi'>"): given to
+    # OpenCV, read_video raised "could not read any frame" and iter_video_uint8 yielded no frame, without an error.
+    frames = torch.rand(3, 3, 16, 24, generator=torch.Generator().manual_seed(0))
+    write_video(tmp_path / "v.avi", frames)
+    (entry,) = [e for e in os.scandir(tmp_path) if e.name == "v.avi"]
+    torch.testing.assert_close(read_video(entry), read_video(tmp_path / "v.avi"), rtol=0, atol=0)
+    assert read_video_uint8(entry, max_frames=2).shape == (2, 3, 16, 24)
+    assert len(list(iter_video_uint8(entry))) == 3
 
 
 def test_video_sink_is_atomic(tmp_path):

@@ -3,7 +3,10 @@ clips, landmark sources, the transform's equality with the dataset, shuffling, b
 
 from __future__ import annotations
 
+import os
+import typing
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -282,6 +285,17 @@ def test_bad_arguments(clips, tmp_path):
     (tmp_path / "cache").write_text("a file")  # refused at once (it failed after the first video was tracked)
     with pytest.raises(ValueError, match="not a folder"):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
+
+
+def test_cache_dir_annotation_takes_the_documented_str(tmp_path):
+    # The README's DatasetConfig(cache_dir="cache") worked, but the field was annotated `Path | None`: a type checker
+    # (the package ships py.typed) refused the documented call. The value is still kept as a Path.
+    hint = typing.get_type_hints(DatasetConfig)["cache_dir"]
+    assert str in typing.get_args(hint) and os.PathLike[str] in typing.get_args(hint)
+    assert DatasetConfig(cache_dir="cache").cache_dir == Path("cache")
+    (tmp_path / "c").mkdir()
+    (entry,) = os.scandir(tmp_path)
+    assert DatasetConfig(cache_dir=entry).cache_dir == tmp_path / "c"
 
 
 def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):

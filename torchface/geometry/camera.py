@@ -73,7 +73,12 @@ class Intrinsics:
         return (self.height, self.width)
 
     def matrix(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
-        """The 3x3 calibration matrix ``K``."""
+        """The 3x3 calibration matrix ``K`` (differentiable in the entries that are tensors)."""
+        entries = (self.fx, self.cx, self.fy, self.cy)
+        if any(isinstance(v, torch.Tensor) for v in entries):  # torch.tensor() would copy them without their graph
+            fx, cx, fy, cy = (torch.as_tensor(v, dtype=dtype, device=device).reshape(()) for v in entries)
+            zero, one = fx.new_zeros(()), fx.new_ones(())
+            return torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one]).reshape(3, 3)
         return torch.tensor(
             [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device
         )

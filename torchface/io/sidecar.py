@@ -47,8 +47,8 @@ def to_jsonable(value: Any) -> Any:
         return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, enum.Enum):
         return value.value if isinstance(value.value, (str, int, float)) else value.name
-    if isinstance(value, Path):
-        return str(value)
+    if isinstance(value, os.PathLike):  # any path: a PurePath or an os.DirEntry too, not only a Path
+        return os.fsdecode(value)
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

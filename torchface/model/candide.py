@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import enum
 import io
+import os
 import re
 from dataclasses import dataclass
 from importlib import resources
@@ -240,11 +241,11 @@ def _raw_lines(cur: _Lines) -> list[str]:
     return raw
 
 
-def _read_text(path_or_text: str | Path | bytes) -> str:
+def _read_text(path_or_text: str | os.PathLike[str] | bytes) -> str:
     if isinstance(path_or_text, bytes):
         return path_or_text.decode("latin-1")
-    if isinstance(path_or_text, Path):
-        return path_or_text.read_bytes().decode("latin-1")
+    if isinstance(path_or_text, os.PathLike):  # any path-like (an os.DirEntry too), not only a Path
+        return Path(path_or_text).read_bytes().decode("latin-1")
     if isinstance(path_or_text, str):
         if "\n" in path_or_text:
             return path_or_text
@@ -252,11 +253,12 @@ def _read_text(path_or_text: str | Path | bytes) -> str:
     raise TypeError(f"path_or_text must be a path, the file's text or its bytes, got {type(path_or_text).__name__}")
 
 
-def parse_wfm(path_or_text: str | Path | bytes) -> WfmFile:
+def parse_wfm(path_or_text: str | os.PathLike[str] | bytes) -> WfmFile:
     """Parse a CANDIDE ``.wfm`` file (Latin-1). Every section's size is read from its count line.
 
     Args:
-        path_or_text: a path, the file's text (anything containing a newline), or its raw bytes.
+        path_or_text: a path (a ``str`` without a newline or any ``os.PathLike``), the file's text (anything
+            containing a newline), or its raw bytes.
 
     Returns:
         The file content in file coordinates (see :class:`WfmFile`).

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -78,6 +79,8 @@ def _as_basis(value: object, what: str, num_v: int) -> np.ndarray:
 def _as_names(names: Sequence[str] | None, count: int, what: str, prefix: str) -> tuple[str, ...]:
     if names is None:
         return tuple(f"{prefix}{i}" for i in range(count))
+    if isinstance(names, str):  # a str is a Sequence[str]: its characters were taken as the names
+        raise TypeError(f"{what} must be a sequence of names, e.g. ({names!r},), not one string")
     names = tuple(str(n) for n in names)
     if len(names) != count:
         raise ValueError(f"{what} must hold {count} names (one per unit), got {len(names)}")
@@ -197,9 +200,9 @@ def load_mesh_model(
     are built from that view, and such a model was tracked with its head turned 180 degrees, then lost.
 
     Args:
-        mesh: a ``trimesh.Trimesh`` or a path to any file trimesh reads (loaded with ``process=False``;
-            OBJ files also with ``maintain_order=True`` so that vertices keep the file's order and count,
-            which trimesh otherwise splits at texture seams and prunes when unreferenced).
+        mesh: a ``trimesh.Trimesh`` or a path (``str`` or any ``os.PathLike``) to any file trimesh reads (loaded
+            with ``process=False``; OBJ files also with ``maintain_order=True`` so that vertices keep the file's
+            order and count, which trimesh otherwise splits at texture seams and prunes when unreferenced).
         blendshapes: ``(A, V, 3)`` animation displacements per unit weight (mesh units and frame: a target
             shape minus the neutral mesh; a whole target mesh is refused), or ``None``.
         blendshape_names: ``A`` names (default ``"blendshape{i}"``).
@@ -225,8 +228,9 @@ def load_mesh_model(
         The model; ``A = 0`` and ``S = 0`` give ``(0, V, 3)`` bases.
 
     Raises:
-        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a ``facs_links``
-            value is neither an AU name nor a collection of them, ``scale_to_mm`` is not a number, or
+        TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a name list is
+            one string (a sequence of names is expected), a ``facs_links`` value is neither an AU name nor a
+            collection of them, ``scale_to_mm`` is not a number, or
             ``landmark_vertices`` are not integers.
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
             (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D or holds
@@ -245,12 +249,12 @@ def load_mesh_model(
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
     obj_vertices = None
-    if isinstance(mesh, (str, Path)):
+    if isinstance(mesh, (str, os.PathLike)):  # any path-like (an os.DirEntry too), not only a Path
         default_name = Path(mesh).stem
         is_obj = Path(mesh).suffix.lower() == ".obj"
         options = {"maintain_order": True, "skip_materials": True} if is_obj else {}
         obj_vertices = _obj_vertices(Path(mesh)) if is_obj else None
-        mesh = trimesh.load(str(mesh), process=False, force="mesh", **options)
+        mesh = trimesh.load(os.fspath(mesh), process=False, force="mesh", **options)
     else:
         default_name = "mesh"
     if not isinstance(mesh, trimesh.Trimesh):

@@ -123,7 +123,7 @@ def read_video_uint8(path: str | os.PathLike[str], max_frames: int | None = None
     """Read a video into ``(T, 3, H, W)`` uint8 RGB (a quarter of the memory of :func:`read_video`)."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"no video at {path}")
-    cap = cv2.VideoCapture(str(path))
+    cap = cv2.VideoCapture(os.fspath(path))  # str() of a PathLike that is not a Path is its repr
     frames: list[np.ndarray] = []
     try:
         while max_frames is None or len(frames) < max_frames:
@@ -146,7 +146,7 @@ def iter_video_uint8(path: str | os.PathLike[str]) -> Iterator[Tensor]:
     """
     if not Path(path).is_file():
         raise FileNotFoundError(f"no video at {path}")
-    cap = cv2.VideoCapture(str(path))
+    cap = cv2.VideoCapture(os.fspath(path))
     try:
         while True:
             ok, img = cap.read()
