@@ -52,7 +52,7 @@ def render_videos(root: Path, count: int, frames: int, width: int, height: int) 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--videos", type=int, default=8)
     parser.add_argument("--frames", type=int, default=24, help="frames per video")
     parser.add_argument("--width", type=int, default=320)

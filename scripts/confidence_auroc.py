@@ -142,7 +142,7 @@ def report(label: str, data: dict[str, np.ndarray], good: float, bad: float) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--scenarios", default="all", help=f"comma list from {', '.join(SCENARIOS)} (default all)")
     parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {VARIANTS}")
     parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")

@@ -784,7 +784,7 @@ def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument(
         "--scenarios", "--only", default="all",
         help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long; none (with --add-series)",

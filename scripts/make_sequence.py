@@ -25,7 +25,7 @@ from torchface.synth.sequence import write_sequence
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument(
         "--scenario", default="all",
         help=f"one of {', '.join(ALL_SCENARIOS)}, 'all' (the standard five), 'long' or 'everything'",

@@ -47,7 +47,7 @@ def draw(image: np.ndarray, pts: np.ndarray, visible: np.ndarray, scale: int) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("video", type=Path, help="a video written by make_sequence.py (its .gt.npz beside it)")
     parser.add_argument("--frames", type=int, nargs="*", help="frame indices (default: 0, middle, extremes)")
     parser.add_argument("--scale", type=int, default=0, help="upscaling factor (default: to about 640 px wide)")

@@ -48,7 +48,7 @@ GRID = Path(__file__).resolve().parents[2] / "shared" / "assets" / "grid"
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips")
     parser.add_argument("--landmarks-dir", type=Path, default=None, help="folder of <stem>.csv first-frame landmarks")
     parser.add_argument("--detector", default=None, help="detector name when no landmarks folder is given")

@@ -75,3 +75,26 @@ def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, cap
     import numpy as np
 
     assert peers.run_mediapipe(np.zeros((1, 8, 8, 3), np.uint8), str(tmp_path / "nope")) is None
+
+
+def test_every_script_answers_help_without_docstrings():
+    """``python -OO`` (``PYTHONOPTIMIZE=2``, set in some container images) strips docstrings: the scripts built
+    their description from ``__doc__.splitlines()`` and failed with an AttributeError before printing anything."""
+    import subprocess
+
+    code = (
+        "import runpy, sys\n"
+        "for path in sys.argv[1:]:\n"
+        "    sys.argv = [path, '--help']\n"
+        "    try:\n"
+        "        runpy.run_path(path, run_name='__main__')\n"
+        "    except SystemExit as exc:\n"
+        "        assert exc.code in (0, None), (path, exc.code)\n"
+        "    else:\n"
+        "        raise AssertionError(path + ': --help did not exit')\n"
+    )
+    scripts = sorted(str(p) for p in SCRIPTS.glob("*.py") if "ArgumentParser(" in p.read_text())  # the commands
+    out = subprocess.run([sys.executable, "-OO", "-c", code, *scripts], capture_output=True, text=True, timeout=300,
+                         cwd=SCRIPTS.parent)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.count("usage:") == len(scripts)
