@@ -80,6 +80,8 @@ def test_resume_drops_a_cut_row_and_appends(tmp_path):
     (tmp_path / "w.csv.partial").write_text("a,b\n1,2\n")
     with pytest.raises(InputError, match="columns differ"):
         TrackCsvWriter(tmp_path / "w.csv", cols, resume=True)
+    with pytest.raises(TypeError, match="one string"):  # its characters were taken as the columns
+        TrackCsvWriter(tmp_path / "s.csv", "frame,a")
 
 
 def test_rotation_columns_match_axis_angle():

@@ -425,6 +425,8 @@ def test_face_tracker_module(model, two_streams, l2_runs):
         tracker(frames[:, 1])
     with pytest.raises(TypeError, match="TrackerConfig"):
         FaceTracker(config={"num_levels": 2}, model=model)
+    with pytest.raises(TypeError, match="model must be a FaceModel"):  # was an AttributeError at initialise
+        FaceTracker(model="candide3")
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
         tracker.initialise(frames[0, 0], landmarks_of(gts))
 

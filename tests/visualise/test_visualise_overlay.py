@@ -59,6 +59,8 @@ def test_plot_track_writes_png(tmp_path):
     ])  # fmt: skip
     p = plot_track(cols, rows, tmp_path / "plot.png", title="t")
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.partial*"))
+    with pytest.raises(TypeError, match="one string"):  # its characters were taken as nine columns
+        plot_track(",".join(cols), rows, tmp_path / "s.png")
     with pytest.raises(ValueError, match="yaw_deg"):
         plot_track(("frame", "timestamp"), np.zeros((2, 2)), tmp_path / "x.png")
     # the suffix names the format (PNG bytes were written whatever it said); none: PNG

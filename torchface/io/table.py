@@ -231,6 +231,8 @@ class TrackCsvWriter:
 
     def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...], resume: bool = False) -> None:
         self.path = Path(path)
+        if isinstance(columns, str):  # its characters were taken as the columns
+            raise TypeError(f"columns must be a tuple of column names, got one string {columns[:40]!r}")
         self.columns = tuple(columns)
         self.partial = partial_path(self.path)
         self.rows_done = 0

@@ -52,6 +52,8 @@ class FaceTracker(nn.Module):
             raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
         if detector is not None and not callable(detector):
             raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
+        if model is not None and not isinstance(model, FaceModel):
+            raise TypeError(f"model must be a FaceModel or None (CANDIDE-3), got {type(model).__name__}")
         self.model = load_candide3() if model is None else model
         self.detector = detector
         if refine_first is not None and not isinstance(refine_first, LookaheadConfig):

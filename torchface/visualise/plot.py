@@ -35,6 +35,8 @@ def plot_track(
         title: figure title.
         num_aus: how many ``AUxx_r`` columns to show (those that vary most).
     """
+    if isinstance(columns, str):  # its characters were taken as the columns
+        raise TypeError(f"columns must be a tuple of column names, got one string {columns[:40]!r}")
     rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
     idx = {c: i for i, c in enumerate(columns)}
     for need in ("timestamp", "yaw_deg", "pitch_deg", "roll_deg", "confidence", "success"):
