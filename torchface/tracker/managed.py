@@ -622,7 +622,7 @@ def _recovery_starts(
 def _recover(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
     detector: LandmarkDetector | None, depth_scales: list[float],
-) -> tuple[Tensor, TrackerState, TrackResult, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, TrackerState, TrackResult, Tensor, Tensor, Tensor, Tensor]:
     """Re-initialise the lost streams ``index``: candidates, a normal solve from each, their confidence.
 
     Returns:
