@@ -740,6 +740,32 @@ def test_native_candidates_give_the_torch_codes_selection(scene, min_facing_cos,
     assert chosen > 1000
 
 
+def test_non_finite_pixels_are_no_template_points_torch_and_native(scene):
+    """A float frame's inf or NaN pixels on the face (a mosaic entry made from such a frame) gave template points
+    with an infinite intensity or gradient, dead points of every solve: neither backend selects them or their
+    neighbours now, and the finite pixels' selection is unchanged."""
+    from torchface import _native
+    from torchface.backend import Backend
+
+    s = scene
+    posed = posed_mesh(s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    gray = s["gray"].clone()
+    gray[0, 0, 50:53, 70:73] = float("inf")
+    gray[0, 0, 60, 90] = float("-inf")
+    gray[1, 0, 55:57, 80:82] = float("nan")
+    backends = [Backend.TORCH] + ([Backend.NATIVE] if _native.library() is not None else [])
+    kw = dict(max_points=H * W, gradient_threshold=0.0)
+    for backend in backends:
+        px = select_pixels_posed(s["model"], posed, gray, s["cam"], None, backend=backend, **kw)
+        clean = select_pixels_posed(s["model"], posed, s["gray"], s["cam"], None, backend=backend, **kw)
+        assert bool(torch.isfinite(px.intensity[px.valid]).all()), backend
+        assert 0 < int(px.valid.sum()) < int(clean.valid.sum()), backend  # the face was there: only they went
+    if len(backends) == 2:
+        nat, ref = (select_pixels_posed(s["model"], posed, gray, s["cam"], None, backend=b, **kw) for b in backends)
+        for f in ("face_index", "bary", "valid"):
+            assert torch.equal(getattr(nat, f), getattr(ref, f)), f
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_native_template_at_is_the_torch_codes_with_its_point_last_copies(scene, dtype):
     """The native interpolation (``torchface/_native/template_at.h``) gives the torch code's template (positions and

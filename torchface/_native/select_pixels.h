@@ -60,7 +60,7 @@ int FN(tf_select_pixels)(const TFSelectProblem *p, int b0, int b1) {
                 gu *= (REAL)0.5;
                 gv *= (REAL)0.5;
                 REAL mag = (REAL)sqrt((double)(gu * gu + gv * gv));
-                cand[i] = mag >= threshold;
+                cand[i] = mag >= threshold && isfinite(mag) && isfinite(g[i]);  /* non-finite: no point */
             }
         /* each triangle's lower bound on the facing cosine: the smallest -n_i . r_j over its corners' unit normals
          * and unit directions from the camera; a triangle whose bound clears the threshold passes whole */

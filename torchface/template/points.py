@@ -377,7 +377,10 @@ def select_pixels_posed(
     if grads is None:
         grads = image_with_gradients(gray)[:, 1:]
     gmag = grads.pow(2).sum(1).sqrt()
-    candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold)
+    # A non-finite pixel (a float frame's inf or NaN), or one beside it, is no template point: its intensity or its
+    # gradient would be inf/NaN, a dead point of every solve and search (NaN compares False, so only inf is tested).
+    candidate = _erode(mask, erode_pixels) & (gmag >= gradient_threshold) & torch.isfinite(gmag)
+    candidate &= torch.isfinite(gray[:, 0])
     # Grazing facets sample the image badly: keep points whose normal faces the viewing ray. The normal is only
     # interpolated at the pixels still candidates (every sample's, listed together), not over the whole window,
     # with their barycentric coordinates alone, and only on the triangles that some of their points may fail:
