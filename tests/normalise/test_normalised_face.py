@@ -597,3 +597,15 @@ def test_nan_frame_pixels_are_masked_as_not_seen_torch_and_native(model, layout,
         assert bool((out.mask <= ref.mask).all())
         seen = out.mask.expand_as(out.image) > 0
         assert torch.equal(out.image[seen], ref.image[seen]) and out.image[~seen].eq(0).all()
+
+
+def test_a_model_wound_inward_is_told_what_the_canonical_view_needs():
+    """A FaceModel built directly (not through load_mesh_model, which checks it) with its triangles wound inward:
+    the error said "degenerate model?"; it says what the canonical view needs."""
+    from torchface.normalise.face import build_normalised_layout
+
+    model = load_candide3()
+    inward = dataclasses.replace(model, faces=model.faces.flip(-1).contiguous())
+    with pytest.raises(ValueError, match="wound outward"):
+        build_normalised_layout(inward, size=32)
+    assert build_normalised_layout(model, size=32) is not None

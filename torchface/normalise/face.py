@@ -278,7 +278,11 @@ def build_normalised_layout(
     seen = (frags.pix_to_face[0] >= 0) & (frags.facing[0] > 0)
     pixel_index = seen.reshape(-1).nonzero().squeeze(-1)
     if pixel_index.numel() == 0:
-        raise ValueError("no pixel of the canonical view sees the face (degenerate model?)")
+        raise ValueError(
+            "no pixel of the canonical (frontal) view sees the face: the model's triangles must be wound outward and "
+            "its face look toward -z in the head frame (torchface.conventions; load_mesh_model checks both), and "
+            "not all be degenerate"
+        )
     face_index = frags.pix_to_face[0].reshape(-1)[pixel_index]
     bary = frags.bary[0].reshape(-1, 3)[pixel_index].detach()
     return NormalisedFaceLayout(
