@@ -45,7 +45,8 @@ def test_overlay_landmarks_keeps_only_the_picked_frames(tmp_path, capsys):
     overlay = _load("overlay_landmarks")
     tracemalloc.start()
     try:
-        assert overlay.main([str(files.video), "--frames", "0", "39", "--scale", "1", "--out", str(tmp_path / "ov")]) == 0
+        args = [str(files.video), "--frames", "0", "39", "--scale", "1", "--out", str(tmp_path / "ov")]
+        assert overlay.main(args) == 0
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
