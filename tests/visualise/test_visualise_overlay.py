@@ -50,6 +50,28 @@ def test_draw_overlay_draws_and_keeps_input():
     assert (draw_overlay(img, verts, edges, axes, float("nan"), True)[bar] == 60).all()  # NaN: no bar (was full)
 
 
+def test_nothing_behind_the_camera_or_non_finite_is_drawn():
+    """A head behind the camera draws no wireframe and no axes (its clamped projection put the head origin at the
+    image's centre, with axes and lines across the image), and an edge with a NaN end is not drawn (it became a
+    line toward a far corner)."""
+    model = load_candide3()
+    intr = Intrinsics.default(160, 120)
+    shape, anim = torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation)
+    verts_px, axes_px = overlay_geometry(model, shape, anim, torch.eye(3)[None], torch.tensor([[0.0, 0.0, -500.0]]),
+                                         intr)  # fmt: skip
+    assert torch.isnan(verts_px).all() and torch.isnan(axes_px).all()
+    img = np.zeros((120, 160, 3), np.uint8)
+    out = draw_overlay(img, verts_px[0].numpy(), mesh_edges(model.faces), axes_px[0].numpy(), 0.5, False)
+    assert not out[:90].any()  # only the text and the bar, at the bottom
+    front, _ = overlay_geometry(model, shape, anim, torch.eye(3)[None], torch.tensor([[0.0, 0.0, 500.0]]), intr)
+    assert torch.isfinite(front).all()  # (in front: as before)
+    verts = np.array([[20.0, 60.0], [60.0, 60.0], [np.nan, np.nan]])
+    no_axes = np.full((4, 2), np.nan)
+    out = draw_overlay(img, verts, np.array([[0, 1], [1, 2]]), no_axes, 0.5, True)
+    drawn = out[:90].any(-1)
+    assert drawn[60, 40] and drawn.sum() < 200, drawn.sum()  # the finite edge, nothing toward a corner
+
+
 def test_plot_track_writes_png(tmp_path):
     cols = ("frame", "timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r", "AU2_r")
     T = 20
