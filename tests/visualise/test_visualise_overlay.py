@@ -50,6 +50,20 @@ def test_draw_overlay_draws_and_keeps_input():
     assert (draw_overlay(img, verts, edges, axes, float("nan"), True)[bar] == 60).all()  # NaN: no bar (was full)
 
 
+def test_confidence_bar_is_the_confidences_share_of_its_track():
+    """The bar covers round(confidence * (W // 4)) of the track's W // 4 pixels: none at 0 or NaN (a 1-pixel bar
+    was drawn) and half at 0.5 (it was one pixel longer than its share)."""
+    img = np.zeros((120, 160, 3), np.uint8)
+    row = 120 - 7  # a row of the bar (rows H - 10 .. H - 4)
+    nothing, axes = np.zeros((0, 2)), np.full((4, 2), np.nan)
+    cases = ((0.0, False, 0), (float("nan"), True, 0), (0.5, True, 20), (1.0, True, 40), (0.25, False, 10))
+    for conf, ok, want in cases:
+        out = draw_overlay(img, nothing, np.zeros((0, 2), np.int64), axes, conf, ok)
+        colour = (0, 200, 255) if ok else (0, 0, 255)
+        assert int((out[row] == colour).all(-1).sum()) == want, (conf, ok)
+        assert int((out[row] == 60).all(-1).sum()) == 40 - want, (conf, ok)  # the track's rest
+
+
 def test_nothing_behind_the_camera_or_non_finite_is_drawn():
     """A head behind the camera draws no wireframe and no axes (its clamped projection put the head origin at the
     image's centre, with axes and lines across the image), and an edge with a NaN end is not drawn (it became a

@@ -105,8 +105,11 @@ def draw_overlay(
     scale = max(0.35, min(W, H) / 600.0)
     text = f"{label} {confidence_label} {confidence:.2f}" + ("" if success else " LOST")
     bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4))) if math.isfinite(confidence) else 0  # NaN: none
-    cv2.rectangle(out, (4, H - 10), (4 + W // 4, H - 4), (60, 60, 60), -1)
-    cv2.rectangle(out, (4, H - 10), (4 + bar, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
+    # (rectangles include both corners: the track is W // 4 pixels wide and the bar `bar`; a confidence of 0 or NaN
+    # drew a 1-pixel bar, and every bar was one pixel longer than its share)
+    cv2.rectangle(out, (4, H - 10), (4 + W // 4 - 1, H - 4), (60, 60, 60), -1)
+    if bar > 0:
+        cv2.rectangle(out, (4, H - 10), (4 + bar - 1, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
     (tw, th), base = cv2.getTextSize(text.strip(), cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
     cv2.rectangle(out, (2, H - 16 - th - 3), (8 + tw, H - 16 + base), (0, 0, 0), -1)
     cv2.putText(out, text.strip(), (4, H - 16), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
