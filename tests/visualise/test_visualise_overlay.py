@@ -104,6 +104,22 @@ def test_plot_track_writes_png(tmp_path):
     assert sorted(f.name for f in tmp_path.iterdir()) == ["plot", "plot.pdf", "plot.png", "plot.svg"]
 
 
+def test_plot_track_num_aus_zero_shows_none_and_negative_is_refused(tmp_path):
+    """``num_aus=0`` plots no AU and warns of nothing (matplotlib warned of an empty legend); a negative count is a
+    ValueError (-1 silently plotted every AU but one)."""
+    import warnings
+
+    cols = ("timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r", "AU02_r")
+    rows = np.column_stack([np.arange(5) / 25, np.ones(5), np.ones(5), *np.zeros((3, 5)), np.arange(5), -np.arange(5)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert plot_track(cols, rows, tmp_path / "p.png", num_aus=0).is_file()
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="num_aus"):
+            plot_track(cols, rows, tmp_path / "q.png", num_aus=bad)
+    assert not (tmp_path / "q.png").exists()
+
+
 def test_plot_track_leaves_the_callers_matplotlib_backend_and_figures_alone(tmp_path):
     """A caller's backend (a notebook's inline one; svg stands for it) and open figures are kept: the plot used
     to switch the process's backend to Agg (``matplotlib.use``), so the caller's later figures were not shown."""
