@@ -20,7 +20,7 @@ import torch
 
 from torchface.geometry.projection import project_points
 from torchface.geometry.transforms import transform_points
-from torchface.synth.io import frames_to_uint8, read_video
+from torchface.synth.io import frames_to_uint8, iter_video_uint8
 from torchface.synth.sequence import load_ground_truth
 
 # iBUG-68 polylines: (start, end, closed).
@@ -63,17 +63,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.video}: no ground truth beside it (a video written by make_sequence.py): {exc}")
     if args.frames and any(not 0 <= f < gt.num_frames for f in args.frames):
         parser.error(f"--frames must be in 0..{gt.num_frames - 1}, got {args.frames}")
-    frames = read_video(args.video)
-    if frames.shape[0] != gt.num_frames:
-        raise SystemExit(f"video has {frames.shape[0]} frames, ground truth {gt.num_frames}")
+    picks = args.frames if args.frames else pick_frames(gt.ypr_deg)
+    kept, count = {}, 0  # only the picked frames are kept (a 3000-frame long run read whole took ~25 GB)
+    for count, frame in enumerate(iter_video_uint8(args.video), start=1):
+        if count - 1 in picks:
+            kept[count - 1] = frame
+    if count != gt.num_frames:
+        raise SystemExit(f"video has {count} frames, ground truth {gt.num_frames}")
     lm_cam = transform_points(gt.rotation, gt.translation, gt.landmarks_3d)
     reproj = project_points(lm_cam, gt.intrinsics)
     err = (reproj - gt.landmarks_px).norm(dim=-1).max().item()
     print(f"{gt.name}: max |reprojected - landmarks_px| = {err:.2e} px over {gt.num_frames} frames")
     scale = args.scale or max(1, round(640 / gt.intrinsics.width))
     args.out.mkdir(parents=True, exist_ok=True)
-    picks = args.frames if args.frames else pick_frames(gt.ypr_deg)
-    images = frames_to_uint8(frames[picks])
+    images = frames_to_uint8(torch.cat([kept[i] for i in picks]))
     for i, img in zip(picks, images):
         out = draw(np.ascontiguousarray(img), reproj[i].numpy(), gt.landmarks_visible[i].numpy(), scale)
         ypr = gt.ypr_deg[i].tolist()

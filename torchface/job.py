@@ -364,7 +364,7 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
     result's (the rows' frame), so that the rest is tracked from the same templates and the rows go on in the same
-    frame."""
+    frame, and the shape the rows before the re-anchoring were tracked with (their mesh is re-drawn with it)."""
     tmp = path.with_name(path.name + ".tmp")
     record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings}
     tmp.write_text(json.dumps(record), encoding="utf-8")
@@ -595,6 +595,13 @@ def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, dict[str, li
     return LandmarkFit(**fields)
 
 
+def _before_anchor(s: _Stream, t: int) -> bool:
+    """Whether row ``t`` of a resumed stream precedes its recorded re-anchoring (those rows place the mesh with their
+    own pose and the first shape; False when the record does not say: one of an earlier version)."""
+    a = s.anchor
+    return a is not None and a.get("frame") is not None and a.get("first_shape_coeffs") is not None and t < a["frame"]
+
+
 def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, dict[str, list]]]) -> TrackerState:
     """``state`` whose recorded streams carry their re-anchoring offsets (the others the identity)."""
     ms = state.management
@@ -686,6 +693,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
             "axis_angle": matrix_to_axis_angle(R0c[None])[0].tolist(), "translation": t0c.tolist(),
             "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": neutral[k].tolist(),
             "head_rotation": D.tolist(), "head_translation": d.tolist(), "frame": frame,
+            "first_shape_coeffs": s.first_shape,  # the rows before ``frame`` place the mesh with it
         }  # fmt: skip
         _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings)
 
@@ -760,6 +768,8 @@ def _track_group(
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
+            if k in anchored and streams[k].anchor.get("first_shape_coeffs") is not None:  # resumed from the record
+                s.first_shape = list(streams[k].anchor["first_shape_coeffs"])  # (the state's: the refined shape)
         recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
@@ -770,17 +780,30 @@ def _track_group(
                 idx = [k for k, r in enumerate(replaying) if r]
                 rows = np.stack([streams[k].replay[t] for k in idx])
                 params = state.params.clone()
-                replayed = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
+                own = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
+                replayed = own
                 ms = state.management
                 if ms is not None and ms.head_rotation is not None:  # re-anchored streams: their own frame
-                    replayed = _rows_to_internal(replayed, ms.head_rotation[idx].to(dtype),
+                    replayed = _rows_to_internal(own, ms.head_rotation[idx].to(dtype),
                                                  ms.head_translation[idx].to(dtype), layout)  # fmt: skip
                 params[idx] = replayed
                 state = replace(state, params=params)
                 ended = [(k, streams[k].replay) for k in idx if t == len(streams[k].replay) - 1]
                 state = _with_replayed_loss(state, ended, columns, layout, config.tracker)
+            drawn = state  # what the outputs of frame t show (the state, but for replayed rows before a re-anchoring)
+            if any(replaying):
+                # rows before the re-anchoring frame place the mesh with their own pose and the first shape (as the
+                # interrupted run drew them; they were drawn re-anchored, with the refined shape, off the face)
+                early = [i for i, k in enumerate(idx) if _before_anchor(streams[k], t)]
+                if early:
+                    draw_params, draw_shape = state.params.clone(), state.shape_coeffs.clone()
+                    for i in early:
+                        draw_params[idx[i]] = own[i]
+                        draw_shape[idx[i]] = torch.as_tensor(streams[idx[i]].first_shape, dtype=draw_shape.dtype,
+                                                             device=draw_shape.device)  # fmt: skip
+                    drawn = replace(state, params=draw_params, shape_coeffs=draw_shape)
             new_rows = result_rows(result, np.full(B, t), 1.0)
-            _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
+            _write_step(model, drawn, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
                         normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below,
                         "dissim. conf" if config.tracker.template.enabled else "conf")  # fmt: skip
             if detector is not None and config.redetect_after > 0:

@@ -417,6 +417,31 @@ def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, ful
     np.testing.assert_allclose(shape, shape_ref, rtol=0, atol=1e-6)
 
 
+def test_resume_after_the_reanchoring_draws_the_first_rows_as_the_uninterrupted_run(clip, tmp_path):
+    """A resumed re-anchored stream places the mesh of its rows before the re-anchoring frame (overlay, normalised
+    face, PLY) with their own pose and the first shape, as the uninterrupted run and the sidecar say, and its
+    sidecar's ``first_shape_coeffs`` is the first fit's. (They were drawn with the re-anchoring offset applied and
+    the refined shape, about 1 px off at 160x120, and the sidecar gave the refined shape as the first one.)"""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 8)
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    track_videos([short], JobConfig(out_dir=ref, landmarks=(lm,), meshes=True))
+    start_ref = json.loads((ref / "short.json").read_text())["start"]
+    at = start_ref["reanchored_at_frame"]
+    assert isinstance(at, int) and 0 < at < 7, "the clip's stream is re-anchored before the interruption"
+    _interrupted(short, out, lm, 7, meshes=True)
+    assert json.loads((out / "short.record.partial").read_text())["anchor"] is not None
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), meshes=True, resume=True))
+    start = json.loads((out / "short.json").read_text())["start"]
+    np.testing.assert_allclose(start["first_shape_coeffs"], start_ref["first_shape_coeffs"], rtol=0, atol=1e-9)
+    import trimesh
+
+    for f in [f for f in range(7) if f != at]:  # (the re-anchoring frame's refined pose is not in the CSV)
+        got = trimesh.load(out / "short_meshes" / f"{f:06d}.ply", process=False).vertices
+        want = trimesh.load(ref / "short_meshes" / f"{f:06d}.ply", process=False).vertices
+        assert np.abs(got - want).max() < 1e-2, (f, np.abs(got - want).max())  # mm (the CSV's float precision)
+
+
 def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
     """A run interrupted while its face is lost (or about to be: frames of noise after the clip's first frames) and
     resumed reports the frames after the interruption as the uninterrupted run does: LOST. (The resumed stream used

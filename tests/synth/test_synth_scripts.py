@@ -33,6 +33,30 @@ def test_make_sequence_then_overlay(tmp_path, capsys):
     assert img is not None and img.shape[1] == 640  # upscaled to about 640 px wide
 
 
+def test_overlay_landmarks_keeps_only_the_picked_frames(tmp_path, capsys):
+    """The script holds the frames it draws, not the whole video: it read every frame as float32 (a 3000-frame
+    640x480 long run: about 25 GB at its peak; 240 frames: 2 GB). Measured with tracemalloc (numpy's buffers)."""
+    import tracemalloc
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import write_sequence
+
+    files = write_sequence(make_scenario("expressions", 40, 320, 240), tmp_path / "seq")  # 9.2 MB of uint8 frames
+    overlay = _load("overlay_landmarks")
+    tracemalloc.start()
+    try:
+        args = [str(files.video), "--frames", "0", "39", "--scale", "1", "--out", str(tmp_path / "ov")]
+        assert overlay.main(args) == 0
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4e6, peak  # (18.6 MB before)
+    for f in (0, 39):  # both drawn, at the video's size
+        img = cv2.imread(str(tmp_path / "ov" / f"expressions_{f:04d}.png"))
+        assert img is not None and img.shape == (240, 320, 3), f
+    assert "over 40 frames" in capsys.readouterr().out
+
+
 def test_make_sequence_writes_a_long_scenario(tmp_path, capsys):
     """The long runs are reachable by name (their timeline needs at least 100 frames)."""
     make = _load("make_sequence")

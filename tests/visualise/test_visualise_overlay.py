@@ -50,6 +50,42 @@ def test_draw_overlay_draws_and_keeps_input():
     assert (draw_overlay(img, verts, edges, axes, float("nan"), True)[bar] == 60).all()  # NaN: no bar (was full)
 
 
+def test_confidence_bar_is_the_confidences_share_of_its_track():
+    """The bar covers round(confidence * (W // 4)) of the track's W // 4 pixels: none at 0 or NaN (a 1-pixel bar
+    was drawn) and half at 0.5 (it was one pixel longer than its share)."""
+    img = np.zeros((120, 160, 3), np.uint8)
+    row = 120 - 7  # a row of the bar (rows H - 10 .. H - 4)
+    nothing, axes = np.zeros((0, 2)), np.full((4, 2), np.nan)
+    cases = ((0.0, False, 0), (float("nan"), True, 0), (0.5, True, 20), (1.0, True, 40), (0.25, False, 10))
+    for conf, ok, want in cases:
+        out = draw_overlay(img, nothing, np.zeros((0, 2), np.int64), axes, conf, ok)
+        colour = (0, 200, 255) if ok else (0, 0, 255)
+        assert int((out[row] == colour).all(-1).sum()) == want, (conf, ok)
+        assert int((out[row] == 60).all(-1).sum()) == 40 - want, (conf, ok)  # the track's rest
+
+
+def test_nothing_behind_the_camera_or_non_finite_is_drawn():
+    """A head behind the camera draws no wireframe and no axes (its clamped projection put the head origin at the
+    image's centre, with axes and lines across the image), and an edge with a NaN end is not drawn (it became a
+    line toward a far corner)."""
+    model = load_candide3()
+    intr = Intrinsics.default(160, 120)
+    shape, anim = torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation)
+    verts_px, axes_px = overlay_geometry(model, shape, anim, torch.eye(3)[None], torch.tensor([[0.0, 0.0, -500.0]]),
+                                         intr)  # fmt: skip
+    assert torch.isnan(verts_px).all() and torch.isnan(axes_px).all()
+    img = np.zeros((120, 160, 3), np.uint8)
+    out = draw_overlay(img, verts_px[0].numpy(), mesh_edges(model.faces), axes_px[0].numpy(), 0.5, False)
+    assert not out[:90].any()  # only the text and the bar, at the bottom
+    front, _ = overlay_geometry(model, shape, anim, torch.eye(3)[None], torch.tensor([[0.0, 0.0, 500.0]]), intr)
+    assert torch.isfinite(front).all()  # (in front: as before)
+    verts = np.array([[20.0, 60.0], [60.0, 60.0], [np.nan, np.nan]])
+    no_axes = np.full((4, 2), np.nan)
+    out = draw_overlay(img, verts, np.array([[0, 1], [1, 2]]), no_axes, 0.5, True)
+    drawn = out[:90].any(-1)
+    assert drawn[60, 40] and drawn.sum() < 200, drawn.sum()  # the finite edge, nothing toward a corner
+
+
 def test_plot_track_writes_png(tmp_path):
     cols = ("frame", "timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r", "AU2_r")
     T = 20
@@ -68,6 +104,22 @@ def test_plot_track_writes_png(tmp_path):
     assert b"<svg" in plot_track(cols, rows, tmp_path / "plot.svg").read_bytes()[:1000]
     assert plot_track(cols, rows, tmp_path / "plot").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(f.name for f in tmp_path.iterdir()) == ["plot", "plot.pdf", "plot.png", "plot.svg"]
+
+
+def test_plot_track_num_aus_zero_shows_none_and_negative_is_refused(tmp_path):
+    """``num_aus=0`` plots no AU and warns of nothing (matplotlib warned of an empty legend); a negative count is a
+    ValueError (-1 silently plotted every AU but one)."""
+    import warnings
+
+    cols = ("timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r", "AU02_r")
+    rows = np.column_stack([np.arange(5) / 25, np.ones(5), np.ones(5), *np.zeros((3, 5)), np.arange(5), -np.arange(5)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert plot_track(cols, rows, tmp_path / "p.png", num_aus=0).is_file()
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="num_aus"):
+            plot_track(cols, rows, tmp_path / "q.png", num_aus=bad)
+    assert not (tmp_path / "q.png").exists()
 
 
 def test_plot_track_leaves_the_callers_matplotlib_backend_and_figures_alone(tmp_path):

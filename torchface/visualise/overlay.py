@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.model.face_model import FaceModel
@@ -46,17 +47,23 @@ def overlay_geometry(
 
     Returns:
         ``verts_px (B, V, 2)`` and ``axes_px (B, 4, 2)`` (head origin, then the ends of its +x, +y, +z axes of
-        :data:`AXIS_LENGTH_MM`), pixels; points behind the camera come out non-finite-free but off-image.
+        :data:`AXIS_LENGTH_MM`), pixels; points behind the camera (nearer than
+        :data:`~torchface.conventions.NEAR_PLANE_MM`) are NaN, which :func:`draw_overlay` does not draw (their
+        clamped projection landed anywhere, the image's centre for a point on the optical axis).
     """
     verts = model.deform(shape_coeffs, anim_coeffs)  # (B, V, 3)
     verts_cam = torch.matmul(verts, rotation.transpose(1, 2)) + translation.unsqueeze(1)
     axes = torch.cat([torch.zeros(1, 3), torch.eye(3) * AXIS_LENGTH_MM]).to(verts)  # (4, 3)
     axes_cam = torch.matmul(axes, rotation.transpose(1, 2)) + translation.unsqueeze(1)
-    return project_points(verts_cam, intrinsics), project_points(axes_cam, intrinsics)
+    out = []
+    for cam in (verts_cam, axes_cam):
+        px = project_points(cam, intrinsics)
+        out.append(torch.where((cam[..., 2:] > NEAR_PLANE_MM), px, torch.full_like(px, float("nan"))))
+    return out[0], out[1]
 
 
 def _pt(p: np.ndarray, limit: float) -> tuple[int, int]:
-    q = np.clip(np.nan_to_num(p, nan=-limit), -limit, limit)
+    q = np.clip(np.asarray(p, dtype=np.float64), -limit, limit)
     return int(round(float(q[0]))), int(round(float(q[1])))
 
 
@@ -68,8 +75,10 @@ def draw_overlay(
 
     Args:
         image_bgr: ``(H, W, 3)`` uint8 BGR frame.
-        verts_px: ``(V, 2)`` projected vertices; edges: ``(E, 2)`` vertex pairs (:func:`mesh_edges`).
-        axes_px: ``(4, 2)`` head origin and axis ends (:func:`overlay_geometry`); x red, y green, z blue.
+        verts_px: ``(V, 2)`` projected vertices; edges: ``(E, 2)`` vertex pairs (:func:`mesh_edges`); an edge
+            with a non-finite end (a vertex behind the camera, :func:`overlay_geometry`) is not drawn.
+        axes_px: ``(4, 2)`` head origin and axis ends (:func:`overlay_geometry`); x red, y green, z blue (an axis
+            with a non-finite end is not drawn).
         confidence: the frame's confidence in ``[0, 1]`` (``TrackResult.confidence``: with template management
             the dissimilarity confidence).
         success: whether the frame's estimate is usable (a failed or lost frame draws the mesh grey).
@@ -82,18 +91,25 @@ def draw_overlay(
     out = image_bgr.copy()
     H, W = out.shape[:2]
     limit = 4.0 * max(H, W)
-    v = np.clip(np.nan_to_num(np.asarray(verts_px, dtype=np.float64), nan=-limit), -limit, limit)
-    lines = np.round(v[edges]).astype(np.int32)  # (E, 2, 2)
+    v = np.asarray(verts_px, dtype=np.float64)
+    ends = v[edges]  # (E, 2, 2)
+    # (a non-finite end used to become a corner far off the image, and its edge a line across it)
+    lines = np.round(np.clip(ends[np.isfinite(ends).all(axis=(1, 2))], -limit, limit)).astype(np.int32)
     colour = (80, 255, 80) if success else (160, 160, 160)
-    cv2.polylines(out, list(lines), isClosed=False, color=colour, thickness=1, lineType=cv2.LINE_AA)
-    o = _pt(axes_px[0], limit)
+    if len(lines):
+        cv2.polylines(out, list(lines), isClosed=False, color=colour, thickness=1, lineType=cv2.LINE_AA)
+    a = np.asarray(axes_px, dtype=np.float64)
     for k, c in zip(range(1, 4), ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
-        cv2.line(out, o, _pt(axes_px[k], limit), c, 2, cv2.LINE_AA)
+        if np.isfinite(a[0]).all() and np.isfinite(a[k]).all():
+            cv2.line(out, _pt(a[0], limit), _pt(a[k], limit), c, 2, cv2.LINE_AA)
     scale = max(0.35, min(W, H) / 600.0)
     text = f"{label} {confidence_label} {confidence:.2f}" + ("" if success else " LOST")
     bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4))) if math.isfinite(confidence) else 0  # NaN: none
-    cv2.rectangle(out, (4, H - 10), (4 + W // 4, H - 4), (60, 60, 60), -1)
-    cv2.rectangle(out, (4, H - 10), (4 + bar, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
+    # (rectangles include both corners: the track is W // 4 pixels wide and the bar `bar`; a confidence of 0 or NaN
+    # drew a 1-pixel bar, and every bar was one pixel longer than its share)
+    cv2.rectangle(out, (4, H - 10), (4 + W // 4 - 1, H - 4), (60, 60, 60), -1)
+    if bar > 0:
+        cv2.rectangle(out, (4, H - 10), (4 + bar - 1, H - 4), (0, 200, 255) if success else (0, 0, 255), -1)
     (tw, th), base = cv2.getTextSize(text.strip(), cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
     cv2.rectangle(out, (2, H - 16 - th - 3), (8 + tw, H - 16 + base), (0, 0, 0), -1)
     cv2.putText(out, text.strip(), (4, H - 16), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)

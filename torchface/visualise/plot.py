@@ -33,10 +33,16 @@ def plot_track(
         path: the image, PNG unless its suffix names another format matplotlib writes (``.pdf``, ``.svg``, ...;
             written to ``<stem>.partial<suffix>`` then renamed).
         title: figure title.
-        num_aus: how many ``AUxx_r`` columns to show (those that vary most).
+        num_aus: how many ``AUxx_r`` columns to show (those that vary most; 0 for none).
+
+    Raises:
+        TypeError: ``columns`` is one string.
+        ValueError: a column the plot needs is missing, or ``num_aus`` is negative.
     """
     if isinstance(columns, str):  # its characters were taken as the columns
         raise TypeError(f"columns must be a tuple of column names, got one string {columns[:40]!r}")
+    if isinstance(num_aus, bool) or not isinstance(num_aus, (int, np.integer)) or num_aus < 0:
+        raise ValueError(f"num_aus must be an integer >= 0, got {num_aus!r}")  # (-1 showed all AUs but one)
     rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
     idx = {c: i for i, c in enumerate(columns)}
     for need in ("timestamp", "yaw_deg", "pitch_deg", "roll_deg", "confidence", "success"):
@@ -50,7 +56,7 @@ def plot_track(
     axes[0].set_ylabel("degrees")
     axes[0].legend(loc="upper right", fontsize=8)
     au_cols = [c for c in columns if c.startswith("AU") and c.endswith("_r")]
-    if au_cols and len(rows):
+    if au_cols and len(rows) and num_aus:  # (0: no legend of nothing, which matplotlib warned about)
         spread = np.array([np.nanstd(rows[:, idx[c]]) for c in au_cols])
         for k in np.argsort(-spread)[:num_aus]:
             axes[1].plot(t, rows[:, idx[au_cols[k]]], label=au_cols[k])
