@@ -429,7 +429,9 @@ def _first_landmarks(
     points = detector(_to_uint8_rgb(first))
     if points is None:
         raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame")
-    return check_landmarks(points, W, H, f"{reader.info.path}: detector landmarks"), f"detector:{detector_name}"
+    # (half of them inside: dlib's predictor places the chin of a face at the frame's edge just outside it)
+    where = f"{reader.info.path}: detector landmarks"
+    return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
 def _check_unique(names: Sequence[str]) -> None:
@@ -760,7 +762,7 @@ def _track_group(
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
-        recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
+        recover = None if detector is None else _batch_detector(detector, model.num_landmarks, config.detector)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
@@ -1021,15 +1023,22 @@ def _write_step(
         s.frames += 1
 
 
-def _batch_detector(detector, num_landmarks: int):
+def _batch_detector(detector, num_landmarks: int, name: str | None = None):
     """A per-image detector (:mod:`torchface.detect`) as the tracker's batched re-initialisation callback:
-    ``frames (B, 3, H, W)`` -> ``(B, K, 2)`` landmarks, NaN rows where it found no face."""
+    ``frames (B, 3, H, W)`` -> ``(B, K, 2)`` landmarks, NaN rows where it found no face.
+
+    Raises (from the callback):
+        InputError: the detector's landmarks are not 68 finite points, at least half of them inside the frame.
+    """
 
     def detect(frames: Tensor) -> Tensor:
         out = torch.full((frames.shape[0], num_landmarks, 2), float("nan"), dtype=frames.dtype, device=frames.device)
+        H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
             points = detector(_to_uint8_rgb(frames[b]))
             if points is not None:
+                where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
+                points = check_landmarks(points, W, H, where, min_inside=0.5)
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
         return out
 
@@ -1049,6 +1058,8 @@ def _maybe_redetect(
         points = detector(_to_uint8_rgb(frames[k]))
         if points is None:
             continue
+        where = f"{s.reader.info.path}: the {config.detector} detector's landmarks at a re-detection"
+        points = check_landmarks(points, intr.width, intr.height, where, min_inside=0.5)
         lm = torch.as_tensor(points, dtype=model.dtype, device=model.device).unsqueeze(0)
         fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)
         p = params[k].clone()

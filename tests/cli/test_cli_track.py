@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchface.cli import build_parser, main
-from torchface.io import OutputError
+from torchface.io import InputError, OutputError
 from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.io import read_track_csv
 from torchface.io.table import openface_euler
@@ -586,6 +586,72 @@ def test_detector_initialises_and_redetects_and_meshes_are_written(clip, tmp_pat
     # The PLY is the posed mesh in the camera frame: its centroid sits in front of the camera near the head.
     assert mesh.vertices.shape[1] == 3 and np.linalg.norm(mesh.vertices.mean(0) - t[0]) < 100.0
     assert summary.frames == 3
+
+
+def test_detector_landmarks_of_a_face_at_the_frame_edge_start_the_run(clip, tmp_path, monkeypatch):
+    """dlib's predictor places the chin of a face at the frame's bottom edge just outside it (a GRID clip cut to
+    250 rows: two points at y = 250): the detector found the face, and the run must start from it, not refuse
+    its landmarks as a landmarks file's. More than half of them outside is still refused."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=2)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    points = gt.landmarks_px[0].numpy().astype(np.float64)
+    edge = points.copy()
+    edge[7:10, 1] = H + 1.0  # three chin points just below the frame
+    monkeypatch.setitem(torchface.detect.DETECTORS, "edge", lambda: lambda image: edge)
+    (summary,) = track_videos([tmp_path / "short.npy"], JobConfig(out_dir=tmp_path / "out", detector="edge"))
+    assert summary.frames == 2
+    far = points + [0.0, 2.0 * H]
+    monkeypatch.setitem(torchface.detect.DETECTORS, "far", lambda: lambda image: far)
+    with pytest.raises(InputError, match="detector landmarks: 68 landmark.s. outside"):
+        track_videos([tmp_path / "short.npy"], JobConfig(out_dir=tmp_path / "out2", detector="far"))
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (lambda p: np.full((68, 2), np.nan), "are NaN or infinite"),
+        (lambda p: p[:5], "expected 68 iBUG landmarks, got 5"),
+        (lambda p: p + 1e6, "outside the 160x120 frame"),
+    ],
+)
+def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_path, monkeypatch, bad, message):
+    """A re-detection's landmarks are checked as the first frame's: NaN ended the run in the landmark fit's
+    ValueError ("every sample needs at least 4 finite landmarks"), points far outside the frame were fitted and
+    tracked from silently (a pose a million millimetres off), a wrong count ended it in the fit."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=3)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    points = gt.landmarks_px[0].numpy().astype(np.float64)
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(1)
+        return points if len(calls) == 1 else bad(points)
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "bad", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "out", detector="bad", redetect_after=1, redetect_below=1.01)
+    with pytest.raises(InputError, match=f"short.npy: the bad detector's landmarks at a re-detection: .*{message}"):
+        track_videos([tmp_path / "short.npy"], config)
+
+
+def test_lost_face_detector_refuses_garbage_naming_the_detector():
+    """The per-image detector as the tracker's recovery callback: a wrong count ended in torch's shape-mismatch
+    RuntimeError; None is a NaN row (no face)."""
+    from torchface.job import _batch_detector
+
+    frames = torch.zeros(2, 3, H, W)
+    answers = iter([None, np.zeros((5, 2))])
+    with pytest.raises(InputError, match="lost face's landmarks: expected 68 iBUG landmarks, got 5"):
+        _batch_detector(lambda image: next(answers), 68)(frames)
+    with pytest.raises(InputError, match="the mine detector's landmarks of a lost face: .* NaN"):
+        _batch_detector(lambda image: np.full((68, 2), np.nan), 68, "mine")(frames)
+    out = _batch_detector(lambda image: None, 68)(frames)
+    assert out.shape == (2, 68, 2) and bool(out.isnan().all())
 
 
 def test_progress_display_terminal_and_log():

