@@ -48,6 +48,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.detect import batched
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -762,7 +763,7 @@ def _track_group(
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
-        recover = None if detector is None else _batch_detector(detector, model.num_landmarks, config.detector)
+        recover = None if detector is None else batched(detector, config.detector)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
@@ -1021,28 +1022,6 @@ def _write_step(
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
             mesh.export(str(mesh_dirs[k] / f"{t:06d}.ply"))
         s.frames += 1
-
-
-def _batch_detector(detector, num_landmarks: int, name: str | None = None):
-    """A per-image detector (:mod:`torchface.detect`) as the tracker's batched re-initialisation callback:
-    ``frames (B, 3, H, W)`` -> ``(B, K, 2)`` landmarks, NaN rows where it found no face.
-
-    Raises (from the callback):
-        InputError: the detector's landmarks are not 68 finite points, at least half of them inside the frame.
-    """
-
-    def detect(frames: Tensor) -> Tensor:
-        out = torch.full((frames.shape[0], num_landmarks, 2), float("nan"), dtype=frames.dtype, device=frames.device)
-        H, W = frames.shape[-2], frames.shape[-1]
-        for b in range(frames.shape[0]):
-            points = detector(_to_uint8_rgb(frames[b]))
-            if points is not None:
-                where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
-                points = check_landmarks(points, W, H, where, min_inside=0.5)
-                out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
-        return out
-
-    return detect
 
 
 def _maybe_redetect(

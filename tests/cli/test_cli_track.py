@@ -639,21 +639,6 @@ def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_pat
         track_videos([tmp_path / "short.npy"], config)
 
 
-def test_lost_face_detector_refuses_garbage_naming_the_detector():
-    """The per-image detector as the tracker's recovery callback: a wrong count ended in torch's shape-mismatch
-    RuntimeError; None is a NaN row (no face)."""
-    from torchface.job import _batch_detector
-
-    frames = torch.zeros(2, 3, H, W)
-    answers = iter([None, np.zeros((5, 2))])
-    with pytest.raises(InputError, match="lost face's landmarks: expected 68 iBUG landmarks, got 5"):
-        _batch_detector(lambda image: next(answers), 68)(frames)
-    with pytest.raises(InputError, match="the mine detector's landmarks of a lost face: .* NaN"):
-        _batch_detector(lambda image: np.full((68, 2), np.nan), 68, "mine")(frames)
-    out = _batch_detector(lambda image: None, 68)(frames)
-    assert out.shape == (2, 68, 2) and bool(out.isnan().all())
-
-
 def test_progress_display_terminal_and_log():
     import io
 

