@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.detect import batched
+from torchface.detect import _batched, accepts_near
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -94,7 +94,9 @@ class JobConfig:
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
             re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
             ``redetect_after`` frames, and to recover a stream that template management declares lost
-            (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic).
+            (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic). Both ask
+            for the face nearest the stream's last confident position (:class:`torchface.detect.Detector`'s
+            ``near``), not another one in view.
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
         device: torch device for tracking (a name or a ``torch.device``).
         resume: continue interrupted videos (see the module docstring).
@@ -316,6 +318,7 @@ class _Stream:
     settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
+    near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
@@ -763,7 +766,10 @@ def _track_group(
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
-        recover = None if detector is None else batched(detector, config.detector)
+        current = [frames]  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
+        for s in streams:
+            s.near = s.landmarks
+        recover = None if detector is None else _batched(detector, config.detector, _recovery_near(streams, current))
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
@@ -814,6 +820,7 @@ def _track_group(
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
+            current[0] = frames
             state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
             _record_anchors(state, streams, paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
@@ -1012,6 +1019,8 @@ def _write_step(
         conf, ok = float(row[ci]), bool(row[si] > 0.5)
         s.confidence = conf
         s.low_count = 0 if conf >= redetect_below else s.low_count + 1
+        if ok and conf >= redetect_below:
+            s.near = verts_px[k]
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
         s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label))
         s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
@@ -1024,17 +1033,33 @@ def _write_step(
         s.frames += 1
 
 
+def _recovery_near(streams: list[_Stream], current: list[Tensor]):
+    """The ``near`` points (:class:`torchface.detect.Detector`) of a frame the tracker's recovery asks the detector
+    about: the last confident position of the stream whose frame of ``current[0]`` it is (the callback is given
+    the lost streams' frames only; the first of streams with equal frames)."""
+
+    def near_of(frame: Tensor) -> np.ndarray | None:
+        for k, s in enumerate(streams):
+            if not s.done and torch.equal(current[0][k].to(device=frame.device, dtype=frame.dtype), frame):
+                return s.near
+        return None
+
+    return near_of
+
+
 def _maybe_redetect(
     model: FaceModel, config: JobConfig, state: TrackerState, frames: Tensor, streams: list[_Stream], detector,
     intr: Intrinsics, layout: ParamLayout,
 ) -> TrackerState:
-    """Ask the detector again for streams whose confidence stayed low; re-fit their pose (shape and template kept)."""
+    """Ask the detector again for streams whose confidence stayed low, for the face nearest each one's last
+    confident position (when it takes ``near``); re-fit their pose (shape and template kept)."""
     params = state.params
     for k, s in enumerate(streams):
         if s.done or s.low_count < config.redetect_after:
             continue
         s.low_count = 0
-        points = detector(_to_uint8_rgb(frames[k]))
+        image = _to_uint8_rgb(frames[k])
+        points = detector(image, near=s.near) if accepts_near(detector) else detector(image)
         if points is None:
             continue
         where = f"{s.reader.info.path}: the {config.detector} detector's landmarks at a re-detection"

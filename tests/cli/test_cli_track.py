@@ -639,6 +639,51 @@ def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_pat
         track_videos([tmp_path / "short.npy"], config)
 
 
+def test_redetection_asks_for_the_tracked_face_not_another(clip, tmp_path, monkeypatch):
+    """A detector that takes ``near`` is asked for the face nearest the stream's last confident position: with
+    two faces in view, a re-detection took the largest, and the stream jumped to the other person (a GRID clip
+    with a second, larger face: x -25 mm to +35 mm after the first re-detection, confidence 0.05 from there on)."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=4)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    own = gt.landmarks_px[0].numpy().astype(np.float64)
+    other = own * 0.8 + [W * 0.4, 0.0]  # the other person's face, right of this one (the "largest")
+    asked = []
+
+    def two_faces(image_rgb, near=None):
+        asked.append(near)
+        if near is None:
+            return own if len(asked) == 1 else other
+        centre = (near.min(0) + near.max(0)) / 2
+        return own if np.linalg.norm(centre - own.mean(0)) < np.linalg.norm(centre - other.mean(0)) else other
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "two", lambda: two_faces)
+    config = JobConfig(out_dir=tmp_path / "out", detector="two", redetect_after=1, redetect_below=1.01)
+    track_videos([tmp_path / "short.npy"], config)
+    cols, rows, R, t = _pose(tmp_path / "out" / "short.csv")
+    assert np.abs(t[:, 0] - t[0, 0]).max() < 10.0, t[:, 0]  # it stayed on its face
+    assert asked[0] is None and len(asked) == 5 and all(a is not None and a.shape[1] == 2 for a in asked[1:])
+
+
+def test_recovery_asks_for_the_lost_streams_own_face():
+    """The tracker's recovery callback is given the lost streams' frames only: each is matched to its stream
+    (by the batch's frames) for that stream's ``near`` points."""
+    from torchface.detect import _batched
+    from torchface.job import _recovery_near, _Stream
+
+    frames = torch.rand(3, 3, 8, 10)
+    streams = [_Stream(str(k), None, np.zeros((68, 2)), "", None) for k in range(3)]
+    for k, s in enumerate(streams):
+        s.near = np.full((5, 2), float(k))
+    asked = []
+    _batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, [frames]))(
+        frames[[2, 0]].double()
+    )
+    assert [float(a[0, 0]) for a in asked] == [2.0, 0.0]
+
+
 def test_progress_display_terminal_and_log():
     import io
 

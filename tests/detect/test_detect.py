@@ -7,7 +7,7 @@ import pytest
 
 import torch
 
-from torchface.detect import DetectorUnavailable, batched, load_detector
+from torchface.detect import DetectorUnavailable, _nearest, accepts_near, batched, load_detector
 from torchface.io import InputError
 
 
@@ -106,3 +106,25 @@ def test_batched_detector_for_facetracker():
         batched(lambda image: np.full((68, 2), np.nan))(frames)
     with pytest.raises(TypeError, match="must be callable"):
         batched("dlib")
+
+
+def test_of_several_faces_the_one_nearest_the_tracked_one_is_taken():
+    """Without ``near`` the largest face (the first of equals); with it the one whose box centre is nearest the
+    centre of the points' bounding box (NaN rows ignored): a re-detection of a stream beside a larger face took
+    the larger one, and the stream jumped to the other person."""
+    centres = np.array([[100.0, 100.0], [300.0, 100.0], [500.0, 100.0]])
+    areas = np.array([900.0, 2500.0, 2500.0])
+    assert _nearest(centres, areas, None) == 1
+    near = np.array([[80.0, 80.0], [120.0, 130.0], [np.nan, np.nan]])
+    assert _nearest(centres, areas, near) == 0
+    assert _nearest(centres, areas, near + [390.0, 0.0]) == 2
+    assert _nearest(centres, areas, np.full((3, 2), np.nan)) == 1
+
+
+def test_accepts_near():
+    assert accepts_near(lambda image, near=None: None) and accepts_near(lambda image, **kw: None)
+    assert not accepts_near(lambda image: None) and not accepts_near(print)
+    seen = []
+    frames = torch.zeros(2, 3, 12, 16)
+    batched(lambda image, near=None: seen.append(near))(frames)  # the public adapter passes no points
+    assert seen == [None, None]

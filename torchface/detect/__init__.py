@@ -19,6 +19,7 @@ lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` 
 from __future__ import annotations
 
 import importlib.util
+import inspect
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Protocol
 
@@ -27,7 +28,7 @@ import numpy as np
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "batched", "load_detector"]
+__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "accepts_near", "batched", "load_detector"]
 
 
 class DetectorUnavailable(ImportError):
@@ -35,9 +36,37 @@ class DetectorUnavailable(ImportError):
 
 
 class Detector(Protocol):
-    """``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks in pixels, or None when no face is found``."""
+    """``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks in pixels, or None when no face is found``.
+
+    A detector may also take a keyword ``near``: ``(N, 2)`` pixel points of the face wanted (None: any); of
+    several faces it then returns the one nearest them. A job passes it the tracked face's last confident position
+    at a re-detection, so that a stream lost beside another face comes back to its own (``dlib`` takes it; without
+    it, ``dlib`` returns the largest face).
+    """
 
     def __call__(self, image_rgb: np.ndarray) -> np.ndarray | None: ...
+
+
+def accepts_near(detector: Detector) -> bool:
+    """Whether ``detector`` takes the ``near`` keyword (:class:`Detector`)."""
+    try:
+        params = inspect.signature(detector).parameters
+    except (TypeError, ValueError):  # a builtin without a signature
+        return False
+    return "near" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+def _nearest(centres: np.ndarray, areas: np.ndarray, near: np.ndarray | None) -> int:
+    """Index of the face to take of boxes with centres ``(F, 2)`` and areas ``(F,)``: the one whose centre is
+    nearest the centre of the bounding box of ``near`` ``(N, 2)`` (its non-finite rows ignored), else the largest
+    (the first of equals)."""
+    if near is not None:
+        near = np.asarray(near, dtype=np.float64).reshape(-1, 2)
+        near = near[np.isfinite(near).all(axis=1)]
+    if near is None or len(near) == 0:
+        return int(np.argmax(areas))
+    centre = (near.min(axis=0) + near.max(axis=0)) / 2
+    return int(np.argmin(np.linalg.norm(centres - centre, axis=1)))
 
 
 def _check_image(image_rgb: np.ndarray) -> None:
@@ -90,12 +119,13 @@ def _dlib() -> Detector:
     face_detector = dlib.get_frontal_face_detector()
     predictor = dlib.shape_predictor(str(model))
 
-    def detect(image_rgb: np.ndarray) -> np.ndarray | None:
+    def detect(image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
         boxes = face_detector(np.ascontiguousarray(image_rgb), 1)
         if len(boxes) == 0:
             return None
-        box = max(boxes, key=lambda r: r.area())
+        centres = np.array([[(r.left() + r.right()) / 2, (r.top() + r.bottom()) / 2] for r in boxes], dtype=float)
+        box = boxes[_nearest(centres, np.array([r.area() for r in boxes], dtype=float), near)]
         shape = predictor(np.ascontiguousarray(image_rgb), box)
         return np.array([[shape.part(i).x, shape.part(i).y] for i in range(68)], dtype=np.float64)
 
@@ -118,7 +148,16 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
     """
     if not callable(detector):
         raise TypeError(f"detector must be callable (image -> landmarks), got {type(detector).__name__}")
+    return _batched(detector, name, None)
+
+
+def _batched(
+    detector: Detector, name: str | None, near_of: Callable[["Tensor"], np.ndarray | None] | None
+) -> Callable[["Tensor"], "Tensor"]:
+    """:func:`batched`; ``near_of``: each frame ``(3, H, W)`` -> the ``near`` points to ask the detector for in it
+    (when it takes them: :func:`accepts_near`), or None."""
     where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
+    near_of = near_of if accepts_near(detector) else None
 
     def detect(frames: Tensor) -> Tensor:
         import torch
@@ -129,7 +168,7 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
             image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-            points = detector(image)
+            points = detector(image) if near_of is None else detector(image, near=near_of(frames[b]))
             if points is not None:
                 points = check_landmarks(points, W, H, where, min_inside=0.5)
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
