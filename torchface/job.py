@@ -5,7 +5,11 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
-- ``<stem>.json``: versions, settings, camera, model, timings, frame count and lost frames;
+- ``<stem>.json``: versions, settings, camera, model, timings, frame count and lost frames; with a detector,
+  ``redetections`` (re-detections of a low-confidence stream, ``redetect_after``, that found a face and re-fitted
+  its pose) and ``detector_calls`` (how often this run asked the detector about the video's frames: the first
+  frame, those re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves
+  out);
 - ``<stem>_overlay.mp4``: wireframe, head axes and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -318,6 +322,7 @@ class _Stream:
     settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
+    detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
     near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
@@ -492,6 +497,7 @@ def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_S
             streams[-1].landmarks, streams[-1].landmarks_source = _first_landmarks(
                 reader, first, lm, detector, config.detector
             )
+            streams[-1].detector_calls = int(lm is None)
     except BaseException:
         for s in streams:
             s.reader.close()
@@ -911,6 +917,7 @@ def _finalise(
         "lost_frames": lost,
         "mean_confidence": float(conf.mean()) if len(conf) else 0.0,
         "redetections": s.redetections,
+        "detector_calls": s.detector_calls,
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
     }
     write_json(p["json"], sidecar)
@@ -1041,6 +1048,7 @@ def _recovery_near(streams: list[_Stream], current: list[Tensor]):
     def near_of(frame: Tensor) -> np.ndarray | None:
         for k, s in enumerate(streams):
             if not s.done and torch.equal(current[0][k].to(device=frame.device, dtype=frame.dtype), frame):
+                s.detector_calls += 1
                 return s.near
         return None
 
@@ -1058,6 +1066,7 @@ def _maybe_redetect(
         if s.done or s.low_count < config.redetect_after:
             continue
         s.low_count = 0
+        s.detector_calls += 1
         image = _to_uint8_rgb(frames[k])
         points = detector(image, near=s.near) if accepts_near(detector) else detector(image)
         if points is None:

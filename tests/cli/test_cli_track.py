@@ -684,6 +684,29 @@ def test_recovery_asks_for_the_lost_streams_own_face():
     assert [float(a[0, 0]) for a in asked] == [2.0, 0.0]
 
 
+def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeypatch):
+    """The tracker's recoveries of a lost stream ask the detector too: the sidecar said ``redetections: 0`` of a
+    stream the detector had re-initialised (a GRID clip whose face left and came back elsewhere); its
+    ``detector_calls`` counts every call about the video's frames."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = (read_video(video, max_frames=3).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    np.save(tmp_path / "gap.npy", np.concatenate([frames, np.full((5, H, W, 3), 90, np.uint8)]))
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(1)
+        return None if image_rgb.std() == 0 else gt.landmarks_px[0].numpy().astype(np.float64)
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "count", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "out", detector="count", redetect_after=0)
+    (summary,) = track_videos([tmp_path / "gap.npy"], config)
+    side = json.loads((tmp_path / "out" / "gap.json").read_text())
+    assert summary.lost > 0 and len(calls) >= 2  # the first frame, then recoveries
+    assert side["redetections"] == 0 and side["detector_calls"] == len(calls)
+
+
 def test_progress_display_terminal_and_log():
     import io
 

@@ -154,10 +154,10 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
 def _batched(
     detector: Detector, name: str | None, near_of: Callable[["Tensor"], np.ndarray | None] | None
 ) -> Callable[["Tensor"], "Tensor"]:
-    """:func:`batched`; ``near_of``: each frame ``(3, H, W)`` -> the ``near`` points to ask the detector for in it
-    (when it takes them: :func:`accepts_near`), or None."""
+    """:func:`batched`; ``near_of``: called with each frame ``(3, H, W)`` before the detector is asked about it,
+    the ``near`` points to ask for in it (passed when the detector takes them: :func:`accepts_near`), or None."""
     where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
-    near_of = near_of if accepts_near(detector) else None
+    takes_near = accepts_near(detector)
 
     def detect(frames: Tensor) -> Tensor:
         import torch
@@ -168,7 +168,8 @@ def _batched(
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
             image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-            points = detector(image) if near_of is None else detector(image, near=near_of(frames[b]))
+            near = None if near_of is None else near_of(frames[b])
+            points = detector(image, near=near) if takes_near else detector(image)
             if points is not None:
                 points = check_landmarks(points, W, H, where, min_inside=0.5)
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
