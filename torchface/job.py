@@ -155,6 +155,8 @@ class JobConfig:
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
         if self.redetect_after < 0:
             raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
+        if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
+            raise ValueError(f"redetect_below must be a finite confidence, got {self.redetect_below}")
 
 
 @dataclass(frozen=True)

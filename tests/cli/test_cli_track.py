@@ -524,6 +524,15 @@ def test_normalised_size_is_even(clip, tmp_path):
     assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
 
 
+def test_redetect_below_must_be_finite(tmp_path):
+    """``redetect_below=nan`` counted every frame low (``conf >= nan`` is False): the detector was asked every
+    ``redetect_after`` frames whatever the confidence, silently."""
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="redetect_below must be a finite confidence"):
+            JobConfig(out_dir=tmp_path, redetect_below=bad)
+    assert JobConfig(out_dir=tmp_path, redetect_below=1.01).redetect_below == 1.01
+
+
 def test_a_torch_device_in_the_job_config_reaches_the_sidecar(clip, tmp_path):
     """``JobConfig(device=torch.device("cpu"))`` tracked the whole video and then failed writing the JSON
     ("Object of type device is not JSON serializable"), its other outputs left without it."""
