@@ -774,7 +774,7 @@ def _track_group(
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
-        current = [frames]  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
+        current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
         for s in streams:
             s.near = s.landmarks
         recover = None if detector is None else _batched(detector, config.detector, _recovery_near(streams, current))
@@ -828,7 +828,7 @@ def _track_group(
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
-            current[0] = frames
+            current.frames, current.asked = frames, set()
             state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
             _record_anchors(state, streams, paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
@@ -1042,14 +1042,25 @@ def _write_step(
         s.frames += 1
 
 
-def _recovery_near(streams: list[_Stream], current: list[Tensor]):
+@dataclass
+class _Current:
+    """The frames of the step being tracked, and the streams the recovery callback has matched in it."""
+
+    frames: Tensor
+    asked: set[int] = field(default_factory=set)
+
+
+def _recovery_near(streams: list[_Stream], current: _Current):
     """The ``near`` points (:class:`torchface.detect.Detector`) of a frame the tracker's recovery asks the detector
-    about: the last confident position of the stream whose frame of ``current[0]`` it is (the callback is given
-    the lost streams' frames only; the first of streams with equal frames)."""
+    about: the last confident position of the stream whose frame of ``current.frames`` it is (the callback is given
+    the lost streams' frames only, in stream order: of streams with equal frames, the first not yet asked about)."""
 
     def near_of(frame: Tensor) -> np.ndarray | None:
         for k, s in enumerate(streams):
-            if not s.done and torch.equal(current[0][k].to(device=frame.device, dtype=frame.dtype), frame):
+            if s.done or k in current.asked:
+                continue
+            if torch.equal(current.frames[k].to(device=frame.device, dtype=frame.dtype), frame):
+                current.asked.add(k)
                 s.detector_calls += 1
                 return s.near
         return None

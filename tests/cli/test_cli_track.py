@@ -680,17 +680,19 @@ def test_recovery_asks_for_the_lost_streams_own_face():
     """The tracker's recovery callback is given the lost streams' frames only: each is matched to its stream
     (by the batch's frames) for that stream's ``near`` points."""
     from torchface.detect import _batched
-    from torchface.job import _recovery_near, _Stream
+    from torchface.job import _Current, _recovery_near, _Stream
 
-    frames = torch.rand(3, 3, 8, 10)
-    streams = [_Stream(str(k), None, np.zeros((68, 2)), "", None) for k in range(3)]
+    frames = torch.rand(4, 3, 8, 10)
+    frames[3] = frames[2]  # two streams on equal frames (two copies of a video): each is asked about once
+    streams = [_Stream(str(k), None, np.zeros((68, 2)), "", None) for k in range(4)]
     for k, s in enumerate(streams):
         s.near = np.full((5, 2), float(k))
     asked = []
-    _batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, [frames]))(
-        frames[[2, 0]].double()
+    _batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, _Current(frames)))(
+        frames[[0, 2, 3]].double()
     )
-    assert [float(a[0, 0]) for a in asked] == [2.0, 0.0]
+    assert [float(a[0, 0]) for a in asked] == [0.0, 2.0, 3.0]
+    assert [s.detector_calls for s in streams] == [1, 0, 1, 1]
 
 
 def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeypatch):
