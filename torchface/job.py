@@ -439,7 +439,9 @@ def _first_landmarks(
         return read_landmarks(landmarks, W, H), os.fspath(landmarks)
     points = detector(_to_uint8_rgb(first))
     if points is None:
-        raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame")
+        raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame (tracking "
+                         "starts there): give its 68 landmarks with --landmarks FILE, or cut the video to start at a "
+                         "frame with a face")  # fmt: skip
     # (half of them inside: dlib's predictor places the chin of a face at the frame's edge just outside it)
     where = f"{reader.info.path}: detector landmarks"
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"

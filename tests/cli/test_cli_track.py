@@ -524,6 +524,19 @@ def test_normalised_size_is_even(clip, tmp_path):
     assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
 
 
+def test_no_face_in_the_first_frame_is_one_line_saying_what_to_do(clip, tmp_path, monkeypatch, capsys):
+    """A video whose face appears only later: the run is refused before anything is written, and the message says
+    what to do (it only said the detector found no face)."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    monkeypatch.setitem(torchface.detect.DETECTORS, "none", lambda: lambda image: None)
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "o", "the none detector found no face in the first frame")
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "o", "--landmarks FILE, or cut the video to start at a frame with")
+
+
 def test_redetect_below_must_be_finite(tmp_path):
     """``redetect_below=nan`` counted every frame low (``conf >= nan`` is False): the detector was asked every
     ``redetect_after`` frames whatever the confidence, silently."""
