@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.detect import _batched, accepts_near
+from torchface.detect import _Batched, accepts_near
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -779,7 +779,7 @@ def _track_group(
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
         for s in streams:
             s.near = s.landmarks
-        recover = None if detector is None else _batched(detector, config.detector, _recovery_near(streams, current))
+        recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(streams, current))
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0

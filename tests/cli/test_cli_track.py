@@ -692,7 +692,7 @@ def test_redetection_asks_for_the_tracked_face_not_another(clip, tmp_path, monke
 def test_recovery_asks_for_the_lost_streams_own_face():
     """The tracker's recovery callback is given the lost streams' frames only: each is matched to its stream
     (by the batch's frames) for that stream's ``near`` points."""
-    from torchface.detect import _batched
+    from torchface.detect import _Batched
     from torchface.job import _Current, _recovery_near, _Stream
 
     frames = torch.rand(4, 3, 8, 10)
@@ -701,7 +701,7 @@ def test_recovery_asks_for_the_lost_streams_own_face():
     for k, s in enumerate(streams):
         s.near = np.full((5, 2), float(k))
     asked = []
-    _batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, _Current(frames)))(
+    _Batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, _Current(frames)))(
         frames[[0, 2, 3]].double()
     )
     assert [float(a[0, 0]) for a in asked] == [0.0, 2.0, 3.0]

@@ -1,5 +1,6 @@
 """The optional detectors' loading (:mod:`torchface.detect`), with stand-in packages: dlib is not installed here."""
 
+import pickle
 import sys
 
 import numpy as np
@@ -128,3 +129,21 @@ def test_accepts_near():
     frames = torch.zeros(2, 3, 12, 16)
     batched(lambda image, near=None: seen.append(near))(frames)  # the public adapter passes no points
     assert seen == [None, None]
+
+
+def _no_face(image):
+    return None
+
+
+def test_the_detectors_pickle_so_a_tracker_holding_one_can_be_checkpointed(isolated_modules):
+    """``torch.save(FaceTracker(detector=batched(load_detector("dlib"))))``, the documented mid-stream checkpoint,
+    failed: "Can't pickle local object '_dlib.<locals>.detect'" (and a spawned DataLoader worker given the detector
+    with it). The dlib detector pickles as its name (the copy loads the models again); ``batched`` as its parts."""
+    _fake_detect_extra(isolated_modules)
+    detect = pickle.loads(pickle.dumps(load_detector("dlib")))
+    assert detect(np.zeros((12, 16, 3), np.uint8)) is None
+    sys.modules["dlib"].loaded.clear()
+    copy = pickle.loads(pickle.dumps(batched(detect, "dlib")))
+    assert sys.modules["dlib"].loaded and copy.takes_near  # loaded again
+    assert bool(copy(torch.zeros(1, 3, 12, 16)).isnan().all())
+    assert bool(pickle.loads(pickle.dumps(batched(_no_face)))(torch.zeros(2, 3, 4, 6)).isnan().all())

