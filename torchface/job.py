@@ -5,7 +5,11 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
-- ``<stem>.json``: versions, settings, camera, model, timings, frame count and lost frames;
+- ``<stem>.json``: versions, settings, camera, model, timings, frame count and lost frames; with a detector,
+  ``redetections`` (re-detections of a low-confidence stream, ``redetect_after``, that found a face and re-fitted
+  its pose) and ``detector_calls`` (how often this run asked the detector about the video's frames: the first
+  frame, those re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves
+  out);
 - ``<stem>_overlay.mp4``: wireframe, head axes and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -48,6 +52,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.detect import _Batched, accepts_near
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -93,7 +98,9 @@ class JobConfig:
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
             re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
             ``redetect_after`` frames, and to recover a stream that template management declares lost
-            (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic).
+            (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic). Both ask
+            for the face nearest the stream's last confident position (:class:`torchface.detect.Detector`'s
+            ``near``), not another one in view.
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
         device: torch device for tracking (a name or a ``torch.device``).
         resume: continue interrupted videos (see the module docstring).
@@ -148,6 +155,8 @@ class JobConfig:
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
         if self.redetect_after < 0:
             raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
+        if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
+            raise ValueError(f"redetect_below must be a finite confidence, got {self.redetect_below}")
 
 
 @dataclass(frozen=True)
@@ -315,6 +324,8 @@ class _Stream:
     settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
+    detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
+    near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
@@ -428,8 +439,12 @@ def _first_landmarks(
         return read_landmarks(landmarks, W, H), os.fspath(landmarks)
     points = detector(_to_uint8_rgb(first))
     if points is None:
-        raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame")
-    return check_landmarks(points, W, H, f"{reader.info.path}: detector landmarks"), f"detector:{detector_name}"
+        raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame (tracking "
+                         "starts there): give its 68 landmarks with --landmarks FILE, or cut the video to start at a "
+                         "frame with a face")  # fmt: skip
+    # (half of them inside: dlib's predictor places the chin of a face at the frame's edge just outside it)
+    where = f"{reader.info.path}: detector landmarks"
+    return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
 def _check_unique(names: Sequence[str]) -> None:
@@ -486,6 +501,7 @@ def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_S
             streams[-1].landmarks, streams[-1].landmarks_source = _first_landmarks(
                 reader, first, lm, detector, config.detector
             )
+            streams[-1].detector_calls = int(lm is None)
     except BaseException:
         for s in streams:
             s.reader.close()
@@ -770,7 +786,10 @@ def _track_group(
             s.first_shape = state.shape_coeffs[k].tolist()
             if k in anchored and streams[k].anchor.get("first_shape_coeffs") is not None:  # resumed from the record
                 s.first_shape = list(streams[k].anchor["first_shape_coeffs"])  # (the state's: the refined shape)
-        recover = None if detector is None else _batch_detector(detector, model.num_landmarks)
+        current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
+        for s in streams:
+            s.near = s.landmarks
+        recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(streams, current))
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
@@ -834,6 +853,7 @@ def _track_group(
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
             if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
                 continue  # every live stream replays this frame from its CSV: nothing to track
+            current.frames, current.asked = frames, set()
             state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
             _record_anchors(state, streams, paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
@@ -924,6 +944,7 @@ def _finalise(
         "lost_frames": lost,
         "mean_confidence": float(conf.mean()) if len(conf) else 0.0,
         "redetections": s.redetections,
+        "detector_calls": s.detector_calls,
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
     }
     write_json(p["json"], sidecar)
@@ -1032,6 +1053,8 @@ def _write_step(
         conf, ok = float(row[ci]), bool(row[si] > 0.5)
         s.confidence = conf
         s.low_count = 0 if conf >= redetect_below else s.low_count + 1
+        if ok and conf >= redetect_below:
+            s.near = verts_px[k]
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
         s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label))
         s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
@@ -1044,34 +1067,50 @@ def _write_step(
         s.frames += 1
 
 
-def _batch_detector(detector, num_landmarks: int):
-    """A per-image detector (:mod:`torchface.detect`) as the tracker's batched re-initialisation callback:
-    ``frames (B, 3, H, W)`` -> ``(B, K, 2)`` landmarks, NaN rows where it found no face."""
+@dataclass
+class _Current:
+    """The frames of the step being tracked, and the streams the recovery callback has matched in it."""
 
-    def detect(frames: Tensor) -> Tensor:
-        out = torch.full((frames.shape[0], num_landmarks, 2), float("nan"), dtype=frames.dtype, device=frames.device)
-        for b in range(frames.shape[0]):
-            points = detector(_to_uint8_rgb(frames[b]))
-            if points is not None:
-                out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
-        return out
+    frames: Tensor
+    asked: set[int] = field(default_factory=set)
 
-    return detect
+
+def _recovery_near(streams: list[_Stream], current: _Current):
+    """The ``near`` points (:class:`torchface.detect.Detector`) of a frame the tracker's recovery asks the detector
+    about: the last confident position of the stream whose frame of ``current.frames`` it is (the callback is given
+    the lost streams' frames only, in stream order: of streams with equal frames, the first not yet asked about)."""
+
+    def near_of(frame: Tensor) -> np.ndarray | None:
+        for k, s in enumerate(streams):
+            if s.done or k in current.asked:
+                continue
+            if torch.equal(current.frames[k].to(device=frame.device, dtype=frame.dtype), frame):
+                current.asked.add(k)
+                s.detector_calls += 1
+                return s.near
+        return None
+
+    return near_of
 
 
 def _maybe_redetect(
     model: FaceModel, config: JobConfig, state: TrackerState, frames: Tensor, streams: list[_Stream], detector,
     intr: Intrinsics, layout: ParamLayout,
 ) -> TrackerState:
-    """Ask the detector again for streams whose confidence stayed low; re-fit their pose (shape and template kept)."""
+    """Ask the detector again for streams whose confidence stayed low, for the face nearest each one's last
+    confident position (when it takes ``near``); re-fit their pose (shape and template kept)."""
     params = state.params
     for k, s in enumerate(streams):
         if s.done or s.low_count < config.redetect_after:
             continue
         s.low_count = 0
-        points = detector(_to_uint8_rgb(frames[k]))
+        s.detector_calls += 1
+        image = _to_uint8_rgb(frames[k])
+        points = detector(image, near=s.near) if accepts_near(detector) else detector(image)
         if points is None:
             continue
+        where = f"{s.reader.info.path}: the {config.detector} detector's landmarks at a re-detection"
+        points = check_landmarks(points, intr.width, intr.height, where, min_inside=0.5)
         lm = torch.as_tensor(points, dtype=model.dtype, device=model.device).unsqueeze(0)
         fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)
         p = params[k].clone()

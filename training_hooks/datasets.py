@@ -287,7 +287,9 @@ class VideoDataset(IterableDataset):
                 points = self.detector(image)
                 if points is None:
                     raise InputError(f"{self.videos[index]}: the detector found no face in the first frame")
-                self._detected[content] = check_landmarks(np.asarray(points), W, H, f"{where} (detector)")
+                # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
+                found = check_landmarks(np.asarray(points), W, H, f"{where} (detector)", min_inside=0.5)
+                self._detected[content] = found
             return self._detected[content]
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchface.cli import build_parser, main
-from torchface.io import OutputError
+from torchface.io import InputError, OutputError
 from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.io import read_track_csv
 from torchface.io.table import openface_euler
@@ -549,6 +549,28 @@ def test_normalised_size_is_even(clip, tmp_path):
     assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
 
 
+def test_no_face_in_the_first_frame_is_one_line_saying_what_to_do(clip, tmp_path, monkeypatch, capsys):
+    """A video whose face appears only later: the run is refused before anything is written, and the message says
+    what to do (it only said the detector found no face)."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    monkeypatch.setitem(torchface.detect.DETECTORS, "none", lambda: lambda image: None)
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "o", "the none detector found no face in the first frame")
+    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "o", "--landmarks FILE, or cut the video to start at a frame with")
+
+
+def test_redetect_below_must_be_finite(tmp_path):
+    """``redetect_below=nan`` counted every frame low (``conf >= nan`` is False): the detector was asked every
+    ``redetect_after`` frames whatever the confidence, silently."""
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="redetect_below must be a finite confidence"):
+            JobConfig(out_dir=tmp_path, redetect_below=bad)
+    assert JobConfig(out_dir=tmp_path, redetect_below=1.01).redetect_below == 1.01
+
+
 def test_a_torch_device_in_the_job_config_reaches_the_sidecar(clip, tmp_path):
     """``JobConfig(device=torch.device("cpu"))`` tracked the whole video and then failed writing the JSON
     ("Object of type device is not JSON serializable"), its other outputs left without it."""
@@ -611,6 +633,127 @@ def test_detector_initialises_and_redetects_and_meshes_are_written(clip, tmp_pat
     # The PLY is the posed mesh in the camera frame: its centroid sits in front of the camera near the head.
     assert mesh.vertices.shape[1] == 3 and np.linalg.norm(mesh.vertices.mean(0) - t[0]) < 100.0
     assert summary.frames == 3
+
+
+def test_detector_landmarks_of_a_face_at_the_frame_edge_start_the_run(clip, tmp_path, monkeypatch):
+    """dlib's predictor places the chin of a face at the frame's bottom edge just outside it (a GRID clip cut to
+    250 rows: two points at y = 250): the detector found the face, and the run must start from it, not refuse
+    its landmarks as a landmarks file's. More than half of them outside is still refused."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=2)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    points = gt.landmarks_px[0].numpy().astype(np.float64)
+    edge = points.copy()
+    edge[7:10, 1] = H + 1.0  # three chin points just below the frame
+    monkeypatch.setitem(torchface.detect.DETECTORS, "edge", lambda: lambda image: edge)
+    (summary,) = track_videos([tmp_path / "short.npy"], JobConfig(out_dir=tmp_path / "out", detector="edge"))
+    assert summary.frames == 2
+    far = points + [0.0, 2.0 * H]
+    monkeypatch.setitem(torchface.detect.DETECTORS, "far", lambda: lambda image: far)
+    with pytest.raises(InputError, match="detector landmarks: 68 landmark.s. outside"):
+        track_videos([tmp_path / "short.npy"], JobConfig(out_dir=tmp_path / "out2", detector="far"))
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (lambda p: np.full((68, 2), np.nan), "are NaN or infinite"),
+        (lambda p: p[:5], "expected 68 iBUG landmarks, got 5"),
+        (lambda p: p + 1e6, "outside the 160x120 frame"),
+    ],
+)
+def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_path, monkeypatch, bad, message):
+    """A re-detection's landmarks are checked as the first frame's: NaN ended the run in the landmark fit's
+    ValueError ("every sample needs at least 4 finite landmarks"), points far outside the frame were fitted and
+    tracked from silently (a pose a million millimetres off), a wrong count ended it in the fit."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=3)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    points = gt.landmarks_px[0].numpy().astype(np.float64)
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(1)
+        return points if len(calls) == 1 else bad(points)
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "bad", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "out", detector="bad", redetect_after=1, redetect_below=1.01)
+    with pytest.raises(InputError, match=f"short.npy: the bad detector's landmarks at a re-detection: .*{message}"):
+        track_videos([tmp_path / "short.npy"], config)
+
+
+def test_redetection_asks_for_the_tracked_face_not_another(clip, tmp_path, monkeypatch):
+    """A detector that takes ``near`` is asked for the face nearest the stream's last confident position: with
+    two faces in view, a re-detection took the largest, and the stream jumped to the other person (a GRID clip
+    with a second, larger face: x -25 mm to +35 mm after the first re-detection, confidence 0.05 from there on)."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = read_video(video, max_frames=4)
+    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    own = gt.landmarks_px[0].numpy().astype(np.float64)
+    other = own * 0.8 + [W * 0.4, 0.0]  # the other person's face, right of this one (the "largest")
+    asked = []
+
+    def two_faces(image_rgb, near=None):
+        asked.append(near)
+        if near is None:
+            return own if len(asked) == 1 else other
+        centre = (near.min(0) + near.max(0)) / 2
+        return own if np.linalg.norm(centre - own.mean(0)) < np.linalg.norm(centre - other.mean(0)) else other
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "two", lambda: two_faces)
+    config = JobConfig(out_dir=tmp_path / "out", detector="two", redetect_after=1, redetect_below=1.01)
+    track_videos([tmp_path / "short.npy"], config)
+    cols, rows, R, t = _pose(tmp_path / "out" / "short.csv")
+    assert np.abs(t[:, 0] - t[0, 0]).max() < 10.0, t[:, 0]  # it stayed on its face
+    assert asked[0] is None and len(asked) == 5 and all(a is not None and a.shape[1] == 2 for a in asked[1:])
+
+
+def test_recovery_asks_for_the_lost_streams_own_face():
+    """The tracker's recovery callback is given the lost streams' frames only: each is matched to its stream
+    (by the batch's frames) for that stream's ``near`` points."""
+    from torchface.detect import _Batched
+    from torchface.job import _Current, _recovery_near, _Stream
+
+    frames = torch.rand(4, 3, 8, 10)
+    frames[3] = frames[2]  # two streams on equal frames (two copies of a video): each is asked about once
+    streams = [_Stream(str(k), None, np.zeros((68, 2)), "", None) for k in range(4)]
+    for k, s in enumerate(streams):
+        s.near = np.full((5, 2), float(k))
+    asked = []
+    _Batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, _Current(frames)))(
+        frames[[0, 2, 3]].double()
+    )
+    assert [float(a[0, 0]) for a in asked] == [0.0, 2.0, 3.0]
+    assert [s.detector_calls for s in streams] == [1, 0, 1, 1]
+
+
+def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeypatch):
+    """The tracker's recoveries of a lost stream ask the detector too: the sidecar said ``redetections: 0`` of a
+    stream the detector had re-initialised (a GRID clip whose face left and came back elsewhere); its
+    ``detector_calls`` counts every call about the video's frames."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    frames = (read_video(video, max_frames=3).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    np.save(tmp_path / "gap.npy", np.concatenate([frames, np.full((5, H, W, 3), 90, np.uint8)]))
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(1)
+        return None if image_rgb.std() == 0 else gt.landmarks_px[0].numpy().astype(np.float64)
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "count", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "out", detector="count", redetect_after=0)
+    (summary,) = track_videos([tmp_path / "gap.npy"], config)
+    side = json.loads((tmp_path / "out" / "gap.json").read_text())
+    assert summary.lost > 0 and len(calls) >= 2  # the first frame, then recoveries
+    assert side["redetections"] == 0 and side["detector_calls"] == len(calls)
 
 
 def test_progress_display_terminal_and_log():

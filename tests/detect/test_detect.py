@@ -1,11 +1,15 @@
 """The optional detectors' loading (:mod:`torchface.detect`), with stand-in packages: dlib is not installed here."""
 
+import pickle
 import sys
 
 import numpy as np
 import pytest
 
-from torchface.detect import DetectorUnavailable, load_detector
+import torch
+
+from torchface.detect import DetectorUnavailable, _nearest, accepts_near, batched, load_detector
+from torchface.io import InputError
 
 
 def _fake_detect_extra(root, *, model_file: bool = True, with_dlib: bool = True) -> None:
@@ -69,3 +73,77 @@ def test_dlib_missing_names_the_install_command(isolated_modules):
         pass
     with pytest.raises(DetectorUnavailable, match=r"not installed: run  pip install \"torchface\[detect\]\""):
         load_detector("dlib")
+
+
+def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_modules):
+    """FaceTracker(detector=load_detector("dlib")) was accepted and failed at the first loss, many frames in, with
+    "image must be (H, W, 3) uint8 RGB, got torch.Size([1, 3, H, W])": the message now names the adapter."""
+    _fake_detect_extra(isolated_modules)
+    detect = load_detector("dlib")
+    with pytest.raises(TypeError, match=r"got a tensor of shape \(1, 3, 12, 16\).*torchface.detect.batched"):
+        detect(torch.zeros(1, 3, 12, 16))
+    assert detect(np.zeros((12, 16, 3), np.uint8)) is None  # the stand-in finds no face
+
+
+def test_batched_detector_for_facetracker():
+    """``batched``: a per-image detector as FaceTracker's ``frames (B, 3, H, W) -> (B, 68, 2)`` callback; it sees
+    each frame as (H, W, 3) uint8 RGB; None is a NaN row; a wrong count is refused naming the detector."""
+    seen = []
+    points = np.random.default_rng(0).uniform(2, 10, size=(68, 2))
+
+    def detector(image):
+        seen.append((image.shape, image.dtype, int(image[0, 0, 0]), int(image[0, 0, 1])))
+        return None if len(seen) == 1 else points
+
+    frames = torch.zeros(2, 3, 12, 16, dtype=torch.float64)
+    frames[:, 1] = 1.0  # green
+    out = batched(detector)(frames)
+    assert seen == [((12, 16, 3), np.uint8, 0, 255)] * 2
+    assert out.shape == (2, 68, 2) and out.dtype == torch.float64
+    assert bool(out[0].isnan().all()) and torch.equal(out[1], torch.as_tensor(points))
+    with pytest.raises(InputError, match="the mine detector's landmarks of a lost face: expected 68 iBUG .*got 5"):
+        batched(lambda image: points[:5], "mine")(frames)
+    with pytest.raises(InputError, match="lost face's landmarks: .* NaN"):
+        batched(lambda image: np.full((68, 2), np.nan))(frames)
+    with pytest.raises(TypeError, match="must be callable"):
+        batched("dlib")
+
+
+def test_of_several_faces_the_one_nearest_the_tracked_one_is_taken():
+    """Without ``near`` the largest face (the first of equals); with it the one whose box centre is nearest the
+    centre of the points' bounding box (NaN rows ignored): a re-detection of a stream beside a larger face took
+    the larger one, and the stream jumped to the other person."""
+    centres = np.array([[100.0, 100.0], [300.0, 100.0], [500.0, 100.0]])
+    areas = np.array([900.0, 2500.0, 2500.0])
+    assert _nearest(centres, areas, None) == 1
+    near = np.array([[80.0, 80.0], [120.0, 130.0], [np.nan, np.nan]])
+    assert _nearest(centres, areas, near) == 0
+    assert _nearest(centres, areas, near + [390.0, 0.0]) == 2
+    assert _nearest(centres, areas, np.full((3, 2), np.nan)) == 1
+
+
+def test_accepts_near():
+    assert accepts_near(lambda image, near=None: None) and accepts_near(lambda image, **kw: None)
+    assert not accepts_near(lambda image: None) and not accepts_near(print)
+    seen = []
+    frames = torch.zeros(2, 3, 12, 16)
+    batched(lambda image, near=None: seen.append(near))(frames)  # the public adapter passes no points
+    assert seen == [None, None]
+
+
+def _no_face(image):
+    return None
+
+
+def test_the_detectors_pickle_so_a_tracker_holding_one_can_be_checkpointed(isolated_modules):
+    """``torch.save(FaceTracker(detector=batched(load_detector("dlib"))))``, the documented mid-stream checkpoint,
+    failed: "Can't pickle local object '_dlib.<locals>.detect'" (and a spawned DataLoader worker given the detector
+    with it). The dlib detector pickles as its name (the copy loads the models again); ``batched`` as its parts."""
+    _fake_detect_extra(isolated_modules)
+    detect = pickle.loads(pickle.dumps(load_detector("dlib")))
+    assert detect(np.zeros((12, 16, 3), np.uint8)) is None
+    sys.modules["dlib"].loaded.clear()
+    copy = pickle.loads(pickle.dumps(batched(detect, "dlib")))
+    assert sys.modules["dlib"].loaded and copy.takes_near  # loaded again
+    assert bool(copy(torch.zeros(1, 3, 12, 16)).isnan().all())
+    assert bool(pickle.loads(pickle.dumps(batched(_no_face)))(torch.zeros(2, 3, 4, 6)).isnan().all())

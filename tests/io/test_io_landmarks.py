@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchface.io import InputError, read_landmarks
+from torchface.io import InputError, check_landmarks, read_landmarks
 
 
 def _points() -> np.ndarray:
@@ -81,6 +81,18 @@ def test_bad_landmarks(tmp_path, edit, message):
     with pytest.raises(InputError, match=message) as info:
         read_landmarks(tmp_path / "lm.npy", 100, 100)
     assert "\n" not in str(info.value)
+
+
+def test_check_landmarks_min_inside_lets_a_detectors_points_cross_the_edge():
+    """A detector's landmarks (``min_inside=0.5``) may lie partly outside the frame (a chin at the edge); a file's
+    (the default) may not, and more than half outside is refused either way."""
+    points = _points()
+    points[:3] = [[50.0, 100.5], [60.0, 101.0], [-1.0, 50.0]]
+    with pytest.raises(InputError, match="3 landmark.s. outside the 100x100 frame"):
+        check_landmarks(points, 100, 100, "file")
+    assert np.array_equal(check_landmarks(points, 100, 100, "detector", min_inside=0.5), points)
+    with pytest.raises(InputError, match="68 landmark.s. outside"):
+        check_landmarks(points + 500.0, 100, 100, "detector", min_inside=0.5)
 
 
 def test_missing_and_garbled_files(tmp_path):

@@ -312,6 +312,18 @@ def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
         list(DataLoader(VideoDataset([clip.video], [clip.landmarks[:60]], cfg), batch_size=None, num_workers=1))
 
 
+def test_detector_landmarks_of_a_face_at_the_frame_edge_are_taken(clips, config):
+    """dlib's predictor places the chin of a face at the frame's edge just outside it: a detector's landmarks may
+    lie partly outside the frame (they were refused as a landmarks file's), not mostly."""
+    clip = clips[0]
+    cfg = replace(config, cache_dir=None)
+    edge = np.array(clip.landmarks, dtype=np.float64)
+    edge[7:10, 1] = 129.0  # below the 128x128 frame
+    assert len(list(VideoDataset([clip.video], lambda image: edge, cfg))) > 0
+    with pytest.raises(InputError, match="outside the 128x128 frame"):
+        list(VideoDataset([clip.video], lambda image: edge + [0.0, 200.0], cfg))
+
+
 def test_transform_rejects_bad_input(clips):
     normalise = NormaliseFaces(TRACKING)
     frames = read_video(clips[0].video)

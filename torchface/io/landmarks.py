@@ -79,11 +79,17 @@ def _parse_csv(p: Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
 
 
-def check_landmarks(points: np.ndarray, width: int, height: int, where: str) -> np.ndarray:
+def check_landmarks(
+    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0
+) -> np.ndarray:
     """Check ``(68, 2)`` pixel landmarks against a ``width x height`` frame; returns them as float64.
 
+    ``min_inside``: the fraction of the points that must lie inside the frame (1: all of them, as a landmarks file
+    gives; a detector's, 0.5: dlib's predictor places the chin of a face at the frame's edge outside it).
+
     Raises:
-        InputError: wrong count, non-finite values, or points outside the frame.
+        InputError: wrong count, non-finite values, or (more than ``1 - min_inside`` of the) points outside the
+            frame.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim == 3 and points.shape[0] == 1:
@@ -99,7 +105,7 @@ def check_landmarks(points: np.ndarray, width: int, height: int, where: str) -> 
         raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} are NaN or infinite")
     u, v = points[:, 0], points[:, 1]
     outside = (u < -0.5) | (u > width - 0.5) | (v < -0.5) | (v > height - 0.5)
-    if outside.any():
+    if outside.sum() > (1.0 - min_inside) * NUM_LANDMARKS:
         k = int(np.flatnonzero(outside)[0])
         raise InputError(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
