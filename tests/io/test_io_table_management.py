@@ -46,20 +46,3 @@ def test_management_columns_from_a_managed_and_a_bare_result():
     # A lost frame is not successful; its status column says 3.
     assert rows[:, idx["success"]].tolist() == [1.0, 0.0]
     assert rows[:, idx["status"]].tolist() == [0.0, 3.0]
-
-
-def test_job_detector_adapter_batches_a_per_image_detector():
-    from torchface.job import _batch_detector
-
-    seen = []
-
-    def detector(image_rgb: np.ndarray):
-        seen.append(image_rgb.shape)
-        if image_rgb.mean() > 100:  # "a face" in bright frames only
-            return np.full((68, 2), 7.0)
-        return None
-
-    frames = torch.stack([torch.full((3, 8, 10), 0.9), torch.zeros(3, 8, 10)])
-    out = _batch_detector(detector, 68)(frames)
-    assert out.shape == (2, 68, 2) and seen == [(8, 10, 3), (8, 10, 3)]
-    assert bool((out[0] == 7.0).all()) and bool(torch.isnan(out[1]).all())
