@@ -649,6 +649,43 @@ def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monk
     assert tty.getvalue().count("\x1b[2K") == before + 2 * B
 
 
+def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
+    """``--lookahead`` keeps each video's frames read ahead for the tracking pass and hands the look-ahead fit the
+    batch of them: the batch holds the frames and the lists keep views of it (stacked, every frame was held three
+    times over at once: 1.4 GB for one 640x480 video); a shorter video's last frame repeated."""
+    import torchface.job as job
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    g = torch.Generator().manual_seed(0)
+    videos = [torch.rand(n, 3, 8, 10, generator=g) for n in (5, 3)]
+    streams = []
+    for v in videos:
+        s = job._Stream("v", iter(v[1:]), np.zeros((68, 2)), "", len(v))
+        s.last_frame = v[0]
+        streams.append(s)
+    seen = {}
+
+    def spy(model, tracker, frames, *args, **kwargs):
+        seen["frames"] = frames
+        return "fit", None
+
+    monkeypatch.setattr(job, "lookahead_fit", spy)
+
+    class Model:
+        device, dtype = torch.device("cpu"), torch.float32
+
+    config = JobConfig(out_dir=".", lookahead=LookaheadConfig(max_frames=4))
+    assert job._lookahead_fit(Model(), config, streams, None, None) == "fit"
+    frames = seen["frames"]
+    assert frames.shape == (2, 4, 3, 8, 10)
+    assert torch.equal(frames[0], videos[0][:4]) and torch.equal(frames[1], videos[1][[0, 1, 2, 2]])
+    for k, s in enumerate(streams):
+        assert len(s.ahead) == len(videos[k][1:4])
+        for j, frame in enumerate(s.ahead):
+            assert torch.equal(frame, videos[k][j + 1])
+            assert frame.untyped_storage().data_ptr() == frames.untyped_storage().data_ptr()  # a view, not a copy
+
+
 def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, tmp_path, monkeypatch):
     """``JobConfig.lookahead``: the frames read ahead go to the look-ahead fit and are then tracked in order.
     With the fit replaced by the plain landmark fit (a spy), the CSV equals the run without look-ahead (which,
