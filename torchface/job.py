@@ -1007,10 +1007,14 @@ def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], 
         return None
     # (a shorter video repeats its last frame, as the tracking loop does once it has ended: the batch's shortest
     # length capped the look-ahead of every video, and a 1-frame video turned it off)
-    frames = torch.stack([
-        torch.stack([s.last_frame] + s.ahead + [([s.last_frame] + s.ahead)[-1]] * (longest - len(s.ahead)))
-        for s in streams
-    ])  # fmt: skip
+    first = streams[0].last_frame
+    frames = torch.empty((len(streams), longest + 1, *first.shape), dtype=first.dtype, device=first.device)
+    for k, s in enumerate(streams):  # each frame read ahead moved into the batch, its list keeping a view: one copy
+        frames[k, 0] = s.last_frame  # of the frames in memory (stacked, they were held three times over at once)
+        for j, frame in enumerate(s.ahead):
+            frames[k, j + 1] = frame
+            s.ahead[j] = frames[k, j + 1]
+        frames[k, len(s.ahead) + 1 :] = frames[k, len(s.ahead)]
     fit, _ = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
                            config=la)  # fmt: skip
     return fit

@@ -263,7 +263,9 @@ class TrackedSequence:
         ``anim_coeffs`` ``(A,)``, ``expression`` ``(A,)`` (the units measured from the person's neutral, which
         ``facs`` ``(F,)`` is linked to), ``illumination`` ``(L,)``, ``confidence`` ``()`` float32,
         ``success`` ``()`` bool, ``status`` ``()`` int64, ``frame`` ``()`` int64 (index in the tracked sequence:
-        :attr:`first_frame` plus the position ``frames`` selects); per sequence: ``shape_coeffs`` ``(S_u,)``.
+        :attr:`first_frame` plus the position ``frames`` selects); per sequence: ``shape_coeffs`` ``(S_u,)``. Each
+        tensor is the item's own (no view of the sequence's: changing it in place changes no other item, and a
+        ``DataLoader`` worker sends the item's frames, not the sequence's).
         """
         if isinstance(frames, slice):
             start, stop, step = frames.indices(self.num_frames)
@@ -276,8 +278,12 @@ class TrackedSequence:
             if not 0 <= index < self.num_frames:
                 raise IndexError(f"frame {frames} out of range for a {self.num_frames}-frame sequence")
             frame = torch.tensor(index + self.first_frame, dtype=torch.int64)
+        status = self.status[index]
+        face = decode_faces(self.faces[index])
+        if self.faces.dtype == torch.float32:  # (decode_faces hands float32 faces back as they are: a view)
+            face = face.clone()
         return {
-            "face": decode_faces(self.faces[index]),
+            "face": face,
             "mask": self.masks[index].to(torch.float32),
             "rotation": self.rotation[index].clone(),
             "axis_angle": self.axis_angle[index].clone(),
@@ -288,8 +294,10 @@ class TrackedSequence:
             "facs": self.facs[index].clone(),
             "illumination": self.illumination[index].clone(),
             "confidence": self.confidence[index].clone(),
-            "success": self.success[index],
-            "status": self.status[index].clone(),
+            # (from this item's statuses: self.success[index] was a view of the whole sequence's T flags, computed
+            # again for every item, and sent whole with each item from a DataLoader worker)
+            "success": (status != int(TrackStatus.FAILED)) & (status != int(TrackStatus.LOST)),
+            "status": status.clone(),
             "frame": frame,
             "shape_coeffs": self.shape_coeffs.clone(),
         }

@@ -778,9 +778,80 @@ def test_progress_display_terminal_and_log():
     display = ProgressDisplay(tty)
     display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
     display(Progress(1, 2, "b", 1, None, 2.0, 0.9))
-    display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))
+    display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))  # (drawn when a redraw is due, or by flush)
+    display.flush()
     text = tty.getvalue()
     assert "\x1b[2F" in text and "1 frames" in text and "2/10" in text  # redraws both bars in place
+
+
+def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monkeypatch):
+    """The job reports every stream after every step; a terminal redraw writes every bar, so redrawing at each
+    report wrote B * B bars per step. Within one redraw interval only new and finished videos redraw."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    clock = [100.0]
+    monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
+    tty = Tty()
+    display = cli.ProgressDisplay(tty)
+    B = 32
+    for k in range(B):  # the first step: each video appears once (B redraws)
+        display(Progress(k, B, f"v{k}", 1, 100, 5.0, 0.9))
+    before = tty.getvalue().count("\x1b[2K")
+    for step in range(2, 12):  # ten more steps within the interval: nothing drawn
+        for k in range(B):
+            display(Progress(k, B, f"v{k}", step, 100, 5.0, 0.9))
+    assert tty.getvalue().count("\x1b[2K") == before
+    clock[0] += 1.0  # the interval has passed: the next report redraws every bar once
+    display(Progress(0, B, "v0", 12, 100, 5.0, 0.9))
+    assert tty.getvalue().count("\x1b[2K") == before + B and "12/100" in tty.getvalue()
+    display(Progress(1, B, "v1", 100, 100, 5.0, 0.9))  # finished: drawn at once
+    assert tty.getvalue().count("\x1b[2K") == before + 2 * B and "100/100" in tty.getvalue().splitlines()[-B + 1]
+    display.flush()  # nothing left to draw
+    assert tty.getvalue().count("\x1b[2K") == before + 2 * B
+
+
+def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
+    """``--lookahead`` keeps each video's frames read ahead for the tracking pass and hands the look-ahead fit the
+    batch of them: the batch holds the frames and the lists keep views of it (stacked, every frame was held three
+    times over at once: 1.4 GB for one 640x480 video); a shorter video's last frame repeated."""
+    import torchface.job as job
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    g = torch.Generator().manual_seed(0)
+    videos = [torch.rand(n, 3, 8, 10, generator=g) for n in (5, 3)]
+    streams = []
+    for v in videos:
+        s = job._Stream("v", iter(v[1:]), np.zeros((68, 2)), "", len(v))
+        s.last_frame = v[0]
+        streams.append(s)
+    seen = {}
+
+    def spy(model, tracker, frames, *args, **kwargs):
+        seen["frames"] = frames
+        return "fit", None
+
+    monkeypatch.setattr(job, "lookahead_fit", spy)
+
+    class Model:
+        device, dtype = torch.device("cpu"), torch.float32
+
+    config = JobConfig(out_dir=".", lookahead=LookaheadConfig(max_frames=4))
+    assert job._lookahead_fit(Model(), config, streams, None, None) == "fit"
+    frames = seen["frames"]
+    assert frames.shape == (2, 4, 3, 8, 10)
+    assert torch.equal(frames[0], videos[0][:4]) and torch.equal(frames[1], videos[1][[0, 1, 2, 2]])
+    for k, s in enumerate(streams):
+        assert len(s.ahead) == len(videos[k][1:4])
+        for j, frame in enumerate(s.ahead):
+            assert torch.equal(frame, videos[k][j + 1])
+            assert frame.untyped_storage().data_ptr() == frames.untyped_storage().data_ptr()  # a view, not a copy
 
 
 def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, tmp_path, monkeypatch):

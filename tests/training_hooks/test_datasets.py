@@ -3,6 +3,7 @@ clips, landmark sources, the transform's equality with the dataset, shuffling, b
 
 from __future__ import annotations
 
+import itertools
 import os
 import typing
 from dataclasses import replace
@@ -348,6 +349,15 @@ def test_sequence_success_and_validation(clips):
     marked = dc_replace(sequence, status=torch.tensor([0, 2, 3]))  # converged, FAILED, LOST
     assert marked.success.tolist() == [True, False, False]
     assert marked.item(2)["success"].item() is False and marked.item(slice(0, 3))["success"].tolist() == [1, 0, 0]
+    # Each item's tensors hold its own frames only (a worker sends them whole): success was a view of all T flags.
+    long = dc_replace(sequence, **{f: torch.cat([getattr(sequence, f)] * 100) for f in (
+        "faces", "masks", "rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",
+        "illumination", "confidence", "status")})  # fmt: skip
+    as_float = dc_replace(long, faces=long.faces.to(torch.float32) / 255.0)  # FaceStorage.FLOAT32
+    for seq, index in itertools.product((long, as_float), (5, slice(5, 9))):
+        item = seq.item(index)
+        for key, value in item.items():
+            assert value.untyped_storage().nbytes() == value.numel() * value.element_size(), key
     with pytest.raises(ValueError, match="confidence must be"):
         dc_replace(sequence, confidence=torch.ones(2))
     with pytest.raises(ValueError, match="finite"):
