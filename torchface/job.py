@@ -1044,6 +1044,7 @@ def _write_step(
     verts_px, axes_px = verts_px.detach().cpu().numpy(), axes_px.detach().cpu().numpy()
     ci = columns.index("confidence")
     si = columns.index("success")
+    st = columns.index("status")
     for k, s in enumerate(streams):
         if not live[k]:
             continue
@@ -1060,7 +1061,8 @@ def _write_step(
         if ok and conf >= redetect_below:
             s.near = verts_px[k]
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
-        s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label))
+        unusable = "FAILED" if int(row[st]) == int(TrackStatus.FAILED) else "LOST"  # (both were drawn "LOST")
+        s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label, unusable))
         s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
         if mesh_dirs is not None:
             import trimesh

@@ -138,3 +138,18 @@ def test_plot_track_leaves_the_callers_matplotlib_backend_and_figures_alone(tmp_
     finally:
         plt.close(fig)
         plt.switch_backend(before)
+
+
+def test_a_failed_frame_is_labelled_failed_not_lost():
+    """Status 2 (FAILED: no estimate this frame) was labelled " LOST" like status 3: ``unusable_label`` names it;
+    a usable frame draws no such word, whatever the label."""
+    img = np.zeros((120, 160, 3), np.uint8)
+    nothing, axes = np.zeros((0, 2)), np.full((4, 2), np.nan)
+    edges = np.zeros((0, 2), np.int64)
+
+    def draw(ok, word):
+        return draw_overlay(img, nothing, edges, axes, 0.5, ok, "#1", unusable_label=word)
+
+    assert not np.array_equal(draw(False, "FAILED"), draw(False, "LOST"))
+    assert np.array_equal(draw(False, "LOST"), draw_overlay(img, nothing, edges, axes, 0.5, False, "#1"))
+    assert np.array_equal(draw(True, "FAILED"), draw(True, "LOST"))

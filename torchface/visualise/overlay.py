@@ -69,7 +69,7 @@ def _pt(p: np.ndarray, limit: float) -> tuple[int, int]:
 
 def draw_overlay(
     image_bgr: np.ndarray, verts_px: np.ndarray, edges: np.ndarray, axes_px: np.ndarray, confidence: float,
-    success: bool, label: str = "", confidence_label: str = "conf",
+    success: bool, label: str = "", confidence_label: str = "conf", unusable_label: str = "LOST",
 ) -> np.ndarray:
     """Draw one overlay frame (returns a new uint8 BGR image).
 
@@ -85,6 +85,8 @@ def draw_overlay(
         label: text drawn before the confidence (e.g. the frame number).
         confidence_label: what the confidence is ("dissim. conf": the dissimilarity confidence; "conf" for the
             residual confidence of a tracker without template management).
+        unusable_label: the word drawn after the confidence when ``success`` is False: ``"LOST"`` (status 3) or
+            ``"FAILED"`` (status 2: no usable estimate this frame, the previous one drawn).
     """
     if image_bgr.ndim != 3 or image_bgr.shape[2] != 3 or image_bgr.dtype != np.uint8:
         raise ValueError(f"image_bgr must be (H, W, 3) uint8, got {image_bgr.shape} {image_bgr.dtype}")
@@ -103,7 +105,7 @@ def draw_overlay(
         if np.isfinite(a[0]).all() and np.isfinite(a[k]).all():
             cv2.line(out, _pt(a[0], limit), _pt(a[k], limit), c, 2, cv2.LINE_AA)
     scale = max(0.35, min(W, H) / 600.0)
-    text = f"{label} {confidence_label} {confidence:.2f}" + ("" if success else " LOST")
+    text = f"{label} {confidence_label} {confidence:.2f}" + ("" if success else f" {unusable_label}")
     bar = int(round(max(0.0, min(1.0, confidence)) * (W // 4))) if math.isfinite(confidence) else 0  # NaN: none
     # (rectangles include both corners: the track is W // 4 pixels wide and the bar `bar`; a confidence of 0 or NaN
     # drew a 1-pixel bar, and every bar was one pixel longer than its share)
