@@ -83,6 +83,11 @@ def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_m
     with pytest.raises(TypeError, match=r"got a tensor of shape \(1, 3, 12, 16\).*torchface.detect.batched"):
         detect(torch.zeros(1, 3, 12, 16))
     assert detect(np.zeros((12, 16, 3), np.uint8)) is None  # the stand-in finds no face
+    from torchface import FaceTracker
+
+    with pytest.raises(TypeError, match=r"torchface.detect.batched"):  # at construction, not at the first loss
+        FaceTracker(detector=detect)
+    assert FaceTracker(detector=batched(detect)).detector is not None
 
 
 def test_batched_detector_for_facetracker():

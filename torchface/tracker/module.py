@@ -52,6 +52,13 @@ class FaceTracker(nn.Module):
             raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
         if detector is not None and not callable(detector):
             raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
+        from torchface.detect import _DlibDetector  # (light: dlib itself is imported when one is made)
+
+        if isinstance(detector, _DlibDetector):  # one image at a time: it failed at the first loss, with a shape error
+            raise TypeError(
+                "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
+                "load_detector in torchface.detect.batched(...)"
+            )
         if model is not None and not isinstance(model, FaceModel):
             raise TypeError(f"model must be a FaceModel or None (CANDIDE-3), got {type(model).__name__}")
         self.model = load_candide3() if model is None else model
