@@ -432,3 +432,109 @@ def test_auroc_matches_pairwise_count() -> None:
     neg = torch.randint(0, 6, (23,), generator=g).double() / 5 - 0.2
     pairs = (pos[:, None] > neg[None, :]).double() + 0.5 * (pos[:, None] == neg[None, :]).double()
     assert auroc(pos, neg) == pytest.approx(float(pairs.mean()), abs=1e-12)
+
+
+# --- independent re-implementations (numpy, float64) of the definitions ---------------------------------------
+
+
+def _np_angle_deg(M: np.ndarray) -> float:
+    """Geodesic angle of a rotation matrix from its axis-angle (scipy-free): ``atan2(|vee|, (tr - 1) / 2)``."""
+    vee = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    return math.degrees(math.atan2(float(np.linalg.norm(vee)), (np.trace(M) - 1.0) / 2.0))
+
+
+def _np_ypr(R: np.ndarray) -> np.ndarray:
+    """Yaw, pitch, roll (degrees) of ``R = R_y R_x R_z`` away from gimbal lock."""
+    return np.degrees([math.atan2(R[0, 2], R[2, 2]), math.asin(-R[1, 2]), math.atan2(R[1, 0], R[1, 1])])
+
+
+def test_rotation_error_is_of_R_t_R_0T_not_R_0T_R_t() -> None:
+    """The issue's convention, ``R_t R_0^T``: a camera-side offset of the first fit does count (a head-frame one
+    does not, test above); ``R_0^T R_t`` would score this run as perfect."""
+    est = _ypr([[10, 0, 0], [0, 0, 0]])
+    est[1] = est[0] @ _ypr([[0, 20, 0]])[0]  # est_1 = est_0 R_x(20): R_0^T R_t equals the truth's
+    gt = _ypr([[0, 0, 0], [0, 20, 0]])
+    e, g = est.numpy(), gt.numpy()
+    assert _np_angle_deg((e[0].T @ e[1]) @ (g[0].T @ g[1]).T) < 1e-9  # the other convention: no error
+    want = _np_angle_deg((e[1] @ e[0].T) @ (g[1] @ g[0].T).T)
+    assert want > 3.0
+    assert math.isclose(float(relative_rotation_error_deg(est, gt)[1]), want, rel_tol=1e-12)
+
+
+def test_rotation_error_180_degrees_and_sign_flip() -> None:
+    gt = _ypr([[0, 0, 0], [0, 0, 0], [15, 0, 0]])
+    est = _ypr([[0, 0, 0], [180, 0, 0], [-15, 0, 0]])  # half a turn; then the yaw's sign flipped
+    err = relative_rotation_error_deg(est, gt)
+    torch.testing.assert_close(err, torch.tensor([0.0, 180.0, 30.0], dtype=F64), atol=1e-9, rtol=0)
+    ypr = relative_ypr_error_deg(est, gt)
+    torch.testing.assert_close(ypr[1:], torch.tensor([[180.0, 0, 0], [-30.0, 0, 0]], dtype=F64), atol=1e-9, rtol=0)
+
+
+def test_sequence_metrics_match_a_numpy_reimplementation_on_a_float32_estimate() -> None:
+    """Random turns, a float32 estimate (not exactly orthonormal): every rotation figure against numpy on the
+    SVD-projected matrices, and frame 0's own status and error kept out of the statistics."""
+    g = torch.Generator().manual_seed(7)
+    T = 40
+    gt = euler_to_matrix(torch.cat([torch.zeros(1, 3, dtype=F64), 25 * torch.randn(T - 1, 3, dtype=F64, generator=g)]))
+    noise = axis_angle_to_matrix(torch.deg2rad(1.5 * torch.randn(T, 3, dtype=F64, generator=g)))
+    est = (noise @ gt).to(torch.float32)
+    t = torch.zeros(T, 3, dtype=F64)
+    status = torch.full((T,), int(TrackStatus.CONVERGED))
+    status[0] = int(TrackStatus.FAILED)
+    status[[3, 9]] = int(TrackStatus.MAX_ITERATIONS)
+    m = sequence_metrics(est, t, gt, t, status)
+
+    def project(R: np.ndarray) -> np.ndarray:
+        u, _, vt = np.linalg.svd(R)
+        return u @ vt
+
+    e = np.stack([project(r) for r in est.double().numpy()])
+    G = gt.numpy()
+    rel_e, rel_g = e @ e[0].T, G @ G[0].T
+    err = np.array([_np_angle_deg(rel_e[i] @ rel_g[i].T) for i in range(1, T)])
+    assert m.frames == T - 1
+    assert m.rot_err_mean_deg == pytest.approx(err.mean(), abs=1e-5)
+    assert m.rot_err_median_deg == pytest.approx(np.median(err), abs=1e-5)  # T - 1 odd: one middle value
+    assert m.rot_err_max_deg == pytest.approx(err.max(), abs=1e-5)
+    d = np.array([_np_ypr(rel_e[i]) - _np_ypr(rel_g[i]) for i in range(1, T)])
+    d = (d + 180.0) % 360.0 - 180.0
+    assert [m.yaw_err_deg, m.pitch_err_deg, m.roll_err_deg] == pytest.approx(np.abs(d).mean(0), abs=1e-4)
+    assert m.init_rot_err_deg == pytest.approx(_np_angle_deg(e[0] @ G[0].T), abs=1e-5)
+    assert m.converged == pytest.approx((T - 3) / (T - 1)) and m.success == 1.0  # frame 0's FAILED not counted
+    assert m.lost_frames == int((err > 10.0).sum())
+
+
+def test_long_run_metrics_match_a_brute_force_reading_of_the_definitions() -> None:
+    """Recoveries, lost and unsuccessful frames on random short runs against a frame-by-frame loop."""
+    rng = np.random.default_rng(0)
+
+    def brute(err, ok, vis, occ, hold):
+        T = len(err)
+        good = ok & (err <= 10.0)
+        hidden = ~(vis & ~occ)
+        hidden[0] = False
+        gaps, f = [], 1
+        while f < T:
+            if hidden[f]:
+                s = f
+                while f < T and hidden[f]:
+                    f += 1
+                gaps.append((s, f))
+            else:
+                f += 1
+        out = []
+        for i, (s, e) in enumerate(gaps):
+            limit = gaps[i + 1][0] if i + 1 < len(gaps) else T
+            hit = next((f - e for f in range(e, limit - hold + 1) if good[f : f + hold].all()), None)
+            out.append(Recovery(s, e, hit, "out of view" if not vis[s:e].all() else "occluded"))
+        return tuple(out), int((vis & (err > 10.0))[1:].sum()), int((vis & ~ok)[1:].sum())
+
+    for _ in range(300):
+        T, hold = int(rng.integers(2, 30)), int(rng.integers(1, 5))
+        err = rng.choice([0.5, 20.0], T, p=[0.7, 0.3])
+        ok, vis, occ = rng.random(T) < 0.8, rng.random(T) < 0.8, rng.random(T) < 0.15
+        m = long_run_metrics(
+            torch.from_numpy(err), torch.from_numpy(ok), torch.from_numpy(vis), [1], occluded=torch.from_numpy(occ),
+            hold=hold,
+        )
+        assert (m.recoveries, m.lost_frames, m.unsuccessful_frames) == brute(err, ok, vis, occ, hold)
