@@ -444,14 +444,14 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
 def seed_table(name: str, rows: dict[str, dict[str, float]], info: str, what: str = "landmark-noise seeds") -> str:
     """One scenario tracked once per seed (rows; ``what`` the seeds drawn), then the worst seed's figures."""
     text = table(f"{name} across {what}", rows, info)
-    worst = {
-        "mean": max(m["rot_err_mean_deg"] for m in rows.values()),
-        "max": max(m["rot_err_max_deg"] for m in rows.values()),
-        "lost": max(m["lost_frames"] for m in rows.values()),
-    }
+    def worst_of(key: str) -> float:  # NaN (a seed that broke) is the worst (Python's max kept a first non-NaN)
+        values = [float(m[key]) for m in rows.values()]
+        return float("nan") if any(math.isnan(v) for v in values) else max(values)
+
+    worst = {"mean": worst_of("rot_err_mean_deg"), "max": worst_of("rot_err_max_deg"), "lost": worst_of("lost_frames")}
     return text + (
         f"\n   worst over {len(rows)} seeds: rot mean {_fmt(worst['mean'])} deg, max {_fmt(worst['max'])} deg, "
-        f"lost {int(worst['lost'])}"
+        f"lost {_fmt(worst['lost'], 0)}"
     )
 
 

@@ -538,3 +538,40 @@ def test_long_run_metrics_match_a_brute_force_reading_of_the_definitions() -> No
             hold=hold,
         )
         assert (m.recoveries, m.lost_frames, m.unsuccessful_frames) == brute(err, ok, vis, occ, hold)
+
+
+def test_a_nan_pose_counts_as_lost() -> None:
+    """A frame whose estimated rotation is NaN is lost (``NaN > threshold`` is False: it counted 0 lost frames
+    while the mean and max were NaN)."""
+    T = 5
+    gt = torch.eye(3, dtype=F64).expand(T, 3, 3).clone()
+    est = gt.clone()
+    est[3] = float("nan")
+    t = torch.zeros(T, 3, dtype=F64)
+    m = sequence_metrics(est, t, gt, t, torch.zeros(T, dtype=torch.int64))
+    assert m.lost_frames == 1 and math.isnan(m.rot_err_max_deg)
+
+
+def test_the_worst_seed_of_a_seed_table_is_nan_when_a_seed_broke() -> None:
+    """``evaluate.seed_table``'s "worst over N seeds" line: Python's ``max`` skipped a NaN after the first value
+    (seeds 0.2 and NaN printed "worst ... rot mean 0.20")."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "evaluate.py"
+    spec = importlib.util.spec_from_file_location("evaluate_for_seed_table", path)
+    evaluate = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = evaluate  # (its dataclasses look their module up)
+    try:
+        spec.loader.exec_module(evaluate)
+    finally:
+        del sys.modules[spec.name]
+    keys = ("rot_err_median_deg", "yaw_err_deg", "pitch_err_deg", "roll_err_deg", "trans_err_mm", "trans_rel_err_mm",
+            "au_rmse", "au_corr", "converged", "success", "ms_per_frame", "rot_jitter_deg", "au_inactive_rmse")
+    ok = dict.fromkeys(keys, 0.1) | {"rot_err_mean_deg": 0.2, "rot_err_max_deg": 0.9, "lost_frames": 0}
+    broke = ok | {"rot_err_mean_deg": float("nan"), "rot_err_max_deg": float("nan"), "lost_frames": 3}
+    text = evaluate.seed_table("x", {"0": ok, "1": broke}, "")
+    assert text.splitlines()[-1].strip() == "worst over 2 seeds: rot mean - deg, max - deg, lost 3", text
+    text = evaluate.seed_table("x", {"0": ok, "1": dict(ok, rot_err_mean_deg=0.3)}, "")
+    assert text.splitlines()[-1].strip() == "worst over 2 seeds: rot mean 0.30 deg, max 0.90 deg, lost 0", text

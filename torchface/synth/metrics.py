@@ -299,8 +299,8 @@ class SequenceMetrics:
         init_rot_err_deg, init_trans_err_mm: error of the initial fit at frame 0 (absolute).
         converged: fraction of frames whose status is CONVERGED.
         success: fraction of frames neither FAILED nor LOST (``TrackResult.success``).
-        lost_frames: frames whose relative rotation error exceeds the lost threshold; lost_fraction: the same
-            over ``frames``.
+        lost_frames: frames whose relative rotation error exceeds the lost threshold or is not finite;
+            lost_fraction: the same over ``frames``.
         au_rmse: RMSE over the active units, each as a fraction of its range, averaged (NaN if none active).
         au_corr: Pearson correlation over the active units, averaged over the defined ones (NaN if none).
         au_names: names of the active units; au_rmse_per_unit, au_corr_per_unit: per active unit.
@@ -392,7 +392,7 @@ def sequence_metrics(
     t_abs, t_rel = translation_errors_mm(translation_est, translation_gt)
     init_rot = geodesic_angle_deg(rotation_est[0].to(rotation_gt.dtype), rotation_gt[0])
     st = status[1:]
-    lost = int((rot > lost_threshold_deg).sum())
+    lost = int(((rot > lost_threshold_deg) | ~torch.isfinite(rot)).sum())  # a NaN pose is lost too (NaN > x: False)
     nan = float("nan")
     au_rmse, au_corr, names, rmse_u, corr_u = nan, nan, (), (), ()
     inactive_rmse, inactive_max = nan, nan
