@@ -57,6 +57,37 @@ def test_csv_single_row_in_the_order_its_header_names(tmp_path):
         np.testing.assert_allclose(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
 
 
+def _openface_csv(pts: np.ndarray, rows: int, success: int = 1, three_d: bool = True) -> str:
+    """OpenFace 2's FeatureExtraction layout: ', ' between cells, 2D x_k then y_k among other columns."""
+    head = ["frame", "face_id", "timestamp", "confidence", "success", "pose_Tx", "pose_Rx"]
+    head += [f"x_{k}" for k in range(68)] + [f"y_{k}" for k in range(68)]
+    head += [f"X_{k}" for k in range(68)] + [f"Y_{k}" for k in range(68)] if three_d else []
+    head += ["AU01_r", "AU45_c"]
+    lines = [", ".join(head)]
+    for f in range(rows):
+        vals = [f + 1, 0, f / 30, 0.98, success if f == 0 else 1, 12.5, 0.1]
+        vals += list(pts[:, 0] + f) + list(pts[:, 1] + f)
+        vals += list(-pts[:, 0] - 40.0) + list(pts[:, 1] * 3.0) if three_d else []
+        vals += [1.5, 1]
+        lines.append(", ".join(repr(float(v)) for v in vals))
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("rows, three_d", [(1, False), (3, False), (4, True)])
+def test_openfaces_per_frame_csv_gives_its_first_frames_points(tmp_path, rows, three_d):
+    """An OpenFace FeatureExtraction CSV (the module docstring names OpenFace's x_k, y_k columns) used to be refused
+    ("expected rows of 'x, y'" / "got an array of shape (143,)"): its first row's 2D points are read, not the 3D X_k."""
+    pts = _points()
+    (tmp_path / "of.csv").write_text(_openface_csv(pts, rows, three_d=three_d))
+    np.testing.assert_allclose(read_landmarks(tmp_path / "of.csv", 100, 100), pts)
+
+
+def test_openfaces_csv_whose_first_frame_failed_is_refused(tmp_path):
+    (tmp_path / "of.csv").write_text(_openface_csv(_points(), 2, success=0))
+    with pytest.raises(InputError, match="success 0"):
+        read_landmarks(tmp_path / "of.csv", 100, 100)
+
+
 def test_csv_single_row_and_npy_layouts(tmp_path):
     pts = _points()
     (tmp_path / "row.csv").write_text(",".join(f"{v}" for v in pts.reshape(-1)) + "\n")

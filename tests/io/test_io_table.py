@@ -149,3 +149,20 @@ def test_to_jsonable_writes_any_path_as_its_text(tmp_path):
     assert to_jsonable({"a": PurePosixPath("/data/a.mp4"), "b": [entry]}) == {"a": "/data/a.mp4", "b": [entry.path]}
     write_json(tmp_path / "h.json", {"input": PurePosixPath("/data/a.mp4"), "path": tmp_path})
     assert json.loads((tmp_path / "h.json").read_text()) == {"input": "/data/a.mp4", "path": str(tmp_path)}
+
+
+def test_openface_differences_the_readme_lists_match_candide3s_au_columns():
+    """README ("Differences from OpenFace's per-frame CSV"): the AUs without a column and the AU columns that repeat
+    one animation unit's value are CANDIDE-3's."""
+    from torchface.io.table import facs_column_stem
+    from torchface.model.candide import read_auv_facs_table
+
+    table = read_auv_facs_table()
+    columns = {f"{facs_column_stem(au)}_r" for row in table for au in row.facs}
+    for absent in ("AU01_r", "AU06_r", "AU12_r", "AU14_r", "AU17_r", "AU25_r"):
+        assert absent not in columns
+    shared = sorted(tuple(f"{facs_column_stem(au)}_r" for au in row.facs) for row in table if len(row.facs) > 1)
+    assert shared == [("AU13_r", "AU15_r"), ("AU23_r", "AU24_r"), ("AU26_r", "AU27_r"),
+                      ("AU42_r", "AU43_r", "AU44_r", "AU45_r")]
+    header = ",".join(track_columns(("a",), ("AU2",), ("g",)))
+    assert " " not in header and header.startswith("frame,timestamp,success,confidence,")

@@ -262,3 +262,13 @@ def test_repeated_blendshape_names_are_refused_at_load():
     with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['browDown'\]"):
         load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), blendshapes=np.zeros((2, 5, 3)),
                         blendshape_names=["browDown", "browDown"])
+
+
+@pytest.mark.skipif(not ICT_NPZ.exists(), reason="../shared/assets/ict_facekit is absent")
+def test_ict_left_right_pair_sums_into_one_au_as_documented():
+    """load_ict_face_model's docstring: AU12 (the CSV's AU12_r) is mouthSmile_L + mouthSmile_R, in [0, 2]."""
+    model = load_ict_face_model(ICT_NPZ, num_expressions=47, num_identities=0, dtype=torch.float64)
+    left, right = model.animation_names.index("mouthSmile_L"), model.animation_names.index("mouthSmile_R")
+    coeffs = torch.zeros(1, model.num_animation, dtype=torch.float64)
+    coeffs[0, left], coeffs[0, right] = 1.0, 0.25
+    assert model.facs_values(coeffs)[0, model.facs_names.index("AU12")].item() == 1.25

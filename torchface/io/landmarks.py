@@ -4,8 +4,11 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
-  ``y<k>``, e.g. OpenFace's ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
+  ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
   spaces, optionally quoted; UTF-8 with or without a byte order mark;
+- OpenFace's per-frame CSV (FeatureExtraction, ``frame, face_id, timestamp, confidence, success, ...``): a header
+  with ``x_0 ... x_67`` and ``y_0 ... y_67`` among other columns (OpenFace's 3D ``X_k``, gaze, AUs, ...); the points
+  are the first row's (its first frame), which must have ``success`` 1 when the file has that column;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
 """
 
@@ -50,6 +53,22 @@ def _named_row(header: str, row: list[float]) -> np.ndarray | None:
     return np.asarray([index[w] for w in wanted], dtype=np.float64).reshape(K, 2)
 
 
+def _openface_row(p: Path, header: str, rows: list[list[float]]) -> np.ndarray | None:
+    """The first row's ``x_k``, ``y_k`` cells ``(K, 2)`` when the header names them (exactly so, lower case: OpenFace's
+    3D ``X_k`` are other columns) among other columns, every row as wide as the header; else None."""
+    names = _cells(header)
+    if not rows or any(len(r) != len(names) for r in rows):
+        return None
+    where = {n: i for i, n in enumerate(names)}
+    K = sum(1 for n in names if re.fullmatch(r"x_\d+", n))
+    xs, ys = [f"x_{k}" for k in range(K)], [f"y_{k}" for k in range(K)]
+    if K == 0 or not all(n in where for n in xs + ys) or len(names) == 2 * K:
+        return None
+    if "success" in where and rows[0][where["success"]] != 1:
+        raise InputError(f"{p}: the first row (OpenFace's first frame) has success 0: no landmarks to start from")
+    return np.asarray([[rows[0][where[x]], rows[0][where[y]]] for x, y in zip(xs, ys)], dtype=np.float64)
+
+
 def _parse_csv(p: Path) -> np.ndarray:
     try:
         text = p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
@@ -68,6 +87,10 @@ def _parse_csv(p: Path) -> np.ndarray:
             if rows or header is not None:  # one header line at most, before the numbers
                 raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
             header = line
+    if header is not None:
+        openface = _openface_row(p, header, rows)
+        if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
+            return openface
     if len(rows) == 1:
         named = None if header is None else _named_row(header, rows[0])
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved

@@ -29,6 +29,10 @@ Columns (units; frames as in :mod:`torchface.conventions`)
 - ``residual_confidence`` (``[0, 1]``, from the solver's residual), ``dissimilarity`` (mean fiducial-patch
   displacement on the normalised face, its pixels; ``nan`` when not measured), ``mosaic_entry`` (the template
   mosaic entry aligned against, 0 = the first frame's; -1 when not reported).
+
+The names follow OpenFace where the quantity matches, but the file is not OpenFace's: no space after the header's
+commas, no ``face_id``, ``frame`` from 0 (OpenFace's from 1), and ``AUxx_r`` is a signed animation-unit change, not
+OpenFace's 0-5 intensity, with only the AUs CANDIDE-3 animates (README, "Differences from OpenFace's per-frame CSV").
 """
 
 from __future__ import annotations

@@ -371,7 +371,9 @@ def load_ict_face_model(
     The file is in centimetres with +y up and +z toward the viewer; it is converted with
     :data:`ICT_TO_HEAD` and :data:`ICT_MM_PER_UNIT`. Expressions (ARKit-style blendshapes, weights in
     ``[0, 1]``) become animation units linked to FACS by :data:`ARKIT_TO_FACS`; identities become shape
-    units; ``landmarks68`` gives the ``K = 68`` iBUG landmarks.
+    units; ``landmarks68`` gives the ``K = 68`` iBUG landmarks. A ``_L`` / ``_R`` pair links both its shapes to
+    one AU, whose value (:meth:`FaceModel.facs_values`, the CSV's ``AUxx_r``) is their sum: ``AU12`` is
+    ``mouthSmile_L + mouthSmile_R``, in ``[0, 2]``, not OpenFace's 0-5 intensity nor one side's weight.
 
     Args:
         npz_path: path to ``ict_face_model_light.npz`` (keys ``neutral, faces, expression_deltas,
