@@ -420,7 +420,10 @@ def test_the_built_library_is_readable_by_those_sharing_the_cache(tmp_path, monk
     # by another user of a shared TORCHFACE_CACHE_DIR: "Permission denied", and the torch code ran.
     monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
     target = _native._build(str(_fake_compiler(tmp_path)))
-    assert target.stat().st_mode & 0o777 == 0o755
+    assert target.stat().st_mode & 0o777 == 0o777 & ~_native._UMASK  # 0755 under the usual umask 022
+    monkeypatch.setattr(_native, "_UMASK", 0o077)  # a private umask keeps it private (the first fix made it 0755)
+    private = _native._build(str(_fake_compiler(tmp_path)) + " -DOTHER")
+    assert private.stat().st_mode & 0o777 == 0o700
 
 
 def test_a_compiler_given_with_arguments_as_make_takes_it(tmp_path, monkeypatch):

@@ -246,7 +246,20 @@ def _cpu_signature() -> str:
     except OSError:
         return platform.processor()
     fields = (line.partition(":") for line in first.splitlines())
-    return "\n".join(f"{key.strip()}:{value.strip()}" for key, _, value in fields if key.strip() in _CPU_FIELDS)
+    found = "\n".join(f"{key.strip()}:{value.strip()}" for key, _, value in fields if key.strip() in _CPU_FIELDS)
+    return found or platform.processor()  # (no known field: every such machine would share one key)
+
+
+def _process_umask() -> int:
+    """The process's file-creation mask (read by setting it and putting it back: at import, before any thread of
+    this module builds)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: The umask at import: the built library's mode is ``0o777 & ~_UMASK``.
+_UMASK = _process_umask()
 
 
 def _cache_dir() -> Path:
@@ -330,8 +343,9 @@ def _build(cc: str, openmp: bool = False) -> Path:
                 cmd = [*shlex.split(cc), *flags, "-o", tmp, str(_SOURCE_DIR / "kernels.c"), "-lm"]
                 out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
                 if out.returncode == 0:
-                    # mkstemp's 0600 (0711 once linked): others sharing the cache folder could not load it.
-                    os.chmod(tmp, 0o755)
+                    # mkstemp's 0600 (0711 once linked): others sharing the cache folder could not load it. Now
+                    # what the umask allows, as for any file the compiler writes (0755 under the usual 022).
+                    os.chmod(tmp, 0o777 & ~_UMASK)
                     os.replace(tmp, target)
                     return target
                 errors.append(f"{' '.join(cmd)}: {out.stderr.strip()[-500:]}")

@@ -145,7 +145,7 @@ class FaceModel:
 
     Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
     distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
-    and that the landmark weights' rows sum to one (within 1e-3), and raises ``ValueError`` (``TypeError`` for a
+    and that the landmark weights' rows sum to one (within 1e-2), and raises ``ValueError`` (``TypeError`` for a
     field of the wrong type) otherwise.
 
     Example:

@@ -30,7 +30,8 @@ ICT_TO_HEAD = np.diag([1.0, -1.0, -1.0])
 #: The ICT Face Model is in centimetres (outer eye corners 8.9 apart, head 24.8 wide).
 ICT_MM_PER_UNIT = 10.0
 
-#: The largest side (mm) of a face model's bounding box that :func:`load_mesh_model` takes without a warning.
+#: The range (mm) of the largest side of a face model's bounding box that :func:`load_mesh_model` takes without a
+#: warning.
 _FACE_SPAN_MM = (50.0, 2000.0)
 
 #: FACS action units commonly associated with the ARKit-style blendshapes of the ICT model
