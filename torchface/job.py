@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.detect import _Batched, accepts_near
+from torchface.detect import _Batched, accepts_near, usable_detection
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -1116,7 +1116,9 @@ def _maybe_redetect(
         if points is None:
             continue
         where = f"{s.reader.info.path}: the {config.detector} detector's landmarks at a re-detection"
-        points = check_landmarks(points, intr.width, intr.height, where, min_inside=0.5)
+        points = usable_detection(points, intr.width, intr.height, where)  # NaN / mostly outside: no face
+        if points is None:
+            continue
         lm = torch.as_tensor(points, dtype=model.dtype, device=model.device).unsqueeze(0)
         fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)
         p = params[k].clone()

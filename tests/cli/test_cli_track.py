@@ -665,9 +665,11 @@ def test_detector_landmarks_of_a_face_at_the_frame_edge_start_the_run(clip, tmp_
     ],
 )
 def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_path, monkeypatch, bad, message):
-    """A re-detection's landmarks are checked as the first frame's: NaN ended the run in the landmark fit's
-    ValueError ("every sample needs at least 4 finite landmarks"), points far outside the frame were fitted and
-    tracked from silently (a pose a million millimetres off), a wrong count ended it in the fit."""
+    """A re-detection's landmarks are checked: NaN ended the run in the landmark fit's ValueError ("every sample
+    needs at least 4 finite landmarks"), points far outside the frame were fitted and tracked from silently (a pose
+    a million millimetres off), a wrong count ended it in the fit. A wrong count (the detector's contract broken)
+    is an error naming the detector; NaN points or a face mostly outside the frame (one leaving it) are "no face"
+    with a warning, and the run goes on (such a detection used to end every video of the batch)."""
     import torchface.detect
 
     video, lm, gt = clip
@@ -682,8 +684,15 @@ def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_pat
 
     monkeypatch.setitem(torchface.detect.DETECTORS, "bad", lambda: detector)
     config = JobConfig(out_dir=tmp_path / "out", detector="bad", redetect_after=1, redetect_below=1.01)
-    with pytest.raises(InputError, match=f"short.npy: the bad detector's landmarks at a re-detection: .*{message}"):
-        track_videos([tmp_path / "short.npy"], config)
+    where = f"short.npy: the bad detector's landmarks at a re-detection: .*{message}"
+    if "expected 68" in message:
+        with pytest.raises(InputError, match=where):
+            track_videos([tmp_path / "short.npy"], config)
+        return
+    with pytest.warns(RuntimeWarning, match=where + ".*taken as no face"):
+        summaries = track_videos([tmp_path / "short.npy"], config)
+    side = json.loads((tmp_path / "out" / "short.json").read_text())
+    assert summaries[0].frames == 3 and side["redetections"] == 0 and side["detector_calls"] >= 1  # none taken
 
 
 def test_redetection_asks_for_the_tracked_face_not_another(clip, tmp_path, monkeypatch):

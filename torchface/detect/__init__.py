@@ -162,12 +162,32 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
         >>> tracker = FaceTracker(detector=batched(load_detector("dlib")))  # doctest: +SKIP
 
     Raises (from the callback):
-        torchface.io.InputError: the detector's landmarks are not 68 finite points with at least half of them
-            inside the frame.
+        torchface.io.InputError: the detector's landmarks are not ``(68, 2)`` points. NaN points, or more than half
+            outside the frame, are "no face" with a ``RuntimeWarning`` (:func:`usable_detection`).
     """
     if not callable(detector):
         raise TypeError(f"detector must be callable (image -> landmarks), got {type(detector).__name__}")
     return _Batched(detector, name, None)
+
+
+def usable_detection(points: object, width: int, height: int, where: str) -> np.ndarray | None:
+    """A detector's landmarks of a face looked for mid-run (a re-detection, a lost stream's recovery): the ``(68,
+    2)`` points when they are usable, None ("no face") with a ``RuntimeWarning`` when some are NaN or more than half
+    lie outside the ``width x height`` frame (a face leaving it: one such detection used to end every video of the
+    batch). Points of another shape break the detector's contract: ``torchface.io.InputError`` naming ``where``."""
+    import warnings
+
+    from torchface.io import InputError
+    from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks
+
+    array = np.asarray(points, dtype=np.float64)
+    if array.shape != (NUM_LANDMARKS, 2):
+        return check_landmarks(points, width, height, where, min_inside=0.5)  # raises, naming the shape
+    try:
+        return check_landmarks(array, width, height, where, min_inside=0.5)
+    except InputError as exc:
+        warnings.warn(f"{exc}; taken as no face", RuntimeWarning, stacklevel=2)
+        return None
 
 
 class _Batched:
@@ -184,7 +204,7 @@ class _Batched:
     def __call__(self, frames: Tensor) -> Tensor:
         import torch
 
-        from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks
+        from torchface.io.landmarks import NUM_LANDMARKS
 
         out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)
         H, W = frames.shape[-2], frames.shape[-1]
@@ -193,7 +213,8 @@ class _Batched:
             near = None if self.near_of is None else self.near_of(frames[b])
             points = self.detector(image, near=near) if self.takes_near else self.detector(image)
             if points is not None:
-                points = check_landmarks(points, W, H, self.where, min_inside=0.5)
+                points = usable_detection(points, W, H, self.where)
+            if points is not None:
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
         return out
 
