@@ -609,3 +609,46 @@ def test_a_model_wound_inward_is_told_what_the_canonical_view_needs():
     with pytest.raises(ValueError, match="wound outward"):
         build_normalised_layout(inward, size=32)
     assert build_normalised_layout(model, size=32) is not None
+
+
+def _nan_block_face(backend, nan: bool):
+    from torchface.normalise.face import build_normalised_layout, normalised_face
+
+    model = load_candide3()
+    layout = build_normalised_layout(model, 32, backend=backend)
+    cam = Intrinsics.default(160, 160)
+    frames = torch.rand(1, 3, 160, 160, generator=torch.Generator().manual_seed(0))
+    if nan:
+        frames[:, :, 70:90, 70:90] = float("nan")
+    aa = torch.zeros(1, 3, requires_grad=True)
+    t = torch.tensor([[0.0, 0.0, 600.0]], requires_grad=True)
+    out = normalised_face(frames, model, layout, torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation),
+                          aa, t, None, cam, backend=backend)  # fmt: skip
+    return out, aa, t
+
+
+def test_nan_frame_pixels_give_finite_gradients():
+    """NaN (missing) frame pixels were masked in the output but still sampled: the backward pass gave 0 * NaN = NaN
+    for the pose (and shape) gradients. They are finite now, and the output is the one the NaN-free part of the
+    frame gives."""
+    from torchface.backend import Backend
+
+    out, aa, t = _nan_block_face(Backend.TORCH, nan=True)
+    clean, _, _ = _nan_block_face(Backend.TORCH, nan=False)
+    assert 0 < int((out.mask == 0).sum()) and int(out.mask.sum()) < int(clean.mask.sum())  # the block is not seen
+    seen = out.mask.bool().expand_as(out.image)
+    torch.testing.assert_close(out.image[seen], clean.image[seen], rtol=0, atol=0)
+    out.image.sum().backward()
+    assert bool(torch.isfinite(aa.grad).all()) and bool(torch.isfinite(t.grad).all()), (aa.grad, t.grad)
+
+
+def test_torch_backend_z_buffer_runs_no_native_kernel(monkeypatch):
+    """``normalised_face(backend=Backend.TORCH)`` with its default z-buffer ran the native coverage kernel."""
+    from torchface import _native
+    from torchface.backend import Backend
+
+    ran = []
+    real = _native.run
+    monkeypatch.setattr(_native, "run", lambda kernel, *args: (ran.append(kernel), real(kernel, *args))[1])
+    _nan_block_face(Backend.TORCH, nan=False)
+    assert ran == []

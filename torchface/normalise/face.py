@@ -538,13 +538,20 @@ def _normalised_face_posed(
 
     # Eq. 15 and bilinear sampling at the projections.
     points_px = project_points(points_cam, intrinsics)
+    finite_sample = None
+    if not bool(torch.isfinite(frames).all()):
+        # NaN (missing) frame pixels: a sample that touches one is not seen (below). It is taken from the frame with
+        # them set to 0, so that the backward pass does not carry 0 * NaN into the pose and shape gradients.
+        with torch.no_grad():
+            finite_sample = torch.isfinite(sample_at_pixels(frames, points_px.detach())[0]).all(-1)  # (B, M)
+        frames = torch.where(torch.isfinite(frames), frames, 0.0)
     values, inside = sample_at_pixels(frames, points_px)  # (B, M, C), (B, M)
 
     with torch.no_grad():
         visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
         if zbuffer:
             crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
-            frags = rasterize(verts_cam.detach(), model.faces, crop)
+            frags = rasterize(verts_cam.detach(), model.faces, crop, backend=backend)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
@@ -555,6 +562,8 @@ def _normalised_face_posed(
     if illumination is not None:
         observed = remove_illumination(observed, normals, illumination)
     keep = keep & torch.isfinite(observed.detach()).all(1)  # a NaN (missing) frame pixel is not seen
+    if finite_sample is not None:
+        keep = keep & finite_sample
     keep_f = keep.to(observed.dtype).unsqueeze(1)  # (B, 1, M)
     G = layout.size
     # torch.where, not a product with the mask: 0 (value and gradient) where the mask is 0, even where the
