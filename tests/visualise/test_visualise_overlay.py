@@ -103,7 +103,8 @@ def test_plot_track_writes_png(tmp_path):
     assert plot_track(cols, rows, tmp_path / "plot.pdf").read_bytes()[:5] == b"%PDF-"
     assert b"<svg" in plot_track(cols, rows, tmp_path / "plot.svg").read_bytes()[:1000]
     assert plot_track(cols, rows, tmp_path / "plot").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert sorted(f.name for f in tmp_path.iterdir()) == ["plot", "plot.pdf", "plot.png", "plot.svg"]
+    assert plot_track(cols, rows, tmp_path / "plot.run1").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # no format
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["plot", "plot.pdf", "plot.png", "plot.run1", "plot.svg"]
 
 
 def test_plot_track_num_aus_zero_shows_none_and_negative_is_refused(tmp_path):

@@ -77,7 +77,9 @@ def plot_track(
     fig.tight_layout()
     p = Path(path)
     tmp = p.with_name(p.stem + ".partial" + p.suffix)
-    # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf")
-    fig.savefig(tmp, dpi=100, format=p.suffix[1:].lower() or "png")
+    # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf"); a suffix
+    # that names no format matplotlib writes ("track.run1") is PNG, as before
+    fmt = p.suffix[1:].lower()
+    fig.savefig(tmp, dpi=100, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
     os.replace(tmp, p)
     return p
