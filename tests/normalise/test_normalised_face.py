@@ -609,3 +609,25 @@ def test_a_model_wound_inward_is_told_what_the_canonical_view_needs():
     with pytest.raises(ValueError, match="wound outward"):
         build_normalised_layout(inward, size=32)
     assert build_normalised_layout(model, size=32) is not None
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_a_half_precision_normaliser_says_it_needs_float32(model, dtype):
+    """``.half()`` of a network holding a NormalisedFace: the float16 resampling lost the face without a sign (a
+    frontal face gave mask 0 everywhere, image all 0). Now the module, the functions and the layout builder raise a
+    TypeError that names the fix, as NormalisedFaceLayer does."""
+    from torchface.normalise.face import normalised_face_posed
+
+    normaliser = NormalisedFace(model, size=16).to(dtype)
+    shape, alpha = (x.to(dtype) for x in _zeros(model, 1))
+    frames = torch.rand(1, 3, CAM.height, CAM.width, dtype=dtype, requires_grad=True)
+    aa, t = torch.zeros(1, 3, dtype=dtype), T_FRONT.to(dtype)
+    with pytest.raises(TypeError, match="float32 or float64.*module.float"):
+        normaliser.from_params(frames, shape, alpha, aa, t, None, CAM)
+    verts = torch.zeros(1, model.num_vertices, 3, dtype=dtype)
+    with pytest.raises(TypeError, match="float32 or float64"):
+        normalised_face_posed(frames, normaliser.model, normaliser.layout, verts, None, CAM)
+    with pytest.raises(TypeError, match="float32 or float64"):
+        build_normalised_layout(normaliser.model, size=16)
+    out = normaliser.float().from_params(frames.float(), shape.float(), alpha.float(), aa.float(), t.float(), None, CAM)
+    assert out.mask.sum() > 100  # the float32 module sees the face

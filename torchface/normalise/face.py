@@ -240,7 +240,7 @@ def build_normalised_layout(
         :class:`NormalisedFaceLayout`.
 
     Raises:
-        TypeError: ``model`` is not a :class:`FaceModel`.
+        TypeError: ``model`` is not a :class:`FaceModel`, or not float32 / float64.
         ValueError: a setting is out of range, or no pixel sees the face.
 
     Example:
@@ -251,6 +251,7 @@ def build_normalised_layout(
     """
     if not isinstance(model, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    _check_precision(model)
     if isinstance(size, bool) or not isinstance(size, int) or size < 4:
         raise ValueError(f"size must be an int >= 4, got {size!r}")
     if not 0.0 <= float(margin) <= 0.45:
@@ -292,6 +293,19 @@ def build_normalised_layout(
         size=size, margin=float(margin), intrinsics=cam, translation=translation, num_faces=model.num_faces,
         pixel_index=pixel_index, face_index=face_index, bary=bary, mask=seen,
     )  # fmt: skip
+
+
+def _check_precision(model: FaceModel) -> None:
+    """Raise ``TypeError`` unless the model (and so the resampling) is float32 or float64.
+
+    In float16 the z-buffer test and the projections of a face at a few hundred mm lose most pixels (a frontal
+    face kept 0 of 216 canonical pixels, 12 without the z-buffer) and the result would be silently empty."""
+    if model.dtype not in (torch.float32, torch.float64):
+        raise TypeError(
+            f"the normalised face is computed in float32 or float64, the model is {model.dtype} (a .half() or "
+            ".to(bfloat16) of the module?): keep the model and layout in float32 (module.float()) and cast the "
+            "image, or run the network under torch.autocast, which leaves the normalised face in full precision"
+        )
 
 
 def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
@@ -385,7 +399,8 @@ def normalised_face(
         has image and mask 0, and those parameters of it get gradient 0. ``B = 0`` gives empty tensors.
 
     Raises:
-        TypeError: an argument has the wrong type, or a parameter tensor is not in the model's dtype/device.
+        TypeError: an argument has the wrong type, a parameter tensor is not in the model's dtype/device, or the
+            model is not float32 / float64 (float16 would lose most of the face without a sign).
         ValueError: a shape does not match (the messages say what was expected and what arrived).
 
     Example:
@@ -403,6 +418,7 @@ def normalised_face(
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     if not isinstance(layout, NormalisedFaceLayout):
         raise TypeError(f"layout must be a NormalisedFaceLayout, got {type(layout).__name__}")
+    _check_precision(model)
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if not isinstance(frames, Tensor):
@@ -487,8 +503,10 @@ def normalised_face_posed(
     torch code's to rounding. A sample with a non-finite vertex has image and mask 0 (and gradient 0).
 
     Raises:
+        TypeError: the model is not float32 / float64.
         ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``.
     """
+    _check_precision(model)
     B, C = frames.shape[:2] if isinstance(frames, Tensor) and frames.dim() == 4 else (-1, -1)
     want = (B, model.num_vertices, 3)
     if B < 0 or not isinstance(verts_cam, Tensor) or tuple(verts_cam.shape) != want:
