@@ -631,3 +631,45 @@ def test_a_half_precision_normaliser_says_it_needs_float32(model, dtype):
         build_normalised_layout(normaliser.model, size=16)
     out = normaliser.float().from_params(frames.float(), shape.float(), alpha.float(), aa.float(), t.float(), None, CAM)
     assert out.mask.sum() > 100  # the float32 module sees the face
+
+
+def test_under_torch_compile_the_normalised_face_is_the_torch_codes():
+    """Under ``torch.compile`` without gradients the native kernels (the face's sampling without the z-buffer, the
+    rasterizer's z-buffer) were traced with the traced tensors' pointers: wrong faces without a sign (0.37 off) and,
+    with the z-buffer, a crash of the process. Run in a child so that a regression fails this test only; the compiled
+    face is now the eager one, bit for bit."""
+    code = textwrap.dedent("""
+        import torch
+        torch.set_num_threads(1)
+        from torchface.backend import Backend
+        from torchface.geometry.camera import Intrinsics
+        from torchface.model import load_candide3
+        from torchface.normalise import build_normalised_layout, normalised_face
+        m = load_candide3()
+        lay = build_normalised_layout(m, 16)
+        cam = Intrinsics.default(64, 48)
+        frames = torch.rand(2, 3, 48, 64, generator=torch.Generator().manual_seed(0))
+        shape, alpha = torch.zeros(2, m.num_shape), torch.zeros(2, m.num_animation)
+        aa = torch.tensor([[0.05, 0.1, 0.0], [0.0, -0.1, 0.02]])
+        t = torch.tensor([[0.0, 0.0, 400.0]]).expand(2, 3)
+        light = torch.tensor([[0.1, 0.05, 0.1, 0.2, -0.1]]).expand(2, 5)
+        for zbuffer in (False, True):
+            def face(fr, backend=Backend.AUTO):
+                return normalised_face(fr, m, lay, shape, alpha, aa, t, light, cam, zbuffer=zbuffer, backend=backend)
+            with torch.no_grad():
+                ref = face(frames, Backend.TORCH)
+                torch._dynamo.reset()
+                if zbuffer:
+                    out = torch.compile(face, backend="eager")(frames)
+                    assert torch.equal(out.image, ref.image) and torch.equal(out.mask, ref.mask)
+                    assert out.mask.sum() > 100
+                if not zbuffer:  # the native kernel runs eagerly inside the compiled function
+                    torch._dynamo.reset()
+                    native = face(frames, Backend.NATIVE)
+                    for backend in (Backend.AUTO, Backend.NATIVE):
+                        out = torch.compile(face, backend="eager")(frames, backend)
+                        assert torch.equal(out.image, native.image) and torch.equal(out.mask, native.mask)
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])

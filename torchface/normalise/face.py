@@ -535,8 +535,10 @@ def _normalised_face_posed(
         verts_cam = torch.where(valid[:, None, None], verts_cam, canonical)
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
     if not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face"):
-        out = _normalised_face_native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics,
-                                      min_facing_cos)  # fmt: skip
+        # Under torch.compile the kernel runs eagerly (a graph break): traced, its ctypes call got the pointers of the
+        # traced tensors, not of the call's, and gave wrong faces without a sign.
+        native = _normalised_face_native_eager if torch.compiler.is_compiling() else _normalised_face_native
+        out = native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics, min_facing_cos)
         if all_valid:
             return out
         keep = valid[:, None, None, None]
@@ -562,7 +564,9 @@ def _normalised_face_posed(
         visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
         if zbuffer:
             crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
-            frags = rasterize(verts_cam.detach(), model.faces, crop)
+            # The torch z-buffer under torch.compile (the same fragments): the traced native kernel crashed the process.
+            raster_backend = Backend.TORCH if torch.compiler.is_compiling() else Backend.AUTO
+            frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
@@ -614,6 +618,10 @@ def _normalised_face_native(
     )  # fmt: skip
     _native.run("normalised_face", dtype == torch.float64, prob, B, torch.get_num_threads())
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
+
+
+#: :func:`_normalised_face_native` run eagerly where ``torch.compile`` traces its caller.
+_normalised_face_native_eager = torch.compiler.disable(_normalised_face_native)
 
 
 class NormalisedFace(nn.Module):
