@@ -673,3 +673,30 @@ def test_under_torch_compile_the_normalised_face_is_the_torch_codes():
     """)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
     assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
+
+
+def test_torch_func_grad_and_jacrev_equal_autograd():
+    """``torch.func.grad`` / ``jacrev`` (per-sample gradients, Jacobians) of the face with its default z-buffer
+    raised "Cannot access data pointer of Tensor that doesn't have storage" from the native rasterizer, which was
+    given torch.func's wrapped tensors: the torch z-buffer (the same fragments) serves them now."""
+    from torch.func import grad, jacrev
+
+    D = torch.float64
+    model = load_candide3(dtype=D)
+    layout = build_normalised_layout(model, 12)
+    cam = Intrinsics.default(64, 48)
+    frames = torch.rand(2, 3, 48, 64, dtype=D, generator=torch.Generator().manual_seed(0))
+    shape, alpha = torch.zeros(2, model.num_shape, dtype=D), torch.zeros(2, model.num_animation, dtype=D)
+    aa = torch.tensor([[0.05, 0.1, 0.0], [0.0, -0.1, 0.02]], dtype=D)
+    t = torch.tensor([[0.0, 0.0, 400.0]], dtype=D).expand(2, 3)
+    light = torch.tensor([[0.1, 0.05, 0.1, 0.2, -0.1]], dtype=D).expand(2, 5)
+
+    def face(fr, a):
+        return normalised_face(fr, model, layout, shape, alpha, a, t, light, cam).image
+
+    fr, a = frames.clone().requires_grad_(), aa.clone().requires_grad_()
+    ref_fr, ref_a = torch.autograd.grad(face(fr, a).sum(), (fr, a))
+    got_fr, got_a = grad(lambda x, y: face(x, y).sum(), argnums=(0, 1))(frames, aa)
+    assert torch.equal(got_a, ref_a) and torch.equal(got_fr, ref_fr) and ref_a.abs().sum() > 0
+    jac = jacrev(lambda y: face(frames, y))(aa)
+    torch.testing.assert_close(jac, torch.autograd.functional.jacobian(lambda y: face(frames, y), aa))

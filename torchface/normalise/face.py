@@ -498,7 +498,8 @@ def normalised_face_posed(
     frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
     shapes of ``frames`` and ``verts_cam`` are checked here (:func:`normalised_face` documents and checks the rest).
     Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
-    gradients, :class:`~torchface.backend.Backend` ``AUTO`` samples with the native kernel
+    gradients (nor a ``torch.func`` transform or forward AD), :class:`~torchface.backend.Backend` ``AUTO`` samples
+    with the native kernel (run eagerly under ``torch.compile``)
     (``torchface/_native/normalised_face.h``: each pixel from its triangle's three corners); the values are the
     torch code's to rounding. A sample with a non-finite vertex has image and mask 0 (and gradient 0).
 
@@ -519,6 +520,15 @@ def normalised_face_posed(
     )  # fmt: skip
 
 
+def _transformed(*tensors: Tensor | None) -> bool:
+    """Whether a tensor is wrapped by a ``torch.func`` transform (``grad``, ``jacrev``, ``jacfwd``, ``vmap``) or forward
+    AD is active: the native kernels read the tensors' memory, which such tensors do not have ("Cannot access data
+    pointer of Tensor that doesn't have storage"), and would drop their tangents."""
+    if torch.autograd.forward_ad._current_level >= 0:
+        return True
+    return any(x is not None and torch._C._functorch.is_functorch_wrapped_tensor(x) for x in tensors)
+
+
 def _normalised_face_posed(
     frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, verts_cam: Tensor, illumination: Tensor | None,
     intrinsics: Intrinsics, depth_tolerance: float, min_facing_cos: float, zbuffer: bool, backend: Backend,
@@ -534,7 +544,8 @@ def _normalised_face_posed(
         canonical = model.mean.to(verts_cam) + layout.translation.to(verts_cam)
         verts_cam = torch.where(valid[:, None, None], verts_cam, canonical)
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
-    if not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face"):
+    if (not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face")
+            and not _transformed(frames, verts_cam, illumination)):
         # Under torch.compile the kernel runs eagerly (a graph break): traced, its ctypes call got the pointers of the
         # traced tensors, not of the call's, and gave wrong faces without a sign.
         native = _normalised_face_native_eager if torch.compiler.is_compiling() else _normalised_face_native
@@ -564,8 +575,10 @@ def _normalised_face_posed(
         visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
         if zbuffer:
             crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
-            # The torch z-buffer under torch.compile (the same fragments): the traced native kernel crashed the process.
-            raster_backend = Backend.TORCH if torch.compiler.is_compiling() else Backend.AUTO
+            # The torch z-buffer (the same fragments) under torch.compile, where the traced native kernel crashed the
+            # process, and under torch.func's transforms, where it could not read the wrapped tensors.
+            plain = not torch.compiler.is_compiling() and not _transformed(verts_cam)
+            raster_backend = Backend.AUTO if plain else Backend.TORCH
             frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
