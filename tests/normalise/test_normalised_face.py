@@ -700,3 +700,33 @@ def test_torch_func_grad_and_jacrev_equal_autograd():
     assert torch.equal(got_a, ref_a) and torch.equal(got_fr, ref_fr) and ref_a.abs().sum() > 0
     jac = jacrev(lambda y: face(frames, y))(aa)
     torch.testing.assert_close(jac, torch.autograd.functional.jacobian(lambda y: face(frames, y), aa))
+
+
+def test_a_compiled_face_does_not_recompile_at_each_pose():
+    """Under ``torch.compile`` the z-buffer window fitted to the face (its size and offset read from the data) made
+    dynamo recompile at nearly every new pose, up to its recompile limit; the compiled face uses the whole frame
+    (the same visibility) and settles after the first calls."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    shape, alpha = _zeros(model := load_candide3(), 2)
+    layout = build_normalised_layout(model, 12)
+    cam = Intrinsics.default(64, 48)
+
+    def face(frames, aa, t):
+        return normalised_face(frames, model, layout, shape, alpha, aa, t, None, cam)
+
+    torch._dynamo.reset()
+    counters.clear()
+    compiled = torch.compile(face, backend="aot_eager")  # (the "eager" backend did settle)
+    gen = torch.Generator().manual_seed(0)
+    graphs = []
+    for _ in range(7):
+        frames = torch.rand(2, 3, 48, 64, generator=gen)
+        aa = ((torch.rand(2, 3, generator=gen) - 0.5) * 0.4).requires_grad_()
+        t = torch.tensor([[0.0, 0.0, 300.0]]) + torch.rand(2, 3, generator=gen) * torch.tensor([20.0, 20.0, 200.0])
+        out, ref = compiled(frames, aa, t), face(frames, aa, t)
+        assert torch.equal(out.mask, ref.mask) and torch.equal(out.image, ref.image) and ref.mask.sum() > 0
+        graphs.append(counters["stats"]["unique_graphs"])
+    torch._dynamo.reset()
+    assert graphs[-1] == graphs[2], graphs  # no new graph after the third call
