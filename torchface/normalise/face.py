@@ -578,7 +578,8 @@ def _normalised_face_posed(
             # process, and under torch.func's transforms, where it could not read the wrapped tensors.
             plain = not torch.compiler.is_compiling() and not _transformed(verts_cam)
             # (the whole frame under torch.compile: a window of the face's size would recompile at each new size)
-            crop = intrinsics if torch.compiler.is_compiling() else _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
+            compiling = torch.compiler.is_compiling()
+            crop = intrinsics if compiling else _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
             raster_backend = Backend.AUTO if plain else Backend.TORCH
             frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
