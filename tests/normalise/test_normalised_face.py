@@ -730,3 +730,19 @@ def test_a_compiled_face_does_not_recompile_at_each_pose():
         graphs.append(counters["stats"]["unique_graphs"])
     torch._dynamo.reset()
     assert graphs[-1] == graphs[2], graphs  # no new graph after the third call
+
+
+def test_a_first_call_in_inference_mode_does_not_break_later_gradients(model):
+    """A validation pass first (Lightning's sanity check runs under ``torch.inference_mode``) cached the layout's
+    vertex weights as an inference tensor: every later differentiable call with respect to the pose then raised
+    "Inference tensors cannot be saved for backward". The cache is made as a normal tensor."""
+    normaliser = NormalisedFace(model, size=16)
+    shape, alpha = _zeros(model, 1)
+    frames = torch.rand(1, 3, CAM.height, CAM.width, generator=torch.Generator().manual_seed(0))
+    aa = torch.tensor([[0.05, 0.1, 0.0]])
+    with torch.inference_mode():
+        first = normaliser.from_params(frames, shape, alpha, aa, T_FRONT, None, CAM)
+    pose = aa.clone().requires_grad_()
+    out = normaliser.from_params(frames, shape, alpha, pose, T_FRONT, None, CAM)
+    (grad,) = torch.autograd.grad(out.image.sum(), pose)
+    assert torch.equal(out.image, first.image) and bool(torch.isfinite(grad).all()) and grad.abs().sum() > 0

@@ -158,11 +158,15 @@ class NormalisedFaceLayout:
         held = self._weights.get(key)
         if held is not None and held[0] is faces:
             return held[1]
-        m = self.face_index.shape[0]
-        corners = faces.index_select(0, self.face_index.to(faces.device)).reshape(-1)  # (M * 3,)
-        rows = torch.arange(m, device=faces.device).repeat_interleave(3)
-        weights = torch.zeros(m, num_vertices, dtype=dtype, device=faces.device)
-        weights.index_put_((rows, corners), self.bary.to(device=faces.device, dtype=dtype).reshape(-1), accumulate=True)
+        # Made outside inference mode even when first asked for inside it (a validation pass before training): an
+        # inference tensor cannot be saved for a later differentiable call's backward.
+        with torch.inference_mode(False):
+            m = self.face_index.shape[0]
+            corners = faces.index_select(0, self.face_index.to(faces.device)).reshape(-1)  # (M * 3,)
+            rows = torch.arange(m, device=faces.device).repeat_interleave(3)
+            weights = torch.zeros(m, num_vertices, dtype=dtype, device=faces.device)
+            bary = self.bary.to(device=faces.device, dtype=dtype).reshape(-1)
+            weights.index_put_((rows, corners), bary, accumulate=True)
         self._weights[key] = (faces, weights)  # the faces held too: their id is not reused while the entry lives
         return weights
 
