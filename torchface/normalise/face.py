@@ -31,7 +31,8 @@ A canonical pixel is kept (mask 1) when its surface point is visible in the fram
 projecting inside the image, on a triangle that faces the camera with its normal at least
 ``acos(min_facing_cos)`` away from grazing, and not hidden by another part of the mesh (z-buffer of the posed
 mesh, :func:`torchface.rendering.visibility.points_visible`), and its sampled value is finite (NaN frame pixels
-are missing data, as the tracker takes them). Other pixels, and the background of the layout, are 0 with mask 0.
+are missing data, as the tracker takes them; the parameters' gradients stay finite). Other pixels, and the
+background of the layout, are 0 with mask 0.
 A sample whose geometry is not finite (a NaN or inf parameter or vertex) shows no face: image and mask 0, and its
 geometry parameters get gradient 0 (never NaN).
 
@@ -574,6 +575,15 @@ def _normalised_face_posed(
     # Eq. 15 and bilinear sampling at the projections.
     points_px = project_points(points_cam, intrinsics)
     values, inside = sample_at_pixels(frames, points_px)  # (B, M, C), (B, M)
+    missing = None
+    light_grad = illumination is not None and illumination.requires_grad
+    if torch.is_grad_enabled() and (points_px.requires_grad or light_grad):
+        if not bool(torch.isfinite(frames).all()):
+            # A NaN (missing) frame pixel is masked out, but the sampling's and the light's backward multiply its
+            # zero incoming gradient by it: NaN pose and light gradients. Sample a copy with 0 there for the values
+            # and the gradients (the same at every kept pixel: none of its neighbours is missing).
+            missing = ~torch.isfinite(values.detach()).all(-1)  # (B, M)
+            values, _ = sample_at_pixels(torch.nan_to_num(frames, nan=0.0, posinf=0.0, neginf=0.0), points_px)
 
     with torch.no_grad():
         visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
@@ -596,6 +606,8 @@ def _normalised_face_posed(
     if illumination is not None:
         observed = remove_illumination(observed, normals, illumination)
     keep = keep & torch.isfinite(observed.detach()).all(1)  # a NaN (missing) frame pixel is not seen
+    if missing is not None:
+        keep = keep & ~missing
     keep_f = keep.to(observed.dtype).unsqueeze(1)  # (B, 1, M)
     G = layout.size
     # torch.where, not a product with the mask: 0 (value and gradient) where the mask is 0, even where the
