@@ -39,6 +39,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -168,6 +169,16 @@ class LayerResult:
     track: TrackResult
 
 
+_F = TypeVar("_F", bound=Callable)
+
+
+def _tracked(fn: _F) -> _F:
+    """``fn`` (the tracking, detached or unrolled), run eagerly where ``torch.compile`` traces the layer (autograd
+    goes through it as in eager mode): traced, the tracker's native kernels got the pointers of the traced tensors
+    instead of the call's and crashed the process. Outside a compiled region ``fn`` itself (nothing changes)."""
+    return torch.compiler.disable(fn) if torch.compiler.is_compiling() else fn
+
+
 def _unrolled_solver(iterations: int) -> SolverConfig:
     # Plain Gauss-Newton: every finite step is taken, so the graph is the same for nearby inputs (an LM
     # accept/reject decision would flip under a finite-difference probe near convergence). No tolerances:
@@ -258,6 +269,10 @@ class NormalisedFaceLayer(nn.Module):
             ``.to(...)``, ``.double()``, ``.float()``, ``.cuda()``. Tracking needs float32 or float64: a layer
             cast to float16 or bfloat16 (``.half()`` of the network) raises a TypeError when called.
 
+    Under ``torch.compile`` the tracking (:meth:`initialise`, the detached step and the unrolled iterations) runs
+    eagerly, a graph break (its native kernels cannot be traced; the gradient goes through it as in eager mode); the
+    resampling and the rest of the network are compiled.
+
     Example:
         >>> layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=48))   # doctest: +SKIP
         >>> state, _ = layer.initialise(frames0, landmarks0)               # (B, 3, H, W), (B, 68, 2)  # doctest: +SKIP
@@ -318,7 +333,7 @@ class NormalisedFaceLayer(nn.Module):
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
         frames = frames.detach().to(dtype=self.model.dtype, device=self.model.device)
         landmarks_px = landmarks_px.detach().to(dtype=self.model.dtype, device=self.model.device)
-        return initialise(self.model, self.config.tracker, frames, landmarks_px, intrinsics)
+        return _tracked(initialise)(self.model, self.config.tracker, frames, landmarks_px, intrinsics)
 
     def normalise(self, frames: Tensor, state: TrackerState, params: Tensor) -> NormalisedFaceResult:
         """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera."""
@@ -352,11 +367,11 @@ class NormalisedFaceLayer(nn.Module):
         frames = frames.to(dtype=self.model.dtype, device=self.model.device)
         cfg = self.config
         with torch.no_grad():
-            new_state, track = track_step(self.model, cfg.tracker, state, frames.detach())
+            new_state, track = _tracked(track_step)(self.model, cfg.tracker, state, frames.detach())
         params = new_state.params
         if cfg.mode is LayerMode.UNROLLED:
             start = params if cfg.start is UnrollStart.TRACKED else state.params.detach()
-            params = unrolled_params(
+            params = _tracked(unrolled_params)(
                 self.model, cfg.tracker, state, frames, start, cfg.unrolled_iterations, cfg.unrolled_levels
             )
         image, mask = self.normalise(frames, state, params)

@@ -652,3 +652,169 @@ def test_torch_backend_z_buffer_runs_no_native_kernel(monkeypatch):
     monkeypatch.setattr(_native, "run", lambda kernel, *args: (ran.append(kernel), real(kernel, *args))[1])
     _nan_block_face(Backend.TORCH, nan=False)
     assert ran == []
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_a_half_precision_normaliser_says_it_needs_float32(model, dtype):
+    """``.half()`` of a network holding a NormalisedFace: the float16 resampling lost the face without a sign (a
+    frontal face gave mask 0 everywhere, image all 0). Now the module, the functions and the layout builder raise a
+    TypeError that names the fix, as NormalisedFaceLayer does."""
+    from torchface.normalise.face import normalised_face_posed
+
+    normaliser = NormalisedFace(model, size=16).to(dtype)
+    shape, alpha = (x.to(dtype) for x in _zeros(model, 1))
+    frames = torch.rand(1, 3, CAM.height, CAM.width, dtype=dtype, requires_grad=True)
+    aa, t = torch.zeros(1, 3, dtype=dtype), T_FRONT.to(dtype)
+    with pytest.raises(TypeError, match="float32 or float64.*module.float"):
+        normaliser.from_params(frames, shape, alpha, aa, t, None, CAM)
+    verts = torch.zeros(1, model.num_vertices, 3, dtype=dtype)
+    with pytest.raises(TypeError, match="float32 or float64"):
+        normalised_face_posed(frames, normaliser.model, normaliser.layout, verts, None, CAM)
+    with pytest.raises(TypeError, match="float32 or float64"):
+        build_normalised_layout(normaliser.model, size=16)
+    out = normaliser.float().from_params(frames.float(), shape.float(), alpha.float(), aa.float(), t.float(), None, CAM)
+    assert out.mask.sum() > 100  # the float32 module sees the face
+
+
+def test_under_torch_compile_the_normalised_face_is_the_torch_codes():
+    """Under ``torch.compile`` without gradients the native kernels (the face's sampling without the z-buffer, the
+    rasterizer's z-buffer) were traced with the traced tensors' pointers: wrong faces without a sign (0.37 off) and,
+    with the z-buffer, a crash of the process. Run in a child so that a regression fails this test only; the compiled
+    face is now the eager one, bit for bit."""
+    code = textwrap.dedent("""
+        import torch
+        torch.set_num_threads(1)
+        from torchface.backend import Backend
+        from torchface.geometry.camera import Intrinsics
+        from torchface.model import load_candide3
+        from torchface.normalise import build_normalised_layout, normalised_face
+        m = load_candide3()
+        lay = build_normalised_layout(m, 16)
+        cam = Intrinsics.default(64, 48)
+        frames = torch.rand(2, 3, 48, 64, generator=torch.Generator().manual_seed(0))
+        shape, alpha = torch.zeros(2, m.num_shape), torch.zeros(2, m.num_animation)
+        aa = torch.tensor([[0.05, 0.1, 0.0], [0.0, -0.1, 0.02]])
+        t = torch.tensor([[0.0, 0.0, 400.0]]).expand(2, 3)
+        light = torch.tensor([[0.1, 0.05, 0.1, 0.2, -0.1]]).expand(2, 5)
+        for zbuffer in (False, True):
+            def face(fr, backend=Backend.AUTO):
+                return normalised_face(fr, m, lay, shape, alpha, aa, t, light, cam, zbuffer=zbuffer, backend=backend)
+            with torch.no_grad():
+                ref = face(frames, Backend.TORCH)
+                torch._dynamo.reset()
+                if zbuffer:
+                    out = torch.compile(face, backend="eager")(frames)
+                    assert torch.equal(out.image, ref.image) and torch.equal(out.mask, ref.mask)
+                    assert out.mask.sum() > 100
+                if not zbuffer:  # the native kernel runs eagerly inside the compiled function
+                    torch._dynamo.reset()
+                    native = face(frames, Backend.NATIVE)
+                    for backend in (Backend.AUTO, Backend.NATIVE):
+                        out = torch.compile(face, backend="eager")(frames, backend)
+                        assert torch.equal(out.image, native.image) and torch.equal(out.mask, native.mask)
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
+
+
+def test_torch_func_grad_and_jacrev_equal_autograd():
+    """``torch.func.grad`` / ``jacrev`` (per-sample gradients, Jacobians) of the face with its default z-buffer
+    raised "Cannot access data pointer of Tensor that doesn't have storage" from the native rasterizer, which was
+    given torch.func's wrapped tensors: the torch z-buffer (the same fragments) serves them now."""
+    from torch.func import grad, jacrev
+
+    D = torch.float64
+    model = load_candide3(dtype=D)
+    layout = build_normalised_layout(model, 12)
+    cam = Intrinsics.default(64, 48)
+    frames = torch.rand(2, 3, 48, 64, dtype=D, generator=torch.Generator().manual_seed(0))
+    shape, alpha = torch.zeros(2, model.num_shape, dtype=D), torch.zeros(2, model.num_animation, dtype=D)
+    aa = torch.tensor([[0.05, 0.1, 0.0], [0.0, -0.1, 0.02]], dtype=D)
+    t = torch.tensor([[0.0, 0.0, 400.0]], dtype=D).expand(2, 3)
+    light = torch.tensor([[0.1, 0.05, 0.1, 0.2, -0.1]], dtype=D).expand(2, 5)
+
+    def face(fr, a):
+        return normalised_face(fr, model, layout, shape, alpha, a, t, light, cam).image
+
+    fr, a = frames.clone().requires_grad_(), aa.clone().requires_grad_()
+    ref_fr, ref_a = torch.autograd.grad(face(fr, a).sum(), (fr, a))
+    got_fr, got_a = grad(lambda x, y: face(x, y).sum(), argnums=(0, 1))(frames, aa)
+    assert torch.equal(got_a, ref_a) and torch.equal(got_fr, ref_fr) and ref_a.abs().sum() > 0
+    jac = jacrev(lambda y: face(frames, y))(aa)
+    torch.testing.assert_close(jac, torch.autograd.functional.jacobian(lambda y: face(frames, y), aa))
+
+
+def test_a_compiled_face_does_not_recompile_at_each_pose():
+    """Under ``torch.compile`` the z-buffer window fitted to the face (its size and offset read from the data) made
+    dynamo recompile at nearly every new pose, up to its recompile limit; the compiled face uses the whole frame
+    (the same visibility) and settles after the first calls."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    shape, alpha = _zeros(model := load_candide3(), 2)
+    layout = build_normalised_layout(model, 12)
+    cam = Intrinsics.default(64, 48)
+
+    def face(frames, aa, t):
+        return normalised_face(frames, model, layout, shape, alpha, aa, t, None, cam)
+
+    torch._dynamo.reset()
+    counters.clear()
+    compiled = torch.compile(face, backend="aot_eager")  # (the "eager" backend did settle)
+    gen = torch.Generator().manual_seed(0)
+    graphs = []
+    for _ in range(7):
+        frames = torch.rand(2, 3, 48, 64, generator=gen)
+        aa = ((torch.rand(2, 3, generator=gen) - 0.5) * 0.4).requires_grad_()
+        t = torch.tensor([[0.0, 0.0, 300.0]]) + torch.rand(2, 3, generator=gen) * torch.tensor([20.0, 20.0, 200.0])
+        out, ref = compiled(frames, aa, t), face(frames, aa, t)
+        assert torch.equal(out.mask, ref.mask) and torch.equal(out.image, ref.image) and ref.mask.sum() > 0
+        graphs.append(counters["stats"]["unique_graphs"])
+    torch._dynamo.reset()
+    assert graphs[-1] == graphs[2], graphs  # no new graph after the third call
+
+
+def test_a_first_call_in_inference_mode_does_not_break_later_gradients(model):
+    """A validation pass first (Lightning's sanity check runs under ``torch.inference_mode``) cached the layout's
+    vertex weights as an inference tensor: every later differentiable call with respect to the pose then raised
+    "Inference tensors cannot be saved for backward". The cache is made as a normal tensor."""
+    normaliser = NormalisedFace(model, size=16)
+    shape, alpha = _zeros(model, 1)
+    frames = torch.rand(1, 3, CAM.height, CAM.width, generator=torch.Generator().manual_seed(0))
+    aa = torch.tensor([[0.05, 0.1, 0.0]])
+    with torch.inference_mode():
+        first = normaliser.from_params(frames, shape, alpha, aa, T_FRONT, None, CAM)
+    pose = aa.clone().requires_grad_()
+    out = normaliser.from_params(frames, shape, alpha, pose, T_FRONT, None, CAM)
+    (grad,) = torch.autograd.grad(out.image.sum(), pose)
+    assert torch.equal(out.image, first.image) and bool(torch.isfinite(grad).all()) and grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("zbuffer", [True, False])
+def test_missing_frame_pixels_give_finite_pose_and_light_gradients(model, zbuffer):
+    """NaN (missing) frame pixels on the face are masked out, as documented, but the pose and light gradients were
+    NaN (the sampling's backward multiplied the masked pixels' zero gradient by the NaN): one missing patch made a
+    training step's whole update NaN. The gradients are finite and the face and mask unchanged."""
+    from torchface.backend import Backend
+
+    shape, alpha = _zeros(model, 2)
+    frames = torch.rand(2, 3, CAM.height, CAM.width, generator=torch.Generator().manual_seed(0))
+    frames[0, :, 105:135, 145:175] = float("nan")  # on the face of stream 0
+    aa = torch.tensor([[0.0, 0.2, 0.0], [0.05, -0.1, 0.0]], requires_grad=True)
+    light = torch.tensor([[0.1, -0.05, 0.1, 0.0, 0.2]]).repeat(2, 1).requires_grad_()
+    out = normalised_face(frames, model, layout_of(model), shape, alpha, aa, T_FRONT.expand(2, 3), light, CAM,
+                          zbuffer=zbuffer)  # fmt: skip
+    grads = torch.autograd.grad(out.image.sum(), (aa, light))
+    assert all(bool(torch.isfinite(g).all()) and g.abs().sum() > 0 for g in grads), grads
+    with torch.no_grad():
+        ref = normalised_face(frames, model, layout_of(model), shape, alpha, aa, T_FRONT.expand(2, 3), light, CAM,
+                              zbuffer=zbuffer, backend=Backend.TORCH)  # fmt: skip
+    assert torch.equal(out.mask, ref.mask) and torch.equal(out.image, ref.image)
+    full = normalised_face(frames.nan_to_num(0.5), model, layout_of(model), shape, alpha, aa.detach(),
+                           T_FRONT.expand(2, 3), light.detach(), CAM, zbuffer=zbuffer)  # fmt: skip
+    assert 0 < float(out.mask[0].sum()) < float(full.mask[0].sum())  # the patch is masked out, the rest seen
+
+
+def layout_of(model, size=16):
+    return build_normalised_layout(model, size)

@@ -9,6 +9,10 @@ differs from the detached one (the tracking contributes).
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
 from dataclasses import replace
 
 import pytest
@@ -326,3 +330,34 @@ def test_layer_inside_autocast_equals_full_precision():
             assert (out.image.flatten(1) @ torch.ones(G * G * 3, 1)).dtype == torch.bfloat16
         assert torch.equal(state_amp.params, state.params), mode
         assert torch.equal(out.params, ref.params) and torch.equal(out.image, ref.image), mode
+
+
+def test_a_compiled_layer_tracks_eagerly_and_equals_the_eager_layer():
+    """``torch.compile`` of a network holding the layer: the tracker's native kernels were traced with the pointers
+    of the traced tensors and the process crashed (segmentation fault), detached and unrolled. The tracking now runs
+    eagerly inside the compiled function: the same faces, parameters and gradients. In a child, so that a regression
+    fails this test only."""
+    code = textwrap.dedent(f"""
+        import sys
+        import torch
+        torch.set_num_threads(1)
+        sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r})
+        from test_layer import SMALL, _clip
+        from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
+        frames, landmarks = _clip(32)
+        for mode in (LayerMode.DETACHED, LayerMode.UNROLLED):
+            layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=12, tracker=SMALL)).double()
+            state, _ = layer.initialise(frames[:1], landmarks[:1])
+            outs = []
+            for run in (layer, torch.compile(layer, backend="eager")):
+                frame = frames[1:2].clone().requires_grad_(True)
+                out = run(frame, state)
+                out.image.sum().backward()
+                outs.append((out.image, out.params, frame.grad))
+            for eager, compiled in zip(*outs):
+                assert torch.equal(eager, compiled), mode
+            assert outs[0][2].abs().sum() > 0
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])

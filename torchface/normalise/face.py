@@ -31,7 +31,8 @@ A canonical pixel is kept (mask 1) when its surface point is visible in the fram
 projecting inside the image, on a triangle that faces the camera with its normal at least
 ``acos(min_facing_cos)`` away from grazing, and not hidden by another part of the mesh (z-buffer of the posed
 mesh, :func:`torchface.rendering.visibility.points_visible`), and its sampled value is finite (NaN frame pixels
-are missing data, as the tracker takes them). Other pixels, and the background of the layout, are 0 with mask 0.
+are missing data, as the tracker takes them; the parameters' gradients stay finite). Other pixels, and the
+background of the layout, are 0 with mask 0.
 A sample whose geometry is not finite (a NaN or inf parameter or vertex) shows no face: image and mask 0, and its
 geometry parameters get gradient 0 (never NaN).
 
@@ -158,11 +159,15 @@ class NormalisedFaceLayout:
         held = self._weights.get(key)
         if held is not None and held[0] is faces:
             return held[1]
-        m = self.face_index.shape[0]
-        corners = faces.index_select(0, self.face_index.to(faces.device)).reshape(-1)  # (M * 3,)
-        rows = torch.arange(m, device=faces.device).repeat_interleave(3)
-        weights = torch.zeros(m, num_vertices, dtype=dtype, device=faces.device)
-        weights.index_put_((rows, corners), self.bary.to(device=faces.device, dtype=dtype).reshape(-1), accumulate=True)
+        # Made outside inference mode even when first asked for inside it (a validation pass before training): an
+        # inference tensor cannot be saved for a later differentiable call's backward.
+        with torch.inference_mode(False):
+            m = self.face_index.shape[0]
+            corners = faces.index_select(0, self.face_index.to(faces.device)).reshape(-1)  # (M * 3,)
+            rows = torch.arange(m, device=faces.device).repeat_interleave(3)
+            weights = torch.zeros(m, num_vertices, dtype=dtype, device=faces.device)
+            bary = self.bary.to(device=faces.device, dtype=dtype).reshape(-1)
+            weights.index_put_((rows, corners), bary, accumulate=True)
         self._weights[key] = (faces, weights)  # the faces held too: their id is not reused while the entry lives
         return weights
 
@@ -240,7 +245,7 @@ def build_normalised_layout(
         :class:`NormalisedFaceLayout`.
 
     Raises:
-        TypeError: ``model`` is not a :class:`FaceModel`.
+        TypeError: ``model`` is not a :class:`FaceModel`, or not float32 / float64.
         ValueError: a setting is out of range, or no pixel sees the face.
 
     Example:
@@ -251,6 +256,7 @@ def build_normalised_layout(
     """
     if not isinstance(model, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    _check_precision(model)
     if isinstance(size, bool) or not isinstance(size, int) or size < 4:
         raise ValueError(f"size must be an int >= 4, got {size!r}")
     if not 0.0 <= float(margin) <= 0.45:
@@ -292,6 +298,19 @@ def build_normalised_layout(
         size=size, margin=float(margin), intrinsics=cam, translation=translation, num_faces=model.num_faces,
         pixel_index=pixel_index, face_index=face_index, bary=bary, mask=seen,
     )  # fmt: skip
+
+
+def _check_precision(model: FaceModel) -> None:
+    """Raise ``TypeError`` unless the model (and so the resampling) is float32 or float64.
+
+    In float16 the z-buffer test and the projections of a face at a few hundred mm lose most pixels (a frontal
+    face kept 0 of 216 canonical pixels, 12 without the z-buffer) and the result would be silently empty."""
+    if model.dtype not in (torch.float32, torch.float64):
+        raise TypeError(
+            f"the normalised face is computed in float32 or float64, the model is {model.dtype} (a .half() or "
+            ".to(bfloat16) of the module?): keep the model and layout in float32 (module.float()) and cast the "
+            "image, or run the network under torch.autocast, which leaves the normalised face in full precision"
+        )
 
 
 def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
@@ -385,7 +404,8 @@ def normalised_face(
         has image and mask 0, and those parameters of it get gradient 0. ``B = 0`` gives empty tensors.
 
     Raises:
-        TypeError: an argument has the wrong type, or a parameter tensor is not in the model's dtype/device.
+        TypeError: an argument has the wrong type, a parameter tensor is not in the model's dtype/device, or the
+            model is not float32 / float64 (float16 would lose most of the face without a sign).
         ValueError: a shape does not match (the messages say what was expected and what arrived).
 
     Example:
@@ -403,6 +423,7 @@ def normalised_face(
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     if not isinstance(layout, NormalisedFaceLayout):
         raise TypeError(f"layout must be a NormalisedFaceLayout, got {type(layout).__name__}")
+    _check_precision(model)
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if not isinstance(frames, Tensor):
@@ -482,13 +503,16 @@ def normalised_face_posed(
     frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
     shapes of ``frames`` and ``verts_cam`` are checked here (:func:`normalised_face` documents and checks the rest).
     Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
-    gradients, :class:`~torchface.backend.Backend` ``AUTO`` samples with the native kernel
+    gradients (nor a ``torch.func`` transform or forward AD), :class:`~torchface.backend.Backend` ``AUTO`` samples
+    with the native kernel (run eagerly under ``torch.compile``)
     (``torchface/_native/normalised_face.h``: each pixel from its triangle's three corners); the values are the
     torch code's to rounding. A sample with a non-finite vertex has image and mask 0 (and gradient 0).
 
     Raises:
+        TypeError: the model is not float32 / float64.
         ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``.
     """
+    _check_precision(model)
     B, C = frames.shape[:2] if isinstance(frames, Tensor) and frames.dim() == 4 else (-1, -1)
     want = (B, model.num_vertices, 3)
     if B < 0 or not isinstance(verts_cam, Tensor) or tuple(verts_cam.shape) != want:
@@ -499,6 +523,15 @@ def normalised_face_posed(
         frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance, min_facing_cos, zbuffer,
         backend, None,
     )  # fmt: skip
+
+
+def _transformed(*tensors: Tensor | None) -> bool:
+    """Whether a tensor is wrapped by a ``torch.func`` transform (``grad``, ``jacrev``, ``jacfwd``, ``vmap``) or forward
+    AD is active: the native kernels read the tensors' memory, which such tensors do not have ("Cannot access data
+    pointer of Tensor that doesn't have storage"), and would drop their tangents."""
+    if torch.autograd.forward_ad._current_level >= 0:
+        return True
+    return any(x is not None and torch._C._functorch.is_functorch_wrapped_tensor(x) for x in tensors)
 
 
 def _normalised_face_posed(
@@ -516,9 +549,12 @@ def _normalised_face_posed(
         canonical = model.mean.to(verts_cam) + layout.translation.to(verts_cam)
         verts_cam = torch.where(valid[:, None, None], verts_cam, canonical)
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
-    if not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face"):
-        out = _normalised_face_native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics,
-                                      min_facing_cos)  # fmt: skip
+    if (not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face")
+            and not _transformed(frames, verts_cam, illumination)):
+        # Under torch.compile the kernel runs eagerly (a graph break): traced, its ctypes call got the pointers of the
+        # traced tensors, not of the call's, and gave wrong faces without a sign.
+        native = _normalised_face_native_eager if torch.compiler.is_compiling() else _normalised_face_native
+        out = native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics, min_facing_cos)
         if all_valid:
             return out
         keep = valid[:, None, None, None]
@@ -538,20 +574,28 @@ def _normalised_face_posed(
 
     # Eq. 15 and bilinear sampling at the projections.
     points_px = project_points(points_cam, intrinsics)
-    finite_sample = None
-    if not bool(torch.isfinite(frames).all()):
-        # NaN (missing) frame pixels: a sample that touches one is not seen (below). It is taken from the frame with
-        # them set to 0, so that the backward pass does not carry 0 * NaN into the pose and shape gradients.
-        with torch.no_grad():
-            finite_sample = torch.isfinite(sample_at_pixels(frames, points_px.detach())[0]).all(-1)  # (B, M)
-        frames = torch.where(torch.isfinite(frames), frames, 0.0)
     values, inside = sample_at_pixels(frames, points_px)  # (B, M, C), (B, M)
+    missing = None
+    light_grad = illumination is not None and illumination.requires_grad
+    if torch.is_grad_enabled() and (points_px.requires_grad or light_grad):
+        if not bool(torch.isfinite(frames).all()):
+            # A NaN (missing) frame pixel is masked out, but the sampling's and the light's backward multiply its
+            # zero incoming gradient by it: NaN pose and light gradients. Sample a copy with 0 there for the values
+            # and the gradients (the same at every kept pixel: none of its neighbours is missing).
+            missing = ~torch.isfinite(values.detach()).all(-1)  # (B, M)
+            values, _ = sample_at_pixels(torch.nan_to_num(frames, nan=0.0, posinf=0.0, neginf=0.0), points_px)
 
     with torch.no_grad():
         visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
         if zbuffer:
-            crop = _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
-            frags = rasterize(verts_cam.detach(), model.faces, crop, backend=backend)
+            # The torch z-buffer (the same fragments) under torch.compile, where the traced native kernel crashed the
+            # process, and under torch.func's transforms, where it could not read the wrapped tensors.
+            plain = not torch.compiler.is_compiling() and not _transformed(verts_cam)
+            # (the whole frame under torch.compile: a window of the face's size would recompile at each new size)
+            compiling = torch.compiler.is_compiling()
+            crop = intrinsics if compiling else _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
+            raster_backend = backend if plain else Backend.TORCH
+            frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
@@ -562,8 +606,8 @@ def _normalised_face_posed(
     if illumination is not None:
         observed = remove_illumination(observed, normals, illumination)
     keep = keep & torch.isfinite(observed.detach()).all(1)  # a NaN (missing) frame pixel is not seen
-    if finite_sample is not None:
-        keep = keep & finite_sample
+    if missing is not None:
+        keep = keep & ~missing
     keep_f = keep.to(observed.dtype).unsqueeze(1)  # (B, 1, M)
     G = layout.size
     # torch.where, not a product with the mask: 0 (value and gradient) where the mask is 0, even where the
@@ -605,6 +649,10 @@ def _normalised_face_native(
     )  # fmt: skip
     _native.run("normalised_face", dtype == torch.float64, prob, B, torch.get_num_threads())
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
+
+
+#: :func:`_normalised_face_native` run eagerly where ``torch.compile`` traces its caller.
+_normalised_face_native_eager = torch.compiler.disable(_normalised_face_native)
 
 
 class NormalisedFace(nn.Module):
