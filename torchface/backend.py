@@ -40,8 +40,8 @@ class Backend(enum.Enum):
 def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], what: str, max_params: int = 0,
                num_params: int = 0) -> bool:  # fmt: skip
     """Whether ``what`` (a kernel's name, for messages) runs natively: ``backend`` allows it and the inputs suit it
-    (CPU, one dtype of float32 or float64, no gradient asked for; with ``max_params``, at most that many
-    parameters). With :attr:`Backend.NATIVE`, inputs that do not suit it raise ``RuntimeError``."""
+    (CPU, one dtype of float32 or float64, no gradient asked for, not being traced by ``torch.compile``; with
+    ``max_params``, at most that many parameters). With :attr:`Backend.NATIVE`, inputs that do not suit it raise ``RuntimeError``."""
     if backend is Backend.TORCH:
         return False
     if not isinstance(backend, Backend):
@@ -55,6 +55,8 @@ def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], wha
         why = "runs on the CPU only"
     elif torch.is_grad_enabled() and any(x.requires_grad for x in arrays):
         why = "does not propagate gradients (use Backend.TORCH)"
+    elif torch.compiler.is_compiling():  # traced ctypes calls were handed other tensors' memory: the process died
+        why = "cannot be traced by torch.compile (the torch code runs under it)"
     elif max_params and num_params > max_params:
         why = f"supports at most {max_params} parameters, got {num_params}"
     elif _native.library() is None:

@@ -964,3 +964,50 @@ def test_a_config_with_other_pyramid_levels_than_the_state_is_refused(model, two
         other = replace(L2, num_levels=levels, iterations=iterations)
         with pytest.raises(ValueError, match=f"templates for 2 pyramid levels, the config has num_levels = {levels}"):
             track_step(model, other, states[0], frames[:, 1])
+
+
+_COMPILED_STEP = """
+import torch
+from dataclasses import replace
+from torchface.backend import Backend
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import euler_to_matrix
+from torchface.model.candide import load_candide3
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.tracker import FitConfig, TrackerConfig
+from torchface.tracker.step import initialise, track_step
+
+torch.set_num_threads(1)
+model = load_candide3()
+s = torch.linspace(0.0, 1.0, 2, dtype=torch.float64)[:, None]
+spec = SequenceSpec(
+    name="c", subject="candide3", intrinsics=Intrinsics.default(48, 48),
+    rotation=euler_to_matrix(s * torch.tensor([6.0, 3.0, 2.0], dtype=torch.float64)),
+    translation=torch.tensor([0.0, 5.0, 170.0], dtype=torch.float64).expand(2, 3),
+    anim=torch.zeros(2, model.num_animation, dtype=torch.float64), light=default_light(2),
+    background=BackgroundSpec(seed=3),
+)
+frames, gt = render_sequence(spec)
+frames, lm = frames.float(), gt.landmarks_px.float()
+cfg = TrackerConfig(num_levels=1, max_points=80, iterations=(4,), min_points=10,
+                    fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()))
+state, _ = initialise(model, cfg, frames[:1], lm[:1], Intrinsics.default(48, 48))
+eager, _ = track_step(model, replace(cfg, backend=Backend.TORCH), state, frames[1:2])
+with torch.no_grad():
+    compiled, _ = torch.compile(track_step, backend="eager")(model, cfg, state, frames[1:2])
+print("DIFF", float((compiled.params - eager.params).abs().max()))
+"""
+
+
+def test_a_compiled_track_step_runs_the_torch_code():
+    """``torch.compile`` of ``track_step`` traced the native kernels' ctypes calls, which were handed other tensors'
+    memory: the process aborted. Under compile the torch code runs (``use_native``), and gives its eager result.
+    In a child process, so that a crash fails the test rather than the suite."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _COMPILED_STEP], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert "DIFF 0.0" in out.stdout, out.stdout
