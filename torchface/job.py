@@ -238,6 +238,7 @@ class _VideoOut:
         self.path = path
         self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
         self.size = (int(width), int(height))
+        self.frames = 0
         self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self.size)
         if not self.writer.isOpened():
             self.writer.release()
@@ -246,11 +247,27 @@ class _VideoOut:
 
     def write(self, image_bgr: np.ndarray) -> None:
         self.writer.write(image_bgr)
+        self.frames += 1
 
     def close(self) -> None:
+        """Rename the video to its final name once it reads back whole (OpenCV's writer ignores write errors:
+        on a full disk it leaves a truncated file without its index).
+
+        Raises:
+            OutputError: the written file does not read back with every frame (the partial file is removed).
+        """
         if self.writer is not None:
             self.writer.release()
             self.writer = None
+            readback = cv2.VideoCapture(str(self.tmp))
+            try:
+                count = int(readback.get(cv2.CAP_PROP_FRAME_COUNT)) if readback.isOpened() else -1
+            finally:
+                readback.release()
+            if count != self.frames:
+                self.tmp.unlink(missing_ok=True)
+                raise OutputError(f"{self.path}: the video could not be written completely ({self.frames} frames "
+                                  f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
     def abort(self) -> None:

@@ -1135,3 +1135,25 @@ def test_sidecar_says_how_the_video_started_and_how_to_place_the_mesh(clip, plai
     assert len(start["neutral_anim_coeffs"]) == len(anim_cols) and au_cols
     plain = json.loads(output_paths(plain_run[1], NAME)["json"].read_text())["start"]
     assert plain["method"] == "landmark fit" and plain["reanchored_at_frame"] is None and plain["head_rotation"] is None
+
+
+def test_a_video_output_cut_short_is_not_renamed_as_complete(tmp_path):
+    """OpenCV's writer ignores write errors: on a full disk it left a truncated MP4 (no index) that close() renamed
+    to its final name, as if complete. Here the partial file is cut short as a full disk leaves it."""
+    from torchface.job import _VideoOut
+
+    path = tmp_path / "clip_overlay.mp4"
+    out = _VideoOut(path, 64, 48, 25.0)
+    for _ in range(5):
+        out.write(np.zeros((48, 64, 3), np.uint8))
+    out.writer.release()  # what close() does first; then the disk "fills": the file ends early
+    with open(out.tmp, "r+b") as f:
+        f.truncate(out.tmp.stat().st_size // 2)
+    with pytest.raises(OutputError, match="could not be written completely"):
+        out.close()
+    assert not path.exists() and not out.tmp.exists()
+    whole = _VideoOut(tmp_path / "whole.mp4", 64, 48, 25.0)
+    for _ in range(5):
+        whole.write(np.zeros((48, 64, 3), np.uint8))
+    whole.close()
+    assert read_video(tmp_path / "whole.mp4").shape == (5, 3, 48, 64)
