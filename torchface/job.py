@@ -295,6 +295,29 @@ def _check_out_dir(out_dir: Path) -> None:
         raise OutputError(f"{out_dir}: output folder is not writable ({exc.strerror or exc})") from None
 
 
+def _written_names(name: str) -> list[str]:
+    """Every file name the job writes for video ``name``, final and temporary (``.partial``, ``.tmp``)."""
+    return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial",
+            f"{name}_overlay.partial.mp4", f"{name}_normalised.partial.mp4", f"{name}_plot.partial.png",
+            f"{name}_meshes.partial"]  # fmt: skip
+
+
+def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[str]) -> None:
+    """Refuse, before anything is written, an input whose outputs' names the output folder's file system cannot
+    hold (a name near 255 bytes: the outputs add up to 23 bytes to it)."""
+    try:
+        limit = os.pathconf(out_dir, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):  # not POSIX, or the file system does not say
+        limit = 255
+    for v, name in zip(videos, names):
+        longest = max(_written_names(name), key=lambda n: len(os.fsencode(n)))
+        if len(os.fsencode(longest)) > limit:
+            spare = limit - (len(os.fsencode(longest)) - len(os.fsencode(name)))
+            raise OutputError(f"{v}: its outputs' names would be too long for {out_dir} ({longest!r} is "
+                              f"{len(os.fsencode(longest))} bytes, at most {limit}): rename the input to at most "
+                              f"{spare} bytes before its extension")  # fmt: skip
+
+
 def _check_device(name: str) -> None:
     try:
         device = torch.device(name)
@@ -546,7 +569,8 @@ def track_videos(
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
             later frame that cannot be read stops that video, raised once every other video is complete.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
-            file, or the output folder is an image-folder input.
+            file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
+            up to 23 bytes) would be too long for the output folder's file system.
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
@@ -573,6 +597,7 @@ def track_videos(
     pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in videos]
     _check_unique(names)
+    _check_name_lengths(out_dir, videos, names)
     _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
     for v, name in zip(videos, names):
         for kind, path in output_paths(out_dir, name).items():

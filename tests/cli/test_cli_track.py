@@ -1157,3 +1157,16 @@ def test_a_video_output_cut_short_is_not_renamed_as_complete(tmp_path):
         whole.write(np.zeros((48, 64, 3), np.uint8))
     whole.close()
     assert read_video(tmp_path / "whole.mp4").shape == (5, 3, 48, 64)
+
+
+def test_an_input_name_too_long_for_its_outputs_is_refused_before_anything_is_written(clip, tmp_path, capsys):
+    """A name within the 255-byte limit whose outputs' temporary names are not (``_normalised.partial.mp4`` adds 23
+    bytes) failed mid-run with "File name too long", leaving a partial CSV; now refused first, in bytes."""
+    video, lm, _ = clip
+    long = tmp_path / ("é" * 117 + video.suffix)  # 234 bytes before the extension: 257 with the longest suffix
+    long.write_bytes(video.read_bytes())
+    out = tmp_path / "out"
+    rc = main(["track", str(long), "--out", str(out), "--landmarks", str(lm), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "too long" in err and "at most 232 bytes" in err, err
+    assert list(out.iterdir()) == []
