@@ -1170,3 +1170,40 @@ def test_an_input_name_too_long_for_its_outputs_is_refused_before_anything_is_wr
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and "too long" in err and "at most 232 bytes" in err, err
     assert list(out.iterdir()) == []
+
+
+class _GoneReader:
+    """A stream whose reader has gone (``torchface track ... 2>&1 | head -1``): every write is a broken pipe."""
+
+    def isatty(self) -> bool:
+        return False
+
+    def write(self, text: str) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self) -> None:
+        pass
+
+
+def test_a_reader_gone_from_the_progress_and_the_summary_does_not_cut_the_run_short(clip, tmp_path, monkeypatch):
+    """``2>&1 | head -1``: the progress display's next write was a broken pipe that stopped the run mid-way (partial
+    outputs) and exited 2 ("error: Broken pipe"); now the display stops, the outputs are complete, and the summary's
+    broken pipe exits 141 (128 + SIGPIPE)."""
+    video, lm, _ = clip
+    out = tmp_path / "out"
+    monkeypatch.setattr("sys.stderr", _GoneReader())
+    monkeypatch.setattr("sys.stdout", _GoneReader())
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm)])
+    assert rc == 141
+    assert output_paths(out, NAME)["json"].is_file() and not [p for p in out.iterdir() if "partial" in p.name]
+
+
+def test_closed_stdout_and_stderr_are_taken_as_devnull(clip, tmp_path, monkeypatch):
+    """``torchface track ... >&- 2>&-``: Python sets sys.stdout/sys.stderr to None; the summary crashed with an
+    AttributeError (exit 1) after the run."""
+    video, lm, _ = clip
+    out = tmp_path / "out"
+    monkeypatch.setattr("sys.stderr", None)
+    monkeypatch.setattr("sys.stdout", None)
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm)])
+    assert rc == 0 and output_paths(out, NAME)["json"].is_file()
