@@ -7,6 +7,7 @@ figures are left as they were (a notebook's inline plots go on being shown).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -74,10 +75,16 @@ def plot_track(
     axes[2].legend(loc="lower right", fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     p = Path(path)
     tmp = p.with_name(p.stem + ".partial" + p.suffix)
-    # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf")
-    fig.savefig(tmp, dpi=100, format=p.suffix[1:].lower() or "png")
+    with warnings.catch_warnings():  # a title in a script the font lacks (a video named in Chinese, an emoji):
+        warnings.filterwarnings("ignore", message=r"Glyph \d+ .* missing from", category=UserWarning)  # boxes
+        fig.tight_layout()
+        try:
+            # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf")
+            fig.savefig(tmp, dpi=100, format=p.suffix[1:].lower() or "png")
+        except BaseException:  # a full disk, an interruption: no partial file left behind
+            tmp.unlink(missing_ok=True)
+            raise
     os.replace(tmp, p)
     return p
