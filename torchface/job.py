@@ -418,7 +418,11 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     frame, and the shape the rows before the re-anchoring were tracked with (their mesh is re-drawn with it)."""
     tmp = path.with_name(path.name + ".tmp")
     record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings}
-    tmp.write_text(json.dumps(record), encoding="utf-8")
+    try:
+        tmp.write_text(json.dumps(record), encoding="utf-8")
+    except OSError as exc:  # a full disk: say where, and leave no temporary file behind
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write the resume record ({exc.strerror or exc})") from None
     os.replace(tmp, path)
 
 

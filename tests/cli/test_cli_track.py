@@ -1207,3 +1207,23 @@ def test_closed_stdout_and_stderr_are_taken_as_devnull(clip, tmp_path, monkeypat
     monkeypatch.setattr("sys.stdout", None)
     rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm)])
     assert rc == 0 and output_paths(out, NAME)["json"].is_file()
+
+
+def test_a_full_disk_while_writing_the_resume_record_says_where_and_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """The record's temporary file was left behind (``<name>.record.partial.tmp``, empty) and the command said only
+    "torchface: error: No space left on device", without the path."""
+    from pathlib import Path
+
+    from torchface.job import _write_record
+
+    real = Path.write_text
+
+    def full_disk(self, data, *args, **kwargs):
+        real(self, "", *args, **kwargs)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    record = tmp_path / "clip.record.partial"
+    with pytest.raises(OutputError, match=r"clip\.record\.partial: cannot write .*No space left"):
+        _write_record(record, tmp_path / "clip.avi", None, {})
+    assert list(tmp_path.iterdir()) == []
