@@ -283,6 +283,11 @@ def _frame_meshes(folder: Path) -> list[Path]:
 
 
 def _check_out_dir(out_dir: Path) -> None:
+    if out_dir.is_symlink() and not out_dir.exists():  # mkdir said only "File exists"
+        raise OutputError(f"{out_dir}: the output folder is a symbolic link to {os.readlink(out_dir)}, which does "
+                          "not exist")  # fmt: skip
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
