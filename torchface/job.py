@@ -59,7 +59,7 @@ from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, write_json
 from torchface.io.table import TrackCsvWriter, partial_path, read_track_csv, result_rows, track_columns
-from torchface.io.video import FrameReader, image_files, open_frames
+from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
@@ -239,7 +239,8 @@ class _VideoOut:
         self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
         self.size = (int(width), int(height))
         self.frames = 0
-        self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self.size)
+        fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+        self.writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
         if not self.writer.isOpened():
             self.writer.release()
             self.tmp.unlink(missing_ok=True)
@@ -288,6 +289,7 @@ def _check_out_dir(out_dir: Path) -> None:
                           "not exist")  # fmt: skip
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
+    opencv_path(out_dir, OutputError)  # the videos are written by OpenCV
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
+import sys
 import typing
 
 import cv2
@@ -1241,3 +1243,32 @@ def test_an_output_folder_that_is_a_file_or_a_dangling_link_says_so(clip, tmp_pa
         err = capsys.readouterr().err.strip()
         assert rc == 2 and err.startswith("torchface: error:") and "\n" not in err and message in err, err
     assert blocker.read_text() == "x" and not (tmp_path / "gone").exists()
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a Linux file system")
+def test_names_that_are_not_utf8_are_refused_not_a_crash(clip, tmp_path):
+    """A video, an image of a folder or an output folder whose name is not valid UTF-8 (Latin-1 bytes; Python keeps
+    them as lone surrogates) crashed the process in OpenCV with a segmentation fault. Run in a child process, so
+    that a crash fails this test, not the session."""
+    video, lm, _ = clip
+    bad = os.fsdecode(b"bad\xff")
+    (tmp_path / f"{bad}.avi").write_bytes(video.read_bytes())
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    first = np.ascontiguousarray((read_video(video)[0].permute(1, 2, 0).numpy()[..., ::-1] * 255).round())
+    first = first.astype(np.uint8)
+    assert cv2.imwrite(str(folder / "001.png"), first)
+    os.rename(folder / "001.png", folder / f"001{bad}.png")  # OpenCV cannot write such a name either
+    assert cv2.imwrite(str(folder / "000.png"), first)
+    runs = {
+        "input": [f"{bad}.avi", "--out", "out1"], "image": ["frames", "--out", "out2"],
+        "out": [str(video), "--out", f"out{bad}"],
+    }  # fmt: skip
+    for what, args in runs.items():
+        argv = ["track", *args, "--landmarks", str(lm), "--quiet"]
+        code = f"import sys; from torchface.cli import main; sys.exit(main({argv!r}))"
+        done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                              errors="replace", timeout=120)  # fmt: skip
+        err = done.stderr.strip()
+        assert done.returncode == 2 and "not valid UTF-8" in err and "\n" not in err, (what, done.returncode, err)
+    assert not [p for p in tmp_path.glob("out*/*")] and not (tmp_path / f"out{bad}").exists()
