@@ -61,7 +61,8 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 class ProgressDisplay:
-    """One progress bar per video (frames, fps, confidence) on a terminal; occasional lines otherwise.
+    """One progress bar per video (frames, fps, confidence) on a terminal; occasional lines otherwise (and where
+    ``TERM=dumb``, a terminal without cursor movement).
 
     The job reports every stream of a batch after every step (B reports per step). On a terminal the bars are
     redrawn at most every ``redraw_s`` seconds, and at once when a video appears or finishes: a redraw writes every
@@ -75,7 +76,8 @@ class ProgressDisplay:
         self.stream = stream
         self.width = width
         self.redraw_s = redraw_s
-        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        # a terminal that cannot move the cursor (TERM=dumb: Emacs' shell and compilation buffers) gets log lines
+        self.tty = bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
         self.lines: dict[int, str] = {}
         self.drawn = 0
         self.last_print: dict[int, float] = {}

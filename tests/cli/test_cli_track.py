@@ -758,8 +758,10 @@ def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeyp
     assert side["redetections"] == 0 and side["detector_calls"] == len(calls)
 
 
-def test_progress_display_terminal_and_log():
+def test_progress_display_terminal_and_log(monkeypatch):
     import io
+
+    monkeypatch.setenv("TERM", "xterm")
 
     from torchface.cli import ProgressDisplay
     from torchface.job import Progress
@@ -799,6 +801,7 @@ def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monk
             return True
 
     clock = [100.0]
+    monkeypatch.setenv("TERM", "xterm")
     monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
     tty = Tty()
     display = cli.ProgressDisplay(tty)
@@ -1272,3 +1275,24 @@ def test_names_that_are_not_utf8_are_refused_not_a_crash(clip, tmp_path):
         err = done.stderr.strip()
         assert done.returncode == 2 and "not valid UTF-8" in err and "\n" not in err, (what, done.returncode, err)
     assert not [p for p in tmp_path.glob("out*/*")] and not (tmp_path / f"out{bad}").exists()
+
+
+def test_progress_display_on_a_dumb_terminal_writes_lines_not_cursor_moves(monkeypatch):
+    """TERM=dumb (Emacs' shell and compilation buffers: a pty without cursor movement) got the bars' escape codes,
+    shown there as "^[[2K" and "^[[1F" garbage."""
+    import io
+
+    from torchface.cli import ProgressDisplay
+    from torchface.job import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setenv("TERM", "dumb")
+    tty = Tty()
+    display = ProgressDisplay(tty)
+    display(Progress(0, 1, "a", 1, 10, 2.0, 0.9))
+    display(Progress(0, 1, "a", 10, 10, 2.0, 0.9))
+    display.flush()
+    assert "\x1b" not in tty.getvalue() and "10/10" in tty.getvalue().splitlines()[-1]
