@@ -149,3 +149,41 @@ def test_to_jsonable_writes_any_path_as_its_text(tmp_path):
     assert to_jsonable({"a": PurePosixPath("/data/a.mp4"), "b": [entry]}) == {"a": "/data/a.mp4", "b": [entry.path]}
     write_json(tmp_path / "h.json", {"input": PurePosixPath("/data/a.mp4"), "path": tmp_path})
     assert json.loads((tmp_path / "h.json").read_text()) == {"input": "/data/a.mp4", "path": str(tmp_path)}
+
+
+class _FullDisk:
+    """A file on a full disk: writes are buffered, every flush fails (as ENOSPC does), close flushes first."""
+
+    def __init__(self, file):
+        self.file, self.closed = file, False
+
+    def write(self, text):
+        return len(text)
+
+    def flush(self):
+        raise OSError(28, "No space left on device")
+
+    def fileno(self):
+        return self.file.fileno()
+
+    def close(self):
+        self.file.close()
+        self.closed = True
+        self.flush()
+
+
+def test_csv_writer_on_a_full_disk_names_its_file_and_stops_cleanly(tmp_path):
+    """The row write said only "No space left on device" (no file named), and stop(), the job's clean-up, raised
+    the same error again before the job deleted its partial videos, leaving them and the file open."""
+    from torchface.io import OutputError
+
+    cols = ("frame", "confidence")
+    writer = TrackCsvWriter(tmp_path / "clip.csv", cols)
+    writer.write(np.array([[0.0, 1.0]]))
+    disk = _FullDisk(writer._file)
+    writer._file = disk
+    with pytest.raises(OutputError, match=r"clip\.csv\.partial: cannot write \(No space left on device\)"):
+        writer.write(np.array([[1.0, 1.0]]))
+    writer.stop()
+    assert disk.closed and writer._file is None
+    assert read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)  # the rows that fitted stay
