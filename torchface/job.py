@@ -1120,7 +1120,12 @@ def _write_step(
 
             verts = torch.matmul(model.deform(state.shape_coeffs[k : k + 1], alpha[k : k + 1]), R[k].T) + trans[k]
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
-            mesh.export(str(mesh_dirs[k] / f"{t:06d}.ply"))
+            ply = mesh_dirs[k] / f"{t:06d}.ply"
+            try:
+                mesh.export(str(ply))
+            except OSError as exc:  # a full disk: say which file (the error named none), and keep no cut-off mesh
+                ply.unlink(missing_ok=True)
+                raise OutputError(f"{ply}: cannot write ({exc.strerror or exc})") from None
         s.frames += 1
 
 

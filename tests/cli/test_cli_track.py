@@ -1296,3 +1296,27 @@ def test_progress_display_on_a_dumb_terminal_writes_lines_not_cursor_moves(monke
     display(Progress(0, 1, "a", 10, 10, 2.0, 0.9))
     display.flush()
     assert "\x1b" not in tty.getvalue() and "10/10" in tty.getvalue().splitlines()[-1]
+
+
+def test_a_full_disk_while_writing_a_mesh_names_the_file_and_keeps_no_cut_off_mesh(clip, tmp_path, monkeypatch,
+                                                                                   capsys):
+    """The command said only "torchface: error: No space left on device", and the cut-off PLY stayed."""
+    import trimesh
+
+    video, lm, _ = clip
+    real, calls = trimesh.Trimesh.export, []
+
+    def export(self, file_obj=None, *args, **kwargs):
+        calls.append(file_obj)
+        if len(calls) < 3:
+            return real(self, file_obj, *args, **kwargs)
+        with open(file_obj, "wb") as f:
+            f.write(b"ply\n")  # cut off
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(trimesh.Trimesh, "export", export)
+    out = tmp_path / "out"
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--meshes"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and err.endswith("000002.ply: cannot write (No space left on device)"), err
+    assert sorted(p.name for p in out.glob("*meshes*/*.ply")) == ["000000.ply", "000001.ply"]
