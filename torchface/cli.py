@@ -12,13 +12,16 @@ Examples::
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
 (grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given);
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
-SIGTERM) and keeps its rows for ``--resume``.
+SIGTERM) and keeps its rows for ``--resume``. A progress display whose reader has gone (``2>&1 | head -1``) stops
+and the run goes on; a summary whose reader has gone exits with status 141 (128 + SIGPIPE, as ``cat`` does), the
+outputs complete. A closed stdout or stderr (``>&-``) is taken as ``/dev/null``.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -32,6 +35,7 @@ __all__ = ["main", "build_parser", "ProgressDisplay"]
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE
 
 
 class _Terminated(KeyboardInterrupt):
@@ -57,24 +61,38 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 class ProgressDisplay:
-    """One progress bar per video (frames, fps, confidence) on a terminal; occasional lines otherwise.
+    """One progress bar per video (frames, fps, confidence) on a terminal; occasional lines otherwise (and where
+    ``TERM=dumb``, a terminal without cursor movement).
 
     The job reports every stream of a batch after every step (B reports per step). On a terminal the bars are
     redrawn at most every ``redraw_s`` seconds, and at once when a video appears or finishes: a redraw writes every
     bar, so redrawing at each report wrote B * B lines per step (1.4 MB of terminal output per step at 128 streams).
-    :meth:`flush` draws the latest reports.
+    :meth:`flush` draws the latest reports. Once the stream cannot be written (its reader has gone: a broken pipe),
+    the display stops, and the job it reports on goes on.
     """
 
-    def __init__(self, stream: TextIO = sys.stderr, width: int = 24, redraw_s: float = 0.1) -> None:
+    def __init__(self, stream: TextIO | None = None, width: int = 24, redraw_s: float = 0.1) -> None:
+        stream = sys.stderr if stream is None else stream  # at call time: main() may have replaced a closed one
         self.stream = stream
         self.width = width
         self.redraw_s = redraw_s
-        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        # a terminal that cannot move the cursor (TERM=dumb: Emacs' shell and compilation buffers) gets log lines
+        self.tty = bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
         self.lines: dict[int, str] = {}
         self.drawn = 0
         self.last_print: dict[int, float] = {}
         self.last_draw: float | None = None
         self.stale = False
+        self.broken = False
+
+    def _write(self, text: str) -> None:
+        if self.broken:
+            return
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except (OSError, ValueError):  # a broken pipe, a closed file: the display stops, the job goes on
+            self.broken = True
 
     def _line(self, p) -> str:
         if p.total:
@@ -86,12 +104,10 @@ class ProgressDisplay:
         return f"{p.name[:28]:<28} {head} {p.fps:5.1f} fps conf {p.confidence:.2f}"
 
     def _draw(self) -> None:
-        if self.drawn:
-            self.stream.write(f"\x1b[{self.drawn}F")
+        up = f"\x1b[{self.drawn}F" if self.drawn else ""
         keys = sorted(self.lines)
-        self.stream.write("".join("\x1b[2K" + self.lines[k] + "\n" for k in keys))
+        self._write(up + "".join("\x1b[2K" + self.lines[k] + "\n" for k in keys))
         self.drawn = len(keys)
-        self.stream.flush()
         self.stale = False
 
     def flush(self) -> None:
@@ -114,8 +130,7 @@ class ProgressDisplay:
             now = time.monotonic()
             if finished or now - self.last_print.get(p.index, 0.0) > 10.0:
                 self.last_print[p.index] = now
-                self.stream.write(self.lines[p.index] + "\n")
-                self.stream.flush()
+                self._write(self.lines[p.index] + "\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -268,6 +283,9 @@ def _threads(text: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchface`` console script; returns the exit status."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:  # closed by the caller (``>&-``): Python leaves None there
+            setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
     args = build_parser().parse_args(argv)
     if getattr(args, "threads", None) is not None:
         import torch
@@ -281,11 +299,15 @@ def main(argv: list[str] | None = None) -> int:
             return _dispatch(args)
     except (InputError, OutputError, DetectorUnavailable, ValueError) as exc:
         message = " ".join(str(exc).split())
-        print(f"torchface: error: {message}", file=sys.stderr)
+        _say(f"torchface: error: {message}")
         return EXIT_USAGE
+    except BrokenPipeError:  # the reader of stdout has gone (``| head -1``): the outputs are written
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # where Python flushes it at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:  # a file system refusal the checks before tracking could not foresee
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"torchface: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        _say(f"torchface: error: {where}{exc.strerror or exc}")
         return EXIT_USAGE
     except KeyboardInterrupt as exc:
         how = "terminated" if isinstance(exc, _Terminated) else "interrupted"
@@ -294,8 +316,14 @@ def main(argv: list[str] | None = None) -> int:
                     "to continue")  # fmt: skip
         else:
             then = "run it again to start over"
-        print(f"\ntorchface: {how}; {then}", file=sys.stderr)
+        _say(f"\ntorchface: {how}; {then}")
         return EXIT_TERMINATED if isinstance(exc, _Terminated) else EXIT_INTERRUPTED
+
+
+def _say(line: str) -> None:
+    """Print ``line`` on stderr, if it can still be written (its reader may have gone)."""
+    with contextlib.suppress(OSError, ValueError):
+        print(line, file=sys.stderr, flush=True)
 
 
 def _dispatch(args: argparse.Namespace) -> int:

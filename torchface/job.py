@@ -59,7 +59,7 @@ from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, write_json
 from torchface.io.table import TrackCsvWriter, partial_path, read_track_csv, result_rows, track_columns
-from torchface.io.video import FrameReader, image_files, open_frames
+from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
@@ -238,7 +238,9 @@ class _VideoOut:
         self.path = path
         self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
         self.size = (int(width), int(height))
-        self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self.size)
+        self.frames = 0
+        fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+        self.writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
         if not self.writer.isOpened():
             self.writer.release()
             self.tmp.unlink(missing_ok=True)
@@ -246,11 +248,27 @@ class _VideoOut:
 
     def write(self, image_bgr: np.ndarray) -> None:
         self.writer.write(image_bgr)
+        self.frames += 1
 
     def close(self) -> None:
+        """Rename the video to its final name once it reads back whole (OpenCV's writer ignores write errors:
+        on a full disk it leaves a truncated file without its index).
+
+        Raises:
+            OutputError: the written file does not read back with every frame (the partial file is removed).
+        """
         if self.writer is not None:
             self.writer.release()
             self.writer = None
+            readback = cv2.VideoCapture(str(self.tmp))
+            try:
+                count = int(readback.get(cv2.CAP_PROP_FRAME_COUNT)) if readback.isOpened() else -1
+            finally:
+                readback.release()
+            if count != self.frames:
+                self.tmp.unlink(missing_ok=True)
+                raise OutputError(f"{self.path}: the video could not be written completely ({self.frames} frames "
+                                  f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
@@ -266,6 +284,12 @@ def _frame_meshes(folder: Path) -> list[Path]:
 
 
 def _check_out_dir(out_dir: Path) -> None:
+    if out_dir.is_symlink() and not out_dir.exists():  # mkdir said only "File exists"
+        raise OutputError(f"{out_dir}: the output folder is a symbolic link to {os.readlink(out_dir)}, which does "
+                          "not exist")  # fmt: skip
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
+    opencv_path(out_dir, OutputError)  # the videos are written by OpenCV
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -276,6 +300,29 @@ def _check_out_dir(out_dir: Path) -> None:
         probe.unlink()
     except OSError as exc:
         raise OutputError(f"{out_dir}: output folder is not writable ({exc.strerror or exc})") from None
+
+
+def _written_names(name: str) -> list[str]:
+    """Every file name the job writes for video ``name``, final and temporary (``.partial``, ``.tmp``)."""
+    return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial",
+            f"{name}_overlay.partial.mp4", f"{name}_normalised.partial.mp4", f"{name}_plot.partial.png",
+            f"{name}_meshes.partial"]  # fmt: skip
+
+
+def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[str]) -> None:
+    """Refuse, before anything is written, an input whose outputs' names the output folder's file system cannot
+    hold (a name near 255 bytes: the outputs add up to 23 bytes to it)."""
+    try:
+        limit = os.pathconf(out_dir, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):  # not POSIX, or the file system does not say
+        limit = 255
+    for v, name in zip(videos, names):
+        longest = max(_written_names(name), key=lambda n: len(os.fsencode(n)))
+        if len(os.fsencode(longest)) > limit:
+            spare = limit - (len(os.fsencode(longest)) - len(os.fsencode(name)))
+            raise OutputError(f"{v}: its outputs' names would be too long for {out_dir} ({longest!r} is "
+                              f"{len(os.fsencode(longest))} bytes, at most {limit}): rename the input to at most "
+                              f"{spare} bytes before its extension")  # fmt: skip
 
 
 def _check_device(name: str) -> None:
@@ -378,7 +425,11 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     frame, and the shape the rows before the re-anchoring were tracked with (their mesh is re-drawn with it)."""
     tmp = path.with_name(path.name + ".tmp")
     record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings}
-    tmp.write_text(json.dumps(record), encoding="utf-8")
+    try:
+        tmp.write_text(json.dumps(record), encoding="utf-8")
+    except OSError as exc:  # a full disk: say where, and leave no temporary file behind
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write the resume record ({exc.strerror or exc})") from None
     os.replace(tmp, path)
 
 
@@ -529,7 +580,8 @@ def track_videos(
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
             later frame that cannot be read stops that video, raised once every other video is complete.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
-            file, or the output folder is an image-folder input.
+            file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
+            up to 23 bytes) would be too long for the output folder's file system.
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
@@ -556,6 +608,7 @@ def track_videos(
     pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in videos]
     _check_unique(names)
+    _check_name_lengths(out_dir, videos, names)
     _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
     for v, name in zip(videos, names):
         for kind, path in output_paths(out_dir, name).items():
@@ -1069,7 +1122,12 @@ def _write_step(
 
             verts = torch.matmul(model.deform(state.shape_coeffs[k : k + 1], alpha[k : k + 1]), R[k].T) + trans[k]
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
-            mesh.export(str(mesh_dirs[k] / f"{t:06d}.ply"))
+            ply = mesh_dirs[k] / f"{t:06d}.ply"
+            try:
+                mesh.export(str(ply))
+            except OSError as exc:  # a full disk: say which file (the error named none), and keep no cut-off mesh
+                ply.unlink(missing_ok=True)
+                raise OutputError(f"{ply}: cannot write ({exc.strerror or exc})") from None
         s.frames += 1
 
 

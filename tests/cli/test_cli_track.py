@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
+import sys
 import typing
 
 import cv2
@@ -765,8 +767,10 @@ def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeyp
     assert side["redetections"] == 0 and side["detector_calls"] == len(calls)
 
 
-def test_progress_display_terminal_and_log():
+def test_progress_display_terminal_and_log(monkeypatch):
     import io
+
+    monkeypatch.setenv("TERM", "xterm")
 
     from torchface.cli import ProgressDisplay
     from torchface.job import Progress
@@ -806,6 +810,7 @@ def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monk
             return True
 
     clock = [100.0]
+    monkeypatch.setenv("TERM", "xterm")
     monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
     tty = Tty()
     display = cli.ProgressDisplay(tty)
@@ -1144,3 +1149,183 @@ def test_sidecar_says_how_the_video_started_and_how_to_place_the_mesh(clip, plai
     assert len(start["neutral_anim_coeffs"]) == len(anim_cols) and au_cols
     plain = json.loads(output_paths(plain_run[1], NAME)["json"].read_text())["start"]
     assert plain["method"] == "landmark fit" and plain["reanchored_at_frame"] is None and plain["head_rotation"] is None
+
+
+def test_a_video_output_cut_short_is_not_renamed_as_complete(tmp_path):
+    """OpenCV's writer ignores write errors: on a full disk it left a truncated MP4 (no index) that close() renamed
+    to its final name, as if complete. Here the partial file is cut short as a full disk leaves it."""
+    from torchface.job import _VideoOut
+
+    path = tmp_path / "clip_overlay.mp4"
+    out = _VideoOut(path, 64, 48, 25.0)
+    for _ in range(5):
+        out.write(np.zeros((48, 64, 3), np.uint8))
+    out.writer.release()  # what close() does first; then the disk "fills": the file ends early
+    with open(out.tmp, "r+b") as f:
+        f.truncate(out.tmp.stat().st_size // 2)
+    with pytest.raises(OutputError, match="could not be written completely"):
+        out.close()
+    assert not path.exists() and not out.tmp.exists()
+    whole = _VideoOut(tmp_path / "whole.mp4", 64, 48, 25.0)
+    for _ in range(5):
+        whole.write(np.zeros((48, 64, 3), np.uint8))
+    whole.close()
+    assert read_video(tmp_path / "whole.mp4").shape == (5, 3, 48, 64)
+
+
+def test_an_input_name_too_long_for_its_outputs_is_refused_before_anything_is_written(clip, tmp_path, capsys):
+    """A name within the 255-byte limit whose outputs' temporary names are not (``_normalised.partial.mp4`` adds 23
+    bytes) failed mid-run with "File name too long", leaving a partial CSV; now refused first, in bytes."""
+    video, lm, _ = clip
+    long = tmp_path / ("é" * 117 + video.suffix)  # 234 bytes before the extension: 257 with the longest suffix
+    long.write_bytes(video.read_bytes())
+    out = tmp_path / "out"
+    rc = main(["track", str(long), "--out", str(out), "--landmarks", str(lm), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "too long" in err and "at most 232 bytes" in err, err
+    assert list(out.iterdir()) == []
+
+
+class _GoneReader:
+    """A stream whose reader has gone (``torchface track ... 2>&1 | head -1``): every write is a broken pipe."""
+
+    def isatty(self) -> bool:
+        return False
+
+    def write(self, text: str) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self) -> None:
+        pass
+
+
+def test_a_reader_gone_from_the_progress_and_the_summary_does_not_cut_the_run_short(clip, tmp_path, monkeypatch):
+    """``2>&1 | head -1``: the progress display's next write was a broken pipe that stopped the run mid-way (partial
+    outputs) and exited 2 ("error: Broken pipe"); now the display stops, the outputs are complete, and the summary's
+    broken pipe exits 141 (128 + SIGPIPE)."""
+    video, lm, _ = clip
+    out = tmp_path / "out"
+    monkeypatch.setattr("sys.stderr", _GoneReader())
+    monkeypatch.setattr("sys.stdout", _GoneReader())
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm)])
+    assert rc == 141
+    assert output_paths(out, NAME)["json"].is_file() and not [p for p in out.iterdir() if "partial" in p.name]
+
+
+def test_closed_stdout_and_stderr_are_taken_as_devnull(clip, tmp_path, monkeypatch):
+    """``torchface track ... >&- 2>&-``: Python sets sys.stdout/sys.stderr to None; the summary crashed with an
+    AttributeError (exit 1) after the run."""
+    video, lm, _ = clip
+    out = tmp_path / "out"
+    monkeypatch.setattr("sys.stderr", None)
+    monkeypatch.setattr("sys.stdout", None)
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm)])
+    assert rc == 0 and output_paths(out, NAME)["json"].is_file()
+
+
+def test_a_full_disk_while_writing_the_resume_record_says_where_and_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """The record's temporary file was left behind (``<name>.record.partial.tmp``, empty) and the command said only
+    "torchface: error: No space left on device", without the path."""
+    from pathlib import Path
+
+    from torchface.job import _write_record
+
+    real = Path.write_text
+
+    def full_disk(self, data, *args, **kwargs):
+        real(self, "", *args, **kwargs)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    record = tmp_path / "clip.record.partial"
+    with pytest.raises(OutputError, match=r"clip\.record\.partial: cannot write .*No space left"):
+        _write_record(record, tmp_path / "clip.avi", None, {})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_folder_that_is_a_file_or_a_dangling_link_says_so(clip, tmp_path, capsys):
+    """Both said only "cannot create the output folder (File exists)"."""
+    video, lm, _ = clip
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    dangling = tmp_path / "link"
+    dangling.symlink_to(tmp_path / "gone")
+    for out, message in ((blocker, "is a file, not a folder"), (dangling, "symbolic link to")):
+        rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith("torchface: error:") and "\n" not in err and message in err, err
+    assert blocker.read_text() == "x" and not (tmp_path / "gone").exists()
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a Linux file system")
+def test_names_that_are_not_utf8_are_refused_not_a_crash(clip, tmp_path):
+    """A video, an image of a folder or an output folder whose name is not valid UTF-8 (Latin-1 bytes; Python keeps
+    them as lone surrogates) crashed the process in OpenCV with a segmentation fault. Run in a child process, so
+    that a crash fails this test, not the session."""
+    video, lm, _ = clip
+    bad = os.fsdecode(b"bad\xff")
+    (tmp_path / f"{bad}.avi").write_bytes(video.read_bytes())
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    first = np.ascontiguousarray((read_video(video)[0].permute(1, 2, 0).numpy()[..., ::-1] * 255).round())
+    first = first.astype(np.uint8)
+    assert cv2.imwrite(str(folder / "001.png"), first)
+    os.rename(folder / "001.png", folder / f"001{bad}.png")  # OpenCV cannot write such a name either
+    assert cv2.imwrite(str(folder / "000.png"), first)
+    runs = {
+        "input": [f"{bad}.avi", "--out", "out1"], "image": ["frames", "--out", "out2"],
+        "out": [str(video), "--out", f"out{bad}"],
+    }  # fmt: skip
+    for what, args in runs.items():
+        argv = ["track", *args, "--landmarks", str(lm), "--quiet"]
+        code = f"import sys; from torchface.cli import main; sys.exit(main({argv!r}))"
+        done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                              errors="replace", timeout=120)  # fmt: skip
+        err = done.stderr.strip()
+        assert done.returncode == 2 and "not valid UTF-8" in err and "\n" not in err, (what, done.returncode, err)
+    assert not [p for p in tmp_path.glob("out*/*")] and not (tmp_path / f"out{bad}").exists()
+
+
+def test_progress_display_on_a_dumb_terminal_writes_lines_not_cursor_moves(monkeypatch):
+    """TERM=dumb (Emacs' shell and compilation buffers: a pty without cursor movement) got the bars' escape codes,
+    shown there as "^[[2K" and "^[[1F" garbage."""
+    import io
+
+    from torchface.cli import ProgressDisplay
+    from torchface.job import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setenv("TERM", "dumb")
+    tty = Tty()
+    display = ProgressDisplay(tty)
+    display(Progress(0, 1, "a", 1, 10, 2.0, 0.9))
+    display(Progress(0, 1, "a", 10, 10, 2.0, 0.9))
+    display.flush()
+    assert "\x1b" not in tty.getvalue() and "10/10" in tty.getvalue().splitlines()[-1]
+
+
+def test_a_full_disk_while_writing_a_mesh_names_the_file_and_keeps_no_cut_off_mesh(clip, tmp_path, monkeypatch,
+                                                                                   capsys):
+    """The command said only "torchface: error: No space left on device", and the cut-off PLY stayed."""
+    import trimesh
+
+    video, lm, _ = clip
+    real, calls = trimesh.Trimesh.export, []
+
+    def export(self, file_obj=None, *args, **kwargs):
+        calls.append(file_obj)
+        if len(calls) < 3:
+            return real(self, file_obj, *args, **kwargs)
+        with open(file_obj, "wb") as f:
+            f.write(b"ply\n")  # cut off
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(trimesh.Trimesh, "export", export)
+    out = tmp_path / "out"
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--meshes"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and err.endswith("000002.ply: cannot write (No space left on device)"), err
+    assert sorted(p.name for p in out.glob("*meshes*/*.ply")) == ["000000.ply", "000001.ply"]

@@ -166,3 +166,41 @@ def test_openface_differences_the_readme_lists_match_candide3s_au_columns():
                       ("AU42_r", "AU43_r", "AU44_r", "AU45_r")]
     header = ",".join(track_columns(("a",), ("AU2",), ("g",)))
     assert " " not in header and header.startswith("frame,timestamp,success,confidence,")
+
+
+class _FullDisk:
+    """A file on a full disk: writes are buffered, every flush fails (as ENOSPC does), close flushes first."""
+
+    def __init__(self, file):
+        self.file, self.closed = file, False
+
+    def write(self, text):
+        return len(text)
+
+    def flush(self):
+        raise OSError(28, "No space left on device")
+
+    def fileno(self):
+        return self.file.fileno()
+
+    def close(self):
+        self.file.close()
+        self.closed = True
+        self.flush()
+
+
+def test_csv_writer_on_a_full_disk_names_its_file_and_stops_cleanly(tmp_path):
+    """The row write said only "No space left on device" (no file named), and stop(), the job's clean-up, raised
+    the same error again before the job deleted its partial videos, leaving them and the file open."""
+    from torchface.io import OutputError
+
+    cols = ("frame", "confidence")
+    writer = TrackCsvWriter(tmp_path / "clip.csv", cols)
+    writer.write(np.array([[0.0, 1.0]]))
+    disk = _FullDisk(writer._file)
+    writer._file = disk
+    with pytest.raises(OutputError, match=r"clip\.csv\.partial: cannot write \(No space left on device\)"):
+        writer.write(np.array([[1.0, 1.0]]))
+    writer.stop()
+    assert disk.closed and writer._file is None
+    assert read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)  # the rows that fitted stay

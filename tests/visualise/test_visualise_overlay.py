@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -154,3 +156,35 @@ def test_a_failed_frame_is_labelled_failed_not_lost():
     assert not np.array_equal(draw(False, "FAILED"), draw(False, "LOST"))
     assert np.array_equal(draw(False, "LOST"), draw_overlay(img, nothing, edges, axes, 0.5, False, "#1"))
     assert np.array_equal(draw(True, "FAILED"), draw(True, "LOST"))
+
+
+def _small_track():
+    cols = ("frame", "timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg", "AU26_r")
+    T = 5
+    rows = np.column_stack([np.arange(T), np.arange(T) / 25, np.ones(T), np.ones(T), *np.zeros((4, T))])
+    return cols, rows
+
+
+def test_plot_track_title_in_a_script_the_font_lacks_warns_nothing(tmp_path):
+    """A video named in Chinese or with an emoji (the title): matplotlib warned twice per missing glyph, several
+    multi-line warnings on stderr for every ``torchface track`` of such a file."""
+    cols, rows = _small_track()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p = plot_track(cols, rows, tmp_path / "plot.png", title="é 中文 😀 (5 frames)")
+    assert p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_plot_track_leaves_no_partial_file_when_saving_fails(tmp_path, monkeypatch):
+    """A full disk mid-save left ``<name>.partial.png`` behind."""
+    from matplotlib.figure import Figure
+
+    def full_disk(self, fname, **kwargs):
+        open(fname, "wb").close()
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Figure, "savefig", full_disk)
+    cols, rows = _small_track()
+    with pytest.raises(OSError, match="No space"):
+        plot_track(cols, rows, tmp_path / "plot.png")
+    assert list(tmp_path.iterdir()) == []

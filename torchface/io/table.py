@@ -37,6 +37,7 @@ OpenFace's 0-5 intensity, with only the AUs CANDIDE-3 animates (README, "Differe
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -265,9 +266,12 @@ class TrackCsvWriter:
         rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(self.columns))
         if self._file is None:
             raise RuntimeError("the CSV writer is closed")
-        for r in rows:
-            self._file.write(_format_row(self.columns, r) + "\n")
-        self._file.flush()
+        try:
+            for r in rows:
+                self._file.write(_format_row(self.columns, r) + "\n")
+            self._file.flush()
+        except OSError as exc:  # a full disk: say which file (the error named none)
+            raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
         self.rows_done += int(rows.shape[0])
 
     def close(self) -> Path:
@@ -281,11 +285,15 @@ class TrackCsvWriter:
         return self.path
 
     def stop(self) -> None:
-        """Close without finishing: ``<path>.partial`` stays for ``--resume``."""
+        """Close without finishing: ``<path>.partial`` stays for ``--resume``. Never raises ``OSError``: where the
+        rows cannot be flushed (a full disk, the reason to stop), those that were stay (a row cut off mid-line is
+        dropped on resume), and the file is closed all the same."""
         if self._file is not None:
-            self._file.flush()
-            self._file.close()
-            self._file = None
+            file, self._file = self._file, None
+            with contextlib.suppress(OSError):
+                file.flush()
+            with contextlib.suppress(OSError):  # closed even where its flush fails again
+                file.close()
 
     def __enter__(self) -> "TrackCsvWriter":
         return self

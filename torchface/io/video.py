@@ -295,9 +295,22 @@ def image_files(folder: str | os.PathLike[str]) -> list[Path]:
     return sorted(files, key=lambda f: _natural_key(f.name))
 
 
+def opencv_path(path: str | os.PathLike[str], error: type[Exception] = InputError) -> str:
+    """``path`` as the ``str`` OpenCV takes, refused with ``error`` where its name is not valid UTF-8 (bytes that
+    Python keeps as lone surrogates, ``'clip\\udcff.avi'``): OpenCV crashed the process on such a name (a
+    segmentation fault), whatever the locale."""
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise error(f"{text!r}: the name is not valid UTF-8, and OpenCV cannot open such a file: rename it "
+                    "(e.g. convmv -f latin1 -t utf8)") from None  # fmt: skip
+    return text
+
+
 def _image_frames(files: list[Path]) -> Iterator[tuple[np.ndarray, bool]]:
     for f in files:
-        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        img = cv2.imread(opencv_path(f), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise InputError(f"{f}: cannot decode this image")
         yield img, True
@@ -372,6 +385,8 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         files = image_files(p)
         if not files:
             raise InputError(f"{p}: folder holds no images ({', '.join(IMAGE_SUFFIXES)}): zero frames")
+        for f in files:  # before the first frame, not when the run reaches that one
+            opencv_path(f)
         rest = _image_frames(files)
         first_arr, _ = next(rest)
         first, fmt = frame_to_tensor(first_arr, True, f"{files[0]}", convert)
@@ -402,7 +417,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         return FrameReader(info, first, rest, stored_size=array.shape[1:3], convert=convert)
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: permission denied")
-    cap = cv2.VideoCapture(str(p))
+    cap = cv2.VideoCapture(opencv_path(p))
     if not cap.isOpened():
         cap.release()
         raise InputError(f"{p}: not a video OpenCV can open (unreadable, corrupt or an unknown format)")

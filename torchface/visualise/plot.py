@@ -7,6 +7,7 @@ figures are left as they were (a notebook's inline plots go on being shown).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -74,12 +75,18 @@ def plot_track(
     axes[2].legend(loc="lower right", fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     p = Path(path)
     tmp = p.with_name(p.stem + ".partial" + p.suffix)
-    # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf"); a suffix
-    # that names no format matplotlib writes ("track.run1") is PNG, as before
-    fmt = p.suffix[1:].lower()
-    fig.savefig(tmp, dpi=100, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
+    with warnings.catch_warnings():  # a title in a script the font lacks (a video named in Chinese, an emoji):
+        warnings.filterwarnings("ignore", message=r"Glyph \d+ .* missing from", category=UserWarning)  # boxes
+        fig.tight_layout()
+        # the format from the final name's suffix (it was PNG whatever the name said: PNG bytes in "plot.pdf"); a
+        # suffix that names no format matplotlib writes ("track.run1") is PNG, as before
+        fmt = p.suffix[1:].lower()
+        try:
+            fig.savefig(tmp, dpi=100, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
+        except BaseException:  # a full disk, an interruption: no partial file left behind
+            tmp.unlink(missing_ok=True)
+            raise
     os.replace(tmp, p)
     return p
