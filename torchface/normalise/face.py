@@ -551,10 +551,10 @@ def _normalised_face_posed(
     normals_cam, back = vertex_normals_and_backfacing(verts_cam, model.faces)
     if (not zbuffer and use_native(backend, (frames, verts_cam, illumination), "normalised face")
             and not _transformed(frames, verts_cam, illumination)):
-        # Under torch.compile the kernel runs eagerly (a graph break): traced, its ctypes call got the pointers of the
-        # traced tensors, not of the call's, and gave wrong faces without a sign.
-        native = _normalised_face_native_eager if torch.compiler.is_compiling() else _normalised_face_native
-        out = native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics, min_facing_cos)
+        # (Not under torch.compile, use_native: traced, its ctypes call got the pointers of the traced tensors, not
+        # of the call's, and gave wrong faces without a sign.)
+        out = _normalised_face_native(frames, model, layout, verts_cam, normals_cam, back, illumination, intrinsics,
+                                      min_facing_cos)  # fmt: skip
         if all_valid:
             return out
         keep = valid[:, None, None, None]
@@ -649,10 +649,6 @@ def _normalised_face_native(
     )  # fmt: skip
     _native.run("normalised_face", dtype == torch.float64, prob, B, torch.get_num_threads())
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
-
-
-#: :func:`_normalised_face_native` run eagerly where ``torch.compile`` traces its caller.
-_normalised_face_native_eager = torch.compiler.disable(_normalised_face_native)
 
 
 class NormalisedFace(nn.Module):
