@@ -589,12 +589,11 @@ def _normalised_face_posed(
         visible = points_cam.detach()[..., 2] > NEAR_PLANE_MM
         if zbuffer:
             # The torch z-buffer (the same fragments) under torch.compile, where the traced native kernel crashed the
-            # process, and under torch.func's transforms, where it could not read the wrapped tensors.
-            plain = not torch.compiler.is_compiling() and not _transformed(verts_cam)
-            # (the whole frame under torch.compile: a window of the face's size would recompile at each new size)
+            # process, and under torch.func's transforms, where it could not read the wrapped tensors; the whole frame
+            # under torch.compile (a window of the face's size would recompile at each new size).
             compiling = torch.compiler.is_compiling()
             crop = intrinsics if compiling else _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
-            raster_backend = backend if plain else Backend.TORCH
+            raster_backend = Backend.TORCH if compiling or _transformed(verts_cam) else backend
             frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
             visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
