@@ -10,7 +10,7 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
   its pose) and ``detector_calls`` (how often this run asked the detector about the video's frames: the first
   frame, those re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves
   out);
-- ``<stem>_overlay.mp4``: wireframe, head axes and confidence on each frame;
+- ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
 - ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
@@ -58,7 +58,9 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, write_json
-from torchface.io.table import TrackCsvWriter, partial_path, read_track_csv, result_rows, track_columns
+from torchface.io.table import (
+    POSE_COLUMNS, ROTATION_COLUMNS, TrackCsvWriter, partial_path, read_track_csv, result_rows, track_columns,
+)
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -68,7 +70,7 @@ from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
-from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
+from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
 __all__ = [
@@ -1016,11 +1018,12 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
     ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
     earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
-    first row, and the mesh is placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``,
-    ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their ``AUxx_r`` columns are measured
-    from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*`` are the coefficients that place
-    the mesh. The rows up to that frame were tracked with ``first_shape_coeffs`` and place the mesh with their own
-    pose (the re-anchoring frame's overlay and mesh already show the re-anchored placement).
+    first row, and the mesh is placed (overlay wireframe, meshes; the overlay's axes are the rows' pose) by
+    ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``;
+    their ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated starting expression),
+    ``anim_*`` are the coefficients that place the mesh. The rows up to that frame were tracked with
+    ``first_shape_coeffs`` and place the mesh with their own pose (the re-anchoring frame's overlay and mesh already
+    show the re-anchored placement).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
@@ -1091,10 +1094,17 @@ def _write_step(
         return
     aa, trans, alpha, light = layout.split(state.params)
     R = axis_angle_to_matrix(aa)
-    verts_px, axes_px = overlay_geometry(model, state.shape_coeffs, alpha, R, trans, intr)
+    verts_px, _ = overlay_geometry(model, state.shape_coeffs, alpha, R, trans, intr)
     norm = normaliser.from_params(frames, state.shape_coeffs, alpha, aa, trans, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
-    verts_px, axes_px = verts_px.detach().cpu().numpy(), axes_px.detach().cpu().numpy()
+    verts_px = verts_px.detach().cpu().numpy()
+    # The head axes are the pose the CSV row reports (pose_T*, r00..r22): after a re-anchoring that is not the pose
+    # that places the mesh (R_mesh = R D^T, t_mesh = t - R_mesh d), and the axes used to be drawn with the mesh's.
+    shown = np.stack([s.replay[t] if replaying[k] else rows[k] for k, s in enumerate(streams) if live[k]])
+    pose = torch.from_numpy(shown[:, [columns.index(c) for c in ROTATION_COLUMNS + POSE_COLUMNS[:3]]])  # R, then t
+    axes_live = axes_geometry(pose[:, :9].reshape(-1, 3, 3), pose[:, 9:], intr).numpy()
+    axes_px = np.full((len(streams), 4, 2), np.nan)
+    axes_px[np.flatnonzero(live)] = axes_live
     ci = columns.index("confidence")
     si = columns.index("success")
     st = columns.index("status")

@@ -1329,3 +1329,35 @@ def test_a_full_disk_while_writing_a_mesh_names_the_file_and_keeps_no_cut_off_me
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and err.endswith("000002.ply: cannot write (No space left on device)"), err
     assert sorted(p.name for p in out.glob("*meshes*/*.ply")) == ["000000.ply", "000001.ply"]
+
+
+def test_overlay_head_axes_are_the_csv_pose(clip, tmp_path, monkeypatch):
+    """The overlay's head axes start at the CSV's ``pose_T*`` and run along the columns of its ``r00..r22``, on every
+    frame. After the online start re-anchored the stream they were drawn with the mesh's internal pose instead (the
+    rows' pose times the sidecar's head offset): axes a rotation ``D`` and an origin ``R d`` away from the pose the
+    CSV reports (a rendered 18-degree turn: the origin 19 mm deeper and about 3 px aside)."""
+    import torchface.job as job
+    from torchface.geometry.camera import Intrinsics
+    from torchface.geometry.projection import project_points
+    from torchface.visualise.overlay import AXIS_LENGTH_MM
+
+    drawn = []
+
+    def spy(image_bgr, verts_px, edges, axes_px, *args, **kwargs):
+        drawn.append(np.array(axes_px, dtype=np.float64))
+        return job_draw(image_bgr, verts_px, edges, axes_px, *args, **kwargs)
+
+    job_draw = job.draw_overlay
+    monkeypatch.setattr(job, "draw_overlay", spy)
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 6)
+    out = tmp_path / "out"
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,)))
+    start = json.loads((out / "short.json").read_text())["start"]
+    assert isinstance(start["reanchored_at_frame"], int) and start["reanchored_at_frame"] < 5  # later rows offset
+    cols, rows, R, t = _pose(out / "short.csv")
+    assert len(drawn) == len(rows)
+    ends = torch.cat([torch.zeros(1, 3), torch.eye(3) * AXIS_LENGTH_MM]).double()  # origin, +x, +y, +z ends (mm)
+    cam = ends @ R.transpose(1, 2) + torch.from_numpy(t)[:, None]  # (T, 4, 3) head axes of the CSV's pose
+    want = project_points(cam, Intrinsics.default(W, H)).numpy()
+    np.testing.assert_allclose(np.stack(drawn), want, atol=1e-3)  # px (the CSV's 9 significant digits)

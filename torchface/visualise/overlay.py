@@ -18,7 +18,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.model.face_model import FaceModel
 
-__all__ = ["AXIS_LENGTH_MM", "mesh_edges", "overlay_geometry", "draw_overlay"]
+__all__ = ["AXIS_LENGTH_MM", "axes_geometry", "mesh_edges", "overlay_geometry", "draw_overlay"]
 
 #: Length of the drawn head axes in millimetres.
 AXIS_LENGTH_MM: float = 50.0
@@ -53,13 +53,26 @@ def overlay_geometry(
     """
     verts = model.deform(shape_coeffs, anim_coeffs)  # (B, V, 3)
     verts_cam = torch.matmul(verts, rotation.transpose(1, 2)) + translation.unsqueeze(1)
-    axes = torch.cat([torch.zeros(1, 3), torch.eye(3) * AXIS_LENGTH_MM]).to(verts)  # (4, 3)
+    return _project_in_front(verts_cam, intrinsics), axes_geometry(rotation, translation, intrinsics)
+
+
+def axes_geometry(rotation: Tensor, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """Project the head axes of a pose: ``(B, 4, 2)`` pixels, the origin ``t`` and the ends ``t + L R e_k`` of its
+    +x, +y, +z axes (``L`` = :data:`AXIS_LENGTH_MM`); points nearer than
+    :data:`~torchface.conventions.NEAR_PLANE_MM` are NaN (:func:`overlay_geometry`).
+
+    Args:
+        rotation: ``(B, 3, 3)`` head -> camera; translation: ``(B, 3)`` mm; intrinsics: the camera.
+    """
+    axes = torch.cat([torch.zeros(1, 3), torch.eye(3) * AXIS_LENGTH_MM]).to(rotation)  # (4, 3)
     axes_cam = torch.matmul(axes, rotation.transpose(1, 2)) + translation.unsqueeze(1)
-    out = []
-    for cam in (verts_cam, axes_cam):
-        px = project_points(cam, intrinsics)
-        out.append(torch.where((cam[..., 2:] > NEAR_PLANE_MM), px, torch.full_like(px, float("nan"))))
-    return out[0], out[1]
+    return _project_in_front(axes_cam, intrinsics)
+
+
+def _project_in_front(points_cam: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(B, N, 3)`` camera-frame points -> ``(B, N, 2)`` pixels, NaN for those nearer than the near plane."""
+    px = project_points(points_cam, intrinsics)
+    return torch.where((points_cam[..., 2:] > NEAR_PLANE_MM), px, torch.full_like(px, float("nan")))
 
 
 def _pt(p: np.ndarray, limit: float) -> tuple[int, int]:
@@ -77,8 +90,8 @@ def draw_overlay(
         image_bgr: ``(H, W, 3)`` uint8 BGR frame.
         verts_px: ``(V, 2)`` projected vertices; edges: ``(E, 2)`` vertex pairs (:func:`mesh_edges`); an edge
             with a non-finite end (a vertex behind the camera, :func:`overlay_geometry`) is not drawn.
-        axes_px: ``(4, 2)`` head origin and axis ends (:func:`overlay_geometry`); x red, y green, z blue (an axis
-            with a non-finite end is not drawn).
+        axes_px: ``(4, 2)`` head origin and axis ends (:func:`overlay_geometry`, :func:`axes_geometry`); x red,
+            y green, z blue (an axis with a non-finite end is not drawn).
         confidence: the frame's confidence in ``[0, 1]`` (``TrackResult.confidence``: with template management
             the dissimilarity confidence).
         success: whether the frame's estimate is usable (a failed or lost frame draws the mesh grey).
