@@ -986,6 +986,7 @@ def _finalise(
         "camera": {
             "width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
             "frame": "OpenCV: x right, y down, z forward; millimetres",
+            "pixels": "(u, v) = (column, row), pixel centres at integers: the top-left pixel's centre is (0, 0)",
         },  # fmt: skip
         "model": {"name": "CANDIDE-3", "vertices": model.num_vertices, "triangles": model.num_faces,
                   "animation_units": list(model.animation_names), "facs": list(model.facs_names),

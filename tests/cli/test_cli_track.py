@@ -1361,3 +1361,19 @@ def test_overlay_head_axes_are_the_csv_pose(clip, tmp_path, monkeypatch):
     cam = ends @ R.transpose(1, 2) + torch.from_numpy(t)[:, None]  # (T, 4, 3) head axes of the CSV's pose
     want = project_points(cam, Intrinsics.default(W, H)).numpy()
     np.testing.assert_allclose(np.stack(drawn), want, atol=1e-3)  # px (the CSV's 9 significant digits)
+
+
+def test_sidecar_camera_states_its_pixel_centres(clip, full_run):
+    """The sidecar's intrinsics say where pixel centres are: its ``cx`` of ``(W - 1) / 2`` is the image centre only
+    with centres at integers (OpenCV's ``K``; COLMAP or OpenGL put them at half-integers, half a pixel away). With
+    that camera the rendered clip's true head-frame landmarks land on its true pixel landmarks."""
+    from torchface.geometry.camera import Intrinsics
+    from torchface.geometry.projection import project_points
+
+    _, _, gt = clip
+    camera = json.loads(output_paths(full_run[1], NAME)["json"].read_text())["camera"]
+    assert "pixel centres at integers" in camera["pixels"] and "(0, 0)" in camera["pixels"]
+    assert (camera["cx"], camera["cy"]) == ((W - 1) / 2, (H - 1) / 2)
+    cam = Intrinsics(W, H, camera["fx"], camera["fy"], camera["cx"], camera["cy"])
+    lm_cam = gt.landmarks_3d[0] @ gt.rotation[0].T + gt.translation[0]
+    torch.testing.assert_close(project_points(lm_cam[None], cam)[0], gt.landmarks_px[0])
