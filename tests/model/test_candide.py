@@ -400,3 +400,35 @@ def test_data_table_validation():
         read_landmark_table(bad_order)
     with pytest.raises(ValueError, match="lo < hi"):
         read_auv_facs_table("file_position,auv,name,facs,range_lo,range_hi\n0,0,x,AU10,1,0\n")
+
+
+def test_landmark_contours_run_in_the_ibug_order():
+    """Each iBUG-68 contour runs as the annotation does, seen frontally (head frame = camera frame at the identity:
+    +x image right, +y down): the jaw from the subject's right (image left) to the left; each brow, the nostrils and
+    each lip from image left to right; each eye from its image-left corner along the upper lid, then back along the
+    lower lid; the lower lips are those the jaw drop moves. Mirror symmetry and the sides alone let a swap within a
+    contour through (upper and lower lid, a lip's upper and lower points, a brow's ends)."""
+    model = load_candide3(dtype=torch.float64)
+    lm = model.landmarks_3d(model.deform())[0].numpy()
+    x, y = lm[:, 0], lm[:, 1]
+
+    def rising(idx):
+        return bool((np.diff(x[idx]) > 0).all())
+
+    assert rising(range(0, 17)) and int(np.argmax(y[:17])) == 8  # jaw: right to left, chin lowest
+    assert rising(range(17, 22)) and rising(range(22, 27)) and (y[17:27] < y[36:48].min()).all()  # brows over eyes
+    assert rising(range(31, 36))  # nostrils
+    for outer, upper, inner, lower in (([36], [37, 38], [39], [40, 41]), ([42], [43, 44], [45], [46, 47])):
+        ring = outer + upper + inner + lower
+        assert x[outer[0]] == x[ring].min() and x[inner[0]] == x[ring].max()  # image-left corner first
+        assert rising(upper) and rising(lower[::-1])  # upper lid left to right, lower lid back
+        assert (y[upper] < y[lower[::-1]]).all()  # the upper lid above the lower, point by point
+    assert x[48] == x[48:60].min() and x[54] == x[48:60].max() and rising(range(48, 55)) and rising(range(59, 53, -1))
+    assert (y[49:54] < y[55:60][::-1]).all()  # outer lip: upper above lower
+    assert x[60] == x[60:68].min() and x[64] == x[60:68].max()
+    assert rising(range(60, 65)) and rising([60, 67, 66, 65, 64])  # inner lip
+    jaw = torch.zeros(1, model.num_animation, dtype=torch.float64)
+    jaw[0, model.animation_names.index("AUV11 Jaw drop")] = 1.0
+    down = (model.landmarks_3d(model.deform(None, jaw))[0].numpy() - lm)[:, 1]
+    assert (down[55:60] > 10).all() and (down[65:68] > 10).all()  # lower lips (outer, inner) follow the jaw
+    assert (np.abs(down[49:54]) < 1e-9).all() and (np.abs(down[61:64]) < 1e-9).all()  # upper lips stay
