@@ -811,3 +811,30 @@ def test_missing_frame_pixels_give_finite_pose_and_light_gradients(model, zbuffe
 
 def layout_of(model, size=16):
     return build_normalised_layout(model, size)
+
+
+def test_the_normalised_face_is_frontal_upright_and_not_mirrored(model, layout):
+    """Known answers for the canonical view's orientation, from the frame's pixels, not from the layout's own camera:
+    a frame whose image-left half is dark (the subject's right side, facing the camera) gives a face dark on its
+    left; one dark above the eyes gives a face dark at its top. The subject's right eye (iBUG 37-42) is then on
+    the image's left and the brows above the eyes above the mouth."""
+    shape, alpha = _zeros(model)
+    aa, t = torch.zeros(1, 3), T_FRONT
+    u = torch.arange(CAM.width, dtype=torch.float32)
+    v = torch.arange(CAM.height, dtype=torch.float32)
+    split_u = torch.where(u < CAM.cx, 0.2, 0.8).expand(1, 3, CAM.height, CAM.width)
+    eyes_v = CAM.cy + CAM.fy * float(model.landmarks_3d(model.deform())[0, 36:48, 1].mean()) / float(t[0, 2])
+    split_v = torch.where(v < eyes_v, 0.2, 0.8)[:, None].expand(1, 3, CAM.height, CAM.width)
+    half, every = G // 2, slice(None)
+    left, right = (every, slice(0, half)), (every, slice(half, None))
+    top, low = (slice(0, half // 2), every), (slice(half + 8, None), every)  # above the eyes; below them
+    for frame, near, far in ((split_u, left, right), (split_v, top, low)):
+        out = normalised_face(frame, model, layout, shape, alpha, aa, t, None, CAM)
+        face, mask = out.image[0, 0], out.mask[0, 0] > 0
+        assert bool(mask[near].any()) and bool(mask[far].any())
+        assert torch.allclose(face[near][mask[near]], torch.tensor(0.2)), "mirrored or upside down"
+        assert torch.allclose(face[far][mask[far]], torch.tensor(0.8)), "mirrored or upside down"
+    lm = model.landmarks_3d(model.deform())[0] + layout.translation  # the canonical view's camera frame
+    px = layout.intrinsics.fx * lm[:, :2] / lm[:, 2:] + torch.tensor([layout.intrinsics.cx, layout.intrinsics.cy])
+    assert (px[36:42, 0] < half).all() and (px[42:48, 0] > half).all()  # subject's right eye on the image's left
+    assert px[17:27, 1].max() < px[36:48, 1].min() and px[36:48, 1].max() < px[48:68, 1].min()  # brows, eyes, mouth
