@@ -63,6 +63,14 @@ def axes_geometry(rotation: Tensor, translation: Tensor, intrinsics: Intrinsics)
 
     Args:
         rotation: ``(B, 3, 3)`` head -> camera; translation: ``(B, 3)`` mm; intrinsics: the camera.
+
+    Example:
+        >>> cam = Intrinsics.default(640, 480)  # f = 640, centre (319.5, 239.5)
+        >>> axes_geometry(torch.eye(3)[None], torch.tensor([[0.0, 0.0, 640.0]]), cam)[0]  # +x: image right
+        tensor([[319.5000, 239.5000],
+                [369.5000, 239.5000],
+                [319.5000, 289.5000],
+                [319.5000, 239.5000]])
     """
     axes = torch.cat([torch.zeros(1, 3), torch.eye(3) * AXIS_LENGTH_MM]).to(rotation)  # (4, 3)
     axes_cam = torch.matmul(axes, rotation.transpose(1, 2)) + translation.unsqueeze(1)
