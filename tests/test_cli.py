@@ -91,3 +91,15 @@ def test_the_command_runs_without_docstrings(tmp_path):
     help_text = subprocess.run([sys.executable, "-OO", "-c", code, "--help"], cwd=root, capture_output=True,
                                text=True, timeout=120)  # fmt: skip
     assert help_text.returncode == 0 and "usage: torchface" in help_text.stdout, help_text.stderr[-2000:]
+
+
+def test_help_texts_print_no_rest_markup():
+    """``torchface --help`` printed the module docstring's first line as it is written for Sphinx: "The ``torchface``
+    command: ``track`` videos, run the ``demo`` ..."."""
+    import argparse
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for text in [parser.format_help(), *(p.format_help() for p in subs.choices.values())]:
+        assert "``" not in text and ":func:" not in text and ":mod:" not in text
+    assert parser.description.startswith("The torchface command: track videos, run the demo")

@@ -137,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchface`` command."""
     # (python -OO / PYTHONOPTIMIZE=2 strips docstrings: __doc__ is None there)
     description = (__doc__ or "The torchface command: track videos, run the demo, render a synthetic clip.")
-    description = description.splitlines()[0]
+    description = description.splitlines()[0].replace("``", "")  # (reST quotes: printed as they were in --help)
     parser = argparse.ArgumentParser(prog="torchface", description=description)
     sub = parser.add_subparsers(dest="command", required=True)
 
