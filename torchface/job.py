@@ -178,7 +178,8 @@ class VideoSummary:
 
     Attributes:
         name: the output stem; input: the input path; outputs: the files written.
-        frames: frames in the CSV; lost: frames whose estimate failed; mean_confidence: over all frames.
+        frames: frames in the CSV; lost: frames whose estimate is not usable (``success`` 0: failed, or the
+            stream lost); mean_confidence: over all frames.
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output; the streams of one batch share that time, so the batch
             as a whole runs at ``B * fps``); skipped: True when ``resume`` found it complete.
