@@ -19,11 +19,15 @@ def _code_blocks(language: str) -> list[str]:
 
 
 def test_readme_command_lines_parse():
-    """Every ``torchface ...`` line of the README's shell blocks is a command line the parser accepts."""
+    """Every ``torchface ...`` line of the README's shell blocks, and of the examples in ``torchface.cli``'s
+    docstring, is a command line the parser accepts."""
+    import torchface.cli
     from torchface.cli import build_parser
 
     lines = [line for block in _code_blocks("bash") for line in block.splitlines() if line.startswith("torchface ")]
     assert len(lines) >= 7
+    examples = [line.strip() for line in (torchface.cli.__doc__ or "").splitlines()]
+    lines += [line for line in examples if line.startswith("torchface ")]
     for line in lines:
         argv = shlex.split(line.split("#")[0])[1:]
         build_parser().parse_args(argv)  # SystemExit (status 2) on an option the parser does not know
