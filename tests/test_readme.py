@@ -135,3 +135,23 @@ def test_readme_paths_exist():
     assert len(paths) > 20
     missing = sorted(p for p in paths if not (ROOT / p.rstrip("/")).exists())
     assert not missing, missing
+
+
+def test_readme_python_api_example_runs_and_gives_the_shapes_it_states():
+    """The README's "Python API" block, run as written on a small rendered clip (its ``frames0``, ``landmarks0`` and
+    ``frames1`` are the clip's first frame, its landmarks and the next frame)."""
+    import torch
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+
+    (block,) = [b for b in _code_blocks("python") if "FaceTracker(TrackerConfig())" in b]
+    frames, gt = render_sequence(make_scenario("expressions", 2, 160, 120))
+    scope = {"frames0": frames[:1], "landmarks0": gt.landmarks_px[:1].float(), "frames1": frames[1:2]}
+    exec(compile(block, "README.md", "exec"), scope)
+    result, faces = scope["result"], scope["faces"]
+    assert type(result).__name__ == "TrackResult" and type(scope["first"]).__name__ == "TrackResult"
+    assert result.rotation.shape == (1, 3, 3) and result.translation.shape == (1, 3) and result.ypr_deg.shape == (1, 3)
+    assert result.expression.shape == result.anim_coeffs.shape == (1, 11)  # "CANDIDE-3 with its 11 animation units"
+    assert result.status.shape == result.confidence.shape == (1,) and result.illumination.shape == (1, 5)
+    assert faces.shape == (1, 3, 128, 128) and bool(torch.isfinite(faces).all())
