@@ -371,14 +371,14 @@ def _online_refine_row(args: argparse.Namespace, figures: dict[str, dict[str, fl
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--width", type=int, default=640, help="frame width (default 640)")
+    ap.add_argument("--height", type=int, default=480, help="frame height (default 480)")
     ap.add_argument("--frames", type=int, default=150,
                     help="frames of the sweep used, at most 150 (streams are offset copies)")
-    ap.add_argument("--batches", default="1,8,32,128")
+    ap.add_argument("--batches", default="1,8,32,128", help="streams per batch, comma list (default 1,8,32,128)")
     ap.add_argument("--malloc-batches", default="128",
                     help="batches run again with glibc's MALLOC_MMAP_THRESHOLD_=256 MB (comma list; '' for none)")
-    ap.add_argument("--cache", default="out/bench")
+    ap.add_argument("--cache", default="out/bench", help="sequence cache folder (default out/bench)")
     ap.add_argument("--json", default=None, help="write the figures as JSON here")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)

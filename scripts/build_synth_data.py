@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
+    parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets",
+                        help="the shared assets folder (default ../shared/assets beside the repository)")
     args = parser.parse_args()
     james_dir = args.assets / "james"
     if not james_dir.is_dir():

@@ -793,7 +793,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
     parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
     parser.add_argument("--size", type=_parse_size, default=None, help="WxH (default 640x480)")
-    parser.add_argument("--cache", default="out/sequences", help="sequence cache folder; 'none' renders in memory")
+    parser.add_argument("--cache", default="out/sequences",
+                        help="sequence cache folder (default out/sequences); 'none' renders in memory")
     parser.add_argument(
         "--ablations", default="all", help=f"all, none (full only) or a comma list from {', '.join(ABLATIONS)}"
     )
@@ -816,8 +817,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
     parser.add_argument("--json", type=Path, help="write {scenario[/ablation or config]: {metric: value}} here")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
-    parser.add_argument("--threads", type=int, help="torch CPU threads")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise")
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise (default 0)")
     parser.add_argument(
         "--lookahead", action="store_true",
         help="start every run from the look-ahead fit (torchface.tracker.lookahead: the first frame's pose and "

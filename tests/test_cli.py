@@ -91,3 +91,32 @@ def test_the_command_runs_without_docstrings(tmp_path):
     help_text = subprocess.run([sys.executable, "-OO", "-c", code, "--help"], cwd=root, capture_output=True,
                                text=True, timeout=120)  # fmt: skip
     assert help_text.returncode == 0 and "usage: torchface" in help_text.stdout, help_text.stderr[-2000:]
+
+
+def test_help_texts_print_no_rest_markup():
+    """``torchface --help`` printed the module docstring's first line as it is written for Sphinx: "The ``torchface``
+    command: ``track`` videos, run the ``demo`` ..."."""
+    import argparse
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for text in [parser.format_help(), *(p.format_help() for p in subs.choices.values())]:
+        assert "``" not in text and ":func:" not in text and ":mod:" not in text
+    assert parser.description.startswith("The torchface command: track videos, run the demo")
+
+
+def test_summary_lists_the_meshes_folder_when_meshes_were_written(tmp_path):
+    """The summary's list of what each video got left out ``<stem>_meshes/`` of a ``--meshes`` run."""
+    import io
+
+    from torchface.cli import _print_summary
+    from torchface.job import VideoSummary, output_paths
+
+    p = output_paths(tmp_path, "clip")
+    files = (p["csv"], p["json"], p["overlay"], p["plot"], p["normalised"])
+    for outputs, listed in ((files, False), (files + (p["meshes"],), True)):
+        out = io.StringIO()
+        _print_summary([VideoSummary("clip", tmp_path / "clip.mp4", outputs, 3, 0, 0.9, 10.0)], out)
+        last = out.getvalue().splitlines()[-1]
+        assert last.startswith(f"outputs in {tmp_path}/ (per video: .csv, .json, _overlay.mp4, _plot.png")
+        assert ("_meshes/" in last) is listed

@@ -137,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchface`` command."""
     # (python -OO / PYTHONOPTIMIZE=2 strips docstrings: __doc__ is None there)
     description = (__doc__ or "The torchface command: track videos, run the demo, render a synthetic clip.")
-    description = description.splitlines()[0]
+    description = description.splitlines()[0].replace("``", "")  # (reST quotes: printed as they were in --help)
     parser = argparse.ArgumentParser(prog="torchface", description=description)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -211,7 +211,9 @@ def _print_summary(summaries, out: TextIO) -> None:
                       "(truncated or damaged?)\n")  # fmt: skip
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
-        out.write(f"outputs in {folder}/ (per video: .csv, .json, _overlay.mp4, _plot.png, _normalised.mp4)\n")
+        meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
+        kinds = ".csv, .json, _overlay.mp4, _plot.png, _normalised.mp4" + (", _meshes/" if meshes else "")
+        out.write(f"outputs in {folder}/ (per video: {kinds})\n")
     out.flush()
 
 

@@ -5,11 +5,11 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
-- ``<stem>.json``: versions, settings, camera, model, timings, frame count and lost frames; with a detector,
-  ``redetections`` (re-detections of a low-confidence stream, ``redetect_after``, that found a face and re-fitted
-  its pose) and ``detector_calls`` (how often this run asked the detector about the video's frames: the first
-  frame, those re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves
-  out);
+- ``<stem>.json``: versions, settings, camera, model, how the video started (``start``, :func:`_start_record`),
+  timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
+  ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
+  detector about the video's frames: the first frame, those re-detections, and the tracker's recovery attempts of a
+  lost stream, which ``redetections`` leaves out; both 0 without a detector);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -180,7 +180,8 @@ class VideoSummary:
 
     Attributes:
         name: the output stem; input: the input path; outputs: the files written.
-        frames: frames in the CSV; lost: frames whose estimate failed; mean_confidence: over all frames.
+        frames: frames in the CSV; lost: frames whose estimate is not usable (``success`` 0: failed, or the
+            stream lost); mean_confidence: over all frames.
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output; the streams of one batch share that time, so the batch
             as a whole runs at ``B * fps``); skipped: True when ``resume`` found it complete.

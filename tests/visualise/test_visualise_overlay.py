@@ -188,3 +188,31 @@ def test_plot_track_leaves_no_partial_file_when_saving_fails(tmp_path, monkeypat
     with pytest.raises(OSError, match="No space"):
         plot_track(cols, rows, tmp_path / "plot.png")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_plot_track_draws_the_aus_one_unit_links_as_one_line(tmp_path, monkeypatch):
+    """One animation unit links several AUs, whose CSV columns repeat its value (``AU23_r`` = ``AU24_r``, ``AU26_r`` =
+    ``AU27_r``): the plot of "the most active AUs" drew each as its own line, one hiding the other, so on the demo
+    clip its four lines showed two units (legend: AU24_r, AU23_r, AU27_r, AU26_r). Now a repeated series is one line
+    labelled with every column it stands for, and ``num_aus`` counts distinct series."""
+    import torchface.visualise.plot as plot_module
+
+    figures = []
+    make = plot_module._figure_class()
+
+    def capture(*args, **kwargs):
+        figures.append(make(*args, **kwargs))
+        return figures[-1]
+
+    monkeypatch.setattr(plot_module, "_figure_class", lambda: capture)
+    T = 10
+    lip, jaw, brow, lid = np.sin(np.arange(T)), np.linspace(0, 3, T), np.linspace(0, 0.5, T), np.cos(np.arange(T)) / 3
+    cols = ("timestamp", "success", "confidence", "yaw_deg", "pitch_deg", "roll_deg",
+            "AU04_r", "AU23_r", "AU24_r", "AU26_r", "AU27_r", "AU42_r", "AU43_r")  # fmt: skip
+    rows = np.column_stack([np.arange(T) / 25, np.ones(T), np.ones(T), *np.zeros((3, T)),
+                            brow, lip, lip, jaw, jaw, lid, lid])  # fmt: skip
+    plot_track(cols, rows, tmp_path / "p.png")
+    labels = [line.get_label() for line in figures[0].axes[1].get_lines()]
+    assert labels == ["AU26_r = AU27_r", "AU23_r = AU24_r", "AU42_r = AU43_r", "AU04_r"]
+    assert plot_module.au_groups(cols, rows) == [("AU04_r",), ("AU23_r", "AU24_r"), ("AU26_r", "AU27_r"),
+                                                 ("AU42_r", "AU43_r")]

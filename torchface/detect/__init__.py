@@ -3,9 +3,11 @@
 A detector is any callable ``(image_rgb (H, W, 3) uint8) -> (68, 2) float64 pixel landmarks or None`` (None:
 no face). :func:`load_detector` returns one by name; each is an optional extra that installs from the
 package registry and runs offline. When it is not installed the error names the install command and the
-``--landmarks FILE`` alternative. A job (:func:`torchface.job.track_videos`) checks what a detector returns, at the
-first frame and at every re-detection: 68 finite points, at least half of them inside the frame (a face at the
-frame's edge has landmarks outside it), else :class:`~torchface.io.InputError` naming the detector.
+``--landmarks FILE`` alternative. A job (:func:`torchface.job.track_videos`) checks what a detector returns: at the
+first frame, 68 finite points, at least half of them inside the frame (a face at the frame's edge has landmarks
+outside it), else :class:`~torchface.io.InputError` naming the detector; at a re-detection or a lost stream's
+recovery, points of another shape are that error, and NaN points or a face mostly outside the frame are "no face"
+with a ``RuntimeWarning`` (:func:`usable_detection`), the run going on.
 
 :class:`~torchface.FaceTracker` (``detector=``) and :func:`~torchface.tracker.managed.managed_step` re-initialise
 lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` (``frames (B, 3, H, W)`` float

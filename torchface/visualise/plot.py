@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_track"]
+__all__ = ["au_groups", "plot_track"]
 
 
 def _figure_class():
@@ -22,6 +22,34 @@ def _figure_class():
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         raise ImportError("plotting needs matplotlib: pip install matplotlib") from None
     return Figure
+
+
+def au_groups(columns: tuple[str, ...], rows: np.ndarray) -> list[tuple[str, ...]]:
+    """The ``AUxx_r`` columns of a track table, those holding the same values joined: one animation unit links
+    several AUs, whose columns repeat its value (CANDIDE-3: ``AU13_r`` = ``AU15_r``, ``AU42_r`` ... ``AU45_r``).
+
+    Args:
+        columns: CSV header; rows: ``(T, C)`` values.
+
+    Returns:
+        One tuple of column names per distinct series, in column order.
+
+    Example:
+        >>> au_groups(("AU23_r", "AU24_r", "AU26_r"), np.array([[0.1, 0.1, 0.3], [0.2, 0.2, 0.0]]))
+        [('AU23_r', 'AU24_r'), ('AU26_r',)]
+    """
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+    groups: list[list[int]] = []
+    for i, c in enumerate(columns):
+        if not (c.startswith("AU") and c.endswith("_r")):
+            continue
+        for g in groups:
+            if np.array_equal(rows[:, g[0]], rows[:, i], equal_nan=True):
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    return [tuple(columns[i] for i in g) for g in groups]
 
 
 def plot_track(
@@ -34,7 +62,9 @@ def plot_track(
         path: the image, PNG unless its suffix names another format matplotlib writes (``.pdf``, ``.svg``, ...;
             written to ``<stem>.partial<suffix>`` then renamed).
         title: figure title.
-        num_aus: how many ``AUxx_r`` columns to show (those that vary most; 0 for none).
+        num_aus: how many ``AUxx_r`` series to show (those that vary most; 0 for none). Columns that repeat one
+            animation unit's value are one series, labelled ``AU23_r = AU24_r`` (:func:`au_groups`): they were
+            drawn as separate lines, one hiding the other, so the four lines of the plot showed two units.
 
     Raises:
         TypeError: ``columns`` is one string.
@@ -56,11 +86,11 @@ def plot_track(
         axes[0].plot(t, rows[:, idx[name]], label=name.replace("_deg", ""))
     axes[0].set_ylabel("degrees")
     axes[0].legend(loc="upper right", fontsize=8)
-    au_cols = [c for c in columns if c.startswith("AU") and c.endswith("_r")]
-    if au_cols and len(rows) and num_aus:  # (0: no legend of nothing, which matplotlib warned about)
-        spread = np.array([np.nanstd(rows[:, idx[c]]) for c in au_cols])
-        for k in np.argsort(-spread)[:num_aus]:
-            axes[1].plot(t, rows[:, idx[au_cols[k]]], label=au_cols[k])
+    groups = au_groups(columns, rows)
+    if groups and len(rows) and num_aus:  # (0: no legend of nothing, which matplotlib warned about)
+        spread = np.array([np.nanstd(rows[:, idx[g[0]]]) for g in groups])
+        for k in np.argsort(-spread, kind="stable")[:num_aus]:
+            axes[1].plot(t, rows[:, idx[groups[k][0]]], label=" = ".join(groups[k]))
         axes[1].legend(loc="upper right", fontsize=8)
     axes[1].set_ylabel("AU intensity")
     measured = "dissimilarity" in idx and bool(np.isfinite(rows[:, idx["dissimilarity"]]).any())

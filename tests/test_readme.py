@@ -1,0 +1,157 @@
+"""What README.md states that the code can check: its command lines parse, its CSV table names the columns written in
+their order, the defaults it quotes are the dataclasses', and the names and files it points to exist."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = (ROOT / "README.md").read_text(encoding="utf-8")
+
+
+def _code_blocks(language: str) -> list[str]:
+    return re.findall(rf"```{language}\n(.*?)```", README, flags=re.S)
+
+
+def test_readme_command_lines_parse():
+    """Every ``torchface ...`` line of the README's shell blocks, and of the examples in ``torchface.cli``'s
+    docstring, is a command line the parser accepts."""
+    import torchface.cli
+    from torchface.cli import build_parser
+
+    lines = [line for block in _code_blocks("bash") for line in block.splitlines() if line.startswith("torchface ")]
+    assert len(lines) >= 7
+    examples = [line.strip() for line in (torchface.cli.__doc__ or "").splitlines()]
+    lines += [line for line in examples if line.startswith("torchface ")]
+    for line in lines:
+        argv = shlex.split(line.split("#")[0])[1:]
+        build_parser().parse_args(argv)  # SystemExit (status 2) on an option the parser does not know
+
+
+def test_readme_options_of_track_are_the_parsers():
+    """Every ``--option`` the README's "Tracking a video" section names is one of ``torchface track``'s."""
+    import argparse
+
+    from torchface.cli import build_parser
+
+    section = README.split("## Tracking a video", 1)[1].split("\n## ", 1)[0]
+    section = re.sub(r"```bash\n.*?```", "", section, flags=re.S)  # (its command lines: the test above)
+    named = set(re.findall(r"(?<![\w-])--[a-z][a-z-]*", section)) - {"--"}
+    subs = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    known = {o for a in subs.choices["track"]._actions for o in a.option_strings}
+    assert named and named <= known, sorted(named - known)
+
+
+def _readme_csv_columns() -> list[str]:
+    """The column names of the README's CSV table, its shorthands written out for CANDIDE-3."""
+    from torchface.io.table import track_columns
+    from torchface.model.candide import load_candide3
+
+    model = load_candide3()
+    table = README.split("CSV columns (", 1)[1].split("\n\n", 2)[1]
+    out: list[str] = []
+    for row in table.splitlines()[2:]:
+        cell = row.split("|")[1]
+        for name in re.findall(r"`([^`]+)`", cell):
+            for part in re.split(r",\s*", name):
+                if part == "r00 … r22":
+                    out += [f"r{i}{j}" for i in range(3) for j in range(3)]
+                elif part == "AUxx_r":
+                    out += [c for c in track_columns((), model.facs_names, ()) if c.startswith("AU")]
+                elif part == "anim_<name>":
+                    out += [c for c in track_columns(model.animation_names, (), ()) if c.startswith("anim_")]
+                elif part.endswith("_x/y/z"):
+                    out += [part[:-6] + f"_{a}" for a in "xyz"]
+                else:
+                    out.append(part)
+    return out
+
+
+def test_readme_csv_table_lists_the_columns_written_in_order():
+    from torchface.io.table import track_columns
+    from torchface.model.candide import load_candide3
+
+    model = load_candide3()
+    written = track_columns(model.animation_names, model.facs_names, ("gain", "bias", "light_x", "light_y", "light_z"))
+    assert tuple(_readme_csv_columns()) == written
+
+
+def test_readme_defaults_are_the_code_defaults():
+    """Defaults the README quotes (each quoted as the README writes it, so that a change of either side fails)."""
+    from torchface.job import JobConfig
+    from torchface.template import DissimilarityConfig, TemplateConfig
+    from torchface.tracker import FitConfig, LookaheadConfig, TrackerConfig
+    from training_hooks import LayerConfig, LayerMode
+
+    claims = {
+        "`TrackerConfig.expression_sparsity=0.1`": TrackerConfig().expression_sparsity == 0.1,
+        "(`TemplateConfig.clean_radius_deg`, 3°)": TemplateConfig().clean_radius_deg == 3.0,
+        "(`FitConfig.held_shape_units`, precision 256,": FitConfig().held_shape_precision == 256.0,
+        "`max_frames` (150)": LookaheadConfig().max_frames == 150,
+        "when its head has turned 10°": LookaheadConfig().yaw_deg == 10.0,
+        "depths around its last confident one (0.85-1.2 of it)": TemplateConfig().search_depth_factors[::2] == (0.85, 1.2),
+        "scaled by 0.7, 1.45, 0.5 and 2.0 in turn (`TemplateConfig.search_depth_widening`)":
+            TemplateConfig().search_depth_widening == (0.7, 1.45, 0.5, 2.0),
+        "the largest quarter of the patches left out": DissimilarityConfig().trim_fraction == 0.25,
+        "on the 64 px normalised face": TemplateConfig().normalised_size == 64,
+        "evenly lit face, 128×128": JobConfig(out_dir=".").normalised_size == 128,
+        "`LayerMode.DETACHED` (parameters from the tracker, the\n  default)": LayerConfig().mode is LayerMode.DETACHED,
+        "`Backend.AUTO` (default)": TrackerConfig().backend.name == "AUTO",
+        "`refine_first=LookaheadConfig()`, the default": JobConfig(out_dir=".").refine_first == LookaheadConfig(),
+    }
+    for text, holds in claims.items():
+        assert text in README, f"README no longer says {text!r}: update this test with it"
+        assert holds, f"README says {text!r}; the code's default differs"
+
+
+@pytest.mark.parametrize(
+    "dotted",
+    [
+        "torchface.tracker.FaceTracker", "torchface.tracker.TrackerConfig", "torchface.normalise.NormalisedFace",
+        "torchface.tracker.initialise", "torchface.tracker.track_step", "torchface.tracker.fit_landmarks",
+        "torchface.tracker.frame_residuals", "torchface.template.build_template", "torchface.tracker.managed_step",
+        "torchface.tracker.initialise_managed", "torchface.tracker.lookahead_fit", "torchface.detect.batched",
+        "torchface.detect.load_detector", "torchface.tracker.step.StepWorkspace",
+        "torchface.synth.metrics.rotation_jitter_deg", "training_hooks.DatasetConfig", "training_hooks.VideoDataset",
+        "training_hooks.FaceTrackingConfig", "training_hooks.collate_clips", "training_hooks.NormaliseFaces",
+        "training_hooks.NormalisedFaceLayer", "training_hooks.confidence_weighted_loss",
+        "training_hooks.drop_low_confidence", "training_hooks.TrackingQualityLogger", "training_hooks.DistributedWarning",
+    ],
+)  # fmt: skip
+def test_readme_names_exist_where_it_says(dotted):
+    module, _, name = dotted.rpartition(".")
+    assert hasattr(importlib.import_module(module), name)
+
+
+def test_readme_paths_exist():
+    """Every repository path the README quotes (``torchface/...``, ``scripts/...``, ``tests/...``) exists."""
+    paths = set(re.findall(r"`((?:torchface|scripts|tests)/[^`\s]*)`", README))
+    paths |= set(re.findall(r"\]\(((?:torchface|scripts|tests)/[^)]*)\)", README))
+    assert len(paths) > 20
+    missing = sorted(p for p in paths if not (ROOT / p.rstrip("/")).exists())
+    assert not missing, missing
+
+
+def test_readme_python_api_example_runs_and_gives_the_shapes_it_states():
+    """The README's "Python API" block, run as written on a small rendered clip (its ``frames0``, ``landmarks0`` and
+    ``frames1`` are the clip's first frame, its landmarks and the next frame)."""
+    import torch
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+
+    (block,) = [b for b in _code_blocks("python") if "FaceTracker(TrackerConfig())" in b]
+    frames, gt = render_sequence(make_scenario("expressions", 2, 160, 120))
+    scope = {"frames0": frames[:1], "landmarks0": gt.landmarks_px[:1].float(), "frames1": frames[1:2]}
+    exec(compile(block, "README.md", "exec"), scope)
+    result, faces = scope["result"], scope["faces"]
+    assert type(result).__name__ == "TrackResult" and type(scope["first"]).__name__ == "TrackResult"
+    assert result.rotation.shape == (1, 3, 3) and result.translation.shape == (1, 3) and result.ypr_deg.shape == (1, 3)
+    assert result.expression.shape == result.anim_coeffs.shape == (1, 11)  # "CANDIDE-3 with its 11 animation units"
+    assert result.status.shape == result.confidence.shape == (1,) and result.illumination.shape == (1, 5)
+    assert faces.shape == (1, 3, 128, 128) and bool(torch.isfinite(faces).all())
