@@ -690,7 +690,15 @@ def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
 
 def check_state_model(model: FaceModel, state: "TrackerState") -> None:
     """Refuse a model with another number of shape or animation units than the state's (a state made with another
-    model: a tensor-size RuntimeError deep in the solver, or a shape-coefficient error naming the model alone)."""
+    model: a tensor-size RuntimeError deep in the solver, or a shape-coefficient error naming the model alone), or
+    in another dtype or on another device (a model or layer moved after the state was made: the error said to
+    convert the model)."""
+    kept = (state.shape_coeffs.dtype, state.shape_coeffs.device)
+    if kept != (model.dtype, model.device):
+        raise TypeError(
+            f"the state is {kept[0]} on {kept[1]}, the model {model.dtype} on {model.device}: track a state with "
+            "the model in the dtype and device it was initialised with (or initialise again)"
+        )
     got = (state.shape_coeffs.shape[-1], state.params.shape[-1] - 6 - NUM_ILLUMINATION_TERMS)
     if got != (model.num_shape, model.num_animation):
         raise ValueError(
