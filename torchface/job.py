@@ -24,7 +24,8 @@ complete row: the first frame is initialised again from the same landmarks (dete
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
 input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
 the rows depend on: a resume with other settings, or after the input file changed, is refused, as is a damaged
-record or partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of
+or missing record or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the
+parameters of
 the rows already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
 bookkeeping (lost or not, the frames of low confidence counted, the last confident parameters), so that a video
 interrupted while its face was lost goes on lost, as the uninterrupted run would. A CSV under its final
@@ -493,15 +494,18 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
 def _read_record(
     path: Path, video: Path, settings: dict[str, str], num_shape: int, num_animation: int
 ) -> dict[str, list] | None:
-    """The re-anchoring in a partial run's record (None: none, or no record: a partial CSV from before records);
-    ``num_shape``, ``num_animation``: the model's units, the sizes of the re-anchoring's fields.
+    """The re-anchoring in a partial run's record (None: none); ``num_shape``, ``num_animation``: the model's
+    units, the sizes of the re-anchoring's fields.
 
     Raises:
         InputError: the record belongs to another input, was made with other settings or from an input file
-            that has changed since (:func:`_settings`), or cannot be read or is damaged (:func:`_anchor_problem`).
+            that has changed since (:func:`_settings`), cannot be read, is damaged (:func:`_anchor_problem`), or
+            is missing (every partial CSV with rows has one, written before its first row: without it, nothing
+            says what the rows were made with, and a resume with another --focal went on silently).
     """
     if not path.is_file():
-        return None
+        raise InputError(f"{path}: cannot resume, the partial CSV's record (what its rows were made with) is missing: "
+                         "run without --resume")  # fmt: skip
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
         made_from, anchor = record["input"], record["anchor"]

@@ -1369,6 +1369,7 @@ def _set_cell(column, row, value):
      "record is damaged (anchor.shape_coeffs is not 14 finite numbers)"),  # a RuntimeError's traceback
     (_damage_record(lambda r: r.__setitem__("anchor", "x")), "record is damaged (its anchor is a str"),  # TypeError
     (_damage_record(lambda r: r.__setitem__("input", None)), "record is unreadable"),  # TypeError
+    (lambda folder: (folder / "short.record.partial").unlink(), "record (what its rows were made with) is missing"),
     (_damage_rows(lambda header, lines: lines + lines[-1:]), "rows are damaged (the row of frame 7 says frame 6)"),
     (_damage_rows(_set_cell("pose_Tx", -1, "nan")), "rows are damaged (frame 6 has a pose, expression or light"),
     (_damage_rows(_set_cell("r00", -1, "2")), "rows are damaged (frame 6's r00-r22 are not a rotation)"),
@@ -1378,7 +1379,8 @@ def test_a_damaged_resume_record_or_partial_csv_is_refused_in_one_line(clip, tmp
     """What --resume reads back (the record's re-anchoring, the partial CSV's rows) goes into the tracker's state: a
     damaged record raised a traceback (a TypeError, a RuntimeError of tensor sizes) or, like damaged rows (a
     duplicated row: frame 7 never tracked and frame 6 twice in the CSV; NaN; a scaled rotation; an unknown
-    status), resumed silently with other results. Now each is a one-line error naming the file and what is wrong."""
+    status), resumed silently with other results; a deleted record resumed without the settings check (another
+    --focal went on silently). Now each is a one-line error naming the file and what is wrong."""
     video, lm, _ = clip
     short = _short_npy(video, tmp_path / "short.npy", 8)
     out = tmp_path / "out"
