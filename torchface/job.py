@@ -601,6 +601,8 @@ def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
     try:
         made = json.loads(paths["json"].read_text(encoding="utf-8"))["input"]
         made_from = made.get("resolved_path", made["path"])  # sidecars before resolved_path: the path as given
+        if not isinstance(made_from, str):  # (null or a number: a TypeError's traceback from Path)
+            raise TypeError
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")

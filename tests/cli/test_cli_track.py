@@ -1391,3 +1391,25 @@ def test_a_damaged_resume_record_or_partial_csv_is_refused_in_one_line(clip, tmp
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and "cannot resume" in err and message in err, err
     assert not (out / "short.json").exists()
+
+
+def test_a_complete_videos_damaged_sidecar_is_refused_in_one_line(clip, tmp_path, capsys):
+    """--resume skips a complete video after checking its sidecar's input: a sidecar whose input path is null or
+    a number raised a TypeError's traceback; a damaged line in its complete CSV was read as the CSV's end."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,)))
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]
+    sidecar = json.loads((out / "short.json").read_text())
+    for path in (None, 5):
+        (out / "short.json").write_text(json.dumps({**sidecar, "input": {**sidecar["input"], "resolved_path": path}}))
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "short.json: cannot resume, this sidecar is unreadable" in err, err
+    (out / "short.json").write_text(json.dumps(sidecar))
+    csv = (out / "short.csv").read_text().split("\n")
+    (out / "short.csv").write_text("\n".join(csv[:1] + ["0,x"] + csv[1:]))
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "short.csv: line 2 is not a row of the track CSV" in err, err
