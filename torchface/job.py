@@ -23,12 +23,14 @@ keeps ``<stem>.csv.partial``; with
 complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
 input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
-the rows depend on: a resume with other settings, or after the input file changed, is refused); the parameters of
-the rows already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
-bookkeeping (lost or not, the frames of low confidence counted, the last confident parameters), so that a video
-interrupted while its face was lost goes on lost, as the uninterrupted run would. A CSV under its final
-name without its JSON (interrupted while finalising) is resumed as a partial one. The template mosaic built
-before the interruption is not restored: on a clip whose head turns, the resumed rows can part from the
+the rows depend on: a resume with other settings, or after the input file changed, is refused, as is a damaged
+or missing record or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the
+parameters of the rows already written are read back from the CSV, and the videos are re-drawn from them; so is
+the stream's loss bookkeeping (lost or not, the frames of low confidence counted, the last confident
+parameters), so that a video interrupted while its face was lost goes on lost, as the uninterrupted run would. A
+CSV under its final name without its JSON (interrupted while finalising) is resumed as a partial one. The
+template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed rows can
+part from the
 uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4 degrees of yaw and
 0.9 mm, with the same error against the ground truth).
 """
@@ -393,6 +395,30 @@ def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamL
     return torch.cat([matrix_to_axis_angle(R), t, anim, light], dim=1)
 
 
+def _replay_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
+    """What is wrong with the complete rows of a partial CSV that a resumed run replays (None: nothing): the rows
+    go on into the tracker's state, so each must be the row this version wrote for its frame: ``frame`` its index,
+    finite pose, rotation matrix (a rotation), animation and illumination values, and a :class:`TrackStatus`."""
+    idx = {c: i for i, c in enumerate(columns)}
+    frame = rows[:, idx["frame"]]
+    wrong = np.flatnonzero(frame != np.arange(rows.shape[0]))
+    if wrong.size:
+        return f"the row of frame {wrong[0]} says frame {frame[wrong[0]]:g}"
+    used = [i for i, c in enumerate(columns) if re.fullmatch(r"pose_[TR][xyz]|r[0-2][0-2]|(anim|illum)_.+", c)]
+    bad = np.flatnonzero(~np.isfinite(rows[:, used]).all(1))
+    if bad.size:
+        return f"frame {bad[0]} has a pose, expression or light that is not a finite number"
+    R = rows[:, [idx[f"r{i}{j}"] for i in range(3) for j in range(3)]].reshape(-1, 3, 3)
+    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    bad = np.flatnonzero((off > 1e-4) | (np.linalg.det(R) <= 0))  # (9 significant digits: about 1e-8)
+    if bad.size:
+        return f"frame {bad[0]}'s r00-r22 are not a rotation"
+    bad = np.flatnonzero(~np.isin(rows[:, idx["status"]], [int(s) for s in TrackStatus]))
+    if bad.size:
+        return f"frame {bad[0]} has status {rows[bad[0], idx['status']]:g}"
+    return None
+
+
 def _record_path(csv: Path) -> Path:
     """The partial CSV's companion record (:func:`_write_record`, JSON): ``<name>.record.partial``."""
     return csv.with_name(csv.stem + ".record.partial")
@@ -436,23 +462,64 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     os.replace(tmp, path)
 
 
-def _read_record(path: Path, video: Path, settings: dict[str, str]) -> dict[str, list] | None:
-    """The re-anchoring in a partial run's record (None: none, or no record: a partial CSV from before records).
+def _numbers(value: object, shape: tuple[int, ...]) -> bool:
+    """Whether ``value`` (from JSON) is nested lists of finite numbers (not booleans) of ``shape``."""
+    if not shape:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return isinstance(value, list) and len(value) == shape[0] and all(_numbers(v, shape[1:]) for v in value)
+
+
+def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str | None:
+    """What is wrong with a record's re-anchoring (:func:`_record_anchors` writes it; None: nothing, or no
+    re-anchoring): its fields must be finite numbers of the model's sizes, ``head_rotation`` a rotation and
+    ``frame`` (absent in records of earlier versions) a frame index."""
+    if anchor is None:
+        return None
+    if not isinstance(anchor, dict):
+        return f"its anchor is a {type(anchor).__name__}, not an object"
+    shapes = {"axis_angle": (3,), "translation": (3,), "shape_coeffs": (num_shape,),
+              "anim_coeffs": (num_animation,), "head_rotation": (3, 3), "head_translation": (3,)}  # fmt: skip
+    for name, shape in shapes.items():
+        if not _numbers(anchor.get(name), shape):
+            return f"anchor.{name} is not {' x '.join(map(str, shape))} finite numbers"
+    first = anchor.get("first_shape_coeffs")
+    if first is not None and not _numbers(first, (num_shape,)):
+        return f"anchor.first_shape_coeffs is not {num_shape} finite numbers"
+    frame = anchor.get("frame")
+    if frame is not None and (not isinstance(frame, int) or isinstance(frame, bool) or frame < 0):
+        return "anchor.frame is not a frame index"
+    D = np.asarray(anchor["head_rotation"], dtype=np.float64)
+    if np.abs(D @ D.T - np.eye(3)).max() > 1e-4 or np.linalg.det(D) <= 0:  # (float32's rounding: about 1e-7)
+        return "anchor.head_rotation is not a rotation"
+    return None
+
+
+def _read_record(
+    path: Path, video: Path, settings: dict[str, str], num_shape: int, num_animation: int
+) -> dict[str, list] | None:
+    """The re-anchoring in a partial run's record (None: none); ``num_shape``, ``num_animation``: the model's
+    units, the sizes of the re-anchoring's fields.
 
     Raises:
         InputError: the record belongs to another input, was made with other settings or from an input file
-            that has changed since (:func:`_settings`), or cannot be read.
+            that has changed since (:func:`_settings`), cannot be read, is damaged (:func:`_anchor_problem`), or
+            is missing (every partial CSV with rows has one, written before its first row: without it, nothing
+            says what the rows were made with, and a resume with another --focal went on silently).
     """
     if not path.is_file():
-        return None
+        raise InputError(f"{path}: cannot resume, the partial CSV's record (what its rows were made with) is missing: "
+                         "run without --resume")  # fmt: skip
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
         made_from, anchor = record["input"], record["anchor"]
         made_with = record.get("settings", settings)  # records before settings: nothing to compare
-        if not isinstance(made_with, dict):
+        if not isinstance(made_with, dict) or not isinstance(made_from, str):
             raise TypeError
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{path}: cannot resume, this record is unreadable: run without --resume") from None
+    problem = _anchor_problem(anchor, num_shape, num_animation)
+    if problem is not None:  # (it raised a bare TypeError or RuntimeError later, or resumed from NaN silently)
+        raise InputError(f"{path}: cannot resume, this record is damaged ({problem}): run without --resume")
     _check_made_from(made_from, video, f"{path}: the partial results were")
     differ = [k for k in settings if made_with.get(k) != settings[k]]
     if differ:
@@ -537,6 +604,8 @@ def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
     try:
         made = json.loads(paths["json"].read_text(encoding="utf-8"))["input"]
         made_from = made.get("resolved_path", made["path"])  # sidecars before resolved_path: the path as given
+        if not isinstance(made_from, str):  # (null or a number: a TypeError's traceback from Path)
+            raise TypeError
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
@@ -812,8 +881,13 @@ def _track_group(
                 raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
                                  f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
             s.replay = s.csv.previous if s.csv.rows_done else None
+            problem = None if s.replay is None else _replay_problem(s.replay, columns)
+            if problem is not None:  # (its values went into the state: NaN, a missing frame, a scaled rotation...)
+                raise InputError(f"{s.csv.partial}: cannot resume, its rows are damaged ({problem}): run without "
+                                 "--resume")  # fmt: skip
             record = _record_path(p["csv"])
-            s.anchor = _read_record(record, s.reader.info.path, s.settings) if s.replay is not None else None
+            s.anchor = (None if s.replay is None else
+                        _read_record(record, s.reader.info.path, s.settings, model.num_shape, model.num_animation))
             _write_record(record, s.reader.info.path, s.anchor, s.settings)
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)

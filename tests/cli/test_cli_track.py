@@ -1444,3 +1444,87 @@ def test_pose_signs_of_motions_defined_by_what_the_head_does(tmp_path):
         assert abs(verts[tip, 2] - (FACE_DISTANCE_MM - 21.6)) < 30
         at_tip = np.flatnonzero((np.asarray(ply.faces) == tip).any(1))
         assert (ply.face_normals[at_tip] @ (verts[tip] / np.linalg.norm(verts[tip])) < 0).all()  # facing the camera
+
+
+def _damage_record(edit):
+    def damage(folder):
+        path = folder / "short.record.partial"
+        record = json.loads(path.read_text())
+        edit(record)
+        path.write_text(json.dumps(record))
+
+    return damage
+
+
+def _damage_rows(edit):
+    def damage(folder):
+        path = folder / "short.csv.partial"
+        lines = path.read_text().split("\n")  # header, rows, "" (after the last newline)
+        path.write_text("\n".join(edit(lines[0].split(","), lines[:-1])) + "\n")
+
+    return damage
+
+
+def _set_cell(column, row, value):
+    def edit(header, lines):
+        cells = lines[row].split(",")
+        cells[header.index(column)] = value
+        lines[row] = ",".join(cells)
+        return lines
+
+    return edit
+
+
+@pytest.mark.parametrize("damage, message", [
+    (_damage_record(lambda r: r["anchor"].__setitem__("axis_angle", [float("nan"), 0.0, 0.0])),
+     "record is damaged (anchor.axis_angle is not 3 finite numbers)"),  # resumed from a NaN pose, status 0
+    (_damage_record(lambda r: r["anchor"].__setitem__("head_rotation", [[2, 0, 0], [0, 1, 0], [0, 0, 1]])),
+     "record is damaged (anchor.head_rotation is not a rotation)"),  # resumed silently, rows in a scaled frame
+    (_damage_record(lambda r: r["anchor"].__setitem__("shape_coeffs", r["anchor"]["shape_coeffs"][:3])),
+     "record is damaged (anchor.shape_coeffs is not 14 finite numbers)"),  # a RuntimeError's traceback
+    (_damage_record(lambda r: r.__setitem__("anchor", "x")), "record is damaged (its anchor is a str"),  # TypeError
+    (_damage_record(lambda r: r.__setitem__("input", None)), "record is unreadable"),  # TypeError
+    (lambda folder: (folder / "short.record.partial").unlink(), "record (what its rows were made with) is missing"),
+    (_damage_rows(lambda header, lines: lines + lines[-1:]), "rows are damaged (the row of frame 7 says frame 6)"),
+    (_damage_rows(_set_cell("pose_Tx", -1, "nan")), "rows are damaged (frame 6 has a pose, expression or light"),
+    (_damage_rows(_set_cell("r00", -1, "2")), "rows are damaged (frame 6's r00-r22 are not a rotation)"),
+    (_damage_rows(_set_cell("status", -1, "7")), "rows are damaged (frame 6 has status 7)"),
+])  # fmt: skip
+def test_a_damaged_resume_record_or_partial_csv_is_refused_in_one_line(clip, tmp_path, capsys, damage, message):
+    """What --resume reads back (the record's re-anchoring, the partial CSV's rows) goes into the tracker's state: a
+    damaged record raised a traceback (a TypeError, a RuntimeError of tensor sizes) or, like damaged rows (a
+    duplicated row: frame 7 never tracked and frame 6 twice in the CSV; NaN; a scaled rotation; an unknown
+    status), resumed silently with other results; a deleted record resumed without the settings check (another
+    --focal went on silently). Now each is a one-line error naming the file and what is wrong."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 8)
+    out = tmp_path / "out"
+    _interrupted(short, out, lm, 7)
+    assert json.loads((out / "short.record.partial").read_text())["anchor"] is not None  # (the clip re-anchors)
+    damage(out)
+    rc = main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "cannot resume" in err and message in err, err
+    assert not (out / "short.json").exists()
+
+
+def test_a_complete_videos_damaged_sidecar_is_refused_in_one_line(clip, tmp_path, capsys):
+    """--resume skips a complete video after checking its sidecar's input: a sidecar whose input path is null or
+    a number raised a TypeError's traceback; a damaged line in its complete CSV was read as the CSV's end."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,)))
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]
+    sidecar = json.loads((out / "short.json").read_text())
+    for path in (None, 5):
+        (out / "short.json").write_text(json.dumps({**sidecar, "input": {**sidecar["input"], "resolved_path": path}}))
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "short.json: cannot resume, this sidecar is unreadable" in err, err
+    (out / "short.json").write_text(json.dumps(sidecar))
+    csv = (out / "short.csv").read_text().split("\n")
+    (out / "short.csv").write_text("\n".join(csv[:1] + ["0,x"] + csv[1:]))
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "short.csv: line 2 is not a row of the track CSV" in err, err

@@ -204,3 +204,19 @@ def test_csv_writer_on_a_full_disk_names_its_file_and_stops_cleanly(tmp_path):
     writer.stop()
     assert disk.closed and writer._file is None
     assert read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)  # the rows that fitted stay
+
+
+def test_a_damaged_complete_line_is_refused_not_read_as_the_end(tmp_path):
+    """A line ending in a newline is complete: one that is not a row is damage, not a cut. It ended the rows read
+    silently (the rows after it dropped, and a resumed run tracked them again from the rows before it)."""
+    cols = ("frame", "timestamp", "success", "confidence")
+    part = tmp_path / "v.csv.partial"
+    for bad, why in (("1,0.040,x,0.8", "could not convert"), ("1,0.040,1", "3 cells, the header has 4"),
+                     ("", "1 cells")):  # fmt: skip
+        part.write_text(f"frame,timestamp,success,confidence\n0,0.000,1,0.9\n{bad}\n2,0.080,1,0.7\n3,0.1")
+        with pytest.raises(InputError, match=f"v.csv.partial: line 3 is not a row of the track CSV .*{why}"):
+            read_track_csv(part)
+        with pytest.raises(InputError, match="line 3 is not a row"):
+            TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
+    part.write_text("frame,timestamp,success,confidence\n0,0.000,1,0.9\n\n\n")  # blank lines at the end: no rows
+    assert read_track_csv(part)[1].shape == (1, 4)

@@ -521,6 +521,15 @@ def test_errors(model, gentle):
         managed_step(model, CFG, forced, frames[:, 1] * 0, lambda f: torch.zeros(f.shape[0], 5, 2))  # black: stays lost
     with pytest.raises(TypeError):
         FaceTracker(CFG, model, detector="dlib")  # type: ignore[arg-type]
+    # A model of other animation units than the state's (a FaceTracker whose model was swapped): a bare RuntimeError
+    # of batch matrix sizes; now named.
+    fewer = replace(model, animation_units=model.animation_units[:8], animation_names=model.animation_names[:8],
+                    animation_ranges=model.animation_ranges[:8], facs_matrix=model.facs_matrix[:, :8])  # fmt: skip
+    tracker = FaceTracker(CFG, model)
+    tracker.initialise(frames[:, 0], landmarks(gt))
+    tracker.model = fewer
+    with pytest.raises(ValueError, match="a model of 14 shape and 11 animation units, this model has 14 and 8"):
+        tracker(frames[:, 1])
 
 
 def test_face_tracker_module_uses_management(model, gentle):

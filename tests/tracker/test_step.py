@@ -966,6 +966,25 @@ def test_a_config_with_other_pyramid_levels_than_the_state_is_refused(model, two
             track_step(model, other, states[0], frames[:, 1])
 
 
+def test_a_model_with_other_units_than_the_state_is_refused(model, two_streams, l2_runs):
+    """A state tracked with a model of other animation units (a FaceTracker whose model was swapped, a state kept
+    from another model) ended in a bare RuntimeError of batch matrix sizes; other shape units in an error naming
+    the model's shape coefficients alone. Both are refused, naming the counts (managed_step: test_managed.py), and
+    so is a model in another dtype than the state's."""
+    frames, _ = two_streams
+    (_, states), _ = l2_runs
+    fewer_anim = replace(model, animation_units=model.animation_units[:8], animation_names=model.animation_names[:8],
+                         animation_ranges=model.animation_ranges[:8], facs_matrix=model.facs_matrix[:, :8])  # fmt: skip
+    fewer_shape = replace(model, shape_units=model.shape_units[:5], shape_names=model.shape_names[:5])
+    for other, counts in ((fewer_anim, "14 and 8"), (fewer_shape, "5 and 11")):
+        message = f"a model of 14 shape and 11 animation units, this model has {counts}"
+        with pytest.raises(ValueError, match=message):
+            track_step(other, L2, states[0], frames[:, 1])
+    # A model moved to float64 after the float32 state was made: the error said to convert the model.
+    with pytest.raises(TypeError, match="the state is torch.float32 on cpu, the model torch.float64 on cpu"):
+        track_step(model.to(dtype=torch.float64), L2, states[0], frames[:, 1])
+
+
 _COMPILED_STEP = """
 import torch
 from dataclasses import replace

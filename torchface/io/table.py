@@ -189,8 +189,10 @@ def _format_row(columns: tuple[str, ...], row: np.ndarray) -> str:
 def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray]:
     """Read a track CSV (finished or ``.partial``): ``(columns, (T, C) float64 rows)``.
 
-    Only complete rows (ending in a newline, with every column) are returned, so a file cut off mid-row
-    reads as its complete part.
+    Only complete rows (ending in a newline) are returned, so a file cut off mid-row reads as its complete part.
+    A complete line that is not a row (another number of cells, a cell that is not a number) is damage, not a cut:
+    an :class:`~torchface.io.InputError` names it (the rows after it were dropped silently, and ``--resume`` tracked
+    them again from the rows before it).
     """
     p = Path(path)
     try:
@@ -201,15 +203,18 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     if len(lines) < 2 or not lines[0]:
         raise InputError(f"{p}: not a track CSV (no complete header line)")
     columns = tuple(lines[0].split(","))
+    complete = lines[1:-1]  # the last element follows the final newline: incomplete or empty
+    while complete and not complete[-1]:  # (blank lines at the end)
+        complete.pop()
     rows = []
-    for line in lines[1:-1]:  # the last element follows the final newline: incomplete or empty
+    for n, line in enumerate(complete, start=2):
         cells = line.split(",")
-        if len(cells) != len(columns):
-            break
         try:
+            if len(cells) != len(columns):
+                raise ValueError(f"{len(cells)} cells, the header has {len(columns)}")
             rows.append([float(c) for c in cells])
-        except ValueError:
-            break
+        except ValueError as exc:
+            raise InputError(f"{p}: line {n} is not a row of the track CSV ({exc}): the file is damaged") from None
     data = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
     return columns, data
 

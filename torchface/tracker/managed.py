@@ -106,6 +106,7 @@ from torchface.tracker.step import (
     check_frames,
     check_initialise_inputs,
     check_state_levels,
+    check_state_model,
     clamp_projection,
     gray_pyramid,
     gray_pyramid_windows,
@@ -708,6 +709,7 @@ def managed_step(
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     check_state_levels(config, state)
+    check_state_model(model, state)
     frames = frames.to(dtype=model.dtype, device=model.device)
     layout = _layout(model)
 

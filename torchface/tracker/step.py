@@ -688,6 +688,25 @@ def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
         )
 
 
+def check_state_model(model: FaceModel, state: "TrackerState") -> None:
+    """Refuse a model with another number of shape or animation units than the state's (a state made with another
+    model: a tensor-size RuntimeError deep in the solver, or a shape-coefficient error naming the model alone), or
+    in another dtype or on another device (a model or layer moved after the state was made: the error said to
+    convert the model)."""
+    kept = (state.shape_coeffs.dtype, state.shape_coeffs.device)
+    if kept != (model.dtype, model.device):
+        raise TypeError(
+            f"the state is {kept[0]} on {kept[1]}, the model {model.dtype} on {model.device}: track a state with "
+            "the model in the dtype and device it was initialised with (or initialise again)"
+        )
+    got = (state.shape_coeffs.shape[-1], state.params.shape[-1] - 6 - NUM_ILLUMINATION_TERMS)
+    if got != (model.num_shape, model.num_animation):
+        raise ValueError(
+            f"the state was made with a model of {got[0]} shape and {got[1]} animation units, this model has "
+            f"{model.num_shape} and {model.num_animation}: track with the model the state was initialised with"
+        )
+
+
 @full_precision
 @without_autograd(step_grad_inputs)
 def track_step(
@@ -726,6 +745,7 @@ def track_step(
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     check_state_levels(config, state)
+    check_state_model(model, state)
     frames = frames.to(dtype=model.dtype, device=model.device)
     for name, mask in (("conservative", conservative), ("near_template", near_template)):
         if mask is not None and (
