@@ -838,6 +838,10 @@ def _track_group(
             s.replay = s.csv.previous if s.csv.rows_done else None
             record = _record_path(p["csv"])
             s.anchor = _read_record(record, s.reader.info.path, s.settings) if s.replay is not None else None
+            if s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
+                # interrupted between the re-anchoring step and its row: the rows from the next one on are tracked
+                # re-anchored, the last replayed one was not (its mesh is placed with its own pose)
+                s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
             _write_record(record, s.reader.info.path, s.anchor, s.settings)
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)

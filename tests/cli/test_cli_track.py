@@ -478,6 +478,25 @@ def test_resume_right_after_the_reanchoring_frame_goes_on_from_its_refined_pose(
     assert float(geodesic_angle_deg(R, R_ref).max()) < 1e-3 and np.abs(t - t_ref).max() < 1e-3, np.abs(t - t_ref)
 
 
+def test_resume_between_the_reanchoring_and_its_row_places_the_next_rows_reanchored(clip, tmp_path):
+    """Interrupted after the re-anchoring step wrote its record but before its row was written, the resumed run tracks
+    that frame on from the record, re-anchored: its sidecar names the last replayed row as the re-anchoring frame, so
+    that the next rows' meshes are placed with the head offset, as they were tracked (the sidecar named the frame of
+    the missing row, whose mesh the rule then placed with its own pose and the first shape)."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 8)
+    out = tmp_path / "out"
+    _interrupted(short, out, lm, 5)
+    at = json.loads((out / "short.record.partial").read_text())["anchor"]["frame"]
+    assert isinstance(at, int) and 1 < at < 5
+    partial = out / "short.csv.partial"
+    lines = partial.read_text().splitlines(keepends=True)
+    partial.write_text("".join(lines[: at + 1]))  # the header and rows 0..at-1: the re-anchoring frame's row is missing
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
+    start = json.loads((out / "short.json").read_text())["start"]
+    assert start["method"] == "online" and start["reanchored_at_frame"] == at - 1
+
+
 def test_a_resumed_run_asks_the_detector_about_no_replayed_row_but_the_last(clip, tmp_path, monkeypatch):
     """The replayed rows of a resumed run are not re-detected (every one due was, for nothing but the time: the next
     rows are read back), but for the last, whose re-detection the tracking goes on from, as the uninterrupted run
