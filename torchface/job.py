@@ -723,12 +723,14 @@ def _with_replayed_loss(
     reporting frames on the background successful), the counts of trailing frames below the confidence thresholds,
     and the last confident row's parameters (status converged or iteration limit, confidence at least
     ``confidence_threshold``; and the online start's re-anchoring frame, whose refined parameters the record keeps:
-    :func:`_anchor_params`) as the parameters a loss falls back to."""
+    :func:`_anchor_params`) as the parameters a loss falls back to; a last row lost with a failed solve (residual
+    confidence 0: its row holds the previous row's parameters) goes on from those, as the tracker reverted to them."""
     ms = state.management
     if ms is None or not ended:
         return state
     tc = config.template
     status_col, conf_col = columns.index("status"), columns.index("confidence")
+    residual_col, reverted = columns.index("residual_confidence"), []
     lost, low, very_low = ms.lost.clone(), ms.low_count.clone(), ms.very_low_count.clone()
     since, confident = ms.since_attempt.clone(), ms.confident_params.clone()
     attempts = None if ms.attempts is None else ms.attempts.clone()
@@ -762,9 +764,15 @@ def _with_replayed_loss(
             if last == at:
                 params[0] = torch.as_tensor(a["params"], dtype=params.dtype, device=params.device)
             confident[k] = params[0]
+        if bool(lost[k]) and rows[-1, residual_col] == 0:  # a failed solve (no residual confidence) while lost: the
+            reverted.append(k)  # tracker went on from the confident parameters, not from the held ones of its row
     ms = replace(ms, lost=lost, low_count=low, very_low_count=very_low, since_attempt=since,
                  confident_params=confident, attempts=attempts, adopted_scale=scale)  # fmt: skip
-    return replace(state, management=ms)
+    params = state.params
+    if reverted:
+        params = params.clone()
+        params[reverted] = confident[reverted].to(params.dtype)
+    return replace(state, params=params, management=ms)
 
 
 def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dict[str, Path]], first_R: Tensor,
