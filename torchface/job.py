@@ -9,11 +9,16 @@ into one batch (tracked together as B streams by :func:`torchface.tracker.manage
   timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
   detector about the video's frames: the first frame, those re-detections, and the tracker's recovery attempts of a
-  lost stream, which ``redetections`` leaves out; both 0 without a detector);
+  lost stream, which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the
+  rows it replays, but for a re-detection due after the last one, which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
 - ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
+
+Every output of a frame is drawn from its CSV row as written and the JSON's ``start`` (:func:`_drawn_pose`), so that
+they agree with the CSV, lost and failed rows included, and a resumed run draws its replayed rows as the interrupted
+run did.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
 last. Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
@@ -60,9 +65,7 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, write_json
-from torchface.io.table import (
-    POSE_COLUMNS, ROTATION_COLUMNS, TrackCsvWriter, partial_path, read_track_csv, result_rows, track_columns,
-)
+from torchface.io.table import TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -72,7 +75,7 @@ from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
-from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
+from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
 __all__ = [
@@ -127,10 +130,10 @@ class JobConfig:
             the interrupted run had re-anchored (recorded in ``<name>.record.partial`` beside its partial CSV) starts
             from that run's refined fit and offset, so its rows go on as an uninterrupted run's (measured: the
             test clip's translations within 3e-5 mm until the template mosaic, which is not restored, is used:
-            module docstring; 3-5 mm off when it was resumed from the landmark fit;
-            0.1-0.2 mm and 0.2-0.3 degrees when interrupted right after the re-anchoring frame, whose row is
-            replayed in place of the refined keyframe pose the run went on from); one not yet re-anchored is
-            tracked on without the online start.
+            module docstring; 3-5 mm off when it was resumed from the landmark fit; also when interrupted right
+            after the re-anchoring frame, whose row holds the estimate made before the re-anchoring: the record keeps
+            the refined parameters the run went on from, 0.08 mm and 0.2 degrees off without them); one not yet
+            re-anchored is tracked on without the online start.
     """
 
     out_dir: str | os.PathLike[str]
@@ -451,7 +454,8 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
     result's (the rows' frame), so that the rest is tracked from the same templates and the rows go on in the same
-    frame, and the shape the rows before the re-anchoring were tracked with (their mesh is re-drawn with it)."""
+    frame, the shape the rows up to the re-anchoring were tracked with (their mesh is re-drawn with it), and the
+    re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them)."""
     tmp = path.with_name(path.name + ".tmp")
     record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings}
     try:
@@ -736,11 +740,23 @@ def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, dict[str, li
     return LandmarkFit(**fields)
 
 
-def _before_anchor(s: _Stream, t: int) -> bool:
-    """Whether row ``t`` of a resumed stream precedes its recorded re-anchoring (those rows place the mesh with their
-    own pose and the first shape; False when the record does not say: one of an earlier version)."""
+def _head_offset(s: _Stream, t: int) -> tuple[list, list] | None:
+    """The offset ``(D, d)`` (the sidecar's ``start.head_rotation``, ``start.head_translation``) that turns row
+    ``t``'s pose into the pose placing its mesh, or None where the row places it with its own pose and the first
+    shape: a stream not re-anchored, and the rows up to and including the re-anchoring frame (whose row holds the
+    estimate made before the re-anchoring; a record of an earlier version, which does not say the frame: every row
+    is offset)."""
     a = s.anchor
-    return a is not None and a.get("frame") is not None and a.get("first_shape_coeffs") is not None and t < a["frame"]
+    if a is None or (a.get("frame") is not None and t <= a["frame"]):
+        return None
+    return a["head_rotation"], a["head_translation"]
+
+
+def _anchor_params(s: _Stream, t: int) -> list[float] | None:
+    """The packed parameters (the stream's own frame) that the online start gave the re-anchoring frame, when
+    ``t`` is that frame and the record keeps them: the tracking went on from them, not from the row's estimate."""
+    a = s.anchor
+    return a.get("params") if a is not None and a.get("frame") == t else None
 
 
 def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, dict[str, list]]]) -> TrackerState:
@@ -769,19 +785,22 @@ def _without_online_start(state: TrackerState, resumed: list[bool]) -> TrackerSt
 
 def _with_replayed_loss(
     state: TrackerState, ended: list[tuple[int, np.ndarray]], columns: tuple[str, ...], layout: ParamLayout,
-    config: TrackerConfig,
+    config: TrackerConfig, streams: list[_Stream],
 ) -> TrackerState:
     """``state`` whose streams ``k`` of ``ended`` (``(k, rows)``: every row replayed from its CSV, the last one this
     frame's) carry the loss bookkeeping those rows say: lost when the last row is LOST (the next step then goes on
     with the loss, attempting a recovery at once, as the interrupted run would have, instead of starting afresh and
     reporting frames on the background successful), the counts of trailing frames below the confidence thresholds,
     and the last confident row's parameters (status converged or iteration limit, confidence at least
-    ``confidence_threshold``) as the parameters a loss falls back to."""
+    ``confidence_threshold``; and the online start's re-anchoring frame, whose refined parameters the record keeps:
+    :func:`_anchor_params`) as the parameters a loss falls back to; a last row lost with a failed solve (residual
+    confidence 0: its row holds the previous row's parameters) goes on from those, as the tracker reverted to them."""
     ms = state.management
     if ms is None or not ended:
         return state
     tc = config.template
     status_col, conf_col = columns.index("status"), columns.index("confidence")
+    residual_col, reverted = columns.index("residual_confidence"), []
     lost, low, very_low = ms.lost.clone(), ms.low_count.clone(), ms.very_low_count.clone()
     since, confident = ms.since_attempt.clone(), ms.confident_params.clone()
     attempts = None if ms.attempts is None else ms.attempts.clone()
@@ -801,16 +820,29 @@ def _with_replayed_loss(
             attempts[k] = 0
         if scale is not None:
             scale[k] = 1.0
+        a = streams[k].anchor
+        at = a.get("frame") if a is not None and a.get("params") is not None else None
+        if at is not None and at < len(rows):  # the re-anchoring made that frame's refined parameters confident
+            ok[at] = True
         if ok.any():
-            params = _params_from_rows(rows[np.flatnonzero(ok)[-1:]], columns, layout)
+            last = int(np.flatnonzero(ok)[-1])
+            params = _params_from_rows(rows[last : last + 1], columns, layout)
             params = params.to(dtype=confident.dtype, device=confident.device)
             if ms.head_rotation is not None:  # a re-anchored stream: its own frame
                 params = _rows_to_internal(params, ms.head_rotation[k : k + 1].to(params.dtype),
                                            ms.head_translation[k : k + 1].to(params.dtype), layout)  # fmt: skip
+            if last == at:
+                params[0] = torch.as_tensor(a["params"], dtype=params.dtype, device=params.device)
             confident[k] = params[0]
+        if bool(lost[k]) and rows[-1, residual_col] == 0:  # a failed solve (no residual confidence) while lost: the
+            reverted.append(k)  # tracker went on from the confident parameters, not from the held ones of its row
     ms = replace(ms, lost=lost, low_count=low, very_low_count=very_low, since_attempt=since,
                  confident_params=confident, attempts=attempts, adopted_scale=scale)  # fmt: skip
-    return replace(state, management=ms)
+    params = state.params
+    if reverted:
+        params = params.clone()
+        params[reverted] = confident[reverted].to(params.dtype)
+    return replace(state, params=params, management=ms)
 
 
 def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dict[str, Path]], first_R: Tensor,
@@ -834,7 +866,8 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
             "axis_angle": matrix_to_axis_angle(R0c[None])[0].tolist(), "translation": t0c.tolist(),
             "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": neutral[k].tolist(),
             "head_rotation": D.tolist(), "head_translation": d.tolist(), "frame": frame,
-            "first_shape_coeffs": s.first_shape,  # the rows before ``frame`` place the mesh with it
+            "first_shape_coeffs": s.first_shape,  # the rows up to ``frame`` place the mesh with it
+            "params": state.params[k].tolist(),  # the frame's refined parameters, which its row does not hold
         }  # fmt: skip
         _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings)
 
@@ -888,6 +921,10 @@ def _track_group(
             record = _record_path(p["csv"])
             s.anchor = (None if s.replay is None else
                         _read_record(record, s.reader.info.path, s.settings, model.num_shape, model.num_animation))
+            if s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
+                # interrupted between the re-anchoring step and its row: the rows from the next one on are tracked
+                # re-anchored, the last replayed one was not (its mesh is placed with its own pose)
+                s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
             _write_record(record, s.reader.info.path, s.anchor, s.settings)
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
@@ -935,28 +972,21 @@ def _track_group(
                 if ms is not None and ms.head_rotation is not None:  # re-anchored streams: their own frame
                     replayed = _rows_to_internal(own, ms.head_rotation[idx].to(dtype),
                                                  ms.head_translation[idx].to(dtype), layout)  # fmt: skip
+                for i, k in enumerate(idx):  # the re-anchoring frame: the refined pose the run went on from
+                    kept = _anchor_params(streams[k], t)
+                    if kept is not None:
+                        replayed[i] = torch.as_tensor(kept, dtype=replayed.dtype, device=replayed.device)
                 params[idx] = replayed
                 state = replace(state, params=params)
                 ended = [(k, streams[k].replay) for k in idx if t == len(streams[k].replay) - 1]
-                state = _with_replayed_loss(state, ended, columns, layout, config.tracker)
-            drawn = state  # what the outputs of frame t show (the state, but for replayed rows before a re-anchoring)
-            if any(replaying):
-                # rows before the re-anchoring frame place the mesh with their own pose and the first shape (as the
-                # interrupted run drew them; they were drawn re-anchored, with the refined shape, off the face)
-                early = [i for i, k in enumerate(idx) if _before_anchor(streams[k], t)]
-                if early:
-                    draw_params, draw_shape = state.params.clone(), state.shape_coeffs.clone()
-                    for i in early:
-                        draw_params[idx[i]] = own[i]
-                        draw_shape[idx[i]] = torch.as_tensor(streams[idx[i]].first_shape, dtype=draw_shape.dtype,
-                                                             device=draw_shape.device)  # fmt: skip
-                    drawn = replace(state, params=draw_params, shape_coeffs=draw_shape)
+                state = _with_replayed_loss(state, ended, columns, layout, config.tracker, streams)
             new_rows = result_rows(result, np.full(B, t), 1.0)
-            _write_step(model, drawn, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
+            _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
                         normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below,
                         "dissim. conf" if config.tracker.template.enabled else "conf")  # fmt: skip
             if detector is not None and config.redetect_after > 0:
-                state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout)
+                state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout,
+                                        [r and t < len(s.replay) - 1 for r, s in zip(replaying, streams)])
             if progress is not None:
                 elapsed = max(time.perf_counter() - t_track0, 1e-9)
                 for k, s in enumerate(streams):
@@ -1094,12 +1124,11 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
     ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
     earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
-    first row, and the mesh is placed (overlay wireframe, meshes; the overlay's axes are the rows' pose) by
-    ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``;
-    their ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated starting expression),
-    ``anim_*`` are the coefficients that place the mesh. The rows up to that frame were tracked with
-    ``first_shape_coeffs`` and place the mesh with their own pose (the re-anchoring frame's overlay and mesh already
-    show the re-anchored placement).
+    first row, and the mesh is placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``,
+    ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their ``AUxx_r`` columns are measured
+    from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*`` are the coefficients that place
+    the mesh. The rows up to and including that frame (its row holds the estimate made before the re-anchoring)
+    were tracked with ``first_shape_coeffs`` and place the mesh with their own pose (:func:`_drawn_pose`).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
@@ -1164,36 +1193,37 @@ def _write_step(
     normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
     conf_label: str,
 ) -> None:
-    """Write frame ``t`` of every live stream: its CSV row (unless replayed), overlay, normalised face, mesh."""
+    """Write frame ``t`` of every live stream: its CSV row (unless replayed), then its overlay, normalised face and
+    mesh, drawn from that row as the CSV holds it (:func:`_drawn_pose`)."""
     live = [not s.done for s in streams]
     if not any(live):
         return
-    aa, trans, alpha, light = layout.split(state.params)
-    R = axis_angle_to_matrix(aa)
-    verts_px, _ = overlay_geometry(model, state.shape_coeffs, alpha, R, trans, intr)
-    norm = normaliser.from_params(frames, state.shape_coeffs, alpha, aa, trans, light, intr)
+    written = rows.copy()
+    for k, s in enumerate(streams):
+        if not live[k]:
+            continue
+        if replaying[k]:
+            written[k] = s.replay[t]
+        else:
+            row = rows[k].copy()
+            row[1] = t / s.reader.info.fps
+            s.csv.write(row[None])
+            s.tracked += 1
+            written[k] = read_back(columns, row[None])[0]
+    R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
+    verts_px, _ = overlay_geometry(model, shape, alpha, R_mesh, t_mesh, intr)
+    _, axes_px = overlay_geometry(model, shape, alpha, R, trans, intr)  # the axes of the CSV's pose
+    aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
+    norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
-    verts_px = verts_px.detach().cpu().numpy()
-    # The head axes are the pose the CSV row reports (pose_T*, r00..r22): after a re-anchoring that is not the pose
-    # that places the mesh (R_mesh = R D^T, t_mesh = t - R_mesh d), and the axes used to be drawn with the mesh's.
-    shown = np.stack([s.replay[t] if replaying[k] else rows[k] for k, s in enumerate(streams) if live[k]])
-    pose = torch.from_numpy(shown[:, [columns.index(c) for c in ROTATION_COLUMNS + POSE_COLUMNS[:3]]])  # R, then t
-    axes_live = axes_geometry(pose[:, :9].reshape(-1, 3, 3), pose[:, 9:], intr).numpy()
-    axes_px = np.full((len(streams), 4, 2), np.nan)
-    axes_px[np.flatnonzero(live)] = axes_live
+    verts_px, axes_px = verts_px.detach().cpu().numpy(), axes_px.detach().cpu().numpy()
     ci = columns.index("confidence")
     si = columns.index("success")
     st = columns.index("status")
     for k, s in enumerate(streams):
         if not live[k]:
             continue
-        if replaying[k]:
-            row = s.replay[t]
-        else:
-            row = rows[k].copy()
-            row[1] = t / s.reader.info.fps
-            s.csv.write(row[None])
-            s.tracked += 1
+        row = written[k]
         conf, ok = float(row[ci]), bool(row[si] > 0.5)
         s.confidence = conf
         s.low_count = 0 if conf >= redetect_below else s.low_count + 1
@@ -1206,7 +1236,7 @@ def _write_step(
         if mesh_dirs is not None:
             import trimesh
 
-            verts = torch.matmul(model.deform(state.shape_coeffs[k : k + 1], alpha[k : k + 1]), R[k].T) + trans[k]
+            verts = torch.matmul(model.deform(shape[k : k + 1], alpha[k : k + 1]), R_mesh[k].T) + t_mesh[k]
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
             ply = mesh_dirs[k] / f"{t:06d}.ply"
             try:
@@ -1215,6 +1245,38 @@ def _write_step(
                 ply.unlink(missing_ok=True)
                 raise OutputError(f"{ply}: cannot write ({exc.strerror or exc})") from None
         s.frames += 1
+
+
+def _drawn_pose(
+    model: FaceModel, state: TrackerState, streams: list[_Stream], rows: np.ndarray, columns: tuple[str, ...], t: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """What the outputs of frame ``t`` show, from its ``(B, C)`` CSV rows as written (:func:`read_back`) and the
+    sidecar's ``start`` (:func:`_start_record`), so that every output agrees with the CSV and a replayed row is drawn
+    as the run that tracked it drew it: ``(R, t)`` the rows' pose (the head axes), ``(R_mesh, t_mesh)`` and
+    ``shape`` the pose and shape coefficients placing the mesh (after the re-anchoring frame the pose offset by
+    :func:`_head_offset` and the state's shape, the sidecar's ``model.shape_coeffs``; else the row's own pose and
+    the first shape, ``start.first_shape_coeffs``), ``alpha`` the rows' ``anim_*``, ``light`` their ``illum_*``.
+    The model's dtype and device; a lost or failed row is drawn as the CSV holds it (not at the parameters the
+    tracker falls back to)."""
+    idx = {c: i for i, c in enumerate(columns)}
+    data = torch.as_tensor(rows, dtype=torch.float64)
+    R = data[:, [idx[f"r{i}{j}"] for i in range(3) for j in range(3)]].reshape(-1, 3, 3)
+    trans = data[:, [idx["pose_Tx"], idx["pose_Ty"], idx["pose_Tz"]]]
+    alpha = data[:, [i for i, c in enumerate(columns) if c.startswith("anim_")]]
+    light = data[:, [i for i, c in enumerate(columns) if c.startswith("illum_")]]
+    R_mesh, t_mesh = R.clone(), trans.clone()
+    shape = state.shape_coeffs.detach().to("cpu", torch.float64).clone()
+    for k, s in enumerate(streams):
+        offset = _head_offset(s, t)
+        if offset is None:
+            if s.first_shape is not None:
+                shape[k] = torch.as_tensor(s.first_shape, dtype=torch.float64)
+            continue
+        D, d = (torch.as_tensor(x, dtype=torch.float64) for x in offset)
+        R_mesh[k] = torch.matmul(R[k], D.T)
+        t_mesh[k] = trans[k] - torch.matmul(R_mesh[k], d)
+    out = (R, trans, R_mesh, t_mesh, shape, alpha, light)
+    return tuple(x.to(device=model.device, dtype=model.dtype) for x in out)
 
 
 @dataclass
@@ -1245,15 +1307,20 @@ def _recovery_near(streams: list[_Stream], current: _Current):
 
 def _maybe_redetect(
     model: FaceModel, config: JobConfig, state: TrackerState, frames: Tensor, streams: list[_Stream], detector,
-    intr: Intrinsics, layout: ParamLayout,
+    intr: Intrinsics, layout: ParamLayout, replayed: list[bool],
 ) -> TrackerState:
     """Ask the detector again for streams whose confidence stayed low, for the face nearest each one's last
-    confident position (when it takes ``near``); re-fit their pose (shape and template kept)."""
+    confident position (when it takes ``near``); re-fit their pose (shape and template kept). Streams whose next
+    row is replayed too (``replayed``) only count their low frames again: what a re-detection there gave is in the
+    next rows already (the detector was asked on every replayed row due one, for nothing but the time and the
+    sidecar's counts); the last replayed row's is made again, as the tracking goes on from it."""
     params = state.params
     for k, s in enumerate(streams):
         if s.done or s.low_count < config.redetect_after:
             continue
         s.low_count = 0
+        if replayed[k]:
+            continue
         s.detector_calls += 1
         image = _to_uint8_rgb(frames[k])
         points = detector(image, near=s.near) if accepts_near(detector) else detector(image)

@@ -56,6 +56,7 @@ __all__ = [
     "TrackCsvWriter",
     "column_name",
     "openface_euler",
+    "read_back",
     "partial_path",
     "read_track_csv",
     "result_rows",
@@ -184,6 +185,19 @@ def _format_row(columns: tuple[str, ...], row: np.ndarray) -> str:
         else:
             cells.append("nan" if not math.isfinite(v) else f"{v:.9g}")
     return ",".join(cells)
+
+
+def read_back(columns: tuple[str, ...], rows: np.ndarray) -> np.ndarray:
+    """``(n, C)`` rows as :func:`read_track_csv` reads them back once :class:`TrackCsvWriter` has written them
+    (each cell formatted as written, ``%.9g``, and parsed again): what a resumed run replays, so that what is drawn
+    from a row is the same whether the row was just tracked or read back.
+
+    Example:
+        >>> read_back(("frame", "confidence"), np.array([[3.0, 0.1 + 1e-12]])).tolist()
+        [[3.0, 0.1]]
+    """
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+    return np.array([[float(c) for c in _format_row(columns, r).split(",")] for r in rows], dtype=np.float64)
 
 
 def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray]:
