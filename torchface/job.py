@@ -349,7 +349,7 @@ def _to_uint8_rgb(frame: Tensor) -> np.ndarray:
     return (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
 
 
-@dataclass
+@dataclass(eq=False)
 class _Stream:
     """Book-keeping of one video in a batch (mutable, private to the job loop)."""
 
@@ -1131,7 +1131,7 @@ def _write_step(
         s.frames += 1
 
 
-@dataclass
+@dataclass(eq=False)
 class _Current:
     """The frames of the step being tracked, and the streams the recovery callback has matched in it."""
 

@@ -140,6 +140,17 @@ def rotation_errors(results, gts):
 # --------------------------------------------------------------------------------------------- known answers
 
 
+def test_states_and_results_compare_by_identity(l2_runs):
+    """``==`` on a TrackerState or TrackResult raised "Boolean value of Tensor ... is ambiguous" (field-wise
+    comparison of tensors); they compare and hash by identity, as FaceModel does."""
+    (results, states), _ = l2_runs
+    assert states[-1] == states[-1] and states[-1] != states[0] and results[-1] != results[0]
+    assert replace(results[-1]) != results[-1]  # the same tensors in another result: not the same result
+    assert results[-1] in results and len({states[0], states[-1], results[0], results[-1]}) == 4
+
+
+
+
 def test_known_answer_pose_and_expression_l2(model, two_streams, l2_runs):
     """Rotation within 1 degree of the truth (relative to frame 0 too), translation within 8 mm, and the jaw
     drop and brow raise followed to within 0.2 / 0.3 (they ramp to 0.7 / 0.6; the prior shrinks them a little)."""
