@@ -204,3 +204,16 @@ def test_csv_writer_on_a_full_disk_names_its_file_and_stops_cleanly(tmp_path):
     writer.stop()
     assert disk.closed and writer._file is None
     assert read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)  # the rows that fitted stay
+
+
+def test_an_openface_csv_is_read_by_column_name(tmp_path):
+    """OpenFace writes a space after each comma (header and rows); the names kept it (' face_id', ' AU12_r'), so
+    ``columns.index('AU12_r')`` failed. Windows line ends and a byte-order mark (a spreadsheet's save) likewise."""
+    text = ("frame, face_id, timestamp, confidence, success, AU12_r\n"
+            "1, 0, 0.000, 0.98, 1, 0.50\n2, 0, 0.033, 0.97, 1, 1.25\n")  # fmt: skip
+    (tmp_path / "of.csv").write_text(text, encoding="utf-8")
+    (tmp_path / "win.csv").write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    for name in ("of.csv", "win.csv"):
+        cols, rows = read_track_csv(tmp_path / name)
+        assert cols == ("frame", "face_id", "timestamp", "confidence", "success", "AU12_r"), cols
+        assert rows[:, cols.index("AU12_r")].tolist() == [0.5, 1.25]

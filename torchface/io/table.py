@@ -190,17 +190,19 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     """Read a track CSV (finished or ``.partial``): ``(columns, (T, C) float64 rows)``.
 
     Only complete rows (ending in a newline, with every column) are returned, so a file cut off mid-row
-    reads as its complete part.
+    reads as its complete part. Column names are stripped of surrounding spaces (OpenFace writes
+    ``frame, face_id, timestamp, ...``), carriage returns (Windows line ends) and a UTF-8 byte-order mark, so
+    such a file's columns are found by name.
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read the track CSV ({exc.__class__.__name__})") from None
     lines = text.split("\n")
     if len(lines) < 2 or not lines[0]:
         raise InputError(f"{p}: not a track CSV (no complete header line)")
-    columns = tuple(lines[0].split(","))
+    columns = tuple(c.strip() for c in lines[0].split(","))
     rows = []
     for line in lines[1:-1]:  # the last element follows the final newline: incomplete or empty
         cells = line.split(",")
