@@ -217,3 +217,12 @@ def test_an_openface_csv_is_read_by_column_name(tmp_path):
         cols, rows = read_track_csv(tmp_path / name)
         assert cols == ("frame", "face_id", "timestamp", "confidence", "success", "AU12_r"), cols
         assert rows[:, cols.index("AU12_r")].tolist() == [0.5, 1.25]
+
+
+def test_one_name_given_alone_is_refused_not_spelt_out():
+    """``track_columns("jawOpen", ...)`` made one column per letter ('anim_j', 'anim_a', ...); like the writer's and
+    plot_track's ``columns`` (one shared check), a string alone is refused."""
+    for args in (("jawOpen", (), ()), ((), "AU12", ()), ((), (), "gain")):
+        with pytest.raises(TypeError, match=r"must be a sequence of names, e.g. \('\w+',\), not one string"):
+            track_columns(*args)
+    assert "anim_jawopen" in track_columns(["jawOpen"], [], [])  # lists are sequences too

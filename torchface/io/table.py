@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._names import name_tuple
 from torchface.io.errors import InputError, OutputError
 
 __all__ = [
@@ -106,8 +107,12 @@ def track_columns(
     names become CSV-safe column names, :func:`column_name` and :func:`facs_column_stem`).
 
     Raises:
+        TypeError: one of the three is one string (it was taken as its characters' names).
         ValueError: a name has no letter or digit, or two names give the same column (the message names them).
     """
+    anim_names = name_tuple(anim_names, "anim_names")
+    facs_names = name_tuple(facs_names, "facs_names")
+    illumination_names = name_tuple(illumination_names, "illumination_names")
     facs = tuple(f"{facs_column_stem(n)}_r" for n in facs_names)
     anim = tuple(column_name("anim", n) for n in anim_names)
     illum = tuple(column_name("illum", n) for n in illumination_names)
@@ -238,9 +243,7 @@ class TrackCsvWriter:
 
     def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...], resume: bool = False) -> None:
         self.path = Path(path)
-        if isinstance(columns, str):  # its characters were taken as the columns
-            raise TypeError(f"columns must be a tuple of column names, got one string {columns[:40]!r}")
-        self.columns = tuple(columns)
+        self.columns = name_tuple(columns, "columns")
         self.partial = partial_path(self.path)
         self.rows_done = 0
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))
