@@ -761,9 +761,9 @@ def _parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
-    if w < 8 or h < 8 or w % 2 or h % 2:
-        raise argparse.ArgumentTypeError(f"size must be even and at least 8x8 (the video frames), got {text!r}")
-    return w, h
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
+    return w, h  # an odd side is refused in main where a video is written (the cache, the long scenarios)
 
 
 def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
@@ -792,7 +792,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
     parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
     parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
-    parser.add_argument("--size", type=_parse_size, default=None, help="WxH (default 640x480)")
+    parser.add_argument("--size", type=_parse_size, default=None,
+                        help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
     parser.add_argument("--cache", default="out/sequences", help="sequence cache folder; 'none' renders in memory")
     parser.add_argument(
         "--ablations", default="all", help=f"all, none (full only) or a comma list from {', '.join(ABLATIONS)}"
@@ -917,6 +918,14 @@ def main(argv: list[str] | None = None) -> int:
     check_python(parser, args.mediapipe_python)
     if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
         parser.error(f"--cache {args.cache}: not a folder")
+    if args.size is not None and (args.size[0] % 2 or args.size[1] % 2):
+        # Only a video needs even sides (its codec): the sequence cache, and the long scenarios, streamed from a
+        # video even with --cache none; the standard scenarios render and track in memory at any size.
+        on_video = [n for n in names if n in LONG_SCENARIOS]
+        if args.cache.lower() != "none" or on_video:
+            where = f"the long scenarios ({', '.join(on_video)}) stream from one" if on_video else "--cache writes one"
+            parser.error(f"--size {args.size[0]}x{args.size[1]}: a video needs an even width and height and {where}; "
+                         "choose an even size, or --cache none with standard scenarios only")  # fmt: skip
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global LOOKAHEAD, ONLINE_REFINE

@@ -101,6 +101,25 @@ def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, cap
     assert peers.run_mediapipe(np.zeros((1, 8, 8, 3), np.uint8), str(tmp_path / "nope")) is None
 
 
+def test_evaluate_takes_an_odd_size_where_no_video_is_written(tmp_path, capsys):
+    """An odd ``--size`` was refused even with ``--cache none``, where the standard scenarios render and track in
+    memory; only a video needs even sides: the cache's, and the long scenarios' (streamed even with --cache none)."""
+    import pytest
+
+    evaluate = _load("evaluate")
+    run = ["--scenarios", "pose_sweep", "--frames", "2", "--size", "63x47", "--ablations", "none", "--threads", "1",
+           "--no-auroc", "--progress-every", "0"]  # fmt: skip
+    assert evaluate.main([*run, "--cache", "none"]) == 0
+    assert "pose_sweep (63x47, 2 frames" in capsys.readouterr().out
+    for extra, message in ((["--cache", str(tmp_path / "c")], "--cache writes one"),
+                           (["--cache", "none", "--scenarios", "pose_sweep,long_run"], "the long scenarios (long_run)")):
+        with pytest.raises(SystemExit) as info:
+            evaluate.main([*run, *extra])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "a video needs an even width and height" in err and message in err, err
+    assert not (tmp_path / "c").exists()
+
+
 def test_every_script_answers_help_without_docstrings():
     """``python -OO`` (``PYTHONOPTIMIZE=2``, set in some container images) strips docstrings: the scripts built
     their description from ``__doc__.splitlines()`` and failed with an AttributeError before printing anything."""
