@@ -120,6 +120,29 @@ def test_evaluate_takes_an_odd_size_where_no_video_is_written(tmp_path, capsys):
     assert not (tmp_path / "c").exists()
 
 
+def test_benchmark_scripts_refuse_bad_counts_in_one_line(capsys):
+    """A count of 0, a negative one or a bad worker list gave a traceback after the setup (statistics.median of no
+    runs, torch.set_num_threads(0), a video too small to read); now argparse's one-line error, exit 2."""
+    import pytest
+
+    cases = {
+        "benchmark_raster": (["--runs", "0"], ["--warmup", "-1"], ["--batches", "1", "0"], ["--threads", "0"],
+                             ["--runs", "2.5"]),
+        "benchmark_render": (["--repeats", "0"], ["--width", "0"], ["--threads", "-1"]),
+        "benchmark_dataloader": (["--videos", "0"], ["--frames", "-2"], ["--width", "321"], ["--height", "16"],
+                                 ["--face-size", "8"], ["--batch-size", "0"], ["--workers", "0,x"],
+                                 ["--workers", "-1"], ["--repeats", "0"]),
+    }  # fmt: skip
+    for name, argvs in cases.items():
+        script = _load(name)
+        for argv in argvs:
+            with pytest.raises(SystemExit) as info:
+                script.main(argv)
+            err = capsys.readouterr().err
+            assert info.value.code == 2 and f"argument {argv[0]}: must be" in err, (name, argv, err)
+            assert "Traceback" not in err and ": error: argument " in err.strip().splitlines()[-1], err
+
+
 def test_every_script_answers_help_without_docstrings():
     """``python -OO`` (``PYTHONOPTIMIZE=2``, set in some container images) strips docstrings: the scripts built
     their description from ``__doc__.splitlines()`` and failed with an AttributeError before printing anything."""
