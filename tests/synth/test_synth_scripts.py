@@ -143,6 +143,20 @@ def test_benchmark_scripts_refuse_bad_counts_in_one_line(capsys):
             assert "Traceback" not in err and ": error: argument " in err.strip().splitlines()[-1], err
 
 
+def test_benchmark_reads_its_batch_lists_as_its_check_does():
+    """``--batches 1,8,`` (a trailing comma) passed benchmark.py's argument check, which skips empty items, and then
+    failed with int('') after the single-stream runs, which did not: both read the lists through one function."""
+    import pytest
+
+    bench = _load("benchmark")
+    assert bench._batch_list("1,8,") == [1, 8] and bench._batch_list(" 32 , ,128") == [32, 128]
+    assert bench._batch_list("") == []
+    with pytest.raises(ValueError):
+        bench._batch_list("1,x")
+    source = (SCRIPTS / "benchmark.py").read_text()
+    assert source.count('.split(",")') == 1  # the lists are parsed in _batch_list only
+
+
 def test_every_script_answers_help_without_docstrings():
     """``python -OO`` (``PYTHONOPTIMIZE=2``, set in some container images) strips docstrings: the scripts built
     their description from ``__doc__.splitlines()`` and failed with an AttributeError before printing anything."""
