@@ -287,10 +287,10 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(sys, name) is None:  # closed by the caller (``>&-``): Python leaves None there
             setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
     args = build_parser().parse_args(argv)
-    try:  # torch's import takes seconds: a Ctrl-C there printed a long traceback
-        if getattr(args, "threads", None) is not None:
-            import torch
+    try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
+        import torch
 
+        if getattr(args, "threads", None) is not None:
             torch.set_num_threads(args.threads)
         from torchface.detect import DetectorUnavailable
         from torchface.io.errors import InputError, OutputError
