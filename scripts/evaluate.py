@@ -766,6 +766,21 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h  # an odd side is refused in main where a video is written (the cache, the long scenarios)
 
 
+def check_size_for_video(
+    parser: argparse.ArgumentParser, size: tuple[int, int] | None, cache: str, names: list[str]
+) -> None:
+    """Refuse an odd ``--size`` where a video is written: only a video needs even sides (its codec): the sequence
+    cache, and the long scenarios, streamed from a video even with ``--cache none``; the standard scenarios render
+    and track in memory at any size (:func:`_parse_size` leaves odd sizes to this check)."""
+    if size is None or not (size[0] % 2 or size[1] % 2):
+        return
+    on_video = [n for n in names if n in LONG_SCENARIOS]
+    if cache.lower() != "none" or on_video:
+        where = f"the long scenarios ({', '.join(on_video)}) stream from one" if on_video else "--cache writes one"
+        parser.error(f"--size {size[0]}x{size[1]}: a video needs an even width and height and {where}; "
+                     "choose an even size, or --cache none with standard scenarios only")  # fmt: skip
+
+
 def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
     """Scenario names from --scenarios: a comma list of names and the groups all, standard, long."""
     groups = {"all": list(ALL_SCENARIOS), "standard": list(SCENARIOS), "long": list(LONG_SCENARIOS), "none": []}
@@ -918,14 +933,7 @@ def main(argv: list[str] | None = None) -> int:
     check_python(parser, args.mediapipe_python)
     if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
         parser.error(f"--cache {args.cache}: not a folder")
-    if args.size is not None and (args.size[0] % 2 or args.size[1] % 2):
-        # Only a video needs even sides (its codec): the sequence cache, and the long scenarios, streamed from a
-        # video even with --cache none; the standard scenarios render and track in memory at any size.
-        on_video = [n for n in names if n in LONG_SCENARIOS]
-        if args.cache.lower() != "none" or on_video:
-            where = f"the long scenarios ({', '.join(on_video)}) stream from one" if on_video else "--cache writes one"
-            parser.error(f"--size {args.size[0]}x{args.size[1]}: a video needs an even width and height and {where}; "
-                         "choose an even size, or --cache none with standard scenarios only")  # fmt: skip
+    check_size_for_video(parser, args.size, args.cache, names)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global LOOKAHEAD, ONLINE_REFINE

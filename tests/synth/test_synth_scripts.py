@@ -118,6 +118,11 @@ def test_evaluate_takes_an_odd_size_where_no_video_is_written(tmp_path, capsys):
         err = capsys.readouterr().err
         assert info.value.code == 2 and "a video needs an even width and height" in err and message in err, err
     assert not (tmp_path / "c").exists()
+    auroc = _load("confidence_auroc")  # the same --size and the same check (its cache is a video too)
+    with pytest.raises(SystemExit) as info:
+        auroc.main(["--scenarios", "pose_sweep", "--size", "63x47", "--cache", str(tmp_path / "c")])
+    assert info.value.code == 2 and "--cache writes one" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
 
 
 def test_benchmark_scripts_refuse_bad_counts_in_one_line(capsys):
