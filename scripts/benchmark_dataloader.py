@@ -52,8 +52,8 @@ def render_videos(root: Path, count: int, frames: int, width: int, height: int) 
 
 
 def _integer(minimum: int, even: bool = False):
-    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or less gave a
-    traceback after the setup)."""
+    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
+    less gave a traceback after the setup)."""
 
     def parse(text: str) -> int:
         try:

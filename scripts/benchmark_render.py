@@ -38,8 +38,8 @@ def _times_ms(fn, repeats: int, frames: int) -> tuple[float, float]:
 
 
 def _integer(minimum: int, even: bool = False):
-    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or less gave a
-    traceback after the setup)."""
+    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
+    less gave a traceback after the setup)."""
 
     def parse(text: str) -> int:
         try:

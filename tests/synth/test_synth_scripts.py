@@ -111,8 +111,9 @@ def test_evaluate_takes_an_odd_size_where_no_video_is_written(tmp_path, capsys):
            "--no-auroc", "--progress-every", "0"]  # fmt: skip
     assert evaluate.main([*run, "--cache", "none"]) == 0
     assert "pose_sweep (63x47, 2 frames" in capsys.readouterr().out
+    long_too = ["--cache", "none", "--scenarios", "pose_sweep,long_run"]
     for extra, message in ((["--cache", str(tmp_path / "c")], "--cache writes one"),
-                           (["--cache", "none", "--scenarios", "pose_sweep,long_run"], "the long scenarios (long_run)")):
+                           (long_too, "the long scenarios (long_run)")):
         with pytest.raises(SystemExit) as info:
             evaluate.main([*run, *extra])
         err = capsys.readouterr().err
