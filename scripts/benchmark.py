@@ -235,6 +235,13 @@ def _run_child(
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _batch_list(text: str) -> list[int]:
+    """``--batches`` / ``--malloc-batches``: a comma list of integers, empty items skipped (``"1,8,"``); raises
+    ValueError on anything else. The check and the run read the lists alike (the run did not skip empty items: a
+    trailing comma passed the check and failed after the single-stream runs)."""
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
 def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """One-line errors for what would fail later (after minutes of timing runs)."""
     if not 4 <= args.frames <= 150:
@@ -244,8 +251,7 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
     try:
         batches = [1, 32]  # the template-management rows
         if not args.management_only:
-            batches += [int(x) for x in args.batches.split(",") if x.strip()]
-            batches += [int(x) for x in args.malloc_batches.split(",") if x.strip()]
+            batches += _batch_list(args.batches) + _batch_list(args.malloc_batches)
     except ValueError:
         ap.error(f"--batches and --malloc-batches must be comma lists of integers, got {args.batches!r}, "
                  f"{args.malloc_batches!r}")  # fmt: skip
@@ -409,8 +415,8 @@ def main() -> None:
         r = _run_child(args, 1, threads)
         figures[f"single_stream_{threads}_threads"] = r
         print(f"  B=1, {threads} thread(s): {r['ms_per_step']:.1f} ms/frame", file=sys.stderr)
-    rows = [(b, f"batch_{b}", None, "") for b in (int(x) for x in args.batches.split(","))]
-    malloc = [int(x) for x in args.malloc_batches.split(",") if x.strip()]
+    rows = [(b, f"batch_{b}", None, "") for b in _batch_list(args.batches)]
+    malloc = _batch_list(args.malloc_batches)
     if malloc and not (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"):
         print("  allocator rows skipped: not Linux with glibc", file=sys.stderr)
         malloc = []

@@ -51,19 +51,48 @@ def render_videos(root: Path, count: int, frames: int, width: int, height: int) 
     return out_videos, out_landmarks
 
 
+def _integer(minimum: int, even: bool = False):
+    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
+    less gave a traceback after the setup)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum or (even and value % 2):
+            kind = "an even integer" if even else "an integer"
+            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _workers(text: str) -> list[int]:
+    """``--workers``: a comma list of integers >= 0."""
+    try:
+        counts = [int(w) for w in text.split(",") if w.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 0:
+        raise argparse.ArgumentTypeError(f"must be a comma list of integers >= 0, got {text!r}")
+    return counts
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    parser.add_argument("--videos", type=int, default=8, help="rendered videos (default 8)")
-    parser.add_argument("--frames", type=int, default=24, help="frames per video")
-    parser.add_argument("--width", type=int, default=320, help="frame width (default 320)")
-    parser.add_argument("--height", type=int, default=240, help="frame height (default 240)")
-    parser.add_argument("--face-size", type=int, default=128, help="normalised face side (default 128)")
-    parser.add_argument("--batch-size", type=int, default=64, help="items per batch (default 64)")
-    parser.add_argument("--workers", default="0,2", help="comma-separated worker counts")
-    parser.add_argument("--repeats", type=int, default=3, help="cached epochs per worker count")
+    parser.add_argument("--videos", type=_integer(1), default=8, help="rendered videos (default 8)")
+    parser.add_argument("--frames", type=_integer(1), default=24, help="frames per video (default 24)")
+    parser.add_argument("--width", type=_integer(32, even=True), default=320, help="frame width, even, >= 32 (default 320)")
+    parser.add_argument("--height", type=_integer(32, even=True), default=240,
+                        help="frame height, even, >= 32 (default 240)")
+    parser.add_argument("--face-size", type=_integer(16), default=128, help="normalised face side (default 128)")
+    parser.add_argument("--batch-size", type=_integer(1), default=64, help="items per batch (default 64)")
+    parser.add_argument("--workers", type=_workers, default="0,2", help="comma-separated worker counts (default 0,2)")
+    parser.add_argument("--repeats", type=_integer(1), default=3, help="cached epochs per worker count (default 3)")
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
     args = parser.parse_args(argv)
-    workers = [int(w) for w in args.workers.split(",")]
+    workers = args.workers
     with tempfile.TemporaryDirectory(prefix="tf_dataloader_") as tmp:
         root = Path(tmp)
         videos, landmarks = render_videos(root, args.videos, args.frames, args.width, args.height)

@@ -87,16 +87,33 @@ def _time(fn, runs: int, warmup: int, sync) -> tuple[float, float]:
     return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
 
 
-def main() -> None:
+def _integer(minimum: int, even: bool = False):
+    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
+    less gave a traceback after the setup)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum or (even and value % 2):
+            kind = "an even integer" if even else "an integer"
+            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
-    parser.add_argument("--runs", type=int, default=15, help="timed runs per row (default 15)")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed runs first (default 3)")
+    parser.add_argument("--threads", type=_integer(1), default=None, help="torch.set_num_threads (default: torch's)")
+    parser.add_argument("--runs", type=_integer(1), default=15, help="timed runs per row (default 15)")
+    parser.add_argument("--warmup", type=_integer(0), default=3, help="untimed runs first (default 3)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--batches", type=int, nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
+    parser.add_argument("--batches", type=_integer(1), nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
     parser.add_argument("--json", default=None, help="write the figures to this JSON file")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)

@@ -37,12 +37,29 @@ def _times_ms(fn, repeats: int, frames: int) -> tuple[float, float]:
     return 1000.0 * min(times) / frames, 1000.0 * statistics.median(times) / frames
 
 
+def _integer(minimum: int, even: bool = False):
+    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
+    less gave a traceback after the setup)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum or (even and value % 2):
+            kind = "an even integer" if even else "an integer"
+            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    parser.add_argument("--width", type=int, default=640, help="frame width (default 640)")
-    parser.add_argument("--height", type=int, default=480, help="frame height (default 480)")
-    parser.add_argument("--repeats", type=int, default=3, help="timed renders per row (default 3)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave the default)")
+    parser.add_argument("--width", type=_integer(8), default=640, help="frame width (default 640)")
+    parser.add_argument("--height", type=_integer(8), default=480, help="frame height (default 480)")
+    parser.add_argument("--repeats", type=_integer(1), default=3, help="timed renders per row (default 3)")
+    parser.add_argument("--threads", type=_integer(0), default=0, help="torch threads (0: leave the default)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)

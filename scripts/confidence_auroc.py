@@ -163,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
+    ev.check_size_for_video(parser, args.size, args.cache, names)
     cache = None if args.cache.lower() == "none" else Path(args.cache)
     model = load_candide3()
     base = TrackerConfig(template=TemplateConfig())

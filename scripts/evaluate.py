@@ -761,9 +761,24 @@ def _parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
-    if w < 8 or h < 8 or w % 2 or h % 2:
-        raise argparse.ArgumentTypeError(f"size must be even and at least 8x8 (the video frames), got {text!r}")
-    return w, h
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
+    return w, h  # an odd side is refused in main where a video is written (the cache, the long scenarios)
+
+
+def check_size_for_video(
+    parser: argparse.ArgumentParser, size: tuple[int, int] | None, cache: str, names: list[str]
+) -> None:
+    """Refuse an odd ``--size`` where a video is written: only a video needs even sides (its codec): the sequence
+    cache, and the long scenarios, streamed from a video even with ``--cache none``; the standard scenarios render
+    and track in memory at any size (:func:`_parse_size` leaves odd sizes to this check)."""
+    if size is None or not (size[0] % 2 or size[1] % 2):
+        return
+    on_video = [n for n in names if n in LONG_SCENARIOS]
+    if cache.lower() != "none" or on_video:
+        where = f"the long scenarios ({', '.join(on_video)}) stream from one" if on_video else "--cache writes one"
+        parser.error(f"--size {size[0]}x{size[1]}: a video needs an even width and height and {where}; "
+                     "choose an even size, or --cache none with standard scenarios only")  # fmt: skip
 
 
 def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
@@ -792,7 +807,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
     parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
     parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
-    parser.add_argument("--size", type=_parse_size, default=None, help="WxH (default 640x480)")
+    parser.add_argument("--size", type=_parse_size, default=None,
+                        help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
     parser.add_argument("--cache", default="out/sequences",
                         help="sequence cache folder (default out/sequences); 'none' renders in memory")
     parser.add_argument(
@@ -918,6 +934,7 @@ def main(argv: list[str] | None = None) -> int:
     check_python(parser, args.mediapipe_python)
     if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
         parser.error(f"--cache {args.cache}: not a folder")
+    check_size_for_video(parser, args.size, args.cache, names)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global LOOKAHEAD, ONLINE_REFINE

@@ -432,11 +432,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="write the figures here")
     p.add_argument("--quick", action="store_true", help="a tiny run for a smoke test")
     p.add_argument("--crop-single", action="store_true", help="also train on the labelled crop alone (slower)")
+    p.add_argument("--threads", type=int, default=2,
+                   help="torch CPU threads of this process: tracking checks, training (default 2; each render "
+                   "process uses one)")  # fmt: skip
     args = p.parse_args(argv)
     # Checked before anything runs: a --json folder failed only at the very end, after the whole run, and left
     # a <json>.partial file behind; an --out under a file failed with a traceback.
     if args.seed < 0:
         p.error(f"--seed must be an integer >= 0, got {args.seed}")
+    if args.threads < 1:
+        p.error(f"--threads must be >= 1, got {args.threads}")
     if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
         p.error(f"--out {args.out}: not a folder path (a file, or under a file)")
     if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
@@ -445,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     times: dict[str, float] = {}
     t_all = time.perf_counter()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
 
     # 1. faces
     t0 = time.perf_counter()

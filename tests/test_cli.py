@@ -120,3 +120,31 @@ def test_summary_lists_the_meshes_folder_when_meshes_were_written(tmp_path):
         last = out.getvalue().splitlines()[-1]
         assert last.startswith(f"outputs in {tmp_path}/ (per video: .csv, .json, _overlay.mp4, _plot.png")
         assert ("_meshes/" in last) is listed
+
+
+def test_a_ctrl_c_while_torch_is_imported_is_one_line_and_130(tmp_path):
+    """The console script imports ``torchface.cli``, whose package imported torch (seconds) before ``main`` could
+    catch anything: a Ctrl-C then printed a long traceback. The package now imports its API on first use, ``main``
+    parses first (``--help`` without torch) and a Ctrl-C during torch's import is one line and status 130. The
+    Ctrl-C is sent by the process itself when the import of torch begins (a finder on ``sys.meta_path``)."""
+    root = Path(__file__).resolve().parent.parent
+    code = (
+        "import importlib.abc, os, signal, sys\n"
+        "class CtrlC(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'torch':\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n"
+        "        return None\n"
+        "sys.meta_path.insert(0, CtrlC())\n"
+        "from torchface.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    for args in (["demo", "--out", str(tmp_path / "demo")], ["track", "v.mp4", "--out", str(tmp_path / "t"),
+                                                             "--landmarks", "lm.csv", "--threads", "1"]):  # fmt: skip
+        out = subprocess.run([sys.executable, "-c", code, *args], cwd=root, capture_output=True, text=True,
+                             timeout=120)  # fmt: skip
+        assert out.returncode == 130, (out.returncode, out.stderr[-2000:])
+        assert out.stderr.strip() == "torchface: interrupted before it started; run it again", out.stderr[-2000:]
+    help_text = subprocess.run([sys.executable, "-c", code, "track", "--help"], cwd=root, capture_output=True,
+                               text=True, timeout=120)  # fmt: skip
+    assert help_text.returncode == 0 and "usage: torchface track" in help_text.stdout, help_text.stderr[-2000:]

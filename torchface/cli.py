@@ -289,12 +289,16 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(sys, name) is None:  # closed by the caller (``>&-``): Python leaves None there
             setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
     args = build_parser().parse_args(argv)
-    if getattr(args, "threads", None) is not None:
+    try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
         import torch
 
-        torch.set_num_threads(args.threads)
-    from torchface.detect import DetectorUnavailable
-    from torchface.io.errors import InputError, OutputError
+        if getattr(args, "threads", None) is not None:
+            torch.set_num_threads(args.threads)
+        from torchface.detect import DetectorUnavailable
+        from torchface.io.errors import InputError, OutputError
+    except KeyboardInterrupt:
+        _say("\ntorchface: interrupted before it started; run it again")
+        return EXIT_INTERRUPTED
 
     try:
         with _sigterm_as_interrupt():

@@ -357,7 +357,7 @@ def _to_uint8_rgb(frame: Tensor) -> np.ndarray:
     return (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
 
 
-@dataclass
+@dataclass(eq=False)
 class _Stream:
     """Book-keeping of one video in a batch (mutable, private to the job loop)."""
 
@@ -1279,7 +1279,7 @@ def _drawn_pose(
     return tuple(x.to(device=model.device, dtype=model.dtype) for x in out)
 
 
-@dataclass
+@dataclass(eq=False)
 class _Current:
     """The frames of the step being tracked, and the streams the recovery callback has matched in it."""
 

@@ -220,3 +220,25 @@ def test_a_damaged_complete_line_is_refused_not_read_as_the_end(tmp_path):
             TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
     part.write_text("frame,timestamp,success,confidence\n0,0.000,1,0.9\n\n\n")  # blank lines at the end: no rows
     assert read_track_csv(part)[1].shape == (1, 4)
+
+
+def test_an_openface_csv_is_read_by_column_name(tmp_path):
+    """OpenFace writes a space after each comma (header and rows); the names kept it (' face_id', ' AU12_r'), so
+    ``columns.index('AU12_r')`` failed. Windows line ends and a byte-order mark (a spreadsheet's save) likewise."""
+    text = ("frame, face_id, timestamp, confidence, success, AU12_r\n"
+            "1, 0, 0.000, 0.98, 1, 0.50\n2, 0, 0.033, 0.97, 1, 1.25\n")  # fmt: skip
+    (tmp_path / "of.csv").write_text(text, encoding="utf-8")
+    (tmp_path / "win.csv").write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    for name in ("of.csv", "win.csv"):
+        cols, rows = read_track_csv(tmp_path / name)
+        assert cols == ("frame", "face_id", "timestamp", "confidence", "success", "AU12_r"), cols
+        assert rows[:, cols.index("AU12_r")].tolist() == [0.5, 1.25]
+
+
+def test_one_name_given_alone_is_refused_not_spelt_out():
+    """``track_columns("jawOpen", ...)`` made one column per letter ('anim_j', 'anim_a', ...); like the writer's and
+    plot_track's ``columns`` (one shared check), a string alone is refused."""
+    for args in (("jawOpen", (), ()), ((), "AU12", ()), ((), (), "gain")):
+        with pytest.raises(TypeError, match=r"must be a sequence of names, e.g. \('\w+',\), not one string"):
+            track_columns(*args)
+    assert "anim_jawopen" in track_columns(["jawOpen"], [], [])  # lists are sequences too

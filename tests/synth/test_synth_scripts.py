@@ -101,6 +101,68 @@ def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, cap
     assert peers.run_mediapipe(np.zeros((1, 8, 8, 3), np.uint8), str(tmp_path / "nope")) is None
 
 
+def test_evaluate_takes_an_odd_size_where_no_video_is_written(tmp_path, capsys):
+    """An odd ``--size`` was refused even with ``--cache none``, where the standard scenarios render and track in
+    memory; only a video needs even sides: the cache's, and the long scenarios' (streamed even with --cache none)."""
+    import pytest
+
+    evaluate = _load("evaluate")
+    run = ["--scenarios", "pose_sweep", "--frames", "2", "--size", "63x47", "--ablations", "none", "--threads", "1",
+           "--no-auroc", "--progress-every", "0"]  # fmt: skip
+    assert evaluate.main([*run, "--cache", "none"]) == 0
+    assert "pose_sweep (63x47, 2 frames" in capsys.readouterr().out
+    long_too = ["--cache", "none", "--scenarios", "pose_sweep,long_run"]
+    for extra, message in ((["--cache", str(tmp_path / "c")], "--cache writes one"),
+                           (long_too, "the long scenarios (long_run)")):
+        with pytest.raises(SystemExit) as info:
+            evaluate.main([*run, *extra])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "a video needs an even width and height" in err and message in err, err
+    assert not (tmp_path / "c").exists()
+    auroc = _load("confidence_auroc")  # the same --size and the same check (its cache is a video too)
+    with pytest.raises(SystemExit) as info:
+        auroc.main(["--scenarios", "pose_sweep", "--size", "63x47", "--cache", str(tmp_path / "c")])
+    assert info.value.code == 2 and "--cache writes one" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
+
+
+def test_benchmark_scripts_refuse_bad_counts_in_one_line(capsys):
+    """A count of 0, a negative one or a bad worker list gave a traceback after the setup (statistics.median of no
+    runs, torch.set_num_threads(0), a video too small to read); now argparse's one-line error, exit 2."""
+    import pytest
+
+    cases = {
+        "benchmark_raster": (["--runs", "0"], ["--warmup", "-1"], ["--batches", "1", "0"], ["--threads", "0"],
+                             ["--runs", "2.5"]),
+        "benchmark_render": (["--repeats", "0"], ["--width", "0"], ["--threads", "-1"]),
+        "benchmark_dataloader": (["--videos", "0"], ["--frames", "-2"], ["--width", "321"], ["--height", "16"],
+                                 ["--face-size", "8"], ["--batch-size", "0"], ["--workers", "0,x"],
+                                 ["--workers", "-1"], ["--repeats", "0"]),
+    }  # fmt: skip
+    for name, argvs in cases.items():
+        script = _load(name)
+        for argv in argvs:
+            with pytest.raises(SystemExit) as info:
+                script.main(argv)
+            err = capsys.readouterr().err
+            assert info.value.code == 2 and f"argument {argv[0]}: must be" in err, (name, argv, err)
+            assert "Traceback" not in err and ": error: argument " in err.strip().splitlines()[-1], err
+
+
+def test_benchmark_reads_its_batch_lists_as_its_check_does():
+    """``--batches 1,8,`` (a trailing comma) passed benchmark.py's argument check, which skips empty items, and then
+    failed with int('') after the single-stream runs, which did not: both read the lists through one function."""
+    import pytest
+
+    bench = _load("benchmark")
+    assert bench._batch_list("1,8,") == [1, 8] and bench._batch_list(" 32 , ,128") == [32, 128]
+    assert bench._batch_list("") == []
+    with pytest.raises(ValueError):
+        bench._batch_list("1,x")
+    source = (SCRIPTS / "benchmark.py").read_text()
+    assert source.count('.split(",")') == 1  # the lists are parsed in _batch_list only
+
+
 def test_every_script_answers_help_without_docstrings():
     """``python -OO`` (``PYTHONOPTIMIZE=2``, set in some container images) strips docstrings: the scripts built
     their description from ``__doc__.splitlines()`` and failed with an AttributeError before printing anything."""

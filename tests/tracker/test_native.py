@@ -8,6 +8,7 @@ import dataclasses
 import os
 import subprocess
 import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -569,6 +570,24 @@ def test_turned_off_or_without_a_compiler_the_reason_is_given(tmp_path):
     missing = _probe({"TORCHFACE_CACHE_DIR": str(tmp_path), "CC": str(tmp_path / "no-such-cc")}, err)
     assert missing.startswith("NONE the native kernels could not be built"), missing
     assert err[-1].count("RuntimeWarning: torchface: native kernels unavailable") == 1, err[-1]  # said once
+
+
+def test_an_unknown_switch_value_is_named_in_a_warning(monkeypatch):
+    """``TORCHFACE_NATIVE=maybe`` was read as on without a word; any value but the documented ones now warns."""
+    for value, on in (("0", False), (" Off ", False), ("no", False), ("1", True), ("TRUE", True), ("", True)):
+        monkeypatch.setenv("TORCHFACE_OPENMP", value)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert _native._env_switch("TORCHFACE_OPENMP") is on, value
+    monkeypatch.delenv("TORCHFACE_OPENMP")
+    assert _native._env_switch("TORCHFACE_OPENMP") is True
+    monkeypatch.setenv("TORCHFACE_OPENMP", "maybe")
+    with pytest.warns(RuntimeWarning, match="TORCHFACE_OPENMP='maybe' is not a switch value"):
+        assert _native._env_switch("TORCHFACE_OPENMP") is True
+    err: list[str] = []
+    assert _probe({"TORCHFACE_NATIVE": "maybe"}, err).startswith("OK")
+    assert "RuntimeWarning: torchface: TORCHFACE_NATIVE='maybe' is not a switch value" in err[-1], err[-1]
+    assert _probe({"TORCHFACE_NATIVE": "OFF"}, err).startswith("NONE turned off by TORCHFACE_NATIVE=OFF")
 
 
 def test_tracking_with_either_backend_gives_the_same_poses():

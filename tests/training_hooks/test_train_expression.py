@@ -82,3 +82,29 @@ def test_bad_out_and_json_paths_are_refused_before_the_run(tmp_path, capsys):
         assert needle in capsys.readouterr().err, argv
     assert not out.exists()  # nothing ran
     assert sorted(f.name for f in tmp_path.iterdir()) == ["a_file", "a_folder"]
+
+
+def test_threads_option(tmp_path, capsys, monkeypatch):
+    """``--threads`` as in the other scripts (the script set two threads itself, with no option); 0 is refused."""
+    import pytest
+    import torch
+
+    script = _load()
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--quick", "--out", str(tmp_path / "run"), "--threads", "0"])
+    assert exc.value.code == 2 and "--threads must be >= 1, got 0" in capsys.readouterr().err
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Stop
+
+    monkeypatch.setattr(script, "identities", stop)  # the first stage, just after the threads are set
+    before = torch.get_num_threads()
+    try:
+        with pytest.raises(Stop):
+            script.main(["--quick", "--out", str(tmp_path / "run"), "--threads", "3"])
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)

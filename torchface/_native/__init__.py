@@ -28,6 +28,10 @@ file and renamed into place, so processes that build it at the same time (data-l
 partial file. Where that folder cannot be written (a read-only home), the library is built for the process alone
 in a temporary folder, with a ``RuntimeWarning``. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
+Switches read from the environment (``TORCHFACE_NATIVE``, ``TORCHFACE_OPENMP``): ``0``, ``false``, ``no`` or
+``off`` (any case) turn the feature off; unset, empty, ``1``, ``true``, ``yes`` or ``on`` leave it on; any other
+value leaves it on with a ``RuntimeWarning`` that names it (:func:`_env_switch`).
+
 Floating-point: compiled with ``-ffp-contract=off`` (no fused multiply-adds), so a build gives the same results
 on any x86-64 machine for the same inputs; the normal equations are accumulated in double precision.
 """
@@ -279,11 +283,31 @@ def _process_libgomp() -> set[str]:
         return set()
 
 
+_SWITCH_OFF = ("0", "false", "no", "off")
+_SWITCH_ON = ("", "1", "true", "yes", "on")
+
+
+def _env_switch(name: str) -> bool:
+    """Whether the environment switch ``name`` is on (the default): off for ``0``, ``false``, ``no``, ``off`` (any
+    case, spaces ignored); on when unset or for ``1``, ``true``, ``yes``, ``on`` or empty. Any other value reads as
+    on with a ``RuntimeWarning`` naming it (``TORCHFACE_NATIVE=maybe`` was taken as on, silently)."""
+    raw = os.environ.get(name)
+    if raw is None:
+        return True
+    value = raw.strip().lower()
+    if value in _SWITCH_OFF:
+        return False
+    if value not in _SWITCH_ON:
+        warnings.warn(f"torchface: {name}={raw!r} is not a switch value (0, false, no, off to turn it off; 1, true, "
+                      "yes, on to leave it on): read as on", RuntimeWarning, stacklevel=2)  # fmt: skip
+    return True
+
+
 def _openmp_wanted() -> bool:
     """Whether to build the kernels' dispatch with OpenMP: torch runs its own threads on a GNU OpenMP runtime
     already loaded in the process (the Linux wheels), which the library then shares, and
-    ``TORCHFACE_OPENMP`` is not 0."""
-    if os.environ.get("TORCHFACE_OPENMP", "1").strip().lower() in ("0", "false", "no", "off"):
+    ``TORCHFACE_OPENMP`` is not off (:func:`_env_switch`)."""
+    if not _env_switch("TORCHFACE_OPENMP"):
         return False
     return len(_process_libgomp()) == 1
 
@@ -359,8 +383,8 @@ def _build(cc: str, openmp: bool = False) -> Path:
 
 def _load() -> None:
     global _library, _reason
-    if os.environ.get("TORCHFACE_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
-        _reason = "turned off by TORCHFACE_NATIVE=0"
+    if not _env_switch("TORCHFACE_NATIVE"):
+        _reason = f"turned off by TORCHFACE_NATIVE={os.environ['TORCHFACE_NATIVE'].strip()}"
         return
     cc = _compiler()
     if cc is None:

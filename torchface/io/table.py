@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._names import name_tuple
 from torchface.io.errors import InputError, OutputError
 
 __all__ = [
@@ -107,8 +108,12 @@ def track_columns(
     names become CSV-safe column names, :func:`column_name` and :func:`facs_column_stem`).
 
     Raises:
+        TypeError: one of the three is one string (it was taken as its characters' names).
         ValueError: a name has no letter or digit, or two names give the same column (the message names them).
     """
+    anim_names = name_tuple(anim_names, "anim_names")
+    facs_names = name_tuple(facs_names, "facs_names")
+    illumination_names = name_tuple(illumination_names, "illumination_names")
     facs = tuple(f"{facs_column_stem(n)}_r" for n in facs_names)
     anim = tuple(column_name("anim", n) for n in anim_names)
     illum = tuple(column_name("illum", n) for n in illumination_names)
@@ -206,17 +211,19 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     Only complete rows (ending in a newline) are returned, so a file cut off mid-row reads as its complete part.
     A complete line that is not a row (another number of cells, a cell that is not a number) is damage, not a cut:
     an :class:`~torchface.io.InputError` names it (the rows after it were dropped silently, and ``--resume`` tracked
-    them again from the rows before it).
+    them again from the rows before it). Column names are stripped of surrounding spaces (OpenFace writes
+    ``frame, face_id, timestamp, ...``), carriage returns (Windows line ends) and a UTF-8 byte-order mark, so
+    such a file's columns are found by name.
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read the track CSV ({exc.__class__.__name__})") from None
     lines = text.split("\n")
     if len(lines) < 2 or not lines[0]:
         raise InputError(f"{p}: not a track CSV (no complete header line)")
-    columns = tuple(lines[0].split(","))
+    columns = tuple(c.strip() for c in lines[0].split(","))
     complete = lines[1:-1]  # the last element follows the final newline: incomplete or empty
     while complete and not complete[-1]:  # (blank lines at the end)
         complete.pop()
@@ -255,9 +262,7 @@ class TrackCsvWriter:
 
     def __init__(self, path: str | os.PathLike[str], columns: tuple[str, ...], resume: bool = False) -> None:
         self.path = Path(path)
-        if isinstance(columns, str):  # its characters were taken as the columns
-            raise TypeError(f"columns must be a tuple of column names, got one string {columns[:40]!r}")
-        self.columns = tuple(columns)
+        self.columns = name_tuple(columns, "columns")
         self.partial = partial_path(self.path)
         self.rows_done = 0
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))

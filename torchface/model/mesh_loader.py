@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchface._names import name_tuple
 from torchface.model.face_model import FaceModel
 
 __all__ = ["load_mesh_model", "load_ict_face_model", "ICT_TO_HEAD", "ICT_MM_PER_UNIT", "ARKIT_TO_FACS"]
@@ -80,9 +81,7 @@ def _as_basis(value: object, what: str, num_v: int) -> np.ndarray:
 def _as_names(names: Sequence[str] | None, count: int, what: str, prefix: str) -> tuple[str, ...]:
     if names is None:
         return tuple(f"{prefix}{i}" for i in range(count))
-    if isinstance(names, str):  # a str is a Sequence[str]: its characters were taken as the names
-        raise TypeError(f"{what} must be a sequence of names, e.g. ({names!r},), not one string")
-    names = tuple(str(n) for n in names)
+    names = tuple(str(n) for n in name_tuple(names, what))
     if len(names) != count:
         raise ValueError(f"{what} must hold {count} names (one per unit), got {len(names)}")
     return names

@@ -87,7 +87,7 @@ DEFAULT_DEPTH_TOLERANCE: float = 0.02
 DEFAULT_MIN_FACING_COS: float = 0.1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class NormalisedFaceLayout:
     """The canonical frontal view of a face model, rasterized once (module docstring).
 

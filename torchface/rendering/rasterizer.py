@@ -86,7 +86,7 @@ _SPAN_MARGIN_PX: float = 1e-2
 _MAX_PROJECTED_PX: float = 1e4
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Fragments:
     """What each pixel centre sees: the output of :func:`rasterize`.
 
@@ -114,7 +114,7 @@ class Fragments:
         return self.pix_to_face >= 0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Coverage:
     """Which triangle each pixel centre sees (:func:`rasterize_coverage`), with what it takes to evaluate the
     barycentric coordinates and depth of :class:`Fragments` at chosen pixels, by :func:`rasterize`'s arithmetic.

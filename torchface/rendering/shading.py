@@ -62,7 +62,7 @@ def _check_tensor(name: str, x: object, ndim: int, last: int | None = None) -> T
     return x
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TexturedMesh:
     """A triangle mesh with per-vertex texture coordinates and an RGB texture image.
 
@@ -121,7 +121,7 @@ class TexturedMesh:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LightState:
     """Ambient plus ``L`` distant directional lights, one state per batch sample.
 

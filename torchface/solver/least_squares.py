@@ -122,7 +122,7 @@ class SolverConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SolveResult:
     """Per-sample outcome of :func:`least_squares`.
 
@@ -302,7 +302,7 @@ def _batched_param(name: str, t: object, B: int, P: int, dtype: torch.dtype) -> 
 # ----------------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _Point:
     """Everything known at one estimate ``x`` of every sample (internal)."""
 

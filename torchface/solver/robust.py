@@ -201,7 +201,7 @@ class RobustLoss:
         return s * s * (scalar(c * c / 6.0, u) * (one - one_minus_t**3)), one_minus_t**2
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SwitchedRobustLoss:
     """Per sample, one of two robust losses: ``alternative`` for the samples (rows) where ``switch`` is True,
     ``base`` for the others. It has :class:`RobustLoss`'s interface (``rho``, ``weight``, ``rho_and_weight``,

@@ -49,7 +49,7 @@ _NPZ = "james.npz"
 _TEXTURE = "james_texture.jpg"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ScanData:
     """A rigid textured scan in the head frame.
 

@@ -220,7 +220,7 @@ def identity_variant(
     return replace(subject, shape_coeffs=shape, texture=texture)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ClipSpec:
     """One labelled clip: from a frontal neutral frame to a target pose, expression and light.
 

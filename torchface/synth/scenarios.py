@@ -392,7 +392,7 @@ _LONG_EXPRESSIONS: tuple[tuple[str, int, int, float], ...] = (
 )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LongRunTimeline:
     """The motion of the long scenarios at a given length (nominal frames scaled to ``T``).
 

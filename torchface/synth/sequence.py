@@ -60,7 +60,7 @@ __all__ = [
 NUM_LANDMARKS: int = 68
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SequenceSpec:
     """Everything that determines a synthetic sequence.
 
@@ -137,7 +137,7 @@ class SequenceSpec:
         return ((self.occluder,) if self.occluder is not None else ()) + self.occluders
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class GroundTruth:
     """Per-frame ground truth of a synthetic sequence (float64 CPU tensors).
 

@@ -60,7 +60,7 @@ SUBJECTS: tuple[str, ...] = ("candide3", "james")
 PHOTOS: tuple[str, ...] = ("james", "astronaut")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Subject:
     """A textured linear face or scan in the head frame (millimetres, see :mod:`torchface.conventions`).
 
@@ -136,7 +136,7 @@ class Subject:
         return (self.landmark_weights.to(verts.dtype).unsqueeze(-1) * corners).sum(dim=-2)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Photo:
     """A frontal photograph with landmarks.
 
@@ -155,7 +155,7 @@ class Photo:
     intrinsics: Intrinsics
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LandmarkFit:
     """Result of :func:`fit_landmarks`.
 

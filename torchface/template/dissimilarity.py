@@ -500,7 +500,7 @@ class DissimilarityConfig:
         return self.patch_size if self.min_separation is None else self.min_separation
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DissimilarityReference:
     """The reference normalised face prepared for :func:`dissimilarity`.
 

@@ -332,7 +332,7 @@ class TemplateConfig:
         return float(self.search_depth_widening[(n - 1) % len(self.search_depth_widening)])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MosaicLevel:
     """One pyramid level of every entry, compact (:func:`entry_templates` rebuilds full templates).
 
@@ -350,7 +350,7 @@ class MosaicLevel:
     valid: Tensor
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Mosaic:
     """The templates of every stream keyed by head pose (module docstring).
 
@@ -817,7 +817,7 @@ def native_mosaic_confidence(
     return out[0], out[1], out[2], (image.reshape(B, C, G, G), mask.reshape(B, 1, G, G)), entry
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SearchResult:
     """The best placement :func:`search_mosaic` found for one stream.
 

@@ -23,7 +23,7 @@ from torchface.rendering.rasterizer import Coverage, rasterize_coverage
 from torchface.rendering.visibility import vertex_normals
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Template:
     """Template points of one pyramid level, ``N`` slots per sample (unused slots have ``valid`` False).
 
@@ -73,7 +73,7 @@ class Template:
         return cached
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TemplatePixels:
     """The compact form of a :class:`Template`: where its points lie and what they saw (what a mosaic stores).
 
@@ -230,7 +230,7 @@ def select_template_pixels(
     )  # fmt: skip
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PosedMesh:
     """The model at one expression and pose, as the pixel selection needs it: one per estimate, shared by the
     levels of a pyramid (:func:`select_pixels_posed`).

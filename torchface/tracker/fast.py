@@ -47,7 +47,7 @@ STEP_TOLERANCE: tuple[float, float, float] = (2e-4, 0.05, 2e-3)
 FUNCTION_TOLERANCE: float = 3e-3
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LevelCamera:
     """Pinhole camera of one pyramid level of a per-stream crop.
 
@@ -73,7 +73,7 @@ def _masked_median_abs(r: Tensor, valid: Tensor) -> Tensor:
     return torch.nan_to_num(med, nan=1.0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LevelOutcome:
     """Diagnostics of :func:`solve_level` at its final estimate."""
 
@@ -90,7 +90,7 @@ class LevelOutcome:
     constants: _LevelConstants | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _LevelConstants:
     """What :func:`linearise` needs from the camera and the template, computed once per level (not per iteration).
 

@@ -82,7 +82,7 @@ class FitConfig:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LandmarkFit:
     """Result of :func:`fit_landmarks`.
 

@@ -129,7 +129,7 @@ _FAILED = int(TrackStatus.FAILED)
 _LOST = int(TrackStatus.LOST)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ManagementState:
     """What template management keeps between frames (in :attr:`TrackerState.management`).
 
@@ -169,7 +169,7 @@ class ManagementState:
     adopted_scale: Tensor | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FirstPoseWatch:
     """The online look-ahead start (``initialise_managed(refine_first=...)``): what a stream keeps until its head
     has turned (``min_keyframes`` sides), when its first frame's pose is re-estimated and the stream re-anchored.

@@ -328,7 +328,7 @@ def scale_floor(config: TrackerConfig, level: int) -> float:
     return fine * (coarse / fine) ** f
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrackResult:
     """What one step reports per stream (see :mod:`torchface.conventions` for frames and units).
 
@@ -399,7 +399,7 @@ class TrackResult:
         return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrackerState:
     """Everything a step needs from the past.
 
@@ -771,7 +771,7 @@ def track_step(
     )  # fmt: skip
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ReferenceLevel:
     """The finest level solved by :func:`reference_levels`: its template, gray image with gradients
     ``(B, 3, h, w)``, camera, residual function ``p -> (r, J, valid)`` (:func:`frame_residuals` of that level)

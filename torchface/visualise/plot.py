@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from torchface._names import name_tuple
+
 __all__ = ["au_groups", "plot_track"]
 
 
@@ -70,8 +72,7 @@ def plot_track(
         TypeError: ``columns`` is one string.
         ValueError: a column the plot needs is missing, or ``num_aus`` is negative.
     """
-    if isinstance(columns, str):  # its characters were taken as the columns
-        raise TypeError(f"columns must be a tuple of column names, got one string {columns[:40]!r}")
+    columns = name_tuple(columns, "columns")
     if isinstance(num_aus, bool) or not isinstance(num_aus, (int, np.integer)) or num_aus < 0:
         raise ValueError(f"num_aus must be an integer >= 0, got {num_aus!r}")  # (-1 showed all AUs but one)
     rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
