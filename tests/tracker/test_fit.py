@@ -274,3 +274,33 @@ def test_fit_select_and_to(model):
     low = fit.to(dtype=torch.float32)
     assert low.rotation.dtype == torch.float32 and low.status.dtype == torch.int64
     torch.testing.assert_close(low.translation, fit.translation.float(), rtol=0, atol=0)
+
+
+def test_four_landmarks_fit_the_pose(model):
+    """Four landmarks (eye corners, nose tip, a mouth corner) of a posed mean face: 8 residuals for the pose's 6
+    parameters, the shape held by its prior. They used to fail every such fit (and any from fewer than 10 points):
+    the solver asked for as many residuals as parameters (20), priors or not."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t)
+    w = torch.zeros(3, 68, dtype=D)
+    w[:, [36, 45, 30, 48]] = 1.0
+    fit = fit_landmarks(model, lm, CAM, w)
+    assert fit.status.tolist() == [0, 0, 0]
+    assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-3
+    torch.testing.assert_close(fit.translation, t, rtol=0, atol=1e-2)
+
+
+def test_degenerate_landmarks_fail_their_sample_only(model):
+    """Landmarks that hold no pose are FAILED, not CONVERGED or MAX_ITERATIONS: all at one pixel (the fit drifted
+    to a face 31 km away at a random rotation) and 3e8 px out (the fit put the face behind the camera, where its
+    landmarks stopped counting, and reported CONVERGED at an RMS error of 2e8 px). The good sample beside them is
+    fitted as alone, and nothing is NaN."""
+    R, t = poses()
+    good = project_landmarks(model, R[:1], t[:1])[0]
+    lm = torch.stack([good, torch.full((68, 2), 300.0, dtype=D), good * 1e6])
+    fit = fit_landmarks(model, lm, CAM)
+    alone = fit_landmarks(model, good[None], CAM)
+    assert fit.status.tolist() == [0, 2, 2]
+    for field in ("axis_angle", "translation", "shape_coeffs", "rms_px"):
+        assert bool(torch.isfinite(getattr(fit, field)).all())
+        torch.testing.assert_close(getattr(fit, field)[:1], getattr(alone, field), rtol=0, atol=0)

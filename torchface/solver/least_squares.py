@@ -60,8 +60,9 @@ class SolveStatus(enum.IntEnum):
     CONVERGED = 0
     #: ``max_iterations`` ran out first; ``params`` holds the last accepted estimate.
     MAX_ITERATIONS = 1
-    #: Non-finite residuals or Jacobian, fewer valid residuals than parameters, or an unsolvable
-    #: system; ``params`` holds the last good estimate (``x0`` projected on the bounds if none).
+    #: Non-finite residuals or Jacobian, fewer valid residuals than parameters (than ``min_valid`` where given),
+    #: an unsolvable system, or a non-finite objective at the end (residuals whose squares overflow);
+    #: ``params`` holds the last good estimate (``x0`` projected on the bounds if none).
     FAILED = 2
 
 
@@ -327,6 +328,7 @@ def least_squares(
     prior_precision: torch.Tensor | None = None,
     prior_mean: torch.Tensor | None = None,
     robust: RobustLoss | SwitchedRobustLoss | None = None,
+    min_valid: int | None = None,
 ) -> SolveResult:
     """Minimise ``sum_n rho(r_n(x); s) + 1/2 sum_p lambda_p (x_p - mu_p)**2`` for ``B`` samples at once.
 
@@ -346,8 +348,9 @@ def least_squares(
 
     Status per sample (see :class:`SolveStatus`): CONVERGED when the step or relative cost tolerance is
     met, MAX_ITERATIONS, or FAILED when the residuals or Jacobian are non-finite at a valid entry, fewer
-    than ``P`` residuals are valid, or the normal equations cannot be solved (GN; LM retries with more
-    damping up to ``max_damping``). A failed sample keeps its last good estimate and never makes
+    than ``P`` residuals are valid (``min_valid``), the normal equations cannot be solved (GN; LM retries with
+    more damping up to ``max_damping``), or the objective at ``params`` is not finite (it overflowed: no step
+    can be judged, so LM would otherwise stop there as CONVERGED). A failed sample keeps its last good estimate and never makes
     another one NaN. Without ``config.differentiable`` the loop runs under ``torch.no_grad``; with it,
     only out-of-place tensor operations are used so gradients flow through the unrolled iterations.
 
@@ -365,6 +368,9 @@ def least_squares(
         prior_mean: ``(P,)`` or ``(B, P)`` prior mean ``mu`` (needs ``prior_precision``).
         robust: the :class:`RobustLoss` (or a per-sample :class:`SwitchedRobustLoss`); ``None`` for plain
             least squares.
+        min_valid: the fewest valid residuals a sample needs (FAILED with fewer); ``None`` for ``P``. Fewer than
+            ``P`` can do where a prior determines the other parameters (e.g. ``P`` less the number of parameters
+            with a positive ``prior_precision``).
 
     Returns:
         :class:`SolveResult` with ``params (B, P)``, ``cost (B,)`` and ``initial_cost (B,)`` (sums, as
@@ -406,10 +412,13 @@ def least_squares(
         raise ValueError("prior_mean needs prior_precision")
     mu = None if prior_mean is None else _batched_param("prior_mean", prior_mean, B, P, dtype)
     use_robust = robust is not None and robust.kind is not RobustKind.NONE
+    if min_valid is not None and (isinstance(min_valid, bool) or not isinstance(min_valid, int) or min_valid < 0):
+        raise ValueError(f"min_valid must be a non-negative int or None, got {min_valid!r}")
 
     grad_ctx = contextlib.nullcontext() if config.differentiable else torch.no_grad()
     with grad_ctx:
-        return _run(residual_fn, x0, config, lo, hi, lam, mu, robust if use_robust else None)
+        return _run(residual_fn, x0, config, lo, hi, lam, mu, robust if use_robust else None,
+                    P if min_valid is None else min_valid)
 
 
 def _run(
@@ -421,6 +430,7 @@ def _run(
     lam: torch.Tensor | None,
     mu: torch.Tensor | None,
     robust: RobustLoss | SwitchedRobustLoss | None,
+    min_valid: int,
 ) -> SolveResult:
     B, P = x0.shape
     dtype, device = x0.dtype, x0.device
@@ -455,10 +465,10 @@ def _run(
         # non-finite); J is copied only in the rare case it holds such rows.
         finite = torch.isfinite(r) & torch.isfinite(J.detach().sum(2))
         if valid is None:
-            good = finite.all(1) & (r.shape[1] >= P)
+            good = finite.all(1) & (r.shape[1] >= min_valid)
             use = finite
         else:
-            good = ~(valid & ~finite).any(1) & (valid.sum(1) >= P)
+            good = ~(valid & ~finite).any(1) & (valid.sum(1) >= min_valid)
             use = valid & finite
         if not bool(finite.all()):
             J = torch.where(finite.unsqueeze(2), J, torch.zeros_like(J))
@@ -565,4 +575,7 @@ def _run(
         status = torch.where(converged, code_conv, torch.where(failed, code_fail, status))
         active = active & ~converged & ~failed
 
+    # An objective that overflowed (finite residuals whose squares do not fit the dtype) cannot have been
+    # minimised: LM, which no step could improve on it, would have stopped as CONVERGED at a cost of inf.
+    status = torch.where(torch.isfinite(cost), status, code_fail)
     return SolveResult(params=x, cost=cost, initial_cost=initial_cost, iterations=iterations, status=status)
