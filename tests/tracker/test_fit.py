@@ -304,3 +304,18 @@ def test_degenerate_landmarks_fail_their_sample_only(model):
     for field in ("axis_angle", "translation", "shape_coeffs", "rms_px"):
         assert bool(torch.isfinite(getattr(fit, field)).all())
         torch.testing.assert_close(getattr(fit, field)[:1], getattr(alone, field), rtol=0, atol=0)
+
+
+def test_face_seen_from_behind_is_failed():
+    """The landmarks of a face turned 180 degrees (seen from behind: none of them visible) fit that pose exactly
+    (float32's solve finds it from the frontal start), and the fit reported CONVERGED; a face turned away from the
+    camera is FAILED now. The frontal face beside it is untouched."""
+    model32 = load_candide3(dtype=torch.float32)
+    R = euler_to_matrix(torch.tensor([[0.0, 0.0, 0.0], [180.0, 0.0, 0.0]], dtype=D))
+    t = torch.tensor([[0.0, 0.0, 450.0], [0.0, 0.0, 450.0]], dtype=D)
+    lm = project_landmarks(load_candide3(dtype=D), R, t).float()
+    fit = fit_landmarks(model32, lm, CAM)
+    assert fit.status.tolist() == [0, 2]
+    assert float(geodesic_angle_deg(fit.rotation[1], R[1].float())) < 1.0  # it did find the pose from behind
+    alone = fit_landmarks(model32, lm[:1], CAM)
+    torch.testing.assert_close(fit.axis_angle[:1], alone.axis_angle, rtol=0, atol=0)

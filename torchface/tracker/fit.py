@@ -91,7 +91,8 @@ class LandmarkFit:
         shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)`` (zeros unless fitted).
         rms_px: ``(B,)`` weighted RMS landmark reprojection error in pixels.
         status: ``(B,)`` int64 :class:`~torchface.solver.SolveStatus`: the solver's, or FAILED for a sample whose
-            landmarks hold no pose (:func:`fit_landmarks`) or whose fit put a used landmark behind the camera.
+            landmarks hold no pose, or whose fit put a used landmark behind the camera or turned the face away from
+            it (:func:`fit_landmarks`).
     """
 
     rotation: Tensor
@@ -230,8 +231,10 @@ def fit_landmarks(
     Returns:
         :class:`LandmarkFit`. A sample is FAILED (its fields then hold the solver's last estimate, which means
         nothing) when the solver failed, when its landmarks spread less than a pixel about their centroid (all at
-        one point: no pose to find), or when the fit put a landmark of positive weight behind the camera, where
-        its residual no longer counts (far-off landmarks, thousands of image widths out, can end so).
+        one point: no pose to find), when the fit put a landmark of positive weight behind the camera, where
+        its residual no longer counts (far-off landmarks, thousands of image widths out, can end so), or when it
+        turned the face away from the camera (more than 90 degrees from facing it), where its landmarks could not
+        be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0).
     """
@@ -316,5 +319,10 @@ def fit_landmarks(
     anim = x[:, 6 + S :] if A else torch.zeros(B, model.num_animation, dtype=dtype, device=device)
     # A landmark of positive weight behind the camera (not valid) was dropped from the fit, not fitted.
     dropped = ((w > 0).repeat_interleave(2, dim=1) & ~valid).any(1)
-    status = torch.where((spread_px < _MIN_SPREAD_PX) | dropped, int(SolveStatus.FAILED), res.status)
-    return LandmarkFit(axis_angle_to_matrix(x[:, :3]), x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)
+    # The face turned away from the camera (its forward axis, head -z, points away from the line of sight to the
+    # landmarks' centroid): its landmarks would be hidden. A face's landmarks seen from behind fit it exactly so.
+    R = axis_angle_to_matrix(x[:, :3])
+    centre = torch.einsum("bij,bj->bi", R, model_c) + x[:, 3:6]
+    away = (R[:, :, 2] * centre).sum(-1) <= 0
+    status = torch.where((spread_px < _MIN_SPREAD_PX) | dropped | away, int(SolveStatus.FAILED), res.status)
+    return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)
