@@ -319,3 +319,19 @@ def test_face_seen_from_behind_is_failed():
     assert float(geodesic_angle_deg(fit.rotation[1], R[1].float())) < 1.0  # it did find the pose from behind
     alone = fit_landmarks(model32, lm[:1], CAM)
     torch.testing.assert_close(fit.axis_angle[:1], alone.axis_angle, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e-20])
+def test_rms_error_is_in_pixels_whatever_the_weights_scale(model, scale):
+    """``rms_px`` is the weighted RMS distance, in pixels, of the fitted landmarks from the given ones, for equal
+    weights of any size: it divided by the weights' sum floored at 1e-12, and weights of 1e-20 reported 0.004 px
+    for a fit 1.4 px off. Weights whose sum overflows the dtype are refused."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(4), dtype=D)
+    fit = fit_landmarks(model, lm, CAM, torch.full((3, 68), scale, dtype=D))
+    fitted = project_landmarks(model, fit.rotation, fit.translation, fit.shape_coeffs)
+    expected = ((fitted - lm) ** 2).sum(-1).mean(-1).sqrt()
+    torch.testing.assert_close(fit.rms_px, expected, rtol=1e-9, atol=0)
+    assert float(expected.min()) > 0.5
+    with pytest.raises(ValueError, match="sum beyond"):
+        fit_landmarks(load_candide3(dtype=torch.float32), lm.float(), CAM, torch.full((3, 68), 1e37))
