@@ -611,3 +611,32 @@ def test_min_valid_lets_a_prior_stand_in_for_residuals() -> None:
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="min_valid"):
             least_squares(fn, x0, GN, prior_precision=lam, min_valid=bad)
+
+
+@pytest.mark.parametrize("config", METHODS)
+def test_every_residual_rejected_is_failed(config: SolverConfig) -> None:
+    """Sample 1's residuals share an offset of 1000 the model cannot explain, so their spread (the centred robust
+    scale) is tiny against them and Tukey's weights are all 0: ``J^T W J = 0``, no information. GN called that
+    unsolvable (FAILED) while LM's damping made it a system of denormals whose zero step CONVERGED at ``x0``; both
+    say FAILED now, and sample 0 is solved as alone. A zero Jacobian (no prior) is the same case."""
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(2, 40, 2, generator=g, dtype=D)
+    y = (A @ torch.tensor([1.0, -2.0], dtype=D)[:, None]).squeeze(2) + 0.01 * torch.randn(2, 40, generator=g, dtype=D)
+    y[1] += 1000.0
+
+    def fn(x: torch.Tensor):
+        return (A @ x[..., None]).squeeze(2) - y, A, None
+
+    tukey = RobustLoss(RobustKind.TUKEY)
+    res = least_squares(fn, torch.zeros(2, 2, dtype=D), config, robust=tukey)
+    alone = least_squares(lambda x: ((A[:1] @ x[..., None]).squeeze(2) - y[:1], A[:1], None),
+                          torch.zeros(1, 2, dtype=D), config, robust=tukey)  # fmt: skip
+    assert res.status.tolist() == [CONV, FAIL]
+    torch.testing.assert_close(res.params[:1], alone.params, rtol=0, atol=0)
+    assert bool(torch.isfinite(res.params).all() & torch.isfinite(res.cost).all())
+    zero_j = least_squares(lambda x: (x[:, :1] * 0 + 1.0, torch.zeros(1, 1, 2, dtype=D), None),
+                           torch.zeros(1, 2, dtype=D), config, min_valid=1)  # fmt: skip
+    assert zero_j.status.tolist() == [FAIL]
+    delta, ok = solve_normal_equations(torch.zeros(1, 3, 2, dtype=D), torch.ones(1, 3, dtype=D),
+                                       damping=torch.tensor([1e-3], dtype=D))  # fmt: skip
+    assert ok.tolist() == [False] and delta.abs().sum() == 0

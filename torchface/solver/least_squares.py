@@ -175,7 +175,7 @@ def _solve_spd(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``delta = -(H + damping D)^{-1} g`` by Jacobi-scaled Cholesky, per-sample ``ok``.
 
-    A sample is not ok when its ``H`` or ``g`` is non-finite, the factorisation fails, the scaled
+    A sample is not ok when its ``H`` or ``g`` is non-finite, ``H`` is zero (before damping), the factorisation fails, the scaled
     Cholesky pivots show a reciprocal condition number below ``rcond`` (default ``P * eps``), or the
     solution is non-finite; such samples get ``delta = 0`` and never touch the others.
     """
@@ -186,6 +186,9 @@ def _solve_spd(
     H = torch.where(fin3, H, eye)
     g = torch.where(finite.unsqueeze(1), g, torch.zeros_like(g))
     diag = torch.diagonal(H, dim1=1, dim2=2)
+    # A zero H (no residual carries weight, no prior: e.g. every residual rejected by a redescending loss) holds no
+    # information; damping would turn it into a solvable system of denormals whose zero step "converged".
+    informative = diag.amax(1) > 0
     if damping is not None:
         if marquardt:
             floor = diag.amax(1, keepdim=True).clamp_min(torch.finfo(H.dtype).tiny) * 1e-6
@@ -203,7 +206,7 @@ def _solve_spd(
     # only well-posed systems (the identity elsewhere), so a singular sample gives zero, not NaN, gradients.
     with torch.no_grad():
         L, info = torch.linalg.cholesky_ex(Hs)
-        ok = finite & (info == 0) & pos.all(1)
+        ok = finite & (info == 0) & pos.all(1) & informative
         piv = torch.diagonal(L, dim1=1, dim2=2).abs()
         ratio = piv.amin(1) / piv.amax(1).clamp_min(torch.finfo(H.dtype).tiny)
         thresh = P * torch.finfo(H.dtype).eps if rcond is None else rcond
@@ -250,8 +253,8 @@ def solve_normal_equations(
             Cholesky pivots); ``None`` for ``P * eps``.
 
     Returns:
-        ``delta (B, P)`` and ``ok (B,)`` bool. Where ``ok`` is False (non-finite input, failed or
-        ill-conditioned factorisation), ``delta`` is 0; other samples are unaffected.
+        ``delta (B, P)`` and ``ok (B,)`` bool. Where ``ok`` is False (non-finite input, a zero ``J^T W J +
+        diag(prior)``, failed or ill-conditioned factorisation), ``delta`` is 0; other samples are unaffected.
 
     Example:
         >>> J = torch.eye(2).expand(1, 2, 2)
