@@ -335,3 +335,11 @@ def test_rms_error_is_in_pixels_whatever_the_weights_scale(model, scale):
     assert float(expected.min()) > 0.5
     with pytest.raises(ValueError, match="sum beyond"):
         fit_landmarks(load_candide3(dtype=torch.float32), lm.float(), CAM, torch.full((3, 68), 1e37))
+
+
+def test_empty_batch_gives_an_empty_fit(model):
+    """No sample: every field is empty with its trailing shape (a reshape with an inferred size raised
+    "cannot reshape tensor of 0 elements" inside the solver's residual function)."""
+    fit = fit_landmarks(model, torch.zeros(0, 68, 2, dtype=D), CAM)
+    assert fit.rotation.shape == (0, 3, 3) and fit.translation.shape == (0, 3) and fit.status.shape == (0,)
+    assert fit.shape_coeffs.shape == (0, model.num_shape) and fit.anim_coeffs.shape == (0, model.num_animation)

@@ -266,7 +266,7 @@ def fit_landmarks(
         cols = [d_aa, d_t, torch.einsum("bkuj,skj->bkus", d_dir, shape_l)]
         if A:
             cols.append(torch.einsum("bkuj,akj->bkua", d_dir, anim_l))
-        J = torch.cat(cols, dim=-1).reshape(B, 2 * k, -1) * sqrt_w.unsqueeze(-1)
+        J = torch.cat(cols, dim=-1).reshape(B, 2 * k, 6 + S + A) * sqrt_w.unsqueeze(-1)
         r = (uv - target).reshape(B, 2 * k) * sqrt_w
         valid = (w > 0).repeat_interleave(2, dim=1) & (cam[..., 2] > 0).repeat_interleave(2, dim=1)
         return r, J, valid
