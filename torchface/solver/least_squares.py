@@ -175,9 +175,9 @@ def _solve_spd(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``delta = -(H + damping D)^{-1} g`` by Jacobi-scaled Cholesky, per-sample ``ok``.
 
-    A sample is not ok when its ``H`` or ``g`` is non-finite, ``H`` is zero (before damping), the factorisation fails, the scaled
-    Cholesky pivots show a reciprocal condition number below ``rcond`` (default ``P * eps``), or the
-    solution is non-finite; such samples get ``delta = 0`` and never touch the others.
+    A sample is not ok when its ``H`` or ``g`` is non-finite, ``H`` is zero (before damping), the factorisation
+    fails, the scaled Cholesky pivots show a reciprocal condition number below ``rcond`` (default ``P * eps``), or
+    the solution is non-finite; such samples get ``delta = 0`` and never touch the others.
     """
     B, P = g.shape
     eye = torch.eye(P, dtype=H.dtype, device=H.device).expand(B, P, P)
@@ -351,10 +351,10 @@ def least_squares(
 
     Status per sample (see :class:`SolveStatus`): CONVERGED when the step or relative cost tolerance is
     met, MAX_ITERATIONS, or FAILED when the residuals or Jacobian are non-finite at a valid entry, fewer
-    than ``P`` residuals are valid (``min_valid``), the normal equations cannot be solved (GN; LM retries with
+    than ``P`` residuals (or ``min_valid``) are valid, the normal equations cannot be solved (GN; LM retries with
     more damping up to ``max_damping``), or the objective at ``params`` is not finite (it overflowed: no step
-    can be judged, so LM would otherwise stop there as CONVERGED). A failed sample keeps its last good estimate and never makes
-    another one NaN. Without ``config.differentiable`` the loop runs under ``torch.no_grad``; with it,
+    can be judged, so LM would otherwise stop there as CONVERGED). A failed sample keeps its last good estimate
+    and never makes another one NaN. Without ``config.differentiable`` the loop runs under ``torch.no_grad``; with it,
     only out-of-place tensor operations are used so gradients flow through the unrolled iterations.
 
     Args:
