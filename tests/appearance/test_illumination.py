@@ -97,6 +97,16 @@ def test_remove_is_finite_when_gain_vanishes():
     torch.testing.assert_close(out, torch.tensor([[10.0]], dtype=D))
 
 
+@pytest.mark.parametrize("min_gain", [0.0, -0.05, float("nan"), float("inf")])
+def test_remove_refuses_a_floor_that_is_not_positive(min_gain):
+    """The floor is what keeps the result finite: 0 gave inf (NaN for a zero numerator) at a vanishing gain, NaN
+    gave NaN everywhere; now a clear error."""
+    n = torch.tensor([[[0.0, 0.0, -1.0]]], dtype=D)
+    params = torch.tensor([[-1.0, 0.0, 0.0, 0.0, 0.0]], dtype=D)  # gain 1 + (-1) = 0
+    with pytest.raises(ValueError, match="min_gain must be positive and finite"):
+        remove_illumination(torch.tensor([[0.5]], dtype=D), n, params, min_gain=min_gain)
+
+
 def test_gradcheck_apply():
     gen = torch.Generator().manual_seed(5)
     tpl = torch.rand(1, 4, generator=gen, dtype=D, requires_grad=True)

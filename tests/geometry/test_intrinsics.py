@@ -32,6 +32,13 @@ def test_scaled_intrinsics_keep_pixel_centres() -> None:
     torch.testing.assert_close(unproject(uv_half, pts[..., 2], half), pts)
 
 
+@pytest.mark.parametrize("factor", [-1.0, 0.0, float("nan"), float("inf")])
+def test_scaled_refuses_a_factor_that_is_not_a_positive_size(factor: float) -> None:
+    """A negative or zero factor gave a 1x1 camera without a word; NaN and inf an int conversion's error."""
+    with pytest.raises(ValueError, match="factor must be a positive finite number"):
+        Intrinsics.default(640, 480).scaled(factor)
+
+
 def test_intrinsics_validation_and_frozen() -> None:
     with pytest.raises(ValueError, match="image size"):
         Intrinsics(0, 480, 500.0, 500.0, 0.0, 0.0)

@@ -570,3 +570,73 @@ def test_gradients_through_a_singular_sample_are_zero_not_nan() -> None:
     assert torch.isfinite(gJ).all() and torch.isfinite(gr).all()
     assert torch.all(gJ[1] == 0) and torch.all(gr[1] == 0)
     assert gJ[[0, 2]].abs().sum() > 0 and gr[[0, 2]].abs().sum() > 0
+
+
+@pytest.mark.parametrize("config", METHODS)
+def test_overflowing_cost_is_failed_not_converged(config: SolverConfig) -> None:
+    """Finite residuals whose squares overflow (float32 residuals of 1e20): the objective is inf at every
+    estimate, no step can be judged, so the sample is FAILED (LM used to stop there as CONVERGED with a cost of
+    inf); its neighbour in the batch is solved as alone."""
+    g = torch.Generator().manual_seed(5)
+    A = torch.randn(2, 8, 2, generator=g)
+    y = torch.randn(2, 8, generator=g)
+    y[0] = y[0] * 1e20
+
+    def fn(x: torch.Tensor):
+        return (A @ x[..., None]).squeeze(2) - y, A, None
+
+    res = least_squares(fn, torch.zeros(2, 2), config)
+    alone = least_squares(lambda x: ((A[1:] @ x[..., None]).squeeze(2) - y[1:], A[1:], None), torch.zeros(1, 2), config)
+    assert res.status.tolist() == [FAIL, CONV]
+    assert bool(torch.isfinite(res.params).all())
+    torch.testing.assert_close(res.params[1:], alone.params, rtol=0, atol=0)
+
+
+def test_min_valid_lets_a_prior_stand_in_for_residuals() -> None:
+    """Two residuals and three parameters, one of which has a prior: with ``min_valid=2`` the system is solved
+    (to the closed form); by default (``P`` residuals needed) the sample is FAILED at ``x0``."""
+    A = torch.tensor([[[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]]], dtype=D)
+    b = torch.tensor([[1.0, 2.0]], dtype=D)
+    lam = torch.tensor([0.0, 0.0, 4.0], dtype=D)
+
+    def fn(x: torch.Tensor):
+        return (A @ x[..., None]).squeeze(2) - b, A, None
+
+    x0 = torch.zeros(1, 3, dtype=D)
+    assert least_squares(fn, x0, GN, prior_precision=lam).status.tolist() == [FAIL]
+    res = least_squares(fn, x0, GN, prior_precision=lam, min_valid=2)
+    ref = torch.linalg.solve(A[0].T @ A[0] + torch.diag(lam), A[0].T @ b[0])
+    assert res.status.tolist() == [CONV]
+    torch.testing.assert_close(res.params[0], ref, rtol=0, atol=1e-12)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="min_valid"):
+            least_squares(fn, x0, GN, prior_precision=lam, min_valid=bad)
+
+
+@pytest.mark.parametrize("config", METHODS)
+def test_every_residual_rejected_is_failed(config: SolverConfig) -> None:
+    """Sample 1's residuals share an offset of 1000 the model cannot explain, so their spread (the centred robust
+    scale) is tiny against them and Tukey's weights are all 0: ``J^T W J = 0``, no information. GN called that
+    unsolvable (FAILED) while LM's damping made it a system of denormals whose zero step CONVERGED at ``x0``; both
+    say FAILED now, and sample 0 is solved as alone. A zero Jacobian (no prior) is the same case."""
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(2, 40, 2, generator=g, dtype=D)
+    y = (A @ torch.tensor([1.0, -2.0], dtype=D)[:, None]).squeeze(2) + 0.01 * torch.randn(2, 40, generator=g, dtype=D)
+    y[1] += 1000.0
+
+    def fn(x: torch.Tensor):
+        return (A @ x[..., None]).squeeze(2) - y, A, None
+
+    tukey = RobustLoss(RobustKind.TUKEY)
+    res = least_squares(fn, torch.zeros(2, 2, dtype=D), config, robust=tukey)
+    alone = least_squares(lambda x: ((A[:1] @ x[..., None]).squeeze(2) - y[:1], A[:1], None),
+                          torch.zeros(1, 2, dtype=D), config, robust=tukey)  # fmt: skip
+    assert res.status.tolist() == [CONV, FAIL]
+    torch.testing.assert_close(res.params[:1], alone.params, rtol=0, atol=0)
+    assert bool(torch.isfinite(res.params).all() & torch.isfinite(res.cost).all())
+    zero_j = least_squares(lambda x: (x[:, :1] * 0 + 1.0, torch.zeros(1, 1, 2, dtype=D), None),
+                           torch.zeros(1, 2, dtype=D), config, min_valid=1)  # fmt: skip
+    assert zero_j.status.tolist() == [FAIL]
+    delta, ok = solve_normal_equations(torch.zeros(1, 3, 2, dtype=D), torch.ones(1, 3, dtype=D),
+                                       damping=torch.tensor([1e-3], dtype=D))  # fmt: skip
+    assert ok.tolist() == [False] and delta.abs().sum() == 0

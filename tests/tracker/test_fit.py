@@ -274,3 +274,72 @@ def test_fit_select_and_to(model):
     low = fit.to(dtype=torch.float32)
     assert low.rotation.dtype == torch.float32 and low.status.dtype == torch.int64
     torch.testing.assert_close(low.translation, fit.translation.float(), rtol=0, atol=0)
+
+
+def test_four_landmarks_fit_the_pose(model):
+    """Four landmarks (eye corners, nose tip, a mouth corner) of a posed mean face: 8 residuals for the pose's 6
+    parameters, the shape held by its prior. They used to fail every such fit (and any from fewer than 10 points):
+    the solver asked for as many residuals as parameters (20), priors or not."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t)
+    w = torch.zeros(3, 68, dtype=D)
+    w[:, [36, 45, 30, 48]] = 1.0
+    fit = fit_landmarks(model, lm, CAM, w)
+    assert fit.status.tolist() == [0, 0, 0]
+    assert float(geodesic_angle_deg(fit.rotation, R).max()) < 1e-3
+    torch.testing.assert_close(fit.translation, t, rtol=0, atol=1e-2)
+
+
+def test_degenerate_landmarks_fail_their_sample_only(model):
+    """Landmarks that hold no pose are FAILED, not CONVERGED or MAX_ITERATIONS: all at one pixel (the fit drifted
+    to a face 31 km away at a random rotation) and 3e8 px out (the fit put the face behind the camera, where its
+    landmarks stopped counting, and reported CONVERGED at an RMS error of 2e8 px). The good sample beside them is
+    fitted as alone, and nothing is NaN."""
+    R, t = poses()
+    good = project_landmarks(model, R[:1], t[:1])[0]
+    lm = torch.stack([good, torch.full((68, 2), 300.0, dtype=D), good * 1e6])
+    fit = fit_landmarks(model, lm, CAM)
+    alone = fit_landmarks(model, good[None], CAM)
+    assert fit.status.tolist() == [0, 2, 2]
+    for field in ("axis_angle", "translation", "shape_coeffs", "rms_px"):
+        assert bool(torch.isfinite(getattr(fit, field)).all())
+        torch.testing.assert_close(getattr(fit, field)[:1], getattr(alone, field), rtol=0, atol=0)
+
+
+def test_face_seen_from_behind_is_failed():
+    """The landmarks of a face turned 180 degrees (seen from behind: none of them visible) fit that pose exactly
+    (float32's solve finds it from the frontal start), and the fit reported CONVERGED; a face turned away from the
+    camera is FAILED now. The frontal face beside it is untouched."""
+    model32 = load_candide3(dtype=torch.float32)
+    R = euler_to_matrix(torch.tensor([[0.0, 0.0, 0.0], [180.0, 0.0, 0.0]], dtype=D))
+    t = torch.tensor([[0.0, 0.0, 450.0], [0.0, 0.0, 450.0]], dtype=D)
+    lm = project_landmarks(load_candide3(dtype=D), R, t).float()
+    fit = fit_landmarks(model32, lm, CAM)
+    assert fit.status.tolist() == [0, 2]
+    assert float(geodesic_angle_deg(fit.rotation[1], R[1].float())) < 1.0  # it did find the pose from behind
+    alone = fit_landmarks(model32, lm[:1], CAM)
+    torch.testing.assert_close(fit.axis_angle[:1], alone.axis_angle, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e-20])
+def test_rms_error_is_in_pixels_whatever_the_weights_scale(model, scale):
+    """``rms_px`` is the weighted RMS distance, in pixels, of the fitted landmarks from the given ones, for equal
+    weights of any size: it divided by the weights' sum floored at 1e-12, and weights of 1e-20 reported 0.004 px
+    for a fit 1.4 px off. Weights whose sum overflows the dtype are refused."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(4), dtype=D)
+    fit = fit_landmarks(model, lm, CAM, torch.full((3, 68), scale, dtype=D))
+    fitted = project_landmarks(model, fit.rotation, fit.translation, fit.shape_coeffs)
+    expected = ((fitted - lm) ** 2).sum(-1).mean(-1).sqrt()
+    torch.testing.assert_close(fit.rms_px, expected, rtol=1e-9, atol=0)
+    assert float(expected.min()) > 0.5
+    with pytest.raises(ValueError, match="sum beyond"):
+        fit_landmarks(load_candide3(dtype=torch.float32), lm.float(), CAM, torch.full((3, 68), 1e37))
+
+
+def test_empty_batch_gives_an_empty_fit(model):
+    """No sample: every field is empty with its trailing shape (a reshape with an inferred size raised
+    "cannot reshape tensor of 0 elements" inside the solver's residual function)."""
+    fit = fit_landmarks(model, torch.zeros(0, 68, 2, dtype=D), CAM)
+    assert fit.rotation.shape == (0, 3, 3) and fit.translation.shape == (0, 3) and fit.status.shape == (0,)
+    assert fit.shape_coeffs.shape == (0, model.num_shape) and fit.anim_coeffs.shape == (0, model.num_animation)

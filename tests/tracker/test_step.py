@@ -522,6 +522,19 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
         initialise(model, replace(BASE, expression_prior_weights=(1.0,) * 5), frames[:, 0], lm, cam)
 
 
+def test_initialise_refuses_more_levels_than_the_frames_hold(model, two_streams):
+    """A pyramid whose coarsest level would be under 2 pixels a side is refused by name (it failed inside the
+    pyramid filter: "images must be (B, C, H, W) with H, W >= 3, got (1, 1, 1, 2)"); the most levels allowed run."""
+    frames, gts = two_streams
+    cam, lm = Intrinsics.default(W, H), landmarks_of(gts)
+    most = min(W, H).bit_length() - 1
+    for n in (most + 1, most + 3):
+        with pytest.raises(ValueError, match=f"num_levels={n} is too many for {W}x{H} frames.*at most {most}"):
+            initialise(model, replace(BASE, num_levels=n, iterations=(1,) * n), frames[:, 0], lm, cam)
+    state, _ = initialise(model, replace(BASE, num_levels=most, iterations=(1,) * most), frames[:, 0], lm, cam)
+    assert min(state.templates[-1].valid.shape) >= 1 and len(state.templates) == most
+
+
 def test_failed_initialise_forgets_the_previous_video(model, two_streams):
     """A FaceTracker whose initialise raises does not track on against the previous video's templates."""
     frames, gts = two_streams

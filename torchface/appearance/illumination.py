@@ -13,6 +13,8 @@ fixed light directions (any three independent directions span the same space). T
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -63,10 +65,16 @@ def remove_illumination(observed: Tensor, normals_cam: Tensor, params: Tensor, m
         observed: ``(B, N)`` or ``(B, C, N)`` observed intensities.
         normals_cam: ``(B, N, 3)`` unit normals in the camera frame.
         params: ``(B, L)`` illumination parameters ``[gain, bias, lx, ly, lz]``.
+        min_gain: the denominator's floor, positive and finite.
 
     Returns:
         Same shape as ``observed``.
+
+    Raises:
+        ValueError: ``min_gain`` not positive and finite (0 divided by zero: inf and NaN).
     """
+    if isinstance(min_gain, bool) or not 0 < float(min_gain) < math.inf:
+        raise ValueError(f"min_gain must be positive and finite, got {min_gain!r}")
     gain = 1.0 + params[:, 0:1] + torch.einsum("bnk,bk->bn", normals_cam, params[:, 2:5])  # (B, N)
     gain = gain.clamp_min(min_gain)
     bias = params[:, 1:2]

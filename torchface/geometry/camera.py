@@ -84,7 +84,13 @@ class Intrinsics:
         )
 
     def scaled(self, factor: float) -> "Intrinsics":
-        """Intrinsics of the image resized by ``factor`` (pixel-centre convention preserved)."""
+        """Intrinsics of the image resized by ``factor`` (pixel-centre convention preserved).
+
+        Raises:
+            ValueError: ``factor`` not a positive finite number (a negative one gave a 1x1 camera).
+        """
+        if isinstance(factor, bool) or not 0 < float(factor) < math.inf:
+            raise ValueError(f"factor must be a positive finite number, got {factor!r}")
         w = max(1, int(round(self.width * factor)))
         h = max(1, int(round(self.height * factor)))
         sx, sy = w / self.width, h / self.height

@@ -60,8 +60,9 @@ class SolveStatus(enum.IntEnum):
     CONVERGED = 0
     #: ``max_iterations`` ran out first; ``params`` holds the last accepted estimate.
     MAX_ITERATIONS = 1
-    #: Non-finite residuals or Jacobian, fewer valid residuals than parameters, or an unsolvable
-    #: system; ``params`` holds the last good estimate (``x0`` projected on the bounds if none).
+    #: Non-finite residuals or Jacobian, fewer valid residuals than parameters (than ``min_valid`` where given),
+    #: an unsolvable system, or a non-finite objective at the end (residuals whose squares overflow);
+    #: ``params`` holds the last good estimate (``x0`` projected on the bounds if none).
     FAILED = 2
 
 
@@ -174,9 +175,9 @@ def _solve_spd(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``delta = -(H + damping D)^{-1} g`` by Jacobi-scaled Cholesky, per-sample ``ok``.
 
-    A sample is not ok when its ``H`` or ``g`` is non-finite, the factorisation fails, the scaled
-    Cholesky pivots show a reciprocal condition number below ``rcond`` (default ``P * eps``), or the
-    solution is non-finite; such samples get ``delta = 0`` and never touch the others.
+    A sample is not ok when its ``H`` or ``g`` is non-finite, ``H`` is zero (before damping), the factorisation
+    fails, the scaled Cholesky pivots show a reciprocal condition number below ``rcond`` (default ``P * eps``), or
+    the solution is non-finite; such samples get ``delta = 0`` and never touch the others.
     """
     B, P = g.shape
     eye = torch.eye(P, dtype=H.dtype, device=H.device).expand(B, P, P)
@@ -185,6 +186,9 @@ def _solve_spd(
     H = torch.where(fin3, H, eye)
     g = torch.where(finite.unsqueeze(1), g, torch.zeros_like(g))
     diag = torch.diagonal(H, dim1=1, dim2=2)
+    # A zero H (no residual carries weight, no prior: e.g. every residual rejected by a redescending loss) holds no
+    # information; damping would turn it into a solvable system of denormals whose zero step "converged".
+    informative = diag.amax(1) > 0
     if damping is not None:
         if marquardt:
             floor = diag.amax(1, keepdim=True).clamp_min(torch.finfo(H.dtype).tiny) * 1e-6
@@ -202,7 +206,7 @@ def _solve_spd(
     # only well-posed systems (the identity elsewhere), so a singular sample gives zero, not NaN, gradients.
     with torch.no_grad():
         L, info = torch.linalg.cholesky_ex(Hs)
-        ok = finite & (info == 0) & pos.all(1)
+        ok = finite & (info == 0) & pos.all(1) & informative
         piv = torch.diagonal(L, dim1=1, dim2=2).abs()
         ratio = piv.amin(1) / piv.amax(1).clamp_min(torch.finfo(H.dtype).tiny)
         thresh = P * torch.finfo(H.dtype).eps if rcond is None else rcond
@@ -249,8 +253,8 @@ def solve_normal_equations(
             Cholesky pivots); ``None`` for ``P * eps``.
 
     Returns:
-        ``delta (B, P)`` and ``ok (B,)`` bool. Where ``ok`` is False (non-finite input, failed or
-        ill-conditioned factorisation), ``delta`` is 0; other samples are unaffected.
+        ``delta (B, P)`` and ``ok (B,)`` bool. Where ``ok`` is False (non-finite input, a zero ``J^T W J +
+        diag(prior)``, failed or ill-conditioned factorisation), ``delta`` is 0; other samples are unaffected.
 
     Example:
         >>> J = torch.eye(2).expand(1, 2, 2)
@@ -327,6 +331,7 @@ def least_squares(
     prior_precision: torch.Tensor | None = None,
     prior_mean: torch.Tensor | None = None,
     robust: RobustLoss | SwitchedRobustLoss | None = None,
+    min_valid: int | None = None,
 ) -> SolveResult:
     """Minimise ``sum_n rho(r_n(x); s) + 1/2 sum_p lambda_p (x_p - mu_p)**2`` for ``B`` samples at once.
 
@@ -346,9 +351,10 @@ def least_squares(
 
     Status per sample (see :class:`SolveStatus`): CONVERGED when the step or relative cost tolerance is
     met, MAX_ITERATIONS, or FAILED when the residuals or Jacobian are non-finite at a valid entry, fewer
-    than ``P`` residuals are valid, or the normal equations cannot be solved (GN; LM retries with more
-    damping up to ``max_damping``). A failed sample keeps its last good estimate and never makes
-    another one NaN. Without ``config.differentiable`` the loop runs under ``torch.no_grad``; with it,
+    than ``P`` residuals (or ``min_valid``) are valid, the normal equations cannot be solved (GN; LM retries with
+    more damping up to ``max_damping``), or the objective at ``params`` is not finite (it overflowed: no step
+    can be judged, so LM would otherwise stop there as CONVERGED). A failed sample keeps its last good estimate
+    and never makes another one NaN. Without ``config.differentiable`` the loop runs under ``torch.no_grad``; with it,
     only out-of-place tensor operations are used so gradients flow through the unrolled iterations.
 
     Args:
@@ -365,6 +371,9 @@ def least_squares(
         prior_mean: ``(P,)`` or ``(B, P)`` prior mean ``mu`` (needs ``prior_precision``).
         robust: the :class:`RobustLoss` (or a per-sample :class:`SwitchedRobustLoss`); ``None`` for plain
             least squares.
+        min_valid: the fewest valid residuals a sample needs (FAILED with fewer); ``None`` for ``P``. Fewer than
+            ``P`` can do where a prior determines the other parameters (e.g. ``P`` less the number of parameters
+            with a positive ``prior_precision``).
 
     Returns:
         :class:`SolveResult` with ``params (B, P)``, ``cost (B,)`` and ``initial_cost (B,)`` (sums, as
@@ -406,10 +415,13 @@ def least_squares(
         raise ValueError("prior_mean needs prior_precision")
     mu = None if prior_mean is None else _batched_param("prior_mean", prior_mean, B, P, dtype)
     use_robust = robust is not None and robust.kind is not RobustKind.NONE
+    if min_valid is not None and (isinstance(min_valid, bool) or not isinstance(min_valid, int) or min_valid < 0):
+        raise ValueError(f"min_valid must be a non-negative int or None, got {min_valid!r}")
 
     grad_ctx = contextlib.nullcontext() if config.differentiable else torch.no_grad()
     with grad_ctx:
-        return _run(residual_fn, x0, config, lo, hi, lam, mu, robust if use_robust else None)
+        return _run(residual_fn, x0, config, lo, hi, lam, mu, robust if use_robust else None,
+                    P if min_valid is None else min_valid)
 
 
 def _run(
@@ -421,6 +433,7 @@ def _run(
     lam: torch.Tensor | None,
     mu: torch.Tensor | None,
     robust: RobustLoss | SwitchedRobustLoss | None,
+    min_valid: int,
 ) -> SolveResult:
     B, P = x0.shape
     dtype, device = x0.dtype, x0.device
@@ -455,10 +468,10 @@ def _run(
         # non-finite); J is copied only in the rare case it holds such rows.
         finite = torch.isfinite(r) & torch.isfinite(J.detach().sum(2))
         if valid is None:
-            good = finite.all(1) & (r.shape[1] >= P)
+            good = finite.all(1) & (r.shape[1] >= min_valid)
             use = finite
         else:
-            good = ~(valid & ~finite).any(1) & (valid.sum(1) >= P)
+            good = ~(valid & ~finite).any(1) & (valid.sum(1) >= min_valid)
             use = valid & finite
         if not bool(finite.all()):
             J = torch.where(finite.unsqueeze(2), J, torch.zeros_like(J))
@@ -565,4 +578,7 @@ def _run(
         status = torch.where(converged, code_conv, torch.where(failed, code_fail, status))
         active = active & ~converged & ~failed
 
+    # An objective that overflowed (finite residuals whose squares do not fit the dtype) cannot have been
+    # minimised: LM, which no step could improve on it, would have stopped as CONVERGED at a cost of inf.
+    status = torch.where(torch.isfinite(cost), status, code_fail)
     return SolveResult(params=x, cost=cost, initial_cost=initial_cost, iterations=iterations, status=status)

@@ -20,7 +20,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.model.face_model import FaceModel, interpolate_landmarks
-from torchface.solver.least_squares import SolverConfig, least_squares
+from torchface.solver.least_squares import SolveStatus, SolverConfig, least_squares
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,9 @@ class LandmarkFit:
         rotation: ``(B, 3, 3)`` head -> camera; axis_angle: ``(B, 3)``; translation: ``(B, 3)`` mm.
         shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)`` (zeros unless fitted).
         rms_px: ``(B,)`` weighted RMS landmark reprojection error in pixels.
-        status: ``(B,)`` int64 :class:`~torchface.solver.SolveStatus`.
+        status: ``(B,)`` int64 :class:`~torchface.solver.SolveStatus`: the solver's, or FAILED for a sample whose
+            landmarks hold no pose, or whose fit put a used landmark behind the camera or turned the face away from
+            it (:func:`fit_landmarks`).
     """
 
     rotation: Tensor
@@ -197,7 +199,14 @@ def _check_landmarks(
     target, w = landmark_targets(landmarks_px.to(dtype=dtype, device=device), weights)
     if bool(((w > 0).sum(-1) < 4).any()):
         raise ValueError("every sample needs at least 4 finite landmarks with positive weight")
+    if not bool(torch.isfinite(w.sum(-1)).all()):  # the start's weighted centroid would be 0 / 0
+        raise ValueError(f"the landmark weights of a sample sum beyond {dtype}'s range; scale them down")
     return target, w
+
+
+#: Landmarks closer than this to their weighted centroid (RMS, pixels) hold no pose: a face seen as a point, whose
+#: fit drifts to tens of kilometres away at any rotation. Such a sample is FAILED.
+_MIN_SPREAD_PX: float = 1.0
 
 
 @full_precision
@@ -222,7 +231,14 @@ def fit_landmarks(
         config: :class:`FitConfig`.
 
     Returns:
-        :class:`LandmarkFit`.
+        :class:`LandmarkFit`. A sample is FAILED (its fields then hold the solver's last estimate, which means
+        nothing) when the solver failed, when its landmarks spread less than a pixel about their centroid (all at
+        one point: no pose to find), when the fit put a landmark of positive weight behind the camera, where
+        its residual no longer counts (far-off landmarks, thousands of image widths out, can end so), or when it
+        turned the face away from the camera (more than 90 degrees from facing it), where its landmarks could not
+        be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose).
+        Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
+        six; the shape units and the expression have priors, unless given a precision of 0).
     """
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
     k = int(idx.numel())
@@ -250,7 +266,7 @@ def fit_landmarks(
         cols = [d_aa, d_t, torch.einsum("bkuj,skj->bkus", d_dir, shape_l)]
         if A:
             cols.append(torch.einsum("bkuj,akj->bkua", d_dir, anim_l))
-        J = torch.cat(cols, dim=-1).reshape(B, 2 * k, -1) * sqrt_w.unsqueeze(-1)
+        J = torch.cat(cols, dim=-1).reshape(B, 2 * k, 6 + S + A) * sqrt_w.unsqueeze(-1)
         r = (uv - target).reshape(B, 2 * k) * sqrt_w
         valid = (w > 0).repeat_interleave(2, dim=1) & (cam[..., 2] > 0).repeat_interleave(2, dim=1)
         return r, J, valid
@@ -275,6 +291,9 @@ def fit_landmarks(
         lower.append(model.animation_ranges[:, 0])
         upper.append(model.animation_ranges[:, 1])
         prior.append(torch.full((A,), config.expression_prior_precision, dtype=dtype, device=device))
+    # The parameters without a prior need the residuals: the shape units' and expression's priors determine theirs
+    # (4 landmarks, 8 residuals, fit the pose; asking for P residuals failed every fit from fewer than 10 points).
+    unregularised = int((torch.cat(prior) == 0).sum())
     res = least_squares(
         residual_fn,
         x0,
@@ -282,6 +301,7 @@ def fit_landmarks(
         lower=torch.cat(lower),
         upper=torch.cat(upper),
         prior_precision=torch.cat(prior),
+        min_valid=unregularised,
     )
     x = res.params
     if config.refine_shape_prior_precision is not None and S > 0:
@@ -293,11 +313,20 @@ def fit_landmarks(
         prior2[6 : 6 + S] = config.refine_shape_prior_precision
         res2 = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
-            prior_precision=prior2,
+            prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum()),
         )
         x = torch.where(res2.failed.unsqueeze(-1), x, res2.params)
     r, _, valid = residual_fn(x)
-    rms = (r.pow(2) * valid).sum(-1).div(w.sum(-1).clamp_min(1e-12)).sqrt()
+    # The floor only keeps a division by 0 away (never here: 4 positive weights): a floor of 1e-12 inflated small
+    # weights' sums, and their RMS error came out in units of sqrt(weight), 0.004 px for a fit 1.4 px off at 1e-20.
+    rms = (r.pow(2) * valid).sum(-1).div(w.sum(-1).clamp_min(torch.finfo(dtype).tiny)).sqrt()
     anim = x[:, 6 + S :] if A else torch.zeros(B, model.num_animation, dtype=dtype, device=device)
-    status = res.status
-    return LandmarkFit(axis_angle_to_matrix(x[:, :3]), x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)
+    # A landmark of positive weight behind the camera (not valid) was dropped from the fit, not fitted.
+    dropped = ((w > 0).repeat_interleave(2, dim=1) & ~valid).any(1)
+    # The face turned away from the camera (its forward axis, head -z, points away from the line of sight to the
+    # landmarks' centroid): its landmarks would be hidden. A face's landmarks seen from behind fit it exactly so.
+    R = axis_angle_to_matrix(x[:, :3])
+    centre = torch.einsum("bij,bj->bi", R, model_c) + x[:, 3:6]
+    away = (R[:, :, 2] * centre).sum(-1) <= 0
+    status = torch.where((spread_px < _MIN_SPREAD_PX) | dropped | away, int(SolveStatus.FAILED), res.status)
+    return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)

@@ -572,7 +572,7 @@ def _refine_first_fit(
     sig, al = coeffs(x)
     R0 = axis_angle_to_matrix(x[0:3])[None]
     uvl = geometry(x, 0)[2]  # landmark pixels (full resolution at every level)
-    rms = ((((uvl - target) ** 2).sum(-1) * lw).sum() / lw.sum().clamp_min(1e-12)).sqrt()
+    rms = ((((uvl - target) ** 2).sum(-1) * lw).sum() / lw.sum().clamp_min(torch.finfo(lw.dtype).tiny)).sqrt()
     out_dt = model.dtype
     refined = LandmarkFit(
         R0.to(out_dt), x[0:3][None].to(out_dt), x[3:6][None].to(out_dt), sig[None].to(out_dt), al[None].to(out_dt),

@@ -549,9 +549,14 @@ def check_initialise_inputs(
     """The checks of :func:`initialise` (and of :func:`~torchface.tracker.managed.initialise_managed` before its
     landmark fit): frames (:func:`check_frames` with values), at least one stream, ``(B, K, 2)`` landmarks of the
     model's ``K`` points (NaN: missing; the online start and recovery use them all, so a subset is given as NaN
-    rows), ``(B, K)`` tensor weights, and ``config.expression_prior_weights`` of the model's length."""
+    rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
+    ``config.num_levels`` the frames' size allows."""
     check_frames(frames, intrinsics, values=True)
     B, K = frames.shape[0], model.num_landmarks
+    side = min(frames.shape[-2:])  # each level halves it (rounding down); the coarsest needs 2 pixels
+    if side >> (config.num_levels - 1) < 2:
+        raise ValueError(f"num_levels={config.num_levels} is too many for {frames.shape[-1]}x{frames.shape[-2]} frames "
+                         f"(their coarsest level would be under 2 pixels a side): at most {side.bit_length() - 1}")
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
     if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
