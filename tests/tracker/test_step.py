@@ -489,6 +489,32 @@ def test_steps_refuse_frames_on_another_value_scale(model, two_streams, l2_runs)
     assert bool(torch.isfinite(res.rotation).all()) and tracker.state.frame_index == 2
 
 
+def test_face_tracker_tracks_any_layout_of_the_same_frames_alike(model, two_streams):
+    """README, Python API: channels-last, strided, batch-expanded, float64 frames and float64 or integer-valued
+    landmarks track as the contiguous float32 ones do; gray frames as the RGB frames' ``to_gray``."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts).round()
+
+    def track(prep, landmarks=lm):
+        tracker = FaceTracker(BASE, model=model)
+        out = [tracker.initialise(prep(frames[:, 0]), landmarks)]
+        out += [tracker(prep(frames[:, t])) for t in (1, 2)]
+        return torch.stack([torch.cat([r.axis_angle, r.translation, r.anim_coeffs], -1) for r in out])
+
+    want = track(lambda f: f)
+    same = {
+        "channels_last": lambda f: f.contiguous(memory_format=torch.channels_last),
+        "strided": lambda f: torch.stack([f, f], -1)[..., 0],
+        "float64": lambda f: f.double(),
+    }
+    for name, prep in same.items():
+        torch.testing.assert_close(track(prep), want, rtol=0, atol=0, msg=name)
+    torch.testing.assert_close(track(lambda f: f, lm.double()), want, msg="float64 landmarks")
+    torch.testing.assert_close(track(lambda f: f, lm.long()), want, msg="int64 landmarks")
+    gray = track(to_gray)  # a gray frame expanded to 3 channels (stride 0): its luminance is the gray up to rounding
+    torch.testing.assert_close(track(lambda f: to_gray(f).expand(-1, 3, -1, -1)), gray, rtol=0, atol=1e-3)
+
+
 def test_face_tracker_names_a_wrong_argument_type(model, two_streams):
     """A numpy frame, uint8 frames, numpy or bool landmarks: one-line errors naming the argument and what it must
     be (a numpy frame was "frames must be (B, 3, H, W), got (2, 3, 240, 320)", its right shape; numpy landmarks a

@@ -431,6 +431,36 @@ class TrackerState:
     anim_prior_mean: Tensor | None = None
     workspace: "StepWorkspace | None" = field(default=None, compare=False, repr=False)
 
+    def detach(self) -> "TrackerState":
+        """The state detached from the autograd graph: its ``params``, ``shape_coeffs``, ``anim_prior_mean`` and
+        templates (the same objects where they hold no graph). Template management's state is built without one.
+
+        A step from frames that require grad (:func:`track_step`, :func:`~torchface.tracker.managed.managed_step`)
+        hands back a state whose ``params`` carry that frame's graph, and the next step starts from them, so the
+        graph runs on from frame to frame like an RNN's hidden state: it keeps every frame and its pyramid alive
+        (0.26 MB of saved tensors per frame at 160x120 besides the frames themselves, growing without end), and a
+        second frame's ``backward()`` fails with "Trying to backward through the graph a second time" (so does
+        the first step's after :func:`initialise` from first frames that require grad: its templates are made from
+        them). Detach the state between frames where each frame's loss stands alone (truncated back-propagation).
+
+        Example:
+            >>> state, result = track_step(model, config, state, frames.requires_grad_())  # doctest: +SKIP
+            >>> loss_fn(result).backward()                                                 # doctest: +SKIP
+            >>> state = state.detach()                                                     # doctest: +SKIP
+        """
+        from torchface.normalise.face import apply_to_tensor_fields
+
+        templates, visibility = self.templates, self.visibility
+        if any(t.requires_grad for tpl in templates for t in (tpl.points, tpl.basis, tpl.normals, tpl.intensity)):
+            templates = tuple(apply_to_tensor_fields(Tensor.detach, tpl) for tpl in templates)
+            if visibility is not None and visibility[0] is self.templates:  # the masks belong to these templates
+                visibility = (templates, visibility[1])
+        prior = None if self.anim_prior_mean is None else self.anim_prior_mean.detach()
+        return replace(
+            self, params=self.params.detach(), shape_coeffs=self.shape_coeffs.detach(), templates=templates,
+            visibility=visibility, anim_prior_mean=prior,
+        )  # fmt: skip
+
     def neutral_anim_coeffs(self, like: Tensor) -> Tensor:
         """The person's neutral animation coefficients (``anim_prior_mean``; zero where the state has none) in the
         dtype and device of ``like`` ``(B, A)`` and broadcast to its shape."""
