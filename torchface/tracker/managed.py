@@ -434,9 +434,11 @@ def estimate_confidence(
     ms = state.management
     if not isinstance(ms, ManagementState):
         raise ValueError("the state has no template management: start with initialise_managed")
-    check_frames(frames, state.intrinsics)
-    frames = frames.to(dtype=model.dtype, device=model.device)
+    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     B = state.params.shape[0]
+    if frames.shape[0] != B:  # the native kernel read past the state's streams (a segmentation fault)
+        raise ValueError(f"expected {B} frames (one per stream of the state), got {frames.shape[0]}")
+    frames = frames.to(dtype=model.dtype, device=model.device)
     status = torch.zeros(B, dtype=torch.int64, device=state.params.device)  # none failed
     return _confidence(model, config, ms, frames, state, status)[:2]
 
