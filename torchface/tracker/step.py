@@ -22,6 +22,7 @@ from torchface._autocast import full_precision
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
+from torchface.geometry._checks import check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
@@ -596,6 +597,7 @@ def check_initialise_inputs(
     model's ``K`` points (NaN: missing; the online start and recovery use them all, so a subset is given as NaN
     rows), ``(B, K)`` tensor weights, and ``config.expression_prior_weights`` of the model's length."""
     check_frames(frames, intrinsics, values=True)
+    check_intrinsics(intrinsics)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
