@@ -698,7 +698,9 @@ def managed_step(
     require grad with grad mode on; the tensors handed back are normal tensors. With gradients asked for, the
     solver's estimates (pose, expression, light) carry them as :func:`~torchface.tracker.step.track_step`'s do
     (through the unrolled solve), in the streams whose estimate is the solver's; the management's decisions and
-    what it keeps (confidence, mosaic entries, confident parameters) are made from detached copies.
+    what it keeps (confidence, mosaic entries, confident parameters) are made from detached copies. The state's
+    ``params`` carry the frame's graph on to the next step (:meth:`~torchface.tracker.TrackerState.detach` between
+    frames whose losses stand alone).
     """
     tc = config.template
     if not tc.enabled:

@@ -772,7 +772,8 @@ def track_step(
         and never produces NaN.
 
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
-    require grad with grad mode on; the tensors handed back are normal tensors.
+    require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
+    the frame's graph on to the next step (:meth:`TrackerState.detach` between frames whose losses stand alone).
     """
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
