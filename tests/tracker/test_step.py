@@ -641,6 +641,23 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
         initialise(model, replace(BASE, expression_prior_weights=(1.0,) * 5), frames[:, 0], lm, cam)
 
 
+def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
+    """Frames smaller than the pyramid needs (3 pixels a side at its last halving) are refused naming the frames'
+    size (it was pyr_down's "images must be ... H, W >= 3, got (1, 1, 2, 2)", a level the caller never made);
+    the smallest size allowed initialises (a FAILED sample on so few pixels, not an error)."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts)
+    config = replace(BASE, num_levels=3, iterations=(4, 6, 4), robust_scale_floor=(0.06, 0.02))
+    for size, ok in ((5, False), (6, True)):
+        small = torch.nn.functional.interpolate(frames[:, 0], size=(size, size), mode="bilinear")
+        if ok:
+            _, res = initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
+            assert bool(torch.isfinite(res.rotation).all())
+        else:
+            with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 5x5"):
+                initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
+
+
 def test_failed_initialise_forgets_the_previous_video(model, two_streams):
     """A FaceTracker whose initialise raises does not track on against the previous video's templates."""
     frames, gts = two_streams

@@ -601,6 +601,10 @@ def check_initialise_inputs(
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
+    side = 3 * 2 ** (config.num_levels - 2) if config.num_levels > 1 else 1  # pyr_down needs 3 pixels a side
+    if min(frames.shape[-2:]) < side:  # was pyr_down's "images must be ... H, W >= 3, got (B, 1, 2, 2)"
+        raise ValueError(f"frames must be at least {side}x{side} pixels for num_levels = {config.num_levels}, "
+                         f"got {frames.shape[-2]}x{frames.shape[-1]}")  # fmt: skip
     if not isinstance(landmarks_px, Tensor):
         got = type(landmarks_px).__name__
         raise TypeError(f"landmarks_px must be a torch.Tensor ({B}, {K}, 2) of pixel coordinates, got {got}")
