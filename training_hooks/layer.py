@@ -331,6 +331,9 @@ class NormalisedFaceLayer(nn.Module):
         check_frames(frames)
         if intrinsics is None:
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+        if not isinstance(landmarks_px, Tensor):  # numpy landmarks were an AttributeError ('no attribute detach')
+            got = type(landmarks_px).__name__
+            raise TypeError(f"landmarks_px must be a torch.Tensor (B, K, 2) of pixel coordinates, got {got}")
         frames = frames.detach().to(dtype=self.model.dtype, device=self.model.device)
         landmarks_px = landmarks_px.detach().to(dtype=self.model.dtype, device=self.model.device)
         return _tracked(initialise)(self.model, self.config.tracker, frames, landmarks_px, intrinsics)

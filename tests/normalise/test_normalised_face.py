@@ -341,6 +341,12 @@ def test_module_with_track_result_and_state(model, subject, layout):
         normaliser(frame, state, sigma)
     with pytest.raises(TypeError, match="TrackResult or a TrackerState"):
         normaliser(frame, {"axis_angle": aa})
+    # A numpy frame with a result (default intrinsics) is named as one: it was "frames must be (B, C, H, W), got
+    # (1, 3, H, W)", the shape it had.
+    with pytest.raises(TypeError, match="torch.Tensor"):
+        normaliser(frame.numpy(), result, sigma)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"got \(3, "):
+        normaliser(frame[0], result, sigma)
 
 
 def test_module_moves_model_and_layout_with_to(model):

@@ -247,6 +247,17 @@ def test_bad_inputs_raise(model):
     nan = torch.full((1, 68, 2), float("nan"), dtype=D)
     with pytest.raises(ValueError, match="at least 4"):
         fit_landmarks(model, nan, CAM)
+    # One-line TypeErrors naming the argument (numpy landmarks were a ValueError "got ndarray", numpy or list
+    # weights and None intrinsics an AttributeError, bool landmarks were fitted as pixels 0 and 1).
+    with pytest.raises(TypeError, match=r"landmarks_px must be a torch.Tensor .*ndarray"):
+        fit_landmarks(model, lm.numpy(), CAM)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"landmarks_px must be real pixel coordinates .*bool"):
+        fit_landmarks(model, torch.ones(1, 68, 2, dtype=torch.bool), CAM)
+    for bad in (torch.ones(1, 68).numpy(), [[1.0] * 68]):
+        with pytest.raises(TypeError, match=r"weights must be a \(1, 68\) tensor or None"):
+            fit_landmarks(model, lm, CAM, bad)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="intrinsics must be"):
+        fit_landmarks(model, lm, None)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="shape_bound"):
         FitConfig(shape_bound=0.0)
     with pytest.raises(ValueError, match="max_iterations"):

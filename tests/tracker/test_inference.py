@@ -211,6 +211,37 @@ def test_managed_step_tracks_frames_that_require_grad(model, turn):
     assert int(graded.management.mosaic.num_entries[0]) >= 2  # entries were added from the detached frames
 
 
+@pytest.mark.parametrize("managed", [False, True])
+def test_a_detached_state_lets_each_frame_back_propagate_alone(model, turn, managed):
+    """``TrackerState.detach()`` between frames that require grad: each frame's ``backward()`` works and gives
+    the gradient to that frame of the state carrying the graph on. Without it the graph ran from frame to frame
+    through the state's parameters (and, after ``initialise`` from first frames that require grad, its
+    templates): the second frame's ``backward()`` raised "Trying to backward through the graph a second time"."""
+    from torchface.backend import Backend
+
+    frames, lm = turn
+    cam = Intrinsics.default(W, H)
+    cfg = dataclasses.replace(CFG, backend=Backend.TORCH)
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    first = frames[:, 0].clone().requires_grad_(True)
+    state, _ = init(model, cfg, first, lm, cam)
+    chained, _ = init(model, cfg, first, lm, cam)
+    for i in range(1, 4):
+        frame = frames[:, i].clone().requires_grad_(True)
+        state, got = step(model, cfg, state, frame)
+        got.translation.sum().backward()
+        frame_ = frames[:, i].clone().requires_grad_(True)
+        chained, want = step(model, cfg, chained, frame_)
+        (grad,) = torch.autograd.grad(want.translation.sum(), frame_)
+        torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=0)
+        torch.testing.assert_close(frame.grad, grad)
+        state = state.detach()
+        assert not any(t.requires_grad for t in _tensors((state.params, state.shape_coeffs, state.templates)))
+    assert chained.params.requires_grad  # the state that was not detached carries the graph on
+    same = state.detach()
+    assert same.templates is state.templates  # nothing to detach: the same templates (and visibility masks)
+
+
 def test_state_pieces_made_in_inference_mode_are_normal_tensors(model, turn):
     """The mosaic with a new entry and the templates of a switched entry persist in the state: made in a step's
     inference mode they are normal tensors already, so handing the state back copies none of them."""

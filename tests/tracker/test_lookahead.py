@@ -323,6 +323,17 @@ def test_settings_are_validated(kwargs, match):
         LookaheadConfig(**kwargs)
 
 
+def test_lookahead_fit_names_numpy_and_uint8_frames(model):
+    """A numpy array is a TypeError naming it (it was "frames must be (B, T, 3, H, W) ..., got (1, 2, 3, H, W)",
+    its right shape); uint8 frames are refused as uint8 (they went on as 0-255 floats)."""
+    frames = torch.rand(1, 2, 3, H, W)
+    lm = torch.zeros(1, model.num_landmarks, 2)
+    with pytest.raises(TypeError, match=r"torch.Tensor .*ndarray"):
+        lookahead_fit(model, CFG, frames.numpy(), lm, Intrinsics.default(W, H))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"float in \[0, 1\] .*torch.uint8"):
+        lookahead_fit(model, CFG, (frames * 255).to(torch.uint8), lm, Intrinsics.default(W, H))
+
+
 def test_refine_rejects_bad_shapes(model):
     frames = torch.rand(3, 3, H, W)
     R = axis_angle_to_matrix(torch.zeros(1, 3))

@@ -561,6 +561,19 @@ def test_estimate_confidence_matches_the_step_and_sees_a_wrong_pose(model, gentl
     assert torch.equal(amp[0], ref[0]) and torch.equal(amp[1], ref[1])
 
 
+def test_estimate_confidence_refuses_frames_of_another_batch_or_scale(model, gentle):
+    """Frames of another batch than the state's: a one-line error (the native kernel read past the state's
+    streams: a garbage score, then a segmentation fault); 0-255 frames: refused as the steps refuse them."""
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    two = frames[0, 1:3]
+    for _ in range(3):
+        with pytest.raises(ValueError, match=r"expected 1 frames \(one per stream of the state\), got 2"):
+            estimate_confidence(model, CFG, state, two)
+    with pytest.raises(ValueError, match="divide by 255"):
+        estimate_confidence(model, CFG, state, frames[:, 1] * 255.0)
+
+
 @pytest.mark.parametrize("radius", [0.0, 3.0, 1000.0])
 def test_streams_near_their_entrys_pose_are_marked_for_the_clean_frame_rule(model, turns, monkeypatch, radius):
     """``near_template``: None with the rule off; every frame within a huge radius; with 3 degrees,

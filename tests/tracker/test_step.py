@@ -474,6 +474,136 @@ def test_initialise_refuses_frames_on_another_value_scale(model, two_streams):
         assert bool((res.status == ref.status).all()) and bool(torch.isfinite(res.rotation).all())
 
 
+def test_steps_refuse_frames_on_another_value_scale(model, two_streams, l2_runs):
+    """0-255 frames handed to a tracker started on [0, 1] ones are refused at every step (a look at every 16th
+    row), by track_step and by managed_step, with the state left as it was; they were tracked without a word. NaN
+    and infinite pixels of a later frame are left to the robust loss, as before."""
+    frames, gts = two_streams
+    (_, states), _ = l2_runs
+    later = frames[:, 1]
+    with pytest.raises(ValueError, match=r"divide by 255"):
+        track_step(model, L2, states[0], later * 255.0)
+    with pytest.raises(ValueError, match=r"values from -1.9"):  # mean/std-normalised (rows 0, 16, ... only)
+        track_step(model, L2, states[0], (later - 0.5) / 0.25)
+    nan_255 = later * 255.0
+    nan_255[:, :, ::16, ::7] = float("nan")  # NaN pixels in the rows looked at must not hide the scale
+    with pytest.raises(ValueError, match=r"divide by 255"):
+        track_step(model, L2, states[0], nan_255)
+    tracker = FaceTracker(BASE, model=model)
+    tracker.initialise(frames[:, 0], landmarks_of(gts))
+    with pytest.raises(ValueError, match=r"divide by 255"):
+        tracker(later * 255.0)
+    assert tracker.state is not None and tracker.state.frame_index == 1
+    stray = later.clone()
+    stray[0, 0, 0, 0], stray[1, 1, 16, 3] = float("inf"), float("nan")
+    res = tracker(stray)
+    assert bool(torch.isfinite(res.rotation).all()) and tracker.state.frame_index == 2
+
+
+def test_face_tracker_tracks_any_layout_of_the_same_frames_alike(model, two_streams):
+    """README, Python API: channels-last, strided, batch-expanded, float64 frames and float64 or integer-valued
+    landmarks track as the contiguous float32 ones do; gray frames as the RGB frames' ``to_gray``."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts).round()
+
+    def track(prep, landmarks=lm):
+        tracker = FaceTracker(BASE, model=model)
+        out = [tracker.initialise(prep(frames[:, 0]), landmarks)]
+        out += [tracker(prep(frames[:, t])) for t in (1, 2)]
+        return torch.stack([torch.cat([r.axis_angle, r.translation, r.anim_coeffs], -1) for r in out])
+
+    want = track(lambda f: f)
+    same = {
+        "channels_last": lambda f: f.contiguous(memory_format=torch.channels_last),
+        "strided": lambda f: torch.stack([f, f], -1)[..., 0],
+        "float64": lambda f: f.double(),
+    }
+    for name, prep in same.items():
+        torch.testing.assert_close(track(prep), want, rtol=0, atol=0, msg=name)
+    torch.testing.assert_close(track(lambda f: f, lm.double()), want, msg="float64 landmarks")
+    torch.testing.assert_close(track(lambda f: f, lm.long()), want, msg="int64 landmarks")
+    gray = track(to_gray)  # a gray frame expanded to 3 channels (stride 0): its luminance is the gray up to rounding
+    torch.testing.assert_close(track(lambda f: to_gray(f).expand(-1, 3, -1, -1)), gray, rtol=0, atol=1e-3)
+
+
+def test_face_tracker_names_a_wrong_argument_type(model, two_streams):
+    """A numpy frame, uint8 frames, numpy or bool landmarks: one-line errors naming the argument and what it must
+    be (a numpy frame was "frames must be (B, 3, H, W), got (2, 3, 240, 320)", its right shape; numpy landmarks a
+    ValueError "got ndarray"; bool landmarks were fitted as pixels 0 and 1)."""
+    frames, gts = two_streams
+    first, lm = frames[:, 0], landmarks_of(gts)
+    tracker = FaceTracker(BASE, model=model)
+    with pytest.raises(TypeError, match=r"frames must be a torch.Tensor .*ndarray"):
+        tracker.initialise(first.numpy(), lm)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"uint8 .*frames.float\(\) / 255"):
+        tracker.initialise((first * 255).to(torch.uint8), lm)
+    with pytest.raises(TypeError, match=r"landmarks_px must be a torch.Tensor .*ndarray"):
+        tracker.initialise(first, lm.numpy())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"landmarks_px must be real pixel coordinates .*bool"):
+        tracker.initialise(first, lm > 100)
+    assert tracker.state is None
+    tracker.initialise(first, lm)
+    with pytest.raises(ValueError, match=r"uint8 .*frames.float\(\) / 255"):
+        tracker((frames[:, 1] * 255).to(torch.uint8))
+
+
+def _tensors_requiring_grad(tree: object, path: str = "state") -> list[str]:
+    """Paths of the tensors that require grad in a tree of dataclasses, tuples, lists and dicts."""
+    import dataclasses
+
+    if isinstance(tree, torch.Tensor):
+        return [path] if tree.requires_grad else []
+    if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
+        fields = ((getattr(tree, f.name), f"{path}.{f.name}") for f in dataclasses.fields(tree))
+        return [p for v, name in fields for p in _tensors_requiring_grad(v, name)]
+    if isinstance(tree, (tuple, list)):
+        return [p for i, v in enumerate(tree) for p in _tensors_requiring_grad(v, f"{path}[{i}]")]
+    if isinstance(tree, dict):
+        return [p for k, v in tree.items() for p in _tensors_requiring_grad(v, f"{path}[{k!r}]")]
+    return []
+
+
+@pytest.mark.parametrize("managed", [True, False])
+def test_face_tracker_state_keeps_no_graph_of_a_networks_inputs(model, two_streams, managed):
+    """Frames and landmarks from a network (non-leaf tensors): FaceTracker's state keeps no graph of them (it held
+    the first frames' templates' graph without template management, the online start's landmarks and fit with it),
+    so ``copy.deepcopy(tracker)`` forks the stream (it raised "Only Tensors created explicitly by the user ...
+    support the deepcopy protocol") and the results are those of the plain tensors."""
+    import copy
+
+    from torchface.template.management import TemplateConfig
+
+    frames, gts = two_streams
+    first, lm = frames[:, 0], landmarks_of(gts)
+    config = BASE if managed else replace(BASE, template=TemplateConfig(enabled=False))
+    scale = torch.ones((), requires_grad=True)  # an identity "network"
+    tracker = FaceTracker(config, model=model)
+    tracker.initialise(first * scale, lm * scale)
+    assert _tensors_requiring_grad(tracker.state) == []
+    fork = copy.deepcopy(tracker)
+    plain = FaceTracker(config, model=model)
+    plain.initialise(first, lm)
+    want = plain(frames[:, 1])
+    for t in (tracker, fork):
+        torch.testing.assert_close(t(frames[:, 1] * scale).axis_angle, want.axis_angle, rtol=0, atol=0)
+
+
+def test_initialise_managed_keeps_no_graph_of_its_landmarks(model, two_streams):
+    """The online start keeps the first landmarks, weights and fit in the state: detached, as it keeps the frames
+    (a detector network's landmarks kept that network's graph alive until the stream re-anchored)."""
+    import copy
+
+    frames, gts = two_streams
+    scale = torch.ones((), requires_grad=True)
+    lm, w = landmarks_of(gts) * scale, torch.ones(2, 68) * scale
+    state, _ = initialise_managed(
+        model, BASE, frames[:, 0], lm, Intrinsics.default(W, H), w, refine_first=LookaheadConfig()
+    )
+    assert state.management is not None and state.management.first is not None
+    assert _tensors_requiring_grad(state.management) == []
+    copy.deepcopy(state)
+
+
 def test_face_tracker_to_moves_the_model_and_tracks_in_float64(two_streams):
     """``FaceTracker.to(torch.float64)`` converts the model and forgets the state; tracking then runs in float64."""
     frames, gts = two_streams
@@ -522,17 +652,21 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
         initialise(model, replace(BASE, expression_prior_weights=(1.0,) * 5), frames[:, 0], lm, cam)
 
 
-def test_initialise_refuses_more_levels_than_the_frames_hold(model, two_streams):
-    """A pyramid whose coarsest level would be under 2 pixels a side is refused by name (it failed inside the
-    pyramid filter: "images must be (B, C, H, W) with H, W >= 3, got (1, 1, 1, 2)"); the most levels allowed run."""
+def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
+    """Frames smaller than the pyramid needs (3 pixels a side at its last halving) are refused naming the frames'
+    size (it was pyr_down's "images must be ... H, W >= 3, got (1, 1, 2, 2)", a level the caller never made);
+    the smallest size allowed initialises (a FAILED sample on so few pixels, not an error)."""
     frames, gts = two_streams
-    cam, lm = Intrinsics.default(W, H), landmarks_of(gts)
-    most = min(W, H).bit_length() - 1
-    for n in (most + 1, most + 3):
-        with pytest.raises(ValueError, match=f"num_levels={n} is too many for {W}x{H} frames.*at most {most}"):
-            initialise(model, replace(BASE, num_levels=n, iterations=(1,) * n), frames[:, 0], lm, cam)
-    state, _ = initialise(model, replace(BASE, num_levels=most, iterations=(1,) * most), frames[:, 0], lm, cam)
-    assert min(state.templates[-1].valid.shape) >= 1 and len(state.templates) == most
+    lm = landmarks_of(gts)
+    config = replace(BASE, num_levels=3, iterations=(4, 6, 4), robust_scale_floor=(0.06, 0.02))
+    for size, ok in ((5, False), (6, True)):
+        small = torch.nn.functional.interpolate(frames[:, 0], size=(size, size), mode="bilinear")
+        if ok:
+            _, res = initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
+            assert bool(torch.isfinite(res.rotation).all())
+        else:
+            with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 5x5"):
+                initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
 
 
 def test_failed_initialise_forgets_the_previous_video(model, two_streams):

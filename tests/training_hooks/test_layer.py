@@ -298,6 +298,13 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params[:, :5], iterations=1)
     with pytest.raises(ValueError, match="clips must be"):
         layer.forward_clip(frames, torch.zeros(1, 68, 2, dtype=D))
+    # numpy landmarks: a one-line TypeError naming them (was AttributeError: 'numpy.ndarray' ... 'detach'), and
+    # 0-255 frames after initialisation are refused by the step (they were tracked).
+    _, landmarks = _clip(32)
+    with pytest.raises(TypeError, match="landmarks_px must be a torch.Tensor"):
+        layer.initialise(frames[:1], landmarks[:1].numpy())
+    with pytest.raises(ValueError, match="divide by 255"):
+        layer(frames[1:2] * 255.0, state)
 
 
 def test_a_half_precision_layer_says_it_needs_float32(small):

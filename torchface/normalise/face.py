@@ -732,8 +732,10 @@ class NormalisedFace(nn.Module):
                     "(after the online start re-anchors, a result's pose is in its first result's head frame)"
                 )
             if intrinsics is None:
-                if not isinstance(frames, Tensor) or frames.dim() != 4:
-                    raise ValueError(f"frames must be (B, C, H, W), got {getattr(frames, 'shape', type(frames))}")
+                if not isinstance(frames, Tensor):  # a numpy array was "must be (B, C, H, W), got (B, C, H, W)"
+                    raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}")
+                if frames.dim() != 4:
+                    raise ValueError(f"frames must be (B, C, H, W), got {tuple(frames.shape)}")
                 intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
             return self.from_params(
                 frames, shape_coeffs, estimate.anim_coeffs, estimate.axis_angle, estimate.translation,

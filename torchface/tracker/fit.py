@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface.geometry._checks import check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
@@ -190,10 +191,16 @@ def _check_landmarks(
 ) -> tuple[Tensor, Tensor]:
     """:func:`landmark_targets` of ``(B, k, 2)`` landmarks and ``(B, k)`` weights in ``dtype`` on ``device``, after
     checking their shapes and that every sample has 4 usable points."""
-    if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
-        got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
-        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}")
+    if not isinstance(landmarks_px, Tensor):
+        raise TypeError(f"landmarks_px must be a torch.Tensor (B, {k}, 2) of pixel coordinates, "
+                        f"got {type(landmarks_px).__name__}")  # fmt: skip
+    if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():  # bool ones were fitted as pixels 0 and 1
+        raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+    if landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
+        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {tuple(landmarks_px.shape)}")
     B = landmarks_px.shape[0]
+    if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError
+        raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}")
     if weights is not None and weights.shape != (B, k):
         raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}")
     target, w = landmark_targets(landmarks_px.to(dtype=dtype, device=device), weights)
@@ -243,6 +250,7 @@ def fit_landmarks(
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
     k = int(idx.numel())
     dtype, device = model.dtype, model.device
+    check_intrinsics(intrinsics)  # None was an AttributeError ('NoneType' object has no attribute 'fx')
     target, w = _check_landmarks(landmarks_px, weights, k, dtype, device)
     B = target.shape[0]
     lv, lw = model.landmark_vertices[idx], model.landmark_weights[idx]

@@ -609,8 +609,11 @@ def lookahead_fit(
     """
     from torchface.tracker.managed import initialise_managed, managed_step
 
-    if not isinstance(frames, Tensor) or frames.dim() != 5 or frames.shape[1] < 2:
-        raise ValueError(f"frames must be (B, T, 3, H, W) with T >= 2, got {getattr(frames, 'shape', type(frames))}")
+    if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
+        raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
+    if frames.dim() != 5 or frames.shape[1] < 2 or not frames.is_floating_point():  # uint8 went on as 0-255 floats
+        raise ValueError(f"frames must be (B, T, 3, H, W) float in [0, 1] with T >= 2, got {tuple(frames.shape)} "
+                         f"{frames.dtype}")  # fmt: skip
     B = frames.shape[0]
     frames = frames.to(dtype=model.dtype, device=model.device)
     fc = tracker_config.fit

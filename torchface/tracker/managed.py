@@ -57,7 +57,7 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
-from torchface.normalise.face import NormalisedFaceLayout, build_normalised_layout
+from torchface.normalise.face import NormalisedFaceLayout, apply_to_tensor_fields, build_normalised_layout
 from torchface.rendering.visibility import vertex_normals
 from torchface.solver.least_squares import SolveStatus
 from torchface.template.dissimilarity import DissimilarityReference, build_dissimilarity_reference, dissimilarity
@@ -99,6 +99,7 @@ from torchface.tracker.lookahead import (
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
+    STEP_VALUE_ROW_STRIDE,
     TrackerConfig,
     TrackerState,
     TrackResult,
@@ -295,11 +296,14 @@ def initialise_managed(
         mosaic, layout, zeros, zeros.clone(), zeros.clone(), failed.clone(), state.params, zeros.clone()
     )
     if refine_first is not None:
-        with torch.inference_mode(False):  # kept in the state: normal tensors
+        with torch.inference_mode(False):  # kept in the state: normal tensors, detached (as the frames are: a
+            # detector network's landmarks kept its graph alive in the state until the stream re-anchored)
             watch = FirstPoseWatch(
-                refine_first, frames.clone(), landmarks_px.to(dtype=model.dtype, device=model.device).clone(),
-                None if weights is None else weights.to(dtype=model.dtype, device=model.device).clone(),
-                fit.to(model.device, model.dtype), result.ypr_deg[:, 0].clone(), ((),) * B,
+                refine_first, frames.clone(),
+                landmarks_px.detach().to(dtype=model.dtype, device=model.device).clone(),
+                None if weights is None else weights.detach().to(dtype=model.dtype, device=model.device).clone(),
+                apply_to_tensor_fields(Tensor.detach, fit.to(model.device, model.dtype)),
+                result.ypr_deg[:, 0].clone(), ((),) * B,
                 torch.zeros(B, 2, dtype=torch.bool, device=model.device), ~failed.clone(),
                 view_yaw0=view_yaw_deg(result.rotation, result.translation),
             )  # fmt: skip
@@ -431,9 +435,11 @@ def estimate_confidence(
     ms = state.management
     if not isinstance(ms, ManagementState):
         raise ValueError("the state has no template management: start with initialise_managed")
-    check_frames(frames, state.intrinsics)
-    frames = frames.to(dtype=model.dtype, device=model.device)
+    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     B = state.params.shape[0]
+    if frames.shape[0] != B:  # the native kernel read past the state's streams (a segmentation fault)
+        raise ValueError(f"expected {B} frames (one per stream of the state), got {frames.shape[0]}")
+    frames = frames.to(dtype=model.dtype, device=model.device)
     status = torch.zeros(B, dtype=torch.int64, device=state.params.device)  # none failed
     return _confidence(model, config, ms, frames, state, status)[:2]
 
@@ -693,7 +699,9 @@ def managed_step(
     require grad with grad mode on; the tensors handed back are normal tensors. With gradients asked for, the
     solver's estimates (pose, expression, light) carry them as :func:`~torchface.tracker.step.track_step`'s do
     (through the unrolled solve), in the streams whose estimate is the solver's; the management's decisions and
-    what it keeps (confidence, mosaic entries, confident parameters) are made from detached copies.
+    what it keeps (confidence, mosaic entries, confident parameters) are made from detached copies. The state's
+    ``params`` carry the frame's graph on to the next step (:meth:`~torchface.tracker.TrackerState.detach` between
+    frames whose losses stand alone).
     """
     tc = config.template
     if not tc.enabled:
@@ -705,7 +713,7 @@ def managed_step(
             "template management is enabled but the state has none: start with initialise_managed (or set "
             "TrackerConfig.template = TemplateConfig(enabled=False))"
         )
-    check_frames(frames, state.intrinsics)
+    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     check_state_levels(config, state)

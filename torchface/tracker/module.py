@@ -8,10 +8,11 @@ from torch import Tensor, nn
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
+from torchface.normalise.face import apply_to_tensor_fields
 from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, check_frames
 
 
 class FaceTracker(nn.Module):
@@ -88,8 +89,6 @@ class FaceTracker(nn.Module):
         attribute, not a parameter); a call that changes its dtype or device forgets the tracked state (its tensors
         are the old dtype's and device's; the next step says so), one that changes neither (``.cpu()`` on the CPU,
         ``share_memory()``, a parent module's ``.to`` to where the tracker already is) keeps it."""
-        from torchface.normalise.face import apply_to_tensor_fields
-
         target = fn(torch.zeros(1, dtype=self.model.dtype)).dtype  # the floating dtype this call converts to
         if target not in (torch.float32, torch.float64):
             raise TypeError(f"FaceTracker tracks in float32 or float64, not {target} (its solver factorises matrices)")
@@ -135,9 +134,15 @@ class FaceTracker(nn.Module):
                 :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
         """
         if intrinsics is None:
-            if not isinstance(frames, Tensor) or frames.dim() != 4:
-                raise ValueError(f"frames must be (B, 3, H, W), got {getattr(frames, 'shape', type(frames))}")
+            check_frames(frames)  # a numpy array was "must be (B, 3, H, W), got (B, 3, H, W)"
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+        # The tracker steps without gradients and its state is fixed data: inputs that carry a graph (a network's
+        # frames or landmarks) are detached, else the state held that graph alive and copy.deepcopy(tracker) failed.
+        frames, landmarks_px, weights = (
+            x.detach() if isinstance(x, Tensor) else x for x in (frames, landmarks_px, weights)
+        )
+        if isinstance(fit, LandmarkFit):
+            fit = apply_to_tensor_fields(Tensor.detach, fit)
         refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
         self._state = None  # a failed initialisation must not leave the previous video's state to track on
         self._dropped = None

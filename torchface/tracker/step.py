@@ -22,6 +22,7 @@ from torchface._autocast import full_precision
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
+from torchface.geometry._checks import check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
@@ -431,6 +432,36 @@ class TrackerState:
     anim_prior_mean: Tensor | None = None
     workspace: "StepWorkspace | None" = field(default=None, compare=False, repr=False)
 
+    def detach(self) -> "TrackerState":
+        """The state detached from the autograd graph: its ``params``, ``shape_coeffs``, ``anim_prior_mean`` and
+        templates (the same objects where they hold no graph). Template management's state is built without one.
+
+        A step from frames that require grad (:func:`track_step`, :func:`~torchface.tracker.managed.managed_step`)
+        hands back a state whose ``params`` carry that frame's graph, and the next step starts from them, so the
+        graph runs on from frame to frame like an RNN's hidden state: it keeps every frame and its pyramid alive
+        (0.26 MB of saved tensors per frame at 160x120 besides the frames themselves, growing without end), and a
+        second frame's ``backward()`` fails with "Trying to backward through the graph a second time" (so does
+        the first step's after :func:`initialise` from first frames that require grad: its templates are made from
+        them). Detach the state between frames where each frame's loss stands alone (truncated back-propagation).
+
+        Example:
+            >>> state, result = track_step(model, config, state, frames.requires_grad_())  # doctest: +SKIP
+            >>> loss_fn(result).backward()                                                 # doctest: +SKIP
+            >>> state = state.detach()                                                     # doctest: +SKIP
+        """
+        from torchface.normalise.face import apply_to_tensor_fields
+
+        templates, visibility = self.templates, self.visibility
+        if any(t.requires_grad for tpl in templates for t in (tpl.points, tpl.basis, tpl.normals, tpl.intensity)):
+            templates = tuple(apply_to_tensor_fields(Tensor.detach, tpl) for tpl in templates)
+            if visibility is not None and visibility[0] is self.templates:  # the masks belong to these templates
+                visibility = (templates, visibility[1])
+        prior = None if self.anim_prior_mean is None else self.anim_prior_mean.detach()
+        return replace(
+            self, params=self.params.detach(), shape_coeffs=self.shape_coeffs.detach(), templates=templates,
+            visibility=visibility, anim_prior_mean=prior,
+        )  # fmt: skip
+
     def neutral_anim_coeffs(self, like: Tensor) -> Tensor:
         """The person's neutral animation coefficients (``anim_prior_mean``; zero where the state has none) in the
         dtype and device of ``like`` ``(B, A)`` and broadcast to its shape."""
@@ -515,28 +546,43 @@ def gray_pyramid_windows(
 #: with room for a resampling's overshoot (a bicubic resize can pass 1 by a few percent).
 FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 
+#: :func:`track_step` and :func:`~torchface.tracker.managed.managed_step` check the values of every 16th row of
+#: their frames against :data:`FRAME_VALUE_RANGE` (0.01-0.03 ms at one 640x480 stream, against a step's 5-6 ms):
+#: 0-255 frames handed to a tracker started on [0, 1] ones were tracked without a word.
+STEP_VALUE_ROW_STRIDE: int = 16
 
-def check_frames(frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False) -> None:
+
+def check_frames(
+    frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False, row_stride: int = 1
+) -> None:
     """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1].
 
-    With ``values`` (at initialisation: one pass over the first frames, not every step's), also refuse values
-    outside :data:`FRAME_VALUE_RANGE`: 0-255 frames, or frames normalised with a mean and standard deviation,
-    would otherwise be tracked with every threshold (gradient, contrast, robust scale) 255 times too small.
-    NaN pixels are left out of that range (they are never template points; a frame of them is a failed sample);
-    infinite ones are refused.
+    With ``values``, also refuse values outside :data:`FRAME_VALUE_RANGE`: 0-255 frames, or frames normalised with
+    a mean and standard deviation, would otherwise be tracked with every threshold (gradient, contrast, robust
+    scale) 255 times too small. NaN pixels are left out of that range (they are never template points; a frame of
+    them is a failed sample); infinite ones are refused. ``row_stride``: the values looked at are those of every
+    ``row_stride``-th row (initialisation: 1, every pixel; the steps: :data:`STEP_VALUE_ROW_STRIDE`, a cheap look
+    that a 0-255 frame does not pass, which leaves infinite pixels out too: a later frame's stray one is the robust
+    loss's to reject, as a NaN one is).
     """
     if not isinstance(frames, Tensor):
-        raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
+        raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
-        raise ValueError(f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+        hint = " (uint8 frames: pass frames.float() / 255)" if frames.dtype == torch.uint8 else ""
+        raise ValueError(
+            f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}{hint}"
+        )
     if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
         raise ValueError(
             f"frames must be {intrinsics.height}x{intrinsics.width} (the tracked size), got "
             f"{frames.shape[-2]}x{frames.shape[-1]}"
         )
     if values and frames.numel():
-        seen = frames.detach().nan_to_num(nan=0.5, posinf=math.inf, neginf=-math.inf)  # NaN: inside the range
-        lo, hi = (float(v) for v in torch.aminmax(seen))
+        seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
+        lo, hi = torch.stack([seen.amin(), seen.amax()]).tolist()
+        if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN pixels: inside the range (the steps': non-finite)
+            pos, neg = (math.inf, -math.inf) if row_stride == 1 else (0.5, 0.5)
+            lo, hi = (float(v) for v in torch.aminmax(seen.nan_to_num(nan=0.5, posinf=pos, neginf=neg)))
         if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
             hint = " (0-255 values? divide by 255)" if hi > FRAME_VALUE_RANGE[1] and lo >= FRAME_VALUE_RANGE[0] else ""
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
@@ -552,15 +598,21 @@ def check_initialise_inputs(
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
     check_frames(frames, intrinsics, values=True)
+    check_intrinsics(intrinsics)
     B, K = frames.shape[0], model.num_landmarks
-    side = min(frames.shape[-2:])  # each level halves it (rounding down); the coarsest needs 2 pixels
-    if side >> (config.num_levels - 1) < 2:
-        raise ValueError(f"num_levels={config.num_levels} is too many for {frames.shape[-1]}x{frames.shape[-2]} frames "
-                         f"(their coarsest level would be under 2 pixels a side): at most {side.bit_length() - 1}")
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
-    if not isinstance(landmarks_px, Tensor) or landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
-        got = tuple(landmarks_px.shape) if isinstance(landmarks_px, Tensor) else type(landmarks_px).__name__
+    side = 3 * 2 ** (config.num_levels - 2) if config.num_levels > 1 else 1  # pyr_down needs 3 pixels a side
+    if min(frames.shape[-2:]) < side:  # was pyr_down's "images must be ... H, W >= 3, got (B, 1, 2, 2)"
+        raise ValueError(f"frames must be at least {side}x{side} pixels for num_levels = {config.num_levels}, "
+                         f"got {frames.shape[-2]}x{frames.shape[-1]}")  # fmt: skip
+    if not isinstance(landmarks_px, Tensor):
+        got = type(landmarks_px).__name__
+        raise TypeError(f"landmarks_px must be a torch.Tensor ({B}, {K}, 2) of pixel coordinates, got {got}")
+    if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():  # bool ones were fitted as pixels 0 and 1
+        raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+    if landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
+        got = tuple(landmarks_px.shape)
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
@@ -744,9 +796,10 @@ def track_step(
         and never produces NaN.
 
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
-    require grad with grad mode on; the tensors handed back are normal tensors.
+    require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
+    the frame's graph on to the next step (:meth:`TrackerState.detach` between frames whose losses stand alone).
     """
-    check_frames(frames, state.intrinsics)
+    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
     check_state_levels(config, state)
