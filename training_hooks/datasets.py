@@ -291,7 +291,7 @@ class VideoDataset(IterableDataset):
             state["_sender_group"] = group
         return state
 
-    def process_group(self) -> tuple[int, int]:
+    def rank_and_world_size(self) -> tuple[int, int]:
         """``(rank, world_size)`` the videos are split by in this process: the default ``torch.distributed``
         group's, else the group of the rank that pickled this dataset (a spawned ``DataLoader`` worker), else
         ``(0, 1)``; always ``(0, 1)`` with ``DatasetConfig(shard_ranks=False)``."""
@@ -418,7 +418,7 @@ class VideoDataset(IterableDataset):
             yield item
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        rank, world = self.process_group()
+        rank, world = self.rank_and_world_size()
         if rank >= len(self.videos) and not self._warned_distributed:
             self._warned_distributed = True  # (a worker process warns once per epoch: its copy starts afresh)
             warnings.warn(

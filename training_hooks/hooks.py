@@ -58,6 +58,8 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
     The weights are detached (the confidence is data, not a parameter). An entry of weight zero (confidence 0,
     or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and the gradient, even where its
     loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph, never NaN.
+    Under DDP each rank weighs its own batch, and DDP averages the ranks' gradients: the step follows the mean of
+    the ranks' weighted means, not one weighted mean over every rank's samples.
 
     Args:
         loss: ``(B,)`` or ``(B, T)`` per-sample (per-frame) losses.

@@ -78,7 +78,8 @@ class TrackingQualityCallback(pl.Callback):
         stats = self.loggers[stage].compute(sync_dist=True)  # (every rank runs this hook)
         if stats.get("frames", 0.0) > 0:
             named = {f"{self.prefix}{stage}_epoch/{k}": v for k, v in stats.items()}
-            pl_module.log_dict(named, on_step=False, on_epoch=True)
+            # (already every rank's; sync_dist keeps Lightning from asking for it, the values being equal on all ranks)
+            pl_module.log_dict(named, on_step=False, on_epoch=True, sync_dist=True)
         self.loggers[stage].reset()
 
     def on_train_batch_start(

@@ -62,10 +62,10 @@ def _rank(rank: int, init_file: str, videos: list[str], landmarks: list, out_dir
     finally:
         dist.destroy_process_group()
     received = pickle.loads(sent)  # no group here: the sender's (rank, world size) split the videos
-    out["received_group"] = received.process_group()
-    out["received_videos"] = [received.worker_videos(w, 2, *received.process_group()) for w in range(2)]
-    out["every_group"] = pickle.loads(every).process_group()
-    out["fresh_group"] = VideoDataset(videos, landmarks, DatasetConfig(tracking=TRACKING)).process_group()
+    out["received_group"] = received.rank_and_world_size()
+    out["received_videos"] = [received.worker_videos(w, 2, *received.rank_and_world_size()) for w in range(2)]
+    out["every_group"] = pickle.loads(every).rank_and_world_size()
+    out["fresh_group"] = VideoDataset(videos, landmarks, DatasetConfig(tracking=TRACKING)).rank_and_world_size()
     torch.save(out, Path(out_dir) / f"rank{rank}.pt")
 
 
