@@ -299,7 +299,7 @@ class VideoDataset(IterableDataset):
             return 0, 1
         group = _process_group()
         if group is None:
-            group = self._sender_group
+            group = getattr(self, "_sender_group", None)  # (absent from a dataset pickled before it existed)
         return (0, 1) if group is None else group
 
     def worker_videos(self, worker_id: int, num_workers: int, rank: int = 0, world_size: int = 1) -> list[int]:

@@ -37,15 +37,16 @@ def keyed(loader) -> dict[tuple[int, int], dict[str, torch.Tensor]]:
 
 
 def _rank(rank: int, init_file: str, videos: list[str], landmarks: list, out_dir: str) -> None:
-    """One rank: its frame items through 2 forked DataLoader workers (they inherit the group), its clip items
-    through 1 spawned worker (no group there: the dataset pickled by the rank carries its rank), its quality
-    logger, and the (rank, world size) of copies of the dataset unpickled outside the group."""
+    """One rank: its frame items tracked in 2 forked DataLoader workers (they inherit the group), its clip items
+    read back from the cache by 1 spawned worker (no group there: the dataset pickled by the rank carries its
+    rank), its quality logger, and the (rank, world size) of copies of the dataset unpickled outside the group."""
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=WORLD)
     out: dict[str, object] = {}
     try:
-        data = VideoDataset(videos, landmarks, DatasetConfig(tracking=TRACKING))
-        clip_data = VideoDataset(videos, landmarks, DatasetConfig(tracking=TRACKING, **CLIPS))
+        config = DatasetConfig(tracking=TRACKING, cache_dir=Path(out_dir) / "cache")
+        data = VideoDataset(videos, landmarks, config)
+        clip_data = VideoDataset(videos, landmarks, replace(config, **CLIPS))
         with warnings.catch_warnings():
             warnings.simplefilter("error", DistributedWarning)
             out["frames"] = keyed(DataLoader(data, batch_size=None, num_workers=2, multiprocessing_context="fork"))
@@ -83,7 +84,7 @@ def ddp_run(clips, tmp_path_factory) -> list[dict]:
 @pytest.fixture(scope="module")
 def single(clips, tmp_path_factory) -> dict[str, dict]:
     """The single-process epochs (no process group) the ranks' items must equal (the clips read the frames'
-    cache: only their ``cached`` flag differs from tracked clips)."""
+    cache, as the ranks' do)."""
     videos, landmarks = [c.video for c in clips], [c.landmarks for c in clips]
     config = DatasetConfig(tracking=TRACKING, cache_dir=tmp_path_factory.mktemp("ddp_cache"))
     frames = keyed(VideoDataset(videos, landmarks, config))
@@ -91,29 +92,29 @@ def single(clips, tmp_path_factory) -> dict[str, dict]:
     return {"frames": frames, "clips": clip_items}
 
 
-def assert_union_is_every_item_once(per_rank: list[dict], reference: dict, skip: tuple[str, ...] = ()) -> None:
+def assert_union_is_every_item_once(per_rank: list[dict], reference: dict) -> None:
     keys = [k for items in per_rank for k in items]
     assert len(keys) == len(set(keys)), "an item came from two ranks"
     assert set(keys) == set(reference)
     for items in per_rank:
         for k, item in items.items():
             assert item.keys() == reference[k].keys()
-            for name in set(item) - set(skip):
+            for name in item:
                 assert torch.equal(item[name], reference[k][name]), f"item {k}: {name} differs"
 
 
 def test_ranks_split_the_videos_and_their_items_equal_the_single_process_ones(ddp_run, single, clips):
     """Every rank yielded every item (each tracked every video, an epoch showed each item once per rank): now
     rank r gets the videos i % 2 == r, the union is every item once and each equals the one-process item
-    (clips tracked in a spawned DataLoader worker of each rank here)."""
+    (clips read in a spawned DataLoader worker of each rank here)."""
     assert len(single["frames"]) == len(clips) * FRAMES and len(single["clips"]) == len(clips) * 2
-    assert_union_is_every_item_once([r["clips"] for r in ddp_run], single["clips"], skip=("cached",))
+    assert_union_is_every_item_once([r["clips"] for r in ddp_run], single["clips"])
     assert [sorted({v for v, _ in r["clips"]}) for r in ddp_run] == [[0, 2], [1]]
-    assert not any(bool(item["cached"]) for r in ddp_run for item in r["clips"].values())
+    assert all(bool(item["cached"]) for r in ddp_run for item in r["clips"].values())
 
 
 def test_each_ranks_dataloader_workers_split_its_videos(ddp_run, single):
-    """num_workers=2 inside each rank: rank 0's workers take videos 0 and 2, rank 1's worker 0 video 1 (its
+    """num_workers=2 inside each rank: rank 0's workers track videos 0 and 2, rank 1's worker 0 video 1 (its
     worker 1 has none); every frame item once, equal to the single-process one."""
     assert_union_is_every_item_once([r["frames"] for r in ddp_run], single["frames"])
     # the DataLoader alternates between rank 0's workers: video 0 (worker 0), then video 2 (worker 1)
