@@ -6,17 +6,26 @@ landmarks (:func:`~training_hooks.transforms.track_sequence`, one stream at a ti
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames.
 
-Workers: video ``i`` belongs to worker ``i % num_workers`` (``torch.utils.data.get_worker_info()``; the main
-process does everything when ``num_workers = 0``). A worker tracks its videos from start to end, so it owns
-their tracker states; no state crosses processes. Tracking runs with a fixed torch thread count
-(:attr:`~training_hooks.transforms.FaceTrackingConfig.num_threads`), so every item is bit-identical for 0, 1
-or 2 workers (only the order in which a ``DataLoader`` interleaves the workers' items differs).
+Sharding: each video is tracked by exactly one process, from its start to its end, so that process owns its
+tracker state and no state crosses processes. In a ``torch.distributed`` process group (DDP: default group,
+``world_size`` ranks) video ``i`` belongs to rank ``i % world_size`` (:attr:`DatasetConfig.shard_ranks`), and
+within a rank the ``j``-th of its videos to ``DataLoader`` worker ``j % num_workers``
+(``torch.utils.data.get_worker_info()``; the rank's own process does everything when ``num_workers = 0``):
+video ``i`` goes to rank ``i % world_size``, worker ``(i // world_size) % num_workers``
+(:meth:`VideoDataset.worker_videos`). Without a group this is video ``i`` -> worker ``i % num_workers``. The
+union of the ranks' epochs is every item exactly once. Tracking runs with a fixed torch thread count
+(:attr:`~training_hooks.transforms.FaceTrackingConfig.num_threads`), so every item is bit-identical for any
+number of ranks and workers (only the order in which a ``DataLoader`` interleaves the workers' items differs).
+The rank and world size are read when the dataset is iterated, or, in a ``DataLoader`` worker started with
+the ``spawn`` or ``forkserver`` method (where ``torch.distributed`` is not initialised), the ones of the rank
+that sent the dataset to it. Use the datasets without a ``DistributedSampler`` (they are iterable datasets).
 
-Distributed training: the datasets do not split the videos between ``torch.distributed`` ranks (the ranks' item
-counts would differ, and DDP hangs on uneven inputs): every rank yields every item, so each rank tracks every
-video and an epoch shows every item once per rank. Give each rank its own list of videos (with equal item
-counts) instead; iterating in a process group of more than one rank warns (:class:`DistributedWarning`) once
-per dataset.
+Under DDP the ranks' item counts differ unless their videos split evenly (a multiple of ``world_size`` videos
+of equal item counts), and DDP training hangs when one rank takes more optimiser steps than another: wrap the
+training loop in ``DistributedDataParallel.join()``, or cap the steps per epoch (Lightning's
+``limit_train_batches``) at the smallest rank's batch count. A rank without a video (fewer videos than ranks)
+yields nothing and warns (:class:`DistributedWarning`) once per dataset. ``DatasetConfig(shard_ranks=False)``
+makes every rank yield every item (for a dataset built with each rank's own list of videos).
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -77,14 +86,16 @@ Detector = Callable[[np.ndarray], "np.ndarray | None"]
 
 
 class DistributedWarning(UserWarning):
-    """A dataset is iterated in a ``torch.distributed`` process group: every rank yields every item (module
-    docstring)."""
+    """A rank of a ``torch.distributed`` process group has no video of a dataset to iterate (fewer videos than
+    ranks): it yields no item (module docstring, "Sharding")."""
 
 
-def _world_size() -> int:
-    """Ranks of the default ``torch.distributed`` process group (1 without one)."""
+def _process_group() -> tuple[int, int] | None:
+    """``(rank, world_size)`` in the default ``torch.distributed`` process group; None without one."""
     dist = torch.distributed
-    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+    if not (dist.is_available() and dist.is_initialized()):
+        return None
+    return dist.get_rank(), dist.get_world_size()
 
 
 @dataclass(frozen=True)
@@ -103,9 +114,11 @@ class DatasetConfig:
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
             shuffles: each epoch (:meth:`VideoDataset.set_epoch`) permutes the videos, and each worker draws its
-            items at random from a buffer of this many (seeded by ``seed``, the epoch and the worker, so an
-            epoch's order is reproducible for a given worker count; the items themselves never change).
+            items at random from a buffer of this many (seeded by ``seed``, the epoch, the worker and the rank,
+            so an epoch's order is reproducible for given worker and rank counts; the items never change).
         seed: seed of the shuffling.
+        shard_ranks: in a ``torch.distributed`` process group, split the videos between the ranks (video ``i`` ->
+            rank ``i % world_size``, module docstring); False makes every rank yield every item.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -116,6 +129,7 @@ class DatasetConfig:
     convert: bool = False
     shuffle_buffer: int = 0
     seed: int = 0
+    shard_ranks: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracking, FaceTrackingConfig):
@@ -128,6 +142,8 @@ class DatasetConfig:
             raise ValueError("clip_stride needs clip_length")
         if isinstance(self.shuffle_buffer, bool) or not isinstance(self.shuffle_buffer, int) or self.shuffle_buffer < 0:
             raise ValueError(f"shuffle_buffer must be an int >= 0, got {self.shuffle_buffer!r}")
+        if not isinstance(self.shard_ranks, bool):
+            raise TypeError(f"shard_ranks must be a bool, got {type(self.shard_ranks).__name__}")
         if self.cache_dir is not None:
             object.__setattr__(self, "cache_dir", Path(self.cache_dir))
 
@@ -229,6 +245,7 @@ class VideoDataset(IterableDataset):
             self.detector, self.landmarks = None, tuple(landmarks)
         self.epoch = 0
         self._warned_distributed = False
+        self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
         self._cache: TrackCache | None = None
@@ -265,17 +282,42 @@ class VideoDataset(IterableDataset):
             self.stats.cache = self._cache.stats
         return self._cache
 
-    def worker_videos(self, worker_id: int, num_workers: int) -> list[int]:
-        """Indices of the videos worker ``worker_id`` of ``num_workers`` handles: ``i % num_workers == worker_id``,
-        in this epoch's order.
+    def __getstate__(self) -> dict[str, object]:
+        # A DataLoader worker started by spawn / forkserver receives the dataset pickled by its rank, and has no
+        # torch.distributed group of its own: the rank's (rank, world size) travel with the dataset.
+        state = self.__dict__.copy()
+        group = _process_group()
+        if group is not None:
+            state["_sender_group"] = group
+        return state
+
+    def rank_and_world_size(self) -> tuple[int, int]:
+        """``(rank, world_size)`` the videos are split by in this process: the default ``torch.distributed``
+        group's, else the group of the rank that pickled this dataset (a spawned ``DataLoader`` worker), else
+        ``(0, 1)``; always ``(0, 1)`` with ``DatasetConfig(shard_ranks=False)``."""
+        if not self.config.shard_ranks:
+            return 0, 1
+        group = _process_group()
+        if group is None:
+            group = getattr(self, "_sender_group", None)  # (absent from a dataset pickled before it existed)
+        return (0, 1) if group is None else group
+
+    def worker_videos(self, worker_id: int, num_workers: int, rank: int = 0, world_size: int = 1) -> list[int]:
+        """Indices of the videos worker ``worker_id`` of ``num_workers`` on rank ``rank`` of ``world_size``
+        handles, in this epoch's order: ``i % world_size == rank`` and ``(i // world_size) % num_workers ==
+        worker_id`` (the rank's ``j``-th video goes to worker ``j % num_workers``; module docstring).
 
         Example:
             >>> # VideoDataset(five_videos, ...).worker_videos(1, 2) -> [1, 3]
+            >>> # VideoDataset(five_videos, ...).worker_videos(0, 2, rank=1, world_size=2) -> [1]  (worker 1: [3])
         """
+        for name, value, count in (("worker_id", worker_id, num_workers), ("rank", rank, world_size)):
+            if not 0 <= value < count:
+                raise ValueError(f"{name} must be in [0, {count}), got {value}")
         order = list(range(len(self.videos)))
         if self.config.shuffle_buffer > 0:
             random.Random(f"videos:{self.config.seed}:{self.epoch}").shuffle(order)
-        return [i for i in order if i % num_workers == worker_id]
+        return [i for i in order if i % world_size == rank and (i // world_size) % num_workers == worker_id]
 
     def _first_landmarks(self, index: int, first: Tensor, content: str) -> np.ndarray:
         """``(68, 2)`` float64 landmarks of video ``index``, validated against its first frame."""
@@ -376,25 +418,26 @@ class VideoDataset(IterableDataset):
             yield item
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        world = _world_size()
-        if world > 1 and not self._warned_distributed:
+        rank, world = self.rank_and_world_size()
+        if rank >= len(self.videos) and not self._warned_distributed:
             self._warned_distributed = True  # (a worker process warns once per epoch: its copy starts afresh)
             warnings.warn(
-                f"{type(self).__name__} is iterated in a torch.distributed group of {world} ranks: it does not split "
-                "the videos between ranks, so every rank yields every item (and tracks every video); give each "
-                "rank its own list of videos",
+                f"{type(self).__name__} has {len(self.videos)} videos for {world} torch.distributed ranks: rank "
+                f"{rank} gets none and yields no item (DDP training needs every rank to take the same number of "
+                "steps)",
                 DistributedWarning,
                 stacklevel=2,
             )
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-        videos = self.worker_videos(worker, workers)
+        videos = self.worker_videos(worker, workers, rank, world)
         size = self.config.shuffle_buffer
         if size == 0:
             for index in videos:
                 yield from self._items(index, None)
             return
-        rng = random.Random(f"items:{self.config.seed}:{self.epoch}:{worker}:{workers}")
+        ranks = f":{rank}:{world}" if world > 1 else ""  # (one process: the seeds of before ranks were split)
+        rng = random.Random(f"items:{self.config.seed}:{self.epoch}:{worker}:{workers}{ranks}")
         buffer: list[dict[str, Tensor]] = []
         for index in videos:
             for item in self._items(index, rng):

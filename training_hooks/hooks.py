@@ -58,6 +58,8 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
     The weights are detached (the confidence is data, not a parameter). An entry of weight zero (confidence 0,
     or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and the gradient, even where its
     loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph, never NaN.
+    Under DDP each rank weighs its own batch, and DDP averages the ranks' gradients: the step follows the mean of
+    the ranks' weighted means, not one weighted mean over every rank's samples.
 
     Args:
         loss: ``(B,)`` or ``(B, T)`` per-sample (per-frame) losses.
@@ -186,6 +188,10 @@ def _select(value: Any, indices: Tensor, B: int) -> Any:
     return value
 
 
+#: The pose and animation statistics of :class:`_Accumulator` (``moments`` keys), in a fixed order.
+_MOMENTS = ("yaw_deg", "pitch_deg", "roll_deg", "depth_mm", "anim_abs")
+
+
 @dataclass
 class _Accumulator:
     """Running sums over the real frames of batches (:func:`tracking_quality`, :class:`TrackingQualityLogger`)."""
@@ -241,6 +247,30 @@ class _Accumulator:
             self._moment("anim_abs", batch["anim_coeffs"].detach()[valid].abs().mean(-1))
         return self
 
+    def all_reduce(self) -> "_Accumulator":
+        """The sums over every rank of the default ``torch.distributed`` process group (a collective: every rank
+        calls it); this accumulator itself without a group."""
+        dist = torch.distributed
+        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+            return self
+        device = torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" else None
+        counts = [self.frames, self.samples, self.conf_sum, self.success, self.cached, self.cached_count,
+                  self.coverage, self.coverage_count]  # fmt: skip
+        for name in _MOMENTS:  # (a rank without frames has no moments: every rank packs every name)
+            counts.extend(self.moments.get(name, [0.0, 0.0, 0.0]))
+        sums = torch.tensor(counts, dtype=torch.float64, device=device)
+        low = torch.tensor([self.conf_min], dtype=torch.float64, device=device)
+        dist.all_reduce(sums)
+        dist.all_reduce(low, op=dist.ReduceOp.MIN)
+        v = sums.cpu().tolist()
+        out = _Accumulator(frames=int(v[0]), samples=int(v[1]), conf_sum=v[2], conf_min=float(low), success=v[3],
+                           cached=v[4], cached_count=int(v[5]), coverage=v[6], coverage_count=int(v[7]))
+        for k, name in enumerate(_MOMENTS):
+            m = v[8 + 3 * k : 11 + 3 * k]
+            if m[0] > 0:
+                out.moments[name] = m
+        return out
+
     def summary(self) -> dict[str, float]:
         if self.frames == 0:
             return {"frames": 0.0, "samples": float(self.samples)}
@@ -284,6 +314,8 @@ class TrackingQualityLogger:
 
     :meth:`update` adds a batch and returns that batch's statistics; :meth:`compute` gives the statistics of every
     frame since the last :meth:`reset` (means over frames, not means of batch means; the minimum over all).
+    Under DDP each rank sees its own share of the items (:mod:`training_hooks.datasets`, "Sharding"):
+    ``compute(sync_dist=True)`` gives the statistics of every rank's frames together.
 
     Example:
         >>> log = TrackingQualityLogger()
@@ -301,9 +333,15 @@ class TrackingQualityLogger:
         self._epoch.add(batch)
         return tracking_quality(batch)
 
-    def compute(self) -> dict[str, float]:
-        """Statistics of all frames added since the last :meth:`reset`."""
-        return self._epoch.summary()
+    def compute(self, sync_dist: bool = False) -> dict[str, float]:
+        """Statistics of all frames added since the last :meth:`reset`.
+
+        Args:
+            sync_dist: in a ``torch.distributed`` process group, the statistics of the frames added on every rank
+                (a collective: every rank must call it; NCCL groups reduce on the current CUDA device); without a
+                group the same as False.
+        """
+        return (self._epoch.all_reduce() if sync_dist else self._epoch).summary()
 
     def reset(self) -> None:
         """Start a new epoch."""

@@ -38,7 +38,9 @@ class TrackingQualityCallback(pl.Callback):
 
     Per batch (``on_step``) it logs ``<prefix>train/<stat>`` (or ``val/``), and at the end of each epoch
     ``<prefix>train_epoch/<stat>`` over every frame of the epoch (:class:`~training_hooks.hooks.TrackingQualityLogger`),
-    with ``<stat>`` the keys of :func:`~training_hooks.hooks.tracking_quality`.
+    with ``<stat>`` the keys of :func:`~training_hooks.hooks.tracking_quality`. Under DDP the step statistics are
+    the rank's own batch, and the epoch statistics cover every rank's frames
+    (:meth:`TrackingQualityLogger.compute(sync_dist=True) <training_hooks.hooks.TrackingQualityLogger.compute>`).
 
     Args:
         prefix: prepended to every logged name.
@@ -73,10 +75,11 @@ class TrackingQualityCallback(pl.Callback):
             pl_module.log_dict(named, on_step=True, on_epoch=False, batch_size=size)
 
     def _on_epoch_end(self, stage: str, pl_module: pl.LightningModule) -> None:
-        stats = self.loggers[stage].compute()
+        stats = self.loggers[stage].compute(sync_dist=True)  # (every rank runs this hook)
         if stats.get("frames", 0.0) > 0:
             named = {f"{self.prefix}{stage}_epoch/{k}": v for k, v in stats.items()}
-            pl_module.log_dict(named, on_step=False, on_epoch=True)
+            # (already every rank's; sync_dist keeps Lightning from asking for it, the values being equal on all ranks)
+            pl_module.log_dict(named, on_step=False, on_epoch=True, sync_dist=True)
         self.loggers[stage].reset()
 
     def on_train_batch_start(
@@ -116,8 +119,10 @@ class TrackedFaceDataModule(pl.LightningDataModule):
     :meth:`~training_hooks.datasets.VideoDataset.set_epoch` (shuffling); set ``reload_dataloaders_every_n_epochs=1``
     on the trainer so that happens every epoch.
 
-    Distributed (DDP) training: the datasets do not split their videos between ranks, so every rank gets every
-    item (:class:`~training_hooks.datasets.DistributedWarning`); build each rank's module with its own videos.
+    Distributed (DDP) training: each rank's loaders yield that rank's share of the videos (video ``i`` -> rank
+    ``i % world_size``, :mod:`training_hooks.datasets`, "Sharding"; the datasets are iterable, so Lightning adds no
+    ``DistributedSampler``). The ranks' batch counts differ unless the videos split evenly: set the trainer's
+    ``limit_train_batches`` to the smallest rank's count.
     """
 
     def __init__(

@@ -242,29 +242,6 @@ def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
 # --------------------------------------------------------------------------------------------- exceptions
 
 
-def test_a_distributed_group_is_warned_that_every_rank_gets_every_item(clips, config, monkeypatch):
-    """In a torch.distributed group of several ranks (Lightning DDP) every rank yielded every item without a word
-    (each rank tracked every video and an epoch showed each item once per rank): the dataset warns, once."""
-    import warnings
-
-    def every_rank_warnings() -> tuple[list, list[str]]:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            items = list(data)
-        return items, [type(w.message).__name__ for w in caught if "every rank yields every item" in str(w.message)]
-
-    data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None))
-    single, caught = every_rank_warnings()
-    assert caught == []  # no process group: no warning
-    monkeypatch.setattr(torch.distributed, "is_available", lambda: True)
-    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
-    monkeypatch.setattr(torch.distributed, "get_world_size", lambda group=None: 2)
-    items, caught = every_rank_warnings()
-    assert caught == ["DistributedWarning"]
-    assert len(items) == len(single)  # the items are unchanged
-    assert every_rank_warnings()[1] == []  # once per dataset
-
-
 def test_bad_arguments(clips, tmp_path):
     video, lm = clips[0].video, clips[0].landmarks
     with pytest.raises(ValueError, match="one entry per video"):
