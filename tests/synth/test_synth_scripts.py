@@ -250,3 +250,27 @@ def test_benchmark_scripts_refuse_bad_options_before_any_work(tmp_path, capsys, 
     for extra, message in [(["--runs", "0"], "--runs"), (["--threads", "0"], "--threads"), (["--batches", "0"], "--batches"),
                            (["--device", "bogus"], "--device bogus"), (["--json", str(tmp_path)], "--json")]:  # fmt: skip
         assert message in _usage_error(raster.main, extra, capsys), extra
+
+
+def test_build_synth_data_refuses_incomplete_assets_before_writing(tmp_path, monkeypatch):
+    """A James folder without its files was a traceback, and one without james.jpg only after james.npz of the
+    package data had been rewritten. A missing folder stays one line too (../shared absent)."""
+    import pytest
+
+    build = _load("build_synth_data")
+    monkeypatch.setattr(build, "build_james_data", lambda *a: (_ for _ in ()).throw(AssertionError("writing")))
+    with pytest.raises(SystemExit, match="no James assets at"):
+        build.main(["--assets", str(tmp_path / "absent")])
+    (tmp_path / "james").mkdir()
+    (tmp_path / "james" / "james.obj").write_text("v 0 0 0\n")
+    with pytest.raises(SystemExit, match="lacks james.jpg, james.ljson, LICENSE.txt"):
+        build.main(["--assets", str(tmp_path)])
+
+
+def test_track_grid_refuses_negative_overlay_frames(tmp_path, capsys):
+    """``--frames -1`` matched no frame: the overlay PNG was saved without it and nothing said so."""
+    grid = _load("track_grid")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "clip.mpg").write_bytes(b"")
+    args = ["--grid", str(tmp_path / "g"), "--detector", "dlib", "--frames", "0", "-1", "--out", str(tmp_path / "o")]
+    assert "--frames must be frame indices >= 0" in _usage_error(grid.main, args, capsys)
