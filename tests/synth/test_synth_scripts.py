@@ -247,8 +247,9 @@ def test_benchmark_scripts_refuse_bad_options_before_any_work(tmp_path, capsys, 
         assert message in _usage_error(render.main, extra, capsys), extra
     raster = _load("benchmark_raster")
     monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
-    for extra, message in [(["--runs", "0"], "--runs"), (["--threads", "0"], "--threads"), (["--batches", "0"], "--batches"),
-                           (["--device", "bogus"], "--device bogus"), (["--json", str(tmp_path)], "--json")]:  # fmt: skip
+    for extra, message in [(["--runs", "0"], "--runs"), (["--threads", "0"], "--threads"),
+                           (["--batches", "0"], "--batches"), (["--device", "bogus"], "--device bogus"),
+                           (["--json", str(tmp_path)], "--json")]:  # fmt: skip
         assert message in _usage_error(raster.main, extra, capsys), extra
 
 
