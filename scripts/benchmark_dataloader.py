@@ -13,7 +13,6 @@ Example:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchface.io.sidecar import write_json
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset, loader_throughput
@@ -93,10 +93,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
     args = parser.parse_args(argv)
     workers = args.workers
+    # checked before any rendering or tracking (a --json folder failed only after the tracking epoch)
+    try:
+        tracking = FaceTrackingConfig(face_size=args.face_size)
+    except ValueError as exc:
+        parser.error(f"--face-size: {exc}")
+    if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
+        parser.error(f"--json {args.json}: not a file path (a folder, or under a file)")
     with tempfile.TemporaryDirectory(prefix="tf_dataloader_") as tmp:
         root = Path(tmp)
         videos, landmarks = render_videos(root, args.videos, args.frames, args.width, args.height)
-        tracking = FaceTrackingConfig(face_size=args.face_size)
         print(
             f"torch {torch.__version__}, {os.cpu_count()} CPUs, {args.videos} videos x {args.frames} frames "
             f"{args.width}x{args.height}, normalised face {args.face_size}px uint8, batch {args.batch_size}"
@@ -127,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}, "rows": rows}
-        args.json.write_text(json.dumps(payload, indent=1) + "\n")
+        write_json(args.json, payload)  # whole or not at all (a temporary name renamed), NaN as null
     return 0
 
 

@@ -12,17 +12,18 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
 import statistics
 import time
+from pathlib import Path
 
 import torch
 import trimesh
 
 from torchface.geometry.camera import Intrinsics
+from torchface.io.sidecar import write_json
 from torchface.rendering import rasterize
 
 WIDTH, HEIGHT = 640, 480
@@ -104,7 +105,7 @@ def _integer(minimum: int, even: bool = False):
     return parse
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=_integer(1), default=None, help="torch.set_num_threads (default: torch's)")
     parser.add_argument("--runs", type=_integer(1), default=15, help="timed runs per row (default 15)")
@@ -112,11 +113,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--batches", type=_integer(1), nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
-    parser.add_argument("--json", default=None, help="write the figures to this JSON file")
+    parser.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     args = parser.parse_args(argv)
+    # one-line errors before any timing, not tracebacks (a --json folder: after every row was timed)
+    try:
+        device = torch.device(args.device)
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError) as exc:  # an unknown device, or torch built without it
+        parser.error(f"--device {args.device}: {' '.join(str(exc).split())}")
+    if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
+        parser.error(f"--json {args.json}: not a file path (a folder, or under a file)")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
     dtype = getattr(torch, args.dtype)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     cam = Intrinsics.default(WIDTH, HEIGHT)
@@ -156,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
             f"{r['ms_per_sample']:>10.2f} {r['cpu_ms']:>9.2f}"
         )
     print("ms: wall-clock median; cpu ms: process CPU time median (all threads), less sensitive to other load")
-    if args.json:
+    if args.json is not None:
         meta = {
             "width": WIDTH,
             "height": HEIGHT,
@@ -169,9 +177,10 @@ def main(argv: list[str] | None = None) -> None:
             "warmup": args.warmup,
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         }
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({"meta": meta, "results": rows}, fh, indent=2)
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.json, {"meta": meta, "results": rows})  # whole or not at all (a temporary name renamed)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -61,6 +61,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=_integer(1), default=3, help="timed renders per row (default 3)")
     parser.add_argument("--threads", type=_integer(0), default=0, help="torch threads (0: leave the default)")
     args = parser.parse_args(argv)
+    # one-line errors, not tracebacks (--repeats 0: after the warm-up renders)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.threads < 0:
+        parser.error(f"--threads must be >= 1 (or 0: torch's default), got {args.threads}")
+    if args.width < 8 or args.height < 8:
+        parser.error(f"--width and --height must be >= 8, got {args.width}x{args.height}")
     if args.threads:
         torch.set_num_threads(args.threads)
     w, h = args.width, args.height

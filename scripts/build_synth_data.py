@@ -15,16 +15,21 @@ from torchface.synth.james import build_james_data
 from torchface.synth.subjects import build_candide_textures
 
 ROOT = Path(__file__).resolve().parents[1]
+#: What torchface.synth.james.build_james_data reads from the assets' james folder.
+JAMES_FILES = ("james.obj", "james.jpg", "james.ljson", "LICENSE.txt")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets",
                         help="the shared assets folder (default ../shared/assets beside the repository)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     james_dir = args.assets / "james"
     if not james_dir.is_dir():
         raise SystemExit(f"no James assets at {james_dir}")
+    missing = [name for name in JAMES_FILES if not (james_dir / name).is_file()]
+    if missing:  # (a traceback from trimesh or numpy before, once the package data had begun to change)
+        raise SystemExit(f"build_synth_data.py: error: {james_dir} lacks {', '.join(missing)}")
     out = ROOT / "torchface" / "data" / "james"
     figures = build_james_data(james_dir, out)
     print(f"wrote {out}: " + ", ".join(f"{k}={v:.2f}" for k, v in figures.items()))

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from dataclasses import replace
@@ -161,10 +162,23 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         if name not in SCENARIOS:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
+    if not variants:
+        parser.error(f"--variants: none given; choose from {', '.join(VARIANTS)}")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     ev.check_size_for_video(parser, args.size, args.cache, names)
+    # A frame is a positive below --good and a negative above --bad: with --good above --bad (or NaN) frames in
+    # between counted as both and the AUROC compared them with themselves.
+    if not (math.isfinite(args.good) and math.isfinite(args.bad) and 0.0 < args.good <= args.bad):
+        parser.error(f"--good and --bad must be numbers with 0 < --good <= --bad, got {args.good:g} and {args.bad:g}")
     cache = None if args.cache.lower() == "none" else Path(args.cache)
+    if cache is not None and any(a.exists() and not a.is_dir() for a in (cache, *cache.parents)):
+        parser.error(f"--cache {cache}: not a folder path (a file, or under a file)")
+    save = args.save
+    if save is not None:  # checked before the run, not after it (numpy adds .npz to a name without it)
+        save = save if save.suffix == ".npz" else save.with_name(save.name + ".npz")
+        if save.is_dir() or any(a.exists() and not a.is_dir() for a in save.parents):
+            parser.error(f"--save {args.save}: not a file path (a folder, or under a file)")
     model = load_candide3()
     base = TrackerConfig(template=TemplateConfig())
     results: dict[str, dict[str, dict[str, np.ndarray]]] = {v: {} for v in variants}
@@ -197,10 +211,16 @@ def main(argv: list[str] | None = None) -> int:
         both = [*results["standard"].values(), *results["no_illum"].values()]
         pooled = {k: np.concatenate([[0.0]] + [d[k][1:] for d in both]) for k in both[0]}
         print(report("standard+no_illum/POOLED", pooled, args.good, args.bad))
-    if args.save is not None:
-        args.save.parent.mkdir(parents=True, exist_ok=True)
+    if save is not None:
+        save.parent.mkdir(parents=True, exist_ok=True)
         flat = {f"{v}/{n}/{k}": x for v, r in results.items() for n, d in r.items() for k, x in d.items()}
-        np.savez(args.save, **flat)  # (numpy adds .npz to a name without it)
+        tmp = save.with_name(save.name + ".partial.npz")  # renamed when complete: no half-written file under its name
+        try:
+            np.savez(tmp, **flat)
+            os.replace(tmp, save)
+        finally:
+            tmp.unlink(missing_ok=True)
+        print(f"wrote {save}")
     return 0
 
 

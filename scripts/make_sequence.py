@@ -20,7 +20,15 @@ import sys
 import time
 from pathlib import Path
 
-from torchface.synth.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, SCENARIOS, SIZES, make_scenario, scenario_size
+from torchface.synth.scenarios import (
+    ALL_SCENARIOS,
+    LONG_RUN_MIN_FRAMES,
+    LONG_SCENARIOS,
+    SCENARIOS,
+    SIZES,
+    make_scenario,
+    scenario_size,
+)
 from torchface.synth.sequence import write_sequence
 
 
@@ -47,10 +55,15 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{option} must be even and >= 8 (a video's frames), got {value}")
     if args.frames is not None and args.frames < 1:
         parser.error(f"--frames must be >= 1, got {args.frames}")
+    # before any rendering: a long run's timeline needs its frames (with 'everything' the five standard scenarios
+    # were rendered first, then a traceback)
+    long_names = [n for n in names if n in LONG_SCENARIOS]
+    if long_names and args.frames is not None and args.frames < LONG_RUN_MIN_FRAMES:
+        parser.error(f"--frames must be >= {LONG_RUN_MIN_FRAMES} for {', '.join(long_names)}, got {args.frames}")
     if args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")
-    if args.out.exists() and not args.out.is_dir():
-        parser.error(f"--out {args.out}: not a folder")
+    if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
+        parser.error(f"--out {args.out}: not a folder path (a file, or under a file)")
     for name in names:
         w, h, t = scenario_size(name, args.size)
         w = args.width if args.width is not None else w

@@ -55,12 +55,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.scale < 0:
         parser.error(f"--scale must be >= 1 (or 0 for about 640 px wide), got {args.scale}")
-    if args.out.exists() and not args.out.is_dir():
-        parser.error(f"--out {args.out}: not a folder")
+    if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
+        parser.error(f"--out {args.out}: not a folder path (a file, or under a file)")
     try:
         gt = load_ground_truth(args.video)
     except (OSError, ValueError) as exc:
         parser.error(f"{args.video}: no ground truth beside it (a video written by make_sequence.py): {exc}")
+    if not args.video.is_file():  # a ground truth without its video: it was a FileNotFoundError's traceback
+        parser.error(f"{args.video}: no such video file (its ground truth is there)")
     if args.frames and any(not 0 <= f < gt.num_frames for f in args.frames):
         parser.error(f"--frames must be in 0..{gt.num_frames - 1}, got {args.frames}")
     picks = args.frames if args.frames else pick_frames(gt.ypr_deg)
@@ -69,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         if count - 1 in picks:
             kept[count - 1] = frame
     if count != gt.num_frames:
-        raise SystemExit(f"video has {count} frames, ground truth {gt.num_frames}")
+        raise SystemExit(f"overlay_landmarks.py: error: {args.video} has {count} frames, its ground truth "
+                         f"{gt.num_frames}")
     lm_cam = transform_points(gt.rotation, gt.translation, gt.landmarks_3d)
     reproj = project_points(lm_cam, gt.intrinsics)
     err = (reproj - gt.landmarks_px).norm(dim=-1).max().item()

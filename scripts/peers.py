@@ -29,8 +29,9 @@ __all__ = ["MediaPipeRun", "run_mediapipe", "opencv_rotations"]
 
 #: Run by the peer's interpreter: ``argv[1]`` an ``.npy`` of ``(T, H, W, 3)`` uint8 RGB frames, ``argv[2]`` (optional)
 #: where to save the ``(T, 4, 4)`` facial transformation matrices (NaN where no face was found). FaceLandmarker in
-#: VIDEO mode (40 ms apart); prints the median ms per frame after 3 warm-up frames, the frames with a face, the
-#: frames and MediaPipe's version, or "none" when MediaPipe or its model bundle is missing.
+#: VIDEO mode (40 ms apart); prints the median ms per frame after 3 warm-up frames (over every frame of a clip of 3
+#: or fewer), the frames with a face, the frames and MediaPipe's version, or "none" when MediaPipe or its model
+#: bundle is missing.
 _RUNNER = r"""
 import importlib.util, statistics, sys, time
 from pathlib import Path
@@ -62,7 +63,7 @@ with vision.FaceLandmarker.create_from_options(opts) as lm:
             matrices[i] = np.asarray(out.facial_transformation_matrixes[0], dtype=np.float64)
 if poses:
     np.save(sys.argv[2], matrices)
-print(1000.0 * statistics.median(times[3:]), found, len(rgb), mp.__version__)
+print(1000.0 * statistics.median(times[3:] or times), found, len(rgb), mp.__version__)
 """
 
 
@@ -71,7 +72,8 @@ class MediaPipeRun:
     """One run of FaceLandmarker over a clip.
 
     Attributes:
-        ms_per_frame: median wall time of one ``detect_for_video`` call after 3 warm-up frames.
+        ms_per_frame: median wall time of one ``detect_for_video`` call after 3 warm-up frames (over every frame
+            of a clip of 3 or fewer: the median of none failed the run, reported as no MediaPipe).
         frames_with_face: frames where it found a face; frames: frames given.
         version: MediaPipe's version.
         matrices: ``(T, 4, 4)`` facial transformation matrices (NaN where no face was found), or None when poses

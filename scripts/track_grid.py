@@ -64,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     clips = sorted(args.grid.glob("*.mpg"))
     if not clips:
         parser.error(f"--grid {args.grid}: no .mpg clips there")
+    if any(f < 0 for f in args.frames):  # never matched a frame: the PNG went without them, without a word
+        parser.error(f"--frames must be frame indices >= 0, got {args.frames}")
     if args.landmarks_dir is None and args.detector is None:
         parser.error("give --landmarks-dir (first-frame landmarks <stem>.csv) or --detector NAME")
     if args.landmarks_dir is not None and not args.landmarks_dir.is_dir():

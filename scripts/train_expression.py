@@ -408,9 +408,9 @@ _OWN_FILES = re.compile(
 )
 
 
-def _clear_own_folder(folder: Path) -> None:
-    """Empty ``folder`` for a new run if this script made it (its mark file, or only files of the names it writes),
-    create it marked otherwise; a folder of the user's is refused rather than deleted."""
+def _check_own_folder(folder: Path) -> None:
+    """Refuse (one-line error) a ``folder`` that :func:`_clear_own_folder` would not empty: a file, or a folder of
+    the user's."""
     if folder.exists() and not folder.is_dir():
         raise SystemExit(f"train_expression.py: error: {folder} is a file: choose another --out")
     if folder.exists():
@@ -419,6 +419,13 @@ def _clear_own_folder(folder: Path) -> None:
             raise SystemExit(
                 f"train_expression.py: error: {folder} exists and was not made by this script: choose another --out"
             )
+
+
+def _clear_own_folder(folder: Path) -> None:
+    """Empty ``folder`` for a new run if this script made it (its mark file, or only files of the names it writes),
+    create it marked otherwise; a folder of the user's is refused rather than deleted."""
+    _check_own_folder(folder)
+    if folder.exists():
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
     (folder / _OWN_MARK).write_text("train_expression.py empties this folder on its next run\n")
@@ -446,6 +453,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--out {args.out}: not a folder path (a file, or under a file)")
     if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
         p.error(f"--json {args.json}: not a file path (a folder, or under a file)")
+    for folder in (args.out / "videos", args.out / "cache"):  # both before any work (the cache's came after rendering)
+        _check_own_folder(folder)
     cfg = QUICK if args.quick else RunConfig()
     rng = np.random.default_rng(args.seed)
     times: dict[str, float] = {}

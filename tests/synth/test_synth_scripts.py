@@ -184,3 +184,156 @@ def test_every_script_answers_help_without_docstrings():
                          cwd=SCRIPTS.parent)  # fmt: skip
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.count("usage:") == len(scripts)
+
+
+def _usage_error(main, argv, capsys) -> str:
+    """``main(argv)``'s one-line usage error (argparse's exit 2): its stderr."""
+    import pytest
+
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "Traceback" not in err, (argv, err)
+    return err
+
+
+def test_make_sequence_refuses_a_long_run_too_short_before_rendering_anything(tmp_path, capsys):
+    """A long run's timeline needs 100 frames: ``--frames 5`` was a ValueError's traceback, and with ``everything``
+    only after the five standard scenarios had been rendered."""
+    make = _load("make_sequence")
+    out = tmp_path / "seq"
+    args = ["--scenario", "everything", "--width", "16", "--height", "16", "--frames", "5", "--out", str(out)]
+    err = _usage_error(make.main, args, capsys)
+    assert "--frames must be >= 100 for long_run, long_run_scan, got 5" in err
+    assert not out.exists()  # nothing rendered
+    err = _usage_error(make.main, ["--scenario", "long_run_scan", "--frames", "99", "--out", str(out)], capsys)
+    assert "for long_run_scan, got 99" in err
+
+
+def test_synth_scripts_refuse_an_out_under_a_file_and_a_ground_truth_without_its_video(tmp_path, capsys):
+    """Tracebacks before (NotADirectoryError from mkdir, FileNotFoundError for the video)."""
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import write_sequence
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    make = _load("make_sequence")
+    args = ["--scenario", "pose_sweep", "--width", "16", "--height", "16", "--frames", "2", "--out", str(blocker / "s")]
+    assert "not a folder path" in _usage_error(make.main, args, capsys)
+    files = write_sequence(make_scenario("pose_sweep", 2, 16, 16), tmp_path / "seq")
+    overlay = _load("overlay_landmarks")
+    err = _usage_error(overlay.main, [str(files.video), "--out", str(blocker / "o")], capsys)
+    assert "not a folder path" in err
+    files.video.unlink()
+    err = _usage_error(overlay.main, [str(files.video), "--out", str(tmp_path / "o")], capsys)
+    assert "no such video file" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_confidence_auroc_checks_its_thresholds_and_paths_before_the_run(tmp_path, capsys, monkeypatch):
+    """--good above --bad counted the frames in between as positives and negatives at once (``<5: 1  >2: 2`` of 2
+    frames) and --good nan none; --save and --cache under a file were tracebacks, --save's after the whole run;
+    an empty --variants rendered and tracked for nothing."""
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    (tmp_path / "d.npz").mkdir()
+    base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "16x16", "--cache", "none"]
+    cases = [
+        (["--good", "5", "--bad", "2"], "0 < --good <= --bad"),
+        (["--good", "nan"], "0 < --good <= --bad"),
+        (["--save", str(blocker / "s.npz")], "--save"),
+        (["--save", str(tmp_path / "d.npz")], "--save"),  # a folder
+        (["--cache", str(blocker)], "--cache"),
+        (["--cache", str(blocker / "c")], "--cache"),
+        (["--variants", ","], "--variants"),
+    ]
+    for extra, message in cases:
+        assert message in _usage_error(auroc.main, base + extra, capsys), extra
+
+
+def test_confidence_auroc_saves_its_series_whole(tmp_path, capsys, monkeypatch):
+    """The .npz is written under a temporary name and renamed: a write that fails half-way (a full disk, an
+    interrupt) left a truncated series.npz under the final name."""
+    import numpy as np
+    import pytest
+
+    auroc = _load("confidence_auroc")
+    save = tmp_path / "series"
+    args = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none", "--variants",
+            "standard", "--save", str(save)]  # fmt: skip
+    real_savez = np.savez
+
+    def failing_savez(file, **arrays):
+        path = file if str(file).endswith(".npz") else f"{file}.npz"
+        with open(path, "wb") as f:
+            f.write(b"PK\x03\x04 half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", failing_savez)
+    with pytest.raises(OSError):
+        auroc.main(args)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(np, "savez", real_savez)
+    assert auroc.main(args) == 0
+    assert f"wrote {save}.npz" in capsys.readouterr().out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["series.npz"]
+    with np.load(f"{save}.npz") as z:
+        assert z["standard/pose_sweep/err"].shape == (3,)
+
+
+def test_benchmark_scripts_refuse_bad_options_before_any_work(tmp_path, capsys, monkeypatch):
+    """Tracebacks before: --repeats/--runs 0 (after the warm-up, or after the tracking epoch), --threads 0,
+    --batches 0, --workers x, an unknown --device, a --json folder (after every row was timed)."""
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    dataloader = _load("benchmark_dataloader")
+    monkeypatch.setattr(dataloader, "render_videos", lambda *a: (_ for _ in ()).throw(AssertionError("rendering")))
+    for extra, message in [
+        (["--repeats", "0"], "--repeats: must be an integer >= 1"),
+        (["--workers", "x"], "--workers: must be"),
+        (["--workers", "0,-1"], "--workers: must be"),
+        (["--videos", "0"], "--videos: must be an integer >= 1"),
+        (["--batch-size", "0"], "--batch-size: must be an integer >= 1"),
+        (["--width", "63"], "--width: must be an even integer"),
+        (["--face-size", "4"], "--face-size"),
+        (["--json", str(tmp_path)], "--json"),
+        (["--json", str(blocker / "j.json")], "--json"),
+    ]:
+        assert message in _usage_error(dataloader.main, extra, capsys), extra
+    render = _load("benchmark_render")
+    monkeypatch.setattr(render, "get_subject", lambda *a: (_ for _ in ()).throw(AssertionError("timing")))
+    for extra, message in [(["--repeats", "0"], "--repeats"), (["--threads", "-1"], "--threads"),
+                           (["--width", "0"], "--width")]:  # fmt: skip
+        assert message in _usage_error(render.main, extra, capsys), extra
+    raster = _load("benchmark_raster")
+    monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
+    for extra, message in [(["--runs", "0"], "--runs"), (["--threads", "0"], "--threads"),
+                           (["--batches", "0"], "--batches"), (["--device", "bogus"], "--device bogus"),
+                           (["--json", str(tmp_path)], "--json")]:  # fmt: skip
+        assert message in _usage_error(raster.main, extra, capsys), extra
+
+
+def test_build_synth_data_refuses_incomplete_assets_before_writing(tmp_path, monkeypatch):
+    """A James folder without its files was a traceback, and one without james.jpg only after james.npz of the
+    package data had been rewritten. A missing folder stays one line too (../shared absent)."""
+    import pytest
+
+    build = _load("build_synth_data")
+    monkeypatch.setattr(build, "build_james_data", lambda *a: (_ for _ in ()).throw(AssertionError("writing")))
+    with pytest.raises(SystemExit, match="no James assets at"):
+        build.main(["--assets", str(tmp_path / "absent")])
+    (tmp_path / "james").mkdir()
+    (tmp_path / "james" / "james.obj").write_text("v 0 0 0\n")
+    with pytest.raises(SystemExit, match="lacks james.jpg, james.ljson, LICENSE.txt"):
+        build.main(["--assets", str(tmp_path)])
+
+
+def test_track_grid_refuses_negative_overlay_frames(tmp_path, capsys):
+    """``--frames -1`` matched no frame: the overlay PNG was saved without it and nothing said so."""
+    grid = _load("track_grid")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "clip.mpg").write_bytes(b"")
+    args = ["--grid", str(tmp_path / "g"), "--detector", "dlib", "--frames", "0", "-1", "--out", str(tmp_path / "o")]
+    assert "--frames must be frame indices >= 0" in _usage_error(grid.main, args, capsys)

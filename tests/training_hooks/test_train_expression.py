@@ -108,3 +108,23 @@ def test_threads_option(tmp_path, capsys, monkeypatch):
         assert torch.get_num_threads() == 3
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_users_cache_folder_is_refused_before_rendering(tmp_path, monkeypatch):
+    """``<out>/cache`` of the user's (or a file there) was refused only after every clip had been rendered (minutes
+    in a full run), with ``<out>/videos`` already emptied and refilled."""
+    import pytest
+
+    script = _load()
+    monkeypatch.setattr(script, "render_all", lambda *a: (_ for _ in ()).throw(AssertionError("rendering started")))
+    out = tmp_path / "run"
+    (out / "cache").mkdir(parents=True)
+    (out / "cache" / "keep.txt").write_text("my data")
+    with pytest.raises(SystemExit, match="cache exists and was not made by this script"):
+        script.main(["--quick", "--out", str(out)])
+    (out / "cache" / "keep.txt").unlink()
+    (out / "cache").rmdir()
+    (out / "cache").write_text("a file")
+    with pytest.raises(SystemExit, match="cache is a file"):
+        script.main(["--quick", "--out", str(out)])
+    assert sorted(f.name for f in out.iterdir()) == ["cache"]  # no videos folder made
