@@ -58,6 +58,7 @@ from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 __all__ = ["LookaheadConfig", "select_keyframes", "view_yaw_deg", "refine_first_fit", "lookahead_fit"]
 
 _NUM_LIGHT = 5  # gain, bias, three directional terms (Eq. 19)
+SILHOUETTE_MARGIN: int = 2
 
 
 @dataclass(frozen=True)
@@ -415,12 +416,20 @@ def _refine_first_fit(
             alphas = [al] + [al + key_alpha[k] for k in range(K)]
             points = [X] + [X + key_delta[k] for k in range(K)]
             seen = []
+            radius = SILHOUETTE_MARGIN * 2**level
             for (R, t), a, Xf in zip(poses, alphas, points):  # one rasterization each: stacked, the (1 + K)-frame
                 verts = m.deform(sig[None], a[None])[0]  # buffers cost more to allocate
                 frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True,
                                            backend=backend)
                 pts = Xf @ R.T + t
                 vis = points_visible(pts[None], fi, frags, intrinsics)[0]
+                if radius:  # at least ``radius`` full-resolution pixels inside the face's silhouette
+                    outside = (frags.pix_to_face[:1] < 0).to(pts.dtype)[:, None]
+                    near = torch.nn.functional.max_pool2d(outside, 2 * radius + 1, 1, radius)[0, 0] > 0
+                    uv = project_points(pts[None], intrinsics)[0].round().long()
+                    u = uv[:, 0].clamp(0, near.shape[1] - 1)
+                    v = uv[:, 1].clamp(0, near.shape[0] - 1)
+                    vis = vis & ~near[v, u]
                 cos = -((normals @ R.T) * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)
                 seen.append(vis & (cos >= config.min_facing_cos))
             h, w = imgs[level].shape[-2:]
