@@ -97,9 +97,9 @@ class LookaheadConfig:
         silhouette_margin: a point is used only where it lies at least this many pixels of the pyramid level
             being refined inside the mesh's outline (and its holes) in both frames; 0: anywhere on the mesh. The
             pyramid's blur mixes the background into the face near the outline, and the background does not
-            turn with the head: those points pulled the mesh smaller in the image, i.e. deeper (18 degree turn
-            at 600 mm: first frame re-estimated 5.6 / 19.6 / 20.8 mm too deep at 640x480 / 320x240 / 160x120
-            without the margin, 0.9 / 2.8 / -1.0 mm with 2, landmark fit 0.2 mm).
+            turn with the head: those points pull the mesh smaller in the image, i.e. deeper. On a rendered 18
+            degree turn at 600 mm the re-anchored mesh ends 5.6 / 19.6 / 20.8 mm too deep at 640x480 / 320x240
+            / 160x120 without the margin, 0.9 / 2.8 / -1.0 mm with 2.
     """
 
     yaw_deg: float = 10.0
