@@ -99,7 +99,10 @@ class LookaheadConfig:
             pyramid's blur mixes the background into the face near the outline, and the background does not
             turn with the head: those points pull the mesh smaller in the image, i.e. deeper. On a rendered 18
             degree turn at 600 mm the re-anchored mesh ends 5.6 / 19.6 / 20.8 mm too deep at 640x480 / 320x240
-            / 160x120 without the margin, 0.9 / 2.8 / -1.0 mm with 2.
+            / 160x120 without the margin, 0.9 / 2.8 / -1.0 mm with 2. Not the default: those points carry yaw and
+            pitch, and with 2 the standard scenarios' rotation errors grew (``expressions`` 0.20 -> 0.46 degrees
+            mean, ``scan_motion`` 0.76 -> 0.98) while their translation errors hardly changed (README, Known
+            limitations), and the refinement took 2.9 s instead of 1.3 at 640x480.
     """
 
     yaw_deg: float = 10.0
@@ -115,7 +118,7 @@ class LookaheadConfig:
     gradient_threshold: float = 0.01
     huber_k: float = 1.345
     min_facing_cos: float = 0.15
-    silhouette_margin: int = 2
+    silhouette_margin: int = 0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.yaw_deg < 90.0:
