@@ -16,6 +16,7 @@ import argparse
 import os
 import shutil
 import statistics
+import sys
 import tempfile
 from pathlib import Path
 
@@ -26,6 +27,9 @@ from torchface.io.sidecar import write_json
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset, loader_throughput
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import integer as _integer  # noqa: E402
 
 SCENARIOS = ("expressions", "light_switch")
 
@@ -51,23 +55,6 @@ def render_videos(root: Path, count: int, frames: int, width: int, height: int) 
     return out_videos, out_landmarks
 
 
-def _integer(minimum: int, even: bool = False):
-    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
-    less gave a traceback after the setup)."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum or (even and value % 2):
-            kind = "an even integer" if even else "an integer"
-            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
-        return value
-
-    return parse
-
-
 def _workers(text: str) -> list[int]:
     """``--workers``: a comma list of integers >= 0."""
     try:
@@ -83,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--videos", type=_integer(1), default=8, help="rendered videos (default 8)")
     parser.add_argument("--frames", type=_integer(1), default=24, help="frames per video (default 24)")
-    parser.add_argument("--width", type=_integer(32, even=True), default=320, help="frame width, even, >= 32 (default 320)")
+    parser.add_argument("--width", type=_integer(32, even=True), default=320,
+                        help="frame width, even, >= 32 (default 320)")
     parser.add_argument("--height", type=_integer(32, even=True), default=240,
                         help="frame height, even, >= 32 (default 240)")
     parser.add_argument("--face-size", type=_integer(16), default=128, help="normalised face side (default 128)")

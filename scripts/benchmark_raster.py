@@ -16,6 +16,7 @@ import math
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -25,6 +26,9 @@ import trimesh
 from torchface.geometry.camera import Intrinsics
 from torchface.io.sidecar import write_json
 from torchface.rendering import rasterize
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import integer as _integer  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
 DEPTH_MM = 450.0
@@ -86,23 +90,6 @@ def _time(fn, runs: int, warmup: int, sync) -> tuple[float, float]:
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
-
-
-def _integer(minimum: int, even: bool = False):
-    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
-    less gave a traceback after the setup)."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum or (even and value % 2):
-            kind = "an even integer" if even else "an integer"
-            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
-        return value
-
-    return parse
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -24,6 +26,9 @@ from torchface.rendering.shading import render
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import iter_sequence
 from torchface.synth.subjects import get_subject
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import integer as _integer  # noqa: E402
 
 
 def _times_ms(fn, repeats: int, frames: int) -> tuple[float, float]:
@@ -35,23 +40,6 @@ def _times_ms(fn, repeats: int, frames: int) -> tuple[float, float]:
         fn()
         times.append(time.perf_counter() - start)
     return 1000.0 * min(times) / frames, 1000.0 * statistics.median(times) / frames
-
-
-def _integer(minimum: int, even: bool = False):
-    """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
-    less gave a traceback after the setup)."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum or (even and value % 2):
-            kind = "an even integer" if even else "an integer"
-            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
-        return value
-
-    return parse
 
 
 def main(argv: list[str] | None = None) -> int:
