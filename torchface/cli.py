@@ -67,6 +67,8 @@ class ProgressDisplay:
     The job reports every stream of a batch after every step (B reports per step). On a terminal the bars are
     redrawn at most every ``redraw_s`` seconds, and at once when a video appears or finishes: a redraw writes every
     bar, so redrawing at each report wrote B * B lines per step (1.4 MB of terminal output per step at 128 streams).
+    A video that has finished is drawn or printed at once when it finishes, not again at each later report (the job
+    goes on reporting it while the longer videos of its batch are tracked: a log got its line at every step).
     :meth:`flush` draws the latest reports. Once the stream cannot be written (its reader has gone: a broken pipe),
     the display stops, and the job it reports on goes on.
     """
@@ -82,6 +84,7 @@ class ProgressDisplay:
         self.drawn = 0
         self.last_print: dict[int, float] = {}
         self.last_draw: float | None = None
+        self.finished: dict[int, int] = {}  # the videos reported finished: their frames then
         self.stale = False
         self.broken = False
 
@@ -119,7 +122,13 @@ class ProgressDisplay:
     def __call__(self, p) -> None:
         new = p.index not in self.lines
         self.lines[p.index] = self._line(p)
-        finished = p.total is not None and p.done >= p.total
+        if self.finished.get(p.index) == p.done:  # finished before: its line is kept up to date, not drawn again
+            self.stale = self.stale or self.tty
+            return
+        # (just now; a container whose frame count was an estimate may go on past it: the interval's rule then)
+        finished = p.total is not None and p.done >= p.total and p.index not in self.finished
+        if finished:
+            self.finished[p.index] = p.done
         if self.tty:
             self.stale = True
             now = time.monotonic()

@@ -1005,6 +1005,45 @@ def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monk
     assert tty.getvalue().count("\x1b[2K") == before + 2 * B
 
 
+def test_progress_display_shows_a_finished_video_once_while_its_batch_goes_on(monkeypatch):
+    """The job goes on reporting a short video of a batch after it has finished, at every step of the longer ones:
+    a log printed its finished line again at every step (a 1-frame video beside a 1000-frame one: 1000 lines), a
+    terminal redrew every bar at each of its reports (B * B lines per step again)."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    clock = [100.0]
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
+    log = io.StringIO()
+    display = cli.ProgressDisplay(log)
+    for step in range(1, 51):  # "short" (2 frames) and "long" (50 frames), reported after every step
+        display(Progress(0, 2, "short", min(step, 2), 2, 5.0, 0.9))
+        display(Progress(1, 2, "long", step, 50, 5.0, 0.9))
+    lines = log.getvalue().splitlines()
+    assert [line.split()[0] for line in lines] == ["short", "long", "short", "long"], lines  # first, finished
+    assert "2/2" in lines[2] and "50/50" in lines[3]
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    display = cli.ProgressDisplay(tty)
+    display(Progress(0, 2, "short", 1, 2, 5.0, 0.9))
+    display(Progress(1, 2, "long", 1, 50, 5.0, 0.9))
+    display(Progress(0, 2, "short", 2, 2, 5.0, 0.9))  # finished: drawn at once
+    drawn = tty.getvalue().count("\x1b[2K")
+    for step in range(2, 12):  # within the redraw interval: the finished video's reports draw nothing
+        display(Progress(0, 2, "short", 2, 2, 4.0, 0.9))
+        display(Progress(1, 2, "long", step, 50, 5.0, 0.9))
+    assert tty.getvalue().count("\x1b[2K") == drawn
+    display.flush()  # the latest reports, once
+    assert tty.getvalue().count("\x1b[2K") == drawn + 2 and "11/50" in tty.getvalue().splitlines()[-1]
+
+
 def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     """``--lookahead`` keeps each video's frames read ahead for the tracking pass and hands the look-ahead fit the
     batch of them: the batch holds the frames and the lists keep views of it (stacked, every frame was held three
