@@ -572,10 +572,18 @@ def _first_landmarks(
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
-def _check_unique(names: Sequence[str]) -> None:
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise InputError(f"two inputs would write the same outputs {dup[0]!r}: rename one of them")
+def _check_unique(videos: Sequence[Path], names: Sequence[str]) -> None:
+    """Refuse two inputs with one output name, naming both (among many inputs "two inputs" named neither): the same
+    input given twice, or two of one name (``a/clip.mp4`` and ``b/clip.mp4``, ``clip.mp4`` and ``clip.avi``)."""
+    first: dict[str, Path] = {}
+    for v, name in zip(videos, names):
+        if name not in first:
+            first[name] = v
+            continue
+        if first[name].resolve() == v.resolve():
+            raise InputError(f"{v}: this input is given twice ({first[name]} and {v}): give each input once")
+        raise InputError(f"{first[name]} and {v} would write the same outputs {name!r}: rename one of them, or track "
+                         "them with different --out folders")  # fmt: skip
 
 
 def _check_inputs_kept(
@@ -683,7 +691,7 @@ def track_videos(
     pending: list[Path] = []
     pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in videos]
-    _check_unique(names)
+    _check_unique(videos, names)
     _check_name_lengths(out_dir, videos, names)
     _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
     for v, name in zip(videos, names):

@@ -341,6 +341,26 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "has 2 frames")
 
 
+def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, capsys, monkeypatch):
+    """Among many inputs (a glob of several folders), "two inputs would write the same outputs 'clip'" named
+    neither, and told to rename one of them where one input was given twice."""
+    video, lm, _ = clip
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        _short_npy(video, tmp_path / folder / "clip.npy", 2)
+    _short_npy(video, tmp_path / "a" / "other.npy", 2)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+
+    def run(*videos):
+        return main(["track", *videos, "--out", str(out), "--quiet"] + ["--landmarks", str(lm)] * len(videos))
+
+    rc = run("a/other.npy", "a/clip.npy", "b/clip.npy")
+    _assert_clean_failure(rc, capsys, out, "a/clip.npy and b/clip.npy would write the same outputs 'clip'")
+    rc = run("a/clip.npy", "a/other.npy", "./a/clip.npy")
+    _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
