@@ -179,6 +179,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
+        "--max-batch", type=_threads, default=128,
+        help="most videos of one size tracked together (default 128; more are tracked in several batches); every "
+        "video of a batch is open and in memory at once",
+    )  # fmt: skip
+    track.add_argument(
         "--threads", type=_threads, default=None,
         help="torch threads of this process (default: torch's, one per core). Give several torchface processes on "
         "the same cores 1 each: two runs at once on 2 cores tracked the demo clip at 14 frames/s each with torch's "
@@ -228,7 +233,7 @@ def _print_summary(summaries, out: TextIO) -> None:
 
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
-    online_refine=True,
+    online_refine=True, max_batch=128,
 ) -> int:
     from torchface.job import JobConfig, track_videos
     from torchface.tracker.lookahead import LookaheadConfig
@@ -236,7 +241,7 @@ def _run_track(
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
-        refine_first=LookaheadConfig() if online_refine else None,
+        refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = track_videos(videos, config, progress=display)
@@ -342,7 +347,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "track":
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
-                          not args.no_online_refine)  # fmt: skip
+                          not args.no_online_refine, args.max_batch)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

@@ -1,7 +1,8 @@
 """The tracking job behind ``torchface track``: videos in, per-video CSV, JSON, overlay, plot and normalised face out.
 
 :func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
-into one batch (tracked together as B streams by :func:`torchface.tracker.managed_step`), and writes per video
+into batches of up to ``JobConfig.max_batch`` (tracked together as B streams by
+:func:`torchface.tracker.managed_step`; only one batch's inputs are open at a time), and writes per video
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
@@ -124,6 +125,12 @@ class JobConfig:
             degrees to each side, one side being enough),
             or None for the first frame's landmark fit alone. It reads up to ``lookahead.max_frames`` frames of
             every video of a batch ahead and keeps them in memory (150 frames of 640x480: about 550 MB each).
+        max_batch: the most videos tracked together as one batch (videos of one frame size; more of them are
+            tracked in several batches, one after another). Every video of a batch is open and in memory at once
+            (about four open files each: its input, its CSV and the two videos being written): a run over 1000
+            videos of one size held them all, and ran out of file descriptors at the usual ``ulimit -n`` of 1024
+            ("Too many open files"). The results do not depend on it (to float rounding:
+            3e-5 mm between one video tracked alone and in a batch of six).
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
             and template management is on. A resumed video goes without it (the batch's new videos keep it); one that
@@ -150,6 +157,7 @@ class JobConfig:
     redetect_below: float = 0.15
     lookahead: LookaheadConfig | None = None
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
+    max_batch: int = 128
 
     def __post_init__(self) -> None:
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
@@ -160,6 +168,8 @@ class JobConfig:
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
         if self.normalised_size < 16 or self.normalised_size % 2:  # mp4v keeps even sides: 17 was written 16x16
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
+        if isinstance(self.max_batch, bool) or not isinstance(self.max_batch, int) or self.max_batch < 1:
+            raise ValueError(f"max_batch must be an integer >= 1, got {self.max_batch!r}")
         if self.redetect_after < 0:
             raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
         if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
@@ -624,24 +634,46 @@ def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
 
 
 def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
+    """Check every input before any tracking starts: open it, read its first frame, find its first-frame landmarks;
+    then close it again (its batch reopens it, :func:`_reopen`): with all of them held open until the end, a run
+    over many videos ran out of file descriptors (1024 inputs at the usual ``ulimit -n``: "Too many open files",
+    blamed on one of them) and held every video's first frame and decoder while the other sizes were tracked."""
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
-    try:
-        for k, (path, name) in enumerate(zip(videos, names)):
-            reader = open_frames(path, convert=config.convert)
-            streams.append(_Stream(name, reader, np.zeros((68, 2)), "", reader.info.num_frames))
+    for k, (path, name) in enumerate(zip(videos, names)):
+        with open_frames(path, convert=config.convert) as reader:
             first = next(reader)
-            streams[-1].last_frame = first
             lm = config.landmarks[k] if config.landmarks else None
-            streams[-1].landmarks, streams[-1].landmarks_source = _first_landmarks(
-                reader, first, lm, detector, config.detector
-            )
-            streams[-1].detector_calls = int(lm is None)
+            points, source = _first_landmarks(reader, first, lm, detector, config.detector)
+        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=int(lm is None)))
+    return streams
+
+
+def _reopen(streams: Sequence[_Stream], convert: bool) -> None:
+    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame.
+
+    Raises:
+        InputError: an input that cannot be opened now, or whose frames have changed size since it was checked.
+    """
+    try:
+        for s in streams:
+            info = s.reader.info
+            s.reader = open_frames(info.path, convert=convert)
+            if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
+                raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} now, "
+                                 f"{info.width}x{info.height} when the run started: was it replaced?")  # fmt: skip
+            s.last_frame = next(s.reader)
     except BaseException:
         for s in streams:
             s.reader.close()
         raise
-    return streams
+
+
+def _release(streams: Sequence[_Stream]) -> None:
+    """Close the inputs of a tracked batch and drop the frames they hold."""
+    for s in streams:
+        s.reader.close()
+        s.last_frame, s.ahead = None, []
 
 
 def track_videos(
@@ -721,9 +753,15 @@ def track_videos(
         groups: dict[tuple[int, int], list[int]] = {}
         for i, s in enumerate(streams):
             groups.setdefault((s.reader.info.height, s.reader.info.width), []).append(i)
-        for (H, W), members in groups.items():
+        batches = [m[i : i + config.max_batch] for m in groups.values() for i in range(0, len(m), config.max_batch)]
+        for members in batches:
             batch = [streams[i] for i in members]
-            for s, summary in zip(batch, _track_group(model, batch, config, detector, progress, len(streams), members)):
+            _reopen(batch, config.convert)
+            try:
+                tracked = _track_group(model, batch, config, detector, progress, len(streams), members)
+            finally:
+                _release(batch)
+            for s, summary in zip(batch, tracked):
                 if summary is not None:
                     summaries[str(s.reader.info.path)] = summary
     finally:
@@ -1014,6 +1052,8 @@ def _track_group(
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
                         s.done, s.error = True, exc
+                    if s.done:  # (its last frame stays in the batch until the longest video ends)
+                        s.reader.close()
                 nxt.append(s.last_frame)
             if all(s.done for s in streams):
                 break

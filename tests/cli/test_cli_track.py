@@ -361,6 +361,51 @@ def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, ca
     _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
 
 
+def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
+    """Every input was opened (its first frame read and held) before tracking and closed at the end of the run,
+    and all the videos of one size were one batch: a run over many videos ran out of file descriptors ("Too many
+    open files" at 1024 inputs, blamed on one of them) and held every first frame while the other sizes were
+    tracked. Now the inputs are checked one at a time, and a batch of up to ``max_batch`` is open at once."""
+    import torchface.job as job
+
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    np.save(tmp_path / "b.npy", frames)
+    np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112: a batch of its own
+    small_lm = tmp_path / "small_lm.npy"
+    np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
+    is_open, most = set(), [0]
+    real_open = job.open_frames
+
+    def counted(path, convert=False):
+        reader = real_open(path, convert=convert)
+        is_open.add(id(reader))
+        most[0] = max(most[0], len(is_open))
+        close = reader.close
+
+        def closed():
+            is_open.discard(id(reader))
+            close()
+
+        reader.close = closed
+        return reader
+
+    monkeypatch.setattr(job, "open_frames", counted)
+    inputs = [tmp_path / "a.npy", tmp_path / "small.npy", tmp_path / "b.npy"]
+    for max_batch, out, batch in ((128, tmp_path / "out", 2), (1, tmp_path / "out1", 1)):
+        most[0] = 0
+        config = JobConfig(out_dir=out, landmarks=(lm, small_lm, lm), refine_first=None, max_batch=max_batch)
+        summaries = track_videos(inputs, config)
+        assert [s.name for s in summaries] == ["a", "small", "b"] and [s.frames for s in summaries] == [2, 2, 2]
+        assert most[0] == batch and not is_open  # (all three were open at once)
+        assert json.loads((out / "a.json").read_text())["config"]["batch_streams"] == batch
+        assert json.loads((out / "small.json").read_text())["config"]["batch_streams"] == 1
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="max_batch must be an integer >= 1"):
+            JobConfig(out_dir=tmp_path, max_batch=bad)
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
