@@ -151,7 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     track = sub.add_parser("track", help="track the face in one or more videos")
-    track.add_argument("videos", nargs="+", type=Path, help="video files, image folders or .npy frame arrays")
+    track.add_argument(
+        "videos", nargs="+", type=Path,
+        help="video files, image folders or .npy frame arrays (each may be followed by its --landmarks: a.mp4 "
+        "--landmarks a.csv b.mp4 --landmarks b.csv)",
+    )  # fmt: skip
     track.add_argument("--out", type=Path, required=True, help="output folder")
     track.add_argument(
         "--landmarks", type=Path, action="append", default=None,
@@ -302,7 +306,15 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:  # closed by the caller (``>&-``): Python leaves None there
             setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if args.command == "track" and not any(x.startswith("-") for x in extra):
+        # inputs after an option: each video with its landmarks (``a.mp4 --landmarks a.csv b.mp4 --landmarks
+        # b.csv``, as a script pairs them) was refused as "unrecognized arguments: b.mp4"
+        args.videos += [Path(x) for x in extra]
+        extra = []
+    if extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if getattr(args, "threads", None) is not None:
         import torch
 

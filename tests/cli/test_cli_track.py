@@ -406,6 +406,27 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
             JobConfig(out_dir=tmp_path, max_batch=bad)
 
 
+def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys):
+    """``a.npy --landmarks a.csv b.npy --landmarks b.csv`` (how a script pairs each video with its landmarks) was
+    refused: "unrecognized arguments: b.npy"."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112, its landmarks shifted
+    small_lm = tmp_path / "small_lm.npy"
+    np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
+    out = tmp_path / "out"
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), str(tmp_path / "small.npy"), "--landmarks",
+               str(small_lm), "--out", str(out), "--quiet", "--no-online-refine"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    for name, landmarks in (("a", lm), ("small", small_lm)):
+        side = json.loads((out / f"{name}.json").read_text())
+        assert side["config"]["landmarks"] == str(landmarks) and side["frames"] == 2
+    with pytest.raises(SystemExit):  # an unknown option after an input is still refused
+        main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), "--bogus", "--out", str(out)])
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
