@@ -10,7 +10,8 @@ Examples::
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
-(grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given);
+(grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given; a frame that cannot
+be read partway stops that video only: the summary of the others, completed, is printed before the error);
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
 SIGTERM) and keeps its rows for ``--resume``. A progress display whose reader has gone (``2>&1 | head -1``) stops
 and the run goes on; a summary whose reader has gone exits with status 141 (128 + SIGPIPE, as ``cat`` does), the
@@ -214,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print_summary(summaries, out: TextIO) -> None:
+def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = ()) -> None:
     out.write("\nsummary\n")
     for s in summaries:
         if s.skipped:
@@ -227,6 +228,9 @@ def _print_summary(summaries, out: TextIO) -> None:
         if s.declared_frames is not None:
             out.write(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
                       "(truncated or damaged?)\n")  # fmt: skip
+    for name in stopped:  # (VideosStopped: the error printed after the summary says where and why)
+        out.write(f"  {name}: stopped at a frame that could not be read, not completed (its rows so far are kept "
+                  f"in {name}.csv.partial)\n")  # fmt: skip
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
         meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
@@ -239,7 +243,7 @@ def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
     online_refine=True, max_batch=128,
 ) -> int:
-    from torchface.job import JobConfig, track_videos
+    from torchface.job import JobConfig, VideosStopped, track_videos
     from torchface.tracker.lookahead import LookaheadConfig
 
     config = JobConfig(
@@ -248,7 +252,13 @@ def _run_track(
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
-    summaries = track_videos(videos, config, progress=display)
+    try:
+        summaries = track_videos(videos, config, progress=display)
+    except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
+        if display is not None:
+            display.flush()
+        _print_summary(exc.summaries, sys.stdout, exc.stopped)
+        raise
     if display is not None:
         display.flush()  # the last reports, when a redraw was due later
     _print_summary(summaries, sys.stdout)

@@ -84,6 +84,7 @@ __all__ = [
     "JobConfig",
     "Progress",
     "VideoSummary",
+    "VideosStopped",
     "demo_inputs",
     "output_paths",
     "track_videos",
@@ -213,6 +214,22 @@ class VideoSummary:
     fps: float
     skipped: bool = False
     declared_frames: int | None = None
+
+
+class VideosStopped(InputError):
+    """Some videos stopped at a frame that could not be read; raised by :func:`track_videos` once every other video
+    is complete (their rows so far are kept in ``<stem>.csv.partial``).
+
+    Attributes:
+        summaries: the :class:`VideoSummary` of every other video (completed, or skipped by ``resume``), in input
+            order: what the run would have returned for them.
+        stopped: the output names of the videos that stopped, in input order.
+    """
+
+    def __init__(self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str]) -> None:
+        super().__init__(message)
+        self.summaries = list(summaries)
+        self.stopped = tuple(stopped)
 
 
 def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
@@ -693,8 +710,9 @@ def track_videos(
 
     Raises:
         TypeError: ``videos`` is one path, not a sequence of them.
-        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
-            later frame that cannot be read stops that video, raised once every other video is complete.
+        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts).
+        VideosStopped: (an InputError) a later frame that cannot be read stopped a video; raised once every other
+            video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
             up to 23 bytes) would be too long for the output folder's file system.
@@ -770,9 +788,12 @@ def track_videos(
     failed = [s for s in streams if s.error is not None]
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
-        rest = f"; the other videos were completed ({', '.join(done)}): --resume skips them" if done else ""
+        named = ", ".join(done[:10]) + (f" and {len(done) - 10} more" if len(done) > 10 else "")
+        rest = f"; the other videos were completed ({named}): --resume skips them" if done else ""
         what = "; ".join(str(s.error) for s in failed)
-        raise InputError(f"{what} (mend or remove the frame and track that video again without --resume){rest}")
+        raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
+                            [summaries[str(v)] for v in videos if str(v) in summaries],
+                            [s.name for s in failed])  # fmt: skip
     return [summaries[str(v)] for v in videos]
 
 

@@ -242,6 +242,32 @@ def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
     assert json.loads((out3 / "good.json").read_text())["frames"] == 3 and not (out3 / "frames.csv").exists()
 
 
+def test_a_video_stopped_by_a_bad_frame_leaves_the_summary_of_the_others(clip, tmp_path, capsys):
+    """A video stopped by a frame that could not be read made the run exit with status 2 and no summary of the
+    videos it had completed (a script reading the summary got nothing), and its message listed every completed
+    video by name (one line of hundreds of names over many videos)."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 3)
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"{i}.png"), f[..., ::-1])
+    (folder / "2.png").write_bytes(b"not an image")
+    good = [_short_npy(video, tmp_path / f"good{k:02d}.npy", 2) for k in range(11)]
+    inputs = [good[0], folder, *good[1:]]
+    out = tmp_path / "out"
+    rc = main(["track", *map(str, inputs), "--out", str(out), "--quiet", "--no-online-refine"]
+              + ["--landmarks", str(lm)] * len(inputs))  # fmt: skip
+    captured = capsys.readouterr()
+    assert rc == 2 and captured.err.startswith("torchface: error: ") and captured.err.count("\n") == 1
+    assert "2.png: cannot decode this image" in captured.err
+    assert "(good00, good01, good02, good03, good04, good05, good06, good07, good08, good09 and 1 more)" in captured.err
+    lines = captured.out.splitlines()
+    assert [line.split(":")[0].strip() for line in lines[2:14]] == [p.stem for p in good] + ["broken"]
+    assert "good10: 2 frames" in captured.out and "broken: stopped at a frame that could not be read" in captured.out
+    assert (out / "broken.csv.partial").is_file() and (out / "good10.json").is_file()
+
+
 def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp_path, capsys):
     video, lm, _ = clip
     frames = read_video(video, max_frames=3)[:, :, : H - 1, : W - 1]  # 159x119
