@@ -68,10 +68,12 @@ class ProgressDisplay:
     The job reports every stream of a batch after every step (B reports per step). On a terminal the bars are
     redrawn at most every ``redraw_s`` seconds, and at once when a video appears or finishes: a redraw writes every
     bar, so redrawing at each report wrote B * B lines per step (1.4 MB of terminal output per step at 128 streams).
-    A video that has finished is drawn or printed at once when it finishes, not again at each later report (the job
-    goes on reporting it while the longer videos of its batch are tracked: a log got its line at every step).
-    :meth:`flush` draws the latest reports. Once the stream cannot be written (its reader has gone: a broken pipe),
-    the display stops, and the job it reports on goes on.
+    A video that has finished is drawn or printed once, when it finishes: the job goes on reporting it while the
+    longer videos of its batch are tracked, and a log got its line at every step. On a terminal its line then stays
+    above the bars, which are those of the videos still tracked (every video's bar was redrawn to the end of the
+    run: over many videos, hundreds of lines per redraw), as many as the terminal has rows for, and a line counting
+    the others. :meth:`flush` draws the latest reports. Once the stream cannot be written (its reader has gone: a
+    broken pipe), the display stops, and the job it reports on goes on.
     """
 
     def __init__(self, stream: TextIO | None = None, width: int = 24, redraw_s: float = 0.1) -> None:
@@ -81,7 +83,7 @@ class ProgressDisplay:
         self.redraw_s = redraw_s
         # a terminal that cannot move the cursor (TERM=dumb: Emacs' shell and compilation buffers) gets log lines
         self.tty = bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
-        self.lines: dict[int, str] = {}
+        self.lines: dict[int, str] = {}  # the videos being tracked (on a terminal: their bars)
         self.drawn = 0
         self.last_print: dict[int, float] = {}
         self.last_draw: float | None = None
@@ -107,11 +109,25 @@ class ProgressDisplay:
             head = f"{p.done} frames"
         return f"{p.name[:28]:<28} {head} {p.fps:5.1f} fps conf {p.confidence:.2f}"
 
-    def _draw(self) -> None:
+    def _rows(self) -> int | None:
+        """The terminal's height in rows (None: not known)."""
+        try:
+            return os.get_terminal_size(self.stream.fileno()).lines or None
+        except (AttributeError, OSError, ValueError):  # not a file (a test's stream), or not a terminal after all
+            return None
+
+    def _draw(self, done: str | None = None) -> None:
+        """Redraw the bars, with the line of a video that has just finished (``done``) above them, to stay."""
         up = f"\x1b[{self.drawn}F" if self.drawn else ""
-        keys = sorted(self.lines)
-        self._write(up + "".join("\x1b[2K" + self.lines[k] + "\n" for k in keys))
-        self.drawn = len(keys)
+        bars = [self.lines[k] for k in sorted(self.lines)]
+        rows = self._rows()
+        if rows is not None and len(bars) > rows - 2:  # (the cursor cannot go back above the terminal's first row)
+            keep = max(rows - 3, 1)
+            bars = bars[:keep] + [f"... and {len(bars) - keep} more videos being tracked"]
+        out = ([done] if done is not None else []) + bars
+        clear = "\x1b[J" if len(out) < self.drawn else ""  # (a shorter block: the old bars below it erased)
+        self._write(up + "".join("\x1b[2K" + line + "\n" for line in out) + clear)
+        self.drawn = len(bars)
         self.stale = False
 
     def flush(self) -> None:
@@ -121,26 +137,31 @@ class ProgressDisplay:
             self.last_draw = time.monotonic()
 
     def __call__(self, p) -> None:
-        new = p.index not in self.lines
-        self.lines[p.index] = self._line(p)
-        if self.finished.get(p.index) == p.done:  # finished before: its line is kept up to date, not drawn again
-            self.stale = self.stale or self.tty
+        if self.finished.get(p.index) == p.done:  # finished before, reported again while its batch goes on
             return
-        # (just now; a container whose frame count was an estimate may go on past it: the interval's rule then)
+        # (just now; a container whose frame count was an estimate may go on past it: a bar again)
         finished = p.total is not None and p.done >= p.total and p.index not in self.finished
+        new = p.index not in self.lines
+        line = self._line(p)
+        now = time.monotonic()
         if finished:
             self.finished[p.index] = p.done
         if self.tty:
+            if finished:  # its line goes above the bars, to stay
+                self.lines.pop(p.index, None)
+                self._draw(done=line)
+                self.last_draw = now
+                return
+            self.lines[p.index] = line
             self.stale = True
-            now = time.monotonic()
-            if new or finished or self.last_draw is None or now - self.last_draw >= self.redraw_s:
+            if new or self.last_draw is None or now - self.last_draw >= self.redraw_s:
                 self._draw()
                 self.last_draw = now
         else:
-            now = time.monotonic()
+            self.lines[p.index] = line
             if finished or now - self.last_print.get(p.index, 0.0) > 10.0:
                 self.last_print[p.index] = now
-                self._write(self.lines[p.index] + "\n")
+                self._write(line + "\n")
 
 
 def build_parser() -> argparse.ArgumentParser:

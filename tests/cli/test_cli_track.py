@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import typing
@@ -1111,8 +1112,10 @@ def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monk
     clock[0] += 1.0  # the interval has passed: the next report redraws every bar once
     display(Progress(0, B, "v0", 12, 100, 5.0, 0.9))
     assert tty.getvalue().count("\x1b[2K") == before + B and "12/100" in tty.getvalue()
-    display(Progress(1, B, "v1", 100, 100, 5.0, 0.9))  # finished: drawn at once
-    assert tty.getvalue().count("\x1b[2K") == before + 2 * B and "100/100" in tty.getvalue().splitlines()[-B + 1]
+    display(Progress(1, B, "v1", 100, 100, 5.0, 0.9))  # finished: drawn at once, above the other bars, to stay
+    lines = tty.getvalue().splitlines()
+    assert tty.getvalue().count("\x1b[2K") == before + 2 * B and "100/100" in lines[-B]
+    assert not any("v1 " in line for line in lines[-B + 1 :])
     display.flush()  # nothing left to draw
     assert tty.getvalue().count("\x1b[2K") == before + 2 * B
 
@@ -1152,8 +1155,39 @@ def test_progress_display_shows_a_finished_video_once_while_its_batch_goes_on(mo
         display(Progress(0, 2, "short", 2, 2, 4.0, 0.9))
         display(Progress(1, 2, "long", step, 50, 5.0, 0.9))
     assert tty.getvalue().count("\x1b[2K") == drawn
-    display.flush()  # the latest reports, once
-    assert tty.getvalue().count("\x1b[2K") == drawn + 2 and "11/50" in tty.getvalue().splitlines()[-1]
+    display.flush()  # the latest reports, once: the bar of the video still tracked, below the finished one's line
+    assert tty.getvalue().count("\x1b[2K") == drawn + 1 and "11/50" in tty.getvalue().splitlines()[-1]
+    assert "\x1b[1F\x1b[2Klong" in tty.getvalue()[-100:]
+
+
+def test_progress_display_on_a_terminal_redraws_only_the_videos_being_tracked(monkeypatch):
+    """Every video's bar stayed in the block redrawn to the end of the run: over 300 videos in batches, the bars of
+    the finished batches were redrawn with each step's (300 lines a redraw), and a block taller than the terminal
+    cannot be redrawn in place (the cursor stops at its first row): the bars ran down the screen. Finished videos'
+    lines now stay above the bars of the videos being tracked, which fit the terminal."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setenv("TERM", "xterm")
+    tty = Tty()
+    display = cli.ProgressDisplay(tty, redraw_s=0.0)
+    monkeypatch.setattr(display, "_rows", lambda: 24)
+    N, B = 300, 100  # three batches of 100, two frames each
+    for batch in range(N // B):
+        for step in (1, 2):
+            for k in range(batch * B, (batch + 1) * B):
+                display(Progress(k, N, f"v{k}", step, 2, 5.0, 0.9))
+    moves = [int(m) for m in re.findall(r"\x1b\[(\d+)F", tty.getvalue())]
+    assert max(moves) <= 22  # the block of bars fits the terminal's 24 rows
+    assert "... and 79 more videos being tracked" in tty.getvalue()
+    finished = [line for line in tty.getvalue().split("\n") if "2/2" in line]
+    assert len(finished) == N  # each finished video's line written once
 
 
 def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
