@@ -200,7 +200,9 @@ class VideoSummary:
             stream lost); mean_confidence: over all frames.
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output; the streams of one batch share that time, so the batch
-            as a whole runs at ``B * fps``); skipped: True when ``resume`` found it complete.
+            as a whole runs at the sum of its videos' ``fps``, the sidecar's ``timings_s.batch_fps``; a video
+            shorter than others of its batch gets a lower ``fps``); skipped: True when ``resume`` found it
+            complete.
         declared_frames: the frame count the input declares (a video container's), when known and the frames
             decoded fell short of it (a truncated or damaged file); None otherwise.
     """
@@ -1142,6 +1144,9 @@ def _finalise(
     conf = rows[:, cols.index("confidence")]
     lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
     fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0
+    # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
+    # video to video of one batch where their lengths differ)
+    batch_fps = sum(x.tracked for x in streams) / max(t_track, 1e-9) if t_track > 0 else 0.0
     sidecar = {
         "torchface_output": 1,
         "input": {
@@ -1168,7 +1173,7 @@ def _finalise(
                   "shape_coeffs": state.shape_coeffs[streams.index(s)].tolist()},  # fmt: skip
         "start": _start_record(model, config, s, state, streams.index(s)),
         "initial_landmarks_px": s.landmarks.tolist(),
-        "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": B * fps},
+        "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
         "frames": int(len(rows)),
         "declared_frames": s.total,
         "lost_frames": lost,

@@ -454,6 +454,19 @@ def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys):
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
 
 
+def test_batch_fps_is_the_batchs_frames_over_its_time(clip, tmp_path):
+    """``timings_s.batch_fps`` was ``B * fps`` of each video: in a batch of a 3-frame and a 1-frame video the two
+    sidecars gave two different speeds for one batch, the longer one's 1.5 times the batch's."""
+    video, lm, _ = clip
+    inputs = [_short_npy(video, tmp_path / "long.npy", 3), _short_npy(video, tmp_path / "short.npy", 1)]
+    out = tmp_path / "out"
+    track_videos(inputs, JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None))
+    timings = [json.loads((out / f"{name}.json").read_text())["timings_s"] for name in ("long", "short")]
+    assert timings[0]["track"] == timings[1]["track"] > 0
+    assert timings[0]["batch_fps"] == timings[1]["batch_fps"] == pytest.approx(4 / timings[0]["track"])
+    assert timings[0]["fps"] + timings[1]["fps"] == pytest.approx(timings[0]["batch_fps"])
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
