@@ -179,7 +179,8 @@ class JobConfig:
 
 @dataclass(frozen=True)
 class Progress:
-    """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames."""
+    """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames
+    (``total``: the count the input declares, None where unknown; once the video has ended, the frames it had)."""
 
     index: int
     count: int
@@ -1056,11 +1057,6 @@ def _track_group(
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout,
                                         [r and t < len(s.replay) - 1 for r, s in zip(replaying, streams)])
-            if progress is not None:
-                elapsed = max(time.perf_counter() - t_track0, 1e-9)
-                for k, s in enumerate(streams):
-                    progress(Progress(members[k], count, s.name, s.frames, s.total, s.tracked / elapsed,
-                                      s.confidence))  # fmt: skip
             nxt = []
             for s in streams:
                 if not s.done:
@@ -1078,6 +1074,12 @@ def _track_group(
                     if s.done:  # (its last frame stays in the batch until the longest video ends)
                         s.reader.close()
                 nxt.append(s.last_frame)
+            if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
+                # that it shows finished where its container's count was short, long or unknown)
+                elapsed = max(time.perf_counter() - t_track0, 1e-9)
+                for k, s in enumerate(streams):
+                    total = s.frames if s.done and s.error is None else s.total
+                    progress(Progress(members[k], count, s.name, s.frames, total, s.tracked / elapsed, s.confidence))
             if all(s.done for s in streams):
                 break
             t += 1

@@ -818,6 +818,29 @@ def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     assert f"declares {T} frames, {sidecar['frames']} could be decoded" in text, text
 
 
+def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(clip, tmp_path):
+    """A video cut short (its container declaring more frames than it decodes) reported ``done`` < ``total`` to
+    the end: its progress bar never finished (on a terminal it stayed among the bars being tracked, in a log its
+    last line was up to 10 s old), nor did that of a container that declares no count (``total`` None)."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, T)
+    avi = tmp_path / "cut.avi"
+    writer = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+    for f in frames:
+        writer.write(np.ascontiguousarray(f[..., ::-1]))
+    writer.release()
+    data = avi.read_bytes()
+    avi.write_bytes(data[: len(data) * 2 // 5])
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    reports = []
+    summaries = track_videos([avi, short], JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None),
+                             progress=reports.append)  # fmt: skip
+    cut = [p for p in reports if p.name == "cut"]
+    assert cut[0].total == T and summaries[0].frames < T
+    assert cut[-1].done == cut[-1].total == summaries[0].frames  # finished
+    assert [(p.done, p.total) for p in reports if p.name == "short"][-1] == (2, 2)
+
+
 def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     import torchface.job
 
