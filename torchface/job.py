@@ -22,7 +22,8 @@ they agree with the CSV, lost and failed rows included, and a resumed run draws 
 run did.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
-last. Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
+last. A run without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch).
+Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
 input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
 keeps ``<stem>.csv.partial``; with
 ``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
@@ -769,6 +770,8 @@ def track_videos(
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
     streams = _open_inputs(pending, sub, detector) if pending else []
+    if not config.resume:  # a fresh run
+        _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
         model = load_candide3().to(device=torch.device(config.device))
         groups: dict[tuple[int, int], list[int]] = {}
@@ -961,17 +964,6 @@ def _track_group(
     paths = [output_paths(out_dir, s.name) for s in streams]
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
-    if not config.resume:  # a fresh run: earlier complete outputs of these videos must not outlive it
-        for p, mt in zip(paths, mesh_tmp):
-            for kind in ("json", "csv", "overlay", "plot", "normalised"):
-                p[kind].unlink(missing_ok=True)
-            for folder in (p["meshes"], mt):  # an earlier run's meshes, complete or interrupted: its PLY files only
-                if folder.is_dir():
-                    for f in _frame_meshes(folder):
-                        f.unlink()
-                    if not any(folder.iterdir()):
-                        folder.rmdir()
-            _record_path(p["csv"]).unlink(missing_ok=True)
     try:
         for s, p in zip(streams, paths):
             s.settings = _settings(config, s)
@@ -1109,6 +1101,25 @@ def _track_group(
             _abandon(s)
         raise
     return summaries
+
+
+def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
+    """Remove what earlier runs wrote for videos ``names`` (a fresh run's, before its first batch: they must not
+    outlive it; removed batch by batch, the later batches' complete outputs outlived a run interrupted before
+    them, and ``--resume`` then skipped them as this run's): complete outputs, partial CSV and its record, and the
+    PLY files of the meshes folders (complete or interrupted; other files there are the user's)."""
+    for name in names:
+        p = output_paths(out_dir, name)
+        for kind in ("json", "csv", "overlay", "plot", "normalised"):
+            p[kind].unlink(missing_ok=True)
+        partial_path(p["csv"]).unlink(missing_ok=True)
+        _record_path(p["csv"]).unlink(missing_ok=True)
+        for folder in (p["meshes"], p["meshes"].with_name(p["meshes"].name + ".partial")):
+            if folder.is_dir():
+                for f in _frame_meshes(folder):
+                    f.unlink()
+                if not any(folder.iterdir()):
+                    folder.rmdir()
 
 
 def _abandon(s: _Stream) -> None:

@@ -9,6 +9,7 @@ import re
 import subprocess
 import sys
 import typing
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -465,6 +466,32 @@ def test_batch_fps_is_the_batchs_frames_over_its_time(clip, tmp_path):
     assert timings[0]["track"] == timings[1]["track"] > 0
     assert timings[0]["batch_fps"] == timings[1]["batch_fps"] == pytest.approx(4 / timings[0]["track"])
     assert timings[0]["fps"] + timings[1]["fps"] == pytest.approx(timings[0]["batch_fps"])
+
+
+def test_a_fresh_run_interrupted_in_its_first_batch_leaves_no_earlier_complete_outputs(clip, tmp_path):
+    """A fresh run removed an earlier run's outputs of a video only when that video's batch started: interrupted
+    in its first batch, the later batches' videos kept the earlier run's complete outputs (made with other
+    settings, here --focal), and ``--resume`` then skipped them as complete."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112: the second batch
+    small_lm = tmp_path / "small_lm.npy"
+    np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
+    out = tmp_path / "out"
+    inputs = [tmp_path / "a.npy", tmp_path / "small.npy"]
+    config = JobConfig(out_dir=out, landmarks=(lm, small_lm), refine_first=None)
+    track_videos(inputs, replace(config, focal=150.0))  # an earlier run, complete
+
+    def interrupt(p):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # the fresh run, interrupted in its first batch
+        track_videos(inputs, config, progress=interrupt)
+    assert not output_paths(out, "small")["json"].exists() and not output_paths(out, "small")["csv"].exists()
+    summaries = track_videos(inputs, replace(config, resume=True))
+    assert not any(s.skipped for s in summaries)
+    assert json.loads(output_paths(out, "small")["json"].read_text())["config"]["focal"] is None
 
 
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
