@@ -26,7 +26,8 @@ last. A run without ``resume`` first removes what earlier runs wrote for all its
 Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
 input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
 keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other
+settings: :func:`_check_resumable`) and one with a partial CSV continues after its last
 complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
 input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
@@ -66,7 +67,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
-from torchface.io.sidecar import package_versions, write_json
+from torchface.io.sidecar import package_versions, to_jsonable, write_json
 from torchface.io.table import TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
@@ -642,16 +643,34 @@ def _check_inputs_kept(
                                   "rename that file")  # fmt: skip
 
 
-def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
-    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input."""
+def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
+    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
+    settings than ``config``'s (those :func:`_settings` names; a sidecar without one of them: not compared)."""
     try:
-        made = json.loads(paths["json"].read_text(encoding="utf-8"))["input"]
+        sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
+        made, made_with = sidecar["input"], sidecar.get("config", {})
         made_from = made.get("resolved_path", made["path"])  # sidecars before resolved_path: the path as given
-        if not isinstance(made_from, str):  # (null or a number: a TypeError's traceback from Path)
-            raise TypeError
+        if not isinstance(made_from, str) or not isinstance(made_with, dict):  # (null or a number: a TypeError's
+            raise TypeError  # traceback from Path)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
+    now = {"focal": config.focal, "convert": config.convert, "lookahead": config.lookahead,
+           "online_start": config.refine_first, "tracker": config.tracker, "detector": config.detector,
+           "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
+           "normalised_size": config.normalised_size}  # fmt: skip
+    now = json.loads(json.dumps(to_jsonable(now)))  # as the sidecar holds them
+    differ = [k for k in now if k in made_with and made_with[k] != now[k]]
+    if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
+        def said(k: str, value: object) -> str:
+            return ("on" if value is not None else "off") if isinstance(now[k] or made_with[k], dict) else str(value)
+
+        names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
+                 "detector": "--detector"}  # fmt: skip
+        what = "; ".join(f"{names[k]} {said(k, made_with[k])} then, {said(k, now[k])} now" if k in names else
+                         k.replace("_", " ") for k in differ)  # fmt: skip
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
+                         f"({what}): run with their settings, or without --resume")  # fmt: skip
 
 
 def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
@@ -757,7 +776,7 @@ def track_videos(
     for k, (v, name) in enumerate(zip(videos, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
-            _check_resumable(v, paths)
+            _check_resumable(v, paths, config)
             cols, rows = read_track_csv(paths["csv"])
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0

@@ -494,6 +494,24 @@ def test_a_fresh_run_interrupted_in_its_first_batch_leaves_no_earlier_complete_o
     assert json.loads(output_paths(out, "small")["json"].read_text())["config"]["focal"] is None
 
 
+def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, tmp_path, capsys):
+    """--resume refused a partial video made with other settings, but skipped a complete one as done: a run over
+    many videos resumed with another --focal kept the old focal's results for every video already complete."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", *extra])
+
+    assert run("--no-online-refine") == 0
+    assert run("--no-online-refine", "--resume") == 0 and "already complete" in capsys.readouterr().out
+    _assert_clean_failure(run("--no-online-refine", "--resume", "--focal", "150"), capsys, tmp_path / "nothing",
+                          "made with other settings (--focal None then, 150.0 now)")  # fmt: skip
+    _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(online start off then, on now)")
+    assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
