@@ -339,11 +339,13 @@ def main(argv: list[str] | None = None) -> int:
             setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if args.command == "track" and not any(x.startswith("-") for x in extra):
+    if args.command == "track":
         # inputs after an option: each video with its landmarks (``a.mp4 --landmarks a.csv b.mp4 --landmarks
-        # b.csv``, as a script pairs them) was refused as "unrecognized arguments: b.mp4"
-        args.videos += [Path(x) for x in extra]
-        extra = []
+        # b.csv``, as a script pairs them) was refused as "unrecognized arguments: b.mp4"; after ``--`` any name
+        cut = extra.index("--") if "--" in extra else len(extra)
+        if not any(x.startswith("-") for x in extra[:cut]):
+            args.videos += [Path(x) for x in extra[:cut] + extra[cut + 1 :]]
+            extra = []
     if extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if getattr(args, "threads", None) is not None:

@@ -434,9 +434,13 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
             JobConfig(out_dir=tmp_path, max_batch=bad)
 
 
-def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys):
+def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys, monkeypatch):
     """``a.npy --landmarks a.csv b.npy --landmarks b.csv`` (how a script pairs each video with its landmarks) was
     refused: "unrecognized arguments: b.npy"."""
+    from pathlib import Path
+
+    import torchface.cli as cli
+
     video, lm, _ = clip
     frames = _clip_frames_uint8(video, 2)
     np.save(tmp_path / "a.npy", frames)
@@ -450,6 +454,11 @@ def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys):
     for name, landmarks in (("a", lm), ("small", small_lm)):
         side = json.loads((out / f"{name}.json").read_text())
         assert side["config"]["landmarks"] == str(landmarks) and side["frames"] == 2
+    parsed = []
+    monkeypatch.setattr(cli, "_dispatch", lambda args: parsed.append(args.videos) or 0)
+    assert main(["track", "a.npy", "--landmarks", "l", "b.npy", "--out", "o", "--", "-c.npy", "d.npy"]) == 0
+    assert parsed == [[Path("a.npy"), Path("b.npy"), Path("-c.npy"), Path("d.npy")]]  # (after --: any name)
+    monkeypatch.undo()
     with pytest.raises(SystemExit):  # an unknown option after an input is still refused
         main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), "--bogus", "--out", str(out)])
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
