@@ -10,7 +10,8 @@ Examples::
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
-(grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given);
+(grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given; a frame that cannot
+be read partway stops that video only: the summary of the others, completed, is printed before the error);
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
 SIGTERM) and keeps its rows for ``--resume``. A progress display whose reader has gone (``2>&1 | head -1``) stops
 and the run goes on; a summary whose reader has gone exits with status 141 (128 + SIGPIPE, as ``cat`` does), the
@@ -67,8 +68,12 @@ class ProgressDisplay:
     The job reports every stream of a batch after every step (B reports per step). On a terminal the bars are
     redrawn at most every ``redraw_s`` seconds, and at once when a video appears or finishes: a redraw writes every
     bar, so redrawing at each report wrote B * B lines per step (1.4 MB of terminal output per step at 128 streams).
-    :meth:`flush` draws the latest reports. Once the stream cannot be written (its reader has gone: a broken pipe),
-    the display stops, and the job it reports on goes on.
+    A video that has finished is drawn or printed once, when it finishes: the job goes on reporting it while the
+    longer videos of its batch are tracked, and a log got its line at every step. On a terminal its line then stays
+    above the bars, which are those of the videos still tracked (every video's bar was redrawn to the end of the
+    run: over many videos, hundreds of lines per redraw), as many as the terminal has rows for, and a line counting
+    the others. :meth:`flush` draws the latest reports. Once the stream cannot be written (its reader has gone: a
+    broken pipe), the display stops, and the job it reports on goes on.
     """
 
     def __init__(self, stream: TextIO | None = None, width: int = 24, redraw_s: float = 0.1) -> None:
@@ -78,10 +83,11 @@ class ProgressDisplay:
         self.redraw_s = redraw_s
         # a terminal that cannot move the cursor (TERM=dumb: Emacs' shell and compilation buffers) gets log lines
         self.tty = bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
-        self.lines: dict[int, str] = {}
+        self.lines: dict[int, str] = {}  # the videos being tracked (on a terminal: their bars)
         self.drawn = 0
         self.last_print: dict[int, float] = {}
         self.last_draw: float | None = None
+        self.finished: dict[int, int] = {}  # the videos reported finished: their frames then
         self.stale = False
         self.broken = False
 
@@ -103,11 +109,25 @@ class ProgressDisplay:
             head = f"{p.done} frames"
         return f"{p.name[:28]:<28} {head} {p.fps:5.1f} fps conf {p.confidence:.2f}"
 
-    def _draw(self) -> None:
+    def _rows(self) -> int | None:
+        """The terminal's height in rows (None: not known)."""
+        try:
+            return os.get_terminal_size(self.stream.fileno()).lines or None
+        except (AttributeError, OSError, ValueError):  # not a file (a test's stream), or not a terminal after all
+            return None
+
+    def _draw(self, done: str | None = None) -> None:
+        """Redraw the bars, with the line of a video that has just finished (``done``) above them, to stay."""
         up = f"\x1b[{self.drawn}F" if self.drawn else ""
-        keys = sorted(self.lines)
-        self._write(up + "".join("\x1b[2K" + self.lines[k] + "\n" for k in keys))
-        self.drawn = len(keys)
+        bars = [self.lines[k] for k in sorted(self.lines)]
+        rows = self._rows()
+        if rows is not None and len(bars) > rows - 2:  # (the cursor cannot go back above the terminal's first row)
+            keep = max(rows - 3, 1)
+            bars = bars[:keep] + [f"... and {len(bars) - keep} more videos being tracked"]
+        out = ([done] if done is not None else []) + bars
+        clear = "\x1b[J" if len(out) < self.drawn else ""  # (a shorter block: the old bars below it erased)
+        self._write(up + "".join("\x1b[2K" + line + "\n" for line in out) + clear)
+        self.drawn = len(bars)
         self.stale = False
 
     def flush(self) -> None:
@@ -117,20 +137,31 @@ class ProgressDisplay:
             self.last_draw = time.monotonic()
 
     def __call__(self, p) -> None:
+        if self.finished.get(p.index) == p.done:  # finished before, reported again while its batch goes on
+            return
+        # (just now; a container whose frame count was an estimate may go on past it: a bar again)
+        finished = p.total is not None and p.done >= p.total and p.index not in self.finished
         new = p.index not in self.lines
-        self.lines[p.index] = self._line(p)
-        finished = p.total is not None and p.done >= p.total
+        line = self._line(p)
+        now = time.monotonic()
+        if finished:
+            self.finished[p.index] = p.done
         if self.tty:
+            if finished:  # its line goes above the bars, to stay
+                self.lines.pop(p.index, None)
+                self._draw(done=line)
+                self.last_draw = now
+                return
+            self.lines[p.index] = line
             self.stale = True
-            now = time.monotonic()
-            if new or finished or self.last_draw is None or now - self.last_draw >= self.redraw_s:
+            if new or self.last_draw is None or now - self.last_draw >= self.redraw_s:
                 self._draw()
                 self.last_draw = now
         else:
-            now = time.monotonic()
+            self.lines[p.index] = line
             if finished or now - self.last_print.get(p.index, 0.0) > 10.0:
                 self.last_print[p.index] = now
-                self._write(self.lines[p.index] + "\n")
+                self._write(line + "\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -142,7 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     track = sub.add_parser("track", help="track the face in one or more videos")
-    track.add_argument("videos", nargs="+", type=Path, help="video files, image folders or .npy frame arrays")
+    track.add_argument(
+        "videos", nargs="+", type=Path,
+        help="video files, image folders or .npy frame arrays (each may be followed by its --landmarks: a.mp4 "
+        "--landmarks a.csv b.mp4 --landmarks b.csv)",
+    )  # fmt: skip
     track.add_argument("--out", type=Path, required=True, help="output folder")
     track.add_argument(
         "--landmarks", type=Path, action="append", default=None,
@@ -170,6 +205,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
+        "--max-batch", type=_threads, default=128,
+        help="most videos of one size tracked together (default 128; more are tracked in several batches); every "
+        "video of a batch is open and in memory at once",
+    )  # fmt: skip
+    track.add_argument(
         "--threads", type=_threads, default=None,
         help="torch threads of this process (default: torch's, one per core). Give several torchface processes on "
         "the same cores 1 each: two runs at once on 2 cores tracked the demo clip at 14 frames/s each with torch's "
@@ -196,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print_summary(summaries, out: TextIO) -> None:
+def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = ()) -> None:
     out.write("\nsummary\n")
     for s in summaries:
         if s.skipped:
@@ -209,6 +249,9 @@ def _print_summary(summaries, out: TextIO) -> None:
         if s.declared_frames is not None:
             out.write(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
                       "(truncated or damaged?)\n")  # fmt: skip
+    for name in stopped:  # (VideosStopped: the error printed after the summary says where and why)
+        out.write(f"  {name}: stopped at a frame that could not be read, not completed (its rows so far are kept "
+                  f"in {name}.csv.partial)\n")  # fmt: skip
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
         meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
@@ -219,18 +262,24 @@ def _print_summary(summaries, out: TextIO) -> None:
 
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
-    online_refine=True,
+    online_refine=True, max_batch=128,
 ) -> int:
-    from torchface.job import JobConfig, track_videos
+    from torchface.job import JobConfig, VideosStopped, track_videos
     from torchface.tracker.lookahead import LookaheadConfig
 
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
-        refine_first=LookaheadConfig() if online_refine else None,
+        refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
-    summaries = track_videos(videos, config, progress=display)
+    try:
+        summaries = track_videos(videos, config, progress=display)
+    except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
+        if display is not None:
+            display.flush()
+        _print_summary(exc.summaries, sys.stdout, exc.stopped)
+        raise
     if display is not None:
         display.flush()  # the last reports, when a redraw was due later
     _print_summary(summaries, sys.stdout)
@@ -288,7 +337,17 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:  # closed by the caller (``>&-``): Python leaves None there
             setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if args.command == "track":
+        # inputs after an option: each video with its landmarks (``a.mp4 --landmarks a.csv b.mp4 --landmarks
+        # b.csv``, as a script pairs them) was refused as "unrecognized arguments: b.mp4"; after ``--`` any name
+        cut = extra.index("--") if "--" in extra else len(extra)
+        if not any(x.startswith("-") for x in extra[:cut]):
+            args.videos += [Path(x) for x in extra[:cut] + extra[cut + 1 :]]
+            extra = []
+    if extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
         import torch
 
@@ -337,7 +396,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "track":
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
-                          not args.no_online_refine)  # fmt: skip
+                          not args.no_online_refine, args.max_batch)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

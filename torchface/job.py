@@ -1,7 +1,8 @@
 """The tracking job behind ``torchface track``: videos in, per-video CSV, JSON, overlay, plot and normalised face out.
 
 :func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
-into one batch (tracked together as B streams by :func:`torchface.tracker.managed_step`), and writes per video
+into batches of up to ``JobConfig.max_batch`` (tracked together as B streams by
+:func:`torchface.tracker.managed_step`; only one batch's inputs are open at a time), and writes per video
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
@@ -21,10 +22,12 @@ they agree with the CSV, lost and failed rows included, and a resumed run draws 
 run did.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
-last. Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
+last. A run without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch).
+Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
 input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
 keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other
+settings: :func:`_check_resumable`) and one with a partial CSV continues after its last
 complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
 online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
 input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
@@ -64,7 +67,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
-from torchface.io.sidecar import package_versions, write_json
+from torchface.io.sidecar import package_versions, to_jsonable, write_json
 from torchface.io.table import TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
@@ -83,6 +86,7 @@ __all__ = [
     "JobConfig",
     "Progress",
     "VideoSummary",
+    "VideosStopped",
     "demo_inputs",
     "output_paths",
     "track_videos",
@@ -124,6 +128,12 @@ class JobConfig:
             degrees to each side, one side being enough),
             or None for the first frame's landmark fit alone. It reads up to ``lookahead.max_frames`` frames of
             every video of a batch ahead and keeps them in memory (150 frames of 640x480: about 550 MB each).
+        max_batch: the most videos tracked together as one batch (videos of one frame size; more of them are
+            tracked in several batches, one after another). Every video of a batch is open and in memory at once
+            (about four open files each: its input, its CSV and the two videos being written): a run over 1000
+            videos of one size held them all, and ran out of file descriptors at the usual ``ulimit -n`` of 1024
+            ("Too many open files"). The results do not depend on it (to float rounding:
+            3e-5 mm between one video tracked alone and in a batch of six).
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
             and template management is on. A resumed video goes without it (the batch's new videos keep it); one that
@@ -150,6 +160,7 @@ class JobConfig:
     redetect_below: float = 0.15
     lookahead: LookaheadConfig | None = None
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
+    max_batch: int = 128
 
     def __post_init__(self) -> None:
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
@@ -160,6 +171,8 @@ class JobConfig:
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
         if self.normalised_size < 16 or self.normalised_size % 2:  # mp4v keeps even sides: 17 was written 16x16
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
+        if isinstance(self.max_batch, bool) or not isinstance(self.max_batch, int) or self.max_batch < 1:
+            raise ValueError(f"max_batch must be an integer >= 1, got {self.max_batch!r}")
         if self.redetect_after < 0:
             raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
         if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
@@ -168,7 +181,8 @@ class JobConfig:
 
 @dataclass(frozen=True)
 class Progress:
-    """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames."""
+    """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames
+    (``total``: the count the input declares, None where unknown; once the video has ended, the frames it had)."""
 
     index: int
     count: int
@@ -189,7 +203,9 @@ class VideoSummary:
             stream lost); mean_confidence: over all frames.
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output; the streams of one batch share that time, so the batch
-            as a whole runs at ``B * fps``); skipped: True when ``resume`` found it complete.
+            as a whole runs at the sum of its videos' ``fps``, the sidecar's ``timings_s.batch_fps``; a video
+            shorter than others of its batch gets a lower ``fps``); skipped: True when ``resume`` found it
+            complete.
         declared_frames: the frame count the input declares (a video container's), when known and the frames
             decoded fell short of it (a truncated or damaged file); None otherwise.
     """
@@ -203,6 +219,22 @@ class VideoSummary:
     fps: float
     skipped: bool = False
     declared_frames: int | None = None
+
+
+class VideosStopped(InputError):
+    """Some videos stopped at a frame that could not be read; raised by :func:`track_videos` once every other video
+    is complete (their rows so far are kept in ``<stem>.csv.partial``).
+
+    Attributes:
+        summaries: the :class:`VideoSummary` of every other video (completed, or skipped by ``resume``), in input
+            order: what the run would have returned for them.
+        stopped: the output names of the videos that stopped, in input order.
+    """
+
+    def __init__(self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str]) -> None:
+        super().__init__(message)
+        self.summaries = list(summaries)
+        self.stopped = tuple(stopped)
 
 
 def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
@@ -572,10 +604,18 @@ def _first_landmarks(
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
-def _check_unique(names: Sequence[str]) -> None:
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise InputError(f"two inputs would write the same outputs {dup[0]!r}: rename one of them")
+def _check_unique(videos: Sequence[Path], names: Sequence[str]) -> None:
+    """Refuse two inputs with one output name, naming both (among many inputs "two inputs" named neither): the same
+    input given twice, or two of one name (``a/clip.mp4`` and ``b/clip.mp4``, ``clip.mp4`` and ``clip.avi``)."""
+    first: dict[str, Path] = {}
+    for v, name in zip(videos, names):
+        if name not in first:
+            first[name] = v
+            continue
+        if first[name].resolve() == v.resolve():
+            raise InputError(f"{v}: this input is given twice ({first[name]} and {v}): give each input once")
+        raise InputError(f"{first[name]} and {v} would write the same outputs {name!r}: rename one of them, or track "
+                         "them with different --out folders")  # fmt: skip
 
 
 def _check_inputs_kept(
@@ -603,37 +643,77 @@ def _check_inputs_kept(
                                   "rename that file")  # fmt: skip
 
 
-def _check_resumable(video: Path, paths: dict[str, Path]) -> None:
-    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input."""
+def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
+    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
+    settings than ``config``'s (those :func:`_settings` names; a sidecar without one of them: not compared)."""
     try:
-        made = json.loads(paths["json"].read_text(encoding="utf-8"))["input"]
+        sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
+        made, made_with = sidecar["input"], sidecar.get("config", {})
         made_from = made.get("resolved_path", made["path"])  # sidecars before resolved_path: the path as given
-        if not isinstance(made_from, str):  # (null or a number: a TypeError's traceback from Path)
-            raise TypeError
+        if not isinstance(made_from, str) or not isinstance(made_with, dict):  # (null or a number: a TypeError's
+            raise TypeError  # traceback from Path)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
+    now = {"focal": config.focal, "convert": config.convert, "lookahead": config.lookahead,
+           "online_start": config.refine_first, "tracker": config.tracker, "detector": config.detector,
+           "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
+           "normalised_size": config.normalised_size}  # fmt: skip
+    now = json.loads(json.dumps(to_jsonable(now)))  # as the sidecar holds them
+    differ = [k for k in now if k in made_with and made_with[k] != now[k]]
+    if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
+        def said(k: str, value: object) -> str:
+            return ("on" if value is not None else "off") if isinstance(now[k] or made_with[k], dict) else str(value)
+
+        names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
+                 "detector": "--detector"}  # fmt: skip
+        what = "; ".join(f"{names[k]} {said(k, made_with[k])} then, {said(k, now[k])} now" if k in names else
+                         k.replace("_", " ") for k in differ)  # fmt: skip
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
+                         f"({what}): run with their settings, or without --resume")  # fmt: skip
 
 
 def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
+    """Check every input before any tracking starts: open it, read its first frame, find its first-frame landmarks;
+    then close it again (its batch reopens it, :func:`_reopen`): with all of them held open until the end, a run
+    over many videos ran out of file descriptors (1024 inputs at the usual ``ulimit -n``: "Too many open files",
+    blamed on one of them) and held every video's first frame and decoder while the other sizes were tracked."""
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
-    try:
-        for k, (path, name) in enumerate(zip(videos, names)):
-            reader = open_frames(path, convert=config.convert)
-            streams.append(_Stream(name, reader, np.zeros((68, 2)), "", reader.info.num_frames))
+    for k, (path, name) in enumerate(zip(videos, names)):
+        with open_frames(path, convert=config.convert) as reader:
             first = next(reader)
-            streams[-1].last_frame = first
             lm = config.landmarks[k] if config.landmarks else None
-            streams[-1].landmarks, streams[-1].landmarks_source = _first_landmarks(
-                reader, first, lm, detector, config.detector
-            )
-            streams[-1].detector_calls = int(lm is None)
+            points, source = _first_landmarks(reader, first, lm, detector, config.detector)
+        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=int(lm is None)))
+    return streams
+
+
+def _reopen(streams: Sequence[_Stream], convert: bool) -> None:
+    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame.
+
+    Raises:
+        InputError: an input that cannot be opened now, or whose frames have changed size since it was checked.
+    """
+    try:
+        for s in streams:
+            info = s.reader.info
+            s.reader = open_frames(info.path, convert=convert)
+            if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
+                raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} now, "
+                                 f"{info.width}x{info.height} when the run started: was it replaced?")  # fmt: skip
+            s.last_frame = next(s.reader)
     except BaseException:
         for s in streams:
             s.reader.close()
         raise
-    return streams
+
+
+def _release(streams: Sequence[_Stream]) -> None:
+    """Close the inputs of a tracked batch and drop the frames they hold."""
+    for s in streams:
+        s.reader.close()
+        s.last_frame, s.ahead = None, []
 
 
 def track_videos(
@@ -653,8 +733,9 @@ def track_videos(
 
     Raises:
         TypeError: ``videos`` is one path, not a sequence of them.
-        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts); a
-            later frame that cannot be read stops that video, raised once every other video is complete.
+        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts).
+        VideosStopped: (an InputError) a later frame that cannot be read stopped a video; raised once every other
+            video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
             up to 23 bytes) would be too long for the output folder's file system.
@@ -683,7 +764,7 @@ def track_videos(
     pending: list[Path] = []
     pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in videos]
-    _check_unique(names)
+    _check_unique(videos, names)
     _check_name_lengths(out_dir, videos, names)
     _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
     for v, name in zip(videos, names):
@@ -695,7 +776,7 @@ def track_videos(
     for k, (v, name) in enumerate(zip(videos, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
-            _check_resumable(v, paths)
+            _check_resumable(v, paths, config)
             cols, rows = read_track_csv(paths["csv"])
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
@@ -708,14 +789,22 @@ def track_videos(
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
     streams = _open_inputs(pending, sub, detector) if pending else []
+    if not config.resume:  # a fresh run
+        _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
         model = load_candide3().to(device=torch.device(config.device))
         groups: dict[tuple[int, int], list[int]] = {}
         for i, s in enumerate(streams):
             groups.setdefault((s.reader.info.height, s.reader.info.width), []).append(i)
-        for (H, W), members in groups.items():
+        batches = [m[i : i + config.max_batch] for m in groups.values() for i in range(0, len(m), config.max_batch)]
+        for members in batches:
             batch = [streams[i] for i in members]
-            for s, summary in zip(batch, _track_group(model, batch, config, detector, progress, len(streams), members)):
+            _reopen(batch, config.convert)
+            try:
+                tracked = _track_group(model, batch, config, detector, progress, len(streams), members)
+            finally:
+                _release(batch)
+            for s, summary in zip(batch, tracked):
                 if summary is not None:
                     summaries[str(s.reader.info.path)] = summary
     finally:
@@ -724,9 +813,12 @@ def track_videos(
     failed = [s for s in streams if s.error is not None]
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
-        rest = f"; the other videos were completed ({', '.join(done)}): --resume skips them" if done else ""
+        named = ", ".join(done[:10]) + (f" and {len(done) - 10} more" if len(done) > 10 else "")
+        rest = f"; the other videos were completed ({named}): --resume skips them" if done else ""
         what = "; ".join(str(s.error) for s in failed)
-        raise InputError(f"{what} (mend or remove the frame and track that video again without --resume){rest}")
+        raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
+                            [summaries[str(v)] for v in videos if str(v) in summaries],
+                            [s.name for s in failed])  # fmt: skip
     return [summaries[str(v)] for v in videos]
 
 
@@ -891,17 +983,6 @@ def _track_group(
     paths = [output_paths(out_dir, s.name) for s in streams]
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
-    if not config.resume:  # a fresh run: earlier complete outputs of these videos must not outlive it
-        for p, mt in zip(paths, mesh_tmp):
-            for kind in ("json", "csv", "overlay", "plot", "normalised"):
-                p[kind].unlink(missing_ok=True)
-            for folder in (p["meshes"], mt):  # an earlier run's meshes, complete or interrupted: its PLY files only
-                if folder.is_dir():
-                    for f in _frame_meshes(folder):
-                        f.unlink()
-                    if not any(folder.iterdir()):
-                        folder.rmdir()
-            _record_path(p["csv"]).unlink(missing_ok=True)
     try:
         for s, p in zip(streams, paths):
             s.settings = _settings(config, s)
@@ -987,11 +1068,6 @@ def _track_group(
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout,
                                         [r and t < len(s.replay) - 1 for r, s in zip(replaying, streams)])
-            if progress is not None:
-                elapsed = max(time.perf_counter() - t_track0, 1e-9)
-                for k, s in enumerate(streams):
-                    progress(Progress(members[k], count, s.name, s.frames, s.total, s.tracked / elapsed,
-                                      s.confidence))  # fmt: skip
             nxt = []
             for s in streams:
                 if not s.done:
@@ -1006,7 +1082,15 @@ def _track_group(
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
                         s.done, s.error = True, exc
+                    if s.done:  # (its last frame stays in the batch until the longest video ends)
+                        s.reader.close()
                 nxt.append(s.last_frame)
+            if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
+                # that it shows finished where its container's count was short, long or unknown)
+                elapsed = max(time.perf_counter() - t_track0, 1e-9)
+                for k, s in enumerate(streams):
+                    total = s.frames if s.done and s.error is None else s.total
+                    progress(Progress(members[k], count, s.name, s.frames, total, s.tracked / elapsed, s.confidence))
             if all(s.done for s in streams):
                 break
             t += 1
@@ -1036,6 +1120,25 @@ def _track_group(
             _abandon(s)
         raise
     return summaries
+
+
+def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
+    """Remove what earlier runs wrote for videos ``names`` (a fresh run's, before its first batch: they must not
+    outlive it; removed batch by batch, the later batches' complete outputs outlived a run interrupted before
+    them, and ``--resume`` then skipped them as this run's): complete outputs, partial CSV and its record, and the
+    PLY files of the meshes folders (complete or interrupted; other files there are the user's)."""
+    for name in names:
+        p = output_paths(out_dir, name)
+        for kind in ("json", "csv", "overlay", "plot", "normalised"):
+            p[kind].unlink(missing_ok=True)
+        partial_path(p["csv"]).unlink(missing_ok=True)
+        _record_path(p["csv"]).unlink(missing_ok=True)
+        for folder in (p["meshes"], p["meshes"].with_name(p["meshes"].name + ".partial")):
+            if folder.is_dir():
+                for f in _frame_meshes(folder):
+                    f.unlink()
+                if not any(folder.iterdir()):
+                    folder.rmdir()
 
 
 def _abandon(s: _Stream) -> None:
@@ -1073,6 +1176,9 @@ def _finalise(
     conf = rows[:, cols.index("confidence")]
     lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
     fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0
+    # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
+    # video to video of one batch where their lengths differ)
+    batch_fps = sum(x.tracked for x in streams) / max(t_track, 1e-9) if t_track > 0 else 0.0
     sidecar = {
         "torchface_output": 1,
         "input": {
@@ -1099,7 +1205,7 @@ def _finalise(
                   "shape_coeffs": state.shape_coeffs[streams.index(s)].tolist()},  # fmt: skip
         "start": _start_record(model, config, s, state, streams.index(s)),
         "initial_landmarks_px": s.landmarks.tolist(),
-        "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": B * fps},
+        "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
         "frames": int(len(rows)),
         "declared_frames": s.total,
         "lost_frames": lost,

@@ -5,9 +5,11 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import typing
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -242,6 +244,32 @@ def test_size_change_mid_video_leaves_nothing_complete(clip, tmp_path, capsys):
     assert json.loads((out3 / "good.json").read_text())["frames"] == 3 and not (out3 / "frames.csv").exists()
 
 
+def test_a_video_stopped_by_a_bad_frame_leaves_the_summary_of_the_others(clip, tmp_path, capsys):
+    """A video stopped by a frame that could not be read made the run exit with status 2 and no summary of the
+    videos it had completed (a script reading the summary got nothing), and its message listed every completed
+    video by name (one line of hundreds of names over many videos)."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 3)
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"{i}.png"), f[..., ::-1])
+    (folder / "2.png").write_bytes(b"not an image")
+    good = [_short_npy(video, tmp_path / f"good{k:02d}.npy", 2) for k in range(11)]
+    inputs = [good[0], folder, *good[1:]]
+    out = tmp_path / "out"
+    rc = main(["track", *map(str, inputs), "--out", str(out), "--quiet", "--no-online-refine"]
+              + ["--landmarks", str(lm)] * len(inputs))  # fmt: skip
+    captured = capsys.readouterr()
+    assert rc == 2 and captured.err.startswith("torchface: error: ") and captured.err.count("\n") == 1
+    assert "2.png: cannot decode this image" in captured.err
+    assert "(good00, good01, good02, good03, good04, good05, good06, good07, good08, good09 and 1 more)" in captured.err
+    lines = captured.out.splitlines()
+    assert [line.split(":")[0].strip() for line in lines[2:14]] == [p.stem for p in good] + ["broken"]
+    assert "good10: 2 frames" in captured.out and "broken: stopped at a frame that could not be read" in captured.out
+    assert (out / "broken.csv.partial").is_file() and (out / "good10.json").is_file()
+
+
 def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp_path, capsys):
     video, lm, _ = clip
     frames = read_video(video, max_frames=3)[:, :, : H - 1, : W - 1]  # 159x119
@@ -339,6 +367,158 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     output_paths(out, "shots")["json"].unlink()
     rc = main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "has 2 frames")
+
+
+def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, capsys, monkeypatch):
+    """Among many inputs (a glob of several folders), "two inputs would write the same outputs 'clip'" named
+    neither, and told to rename one of them where one input was given twice."""
+    video, lm, _ = clip
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        _short_npy(video, tmp_path / folder / "clip.npy", 2)
+    _short_npy(video, tmp_path / "a" / "other.npy", 2)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+
+    def run(*videos):
+        return main(["track", *videos, "--out", str(out), "--quiet"] + ["--landmarks", str(lm)] * len(videos))
+
+    rc = run("a/other.npy", "a/clip.npy", "b/clip.npy")
+    _assert_clean_failure(rc, capsys, out, "a/clip.npy and b/clip.npy would write the same outputs 'clip'")
+    rc = run("a/clip.npy", "a/other.npy", "./a/clip.npy")
+    _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
+
+
+def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
+    """Every input was opened (its first frame read and held) before tracking and closed at the end of the run,
+    and all the videos of one size were one batch: a run over many videos ran out of file descriptors ("Too many
+    open files" at 1024 inputs, blamed on one of them) and held every first frame while the other sizes were
+    tracked. Now the inputs are checked one at a time, and a batch of up to ``max_batch`` is open at once."""
+    import torchface.job as job
+
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    np.save(tmp_path / "b.npy", frames)
+    np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112: a batch of its own
+    small_lm = tmp_path / "small_lm.npy"
+    np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
+    is_open, most = set(), [0]
+    real_open = job.open_frames
+
+    def counted(path, convert=False):
+        reader = real_open(path, convert=convert)
+        is_open.add(id(reader))
+        most[0] = max(most[0], len(is_open))
+        close = reader.close
+
+        def closed():
+            is_open.discard(id(reader))
+            close()
+
+        reader.close = closed
+        return reader
+
+    monkeypatch.setattr(job, "open_frames", counted)
+    inputs = [tmp_path / "a.npy", tmp_path / "small.npy", tmp_path / "b.npy"]
+    for max_batch, out, batch in ((128, tmp_path / "out", 2), (1, tmp_path / "out1", 1)):
+        most[0] = 0
+        config = JobConfig(out_dir=out, landmarks=(lm, small_lm, lm), refine_first=None, max_batch=max_batch)
+        summaries = track_videos(inputs, config)
+        assert [s.name for s in summaries] == ["a", "small", "b"] and [s.frames for s in summaries] == [2, 2, 2]
+        assert most[0] == batch and not is_open  # (all three were open at once)
+        assert json.loads((out / "a.json").read_text())["config"]["batch_streams"] == batch
+        assert json.loads((out / "small.json").read_text())["config"]["batch_streams"] == 1
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="max_batch must be an integer >= 1"):
+            JobConfig(out_dir=tmp_path, max_batch=bad)
+
+
+def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys, monkeypatch):
+    """``a.npy --landmarks a.csv b.npy --landmarks b.csv`` (how a script pairs each video with its landmarks) was
+    refused: "unrecognized arguments: b.npy"."""
+    from pathlib import Path
+
+    import torchface.cli as cli
+
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112, its landmarks shifted
+    small_lm = tmp_path / "small_lm.npy"
+    np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
+    out = tmp_path / "out"
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), str(tmp_path / "small.npy"), "--landmarks",
+               str(small_lm), "--out", str(out), "--quiet", "--no-online-refine"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    for name, landmarks in (("a", lm), ("small", small_lm)):
+        side = json.loads((out / f"{name}.json").read_text())
+        assert side["config"]["landmarks"] == str(landmarks) and side["frames"] == 2
+    parsed = []
+    monkeypatch.setattr(cli, "_dispatch", lambda args: parsed.append(args.videos) or 0)
+    assert main(["track", "a.npy", "--landmarks", "l", "b.npy", "--out", "o", "--", "-c.npy", "d.npy"]) == 0
+    assert parsed == [[Path("a.npy"), Path("b.npy"), Path("-c.npy"), Path("d.npy")]]  # (after --: any name)
+    monkeypatch.undo()
+    with pytest.raises(SystemExit):  # an unknown option after an input is still refused
+        main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), "--bogus", "--out", str(out)])
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
+def test_batch_fps_is_the_batchs_frames_over_its_time(clip, tmp_path):
+    """``timings_s.batch_fps`` was ``B * fps`` of each video: in a batch of a 3-frame and a 1-frame video the two
+    sidecars gave two different speeds for one batch, the longer one's 1.5 times the batch's."""
+    video, lm, _ = clip
+    inputs = [_short_npy(video, tmp_path / "long.npy", 3), _short_npy(video, tmp_path / "short.npy", 1)]
+    out = tmp_path / "out"
+    track_videos(inputs, JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None))
+    timings = [json.loads((out / f"{name}.json").read_text())["timings_s"] for name in ("long", "short")]
+    assert timings[0]["track"] == timings[1]["track"] > 0
+    assert timings[0]["batch_fps"] == timings[1]["batch_fps"] == pytest.approx(4 / timings[0]["track"])
+    assert timings[0]["fps"] + timings[1]["fps"] == pytest.approx(timings[0]["batch_fps"])
+
+
+def test_a_fresh_run_interrupted_in_its_first_batch_leaves_no_earlier_complete_outputs(clip, tmp_path):
+    """A fresh run removed an earlier run's outputs of a video only when that video's batch started: interrupted
+    in its first batch, the later batches' videos kept the earlier run's complete outputs (made with other
+    settings, here --focal), and ``--resume`` then skipped them as complete."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112: the second batch
+    small_lm = tmp_path / "small_lm.npy"
+    np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
+    out = tmp_path / "out"
+    inputs = [tmp_path / "a.npy", tmp_path / "small.npy"]
+    config = JobConfig(out_dir=out, landmarks=(lm, small_lm), refine_first=None)
+    track_videos(inputs, replace(config, focal=150.0))  # an earlier run, complete
+
+    def interrupt(p):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # the fresh run, interrupted in its first batch
+        track_videos(inputs, config, progress=interrupt)
+    assert not output_paths(out, "small")["json"].exists() and not output_paths(out, "small")["csv"].exists()
+    summaries = track_videos(inputs, replace(config, resume=True))
+    assert not any(s.skipped for s in summaries)
+    assert json.loads(output_paths(out, "small")["json"].read_text())["config"]["focal"] is None
+
+
+def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, tmp_path, capsys):
+    """--resume refused a partial video made with other settings, but skipped a complete one as done: a run over
+    many videos resumed with another --focal kept the old focal's results for every video already complete."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", *extra])
+
+    assert run("--no-online-refine") == 0
+    assert run("--no-online-refine", "--resume") == 0 and "already complete" in capsys.readouterr().out
+    _assert_clean_failure(run("--no-online-refine", "--resume", "--focal", "150"), capsys, tmp_path / "nothing",
+                          "made with other settings (--focal None then, 150.0 now)")  # fmt: skip
+    _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(online start off then, on now)")
+    assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
 
 
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
@@ -692,6 +872,29 @@ def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     assert f"declares {T} frames, {sidecar['frames']} could be decoded" in text, text
 
 
+def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(clip, tmp_path):
+    """A video cut short (its container declaring more frames than it decodes) reported ``done`` < ``total`` to
+    the end: its progress bar never finished (on a terminal it stayed among the bars being tracked, in a log its
+    last line was up to 10 s old), nor did that of a container that declares no count (``total`` None)."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, T)
+    avi = tmp_path / "cut.avi"
+    writer = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+    for f in frames:
+        writer.write(np.ascontiguousarray(f[..., ::-1]))
+    writer.release()
+    data = avi.read_bytes()
+    avi.write_bytes(data[: len(data) * 2 // 5])
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    reports = []
+    summaries = track_videos([avi, short], JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None),
+                             progress=reports.append)  # fmt: skip
+    cut = [p for p in reports if p.name == "cut"]
+    assert cut[0].total == T and summaries[0].frames < T
+    assert cut[-1].done == cut[-1].total == summaries[0].frames  # finished
+    assert [(p.done, p.total) for p in reports if p.name == "short"][-1] == (2, 2)
+
+
 def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     import torchface.job
 
@@ -999,10 +1202,82 @@ def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monk
     clock[0] += 1.0  # the interval has passed: the next report redraws every bar once
     display(Progress(0, B, "v0", 12, 100, 5.0, 0.9))
     assert tty.getvalue().count("\x1b[2K") == before + B and "12/100" in tty.getvalue()
-    display(Progress(1, B, "v1", 100, 100, 5.0, 0.9))  # finished: drawn at once
-    assert tty.getvalue().count("\x1b[2K") == before + 2 * B and "100/100" in tty.getvalue().splitlines()[-B + 1]
+    display(Progress(1, B, "v1", 100, 100, 5.0, 0.9))  # finished: drawn at once, above the other bars, to stay
+    lines = tty.getvalue().splitlines()
+    assert tty.getvalue().count("\x1b[2K") == before + 2 * B and "100/100" in lines[-B]
+    assert not any("v1 " in line for line in lines[-B + 1 :])
     display.flush()  # nothing left to draw
     assert tty.getvalue().count("\x1b[2K") == before + 2 * B
+
+
+def test_progress_display_shows_a_finished_video_once_while_its_batch_goes_on(monkeypatch):
+    """The job goes on reporting a short video of a batch after it has finished, at every step of the longer ones:
+    a log printed its finished line again at every step (a 1-frame video beside a 1000-frame one: 1000 lines), a
+    terminal redrew every bar at each of its reports (B * B lines per step again)."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    clock = [100.0]
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
+    log = io.StringIO()
+    display = cli.ProgressDisplay(log)
+    for step in range(1, 51):  # "short" (2 frames) and "long" (50 frames), reported after every step
+        display(Progress(0, 2, "short", min(step, 2), 2, 5.0, 0.9))
+        display(Progress(1, 2, "long", step, 50, 5.0, 0.9))
+    lines = log.getvalue().splitlines()
+    assert [line.split()[0] for line in lines] == ["short", "long", "short", "long"], lines  # first, finished
+    assert "2/2" in lines[2] and "50/50" in lines[3]
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    display = cli.ProgressDisplay(tty)
+    display(Progress(0, 2, "short", 1, 2, 5.0, 0.9))
+    display(Progress(1, 2, "long", 1, 50, 5.0, 0.9))
+    display(Progress(0, 2, "short", 2, 2, 5.0, 0.9))  # finished: drawn at once
+    drawn = tty.getvalue().count("\x1b[2K")
+    for step in range(2, 12):  # within the redraw interval: the finished video's reports draw nothing
+        display(Progress(0, 2, "short", 2, 2, 4.0, 0.9))
+        display(Progress(1, 2, "long", step, 50, 5.0, 0.9))
+    assert tty.getvalue().count("\x1b[2K") == drawn
+    display.flush()  # the latest reports, once: the bar of the video still tracked, below the finished one's line
+    assert tty.getvalue().count("\x1b[2K") == drawn + 1 and "11/50" in tty.getvalue().splitlines()[-1]
+    assert "\x1b[1F\x1b[2Klong" in tty.getvalue()[-100:]
+
+
+def test_progress_display_on_a_terminal_redraws_only_the_videos_being_tracked(monkeypatch):
+    """Every video's bar stayed in the block redrawn to the end of the run: over 300 videos in batches, the bars of
+    the finished batches were redrawn with each step's (300 lines a redraw), and a block taller than the terminal
+    cannot be redrawn in place (the cursor stops at its first row): the bars ran down the screen. Finished videos'
+    lines now stay above the bars of the videos being tracked, which fit the terminal."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setenv("TERM", "xterm")
+    tty = Tty()
+    display = cli.ProgressDisplay(tty, redraw_s=0.0)
+    monkeypatch.setattr(display, "_rows", lambda: 24)
+    N, B = 300, 100  # three batches of 100, two frames each
+    for batch in range(N // B):
+        for step in (1, 2):
+            for k in range(batch * B, (batch + 1) * B):
+                display(Progress(k, N, f"v{k}", step, 2, 5.0, 0.9))
+    moves = [int(m) for m in re.findall(r"\x1b\[(\d+)F", tty.getvalue())]
+    assert max(moves) <= 22  # the block of bars fits the terminal's 24 rows
+    assert "... and 79 more videos being tracked" in tty.getvalue()
+    finished = [line for line in tty.getvalue().split("\n") if "2/2" in line]
+    assert len(finished) == N  # each finished video's line written once
 
 
 def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):

@@ -3,6 +3,8 @@ bad inputs rejected with one-line errors."""
 
 from __future__ import annotations
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -251,3 +253,22 @@ def test_npy_clip_is_read_a_frame_at_a_time(tmp_path):
     assert peak < clip.nbytes / 4, peak  # (the tensors kept here are torch's, which tracemalloc does not see)
     for k in (0, 1, T - 1):
         np.testing.assert_array_equal((got[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), clip[k])
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc (Linux)")
+def test_closing_a_npy_reader_releases_its_file(tmp_path):
+    """``close`` left a ``.npy`` clip mapped (the frames not read held the mapping, and the mapping the file open):
+    a job over many clips ran out of file descriptors although it closed the readers it had done with."""
+    path = tmp_path / "clip.npy"
+    np.save(path, np.zeros((4, 32, 32, 3), np.uint8))
+
+    def held() -> int:
+        return sum(os.path.realpath(f"/proc/self/fd/{fd}") == str(path.resolve()) for fd in os.listdir("/proc/self/fd"))
+
+    reader = open_frames(path)
+    next(reader)
+    assert held() == 1
+    reader.close()
+    assert held() == 0
+    with pytest.raises(StopIteration):  # nothing more to read once closed
+        next(reader)

@@ -251,10 +251,12 @@ class FrameReader:
         return frame
 
     def close(self) -> None:
-        """Release the underlying decoder."""
+        """Release the underlying decoder, and the frames not read (a ``.npy`` array's mapping: it held the file
+        open after ``close``); the reader returns no more frames."""
         if self._closer is not None:
             self._closer()
             self._closer = None
+        self._first, self._rest = None, iter(())
 
     def __enter__(self) -> "FrameReader":
         return self
