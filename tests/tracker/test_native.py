@@ -676,3 +676,28 @@ def test_native_confidence_equals_the_torch_path(sweep):
         torch.testing.assert_close(nat[k], ref[k], rtol=0, atol=1e-9)
     torch.testing.assert_close(nat[3][0], ref[3][0], rtol=0, atol=1e-9)
     assert float(nat[0].min()) > 0.5  # the track is confident (so agreement says something)
+
+
+def test_moving_a_tracker_where_it_is_between_steps_keeps_no_old_model_alive():
+    """A ``.to()`` that changes nothing (a parent module's ``.to(device)`` before each training step) makes a new
+    face model object and keeps the state; the native confidence's constants, kept on the state's normalised-face
+    layout, were keyed by ``id(model)``: each step with a new model added a set holding that model, so the models
+    (and the sets) piled up, one per step. Now the old models are freed."""
+    import gc
+    import weakref
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+    from torchface.tracker import FaceTracker
+
+    frames, gt = render_sequence(make_scenario("pose_sweep", 6, 160, 120))
+    tracker = FaceTracker(refine_first=None)
+    tracker.initialise(frames[:1], gt.landmarks_px[:1].float())
+    old = []
+    for t in range(1, 6):
+        old.append(weakref.ref(tracker.model))
+        tracker.to(torch.float32)
+        tracker(frames[t : t + 1])
+    assert tracker.state is not None  # the state was kept
+    gc.collect()
+    assert sum(r() is not None for r in old) == 0
