@@ -701,3 +701,22 @@ def test_moving_a_tracker_where_it_is_between_steps_keeps_no_old_model_alive():
     assert tracker.state is not None  # the state was kept
     gc.collect()
     assert sum(r() is not None for r in old) == 0
+
+
+def test_a_build_deletes_the_temporary_files_of_killed_builds(tmp_path, monkeypatch):
+    # A process killed while it built the library (a data-loader worker terminated at shutdown, the OOM killer)
+    # left its temporary file, nearly a library's size, in the cache folder for good.
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    folder = tmp_path / "cache" / "native"
+    folder.mkdir(parents=True)
+    stale = folder / "torchface_native-0123456789abcdef.so.x1y2z3.partial"
+    fresh = folder / "torchface_native-0123456789abcdef.so.a1b2c3.partial"  # a build running now
+    other = folder / "notes.partial"  # not a build's
+    for f in (stale, fresh, other):
+        f.write_bytes(b"\0" * 100)
+    old = stale.stat().st_mtime - 2 * 24 * 3600
+    os.utime(stale, (old, old))
+    os.utime(other, (old, old))
+    target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.parent == folder and target.is_file()
+    assert not stale.exists() and fresh.exists() and other.exists()
