@@ -996,8 +996,10 @@ def _track_group(
             for s in streams:
                 if not s.done:
                     try:
-                        if s.ahead:
-                            s.last_frame = s.ahead.pop(0)
+                        if s.ahead:  # (the last one copied: a view would keep every frame read ahead, of
+                            s.last_frame = s.ahead.pop(0)  # every stream, for as long as a stream that ends holds it)
+                            if not s.ahead:
+                                s.last_frame = s.last_frame.clone()
                         elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
                             s.done = True
                         else:
