@@ -453,6 +453,37 @@ def test_an_unwritable_cache_folder_builds_for_the_process_alone(tmp_path, monke
     assert not target.parent.exists()
 
 
+def _private_build_in_child(queue, cc: str) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        queue.put(str(_native._build(cc).parent))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_worker_process_that_built_for_itself_removes_its_folder(tmp_path, monkeypatch):
+    """A data-loader worker (a multiprocessing child, which ends with ``os._exit``: no atexit function runs) that
+    built the library in a folder of its own, its cache folder unwritable, left that folder behind: one per worker
+    and epoch."""
+    import multiprocessing
+
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("")
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(not_a_folder))
+    monkeypatch.setattr(_native, "_private", None, raising=False)
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_private_build_in_child, args=(queue, str(_fake_compiler(tmp_path))))
+    child.start()
+    try:
+        folder = Path(queue.get(timeout=60))
+    finally:
+        child.join(timeout=30)
+        if child.is_alive():
+            child.kill()
+    assert child.exitcode == 0 and folder.name.startswith("torchface-native-")
+    assert not folder.exists()
+
+
 _OPENMP_PROBE = """
 import torch
 torch.set_num_threads(2)

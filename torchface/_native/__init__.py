@@ -42,6 +42,7 @@ from __future__ import annotations
 import atexit
 import ctypes
 import hashlib
+import multiprocessing.util
 import os
 import platform
 import shlex
@@ -327,6 +328,9 @@ def _private_dir(cache: Path, exc: OSError) -> Path:
     if _private is None:
         _private = Path(tempfile.mkdtemp(prefix="torchface-native-"))
         atexit.register(_remove_private, _private, os.getpid())
+        # A multiprocessing child (a data-loader worker) ends with os._exit, which runs no atexit function but
+        # multiprocessing's finalizers: without one, each worker that built the library left its folder behind.
+        multiprocessing.util.Finalize(None, _remove_private, args=(_private, os.getpid()), exitpriority=0)
         warnings.warn(
             f"torchface: the native kernels' cache folder {cache} cannot be written ({exc}); they are built for this "
             f"process only, in {_private} (a few seconds at each start). Set TORCHFACE_CACHE_DIR to a writable "
