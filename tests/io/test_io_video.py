@@ -3,6 +3,8 @@ bad inputs rejected with one-line errors."""
 
 from __future__ import annotations
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -251,3 +253,33 @@ def test_npy_clip_is_read_a_frame_at_a_time(tmp_path):
     assert peak < clip.nbytes / 4, peak  # (the tensors kept here are torch's, which tracemalloc does not see)
     for k in (0, 1, T - 1):
         np.testing.assert_array_equal((got[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), clip[k])
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd")
+def test_a_video_that_fails_to_open_leaves_no_file_open(tmp_path, monkeypatch):
+    """A failure while checking the first frame other than an InputError (an interruption, a memory error) left
+    the decoder, and its file, open for as long as the exception was held (a data pipeline that keeps the errors
+    of the videos it skips)."""
+    import torchface.io.video as video
+
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))
+    assert writer.isOpened()
+    for k in range(3):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+
+    def open_files() -> int:
+        links = (os.path.join("/proc/self/fd", f) for f in os.listdir("/proc/self/fd"))
+        return sum(os.path.realpath(link) == str(path.resolve()) for link in links if os.path.islink(link))
+
+    with open_frames(path):
+        assert open_files() == 1  # (the decoder holds the file open: what is measured)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(video, "format_problems", interrupted)
+    with pytest.raises(KeyboardInterrupt) as held:
+        open_frames(path)
+    assert held.value is not None and open_files() == 0
