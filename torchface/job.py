@@ -1008,6 +1008,8 @@ def _track_group(
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
                         s.done, s.error = True, exc
+                    if s.done:  # its decoder (file, threads, buffers) not kept while the others go on
+                        s.reader.close()
                 nxt.append(s.last_frame)
             if all(s.done for s in streams):
                 break

@@ -677,6 +677,28 @@ def test_a_video_that_ends_within_the_lookahead_keeps_no_frame_read_ahead_alive(
     assert held == [3 * H * W * 4] * 2  # one frame each
 
 
+def test_a_video_that_has_ended_is_closed_while_the_others_of_its_batch_go_on(clip, tmp_path, monkeypatch):
+    """Every reader was closed when the whole run ended: a video's decoder (its file, its threads and buffers)
+    stayed open after its last frame for as long as any video of its batch was tracked."""
+    from torchface.io.video import FrameReader
+
+    video, lm, _ = clip
+    log = []
+    real = FrameReader.close
+
+    def close(self):
+        log.append(("close", self.info.path.name))
+        real(self)
+
+    monkeypatch.setattr(FrameReader, "close", close)
+    short = _short_npy(video, tmp_path / "short.npy", 3)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None)
+    track_videos([short, video], config, progress=lambda p: log.append(("progress", p.name, p.done)))
+    closed = log.index(("close", "short.npy"))
+    assert closed < log.index(("progress", NAME, 6))  # (the short video's 3 frames were tracked first)
+    assert ("progress", "short", 3) in log[:closed]
+
+
 def test_the_job_keeps_nothing_per_frame_in_memory(clip, tmp_path, monkeypatch):
     """A video's book-keeping holds no list that grows with its frames (the rows are on disk): it used to keep
     every frame's confidence and every lost frame's index for the length of the video (a day of video at 30
