@@ -283,3 +283,23 @@ def test_a_video_that_fails_to_open_leaves_no_file_open(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt) as held:
         open_frames(path)
     assert held.value is not None and open_files() == 0
+
+
+@pytest.mark.skipif(not os.path.isfile("/proc/self/maps"), reason="needs /proc/self/maps")
+def test_closing_an_npy_reader_unmaps_its_file(tmp_path):
+    """A closed ``.npy`` reader kept its file mapped (and went on giving frames) for as long as the reader lived:
+    a job keeps its readers to the end of the run."""
+    path = tmp_path / "clip.npy"
+    np.save(path, np.zeros((3, 32, 32, 3), np.uint8))
+
+    def mapped() -> bool:
+        with open("/proc/self/maps") as maps:
+            return any(line.rstrip().endswith(str(path)) for line in maps)
+
+    reader = open_frames(path)
+    next(reader)
+    assert mapped()  # (what is measured)
+    reader.close()
+    assert not mapped()
+    with pytest.raises(StopIteration):  # as a closed video's reader
+        next(reader)

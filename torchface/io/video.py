@@ -251,7 +251,9 @@ class FrameReader:
         return frame
 
     def close(self) -> None:
-        """Release the underlying decoder."""
+        """Release the underlying decoder (or the ``.npy`` file's memory map); no frame is read after it."""
+        self._first = None
+        self._rest = iter(())  # (an array's frames held its memory map for as long as the reader lived)
         if self._closer is not None:
             self._closer()
             self._closer = None
