@@ -412,6 +412,7 @@ class _Stream:
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
+    detection_warned: bool = False  # a re-detection's unusable landmarks were warned about (once per video)
     near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
@@ -1072,8 +1073,10 @@ def _track_group(
             for s in streams:
                 if not s.done:
                     try:
-                        if s.ahead:
-                            s.last_frame = s.ahead.pop(0)
+                        if s.ahead:  # (the last one copied: a view would keep every frame read ahead, of
+                            s.last_frame = s.ahead.pop(0)  # every stream, for as long as a stream that ends holds it)
+                            if not s.ahead:
+                                s.last_frame = s.last_frame.clone()
                         elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
                             s.done = True
                         else:
@@ -1082,7 +1085,7 @@ def _track_group(
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
                         s.done, s.error = True, exc
-                    if s.done:  # (its last frame stays in the batch until the longest video ends)
+                    if s.done:  # its decoder (file, threads, buffers) not kept while the others go on
                         s.reader.close()
                 nxt.append(s.last_frame)
             if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
@@ -1433,8 +1436,9 @@ def _maybe_redetect(
         if points is None:
             continue
         where = f"{s.reader.info.path}: the {config.detector} detector's landmarks at a re-detection"
-        points = usable_detection(points, intr.width, intr.height, where)  # NaN / mostly outside: no face
-        if points is None:
+        points = usable_detection(points, intr.width, intr.height, where, warn=not s.detection_warned)
+        if points is None:  # NaN / mostly outside: no face (warned about once per video)
+            s.detection_warned = True
             continue
         lm = torch.as_tensor(points, dtype=model.dtype, device=model.device).unsqueeze(0)
         fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)

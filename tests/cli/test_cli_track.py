@@ -829,6 +829,56 @@ def test_resume_right_after_a_failed_lost_frame_goes_on_from_the_confident_pose(
             np.testing.assert_array_equal(got[f], want[f], err_msg=f"{kind} frame {f}")
 
 
+def test_a_video_that_ends_within_the_lookahead_keeps_no_frame_read_ahead_alive(clip, tmp_path, monkeypatch):
+    """The frames read ahead are views of one batch of every video's frames; the last frame of a video that ended
+    within the look-ahead stayed such a view (it is tracked again while the others go on), which kept the whole
+    batch (videos x max_frames frames: 2 x 150 frames of 1280x720 are 3.3 GB) alive until the batch ended."""
+    import torchface.job as job
+    from torchface.tracker import fit_landmarks
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    video, lm, _ = clip
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[], []]
+
+    held = []
+    real = job._finalise
+
+    def finalise(model, s, *args, **kwargs):
+        held.append(s.last_frame.untyped_storage().nbytes())
+        return real(model, s, *args, **kwargs)
+
+    monkeypatch.setattr(job, "lookahead_fit", spy)
+    monkeypatch.setattr(job, "_finalise", finalise)
+    short = _short_npy(video, tmp_path / "short.npy", 3)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), lookahead=LookaheadConfig(max_frames=6))
+    assert [s.frames for s in track_videos([short, video], config)] == [3, T]
+    assert held == [3 * H * W * 4] * 2  # one frame each
+
+
+def test_a_video_that_has_ended_is_closed_while_the_others_of_its_batch_go_on(clip, tmp_path, monkeypatch):
+    """Every reader was closed when the whole run ended: a video's decoder (its file, its threads and buffers)
+    stayed open after its last frame for as long as any video of its batch was tracked."""
+    from torchface.io.video import FrameReader
+
+    video, lm, _ = clip
+    log = []
+    real = FrameReader.close
+
+    def close(self):
+        log.append(("close", self.info.path.name))
+        real(self)
+
+    monkeypatch.setattr(FrameReader, "close", close)
+    short = _short_npy(video, tmp_path / "short.npy", 3)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None)
+    track_videos([short, video], config, progress=lambda p: log.append(("progress", p.name, p.done)))
+    closed = log.index(("close", "short.npy"))
+    assert closed < log.index(("progress", NAME, 6))  # (the short video's 3 frames were tracked first)
+    assert ("progress", "short", 3) in log[:closed]
+
+
 def test_the_job_keeps_nothing_per_frame_in_memory(clip, tmp_path, monkeypatch):
     """A video's book-keeping holds no list that grows with its frames (the rows are on disk): it used to keep
     every frame's confidence and every lost frame's index for the length of the video (a day of video at 30

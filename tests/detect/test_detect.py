@@ -152,3 +152,27 @@ def test_the_detectors_pickle_so_a_tracker_holding_one_can_be_checkpointed(isola
     assert sys.modules["dlib"].loaded and copy.takes_near  # loaded again
     assert bool(copy(torch.zeros(1, 3, 12, 16)).isnan().all())
     assert bool(pickle.loads(pickle.dumps(batched(_no_face)))(torch.zeros(2, 3, 4, 6)).isnan().all())
+
+
+def test_a_detector_that_keeps_giving_a_face_outside_the_frame_is_warned_about_once():
+    """Each unusable detection (a face at the frame's edge, asked about at every recovery attempt) warned with its
+    own text (it names a point): a long loss printed thousands, and Python's registry of warnings shown kept every
+    text for the process's life. A callback warns once; later such detections are no face without a warning."""
+    import warnings
+
+    calls = []
+
+    def detector(image):
+        calls.append(1)
+        return np.full((68, 2), -100.0 - len(calls))  # outside the frame, another point each time
+
+    recover = batched(detector)
+    frames = torch.zeros(1, 3, 12, 16)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(4):
+            assert bool(recover(frames).isnan().all())
+    assert len(calls) == 4
+    said = [str(w.message) for w in caught if w.category is RuntimeWarning]
+    assert len(said) == 1 and said[0].startswith("a lost face's landmarks: 68 landmark(s) outside the 16x12 frame")
+    assert said[0].endswith("taken as no face (and any like it later, without a warning)")

@@ -206,6 +206,29 @@ def test_csv_writer_on_a_full_disk_names_its_file_and_stops_cleanly(tmp_path):
     assert read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)  # the rows that fitted stay
 
 
+def test_a_full_disk_while_resuming_leaves_the_partial_csv_and_no_temporary_file(tmp_path, monkeypatch):
+    """Resuming rewrites the partial CSV's complete rows through ``<name>.csv.partial.tmp``; on a full disk that
+    file was left behind, cut off."""
+    from pathlib import Path
+
+    from torchface.io import OutputError
+
+    cols = ("frame", "confidence")
+    part = tmp_path / "clip.csv.partial"
+    text = "frame,confidence\n0,0.9\n1,0.8\n"
+    part.write_text(text)
+    real = Path.write_text
+
+    def full_disk(self, data, *args, **kwargs):
+        real(self, data[:5], *args, **kwargs)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    with pytest.raises(OutputError, match=r"clip\.csv\.partial: cannot write \(No space left on device\)"):
+        TrackCsvWriter(tmp_path / "clip.csv", cols, resume=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.csv.partial"] and part.read_text() == text
+
+
 def test_a_damaged_complete_line_is_refused_not_read_as_the_end(tmp_path):
     """A line ending in a newline is complete: one that is not a row is damage, not a cut. It ended the rows read
     silently (the rows after it dropped, and a resumed run tracked them again from the rows before it)."""

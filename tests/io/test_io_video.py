@@ -272,3 +272,53 @@ def test_closing_a_npy_reader_releases_its_file(tmp_path):
     assert held() == 0
     with pytest.raises(StopIteration):  # nothing more to read once closed
         next(reader)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd")
+def test_a_video_that_fails_to_open_leaves_no_file_open(tmp_path, monkeypatch):
+    """A failure while checking the first frame other than an InputError (an interruption, a memory error) left
+    the decoder, and its file, open for as long as the exception was held (a data pipeline that keeps the errors
+    of the videos it skips)."""
+    import torchface.io.video as video
+
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))
+    assert writer.isOpened()
+    for k in range(3):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+
+    def open_files() -> int:
+        links = (os.path.join("/proc/self/fd", f) for f in os.listdir("/proc/self/fd"))
+        return sum(os.path.realpath(link) == str(path.resolve()) for link in links if os.path.islink(link))
+
+    with open_frames(path):
+        assert open_files() == 1  # (the decoder holds the file open: what is measured)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(video, "format_problems", interrupted)
+    with pytest.raises(KeyboardInterrupt) as held:
+        open_frames(path)
+    assert held.value is not None and open_files() == 0
+
+
+@pytest.mark.skipif(not os.path.isfile("/proc/self/maps"), reason="needs /proc/self/maps")
+def test_closing_an_npy_reader_unmaps_its_file(tmp_path):
+    """A closed ``.npy`` reader kept its file mapped (and went on giving frames) for as long as the reader lived:
+    a job keeps its readers to the end of the run."""
+    path = tmp_path / "clip.npy"
+    np.save(path, np.zeros((3, 32, 32, 3), np.uint8))
+
+    def mapped() -> bool:
+        with open("/proc/self/maps") as maps:
+            return any(line.rstrip().endswith(str(path)) for line in maps)
+
+    reader = open_frames(path)
+    next(reader)
+    assert mapped()  # (what is measured)
+    reader.close()
+    assert not mapped()
+    with pytest.raises(StopIteration):  # as a closed video's reader
+        next(reader)

@@ -453,6 +453,37 @@ def test_an_unwritable_cache_folder_builds_for_the_process_alone(tmp_path, monke
     assert not target.parent.exists()
 
 
+def _private_build_in_child(queue, cc: str) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        queue.put(str(_native._build(cc).parent))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_a_worker_process_that_built_for_itself_removes_its_folder(tmp_path, monkeypatch):
+    """A data-loader worker (a multiprocessing child, which ends with ``os._exit``: no atexit function runs) that
+    built the library in a folder of its own, its cache folder unwritable, left that folder behind: one per worker
+    and epoch."""
+    import multiprocessing
+
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("")
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(not_a_folder))
+    monkeypatch.setattr(_native, "_private", None, raising=False)
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_private_build_in_child, args=(queue, str(_fake_compiler(tmp_path))))
+    child.start()
+    try:
+        folder = Path(queue.get(timeout=60))
+    finally:
+        child.join(timeout=30)
+        if child.is_alive():
+            child.kill()
+    assert child.exitcode == 0 and folder.name.startswith("torchface-native-")
+    assert not folder.exists()
+
+
 _OPENMP_PROBE = """
 import torch
 torch.set_num_threads(2)
@@ -676,3 +707,47 @@ def test_native_confidence_equals_the_torch_path(sweep):
         torch.testing.assert_close(nat[k], ref[k], rtol=0, atol=1e-9)
     torch.testing.assert_close(nat[3][0], ref[3][0], rtol=0, atol=1e-9)
     assert float(nat[0].min()) > 0.5  # the track is confident (so agreement says something)
+
+
+def test_moving_a_tracker_where_it_is_between_steps_keeps_no_old_model_alive():
+    """A ``.to()`` that changes nothing (a parent module's ``.to(device)`` before each training step) makes a new
+    face model object and keeps the state; the native confidence's constants, kept on the state's normalised-face
+    layout, were keyed by ``id(model)``: each step with a new model added a set holding that model, so the models
+    (and the sets) piled up, one per step. Now the old models are freed."""
+    import gc
+    import weakref
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+    from torchface.tracker import FaceTracker
+
+    frames, gt = render_sequence(make_scenario("pose_sweep", 6, 160, 120))
+    tracker = FaceTracker(refine_first=None)
+    tracker.initialise(frames[:1], gt.landmarks_px[:1].float())
+    old = []
+    for t in range(1, 6):
+        old.append(weakref.ref(tracker.model))
+        tracker.to(torch.float32)
+        tracker(frames[t : t + 1])
+    assert tracker.state is not None  # the state was kept
+    gc.collect()
+    assert sum(r() is not None for r in old) == 0
+
+
+def test_a_build_deletes_the_temporary_files_of_killed_builds(tmp_path, monkeypatch):
+    # A process killed while it built the library (a data-loader worker terminated at shutdown, the OOM killer)
+    # left its temporary file, nearly a library's size, in the cache folder for good.
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))
+    folder = tmp_path / "cache" / "native"
+    folder.mkdir(parents=True)
+    stale = folder / "torchface_native-0123456789abcdef.so.x1y2z3.partial"
+    fresh = folder / "torchface_native-0123456789abcdef.so.a1b2c3.partial"  # a build running now
+    other = folder / "notes.partial"  # not a build's
+    for f in (stale, fresh, other):
+        f.write_bytes(b"\0" * 100)
+    old = stale.stat().st_mtime - 2 * 24 * 3600
+    os.utime(stale, (old, old))
+    os.utime(other, (old, old))
+    target = _native._build(str(_fake_compiler(tmp_path)))
+    assert target.parent == folder and target.is_file()
+    assert not stale.exists() and fresh.exists() and other.exists()

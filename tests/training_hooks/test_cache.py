@@ -3,6 +3,7 @@ reads a stale entry, damaged files are detected and tracked again, writes are at
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import replace
 
@@ -199,6 +200,31 @@ def test_content_hash_and_key(tmp_path, clips):
     with pytest.raises(ValueError, match="64 lowercase hex"):
         TrackCache(tmp_path).path("../../etc")
     assert _HASH_MEMO  # the per-process memo is used
+
+
+def test_the_hash_memo_keeps_one_small_entry_per_path(tmp_path):
+    """The per-process memo of content hashes (a dataset's main process or persistent workers hash every video
+    each epoch) keeps one entry per path, of a fixed size: it was keyed by the files' stats, so each version of a
+    changed file added an entry, and a folder's entry held three numbers per image (46 kB for 500 images)."""
+    import pickle
+
+    a = tmp_path / "a.bin"
+    before = set(_HASH_MEMO)
+    hashes = set()
+    for i in range(5):
+        a.write_bytes(b"v%d" % i)
+        os.utime(a, ns=(i * 10**9, i * 10**9))  # each version with its own modification time
+        hashes.add(content_hash(a))
+    assert len(hashes) == 5 and content_hash(a) in hashes
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(200):
+        (folder / f"{i}.png").write_bytes(b"%d" % i)
+    h = content_hash(folder)
+    assert content_hash(folder) == h
+    new = {k: v for k, v in _HASH_MEMO.items() if k not in before}
+    assert len(new) == 2
+    assert max(len(pickle.dumps(item)) for item in new.items()) < 1000
 
 
 def test_torchface_version_is_part_of_the_key(monkeypatch, clips):

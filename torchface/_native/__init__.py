@@ -25,8 +25,9 @@ hash of the source, the compiler and its flags and the CPU it was built for (``-
 machines with other CPUs, such as a network home folder, builds one library per CPU instead of handing a machine
 instructions it lacks), so a changed source is built again; it is built into a temporary
 file and renamed into place, so processes that build it at the same time (data-loader workers) do not see a
-partial file. Where that folder cannot be written (a read-only home), the library is built for the process alone
-in a temporary folder, with a ``RuntimeWarning``. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
+partial file (one left by a process killed mid-build is deleted by a later build once a day old). Where that
+folder cannot be written (a read-only home), the library is built for the process alone in a temporary folder,
+with a ``RuntimeWarning``. ``TORCHFACE_NATIVE=0`` in the environment turns the kernels off.
 
 Switches read from the environment (``TORCHFACE_NATIVE``, ``TORCHFACE_OPENMP``): ``0``, ``false``, ``no`` or
 ``off`` (any case) turn the feature off; unset, empty, ``1``, ``true``, ``yes`` or ``on`` leave it on; any other
@@ -41,6 +42,7 @@ from __future__ import annotations
 import atexit
 import ctypes
 import hashlib
+import multiprocessing.util
 import os
 import platform
 import shlex
@@ -48,6 +50,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -65,6 +68,8 @@ _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 _ARCH_FLAGS = ("-march=native",)
 #: Tried first where torch's threads run on GNU OpenMP (:func:`_openmp_wanted`).
 _OPENMP_FLAGS = ("-fopenmp",)
+#: Age (seconds) after which a build's temporary file is taken for one left by a killed process and deleted.
+_STALE_PARTIAL_S = 24 * 3600.0
 
 #: ``torchface.solver.robust.RobustKind`` value -> the kernel's loss code.
 LOSS_CODES = {"none": 0, "huber": 1, "cauchy": 2, "tukey": 3, "geman_mcclure": 4}
@@ -323,6 +328,9 @@ def _private_dir(cache: Path, exc: OSError) -> Path:
     if _private is None:
         _private = Path(tempfile.mkdtemp(prefix="torchface-native-"))
         atexit.register(_remove_private, _private, os.getpid())
+        # A multiprocessing child (a data-loader worker) ends with os._exit, which runs no atexit function but
+        # multiprocessing's finalizers: without one, each worker that built the library left its folder behind.
+        multiprocessing.util.Finalize(None, _remove_private, args=(_private, os.getpid()), exitpriority=0)
         warnings.warn(
             f"torchface: the native kernels' cache folder {cache} cannot be written ({exc}); they are built for this "
             f"process only, in {_private} (a few seconds at each start). Set TORCHFACE_CACHE_DIR to a writable "
@@ -334,6 +342,19 @@ def _private_dir(cache: Path, exc: OSError) -> Path:
 def _remove_private(folder: Path, pid: int) -> None:
     if os.getpid() == pid:  # not in a forked child that exits normally
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def _sweep_partials(folder: Path) -> None:
+    """Delete the temporary files of builds in ``folder`` older than a day: left by a process killed while it
+    built (a data-loader worker terminated at shutdown, the OOM killer), each nearly a library's size, they were
+    never removed."""
+    limit = time.time() - _STALE_PARTIAL_S
+    for tmp in folder.glob("torchface_native-*.partial"):
+        try:
+            if tmp.stat().st_mtime < limit:
+                tmp.unlink()
+        except OSError:  # removed or renamed by its builder meanwhile, or not ours to remove
+            pass
 
 
 def _build(cc: str, openmp: bool = False) -> Path:
@@ -355,6 +376,7 @@ def _build(cc: str, openmp: bool = False) -> Path:
                 return target
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
+                _sweep_partials(target.parent)
                 fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".partial", dir=target.parent)
             except OSError as exc:  # a read-only home, a cache path that is a file: built for this process only
                 folder = _private_dir(folder, exc)

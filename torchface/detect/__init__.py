@@ -7,7 +7,8 @@ package registry and runs offline. When it is not installed the error names the 
 first frame, 68 finite points, at least half of them inside the frame (a face at the frame's edge has landmarks
 outside it), else :class:`~torchface.io.InputError` naming the detector; at a re-detection or a lost stream's
 recovery, points of another shape are that error, and NaN points or a face mostly outside the frame are "no face"
-with a ``RuntimeWarning`` (:func:`usable_detection`), the run going on.
+with a ``RuntimeWarning`` (:func:`usable_detection`; given once per video for re-detections and once per
+:func:`batched` callback, not at every such detection), the run going on.
 
 :class:`~torchface.FaceTracker` (``detector=``) and :func:`~torchface.tracker.managed.managed_step` re-initialise
 lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` (``frames (B, 3, H, W)`` float
@@ -172,11 +173,16 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
     return _Batched(detector, name, None)
 
 
-def usable_detection(points: object, width: int, height: int, where: str) -> np.ndarray | None:
+def usable_detection(
+    points: object, width: int, height: int, where: str, warn: bool = True
+) -> np.ndarray | None:
     """A detector's landmarks of a face looked for mid-run (a re-detection, a lost stream's recovery): the ``(68,
     2)`` points when they are usable, None ("no face") with a ``RuntimeWarning`` when some are NaN or more than half
     lie outside the ``width x height`` frame (a face leaving it: one such detection used to end every video of the
-    batch). Points of another shape break the detector's contract: ``torchface.io.InputError`` naming ``where``."""
+    batch); ``warn=False`` leaves the warning out (a caller that has given it once: each message names the points,
+    so every detection of a face at the frame's edge printed one, and Python kept each text for good in its
+    registry of warnings shown). Points of another shape break the detector's contract:
+    ``torchface.io.InputError`` naming ``where``."""
     import warnings
 
     from torchface.io import InputError
@@ -188,7 +194,9 @@ def usable_detection(points: object, width: int, height: int, where: str) -> np.
     try:
         return check_landmarks(array, width, height, where, min_inside=0.5)
     except InputError as exc:
-        warnings.warn(f"{exc}; taken as no face", RuntimeWarning, stacklevel=2)
+        if warn:
+            warnings.warn(f"{exc}; taken as no face (and any like it later, without a warning)", RuntimeWarning,
+                          stacklevel=2)  # fmt: skip
         return None
 
 
@@ -202,6 +210,7 @@ class _Batched:
         self.detector, self.near_of = detector, near_of
         self.where = f"the {name} detector's landmarks of a lost face" if name else "a lost face's landmarks"
         self.takes_near = accepts_near(detector)
+        self.warned = False  # an unusable detection was warned about (usable_detection)
 
     def __call__(self, frames: Tensor) -> Tensor:
         import torch
@@ -215,7 +224,9 @@ class _Batched:
             near = None if self.near_of is None else self.near_of(frames[b])
             points = self.detector(image, near=near) if self.takes_near else self.detector(image)
             if points is not None:
-                points = usable_detection(points, W, H, self.where)
+                warned = getattr(self, "warned", False)  # (a callback pickled before it had the attribute)
+                points = usable_detection(points, W, H, self.where, warn=not warned)
+                self.warned = warned or points is None  # said once: not at every detection of a face at the edge
             if points is not None:
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
         return out

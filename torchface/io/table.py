@@ -266,6 +266,7 @@ class TrackCsvWriter:
         self.partial = partial_path(self.path)
         self.rows_done = 0
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))
+        tmp: Path | None = None
         try:
             if resume and self.partial.is_file():
                 cols, data = read_track_csv(self.partial)
@@ -277,12 +278,15 @@ class TrackCsvWriter:
                 tmp = self.partial.with_name(self.partial.name + ".tmp")
                 tmp.write_text(keep, encoding="utf-8")
                 os.replace(tmp, self.partial)
+                tmp = None
                 self._file = open(self.partial, "a", encoding="utf-8")
             else:
                 self._file = open(self.partial, "w", encoding="utf-8")
                 self._file.write(",".join(self.columns) + "\n")
                 self._file.flush()
         except OSError as exc:
+            if tmp is not None:  # a full disk: no temporary file left behind (the partial CSV is as it was)
+                tmp.unlink(missing_ok=True)
             raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
 
     def write(self, rows: np.ndarray) -> None:

@@ -434,7 +434,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             raise InputError(_problem_message(f"{p}", problems))
         first, _ = frame_to_tensor(img, True, f"{p}: frame 0", convert)
         _check_size(p, first)
-    except InputError:
+    except BaseException:  # any failure: the decoder was kept open by the traceback for as long as it was held
         cap.release()
         raise
     channels = 1 if stored.ndim == 2 else stored.shape[2]

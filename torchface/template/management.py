@@ -720,18 +720,20 @@ def face_inside_fraction(model: FaceModel, verts_cam: Tensor, intrinsics: Intrin
 
 def _native_layout_constants(model: FaceModel, layout: NormalisedFaceLayout, dtype: torch.dtype) -> tuple[Tensor, ...]:
     """The model's and the layout's tensors the native confidence reads, contiguous in ``dtype`` (int64 indices,
-    the surface mask as bytes): made once per layout, model and dtype and kept on the layout."""
+    the surface mask as bytes): made once per layout, model and dtype and kept on the layout, one set per dtype,
+    made again for another model object (a ``FaceTracker.to()`` that changes nothing, as a parent module's
+    ``.to(device)`` before each training step, makes a new one each time: one set per model piled up)."""
     cache = layout.__dict__.setdefault("_native_constants", {})
-    key = (id(model), dtype)
-    if key not in cache:
+    held = cache.get(dtype)
+    if held is None or held[-1] is not model:  # (the model held too: compared by identity, not by a reusable id)
         with torch.inference_mode(False):
-            cache[key] = (
+            cache[dtype] = (
                 model.mean.to(dtype).contiguous(), model.shape_units.to(dtype).contiguous(),
                 model.animation_units.to(dtype).contiguous(), model.faces.to(torch.int64).contiguous(),
                 model.surface_vertex_mask.to(torch.uint8).contiguous(), layout.face_index.to(torch.int64).contiguous(),
                 layout.pixel_index.to(torch.int64).contiguous(), layout.bary.to(dtype).contiguous(), model,
             )  # fmt: skip
-    return cache[key]
+    return cache[dtype]
 
 
 def native_mosaic_confidence(
