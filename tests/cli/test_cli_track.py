@@ -874,9 +874,10 @@ def test_a_video_that_has_ended_is_closed_while_the_others_of_its_batch_go_on(cl
     short = _short_npy(video, tmp_path / "short.npy", 3)
     config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None)
     track_videos([short, video], config, progress=lambda p: log.append(("progress", p.name, p.done)))
-    closed = log.index(("close", "short.npy"))
-    assert closed < log.index(("progress", NAME, 6))  # (the short video's 3 frames were tracked first)
-    assert ("progress", "short", 3) in log[:closed]
+    started = next(i for i, e in enumerate(log) if e[0] == "progress")  # (inputs are opened and closed to check them)
+    closed = log.index(("close", "short.npy"), started)
+    assert closed < log.index(("progress", NAME, 6))  # closed while the longer video goes on
+    assert ("progress", "short", 2) in log[started:closed]  # (after its frames were tracked)
 
 
 def test_the_job_keeps_nothing_per_frame_in_memory(clip, tmp_path, monkeypatch):
