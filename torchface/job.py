@@ -75,7 +75,7 @@ from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
-from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
+from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
 __all__ = [
@@ -1124,11 +1124,12 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
     ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
     earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
-    first row, and the mesh is placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``,
-    ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their ``AUxx_r`` columns are measured
-    from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*`` are the coefficients that place
-    the mesh. The rows up to and including that frame (its row holds the estimate made before the re-anchoring)
-    were tracked with ``first_shape_coeffs`` and place the mesh with their own pose (:func:`_drawn_pose`).
+    first row, and the mesh is placed (overlay wireframe, normalised face, meshes; the overlay's head axes stay the
+    rows' pose) by ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with
+    ``model.shape_coeffs``; their ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated
+    starting expression), ``anim_*`` are the coefficients that place the mesh. The rows up to and including that
+    frame (its row holds the estimate made before the re-anchoring) were tracked with ``first_shape_coeffs`` and
+    place the mesh with their own pose (:func:`_drawn_pose`).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
@@ -1212,7 +1213,7 @@ def _write_step(
             written[k] = read_back(columns, row[None])[0]
     R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
     verts_px, _ = overlay_geometry(model, shape, alpha, R_mesh, t_mesh, intr)
-    _, axes_px = overlay_geometry(model, shape, alpha, R, trans, intr)  # the axes of the CSV's pose
+    axes_px = axes_geometry(R, trans, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
     norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
