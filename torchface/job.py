@@ -476,7 +476,8 @@ def _numbers(value: object, shape: tuple[int, ...]) -> bool:
 def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str | None:
     """What is wrong with a record's re-anchoring (:func:`_record_anchors` writes it; None: nothing, or no
     re-anchoring): its fields must be finite numbers of the model's sizes, ``head_rotation`` a rotation and
-    ``frame`` (absent in records of earlier versions) a frame index."""
+    ``frame`` (absent in records of earlier versions) a frame index, ``params`` (absent or None: not kept) the
+    packed parameters of the model (:func:`_anchor_params`)."""
     if anchor is None:
         return None
     if not isinstance(anchor, dict):
@@ -489,6 +490,9 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
     first = anchor.get("first_shape_coeffs")
     if first is not None and not _numbers(first, (num_shape,)):
         return f"anchor.first_shape_coeffs is not {num_shape} finite numbers"
+    params, size = anchor.get("params"), 6 + num_animation + NUM_ILLUMINATION_TERMS
+    if params is not None and not _numbers(params, (size,)):  # (the replay put them into the state: a traceback)
+        return f"anchor.params is not {size} finite numbers"
     frame = anchor.get("frame")
     if frame is not None and (not isinstance(frame, int) or isinstance(frame, bool) or frame < 0):
         return "anchor.frame is not a frame index"

@@ -1657,6 +1657,10 @@ def _set_cell(column, row, value):
     (_damage_record(lambda r: r["anchor"].__setitem__("shape_coeffs", r["anchor"]["shape_coeffs"][:3])),
      "record is damaged (anchor.shape_coeffs is not 14 finite numbers)"),  # a RuntimeError's traceback
     (_damage_record(lambda r: r.__setitem__("anchor", "x")), "record is damaged (its anchor is a str"),  # TypeError
+    (_damage_record(lambda r: r["anchor"].__setitem__("params", r["anchor"]["params"][:3])),
+     "record is damaged (anchor.params is not 22 finite numbers)"),  # a RuntimeError's traceback at its frame
+    (_damage_record(lambda r: r["anchor"].__setitem__("params", [float("nan")] * 22)),
+     "record is damaged (anchor.params is not 22 finite numbers)"),  # NaN went into the replayed state
     (_damage_record(lambda r: r.__setitem__("input", None)), "record is unreadable"),  # TypeError
     (lambda folder: (folder / "short.record.partial").unlink(), "record (what its rows were made with) is missing"),
     (_damage_rows(lambda header, lines: lines + lines[-1:]), "rows are damaged (the row of frame 7 says frame 6)"),
