@@ -20,24 +20,22 @@ Every output of a frame is drawn from its CSV row as written and the JSON's ``st
 they agree with the CSV, lost and failed rows included, and a resumed run draws its replayed rows as the interrupted
 run did.
 
-Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
-last. Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
-input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
-keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped and one with a partial CSV continues after its last
-complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
-online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
-input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
-the rows depend on: a resume with other settings, or after the input file changed, is refused, as is a damaged
-or missing record or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the
-parameters of the rows already written are read back from the CSV, and the videos are re-drawn from them; so is
-the stream's loss bookkeeping (lost or not, the frames of low confidence counted, the last confident
-parameters), so that a video interrupted while its face was lost goes on lost, as the uninterrupted run would. A
-CSV under its final name without its JSON (interrupted while finalising) is resumed as a partial one. The
-template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed rows can
-part from the
-uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4 degrees of yaw and
-0.9 mm, with the same error against the ground truth).
+Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last.
+Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder input, are
+refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run keeps
+``<stem>.csv.partial``; with ``resume=True`` a video whose JSON exists is skipped and one with a partial CSV
+continues after its last complete row: the first frame is initialised again from the same landmarks (deterministic),
+or, for a video the online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which
+also names the input the partial results belong to, its size and modification time, the first-frame landmarks and
+every setting the rows depend on: a resume with other settings, or after the input file changed, is refused, as is a
+damaged or missing record or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not
+one); the parameters of the rows already written are read back from the CSV, and the videos are re-drawn from them;
+so is the stream's loss bookkeeping (lost or not, the frames of low confidence counted, the last confident
+parameters), so that a video interrupted while its face was lost goes on lost, as the uninterrupted run would. A CSV
+under its final name without its JSON (interrupted while finalising) is resumed as a partial one. The template
+mosaic built before the interruption is not restored: on a clip whose head turns, the resumed rows can part from the
+uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4 degrees of yaw and 0.9
+mm, with the same error against the ground truth).
 """
 
 from __future__ import annotations
