@@ -609,7 +609,8 @@ def test_every_output_shows_its_csv_row(clip, tmp_path, monkeypatch):
         after = f > at
         R_mesh = np.asarray(R[f], dtype=np.float64) @ (D.T if after else np.eye(3))
         t_mesh = t[f] - (R_mesh @ d if after else 0.0)
-        shape = torch.tensor(side["model"]["shape_coeffs"] if after else start["first_shape_coeffs"], dtype=torch.float64)
+        shape = torch.tensor(side["model"]["shape_coeffs"] if after else start["first_shape_coeffs"],
+                             dtype=torch.float64)  # fmt: skip
         verts = model.deform(shape[None], anim[f : f + 1])[0].numpy() @ R_mesh.T + t_mesh
         ply = trimesh.load(out / "cut_meshes" / f"{f:06d}.ply", process=False).vertices
         assert np.abs(ply - verts).max() < 1e-2, (f, np.abs(ply - verts).max())  # mm
