@@ -149,8 +149,6 @@ def test_states_and_results_compare_by_identity(l2_runs):
     assert results[-1] in results and len({states[0], states[-1], results[0], results[-1]}) == 4
 
 
-
-
 def test_known_answer_pose_and_expression_l2(model, two_streams, l2_runs):
     """Rotation within 1 degree of the truth (relative to frame 0 too), translation within 8 mm, and the jaw
     drop and brow raise followed to within 0.2 / 0.3 (they ramp to 0.7 / 0.6; the prior shrinks them a little)."""
