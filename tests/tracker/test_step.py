@@ -667,6 +667,18 @@ def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
                 initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
 
 
+def test_initialise_names_intrinsics_that_are_not_a_camera(model, two_streams):
+    """Intrinsics given as anything but :class:`Intrinsics` (a ``(W, H)`` tuple, a name, None) are a one-line
+    TypeError naming them, with template management or without (a tuple or string was an AttributeError,
+    "'tuple' object has no attribute 'size'", from the frames' size check)."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts)
+    for intrinsics in ((W, H), "default", None):
+        for init in (initialise, initialise_managed):
+            with pytest.raises(TypeError, match=r"intrinsics must be torchface.geometry.Intrinsics"):
+                init(model, BASE, frames[:, 0], lm, intrinsics)  # type: ignore[arg-type]
+
+
 def test_failed_initialise_forgets_the_previous_video(model, two_streams):
     """A FaceTracker whose initialise raises does not track on against the previous video's templates."""
     frames, gts = two_streams
