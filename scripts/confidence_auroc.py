@@ -148,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {VARIANTS}")
     parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")
     parser.add_argument("--size", type=ev._parse_size, default=None, help="WxH (default 640x480)")
-    parser.add_argument("--cache", default="out/sequences", help="sequence cache folder (default out/sequences; 'none': in memory)")
+    parser.add_argument("--cache", default="out/sequences",
+                        help="sequence cache folder (default out/sequences; 'none': in memory)")
     parser.add_argument("--good", type=float, default=2.0, help="positives: error below this (deg)")
     parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
     parser.add_argument("--seed", type=int, default=0)

@@ -12,12 +12,15 @@ import pkgutil
 import torch
 
 import torchface
+import training_hooks
 from torchface.solver.least_squares import SolveResult
 
 
 def _tensor_dataclasses() -> list[type]:
+    """The dataclasses of ``torchface`` and ``training_hooks`` with a tensor field."""
     found = []
-    for info in pkgutil.walk_packages(torchface.__path__, "torchface."):
+    packages = [(torchface.__path__, "torchface."), (training_hooks.__path__, "training_hooks.")]
+    for info in (i for path, prefix in packages for i in pkgutil.walk_packages(path, prefix)):
         module = importlib.import_module(info.name)
         for obj in vars(module).values():
             if inspect.isclass(obj) and dataclasses.is_dataclass(obj) and obj.__module__ == module.__name__:
@@ -29,6 +32,8 @@ def _tensor_dataclasses() -> list[type]:
 def test_every_dataclass_holding_tensors_compares_by_identity():
     classes = _tensor_dataclasses()
     assert len(classes) > 20  # TrackerState, TrackResult, Template, Fragments, SolveResult, ...
+    names = {c.__qualname__ for c in classes}
+    assert {"LayerResult", "TrackedSequence"} <= names  # training_hooks' (their == raised as torchface's did)
     field_wise = [c.__qualname__ for c in classes if c.__dataclass_params__.eq]
     assert field_wise == []
     assert all(c.__hash__ is object.__hash__ for c in classes)  # hash agrees with ==

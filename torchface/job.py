@@ -21,26 +21,23 @@ Every output of a frame is drawn from its CSV row as written and the JSON's ``st
 they agree with the CSV, lost and failed rows included, and a resumed run draws its replayed rows as the interrupted
 run did.
 
-Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed
-last. A run without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch).
-Outputs that would replace an input or a landmarks file, or an output folder that is an image-folder
-input, are refused before anything is written. CSV rows are flushed as they are tracked, so an interrupted run
-keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other
-settings: :func:`_check_resumable`) and one with a partial CSV continues after its last
-complete row: the first frame is initialised again from the same landmarks (deterministic), or, for a video the
-online start had re-anchored, from the refined fit recorded in ``<stem>.record.partial`` (which also names the
-input the partial results belong to, its size and modification time, the first-frame landmarks and every setting
-the rows depend on: a resume with other settings, or after the input file changed, is refused, as is a damaged
-or missing record or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the
-parameters of the rows already written are read back from the CSV, and the videos are re-drawn from them; so is
-the stream's loss bookkeeping (lost or not, the frames of low confidence counted, the last confident
-parameters), so that a video interrupted while its face was lost goes on lost, as the uninterrupted run would. A
-CSV under its final name without its JSON (interrupted while finalising) is resumed as a partial one. The
-template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed rows can
-part from the
-uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4 degrees of yaw and
-0.9 mm, with the same error against the ground truth).
+Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last. A run
+without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
+replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
+written. CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other settings:
+:func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
+initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
+refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
+and modification time, the first-frame landmarks and every setting the rows depend on: a resume with other settings, or
+after the input file changed, is refused, as is a damaged or missing record or a damaged partial CSV: a row out of
+sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
+CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
+confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
+the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
+partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed
+rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4
+degrees of yaw and 0.9 mm, with the same error against the ground truth).
 """
 
 from __future__ import annotations
@@ -78,7 +75,7 @@ from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
-from torchface.visualise.overlay import draw_overlay, mesh_edges, overlay_geometry
+from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
 __all__ = [
@@ -509,7 +506,8 @@ def _numbers(value: object, shape: tuple[int, ...]) -> bool:
 def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str | None:
     """What is wrong with a record's re-anchoring (:func:`_record_anchors` writes it; None: nothing, or no
     re-anchoring): its fields must be finite numbers of the model's sizes, ``head_rotation`` a rotation and
-    ``frame`` (absent in records of earlier versions) a frame index."""
+    ``frame`` (absent in records of earlier versions) a frame index, ``params`` (absent or None: not kept) the
+    packed parameters of the model (:func:`_anchor_params`)."""
     if anchor is None:
         return None
     if not isinstance(anchor, dict):
@@ -522,6 +520,9 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
     first = anchor.get("first_shape_coeffs")
     if first is not None and not _numbers(first, (num_shape,)):
         return f"anchor.first_shape_coeffs is not {num_shape} finite numbers"
+    params, size = anchor.get("params"), 6 + num_animation + NUM_ILLUMINATION_TERMS
+    if params is not None and not _numbers(params, (size,)):  # (the replay put them into the state: a traceback)
+        return f"anchor.params is not {size} finite numbers"
     frame = anchor.get("frame")
     if frame is not None and (not isinstance(frame, int) or isinstance(frame, bool) or frame < 0):
         return "anchor.frame is not a frame index"
@@ -1233,11 +1234,12 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
     ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
     earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
-    first row, and the mesh is placed (overlay, meshes) by ``R_mesh = R @ head_rotation^T``,
-    ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their ``AUxx_r`` columns are measured
-    from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*`` are the coefficients that place
-    the mesh. The rows up to and including that frame (its row holds the estimate made before the re-anchoring)
-    were tracked with ``first_shape_coeffs`` and place the mesh with their own pose (:func:`_drawn_pose`).
+    first row, and the mesh is placed (overlay wireframe, normalised face, meshes; the overlay's head axes stay the
+    rows' pose) by ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with
+    ``model.shape_coeffs``; their ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated
+    starting expression), ``anim_*`` are the coefficients that place the mesh. The rows up to and including that
+    frame (its row holds the estimate made before the re-anchoring) were tracked with ``first_shape_coeffs`` and
+    place the mesh with their own pose (:func:`_drawn_pose`).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
@@ -1321,7 +1323,7 @@ def _write_step(
             written[k] = read_back(columns, row[None])[0]
     R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
     verts_px, _ = overlay_geometry(model, shape, alpha, R_mesh, t_mesh, intr)
-    _, axes_px = overlay_geometry(model, shape, alpha, R, trans, intr)  # the axes of the CSV's pose
+    axes_px = axes_geometry(R, trans, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
     norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)

@@ -149,7 +149,7 @@ class LayerConfig:
             )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LayerResult:
     """What :class:`NormalisedFaceLayer` returns.
 

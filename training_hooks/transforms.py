@@ -165,7 +165,7 @@ def encode_faces(faces: Tensor, storage: FaceStorage) -> Tensor:
     return faces.detach().to(storage.dtype)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrackedSequence:
     """Per-frame tracking results and normalised faces of one sequence (CPU tensors, ``T >= 1`` frames).
 

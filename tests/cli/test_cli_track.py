@@ -168,6 +168,15 @@ def _clip_frames_uint8(video, n=3):
     return (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
 
 
+def _cut_by_noise(video, path):
+    """The clip's first 6 frames with 6 frames of noise after its 4th (frames 4-9: the face lost, then back), saved
+    as ``.npy`` at ``path``."""
+    face = _clip_frames_uint8(video, 6)
+    noise = (np.random.default_rng(0).random((6, H, W, 3)) * 255).round().astype(np.uint8)
+    np.save(path, np.concatenate([face[:4], noise, face[4:]]))
+    return path
+
+
 def _format_inputs(video, folder):
     """Gray, RGBA, 16-bit and odd-sized versions of the clip's first frames, each with the problem it names."""
     rgb = _clip_frames_uint8(video)
@@ -718,10 +727,7 @@ def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
     to start afresh, with no loss and no low-confidence frames counted, and reported its next two frames of noise
     successful at confidence 0.)"""
     video, lm, _ = clip
-    face = _clip_frames_uint8(video, 6)
-    noise = (np.random.default_rng(0).random((6, H, W, 3)) * 255).round().astype(np.uint8)
-    cut = tmp_path / "cut.npy"
-    np.save(cut, np.concatenate([face[:4], noise, face[4:]]))  # frames 4-9: noise
+    cut = _cut_by_noise(video, tmp_path / "cut.npy")  # frames 4-9: noise
     track_videos([cut], JobConfig(out_dir=tmp_path / "full", landmarks=(lm,)))
     cols, ref = read_track_csv(output_paths(tmp_path / "full", "cut")["csv"])
     status, success = cols.index("status"), cols.index("success")
@@ -757,10 +763,7 @@ def test_every_output_shows_its_csv_row(clip, tmp_path, monkeypatch):
     from torchface.visualise.overlay import overlay_geometry
 
     video, lm, _ = clip
-    face = _clip_frames_uint8(video, 6)
-    noise = (np.random.default_rng(0).random((6, H, W, 3)) * 255).round().astype(np.uint8)
-    cut = tmp_path / "cut.npy"
-    np.save(cut, np.concatenate([face[:4], noise, face[4:]]))  # frames 4-9: noise
+    cut = _cut_by_noise(video, tmp_path / "cut.npy")  # frames 4-9: noise
     drawn = []
     real = torchface.job.draw_overlay
 
@@ -786,7 +789,8 @@ def test_every_output_shows_its_csv_row(clip, tmp_path, monkeypatch):
         after = f > at
         R_mesh = np.asarray(R[f], dtype=np.float64) @ (D.T if after else np.eye(3))
         t_mesh = t[f] - (R_mesh @ d if after else 0.0)
-        shape = torch.tensor(side["model"]["shape_coeffs"] if after else start["first_shape_coeffs"], dtype=torch.float64)
+        shape = torch.tensor(side["model"]["shape_coeffs"] if after else start["first_shape_coeffs"],
+                             dtype=torch.float64)  # fmt: skip
         verts = model.deform(shape[None], anim[f : f + 1])[0].numpy() @ R_mesh.T + t_mesh
         ply = trimesh.load(out / "cut_meshes" / f"{f:06d}.ply", process=False).vertices
         assert np.abs(ply - verts).max() < 1e-2, (f, np.abs(ply - verts).max())  # mm
@@ -804,10 +808,7 @@ def test_resume_right_after_a_failed_lost_frame_goes_on_from_the_confident_pose(
     run did (it went on from the row's held, drifted pose: the next row 0.46 mm and 0.27 degrees off), and draws
     every replayed frame of its videos as the uninterrupted run did."""
     video, lm, _ = clip
-    face = _clip_frames_uint8(video, 6)
-    noise = (np.random.default_rng(0).random((6, H, W, 3)) * 255).round().astype(np.uint8)
-    cut = tmp_path / "cut.npy"
-    np.save(cut, np.concatenate([face[:4], noise, face[4:]]))  # frames 4-9: noise
+    cut = _cut_by_noise(video, tmp_path / "cut.npy")  # frames 4-9: noise
     track_videos([cut], JobConfig(out_dir=tmp_path / "full", landmarks=(lm,)))
     cols, ref, R_ref, t_ref = _pose(output_paths(tmp_path / "full", "cut")["csv"])
     status, residual = ref[:, cols.index("status")], ref[:, cols.index("residual_confidence")]
@@ -1983,6 +1984,10 @@ def _set_cell(column, row, value):
     (_damage_record(lambda r: r["anchor"].__setitem__("shape_coeffs", r["anchor"]["shape_coeffs"][:3])),
      "record is damaged (anchor.shape_coeffs is not 14 finite numbers)"),  # a RuntimeError's traceback
     (_damage_record(lambda r: r.__setitem__("anchor", "x")), "record is damaged (its anchor is a str"),  # TypeError
+    (_damage_record(lambda r: r["anchor"].__setitem__("params", r["anchor"]["params"][:3])),
+     "record is damaged (anchor.params is not 22 finite numbers)"),  # a RuntimeError's traceback at its frame
+    (_damage_record(lambda r: r["anchor"].__setitem__("params", [float("nan")] * 22)),
+     "record is damaged (anchor.params is not 22 finite numbers)"),  # NaN went into the replayed state
     (_damage_record(lambda r: r.__setitem__("input", None)), "record is unreadable"),  # TypeError
     (lambda folder: (folder / "short.record.partial").unlink(), "record (what its rows were made with) is missing"),
     (_damage_rows(lambda header, lines: lines + lines[-1:]), "rows are damaged (the row of frame 7 says frame 6)"),

@@ -149,8 +149,6 @@ def test_states_and_results_compare_by_identity(l2_runs):
     assert results[-1] in results and len({states[0], states[-1], results[0], results[-1]}) == 4
 
 
-
-
 def test_known_answer_pose_and_expression_l2(model, two_streams, l2_runs):
     """Rotation within 1 degree of the truth (relative to frame 0 too), translation within 8 mm, and the jaw
     drop and brow raise followed to within 0.2 / 0.3 (they ramp to 0.7 / 0.6; the prior shrinks them a little)."""
@@ -667,6 +665,18 @@ def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
         else:
             with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 5x5"):
                 initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
+
+
+def test_initialise_names_intrinsics_that_are_not_a_camera(model, two_streams):
+    """Intrinsics given as anything but :class:`Intrinsics` (a ``(W, H)`` tuple, a name, None) are a one-line
+    TypeError naming them, with template management or without (a tuple or string was an AttributeError,
+    "'tuple' object has no attribute 'size'", from the frames' size check)."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts)
+    for intrinsics in ((W, H), "default", None):
+        for init in (initialise, initialise_managed):
+            with pytest.raises(TypeError, match=r"intrinsics must be torchface.geometry.Intrinsics"):
+                init(model, BASE, frames[:, 0], lm, intrinsics)  # type: ignore[arg-type]
 
 
 def test_failed_initialise_forgets_the_previous_video(model, two_streams):

@@ -1,5 +1,6 @@
 """Templates and their management: template points from a frame (paper Eq. 3-9), the dissimilarity confidence
-of the normalised face (Section 4.1) and the pose-keyed mosaic with its settings, :class:`TemplateConfig` (Section 4)."""
+of the normalised face (Section 4.1) and the pose-keyed mosaic with its settings, :class:`TemplateConfig`
+(Section 4)."""
 
 from torchface.template.points import (
     Template,

@@ -597,8 +597,8 @@ def check_initialise_inputs(
     model's ``K`` points (NaN: missing; the online start and recovery use them all, so a subset is given as NaN
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
+    check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
     check_frames(frames, intrinsics, values=True)
-    check_intrinsics(intrinsics)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")

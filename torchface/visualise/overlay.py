@@ -1,7 +1,9 @@
 """Overlay frames: the tracked mesh as a wireframe, the head axes and the confidence (OpenCV drawing).
 
-Geometry is computed batched in torch (:func:`overlay_geometry`); drawing is per image at the I/O boundary
-(:func:`draw_overlay`), on uint8 BGR arrays as OpenCV stores them.
+Geometry is computed batched in torch (:func:`overlay_geometry`: the mesh and the head axes of one pose;
+:func:`axes_geometry`: the axes alone, which ``torchface track`` draws at the CSV row's pose while the mesh may be
+placed by another after a re-anchoring); drawing is per image at the I/O boundary (:func:`draw_overlay`), on uint8
+BGR arrays as OpenCV stores them.
 """
 
 from __future__ import annotations
