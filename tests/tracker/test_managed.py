@@ -816,5 +816,9 @@ def test_selected_streams_track_as_in_the_full_batch(model, four_streams):
     for a, b in zip(full, again):
         for f in ("rotation", "translation", "anim_coeffs", "illumination", "status", "confidence", "dissimilarity"):
             torch.testing.assert_close(getattr(b, f), getattr(a, f), rtol=0, atol=0, equal_nan=True)
+    mask = torch.tensor([True, False, True, False])
+    assert torch.equal(state.select(mask).params, state.select([0, 2]).params)
     with pytest.raises(IndexError, match="out of range"):
         state.select([4])
+    with pytest.raises(IndexError, match="one per stream"):
+        state.select(torch.tensor([True, False]))

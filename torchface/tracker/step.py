@@ -463,24 +463,32 @@ class TrackerState:
         )  # fmt: skip
 
     def select(self, index: Sequence[int] | Tensor) -> "TrackerState":
-        """The state of streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted), to go on
-        tracking them as a smaller batch: e.g. without the streams whose videos have ended (``torchface track``).
+        """The state of streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a
+        ``(B,)`` bool mask), to go on tracking them as a smaller batch: e.g. without the streams whose videos have
+        ended (``torchface track``).
 
         Every per-stream part is selected (parameters, shape, templates and their visibility masks, the
         management's mosaic, counters, confident parameters, re-anchoring offsets and online-start watch); the
         intrinsics, frame count and management layout are shared, and so is the :class:`StepWorkspace` (scratch).
-        The kept streams then track as they would have in the full batch, to float rounding: the solver and the
-        management treat each stream alone, but a batch's face crop and chunked pyramid follow its streams.
-        The tensors are new, normal ones (made outside inference mode, as the state's are); selecting every stream
-        in order gives an equal state.
+        The kept streams then track as they would have in the whole batch, to float rounding (the solver and the
+        management treat each stream alone, but the face crop's size is the batch's largest). The tensors are new,
+        normal ones (made outside inference mode, as a step's are); selecting every stream in order changes no
+        later step's result.
 
         Example:
             >>> state = state.select([0, 2])                                      # doctest: +SKIP
             >>> state, result = managed_step(model, config, state, frames[[0, 2]])  # doctest: +SKIP
         """
         device = self.params.device
-        index = torch.as_tensor(index, dtype=torch.int64, device=device).reshape(-1)
         B = self.params.shape[0]
+        index = torch.as_tensor(index, device=device).reshape(-1)
+        if index.dtype == torch.bool:  # a mask of the streams kept
+            if index.numel() != B:
+                raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")
+            index = index.nonzero().squeeze(-1)
+        elif index.is_floating_point() or index.is_complex():
+            raise TypeError(f"stream indices must be integers, got {index.dtype}")
+        index = index.to(torch.int64)
         if index.numel() and (int(index.min()) < -B or int(index.max()) >= B):
             raise IndexError(f"stream index out of range for {B} streams: {index.tolist()}")
         index = index % B if B else index
