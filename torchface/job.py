@@ -2,7 +2,8 @@
 
 :func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
 into batches of up to ``JobConfig.max_batch`` (tracked together as B streams by
-:func:`torchface.tracker.managed_step`; only one batch's inputs are open at a time), and writes per video
+:func:`torchface.tracker.managed_step`; only one batch's inputs are open at a time; a video that has ended leaves
+the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on as a smaller one), and writes per video
 (``<stem>`` is the input's file name without suffix):
 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
@@ -49,7 +50,7 @@ import os
 import re
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 
@@ -74,7 +75,7 @@ from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, TrackStatus
 from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
@@ -414,6 +415,10 @@ class _Stream:
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
+    # its shape coefficients and neutral animation coefficients in the state after its last frame (taken when its
+    # stream leaves the batch's state: the sidecar's model.shape_coeffs and start.neutral_anim_coeffs)
+    final_shape: list[float] | None = None
+    final_neutral: list[float] | None = None
 
 
 def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamLayout) -> Tensor:
@@ -981,7 +986,6 @@ def _track_group(
     edges = mesh_edges(model.faces)
     normaliser = NormalisedFace(model, size=config.normalised_size)
     G = config.normalised_size
-    B = len(streams)
     paths = [output_paths(out_dir, s.name) for s in streams]
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
@@ -1039,15 +1043,18 @@ def _track_group(
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
         for s in streams:
             s.near = s.landmarks
-        recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(streams, current))
+        # The streams in the tracker's state, in its order (with their output paths and first poses): a video that
+        # has ended leaves it before the next step (_drop_ended), so that the batch shrinks as its videos end.
+        live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)
+        recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(live, current))
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
         while True:
-            replaying = [s.replay is not None and t < len(s.replay) for s in streams]
+            replaying = [s.replay is not None and t < len(s.replay) for s in live]
             if any(replaying):
                 idx = [k for k, r in enumerate(replaying) if r]
-                rows = np.stack([streams[k].replay[t] for k in idx])
+                rows = np.stack([live[k].replay[t] for k in idx])
                 params = state.params.clone()
                 own = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
                 replayed = own
@@ -1056,22 +1063,22 @@ def _track_group(
                     replayed = _rows_to_internal(own, ms.head_rotation[idx].to(dtype),
                                                  ms.head_translation[idx].to(dtype), layout)  # fmt: skip
                 for i, k in enumerate(idx):  # the re-anchoring frame: the refined pose the run went on from
-                    kept = _anchor_params(streams[k], t)
+                    kept = _anchor_params(live[k], t)
                     if kept is not None:
                         replayed[i] = torch.as_tensor(kept, dtype=replayed.dtype, device=replayed.device)
                 params[idx] = replayed
                 state = replace(state, params=params)
-                ended = [(k, streams[k].replay) for k in idx if t == len(streams[k].replay) - 1]
-                state = _with_replayed_loss(state, ended, columns, layout, config.tracker, streams)
-            new_rows = result_rows(result, np.full(B, t), 1.0)
-            _write_step(model, state, result, frames, streams, replaying, columns, new_rows, t, intr, edges,
-                        normaliser, layout, mesh_tmp if config.meshes else None, config.redetect_below,
+                ended = [(k, live[k].replay) for k in idx if t == len(live[k].replay) - 1]
+                state = _with_replayed_loss(state, ended, columns, layout, config.tracker, live)
+            new_rows = result_rows(result, np.full(len(live), t), 1.0)
+            _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
+                        normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
                         "dissim. conf" if config.tracker.template.enabled else "conf")  # fmt: skip
             if detector is not None and config.redetect_after > 0:
-                state = _maybe_redetect(model, config, state, frames, streams, detector, intr, layout,
-                                        [r and t < len(s.replay) - 1 for r, s in zip(replaying, streams)])
+                state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
+                                        [r and t < len(s.replay) - 1 for r, s in zip(replaying, live)])
             nxt = []
-            for s in streams:
+            for s in live:
                 if not s.done:
                     try:
                         if s.ahead:  # (the last one copied: a view would keep every frame read ahead, of
@@ -1086,7 +1093,7 @@ def _track_group(
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
                         s.done, s.error = True, exc
-                    if s.done:  # its decoder (file, threads, buffers) not kept while the others go on
+                    if s.done:  # its decoder (file, threads, buffers) not kept; its stream leaves the batch below
                         s.reader.close()
                 nxt.append(s.last_frame)
             if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
@@ -1095,16 +1102,27 @@ def _track_group(
                 for k, s in enumerate(streams):
                     total = s.frames if s.done and s.error is None else s.total
                     progress(Progress(members[k], count, s.name, s.frames, total, s.tracked / elapsed, s.confidence))
-            if all(s.done for s in streams):
+            if all(s.done for s in live):
                 break
             t += 1
+            keep = [k for k, s in enumerate(live) if not s.done]
+            if len(keep) < len(live):  # videos ended: their streams leave the state, the others go on as a smaller
+                # batch (tracked as in the whole one; kept in it, an ended video's last frame was tracked again at
+                # every step until the longest video ended)
+                _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
+                state, result = state.select(keep), _select_result(result, keep)
+                first_R, first_t = first_R[keep], first_t[keep]
+                live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
+                live_paths, live_mesh = [live_paths[k] for k in keep], [live_mesh[k] for k in keep]
+                nxt = [nxt[k] for k in keep]
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
-            if all(s.done or (s.replay is not None and t < len(s.replay)) for s in streams):
+            if all(s.replay is not None and t < len(s.replay) for s in live):
                 continue  # every live stream replays this frame from its CSV: nothing to track
             current.frames, current.asked = frames, set()
             state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
-            _record_anchors(state, streams, paths, first_R, first_t, layout, t)
+            _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
+        _keep_final(state, live, layout, list(range(len(live))))
     except BaseException:
         for s in streams:
             _abandon(s)
@@ -1114,7 +1132,7 @@ def _track_group(
     try:
         for s, p, mt in zip(streams, paths, mesh_tmp):
             if s.error is None:
-                summaries.append(_finalise(model, s, p, mt, config, state, streams, intr, t_init, t_track))
+                summaries.append(_finalise(model, s, p, mt, config, streams, intr, t_init, t_track))
             else:  # its rows so far stay in the partial CSV; nothing else of it is kept
                 _abandon(s)
                 summaries.append(None)
@@ -1124,6 +1142,21 @@ def _track_group(
             _abandon(s)
         raise
     return summaries
+
+
+def _keep_final(state: TrackerState, streams: list[_Stream], layout: ParamLayout, ks: list[int]) -> None:
+    """Keep on streams ``ks`` (rows of ``state``, whose streams are ``streams``) what their sidecar takes from the
+    state after their last frame (``final_shape``, ``final_neutral``), before they leave it."""
+    neutral = state.neutral_anim_coeffs(state.params[:, layout.animation])
+    for k in ks:
+        streams[k].final_shape = state.shape_coeffs[k].tolist()
+        streams[k].final_neutral = neutral[k].tolist()
+
+
+def _select_result(result: TrackResult, keep: list[int]) -> TrackResult:
+    """``result`` of the streams ``keep`` (rows, in order)."""
+    return replace(result, **{f.name: v[keep] for f in fields(TrackResult)
+                              if isinstance(v := getattr(result, f.name), Tensor)})  # fmt: skip
 
 
 def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
@@ -1155,8 +1188,8 @@ def _abandon(s: _Stream) -> None:
 
 
 def _finalise(
-    model: FaceModel, s: _Stream, p: dict[str, Path], mt: Path, config: JobConfig, state: TrackerState,
-    streams: list[_Stream], intr: Intrinsics, t_init: float, t_track: float,
+    model: FaceModel, s: _Stream, p: dict[str, Path], mt: Path, config: JobConfig, streams: list[_Stream],
+    intr: Intrinsics, t_init: float, t_track: float,
 ) -> VideoSummary:
     """Close one video's outputs under their final names, the JSON last (a CSV without its JSON is resumed as
     partial), then remove its resume record."""
@@ -1206,8 +1239,8 @@ def _finalise(
         "model": {"name": "CANDIDE-3", "vertices": model.num_vertices, "triangles": model.num_faces,
                   "animation_units": list(model.animation_names), "facs": list(model.facs_names),
                   "shape_units": model.num_shape,
-                  "shape_coeffs": state.shape_coeffs[streams.index(s)].tolist()},  # fmt: skip
-        "start": _start_record(model, config, s, state, streams.index(s)),
+                  "shape_coeffs": s.final_shape},  # fmt: skip
+        "start": _start_record(config, s),
         "initial_landmarks_px": s.landmarks.tolist(),
         "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
         "frames": int(len(rows)),
@@ -1226,7 +1259,7 @@ def _finalise(
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short)  # fmt: skip
 
 
-def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: TrackerState, k: int) -> dict:
+def _start_record(config: JobConfig, s: _Stream) -> dict:
     """The sidecar's ``start``: how the video's first pose was found and, once the online start re-anchored it,
     what turns the CSV's pose into the pose that places the mesh.
 
@@ -1248,15 +1281,13 @@ def _start_record(model: FaceModel, config: JobConfig, s: _Stream, state: Tracke
         method = "online"
     else:
         method = "landmark fit"
-    alpha = state.params[:, ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS).animation]
-    neutral = state.neutral_anim_coeffs(alpha)[k].tolist()
     anchor = s.anchor
     return {
         "method": method,
         "reanchored_at_frame": None if anchor is None else anchor.get("frame"),
         "head_rotation": None if anchor is None else anchor["head_rotation"],
         "head_translation": None if anchor is None else anchor["head_translation"],
-        "neutral_anim_coeffs": neutral,
+        "neutral_anim_coeffs": s.final_neutral,
         "first_shape_coeffs": s.first_shape,
     }
 

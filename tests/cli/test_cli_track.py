@@ -2033,3 +2033,47 @@ def test_a_complete_videos_damaged_sidecar_is_refused_in_one_line(clip, tmp_path
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "short.csv: line 2 is not a row of the track CSV" in err, err
+
+
+def test_ended_videos_leave_the_batch_and_the_others_track_as_before(clip, tmp_path, monkeypatch):
+    """A video that had ended stayed in its batch, its last frame tracked again at every step until the longest
+    video ended (a 2-frame video beside the 12-frame clip: 11 stream-steps instead of 1). Now its stream leaves the
+    tracker's state: the batch runs 11 + 4 + 1 stream-steps for videos of 12, 5 and 2 frames (33 before), and every
+    video's outputs (CSV rows, meshes, sidecar's shape and start) are those of the video tracked alone."""
+    import torchface.job as job
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    mid = _short_npy(video, tmp_path / "mid.npy", 5)
+    full = _short_npy(video, tmp_path / "full.npy", T)
+    sizes = []
+    real_step = job.managed_step
+
+    def counting_step(model, config, state, frames, *args, **kwargs):
+        sizes.append(state.params.shape[0])
+        return real_step(model, config, state, frames, *args, **kwargs)
+
+    monkeypatch.setattr(job, "managed_step", counting_step)
+    out = tmp_path / "batch"
+    inputs = [short, full, mid]  # (the longest in the middle: the rows of the others move as they leave)
+    config = JobConfig(out_dir=out, landmarks=(lm,) * 3, meshes=True)
+    assert [s.frames for s in track_videos(inputs, config)] == [2, T, 5]
+    assert sizes == [3] + [2] * 3 + [1] * (T - 5) and sum(sizes) == (T - 1) + 4 + 1
+    for v in inputs:
+        sizes.clear()
+        alone = tmp_path / f"alone_{v.stem}"
+        track_videos([v], replace(config, out_dir=alone, landmarks=(lm,)))
+        assert sizes == [1] * (len(np.load(v)) - 1)
+        cols, rows = read_track_csv(out / f"{v.stem}.csv")
+        cols_a, rows_a = read_track_csv(alone / f"{v.stem}.csv")
+        assert cols == cols_a and rows.shape == rows_a.shape == (len(np.load(v)), len(cols))
+        np.testing.assert_allclose(rows, rows_a, rtol=0, atol=1e-4, err_msg=v.stem)
+        meshes = sorted((out / f"{v.stem}_meshes").iterdir())
+        assert [m.name for m in meshes] == [m.name for m in sorted((alone / f"{v.stem}_meshes").iterdir())]
+        side, side_a = (json.loads((d / f"{v.stem}.json").read_text()) for d in (out, alone))
+        np.testing.assert_allclose(side["model"]["shape_coeffs"], side_a["model"]["shape_coeffs"], atol=1e-4)
+        np.testing.assert_allclose(side["start"]["neutral_anim_coeffs"], side_a["start"]["neutral_anim_coeffs"],
+                                   atol=1e-4)  # fmt: skip
+        assert side["start"]["method"] == side_a["start"]["method"] == "online"
+        assert side["start"]["reanchored_at_frame"] == side_a["start"]["reanchored_at_frame"]
+        assert side["config"]["batch_streams"] == 3 and side["frames"] == len(rows)

@@ -754,3 +754,71 @@ def test_torch_backend_runs_no_native_kernel(model, turns, leaves, monkeypatch):
     assert ran == [], sorted(set(ran))
     assert tracker.state.management.first.pending.tolist() == [False, True]  # stream 0 was re-anchored
     assert int(results[BACK - 1].status[1]) == LOST and bool(results[-1].success[1])  # stream 1 found again
+
+
+# ----------------------------------------------------------------------------- selecting streams
+
+
+@pytest.fixture(scope="module")
+def four_streams(gentle, leaves):
+    """Four 10-frame streams under the online start: 0 turns (re-anchored at frame 3), 1 moves gently (still
+    waiting for its turn), 2 leaves the frame at 4 and comes back at 8 (lost, then recovering), 3 is ``gentle``
+    backwards. ``frames (4, 10, 3, H, W)``, first landmarks ``(4, K, 2)``."""
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    T = 10
+    yaw = [0.0, 4.0, 8.0, 12.0, 16.0, 16.0, 12.0, 8.0, 4.0, 0.0]
+    turn, gt_turn = render_sequence(spec_of("turn", [[y, 0.0, 0.0] for y in yaw], [[0.0, 0.0, 450.0]] * T))
+    fa, ga = gentle
+    fb, gb = leaves
+    calm = torch.cat([fa[0], fa[0, -1:].expand(T - fa.shape[1], -1, -1, -1)])
+    frames = torch.stack([turn, calm, fb[0, :T], calm.flip(0)])
+    lm = torch.cat([landmarks(gt_turn), landmarks(ga), landmarks(gb), landmarks(ga, fa.shape[1] - 1)])
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+    return frames, lm, la
+
+
+def _step_all(model, config, state, frames, start):
+    results = []
+    for i in range(start, frames.shape[1]):
+        state, res = managed_step(model, config, state, frames[:, i])
+        results.append(res)
+    return state, results
+
+
+def test_selected_streams_track_as_in_the_full_batch(model, four_streams):
+    """``TrackerState.select``: streams kept (in another order) from a batch track on as they would have in it, one
+    re-anchored by the online start, one still waiting for it, one lost; selecting every stream in order changes
+    nothing, to the bit."""
+    frames, lm, la = four_streams
+    config = LEAVE_CFG
+    state, _ = initialise_managed(model, config, frames[:, 0], lm, Intrinsics.default(W, H), refine_first=la)
+    cut = 5
+    state, _ = _step_all(model, config, state, frames[:, : cut + 1], 1)
+    ms = state.management
+    assert not torch.equal(ms.head_rotation[0], torch.eye(3)) and torch.equal(ms.head_rotation[1], torch.eye(3))
+    assert ms.first is not None and bool(ms.first.pending[1]) and not bool(ms.first.pending[0])
+    assert bool(ms.lost[2]) and not bool(ms.lost[:2].any())
+    _, full = _step_all(model, config, state, frames, cut + 1)
+    keep = [2, 0, 1]
+    sub = state.select(keep)
+    assert sub.params.shape[0] == 3 and sub.management.mosaic.used.shape[0] == 3
+    _, part = _step_all(model, config, sub, frames[keep], cut + 1)
+    for i, (a, b) in enumerate(zip(full, part)):
+        for name in ("status", "mosaic_entry"):
+            assert torch.equal(getattr(a, name)[keep], getattr(b, name)), (i, name)
+        for name in ("ypr_deg", "translation", "expression", "facs", "confidence", "residual_confidence"):
+            torch.testing.assert_close(getattr(b, name), getattr(a, name)[keep], rtol=0, atol=1e-4,
+                                       msg=lambda m: f"frame {cut + 1 + i} {name}: {m}")  # fmt: skip
+    assert any(not bool(r.success[0]) for r in part) and bool(part[-1].success[0])  # lost, then recovered
+    same = state.select(torch.arange(4))
+    _, again = _step_all(model, config, same, frames, cut + 1)
+    for a, b in zip(full, again):
+        for f in ("rotation", "translation", "anim_coeffs", "illumination", "status", "confidence", "dissimilarity"):
+            torch.testing.assert_close(getattr(b, f), getattr(a, f), rtol=0, atol=0, equal_nan=True)
+    mask = torch.tensor([True, False, True, False])
+    assert torch.equal(state.select(mask).params, state.select([0, 2]).params)
+    with pytest.raises(IndexError, match="out of range"):
+        state.select([4])
+    with pytest.raises(IndexError, match="one per stream"):
+        state.select(torch.tensor([True, False]))

@@ -349,6 +349,10 @@ class MosaicLevel:
     intensity: Tensor
     valid: Tensor
 
+    def select(self, index: Tensor) -> "MosaicLevel":
+        """The streams ``index`` (a ``(B',)`` int64 or bool tensor)."""
+        return MosaicLevel(*(getattr(self, f.name)[index] for f in fields(MosaicLevel)))
+
 
 @dataclass(frozen=True, eq=False)
 class Mosaic:
@@ -392,6 +396,15 @@ class Mosaic:
     def capacity(self) -> int:
         """``E``, entry slots allocated per stream."""
         return int(self.used.shape[1])
+
+    def select(self, index: Tensor) -> "Mosaic":
+        """The mosaics of streams ``index`` (a ``(B',)`` int64 or bool tensor), in new storage of their own (so
+        ``claimed`` is their used entries, as after a copy in :func:`add_entries`)."""
+        used = self.used[index]
+        return Mosaic(
+            tuple(lv.select(index) for lv in self.levels), self.rotation[index], self.ypr_deg[index],
+            self.bins[index], used, self.references.select(index), used.clone(),
+        )  # fmt: skip
 
 
 def pose_bins(ypr_deg: Tensor, config: TemplateConfig, origin_deg: Tensor | None = None) -> tuple[Tensor, Tensor]:

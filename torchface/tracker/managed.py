@@ -169,6 +169,25 @@ class ManagementState:
     attempts: Tensor | None = None
     adopted_scale: Tensor | None = None
 
+    def select(self, index: Tensor) -> "ManagementState":
+        """The management of streams ``index`` (a ``(B',)`` int64 tensor: :meth:`TrackerState.select
+        <torchface.tracker.step.TrackerState.select>`, which keeps ``params_ypr`` tied to the state's parameters).
+        The look-ahead watch goes when none of those streams still waits for it; the layout is shared."""
+        def pick(x: Tensor | None) -> Tensor | None:
+            return None if x is None else x[index]
+
+        first = self.first
+        if first is not None:
+            first = first.select(index)
+            first = first if bool(first.pending.any()) else None
+        ypr = None if self.params_ypr is None else (self.params_ypr[0][index], self.params_ypr[1][index])
+        return ManagementState(
+            self.mosaic.select(index), self.layout, self.entry[index], self.low_count[index],
+            self.very_low_count[index], self.lost[index], self.confident_params[index], self.since_attempt[index],
+            ypr, first, pick(self.head_rotation), pick(self.head_translation), pick(self.attempts),
+            pick(self.adopted_scale),
+        )  # fmt: skip
+
 
 @dataclass(frozen=True, eq=False)
 class FirstPoseWatch:
@@ -204,6 +223,15 @@ class FirstPoseWatch:
     pending: Tensor
     frames_seen: int = 1
     view_yaw0: Tensor | None = None
+
+    def select(self, index: Tensor) -> "FirstPoseWatch":
+        """The watch of streams ``index`` (a ``(B',)`` int64 tensor); the config and frame count are shared."""
+        return FirstPoseWatch(
+            self.config, self.frame0[index], self.landmarks[index],
+            None if self.weights is None else self.weights[index], self.fit.select(index), self.yaw0[index],
+            tuple(self.keys[b] for b in index.tolist()), self.sides[index], self.pending[index], self.frames_seen,
+            None if self.view_yaw0 is None else self.view_yaw0[index],
+        )  # fmt: skip
 
 
 def _layout(model: FaceModel) -> ParamLayout:

@@ -462,6 +462,54 @@ class TrackerState:
             visibility=visibility, anim_prior_mean=prior,
         )  # fmt: skip
 
+    def select(self, index: Sequence[int] | Tensor) -> "TrackerState":
+        """The state of streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a
+        ``(B,)`` bool mask), to go on tracking them as a smaller batch: e.g. without the streams whose videos have
+        ended (``torchface track``).
+
+        Every per-stream part is selected (parameters, shape, templates and their visibility masks, the
+        management's mosaic, counters, confident parameters, re-anchoring offsets and online-start watch); the
+        intrinsics, frame count and management layout are shared, and so is the :class:`StepWorkspace` (scratch).
+        The kept streams then track as they would have in the whole batch, to float rounding (the solver and the
+        management treat each stream alone, but the face crop's size is the batch's largest). The tensors are new,
+        normal ones (made outside inference mode, as a step's are); selecting every stream in order changes no
+        later step's result.
+
+        Example:
+            >>> state = state.select([0, 2])                                      # doctest: +SKIP
+            >>> state, result = managed_step(model, config, state, frames[[0, 2]])  # doctest: +SKIP
+        """
+        device = self.params.device
+        B = self.params.shape[0]
+        index = torch.as_tensor(index, device=device).reshape(-1)
+        if index.dtype == torch.bool:  # a mask of the streams kept
+            if index.numel() != B:
+                raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")
+            index = index.nonzero().squeeze(-1)
+        elif index.is_floating_point() or index.is_complex():
+            raise TypeError(f"stream indices must be integers, got {index.dtype}")
+        index = index.to(torch.int64)
+        if index.numel() and (int(index.min()) < -B or int(index.max()) >= B):
+            raise IndexError(f"stream index out of range for {B} streams: {index.tolist()}")
+        index = index % B if B else index
+        with torch.inference_mode(False):
+            params = self.params[index]
+            templates = tuple(t.select(index) for t in self.templates)
+            visibility = self.visibility
+            if visibility is not None:
+                kept = templates if visibility[0] is self.templates else tuple(t.select(index) for t in visibility[0])
+                visibility = (kept, tuple(m[index] for m in visibility[1]))
+            ms = self.management
+            if ms is not None:
+                tied = ms.params_ypr is not None and ms.params_ypr[0] is self.params
+                ms = ms.select(index)
+                ms = replace(ms, params_ypr=(params, ms.params_ypr[1]) if tied else None)
+            prior = None if self.anim_prior_mean is None else self.anim_prior_mean[index]
+            return replace(
+                self, params=params, shape_coeffs=self.shape_coeffs[index], templates=templates, management=ms,
+                visibility=visibility, anim_prior_mean=prior,
+            )  # fmt: skip
+
     def neutral_anim_coeffs(self, like: Tensor) -> Tensor:
         """The person's neutral animation coefficients (``anim_prior_mean``; zero where the state has none) in the
         dtype and device of ``like`` ``(B, A)`` and broadcast to its shape."""
