@@ -380,7 +380,6 @@ class _Stream:
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
-    warned_detection: bool = False  # a re-detection's unusable landmarks were warned about (once: usable_detection)
     near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
@@ -1328,9 +1327,8 @@ def _maybe_redetect(
         if points is None:
             continue
         where = f"{s.reader.info.path}: the {config.detector} detector's landmarks at a re-detection"
-        points = usable_detection(points, intr.width, intr.height, where, warn=not s.warned_detection)
-        if points is None:  # NaN / mostly outside: no face
-            s.warned_detection = True
+        points = usable_detection(points, intr.width, intr.height, where)  # NaN / mostly outside: no face
+        if points is None:
             continue
         lm = torch.as_tensor(points, dtype=model.dtype, device=model.device).unsqueeze(0)
         fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)

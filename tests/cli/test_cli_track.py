@@ -8,7 +8,6 @@ import os
 import subprocess
 import sys
 import typing
-import warnings
 
 import cv2
 import numpy as np
@@ -870,33 +869,6 @@ def test_garbage_from_a_redetection_is_refused_naming_the_detector(clip, tmp_pat
         summaries = track_videos([tmp_path / "short.npy"], config)
     side = json.loads((tmp_path / "out" / "short.json").read_text())
     assert summaries[0].frames == 3 and side["redetections"] == 0 and side["detector_calls"] >= 1  # none taken
-
-
-def test_unusable_redetections_warn_once_per_stream(clip, tmp_path, monkeypatch):
-    """A face at the frame's edge gives a re-detection mostly outside it at each attempt, each with its own numbers
-    in the message: Python's once-per-message filter printed a ``RuntimeWarning`` at every attempt (here every
-    frame). A stream says it once."""
-    import torchface.detect
-
-    video, lm, gt = clip
-    frames = read_video(video, max_frames=5)
-    np.save(tmp_path / "short.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
-    points = gt.landmarks_px[0].numpy().astype(np.float64)
-    calls = []
-
-    def detector(image_rgb):
-        calls.append(1)
-        return points if len(calls) == 1 else points + 1e3 * len(calls)
-
-    monkeypatch.setitem(torchface.detect.DETECTORS, "edge", lambda: detector)
-    config = JobConfig(out_dir=tmp_path / "out", detector="edge", redetect_after=1, redetect_below=1.01)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("default")  # Python's own filter: once per distinct message
-        track_videos([tmp_path / "short.npy"], config)
-    side = json.loads((tmp_path / "out" / "short.json").read_text())
-    assert side["detector_calls"] >= 3 and side["redetections"] == 0
-    said = [w for w in caught if "taken as no face" in str(w.message)]
-    assert len(said) == 1 and "short.npy: the edge detector's landmarks at a re-detection" in str(said[0].message)
 
 
 def test_redetection_asks_for_the_tracked_face_not_another(clip, tmp_path, monkeypatch):

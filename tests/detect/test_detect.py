@@ -2,7 +2,6 @@
 
 import pickle
 import sys
-import warnings
 
 import numpy as np
 import pytest
@@ -153,18 +152,3 @@ def test_the_detectors_pickle_so_a_tracker_holding_one_can_be_checkpointed(isola
     assert sys.modules["dlib"].loaded and copy.takes_near  # loaded again
     assert bool(copy(torch.zeros(1, 3, 12, 16)).isnan().all())
     assert bool(pickle.loads(pickle.dumps(batched(_no_face)))(torch.zeros(2, 3, 4, 6)).isnan().all())
-
-
-def test_unusable_detections_warn_once_per_callback():
-    """A face at the frame's edge gives a detection mostly outside it at each recovery attempt (every
-    ``recovery_every`` frames while lost), each with its own numbers in the message: Python's once-per-message
-    filter printed a ``RuntimeWarning`` at every attempt. The callback says it once; later ones are no face."""
-    rng = np.random.default_rng(0)
-    frames = torch.zeros(2, 3, 12, 16)
-    detect = batched(lambda image: rng.uniform(20, 40, size=(68, 2)), "edge")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("default")  # Python's own filter: once per distinct message
-        for _ in range(3):
-            assert bool(detect(frames).isnan().all())
-    assert len(caught) == 1 and "the edge detector's landmarks of a lost face" in str(caught[0].message)
-    assert caught[0].category is RuntimeWarning and "taken as no face" in str(caught[0].message)

@@ -7,7 +7,7 @@ package registry and runs offline. When it is not installed the error names the 
 first frame, 68 finite points, at least half of them inside the frame (a face at the frame's edge has landmarks
 outside it), else :class:`~torchface.io.InputError` naming the detector; at a re-detection or a lost stream's
 recovery, points of another shape are that error, and NaN points or a face mostly outside the frame are "no face"
-with a ``RuntimeWarning`` (:func:`usable_detection`; once per stream or callback), the run going on.
+with a ``RuntimeWarning`` (:func:`usable_detection`), the run going on.
 
 :class:`~torchface.FaceTracker` (``detector=``) and :func:`~torchface.tracker.managed.managed_step` re-initialise
 lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` (``frames (B, 3, H, W)`` float
@@ -172,14 +172,11 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
     return _Batched(detector, name, None)
 
 
-def usable_detection(points: object, width: int, height: int, where: str, warn: bool = True) -> np.ndarray | None:
+def usable_detection(points: object, width: int, height: int, where: str) -> np.ndarray | None:
     """A detector's landmarks of a face looked for mid-run (a re-detection, a lost stream's recovery): the ``(68,
-    2)`` points when they are usable, None ("no face") with a ``RuntimeWarning`` (unless ``warn`` is False) when
-    some are NaN or more than half lie outside the ``width x height`` frame (a face leaving it: one such detection
-    used to end every video of the batch). Points of another shape break the detector's contract:
-    ``torchface.io.InputError`` naming ``where``. Callers warn once (per stream, or per :func:`batched` callback):
-    a face that stays at the frame's edge gives such a detection at each attempt, every few frames, each with its
-    own numbers in the message, so Python's once-per-message filter printed every one."""
+    2)`` points when they are usable, None ("no face") with a ``RuntimeWarning`` when some are NaN or more than half
+    lie outside the ``width x height`` frame (a face leaving it: one such detection used to end every video of the
+    batch). Points of another shape break the detector's contract: ``torchface.io.InputError`` naming ``where``."""
     import warnings
 
     from torchface.io import InputError
@@ -191,19 +188,13 @@ def usable_detection(points: object, width: int, height: int, where: str, warn: 
     try:
         return check_landmarks(array, width, height, where, min_inside=0.5)
     except InputError as exc:
-        if warn:
-            warnings.warn(f"{exc}; taken as no face (said once: later such detections are no face too)",
-                          RuntimeWarning, stacklevel=2)  # fmt: skip
+        warnings.warn(f"{exc}; taken as no face", RuntimeWarning, stacklevel=2)
         return None
 
 
 class _Batched:
     """:func:`batched`; ``near_of``: called with each frame ``(3, H, W)`` before the detector is asked about it,
     the ``near`` points to ask for in it (passed when the detector takes them: :func:`accepts_near`), or None."""
-
-    #: An unusable detection was warned about (:func:`usable_detection`: once). A class default, so that a callback
-    #: pickled without it (a tracker checkpointed by an earlier version) loads.
-    warned: bool = False
 
     def __init__(
         self, detector: Detector, name: str | None, near_of: Callable[["Tensor"], np.ndarray | None] | None
@@ -224,8 +215,7 @@ class _Batched:
             near = None if self.near_of is None else self.near_of(frames[b])
             points = self.detector(image, near=near) if self.takes_near else self.detector(image)
             if points is not None:
-                points = usable_detection(points, W, H, self.where, warn=not self.warned)
-                self.warned = self.warned or points is None
+                points = usable_detection(points, W, H, self.where)
             if points is not None:
                 out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
         return out
