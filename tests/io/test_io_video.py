@@ -3,9 +3,6 @@ bad inputs rejected with one-line errors."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import cv2
 import numpy as np
 import pytest
@@ -70,6 +67,9 @@ def test_a_read_only_array_converts_without_a_warning():
     """Frames of ``np.frombuffer`` (an ffmpeg pipe's bytes) are read-only: torch's "The given NumPy array is not
     writable" UserWarning came with the first one, though the tensor is a float copy. torch says it once per
     process, so a child process runs it with warnings as errors."""
+    import subprocess
+    import sys
+
     code = (
         "import numpy as np; from torchface.io import frame_to_tensor\n"
         "a = np.frombuffer(bytes(range(120)) * 2, np.uint8).reshape(8, 10, 3)\n"
