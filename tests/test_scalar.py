@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
@@ -46,3 +49,27 @@ def test_isfinite_equals_torch(dtype):
     x = torch.tensor([0.0, -0.0, 1.0, -2.5, float("inf"), -float("inf"), float("nan"), 3e38], dtype=dtype)
     assert torch.equal(isfinite(x), torch.isfinite(x))
     assert isfinite(x).tolist() == [True, True, True, True, False, False, False, True]  # 3e38 fits float32
+
+
+def test_torch_compile_traces_the_constants_without_a_warning():
+    """Dynamo traced through the constants' ``lru_cache`` (``scalar``, the rotation's generators) with a
+    ``UserWarning`` ("Dynamo detected a call to a `functools.lru_cache`-wrapped function at 'so3.py:168'") that every
+    compiled normalised face printed; while traced they are made in the graph, with the same values. In a child
+    process: Dynamo warns once per process."""
+    code = textwrap.dedent("""
+        import warnings
+        warnings.simplefilter("error")
+        import torch
+        from torchface._scalar import isfinite, scalar
+        from torchface.geometry.so3 import axis_angle_to_matrix
+
+        def f(aa):
+            return axis_angle_to_matrix(aa) * scalar(0.5, aa), isfinite(aa / scalar(0.0, aa))
+
+        aa = torch.tensor([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0]])
+        got, ref = torch.compile(f, backend="eager")(aa), f(aa)
+        assert all(torch.equal(g, r) for g, r in zip(got, ref))
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])

@@ -9,6 +9,10 @@ solver makes a few hundred such operations per frame.
 
 Only for operands whose dtype is the tensor's own (a float constant with a float tensor, an integer one with an
 integer tensor): a constant of another dtype would take part in type promotion as a tensor would.
+
+While ``torch.compile`` traces, the constant is made in the graph instead: Dynamo traces through an ``lru_cache``
+(the same values) but says so with a ``UserWarning`` ("Dynamo detected a call to a `functools.lru_cache`-wrapped
+function"), which every compiled normalised face printed.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ import functools
 
 import torch
 from torch import Tensor
+
+from torchface._compiling import is_compiling
 
 
 @functools.lru_cache(maxsize=256)
@@ -29,10 +35,12 @@ def _constant(value: float | str, dtype: torch.dtype, device: torch.device) -> T
 
 def scalar(value: float, like: Tensor) -> Tensor:
     """The 0-dim tensor ``value`` of ``like``'s dtype and device (cached; never modify it in place)."""
+    if is_compiling():  # (module docstring) True only while traced; about half a microsecond in eager code
+        return _constant.__wrapped__(value, like.dtype, like.device)
     # NaN is not equal to itself, so it would never be found in the cache: it is kept under its name.
     return _constant(value if value == value else "nan", like.dtype, like.device)
 
 
 def isfinite(x: Tensor) -> Tensor:
     """``torch.isfinite(x)`` of a floating-point tensor, as ``|x| < inf`` (two operations instead of four)."""
-    return x.abs() < _constant(float("inf"), x.dtype, x.device)
+    return x.abs() < scalar(float("inf"), x)

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from torchface import _native
+from torchface._compiling import is_compiling
 
 __all__ = ["Backend", "use_native"]
 
@@ -55,7 +56,7 @@ def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], wha
         why = "runs on the CPU only"
     elif torch.is_grad_enabled() and any(x.requires_grad for x in arrays):
         why = "does not propagate gradients (use Backend.TORCH)"
-    elif torch.compiler.is_compiling():  # traced ctypes calls were handed other tensors' memory: the process died
+    elif is_compiling():  # traced ctypes calls were handed other tensors' memory: the process died
         why = "cannot be traced by torch.compile (the torch code runs under it)"
     elif max_params and num_params > max_params:
         why = f"supports at most {max_params} parameters, got {num_params}"

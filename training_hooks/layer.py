@@ -45,6 +45,7 @@ import torch
 from torch import Tensor, nn
 
 from torchface._autocast import full_precision
+from torchface._compiling import is_compiling
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
@@ -176,7 +177,7 @@ def _tracked(fn: _F) -> _F:
     """``fn`` (the tracking, detached or unrolled), run eagerly where ``torch.compile`` traces the layer (autograd
     goes through it as in eager mode): traced, the tracker's native kernels got the pointers of the traced tensors
     instead of the call's and crashed the process. Outside a compiled region ``fn`` itself (nothing changes)."""
-    return torch.compiler.disable(fn) if torch.compiler.is_compiling() else fn
+    return torch.compiler.disable(fn) if is_compiling() else fn
 
 
 def _unrolled_solver(iterations: int) -> SolverConfig:

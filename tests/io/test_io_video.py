@@ -65,6 +65,24 @@ def test_colour_8_bit_even_frames_are_accepted_as_stored():
     torch.testing.assert_close(t, torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float() / 255)
 
 
+def test_a_read_only_array_converts_without_a_warning():
+    """Frames of ``np.frombuffer`` (an ffmpeg pipe's bytes) are read-only: torch's "The given NumPy array is not
+    writable" UserWarning came with the first one, though the tensor is a float copy. torch says it once per
+    process, so a child process runs it with warnings as errors."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np; from torchface.io import frame_to_tensor\n"
+        "a = np.frombuffer(bytes(range(120)) * 2, np.uint8).reshape(8, 10, 3)\n"
+        "t, _ = frame_to_tensor(a, bgr=False, where='x')\n"
+        "assert np.array_equal((t.permute(1, 2, 0).numpy() * 255).round(), a), 'values'\n"
+        "print('ok')"
+    )  # fmt: skip
+    run = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-1500:]
+
+
 def test_gray_rgba_and_16_bit_are_converted_with_convert():
     gray16 = np.full((40, 40), 65535 // 5, dtype=np.uint16)
     t, fmt = frame_to_tensor(gray16, bgr=False, where="x", convert=True)

@@ -318,6 +318,31 @@ def test_transform_rejects_bad_input(clips):
         normalise.track(torch.cat([frames[1:2], frames[2:3] * 255.0]), state)
 
 
+def test_read_only_landmarks_are_taken_without_a_warning():
+    """Landmarks in a read-only array (``np.load(..., mmap_mode="r")``, ``np.frombuffer``) made torch print "The
+    given NumPy array is not writable" (a UserWarning, once per process: checked in a child process)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from torchface.io import open_frames, read_landmarks\n"
+        "from torchface.job import demo_inputs\n"
+        "from training_hooks import FaceTrackingConfig, NormaliseFaces\n"
+        "video, lm = demo_inputs()\n"
+        "with open_frames(video) as reader:\n"
+        "    frames = [next(reader) for _ in range(2)]\n"
+        "points = read_landmarks(lm, frames[0].shape[-1], frames[0].shape[-2])\n"
+        "points.setflags(write=False)\n"
+        "import torch\n"
+        "item = NormaliseFaces(FaceTrackingConfig(face_size=32))(torch.stack(frames), points)\n"
+        "assert item['face'].shape == (2, 3, 32, 32)\n"
+        "print('ok')"
+    )  # fmt: skip
+    run = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-1500:]
+
+
 def test_sequence_success_and_validation(clips):
     from dataclasses import replace as dc_replace
 

@@ -175,6 +175,18 @@ def test_plot_track_title_in_a_script_the_font_lacks_warns_nothing(tmp_path):
     assert p.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_plot_track_of_an_all_nan_au_column_warns_nothing(tmp_path):
+    """An AU column without a finite value (a table from another tool, a unit never measured): numpy's
+    ``RuntimeWarning: Degrees of freedom <= 0 for slice`` from ranking the AUs by spread."""
+    cols, rows = _small_track()
+    cols, rows = (*cols, "AU01_r"), np.column_stack([rows, np.full(len(rows), np.nan)])
+    rows[:, cols.index("AU26_r")] = np.linspace(0.0, 1.0, len(rows))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p = plot_track(cols, rows, tmp_path / "plot.png", num_aus=1)
+    assert p.read_bytes()[:4] == b"\x89PNG"
+
+
 def test_plot_track_leaves_no_partial_file_when_saving_fails(tmp_path, monkeypatch):
     """A full disk mid-save left ``<name>.partial.png`` behind."""
     from matplotlib.figure import Figure

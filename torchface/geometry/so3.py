@@ -23,6 +23,7 @@ import math
 
 import torch
 
+from torchface._compiling import is_compiling
 from torchface._scalar import scalar
 from torchface.geometry._checks import check_batch, check_exact_dim, check_tensor
 
@@ -165,7 +166,8 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     x = (aa * aa).sum(-1, keepdim=True).clamp_min(torch.finfo(aa.dtype).tiny).sqrt().unsqueeze(-1) / scalar(math.pi, aa)
     a = torch.sinc(x)  # (..., 1, 1)
     b = torch.sinc(half * x).square() * half
-    G, eye = _so3_generators(aa.dtype, aa.device)
+    # (made in the graph while torch.compile traces: torchface._scalar)
+    G, eye = (_so3_generators.__wrapped__ if is_compiling() else _so3_generators)(aa.dtype, aa.device)
     k = torch.matmul(aa, G).view(*aa.shape[:-1], 3, 3)
     return torch.addcmul(torch.addcmul(eye, a, k), b, torch.matmul(k, k))
 

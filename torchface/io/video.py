@@ -174,7 +174,10 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     h, w = array.shape[:2]
     array = array[: h - h % 2, : w - w % 2]
     if array.dtype == np.uint8:
-        data = torch.from_numpy(np.ascontiguousarray(array)).to(torch.float32) / 255.0
+        # a read-only array (np.frombuffer's, of an ffmpeg pipe's bytes) is copied: torch warned that it "does not
+        # support non-writable tensors" for a tensor converted to float32 right away
+        data = torch.from_numpy(np.ascontiguousarray(array) if array.flags.writeable else array.copy())
+        data = data.to(torch.float32) / 255.0
     elif array.dtype == np.uint16:
         data = torch.from_numpy(array.astype(np.float32)) / 65535.0
     else:

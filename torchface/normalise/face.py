@@ -55,6 +55,7 @@ import torch
 from torch import Tensor, nn
 
 from torchface._autocast import full_precision
+from torchface._compiling import is_compiling
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -591,7 +592,7 @@ def _normalised_face_posed(
             # The torch z-buffer (the same fragments) under torch.compile, where the traced native kernel crashed the
             # process, and under torch.func's transforms, where it could not read the wrapped tensors; the whole frame
             # under torch.compile (a window of the face's size would recompile at each new size).
-            compiling = torch.compiler.is_compiling()
+            compiling = is_compiling()
             crop = intrinsics if compiling else _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
             raster_backend = Backend.TORCH if compiling or _transformed(verts_cam) else backend
             frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)

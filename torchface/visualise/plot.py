@@ -89,7 +89,8 @@ def plot_track(
     axes[0].legend(loc="upper right", fontsize=8)
     groups = au_groups(columns, rows)
     if groups and len(rows) and num_aus:  # (0: no legend of nothing, which matplotlib warned about)
-        spread = np.array([np.nanstd(rows[:, idx[g[0]]]) for g in groups])
+        series = [rows[:, idx[g[0]]] for g in groups]  # (an all-NaN one last: nanstd warned "Degrees of freedom")
+        spread = np.array([np.nanstd(x) if np.isfinite(x).any() else -1.0 for x in series])
         for k in np.argsort(-spread, kind="stable")[:num_aus]:
             axes[1].plot(t, rows[:, idx[groups[k][0]]], label=" = ".join(groups[k]))
         axes[1].legend(loc="upper right", fontsize=8)
