@@ -66,7 +66,9 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
-from torchface.io.table import TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns
+from torchface.io.table import (
+    POSE_COLUMNS, ROTATION_COLUMNS, TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns,
+)
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -421,16 +423,31 @@ class _Stream:
     final_neutral: list[float] | None = None
 
 
+def _row_values(rows: np.ndarray, columns: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(B, C)`` CSV rows -> float64 ``(R (B, 3, 3), t (B, 3) mm, anim (B, A), light (B, L))``: the values a row
+    holds of the pose, the expression (``anim_*``) and the light (``illum_*``)."""
+    idx = {c: i for i, c in enumerate(columns)}
+    data = torch.as_tensor(rows, dtype=torch.float64)
+    R = data[:, [idx[c] for c in ROTATION_COLUMNS]].reshape(-1, 3, 3)
+    t = data[:, [idx[c] for c in POSE_COLUMNS[:3]]]
+    anim = data[:, [i for i, c in enumerate(columns) if c.startswith("anim_")]]
+    light = data[:, [i for i, c in enumerate(columns) if c.startswith("illum_")]]
+    return R, t, anim, light
+
+
 def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamLayout) -> Tensor:
     """``(B, C)`` CSV rows -> ``(B, P)`` packed parameters (axis-angle from the stored rotation matrix)."""
-    idx = {c: i for i, c in enumerate(columns)}
-    R = torch.as_tensor(rows[:, [idx[f"r{i}{j}"] for i in range(3) for j in range(3)]]).reshape(-1, 3, 3)
-    t = torch.as_tensor(rows[:, [idx["pose_Tx"], idx["pose_Ty"], idx["pose_Tz"]]])
-    anim = torch.as_tensor(rows[:, [i for i, c in enumerate(columns) if c.startswith("anim_")]])
-    light = torch.as_tensor(rows[:, [i for i, c in enumerate(columns) if c.startswith("illum_")]])
+    R, t, anim, light = _row_values(rows, columns)
     if anim.shape[1] != layout.num_animation or light.shape[1] != layout.num_illumination:
         raise InputError("the partial CSV does not match the model's animation/illumination terms")
     return torch.cat([matrix_to_axis_angle(R), t, anim, light], dim=1)
+
+
+def _not_rotations(R: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: which of ``R (N, 3, 3)`` are not rotations (orthonormal to 1e-4, the 9 significant digits a
+    file holds being about 1e-8 and float32's rounding about 1e-7; determinant > 0)."""
+    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    return (off > 1e-4) | (np.linalg.det(R) <= 0)
 
 
 def _replay_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
@@ -446,9 +463,7 @@ def _replay_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
     bad = np.flatnonzero(~np.isfinite(rows[:, used]).all(1))
     if bad.size:
         return f"frame {bad[0]} has a pose, expression or light that is not a finite number"
-    R = rows[:, [idx[f"r{i}{j}"] for i in range(3) for j in range(3)]].reshape(-1, 3, 3)
-    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
-    bad = np.flatnonzero((off > 1e-4) | (np.linalg.det(R) <= 0))  # (9 significant digits: about 1e-8)
+    bad = np.flatnonzero(_not_rotations(rows[:, [idx[c] for c in ROTATION_COLUMNS]].reshape(-1, 3, 3)))
     if bad.size:
         return f"frame {bad[0]}'s r00-r22 are not a rotation"
     bad = np.flatnonzero(~np.isin(rows[:, idx["status"]], [int(s) for s in TrackStatus]))
@@ -531,8 +546,7 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
     frame = anchor.get("frame")
     if frame is not None and (not isinstance(frame, int) or isinstance(frame, bool) or frame < 0):
         return "anchor.frame is not a frame index"
-    D = np.asarray(anchor["head_rotation"], dtype=np.float64)
-    if np.abs(D @ D.T - np.eye(3)).max() > 1e-4 or np.linalg.det(D) <= 0:  # (float32's rounding: about 1e-7)
+    if _not_rotations(np.asarray(anchor["head_rotation"], dtype=np.float64)[None])[0]:
         return "anchor.head_rotation is not a rotation"
     return None
 
@@ -662,11 +676,7 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
-    now = {"focal": config.focal, "convert": config.convert, "lookahead": config.lookahead,
-           "online_start": config.refine_first, "tracker": config.tracker, "detector": config.detector,
-           "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
-           "normalised_size": config.normalised_size}  # fmt: skip
-    now = json.loads(json.dumps(to_jsonable(now)))  # as the sidecar holds them
+    now = json.loads(json.dumps(to_jsonable(_result_settings(config))))  # as the sidecar holds them
     differ = [k for k in now if k in made_with and made_with[k] != now[k]]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         def said(k: str, value: object) -> str:
@@ -678,6 +688,15 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
                          k.replace("_", " ") for k in differ)  # fmt: skip
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
+
+
+def _result_settings(config: JobConfig) -> dict[str, object]:
+    """The settings a video's results depend on, under the names of the sidecar's ``config`` (which also says the
+    device, the landmarks' source, ``resume`` and the batch size): :func:`_check_resumable` compares them."""
+    return {"tracker": config.tracker, "focal": config.focal, "detector": config.detector,
+            "lookahead": config.lookahead, "online_start": config.refine_first, "convert": config.convert,
+            "normalised_size": config.normalised_size, "redetect_after": config.redetect_after,
+            "redetect_below": config.redetect_below}  # fmt: skip
 
 
 def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
@@ -1044,7 +1063,7 @@ def _track_group(
         for s in streams:
             s.near = s.landmarks
         # The streams in the tracker's state, in its order (with their output paths and first poses): a video that
-        # has ended leaves it before the next step (_drop_ended), so that the batch shrinks as its videos end.
+        # has ended leaves it before the next step (TrackerState.select), so that the batch shrinks as its videos end.
         live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)
         recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(live, current))
         t_init = time.perf_counter() - t_start
@@ -1193,7 +1212,7 @@ def _finalise(
 ) -> VideoSummary:
     """Close one video's outputs under their final names, the JSON last (a CSV without its JSON is resumed as
     partial), then remove its resume record."""
-    W, H, G, B = intr.width, intr.height, config.normalised_size, len(streams)
+    W, H, B = intr.width, intr.height, len(streams)
     s.csv.close()
     s.overlay.close()
     s.normalised.close()
@@ -1225,12 +1244,8 @@ def _finalise(
             "fps_assumed": s.reader.info.fps_assumed,
         },  # fmt: skip
         "versions": package_versions(),
-        "config": {
-            "tracker": config.tracker, "device": config.device, "focal": config.focal, "detector": config.detector,
-            "lookahead": config.lookahead, "online_start": config.refine_first,
-            "landmarks": s.landmarks_source, "resume": config.resume, "convert": config.convert, "batch_streams": B,
-            "normalised_size": G, "redetect_after": config.redetect_after, "redetect_below": config.redetect_below,
-        },  # fmt: skip
+        "config": {**_result_settings(config), "device": config.device, "landmarks": s.landmarks_source,
+                   "resume": config.resume, "batch_streams": B},  # fmt: skip
         "camera": {
             "width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
             "frame": "OpenCV: x right, y down, z forward; millimetres",
@@ -1400,12 +1415,7 @@ def _drawn_pose(
     the first shape, ``start.first_shape_coeffs``), ``alpha`` the rows' ``anim_*``, ``light`` their ``illum_*``.
     The model's dtype and device; a lost or failed row is drawn as the CSV holds it (not at the parameters the
     tracker falls back to)."""
-    idx = {c: i for i, c in enumerate(columns)}
-    data = torch.as_tensor(rows, dtype=torch.float64)
-    R = data[:, [idx[f"r{i}{j}"] for i in range(3) for j in range(3)]].reshape(-1, 3, 3)
-    trans = data[:, [idx["pose_Tx"], idx["pose_Ty"], idx["pose_Tz"]]]
-    alpha = data[:, [i for i, c in enumerate(columns) if c.startswith("anim_")]]
-    light = data[:, [i for i, c in enumerate(columns) if c.startswith("illum_")]]
+    R, trans, alpha, light = _row_values(rows, columns)
     R_mesh, t_mesh = R.clone(), trans.clone()
     shape = state.shape_coeffs.detach().to("cpu", torch.float64).clone()
     for k, s in enumerate(streams):
