@@ -106,8 +106,7 @@ from torchface.tracker.step import (
     TrackStatus,
     check_frames,
     check_initialise_inputs,
-    check_state_levels,
-    check_state_model,
+    check_step_inputs,
     clamp_projection,
     gray_pyramid,
     gray_pyramid_windows,
@@ -741,11 +740,7 @@ def managed_step(
             "template management is enabled but the state has none: start with initialise_managed (or set "
             "TrackerConfig.template = TemplateConfig(enabled=False))"
         )
-    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
-    if frames.shape[0] != state.params.shape[0]:
-        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
-    check_state_levels(config, state)
-    check_state_model(model, state)
+    check_step_inputs(model, config, state, frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
     layout = _layout(model)
 

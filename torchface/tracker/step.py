@@ -793,6 +793,18 @@ def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
         )
 
 
+def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "TrackerState", frames: Tensor) -> None:
+    """The checks of a step (:func:`track_step`, :func:`~torchface.tracker.managed.managed_step`): ``frames``
+    ``(B, 3, H, W)`` in [0, 1] (:func:`check_frames`, every :data:`STEP_VALUE_ROW_STRIDE`-th row's values), one
+    per stream of ``state``, whose pyramid ``config`` has (:func:`check_state_levels`) and whose model ``model`` is
+    (:func:`check_state_model`)."""
+    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
+    if frames.shape[0] != state.params.shape[0]:
+        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+    check_state_levels(config, state)
+    check_state_model(model, state)
+
+
 def check_state_model(model: FaceModel, state: "TrackerState") -> None:
     """Refuse a model with another number of shape or animation units than the state's (a state made with another
     model: a tensor-size RuntimeError deep in the solver, or a shape-coefficient error naming the model alone), or
@@ -847,11 +859,7 @@ def track_step(
     require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
     the frame's graph on to the next step (:meth:`TrackerState.detach` between frames whose losses stand alone).
     """
-    check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
-    if frames.shape[0] != state.params.shape[0]:
-        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
-    check_state_levels(config, state)
-    check_state_model(model, state)
+    check_step_inputs(model, config, state, frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
     for name, mask in (("conservative", conservative), ("near_template", near_template)):
         if mask is not None and (
