@@ -58,6 +58,7 @@ from torchface.normalise.face import (
     normalised_face,
 )
 from torchface.solver.least_squares import SolverConfig, SolverMethod
+from torchface.tracker.fit import check_landmark_type
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -332,9 +333,7 @@ class NormalisedFaceLayer(nn.Module):
         check_frames(frames)
         if intrinsics is None:
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
-        if not isinstance(landmarks_px, Tensor):  # numpy landmarks were an AttributeError ('no attribute detach')
-            got = type(landmarks_px).__name__
-            raise TypeError(f"landmarks_px must be a torch.Tensor (B, K, 2) of pixel coordinates, got {got}")
+        check_landmark_type(landmarks_px, "(B, K, 2)")  # (numpy ones: an AttributeError, no attribute detach)
         frames = frames.detach().to(dtype=self.model.dtype, device=self.model.device)
         landmarks_px = landmarks_px.detach().to(dtype=self.model.dtype, device=self.model.device)
         return _tracked(initialise)(self.model, self.config.tracker, frames, landmarks_px, intrinsics)

@@ -186,16 +186,23 @@ def landmark_targets(landmarks_px: Tensor, weights: Tensor | None = None) -> tup
     return torch.where(finite, landmarks_px, torch.zeros_like(landmarks_px)), w
 
 
+def check_landmark_type(landmarks_px: object, shape: str) -> None:
+    """Refuse ``landmarks_px`` that is not a tensor of real pixel coordinates (a TypeError naming ``shape``, the
+    shape expected, e.g. ``"(B, 68, 2)"``): a numpy array failed later with an AttributeError, and bool ones were
+    fitted as pixels 0 and 1."""
+    if not isinstance(landmarks_px, Tensor):
+        raise TypeError(f"landmarks_px must be a torch.Tensor {shape} of pixel coordinates, "
+                        f"got {type(landmarks_px).__name__}")  # fmt: skip
+    if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():
+        raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+
+
 def _check_landmarks(
     landmarks_px: Tensor, weights: Tensor | None, k: int, dtype: torch.dtype, device: torch.device
 ) -> tuple[Tensor, Tensor]:
     """:func:`landmark_targets` of ``(B, k, 2)`` landmarks and ``(B, k)`` weights in ``dtype`` on ``device``, after
     checking their shapes and that every sample has 4 usable points."""
-    if not isinstance(landmarks_px, Tensor):
-        raise TypeError(f"landmarks_px must be a torch.Tensor (B, {k}, 2) of pixel coordinates, "
-                        f"got {type(landmarks_px).__name__}")  # fmt: skip
-    if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():  # bool ones were fitted as pixels 0 and 1
-        raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+    check_landmark_type(landmarks_px, f"(B, {k}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
         raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {tuple(landmarks_px.shape)}")
     B = landmarks_px.shape[0]

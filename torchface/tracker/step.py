@@ -34,7 +34,7 @@ from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, 
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
-from torchface.tracker.fit import FitConfig, LandmarkFit, fit_landmarks
+from torchface.tracker.fit import FitConfig, LandmarkFit, check_landmark_type, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -654,11 +654,7 @@ def check_initialise_inputs(
     if min(frames.shape[-2:]) < side:  # was pyr_down's "images must be ... H, W >= 3, got (B, 1, 2, 2)"
         raise ValueError(f"frames must be at least {side}x{side} pixels for num_levels = {config.num_levels}, "
                          f"got {frames.shape[-2]}x{frames.shape[-1]}")  # fmt: skip
-    if not isinstance(landmarks_px, Tensor):
-        got = type(landmarks_px).__name__
-        raise TypeError(f"landmarks_px must be a torch.Tensor ({B}, {K}, 2) of pixel coordinates, got {got}")
-    if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():  # bool ones were fitted as pixels 0 and 1
-        raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+    check_landmark_type(landmarks_px, f"({B}, {K}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
         got = tuple(landmarks_px.shape)
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}")
