@@ -126,10 +126,13 @@ def test_a_ctrl_c_while_torch_is_imported_is_one_line_and_130(tmp_path):
     """The console script imports ``torchface.cli``, whose package imported torch (seconds) before ``main`` could
     catch anything: a Ctrl-C then printed a long traceback. The package now imports its API on first use, ``main``
     parses first (``--help`` without torch) and a Ctrl-C during torch's import is one line and status 130. The
-    Ctrl-C is sent by the process itself when the import of torch begins (a finder on ``sys.meta_path``)."""
+    Ctrl-C is sent by the process itself when the import of torch begins (a finder on ``sys.meta_path``); the child
+    restores Python's own SIGINT handler, which it does not install where it starts with SIGINT ignored (a job
+    started with ``&`` from a script)."""
     root = Path(__file__).resolve().parent.parent
     code = (
         "import importlib.abc, os, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"  # a background shell's SIGINT is ignored
         "class CtrlC(importlib.abc.MetaPathFinder):\n"
         "    def find_spec(self, name, path=None, target=None):\n"
         "        if name == 'torch':\n"
