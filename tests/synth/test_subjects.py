@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -76,6 +77,23 @@ def test_packaged_james_matches_a_fresh_conversion(tmp_path):
     scan = load_james()
     np.testing.assert_allclose(fresh["verts"], scan.verts.numpy(), atol=1e-4)
     np.testing.assert_array_equal(fresh["landmark_faces"], scan.landmark_faces.numpy())
+
+
+def test_james_conversion_without_its_texture_says_so_and_writes_nothing(tmp_path):
+    # The texture was read last: a missing james.jpg gave "'NoneType' object has no attribute 'shape'" after
+    # james.npz had been written into out_dir.
+    from torchface.synth.james import build_james_data
+
+    assets = tmp_path / "assets"
+    assets.mkdir()
+    (assets / "james.obj").write_text("v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\n"
+                                      "vt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")  # fmt: skip
+    points = np.random.default_rng(0).normal(size=(68, 3)) * 30
+    (assets / "james.ljson").write_text(json.dumps({"groups": {"LJSON": {"landmarks": {"points": points.tolist()}}}}))
+    (assets / "LICENSE.txt").write_text("licence")
+    with pytest.raises(FileNotFoundError, match="james.jpg"):
+        build_james_data(assets, tmp_path / "out")
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
 def test_closest_points_known_answers():

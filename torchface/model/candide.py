@@ -219,7 +219,7 @@ class _Lines:
 def _read_units(cur: _Lines, section: str) -> tuple[WfmUnit, ...]:
     """Units: a count, then per unit its comment lines, a row count and ``index dx dy dz`` rows."""
     num_units = cur.count(section)
-    units = []
+    units: list[WfmUnit] = []
     for _ in range(num_units):
         comments = tuple(cur.comments())
         n = cur.count(f"{section} unit {len(units)} ({comments[0] if comments else 'unnamed'})")
@@ -274,7 +274,9 @@ def parse_wfm(path_or_text: str | os.PathLike[str] | bytes) -> WfmFile:
     """
     cur = _Lines(_read_text(path_or_text))
     header = tuple(cur.comments())
-    found: dict[str, object] = {}
+    arrays: dict[str, np.ndarray] = {}  # VERTEX LIST, FACE LIST, the PARAMETERS, GLOBAL MOTION
+    units: dict[str, tuple[WfmUnit, ...]] = {}  # ANIMATION UNITS LIST, SHAPE UNITS LIST
+    texts: dict[str, tuple[str, ...]] = {}  # TEXTURE and unknown sections
     while not cur.at_end():
         match = _SECTION_RE.match(cur.peek())
         if match is None:
@@ -283,35 +285,35 @@ def parse_wfm(path_or_text: str | os.PathLike[str] | bytes) -> WfmFile:
         cur.pos += 1
         if section == "END OF FILE":
             break
-        if section in found:
+        if section in arrays or section in units or section in texts:
             raise cur.error(f"section {section} appears twice")
         if section == "VERTEX LIST":
-            found[section] = cur.rows(cur.count(section), 3, section, float)
+            arrays[section] = cur.rows(cur.count(section), 3, section, float)
         elif section == "FACE LIST":
-            found[section] = cur.rows(cur.count(section), 3, section, int)
+            arrays[section] = cur.rows(cur.count(section), 3, section, int)
         elif section in ("ANIMATION UNITS LIST", "SHAPE UNITS LIST"):
-            found[section] = _read_units(cur, section)
+            units[section] = _read_units(cur, section)
         elif section in ("ANIMATION PARAMETERS", "SHAPE PARAMETERS"):
-            found[section] = cur.rows(cur.count(section), 2, section, float)
+            arrays[section] = cur.rows(cur.count(section), 2, section, float)
         elif section == "GLOBAL MOTION":
             raw = _raw_lines(cur)
             try:
-                found[section] = np.array([[float(t) for t in line.split()[:3]] for line in raw]).reshape(-1, 3)
+                arrays[section] = np.array([[float(t) for t in line.split()[:3]] for line in raw]).reshape(-1, 3)
             except ValueError:
                 raise cur.error(f"{section} rows must hold three numbers, got {raw}") from None
         else:  # TEXTURE and unknown sections: keep the data lines after the count
-            found[section] = tuple(_raw_lines(cur)[1:])
+            texts[section] = tuple(_raw_lines(cur)[1:])
         cur.comments()
     for required in ("VERTEX LIST", "FACE LIST"):
-        if required not in found:
+        if required not in arrays:
             raise ValueError(f"malformed .wfm file: missing section '# {required}:'")
-    vertices = found["VERTEX LIST"]
-    faces = found["FACE LIST"]
+    vertices = arrays["VERTEX LIST"]
+    faces = arrays["FACE LIST"]
     num_v = len(vertices)
     if faces.size and (faces.min() < 0 or faces.max() >= num_v):
         raise ValueError(f"malformed .wfm file: triangles reference vertices outside [0, {num_v})")
-    anim = found.get("ANIMATION UNITS LIST", ())
-    shape = found.get("SHAPE UNITS LIST", ())
+    anim = units.get("ANIMATION UNITS LIST", ())
+    shape = units.get("SHAPE UNITS LIST", ())
     for unit in (*anim, *shape):
         if unit.vertex_indices.size and (unit.vertex_indices.min() < 0 or unit.vertex_indices.max() >= num_v):
             raise ValueError(f"malformed .wfm file: unit {unit.name!r} moves vertices outside [0, {num_v})")
@@ -322,10 +324,10 @@ def parse_wfm(path_or_text: str | os.PathLike[str] | bytes) -> WfmFile:
         faces=faces,
         animation_units=anim,
         shape_units=shape,
-        animation_parameters=found.get("ANIMATION PARAMETERS", empty2),
-        shape_parameters=found.get("SHAPE PARAMETERS", empty2),
-        texture=found.get("TEXTURE", ()),
-        global_motion=found.get("GLOBAL MOTION", np.zeros((0, 3))),
+        animation_parameters=arrays.get("ANIMATION PARAMETERS", empty2),
+        shape_parameters=arrays.get("SHAPE PARAMETERS", empty2),
+        texture=texts.get("TEXTURE", ()),
+        global_motion=arrays.get("GLOBAL MOTION", np.zeros((0, 3))),
     )
 
 
@@ -489,7 +491,7 @@ def load_candide3(
     mask[unused_vertices(num_v, faces)] = False
 
     auvs = [u for u in wfm.animation_units if not u.is_fap]
-    faps = [u for u in wfm.animation_units if u.is_fap]
+    faps = [(u, m) for u in wfm.animation_units if (m := _FAP_RE.match(u.name)) is not None]  # u.is_fap
     table = read_auv_facs_table()
     if len(table) != len(auvs):
         raise ValueError(f"candide3_auv_facs.csv has {len(table)} rows but the .wfm file has {len(auvs)} AUVs")
@@ -511,8 +513,7 @@ def load_candide3(
             links.append(rec.facs)
     if animation in (AnimationSet.FAP, AnimationSet.AUV_AND_FAP):
         fapu = candide3_fapu(wfm.vertices)
-        for unit in faps:
-            match = _FAP_RE.match(unit.name)
+        for unit, match in faps:
             unit_name = unit.fapu or FAP_EYEBALL_FAPU
             if unit_name not in fapu:
                 raise ValueError(f"FAP {unit.name!r} names an unknown FAPU {unit_name!r}")

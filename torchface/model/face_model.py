@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, fields
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -328,7 +329,7 @@ class FaceModel:
             device, dtype = None, device
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"dtype must be a floating dtype, got {dtype}")
-        changes = {}
+        changes: dict[str, Any] = {}  # field name -> value, of each field's own type
         for f in fields(self):
             value = getattr(self, f.name)
             if isinstance(value, Tensor):

@@ -16,6 +16,7 @@ import os
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -252,7 +253,7 @@ def load_mesh_model(
     if isinstance(mesh, (str, os.PathLike)):  # any path-like (an os.DirEntry too), not only a Path
         default_name = Path(mesh).stem
         is_obj = Path(mesh).suffix.lower() == ".obj"
-        options = {"maintain_order": True, "skip_materials": True} if is_obj else {}
+        options: dict[str, Any] = {"maintain_order": True, "skip_materials": True} if is_obj else {}
         obj_vertices = _obj_vertices(Path(mesh)) if is_obj else None
         mesh = trimesh.load(os.fspath(mesh), process=False, force="mesh", **options)
     else:

@@ -484,7 +484,7 @@ def _run(
         return robust_scale(pt.r, pt.use).clamp_min(robust.min_scale).unsqueeze(1)
 
     def cost_of(pt: _Point, x: torch.Tensor, s: torch.Tensor | None) -> torch.Tensor:
-        rho = 0.5 * pt.r * pt.r if robust is None else robust.rho(pt.r, s)
+        rho = 0.5 * pt.r * pt.r if robust is None or s is None else robust.rho(pt.r, s)  # s is None iff robust is
         if pt.use is not None:
             rho = torch.where(pt.use, rho, torch.zeros_like(rho))
         c = rho.sum(1)
@@ -494,7 +494,7 @@ def _run(
         return c
 
     def system(pt: _Point, x: torch.Tensor, s: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        if robust is None:
+        if robust is None or s is None:  # s is None iff robust is
             w = None if pt.use is None else pt.use.to(dtype)
         else:
             w = robust.weight(pt.r, s)
@@ -562,7 +562,7 @@ def _run(
         cost = _where_b(accept, cost_new, cost)
         H = _where_b(accept, H_new, H)
         g = _where_b(accept, g_new, g)
-        if s is not None:
+        if s is not None and s_new is not None:  # both are None without a robust loss, tensors with one
             s = _where_b(accept, s_new, s)
 
         if lm:

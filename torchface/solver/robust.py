@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 
@@ -113,6 +114,11 @@ class RobustLoss:
         if not (float(self.min_scale) > 0.0):
             raise ValueError(f"min_scale must be positive, got {self.min_scale!r}")
 
+    @property
+    def _c(self) -> float:
+        """``c`` as ``__post_init__`` left it: a float (``None`` became the kind's default)."""
+        return cast(float, self.c)
+
     def _check(self, r: torch.Tensor) -> None:
         if not isinstance(r, torch.Tensor) or not r.is_floating_point():
             got = r.dtype if isinstance(r, torch.Tensor) else type(r).__name__
@@ -133,7 +139,7 @@ class RobustLoss:
         if self.kind is RobustKind.NONE:
             return 0.5 * r * r
         s = _as_scale(scale, r)
-        c = self.c
+        c = self._c
         u = r / s
         u2 = u * u
         if self.kind is RobustKind.HUBER:
@@ -166,7 +172,7 @@ class RobustLoss:
         if self.kind is RobustKind.NONE:
             return torch.ones_like(r)
         s = _as_scale(scale, r)
-        c = self.c
+        c = self._c
         u = r / s
         u2 = u * u
         if self.kind is RobustKind.HUBER:
@@ -193,7 +199,7 @@ class RobustLoss:
             return self.rho(r, scale), self.weight(r, scale)
         self._check(r)
         s = _as_scale(scale, r)
-        c = self.c
+        c = self._c
         u = r / s
         one = scalar(1.0, u)
         t = ((u * u) / scalar(c * c, u)).clamp(max=1.0)
@@ -304,8 +310,8 @@ def robust_scale(r: torch.Tensor, mask: torch.Tensor | None = None, *, centered:
     if mask is None:
         mask = torch.ones_like(r, dtype=torch.bool)
     if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != r.shape:
-        got = (tuple(mask.shape), mask.dtype) if isinstance(mask, torch.Tensor) else type(mask).__name__
-        raise ValueError(f"mask must be a bool tensor of shape {tuple(r.shape)}, got {got}")
+        got_mask = (tuple(mask.shape), mask.dtype) if isinstance(mask, torch.Tensor) else type(mask).__name__
+        raise ValueError(f"mask must be a bool tensor of shape {tuple(r.shape)}, got {got_mask}")
     if r.shape[1] == 0:
         return torch.ones(r.shape[0], dtype=r.dtype, device=r.device)
     mask = mask & torch.isfinite(r)

@@ -196,7 +196,12 @@ def build_james_data(asset_dir: str | Path, out_dir: str | Path, texture_width: 
     from torchface.model import load_candide3
 
     asset_dir, out_dir = Path(asset_dir), Path(out_dir)
+    img = cv2.imread(str(asset_dir / "james.jpg"), cv2.IMREAD_COLOR)  # first: nothing is written without it
+    if img is None:
+        raise FileNotFoundError(f"could not read the texture image {asset_dir / 'james.jpg'}")
     mesh = trimesh.load(asset_dir / "james.obj", process=False, force="mesh")
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"{asset_dir / 'james.obj'} must hold one triangle mesh, got a {type(mesh).__name__}")
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     uv = np.asarray(mesh.visual.uv, dtype=np.float64).copy()
@@ -230,7 +235,6 @@ def build_james_data(asset_dir: str | Path, out_dir: str | Path, texture_width: 
         head_from_file_rotation=(r @ flip),
         head_from_file_translation=t,
     )
-    img = cv2.imread(str(asset_dir / "james.jpg"), cv2.IMREAD_COLOR)
     h = int(round(img.shape[0] * texture_width / img.shape[1]))
     small = cv2.resize(img, (texture_width, h), interpolation=cv2.INTER_AREA)
     cv2.imwrite(str(out_dir / _TEXTURE), small, [cv2.IMWRITE_JPEG_QUALITY, 88])
