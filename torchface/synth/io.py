@@ -67,7 +67,7 @@ class VideoSink:
         self.codec = ""
         self.frames_written = 0
         for code in LOSSLESS_CODECS:
-            writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*code), float(fps), (self.width, self.height))
+            writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter.fourcc(*code), float(fps), (self.width, self.height))
             if writer.isOpened():
                 self._writer, self.codec = writer, code
                 break

@@ -202,6 +202,8 @@ def build_james_data(asset_dir: str | Path, out_dir: str | Path, texture_width: 
     mesh = trimesh.load(asset_dir / "james.obj", process=False, force="mesh")
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"{asset_dir / 'james.obj'} must hold one triangle mesh, got a {type(mesh).__name__}")
+    if not isinstance(mesh.visual, trimesh.visual.TextureVisuals):
+        raise ValueError(f"{asset_dir / 'james.obj'} has no texture coordinates")
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     uv = np.asarray(mesh.visual.uv, dtype=np.float64).copy()

@@ -394,7 +394,10 @@ def sequence_metrics(
     st = status[1:]
     lost = int(((rot > lost_threshold_deg) | ~torch.isfinite(rot)).sum())  # a NaN pose is lost too (NaN > x: False)
     nan = float("nan")
-    au_rmse, au_corr, names, rmse_u, corr_u = nan, nan, (), (), ()
+    au_rmse, au_corr = nan, nan
+    names: tuple[str, ...] = ()
+    rmse_u: tuple[float, ...] = ()
+    corr_u: tuple[float, ...] = ()
     inactive_rmse, inactive_max = nan, nan
     if anim_est is not None and anim_gt is not None and anim_gt.shape[-1] > 0:
         if anim_ranges is None:
@@ -538,7 +541,8 @@ class LongRunMetrics:
     def worst_recovery(self, cause: str | None = None) -> int | None:
         """The most frames a recovery (of ``cause``, or any) took; None if one never recovered; 0 if none."""
         frames = [r.frames_to_recover for r in self.recoveries if cause is None or r.cause == cause]
-        return None if any(f is None for f in frames) else max(frames, default=0)
+        recovered = [f for f in frames if f is not None]
+        return None if len(recovered) < len(frames) else max(recovered, default=0)
 
 
 def long_run_metrics(

@@ -478,7 +478,8 @@ def _long_light(num_frames: int) -> LightState:
         dim=-1,
     )
     side = _unit([0.95, -0.05, -0.3]).expand(num_frames, 3)
-    side_on = sum(_window(num_frames, a, b) for a, b in _LONG_SIDE_LIGHT)
+    no_light = torch.zeros(num_frames, dtype=torch.float64)
+    side_on = sum((_window(num_frames, a, b) for a, b in _LONG_SIDE_LIGHT), no_light)
     dim = _window(num_frames, *_LONG_KEY_DIM)
     key_intensity = (0.55 + 0.15 * torch.sin(2 * math.pi * 1.5 * s + 1.1)) * (1.0 - 0.6 * dim)
     ambient = 0.4 + 0.08 * torch.sin(2 * math.pi * 2.5 * s + 0.3) + 0.1 * dim

@@ -612,9 +612,9 @@ def write_sequence(
     rows = _Rows(spec.num_frames)
     video_path = out / f"{spec.name}.avi"
     with VideoSink(video_path, spec.intrinsics.width, spec.intrinsics.height, spec.fps) as sink:
-        for img, gt in iter_sequence(spec, batch_size):
+        for img, frame_truth in iter_sequence(spec, batch_size):
             sink.write(img)
-            rows.add(gt)
+            rows.add(frame_truth)
             if progress is not None:
                 progress(sink.frames_written, spec.num_frames)
         codec = sink.codec
