@@ -24,7 +24,7 @@ from __future__ import annotations
 import importlib.util
 import inspect
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol, cast
 
 import numpy as np
 
@@ -48,6 +48,12 @@ class Detector(Protocol):
     """
 
     def __call__(self, image_rgb: np.ndarray) -> np.ndarray | None: ...
+
+
+class _NearDetector(Protocol):
+    """A :class:`Detector` that takes ``near`` (:func:`accepts_near`)."""
+
+    def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None: ...
 
 
 def accepts_near(detector: Detector) -> bool:
@@ -128,6 +134,9 @@ class _DlibDetector:
     ``FaceTracker`` checkpoint, a spawned ``DataLoader`` worker) as its name: the copy loads dlib's models again."""
 
     def __init__(self) -> None:
+        self._load()
+
+    def _load(self) -> None:
         dlib, model = _dlib_parts()
         self._face_detector = dlib.get_frontal_face_detector()
         self._predictor = dlib.shape_predictor(str(model))
@@ -136,7 +145,7 @@ class _DlibDetector:
         return {}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__()
+        self._load()
 
     def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
@@ -190,7 +199,7 @@ def usable_detection(
 
     array = np.asarray(points, dtype=np.float64)
     if array.shape != (NUM_LANDMARKS, 2):
-        return check_landmarks(points, width, height, where, min_inside=0.5)  # raises, naming the shape
+        return check_landmarks(array, width, height, where, min_inside=0.5)  # raises, naming the shape
     try:
         return check_landmarks(array, width, height, where, min_inside=0.5)
     except InputError as exc:
@@ -222,7 +231,10 @@ class _Batched:
         for b in range(frames.shape[0]):
             image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
             near = None if self.near_of is None else self.near_of(frames[b])
-            points = self.detector(image, near=near) if self.takes_near else self.detector(image)
+            if self.takes_near:  # accepts_near: it takes the keyword
+                points = cast(_NearDetector, self.detector)(image, near=near)
+            else:
+                points = self.detector(image)
             if points is not None:
                 warned = getattr(self, "warned", False)  # (a callback pickled before it had the attribute)
                 points = usable_detection(points, W, H, self.where, warn=not warned)

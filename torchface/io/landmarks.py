@@ -41,8 +41,8 @@ def _named_row(header: str, row: list[float]) -> np.ndarray | None:
     """One row's values placed by a header naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``, ...; ``k`` from 0
     or 1, each once): ``(K, 2)``; None when the header does not name them so."""
     names = _cells(header)
-    keys = [re.fullmatch(r"([xy])[_ ]?(\d+)", n.lower()) for n in names]
-    if len(names) != len(row) or len(row) % 2 or not all(keys):
+    keys = [m for n in names if (m := re.fullmatch(r"([xy])[_ ]?(\d+)", n.lower())) is not None]
+    if len(names) != len(row) or len(row) % 2 or len(keys) != len(names):
         return None
     index = {(m.group(1), int(m.group(2))): v for m, v in zip(keys, row)}
     first = min(k for _, k in index)

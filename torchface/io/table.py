@@ -43,6 +43,7 @@ import os
 import re
 from pathlib import Path
 from types import TracebackType
+from typing import TextIO
 
 import numpy as np
 import torch
@@ -266,6 +267,7 @@ class TrackCsvWriter:
         self.partial = partial_path(self.path)
         self.rows_done = 0
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))
+        self._file: TextIO | None = None  # open from here to close or stop
         tmp: Path | None = None
         try:
             if resume and self.partial.is_file():

@@ -36,6 +36,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import cast
 
 import cv2
 import numpy as np
@@ -358,7 +359,7 @@ def _stored_layout(p: Path, cap: cv2.VideoCapture, decoded: np.ndarray) -> np.nd
         probe.release()
     if not ok or raw is None or raw.ndim != 3 or tuple(raw.shape[:2]) != (h, w) or raw.shape[2] not in (3, 4):
         return decoded
-    if raw.shape[2] == 4 and int(raw[..., 3].min()) == np.iinfo(raw.dtype).max:
+    if raw.shape[2] == 4 and int(raw[..., 3].min()) == np.iinfo(cast("np.dtype[np.integer]", raw.dtype)).max:
         raw = raw[..., :3]  # opaque alpha: colour padding (OpenCV writes FFV1 colour as BGRA)
     return raw
 
