@@ -765,7 +765,7 @@ def dissimilarity(
     if backend is Backend.NATIVE and not native:
         raise RuntimeError("the native dissimilarity needs the reference's gray patches (DissimilarityReference.lk) "
                            "in the faces' dtype and batch")  # fmt: skip
-    if native:
+    if native and pre is not None:  # (native implies pre)
         lk = _native_lk(normalised, mask, pre, cfg)
     else:
         gray = _masked_gray(normalised, mask, cfg.smoothing_sigma)

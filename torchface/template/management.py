@@ -535,7 +535,7 @@ def _map_reference(ref: DissimilarityReference, fn) -> DissimilarityReference:
     """``ref`` with ``fn`` applied to every tensor, in :func:`_reference_tensors` order."""
     out = [fn(x) for x in _reference_tensors(ref)]
     lk = None if ref.lk is None else type(ref.lk)(*out[5:])
-    return DissimilarityReference(*out[:5], ref.config, lk)
+    return DissimilarityReference(out[0], out[1], out[2], out[3], out[4], ref.config, lk)
 
 
 def _grow(mosaic: Mosaic, extra: int) -> Mosaic:
@@ -601,7 +601,7 @@ def _add_entries(
         and not any(x.requires_grad or x.is_inference() for x in storage)
         and not any(x.requires_grad for x in values)
     )  # fmt: skip
-    if not in_place:
+    if not in_place or claimed is None:  # (in place implies claimed)
         storage = [x.clone() for x in storage]
         claimed = mosaic.used.clone()
     for x, v in zip(storage, values):
@@ -776,8 +776,7 @@ def native_mosaic_confidence(
     refs = mosaic.references
     lk = refs.lk
     dtype = rotation.dtype
-    suitable = lk is not None and lk.template.shape[-1] == 1 and lk.template.dtype == dtype
-    if not suitable:
+    if lk is None or lk.template.shape[-1] != 1 or lk.template.dtype != dtype:
         if backend is Backend.NATIVE:
             raise RuntimeError("the native confidence needs the mosaic's references with their gray patches")
         return None
@@ -951,11 +950,11 @@ def search_mosaic(
     X = torch.matmul(torch.gather(tpl.points, 1, order.unsqueeze(-1).expand(-1, -1, 3)), rots.transpose(1, 2))
     T = torch.gather(tpl.intensity, 1, order)
     # Hypotheses: rotations x depths.
-    factors = config.search_depth_factors
-    n_base = len(factors)
+    factor_values = config.search_depth_factors
+    n_base = len(factor_values)
     if depth_scale != 1.0:
-        factors = (*factors, *(depth_scale * f for f in factors))
-    factors = torch.tensor(factors, dtype=dtype, device=device)
+        factor_values = (*factor_values, *(depth_scale * f for f in factor_values))
+    factors = torch.tensor(factor_values, dtype=dtype, device=device)
     n_d = factors.shape[0]
     depth = (depth_mm * factors).repeat(n_rot)  # (H,)
     # A widened depth must out-score the base depths by a margin to be chosen (ranking only; the score reported
