@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -404,8 +405,13 @@ def solve_level(
     finite = torch.ones(B, dtype=torch.bool, device=device)
     lam = torch.full((B, 1, 1), damping, dtype=dtype, device=device)
 
-    def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor, jacobian: bool = True) -> tuple[Tensor, ...]:
-        return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t, jacobian)
+    def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        out = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t)
+        return cast("tuple[Tensor, Tensor, Tensor, Tensor]", out)  # with its Jacobian: J is a tensor
+
+    def lin_last(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+        return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t,
+                         keep_linearisation)  # fmt: skip
 
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for it in range(iterations):
@@ -481,7 +487,7 @@ def solve_level(
     if not final_check:
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite, constants=constants)
         return R, t, alpha, light, outcome
-    last = lin(R, t, alpha, light, keep_linearisation)
+    last = lin_last(R, t, alpha, light)
     if best is not None:
         # The last step is kept only where it did not raise the cost.
         r, _, valid, _ = last
@@ -491,12 +497,12 @@ def solve_level(
         accept = (cost <= best[6]) & isfinite(cost)
         if not bool(accept.all()):
             R, t, alpha, light = _select(accept, (R, t, alpha, light), best[:4])
-            last = lin(R, t, alpha, light, keep_linearisation)
-    r, _, valid, sampled = last
+            last = lin_last(R, t, alpha, light)
+    r, J_last, valid, sampled = last
     outcome = LevelOutcome(
-        r, valid & isfinite(r), sampled, iters, ~active & finite, finite, last if keep_linearisation else None,
-        constants,
-    )
+        r, valid & isfinite(r), sampled, iters, ~active & finite, finite,
+        (r, J_last, valid, sampled) if J_last is not None else None, constants,  # J is None unless keep_linearisation
+    )  # fmt: skip
     return R, t, alpha, light, outcome
 
 
@@ -605,6 +611,6 @@ def _solve_level_native(
         out_converged=ptr(converged), out_finite=ptr(finite), out_iterations=ptr(iters),
     )  # fmt: skip
     _native.run("solve_level", dtype == torch.float64, prob, B, torch.get_num_threads())
-    linearisation = (residual, J_out.transpose(1, 2), valid, sampled) if keep else None
+    linearisation = (residual, J_out.transpose(1, 2), valid, sampled) if J_out is not None else None  # (keep)
     outcome = LevelOutcome(residual, valid & isfinite(residual), sampled, iters, converged, finite, linearisation, k)
     return R_out, t_out, alpha_out, light_out, outcome

@@ -11,7 +11,7 @@ from __future__ import annotations
 import enum
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -29,7 +29,7 @@ from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, m
 from torchface.model.face_model import FaceModel
 from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
-from torchface.solver.least_squares import ResidualFn, SolveResult, SolverConfig, SolveStatus, least_squares
+from torchface.solver.least_squares import SolveResult, SolverConfig, SolveStatus, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
@@ -503,7 +503,7 @@ class TrackerState:
             if ms is not None:
                 tied = ms.params_ypr is not None and ms.params_ypr[0] is self.params
                 ms = ms.select(index)
-                ms = replace(ms, params_ypr=(params, ms.params_ypr[1]) if tied else None)
+                ms = replace(ms, params_ypr=(params, ms.params_ypr[1]) if tied and ms.params_ypr is not None else None)
             prior = None if self.anim_prior_mean is None else self.anim_prior_mean[index]
             return replace(
                 self, params=params, shape_coeffs=self.shape_coeffs[index], templates=templates, management=ms,
@@ -572,13 +572,14 @@ def gray_pyramid_windows(
         levels = gray_pyramid(frames if rows is None else frames.index_select(0, rows), num_levels)
         return [g if off is None else crop_windows(g, off, h, w) for g, off, h, w in zip(levels, offsets, heights, widths)]
 
-    if any(off is None for off in offsets):
+    windows = [off for off in offsets if off is not None]
+    if len(windows) < len(offsets):  # a level wanted whole
         return from_whole_frames()
     q = 2 ** (num_levels - 1)
     size_hw = frames.new_tensor([W, H], dtype=torch.int64)
-    lo = torch.stack([off * 2**lv for lv, off in enumerate(offsets)]).amin(0)  # (B, 2) level 0 (x, y)
+    lo = torch.stack([off * 2**lv for lv, off in enumerate(windows)]).amin(0)  # (B, 2) level 0 (x, y)
     hi = torch.stack([(off + off.new_tensor([w, h])) * 2**lv
-                      for lv, (off, h, w) in enumerate(zip(offsets, heights, widths))]).amax(0)  # fmt: skip
+                      for lv, (off, h, w) in enumerate(zip(windows, heights, widths))]).amax(0)  # fmt: skip
     start = torch.div((lo - 4 * q).clamp_min(0), q, rounding_mode="floor") * q
     stop = torch.minimum(hi + 4 * q, size_hw)
     size = -torch.div(-(stop - start).amax(0), q, rounding_mode="floor") * q  # (2,) width, height
@@ -587,7 +588,7 @@ def gray_pyramid_windows(
         return from_whole_frames()
     crop = gray_crop_pyramid(frames, start, int(size[1]), int(size[0]), num_levels, rows)
     return [crop_windows(g, off - torch.div(start, 2**lv, rounding_mode="floor"), h, w)
-            for lv, (g, off, h, w) in enumerate(zip(crop, offsets, heights, widths))]  # fmt: skip
+            for lv, (g, off, h, w) in enumerate(zip(crop, windows, heights, widths))]  # fmt: skip
 
 
 #: :func:`check_frames` with ``values=True`` refuses frames with values outside this interval: [0, 1] frames,
@@ -890,7 +891,7 @@ class ReferenceLevel:
     template: Template
     image: Tensor
     intrinsics: Intrinsics
-    residual_fn: ResidualFn
+    residual_fn: Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]  # a ResidualFn whose valid is a tensor
     result: SolveResult
 
 
@@ -1004,7 +1005,7 @@ def reference_levels(
             robust=_finest_loss(robust, clean) if level == 0 and robust is not None else robust,
         )  # fmt: skip
         x = torch.where(res.failed.unsqueeze(-1), x, res.params)
-        if level == 1 and robust is not None and _clean_rule(config, near_template):
+        if level == 1 and robust is not None and near_template is not None and _clean_rule(config, near_template):
             with torch.no_grad():  # the level's residuals and robust scale at its estimate, as least_squares has them
                 r, _, valid = residual_fn(x.detach())
                 valid = valid & torch.isfinite(r)
@@ -1255,8 +1256,8 @@ def _fast_step(
     visibility = None
     if config.zbuffer_visibility:
         cached = state.visibility
-        fresh = cached is None or cached[0] is not state.templates
-        if fresh or (state.frame_index - 1) % config.visibility_interval == 0:
+        if (cached is None or cached[0] is not state.templates
+                or (state.frame_index - 1) % config.visibility_interval == 0):  # fmt: skip
             vis_level = config.num_levels - 1
             H, W = state.intrinsics.height, state.intrinsics.width
             h_l, w_l = H >> vis_level, W >> vis_level
@@ -1300,7 +1301,7 @@ def _fast_step(
             keep_linearisation=level == 0 and refine,  # the refinement pass starts from it
             backend=config.backend,
         )
-        if level == 1 and robust is not None and _clean_rule(config, near_template):
+        if level == 1 and robust is not None and near_template is not None and _clean_rule(config, near_template):
             scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
             clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
     if refine:
