@@ -119,7 +119,7 @@ def rasterize_reference(
     for b in range(B):
         corners = []
         for f in range(F):
-            v0, v1, v2 = (tuple(float(c) for c in verts[b, i]) for i in tris[f])
+            v0, v1, v2 = ((float(verts[b, i, 0]), float(verts[b, i, 1]), float(verts[b, i, 2])) for i in tris[f])
             usable, front = _face_ok(v0, v1, v2, eps)
             if cull_backfaces and not front:
                 usable = False

@@ -397,6 +397,10 @@ class TexturedRenderer(nn.Module):
         >>> # image, mask, frags = renderer(verts_cam, normals_cam, light)
     """
 
+    faces: Tensor  # buffers (registered in __init__)
+    uv: Tensor
+    texture: Tensor
+
     def __init__(self, faces: Tensor, uv: Tensor, texture: Tensor, intrinsics: Intrinsics) -> None:
         super().__init__()
         self.register_buffer("faces", faces.to(torch.int64))

@@ -54,12 +54,13 @@ def normal_tensors(tree: T) -> T:
         key = id(x)
         if key in memo:
             return memo[key]
+        out: Any  # x, or its copy holding normal tensors
         if isinstance(x, Tensor):
             out = x.clone() if x.is_inference() else x
         elif getattr(x, "__dict__", None) is not None and x.__dict__.get(_NORMAL_MARK):
             out = x
         elif dataclasses.is_dataclass(x) and not isinstance(x, type):
-            changed = {}
+            changed: dict[str, Any] = {}
             for f in dataclasses.fields(x):
                 value = getattr(x, f.name)
                 new = walk(value)
@@ -70,7 +71,7 @@ def normal_tensors(tree: T) -> T:
                 out = object.__new__(type(x))
                 for f in dataclasses.fields(x):
                     object.__setattr__(out, f.name, changed.get(f.name, getattr(x, f.name)))
-            if type(x).__dataclass_params__.frozen and getattr(out, "__dict__", None) is not None:
+            if getattr(type(x), "__dataclass_params__").frozen and getattr(out, "__dict__", None) is not None:
                 object.__setattr__(out, _NORMAL_MARK, True)
         elif isinstance(x, (tuple, list)):
             items = [walk(v) for v in x]
@@ -78,8 +79,8 @@ def normal_tensors(tree: T) -> T:
             if any(a is not b for a, b in zip(items, x)):
                 out = type(x)(*items) if hasattr(x, "_fields") else type(x)(items)
         elif isinstance(x, dict):
-            items = {k: walk(v) for k, v in x.items()}
-            out = x if all(items[k] is v for k, v in x.items()) else type(x)(items)
+            values = {k: walk(v) for k, v in x.items()}
+            out = x if all(values[k] is v for k, v in x.items()) else type(x)(values)
         else:
             out = x
         memo[key] = out
