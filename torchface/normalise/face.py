@@ -71,6 +71,8 @@ from torchface.rendering.rasterizer import rasterize
 from torchface.rendering.visibility import points_visible
 
 if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
     from torchface.tracker.step import TrackerState, TrackResult
 
 __all__ = [
@@ -181,7 +183,7 @@ class NormalisedFaceLayout:
         )  # fmt: skip
 
 
-_Frozen = TypeVar("_Frozen", FaceModel, NormalisedFaceLayout)
+_Frozen = TypeVar("_Frozen", bound="DataclassInstance")  # a frozen dataclass
 
 
 def apply_to_tensor_fields(fn: Callable[[Tensor], Tensor], obj: _Frozen) -> _Frozen:

@@ -91,7 +91,7 @@ def backfacing(verts_cam: Tensor, faces: Tensor) -> Tensor:
 def points_visible(
     points_cam: Tensor,
     point_faces: Tensor,
-    fragments: Fragments,
+    fragments: Fragments | Coverage,
     intrinsics: Intrinsics,
     *,
     depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
