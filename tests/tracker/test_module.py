@@ -193,3 +193,17 @@ def test_a_saved_tracker_goes_on_as_the_original(model, three_streams):
     loaded = torch.load(buffer, weights_only=False)
     for t in range(2, 4):
         assert_same(tracker(frames[:, t]), loaded(frames[:, t]))
+
+
+def test_step_runs_the_module_hooks(model, three_streams):
+    """``tracker.step(frames)`` is ``tracker(frames)``: the forward pre-hooks and hooks registered on the tracker
+    see it (``step = forward`` called forward directly, past them)."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model)
+    seen = []
+    tracker.register_forward_pre_hook(lambda module, args: seen.append("pre"))
+    tracker.register_forward_hook(lambda module, args, result: seen.append(int(result.status.shape[0])))
+    tracker.initialise(frames[:, 0], lm)
+    tracker.step(frames[:, 1])
+    tracker(frames[:, 2])
+    assert seen == ["pre", 3, "pre", 3]

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -149,8 +150,10 @@ class FaceTracker(nn.Module):
         new._state = copy.deepcopy(self._state)
         return new
 
-    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                              error_msgs) -> None:  # fmt: skip
+    def _load_from_state_dict(
+        self, state_dict: Mapping[str, Any], prefix: str, local_metadata: dict[str, Any], strict: bool,
+        missing_keys: list[str], unexpected_keys: list[str], error_msgs: list[str],
+    ) -> None:  # fmt: skip
         """``load_state_dict`` (of the tracker or of a module holding it): a state_dict holds no tracked sequence,
         so loading one forgets the tracker's (it went on tracking the sequence it held before, whatever the
         checkpoint's tracker was tracking); the next step says why."""
@@ -209,7 +212,10 @@ class FaceTracker(nn.Module):
         self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector, donate=True)
         return result
 
-    step = forward
+    def step(self, frames: Tensor) -> TrackResult:
+        """``tracker(frames)`` by name: :meth:`forward` through the module's call, so that its hooks run (``step =
+        forward`` skipped the forward hooks and pre-hooks registered on the tracker)."""
+        return self(frames)
 
     def _why_none(self) -> str:
         """Why the tracker holds no state, for an error message: `` (the tracker was moved ...)`` or empty."""
