@@ -35,7 +35,8 @@ def model():
 
 
 def render(name: str, ypr: list[list[float]], txyz: list[list[float]], seed: int = 3):
-    """``frames (T, 3, H, W)`` of CANDIDE-3 at poses ``ypr`` (degrees) and ``txyz`` (mm), first landmarks ``(68, 2)``."""
+    """``frames (T, 3, H, W)`` of CANDIDE-3 at poses ``ypr`` (degrees) and ``txyz`` (mm); first landmarks
+    ``(68, 2)``."""
     T = len(ypr)
     spec = SequenceSpec(
         name=name, subject="candide3", intrinsics=Intrinsics.default(W, H),
