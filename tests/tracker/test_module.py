@@ -208,3 +208,30 @@ def test_step_runs_the_module_hooks(model, three_streams):
     tracker.step(frames[:, 1])
     tracker(frames[:, 2])
     assert seen == ["pre", 3, "pre", 3]
+
+
+def test_settings_set_after_construction_are_checked(model, three_streams):
+    """``config``, ``model``, ``detector`` and ``refine_first`` assigned to a tracker are checked as the
+    constructor's arguments are, and a refused one leaves the setting as it was: set later, a per-image dlib
+    detector failed only at the first loss (with a shape error), a dict config at the next step."""
+    from torchface.detect import _DlibDetector
+    from torchface.tracker import LookaheadConfig
+
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model)
+    tracker.initialise(frames[:, 0], lm)
+    per_image = _DlibDetector.__new__(_DlibDetector)  # (not loaded: dlib is an optional extra)
+    for name, bad, message in (
+        ("detector", per_image, r"torchface.detect.batched"),
+        ("detector", "dlib", r"detector must be callable"),
+        ("config", {"num_levels": 2}, r"config must be a TrackerConfig, got dict"),
+        ("model", None, r"model must be a FaceModel, got NoneType"),
+        ("refine_first", True, r"refine_first must be a LookaheadConfig or None, got bool"),
+    ):
+        before = getattr(tracker, name)
+        with pytest.raises(TypeError, match=message):
+            setattr(tracker, name, bad)
+        assert getattr(tracker, name) is before, name
+    tracker.detector, tracker.refine_first = _NoFaces(), LookaheadConfig(yaw_deg=12.0)  # good ones are taken
+    assert isinstance(tracker.detector, _NoFaces) and tracker.refine_first.yaw_deg == 12.0
+    assert bool(tracker(frames[:, 1]).success.all())

@@ -19,6 +19,29 @@ from torchface.tracker.managed import LandmarkDetector, initialise_managed, mana
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, check_frames
 
 
+_SETTINGS = frozenset({"config", "model", "detector", "refine_first"})
+
+
+def _check_setting(name: str, value: Any) -> None:
+    """Raise TypeError where ``value`` cannot be the :class:`FaceTracker` setting ``name``."""
+    if name == "config" and not isinstance(value, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(value).__name__}")
+    if name == "model" and not isinstance(value, FaceModel):
+        raise TypeError(f"model must be a FaceModel, got {type(value).__name__}")
+    if name == "refine_first" and value is not None and not isinstance(value, LookaheadConfig):
+        raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(value).__name__}")
+    if name == "detector" and value is not None:
+        if not callable(value):
+            raise TypeError(f"detector must be callable (frames -> landmarks), got {type(value).__name__}")
+        from torchface.detect import _DlibDetector  # (light: dlib itself is imported when one is made)
+
+        if isinstance(value, _DlibDetector):  # one image at a time: it failed at the first loss, with a shape error
+            raise TypeError(
+                "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
+                "load_detector in torchface.detect.batched(...)"
+            )
+
+
 class FaceTracker(nn.Module):
     """Track B face streams at once; a thin loop over the functional :func:`managed_step`.
 
@@ -56,27 +79,23 @@ class FaceTracker(nn.Module):
         detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = LookaheadConfig(),
     ) -> None:
         super().__init__()
-        self.config = TrackerConfig() if config is None else config
-        if not isinstance(self.config, TrackerConfig):
-            raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
-        if detector is not None and not callable(detector):
-            raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
-        from torchface.detect import _DlibDetector  # (light: dlib itself is imported when one is made)
-
-        if isinstance(detector, _DlibDetector):  # one image at a time: it failed at the first loss, with a shape error
-            raise TypeError(
-                "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
-                "load_detector in torchface.detect.batched(...)"
-            )
         if model is not None and not isinstance(model, FaceModel):
             raise TypeError(f"model must be a FaceModel or None (CANDIDE-3), got {type(model).__name__}")
-        self.model = load_candide3() if model is None else model
+        # (each assignment is checked: __setattr__)
+        self.config = TrackerConfig() if config is None else config
         self.detector = detector
-        if refine_first is not None and not isinstance(refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
+        self.model = load_candide3() if model is None else model
         self.refine_first = refine_first
         self._state: TrackerState | None = None
         self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Attribute assignment, ``config``, ``model``, ``detector`` and ``refine_first`` checked as the constructor
+        checks them (set after construction they were not: a per-image dlib detector failed at the first loss, with
+        a shape error, a dict config at the next step with an AttributeError)."""
+        if name in _SETTINGS:
+            _check_setting(name, value)
+        super().__setattr__(name, value)
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
         """Move the face model like ``nn.Module.to``: device and/or float dtype (a move that changes either
