@@ -203,7 +203,9 @@ class FaceTracker(nn.Module):
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
             weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
             fit: the first frames' fit when already made (e.g. by
-                :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
+                :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks. The online start
+                (``refine_first``) still re-anchors from it once the head turns: ``torchface track --lookahead``
+                tracks from its look-ahead fit alone, as ``FaceTracker(refine_first=None)`` does.
         """
         if intrinsics is None:
             check_frames(frames)  # a numpy array was "must be (B, 3, H, W), got (B, 3, H, W)"
