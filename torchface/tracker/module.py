@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Mapping, Sequence
+from typing import Any
+
 import torch
 from torch import Tensor, nn
 
@@ -13,6 +17,29 @@ from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, check_frames
+
+
+_SETTINGS = frozenset({"config", "model", "detector", "refine_first"})
+
+
+def _check_setting(name: str, value: Any) -> None:
+    """Raise TypeError where ``value`` cannot be the :class:`FaceTracker` setting ``name``."""
+    if name == "config" and not isinstance(value, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(value).__name__}")
+    if name == "model" and not isinstance(value, FaceModel):
+        raise TypeError(f"model must be a FaceModel, got {type(value).__name__}")
+    if name == "refine_first" and value is not None and not isinstance(value, LookaheadConfig):
+        raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(value).__name__}")
+    if name == "detector" and value is not None:
+        if not callable(value):
+            raise TypeError(f"detector must be callable (frames -> landmarks), got {type(value).__name__}")
+        from torchface.detect import _DlibDetector  # (light: dlib itself is imported when one is made)
+
+        if isinstance(value, _DlibDetector):  # one image at a time: it failed at the first loss, with a shape error
+            raise TypeError(
+                "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
+                "load_detector in torchface.detect.batched(...)"
+            )
 
 
 class FaceTracker(nn.Module):
@@ -31,10 +58,14 @@ class FaceTracker(nn.Module):
     ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.2 (5.4-7.6 without the start,
     from the held landmark fit).
 
-    Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty and holds no tracked sequence.
-    To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or pickle it) and load it with
-    ``torch.load(path, weights_only=False)`` (trusted files only); ``copy.deepcopy(tracker)`` forks a stream. Both
-    continue exactly as the original would.
+    Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty (it holds a detector's weights
+    where the detector is an ``nn.Module``) and holds no tracked sequence; ``load_state_dict`` therefore forgets the
+    tracker's sequence, as :meth:`reset` does (the next step says so), so that a loaded checkpoint never continues
+    the sequence the tracker held before. To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or
+    pickle it) and load it with ``torch.load(path, weights_only=False)`` (trusted files only);
+    ``copy.deepcopy(tracker)`` forks a stream, and so does ``copy.copy(tracker)``, which shares the model, config
+    and detector but not the tracked state. Each continues exactly as the original would, independently of it.
+    :meth:`select` keeps some of the streams (e.g. drops those whose videos have ended).
 
     Example:
         >>> tracker = FaceTracker()                                          # doctest: +SKIP
@@ -48,27 +79,23 @@ class FaceTracker(nn.Module):
         detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = LookaheadConfig(),
     ) -> None:
         super().__init__()
-        self.config = TrackerConfig() if config is None else config
-        if not isinstance(self.config, TrackerConfig):
-            raise TypeError(f"config must be a TrackerConfig, got {type(self.config).__name__}")
-        if detector is not None and not callable(detector):
-            raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
-        from torchface.detect import _DlibDetector  # (light: dlib itself is imported when one is made)
-
-        if isinstance(detector, _DlibDetector):  # one image at a time: it failed at the first loss, with a shape error
-            raise TypeError(
-                "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
-                "load_detector in torchface.detect.batched(...)"
-            )
         if model is not None and not isinstance(model, FaceModel):
             raise TypeError(f"model must be a FaceModel or None (CANDIDE-3), got {type(model).__name__}")
-        self.model = load_candide3() if model is None else model
+        # (each assignment is checked: __setattr__)
+        self.config = TrackerConfig() if config is None else config
         self.detector = detector
-        if refine_first is not None and not isinstance(refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
+        self.model = load_candide3() if model is None else model
         self.refine_first = refine_first
         self._state: TrackerState | None = None
-        self._dropped: str | None = None  # why the state was forgotten by a move (for the next step's error)
+        self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Attribute assignment, ``config``, ``model``, ``detector`` and ``refine_first`` checked as the constructor
+        checks them (set after construction they were not: a per-image dlib detector failed at the first loss, with
+        a shape error, a dict config at the next step with an AttributeError)."""
+        if name in _SETTINGS:
+            _check_setting(name, value)
+        super().__setattr__(name, value)
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
         """Move the face model like ``nn.Module.to``: device and/or float dtype (a move that changes either
@@ -97,7 +124,10 @@ class FaceTracker(nn.Module):
         after = (self.model.dtype, self.model.device)
         if after != before and self._state is not None:
             self._state = None
-            self._dropped = f"the tracker was moved from {before[0]} on {before[1]} to {after[0]} on {after[1]}"
+            self._dropped = (
+                f"the tracker was moved from {before[0]} on {before[1]} to {after[0]} on {after[1]}, which forgets the "
+                "tracked state"
+            )
         return super()._apply(fn, recurse)
 
     @property
@@ -111,6 +141,48 @@ class FaceTracker(nn.Module):
         """Forget the tracked sequence."""
         self._state = None
         self._dropped = None
+
+    def select(self, index: Sequence[int] | Tensor) -> "FaceTracker":
+        """Keep only streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a ``(B,)``
+        bool mask) and go on tracking them as a smaller batch: :meth:`TrackerState.select
+        <torchface.tracker.TrackerState.select>` of :attr:`state`, in place (as ``.to`` is); returns the tracker.
+        The next call takes the kept streams' frames, ``(B', 3, H, W)`` in that order, and they track as they would
+        have in the whole batch, to float rounding (``torchface track`` drops a video that has ended this way).
+
+        Example:
+            >>> tracker.select([0, 2])                                           # doctest: +SKIP
+            >>> result = tracker(frames[[0, 2], t])                              # doctest: +SKIP
+        """
+        if self._state is None:
+            raise RuntimeError(f"call initialise(frames, landmarks) before selecting streams{self._why_none()}")
+        self._state = self._state.select(index)
+        return self
+
+    def __copy__(self) -> "FaceTracker":
+        """``copy.copy(tracker)``: a tracker of the same config, model and detector (shared, as a shallow copy's
+        are) with its own copy of the tracked state. A shared state was corrupted: a step hands the state over to
+        :func:`managed_step` (``donate=True``), which writes new templates into its tensors, so the copy's steps
+        changed the original's templates (0.33 degrees on the original's next frame in a test) and vice versa. The
+        module's own tables (submodules, hooks) are copied too, so that a detector set on one is not set on both."""
+        new = self.__class__.__new__(self.__class__)
+        new.__dict__.update({k: v.copy() if isinstance(v, (dict, set)) else v for k, v in self.__dict__.items()})
+        new._state = copy.deepcopy(self._state)
+        return new
+
+    def _load_from_state_dict(
+        self, state_dict: Mapping[str, Any], prefix: str, local_metadata: dict[str, Any], strict: bool,
+        missing_keys: list[str], unexpected_keys: list[str], error_msgs: list[str],
+    ) -> None:  # fmt: skip
+        """``load_state_dict`` (of the tracker or of a module holding it): a state_dict holds no tracked sequence,
+        so loading one forgets the tracker's (it went on tracking the sequence it held before, whatever the
+        checkpoint's tracker was tracking); the next step says why."""
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        self._state = None
+        self._dropped = (
+            "a state_dict was loaded: it holds no tracked sequence (to checkpoint one, torch.save the tracker)"
+        )
 
     def initialise(
         self,
@@ -131,7 +203,9 @@ class FaceTracker(nn.Module):
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
             weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
             fit: the first frames' fit when already made (e.g. by
-                :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
+                :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks. The online start
+                (``refine_first``) still re-anchors from it once the head turns: ``torchface track --lookahead``
+                tracks from its look-ahead fit alone, as ``FaceTracker(refine_first=None)`` does.
         """
         if intrinsics is None:
             check_frames(frames)  # a numpy array was "must be (B, 3, H, W), got (B, 3, H, W)"
@@ -155,9 +229,15 @@ class FaceTracker(nn.Module):
     def forward(self, frames: Tensor) -> TrackResult:
         """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
         if self._state is None:
-            why = f" ({self._dropped}, which forgets the tracked state)" if self._dropped else ""
-            raise RuntimeError(f"call initialise(frames, landmarks) before tracking{why}")
+            raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
         self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector, donate=True)
         return result
 
-    step = forward
+    def step(self, frames: Tensor) -> TrackResult:
+        """``tracker(frames)`` by name: :meth:`forward` through the module's call, so that its hooks run (``step =
+        forward`` skipped the forward hooks and pre-hooks registered on the tracker)."""
+        return self(frames)
+
+    def _why_none(self) -> str:
+        """Why the tracker holds no state, for an error message: `` (the tracker was moved ...)`` or empty."""
+        return f" ({self._dropped})" if self._dropped else ""

@@ -481,7 +481,9 @@ class TrackerState:
         """
         device = self.params.device
         B = self.params.shape[0]
-        index = torch.as_tensor(index, device=device).reshape(-1)
+        # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
+        empty = isinstance(index, (list, tuple)) and not index
+        index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
         if index.dtype == torch.bool:  # a mask of the streams kept
             if index.numel() != B:
                 raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")

@@ -1,0 +1,237 @@
+"""Tests of torchface.tracker.module, the ``FaceTracker`` nn.Module around the managed step: what it does with its
+tracked state besides stepping (keeping some streams, shallow copies, ``load_state_dict``, pickling). Small
+rendered sequences (320x240, two pyramid levels), as in tests/tracker/test_step.py; the module's tracking itself
+is tested there and in tests/tracker/test_managed.py.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import euler_to_matrix
+from torchface.model.candide import load_candide3
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import SequenceSpec, render_sequence
+from torchface.tracker import FaceTracker, FitConfig, TrackerConfig, managed_step
+
+W, H = 320, 240
+D = torch.float64
+CFG = TrackerConfig(
+    num_levels=2, max_points=600, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
+    robust_scale_floor=(0.045, 0.02),
+)
+FIELDS = ("rotation", "translation", "anim_coeffs", "illumination", "status", "confidence", "mosaic_entry")
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_candide3()
+
+
+def render(name: str, ypr: list[list[float]], txyz: list[list[float]], seed: int = 3):
+    """``frames (T, 3, H, W)`` of CANDIDE-3 at poses ``ypr`` (degrees) and ``txyz`` (mm); first landmarks
+    ``(68, 2)``."""
+    T = len(ypr)
+    spec = SequenceSpec(
+        name=name, subject="candide3", intrinsics=Intrinsics.default(W, H),
+        rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor(txyz, dtype=D),
+        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
+        background=BackgroundSpec(seed=seed), photo="james",
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    return frames, gt.landmarks_px[0].float()
+
+
+@pytest.fixture(scope="module")
+def three_streams():
+    """Three different 6-frame streams with small motion: ``frames (3, 6, 3, H, W)``, landmarks ``(3, 68, 2)``."""
+    s = [i / 5 for i in range(6)]
+    a = render("a", [[7 * u, -4 * u, 3 * u] for u in s], [[8 * u, -4 * u, 450 + 10 * u] for u in s])
+    b = render("b", [[-6 * u, 3 * u, -2 * u] for u in s], [[-15 + 4 * u, 5.0, 480 - 8 * u] for u in s], seed=7)
+    c = render("c", [[2 * u, 5 * u, 0.0] for u in s], [[10.0, -6 * u, 430.0] for u in s], seed=11)
+    return torch.stack([a[0], b[0], c[0]]), torch.stack([a[1], b[1], c[1]])
+
+
+@pytest.fixture(scope="module")
+def turn_and_still():
+    """Stream 0 turns its head 0 -> 30 degrees of yaw in 3 degree steps (a mosaic entry is added at 30 and aligned
+    against on the step after), stream 1 holds still: ``frames (2, 11, 3, H, W)``, landmarks ``(2, 68, 2)``."""
+    yaw = [3.0 * i for i in range(11)]
+    frames, lm = render("turn", [[y, 0.0, 0.0] for y in yaw], [[0.0, 0.0, 450.0]] * len(yaw))
+    return torch.stack([frames, frames[:1].expand_as(frames)]), torch.stack([lm, lm])
+
+
+def assert_same(a, b, index=None, atol: float = 0.0):
+    """Results ``a`` (its streams ``index``, all by default) and ``b`` agree to ``atol``."""
+    for name in FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        x = x if index is None else x[index]
+        if name in ("status", "mosaic_entry"):
+            assert torch.equal(x, y), name
+        else:
+            torch.testing.assert_close(y, x, rtol=0, atol=atol, msg=lambda m: f"{name}: {m}")
+
+
+# ----------------------------------------------------------------------------------------------- select
+
+
+def test_select_keeps_streams_that_track_on_as_in_the_whole_batch(model, three_streams):
+    """``FaceTracker.select``: the streams kept (here reordered) track on as they would have in the whole batch (to
+    float rounding, as ``TrackerState.select`` documents) and exactly as the functional ``state.select`` +
+    ``managed_step`` do; a bool mask is the same as its indices; a bad index leaves the state as it was. There was
+    no public way to drop streams from a FaceTracker's batch."""
+    frames, lm = three_streams
+    whole = FaceTracker(CFG, model)
+    whole.initialise(frames[:, 0], lm)
+    whole(frames[:, 1])
+    part, masked = copy.deepcopy(whole), copy.deepcopy(whole)
+    state = copy.deepcopy(whole.state)
+    keep = [2, 0]
+    assert part.select(keep) is part
+    assert part.state.params.shape[0] == 2 and part.state.frame_index == whole.state.frame_index
+    with pytest.raises(ValueError, match="one per stream"):  # the next call takes the kept streams' frames only
+        part(frames[:, 2])
+    masked.select(torch.tensor([True, False, True]))
+    state = state.select(keep)
+    for t in range(2, frames.shape[1]):
+        full, kept, plain = whole(frames[:, t]), part(frames[keep, t]), masked(frames[[0, 2], t])
+        state, functional = managed_step(model, CFG, state, frames[keep, t])
+        assert_same(full, kept, keep, atol=1e-4)
+        assert_same(functional, kept)
+        assert_same(full, plain, [0, 2], atol=1e-4)
+    before = part.state
+    with pytest.raises(IndexError, match="out of range"):
+        part.select([2])
+    assert part.state is before
+    part.select([])  # no stream left (an empty list was "stream indices must be integers, got torch.float32")
+    assert part.state.params.shape[0] == 0
+    with pytest.raises(RuntimeError, match="initialise"):
+        FaceTracker(CFG, model).select([0])
+
+
+# ----------------------------------------------------------------------------------------------- copies
+
+
+class _NoFaces(torch.nn.Module):
+    """A detector network that finds no face: ``frames (B, 3, H, W) -> (B, 68, 2)`` NaN."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scale = torch.nn.Parameter(torch.ones(()))
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        return torch.full((frames.shape[0], 68, 2), float("nan")) * self.scale.detach()
+
+
+def test_a_shallow_copy_tracks_on_apart_from_the_original(model, turn_and_still):
+    """``copy.copy(tracker)`` forks the stream as ``copy.deepcopy`` does: neither one's steps change what the other
+    tracks. The copy shared the tracked state, whose template tensors a step writes into (``donate=True``) where a
+    stream changes mosaic entry: after the copy's stream 0 moved to the 30 degree entry, the original's next frame
+    was aligned against that entry's template under its own reference entry's number (0.33 degrees off). The copy
+    also shared the module's submodule table: setting its detector set the original's."""
+    frames, lm = turn_and_still
+    tracker = FaceTracker(CFG, model, detector=_NoFaces(), refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    for t in range(1, 10):
+        tracker(frames[:, t])
+    fork, shallow = copy.deepcopy(tracker), copy.copy(tracker)
+    entries = [shallow(frames[:, 10]).mosaic_entry.tolist() for _ in range(2)]
+    assert entries == [[0, 0], [2, 0]], entries  # the copy's stream 0 changed entry alone: in place, were it shared
+    want, got = fork(frames[:, 10]), tracker(frames[:, 10])
+    assert_same(want, got)
+    assert shallow.model is tracker.model and shallow.config is tracker.config and shallow.state is not tracker.state
+    shallow.detector = None
+    assert isinstance(tracker.detector, _NoFaces) and "detector" in dict(tracker.named_children())
+
+
+# ----------------------------------------------------------------------------------------------- saving
+
+
+def test_load_state_dict_forgets_the_tracked_sequence(model, three_streams):
+    """A state_dict holds no tracked sequence, so loading one (into the tracker, or into a module holding it) leaves
+    the tracker with none, and the next step says why: the tracker went on with the sequence it held before, as if
+    the checkpoint had been of it. Initialised again, it tracks as a new tracker does."""
+    frames, lm = three_streams
+    saved = FaceTracker(CFG, model)
+    saved.initialise(frames[:, 0], lm)
+    checkpoint = saved.state_dict()
+    assert len(checkpoint) == 0
+    tracker = FaceTracker(CFG, model)
+    tracker.initialise(frames[:2, 0], lm[:2])  # another sequence (two streams)
+    tracker.load_state_dict(checkpoint)
+    assert tracker.state is None
+    with pytest.raises(RuntimeError, match=r"initialise.*a state_dict was loaded: it holds no tracked sequence"):
+        tracker(frames[:, 1])
+    with pytest.raises(RuntimeError, match="a state_dict was loaded"):
+        tracker.select([0])
+    parent = torch.nn.Sequential(tracker)
+    tracker.initialise(frames[:, 0], lm)
+    parent.load_state_dict(torch.nn.Sequential(FaceTracker(CFG, model)).state_dict())
+    assert tracker.state is None
+    tracker.initialise(frames[:, 0], lm)
+    assert_same(saved(frames[:, 1]), tracker(frames[:, 1]))
+    with_net = FaceTracker(CFG, model, detector=_NoFaces())  # a detector network's weights are the state_dict
+    assert list(with_net.state_dict()) == ["detector.scale"]
+    FaceTracker(CFG, model, detector=_NoFaces()).load_state_dict(with_net.state_dict())
+
+
+def test_a_saved_tracker_goes_on_as_the_original(model, three_streams):
+    """The module's documented checkpoint, ``torch.save(tracker)`` mid-stream and ``torch.load(...,
+    weights_only=False)``, continues exactly as the original does; the original is not changed by saving."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model)
+    tracker.initialise(frames[:, 0], lm)
+    tracker(frames[:, 1])
+    buffer = io.BytesIO()
+    torch.save(tracker, buffer)
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=False)
+    for t in range(2, 4):
+        assert_same(tracker(frames[:, t]), loaded(frames[:, t]))
+
+
+def test_step_runs_the_module_hooks(model, three_streams):
+    """``tracker.step(frames)`` is ``tracker(frames)``: the forward pre-hooks and hooks registered on the tracker
+    see it (``step = forward`` called forward directly, past them)."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model)
+    seen = []
+    tracker.register_forward_pre_hook(lambda module, args: seen.append("pre"))
+    tracker.register_forward_hook(lambda module, args, result: seen.append(int(result.status.shape[0])))
+    tracker.initialise(frames[:, 0], lm)
+    tracker.step(frames[:, 1])
+    tracker(frames[:, 2])
+    assert seen == ["pre", 3, "pre", 3]
+
+
+def test_settings_set_after_construction_are_checked(model, three_streams):
+    """``config``, ``model``, ``detector`` and ``refine_first`` assigned to a tracker are checked as the
+    constructor's arguments are, and a refused one leaves the setting as it was: set later, a per-image dlib
+    detector failed only at the first loss (with a shape error), a dict config at the next step."""
+    from torchface.detect import _DlibDetector
+    from torchface.tracker import LookaheadConfig
+
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model)
+    tracker.initialise(frames[:, 0], lm)
+    per_image = _DlibDetector.__new__(_DlibDetector)  # (not loaded: dlib is an optional extra)
+    for name, bad, message in (
+        ("detector", per_image, r"torchface.detect.batched"),
+        ("detector", "dlib", r"detector must be callable"),
+        ("config", {"num_levels": 2}, r"config must be a TrackerConfig, got dict"),
+        ("model", None, r"model must be a FaceModel, got NoneType"),
+        ("refine_first", True, r"refine_first must be a LookaheadConfig or None, got bool"),
+    ):
+        before = getattr(tracker, name)
+        with pytest.raises(TypeError, match=message):
+            setattr(tracker, name, bad)
+        assert getattr(tracker, name) is before, name
+    tracker.detector, tracker.refine_first = _NoFaces(), LookaheadConfig(yaw_deg=12.0)  # good ones are taken
+    assert isinstance(tracker.detector, _NoFaces) and tracker.refine_first.yaw_deg == 12.0
+    assert bool(tracker(frames[:, 1]).success.all())
