@@ -30,8 +30,8 @@ a video repeats those of its worker on the other ranks, as ``DistributedSampler(
 the fewest (:attr:`RankBalance.DROP`: the rest are left out, as ``drop_last=True``). This needs the same
 ``num_workers`` on every rank, and each video's item count before it is tracked: the workers count the frames of
 their worker's videos on every rank (:meth:`VideoDataset.num_items`: image folders and ``.npy`` arrays at no cost,
-video files decoded through without tracking), or inherit the counts of :meth:`VideoDataset.count_items` called
-in the main process. Repeated items equal the originals (same ``video`` and ``frame``), so the union of the
+video files decoded through without tracking), each video once per dataset (the counts are shared with the
+workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``), so the union of the
 ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off: each rank yields its
 own videos' items once and the counts differ unless the videos split evenly (wrap the training loop in
 ``DistributedDataParallel.join()``). With fewer videos than ranks :class:`DistributedWarning` says so, once per
@@ -280,10 +280,11 @@ class VideoDataset(IterableDataset):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             self.detector, self.landmarks = None, tuple(landmarks)
         self.epoch = 0
-        # Shared memory: a DataLoader worker's copy of the dataset (forked or pickled to a spawned one) sets the one
-        # flag of the dataset the rank holds, so the next workers and epochs do not warn again.
+        # Shared memory: a DataLoader worker's copy of the dataset (forked, or pickled to a spawned one) writes to
+        # the tensors of the dataset its rank holds, so that the next workers and epochs do not warn again, and do
+        # not count again the items of a video (num_items; -1: not counted yet).
         self._warned: Tensor | None = torch.zeros((), dtype=torch.bool).share_memory_()
-        self._item_counts: dict[int, int] = {}  # video -> items, counted without tracking (num_items)
+        self._item_counts: Tensor | None = torch.full((len(self.videos),), -1, dtype=torch.int64).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
@@ -367,22 +368,23 @@ class VideoDataset(IterableDataset):
     def num_items(self, index: int) -> int:
         """Items of video ``index`` (:func:`clip_bounds` of its frame count), counted without tracking: an image
         folder's images, a ``.npy`` array's length, a video file's frames decoded through (a container's stated
-        count can be approximate). Remembered in this process: call :meth:`count_items` in the main process before
-        a ``DataLoader`` starts its workers and they inherit the counts.
+        count can be approximate). Remembered by the dataset, for its copies in ``DataLoader`` workers too (shared
+        memory): each video is counted once, by the first process that needs it.
 
         Raises:
             torchface.io.InputError: the video cannot be read (the message names the file).
         """
-        if index not in self._item_counts:
+        counts = getattr(self, "_item_counts", None)  # (absent from a dataset pickled before it existed)
+        if counts is None:
+            counts = self._item_counts = torch.full((len(self.videos),), -1, dtype=torch.int64)
+        if int(counts[index]) < 0:
             c = self.config
             frames = _count_frames(self.videos[index], c.convert)
-            self._item_counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
-        return self._item_counts[index]
+            counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
+        return int(counts[index])
 
     def count_items(self) -> list[int]:
-        """:meth:`num_items` of every video, in list order (remembered, and inherited by ``DataLoader`` workers
-        started afterwards: under DDP with :attr:`DatasetConfig.rank_balance` ``PAD`` or ``DROP`` each worker
-        otherwise counts the videos of its worker on every rank itself, each epoch)."""
+        """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch)."""
         return [self.num_items(i) for i in range(len(self.videos))]
 
     def _balanced_count(self, worker_id: int, num_workers: int, world_size: int) -> int | None:

@@ -281,13 +281,17 @@ def test_ranks_yield_equal_counts_per_worker_by_default(uneven, config, monkeypa
     for it in data:
         k = (int(it["video"]), int(it["frame"]))
         assert all(torch.equal(it[name], reference[k][name]) for name in it if name != "cached")
-    # a real DataLoader (2 forked workers, which inherit the simulated group): equal batch counts
+    # a real DataLoader (2 forked workers, which inherit the simulated group): equal batch counts. The workers
+    # count the videos' frames for the first epoch only: the counts reach the dataset and the next workers.
+    fresh = VideoDataset(videos, landmarks, config)
     batches = []
     for rank in range(2):
         simulate(monkeypatch, rank, 2)
-        loader = DataLoader(data, batch_size=4, num_workers=2, multiprocessing_context="fork")
+        loader = DataLoader(fresh, batch_size=4, num_workers=2, multiprocessing_context="fork")
         batches.append([len(b["frame"]) for b in loader])
+        monkeypatch.setattr(training_hooks.datasets, "_count_frames", None)  # (counting again would fail)
     assert batches[0] == batches[1] == [4, 4, 4, 1, 2]  # per worker: 10 = 4 + 4 + 2, 5 = 4 + 1
+    assert fresh.count_items() == list(LENGTHS)
 
 
 def test_drop_and_uneven_rank_balance(uneven, config, monkeypatch):
