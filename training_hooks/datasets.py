@@ -279,10 +279,10 @@ class VideoDataset(IterableDataset):
             if len(landmarks) != len(self.videos):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             self.detector, self.landmarks = None, tuple(landmarks)
-        self.epoch = 0
-        # Shared memory: a DataLoader worker's copy of the dataset (forked, or pickled to a spawned one) writes to
-        # the tensors of the dataset its rank holds, so that the next workers and epochs do not warn again, and do
-        # not count again the items of a video (num_items; -1: not counted yet).
+        # Shared memory: a DataLoader worker's copy of the dataset (forked, or pickled to a spawned one) holds the
+        # tensors of the dataset its rank holds: persistent workers see each set_epoch, and the next workers and
+        # epochs do not warn again nor count again the items of a video (num_items; -1: not counted yet).
+        self._epoch: Tensor | None = torch.zeros((), dtype=torch.int64).share_memory_()
         self._warned: Tensor | None = torch.zeros((), dtype=torch.bool).share_memory_()
         self._item_counts: Tensor | None = torch.full((len(self.videos),), -1, dtype=torch.int64).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
@@ -297,9 +297,24 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
+    @property
+    def epoch(self) -> int:
+        """The epoch that seeds the shuffling (:meth:`set_epoch`)."""
+        shared = getattr(self, "_epoch", None)  # (absent from a dataset pickled before it existed)
+        return int(self.__dict__.get("epoch", 0)) if shared is None else int(shared)
+
+    @epoch.setter
+    def epoch(self, epoch: int) -> None:
+        shared = getattr(self, "_epoch", None)
+        if shared is None:
+            self.__dict__["epoch"] = int(epoch)
+        else:
+            shared.fill_(int(epoch))
+
     def set_epoch(self, epoch: int) -> None:
-        """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration; with
-        ``persistent_workers=True`` the workers keep the epoch they started with)."""
+        """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
+        ``DataLoader`` workers' copies of the dataset share it, so ``persistent_workers=True`` workers shuffle
+        each epoch anew too."""
         self.epoch = int(epoch)
 
     @property

@@ -239,6 +239,24 @@ def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     assert_items_equal(plain, collect(shuffled, 2), skip=("cached",))
 
 
+def test_set_epoch_reaches_persistent_workers(clips, config):
+    """persistent_workers=True: the workers kept the epoch of the dataset they were started with, so every epoch
+    was shuffled as the first. Now they share the dataset's epoch: each epoch's order is the one the dataset gives
+    in the main process for that epoch (1 worker: the same seeds)."""
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    shuffled = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
+    expected = []
+    for epoch in range(2):
+        shuffled.set_epoch(epoch)
+        expected.append([(int(i["video"]), int(i["frame"])) for i in shuffled])
+    assert expected[0] != expected[1]
+    loader = DataLoader(shuffled, batch_size=None, num_workers=1, persistent_workers=True)
+    for epoch in range(2):
+        shuffled.set_epoch(epoch)
+        assert [(int(i["video"]), int(i["frame"])) for i in loader] == expected[epoch]
+
+
 # --------------------------------------------------------------------------------------------- exceptions
 
 
