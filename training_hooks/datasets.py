@@ -121,6 +121,20 @@ class RankBalance(enum.Enum):
     UNEVEN = "uneven"
 
 
+#: Entries of a dataset's shared state (:func:`_shared_state`).
+_EPOCH, _WARNED, _COUNTS = 0, 1, 2
+
+
+def _shared_state(num_videos: int, epoch: int = 0) -> Tensor:
+    """``(2 + num_videos,)`` int64: the epoch, whether the :class:`DistributedWarning` was given, and each video's
+    item count (-1: not counted yet). A dataset keeps it in shared memory, so that its copies in ``DataLoader``
+    workers (forked, or pickled to spawned ones) share it: persistent workers see each ``set_epoch``, and later
+    workers and epochs neither warn again nor count a video again."""
+    state = torch.full((_COUNTS + num_videos,), -1, dtype=torch.int64)
+    state[_EPOCH], state[_WARNED] = epoch, 0
+    return state
+
+
 def _process_group() -> tuple[int, int] | None:
     """``(rank, world_size)`` in the default ``torch.distributed`` process group; None without one."""
     dist = torch.distributed
@@ -279,12 +293,7 @@ class VideoDataset(IterableDataset):
             if len(landmarks) != len(self.videos):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             self.detector, self.landmarks = None, tuple(landmarks)
-        # Shared memory: a DataLoader worker's copy of the dataset (forked, or pickled to a spawned one) holds the
-        # tensors of the dataset its rank holds: persistent workers see each set_epoch, and the next workers and
-        # epochs do not warn again nor count again the items of a video (num_items; -1: not counted yet).
-        self._epoch: Tensor | None = torch.zeros((), dtype=torch.int64).share_memory_()
-        self._warned: Tensor | None = torch.zeros((), dtype=torch.bool).share_memory_()
-        self._item_counts: Tensor | None = torch.full((len(self.videos),), -1, dtype=torch.int64).share_memory_()
+        self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
@@ -297,19 +306,19 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
+    def __setstate__(self, state: dict[str, object]) -> None:
+        if "_shared" not in state:  # pickled before the shared state existed
+            state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))  # type: ignore[arg-type]
+        self.__dict__.update(state)
+
     @property
     def epoch(self) -> int:
         """The epoch that seeds the shuffling (:meth:`set_epoch`)."""
-        shared = getattr(self, "_epoch", None)  # (absent from a dataset pickled before it existed)
-        return int(self.__dict__.get("epoch", 0)) if shared is None else int(shared)
+        return int(self._shared[_EPOCH])
 
     @epoch.setter
     def epoch(self, epoch: int) -> None:
-        shared = getattr(self, "_epoch", None)
-        if shared is None:
-            self.__dict__["epoch"] = int(epoch)
-        else:
-            shared.fill_(int(epoch))
+        self._shared[_EPOCH] = int(epoch)
 
     def set_epoch(self, epoch: int) -> None:
         """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
@@ -389,9 +398,9 @@ class VideoDataset(IterableDataset):
         Raises:
             torchface.io.InputError: the video cannot be read (the message names the file).
         """
-        counts = getattr(self, "_item_counts", None)  # (absent from a dataset pickled before it existed)
-        if counts is None:
-            counts = self._item_counts = torch.full((len(self.videos),), -1, dtype=torch.int64)
+        if not 0 <= index < len(self.videos):
+            raise IndexError(f"video {index} out of range for {len(self.videos)} videos")
+        counts = self._shared[_COUNTS:]
         if int(counts[index]) < 0:
             c = self.config
             frames = _count_frames(self.videos[index], c.convert)
@@ -562,11 +571,9 @@ class VideoDataset(IterableDataset):
     def _warn_distributed(self, rank: int, world: int) -> None:
         """Warn once per dataset (and rank) when the group has more ranks than the dataset has videos."""
         n, mode = len(self.videos), self.config.rank_balance
-        flag = getattr(self, "_warned", None)  # (absent from a dataset pickled before it existed)
-        if n >= world or (rank < n and mode is not RankBalance.DROP) or (flag is not None and bool(flag)):
+        if n >= world or (rank < n and mode is not RankBalance.DROP) or int(self._shared[_WARNED]):
             return
-        if flag is not None:
-            flag.fill_(True)
+        self._shared[_WARNED] = 1
         if mode is RankBalance.DROP:
             what = f"with RankBalance.DROP every rank yields no item (rank {rank} has no video)"
         elif mode is RankBalance.PAD:

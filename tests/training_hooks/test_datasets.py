@@ -466,3 +466,17 @@ def test_track_sequence_takes_its_models_landmark_count(clips):
     assert bool(sequence.success.all())
     with pytest.raises(ValueError, match=r"\(51, 2\) points, the model's landmarks"):
         track_sequence(frames, clips[0].landmarks, TRACKING, inner, normaliser)
+
+
+def test_a_dataset_pickled_without_the_shared_state_still_loads(clips, config):
+    """A dataset pickled before the epoch, warning flag and item counts were shared (its epoch a plain attribute)
+    unpickles with its epoch and counts its items."""
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    state = data.__getstate__()
+    del state["_shared"]
+    state["epoch"] = 3
+    old = VideoDataset.__new__(VideoDataset)
+    old.__setstate__(state)
+    assert old.epoch == 3 and old.count_items() == [FRAMES]
+    old.set_epoch(4)
+    assert old.epoch == 4 and data.epoch == 0

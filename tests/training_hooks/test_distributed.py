@@ -356,6 +356,7 @@ def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, mo
             loader = DataLoader(fresh, batch_size=None, num_workers=2, multiprocessing_context="fork")
             assert len(list(loader)) == FRAMES
         assert len(list(fresh)) == FRAMES  # and in the rank's own process
+    assert int(fresh._shared[training_hooks.datasets._WARNED]) == 1  # set in a worker, seen by the rank's dataset
     assert log.read_text().splitlines() == [
         "DistributedWarning: VideoDataset has 1 videos for 2 torch.distributed ranks: rank 1 gets none and repeats "
         "items of other ranks' videos (tracking them again)"
