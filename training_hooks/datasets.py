@@ -31,12 +31,12 @@ the fewest (:attr:`RankBalance.DROP`: the rest are left out, as ``drop_last=True
 ``num_workers`` on every rank, and each video's item count before it is tracked: the workers count the frames of
 their worker's videos on every rank (:meth:`VideoDataset.num_items`: image folders and ``.npy`` arrays at no cost,
 video files decoded through without tracking), each video once per dataset (the counts are shared with the
-workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``), so the union of the
-ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off: each rank yields its
-own videos' items once and the counts differ unless the videos split evenly (wrap the training loop in
-``DistributedDataParallel.join()``). With fewer videos than ranks :class:`DistributedWarning` says so, once per
-dataset in each rank. ``DatasetConfig(shard_ranks=False)`` makes every rank yield every item (for a dataset built
-with each rank's own list of videos; no balancing).
+workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``),
+so the union of the ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off:
+each rank yields its own videos' items once and the counts differ unless the videos split evenly (wrap the
+training loop in ``DistributedDataParallel.join()``). With fewer videos than ranks :class:`DistributedWarning`
+says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` makes every rank yield every item
+(for a dataset built with each rank's own list of videos; no balancing).
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -65,6 +65,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -306,9 +307,9 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
-    def __setstate__(self, state: dict[str, object]) -> None:
+    def __setstate__(self, state: dict[str, Any]) -> None:
         if "_shared" not in state:  # pickled before the shared state existed
-            state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))  # type: ignore[arg-type]
+            state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))
         self.__dict__.update(state)
 
     @property
@@ -625,7 +626,7 @@ def _count_frames(path: Path, convert: bool) -> int:
     (and refused as it refuses them) but not converted: a video file is decoded through."""
     with open_frames(path, convert=convert) as reader:
         if reader.info.kind != "video":
-            return int(reader.info.num_frames)  # type: ignore[arg-type]  (exact for images and arrays)
+            return int(reader.info.num_frames or 0)  # (exact for images and arrays)
     cap = cv2.VideoCapture(opencv_path(path))
     try:
         count = 0
