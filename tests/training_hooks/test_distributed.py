@@ -313,8 +313,9 @@ def test_drop_and_uneven_rank_balance(uneven, config, monkeypatch):
         DatasetConfig(rank_balance="pad")
 
 
-def test_item_counts_without_tracking(clips, uneven, config, tmp_path):
-    """num_items counts a video file's, a folder's and an array's items without tracking; clip settings apply."""
+def test_item_counts_without_tracking(clips, uneven, config, tmp_path, monkeypatch):
+    """num_items counts a video file's, a folder's and an array's items without tracking; clip settings apply. A
+    rank whose video has no clip (2 frames, clips of 3) repeats those of its worker's videos on other ranks."""
     videos, landmarks = uneven
     folder = tmp_path / "frames"
     folder.mkdir()
@@ -324,6 +325,8 @@ def test_item_counts_without_tracking(clips, uneven, config, tmp_path):
     assert data.count_items() == [FRAMES, *LENGTHS] and data.stats.videos == 0
     clip_data = VideoDataset(videos, landmarks, replace(config, clip_length=3, clip_stride=2))
     assert clip_data.count_items() == [2, 0, 2, 1, 1]
+    simulate(monkeypatch, 1, 5)  # one video per rank: rank 1's has no clip, the fullest rank's 2
+    assert [(int(it["video"]), int(it["frame"][0])) for it in clip_data] == [(0, 0), (0, 2)]
     assert FrameFolderDataset([folder], [clips[0].landmarks], config).count_items() == [FRAMES]
 
 
