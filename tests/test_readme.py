@@ -86,7 +86,7 @@ def test_readme_defaults_are_the_code_defaults():
     from torchface.job import JobConfig
     from torchface.template import DissimilarityConfig, TemplateConfig
     from torchface.tracker import FitConfig, LookaheadConfig, TrackerConfig
-    from training_hooks import LayerConfig, LayerMode
+    from training_hooks import DatasetConfig, LayerConfig, LayerMode, RankBalance
 
     claims = {
         "`TrackerConfig.expression_sparsity=0.1`": TrackerConfig().expression_sparsity == 0.1,
@@ -103,6 +103,7 @@ def test_readme_defaults_are_the_code_defaults():
         "`LayerMode.DETACHED` (parameters from the tracker, the\n  default)": LayerConfig().mode is LayerMode.DETACHED,
         "`Backend.AUTO` (default)": TrackerConfig().backend.name == "AUTO",
         "`refine_first=LookaheadConfig()`, the default": JobConfig(out_dir=".").refine_first == LookaheadConfig(),
+        "`DatasetConfig.rank_balance` is `RankBalance.PAD` by default": DatasetConfig().rank_balance is RankBalance.PAD,
     }
     for text, holds in claims.items():
         assert text in README, f"README no longer says {text!r}: update this test with it"
@@ -121,6 +122,7 @@ def test_readme_defaults_are_the_code_defaults():
         "training_hooks.FaceTrackingConfig", "training_hooks.collate_clips", "training_hooks.NormaliseFaces",
         "training_hooks.NormalisedFaceLayer", "training_hooks.confidence_weighted_loss",
         "training_hooks.drop_low_confidence", "training_hooks.TrackingQualityLogger", "training_hooks.DistributedWarning",
+        "training_hooks.RankBalance",
     ],
 )  # fmt: skip
 def test_readme_names_exist_where_it_says(dotted):

@@ -71,7 +71,7 @@ class CacheWarning(UserWarning):
     """A cache file was unreadable or damaged; it was deleted and the sequence is tracked again."""
 
 
-def _file_digest(path: Path, h: "hashlib._Hash") -> None:
+def _file_digest(path: Path, h: "hashlib.blake2b") -> None:
     with open(path, "rb") as f:
         while chunk := f.read(_CHUNK):
             h.update(chunk)

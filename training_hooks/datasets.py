@@ -12,20 +12,31 @@ tracker state and no state crosses processes. In a ``torch.distributed`` process
 within a rank the ``j``-th of its videos to ``DataLoader`` worker ``j % num_workers``
 (``torch.utils.data.get_worker_info()``; the rank's own process does everything when ``num_workers = 0``):
 video ``i`` goes to rank ``i % world_size``, worker ``(i // world_size) % num_workers``
-(:meth:`VideoDataset.worker_videos`). Without a group this is video ``i`` -> worker ``i % num_workers``. The
-union of the ranks' epochs is every item exactly once. Tracking runs with a fixed torch thread count
+(:meth:`VideoDataset.worker_videos`). Without a group this is video ``i`` -> worker ``i % num_workers``. Each
+item is tracked by one rank (ranks that repeat items to balance their counts, below, repeat others' items).
+Tracking runs with a fixed torch thread count
 (:attr:`~training_hooks.transforms.FaceTrackingConfig.num_threads`), so every item is bit-identical for any
 number of ranks and workers (only the order in which a ``DataLoader`` interleaves the workers' items differs).
 The rank and world size are read when the dataset is iterated, or, in a ``DataLoader`` worker started with
 the ``spawn`` or ``forkserver`` method (where ``torch.distributed`` is not initialised), the ones of the rank
 that sent the dataset to it. Use the datasets without a ``DistributedSampler`` (they are iterable datasets).
 
-Under DDP the ranks' item counts differ unless their videos split evenly (a multiple of ``world_size`` videos
-of equal item counts), and DDP training hangs when one rank takes more optimiser steps than another: wrap the
-training loop in ``DistributedDataParallel.join()``, or cap the steps per epoch (Lightning's
-``limit_train_batches``) at the smallest rank's batch count. A rank without a video (fewer videos than ranks)
-yields nothing and warns (:class:`DistributedWarning`) once per dataset. ``DatasetConfig(shard_ranks=False)``
-makes every rank yield every item (for a dataset built with each rank's own list of videos).
+Equal counts under DDP (:attr:`DatasetConfig.rank_balance`): a DDP training loop hangs when one rank takes more
+optimiser steps than another, so by default every rank yields the same number of items and batches, as a
+``DistributedSampler`` gives them. A ``DataLoader`` batches each worker's items separately, so the counts are made
+equal per worker: worker ``w`` of every rank yields as many items as the worker ``w`` with the most
+(:attr:`RankBalance.PAD`, the default: a worker short of items repeats its own from its first video on, one without
+a video repeats those of its worker on the other ranks, as ``DistributedSampler(drop_last=False)`` does) or with
+the fewest (:attr:`RankBalance.DROP`: the rest are left out, as ``drop_last=True``). This needs the same
+``num_workers`` on every rank, and each video's item count before it is tracked: the workers count the frames of
+their worker's videos on every rank (:meth:`VideoDataset.num_items`: image folders and ``.npy`` arrays at no cost,
+video files decoded through without tracking), each video once per dataset (the counts are shared with the
+workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``),
+so the union of the ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off:
+each rank yields its own videos' items once and the counts differ unless the videos split evenly (wrap the
+training loop in ``DistributedDataParallel.join()``). With fewer videos than ranks :class:`DistributedWarning`
+says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` makes every rank yield every item
+(for a dataset built with each rank's own list of videos; no balancing).
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -45,6 +56,7 @@ Example:
 
 from __future__ import annotations
 
+import enum
 import itertools
 import os
 import random
@@ -53,7 +65,9 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -61,7 +75,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from torchface.io.errors import InputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
-from torchface.io.video import open_frames
+from torchface.io.video import open_frames, opencv_path
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
@@ -73,6 +87,7 @@ __all__ = [
     "Detector",
     "FrameFolderDataset",
     "LandmarkSource",
+    "RankBalance",
     "VideoDataset",
     "clip_bounds",
     "loader_throughput",
@@ -86,8 +101,39 @@ Detector = Callable[[np.ndarray], "np.ndarray | None"]
 
 
 class DistributedWarning(UserWarning):
-    """A rank of a ``torch.distributed`` process group has no video of a dataset to iterate (fewer videos than
-    ranks): it yields no item (module docstring, "Sharding")."""
+    """A ``torch.distributed`` process group has more ranks than a dataset has videos: a rank without a video
+    repeats other ranks' items (:attr:`RankBalance.PAD`) or yields none (module docstring, "Sharding"). Warned
+    once per dataset in each rank (by its first ``DataLoader`` worker, not again in later epochs)."""
+
+
+class RankBalance(enum.Enum):
+    """How the ranks of a ``torch.distributed`` group get equal item counts (module docstring, "Sharding"), as a
+    ``DistributedSampler`` gives them: per ``DataLoader`` worker, so that their batch counts are equal too."""
+
+    #: Each worker yields as many items as the same worker of the rank with the most: a worker short of items
+    #: repeats its own videos' items from its first video on (one without a video of its own, those of its
+    #: worker on the other ranks), as ``DistributedSampler(drop_last=False)`` does. The default.
+    PAD = "pad"
+    #: Each worker yields as many items as the same worker of the rank with the fewest, and leaves out the rest of
+    #: its items, as ``DistributedSampler(drop_last=True)`` does.
+    DROP = "drop"
+    #: Each rank yields its own videos' items and no others: counts differ unless the videos split evenly, and the
+    #: training loop must cope (``DistributedDataParallel.join()``).
+    UNEVEN = "uneven"
+
+
+#: Entries of a dataset's shared state (:func:`_shared_state`).
+_EPOCH, _WARNED, _COUNTS = 0, 1, 2
+
+
+def _shared_state(num_videos: int, epoch: int = 0) -> Tensor:
+    """``(2 + num_videos,)`` int64: the epoch, whether the :class:`DistributedWarning` was given, and each video's
+    item count (-1: not counted yet). A dataset keeps it in shared memory, so that its copies in ``DataLoader``
+    workers (forked, or pickled to spawned ones) share it: persistent workers see each ``set_epoch``, and later
+    workers and epochs neither warn again nor count a video again."""
+    state = torch.full((_COUNTS + num_videos,), -1, dtype=torch.int64)
+    state[_EPOCH], state[_WARNED] = epoch, 0
+    return state
 
 
 def _process_group() -> tuple[int, int] | None:
@@ -119,6 +165,8 @@ class DatasetConfig:
         seed: seed of the shuffling.
         shard_ranks: in a ``torch.distributed`` process group, split the videos between the ranks (video ``i`` ->
             rank ``i % world_size``, module docstring); False makes every rank yield every item.
+        rank_balance: :class:`RankBalance`: how the ranks get equal item (and batch) counts when they split the
+            videos; :attr:`RankBalance.PAD` (repeat items, the default), ``DROP`` or ``UNEVEN`` (no balancing).
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -130,6 +178,7 @@ class DatasetConfig:
     shuffle_buffer: int = 0
     seed: int = 0
     shard_ranks: bool = True
+    rank_balance: RankBalance = RankBalance.PAD
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracking, FaceTrackingConfig):
@@ -144,6 +193,8 @@ class DatasetConfig:
             raise ValueError(f"shuffle_buffer must be an int >= 0, got {self.shuffle_buffer!r}")
         if not isinstance(self.shard_ranks, bool):
             raise TypeError(f"shard_ranks must be a bool, got {type(self.shard_ranks).__name__}")
+        if not isinstance(self.rank_balance, RankBalance):
+            raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
         if self.cache_dir is not None:
             object.__setattr__(self, "cache_dir", Path(self.cache_dir))
 
@@ -243,8 +294,7 @@ class VideoDataset(IterableDataset):
             if len(landmarks) != len(self.videos):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             self.detector, self.landmarks = None, tuple(landmarks)
-        self.epoch = 0
-        self._warned_distributed = False
+        self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
@@ -257,9 +307,24 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if "_shared" not in state:  # pickled before the shared state existed
+            state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))
+        self.__dict__.update(state)
+
+    @property
+    def epoch(self) -> int:
+        """The epoch that seeds the shuffling (:meth:`set_epoch`)."""
+        return int(self._shared[_EPOCH])
+
+    @epoch.setter
+    def epoch(self, epoch: int) -> None:
+        self._shared[_EPOCH] = int(epoch)
+
     def set_epoch(self, epoch: int) -> None:
-        """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration; with
-        ``persistent_workers=True`` the workers keep the epoch they started with)."""
+        """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
+        ``DataLoader`` workers' copies of the dataset share it, so ``persistent_workers=True`` workers shuffle
+        each epoch anew too."""
         self.epoch = int(epoch)
 
     @property
@@ -302,6 +367,13 @@ class VideoDataset(IterableDataset):
             group = getattr(self, "_sender_group", None)  # (absent from a dataset pickled before it existed)
         return (0, 1) if group is None else group
 
+    def _epoch_order(self) -> list[int]:
+        """The video indices in this epoch's order (permuted each epoch with ``shuffle_buffer > 0``)."""
+        order = list(range(len(self.videos)))
+        if self.config.shuffle_buffer > 0:
+            random.Random(f"videos:{self.config.seed}:{self.epoch}").shuffle(order)
+        return order
+
     def worker_videos(self, worker_id: int, num_workers: int, rank: int = 0, world_size: int = 1) -> list[int]:
         """Indices of the videos worker ``worker_id`` of ``num_workers`` on rank ``rank`` of ``world_size``
         handles, in this epoch's order: ``i % world_size == rank`` and ``(i // world_size) % num_workers ==
@@ -314,10 +386,57 @@ class VideoDataset(IterableDataset):
         for name, value, count in (("worker_id", worker_id, num_workers), ("rank", rank, world_size)):
             if not 0 <= value < count:
                 raise ValueError(f"{name} must be in [0, {count}), got {value}")
-        order = list(range(len(self.videos)))
-        if self.config.shuffle_buffer > 0:
-            random.Random(f"videos:{self.config.seed}:{self.epoch}").shuffle(order)
-        return [i for i in order if i % world_size == rank and (i // world_size) % num_workers == worker_id]
+        return [
+            i for i in self._epoch_order() if i % world_size == rank and (i // world_size) % num_workers == worker_id
+        ]
+
+    def num_items(self, index: int) -> int:
+        """Items of video ``index`` (:func:`clip_bounds` of its frame count), counted without tracking: an image
+        folder's images, a ``.npy`` array's length, a video file's frames decoded through (a container's stated
+        count can be approximate). Remembered by the dataset, for its copies in ``DataLoader`` workers too (shared
+        memory): each video is counted once, by the first process that needs it.
+
+        Raises:
+            torchface.io.InputError: the video cannot be read (the message names the file).
+        """
+        if not 0 <= index < len(self.videos):
+            raise IndexError(f"video {index} out of range for {len(self.videos)} videos")
+        counts = self._shared[_COUNTS:]
+        if int(counts[index]) < 0:
+            c = self.config
+            frames = _count_frames(self.videos[index], c.convert)
+            counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
+        return int(counts[index])
+
+    def count_items(self) -> list[int]:
+        """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch)."""
+        return [self.num_items(i) for i in range(len(self.videos))]
+
+    def _balanced_count(self, worker_id: int, num_workers: int, world_size: int) -> int | None:
+        """Items every rank's worker ``worker_id`` yields under :attr:`DatasetConfig.rank_balance`; None when the
+        ranks are not balanced (one rank, or ``UNEVEN``)."""
+        if world_size == 1 or self.config.rank_balance is RankBalance.UNEVEN:
+            return None
+        per_rank = [
+            sum(self.num_items(i) for i in self.worker_videos(worker_id, num_workers, r, world_size))
+            for r in range(world_size)
+        ]
+        return max(per_rank) if self.config.rank_balance is RankBalance.PAD else min(per_rank)
+
+    def worker_items(self, worker_id: int, num_workers: int, rank: int = 0, world_size: int = 1) -> int:
+        """Items worker ``worker_id`` of ``num_workers`` on rank ``rank`` of ``world_size`` yields in an epoch: its
+        videos' items (:meth:`worker_videos`), or with ``world_size > 1`` the count :attr:`DatasetConfig.rank_balance`
+        gives every rank's worker ``worker_id`` (module docstring, "Sharding"). Counted without tracking
+        (:meth:`num_items`). A rank's batches per epoch are ``sum(ceil(worker_items(w, ...) / batch_size))`` over its
+        workers (a ``DataLoader`` batches each worker's items separately).
+
+        Example:
+            >>> # three 6-frame videos, 2 ranks, 2 workers: rank 1's worker 1 has no video, and repeats 6 items (PAD)
+            >>> # [data.worker_items(w, 2, r, 2) for r in range(2) for w in range(2)] -> [6, 6, 6, 6]
+        """
+        own = self.worker_videos(worker_id, num_workers, rank, world_size)
+        target = self._balanced_count(worker_id, num_workers, world_size)
+        return sum(self.num_items(i) for i in own) if target is None else target
 
     def _first_landmarks(self, index: int, first: Tensor, content: str) -> np.ndarray:
         """``(68, 2)`` float64 landmarks of video ``index``, validated against its first frame."""
@@ -403,8 +522,10 @@ class VideoDataset(IterableDataset):
             cache.store(key, sequence, source=str(path), config=self.config.tracking)
         return sequence, False
 
-    def _items(self, index: int, rng: random.Random | None) -> Iterator[dict[str, Tensor]]:
-        sequence, cached = self.sequence(index)
+    def _items(
+        self, index: int, rng: random.Random | None, tracked: tuple[TrackedSequence, bool] | None = None
+    ) -> Iterator[dict[str, Tensor]]:
+        sequence, cached = self.sequence(index) if tracked is None else tracked
         c = self.config
         bounds = clip_bounds(sequence.num_frames, c.clip_length, c.clip_stride, c.keep_short_clips)
         if rng is not None:
@@ -417,38 +538,103 @@ class VideoDataset(IterableDataset):
             item["cached"] = flag.clone()
             yield item
 
+    def _balanced_items(
+        self, videos: list[int], target: int, slot: list[int], rng: random.Random | None
+    ) -> Iterator[dict[str, Tensor]]:
+        """Exactly ``target`` items: those of ``videos`` (cut at ``target``), then repeated from the first of them
+        with items (or, if none has, of the worker's videos on every rank, ``slot``) up to ``target``."""
+        count = 0
+        short = target - sum(self.num_items(i) for i in videos)
+        kept: dict[int, tuple[TrackedSequence, bool]] = {}  # the sequences to repeat: not tracked twice
+        for index in videos:
+            if count == target:
+                return
+            tracked = self.sequence(index)
+            if short > 0 and sum(self.num_items(i) for i in kept) < short:
+                kept[index] = tracked
+            for item in self._items(index, rng, tracked):
+                if count == target:
+                    return
+                yield item
+                count += 1
+        repeat = [i for i in videos if self.num_items(i) > 0] or [i for i in slot if self.num_items(i) > 0]
+        while count < target:
+            before = count
+            for index in repeat:
+                for item in self._items(index, rng, kept.get(index)):
+                    if count == target:
+                        return
+                    yield item
+                    count += 1
+            if count == before:  # (counted items the tracking did not give: nothing to repeat)
+                return
+
+    def _warn_distributed(self, rank: int, world: int) -> None:
+        """Warn once per dataset (and rank) when the group has more ranks than the dataset has videos."""
+        n, mode = len(self.videos), self.config.rank_balance
+        if n >= world or (rank < n and mode is not RankBalance.DROP) or int(self._shared[_WARNED]):
+            return
+        self._shared[_WARNED] = 1
+        if mode is RankBalance.DROP:
+            what = f"with RankBalance.DROP every rank yields no item (rank {rank} has no video)"
+        elif mode is RankBalance.PAD:
+            what = f"rank {rank} gets none and repeats items of other ranks' videos (tracking them again)"
+        else:
+            what = (f"rank {rank} gets none and yields no item (DDP training needs every rank to take the same "
+                    "number of steps: RankBalance.PAD)")  # fmt: skip
+        warnings.warn(
+            f"{type(self).__name__} has {n} videos for {world} torch.distributed ranks: {what}",
+            DistributedWarning,
+            stacklevel=3,
+        )
+
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
         rank, world = self.rank_and_world_size()
-        if rank >= len(self.videos) and not self._warned_distributed:
-            self._warned_distributed = True  # (a worker process warns once per epoch: its copy starts afresh)
-            warnings.warn(
-                f"{type(self).__name__} has {len(self.videos)} videos for {world} torch.distributed ranks: rank "
-                f"{rank} gets none and yields no item (DDP training needs every rank to take the same number of "
-                "steps)",
-                DistributedWarning,
-                stacklevel=2,
-            )
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        if worker == 0:  # (one worker per rank speaks for it)
+            self._warn_distributed(rank, world)
         videos = self.worker_videos(worker, workers, rank, world)
         size = self.config.shuffle_buffer
-        if size == 0:
-            for index in videos:
-                yield from self._items(index, None)
+        rng = None
+        if size > 0:
+            ranks = f":{rank}:{world}" if world > 1 else ""  # (one process: the seeds of before ranks were split)
+            rng = random.Random(f"items:{self.config.seed}:{self.epoch}:{worker}:{workers}{ranks}")
+        target = self._balanced_count(worker, workers, world)
+        if target is None:
+            items: Iterator[dict[str, Tensor]] = (item for index in videos for item in self._items(index, rng))
+        else:
+            slot = [i for i in self._epoch_order() if (i // world) % workers == worker]
+            items = self._balanced_items(videos, target, slot, rng)
+        if rng is None:
+            yield from items
             return
-        ranks = f":{rank}:{world}" if world > 1 else ""  # (one process: the seeds of before ranks were split)
-        rng = random.Random(f"items:{self.config.seed}:{self.epoch}:{worker}:{workers}{ranks}")
         buffer: list[dict[str, Tensor]] = []
-        for index in videos:
-            for item in self._items(index, rng):
-                if len(buffer) < size:
-                    buffer.append(item)
-                    continue
-                k = rng.randrange(size)
-                buffer[k], item = item, buffer[k]
-                yield item
+        for item in items:
+            if len(buffer) < size:
+                buffer.append(item)
+                continue
+            k = rng.randrange(size)
+            buffer[k], item = item, buffer[k]
+            yield item
         rng.shuffle(buffer)
         yield from buffer
+
+
+def _count_frames(path: Path, convert: bool) -> int:
+    """Frames of a video file, image folder or ``.npy`` array, read as :func:`torchface.io.open_frames` reads them
+    (and refused as it refuses them) but not converted: a video file is decoded through."""
+    with open_frames(path, convert=convert) as reader:
+        if reader.info.kind != "video":
+            return int(reader.info.num_frames or 0)  # (exact for images and arrays)
+    cap = cv2.VideoCapture(opencv_path(path))
+    try:
+        count = 0
+        while cap.grab():
+            count += 1
+        return count
+    finally:
+        cap.release()
 
 
 class FrameFolderDataset(VideoDataset):

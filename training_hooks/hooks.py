@@ -315,7 +315,9 @@ class TrackingQualityLogger:
     :meth:`update` adds a batch and returns that batch's statistics; :meth:`compute` gives the statistics of every
     frame since the last :meth:`reset` (means over frames, not means of batch means; the minimum over all).
     Under DDP each rank sees its own share of the items (:mod:`training_hooks.datasets`, "Sharding"):
-    ``compute(sync_dist=True)`` gives the statistics of every rank's frames together.
+    ``compute(sync_dist=True)`` gives the statistics of every rank's frames together (items a rank repeats to
+    balance the ranks' counts, :class:`~training_hooks.datasets.RankBalance` ``PAD``, count again, as with a
+    ``DistributedSampler``).
 
     Example:
         >>> log = TrackingQualityLogger()

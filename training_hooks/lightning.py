@@ -121,8 +121,9 @@ class TrackedFaceDataModule(pl.LightningDataModule):
 
     Distributed (DDP) training: each rank's loaders yield that rank's share of the videos (video ``i`` -> rank
     ``i % world_size``, :mod:`training_hooks.datasets`, "Sharding"; the datasets are iterable, so Lightning adds no
-    ``DistributedSampler``). The ranks' batch counts differ unless the videos split evenly: set the trainer's
-    ``limit_train_batches`` to the smallest rank's count.
+    ``DistributedSampler``), and every rank the same number of batches (:attr:`DatasetConfig.rank_balance
+    <training_hooks.datasets.DatasetConfig.rank_balance>`, ``PAD`` by default), as ``num_workers`` is the same on
+    every rank.
     """
 
     def __init__(

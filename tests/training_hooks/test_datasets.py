@@ -239,6 +239,24 @@ def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     assert_items_equal(plain, collect(shuffled, 2), skip=("cached",))
 
 
+def test_set_epoch_reaches_persistent_workers(clips, config):
+    """persistent_workers=True: the workers kept the epoch of the dataset they were started with, so every epoch
+    was shuffled as the first. Now they share the dataset's epoch: each epoch's order is the one the dataset gives
+    in the main process for that epoch (1 worker: the same seeds)."""
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    shuffled = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
+    expected = []
+    for epoch in range(2):
+        shuffled.set_epoch(epoch)
+        expected.append([(int(i["video"]), int(i["frame"])) for i in shuffled])
+    assert expected[0] != expected[1]
+    loader = DataLoader(shuffled, batch_size=None, num_workers=1, persistent_workers=True)
+    for epoch in range(2):
+        shuffled.set_epoch(epoch)
+        assert [(int(i["video"]), int(i["frame"])) for i in loader] == expected[epoch]
+
+
 # --------------------------------------------------------------------------------------------- exceptions
 
 
@@ -448,3 +466,17 @@ def test_track_sequence_takes_its_models_landmark_count(clips):
     assert bool(sequence.success.all())
     with pytest.raises(ValueError, match=r"\(51, 2\) points, the model's landmarks"):
         track_sequence(frames, clips[0].landmarks, TRACKING, inner, normaliser)
+
+
+def test_a_dataset_pickled_without_the_shared_state_still_loads(clips, config):
+    """A dataset pickled before the epoch, warning flag and item counts were shared (its epoch a plain attribute)
+    unpickles with its epoch and counts its items."""
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    state = data.__getstate__()
+    del state["_shared"]
+    state["epoch"] = 3
+    old = VideoDataset.__new__(VideoDataset)
+    old.__setstate__(state)
+    assert old.epoch == 3 and old.count_items() == [FRAMES]
+    old.set_epoch(4)
+    assert old.epoch == 4 and data.epoch == 0

@@ -8,14 +8,26 @@ import pickle
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
+import cv2
+import numpy as np
 import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 from torch.utils.data import DataLoader
 
-from training_hooks import DatasetConfig, DistributedWarning, TrackingQualityLogger, VideoDataset
+import training_hooks.datasets
+from torchface.synth.io import read_video_uint8
+from training_hooks import (
+    DatasetConfig,
+    DistributedWarning,
+    FrameFolderDataset,
+    RankBalance,
+    TrackingQualityLogger,
+    VideoDataset,
+)
 
 from th_data import FRAMES, TRACKING
 
@@ -39,12 +51,14 @@ def keyed(loader) -> dict[tuple[int, int], dict[str, torch.Tensor]]:
 def _rank(rank: int, init_file: str, videos: list[str], landmarks: list, out_dir: str) -> None:
     """One rank: its frame items tracked in 2 forked DataLoader workers (they inherit the group), its clip items
     read back from the cache by 1 spawned worker (no group there: the dataset pickled by the rank carries its
-    rank), its quality logger, and the (rank, world size) of copies of the dataset unpickled outside the group."""
+    rank), both without balancing (RankBalance.UNEVEN); the batches of the default, balanced dataset; its quality
+    logger, and the (rank, world size) of copies of the dataset unpickled outside the group."""
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=WORLD)
     out: dict[str, object] = {}
     try:
-        config = DatasetConfig(tracking=TRACKING, cache_dir=Path(out_dir) / "cache")
+        balanced = DatasetConfig(tracking=TRACKING, cache_dir=Path(out_dir) / "cache")
+        config = replace(balanced, rank_balance=RankBalance.UNEVEN)
         data = VideoDataset(videos, landmarks, config)
         clip_data = VideoDataset(videos, landmarks, replace(config, **CLIPS))
         with warnings.catch_warnings():
@@ -52,6 +66,8 @@ def _rank(rank: int, init_file: str, videos: list[str], landmarks: list, out_dir
             out["frames"] = keyed(DataLoader(data, batch_size=None, num_workers=2, multiprocessing_context="fork"))
             spawned = DataLoader(clip_data, batch_size=None, num_workers=1, multiprocessing_context="spawn")
             out["clips"] = keyed(spawned)
+            loader = DataLoader(VideoDataset(videos, landmarks, balanced), batch_size=4, num_workers=2)
+            out["batches"] = [{k: b[k] for k in b if k != "cached"} for b in loader]
         log = TrackingQualityLogger()
         items = list(out["frames"].values())
         for start in range(0, len(items), 4):
@@ -130,6 +146,24 @@ def test_a_dataset_pickled_in_the_group_keeps_its_rank_where_no_group_is_initial
     assert [r["fresh_group"] for r in ddp_run] == [(0, 1), (0, 1)]
 
 
+def test_balanced_ranks_take_the_same_number_of_batches(ddp_run, single):
+    """The default RankBalance.PAD: rank 0's workers have 6 frames each (videos 0 and 2), rank 1's worker 0 has
+    6 (video 1) and its worker 1 none, so rank 1 took 2 batches of 4 fewer than rank 0 and a DDP loop hung. Now
+    rank 1's worker 1 repeats video 2 (its worker's video on rank 0): the same batches on both ranks, every item
+    equal to the single-process one."""
+    assert [[len(b["frame"]) for b in r["batches"]] for r in ddp_run] == [[4, 4, 2, 2]] * 2
+    seen = set()
+    for run in ddp_run:
+        for batch in run["batches"]:
+            for j in range(len(batch["frame"])):
+                k = (int(batch["video"][j]), int(batch["frame"][j]))
+                seen.add(k)
+                for name, value in batch.items():
+                    assert torch.equal(value[j], single["frames"][k][name]), f"item {k}: {name} differs"
+    assert seen == set(single["frames"])
+    assert sorted({int(v) for b in ddp_run[1]["batches"] for v in b["video"]}) == [1, 2]
+
+
 def test_tracking_quality_logger_syncs_the_epoch_over_the_ranks(ddp_run, single):
     """compute(sync_dist=True) gives the statistics of every rank's frames (the single-process epoch's); compute()
     stays the rank's own."""
@@ -161,20 +195,172 @@ def test_worker_videos_of_ranks_and_workers(clips, config):
 
 
 def test_a_rank_without_a_video_warns_once(clips, config, monkeypatch):
-    """Fewer videos than ranks: rank 3 of 4 yields nothing and says so (DistributedWarning), once per dataset;
-    with shard_ranks=False every rank yields every item, without a warning."""
+    """Fewer videos than ranks (3 for 4): rank 3 has none. It repeats video 0's frames (PAD, the default: the
+    count of the fullest rank) and says so (DistributedWarning), once per dataset; with DROP every rank yields
+    nothing and says so; with shard_ranks=False every rank yields every item, without a warning."""
     monkeypatch.setattr(torch.distributed, "is_available", lambda: True)
     monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
     monkeypatch.setattr(torch.distributed, "get_world_size", lambda group=None: 4)
     monkeypatch.setattr(torch.distributed, "get_rank", lambda group=None: 3)
     videos, landmarks = [c.video for c in clips], [c.landmarks for c in clips]
     data = VideoDataset(videos, landmarks, replace(config, cache_dir=None))
+    drop = VideoDataset(videos, landmarks, replace(config, cache_dir=None, rank_balance=RankBalance.DROP))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        assert list(data) == [] and list(data) == []
-    assert [type(w.message) for w in caught] == [DistributedWarning]
-    assert "rank 3 gets none" in str(caught[0].message)
+        assert [(int(it["video"]), int(it["frame"])) for it in data] == [(0, t) for t in range(FRAMES)]
+        assert len(list(data)) == FRAMES
+        assert list(drop) == []
+        monkeypatch.setattr(torch.distributed, "get_rank", lambda group=None: 0)
+        assert list(drop) == []  # (rank 0 too, without a second warning)
+    assert [type(w.message) for w in caught] == [DistributedWarning] * 2
+    assert "rank 3 gets none and repeats items" in str(caught[0].message)
+    assert "with RankBalance.DROP every rank yields no item (rank 3 has no video)" in str(caught[1].message)
     one = VideoDataset(videos[:1], landmarks[:1], replace(config, cache_dir=None, shard_ranks=False))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(list(one)) == FRAMES
+
+
+# --------------------------------------------------------------------------------------------- equal counts (simulated)
+
+
+LENGTHS = (6, 2, 5, 3, 4)  # rank 0 of 2: videos 0, 4 (worker 0) and 2 (worker 1); rank 1: 1 (worker 0) and 3
+
+
+@pytest.fixture
+def uneven(clips, tmp_path) -> tuple[list[Path], list]:
+    """Five .npy videos of LENGTHS frames (the first frames of the rendered clips)."""
+    videos, landmarks = [], []
+    for i, n in enumerate(LENGTHS):
+        clip = clips[i % len(clips)]
+        path = tmp_path / f"v{i}.npy"
+        np.save(path, read_video_uint8(clip.video, n).permute(0, 2, 3, 1).numpy())
+        videos.append(path)
+        landmarks.append(clip.landmarks)
+    return videos, landmarks
+
+
+def simulate(monkeypatch, rank: int, world: int, worker: int = 0, workers: int | None = None) -> None:
+    """Make the datasets see rank `rank` of a `world`-rank group, inside DataLoader worker `worker` of `workers`
+    (None: the real workers of a DataLoader, or the calling process)."""
+    monkeypatch.setattr(torch.distributed, "is_available", lambda: True)
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.distributed, "get_world_size", lambda group=None: world)
+    monkeypatch.setattr(torch.distributed, "get_rank", lambda group=None: rank)
+    info = SimpleNamespace(id=worker, num_workers=workers)
+    real = torch.utils.data.get_worker_info
+    monkeypatch.setattr(training_hooks.datasets, "get_worker_info", real if workers is None else lambda: info)
+
+
+def epoch(data, monkeypatch, rank: int, world: int, workers: int) -> list[list[tuple[int, int]]]:
+    """(video, frame) of the items each worker of simulated rank `rank` yields."""
+    out = []
+    for worker in range(workers):
+        simulate(monkeypatch, rank, world, worker, workers)
+        out.append([(int(it["video"]), int(it["frame"])) for it in data])
+    return out
+
+
+def test_ranks_yield_equal_counts_per_worker_by_default(uneven, config, monkeypatch):
+    """Videos of 6, 2, 5, 3 and 4 frames on 2 ranks x 2 workers: rank 0's workers had 10 and 5 items, rank 1's 2
+    and 3, so a DDP loop hung after rank 1's last batch. Now (RankBalance.PAD, the default) each worker yields as
+    many as the same worker of the fullest rank, repeating its own items from its first video on; every item
+    equals the single-process one and the union is every item; batch counts are equal in a real DataLoader."""
+    videos, landmarks = uneven
+    reference = {(int(it["video"]), int(it["frame"])): it for it in VideoDataset(videos, landmarks, config)}
+    data = VideoDataset(videos, landmarks, config)
+    assert data.config.rank_balance is RankBalance.PAD
+    ranks = [epoch(data, monkeypatch, r, 2, 2) for r in range(2)]
+    assert [[len(w) for w in r] for r in ranks] == [[10, 5], [10, 5]]
+    assert ranks[0] == [[(0, t) for t in range(6)] + [(4, t) for t in range(4)], [(2, t) for t in range(5)]]
+    assert ranks[1] == [[(1, t % 2) for t in range(10)], [(3, 0), (3, 1), (3, 2), (3, 0), (3, 1)]]
+    assert {k for r in ranks for w in r for k in w} == set(reference)
+    assert [data.worker_items(w, 2, r, 2) for r in range(2) for w in range(2)] == [10, 5, 10, 5]
+    # the items themselves: the repeated ones equal the originals (rank 1, worker 0, read from the cache)
+    simulate(monkeypatch, 1, 2, 0, 2)
+    for it in data:
+        k = (int(it["video"]), int(it["frame"]))
+        assert all(torch.equal(it[name], reference[k][name]) for name in it if name != "cached")
+    # a real DataLoader (2 forked workers, which inherit the simulated group): equal batch counts. The workers
+    # count the videos' frames for the first epoch only: the counts reach the dataset and the next workers.
+    fresh = VideoDataset(videos, landmarks, config)
+    batches = []
+    for rank in range(2):
+        simulate(monkeypatch, rank, 2)
+        loader = DataLoader(fresh, batch_size=4, num_workers=2, multiprocessing_context="fork")
+        batches.append([len(b["frame"]) for b in loader])
+        monkeypatch.setattr(training_hooks.datasets, "_count_frames", None)  # (counting again would fail)
+    assert batches[0] == batches[1] == [4, 4, 4, 1, 2]  # per worker: 10 = 4 + 4 + 2, 5 = 4 + 1
+    assert fresh.count_items() == list(LENGTHS)
+
+
+def test_drop_and_uneven_rank_balance(uneven, config, monkeypatch):
+    """RankBalance.DROP: each worker yields as few as the same worker of the emptiest rank (the first ones of its
+    own); UNEVEN: the rank's own items, as before."""
+    videos, landmarks = uneven
+    drop = VideoDataset(videos, landmarks, replace(config, rank_balance=RankBalance.DROP))
+    assert [epoch(drop, monkeypatch, r, 2, 2) for r in range(2)] == [
+        [[(0, 0), (0, 1)], [(2, 0), (2, 1), (2, 2)]],
+        [[(1, 0), (1, 1)], [(3, 0), (3, 1), (3, 2)]],
+    ]
+    assert drop.stats.videos == 4  # video 4 (rank 0, worker 0, after its first 2 items) was not even read
+    keep = VideoDataset(videos, landmarks, replace(config, rank_balance=RankBalance.UNEVEN))
+    assert [[len(w) for w in epoch(keep, monkeypatch, r, 2, 2)] for r in range(2)] == [[10, 5], [2, 3]]
+    # one process (no group): never balanced, every item once
+    simulate(monkeypatch, 0, 1)
+    assert len(list(drop)) == sum(LENGTHS)
+    with pytest.raises(TypeError, match="rank_balance"):
+        DatasetConfig(rank_balance="pad")
+
+
+def test_item_counts_without_tracking(clips, uneven, config, tmp_path, monkeypatch):
+    """num_items counts a video file's, a folder's and an array's items without tracking; clip settings apply. A
+    rank whose video has no clip (2 frames, clips of 3) repeats those of its worker's videos on other ranks."""
+    videos, landmarks = uneven
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for t, frame in enumerate(read_video_uint8(clips[0].video)):
+        cv2.imwrite(str(folder / f"{t}.png"), frame.permute(1, 2, 0).numpy()[..., ::-1])
+    data = VideoDataset([clips[0].video, *videos], [clips[0].landmarks, *landmarks], config)
+    assert data.count_items() == [FRAMES, *LENGTHS] and data.stats.videos == 0
+    clip_data = VideoDataset(videos, landmarks, replace(config, clip_length=3, clip_stride=2))
+    assert clip_data.count_items() == [2, 0, 2, 1, 1]
+    simulate(monkeypatch, 1, 5)  # one video per rank: rank 1's has no clip, the fullest rank's 2
+    assert [(int(it["video"]), int(it["frame"][0])) for it in clip_data] == [(0, 0), (0, 2)]
+    assert FrameFolderDataset([folder], [clips[0].landmarks], config).count_items() == [FRAMES]
+
+
+def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, monkeypatch, tmp_path):
+    """Fewer videos than ranks: a DistributedWarning used to come from every DataLoader worker of the rank, in
+    every epoch (each worker's copy of the dataset started afresh): 4 for 2 workers and 2 epochs. Now once per
+    dataset: worker 0 warns, and the flag it sets is shared with the rank's dataset and the later workers' copies."""
+    videos, landmarks = [c.video for c in clips[:1]], [clips[0].landmarks]
+    data = VideoDataset(videos, landmarks, replace(config, rank_balance=RankBalance.UNEVEN))
+    simulate(monkeypatch, 1, 2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert list(data) == []
+        assert list(data) == []
+    assert [str(w.message) for w in caught] == [
+        "VideoDataset has 1 videos for 2 torch.distributed ranks: rank 1 gets none and yields no item (DDP training "
+        "needs every rank to take the same number of steps: RankBalance.PAD)"
+    ]
+    log = tmp_path / "warnings.txt"
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # (also in the forked workers)
+        with open(log, "a") as f:
+            f.write(f"{category.__name__}: {message}\n")
+
+    fresh = VideoDataset(videos, landmarks, config)  # PAD: rank 1 repeats video 0's frames
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = show
+        for _ in range(2):  # two epochs of 2 forked workers
+            loader = DataLoader(fresh, batch_size=None, num_workers=2, multiprocessing_context="fork")
+            assert len(list(loader)) == FRAMES
+        assert len(list(fresh)) == FRAMES  # and in the rank's own process
+    assert int(fresh._shared[training_hooks.datasets._WARNED]) == 1  # set in a worker, seen by the rank's dataset
+    assert log.read_text().splitlines() == [
+        "DistributedWarning: VideoDataset has 1 videos for 2 torch.distributed ranks: rank 1 gets none and repeats "
+        "items of other ranks' videos (tracking them again)"
+    ]
