@@ -1199,3 +1199,33 @@ def test_a_compiled_track_step_runs_the_torch_code():
     out = subprocess.run([sys.executable, "-c", _COMPILED_STEP], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
     assert "DIFF 0.0" in out.stdout, out.stdout
+
+
+def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
+    """The default pyramid is made for the 640x480 scenarios' faces (160-200 pixels); larger faces get coarser levels
+    (the coarsest level's iterations), a batch its smallest face's, as many as the frame's size allows."""
+    from torchface.tracker import pyramid_for_faces
+
+    def faces(*sides):  # two landmarks per stream spanning a side x side box, and a missing one
+        rows = [[[10.0, 20.0], [10.0 + s, 20.0 + 0.5 * s], [float("nan"), float("nan")]] for s in sides]
+        return torch.tensor(rows)
+
+    base = TrackerConfig()
+    assert pyramid_for_faces(base, faces(200.0), (480, 640)) is base  # the standard scenarios keep their pyramid
+    assert pyramid_for_faces(base, faces(250.0), (720, 1280)) is base
+    four = pyramid_for_faces(base, faces(380.0), (720, 1280))
+    assert (four.num_levels, four.iterations) == (4, (6, 6, 5, 4))
+    assert four.robust_scale_floor == base.robust_scale_floor and four.max_points == base.max_points
+    assert pyramid_for_faces(base, faces(570.0), (1080, 1920)).num_levels == 5
+    assert pyramid_for_faces(base, faces(1140.0), (2160, 3840)).num_levels == 6
+    assert pyramid_for_faces(base, faces(1140.0, 380.0), (2160, 3840)).num_levels == 4  # the smallest face decides
+    # as many as the frame allows (check_initialise_inputs: 3 * 2**(L - 2) pixels a side)
+    assert pyramid_for_faces(base, faces(1140.0), (40, 3840)).num_levels == 5  # 24 <= 40 < 48
+    assert pyramid_for_faces(base, faces(1140.0), (20, 3840)).num_levels == 4  # 12 <= 20 < 24
+    assert pyramid_for_faces(base, torch.full((1, 68, 2), float("nan")), (720, 1280)) is base  # no face: as given
+    custom = replace(base, num_levels=2, iterations=(7, 3))
+    assert pyramid_for_faces(custom, faces(380.0), (720, 1280)).iterations == (7, 7, 3)
+    with pytest.raises(TypeError, match="landmarks_px must be a torch.Tensor"):
+        pyramid_for_faces(base, [[0.0, 0.0]], (480, 640))
+    with pytest.raises(ValueError, match=r"landmarks_px must be \(B, K, 2\)"):
+        pyramid_for_faces(base, torch.zeros(68, 2), (480, 640))

@@ -668,6 +668,62 @@ def check_initialise_inputs(
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
 
+#: The face size :class:`TrackerConfig`'s pyramid is made for: the larger side, in pixels, of the first frame's
+#: landmark box in the 640x480 scenarios (160-200 pixels). :func:`pyramid_for_faces` adds coarser levels for larger
+#: faces.
+PYRAMID_REFERENCE_FACE_PX: float = 180.0
+
+
+def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[int, int]) -> TrackerConfig:
+    """``config`` with coarser pyramid levels added where the faces are larger than the pyramid is made for.
+
+    A frame-to-frame motion is followed when the coarsest level sees it as a few pixels, and a face's motion in
+    pixels grows with its size in the image: the same clip that is tracked at 640x360 was lost after two frames
+    at 1280x720 (13 mm a frame sideways at 450 mm, 37 pixels; 18 at 640x360) with the default three levels, and
+    tracked with four. One level is added per doubling of the face's size over
+    :data:`PYRAMID_REFERENCE_FACE_PX` (rounded: faces up to 255 pixels keep ``config``; a 1280x720 face at 450 mm,
+    380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
+    (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
+    floors stay those of the coarsest and the finest level. ``torchface track`` does this for every batch of
+    videos; :class:`~torchface.tracker.FaceTracker` and :func:`initialise` use the config as given.
+
+    Args:
+        config: the settings to extend.
+        landmarks_px: ``(B, K, 2)`` the first frames' landmarks in pixels (NaN rows: missing). The smallest face
+            of the batch decides (its streams share one pyramid): none is made smaller than the reference at the
+            coarsest level.
+        size: ``(H, W)`` of the frames.
+
+    Returns:
+        ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
+
+    Example:
+        >>> lm = torch.tensor([[[0.0, 0.0], [360.0, 380.0]]])  # a 380-pixel face (two of its landmarks)
+        >>> pyramid_for_faces(TrackerConfig(), lm, (720, 1280)).iterations
+        (6, 6, 5, 4)
+    """
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+    check_landmark_type(landmarks_px, "(B, K, 2)")
+    if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
+        raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
+    points = landmarks_px.detach().to(torch.float64)
+    seen = torch.isfinite(points).all(-1, keepdim=True)  # (B, K, 1)
+    lo = torch.where(seen, points, math.inf).amin(1)
+    hi = torch.where(seen, points, -math.inf).amax(1)
+    faces = (hi - lo).amax(-1)  # (B,) the larger side of each box; -inf or NaN without two points
+    faces = faces[torch.isfinite(faces) & (faces > 0)]
+    if faces.numel() == 0:
+        return config
+    extra = max(0, math.floor(math.log2(float(faces.min()) / PYRAMID_REFERENCE_FACE_PX) + 0.5))
+    while extra > 0 and min(size) < 3 * 2 ** (config.num_levels + extra - 2):  # pyr_down's 3 pixels a side
+        extra -= 1
+    if extra == 0:
+        return config
+    return replace(config, num_levels=config.num_levels + extra,
+                   iterations=(config.iterations[0],) * extra + tuple(config.iterations))  # fmt: skip
+
+
 def _layout(model: FaceModel) -> ParamLayout:
     return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
 
