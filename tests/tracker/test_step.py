@@ -1229,3 +1229,22 @@ def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
         pyramid_for_faces(base, [[0.0, 0.0]], (480, 640))
     with pytest.raises(ValueError, match=r"landmarks_px must be \(B, K, 2\)"):
         pyramid_for_faces(base, torch.zeros(68, 2), (480, 640))
+
+
+def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
+    """The size errors said H x W where everything else (README, job, io) says W x H: a tracker of 320x240 frames
+    handed a portrait 240x320 one read "frames must be 240x320 (the tracked size), got 320x240", the wrong way
+    round; at initialisation, with intrinsics of another size, it spoke of a tracked size when nothing was tracked."""
+    from torchface.normalise import NormalisedFace
+
+    frames, gts = two_streams
+    first = frames[:1, 0].float()
+    tracker = FaceTracker(BASE, refine_first=None)
+    tracker.initialise(first, landmarks_of(gts)[:1])
+    portrait = first.transpose(-1, -2).contiguous()  # (1, 3, 320, 240): 240 wide, 320 high
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the tracked size\), got 240x320"):
+        tracker(portrait)
+    with pytest.raises(ValueError, match=r"frames must be 640x480 \(W x H, the intrinsics' size\), got 320x240"):
+        FaceTracker(BASE, refine_first=None).initialise(first, landmarks_of(gts)[:1], Intrinsics.default(640, 480))
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the intrinsics' size\), got 240x320"):
+        NormalisedFace(tracker.model)(portrait, tracker.state)

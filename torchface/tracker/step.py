@@ -601,7 +601,8 @@ STEP_VALUE_ROW_STRIDE: int = 16
 
 
 def check_frames(
-    frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False, row_stride: int = 1
+    frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False, row_stride: int = 1,
+    size_of: str = "the tracked size",
 ) -> None:
     """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1].
 
@@ -611,7 +612,8 @@ def check_frames(
     them is a failed sample); infinite ones are refused. ``row_stride``: the values looked at are those of every
     ``row_stride``-th row (initialisation: 1, every pixel; the steps: :data:`STEP_VALUE_ROW_STRIDE`, a cheap look
     that a 0-255 frame does not pass, which leaves infinite pixels out too: a later frame's stray one is the robust
-    loss's to reject, as a NaN one is).
+    loss's to reject, as a NaN one is). ``size_of``: what ``intrinsics``' size is, for the message of frames of
+    another size.
     """
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
@@ -621,9 +623,11 @@ def check_frames(
             f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}{hint}"
         )
     if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
+        # W x H, as everywhere else (it said H x W: a tracker of 1920x1080 frames handed a portrait 1080x1920 frame
+        # read "frames must be 1080x1920 (the tracked size), got 1920x1080")
         raise ValueError(
-            f"frames must be {intrinsics.height}x{intrinsics.width} (the tracked size), got "
-            f"{frames.shape[-2]}x{frames.shape[-1]}"
+            f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, {size_of}), got "
+            f"{frames.shape[-1]}x{frames.shape[-2]}"
         )
     if values and frames.numel():
         seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
@@ -646,7 +650,7 @@ def check_initialise_inputs(
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
     check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
-    check_frames(frames, intrinsics, values=True)
+    check_frames(frames, intrinsics, values=True, size_of="the intrinsics' size")  # (nothing is tracked yet)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
