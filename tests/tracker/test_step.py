@@ -361,7 +361,7 @@ def test_result_fields(model, l2_runs):
 def test_track_step_rejects_bad_frames(model, two_streams, l2_runs):
     frames, _ = two_streams
     (_, states), _ = l2_runs
-    with pytest.raises(ValueError, match="240x320"):
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the tracked size\), got 160x120"):
         track_step(model, L2, states[0], frames[:, 1, :, :120, :160])
     with pytest.raises(ValueError, match="one per stream"):
         track_step(model, L2, states[0], frames[:1, 1])
@@ -424,7 +424,7 @@ def test_face_tracker_module(model, two_streams, l2_runs):
     assert tracker.state.frame_index == 2
     res = tracker.step(frames[:, 2])
     torch.testing.assert_close(res.axis_angle, results[2].axis_angle)
-    with pytest.raises(ValueError, match="240x320"):
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the tracked size\), got 160x120"):
         tracker(frames[:, 3, :, :120, :160])
     with pytest.raises(ValueError, match="one per stream"):
         tracker(frames[:1, 3])
@@ -1248,3 +1248,25 @@ def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
         FaceTracker(BASE, refine_first=None).initialise(first, landmarks_of(gts)[:1], Intrinsics.default(640, 480))
     with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the intrinsics' size\), got 240x320"):
         NormalisedFace(tracker.model)(portrait, tracker.state)
+
+
+@pytest.mark.parametrize(
+    "make, hint",
+    [
+        (lambda f: to_gray(f)[0, 0], r"one gray frame: frames\[None, None\]"),
+        (lambda f: to_gray(f)[:, 0], r"gray frames \(B, H, W\): frames\[:, None\]"),
+        (lambda f: f.permute(0, 2, 3, 1), r"channels last \(B, H, W, C\): frames.permute\(0, 3, 1, 2\)"),
+        (lambda f: torch.cat([f, torch.ones_like(f[:, :1])], 1), r"RGBA: drop the alpha, frames\[:, :3\]"),
+        (lambda f: (f * 65535).round().to(torch.uint16), r"16-bit frames: pass frames.float\(\) / 65535"),
+        (lambda f: (f * 255).round().to(torch.uint8), r"uint8 frames: pass frames.float\(\) / 255"),
+    ],
+    ids=["HW", "BHW", "BHWC", "RGBA", "uint16", "uint8"],
+)
+def test_refused_frames_say_how_to_make_them(two_streams, make, hint):
+    """Gray (H, W) or (B, H, W), channels-last, RGBA and 16-bit frames were refused with "frames must be (B, 3, H,
+    W) float in [0, 1], got ..." alone (only uint8 had a hint), which also left out the (B, 1, H, W) gray frames
+    that are accepted."""
+    frames, gts = two_streams
+    bad = make(frames[:1, 0].float())
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float in \[0, 1\], got .*" + hint):
+        FaceTracker(BASE, refine_first=None).initialise(bad, landmarks_of(gts)[:1])

@@ -600,6 +600,29 @@ FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 STEP_VALUE_ROW_STRIDE: int = 16
 
 
+def _frame_hint(frames: Tensor) -> str:
+    """How to make refused frames ``(B, 3, H, W)`` / ``(B, 1, H, W)`` float in [0, 1] (:func:`check_frames`'s
+    message; empty where nothing is to say): a missing batch or channel dimension, channels last, RGBA, integer
+    pixels (uint16 was refused without one, uint8 had one)."""
+    hints = []
+    shape = tuple(frames.shape)
+    if frames.dim() == 2:
+        hints.append("one gray frame: frames[None, None]")
+    elif frames.dim() == 3:
+        hints.append("one frame (C, H, W): frames[None]; gray frames (B, H, W): frames[:, None]")
+    elif frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        hints.append("channels last (B, H, W, C): frames.permute(0, 3, 1, 2)")
+    elif frames.dim() == 4 and shape[1] == 4:
+        hints.append("RGBA: drop the alpha, frames[:, :3]")
+    if frames.dtype == torch.uint8:
+        hints.append("uint8 frames: pass frames.float() / 255")
+    elif frames.dtype == torch.uint16:
+        hints.append("16-bit frames: pass frames.float() / 65535")
+    elif not frames.is_floating_point():
+        hints.append("convert them to float in [0, 1]")
+    return f" ({'; '.join(hints)})" if hints else ""
+
+
 def check_frames(
     frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False, row_stride: int = 1,
     size_of: str = "the tracked size",
@@ -618,9 +641,9 @@ def check_frames(
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
-        hint = " (uint8 frames: pass frames.float() / 255)" if frames.dtype == torch.uint8 else ""
         raise ValueError(
-            f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}{hint}"
+            f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
+            f"{frames.dtype}{_frame_hint(frames)}"
         )
     if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
         # W x H, as everywhere else (it said H x W: a tracker of 1920x1080 frames handed a portrait 1080x1920 frame
