@@ -1,7 +1,8 @@
 """The tracking job behind ``torchface track``: videos in, per-video CSV, JSON, overlay, plot and normalised face out.
 
-:func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
-into batches of up to ``JobConfig.max_batch`` (tracked together as B streams by
+:func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size (and
+pyramid, :func:`~torchface.tracker.step.pyramid_for_faces`) into batches of up to ``JobConfig.max_batch`` and
+:data:`BATCH_PIXELS` (tracked together as B streams by
 :func:`torchface.tracker.managed_step`; only one batch's inputs are open at a time; a video that has ended leaves
 the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on as a smaller one), and writes per video
 (``<stem>`` is the input's file name without suffix):
@@ -92,6 +93,11 @@ __all__ = [
     "track_videos",
 ]
 
+#: The most pixels of one frame per stream a batch holds (``max_batch`` 640x480 videos' worth): a batch of 4K videos
+#: takes about 0.6 GB per video (measured, one 3840x2160 video 1.1 GB at its peak, two 1.7 GB), so 128 of them at
+#: once did not fit in memory; they are tracked 4 at a time (1920x1080: 18), which leaves their results as they were.
+BATCH_PIXELS: int = 128 * 640 * 480
+
 #: Credit line of the embedded demo clip.
 DEMO_ATTRIBUTION: str = (
     "GRID audio-visual corpus clip bbaf2n (speaker 1), Cooke, Barker, Cunningham and Shao (2006), CC BY 4.0"
@@ -132,7 +138,8 @@ class JobConfig:
             tracked in several batches, one after another). Every video of a batch is open and in memory at once
             (about four open files each: its input, its CSV and the two videos being written): a run over 1000
             videos of one size held them all, and ran out of file descriptors at the usual ``ulimit -n`` of 1024
-            ("Too many open files"). The results do not depend on it (to float rounding:
+            ("Too many open files"). Batches of large frames hold fewer (:data:`BATCH_PIXELS`: 4 videos of
+            3840x2160). The results do not depend on it (to float rounding:
             3e-5 mm between one video tracked alone and in a batch of six).
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
@@ -819,10 +826,15 @@ def track_videos(
         _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
         model = load_candide3().to(device=torch.device(config.device))
-        groups: dict[tuple[int, int], list[int]] = {}
+        # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
+        # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
+        groups: dict[tuple[int, int, int], list[int]] = {}
         for i, s in enumerate(streams):
-            groups.setdefault((s.reader.info.height, s.reader.info.width), []).append(i)
-        batches = [m[i : i + config.max_batch] for m in groups.values() for i in range(0, len(m), config.max_batch)]
+            H, W = s.reader.info.height, s.reader.info.width
+            levels = pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
+            groups.setdefault((H, W, levels), []).append(i)
+        batches = [m[i : i + n] for (H, W, _), m in groups.items()
+                   for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
         for members in batches:
             batch = [streams[i] for i in members]
             _reopen(batch, config.convert)

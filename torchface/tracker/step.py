@@ -711,8 +711,9 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     :data:`PYRAMID_REFERENCE_FACE_PX` (rounded: faces up to 255 pixels keep ``config``; a 1280x720 face at 450 mm,
     380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
     (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
-    floors stay those of the coarsest and the finest level. ``torchface track`` does this for every batch of
-    videos; :class:`~torchface.tracker.FaceTracker` and :func:`initialise` use the config as given.
+    floors stay those of the coarsest and the finest level. ``torchface track`` does this for every video (and
+    batches only videos of one pyramid); :class:`~torchface.tracker.FaceTracker` and :func:`initialise` use the
+    config as given.
 
     Args:
         config: the settings to extend.
