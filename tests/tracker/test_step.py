@@ -665,6 +665,9 @@ def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
         else:
             with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 5x5"):
                 initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
+    strip = frames[:, 0, :, :5, :]  # 320 wide, 5 high: the size W x H (it said "got 5x320")
+    with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 320x5 \(W x H\)"):
+        initialise(model, config, strip, lm, Intrinsics.default(W, 5))
 
 
 def test_initialise_names_intrinsics_that_are_not_a_camera(model, two_streams):

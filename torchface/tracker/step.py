@@ -680,7 +680,7 @@ def check_initialise_inputs(
     side = 3 * 2 ** (config.num_levels - 2) if config.num_levels > 1 else 1  # pyr_down needs 3 pixels a side
     if min(frames.shape[-2:]) < side:  # was pyr_down's "images must be ... H, W >= 3, got (B, 1, 2, 2)"
         raise ValueError(f"frames must be at least {side}x{side} pixels for num_levels = {config.num_levels}, "
-                         f"got {frames.shape[-2]}x{frames.shape[-1]}")  # fmt: skip
+                         f"got {frames.shape[-1]}x{frames.shape[-2]} (W x H)")  # fmt: skip
     check_landmark_type(landmarks_px, f"({B}, {K}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
         got = tuple(landmarks_px.shape)
