@@ -1,7 +1,8 @@
 """The tracking job behind ``torchface track``: videos in, per-video CSV, JSON, overlay, plot and normalised face out.
 
-:func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size
-into batches of up to ``JobConfig.max_batch`` (tracked together as B streams by
+:func:`track_videos` validates every input before any tracking starts, groups videos of the same frame size (and
+pyramid, :func:`~torchface.tracker.step.pyramid_for_faces`) into batches of up to ``JobConfig.max_batch`` and
+:data:`BATCH_PIXELS` (tracked together as B streams by
 :func:`torchface.tracker.managed_step`; only one batch's inputs are open at a time; a video that has ended leaves
 the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on as a smaller one), and writes per video
 (``<stem>`` is the input's file name without suffix):
@@ -77,7 +78,7 @@ from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, TrackStatus
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, TrackStatus, pyramid_for_faces
 from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
@@ -91,6 +92,11 @@ __all__ = [
     "output_paths",
     "track_videos",
 ]
+
+#: The most pixels of one frame per stream a batch holds (``max_batch`` 640x480 videos' worth): a batch of 4K videos
+#: takes about 0.6 GB per video (measured, one 3840x2160 video 1.1 GB at its peak, two 1.7 GB), so 128 of them at
+#: once did not fit in memory; they are tracked 4 at a time (1920x1080: 18), which leaves their results as they were.
+BATCH_PIXELS: int = 128 * 640 * 480
 
 #: Credit line of the embedded demo clip.
 DEMO_ATTRIBUTION: str = (
@@ -132,7 +138,8 @@ class JobConfig:
             tracked in several batches, one after another). Every video of a batch is open and in memory at once
             (about four open files each: its input, its CSV and the two videos being written): a run over 1000
             videos of one size held them all, and ran out of file descriptors at the usual ``ulimit -n`` of 1024
-            ("Too many open files"). The results do not depend on it (to float rounding:
+            ("Too many open files"). Batches of large frames hold fewer (:data:`BATCH_PIXELS`: 4 videos of
+            3840x2160). The results do not depend on it (to float rounding:
             3e-5 mm between one video tracked alone and in a batch of six).
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
@@ -819,10 +826,15 @@ def track_videos(
         _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
         model = load_candide3().to(device=torch.device(config.device))
-        groups: dict[tuple[int, int], list[int]] = {}
+        # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
+        # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
+        groups: dict[tuple[int, int, int], list[int]] = {}
         for i, s in enumerate(streams):
-            groups.setdefault((s.reader.info.height, s.reader.info.width), []).append(i)
-        batches = [m[i : i + config.max_batch] for m in groups.values() for i in range(0, len(m), config.max_batch)]
+            H, W = s.reader.info.height, s.reader.info.width
+            levels = pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
+            groups.setdefault((H, W, levels), []).append(i)
+        batches = [m[i : i + n] for (H, W, _), m in groups.items()
+                   for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
         for members in batches:
             batch = [streams[i] for i in members]
             _reopen(batch, config.convert)
@@ -1039,7 +1051,10 @@ def _track_group(
                 d.mkdir(parents=True, exist_ok=True)
         frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
-        fit = None if config.lookahead is None else _lookahead_fit(model, config, streams, lm, intr)
+        # The batch is tracked with coarser pyramid levels added for faces larger than the default pyramid is made
+        # for (HD and 4K video: pyramid_for_faces); the settings recorded and compared on --resume stay the user's.
+        run = replace(config, tracker=pyramid_for_faces(config.tracker, lm, (H, W)))
+        fit = None if config.lookahead is None else _lookahead_fit(model, run, streams, lm, intr)
         # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
         # from the landmark fit, not the online start its sidecar would not mention)
         online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
@@ -1048,7 +1063,7 @@ def _track_group(
         if anchored:  # resumed streams the interrupted run had re-anchored: start from their refined fits
             fit = fit_landmarks(model, lm, intr, config=config.tracker.fit) if fit is None else fit
             fit = _with_recorded_fits(fit, [(k, streams[k].anchor) for k in anchored])
-        state, result = initialise_managed(model, config.tracker, frames, lm, intr, fit=fit,
+        state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
                                            refine_first=config.refine_first if online else None)  # fmt: skip
         if anchored:
             state = _with_recorded_offsets(state, [(k, streams[k].anchor) for k in anchored])
@@ -1088,7 +1103,7 @@ def _track_group(
                 params[idx] = replayed
                 state = replace(state, params=params)
                 ended = [(k, live[k].replay) for k in idx if t == len(live[k].replay) - 1]
-                state = _with_replayed_loss(state, ended, columns, layout, config.tracker, live)
+                state = _with_replayed_loss(state, ended, columns, layout, run.tracker, live)
             new_rows = result_rows(result, np.full(len(live), t), 1.0)
             _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
                         normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
@@ -1138,7 +1153,7 @@ def _track_group(
             if all(s.replay is not None and t < len(s.replay) for s in live):
                 continue  # every live stream replays this frame from its CSV: nothing to track
             current.frames, current.asked = frames, set()
-            state, result = managed_step(model, config.tracker, state, frames, recover, donate=True)
+            state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
             _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
         _keep_final(state, live, layout, list(range(len(live))))
@@ -1151,7 +1166,8 @@ def _track_group(
     try:
         for s, p, mt in zip(streams, paths, mesh_tmp):
             if s.error is None:
-                summaries.append(_finalise(model, s, p, mt, config, streams, intr, t_init, t_track))
+                summaries.append(_finalise(model, s, p, mt, config, streams, intr, t_init, t_track,
+                                           run.tracker.num_levels))
             else:  # its rows so far stay in the partial CSV; nothing else of it is kept
                 _abandon(s)
                 summaries.append(None)
@@ -1208,10 +1224,11 @@ def _abandon(s: _Stream) -> None:
 
 def _finalise(
     model: FaceModel, s: _Stream, p: dict[str, Path], mt: Path, config: JobConfig, streams: list[_Stream],
-    intr: Intrinsics, t_init: float, t_track: float,
+    intr: Intrinsics, t_init: float, t_track: float, levels: int,
 ) -> VideoSummary:
     """Close one video's outputs under their final names, the JSON last (a CSV without its JSON is resumed as
-    partial), then remove its resume record."""
+    partial), then remove its resume record. ``levels``: the pyramid levels the batch was tracked with
+    (:func:`~torchface.tracker.step.pyramid_for_faces`)."""
     W, H, B = intr.width, intr.height, len(streams)
     s.csv.close()
     s.overlay.close()
@@ -1256,6 +1273,7 @@ def _finalise(
                   "shape_units": model.num_shape,
                   "shape_coeffs": s.final_shape},  # fmt: skip
         "start": _start_record(config, s),
+        "pyramid_levels": levels,
         "initial_landmarks_px": s.landmarks.tolist(),
         "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
         "frames": int(len(rows)),

@@ -2077,3 +2077,87 @@ def test_ended_videos_leave_the_batch_and_the_others_track_as_before(clip, tmp_p
         assert side["start"]["method"] == side_a["start"]["method"] == "online"
         assert side["start"]["reanchored_at_frame"] == side_a["start"]["reanchored_at_frame"]
         assert side["config"]["batch_streams"] == 3 and side["frames"] == len(rows)
+
+
+def _save_rendered(folder, w, h, distance_mm, move_mm, n=6):
+    """Render a CANDIDE-3 clip (10 degrees of yaw, ``move_mm`` sideways over ``n`` frames at ``distance_mm``) into
+    ``folder/clip.npy`` with its first landmarks in ``folder/lm.csv``; returns its ground truth."""
+    from torchface.geometry.camera import Intrinsics
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model.candide import load_candide3
+    from torchface.synth.background import BackgroundSpec
+    from torchface.synth.scenarios import default_light
+    from torchface.synth.sequence import SequenceSpec, render_sequence
+
+    s = torch.linspace(0.0, 1.0, n, dtype=torch.float64)[:, None]
+    spec = SequenceSpec(
+        name="clip", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(s * torch.tensor([10.0, 0.0, 0.0], dtype=torch.float64)),
+        translation=torch.tensor([0.0, 0.0, distance_mm], dtype=torch.float64) + s * torch.tensor(
+            [move_mm, 0.0, 0.0], dtype=torch.float64),
+        anim=torch.zeros(n, load_candide3().num_animation, dtype=torch.float64), light=default_light(n),
+        background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    folder.mkdir()
+    np.save(folder / "clip.npy", (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    np.savetxt(folder / "lm.csv", gt.landmarks_px[0].numpy(), delimiter=",", header="x,y", comments="")
+    return gt
+
+
+def test_videos_of_one_size_with_other_pyramids_are_tracked_apart(tmp_path):
+    """A video's pyramid is its own face's (pyramid_for_faces): two 640x480 videos, one with a face of 330 pixels
+    (at 260 mm: four levels) and one of 190 (at 450 mm: three), are two batches, each with its own pyramid, and a
+    video's rows are those it has alone (batched together, the smaller face would have chosen for both)."""
+    for name, distance in (("near", 260.0), ("far", 450.0)):
+        _save_rendered(tmp_path / name, 640, 480, distance, 10.0, n=3)
+        os.replace(tmp_path / name / "clip.npy", tmp_path / name / f"{name}.npy")
+    near = [str(tmp_path / "near" / "near.npy"), "--landmarks", str(tmp_path / "near" / "lm.csv")]
+    far = [str(tmp_path / "far" / "far.npy"), "--landmarks", str(tmp_path / "far" / "lm.csv")]
+    assert main(["track", *near, "--out", str(tmp_path / "alone"), "--quiet", "--no-online-refine"]) == 0
+    assert main(["track", *near, *far, "--out", str(tmp_path / "both"), "--quiet", "--no-online-refine"]) == 0
+    side = {n: json.loads((tmp_path / "both" / f"{n}.json").read_text()) for n in ("near", "far")}
+    assert {n: (j["pyramid_levels"], j["config"]["batch_streams"]) for n, j in side.items()} == {
+        "near": (4, 1), "far": (3, 1)}  # fmt: skip
+    cols, alone = read_track_csv(tmp_path / "alone" / "near.csv")
+    pose = [cols.index(c) for c in ("pose_Rx", "pose_Ry", "pose_Tx", "pose_Tz")]
+    np.testing.assert_allclose(read_track_csv(tmp_path / "both" / "near.csv")[1][:, pose], alone[:, pose], atol=1e-4)
+
+
+def test_batches_of_large_frames_hold_fewer_videos(clip, tmp_path, monkeypatch):
+    """Batches were capped by count alone (128): 128 videos of 3840x2160 at about 0.6 GB each did not fit in memory.
+    They also hold at most BATCH_PIXELS (128 640x480 frames' worth); here a cap of two 160x120 frames."""
+    import torchface.job as job
+
+    video, lm, _ = clip
+    links = []
+    for k in range(3):
+        links.append(tmp_path / f"v{k}{video.suffix}")
+        links[-1].symlink_to(video)
+    monkeypatch.setattr(job, "BATCH_PIXELS", 2 * W * H + 1)
+    inputs = [a for link in links for a in (str(link), "--landmarks", str(lm))]
+    rc = main(["track", *inputs, "--out", str(tmp_path / "out"), "--quiet", "--no-online-refine"])
+    assert rc == 0
+    batch = [json.loads((tmp_path / "out" / f"v{k}.json").read_text())["config"]["batch_streams"] for k in range(3)]
+    assert batch == [2, 2, 1]
+
+
+def test_an_hd_video_follows_the_motion_its_half_size_copy_follows(tmp_path):
+    """The same clip, rendered at 640x360 and at 1280x720: the head moves 13 mm a frame sideways at 450 mm (18
+    pixels a frame at 640x360, 37 at 1280x720). With the default three pyramid levels at every size, the 640x360
+    copy was tracked (within 1.2 degrees) and the 1280x720 one was not (frames 1, 2, 4 and 5 23-31 degrees off):
+    the coarsest level of a face twice as large saw the motion twice as large. The job adds a level per doubling
+    of the face's size (pyramid_for_faces) and records the levels in the sidecar."""
+    errors, levels = {}, {}
+    for w, h in ((640, 360), (1280, 720)):
+        folder = tmp_path / f"{w}x{h}"
+        gt = _save_rendered(folder, w, h, 450.0, 65.0)
+        rc = main(["track", str(folder / "clip.npy"), "--out", str(folder / "out"), "--landmarks",
+                   str(folder / "lm.csv"), "--quiet", "--no-online-refine"])  # fmt: skip
+        assert rc == 0
+        _, _, R, _ = _pose(folder / "out" / "clip.csv")
+        errors[w] = geodesic_angle_deg(R, gt.rotation)
+        levels[w] = json.loads((folder / "out" / "clip.json").read_text())["pyramid_levels"]
+    assert float(errors[640].max()) < 2.0, errors[640]
+    assert float(errors[1280].max()) < 2.0, errors[1280]
+    assert levels == {640: 3, 1280: 4}

@@ -29,6 +29,19 @@ def test_rgb_uint8_array_round_trip(tmp_path):
     torch.testing.assert_close(out, torch.from_numpy(arr).permute(0, 3, 1, 2).float() / 255)
 
 
+def test_float16_array_is_read_as_float_in_0_1(tmp_path):
+    """The README takes ``.npy`` float arrays in [0, 1]; a float16 one (half the size of float32) was refused as
+    "unsupported pixel type float16 (expected uint8, uint16 or float in [0, 1])", which it is."""
+    arr = np.random.default_rng(0).random((2, 40, 50, 3)).astype(np.float16)
+    np.save(tmp_path / "half.npy", arr)
+    out = _frames(open_frames(tmp_path / "half.npy"))
+    assert out.shape == (2, 3, 40, 50) and out.dtype == torch.float32
+    torch.testing.assert_close(out, torch.from_numpy(arr.astype(np.float32)).permute(0, 3, 1, 2))
+    np.save(tmp_path / "over.npy", arr * np.float16(2))
+    with pytest.raises(InputError, match=r"float frames must be finite and in \[0, 1\]"):
+        open_frames(tmp_path / "over.npy")
+
+
 def _assert_format_error(info, *problems):
     msg = str(info.value)
     assert "\n" not in msg, msg

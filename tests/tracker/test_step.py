@@ -361,7 +361,7 @@ def test_result_fields(model, l2_runs):
 def test_track_step_rejects_bad_frames(model, two_streams, l2_runs):
     frames, _ = two_streams
     (_, states), _ = l2_runs
-    with pytest.raises(ValueError, match="240x320"):
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the tracked size\), got 160x120"):
         track_step(model, L2, states[0], frames[:, 1, :, :120, :160])
     with pytest.raises(ValueError, match="one per stream"):
         track_step(model, L2, states[0], frames[:1, 1])
@@ -424,7 +424,7 @@ def test_face_tracker_module(model, two_streams, l2_runs):
     assert tracker.state.frame_index == 2
     res = tracker.step(frames[:, 2])
     torch.testing.assert_close(res.axis_angle, results[2].axis_angle)
-    with pytest.raises(ValueError, match="240x320"):
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the tracked size\), got 160x120"):
         tracker(frames[:, 3, :, :120, :160])
     with pytest.raises(ValueError, match="one per stream"):
         tracker(frames[:1, 3])
@@ -665,6 +665,9 @@ def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
         else:
             with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 5x5"):
                 initialise(model, config, small, lm * size / W, Intrinsics.default(size, size))
+    strip = frames[:, 0, :, :5, :]  # 320 wide, 5 high: the size W x H (it said "got 5x320")
+    with pytest.raises(ValueError, match=r"at least 6x6 pixels for num_levels = 3, got 320x5 \(W x H\)"):
+        initialise(model, config, strip, lm, Intrinsics.default(W, 5))
 
 
 def test_initialise_names_intrinsics_that_are_not_a_camera(model, two_streams):
@@ -1199,3 +1202,74 @@ def test_a_compiled_track_step_runs_the_torch_code():
     out = subprocess.run([sys.executable, "-c", _COMPILED_STEP], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
     assert "DIFF 0.0" in out.stdout, out.stdout
+
+
+def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
+    """The default pyramid is made for the 640x480 scenarios' faces (160-200 pixels); larger faces get coarser levels
+    (the coarsest level's iterations), a batch its smallest face's, as many as the frame's size allows."""
+    from torchface.tracker import pyramid_for_faces
+
+    def faces(*sides):  # two landmarks per stream spanning a side x side box, and a missing one
+        rows = [[[10.0, 20.0], [10.0 + s, 20.0 + 0.5 * s], [float("nan"), float("nan")]] for s in sides]
+        return torch.tensor(rows)
+
+    base = TrackerConfig()
+    assert pyramid_for_faces(base, faces(200.0), (480, 640)) is base  # the standard scenarios keep their pyramid
+    assert pyramid_for_faces(base, faces(250.0), (720, 1280)) is base
+    four = pyramid_for_faces(base, faces(380.0), (720, 1280))
+    assert (four.num_levels, four.iterations) == (4, (6, 6, 5, 4))
+    assert four.robust_scale_floor == base.robust_scale_floor and four.max_points == base.max_points
+    assert pyramid_for_faces(base, faces(570.0), (1080, 1920)).num_levels == 5
+    assert pyramid_for_faces(base, faces(1140.0), (2160, 3840)).num_levels == 6
+    assert pyramid_for_faces(base, faces(1140.0, 380.0), (2160, 3840)).num_levels == 4  # the smallest face decides
+    # as many as the frame allows (check_initialise_inputs: 3 * 2**(L - 2) pixels a side)
+    assert pyramid_for_faces(base, faces(1140.0), (40, 3840)).num_levels == 5  # 24 <= 40 < 48
+    assert pyramid_for_faces(base, faces(1140.0), (20, 3840)).num_levels == 4  # 12 <= 20 < 24
+    assert pyramid_for_faces(base, torch.full((1, 68, 2), float("nan")), (720, 1280)) is base  # no face: as given
+    custom = replace(base, num_levels=2, iterations=(7, 3))
+    assert pyramid_for_faces(custom, faces(380.0), (720, 1280)).iterations == (7, 7, 3)
+    with pytest.raises(TypeError, match="landmarks_px must be a torch.Tensor"):
+        pyramid_for_faces(base, [[0.0, 0.0]], (480, 640))
+    with pytest.raises(ValueError, match=r"landmarks_px must be \(B, K, 2\)"):
+        pyramid_for_faces(base, torch.zeros(68, 2), (480, 640))
+
+
+def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
+    """The size errors said H x W where everything else (README, job, io) says W x H: a tracker of 320x240 frames
+    handed a portrait 240x320 one read "frames must be 240x320 (the tracked size), got 320x240", the wrong way
+    round; at initialisation, with intrinsics of another size, it spoke of a tracked size when nothing was tracked."""
+    from torchface.normalise import NormalisedFace
+
+    frames, gts = two_streams
+    first = frames[:1, 0].float()
+    tracker = FaceTracker(BASE, refine_first=None)
+    tracker.initialise(first, landmarks_of(gts)[:1])
+    portrait = first.transpose(-1, -2).contiguous()  # (1, 3, 320, 240): 240 wide, 320 high
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the tracked size\), got 240x320"):
+        tracker(portrait)
+    with pytest.raises(ValueError, match=r"frames must be 640x480 \(W x H, the intrinsics' size\), got 320x240"):
+        FaceTracker(BASE, refine_first=None).initialise(first, landmarks_of(gts)[:1], Intrinsics.default(640, 480))
+    with pytest.raises(ValueError, match=r"frames must be 320x240 \(W x H, the intrinsics' size\), got 240x320"):
+        NormalisedFace(tracker.model)(portrait, tracker.state)
+
+
+@pytest.mark.parametrize(
+    "make, hint",
+    [
+        (lambda f: to_gray(f)[0, 0], r"one gray frame: frames\[None, None\]"),
+        (lambda f: to_gray(f)[:, 0], r"gray frames \(B, H, W\): frames\[:, None\]"),
+        (lambda f: f.permute(0, 2, 3, 1), r"channels last \(B, H, W, C\): frames.permute\(0, 3, 1, 2\)"),
+        (lambda f: torch.cat([f, torch.ones_like(f[:, :1])], 1), r"RGBA: drop the alpha, frames\[:, :3\]"),
+        (lambda f: (f * 65535).round().to(torch.uint16), r"16-bit frames: pass frames.float\(\) / 65535"),
+        (lambda f: (f * 255).round().to(torch.uint8), r"uint8 frames: pass frames.float\(\) / 255"),
+    ],
+    ids=["HW", "BHW", "BHWC", "RGBA", "uint16", "uint8"],
+)
+def test_refused_frames_say_how_to_make_them(two_streams, make, hint):
+    """Gray (H, W) or (B, H, W), channels-last, RGBA and 16-bit frames were refused with "frames must be (B, 3, H,
+    W) float in [0, 1], got ..." alone (only uint8 had a hint), which also left out the (B, 1, H, W) gray frames
+    that are accepted."""
+    frames, gts = two_streams
+    bad = make(frames[:1, 0].float())
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float in \[0, 1\], got .*" + hint):
+        FaceTracker(BASE, refine_first=None).initialise(bad, landmarks_of(gts)[:1])

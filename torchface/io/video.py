@@ -149,7 +149,8 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     """One image array -> ``(3, H', W')`` float32 RGB in ``[0, 1]`` and a description of its stored format.
 
     Args:
-        array: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)``; uint8, uint16 or float in [0, 1].
+        array: ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)``; uint8, uint16 or float (16, 32 or 64 bits)
+            in [0, 1].
         bgr: the colour channels are in OpenCV's BGR(A) order (else RGB(A)).
         where: names the frame in error messages.
         convert: convert gray (replicated), RGBA (alpha dropped), 16-bit (divided by 65535) and odd sizes
@@ -164,7 +165,7 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
         torch.Size([3, 40, 50])
     """
     array = _layout(array, where)
-    if array.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+    if array.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):  # (float16: a half .npy clip)
         raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
     if array.dtype.kind == "f" and not (np.isfinite(array).all() and array.min() >= 0.0 and array.max() <= 1.0):
         raise InputError(f"{where}: float frames must be finite and in [0, 1]")

@@ -435,8 +435,8 @@ def normalised_face(
         raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
     if tuple(frames.shape[-2:]) != intrinsics.size:
         raise ValueError(
-            f"frames must be {intrinsics.height}x{intrinsics.width} (the intrinsics' size), got "
-            f"{frames.shape[-2]}x{frames.shape[-1]}"
+            f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, the intrinsics' size), got "
+            f"{frames.shape[-1]}x{frames.shape[-2]}"
         )
     if layout.num_faces != model.num_faces:
         raise ValueError(

@@ -23,6 +23,7 @@ from torchface.tracker.step import (
     gray_pyramid,
     initialise,
     level_intrinsics,
+    pyramid_for_faces,
     track_step,
 )
 
@@ -50,6 +51,7 @@ __all__ = [
     "level_intrinsics",
     "lookahead_fit",
     "managed_step",
+    "pyramid_for_faces",
     "refine_first_fit",
     "select_keyframes",
     "view_yaw_deg",

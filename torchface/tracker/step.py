@@ -603,8 +603,32 @@ FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 STEP_VALUE_ROW_STRIDE: int = 16
 
 
+def _frame_hint(frames: Tensor) -> str:
+    """How to make refused frames ``(B, 3, H, W)`` / ``(B, 1, H, W)`` float in [0, 1] (:func:`check_frames`'s
+    message; empty where nothing is to say): a missing batch or channel dimension, channels last, RGBA, integer
+    pixels (uint16 was refused without one, uint8 had one)."""
+    hints = []
+    shape = tuple(frames.shape)
+    if frames.dim() == 2:
+        hints.append("one gray frame: frames[None, None]")
+    elif frames.dim() == 3:
+        hints.append("one frame (C, H, W): frames[None]; gray frames (B, H, W): frames[:, None]")
+    elif frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        hints.append("channels last (B, H, W, C): frames.permute(0, 3, 1, 2)")
+    elif frames.dim() == 4 and shape[1] == 4:
+        hints.append("RGBA: drop the alpha, frames[:, :3]")
+    if frames.dtype == torch.uint8:
+        hints.append("uint8 frames: pass frames.float() / 255")
+    elif frames.dtype == torch.uint16:
+        hints.append("16-bit frames: pass frames.float() / 65535")
+    elif not frames.is_floating_point():
+        hints.append("convert them to float in [0, 1]")
+    return f" ({'; '.join(hints)})" if hints else ""
+
+
 def check_frames(
-    frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False, row_stride: int = 1
+    frames: Tensor, intrinsics: Intrinsics | None = None, *, values: bool = False, row_stride: int = 1,
+    size_of: str = "the tracked size",
 ) -> None:
     """Validate ``(B, 3, H, W)`` (or ``(B, 1, H, W)``) float frames in [0, 1].
 
@@ -614,19 +638,22 @@ def check_frames(
     them is a failed sample); infinite ones are refused. ``row_stride``: the values looked at are those of every
     ``row_stride``-th row (initialisation: 1, every pixel; the steps: :data:`STEP_VALUE_ROW_STRIDE`, a cheap look
     that a 0-255 frame does not pass, which leaves infinite pixels out too: a later frame's stray one is the robust
-    loss's to reject, as a NaN one is).
+    loss's to reject, as a NaN one is). ``size_of``: what ``intrinsics``' size is, for the message of frames of
+    another size.
     """
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
-        hint = " (uint8 frames: pass frames.float() / 255)" if frames.dtype == torch.uint8 else ""
         raise ValueError(
-            f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}{hint}"
+            f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
+            f"{frames.dtype}{_frame_hint(frames)}"
         )
     if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
+        # W x H, as everywhere else (it said H x W: a tracker of 1920x1080 frames handed a portrait 1080x1920 frame
+        # read "frames must be 1080x1920 (the tracked size), got 1920x1080")
         raise ValueError(
-            f"frames must be {intrinsics.height}x{intrinsics.width} (the tracked size), got "
-            f"{frames.shape[-2]}x{frames.shape[-1]}"
+            f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, {size_of}), got "
+            f"{frames.shape[-1]}x{frames.shape[-2]}"
         )
     if values and frames.numel():
         seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
@@ -649,14 +676,14 @@ def check_initialise_inputs(
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
     check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
-    check_frames(frames, intrinsics, values=True)
+    check_frames(frames, intrinsics, values=True, size_of="the intrinsics' size")  # (nothing is tracked yet)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
     side = 3 * 2 ** (config.num_levels - 2) if config.num_levels > 1 else 1  # pyr_down needs 3 pixels a side
     if min(frames.shape[-2:]) < side:  # was pyr_down's "images must be ... H, W >= 3, got (B, 1, 2, 2)"
         raise ValueError(f"frames must be at least {side}x{side} pixels for num_levels = {config.num_levels}, "
-                         f"got {frames.shape[-2]}x{frames.shape[-1]}")  # fmt: skip
+                         f"got {frames.shape[-1]}x{frames.shape[-2]} (W x H)")  # fmt: skip
     check_landmark_type(landmarks_px, f"({B}, {K}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
         got = tuple(landmarks_px.shape)
@@ -669,6 +696,63 @@ def check_initialise_inputs(
     if weights is not None and tuple(weights.shape) != (B, K):
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
+
+
+#: The face size :class:`TrackerConfig`'s pyramid is made for: the larger side, in pixels, of the first frame's
+#: landmark box in the 640x480 scenarios (160-200 pixels). :func:`pyramid_for_faces` adds coarser levels for larger
+#: faces.
+PYRAMID_REFERENCE_FACE_PX: float = 180.0
+
+
+def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[int, int]) -> TrackerConfig:
+    """``config`` with coarser pyramid levels added where the faces are larger than the pyramid is made for.
+
+    A frame-to-frame motion is followed when the coarsest level sees it as a few pixels, and a face's motion in
+    pixels grows with its size in the image: the same clip that is tracked at 640x360 was lost after two frames
+    at 1280x720 (13 mm a frame sideways at 450 mm, 37 pixels; 18 at 640x360) with the default three levels, and
+    tracked with four. One level is added per doubling of the face's size over
+    :data:`PYRAMID_REFERENCE_FACE_PX` (rounded: faces smaller than 255 pixels keep ``config``; a 1280x720 face at
+    450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
+    (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
+    floors stay those of the coarsest and the finest level. ``torchface track`` does this for every video (and
+    batches only videos of one pyramid); :class:`~torchface.tracker.FaceTracker` and :func:`initialise` use the
+    config as given.
+
+    Args:
+        config: the settings to extend.
+        landmarks_px: ``(B, K, 2)`` the first frames' landmarks in pixels (NaN rows: missing). The smallest face
+            of the batch decides (its streams share one pyramid): none is made smaller than the reference at the
+            coarsest level.
+        size: ``(H, W)`` of the frames.
+
+    Returns:
+        ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
+
+    Example:
+        >>> lm = torch.tensor([[[0.0, 0.0], [360.0, 380.0]]])  # a 380-pixel face (two of its landmarks)
+        >>> pyramid_for_faces(TrackerConfig(), lm, (720, 1280)).iterations
+        (6, 6, 5, 4)
+    """
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+    check_landmark_type(landmarks_px, "(B, K, 2)")
+    if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
+        raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
+    points = landmarks_px.detach().to(torch.float64)
+    seen = torch.isfinite(points).all(-1, keepdim=True)  # (B, K, 1)
+    lo = torch.where(seen, points, math.inf).amin(1)
+    hi = torch.where(seen, points, -math.inf).amax(1)
+    faces = (hi - lo).amax(-1)  # (B,) the larger side of each box; -inf or NaN without two points
+    faces = faces[torch.isfinite(faces) & (faces > 0)]
+    if faces.numel() == 0:
+        return config
+    extra = max(0, math.floor(math.log2(float(faces.min()) / PYRAMID_REFERENCE_FACE_PX) + 0.5))
+    while extra > 0 and min(size) < 3 * 2 ** (config.num_levels + extra - 2):  # pyr_down's 3 pixels a side
+        extra -= 1
+    if extra == 0:
+        return config
+    return replace(config, num_levels=config.num_levels + extra,
+                   iterations=(config.iterations[0],) * extra + tuple(config.iterations))  # fmt: skip
 
 
 def _layout(model: FaceModel) -> ParamLayout:
