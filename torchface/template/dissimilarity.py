@@ -117,8 +117,9 @@ class LKTemplate(NamedTuple):
     weight: Tensor
     total: Tensor
 
-    def select(self, index: Tensor) -> "LKTemplate":
-        """The rows ``index`` (a ``(B',)`` int64 or bool tensor) of every field."""
+    def select(self, index: Tensor | tuple[Tensor, Tensor]) -> "LKTemplate":
+        """The rows ``index`` (a ``(B',)`` int64 or bool tensor, or a pair of ``(B',)`` int64 tensors that index the
+        first two dimensions) of every field."""
         return LKTemplate(*(x[index] for x in self))
 
 
@@ -524,8 +525,9 @@ class DissimilarityReference:
     config: DissimilarityConfig
     lk: LKTemplate | None = None
 
-    def select(self, index: Tensor) -> "DissimilarityReference":
-        """The reference of the samples ``index`` (a ``(B',)`` int64 or bool tensor)."""
+    def select(self, index: Tensor | tuple[Tensor, Tensor]) -> "DissimilarityReference":
+        """The reference of the samples ``index`` (a ``(B',)`` int64 or bool tensor, or a pair of ``(B',)`` int64
+        tensors that index the first two dimensions: ``(streams, entries)`` of a mosaic's references)."""
         return DissimilarityReference(
             self.image[index], self.mask[index], self.centres[index], self.patch_valid[index], self.score[index],
             self.config, None if self.lk is None else self.lk.select(index),

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -162,7 +163,7 @@ class ManagementState:
     confident_params: Tensor
     since_attempt: Tensor
     params_ypr: tuple[Tensor, Tensor] | None = None
-    first: "FirstPoseWatch | None" = None
+    first: FirstPoseWatch | None = None
     head_rotation: Tensor | None = None
     head_translation: Tensor | None = None
     attempts: Tensor | None = None
@@ -235,6 +236,15 @@ class FirstPoseWatch:
 
 def _layout(model: FaceModel) -> ParamLayout:
     return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+
+
+def _management(state: TrackerState) -> ManagementState:
+    """``state``'s template management (:func:`initialise_managed`'s states and those :func:`managed_step` makes
+    have one)."""
+    ms = state.management
+    if not isinstance(ms, ManagementState):
+        raise ValueError("the state has no template management: start with initialise_managed")
+    return ms
 
 
 def _plain(result: TrackResult) -> TrackResult:
@@ -322,7 +332,7 @@ def initialise_managed(
     management = ManagementState(
         mosaic, layout, zeros, zeros.clone(), zeros.clone(), failed.clone(), state.params, zeros.clone()
     )
-    if refine_first is not None:
+    if refine_first is not None and fit is not None:  # (with refine_first, fit is made above when not given)
         with torch.inference_mode(False):  # kept in the state: normal tensors, detached (as the frames are: a
             # detector network's landmarks kept its graph alive in the state until the stream re-anchored)
             watch = FirstPoseWatch(
@@ -398,7 +408,7 @@ def _normal_template(t: Template) -> Template:
 
 def _scatter_result(result: TrackResult, index: Tensor, sub: TrackResult) -> TrackResult:
     """``result`` with the samples ``index`` replaced by ``sub``'s (tensor fields only)."""
-    changes = {}
+    changes: dict[str, Any] = {}  # field name -> its tensor (replace checks a value against every field's type)
     for f in fields(TrackResult):
         x = getattr(result, f.name)
         if isinstance(x, Tensor):
@@ -435,8 +445,8 @@ def _confidence(
     native = native_mosaic_confidence(frames, model, ms.layout, ms.mosaic, rows, ypr, state.shape_coeffs, alpha, R,
                                       t, light, state.intrinsics, config.template, config.backend)  # fmt: skip
     if native is not None:
-        diss, conf, inside, face, _ = native
-        return torch.where(failed, torch.zeros_like(conf), conf), diss, inside, face
+        native_diss, native_conf, inside, face, _ = native
+        return torch.where(failed, torch.zeros_like(native_conf), native_conf), native_diss, inside, face
     nearest = torch.zeros_like(rows) if ypr is None else nearest_entries(ms.mosaic, ypr, streams=rows)
     verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
     reference = ms.mosaic.references.select((rows, nearest))
@@ -459,9 +469,7 @@ def estimate_confidence(
         state: with management (:func:`initialise_managed` / :func:`managed_step`); its ``params`` are scored.
         frames: ``(B, 3, H, W)`` the frames those parameters belong to.
     """
-    ms = state.management
-    if not isinstance(ms, ManagementState):
-        raise ValueError("the state has no template management: start with initialise_managed")
+    ms = _management(state)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     B = state.params.shape[0]
     if frames.shape[0] != B:  # the native kernel read past the state's streams (a segmentation fault)
@@ -787,6 +795,7 @@ def managed_step(
         frames = frames.detach()
         solved, result = replace(solved, params=solved.params.detach()), _detached(result)
     adopted = None  # the streams that go on from a recovery candidate (rows), if any
+    face: tuple[Tensor, Tensor] | None  # the normalised faces of the track's estimates (None: not all the track's)
     conf, diss, inside, face = _confidence(
         model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
     )
@@ -817,6 +826,7 @@ def managed_step(
         since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
         attempt = lost & (since >= tc.recovery_every)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
+    params_ypr: Tensor | None  # None: not known (rows reverted to the confident parameters or adopted)
     params, params_ypr = solved.params, result.ypr_deg
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
@@ -941,8 +951,9 @@ def _graded(solved: TrackerState, result: TrackResult) -> tuple[Tensor, TrackRes
 
 def _detached(result: TrackResult) -> TrackResult:
     """``result`` with every tensor detached."""
-    return replace(result, **{f.name: v.detach() for f in fields(TrackResult)
-                              if isinstance(v := getattr(result, f.name), Tensor)})  # fmt: skip
+    changes: dict[str, Any] = {f.name: v.detach() for f in fields(TrackResult)
+                               if isinstance(v := getattr(result, f.name), Tensor)}  # fmt: skip
+    return replace(result, **changes)
 
 
 #: TrackResult's fields that template management sets (the solver's estimates are the others).
@@ -953,7 +964,7 @@ def _regraded(result: TrackResult, graded: TrackResult, own: Tensor) -> TrackRes
     """``result`` whose estimates that carry gradients in ``graded`` (the solver's; not the fields management sets)
     are ``graded``'s in the streams ``own`` ``(B,)`` (equal values: ``result`` is the detached solve there) and
     ``result``'s elsewhere."""
-    out = {}
+    out: dict[str, Any] = {}  # field name -> its tensor
     for f in fields(TrackResult):
         if f.name in _DECISIONS:
             continue
@@ -1018,13 +1029,14 @@ def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:
     ``R d + t`` for the estimate ``(R, t)`` and the re-anchoring offset ``(D, d)`` (``head_rotation``,
     ``head_translation``: None until a stream is re-anchored; identity in the rows of the others, which are left
     untouched)."""
-    if ms.head_rotation is None:
+    D, d = ms.head_rotation, ms.head_translation  # set together, by the first re-anchoring
+    if D is None or d is None:
         return result
-    moved = (ms.head_rotation - torch.eye(3, dtype=ms.head_rotation.dtype, device=ms.head_rotation.device)).abs()
-    moved = (moved.flatten(1).amax(-1) > 0) | (ms.head_translation.abs().amax(-1) > 0)
+    moved = (D - torch.eye(3, dtype=D.dtype, device=D.device)).abs()
+    moved = (moved.flatten(1).amax(-1) > 0) | (d.abs().amax(-1) > 0)
     if not bool(moved.any()):
         return result
-    D, d = ms.head_rotation.to(result.rotation.dtype), ms.head_translation.to(result.translation.dtype)
+    D, d = D.to(result.rotation.dtype), d.to(result.translation.dtype)
     R = torch.matmul(result.rotation, D)
     t = torch.matmul(result.rotation, d.unsqueeze(-1)).squeeze(-1) + result.translation
     m3, m33 = moved[:, None], moved[:, None, None]
@@ -1038,7 +1050,7 @@ def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:
 def _reset_mosaic_rows(mosaic: Mosaic, index: Tensor, sub: Mosaic) -> Mosaic:
     """``mosaic`` whose streams ``index`` hold only ``sub``'s entry 0 (``sub`` has batch ``len(index)``)."""
 
-    def put(x: Tensor, y: Tensor, empty: object = None) -> Tensor:
+    def put(x: Tensor, y: Tensor, empty: bool | None = None) -> Tensor:
         x = x.clone()
         if empty is not None:
             x[index] = empty
@@ -1064,8 +1076,10 @@ def _watch_first_pose(
 ) -> TrackerState:
     """Keyframes for the streams still waiting (``result`` in the internal frame), and the re-anchoring of those
     that have them all (:func:`initialise_managed`'s ``refine_first``)."""
-    ms = state.management
+    ms = _management(state)
     w = ms.first
+    if w is None:  # no stream waits for its keyframes (managed_step calls this only while one does)
+        return state
     lc = w.config
     rel = result.ypr_deg[:, 0] - w.yaw0.to(result.ypr_deg.dtype)
     view_rel = rel.to(torch.float64) if w.view_yaw0 is None else (
@@ -1087,7 +1101,7 @@ def _watch_first_pose(
     pending = w.pending & ~ready & (seen < lc.max_frames)
     if bool(ready.any()):
         state = _reanchor(model, config, state, w, keys, ready.nonzero().squeeze(-1), frames)
-        ms = state.management
+        ms = _management(state)
     first = None if not bool(pending.any()) else replace(w, keys=tuple(keys), sides=sides, pending=pending,
                                                           frames_seen=seen)  # fmt: skip
     return replace(state, management=replace(ms, first=first))
@@ -1101,7 +1115,7 @@ def _reanchor(
     refined against their keyframes, their templates and mosaic rebuilt from the first frame at the refined pose,
     this frame's pose replaced by its refined one and added to the mosaic, and the offset that keeps their
     reported poses in the head frame of their first result."""
-    ms = state.management
+    ms = _management(state)
     fc = config.fit
     fits, now_R, now_t = [], [], []
     priors = landmark_fit_priors(model, fc)
@@ -1129,10 +1143,11 @@ def _reanchor(
         prior = None
         if state.anim_prior_mean is not None:
             prior = state.anim_prior_mean.clone()
-            prior[index] = sub.anim_prior_mean
+            prior[index] = sub.neutral_anim_coeffs(prior[index])  # sub's anim_prior_mean (initialise sets it)
         R0, t0 = w.fit.rotation[index], w.fit.translation[index]  # the first result's pose
         R0c, t0c = fit.rotation, fit.translation
-        if ms.head_rotation is None:  # the first re-anchoring: every stream's offset starts as the identity
+        if ms.head_rotation is None or ms.head_translation is None:  # the first re-anchoring (they are set
+            # together): every stream's offset starts as the identity
             B = state.params.shape[0]
             head_R = torch.eye(3, dtype=model.dtype, device=model.device).expand(B, 3, 3).clone()
             head_t = torch.zeros(B, 3, dtype=model.dtype, device=model.device)
@@ -1157,7 +1172,7 @@ def _reanchor(
         # loss from the next frame on falls back to (kept at the unrefined pose, 2 degrees and 11 mm off).
         confident_params = ms.confident_params.clone()
         confident_params[index] = params[index]
-    mosaic = _reset_mosaic_rows(ms.mosaic, index, sub.management.mosaic)
+    mosaic = _reset_mosaic_rows(ms.mosaic, index, _management(sub).mosaic)
     ms = replace(ms, mosaic=mosaic, entry=entry, head_rotation=head_R, head_translation=head_t, params_ypr=None,
                  confident_params=confident_params)  # fmt: skip
     state = replace(state, params=params, templates=templates, shape_coeffs=shape, anim_prior_mean=prior,

@@ -212,9 +212,8 @@ class FaceTracker(nn.Module):
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
         # The tracker steps without gradients and its state is fixed data: inputs that carry a graph (a network's
         # frames or landmarks) are detached, else the state held that graph alive and copy.deepcopy(tracker) failed.
-        frames, landmarks_px, weights = (
-            x.detach() if isinstance(x, Tensor) else x for x in (frames, landmarks_px, weights)
-        )
+        frames, landmarks_px = (x.detach() if isinstance(x, Tensor) else x for x in (frames, landmarks_px))
+        weights = weights.detach() if isinstance(weights, Tensor) else weights
         if isinstance(fit, LandmarkFit):
             fit = apply_to_tensor_fields(Tensor.detach, fit)
         refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
