@@ -354,3 +354,19 @@ def test_empty_batch_gives_an_empty_fit(model):
     fit = fit_landmarks(model, torch.zeros(0, 68, 2, dtype=D), CAM)
     assert fit.rotation.shape == (0, 3, 3) and fit.translation.shape == (0, 3) and fit.status.shape == (0,)
     assert fit.shape_coeffs.shape == (0, model.num_shape) and fit.anim_coeffs.shape == (0, model.num_animation)
+
+
+def test_weights_swamped_by_the_priors_fail_instead_of_converging(model):
+    """Equal weights of 1e-20: the landmark terms weigh 1e-20 against the shape priors, the solver's damping
+    (at least 1e-6 of the largest diagonal) swamped the pose's steps, and the fit stopped at the start's pose,
+    11.7 and 21.6 degrees off, reported CONVERGED. It is FAILED now; weights of 1e-10 still fit the pose (the
+    shape goes to the prior's mean, as it should), and weights whose largest is subnormal are refused."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(4), dtype=D)
+    swamped = fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-20, dtype=D))
+    assert float(geodesic_angle_deg(swamped.rotation[:2], R[:2]).min()) > 10  # what it is flagged for
+    assert swamped.status[:2].tolist() == [2, 2]
+    small = fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-10, dtype=D))
+    assert small.status.tolist() == [0, 0, 0] and float(geodesic_angle_deg(small.rotation, R).max()) < 1.0
+    with pytest.raises(ValueError, match="smallest normal"):
+        fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-310, dtype=D))
