@@ -370,3 +370,34 @@ def test_weights_swamped_by_the_priors_fail_instead_of_converging(model):
     assert small.status.tolist() == [0, 0, 0] and float(geodesic_angle_deg(small.rotation, R).max()) < 1.0
     with pytest.raises(ValueError, match="smallest normal"):
         fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-310, dtype=D))
+
+
+def ibug_mirror() -> list[int]:
+    """The iBUG 68-point order with left and right swapped (``lm[:, ibug_mirror()]``: the points a detector labels
+    the wrong way round, e.g. one run on a flipped image)."""
+    m = list(range(68))
+    pairs = [(i, 16 - i) for i in range(8)] + [(17 + i, 26 - i) for i in range(5)] + [(31, 35), (32, 34)]
+    pairs += [(36, 45), (37, 44), (38, 43), (39, 42), (40, 47), (41, 46), (48, 54), (49, 53), (50, 52), (55, 59)]
+    pairs += [(56, 58), (60, 64), (61, 63), (65, 67)]
+    for a, b in pairs:
+        m[a], m[b] = b, a
+    return m
+
+
+def test_mirrored_landmarks_fail():
+    """Mirrored landmarks (left and right swapped) of a head at roll and pitch 0 are symmetric about the frontal
+    start, which the solver cannot turn into the face seen from behind (that one is FAILED as turned away): the fit
+    collapsed to a face 1.7-2.1 m away and reported MAX_ITERATIONS, which ``initialise`` takes for a start, at an
+    RMS error of 55-58 px, as large as the landmarks' spread. A fit that explains less than half the landmarks'
+    layout is FAILED now; the same landmarks in the right order fit as before."""
+    model = load_candide3(dtype=D)
+    R = euler_to_matrix(torch.tensor([[0.0, y, 0.0] for y in (-30.0, -10.0, 0.0, 10.0)], dtype=D))
+    t = torch.tensor([0.0, 0.0, 500.0], dtype=D).expand(4, 3)
+    lm = project_landmarks(model, R, t)
+    config = TrackerConfig().fit
+    mirrored = fit_landmarks(model, lm[:, ibug_mirror()], CAM, config=config)
+    assert mirrored.status.tolist() == [2, 2, 2, 2]
+    right = fit_landmarks(model, lm, CAM, config=config)
+    assert right.status.tolist() == [0, 0, 0, 0] and float(right.rms_px.max()) < 1e-6
+    noisy = lm + 2.0 * torch.randn(lm.shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    assert fit_landmarks(model, noisy[:, ibug_mirror()], CAM, config=config).status.tolist() == [2, 2, 2, 2]
