@@ -621,3 +621,34 @@ def test_frames_that_require_grad_go_through_initialisation_and_reanchoring(mode
     (_, plain), (clip, graded) = runs
     for a, b in zip(plain, graded):
         torch.testing.assert_close(b.rotation.detach(), a.rotation, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("num_levels, size", [(1, (5, 5)), (2, (8, 5))])
+def test_refinement_honours_the_trackers_pyramid_levels(model, monkeypatch, num_levels, size):
+    """A tracker of 1 or 2 pyramid levels takes frames smaller than the refinement's default 3 levels need (6
+    pixels a side): the look-ahead's refinement of a keyframe failed there, in the middle of the stream ("images
+    must be (B, C, H, W) with H, W >= 3"). It refines on the tracker's levels now (the finest of
+    ``iterations``); ``refine_first_fit`` alone, which knows no tracker, says what its levels need."""
+    import torchface.tracker.lookahead as la_module
+
+    w, h = size
+    T = 3
+    spec = SequenceSpec(
+        name="tiny", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(torch.tensor([[6.0 * i, 0.0, 0.0] for i in range(T)], dtype=D)),
+        translation=torch.tensor([[0.0, 0.0, 150.0]] * T, dtype=D), anim=torch.zeros(T, model.num_animation, dtype=D),
+        light=default_light(T), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    cfg = replace(CFG, num_levels=num_levels, iterations=(6, 4)[-num_levels:], min_points=0,
+                  robust_scale_floor=CFG.robust_scale_floor if num_levels == 2 else (0.02, 0.02))  # fmt: skip
+    monkeypatch.setattr(la_module, "select_keyframes", lambda *args, **kwargs: [T - 1])  # a turn, as if tracked
+    la = LookaheadConfig(iterations=(4, 3, 2), max_points=50)
+    fit, keys = lookahead_fit(model, cfg, frames[None], gt.landmarks_px.float()[:1], gt.intrinsics, config=la)
+    assert keys == [[T - 1]] and bool(torch.isfinite(fit.axis_angle).all())
+    assert la_module.levels_of(la, num_levels).iterations == (4, 3, 2)[-num_levels:]
+    assert la_module.levels_of(la, 3) is la
+    with pytest.raises(ValueError, match="at least 6x6 pixels for the refinement's 3 pyramid levels"):
+        refine_first_fit(model, frames[[0, T - 1]], gt.intrinsics, gt.landmarks_px.float()[0], fit,
+                         euler_to_matrix(torch.tensor([[12.0, 0.0, 0.0]])), gt.translation[-1:].float(), config=la)

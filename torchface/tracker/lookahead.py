@@ -35,7 +35,7 @@ landmark fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -89,7 +89,10 @@ class LookaheadConfig:
             expression change the tracker measured there, ``key_expression`` of :func:`refine_first_fit`).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
             1e3 and 1e5 tracked worse than 1e4 on the James scan.
-        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0).
+        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0). The
+            online start and :func:`lookahead_fit` refine on at most the tracker's
+            :attr:`~torchface.tracker.step.TrackerConfig.num_levels` levels, the finest ones
+            (:func:`levels_of`): a tracker of fewer levels takes frames too small for this pyramid.
         max_points: first-frame template points used.
         gradient_threshold: minimum gradient magnitude of a point (as the tracker's templates).
         huber_k: Huber constant, in robust standard deviations (MAD) of each keyframe's residual.
@@ -150,6 +153,19 @@ class LookaheadConfig:
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")
         if self.shape_prior_precision is not None:
             FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation
+
+
+def levels_of(config: LookaheadConfig, num_levels: int) -> LookaheadConfig:
+    """``config`` refining on at most ``num_levels`` pyramid levels (a tracker's
+    :attr:`~torchface.tracker.step.TrackerConfig.num_levels`): its finest ones, ``iterations[-num_levels:]``.
+
+    The tracker checks that its frames hold ``num_levels`` levels (at least ``3 * 2 ** (num_levels - 2)`` pixels a
+    side); the default three of the refinement needed 6, and a tracker of 1 or 2 levels on smaller frames failed at
+    its re-anchoring, in the middle of the stream (``images must be (B, C, H, W) with H, W >= 3``).
+    """
+    if len(config.iterations) <= num_levels:
+        return config
+    return replace(config, iterations=config.iterations[-num_levels:])
 
 
 def view_yaw_deg(rotation: Tensor, translation: Tensor | None = None) -> Tensor:
@@ -345,6 +361,10 @@ def _refine_first_fit(
     nf = len(units)
     nA = A if config.fit_expression else 0
     levels = list(reversed(range(len(config.iterations))))
+    side = 3 * 2 ** (len(levels) - 2) if len(levels) > 1 else 1  # pyr_down needs 3 pixels a side (as the tracker)
+    if min(frames.shape[-2:]) < side:
+        raise ValueError(f"frames must be at least {side}x{side} pixels for the refinement's {len(levels)} pyramid "
+                         f"levels (config.iterations), got {frames.shape[-1]}x{frames.shape[-2]}")  # fmt: skip
     pyramid = gray_pyramid(frames.to(device=dev, dtype=dt), len(levels))  # the tracker's levels
     gray = pyramid[0]
     imgs = [image_with_gradients(g) for g in pyramid]
@@ -669,8 +689,8 @@ def lookahead_fit(
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
                 key_expression=expr[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b], config=config,
-                backend=tracker_config.backend, **priors,
+                landmark_weights=None if weights is None else weights[b],
+                config=levels_of(config, tracker_config.num_levels), backend=tracker_config.backend, **priors,
             )  # fmt: skip
         streams.append(one)
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys
