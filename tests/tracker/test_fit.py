@@ -401,3 +401,30 @@ def test_mirrored_landmarks_fail():
     assert right.status.tolist() == [0, 0, 0, 0] and float(right.rms_px.max()) < 1e-6
     noisy = lm + 2.0 * torch.randn(lm.shape, generator=torch.Generator().manual_seed(0), dtype=D)
     assert fit_landmarks(model, noisy[:, ibug_mirror()], CAM, config=config).status.tolist() == [2, 2, 2, 2]
+
+
+def test_landmark_indices_and_settings_are_checked(model):
+    """``landmark_indices`` must be a ``(K,)`` integer tensor of the model's landmark rows: -1 fitted row 67 (the
+    table counted from its end) as CONVERGED, a list was an AttributeError, a 2-D tensor a RuntimeError about
+    sizes. FitConfig refuses a NaN or infinite refinement precision and a float iteration count (the solver failed
+    on them at the fit), and a fit_expression that is not a bool ("no" fitted the expression)."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t)[:, [67, 45, 30, 48]]
+    with pytest.raises(ValueError, match=r"landmark_indices must be in \[0, 68\)"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([-1, 45, 30, 48]))
+    with pytest.raises(ValueError, match="landmark_indices must be in"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([68, 45, 30, 48]))
+    for bad in ([67, 45, 30, 48], torch.tensor([[67, 45], [30, 48]]), torch.tensor([67.0, 45.0, 30.0, 48.0])):
+        with pytest.raises(TypeError, match="landmark_indices must be a"):
+            fit_landmarks(model, lm, CAM, landmark_indices=bad)
+    fit = fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([67, 45, 30, 48]))
+    assert fit.status.tolist() == [0, 0, 0]
+    with pytest.raises(TypeError, match="config must be a FitConfig"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([67, 45, 30, 48]), config=None)
+    for value in (float("nan"), float("inf"), -1.0):
+        with pytest.raises(ValueError, match="refine_shape_prior_precision"):
+            FitConfig(refine_shape_prior_precision=value)
+    with pytest.raises(TypeError, match="max_iterations must be an int"):
+        FitConfig(max_iterations=2.5)
+    with pytest.raises(TypeError, match="fit_expression must be a bool"):
+        FitConfig(fit_expression="no")

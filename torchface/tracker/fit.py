@@ -62,8 +62,14 @@ class FitConfig:
     refine_shape_prior_precision: float | None = None
 
     def __post_init__(self) -> None:
-        if self.refine_shape_prior_precision is not None and self.refine_shape_prior_precision < 0:
-            raise ValueError("refine_shape_prior_precision must be non-negative or None")
+        refine = self.refine_shape_prior_precision
+        if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
+                                   or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
+            raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
+        if not isinstance(self.fit_expression, bool):  # "no" was true
+            raise TypeError(f"fit_expression must be a bool, got {type(self.fit_expression).__name__}")
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int):  # 2.5 failed at the fit
+            raise TypeError(f"max_iterations must be an int, got {type(self.max_iterations).__name__}")
         shape = self.shape_prior_precision
         precisions = shape if isinstance(shape, tuple) else (shape,)
         if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
@@ -197,6 +203,17 @@ def check_landmark_type(landmarks_px: object, shape: str) -> None:
         raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
 
 
+def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
+    """Refuse ``landmark_indices`` that are not a ``(K,)`` integer tensor of rows in ``[0, num_landmarks)``: a
+    negative index fitted a landmark counted from the table's end, a list failed with an AttributeError."""
+    if not isinstance(idx, Tensor) or idx.dim() != 1 or idx.dtype not in (torch.int64, torch.int32):
+        got = f"{idx.dtype} {tuple(idx.shape)}" if isinstance(idx, Tensor) else type(idx).__name__
+        raise TypeError(f"landmark_indices must be a (K,) int64 tensor or None, got {got}")
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= num_landmarks):
+        raise ValueError(f"landmark_indices must be in [0, {num_landmarks}) (the model's landmark rows), "
+                         f"got {int(idx.min())}..{int(idx.max())}")  # fmt: skip
+
+
 def _check_landmarks(
     landmarks_px: Tensor, weights: Tensor | None, k: int, dtype: torch.dtype, device: torch.device
 ) -> tuple[Tensor, Tensor]:
@@ -313,7 +330,10 @@ def fit_landmarks(
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0).
     """
+    if not isinstance(config, FitConfig):  # None was an AttributeError ('NoneType' ... 'fit_expression')
+        raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
+    _check_landmark_indices(idx, model.num_landmarks)
     k = int(idx.numel())
     dtype, device = model.dtype, model.device
     check_intrinsics(intrinsics)  # None was an AttributeError ('NoneType' object has no attribute 'fx')
