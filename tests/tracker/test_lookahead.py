@@ -652,3 +652,27 @@ def test_refinement_honours_the_trackers_pyramid_levels(model, monkeypatch, num_
     with pytest.raises(ValueError, match="at least 6x6 pixels for the refinement's 3 pyramid levels"):
         refine_first_fit(model, frames[[0, T - 1]], gt.intrinsics, gt.landmarks_px.float()[0], fit,
                          euler_to_matrix(torch.tensor([[12.0, 0.0, 0.0]])), gt.translation[-1:].float(), config=la)
+
+
+def test_online_start_refines_on_the_trackers_levels(model, monkeypatch):
+    """The online start of a 2-level tracker with the default 3-level ``LookaheadConfig`` re-anchors with the two
+    finest levels' iterations (it used the 3 levels whatever the tracker's, and failed on frames the tracker takes
+    but that pyramid cannot: the test above)."""
+    import torchface.tracker.managed as managed_module
+
+    seen = []
+    real = managed_module._refine_first_fit
+
+    def spy(*args, config, **kwargs):
+        seen.append(config.iterations)
+        return real(*args, config=config, **kwargs)
+
+    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    yaw = [0.0, 4.0, 8.0, 12.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    tracker = FaceTracker(CFG, model=model, refine_first=LookaheadConfig(max_points=300))
+    tracker.initialise(frames[:1], gt.landmarks_px.float()[:1], gt.intrinsics)
+    for i in range(1, len(yaw)):
+        tracker(frames[i : i + 1])
+    assert seen == [LookaheadConfig().iterations[-2:]], seen
