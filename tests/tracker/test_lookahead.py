@@ -676,3 +676,23 @@ def test_online_start_refines_on_the_trackers_levels(model, monkeypatch):
     for i in range(1, len(yaw)):
         tracker(frames[i : i + 1])
     assert seen == [LookaheadConfig().iterations[-2:]], seen
+
+
+def test_refine_names_landmarks_and_weights_of_the_wrong_shape(model):
+    """``refine_first_fit`` takes one stream's ``(L, 2)`` landmarks and ``(L,)`` weights: a batched ``(1, L, 2)``
+    (as ``fit_landmarks`` takes them), a short or transposed set, and ``(1, L)`` weights failed deep in the
+    refinement with a RuntimeError about tensor sizes."""
+    frames = torch.rand(2, 3, H, W)
+    R = axis_angle_to_matrix(torch.zeros(1, 3))
+    fit = LandmarkFit(R, torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 450.0]]), torch.zeros(1, model.num_shape),
+                      torch.zeros(1, model.num_animation), torch.zeros(1), torch.zeros(1, dtype=torch.int64))
+    L = model.num_landmarks
+    cam, t = Intrinsics.default(W, H), torch.zeros(1, 3)
+    for bad in (torch.zeros(1, L, 2), torch.zeros(L - 1, 2), torch.zeros(2, L)):
+        with pytest.raises(ValueError, match=rf"landmarks_px must be \({L}, 2\)"):
+            refine_first_fit(model, frames, cam, bad, fit, R, t)
+    with pytest.raises(TypeError, match="landmarks_px must be a torch.Tensor"):
+        refine_first_fit(model, frames, cam, [[0.0, 0.0]] * L, fit, R, t)
+    for bad_w in (torch.ones(1, L), torch.ones(L - 1), [1.0] * L):
+        with pytest.raises(ValueError, match=rf"landmark_weights must be \({L},\) or None"):
+            refine_first_fit(model, frames, cam, torch.zeros(L, 2), fit, R, t, landmark_weights=bad_w)

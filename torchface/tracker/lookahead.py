@@ -51,7 +51,8 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions, shape_prior_vector,
+    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions,
+    shape_prior_vector,
 )
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
@@ -351,6 +352,14 @@ def _refine_first_fit(
         raise ValueError("key_expression must be finite")
     if fit.rotation.shape[0] != 1:
         raise ValueError(f"fit must be one stream's (batch 1), got batch {fit.rotation.shape[0]}")
+    L = model.num_landmarks  # (a batched (1, L, 2), as fit_landmarks takes, was a RuntimeError about sizes)
+    check_landmark_type(landmarks_px, f"({L}, 2)")
+    if tuple(landmarks_px.shape) != (L, 2):
+        raise ValueError(f"landmarks_px must be ({L}, 2), one stream's, got {tuple(landmarks_px.shape)}")
+    if landmark_weights is not None and (not isinstance(landmark_weights, Tensor)
+                                         or tuple(landmark_weights.shape) != (L,)):  # fmt: skip
+        got = tuple(landmark_weights.shape) if isinstance(landmark_weights, Tensor) else type(landmark_weights).__name__
+        raise ValueError(f"landmark_weights must be ({L},) or None, got {got}")
     S, A = model.num_shape, model.num_animation
     units = held_shape_units if config.shape_units is None else config.shape_units
     if any(s >= S for s in units):
