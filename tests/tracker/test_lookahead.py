@@ -696,3 +696,18 @@ def test_refine_names_landmarks_and_weights_of_the_wrong_shape(model):
     for bad_w in (torch.ones(1, L), torch.ones(L - 1), [1.0] * L):
         with pytest.raises(ValueError, match=rf"landmark_weights must be \({L},\) or None"):
             refine_first_fit(model, frames, cam, torch.zeros(L, 2), fit, R, t, landmark_weights=bad_w)
+
+
+def test_select_keyframes_checks_its_threshold_and_confidences():
+    """A threshold of 0 or less chose frame 0 itself as the keyframe of both sides (``[0, 0]``); ``confident`` of
+    one value was broadcast to every frame, one of the wrong length was a RuntimeError about sizes, and float
+    confidences were read as True wherever not 0 (0.2 included)."""
+    yaw = torch.tensor([0.0, 5.0, 12.0, -12.0], dtype=D)
+    R = euler_to_matrix(torch.stack([yaw, torch.zeros_like(yaw), torch.zeros_like(yaw)], -1))
+    assert select_keyframes(R, 10.0) == [2, 3]
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(ValueError, match="yaw_deg must be a positive angle"):
+            select_keyframes(R, bad)
+    for conf in (torch.ones(1, dtype=torch.bool), torch.ones(3, dtype=torch.bool), torch.tensor([1.0, 0.5, 0.2, 0.0])):
+        with pytest.raises(ValueError, match=r"confident must be a \(4,\) bool tensor"):
+            select_keyframes(R, 10.0, conf)
