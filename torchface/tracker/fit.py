@@ -249,12 +249,13 @@ def _stalled(
     """``(B,)`` bool: the solve stopped away from a minimum of ``1/2 |r(x)|^2 + 1/2 sum_p prior_p x_p^2``.
 
     Levenberg-Marquardt damps each parameter by at least ``1e-6`` of the largest diagonal of its normal matrix;
-    where the landmark terms weigh that little against the priors (weights of 1e-17 or less against the default
-    shape prior), the pose's steps are swamped by the damping, become tiny, and meet the step tolerance as
-    CONVERGED at the start's pose (11.7 and 21.6 degrees off). The criterion is scale-free: the decrease
+    where the landmark terms weigh that little against the priors (equal weights of 1e-15 and less against the
+    default shape prior), the pose's steps are swamped by the damping, become tiny, and meet the step tolerance as
+    CONVERGED near the start's pose (at 1e-20, 11.7 and 21.6 degrees off). The criterion is scale-free: the decrease
     ``1/2 g^T H^-1 g`` that the undamped step (bound-held parameters fixed, as the solver holds them) predicts,
-    against the objective floored at ``1/2 weight_sum`` (a 1 px RMS error); a converged fit predicts ``1e-9`` of it
-    or less. A sample whose system cannot be solved is not called stalled here.
+    against the objective floored at ``1/2 weight_sum`` (a 1 px RMS error), above :data:`_STALL_FRACTION`; converged
+    fits predict 1e-6 of it or less (float32; about 1e-7 in float64). A sample whose system cannot be solved is not
+    called stalled here.
 
     Args:
         x: ``(B, P)`` the solver's estimate; lower, upper, prior: ``(P,)`` or ``(B, P)`` its bounds and precisions
@@ -325,8 +326,8 @@ def fit_landmarks(
         be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose), when its RMS error
         is at least 0.7 of the landmarks' RMS spread about their centroid (it explains less than half their layout:
         mirrored landmarks that did not turn the face away end so, collapsed to a far face), or when the solver
-        stopped short of a minimum (weights so small against the priors, 1e-17 or less with the default ones, that
-        the solver's damping swamps the pose's steps: it stopped at the start's pose).
+        stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the default
+        ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0).
     """

@@ -231,9 +231,10 @@ def select_keyframes(
         raise ValueError(f"yaw_deg must be a positive angle (degrees, below 180), got {yaw_deg}")
     if confident is not None and (not isinstance(confident, Tensor) or confident.dtype != torch.bool
                                   or tuple(confident.shape) != (rotation.shape[0],)):  # fmt: skip
-        got = f"{confident.dtype} {tuple(confident.shape)}" if isinstance(confident, Tensor) else type(confident).__name__
-        raise ValueError(f"confident must be a ({rotation.shape[0]},) bool tensor or None, got {got}")  # (one value
-        # was broadcast to every frame; confidences were read as True wherever not 0)
+        # (one value was broadcast to every frame; float confidences were read as True wherever not 0)
+        got = (f"{confident.dtype} {tuple(confident.shape)}" if isinstance(confident, Tensor)
+               else type(confident).__name__)  # fmt: skip
+        raise ValueError(f"confident must be a ({rotation.shape[0]},) bool tensor or None, got {got}")
     yaw = matrix_to_euler(rotation.to(torch.float64))[:, 0]
     rel = (yaw - yaw[0]).cpu()
     view = view_yaw_deg(rotation, translation)
