@@ -239,3 +239,19 @@ def test_rho_stays_finite_far_beyond_the_scale(kind: RobustKind, dtype: torch.dt
     else:
         expected = 0.5 * x * x / (1 + x * x / (c * c))
     torch.testing.assert_close(loss.rho(x, 1.0), expected)
+
+
+@pytest.mark.parametrize("kind", [RobustKind.HUBER, RobustKind.CAUCHY, RobustKind.TUKEY, RobustKind.GEMAN_MCCLURE])
+def test_infinite_constants_are_refused(kind) -> None:
+    """An infinite ``c`` or ``min_scale`` was accepted and gave NaN losses or weights (Huber's weight inf / inf, the
+    others' loss inf * 0), and ``TrackerConfig(robust_c=...)`` took it (or a negative one, refused only at the first
+    tracking step)."""
+    from torchface.tracker import TrackerConfig
+
+    with pytest.raises(ValueError, match="c must be a finite positive number"):
+        RobustLoss(kind, c=float("inf"))
+    with pytest.raises(ValueError, match="min_scale must be finite and positive"):
+        RobustLoss(kind, min_scale=float("inf"))
+    for c in (float("inf"), -1.0):
+        with pytest.raises(ValueError, match="c must be a finite positive number"):
+            TrackerConfig(robust=kind, robust_c=c)

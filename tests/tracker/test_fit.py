@@ -354,3 +354,77 @@ def test_empty_batch_gives_an_empty_fit(model):
     fit = fit_landmarks(model, torch.zeros(0, 68, 2, dtype=D), CAM)
     assert fit.rotation.shape == (0, 3, 3) and fit.translation.shape == (0, 3) and fit.status.shape == (0,)
     assert fit.shape_coeffs.shape == (0, model.num_shape) and fit.anim_coeffs.shape == (0, model.num_animation)
+
+
+def test_weights_swamped_by_the_priors_fail_instead_of_converging(model):
+    """Equal weights of 1e-20: the landmark terms weigh 1e-20 against the shape priors, the solver's damping
+    (at least 1e-6 of the largest diagonal) swamped the pose's steps, and the fit stopped at the start's pose,
+    11.7 and 21.6 degrees off, reported CONVERGED. It is FAILED now; weights of 1e-10 still fit the pose (the
+    shape goes to the prior's mean, as it should), and weights whose largest is subnormal are refused."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(4), dtype=D)
+    swamped = fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-20, dtype=D))
+    assert float(geodesic_angle_deg(swamped.rotation[:2], R[:2]).min()) > 10  # what it is flagged for
+    assert swamped.status[:2].tolist() == [2, 2]
+    small = fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-10, dtype=D))
+    assert small.status.tolist() == [0, 0, 0] and float(geodesic_angle_deg(small.rotation, R).max()) < 1.0
+    with pytest.raises(ValueError, match="smallest normal"):
+        fit_landmarks(model, lm, CAM, torch.full((3, 68), 1e-310, dtype=D))
+
+
+def ibug_mirror() -> list[int]:
+    """The iBUG 68-point order with left and right swapped (``lm[:, ibug_mirror()]``: the points a detector labels
+    the wrong way round, e.g. one run on a flipped image)."""
+    m = list(range(68))
+    pairs = [(i, 16 - i) for i in range(8)] + [(17 + i, 26 - i) for i in range(5)] + [(31, 35), (32, 34)]
+    pairs += [(36, 45), (37, 44), (38, 43), (39, 42), (40, 47), (41, 46), (48, 54), (49, 53), (50, 52), (55, 59)]
+    pairs += [(56, 58), (60, 64), (61, 63), (65, 67)]
+    for a, b in pairs:
+        m[a], m[b] = b, a
+    return m
+
+
+def test_mirrored_landmarks_fail():
+    """Mirrored landmarks (left and right swapped) of a head at roll and pitch 0 are symmetric about the frontal
+    start, which the solver cannot turn into the face seen from behind (that one is FAILED as turned away): the fit
+    collapsed to a face 1.7-2.1 m away and reported MAX_ITERATIONS, which ``initialise`` takes for a start, at an
+    RMS error of 55-58 px, as large as the landmarks' spread. A fit that explains less than half the landmarks'
+    layout is FAILED now; the same landmarks in the right order fit as before."""
+    model = load_candide3(dtype=D)
+    R = euler_to_matrix(torch.tensor([[0.0, y, 0.0] for y in (-30.0, -10.0, 0.0, 10.0)], dtype=D))
+    t = torch.tensor([0.0, 0.0, 500.0], dtype=D).expand(4, 3)
+    lm = project_landmarks(model, R, t)
+    config = TrackerConfig().fit
+    mirrored = fit_landmarks(model, lm[:, ibug_mirror()], CAM, config=config)
+    assert mirrored.status.tolist() == [2, 2, 2, 2]
+    right = fit_landmarks(model, lm, CAM, config=config)
+    assert right.status.tolist() == [0, 0, 0, 0] and float(right.rms_px.max()) < 1e-6
+    noisy = lm + 2.0 * torch.randn(lm.shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    assert fit_landmarks(model, noisy[:, ibug_mirror()], CAM, config=config).status.tolist() == [2, 2, 2, 2]
+
+
+def test_landmark_indices_and_settings_are_checked(model):
+    """``landmark_indices`` must be a ``(K,)`` integer tensor of the model's landmark rows: -1 fitted row 67 (the
+    table counted from its end) as CONVERGED, a list was an AttributeError, a 2-D tensor a RuntimeError about
+    sizes. FitConfig refuses a NaN or infinite refinement precision and a float iteration count (the solver failed
+    on them at the fit), and a fit_expression that is not a bool ("no" fitted the expression)."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t)[:, [67, 45, 30, 48]]
+    with pytest.raises(ValueError, match=r"landmark_indices must be in \[0, 68\)"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([-1, 45, 30, 48]))
+    with pytest.raises(ValueError, match="landmark_indices must be in"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([68, 45, 30, 48]))
+    for bad in ([67, 45, 30, 48], torch.tensor([[67, 45], [30, 48]]), torch.tensor([67.0, 45.0, 30.0, 48.0])):
+        with pytest.raises(TypeError, match="landmark_indices must be a"):
+            fit_landmarks(model, lm, CAM, landmark_indices=bad)
+    fit = fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([67, 45, 30, 48]))
+    assert fit.status.tolist() == [0, 0, 0]
+    with pytest.raises(TypeError, match="config must be a FitConfig"):
+        fit_landmarks(model, lm, CAM, landmark_indices=torch.tensor([67, 45, 30, 48]), config=None)
+    for value in (float("nan"), float("inf"), -1.0):
+        with pytest.raises(ValueError, match="refine_shape_prior_precision"):
+            FitConfig(refine_shape_prior_precision=value)
+    with pytest.raises(TypeError, match="max_iterations must be an int"):
+        FitConfig(max_iterations=2.5)
+    with pytest.raises(TypeError, match="fit_expression must be a bool"):
+        FitConfig(fit_expression="no")

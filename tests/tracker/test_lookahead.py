@@ -621,3 +621,93 @@ def test_frames_that_require_grad_go_through_initialisation_and_reanchoring(mode
     (_, plain), (clip, graded) = runs
     for a, b in zip(plain, graded):
         torch.testing.assert_close(b.rotation.detach(), a.rotation, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("num_levels, size", [(1, (5, 5)), (2, (8, 5))])
+def test_refinement_honours_the_trackers_pyramid_levels(model, monkeypatch, num_levels, size):
+    """A tracker of 1 or 2 pyramid levels takes frames smaller than the refinement's default 3 levels need (6
+    pixels a side): the look-ahead's refinement of a keyframe failed there, in the middle of the stream ("images
+    must be (B, C, H, W) with H, W >= 3"). It refines on the tracker's levels now (the finest of
+    ``iterations``); ``refine_first_fit`` alone, which knows no tracker, says what its levels need."""
+    import torchface.tracker.lookahead as la_module
+
+    w, h = size
+    T = 3
+    spec = SequenceSpec(
+        name="tiny", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(torch.tensor([[6.0 * i, 0.0, 0.0] for i in range(T)], dtype=D)),
+        translation=torch.tensor([[0.0, 0.0, 150.0]] * T, dtype=D), anim=torch.zeros(T, model.num_animation, dtype=D),
+        light=default_light(T), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    cfg = replace(CFG, num_levels=num_levels, iterations=(6, 4)[-num_levels:], min_points=0,
+                  robust_scale_floor=CFG.robust_scale_floor if num_levels == 2 else (0.02, 0.02))  # fmt: skip
+    monkeypatch.setattr(la_module, "select_keyframes", lambda *args, **kwargs: [T - 1])  # a turn, as if tracked
+    la = LookaheadConfig(iterations=(4, 3, 2), max_points=50)
+    fit, keys = lookahead_fit(model, cfg, frames[None], gt.landmarks_px.float()[:1], gt.intrinsics, config=la)
+    assert keys == [[T - 1]] and bool(torch.isfinite(fit.axis_angle).all())
+    assert la_module.levels_of(la, num_levels).iterations == (4, 3, 2)[-num_levels:]
+    assert la_module.levels_of(la, 3) is la
+    with pytest.raises(ValueError, match="at least 6x6 pixels for the refinement's 3 pyramid levels"):
+        refine_first_fit(model, frames[[0, T - 1]], gt.intrinsics, gt.landmarks_px.float()[0], fit,
+                         euler_to_matrix(torch.tensor([[12.0, 0.0, 0.0]])), gt.translation[-1:].float(), config=la)
+
+
+def test_online_start_refines_on_the_trackers_levels(model, monkeypatch):
+    """The online start of a 2-level tracker with the default 3-level ``LookaheadConfig`` re-anchors with the two
+    finest levels' iterations (it used the 3 levels whatever the tracker's, and failed on frames the tracker takes
+    but that pyramid cannot: the test above)."""
+    import torchface.tracker.managed as managed_module
+
+    seen = []
+    real = managed_module._refine_first_fit
+
+    def spy(*args, config, **kwargs):
+        seen.append(config.iterations)
+        return real(*args, config=config, **kwargs)
+
+    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    yaw = [0.0, 4.0, 8.0, 12.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    tracker = FaceTracker(CFG, model=model, refine_first=LookaheadConfig(max_points=300))
+    tracker.initialise(frames[:1], gt.landmarks_px.float()[:1], gt.intrinsics)
+    for i in range(1, len(yaw)):
+        tracker(frames[i : i + 1])
+    assert seen == [LookaheadConfig().iterations[-2:]], seen
+
+
+def test_refine_names_landmarks_and_weights_of_the_wrong_shape(model):
+    """``refine_first_fit`` takes one stream's ``(L, 2)`` landmarks and ``(L,)`` weights: a batched ``(1, L, 2)``
+    (as ``fit_landmarks`` takes them), a short or transposed set, and ``(1, L)`` weights failed deep in the
+    refinement with a RuntimeError about tensor sizes."""
+    frames = torch.rand(2, 3, H, W)
+    R = axis_angle_to_matrix(torch.zeros(1, 3))
+    fit = LandmarkFit(R, torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 450.0]]), torch.zeros(1, model.num_shape),
+                      torch.zeros(1, model.num_animation), torch.zeros(1), torch.zeros(1, dtype=torch.int64))
+    L = model.num_landmarks
+    cam, t = Intrinsics.default(W, H), torch.zeros(1, 3)
+    for bad in (torch.zeros(1, L, 2), torch.zeros(L - 1, 2), torch.zeros(2, L)):
+        with pytest.raises(ValueError, match=rf"landmarks_px must be \({L}, 2\)"):
+            refine_first_fit(model, frames, cam, bad, fit, R, t)
+    with pytest.raises(TypeError, match="landmarks_px must be a torch.Tensor"):
+        refine_first_fit(model, frames, cam, [[0.0, 0.0]] * L, fit, R, t)
+    for bad_w in (torch.ones(1, L), torch.ones(L - 1), [1.0] * L):
+        with pytest.raises(ValueError, match=rf"landmark_weights must be \({L},\) or None"):
+            refine_first_fit(model, frames, cam, torch.zeros(L, 2), fit, R, t, landmark_weights=bad_w)
+
+
+def test_select_keyframes_checks_its_threshold_and_confidences():
+    """A threshold of 0 or less chose frame 0 itself as the keyframe of both sides (``[0, 0]``); ``confident`` of
+    one value was broadcast to every frame, one of the wrong length was a RuntimeError about sizes, and float
+    confidences were read as True wherever not 0 (0.2 included)."""
+    yaw = torch.tensor([0.0, 5.0, 12.0, -12.0], dtype=D)
+    R = euler_to_matrix(torch.stack([yaw, torch.zeros_like(yaw), torch.zeros_like(yaw)], -1))
+    assert select_keyframes(R, 10.0) == [2, 3]
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(ValueError, match="yaw_deg must be a positive angle"):
+            select_keyframes(R, bad)
+    for conf in (torch.ones(1, dtype=torch.bool), torch.ones(3, dtype=torch.bool), torch.tensor([1.0, 0.5, 0.2, 0.0])):
+        with pytest.raises(ValueError, match=r"confident must be a \(4,\) bool tensor"):
+            select_keyframes(R, 10.0, conf)

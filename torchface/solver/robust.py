@@ -19,6 +19,7 @@ Shape vocabulary: ``B`` batch, ``N`` residuals per sample (see :mod:`torchface.c
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from typing import cast
 
@@ -108,11 +109,12 @@ class RobustLoss:
             raise TypeError(f"kind must be a RobustKind, got {type(self.kind).__name__}")
         if self.c is None:
             object.__setattr__(self, "c", _DEFAULT_C[self.kind])
-        if not (isinstance(self.c, (int, float)) and float(self.c) > 0.0):
-            raise ValueError(f"c must be a positive number, got {self.c!r}")
+        # Infinite ones gave NaN losses or weights (Huber's weight inf / inf, the others' rho inf * 0).
+        if isinstance(self.c, bool) or not (isinstance(self.c, (int, float)) and 0.0 < float(self.c) < math.inf):
+            raise ValueError(f"c must be a finite positive number, got {self.c!r}")
         object.__setattr__(self, "c", float(self.c))
-        if not (float(self.min_scale) > 0.0):
-            raise ValueError(f"min_scale must be positive, got {self.min_scale!r}")
+        if not (0.0 < float(self.min_scale) < math.inf):
+            raise ValueError(f"min_scale must be finite and positive, got {self.min_scale!r}")
 
     @property
     def _c(self) -> float:

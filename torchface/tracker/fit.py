@@ -21,7 +21,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.model.face_model import FaceModel, interpolate_landmarks
-from torchface.solver.least_squares import SolveStatus, SolverConfig, least_squares
+from torchface.solver.least_squares import ResidualFn, SolveStatus, SolverConfig, least_squares, solve_normal_equations
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,14 @@ class FitConfig:
     refine_shape_prior_precision: float | None = None
 
     def __post_init__(self) -> None:
-        if self.refine_shape_prior_precision is not None and self.refine_shape_prior_precision < 0:
-            raise ValueError("refine_shape_prior_precision must be non-negative or None")
+        refine = self.refine_shape_prior_precision
+        if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
+                                   or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
+            raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
+        if not isinstance(self.fit_expression, bool):  # "no" was true
+            raise TypeError(f"fit_expression must be a bool, got {type(self.fit_expression).__name__}")
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int):  # 2.5 failed at the fit
+            raise TypeError(f"max_iterations must be an int, got {type(self.max_iterations).__name__}")
         shape = self.shape_prior_precision
         precisions = shape if isinstance(shape, tuple) else (shape,)
         if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
@@ -197,6 +203,17 @@ def check_landmark_type(landmarks_px: object, shape: str) -> None:
         raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
 
 
+def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
+    """Refuse ``landmark_indices`` that are not a ``(K,)`` integer tensor of rows in ``[0, num_landmarks)``: a
+    negative index fitted a landmark counted from the table's end, a list failed with an AttributeError."""
+    if not isinstance(idx, Tensor) or idx.dim() != 1 or idx.dtype not in (torch.int64, torch.int32):
+        got = f"{idx.dtype} {tuple(idx.shape)}" if isinstance(idx, Tensor) else type(idx).__name__
+        raise TypeError(f"landmark_indices must be a (K,) int64 tensor or None, got {got}")
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= num_landmarks):
+        raise ValueError(f"landmark_indices must be in [0, {num_landmarks}) (the model's landmark rows), "
+                         f"got {int(idx.min())}..{int(idx.max())}")  # fmt: skip
+
+
 def _check_landmarks(
     landmarks_px: Tensor, weights: Tensor | None, k: int, dtype: torch.dtype, device: torch.device
 ) -> tuple[Tensor, Tensor]:
@@ -215,12 +232,68 @@ def _check_landmarks(
         raise ValueError("every sample needs at least 4 finite landmarks with positive weight")
     if not bool(torch.isfinite(w.sum(-1)).all()):  # the start's weighted centroid would be 0 / 0
         raise ValueError(f"the landmark weights of a sample sum beyond {dtype}'s range; scale them down")
+    if bool((w.amax(-1) < torch.finfo(dtype).tiny).any()):  # subnormal: the fit's squares and products underflow
+        raise ValueError(f"the landmark weights of a sample are all below {dtype}'s smallest normal number "
+                         f"({torch.finfo(dtype).tiny:.3g}); scale them up")  # fmt: skip
     return target, w
+
+
+#: A fit whose undamped Gauss-Newton step would still lower its objective by more than this fraction of the
+#: objective (floored at that of a 1 px RMS landmark error) stopped short of a minimum (:func:`_stalled`).
+_STALL_FRACTION: float = 1e-3
+
+
+def _stalled(
+    residual_fn: ResidualFn, x: Tensor, lower: Tensor, upper: Tensor, prior: Tensor, weight_sum: Tensor
+) -> Tensor:
+    """``(B,)`` bool: the solve stopped away from a minimum of ``1/2 |r(x)|^2 + 1/2 sum_p prior_p x_p^2``.
+
+    Levenberg-Marquardt damps each parameter by at least ``1e-6`` of the largest diagonal of its normal matrix;
+    where the landmark terms weigh that little against the priors (equal weights of 1e-15 and less against the
+    default shape prior), the pose's steps are swamped by the damping, become tiny, and meet the step tolerance as
+    CONVERGED near the start's pose (at 1e-20, 11.7 and 21.6 degrees off). The criterion is scale-free: the decrease
+    ``1/2 g^T H^-1 g`` that the undamped step (bound-held parameters fixed, as the solver holds them) predicts,
+    against the objective floored at ``1/2 weight_sum`` (a 1 px RMS error), above :data:`_STALL_FRACTION`; converged
+    fits predict 1e-6 of it or less (float32; about 1e-7 in float64). A sample whose system cannot be solved is not
+    called stalled here.
+
+    Args:
+        x: ``(B, P)`` the solver's estimate; lower, upper, prior: ``(P,)`` or ``(B, P)`` its bounds and precisions
+            (zero prior mean); weight_sum: ``(B,)`` the landmark weights' sums.
+    """
+    with torch.no_grad():
+        return _predicts_decrease(residual_fn, x, lower, upper, prior, weight_sum)
+
+
+def _predicts_decrease(
+    residual_fn: ResidualFn, x: Tensor, lower: Tensor, upper: Tensor, prior: Tensor, weight_sum: Tensor
+) -> Tensor:
+    """:func:`_stalled`'s test (without autograd around it)."""
+    r, J, valid = residual_fn(x)
+    use = valid & torch.isfinite(r) & torch.isfinite(J).all(-1)
+    r = torch.where(use, r, torch.zeros_like(r))
+    J = torch.where(use.unsqueeze(-1), J, torch.zeros_like(J))
+    g = torch.bmm(r.unsqueeze(1), J).squeeze(1) + prior * x
+    held = ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))  # the solver's projected Newton holds these
+    J = torch.where(held.unsqueeze(1), torch.zeros_like(J), J)
+    prior_held = torch.where(held, torch.ones_like(x), prior.expand_as(x))
+    offset = torch.where(held, torch.zeros_like(x), x)
+    delta, ok = solve_normal_equations(J, r, prior=prior_held, prior_offset=offset)
+    decrease = -0.5 * (delta * torch.where(held, torch.zeros_like(g), g)).sum(-1)
+    cost = 0.5 * (r.pow(2).sum(-1) + (prior * x * x).sum(-1))
+    return ok & (decrease > _STALL_FRACTION * torch.maximum(cost, 0.5 * weight_sum))
 
 
 #: Landmarks closer than this to their weighted centroid (RMS, pixels) hold no pose: a face seen as a point, whose
 #: fit drifts to tens of kilometres away at any rotation. Such a sample is FAILED.
 _MIN_SPREAD_PX: float = 1.0
+
+#: A fit whose weighted RMS landmark error is at least this fraction of the landmarks' weighted RMS spread about
+#: their centroid explains less than half their layout: FAILED. Mirrored landmarks (left and right swapped: a
+#: wrong point order) that the solver cannot turn to a face seen from behind collapse to a far face, every point
+#: near the centroid (0.94-1.0); fits of the model's landmarks stay below 0.42 even with 5 px of noise on a face
+#: 17 px in spread, and below 0.07 at 2 px on one of 46 px.
+_MAX_RMS_SPREAD: float = 0.7
 
 
 @full_precision
@@ -250,11 +323,18 @@ def fit_landmarks(
         one point: no pose to find), when the fit put a landmark of positive weight behind the camera, where
         its residual no longer counts (far-off landmarks, thousands of image widths out, can end so), or when it
         turned the face away from the camera (more than 90 degrees from facing it), where its landmarks could not
-        be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose).
+        be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose), when its RMS error
+        is at least 0.7 of the landmarks' RMS spread about their centroid (it explains less than half their layout:
+        mirrored landmarks that did not turn the face away end so, collapsed to a far face), or when the solver
+        stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the default
+        ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0).
     """
+    if not isinstance(config, FitConfig):  # None was an AttributeError ('NoneType' ... 'fit_expression')
+        raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
+    _check_landmark_indices(idx, model.num_landmarks)
     k = int(idx.numel())
     dtype, device = model.dtype, model.device
     check_intrinsics(intrinsics)  # None was an AttributeError ('NoneType' object has no attribute 'fx')
@@ -319,18 +399,21 @@ def fit_landmarks(
         min_valid=unregularised,
     )
     x = res.params
+    lower_all, upper_all, prior_all = torch.cat(lower), torch.cat(upper), torch.cat(prior)
+    stalled = _stalled(residual_fn, x, lower_all, upper_all, prior_all, w.sum(-1))
     if config.refine_shape_prior_precision is not None and S > 0:
         hold = torch.ones(x.shape[1], dtype=torch.bool, device=device)
         hold[6 : 6 + S] = False
-        lo2 = torch.where(hold, x, torch.cat(lower).expand_as(x))
-        hi2 = torch.where(hold, x, torch.cat(upper).expand_as(x))
-        prior2 = torch.cat(prior).clone()
+        lo2 = torch.where(hold, x, lower_all.expand_as(x))
+        hi2 = torch.where(hold, x, upper_all.expand_as(x))
+        prior2 = prior_all.clone()
         prior2[6 : 6 + S] = config.refine_shape_prior_precision
         res2 = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
             prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum()),
         )
-        x = torch.where(res2.failed.unsqueeze(-1), x, res2.params)
+        failed2 = res2.failed | _stalled(residual_fn, res2.params, lo2, hi2, prior2, w.sum(-1))
+        x = torch.where(failed2.unsqueeze(-1), x, res2.params)
     r, _, valid = residual_fn(x)
     # The floor only keeps a division by 0 away (never here: 4 positive weights): a floor of 1e-12 inflated small
     # weights' sums, and their RMS error came out in units of sqrt(weight), 0.004 px for a fit 1.4 px off at 1e-20.
@@ -343,5 +426,8 @@ def fit_landmarks(
     R = axis_angle_to_matrix(x[:, :3])
     centre = torch.einsum("bij,bj->bi", R, model_c) + x[:, 3:6]
     away = (R[:, :, 2] * centre).sum(-1) <= 0
-    status = torch.where((spread_px < _MIN_SPREAD_PX) | dropped | away, int(SolveStatus.FAILED), res.status)
+    # A fit that explains less than half the landmarks' layout is no face's (mirrored landmarks collapse so).
+    unexplained = rms >= _MAX_RMS_SPREAD * spread_px
+    failed = (spread_px < _MIN_SPREAD_PX) | dropped | away | stalled | unexplained
+    status = torch.where(failed, int(SolveStatus.FAILED), res.status)
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)

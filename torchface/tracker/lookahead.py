@@ -35,7 +35,7 @@ landmark fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -51,7 +51,8 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions, shape_prior_vector,
+    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions,
+    shape_prior_vector,
 )
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
@@ -89,7 +90,10 @@ class LookaheadConfig:
             expression change the tracker measured there, ``key_expression`` of :func:`refine_first_fit`).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
             1e3 and 1e5 tracked worse than 1e4 on the James scan.
-        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0).
+        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0). The
+            online start and :func:`lookahead_fit` refine on at most the tracker's
+            :attr:`~torchface.tracker.step.TrackerConfig.num_levels` levels, the finest ones
+            (:func:`levels_of`): a tracker of fewer levels takes frames too small for this pyramid.
         max_points: first-frame template points used.
         gradient_threshold: minimum gradient magnitude of a point (as the tracker's templates).
         huber_k: Huber constant, in robust standard deviations (MAD) of each keyframe's residual.
@@ -152,6 +156,19 @@ class LookaheadConfig:
             FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation
 
 
+def levels_of(config: LookaheadConfig, num_levels: int) -> LookaheadConfig:
+    """``config`` refining on at most ``num_levels`` pyramid levels (a tracker's
+    :attr:`~torchface.tracker.step.TrackerConfig.num_levels`): its finest ones, ``iterations[-num_levels:]``.
+
+    The tracker checks that its frames hold ``num_levels`` levels (at least ``3 * 2 ** (num_levels - 2)`` pixels a
+    side); the default three of the refinement needed 6, and a tracker of 1 or 2 levels on smaller frames failed at
+    its re-anchoring, in the middle of the stream (``images must be (B, C, H, W) with H, W >= 3``).
+    """
+    if len(config.iterations) <= num_levels:
+        return config
+    return replace(config, iterations=config.iterations[-num_levels:])
+
+
 def view_yaw_deg(rotation: Tensor, translation: Tensor | None = None) -> Tensor:
     """``(...)`` the yaw (degrees) of the head seen along the camera's ray to it: that of ``R_ray^T R``, where
     ``R_ray`` is the smallest rotation taking the optical axis to the direction of ``translation``.
@@ -210,6 +227,14 @@ def select_keyframes(
         raise ValueError(f"rotation must be (T, 3, 3), got {getattr(rotation, 'shape', type(rotation))}")
     if translation is not None and tuple(translation.shape) != (rotation.shape[0], 3):
         raise ValueError(f"translation must be ({rotation.shape[0]}, 3), got {tuple(translation.shape)}")
+    if not 0.0 < yaw_deg < 180.0:  # 0 or less chose frame 0 itself, twice, as the keyframe of both sides
+        raise ValueError(f"yaw_deg must be a positive angle (degrees, below 180), got {yaw_deg}")
+    if confident is not None and (not isinstance(confident, Tensor) or confident.dtype != torch.bool
+                                  or tuple(confident.shape) != (rotation.shape[0],)):  # fmt: skip
+        # (one value was broadcast to every frame; float confidences were read as True wherever not 0)
+        got = (f"{confident.dtype} {tuple(confident.shape)}" if isinstance(confident, Tensor)
+               else type(confident).__name__)  # fmt: skip
+        raise ValueError(f"confident must be a ({rotation.shape[0]},) bool tensor or None, got {got}")
     yaw = matrix_to_euler(rotation.to(torch.float64))[:, 0]
     rel = (yaw - yaw[0]).cpu()
     view = view_yaw_deg(rotation, translation)
@@ -335,6 +360,14 @@ def _refine_first_fit(
         raise ValueError("key_expression must be finite")
     if fit.rotation.shape[0] != 1:
         raise ValueError(f"fit must be one stream's (batch 1), got batch {fit.rotation.shape[0]}")
+    L = model.num_landmarks  # (a batched (1, L, 2), as fit_landmarks takes, was a RuntimeError about sizes)
+    check_landmark_type(landmarks_px, f"({L}, 2)")
+    if tuple(landmarks_px.shape) != (L, 2):
+        raise ValueError(f"landmarks_px must be ({L}, 2), one stream's, got {tuple(landmarks_px.shape)}")
+    if landmark_weights is not None and (not isinstance(landmark_weights, Tensor)
+                                         or tuple(landmark_weights.shape) != (L,)):  # fmt: skip
+        got = tuple(landmark_weights.shape) if isinstance(landmark_weights, Tensor) else type(landmark_weights).__name__
+        raise ValueError(f"landmark_weights must be ({L},) or None, got {got}")
     S, A = model.num_shape, model.num_animation
     units = held_shape_units if config.shape_units is None else config.shape_units
     if any(s >= S for s in units):
@@ -345,6 +378,10 @@ def _refine_first_fit(
     nf = len(units)
     nA = A if config.fit_expression else 0
     levels = list(reversed(range(len(config.iterations))))
+    side = 3 * 2 ** (len(levels) - 2) if len(levels) > 1 else 1  # pyr_down needs 3 pixels a side (as the tracker)
+    if min(frames.shape[-2:]) < side:
+        raise ValueError(f"frames must be at least {side}x{side} pixels for the refinement's {len(levels)} pyramid "
+                         f"levels (config.iterations), got {frames.shape[-1]}x{frames.shape[-2]}")  # fmt: skip
     pyramid = gray_pyramid(frames.to(device=dev, dtype=dt), len(levels))  # the tracker's levels
     gray = pyramid[0]
     imgs = [image_with_gradients(g) for g in pyramid]
@@ -669,8 +706,8 @@ def lookahead_fit(
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
                 key_expression=expr[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b], config=config,
-                backend=tracker_config.backend, **priors,
+                landmark_weights=None if weights is None else weights[b],
+                config=levels_of(config, tracker_config.num_levels), backend=tracker_config.backend, **priors,
             )  # fmt: skip
         streams.append(one)
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

@@ -96,7 +96,7 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_first_fit, is_keyframe_turn, landmark_fit_priors, view_yaw_deg,
+    LookaheadConfig, _refine_first_fit, is_keyframe_turn, landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -1126,7 +1126,8 @@ def _reanchor(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
                 key_expression=torch.stack([k[3] for k in ks]),
-                landmark_weights=None if w.weights is None else w.weights[b], config=w.config,
+                landmark_weights=None if w.weights is None else w.weights[b],
+                config=levels_of(w.config, config.num_levels),
                 backend=config.backend, **priors,
             )  # fmt: skip
             fits.append(one)

@@ -265,6 +265,7 @@ class TrackerConfig:
             raise ValueError("gradient_threshold and min_contrast must be non-negative")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
+        RobustLoss(self.robust, self.robust_c)  # its checks (c finite and positive) here, not at the first step
         if not isinstance(self.backend, Backend):
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
         if not isinstance(self.solver, TrackSolver):  # "fast" ran the reference solver without a word
