@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
@@ -21,3 +23,14 @@ def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be made an output folder (None: it can): it, or a folder above it, is a file, or a symbolic
+    link whose target does not exist (``mkdir`` said only "File exists", a traceback after the setup)."""
+    for a in (path, *path.parents):
+        if a.is_symlink() and not a.exists():
+            return f"{a} is a symbolic link to {os.readlink(a)}, which does not exist"
+        if a.exists() and not a.is_dir():
+            return "not a folder path (a file, or under a file)"
+    return None

@@ -93,6 +93,7 @@ from torchface.tracker.module import FaceTracker
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import folder_problem  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration.
@@ -932,8 +933,8 @@ def main(argv: list[str] | None = None) -> int:
         if path is not None and (path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents)):
             parser.error(f"{option} {path}: not a file path (a folder, or under a file)")
     check_python(parser, args.mediapipe_python)
-    if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
-        parser.error(f"--cache {args.cache}: not a folder")
+    if args.cache.lower() != "none" and (problem := folder_problem(Path(args.cache))) is not None:
+        parser.error(f"--cache {args.cache}: {problem}")
     check_size_for_video(parser, args.size, args.cache, names)
     if args.threads is not None:
         torch.set_num_threads(args.threads)

@@ -324,9 +324,10 @@ def _frame_meshes(folder: Path) -> list[Path]:
 
 
 def _check_out_dir(out_dir: Path) -> None:
-    if out_dir.is_symlink() and not out_dir.exists():  # mkdir said only "File exists"
-        raise OutputError(f"{out_dir}: the output folder is a symbolic link to {os.readlink(out_dir)}, which does "
-                          "not exist")  # fmt: skip
+    for a in (out_dir, *out_dir.parents):  # mkdir said only "File exists" (also for a link above the folder)
+        if a.is_symlink() and not a.exists():
+            where = "the output folder" if a == out_dir else f"a folder above {out_dir}"
+            raise OutputError(f"{a}: {where} is a symbolic link to {os.readlink(a)}, which does not exist")
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
     opencv_path(out_dir, OutputError)  # the videos are written by OpenCV

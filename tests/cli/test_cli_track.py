@@ -1745,13 +1745,14 @@ def test_a_full_disk_while_writing_the_resume_record_says_where_and_leaves_no_te
 
 
 def test_an_output_folder_that_is_a_file_or_a_dangling_link_says_so(clip, tmp_path, capsys):
-    """Both said only "cannot create the output folder (File exists)"."""
+    """Both said only "cannot create the output folder (File exists)", as did a dangling link above the folder."""
     video, lm, _ = clip
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
     dangling = tmp_path / "link"
     dangling.symlink_to(tmp_path / "gone")
-    for out, message in ((blocker, "is a file, not a folder"), (dangling, "symbolic link to")):
+    for out, message in ((blocker, "is a file, not a folder"), (dangling, "symbolic link to"),
+                         (dangling / "sub", "a folder above")):
         rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and err.startswith("torchface: error:") and "\n" not in err and message in err, err

@@ -230,6 +230,34 @@ def test_synth_scripts_refuse_an_out_under_a_file_and_a_ground_truth_without_its
     assert not (tmp_path / "o").exists()
 
 
+def test_scripts_refuse_a_dangling_symbolic_link_as_output_folder(tmp_path, capsys, monkeypatch):
+    """An --out (or --cache) that is, or is under, a symbolic link to nothing passed the "not a folder path" check
+    (``exists()`` is False) and was a FileExistsError's traceback from mkdir (make_sequence.py, and
+    overlay_landmarks.py after reading the whole video); now the usage error naming the link, exit 2."""
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import write_sequence
+
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    make = _load("make_sequence")
+    overlay = _load("overlay_landmarks")
+    files = write_sequence(make_scenario("pose_sweep", 2, 16, 16), tmp_path / "seq")
+    for out in (dangling, dangling / "sub"):
+        args = ["--scenario", "pose_sweep", "--width", "16", "--height", "16", "--frames", "2", "--out", str(out)]
+        err = _usage_error(make.main, args, capsys)
+        assert f"{dangling} is a symbolic link to {tmp_path / 'gone'}, which does not exist" in err, err
+        err = _usage_error(overlay.main, [str(files.video), "--out", str(out)], capsys)
+        assert "is a symbolic link to" in err and err.count("\n") == 3, err  # usage (2 lines) and the error
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    args = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "16x16", "--cache", str(dangling / "c")]
+    assert "is a symbolic link to" in _usage_error(auroc.main, args, capsys)
+    evaluate = _load("evaluate")
+    args = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--cache", str(dangling), "--no-auroc"]
+    assert "is a symbolic link to" in _usage_error(evaluate.main, args, capsys)
+    assert not (tmp_path / "gone").exists()
+
+
 def test_confidence_auroc_checks_its_thresholds_and_paths_before_the_run(tmp_path, capsys, monkeypatch):
     """--good above --bad counted the frames in between as positives and negatives at once (``<5: 1  >2: 2`` of 2
     frames) and --good nan none; --save and --cache under a file were tracebacks, --save's after the whole run;
