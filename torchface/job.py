@@ -25,7 +25,7 @@ run did.
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last. A run
 without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
-written. CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
 ``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other settings:
 :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
@@ -49,6 +49,7 @@ import math
 import os
 import re
 import time
+import unicodedata
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -626,17 +627,39 @@ def _first_landmarks(
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether paths ``a`` and ``b`` are one input (one path resolved, or one file: ``A.mp4`` and ``a.mp4`` on a
+    case-insensitive file system, a hard link)."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
 def _check_unique(videos: Sequence[Path], names: Sequence[str]) -> None:
     """Refuse two inputs with one output name, naming both (among many inputs "two inputs" named neither): the same
-    input given twice, or two of one name (``a/clip.mp4`` and ``b/clip.mp4``, ``clip.mp4`` and ``clip.avi``)."""
-    first: dict[str, Path] = {}
+    input given twice, or two of one name (``a/clip.mp4`` and ``b/clip.mp4``, ``clip.mp4`` and ``clip.avi``), or of
+    names that differ only in case or Unicode normalisation (``A.mp4`` and ``a.mp4``): on a case-insensitive file
+    system (macOS, Windows) their outputs are the same files, the second video's replacing the first's; refused on
+    every system, so that a run does not depend on the file system it writes to."""
+    first: dict[str, tuple[Path, str]] = {}
     for v, name in zip(videos, names):
-        if name not in first:
-            first[name] = v
+        key = unicodedata.normalize("NFC", name).lower()
+        if key not in first:
+            first[key] = (v, name)
             continue
-        if first[name].resolve() == v.resolve():
-            raise InputError(f"{v}: this input is given twice ({first[name]} and {v}): give each input once")
-        raise InputError(f"{first[name]} and {v} would write the same outputs {name!r}: rename one of them, or track "
+        other, other_name = first[key]
+        if _same_file(other, v):
+            raise InputError(f"{v}: this input is given twice ({other} and {v}): give each input once")
+        if other_name == name:
+            raise InputError(f"{other} and {v} would write the same outputs {name!r}: rename one of them, or track "
+                             "them with different --out folders")  # fmt: skip
+        nfc = unicodedata.normalize("NFC", other_name) == unicodedata.normalize("NFC", name)
+        how = ("in how their accents are encoded", "macOS") if nfc else ("in case", "macOS and Windows")
+        raise InputError(f"{other} and {v} would write outputs whose names differ only {how[0]} ({other_name!r} and "
+                         f"{name!r}): the same files on {how[1]}'s usual file systems: rename one of them, or track "
                          "them with different --out folders")  # fmt: skip
 
 

@@ -398,6 +398,34 @@ def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, ca
     _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
 
 
+def test_two_inputs_whose_output_names_differ_only_in_case_are_refused(clip, tmp_path, capsys, monkeypatch):
+    """``A.npy`` and ``b/a.npy`` (or two accents' encodings of one name) write ``A.csv`` and ``a.csv``: on a
+    case-insensitive file system (macOS, Windows) the same file, the second video's outputs replacing the first's
+    and its JSON describing both. They were tracked (only equal names were refused); now refused on every system,
+    before anything is written, naming both inputs. One file under two paths (a hard link) is an input given twice."""
+    video, lm, _ = clip
+    (tmp_path / "b").mkdir()
+    _short_npy(video, tmp_path / "A.npy", 2)
+    _short_npy(video, tmp_path / "b" / "a.npy", 2)
+    _short_npy(video, tmp_path / "caf\u00e9.npy", 2)  # composed and decomposed: one name on macOS
+    _short_npy(video, tmp_path / "b" / "cafe\u0301.npy", 2)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+
+    def run(*videos):
+        return main(["track", *videos, "--out", str(out), "--quiet"] + ["--landmarks", str(lm)] * len(videos))
+
+    rc = run("A.npy", "b/a.npy")
+    _assert_clean_failure(rc, capsys, out, "A.npy and b/a.npy would write outputs whose names differ only in case "
+                          "('A' and 'a')")  # fmt: skip
+    rc = run("caf\u00e9.npy", "b/cafe\u0301.npy")
+    _assert_clean_failure(rc, capsys, out, "differ only in how their accents are encoded")
+    os.link(tmp_path / "A.npy", tmp_path / "b" / "A.npy")  # one file (as A.npy and a.npy are on macOS)
+    rc = run("A.npy", "b/A.npy")
+    _assert_clean_failure(rc, capsys, out, "b/A.npy: this input is given twice (A.npy and b/A.npy)")
+    assert run("A.npy") == 0 and (out / "A.csv").is_file()  # one of them alone is tracked
+
+
 def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     """Every input was opened (its first frame read and held) before tracking and closed at the end of the run,
     and all the videos of one size were one batch: a run over many videos ran out of file descriptors ("Too many
