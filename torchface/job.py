@@ -25,14 +25,16 @@ run did.
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last. A run
 without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
-written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
+rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
 ``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other settings:
 :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
 and modification time, the first-frame landmarks and every setting the rows depend on: a resume with other settings, or
-after the input file changed, is refused, as is a damaged or missing record or a damaged partial CSV: a row out of
-sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
+after the input file changed, is refused (settings compared field by field, by value; a field added to or removed from
+the settings since the interrupted run's version is not compared), as is a damaged or missing record or a damaged
+partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
 CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
@@ -43,6 +45,7 @@ degrees of yaw and 0.9 mm, with the same error against the ground truth).
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import math
@@ -410,7 +413,7 @@ class _Stream:
     last_frame: Tensor | None = None
     low_count: int = 0
     anchor: dict[str, list] | None = None  # the online start's re-anchoring, once recorded (_write_record)
-    settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
+    settings: dict[str, object] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
@@ -479,10 +482,11 @@ def _record_path(csv: Path) -> Path:
     return csv.with_name(csv.stem + ".record.partial")
 
 
-def _settings(config: JobConfig, stream: _Stream) -> dict[str, str]:
-    """What a video's rows depend on besides its frames' content, as text: the input file's identity (size and
-    modification time; an image folder's count and newest file), its first-frame landmarks, and every setting
-    that changes the tracking. A resumed run must agree on all of them (:func:`_read_record`)."""
+def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
+    """What a video's rows depend on besides its frames' content: the input file's identity (size and modification
+    time; an image folder's count and newest file) and its first-frame landmarks, as text, and every setting that
+    changes the tracking, as JSON values (:func:`_as_json`). A resumed run must agree on all of them
+    (:func:`_read_record`, :func:`_setting_differences`)."""
     path = Path(stream.reader.info.path)
     if path.is_dir():
         stats = [f.stat() for f in image_files(path)]
@@ -493,15 +497,68 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, str]:
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16],
-        "--focal": repr(None if config.focal is None else float(config.focal)), "--convert": repr(config.convert),
-        "--lookahead": repr(config.lookahead),
-        "online start": repr(config.refine_first), "tracker settings": repr(config.tracker),
-        "--detector": repr(config.detector), "re-detection": repr((config.redetect_after, config.redetect_below)),
-        "normalised size": repr(config.normalised_size),
+        **_as_json({
+            "--focal": None if config.focal is None else float(config.focal), "--convert": config.convert,
+            "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
+            "--detector": config.detector, "re-detection": (config.redetect_after, config.redetect_below),
+            "normalised size": config.normalised_size,
+        }),
     }  # fmt: skip
 
 
-def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, settings: dict[str, str]) -> None:
+def _as_json(value: object) -> object:
+    """``value`` as a JSON file holds it (:func:`~torchface.io.sidecar.to_jsonable`: a dataclass as the dict of its
+    fields, a tuple as a list), the form in which the record and the sidecar's ``config`` keep the settings."""
+    return json.loads(json.dumps(to_jsonable(value)))
+
+
+_ENUM_REPR = re.compile(r"<\w+(?:\.\w+)+: ('[^']*'|[-+.\w]+)>")
+
+
+def _from_repr(text: str) -> object:
+    """A setting that a record of an earlier version holds as its ``repr`` (``TrackerConfig(num_levels=3, ...)``,
+    ``(10, 0.15)``, ``'dlib'``) as :func:`_as_json` gives it; ``text`` itself where it is not such a repr."""
+
+    def value(node: ast.expr) -> object:
+        if isinstance(node, ast.Call) and not node.args:  # a dataclass: its fields
+            return {k.arg: value(k.value) for k in node.keywords}
+        if isinstance(node, (ast.Tuple, ast.List)):
+            return [value(e) for e in node.elts]
+        if isinstance(node, ast.Name) and node.id in ("inf", "nan"):  # (to_jsonable writes them as null)
+            return None
+        return ast.literal_eval(node)
+
+    try:  # (an enum's repr, <RobustKind.TUKEY: 'tukey'>, as its value)
+        return value(ast.parse(_ENUM_REPR.sub(r"\1", text), mode="eval").body)
+    except (SyntaxError, ValueError, TypeError, MemoryError, RecursionError):
+        return text
+
+
+def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
+    """Where the setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) differs from ``now``: the
+    dotted names of the fields that differ (``""``: the whole value). Numbers compare by value (``5`` and ``5.0``
+    are one setting); a field that only one of them has (one added to, or removed from, a settings dataclass
+    between versions) is not compared: a version that added it kept what the earlier one did by default."""
+    if isinstance(then, dict) and isinstance(now, dict):
+        return [d for k in then.keys() & now.keys() for d in _setting_differences(then[k], now[k], f"{at}{k}.")]
+    if isinstance(then, list) and isinstance(now, list) and len(then) == len(now):
+        return [d for k, (a, b) in enumerate(zip(then, now)) for d in _setting_differences(a, b, f"{at}{k}.")]
+    same = then == now and isinstance(then, bool) == isinstance(now, bool)
+    return [] if same else [at.rstrip(".")]
+
+
+def _said_difference(name: str, then: object, now: object) -> str:
+    """How a message says that setting ``name`` was ``then`` and is ``now``: the two values, or for settings
+    dataclasses (dicts; None where off) whether it was on, or which of their fields differ."""
+    if isinstance(then, dict) and isinstance(now, dict):
+        fields = sorted(_setting_differences(then, now))
+        return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
+    if isinstance(then, dict) or isinstance(now, dict):
+        return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
+    return f"{name} {then} then, {now} now"
+
+
+def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, settings: dict[str, object]) -> None:
     """Write (atomically) what a resumed run needs besides the partial CSV's rows: the input it belongs to, the
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
@@ -509,7 +566,7 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     frame, the shape the rows up to the re-anchoring were tracked with (their mesh is re-drawn with it), and the
     re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them)."""
     tmp = path.with_name(path.name + ".tmp")
-    record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings}
+    record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings, "settings_as": "json"}
     try:
         tmp.write_text(json.dumps(record), encoding="utf-8")
     except OSError as exc:  # a full disk: say where, and leave no temporary file behind
@@ -554,7 +611,7 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
 
 
 def _read_record(
-    path: Path, video: Path, settings: dict[str, str], num_shape: int, num_animation: int
+    path: Path, video: Path, settings: dict[str, object], num_shape: int, num_animation: int
 ) -> dict[str, list] | None:
     """The re-anchoring in a partial run's record (None: none); ``num_shape``, ``num_animation``: the model's
     units, the sizes of the re-anchoring's fields.
@@ -574,18 +631,19 @@ def _read_record(
         made_with = record.get("settings", settings)  # records before settings: nothing to compare
         if not isinstance(made_with, dict) or not isinstance(made_from, str):
             raise TypeError
+        if record.get("settings_as") != "json" and made_with is not settings:  # an earlier version's: reprs
+            made_with = {k: v if k in ("input file", "first-frame landmarks") else _from_repr(v)
+                         for k, v in made_with.items()}  # fmt: skip
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{path}: cannot resume, this record is unreadable: run without --resume") from None
     problem = _anchor_problem(anchor, num_shape, num_animation)
     if problem is not None:  # (it raised a bare TypeError or RuntimeError later, or resumed from NaN silently)
         raise InputError(f"{path}: cannot resume, this record is damaged ({problem}): run without --resume")
     _check_made_from(made_from, video, f"{path}: the partial results were")
-    differ = [k for k in settings if made_with.get(k) != settings[k]]
+    # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
+    differ = [k for k in settings if k not in made_with or _setting_differences(made_with[k], settings[k])]
     if differ:
-        what = "; ".join(
-            f"{k} {made_with.get(k)} then, {settings[k]} now" if k != "tracker settings" else "tracker settings"
-            for k in differ
-        )
+        what = "; ".join(_said_difference(k, made_with.get(k), settings[k]) for k in differ)
         raise InputError(
             f"{path}: cannot resume, the partial results were made with other settings or input ({what}): run "
             "with the interrupted run's settings, or without --resume"
@@ -700,16 +758,12 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
-    now = json.loads(json.dumps(to_jsonable(_result_settings(config))))  # as the sidecar holds them
-    differ = [k for k in now if k in made_with and made_with[k] != now[k]]
+    now = _as_json(_result_settings(config))  # as the sidecar holds them
+    differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
-        def said(k: str, value: object) -> str:
-            return ("on" if value is not None else "off") if isinstance(now[k] or made_with[k], dict) else str(value)
-
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
                  "detector": "--detector"}  # fmt: skip
-        what = "; ".join(f"{names[k]} {said(k, made_with[k])} then, {said(k, now[k])} now" if k in names else
-                         k.replace("_", " ") for k in differ)  # fmt: skip
+        what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
 

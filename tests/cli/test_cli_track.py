@@ -1529,6 +1529,59 @@ def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys
     assert json.loads((out / "short.json").read_text())["frames"] == 4
 
 
+def test_resume_takes_equal_settings_in_another_form_and_an_earlier_versions_record(clip, tmp_path, capsys):
+    """The record kept the settings as their ``repr``: ``TrackerConfig(robust_c=5)`` then, ``5.0`` now (one
+    setting) was refused as "tracker settings", and so was a partial run of an earlier version once TrackerConfig
+    had gained a field (its repr one field longer). Now compared field by field, by value, a field one of them lacks
+    not compared; a field that differs is still refused, and named."""
+    from torchface.tracker.step import TrackerConfig
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    base = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    _interrupted(short, out, lm, 2, refine_first=None, tracker=TrackerConfig(robust_c=5))
+    assert track_videos([short], replace(base, tracker=TrackerConfig(robust_c=5.0), resume=True))[0].frames == 4
+    _interrupted(short, out, lm, 2, refine_first=None)
+    record_path = out / "short.record.partial"
+    record = json.loads(record_path.read_text())
+    earlier = {k: v if k in ("input file", "first-frame landmarks") else None for k, v in record["settings"].items()}
+    earlier.update({"--focal": "None", "--convert": "False", "--lookahead": "None", "online start": "None",
+                    "--detector": "None", "re-detection": "(10, 0.15)", "normalised size": "128"})  # fmt: skip
+    old_tracker = repr(TrackerConfig()).replace("expression_quota=0.0, ", "")  # a field added since
+    assert old_tracker != repr(TrackerConfig())
+    earlier["tracker settings"] = old_tracker
+    record_path.write_text(json.dumps({"input": record["input"], "anchor": None, "settings": earlier}))
+    assert track_videos([short], replace(base, resume=True))[0].frames == 4
+    _interrupted(short, out, lm, 2, refine_first=None)
+    earlier["tracker settings"] = old_tracker.replace("lost_after=15", "lost_after=30")  # another setting
+    record_path.write_text(json.dumps({"input": record["input"], "anchor": None, "settings": earlier}))
+    with pytest.raises(InputError, match=r"other settings or input \(tracker settings: template\.lost_after\)"):
+        track_videos([short], replace(base, resume=True))
+
+
+def test_resume_skips_complete_outputs_whose_settings_are_equal_in_another_version(clip, tmp_path):
+    """A sidecar's ``config.tracker`` (every TrackerConfig field) was compared whole: after an upgrade that added a
+    field (or removed one), --resume refused to skip complete outputs made with the same settings, naming only
+    "tracker". Now a field that one of them lacks is not compared; one that differs is refused, and named."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    track_videos([short], config)
+    path = output_paths(out, "short")["json"]
+    sidecar = json.loads(path.read_text())
+    tracker = sidecar["config"]["tracker"]
+    del tracker["expression_quota"]  # a field added since
+    tracker["template"]["retired_setting"] = 1  # a field removed since
+    path.write_text(json.dumps(sidecar))
+    assert track_videos([short], replace(config, resume=True))[0].skipped
+    tracker["template"]["lost_after"] = 30
+    path.write_text(json.dumps(sidecar))
+    with pytest.raises(InputError, match=r"other settings \(tracker: template\.lost_after\)"):
+        track_videos([short], replace(config, resume=True))
+
+
 def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch):
     """Ctrl-C after the CSV got its final name but before the JSON (written last) used to leave a CSV that --resume
     ignored (it tracked the whole video again) and, in a batch, the other videos' partial MP4s: now the CSV is
