@@ -685,6 +685,18 @@ def _first_landmarks(
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
+def _name_key(name: str) -> str:
+    """``name`` as a file system that ignores case and Unicode normalisation compares it (macOS, Windows): two names
+    of one key are one file there."""
+    return unicodedata.normalize("NFC", name).lower()
+
+
+def _path_key(path: Path) -> tuple[Path, str]:
+    """``path`` resolved, its file name as :func:`_name_key` (its folder as given: compared exactly)."""
+    path = path.resolve()
+    return path.parent, _name_key(path.name)
+
+
 def _same_file(a: Path, b: Path) -> bool:
     """Whether paths ``a`` and ``b`` are one input (one path resolved, or one file: ``A.mp4`` and ``a.mp4`` on a
     case-insensitive file system, a hard link)."""
@@ -704,7 +716,7 @@ def _check_unique(videos: Sequence[Path], names: Sequence[str]) -> None:
     every system, so that a run does not depend on the file system it writes to."""
     first: dict[str, tuple[Path, str]] = {}
     for v, name in zip(videos, names):
-        key = unicodedata.normalize("NFC", name).lower()
+        key = _name_key(name)
         if key not in first:
             first[key] = (v, name)
             continue
@@ -727,20 +739,22 @@ def _check_inputs_kept(
 ) -> None:
     """Refuse a run whose outputs would replace what it reads: an output with the path of an input or of a
     landmarks file (``clip.csv`` beside ``clip.mp4`` with ``--out`` their folder; a fresh run deletes it before
-    tracking), or an output folder that is an image-folder input (the next run would read the plot PNG as a frame).
+    tracking), also where the names differ only in case (``IMG_1.csv`` of ``IMG_1.MOV`` and the landmarks
+    ``img_1.csv``: one file on macOS and Windows; refused on every system, :func:`_name_key`), or an output folder
+    that is an image-folder input (the next run would read the plot PNG as a frame).
 
     Raises:
         OutputError: naming the output and what it would replace.
     """
-    read = {Path(v).resolve(): f"the input {v}" for v in videos}
-    read.update({Path(f).resolve(): f"the landmarks file {Path(f)}" for f in landmarks})
+    read = {_path_key(Path(v)): f"the input {v}" for v in videos}
+    read.update({_path_key(Path(f)): f"the landmarks file {Path(f)}" for f in landmarks})
     for v in videos:
         if v.is_dir() and v.resolve() == out_dir.resolve():
             raise OutputError(f"{out_dir}: the output folder is the image folder {v}, whose frames are every image "
                               "in it (the plot PNG would be one): give another --out")  # fmt: skip
     for v, name in zip(videos, names):
         for kind, path in output_paths(out_dir, name).items():
-            what = read.get(path.resolve()) if kind != "meshes" or meshes else None
+            what = read.get(_path_key(path)) if kind != "meshes" or meshes else None
             if what is not None:
                 raise OutputError(f"{path}: the {kind} output of {v} would replace {what}: give another --out, or "
                                   "rename that file")  # fmt: skip

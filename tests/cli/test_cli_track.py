@@ -590,6 +590,22 @@ def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, caps
     assert sorted(p.name for p in shots.iterdir()) == ["000.png", "001.png"]
 
 
+def test_an_output_whose_name_differs_from_a_landmarks_file_only_in_case_is_refused(clip, tmp_path, capsys):
+    """``IMG_1.npy`` with its landmarks ``img_1.csv`` beside it and ``--out`` their folder: the track CSV
+    ``IMG_1.csv`` is the landmarks file on macOS and Windows (a fresh run deleted it before tracking). Only an equal
+    path was refused; now a name equal but for case, on every system (the run does not depend on the file system)."""
+    video, lm, _ = clip
+    here = tmp_path / "here"
+    here.mkdir()
+    _short_npy(video, here / "IMG_1.npy", 2)
+    marks = here / "img_1.csv"
+    marks.write_bytes(lm.read_bytes())
+    rc = main(["track", str(here / "IMG_1.npy"), "--landmarks", str(marks), "--out", str(here), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", f"IMG_1.csv: the csv output of {here / 'IMG_1.npy'} "
+                          f"would replace the landmarks file {marks}")  # fmt: skip
+    assert marks.read_bytes() == lm.read_bytes() and sorted(p.name for p in here.iterdir()) == ["IMG_1.npy", "img_1.csv"]
+
+
 def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
     """Interrupted after the online start re-anchored the stream, a resumed run starts from the recorded refined
     fit and offset: its rows go on as the uninterrupted run's and its sidecar has the refined shape. (Resumed
