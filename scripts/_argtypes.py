@@ -34,3 +34,14 @@ def folder_problem(path: Path) -> str | None:
         if a.exists() and not a.is_dir():
             return "not a folder path (a file, or under a file)"
     return None
+
+
+def file_problem(path: Path) -> str | None:
+    """Why a file cannot be written at ``path`` (None: it can): it is a folder, or a folder above it is a file or a
+    symbolic link whose target does not exist (found only when the file was written, after the whole run)."""
+    for a in path.parents:
+        if a.is_symlink() and not a.exists():
+            return f"{a} is a symbolic link to {os.readlink(a)}, which does not exist"
+    if path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents):
+        return "not a file path (a folder, or under a file)"
+    return None

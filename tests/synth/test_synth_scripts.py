@@ -258,6 +258,29 @@ def test_scripts_refuse_a_dangling_symbolic_link_as_output_folder(tmp_path, caps
     assert not (tmp_path / "gone").exists()
 
 
+def test_scripts_refuse_a_file_path_under_a_dangling_symbolic_link_before_the_run(tmp_path, capsys, monkeypatch):
+    """A --json, --save or --save-series under a symbolic link to nothing passed the check (``exists()`` False) and
+    failed only when the file was written, after the whole run (mkdir's FileExistsError); now a usage error first."""
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    target = str(dangling / "f.json")
+    evaluate = _load("evaluate")
+    base = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--cache", "none", "--no-auroc"]
+    for option in ("--json", "--save-series"):
+        assert "is a symbolic link to" in _usage_error(evaluate.main, [*base, option, target], capsys), option
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    args = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "16x16", "--cache", "none", "--save", target]
+    assert "is a symbolic link to" in _usage_error(auroc.main, args, capsys)
+    dataloader = _load("benchmark_dataloader")
+    monkeypatch.setattr(dataloader, "render_videos", lambda *a: (_ for _ in ()).throw(AssertionError("rendering")))
+    assert "is a symbolic link to" in _usage_error(dataloader.main, ["--json", target], capsys)
+    raster = _load("benchmark_raster")
+    monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
+    assert "is a symbolic link to" in _usage_error(raster.main, ["--json", target], capsys)
+    assert not (tmp_path / "gone").exists()
+
+
 def test_confidence_auroc_checks_its_thresholds_and_paths_before_the_run(tmp_path, capsys, monkeypatch):
     """--good above --bad counted the frames in between as positives and negatives at once (``<5: 1  >2: 2`` of 2
     frames) and --good nan none; --save and --cache under a file were tracebacks, --save's after the whole run;

@@ -78,6 +78,7 @@ def test_bad_out_and_json_paths_are_refused_before_the_run(tmp_path, capsys):
         (["--out", str(a_file / "run")], "--out"),
         (["--out", str(dangling)], "symbolic link to"),  # (a FileExistsError's traceback from mkdir, after the checks)
         (["--out", str(dangling / "run")], "symbolic link to"),
+        (["--out", str(out), "--json", str(dangling / "figures.json")], "symbolic link to"),  # (after the whole run)
         (["--out", str(out), "--seed", "-1"], "--seed"),
     ):
         with pytest.raises(SystemExit) as exc:
