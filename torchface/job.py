@@ -762,7 +762,8 @@ def _check_inputs_kept(
 
 def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
-    settings than ``config``'s (those :func:`_settings` names; a sidecar without one of them: not compared)."""
+    settings than ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a
+    sidecar without one of them: not compared)."""
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
         made, made_with = sidecar["input"], sidecar.get("config", {})
