@@ -281,6 +281,27 @@ def test_scripts_refuse_a_file_path_under_a_dangling_symbolic_link_before_the_ru
     assert not (tmp_path / "gone").exists()
 
 
+def test_benchmark_checks_its_cache_folder_before_rendering(tmp_path, capsys):
+    """benchmark.py's --cache, a file, under one or a symbolic link to nothing, was mkdir's traceback once the
+    frames had been rendered; now one of the checks made before any work."""
+    import argparse
+
+    bench = _load("benchmark")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    parser = argparse.ArgumentParser(prog="benchmark.py")
+    ok = argparse.Namespace(frames=150, width=640, height=480, management_only=True, batches="", malloc_batches="",
+                            repeats=3, json=None, mediapipe_python=None, cache=str(tmp_path / "cache"))  # fmt: skip
+    bench._check_arguments(parser, ok)
+    for cache, message in ((blocker, "not a folder path"), (blocker / "c", "not a folder path"),
+                           (dangling, "is a symbolic link to"), (dangling / "c", "is a symbolic link to")):
+        args = argparse.Namespace(**{**vars(ok), "cache": str(cache)})
+        assert message in _usage_error(lambda argv: bench._check_arguments(parser, args), [], capsys), cache
+    assert not (tmp_path / "cache").exists()
+
+
 def test_confidence_auroc_checks_its_thresholds_and_paths_before_the_run(tmp_path, capsys, monkeypatch):
     """--good above --bad counted the frames in between as positives and negatives at once (``<5: 1  >2: 2`` of 2
     frames) and --good nan none; --save and --cache under a file were tracebacks, --save's after the whole run;
