@@ -420,9 +420,10 @@ def test_two_inputs_whose_output_names_differ_only_in_case_are_refused(clip, tmp
                           "('A' and 'a')")  # fmt: skip
     rc = run("caf\u00e9.npy", "b/cafe\u0301.npy")
     _assert_clean_failure(rc, capsys, out, "differ only in how their accents are encoded")
-    os.link(tmp_path / "A.npy", tmp_path / "b" / "A.npy")  # one file (as A.npy and a.npy are on macOS)
-    rc = run("A.npy", "b/A.npy")
-    _assert_clean_failure(rc, capsys, out, "b/A.npy: this input is given twice (A.npy and b/A.npy)")
+    (tmp_path / "c").mkdir()
+    os.link(tmp_path / "A.npy", tmp_path / "c" / "A.npy")  # one file (as A.npy and a.npy are on macOS)
+    rc = run("A.npy", "c/A.npy")
+    _assert_clean_failure(rc, capsys, out, "c/A.npy: this input is given twice (A.npy and c/A.npy)")
     assert run("A.npy") == 0 and (out / "A.csv").is_file()  # one of them alone is tracked
 
 
