@@ -27,8 +27,8 @@ without ``resume`` first removes what earlier runs wrote for all its videos (bef
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
 rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other settings:
-:func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input, with other settings or
+without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
 and modification time, the first-frame landmarks and every setting the rows depend on: a resume with other settings, or
@@ -763,7 +763,7 @@ def _check_inputs_kept(
 def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
     settings than ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a
-    sidecar without one of them: not compared)."""
+    sidecar without one of them: not compared), or without the meshes ``config.meshes`` asks for."""
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
         made, made_with = sidecar["input"], sidecar.get("config", {})
@@ -781,6 +781,9 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
         what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
+    if config.meshes and not paths["meshes"].is_dir():  # (skipped as complete, without the meshes asked for)
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made without --meshes (no "
+                         f"{paths['meshes'].name}/): run without --meshes, or without --resume")  # fmt: skip
 
 
 def _result_settings(config: JobConfig) -> dict[str, object]:

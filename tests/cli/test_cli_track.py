@@ -559,6 +559,26 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
 
 
+def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_for(clip, tmp_path, capsys):
+    """``--resume --meshes`` over a video completed without --meshes skipped it as complete: no meshes, no word
+    (the summary's file list only leaves out "_meshes/"). Now refused, as other settings are; with its meshes there
+    it is skipped, and without --meshes too."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
+                     *extra])  # fmt: skip
+
+    assert run() == 0
+    _assert_clean_failure(run("--resume", "--meshes"), capsys, tmp_path / "nothing",
+                          "complete outputs were made without --meshes (no short_meshes/)")  # fmt: skip
+    assert run("--meshes") == 0 and len(list((out / "short_meshes").glob("*.ply"))) == 2
+    assert run("--resume", "--meshes") == 0 and "already complete" in capsys.readouterr().out
+    assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
