@@ -781,7 +781,8 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
         what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
-    if config.meshes and not paths["meshes"].is_dir():  # (skipped as complete, without the meshes asked for)
+    # (skipped as complete, without the meshes asked for; a folder of that name may hold only the user's files)
+    if config.meshes and not (paths["meshes"].is_dir() and _frame_meshes(paths["meshes"])):
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made without --meshes (no "
                          f"{paths['meshes'].name}/): run without --meshes, or without --resume")  # fmt: skip
 

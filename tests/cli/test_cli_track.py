@@ -574,6 +574,9 @@ def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_f
     assert run() == 0
     _assert_clean_failure(run("--resume", "--meshes"), capsys, tmp_path / "nothing",
                           "complete outputs were made without --meshes (no short_meshes/)")  # fmt: skip
+    (out / "short_meshes").mkdir()
+    (out / "short_meshes" / "notes.txt").write_text("the user's")  # a folder of that name, but no frame meshes
+    _assert_clean_failure(run("--resume", "--meshes"), capsys, tmp_path / "nothing", "made without --meshes")
     assert run("--meshes") == 0 and len(list((out / "short_meshes").glob("*.ply"))) == 2
     assert run("--resume", "--meshes") == 0 and "already complete" in capsys.readouterr().out
     assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
