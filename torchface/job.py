@@ -1326,6 +1326,11 @@ def _finalise(
         else:
             os.replace(mt, p["meshes"])
         outs.append(p["meshes"])
+    elif mt.is_dir():  # an interrupted --meshes run's, resumed without: its frame meshes were left there for good
+        for f in _frame_meshes(mt):
+            f.unlink()
+        if not any(mt.iterdir()):
+            mt.rmdir()
     conf = rows[:, cols.index("confidence")]
     lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
     fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0

@@ -582,6 +582,19 @@ def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_f
     assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
 
 
+def test_a_meshes_run_resumed_without_meshes_leaves_no_partial_meshes(clip, tmp_path):
+    """Interrupted with --meshes and resumed without, the run completed and left ``<name>_meshes.partial/`` with
+    the interrupted run's PLY files for good (about 100 kB a frame)."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    _interrupted(short, out, lm, 2, meshes=True, refine_first=None)
+    assert len(list((out / "short_meshes.partial").glob("*.ply"))) == 2
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), refine_first=None, resume=True))
+    assert (out / "short.json").is_file()
+    assert not (out / "short_meshes.partial").exists() and not (out / "short_meshes").exists()
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
