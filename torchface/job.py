@@ -57,6 +57,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -506,7 +507,7 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
     }  # fmt: skip
 
 
-def _as_json(value: object) -> object:
+def _as_json(value: object) -> Any:
     """``value`` as a JSON file holds it (:func:`~torchface.io.sidecar.to_jsonable`: a dataclass as the dict of its
     fields, a tuple as a list), the form in which the record and the sidecar's ``config`` keep the settings."""
     return json.loads(json.dumps(to_jsonable(value)))
