@@ -45,3 +45,16 @@ def file_problem(path: Path) -> str | None:
     if path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents):
         return "not a file path (a folder, or under a file)"
     return None
+
+
+def device_problem(name: str) -> str | None:
+    """Why torch cannot compute on device ``name`` here (None: it can): an unknown name, a backend that this torch
+    build or this machine lacks, or ``meta`` (no data)."""
+    import torch
+
+    try:
+        device = torch.device(name)
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError, ValueError) as exc:  # (torch raises each for some backend)
+        return " ".join(str(exc).split()) or type(exc).__name__
+    return "the meta device holds no data" if device.type == "meta" else None

@@ -93,7 +93,7 @@ from torchface.tracker.module import FaceTracker
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import file_problem, folder_problem  # noqa: E402
+from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration.
@@ -933,6 +933,8 @@ def main(argv: list[str] | None = None) -> int:
         if path is not None and (problem := file_problem(path)) is not None:
             parser.error(f"{option} {path}: {problem}")
     check_python(parser, args.mediapipe_python)
+    if (problem := device_problem(args.device)) is not None:  # (a traceback from load_candide3 before)
+        parser.error(f"--device {args.device}: {problem}")
     if args.cache.lower() != "none" and (problem := folder_problem(Path(args.cache))) is not None:
         parser.error(f"--cache {args.cache}: {problem}")
     check_size_for_video(parser, args.size, args.cache, names)
