@@ -1,4 +1,5 @@
-"""Argument types shared by the scripts beside this file (imported with this folder put first on ``sys.path``)."""
+"""Argument types and path and device checks shared by the scripts beside this file (imported with this folder put
+first on ``sys.path``)."""
 
 from __future__ import annotations
 

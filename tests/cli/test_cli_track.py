@@ -640,7 +640,8 @@ def test_an_output_whose_name_differs_from_a_landmarks_file_only_in_case_is_refu
     rc = main(["track", str(here / "IMG_1.npy"), "--landmarks", str(marks), "--out", str(here), "--quiet"])
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", f"IMG_1.csv: the csv output of {here / 'IMG_1.npy'} "
                           f"would replace the landmarks file {marks}")  # fmt: skip
-    assert marks.read_bytes() == lm.read_bytes() and sorted(p.name for p in here.iterdir()) == ["IMG_1.npy", "img_1.csv"]
+    assert marks.read_bytes() == lm.read_bytes()
+    assert sorted(p.name for p in here.iterdir()) == ["IMG_1.npy", "img_1.csv"]
 
 
 def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
