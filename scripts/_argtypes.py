@@ -1,9 +1,12 @@
-"""Argument types shared by the scripts beside this file (imported with this folder put first on ``sys.path``)."""
+"""Argument types and path and device checks shared by the scripts beside this file (imported with this folder put
+first on ``sys.path``)."""
 
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
@@ -21,3 +24,38 @@ def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be made an output folder (None: it can): it, or a folder above it, is a file, or a symbolic
+    link whose target does not exist (``mkdir`` said only "File exists", a traceback after the setup)."""
+    for a in (path, *path.parents):
+        if a.is_symlink() and not a.exists():
+            return f"{a} is a symbolic link to {os.readlink(a)}, which does not exist"
+        if a.exists() and not a.is_dir():
+            return "not a folder path (a file, or under a file)"
+    return None
+
+
+def file_problem(path: Path) -> str | None:
+    """Why a file cannot be written at ``path`` (None: it can): it is a folder, or a folder above it is a file or a
+    symbolic link whose target does not exist (found only when the file was written, after the whole run)."""
+    for a in path.parents:
+        if a.is_symlink() and not a.exists():
+            return f"{a} is a symbolic link to {os.readlink(a)}, which does not exist"
+    if path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents):
+        return "not a file path (a folder, or under a file)"
+    return None
+
+
+def device_problem(name: str) -> str | None:
+    """Why torch cannot compute on device ``name`` here (None: it can): an unknown name, a backend that this torch
+    build or this machine lacks, or ``meta`` (no data)."""
+    import torch
+
+    try:
+        device = torch.device(name)
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError, ValueError) as exc:  # (torch raises each for some backend)
+        return " ".join(str(exc).split()) or type(exc).__name__
+    return "the meta device holds no data" if device.type == "meta" else None

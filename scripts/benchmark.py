@@ -45,6 +45,7 @@ import torch
 from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import folder_problem  # noqa: E402
 from peers import check_python, run_mediapipe  # noqa: E402
 
 
@@ -261,6 +262,8 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
     if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
         ap.error(f"--json {args.json}: not a file path in an existing folder")
+    if (problem := folder_problem(Path(args.cache))) is not None:  # (mkdir's traceback after the rendering)
+        ap.error(f"--cache {args.cache}: {problem}")
     check_python(ap, args.mediapipe_python)
 
 

@@ -29,6 +29,7 @@ from torchface.synth.sequence import load_ground_truth, write_sequence
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset, loader_throughput
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import file_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 
 SCENARIOS = ("expressions", "light_switch")
@@ -86,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         tracking = FaceTrackingConfig(face_size=args.face_size)
     except ValueError as exc:
         parser.error(f"--face-size: {exc}")
-    if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
-        parser.error(f"--json {args.json}: not a file path (a folder, or under a file)")
+    if args.json is not None and (problem := file_problem(args.json)) is not None:
+        parser.error(f"--json {args.json}: {problem}")
     with tempfile.TemporaryDirectory(prefix="tf_dataloader_") as tmp:
         root = Path(tmp)
         videos, landmarks = render_videos(root, args.videos, args.frames, args.width, args.height)

@@ -28,6 +28,7 @@ from torchface.io.sidecar import write_json
 from torchface.rendering import rasterize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import file_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
@@ -108,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         torch.empty(1, device=device)
     except (RuntimeError, AssertionError) as exc:  # an unknown device, or torch built without it
         parser.error(f"--device {args.device}: {' '.join(str(exc).split())}")
-    if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
-        parser.error(f"--json {args.json}: not a file path (a folder, or under a file)")
+    if args.json is not None and (problem := file_problem(args.json)) is not None:
+        parser.error(f"--json {args.json}: {problem}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)

@@ -47,6 +47,7 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
+from _argtypes import file_problem, folder_problem  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
@@ -173,13 +174,13 @@ def main(argv: list[str] | None = None) -> int:
     if not (math.isfinite(args.good) and math.isfinite(args.bad) and 0.0 < args.good <= args.bad):
         parser.error(f"--good and --bad must be numbers with 0 < --good <= --bad, got {args.good:g} and {args.bad:g}")
     cache = None if args.cache.lower() == "none" else Path(args.cache)
-    if cache is not None and any(a.exists() and not a.is_dir() for a in (cache, *cache.parents)):
-        parser.error(f"--cache {cache}: not a folder path (a file, or under a file)")
+    if cache is not None and (problem := folder_problem(cache)) is not None:
+        parser.error(f"--cache {cache}: {problem}")
     save = args.save
     if save is not None:  # checked before the run, not after it (numpy adds .npz to a name without it)
         save = save if save.suffix == ".npz" else save.with_name(save.name + ".npz")
-        if save.is_dir() or any(a.exists() and not a.is_dir() for a in save.parents):
-            parser.error(f"--save {args.save}: not a file path (a folder, or under a file)")
+        if (problem := file_problem(save)) is not None:
+            parser.error(f"--save {args.save}: {problem}")
     model = load_candide3()
     base = TrackerConfig(template=TemplateConfig())
     results: dict[str, dict[str, dict[str, np.ndarray]]] = {v: {} for v in variants}

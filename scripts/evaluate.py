@@ -93,6 +93,7 @@ from torchface.tracker.module import FaceTracker
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration.
@@ -929,11 +930,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.long_frames is not None and args.long_frames < 100:
         parser.error(f"--long-frames must be >= 100 (a long run's events need them), got {args.long_frames}")
     for option, path in (("--json", args.json), ("--save-series", args.save_series)):
-        if path is not None and (path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents)):
-            parser.error(f"{option} {path}: not a file path (a folder, or under a file)")
+        if path is not None and (problem := file_problem(path)) is not None:
+            parser.error(f"{option} {path}: {problem}")
     check_python(parser, args.mediapipe_python)
-    if args.cache.lower() != "none" and Path(args.cache).exists() and not Path(args.cache).is_dir():
-        parser.error(f"--cache {args.cache}: not a folder")
+    if (problem := device_problem(args.device)) is not None:  # (a traceback from load_candide3 before)
+        parser.error(f"--device {args.device}: {problem}")
+    if args.cache.lower() != "none" and (problem := folder_problem(Path(args.cache))) is not None:
+        parser.error(f"--cache {args.cache}: {problem}")
     check_size_for_video(parser, args.size, args.cache, names)
     if args.threads is not None:
         torch.set_num_threads(args.threads)

@@ -31,6 +31,9 @@ from torchface.synth.scenarios import (
 )
 from torchface.synth.sequence import write_sequence
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import folder_problem  # noqa: E402
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
@@ -62,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--frames must be >= {LONG_RUN_MIN_FRAMES} for {', '.join(long_names)}, got {args.frames}")
     if args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")
-    if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
-        parser.error(f"--out {args.out}: not a folder path (a file, or under a file)")
+    if (problem := folder_problem(args.out)) is not None:
+        parser.error(f"--out {args.out}: {problem}")
     for name in names:
         w, h, t = scenario_size(name, args.size)
         w = args.width if args.width is not None else w

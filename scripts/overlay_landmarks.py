@@ -12,6 +12,7 @@ Example:
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,9 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.transforms import transform_points
 from torchface.synth.io import frames_to_uint8, iter_video_uint8
 from torchface.synth.sequence import load_ground_truth
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import folder_problem  # noqa: E402
 
 # iBUG-68 polylines: (start, end, closed).
 _GROUPS = ((0, 17, False), (17, 22, False), (22, 27, False), (27, 31, False), (31, 36, False),
@@ -55,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.scale < 0:
         parser.error(f"--scale must be >= 1 (or 0 for about 640 px wide), got {args.scale}")
-    if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
-        parser.error(f"--out {args.out}: not a folder path (a file, or under a file)")
+    if (problem := folder_problem(args.out)) is not None:
+        parser.error(f"--out {args.out}: {problem}")
     try:
         gt = load_ground_truth(args.video)
     except (OSError, ValueError) as exc:

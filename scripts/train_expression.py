@@ -75,6 +75,9 @@ from torchface.synth.labelled import (
 from torchface.synth.subjects import Subject, candide_subject
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import file_problem, folder_problem  # noqa: E402
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -449,10 +452,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--seed must be an integer >= 0, got {args.seed}")
     if args.threads < 1:
         p.error(f"--threads must be >= 1, got {args.threads}")
-    if any(a.exists() and not a.is_dir() for a in (args.out, *args.out.parents)):
-        p.error(f"--out {args.out}: not a folder path (a file, or under a file)")
-    if args.json is not None and (args.json.is_dir() or any(a.exists() and not a.is_dir() for a in args.json.parents)):
-        p.error(f"--json {args.json}: not a file path (a folder, or under a file)")
+    if (problem := folder_problem(args.out)) is not None:
+        p.error(f"--out {args.out}: {problem}")
+    if args.json is not None and (problem := file_problem(args.json)) is not None:
+        p.error(f"--json {args.json}: {problem}")
     for folder in (args.out / "videos", args.out / "cache"):  # both before any work (the cache's came after rendering)
         _check_own_folder(folder)
     cfg = QUICK if args.quick else RunConfig()

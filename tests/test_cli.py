@@ -39,6 +39,22 @@ def test_render_demo_rejects_odd_sizes_and_a_file_as_out(tmp_path, capsys):
     assert "is a file, not a folder" in capsys.readouterr().err
 
 
+def test_render_demo_names_a_dangling_link_or_a_file_above_out(tmp_path, capsys):
+    """An --out that is, or is under, a symbolic link to nothing said only "<out>: File exists"; one under a file
+    "Not a directory". Now the message names the link (and its target) or the file; nothing is written."""
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "link").symlink_to(tmp_path / "gone")
+    for out, message in (
+        (tmp_path / "link", f"{tmp_path / 'link'} is a symbolic link to {tmp_path / 'gone'}, which does not exist"),
+        (tmp_path / "link" / "sub", f"{tmp_path / 'link'} is a symbolic link to"),
+        (tmp_path / "afile" / "sub", f"{tmp_path / 'afile'} is a file, not a folder"),
+    ):
+        assert main(["render-demo", "--out", str(out), "--frames", "2", "--width", "16", "--height", "16"]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "gone").exists() and (tmp_path / "afile").read_text() == "x"
+
+
 def test_video_sink_refuses_odd_sizes(tmp_path):
     from torchface.synth.io import VideoSink
 

@@ -82,3 +82,23 @@ def test_the_wheel_marks_both_packages_typed(tmp_path):
         names = set(wheel.namelist())
     assert {"torchface/py.typed", "training_hooks/py.typed"} <= names, sorted(n for n in names if "typed" in n)
     assert "torchface/data/candide3.wfm" in names
+
+
+def test_an_editable_install_builds_without_warnings(tmp_path):
+    # `pip install -e .` (scripts/_venv.sh) printed setuptools' BuildBackendWarning on every install ("Editable
+    # installation. Please be careful with folders in your working directory with the same name as your package"):
+    # with two top-level packages and no package-dir, setuptools chose a meta path finder and warned about it.
+    setuptools = pytest.importorskip("setuptools")
+    if int(setuptools.__version__.split(".")[0]) < 77:
+        pytest.skip("pyproject.toml's build needs setuptools 77")
+    source = tmp_path / "source"
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md", "MANIFEST.in", "LICENSE"):
+        shutil.copy(ROOT / name, source / name)
+    for package in ("torchface", "training_hooks"):
+        shutil.copytree(ROOT / package, source / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    code = "import sys, setuptools.build_meta as b; print(b.build_editable(sys.argv[1]))"
+    out = subprocess.run([sys.executable, "-W", "always", "-c", code, str(tmp_path)], cwd=source, capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "Warning" not in out.stderr and "meta path finder" not in out.stdout + out.stderr, out.stderr[-3000:]

@@ -306,8 +306,12 @@ def _render_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"--width and --height must be even numbers >= 16, got {args.width}x{args.height}")
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
-    if args.out.exists() and not args.out.is_dir():
-        raise ValueError(f"--out {args.out} is a file, not a folder")
+    for folder in (args.out, *args.out.parents):  # (a dangling link said only "File exists")
+        if folder.is_symlink() and not folder.exists():
+            raise ValueError(f"--out {args.out}: {folder} is a symbolic link to {os.readlink(folder)}, which does not "
+                             "exist")  # fmt: skip
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"--out {args.out}: {folder} is a file, not a folder")
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)
     start = time.perf_counter()
     files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))

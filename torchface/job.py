@@ -26,14 +26,16 @@ run did.
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last. A run
 without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
-written. CSV rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped (refused when made from another input or with other settings:
-:func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
+written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
+rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input, with other settings or
+without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
 and modification time, the first-frame landmarks and every setting the rows depend on: a resume with other settings, or
-after the input file changed, is refused, as is a damaged or missing record or a damaged partial CSV: a row out of
-sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
+after the input file changed, is refused (settings compared field by field, by value; a field added to or removed from
+the settings since the interrupted run's version is not compared), as is a damaged or missing record or a damaged
+partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
 CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
@@ -44,16 +46,19 @@ degrees of yaw and 0.9 mm, with the same error against the ground truth).
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import math
 import os
 import re
 import time
+import unicodedata
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -331,9 +336,10 @@ def _frame_meshes(folder: Path) -> list[Path]:
 
 
 def _check_out_dir(out_dir: Path) -> None:
-    if out_dir.is_symlink() and not out_dir.exists():  # mkdir said only "File exists"
-        raise OutputError(f"{out_dir}: the output folder is a symbolic link to {os.readlink(out_dir)}, which does "
-                          "not exist")  # fmt: skip
+    for a in (out_dir, *out_dir.parents):  # mkdir said only "File exists" (also for a link above the folder)
+        if a.is_symlink() and not a.exists():
+            where = "the output folder" if a == out_dir else f"a folder above {out_dir}"
+            raise OutputError(f"{a}: {where} is a symbolic link to {os.readlink(a)}, which does not exist")
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
     opencv_path(out_dir, OutputError)  # the videos are written by OpenCV
@@ -415,7 +421,7 @@ class _Stream:
     last_frame: Tensor | None = None
     low_count: int = 0
     anchor: dict[str, list] | None = None  # the online start's re-anchoring, once recorded (_write_record)
-    settings: dict[str, str] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
+    settings: dict[str, object] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
@@ -484,10 +490,11 @@ def _record_path(csv: Path) -> Path:
     return csv.with_name(csv.stem + ".record.partial")
 
 
-def _settings(config: JobConfig, stream: _Stream) -> dict[str, str]:
-    """What a video's rows depend on besides its frames' content, as text: the input file's identity (size and
-    modification time; an image folder's count and newest file), its first-frame landmarks, and every setting
-    that changes the tracking. A resumed run must agree on all of them (:func:`_read_record`)."""
+def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
+    """What a video's rows depend on besides its frames' content: the input file's identity (size and modification
+    time; an image folder's count and newest file) and its first-frame landmarks, as text, and every setting that
+    changes the tracking, as JSON values (:func:`_as_json`). A resumed run must agree on all of them
+    (:func:`_read_record`, :func:`_setting_differences`)."""
     path = Path(stream.reader.info.path)
     if path.is_dir():
         stats = [f.stat() for f in image_files(path)]
@@ -498,15 +505,68 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, str]:
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16],
-        "--focal": repr(None if config.focal is None else float(config.focal)), "--convert": repr(config.convert),
-        "--lookahead": repr(config.lookahead),
-        "online start": repr(config.refine_first), "tracker settings": repr(config.tracker),
-        "--detector": repr(config.detector), "re-detection": repr((config.redetect_after, config.redetect_below)),
-        "normalised size": repr(config.normalised_size),
+        **_as_json({
+            "--focal": None if config.focal is None else float(config.focal), "--convert": config.convert,
+            "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
+            "--detector": config.detector, "re-detection": (config.redetect_after, config.redetect_below),
+            "normalised size": config.normalised_size,
+        }),
     }  # fmt: skip
 
 
-def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, settings: dict[str, str]) -> None:
+def _as_json(value: object) -> Any:
+    """``value`` as a JSON file holds it (:func:`~torchface.io.sidecar.to_jsonable`: a dataclass as the dict of its
+    fields, a tuple as a list), the form in which the record and the sidecar's ``config`` keep the settings."""
+    return json.loads(json.dumps(to_jsonable(value)))
+
+
+_ENUM_REPR = re.compile(r"<\w+(?:\.\w+)+: ('[^']*'|[-+.\w]+)>")
+
+
+def _from_repr(text: str) -> object:
+    """A setting that a record of an earlier version holds as its ``repr`` (``TrackerConfig(num_levels=3, ...)``,
+    ``(10, 0.15)``, ``'dlib'``) as :func:`_as_json` gives it; ``text`` itself where it is not such a repr."""
+
+    def value(node: ast.expr) -> object:
+        if isinstance(node, ast.Call) and not node.args:  # a dataclass: its fields
+            return {k.arg: value(k.value) for k in node.keywords}
+        if isinstance(node, (ast.Tuple, ast.List)):
+            return [value(e) for e in node.elts]
+        if isinstance(node, ast.Name) and node.id in ("inf", "nan"):  # (to_jsonable writes them as null)
+            return None
+        return ast.literal_eval(node)
+
+    try:  # (an enum's repr, <RobustKind.TUKEY: 'tukey'>, as its value)
+        return value(ast.parse(_ENUM_REPR.sub(r"\1", text), mode="eval").body)
+    except (SyntaxError, ValueError, TypeError, MemoryError, RecursionError):
+        return text
+
+
+def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
+    """Where the setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) differs from ``now``: the
+    dotted names of the fields that differ (``""``: the whole value). Numbers compare by value (``5`` and ``5.0``
+    are one setting); a field that only one of them has (one added to, or removed from, a settings dataclass
+    between versions) is not compared: a version that added it kept what the earlier one did by default."""
+    if isinstance(then, dict) and isinstance(now, dict):
+        return [d for k in then.keys() & now.keys() for d in _setting_differences(then[k], now[k], f"{at}{k}.")]
+    if isinstance(then, list) and isinstance(now, list) and len(then) == len(now):
+        return [d for k, (a, b) in enumerate(zip(then, now)) for d in _setting_differences(a, b, f"{at}{k}.")]
+    same = then == now and isinstance(then, bool) == isinstance(now, bool)
+    return [] if same else [at.rstrip(".")]
+
+
+def _said_difference(name: str, then: object, now: object) -> str:
+    """How a message says that setting ``name`` was ``then`` and is ``now``: the two values, or for settings
+    dataclasses (dicts; None where off) whether it was on, or which of their fields differ."""
+    if isinstance(then, dict) and isinstance(now, dict):
+        fields = sorted(_setting_differences(then, now))
+        return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
+    if isinstance(then, dict) or isinstance(now, dict):
+        return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
+    return f"{name} {then} then, {now} now"
+
+
+def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, settings: dict[str, object]) -> None:
     """Write (atomically) what a resumed run needs besides the partial CSV's rows: the input it belongs to, the
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
@@ -514,7 +574,7 @@ def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, setti
     frame, the shape the rows up to the re-anchoring were tracked with (their mesh is re-drawn with it), and the
     re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them)."""
     tmp = path.with_name(path.name + ".tmp")
-    record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings}
+    record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings, "settings_as": "json"}
     try:
         tmp.write_text(json.dumps(record), encoding="utf-8")
     except OSError as exc:  # a full disk: say where, and leave no temporary file behind
@@ -559,7 +619,7 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
 
 
 def _read_record(
-    path: Path, video: Path, settings: dict[str, str], num_shape: int, num_animation: int
+    path: Path, video: Path, settings: dict[str, object], num_shape: int, num_animation: int
 ) -> dict[str, list] | None:
     """The re-anchoring in a partial run's record (None: none); ``num_shape``, ``num_animation``: the model's
     units, the sizes of the re-anchoring's fields.
@@ -579,18 +639,19 @@ def _read_record(
         made_with = record.get("settings", settings)  # records before settings: nothing to compare
         if not isinstance(made_with, dict) or not isinstance(made_from, str):
             raise TypeError
+        if record.get("settings_as") != "json" and made_with is not settings:  # an earlier version's: reprs
+            made_with = {k: v if k in ("input file", "first-frame landmarks") else _from_repr(v)
+                         for k, v in made_with.items()}  # fmt: skip
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{path}: cannot resume, this record is unreadable: run without --resume") from None
     problem = _anchor_problem(anchor, num_shape, num_animation)
     if problem is not None:  # (it raised a bare TypeError or RuntimeError later, or resumed from NaN silently)
         raise InputError(f"{path}: cannot resume, this record is damaged ({problem}): run without --resume")
     _check_made_from(made_from, video, f"{path}: the partial results were")
-    differ = [k for k in settings if made_with.get(k) != settings[k]]
+    # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
+    differ = [k for k in settings if k not in made_with or _setting_differences(made_with[k], settings[k])]
     if differ:
-        what = "; ".join(
-            f"{k} {made_with.get(k)} then, {settings[k]} now" if k != "tracker settings" else "tracker settings"
-            for k in differ
-        )
+        what = "; ".join(_said_difference(k, made_with.get(k), settings[k]) for k in differ)
         raise InputError(
             f"{path}: cannot resume, the partial results were made with other settings or input ({what}): run "
             "with the interrupted run's settings, or without --resume"
@@ -632,17 +693,51 @@ def _first_landmarks(
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
 
 
+def _name_key(name: str) -> str:
+    """``name`` as a file system that ignores case and Unicode normalisation compares it (macOS, Windows): two names
+    of one key are one file there."""
+    return unicodedata.normalize("NFC", name).lower()
+
+
+def _path_key(path: Path) -> tuple[Path, str]:
+    """``path`` resolved, its file name as :func:`_name_key` (its folder as given: compared exactly)."""
+    path = path.resolve()
+    return path.parent, _name_key(path.name)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether paths ``a`` and ``b`` are one input (one path resolved, or one file: ``A.mp4`` and ``a.mp4`` on a
+    case-insensitive file system, a hard link)."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
 def _check_unique(videos: Sequence[Path], names: Sequence[str]) -> None:
     """Refuse two inputs with one output name, naming both (among many inputs "two inputs" named neither): the same
-    input given twice, or two of one name (``a/clip.mp4`` and ``b/clip.mp4``, ``clip.mp4`` and ``clip.avi``)."""
-    first: dict[str, Path] = {}
+    input given twice, or two of one name (``a/clip.mp4`` and ``b/clip.mp4``, ``clip.mp4`` and ``clip.avi``), or of
+    names that differ only in case or Unicode normalisation (``A.mp4`` and ``a.mp4``): on a case-insensitive file
+    system (macOS, Windows) their outputs are the same files, the second video's replacing the first's; refused on
+    every system, so that a run does not depend on the file system it writes to."""
+    first: dict[str, tuple[Path, str]] = {}
     for v, name in zip(videos, names):
-        if name not in first:
-            first[name] = v
+        key = _name_key(name)
+        if key not in first:
+            first[key] = (v, name)
             continue
-        if first[name].resolve() == v.resolve():
-            raise InputError(f"{v}: this input is given twice ({first[name]} and {v}): give each input once")
-        raise InputError(f"{first[name]} and {v} would write the same outputs {name!r}: rename one of them, or track "
+        other, other_name = first[key]
+        if _same_file(other, v):
+            raise InputError(f"{v}: this input is given twice ({other} and {v}): give each input once")
+        if other_name == name:
+            raise InputError(f"{other} and {v} would write the same outputs {name!r}: rename one of them, or track "
+                             "them with different --out folders")  # fmt: skip
+        nfc = unicodedata.normalize("NFC", other_name) == unicodedata.normalize("NFC", name)
+        how = ("in how their accents are encoded", "macOS") if nfc else ("in case", "macOS and Windows")
+        raise InputError(f"{other} and {v} would write outputs whose names differ only {how[0]} ({other_name!r} and "
+                         f"{name!r}): the same files on {how[1]}'s usual file systems: rename one of them, or track "
                          "them with different --out folders")  # fmt: skip
 
 
@@ -652,20 +747,22 @@ def _check_inputs_kept(
 ) -> None:
     """Refuse a run whose outputs would replace what it reads: an output with the path of an input or of a
     landmarks file (``clip.csv`` beside ``clip.mp4`` with ``--out`` their folder; a fresh run deletes it before
-    tracking), or an output folder that is an image-folder input (the next run would read the plot PNG as a frame).
+    tracking), also where the names differ only in case (``IMG_1.csv`` of ``IMG_1.MOV`` and the landmarks
+    ``img_1.csv``: one file on macOS and Windows; refused on every system, :func:`_name_key`), or an output folder
+    that is an image-folder input (the next run would read the plot PNG as a frame).
 
     Raises:
         OutputError: naming the output and what it would replace.
     """
-    read = {Path(v).resolve(): f"the input {v}" for v in videos}
-    read.update({Path(f).resolve(): f"the landmarks file {Path(f)}" for f in landmarks})
+    read = {_path_key(Path(v)): f"the input {v}" for v in videos}
+    read.update({_path_key(Path(f)): f"the landmarks file {Path(f)}" for f in landmarks})
     for v in videos:
         if v.is_dir() and v.resolve() == out_dir.resolve():
             raise OutputError(f"{out_dir}: the output folder is the image folder {v}, whose frames are every image "
                               "in it (the plot PNG would be one): give another --out")  # fmt: skip
     for v, name in zip(videos, names):
         for kind, path in output_paths(out_dir, name).items():
-            what = read.get(path.resolve()) if kind != "meshes" or meshes else None
+            what = read.get(_path_key(path)) if kind != "meshes" or meshes else None
             if what is not None:
                 raise OutputError(f"{path}: the {kind} output of {v} would replace {what}: give another --out, or "
                                   "rename that file")  # fmt: skip
@@ -673,7 +770,8 @@ def _check_inputs_kept(
 
 def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
-    settings than ``config``'s (those :func:`_settings` names; a sidecar without one of them: not compared)."""
+    settings than ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a
+    sidecar without one of them: not compared), or without the meshes ``config.meshes`` asks for."""
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
         made, made_with = sidecar["input"], sidecar.get("config", {})
@@ -683,18 +781,18 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
-    now = json.loads(json.dumps(to_jsonable(_result_settings(config))))  # as the sidecar holds them
-    differ = [k for k in now if k in made_with and made_with[k] != now[k]]
+    now = _as_json(_result_settings(config))  # as the sidecar holds them
+    differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
-        def said(k: str, value: object) -> str:
-            return ("on" if value is not None else "off") if isinstance(now[k] or made_with[k], dict) else str(value)
-
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
                  "detector": "--detector"}  # fmt: skip
-        what = "; ".join(f"{names[k]} {said(k, made_with[k])} then, {said(k, now[k])} now" if k in names else
-                         k.replace("_", " ") for k in differ)  # fmt: skip
+        what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
+    # (skipped as complete, without the meshes asked for; a folder of that name may hold only the user's files)
+    if config.meshes and not (paths["meshes"].is_dir() and _frame_meshes(paths["meshes"])):
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made without --meshes (no "
+                         f"{paths['meshes'].name}/): run without --meshes, or without --resume")  # fmt: skip
 
 
 def _result_settings(config: JobConfig) -> dict[str, object]:
@@ -1246,6 +1344,11 @@ def _finalise(
         else:
             os.replace(mt, p["meshes"])
         outs.append(p["meshes"])
+    elif mt.is_dir():  # an interrupted --meshes run's, resumed without: its frame meshes were left there for good
+        for f in _frame_meshes(mt):
+            f.unlink()
+        if not any(mt.iterdir()):
+            mt.rmdir()
     conf = rows[:, cols.index("confidence")]
     lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
     fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0

@@ -398,6 +398,35 @@ def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, ca
     _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
 
 
+def test_two_inputs_whose_output_names_differ_only_in_case_are_refused(clip, tmp_path, capsys, monkeypatch):
+    """``A.npy`` and ``b/a.npy`` (or two accents' encodings of one name) write ``A.csv`` and ``a.csv``: on a
+    case-insensitive file system (macOS, Windows) the same file, the second video's outputs replacing the first's
+    and its JSON describing both. They were tracked (only equal names were refused); now refused on every system,
+    before anything is written, naming both inputs. One file under two paths (a hard link) is an input given twice."""
+    video, lm, _ = clip
+    (tmp_path / "b").mkdir()
+    _short_npy(video, tmp_path / "A.npy", 2)
+    _short_npy(video, tmp_path / "b" / "a.npy", 2)
+    _short_npy(video, tmp_path / "caf\u00e9.npy", 2)  # composed and decomposed: one name on macOS
+    _short_npy(video, tmp_path / "b" / "cafe\u0301.npy", 2)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+
+    def run(*videos):
+        return main(["track", *videos, "--out", str(out), "--quiet"] + ["--landmarks", str(lm)] * len(videos))
+
+    rc = run("A.npy", "b/a.npy")
+    _assert_clean_failure(rc, capsys, out, "A.npy and b/a.npy would write outputs whose names differ only in case "
+                          "('A' and 'a')")  # fmt: skip
+    rc = run("caf\u00e9.npy", "b/cafe\u0301.npy")
+    _assert_clean_failure(rc, capsys, out, "differ only in how their accents are encoded")
+    (tmp_path / "c").mkdir()
+    os.link(tmp_path / "A.npy", tmp_path / "c" / "A.npy")  # one file (as A.npy and a.npy are on macOS)
+    rc = run("A.npy", "c/A.npy")
+    _assert_clean_failure(rc, capsys, out, "c/A.npy: this input is given twice (A.npy and c/A.npy)")
+    assert run("A.npy") == 0 and (out / "A.csv").is_file()  # one of them alone is tracked
+
+
 def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     """Every input was opened (its first frame read and held) before tracking and closed at the end of the run,
     and all the videos of one size were one batch: a run over many videos ran out of file descriptors ("Too many
@@ -530,6 +559,42 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
 
 
+def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_for(clip, tmp_path, capsys):
+    """``--resume --meshes`` over a video completed without --meshes skipped it as complete: no meshes, no word
+    (the summary's file list only leaves out "_meshes/"). Now refused, as other settings are; with its meshes there
+    it is skipped, and without --meshes too."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
+                     *extra])  # fmt: skip
+
+    assert run() == 0
+    _assert_clean_failure(run("--resume", "--meshes"), capsys, tmp_path / "nothing",
+                          "complete outputs were made without --meshes (no short_meshes/)")  # fmt: skip
+    (out / "short_meshes").mkdir()
+    (out / "short_meshes" / "notes.txt").write_text("the user's")  # a folder of that name, but no frame meshes
+    _assert_clean_failure(run("--resume", "--meshes"), capsys, tmp_path / "nothing", "made without --meshes")
+    assert run("--meshes") == 0 and len(list((out / "short_meshes").glob("*.ply"))) == 2
+    assert run("--resume", "--meshes") == 0 and "already complete" in capsys.readouterr().out
+    assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+
+
+def test_a_meshes_run_resumed_without_meshes_leaves_no_partial_meshes(clip, tmp_path):
+    """Interrupted with --meshes and resumed without, the run completed and left ``<name>_meshes.partial/`` with
+    the interrupted run's PLY files for good (about 100 kB a frame)."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    _interrupted(short, out, lm, 2, meshes=True, refine_first=None)
+    assert len(list((out / "short_meshes.partial").glob("*.ply"))) == 2
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), refine_first=None, resume=True))
+    assert (out / "short.json").is_file()
+    assert not (out / "short_meshes.partial").exists() and not (out / "short_meshes").exists()
+
+
 def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, capsys):
     """``clip.csv`` (landmarks) beside ``clip.npy`` with ``--out`` their folder was replaced by the track CSV, an
     input named as another input's output (``clip_overlay.mp4``) was deleted by the fresh run before tracking, and
@@ -560,6 +625,23 @@ def test_outputs_never_replace_an_input_or_a_landmarks_file(clip, tmp_path, caps
     rc = main(["track", str(shots), "--landmarks", str(lm), "--out", str(shots), "--quiet"])
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "is the image folder")
     assert sorted(p.name for p in shots.iterdir()) == ["000.png", "001.png"]
+
+
+def test_an_output_whose_name_differs_from_a_landmarks_file_only_in_case_is_refused(clip, tmp_path, capsys):
+    """``IMG_1.npy`` with its landmarks ``img_1.csv`` beside it and ``--out`` their folder: the track CSV
+    ``IMG_1.csv`` is the landmarks file on macOS and Windows (a fresh run deleted it before tracking). Only an equal
+    path was refused; now a name equal but for case, on every system (the run does not depend on the file system)."""
+    video, lm, _ = clip
+    here = tmp_path / "here"
+    here.mkdir()
+    _short_npy(video, here / "IMG_1.npy", 2)
+    marks = here / "img_1.csv"
+    marks.write_bytes(lm.read_bytes())
+    rc = main(["track", str(here / "IMG_1.npy"), "--landmarks", str(marks), "--out", str(here), "--quiet"])
+    _assert_clean_failure(rc, capsys, tmp_path / "nothing", f"IMG_1.csv: the csv output of {here / 'IMG_1.npy'} "
+                          f"would replace the landmarks file {marks}")  # fmt: skip
+    assert marks.read_bytes() == lm.read_bytes()
+    assert sorted(p.name for p in here.iterdir()) == ["IMG_1.npy", "img_1.csv"]
 
 
 def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
@@ -1501,6 +1583,59 @@ def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys
     assert json.loads((out / "short.json").read_text())["frames"] == 4
 
 
+def test_resume_takes_equal_settings_in_another_form_and_an_earlier_versions_record(clip, tmp_path, capsys):
+    """The record kept the settings as their ``repr``: ``TrackerConfig(robust_c=5)`` then, ``5.0`` now (one
+    setting) was refused as "tracker settings", and so was a partial run of an earlier version once TrackerConfig
+    had gained a field (its repr one field longer). Now compared field by field, by value, a field one of them lacks
+    not compared; a field that differs is still refused, and named."""
+    from torchface.tracker.step import TrackerConfig
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    base = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    _interrupted(short, out, lm, 2, refine_first=None, tracker=TrackerConfig(robust_c=5))
+    assert track_videos([short], replace(base, tracker=TrackerConfig(robust_c=5.0), resume=True))[0].frames == 4
+    _interrupted(short, out, lm, 2, refine_first=None)
+    record_path = out / "short.record.partial"
+    record = json.loads(record_path.read_text())
+    earlier = {k: v if k in ("input file", "first-frame landmarks") else None for k, v in record["settings"].items()}
+    earlier.update({"--focal": "None", "--convert": "False", "--lookahead": "None", "online start": "None",
+                    "--detector": "None", "re-detection": "(10, 0.15)", "normalised size": "128"})  # fmt: skip
+    old_tracker = repr(TrackerConfig()).replace("expression_quota=0.0, ", "")  # a field added since
+    assert old_tracker != repr(TrackerConfig())
+    earlier["tracker settings"] = old_tracker
+    record_path.write_text(json.dumps({"input": record["input"], "anchor": None, "settings": earlier}))
+    assert track_videos([short], replace(base, resume=True))[0].frames == 4
+    _interrupted(short, out, lm, 2, refine_first=None)
+    earlier["tracker settings"] = old_tracker.replace("lost_after=15", "lost_after=30")  # another setting
+    record_path.write_text(json.dumps({"input": record["input"], "anchor": None, "settings": earlier}))
+    with pytest.raises(InputError, match=r"other settings or input \(tracker settings: template\.lost_after\)"):
+        track_videos([short], replace(base, resume=True))
+
+
+def test_resume_skips_complete_outputs_whose_settings_are_equal_in_another_version(clip, tmp_path):
+    """A sidecar's ``config.tracker`` (every TrackerConfig field) was compared whole: after an upgrade that added a
+    field (or removed one), --resume refused to skip complete outputs made with the same settings, naming only
+    "tracker". Now a field that one of them lacks is not compared; one that differs is refused, and named."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    track_videos([short], config)
+    path = output_paths(out, "short")["json"]
+    sidecar = json.loads(path.read_text())
+    tracker = sidecar["config"]["tracker"]
+    del tracker["expression_quota"]  # a field added since
+    tracker["template"]["retired_setting"] = 1  # a field removed since
+    path.write_text(json.dumps(sidecar))
+    assert track_videos([short], replace(config, resume=True))[0].skipped
+    tracker["template"]["lost_after"] = 30
+    path.write_text(json.dumps(sidecar))
+    with pytest.raises(InputError, match=r"other settings \(tracker: template\.lost_after\)"):
+        track_videos([short], replace(config, resume=True))
+
+
 def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch):
     """Ctrl-C after the CSV got its final name but before the JSON (written last) used to leave a CSV that --resume
     ignored (it tracked the whole video again) and, in a batch, the other videos' partial MP4s: now the CSV is
@@ -1745,13 +1880,14 @@ def test_a_full_disk_while_writing_the_resume_record_says_where_and_leaves_no_te
 
 
 def test_an_output_folder_that_is_a_file_or_a_dangling_link_says_so(clip, tmp_path, capsys):
-    """Both said only "cannot create the output folder (File exists)"."""
+    """Both said only "cannot create the output folder (File exists)", as did a dangling link above the folder."""
     video, lm, _ = clip
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
     dangling = tmp_path / "link"
     dangling.symlink_to(tmp_path / "gone")
-    for out, message in ((blocker, "is a file, not a folder"), (dangling, "symbolic link to")):
+    for out, message in ((blocker, "is a file, not a folder"), (dangling, "symbolic link to"),
+                         (dangling / "sub", "a folder above")):
         rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and err.startswith("torchface: error:") and "\n" not in err and message in err, err

@@ -82,6 +82,8 @@ def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, cap
         (["--json", str(tmp_path / "jdir")], "not a file path"),
         (["--mediapipe-python", str(tmp_path / "nope")], "no such executable"),
         (["--threads", "0"], "--threads must be >= 1"),
+        (["--device", "bogus"], "--device bogus: "),  # (tracebacks from load_candide3, as was a CUDA device on a
+        (["--device", "meta"], "--device meta: the meta device holds no data"),  # torch without CUDA)
     ]
     for extra, message in cases:
         with pytest.raises(SystemExit) as info:
@@ -228,6 +230,78 @@ def test_synth_scripts_refuse_an_out_under_a_file_and_a_ground_truth_without_its
     err = _usage_error(overlay.main, [str(files.video), "--out", str(tmp_path / "o")], capsys)
     assert "no such video file" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_scripts_refuse_a_dangling_symbolic_link_as_output_folder(tmp_path, capsys, monkeypatch):
+    """An --out (or --cache) that is, or is under, a symbolic link to nothing passed the "not a folder path" check
+    (``exists()`` is False) and was a FileExistsError's traceback from mkdir (make_sequence.py, and
+    overlay_landmarks.py after reading the whole video); now the usage error naming the link, exit 2."""
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import write_sequence
+
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    make = _load("make_sequence")
+    overlay = _load("overlay_landmarks")
+    files = write_sequence(make_scenario("pose_sweep", 2, 16, 16), tmp_path / "seq")
+    for out in (dangling, dangling / "sub"):
+        args = ["--scenario", "pose_sweep", "--width", "16", "--height", "16", "--frames", "2", "--out", str(out)]
+        err = _usage_error(make.main, args, capsys)
+        assert f"{dangling} is a symbolic link to {tmp_path / 'gone'}, which does not exist" in err, err
+        err = _usage_error(overlay.main, [str(files.video), "--out", str(out)], capsys)
+        assert "is a symbolic link to" in err and err.count("\n") == 3, err  # usage (2 lines) and the error
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    args = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "16x16", "--cache", str(dangling / "c")]
+    assert "is a symbolic link to" in _usage_error(auroc.main, args, capsys)
+    evaluate = _load("evaluate")
+    args = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--cache", str(dangling), "--no-auroc"]
+    assert "is a symbolic link to" in _usage_error(evaluate.main, args, capsys)
+    assert not (tmp_path / "gone").exists()
+
+
+def test_scripts_refuse_a_file_path_under_a_dangling_symbolic_link_before_the_run(tmp_path, capsys, monkeypatch):
+    """A --json, --save or --save-series under a symbolic link to nothing passed the check (``exists()`` False) and
+    failed only when the file was written, after the whole run (mkdir's FileExistsError); now a usage error first."""
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    target = str(dangling / "f.json")
+    evaluate = _load("evaluate")
+    base = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--cache", "none", "--no-auroc"]
+    for option in ("--json", "--save-series"):
+        assert "is a symbolic link to" in _usage_error(evaluate.main, [*base, option, target], capsys), option
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    args = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "16x16", "--cache", "none", "--save", target]
+    assert "is a symbolic link to" in _usage_error(auroc.main, args, capsys)
+    dataloader = _load("benchmark_dataloader")
+    monkeypatch.setattr(dataloader, "render_videos", lambda *a: (_ for _ in ()).throw(AssertionError("rendering")))
+    assert "is a symbolic link to" in _usage_error(dataloader.main, ["--json", target], capsys)
+    raster = _load("benchmark_raster")
+    monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
+    assert "is a symbolic link to" in _usage_error(raster.main, ["--json", target], capsys)
+    assert not (tmp_path / "gone").exists()
+
+
+def test_benchmark_checks_its_cache_folder_before_rendering(tmp_path, capsys):
+    """benchmark.py's --cache, a file, under one or a symbolic link to nothing, was mkdir's traceback once the
+    frames had been rendered; now one of the checks made before any work."""
+    import argparse
+
+    bench = _load("benchmark")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    parser = argparse.ArgumentParser(prog="benchmark.py")
+    ok = argparse.Namespace(frames=150, width=640, height=480, management_only=True, batches="", malloc_batches="",
+                            repeats=3, json=None, mediapipe_python=None, cache=str(tmp_path / "cache"))  # fmt: skip
+    bench._check_arguments(parser, ok)
+    for cache, message in ((blocker, "not a folder path"), (blocker / "c", "not a folder path"),
+                           (dangling, "is a symbolic link to"), (dangling / "c", "is a symbolic link to")):
+        args = argparse.Namespace(**{**vars(ok), "cache": str(cache)})
+        assert message in _usage_error(lambda argv: bench._check_arguments(parser, args), [], capsys), cache
+    assert not (tmp_path / "cache").exists()
 
 
 def test_confidence_auroc_checks_its_thresholds_and_paths_before_the_run(tmp_path, capsys, monkeypatch):

@@ -68,12 +68,17 @@ def test_bad_out_and_json_paths_are_refused_before_the_run(tmp_path, capsys):
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
     (tmp_path / "a_folder").mkdir()
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
     out = tmp_path / "run"
     for argv, needle in (
         (["--out", str(out), "--json", str(tmp_path / "a_folder")], "--json"),
         (["--out", str(out), "--json", str(a_file / "figures.json")], "--json"),
         (["--out", str(a_file)], "--out"),
         (["--out", str(a_file / "run")], "--out"),
+        (["--out", str(dangling)], "symbolic link to"),  # (a FileExistsError's traceback from mkdir, after the checks)
+        (["--out", str(dangling / "run")], "symbolic link to"),
+        (["--out", str(out), "--json", str(dangling / "figures.json")], "symbolic link to"),  # (after the whole run)
         (["--out", str(out), "--seed", "-1"], "--seed"),
     ):
         with pytest.raises(SystemExit) as exc:
@@ -81,7 +86,7 @@ def test_bad_out_and_json_paths_are_refused_before_the_run(tmp_path, capsys):
         assert exc.value.code == 2, argv
         assert needle in capsys.readouterr().err, argv
     assert not out.exists()  # nothing ran
-    assert sorted(f.name for f in tmp_path.iterdir()) == ["a_file", "a_folder"]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a_file", "a_folder", "dangling"]
 
 
 def test_threads_option(tmp_path, capsys, monkeypatch):
