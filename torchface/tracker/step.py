@@ -625,7 +625,15 @@ def check_frames(
             f"frames must be {intrinsics.height}x{intrinsics.width} (the tracked size), got "
             f"{frames.shape[-2]}x{frames.shape[-1]}"
         )
-    if values and frames.numel():
+    if values:
+        check_frame_values(frames, row_stride)
+
+
+def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
+    """Refuse float ``(..., H, W)`` frames with values outside :data:`FRAME_VALUE_RANGE` (:func:`check_frames`'
+    ``values``; also :func:`~torchface.normalise.normalised_face`'s, with :data:`STEP_VALUE_ROW_STRIDE`). NaN pixels
+    are in range; infinite ones too when ``row_stride`` is not 1."""
+    if frames.numel():
         seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
         lo, hi = torch.stack([seen.amin(), seen.amax()]).tolist()
         if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN pixels: inside the range (the steps': non-finite)
