@@ -395,6 +395,33 @@ def test_float32_agrees_with_float64():
     torch.testing.assert_close(f32.zbuf[both].double(), f64.zbuf[both], atol=0, rtol=1e-5)
 
 
+@pytest.mark.parametrize("scale", [1e8, 1e12, 1e20, 1e30])
+def test_float32_far_meshes_are_the_near_meshes_scaled(scale):
+    """A mesh scaled by ``s`` (the same image) gives the same triangles and coordinates and ``s`` times the depths.
+    In float32 every triangle with coordinates beyond about 3e8 mm was dropped as edge-on (its squared normal
+    overflowed to inf: nothing at all was seen at 1e10 mm), and ``n . v0`` overflowed from about 1e12 mm."""
+    verts, faces = random_surface(7, 2)
+    near = rasterize(verts, faces, CAM)
+    far_verts = (verts * scale).float().requires_grad_(True)
+    far = rasterize(far_verts, faces, CAM)
+    fg, fg32 = near.foreground, far.foreground
+    assert fg.any()
+    ambiguous = (fg & (min_bary(near) < 1e-4)) | (fg32 & (min_bary(far).double() < 1e-4))
+    same = near.pix_to_face == far.pix_to_face
+    assert same[~ambiguous].all() and ambiguous.double().mean() < 0.02
+    both = same & fg
+    torch.testing.assert_close(far.bary[both].double(), near.bary[both], atol=1e-4, rtol=0)
+    torch.testing.assert_close(far.zbuf[both].double() / scale, near.zbuf[both], atol=0, rtol=1e-5)
+    # Gradients: finite, and those of the near mesh divided by s (the coordinates are scale-free).
+    near_verts = verts.float().requires_grad_(True)
+    w = torch.rand(both.shape + (3,), generator=torch.Generator().manual_seed(0))
+    (g_far,) = torch.autograd.grad((far.bary * w)[both].sum(), far_verts)
+    near32 = rasterize(near_verts, faces, CAM)
+    (g_near,) = torch.autograd.grad((near32.bary * w)[both].sum(), near_verts)
+    assert bool(torch.isfinite(g_far).all())
+    torch.testing.assert_close(g_far.double() * scale, g_near.double(), atol=1e-4 * float(g_near.abs().max()), rtol=1e-3)
+
+
 # ------------------------------------------------------------------------------------------------ gradients
 
 
