@@ -422,6 +422,21 @@ def test_float32_far_meshes_are_the_near_meshes_scaled(scale):
     torch.testing.assert_close(g_far.double() * scale, g_near.double(), atol=1e-4 * float(g_near.abs().max()), rtol=1e-3)
 
 
+def test_float16_meshes_in_millimetres_are_rasterized():
+    """In float16 (largest value 65504) the squared normal of any triangle more than a few millimetres across
+    overflowed, and every triangle of a face-sized mesh was dropped as edge-on: its corners are now scaled by a power
+    of two first (as a float32 mesh beyond 2.7e8 mm), and the fragments are float32's (away from edges)."""
+    verts, faces = random_surface(7, 2)
+    f32 = rasterize(verts.float(), faces, CAM)
+    f16 = rasterize(verts.half(), faces, CAM)
+    assert f16.foreground.any()
+    ambiguous = (f32.foreground & (min_bary(f32) < 1e-2)) | (f16.foreground & (min_bary(f16).float() < 1e-2))
+    assert ambiguous.double().mean() < 0.2
+    assert torch.equal(f16.pix_to_face[~ambiguous], f32.pix_to_face[~ambiguous])
+    both = (f16.pix_to_face == f32.pix_to_face) & f32.foreground
+    torch.testing.assert_close(f16.zbuf[both].float(), f32.zbuf[both], atol=0, rtol=1e-2)  # float16: eps 1e-3
+
+
 # ------------------------------------------------------------------------------------------------ gradients
 
 
