@@ -50,9 +50,10 @@ Degenerate triangles
 --------------------
 A triangle produces no fragment when it has (numerically) zero area, ``|n| <= 16 eps max_edge^2``,
 when it is seen exactly edge-on, ``|n . v0| <= 16 eps |n| |v0|`` (``eps`` of the input dtype), when it
-lies entirely at or behind the near plane, or when a vertex is not finite. A triangle far from the camera
-(a coordinate beyond 2.7e8 mm in float32; beyond 1 mm in float16, where a face-sized triangle overflowed) has its coefficients computed from its corners scaled by a power of
-two, so that they cannot overflow: a mesh scaled by ``s`` gives the same fragments with ``s`` times the depths.
+lies entirely at or behind the near plane, or when a vertex is not finite. A triangle with large coordinates
+(beyond 2.7e8 mm in float32; beyond 1 mm in float16, where a face-sized triangle overflowed) has its
+coefficients computed from its corners scaled by a power of two, so that they cannot overflow: a mesh scaled
+by ``s`` gives the same fragments with ``s`` times the depths.
 """
 
 from __future__ import annotations
