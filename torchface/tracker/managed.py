@@ -321,6 +321,15 @@ def initialise_managed(
         backend=config.backend,
     )
     failed = result.status == _FAILED
+    # A first frame whose normalised face shows fewer than min_patches of its own reference's patches scores 0 against
+    # itself, and so would every later frame and recovery candidate: the stream could never be confident (collinear
+    # landmarks fitted the face edge-on, pitch 87 degrees, CONVERGED at confidence 0). It fails, as a fit without a
+    # pose does (a detector can then start it afresh: managed_step).
+    blind = ~failed & (diss.confidence <= 0)
+    if bool(blind.any()):
+        failed = failed | blind
+        result = replace(result, status=torch.where(blind, torch.full_like(result.status, _FAILED), result.status),
+                         confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence))
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
     B = state.params.shape[0]
@@ -858,6 +867,11 @@ def managed_step(
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
+    if ms.unstarted is not None:
+        # A stream whose initialisation failed has no reference to be confident against: its frames matched the
+        # failed fit's own templates and reference (a fit 87 degrees off ended its loss at the next frame, at
+        # confidence 1.0). It stays lost until it starts afresh (a detector's landmarks: _restart).
+        conf = torch.where(ms.unstarted, torch.zeros_like(conf), conf)
     # A lost stream's track that has left the depths its recovery searches (search_depth_factors of its last
     # confident depth, widened by 10 %; scaled as the attempt whose candidate it adopted) went astray, whatever its
     # confidence: it scores 0, so it neither ends the loss nor counts as confident (CANDIDE-3 long run,
