@@ -1215,7 +1215,7 @@ def test_a_face_too_small_to_track_fails_at_initialise_and_scores_0_in_the_steps
     frames = frames.float()
     span = gt.landmarks_px[..., 0].amax(-1) - gt.landmarks_px[..., 0].amin(-1)  # (T,) as rendered
     cam = Intrinsics.default(W, H)
-    width = face_width_px(model, gt.shape_coeffs[None].float().expand(n, -1), gt.translation.float(), cam)
+    width = face_width_px(model, gt.translation.float(), cam)
     torch.testing.assert_close(width.double(), span, rtol=0.03, atol=0)
     assert float(span[0]) > 23 and float(span[-1]) < 16
 
@@ -1225,7 +1225,7 @@ def test_a_face_too_small_to_track_fails_at_initialise_and_scores_0_in_the_steps
     for i in range(1, n):
         state, res = track_step(model, BASE, state, frames[i : i + 1])
         confidence.append(float(res.confidence[0]))
-        widths.append(float(face_width_px(model, state.shape_coeffs, res.translation, cam)[0]))
+        widths.append(float(face_width_px(model, res.translation, cam)[0]))
     small = torch.tensor(widths) < BASE.min_face_width_px
     assert bool(small[-3:].all()) and not bool(small[0])
     assert all(c == 0.0 for c, s in zip(confidence, small) if s)

@@ -452,7 +452,7 @@ def _confidence(
                                       t, light, state.intrinsics, config.template, config.backend)  # fmt: skip
     # A face narrower than TrackerConfig.min_face_width_px scores 0, as a FAILED sample does: its estimate is too
     # coarse to trust (it neither counts as confident nor ends a loss).
-    failed = failed | too_small(model, config, state.shape_coeffs, t, state.intrinsics)
+    failed = failed | too_small(model, config, t, state.intrinsics)
     if native is not None:
         diss, conf, inside, face, _ = native
         return torch.where(failed, torch.zeros_like(conf), conf), diss, inside, face

@@ -11,6 +11,7 @@ from __future__ import annotations
 import enum
 import math
 import threading
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -134,7 +135,7 @@ class TrackerConfig:
         min_contrast: a sample whose sampled frame intensities have a standard deviation below this is FAILED
             (black or textureless frame).
         min_face_width_px: a face narrower than this (pixels of the full-resolution frame; :func:`face_width_px`,
-            the frontal face's width at the estimate's depth) gets confidence 0 at each step, and
+            the model's frontal face's width at the estimate's depth) gets confidence 0 at each step, and
             :func:`initialise` fails its stream: its estimates are too coarse to use. Measured on rendered
             CANDIDE-3 clips at 320x240 (exact first-frame landmarks, head turning up to 15 degrees): rotation
             error 2.3 / 4.5 degrees (mean / max) at 27 px wide, 2.6 / 5.6 at 23.5 px, 3.7 / 7.4 at 20 px, 7.8 / 14.1
@@ -283,36 +284,45 @@ class TrackerConfig:
             raise TypeError(f"solver must be a TrackSolver, got {self.solver!r}")
 
 
-def face_width_px(model: FaceModel, shape_coeffs: Tensor, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
-    """``(B,)`` the width in pixels of the face seen frontally at the estimate's depth: ``fx w / t_z``, ``w`` the
-    horizontal extent (mm) of the model's landmarks on the person's neutral mesh (``shape_coeffs (B, S)``; the
-    iBUG jaw's ends for CANDIDE-3, 125 mm on its mean shape) and ``t_z`` the head origin's depth
-    (``translation (B, 3)``, mm). It does not shrink as the head turns; a depth at or behind the near plane gives
-    ``inf`` (nothing to measure), a non-finite one NaN. :attr:`TrackerConfig.min_face_width_px` is compared with it.
+def _landmark_width_mm(model: FaceModel) -> float:
+    """The horizontal extent (mm) of the model's landmarks on its mean shape (CANDIDE-3: 125 mm, the iBUG jaw's ends),
+    computed once per model."""
+    width = _LANDMARK_WIDTH.get(model)
+    if width is None:
+        lm = model.landmarks_3d(model.mean[None].detach())[0]
+        width = _LANDMARK_WIDTH[model] = float(lm[:, 0].amax() - lm[:, 0].amin())
+    return width
+
+
+_LANDMARK_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKeyDictionary()
+
+
+def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(B,)`` the width in pixels of the model's mean face seen frontally at the estimate's depth: ``fx w / t_z``,
+    ``w`` the horizontal extent of the model's landmarks on its mean shape (CANDIDE-3: 125 mm between the iBUG
+    jaw's ends) and ``t_z`` the head origin's depth (``translation (B, 3)``, mm). It does not shrink as the head
+    turns; a depth at or behind the near plane gives ``inf``, a NaN one NaN. :attr:`TrackerConfig.min_face_width_px`
+    is compared with it.
 
     Example:
         >>> from torchface.model import load_candide3
-        >>> model = load_candide3()
-        >>> w = face_width_px(model, torch.zeros(1, model.num_shape), torch.tensor([[0.0, 0.0, 3000.0]]),
-        ...                   Intrinsics.default(320, 240))
+        >>> w = face_width_px(load_candide3(), torch.tensor([[0.0, 0.0, 3000.0]]), Intrinsics.default(320, 240))
         >>> round(float(w), 1)
         13.4
     """
-    lm = model.landmarks_3d(model.deform(shape_coeffs.to(model.mean)))  # (B, K, 3)
-    extent = (lm[..., 0].amax(-1) - lm[..., 0].amin(-1)).to(translation.dtype)
     z = translation[:, 2]
     ahead = z > NEAR_PLANE_MM
-    width = intrinsics.fx * extent / torch.where(ahead, z, torch.ones_like(z))
-    return torch.where(ahead | ~torch.isfinite(z), width, torch.full_like(width, math.inf))
+    width = intrinsics.fx * _landmark_width_mm(model) / torch.where(ahead, z, torch.ones_like(z))
+    return torch.where(ahead | z.isnan(), width, torch.full_like(width, math.inf))
 
 
-def too_small(model: FaceModel, config: TrackerConfig, shape_coeffs: Tensor, translation: Tensor,
-              intrinsics: Intrinsics) -> Tensor:
-    """``(B,)`` bool: the estimate's face is narrower than :attr:`TrackerConfig.min_face_width_px`
-    (:func:`face_width_px`; a NaN width is not too small: the non-finite estimate fails on its own)."""
+def too_small(model: FaceModel, config: TrackerConfig, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(B,)`` bool: the face of an estimate at ``translation (B, 3)`` is narrower than
+    :attr:`TrackerConfig.min_face_width_px` (:func:`face_width_px`), i.e. farther than ``fx w / min_face_width_px``
+    (one comparison; a depth at or behind the near plane or NaN is not too small: such estimates fail on their own)."""
     if config.min_face_width_px <= 0:
         return torch.zeros(translation.shape[0], dtype=torch.bool, device=translation.device)
-    return face_width_px(model, shape_coeffs, translation, intrinsics) < config.min_face_width_px
+    return translation[:, 2] > intrinsics.fx * _landmark_width_mm(model) / config.min_face_width_px
 
 
 def _unit_weights(config: TrackerConfig, num_animation: int, like: Tensor) -> Tensor | None:
@@ -799,7 +809,7 @@ def initialise(
     status = torch.where(fit.status == int(SolveStatus.FAILED), int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
     n_pts = templates[0].num_points
     status = torch.where(n_pts < config.min_points, torch.full_like(status, int(TrackStatus.FAILED)), status)
-    small = too_small(model, config, fit.shape_coeffs, fit.translation, intrinsics)
+    small = too_small(model, config, fit.translation, intrinsics)
     status = torch.where(small, torch.full_like(status, int(TrackStatus.FAILED)), status)
     conf = torch.exp(-fit.rms_px / 5.0) * (status != int(TrackStatus.FAILED))
     result = _result(
@@ -1422,7 +1432,7 @@ def _finish(
     confidence = frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2)) * (~failed)
     if config.min_face_width_px > 0:  # a face too small to track well (TrackerConfig.min_face_width_px)
         t = layout.split(x)[1]
-        small = too_small(model, config, state.shape_coeffs, t, state.intrinsics)
+        small = too_small(model, config, t, state.intrinsics)
         confidence = torch.where(small, torch.zeros_like(confidence), confidence)
     new_state = replace(state, params=x, frame_index=state.frame_index + 1)
     return new_state, _result(model, layout, x, status, iterations, rms, n_valid, confidence, state.anim_prior_mean)
