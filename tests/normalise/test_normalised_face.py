@@ -868,6 +868,11 @@ def test_frames_outside_0_1_are_refused_like_the_tracker_steps_refuse_them(model
             normalised_face_posed(bad, model, layout, verts_cam, light, CAM)
     with pytest.raises(ValueError, match="divide by 255"):
         normaliser(frame * 255, state)
+    # Template management passes frames its step checked: check_values=False looks at nothing.
+    out = normalised_face(frame * 255, model, layout, sigma, alpha, torch.zeros(1, 3), T_FRONT, None, CAM,
+                          check_values=False)  # fmt: skip
+    torch.testing.assert_close(out.image, 255 * normalised_face(frame, model, layout, sigma, alpha, torch.zeros(1, 3),
+                                                                T_FRONT, None, CAM).image)  # fmt: skip
     holed = frame.clone()
     holed[..., 100:140, 140:180] = float("nan")
     holed[..., 0, 0] = float("inf")

@@ -388,6 +388,7 @@ def normalised_face(
     zbuffer: bool = True,
     rotation: Tensor | None = None,
     backend: Backend = Backend.AUTO,
+    check_values: bool = True,
 ) -> NormalisedFaceResult:
     """The frontal, neutral-expression, light-normalised face of each frame (module docstring).
 
@@ -412,6 +413,8 @@ def normalised_face(
             face hidden behind another (the far cheek behind the nose at a large yaw) is then kept.
         rotation: ``(B, 3, 3)`` the matrix of ``axis_angle`` when the caller has it (not checked against it), or
             None to compute it.
+        check_values: refuse frames outside [0, 1] (above); False where the caller has checked them (template
+            management: the tracker's step did), which saves a look at the frames (a device sync on a GPU).
 
     Returns:
         :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype. A sample
@@ -471,7 +474,8 @@ def normalised_face(
     if rotation is not None and (not isinstance(rotation, Tensor) or tuple(rotation.shape) != (B, 3, 3)):
         got = tuple(rotation.shape) if isinstance(rotation, Tensor) else type(rotation).__name__
         raise ValueError(f"rotation must be ({B}, 3, 3) like frames, got {got}")
-    _check_frame_values(frames)
+    if check_values:
+        _check_frame_values(frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
 
     # A sample with a non-finite geometry parameter is posed at the layout's canonical pose instead (finite
@@ -515,11 +519,12 @@ def normalised_face_posed(
     min_facing_cos: float = DEFAULT_MIN_FACING_COS,
     zbuffer: bool = True,
     backend: Backend = Backend.AUTO,
+    check_values: bool = True,
 ) -> NormalisedFaceResult:
     """:func:`normalised_face` of a mesh already posed: ``verts_cam (B, V, 3)``, the model's vertices at the
     frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
-    shapes of ``frames`` and ``verts_cam`` and the frames' value range are checked here (:func:`normalised_face`
-    documents and checks the rest).
+    shapes of ``frames`` and ``verts_cam`` and (unless ``check_values`` is False) the frames' value range are
+    checked here (:func:`normalised_face` documents and checks the rest).
     Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
     gradients (nor a ``torch.func`` transform or forward AD), :class:`~torchface.backend.Backend` ``AUTO`` samples
     with the native kernel (run eagerly under ``torch.compile``)
@@ -538,7 +543,8 @@ def normalised_face_posed(
         got = tuple(verts_cam.shape) if isinstance(verts_cam, Tensor) else type(verts_cam).__name__
         raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
-    _check_frame_values(frames)
+    if check_values:
+        _check_frame_values(frames)
     return _normalised_face_posed(
         frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance, min_facing_cos, zbuffer,
         backend, None,
