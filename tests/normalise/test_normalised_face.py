@@ -844,3 +844,37 @@ def test_the_normalised_face_is_frontal_upright_and_not_mirrored(model, layout):
     px = layout.intrinsics.fx * lm[:, :2] / lm[:, 2:] + torch.tensor([layout.intrinsics.cx, layout.intrinsics.cy])
     assert (px[36:42, 0] < half).all() and (px[42:48, 0] > half).all()  # subject's right eye on the image's left
     assert px[17:27, 1].max() < px[36:48, 1].min() and px[36:48, 1].max() < px[48:68, 1].min()  # brows, eyes, mouth
+
+
+def test_frames_outside_0_1_are_refused_like_the_tracker_steps_refuse_them(model, subject, layout):
+    """0-255 frames were normalised without a word (the light's bias, in [0, 1] units, then undone 255 times too
+    weakly) where the tracker's steps refuse them: the module, ``normalised_face`` and ``normalised_face_posed``
+    now say so, with the steps' message; NaN and infinite pixels (missing data) are still masked, not refused."""
+    from torchface.tracker.step import TrackerState
+
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    light = torch.tensor([[0.1, 0.02, 0.0, 0.0, 0.1]])
+    frame = _render(subject, sigma, alpha, torch.zeros(1, 3), T_FRONT).image
+    state = TrackerState(torch.cat([torch.zeros(1, 3), T_FRONT, alpha, light], -1), sigma, (), CAM, 1)
+    normaliser = NormalisedFace(model, size=G, margin=0.05)
+    for bad in (frame * 255, frame - 1.0):
+        with pytest.raises(ValueError, match=r"frames must be float in \[0, 1\], got values from"):
+            normaliser(bad, state)
+        with pytest.raises(ValueError, match=r"in \[0, 1\]"):
+            normalised_face(bad, model, layout, sigma, alpha, torch.zeros(1, 3), T_FRONT, light, CAM)
+        verts_cam = model.deform(sigma, alpha) + T_FRONT[:, None]
+        with pytest.raises(ValueError, match=r"in \[0, 1\]"):
+            normalised_face_posed(bad, model, layout, verts_cam, light, CAM)
+    with pytest.raises(ValueError, match="divide by 255"):
+        normaliser(frame * 255, state)
+    # Template management passes frames its step checked: check_values=False looks at nothing.
+    out = normalised_face(frame * 255, model, layout, sigma, alpha, torch.zeros(1, 3), T_FRONT, None, CAM,
+                          check_values=False)  # fmt: skip
+    torch.testing.assert_close(out.image, 255 * normalised_face(frame, model, layout, sigma, alpha, torch.zeros(1, 3),
+                                                                T_FRONT, None, CAM).image)  # fmt: skip
+    holed = frame.clone()
+    holed[..., 100:140, 140:180] = float("nan")
+    holed[..., 0, 0] = float("inf")
+    out = normaliser(holed, state)
+    assert bool(torch.isfinite(out.image).all()) and 0 < float(out.mask.sum()) < float(normaliser(frame, state).mask.sum())

@@ -395,6 +395,48 @@ def test_float32_agrees_with_float64():
     torch.testing.assert_close(f32.zbuf[both].double(), f64.zbuf[both], atol=0, rtol=1e-5)
 
 
+@pytest.mark.parametrize("scale", [1e8, 1e12, 1e20, 1e30])
+def test_float32_far_meshes_are_the_near_meshes_scaled(scale):
+    """A mesh scaled by ``s`` (the same image) gives the same triangles and coordinates and ``s`` times the depths.
+    In float32 every triangle with coordinates beyond about 3e8 mm was dropped as edge-on (its squared normal
+    overflowed to inf: nothing at all was seen at 1e10 mm), and ``n . v0`` overflowed from about 1e12 mm."""
+    verts, faces = random_surface(7, 2)
+    near = rasterize(verts, faces, CAM)
+    far_verts = (verts * scale).float().requires_grad_(True)
+    far = rasterize(far_verts, faces, CAM)
+    fg, fg32 = near.foreground, far.foreground
+    assert fg.any()
+    ambiguous = (fg & (min_bary(near) < 1e-4)) | (fg32 & (min_bary(far).double() < 1e-4))
+    same = near.pix_to_face == far.pix_to_face
+    assert same[~ambiguous].all() and ambiguous.double().mean() < 0.02
+    both = same & fg
+    torch.testing.assert_close(far.bary[both].double(), near.bary[both], atol=1e-4, rtol=0)
+    torch.testing.assert_close(far.zbuf[both].double() / scale, near.zbuf[both], atol=0, rtol=1e-5)
+    # Gradients: finite, and those of the near mesh divided by s (the coordinates are scale-free).
+    near_verts = verts.float().requires_grad_(True)
+    w = torch.rand(both.shape + (3,), generator=torch.Generator().manual_seed(0))
+    (g_far,) = torch.autograd.grad((far.bary * w)[both].sum(), far_verts)
+    near32 = rasterize(near_verts, faces, CAM)
+    (g_near,) = torch.autograd.grad((near32.bary * w)[both].sum(), near_verts)
+    assert bool(torch.isfinite(g_far).all())
+    torch.testing.assert_close(g_far.double() * scale, g_near.double(), atol=1e-4 * float(g_near.abs().max()), rtol=1e-3)
+
+
+def test_float16_meshes_in_millimetres_are_rasterized():
+    """In float16 (largest value 65504) the squared normal of any triangle more than a few millimetres across
+    overflowed, and every triangle of a face-sized mesh was dropped as edge-on: its corners are now scaled by a power
+    of two first (as a float32 mesh beyond 2.7e8 mm), and the fragments are float32's (away from edges)."""
+    verts, faces = random_surface(7, 2)
+    f32 = rasterize(verts.float(), faces, CAM)
+    f16 = rasterize(verts.half(), faces, CAM)
+    assert f16.foreground.any()
+    ambiguous = (f32.foreground & (min_bary(f32) < 1e-2)) | (f16.foreground & (min_bary(f16).float() < 1e-2))
+    assert ambiguous.double().mean() < 0.2
+    assert torch.equal(f16.pix_to_face[~ambiguous], f32.pix_to_face[~ambiguous])
+    both = (f16.pix_to_face == f32.pix_to_face) & f32.foreground
+    torch.testing.assert_close(f16.zbuf[both].float(), f32.zbuf[both], atol=0, rtol=1e-2)  # float16: eps 1e-3
+
+
 # ------------------------------------------------------------------------------------------------ gradients
 
 

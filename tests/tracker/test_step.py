@@ -1273,3 +1273,53 @@ def test_refused_frames_say_how_to_make_them(two_streams, make, hint):
     bad = make(frames[:1, 0].float())
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float in \[0, 1\], got .*" + hint):
         FaceTracker(BASE, refine_first=None).initialise(bad, landmarks_of(gts)[:1])
+
+
+def test_a_face_too_small_to_track_fails_at_initialise_and_scores_0_in_the_steps(model):
+    """A face 13-18 px wide was tracked with errors of 8 to 60 degrees at confidences of 0.3-1.0 (success True):
+    :attr:`TrackerConfig.min_face_width_px` (20) now fails such a stream at initialise and gives a step whose
+    estimate is that small confidence 0, with and without template management (then LOST after a few frames).
+    The face here recedes from 24 to 15 px wide."""
+    from torchface.tracker import face_width_px
+
+    n = 8
+    z0, z1 = 1669.0, 2670.0  # 320 px focal length, 125 mm between the jaw's ends: 24 and 15 px
+    frames, gt = render_sequence(gentle_spec("receding", (0.0, 0.0, 0.0), (0.0, 0.0, z0), (0.0, 0.0, z1 - z0), {},
+                                             num_frames=n))  # fmt: skip
+    frames = frames.float()
+    span = gt.landmarks_px[..., 0].amax(-1) - gt.landmarks_px[..., 0].amin(-1)  # (T,) as rendered
+    cam = Intrinsics.default(W, H)
+    width = face_width_px(model, gt.translation.float(), cam)
+    torch.testing.assert_close(width.double(), span, rtol=0.03, atol=0)
+    assert float(span[0]) > 23 and float(span[-1]) < 16
+
+    state, first = initialise(model, BASE, frames[:1], gt.landmarks_px[:1].float(), cam)
+    assert bool(first.success[0]) and float(first.confidence[0]) > 0.5
+    confidence, widths = [], []
+    for i in range(1, n):
+        state, res = track_step(model, BASE, state, frames[i : i + 1])
+        confidence.append(float(res.confidence[0]))
+        widths.append(float(face_width_px(model, res.translation, cam)[0]))
+    small = torch.tensor(widths) < BASE.min_face_width_px
+    assert bool(small[-3:].all()) and not bool(small[0])
+    assert all(c == 0.0 for c, s in zip(confidence, small) if s)
+    assert all(c > 0.5 for c, s in zip(confidence, small) if not s)
+    # Without the test (0) the same small faces score as before.
+    off = replace(BASE, min_face_width_px=0.0)
+    state, _ = initialise(model, off, frames[:1], gt.landmarks_px[:1].float(), cam)
+    for i in range(1, n):
+        state, res = track_step(model, off, state, frames[i : i + 1])
+    assert float(res.confidence[0]) > 0.1
+
+    # Initialised on the 15 px face: FAILED (it was CONVERGED at confidence 0.9).
+    _, last = initialise(model, BASE, frames[-1:], gt.landmarks_px[-1:].float(), cam)
+    assert int(last.status[0]) == FAILED and not bool(last.success[0]) and float(last.confidence[0]) == 0.0
+
+    # The FaceTracker (template management): confidence 0 on the small frames, LOST by the end.
+    tracker = FaceTracker(replace(BASE, template=TrackerConfig().template), model)
+    tracker.initialise(frames[:1], gt.landmarks_px[:1].float())
+    results = [tracker(frames[i : i + 1]) for i in range(1, n)]
+    assert all(float(r.confidence[0]) == 0.0 for r, s in zip(results, small) if s)
+    assert not bool(results[-1].success[0])
+    with pytest.raises(ValueError, match="min_face_width_px"):
+        TrackerConfig(min_face_width_px=-1.0)

@@ -316,6 +316,18 @@ def _check_precision(model: FaceModel) -> None:
         )
 
 
+def _check_frame_values(frames: Tensor) -> None:
+    """Refuse frames outside [0, 1] (0-255 ones: the light's bias and the dissimilarity's thresholds are in [0, 1]
+    units) as the tracker's steps do: every :data:`~torchface.tracker.step.STEP_VALUE_ROW_STRIDE`-th row's values
+    against :data:`~torchface.tracker.step.FRAME_VALUE_RANGE`, NaN and infinite pixels allowed (missing data, masked
+    out). Not under ``torch.compile`` or a ``torch.func`` transform of the frames (no values to read)."""
+    if is_compiling() or _transformed(frames):
+        return
+    from torchface.tracker.step import STEP_VALUE_ROW_STRIDE, check_frame_values  # (step imports this module)
+
+    check_frame_values(frames, STEP_VALUE_ROW_STRIDE)
+
+
 def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
     """Validate a ``(B, count)`` parameter tensor in the model's dtype and device."""
     if not isinstance(x, Tensor):
@@ -378,11 +390,14 @@ def normalised_face(
     zbuffer: bool = True,
     rotation: Tensor | None = None,
     backend: Backend = Backend.AUTO,
+    check_values: bool = True,
 ) -> NormalisedFaceResult:
     """The frontal, neutral-expression, light-normalised face of each frame (module docstring).
 
     Args:
-        frames: ``(B, C, H, W)`` float images in ``[0, 1]`` (any ``C``; cast to the model's dtype).
+        frames: ``(B, C, H, W)`` float images in ``[0, 1]`` (any ``C``; cast to the model's dtype; NaN pixels are
+            missing data; values outside :data:`~torchface.tracker.step.FRAME_VALUE_RANGE`, as 0-255 frames have,
+            are refused like the tracker's steps refuse them, every 16th row looked at).
         model: the face model the parameters belong to.
         layout: from :func:`build_normalised_layout` for this model (same triangles, dtype and device).
         shape_coeffs: ``(B, S)`` the person's shape coefficients ``sigma``.
@@ -400,6 +415,8 @@ def normalised_face(
             face hidden behind another (the far cheek behind the nose at a large yaw) is then kept.
         rotation: ``(B, 3, 3)`` the matrix of ``axis_angle`` when the caller has it (not checked against it), or
             None to compute it.
+        check_values: refuse frames outside [0, 1] (above); False where the caller has checked them (template
+            management: the tracker's step did), which saves a look at the frames (a device sync on a GPU).
 
     Returns:
         :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))`` in the model's dtype. A sample
@@ -409,7 +426,8 @@ def normalised_face(
     Raises:
         TypeError: an argument has the wrong type, a parameter tensor is not in the model's dtype/device, or the
             model is not float32 / float64 (float16 would lose most of the face without a sign).
-        ValueError: a shape does not match (the messages say what was expected and what arrived).
+        ValueError: a shape does not match (the messages say what was expected and what arrived), or the frames'
+            values are not in [0, 1] (0-255 frames: divide them by 255).
 
     Example:
         >>> from torchface.model import load_candide3
@@ -458,6 +476,8 @@ def normalised_face(
     if rotation is not None and (not isinstance(rotation, Tensor) or tuple(rotation.shape) != (B, 3, 3)):
         got = tuple(rotation.shape) if isinstance(rotation, Tensor) else type(rotation).__name__
         raise ValueError(f"rotation must be ({B}, 3, 3) like frames, got {got}")
+    if check_values:
+        _check_frame_values(frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
 
     # A sample with a non-finite geometry parameter is posed at the layout's canonical pose instead (finite
@@ -501,10 +521,12 @@ def normalised_face_posed(
     min_facing_cos: float = DEFAULT_MIN_FACING_COS,
     zbuffer: bool = True,
     backend: Backend = Backend.AUTO,
+    check_values: bool = True,
 ) -> NormalisedFaceResult:
     """:func:`normalised_face` of a mesh already posed: ``verts_cam (B, V, 3)``, the model's vertices at the
     frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
-    shapes of ``frames`` and ``verts_cam`` are checked here (:func:`normalised_face` documents and checks the rest).
+    shapes of ``frames`` and ``verts_cam`` and (unless ``check_values`` is False) the frames' value range are
+    checked here (:func:`normalised_face` documents and checks the rest).
     Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
     gradients (nor a ``torch.func`` transform or forward AD), :class:`~torchface.backend.Backend` ``AUTO`` samples
     with the native kernel (run eagerly under ``torch.compile``)
@@ -513,7 +535,8 @@ def normalised_face_posed(
 
     Raises:
         TypeError: the model is not float32 / float64.
-        ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``.
+        ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``, or
+            the frames' values are not in [0, 1] (as :func:`normalised_face`).
     """
     _check_precision(model)
     B, C = frames.shape[:2] if isinstance(frames, Tensor) and frames.dim() == 4 else (-1, -1)
@@ -522,6 +545,8 @@ def normalised_face_posed(
         got = tuple(verts_cam.shape) if isinstance(verts_cam, Tensor) else type(verts_cam).__name__
         raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
+    if check_values:
+        _check_frame_values(frames)
     return _normalised_face_posed(
         frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance, min_facing_cos, zbuffer,
         backend, None,

@@ -50,11 +50,15 @@ Degenerate triangles
 --------------------
 A triangle produces no fragment when it has (numerically) zero area, ``|n| <= 16 eps max_edge^2``,
 when it is seen exactly edge-on, ``|n . v0| <= 16 eps |n| |v0|`` (``eps`` of the input dtype), when it
-lies entirely at or behind the near plane, or when a vertex is not finite.
+lies entirely at or behind the near plane, or when a vertex is not finite. A triangle with large coordinates
+(beyond 2.7e8 mm in float32; beyond 1 mm in float16, where a face-sized triangle overflowed) has its
+coefficients computed from its corners scaled by a power of two, so that they cannot overflow: a mesh scaled
+by ``s`` gives the same fragments with ``s`` times the depths.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -225,6 +229,13 @@ def _triangles(verts: Tensor, faces: Tensor) -> Tensor:
     return verts.index_select(1, faces.reshape(-1).long()).reshape(B, F, 3, 3)
 
 
+def _large_coordinate(dtype: torch.dtype) -> float:
+    """Coordinates (mm) up to which :func:`_face_coefficients`' products cannot overflow: ``2**(e / 4 - 4)`` for a
+    dtype whose largest value is about ``2**e`` (float32: ``2**28``, 2.7e8 mm; float64: ``2**252``), the squared
+    normal's length being of the fourth power of the coordinates."""
+    return 2.0 ** (math.frexp(torch.finfo(dtype).max)[1] // 4 - 4)
+
+
 def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Per-triangle ray-test coefficients, oriented so that a hit in front of the camera is positive.
 
@@ -243,6 +254,16 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     # A triangle with a non-finite corner is unusable; its corners are zeroed (torch.where, not a product) so that
     # no NaN reaches the coefficients: a zero gradient times a NaN coefficient would be NaN for the shared vertices.
     tri = torch.where(finite[:, None, None], tri, torch.zeros((), dtype=tri.dtype, device=tri.device))
+    # A triangle with a coordinate beyond :func:`_large_coordinate` is scaled by a power of two 2**-s (exact) to coordinates
+    # near 1: in float32, |n|**2 overflowed to inf from about 3e8 mm (every triangle at 1e10 mm was dropped as
+    # edge-on) and k = n . v0 from about 1e12. The triple products scale by 2**-2s, k by 2**-3s; k is scaled back
+    # by 2**s so that the depth k / (n . d) is unscaled. Others (s = 0) are computed exactly as before.
+    with torch.no_grad():
+        largest = tri.detach().abs().reshape(-1, 9).amax(-1)  # (N,)
+        s = torch.where(largest > _large_coordinate(tri.dtype), torch.frexp(largest).exponent, 0).to(tri.dtype)
+    scaled = bool(s.any())
+    if scaled:
+        tri = tri * torch.exp2(-s)[:, None, None]
     corners = tri.permute(1, 2, 0)  # (corner, xyz, N)
     v0, v1, v2 = corners.unbind(0)  # (3, N) each
     e01, e02, e12, e20 = v1 - v0, v2 - v0, v2 - v1, v0 - v2
@@ -265,6 +286,8 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         & (n_norm > eps * max_edge_sq)
         & (k.abs() > eps * n_norm * (v0 * v0).sum(0).sqrt())
     )
+    if scaled:
+        k = k * torch.exp2(s)
     # Rows j + 4 i: function j (c0, c1, c2, n) times component i of the ray; then k.
     return torch.cat([cr.transpose(0, 1).reshape(12, -1), k.unsqueeze(0)]) * sign, front, usable
 

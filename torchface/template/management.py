@@ -475,15 +475,17 @@ def reference_face(
 ) -> tuple[Tensor, Tensor]:
     """The normalised face ``(B, 3, G, G)`` and mask ``(B, 1, G, G)`` of a frame as template management makes it:
     a reference frame's, and every later frame's in :func:`frame_dissimilarity` (arguments as there; ``backend``
-    of the sampling, :func:`~torchface.normalise.normalised_face_posed`)."""
+    of the sampling, :func:`~torchface.normalise.normalised_face_posed`). The frames' values are not checked here
+    (the tracker's steps check them)."""
     if verts_cam is None:
         face = normalised_face(
             frames, model, layout, shape_coeffs, anim_coeffs, axis_angle, translation, illumination, intrinsics,
-            min_facing_cos=config.min_facing_cos, zbuffer=False, rotation=rotation, backend=backend,
+            min_facing_cos=config.min_facing_cos, zbuffer=False, rotation=rotation, backend=backend, check_values=False,
         )  # fmt: skip
     else:
         face = normalised_face_posed(frames, model, layout, verts_cam, illumination, intrinsics,
-                                     min_facing_cos=config.min_facing_cos, zbuffer=False, backend=backend)  # fmt: skip
+                                     min_facing_cos=config.min_facing_cos, zbuffer=False, backend=backend,
+                                     check_values=False)  # fmt: skip
     return face.image, face.mask
 
 

@@ -114,6 +114,7 @@ from torchface.tracker.step import (
     initialise,
     level_intrinsics,
     step_grad_inputs,
+    too_small,
     track_step,
 )
 
@@ -152,6 +153,10 @@ class ManagementState:
         params_ypr: ``(params, ypr_deg)``: the yaw/pitch/roll ``(B, 3)`` of the parameters tensor ``params`` the
             step ended with (its result's), so that the next step does not convert them again; used only while
             ``TrackerState.params`` is that very tensor. None: not known.
+        unstarted: ``(B,)`` bool, the streams whose initialisation failed (a black first frame, no face) and that
+            have not started since: their templates and dissimilarity reference hold no face, so a detector's
+            landmarks initialise them afresh (:func:`managed_step`) instead of recovering against them. None: every
+            stream started.
     """
 
     mosaic: Mosaic
@@ -168,6 +173,7 @@ class ManagementState:
     head_translation: Tensor | None = None
     attempts: Tensor | None = None
     adopted_scale: Tensor | None = None
+    unstarted: Tensor | None = None
 
     def select(self, index: Tensor) -> "ManagementState":
         """The management of streams ``index`` (a ``(B',)`` int64 tensor: :meth:`TrackerState.select
@@ -185,7 +191,7 @@ class ManagementState:
             self.mosaic.select(index), self.layout, self.entry[index], self.low_count[index],
             self.very_low_count[index], self.lost[index], self.confident_params[index], self.since_attempt[index],
             ypr, first, pick(self.head_rotation), pick(self.head_translation), pick(self.attempts),
-            pick(self.adopted_scale),
+            pick(self.adopted_scale), pick(self.unstarted),
         )  # fmt: skip
 
 
@@ -325,12 +331,22 @@ def initialise_managed(
         backend=config.backend,
     )
     failed = result.status == _FAILED
+    # A first frame whose normalised face shows fewer than min_patches of its own reference's patches scores 0 against
+    # itself, and so would every later frame and recovery candidate: the stream could never be confident (collinear
+    # landmarks fitted the face edge-on, pitch 87 degrees, CONVERGED at confidence 0). It fails, as a fit without a
+    # pose does (a detector can then start it afresh: managed_step).
+    blind = ~failed & (diss.confidence <= 0)
+    if bool(blind.any()):
+        failed = failed | blind
+        result = replace(result, status=torch.where(blind, torch.full_like(result.status, _FAILED), result.status),
+                         confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence))
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
     B = state.params.shape[0]
     zeros = torch.zeros(B, dtype=torch.int64, device=state.params.device)
     management = ManagementState(
-        mosaic, layout, zeros, zeros.clone(), zeros.clone(), failed.clone(), state.params, zeros.clone()
+        mosaic, layout, zeros, zeros.clone(), zeros.clone(), failed.clone(), state.params, zeros.clone(),
+        unstarted=failed.clone() if bool(failed.any()) else None,
     )
     if refine_first is not None and fit is not None:  # (with refine_first, fit is made above when not given)
         with torch.inference_mode(False):  # kept in the state: normal tensors, detached (as the frames are: a
@@ -444,6 +460,9 @@ def _confidence(
     failed = status == _FAILED
     native = native_mosaic_confidence(frames, model, ms.layout, ms.mosaic, rows, ypr, state.shape_coeffs, alpha, R,
                                       t, light, state.intrinsics, config.template, config.backend)  # fmt: skip
+    # A face narrower than TrackerConfig.min_face_width_px scores 0, as a FAILED sample does: its estimate is too
+    # coarse to trust (it neither counts as confident nor ends a loss).
+    failed = failed | too_small(model, config, t, state.intrinsics)
     if native is not None:
         native_diss, native_conf, inside, face, _ = native
         return torch.where(failed, torch.zeros_like(native_conf), native_conf), native_diss, inside, face
@@ -683,6 +702,61 @@ def _recover(
     return found, solved, result, conf, diss, inside, entries
 
 
+def _restart(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, result: TrackResult, frames: Tensor,
+    restart: Tensor, detector: LandmarkDetector,
+) -> tuple[TrackerState, TrackResult, Tensor]:
+    """The streams ``restart`` ``(B,)`` that never started (:attr:`ManagementState.unstarted`) initialised from this
+    frame and the detector's landmarks, where it finds a face (half the landmarks) and the initialisation succeeds:
+    their fit, templates, mosaic and reference are this frame's, their management starts afresh, and their result
+    is the initialisation's (without the online look-ahead start). Returns the state, the result and the streams
+    that started (int64 ``(n,)``)."""
+    ms = state.management
+    index = restart.nonzero().squeeze(-1)
+    with torch.no_grad():
+        lm = _check_detector_output(detector(frames[index]), index.shape[0], model.num_landmarks)
+    lm = lm.to(dtype=model.dtype, device=model.device)
+    found = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
+    rows = index[found]
+    if not rows.numel():
+        return state, result, rows
+    sub, sub_result = initialise_managed(model, config, frames[rows], lm[found], state.intrinsics)
+    ok = sub_result.status != _FAILED
+    if not bool(ok.any()):
+        return state, result, rows[:0]
+    if not bool(ok.all()):
+        sub = sub.select(ok)
+        sub_result = replace(sub_result, **{f.name: getattr(sub_result, f.name)[ok] for f in fields(TrackResult)
+                                            if isinstance(getattr(sub_result, f.name), Tensor)})  # fmt: skip
+    rows = rows[ok]
+    with torch.inference_mode(False):
+        def put(x: Tensor | None, y: Tensor | None, fill: object = None) -> Tensor | None:
+            if x is None:
+                return None
+            x = x.clone()
+            x[rows] = (y if y is not None else torch.as_tensor(fill)).to(device=x.device, dtype=x.dtype)
+            return x
+
+        params = put(state.params, sub.params)
+        unstarted = put(ms.unstarted, None, False)
+        eye = torch.eye(3, dtype=model.dtype, device=model.device)
+        new_ms = replace(
+            ms, mosaic=_reset_mosaic_rows(ms.mosaic, rows, sub.management.mosaic), entry=put(ms.entry, None, 0),
+            low_count=put(ms.low_count, None, 0), very_low_count=put(ms.very_low_count, None, 0),
+            lost=put(ms.lost, None, False), confident_params=put(ms.confident_params, sub.params),
+            since_attempt=put(ms.since_attempt, None, 0), params_ypr=None,
+            head_rotation=put(ms.head_rotation, eye), head_translation=put(ms.head_translation, None, 0.0),
+            attempts=put(ms.attempts, None, 0), adopted_scale=put(ms.adopted_scale, None, 1.0),
+            unstarted=unstarted if bool(unstarted.any()) else None,
+        )  # fmt: skip
+        state = replace(
+            state, params=params, shape_coeffs=put(state.shape_coeffs, sub.shape_coeffs),
+            templates=_scatter_templates(state.templates, rows, sub.templates),
+            anim_prior_mean=put(state.anim_prior_mean, sub.anim_prior_mean), management=new_ms,
+        )  # fmt: skip
+    return state, _scatter_result(result, rows, sub_result), rows
+
+
 def _within_searched_depths(
     params: Tensor, confident_params: Tensor, layout: ParamLayout, tc: TemplateConfig, scales: Tensor | None = None
 ) -> Tensor:
@@ -802,6 +876,11 @@ def managed_step(
 
     # 3. Gating and loss.
     failed = result.status == _FAILED
+    if ms.unstarted is not None:
+        # A stream whose initialisation failed has no reference to be confident against: its frames matched the
+        # failed fit's own templates and reference (a fit 87 degrees off ended its loss at the next frame, at
+        # confidence 1.0). It stays lost until it starts afresh (a detector's landmarks: _restart).
+        conf = torch.where(ms.unstarted, torch.zeros_like(conf), conf)
     # A lost stream's track that has left the depths its recovery searches (search_depth_factors of its last
     # confident depth, widened by 10 %; scaled as the attempt whose candidate it adopted) went astray, whatever its
     # confidence: it scores 0, so it neither ends the loss nor counts as confident (CANDIDE-3 long run,
@@ -831,7 +910,13 @@ def managed_step(
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
 
-    # 4. Recovery of lost streams (rare; only the streams concerned).
+    # 4. Recovery of lost streams (rare; only the streams concerned). A stream that never started (its
+    # initialisation failed) has nothing to recover against: with a detector it is initialised afresh (below).
+    restart = None
+    if ms.unstarted is not None and detector is not None:
+        restart = attempt & ms.unstarted
+        attempt = attempt & ~restart
+        since = torch.where(restart, torch.zeros_like(since), since)
     adopted_scale = ms.adopted_scale if ms.adopted_scale is not None else torch.ones_like(conf)
     recovery = bool(attempt.any())
     if recovery:
@@ -916,7 +1001,7 @@ def managed_step(
     ms = ManagementState(
         mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
         None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
-        attempts, adopted_scale,
+        attempts, adopted_scale, ms.unstarted,
     )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
@@ -924,11 +1009,17 @@ def managed_step(
         mosaic_entry=entry.clone(),
     )  # fmt: skip
     new_state = replace(new_state, management=ms)
+    started = None
+    if restart is not None and bool(restart.any()):
+        new_state, result, started = _restart(model, config, new_state, result, frames, restart, detector)
+        ms = new_state.management
     watched = result
-    if graded is not None:  # the streams whose parameters are the solver's: not reverted, not adopted
+    if graded is not None:  # the streams whose parameters are the solver's: not reverted, not adopted, not restarted
         own = ~reverted
         if adopted is not None:
             own[adopted] = False
+        if started is not None:
+            own[started] = False
         result = _regraded(result, graded[1], own)
     reported = _in_head_frame(result, ms)  # the offsets this frame was tracked under
     if ms.first is not None:  # the online look-ahead start (initialise_managed(refine_first=...))

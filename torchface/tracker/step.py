@@ -11,6 +11,7 @@ from __future__ import annotations
 import enum
 import math
 import threading
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -22,6 +23,7 @@ from torchface._autocast import full_precision
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
+from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry._checks import check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
@@ -132,6 +134,14 @@ class TrackerConfig:
         min_points: fewer valid points than this marks a sample FAILED.
         min_contrast: a sample whose sampled frame intensities have a standard deviation below this is FAILED
             (black or textureless frame).
+        min_face_width_px: a face narrower than this (pixels of the full-resolution frame; :func:`face_width_px`,
+            the model's frontal face's width at the estimate's depth) gets confidence 0 at each step, and
+            :func:`initialise` fails its stream: its estimates are too coarse to use. Measured on rendered
+            CANDIDE-3 clips at 320x240 (exact first-frame landmarks, head turning up to 15 degrees): rotation
+            error 2.3 / 4.5 degrees (mean / max) at 27 px wide, 2.6 / 5.6 at 23.5 px, 3.7 / 7.4 at 20 px, 7.8 / 14.1
+            at 18 px, 12 / 38 at 16 px, and at 13 px the track ran off at once (errors of 40-115 degrees); the
+            confidence stayed at 0.3-0.6 down to 16 px. 0 turns the test off. The standard scenarios' faces are
+            about 180 px wide at 640x480 (45 px at 160x120).
         refine_iterations: after the pose is found, iterations of a second pass at the finest level that
             re-estimates only the animation units and the light with the robust scale floored at
             ``refine_scale_floor`` (0 disables it). Expression change is a large, structured residual that a
@@ -217,6 +227,7 @@ class TrackerConfig:
     expression_prior_at_start: bool = True
     min_points: int = 50
     min_contrast: float = 0.01
+    min_face_width_px: float = 20.0
     fit: FitConfig = field(default_factory=lambda: FitConfig(fit_expression=True, expression_prior_precision=2.0))
     solver: TrackSolver = TrackSolver.FAST
     backend: Backend = Backend.AUTO
@@ -261,6 +272,8 @@ class TrackerConfig:
             raise ValueError(f"crop_margin must be finite and >= 0 (a fraction of the face's size), got {self.crop_margin}")
         if isinstance(self.selection_seed, bool) or not isinstance(self.selection_seed, int) or self.selection_seed < 0:
             raise ValueError(f"selection_seed must be an int >= 0, got {self.selection_seed!r}")
+        if not (math.isfinite(self.min_face_width_px) and self.min_face_width_px >= 0.0):
+            raise ValueError(f"min_face_width_px must be finite and >= 0 (pixels), got {self.min_face_width_px}")
         if self.gradient_threshold < 0 or self.min_contrast < 0:
             raise ValueError("gradient_threshold and min_contrast must be non-negative")
         if not isinstance(self.robust, RobustKind):
@@ -270,6 +283,47 @@ class TrackerConfig:
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
         if not isinstance(self.solver, TrackSolver):  # "fast" ran the reference solver without a word
             raise TypeError(f"solver must be a TrackSolver, got {self.solver!r}")
+
+
+def _landmark_width_mm(model: FaceModel) -> float:
+    """The horizontal extent (mm) of the model's landmarks on its mean shape (CANDIDE-3: 125 mm, the iBUG jaw's ends),
+    computed once per model."""
+    width = _LANDMARK_WIDTH.get(model)
+    if width is None:
+        lm = model.landmarks_3d(model.mean[None].detach())[0]
+        width = _LANDMARK_WIDTH[model] = float(lm[:, 0].amax() - lm[:, 0].amin())
+    return width
+
+
+_LANDMARK_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKeyDictionary()
+
+
+def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(B,)`` the width in pixels of the model's mean face seen frontally at the estimate's depth: ``fx w / t_z``,
+    ``w`` the horizontal extent of the model's landmarks on its mean shape (CANDIDE-3: 125 mm between the iBUG
+    jaw's ends) and ``t_z`` the head origin's depth (``translation (B, 3)``, mm). It does not shrink as the head
+    turns; a depth at or behind the near plane gives ``inf``, a NaN one NaN. :attr:`TrackerConfig.min_face_width_px`
+    is compared with it.
+
+    Example:
+        >>> from torchface.model import load_candide3
+        >>> w = face_width_px(load_candide3(), torch.tensor([[0.0, 0.0, 3000.0]]), Intrinsics.default(320, 240))
+        >>> round(float(w), 1)
+        13.4
+    """
+    z = translation[:, 2]
+    ahead = z > NEAR_PLANE_MM
+    width = intrinsics.fx * _landmark_width_mm(model) / torch.where(ahead, z, torch.ones_like(z))
+    return torch.where(ahead | z.isnan(), width, torch.full_like(width, math.inf))
+
+
+def too_small(model: FaceModel, config: TrackerConfig, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
+    """``(B,)`` bool: the face of an estimate at ``translation (B, 3)`` is narrower than
+    :attr:`TrackerConfig.min_face_width_px` (:func:`face_width_px`), i.e. farther than ``fx w / min_face_width_px``
+    (one comparison; a depth at or behind the near plane or NaN is not too small: such estimates fail on their own)."""
+    if config.min_face_width_px <= 0:
+        return torch.zeros(translation.shape[0], dtype=torch.bool, device=translation.device)
+    return translation[:, 2] > intrinsics.fx * _landmark_width_mm(model) / config.min_face_width_px
 
 
 def _unit_weights(config: TrackerConfig, num_animation: int, like: Tensor) -> Tensor | None:
@@ -656,7 +710,15 @@ def check_frames(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, {size_of}), got "
             f"{frames.shape[-1]}x{frames.shape[-2]}"
         )
-    if values and frames.numel():
+    if values:
+        check_frame_values(frames, row_stride)
+
+
+def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
+    """Refuse float ``(..., H, W)`` frames with values outside :data:`FRAME_VALUE_RANGE` (:func:`check_frames`'
+    ``values``; also :func:`~torchface.normalise.normalised_face`'s, with :data:`STEP_VALUE_ROW_STRIDE`). NaN pixels
+    are in range; infinite ones too when ``row_stride`` is not 1."""
+    if frames.numel():
         seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
         lo, hi = torch.stack([seen.amin(), seen.amax()]).tolist()
         if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN pixels: inside the range (the steps': non-finite)
@@ -835,6 +897,8 @@ def initialise(
     status = torch.where(fit.status == int(SolveStatus.FAILED), int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
     n_pts = templates[0].num_points
     status = torch.where(n_pts < config.min_points, torch.full_like(status, int(TrackStatus.FAILED)), status)
+    small = too_small(model, config, fit.translation, intrinsics)
+    status = torch.where(small, torch.full_like(status, int(TrackStatus.FAILED)), status)
     conf = torch.exp(-fit.rms_px / 5.0) * (status != int(TrackStatus.FAILED))
     result = _result(
         model, layout, x, status, torch.zeros_like(status), torch.zeros_like(fit.rms_px), n_pts, conf, fit.anim_coeffs
@@ -1454,6 +1518,10 @@ def _finish(
     status = torch.where(failed, int(TrackStatus.FAILED), status)
     frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
     confidence = frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2)) * (~failed)
+    if config.min_face_width_px > 0:  # a face too small to track well (TrackerConfig.min_face_width_px)
+        t = layout.split(x)[1]
+        small = too_small(model, config, t, state.intrinsics)
+        confidence = torch.where(small, torch.zeros_like(confidence), confidence)
     new_state = replace(state, params=x, frame_index=state.frame_index + 1)
     return new_state, _result(model, layout, x, status, iterations, rms, n_valid, confidence, state.anim_prior_mean)
 
