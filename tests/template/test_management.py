@@ -343,6 +343,19 @@ def test_search_mosaic_finds_the_moved_face(model, scene):
     assert math.isfinite(hit.score)
 
 
+def test_search_mosaic_refuses_an_image_it_cannot_halve(model, scene):
+    """The search's first stage runs on ``gray`` halved once more: a 1-pixel-high image was avg_pool2d's "Output
+    size is too small" RuntimeError (the coarsest level of 8x6 frames with three levels); now a clear ValueError."""
+    _, _, fit, _ = scene
+    cfg = TemplateConfig()
+    intr, gray0, _, m = _half_size_mosaic(model, scene, cfg)
+    depth = float(fit.translation[0, 2])
+    for bad in (gray0[..., :1, :], gray0[..., :, :1], gray0[0]):
+        with pytest.raises(ValueError, match=r"gray must be \(1, 1, h, w\) with h, w >= 2"):
+            search_mosaic(model, fit.shape_coeffs, m, 0, bad, intr, 0, depth, None, cfg)
+    assert search_mosaic(model, fit.shape_coeffs, m, 0, gray0[..., :2, :2], intr, 0, depth, None, cfg).score <= 1.0
+
+
 def test_search_mosaic_leaves_out_nan_pixels(model, scene):
     """NaN frame pixels are missing data: the search finds the face as in the same frame without them. A NaN
     sample made its placement's score NaN, which topk ranked first and no comparison accepted, so one NaN row far

@@ -822,3 +822,42 @@ def test_selected_streams_track_as_in_the_full_batch(model, four_streams):
         state.select([4])
     with pytest.raises(IndexError, match="one per stream"):
         state.select(torch.tensor([True, False]))
+
+
+@pytest.mark.parametrize(
+    ("num_levels", "size", "searched"),
+    [(3, (6, 8), (3, 4)), (2, (3, 3), (3, 3)), (1, (1, 1), None)],  # (H, W) frames; searched: (h, w) or none
+)
+def test_a_lost_stream_on_frames_whose_coarsest_level_is_one_pixel_is_searched_on_a_level_that_exists(
+    model, monkeypatch, num_levels, size, searched
+):
+    """The frame check lets the coarsest pyramid level be 1 pixel a side (8x6 frames with three levels give 2x1),
+    and the recovery search halved that level once more: avg_pool2d's "Output size is too small" RuntimeError as
+    soon as the stream was lost. The search now runs on the coarsest level at least 2 pixels a side; with none
+    (1x1 frames, one level) nothing is searched and the stream stays lost."""
+    import torchface.tracker.managed as managed
+
+    h, w = size
+    x = [0.0, 400.0, 400.0, 400.0]  # the face leaves the frame: lost at once (min_inside_fraction)
+    T = len(x)
+    spec = SequenceSpec(
+        name="tiny", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(torch.zeros(T, 3, dtype=D)), translation=torch.tensor([[a, 0.0, 450.0] for a in x]),
+        anim=torch.zeros(T, model.num_animation, dtype=D), light=default_light(T), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    config = replace(CFG, num_levels=num_levels, iterations=(6, 5, 4)[-num_levels:],
+                     template=TemplateConfig(recovery_every=1))  # fmt: skip
+    grays = []
+    real = managed.search_mosaic
+
+    def spy(model, shape, mosaic, stream, gray, *args, **kwargs):
+        grays.append(tuple(gray.shape))
+        return real(model, shape, mosaic, stream, gray, *args, **kwargs)
+
+    monkeypatch.setattr(managed, "search_mosaic", spy)
+    state, _ = initialise_managed(model, config, frames[None, 0], landmarks(gt), Intrinsics.default(w, h))
+    for i in range(1, T):
+        state, res = managed_step(model, config, state, frames[None, i])
+        assert int(res.status[0]) == LOST
+    assert grays == ([] if searched is None else [(1, 1, *searched)] * (T - 1)), grays

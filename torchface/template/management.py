@@ -916,7 +916,8 @@ def search_mosaic(
     Args:
         shape_coeffs: ``(1, S)`` the stream's shape units.
         stream: the stream's index in ``mosaic``.
-        gray: ``(1, 1, h, w)`` the frame at pyramid level ``level``, gray in [0, 1]; intrinsics: its camera.
+        gray: ``(1, 1, h, w)`` the frame at pyramid level ``level``, gray in [0, 1], ``h, w >= 2``; intrinsics: its
+            camera.
         depth_mm: the last confident depth of the head origin.
         extra_rotation: ``(3, 3)`` or None.
         depth_scale: other than 1, the depths ``depth_mm * depth_scale * search_depth_factors`` are tried too
@@ -926,6 +927,8 @@ def search_mosaic(
     Returns:
         :class:`SearchResult` (score -1 when nothing could be placed).
     """
+    if gray.dim() != 4 or gray.shape[:2] != (1, 1) or min(gray.shape[-2:]) < 2:
+        raise ValueError(f"gray must be (1, 1, h, w) with h, w >= 2 (the search halves it), got {tuple(gray.shape)}")
     dtype, device = gray.dtype, gray.device
     lv = mosaic.levels[level]
     used = mosaic.used[stream].nonzero().squeeze(-1)

@@ -27,12 +27,12 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    refinement pass's prior at ``expression_prior_precision`` and a Gaussian expression prior (no
    ``expression_sparsity``; ``track_step(conservative=)``), and, when it is lost
    and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
-   one is given, else by searching its mosaic over the coarsest pyramid level
-   (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
-   candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence`` replaces it
-   (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
-   when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
-   ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went
+   one is given, else by searching its mosaic over the coarsest pyramid level (on tiny frames the coarsest at
+   least 2 pixels a side; :func:`~torchface.template.management.search_mosaic`); each candidate is refined by a
+   normal solve. A candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence``
+   replaces it (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the
+   track and, when searched, within the searched depths; the loss ends when the continued track or a candidate
+   reaches ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went
    astray, however well its patches match).
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
@@ -613,6 +613,20 @@ def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
     return landmarks
 
 
+def _search_level(height: int, width: int, num_levels: int) -> int:
+    """The pyramid level the recovery search runs on for frames of ``height x width``: the coarsest of the
+    ``num_levels`` whose sides are both at least 2 pixels (:func:`~torchface.template.management.search_mosaic`
+    halves it once more), or -1 when none is. The frame check lets the coarsest level be 1 pixel a side
+    (:func:`~torchface.tracker.step.check_initialise_inputs`: 8x6 frames give a 2x1 third level)."""
+    level = -1
+    for lv in range(num_levels):
+        if min(height, width) < 2:
+            break
+        level = lv
+        height, width = height // 2, width // 2  # pyr_down's sizes
+    return level
+
+
 def _recovery_starts(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
     detector: LandmarkDetector | None, depth_scales: list[float],
@@ -638,9 +652,8 @@ def _recovery_starts(
                 fit.rotation[good], fit.translation[good], fit.anim_coeffs[good], light_c[rows]
             )
             found[rows] = True
-    else:
-        level = config.num_levels - 1
-        gray = gray_pyramid(frames[index], config.num_levels)[level]
+    elif (level := _search_level(frames.shape[-2], frames.shape[-1], config.num_levels)) >= 0:  # else none found
+        gray = gray_pyramid(frames[index], level + 1)[level]
         intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
         R_c = axis_angle_to_matrix(aa_c)
         for i in range(n):
