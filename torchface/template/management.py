@@ -855,7 +855,7 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
 
     Returns:
         ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image
-        (a point whose sample touches a NaN pixel, missing data, is not inside). Points whose intensity ``T`` is not
+        (a point whose sample touches a NaN pixel, missing data, is not inside) or none does. Points whose intensity ``T`` is not
         finite take no part.
     """
     H, P = t.shape[:2]
@@ -876,7 +876,9 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
     a = (vals - mean_v) * wgt
     b = (T.unsqueeze(1) - mean_t) * wgt
     ncc = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-6)
-    return torch.where(cnt >= min_inside * w.sum(-1, keepdim=True), ncc, torch.full_like(ncc, -1.0))
+    # (a hypothesis without points, an entry with none at this level, is not placed: its 0 would outrank -1)
+    placed = (cnt >= min_inside * w.sum(-1, keepdim=True)) & (cnt > 0)
+    return torch.where(placed, ncc, torch.full_like(ncc, -1.0))
 
 
 def _placements(grid: Tensor, depth: Tensor, intrinsics: Intrinsics) -> Tensor:
