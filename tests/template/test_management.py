@@ -343,6 +343,33 @@ def test_search_mosaic_finds_the_moved_face(model, scene):
     assert math.isfinite(hit.score)
 
 
+def test_search_mosaic_refuses_an_image_it_cannot_halve(model, scene):
+    """The search's first stage runs on ``gray`` halved once more: a 1-pixel-high image was avg_pool2d's "Output
+    size is too small" RuntimeError (the coarsest level of 8x6 frames with three levels); now a clear ValueError."""
+    _, _, fit, _ = scene
+    cfg = TemplateConfig()
+    intr, gray0, _, m = _half_size_mosaic(model, scene, cfg)
+    depth = float(fit.translation[0, 2])
+    for bad in (gray0[..., :1, :], gray0[..., :, :1], gray0[0]):
+        with pytest.raises(ValueError, match=r"gray must be \(1, 1, h, w\) with h, w >= 2"):
+            search_mosaic(model, fit.shape_coeffs, m, 0, bad, intr, 0, depth, None, cfg)
+    assert search_mosaic(model, fit.shape_coeffs, m, 0, gray0[..., :2, :2], intr, 0, depth, None, cfg).score <= 1.0
+
+
+def test_search_mosaic_places_nothing_from_an_entry_without_points(model, scene):
+    """An entry with no valid points at the searched level (the coarsest levels of small frames) was "placed"
+    with score 0 everywhere (no points inside counted as enough of them), a score that outranked every real
+    placement below 0; now nothing is placed (-1, as the docstring says)."""
+    _, _, fit, _ = scene
+    cfg = TemplateConfig()
+    intr, gray0, _, m = _half_size_mosaic(model, scene, cfg)
+    depth = float(fit.translation[0, 2])
+    assert search_mosaic(model, fit.shape_coeffs, m, 0, gray0, intr, 0, depth, None, cfg).score > 0.5
+    lv = m.levels[0]
+    empty = replace(m, levels=(replace(lv, valid=torch.zeros_like(lv.valid)),))
+    assert search_mosaic(model, fit.shape_coeffs, empty, 0, gray0, intr, 0, depth, None, cfg).score == -1.0
+
+
 def test_search_mosaic_leaves_out_nan_pixels(model, scene):
     """NaN frame pixels are missing data: the search finds the face as in the same frame without them. A NaN
     sample made its placement's score NaN, which topk ranked first and no comparison accepted, so one NaN row far

@@ -428,3 +428,17 @@ def test_landmark_indices_and_settings_are_checked(model):
         FitConfig(max_iterations=2.5)
     with pytest.raises(TypeError, match="fit_expression must be a bool"):
         FitConfig(fit_expression="no")
+
+
+def test_stall_test_reads_a_residual_function_without_validity():
+    """ResidualFn's validity may be None (all residuals valid, as the solver reads it): the stall test used it in
+    ``valid & ...`` and raised TypeError. A linear residual ``r = x - 1`` at ``x = 0`` predicts a decrease of
+    1/2 per parameter (stalled); at its minimum none."""
+    from torchface.tracker.fit import _stalled
+
+    def residual_fn(x):
+        return x - 1.0, torch.eye(2, dtype=D).expand(x.shape[0], 2, 2), None
+
+    lo, hi, prior = torch.full((2,), -10.0, dtype=D), torch.full((2,), 10.0, dtype=D), torch.zeros(2, dtype=D)
+    x = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=D)
+    assert _stalled(residual_fn, x, lo, hi, prior, torch.full((2,), 0.01, dtype=D)).tolist() == [True, False]

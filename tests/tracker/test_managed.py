@@ -898,3 +898,100 @@ def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_until_a_detector_star
     R = torch.stack([r.rotation[0].double() for r in results[1:]])
     # (The default fit holds the vertical shape units: its absolute pitch is 1-1.5 degrees off here.)
     assert float(geodesic_angle_deg(R, gt.rotation[2:]).max()) < (1.0 if fit == "held" else 2.0)
+
+
+@pytest.mark.parametrize(("num_levels", "size"), [(3, (6, 8)), (2, (3, 3)), (1, (1, 1))])  # size: (H, W)
+def test_a_lost_stream_on_frames_whose_coarsest_level_is_one_pixel_stays_lost_without_a_crash(
+    model, monkeypatch, num_levels, size
+):
+    """The frame check lets the coarsest pyramid level be 1 pixel a side (8x6 frames with three levels give 2x1),
+    and the recovery search halved that level once more: avg_pool2d's "Output size is too small" RuntimeError as
+    soon as the stream was lost. The search now runs only on a level at least 2 pixels a side that holds template
+    points (:func:`torchface.tracker.managed._search_level`); on these frames the face is a pixel or two and none
+    does, so the stream is reported lost."""
+    import torchface.tracker.managed as managed
+
+    h, w = size
+    x = [0.0, 400.0, 400.0, 400.0]  # the face leaves the frame: lost at once (min_inside_fraction)
+    T = len(x)
+    spec = SequenceSpec(
+        name="tiny", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(torch.zeros(T, 3, dtype=D)), translation=torch.tensor([[a, 0.0, 450.0] for a in x]),
+        anim=torch.zeros(T, model.num_animation, dtype=D), light=default_light(T), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    config = replace(CFG, num_levels=num_levels, iterations=(6, 5, 4)[-num_levels:],
+                     template=TemplateConfig(recovery_every=1))  # fmt: skip
+    grays = []
+    real = managed.search_mosaic
+
+    def spy(model, shape, mosaic, stream, gray, *args, **kwargs):
+        grays.append(tuple(gray.shape))
+        return real(model, shape, mosaic, stream, gray, *args, **kwargs)
+
+    monkeypatch.setattr(managed, "search_mosaic", spy)
+    state, _ = initialise_managed(model, config, frames[None, 0], landmarks(gt), Intrinsics.default(w, h))
+    for i in range(1, T):
+        state, res = managed_step(model, config, state, frames[None, i])
+        assert int(res.status[0]) == LOST and not bool(res.success[0])
+    assert all(min(g[-2:]) >= 2 for g in grays), grays
+
+
+def test_search_level_is_the_coarsest_with_two_pixels_a_side_and_template_points(model, gentle):
+    """:func:`torchface.tracker.managed._search_level` on a two-level mosaic (320x240): the coarsest level (1) as
+    before at a normal size; the finest where the coarsest is 1 pixel high or its entries hold fewer than 8 valid
+    points; -1 where no level qualifies."""
+    from torchface.tracker.managed import _search_level
+
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    mosaic = state.management.mosaic
+    assert int(mosaic.levels[1].valid[0, 0].sum()) >= 8
+    assert _search_level(mosaic, 0, H, W, 2) == 1
+    assert _search_level(mosaic, 0, 3, W, 2) == 0  # level 1 is 1x160
+    assert _search_level(mosaic, 0, 1, W, 2) == -1
+    few = mosaic.levels[1].valid.clone()
+    few[0, 0, 7:] = False  # 7 valid points left
+    sparse = replace(mosaic, levels=(mosaic.levels[0], replace(mosaic.levels[1], valid=few)))
+    assert _search_level(sparse, 0, H, W, 2) == 0
+
+
+def test_a_face_is_found_again_when_the_coarsest_levels_hold_no_template_points(model, monkeypatch):
+    """96x72 frames with five pyramid levels: the face is tracked, but its two coarsest levels (12x9, 6x4) hold no
+    template points, and the search ran on the coarsest, where every placement scored 0: once the face had left
+    the frame the stream stayed lost to the end. It now searches the coarsest level with points (24x18) and the
+    face is found at the first attempt after its return, as at 320x240."""
+    import torchface.tracker.managed as managed
+
+    w, h = 96, 72
+    x = [0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-60.0] * 4
+    T = len(x)
+    spec = SequenceSpec(
+        name="small_leaves", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(torch.zeros(T, 3, dtype=D)), translation=torch.tensor([[a, 0.0, 450.0] for a in x]),
+        anim=torch.zeros(T, model.num_animation, dtype=D), light=default_light(T), background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    config = replace(LEAVE_CFG, num_levels=5, iterations=(6, 6, 6, 5, 4))
+    grays = []
+    real = managed.search_mosaic
+
+    def spy(model, shape, mosaic, stream, gray, *args, **kwargs):
+        grays.append(tuple(gray.shape))
+        return real(model, shape, mosaic, stream, gray, *args, **kwargs)
+
+    monkeypatch.setattr(managed, "search_mosaic", spy)
+    state, res = initialise_managed(model, config, frames[None, 0], landmarks(gt), Intrinsics.default(w, h))
+    assert [int(lv.valid[0, 0].sum()) for lv in state.management.mosaic.levels][3:] == [0, 0]
+    results = [res]
+    for i in range(1, T):
+        state, res = managed_step(model, config, state, frames[None, i])
+        results.append(res)
+        assert_finite(res)
+    status = [int(r.status[0]) for r in results]
+    assert all(status[i] == LOST for i in OUT_FRAMES), status
+    ok = [i for i in range(BACK, T) if bool(results[i].success[0])]
+    assert ok and ok[0] <= BACK + 1 and ok == list(range(ok[0], T)), status
+    assert grays and set(grays) == {(1, 1, 18, 24)}, grays
+    t_err = (torch.stack([r.translation[0].double() for r in results[ok[0] :]]) - gt.translation[ok[0] :]).norm(dim=-1)
+    assert float(t_err.max()) < 15.0, t_err

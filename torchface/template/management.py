@@ -857,7 +857,7 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
 
     Returns:
         ``(H, P)`` in ``[-1, 1]``, -1 where fewer than ``min_inside`` of the points project inside the image
-        (a point whose sample touches a NaN pixel, missing data, is not inside). Points whose intensity ``T`` is not
+        (a point whose sample touches a NaN pixel, missing data, is not inside) or none does. Points whose intensity ``T`` is not
         finite take no part.
     """
     H, P = t.shape[:2]
@@ -878,7 +878,9 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
     a = (vals - mean_v) * wgt
     b = (T.unsqueeze(1) - mean_t) * wgt
     ncc = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-6)
-    return torch.where(cnt >= min_inside * w.sum(-1, keepdim=True), ncc, torch.full_like(ncc, -1.0))
+    # (a hypothesis without points, an entry with none at this level, is not placed: its 0 would outrank -1)
+    placed = (cnt >= min_inside * w.sum(-1, keepdim=True)) & (cnt > 0)
+    return torch.where(placed, ncc, torch.full_like(ncc, -1.0))
 
 
 def _placements(grid: Tensor, depth: Tensor, intrinsics: Intrinsics) -> Tensor:
@@ -918,7 +920,8 @@ def search_mosaic(
     Args:
         shape_coeffs: ``(1, S)`` the stream's shape units.
         stream: the stream's index in ``mosaic``.
-        gray: ``(1, 1, h, w)`` the frame at pyramid level ``level``, gray in [0, 1]; intrinsics: its camera.
+        gray: ``(1, 1, h, w)`` the frame at pyramid level ``level``, gray in [0, 1], ``h, w >= 2``; intrinsics: its
+            camera.
         depth_mm: the last confident depth of the head origin.
         extra_rotation: ``(3, 3)`` or None.
         depth_scale: other than 1, the depths ``depth_mm * depth_scale * search_depth_factors`` are tried too
@@ -928,6 +931,8 @@ def search_mosaic(
     Returns:
         :class:`SearchResult` (score -1 when nothing could be placed).
     """
+    if gray.dim() != 4 or gray.shape[:2] != (1, 1) or min(gray.shape[-2:]) < 2:
+        raise ValueError(f"gray must be (1, 1, h, w) with h, w >= 2 (the search halves it), got {tuple(gray.shape)}")
     dtype, device = gray.dtype, gray.device
     lv = mosaic.levels[level]
     used = mosaic.used[stream].nonzero().squeeze(-1)

@@ -270,7 +270,9 @@ def _predicts_decrease(
 ) -> Tensor:
     """:func:`_stalled`'s test (without autograd around it)."""
     r, J, valid = residual_fn(x)
-    use = valid & torch.isfinite(r) & torch.isfinite(J).all(-1)
+    use = torch.isfinite(r) & torch.isfinite(J).all(-1)
+    if valid is not None:  # ResidualFn may leave validity out (all valid), as the solver reads it
+        use = use & valid
     r = torch.where(use, r, torch.zeros_like(r))
     J = torch.where(use.unsqueeze(-1), J, torch.zeros_like(J))
     g = torch.bmm(r.unsqueeze(1), J).squeeze(1) + prior * x

@@ -369,13 +369,13 @@ def _refine_first_fit(
         got = tuple(landmark_weights.shape) if isinstance(landmark_weights, Tensor) else type(landmark_weights).__name__
         raise ValueError(f"landmark_weights must be ({L},) or None, got {got}")
     S, A = model.num_shape, model.num_animation
-    units = held_shape_units if config.shape_units is None else config.shape_units
-    if any(s >= S for s in units):
-        raise ValueError(f"shape_units must be < {S} (the model's shape units), got {units}")
+    free_units = held_shape_units if config.shape_units is None else config.shape_units
+    if any(s >= S for s in free_units):
+        raise ValueError(f"shape_units must be < {S} (the model's shape units), got {free_units}")
     dt, dev = torch.float64, model.device
     m = model.to(dtype=dt)
-    free_su = torch.tensor(units, dtype=torch.long, device=dev)
-    nf = len(units)
+    free_su = torch.tensor(free_units, dtype=torch.long, device=dev)
+    nf = len(free_units)
     nA = A if config.fit_expression else 0
     levels = list(reversed(range(len(config.iterations))))
     side = 3 * 2 ** (len(levels) - 2) if len(levels) > 1 else 1  # pyr_down needs 3 pixels a side (as the tracker)

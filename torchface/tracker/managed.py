@@ -27,8 +27,9 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    refinement pass's prior at ``expression_prior_precision`` and a Gaussian expression prior (no
    ``expression_sparsity``; ``track_step(conservative=)``), and, when it is lost
    and then every ``recovery_every`` frames, re-initialises: from the ``detector`` callback's landmarks when
-   one is given, else by searching its mosaic over the coarsest pyramid level
-   (:func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
+   one is given, else by searching its mosaic over the coarsest pyramid level (on small frames the coarsest
+   that is at least 2 pixels a side and holds template points;
+   :func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
    candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence`` replaces it
    (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
    when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
@@ -632,6 +633,30 @@ def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
     return landmarks
 
 
+#: The fewest valid template points an entry needs at a pyramid level for the recovery search to place it there
+#: (:attr:`~torchface.template.management.TemplateConfig.search_points`' least).
+_SEARCH_MIN_POINTS = 8
+
+
+def _search_level(mosaic: Mosaic, stream: int, height: int, width: int, num_levels: int) -> int:
+    """The pyramid level the recovery search runs on for ``stream`` in frames of ``height x width``: the coarsest
+    of the ``num_levels`` whose sides are both at least 2 pixels
+    (:func:`~torchface.template.management.search_mosaic` halves it once more) and where one of the stream's
+    entries holds at least :data:`_SEARCH_MIN_POINTS` valid points, or -1 when none is. The frame check lets the
+    coarsest level be 1 pixel a side (:func:`~torchface.tracker.step.check_initialise_inputs`: 8x6 frames give a
+    2x1 third level), and on small frames with many levels the coarsest levels hold no template points (every
+    placement there scored 0: the face was never found). At the standard sizes it is the coarsest level."""
+    level = -1
+    used = mosaic.used[stream]
+    for lv in range(num_levels):
+        if min(height, width) < 2:
+            break
+        if int(mosaic.levels[lv].valid[stream][used].sum(-1).max()) >= _SEARCH_MIN_POINTS:
+            level = lv
+        height, width = height // 2, width // 2  # pyr_down's sizes
+    return level
+
+
 def _recovery_starts(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
     detector: LandmarkDetector | None, depth_scales: list[float],
@@ -658,14 +683,17 @@ def _recovery_starts(
             )
             found[rows] = True
     else:
-        level = config.num_levels - 1
-        gray = gray_pyramid(frames[index], config.num_levels)[level]
-        intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
+        H, W = frames.shape[-2:]
+        levels = [_search_level(ms.mosaic, b, H, W, config.num_levels) for b in index.tolist()]
+        pyramid = gray_pyramid(frames[index], max(levels) + 1) if max(levels) >= 0 else []
         R_c = axis_angle_to_matrix(aa_c)
-        for i in range(n):
-            b = int(index[i])
+        for i, (b, level) in enumerate(zip(index.tolist(), levels)):
+            if level < 0:  # no level to search: not found
+                continue
+            gray = pyramid[level][i : i + 1]
+            intr = level_intrinsics(state.intrinsics, level, gray.shape[-2], gray.shape[-1])
             hit = search_mosaic(
-                model, state.shape_coeffs[b : b + 1], ms.mosaic, b, gray[i : i + 1], intr, level,
+                model, state.shape_coeffs[b : b + 1], ms.mosaic, b, gray, intr, level,
                 float(t_c[i, 2]), R_c[i], config.template, depth_scale=depth_scales[i], backend=config.backend,
             )  # fmt: skip
             if hit.score > 0:
