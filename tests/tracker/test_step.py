@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -408,6 +409,35 @@ def test_config_validation():
     for bad in ("fast", 0, None):
         with pytest.raises(TypeError, match="TrackSolver"):
             TrackerConfig(solver=bad)  # type: ignore[arg-type]  # "fast" ran the reference solver
+
+
+def test_config_refuses_settings_that_failed_later_or_tracked_wrongly():
+    """Each of these was accepted: fit/template of another type ended in an AttributeError at initialise
+    ('NoneType' object has no attribute 'enabled'), num_levels=2.0 in range()'s TypeError, robust_c=-1 in "c must be a
+    positive number" at the first frame; gradient_threshold or refine_scale_floor NaN failed or lost every frame,
+    an infinite finest robust floor held the pose still, all with status and no error."""
+    for name, bad in (("fit", None), ("fit", {}), ("template", None), ("template", "default")):
+        with pytest.raises(TypeError, match=f"{name} must be a"):
+            TrackerConfig(**{name: bad})
+    for name, bad in (("num_levels", 2.0), ("max_points", 300.5), ("refine_iterations", -1), ("min_points", 1.5),
+                      ("refine_iterations", 2.5), ("visibility_interval", float("nan")), ("visibility_interval", 0)):
+        with pytest.raises(ValueError, match=f"{name} must be an int"):
+            TrackerConfig(**{name: bad, **({"iterations": (6, 5)} if name == "num_levels" else {})})
+    for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
+        for bad in (float("nan"), float("inf"), -1.0, "0.1"):
+            with pytest.raises(ValueError, match=name):
+                TrackerConfig(**{name: bad})
+    for bad in (-1.0, 0.0, float("nan"), float("inf"), "4.685"):
+        with pytest.raises(ValueError, match="robust_c"):
+            TrackerConfig(robust_c=bad)
+    with pytest.raises(ValueError, match="expression_priority"):
+        TrackerConfig(expression_priority=float("nan"))
+    for floors in ((0.1, float("inf")), (float("inf"), 0.02)):
+        with pytest.raises(ValueError, match="robust_scale_floor"):
+            TrackerConfig(robust_scale_floor=floors)
+    # What stays accepted: the defaults, 0 for the floors, thresholds and the refinement, numpy integers.
+    TrackerConfig(refine_iterations=0, refine_scale_floor=0.0, gradient_threshold=0, min_contrast=0.0, robust_c=None)
+    assert TrackerConfig(num_levels=np.int64(2), iterations=(6, 5)).num_levels == 2
 
 
 def test_face_tracker_module(model, two_streams, l2_runs):

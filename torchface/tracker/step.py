@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import math
+import numbers
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -225,6 +226,28 @@ class TrackerConfig:
     template: TemplateConfig = field(default_factory=TemplateConfig)
 
     def __post_init__(self) -> None:
+        # Settings read only at the first frame or deep in a step were refused there with another name, or not at
+        # all: fit=None or template=None an AttributeError at initialise, num_levels=2.0 a TypeError from range(),
+        # gradient_threshold or refine_scale_floor NaN failed or lost every frame without a word.
+        if not isinstance(self.fit, FitConfig):
+            raise TypeError(f"fit must be a FitConfig, got {type(self.fit).__name__}")
+        if not isinstance(self.template, TemplateConfig):
+            raise TypeError(f"template must be a TemplateConfig, got {type(self.template).__name__}")
+        for name, low in (("num_levels", 1), ("max_points", 8), ("min_points", 0), ("refine_iterations", 0),
+                          ("visibility_interval", 1)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+        for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Real) or not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
+        if self.robust_c is not None and not (
+            isinstance(self.robust_c, numbers.Real) and math.isfinite(self.robust_c) and self.robust_c > 0.0
+        ):  # (was refused at the first frame as "c must be a positive number")
+            raise ValueError(f"robust_c must be a finite number > 0 or None (the loss's default), got {self.robust_c!r}")
+        if not (isinstance(self.expression_priority, numbers.Real) and math.isfinite(self.expression_priority)):
+            raise ValueError(f"expression_priority must be a finite number, got {self.expression_priority!r}")
         if self.refine_prior_precision is not None and not self.refine_prior_precision >= 0.0:
             raise ValueError(f"refine_prior_precision must be >= 0 or None, got {self.refine_prior_precision}")
         if self.expression_prior_weights is not None:
@@ -238,20 +261,14 @@ class TrackerConfig:
             raise ValueError(f"expression_sparsity must be a finite delta > 0 or None, got {self.expression_sparsity}")
         if not 0.0 <= self.expression_quota <= 1.0:
             raise ValueError(f"expression_quota must be a fraction in [0, 1], got {self.expression_quota}")
-        if self.num_levels < 1:
-            raise ValueError(f"num_levels must be >= 1, got {self.num_levels}")
         if len(self.iterations) != self.num_levels or any(i < 1 for i in self.iterations):
             raise ValueError(
                 f"iterations must give a positive count per level ({self.num_levels}), got {self.iterations}"
             )
-        if len(self.robust_scale_floor) != 2 or any(not f > 0 for f in self.robust_scale_floor):
-            raise ValueError(f"robust_scale_floor must be two positive floors (coarsest, finest), got {self.robust_scale_floor}")
+        if len(self.robust_scale_floor) != 2 or any(not 0 < f < math.inf for f in self.robust_scale_floor):
+            raise ValueError(f"robust_scale_floor must be two finite positive floors (coarsest, finest), got {self.robust_scale_floor}")
         if not self.function_tolerance >= 0.0:
             raise ValueError(f"function_tolerance must be >= 0, got {self.function_tolerance}")
-        if self.visibility_interval < 1:
-            raise ValueError(f"visibility_interval must be >= 1, got {self.visibility_interval}")
-        if self.max_points < 8:
-            raise ValueError(f"max_points must be >= 8, got {self.max_points}")
         if not 0 <= self.min_points <= self.max_points:
             raise ValueError(f"min_points must be in [0, max_points = {self.max_points}] (with more, every frame fails), "
                              f"got {self.min_points}")  # fmt: skip
@@ -261,8 +278,6 @@ class TrackerConfig:
             raise ValueError(f"crop_margin must be finite and >= 0 (a fraction of the face's size), got {self.crop_margin}")
         if isinstance(self.selection_seed, bool) or not isinstance(self.selection_seed, int) or self.selection_seed < 0:
             raise ValueError(f"selection_seed must be an int >= 0, got {self.selection_seed!r}")
-        if self.gradient_threshold < 0 or self.min_contrast < 0:
-            raise ValueError("gradient_threshold and min_contrast must be non-negative")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
         if not isinstance(self.backend, Backend):
