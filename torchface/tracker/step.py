@@ -498,6 +498,9 @@ class TrackerState:
         B = self.params.shape[0]
         # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
         empty = isinstance(index, (list, tuple)) and not index
+        if index is None or isinstance(index, (str, bytes, slice)):  # torch's "Could not infer dtype of NoneType"
+            raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
+                            f"got {type(index).__name__}")  # fmt: skip
         index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
         if index.dtype == torch.bool:  # a mask of the streams kept
             if index.numel() != B:
