@@ -483,8 +483,9 @@ class NormaliseFaces:
 
     def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
         """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
-        if not isinstance(frames, Tensor) or frames.dim() != 4 or frames.shape[1] != 3:
-            got = tuple(frames.shape) if isinstance(frames, Tensor) else type(frames).__name__
-            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {got}")
+        if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
+            raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}")
+        if frames.dim() != 4 or frames.shape[1] != 3:
+            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}")
         sequence, _ = self.track(frames, start)
         return sequence.item(slice(0, sequence.num_frames))
