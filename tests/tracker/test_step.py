@@ -1184,6 +1184,30 @@ def test_a_model_with_other_units_than_the_state_is_refused(model, two_streams, 
         track_step(model.to(dtype=torch.float64), L2, states[0], frames[:, 1])
 
 
+def test_the_functional_steps_name_a_model_config_or_state_of_another_type(model, two_streams, l2_runs):
+    """track_step / managed_step / initialise / initialise_managed / estimate_confidence with None (or a dict) for
+    the model, config or state raised AttributeErrors ('NoneType' object has no attribute 'intrinsics', ... 'dtype',
+    ... 'num_levels', ... 'template'), where FaceTracker names them in a TypeError."""
+    from torchface.tracker import estimate_confidence, managed_step
+
+    frames, gts = two_streams
+    (_, states), _ = l2_runs
+    state, frame = states[0], frames[:, 1]
+    for step in (track_step, managed_step, estimate_confidence):
+        for args, message in (((None, L2, state, frame), "model must be a FaceModel, got NoneType"),
+                              ((model, None, state, frame), "config must be a TrackerConfig, got NoneType"),
+                              ((model, {"num_levels": 2}, state, frame), "config must be a TrackerConfig, got dict"),
+                              ((model, L2, None, frame), "state must be a TrackerState")):  # fmt: skip
+            with pytest.raises(TypeError, match=message):
+                step(*args)
+    cam = Intrinsics.default(W, H)
+    for start in (initialise, initialise_managed):
+        with pytest.raises(TypeError, match="model must be a FaceModel"):
+            start(None, L2, frames[:, 0], landmarks_of(gts), cam)
+        with pytest.raises(TypeError, match="config must be a TrackerConfig"):
+            start(model, None, frames[:, 0], landmarks_of(gts), cam)
+
+
 _COMPILED_STEP = """
 import torch
 from dataclasses import replace

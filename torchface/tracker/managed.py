@@ -104,6 +104,7 @@ from torchface.tracker.step import (
     TrackerState,
     TrackResult,
     TrackStatus,
+    check_api_types,
     check_frames,
     check_initialise_inputs,
     check_step_inputs,
@@ -288,6 +289,7 @@ def initialise_managed(
         >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
+    check_api_types(model, config)
     if refine_first is not None:
         if not isinstance(refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
@@ -459,6 +461,7 @@ def estimate_confidence(
         state: with management (:func:`initialise_managed` / :func:`managed_step`); its ``params`` are scored.
         frames: ``(B, 3, H, W)`` the frames those parameters belong to.
     """
+    check_api_types(model, config, state, with_state=True)
     ms = state.management
     if not isinstance(ms, ManagementState):
         raise ValueError("the state has no template management: start with initialise_managed")
@@ -730,6 +733,7 @@ def managed_step(
     ``params`` carry the frame's graph on to the next step (:meth:`~torchface.tracker.TrackerState.detach` between
     frames whose losses stand alone).
     """
+    check_api_types(model, config, state, with_state=True)
     tc = config.template
     if not tc.enabled:
         new_state, result = track_step(model, config, state, frames)

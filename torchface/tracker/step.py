@@ -657,6 +657,19 @@ def check_frames(
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
+def check_api_types(model: object, config: object, state: object = None, *, with_state: bool = False) -> None:
+    """Refuse a ``model`` that is not a :class:`FaceModel`, a ``config`` that is not a :class:`TrackerConfig` and
+    (``with_state``) a ``state`` that is not a :class:`TrackerState`, by name: the functional entry points
+    (:func:`initialise`, :func:`track_step`, :func:`~torchface.tracker.managed.managed_step`, ...) raised an
+    AttributeError ('NoneType' object has no attribute 'intrinsics') where ``FaceTracker`` names them."""
+    if not isinstance(model, FaceModel):
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+    if with_state and not isinstance(state, TrackerState):
+        raise TypeError(f"state must be a TrackerState (from initialise or a previous step), got {type(state).__name__}")
+
+
 def check_initialise_inputs(
     model: FaceModel, config: TrackerConfig, frames: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics,
     weights: Tensor | None,
@@ -666,6 +679,7 @@ def check_initialise_inputs(
     model's ``K`` points (NaN: missing; the online start and recovery use them all, so a subset is given as NaN
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
+    check_api_types(model, config)
     check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
     check_frames(frames, intrinsics, values=True)
     B, K = frames.shape[0], model.num_landmarks
@@ -815,6 +829,7 @@ def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "Tracker
     ``(B, 3, H, W)`` in [0, 1] (:func:`check_frames`, every :data:`STEP_VALUE_ROW_STRIDE`-th row's values), one
     per stream of ``state``, whose pyramid ``config`` has (:func:`check_state_levels`) and whose model ``model`` is
     (:func:`check_state_model`)."""
+    check_api_types(model, config, state, with_state=True)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
