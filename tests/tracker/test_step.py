@@ -1206,6 +1206,19 @@ def test_the_functional_steps_name_a_model_config_or_state_of_another_type(model
             start(None, L2, frames[:, 0], landmarks_of(gts), cam)
         with pytest.raises(TypeError, match="config must be a TrackerConfig"):
             start(model, None, frames[:, 0], landmarks_of(gts), cam)
+    # A float16 model was '"cholesky_cpu" not implemented for 'Half'' from inside the landmark fit (FaceTracker took
+    # it at construction; its .to(torch.float16) is refused); a fit of another type was "fit must be a LandmarkFit
+    # of batch 2, got str" as a ValueError, and one of another batch said "got LandmarkFit", the right type.
+    half = model.to(dtype=torch.float16)
+    with pytest.raises(TypeError, match="tracks in float32 or float64, the model is torch.float16"):
+        FaceTracker(L2, half)
+    with pytest.raises(TypeError, match="tracks in float32 or float64, the model is torch.float16"):
+        initialise(half, L2, frames[:, 0], landmarks_of(gts), cam)
+    with pytest.raises(TypeError, match="fit must be a LandmarkFit of batch 2 or None, got str"):
+        initialise(model, L2, frames[:, 0], landmarks_of(gts), cam, fit="fit")  # type: ignore[arg-type]
+    one = fit_landmarks(model, landmarks_of(gts)[:1], cam)
+    with pytest.raises(ValueError, match="fit must be a LandmarkFit of batch 2, got batch 1"):
+        initialise(model, L2, frames[:, 0], landmarks_of(gts), cam, fit=one)
 
 
 _COMPILED_STEP = """

@@ -657,6 +657,14 @@ def check_frames(
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
+def check_model_precision(model: FaceModel) -> None:
+    """Refuse a float16 / bfloat16 model, as ``FaceTracker.to`` does: the tracker's solves (Cholesky) have no such
+    kernels ('"cholesky_cpu" not implemented for 'Half'' from deep inside the landmark fit)."""
+    if model.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"the tracker tracks in float32 or float64, the model is {model.dtype} (its solver factorises "
+                        "matrices): load it in float32 (load_candide3(dtype=torch.float32)) or use torch.autocast")  # fmt: skip
+
+
 def check_api_types(model: object, config: object, state: object = None, *, with_state: bool = False) -> None:
     """Refuse a ``model`` that is not a :class:`FaceModel`, a ``config`` that is not a :class:`TrackerConfig` and
     (``with_state``) a ``state`` that is not a :class:`TrackerState`, by name: the functional entry points
@@ -664,6 +672,7 @@ def check_api_types(model: object, config: object, state: object = None, *, with
     AttributeError ('NoneType' object has no attribute 'intrinsics') where ``FaceTracker`` names them."""
     if not isinstance(model, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    check_model_precision(model)
     if not isinstance(config, TrackerConfig):
         raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
     if with_state and not isinstance(state, TrackerState):
@@ -754,8 +763,10 @@ def initialise(
     frames = frames.to(dtype=model.dtype, device=model.device)
     if fit is None:
         fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
-    elif not isinstance(fit, LandmarkFit) or fit.rotation.shape[0] != frames.shape[0]:
-        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got {type(fit).__name__}")
+    elif not isinstance(fit, LandmarkFit):
+        raise TypeError(f"fit must be a LandmarkFit of batch {frames.shape[0]} or None, got {type(fit).__name__}")
+    elif fit.rotation.shape[0] != frames.shape[0]:  # (said "got LandmarkFit", the right type)
+        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got batch {fit.rotation.shape[0]}")
     else:  # in the model's dtype and device, as fit_landmarks returns it
         fit = fit.to(model.device, model.dtype)
     layout = _layout(model)
