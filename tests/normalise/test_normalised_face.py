@@ -352,6 +352,8 @@ def test_module_with_track_result_and_state(model, subject, layout):
     # constructor and refused only at the first call.
     with pytest.raises(ValueError, match=r"expected 1 frames \(one per stream of the state\), got 2"):
         normaliser(frame.expand(2, -1, -1, -1), state)
+    with pytest.raises(TypeError, match="the state is torch.float32 on cpu, this normaliser's model torch.float64"):
+        NormalisedFace(model.to(dtype=torch.float64), size=G)(frame, state)  # (named the state's shape_coeffs)
     with pytest.raises(ValueError, match="depth_tolerance"):
         NormalisedFace(model, size=G, depth_tolerance=-1.0)
     for bad in (1.0, -0.5, float("nan")):

@@ -734,6 +734,10 @@ class NormalisedFace(nn.Module):
             if isinstance(frames, Tensor) and frames.dim() == 4 and frames.shape[0] != B:
                 # (was "shape_coeffs must be (B, 14) with B=1 like frames, got (2, 14)": a tensor never passed)
                 raise ValueError(f"expected {B} frames (one per stream of the state), got {frames.shape[0]}")
+            kept = (estimate.shape_coeffs.dtype, estimate.shape_coeffs.device)
+            if kept != (self.model.dtype, self.model.device):  # (was "shape_coeffs must have the model's dtype ...")
+                raise TypeError(f"the state is {kept[0]} on {kept[1]}, this normaliser's model {self.model.dtype} on "
+                                f"{self.model.device}: move one of them (normaliser.to(...))")  # fmt: skip
             aa, t, alpha, light = layout.split(estimate.params)
             return self.from_params(frames, estimate.shape_coeffs, alpha, aa, t, light, estimate.intrinsics)
         if isinstance(estimate, TrackResult):
