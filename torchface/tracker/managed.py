@@ -622,7 +622,9 @@ def _recovery_starts(
     starts = conf_params.clone()
     if detector is not None:
         with torch.no_grad():
-            lm = _check_detector_output(detector(frames[index]), n, model.num_landmarks)
+            seen = frames[index]  # the detector's contract is RGB frames (README); gray ones, tracked, are expanded
+            seen = seen.expand(-1, 3, -1, -1) if seen.shape[1] == 1 else seen
+            lm = _check_detector_output(detector(seen), n, model.num_landmarks)
         lm = lm.to(dtype=model.dtype, device=model.device)
         ok = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
         if bool(ok.any()):
