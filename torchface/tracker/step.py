@@ -240,10 +240,10 @@ class TrackerConfig:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
         for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
             value = getattr(self, name)
-            if not isinstance(value, numbers.Real) or not (math.isfinite(value) and value >= 0.0):
+            if not isinstance(value, numbers.Real) or not (math.isfinite(value) and float(value) >= 0.0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
         if self.robust_c is not None and not (
-            isinstance(self.robust_c, numbers.Real) and math.isfinite(self.robust_c) and self.robust_c > 0.0
+            isinstance(self.robust_c, numbers.Real) and math.isfinite(self.robust_c) and float(self.robust_c) > 0.0
         ):  # (was refused at the first frame as "c must be a positive number")
             raise ValueError(f"robust_c must be a finite number > 0 or None (the loss's default), got {self.robust_c!r}")
         if not (isinstance(self.expression_priority, numbers.Real) and math.isfinite(self.expression_priority)):
