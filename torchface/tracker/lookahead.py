@@ -35,8 +35,6 @@ landmark fit.
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass
 
 import torch
@@ -212,10 +210,6 @@ def select_keyframes(
         raise ValueError(f"rotation must be (T, 3, 3), got {getattr(rotation, 'shape', type(rotation))}")
     if translation is not None and tuple(translation.shape) != (rotation.shape[0], 3):
         raise ValueError(f"translation must be ({rotation.shape[0]}, 3), got {tuple(translation.shape)}")
-    if confident is not None and tuple(confident.shape) != (rotation.shape[0],):  # (a broadcasting RuntimeError)
-        raise ValueError(f"confident must be ({rotation.shape[0]},) bool, got {tuple(confident.shape)}")
-    if isinstance(yaw_deg, bool) or not (isinstance(yaw_deg, numbers.Real) and 0.0 < yaw_deg < math.inf):  # NaN: no keyframe, -1: frame 0 twice
-        raise ValueError(f"yaw_deg must be a positive threshold in degrees, got {yaw_deg!r}")
     yaw = matrix_to_euler(rotation.to(torch.float64))[:, 0]
     rel = (yaw - yaw[0]).cpu()
     view = view_yaw_deg(rotation, translation)
