@@ -258,13 +258,6 @@ def test_bad_inputs_raise(model):
             fit_landmarks(model, lm, CAM, bad)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="intrinsics must be"):
         fit_landmarks(model, lm, None)  # type: ignore[arg-type]
-    # A TrackerConfig for the FitConfig was "'TrackerConfig' object has no attribute 'fit_expression'"; list or numpy
-    # landmark_indices an AttributeError ('list' object has no attribute 'numel'), float ones an IndexError.
-    with pytest.raises(TypeError, match="config must be a FitConfig, got TrackerConfig"):
-        fit_landmarks(model, lm, CAM, config=TrackerConfig())  # type: ignore[arg-type]
-    for bad in (list(range(5)), torch.arange(5).numpy(), torch.arange(5.0), torch.ones(5, dtype=torch.bool)):
-        with pytest.raises(TypeError, match=r"landmark_indices must be a \(K,\) int64 tensor or None"):
-            fit_landmarks(model, lm[:, :5], CAM, landmark_indices=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="shape_bound"):
         FitConfig(shape_bound=0.0)
     with pytest.raises(ValueError, match="max_iterations"):

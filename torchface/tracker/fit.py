@@ -254,14 +254,6 @@ def fit_landmarks(
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0).
     """
-    if not isinstance(config, FitConfig):  # (a TrackerConfig was "object has no attribute 'fit_expression'")
-        raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
-    if landmark_indices is not None and (
-        not isinstance(landmark_indices, Tensor) or landmark_indices.is_floating_point() or landmark_indices.is_complex()
-        or landmark_indices.dtype == torch.bool
-    ):  # (a list or numpy array was an AttributeError, a float tensor an IndexError)
-        got = landmark_indices.dtype if isinstance(landmark_indices, Tensor) else type(landmark_indices).__name__
-        raise TypeError(f"landmark_indices must be a (K,) int64 tensor or None, got {got}")
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
     k = int(idx.numel())
     dtype, device = model.dtype, model.device
