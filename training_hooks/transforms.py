@@ -25,6 +25,7 @@ Shapes: ``T`` frames, ``C = 3`` channels, ``S`` the normalised-face side (:attr:
 from __future__ import annotations
 
 import enum
+import numbers
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
@@ -274,6 +275,10 @@ class TrackedSequence:
             index: int | slice = slice(start, stop)
             frame = torch.arange(start, stop, dtype=torch.int64) + self.first_frame
         else:
+            if isinstance(frames, bool) or not isinstance(frames, numbers.Integral) and not (
+                isinstance(frames, Tensor) and frames.numel() == 1 and not frames.is_floating_point()
+            ):  # (int(1.7) took frame 1 without a word)
+                raise TypeError(f"frames must be an int (one frame) or a slice (a clip), got {frames!r}")
             index = int(frames)
             if not 0 <= index < self.num_frames:
                 raise IndexError(f"frame {frames} out of range for a {self.num_frames}-frame sequence")

@@ -373,6 +373,10 @@ def test_sequence_success_and_validation(clips):
         sequence.item(3)
     with pytest.raises(ValueError, match="step 1"):
         sequence.item(slice(0, 3, 2))
+    for bad in (1.7, True, "1"):  # int(1.7) took frame 1 without a word
+        with pytest.raises(TypeError, match="frames must be an int"):
+            sequence.item(bad)  # type: ignore[arg-type]
+    assert int(sequence.item(np.int64(1))["frame"]) == int(sequence.item(torch.tensor(1))["frame"]) == 1
 
 
 def test_items_carry_the_expression_measured_from_the_first_frame(clips):
