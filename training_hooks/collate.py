@@ -9,7 +9,7 @@ pads them to ``T = max_i T_i``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import torch
 from torch import Tensor
@@ -73,6 +73,9 @@ def collate_clips(
         >>> out["face"].shape, out["frame_mask"].sum(1).tolist(), out["video"].tolist()
         (torch.Size([2, 5, 3, 8, 8]), [3, 5], [0, 1])
     """
+    if isinstance(per_frame_keys, (str, bytes)) or not isinstance(per_frame_keys, Collection):
+        # (a string matched its substrings: "face" took 'face' alone as per-frame, then failed stacking confidences)
+        raise TypeError(f"per_frame_keys must be a sequence of key names (a list), got {type(per_frame_keys).__name__}")
     if len(batch) == 0:
         raise ValueError("collate_clips got an empty batch")
     if not all(isinstance(item, dict) for item in batch):

@@ -229,7 +229,16 @@ def clip_bounds(
         [(0, 4), (4, 8), (8, 9)]
         >>> clip_bounds(3, 4, None, False), clip_bounds(3, None, None, False)
         ([], [(0, 1), (1, 2), (2, 3)])
+
+    Raises:
+        ValueError: ``num_frames`` is not an int >= 0, or ``clip_length`` / ``stride`` not a positive int or None (a
+            length of 0 gave empty clips ``(0, 0), (2, 2), ...``, a stride of 0 range()'s message).
     """
+    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 0:
+        raise ValueError(f"num_frames must be an int >= 0, got {num_frames!r}")
+    for name, v in (("clip_length", clip_length), ("stride", stride)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ValueError(f"{name} must be a positive int or None, got {v!r}")
     if clip_length is None:
         return [(t, t + 1) for t in range(num_frames)]
     stride = clip_length if stride is None else stride

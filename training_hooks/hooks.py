@@ -33,16 +33,41 @@ __all__ = [
 def _check_batch(batch: object) -> Mapping[str, Any]:
     if not isinstance(batch, Mapping):
         raise TypeError(f"batch must be a dict of tensors (a dataset batch), got {type(batch).__name__}")
-    if "confidence" not in batch or not isinstance(batch["confidence"], Tensor):
+    if "confidence" not in batch:
         raise ValueError(f"batch must hold a 'confidence' tensor, got keys {sorted(batch)}")
+    if not isinstance(batch["confidence"], Tensor):  # (was "must hold a 'confidence' tensor, got keys ['confidence']")
+        raise TypeError(f"batch['confidence'] must be a (B,) or (B, T) tensor, got {type(batch['confidence']).__name__}")
     conf = batch["confidence"]
     if conf.dim() not in (1, 2):
         raise ValueError(f"batch['confidence'] must be (B,) or (B, T), got {tuple(conf.shape)}")
-    if "frame_mask" in batch and tuple(batch["frame_mask"].shape) != tuple(conf.shape):
-        raise ValueError(
-            f"frame_mask {tuple(batch['frame_mask'].shape)} must match confidence {tuple(conf.shape)}"
-        )
+    for key in ("frame_mask", "success"):  # a (1,) success was broadcast over every sample, a list an AttributeError
+        if key not in batch:
+            continue
+        if not isinstance(batch[key], Tensor):
+            raise TypeError(f"batch['{key}'] must be a tensor like confidence {tuple(conf.shape)}, "
+                            f"got {type(batch[key]).__name__}")  # fmt: skip
+        if tuple(batch[key].shape) != tuple(conf.shape):
+            raise ValueError(f"{key} {tuple(batch[key].shape)} must match confidence {tuple(conf.shape)}")
+    real = conf.detach() if "frame_mask" not in batch else conf.detach()[batch["frame_mask"].to(torch.bool)]
+    if real.is_floating_point() and not bool(torch.isfinite(real).all()):  # the minimum was inf, the mean NaN
+        raise ValueError("batch['confidence'] must be finite on the real frames")
     return batch
+
+
+def _check_per_frame(batch: Mapping[str, Any], key: str, trailing: tuple[int | None, ...] | None) -> None:
+    """Check that ``batch[key]`` is a tensor whose leading dimensions are the confidence's shape (``(B,)`` or
+    ``(B, T)``), followed by the sizes ``trailing`` (None: any size; ``trailing`` None: any dimensions)."""
+    value, lead = batch[key], tuple(batch["confidence"].shape)
+    names = ["B", "T"][: len(lead)] + (["..."] if trailing is None else [str(n or "*") for n in trailing])
+    want = "(" + ", ".join(names) + ")"
+    if not isinstance(value, Tensor):
+        raise TypeError(f"batch['{key}'] must be a {want} tensor, got {type(value).__name__}")
+    rest = tuple(value.shape[len(lead) :])
+    if tuple(value.shape[: len(lead)]) != lead or (
+        trailing is not None
+        and (len(rest) != len(trailing) or any(n is not None and n != r for n, r in zip(trailing, rest)))
+    ):
+        raise ValueError(f"batch['{key}'] must be {want} like confidence {lead}, got {tuple(value.shape)}")
 
 
 def _valid(batch: Mapping[str, Any]) -> Tensor:
@@ -70,6 +95,7 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         A scalar tensor.
 
     Raises:
+        TypeError: ``loss`` is not a floating-point tensor, or an argument is not a tensor.
         ValueError: shapes differ, or the confidence is non-finite or outside ``[0, 1]``.
 
     Example:
@@ -78,6 +104,10 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
     """
     if not isinstance(loss, Tensor) or not isinstance(confidence, Tensor):
         raise TypeError("loss and confidence must be tensors")
+    if not loss.is_floating_point():  # the confidence was cast to it: an int64 loss weighed 0 everywhere, gave 0
+        raise TypeError(f"loss must be a floating-point tensor, got {loss.dtype}")
+    if mask is not None and not isinstance(mask, Tensor):
+        raise TypeError(f"mask must be a bool tensor or None, got {type(mask).__name__}")
     if loss.shape != confidence.shape or (mask is not None and mask.shape != loss.shape):
         got = tuple(mask.shape) if mask is not None else None
         raise ValueError(
@@ -216,6 +246,14 @@ class _Accumulator:
 
     def add(self, batch: Mapping[str, Any]) -> "_Accumulator":
         batch = _check_batch(batch)
+        for key, trailing in (("ypr_deg", (3,)), ("translation", (3,)), ("anim_coeffs", (None,)), ("mask", None)):
+            if key in batch:  # (a wrong shape was an IndexError from the indexing below)
+                _check_per_frame(batch, key, trailing)
+        if "cached" in batch and (
+            not isinstance(batch["cached"], Tensor) or batch["cached"].numel() != batch["confidence"].shape[0]
+        ):  # one flag per sample (a single flag was counted for every frame)
+            got = tuple(batch["cached"].shape) if isinstance(batch["cached"], Tensor) else type(batch["cached"]).__name__
+            raise ValueError(f"batch['cached'] must be one flag per sample ({batch['confidence'].shape[0]},), got {got}")
         valid = _valid(batch)
         conf = batch["confidence"].detach()[valid].to(torch.float64)
         self.samples += int(batch["confidence"].shape[0])

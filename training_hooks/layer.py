@@ -239,9 +239,10 @@ def unrolled_params(
         raise ValueError(f"expected {B} frames (one per stream of the state), got {frames.shape[0]}")
     if frames.dtype != model.dtype:
         raise TypeError(f"frames must be in the model's dtype {model.dtype}, got {frames.dtype}")
-    if not isinstance(start, Tensor) or tuple(start.shape) != (B, layout.size) or start.dtype != model.dtype:
-        got = (tuple(start.shape), start.dtype) if isinstance(start, Tensor) else type(start).__name__
-        raise ValueError(f"start must be ({B}, {layout.size}) {model.dtype}, got {got}")
+    if not isinstance(start, Tensor):
+        raise TypeError(f"start must be a ({B}, {layout.size}) {model.dtype} tensor, got {type(start).__name__}")
+    if tuple(start.shape) != (B, layout.size) or start.dtype != model.dtype:
+        raise ValueError(f"start must be ({B}, {layout.size}) {model.dtype}, got {(tuple(start.shape), start.dtype)}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
         raise ValueError(f"iterations must be an int >= 0, got {iterations!r}")
     if not 1 <= levels <= config.num_levels:
@@ -395,9 +396,10 @@ class NormalisedFaceLayer(nn.Module):
             :class:`LayerResult` with ``image (B, T, C, G, G)``, ``mask (B, T, 1, G, G)``, ``params (B, T, P)``,
             the state after the last frame and the last frame's ``track``.
         """
-        if not isinstance(clips, Tensor) or clips.dim() != 5 or clips.shape[1] < 1:
-            got = tuple(clips.shape) if isinstance(clips, Tensor) else type(clips).__name__
-            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {got}")
+        if not isinstance(clips, Tensor):  # (a numpy clip was a ValueError, as a wrong shape; forward's a TypeError)
+            raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
+        if clips.dim() != 5 or clips.shape[1] < 1:
+            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}")
         clips = clips.to(dtype=self.model.dtype, device=self.model.device)
         state, track = self.initialise(clips[:, 0], landmarks_px, intrinsics)
         image, mask = self.normalise(clips[:, 0], state, state.params)

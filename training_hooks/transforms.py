@@ -25,6 +25,7 @@ Shapes: ``T`` frames, ``C = 3`` channels, ``S`` the normalised-face side (:attr:
 from __future__ import annotations
 
 import enum
+import numbers
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
@@ -274,6 +275,10 @@ class TrackedSequence:
             index: int | slice = slice(start, stop)
             frame = torch.arange(start, stop, dtype=torch.int64) + self.first_frame
         else:
+            if isinstance(frames, bool) or not isinstance(frames, numbers.Integral) and not (
+                isinstance(frames, Tensor) and frames.numel() == 1 and not frames.is_floating_point()
+            ):  # (int(1.7) took frame 1 without a word)
+                raise TypeError(f"frames must be an int (one frame) or a slice (a clip), got {frames!r}")
             index = int(frames)
             if not 0 <= index < self.num_frames:
                 raise IndexError(f"frame {frames} out of range for a {self.num_frames}-frame sequence")
@@ -483,8 +488,9 @@ class NormaliseFaces:
 
     def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
         """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
-        if not isinstance(frames, Tensor) or frames.dim() != 4 or frames.shape[1] != 3:
-            got = tuple(frames.shape) if isinstance(frames, Tensor) else type(frames).__name__
-            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {got}")
+        if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
+            raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}")
+        if frames.dim() != 4 or frames.shape[1] != 3:
+            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}")
         sequence, _ = self.track(frames, start)
         return sequence.item(slice(0, sequence.num_frames))

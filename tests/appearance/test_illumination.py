@@ -120,3 +120,26 @@ def test_bad_shapes_raise():
         illumination_basis(torch.rand(5), torch.rand(5, 3))
     with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
         illumination_basis(torch.rand(1, 5), torch.rand(1, 4, 3))
+
+
+def test_apply_and_remove_illumination_name_bad_shapes_and_types():
+    """Params or batches that do not match were einsum's RuntimeError ("subscript l has size 4 for operand 1 which
+    does not broadcast with previously seen size 5"); six light terms were taken, the sixth ignored."""
+    from torchface.appearance import apply_illumination, remove_illumination
+
+    T, normals = torch.rand(2, 7), torch.nn.functional.normalize(torch.rand(2, 7, 3), dim=-1)
+    basis = illumination_basis(T, normals)
+    for params in (torch.rand(2, 4), torch.rand(3, 5), torch.rand(5)):
+        with pytest.raises(ValueError, match=r"template must be \(B, N\), basis \(B, N, L\) and params \(B, L\)"):
+            apply_illumination(T, basis, params)
+    for observed, params in ((T, torch.rand(3, 5)), (T, torch.rand(2, 6)), (T[:, :6], torch.rand(2, 5)),
+                             (torch.rand(7), torch.rand(2, 5))):  # fmt: skip
+        with pytest.raises(ValueError, match=r"observed must be \(B, N\) or \(B, C, N\)"):
+            remove_illumination(observed, normals, params)
+    with pytest.raises(TypeError, match="must be tensors, got ndarray"):
+        apply_illumination(T.numpy(), basis, torch.rand(2, 5))  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="must be tensors"):
+        remove_illumination(T, normals, torch.rand(2, 5).numpy())  # type: ignore[arg-type]
+    light = torch.rand(2, 5) * 0.1
+    assert remove_illumination(apply_illumination(T, basis, light), normals, light).shape == (2, 7)
+    assert remove_illumination(T[:, None].expand(2, 3, 7), normals, light).shape == (2, 3, 7)

@@ -209,6 +209,16 @@ def test_bad_shapes_raise():
         sample_at_pixels(torch.rand(2, 1, 4, 5), torch.rand(1, 2, 2))
     with pytest.raises(ValueError, match="1 or 3"):
         to_gray(torch.rand(1, 2, 4, 4))
+    # numpy images were AttributeErrors ('numpy.ndarray' object has no attribute 'dim'); a to_gray out= of the wrong
+    # shape an IndexError ("too many indices for tensor of dimension 1"), as pyr_down's is a ValueError.
+    from torchface.appearance.sampling import pyr_down
+
+    for fn, name in ((to_gray, "images"), (pyr_down, "images"), (image_with_gradients, "gray")):
+        with pytest.raises(TypeError, match=f"{name} must be a torch.Tensor"):
+            fn(torch.rand(1, 1, 4, 4).numpy())  # type: ignore[arg-type]
+    for out in (torch.zeros(1), torch.zeros(2, 1, 4, 4), torch.zeros(1, 1, 4, 4, dtype=torch.float64)):
+        with pytest.raises(ValueError, match=r"out must be \(1, 1, 4, 4\) torch.float32"):
+            to_gray(torch.rand(1, 3, 4, 4), out=out)
 
 
 @pytest.mark.parametrize("shape", [(2, 1, 40, 60), (1, 3, 24, 32), (1, 1, 41, 33)])

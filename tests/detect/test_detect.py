@@ -114,6 +114,31 @@ def test_batched_detector_for_facetracker():
         batched("dlib")
 
 
+
+def test_batched_detector_gives_a_per_image_detector_rgb_images_of_gray_frames():
+    """The tracker takes gray (B, 1, H, W) frames, and passes them to its detector at a loss: the batched dlib
+    detector then got (H, W, 1) images and refused them mid-run ("image must be (H, W, 3) uint8 RGB, got (12, 16,
+    1)"). It now sees each gray frame as a gray RGB image; frames that are not (B, 1 or 3, H, W) float tensors (a
+    numpy array, a single frame, uint8) are named instead of failing in torch.full / permute."""
+    from torchface.detect import _check_image
+
+    seen = []
+
+    def detector(image):
+        _check_image(image)  # dlib's check
+        seen.append((image.shape, int(image[0, 0, 0]), int(image[0, 0, 2])))
+        return None
+
+    gray = torch.full((2, 1, 12, 16), 0.5, dtype=torch.float64)
+    assert bool(batched(detector)(gray).isnan().all())
+    assert seen == [((12, 16, 3), 128, 128)] * 2
+    with pytest.raises(TypeError, match="frames must be a torch.Tensor"):
+        batched(detector)(gray.numpy())  # type: ignore[arg-type]
+    for bad in (gray[0], (gray * 255).to(torch.uint8), gray.expand(-1, 2, -1, -1)):
+        with pytest.raises(ValueError, match=r"frames must be \(B, 3, H, W\) float"):
+            batched(detector)(bad)
+
+
 def test_of_several_faces_the_one_nearest_the_tracked_one_is_taken():
     """Without ``near`` the largest face (the first of equals); with it the one whose box centre is nearest the
     centre of the points' bounding box (NaN rows ignored): a re-detection of a stream beside a larger face took

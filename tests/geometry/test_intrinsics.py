@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -72,3 +73,19 @@ def test_intrinsics_validation_and_frozen() -> None:
     torch.testing.assert_close(back, K.detach().double(), rtol=0, atol=0)
     back.sum().backward()
     torch.testing.assert_close(K.grad, torch.tensor([[1.0, 0, 1], [0, 1, 1], [0, 0, 0]]), rtol=0, atol=0)
+
+
+def test_default_checks_the_size_as_the_constructor_does() -> None:
+    """``Intrinsics.default(320.5, 240)`` took int(320.5) = 320 pixels with the centre of a 320.5-pixel image
+    (159.75), where the constructor refuses 320.5; ``default("320", 240)`` failed in max() ("'>' not supported
+    between instances of 'int' and 'str'")."""
+    for bad in (320.5, "320", True):
+        with pytest.raises(TypeError, match="width must be a whole number"):
+            Intrinsics.default(bad, 240)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="image size"):
+        Intrinsics.default(320, 0)
+    with pytest.raises(TypeError, match="focal must be a number"):
+        Intrinsics.default(320, 240, "500")  # type: ignore[arg-type]
+    cam = Intrinsics.default(320.0, np.int64(240), 400)
+    assert (cam.width, cam.height, cam.fx, cam.cx, cam.cy) == (320, 240, 400.0, 159.5, 119.5)
+    assert type(cam.width) is int and Intrinsics.default(640, 480) == Intrinsics(640, 480, 640.0, 640.0, 319.5, 239.5)

@@ -80,3 +80,41 @@ def test_bad_inputs_raise() -> None:
         compose(R, t, R[:1].expand(3, 3, 3), t[:1].expand(3, 3))
     with pytest.raises(TypeError, match="floating-point"):
         invert(R, t.long())
+
+
+def test_mixed_float_dtypes_are_promoted_and_batch_mismatches_named() -> None:
+    """transform_points, compose, invert, rotate_points_jacobian and pose_projection_jacobian raised torch's
+    RuntimeError "expected scalar type Float but found Double" on float32 against float64, where
+    geodesic_angle_deg, relative_rotation and unproject promote (commit 45db6bb said "as transform_points does");
+    relative_rotation and geodesic_angle_deg raised torch's RuntimeError "The size of tensor a (2) must match ..." on
+    batches that do not broadcast, where compose says "batch sizes ... must match" (ValueError);
+    pose_projection_jacobian's message for points of another batch named transform_points' R."""
+    from torchface.geometry import Intrinsics, pose_projection_jacobian, rotate_points_jacobian
+
+    R, t = random_pose(2, seed=11)
+    X = torch.randn(2, 5, 3, dtype=F64, generator=torch.Generator().manual_seed(12))
+    want = transform_points(R, t, X.float().double())
+    for args in ((R.float(), t, X.float()), (R, t.float(), X.float()), (R.float(), t.float(), X)):
+        got = transform_points(*args)
+        assert got.dtype == F64
+        torch.testing.assert_close(got, transform_points(*(a.double() for a in args)), rtol=0, atol=0)
+    assert torch.allclose(transform_points(R.float(), t.float(), X), want, atol=1e-3)
+    Rc, tc = compose(R.float(), t, R, t.float())
+    assert Rc.dtype == tc.dtype == F64
+    torch.testing.assert_close(Rc, compose(R.float().double(), t, R, t.float().double())[0], rtol=0, atol=0)
+    Ri, ti = invert(R.float(), t)
+    assert Ri.dtype == ti.dtype == F64
+    aa = torch.tensor([[0.1, -0.2, 0.3], [0.0, 0.4, 0.0]], dtype=F64)
+    assert rotate_points_jacobian(aa.float(), X).dtype == F64
+    cam = Intrinsics.default(320, 240)
+    d_aa, d_t = pose_projection_jacobian(aa, t.float(), X.float(), cam)
+    assert d_aa.dtype == d_t.dtype == F64
+    torch.testing.assert_close(d_aa, pose_projection_jacobian(aa, t.float().double(), X.float().double(), cam)[0])
+    with pytest.raises(ValueError, match=r"batch sizes of aa \(2\) and points_model \(3\)"):
+        pose_projection_jacobian(aa, t, torch.zeros(3, 5, 3, dtype=F64), cam)
+    R3 = random_pose(3, seed=13)[0]
+    with pytest.raises(ValueError, match=r"batch shapes of R_t \(2,\) and R_0 \(3,\) must broadcast"):
+        relative_rotation(R, R3)
+    with pytest.raises(ValueError, match=r"batch shapes of R1 \(2,\) and R2 \(3,\) must broadcast"):
+        geodesic_angle_deg(R, R3)
+    assert geodesic_angle_deg(R, R[:1]).shape == (2,)  # broadcasting stays

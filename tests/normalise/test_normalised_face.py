@@ -347,6 +347,18 @@ def test_module_with_track_result_and_state(model, subject, layout):
         normaliser(frame.numpy(), result, sigma)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"got \(3, "):
         normaliser(frame[0], result, sigma)
+    # Frames of another batch than the state's streams were "shape_coeffs must be (B, 14) with B=2 like frames, got
+    # (1, 14)", a tensor the caller never passed; depth_tolerance / min_facing_cos out of range were accepted by the
+    # constructor and refused only at the first call.
+    with pytest.raises(ValueError, match=r"expected 1 frames \(one per stream of the state\), got 2"):
+        normaliser(frame.expand(2, -1, -1, -1), state)
+    with pytest.raises(TypeError, match="the state is torch.float32 on cpu, this normaliser's model torch.float64"):
+        NormalisedFace(model.to(dtype=torch.float64), size=G)(frame, state)  # (named the state's shape_coeffs)
+    with pytest.raises(ValueError, match="depth_tolerance"):
+        NormalisedFace(model, size=G, depth_tolerance=-1.0)
+    for bad in (1.0, -0.5, float("nan")):
+        with pytest.raises(ValueError, match="min_facing_cos"):
+            NormalisedFace(model, size=G, min_facing_cos=bad)
 
 
 def test_module_moves_model_and_layout_with_to(model):

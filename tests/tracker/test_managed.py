@@ -532,6 +532,24 @@ def test_errors(model, gentle):
         tracker(frames[:, 1])
 
 
+def test_a_lost_stream_of_gray_frames_gives_its_detector_rgb_frames(model, gentle):
+    """FaceTracker tracks gray (B, 1, H, W) frames, and its detector's contract is ``frames (B, 3, H, W) ->
+    landmarks`` (README): at a loss it was handed the gray frames as they were (a network taking 3 channels failed,
+    and the batched dlib detector refused its (H, W, 1) images mid-run)."""
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    lost = replace(state.management, lost=torch.ones(1, dtype=torch.bool), since_attempt=torch.full((1,), 10))
+    seen = []
+
+    def detector(f):
+        seen.append(tuple(f.shape))
+        return torch.full((f.shape[0], 68, 2), float("nan"))
+
+    gray = frames[:, 1].mean(1, keepdim=True) * 0  # black: stays lost, so the detector is asked
+    managed_step(model, CFG, replace(state, management=lost), gray, detector)
+    assert seen == [(1, 3, H, W)]
+
+
 def test_face_tracker_module_uses_management(model, gentle):
     frames, gt = gentle
     tracker = FaceTracker(CFG, model)

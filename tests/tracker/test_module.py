@@ -115,6 +115,22 @@ def test_select_keeps_streams_that_track_on_as_in_the_whole_batch(model, three_s
         FaceTracker(CFG, model).select([0])
 
 
+def test_select_names_an_index_of_the_wrong_type(model, three_streams):
+    """``select(None)`` or a slice raised torch's RuntimeError "Could not infer dtype of NoneType" (from
+    torch.as_tensor), a string a TypeError "new(): invalid data type 'str'": a TypeError naming the index now, as a
+    float index already was; the state is left as it was."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    before = tracker.state
+    for bad in (None, slice(0, 2), "0"):
+        with pytest.raises(TypeError, match=r"index must be stream indices .* or a \(3,\) bool mask, got"):
+            tracker.select(bad)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="index must be stream indices"):
+            before.select(bad)  # type: ignore[arg-type]
+    assert tracker.state is before
+
+
 # ----------------------------------------------------------------------------------------------- copies
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -408,6 +409,35 @@ def test_config_validation():
     for bad in ("fast", 0, None):
         with pytest.raises(TypeError, match="TrackSolver"):
             TrackerConfig(solver=bad)  # type: ignore[arg-type]  # "fast" ran the reference solver
+
+
+def test_config_refuses_settings_that_failed_later_or_tracked_wrongly():
+    """Each of these was accepted: fit/template of another type ended in an AttributeError at initialise
+    ('NoneType' object has no attribute 'enabled'), num_levels=2.0 in range()'s TypeError, robust_c=-1 in "c must be a
+    positive number" at the first frame; gradient_threshold or refine_scale_floor NaN failed or lost every frame,
+    an infinite finest robust floor held the pose still, all with status and no error."""
+    for name, bad in (("fit", None), ("fit", {}), ("template", None), ("template", "default")):
+        with pytest.raises(TypeError, match=f"{name} must be a"):
+            TrackerConfig(**{name: bad})
+    for name, bad in (("num_levels", 2.0), ("max_points", 300.5), ("refine_iterations", -1), ("min_points", 1.5),
+                      ("refine_iterations", 2.5), ("visibility_interval", float("nan")), ("visibility_interval", 0)):
+        with pytest.raises(ValueError, match=f"{name} must be an int"):
+            TrackerConfig(**{name: bad, **({"iterations": (6, 5)} if name == "num_levels" else {})})
+    for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
+        for bad in (float("nan"), float("inf"), -1.0, "0.1"):
+            with pytest.raises(ValueError, match=name):
+                TrackerConfig(**{name: bad})
+    for bad in (-1.0, 0.0, float("nan"), float("inf"), "4.685"):
+        with pytest.raises(ValueError, match="robust_c"):
+            TrackerConfig(robust_c=bad)
+    with pytest.raises(ValueError, match="expression_priority"):
+        TrackerConfig(expression_priority=float("nan"))
+    for floors in ((0.1, float("inf")), (float("inf"), 0.02)):
+        with pytest.raises(ValueError, match="robust_scale_floor"):
+            TrackerConfig(robust_scale_floor=floors)
+    # What stays accepted: the defaults, 0 for the floors, thresholds and the refinement, numpy integers.
+    TrackerConfig(refine_iterations=0, refine_scale_floor=0.0, gradient_threshold=0, min_contrast=0.0, robust_c=None)
+    assert TrackerConfig(num_levels=np.int64(2), iterations=(6, 5)).num_levels == 2
 
 
 def test_face_tracker_module(model, two_streams, l2_runs):
@@ -1155,6 +1185,43 @@ def test_a_model_with_other_units_than_the_state_is_refused(model, two_streams, 
     # A model moved to float64 after the float32 state was made: the error said to convert the model.
     with pytest.raises(TypeError, match="the state is torch.float32 on cpu, the model torch.float64 on cpu"):
         track_step(model.to(dtype=torch.float64), L2, states[0], frames[:, 1])
+
+
+def test_the_functional_steps_name_a_model_config_or_state_of_another_type(model, two_streams, l2_runs):
+    """track_step / managed_step / initialise / initialise_managed / estimate_confidence with None (or a dict) for
+    the model, config or state raised AttributeErrors ('NoneType' object has no attribute 'intrinsics', ... 'dtype',
+    ... 'num_levels', ... 'template'), where FaceTracker names them in a TypeError."""
+    from torchface.tracker import estimate_confidence, managed_step
+
+    frames, gts = two_streams
+    (_, states), _ = l2_runs
+    state, frame = states[0], frames[:, 1]
+    for step in (track_step, managed_step, estimate_confidence):
+        for args, message in (((None, L2, state, frame), "model must be a FaceModel, got NoneType"),
+                              ((model, None, state, frame), "config must be a TrackerConfig, got NoneType"),
+                              ((model, {"num_levels": 2}, state, frame), "config must be a TrackerConfig, got dict"),
+                              ((model, L2, None, frame), "state must be a TrackerState")):  # fmt: skip
+            with pytest.raises(TypeError, match=message):
+                step(*args)
+    cam = Intrinsics.default(W, H)
+    for start in (initialise, initialise_managed):
+        with pytest.raises(TypeError, match="model must be a FaceModel"):
+            start(None, L2, frames[:, 0], landmarks_of(gts), cam)
+        with pytest.raises(TypeError, match="config must be a TrackerConfig"):
+            start(model, None, frames[:, 0], landmarks_of(gts), cam)
+    # A float16 model was '"cholesky_cpu" not implemented for 'Half'' from inside the landmark fit (FaceTracker took
+    # it at construction; its .to(torch.float16) is refused); a fit of another type was "fit must be a LandmarkFit
+    # of batch 2, got str" as a ValueError, and one of another batch said "got LandmarkFit", the right type.
+    half = model.to(dtype=torch.float16)
+    with pytest.raises(TypeError, match="tracks in float32 or float64, the model is torch.float16"):
+        FaceTracker(L2, half)
+    with pytest.raises(TypeError, match="tracks in float32 or float64, the model is torch.float16"):
+        initialise(half, L2, frames[:, 0], landmarks_of(gts), cam)
+    with pytest.raises(TypeError, match="fit must be a LandmarkFit of batch 2 or None, got str"):
+        initialise(model, L2, frames[:, 0], landmarks_of(gts), cam, fit="fit")  # type: ignore[arg-type]
+    one = fit_landmarks(model, landmarks_of(gts)[:1], cam)
+    with pytest.raises(ValueError, match="fit must be a LandmarkFit of batch 2, got batch 1"):
+        initialise(model, L2, frames[:, 0], landmarks_of(gts), cam, fit=one)
 
 
 _COMPILED_STEP = """

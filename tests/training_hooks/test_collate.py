@@ -102,6 +102,13 @@ def test_bad_input():
         collate_clips([clip(2, 0, S=8), clip(2, 1, S=16)])
     with pytest.raises(TypeError, match="dict items"):
         collate_clips([(torch.zeros(2),)])
+    # One key as a string matched its substrings ("face" made 'face' alone per-frame: then a RuntimeError stacking
+    # the clips' confidences of lengths 2 and 3); None was "argument of type 'NoneType' is not iterable".
+    for keys in ("face", None):
+        with pytest.raises(TypeError, match="per_frame_keys must be a sequence of key names"):
+            collate_clips([clip(2, 0), clip(3, 1)], per_frame_keys=keys)  # type: ignore[arg-type]
+    per_frame = {k for k in clip(2, 0) if k not in ("shape_coeffs", "video", "cached", "label")}  # a set will do
+    assert collate_clips([clip(2, 0), clip(3, 1)], per_frame_keys=per_frame)["face"].shape[1] == 3
 
 
 def test_items_of_different_dtypes_raise():

@@ -147,6 +147,11 @@ def test_clip_bounds():
     assert clip_bounds(0, None, None, True) == []
     assert clip_bounds(10, 3, 5, True) == [(0, 3), (5, 8)]  # a stride past the end starts no clip
     assert clip_bounds(12, 3, 5, True) == [(0, 3), (5, 8), (10, 12)]
+    # A length of 0 gave empty clips [(0, 0), (2, 2), ...], -1 frames no clip, a stride of 0 or 1.5 range()'s error.
+    for args, name in (((10, 0, 2), "clip_length"), ((10, 4, 0), "stride"), ((10, 4, 1.5), "stride"),
+                       ((10, 2.0, None), "clip_length"), ((-1, 4, 2), "num_frames"), ((10.0, 4, 2), "num_frames")):
+        with pytest.raises(ValueError, match=name):
+            clip_bounds(*args, False)  # type: ignore[arg-type]
 
 
 def test_frame_folder_dataset_equals_video_dataset(clips, config, tmp_path):
@@ -386,6 +391,10 @@ def test_sequence_success_and_validation(clips):
         sequence.item(3)
     with pytest.raises(ValueError, match="step 1"):
         sequence.item(slice(0, 3, 2))
+    for bad in (1.7, True, "1"):  # int(1.7) took frame 1 without a word
+        with pytest.raises(TypeError, match="frames must be an int"):
+            sequence.item(bad)  # type: ignore[arg-type]
+    assert int(sequence.item(np.int64(1))["frame"]) == int(sequence.item(torch.tensor(1))["frame"]) == 1
 
 
 def test_items_carry_the_expression_measured_from_the_first_frame(clips):

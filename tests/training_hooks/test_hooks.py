@@ -93,6 +93,17 @@ def test_weighted_loss_bad_input():
         confidence_weighted_loss(torch.ones(2), torch.tensor([0.5, float("nan")]))
 
 
+def test_weighted_loss_refuses_an_integer_loss_and_a_mask_that_is_not_a_tensor():
+    """An int64 loss (per-sample error counts) cast the confidence to int64: every weight 0, the result 0 instead
+    of 1.5. A numpy or list mask was an AttributeError ('numpy.ndarray' object has no attribute 'to')."""
+    with pytest.raises(TypeError, match="loss must be a floating-point tensor, got torch.int64"):
+        confidence_weighted_loss(torch.tensor([1, 3]), torch.tensor([0.75, 0.25]))
+    for mask in (np.array([True, False]), [True, False]):
+        with pytest.raises(TypeError, match="mask must be a bool tensor or None"):
+            confidence_weighted_loss(torch.ones(2), torch.ones(2), mask)  # type: ignore[arg-type]
+    assert float(confidence_weighted_loss(torch.tensor([1, 3]).double(), torch.tensor([0.75, 0.25]))) == 1.5
+
+
 # --------------------------------------------------------------------------------------------- dropping
 
 
@@ -230,3 +241,39 @@ def test_quality_of_a_batch_without_real_frames():
     assert tracking_quality(batch) == {"frames": 0.0, "samples": 2.0}
     with pytest.raises(ValueError, match="frame_mask"):
         tracking_quality({"confidence": torch.zeros(2, 3), "frame_mask": torch.zeros(2, 2, dtype=torch.bool)})
+
+
+def test_batch_values_of_the_wrong_shape_or_type_are_named():
+    """A (1,) ``success`` was broadcast over every sample by drop_low_confidence (all kept) and was an IndexError in
+    tracking_quality, as were ``ypr_deg``, ``translation`` or ``mask`` of another shape; a single ``cached`` flag was
+    counted for every frame; numpy ``frame_mask`` / ``success`` were AttributeErrors, a numpy confidence "must hold a
+    'confidence' tensor, got keys ['confidence']"; a NaN confidence gave confidence_min inf and mean NaN (and was
+    dropped silently), where confidence_weighted_loss refuses it."""
+    batch = frame_batch(3)
+    for key, bad in (("success", torch.tensor([True])), ("frame_mask", torch.ones(3, 2, dtype=torch.bool))):
+        with pytest.raises(ValueError, match=f"{key} .* must match confidence"):
+            drop_low_confidence({**batch, key: bad}, 0.5)
+        with pytest.raises(ValueError, match=f"{key} .* must match confidence"):
+            tracking_quality({**batch, key: bad})
+    for key, bad in (("ypr_deg", torch.zeros(3)), ("ypr_deg", torch.zeros(4, 3)), ("translation", torch.zeros(3, 2)),
+                     ("mask", torch.zeros(2, 1, 4, 4)), ("anim_coeffs", torch.zeros(3))):  # fmt: skip
+        with pytest.raises(ValueError, match=rf"batch\['{key}'\] must be \(B, .*like confidence \(3,\)"):
+            tracking_quality({**batch, key: bad})
+    with pytest.raises(ValueError, match="one flag per sample"):
+        tracking_quality({**batch, "cached": torch.tensor([True])})
+    for key in ("success", "confidence"):
+        with pytest.raises(TypeError, match=rf"batch\['{key}'\] must be a"):
+            drop_low_confidence({**batch, key: batch[key].numpy()}, 0.5)
+    with pytest.raises(TypeError, match=r"batch\['frame_mask'\] must be a tensor"):
+        tracking_quality({"confidence": torch.ones(2, 3), "frame_mask": np.ones((2, 3), bool)})
+    nan = batch["confidence"].clone()
+    nan[1] = float("nan")
+    for fn in (tracking_quality, lambda b: drop_low_confidence(b, 0.5)):
+        with pytest.raises(ValueError, match="confidence'] must be finite"):
+            fn({**batch, "confidence": nan})
+    # A NaN on a padded frame is not looked at; the clip layout's per-frame values are (B, T, ...).
+    clip = {"confidence": torch.tensor([[0.5, float("nan")]]), "frame_mask": torch.tensor([[True, False]]),
+            "ypr_deg": torch.zeros(1, 2, 3), "mask": torch.ones(1, 2, 1, 4, 4)}  # fmt: skip
+    assert tracking_quality(clip)["confidence_min"] == 0.5
+    with pytest.raises(ValueError, match=r"must be \(B, T, 3\)"):
+        tracking_quality({**clip, "ypr_deg": torch.zeros(1, 3)})

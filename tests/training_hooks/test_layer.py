@@ -28,6 +28,7 @@ from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.tracker import FitConfig, TrackerConfig, warp_points
 from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer, UnrollStart, unrolled_params
+from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces
 
 D = torch.float64
 G = 12  # canonical image size of the gradient tests
@@ -298,6 +299,13 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params[:, :5], iterations=1)
     with pytest.raises(ValueError, match="clips must be"):
         layer.forward_clip(frames, torch.zeros(1, 68, 2, dtype=D))
+    # Not tensors: TypeErrors as forward's numpy frames are (both were ValueErrors, as a wrong shape).
+    with pytest.raises(TypeError, match="clips must be a torch.Tensor"):
+        layer.forward_clip(frames[None].numpy(), torch.zeros(1, 68, 2, dtype=D))  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="start must be a"):
+        unrolled_params(model, SMALL, state, frames[1:2], state.params.numpy(), iterations=1)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray"):
+        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))
     # numpy landmarks: a one-line TypeError naming them (was AttributeError: 'numpy.ndarray' ... 'detach'), and
     # 0-255 frames after initialisation are refused by the step (they were tracked).
     _, landmarks = _clip(32)

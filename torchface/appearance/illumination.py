@@ -52,6 +52,14 @@ def apply_illumination(template: Tensor, basis: Tensor, params: Tensor) -> Tenso
     Returns:
         ``(B, N)``.
     """
+    if not all(isinstance(x, Tensor) for x in (template, basis, params)):
+        got = ", ".join(type(x).__name__ for x in (template, basis, params))
+        raise TypeError(f"template, basis and params must be tensors, got {got}")
+    if template.dim() != 2 or basis.shape[:2] != template.shape or basis.dim() != 3 or params.shape != (
+        template.shape[0], basis.shape[2]
+    ):  # (einsum's "subscript l has size 4 for operand 1 which does not broadcast ...")
+        raise ValueError(f"template must be (B, N), basis (B, N, L) and params (B, L), got {tuple(template.shape)}, "
+                         f"{tuple(basis.shape)} and {tuple(params.shape)}")  # fmt: skip
     return template + torch.einsum("bnl,bl->bn", basis, params)
 
 
@@ -75,6 +83,18 @@ def remove_illumination(observed: Tensor, normals_cam: Tensor, params: Tensor, m
     """
     if isinstance(min_gain, bool) or not 0 < float(min_gain) < math.inf:
         raise ValueError(f"min_gain must be positive and finite, got {min_gain!r}")
+    if not all(isinstance(x, Tensor) for x in (observed, normals_cam, params)):
+        got = ", ".join(type(x).__name__ for x in (observed, normals_cam, params))
+        raise TypeError(f"observed, normals_cam and params must be tensors, got {got}")
+    B, N = normals_cam.shape[:2] if normals_cam.dim() == 3 else (-1, -1)
+    if (
+        normals_cam.dim() != 3 or normals_cam.shape[2] != 3 or observed.dim() not in (2, 3)
+        or observed.shape[0] != B or observed.shape[-1] != N or tuple(params.shape) != (B, NUM_ILLUMINATION_TERMS)
+    ):  # (einsum's "subscript b has size 3 for operand 1 which does not broadcast ...", or a 6th term ignored)
+        raise ValueError(
+            f"observed must be (B, N) or (B, C, N), normals_cam (B, N, 3) and params (B, {NUM_ILLUMINATION_TERMS}), "
+            f"got {tuple(observed.shape)}, {tuple(normals_cam.shape)} and {tuple(params.shape)}"
+        )
     gain = 1.0 + params[:, 0:1] + torch.einsum("bnk,bk->bn", normals_cam, params[:, 2:5])  # (B, N)
     gain = gain.clamp_min(min_gain)
     bias = params[:, 1:2]

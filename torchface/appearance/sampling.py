@@ -22,10 +22,17 @@ def to_gray(images: Tensor, out: Tensor | None = None) -> Tensor:
     Returns:
         ``(B, 1, H, W)`` gray images (ITU-R BT.601 weights, as ``kornia.color.rgb_to_grayscale``).
     """
+    if not isinstance(images, Tensor):  # (a numpy array: "'numpy.ndarray' object has no attribute 'dim'")
+        raise TypeError(f"images must be a torch.Tensor (B, 1 or 3, H, W), got {type(images).__name__}")
     if images.dim() != 4 or images.shape[1] not in (1, 3):
         raise ValueError(f"images must be (B, 1 or 3, H, W), got {tuple(images.shape)}")
     if out is not None and (images.shape[1] != 3 or not images.is_floating_point()):
         raise ValueError("out= needs float RGB images")
+    want = (images.shape[0], 1, *images.shape[2:])
+    if out is not None and (tuple(out.shape) != want or out.dtype != images.dtype or out.device != images.device):
+        # (an IndexError "too many indices for tensor of dimension 1", or a broadcast into the wrong shape)
+        raise ValueError(f"out must be {want} {images.dtype} on {images.device}, "
+                         f"got {tuple(out.shape)} {out.dtype} on {out.device}")  # fmt: skip
     if images.shape[1] == 1:
         return images
     if not images.is_floating_point():
@@ -96,6 +103,8 @@ def image_with_gradients(gray: Tensor) -> Tensor:
     """
     # Central differences with replicated borders (kornia's "diff" spatial gradient halved), by slicing
     # straight into the output: several times faster than a convolution on the CPU.
+    if not isinstance(gray, Tensor):
+        raise TypeError(f"gray must be a torch.Tensor (B, 1, H, W), got {type(gray).__name__}")
     if gray.dim() != 4 or gray.shape[1] != 1 or gray.shape[-1] < 2 or gray.shape[-2] < 2:
         raise ValueError(f"gray must be (B, 1, H, W) with H, W >= 2, got {tuple(gray.shape)}")
     if gray.requires_grad:  # the differentiable path: plain out-of-place ops
@@ -143,6 +152,8 @@ def pyr_down(images: Tensor, out: Tensor | None = None) -> Tensor:
     Returns:
         ``(B, C, H // 2, W // 2)`` (``out`` when given).
     """
+    if not isinstance(images, Tensor):
+        raise TypeError(f"images must be a torch.Tensor (B, C, H, W), got {type(images).__name__}")
     if images.dim() != 4 or images.shape[-1] < 3 or images.shape[-2] < 3:
         raise ValueError(f"images must be (B, C, H, W) with H, W >= 3, got {tuple(images.shape)}")
     h2, w2 = images.shape[-2] // 2, images.shape[-1] // 2

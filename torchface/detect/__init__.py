@@ -165,7 +165,8 @@ def _dlib() -> Detector:
 def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"], "Tensor"]:
     """``detector`` (one image at a time) as a batched re-initialisation callback
     (:data:`~torchface.tracker.managed.LandmarkDetector`, for :class:`~torchface.FaceTracker` ``detector=``):
-    ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks, a NaN row where it found no face.
+    ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks, a NaN row where it found no face
+    (gray ``(B, 1, H, W)`` frames, which the tracker takes, reach ``detector`` as gray RGB images).
     ``name``: the detector's, for error messages. It pickles when ``detector`` does (``load_detector``'s do), so
     that a tracker holding it can be checkpointed (``torch.save(tracker)``).
 
@@ -226,6 +227,12 @@ class _Batched:
 
         from torchface.io.landmarks import NUM_LANDMARKS
 
+        if not isinstance(frames, torch.Tensor):
+            raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
+        if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
+            raise ValueError(f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+        if frames.shape[1] == 1:  # gray frames (the tracker takes them): the per-image detector takes RGB images
+            frames = frames.expand(-1, 3, -1, -1)
         out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):

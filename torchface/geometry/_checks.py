@@ -51,3 +51,22 @@ def check_batch(b1: int, b2: int, name1: str, name2: str) -> None:
     """Raise ``ValueError`` unless two batch sizes agree or one of them is 1 (broadcast)."""
     if b1 != b2 and b1 != 1 and b2 != 1:
         raise ValueError(f"batch sizes of {name1} ({b1}) and {name2} ({b2}) must match or be 1")
+
+
+def promoted(*tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """``tensors`` in their promoted dtype (float32 against float64: float64), as torch's elementwise operations
+    promote; a matmul of mixed dtypes raised "expected scalar type Float but found Double"."""
+    dtype = tensors[0].dtype
+    for x in tensors[1:]:
+        dtype = torch.promote_types(dtype, x.dtype)
+    return tuple(x.to(dtype) for x in tensors)
+
+
+def check_broadcast(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str, trailing: int) -> None:
+    """Raise ``ValueError`` unless the leading dimensions of ``a`` and ``b`` (all but their last ``trailing``)
+    broadcast (their mismatch was torch's RuntimeError "The size of tensor a (4) must match ...")."""
+    lead_a, lead_b = tuple(a.shape[: a.dim() - trailing]), tuple(b.shape[: b.dim() - trailing])
+    try:
+        torch.broadcast_shapes(lead_a, lead_b)
+    except RuntimeError:
+        raise ValueError(f"batch shapes of {name_a} {lead_a} and {name_b} {lead_b} must broadcast") from None

@@ -63,9 +63,19 @@ class Intrinsics:
 
     @classmethod
     def default(cls, width: int, height: int, focal: float | None = None) -> "Intrinsics":
-        """Intrinsics for a ``width x height`` image: ``f = max(W, H)`` unless given, centred."""
-        f = float(max(width, height)) if focal is None else float(focal)
-        return cls(int(width), int(height), f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+        """Intrinsics for a ``width x height`` image: ``f = max(W, H)`` unless given, centred.
+
+        Raises:
+            TypeError, ValueError: as the constructor, for a size that is not whole positive pixels (``int()`` took
+                320.5 as 320 with the centre of 320.5, and ``"320"`` failed in ``max``) or a focal length that is
+                not a positive finite number.
+        """
+        size = cls(width, height, 1.0, 1.0, 0.0, 0.0)  # the constructor's checks of the size
+        w, h = size.width, size.height
+        if focal is not None and (isinstance(focal, bool) or not isinstance(focal, (numbers.Real, torch.Tensor))):
+            raise TypeError(f"focal must be a number or None, got {focal!r}")
+        f = float(max(w, h)) if focal is None else float(focal)
+        return cls(w, h, f, f, (w - 1) / 2.0, (h - 1) / 2.0)
 
     @property
     def size(self) -> tuple[int, int]:

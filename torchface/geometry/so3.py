@@ -25,7 +25,7 @@ import torch
 
 from torchface._compiling import is_compiling
 from torchface._scalar import scalar
-from torchface.geometry._checks import check_batch, check_exact_dim, check_tensor
+from torchface.geometry._checks import check_batch, check_broadcast, check_exact_dim, check_tensor, promoted
 
 __all__ = [
     "hat",
@@ -354,6 +354,7 @@ def geodesic_angle_deg(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(R1, "R1", (3, 3))
     check_tensor(R2, "R2", (3, 3))
+    check_broadcast(R1, R2, "R1", "R2", 2)
     dtype = torch.promote_types(R1.dtype, R2.dtype)  # float32 against float64: in float64, as transform_points
     m = R1.to(dtype) @ R2.to(dtype).transpose(-1, -2)
     finfo = torch.finfo(m.dtype)
@@ -390,6 +391,7 @@ def rotate_points_jacobian(aa: torch.Tensor, points: torch.Tensor) -> torch.Tens
     check_exact_dim(points, "points", (2, 3), "(B, N, 3) or (N, 3)")
     pts = points if points.dim() == 3 else points.unsqueeze(0)
     check_batch(aa.shape[0], pts.shape[0], "aa", "points")
+    aa, pts = promoted(aa, pts)
     R = axis_angle_to_matrix(aa)
     rotated = pts @ R.transpose(-1, -2)
     return -hat(rotated) @ left_jacobian(aa)[:, None]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from torchface.geometry._checks import check_batch, check_exact_dim, check_tensor
+from torchface.geometry._checks import check_batch, check_broadcast, check_exact_dim, check_tensor, promoted
 
 __all__ = ["transform_points", "compose", "invert", "relative_rotation"]
 
@@ -43,6 +43,7 @@ def transform_points(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor) -> 
     check_exact_dim(points, "points", (2, 3), "(B, N, 3) or (N, 3)")
     pts = points if points.dim() == 3 else points.unsqueeze(0)
     check_batch(R.shape[0], pts.shape[0], "R", "points")
+    R, t, pts = promoted(R, t, pts)
     return pts @ R.transpose(-1, -2) + t[:, None, :]
 
 
@@ -69,6 +70,7 @@ def compose(
     _check_pose(R1, t1, "R1", "t1")
     _check_pose(R2, t2, "R2", "t2")
     check_batch(R1.shape[0], R2.shape[0], "R1", "R2")
+    R1, t1, R2, t2 = promoted(R1, t1, R2, t2)
     R = R1 @ R2
     t = (R1 @ t2[..., None]).squeeze(-1) + t1
     return R, t
@@ -89,6 +91,7 @@ def invert(R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
         tensor([[-1., -2., -3.]])
     """
     _check_pose(R, t)
+    R, t = promoted(R, t)
     R_inv = R.transpose(-1, -2)
     t_inv = -(R_inv @ t[..., None]).squeeze(-1)
     return R_inv, t_inv
@@ -110,5 +113,6 @@ def relative_rotation(R_t: torch.Tensor, R_0: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(R_t, "R_t", (3, 3))
     check_tensor(R_0, "R_0", (3, 3))
+    check_broadcast(R_t, R_0, "R_t", "R_0", 2)
     dtype = torch.promote_types(R_t.dtype, R_0.dtype)  # mixed float32 / float64: promoted, as transform_points
     return R_t.to(dtype) @ R_0.to(dtype).transpose(-1, -2)

@@ -710,6 +710,10 @@ class NormalisedFace(nn.Module):
         self.layout = build_normalised_layout(model, size, margin, distance_mm)
         self.depth_tolerance = float(depth_tolerance)
         self.min_facing_cos = float(min_facing_cos)
+        if not self.depth_tolerance >= 0:  # (checked by normalised_face too, but only at the first call)
+            raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
+        if not 0.0 <= self.min_facing_cos < 1.0:
+            raise ValueError(f"min_facing_cos must be in [0, 1), got {min_facing_cos}")
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""
@@ -751,6 +755,14 @@ class NormalisedFace(nn.Module):
             layout = ParamLayout(self.model.num_animation, NUM_ILLUMINATION_TERMS)
             if estimate.params.dim() != 2 or estimate.params.shape[1] != layout.size:
                 raise ValueError(f"state.params must be (B, {layout.size}), got {tuple(estimate.params.shape)}")
+            B = estimate.params.shape[0]
+            if isinstance(frames, Tensor) and frames.dim() == 4 and frames.shape[0] != B:
+                # (was "shape_coeffs must be (B, 14) with B=1 like frames, got (2, 14)": a tensor never passed)
+                raise ValueError(f"expected {B} frames (one per stream of the state), got {frames.shape[0]}")
+            kept = (estimate.shape_coeffs.dtype, estimate.shape_coeffs.device)
+            if kept != (self.model.dtype, self.model.device):  # (was "shape_coeffs must have the model's dtype ...")
+                raise TypeError(f"the state is {kept[0]} on {kept[1]}, this normaliser's model {self.model.dtype} on "
+                                f"{self.model.device}: move one of them (normaliser.to(...))")  # fmt: skip
             aa, t, alpha, light = layout.split(estimate.params)
             return self.from_params(frames, estimate.shape_coeffs, alpha, aa, t, light, estimate.intrinsics)
         if isinstance(estimate, TrackResult):

@@ -106,6 +106,7 @@ from torchface.tracker.step import (
     TrackerState,
     TrackResult,
     TrackStatus,
+    check_api_types,
     check_frames,
     check_initialise_inputs,
     check_step_inputs,
@@ -305,6 +306,7 @@ def initialise_managed(
         >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
+    check_api_types(model, config)
     if refine_first is not None:
         if not isinstance(refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
@@ -489,6 +491,7 @@ def estimate_confidence(
         state: with management (:func:`initialise_managed` / :func:`managed_step`); its ``params`` are scored.
         frames: ``(B, 3, H, W)`` the frames those parameters belong to.
     """
+    check_api_types(model, config, state, with_state=True)
     ms = _management(state)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     B = state.params.shape[0]
@@ -671,7 +674,9 @@ def _recovery_starts(
     starts = conf_params.clone()
     if detector is not None:
         with torch.no_grad():
-            lm = _check_detector_output(detector(frames[index]), n, model.num_landmarks)
+            seen = frames[index]  # the detector's contract is RGB frames (README); gray ones, tracked, are expanded
+            seen = seen.expand(-1, 3, -1, -1) if seen.shape[1] == 1 else seen
+            lm = _check_detector_output(detector(seen), n, model.num_landmarks)
         lm = lm.to(dtype=model.dtype, device=model.device)
         ok = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
         if bool(ok.any()):
@@ -840,6 +845,7 @@ def managed_step(
     ``params`` carry the frame's graph on to the next step (:meth:`~torchface.tracker.TrackerState.detach` between
     frames whose losses stand alone).
     """
+    check_api_types(model, config, state, with_state=True)
     tc = config.template
     if not tc.enabled:
         new_state, result = track_step(model, config, state, frames)

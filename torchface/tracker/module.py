@@ -16,7 +16,7 @@ from torchface.normalise.face import apply_to_tensor_fields
 from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, check_frames
+from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, check_frames, check_model_precision
 
 
 _SETTINGS = frozenset({"config", "model", "detector", "refine_first"})
@@ -28,6 +28,8 @@ def _check_setting(name: str, value: Any) -> None:
         raise TypeError(f"config must be a TrackerConfig, got {type(value).__name__}")
     if name == "model" and not isinstance(value, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(value).__name__}")
+    if name == "model":  # a float16 model failed at initialise: '"cholesky_cpu" not implemented for 'Half''
+        check_model_precision(value)
     if name == "refine_first" and value is not None and not isinstance(value, LookaheadConfig):
         raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(value).__name__}")
     if name == "detector" and value is not None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import math
+import numbers
 import threading
 import weakref
 from collections.abc import Callable, Sequence
@@ -236,6 +237,28 @@ class TrackerConfig:
     template: TemplateConfig = field(default_factory=TemplateConfig)
 
     def __post_init__(self) -> None:
+        # Settings read only at the first frame or deep in a step were refused there with another name, or not at
+        # all: fit=None or template=None an AttributeError at initialise, num_levels=2.0 a TypeError from range(),
+        # gradient_threshold or refine_scale_floor NaN failed or lost every frame without a word.
+        if not isinstance(self.fit, FitConfig):
+            raise TypeError(f"fit must be a FitConfig, got {type(self.fit).__name__}")
+        if not isinstance(self.template, TemplateConfig):
+            raise TypeError(f"template must be a TemplateConfig, got {type(self.template).__name__}")
+        for name, low in (("num_levels", 1), ("max_points", 8), ("min_points", 0), ("refine_iterations", 0),
+                          ("visibility_interval", 1)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+        for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Real) or not (math.isfinite(value) and float(value) >= 0.0):
+                raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
+        if self.robust_c is not None and not (
+            isinstance(self.robust_c, numbers.Real) and math.isfinite(self.robust_c) and float(self.robust_c) > 0.0
+        ):  # (was refused at the first frame as "c must be a positive number")
+            raise ValueError(f"robust_c must be a finite number > 0 or None (the loss's default), got {self.robust_c!r}")
+        if not (isinstance(self.expression_priority, numbers.Real) and math.isfinite(self.expression_priority)):
+            raise ValueError(f"expression_priority must be a finite number, got {self.expression_priority!r}")
         if self.refine_prior_precision is not None and not self.refine_prior_precision >= 0.0:
             raise ValueError(f"refine_prior_precision must be >= 0 or None, got {self.refine_prior_precision}")
         if self.expression_prior_weights is not None:
@@ -249,20 +272,14 @@ class TrackerConfig:
             raise ValueError(f"expression_sparsity must be a finite delta > 0 or None, got {self.expression_sparsity}")
         if not 0.0 <= self.expression_quota <= 1.0:
             raise ValueError(f"expression_quota must be a fraction in [0, 1], got {self.expression_quota}")
-        if self.num_levels < 1:
-            raise ValueError(f"num_levels must be >= 1, got {self.num_levels}")
         if len(self.iterations) != self.num_levels or any(i < 1 for i in self.iterations):
             raise ValueError(
                 f"iterations must give a positive count per level ({self.num_levels}), got {self.iterations}"
             )
-        if len(self.robust_scale_floor) != 2 or any(not f > 0 for f in self.robust_scale_floor):
-            raise ValueError(f"robust_scale_floor must be two positive floors (coarsest, finest), got {self.robust_scale_floor}")
+        if len(self.robust_scale_floor) != 2 or any(not 0 < f < math.inf for f in self.robust_scale_floor):
+            raise ValueError(f"robust_scale_floor must be two finite positive floors (coarsest, finest), got {self.robust_scale_floor}")
         if not self.function_tolerance >= 0.0:
             raise ValueError(f"function_tolerance must be >= 0, got {self.function_tolerance}")
-        if self.visibility_interval < 1:
-            raise ValueError(f"visibility_interval must be >= 1, got {self.visibility_interval}")
-        if self.max_points < 8:
-            raise ValueError(f"max_points must be >= 8, got {self.max_points}")
         if not 0 <= self.min_points <= self.max_points:
             raise ValueError(f"min_points must be in [0, max_points = {self.max_points}] (with more, every frame fails), "
                              f"got {self.min_points}")  # fmt: skip
@@ -274,8 +291,6 @@ class TrackerConfig:
             raise ValueError(f"selection_seed must be an int >= 0, got {self.selection_seed!r}")
         if not (math.isfinite(self.min_face_width_px) and self.min_face_width_px >= 0.0):
             raise ValueError(f"min_face_width_px must be finite and >= 0 (pixels), got {self.min_face_width_px}")
-        if self.gradient_threshold < 0 or self.min_contrast < 0:
-            raise ValueError("gradient_threshold and min_contrast must be non-negative")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
         RobustLoss(self.robust, self.robust_c)  # its checks (c finite and positive) here, not at the first step
@@ -538,6 +553,9 @@ class TrackerState:
         B = self.params.shape[0]
         # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
         empty = isinstance(index, (list, tuple)) and not index
+        if index is None or isinstance(index, (str, bytes, slice)):  # torch's "Could not infer dtype of NoneType"
+            raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
+                            f"got {type(index).__name__}")  # fmt: skip
         index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
         if index.dtype == torch.bool:  # a mask of the streams kept
             if index.numel() != B:
@@ -729,6 +747,28 @@ def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
+def check_model_precision(model: FaceModel) -> None:
+    """Refuse a float16 / bfloat16 model, as ``FaceTracker.to`` does: the tracker's solves (Cholesky) have no such
+    kernels ('"cholesky_cpu" not implemented for 'Half'' from deep inside the landmark fit)."""
+    if model.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"the tracker tracks in float32 or float64, the model is {model.dtype} (its solver factorises "
+                        "matrices): load it in float32 (load_candide3(dtype=torch.float32)) or use torch.autocast")  # fmt: skip
+
+
+def check_api_types(model: object, config: object, state: object = None, *, with_state: bool = False) -> None:
+    """Refuse a ``model`` that is not a :class:`FaceModel`, a ``config`` that is not a :class:`TrackerConfig` and
+    (``with_state``) a ``state`` that is not a :class:`TrackerState`, by name: the functional entry points
+    (:func:`initialise`, :func:`track_step`, :func:`~torchface.tracker.managed.managed_step`, ...) raised an
+    AttributeError ('NoneType' object has no attribute 'intrinsics') where ``FaceTracker`` names them."""
+    if not isinstance(model, FaceModel):
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    check_model_precision(model)
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+    if with_state and not isinstance(state, TrackerState):
+        raise TypeError(f"state must be a TrackerState (from initialise or a previous step), got {type(state).__name__}")
+
+
 def check_initialise_inputs(
     model: FaceModel, config: TrackerConfig, frames: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics,
     weights: Tensor | None,
@@ -738,6 +778,7 @@ def check_initialise_inputs(
     model's ``K`` points (NaN: missing; the online start and recovery use them all, so a subset is given as NaN
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
+    check_api_types(model, config)
     check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
     check_frames(frames, intrinsics, values=True, size_of="the intrinsics' size")  # (nothing is tracked yet)
     B, K = frames.shape[0], model.num_landmarks
@@ -869,8 +910,10 @@ def initialise(
     frames = frames.to(dtype=model.dtype, device=model.device)
     if fit is None:
         fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
-    elif not isinstance(fit, LandmarkFit) or fit.rotation.shape[0] != frames.shape[0]:
-        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got {type(fit).__name__}")
+    elif not isinstance(fit, LandmarkFit):
+        raise TypeError(f"fit must be a LandmarkFit of batch {frames.shape[0]} or None, got {type(fit).__name__}")
+    elif fit.rotation.shape[0] != frames.shape[0]:  # (said "got LandmarkFit", the right type)
+        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got batch {fit.rotation.shape[0]}")
     else:  # in the model's dtype and device, as fit_landmarks returns it
         fit = fit.to(model.device, model.dtype)
     layout = _layout(model)
@@ -946,6 +989,7 @@ def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "Tracker
     ``(B, 3, H, W)`` in [0, 1] (:func:`check_frames`, every :data:`STEP_VALUE_ROW_STRIDE`-th row's values), one
     per stream of ``state``, whose pyramid ``config`` has (:func:`check_state_levels`) and whose model ``model`` is
     (:func:`check_state_model`)."""
+    check_api_types(model, config, state, with_state=True)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
