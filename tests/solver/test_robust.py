@@ -253,5 +253,5 @@ def test_infinite_constants_are_refused(kind) -> None:
     with pytest.raises(ValueError, match="min_scale must be finite and positive"):
         RobustLoss(kind, min_scale=float("inf"))
     for c in (float("inf"), -1.0):
-        with pytest.raises(ValueError, match="c must be a finite positive number"):
+        with pytest.raises(ValueError, match=r"robust_c must be a finite number > 0 or None"):
             TrackerConfig(robust=kind, robust_c=c)

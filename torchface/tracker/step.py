@@ -293,7 +293,6 @@ class TrackerConfig:
             raise ValueError(f"min_face_width_px must be finite and >= 0 (pixels), got {self.min_face_width_px}")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
-        RobustLoss(self.robust, self.robust_c)  # its checks (c finite and positive) here, not at the first step
         if not isinstance(self.backend, Backend):
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
         if not isinstance(self.solver, TrackSolver):  # "fast" ran the reference solver without a word
