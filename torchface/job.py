@@ -291,14 +291,17 @@ class _VideoOut:
         self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
         self.size = (int(width), int(height))
         self.frames = 0
-        fourcc = cv2.VideoWriter_fourcc(*"mp4v")
-        self.writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
-        if not self.writer.isOpened():
-            self.writer.release()
+        fourcc = cv2.VideoWriter.fourcc(*"mp4v")
+        writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
+        if not writer.isOpened():
+            writer.release()
             self.tmp.unlink(missing_ok=True)
             raise OutputError(f"{self.tmp}: cannot open an mp4v video writer")
+        self.writer: cv2.VideoWriter | None = writer  # None once closed or aborted
 
     def write(self, image_bgr: np.ndarray) -> None:
+        if self.writer is None:
+            raise ValueError(f"{self.path}: the video is closed")
         self.writer.write(image_bgr)
         self.frames += 1
 
@@ -378,7 +381,8 @@ def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[s
                               f"{spare} bytes before its extension")  # fmt: skip
 
 
-def _check_device(name: str) -> None:
+def _check_device(device_or_name: str | torch.device) -> None:
+    name = str(device_or_name)  # a torch.device as --device names it ("cuda:0"), not as its repr
     try:
         device = torch.device(name)
     except (RuntimeError, ValueError):
@@ -874,11 +878,11 @@ def track_videos(
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
-    videos = [Path(v) for v in videos]
-    if not videos:
+    inputs = [Path(v) for v in videos]
+    if not inputs:
         raise InputError("no input video given")
-    if config.landmarks and len(config.landmarks) != len(videos):
-        raise InputError(f"give one landmarks file per video: {len(videos)} videos, {len(config.landmarks)} files")
+    if config.landmarks and len(config.landmarks) != len(inputs):
+        raise InputError(f"give one landmarks file per video: {len(inputs)} videos, {len(config.landmarks)} files")
     detector = None
     if config.detector is not None:
         from torchface.detect import load_detector
@@ -894,17 +898,17 @@ def track_videos(
     summaries: dict[str, VideoSummary] = {}
     pending: list[Path] = []
     pending_lm: list[str | os.PathLike[str]] = []
-    names = [output_name(v) for v in videos]
-    _check_unique(videos, names)
-    _check_name_lengths(out_dir, videos, names)
-    _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
-    for v, name in zip(videos, names):
+    names = [output_name(v) for v in inputs]
+    _check_unique(inputs, names)
+    _check_name_lengths(out_dir, inputs, names)
+    _check_inputs_kept(inputs, names, config.landmarks, out_dir, config.meshes)
+    for v, name in zip(inputs, names):
         for kind, path in output_paths(out_dir, name).items():
             if kind != "meshes" and path.is_dir():
                 raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
             if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
                 raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
-    for k, (v, name) in enumerate(zip(videos, names)):
+    for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
             _check_resumable(v, paths, config)
@@ -953,9 +957,9 @@ def track_videos(
         rest = f"; the other videos were completed ({named}): --resume skips them" if done else ""
         what = "; ".join(str(s.error) for s in failed)
         raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
-                            [summaries[str(v)] for v in videos if str(v) in summaries],
+                            [summaries[str(v)] for v in inputs if str(v) in summaries],
                             [s.name for s in failed])  # fmt: skip
-    return [summaries[str(v)] for v in videos]
+    return [summaries[str(v)] for v in inputs]
 
 
 def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, dict[str, list]]]) -> LandmarkFit:
