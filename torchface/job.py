@@ -1179,7 +1179,7 @@ def _track_group(
         # The batch is tracked with coarser pyramid levels added for faces larger than the default pyramid is made
         # for (HD and 4K video: pyramid_for_faces); the settings recorded and compared on --resume stay the user's.
         run = replace(config, tracker=pyramid_for_faces(config.tracker, lm, (H, W)))
-        fit = None if config.lookahead is None else _lookahead_fit(model, run, config.lookahead, streams, lm, intr)
+        fit = None if config.lookahead is None else _lookahead_fit(model, run, streams, lm, intr)
         # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
         # from the landmark fit, not the online start its sidecar would not mention)
         online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
@@ -1459,12 +1459,15 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
 
 
 def _lookahead_fit(
-    model: FaceModel, config: JobConfig, la: LookaheadConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics
+    model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics
 ) -> LandmarkFit | None:
-    """Read up to ``la.max_frames`` (``config.lookahead``) frames of every stream ahead (kept in ``_Stream.ahead``
-    for the tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit (None
-    when no video has a second frame); a video shorter than the batch's longest is looked at with its last frame
-    repeated."""
+    """Read up to ``config.lookahead.max_frames`` frames of every stream ahead (kept in ``_Stream.ahead`` for the
+    tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit (None when no
+    video has a second frame, or without ``config.lookahead``); a video shorter than the batch's longest is looked
+    at with its last frame repeated."""
+    la = config.lookahead
+    if la is None:  # (never: the job calls it with a look-ahead)
+        return None
     for s in streams:
         while len(s.ahead) < la.max_frames - 1 and s.error is None:
             try:
