@@ -382,7 +382,9 @@ def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[s
 
 
 def _check_device(device_or_name: str | torch.device) -> None:
-    name = str(device_or_name)  # a torch.device as --device names it ("cuda:0"), not as its repr
+    name = device_or_name  # a torch.device as --device names it ("cuda:0"), not by its repr
+    if isinstance(device_or_name, torch.device):
+        name = str(device_or_name)
     try:
         device = torch.device(name)
     except (RuntimeError, ValueError):
