@@ -291,14 +291,17 @@ class _VideoOut:
         self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
         self.size = (int(width), int(height))
         self.frames = 0
-        fourcc = cv2.VideoWriter_fourcc(*"mp4v")
-        self.writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
-        if not self.writer.isOpened():
-            self.writer.release()
+        fourcc = cv2.VideoWriter.fourcc(*"mp4v")
+        writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
+        if not writer.isOpened():
+            writer.release()
             self.tmp.unlink(missing_ok=True)
             raise OutputError(f"{self.tmp}: cannot open an mp4v video writer")
+        self.writer: cv2.VideoWriter | None = writer  # None once closed or aborted
 
     def write(self, image_bgr: np.ndarray) -> None:
+        if self.writer is None:
+            raise ValueError(f"{self.path}: the video is closed")
         self.writer.write(image_bgr)
         self.frames += 1
 
@@ -378,7 +381,10 @@ def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[s
                               f"{spare} bytes before its extension")  # fmt: skip
 
 
-def _check_device(name: str) -> None:
+def _check_device(device_or_name: str | torch.device) -> None:
+    name = device_or_name  # a torch.device as --device names it ("cuda:0"), not by its repr
+    if isinstance(device_or_name, torch.device):
+        name = str(device_or_name)
     try:
         device = torch.device(name)
     except (RuntimeError, ValueError):
@@ -402,6 +408,12 @@ def _to_uint8_rgb(frame: Tensor) -> np.ndarray:
     return (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
 
 
+#: A stream's re-anchoring as its record keeps it (:func:`_record_anchors`): a JSON object of number lists
+#: (``axis_angle``, ``translation``, ``head_rotation``, ...), the ``frame`` index (int) and ``first_shape_coeffs``,
+#: ``params`` (lists or None).
+_Anchor = dict[str, Any]
+
+
 @dataclass(eq=False)
 class _Stream:
     """Book-keeping of one video in a batch (mutable, private to the job loop)."""
@@ -420,7 +432,7 @@ class _Stream:
     done: bool = False
     last_frame: Tensor | None = None
     low_count: int = 0
-    anchor: dict[str, list] | None = None  # the online start's re-anchoring, once recorded (_write_record)
+    anchor: _Anchor | None = None  # the online start's re-anchoring, once recorded (_write_record)
     settings: dict[str, object] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
     redetections: int = 0
@@ -434,6 +446,18 @@ class _Stream:
     # stream leaves the batch's state: the sidecar's model.shape_coeffs and start.neutral_anim_coeffs)
     final_shape: list[float] | None = None
     final_neutral: list[float] | None = None
+
+    def frame(self) -> Tensor:
+        """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
+        if self.last_frame is None:
+            raise ValueError(f"{self.name}: no frame read (its batch is not open)")
+        return self.last_frame
+
+    def outputs(self) -> tuple[TrackCsvWriter, _VideoOut, _VideoOut]:
+        """``(csv, overlay, normalised)``, which :func:`_track_group` opens before the first frame."""
+        if self.csv is None or self.overlay is None or self.normalised is None:
+            raise ValueError(f"{self.name}: its outputs are not open")
+        return self.csv, self.overlay, self.normalised
 
 
 def _row_values(rows: np.ndarray, columns: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -566,7 +590,7 @@ def _said_difference(name: str, then: object, now: object) -> str:
     return f"{name} {then} then, {now} now"
 
 
-def _write_record(path: Path, video: Path, anchor: dict[str, list] | None, settings: dict[str, object]) -> None:
+def _write_record(path: Path, video: Path, anchor: _Anchor | None, settings: dict[str, object]) -> None:
     """Write (atomically) what a resumed run needs besides the partial CSV's rows: the input it belongs to, the
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
@@ -620,7 +644,7 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
 
 def _read_record(
     path: Path, video: Path, settings: dict[str, object], num_shape: int, num_animation: int
-) -> dict[str, list] | None:
+) -> _Anchor | None:
     """The re-anchoring in a partial run's record (None: none); ``num_shape``, ``num_animation``: the model's
     units, the sizes of the re-anchoring's fields.
 
@@ -874,11 +898,11 @@ def track_videos(
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
-    videos = [Path(v) for v in videos]
-    if not videos:
+    inputs = [Path(v) for v in videos]
+    if not inputs:
         raise InputError("no input video given")
-    if config.landmarks and len(config.landmarks) != len(videos):
-        raise InputError(f"give one landmarks file per video: {len(videos)} videos, {len(config.landmarks)} files")
+    if config.landmarks and len(config.landmarks) != len(inputs):
+        raise InputError(f"give one landmarks file per video: {len(inputs)} videos, {len(config.landmarks)} files")
     detector = None
     if config.detector is not None:
         from torchface.detect import load_detector
@@ -894,17 +918,17 @@ def track_videos(
     summaries: dict[str, VideoSummary] = {}
     pending: list[Path] = []
     pending_lm: list[str | os.PathLike[str]] = []
-    names = [output_name(v) for v in videos]
-    _check_unique(videos, names)
-    _check_name_lengths(out_dir, videos, names)
-    _check_inputs_kept(videos, names, config.landmarks, out_dir, config.meshes)
-    for v, name in zip(videos, names):
+    names = [output_name(v) for v in inputs]
+    _check_unique(inputs, names)
+    _check_name_lengths(out_dir, inputs, names)
+    _check_inputs_kept(inputs, names, config.landmarks, out_dir, config.meshes)
+    for v, name in zip(inputs, names):
         for kind, path in output_paths(out_dir, name).items():
             if kind != "meshes" and path.is_dir():
                 raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
             if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
                 raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
-    for k, (v, name) in enumerate(zip(videos, names)):
+    for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
             _check_resumable(v, paths, config)
@@ -953,12 +977,12 @@ def track_videos(
         rest = f"; the other videos were completed ({named}): --resume skips them" if done else ""
         what = "; ".join(str(s.error) for s in failed)
         raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
-                            [summaries[str(v)] for v in videos if str(v) in summaries],
+                            [summaries[str(v)] for v in inputs if str(v) in summaries],
                             [s.name for s in failed])  # fmt: skip
-    return [summaries[str(v)] for v in videos]
+    return [summaries[str(v)] for v in inputs]
 
 
-def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, dict[str, list]]]) -> LandmarkFit:
+def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, _Anchor]]) -> LandmarkFit:
     """``fit`` with the first-frame fits of the recorded streams (``(row, anchor)`` pairs) in their rows."""
     fields = {n: getattr(fit, n).clone() for n in LandmarkFit.__dataclass_fields__}
     for k, anchor in recorded:
@@ -987,9 +1011,11 @@ def _anchor_params(s: _Stream, t: int) -> list[float] | None:
     return a.get("params") if a is not None and a.get("frame") == t else None
 
 
-def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, dict[str, list]]]) -> TrackerState:
+def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, _Anchor]]) -> TrackerState:
     """``state`` whose recorded streams carry their re-anchoring offsets (the others the identity)."""
     ms = state.management
+    if ms is None:  # (never: the recorded streams were tracked with template management)
+        return state
     B, dt, dev = state.params.shape[0], state.params.dtype, state.params.device
     head_R = torch.eye(3, dtype=dt, device=dev).expand(B, 3, 3).clone()
     head_t = torch.zeros(B, 3, dtype=dt, device=dev)
@@ -1049,18 +1075,20 @@ def _with_replayed_loss(
         if scale is not None:
             scale[k] = 1.0
         a = streams[k].anchor
-        at = a.get("frame") if a is not None and a.get("params") is not None else None
+        kept = None if a is None else a.get("params")  # the re-anchoring frame's refined parameters
+        at = None if a is None or kept is None else a.get("frame")
         if at is not None and at < len(rows):  # the re-anchoring made that frame's refined parameters confident
             ok[at] = True
         if ok.any():
             last = int(np.flatnonzero(ok)[-1])
             params = _params_from_rows(rows[last : last + 1], columns, layout)
             params = params.to(dtype=confident.dtype, device=confident.device)
-            if ms.head_rotation is not None:  # a re-anchored stream: its own frame
+            if ms.head_rotation is not None and ms.head_translation is not None:  # re-anchored: its own frame
+                # (the offsets are set together)
                 params = _rows_to_internal(params, ms.head_rotation[k : k + 1].to(params.dtype),
                                            ms.head_translation[k : k + 1].to(params.dtype), layout)  # fmt: skip
             if last == at:
-                params[0] = torch.as_tensor(a["params"], dtype=params.dtype, device=params.device)
+                params[0] = torch.as_tensor(kept, dtype=params.dtype, device=params.device)
             confident[k] = params[0]
         if bool(lost[k]) and rows[-1, residual_col] == 0:  # a failed solve (no residual confidence) while lost: the
             reverted.append(k)  # tracker went on from the confident parameters, not from the held ones of its row
@@ -1080,7 +1108,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
     first pose ``(R0c, t0c)`` and the first result's ``(R0, t0)``, with the state's shape and starting expression."""
     ms = state.management
     todo = [k for k, s in enumerate(streams) if s.anchor is None]
-    if ms is None or ms.head_rotation is None or not todo:
+    if ms is None or ms.head_rotation is None or ms.head_translation is None or not todo:  # (set together)
         return
     eye = torch.eye(3, dtype=ms.head_rotation.dtype, device=ms.head_rotation.device)
     rows = torch.tensor(todo, device=ms.head_rotation.device)
@@ -1135,19 +1163,20 @@ def _track_group(
                 raise InputError(f"{s.csv.partial}: cannot resume, its rows are damaged ({problem}): run without "
                                  "--resume")  # fmt: skip
             record = _record_path(p["csv"])
-            s.anchor = (None if s.replay is None else
-                        _read_record(record, s.reader.info.path, s.settings, model.num_shape, model.num_animation))
-            if s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
-                # interrupted between the re-anchoring step and its row: the rows from the next one on are tracked
-                # re-anchored, the last replayed one was not (its mesh is placed with its own pose)
-                s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
+            s.anchor = None
+            if s.replay is not None:
+                s.anchor = _read_record(record, s.reader.info.path, s.settings, model.num_shape, model.num_animation)
+                if s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
+                    # interrupted between the re-anchoring step and its row: the rows from the next one on are
+                    # tracked re-anchored, the last replayed one was not (its mesh is placed with its own pose)
+                    s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
             _write_record(record, s.reader.info.path, s.anchor, s.settings)
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
         if config.meshes:
             for d in mesh_tmp:
                 d.mkdir(parents=True, exist_ok=True)
-        frames = torch.stack([s.last_frame for s in streams]).to(device=device, dtype=dtype)
+        frames = torch.stack([s.frame() for s in streams]).to(device=device, dtype=dtype)
         lm = torch.as_tensor(np.stack([s.landmarks for s in streams]), dtype=dtype, device=device)
         # The batch is tracked with coarser pyramid levels added for faces larger than the default pyramid is made
         # for (HD and 4K video: pyramid_for_faces); the settings recorded and compared on --resume stay the user's.
@@ -1157,21 +1186,22 @@ def _track_group(
         # from the landmark fit, not the online start its sidecar would not mention)
         online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
-        anchored = [k for k, s in enumerate(streams) if s.anchor is not None and config.tracker.template.enabled]
+        anchored = {k: s.anchor for k, s in enumerate(streams)
+                    if s.anchor is not None and config.tracker.template.enabled}  # fmt: skip
         if anchored:  # resumed streams the interrupted run had re-anchored: start from their refined fits
             fit = fit_landmarks(model, lm, intr, config=config.tracker.fit) if fit is None else fit
-            fit = _with_recorded_fits(fit, [(k, streams[k].anchor) for k in anchored])
+            fit = _with_recorded_fits(fit, list(anchored.items()))
         state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
                                            refine_first=config.refine_first if online else None)  # fmt: skip
         if anchored:
-            state = _with_recorded_offsets(state, [(k, streams[k].anchor) for k in anchored])
+            state = _with_recorded_offsets(state, list(anchored.items()))
         if online and any(s.replay is not None for s in streams):
             state = _without_online_start(state, [s.replay is not None for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
-            if k in anchored and streams[k].anchor.get("first_shape_coeffs") is not None:  # resumed from the record
-                s.first_shape = list(streams[k].anchor["first_shape_coeffs"])  # (the state's: the refined shape)
+            if k in anchored and anchored[k].get("first_shape_coeffs") is not None:  # resumed from the record
+                s.first_shape = list(anchored[k]["first_shape_coeffs"])  # (the state's: the refined shape)
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
         for s in streams:
             s.near = s.landmarks
@@ -1183,15 +1213,17 @@ def _track_group(
         t_track0 = time.perf_counter()
         t = 0
         while True:
-            replaying = [s.replay is not None and t < len(s.replay) for s in live]
+            replays = [s.replay if s.replay is not None and t < len(s.replay) else None for s in live]  # this frame's
+            replaying = [r is not None for r in replays]
             if any(replaying):
-                idx = [k for k, r in enumerate(replaying) if r]
-                rows = np.stack([live[k].replay[t] for k in idx])
+                idx = [k for k, r in enumerate(replays) if r is not None]
+                rows = np.stack([r[t] for r in replays if r is not None])
                 params = state.params.clone()
                 own = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
                 replayed = own
                 ms = state.management
-                if ms is not None and ms.head_rotation is not None:  # re-anchored streams: their own frame
+                if ms is not None and ms.head_rotation is not None and ms.head_translation is not None:  # re-anchored
+                    # streams: their own frame (the offsets are set together)
                     replayed = _rows_to_internal(own, ms.head_rotation[idx].to(dtype),
                                                  ms.head_translation[idx].to(dtype), layout)  # fmt: skip
                 for i, k in enumerate(idx):  # the re-anchoring frame: the refined pose the run went on from
@@ -1200,7 +1232,7 @@ def _track_group(
                         replayed[i] = torch.as_tensor(kept, dtype=replayed.dtype, device=replayed.device)
                 params[idx] = replayed
                 state = replace(state, params=params)
-                ended = [(k, live[k].replay) for k in idx if t == len(live[k].replay) - 1]
+                ended = [(k, r) for k, r in enumerate(replays) if r is not None and t == len(r) - 1]
                 state = _with_replayed_loss(state, ended, columns, layout, run.tracker, live)
             new_rows = result_rows(result, np.full(len(live), t), 1.0)
             _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
@@ -1208,7 +1240,7 @@ def _track_group(
                         "dissim. conf" if config.tracker.template.enabled else "conf")  # fmt: skip
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
-                                        [r and t < len(s.replay) - 1 for r, s in zip(replaying, live)])
+                                        [r is not None and t < len(r) - 1 for r in replays])
             nxt = []
             for s in live:
                 if not s.done:
@@ -1227,7 +1259,7 @@ def _track_group(
                         s.done, s.error = True, exc
                     if s.done:  # its decoder (file, threads, buffers) not kept; its stream leaves the batch below
                         s.reader.close()
-                nxt.append(s.last_frame)
+                nxt.append(s.frame())
             if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
                 # that it shows finished where its container's count was short, long or unknown)
                 elapsed = max(time.perf_counter() - t_track0, 1e-9)
@@ -1259,7 +1291,7 @@ def _track_group(
         for s in streams:
             _abandon(s)
         raise
-    summaries = []
+    summaries: list[VideoSummary | None] = []
     finished = 0
     try:
         for s, p, mt in zip(streams, paths, mesh_tmp):
@@ -1288,8 +1320,9 @@ def _keep_final(state: TrackerState, streams: list[_Stream], layout: ParamLayout
 
 def _select_result(result: TrackResult, keep: list[int]) -> TrackResult:
     """``result`` of the streams ``keep`` (rows, in order)."""
-    return replace(result, **{f.name: v[keep] for f in fields(TrackResult)
-                              if isinstance(v := getattr(result, f.name), Tensor)})  # fmt: skip
+    changes: dict[str, Any] = {f.name: v[keep] for f in fields(TrackResult)  # (replace checks a value against every
+                               if isinstance(v := getattr(result, f.name), Tensor)}  # field's type)  # fmt: skip
+    return replace(result, **changes)
 
 
 def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
@@ -1328,9 +1361,8 @@ def _finalise(
     partial), then remove its resume record. ``levels``: the pyramid levels the batch was tracked with
     (:func:`~torchface.tracker.step.pyramid_for_faces`)."""
     W, H, B = intr.width, intr.height, len(streams)
-    s.csv.close()
-    s.overlay.close()
-    s.normalised.close()
+    for out in s.outputs():
+        out.close()
     cols, rows = read_track_csv(p["csv"])
     plot_track(cols, rows, p["plot"], title=f"{s.name} ({len(rows)} frames)")
     outs = [p["csv"], p["overlay"], p["plot"], p["normalised"]]
@@ -1428,11 +1460,16 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     }
 
 
-def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics):
+def _lookahead_fit(
+    model: FaceModel, config: JobConfig, streams: list[_Stream], lm: Tensor, intr: Intrinsics
+) -> LandmarkFit | None:
     """Read up to ``config.lookahead.max_frames`` frames of every stream ahead (kept in ``_Stream.ahead`` for the
     tracking pass) and return :func:`~torchface.tracker.lookahead.lookahead_fit`'s first-frame fit (None when no
-    video has a second frame); a video shorter than the batch's longest is looked at with its last frame repeated."""
+    video has a second frame, or without ``config.lookahead``); a video shorter than the batch's longest is looked
+    at with its last frame repeated."""
     la = config.lookahead
+    if la is None:  # (never: the job calls it with a look-ahead)
+        return None
     for s in streams:
         while len(s.ahead) < la.max_frames - 1 and s.error is None:
             try:
@@ -1446,10 +1483,10 @@ def _lookahead_fit(model: FaceModel, config: JobConfig, streams: list[_Stream], 
         return None
     # (a shorter video repeats its last frame, as the tracking loop does once it has ended: the batch's shortest
     # length capped the look-ahead of every video, and a 1-frame video turned it off)
-    first = streams[0].last_frame
+    first = streams[0].frame()
     frames = torch.empty((len(streams), longest + 1, *first.shape), dtype=first.dtype, device=first.device)
     for k, s in enumerate(streams):  # each frame read ahead moved into the batch, its list keeping a view: one copy
-        frames[k, 0] = s.last_frame  # of the frames in memory (stacked, they were held three times over at once)
+        frames[k, 0] = s.frame()  # of the frames in memory (stacked, they were held three times over at once)
         for j, frame in enumerate(s.ahead):
             frames[k, j + 1] = frame
             s.ahead[j] = frames[k, j + 1]
@@ -1480,21 +1517,21 @@ def _write_step(
     for k, s in enumerate(streams):
         if not live[k]:
             continue
-        if replaying[k]:
+        if replaying[k] and s.replay is not None:  # (replaying: its replay holds row t)
             written[k] = s.replay[t]
         else:
             row = rows[k].copy()
             row[1] = t / s.reader.info.fps
-            s.csv.write(row[None])
+            s.outputs()[0].write(row[None])
             s.tracked += 1
             written[k] = read_back(columns, row[None])[0]
     R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
-    verts_px, _ = overlay_geometry(model, shape, alpha, R_mesh, t_mesh, intr)
-    axes_px = axes_geometry(R, trans, intr)  # the axes of the CSV's pose, not of the mesh's placement
+    verts_uv, _ = overlay_geometry(model, shape, alpha, R_mesh, t_mesh, intr)
+    axes_uv = axes_geometry(R, trans, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
     norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
-    verts_px, axes_px = verts_px.detach().cpu().numpy(), axes_px.detach().cpu().numpy()
+    verts_px, axes_px = verts_uv.detach().cpu().numpy(), axes_uv.detach().cpu().numpy()
     ci = columns.index("confidence")
     si = columns.index("success")
     st = columns.index("status")
@@ -1509,8 +1546,9 @@ def _write_step(
             s.near = verts_px[k]
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
         unusable = "FAILED" if int(row[st]) == int(TrackStatus.FAILED) else "LOST"  # (both were drawn "LOST")
-        s.overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label, unusable))
-        s.normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
+        _, overlay, normalised = s.outputs()
+        overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label, unusable))
+        normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
         if mesh_dirs is not None:
             import trimesh
 
@@ -1548,8 +1586,10 @@ def _drawn_pose(
         D, d = (torch.as_tensor(x, dtype=torch.float64) for x in offset)
         R_mesh[k] = torch.matmul(R[k], D.T)
         t_mesh[k] = trans[k] - torch.matmul(R_mesh[k], d)
-    out = (R, trans, R_mesh, t_mesh, shape, alpha, light)
-    return tuple(x.to(device=model.device, dtype=model.dtype) for x in out)
+    R, trans, R_mesh, t_mesh, shape, alpha, light = (
+        x.to(device=model.device, dtype=model.dtype) for x in (R, trans, R_mesh, t_mesh, shape, alpha, light)
+    )
+    return R, trans, R_mesh, t_mesh, shape, alpha, light
 
 
 @dataclass(eq=False)

@@ -1707,6 +1707,17 @@ def test_devices_this_torch_cannot_use_are_one_line_errors(clip, tmp_path, capsy
     assert rc == 2 and message in capsys.readouterr().err
 
 
+def test_an_unusable_torch_device_in_the_job_config_is_named_as_torch_writes_it(clip, tmp_path):
+    """``JobConfig(device=torch.device("cuda", 0))`` on a machine without CUDA said "device device(type='cuda',
+    index=0) is not available": the device's repr, not the name ``--device`` takes."""
+    video, lm, _ = clip
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    config = JobConfig(out_dir=tmp_path / "o", landmarks=(lm,), device=torch.device("cuda", 0))
+    with pytest.raises(ValueError, match=r"^device 'cuda:0' is not available: "):
+        track_videos([video], config)
+
+
 def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path):
     """SIGTERM (``timeout``, ``docker stop``) ends the run as Ctrl-C does (partial rows kept for --resume), with
     status 143; it used to kill the process with the partial videos left unplayable and no message."""

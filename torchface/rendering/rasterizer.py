@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Literal, overload
 
 import torch
 from torch import Tensor
@@ -173,6 +174,10 @@ class Coverage:
         column = (pix_b + self.batch_offset) * self.num_faces + flat.index_select(0, pix_idx)
         return self._fragments(pix_idx, pix_b, column)
 
+    @overload
+    def _evaluate(self, column: Tensor, row: Tensor, col: Tensor, depth: Literal[True]) -> tuple[Tensor, Tensor]: ...
+    @overload
+    def _evaluate(self, column: Tensor, row: Tensor, col: Tensor, depth: Literal[False]) -> tuple[Tensor, None]: ...
     def _evaluate(self, column: Tensor, row: Tensor, col: Tensor, depth: bool) -> tuple[Tensor, Tensor | None]:
         """The module docstring's arithmetic for triangles ``column`` (of the coefficient table) at pixels
         ``(row, col)`` (int64 ``(M,)`` each, covered by them): barycentric coordinates ``(M, 3)`` and, when
@@ -480,8 +485,7 @@ def _span_hits(
         hit_face.append(row_face.index_select(0, span))
     if not hit_pix:
         hit_pix, hit_depth, hit_face = [zero.reshape(1)[:0]], [ray_a[:0]], [zero.reshape(1)[:0]]
-    hit_pix, hit_face = torch.cat(hit_pix), torch.cat(hit_face)
-    return hit_pix, torch.cat(hit_depth), hit_face
+    return torch.cat(hit_pix), torch.cat(hit_depth), torch.cat(hit_face)
 
 
 def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple[Tensor, Tensor]:
@@ -537,6 +541,16 @@ def _native_cover(
     return pix_to_face, facing
 
 
+@overload
+def _cover(
+    verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
+    backend: Backend = ..., pixels: Literal[True] = ...,
+) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor]]: ...
+@overload
+def _cover(
+    verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
+    backend: Backend = ..., *, pixels: Literal[False],
+) -> tuple[Coverage, None]: ...
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
     backend: Backend = Backend.AUTO, pixels: bool = True,

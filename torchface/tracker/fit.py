@@ -9,7 +9,7 @@ positions and bases interpolated from the model's landmark table.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -21,7 +21,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.model.face_model import FaceModel, interpolate_landmarks
-from torchface.solver.least_squares import ResidualFn, SolveStatus, SolverConfig, least_squares, solve_normal_equations
+from torchface.solver.least_squares import SolveStatus, SolverConfig, least_squares, solve_normal_equations
 
 
 @dataclass(frozen=True)
@@ -242,9 +242,12 @@ def _check_landmarks(
 #: objective (floored at that of a 1 px RMS landmark error) stopped short of a minimum (:func:`_stalled`).
 _STALL_FRACTION: float = 1e-3
 
+#: A :data:`~torchface.solver.least_squares.ResidualFn` whose ``valid`` is a tensor (never None): the landmark fit's.
+_MaskedResidualFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
+
 
 def _stalled(
-    residual_fn: ResidualFn, x: Tensor, lower: Tensor, upper: Tensor, prior: Tensor, weight_sum: Tensor
+    residual_fn: _MaskedResidualFn, x: Tensor, lower: Tensor, upper: Tensor, prior: Tensor, weight_sum: Tensor
 ) -> Tensor:
     """``(B,)`` bool: the solve stopped away from a minimum of ``1/2 |r(x)|^2 + 1/2 sum_p prior_p x_p^2``.
 
@@ -266,7 +269,7 @@ def _stalled(
 
 
 def _predicts_decrease(
-    residual_fn: ResidualFn, x: Tensor, lower: Tensor, upper: Tensor, prior: Tensor, weight_sum: Tensor
+    residual_fn: _MaskedResidualFn, x: Tensor, lower: Tensor, upper: Tensor, prior: Tensor, weight_sum: Tensor
 ) -> Tensor:
     """:func:`_stalled`'s test (without autograd around it)."""
     r, J, valid = residual_fn(x)

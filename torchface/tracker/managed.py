@@ -44,7 +44,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -744,7 +744,7 @@ def _restart(
     their fit, templates, mosaic and reference are this frame's, their management starts afresh, and their result
     is the initialisation's (without the online look-ahead start). Returns the state, the result and the streams
     that started (int64 ``(n,)``)."""
-    ms = state.management
+    ms = cast(ManagementState, state.management)  # managed_step's: a managed state
     index = restart.nonzero().squeeze(-1)
     with torch.no_grad():
         lm = _check_detector_output(detector(frames[index]), index.shape[0], model.num_landmarks)
@@ -762,30 +762,33 @@ def _restart(
         sub_result = replace(sub_result, **{f.name: getattr(sub_result, f.name)[ok] for f in fields(TrackResult)
                                             if isinstance(getattr(sub_result, f.name), Tensor)})  # fmt: skip
     rows = rows[ok]
+    sub_ms = cast(ManagementState, sub.management)  # initialise_managed's with template management: managed
     with torch.inference_mode(False):
-        def put(x: Tensor | None, y: Tensor | None, fill: object = None) -> Tensor | None:
-            if x is None:
-                return None
+        def put(x: Tensor, y: Tensor | float) -> Tensor:
             x = x.clone()
-            x[rows] = (y if y is not None else torch.as_tensor(fill)).to(device=x.device, dtype=x.dtype)
+            x[rows] = torch.as_tensor(y).to(device=x.device, dtype=x.dtype)
             return x
 
-        params = put(state.params, sub.params)
-        unstarted = put(ms.unstarted, None, False)
+        def put_some(x: Tensor | None, y: Tensor | float) -> Tensor | None:  # a field that may be None
+            return None if x is None else put(x, y)
+
+        unstarted = put_some(ms.unstarted, False)  # (never None: restart is within it)
         eye = torch.eye(3, dtype=model.dtype, device=model.device)
         new_ms = replace(
-            ms, mosaic=_reset_mosaic_rows(ms.mosaic, rows, sub.management.mosaic), entry=put(ms.entry, None, 0),
-            low_count=put(ms.low_count, None, 0), very_low_count=put(ms.very_low_count, None, 0),
-            lost=put(ms.lost, None, False), confident_params=put(ms.confident_params, sub.params),
-            since_attempt=put(ms.since_attempt, None, 0), params_ypr=None,
-            head_rotation=put(ms.head_rotation, eye), head_translation=put(ms.head_translation, None, 0.0),
-            attempts=put(ms.attempts, None, 0), adopted_scale=put(ms.adopted_scale, None, 1.0),
-            unstarted=unstarted if bool(unstarted.any()) else None,
+            ms, mosaic=_reset_mosaic_rows(ms.mosaic, rows, sub_ms.mosaic), entry=put(ms.entry, 0),
+            low_count=put(ms.low_count, 0), very_low_count=put(ms.very_low_count, 0), lost=put(ms.lost, False),
+            confident_params=put(ms.confident_params, sub.params), since_attempt=put(ms.since_attempt, 0),
+            params_ypr=None, head_rotation=put_some(ms.head_rotation, eye),
+            head_translation=put_some(ms.head_translation, 0.0), attempts=put_some(ms.attempts, 0),
+            adopted_scale=put_some(ms.adopted_scale, 1.0),
+            unstarted=unstarted if unstarted is not None and bool(unstarted.any()) else None,
         )  # fmt: skip
+        prior = state.anim_prior_mean
         state = replace(
-            state, params=params, shape_coeffs=put(state.shape_coeffs, sub.shape_coeffs),
+            state, params=put(state.params, sub.params), shape_coeffs=put(state.shape_coeffs, sub.shape_coeffs),
             templates=_scatter_templates(state.templates, rows, sub.templates),
-            anim_prior_mean=put(state.anim_prior_mean, sub.anim_prior_mean), management=new_ms,
+            anim_prior_mean=None if prior is None else put(prior, sub.neutral_anim_coeffs(prior[rows])),
+            management=new_ms,
         )  # fmt: skip
     return state, _scatter_result(result, rows, sub_result), rows
 
@@ -1044,9 +1047,9 @@ def managed_step(
     )  # fmt: skip
     new_state = replace(new_state, management=ms)
     started = None
-    if restart is not None and bool(restart.any()):
+    if restart is not None and detector is not None and bool(restart.any()):  # (restart: only with a detector)
         new_state, result, started = _restart(model, config, new_state, result, frames, restart, detector)
-        ms = new_state.management
+        ms = cast(ManagementState, new_state.management)  # _restart's
     watched = result
     if graded is not None:  # the streams whose parameters are the solver's: not reverted, not adopted, not restarted
         own = ~reverted
