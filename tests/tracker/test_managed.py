@@ -550,6 +550,27 @@ def test_a_lost_stream_of_gray_frames_gives_its_detector_rgb_frames(model, gentl
     assert seen == [(1, 3, H, W)]
 
 
+def test_an_unstarted_stream_of_gray_frames_gives_its_detector_rgb_frames(model, gentle):
+    """A stream whose initialisation failed is started afresh from the detector's landmarks (managed._restart), which
+    was handed the gray (B, 1, H, W) frames as they were, where the recovery of a lost stream hands them as RGB (the
+    detector's contract, frames (B, 3, H, W) -> landmarks): (1, 1, 240, 320) at the start, (1, 3, 240, 320) at a loss."""
+    frames, gt = gentle
+    gray = frames[0].mean(1, keepdim=True)
+    lm = landmarks(gt)
+    line = torch.stack([lm[..., 0], torch.full_like(lm[..., 1], float(lm[..., 1].mean()))], -1)  # fails: unstarted
+    state, res = initialise_managed(model, LEAVE_CFG, gray[:1], line, Intrinsics.default(W, H))
+    assert int(res.status[0]) == int(TrackStatus.FAILED)
+    seen = []
+
+    def detector(f):
+        seen.append(tuple(f.shape))
+        return gt.landmarks_px[2].float()[None].expand(f.shape[0], -1, -1)
+
+    for i in (1, 2):
+        state, res = managed_step(model, LEAVE_CFG, state, gray[i : i + 1], detector)
+    assert seen == [(1, 3, H, W)] and bool(res.success[0])
+
+
 def test_face_tracker_module_uses_management(model, gentle):
     frames, gt = gentle
     tracker = FaceTracker(CFG, model)

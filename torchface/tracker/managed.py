@@ -636,6 +636,12 @@ def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
     return landmarks
 
 
+def _as_rgb(frames: Tensor) -> Tensor:
+    """``frames`` as the detector's contract has them, ``(B, 3, H, W)`` RGB (README): gray ``(B, 1, H, W)`` frames,
+    which the tracker tracks, expanded to three equal channels (a view); RGB frames as they are."""
+    return frames.expand(-1, 3, -1, -1) if frames.shape[1] == 1 else frames
+
+
 #: The fewest valid template points an entry needs at a pyramid level for the recovery search to place it there
 #: (:attr:`~torchface.template.management.TemplateConfig.search_points`' least).
 _SEARCH_MIN_POINTS = 8
@@ -674,9 +680,7 @@ def _recovery_starts(
     starts = conf_params.clone()
     if detector is not None:
         with torch.no_grad():
-            seen = frames[index]  # the detector's contract is RGB frames (README); gray ones, tracked, are expanded
-            seen = seen.expand(-1, 3, -1, -1) if seen.shape[1] == 1 else seen
-            lm = _check_detector_output(detector(seen), n, model.num_landmarks)
+            lm = _check_detector_output(detector(_as_rgb(frames[index])), n, model.num_landmarks)
         lm = lm.to(dtype=model.dtype, device=model.device)
         ok = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
         if bool(ok.any()):
@@ -747,7 +751,7 @@ def _restart(
     ms = cast(ManagementState, state.management)  # managed_step's: a managed state
     index = restart.nonzero().squeeze(-1)
     with torch.no_grad():
-        lm = _check_detector_output(detector(frames[index]), index.shape[0], model.num_landmarks)
+        lm = _check_detector_output(detector(_as_rgb(frames[index])), index.shape[0], model.num_landmarks)
     lm = lm.to(dtype=model.dtype, device=model.device)
     found = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
     rows = index[found]
