@@ -939,6 +939,23 @@ def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_until_a_detector_star
     assert float(geodesic_angle_deg(R, gt.rotation[2:]).max()) < (1.0 if fit == "held" else 2.0)
 
 
+def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_without_a_detector(model, gentle):
+    """Without a detector a stream whose initialisation failed is recovered by a search of its mosaic, which holds
+    the failed fit's own templates and reference: the candidate scored 0.98 against them at the first attempt
+    (frame 2) and ended the loss, CONVERGED and success True at a pitch of 89 degrees; estimate_confidence scored
+    the stream 0.96 where managed_step scores it 0. It now stays LOST (README) and scores 0 everywhere."""
+    frames, gt = gentle
+    lm = landmarks(gt)
+    line = torch.stack([lm[..., 0], torch.full_like(lm[..., 1], float(lm[..., 1].mean()))], -1)
+    state, res = initialise_managed(model, LEAVE_CFG, frames[:, 0], line, Intrinsics.default(W, H))
+    assert int(res.status[0]) == int(TrackStatus.FAILED)
+    for i in range(1, 5):  # recovery attempts at frames 2 and 4
+        state, res = managed_step(model, LEAVE_CFG, state, frames[:, i])
+        assert int(res.status[0]) == LOST and not bool(res.success[0]) and float(res.confidence[0]) == 0.0, i
+        conf, _ = estimate_confidence(model, LEAVE_CFG, state, frames[:, i])
+        assert float(conf[0]) == 0.0
+
+
 @pytest.mark.parametrize(("num_levels", "size"), [(3, (6, 8)), (2, (3, 3)), (1, (1, 1))])  # size: (H, W)
 def test_a_lost_stream_on_frames_whose_coarsest_level_is_one_pixel_stays_lost_without_a_crash(
     model, monkeypatch, num_levels, size

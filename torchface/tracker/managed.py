@@ -448,7 +448,8 @@ def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
     status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None, rotation: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
-    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples), dissimilarity ``(B,)``,
+    """Dissimilarity confidence ``(B,)`` (0 for FAILED samples, faces too small and streams that never started,
+    :attr:`ManagementState.unstarted`), dissimilarity ``(B,)``,
     :func:`face_inside_fraction` ``(B,)`` of ``state``'s estimate, compared with the reference of the mosaic
     entry nearest it (one posing of the mesh serves both), and the normalised face and mask it was measured on
     (:func:`~torchface.template.management.reference_face`: ``(B, 3, G, G)``, ``(B, 1, G, G)``); ``index``
@@ -466,6 +467,12 @@ def _confidence(
     # A face narrower than TrackerConfig.min_face_width_px scores 0, as a FAILED sample does: its estimate is too
     # coarse to trust (it neither counts as confident nor ends a loss).
     failed = failed | too_small(model, config, t, state.intrinsics)
+    if ms.unstarted is not None:
+        # A stream whose initialisation failed has no reference to be confident against: its frames matched the
+        # failed fit's own templates and reference (a fit 87 degrees off ended its loss at the next frame, at
+        # confidence 1.0, and so did a recovery candidate searched in its mosaic without a detector). It scores 0
+        # (track, recovery candidates, estimate_confidence) until it starts afresh (a detector's landmarks: _restart).
+        failed = failed | ms.unstarted[rows]
     if native is not None:
         native_diss, native_conf, inside, face, _ = native
         return torch.where(failed, torch.zeros_like(native_conf), native_conf), native_diss, inside, face
@@ -916,12 +923,7 @@ def managed_step(
     )
 
     # 3. Gating and loss.
-    failed = result.status == _FAILED
-    if ms.unstarted is not None:
-        # A stream whose initialisation failed has no reference to be confident against: its frames matched the
-        # failed fit's own templates and reference (a fit 87 degrees off ended its loss at the next frame, at
-        # confidence 1.0). It stays lost until it starts afresh (a detector's landmarks: _restart).
-        conf = torch.where(ms.unstarted, torch.zeros_like(conf), conf)
+    failed = result.status == _FAILED  # (a stream that never started scores 0: _confidence)
     # A lost stream's track that has left the depths its recovery searches (search_depth_factors of its last
     # confident depth, widened by 10 %; scaled as the attempt whose candidate it adopted) went astray, whatever its
     # confidence: it scores 0, so it neither ends the loss nor counts as confident (CANDIDE-3 long run,
