@@ -255,3 +255,24 @@ def test_infinite_constants_are_refused(kind) -> None:
     for c in (float("inf"), -1.0):
         with pytest.raises(ValueError, match=r"robust_c must be a finite number > 0 or None"):
             TrackerConfig(robust=kind, robust_c=c)
+
+
+def test_the_tracker_config_and_the_loss_take_the_same_constants() -> None:
+    """``TrackerConfig.robust_c`` and ``RobustLoss.c`` disagreed: a numpy float32 (a ``numbers.Real``) passed the
+    config and was refused by the loss at the first frame ("c must be a finite positive number, got
+    np.float32(4.685)"), and ``True`` passed the config (a bool is a Real) and was refused by the loss. Now a numpy
+    float is taken by both, as the float it is, and a bool by neither."""
+    import numpy as np
+
+    from torchface.tracker import TrackerConfig
+
+    c = np.float32(4.685)
+    config = TrackerConfig(robust_c=c)
+    loss = RobustLoss(config.robust, config.robust_c)
+    assert type(loss.c) is float and loss.c == float(c)
+    r = torch.linspace(-20.0, 20.0, 41)
+    torch.testing.assert_close(loss.weight(r, 1.0), RobustLoss(config.robust, float(c)).weight(r, 1.0), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="robust_c must be a finite number > 0"):
+        TrackerConfig(robust_c=True)
+    with pytest.raises(ValueError, match="c must be a finite positive number"):
+        RobustLoss(RobustKind.TUKEY, c=True)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 import math
+import numbers
 from dataclasses import dataclass
 from typing import cast
 
@@ -109,8 +110,9 @@ class RobustLoss:
             raise TypeError(f"kind must be a RobustKind, got {type(self.kind).__name__}")
         if self.c is None:
             object.__setattr__(self, "c", _DEFAULT_C[self.kind])
-        # Infinite ones gave NaN losses or weights (Huber's weight inf / inf, the others' rho inf * 0).
-        if isinstance(self.c, bool) or not (isinstance(self.c, (int, float)) and 0.0 < float(self.c) < math.inf):
+        # Infinite ones gave NaN losses or weights (Huber's weight inf / inf, the others' rho inf * 0). Any real
+        # number but a bool, as TrackerConfig.robust_c takes (a numpy float32 passed the config and was refused here).
+        if isinstance(self.c, bool) or not (isinstance(self.c, numbers.Real) and 0.0 < float(self.c) < math.inf):
             raise ValueError(f"c must be a finite positive number, got {self.c!r}")
         object.__setattr__(self, "c", float(self.c))
         if not (0.0 < float(self.min_scale) < math.inf):

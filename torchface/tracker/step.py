@@ -253,9 +253,9 @@ class TrackerConfig:
             value = getattr(self, name)
             if not isinstance(value, numbers.Real) or not (math.isfinite(value) and float(value) >= 0.0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
-        if self.robust_c is not None and not (
+        if self.robust_c is not None and (isinstance(self.robust_c, bool) or not (
             isinstance(self.robust_c, numbers.Real) and math.isfinite(self.robust_c) and float(self.robust_c) > 0.0
-        ):  # (was refused at the first frame as "c must be a positive number")
+        )):  # (was refused at the first frame as "c must be a positive number"; RobustLoss refuses a bool too)
             raise ValueError(f"robust_c must be a finite number > 0 or None (the loss's default), got {self.robust_c!r}")
         if not (isinstance(self.expression_priority, numbers.Real) and math.isfinite(self.expression_priority)):
             raise ValueError(f"expression_priority must be a finite number, got {self.expression_priority!r}")
