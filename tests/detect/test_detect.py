@@ -132,10 +132,11 @@ def test_batched_detector_gives_a_per_image_detector_rgb_images_of_gray_frames()
     gray = torch.full((2, 1, 12, 16), 0.5, dtype=torch.float64)
     assert bool(batched(detector)(gray).isnan().all())
     assert seen == [((12, 16, 3), 128, 128)] * 2
-    with pytest.raises(TypeError, match="frames must be a torch.Tensor"):
+    # (the messages named (B, 3, H, W) frames alone, where gray (B, 1, H, W) ones are taken, as check_frames' say)
+    with pytest.raises(TypeError, match=r"frames must be a torch.Tensor \(B, 3, H, W\) RGB or \(B, 1, H, W\) gray"):
         batched(detector)(gray.numpy())  # type: ignore[arg-type]
     for bad in (gray[0], (gray * 255).to(torch.uint8), gray.expand(-1, 2, -1, -1)):
-        with pytest.raises(ValueError, match=r"frames must be \(B, 3, H, W\) float"):
+        with pytest.raises(ValueError, match=r"frames must be \(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float"):
             batched(detector)(bad)
 
 

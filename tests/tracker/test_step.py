@@ -561,7 +561,8 @@ def test_face_tracker_names_a_wrong_argument_type(model, two_streams):
     frames, gts = two_streams
     first, lm = frames[:, 0], landmarks_of(gts)
     tracker = FaceTracker(BASE, model=model)
-    with pytest.raises(TypeError, match=r"frames must be a torch.Tensor .*ndarray"):
+    gray_too = r"frames must be a torch.Tensor \(B, 3, H, W\) RGB or \(B, 1, H, W\) gray.*ndarray"
+    with pytest.raises(TypeError, match=gray_too):
         tracker.initialise(first.numpy(), lm)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"uint8 .*frames.float\(\) / 255"):
         tracker.initialise((first * 255).to(torch.uint8), lm)

@@ -228,9 +228,11 @@ class _Batched:
         from torchface.io.landmarks import NUM_LANDMARKS
 
         if not isinstance(frames, torch.Tensor):
-            raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
+            raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
+                            f"got {type(frames).__name__}")  # fmt: skip
         if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
-            raise ValueError(f"frames must be (B, 3, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+            raise ValueError(f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got "
+                             f"{tuple(frames.shape)} {frames.dtype}")  # fmt: skip
         if frames.shape[1] == 1:  # gray frames (the tracker takes them): the per-image detector takes RGB images
             frames = frames.expand(-1, 3, -1, -1)
         out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)

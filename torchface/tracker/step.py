@@ -714,7 +714,8 @@ def check_frames(
     another size.
     """
     if not isinstance(frames, Tensor):
-        raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(frames).__name__}")
+        raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
+                        f"got {type(frames).__name__}")  # fmt: skip
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
         raise ValueError(
             f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
