@@ -13,7 +13,8 @@ within a rank the ``j``-th of its videos to ``DataLoader`` worker ``j % num_work
 (``torch.utils.data.get_worker_info()``; the rank's own process does everything when ``num_workers = 0``):
 video ``i`` goes to rank ``i % world_size``, worker ``(i // world_size) % num_workers``
 (:meth:`VideoDataset.worker_videos`). Without a group this is video ``i`` -> worker ``i % num_workers``. Each
-item is tracked by one rank (ranks that repeat items to balance their counts, below, repeat others' items).
+item is tracked by one rank, except those that a worker without a video of its own repeats to balance the counts
+(below): it tracks other ranks' videos again (unless cached).
 Tracking runs with a fixed torch thread count
 (:attr:`~training_hooks.transforms.FaceTrackingConfig.num_threads`), so every item is bit-identical for any
 number of ranks and workers (only the order in which a ``DataLoader`` interleaves the workers' items differs).
