@@ -230,8 +230,10 @@ def clip_bounds(
         ([], [(0, 1), (1, 2), (2, 3)])
 
     Raises:
-        ValueError: ``num_frames`` is not an int >= 0, or ``clip_length`` / ``stride`` not a positive int or None (a
-            length of 0 gave empty clips ``(0, 0), (2, 2), ...``, a stride of 0 range()'s message).
+        TypeError: ``num_frames`` is not an int, or ``clip_length`` / ``stride`` neither an int nor None (numpy
+            integers are ints).
+        ValueError: ``num_frames`` is negative, or ``clip_length`` / ``stride`` not positive (a length of 0 gave
+            empty clips ``(0, 0), (2, 2), ...``, a stride of 0 range()'s message).
     """
     num_frames = check_int(num_frames, "num_frames", 0)
     clip_length = check_optional_int(clip_length, "clip_length", 1)

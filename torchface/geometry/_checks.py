@@ -1,4 +1,5 @@
-"""Input validation shared by the geometry modules (public-boundary checks, never inside hot loops)."""
+"""Input validation shared by the geometry modules and the settings dataclasses (public-boundary checks, never inside
+hot loops)."""
 
 from __future__ import annotations
 
