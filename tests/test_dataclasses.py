@@ -9,6 +9,8 @@ import importlib
 import inspect
 import pkgutil
 
+import numpy as np
+import pytest
 import torch
 
 import torchface
@@ -45,3 +47,108 @@ def test_a_result_compares_and_hashes_without_error():
     same_tensors = dataclasses.replace(r)
     assert r == r and r != same_tensors and same_tensors in [r, same_tensors]
     assert len({r, same_tensors}) == 2
+
+
+# --- Settings: one rule for flags and counts -------------------------------------------------------------------------
+# A bool field takes a bool or a numpy bool (stored as bool); anything else is a TypeError naming the field ("no" was
+# true). An int field takes an int or a numpy integer (stored as int); a float, a string or a bool is a TypeError
+# naming the field (PyTorch's convention), a value out of range a ValueError.
+
+
+def _settings() -> dict[type, dict]:
+    """The settings dataclasses, each with the arguments it needs."""
+    from torchface.job import JobConfig
+    from torchface.solver.least_squares import SolverConfig
+    from torchface.synth.labelled import ClipSpec
+    from torchface.template.dissimilarity import DissimilarityConfig
+    from torchface.template.management import TemplateConfig
+    from torchface.tracker.fit import FitConfig
+    from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.step import TrackerConfig
+    from training_hooks.datasets import DatasetConfig
+    from training_hooks.layer import LayerConfig
+    from training_hooks.transforms import FaceTrackingConfig
+
+    clip = dict(num_frames=4, width=64, height=48, distance_mm=600.0, ypr_deg=(0.0, 0.0, 0.0),
+                translation_mm=(0.0, 0.0, 0.0), anim=torch.zeros(11), ambient=0.45, light_direction=(0.0, 0.0, -1.0),
+                light_intensity=0.55)  # fmt: skip
+    return {TrackerConfig: {}, FitConfig: {}, TemplateConfig: {}, DissimilarityConfig: {}, LookaheadConfig: {},
+            SolverConfig: {}, JobConfig: {"out_dir": "out"}, DatasetConfig: {"clip_length": 4}, LayerConfig: {},
+            FaceTrackingConfig: {}, ClipSpec: clip}  # fmt: skip
+
+
+#: A valid value of the int fields whose default is None.
+_VALID_FOR_NONE = {"clip_stride": 2, "min_separation": 5, "shape_units": (0, 2)}
+
+
+def _kinds(cls: type) -> dict[str, str]:
+    """``{field: "bool" | "int" | "ints"}`` of the flag, count and count-tuple fields of ``cls``."""
+    kinds = {}
+    for f in dataclasses.fields(cls):
+        t = str(f.type).replace(" | None", "")
+        if t in ("bool", "int"):
+            kinds[f.name] = t
+        elif t == "tuple[int, ...]":
+            kinds[f.name] = "ints"
+    return kinds
+
+
+def test_every_config_dataclass_is_among_the_checked_settings():
+    """A new ``...Config`` joins :func:`_settings` (and so the tests below)."""
+    configs = set()
+    packages = [(torchface.__path__, "torchface."), (training_hooks.__path__, "training_hooks.")]
+    for info in (i for path, prefix in packages for i in pkgutil.walk_packages(path, prefix)):
+        module = importlib.import_module(info.name)
+        for name, obj in vars(module).items():
+            if inspect.isclass(obj) and dataclasses.is_dataclass(obj) and obj.__module__ == module.__name__:
+                if name.endswith("Config") and _kinds(obj):
+                    configs.add(obj)
+    assert configs and configs <= set(_settings())
+
+
+def test_bool_settings_take_bools_and_numpy_bools_only():
+    """``TrackerConfig(use_illumination="x")``, ``JobConfig(convert="no")``, ``LayerConfig(keep_expression=1)`` and
+    the like were taken (as true, or as what a later ``if`` made of them); ``TemplateConfig`` alone checked."""
+    checked = 0
+    for cls, base in _settings().items():
+        for name, kind in _kinds(cls).items():
+            if kind != "bool":
+                continue
+            default = getattr(cls(**base), name)
+            for bad in ("no", 1, 0, None):
+                with pytest.raises(TypeError, match=rf"\b{name} must be a bool"):
+                    cls(**{**base, name: bad})
+            got = getattr(cls(**{**base, name: np.bool_(not default)}), name)
+            assert type(got) is bool and got is (not default), (cls.__name__, name)
+            checked += 1
+    assert checked >= 20
+
+
+def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers():
+    """A float, string or bool count was a ValueError in some settings ("max_frames must be an int >= 2") and a
+    TypeError in others, or was taken (``JobConfig(normalised_size=128.0)``, ``LayerConfig(unrolled_levels=1.0)``,
+    ``LookaheadConfig(min_keyframes=True)``, ``DatasetConfig(seed=None)``); numpy integers were refused by some
+    (``max_batch``, ``TemplateConfig``'s counts) and kept as numpy scalars by others."""
+    checked = 0
+    for cls, base in _settings().items():
+        for name, kind in _kinds(cls).items():
+            if kind == "bool":
+                continue
+            value = getattr(cls(**base), name)
+            value = _VALID_FOR_NONE[name] if value is None else value
+            if kind == "int":
+                bads: tuple = (float(value), str(value), True)
+                numpy_value: object = np.int64(value)
+            else:
+                bads = ((float(value[0]), *value[1:]), (str(value[0]), *value[1:]), (True, *value[1:]))
+                numpy_value = tuple(np.int64(v) for v in value)
+            for bad in bads:
+                with pytest.raises(TypeError, match=rf"\b{name}(\[0\])? must be an int"):
+                    cls(**{**base, name: bad})
+            got = getattr(cls(**{**base, name: numpy_value}), name)
+            if kind == "int":
+                assert type(got) is int and got == value, (cls.__name__, name)
+            else:
+                assert type(got) is tuple and all(type(v) is int for v in got) and got == tuple(value), (cls.__name__, name)
+            checked += 1
+    assert checked >= 35

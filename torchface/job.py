@@ -67,6 +67,7 @@ from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, accepts_near, usable_detection
+from torchface.geometry._checks import check_bool, check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -181,12 +182,12 @@ class JobConfig:
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
+        for name in ("resume", "convert", "meshes"):  # "no" was true
+            object.__setattr__(self, name, check_bool(getattr(self, name), name))
+        for name, low in (("normalised_size", None), ("redetect_after", 0), ("max_batch", 1)):
+            object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         if self.normalised_size < 16 or self.normalised_size % 2:  # mp4v keeps even sides: 17 was written 16x16
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
-        if isinstance(self.max_batch, bool) or not isinstance(self.max_batch, int) or self.max_batch < 1:
-            raise ValueError(f"max_batch must be an integer >= 1, got {self.max_batch!r}")
-        if self.redetect_after < 0:
-            raise ValueError(f"redetect_after must be >= 0, got {self.redetect_after}")
         if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
             raise ValueError(f"redetect_below must be a finite confidence, got {self.redetect_below}")
 

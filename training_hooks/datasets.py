@@ -74,6 +74,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from torchface.geometry._checks import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.video import open_frames, opencv_path
@@ -185,15 +186,13 @@ class DatasetConfig:
         if not isinstance(self.tracking, FaceTrackingConfig):
             raise TypeError(f"tracking must be a FaceTrackingConfig, got {type(self.tracking).__name__}")
         for name in ("clip_length", "clip_stride"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise ValueError(f"{name} must be a positive int or None, got {v!r}")
+            object.__setattr__(self, name, check_optional_int(getattr(self, name), name, 1))
         if self.clip_stride is not None and self.clip_length is None:
             raise ValueError("clip_stride needs clip_length")
-        if isinstance(self.shuffle_buffer, bool) or not isinstance(self.shuffle_buffer, int) or self.shuffle_buffer < 0:
-            raise ValueError(f"shuffle_buffer must be an int >= 0, got {self.shuffle_buffer!r}")
-        if not isinstance(self.shard_ranks, bool):
-            raise TypeError(f"shard_ranks must be a bool, got {type(self.shard_ranks).__name__}")
+        object.__setattr__(self, "shuffle_buffer", check_int(self.shuffle_buffer, "shuffle_buffer", 0))
+        object.__setattr__(self, "seed", check_int(self.seed, "seed"))  # (was not checked: 2.5 or None seeded a draw)
+        for name in ("keep_short_clips", "convert", "shard_ranks"):  # "no" was true
+            object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not isinstance(self.rank_balance, RankBalance):
             raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
         if self.cache_dir is not None:
@@ -232,14 +231,14 @@ def clip_bounds(
         ([], [(0, 1), (1, 2), (2, 3)])
 
     Raises:
-        ValueError: ``num_frames`` is not an int >= 0, or ``clip_length`` / ``stride`` not a positive int or None (a
-            length of 0 gave empty clips ``(0, 0), (2, 2), ...``, a stride of 0 range()'s message).
+        TypeError: ``num_frames`` is not an int, or ``clip_length`` / ``stride`` neither an int nor None (numpy
+            integers are ints).
+        ValueError: ``num_frames`` is negative, or ``clip_length`` / ``stride`` not positive (a length of 0 gave
+            empty clips ``(0, 0), (2, 2), ...``, a stride of 0 range()'s message).
     """
-    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 0:
-        raise ValueError(f"num_frames must be an int >= 0, got {num_frames!r}")
-    for name, v in (("clip_length", clip_length), ("stride", stride)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ValueError(f"{name} must be a positive int or None, got {v!r}")
+    num_frames = check_int(num_frames, "num_frames", 0)
+    clip_length = check_optional_int(clip_length, "clip_length", 1)
+    stride = check_optional_int(stride, "stride", 1)
     if clip_length is None:
         return [(t, t + 1) for t in range(num_frames)]
     stride = clip_length if stride is None else stride

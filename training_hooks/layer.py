@@ -47,6 +47,7 @@ from torch import Tensor, nn
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.geometry._checks import check_bool, check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -138,12 +139,10 @@ class LayerConfig:
             raise TypeError(f"start must be an UnrollStart, got {type(self.start).__name__}")
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
-        if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 4:
-            raise ValueError(f"size must be an int >= 4, got {self.size!r}")
-        if isinstance(self.unrolled_iterations, bool) or not isinstance(self.unrolled_iterations, int):
-            raise TypeError(f"unrolled_iterations must be an int, got {type(self.unrolled_iterations).__name__}")
-        if self.unrolled_iterations < 0:
-            raise ValueError(f"unrolled_iterations must be >= 0, got {self.unrolled_iterations}")
+        for name, low in (("size", 4), ("unrolled_iterations", 0), ("unrolled_levels", None)):
+            object.__setattr__(self, name, check_int(getattr(self, name), name, low))
+        for name in ("keep_expression", "normalise_light"):  # "no" was true
+            object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not 1 <= self.unrolled_levels <= self.tracker.num_levels:
             raise ValueError(
                 f"unrolled_levels must be in [1, tracker.num_levels = {self.tracker.num_levels}], "
@@ -243,8 +242,8 @@ def unrolled_params(
         raise TypeError(f"start must be a ({B}, {layout.size}) {model.dtype} tensor, got {type(start).__name__}")
     if tuple(start.shape) != (B, layout.size) or start.dtype != model.dtype:
         raise ValueError(f"start must be ({B}, {layout.size}) {model.dtype}, got {(tuple(start.shape), start.dtype)}")
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
-        raise ValueError(f"iterations must be an int >= 0, got {iterations!r}")
+    iterations = check_int(iterations, "iterations", 0)
+    levels = check_int(levels, "levels")
     if not 1 <= levels <= config.num_levels:
         raise ValueError(f"levels must be in [1, {config.num_levels}], got {levels}")
     if len(state.templates) != config.num_levels:

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+from torchface.geometry._checks import check_bool, check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -117,16 +118,15 @@ class FaceTrackingConfig:
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
-        if isinstance(self.face_size, bool) or not isinstance(self.face_size, int) or self.face_size < 16:
-            raise ValueError(f"face_size must be an int >= 16, got {self.face_size!r}")
+        object.__setattr__(self, "face_size", check_int(self.face_size, "face_size", 16))
+        object.__setattr__(self, "keep_expression", check_bool(self.keep_expression, "keep_expression"))
         if not 0.0 <= float(self.face_margin) <= 0.45:
             raise ValueError(f"face_margin must be in [0, 0.45], got {self.face_margin}")
         if not isinstance(self.face_storage, FaceStorage):
             raise TypeError(f"face_storage must be a FaceStorage, got {type(self.face_storage).__name__}")
         if self.focal is not None and not float(self.focal) > 0:
             raise ValueError(f"focal must be positive pixels or None, got {self.focal}")
-        if isinstance(self.num_threads, bool) or not isinstance(self.num_threads, int) or self.num_threads < 1:
-            raise ValueError(f"num_threads must be an int >= 1, got {self.num_threads!r}")
+        object.__setattr__(self, "num_threads", check_int(self.num_threads, "num_threads", 1))
 
 
 @contextmanager
@@ -239,8 +239,7 @@ class TrackedSequence:
                 raise ValueError(f"{name} must be {shape} {dtype} (T = {T}, S = {S}), got {tuple(x.shape)} {x.dtype}")
         if len(self.frame_size) != 2 or any(int(v) < 1 for v in self.frame_size):
             raise ValueError(f"frame_size must be (H, W), got {self.frame_size}")
-        if isinstance(self.first_frame, bool) or not isinstance(self.first_frame, int) or self.first_frame < 0:
-            raise ValueError(f"first_frame must be an int >= 0, got {self.first_frame!r}")
+        object.__setattr__(self, "first_frame", check_int(self.first_frame, "first_frame", 0))
         finite = [self.confidence, self.axis_angle, self.translation, self.anim_coeffs, self.expression,
                   self.illumination]
         if not all(bool(torch.isfinite(x).all()) for x in finite):

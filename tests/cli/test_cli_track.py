@@ -467,9 +467,11 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
         assert most[0] == batch and not is_open  # (all three were open at once)
         assert json.loads((out / "a.json").read_text())["config"]["batch_streams"] == batch
         assert json.loads((out / "small.json").read_text())["config"]["batch_streams"] == 1
-    for bad in (0, 1.5, True):
-        with pytest.raises(ValueError, match="max_batch must be an integer >= 1"):
-            JobConfig(out_dir=tmp_path, max_batch=bad)
+    with pytest.raises(ValueError, match="max_batch must be an int >= 1"):
+        JobConfig(out_dir=tmp_path, max_batch=0)
+    for bad in (1.5, True):  # a wrong type is a TypeError (it was a ValueError)
+        with pytest.raises(TypeError, match="max_batch must be an int >= 1"):
+            JobConfig(out_dir=tmp_path, max_batch=bad)  # type: ignore[arg-type]
 
 
 def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys, monkeypatch):

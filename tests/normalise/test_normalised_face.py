@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 import torch
 
@@ -466,6 +467,9 @@ def test_errors(model, layout):
         normalised_face(frames, model, layout, shape, alpha, aa, t, None, CAM, min_facing_cos=1.0)
     with pytest.raises(ValueError, match="size must be"):
         build_normalised_layout(model, 2)
+    for bad in (32.0, "32", True):  # a wrong type is a TypeError (it was a ValueError)
+        with pytest.raises(TypeError, match="size must be an int"):
+            build_normalised_layout(model, bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="margin"):
         build_normalised_layout(model, 32, margin=0.6)
     with pytest.raises(ValueError, match="distance_mm"):
@@ -475,6 +479,14 @@ def test_errors(model, layout):
     with pytest.raises(ValueError, match="mask must be"):
         NormalisedFaceLayout(8, 0.0, Intrinsics.default(8, 8), torch.zeros(3), 1, torch.zeros(1, dtype=torch.long),
                              torch.zeros(1, dtype=torch.long), torch.zeros(1, 3), torch.zeros(8, 8))  # fmt: skip
+
+
+def test_a_numpy_integer_size_is_taken_as_an_int(model):
+    """``NormalisedFace(size=np.int64(32))`` was refused ("size must be an int >= 4, got np.int64(32)") while
+    :class:`Intrinsics` takes numpy integers."""
+    face = NormalisedFace(model, size=np.int64(32), margin=0.1)  # type: ignore[arg-type]
+    assert type(face.layout.size) is int and face.layout.size == 32
+    assert face.layout.mask.shape == (32, 32)
 
 
 def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject, layout):

@@ -608,8 +608,10 @@ def test_min_valid_lets_a_prior_stand_in_for_residuals() -> None:
     ref = torch.linalg.solve(A[0].T @ A[0] + torch.diag(lam), A[0].T @ b[0])
     assert res.status.tolist() == [CONV]
     torch.testing.assert_close(res.params[0], ref, rtol=0, atol=1e-12)
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="min_valid"):
+    with pytest.raises(ValueError, match="min_valid"):
+        least_squares(fn, x0, GN, prior_precision=lam, min_valid=-1)
+    for bad in (1.5, True):  # a wrong type is a TypeError (it was a ValueError)
+        with pytest.raises(TypeError, match="min_valid"):
             least_squares(fn, x0, GN, prior_precision=lam, min_valid=bad)
 
 

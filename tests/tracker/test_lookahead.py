@@ -339,11 +339,27 @@ def test_initialise_rejects_a_fit_of_another_batch_and_casts_its_dtype(model):
         (dict(yaw_deg=0.0), "yaw_deg"), (dict(max_frames=1), "max_frames"), (dict(min_keyframes=3), "min_keyframes"), (dict(min_confidence=1.5), "min_confidence"),
         (dict(photometric_weight=0.0), "photometric_weight"), (dict(iterations=()), "iterations"),
         (dict(shape_units=(1, 1)), "shape_units"), (dict(max_points=0), "max_points"),
-        (dict(silhouette_margin=-1), "silhouette_margin"), (dict(silhouette_margin=1.5), "silhouette_margin"),
+        (dict(silhouette_margin=-1), "silhouette_margin"),
     ],
 )  # fmt: skip
 def test_settings_are_validated(kwargs, match):
     with pytest.raises(ValueError, match=match):
+        LookaheadConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(silhouette_margin=1.5), "silhouette_margin"), (dict(max_frames=150.0), "max_frames"),
+        (dict(min_keyframes=1.0), "min_keyframes"), (dict(min_keyframes=True), "min_keyframes"),
+        (dict(max_points=3000.0), "max_points"), (dict(iterations=(10, 8.5, 6)), r"iterations\[1\]"),
+        (dict(shape_units=(0, "1")), r"shape_units\[1\]"), (dict(fit_expression="no"), "fit_expression"),
+    ],
+)  # fmt: skip
+def test_settings_of_the_wrong_type_are_type_errors(kwargs, match):
+    """A wrong type is a TypeError naming the setting (silhouette_margin=1.5 was a ValueError; min_keyframes=1.0,
+    max_points=3000.0 and fit_expression="no" were taken)."""
+    with pytest.raises(TypeError, match=match):
         LookaheadConfig(**kwargs)
 
 

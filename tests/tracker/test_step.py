@@ -384,8 +384,10 @@ def test_config_validation():
         TrackerConfig(num_levels=2, iterations=(3, 3, 3))
     with pytest.raises(ValueError, match="max_points"):
         TrackerConfig(max_points=4)
-    for bad in (-1, 1.0, True):
-        with pytest.raises(ValueError, match="selection_seed"):
+    with pytest.raises(ValueError, match="selection_seed"):
+        TrackerConfig(selection_seed=-1)
+    for bad in (1.0, True):  # a wrong type is a TypeError (it was a ValueError)
+        with pytest.raises(TypeError, match="selection_seed"):
             TrackerConfig(selection_seed=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="non-negative"):
         TrackerConfig(gradient_threshold=-1.0)
@@ -419,10 +421,13 @@ def test_config_refuses_settings_that_failed_later_or_tracked_wrongly():
     for name, bad in (("fit", None), ("fit", {}), ("template", None), ("template", "default")):
         with pytest.raises(TypeError, match=f"{name} must be a"):
             TrackerConfig(**{name: bad})
-    for name, bad in (("num_levels", 2.0), ("max_points", 300.5), ("refine_iterations", -1), ("min_points", 1.5),
-                      ("refine_iterations", 2.5), ("visibility_interval", float("nan")), ("visibility_interval", 0)):
-        with pytest.raises(ValueError, match=f"{name} must be an int"):
+    for name, bad in (("num_levels", 2.0), ("max_points", 300.5), ("min_points", 1.5), ("refine_iterations", 2.5),
+                      ("visibility_interval", float("nan"))):  # (a wrong type was a ValueError)
+        with pytest.raises(TypeError, match=f"{name} must be an int"):
             TrackerConfig(**{name: bad, **({"iterations": (6, 5)} if name == "num_levels" else {})})
+    for name, bad in (("refine_iterations", -1), ("visibility_interval", 0)):
+        with pytest.raises(ValueError, match=f"{name} must be an int"):
+            TrackerConfig(**{name: bad})
     for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
         for bad in (float("nan"), float("inf"), -1.0, "0.1"):
             with pytest.raises(ValueError, match=name):
@@ -437,7 +442,8 @@ def test_config_refuses_settings_that_failed_later_or_tracked_wrongly():
             TrackerConfig(robust_scale_floor=floors)
     # What stays accepted: the defaults, 0 for the floors, thresholds and the refinement, numpy integers.
     TrackerConfig(refine_iterations=0, refine_scale_floor=0.0, gradient_threshold=0, min_contrast=0.0, robust_c=None)
-    assert TrackerConfig(num_levels=np.int64(2), iterations=(6, 5)).num_levels == 2
+    config = TrackerConfig(num_levels=np.int64(2), iterations=(np.int64(6), 5))  # type: ignore[arg-type]
+    assert type(config.num_levels) is int and config.iterations == (6, 5) and type(config.iterations[0]) is int
 
 
 def test_face_tracker_module(model, two_streams, l2_runs):

@@ -148,10 +148,14 @@ def test_clip_bounds():
     assert clip_bounds(10, 3, 5, True) == [(0, 3), (5, 8)]  # a stride past the end starts no clip
     assert clip_bounds(12, 3, 5, True) == [(0, 3), (5, 8), (10, 12)]
     # A length of 0 gave empty clips [(0, 0), (2, 2), ...], -1 frames no clip, a stride of 0 or 1.5 range()'s error.
-    for args, name in (((10, 0, 2), "clip_length"), ((10, 4, 0), "stride"), ((10, 4, 1.5), "stride"),
-                       ((10, 2.0, None), "clip_length"), ((-1, 4, 2), "num_frames"), ((10.0, 4, 2), "num_frames")):
+    for args, name in (((10, 0, 2), "clip_length"), ((10, 4, 0), "stride"), ((-1, 4, 2), "num_frames")):
         with pytest.raises(ValueError, match=name):
+            clip_bounds(*args, False)
+    # A wrong type is a TypeError (it was a ValueError); numpy integers are taken as ints.
+    for args, name in (((10, 4, 1.5), "stride"), ((10, 2.0, None), "clip_length"), ((10.0, 4, 2), "num_frames")):
+        with pytest.raises(TypeError, match=name):
             clip_bounds(*args, False)  # type: ignore[arg-type]
+    assert clip_bounds(np.int64(6), np.int64(4), np.int32(3), True) == [(0, 4), (3, 6)]  # type: ignore[arg-type]
 
 
 def test_frame_folder_dataset_equals_video_dataset(clips, config, tmp_path):

@@ -119,9 +119,11 @@ def test_plot_track_num_aus_zero_shows_none_and_negative_is_refused(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert plot_track(cols, rows, tmp_path / "p.png", num_aus=0).is_file()
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="num_aus"):
-            plot_track(cols, rows, tmp_path / "q.png", num_aus=bad)
+    with pytest.raises(ValueError, match="num_aus"):
+        plot_track(cols, rows, tmp_path / "q.png", num_aus=-1)
+    for bad in (1.5, True):  # a wrong type is a TypeError (it was a ValueError)
+        with pytest.raises(TypeError, match="num_aus"):
+            plot_track(cols, rows, tmp_path / "q.png", num_aus=bad)  # type: ignore[arg-type]
     assert not (tmp_path / "q.png").exists()
 
 

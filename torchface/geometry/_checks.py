@@ -1,7 +1,11 @@
-"""Input validation shared by the geometry modules (public-boundary checks, never inside hot loops)."""
+"""Input validation shared by the geometry modules and the settings dataclasses (public-boundary checks, never inside
+hot loops)."""
 
 from __future__ import annotations
 
+import numbers
+
+import numpy as np
 import torch
 
 from torchface.geometry.camera import Intrinsics
@@ -32,6 +36,65 @@ def check_tensor(x: object, name: str, trailing: tuple[int, ...], min_dim: int |
         want = "(..., " + ", ".join(str(s) for s in trailing) + ")"
         raise ValueError(f"{name} must have shape {want} with at least {need} dims, got {tuple(x.shape)}")
     return x
+
+
+def check_bool(value: object, name: str) -> bool:
+    """``value`` as a Python bool: a ``bool`` or a numpy bool (``np.True_``, as an element of a numpy array).
+
+    The settings' one rule for flags: ``"no"``, ``1`` or ``None`` were taken as true or false without a word.
+
+    Raises:
+        TypeError: ``value`` is of another type (the message names the setting ``name``).
+    """
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {type(value).__name__} {value!r}")
+    return bool(value)
+
+
+def check_int(value: object, name: str, low: int | None = None) -> int:
+    """``value`` as a Python int: an ``int`` or a numpy integer (``np.int64(32)``), never a bool.
+
+    The settings' one rule for counts and sizes, PyTorch's convention: a value of the wrong type (``2.0``, ``"3"``,
+    ``True``) is a ``TypeError``, one out of range a ``ValueError``; both messages say what was expected. Numpy
+    integers are converted, so that a setting holds a Python int (as :class:`~torchface.geometry.Intrinsics`' sizes).
+
+    Args:
+        value: the setting's value.
+        name: the setting's name, for the messages.
+        low: the least value allowed (None: any).
+
+    Raises:
+        TypeError: ``value`` is not an integer.
+        ValueError: it is below ``low``.
+    """
+    return _check_int(value, name, low, "")
+
+
+def check_optional_int(value: object, name: str, low: int | None = None) -> int | None:
+    """``None``, or ``value`` checked and converted as :func:`check_int` does."""
+    return None if value is None else _check_int(value, name, low, " or None")
+
+
+def _check_int(value: object, name: str, low: int | None, extra: str) -> int:
+    want = ("an int" if low is None else f"an int >= {low}") + extra
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be {want}, got {type(value).__name__} {value!r}")
+    if low is not None and value < low:
+        raise ValueError(f"{name} must be {want}, got {value!r}")
+    return int(value)
+
+
+def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, ...]:
+    """``values`` (a tuple or list) as a tuple of Python ints, each checked as :func:`check_int` does (``name[i]`` in
+    the messages).
+
+    Raises:
+        TypeError: ``values`` is not a tuple or list, or an element is not an integer.
+        ValueError: an element is below ``low``.
+    """
+    if not isinstance(values, (tuple, list)):
+        raise TypeError(f"{name} must be a tuple of ints, got {type(values).__name__} {values!r}")
+    return tuple(check_int(v, f"{name}[{i}]", low) for i, v in enumerate(values))
 
 
 def check_exact_dim(x: torch.Tensor, name: str, dims: tuple[int, ...], shape_doc: str) -> None:

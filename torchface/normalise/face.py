@@ -60,7 +60,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_ill
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_intrinsics
+from torchface.geometry._checks import check_int, check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.mesh import vertex_normals_and_backfacing
 from torchface.geometry.projection import project_points
@@ -248,7 +248,7 @@ def build_normalised_layout(
         :class:`NormalisedFaceLayout`.
 
     Raises:
-        TypeError: ``model`` is not a :class:`FaceModel`, or not float32 / float64.
+        TypeError: ``model`` is not a :class:`FaceModel`, or not float32 / float64, or ``size`` is not an int.
         ValueError: a setting is out of range, or no pixel sees the face.
 
     Example:
@@ -260,8 +260,7 @@ def build_normalised_layout(
     if not isinstance(model, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     _check_precision(model)
-    if isinstance(size, bool) or not isinstance(size, int) or size < 4:
-        raise ValueError(f"size must be an int >= 4, got {size!r}")
+    size = check_int(size, "size", 4)
     if not 0.0 <= float(margin) <= 0.45:
         raise ValueError(f"margin must be in [0, 0.45] (a fraction of the image size), got {margin}")
     used = model.mean[model.surface_vertex_mask]

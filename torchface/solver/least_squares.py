@@ -30,6 +30,7 @@ from typing import Callable
 
 import torch
 
+from torchface.geometry._checks import check_bool, check_int, check_optional_int
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 
 __all__ = [
@@ -106,10 +107,9 @@ class SolverConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.method, SolverMethod):
             raise TypeError(f"method must be a SolverMethod, got {type(self.method).__name__}")
-        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int):
-            raise TypeError(f"max_iterations must be an int, got {type(self.max_iterations).__name__}")
-        if self.max_iterations < 0:
-            raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations}")
+        object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 0))
+        for name in ("marquardt_scaling", "differentiable"):  # "no" was true
+            object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not (0.0 < self.min_damping <= self.initial_damping <= self.max_damping):
             raise ValueError(
                 "damping must satisfy 0 < min_damping <= initial_damping <= max_damping, got "
@@ -415,8 +415,7 @@ def least_squares(
         raise ValueError("prior_mean needs prior_precision")
     mu = None if prior_mean is None else _batched_param("prior_mean", prior_mean, B, P, dtype)
     use_robust = robust is not None and robust.kind is not RobustKind.NONE
-    if min_valid is not None and (isinstance(min_valid, bool) or not isinstance(min_valid, int) or min_valid < 0):
-        raise ValueError(f"min_valid must be a non-negative int or None, got {min_valid!r}")
+    min_valid = check_optional_int(min_valid, "min_valid", 0)
 
     grad_ctx = contextlib.nullcontext() if config.differentiable else torch.no_grad()
     with grad_ctx:

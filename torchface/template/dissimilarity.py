@@ -63,6 +63,7 @@ from torchface._autocast import full_precision
 from torchface import _native
 from torchface._scalar import isfinite, scalar
 from torchface.backend import Backend, use_native
+from torchface.geometry._checks import check_bool, check_int, check_optional_int
 
 __all__ = [
     "LKResult",
@@ -216,7 +217,7 @@ def inverse_compositional_lk(
         :class:`LKResult`.
 
     Raises:
-        TypeError: an argument is not a tensor / has the wrong dtype.
+        TypeError: an argument is not a tensor / has the wrong dtype, or ``patch_size`` / ``iterations`` is not an int.
         ValueError: shapes do not match or a setting is out of range.
 
     Example:
@@ -236,10 +237,8 @@ def inverse_compositional_lk(
         raise TypeError(f"centres must be a torch.Tensor of shape (B, K, 2), got {type(centres).__name__}")
     if centres.dim() != 3 or centres.shape[0] != reference.shape[0] or centres.shape[-1] != 2:
         raise ValueError(f"centres must be (B, K, 2) with B={reference.shape[0]}, got {tuple(centres.shape)}")
-    if isinstance(patch_size, bool) or not isinstance(patch_size, int) or patch_size < 3:
-        raise ValueError(f"patch_size must be an int >= 3, got {patch_size!r}")
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise ValueError(f"iterations must be an int >= 1, got {iterations!r}")
+    patch_size = check_int(patch_size, "patch_size", 3)
+    iterations = check_int(iterations, "iterations", 1)
     if not tolerance > 0:
         raise ValueError(f"tolerance must be positive, got {tolerance}")
     if max_displacement is not None and not max_displacement > 0:
@@ -467,9 +466,9 @@ class DissimilarityConfig:
 
     def __post_init__(self) -> None:
         for name in ("patch_size", "num_patches", "iterations", "min_patches", "border"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+            object.__setattr__(self, name, check_int(getattr(self, name), name))
+        object.__setattr__(self, "min_separation", check_optional_int(self.min_separation, "min_separation", 1))
+        object.__setattr__(self, "project_out_bias", check_bool(self.project_out_bias, "project_out_bias"))
         if self.patch_size < 3 or self.patch_size % 2 == 0:
             raise ValueError(f"patch_size must be an odd int >= 3, got {self.patch_size}")
         if self.num_patches < 1 or self.iterations < 1 or self.min_patches < 1 or self.border < 0:
@@ -477,10 +476,6 @@ class DissimilarityConfig:
                 "num_patches, iterations and min_patches must be >= 1 and border >= 0, got "
                 f"{self.num_patches}, {self.iterations}, {self.min_patches}, {self.border}"
             )
-        if self.min_separation is not None and (
-            isinstance(self.min_separation, bool) or not isinstance(self.min_separation, int) or self.min_separation < 1
-        ):
-            raise ValueError(f"min_separation must be an int >= 1 or None, got {self.min_separation!r}")
         if not (self.tolerance > 0 and self.max_displacement > 0 and self.d0 > 0):
             raise ValueError(
                 f"tolerance, max_displacement and d0 must be positive, got {self.tolerance}, "

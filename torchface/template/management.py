@@ -57,7 +57,7 @@ from torch import Tensor
 from torchface.appearance.illumination import remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
-from torchface.geometry._checks import check_intrinsics
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -277,15 +277,12 @@ class TemplateConfig:
 
     def __post_init__(self) -> None:
         for name in ("enabled", "mosaic", "texture_update"):
-            if not isinstance(getattr(self, name), bool):
-                raise TypeError(f"{name} must be a bool, got {type(getattr(self, name)).__name__}")
+            object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not isinstance(self.dissimilarity, DissimilarityConfig):
             raise TypeError(f"dissimilarity must be a DissimilarityConfig, got {type(self.dissimilarity).__name__}")
         for name in ("max_entries", "normalised_size", "entry_stride", "lost_after", "lost_after_very_low",
                      "recovery_every", "search_points"):  # fmt: skip
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+            object.__setattr__(self, name, check_int(getattr(self, name), name))
         if min(self.max_entries, self.lost_after, self.lost_after_very_low, self.recovery_every) < 1:
             raise ValueError(
                 "max_entries, lost_after, lost_after_very_low and recovery_every must be >= 1, got "

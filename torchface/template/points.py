@@ -16,6 +16,7 @@ from torch import Tensor
 
 from torchface.appearance.sampling import image_with_gradients
 from torchface.backend import Backend, use_native
+from torchface.geometry._checks import check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
@@ -206,8 +207,7 @@ def select_template_pixels(
         :class:`TemplatePixels` with ``N = max_points`` slots (:func:`build_template` completes it).
     """
     full_h, full_w = intrinsics.height, intrinsics.width
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    seed = check_int(seed, "seed", 0)
     if offsets is None:
         if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
             raise ValueError(f"gray must be (B, 1, {full_h}, {full_w}), got {tuple(gray.shape)}")

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
-from torchface.geometry._checks import check_intrinsics
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
@@ -66,10 +66,8 @@ class FitConfig:
         if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
                                    or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
             raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
-        if not isinstance(self.fit_expression, bool):  # "no" was true
-            raise TypeError(f"fit_expression must be a bool, got {type(self.fit_expression).__name__}")
-        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int):  # 2.5 failed at the fit
-            raise TypeError(f"max_iterations must be an int, got {type(self.max_iterations).__name__}")
+        object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))  # "no" was true
+        object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
         shape = self.shape_prior_precision
         precisions = shape if isinstance(shape, tuple) else (shape,)
         if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
@@ -85,8 +83,6 @@ class FitConfig:
             raise ValueError("prior precisions must be finite and non-negative")
         if not self.shape_bound > 0:
             raise ValueError(f"shape_bound must be positive, got {self.shape_bound}")
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
 
 
 @dataclass(frozen=True, eq=False)

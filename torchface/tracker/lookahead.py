@@ -43,6 +43,7 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.backend import Backend
+from torchface.geometry._checks import check_bool, check_int, check_ints
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix, hat, left_jacobian, matrix_to_axis_angle, matrix_to_euler
@@ -127,8 +128,12 @@ class LookaheadConfig:
     def __post_init__(self) -> None:
         if not 0.0 < self.yaw_deg < 90.0:
             raise ValueError(f"yaw_deg must be in (0, 90), got {self.yaw_deg}")
-        if isinstance(self.max_frames, bool) or not isinstance(self.max_frames, int) or self.max_frames < 2:
-            raise ValueError(f"max_frames must be an int >= 2, got {self.max_frames!r}")
+        object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))
+        for name, low in (("max_frames", 2), ("min_keyframes", 1), ("max_points", 1), ("silhouette_margin", 0)):
+            object.__setattr__(self, name, check_int(getattr(self, name), name, low))
+        object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations", 0))
+        if self.shape_units is not None:
+            object.__setattr__(self, "shape_units", check_ints(self.shape_units, "shape_units", 0))
         if self.min_keyframes not in (1, 2):
             raise ValueError(f"min_keyframes must be 1 or 2 (one keyframe per side), got {self.min_keyframes!r}")
         if not 0.0 <= self.min_confidence <= 1.0:
@@ -138,19 +143,12 @@ class LookaheadConfig:
                 "photometric_weight and huber_k must be positive and min_facing_cos in [0, 1), got "
                 f"{self.photometric_weight}, {self.huber_k}, {self.min_facing_cos}"
             )
-        if not self.iterations or any(isinstance(i, bool) or not isinstance(i, int) or i < 0 for i in self.iterations):
+        if not self.iterations:
             raise ValueError(f"iterations must be a non-empty tuple of ints >= 0, got {self.iterations!r}")
-        if self.max_points < 1 or self.gradient_threshold < 0:
-            raise ValueError(f"max_points must be >= 1 and gradient_threshold >= 0, got {self.max_points}, "
-                             f"{self.gradient_threshold}")  # fmt: skip
-        if isinstance(self.silhouette_margin, bool) or not isinstance(self.silhouette_margin, int) \
-                or self.silhouette_margin < 0:
-            raise ValueError(f"silhouette_margin must be an int >= 0, got {self.silhouette_margin!r}")
+        if self.gradient_threshold < 0:
+            raise ValueError(f"gradient_threshold must be >= 0, got {self.gradient_threshold}")
         units = self.shape_units
-        if units is not None and (
-            not isinstance(units, tuple) or len(set(units)) != len(units)
-            or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in units)
-        ):  # fmt: skip
+        if units is not None and len(set(units)) != len(units):
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")
         if self.shape_prior_precision is not None:
             FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation

@@ -25,7 +25,7 @@ from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUM
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_intrinsics
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_ints
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
@@ -244,11 +244,12 @@ class TrackerConfig:
             raise TypeError(f"fit must be a FitConfig, got {type(self.fit).__name__}")
         if not isinstance(self.template, TemplateConfig):
             raise TypeError(f"template must be a TemplateConfig, got {type(self.template).__name__}")
+        for name in ("use_illumination", "use_expression", "zbuffer_visibility", "expression_prior_at_start"):
+            object.__setattr__(self, name, check_bool(getattr(self, name), name))  # "no" was true
         for name, low in (("num_levels", 1), ("max_points", 8), ("min_points", 0), ("refine_iterations", 0),
-                          ("visibility_interval", 1)):  # fmt: skip
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+                          ("visibility_interval", 1), ("selection_seed", 0)):  # fmt: skip
+            object.__setattr__(self, name, check_int(getattr(self, name), name, low))
+        object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations"))  # 6.5 was taken here
         for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
             value = getattr(self, name)
             if not isinstance(value, numbers.Real) or not (math.isfinite(value) and float(value) >= 0.0):
@@ -287,8 +288,6 @@ class TrackerConfig:
             raise ValueError(f"expression_prior_precision must be finite and >= 0, got {self.expression_prior_precision}")
         if not (math.isfinite(self.crop_margin) and self.crop_margin >= 0.0):
             raise ValueError(f"crop_margin must be finite and >= 0 (a fraction of the face's size), got {self.crop_margin}")
-        if isinstance(self.selection_seed, bool) or not isinstance(self.selection_seed, int) or self.selection_seed < 0:
-            raise ValueError(f"selection_seed must be an int >= 0, got {self.selection_seed!r}")
         if not (math.isfinite(self.min_face_width_px) and self.min_face_width_px >= 0.0):
             raise ValueError(f"min_face_width_px must be finite and >= 0 (pixels), got {self.min_face_width_px}")
         if not isinstance(self.robust, RobustKind):

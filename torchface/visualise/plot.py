@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from torchface._names import name_tuple
+from torchface.geometry._checks import check_int
 
 __all__ = ["au_groups", "plot_track"]
 
@@ -69,12 +70,11 @@ def plot_track(
             drawn as separate lines, one hiding the other, so the four lines of the plot showed two units.
 
     Raises:
-        TypeError: ``columns`` is one string.
+        TypeError: ``columns`` is one string, or ``num_aus`` is not an int.
         ValueError: a column the plot needs is missing, or ``num_aus`` is negative.
     """
     columns = name_tuple(columns, "columns")
-    if isinstance(num_aus, bool) or not isinstance(num_aus, (int, np.integer)) or num_aus < 0:
-        raise ValueError(f"num_aus must be an integer >= 0, got {num_aus!r}")  # (-1 showed all AUs but one)
+    num_aus = check_int(num_aus, "num_aus", 0)  # (-1 showed all AUs but one)
     rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
     idx = {c: i for i, c in enumerate(columns)}
     for need in ("timestamp", "yaw_deg", "pitch_deg", "roll_deg", "confidence", "success"):
