@@ -502,6 +502,13 @@ class TrackerState:
     anim_prior_mean: Tensor | None = None
     workspace: "StepWorkspace | None" = field(default=None, compare=False, repr=False)
 
+    @property
+    def num_levels(self) -> int:
+        """The pyramid levels the state is tracked with (one template each): the config's ``num_levels``, or more
+        where :func:`pyramid_for_faces` added coarser ones (:class:`~torchface.tracker.FaceTracker` and
+        ``torchface track`` do for large faces)."""
+        return len(self.templates)
+
     def detach(self) -> "TrackerState":
         """The state detached from the autograd graph: its ``params``, ``shape_coeffs``, ``anim_prior_mean`` and
         templates (the same objects where they hold no graph). Template management's state is built without one.
@@ -819,8 +826,9 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
     (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
     floors stay those of the coarsest and the finest level. ``torchface track`` does this for every video (and
-    batches only videos of one pyramid); :class:`~torchface.tracker.FaceTracker` and :func:`initialise` use the
-    config as given.
+    batches only videos of one pyramid), :class:`~torchface.tracker.FaceTracker` and ``training_hooks``'
+    tracking do by default (their ``pyramid="auto"``); :func:`initialise` and the other functions use the config
+    as given.
 
     Args:
         config: the settings to extend.
@@ -853,6 +861,19 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     extra = max(0, math.floor(math.log2(float(faces.min()) / PYRAMID_REFERENCE_FACE_PX) + 0.5))
     while extra > 0 and min(size) < 3 * 2 ** (config.num_levels + extra - 2):  # pyr_down's 3 pixels a side
         extra -= 1
+    return add_coarser_levels(config, extra)
+
+
+def add_coarser_levels(config: TrackerConfig, extra: int) -> TrackerConfig:
+    """``config`` with ``extra`` coarser pyramid levels (as :func:`pyramid_for_faces` adds them: each with the
+    coarsest level's ``iterations``); ``config`` itself for ``extra = 0``.
+
+    Example:
+        >>> add_coarser_levels(TrackerConfig(), 2).iterations
+        (6, 6, 6, 5, 4)
+    """
+    if isinstance(extra, bool) or not isinstance(extra, int) or extra < 0:
+        raise ValueError(f"extra must be an int >= 0, got {extra!r}")
     if extra == 0:
         return config
     return replace(config, num_levels=config.num_levels + extra,
