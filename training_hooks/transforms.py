@@ -126,7 +126,9 @@ class FaceTrackingConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
-        if not isinstance(self.pyramid, str) or self.pyramid not in PYRAMID_CHOICES:
+        if not isinstance(self.pyramid, str):
+            raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(self.pyramid).__name__}")
+        if self.pyramid not in PYRAMID_CHOICES:
             raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {self.pyramid!r}")
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")

@@ -95,6 +95,10 @@ class FaceTracker(nn.Module):
         ...     result = tracker(frames[:, t])                               # (B, 3, H, W) -> TrackResult
     """
 
+    #: (class defaults: for trackers pickled before these attributes existed)
+    pyramid: str = "auto"
+    _tracking: "tuple[TrackerConfig, TrackerConfig] | None" = None
+
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
         detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = LookaheadConfig(),
@@ -113,10 +117,6 @@ class FaceTracker(nn.Module):
         # (config, the config the sequence is tracked with): the levels pyramid="auto" added at initialise
         self._tracking: tuple[TrackerConfig, TrackerConfig] | None = None
         self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
-
-    #: (defaults for trackers pickled before these attributes existed)
-    pyramid: str = "auto"
-    _tracking: "tuple[TrackerConfig, TrackerConfig] | None" = None
 
     def __setattr__(self, name: str, value: Any) -> None:
         """Attribute assignment, ``config``, ``model``, ``detector``, ``refine_first`` and ``pyramid`` checked as the
