@@ -85,8 +85,8 @@ def test_readme_defaults_are_the_code_defaults():
     """Defaults the README quotes (each quoted as the README writes it, so that a change of either side fails)."""
     from torchface.job import JobConfig
     from torchface.template import DissimilarityConfig, TemplateConfig
-    from torchface.tracker import FitConfig, LookaheadConfig, TrackerConfig
-    from training_hooks import DatasetConfig, LayerConfig, LayerMode, RankBalance
+    from torchface.tracker import FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
+    from training_hooks import DatasetConfig, FaceTrackingConfig, LayerConfig, LayerMode, RankBalance
 
     claims = {
         "`TrackerConfig.expression_sparsity=0.1`": TrackerConfig().expression_sparsity == 0.1,
@@ -104,6 +104,8 @@ def test_readme_defaults_are_the_code_defaults():
         "`Backend.AUTO` (default)": TrackerConfig().backend.name == "AUTO",
         "`refine_first=LookaheadConfig()`, the default": JobConfig(out_dir=".").refine_first == LookaheadConfig(),
         "`DatasetConfig.rank_balance` is `RankBalance.PAD` by default": DatasetConfig().rank_balance is RankBalance.PAD,
+        "by default (`FaceTracker(pyramid=\"auto\")`,\n`FaceTrackingConfig.pyramid`":
+            FaceTrackingConfig().pyramid == "auto" and FaceTracker.__init__.__defaults__[-1] == "auto",
     }
     for text, holds in claims.items():
         assert text in README, f"README no longer says {text!r}: update this test with it"
@@ -118,6 +120,7 @@ def test_readme_defaults_are_the_code_defaults():
         "torchface.tracker.frame_residuals", "torchface.template.build_template", "torchface.tracker.managed_step",
         "torchface.tracker.initialise_managed", "torchface.tracker.lookahead_fit", "torchface.detect.batched",
         "torchface.detect.load_detector", "torchface.tracker.step.StepWorkspace",
+        "torchface.tracker.step.visibility_level",
         "torchface.synth.metrics.rotation_jitter_deg", "training_hooks.DatasetConfig", "training_hooks.VideoDataset",
         "training_hooks.FaceTrackingConfig", "training_hooks.collate_clips", "training_hooks.NormaliseFaces",
         "training_hooks.NormalisedFaceLayer", "training_hooks.confidence_weighted_loss",

@@ -60,13 +60,16 @@ from torchface.normalise.face import (
 )
 from torchface.solver.least_squares import SolverConfig, SolverMethod
 from torchface.tracker.fit import check_landmark_type
+from torchface.tracker.module import PYRAMID_CHOICES
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
     TrackerState,
     TrackResult,
+    add_coarser_levels,
     check_frames,
     initialise,
+    pyramid_for_faces,
     reference_levels,
     track_step,
 )
@@ -120,6 +123,11 @@ class LayerConfig:
         unrolled_levels: how many of the finest pyramid levels are unrolled, coarse to fine (``UNROLLED``).
         start: :class:`UnrollStart` (``UNROLLED`` only).
         tracker: the tracker's settings (the detached estimate, and the objective of the unrolled iterations).
+        pyramid: ``"auto"`` (the default): :meth:`NormalisedFaceLayer.initialise` adds coarser pyramid levels for
+            large faces as :class:`~torchface.tracker.FaceTracker` does
+            (:func:`~torchface.tracker.pyramid_for_faces`: HD video, where the default three levels lost fast
+            motion; faces under 255 pixels keep ``tracker``), and a state is tracked on with the levels it holds
+            (:attr:`~torchface.tracker.TrackerState.num_levels`). ``"config"``: ``tracker.num_levels`` as given.
     """
 
     mode: LayerMode = LayerMode.DETACHED
@@ -131,8 +139,13 @@ class LayerConfig:
     unrolled_levels: int = 1
     start: UnrollStart = UnrollStart.TRACKED
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    pyramid: str = "auto"
 
     def __post_init__(self) -> None:
+        if not isinstance(self.pyramid, str):
+            raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(self.pyramid).__name__}")
+        if self.pyramid not in PYRAMID_CHOICES:
+            raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {self.pyramid!r}")
         if not isinstance(self.mode, LayerMode):
             raise TypeError(f"mode must be a LayerMode, got {type(self.mode).__name__}")
         if not isinstance(self.start, UnrollStart):
@@ -336,7 +349,10 @@ class NormalisedFaceLayer(nn.Module):
         check_landmark_type(landmarks_px, "(B, K, 2)")  # (numpy ones: an AttributeError, no attribute detach)
         frames = frames.detach().to(dtype=self.model.dtype, device=self.model.device)
         landmarks_px = landmarks_px.detach().to(dtype=self.model.dtype, device=self.model.device)
-        return _tracked(initialise)(self.model, self.config.tracker, frames, landmarks_px, intrinsics)
+        config = self.config.tracker
+        if self.config.pyramid == "auto" and landmarks_px.dim() == 3 and landmarks_px.shape[-1] == 2:
+            config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width))
+        return _tracked(initialise)(self.model, config, frames, landmarks_px, intrinsics)
 
     def normalise(self, frames: Tensor, state: TrackerState, params: Tensor) -> NormalisedFaceResult:
         """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera."""
@@ -369,13 +385,16 @@ class NormalisedFaceLayer(nn.Module):
             raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
         frames = frames.to(dtype=self.model.dtype, device=self.model.device)
         cfg = self.config
+        tracker = cfg.tracker
+        if cfg.pyramid == "auto":  # the coarser levels initialise added (else: track_step's error)
+            tracker = add_coarser_levels(tracker, max(0, state.num_levels - tracker.num_levels))
         with torch.no_grad():
-            new_state, track = _tracked(track_step)(self.model, cfg.tracker, state, frames.detach())
+            new_state, track = _tracked(track_step)(self.model, tracker, state, frames.detach())
         params = new_state.params
         if cfg.mode is LayerMode.UNROLLED:
             start = params if cfg.start is UnrollStart.TRACKED else state.params.detach()
             params = _tracked(unrolled_params)(
-                self.model, cfg.tracker, state, frames, start, cfg.unrolled_iterations, cfg.unrolled_levels
+                self.model, tracker, state, frames, start, cfg.unrolled_iterations, cfg.unrolled_levels
             )
         image, mask = self.normalise(frames, state, params)
         return LayerResult(image, mask, params, new_state, track)

@@ -43,7 +43,10 @@ from torchface.normalise.face import NormalisedFace
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackStatus, check_frames
+from torchface.tracker.module import PYRAMID_CHOICES
+from torchface.tracker.step import (
+    TrackerConfig, TrackerState, TrackStatus, add_coarser_levels, check_frames, pyramid_for_faces,
+)  # fmt: skip
 
 __all__ = [
     "FaceStorage",
@@ -102,6 +105,13 @@ class FaceTrackingConfig:
             (:func:`~torchface.tracker.managed.initialise_managed`, as :class:`~torchface.tracker.FaceTracker`
             starts by default: the first pose and the shape units the landmark fit held are re-estimated once the
             head has turned), or None. Used with template management on.
+        pyramid: ``"auto"`` (the default) tracks a sequence started from landmarks with the pyramid
+            ``torchface track`` and :class:`~torchface.tracker.FaceTracker` give it: a coarser level added per
+            doubling of its first face over the default pyramid's (:func:`~torchface.tracker.pyramid_for_faces`;
+            HD video, where the default three levels lost fast motion; faces under 255 pixels keep ``tracker``),
+            and a :class:`~torchface.tracker.TrackerState` continued with the levels it holds beyond
+            ``tracker``'s. ``"config"``: ``tracker.num_levels`` as given. The state :func:`track_sequence` returns
+            says which (:attr:`~torchface.tracker.TrackerState.num_levels`).
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -112,10 +122,15 @@ class FaceTrackingConfig:
     num_threads: int = 1
     keep_expression: bool = False
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
+    pyramid: str = "auto"
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
+        if not isinstance(self.pyramid, str):
+            raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(self.pyramid).__name__}")
+        if self.pyramid not in PYRAMID_CHOICES:
+            raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {self.pyramid!r}")
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         object.__setattr__(self, "face_size", check_int(self.face_size, "face_size", 16))
@@ -384,12 +399,15 @@ def track_sequence(
     state: TrackerState | None = None
     landmarks = torch.zeros(0, 2, dtype=torch.float64)
     first_frame = 0
+    tracker = config.tracker  # the settings tracked with: with config.pyramid's levels (set at the first frame)
     if isinstance(start, TrackerState):
         if start.params.shape[0] != 1:
             B = start.params.shape[0]
             raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {B}")
         state = start
         first_frame = int(start.frame_index)
+        if config.pyramid == "auto":  # the coarser levels its initialisation added (else: managed_step's error)
+            tracker = add_coarser_levels(tracker, max(0, state.num_levels - tracker.num_levels))
     else:
         landmarks = _landmarks_tensor(start, model.num_landmarks)
     layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
@@ -407,14 +425,16 @@ def track_sequence(
                 intrinsics = Intrinsics.default(size[1], size[0], config.focal)
                 lm = landmarks.to(dtype=model.dtype, device=model.device).unsqueeze(0)
                 refine = config.refine_first if config.tracker.template.enabled else None
-                state, result = initialise_managed(model, config.tracker, frame, lm, intrinsics, refine_first=refine)
+                if config.pyramid == "auto":
+                    tracker = pyramid_for_faces(config.tracker, lm, size)
+                state, result = initialise_managed(model, tracker, frame, lm, intrinsics, refine_first=refine)
             else:
                 if t == 0 and state.intrinsics.size != size:
                     raise ValueError(
                         f"the TrackerState tracks {state.intrinsics.width}x{state.intrinsics.height} frames, "
                         f"got {size[1]}x{size[0]}"
                     )
-                state, result = managed_step(model, config.tracker, state, frame, donate=True)
+                state, result = managed_step(model, tracker, state, frame, donate=True)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
                 alpha = state.neutral_anim_coeffs(alpha)

@@ -1308,6 +1308,39 @@ def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
         pyramid_for_faces(base, torch.zeros(68, 2), (480, 640))
 
 
+def _rendered_clip(w: int, h: int, n: int, move_mm: float, distance_mm: float = 450.0):
+    """A CANDIDE-3 clip at ``w x h``: 10 degrees of yaw and ``move_mm`` sideways over ``n`` frames at
+    ``distance_mm``; ``frames (n, 3, h, w)`` float32 and the ground truth."""
+    s = torch.linspace(0.0, 1.0, n, dtype=D)[:, None]
+    spec = SequenceSpec(
+        name="clip", subject="candide3", intrinsics=Intrinsics.default(w, h),
+        rotation=euler_to_matrix(s * torch.tensor([10.0, 0.0, 0.0], dtype=D)),
+        translation=torch.tensor([0.0, 0.0, distance_mm], dtype=D) + s * torch.tensor([move_mm, 0.0, 0.0], dtype=D),
+        anim=torch.zeros(n, load_candide3().num_animation, dtype=D), light=default_light(n),
+        background=BackgroundSpec(seed=3),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    return frames.float(), gt
+
+
+def test_the_fast_solver_rasterizes_its_visibility_on_a_level_large_enough(model):
+    """The fast solver's z-buffer visibility ran at the coarsest level: at 64x48 with five levels that level is 4x3
+    pixels, every template point came out hidden and every frame FAILED (four levels tracked). It now runs at the
+    coarsest level at least VISIBILITY_MIN_SIDE_PX a side (32x24 here); the standard sizes keep their coarsest."""
+    from torchface.tracker.step import VISIBILITY_MIN_SIDE_PX, visibility_level
+
+    assert [visibility_level(3, h, w) for w, h in ((640, 480), (320, 240), (160, 120))] == [2, 2, 2]
+    assert visibility_level(4, 720, 1280) == 3 and visibility_level(1, 8, 8) == 0
+    assert visibility_level(5, 48, 64) == 1 and min(48 >> 1, 64 >> 1) >= VISIBILITY_MIN_SIDE_PX
+    frames, gt = _rendered_clip(64, 48, 3, 5.0)
+    config = TrackerConfig(num_levels=5, iterations=(6, 6, 6, 5, 4))
+    state, _ = initialise(model, config, frames[:1], gt.landmarks_px[:1].float(), Intrinsics.default(64, 48))
+    for t in (1, 2):
+        state, result = track_step(model, config, state, frames[t : t + 1])
+        assert int(result.status[0]) != FAILED, t
+        assert float(geodesic_angle_deg(result.rotation.double(), gt.rotation[t : t + 1])) < 6.0  # a 20-pixel face
+
+
 def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
     """The size errors said H x W where everything else (README, job, io) says W x H: a tracker of 320x240 frames
     handed a portrait 240x320 one read "frames must be 240x320 (the tracked size), got 320x240", the wrong way

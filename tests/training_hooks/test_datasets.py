@@ -28,7 +28,7 @@ from training_hooks import (
 )
 from training_hooks.transforms import PER_FRAME_KEYS
 
-from th_data import FRAMES, TRACKING
+from th_data import FRAMES, TRACKING, sideways_clip
 
 
 def collect(dataset, num_workers: int, key=("video", "frame")) -> dict[tuple[int, ...], dict[str, torch.Tensor]]:
@@ -493,3 +493,32 @@ def test_a_dataset_pickled_without_the_shared_state_still_loads(clips, config):
     assert old.epoch == 3 and old.count_items() == [FRAMES]
     old.set_epoch(4)
     assert old.epoch == 4 and data.epoch == 0
+
+
+def test_hd_video_is_tracked_with_the_coarser_levels_its_face_needs():
+    """Tracking for the dataloaders took the config as given, so an HD video lost a fast motion that ``torchface
+    track`` followed: the 1280x720 clip of tests/cli/test_cli_track.py's HD test (13 mm a frame sideways at 450 mm,
+    37 pixels), frames 1 and 2 23 and 30 degrees off with the default three levels. ``FaceTrackingConfig.pyramid``
+    "auto" (the default) adds the job's levels (pyramid_for_faces: four) and follows it, and a state it returns is
+    continued with them; "config" keeps the three levels (and cannot continue that state)."""
+    from torchface.model.candide import load_candide3
+    from torchface.normalise import NormalisedFace
+    from training_hooks import FaceTrackingConfig
+    from training_hooks.transforms import track_sequence
+
+    frames, lm, truth = sideways_clip(1280, 720)
+    model = load_candide3()
+    auto = FaceTrackingConfig(face_size=16, refine_first=None)
+    given = replace(auto, pyramid="config")
+    normaliser = NormalisedFace(model, auto.face_size, auto.face_margin)
+    first, state = track_sequence(frames[:2], lm, auto, model, normaliser)
+    rest, _ = track_sequence(frames[2:], state, auto, model, normaliser)  # continued with its four levels
+    whole, three = track_sequence(frames, lm, given, model, normaliser)
+    assert (state.num_levels, three.num_levels) == (4, 3)
+    followed = geodesic_angle_deg(torch.cat([first.rotation[1:], rest.rotation]).double(), truth[1:])
+    lost = geodesic_angle_deg(whole.rotation[1:].double(), truth[1:])
+    assert float(followed.max()) < 2.0 and float(lost.max()) > 10.0, (followed, lost)
+    with pytest.raises(ValueError, match="the state holds templates for 4 pyramid levels"):
+        track_sequence(frames[2:], state, given, model, normaliser)
+    with pytest.raises(ValueError, match=r"pyramid must be one of \('auto', 'config'\), got 'off'"):
+        FaceTrackingConfig(pyramid="off")

@@ -376,3 +376,23 @@ def test_a_compiled_layer_tracks_eagerly_and_equals_the_eager_layer():
     """)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
     assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
+
+
+def test_the_layer_tracks_an_hd_clip_with_the_coarser_levels_its_face_needs():
+    """The layer took its tracker config as given, so the 1280x720 clip of tests/cli/test_cli_track.py's HD test
+    (37 pixels a frame sideways) was lost with the default three levels (frames 1 and 2 23 and 30 degrees off, in
+    both modes). ``LayerConfig.pyramid`` "auto" (the default) initialises with pyramid_for_faces's four levels,
+    tracks on with the state's levels (the unrolled iterations too) and follows it; "config" keeps three."""
+    from th_data import sideways_clip
+    from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg
+
+    frames, lm, truth = sideways_clip(1280, 720)
+    errors = {}
+    for pyramid, mode in (("auto", LayerMode.UNROLLED), ("config", LayerMode.DETACHED)):
+        out = NormalisedFaceLayer(LayerConfig(size=16, mode=mode, pyramid=pyramid)).forward_clip(frames[None], lm[None])
+        assert out.state.num_levels == {"auto": 4, "config": 3}[pyramid]
+        rotation = axis_angle_to_matrix(out.params[0, 1:, :3].detach().double())
+        errors[pyramid] = geodesic_angle_deg(rotation, truth[1:])
+    assert float(errors["auto"].max()) < 2.0 and float(errors["config"].max()) > 10.0, errors
+    with pytest.raises(ValueError, match=r"pyramid must be one of \('auto', 'config'\), got 'on'"):
+        LayerConfig(pyramid="on")

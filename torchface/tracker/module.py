@@ -16,10 +16,18 @@ from torchface.normalise.face import apply_to_tensor_fields
 from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, check_frames, check_model_precision
+from torchface.tracker.step import (
+    TrackerConfig, TrackerState, TrackResult, add_coarser_levels, check_frames, check_initialise_inputs,
+    check_model_precision, pyramid_for_faces,
+)  # fmt: skip
 
 
-_SETTINGS = frozenset({"config", "model", "detector", "refine_first"})
+_SETTINGS = frozenset({"config", "model", "detector", "refine_first", "pyramid"})
+
+#: :class:`FaceTracker`'s ``pyramid`` settings: ``"auto"`` adds coarser levels for large faces at
+#: :meth:`~FaceTracker.initialise` (:func:`~torchface.tracker.step.pyramid_for_faces`), ``"config"`` keeps
+#: ``config.num_levels``.
+PYRAMID_CHOICES: tuple[str, ...] = ("auto", "config")
 
 
 def _check_setting(name: str, value: Any) -> None:
@@ -30,6 +38,10 @@ def _check_setting(name: str, value: Any) -> None:
         raise TypeError(f"model must be a FaceModel, got {type(value).__name__}")
     if name == "model":  # a float16 model failed at initialise: '"cholesky_cpu" not implemented for 'Half''
         check_model_precision(value)
+    if name == "pyramid" and not isinstance(value, str):
+        raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(value).__name__}")
+    if name == "pyramid" and value not in PYRAMID_CHOICES:
+        raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {value!r}")
     if name == "refine_first" and value is not None and not isinstance(value, LookaheadConfig):
         raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(value).__name__}")
     if name == "detector" and value is not None:
@@ -60,6 +72,13 @@ class FaceTracker(nn.Module):
     ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.2 (5.4-7.6 without the start,
     from the held landmark fit).
 
+    ``pyramid``: ``"auto"`` (the default) tracks each sequence with the pyramid ``torchface track`` gives it:
+    :meth:`initialise` adds a coarser level per doubling of the first frames' face over the size the default
+    pyramid is made for (:func:`~torchface.tracker.step.pyramid_for_faces`: faces under 255 pixels, such as the
+    640x480 scenarios', keep ``config``; a 1280x720 face at 450 mm gets a fourth level, without which a fast
+    sideways motion was lost). ``"config"`` tracks with ``config.num_levels`` as given. :attr:`tracking_config`
+    (and the state's :attr:`~torchface.tracker.TrackerState.num_levels`) says which pyramid a sequence runs with.
+
     Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty (it holds a detector's weights
     where the detector is an ``nn.Module``) and holds no tracked sequence; ``load_state_dict`` therefore forgets the
     tracker's sequence, as :meth:`reset` does (the next step says so), so that a loaded checkpoint never continues
@@ -76,9 +95,14 @@ class FaceTracker(nn.Module):
         ...     result = tracker(frames[:, t])                               # (B, 3, H, W) -> TrackResult
     """
 
+    #: (class defaults: for trackers pickled before these attributes existed)
+    pyramid: str = "auto"
+    _tracking: "tuple[TrackerConfig, TrackerConfig] | None" = None
+
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
         detector: LandmarkDetector | None = None, refine_first: LookaheadConfig | None = LookaheadConfig(),
+        pyramid: str = "auto",
     ) -> None:
         super().__init__()
         if model is not None and not isinstance(model, FaceModel):
@@ -88,13 +112,16 @@ class FaceTracker(nn.Module):
         self.detector = detector
         self.model = load_candide3() if model is None else model
         self.refine_first = refine_first
+        self.pyramid = pyramid
         self._state: TrackerState | None = None
+        # (config, the config the sequence is tracked with): the levels pyramid="auto" added at initialise
+        self._tracking: tuple[TrackerConfig, TrackerConfig] | None = None
         self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
 
     def __setattr__(self, name: str, value: Any) -> None:
-        """Attribute assignment, ``config``, ``model``, ``detector`` and ``refine_first`` checked as the constructor
-        checks them (set after construction they were not: a per-image dlib detector failed at the first loss, with
-        a shape error, a dict config at the next step with an AttributeError)."""
+        """Attribute assignment, ``config``, ``model``, ``detector``, ``refine_first`` and ``pyramid`` checked as the
+        constructor checks them (set after construction they were not: a per-image dlib detector failed at the first
+        loss, with a shape error, a dict config at the next step with an AttributeError)."""
         if name in _SETTINGS:
             _check_setting(name, value)
         super().__setattr__(name, value)
@@ -139,10 +166,30 @@ class FaceTracker(nn.Module):
         tensors: keep a ``copy.deepcopy`` of a state you want to use again."""
         return self._state
 
+    @property
+    def tracking_config(self) -> TrackerConfig | None:
+        """The settings the tracked sequence runs with: :attr:`config`, with the coarser pyramid levels that
+        ``pyramid="auto"`` added at :meth:`initialise` for large faces (its ``num_levels`` is the state's
+        :attr:`~torchface.tracker.TrackerState.num_levels`); None before :meth:`initialise`.
+
+        Example:
+            >>> tracker.initialise(frames, landmarks)        # 1280x720, a 380-pixel face  # doctest: +SKIP
+            >>> tracker.tracking_config.num_levels                                        # doctest: +SKIP
+            4
+        """
+        if self._state is None or self._tracking is None:
+            return None if self._state is None else self.config
+        base, run = self._tracking
+        if self.config is not base:  # a config set mid-sequence: with the levels added at initialise
+            run = add_coarser_levels(self.config, max(0, run.num_levels - base.num_levels))
+            self._tracking = (self.config, run)
+        return run
+
     def reset(self) -> None:
         """Forget the tracked sequence."""
         self._state = None
         self._dropped = None
+        self._tracking = None
 
     def select(self, index: Sequence[int] | Tensor) -> "FaceTracker":
         """Keep only streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a ``(B,)``
@@ -221,9 +268,15 @@ class FaceTracker(nn.Module):
         refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
         self._state = None  # a failed initialisation must not leave the previous video's state to track on
         self._dropped = None
+        self._tracking = None
+        config = self.config
+        if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
+            check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
+            config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width))
         self._state, result = initialise_managed(
-            self.model, self.config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
+            self.model, config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )
+        self._tracking = (self.config, config)
         return result
 
     @torch.no_grad()
@@ -231,7 +284,9 @@ class FaceTracker(nn.Module):
         """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
         if self._state is None:
             raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
-        self._state, result = managed_step(self.model, self.config, self._state, frames, self.detector, donate=True)
+        config = self.tracking_config
+        assert config is not None
+        self._state, result = managed_step(self.model, config, self._state, frames, self.detector, donate=True)
         return result
 
     def step(self, frames: Tensor) -> TrackResult:

@@ -106,7 +106,8 @@ class TrackerConfig:
             the low floor at the fine levels then rejects what no parameter explains (external occlusion): a
             graduated non-convexity schedule.
         zbuffer_visibility: test template points against the z-buffer of the previous estimate (fast solver:
-            at the coarsest level).
+            at the coarsest level at least 16 pixels a side, :func:`visibility_level`; reference solver: at
+            level 1).
         visibility_interval: the fast solver re-rasterizes that z-buffer every this many frames and reuses
             the masks in between (back-facing points are still dropped every iteration).
         expression_prior_precision: precision (per squared unit) of the Gaussian prior on the animation units.
@@ -500,6 +501,13 @@ class TrackerState:
     anim_prior_mean: Tensor | None = None
     workspace: "StepWorkspace | None" = field(default=None, compare=False, repr=False)
 
+    @property
+    def num_levels(self) -> int:
+        """The pyramid levels the state is tracked with (one template each): the config's ``num_levels``, or more
+        where :func:`pyramid_for_faces` added coarser ones (:class:`~torchface.tracker.FaceTracker` and
+        ``torchface track`` do for large faces)."""
+        return len(self.templates)
+
     def detach(self) -> "TrackerState":
         """The state detached from the autograd graph: its ``params``, ``shape_coeffs``, ``anim_prior_mean`` and
         templates (the same objects where they hold no graph). Template management's state is built without one.
@@ -818,8 +826,9 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
     (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
     floors stay those of the coarsest and the finest level. ``torchface track`` does this for every video (and
-    batches only videos of one pyramid); :class:`~torchface.tracker.FaceTracker` and :func:`initialise` use the
-    config as given.
+    batches only videos of one pyramid), :class:`~torchface.tracker.FaceTracker` and ``training_hooks``'
+    tracking do by default (their ``pyramid="auto"``); :func:`initialise` and the other functions use the config
+    as given.
 
     Args:
         config: the settings to extend.
@@ -852,6 +861,19 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     extra = max(0, math.floor(math.log2(float(faces.min()) / PYRAMID_REFERENCE_FACE_PX) + 0.5))
     while extra > 0 and min(size) < 3 * 2 ** (config.num_levels + extra - 2):  # pyr_down's 3 pixels a side
         extra -= 1
+    return add_coarser_levels(config, extra)
+
+
+def add_coarser_levels(config: TrackerConfig, extra: int) -> TrackerConfig:
+    """``config`` with ``extra`` coarser pyramid levels (as :func:`pyramid_for_faces` adds them: each with the
+    coarsest level's ``iterations``); ``config`` itself for ``extra = 0``.
+
+    Example:
+        >>> add_coarser_levels(TrackerConfig(), 2).iterations
+        (6, 6, 6, 5, 4)
+    """
+    if isinstance(extra, bool) or not isinstance(extra, int) or extra < 0:
+        raise ValueError(f"extra must be an int >= 0, got {extra!r}")
     if extra == 0:
         return config
     return replace(config, num_levels=config.num_levels + extra,
@@ -1452,8 +1474,8 @@ def _fast_step(
         cached = state.visibility
         if (cached is None or cached[0] is not state.templates
                 or (state.frame_index - 1) % config.visibility_interval == 0):  # fmt: skip
-            vis_level = config.num_levels - 1
             H, W = state.intrinsics.height, state.intrinsics.width
+            vis_level = visibility_level(config.num_levels, H, W)
             h_l, w_l = H >> vis_level, W >> vis_level
             masks = _visibility_at(model, state, layout, vis_level, h_l, w_l, R, verts, config.backend)
             visibility = (state.templates, tuple(masks))
@@ -1567,6 +1589,28 @@ def _finish(
         confidence = torch.where(small, torch.zeros_like(confidence), confidence)
     new_state = replace(state, params=x, frame_index=state.frame_index + 1)
     return new_state, _result(model, layout, x, status, iterations, rms, n_valid, confidence, state.anim_prior_mean)
+
+
+#: The fast solver rasterizes its z-buffer visibility at the coarsest pyramid level whose sides are both at least this
+#: many pixels (:func:`visibility_level`). At 64x48 with five levels the coarsest level is 4x3 pixels, where every
+#: template point came out hidden (every frame FAILED); at 8x6, 7-15% of them did (16x12: under 1%). The standard
+#: sizes' coarsest levels (160x120, 80x60 and 40x30 with three levels) are above it and keep their level.
+VISIBILITY_MIN_SIDE_PX: int = 16
+
+
+def visibility_level(num_levels: int, height: int, width: int) -> int:
+    """The pyramid level the fast solver rasterizes its z-buffer visibility at, for ``height x width`` frames: the
+    coarsest of the ``num_levels`` whose sides are both at least :data:`VISIBILITY_MIN_SIDE_PX` (``H >> level``,
+    ``W >> level``), the finest (0) where none is.
+
+    Example:
+        >>> visibility_level(3, 120, 160), visibility_level(5, 48, 64), visibility_level(4, 720, 1280)
+        (2, 1, 3)
+    """
+    level = num_levels - 1
+    while level > 0 and min(height >> level, width >> level) < VISIBILITY_MIN_SIDE_PX:
+        level -= 1
+    return level
 
 
 def _visibility_at(
