@@ -24,7 +24,8 @@ file left by a writer that was killed (``.<key>.<pid>.<id>.partial``) is never r
 :class:`TrackCache` deletes such files older than a day. Reading
 checks the zip structure, the digest, the key and the arrays' shapes and dtypes; anything wrong (a truncated,
 partial or corrupted file) is reported with a :class:`CacheWarning`, deleted and treated as a miss, so the
-sequence is tracked again: a damaged file is never used.
+sequence is tracked again: a damaged file is never used. :meth:`TrackCache.num_frames` reads the ``meta`` record
+alone (a dataset counts a cached video's frames with it instead of decoding the video).
 """
 
 from __future__ import annotations
