@@ -429,8 +429,8 @@ class VideoDataset(IterableDataset):
         (counted at no cost), with landmarks not known before decoding (a detector's, until it ran in this
         process), or when the video or its landmarks cannot be read (decoding then reports what is wrong)."""
         path, cache = self.videos[index], self.cache
-        if cache is None or path.is_dir() or path.suffix.lower() == ".npy":  # (open_frames' kinds)
-            return None
+        if cache is None or not cache.root.is_dir() or path.is_dir() or path.suffix.lower() == ".npy":
+            return None  # (no cache yet: nothing to hash the video for; folders and arrays: open_frames' kinds)
         try:
             content = content_hash(path)
             landmarks = self._known_landmarks(index, content)
