@@ -31,7 +31,8 @@ a video repeats those of its worker on the other ranks, as ``DistributedSampler(
 the fewest (:attr:`RankBalance.DROP`: the rest are left out, as ``drop_last=True``). This needs the same
 ``num_workers`` on every rank, and each video's item count before it is tracked: the workers count the frames of
 their worker's videos on every rank (:meth:`VideoDataset.num_items`: image folders and ``.npy`` arrays at no cost,
-video files decoded through without tracking), each video once per dataset (the counts are shared with the
+a video file whose tracked sequence is in the cache by the count stored with it (the file is hashed, not decoded),
+other video files decoded through without tracking), each video once per dataset (the counts are shared with the
 workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``),
 so the union of the ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off:
 each rank yields its own videos' items once and the counts differ unless the videos split evenly (wrap the
@@ -401,9 +402,10 @@ class VideoDataset(IterableDataset):
 
     def num_items(self, index: int) -> int:
         """Items of video ``index`` (:func:`clip_bounds` of its frame count), counted without tracking: an image
-        folder's images, a ``.npy`` array's length, a video file's frames decoded through (a container's stated
-        count can be approximate). Remembered by the dataset, for its copies in ``DataLoader`` workers too (shared
-        memory): each video is counted once, by the first process that needs it.
+        folder's images, a ``.npy`` array's length, a video file's frames as its tracked sequence in the cache
+        holds them (:meth:`_cached_frames`: the file is hashed, not decoded) or else decoded through (a container's
+        stated count can be approximate). Remembered by the dataset, for its copies in ``DataLoader`` workers too
+        (shared memory): each video is counted once, by the first process that needs it.
 
         Raises:
             torchface.io.InputError: the video cannot be read (the message names the file).
@@ -413,9 +415,37 @@ class VideoDataset(IterableDataset):
         counts = self._shared[_COUNTS:]
         if int(counts[index]) < 0:
             c = self.config
-            frames = _count_frames(self.videos[index], c.convert)
+            frames = self._cached_frames(index)
+            if frames is None:
+                frames = _count_frames(self.videos[index], c.convert)
             counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
         return int(counts[index])
+
+    def _cached_frames(self, index: int) -> int | None:
+        """Frames of video file ``index`` from the cache, without decoding it: the frame count recorded with its
+        tracked sequence (:meth:`TrackCache.num_frames <training_hooks.cache.TrackCache.num_frames>`), under the key
+        :meth:`sequence` looks it up by. None without a cache or an entry, for an image folder or ``.npy`` array
+        (counted at no cost), with landmarks not known before decoding (a detector's, until it ran in this
+        process), or when the video or its landmarks cannot be read (decoding then reports what is wrong)."""
+        path, cache = self.videos[index], self.cache
+        if cache is None or not cache.root.is_dir() or path.is_dir() or path.suffix.lower() == ".npy":
+            return None  # (no cache yet: nothing to hash the video for; folders and arrays: open_frames' kinds)
+        try:
+            content = content_hash(path)
+            landmarks = self._known_landmarks(index, content)
+            source = None if self.landmarks is None else self.landmarks[index]
+            if landmarks is None and isinstance(source, (str, os.PathLike)):
+                # the frame size only checks the points (sequence() checks them against it): the same float64 array
+                landmarks = read_landmarks(source, 1 << 30, 1 << 30)
+        except (InputError, OSError):
+            return None
+        if landmarks is None:
+            return None
+        return cache.num_frames(cache_key(content, self.config.tracking, landmarks, self._key_extra()))
+
+    def _key_extra(self) -> str:
+        """The dataset's part of its cache keys (:func:`~training_hooks.cache.cache_key`'s ``extra``)."""
+        return f"convert={self.config.convert}"
 
     def count_items(self) -> list[int]:
         """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch)."""
@@ -499,7 +529,7 @@ class VideoDataset(IterableDataset):
         path = self.videos[index]
         content = content_hash(path)
         cache = self.cache
-        extra = f"convert={self.config.convert}"
+        extra = self._key_extra()
         known = self._known_landmarks(index, content)
         if cache is not None and known is not None:
             stored = cache.load(cache_key(content, self.config.tracking, known, extra))
@@ -632,14 +662,16 @@ class VideoDataset(IterableDataset):
 
 def _count_frames(path: Path, convert: bool) -> int:
     """Frames of a video file, image folder or ``.npy`` array, read as :func:`torchface.io.open_frames` reads them
-    (and refused as it refuses them) but not converted: a video file is decoded through."""
+    (and refused as it refuses them) but not converted: a video file is decoded through, by ``read()`` as the
+    reader does (``grab()`` alone could count a frame whose ``retrieve()`` fails, where the reader stops), so the
+    count equals that of the sequence tracked from it (:meth:`VideoDataset._cached_frames` takes that one)."""
     with open_frames(path, convert=convert) as reader:
         if reader.info.kind != "video":
             return int(reader.info.num_frames or 0)  # (exact for images and arrays)
     cap = cv2.VideoCapture(opencv_path(path))
     try:
         count = 0
-        while cap.grab():
+        while cap.read()[0]:
             count += 1
         return count
     finally:

@@ -19,7 +19,7 @@ import torch.multiprocessing as mp
 from torch.utils.data import DataLoader
 
 import training_hooks.datasets
-from torchface.synth.io import read_video_uint8
+from torchface.synth.io import read_video, read_video_uint8, write_video
 from training_hooks import (
     DatasetConfig,
     DistributedWarning,
@@ -328,6 +328,54 @@ def test_item_counts_without_tracking(clips, uneven, config, tmp_path, monkeypat
     simulate(monkeypatch, 1, 5)  # one video per rank: rank 1's has no clip, the fullest rank's 2
     assert [(int(it["video"]), int(it["frame"][0])) for it in clip_data] == [(0, 0), (0, 2)]
     assert FrameFolderDataset([folder], [clips[0].landmarks], config).count_items() == [FRAMES]
+
+
+def test_a_cached_video_is_counted_without_decoding(clips, config, tmp_path, monkeypatch):
+    """Every rank counts every video (RankBalance.PAD), and each video file was decoded through to count its frames,
+    at every run start, its tracked sequence in the cache or not. Now a video whose sequence is in the cache (the key
+    tracking uses: landmarks as arrays, tensors or files) is hashed and the count stored with it taken, equal to the
+    decoded one, for clips too; one not in the cache, with a damaged record or with a detector's landmarks is
+    decoded."""
+    lengths = [6, 2, 5]
+    videos = [tmp_path / f"w{i}.avi" for i in range(3)]
+    for path, clip, n in zip(videos, clips, lengths):
+        write_video(path, read_video(clip.video, n))
+    csv = tmp_path / "lm1.csv"
+    np.savetxt(csv, clips[1].landmarks, delimiter=",", fmt="%.17g")
+    sources = [clips[0].landmarks, csv, torch.from_numpy(clips[2].landmarks)]
+    clip_config = replace(config, **CLIPS)
+    decoded = VideoDataset(videos, sources, replace(config, cache_dir=None)).count_items()
+    decoded_clips = VideoDataset(videos, sources, replace(clip_config, cache_dir=None)).count_items()
+    assert decoded == lengths and decoded_clips == [2, 1, 2]
+    tracked = VideoDataset(videos[:2], sources[:2], config)
+    assert len(list(tracked)) == 8 and tracked.stats.cache.writes == 2  # videos 0 and 1 are in the cache
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("a video was decoded to count its frames")
+
+    real_count = training_hooks.datasets._count_frames
+    counted: list[Path] = []
+    with monkeypatch.context() as m:
+        m.setattr(training_hooks.datasets, "_count_frames", no_decoding)
+        m.setattr(training_hooks.datasets, "open_frames", no_decoding)
+        m.setattr(cv2, "VideoCapture", no_decoding)
+        assert VideoDataset(videos[:2], sources[:2], config).count_items() == decoded[:2]
+        assert VideoDataset(videos[:2], sources[:2], clip_config).count_items() == decoded_clips[:2]
+    monkeypatch.setattr(training_hooks.datasets, "_count_frames", lambda p, c: counted.append(p) or real_count(p, c))
+    data = VideoDataset(videos, sources, config)
+    assert data.count_items() == decoded and counted == [videos[2]] and data.stats.cache.hits == 0
+    # a damaged record is not read (the file is left to load(), which deletes it), nor one of another key
+    entry = next(data.cache.root.glob("*.npz"))
+    key = entry.stem
+    assert data.cache.num_frames(key) in lengths[:2] and data.cache.num_frames("0" * 64) is None
+    entry.write_bytes(entry.read_bytes()[:-100])
+    assert data.cache.num_frames(key) is None and entry.exists()
+    counted.clear()
+    assert VideoDataset(videos, sources, config).count_items() == decoded and len(counted) == 2
+    # a detector's landmarks are not known before the first frame is decoded
+    counted.clear()
+    assert VideoDataset(videos[:1], lambda image: clips[0].landmarks, config).count_items() == decoded[:1]
+    assert counted == videos[:1]
 
 
 def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, monkeypatch, tmp_path):
