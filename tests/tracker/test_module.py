@@ -307,3 +307,29 @@ def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model
         FaceTracker(model=model, pyramid="none")
     with pytest.raises(TypeError, match=r"pyramid must be one of \('auto', 'config'\), got bool"):
         tracker.pyramid = True
+
+
+def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_is(model):
+    """``tracker.config = replace(tracker.tracking_config, ...)`` (the settings the sequence runs with, one changed)
+    mid-sequence on an HD face: the levels initialise added were added to it once more (the state's 4 levels became
+    a 5-level config) and every step failed ("the state holds templates for 4 pyramid levels, the config has
+    num_levels = 5"). A config set mid-sequence now gets the levels the state holds beyond its own."""
+    from dataclasses import replace
+
+    frames, lm, _ = _sideways_clip(1280, 720)
+    tracker = FaceTracker(model=model, refine_first=None)
+    tracker.initialise(frames[:1], lm)
+    assert tracker.state.num_levels == 4
+    tracker.config = replace(tracker.tracking_config, robust_c=5.0)
+    assert tracker.tracking_config is tracker.config and tracker.tracking_config.num_levels == 4
+    assert bool(tracker(frames[1:2]).success.all())
+    tracker.config = replace(TrackerConfig(), robust_c=4.0)  # the user's 3 levels: the added one kept
+    assert tracker.tracking_config.num_levels == 4 and tracker.tracking_config.robust_c == 4.0
+    assert bool(tracker(frames[2:3]).success.all())
+    # where initialise added none, a config of other levels is refused as before
+    tracker = FaceTracker(model=model, refine_first=None, pyramid="config")
+    tracker.initialise(frames[:1], lm)
+    tracker.config = replace(TrackerConfig(), num_levels=2, iterations=(6, 5))
+    assert tracker.tracking_config is tracker.config
+    with pytest.raises(ValueError, match="the state holds templates for 3 pyramid levels"):
+        tracker(frames[1:2])

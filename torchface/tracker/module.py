@@ -170,7 +170,9 @@ class FaceTracker(nn.Module):
     def tracking_config(self) -> TrackerConfig | None:
         """The settings the tracked sequence runs with: :attr:`config`, with the coarser pyramid levels that
         ``pyramid="auto"`` added at :meth:`initialise` for large faces (its ``num_levels`` is the state's
-        :attr:`~torchface.tracker.TrackerState.num_levels`); None before :meth:`initialise`.
+        :attr:`~torchface.tracker.TrackerState.num_levels`); None before :meth:`initialise`. A config set
+        mid-sequence gets the levels the state holds beyond it with ``pyramid="auto"`` (so a changed copy of this
+        one is taken as it is), none with ``"config"``.
 
         Example:
             >>> tracker.initialise(frames, landmarks)        # 1280x720, a 380-pixel face  # doctest: +SKIP
@@ -180,8 +182,11 @@ class FaceTracker(nn.Module):
         if self._state is None or self._tracking is None:
             return None if self._state is None else self.config
         base, run = self._tracking
-        if self.config is not base:  # a config set mid-sequence: with the levels added at initialise
-            run = add_coarser_levels(self.config, max(0, run.num_levels - base.num_levels))
+        if self.config is not base:  # a config set mid-sequence: with the state's levels beyond its own ("auto",
+            # as training_hooks continues a state; counted from the state: a config of the state's levels, e.g. a
+            # changed tracking_config, got the added levels again, 5 for a 4-level state, and every step failed)
+            extra = self._state.num_levels - self.config.num_levels if self.pyramid == "auto" else 0
+            run = add_coarser_levels(self.config, max(0, extra))
             self._tracking = (self.config, run)
         return run
 
