@@ -9,6 +9,7 @@ import shlex
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text(encoding="utf-8")
@@ -81,6 +82,14 @@ def test_readme_csv_table_lists_the_columns_written_in_order():
     assert tuple(_readme_csv_columns()) == written
 
 
+def _levels_for_face(size_px: float) -> int:
+    """``pyramid_for_faces``'s levels for a 1280x720 frame's face ``size_px`` pixels tall (the default config)."""
+    from torchface.tracker import TrackerConfig, pyramid_for_faces
+
+    landmarks = torch.tensor([[[300.0, 100.0], [400.0, 100.0 + size_px]]], dtype=torch.float64)
+    return pyramid_for_faces(TrackerConfig(), landmarks, (720, 1280)).num_levels
+
+
 def test_readme_defaults_are_the_code_defaults():
     """Defaults the README quotes (each quoted as the README writes it, so that a change of either side fails)."""
     from torchface.job import JobConfig
@@ -106,6 +115,8 @@ def test_readme_defaults_are_the_code_defaults():
         "`DatasetConfig.rank_balance` is `RankBalance.PAD` by default": DatasetConfig().rank_balance is RankBalance.PAD,
         "by default (`FaceTracker(pyramid=\"auto\")`,\n`FaceTrackingConfig.pyramid`":
             FaceTrackingConfig().pyramid == "auto" and FaceTracker.__init__.__defaults__[-1] == "auto",
+        # (it said "under 255": faces of 254.56-255 pixels, 180·√2 and up, got a level)
+        "faces under 254.5\npixels keep the config either way": [_levels_for_face(f) for f in (254.5, 254.6)] == [3, 4],
     }
     for text, holds in claims.items():
         assert text in README, f"README no longer says {text!r}: update this test with it"

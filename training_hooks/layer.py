@@ -126,7 +126,7 @@ class LayerConfig:
         pyramid: ``"auto"`` (the default): :meth:`NormalisedFaceLayer.initialise` adds coarser pyramid levels for
             large faces as :class:`~torchface.tracker.FaceTracker` does
             (:func:`~torchface.tracker.pyramid_for_faces`: HD video, where the default three levels lost fast
-            motion; faces under 255 pixels keep ``tracker``), and a state is tracked on with the levels it holds
+            motion; faces under 254.5 pixels keep ``tracker``), and a state is tracked on with the levels it holds
             (:attr:`~torchface.tracker.TrackerState.num_levels`). ``"config"``: ``tracker.num_levels`` as given.
     """
 

@@ -108,7 +108,7 @@ class FaceTrackingConfig:
         pyramid: ``"auto"`` (the default) tracks a sequence started from landmarks with the pyramid
             ``torchface track`` and :class:`~torchface.tracker.FaceTracker` give it: a coarser level added per
             doubling of its first face over the default pyramid's (:func:`~torchface.tracker.pyramid_for_faces`;
-            HD video, where the default three levels lost fast motion; faces under 255 pixels keep ``tracker``),
+            HD video, where the default three levels lost fast motion; faces under 254.5 pixels keep ``tracker``),
             and a :class:`~torchface.tracker.TrackerState` continued with the levels it holds beyond
             ``tracker``'s. ``"config"``: ``tracker.num_levels`` as given. The state :func:`track_sequence` returns
             says which (:attr:`~torchface.tracker.TrackerState.num_levels`).

@@ -74,7 +74,7 @@ class FaceTracker(nn.Module):
 
     ``pyramid``: ``"auto"`` (the default) tracks each sequence with the pyramid ``torchface track`` gives it:
     :meth:`initialise` adds a coarser level per doubling of the first frames' face over the size the default
-    pyramid is made for (:func:`~torchface.tracker.step.pyramid_for_faces`: faces under 255 pixels, such as the
+    pyramid is made for (:func:`~torchface.tracker.step.pyramid_for_faces`: faces under 254.5 pixels, such as the
     640x480 scenarios', keep ``config``; a 1280x720 face at 450 mm gets a fourth level, without which a fast
     sideways motion was lost). ``"config"`` tracks with ``config.num_levels`` as given. :attr:`tracking_config`
     (and the state's :attr:`~torchface.tracker.TrackerState.num_levels`) says which pyramid a sequence runs with.

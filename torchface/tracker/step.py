@@ -822,8 +822,8 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     pixels grows with its size in the image: the same clip that is tracked at 640x360 was lost after two frames
     at 1280x720 (13 mm a frame sideways at 450 mm, 37 pixels; 18 at 640x360) with the default three levels, and
     tracked with four. One level is added per doubling of the face's size over
-    :data:`PYRAMID_REFERENCE_FACE_PX` (rounded: faces smaller than 255 pixels keep ``config``; a 1280x720 face at
-    450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
+    :data:`PYRAMID_REFERENCE_FACE_PX` (rounded: faces smaller than 180·√2 = 254.56 pixels keep ``config``; a
+    1280x720 face at 450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
     (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
     floors stay those of the coarsest and the finest level. ``torchface track`` does this for every video (and
     batches only videos of one pyramid), :class:`~torchface.tracker.FaceTracker` and ``training_hooks``'
