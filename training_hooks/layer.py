@@ -47,7 +47,7 @@ from torch import Tensor, nn
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.geometry._checks import check_bool, check_int
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -346,6 +346,7 @@ class NormalisedFaceLayer(nn.Module):
         check_frames(frames)
         if intrinsics is None:
             intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
+        check_intrinsics(intrinsics)  # (pyramid="auto" reads its size before initialise checks it: an AttributeError)
         check_landmark_type(landmarks_px, "(B, K, 2)")  # (numpy ones: an AttributeError, no attribute detach)
         frames = frames.detach().to(dtype=self.model.dtype, device=self.model.device)
         landmarks_px = landmarks_px.detach().to(dtype=self.model.dtype, device=self.model.device)

@@ -396,3 +396,16 @@ def test_the_layer_tracks_an_hd_clip_with_the_coarser_levels_its_face_needs():
     assert float(errors["auto"].max()) < 2.0 and float(errors["config"].max()) > 10.0, errors
     with pytest.raises(ValueError, match=r"pyramid must be one of \('auto', 'config'\), got 'on'"):
         LayerConfig(pyramid="on")
+
+
+def test_initialise_names_intrinsics_that_are_not_intrinsics():
+    """With ``pyramid="auto"`` (the default) the layer read the intrinsics' size before :func:`initialise` checked
+    them: a ``(W, H)`` tuple was "'tuple' object has no attribute 'height'" (it was "intrinsics must be
+    torchface.geometry.Intrinsics, got tuple"). Both pyramids now say what is wrong."""
+    frames = torch.rand(1, 3, 48, 64)
+    landmarks = torch.rand(1, 68, 2) * 40
+    for pyramid in ("auto", "config"):
+        layer = NormalisedFaceLayer(LayerConfig(size=16, pyramid=pyramid))
+        for bad in ((64, 48), "camera"):
+            with pytest.raises(TypeError, match="intrinsics must be torchface.geometry.Intrinsics"):
+                layer.initialise(frames, landmarks, bad)  # type: ignore[arg-type]
