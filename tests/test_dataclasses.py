@@ -152,3 +152,51 @@ def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers(
                 assert type(got) is tuple and all(type(v) is int for v in got) and got == tuple(value), (cls.__name__, name)
             checked += 1
     assert checked >= 35
+
+
+# --- Settings: the same rule for numbers -----------------------------------------------------------------------------
+# A float field takes an int or a float (kept as given: an int stays an int, so that the repr, a training_hooks cache
+# key, does not change) or a numpy real number (stored as a Python float); a string, a bool or another type is a
+# TypeError naming the field.
+
+
+def _reals(cls: type) -> dict[str, bool]:
+    """``{field: optional}`` of the number fields of ``cls`` (``float``, or ``float | None``)."""
+    return {f.name: "None" in str(f.type) for f in dataclasses.fields(cls)
+            if str(f.type).replace(" | None", "") == "float"}  # fmt: skip
+
+
+def test_real_settings_refuse_other_types_as_type_errors_naming_them():
+    """A string for a number was refused with a message naming no setting (``TemplateConfig(texture_blend="0.5")``:
+    "'<' not supported between instances of 'int' and 'str'", ``TrackerConfig(crop_margin="0.2")``: "must be real
+    number, not str"), as a ValueError (``robust_c="4.685"``), or taken (``SolverConfig(step_tolerance="1e-8")``,
+    ``LayerConfig(margin="0.05")``, ``FaceTrackingConfig(focal="300")``); a bool was taken as 0 or 1."""
+    checked = 0
+    for cls, base in _settings().items():
+        for name, optional in _reals(cls).items():
+            bads: tuple = ("0.5", True, np.bool_(False), [0.5]) + (() if optional else (None,))
+            for bad in bads:
+                with pytest.raises(TypeError, match=rf"\b{name} must be a real number"):
+                    cls(**{**base, name: bad})
+            value = getattr(cls(**base), name)
+            if value is not None:  # a numpy number is taken, as a Python float
+                got = getattr(cls(**{**base, name: np.float32(value)}), name)
+                assert type(got) is float and got == float(np.float32(value)), (cls.__name__, name)
+            checked += 1
+    assert checked >= 60
+
+
+def test_real_settings_keep_ints_and_the_default_reprs():
+    """An int for a number stays accepted and unchanged (the repr of a config is ``training_hooks``' cache key and
+    the CLI's resume record); a numpy one was kept as a numpy scalar (``FitConfig`` refused a float32, and a
+    ``torch.Tensor`` setting took a numpy float32 of ``held_shape_precision`` in no assignment)."""
+    from torchface.tracker.fit import FitConfig
+    from torchface.tracker.step import TrackerConfig
+    from training_hooks.transforms import FaceTrackingConfig
+
+    config = TrackerConfig(robust_c=5, crop_margin=0, min_face_width_px=np.int64(20))
+    assert type(config.robust_c) is int and "robust_c=5, " in repr(config) and "crop_margin=0, " in repr(config)
+    assert type(config.min_face_width_px) is float and config == TrackerConfig(robust_c=5.0, crop_margin=0.0)
+    text = repr(FaceTrackingConfig(face_margin=0, focal=300))
+    assert "face_margin=0, " in text and "focal=300, " in text
+    assert FitConfig(held_shape_precision=np.float32(256.0)).held_shape_precision == 256.0

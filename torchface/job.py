@@ -67,7 +67,7 @@ from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, accepts_near, usable_detection
-from torchface.geometry._checks import check_bool, check_int
+from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError
@@ -180,6 +180,8 @@ class JobConfig:
             raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
         if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
+        object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))
+        object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
         for name in ("resume", "convert", "meshes"):  # "no" was true

@@ -47,7 +47,7 @@ from torch import Tensor, nn
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -156,6 +156,7 @@ class LayerConfig:
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         for name in ("keep_expression", "normalise_light"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
+        object.__setattr__(self, "margin", check_real(self.margin, "margin"))  # "0.05" was taken (a str)
         if not 1 <= self.unrolled_levels <= self.tracker.num_levels:
             raise ValueError(
                 f"unrolled_levels must be in [1, tracker.num_levels = {self.tracker.num_levels}], "

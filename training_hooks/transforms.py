@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.geometry._checks import check_bool, check_int
+from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -135,6 +135,8 @@ class FaceTrackingConfig:
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
         object.__setattr__(self, "face_size", check_int(self.face_size, "face_size", 16))
         object.__setattr__(self, "keep_expression", check_bool(self.keep_expression, "keep_expression"))
+        object.__setattr__(self, "face_margin", check_real(self.face_margin, "face_margin"))  # "0.05" was taken (a str)
+        object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))  # and focal="300"
         if not 0.0 <= float(self.face_margin) <= 0.45:
             raise ValueError(f"face_margin must be in [0, 0.45], got {self.face_margin}")
         if not isinstance(self.face_storage, FaceStorage):

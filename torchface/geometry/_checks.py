@@ -84,6 +84,32 @@ def _check_int(value: object, name: str, low: int | None, extra: str) -> int:
     return int(value)
 
 
+def check_real(value: object, name: str) -> float:
+    """``value`` as a Python number: an ``int`` or a ``float`` as given, a numpy real number (``np.float32(0.5)``)
+    as a Python float; never a bool.
+
+    The settings' one rule for their numbers, as :func:`check_int`'s for counts: a value of another type (``"0.5"``,
+    ``True``, ``None``) is a ``TypeError`` naming the setting ``name`` (``"0.5"`` was "'<' not supported between
+    ...", or taken); the setting's own range check follows. An int stays an int, so that a setting's ``repr`` (part
+    of ``training_hooks``' cache key and of ``torchface track --resume``'s record) is what it was.
+
+    Raises:
+        TypeError: ``value`` is not a real number.
+    """
+    return _check_real(value, name, "")
+
+
+def check_optional_real(value: object, name: str) -> float | None:
+    """``None``, or ``value`` checked and converted as :func:`check_real` does."""
+    return None if value is None else _check_real(value, name, " or None")
+
+
+def _check_real(value: object, name: str, extra: str) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
+    return value if type(value) in (int, float) else float(value)  # type: ignore[return-value]
+
+
 def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, ...]:
     """``values`` (a tuple or list) as a tuple of Python ints, each checked as :func:`check_int` does (``name[i]`` in
     the messages).

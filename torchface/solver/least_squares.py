@@ -30,7 +30,7 @@ from typing import Callable
 
 import torch
 
-from torchface.geometry._checks import check_bool, check_int, check_optional_int
+from torchface.geometry._checks import check_bool, check_int, check_optional_int, check_real
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 
 __all__ = [
@@ -110,6 +110,9 @@ class SolverConfig:
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 0))
         for name in ("marquardt_scaling", "differentiable"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
+        for name in ("initial_damping", "damping_increase_factor", "damping_decrease_factor", "min_damping",
+                     "max_damping", "step_tolerance", "cost_tolerance"):  # fmt: skip
+            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "10" or "1e-8" was taken (a str)
         if not (0.0 < self.min_damping <= self.initial_damping <= self.max_damping):
             raise ValueError(
                 "damping must satisfy 0 < min_damping <= initial_damping <= max_damping, got "

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchface.geometry._checks import check_bool, check_int
+from torchface.geometry._checks import check_bool, check_int, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import euler_to_matrix
@@ -257,6 +257,8 @@ class ClipSpec:
         for name in ("num_frames", "width", "height", "background_seed"):  # (2.5 frames failed in linspace)
             object.__setattr__(self, name, check_int(getattr(self, name), name))
         object.__setattr__(self, "easing", check_bool(self.easing, "easing"))  # "no" eased
+        for name in ("distance_mm", "ambient", "light_intensity"):
+            object.__setattr__(self, name, check_real(getattr(self, name), name))
         if self.num_frames < 2:
             raise ValueError(f"num_frames must be >= 2 (a neutral first frame and a target), got {self.num_frames}")
         if self.width < 16 or self.height < 16:

@@ -63,7 +63,7 @@ from torchface._autocast import full_precision
 from torchface import _native
 from torchface._scalar import isfinite, scalar
 from torchface.backend import Backend, use_native
-from torchface.geometry._checks import check_bool, check_int, check_optional_int
+from torchface.geometry._checks import check_bool, check_int, check_optional_int, check_real
 
 __all__ = [
     "LKResult",
@@ -469,6 +469,9 @@ class DissimilarityConfig:
             object.__setattr__(self, name, check_int(getattr(self, name), name))
         object.__setattr__(self, "min_separation", check_optional_int(self.min_separation, "min_separation", 1))
         object.__setattr__(self, "project_out_bias", check_bool(self.project_out_bias, "project_out_bias"))
+        for name in ("tolerance", "max_displacement", "d0", "min_support", "min_present_fraction", "smoothing_sigma",
+                     "trim_fraction"):  # fmt: skip
+            object.__setattr__(self, name, check_real(getattr(self, name), name))
         if self.patch_size < 3 or self.patch_size % 2 == 0:
             raise ValueError(f"patch_size must be an odd int >= 3, got {self.patch_size}")
         if self.num_patches < 1 or self.iterations < 1 or self.min_patches < 1 or self.border < 0:

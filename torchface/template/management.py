@@ -57,7 +57,7 @@ from torch import Tensor
 from torchface.appearance.illumination import remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -280,6 +280,12 @@ class TemplateConfig:
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not isinstance(self.dissimilarity, DissimilarityConfig):
             raise TypeError(f"dissimilarity must be a DissimilarityConfig, got {type(self.dissimilarity).__name__}")
+        for name in ("texture_blend", "yaw_bin_deg", "pitch_bin_deg", "bin_centre_fraction", "switch_margin_deg",
+                     "reference_radius_deg", "min_facing_cos", "confidence_threshold", "add_confidence", "entry_reach",
+                     "very_low_confidence", "min_inside_fraction", "adopt_min_angle_deg", "adopt_min_confidence",
+                     "recover_confidence", "search_step_px", "search_min_inside", "clean_radius_deg",
+                     "clean_rejected_fraction"):  # fmt: skip
+            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.5": "'<' not supported"
         for name in ("max_entries", "normalised_size", "entry_stride", "lost_after", "lost_after_very_low",
                      "recovery_every", "search_points"):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name))

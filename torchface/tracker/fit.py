@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
@@ -62,7 +62,10 @@ class FitConfig:
     refine_shape_prior_precision: float | None = None
 
     def __post_init__(self) -> None:
-        refine = self.refine_shape_prior_precision
+        for name in ("held_shape_precision", "shape_bound", "expression_prior_precision"):  # "1": "'<' not supported"
+            object.__setattr__(self, name, check_real(getattr(self, name), name))
+        refine = check_optional_real(self.refine_shape_prior_precision, "refine_shape_prior_precision")
+        object.__setattr__(self, "refine_shape_prior_precision", refine)
         if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
                                    or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
             raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")

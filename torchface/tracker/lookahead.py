@@ -43,7 +43,7 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.backend import Backend
-from torchface.geometry._checks import check_bool, check_int, check_ints
+from torchface.geometry._checks import check_bool, check_int, check_ints, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix, hat, left_jacobian, matrix_to_axis_angle, matrix_to_euler
@@ -126,6 +126,9 @@ class LookaheadConfig:
     silhouette_margin: int = 0
 
     def __post_init__(self) -> None:
+        for name in ("yaw_deg", "min_confidence", "photometric_weight", "gradient_threshold", "huber_k",
+                     "min_facing_cos"):  # fmt: skip
+            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "10": "'<' not supported"
         if not 0.0 < self.yaw_deg < 90.0:
             raise ValueError(f"yaw_deg must be in (0, 90), got {self.yaw_deg}")
         object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))

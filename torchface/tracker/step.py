@@ -25,7 +25,9 @@ from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUM
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_ints
+from torchface.geometry._checks import (
+    check_bool, check_int, check_intrinsics, check_ints, check_optional_real, check_real,
+)
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
@@ -98,7 +100,8 @@ class TrackerConfig:
         use_illumination: estimate the illumination terms (else held at zero: the ablation).
         use_expression: estimate the animation units (else held at the initial values: the ablation).
         robust: the robust loss for external occlusion (``RobustKind.NONE`` is the ablation).
-        robust_c: its tuning constant (in robust-scale units).
+        robust_c: its tuning constant (in robust-scale units); None: the loss's default
+            (:class:`~torchface.solver.robust.RobustLoss`).
         robust_scale_floor: lower bound of the robust scale (gray levels in [0, 1]) at the coarsest and at the
             finest level (geometric in between).
             On clean frames the residual scale is tiny, and an expression change would be rejected as an
@@ -214,7 +217,7 @@ class TrackerConfig:
     use_illumination: bool = True
     use_expression: bool = True
     robust: RobustKind = RobustKind.TUKEY
-    robust_c: float = 4.685
+    robust_c: float | None = 4.685
     robust_scale_floor: tuple[float, float] = (0.1, 0.02)
     refine_iterations: int = 3
     refine_scale_floor: float = 0.1
@@ -251,6 +254,12 @@ class TrackerConfig:
                           ("visibility_interval", 1), ("selection_seed", 0)):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations"))  # 6.5 was taken here
+        for name in ("gradient_threshold", "function_tolerance", "refine_scale_floor", "expression_priority",
+                     "expression_quota", "expression_prior_precision", "min_contrast", "min_face_width_px",
+                     "crop_margin"):  # fmt: skip
+            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.2": "must be real number"
+        for name in ("robust_c", "refine_prior_precision", "expression_sparsity"):
+            object.__setattr__(self, name, check_optional_real(getattr(self, name), name))
         for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
             value = getattr(self, name)
             if not isinstance(value, numbers.Real) or not (math.isfinite(value) and float(value) >= 0.0):
