@@ -272,7 +272,18 @@ def test_the_tracker_config_and_the_loss_take_the_same_constants() -> None:
     assert type(loss.c) is float and loss.c == float(c)
     r = torch.linspace(-20.0, 20.0, 41)
     torch.testing.assert_close(loss.weight(r, 1.0), RobustLoss(config.robust, float(c)).weight(r, 1.0), rtol=0, atol=0)
-    with pytest.raises(ValueError, match="robust_c must be a finite number > 0"):
+    with pytest.raises(TypeError, match="robust_c must be a real number or None"):  # (was a ValueError)
         TrackerConfig(robust_c=True)
     with pytest.raises(ValueError, match="c must be a finite positive number"):
         RobustLoss(RobustKind.TUKEY, c=True)
+
+
+def test_min_scale_of_another_type_is_a_type_error() -> None:
+    """``RobustLoss(min_scale="0.5")`` was taken (``float()`` of the string passed the range check) and failed in
+    the solver's ``clamp_min``; a numpy float is kept as a Python float (the settings' rule, README)."""
+    import numpy as np
+
+    for bad in ("0.5", True, None):
+        with pytest.raises(TypeError, match="min_scale must be a real number"):
+            RobustLoss(RobustKind.HUBER, min_scale=bad)  # type: ignore[arg-type]
+    assert type(RobustLoss(RobustKind.HUBER, min_scale=np.float32(0.5)).min_scale) is float

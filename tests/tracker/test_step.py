@@ -429,12 +429,16 @@ def test_config_refuses_settings_that_failed_later_or_tracked_wrongly():
         with pytest.raises(ValueError, match=f"{name} must be an int"):
             TrackerConfig(**{name: bad})
     for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
-        for bad in (float("nan"), float("inf"), -1.0, "0.1"):
+        for bad in (float("nan"), float("inf"), -1.0):
             with pytest.raises(ValueError, match=name):
                 TrackerConfig(**{name: bad})
-    for bad in (-1.0, 0.0, float("nan"), float("inf"), "4.685"):
+        with pytest.raises(TypeError, match=f"{name} must be a real number"):  # (a wrong type was a ValueError)
+            TrackerConfig(**{name: "0.1"})
+    for bad in (-1.0, 0.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="robust_c"):
             TrackerConfig(robust_c=bad)
+    with pytest.raises(TypeError, match="robust_c must be a real number or None"):
+        TrackerConfig(robust_c="4.685")
     with pytest.raises(ValueError, match="expression_priority"):
         TrackerConfig(expression_priority=float("nan"))
     for floors in ((0.1, float("inf")), (float("inf"), 0.02)):

@@ -27,6 +27,7 @@ from typing import cast
 import torch
 
 from torchface._scalar import scalar
+from torchface.geometry._checks import check_real
 
 __all__ = ["RobustKind", "RobustLoss", "SwitchedRobustLoss", "robust_scale", "MAD_TO_SIGMA"]
 
@@ -115,6 +116,7 @@ class RobustLoss:
         if isinstance(self.c, bool) or not (isinstance(self.c, numbers.Real) and 0.0 < float(self.c) < math.inf):
             raise ValueError(f"c must be a finite positive number, got {self.c!r}")
         object.__setattr__(self, "c", float(self.c))
+        object.__setattr__(self, "min_scale", check_real(self.min_scale, "min_scale"))  # "0.5" was taken (a str)
         if not (0.0 < float(self.min_scale) < math.inf):
             raise ValueError(f"min_scale must be finite and positive, got {self.min_scale!r}")
 
