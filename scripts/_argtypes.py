@@ -29,20 +29,24 @@ def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
 def folder_problem(path: Path) -> str | None:
     """Why ``path`` cannot be made an output folder (None: it can): it, or a folder above it, is a file, or a symbolic
     link whose target does not exist (``mkdir`` said only "File exists", a traceback after the setup)."""
-    for a in (path, *path.parents):
-        if a.is_symlink() and not a.exists():
-            return f"{a} is a symbolic link to {os.readlink(a)}, which does not exist"
-        if a.exists() and not a.is_dir():
-            return "not a folder path (a file, or under a file)"
+    from torchface.io.errors import dangling_link
+
+    link = dangling_link(path)
+    if link is not None:
+        return f"{link} is a symbolic link to {os.readlink(link)}, which does not exist"
+    if any(a.exists() and not a.is_dir() for a in (path, *path.parents)):
+        return "not a folder path (a file, or under a file)"
     return None
 
 
 def file_problem(path: Path) -> str | None:
     """Why a file cannot be written at ``path`` (None: it can): it is a folder, or a folder above it is a file or a
     symbolic link whose target does not exist (found only when the file was written, after the whole run)."""
-    for a in path.parents:
-        if a.is_symlink() and not a.exists():
-            return f"{a} is a symbolic link to {os.readlink(a)}, which does not exist"
+    from torchface.io.errors import dangling_link
+
+    link = dangling_link(path, itself=False)
+    if link is not None:
+        return f"{link} is a symbolic link to {os.readlink(link)}, which does not exist"
     if path.is_dir() or any(a.exists() and not a.is_dir() for a in path.parents):
         return "not a file path (a folder, or under a file)"
     return None

@@ -297,6 +297,7 @@ def _render_progress(label: str, start: float):
 
 def _render_demo(args: argparse.Namespace) -> int:
     """Render a synthetic sequence with ground truth (the renderer's former ``demo`` command)."""
+    from torchface.io.errors import dangling_link
     from torchface.synth.scenarios import SCENARIOS, make_scenario
     from torchface.synth.sequence import write_sequence
 
@@ -306,10 +307,10 @@ def _render_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"--width and --height must be even numbers >= 16, got {args.width}x{args.height}")
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
-    for folder in (args.out, *args.out.parents):  # (a dangling link said only "File exists")
-        if folder.is_symlink() and not folder.exists():
-            raise ValueError(f"--out {args.out}: {folder} is a symbolic link to {os.readlink(folder)}, which does not "
-                             "exist")  # fmt: skip
+    link = dangling_link(args.out)  # (a dangling link said only "File exists")
+    if link is not None:
+        raise ValueError(f"--out {args.out}: {link} is a symbolic link to {os.readlink(link)}, which does not exist")
+    for folder in (args.out, *args.out.parents):
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"--out {args.out}: {folder} is a file, not a folder")
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)

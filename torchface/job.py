@@ -70,7 +70,7 @@ from torchface.detect import _Batched, accepts_near, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
-from torchface.io.errors import InputError, OutputError
+from torchface.io.errors import InputError, OutputError, dangling_link
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
 from torchface.io.table import (
@@ -342,10 +342,10 @@ def _frame_meshes(folder: Path) -> list[Path]:
 
 
 def _check_out_dir(out_dir: Path) -> None:
-    for a in (out_dir, *out_dir.parents):  # mkdir said only "File exists" (also for a link above the folder)
-        if a.is_symlink() and not a.exists():
-            where = "the output folder" if a == out_dir else f"a folder above {out_dir}"
-            raise OutputError(f"{a}: {where} is a symbolic link to {os.readlink(a)}, which does not exist")
+    a = dangling_link(out_dir)  # mkdir said only "File exists" (also for a link above the folder)
+    if a is not None:
+        where = "the output folder" if a == out_dir else f"a folder above {out_dir}"
+        raise OutputError(f"{a}: {where} is a symbolic link to {os.readlink(a)}, which does not exist")
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
     opencv_path(out_dir, OutputError)  # the videos are written by OpenCV

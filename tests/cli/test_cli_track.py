@@ -987,18 +987,23 @@ def test_the_job_keeps_nothing_per_frame_in_memory(clip, tmp_path, monkeypatch):
     assert len(seen) == 1 and all(n < 2 * T for n in seen[0].values()), seen  # (the record's fields, the shape)
 
 
+def _truncated_avi(video, path):
+    """The clip's T frames as an MJPG ``.avi`` at ``path``, cut to its first 2/5 of bytes: its container still
+    declares T frames, fewer decode."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+    for f in _clip_frames_uint8(video, T):
+        writer.write(np.ascontiguousarray(f[..., ::-1]))
+    writer.release()
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 5])
+    return path
+
+
 def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     """A video cut short (its container still declares every frame) is tracked as far as it decodes, and the
     summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word)."""
     video, lm, _ = clip
-    frames = _clip_frames_uint8(video, T)
-    avi = tmp_path / "cut.avi"
-    writer = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
-    for f in frames:
-        writer.write(np.ascontiguousarray(f[..., ::-1]))
-    writer.release()
-    data = avi.read_bytes()
-    avi.write_bytes(data[: len(data) * 2 // 5])
+    avi = _truncated_avi(video, tmp_path / "cut.avi")
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["track", str(avi), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0
@@ -1013,14 +1018,7 @@ def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(
     the end: its progress bar never finished (on a terminal it stayed among the bars being tracked, in a log its
     last line was up to 10 s old), nor did that of a container that declares no count (``total`` None)."""
     video, lm, _ = clip
-    frames = _clip_frames_uint8(video, T)
-    avi = tmp_path / "cut.avi"
-    writer = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
-    for f in frames:
-        writer.write(np.ascontiguousarray(f[..., ::-1]))
-    writer.release()
-    data = avi.read_bytes()
-    avi.write_bytes(data[: len(data) * 2 // 5])
+    avi = _truncated_avi(video, tmp_path / "cut.avi")
     short = _short_npy(video, tmp_path / "short.npy", 2)
     reports = []
     summaries = track_videos([avi, short], JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None),

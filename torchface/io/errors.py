@@ -6,7 +6,9 @@ with a non-zero status.
 
 from __future__ import annotations
 
-__all__ = ["InputError", "OutputError"]
+from pathlib import Path
+
+__all__ = ["InputError", "OutputError", "dangling_link"]
 
 
 class InputError(ValueError):
@@ -15,3 +17,13 @@ class InputError(ValueError):
 
 class OutputError(OSError):
     """An output folder or file cannot be written."""
+
+
+def dangling_link(path: Path, *, itself: bool = True) -> Path | None:
+    """The first of ``path`` (unless ``itself`` is False) and the folders above it that is a symbolic link whose target
+    does not exist, else None: nothing can be made below such a link, and ``mkdir`` or a write there says only "File
+    exists" or "No such file or directory". Callers name it with its target, ``os.readlink``."""
+    for a in ((path,) if itself else ()) + tuple(path.parents):
+        if a.is_symlink() and not a.exists():
+            return a
+    return None
