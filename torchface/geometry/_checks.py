@@ -4,6 +4,7 @@ hot loops)."""
 from __future__ import annotations
 
 import numbers
+from typing import cast
 
 import numpy as np
 import torch
@@ -107,7 +108,7 @@ def check_optional_real(value: object, name: str) -> float | None:
 def _check_real(value: object, name: str, extra: str) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
-    return value if type(value) in (int, float) else float(value)  # type: ignore[return-value]
+    return cast(float, value) if type(value) in (int, float) else float(value)
 
 
 def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, ...]:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import enum
 import math
-import numbers
 import threading
 import weakref
 from collections.abc import Callable, Sequence
@@ -262,13 +261,12 @@ class TrackerConfig:
             object.__setattr__(self, name, check_optional_real(getattr(self, name), name))
         for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
             value = getattr(self, name)
-            if not isinstance(value, numbers.Real) or not (math.isfinite(value) and float(value) >= 0.0):
+            if not (math.isfinite(value) and value >= 0.0):  # (types: check_real above)
                 raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
-        if self.robust_c is not None and (isinstance(self.robust_c, bool) or not (
-            isinstance(self.robust_c, numbers.Real) and math.isfinite(self.robust_c) and float(self.robust_c) > 0.0
-        )):  # (was refused at the first frame as "c must be a positive number"; RobustLoss refuses a bool too)
+        if self.robust_c is not None and not (math.isfinite(self.robust_c) and self.robust_c > 0.0):
+            # (was refused at the first frame as "c must be a positive number")
             raise ValueError(f"robust_c must be a finite number > 0 or None (the loss's default), got {self.robust_c!r}")
-        if not (isinstance(self.expression_priority, numbers.Real) and math.isfinite(self.expression_priority)):
+        if not math.isfinite(self.expression_priority):
             raise ValueError(f"expression_priority must be a finite number, got {self.expression_priority!r}")
         if self.refine_prior_precision is not None and not self.refine_prior_precision >= 0.0:
             raise ValueError(f"refine_prior_precision must be >= 0 or None, got {self.refine_prior_precision}")
