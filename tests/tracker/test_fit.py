@@ -240,13 +240,6 @@ def test_bad_inputs_raise(model):
         fit_landmarks(model, lm, CAM, landmark_indices=torch.arange(5))
     with pytest.raises(ValueError, match=r"weights must be \(B, K\)"):
         fit_landmarks(model, lm, CAM, torch.ones(1, 67, dtype=D))
-    few = torch.zeros(1, 68, dtype=D)
-    few[0, :3] = 1.0
-    with pytest.raises(ValueError, match="at least 4"):
-        fit_landmarks(model, lm, CAM, few)
-    nan = torch.full((1, 68, 2), float("nan"), dtype=D)
-    with pytest.raises(ValueError, match="at least 4"):
-        fit_landmarks(model, nan, CAM)
     # One-line TypeErrors naming the argument (numpy landmarks were a ValueError "got ndarray", numpy or list
     # weights and None intrinsics an AttributeError, bool landmarks were fitted as pixels 0 and 1).
     with pytest.raises(TypeError, match=r"landmarks_px must be a torch.Tensor .*ndarray"):
@@ -345,6 +338,44 @@ def test_rms_error_is_in_pixels_whatever_the_weights_scale(model, scale):
     torch.testing.assert_close(fit.rms_px, expected, rtol=1e-9, atol=0)
     assert float(expected.min()) > 0.5
     with pytest.raises(ValueError, match="sum beyond"):
+        fit_landmarks(load_candide3(dtype=torch.float32), lm.float(), CAM, torch.full((3, 68), 1e37))
+
+
+def test_a_sample_without_landmarks_fails_alone_and_the_others_fit_as_alone(model):
+    """A sample whose landmarks are all NaN (no face found in its frame), or that has fewer than 4 of positive weight,
+    raised "every sample needs at least 4 finite landmarks with positive weight" for the whole batch. It is FAILED
+    now, at a finite placeholder (frontal, mean shape, a quarter of the frame wide on the principal point's ray,
+    ``rms_px`` 0), and the other samples' fits are those of the batch without it (as alone, to float rounding); a batch
+    of such samples all fail."""
+    R, t = poses()
+    lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(4), dtype=D)
+    weights = torch.rand(3, 68, generator=torch.Generator().manual_seed(5), dtype=D) + 0.5
+    lm[1] = float("nan")
+    few = weights.clone()
+    few[2, 3:] = 0.0  # three landmarks of positive weight: too few for a pose
+    config = FitConfig(fit_expression=True)
+    for w, missing in ((weights, [1]), (few, [1, 2])):
+        fit = fit_landmarks(model, lm, CAM, w, config=config)
+        assert [b for b in range(3) if int(fit.status[b]) == 2] == missing
+        keep = [b for b in range(3) if b not in missing]
+        rest = fit_landmarks(model, lm[keep], CAM, w[keep], config=config)  # the batch without them
+        for name in LandmarkFit.__dataclass_fields__:
+            assert torch.equal(getattr(fit, name)[keep], getattr(rest, name)), name
+        alone = fit_landmarks(model, lm[:1], CAM, w[:1], config=config)
+        assert float(geodesic_angle_deg(fit.rotation[:1], alone.rotation)) < 1e-6
+        for name in LandmarkFit.__dataclass_fields__:
+            assert bool(torch.isfinite(getattr(fit, name).double()).all()), name
+        m = missing[0]
+        assert torch.equal(fit.rotation[m], torch.eye(3, dtype=D)) and float(fit.rms_px[m]) == 0.0
+        assert float(fit.shape_coeffs[m].abs().max()) == 0.0 and float(fit.anim_coeffs[m].abs().max()) == 0.0
+        centre = model.landmarks_3d(model.mean[None])[0].mean(0) + fit.translation[m]
+        assert abs(float(centre[0])) < 1e-9 and abs(float(centre[1])) < 1e-9  # on the principal point's ray
+        width = model.landmarks_3d(model.mean[None])[0, :, 0]
+        assert abs(CAM.fx * float(width.max() - width.min()) / float(centre[2]) - CAM.width / 4) < 1e-6
+    none = fit_landmarks(model, torch.full((2, 68, 2), float("nan"), dtype=D), CAM)
+    assert none.status.tolist() == [2, 2] and none.translation.dtype == D
+    assert fit_landmarks(model, lm[:1], CAM, few[:1] * 0).status.tolist() == [2]  # (weights all 0: missing too)
+    with pytest.raises(ValueError, match="sum beyond"):  # malformed weights of a usable sample are still refused
         fit_landmarks(load_candide3(dtype=torch.float32), lm.float(), CAM, torch.full((3, 68), 1e37))
 
 

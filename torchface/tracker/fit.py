@@ -213,11 +213,17 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
                          f"got {int(idx.min())}..{int(idx.max())}")  # fmt: skip
 
 
+#: The fewest landmarks (finite, of positive weight) a sample's :func:`fit_landmarks` needs: the pose's six
+#: parameters need as many residuals. A sample with fewer (a frame where no face was found: NaN rows) is FAILED.
+MIN_FIT_LANDMARKS: int = 4
+
+
 def _check_landmarks(
     landmarks_px: Tensor, weights: Tensor | None, k: int, dtype: torch.dtype, device: torch.device
 ) -> tuple[Tensor, Tensor]:
     """:func:`landmark_targets` of ``(B, k, 2)`` landmarks and ``(B, k)`` weights in ``dtype`` on ``device``, after
-    checking their shapes and that every sample has 4 usable points."""
+    checking their shapes and the weights of the samples that have :data:`MIN_FIT_LANDMARKS` usable points (fewer:
+    missing, which :func:`fit_landmarks` reports as FAILED)."""
     check_landmark_type(landmarks_px, f"(B, {k}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
         raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {tuple(landmarks_px.shape)}")
@@ -227,11 +233,10 @@ def _check_landmarks(
     if weights is not None and weights.shape != (B, k):
         raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}")
     target, w = landmark_targets(landmarks_px.to(dtype=dtype, device=device), weights)
-    if bool(((w > 0).sum(-1) < 4).any()):
-        raise ValueError("every sample needs at least 4 finite landmarks with positive weight")
-    if not bool(torch.isfinite(w.sum(-1)).all()):  # the start's weighted centroid would be 0 / 0
+    used = w[(w > 0).sum(-1) >= MIN_FIT_LANDMARKS]  # (a sample with fewer is missing, not malformed)
+    if not bool(torch.isfinite(used.sum(-1)).all()):  # the start's weighted centroid would be 0 / 0
         raise ValueError(f"the landmark weights of a sample sum beyond {dtype}'s range; scale them down")
-    if bool((w.amax(-1) < torch.finfo(dtype).tiny).any()):  # subnormal: the fit's squares and products underflow
+    if used.numel() and bool((used.amax(-1) < torch.finfo(dtype).tiny).any()):  # subnormal: squares underflow
         raise ValueError(f"the landmark weights of a sample are all below {dtype}'s smallest normal number "
                          f"({torch.finfo(dtype).tiny:.3g}); scale them up")  # fmt: skip
     return target, w
@@ -333,7 +338,10 @@ def fit_landmarks(
         stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the default
         ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
-        six; the shape units and the expression have priors, unless given a precision of 0).
+        six; the shape units and the expression have priors, unless given a precision of 0). A sample with fewer
+        finite landmarks of positive weight (all NaN: no face found in its frame) is FAILED, at a placeholder
+        estimate (:func:`_missing_fit`: frontal, centred on the principal point, a quarter of the frame wide,
+        mean shape, ``rms_px`` 0); the others are fitted as they are alone (it raised a ValueError for the batch).
     """
     if not isinstance(config, FitConfig):  # None was an AttributeError ('NoneType' ... 'fit_expression')
         raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
@@ -344,6 +352,9 @@ def fit_landmarks(
     check_intrinsics(intrinsics)  # None was an AttributeError ('NoneType' object has no attribute 'fx')
     target, w = _check_landmarks(landmarks_px, weights, k, dtype, device)
     B = target.shape[0]
+    enough = (w > 0).sum(-1) >= MIN_FIT_LANDMARKS
+    if not bool(enough.all()):  # samples without landmarks (no face found): FAILED; the others fitted alone
+        return _fit_with_missing(model, landmarks_px, intrinsics, weights, idx, config, enough)
     lv, lw = model.landmark_vertices[idx], model.landmark_weights[idx]
     mean_l = interpolate_landmarks(model.mean.unsqueeze(0), lv, lw)[0]  # (K, 3)
     shape_l = interpolate_landmarks(model.shape_units, lv, lw)  # (S, K, 3)
@@ -435,3 +446,45 @@ def fit_landmarks(
     failed = (spread_px < _MIN_SPREAD_PX) | dropped | away | stalled | unexplained
     status = torch.where(failed, int(SolveStatus.FAILED), res.status)
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)
+
+
+def _missing_fit(model: FaceModel, intrinsics: Intrinsics, count: int) -> LandmarkFit:
+    """The FAILED fit of ``count`` samples without landmarks: a placeholder, finite, estimate (it means nothing):
+    frontal, the model's landmark centroid on the optical axis at the depth where its mean face (the extent of its
+    landmarks) is a quarter of the frame wide, mean shape and neutral expression, ``rms_px`` 0."""
+    dtype, device = model.dtype, model.device
+    mean_l = model.landmarks_3d(model.mean[None].detach())[0]  # (K, 3)
+    centre = mean_l.mean(0)
+    width_mm = float(mean_l[:, 0].amax() - mean_l[:, 0].amin())
+    z = intrinsics.fx * width_mm / (intrinsics.width / 4.0)
+    t = torch.stack([-centre[0], -centre[1], z - centre[2]]).to(dtype=dtype, device=device)
+    eye = torch.eye(3, dtype=dtype, device=device)
+    zeros = torch.zeros(count, dtype=dtype, device=device)
+    return LandmarkFit(
+        eye.expand(count, 3, 3).clone(), torch.zeros(count, 3, dtype=dtype, device=device), t.expand(count, 3).clone(),
+        torch.zeros(count, model.num_shape, dtype=dtype, device=device),
+        torch.zeros(count, model.num_animation, dtype=dtype, device=device), zeros,
+        torch.full((count,), int(SolveStatus.FAILED), dtype=torch.int64, device=device),
+    )  # fmt: skip
+
+
+def _fit_with_missing(
+    model: FaceModel, landmarks_px: Tensor, intrinsics: Intrinsics, weights: Tensor | None, idx: Tensor,
+    config: FitConfig, enough: Tensor,
+) -> LandmarkFit:
+    """:func:`fit_landmarks` of a batch where the samples not ``enough`` ``(B,)`` lack the landmarks a fit needs:
+    the others fitted as a batch of their own (as they are alone), these :func:`_missing_fit`."""
+    enough = enough.to(landmarks_px.device)
+    fit = _missing_fit(model, intrinsics, int(enough.shape[0]))
+    if not bool(enough.any()):
+        return fit
+    some = fit_landmarks(model, landmarks_px[enough], intrinsics,
+                         None if weights is None else weights[enough.to(weights.device)],
+                         landmark_indices=idx, config=config)  # fmt: skip
+    rows = enough.nonzero().squeeze(-1).to(model.device)
+    parts = []
+    for name in LandmarkFit.__dataclass_fields__:
+        x = getattr(fit, name)
+        x[rows] = getattr(some, name).to(x.dtype)
+        parts.append(x)
+    return LandmarkFit(*parts)
