@@ -905,6 +905,45 @@ def test_a_stream_fading_in_from_black_starts_when_the_detector_finds_its_face(m
         assert torch.equal(r.status[:1], a.status)
 
 
+def test_a_stream_without_landmarks_starts_when_the_detector_finds_its_face(model, gentle):
+    """Three streams, the middle one without landmarks (all NaN: no face found in its first frame): the batch was
+    refused ("every sample needs at least 4 finite landmarks with positive weight"). The middle stream now starts
+    FAILED and stays LOST, finite, until a recovery attempt's detector finds its face (from frame 3 on: the attempt
+    of frame 4), then starts afresh from that frame and tracks it; the other two track exactly as alone."""
+    frames, gt = gentle
+    both = torch.cat([frames, frames, frames])
+    lm = torch.cat([landmarks(gt)] * 3)
+    lm[1] = float("nan")
+    current, asked = [0], []
+
+    def detector(batch: torch.Tensor) -> torch.Tensor:
+        asked.append((current[0], batch.shape[0]))
+        found = gt.landmarks_px[current[0]].float()
+        return (found if current[0] >= 3 else torch.full_like(found, float("nan"))).expand(batch.shape[0], -1, -1)
+
+    state, res = initialise_managed(model, LEAVE_CFG, both[:, 0], lm, Intrinsics.default(W, H))
+    assert res.status.tolist() == [0, int(TrackStatus.FAILED), 0] and float(res.confidence[1]) == 0.0
+    assert_finite(res)
+    results = [res]
+    for i in range(1, both.shape[1]):
+        current[0] = i
+        state, res = managed_step(model, LEAVE_CFG, state, both[:, i], detector)
+        results.append(res)
+        assert_finite(res)
+    assert asked == [(2, 1), (4, 1)]  # the middle stream's attempts only
+    assert [int(r.status[1]) for r in results[1:4]] == [LOST] * 3
+    assert all(bool(r.success[1]) and float(r.confidence[1]) > 0.5 for r in results[4:])
+    R = torch.stack([r.rotation[1].double() for r in results[4:]])
+    assert float(geodesic_angle_deg(R, gt.rotation[4:]).max()) < 1.0
+    assert state.management.unstarted is None
+    alone, _ = track(model, LEAVE_CFG, frames, landmarks(gt), detector)
+    for a, r in zip(alone, results):
+        for b in (0, 2):
+            assert torch.equal(r.status[b : b + 1], a.status)
+            torch.testing.assert_close(r.rotation[b : b + 1], a.rotation)
+            torch.testing.assert_close(r.translation[b : b + 1], a.translation)
+
+
 @pytest.mark.parametrize("fit", ["held", "default"])
 def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_until_a_detector_starts_it(model, gentle, fit):
     """Collinear landmarks (every point on one row) fit the face edge-on, pitch 87-90 degrees. With the tests' fit

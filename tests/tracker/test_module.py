@@ -333,3 +333,44 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     assert tracker.tracking_config is tracker.config
     with pytest.raises(ValueError, match="the state holds templates for 3 pyramid levels"):
         tracker(frames[1:2])
+
+
+# ----------------------------------------------------------------------------------------------- missing landmarks
+
+
+def _assert_finite(result) -> None:
+    for name in ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "facs",
+                 "illumination", "confidence", "residual_confidence", "dissimilarity", "cost"):  # fmt: skip
+        assert bool(torch.isfinite(getattr(result, name)).all()), name
+
+
+def test_a_stream_without_landmarks_starts_failed_and_the_others_track_as_without_it(model, three_streams):
+    """One video of a batch whose first frame had no face found (all its landmarks NaN) made ``initialise`` raise
+    "every sample needs at least 4 finite landmarks with positive weight" for the whole batch. That stream now
+    starts FAILED (confidence 0) and stays LOST, finite, with a finite normalised face; the other streams track as
+    they do without it; a batch where no stream has landmarks starts every stream FAILED rather than raising."""
+    from torchface.normalise import NormalisedFace
+
+    frames, lm = three_streams
+    missing = lm.clone()
+    missing[1] = float("nan")
+    tracker, others = FaceTracker(CFG, model), FaceTracker(CFG, model)
+    first, other = tracker.initialise(frames[:, 0], missing), others.initialise(frames[[0, 2], 0], lm[[0, 2]])
+    assert first.status.tolist() == [0, 2, 0] and float(first.confidence[1]) == 0.0 and not bool(first.success[1])
+    assert_same(first, other, [0, 2], atol=1e-4)
+    _assert_finite(first)
+    normalise = NormalisedFace(model)
+    for t in range(1, frames.shape[1]):
+        result, other = tracker(frames[:, t]), others(frames[[0, 2], t])
+        assert_same(result, other, [0, 2], atol=1e-4)
+        assert int(result.status[1]) == 3 and float(result.confidence[1]) == 0.0 and not bool(result.success[1])
+        _assert_finite(result)
+        face = normalise(frames[:, t], tracker.state)
+        assert bool(torch.isfinite(face.image).all()) and bool(torch.isfinite(face.mask).all())
+    none = FaceTracker(CFG, model)
+    first = none.initialise(frames[:, 0], torch.full_like(lm, float("nan")))
+    assert first.status.tolist() == [2, 2, 2]
+    _assert_finite(first)
+    result = none(frames[:, 1])
+    assert result.status.tolist() == [3, 3, 3] and float(result.confidence.abs().max()) == 0.0
+    _assert_finite(result)
