@@ -38,7 +38,9 @@ from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, 
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
-from torchface.tracker.fit import FitConfig, LandmarkFit, check_landmark_type, fit_landmarks
+from torchface.tracker.fit import (
+    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, landmark_targets,
+)
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -964,6 +966,13 @@ def initialise(
                 seed=config.selection_seed, backend=config.backend,
             )
         )
+    # A stream without landmarks (fewer than a fit needs: no face found in its first frame) has nothing to track: no
+    # template points, so that each step FAILS and holds its placeholder (the bare step tracked the frame's middle
+    # from it, CONVERGED at confidence 0.99); template management keeps it LOST until a detector starts it.
+    _, used = landmark_targets(landmarks_px.to(dtype=model.dtype, device=model.device), weights)
+    missing = (used > 0).sum(-1) < MIN_FIT_LANDMARKS
+    if bool(missing.any()):
+        templates = [replace(tpl, valid=tpl.valid & ~missing.unsqueeze(-1)) for tpl in templates]
     state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1, anim_prior_mean=fit.anim_coeffs.clone())
     status = torch.where(fit.status == int(SolveStatus.FAILED), int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
     n_pts = templates[0].num_points
