@@ -409,3 +409,26 @@ def test_initialise_names_intrinsics_that_are_not_intrinsics():
         for bad in ((64, 48), "camera"):
             with pytest.raises(TypeError, match="intrinsics must be torchface.geometry.Intrinsics"):
                 layer.initialise(frames, landmarks, bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("mode", [LayerMode.DETACHED, LayerMode.UNROLLED])
+def test_a_clip_without_landmarks_fails_alone_and_the_others_are_as_without_it(model, mode):
+    """A batch of clips, one without a face found in its first frame (landmarks all NaN): ``initialise`` raised
+    "every sample needs at least 4 finite landmarks with positive weight" for the whole batch. That clip now
+    tracks FAILED (confidence 0) with finite images, parameters and gradients, and the other clips' normalised faces
+    are those of the batch without it."""
+    frames, landmarks = _clip(32, num_frames=3)
+    clips = torch.stack([frames, frames.roll(1, dims=-1), frames.roll(-1, dims=-1)])
+    lms = landmarks[0] + torch.tensor([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0]], dtype=D)[:, None]
+    lms[1] = float("nan")
+    layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=G, tracker=SMALL), model)
+    grad = clips.clone().requires_grad_()
+    out = layer.forward_clip(grad, lms)
+    assert out.track.status.tolist()[1] == 2 and float(out.track.confidence[1]) == 0.0
+    assert bool(out.track.success[[0, 2]].all())
+    assert bool(torch.isfinite(out.image).all()) and bool(torch.isfinite(out.params).all())
+    out.image.sum().backward()
+    assert grad.grad is not None and bool(torch.isfinite(grad.grad).all())
+    rest = layer.forward_clip(clips[[0, 2]], lms[[0, 2]])
+    torch.testing.assert_close(out.image[[0, 2]].detach(), rest.image)
+    torch.testing.assert_close(out.params[[0, 2]].detach(), rest.params)
