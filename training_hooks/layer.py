@@ -334,7 +334,9 @@ class NormalisedFaceLayer(nn.Module):
 
         Args:
             frames: ``(B, 3, H, W)`` float in ``[0, 1]``.
-            landmarks_px: ``(B, K, 2)`` the model's landmarks (68 iBUG points for CANDIDE-3), pixels.
+            landmarks_px: ``(B, K, 2)`` the model's landmarks (68 iBUG points for CANDIDE-3), pixels; NaN rows:
+                missing. A stream with fewer than 4 (no face found) is FAILED here and at every later frame, with
+                finite parameters, images and gradients; the others are as without it.
             intrinsics: camera of the frames; default :meth:`Intrinsics.default` of their size.
 
         Returns:

@@ -97,8 +97,8 @@ class LandmarkFit:
         shape_coeffs: ``(B, S)``; anim_coeffs: ``(B, A)`` (zeros unless fitted).
         rms_px: ``(B,)`` weighted RMS landmark reprojection error in pixels.
         status: ``(B,)`` int64 :class:`~torchface.solver.SolveStatus`: the solver's, or FAILED for a sample whose
-            landmarks hold no pose, or whose fit put a used landmark behind the camera or turned the face away from
-            it (:func:`fit_landmarks`).
+            landmarks hold no pose (or that has fewer than 4 of them), or whose fit put a used landmark behind the
+            camera or turned the face away from it (:func:`fit_landmarks`).
     """
 
     rotation: Tensor

@@ -927,7 +927,10 @@ def initialise(
         model: the face model.
         config: :class:`TrackerConfig`.
         frames: ``(B, 3, H, W)`` first frames, float in [0, 1].
-        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing).
+        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing). A stream with fewer than
+            :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
+            alone: FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose, without template points
+            (each later step FAILS and holds it; template management keeps it LOST until a detector starts it).
         intrinsics: camera of ``frames``.
         weights: ``(B, K)`` landmark confidences or None.
         fit: the first frames' fit when already made (batch ``B``; e.g. refined by
@@ -966,11 +969,12 @@ def initialise(
                 seed=config.selection_seed, backend=config.backend,
             )
         )
-    # A stream without landmarks (fewer than a fit needs: no face found in its first frame) has nothing to track: no
-    # template points, so that each step FAILS and holds its placeholder (the bare step tracked the frame's middle
-    # from it, CONVERGED at confidence 0.99); template management keeps it LOST until a detector starts it.
+    # A stream without landmarks (fewer than a fit needs: no face found in its first frame), whose fit FAILED, has
+    # nothing to track: no template points, so that each step FAILS and holds its placeholder (the bare step tracked
+    # the frame's middle from it, CONVERGED at confidence 0.99); template management keeps it LOST until a detector
+    # starts it.
     _, used = landmark_targets(landmarks_px.to(dtype=model.dtype, device=model.device), weights)
-    missing = (used > 0).sum(-1) < MIN_FIT_LANDMARKS
+    missing = ((used > 0).sum(-1) < MIN_FIT_LANDMARKS) & (fit.status == int(SolveStatus.FAILED))
     if bool(missing.any()):
         templates = [replace(tpl, valid=tpl.valid & ~missing.unsqueeze(-1)) for tpl in templates]
     state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1, anim_prior_mean=fit.anim_coeffs.clone())
