@@ -729,8 +729,8 @@ def test_failed_initialise_forgets_the_previous_video(model, two_streams):
     tracker = FaceTracker(BASE, model=model)
     tracker.initialise(frames[:, 0], landmarks_of(gts))
     tracker(frames[:, 1])
-    with pytest.raises(ValueError, match="4 finite landmarks"):
-        tracker.initialise(frames[:, 0], torch.full_like(landmarks_of(gts), float("nan")))
+    with pytest.raises(ValueError, match=r"landmarks_px must be \(B, 68, 2\)"):  # (all NaN: a stream that fails)
+        tracker.initialise(frames[:, 0], landmarks_of(gts)[:, :5])
     assert tracker.state is None
     with pytest.raises(RuntimeError, match="initialise"):
         tracker(frames[:, 2])
