@@ -265,3 +265,38 @@ def test_one_name_given_alone_is_refused_not_spelt_out():
         with pytest.raises(TypeError, match=r"must be a sequence of names, e.g. \('\w+',\), not one string"):
             track_columns(*args)
     assert "anim_jawopen" in track_columns(["jawOpen"], [], [])  # lists are sequences too
+
+
+def test_a_partial_csv_without_a_whole_header_is_resumed_from_its_start(tmp_path, monkeypatch):
+    """A run killed, or its disk full, as it started the partial CSV left it empty or cut off in its header; a
+    resume then refused it ("not a track CSV (no complete header line)"), so that --resume stopped at that video
+    and only a fresh run, which removes every video's outputs, went on. It holds no rows: it is started afresh.
+    A fresh file whose header does not fit is not left behind."""
+    import builtins
+
+    from torchface.io import OutputError
+
+    cols = ("frame", "timestamp", "success", "confidence")
+    part = tmp_path / "v.csv.partial"
+    for text in ("", "frame,times", "frame,timestamp,success,confidence"):
+        part.write_text(text)
+        with TrackCsvWriter(tmp_path / "v.csv", cols, resume=True) as w:
+            assert w.rows_done == 0
+            w.write(np.array([[0, 0.0, 1, 0.9]]))
+        c, rows = read_track_csv(tmp_path / "v.csv")
+        assert c == cols and rows.tolist() == [[0.0, 0.0, 1.0, 0.9]]
+        (tmp_path / "v.csv").unlink()
+    part.write_text("frame,timestamp,suXcess")  # not this header's beginning: refused as before
+    with pytest.raises(InputError, match="no complete header line"):
+        TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
+    part.unlink()
+    real_open = builtins.open
+
+    def full_disk(*args, **kwargs):
+        return _FullDisk(real_open(*args, **kwargs))
+
+    monkeypatch.setattr(builtins, "open", full_disk)
+    with pytest.raises(OutputError, match=r"v\.csv\.partial: cannot write \(No space left on device\)"):
+        TrackCsvWriter(tmp_path / "v.csv", cols)
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []

@@ -241,6 +241,16 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     return columns, data
 
 
+def _header_start(path: Path, header: str) -> bool:
+    """Whether the file ``path`` holds no more than a beginning of ``header`` (nothing, or the header cut off)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(header.encode("utf-8")) + 1)
+    except OSError:
+        return False  # (read_track_csv says what is wrong with it)
+    return header.encode("utf-8").startswith(head)
+
+
 def partial_path(path: str | os.PathLike[str]) -> Path:
     """Where :class:`TrackCsvWriter` keeps the rows of ``path`` until it is complete: ``<path>.partial``."""
     path = Path(path)
@@ -254,7 +264,9 @@ class TrackCsvWriter:
         path: the final CSV path.
         columns: header (:func:`track_columns`).
         resume: continue an existing ``<path>.partial`` with the same header: its complete rows are kept
-            (a row cut off mid-line is dropped) and :attr:`rows_done` says how many there are.
+            (a row cut off mid-line is dropped) and :attr:`rows_done` says how many there are. A partial file
+            that holds no more than a beginning of this header (empty, or cut off in it: a run killed, or its disk
+            full, as it started the file) holds no rows: it is started afresh.
 
     Raises:
         OutputError: the folder cannot be written.
@@ -269,8 +281,9 @@ class TrackCsvWriter:
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))
         self._file: TextIO | None = None  # open from here to close or stop
         tmp: Path | None = None
+        header = ",".join(self.columns) + "\n"
         try:
-            if resume and self.partial.is_file():
+            if resume and self.partial.is_file() and not _header_start(self.partial, header):
                 cols, data = read_track_csv(self.partial)
                 if cols != self.columns:
                     raise InputError(f"{self.partial}: cannot resume, its columns differ from this run's")
@@ -284,11 +297,14 @@ class TrackCsvWriter:
                 self._file = open(self.partial, "a", encoding="utf-8")
             else:
                 self._file = open(self.partial, "w", encoding="utf-8")
-                self._file.write(",".join(self.columns) + "\n")
+                self._file.write(header)
                 self._file.flush()
         except OSError as exc:
             if tmp is not None:  # a full disk: no temporary file left behind (the partial CSV is as it was)
                 tmp.unlink(missing_ok=True)
+            elif self._file is not None:  # the new file's header did not fit: closed, and no file without one
+                self.stop()
+                self.partial.unlink(missing_ok=True)
             raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
 
     def write(self, rows: np.ndarray) -> None:
