@@ -2308,3 +2308,38 @@ def test_an_hd_video_follows_the_motion_its_half_size_copy_follows(tmp_path):
     assert float(errors[640].max()) < 2.0, errors[640]
     assert float(errors[1280].max()) < 2.0, errors[1280]
     assert levels == {640: 3, 1280: 4}
+
+
+def test_progress_display_finishes_a_video_that_went_past_its_declared_count(monkeypatch):
+    """A container whose frame count is an estimate may decode more frames (declared 5, decoded 7): its bar went
+    on past 5/5, and when the job reported it ended (7/7) the display took no notice: a log's last line for it
+    said 5/5 (finished at the estimate), a terminal kept its bar among those of the videos being tracked."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    clock = [100.0]
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
+    reports = [Progress(0, 2, "est", k, 5, 5.0, 0.9) for k in range(1, 7)] + [Progress(0, 2, "est", 7, 7, 5.0, 0.9)]
+    log = io.StringIO()
+    display = cli.ProgressDisplay(log)
+    for p in reports + reports[-1:]:  # (the job reports an ended video again while its batch goes on)
+        display(p)
+    lines = log.getvalue().splitlines()
+    assert "7/7" in lines[-1] and len(lines) == 3, lines  # first, at the estimate, at its end
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    display = cli.ProgressDisplay(tty)
+    display(Progress(1, 2, "long", 1, 50, 5.0, 0.9))
+    for p in reports + reports[-1:]:
+        display(p)
+    assert not display.lines.get(0), display.lines  # not among the bars of the videos being tracked
+    display.flush()
+    assert tty.getvalue().splitlines()[-1].endswith("1/50   5.0 fps conf 0.90"), tty.getvalue().splitlines()[-2:]
+    assert "7/7" in tty.getvalue().splitlines()[-2]
