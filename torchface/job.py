@@ -47,6 +47,7 @@ degrees of yaw and 0.9 mm, with the same error against the ground truth).
 from __future__ import annotations
 
 import ast
+import contextlib
 import hashlib
 import json
 import math
@@ -324,16 +325,21 @@ class _VideoOut:
             finally:
                 readback.release()
             if count != self.frames:
-                self.tmp.unlink(missing_ok=True)
+                with contextlib.suppress(OSError):  # (a folder gone read-only: the error says why, not this)
+                    self.tmp.unlink(missing_ok=True)
                 raise OutputError(f"{self.path}: the video could not be written completely ({self.frames} frames "
                                   f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
+        """Stop unfinished, the partial file removed where it can be. Never raises ``OSError``: on a folder that has
+        become read-only (a file system remounted so after an I/O error) the clean-up's error replaced the one that
+        stopped the run, and left the other videos' writers open."""
         if self.writer is not None:
             self.writer.release()
             self.writer = None
-        self.tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self.tmp.unlink(missing_ok=True)
 
 
 def _frame_meshes(folder: Path) -> list[Path]:

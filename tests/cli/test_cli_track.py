@@ -2343,3 +2343,48 @@ def test_progress_display_finishes_a_video_that_went_past_its_declared_count(mon
     display.flush()
     assert tty.getvalue().splitlines()[-1].endswith("1/50   5.0 fps conf 0.90"), tty.getvalue().splitlines()[-2:]
     assert "7/7" in tty.getvalue().splitlines()[-2]
+
+
+def test_a_folder_gone_read_only_while_finalising_says_why_and_closes_every_writer(clip, tmp_path, monkeypatch):
+    """An output folder that became read-only (a file system remounted so after an I/O error) refused the rename
+    of the first video's CSV; the clean-up then failed to delete its partial overlay, and that error replaced the
+    one that stopped the run (``torchface: error: <x>_overlay.partial.mp4: Permission denied``) and left the other
+    videos' video writers open."""
+    import pathlib
+
+    import torchface.job
+
+    video, lm, _ = clip
+    a, b = _short_npy(video, tmp_path / "a.npy", 2), _short_npy(video, tmp_path / "b.npy", 2)
+    made = []
+    real_init, real_finalise = torchface.job._VideoOut.__init__, torchface.job._finalise
+    real_replace, real_unlink = os.replace, pathlib.Path.unlink
+    read_only = []
+
+    def init(self, *args, **kwargs):
+        made.append(self)
+        real_init(self, *args, **kwargs)
+
+    def finalise(*args, **kwargs):
+        read_only.append(True)
+        return real_finalise(*args, **kwargs)
+
+    def replace(src, dst):
+        if read_only:
+            raise PermissionError(13, "Permission denied", str(src), None, str(dst))
+        return real_replace(src, dst)
+
+    def unlink(self, missing_ok=False):
+        if read_only:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_unlink(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(torchface.job._VideoOut, "__init__", init)
+    monkeypatch.setattr(torchface.job, "_finalise", finalise)
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(pathlib.Path, "unlink", unlink)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None)
+    with pytest.raises(PermissionError) as caught:
+        track_videos([a, b], config)
+    assert caught.value.filename == str(tmp_path / "out" / "a.csv.partial")  # the cause
+    assert len(made) == 4 and all(v.writer is None for v in made)
