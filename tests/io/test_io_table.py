@@ -321,3 +321,35 @@ def test_reading_a_long_track_csv_holds_little_more_than_its_rows(tmp_path):
     assert got_cols == cols and got.shape == rows.shape
     np.testing.assert_allclose(got, rows, rtol=1e-8)
     assert peak < 2 * got.nbytes, (peak, got.nbytes)
+
+
+def test_a_full_disk_or_a_read_only_folder_when_closing_names_the_file(tmp_path, monkeypatch):
+    """close() syncs the rows and renames the file: a failed sync said only "No space left on device" (no file
+    named; among many videos, which one?), a failed rename was a bare PermissionError. Both are an OutputError
+    naming the file now, the partial CSV kept (open until stop() where the sync failed)."""
+    import os
+
+    from torchface.io import OutputError
+
+    cols = ("frame", "confidence")
+    writer = TrackCsvWriter(tmp_path / "clip.csv", cols)
+    writer.write(np.array([[0.0, 1.0]]))
+
+    def no_space(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", no_space)
+    with pytest.raises(OutputError, match=r"clip\.csv\.partial: cannot write \(No space left on device\)"):
+        writer.close()
+    monkeypatch.undo()
+    writer.stop()
+    assert writer._file is None and read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)
+    writer = TrackCsvWriter(tmp_path / "other.csv", cols)
+
+    def read_only(src, dst):
+        raise PermissionError(13, "Permission denied", str(src), None, str(dst))
+
+    monkeypatch.setattr(os, "replace", read_only)
+    with pytest.raises(OutputError, match=r"other\.csv\.partial: cannot rename it to other\.csv \(Permission denied"):
+        writer.close()
+    assert (tmp_path / "other.csv.partial").is_file() and not (tmp_path / "other.csv").exists()

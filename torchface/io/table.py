@@ -334,13 +334,26 @@ class TrackCsvWriter:
         self.rows_done += int(rows.shape[0])
 
     def close(self) -> Path:
-        """Sync, close and rename to the final name; returns it."""
+        """Sync, close and rename to the final name; returns it.
+
+        Raises:
+            OutputError: the rows cannot be synced (a full disk, an I/O error; the file stays open for
+                :meth:`stop`) or the file renamed (a folder gone read-only), naming the file (the error named none
+                where the sync failed); ``<path>.partial`` stays for ``--resume``.
+        """
         if self._file is not None:
-            self._file.flush()
-            os.fsync(self._file.fileno())
-            self._file.close()
-            self._file = None
-            os.replace(self.partial, self.path)
+            try:
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except OSError as exc:
+                raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
+            file, self._file = self._file, None
+            file.close()  # (nothing left to write)
+            try:
+                os.replace(self.partial, self.path)
+            except OSError as exc:
+                why = exc.strerror or exc
+                raise OutputError(f"{self.partial}: cannot rename it to {self.path.name} ({why})") from None
         return self.path
 
     def stop(self) -> None:
