@@ -41,7 +41,11 @@ confidence counted, the last confident parameters), so that a video interrupted 
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
 partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed
 rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4
-degrees of yaw and 0.9 mm, with the same error against the ground truth).
+degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more, as it
+is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
+clip (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees)
+and statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
+frame's (mean confidence 0.88 against 0.78).
 """
 
 from __future__ import annotations
