@@ -139,8 +139,10 @@ class ProgressDisplay:
     def __call__(self, p) -> None:
         if self.finished.get(p.index) == p.done:  # finished before, reported again while its batch goes on
             return
-        # (just now; a container whose frame count was an estimate may go on past it: a bar again)
-        finished = p.total is not None and p.done >= p.total and p.index not in self.finished
+        # (just now; a container whose frame count was an estimate may go on past it: a bar again, finished when
+        # its frames, which the job reports as its total once it has ended, are done: its log's last line said
+        # the estimate's count, and its bar stayed among those of the videos being tracked)
+        finished = p.total is not None and p.done >= p.total and (p.index not in self.finished or p.done == p.total)
         new = p.index not in self.lines
         line = self._line(p)
         now = time.monotonic()

@@ -41,12 +41,17 @@ confidence counted, the last confident parameters), so that a video interrupted 
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
 partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed
 rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4
-degrees of yaw and 0.9 mm, with the same error against the ground truth).
+degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more, as it
+is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
+clip (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees)
+and statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
+frame's (mean confidence 0.88 against 0.78).
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
 import hashlib
 import json
 import math
@@ -324,16 +329,21 @@ class _VideoOut:
             finally:
                 readback.release()
             if count != self.frames:
-                self.tmp.unlink(missing_ok=True)
+                with contextlib.suppress(OSError):  # (a folder gone read-only: the error says why, not this)
+                    self.tmp.unlink(missing_ok=True)
                 raise OutputError(f"{self.path}: the video could not be written completely ({self.frames} frames "
                                   f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
+        """Stop unfinished, the partial file removed where it can be. Never raises ``OSError``: on a folder that has
+        become read-only (a file system remounted so after an I/O error) the clean-up's error replaced the one that
+        stopped the run, and left the other videos' writers open."""
         if self.writer is not None:
             self.writer.release()
             self.writer = None
-        self.tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self.tmp.unlink(missing_ok=True)
 
 
 def _frame_meshes(folder: Path) -> list[Path]:

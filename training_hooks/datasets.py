@@ -4,7 +4,10 @@
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
 landmarks (:func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
-:attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames.
+:attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
+its end before its items are yielded (a :class:`~training_hooks.transforms.TrackedSequence`, whose items may be
+shuffled), so a worker holds every frame's face and parameters of the video it tracks: about 66 KB a frame with
+the default 128-pixel uint8 faces (7 GB for an hour of video at 30 frames/s): cut long videos into parts.
 
 Sharding: each video is tracked by exactly one process, from its start to its end, so that process owns its
 tracker state and no state crosses processes. In a ``torch.distributed`` process group (DDP: default group,

@@ -2308,3 +2308,82 @@ def test_an_hd_video_follows_the_motion_its_half_size_copy_follows(tmp_path):
     assert float(errors[640].max()) < 2.0, errors[640]
     assert float(errors[1280].max()) < 2.0, errors[1280]
     assert levels == {640: 3, 1280: 4}
+
+
+def test_progress_display_finishes_a_video_that_went_past_its_declared_count(monkeypatch):
+    """A container whose frame count is an estimate may decode more frames (declared 5, decoded 7): its bar went
+    on past 5/5, and when the job reported it ended (7/7) the display took no notice: a log's last line for it
+    said 5/5 (finished at the estimate), a terminal kept its bar among those of the videos being tracked."""
+    import io
+
+    import torchface.cli as cli
+    from torchface.job import Progress
+
+    clock = [100.0]
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
+    reports = [Progress(0, 2, "est", k, 5, 5.0, 0.9) for k in range(1, 7)] + [Progress(0, 2, "est", 7, 7, 5.0, 0.9)]
+    log = io.StringIO()
+    display = cli.ProgressDisplay(log)
+    for p in reports + reports[-1:]:  # (the job reports an ended video again while its batch goes on)
+        display(p)
+    lines = log.getvalue().splitlines()
+    assert "7/7" in lines[-1] and len(lines) == 3, lines  # first, at the estimate, at its end
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    display = cli.ProgressDisplay(tty)
+    display(Progress(1, 2, "long", 1, 50, 5.0, 0.9))
+    for p in reports + reports[-1:]:
+        display(p)
+    assert not display.lines.get(0), display.lines  # not among the bars of the videos being tracked
+    display.flush()
+    assert tty.getvalue().splitlines()[-1].endswith("1/50   5.0 fps conf 0.90"), tty.getvalue().splitlines()[-2:]
+    assert "7/7" in tty.getvalue().splitlines()[-2]
+
+
+def test_a_folder_gone_read_only_while_finalising_says_why_and_closes_every_writer(clip, tmp_path, monkeypatch):
+    """An output folder that became read-only (a file system remounted so after an I/O error) refused the rename
+    of the first video's CSV; the clean-up then failed to delete its partial overlay, and that error replaced the
+    one that stopped the run (``torchface: error: <x>_overlay.partial.mp4: Permission denied``) and left the other
+    videos' video writers open. (The CSV's rename is an OutputError naming it: TrackCsvWriter.close.)"""
+    import pathlib
+
+    import torchface.job
+
+    video, lm, _ = clip
+    a, b = _short_npy(video, tmp_path / "a.npy", 2), _short_npy(video, tmp_path / "b.npy", 2)
+    made = []
+    real_init, real_finalise = torchface.job._VideoOut.__init__, torchface.job._finalise
+    real_replace, real_unlink = os.replace, pathlib.Path.unlink
+    read_only = []
+
+    def init(self, *args, **kwargs):
+        made.append(self)
+        real_init(self, *args, **kwargs)
+
+    def finalise(*args, **kwargs):
+        read_only.append(True)
+        return real_finalise(*args, **kwargs)
+
+    def replace(src, dst):
+        if read_only:
+            raise PermissionError(13, "Permission denied", str(src), None, str(dst))
+        return real_replace(src, dst)
+
+    def unlink(self, missing_ok=False):
+        if read_only:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_unlink(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(torchface.job._VideoOut, "__init__", init)
+    monkeypatch.setattr(torchface.job, "_finalise", finalise)
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(pathlib.Path, "unlink", unlink)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm), refine_first=None)
+    with pytest.raises(OutputError, match=r"a\.csv\.partial: cannot rename it to a\.csv \(Permission denied"):
+        track_videos([a, b], config)  # the cause
+    assert len(made) == 4 and all(v.writer is None for v in made)

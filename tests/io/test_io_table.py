@@ -265,3 +265,91 @@ def test_one_name_given_alone_is_refused_not_spelt_out():
         with pytest.raises(TypeError, match=r"must be a sequence of names, e.g. \('\w+',\), not one string"):
             track_columns(*args)
     assert "anim_jawopen" in track_columns(["jawOpen"], [], [])  # lists are sequences too
+
+
+def test_a_partial_csv_without_a_whole_header_is_resumed_from_its_start(tmp_path, monkeypatch):
+    """A run killed, or its disk full, as it started the partial CSV left it empty or cut off in its header; a
+    resume then refused it ("not a track CSV (no complete header line)"), so that --resume stopped at that video
+    and only a fresh run, which removes every video's outputs, went on. It holds no rows: it is started afresh.
+    A fresh file whose header does not fit is not left behind."""
+    import builtins
+
+    from torchface.io import OutputError
+
+    cols = ("frame", "timestamp", "success", "confidence")
+    part = tmp_path / "v.csv.partial"
+    for text in ("", "frame,times", "frame,timestamp,success,confidence"):
+        part.write_text(text)
+        with TrackCsvWriter(tmp_path / "v.csv", cols, resume=True) as w:
+            assert w.rows_done == 0
+            w.write(np.array([[0, 0.0, 1, 0.9]]))
+        c, rows = read_track_csv(tmp_path / "v.csv")
+        assert c == cols and rows.tolist() == [[0.0, 0.0, 1.0, 0.9]]
+        (tmp_path / "v.csv").unlink()
+    part.write_text("frame,timestamp,suXcess")  # not this header's beginning: refused as before
+    with pytest.raises(InputError, match="no complete header line"):
+        TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
+    part.unlink()
+    real_open = builtins.open
+
+    def full_disk(*args, **kwargs):
+        return _FullDisk(real_open(*args, **kwargs))
+
+    monkeypatch.setattr(builtins, "open", full_disk)
+    with pytest.raises(OutputError, match=r"v\.csv\.partial: cannot write \(No space left on device\)"):
+        TrackCsvWriter(tmp_path / "v.csv", cols)
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_reading_a_long_track_csv_holds_little_more_than_its_rows(tmp_path):
+    """The job reads a video's CSV back when it finalises it (its plot, its sidecar's figures) and when it resumes
+    it. The file was read whole and its rows held as lists of Python floats before they became the array: about 9
+    times the array's size at its peak (430 MB for the 62 columns of an hour's video at 30 frames/s)."""
+    import tracemalloc
+
+    cols = tuple(f"c{k}" for k in range(8))
+    rows = np.random.default_rng(0).normal(size=(20000, len(cols)))
+    with TrackCsvWriter(tmp_path / "long.csv", cols) as w:
+        w.write(rows)
+    tracemalloc.start()
+    try:
+        got_cols, got = read_track_csv(tmp_path / "long.csv")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert got_cols == cols and got.shape == rows.shape
+    np.testing.assert_allclose(got, rows, rtol=1e-8)
+    assert peak < 2 * got.nbytes, (peak, got.nbytes)
+
+
+def test_a_full_disk_or_a_read_only_folder_when_closing_names_the_file(tmp_path, monkeypatch):
+    """close() syncs the rows and renames the file: a failed sync said only "No space left on device" (no file
+    named; among many videos, which one?), a failed rename was a bare PermissionError. Both are an OutputError
+    naming the file now, the partial CSV kept (open until stop() where the sync failed)."""
+    import os
+
+    from torchface.io import OutputError
+
+    cols = ("frame", "confidence")
+    writer = TrackCsvWriter(tmp_path / "clip.csv", cols)
+    writer.write(np.array([[0.0, 1.0]]))
+
+    def no_space(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", no_space)
+    with pytest.raises(OutputError, match=r"clip\.csv\.partial: cannot write \(No space left on device\)"):
+        writer.close()
+    monkeypatch.undo()
+    writer.stop()
+    assert writer._file is None and read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (1, 2)
+    writer = TrackCsvWriter(tmp_path / "other.csv", cols)
+
+    def read_only(src, dst):
+        raise PermissionError(13, "Permission denied", str(src), None, str(dst))
+
+    monkeypatch.setattr(os, "replace", read_only)
+    with pytest.raises(OutputError, match=r"other\.csv\.partial: cannot rename it to other\.csv \(Permission denied"):
+        writer.close()
+    assert (tmp_path / "other.csv.partial").is_file() and not (tmp_path / "other.csv").exists()

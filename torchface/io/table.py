@@ -37,6 +37,8 @@ OpenFace's 0-5 intensity, with only the AUs CANDIDE-3 animates (README, "Differe
 
 from __future__ import annotations
 
+import array
+import codecs
 import contextlib
 import math
 import os
@@ -214,31 +216,52 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     an :class:`~torchface.io.InputError` names it (the rows after it were dropped silently, and ``--resume`` tracked
     them again from the rows before it). Column names are stripped of surrounding spaces (OpenFace writes
     ``frame, face_id, timestamp, ...``), carriage returns (Windows line ends) and a UTF-8 byte-order mark, so
-    such a file's columns are found by name.
+    such a file's columns are found by name. The file is read a line at a time into the array (it was read whole,
+    and its rows held as lists of Python floats: about 9 times the array's size, 430 MB at the finalising of an
+    hour's video at 30 frames/s).
     """
     p = Path(path)
+    rows = array.array("d")
+    blank = 0  # blank complete lines not yet known to be followed by a row (at the end: dropped)
     try:
-        text = p.read_text(encoding="utf-8-sig")
+        with open(p, "rb") as f:
+            first = f.readline()
+            if first.startswith(codecs.BOM_UTF8):
+                first = first[len(codecs.BOM_UTF8) :]
+            if not first.endswith(b"\n") or first == b"\n":
+                raise InputError(f"{p}: not a track CSV (no complete header line)")
+            columns = tuple(c.strip() for c in first[:-1].decode("utf-8").split(","))
+            for n, raw in enumerate(f, start=2):
+                if not raw.endswith(b"\n"):  # the last line, cut off (or empty)
+                    break
+                line = raw[:-1].decode("utf-8")
+                if not line:
+                    blank += 1
+                    continue
+                if blank:  # a blank line followed by a row is damage
+                    n, line, blank = n - blank, "", 0
+                cells = line.split(",")
+                try:
+                    if len(cells) != len(columns):
+                        raise ValueError(f"{len(cells)} cells, the header has {len(columns)}")
+                    rows.extend(map(float, cells))
+                except ValueError as exc:
+                    why = f"line {n} is not a row of the track CSV ({exc}): the file is damaged"
+                    raise InputError(f"{p}: {why}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read the track CSV ({exc.__class__.__name__})") from None
-    lines = text.split("\n")
-    if len(lines) < 2 or not lines[0]:
-        raise InputError(f"{p}: not a track CSV (no complete header line)")
-    columns = tuple(c.strip() for c in lines[0].split(","))
-    complete = lines[1:-1]  # the last element follows the final newline: incomplete or empty
-    while complete and not complete[-1]:  # (blank lines at the end)
-        complete.pop()
-    rows = []
-    for n, line in enumerate(complete, start=2):
-        cells = line.split(",")
-        try:
-            if len(cells) != len(columns):
-                raise ValueError(f"{len(cells)} cells, the header has {len(columns)}")
-            rows.append([float(c) for c in cells])
-        except ValueError as exc:
-            raise InputError(f"{p}: line {n} is not a row of the track CSV ({exc}): the file is damaged") from None
-    data = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
-    return columns, data
+    data = np.frombuffer(rows, dtype=np.float64) if rows else np.zeros(0)
+    return columns, data.reshape(-1, len(columns))  # (a view of the rows read: no copy of them)
+
+
+def _header_start(path: Path, header: str) -> bool:
+    """Whether the file ``path`` holds no more than a beginning of ``header`` (nothing, or the header cut off)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(header.encode("utf-8")) + 1)
+    except OSError:
+        return False  # (read_track_csv says what is wrong with it)
+    return header.encode("utf-8").startswith(head)
 
 
 def partial_path(path: str | os.PathLike[str]) -> Path:
@@ -254,7 +277,9 @@ class TrackCsvWriter:
         path: the final CSV path.
         columns: header (:func:`track_columns`).
         resume: continue an existing ``<path>.partial`` with the same header: its complete rows are kept
-            (a row cut off mid-line is dropped) and :attr:`rows_done` says how many there are.
+            (a row cut off mid-line is dropped) and :attr:`rows_done` says how many there are. A partial file
+            that holds no more than a beginning of this header (empty, or cut off in it: a run killed, or its disk
+            full, as it started the file) holds no rows: it is started afresh.
 
     Raises:
         OutputError: the folder cannot be written.
@@ -269,8 +294,9 @@ class TrackCsvWriter:
         self.previous: np.ndarray = np.zeros((0, len(self.columns)))
         self._file: TextIO | None = None  # open from here to close or stop
         tmp: Path | None = None
+        header = ",".join(self.columns) + "\n"
         try:
-            if resume and self.partial.is_file():
+            if resume and self.partial.is_file() and not _header_start(self.partial, header):
                 cols, data = read_track_csv(self.partial)
                 if cols != self.columns:
                     raise InputError(f"{self.partial}: cannot resume, its columns differ from this run's")
@@ -284,11 +310,14 @@ class TrackCsvWriter:
                 self._file = open(self.partial, "a", encoding="utf-8")
             else:
                 self._file = open(self.partial, "w", encoding="utf-8")
-                self._file.write(",".join(self.columns) + "\n")
+                self._file.write(header)
                 self._file.flush()
         except OSError as exc:
             if tmp is not None:  # a full disk: no temporary file left behind (the partial CSV is as it was)
                 tmp.unlink(missing_ok=True)
+            elif self._file is not None:  # the new file's header did not fit: closed, and no file without one
+                self.stop()
+                self.partial.unlink(missing_ok=True)
             raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
 
     def write(self, rows: np.ndarray) -> None:
@@ -305,13 +334,26 @@ class TrackCsvWriter:
         self.rows_done += int(rows.shape[0])
 
     def close(self) -> Path:
-        """Sync, close and rename to the final name; returns it."""
+        """Sync, close and rename to the final name; returns it.
+
+        Raises:
+            OutputError: the rows cannot be synced (a full disk, an I/O error; the file stays open for
+                :meth:`stop`) or the file renamed (a folder gone read-only), naming the file (the error named none
+                where the sync failed); ``<path>.partial`` stays for ``--resume``.
+        """
         if self._file is not None:
-            self._file.flush()
-            os.fsync(self._file.fileno())
-            self._file.close()
-            self._file = None
-            os.replace(self.partial, self.path)
+            try:
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except OSError as exc:
+                raise OutputError(f"{self.partial}: cannot write ({exc.strerror or exc})") from None
+            file, self._file = self._file, None
+            file.close()  # (nothing left to write)
+            try:
+                os.replace(self.partial, self.path)
+            except OSError as exc:
+                why = exc.strerror or exc
+                raise OutputError(f"{self.partial}: cannot rename it to {self.path.name} ({why})") from None
         return self.path
 
     def stop(self) -> None:
