@@ -451,11 +451,12 @@ def _ncc_by_projection(gray, intr, X, T, w, t, min_inside):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_search_correlation_equals_projecting_and_sampling_the_placed_points(model, scene, dtype):
+def test_search_correlation_equals_projecting_and_sampling_the_placed_points(model, scene, dtype, monkeypatch):
     """The search's correlation projects and samples the placed points coordinate by coordinate (its (.., 3) and
     (.., 2) forms made the search about 1.5 times as slow): the same scores to the bit as project_points and
     sample_at_pixels, with NaN pixels, a non-finite intensity, a non-finite placement, placements behind the
-    camera and partly outside the image."""
+    camera and partly outside the image; and the same split into a few hypotheses at a time."""
+    import torchface.template.management as management
     from torchface.template.management import _ncc, _placements
 
     frames, gt, fit, tpl = scene
@@ -479,3 +480,5 @@ def test_search_correlation_equals_projecting_and_sampling_the_placed_points(mod
     holed[..., :1, :] = float("nan")
     holed[..., 100:110, 150:160] = float("nan")
     assert torch.equal(_ncc(holed, intr, X, T, w, t, 0.8), _ncc_by_projection(holed, intr, X, T, w, t, 0.8))
+    monkeypatch.setattr(management, "_NCC_CHUNK_BYTES", t.shape[1] * X.shape[1] * X.element_size())  # one row
+    assert torch.equal(_ncc(gray, intr, X, T, w, t, 0.8), clean)
