@@ -1032,15 +1032,16 @@ def search_mosaic(
     offsets = torch.arange(-r, r + 1, dtype=dtype, device=device)
     ov, ou = torch.meshgrid(offsets, offsets, indexing="ij")
     local = torch.stack([ou.reshape(-1), ov.reshape(-1)], -1)  # (Q, 2)
-    # (the four placed at once: one _ncc call, rows as in four; taken in the same order as one by one)
+    # The best placed ones (not -1), scored in one _ncc call (a row each, as one call each) and taken in turn.
     hp = [divmod(flat, grid.shape[0]) for flat in top.tolist()]
     hp = [(h, p) for h, p in hp if not float(ncc1[h, p]) <= -1.0]
     if hp:
         hs = torch.tensor([h for h, _ in hp], dtype=torch.int64, device=device)
+        # around the half image's pixel centre, in ``gray`` pixels
         t = torch.cat([_placements((grid[p] + 0.5) * 2 - 0.5 + local, depth[h : h + 1], intrinsics) for h, p in hp])
         ncc2 = _ncc(gray, intrinsics, Xh[hs], Th[hs], wh[hs], t, config.search_min_inside)  # (len(hp), Q)
         scores, qs = ncc2.max(1)
-        for i, (h, _) in enumerate(hp):  # (the half image's pixel centre in ``gray`` pixels, above)
+        for i, (h, _) in enumerate(hp):
             score, q = float(scores[i]), int(qs[i])
             rank = score - float(handicap[h])
             if rank > best_rank:
