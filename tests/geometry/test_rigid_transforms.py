@@ -118,3 +118,32 @@ def test_mixed_float_dtypes_are_promoted_and_batch_mismatches_named() -> None:
     with pytest.raises(ValueError, match=r"batch shapes of R1 \(2,\) and R2 \(3,\) must broadcast"):
         geodesic_angle_deg(R, R3)
     assert geodesic_angle_deg(R, R[:1]).shape == (2,)  # broadcasting stays
+
+
+def test_batch_shape_check_imports_nothing_more() -> None:
+    """The batch-shape check of geodesic_angle_deg and relative_rotation used torch.broadcast_shapes, whose first
+    call imports sympy (0.4 s of CPU): a stall of a tracker's first recovery attempt (managed_step compares a
+    candidate's rotation with the track's). It now compares the shapes itself, with the same answers."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, torch\n"
+        "from torchface.geometry.so3 import geodesic_angle_deg\n"
+        "from torchface.geometry.transforms import relative_rotation\n"
+        "before = 'sympy' in sys.modules\n"
+        "R = torch.eye(3, dtype=torch.float64).expand(2, 4, 3, 3)\n"
+        "assert geodesic_angle_deg(R, R[:1]).shape == (2, 4)\n"
+        "assert relative_rotation(R[0], torch.eye(3, dtype=torch.float64)).shape == (4, 3, 3)\n"
+        "print(before, 'sympy' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "False"], out.stdout
+    R = random_pose(1, seed=3)[0].expand(2, 3, 3, 3)
+    for good in ((3,), (1, 3), (2, 1), (2, 3), (), (5, 2, 3)):
+        want = torch.broadcast_shapes((2, 3), good)
+        assert geodesic_angle_deg(R, torch.eye(3, dtype=F64).expand(*good, 3, 3)).shape == want
+    for bad in ((2,), (4, 3), (3, 3, 3)):
+        with pytest.raises(ValueError, match="must broadcast"):
+            geodesic_angle_deg(R, torch.eye(3, dtype=F64).expand(*bad, 3, 3))

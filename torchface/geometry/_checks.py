@@ -156,7 +156,7 @@ def check_broadcast(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str, 
     """Raise ``ValueError`` unless the leading dimensions of ``a`` and ``b`` (all but their last ``trailing``)
     broadcast (their mismatch was torch's RuntimeError "The size of tensor a (4) must match ...")."""
     lead_a, lead_b = tuple(a.shape[: a.dim() - trailing]), tuple(b.shape[: b.dim() - trailing])
-    try:
-        torch.broadcast_shapes(lead_a, lead_b)
-    except RuntimeError:
-        raise ValueError(f"batch shapes of {name_a} {lead_a} and {name_b} {lead_b} must broadcast") from None
+    # Compared here, not by torch.broadcast_shapes: its first call imports sympy (0.4 s of CPU, 486 modules), a stall
+    # of the first recovery attempt a tracker makes (managed_step's geodesic_angle_deg).
+    if any(x != y and x != 1 and y != 1 for x, y in zip(reversed(lead_a), reversed(lead_b))):
+        raise ValueError(f"batch shapes of {name_a} {lead_a} and {name_b} {lead_b} must broadcast")
