@@ -54,12 +54,14 @@ class FitConfig:
             deviation (degrees, in its least determined direction) is FAILED; None: no such check. The standard
             deviation is that of the pose alone (shape and expression held at the fit's) for a noise of 1% of the
             face's width on each landmark coordinate (1.8 px on the mean face at 450 mm in 640 x 480), so it measures
-            the layout whatever the face's size: :func:`rotation_std_deg`. Layouts that cannot hold the pose reported
-            CONVERGED 14-138 degrees off: the nose bridge alone (4 nearly collinear points) gives 51-1300 degrees,
-            the base of the nose alone 8-19 and one eye alone 6-80 (CANDIDE-3 and the James scan rendered frontal,
-            at yaw +-40, pitch +-20 and a mixed pose, at 450 and 900 mm); the 68 landmarks 0.5-0.9, the 51 inner
-            ones up to 1.5, 5-point subsets (eye corners, nose, mouth corners) up to 6.6, and every fit within 3
-            degrees of the truth from 2 px noisy landmarks up to 7.2.
+            the layout whatever the face's size: :func:`rotation_std_deg`. Layouts that cannot hold the pose were
+            CONVERGED tens of degrees off: the nose bridge alone (4 nearly collinear points; 2 px of noise, 53-146
+            degrees off) gives 33 and more, the base of the nose alone 6-19, one eye alone 7-50 (CANDIDE-3 and the
+            James scan rendered frontal, at yaw +-40, pitch +-20 and a mixed pose, at 450 and 900 mm); the 68
+            landmarks 0.5-0.9, the 51 inner ones up to 1.7, 5-point subsets (eye corners, nose, mouth corners) up to
+            6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 7.8. It does not see the
+            shape and expression units trading with the pose (a sparse subset's main error: README, Known
+            limitations).
     """
 
     shape_prior_precision: float | tuple[float, ...] = 2.0
@@ -383,7 +385,7 @@ def fit_landmarks(
         stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the default
         ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose), or when the
         landmarks' layout does not determine the rotation (:attr:`FitConfig.max_rotation_std_deg`: e.g. the nose
-        bridge alone, 4 nearly collinear points, fitted 14-138 degrees off).
+        bridge alone, 4 nearly collinear points: from 2 px noisy landmarks 53-146 degrees off, some CONVERGED).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0).
     """
