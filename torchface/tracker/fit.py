@@ -59,7 +59,7 @@ class FitConfig:
             degrees off) gives 33 and more, the base of the nose alone 6-19, one eye alone 7-50 (CANDIDE-3 and the
             James scan rendered frontal, at yaw +-40, pitch +-20 and a mixed pose, at 450 and 900 mm); the 68
             landmarks 0.5-0.9, the 51 inner ones up to 1.7, 5-point subsets (eye corners, nose, mouth corners) up to
-            6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 7.8. It does not see the
+            6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 12.1. It does not see the
             shape and expression units trading with the pose (a sparse subset's main error: README, Known
             limitations).
     """
