@@ -50,6 +50,18 @@ class FitConfig:
             held at the first solve's values) with this weaker prior. The first, strongly regularised solve gives
             a pose that noisy points cannot tip; the second lets the shape move away from the mean where the
             points ask for it, so the template's depth matches a face unlike the mean face.
+        max_rotation_std_deg: a fit whose landmarks' layout determines the rotation only to more than this standard
+            deviation (degrees, in its least determined direction) is FAILED; None: no such check. The standard
+            deviation is that of the pose alone (shape and expression held at the fit's) for a noise of 1% of the
+            face's width on each landmark coordinate (1.8 px on the mean face at 450 mm in 640 x 480), so it measures
+            the layout whatever the face's size: :func:`rotation_std_deg`. Layouts that cannot hold the pose were
+            CONVERGED tens of degrees off: the nose bridge alone (4 nearly collinear points; 2 px of noise, 53-146
+            degrees off) gives 33 and more, the base of the nose alone 6-19, one eye alone 7-50 (CANDIDE-3 and the
+            James scan rendered frontal, at yaw +-40, pitch +-20 and a mixed pose, at 450 and 900 mm); the 68
+            landmarks 0.5-0.9, the 51 inner ones up to 1.7, 5-point subsets (eye corners, nose, mouth corners) up to
+            6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 12.1. It does not see the
+            shape and expression units trading with the pose (a sparse subset's main error: README, Known
+            limitations).
     """
 
     shape_prior_precision: float | tuple[float, ...] = 2.0
@@ -60,12 +72,17 @@ class FitConfig:
     expression_prior_precision: float = 200.0
     max_iterations: int = 50
     refine_shape_prior_precision: float | None = None
+    max_rotation_std_deg: float | None = 15.0
 
     def __post_init__(self) -> None:
         for name in ("held_shape_precision", "shape_bound", "expression_prior_precision"):  # "1": "'<' not supported"
             object.__setattr__(self, name, check_real(getattr(self, name), name))
         refine = check_optional_real(self.refine_shape_prior_precision, "refine_shape_prior_precision")
         object.__setattr__(self, "refine_shape_prior_precision", refine)
+        std = check_optional_real(self.max_rotation_std_deg, "max_rotation_std_deg")
+        if std is not None and not std > 0:  # NaN would fail nothing, 0 everything
+            raise ValueError(f"max_rotation_std_deg must be positive or None, got {std!r}")
+        object.__setattr__(self, "max_rotation_std_deg", std)
         if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
                                    or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
             raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
@@ -305,6 +322,41 @@ _MIN_SPREAD_PX: float = 1.0
 _MAX_RMS_SPREAD: float = 0.7
 
 
+#: :func:`rotation_std_deg`'s landmark noise: this fraction of the face's width in pixels (the model's landmarks'
+#: horizontal extent on its mean shape seen frontally at the fitted depth), on each coordinate.
+ROTATION_NOISE_FACE_FRACTION: float = 0.01
+
+
+def rotation_std_deg(J_pose: Tensor, valid: Tensor, weights: Tensor, noise_px: Tensor) -> Tensor:
+    """``(B,)`` the standard deviation in degrees of a rotation fitted to landmarks, in its least determined direction:
+    the largest eigenvalue's square root of the axis-angle block of ``noise_px^2 (J^T J)^-1`` over the pose alone
+    (the translation marginalised, the shape and expression taken as known), for landmarks of the largest weight
+    with noise ``noise_px`` on each coordinate (a landmark of weight ``w`` has ``noise_px / sqrt(w / max w)``).
+
+    The pose's Gauss-Newton information at the solution: its inverse is the covariance the landmark noise leaves in
+    the rotation, so this is how well the landmarks' layout determines the rotation ("to +-X degrees"); it grows
+    without bound as the layout degenerates (collinear points) and is ``inf`` where the pose is not determined at
+    all. Computed in float64 from a Jacobi-scaled eigendecomposition (eigenvalues floored at 1e-12 of the largest:
+    an undetermined direction gives a very large value).
+
+    Args:
+        J_pose: ``(B, N, 6)`` the weighted residuals' Jacobian with respect to the axis-angle and the translation.
+        valid: ``(B, N)`` bool, the residuals that count.
+        weights: ``(B, K)`` the landmark weights (``N = 2K``), whose largest is the reference.
+        noise_px: ``(B,)`` the noise in pixels.
+    """
+    J = torch.where(valid.unsqueeze(-1) & torch.isfinite(J_pose), J_pose, torch.zeros_like(J_pose)).double()
+    H = J.transpose(1, 2) @ J / weights.amax(-1).double().clamp_min(torch.finfo(torch.float64).tiny)[:, None, None]
+    d = torch.diagonal(H, dim1=1, dim2=2)
+    s = torch.where(d > 0, d.rsqrt(), torch.zeros_like(d))
+    lam, V = torch.linalg.eigh(s.unsqueeze(-1) * H * s.unsqueeze(-2))  # ascending
+    lam = lam.clamp_min(1e-12 * lam[:, -1:].clamp_min(torch.finfo(torch.float64).tiny))  # undetermined: 1e12 x
+    Vr = V[:, :3] * s[:, :3].unsqueeze(-1)  # the axis-angle's rows of H^-1's eigenvectors
+    cov = (Vr / lam.unsqueeze(1)) @ Vr.transpose(1, 2)  # (B, 3, 3) rad^2 per px^2
+    std = torch.linalg.eigvalsh(cov)[:, -1].clamp_min(0).sqrt() * noise_px.double() * (180.0 / math.pi)
+    return torch.where((d[:, :3] > 0).all(-1), std, torch.full_like(std, math.inf))  # no information: inf
+
+
 @full_precision
 def fit_landmarks(
     model: FaceModel,
@@ -336,7 +388,9 @@ def fit_landmarks(
         is at least 0.7 of the landmarks' RMS spread about their centroid (it explains less than half their layout:
         mirrored landmarks that did not turn the face away end so, collapsed to a far face), or when the solver
         stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the default
-        ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose).
+        ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose), or when the
+        landmarks' layout does not determine the rotation (:attr:`FitConfig.max_rotation_std_deg`: e.g. the nose
+        bridge alone, 4 nearly collinear points: from 2 px noisy landmarks 53-146 degrees off, some CONVERGED).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0). A sample with fewer
         finite landmarks of positive weight (all NaN: no face found in its frame) is FAILED, at a placeholder
@@ -429,7 +483,7 @@ def fit_landmarks(
         )
         failed2 = res2.failed | _stalled(residual_fn, res2.params, lo2, hi2, prior2, w.sum(-1))
         x = torch.where(failed2.unsqueeze(-1), x, res2.params)
-    r, _, valid = residual_fn(x)
+    r, J, valid = residual_fn(x)
     # The floor only keeps a division by 0 away (never here: 4 positive weights): a floor of 1e-12 inflated small
     # weights' sums, and their RMS error came out in units of sqrt(weight), 0.004 px for a fit 1.4 px off at 1e-20.
     rms = (r.pow(2) * valid).sum(-1).div(w.sum(-1).clamp_min(torch.finfo(dtype).tiny)).sqrt()
@@ -444,6 +498,12 @@ def fit_landmarks(
     # A fit that explains less than half the landmarks' layout is no face's (mirrored landmarks collapse so).
     unexplained = rms >= _MAX_RMS_SPREAD * spread_px
     failed = (spread_px < _MIN_SPREAD_PX) | dropped | away | stalled | unexplained
+    if config.max_rotation_std_deg is not None:  # a layout that does not determine the rotation (collinear points)
+        all_l = interpolate_landmarks(model.mean.unsqueeze(0), model.landmark_vertices, model.landmark_weights)[0]
+        z = x[:, 5]  # (a landmark behind the camera, as at z <= 0, is failed above)
+        noise = ROTATION_NOISE_FACE_FRACTION * intrinsics.fx * (all_l[:, 0].amax() - all_l[:, 0].amin()) / z
+        noise = torch.where(z > 0, noise, torch.full_like(noise, math.inf))
+        failed = failed | ~(rotation_std_deg(J[..., :6], valid, w, noise) <= config.max_rotation_std_deg)
     status = torch.where(failed, int(SolveStatus.FAILED), res.status)
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status)
 
