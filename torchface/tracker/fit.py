@@ -28,23 +28,22 @@ from torchface.solver.least_squares import SolveStatus, SolverConfig, least_squa
 class FitConfig:
     """Settings of :func:`fit_landmarks`.
 
-    Attributes:
     The prior precisions weigh the coefficients against the landmark terms' squared pixels, and a face spans
     more pixels, its landmarks' residuals and Jacobians in proportion, the longer the focal length: they are
     given for a camera of focal length ``reference_focal_px`` and scaled by ``fx fy / reference_focal_px**2``
     for the camera at hand (:func:`prior_scale`), so that the balance between the landmarks and the priors, and
     with it the fit, is the same at any image size (a camera of ``Intrinsics.default(W, H)`` has ``f = max(W,
-    H)``). Unscaled, exact landmarks of the ``pose_sweep`` scenario's first frame fit the rotation 1.06 degrees
-    off at 640x480, 0.92 at 960x540, 0.58 at 1920x1080 and 0.24 at 3840x2160 (the weaker the priors the closer
-    to the person's shape), and 2 px of noise at 640x480 (12 px at 3840x2160) tipped the pose by up to 2.16
-    degrees at 640x480 and 2.62 at 1920x1080 (4 draws): the priors' strength was tuned at 640x480.
+    H)``). Unscaled, exact landmarks of the ``pose_sweep`` scenario's first frame fitted the rotation 1.06 degrees
+    off at 640x480, 0.92 at 960x540, 0.58 at 1920x1080 and 0.24 at 3840x2160 (the weaker the priors, the closer
+    to the person's shape), but noise of 2 px at 640 wide, scaled to the image (a detector's error grows with
+    the face), tipped the pose by up to 3.07 / 3.22 / 4.42 / 6.24 degrees (32 draws; 1.54 / 1.57 / 1.76 / 2.16
+    mean): the priors' strength was tuned at 640x480. Scaled, every size fits as 640x480 does.
 
     Attributes:
-        shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in
-            units of squared pixels of landmark error (at ``reference_focal_px``) per unit coefficient squared:
-            one value for every unit, or
-            a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks it). Weak (2) so
-            that the shape fits faces unlike the mean.
+        shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in units of
+            squared pixels of landmark error (at ``reference_focal_px``) per unit coefficient squared: one value
+            for every unit, or a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks
+            it). Weak (2) so that the shape fits faces unlike the mean.
         held_shape_units: names of the shape units whose precision is ``held_shape_precision`` instead. From
             one frontal view the units that move features vertically trade with the head's pitch, and 2 px of
             landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting expression);
@@ -53,7 +52,8 @@ class FitConfig:
             checks). The online look-ahead start lets these units go again once the head has turned
             (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from the
             pitch.
-        held_shape_precision: the precision of ``held_shape_units``.
+        held_shape_precision: the precision of ``held_shape_units`` (at ``reference_focal_px``, as every
+            precision here).
         shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.
         fit_expression: also estimate a starting expression (animation units, bounded by the model's ranges).
         expression_prior_precision: prior precision on the animation units when ``fit_expression``.
