@@ -337,7 +337,9 @@ def test_evaluate_lookahead_hands_the_frames_read_ahead_to_the_tracking_pass(tmp
     base = ["--scenarios", "pose_sweep", "--frames", "6", "--size", "160x120", "--ablations", "none", "--cache",
             "none", "--no-auroc", "--progress-every", "0"]  # fmt: skip
     plain, ahead = tmp_path / "p.json", tmp_path / "a.json"
-    assert ev.main(base + ["--json", str(plain)]) == 0
+    # (--lookahead runs without the online start; so does the plain run, which otherwise re-anchors wherever the head
+    # turns 10 degrees in these 6 frames: a 160x120 face with 2 px of landmark noise loses the track and turns)
+    assert ev.main(base + ["--json", str(plain), "--no-online-refine"]) == 0
     assert ev.main(base + ["--json", str(ahead), "--lookahead", "--lookahead-frames", "4"]) == 0
     assert seen == [((1, 4, 3, 120, 160), 4)]
     assert json.loads(ahead.read_text())["pose_sweep"] | {"ms_per_frame": 0, "init_ms": 0} == json.loads(

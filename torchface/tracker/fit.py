@@ -28,11 +28,22 @@ from torchface.solver.least_squares import SolveStatus, SolverConfig, least_squa
 class FitConfig:
     """Settings of :func:`fit_landmarks`.
 
+    The prior precisions weigh the coefficients against the landmark terms' squared pixels, and a face spans
+    more pixels, its landmarks' residuals and Jacobians in proportion, the longer the focal length: they are
+    given for a camera of focal length ``reference_focal_px`` and scaled by ``fx fy / reference_focal_px**2``
+    for the camera at hand (:func:`prior_scale`), so that the balance between the landmarks and the priors, and
+    with it the fit, is the same at any image size (a camera of ``Intrinsics.default(W, H)`` has ``f = max(W,
+    H)``). Unscaled, exact landmarks of the ``pose_sweep`` scenario's first frame fitted the rotation 1.06 degrees
+    off at 640x480, 0.92 at 960x540, 0.58 at 1920x1080 and 0.24 at 3840x2160 (the weaker the priors, the closer
+    to the person's shape), but noise of 2 px at 640 wide, scaled to the image (a detector's error grows with
+    the face), tipped the pose by up to 3.07 / 3.22 / 4.42 / 6.24 degrees (32 draws; 1.54 / 1.57 / 1.76 / 2.16
+    mean): the priors' strength was tuned at 640x480. Scaled, every size fits as 640x480 does.
+
     Attributes:
-        shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in
-            units of squared pixels of landmark error per unit coefficient squared: one value for every unit, or
-            a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks it). Weak (2) so
-            that the shape fits faces unlike the mean.
+        shape_prior_precision: precision of the zero-mean Gaussian prior on each shape coefficient, in units of
+            squared pixels of landmark error (at ``reference_focal_px``) per unit coefficient squared: one value
+            for every unit, or a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks
+            it). Weak (2) so that the shape fits faces unlike the mean.
         held_shape_units: names of the shape units whose precision is ``held_shape_precision`` instead. From
             one frontal view the units that move features vertically trade with the head's pitch, and 2 px of
             landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting expression);
@@ -41,7 +52,8 @@ class FitConfig:
             checks). The online look-ahead start lets these units go again once the head has turned
             (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from the
             pitch.
-        held_shape_precision: the precision of ``held_shape_units``.
+        held_shape_precision: the precision of ``held_shape_units`` (at ``reference_focal_px``, as every
+            precision here).
         shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.
         fit_expression: also estimate a starting expression (animation units, bounded by the model's ranges).
         expression_prior_precision: prior precision on the animation units when ``fit_expression``.
@@ -62,6 +74,10 @@ class FitConfig:
             6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 12.1. It does not see the
             shape and expression units trading with the pose (a sparse subset's main error: README, Known
             limitations).
+        reference_focal_px: the focal length (pixels) at which the precisions above hold as given: 640, that of
+            ``Intrinsics.default(640, 480)`` (the standard scenarios' camera, where they were tuned), whose fits
+            the scaling leaves as they were, to the bit (a factor of exactly 1). None: no scaling, the precisions
+            in the squared pixels of whatever camera is given (the fit before session 43).
     """
 
     shape_prior_precision: float | tuple[float, ...] = 2.0
@@ -73,6 +89,7 @@ class FitConfig:
     max_iterations: int = 50
     refine_shape_prior_precision: float | None = None
     max_rotation_std_deg: float | None = 15.0
+    reference_focal_px: float | None = 640.0
 
     def __post_init__(self) -> None:
         for name in ("held_shape_precision", "shape_bound", "expression_prior_precision"):  # "1": "'<' not supported"
@@ -86,6 +103,10 @@ class FitConfig:
         if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
                                    or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
             raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
+        focal = check_optional_real(self.reference_focal_px, "reference_focal_px")
+        object.__setattr__(self, "reference_focal_px", focal)
+        if focal is not None and not (math.isfinite(focal) and focal > 0):
+            raise ValueError(f"reference_focal_px must be a positive number of pixels or None, got {focal!r}")
         object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))  # "no" was true
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
         shape = self.shape_prior_precision
@@ -170,6 +191,29 @@ def shape_precisions(
     if held:
         precision[list(held)] = config.held_shape_precision
     return precision
+
+
+def prior_scale(config: FitConfig, intrinsics: Intrinsics) -> float:
+    """The factor on :class:`FitConfig`'s prior precisions for a camera: ``fx fy / reference_focal_px**2`` (1 when
+    ``reference_focal_px`` is None).
+
+    A face at a given distance spans ``fx / reference_focal_px`` times the pixels it spans at the reference focal
+    length (``fy / ...`` vertically), and the landmark terms' squared residuals and Jacobians grow with the
+    product; the precisions, scaled by it, keep their weight against them. Exactly 1.0 for the reference camera.
+
+    Raises:
+        ValueError: a factor beyond the float range (focal lengths of 1e154 pixels and more).
+
+    Example:
+        >>> [prior_scale(FitConfig(), Intrinsics.default(w, h)) for w, h in ((640, 480), (1920, 1080), (320, 240))]
+        [1.0, 9.0, 0.25]
+    """
+    if config.reference_focal_px is None:
+        return 1.0
+    scale = float(intrinsics.fx) * float(intrinsics.fy) / float(config.reference_focal_px) ** 2
+    if not math.isfinite(scale):  # the priors would be infinite, and 0 * inf NaN
+        raise ValueError(f"the prior scale fx fy / reference_focal_px**2 is {scale}: focal lengths too large")
+    return scale
 
 
 def shape_prior_vector(
@@ -450,11 +494,14 @@ def fit_landmarks(
     inf = torch.full((6,), float("inf"), dtype=dtype, device=device)
     lower = [-inf, torch.full((S,), -config.shape_bound, dtype=dtype, device=device)]
     upper = [inf, torch.full((S,), config.shape_bound, dtype=dtype, device=device)]
-    prior = [torch.zeros(6, dtype=dtype, device=device), shape_precisions(config, model.shape_names, dtype, device)]
+    # The priors in the camera's squared pixels (FitConfig: given at its reference focal length).
+    scale = prior_scale(config, intrinsics)
+    prior = [torch.zeros(6, dtype=dtype, device=device),
+             shape_precisions(config, model.shape_names, dtype, device) * scale]  # fmt: skip
     if A:
         lower.append(model.animation_ranges[:, 0])
         upper.append(model.animation_ranges[:, 1])
-        prior.append(torch.full((A,), config.expression_prior_precision, dtype=dtype, device=device))
+        prior.append(torch.full((A,), config.expression_prior_precision * scale, dtype=dtype, device=device))
     # The parameters without a prior need the residuals: the shape units' and expression's priors determine theirs
     # (4 landmarks, 8 residuals, fit the pose; asking for P residuals failed every fit from fewer than 10 points).
     unregularised = int((torch.cat(prior) == 0).sum())
@@ -476,7 +523,7 @@ def fit_landmarks(
         lo2 = torch.where(hold, x, lower_all.expand_as(x))
         hi2 = torch.where(hold, x, upper_all.expand_as(x))
         prior2 = prior_all.clone()
-        prior2[6 : 6 + S] = config.refine_shape_prior_precision
+        prior2[6 : 6 + S] = config.refine_shape_prior_precision * scale
         res2 = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
             prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum()),
