@@ -949,7 +949,7 @@ def managed_step(
         attempt = lost & (since >= tc.recovery_every)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
     params_ypr: Tensor | None  # None: not known (rows reverted to the confident parameters or adopted)
-    params, params_ypr = solved.params, result.ypr_deg
+    params, params_ypr = solved.params, result.ypr_deg.clone()  # (a copy: the caller may modify the result's)
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
 
