@@ -512,6 +512,9 @@ def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject
         normalised_face_posed(frame.expand(2, -1, -1, -1), model, layout, verts_cam, light, CAM)
     with pytest.raises(ValueError, match="frames"):
         normalised_face_posed(frame[0], model, layout, verts_cam, light, CAM)
+    # (a numpy frame was a ValueError naming its shape, the right one, as the wrong one)
+    with pytest.raises(TypeError, match=r"frames must be a torch.Tensor \(B, C, H, W\), got ndarray"):
+        normalised_face_posed(frame.numpy(), model, layout, verts_cam, light, CAM)  # type: ignore[arg-type]
 
 
 def test_posed_entry_point_casts_half_frames_and_names_a_light_of_another_dtype(model, subject, layout):

@@ -536,15 +536,17 @@ def normalised_face_posed(
     images off by up to 1e38).
 
     Raises:
-        TypeError: the model or ``verts_cam`` is not float32 / float64, or ``illumination`` is not in
-            ``verts_cam``'s dtype and device (it was "expected scalar type Float but found Double" from inside the
-            sampling).
+        TypeError: ``frames`` is not a tensor, the model or ``verts_cam`` is not float32 / float64, or
+            ``illumination`` is not in ``verts_cam``'s dtype and device (it was "expected scalar type Float but
+            found Double" from inside the sampling).
         ValueError: ``frames`` is not ``(B, C, H, W)`` float or ``verts_cam`` not ``(B, V, 3)`` for the model's
             ``V``, ``illumination`` is not ``(B, L)``, or the frames' values are not in [0, 1] (as
             :func:`normalised_face`).
     """
     _check_precision(model)
-    B, C = frames.shape[:2] if isinstance(frames, Tensor) and frames.dim() == 4 else (-1, -1)
+    if not isinstance(frames, Tensor):  # (a numpy array's message named its shape, the right one, as the wrong one)
+        raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}")
+    B, C = frames.shape[:2] if frames.dim() == 4 else (-1, -1)
     want = (B, model.num_vertices, 3)
     if B < 0 or not isinstance(verts_cam, Tensor) or tuple(verts_cam.shape) != want:
         got = tuple(verts_cam.shape) if isinstance(verts_cam, Tensor) else type(verts_cam).__name__

@@ -318,6 +318,7 @@ def initialise_managed(
     if tc_enabled := config.template.enabled:
         # What the state keeps (templates, mosaic, reference, the look-ahead's first frame) is fixed data: built
         # from the frames without autograd, as managed_step reads later frames.
+        check_frames(frames)  # (a numpy array was "'numpy.ndarray' object has no attribute 'detach'")
         frames = frames.detach()
     state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template
