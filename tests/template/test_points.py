@@ -426,6 +426,14 @@ def test_bad_inputs_raise(scene):
         build(scene, max_points=0)
     with pytest.raises(ValueError, match="max_points"):
         build(scene, max_points=H * W + 1)
+    # a numpy array ("no attribute 'dim'"), uint8 gray ("result type Float can't be cast ... Byte"), bool gray
+    args = (s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    with pytest.raises(TypeError, match=r"gray must be a torch.Tensor \(B, 1, H, W\) float in \[0, 1\], got ndarray"):
+        build_template(*args, s["gray"].numpy(), s["cam"], max_points=10, gradient_threshold=0.0)
+    with pytest.raises(ValueError, match=r"gray must be \(B, 1, H, W\) float .*uint8: pass gray.float\(\) / 255"):
+        build_template(*args, (s["gray"] * 255).round().to(torch.uint8), s["cam"], max_points=10, gradient_threshold=0.0)
+    with pytest.raises(ValueError, match=r"gray must be \(B, 1, H, W\) float in \[0, 1\], got torch.bool"):
+        build_template(*args, s["gray"] > 0.5, s["cam"], max_points=10, gradient_threshold=0.0)
 
 
 def test_expression_priority_keeps_points_that_animation_units_move():

@@ -205,9 +205,19 @@ def select_template_pixels(
 
     Returns:
         :class:`TemplatePixels` with ``N = max_points`` slots (:func:`build_template` completes it).
+
+    Raises:
+        TypeError: ``gray`` is not a tensor. ValueError: ``gray`` is not float, or a shape, window or count is wrong.
     """
     full_h, full_w = intrinsics.height, intrinsics.width
     seed = check_int(seed, "seed", 0)
+    # (a numpy array was "'numpy.ndarray' object has no attribute 'dim'", uint8 gray "result type Float can't be
+    # cast to the desired output type Byte")
+    if not isinstance(gray, Tensor):
+        raise TypeError(f"gray must be a torch.Tensor (B, 1, H, W) float in [0, 1], got {type(gray).__name__}")
+    if not gray.is_floating_point():
+        hint = " (uint8: pass gray.float() / 255)" if gray.dtype == torch.uint8 else ""
+        raise ValueError(f"gray must be (B, 1, H, W) float in [0, 1], got {gray.dtype}{hint}")
     if offsets is None:
         if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
             raise ValueError(f"gray must be (B, 1, {full_h}, {full_w}), got {tuple(gray.shape)}")
