@@ -443,6 +443,11 @@ def test_errors(model, layout):
 
     with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
         call(frames=frames[0])
+    # what to do, as the tracker says it (the message gave the shape or dtype alone)
+    with pytest.raises(ValueError, match=r"got \(3, 240, 320\) torch.float32 \(one frame \(C, H, W\): frames\[None\]"):
+        call(frames=frames[0])
+    with pytest.raises(ValueError, match=r"torch.uint8 \(uint8 frames: pass frames.float\(\) / 255\)"):
+        call(frames=(frames * 255).to(torch.uint8))
     with pytest.raises(ValueError, match="intrinsics' size"):
         call(frames=torch.rand(2, 3, 100, 100))
     with pytest.raises(TypeError, match="frames must be a torch.Tensor"):

@@ -327,6 +327,14 @@ def _check_frame_values(frames: Tensor) -> None:
     check_frame_values(frames, STEP_VALUE_ROW_STRIDE)
 
 
+def _frame_hint(frames: Tensor) -> str:
+    """The tracker's hint for refused frames (:func:`~torchface.tracker.step.check_frames`: a missing batch
+    dimension, uint8 or 16-bit pixels; it said only "got (3, 240, 320)" or "got ... torch.uint8" here)."""
+    from torchface.tracker.step import _frame_hint as hint  # (step imports this module)
+
+    return hint(frames)
+
+
 def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
     """Validate a ``(B, count)`` parameter tensor in the model's dtype and device."""
     if not isinstance(x, Tensor):
@@ -449,7 +457,8 @@ def normalised_face(
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
     if frames.dim() != 4 or not frames.is_floating_point():
-        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
+                         f"{_frame_hint(frames)}")  # fmt: skip
     if tuple(frames.shape[-2:]) != intrinsics.size:
         raise ValueError(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, the intrinsics' size), got "
@@ -553,7 +562,8 @@ def normalised_face_posed(
         raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
     if not frames.is_floating_point():
-        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
+                         f"{_frame_hint(frames)}")  # fmt: skip
     if verts_cam.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"verts_cam must be float32 or float64, got {verts_cam.dtype}")
     if illumination is not None:
