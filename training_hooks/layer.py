@@ -394,7 +394,7 @@ class NormalisedFaceLayer(nn.Module):
             tracker = add_coarser_levels(tracker, max(0, state.num_levels - tracker.num_levels))
         with torch.no_grad():
             new_state, track = _tracked(track_step)(self.model, tracker, state, frames.detach())
-        params = new_state.params
+        params = new_state.params.clone()  # the result's own: a caller's in-place change must not move the state
         if cfg.mode is LayerMode.UNROLLED:
             start = params if cfg.start is UnrollStart.TRACKED else state.params.detach()
             params = _tracked(unrolled_params)(

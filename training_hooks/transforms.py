@@ -350,8 +350,9 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
 
 def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated."""
-    if isinstance(landmarks, np.ndarray):  # copied: a read-only array (np.load's mmap) made torch warn
-        landmarks = torch.tensor(np.asarray(landmarks, dtype=np.float64))
+    if isinstance(landmarks, np.ndarray):  # copied: a read-only array (np.load's mmap) made torch warn; and
+        # contiguous: a view with a negative stride (yx[:, ::-1]) was torch's "At least one stride ... is negative"
+        landmarks = torch.tensor(np.ascontiguousarray(landmarks, dtype=np.float64))
     if not isinstance(landmarks, Tensor):
         got = type(landmarks).__name__
         raise TypeError(f"landmarks must be a ({count}, 2) array or tensor, or a TrackerState, got {got}")

@@ -115,6 +115,28 @@ def test_batched_detector_for_facetracker():
 
 
 
+def test_batched_detector_hands_contiguous_images_and_takes_points_of_any_strides():
+    """A per-image detector gets a C-contiguous (H, W, 3) image, as an image from OpenCV or PIL is (it got a view
+    of the (3, H, W) frame, whose channels are H * W apart: ``cv2.rectangle`` drawing on it raised "Layout of the
+    output array img is incompatible with cv::Mat"), and may answer with a view of negative stride (``yx[:, ::-1]``:
+    was "At least one stride in the given numpy array is negative")."""
+    import cv2
+
+    points = np.random.default_rng(0).uniform(2, 10, size=(68, 2))
+    yx = np.ascontiguousarray(points[:, ::-1])
+
+    def detector(image):
+        assert image.flags.c_contiguous
+        cv2.rectangle(image, (1, 1), (5, 5), (255, 0, 0))  # a detector may draw on its own copy
+        return yx[:, ::-1]
+
+    frames = torch.rand(2, 3, 12, 16)
+    before = frames.clone()
+    out = batched(detector)(frames)
+    assert torch.equal(out, torch.as_tensor(points, dtype=torch.float32).expand(2, -1, -1))
+    assert torch.equal(frames, before)
+
+
 def test_batched_detector_gives_a_per_image_detector_rgb_images_of_gray_frames():
     """The tracker takes gray (B, 1, H, W) frames, and passes them to its detector at a loss: the batched dlib
     detector then got (H, W, 1) images and refused them mid-run ("image must be (H, W, 3) uint8 RGB, got (12, 16,

@@ -138,3 +138,17 @@ def test_missing_and_garbled_files(tmp_path):
     (tmp_path / "three.csv").write_text("1,2,3\n4,5,6\n")
     with pytest.raises(InputError, match="rows of 'x, y'"):
         read_landmarks(tmp_path / "three.csv", 100, 100)
+
+
+def test_check_landmarks_returns_its_own_contiguous_copy():
+    """A detector's points as a view with a negative stride (``yx[:, ::-1]``), read-only, or a buffer it reuses:
+    the checked points are a C-contiguous copy (torch refuses negative strides, and the job and the datasets turn
+    them into tensors; they keep them, so a detector writing into its buffer later must not change them)."""
+    points = _points()
+    yx = np.ascontiguousarray(points[:, ::-1])
+    view = yx[:, ::-1]
+    view.flags.writeable = False
+    checked = check_landmarks(view, 100, 100, "detector", min_inside=0.5)
+    assert np.array_equal(checked, points) and checked.flags.c_contiguous and checked.flags.writeable
+    yx[0] = 0.0
+    assert np.array_equal(checked, points)

@@ -55,6 +55,25 @@ def test_trimesh_input_with_bases():
     assert (outward_flux(model.mean, model.faces) > 0).all()
 
 
+def test_arrays_given_as_views_with_negative_strides():
+    """NumPy arguments that are views with a negative stride (``a[::-1]``, ``faces[:, ::-1]`` to turn a winding)
+    load as their copies do: ``animation_ranges`` was torch's "At least one stride in the given numpy array is
+    negative"."""
+    blend = np.zeros((2, 5, 3))
+    blend[0, 3], blend[1, 1] = [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]
+    ranges = np.array([[-1.0, 1.0], [0.0, 2.0]])
+    inward = np.ascontiguousarray(TET_F[:, ::-1])
+    want = load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), blendshapes=blend, animation_ranges=ranges,
+                           landmark_vertices=[3, 1], dtype=torch.float64)  # fmt: skip
+    got = load_mesh_model(
+        trimesh.Trimesh(np.ascontiguousarray(TET_V[::-1])[::-1], inward[:, ::-1], process=False),
+        blendshapes=np.ascontiguousarray(blend[::-1])[::-1], animation_ranges=np.ascontiguousarray(ranges[::-1])[::-1],
+        landmark_vertices=np.array([1, 3])[::-1], dtype=torch.float64,
+    )  # fmt: skip
+    for name in ("mean", "faces", "animation_units", "animation_ranges", "landmark_vertices"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+
+
 def test_path_input_no_bases_and_reflection(tmp_path):
     path = tmp_path / "tet.obj"
     trimesh.Trimesh(TET_V, TET_F, process=False).export(path)

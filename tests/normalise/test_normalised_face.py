@@ -443,6 +443,11 @@ def test_errors(model, layout):
 
     with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
         call(frames=frames[0])
+    # what to do, as the tracker says it (the message gave the shape or dtype alone)
+    with pytest.raises(ValueError, match=r"got \(3, 240, 320\) torch.float32 \(one frame \(C, H, W\): frames\[None\]"):
+        call(frames=frames[0])
+    with pytest.raises(ValueError, match=r"torch.uint8 \(uint8 frames: pass frames.float\(\) / 255\)"):
+        call(frames=(frames * 255).to(torch.uint8))
     with pytest.raises(ValueError, match="intrinsics' size"):
         call(frames=torch.rand(2, 3, 100, 100))
     with pytest.raises(TypeError, match="frames must be a torch.Tensor"):
@@ -512,6 +517,37 @@ def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject
         normalised_face_posed(frame.expand(2, -1, -1, -1), model, layout, verts_cam, light, CAM)
     with pytest.raises(ValueError, match="frames"):
         normalised_face_posed(frame[0], model, layout, verts_cam, light, CAM)
+    # (a numpy frame was a ValueError naming its shape, the right one, as the wrong one)
+    with pytest.raises(TypeError, match=r"frames must be a torch.Tensor \(B, C, H, W\), got ndarray"):
+        normalised_face_posed(frame.numpy(), model, layout, verts_cam, light, CAM)  # type: ignore[arg-type]
+
+
+def test_posed_entry_point_casts_half_frames_and_names_a_light_of_another_dtype(model, subject, layout):
+    """normalised_face_posed casts float16 / bfloat16 frames to the mesh's dtype, as normalised_face casts them to
+    the model's: it sampled them in their own precision (images off by 6e4 without the z-buffer, 3e38 with it,
+    against the same values in float32). A light of another dtype than the mesh is a TypeError naming it (was
+    "expected scalar type Double but found Float" from inside the sampling), and a float64 mesh with a float64 light
+    keeps working."""
+    from torchface.geometry.transforms import transform_points
+
+    sigma = subject.shape_coeffs[None]
+    alpha = torch.zeros(1, model.num_animation)
+    aa = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[20.0, -5.0, 3.0]])))
+    t = torch.tensor([[5.0, -4.0, 470.0]])
+    frame = _render(subject, sigma, alpha, aa, t).image
+    light = torch.tensor([[0.1, 0.02, 0.05, -0.05, 0.1]])
+    verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(sigma, alpha))
+    for zbuffer in (True, False):
+        for dtype in (torch.float16, torch.bfloat16):
+            half = frame.to(dtype)
+            want = normalised_face_posed(half.float(), model, layout, verts_cam, light, CAM, zbuffer=zbuffer)
+            got = normalised_face_posed(half, model, layout, verts_cam, light, CAM, zbuffer=zbuffer)
+            assert want.mask.sum() > 0.5 * layout.num_pixels
+            assert torch.equal(got.image, want.image) and torch.equal(got.mask, want.mask), (zbuffer, dtype)
+    with pytest.raises(TypeError, match="illumination must have verts_cam's dtype"):
+        normalised_face_posed(frame, model, layout, verts_cam.double(), light, CAM)
+    double = normalised_face_posed(frame, model, layout, verts_cam.double(), light.double(), CAM, zbuffer=False)
+    assert double.image.dtype == torch.float64 and double.mask.sum() > 0.5 * layout.num_pixels
 
 
 def test_layout_vertex_weights_interpolate_like_the_barycentric_gather(model, layout):

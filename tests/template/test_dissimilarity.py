@@ -513,3 +513,15 @@ def test_native_reference_picks_the_torch_codes_patches(dtype):
             torch.testing.assert_close(a, b, rtol=0, atol=tol)
         valid = nat.patch_valid.sum(-1)
         assert int(valid[0]) == cfg.num_patches and int(valid[3]) == 0 and 0 < int(valid[4]) < cfg.num_patches
+
+
+@pytest.mark.parametrize("backend", [Backend.AUTO, Backend.TORCH])
+def test_an_empty_batch_gives_empty_results(backend):
+    """B = 0 faces: an empty reference and empty results with either implementation (the torch code's patch
+    suppression raised "cannot reshape tensor of 0 elements into shape [0, -1]"; the native kernel's did not)."""
+    faces, masks = torch.rand(0, 3, 64, 64), torch.ones(0, 1, 64, 64)
+    ref = build_dissimilarity_reference(faces, masks, backend=backend)
+    K = ref.config.num_patches
+    assert ref.centres.shape == (0, K, 2) and ref.patch_valid.shape == (0, K)
+    d, conf, displacement, present = dissimilarity(ref, faces, masks, backend=backend)
+    assert d.shape == conf.shape == (0,) and displacement.shape == (0, K, 2) and present.shape == (0, K)

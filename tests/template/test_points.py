@@ -426,6 +426,14 @@ def test_bad_inputs_raise(scene):
         build(scene, max_points=0)
     with pytest.raises(ValueError, match="max_points"):
         build(scene, max_points=H * W + 1)
+    # a numpy array ("no attribute 'dim'"), uint8 gray ("result type Float can't be cast ... Byte"), bool gray
+    args = (s["model"], s["shape"], s["anim"], s["R"], s["t"])
+    with pytest.raises(TypeError, match=r"gray must be a torch.Tensor \(B, 1, H, W\) float in \[0, 1\], got ndarray"):
+        build_template(*args, s["gray"].numpy(), s["cam"], max_points=10, gradient_threshold=0.0)
+    with pytest.raises(ValueError, match=r"gray must be \(B, 1, H, W\) float .*uint8: pass gray.float\(\) / 255"):
+        build_template(*args, (s["gray"] * 255).round().to(torch.uint8), s["cam"], max_points=10, gradient_threshold=0.0)
+    with pytest.raises(ValueError, match=r"gray must be \(B, 1, H, W\) float in \[0, 1\], got torch.bool"):
+        build_template(*args, s["gray"] > 0.5, s["cam"], max_points=10, gradient_threshold=0.0)
 
 
 def test_expression_priority_keeps_points_that_animation_units_move():
@@ -818,3 +826,14 @@ def test_top_scores_is_a_stable_descending_sort(backend, dtype):
         top_scores(torch.zeros(1, 5), 6, backend)
     with pytest.raises(ValueError, match="score must be"):
         top_scores(torch.zeros(5), 2, backend)
+
+
+@pytest.mark.parametrize("backend", [Backend.AUTO, Backend.TORCH])
+def test_an_empty_batch_gives_an_empty_template(scene, backend):
+    """B = 0 streams: an empty template of the slots asked for (the pixel selection and the interpolation raised
+    "cannot reshape tensor of 0 elements into shape [0, -1]", as a state of no streams, ``state.select([])``, steps
+    without error)."""
+    s = {k: (v[:0] if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+    tpl = build(s, max_points=50, gradient_threshold=0.01, backend=backend)
+    A = scene["model"].num_animation
+    assert tpl.points.shape == (0, 50, 3) and tpl.basis.shape == (0, 50, 3, A) and tpl.intensity.shape == (0, 50)

@@ -260,3 +260,52 @@ def test_state_pieces_made_in_inference_mode_are_normal_tensors(model, turn):
     assert not any(t.is_inference() for t in _tensors((mosaic, templates)))
     out = normal_tensors((mosaic, templates))
     assert out[0] is mosaic and out[1] is templates  # nothing to copy
+
+
+def _storages(tree) -> set[int]:
+    return {t.untyped_storage().data_ptr() for t in _tensors(tree) if t.numel()}
+
+
+@pytest.mark.parametrize("mode", ["default", "inference_mode", "grad"])
+def test_results_share_no_memory_with_the_state(model, turn, mode):
+    """README, Python API: what the steps hand back is "modifiable in place". No tensor of a result may share memory
+    with the state the next step starts from (the results' pose, expression and light were views of the state's
+    ``params``, ``managed_step``'s ``ypr_deg`` the state's ``params_ypr``, ``initialise_managed``'s ``rotation``
+    the mosaic's first entry's: ``result.translation += offset`` moved the tracked head), whether the step runs in
+    its own inference mode, in the caller's, or with autograd (frames that require grad)."""
+    frames, lm = turn
+    f0, f1 = frames[:, 0].clone(), frames[:, 1].clone()
+    if mode == "grad":
+        f0.requires_grad_(True), f1.requires_grad_(True)
+    with torch.inference_mode(mode == "inference_mode"):
+        for start, step in ((initialise, track_step), (initialise_managed, managed_step)):
+            state, first = start(model, CFG, f0, lm, Intrinsics.default(W, H))
+            assert not _storages(first) & _storages(state), (start.__name__, mode)
+            state, res = step(model, CFG, state, f1)
+            assert not _storages(res) & _storages(state), (step.__name__, mode)
+
+
+def test_face_tracker_results_modified_in_place_leave_the_tracking_alone(model, turn):
+    """A caller shifting the results it gets in place (``result.translation += offset``, a unit change of
+    ``ypr_deg``) changes nothing the tracker does next: its first result's pose and light were its state's
+    parameters, a step's ``ypr_deg`` the yaw/pitch/roll the next step's template choice starts from."""
+    from torchface.tracker import FaceTracker
+
+    frames, lm = turn
+    T = 4
+
+    def track(scribble: bool) -> list[torch.Tensor]:
+        tracker, out = FaceTracker(CFG, model=model, refine_first=None), []
+        res = tracker.initialise(frames[:, 0], lm)
+        for t in range(1, T + 1):
+            out.append(torch.cat([res.axis_angle, res.translation, res.ypr_deg, res.anim_coeffs, res.illumination], -1))
+            if scribble:
+                for name in ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "illumination"):
+                    getattr(res, name).add_(10.0)
+            if t < T:
+                res = tracker(frames[:, t])
+        return out
+
+    clean = [x.clone() for x in track(False)]
+    for t, (got, want) in enumerate(zip(track(True), clean)):
+        assert torch.equal(got, want), f"frame {t}"

@@ -613,6 +613,14 @@ def test_estimate_confidence_refuses_frames_of_another_batch_or_scale(model, gen
         estimate_confidence(model, CFG, state, frames[:, 1] * 255.0)
 
 
+def test_initialise_managed_names_frames_that_are_not_a_tensor(model, gentle):
+    """A numpy frame: the TypeError initialise and the steps give (it was "'numpy.ndarray' object has no attribute
+    'detach'" from the managed start, before any check)."""
+    frames, gt = gentle
+    with pytest.raises(TypeError, match=r"frames must be a torch.Tensor \(B, 3, H, W\) RGB .*got ndarray"):
+        initialise_managed(model, CFG, frames[:, 0].numpy(), landmarks(gt), Intrinsics.default(W, H))
+
+
 @pytest.mark.parametrize("radius", [0.0, 3.0, 1000.0])
 def test_streams_near_their_entrys_pose_are_marked_for_the_clean_frame_rule(model, turns, monkeypatch, radius):
     """``near_template``: None with the rule off; every frame within a huge radius; with 3 degrees,

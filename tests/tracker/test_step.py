@@ -539,8 +539,8 @@ def test_steps_refuse_frames_on_another_value_scale(model, two_streams, l2_runs)
 
 
 def test_face_tracker_tracks_any_layout_of_the_same_frames_alike(model, two_streams):
-    """README, Python API: channels-last, strided, batch-expanded, float64 frames and float64 or integer-valued
-    landmarks track as the contiguous float32 ones do; gray frames as the RGB frames' ``to_gray``."""
+    """README, Python API: channels-last, strided, batch-expanded, float64 frames and float64, integer-valued or
+    transposed-view landmarks track as the contiguous float32 ones do; gray frames as the RGB frames' ``to_gray``."""
     frames, gts = two_streams
     lm = landmarks_of(gts).round()
 
@@ -560,6 +560,9 @@ def test_face_tracker_tracks_any_layout_of_the_same_frames_alike(model, two_stre
         torch.testing.assert_close(track(prep), want, rtol=0, atol=0, msg=name)
     torch.testing.assert_close(track(lambda f: f, lm.double()), want, msg="float64 landmarks")
     torch.testing.assert_close(track(lambda f: f, lm.long()), want, msg="int64 landmarks")
+    # a transposed view (the fit's sums over the points followed its memory order: 5e-4 mm off)
+    columns = lm.transpose(1, 2).contiguous().transpose(1, 2)
+    torch.testing.assert_close(track(lambda f: f, columns), want, rtol=0, atol=0, msg="landmarks as a transposed view")
     gray = track(to_gray)  # a gray frame expanded to 3 channels (stride 0): its luminance is the gray up to rounding
     torch.testing.assert_close(track(lambda f: to_gray(f).expand(-1, 3, -1, -1)), gray, rtol=0, atol=1e-3)
 

@@ -211,6 +211,32 @@ def test_transform_equals_dataset_output(clips, config):
     assert torch.equal(head.faces.float() / 255, out["face"][:3])
 
 
+def test_landmarks_and_frames_in_any_memory_layout_give_the_same_items(clips, config):
+    """Landmarks as a NumPy view with a negative stride (``yx[:, ::-1]``, points read as (y, x) and turned round),
+    given to NormaliseFaces or VideoDataset, and frames as strided or channels-last views: the items of the plain
+    arrays (the landmarks were "At least one stride in the given numpy array is negative" from torch.tensor)."""
+    clip = clips[2]
+    frames = read_video(clip.video)[:3]
+    yx = np.ascontiguousarray(clip.landmarks[:, ::-1])
+    turned = yx[:, ::-1]  # the (x, y) points, as a view with a negative stride
+    assert turned.strides[1] < 0 and np.array_equal(turned, clip.landmarks)
+    normalise = NormaliseFaces(TRACKING)
+    want = normalise(frames, clip.landmarks)
+    views = {
+        "landmarks": (frames, turned),
+        "channels_last frames": (frames.contiguous(memory_format=torch.channels_last), clip.landmarks),
+        "strided frames": (torch.stack([frames, frames], -1)[..., 1], clip.landmarks),
+    }
+    for name, (f, lm) in views.items():
+        got = normalise(f, lm)
+        for key in want:
+            assert torch.equal(got[key], want[key]), (name, key)
+    item = next(iter(VideoDataset([clip.video], [turned], replace(config, cache_dir=None))))
+    plain = next(iter(VideoDataset([clip.video], [clip.landmarks], replace(config, cache_dir=None))))
+    for key in plain:
+        assert torch.equal(item[key], plain[key]), key
+
+
 def test_a_continued_sequence_numbers_its_frames_on(clips, tmp_path):
     """Frames that continue a TrackerState are frames ``frame_index ..`` of the sequence: a video tracked in two
     parts gives the items of one tracking, ``frame`` included (the second part said 0, 1, 2: per-frame labels

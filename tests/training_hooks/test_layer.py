@@ -9,6 +9,7 @@ differs from the detached one (the tracking contributes).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -432,3 +433,37 @@ def test_a_clip_without_landmarks_fails_alone_and_the_others_are_as_without_it(m
     rest = layer.forward_clip(clips[[0, 2]], lms[[0, 2]])
     torch.testing.assert_close(out.image[[0, 2]].detach(), rest.image)
     torch.testing.assert_close(out.params[[0, 2]].detach(), rest.params)
+
+
+def test_the_layers_outputs_share_no_memory_with_the_state_it_hands_on(model, small):
+    """A caller modifying what the layer returns in place (``out.params``, the first result's pose) leaves the state
+    the next frame starts from alone: in DETACHED mode ``out.params`` was ``out.state.params`` itself, and
+    ``initialise``'s result's pose was a view of the state's parameters."""
+    frames, state, _ = small
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+
+    def storages(*trees) -> set[int]:
+        found: list[torch.Tensor] = []
+
+        def walk(x) -> None:
+            if isinstance(x, torch.Tensor):
+                found.append(x)
+            elif dataclasses.is_dataclass(x) and not isinstance(x, type):
+                for f in dataclasses.fields(x):
+                    walk(getattr(x, f.name))
+            elif isinstance(x, (tuple, list)):
+                for v in x:
+                    walk(v)
+
+        for tree in trees:
+            walk(tree)
+        return {t.untyped_storage().data_ptr() for t in found if t.numel()}
+
+    landmarks = _clip(32)[1]
+    first_state, first = layer.initialise(frames[:1], landmarks[:1])
+    assert not storages(first) & storages(first_state)
+    out = layer(frames[1:2], state)
+    assert not storages(out.image, out.mask, out.params, out.track) & storages(out.state)
+    want = out.state.params.clone()
+    out.params.add_(1.0)
+    assert torch.equal(out.state.params, want)

@@ -238,7 +238,10 @@ class _Batched:
         out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
+            # C-contiguous, as an image from OpenCV or PIL is (a view of the (3, H, W) frame was not: OpenCV
+            # refused to draw on it)
             image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+            image = np.ascontiguousarray(image)
             near = None if self.near_of is None else self.near_of(frames[b])
             if self.takes_near:  # accepts_near: it takes the keyword
                 points = cast(_NearDetector, self.detector)(image, near=near)
@@ -249,7 +252,8 @@ class _Batched:
                 points = usable_detection(points, W, H, self.where, warn=not warned)
                 self.warned = warned or points is None  # said once: not at every detection of a face at the edge
             if points is not None:
-                out[b] = torch.as_tensor(points, dtype=frames.dtype, device=frames.device)
+                # (a view with a negative stride, yx[:, ::-1], is refused by torch)
+                out[b] = torch.as_tensor(np.ascontiguousarray(points), dtype=frames.dtype, device=frames.device)
         return out
 
 

@@ -110,11 +110,14 @@ def check_landmarks(
     ``min_inside``: the fraction of the points that must lie inside the frame (1: all of them, as a landmarks file
     gives; a detector's, 0.5: dlib's predictor places the chin of a face at the frame's edge outside it).
 
+    The points returned are a C-contiguous copy of ``points``.
+
     Raises:
         InputError: wrong count, non-finite values, or (more than ``1 - min_inside`` of the) points outside the
             frame.
     """
-    points = np.asarray(points, dtype=np.float64)
+    # a copy, C-contiguous (a detector's view with a negative stride: torch refuses it; its reused buffer)
+    points = np.array(points, dtype=np.float64, order="C")
     if points.ndim == 3 and points.shape[0] == 1:
         points = points[0]
     if points.ndim == 1 and points.size % 2 == 0:

@@ -338,13 +338,13 @@ def load_mesh_model(
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 
-    def tensor(array: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(array, dtype=dtype, device=device)
+    def tensor(array: np.ndarray) -> torch.Tensor:  # (a caller's view with a negative stride: torch refuses it)
+        return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)
 
     return FaceModel(
         name=default_name if name is None else str(name),
         mean=tensor(vertices @ linear),
-        faces=torch.as_tensor(faces, dtype=torch.int64, device=device),
+        faces=torch.as_tensor(np.ascontiguousarray(faces), dtype=torch.int64, device=device),
         shape_units=tensor(shape @ linear),
         shape_names=shp_names,
         animation_units=tensor(anim @ linear),

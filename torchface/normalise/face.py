@@ -327,6 +327,14 @@ def _check_frame_values(frames: Tensor) -> None:
     check_frame_values(frames, STEP_VALUE_ROW_STRIDE)
 
 
+def _frame_hint(frames: Tensor) -> str:
+    """The tracker's hint for refused frames (:func:`~torchface.tracker.step.check_frames`: a missing batch
+    dimension, uint8 or 16-bit pixels; it said only "got (3, 240, 320)" or "got ... torch.uint8" here)."""
+    from torchface.tracker.step import _frame_hint as hint  # (step imports this module)
+
+    return hint(frames)
+
+
 def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
     """Validate a ``(B, count)`` parameter tensor in the model's dtype and device."""
     if not isinstance(x, Tensor):
@@ -449,7 +457,8 @@ def normalised_face(
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
     if frames.dim() != 4 or not frames.is_floating_point():
-        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}")
+        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
+                         f"{_frame_hint(frames)}")  # fmt: skip
     if tuple(frames.shape[-2:]) != intrinsics.size:
         raise ValueError(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, the intrinsics' size), got "
@@ -524,28 +533,49 @@ def normalised_face_posed(
 ) -> NormalisedFaceResult:
     """:func:`normalised_face` of a mesh already posed: ``verts_cam (B, V, 3)``, the model's vertices at the
     frame's shape, expression and pose in the camera frame (mm), e.g. shared with other per-frame work. Only the
-    shapes of ``frames`` and ``verts_cam`` and (unless ``check_values`` is False) the frames' value range are
-    checked here (:func:`normalised_face` documents and checks the rest).
+    shapes and dtypes of ``frames``, ``verts_cam`` and ``illumination`` and (unless ``check_values`` is False) the
+    frames' value range are checked here (:func:`normalised_face` documents and checks the rest).
     Without the z-buffer test (``zbuffer=False``, as template management makes it every frame) and without
     gradients (nor a ``torch.func`` transform or forward AD), :class:`~torchface.backend.Backend` ``AUTO`` samples
     with the native kernel (run eagerly under ``torch.compile``)
     (``torchface/_native/normalised_face.h``: each pixel from its triangle's three corners); the values are the
     torch code's to rounding. A sample with a non-finite vertex has image and mask 0 (and gradient 0).
 
+    The frames are cast to ``verts_cam``'s dtype (float16 or bfloat16 frames were sampled in their own precision:
+    images off by up to 1e38).
+
     Raises:
-        TypeError: the model is not float32 / float64.
-        ValueError: ``frames`` is not ``(B, C, H, W)`` or ``verts_cam`` not ``(B, V, 3)`` for the model's ``V``, or
-            the frames' values are not in [0, 1] (as :func:`normalised_face`).
+        TypeError: ``frames`` is not a tensor, the model or ``verts_cam`` is not float32 / float64, or
+            ``illumination`` is not in ``verts_cam``'s dtype and device (it was "expected scalar type Float but
+            found Double" from inside the sampling).
+        ValueError: ``frames`` is not ``(B, C, H, W)`` float or ``verts_cam`` not ``(B, V, 3)`` for the model's
+            ``V``, ``illumination`` is not ``(B, L)``, or the frames' values are not in [0, 1] (as
+            :func:`normalised_face`).
     """
     _check_precision(model)
-    B, C = frames.shape[:2] if isinstance(frames, Tensor) and frames.dim() == 4 else (-1, -1)
+    if not isinstance(frames, Tensor):  # (a numpy array's message named its shape, the right one, as the wrong one)
+        raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}")
+    B, C = frames.shape[:2] if frames.dim() == 4 else (-1, -1)
     want = (B, model.num_vertices, 3)
     if B < 0 or not isinstance(verts_cam, Tensor) or tuple(verts_cam.shape) != want:
         got = tuple(verts_cam.shape) if isinstance(verts_cam, Tensor) else type(verts_cam).__name__
         raise ValueError(f"frames must be (B, C, H, W) and verts_cam (B, {model.num_vertices}, 3) with the same B, "
                          f"got frames {tuple(getattr(frames, 'shape', ()))} and verts_cam {got}")  # fmt: skip
+    if not frames.is_floating_point():
+        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
+                         f"{_frame_hint(frames)}")  # fmt: skip
+    if verts_cam.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"verts_cam must be float32 or float64, got {verts_cam.dtype}")
+    if illumination is not None:
+        if not isinstance(illumination, Tensor) or tuple(illumination.shape) != (B, NUM_ILLUMINATION_TERMS):
+            got = tuple(illumination.shape) if isinstance(illumination, Tensor) else type(illumination).__name__
+            raise ValueError(f"illumination must be (B, {NUM_ILLUMINATION_TERMS}) with B={B} like frames, got {got}")
+        if (illumination.dtype, illumination.device) != (verts_cam.dtype, verts_cam.device):
+            raise TypeError(f"illumination must have verts_cam's dtype and device ({verts_cam.dtype}, "
+                            f"{verts_cam.device}), got ({illumination.dtype}, {illumination.device})")  # fmt: skip
     if check_values:
         _check_frame_values(frames)
+    frames = frames.to(dtype=verts_cam.dtype, device=verts_cam.device)
     return _normalised_face_posed(
         frames, model, layout, verts_cam, illumination, intrinsics, depth_tolerance, min_facing_cos, zbuffer,
         backend, None,

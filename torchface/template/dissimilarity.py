@@ -683,7 +683,7 @@ def build_dissimilarity_reference(
         v = torch.div(index, G, rounding_mode="floor")
         rows = (v.unsqueeze(-1) + around).clamp(0, G - 1)
         cols = (index - v * G).unsqueeze(-1).add(around).clamp(0, G - 1)
-        ranked.scatter_(1, (rows.unsqueeze(-1) * G + cols.unsqueeze(-2)).view(B, -1), -1.0)
+        ranked.scatter_(1, (rows.unsqueeze(-1) * G + cols.unsqueeze(-2)).view(B, (2 * s + 1) ** 2), -1.0)  # (B = 0)
     return _reference(image, gray, mask, torch.stack(picks, -1), torch.stack(bests, -1), config, K)
 
 

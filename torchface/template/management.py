@@ -520,11 +520,13 @@ def new_mosaic(
     Args:
         templates: per level, finest first, batch ``B``; rotation ``(B, 3, 3)`` and ypr_deg ``(B, 3)`` the pose
             they were built at; reference: the dissimilarity reference of that frame (batch ``B``).
+
+    The mosaic keeps a copy of ``rotation`` (it kept a view: the first result's, which its caller may modify).
     """
     bins, _ = pose_bins(ypr_deg, config, origin_deg=ypr_deg)  # the reference is bin (0, 0)
     B = rotation.shape[0]
     return Mosaic(
-        tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1), matrix_to_euler(rotation).unsqueeze(1),
+        tuple(_entry_level(t) for t in templates), rotation.unsqueeze(1).clone(), matrix_to_euler(rotation).unsqueeze(1),
         bins.unsqueeze(1),
         torch.ones(B, 1, dtype=torch.bool, device=rotation.device), _map_reference(reference, lambda x: x.unsqueeze(1)),
     )  # fmt: skip

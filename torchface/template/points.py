@@ -105,7 +105,7 @@ def gather_face_attributes(attributes: Tensor, faces: Tensor, face_index: Tensor
     corner = faces[face_index.clamp_min(0)]  # (B, N, 3)
     if batched:
         extra = attributes.shape[2:]
-        flat = attributes.reshape(B, attributes.shape[1], -1)
+        flat = attributes.flatten(2) if attributes.dim() > 2 else attributes.unsqueeze(-1)  # (B = 0 too)
         idx = corner.reshape(B, N * 3, 1).expand(-1, -1, flat.shape[-1])
         vals = torch.gather(flat, 1, idx).reshape(B, N, 3, *extra)
     else:  # index_select of the flattened rows: several times faster than attributes[corner]
@@ -205,9 +205,19 @@ def select_template_pixels(
 
     Returns:
         :class:`TemplatePixels` with ``N = max_points`` slots (:func:`build_template` completes it).
+
+    Raises:
+        TypeError: ``gray`` is not a tensor. ValueError: ``gray`` is not float, or a shape, window or count is wrong.
     """
     full_h, full_w = intrinsics.height, intrinsics.width
     seed = check_int(seed, "seed", 0)
+    # (a numpy array was "'numpy.ndarray' object has no attribute 'dim'", uint8 gray "result type Float can't be
+    # cast to the desired output type Byte")
+    if not isinstance(gray, Tensor):
+        raise TypeError(f"gray must be a torch.Tensor (B, 1, H, W) float in [0, 1], got {type(gray).__name__}")
+    if not gray.is_floating_point():
+        hint = " (uint8: pass gray.float() / 255)" if gray.dtype == torch.uint8 else ""
+        raise ValueError(f"gray must be (B, 1, H, W) float in [0, 1], got {gray.dtype}{hint}")
     if offsets is None:
         if gray.dim() != 4 or gray.shape[1] != 1 or tuple(gray.shape[-2:]) != intrinsics.size:
             raise ValueError(f"gray must be (B, 1, {full_h}, {full_w}), got {tuple(gray.shape)}")
@@ -363,7 +373,7 @@ def select_pixels_posed(
         cam, cam_off = strided_window(window, offsets, stride)
         frags = rasterize_windows(model, verts_cam, [cam], [cam_off], backend)[0]
     face = frags.pix_to_face
-    face_flat = face.reshape(B, -1)
+    face_flat = face.flatten(1)  # (flatten: B = 0 too)
     if (stride == 1 and expression_priority <= 0
             and use_native(backend, (gray, verts_cam, normals_cam, frags.coefficients.detach()), "pixel selection")):
         score = _native_scores(model, posed, gray, intrinsics, off, frags, gradient_threshold, min_facing_cos,
@@ -427,15 +437,15 @@ def select_pixels_posed(
         # Points that some animation unit moves by at least ~1 px per unit are kept first: an AU acting on a
         # small region (eyelids) would otherwise get few of the uniformly drawn points.
         full = frags.fragments()  # every pixel's barycentric coordinates and depth
-        bary_flat, zbuf = full.bary.reshape(B, -1, 3), full.zbuf
+        bary_flat, zbuf = full.bary.flatten(1, 2), full.zbuf
         au_mm = model.animation_units.norm(dim=-1).amax(0)  # (V,) largest displacement per unit coefficient
         sens = gather_face_attributes(au_mm.unsqueeze(-1), model.faces, face_flat, bary_flat, batched=False)[..., 0]
-        px_per_mm = intrinsics.fx / zbuf.reshape(B, -1).clamp(1.0, 1e30)
+        px_per_mm = intrinsics.fx / zbuf.flatten(1).clamp(1.0, 1e30)
         keys = keys + expression_priority * (sens * px_per_mm >= 1.0).to(keys.dtype)
     if expression_quota > 0 and model.num_animation > 0:
         keys = keys + 2.0 * _quota_lift(model, frags, candidate.reshape(-1).nonzero().squeeze(-1), keys,
                                         intrinsics.fx, expression_quota)  # fmt: skip
-    score = torch.where(candidate.reshape(B, -1), keys, torch.full_like(keys, -1.0))
+    score = torch.where(candidate.flatten(1), keys, torch.full_like(keys, -1.0))
     return _top_pixels(score, face_flat, frags, gray, max_points, verts_model.dtype, backend)
 
 
@@ -513,9 +523,9 @@ def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor,
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     rows = torch.arange(B, device=pix.device).repeat_interleave(pix.shape[1])
     pix_row = torch.div(pix.reshape(-1), W, rounding_mode="floor")
-    bary = frags.barycentrics(rows, pix_row, pix.reshape(-1) - pix_row * W).reshape(B, -1, 3)
+    bary = frags.barycentrics(rows, pix_row, pix.reshape(-1) - pix_row * W).reshape(B, pix.shape[1], 3)
     bary = bary.to(dtype)
-    intensity = torch.gather(gray.reshape(B, -1), 1, pix).to(dtype)
+    intensity = torch.gather(gray.flatten(1), 1, pix).to(dtype)
     return TemplatePixels(face_index, bary, intensity, valid)
 
 

@@ -396,7 +396,8 @@ def _refine_first_fit(
     )  # fmt: skip
     keep = px.valid[0]
     fi, bary = px.face_index[:, keep], px.bary[:, keep]
-    target, lw = landmark_targets(landmarks_px.to(device=dev, dtype=dt), landmark_weights)  # as fit_landmarks
+    target, lw = landmark_targets(landmarks_px.to(device=dev, dtype=dt).contiguous(),  # as fit_landmarks
+                                  None if landmark_weights is None else landmark_weights.to(dt).contiguous())
     # x = [aa0 (3), t0 (3), free shape units (nf), expression (nA), per keyframe: aa, t, light (11)]
     o_sig, o_al = 6, 6 + nf
     o_k = o_al + nA

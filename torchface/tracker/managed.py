@@ -318,6 +318,7 @@ def initialise_managed(
     if tc_enabled := config.template.enabled:
         # What the state keeps (templates, mosaic, reference, the look-ahead's first frame) is fixed data: built
         # from the frames without autograd, as managed_step reads later frames.
+        check_frames(frames)  # (a numpy array was "'numpy.ndarray' object has no attribute 'detach'")
         frames = frames.detach()
     state, result = initialise(model, config, frames, landmarks_px, intrinsics, weights, fit=fit)
     tc = config.template
@@ -949,7 +950,7 @@ def managed_step(
         attempt = lost & (since >= tc.recovery_every)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
     params_ypr: Tensor | None  # None: not known (rows reverted to the confident parameters or adopted)
-    params, params_ypr = solved.params, result.ypr_deg
+    params, params_ypr = solved.params, result.ypr_deg.clone()  # (a copy: the caller may modify the result's)
     if bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
 

@@ -995,8 +995,11 @@ def _result(
     num_points: Tensor, confidence: Tensor, neutral: Tensor | None,
 ) -> TrackResult:
     """The result of estimate ``x (B, P)``; ``neutral``: ``(B, A)`` the first frame's fitted animation
-    coefficients (None: zero), which :attr:`TrackResult.expression` is measured from."""
-    aa, t, alpha, light = layout.split(x)
+    coefficients (None: zero), which :attr:`TrackResult.expression` is measured from.
+
+    The fields are views of a copy of ``x``, which is the new state's ``params``: a caller modifying a result in
+    place (``result.translation += offset``) moved the head the next step starts from."""
+    aa, t, alpha, light = layout.split(x.clone())
     R = axis_angle_to_matrix(aa)
     expression = alpha if neutral is None else alpha - neutral.to(alpha.dtype)
     return TrackResult(
