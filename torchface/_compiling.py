@@ -13,8 +13,60 @@ from collections.abc import Callable
 
 import torch
 import torch.compiler
+from torch import Tensor
 
-__all__ = ["is_compiling"]
+__all__ = ["check_reverse_mode", "is_compiling", "is_transformed"]
 
 #: ``() -> bool``: whether torch.compile (or torch.export) is tracing the caller.
 is_compiling: Callable[[], bool] = getattr(torch.compiler, "is_compiling", None) or torch._utils.is_compiling
+
+
+def is_transformed(*tensors: object) -> bool:
+    """Whether one of ``tensors`` (other values are skipped) is wrapped by a ``torch.func`` transform (``grad``,
+    ``vmap``, ``jacrev``, ``jvp``, ...) or is a forward-AD dual tensor (``torch.autograd.forward_ad``).
+
+    The native kernels read the tensors' memory, which wrapped tensors do not have ("Cannot access data pointer of
+    Tensor that doesn't have storage", a ``.detach()`` of one too), and would drop a dual tensor's tangent without a
+    sign; inference mode drops tangents too. Two cheap looks (about half a microsecond) when neither is active."""
+    arrays = [x for x in tensors if isinstance(x, Tensor)]
+    if torch._C._functorch.peek_interpreter_stack() is not None:
+        if any(torch._C._functorch.is_functorch_wrapped_tensor(x) for x in arrays):
+            return True
+    if torch.autograd.forward_ad._current_level >= 0:
+        return any(torch.autograd.forward_ad.unpack_dual(x).tangent is not None for x in arrays)
+    return False
+
+
+def _vmapped(x: Tensor) -> bool:
+    """Whether ``x`` is batched by ``torch.func.vmap`` at some level of its ``torch.func`` wrappers."""
+    while torch._C._functorch.is_functorch_wrapped_tensor(x):
+        if torch._C._functorch.is_batchedtensor(x):
+            return True
+        x = torch._C._functorch.get_unwrapped(x)
+    return False
+
+
+def check_reverse_mode(what: str, *tensors: object) -> None:
+    """Refuse ``tensors`` (other values are skipped) batched by ``torch.func.vmap`` or carrying forward-mode tangents
+    (``torch.func.jvp``, ``jacfwd``, ``torch.autograd.forward_ad``), with one line saying what works instead.
+
+    ``what`` (a tracking step, ...) decides per stream from the values (``if`` on tensors, ``.tolist()``: vmap's
+    "data-dependent control flow" errors) and samples the frames with ``grid_sample``, which has no forward-mode
+    derivative in torch; reverse mode (``torch.autograd``, ``torch.func.grad``, ``vjp``, ``jacrev``) works.
+
+    Raises:
+        RuntimeError: under ``vmap`` or forward-mode AD.
+    """
+    arrays = [x for x in tensors if isinstance(x, Tensor)]
+    if torch._C._functorch.peek_interpreter_stack() is not None and any(_vmapped(x) for x in arrays):
+        raise RuntimeError(
+            f"{what} cannot run under torch.func.vmap (its decisions read the values of each stream): track the "
+            "streams as one batch, (B, ...) tensors, instead"
+        )
+    if torch.autograd.forward_ad._current_level >= 0 and any(
+        torch.autograd.forward_ad.unpack_dual(x).tangent is not None for x in arrays
+    ):
+        raise RuntimeError(
+            f"{what} has no forward-mode derivative (torch.func.jvp, jacfwd, forward_ad: torch's grid_sample has "
+            "none): use reverse mode (torch.autograd.grad, torch.func.grad, vjp or jacrev)"
+        )

@@ -77,6 +77,14 @@ def test_run_without_autograd_modes():
     with torch.inference_mode():  # a caller's inference mode: run as it is, no copy
         inside, y = run_without_autograd(probe, (x,), x)
     assert inside and y.is_inference()
+    # Forward AD's and torch.func's tensors ask for no gradient, but inference mode would drop their tangents.
+    with torch.autograd.forward_ad.dual_level():
+        dual = torch.autograd.forward_ad.make_dual(x, torch.ones(3))
+        inside, y = run_without_autograd(probe, (dual,), dual)
+        assert not inside and torch.equal(torch.autograd.forward_ad.unpack_dual(y).tangent, torch.full((3,), 2.0))
+    seen = []
+    torch.func.jvp(lambda v: seen.append(run_without_autograd(probe, (v,), v)[0]) or v.sum(), (x,), (x,))
+    assert seen == [False]
 
 
 # ----------------------------------------------------------------------------- the tracking steps
@@ -170,6 +178,54 @@ def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, mon
     # autograd refuses for cholesky_solve's output).
     (grad,) = torch.autograd.grad(result.translation.sum(), frame)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("managed", [False, True])
+def test_torch_func_grad_and_jacrev_of_a_step_equal_autograd(model, turn, managed):
+    """``torch.func.grad`` / ``jacrev`` through a step with the default backend give autograd's gradients. Before,
+    the step handed the transform's wrapped frames (detached, so asking for no gradient) to the native rasterizer:
+    "Cannot access data pointer of Tensor that doesn't have storage"."""
+    frames, lm = turn
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    frame = frames[:, 1].clone()
+
+    def translation(x):
+        return step(model, CFG, state, x)[1].translation[0]
+
+    pixels = frame.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(translation(pixels).sum(), pixels)
+    got = torch.func.grad(lambda x: translation(x).sum())(frame)
+    assert want.abs().sum() > 0
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
+    jac = torch.func.jacrev(translation)(frame)  # (3, 1, 3, H, W)
+    torch.testing.assert_close(jac.sum(0), want, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("managed", [False, True])
+def test_forward_mode_and_vmap_of_a_step_are_refused_in_one_line(model, turn, managed):
+    """A step has no forward-mode derivative (torch's ``grid_sample`` has none) and cannot be vmapped (its decisions
+    read each stream's values): both are refused with what works instead. Before, forward AD's dual frames ran in
+    inference mode and the results came back without a tangent (a zero derivative without a sign), and
+    ``torch.func.jvp`` failed on "Cannot set version_counter for inference tensor"."""
+    frames, lm = turn
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    frame = frames[:, 1].clone()
+
+    def moved(x):
+        return step(model, CFG, state, x)[1].translation.sum()
+
+    with torch.autograd.forward_ad.dual_level():
+        with pytest.raises(RuntimeError, match="no forward-mode derivative.*use reverse mode"):
+            moved(torch.autograd.forward_ad.make_dual(frame, torch.ones_like(frame)))
+    with pytest.raises(RuntimeError, match="no forward-mode derivative"):
+        torch.func.jvp(moved, (frame,), (torch.ones_like(frame),))
+    with pytest.raises(RuntimeError, match="cannot run under torch.func.vmap.*one batch"):
+        torch.func.vmap(moved)(frame[None])
+    with pytest.raises(RuntimeError, match="cannot run under torch.func.vmap"):
+        torch.func.vmap(torch.func.grad(moved))(frame[None])
+    step(model, CFG, state, frame)  # and a plain step after them runs
 
 
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._compiling import check_reverse_mode
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
@@ -1016,8 +1017,10 @@ def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "Tracker
     """The checks of a step (:func:`track_step`, :func:`~torchface.tracker.managed.managed_step`): ``frames``
     ``(B, 3, H, W)`` in [0, 1] (:func:`check_frames`, every :data:`STEP_VALUE_ROW_STRIDE`-th row's values), one
     per stream of ``state``, whose pyramid ``config`` has (:func:`check_state_levels`) and whose model ``model`` is
-    (:func:`check_state_model`)."""
+    (:func:`check_state_model`), and neither under ``torch.func.vmap`` nor forward-mode AD
+    (:func:`~torchface._compiling.check_reverse_mode`: reverse mode works, ``torch.func.grad`` included)."""
     check_api_types(model, config, state, with_state=True)
+    check_reverse_mode("a tracking step", frames, state.params, state.shape_coeffs)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
