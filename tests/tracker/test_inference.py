@@ -228,6 +228,35 @@ def test_forward_mode_and_vmap_of_a_step_are_refused_in_one_line(model, turn, ma
     step(model, CFG, state, frame)  # and a plain step after them runs
 
 
+@pytest.mark.parametrize("managed", [False, True])
+def test_missing_frame_pixels_give_finite_gradients_that_equal_finite_differences(turn, managed):
+    """Frames that require grad with missing (NaN) pixels on the face: the points whose samples touch them are left
+    out as without gradients (the same estimate), and the gradient is finite, 0 at the missing pixels and equal to
+    central differences (float64). Before, the sampler's backward multiplied those points' zero gradient by the NaN
+    pixels: every pixel's gradient was NaN (690 of 696 on a 32x32 frame with half its columns missing)."""
+    from torchface.backend import Backend
+
+    frames, lm = turn
+    model = load_candide3(dtype=torch.float64)
+    cam = Intrinsics.default(W, H)
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    state, _ = init(model, CFG, frames[:, 0].double(), lm.double(), cam)
+    frame = frames[:, 1].double().clone()
+    frame[..., 165:] = float("nan")  # the right part of the face (columns 120-200) is missing
+    _, want = step(model, dataclasses.replace(CFG, backend=Backend.TORCH), state, frame)
+    pixels = frame.clone().requires_grad_(True)
+    _, got = step(model, CFG, state, pixels)
+    assert int(got.status[0]) == int(want.status[0]) == 0
+    torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-9)
+    (grad,) = torch.autograd.grad(got.translation[0, 0], pixels)
+    assert torch.isfinite(grad).all() and bool((grad[..., 165:] == 0).all())
+    assert int((grad != 0).sum()) > 1000
+    for i in grad.flatten().abs().topk(3).indices:  # the pixels that move the estimate most
+        e = torch.zeros_like(frame).flatten().index_fill_(0, i, 1e-5).view_as(frame)
+        moved = step(model, CFG, state, frame + e)[1].translation[0, 0] - step(model, CFG, state, frame - e)[1].translation[0, 0]
+        torch.testing.assert_close(grad.flatten()[i], moved / 2e-5, rtol=1e-5, atol=1e-8)
+
+
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
     """managed_step, like track_step, runs its work in inference mode when the state and frames ask for no
     gradient (``without_autograd``), and the caller's mode is as it was afterwards."""
