@@ -228,25 +228,29 @@ def test_forward_mode_and_vmap_of_a_step_are_refused_in_one_line(model, turn, ma
     step(model, CFG, state, frame)  # and a plain step after them runs
 
 
-@pytest.mark.parametrize("managed", [False, True])
-def test_missing_frame_pixels_give_finite_gradients_that_equal_finite_differences(turn, managed):
+@pytest.mark.parametrize("managed, solver", [(False, "fast"), (True, "fast"), (False, "reference")])
+def test_missing_frame_pixels_give_finite_gradients_that_equal_finite_differences(turn, managed, solver):
     """Frames that require grad with missing (NaN) pixels on the face: the points whose samples touch them are left
     out as without gradients (the same estimate), and the gradient is finite, 0 at the missing pixels and equal to
-    central differences (float64). Before, the sampler's backward multiplied those points' zero gradient by the NaN
-    pixels: every pixel's gradient was NaN (690 of 696 on a 32x32 frame with half its columns missing)."""
+    central differences (float64). Before, the fast solver's sampler multiplied those points' zero gradient by the
+    NaN pixels in its backward: every pixel's gradient was NaN (690 of 696 on a 32x32 frame with half its columns
+    missing). The reference solver failed the frame at the first point that sampled a NaN pixel (the fast solver
+    leaves such points out), and its estimates carried no gradient at all."""
     from torchface.backend import Backend
+    from torchface.tracker.step import TrackSolver
 
     frames, lm = turn
     model = load_candide3(dtype=torch.float64)
     cam = Intrinsics.default(W, H)
     init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    CFG = dataclasses.replace(globals()["CFG"], solver=TrackSolver(solver))
     state, _ = init(model, CFG, frames[:, 0].double(), lm.double(), cam)
     frame = frames[:, 1].double().clone()
     frame[..., 165:] = float("nan")  # the right part of the face (columns 120-200) is missing
     _, want = step(model, dataclasses.replace(CFG, backend=Backend.TORCH), state, frame)
     pixels = frame.clone().requires_grad_(True)
     _, got = step(model, CFG, state, pixels)
-    assert int(got.status[0]) == int(want.status[0]) == 0
+    assert int(got.status[0]) == int(want.status[0]) in (0, 1)  # converged, or at its iteration limit: not FAILED
     torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-9)
     (grad,) = torch.autograd.grad(got.translation[0, 0], pixels)
     assert torch.isfinite(grad).all() and bool((grad[..., 165:] == 0).all())

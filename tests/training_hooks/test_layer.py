@@ -194,6 +194,27 @@ def test_unrolled_at_the_exact_minimum_is_detached(model, small):
         assert (gb - ga).norm() > 0.1 * ga.norm()
 
 
+def test_unrolled_iterations_run_on_frames_with_missing_pixels(model, small):
+    """Missing (NaN) pixels over part of the face: the unrolled iterations leave the points that sample them out, as
+    the tracker does, and move on from their start with finite gradients that go through the tracking. Before, the
+    reference objective's solve failed at the first such point and kept its start without a sign: the detached
+    mode's gradient, and with ``UnrollStart.PREVIOUS`` the face resampled at the previous frame's pose."""
+    frames, state, _ = small
+    frame = frames[1:2].clone()
+    frame[..., 20:] = float("nan")  # the right third of the 32x32 frame
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(5))
+    det = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    a, ga = _grad(det, frame, state, weights)
+    assert int(a.track.status[0]) in (0, 1) and torch.isfinite(ga).all()
+    for start in (UnrollStart.TRACKED, UnrollStart.PREVIOUS):
+        cfg = LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=2, start=start, tracker=SMALL)
+        b, gb = _grad(NormalisedFaceLayer(cfg, model), frame, state, weights)
+        first = a.params if start is UnrollStart.TRACKED else state.params
+        assert float((b.params.detach() - first).abs().max()) > 0.01, start
+        assert torch.isfinite(gb).all() and bool((gb[..., 20:] == 0).all()), start
+        assert (gb - ga).norm() > 0.1 * ga.norm(), start
+
+
 # ---------------------------------------------------------------------------------------------------------
 # features, cardinality, exceptions
 # ---------------------------------------------------------------------------------------------------------

@@ -412,7 +412,9 @@ def solve_level(
         )
     constants = _level_constants(cam, R, tpl) if constants is None else constants
     holes = None
-    if torch.is_grad_enabled() and image.requires_grad and not bool(isfinite(image).all()):
+    if torch.is_grad_enabled() and any(
+        v.requires_grad for v in (image, R, t, alpha, light, light_basis, tpl.points, tpl.basis, tpl.intensity)
+    ) and not bool(isfinite(image).all()):
         # Missing (NaN) pixels: the points whose samples touch one are left out, but the sampler's backward
         # multiplies their zero incoming gradient by the pixels (NaN), and so do the Jacobian's products: every
         # gradient of the step was NaN. Sample a copy with 0 there, the holes kept for the masks (linearise).

@@ -1093,7 +1093,13 @@ def track_step(
     if config.solver is TrackSolver.FAST:
         return _track_step_fast(model, config, state, frames, conservative, near_template)
     layout = _layout(model)
-    solvers = [SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level])
+    # Unrolled where a gradient is wanted, as the fast solver is (the same iterations; without it the estimates
+    # were constants: no gradient reached the frames or the previous estimate).
+    differentiable = torch.is_grad_enabled() and any(
+        v.requires_grad for v in (frames, state.params, state.shape_coeffs)
+        + tuple(t for tpl in state.templates for t in (tpl.points, tpl.basis, tpl.normals, tpl.intensity))
+    )
+    solvers = [SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level], differentiable=differentiable)
                for level in reversed(range(config.num_levels))]  # fmt: skip
     x, last = reference_levels(model, config, state, frames, state.params, solvers, near_template=near_template)
     # Finest-level diagnostics at the final estimate.
