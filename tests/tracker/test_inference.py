@@ -261,6 +261,24 @@ def test_missing_frame_pixels_give_finite_gradients_that_equal_finite_difference
         torch.testing.assert_close(grad.flatten()[i], moved / 2e-5, rtol=1e-5, atol=1e-8)
 
 
+def test_the_reference_solver_carries_gradients_like_the_fast_one(model, turn):
+    """``TrackSolver.REFERENCE`` with frames that require grad: its estimates are in the graph (the solve unrolled),
+    equal to those without gradients. Before, its solve ran under ``no_grad`` whatever the caller wanted: the
+    estimates were constants and ``autograd.grad`` of them raised "does not require grad"."""
+    from torchface.tracker.step import TrackSolver
+
+    frames, lm = turn
+    cfg = dataclasses.replace(CFG, solver=TrackSolver.REFERENCE)
+    state, _ = initialise(model, cfg, frames[:, 0], lm, Intrinsics.default(W, H))
+    _, want = track_step(model, cfg, state, frames[:, 1])
+    frame = frames[:, 1].clone().requires_grad_(True)
+    new_state, got = track_step(model, cfg, state, frame)
+    assert torch.equal(got.translation, want.translation) and torch.equal(got.status, want.status)
+    assert got.translation.requires_grad and new_state.params.requires_grad
+    (grad,) = torch.autograd.grad(got.translation.sum(), frame)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
     """managed_step, like track_step, runs its work in inference mode when the state and frames ask for no
     gradient (``without_autograd``), and the caller's mode is as it was afterwards."""
