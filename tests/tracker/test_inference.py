@@ -279,6 +279,26 @@ def test_the_reference_solver_carries_gradients_like_the_fast_one(model, turn):
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("managed", [False, True])
+def test_a_state_made_in_a_callers_inference_mode_serves_frames_that_require_grad(model, turn, managed):
+    """A state initialised and stepped inside the caller's ``torch.inference_mode`` (a validation pass) holds
+    inference tensors; a later step of frames that require grad from it gives the gradient, and the estimate of the
+    same frames without grad. Before: "Inference tensors cannot be saved for backward" from the fast solver."""
+    frames, lm = turn
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    with torch.inference_mode():
+        state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+        state, _ = step(model, CFG, state, frames[:, 1])
+    assert state.params.is_inference() and state.templates[0].intensity.is_inference()
+    _, want = step(model, CFG, state, frames[:, 2])
+    frame = frames[:, 2].clone().requires_grad_(True)
+    new_state, got = step(model, CFG, state, frame)
+    torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-5)
+    (grad,) = torch.autograd.grad(got.translation.sum(), frame)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    step(model, CFG, new_state.detach(), frames[:, 3].clone().requires_grad_(True))  # and on from there
+
+
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
     """managed_step, like track_step, runs its work in inference mode when the state and frames ask for no
     gradient (``without_autograd``), and the caller's mode is as it was afterwards."""

@@ -102,14 +102,18 @@ def run_without_autograd(fn: Callable[..., T], inputs: Iterable[object], *args: 
             (``grad``, ``jvp``, ``vmap``, ...) or a forward-AD dual tensor, ``fn`` runs as it is.
 
     Already in inference mode (a caller's, or an outer call of this function), ``fn`` runs as it is and its result
-    is not copied.
+    is not copied. Where a gradient is wanted, ``fn`` is given normal copies of the inference tensors among
+    ``args`` and ``kwargs`` (:func:`normal_tensors`: a state made in a caller's inference mode).
     """
     inputs = tuple(inputs)
-    if (
-        torch.is_inference_mode_enabled()
-        or (torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs))
-        or is_transformed(*inputs)  # torch.func's wrapped tensors, forward AD's tangents: dropped by inference mode
-    ):
+    if torch.is_inference_mode_enabled():
+        return fn(*args, **kwargs)
+    if (torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs)) or is_transformed(
+        *inputs
+    ):  # (torch.func's wrapped tensors, forward AD's tangents: inference mode would drop them)
+        # A state made in a caller's inference mode (a validation pass) holds inference tensors, which autograd
+        # refuses to save ("Inference tensors cannot be saved for backward"): normal copies of them.
+        args, kwargs = normal_tensors((args, kwargs))
         return fn(*args, **kwargs)
     with torch.inference_mode():
         out = fn(*args, **kwargs)
