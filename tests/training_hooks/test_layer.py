@@ -327,6 +327,9 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params.numpy(), iterations=1)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray"):
         NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))
+    # Frames that require grad: the transform's faces are data (they were detached without a word).
+    with pytest.raises(ValueError, match="NormaliseFaces makes data items.*NormalisedFaceLayer"):
+        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.float().requires_grad_(), torch.zeros(68, 2))
     # numpy landmarks: a one-line TypeError naming them (was AttributeError: 'numpy.ndarray' ... 'detach'), and
     # 0-255 frames after initialisation are refused by the step (they were tracked).
     _, landmarks = _clip(32)
