@@ -194,6 +194,19 @@ def test_unrolled_at_the_exact_minimum_is_detached(model, small):
         assert (gb - ga).norm() > 0.1 * ga.norm()
 
 
+@pytest.mark.parametrize("mode", [LayerMode.DETACHED, LayerMode.UNROLLED])
+def test_torch_func_grad_of_the_layer_equals_autograd(model, small, mode):
+    """``torch.func.grad`` through the layer (per-sample gradients of a network's loss): the detached tracking step
+    ran the transform's wrapped frames (``.detach()`` keeps them wrapped, asking for no gradient) in inference mode,
+    "Cannot set version_counter for inference tensor" (and would then have handed them to the native kernels)."""
+    frames, state, _ = small
+    layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=G, tracker=SMALL), model)
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(6))
+    _, want = _grad(layer, frames[1:2], state, weights)
+    got = torch.func.grad(lambda f: (layer(f, state).image * weights).sum())(frames[1:2].clone())
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
 def test_unrolled_iterations_run_on_frames_with_missing_pixels(model, small):
     """Missing (NaN) pixels over part of the face: the unrolled iterations leave the points that sample them out, as
     the tracker does, and move on from their start with finite gradients that go through the tracking. Before, the
