@@ -299,6 +299,25 @@ def test_a_state_made_in_a_callers_inference_mode_serves_frames_that_require_gra
     step(model, CFG, new_state.detach(), frames[:, 3].clone().requires_grad_(True))  # and on from there
 
 
+def test_a_step_after_initialise_from_first_frames_that_require_grad_carries_their_gradient(model, turn):
+    """The templates ``initialise`` makes from first frames that require grad carry their graph; the next step of a
+    frame that asks for none went into inference mode (only the frames and the state's parameters were looked at)
+    and its estimates held no gradient: "element 0 of tensors does not require grad". Now it gives the gradient
+    w.r.t. the first frame, the torch code's."""
+    from torchface.backend import Backend
+
+    frames, lm = turn
+    grads = []
+    for cfg in (CFG, dataclasses.replace(CFG, backend=Backend.TORCH)):
+        first = frames[:, 0].clone().requires_grad_(True)
+        state, _ = initialise(model, cfg, first, lm, Intrinsics.default(W, H))
+        assert state.templates[0].intensity.requires_grad
+        _, result = track_step(model, cfg, state, frames[:, 1])
+        grads.append(torch.autograd.grad(result.translation.sum(), first)[0])
+    assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=1e-4)
+
+
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
     """managed_step, like track_step, runs its work in inference mode when the state and frames ask for no
     gradient (``without_autograd``), and the caller's mode is as it was afterwards."""

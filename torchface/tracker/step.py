@@ -1000,8 +1000,12 @@ def step_grad_inputs(
     model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, *args: object, **kwargs: object
 ) -> tuple[object, ...]:
     """The tensors of a step's arguments through which a caller could want gradients (:func:`track_step`,
-    :func:`~torchface.tracker.managed.managed_step`; see :mod:`torchface.tracker.inference`)."""
-    return frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)
+    :func:`~torchface.tracker.managed.managed_step`; see :mod:`torchface.tracker.inference`): the frames, the
+    state's parameters and shape, and its templates' values (made from first frames that require grad)."""
+    templates = getattr(state, "templates", None) or ()
+    return (frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)) + tuple(
+        getattr(tpl, name, None) for tpl in templates for name in ("points", "basis", "normals", "intensity")
+    )
 
 
 def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
@@ -1078,8 +1082,8 @@ def track_step(
         The new state and the frame's :class:`TrackResult`. A FAILED sample keeps its previous parameters
         and never produces NaN.
 
-    Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
-    require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
+    Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters or
+    templates (:func:`initialise` from first frames that require grad) require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
     the frame's graph on to the next step (:meth:`TrackerState.detach` between frames whose losses stand alone).
     """
     check_step_inputs(model, config, state, frames)
