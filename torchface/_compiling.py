@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
+import torch.autograd.forward_ad as forward_ad
 import torch.compiler
 from torch import Tensor
 
@@ -19,6 +20,9 @@ __all__ = ["check_reverse_mode", "is_compiling", "is_transformed"]
 
 #: ``() -> bool``: whether torch.compile (or torch.export) is tracing the caller.
 is_compiling: Callable[[], bool] = getattr(torch.compiler, "is_compiling", None) or torch._utils.is_compiling
+
+_peek_interpreter_stack = torch._C._functorch.peek_interpreter_stack  # None when no torch.func transform runs
+_is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
 
 
 def is_transformed(*tensors: object) -> bool:
@@ -28,18 +32,16 @@ def is_transformed(*tensors: object) -> bool:
     The native kernels read the tensors' memory, which wrapped tensors do not have ("Cannot access data pointer of
     Tensor that doesn't have storage", a ``.detach()`` of one too), and would drop a dual tensor's tangent without a
     sign; inference mode drops tangents too. Two cheap looks (about half a microsecond) when neither is active."""
-    arrays = [x for x in tensors if isinstance(x, Tensor)]
-    if torch._C._functorch.peek_interpreter_stack() is not None:
-        if any(torch._C._functorch.is_functorch_wrapped_tensor(x) for x in arrays):
-            return True
-    if torch.autograd.forward_ad._current_level >= 0:
-        return any(torch.autograd.forward_ad.unpack_dual(x).tangent is not None for x in arrays)
+    if _peek_interpreter_stack() is not None and any(isinstance(x, Tensor) and _is_wrapped(x) for x in tensors):
+        return True
+    if forward_ad._current_level >= 0:
+        return any(isinstance(x, Tensor) and forward_ad.unpack_dual(x).tangent is not None for x in tensors)
     return False
 
 
 def _vmapped(x: Tensor) -> bool:
     """Whether ``x`` is batched by ``torch.func.vmap`` at some level of its ``torch.func`` wrappers."""
-    while torch._C._functorch.is_functorch_wrapped_tensor(x):
+    while _is_wrapped(x):
         if torch._C._functorch.is_batchedtensor(x):
             return True
         x = torch._C._functorch.get_unwrapped(x)
@@ -57,14 +59,13 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
     Raises:
         RuntimeError: under ``vmap`` or forward-mode AD.
     """
-    arrays = [x for x in tensors if isinstance(x, Tensor)]
-    if torch._C._functorch.peek_interpreter_stack() is not None and any(_vmapped(x) for x in arrays):
+    if _peek_interpreter_stack() is not None and any(isinstance(x, Tensor) and _vmapped(x) for x in tensors):
         raise RuntimeError(
             f"{what} cannot run under torch.func.vmap (its decisions read the values of each stream): track the "
             "streams as one batch, (B, ...) tensors, instead"
         )
-    if torch.autograd.forward_ad._current_level >= 0 and any(
-        torch.autograd.forward_ad.unpack_dual(x).tangent is not None for x in arrays
+    if forward_ad._current_level >= 0 and any(
+        isinstance(x, Tensor) and forward_ad.unpack_dual(x).tangent is not None for x in tensors
     ):
         raise RuntimeError(
             f"{what} has no forward-mode derivative (torch.func.jvp, jacfwd, forward_ad: torch's grid_sample has "
