@@ -341,8 +341,9 @@ def test_exceptions(model, small):
     with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray"):
         NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))
     # Frames that require grad: the transform's faces are data (they were detached without a word).
+    graded = frames.clone().requires_grad_(True)
     with pytest.raises(ValueError, match="NormaliseFaces makes data items.*NormalisedFaceLayer"):
-        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.float().requires_grad_(), torch.zeros(68, 2))
+        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(graded, torch.zeros(68, 2))
     # numpy landmarks: a one-line TypeError naming them (was AttributeError: 'numpy.ndarray' ... 'detach'), and
     # 0-255 frames after initialisation are refused by the step (they were tracked).
     _, landmarks = _clip(32)

@@ -1083,8 +1083,9 @@ def track_step(
         and never produces NaN.
 
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters or
-    templates (:func:`initialise` from first frames that require grad) require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
-    the frame's graph on to the next step (:meth:`TrackerState.detach` between frames whose losses stand alone).
+    templates (:func:`initialise` from first frames that require grad) require grad with grad mode on; the tensors
+    handed back are normal tensors. The state's ``params`` then carry the frame's graph on to the next step
+    (:meth:`TrackerState.detach` between frames whose losses stand alone).
     """
     check_step_inputs(model, config, state, frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
@@ -1100,11 +1101,12 @@ def track_step(
     # Unrolled where a gradient is wanted, as the fast solver is (the same iterations; without it the estimates
     # were constants: no gradient reached the frames or the previous estimate).
     differentiable = torch.is_grad_enabled() and any(
-        v.requires_grad for v in (frames, state.params, state.shape_coeffs)
-        + tuple(t for tpl in state.templates for t in (tpl.points, tpl.basis, tpl.normals, tpl.intensity))
+        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
     )
-    solvers = [SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level], differentiable=differentiable)
-               for level in reversed(range(config.num_levels))]  # fmt: skip
+    solvers = [
+        SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level], differentiable=differentiable)
+        for level in reversed(range(config.num_levels))
+    ]
     x, last = reference_levels(model, config, state, frames, state.params, solvers, near_template=near_template)
     # Finest-level diagnostics at the final estimate.
     r, _, valid = last.residual_fn(x)
