@@ -290,9 +290,9 @@ def test_a_state_made_in_a_callers_inference_mode_serves_frames_that_require_gra
         state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
         state, _ = step(model, CFG, state, frames[:, 1])
     assert state.params.is_inference() and state.templates[0].intensity.is_inference()
-    _, want = step(model, CFG, state, frames[:, 2])
     frame = frames[:, 2].clone().requires_grad_(True)
-    new_state, got = step(model, CFG, state, frame)
+    new_state, got = step(model, CFG, state, frame)  # (first: a step without grad would cache normal tensors)
+    _, want = step(model, CFG, state, frames[:, 2])
     torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-5)
     (grad,) = torch.autograd.grad(got.translation.sum(), frame)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
