@@ -318,6 +318,27 @@ def test_a_step_after_initialise_from_first_frames_that_require_grad_carries_the
     torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=1e-4)
 
 
+def test_a_graph_carried_over_two_steps_of_more_than_eight_streams_back_propagates(model, turn):
+    """A state whose parameters carry a graph (the recurrent use the README describes), more than
+    ``_PYRAMID_CHUNK`` (8) streams: the steps built their pyramids in the state's shared workspace, so the second
+    step wrote over the levels the first one's backward reads: "one of the variables needed for gradient
+    computation has been modified by an inplace operation". Each of 9 identical streams now gets the same gradient,
+    the one-stream gradient to float32's rounding through two solves (0.5% of its largest entry)."""
+    frames, lm = turn
+    cam = Intrinsics.default(W, H)
+    grads = []
+    for B in (1, 9):
+        state, _ = initialise(model, CFG, frames[:, 0].expand(B, -1, -1, -1), lm.expand(B, -1, -1), cam)
+        start = state.params.clone().requires_grad_(True)
+        state = dataclasses.replace(state, params=start)
+        state, first = track_step(model, CFG, state, frames[:, 1].expand(B, -1, -1, -1))
+        state, second = track_step(model, CFG, state, frames[:, 2].expand(B, -1, -1, -1))
+        grads.append(torch.autograd.grad(first.translation.sum() + second.translation.sum(), start)[0])
+    assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[1], grads[1][:1].expand(9, -1), rtol=0, atol=1e-5)
+    torch.testing.assert_close(grads[1][:1], grads[0], rtol=0, atol=0.01 * float(grads[0].abs().max()))
+
+
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):
     """managed_step, like track_step, runs its work in inference mode when the state and frames ask for no
     gradient (``without_autograd``), and the caller's mode is as it was afterwards."""

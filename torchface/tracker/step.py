@@ -1461,7 +1461,13 @@ def _track_step_fast(
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`track_step` with the fast solver (:mod:`torchface.tracker.fast`), in the state's
     :class:`StepWorkspace` when it has one (a batch of more than :data:`_PYRAMID_CHUNK` streams gets one) and no
-    other step is using it."""
+    other step is using it, and not where a gradient is wanted: the graph saves the step's pyramid levels (the
+    sampler's backward reads them), which the next step would write over (a backward through two steps' graphs, as
+    a state that carries its graph on makes, failed: "modified by an inplace operation")."""
+    if torch.is_grad_enabled() and any(
+        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
+    ):
+        return _fast_step(model, config, state, frames, conservative, near_template, None)
     workspace = state.workspace
     if workspace is None and state.params.shape[0] > _PYRAMID_CHUNK:
         workspace = StepWorkspace()
