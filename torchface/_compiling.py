@@ -5,6 +5,10 @@
 later torches deprecate the second with a warning at each call, so it is only the fallback. (The tracker's kernel
 dispatch, :func:`torchface.backend.use_native`, asks at each call: ``torch.compiler.is_compiling`` alone raised
 ``AttributeError`` there on torch 2.1 and 2.2, at the first frame.)
+
+Likewise whether ``torch.func``'s transforms or forward-mode AD run on given tensors (:func:`is_transformed`, the
+native kernels and inference mode are left out for them) and the refusal of those a tracking step cannot support
+(:func:`check_reverse_mode`).
 """
 
 from __future__ import annotations
