@@ -9,7 +9,8 @@ and template management's per-frame decisions. Each is tested against its torch 
 (``tests/tracker/test_native.py`` and the tests of each module).
 
 :attr:`Backend.AUTO` (the default of :class:`~torchface.tracker.TrackerConfig`) takes the native kernels where
-they can run: CPU tensors of float32 or float64 that ask for no gradient, on a machine with a C compiler;
+they can run: CPU tensors of float32 or float64 that ask for no gradient (nor tangent: ``torch.func``, forward
+AD), on a machine with a C compiler;
 elsewhere, and whenever the environment sets ``TORCHFACE_NATIVE=0``, the torch code runs.
 """
 
@@ -21,7 +22,7 @@ import torch
 from torch import Tensor
 
 from torchface import _native
-from torchface._compiling import is_compiling
+from torchface._compiling import is_compiling, is_transformed
 
 __all__ = ["Backend", "use_native"]
 
@@ -41,7 +42,8 @@ class Backend(enum.Enum):
 def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], what: str, max_params: int = 0,
                num_params: int = 0) -> bool:  # fmt: skip
     """Whether ``what`` (a kernel's name, for messages) runs natively: ``backend`` allows it and the inputs suit it
-    (CPU, one dtype of float32 or float64, no gradient asked for, not being traced by ``torch.compile``; with
+    (CPU, one dtype of float32 or float64, no gradient asked for, no ``torch.func`` transform's or forward-AD dual
+    tensor, not being traced by ``torch.compile``; with
     ``max_params``, at most that many parameters). With :attr:`Backend.NATIVE`, inputs that do not suit it raise ``RuntimeError``."""
     if backend is Backend.TORCH:
         return False
@@ -58,6 +60,8 @@ def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], wha
         why = "does not propagate gradients (use Backend.TORCH)"
     elif is_compiling():  # traced ctypes calls were handed other tensors' memory: the process died
         why = "cannot be traced by torch.compile (the torch code runs under it)"
+    elif is_transformed(*arrays):  # wrapped tensors have no memory to read; a dual tensor's tangent would be dropped
+        why = "does not run under torch.func transforms or forward AD (use Backend.TORCH)"
     elif max_params and num_params > max_params:
         why = f"supports at most {max_params} parameters, got {num_params}"
     elif _native.library() is None:

@@ -468,7 +468,9 @@ class NormaliseFaces:
     A torchvision-style callable for pipelines that already hold frames: it tracks the frames with
     :func:`track_sequence` and returns the clip item of :meth:`TrackedSequence.item` (``face (T, C, S, S)``
     float32, ``mask (T, 1, S, S)``, the parameters, ``confidence``, ``success``, ``status``, ``frame``), exactly
-    what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip. Frames that continue
+    what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip: data, without
+    gradients (frames that require grad are refused; :class:`~training_hooks.layer.NormalisedFaceLayer` makes faces
+    differentiable w.r.t. the frames). Frames that continue
     a :class:`~torchface.tracker.TrackerState` are numbered on from it (``frame`` starts at its ``frame_index``).
     The face model and the canonical layout are built on first use.
 
@@ -514,5 +516,10 @@ class NormaliseFaces:
             raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}")
         if frames.dim() != 4 or frames.shape[1] != 3:
             raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}")
+        if torch.is_grad_enabled() and frames.requires_grad:  # (its faces were detached without a word)
+            raise ValueError(
+                "frames require grad, but NormaliseFaces makes data items (stored faces, no gradient): for faces "
+                "differentiable w.r.t. the frames use training_hooks.NormalisedFaceLayer, else pass frames.detach()"
+            )
         sequence, _ = self.track(frames, start)
         return sequence.item(slice(0, sequence.num_frames))

@@ -804,6 +804,31 @@ def test_torch_func_grad_and_jacrev_equal_autograd():
     torch.testing.assert_close(jac, torch.autograd.functional.jacobian(lambda y: face(frames, y), aa))
 
 
+def test_vmap_over_frames_and_light_equals_the_batch_and_forward_mode_is_refused():
+    """What the module docstring says of the other ``torch.func`` transforms: ``vmap`` over the frames or the light
+    gives the batched call's faces; forward mode (``jvp``) raises torch's error for ``grid_sample``."""
+    from torch.func import jvp, vmap
+
+    D = torch.float64
+    model = load_candide3(dtype=D)
+    layout = build_normalised_layout(model, 12)
+    cam = Intrinsics.default(64, 48)
+    frames = torch.rand(3, 3, 48, 64, dtype=D, generator=torch.Generator().manual_seed(1))
+    shape, alpha = torch.zeros(1, model.num_shape, dtype=D), torch.zeros(1, model.num_animation, dtype=D)
+    aa, t = torch.tensor([[0.05, 0.1, 0.0]], dtype=D), torch.tensor([[0.0, 0.0, 400.0]], dtype=D)
+    light = torch.tensor([[0.1, 0.05, 0.1, 0.2, -0.1], [0.0, 0.0, 0.0, 0.0, 0.0], [-0.2, 0.1, 0.0, 0.1, 0.1]], dtype=D)
+
+    def face(fr, li):
+        return normalised_face(fr, model, layout, shape.expand(fr.shape[0], -1), alpha.expand(fr.shape[0], -1),
+                               aa.expand(fr.shape[0], -1), t.expand(fr.shape[0], -1), li, cam).image  # fmt: skip
+
+    want = face(frames, light)
+    assert want.abs().sum() > 0
+    torch.testing.assert_close(vmap(lambda f, li: face(f[None], li[None])[0])(frames, light), want, rtol=0, atol=1e-12)
+    with pytest.raises(NotImplementedError, match="grid_sampler"):
+        jvp(lambda f: face(f, light), (frames,), (torch.ones_like(frames),))
+
+
 def test_a_compiled_face_does_not_recompile_at_each_pose():
     """Under ``torch.compile`` the z-buffer window fitted to the face (its size and offset read from the data) made
     dynamo recompile at nearly every new pose, up to its recompile limit; the compiled face uses the whole frame

@@ -77,6 +77,14 @@ def test_run_without_autograd_modes():
     with torch.inference_mode():  # a caller's inference mode: run as it is, no copy
         inside, y = run_without_autograd(probe, (x,), x)
     assert inside and y.is_inference()
+    # Forward AD's and torch.func's tensors ask for no gradient, but inference mode would drop their tangents.
+    with torch.autograd.forward_ad.dual_level():
+        dual = torch.autograd.forward_ad.make_dual(x, torch.ones(3))
+        inside, y = run_without_autograd(probe, (dual,), dual)
+        assert not inside and torch.equal(torch.autograd.forward_ad.unpack_dual(y).tangent, torch.full((3,), 2.0))
+    seen = []
+    torch.func.jvp(lambda v: seen.append(run_without_autograd(probe, (v,), v)[0]) or v.sum(), (x,), (x,))
+    assert seen == [False]
 
 
 # ----------------------------------------------------------------------------- the tracking steps
@@ -170,6 +178,165 @@ def test_track_step_keeps_autograd_when_the_frames_require_grad(model, turn, mon
     # autograd refuses for cholesky_solve's output).
     (grad,) = torch.autograd.grad(result.translation.sum(), frame)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("managed", [False, True])
+def test_torch_func_grad_and_jacrev_of_a_step_equal_autograd(model, turn, managed):
+    """``torch.func.grad`` / ``jacrev`` through a step with the default backend give autograd's gradients. Before,
+    the step handed the transform's wrapped frames (detached, so asking for no gradient) to the native rasterizer:
+    "Cannot access data pointer of Tensor that doesn't have storage"."""
+    frames, lm = turn
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    frame = frames[:, 1].clone()
+
+    def translation(x):
+        return step(model, CFG, state, x)[1].translation[0]
+
+    pixels = frame.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(translation(pixels).sum(), pixels)
+    got = torch.func.grad(lambda x: translation(x).sum())(frame)
+    assert want.abs().sum() > 0
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
+    jac = torch.func.jacrev(translation)(frame)  # (3, 1, 3, H, W)
+    torch.testing.assert_close(jac.sum(0), want, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("managed", [False, True])
+def test_forward_mode_and_vmap_of_a_step_are_refused_in_one_line(model, turn, managed):
+    """A step has no forward-mode derivative (torch's ``grid_sample`` has none) and cannot be vmapped (its decisions
+    read each stream's values): both are refused with what works instead. Before, forward AD's dual frames ran in
+    inference mode and the results came back without a tangent (a zero derivative without a sign), and
+    ``torch.func.jvp`` failed on "Cannot set version_counter for inference tensor"."""
+    frames, lm = turn
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+    frame = frames[:, 1].clone()
+
+    def moved(x):
+        return step(model, CFG, state, x)[1].translation.sum()
+
+    with torch.autograd.forward_ad.dual_level():
+        with pytest.raises(RuntimeError, match="no forward-mode derivative.*use reverse mode"):
+            moved(torch.autograd.forward_ad.make_dual(frame, torch.ones_like(frame)))
+    with pytest.raises(RuntimeError, match="no forward-mode derivative"):
+        torch.func.jvp(moved, (frame,), (torch.ones_like(frame),))
+    with pytest.raises(RuntimeError, match="cannot run under torch.func.vmap.*one batch"):
+        torch.func.vmap(moved)(frame[None])
+    with pytest.raises(RuntimeError, match="cannot run under torch.func.vmap"):
+        torch.func.vmap(torch.func.grad(moved))(frame[None])
+    step(model, CFG, state, frame)  # and a plain step after them runs
+
+
+@pytest.mark.parametrize("managed, solver", [(False, "fast"), (True, "fast"), (False, "reference")])
+def test_missing_frame_pixels_give_finite_gradients_that_equal_finite_differences(turn, managed, solver):
+    """Frames that require grad with missing (NaN) pixels on the face: the points whose samples touch them are left
+    out as without gradients (the same estimate), and the gradient is finite, 0 at the missing pixels and equal to
+    central differences (float64). Before, the fast solver's sampler multiplied those points' zero gradient by the
+    NaN pixels in its backward: every pixel's gradient was NaN (690 of 696 on a 32x32 frame with half its columns
+    missing). The reference solver failed the frame at the first point that sampled a NaN pixel (the fast solver
+    leaves such points out), and its estimates carried no gradient at all."""
+    from torchface.backend import Backend
+    from torchface.tracker.step import TrackSolver
+
+    frames, lm = turn
+    model = load_candide3(dtype=torch.float64)
+    cam = Intrinsics.default(W, H)
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    CFG = dataclasses.replace(globals()["CFG"], solver=TrackSolver(solver))
+    state, _ = init(model, CFG, frames[:, 0].double(), lm.double(), cam)
+    frame = frames[:, 1].double().clone()
+    frame[..., 165:] = float("nan")  # the right part of the face (columns 120-200) is missing
+    _, want = step(model, dataclasses.replace(CFG, backend=Backend.TORCH), state, frame)
+    pixels = frame.clone().requires_grad_(True)
+    _, got = step(model, CFG, state, pixels)
+    assert int(got.status[0]) == int(want.status[0]) in (0, 1)  # converged, or at its iteration limit: not FAILED
+    torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-9)
+    (grad,) = torch.autograd.grad(got.translation[0, 0], pixels)
+    assert torch.isfinite(grad).all() and bool((grad[..., 165:] == 0).all())
+    assert int((grad != 0).sum()) > 1000
+    for i in grad.flatten().abs().topk(3).indices:  # the pixels that move the estimate most
+        e = torch.zeros_like(frame).flatten().index_fill_(0, i, 1e-5).view_as(frame)
+        plus, minus = (step(model, CFG, state, frame + s * e)[1].translation[0, 0] for s in (1, -1))
+        torch.testing.assert_close(grad.flatten()[i], (plus - minus) / 2e-5, rtol=1e-5, atol=1e-8)
+
+
+def test_the_reference_solver_carries_gradients_like_the_fast_one(model, turn):
+    """``TrackSolver.REFERENCE`` with frames that require grad: its estimates are in the graph (the solve unrolled),
+    equal to those without gradients. Before, its solve ran under ``no_grad`` whatever the caller wanted: the
+    estimates were constants and ``autograd.grad`` of them raised "does not require grad"."""
+    from torchface.tracker.step import TrackSolver
+
+    frames, lm = turn
+    cfg = dataclasses.replace(CFG, solver=TrackSolver.REFERENCE)
+    state, _ = initialise(model, cfg, frames[:, 0], lm, Intrinsics.default(W, H))
+    _, want = track_step(model, cfg, state, frames[:, 1])
+    frame = frames[:, 1].clone().requires_grad_(True)
+    new_state, got = track_step(model, cfg, state, frame)
+    assert torch.equal(got.translation, want.translation) and torch.equal(got.status, want.status)
+    assert got.translation.requires_grad and new_state.params.requires_grad
+    (grad,) = torch.autograd.grad(got.translation.sum(), frame)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("managed", [False, True])
+def test_a_state_made_in_a_callers_inference_mode_serves_frames_that_require_grad(model, turn, managed):
+    """A state initialised and stepped inside the caller's ``torch.inference_mode`` (a validation pass) holds
+    inference tensors; a later step of frames that require grad from it gives the gradient, and the estimate of the
+    same frames without grad. Before: "Inference tensors cannot be saved for backward" from the fast solver."""
+    frames, lm = turn
+    init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
+    with torch.inference_mode():
+        state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
+        state, _ = step(model, CFG, state, frames[:, 1])
+    assert state.params.is_inference() and state.templates[0].intensity.is_inference()
+    frame = frames[:, 2].clone().requires_grad_(True)
+    new_state, got = step(model, CFG, state, frame)  # (first: a step without grad would cache normal tensors)
+    _, want = step(model, CFG, state, frames[:, 2])
+    torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-5)
+    (grad,) = torch.autograd.grad(got.translation.sum(), frame)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    step(model, CFG, new_state.detach(), frames[:, 3].clone().requires_grad_(True))  # and on from there
+
+
+def test_a_step_after_initialise_from_first_frames_that_require_grad_carries_their_gradient(model, turn):
+    """The templates ``initialise`` makes from first frames that require grad carry their graph; the next step of a
+    frame that asks for none went into inference mode (only the frames and the state's parameters were looked at)
+    and its estimates held no gradient: "element 0 of tensors does not require grad". Now it gives the gradient
+    w.r.t. the first frame, the torch code's."""
+    from torchface.backend import Backend
+
+    frames, lm = turn
+    grads = []
+    for cfg in (CFG, dataclasses.replace(CFG, backend=Backend.TORCH)):
+        first = frames[:, 0].clone().requires_grad_(True)
+        state, _ = initialise(model, cfg, first, lm, Intrinsics.default(W, H))
+        assert state.templates[0].intensity.requires_grad
+        _, result = track_step(model, cfg, state, frames[:, 1])
+        grads.append(torch.autograd.grad(result.translation.sum(), first)[0])
+    assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=1e-4)
+
+
+def test_a_graph_carried_over_two_steps_of_more_than_eight_streams_back_propagates(model, turn):
+    """A state whose parameters carry a graph (the recurrent use the README describes), more than
+    ``_PYRAMID_CHUNK`` (8) streams: the steps built their pyramids in the state's shared workspace, so the second
+    step wrote over the levels the first one's backward reads: "one of the variables needed for gradient
+    computation has been modified by an inplace operation". Each of 9 identical streams now gets the same gradient,
+    the one-stream gradient to float32's rounding through two solves (0.5% of its largest entry)."""
+    frames, lm = turn
+    cam = Intrinsics.default(W, H)
+    grads = []
+    for B in (1, 9):
+        state, _ = initialise(model, CFG, frames[:, 0].expand(B, -1, -1, -1), lm.expand(B, -1, -1), cam)
+        start = state.params.clone().requires_grad_(True)
+        state = dataclasses.replace(state, params=start)
+        state, first = track_step(model, CFG, state, frames[:, 1].expand(B, -1, -1, -1))
+        state, second = track_step(model, CFG, state, frames[:, 2].expand(B, -1, -1, -1))
+        grads.append(torch.autograd.grad(first.translation.sum() + second.translation.sum(), start)[0])
+    assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[1], grads[1][:1].expand(9, -1), rtol=0, atol=1e-5)
+    torch.testing.assert_close(grads[1][:1], grads[0], rtol=0, atol=0.01 * float(grads[0].abs().max()))
 
 
 def test_managed_step_runs_in_inference_mode(model, turn, monkeypatch):

@@ -195,6 +195,40 @@ def test_unrolled_at_the_exact_minimum_is_detached(model, small):
         assert (gb - ga).norm() > 0.1 * ga.norm()
 
 
+@pytest.mark.parametrize("mode", [LayerMode.DETACHED, LayerMode.UNROLLED])
+def test_torch_func_grad_of_the_layer_equals_autograd(model, small, mode):
+    """``torch.func.grad`` through the layer (per-sample gradients of a network's loss): the detached tracking step
+    ran the transform's wrapped frames (``.detach()`` keeps them wrapped, asking for no gradient) in inference mode,
+    "Cannot set version_counter for inference tensor" (and would then have handed them to the native kernels)."""
+    frames, state, _ = small
+    layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=G, tracker=SMALL), model)
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(6))
+    _, want = _grad(layer, frames[1:2], state, weights)
+    got = torch.func.grad(lambda f: (layer(f, state).image * weights).sum())(frames[1:2].clone())
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
+def test_unrolled_iterations_run_on_frames_with_missing_pixels(model, small):
+    """Missing (NaN) pixels over part of the face: the unrolled iterations leave the points that sample them out, as
+    the tracker does, and move on from their start with finite gradients that go through the tracking. Before, the
+    reference objective's solve failed at the first such point and kept its start without a sign: the detached
+    mode's gradient, and with ``UnrollStart.PREVIOUS`` the face resampled at the previous frame's pose."""
+    frames, state, _ = small
+    frame = frames[1:2].clone()
+    frame[..., 20:] = float("nan")  # the right third of the 32x32 frame
+    weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(5))
+    det = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
+    a, ga = _grad(det, frame, state, weights)
+    assert int(a.track.status[0]) in (0, 1) and torch.isfinite(ga).all()
+    for start in (UnrollStart.TRACKED, UnrollStart.PREVIOUS):
+        cfg = LayerConfig(mode=LayerMode.UNROLLED, size=G, unrolled_iterations=2, start=start, tracker=SMALL)
+        b, gb = _grad(NormalisedFaceLayer(cfg, model), frame, state, weights)
+        first = a.params if start is UnrollStart.TRACKED else state.params
+        assert float((b.params.detach() - first).abs().max()) > 0.01, start
+        assert torch.isfinite(gb).all() and bool((gb[..., 20:] == 0).all()), start
+        assert (gb - ga).norm() > 0.1 * ga.norm(), start
+
+
 # ---------------------------------------------------------------------------------------------------------
 # features, cardinality, exceptions
 # ---------------------------------------------------------------------------------------------------------
@@ -307,6 +341,10 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params.numpy(), iterations=1)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray"):
         NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))
+    # Frames that require grad: the transform's faces are data (they were detached without a word).
+    graded = frames.clone().requires_grad_(True)
+    with pytest.raises(ValueError, match="NormaliseFaces makes data items.*NormalisedFaceLayer"):
+        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(graded, torch.zeros(68, 2))
     # numpy landmarks: a one-line TypeError naming them (was AttributeError: 'numpy.ndarray' ... 'detach'), and
     # 0-255 frames after initialisation are refused by the step (they were tracked).
     _, landmarks = _clip(32)

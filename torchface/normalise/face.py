@@ -38,6 +38,11 @@ geometry parameters get gradient 0 (never NaN).
 
 The output is differentiable with respect to the frame pixels (it is linear in them) and, almost everywhere,
 with respect to the shape, expression, pose and illumination parameters; the mask is not differentiable.
+Reverse mode only (autograd, double backward, ``torch.func.grad``, ``vjp``, ``jacrev``): torch's bilinear sampler
+(``grid_sample``) has no forward-mode derivative, so ``torch.func.jvp`` and ``jacfwd`` raise torch's
+``NotImplementedError``. ``torch.func.vmap`` maps over the frames and the illumination; over the geometry
+(shape, expression, pose) it stops at torch's "data-dependent control flow" error (which pixels are visible is
+decided from the values): batch the samples in ``B`` instead.
 
 Shapes: ``B`` batch, ``C`` channels, ``H x W`` frames, ``V`` vertices, ``F`` triangles, ``S`` shape units,
 ``A`` animation units, ``L`` illumination terms, ``G x G`` the normalised image (``G = layout.size``), ``M``

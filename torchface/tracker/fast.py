@@ -184,6 +184,7 @@ def linearise(
     constants: _LevelConstants | None = None,
     neg_light_basis_t: Tensor | None = None,
     jacobian: bool = True,
+    holes: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
     """Residuals ``r (B, N)``, local Jacobian ``J (B, N, P)``, validity ``(B, N)`` and sampled intensities.
 
@@ -198,6 +199,10 @@ def linearise(
     at B = 128 and a 480x520 crop that took about 1 ms per stream-frame. ``constants`` and ``neg_light_basis_t``
     (``-light_basis`` as a contiguous ``(B, L, N)``) may be passed to reuse them across iterations. With
     ``jacobian`` False only the points themselves are sampled and ``J`` is None (a step's cost check).
+    ``holes``: the level's image with its non-finite (missing) pixels, when ``image`` is that image with 0 there
+    (:func:`solve_level` under autograd): the points whose samples touch a hole are left out as they are without
+    it, and the sampled ``intensity`` is NaN there as it is without it, while everything autograd goes through is
+    finite.
     """
     B, N = tpl.valid.shape
     if image.shape[1] != 1:
@@ -222,6 +227,13 @@ def linearise(
     inside = (grid[:, :, 0].abs() <= scalar(1.0, grid)).all(1)
     facing = (torch.bmm(R, k.normals_t) * Xc).sum(1) < scalar(0.0, Xc)
     valid = mask & front & inside & facing
+    if holes is not None:  # the samples the image with its holes gives, for the masks and the reported intensity
+        with torch.no_grad():
+            seen = F.grid_sample(
+                holes, grid.detach().permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
+            ).view(B, -1, N)
+        valid = valid & isfinite(seen.sum(1))  # (without holes: r is not finite there, or the stencil, below)
+        intensity = torch.where(isfinite(seen[:, 0]), intensity, seen[:, 0])
     if not jacobian:
         return r, None, valid, intensity
     # A point whose gradient stencil touches a non-finite pixel (r itself may be finite) is left out: its Jacobian
@@ -399,6 +411,15 @@ def solve_level(
             free_key, A, float(alpha_prior), tuple(step_tolerance), dtype, device
         )
     constants = _level_constants(cam, R, tpl) if constants is None else constants
+    holes = None
+    if torch.is_grad_enabled() and any(
+        v.requires_grad for v in (image, R, t, alpha, light, light_basis, tpl.points, tpl.basis, tpl.intensity)
+    ) and not bool(isfinite(image).all()):
+        # Missing (NaN) pixels: the points whose samples touch one are left out, but the sampler's backward
+        # multiplies their zero incoming gradient by the pixels (NaN), and so do the Jacobian's products: every
+        # gradient of the step was NaN. Sample a copy with 0 there, the holes kept for the masks (linearise).
+        holes = image.detach()
+        image = torch.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
     neg_light_basis_t = light_basis.transpose(1, 2).neg()  # (B, L, N), contiguous
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
@@ -406,12 +427,13 @@ def solve_level(
     lam = torch.full((B, 1, 1), damping, dtype=dtype, device=device)
 
     def lin(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        out = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t)
+        out = linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t,
+                        holes=holes)  # fmt: skip
         return cast("tuple[Tensor, Tensor, Tensor, Tensor]", out)  # with its Jacobian: J is a tensor
 
     def lin_last(R: Tensor, t: Tensor, alpha: Tensor, light: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
         return linearise(tpl, image, cam, R, t, alpha, light, light_basis, mask, constants, neg_light_basis_t,
-                         keep_linearisation)  # fmt: skip
+                         keep_linearisation, holes)  # fmt: skip
 
     best = None  # (R, t, alpha, light, H, grad, cost, s) of the last accepted estimate
     for it in range(iterations):

@@ -22,6 +22,8 @@ from typing import Any, TypeVar
 import torch
 from torch import Tensor
 
+from torchface._compiling import is_transformed
+
 __all__ = ["normal_tensors", "run_without_autograd", "without_autograd"]
 
 T = TypeVar("T")
@@ -96,14 +98,22 @@ def run_without_autograd(fn: Callable[..., T], inputs: Iterable[object], *args: 
     Args:
         fn: the work; it must not need autograd when none of ``inputs`` requires grad.
         inputs: the tensors through which a caller could want gradients (other values are skipped): when grad
-            mode is on and one of them requires grad, ``fn`` runs as it is.
+            mode is on and one of them requires grad, or one of them is a ``torch.func`` transform's tensor
+            (``grad``, ``jvp``, ``vmap``, ...) or a forward-AD dual tensor, ``fn`` runs as it is.
 
     Already in inference mode (a caller's, or an outer call of this function), ``fn`` runs as it is and its result
-    is not copied.
+    is not copied. Where a gradient is wanted, ``fn`` is given normal copies of the inference tensors among
+    ``args`` and ``kwargs`` (:func:`normal_tensors`: a state made in a caller's inference mode).
     """
-    if torch.is_inference_mode_enabled() or (
-        torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs)
-    ):
+    inputs = tuple(inputs)
+    if torch.is_inference_mode_enabled():
+        return fn(*args, **kwargs)
+    if (torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs)) or is_transformed(
+        *inputs
+    ):  # (torch.func's wrapped tensors, forward AD's tangents: inference mode would drop them)
+        # A state made in a caller's inference mode (a validation pass) holds inference tensors, which autograd
+        # refuses to save ("Inference tensors cannot be saved for backward"): normal copies of them.
+        args, kwargs = normal_tensors((args, kwargs))
         return fn(*args, **kwargs)
     with torch.inference_mode():
         out = fn(*args, **kwargs)

@@ -852,8 +852,8 @@ def managed_step(
     Raises:
         ValueError: bad frames, or a state without management while management is enabled.
 
-    Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
-    require grad with grad mode on; the tensors handed back are normal tensors. With gradients asked for, the
+    Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters or
+    templates require grad with grad mode on; the tensors handed back are normal tensors. With gradients asked for, the
     solver's estimates (pose, expression, light) carry them as :func:`~torchface.tracker.step.track_step`'s do
     (through the unrolled solve), in the streams whose estimate is the solver's; the management's decisions and
     what it keeps (confidence, mosaic entries, confident parameters) are made from detached copies. The state's

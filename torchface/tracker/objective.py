@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._scalar import isfinite
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import in_front, project_points, project_points_jacobian
@@ -69,12 +70,21 @@ def frame_residuals(
 
     Returns:
         ``r (B, N)``, ``J (B, N, P)`` and ``valid (B, N)``: inside the image, in front of the camera,
-        facing the camera, and in ``point_mask``.
+        facing the camera, in ``point_mask``, and sampling no missing (non-finite) pixel of ``image``: such a point
+        is left out (``r`` and ``J`` are not finite there without autograd, and finite under it, so that the
+        gradients stay finite), as the fast solver leaves it out.
     """
     aa, t, alpha, light = layout.split(x)
     points_model, points_cam, R = warp_points(template, layout, x)
     uv = project_points(points_cam, intrinsics)
     values, inside = sample_at_pixels(image, uv)
+    seen = isfinite(values.detach()).all(-1)  # (B, N)
+    if torch.is_grad_enabled() and not bool(seen.all()) and any(
+        v.requires_grad for v in (x, image, light_basis, template.points, template.basis, template.intensity)
+    ):
+        # The sampler's backward multiplies the left-out points' zero gradient by the missing pixels, and so do
+        # the Jacobian's products: NaN gradients everywhere. Sample a copy with 0 there (the same values elsewhere).
+        values, _ = sample_at_pixels(torch.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), uv)
     intensity, grad = values[..., 0], values[..., 1:3]
     predicted = template.intensity + torch.matmul(light_basis, light.unsqueeze(-1)).squeeze(-1)
     r = intensity - predicted
@@ -89,5 +99,5 @@ def frame_residuals(
 
     normals_cam = torch.matmul(template.normals, R.transpose(1, 2))
     facing = (normals_cam * points_cam).sum(-1) < 0
-    valid = point_mask & inside & in_front(points_cam) & facing
+    valid = point_mask & inside & in_front(points_cam) & facing & seen
     return r, J, valid

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._compiling import check_reverse_mode
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend
@@ -1015,8 +1016,12 @@ def step_grad_inputs(
     model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, *args: object, **kwargs: object
 ) -> tuple[object, ...]:
     """The tensors of a step's arguments through which a caller could want gradients (:func:`track_step`,
-    :func:`~torchface.tracker.managed.managed_step`; see :mod:`torchface.tracker.inference`)."""
-    return frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)
+    :func:`~torchface.tracker.managed.managed_step`; see :mod:`torchface.tracker.inference`): the frames, the
+    state's parameters and shape, and its templates' values (made from first frames that require grad)."""
+    templates = getattr(state, "templates", None) or ()
+    return (frames, getattr(state, "params", None), getattr(state, "shape_coeffs", None)) + tuple(
+        getattr(tpl, name, None) for tpl in templates for name in ("points", "basis", "normals", "intensity")
+    )
 
 
 def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
@@ -1032,8 +1037,10 @@ def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "Tracker
     """The checks of a step (:func:`track_step`, :func:`~torchface.tracker.managed.managed_step`): ``frames``
     ``(B, 3, H, W)`` in [0, 1] (:func:`check_frames`, every :data:`STEP_VALUE_ROW_STRIDE`-th row's values), one
     per stream of ``state``, whose pyramid ``config`` has (:func:`check_state_levels`) and whose model ``model`` is
-    (:func:`check_state_model`)."""
+    (:func:`check_state_model`), and neither under ``torch.func.vmap`` nor forward-mode AD
+    (:func:`~torchface._compiling.check_reverse_mode`: reverse mode works, ``torch.func.grad`` included)."""
     check_api_types(model, config, state, with_state=True)
+    check_reverse_mode("a tracking step", frames, state.params, state.shape_coeffs)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
         raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
@@ -1091,9 +1098,10 @@ def track_step(
         The new state and the frame's :class:`TrackResult`. A FAILED sample keeps its previous parameters
         and never produces NaN.
 
-    Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters
-    require grad with grad mode on; the tensors handed back are normal tensors. The state's ``params`` then carry
-    the frame's graph on to the next step (:meth:`TrackerState.detach` between frames whose losses stand alone).
+    Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters or
+    templates (:func:`initialise` from first frames that require grad) require grad with grad mode on; the tensors
+    handed back are normal tensors. The state's ``params`` then carry the frame's graph on to the next step
+    (:meth:`TrackerState.detach` between frames whose losses stand alone).
     """
     check_step_inputs(model, config, state, frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
@@ -1106,8 +1114,15 @@ def track_step(
     if config.solver is TrackSolver.FAST:
         return _track_step_fast(model, config, state, frames, conservative, near_template)
     layout = _layout(model)
-    solvers = [SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level])
-               for level in reversed(range(config.num_levels))]  # fmt: skip
+    # Unrolled where a gradient is wanted, as the fast solver is (the same iterations; without it the estimates
+    # were constants: no gradient reached the frames or the previous estimate).
+    differentiable = torch.is_grad_enabled() and any(
+        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
+    )
+    solvers = [
+        SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level], differentiable=differentiable)
+        for level in reversed(range(config.num_levels))
+    ]
     x, last = reference_levels(model, config, state, frames, state.params, solvers, near_template=near_template)
     # Finest-level diagnostics at the final estimate.
     r, _, valid = last.residual_fn(x)
@@ -1462,7 +1477,13 @@ def _track_step_fast(
 ) -> tuple[TrackerState, TrackResult]:
     """:func:`track_step` with the fast solver (:mod:`torchface.tracker.fast`), in the state's
     :class:`StepWorkspace` when it has one (a batch of more than :data:`_PYRAMID_CHUNK` streams gets one) and no
-    other step is using it."""
+    other step is using it, and not where a gradient is wanted: the graph saves the step's pyramid levels (the
+    sampler's backward reads them), which the next step would write over (a backward through two steps' graphs, as
+    a state that carries its graph on makes, failed: "modified by an inplace operation")."""
+    if torch.is_grad_enabled() and any(
+        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
+    ):
+        return _fast_step(model, config, state, frames, conservative, near_template, None)
     workspace = state.workspace
     if workspace is None and state.params.shape[0] > _PYRAMID_CHUNK:
         workspace = StepWorkspace()
