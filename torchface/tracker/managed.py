@@ -111,6 +111,7 @@ from torchface.tracker.step import (
     check_initialise_inputs,
     check_step_inputs,
     clamp_projection,
+    fail_templates,
     gray_pyramid,
     gray_pyramid_windows,
     initialise,
@@ -341,8 +342,10 @@ def initialise_managed(
     blind = ~failed & (diss.confidence <= 0)
     if bool(blind.any()):
         failed = failed | blind
+        state = replace(state, templates=tuple(fail_templates(state.templates, blind)))  # (as initialise's failures)
         result = replace(result, status=torch.where(blind, torch.full_like(result.status, _FAILED), result.status),
-                         confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence))
+                         confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence),
+                         num_points=state.templates[0].num_points)  # fmt: skip
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
     B = state.params.shape[0]
