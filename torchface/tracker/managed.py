@@ -157,9 +157,9 @@ class ManagementState:
             step ended with (its result's), so that the next step does not convert them again; used only while
             ``TrackerState.params`` is that very tensor. None: not known.
         unstarted: ``(B,)`` bool, the streams whose initialisation failed (a black first frame, no face) and that
-            have not started since: their templates and dissimilarity reference hold no face, so a detector's
-            landmarks initialise them afresh (:func:`managed_step`) instead of recovering against them. None: every
-            stream started.
+            have not started since: their templates hold no points and their dissimilarity reference no face
+            (they hold their estimate, LOST, at confidence 0), so a detector's landmarks initialise them afresh
+            (:func:`managed_step`) instead of recovering against them. None: every stream started.
     """
 
     mosaic: Mosaic
