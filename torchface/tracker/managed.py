@@ -1273,7 +1273,16 @@ def _reanchor(
         fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))
         fit = fit.to(model.device, model.dtype)
     weights = None if w.weights is None else w.weights[index]
-    sub, _ = initialise_managed(model, config, w.frame0[index], w.landmarks[index], state.intrinsics, weights, fit=fit)
+    sub, sub_result = initialise_managed(model, config, w.frame0[index], w.landmarks[index], state.intrinsics, weights,
+                                         fit=fit)  # fmt: skip
+    started = sub_result.status != _FAILED
+    if not bool(started.all()):  # a refined start that fails (a face that came out too small, ...) keeps no template
+        # points (initialise): those streams go on from their plain start (they took the failed start's templates)
+        keep = started.tolist()
+        index, fit, sub = index[started], fit.select(started), sub.select(started)
+        now_R, now_t = [r for r, k in zip(now_R, keep) if k], [t for t, k in zip(now_t, keep) if k]
+        if not index.numel():
+            return state
     templates = _scatter_templates(state.templates, index, sub.templates)
     with torch.inference_mode(False):
         shape = state.shape_coeffs.clone()
