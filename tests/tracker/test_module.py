@@ -423,10 +423,10 @@ def _failed_start(cause: str, frames: torch.Tensor, lm: torch.Tensor, config: Tr
 def test_a_stream_whose_start_failed_is_never_reported_tracked(model, three_streams, cause, managed):
     """A stream whose initialisation FAILED (a fit that holds no pose, a face too small, too few template points)
     was tracked on from that start without template management: collinear landmarks FAILED at initialise, then
-    CONVERGED at confidence 0.99 on every later frame, 620 mm away and drifting; a face too small CONVERGED at
-    confidence 0; a stalled fit CONVERGED. With template management such streams were LOST but tracked on, drifting
-    from the failed start. Every later step is now FAILED (LOST with management) at confidence 0, holding the
-    start's finite estimate, until initialised again; the other streams track as they do without it."""
+    CONVERGED at confidence 0.96-0.99 on the later frames, 620 mm away and drifting; a face too small CONVERGED at
+    confidence 0; a stalled fit MAX_ITERATIONS (success). With template management such streams were LOST but
+    tracked on, drifting from the failed start. Every later step is now FAILED (LOST with management) at confidence
+    0, holding the start's finite estimate, until initialised again; the other streams track as they do without it."""
     from dataclasses import replace
 
     from torchface.template.management import TemplateConfig
