@@ -335,8 +335,10 @@ class NormalisedFaceLayer(nn.Module):
         Args:
             frames: ``(B, 3, H, W)`` float in ``[0, 1]``.
             landmarks_px: ``(B, K, 2)`` the model's landmarks (68 iBUG points for CANDIDE-3), pixels; NaN rows:
-                missing. A stream with fewer than 4 (no face found) is FAILED here and at every later frame, with
-                finite parameters, images and gradients; the others are as without it.
+                missing. A stream whose start fails (fewer than 4 landmarks: no face found; landmarks that hold no
+                pose, a face too small: :func:`~torchface.tracker.initialise`) is FAILED here and at every later
+                frame, at confidence 0 and its first parameters, with finite images and gradients; the others are
+                as without it.
             intrinsics: camera of the frames; default :meth:`Intrinsics.default` of their size.
 
         Returns:

@@ -727,3 +727,35 @@ def test_select_keyframes_checks_its_threshold_and_confidences():
     for conf in (torch.ones(1, dtype=torch.bool), torch.ones(3, dtype=torch.bool), torch.tensor([1.0, 0.5, 0.2, 0.0])):
         with pytest.raises(ValueError, match=r"confident must be a \(4,\) bool tensor"):
             select_keyframes(R, 10.0, conf)
+
+
+def test_a_refined_start_that_fails_leaves_the_stream_on_its_plain_start(model, monkeypatch):
+    """The online start re-anchors a stream at a start rebuilt from its refined first fit. Where that start fails
+    (here a refinement that put the face eight times as far, 11 px wide: too small), the stream took it anyway,
+    jumped there and was scored 0 from then on (and, as a failed start now keeps no template points, it would have
+    FAILED for good). It now goes on from its plain start, as the tracker without the online start does."""
+    import torchface.tracker.managed as managed_module
+
+    real, calls = managed_module._refine_first_fit, []
+
+    def far(*args, **kwargs):
+        calls.append(1)
+        fit, key_R, key_t = real(*args, **kwargs)
+        return replace(fit, translation=fit.translation * 8), key_R, key_t * 8
+
+    monkeypatch.setattr(managed_module, "_refine_first_fit", far)
+    yaw = [0.0, 4.0, 8.0, 12.0, 10.0, 8.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    runs, trackers = [], []
+    for la in (LookaheadConfig(max_points=300), None):
+        tracker = FaceTracker(CFG, model=model, refine_first=la)
+        results = [tracker.initialise(frames[:1], gt.landmarks_px.float()[:1], gt.intrinsics)]
+        results += [tracker(frames[i : i + 1]) for i in range(1, len(yaw))]
+        runs.append(results)
+        trackers.append(tracker)
+    assert calls == [1] and trackers[0].state.management.first is None  # the re-anchoring was tried (at 12 degrees)
+    for on, off in zip(*runs):
+        assert bool(on.success[0]) and float(on.confidence[0]) > 0.5
+        torch.testing.assert_close(on.translation, off.translation, rtol=0, atol=0)
+        torch.testing.assert_close(on.rotation, off.rotation, rtol=0, atol=0)

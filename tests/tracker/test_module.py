@@ -386,3 +386,71 @@ def test_a_stream_without_landmarks_starts_failed_and_the_others_track_as_withou
     result = none(frames[:, 1])
     assert result.status.tolist() == [lost] * 3 and float(result.confidence.abs().max()) == 0.0
     _assert_finite(result)
+
+
+def _failed_start(cause: str, frames: torch.Tensor, lm: torch.Tensor, config: TrackerConfig):
+    """One stream of ``frames (3, T, 3, H, W)`` and ``lm (3, 68, 2)`` made to fail at initialise by ``cause``: its
+    index, and the frames, landmarks, landmark weights and config to start the batch with."""
+    from dataclasses import replace
+
+    frames, lm, weights = frames.clone(), lm.clone(), None
+    bad = 0 if cause == "collinear" else 1
+    b = lm[bad]
+    if cause == "collinear":  # every point on one row: the face edge-on (FAILED with the fit of CFG)
+        lm[bad] = torch.stack([b[:, 0], torch.full_like(b[:, 1], float(b[:, 1].mean()))], -1)
+    elif cause == "mirrored":  # left and right swapped (tests/tracker/test_fit.py)
+        m = list(range(68))
+        pairs = [(i, 16 - i) for i in range(8)] + [(17 + i, 26 - i) for i in range(5)] + [(31, 35), (32, 34)]
+        pairs += [(36, 45), (37, 44), (38, 43), (39, 42), (40, 47), (41, 46), (48, 54), (49, 53), (50, 52)]
+        pairs += [(55, 59), (56, 58), (60, 64), (61, 63), (65, 67)]
+        for i, j in pairs:
+            m[i], m[j] = j, i
+        lm[bad] = b[m]
+    elif cause == "too_small":  # a face 15 px wide (min_face_width_px 20)
+        centre = b.mean(0)
+        lm[bad] = centre + 0.15 * (b - centre)
+    elif cause == "black":  # a black first frame: too few template points
+        frames[bad, 0] = 0.0
+    elif cause == "stalled":  # weights swamped by the default fit's priors: the fit stopped at its start
+        weights = torch.ones(3, 68)
+        weights[bad] = 1e-20
+        config = replace(config, fit=TrackerConfig().fit)
+    return bad, frames, lm, weights, config
+
+
+@pytest.mark.parametrize("managed", [True, False])
+@pytest.mark.parametrize("cause", ["collinear", "mirrored", "too_small", "black", "stalled"])
+def test_a_stream_whose_start_failed_is_never_reported_tracked(model, three_streams, cause, managed):
+    """A stream whose initialisation FAILED (a fit that holds no pose, a face too small, too few template points)
+    was tracked on from that start without template management: collinear landmarks FAILED at initialise, then
+    CONVERGED at confidence 0.96-0.99 on the later frames, 620 mm away and drifting; a face too small CONVERGED at
+    confidence 0; a stalled fit MAX_ITERATIONS (success). With template management such streams were LOST but
+    tracked on, drifting from the failed start. Every later step is now FAILED (LOST with management) at confidence
+    0, holding the start's finite estimate, until initialised again; the other streams track as they do without it."""
+    from dataclasses import replace
+
+    from torchface.template.management import TemplateConfig
+    from torchface.tracker import TrackStatus
+
+    frames, lm = three_streams
+    config = CFG if managed else replace(CFG, template=TemplateConfig(enabled=False))
+    bad, frames, lm, weights, config = _failed_start(cause, frames, lm, config)
+    good = [b for b in range(3) if b != bad]
+    lost = int(TrackStatus.LOST if managed else TrackStatus.FAILED)
+    tracker, others = FaceTracker(config, model), FaceTracker(config, model)
+    first = tracker.initialise(frames[:, 0], lm, weights=weights)
+    others.initialise(frames[good, 0], lm[good], weights=None if weights is None else weights[good])
+    assert int(first.status[bad]) == int(TrackStatus.FAILED) and float(first.confidence[bad]) == 0.0
+    assert bool(first.success[good].all())
+    assert int(first.num_points[bad]) == 0  # no template points: nothing to track from
+    for t in range(1, 4):
+        result, expected = tracker(frames[:, t]), others(frames[good, t])
+        assert int(result.status[bad]) == lost and float(result.confidence[bad]) == 0.0, (t, result.status.tolist())
+        assert not bool(result.success[bad])
+        assert torch.equal(result.translation[bad], first.translation[bad]), t  # the start's estimate, held
+        assert torch.equal(result.rotation[bad], first.rotation[bad]), t
+        assert bool(torch.isfinite(result.translation).all()) and bool(torch.isfinite(result.rotation).all())
+        assert_same(result, expected, good, atol=1e-4)
+    # Initialised again (from good landmarks), the stream tracks.
+    tracker.initialise(frames[:, 3], three_streams[1])
+    assert bool(tracker(frames[:, 4]).success.all())

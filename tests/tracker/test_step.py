@@ -1340,7 +1340,8 @@ def test_the_fast_solver_rasterizes_its_visibility_on_a_level_large_enough(model
     assert visibility_level(4, 720, 1280) == 3 and visibility_level(1, 8, 8) == 0
     assert visibility_level(5, 48, 64) == 1 and min(48 >> 1, 64 >> 1) >= VISIBILITY_MIN_SIDE_PX
     frames, gt = _rendered_clip(64, 48, 3, 5.0)
-    config = TrackerConfig(num_levels=5, iterations=(6, 6, 6, 5, 4))
+    # (The face is 18 px wide, under min_face_width_px: a start that FAILS, whose steps FAIL too; tracked anyway.)
+    config = TrackerConfig(num_levels=5, iterations=(6, 6, 6, 5, 4), min_face_width_px=0.0)
     state, _ = initialise(model, config, frames[:1], gt.landmarks_px[:1].float(), Intrinsics.default(64, 48))
     for t in (1, 2):
         state, result = track_step(model, config, state, frames[t : t + 1])
@@ -1437,3 +1438,27 @@ def test_a_face_too_small_to_track_fails_at_initialise_and_scores_0_in_the_steps
     assert not bool(results[-1].success[0])
     with pytest.raises(ValueError, match="min_face_width_px"):
         TrackerConfig(min_face_width_px=-1.0)
+
+
+@pytest.mark.parametrize("solver", [TrackSolver.FAST, TrackSolver.REFERENCE])
+def test_a_stream_whose_start_failed_fails_every_bare_step(model, two_streams, solver):
+    """Collinear landmarks (every point on one row): the fit FAILED at initialise, then ``track_step`` tracked on
+    from it, CONVERGED at confidence 0.98 on the next frame, 620 mm away and drifting. The failed start keeps no
+    template points now, so each step FAILS at confidence 0 and holds its estimate (both solvers); the other stream
+    tracks as it does alone."""
+    frames, gts = two_streams
+    lm = landmarks_of(gts)
+    lm[0, :, 1] = lm[0, :, 1].mean()
+    config = replace(BASE, solver=solver)
+    state, first = initialise(model, config, frames[:, 0], lm, Intrinsics.default(W, H))
+    alone, _ = initialise(model, config, frames[1:, 0], lm[1:], Intrinsics.default(W, H))
+    assert first.status.tolist() == [FAILED, 0] and first.num_points.tolist()[0] == 0
+    for t in range(1, 4):
+        state, res = track_step(model, config, state, frames[:, t])
+        alone, expected = track_step(model, config, alone, frames[1:, t])
+        assert int(res.status[0]) == FAILED and float(res.confidence[0]) == 0.0, t
+        assert bool(torch.isfinite(res.cost).all()) and bool(torch.isfinite(state.params).all())
+        assert torch.equal(res.translation[0], first.translation[0]) and torch.equal(res.rotation[0], first.rotation[0])
+        torch.testing.assert_close(res.rotation[1:], expected.rotation, rtol=0, atol=1e-5)
+        torch.testing.assert_close(res.translation[1:], expected.translation, rtol=0, atol=1e-3)
+        assert torch.equal(res.status[1:], expected.status)

@@ -505,3 +505,33 @@ def test_the_layers_outputs_share_no_memory_with_the_state_it_hands_on(model, sm
     want = out.state.params.clone()
     out.params.add_(1.0)
     assert torch.equal(out.state.params, want)
+
+
+@pytest.mark.parametrize("mode", [LayerMode.DETACHED, LayerMode.UNROLLED])
+def test_a_clip_whose_start_failed_is_failed_at_every_frame(model, mode):
+    """A clip whose first frame's landmarks hold no pose (collinear: the face edge-on, a fit that FAILED): the
+    layer's tracker went on from that failed start, CONVERGED (success True) on the next frames, its parameters
+    moving (the head's origin 3.8-4.8 mm over two frames). It is FAILED at every frame now, at confidence 0 and the
+    start's parameters (the unrolled ones too), with finite images and gradients; the other clips are as without it."""
+    frames, landmarks = _clip(32, num_frames=3)
+    clips = torch.stack([frames, frames.roll(1, dims=-1), frames.roll(-1, dims=-1)])
+    lms = landmarks[0] + torch.tensor([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0]], dtype=D)[:, None]
+    lms[1, :, 1] = lms[1, :, 1].mean()  # every point on one row
+    layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=G, tracker=SMALL), model)
+    state, first = layer.initialise(clips[:, 0], lms)
+    assert first.status.tolist() == [0, 2, 0] and float(first.confidence[1]) == 0.0
+    start = state.params[1].clone()
+    for t in (1, 2):
+        out = layer(clips[:, t], state)
+        state = out.state
+        assert int(out.track.status[1]) == 2 and float(out.track.confidence[1]) == 0.0, t
+        assert torch.equal(out.params[1].detach(), start) and torch.equal(state.params[1], start), t
+    grad = clips.clone().requires_grad_()
+    out = layer.forward_clip(grad, lms)
+    assert torch.equal(out.params[1, 2].detach(), out.params[1, 0].detach())
+    assert bool(torch.isfinite(out.image).all()) and bool(torch.isfinite(out.params).all())
+    out.image.sum().backward()
+    assert grad.grad is not None and bool(torch.isfinite(grad.grad).all())
+    rest = layer.forward_clip(clips[[0, 2]], lms[[0, 2]])
+    torch.testing.assert_close(out.image[[0, 2]].detach(), rest.image)
+    torch.testing.assert_close(out.params[[0, 2]].detach(), rest.params)

@@ -111,6 +111,7 @@ from torchface.tracker.step import (
     check_initialise_inputs,
     check_step_inputs,
     clamp_projection,
+    fail_templates,
     gray_pyramid,
     gray_pyramid_windows,
     initialise,
@@ -156,9 +157,9 @@ class ManagementState:
             step ended with (its result's), so that the next step does not convert them again; used only while
             ``TrackerState.params`` is that very tensor. None: not known.
         unstarted: ``(B,)`` bool, the streams whose initialisation failed (a black first frame, no face) and that
-            have not started since: their templates and dissimilarity reference hold no face, so a detector's
-            landmarks initialise them afresh (:func:`managed_step`) instead of recovering against them. None: every
-            stream started.
+            have not started since: their templates hold no points and their dissimilarity reference no face
+            (they hold their estimate, LOST, at confidence 0), so a detector's landmarks initialise them afresh
+            (:func:`managed_step`) instead of recovering against them. None: every stream started.
     """
 
     mosaic: Mosaic
@@ -342,8 +343,10 @@ def initialise_managed(
     blind = ~failed & (diss.confidence <= 0)
     if bool(blind.any()):
         failed = failed | blind
+        state = replace(state, templates=tuple(fail_templates(state.templates, blind)))  # (as initialise's failures)
         result = replace(result, status=torch.where(blind, torch.full_like(result.status, _FAILED), result.status),
-                         confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence))
+                         confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence),
+                         num_points=state.templates[0].num_points)  # fmt: skip
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
     B = state.params.shape[0]
@@ -1271,7 +1274,16 @@ def _reanchor(
         fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))
         fit = fit.to(model.device, model.dtype)
     weights = None if w.weights is None else w.weights[index]
-    sub, _ = initialise_managed(model, config, w.frame0[index], w.landmarks[index], state.intrinsics, weights, fit=fit)
+    sub, sub_result = initialise_managed(model, config, w.frame0[index], w.landmarks[index], state.intrinsics, weights,
+                                         fit=fit)  # fmt: skip
+    started = sub_result.status != _FAILED
+    if not bool(started.all()):  # a refined start that fails (a face that came out too small, ...) keeps no template
+        # points (initialise): those streams go on from their plain start (they took the failed start's templates)
+        keep = started.tolist()
+        index, fit, sub = index[started], fit.select(started), sub.select(started)
+        now_R, now_t = [r for r, k in zip(now_R, keep) if k], [t for t, k in zip(now_t, keep) if k]
+        if not index.numel():
+            return state
     templates = _scatter_templates(state.templates, index, sub.templates)
     with torch.inference_mode(False):
         shape = state.shape_coeffs.clone()

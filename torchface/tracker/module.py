@@ -253,8 +253,10 @@ class FaceTracker(nn.Module):
             frames: ``(B, 3, H, W)`` float in [0, 1] (values outside
                 :data:`~torchface.tracker.step.FRAME_VALUE_RANGE` are refused: divide 0-255 frames by 255).
             landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; NaN or
-                infinite: missing. A stream with fewer than 4 (all NaN: no face found in its frame) starts FAILED
-                and stays LOST, finite, until the ``detector`` finds its face (the others track as without it).
+                infinite: missing. A stream whose start fails (fewer than 4: no face found in its frame; landmarks
+                that hold no pose, a face too small, a black frame: :func:`~torchface.tracker.initialise`) starts
+                FAILED and holds its finite estimate at confidence 0, LOST until the ``detector`` finds its face
+                (FAILED at every frame without template management); the others track as without it.
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
             weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
             fit: the first frames' fit when already made (e.g. by

@@ -39,9 +39,7 @@ from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, 
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
-from torchface.tracker.fit import (
-    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, landmark_targets,
-)
+from torchface.tracker.fit import FitConfig, LandmarkFit, check_landmark_type, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -911,6 +909,16 @@ def _bounds(model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: Par
     return lower, upper
 
 
+def fail_templates(templates: Sequence[Template], failed: Tensor) -> list[Template]:
+    """``templates`` (one per pyramid level) without the points of the streams ``failed`` ``(B,)`` bool, whose
+    initialisation FAILED: such a stream has no valid start to track from (a fit without a pose, too few template
+    points, a face too small), so that each later step FAILS for want of points and holds its estimate, instead of
+    tracking from that start (collinear landmarks: CONVERGED at confidence 0.99 on the next frames, 620 mm away
+    and drifting). Initialise the stream again (template management: a detector's landmarks) to start it."""
+    keep = ~failed.to(templates[0].valid.device).unsqueeze(-1)
+    return [replace(tpl, valid=tpl.valid & keep) for tpl in templates]
+
+
 @full_precision
 def initialise(
     model: FaceModel,
@@ -930,15 +938,18 @@ def initialise(
         frames: ``(B, 3, H, W)`` first frames, float in [0, 1].
         landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing). A stream with fewer than
             :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
-            alone: FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose, without template points
-            (each later step FAILS and holds it; template management keeps it LOST until a detector starts it).
+            alone, FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose.
         intrinsics: camera of ``frames``.
         weights: ``(B, K)`` landmark confidences or None.
         fit: the first frames' fit when already made (batch ``B``; e.g. refined by
             :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
 
     Returns:
-        The state and the first frame's result.
+        The state and the first frame's result. A stream whose initialisation FAILED (its fit holds no pose, fewer
+        than ``config.min_points`` template points, a face narrower than ``config.min_face_width_px``) keeps no
+        template points (:func:`fail_templates`; ``num_points`` 0): each later :func:`track_step` FAILS and holds
+        its estimate, at confidence 0, until it is initialised again (template management keeps it LOST until a
+        detector starts it).
     """
     check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
     frames = frames.to(dtype=model.dtype, device=model.device)
@@ -970,21 +981,15 @@ def initialise(
                 seed=config.selection_seed, backend=config.backend,
             )
         )
-    # A stream without landmarks (fewer than a fit needs: no face found in its first frame), whose fit FAILED, has
-    # nothing to track: no template points, so that each step FAILS and holds its placeholder (the bare step tracked
-    # the frame's middle from it, CONVERGED at confidence 0.99); template management keeps it LOST until a detector
-    # starts it.
-    _, used = landmark_targets(landmarks_px.to(dtype=model.dtype, device=model.device), weights)
-    missing = ((used > 0).sum(-1) < MIN_FIT_LANDMARKS) & (fit.status == int(SolveStatus.FAILED))
-    if bool(missing.any()):
-        templates = [replace(tpl, valid=tpl.valid & ~missing.unsqueeze(-1)) for tpl in templates]
-    state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1, anim_prior_mean=fit.anim_coeffs.clone())
     status = torch.where(fit.status == int(SolveStatus.FAILED), int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
+    status = torch.where(templates[0].num_points < config.min_points, int(TrackStatus.FAILED), status)
+    status = torch.where(too_small(model, config, fit.translation, intrinsics), int(TrackStatus.FAILED), status)
+    failed = status == int(TrackStatus.FAILED)
+    if bool(failed.any()):
+        templates = fail_templates(templates, failed)
+    state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1, anim_prior_mean=fit.anim_coeffs.clone())
     n_pts = templates[0].num_points
-    status = torch.where(n_pts < config.min_points, torch.full_like(status, int(TrackStatus.FAILED)), status)
-    small = too_small(model, config, fit.translation, intrinsics)
-    status = torch.where(small, torch.full_like(status, int(TrackStatus.FAILED)), status)
-    conf = torch.exp(-fit.rms_px / 5.0) * (status != int(TrackStatus.FAILED))
+    conf = torch.exp(-fit.rms_px / 5.0) * ~failed
     result = _result(
         model, layout, x, status, torch.zeros_like(status), torch.zeros_like(fit.rms_px), n_pts, conf, fit.anim_coeffs
     )
