@@ -413,6 +413,11 @@ def fit_landmarks(
 ) -> LandmarkFit:
     """Fit pose, shape (and optionally expression) to 2D landmarks by weighted least squares (Eq. 2).
 
+    Solved in float64 whatever the model's dtype (on an ``mps`` device, which has no float64, in the model's dtype),
+    the :class:`LandmarkFit` cast to the model's: the weak priors leave flat directions in which float32's rounding
+    moved the fit by up to 2.6e-3 degrees, 1.7e-3 mm and 1e-3 in the coefficients, and a stream fitted in a batch
+    came out that far from itself fitted alone (now equal to float32 rounding: to the bit on the CPU).
+
     Args:
         model: the face model; its landmark table gives the 3D points.
         landmarks_px: ``(B, K, 2)`` pixel positions of the model's landmarks (all of them, or those listed in
@@ -453,9 +458,7 @@ def fit_landmarks(
     enough = (w > 0).sum(-1) >= MIN_FIT_LANDMARKS
     if not bool(enough.all()):  # samples without landmarks (no face found): FAILED; the others fitted alone
         return _fit_with_missing(model, landmarks_px, intrinsics, weights, idx, config, enough)
-    # Solved in float64 whatever the model's dtype, and cast back (_fit_dtype): the problem is ill-conditioned
-    # enough (weak priors on the flat directions) that float32's rounding moved the fit by up to 2.6e-3 degrees,
-    # 1.7e-3 mm and 1e-3 in the coefficients, and a stream fitted in a batch came out that far from itself alone.
+    # Solved in float64 (_fit_dtype; MPS: the model's dtype) and cast back at the end (see the docstring).
     dtype = _fit_dtype(model_dtype, device)
     target, w = target.to(dtype), w.to(dtype)
     intrinsics = _intrinsics_in(intrinsics, dtype)
