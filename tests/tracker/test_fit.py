@@ -288,6 +288,17 @@ def test_the_fit_keeps_the_model_dtype_on_mps():
     assert _fit_dtype(torch.float32, torch.device("cpu")) == _fit_dtype(torch.float16, torch.device("cuda")) == D
 
 
+def test_the_rotation_check_runs_in_float64_off_mps():
+    """The layout check (max_rotation_std_deg, on by default) computed in float64 on the fit's device: on MPS, where
+    the fit solves in float32 for want of float64, its ``.double()`` raised there at every default fit. Its float64
+    work runs on the CPU for an MPS device (no MPS here: the device it picks), on the device itself elsewhere."""
+    from torchface.tracker.fit import _float64_device
+
+    assert _float64_device(torch.device("mps")) == torch.device("cpu")
+    assert _float64_device(torch.device("cuda", 1)) == torch.device("cuda", 1)
+    assert _float64_device(torch.device("cpu")) == torch.device("cpu")
+
+
 def test_missing_and_zero_weight_landmarks_are_ignored(model):
     """A NaN landmark and a zero-weight gross outlier change nothing: same answer as leaving them out."""
     R, t = poses()

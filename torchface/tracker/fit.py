@@ -383,7 +383,9 @@ def rotation_std_deg(J_pose: Tensor, valid: Tensor, weights: Tensor, noise_px: T
     the rotation, so this is how well the landmarks' layout determines the rotation ("to +-X degrees"); it grows
     without bound as the layout degenerates (collinear points) and is ``inf`` where the pose is not determined at
     all. Computed in float64 from a Jacobi-scaled eigendecomposition (eigenvalues floored at 1e-12 of the largest:
-    an undetermined direction gives a very large value).
+    an undetermined direction gives a very large value); for tensors on an ``mps`` device, which has no float64
+    (the fit solves there in the model's dtype, :func:`fit_landmarks`), on the CPU, the result handed back in
+    float32.
 
     Args:
         J_pose: ``(B, N, 6)`` the weighted residuals' Jacobian with respect to the axis-angle and the translation.
@@ -391,6 +393,9 @@ def rotation_std_deg(J_pose: Tensor, valid: Tensor, weights: Tensor, noise_px: T
         weights: ``(B, K)`` the landmark weights (``N = 2K``), whose largest is the reference.
         noise_px: ``(B,)`` the noise in pixels.
     """
+    home, there = J_pose.device, _float64_device(J_pose.device)
+    if there != home:  # (.double() on mps: "the MPS framework doesn't support float64", at every default fit)
+        J_pose, valid, weights, noise_px = J_pose.to(there), valid.to(there), weights.to(there), noise_px.to(there)
     J = torch.where(valid.unsqueeze(-1) & torch.isfinite(J_pose), J_pose, torch.zeros_like(J_pose)).double()
     H = J.transpose(1, 2) @ J / weights.amax(-1).double().clamp_min(torch.finfo(torch.float64).tiny)[:, None, None]
     d = torch.diagonal(H, dim1=1, dim2=2)
@@ -400,7 +405,8 @@ def rotation_std_deg(J_pose: Tensor, valid: Tensor, weights: Tensor, noise_px: T
     Vr = V[:, :3] * s[:, :3].unsqueeze(-1)  # the axis-angle's rows of H^-1's eigenvectors
     cov = (Vr / lam.unsqueeze(1)) @ Vr.transpose(1, 2)  # (B, 3, 3) rad^2 per px^2
     std = torch.linalg.eigvalsh(cov)[:, -1].clamp_min(0).sqrt() * noise_px.double() * (180.0 / math.pi)
-    return torch.where((d[:, :3] > 0).all(-1), std, torch.full_like(std, math.inf))  # no information: inf
+    std = torch.where((d[:, :3] > 0).all(-1), std, torch.full_like(std, math.inf))  # no information: inf
+    return std if there == home else std.to(home, torch.float32)
 
 
 @full_precision
@@ -571,6 +577,12 @@ def _fit_dtype(model_dtype: torch.dtype, device: torch.device) -> torch.dtype:
     """The dtype :func:`fit_landmarks` solves in: float64, except on Apple's MPS devices, which have no float64
     (there the model's dtype, as before: a float32 fit, precise to about 1e-3 in its weakly held coefficients)."""
     return model_dtype if torch.device(device).type == "mps" else torch.float64
+
+
+def _float64_device(device: torch.device) -> torch.device:
+    """Where float64 work on ``device``'s tensors runs (:func:`rotation_std_deg`): there, except on Apple's MPS
+    devices, which have no float64 (:func:`_fit_dtype`): on the CPU."""
+    return torch.device("cpu") if torch.device(device).type == "mps" else torch.device(device)
 
 
 def _intrinsics_in(intrinsics: Intrinsics, dtype: torch.dtype) -> Intrinsics:

@@ -1029,6 +1029,13 @@ def step_grad_inputs(
     )
 
 
+def _wants_grad(model: FaceModel, config: TrackerConfig, state: "TrackerState", frames: Tensor) -> bool:
+    """Whether a step is asked for gradients: grad mode on and one of :func:`step_grad_inputs` requires grad."""
+    return torch.is_grad_enabled() and any(
+        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
+    )
+
+
 def check_state_levels(config: TrackerConfig, state: "TrackerState") -> None:
     """Refuse a config whose pyramid has another number of levels than the state's templates."""
     if len(state.templates) != config.num_levels:
@@ -1121,9 +1128,7 @@ def track_step(
     layout = _layout(model)
     # Unrolled where a gradient is wanted, as the fast solver is (the same iterations; without it the estimates
     # were constants: no gradient reached the frames or the previous estimate).
-    differentiable = torch.is_grad_enabled() and any(
-        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
-    )
+    differentiable = _wants_grad(model, config, state, frames)
     solvers = [
         SolverConfig(max_iterations=config.iterations[config.num_levels - 1 - level], differentiable=differentiable)
         for level in reversed(range(config.num_levels))
@@ -1485,9 +1490,7 @@ def _track_step_fast(
     other step is using it, and not where a gradient is wanted: the graph saves the step's pyramid levels (the
     sampler's backward reads them), which the next step would write over (a backward through two steps' graphs, as
     a state that carries its graph on makes, failed: "modified by an inplace operation")."""
-    if torch.is_grad_enabled() and any(
-        isinstance(v, Tensor) and v.requires_grad for v in step_grad_inputs(model, config, state, frames)
-    ):
+    if _wants_grad(model, config, state, frames):
         return _fast_step(model, config, state, frames, conservative, near_template, None)
     workspace = state.workspace
     if workspace is None and state.params.shape[0] > _PYRAMID_CHUNK:
