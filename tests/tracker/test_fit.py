@@ -170,6 +170,23 @@ def test_the_reference_camera_fits_as_without_the_scaling(model):
         fit_landmarks(model, lm, Intrinsics(640, 480, 1e200, 1e200, 319.5, 239.5))
 
 
+def test_a_focal_length_that_carries_a_gradient_scales_the_priors_silently(model):
+    """A focal length that carries a gradient (``Intrinsics`` keeps a 0-d tensor as it is): the priors' factor read
+    it with ``float()``, and torch warned at each fit "Converting a tensor with requires_grad=True to a scalar may
+    lead to unexpected behavior". The factor is its value, the fit that of the plain number."""
+    import warnings
+
+    R, t = poses()
+    lm = project_landmarks(model, R, t)
+    fx = torch.tensor(640.0, dtype=D, requires_grad=True)
+    cam = Intrinsics(640, 480, fx, fx * 1.0, 319.5, 239.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert prior_scale(FitConfig(), cam) == 1.0
+        fit = fit_landmarks(model, lm, cam)
+    torch.testing.assert_close(fit.axis_angle, fit_landmarks(model, lm, CAM).axis_angle, rtol=0, atol=1e-12)
+
+
 def test_held_shape_units(model):
     """``held_shape_units``: None holds CANDIDE-3's four vertical-position units (the per-unit tuple with
     ``held_shape_precision`` there gives the same fit), a model without those names holds none, explicit names

@@ -210,7 +210,9 @@ def prior_scale(config: FitConfig, intrinsics: Intrinsics) -> float:
     """
     if config.reference_focal_px is None:
         return 1.0
-    scale = float(intrinsics.fx) * float(intrinsics.fy) / float(config.reference_focal_px) ** 2
+    # (a focal length that carries a gradient read detached: float() of it warned at each fit)
+    fx, fy = (float(f.detach()) if isinstance(f, Tensor) else float(f) for f in (intrinsics.fx, intrinsics.fy))
+    scale = fx * fy / float(config.reference_focal_px) ** 2
     if not math.isfinite(scale):  # the priors would be infinite, and 0 * inf NaN
         raise ValueError(f"the prior scale fx fy / reference_focal_px**2 is {scale}: focal lengths too large")
     return scale
