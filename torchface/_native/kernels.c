@@ -2,8 +2,8 @@
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
  * (coverage.h), a template's candidate pixels (select_pixels.h), template management's per-frame decisions
- * (management.h), a template from its compact form (template_at.h) and the top-k of its candidates
- * (top_pixels.h). Compiled at first use by torchface._native (the C compiler of the
+ * (management.h), a template from its compact form (template_at.h), the top-k of its candidates
+ * (top_pixels.h) and a tracking step's gray crop pyramid (gray_pyramid.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -147,13 +147,22 @@ typedef struct {
     void *out_value;
 } TFTopProblem;
 
+/* Mirrored by torchface._native.PyramidProblem (ctypes): keep the two in the same order; see gray_pyramid.h. */
+typedef struct {
+    int B, height, width, levels;
+    int64_t stride_frame, stride_channel, stride_row, stride_col;
+    const void *frames;
+    const int64_t *rows, *offsets;
+    void *const *out;
+} TFPyramidProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 13; }
+int tf_abi_version(void) { return 14; }
 
 /* The chunks [batch k / n, batch (k + 1) / n) of a kernel's streams on OpenMP's threads (n of them, at most
  * threads), where built with -fopenmp: the runtime torch's own threads use (torchface._native.run_chunks). */
@@ -192,6 +201,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "management.h"
 #include "template_at.h"
 #include "top_pixels.h"
+#include "gray_pyramid.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -208,6 +218,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "management.h"
 #include "template_at.h"
 #include "top_pixels.h"
+#include "gray_pyramid.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
