@@ -164,19 +164,23 @@ static _Thread_local size_t tf_workspace_size = 0;
 
 int tf_abi_version(void) { return 14; }
 
-/* The chunks [batch k / n, batch (k + 1) / n) of a kernel's streams on OpenMP's threads (n of them, at most
- * threads), where built with -fopenmp: the runtime torch's own threads use (torchface._native.run_chunks). */
+/* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
+ * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least
+ * one), each handed to the next thread that is free: streams differ in cost (a level solve's iterations and
+ * points), and on a busy machine one thread may be held up; with one fixed half of the batch per thread, the other
+ * then waited for it. Each stream's result does not depend on the chunks. */
 typedef int (*tf_kernel_fn)(const void *, int, int);
 #ifdef _OPENMP
 #include <omp.h>
 int tf_has_openmp(void) { return 1; }
 int tf_parallel(tf_kernel_fn fn, const void *problem, int batch, int threads) {
     int status = 0;
-#pragma omp parallel num_threads(threads) reduction(| : status)
-    {
-        const long long n = omp_get_num_threads(), k = omp_get_thread_num();
-        const int b0 = (int)(batch * k / n), b1 = (int)(batch * (k + 1) / n);
-        if (b1 > b0) status |= fn(problem, b0, b1) != 0;
+    const int grain = threads > 0 && batch / (8 * threads) > 1 ? batch / (8 * threads) : 1;
+    const int chunks = (batch + grain - 1) / grain;
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1) reduction(| : status)
+    for (int c = 0; c < chunks; ++c) {
+        const int b0 = c * grain, b1 = batch - b0 > grain ? b0 + grain : batch;
+        status |= fn(problem, b0, b1) != 0;
     }
     return status;
 }
