@@ -3,7 +3,8 @@
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
  * (coverage.h), a template's candidate pixels (select_pixels.h), template management's per-frame decisions
  * (management.h), a template from its compact form (template_at.h), the top-k of its candidates
- * (top_pixels.h) and a tracking step's gray crop pyramid (gray_pyramid.h). Compiled at first use by torchface._native (the C compiler of the
+ * (top_pixels.h), a tracking step's gray crop pyramid (gray_pyramid.h) and which surface points the camera sees
+ * (visible.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -156,6 +157,18 @@ typedef struct {
     void *const *out;
 } TFPyramidProblem;
 
+/* Mirrored by torchface._native.VisibleProblem (ctypes): keep the two in the same order; see visible.h. */
+typedef struct {
+    int B, N, H, W, F, batch_offset, faces_batched;
+    int64_t num_columns;
+    double fx, fy, cx, cy, near, keep;
+    const void *points;
+    const int64_t *point_faces, *pix_to_face;
+    const int8_t *facing;
+    const void *coefficients, *ray_a, *ray_b;
+    uint8_t *out;
+} TFVisibleProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
@@ -206,6 +219,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "template_at.h"
 #include "top_pixels.h"
 #include "gray_pyramid.h"
+#include "visible.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -223,6 +237,7 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "template_at.h"
 #include "top_pixels.h"
 #include "gray_pyramid.h"
+#include "visible.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

@@ -1690,6 +1690,6 @@ def _visibility_at(
     # The levels' points are tested together (one call instead of one per level: the test is per point).
     cams = [warp_points(tpl, layout, state.params, R)[1] for tpl in state.templates]
     faces = torch.cat([tpl.face_index for tpl in state.templates], 1)
-    visible = points_visible(torch.cat(cams, 1), faces, frags, intr, depth_tolerance=0.02)
+    visible = points_visible(torch.cat(cams, 1), faces, frags, intr, depth_tolerance=0.02, backend=backend)
     sizes = [c.shape[1] for c in cams]
     return [v & tpl.valid for v, tpl in zip(visible.split(sizes, 1), state.templates)]
