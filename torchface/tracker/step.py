@@ -642,7 +642,7 @@ def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
 
 def gray_pyramid_windows(
     frames: Tensor, num_levels: int, offsets: Sequence[Tensor | None], heights: Sequence[int], widths: Sequence[int],
-    rows: Tensor | None = None,
+    rows: Tensor | None = None, backend: Backend = Backend.AUTO,
 ) -> list[Tensor]:
     """Windows of :func:`gray_pyramid`: level ``l``'s ``(B, 1, heights[l], widths[l])`` windows whose top-left
     pixels are ``offsets[l] (B, 2)`` int64 ``(x0, y0)`` in that level's pixels (each inside its level); where
@@ -654,7 +654,7 @@ def gray_pyramid_windows(
     ``4 * 2 ** (num_levels - 1)`` pixels beyond the windows (4 pixels at the coarsest level) unless it meets the
     image border, so that the pyramid filter's reflected border only touches pixels outside the windows. Where
     that crop would not fit (a frame size not divisible by that power of two), or a level is wanted whole, the
-    whole frames are used.
+    whole frames are used. ``backend``: :func:`gray_crop_pyramid`'s (the crop's pyramid).
     """
     _, _, H, W = frames.shape
 
@@ -676,7 +676,7 @@ def gray_pyramid_windows(
     start = torch.minimum(start, size_hw - size)
     if bool((start < 0).any() | (start % q != 0).any()):
         return from_whole_frames()
-    crop = gray_crop_pyramid(frames, start, int(size[1]), int(size[0]), num_levels, rows)
+    crop = gray_crop_pyramid(frames, start, int(size[1]), int(size[0]), num_levels, rows, backend=backend)
     return [crop_windows(g, off - torch.div(start, 2**lv, rounding_mode="floor"), h, w)
             for lv, (g, off, h, w) in enumerate(zip(crop, windows, heights, widths))]  # fmt: skip
 
