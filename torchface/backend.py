@@ -3,8 +3,8 @@
 The per-frame work of a tracking step is mostly small operations: at one stream their dispatch, not their
 arithmetic, is most of the time, and at many streams every intermediate goes through memory. The native kernels
 (C, compiled at first use by the machine's C compiler; listed in :mod:`torchface._native`) run the same
-algorithms one stream (or patch) at a time: the fast solver's level solves, the rasterizer's coverage, a
-template's candidate pixels and points, the normalised face, the dissimilarity confidence and its references,
+algorithms one stream (or patch) at a time: the fast solver's level solves, a step's gray crop pyramid, the
+rasterizer's coverage and the z-buffer test of points against it, a template's candidate pixels and points, the normalised face, the dissimilarity confidence and its references,
 and template management's per-frame decisions. Each is tested against its torch code
 (``tests/tracker/test_native.py`` and the tests of each module).
 

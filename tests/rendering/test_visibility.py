@@ -8,8 +8,11 @@ import pytest
 import torch
 import trimesh
 
+from torchface import _native
+from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering import backfacing, face_normals, points_visible, rasterize, vertex_normals
+from torchface.rendering.rasterizer import rasterize_coverage
 
 CAM = Intrinsics.default(64, 48)
 
@@ -190,6 +193,42 @@ def test_points_visible_occlusion_and_image_bounds():
     assert not points_visible(p * 1.1, other, frag, CAM).any()
     assert points_visible(p * 1.005, other, frag, CAM).all()
     assert not points_visible(p * 1.005, other, frag, CAM, depth_tolerance=1e-3).any()
+
+
+@pytest.mark.skipif(_native.library() is None, reason="native kernels unavailable")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_points_visible_native_equals_the_torch_code(dtype):
+    """Against a coverage, the native test (visible.h) gives the torch code's answer point for point: a scene with
+    occlusion and a sphere cut by the image border, points on their faces, pushed off them (so that the depth test
+    decides), behind the camera, off-screen, NaN and infinite, per-sample and shared face ids, several tolerances,
+    a batch of two; and the fragments' answer. A coverage that is a view into a larger one (Coverage.part) takes
+    the torch code."""
+    va, fa, _ = sphere(30.0, (0.0, 0.0, 150.0), dtype=dtype)
+    vb, fb, _ = sphere(60.0, (60.0, 0.0, 300.0), dtype=dtype)
+    vc, fc, _ = sphere(30.0, (148.0, 0.0, 300.0), dtype=dtype)
+    n = va.shape[1]
+    verts = torch.cat([va, vb, vc], 1)
+    verts = torch.cat([verts, verts + torch.tensor([8.0, -5.0, 20.0], dtype=dtype)])  # two samples
+    faces = torch.cat([fa, fb + n, fc + 2 * n])
+    coverage, frags = rasterize_coverage(verts, faces, CAM), rasterize(verts, faces, CAM)
+    gen = torch.Generator().manual_seed(3)
+    pts = centroids(verts, faces)
+    pts = torch.cat([pts, pts * 1.004, pts + torch.randn(pts.shape, generator=gen, dtype=dtype)], 1)
+    pts[:, :3] = torch.tensor([[0.0, 0.0, -150.0], [1e4, 0.0, 150.0], [0.0, 0.0, 0.5]], dtype=dtype)
+    pts[:, 3, 0], pts[:, 4, 2] = float("nan"), float("inf")
+    ids = torch.arange(faces.shape[0]).repeat(3)
+    per_sample = torch.stack([ids, ids.roll(1)])
+    for face_ids in (ids, per_sample):
+        for tol in (0.0, 0.01, 0.03):
+            got = points_visible(pts, face_ids, coverage, CAM, depth_tolerance=tol, backend=Backend.NATIVE)
+            want = points_visible(pts, face_ids, coverage, CAM, depth_tolerance=tol, backend=Backend.TORCH)
+            assert torch.equal(got, want), (face_ids.dim(), tol)
+            assert torch.equal(got, points_visible(pts, face_ids, frags, CAM, depth_tolerance=tol))
+            assert 0 < int(got.sum()) < got.numel()
+    part = coverage.part(slice(1, 2), 40, 50)
+    cam = Intrinsics(50, 40, CAM.fx, CAM.fy, CAM.cx, CAM.cy)
+    got = points_visible(pts[1:], ids, part, cam, backend=Backend.AUTO)
+    assert torch.equal(got, points_visible(pts[1:], ids, part, cam, backend=Backend.TORCH))
 
 
 def test_points_visible_exceptions():

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 import torch
 
+from torchface import _native
 from torchface.appearance import apply_illumination, illumination_basis, image_with_gradients, to_gray
+from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, geodesic_angle_deg
 from torchface.model.candide import load_candide3
@@ -898,14 +900,14 @@ def test_gray_crop_pyramid_in_chunks_equals_the_whole_batch(channels, monkeypatc
     calls = []
     real = sampling_module.pyr_down
     monkeypatch.setattr(step_module, "pyr_down", lambda x, out=None: calls.append(x.shape[0]) or real(x, out=out))
-    got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L)
+    got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, backend=Backend.TORCH)
     assert calls == [8, 8, 8, 8, 3, 3]  # the chunked path ran
     want = gray_pyramid(step_module._crop_gray(frames, offsets, ch, cw), L)
     assert [g.shape for g in got] == [(B, 1, 40, 48), (B, 1, 20, 24), (B, 1, 10, 12)]
     for lv in range(L):
         assert torch.equal(got[lv], want[lv]), lv
     rows = torch.randint(0, B, (B,), generator=gen)
-    got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, rows)
+    got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, rows, backend=Backend.TORCH)
     want = gray_pyramid(step_module._crop_gray(frames[rows], offsets, ch, cw), L)
     for lv in range(L):
         assert torch.equal(got[lv], want[lv]), lv
@@ -915,6 +917,46 @@ def test_gray_crop_pyramid_in_chunks_equals_the_whole_batch(channels, monkeypatc
     assert calls == [10, 10]
     out[2].sum().backward()
     assert leaf.grad is not None and bool(torch.isfinite(leaf.grad).all()) and float(leaf.grad.abs().sum()) > 0
+
+
+@pytest.mark.skipif(_native.library() is None, reason="native kernels unavailable")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_gray_crop_pyramid_equals_the_torch_code_bit_for_bit(dtype):
+    """The native kernel (gray_pyramid.h) gives the torch code's levels bit for bit (its gray conversion and
+    pyramid taps as fused multiply-adds, as torch's vectorised kernels compute them): even and odd sizes, one to
+    four levels, with and without ``rows``, contiguous and channels-last frames, one and two threads. Windows
+    outside the frames, a level too small for pyr_down and gray frames take the torch code (its result or its
+    error)."""
+    import torchface.tracker.step as step_module
+
+    gen = torch.Generator().manual_seed(7)
+    T, H, W = 12, 72, 90
+    frames = torch.rand(T, 3, H, W, generator=gen, dtype=dtype)
+    channels_last = frames.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+    threads = torch.get_num_threads()
+    try:
+        for B, ch, cw, L, nthreads in [(1, 72, 90, 3, 1), (5, 41, 57, 3, 2), (12, 64, 80, 4, 2), (3, 13, 11, 2, 1),
+                                       (9, 30, 30, 1, 2)]:  # fmt: skip
+            torch.set_num_threads(nthreads)
+            offsets = torch.stack([torch.randint(0, W - cw + 1, (B,), generator=gen),
+                                   torch.randint(0, H - ch + 1, (B,), generator=gen)], -1)  # fmt: skip
+            for rows in (None, torch.randint(0, T, (B,), generator=gen)):
+                for source in (frames, channels_last):
+                    src = source[:B] if rows is None else source
+                    got = step_module.gray_crop_pyramid(src, offsets, ch, cw, L, rows, backend=Backend.NATIVE)
+                    want = step_module.gray_crop_pyramid(src, offsets, ch, cw, L, rows, backend=Backend.TORCH)
+                    assert [g.shape for g in got] == [w.shape for w in want]
+                    assert all(torch.equal(g, w) for g, w in zip(got, want)), (B, ch, cw, L, rows is None)
+    finally:
+        torch.set_num_threads(threads)
+    outside = torch.tensor([[W - 40, 0]])
+    with pytest.raises(ValueError):  # the torch code's error: the window is cut by the frame's edge
+        step_module.gray_crop_pyramid(frames[:1], outside, 40, 48, 3, backend=Backend.AUTO)
+    with pytest.raises(ValueError, match="H, W >= 3"):  # the second level (2x2) is too small for pyr_down
+        step_module.gray_crop_pyramid(frames[:1], torch.zeros(1, 2, dtype=torch.int64), 4, 4, 3)
+    gray = frames[:2, :1]
+    got = step_module.gray_crop_pyramid(gray, torch.zeros(2, 2, dtype=torch.int64), 40, 48, 2)
+    assert torch.equal(got[0], gray[:, :, :40, :48])
 
 
 def test_gray_crop_pyramid_in_a_workspace_equals_new_memory_and_reuses_it():
@@ -932,6 +974,9 @@ def test_gray_crop_pyramid_in_a_workspace_equals_new_memory_and_reuses_it():
         with torch.inference_mode():
             got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, workspace=ws)
         want = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L)
+        assert all(torch.equal(g, w) for g, w in zip(got, want))
+        with torch.inference_mode():  # the torch code's chunks in the workspace
+            got = step_module.gray_crop_pyramid(frames, offsets, ch, cw, L, workspace=ws, backend=Backend.TORCH)
         assert all(torch.equal(g, w) for g, w in zip(got, want))
         assert not any(g.is_inference() for g in got)
         pointers.append(got[0].data_ptr())
@@ -988,8 +1033,11 @@ def test_gray_pyramid_windows_equal_the_whole_pyramid(size, monkeypatch):
     heights, widths = [40 // 2**lv for lv in range(L)], [48 // 2**lv for lv in range(L)]
     offsets = [torch.div(corners, 2**lv, rounding_mode="floor") for lv in range(L)]
     seen = []
-    real = step_module.gray_pyramid
+    real, real_crop = step_module.gray_pyramid, step_module.gray_crop_pyramid
     monkeypatch.setattr(step_module, "gray_pyramid", lambda f, n: seen.append(tuple(f.shape[-2:])) or real(f, n))
+    # (the crop's pyramid: the native kernel's, or the torch code's through gray_pyramid)
+    monkeypatch.setattr(step_module, "gray_crop_pyramid",
+                        lambda f, o, ch, cw, *a, **k: seen.append((ch, cw)) or real_crop(f, o, ch, cw, *a, **k))
     got = step_module.gray_pyramid_windows(frames, L, offsets, heights, widths)
     for lv in range(L):
         want = crop_windows(whole[lv], offsets[lv], heights[lv], widths[lv])

@@ -14,7 +14,10 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 - ``select_pixels.h``: a template's candidate pixels and their selection scores;
 - ``management.h``: template management's per-frame decisions (entry selection, gating);
 - ``template_at.h``: a template from its compact form;
-- ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k).
+- ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k);
+- ``gray_pyramid.h``: a tracking step's gray crop pyramid (:func:`torchface.tracker.step.gray_crop_pyramid`);
+- ``visible.h``: which surface points the camera sees, given the coverage
+  (:func:`torchface.rendering.visibility.points_visible`).
 
 :func:`run` calls a kernel over a batch. It needs only a C compiler (``cc``, ``gcc`` or ``clang`` on the PATH, or
 ``$CC``, which may carry arguments as in make: ``CC="ccache gcc"``); where there is none, or the build fails, the
@@ -56,13 +59,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem",
-           "ConfProblem", "CoverProblem", "SelectProblem", "ManageProblem", "TemplateProblem", "LOSS_CODES"]
+           "ConfProblem", "CoverProblem", "SelectProblem", "ManageProblem", "TemplateProblem", "PyramidProblem", "VisibleProblem",
+           "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
-            "select_pixels.h", "management.h", "template_at.h", "top_pixels.h")
+            "select_pixels.h", "management.h", "template_at.h", "top_pixels.h", "gray_pyramid.h",
+            "visible.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 13
+_ABI_VERSION = 14
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -208,6 +213,30 @@ class TopProblem(ctypes.Structure):
     _fields_ = [
         ("B", ctypes.c_int), ("N", ctypes.c_int64), ("k", ctypes.c_int64),
         *((name, ctypes.c_void_p) for name in ("score", "out_index", "out_value")),
+    ]
+
+
+class PyramidProblem(ctypes.Structure):
+    """``TFPyramidProblem`` of ``kernels.c`` (same field order): a tracking step's gray crop pyramid (see
+    ``gray_pyramid.h``; ``out`` points to an array of one pointer per level)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "height", "width", "levels")),
+        *((name, ctypes.c_int64) for name in ("stride_frame", "stride_channel", "stride_row", "stride_col")),
+        *((name, ctypes.c_void_p) for name in ("frames", "rows", "offsets", "out")),
+    ]
+
+
+class VisibleProblem(ctypes.Structure):
+    """``TFVisibleProblem`` of ``kernels.c`` (same field order): which surface points the camera sees (see
+    ``visible.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "N", "H", "W", "F", "batch_offset", "faces_batched")),
+        ("num_columns", ctypes.c_int64),
+        *((name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "near", "keep")),
+        *((name, ctypes.c_void_p) for name in ("points", "point_faces", "pix_to_face", "facing", "coefficients",
+                                               "ray_a", "ray_b", "out")),  # fmt: skip
     ]
 
 
@@ -427,7 +456,8 @@ def _load() -> None:
                           ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
                           ("tf_reference_patches", LKProblem), ("tf_select_entries", ManageProblem),
                           ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem),
-                          ("tf_top_pixels", TopProblem)):
+                          ("tf_top_pixels", TopProblem), ("tf_gray_pyramid", PyramidProblem),
+                          ("tf_visible", VisibleProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]
@@ -476,11 +506,13 @@ _pool_pid = -1
 
 
 def run_chunks(fn, problem: ctypes.Structure, batch: int, threads: int) -> None:
-    """``fn(problem, b0, b1)`` over ``[0, batch)`` in up to ``threads`` contiguous chunks, in parallel. Raises
-    ``MemoryError`` when a chunk could not allocate its workspace.
+    """``fn(problem, b0, b1)`` over ``[0, batch)`` in contiguous chunks on up to ``threads`` threads, in parallel.
+    Raises ``MemoryError`` when a chunk could not allocate its workspace.
 
     Where the library shares torch's GNU OpenMP runtime (:func:`uses_openmp`), the chunks run on that runtime's
-    threads, the ones torch's own operations use: after each parallel operation they spin for a while waiting for
+    threads (``tf_parallel``: chunks of about ``batch / (8 threads)`` streams, each taken by the next free thread,
+    so that a thread with cheap streams, or one the machine did not hold up, takes more of them), the ones torch's
+    own operations use: after each parallel operation they spin for a while waiting for
     the next, and threads of another pool (the fallback here: a ``ThreadPoolExecutor``, ctypes releasing the GIL)
     then share the cores with them. Measured at 32 streams on 2 cores, the level solves took 34 ms per step on
     such a pool against 36 on one thread, and 19 on OpenMP's threads. A process forked from the one that loaded the

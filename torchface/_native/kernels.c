@@ -2,8 +2,9 @@
  * and patch tracking (dissimilarity.h), the normalised face without the z-buffer (normalised_face.h), and the
  * three together as template management's per-frame confidence (confidence.h), the rasterizer's coverage
  * (coverage.h), a template's candidate pixels (select_pixels.h), template management's per-frame decisions
- * (management.h), a template from its compact form (template_at.h) and the top-k of its candidates
- * (top_pixels.h). Compiled at first use by torchface._native (the C compiler of the
+ * (management.h), a template from its compact form (template_at.h), the top-k of its candidates
+ * (top_pixels.h), a tracking step's gray crop pyramid (gray_pyramid.h) and which surface points the camera sees
+ * (visible.h). Compiled at first use by torchface._native (the C compiler of the
  * machine, no other dependency) and called through ctypes; float and double variants. */
 #include <float.h>
 #include <math.h>
@@ -147,27 +148,52 @@ typedef struct {
     void *out_value;
 } TFTopProblem;
 
+/* Mirrored by torchface._native.PyramidProblem (ctypes): keep the two in the same order; see gray_pyramid.h. */
+typedef struct {
+    int B, height, width, levels;
+    int64_t stride_frame, stride_channel, stride_row, stride_col;
+    const void *frames;
+    const int64_t *rows, *offsets;
+    void *const *out;
+} TFPyramidProblem;
+
+/* Mirrored by torchface._native.VisibleProblem (ctypes): keep the two in the same order; see visible.h. */
+typedef struct {
+    int B, N, H, W, F, batch_offset, faces_batched;
+    int64_t num_columns;
+    double fx, fy, cx, cy, near, keep;
+    const void *points;
+    const int64_t *point_faces, *pix_to_face;
+    const int8_t *facing;
+    const void *coefficients, *ray_a, *ray_b;
+    uint8_t *out;
+} TFVisibleProblem;
+
 #define TF_EPS(T) (sizeof(T) == sizeof(float) ? (double)FLT_EPSILON : DBL_EPSILON)
 
 /* Each thread's workspace (see tf_solve_level), kept between calls. */
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 13; }
+int tf_abi_version(void) { return 14; }
 
-/* The chunks [batch k / n, batch (k + 1) / n) of a kernel's streams on OpenMP's threads (n of them, at most
- * threads), where built with -fopenmp: the runtime torch's own threads use (torchface._native.run_chunks). */
+/* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
+ * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least
+ * one), each handed to the next thread that is free: streams differ in cost (a level solve's iterations and
+ * points), and on a busy machine one thread may be held up; with one fixed half of the batch per thread, the other
+ * then waited for it. Each stream's result does not depend on the chunks. */
 typedef int (*tf_kernel_fn)(const void *, int, int);
 #ifdef _OPENMP
 #include <omp.h>
 int tf_has_openmp(void) { return 1; }
 int tf_parallel(tf_kernel_fn fn, const void *problem, int batch, int threads) {
     int status = 0;
-#pragma omp parallel num_threads(threads) reduction(| : status)
-    {
-        const long long n = omp_get_num_threads(), k = omp_get_thread_num();
-        const int b0 = (int)(batch * k / n), b1 = (int)(batch * (k + 1) / n);
-        if (b1 > b0) status |= fn(problem, b0, b1) != 0;
+    const int grain = threads > 0 && batch / (8 * threads) > 1 ? batch / (8 * threads) : 1;
+    const int chunks = (batch + grain - 1) / grain;
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1) reduction(| : status)
+    for (int c = 0; c < chunks; ++c) {
+        const int b0 = c * grain, b1 = batch - b0 > grain ? b0 + grain : batch;
+        status |= fn(problem, b0, b1) != 0;
     }
     return status;
 }
@@ -192,6 +218,8 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "management.h"
 #include "template_at.h"
 #include "top_pixels.h"
+#include "gray_pyramid.h"
+#include "visible.h"
 #undef REAL
 #undef TF_FMA
 #undef FN
@@ -208,6 +236,8 @@ int tf_max_parameters(void) { return TF_MAX_P; }
 #include "management.h"
 #include "template_at.h"
 #include "top_pixels.h"
+#include "gray_pyramid.h"
+#include "visible.h"
 #undef REAL
 #undef TF_FMA
 #undef FN

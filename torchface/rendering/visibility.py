@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchface import _native
+from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry import mesh
 from torchface.geometry.camera import Intrinsics
@@ -96,6 +98,7 @@ def points_visible(
     *,
     depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
     near: float = NEAR_PLANE_MM,
+    backend: Backend = Backend.AUTO,
 ) -> Tensor:
     """Which surface points the camera sees, given the fragments of the same pose.
 
@@ -125,6 +128,8 @@ def points_visible(
             ``0.7 slope / f``; the default, 1 %, suits ``f ~ 640`` px up to slopes of about 9
             (surfaces within about 84 degrees of facing the camera).
         near: points at depth ``Z <= near`` (millimetres) are not visible.
+        backend: :class:`~torchface.backend.Backend`: with a Coverage, the native kernel tests each point with
+            the same arithmetic (the same answer; ``torchface/_native/visible.h``), or this torch code.
 
     Returns:
         ``(B, N)`` bool.
@@ -164,6 +169,10 @@ def points_visible(
         raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
 
     pts = points_cam.detach()
+    if isinstance(fragments, Coverage):
+        native = _native_visible(pts, point_faces, fragments, intrinsics, depth_tolerance, near, backend)
+        if native is not None:
+            return native
     z = pts[..., 2]
     in_front = z > near
     z_safe = torch.where(in_front, z, torch.ones_like(z))
@@ -191,3 +200,35 @@ def points_visible(
     own = seen_face == point_faces.to(seen_face.device).long().expand(B, N)
     not_hidden = own | (seen_depth >= z * (1.0 - depth_tolerance))
     return inside & (seen_facing == 1) & not_hidden
+
+
+def _native_visible(
+    pts: Tensor, point_faces: Tensor, coverage: Coverage, intrinsics: Intrinsics, depth_tolerance: float, near: float,
+    backend: Backend,
+) -> Tensor | None:
+    """:func:`points_visible` of ``pts (B, N, 3)`` (detached) against a coverage by the native kernel, or None where
+    it does not run (``backend``, the dtypes, a device other than the CPU, a coverage that is a view into a larger
+    one's pixels)."""
+    coefficients = coverage.coefficients.detach()
+    if not (coverage.pix_to_face.is_contiguous() and coverage.facing.is_contiguous()
+            and coefficients.dtype == pts.dtype and coverage.ray_a.dtype == pts.dtype
+            and coverage.ray_b.dtype == pts.dtype and coverage.pix_to_face.device == pts.device):  # fmt: skip
+        return None
+    if not use_native(backend, (pts, coefficients, coverage.ray_a.detach(), coverage.ray_b.detach()), "visibility test"):
+        return None
+    B, N = pts.shape[:2]
+    H, W = intrinsics.height, intrinsics.width
+    pts = pts.contiguous()
+    faces = point_faces.to(torch.int64).contiguous()
+    coefficients = coefficients.contiguous()
+    ray_a, ray_b = coverage.ray_a.detach().contiguous(), coverage.ray_b.detach().contiguous()
+    out = torch.empty(B, N, dtype=torch.bool)
+    prob = _native.VisibleProblem(
+        B=B, N=N, H=H, W=W, F=coverage.num_faces, batch_offset=coverage.batch_offset,
+        faces_batched=int(faces.dim() == 2), num_columns=coefficients.shape[1], fx=intrinsics.fx, fy=intrinsics.fy,
+        cx=intrinsics.cx, cy=intrinsics.cy, near=float(near), keep=1.0 - depth_tolerance, points=pts.data_ptr(),
+        point_faces=faces.data_ptr(), pix_to_face=coverage.pix_to_face.data_ptr(), facing=coverage.facing.data_ptr(),
+        coefficients=coefficients.data_ptr(), ray_a=ray_a.data_ptr(), ray_b=ray_b.data_ptr(), out=out.data_ptr(),
+    )  # fmt: skip
+    _native.run("visible", pts.dtype == torch.float64, prob, B, torch.get_num_threads())
+    return out

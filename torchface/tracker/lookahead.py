@@ -488,7 +488,7 @@ def _refine_first_fit(
                 frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True,
                                            backend=backend)
                 pts = Xf @ R.T + t
-                vis = points_visible(pts[None], fi, frags, intrinsics)[0]
+                vis = points_visible(pts[None], fi, frags, intrinsics, backend=backend)[0]
                 if radius:
                     vis = vis & ~_near_background(frags.pix_to_face[0] < 0, pts, intrinsics, radius)
                 cos = -((normals @ R.T) * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)

@@ -577,7 +577,8 @@ def _new_entries(
         k = config.template.entry_stride if level == 0 else 1
         strides.append(k if (-(-heights[-1] // k)) * (-(-widths[-1] // k)) >= 4 * slots else 1)
         h, w = h // 2, w // 2
-    grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths, rows=index)
+    grays = gray_pyramid_windows(frames, config.num_levels, offsets, heights, widths, rows=index,
+                                 backend=config.backend)
     grids = [strided_window(Intrinsics(wl, hl, c.fx, c.fy, c.cx, c.cy), off, k)
              for c, hl, wl, off, k in zip(cameras, heights, widths, offsets, strides)]  # fmt: skip
     fragments = rasterize_windows(model, posed.verts_cam, [g[0] for g in grids], [g[1] for g in grids],
