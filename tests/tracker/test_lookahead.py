@@ -289,27 +289,6 @@ def test_refinement_takes_per_unit_shape_precisions(model):
         refine((0.0,) * 3)
 
 
-def test_the_refinements_priors_are_scaled_to_the_camera_as_the_fits(model):
-    """The look-ahead and online refinements weigh the landmark fit's own terms (landmark pixels and priors) as the
-    fit they refine does: FitConfig's precisions scaled by ``prior_scale`` (fx fy / 640**2). They were passed
-    unscaled, so at 360 x 288 (GRID, a factor of 0.32) the refinement's priors were 3.2 times the fit's; at the
-    reference camera the factor is exactly 1 (the standard scenarios' refinement unchanged)."""
-    from torchface.tracker.fit import prior_scale, shape_precisions
-    from torchface.tracker.lookahead import landmark_fit_priors
-
-    fc = FitConfig()
-    base = shape_precisions(fc, model.shape_names, torch.float64, "cpu")
-    for w, h in ((640, 480), (360, 288), (1920, 1080)):
-        cam = Intrinsics.default(w, h)
-        scale = prior_scale(fc, cam)
-        got = landmark_fit_priors(model, fc, cam)
-        assert got["shape_prior_precision"] == tuple((base * scale).tolist()), (w, h)
-        assert got["expression_prior_precision"] == fc.expression_prior_precision * scale, (w, h)
-        assert got["held_shape_units"] and got["shape_bound"] == fc.shape_bound
-    assert landmark_fit_priors(model, fc, Intrinsics.default(640, 480))["shape_prior_precision"] == tuple(base.tolist())
-    assert prior_scale(fc, Intrinsics.default(360, 288)) < 0.33
-
-
 def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     """A head turning to +24 then -24 degrees of yaw in 3-degree steps, with ``yaw_deg=20, min_keyframes=2``
     (the default is 10 and one side): keyframes at the first frame past 20 degrees each way; the refined first-frame pose is much nearer the truth than the landmark fit's (1.5 px of

@@ -52,8 +52,8 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, prior_scale,
-    shape_precisions, shape_prior_vector,
+    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions,
+    shape_prior_vector,
 )
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
@@ -260,17 +260,13 @@ def _near_background(background: Tensor, points: Tensor, intrinsics: Intrinsics,
     return near[uv[:, 1].clamp(0, near.shape[0] - 1), uv[:, 0].clamp(0, near.shape[1] - 1)]
 
 
-def landmark_fit_priors(model: FaceModel, fit_config: FitConfig, intrinsics: Intrinsics) -> dict:
+def landmark_fit_priors(model: FaceModel, fit_config: FitConfig) -> dict:
     """The landmark fit's settings as :func:`refine_first_fit` takes them (keyword arguments): its shape
-    precisions per unit, bounds, expression precision and held units, for ``model``, with the precisions scaled to
-    the camera as :func:`fit_landmarks` scales them (:func:`~torchface.tracker.fit.prior_scale`: 1 at the reference
-    focal length, so the 640 x 480 refinement is unchanged), so that the refinement weighs the landmark fit's own
-    terms as the fit it refines did."""
-    scale = prior_scale(fit_config, intrinsics)
-    precision = shape_precisions(fit_config, model.shape_names, torch.float64, "cpu") * scale
+    precisions per unit, bounds, expression precision and held units, for ``model``."""
+    precision = shape_precisions(fit_config, model.shape_names, torch.float64, "cpu")
     return dict(
         shape_prior_precision=tuple(precision.tolist()), shape_bound=fit_config.shape_bound,
-        expression_prior_precision=fit_config.expression_prior_precision * scale,
+        expression_prior_precision=fit_config.expression_prior_precision,
         held_shape_units=held_shape_indices(fit_config, model.shape_names),
     )
 
@@ -704,7 +700,7 @@ def lookahead_fit(
         if all(len(k) == 2 for k in keys):
             break
     R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
-    streams, priors = [], landmark_fit_priors(model, fc, intrinsics)
+    streams, priors = [], landmark_fit_priors(model, fc)
     for b in range(B):
         one = fit.select(slice(b, b + 1))
         if len(keys[b]) >= config.min_keyframes:

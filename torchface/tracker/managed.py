@@ -1257,7 +1257,7 @@ def _reanchor(
     ms = _management(state)
     fc = config.fit
     fits, now_R, now_t = [], [], []
-    priors = landmark_fit_priors(model, fc, state.intrinsics)
+    priors = landmark_fit_priors(model, fc)
     with torch.inference_mode(False):
         for b in index.tolist():
             ks = keys[b]
