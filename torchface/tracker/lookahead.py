@@ -26,7 +26,7 @@ dataloaders, evaluation), not for a live stream.
 
 Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3`` (max rotation error relative to frame 0, seeds
 0 / 1 / 2 / 3, degrees): ``scan_motion`` 2.14 / 2.13 / 1.86 / 2.06 (mean 0.51 / 0.67 / 0.51 / 0.51), against
-7.19 / 7.56 / 5.41 / 5.75 without any refinement; ``pose_sweep`` 0.41 / 0.77 / 0.61 / 0.71. With the earlier
+7.19 / 7.58 / 5.41 / 5.75 without any refinement; ``pose_sweep`` 0.41 / 0.77 / 0.61 / 0.71. With the earlier
 defaults (no held shape units, two keyframes at 20 degrees) the first frame's own rotation error on the James
 scan went from 4.0-7.8 to 1.2-1.7 degrees, and its depth could move by several millimetres (``pose_sweep`` seed
 3: first-frame translation error 0.6 -> 9.5 mm). Scenarios without a turn in their first frames keep the
@@ -71,7 +71,7 @@ class LookaheadConfig:
             one side; one keyframe per side. 10: with the landmark fit's vertical units held
             (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`), the James scan's first frame is pitched
             and its first turn drifts before the head has turned 20 degrees (``scan_motion`` max 5.4-7.6 degrees
-            over landmark-noise draws 0-3 without the re-anchoring); re-anchored at 10 degrees, 2.7-3.2.
+            over landmark-noise draws 0-3 without the re-anchoring); re-anchored at 10 degrees, 2.7-3.3.
         max_frames: frames tracked at most while looking for the keyframes (the first frame included).
         min_keyframes: a stream with fewer keyframes keeps the landmark fit. One (the first side the head turns
             to) by default, so that the re-anchoring comes early; 2 waits for a turn to each side.
