@@ -25,7 +25,7 @@ caller then starts tracking at the first frame again from the refined fit
 dataloaders, evaluation), not for a live stream.
 
 Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3`` (max rotation error relative to frame 0, seeds
-0 / 1 / 2 / 3, degrees): ``scan_motion`` 2.14 / 2.13 / 1.86 / 2.06 (mean 0.51 / 0.67 / 0.51 / 0.51), against
+0 / 1 / 2 / 3, degrees): ``scan_motion`` 2.04 / 2.11 / 1.86 / 2.06 (mean 0.50 / 0.68 / 0.51 / 0.50), against
 7.19 / 7.58 / 5.41 / 5.75 without any refinement; ``pose_sweep`` 0.41 / 0.77 / 0.61 / 0.71. With the earlier
 defaults (no held shape units, two keyframes at 20 degrees) the first frame's own rotation error on the James
 scan went from 4.0-7.8 to 1.2-1.7 degrees, and its depth could move by several millimetres (``pose_sweep`` seed
