@@ -271,7 +271,7 @@ def _sideways_clip(w: int, h: int, n: int = 3):
 
 def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model):
     """FaceTracker took its config as given, so an HD video lost a fast motion that ``torchface track`` followed
-    (frames 1 and 2 of this 1280x720 clip 23 and 30 degrees off with the default three levels). By default
+    (frames 1 and 2 of this 1280x720 clip 23 and 28 degrees off with the default three levels). By default
     (``pyramid="auto"``) it now adds levels at initialise as the job does (pyramid_for_faces: four here), says so
     (``tracking_config``, the state's ``num_levels``) and follows the motion; ``pyramid="config"`` keeps the
     config's levels; a face under 255 pixels (the 640x360 copy, 190) keeps the config itself."""

@@ -524,7 +524,7 @@ def test_a_dataset_pickled_without_the_shared_state_still_loads(clips, config):
 def test_hd_video_is_tracked_with_the_coarser_levels_its_face_needs():
     """Tracking for the dataloaders took the config as given, so an HD video lost a fast motion that ``torchface
     track`` followed: the 1280x720 clip of tests/cli/test_cli_track.py's HD test (13 mm a frame sideways at 450 mm,
-    37 pixels), frames 1 and 2 23 and 30 degrees off with the default three levels. ``FaceTrackingConfig.pyramid``
+    37 pixels), frames 1 and 2 23 and 28 degrees off with the default three levels. ``FaceTrackingConfig.pyramid``
     "auto" (the default) adds the job's levels (pyramid_for_faces: four) and follows it, and a state it returns is
     continued with them; "config" keeps the three levels (and cannot continue that state)."""
     from torchface.model.candide import load_candide3

@@ -25,8 +25,8 @@ caller then starts tracking at the first frame again from the refined fit
 dataloaders, evaluation), not for a live stream.
 
 Measured with ``evaluate.py --lookahead --noise-seeds 0,1,2,3`` (max rotation error relative to frame 0, seeds
-0 / 1 / 2 / 3, degrees): ``scan_motion`` 2.14 / 2.13 / 1.86 / 2.06 (mean 0.51 / 0.67 / 0.51 / 0.51), against
-7.19 / 7.56 / 5.41 / 5.75 without any refinement; ``pose_sweep`` 0.41 / 0.77 / 0.61 / 0.71. With the earlier
+0 / 1 / 2 / 3, degrees): ``scan_motion`` 2.04 / 2.11 / 1.86 / 2.06 (mean 0.50 / 0.68 / 0.51 / 0.50), against
+7.19 / 7.58 / 5.41 / 5.75 without any refinement; ``pose_sweep`` 0.41 / 0.77 / 0.61 / 0.71. With the earlier
 defaults (no held shape units, two keyframes at 20 degrees) the first frame's own rotation error on the James
 scan went from 4.0-7.8 to 1.2-1.7 degrees, and its depth could move by several millimetres (``pose_sweep`` seed
 3: first-frame translation error 0.6 -> 9.5 mm). Scenarios without a turn in their first frames keep the
@@ -71,7 +71,7 @@ class LookaheadConfig:
             one side; one keyframe per side. 10: with the landmark fit's vertical units held
             (:attr:`~torchface.tracker.fit.FitConfig.held_shape_units`), the James scan's first frame is pitched
             and its first turn drifts before the head has turned 20 degrees (``scan_motion`` max 5.4-7.6 degrees
-            over landmark-noise draws 0-3 without the re-anchoring); re-anchored at 10 degrees, 2.7-3.2.
+            over landmark-noise draws 0-3 without the re-anchoring); re-anchored at 10 degrees, 2.7-3.3.
         max_frames: frames tracked at most while looking for the keyframes (the first frame included).
         min_keyframes: a stream with fewer keyframes keeps the landmark fit. One (the first side the head turns
             to) by default, so that the re-anchoring comes early; 2 waits for a turn to each side.
@@ -103,11 +103,13 @@ class LookaheadConfig:
             being refined inside the mesh's outline (and its holes) in both frames; 0: anywhere on the mesh. The
             pyramid's blur mixes the background into the face near the outline, and the background does not
             turn with the head: those points pull the mesh smaller in the image, i.e. deeper. On a rendered 18
-            degree turn at 600 mm the re-anchored mesh ends 5.6 / 19.6 / 20.8 mm too deep at 640x480 / 320x240
-            / 160x120 without the margin, 0.9 / 2.8 / -1.0 mm with 2. Not the default: those points carry yaw and
-            pitch, and with 2 the standard scenarios' rotation errors grew (``expressions`` 0.20 -> 0.46 degrees
-            mean, ``scan_motion`` 0.76 -> 0.98) while their translation errors hardly changed (README, Known
-            limitations), and the refinement took 2.9 s instead of 1.3 at 640x480.
+            degree turn at 600 mm (CANDIDE-3, 1 degree a frame, exact first-frame landmarks, the default
+            :class:`~torchface.tracker.FaceTracker`) the re-anchored mesh ends 4.3 / 25.6 / 34.5 mm too deep at
+            640x480 / 320x240 / 160x120 without the margin (17.5-25.6 mm at 320x240 for turns of 0.5-2 degrees a
+            frame), 0.3 / 4.2 / -0.1 mm with 2. Not the default: those points carry yaw and pitch, and with 2 the
+            standard scenarios' rotation errors grew (``expressions`` 0.20 -> 0.46 degrees mean, ``scan_motion``
+            0.83 -> 0.97) while their translation errors hardly changed (README, Known limitations), and the
+            refinement took 2.9 s instead of 1.3 at 640x480.
     """
 
     yaw_deg: float = 10.0

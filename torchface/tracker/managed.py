@@ -300,7 +300,7 @@ def initialise_managed(
     re-anchoring is a one-off stall of the stream's step (about 0.4 s on a 2-core CPU: the refinement and a new
     start); the frames before it keep the plain start's error, and a stream that never turns keeps the landmark
     fit. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3`` (README, "Known limitations"):
-    ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.2.
+    ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.3.
 
     Example:
         >>> from torchface.model import load_candide3                                  # doctest: +SKIP

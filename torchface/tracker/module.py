@@ -69,7 +69,7 @@ class FaceTracker(nn.Module):
     once a stream's head has turned 10 degrees, its first pose, starting expression and the shape units the
     landmark fit held are re-estimated from that view (a one-off stall of about 0.4 s on a 2-core CPU) and the rest
     of the stream is tracked from it. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3``:
-    ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.2 (5.4-7.6 without the start,
+    ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.3 (5.4-7.6 without the start,
     from the held landmark fit).
 
     ``pyramid``: ``"auto"`` (the default) tracks each sequence with the pyramid ``torchface track`` gives it:
