@@ -90,10 +90,10 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
     from torchface.tracker.managed import initialise_managed, managed_step
     from torchface.tracker.step import TrackerConfig
 
-    # The time inside the step's own solve (managed_step's track_step call, not the recovery candidates' solves,
-    # which are management work), so that a managed run also gives management's share of its own time.
+    # The time inside the step's own solve (managed_step's track_checked_step call, not the recovery candidates'
+    # solves, which are management work), so that a managed run also gives management's share of its own time.
     solve_s, in_recovery = [0.0], [False]
-    track_step, recover = managed_module.track_step, managed_module._recover
+    track_step, recover = managed_module.track_checked_step, managed_module._recover
 
     def timed_track_step(*a, **k):
         if in_recovery[0]:
@@ -110,7 +110,7 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
         finally:
             in_recovery[0] = False
 
-    managed_module.track_step, managed_module._recover = timed_track_step, flagged_recover
+    managed_module.track_checked_step, managed_module._recover = timed_track_step, flagged_recover
     if args.online_refine:
         return _online_refine(args)
     if args.interleaved:

@@ -118,6 +118,7 @@ from torchface.tracker.step import (
     level_intrinsics,
     step_grad_inputs,
     too_small,
+    track_checked_step,
     track_step,
 )
 
@@ -909,7 +910,7 @@ def managed_step(
     if tc.clean_radius_deg > 0 and near is None:
         rows = torch.arange(entry.shape[0], device=entry.device)
         near = (ms.mosaic.ypr_deg[rows, entry, :2] - ypr[:, :2]).norm(dim=-1) <= tc.clean_radius_deg
-    solved, result = track_step(
+    solved, result = track_checked_step(  # (track_step, without checking the inputs again)
         model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
     )
     # Where the caller asked for gradients (frames or parameters that require grad, with grad mode on), the
