@@ -28,11 +28,16 @@ static void FN(masked_gray)(const TFLKProblem *p, int b, REAL *gray, REAL *tmp) 
         memcpy(gray, g0, sizeof(REAL) * GG);
         return;
     }
-    /* along rows (x), replicated border: the taps inside the row first, then the clamped ones at either end */
+    /* along rows (x), replicated border: each output the taps' products added in order from 0; the pixels whose
+     * taps are all inside the row a tap at a time over the row (vectorised, the same sums), the others with the
+     * clamped indices */
+    const int lo = R < G ? R : G, hi = G - R > lo ? G - R : lo; /* [lo, hi): the taps inside the row */
     for (int y = 0; y < G; ++y) {
         const REAL *restrict gr = g0 + (size_t)y * G, *restrict mr = mask + (size_t)y * G;
         REAL *restrict og = rows_g + (size_t)y * G, *restrict om = rows_m + (size_t)y * G;
         for (int x = 0; x < G; ++x) {
+            if (x == lo) x = hi; /* (the inner pixels below) */
+            if (x >= G) break;
             REAL sg = 0, sm = 0;
             for (int j = -R; j <= R; ++j) {
                 int xx = x + j < 0 ? 0 : (x + j > G - 1 ? G - 1 : x + j);
@@ -41,6 +46,14 @@ static void FN(masked_gray)(const TFLKProblem *p, int b, REAL *gray, REAL *tmp) 
             }
             og[x] = sg;
             om[x] = sm;
+        }
+        for (int x = lo; x < hi; ++x) og[x] = om[x] = (REAL)0;
+        for (int j = -R; j <= R; ++j) {
+            const REAL kj = k[j + R];
+            for (int x = lo; x < hi; ++x) {
+                og[x] += kj * gr[x + j];
+                om[x] += kj * mr[x + j];
+            }
         }
     }
     /* along columns (y): whole rows at a time (vectorised over x), then the normalisation */
@@ -208,40 +221,40 @@ int FN(tf_reference_patches)(const TFLKProblem *p, int b0, int b1) {
                 gu[i] = (x > 0 && x < G - 1) ? (REAL)0.5 * (gray[i + 1] - gray[i - 1]) : (REAL)0;
                 gv[i] = (y > 0 && y < G - 1) ? (REAL)0.5 * (gray[i + G] - gray[i - G]) : (REAL)0;
             }
-        /* the window sums (zero outside), as avg_pool2d's mean times the window's area */
+        /* the window sums (zero outside), as avg_pool2d's mean times the window's area, at the pixels that may be
+         * eligible (those at least edge = r + 1 + border >= r + 1 from the image border: their windows, and the
+         * mask's one pixel wider, are inside the image); every other pixel scores -1 whatever its sums. Each sum
+         * adds its terms row by row as the window reads them, a window position at a time over the row
+         * (vectorised over the pixels, the same sums). tmp's first 4 G REALs (masked_gray's, no longer used). */
         const REAL area = (REAL)(h * h), area_m = (REAL)((h + 2) * (h + 2));
-        for (int y = 0; y < G; ++y)
-            for (int x = 0; x < G; ++x) {
-                REAL a = 0, bb = 0, c = 0, m = 0;
-                for (int dy = -r; dy <= r; ++dy) {
-                    int yy = y + dy;
-                    if (yy < 0 || yy >= G) continue;
-                    for (int dx = -r; dx <= r; ++dx) {
-                        int xx = x + dx;
-                        if (xx < 0 || xx >= G) continue;
-                        size_t j = (size_t)yy * G + xx;
-                        a += gu[j] * gu[j];
-                        bb += gu[j] * gv[j];
-                        c += gv[j] * gv[j];
+        const int edge = r + 1 + (border > 0 ? border : 0), lo = edge, hi = G - edge;
+        REAL *restrict sa = tmp, *restrict sb = tmp + G, *restrict sc = tmp + 2 * G, *restrict sm = tmp + 3 * G;
+        for (size_t i = 0; i < GG; ++i) score[i] = (REAL)-1;
+        for (int y = lo; y < hi; ++y) {
+            for (int x = lo; x < hi; ++x) sa[x] = sb[x] = sc[x] = sm[x] = (REAL)0;
+            for (int dy = -r; dy <= r; ++dy)
+                for (int dx = -r; dx <= r; ++dx) {
+                    const REAL *restrict u = gu + (size_t)(y + dy) * G, *restrict v = gv + (size_t)(y + dy) * G;
+                    for (int x = lo; x < hi; ++x) {
+                        const REAL ux = u[x + dx], vx = v[x + dx];
+                        sa[x] += ux * ux;
+                        sb[x] += ux * vx;
+                        sc[x] += vx * vx;
                     }
                 }
-                for (int dy = -r - 1; dy <= r + 1; ++dy) {
-                    int yy = y + dy;
-                    if (yy < 0 || yy >= G) continue;
-                    for (int dx = -r - 1; dx <= r + 1; ++dx) {
-                        int xx = x + dx;
-                        if (xx >= 0 && xx < G) m += mask[(size_t)yy * G + xx];
-                    }
+            for (int dy = -r - 1; dy <= r + 1; ++dy)
+                for (int dx = -r - 1; dx <= r + 1; ++dx) {
+                    const REAL *restrict mk = mask + (size_t)(y + dy) * G;
+                    for (int x = lo; x < hi; ++x) sm[x] += mk[x + dx];
                 }
-                a = a / area * area;
-                bb = bb / area * area;
-                c = c / area * area;
+            for (int x = lo; x < hi; ++x) {
+                REAL a = sa[x] / area * area, bb = sb[x] / area * area, c = sc[x] / area * area;
                 REAL half = (REAL)0.5 * (a - c);
                 REAL min_eig = (REAL)0.5 * (a + c) - (REAL)sqrt((double)(half * half + bb * bb));
-                int edge = r + 1 + border;
-                int eligible = m / area_m > (REAL)(1.0 - 1e-6) && x >= edge && x < G - edge && y >= edge && y < G - edge;
+                int eligible = sm[x] / area_m > (REAL)(1.0 - 1e-6);
                 score[(size_t)y * G + x] = eligible ? (min_eig > (REAL)0 ? min_eig : (REAL)0) : (REAL)-1;
             }
+        }
         REAL *idx_out = (REAL *)p->out_p + (size_t)b * K, *best_out = (REAL *)p->out_support + (size_t)b * K;
         for (int k = 0; k < K; ++k) {
             size_t best_i = 0;
