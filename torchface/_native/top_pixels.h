@@ -17,9 +17,43 @@ static inline int FN(tf_before)(const FN(tf_scored) *a, const FN(tf_scored) *b) 
     return a->v > b->v || (a->v == b->v && a->i < b->i);
 }
 
-static int FN(tf_scored_cmp)(const void *x, const void *y) {
-    const FN(tf_scored) *a = (const FN(tf_scored) *)x, *b = (const FN(tf_scored) *)y;
-    return FN(tf_before)(a, b) ? -1 : (FN(tf_before)(b, a) ? 1 : 0);
+/* v's radix key: a larger value has a smaller key, equal values (-0 and +0 too) equal keys; v finite. */
+static inline uint64_t FN(tf_desc_key)(REAL v) {
+    if (v == (REAL)0) v = (REAL)0; /* -0 as +0: the order's equal values */
+    if (sizeof(REAL) == sizeof(uint32_t)) {
+        uint32_t b;
+        memcpy(&b, &v, sizeof b);
+        b = (b & 0x80000000u) ? ~b : (b | 0x80000000u); /* ascending with the value */
+        return (uint64_t)~b;
+    }
+    uint64_t b;
+    memcpy(&b, &v, sizeof b);
+    b = (b & 0x8000000000000000ull) ? ~b : (b | 0x8000000000000000ull);
+    return ~b;
+}
+
+/* a[0, m) sorted in tf_before's order where a is in ascending index order: a stable radix sort (a byte of the
+ * key a pass, least significant first; the passes where every key has the same byte left out) by the key
+ * ascending, so equal values keep their index order. tmp: m elements. qsort took most of the kernel's time. */
+static void FN(tf_sort_desc)(FN(tf_scored) *a, FN(tf_scored) *tmp, int64_t m) {
+    FN(tf_scored) *from = a, *to = tmp;
+    for (int shift = 0; shift < 8 * (int)sizeof(REAL); shift += 8) {
+        int64_t count[256];
+        memset(count, 0, sizeof(count));
+        for (int64_t j = 0; j < m; ++j) count[(FN(tf_desc_key)(from[j].v) >> shift) & 255]++;
+        if (count[(FN(tf_desc_key)(from[0].v) >> shift) & 255] == m) continue; /* one byte value: nothing moves */
+        int64_t at = 0;
+        for (int d = 0; d < 256; ++d) {
+            int64_t c = count[d];
+            count[d] = at;
+            at += c;
+        }
+        for (int64_t j = 0; j < m; ++j) to[count[(FN(tf_desc_key)(from[j].v) >> shift) & 255]++] = from[j];
+        FN(tf_scored) *t = from;
+        from = to;
+        to = t;
+    }
+    if (from != a) memcpy(a, from, sizeof(FN(tf_scored)) * (size_t)m);
 }
 
 #define TF_TOP_BUCKETS 4096
@@ -47,7 +81,7 @@ static int FN(tf_first_sorted)(FN(tf_scored) *s, int64_t n, int64_t k, FN(tf_sco
     }
     int64_t bucket = TF_TOP_BUCKETS - 1, taken = count[bucket];
     while (taken < k) taken += count[--bucket];
-    FN(tf_scored) *keep = (FN(tf_scored) *)malloc(sizeof(FN(tf_scored)) * (size_t)(taken + 1));
+    FN(tf_scored) *keep = (FN(tf_scored) *)malloc(sizeof(FN(tf_scored)) * (size_t)(2 * taken + 1));
     if (!keep) return -1;
     int64_t m = 0;
     for (int64_t j = 0; j < n && m < taken; ++j) { /* branch-free: write always, advance where kept */
@@ -56,7 +90,7 @@ static int FN(tf_first_sorted)(FN(tf_scored) *s, int64_t n, int64_t k, FN(tf_sco
         keep[m] = s[j];
         m += c >= bucket;
     }
-    qsort(keep, (size_t)m, sizeof(FN(tf_scored)), FN(tf_scored_cmp));
+    FN(tf_sort_desc)(keep, keep + taken, m);
     memcpy(out, keep, sizeof(FN(tf_scored)) * (size_t)k);
     free(keep);
     return 0;
