@@ -822,6 +822,11 @@ def test_top_scores_is_a_stable_descending_sort(backend, dtype):
             assert index[b].tolist() == order
             torch.testing.assert_close(value[b], score[b, order], rtol=0, atol=0)
         torch.testing.assert_close(value, torch.topk(score, k, dim=1).values, rtol=0, atol=0)
+    # Signed zeros (equal: by index) and values over the whole range (the native kernel sorts their bit patterns).
+    score = torch.tensor([[0.0, -0.0, 3e38, -0.0, 0.0, -3e38, 1e-40, -1e-40, 0.0, 2.0, -1.0, 2.0]], dtype=dtype)
+    order = sorted(range(score.shape[1]), key=lambda j: (-float(score[0, j]), j))
+    for k in (1, 5, score.shape[1]):
+        assert top_scores(score, k, backend)[1][0].tolist() == order[:k]
     with pytest.raises(ValueError, match="k must be"):
         top_scores(torch.zeros(1, 5), 6, backend)
     with pytest.raises(ValueError, match="score must be"):
