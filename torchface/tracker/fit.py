@@ -9,6 +9,7 @@ positions and bases interpolated from the model's landmark table.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -565,14 +566,25 @@ def fit_landmarks(
     unexplained = rms >= _MAX_RMS_SPREAD * spread_px
     failed = (spread_px < _MIN_SPREAD_PX) | dropped | away | stalled | unexplained
     if config.max_rotation_std_deg is not None:  # a layout that does not determine the rotation (collinear points)
-        all_l = interpolate_landmarks(model.mean.to(dtype).unsqueeze(0), model.landmark_vertices,
-                                      model.landmark_weights.to(dtype))[0]  # fmt: skip
         z = x[:, 5]  # (a landmark behind the camera, as at z <= 0, is failed above)
-        noise = ROTATION_NOISE_FACE_FRACTION * intrinsics.fx * (all_l[:, 0].amax() - all_l[:, 0].amin()) / z
+        noise = ROTATION_NOISE_FACE_FRACTION * intrinsics.fx * _landmark_width_mm(model) / z
         noise = torch.where(z > 0, noise, torch.full_like(noise, math.inf))
         failed = failed | ~(rotation_std_deg(J[..., :6], valid, w, noise) <= config.max_rotation_std_deg)
     status = torch.where(failed, int(SolveStatus.FAILED), res.status)
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status).to(dtype=model_dtype)
+
+
+def _landmark_width_mm(model: FaceModel) -> float:
+    """The horizontal extent (mm) of the model's landmarks on its mean shape (CANDIDE-3: 125 mm, the iBUG jaw's ends),
+    computed once per model."""
+    width = _LANDMARK_WIDTH.get(model)
+    if width is None:
+        lm = model.landmarks_3d(model.mean[None].detach())[0]
+        width = _LANDMARK_WIDTH[model] = float(lm[:, 0].amax() - lm[:, 0].amin())
+    return width
+
+
+_LANDMARK_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKeyDictionary()
 
 
 def _fit_dtype(model_dtype: torch.dtype, device: torch.device) -> torch.dtype:
@@ -604,8 +616,7 @@ def _missing_fit(model: FaceModel, intrinsics: Intrinsics, count: int) -> Landma
     dtype, device = model.dtype, model.device
     mean_l = model.landmarks_3d(model.mean[None].detach())[0]  # (K, 3)
     centre = mean_l.mean(0)
-    width_mm = float(mean_l[:, 0].amax() - mean_l[:, 0].amin())
-    z = intrinsics.fx * width_mm / (intrinsics.width / 4.0)
+    z = intrinsics.fx * _landmark_width_mm(model) / (intrinsics.width / 4.0)
     t = torch.stack([-centre[0], -centre[1], z - centre[2]]).to(dtype=dtype, device=device)
     eye = torch.eye(3, dtype=dtype, device=device)
     zeros = torch.zeros(count, dtype=dtype, device=device)

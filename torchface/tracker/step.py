@@ -12,7 +12,6 @@ import ctypes
 import enum
 import math
 import threading
-import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -41,7 +40,7 @@ from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, 
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
-from torchface.tracker.fit import FitConfig, LandmarkFit, check_landmark_type, fit_landmarks
+from torchface.tracker.fit import FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -307,19 +306,6 @@ class TrackerConfig:
             raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
         if not isinstance(self.solver, TrackSolver):  # "fast" ran the reference solver without a word
             raise TypeError(f"solver must be a TrackSolver, got {self.solver!r}")
-
-
-def _landmark_width_mm(model: FaceModel) -> float:
-    """The horizontal extent (mm) of the model's landmarks on its mean shape (CANDIDE-3: 125 mm, the iBUG jaw's ends),
-    computed once per model."""
-    width = _LANDMARK_WIDTH.get(model)
-    if width is None:
-        lm = model.landmarks_3d(model.mean[None].detach())[0]
-        width = _LANDMARK_WIDTH[model] = float(lm[:, 0].amax() - lm[:, 0].amin())
-    return width
-
-
-_LANDMARK_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKeyDictionary()
 
 
 def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
