@@ -47,6 +47,7 @@ Examples:
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3   # seed spread
     python scripts/evaluate.py --scenarios pose_sweep,scan_motion --ablations none --selection-seeds 0,1,2
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3 --no-online-refine
+    python scripts/evaluate.py --scenarios expressions --ablations none --truth-fit --no-online-refine  # from the truth
     python scripts/evaluate.py --scenarios standard --ablations none --mediapipe-python /path/to/mp-env/bin/python
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
@@ -88,6 +89,7 @@ from torchface.synth.metrics import (
 )
 from torchface.synth.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, SCENARIOS, make_scenario, scenario_size
 from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_truth, render_sequence, write_sequence
+from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.module import FaceTracker
 from torchface.tracker.step import TrackerConfig, TrackStatus
@@ -269,6 +271,34 @@ LOOKAHEAD: LookaheadConfig | None = None
 # The online look-ahead start's settings (FaceTracker(refine_first=...), the default), or None for none
 # (--no-online-refine, --lookahead).
 ONLINE_REFINE: LookaheadConfig | None = LookaheadConfig()
+# --truth-fit: start every run from the ground truth's first-frame pose, shape and expression (a diagnostic).
+TRUTH_FIT = False
+
+
+def truth_fit(model: FaceModel, gt: GroundTruth) -> LandmarkFit:
+    """The ground truth's frame-0 pose, shape coefficients and animation units as a :class:`LandmarkFit`
+    (``B = 1``, the model's device and dtype), for ``FaceTracker.initialise(fit=...)``: what the tracker does
+    from a perfect first-frame fit. Only for sequences rendered with the tracker's own model (CANDIDE-3).
+
+    Raises:
+        ValueError: the sequence's subject is not ``model`` (e.g. the James scan), or its units differ.
+    """
+    names = tuple(model.animation_names)
+    if gt.model != "candide3" or gt.shape_coeffs.shape != (model.num_shape,) or tuple(gt.au_names) != names:
+        raise ValueError(
+            f"--truth-fit needs a sequence rendered with the tracker's model (CANDIDE-3), {gt.name} shows {gt.model!r}"
+        )
+    dev, dt = model.device, model.dtype
+    one = torch.zeros(1, dtype=dt, device=dev)
+    return LandmarkFit(
+        rotation=gt.rotation[:1].to(device=dev, dtype=dt),
+        axis_angle=gt.axis_angle[:1].to(device=dev, dtype=dt),
+        translation=gt.translation[:1].to(device=dev, dtype=dt),
+        shape_coeffs=gt.shape_coeffs[None].to(device=dev, dtype=dt),
+        anim_coeffs=gt.au[:1].to(device=dev, dtype=dt),
+        rms_px=one,
+        status=torch.zeros(1, dtype=torch.int64, device=dev),
+    )
 
 
 def track_frames(
@@ -299,7 +329,7 @@ def track_frames(
     frames = iter(frames)
     start = time.perf_counter()
     first = prepared(next(frames))
-    fit = None
+    fit = truth_fit(model, gt) if TRUTH_FIT else None
     if LOOKAHEAD is not None:  # --lookahead: the first frame's fit refined against frames ahead (two passes)
         raw = [f for _, f in zip(range(LOOKAHEAD.max_frames - 1), frames)]
         ahead = torch.stack([first] + [prepared(f) for f in raw], 1)
@@ -876,6 +906,11 @@ def main(argv: list[str] | None = None) -> int:
         "template points): each standard scenario is tracked again (full configuration) once per seed and a table "
         "of the seeds follows (how much the figures depend on the draw of the points)",
     )
+    parser.add_argument(
+        "--truth-fit", action="store_true",
+        help="a diagnostic: start every run from the ground truth's first-frame pose, shape and expression "
+        "instead of the fit to noisy landmarks (CANDIDE-3 scenarios only; not with --lookahead)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -940,7 +975,12 @@ def main(argv: list[str] | None = None) -> int:
     check_size_for_video(parser, args.size, args.cache, names)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    global LOOKAHEAD, ONLINE_REFINE
+    global LOOKAHEAD, ONLINE_REFINE, TRUTH_FIT
+    if args.truth_fit and args.lookahead:
+        parser.error("--truth-fit and --lookahead both choose the first fit; give one")
+    if args.truth_fit and (bad := [n for n in names if n in ("scan_motion", "long_run_scan")]):
+        parser.error(f"--truth-fit: {', '.join(bad)} show the James scan, not the tracker's model")
+    TRUTH_FIT = args.truth_fit
     if args.lookahead_frames < 2:
         parser.error(f"--lookahead-frames must be >= 2, got {args.lookahead_frames}")
     LOOKAHEAD = LookaheadConfig(max_frames=args.lookahead_frames) if args.lookahead else None
