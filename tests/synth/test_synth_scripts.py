@@ -411,3 +411,36 @@ def test_track_grid_refuses_negative_overlay_frames(tmp_path, capsys):
     (tmp_path / "g" / "clip.mpg").write_bytes(b"")
     args = ["--grid", str(tmp_path / "g"), "--detector", "dlib", "--frames", "0", "-1", "--out", str(tmp_path / "o")]
     assert "--frames must be frame indices >= 0" in _usage_error(grid.main, args, capsys)
+
+
+def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subjects(capsys):
+    """--truth-fit (a diagnostic of the README's eyes-closed analysis) starts the tracker from frame 0's true pose,
+    shape and expression: the first result is the truth; the James scan (not the tracker's model) is refused, and so
+    is --lookahead beside it (both choose the first fit)."""
+    import pytest
+    import torch
+
+    from torchface.model.candide import load_candide3
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+    from torchface.tracker.module import FaceTracker
+
+    evaluate = _load("evaluate")
+    model = load_candide3()
+    frames, gt = render_sequence(make_scenario("expressions", 2, 160, 120))
+    fit = evaluate.truth_fit(model, gt)
+    assert torch.equal(fit.shape_coeffs[0], gt.shape_coeffs.to(model.dtype))
+    assert fit.shape_coeffs.abs().max() > 0  # the subject's shape is not the mean face, so this checks something
+    res = FaceTracker(model=model).initialise(frames[:1].to(model.dtype), gt.landmarks_px[:1].to(model.dtype),
+                                              gt.intrinsics, fit=fit)  # fmt: skip
+    assert torch.allclose(res.rotation[0].double(), gt.rotation[0], atol=1e-5)
+    assert torch.allclose(res.translation[0].double(), gt.translation[0], atol=1e-3)
+    _, james = render_sequence(make_scenario("scan_motion", 2, 64, 48))
+    with pytest.raises(ValueError, match="CANDIDE-3"):
+        evaluate.truth_fit(model, james)
+    base = ["--frames", "2", "--size", "64x48", "--cache", "none", "--ablations", "none", "--no-auroc"]
+    for extra, message in ((["--scenarios", "scan_motion", "--truth-fit"], "show the James scan"),
+                           (["--scenarios", "expressions", "--truth-fit", "--lookahead"], "give one")):
+        with pytest.raises(SystemExit) as info:
+            evaluate.main([*base, *extra])
+        assert info.value.code == 2 and message in capsys.readouterr().err
