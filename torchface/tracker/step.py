@@ -864,12 +864,17 @@ def add_coarser_levels(config: TrackerConfig, extra: int) -> TrackerConfig:
     """``config`` with ``extra`` coarser pyramid levels (as :func:`pyramid_for_faces` adds them: each with the
     coarsest level's ``iterations``); ``config`` itself for ``extra = 0``.
 
+    Raises:
+        TypeError: ``config`` is not a :class:`TrackerConfig`, or ``extra`` is not an int (:func:`check_int`).
+        ValueError: ``extra`` is negative.
+
     Example:
         >>> add_coarser_levels(TrackerConfig(), 2).iterations
         (6, 6, 6, 5, 4)
     """
-    if isinstance(extra, bool) or not isinstance(extra, int) or extra < 0:
-        raise ValueError(f"extra must be an int >= 0, got {extra!r}")
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+    extra = check_int(extra, "extra", 0)
     if extra == 0:
         return config
     return replace(config, num_levels=config.num_levels + extra,
