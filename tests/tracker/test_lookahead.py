@@ -74,7 +74,8 @@ def test_a_camera_pan_is_no_keyframe_turn():
     """A camera pan turns the head in the camera frame (its yaw changes by the pan's angle) but not about the ray the
     camera sees it along (:func:`view_yaw_deg` is unchanged), so it gives no keyframe; the same yaw from a head turn
     does, at the frame it does without translations. (A GRID clip's 120 px sideways jump used to re-anchor the
-    stream on a view that adds nothing: 0.66 degrees mean off the clean run for the rest of the clip.)"""
+    stream on a view that adds nothing: 0.61 degrees mean off the clean run for the rest of the clip,
+    ``scripts/doc_figures.py grid-pan``.)"""
     yaw = torch.tensor([0.0, 4.0, 8.0, 12.0, 16.0], dtype=D)
     zeros = torch.zeros_like(yaw)
     pan = euler_to_matrix(torch.stack([yaw, zeros, zeros], -1))  # the camera turns about its centre

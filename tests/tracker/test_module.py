@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import copy
 import io
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -19,6 +21,11 @@ from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.tracker import FaceTracker, FitConfig, TrackerConfig, managed_step
+
+# The clips shared with other folders' tests (tests/_helpers.py; the tests folder on sys.path, whatever pytest's
+# import mode).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import sideways_clip  # noqa: E402
 
 W, H = 320, 240
 D = torch.float64
@@ -253,22 +260,6 @@ def test_settings_set_after_construction_are_checked(model, three_streams):
     assert bool(tracker(frames[:, 1]).success.all())
 
 
-def _sideways_clip(w: int, h: int, n: int = 3):
-    """The clip of tests/cli/test_cli_track.py's HD test: CANDIDE-3 at 450 mm turning 2 degrees and moving 13 mm
-    sideways a frame (18 pixels at 640x360, 37 at 1280x720); ``frames (n, 3, h, w)`` float32, the first landmarks
-    ``(1, 68, 2)`` and the true rotations ``(n, 3, 3)``."""
-    s = torch.linspace(0.0, 1.0, 6, dtype=D)[:n, None]
-    spec = SequenceSpec(
-        name="clip", subject="candide3", intrinsics=Intrinsics.default(w, h),
-        rotation=euler_to_matrix(s * torch.tensor([10.0, 0.0, 0.0], dtype=D)),
-        translation=torch.tensor([0.0, 0.0, 450.0], dtype=D) + s * torch.tensor([65.0, 0.0, 0.0], dtype=D),
-        anim=torch.zeros(n, load_candide3().num_animation, dtype=D), light=default_light(n),
-        background=BackgroundSpec(seed=3),
-    )  # fmt: skip
-    frames, gt = render_sequence(spec)
-    return frames.float(), gt.landmarks_px[:1].float(), gt.rotation
-
-
 def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model):
     """FaceTracker took its config as given, so an HD video lost a fast motion that ``torchface track`` followed
     (frames 1 and 2 of this 1280x720 clip 23 and 28 degrees off with the default three levels). By default
@@ -279,12 +270,12 @@ def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model
 
     from torchface.geometry.so3 import geodesic_angle_deg
 
-    frames, lm, truth = _sideways_clip(1280, 720)
+    frames, lm, truth = sideways_clip(1280, 720)
     errors = {}
     for name, tracker in (("auto", FaceTracker(model=model, refine_first=None)),
                           ("config", FaceTracker(model=model, refine_first=None, pyramid="config"))):  # fmt: skip
         assert tracker.tracking_config is None
-        tracker.initialise(frames[:1], lm)
+        tracker.initialise(frames[:1], lm[None])
         rotations = [tracker(frames[t : t + 1]).rotation for t in (1, 2)]
         errors[name] = geodesic_angle_deg(torch.cat(rotations).double(), truth[1:3])
         assert tracker.state.num_levels == tracker.tracking_config.num_levels == {"auto": 4, "config": 3}[name]
@@ -293,15 +284,15 @@ def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model
     assert float(errors["config"].max()) > 10.0, errors  # (the default pyramid is lost: the motion is fast)
     # a config set mid-sequence keeps the levels added at initialise; reset forgets them
     tracker = FaceTracker(model=model, refine_first=None)
-    tracker.initialise(frames[:1], lm)
+    tracker.initialise(frames[:1], lm[None])
     tracker.config = replace(TrackerConfig(), robust_c=5.0)
     assert bool(tracker(frames[1:2]).success.all()) and tracker.tracking_config.robust_c == 5.0
     assert tracker.tracking_config.num_levels == tracker.state.num_levels == 4
     tracker.reset()
     assert tracker.tracking_config is None
     # the 640x360 copy's face keeps the config (the same object: the same numbers)
-    small, lm_small, _ = _sideways_clip(640, 360, n=1)
-    tracker.initialise(small, lm_small)
+    small, lm_small, _ = sideways_clip(640, 360, n=1)
+    tracker.initialise(small, lm_small[None])
     assert tracker.tracking_config is tracker.config and tracker.state.num_levels == 3
     with pytest.raises(ValueError, match=r"pyramid must be one of \('auto', 'config'\), got 'none'"):
         FaceTracker(model=model, pyramid="none")
@@ -316,9 +307,9 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     num_levels = 5"). A config set mid-sequence now gets the levels the state holds beyond its own."""
     from dataclasses import replace
 
-    frames, lm, _ = _sideways_clip(1280, 720)
+    frames, lm, _ = sideways_clip(1280, 720)
     tracker = FaceTracker(model=model, refine_first=None)
-    tracker.initialise(frames[:1], lm)
+    tracker.initialise(frames[:1], lm[None])
     assert tracker.state.num_levels == 4
     tracker.config = replace(tracker.tracking_config, robust_c=5.0)
     assert tracker.tracking_config is tracker.config and tracker.tracking_config.num_levels == 4
@@ -328,7 +319,7 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     assert bool(tracker(frames[2:3]).success.all())
     # where initialise added none, a config of other levels is refused as before
     tracker = FaceTracker(model=model, refine_first=None, pyramid="config")
-    tracker.initialise(frames[:1], lm)
+    tracker.initialise(frames[:1], lm[None])
     tracker.config = replace(TrackerConfig(), num_levels=2, iterations=(6, 5))
     assert tracker.tracking_config is tracker.config
     with pytest.raises(ValueError, match="the state holds templates for 3 pyramid levels"):

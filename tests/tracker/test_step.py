@@ -696,6 +696,24 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
         initialise(model, replace(BASE, expression_prior_weights=(1.0,) * 5), frames[:, 0], lm, cam)
 
 
+def test_add_coarser_levels_checks_its_count_as_the_settings_do():
+    """``add_coarser_levels`` said ValueError for every bad ``extra``, a float or a string too, where the package's
+    counts (:func:`~torchface.geometry._checks.check_int`) say TypeError for a wrong type and ValueError for a
+    value out of range; a numpy integer is a count like an int, and a config that is not a TrackerConfig is named."""
+    from torchface.tracker.step import add_coarser_levels
+
+    assert add_coarser_levels(BASE, np.int64(2)) == add_coarser_levels(BASE, 2)
+    assert add_coarser_levels(BASE, 2).num_levels == BASE.num_levels + 2
+    assert add_coarser_levels(BASE, 0) is BASE
+    for bad in (1.0, "1", True, None):
+        with pytest.raises(TypeError, match=r"extra must be an int >= 0, got"):
+            add_coarser_levels(BASE, bad)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"extra must be an int >= 0, got -1"):
+        add_coarser_levels(BASE, -1)
+    with pytest.raises(TypeError, match="config must be a TrackerConfig, got dict"):
+        add_coarser_levels({}, 1)  # type: ignore[arg-type]
+
+
 def test_initialise_names_frames_too_small_for_the_pyramid(model, two_streams):
     """Frames smaller than the pyramid needs (3 pixels a side at its last halving) are refused naming the frames'
     size (it was pyr_down's "images must be ... H, W >= 3, got (1, 1, 2, 2)", a level the caller never made);

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import torch
 
 from torchface.geometry.camera import Intrinsics
@@ -12,6 +15,11 @@ from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec
 from torchface.tracker import FitConfig, TrackerConfig
 from training_hooks import FaceTrackingConfig
+
+# The HD clip shared with tests/tracker/test_module.py (tests/_helpers.py; the tests folder on sys.path, whatever
+# pytest's import mode), imported from here by this folder's tests.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import sideways_clip  # noqa: E402,F401
 
 SIZE = 128
 FRAMES = 6
@@ -38,21 +46,3 @@ def gentle(name: str, photo: str, ypr_end: tuple[float, float, float], t_move: t
         translation=torch.tensor([0.0, 0.0, 330.0], dtype=D) + s * torch.tensor(t_move, dtype=D),
         anim=anim, light=default_light(num_frames), background=BackgroundSpec(seed=seed),
     )  # fmt: skip
-
-
-def sideways_clip(w: int, h: int, n: int = 3) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The clip of tests/cli/test_cli_track.py's HD test: CANDIDE-3 at 450 mm turning 2 degrees and moving 13 mm
-    sideways a frame (37 pixels at 1280x720); ``frames (n, 3, h, w)`` float32, the first landmarks ``(68, 2)``
-    and the true rotations ``(n, 3, 3)``."""
-    from torchface.synth.sequence import render_sequence
-
-    s = torch.linspace(0.0, 1.0, 6, dtype=D)[:n, None]
-    spec = SequenceSpec(
-        name="clip", subject="candide3", intrinsics=Intrinsics.default(w, h),
-        rotation=euler_to_matrix(s * torch.tensor([10.0, 0.0, 0.0], dtype=D)),
-        translation=torch.tensor([0.0, 0.0, 450.0], dtype=D) + s * torch.tensor([65.0, 0.0, 0.0], dtype=D),
-        anim=torch.zeros(n, load_candide3().num_animation, dtype=D), light=default_light(n),
-        background=BackgroundSpec(seed=3),
-    )  # fmt: skip
-    frames, gt = render_sequence(spec)
-    return frames.float(), gt.landmarks_px[0].float(), gt.rotation

@@ -197,10 +197,12 @@ def view_yaw_deg(rotation: Tensor, translation: Tensor | None = None) -> Tensor:
 
 #: A keyframe's turn must also be at least this fraction of ``LookaheadConfig.yaw_deg`` seen along the camera's ray
 #: (:func:`view_yaw_deg`), so that a camera pan, shake or moving crop, which turns the head in the camera frame but
-#: shows no new side of it, is no keyframe: on a GRID clip whose frames 30-39 were shifted 120 px sideways (a 15
-#: degree yaw in the camera frame), the re-anchoring at that view left the rest of the clip 0.66 degrees mean off
-#: the clean run (0.00 without the online start, and with this check). Half: a real turn of an off-centre head
-#: still counts at the frame it would without the check (the five standard scenarios track as before).
+#: shows no new side of it, is no keyframe: on GRID clip bbaf2n with frames 30-39 shifted 120 px to the left (about
+#: 20 degrees of yaw in the camera frame, 2.5 seen along the camera's ray), the re-anchoring at that view left the
+#: rest of the clip (frames 40-74) 0.61 degrees mean off the clean run, 0.01 with this check as without the online
+#: start (``python scripts/doc_figures.py grid-pan``; shifted to the right, and the other ten clips shifted either
+#: way, re-anchored no view even without the check). Half: a real turn of an off-centre head still counts at the
+#: frame it would without the check (the five standard scenarios track as before).
 VIEW_TURN_FRACTION: float = 0.5
 
 

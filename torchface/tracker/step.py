@@ -142,11 +142,13 @@ class TrackerConfig:
             (black or textureless frame).
         min_face_width_px: a face narrower than this (pixels of the full-resolution frame; :func:`face_width_px`,
             the model's frontal face's width at the estimate's depth) gets confidence 0 at each step, and
-            :func:`initialise` fails its stream: its estimates are too coarse to use. Measured on rendered
-            CANDIDE-3 clips at 320x240 (exact first-frame landmarks, head turning up to 15 degrees): rotation
-            error 2.3 / 4.5 degrees (mean / max) at 27 px wide, 2.6 / 5.6 at 23.5 px, 3.7 / 7.4 at 20 px, 7.8 / 14.1
-            at 18 px, 12 / 38 at 16 px, and at 13 px the track ran off at once (errors of 40-115 degrees); the
-            confidence stayed at 0.3-0.6 down to 16 px. 0 turns the test off. The standard scenarios' faces are
+            :func:`initialise` fails its stream: its estimates are too coarse to use. Measured with the test off
+            on ten rendered CANDIDE-3 clips of 30 frames per width at 320x240 (exact first-frame landmarks, head
+            turning out to 15 degrees each way; ``python scripts/doc_figures.py face-width``): rotation error
+            2.8 / 5.8 degrees (mean / max) at 27 px wide, 3.3 / 5.9 at 23.5 px, 3.5 / 7.5 at 20 px, 5.4 / 14.3 at
+            18 px, 6.8 / 39 at 16 px (2 of the 10 clips ran off), and at 13 px 7 of the 10 ran off (errors up to
+            110 degrees); the confidence stayed high as the error grew (median 0.77 at 18 px, 0.69 at 16 px).
+            0 turns the test off. The standard scenarios' faces are
             about 180 px wide at 640x480 (45 px at 160x120).
         refine_iterations: after the pose is found, iterations of a second pass at the finest level that
             re-estimates only the animation units and the light with the robust scale floored at
@@ -864,12 +866,17 @@ def add_coarser_levels(config: TrackerConfig, extra: int) -> TrackerConfig:
     """``config`` with ``extra`` coarser pyramid levels (as :func:`pyramid_for_faces` adds them: each with the
     coarsest level's ``iterations``); ``config`` itself for ``extra = 0``.
 
+    Raises:
+        TypeError: ``config`` is not a :class:`TrackerConfig`, or ``extra`` is not an int (:func:`check_int`).
+        ValueError: ``extra`` is negative.
+
     Example:
         >>> add_coarser_levels(TrackerConfig(), 2).iterations
         (6, 6, 6, 5, 4)
     """
-    if isinstance(extra, bool) or not isinstance(extra, int) or extra < 0:
-        raise ValueError(f"extra must be an int >= 0, got {extra!r}")
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+    extra = check_int(extra, "extra", 0)
     if extra == 0:
         return config
     return replace(config, num_levels=config.num_levels + extra,

@@ -1,0 +1,240 @@
+#!/usr/bin/env python
+"""Measure the figures README.md and the docstrings quote from small experiments that no other script runs.
+
+Each subcommand prints the table its text quotes (one thread, under a minute on a 2-core CPU):
+
+  face-width   TrackerConfig.min_face_width_px's docstring (and the README's paragraph on it): rotation error
+               against the face's width on rendered CANDIDE-3 clips at 320x240, with the test off
+               (min_face_width_px=0). Per width, --clips clips of --frames frames: exact first-frame landmarks,
+               the head turning out to 15 degrees of yaw each way (pitch and roll up to 8 and 5 degrees, seeded),
+               at the depth that makes the frontal face that wide (face_width_px), tracked by a default
+               FaceTracker.
+  small-frames The README's "Small frames" limitation: the `leaves` clip of tests/tracker/test_managed.py (a
+               rendered face leaving the frame for 4 frames and coming back 60 mm aside, here for --frames
+               frames) at small frame sizes, default FaceTracker, with the default levels and one fewer: the first
+               frame found after the return, from the mosaic search at the coarsest level, or with a detector
+               (--oracle: the renderer's landmarks stand in for one).
+  grid-pan     lookahead.VIEW_TURN_FRACTION's comment: a GRID clip (../shared/assets/grid, first-frame landmarks in
+               scripts/data/grid_landmarks) whose frames 30-39 are shifted --shift px sideways (a camera pan), tracked
+               by a default FaceTracker (online start on): how far the rest of the clip's rotations are from the
+               clean run's, with the view check, with it off (VIEW_TURN_FRACTION = 0) and without the online start.
+
+Examples:
+    python scripts/doc_figures.py face-width
+    python scripts/doc_figures.py small-frames --sizes 96x72,128x96,160x120
+    python scripts/doc_figures.py grid-pan --clip bbaf2n --shift -120
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg, matrix_to_euler
+from torchface.model.candide import load_candide3
+from torchface.synth.background import BackgroundSpec
+from torchface.synth.scenarios import default_light
+from torchface.synth.sequence import GroundTruth, SequenceSpec, render_sequence
+from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
+
+D = torch.float64
+ROOT = Path(__file__).resolve().parents[1]
+GRID = ROOT.parent / "shared" / "assets" / "grid"
+
+
+def _render(cam: Intrinsics, rotation: torch.Tensor, translation: torch.Tensor, seed: int,
+            photo: str = "james") -> tuple[torch.Tensor, GroundTruth]:  # fmt: skip
+    """``frames (T, 3, H, W)`` float in [0, 1] of CANDIDE-3 at ``rotation (T, 3, 3)``, ``translation (T, 3)``."""
+    T = rotation.shape[0]
+    spec = SequenceSpec(
+        name="figure", subject="candide3", intrinsics=cam, rotation=rotation, translation=translation,
+        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
+        background=BackgroundSpec(seed=seed), photo=photo,
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    return (frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()), gt
+
+
+def face_width(args: argparse.Namespace) -> None:
+    model = load_candide3()
+    cam = Intrinsics.default(320, 240)
+    fw = float(face_width_px(model, torch.tensor([[0.0, 0.0, 1000.0]]), cam)) * 1000.0  # fx w: width x depth
+    T = args.frames
+    u = torch.linspace(0.0, 1.0, T, dtype=D)[:, None]
+    config = TrackerConfig(min_face_width_px=0.0)
+    print(f"{args.clips} clips of {T} frames at 320x240 per width; rotation error (degrees) over frames 1-{T - 1}")
+    print(f"{'width px':>8} {'mean':>6} {'max':>6} {'clips run off (>30)':>20} {'conf median':>11} {'conf 10%':>8}")
+    for width in args.widths:
+        errors, confidences, run_off = [], [], 0
+        for seed in range(args.clips):
+            g = torch.Generator().manual_seed(seed)
+            amp = (torch.rand(3, generator=g, dtype=D) * 2 - 1) * torch.tensor([15.0, 8.0, 5.0], dtype=D)
+            phase = torch.rand(3, generator=g, dtype=D) * 2 * math.pi
+            rate = 2 * math.pi * torch.tensor([1.0, 2.0, 1.5], dtype=D)
+            ypr = amp * torch.sin(rate * u + phase) - amp * torch.sin(phase)  # from frontal
+            # yaw: out to 15 degrees, back, out to the other side and back (first side by the seed)
+            side = 1.0 if seed % 2 == 0 else -1.0
+            ypr[:, 0] = side * 15.0 * torch.sin(2 * math.pi * u[:, 0])
+            translation = torch.tensor([0.0, 0.0, fw / width], dtype=D).expand(T, 3).clone()
+            frames, gt = _render(cam, euler_to_matrix(ypr), translation, seed + 3)
+            tracker = FaceTracker(config, model)
+            tracker.initialise(frames[:1], gt.landmarks_px[:1].float())
+            results = [tracker(frames[i : i + 1]) for i in range(1, T)]
+            error = geodesic_angle_deg(torch.cat([r.rotation for r in results]).double(), gt.rotation[1:])
+            errors.append(error)
+            confidences.append(torch.cat([r.confidence for r in results]))
+            run_off += int(float(error.max()) > 30.0)
+        e, c = torch.cat(errors), torch.cat(confidences)
+        print(f"{width:>8.1f} {float(e.mean()):>6.2f} {float(e.max()):>6.1f} {f'{run_off}/{args.clips}':>20} "
+              f"{float(c.median()):>11.2f} {float(c.quantile(0.1)):>8.2f}")
+
+
+def small_frames(args: argparse.Namespace) -> None:
+    model = load_candide3()
+    x = [0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-60.0] * (args.frames - 8)
+    T, back = len(x), 8
+    rotation = euler_to_matrix(torch.zeros(T, 3, dtype=D))
+    translation = torch.tensor([[a, 0.0, 450.0] for a in x], dtype=D)
+    print(f"face out of the frame at frames 4-7, back from frame {back} to {T - 1}; found = first frame from "
+          f"{back} on that is a success within 15 mm of the truth, and every frame after it")
+    print(f"{'photo':<10} {'size':>8} {'levels':>6} {'coarsest':>8} {'face tall there':>15} {'found at':>8}")
+    for photo in args.photos:
+        for w, h in args.sizes:
+            cam = Intrinsics.default(w, h)
+            frames, gt = _render(cam, rotation, translation, 3, photo)
+            tall = float(gt.landmarks_px[0, :, 1].amax() - gt.landmarks_px[0, :, 1].amin())
+            current = [0]
+
+            def oracle(batch: torch.Tensor) -> torch.Tensor:
+                # the renderer's landmarks of the frame being tracked (NaN when the face is not in view)
+                i = current[0]
+                lm = gt.landmarks_px[i].clone().float()
+                if int(gt.landmarks_visible[i].sum()) < 40:
+                    lm[:] = float("nan")
+                return lm[None].expand(batch.shape[0], -1, -1)
+
+            for fewer in (0, 1):
+                config = TrackerConfig()
+                if fewer:
+                    config = replace(config, num_levels=config.num_levels - 1, iterations=config.iterations[1:])
+                tracker = FaceTracker(config, model, detector=oracle if args.oracle else None)
+                tracker.initialise(frames[:1], gt.landmarks_px[:1].float())
+                good = []
+                for i in range(1, T):
+                    current[0] = i
+                    r = tracker(frames[i : i + 1])
+                    near = float((r.translation[0].double() - gt.translation[i]).norm()) < 15.0
+                    good.append(bool(r.success[0]) and near)
+                found = next((i for i in range(back, T) if all(good[i - 1 :])), None)
+                coarse = 2 ** (config.num_levels - 1)
+                print(f"{photo:<10} {f'{w}x{h}':>8} {config.num_levels:>6} {f'{w // coarse}x{h // coarse}':>8} "
+                      f"{tall / coarse:>12.1f} px {'never' if found is None else found:>8}")
+
+
+def grid_pan(args: argparse.Namespace) -> None:
+    import torchface.tracker.lookahead as lookahead
+    from torchface.io.landmarks import read_landmarks
+    from torchface.synth.io import read_video_uint8
+    from torchface.tracker import view_yaw_deg
+
+    frames = read_video_uint8(args.grid / f"{args.clip}.mpg").float() / 255.0
+    T, _, H, W = frames.shape
+    landmarks = torch.from_numpy(read_landmarks(args.landmarks_dir / f"{args.clip}.csv", W, H)).float()[None]
+    dx, (a, b) = args.shift, (30, 40)
+    panned = frames.clone()  # frames a..b-1 shifted dx px sideways, the uncovered strip filled with the edge column
+    if dx > 0:
+        panned[a:b, ..., dx:], panned[a:b, ..., :dx] = frames[a:b, ..., :-dx], frames[a:b, ..., :1]
+    elif dx < 0:
+        panned[a:b, ..., :dx], panned[a:b, ..., dx:] = frames[a:b, ..., -dx:], frames[a:b, ..., -1:]
+
+    def track(clip: torch.Tensor, online: bool) -> tuple[torch.Tensor, torch.Tensor, bool]:
+        tracker = FaceTracker() if online else FaceTracker(refine_first=None)
+        tracker.initialise(clip[:1], landmarks)
+        results = [tracker(clip[i : i + 1]) for i in range(1, T)]
+        management = None if tracker.state is None else tracker.state.management
+        anchor = None if management is None else management.head_rotation
+        moved = anchor is not None and not torch.equal(anchor[0], torch.eye(3, dtype=anchor.dtype))
+        return (torch.cat([r.rotation for r in results]).double(), torch.cat([r.translation for r in results]).double(),
+                moved)  # fmt: skip
+
+    print(f"{args.clip} ({W}x{H}, {T} frames), frames {a}-{b - 1} shifted {dx:+d} px; rotation off the clean run "
+          f"(degrees) over frames {b}-{T - 1}")
+    fraction = lookahead.VIEW_TURN_FRACTION
+    for label, view_fraction, online in (("online start, view check", fraction, True),
+                                         ("online start, check off", 0.0, True),
+                                         ("no online start", fraction, False)):  # fmt: skip
+        lookahead.VIEW_TURN_FRACTION = view_fraction
+        try:
+            R0, t0, _ = track(frames, online)
+            R, t, moved = track(panned, online)
+        finally:
+            lookahead.VIEW_TURN_FRACTION = fraction
+        off = geodesic_angle_deg(R[b - 1 :], R0[b - 1 :])
+        yaw = (matrix_to_euler(R) - matrix_to_euler(R0))[a - 1 : b - 1, 0].mean()
+        view = (view_yaw_deg(R, t) - view_yaw_deg(R0, t0))[a - 1 : b - 1].mean()
+        print(f"{label:<26} mean {float(off.mean()):.2f} max {float(off.max()):.2f}; re-anchored: {moved}; "
+              f"frames {a}-{b - 1}: yaw {float(yaw):+.1f} in the camera frame, {float(view):+.1f} seen along the ray")
+
+
+def _sizes(text: str) -> list[tuple[int, int]]:
+    try:
+        sizes = [tuple(int(v) for v in item.split("x")) for item in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...], got {text!r}") from None
+    if any(len(s) != 2 or min(s) < 8 for s in sizes):
+        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...] of at least 8x8, got {text!r}")
+    return sizes  # type: ignore[return-value]
+
+
+def _widths(text: str) -> list[float]:
+    try:
+        widths = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"widths must be numbers, comma separated, got {text!r}") from None
+    if not all(math.isfinite(v) and v > 0 for v in widths):
+        raise argparse.ArgumentTypeError(f"widths must be positive pixels, got {text!r}")
+    return widths
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
+    sub = parser.add_subparsers(dest="figure", required=True)
+    p = sub.add_parser("face-width", help="rotation error against the face's width (min_face_width_px)")
+    p.add_argument("--widths", type=_widths, default=_widths("27,23.5,20,18,16,13"), help="face widths, px")
+    p.add_argument("--clips", type=int, default=10, help="clips per width (seeds 0..)")
+    p.add_argument("--frames", type=int, default=30, help="frames per clip")
+    p.set_defaults(run=face_width)
+    p = sub.add_parser("small-frames", help="recovery of a face back in a small frame (README: Small frames)")
+    sizes = "96x72,112x84,128x96,144x108,160x120,176x132,224x168,320x240"
+    p.add_argument("--sizes", type=_sizes, default=_sizes(sizes), help="frame sizes WxH, comma separated")
+    p.add_argument("--photos", default="james,astronaut", type=lambda s: s.split(","), help="face textures")
+    p.add_argument("--frames", type=int, default=20, help="frames of the clip (8 before the return)")
+    p.add_argument("--oracle", action="store_true", help="with a detector: the renderer's landmarks")
+    p.set_defaults(run=small_frames)
+    p = sub.add_parser("grid-pan", help="a camera pan in a GRID clip and the online start (VIEW_TURN_FRACTION)")
+    p.add_argument("--clip", default="bbaf2n", help="GRID clip name (<name>.mpg)")
+    p.add_argument("--shift", type=int, default=-120, help="sideways shift of frames 30-39, px (negative: left)")
+    p.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips")
+    p.add_argument("--landmarks-dir", type=Path, default=ROOT / "scripts" / "data" / "grid_landmarks",
+                   help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
+    p.set_defaults(run=grid_pan)
+    args = parser.parse_args(argv)
+    for name in ("clips", "frames"):
+        if getattr(args, name, 1) < 1:
+            parser.error(f"--{name} must be >= 1")
+    if args.figure == "small-frames" and args.frames < 10:
+        parser.error("--frames must be >= 10 (8 before the face's return)")
+    if args.figure == "grid-pan" and not (args.grid / f"{args.clip}.mpg").is_file():
+        parser.error(f"no GRID clip {args.clip}.mpg in {args.grid}")
+    torch.set_num_threads(1)
+    args.run(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
