@@ -1062,17 +1062,109 @@ def test_normalised_size_is_even(clip, tmp_path):
     assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
 
 
-def test_no_face_in_the_first_frame_is_one_line_saying_what_to_do(clip, tmp_path, monkeypatch, capsys):
-    """A video whose face appears only later: the run is refused before anything is written, and the message says
-    what to do (it only said the detector found no face)."""
+def test_no_face_in_any_frame_is_one_line_saying_what_to_do(clip, tmp_path, monkeypatch, capsys):
+    """A video in none of whose frames the detector finds a face: the run is refused before anything is written,
+    saying so (the detector was asked about every frame, the search reported as such)."""
     import torchface.detect
 
     video, lm, gt = clip
-    monkeypatch.setitem(torchface.detect.DETECTORS, "none", lambda: lambda image: None)
+    calls = []
+    monkeypatch.setitem(torchface.detect.DETECTORS, "none", lambda: lambda image: calls.append(1))
     rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
-    _assert_clean_failure(rc, capsys, tmp_path / "o", "the none detector found no face in the first frame")
-    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
-    _assert_clean_failure(rc, capsys, tmp_path / "o", "--landmarks FILE, or cut the video to start at a frame with")
+    _assert_clean_failure(rc, capsys, tmp_path / "o", f"the none detector found no face in any of its {T} frames")
+    assert len(calls) == T
+    reports = []
+    with pytest.raises(InputError, match="--landmarks FILE if it shows one"):
+        track_videos([video], JobConfig(out_dir=tmp_path / "o", detector="none"), progress=reports.append)
+    assert [(p.done, p.searching) for p in reports] == [(k, True) for k in range(1, T + 1)]
+
+
+def _with_blank_frames(video, path, n):
+    """The clip's frames (lossless) after ``n`` black ones, as an ``.npy`` array."""
+    frames = (read_video(video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    np.save(path, np.concatenate([np.zeros((n, *frames.shape[1:]), np.uint8), frames]))
+    return path
+
+
+def test_a_video_whose_face_appears_later_is_tracked_from_that_frame(clip, tmp_path, monkeypatch, capsys):
+    """Clips that start on a black frame (a title card, an empty room) were refused ("found no face in the first
+    frame"). The detector is asked about each next frame, and tracking starts at the first where it finds a face:
+    the rows before it unsuccessful (no estimate, status LOST, confidence 0), the rows from it on those of the clip
+    cut to start there, every output one frame per input frame."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 3
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(int(image_rgb.max()))
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    cut = _short_npy(video, tmp_path / "cut.npy", T)
+    reports = []
+    config = JobConfig(out_dir=tmp_path / "a", detector="blank")
+    (summary,) = track_videos([late], config, progress=reports.append)
+    assert [p.done for p in reports if p.searching] == [1, 2, 3]
+    assert calls[: n + 1] == [0, 0, 0, calls[n]] and calls[n] > 0
+    track_videos([cut], replace(config, out_dir=tmp_path / "b"))
+    cols, rows = read_track_csv(tmp_path / "a" / "late.csv")
+    _, ref = read_track_csv(tmp_path / "b" / "cut.csv")
+    c = {name: i for i, name in enumerate(cols)}
+    assert rows.shape[0] == T + n and np.array_equal(rows[:, c["frame"]], np.arange(T + n))
+    blank = rows[:n]
+    assert (blank[:, c["success"]] == 0).all() and (blank[:, c["confidence"]] == 0).all()
+    assert (blank[:, c["status"]] == 3).all() and np.isnan(blank[:, c["pose_Tx"] : c["status"]]).all()
+    tracked = np.delete(rows[n:], [c["frame"], c["timestamp"]], axis=1)
+    np.testing.assert_allclose(tracked, np.delete(ref, [c["frame"], c["timestamp"]], axis=1), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(rows[:, c["timestamp"]], np.arange(T + n) / 25.0, atol=1e-3)
+    assert summary.frames == T + n and summary.lost >= n
+    side = json.loads((tmp_path / "a" / "late.json").read_text())
+    assert side["start"]["first_frame"] == n and side["frames"] == T + n and side["lost_frames"][:n] == [0, 1, 2]
+    assert side["detector_calls"] == json.loads((tmp_path / "b" / "cut.json").read_text())["detector_calls"] + n
+    for kind in ("overlay", "normalised"):
+        assert read_video(output_paths(tmp_path / "a", "late")[kind]).shape[0] == T + n
+    # The command line's progress says it is searching.
+    rc = main(["track", str(late), "--out", str(tmp_path / "c"), "--detector", "blank"])
+    assert rc == 0 and re.search(r"^late +searching for a face: none in 1 frame", capsys.readouterr().err, re.M)
+
+
+def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_path, monkeypatch):
+    """Interrupted before and after its first face, such a video resumes: its rows before the face kept, its
+    tracked rows replayed from the first face on, the rest as the uninterrupted run's."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 2
+
+    def detector(image_rgb):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
+    track_videos([late], config)
+    _, ref = read_track_csv(tmp_path / "ref" / "late.csv")
+    for keep in (1, n + 2):  # (the first: interrupted among the rows without a face, as a kill would leave it)
+        out = tmp_path / f"out{keep}"
+
+        def interrupt(p):
+            if p.done == n + 3 and not p.searching:
+                raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            track_videos([late], replace(config, out_dir=out), progress=interrupt)
+        part = out / "late.csv.partial"
+        lines = part.read_text().splitlines(keepends=True)
+        part.write_text("".join(lines[: keep + 1]) + lines[keep + 1][:20])
+        assert read_track_csv(part)[1].shape[0] == keep
+        track_videos([late], replace(config, out_dir=out, resume=True))
+        _, rows = read_track_csv(out / "late.csv")
+        assert rows.shape == ref.shape
+        np.testing.assert_allclose(rows, ref, rtol=1e-5, atol=1e-4, equal_nan=True)
+        assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
 
 
 def test_redetect_below_must_be_finite(tmp_path):
