@@ -28,7 +28,9 @@ Every output of a frame is drawn from its CSV row as written and the JSON's ``st
 they agree with the CSV, lost and failed rows included, and a resumed run draws its replayed rows as the interrupted
 run did.
 
-Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last. A run
+Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last.
+While a run goes on, ``<stem>.lock`` (holding its pid and host) keeps another run from writing the same video's
+outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed) is taken over. A run
 without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
@@ -62,8 +64,10 @@ import json
 import math
 import os
 import re
+import socket
 import time
 import unicodedata
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -379,9 +383,92 @@ def _check_out_dir(out_dir: Path) -> None:
         raise OutputError(f"{out_dir}: output folder is not writable ({exc.strerror or exc})") from None
 
 
+def _lock_owner(path: Path) -> tuple[int, str] | None:
+    """``(pid, host)`` that the lock file ``path`` names (:func:`_take_locks`); None where it names none (not a
+    lock of this job, or one whose run has created it and not yet written it)."""
+    try:
+        pid, host = path.read_text(encoding="utf-8").split(maxsplit=1)
+        return int(pid), host.strip()
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` of this host exists (one of another user's too)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):  # another user's: it exists
+        return True
+    return True
+
+
+def _take_locks(out_dir: Path, names: Sequence[str]) -> list[Path]:
+    """Lock the outputs of videos ``names`` in ``out_dir`` against another run (two runs writing one video's
+    outputs at once corrupted each other's CSV, or one deleted what the other was writing): ``<name>.lock``,
+    created exclusively (``O_EXCL``) holding this process's pid and host. A lock whose process has ended (a run
+    killed with SIGKILL, a machine that crashed) is taken over, with a :class:`RuntimeWarning` naming it; a lock of
+    a process still running (or of another host, or that names no process) is an :class:`OutputError` naming it.
+    Returns the locks taken (:func:`_release_locks` removes them; those taken before an error are removed).
+    """
+    me = f"{os.getpid()} {socket.gethostname()}\n"
+    taken: list[Path] = []
+    try:
+        for name in names:
+            path = out_dir / f"{name}.lock"
+            for _ in range(10):  # (a lock that comes and goes meanwhile: look again)
+                try:
+                    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                except FileExistsError:
+                    owner = _lock_owner(path)
+                    if owner is None or owner[1] != socket.gethostname() or _alive(owner[0]):
+                        if owner is None and not path.exists():  # (released meanwhile)
+                            continue
+                        who = "another run" if owner is None else f"another run (pid {owner[0]} on {owner[1]})"
+                        raise OutputError(f"{path}: {who} is writing the outputs of {name} in {out_dir}: wait for it "
+                                          "to end, or give another --out (or remove this file if no torchface run "
+                                          "is writing there)") from None  # fmt: skip
+                    stale = path.with_name(f"{path.name}.{os.getpid()}.stale")
+                    try:  # (moved aside first: of two runs taking it over at once, one moves it)
+                        os.replace(path, stale)
+                    except FileNotFoundError:
+                        continue
+                    if _lock_owner(stale) != owner:  # another run's new lock, moved by mistake: put back
+                        os.replace(stale, path)
+                        continue
+                    stale.unlink(missing_ok=True)
+                    warnings.warn(f"{path}: taking over the lock of a run that has ended (pid {owner[0]}): its "
+                                  "partial outputs are resumed or replaced as this run's", RuntimeWarning,
+                                  stacklevel=3)  # fmt: skip
+                    continue
+                except OSError as exc:
+                    raise OutputError(f"{path}: cannot create the lock file ({exc.strerror or exc})") from None
+                taken.append(path)
+                try:
+                    os.write(fd, me.encode("utf-8"))
+                finally:
+                    os.close(fd)
+                break
+            else:
+                raise OutputError(f"{path}: cannot take the lock, other runs keep taking and releasing it")
+    except BaseException:
+        _release_locks(taken)
+        raise
+    return taken
+
+
+def _release_locks(locks: Sequence[Path]) -> None:
+    """Remove the locks :func:`_take_locks` took (never raises ``OSError``: a folder gone read-only keeps them,
+    and the next run takes them over, their process having ended)."""
+    for path in locks:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)
+
+
 def _written_names(name: str) -> list[str]:
     """Every file name the job writes for video ``name``, final and temporary (``.partial``, ``.tmp``)."""
-    return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial",
+    return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial", f"{name}.lock",
             f"{name}_overlay.partial.mp4", f"{name}_normalised.partial.mp4", f"{name}_plot.partial.png",
             f"{name}_meshes.partial"]  # fmt: skip
 
@@ -999,7 +1086,8 @@ def track_videos(
             video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
-            up to 23 bytes) would be too long for the output folder's file system.
+            up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
+            outputs of one of the videos there (its ``<stem>.lock``, :func:`_take_locks`).
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
@@ -1021,9 +1109,6 @@ def track_videos(
     _check_device(config.device)
     out_dir = Path(config.out_dir)
     _check_out_dir(out_dir)
-    summaries: dict[str, VideoSummary] = {}
-    pending: list[Path] = []
-    pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in inputs]
     _check_unique(inputs, names)
     _check_name_lengths(out_dir, inputs, names)
@@ -1034,6 +1119,21 @@ def track_videos(
                 raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
             if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
                 raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
+    locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
+    try:
+        return _track_locked(inputs, names, config, detector, out_dir, progress)
+    finally:
+        _release_locks(locks)
+
+
+def _track_locked(
+    inputs: list[Path], names: list[str], config: JobConfig, detector, out_dir: Path,
+    progress: Callable[[Progress], None] | None,
+) -> list[VideoSummary]:
+    """:func:`track_videos` once its inputs are checked and its outputs locked (:func:`_take_locks`)."""
+    summaries: dict[str, VideoSummary] = {}
+    pending: list[Path] = []
+    pending_lm: list[str | os.PathLike[str]] = []
     for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():

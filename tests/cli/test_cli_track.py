@@ -2481,3 +2481,70 @@ def test_a_folder_gone_read_only_while_finalising_says_why_and_closes_every_writ
     with pytest.raises(OutputError, match=r"a\.csv\.partial: cannot rename it to a\.csv \(Permission denied"):
         track_videos([a, b], config)  # the cause
     assert len(made) == 4 and all(v.writer is None for v in made)
+
+
+def test_a_second_run_into_the_same_outputs_is_refused_while_the_first_goes_on(clip, tmp_path, capsys):
+    """Two runs writing one video's outputs at once corrupted each other (and a fresh one deleted the other's
+    partial files): the second is refused, with one line naming the first's pid; the lock goes with the run that
+    held it, also when it is interrupted or fails, and another video's outputs in the same folder are not locked."""
+    import socket
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    other = _short_npy(video, tmp_path / "other.npy", 2)
+    out = tmp_path / "out"
+    lock = out / "short.lock"
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    seen = []
+
+    def second_run(p):
+        if p.done == 2 and not seen:
+            seen.append(lock.read_text())
+            with pytest.raises(OutputError, match=r"short.lock: another run \(pid \d+ on .*\) is writing the outputs"):
+                track_videos([short], config)
+            seen.append(main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet"]))
+            assert track_videos([other], config)[0].frames == 2  # another video: not locked
+
+    assert track_videos([short], config, progress=second_run)[0].frames == 4
+    assert seen[0] == f"{os.getpid()} {socket.gethostname()}\n" and seen[1] == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchface: error: ") and "\n" not in err and "give another --out" in err
+    assert not lock.exists() and read_track_csv(out / "short.csv")[1].shape[0] == 4
+
+    def interrupt(p):
+        assert lock.is_file()
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([short], config, progress=interrupt)
+    assert not lock.exists() and (out / "short.csv.partial").is_file()
+    with pytest.raises(InputError):
+        track_videos([short], replace(config, focal=500.0, resume=True))  # refused: other settings
+    assert not lock.exists()
+
+
+def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path):
+    """A run killed (SIGKILL, a crash) leaves its lock: the next run takes it over, saying so; a lock whose process
+    still runs is not."""
+    import socket
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    out.mkdir()
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait()
+    (out / "short.lock").write_text(f"{ended.pid} {socket.gethostname()}\n")
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    with pytest.warns(RuntimeWarning, match=rf"taking over the lock of a run that has ended \(pid {ended.pid}\)"):
+        assert track_videos([short], config)[0].frames == 2
+    assert not (out / "short.lock").exists() and not list(out.glob("*.stale"))
+    running = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / "short.lock").write_text(f"{running.pid} {socket.gethostname()}\n")
+        with pytest.raises(OutputError, match=rf"another run \(pid {running.pid} on"):
+            track_videos([short], config)
+        assert (out / "short.lock").read_text().startswith(f"{running.pid} ")  # (left to its run)
+    finally:
+        running.kill()
+        running.wait()
