@@ -11,9 +11,10 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
 - ``<stem>.json``: versions, settings, camera, model, how the video started (``start``, :func:`_start_record`),
   timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
-  detector about the video's frames: the first frame, those re-detections, and the tracker's recovery attempts of a
-  lost stream, which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the
-  rows it replays, but for a re-detection due after the last one, which the tracking goes on from);
+  detector about the video's frames: the first frame (and each next one up to the first with a face), those
+  re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves out; both 0
+  without a detector; a resumed run does not ask about the rows it replays, but for a re-detection due after the
+  last one, which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -132,9 +133,9 @@ class JobConfig:
         out_dir: output folder (created if missing); a ``str`` or any ``os.PathLike``, as the paths below.
         landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
             detector; a sequence even for one video (a single path raises TypeError).
-        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
-            re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
-            ``redetect_after`` frames, and to recover a stream that template management declares lost
+        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given (on the first
+            frame, and each next one until it finds a face: the video is tracked from there), to re-initialise
+            the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames, and to recover a stream that template management declares lost
             (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic). Both ask
             for the face nearest the stream's last confident position (:class:`torchface.detect.Detector`'s
             ``near``), not another one in view.
