@@ -135,7 +135,8 @@ class JobConfig:
             detector; a sequence even for one video (a single path raises TypeError).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given (on the first
             frame, and each next one until it finds a face: the video is tracked from there), to re-initialise
-            the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames, and to recover a stream that template management declares lost
+            the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames,
+            and to recover a stream that template management declares lost
             (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic). Both ask
             for the face nearest the stream's last confident position (:class:`torchface.detect.Detector`'s
             ``near``), not another one in view.
@@ -1647,14 +1648,15 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
     ``first_frame``: the frame tracking started at (its landmarks are ``initial_landmarks_px``): 0, or the first
-    frame where the detector found a face (the rows before it have no estimate). ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
-    earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
-    first row, and the mesh is placed (overlay wireframe, normalised face, meshes; the overlay's head axes stay the
-    rows' pose) by ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with
-    ``model.shape_coeffs``; their ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated
-    starting expression), ``anim_*`` are the coefficients that place the mesh. The rows up to and including that
-    frame (its row holds the estimate made before the re-anchoring) were tracked with ``first_shape_coeffs`` and
-    place the mesh with their own pose (:func:`_drawn_pose`).
+    frame where the detector found a face (the rows before it have no estimate). ``reanchored_at_frame``: the frame
+    whose step re-anchored the stream (None: not, or not known: a record of an earlier version). The rows after it
+    report the pose (rotation ``R``, translation ``t``) in the head frame of the first row, and the mesh is placed
+    (overlay wireframe, normalised face, meshes; the overlay's head axes stay the rows' pose) by
+    ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their
+    ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*``
+    are the coefficients that place the mesh. The rows up to and including that frame (its row holds the estimate made
+    before the re-anchoring) were tracked with ``first_shape_coeffs`` and place the mesh with their own pose
+    (:func:`_drawn_pose`).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
