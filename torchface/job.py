@@ -396,7 +396,9 @@ def _lock_owner(path: Path) -> tuple[int, str] | None:
 
 
 def _alive(pid: int) -> bool:
-    """Whether process ``pid`` of this host exists (one of another user's too)."""
+    """Whether process ``pid`` of this host exists (one of another user's too; on Windows, not known: True)."""
+    if os.name == "nt":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
+        return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
