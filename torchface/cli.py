@@ -101,6 +101,8 @@ class ProgressDisplay:
             self.broken = True
 
     def _line(self, p) -> str:
+        if getattr(p, "searching", False):  # (the job looks for the first frame with a face)
+            return f"{p.name[:28]:<28} searching for a face: none in {p.done} frame(s) {p.fps:5.1f} fps"
         if p.total:
             frac = min(1.0, p.done / p.total)
             bar = "#" * int(round(frac * self.width))
@@ -143,6 +145,7 @@ class ProgressDisplay:
         # its frames, which the job reports as its total once it has ended, are done: its log's last line said
         # the estimate's count, and its bar stayed among those of the videos being tracked)
         finished = p.total is not None and p.done >= p.total and (p.index not in self.finished or p.done == p.total)
+        finished = finished and not getattr(p, "searching", False)  # (a video without a face: an error follows)
         new = p.index not in self.lines
         line = self._line(p)
         now = time.monotonic()

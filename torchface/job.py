@@ -11,19 +11,27 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
 - ``<stem>.json``: versions, settings, camera, model, how the video started (``start``, :func:`_start_record`),
   timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
-  detector about the video's frames: the first frame, those re-detections, and the tracker's recovery attempts of a
-  lost stream, which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the
-  rows it replays, but for a re-detection due after the last one, which the tracking goes on from);
+  detector about the video's frames: the first frame (and each next one up to the first with a face), those
+  re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves out; both 0
+  without a detector; a resumed run does not ask about the rows it replays, but for a re-detection due after the
+  last one, which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
 - ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
 
+A video whose first frame shows no face to the detector (a title card, a black frame) is searched frame by frame
+and tracked from the first frame where it finds one (:func:`_open_inputs`; ``start.first_frame`` in the JSON), its
+rows before it without an estimate (:func:`_no_face_row`); one without any face is refused before anything is
+written.
+
 Every output of a frame is drawn from its CSV row as written and the JSON's ``start`` (:func:`_drawn_pose`), so that
 they agree with the CSV, lost and failed rows included, and a resumed run draws its replayed rows as the interrupted
 run did.
 
-Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last. A run
+Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last.
+While a run goes on, ``<stem>.lock`` (holding its pid and host) keeps another run from writing the same video's
+outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed) is taken over. A run
 without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
@@ -57,8 +65,10 @@ import json
 import math
 import os
 import re
+import socket
 import time
 import unicodedata
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -123,9 +133,10 @@ class JobConfig:
         out_dir: output folder (created if missing); a ``str`` or any ``os.PathLike``, as the paths below.
         landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
             detector; a sequence even for one video (a single path raises TypeError).
-        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given, to
-            re-initialise the pose of a stream whose confidence stays below ``redetect_below`` for
-            ``redetect_after`` frames, and to recover a stream that template management declares lost
+        detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given (on the first
+            frame, and each next one until it finds a face: the video is tracked from there), to re-initialise
+            the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames,
+            and to recover a stream that template management declares lost
             (:func:`torchface.tracker.managed.managed_step`; without a detector it searches the mosaic). Both ask
             for the face nearest the stream's last confident position (:class:`torchface.detect.Detector`'s
             ``near``), not another one in view.
@@ -202,7 +213,9 @@ class JobConfig:
 @dataclass(frozen=True)
 class Progress:
     """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames
-    (``total``: the count the input declares, None where unknown; once the video has ended, the frames it had)."""
+    (``total``: the count the input declares, None where unknown; once the video has ended, the frames it had).
+    ``searching``: the detector has found no face in the ``done`` frames looked at so far (before any tracking,
+    :func:`track_videos` looks for the first frame with a face; ``fps``: the frames looked at per second)."""
 
     index: int
     count: int
@@ -211,6 +224,7 @@ class Progress:
     total: int | None
     fps: float
     confidence: float
+    searching: bool = False
 
 
 @dataclass(frozen=True)
@@ -371,9 +385,94 @@ def _check_out_dir(out_dir: Path) -> None:
         raise OutputError(f"{out_dir}: output folder is not writable ({exc.strerror or exc})") from None
 
 
+def _lock_owner(path: Path) -> tuple[int, str] | None:
+    """``(pid, host)`` that the lock file ``path`` names (:func:`_take_locks`); None where it names none (not a
+    lock of this job, or one whose run has created it and not yet written it)."""
+    try:
+        pid, host = path.read_text(encoding="utf-8").split(maxsplit=1)
+        return int(pid), host.strip()
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` of this host exists (one of another user's too; on Windows, not known: True)."""
+    if os.name == "nt":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):  # another user's: it exists
+        return True
+    return True
+
+
+def _take_locks(out_dir: Path, names: Sequence[str]) -> list[Path]:
+    """Lock the outputs of videos ``names`` in ``out_dir`` against another run (two runs writing one video's
+    outputs at once corrupted each other's CSV, or one deleted what the other was writing): ``<name>.lock``,
+    created exclusively (``O_EXCL``) holding this process's pid and host. A lock whose process has ended (a run
+    killed with SIGKILL, a machine that crashed) is taken over, with a :class:`RuntimeWarning` naming it; a lock of
+    a process still running (or of another host, or that names no process) is an :class:`OutputError` naming it.
+    Returns the locks taken (:func:`_release_locks` removes them; those taken before an error are removed).
+    """
+    me = f"{os.getpid()} {socket.gethostname()}\n"
+    taken: list[Path] = []
+    try:
+        for name in names:
+            path = out_dir / f"{name}.lock"
+            for _ in range(10):  # (a lock that comes and goes meanwhile: look again)
+                try:
+                    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                except FileExistsError:
+                    owner = _lock_owner(path)
+                    if owner is None or owner[1] != socket.gethostname() or _alive(owner[0]):
+                        if owner is None and not path.exists():  # (released meanwhile)
+                            continue
+                        who = "another run" if owner is None else f"another run (pid {owner[0]} on {owner[1]})"
+                        raise OutputError(f"{path}: {who} is writing the outputs of {name} in {out_dir}: wait for it "
+                                          "to end, or give another --out (or remove this file if no torchface run "
+                                          "is writing there)") from None  # fmt: skip
+                    stale = path.with_name(f"{path.name}.{os.getpid()}.stale")
+                    try:  # (moved aside first: of two runs taking it over at once, one moves it)
+                        os.replace(path, stale)
+                    except FileNotFoundError:
+                        continue
+                    if _lock_owner(stale) != owner:  # another run's new lock, moved by mistake: put back
+                        os.replace(stale, path)
+                        continue
+                    stale.unlink(missing_ok=True)
+                    warnings.warn(f"{path}: taking over the lock of a run that has ended (pid {owner[0]}): its "
+                                  "partial outputs are resumed or replaced as this run's", RuntimeWarning,
+                                  stacklevel=3)  # fmt: skip
+                    continue
+                except OSError as exc:
+                    raise OutputError(f"{path}: cannot create the lock file ({exc.strerror or exc})") from None
+                taken.append(path)
+                try:
+                    os.write(fd, me.encode("utf-8"))
+                finally:
+                    os.close(fd)
+                break
+            else:
+                raise OutputError(f"{path}: cannot take the lock, other runs keep taking and releasing it")
+    except BaseException:
+        _release_locks(taken)
+        raise
+    return taken
+
+
+def _release_locks(locks: Sequence[Path]) -> None:
+    """Remove the locks :func:`_take_locks` took (never raises ``OSError``: a folder gone read-only keeps them,
+    and the next run takes them over, their process having ended)."""
+    for path in locks:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)
+
+
 def _written_names(name: str) -> list[str]:
     """Every file name the job writes for video ``name``, final and temporary (``.partial``, ``.tmp``)."""
-    return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial",
+    return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial", f"{name}.lock",
             f"{name}_overlay.partial.mp4", f"{name}_normalised.partial.mp4", f"{name}_plot.partial.png",
             f"{name}_meshes.partial"]  # fmt: skip
 
@@ -459,6 +558,9 @@ class _Stream:
     # stream leaves the batch's state: the sidecar's model.shape_coeffs and start.neutral_anim_coeffs)
     final_shape: list[float] | None = None
     final_neutral: list[float] | None = None
+    # the first frame tracked: the first where the detector found a face (0: the first frame). The tracking loop
+    # counts frames from it (its stream's t = frame - start); the rows before it have no estimate (_no_face_row)
+    start: int = 0
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -500,26 +602,81 @@ def _not_rotations(R: np.ndarray) -> np.ndarray:
     return (off > 1e-4) | (np.linalg.det(R) <= 0)
 
 
-def _replay_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
+def _replay_problem(rows: np.ndarray, columns: tuple[str, ...], first: int = 0) -> str | None:
     """What is wrong with the complete rows of a partial CSV that a resumed run replays (None: nothing): the rows
-    go on into the tracker's state, so each must be the row this version wrote for its frame: ``frame`` its index,
-    finite pose, rotation matrix (a rotation), animation and illumination values, and a :class:`TrackStatus`."""
+    go on into the tracker's state, so each must be the row this version wrote for its frame: ``frame`` its index
+    (from ``first``, the stream's first tracked frame), finite pose, rotation matrix (a rotation), animation and
+    illumination values, and a :class:`TrackStatus`."""
     idx = {c: i for i, c in enumerate(columns)}
     frame = rows[:, idx["frame"]]
-    wrong = np.flatnonzero(frame != np.arange(rows.shape[0]))
+    wrong = np.flatnonzero(frame != np.arange(first, first + rows.shape[0]))
     if wrong.size:
-        return f"the row of frame {wrong[0]} says frame {frame[wrong[0]]:g}"
+        return f"the row of frame {first + wrong[0]} says frame {frame[wrong[0]]:g}"
     used = [i for i, c in enumerate(columns) if re.fullmatch(r"pose_[TR][xyz]|r[0-2][0-2]|(anim|illum)_.+", c)]
     bad = np.flatnonzero(~np.isfinite(rows[:, used]).all(1))
     if bad.size:
-        return f"frame {bad[0]} has a pose, expression or light that is not a finite number"
+        return f"frame {first + bad[0]} has a pose, expression or light that is not a finite number"
     bad = np.flatnonzero(_not_rotations(rows[:, [idx[c] for c in ROTATION_COLUMNS]].reshape(-1, 3, 3)))
     if bad.size:
-        return f"frame {bad[0]}'s r00-r22 are not a rotation"
+        return f"frame {first + bad[0]}'s r00-r22 are not a rotation"
     bad = np.flatnonzero(~np.isin(rows[:, idx["status"]], [int(s) for s in TrackStatus]))
     if bad.size:
-        return f"frame {bad[0]} has status {rows[bad[0], idx['status']]:g}"
+        return f"frame {first + bad[0]} has status {rows[bad[0], idx['status']]:g}"
     return None
+
+
+def _no_face_row(columns: tuple[str, ...], frame: int, fps: float, managed: bool) -> np.ndarray:
+    """``(C,)`` the CSV row of a frame before the detector first found a face (``_Stream.start``): no estimate
+    (``nan``), ``success`` 0 and ``confidence`` 0 as an unusable row, status LOST with template management (``managed``;
+    as a stream whose start failed reads until a face is found) else FAILED, no iteration, point or mosaic entry
+    (-1)."""
+    row = np.full(len(columns), math.nan)
+    status = TrackStatus.LOST if managed else TrackStatus.FAILED
+    values = {"frame": frame, "timestamp": frame / fps, "success": 0, "confidence": 0.0, "status": int(status),
+              "iterations": 0, "num_points": 0, "mosaic_entry": -1}  # fmt: skip
+    for name, value in values.items():
+        row[columns.index(name)] = value
+    return row
+
+
+def _no_face_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
+    """What is wrong with the rows of a partial CSV before its video's first face (None: nothing): each must be
+    the row :func:`_no_face_row` writes for its frame (its ``frame``, ``success`` 0, no pose), else they were made
+    with another start (the frame where the detector first finds a face is found again on resume)."""
+    idx = {c: i for i, c in enumerate(columns)}
+    wrong = np.flatnonzero(rows[:, idx["frame"]] != np.arange(rows.shape[0]))
+    if wrong.size:
+        return f"the row of frame {wrong[0]} says frame {rows[wrong[0], idx['frame']]:g}"
+    used = [idx[c] for c in ("success", *POSE_COLUMNS[:3])]
+    bad = np.flatnonzero((rows[:, used[0]] != 0) | np.isfinite(rows[:, used[1:]]).any(1))
+    if bad.size:
+        return f"frame {bad[0]} has a pose, but the detector finds the first face at frame {rows.shape[0]}"
+    return None
+
+
+def _write_no_face(s: _Stream, columns: tuple[str, ...], config: JobConfig, conf_label: str) -> None:
+    """Write the frames of a video before the detector first found a face (``s.start``) and read its frames up to
+    that one (``s.last_frame``, from which the batch is initialised): their rows (:func:`_no_face_row`; those a
+    resumed run replays kept as they are), their overlay (the frame, no mesh, confidence 0 and "NO FACE") and a
+    black normalised face; no mesh (``meshes``: from the first tracked frame on)."""
+    csv, overlay, normalised = s.outputs()
+    replayed = csv.rows_done
+    managed = config.tracker.template.enabled
+    G = config.normalised_size
+    nowhere = np.full((4, 2), math.nan)  # (no mesh vertex, no axis drawn)
+    for t in range(s.start):
+        if t >= replayed:
+            csv.write(_no_face_row(columns, t, s.reader.info.fps, managed)[None])
+        bgr = cv2.cvtColor(_to_uint8_rgb(s.frame()), cv2.COLOR_RGB2BGR)
+        overlay.write(draw_overlay(bgr, nowhere, np.zeros((0, 2), np.int64), nowhere, 0.0, False, f"#{t}",
+                                   conf_label, "NO FACE"))  # fmt: skip
+        normalised.write(np.zeros((G, G, 3), np.uint8))
+        s.frames += 1
+        try:
+            s.last_frame = next(s.reader)
+        except StopIteration:  # (read when the run started: the input has changed since)
+            raise InputError(f"{s.reader.info.path}: it ends before frame {s.start}, where the run found its first "
+                             "face when it started: was it replaced?") from None  # fmt: skip
 
 
 def _record_path(csv: Path) -> Path:
@@ -540,8 +697,11 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
         st = path.stat()
         ident = f"{st.st_size} bytes, modified {st.st_mtime_ns} ns"
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
+    # (the frame where the detector first found a face, when not the first: said only then, so that the records of
+    # earlier versions, which tracked every video from its first frame, still compare equal)
+    late = {"first face at frame": stream.start} if stream.start else {}
     return {
-        "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16],
+        "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16], **late,
         **_as_json({
             "--focal": None if config.focal is None else float(config.focal), "--convert": config.convert,
             "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
@@ -716,15 +876,15 @@ def _rows_to_internal(params: Tensor, head_R: Tensor, head_t: Tensor, layout: Pa
 
 def _first_landmarks(
     reader: FrameReader, first: Tensor, landmarks: str | os.PathLike[str] | None, detector, detector_name: str | None
-) -> tuple[np.ndarray, str]:
+) -> tuple[np.ndarray, str] | None:
+    """The landmarks of frame ``first`` (a landmarks file's, or the detector's) and where they come from; None
+    where the detector finds no face in it."""
     W, H = reader.info.width, reader.info.height
     if landmarks is not None:  # (str() of an os.PathLike that is not a Path, an os.DirEntry, is its repr)
         return read_landmarks(landmarks, W, H), os.fspath(landmarks)
     points = detector(_to_uint8_rgb(first))
     if points is None:
-        raise InputError(f"{reader.info.path}: the {detector_name} detector found no face in the first frame (tracking "
-                         "starts there): give its 68 landmarks with --landmarks FILE, or cut the video to start at a "
-                         "frame with a face")  # fmt: skip
+        return None
     # (half of them inside: dlib's predictor places the chin of a face at the frame's edge just outside it)
     where = f"{reader.info.path}: detector landmarks"
     return check_landmarks(points, W, H, where, min_inside=0.5), f"detector:{detector_name}"
@@ -841,19 +1001,43 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
             "redetect_below": config.redetect_below}  # fmt: skip
 
 
-def _open_inputs(videos: Sequence[Path], config: JobConfig, detector) -> list[_Stream]:
+def _open_inputs(
+    videos: Sequence[Path], config: JobConfig, detector, progress: Callable[[Progress], None] | None = None
+) -> list[_Stream]:
     """Check every input before any tracking starts: open it, read its first frame, find its first-frame landmarks;
     then close it again (its batch reopens it, :func:`_reopen`): with all of them held open until the end, a run
     over many videos ran out of file descriptors (1024 inputs at the usual ``ulimit -n``: "Too many open files",
-    blamed on one of them) and held every video's first frame and decoder while the other sizes were tracked."""
+    blamed on one of them) and held every video's first frame and decoder while the other sizes were tracked.
+
+    Where the detector finds no face in the first frame (a title card, a black frame, an empty room), it is asked
+    about each next frame until it finds one (``progress`` reports the search, :attr:`Progress.searching`): the
+    video is tracked from that frame (``_Stream.start``), as the video cut to start there would be, and its rows
+    before it have no estimate (:func:`_no_face_row`; it was refused). A video in none of whose frames it finds a
+    face is an :class:`InputError` (nothing of the run is written).
+    """
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
     for k, (path, name) in enumerate(zip(videos, names)):
         with open_frames(path, convert=config.convert) as reader:
-            first = next(reader)
+            frame = next(reader)
             lm = config.landmarks[k] if config.landmarks else None
-            points, source = _first_landmarks(reader, first, lm, detector, config.detector)
-        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=int(lm is None)))
+            start, t0 = 0, time.perf_counter()
+            found = _first_landmarks(reader, frame, lm, detector, config.detector)
+            while found is None:  # (only with a detector: a landmarks file's are the first frame's)
+                if progress is not None:
+                    rate = (start + 1) / max(time.perf_counter() - t0, 1e-9)
+                    progress(Progress(k, len(videos), name, start + 1, reader.info.num_frames, rate, 0.0, True))
+                try:
+                    frame = next(reader)
+                except StopIteration:
+                    raise InputError(f"{path}: the {config.detector} detector found no face in any of its {start + 1} "
+                                     "frames: nothing to track (give the 68 landmarks of its first frame with "
+                                     "--landmarks FILE if it shows one)") from None  # fmt: skip
+                start += 1
+                found = _first_landmarks(reader, frame, lm, detector, config.detector)
+            points, source = found
+        streams.append(_Stream(name, reader, points, source, reader.info.num_frames,
+                               detector_calls=(start + 1) * int(lm is None), start=start))  # fmt: skip
     return streams
 
 
@@ -906,7 +1090,8 @@ def track_videos(
             video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
-            up to 23 bytes) would be too long for the output folder's file system.
+            up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
+            outputs of one of the videos there (its ``<stem>.lock``, :func:`_take_locks`).
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
@@ -928,9 +1113,6 @@ def track_videos(
     _check_device(config.device)
     out_dir = Path(config.out_dir)
     _check_out_dir(out_dir)
-    summaries: dict[str, VideoSummary] = {}
-    pending: list[Path] = []
-    pending_lm: list[str | os.PathLike[str]] = []
     names = [output_name(v) for v in inputs]
     _check_unique(inputs, names)
     _check_name_lengths(out_dir, inputs, names)
@@ -941,6 +1123,21 @@ def track_videos(
                 raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
             if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
                 raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
+    locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
+    try:
+        return _track_locked(inputs, names, config, detector, out_dir, progress)
+    finally:
+        _release_locks(locks)
+
+
+def _track_locked(
+    inputs: list[Path], names: list[str], config: JobConfig, detector, out_dir: Path,
+    progress: Callable[[Progress], None] | None,
+) -> list[VideoSummary]:
+    """:func:`track_videos` once its inputs are checked and its outputs locked (:func:`_take_locks`)."""
+    summaries: dict[str, VideoSummary] = {}
+    pending: list[Path] = []
+    pending_lm: list[str | os.PathLike[str]] = []
     for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
@@ -956,7 +1153,7 @@ def track_videos(
         if config.landmarks:
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
-    streams = _open_inputs(pending, sub, detector) if pending else []
+    streams = _open_inputs(pending, sub, detector, progress) if pending else []
     if not config.resume:  # a fresh run
         _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
@@ -1170,22 +1367,28 @@ def _track_group(
             if exact and s.total is not None and s.csv.rows_done > s.total:
                 raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
                                  f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
-            s.replay = s.csv.previous if s.csv.rows_done else None
-            problem = None if s.replay is None else _replay_problem(s.replay, columns)
+            # (the rows before the first face replay nothing into the state: the tracked rows after them do)
+            s.replay = s.csv.previous[s.start :] if s.csv.rows_done > s.start else None
+            problem = _no_face_problem(s.csv.previous[: s.start], columns)
+            if problem is None and s.replay is not None:
+                problem = _replay_problem(s.replay, columns, s.start)
             if problem is not None:  # (its values went into the state: NaN, a missing frame, a scaled rotation...)
                 raise InputError(f"{s.csv.partial}: cannot resume, its rows are damaged ({problem}): run without "
                                  "--resume")  # fmt: skip
             record = _record_path(p["csv"])
             s.anchor = None
-            if s.replay is not None:
+            if s.csv.rows_done:  # (made with other settings, a detector among them, its rows are not this run's)
                 s.anchor = _read_record(record, s.reader.info.path, s.settings, model.num_shape, model.num_animation)
-                if s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
+            if s.replay is None:  # (no tracked row: nothing re-anchored)
+                s.anchor = None
+            elif s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
                     # interrupted between the re-anchoring step and its row: the rows from the next one on are
                     # tracked re-anchored, the last replayed one was not (its mesh is placed with its own pose)
                     s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
             _write_record(record, s.reader.info.path, s.anchor, s.settings)
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
+            _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")
         if config.meshes:
             for d in mesh_tmp:
                 d.mkdir(parents=True, exist_ok=True)
@@ -1446,14 +1649,16 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
-    ``reanchored_at_frame``: the frame whose step re-anchored the stream (None: not, or not known: a record of an
-    earlier version). The rows after it report the pose (rotation ``R``, translation ``t``) in the head frame of the
-    first row, and the mesh is placed (overlay wireframe, normalised face, meshes; the overlay's head axes stay the
-    rows' pose) by ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with
-    ``model.shape_coeffs``; their ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated
-    starting expression), ``anim_*`` are the coefficients that place the mesh. The rows up to and including that
-    frame (its row holds the estimate made before the re-anchoring) were tracked with ``first_shape_coeffs`` and
-    place the mesh with their own pose (:func:`_drawn_pose`).
+    ``first_frame``: the frame tracking started at (its landmarks are ``initial_landmarks_px``): 0, or the first
+    frame where the detector found a face (the rows before it have no estimate). ``reanchored_at_frame``: the frame
+    whose step re-anchored the stream (None: not, or not known: a record of an earlier version). The rows after it
+    report the pose (rotation ``R``, translation ``t``) in the head frame of the first row, and the mesh is placed
+    (overlay wireframe, normalised face, meshes; the overlay's head axes stay the rows' pose) by
+    ``R_mesh = R @ head_rotation^T``, ``t_mesh = t - R_mesh @ head_translation``, with ``model.shape_coeffs``; their
+    ``AUxx_r`` columns are measured from ``neutral_anim_coeffs`` (the re-estimated starting expression), ``anim_*``
+    are the coefficients that place the mesh. The rows up to and including that frame (its row holds the estimate made
+    before the re-anchoring) were tracked with ``first_shape_coeffs`` and place the mesh with their own pose
+    (:func:`_drawn_pose`).
     """
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
@@ -1463,9 +1668,11 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     else:
         method = "landmark fit"
     anchor = s.anchor
+    at = None if anchor is None else anchor.get("frame")  # (the record counts from the first tracked frame)
     return {
         "method": method,
-        "reanchored_at_frame": None if anchor is None else anchor.get("frame"),
+        "first_frame": s.start,
+        "reanchored_at_frame": None if at is None else at + s.start,
         "head_rotation": None if anchor is None else anchor["head_rotation"],
         "head_translation": None if anchor is None else anchor["head_translation"],
         "neutral_anim_coeffs": s.final_neutral,
@@ -1521,8 +1728,9 @@ def _write_step(
     normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
     conf_label: str,
 ) -> None:
-    """Write frame ``t`` of every live stream: its CSV row (unless replayed), then its overlay, normalised face and
-    mesh, drawn from that row as the CSV holds it (:func:`_drawn_pose`)."""
+    """Write frame ``t`` of every live stream (its frame ``t + start``, ``_Stream.start``): its CSV row (unless
+    replayed), then its overlay, normalised face and mesh, drawn from that row as the CSV holds it
+    (:func:`_drawn_pose`)."""
     live = [not s.done for s in streams]
     if not any(live):
         return
@@ -1534,7 +1742,8 @@ def _write_step(
             written[k] = s.replay[t]
         else:
             row = rows[k].copy()
-            row[1] = t / s.reader.info.fps
+            row[0] = t + s.start
+            row[1] = (t + s.start) / s.reader.info.fps
             s.outputs()[0].write(row[None])
             s.tracked += 1
             written[k] = read_back(columns, row[None])[0]
@@ -1560,14 +1769,15 @@ def _write_step(
         bgr = cv2.cvtColor(_to_uint8_rgb(frames[k]), cv2.COLOR_RGB2BGR)
         unusable = "FAILED" if int(row[st]) == int(TrackStatus.FAILED) else "LOST"  # (both were drawn "LOST")
         _, overlay, normalised = s.outputs()
-        overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t}", conf_label, unusable))
+        overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t + s.start}", conf_label,
+                                   unusable))  # fmt: skip
         normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
         if mesh_dirs is not None:
             import trimesh
 
             verts = torch.matmul(model.deform(shape[k : k + 1], alpha[k : k + 1]), R_mesh[k].T) + t_mesh[k]
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
-            ply = mesh_dirs[k] / f"{t:06d}.ply"
+            ply = mesh_dirs[k] / f"{t + s.start:06d}.ply"
             try:
                 mesh.export(str(ply))
             except OSError as exc:  # a full disk: say which file (the error named none), and keep no cut-off mesh

@@ -1062,17 +1062,109 @@ def test_normalised_size_is_even(clip, tmp_path):
     assert JobConfig(out_dir=tmp_path, normalised_size=18).normalised_size == 18
 
 
-def test_no_face_in_the_first_frame_is_one_line_saying_what_to_do(clip, tmp_path, monkeypatch, capsys):
-    """A video whose face appears only later: the run is refused before anything is written, and the message says
-    what to do (it only said the detector found no face)."""
+def test_no_face_in_any_frame_is_one_line_saying_what_to_do(clip, tmp_path, monkeypatch, capsys):
+    """A video in none of whose frames the detector finds a face: the run is refused before anything is written,
+    saying so (the detector was asked about every frame, the search reported as such)."""
     import torchface.detect
 
     video, lm, gt = clip
-    monkeypatch.setitem(torchface.detect.DETECTORS, "none", lambda: lambda image: None)
+    calls = []
+    monkeypatch.setitem(torchface.detect.DETECTORS, "none", lambda: lambda image: calls.append(1))
     rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
-    _assert_clean_failure(rc, capsys, tmp_path / "o", "the none detector found no face in the first frame")
-    rc = main(["track", str(video), "--out", str(tmp_path / "o"), "--detector", "none", "--quiet"])
-    _assert_clean_failure(rc, capsys, tmp_path / "o", "--landmarks FILE, or cut the video to start at a frame with")
+    _assert_clean_failure(rc, capsys, tmp_path / "o", f"the none detector found no face in any of its {T} frames")
+    assert len(calls) == T
+    reports = []
+    with pytest.raises(InputError, match="--landmarks FILE if it shows one"):
+        track_videos([video], JobConfig(out_dir=tmp_path / "o", detector="none"), progress=reports.append)
+    assert [(p.done, p.searching) for p in reports] == [(k, True) for k in range(1, T + 1)]
+
+
+def _with_blank_frames(video, path, n):
+    """The clip's frames (lossless) after ``n`` black ones, as an ``.npy`` array."""
+    frames = (read_video(video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    np.save(path, np.concatenate([np.zeros((n, *frames.shape[1:]), np.uint8), frames]))
+    return path
+
+
+def test_a_video_whose_face_appears_later_is_tracked_from_that_frame(clip, tmp_path, monkeypatch, capsys):
+    """Clips that start on a black frame (a title card, an empty room) were refused ("found no face in the first
+    frame"). The detector is asked about each next frame, and tracking starts at the first where it finds a face:
+    the rows before it unsuccessful (no estimate, status LOST, confidence 0), the rows from it on those of the clip
+    cut to start there, every output one frame per input frame."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 3
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(int(image_rgb.max()))
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    cut = _short_npy(video, tmp_path / "cut.npy", T)
+    reports = []
+    config = JobConfig(out_dir=tmp_path / "a", detector="blank")
+    (summary,) = track_videos([late], config, progress=reports.append)
+    assert [p.done for p in reports if p.searching] == [1, 2, 3]
+    assert calls[: n + 1] == [0, 0, 0, calls[n]] and calls[n] > 0
+    track_videos([cut], replace(config, out_dir=tmp_path / "b"))
+    cols, rows = read_track_csv(tmp_path / "a" / "late.csv")
+    _, ref = read_track_csv(tmp_path / "b" / "cut.csv")
+    c = {name: i for i, name in enumerate(cols)}
+    assert rows.shape[0] == T + n and np.array_equal(rows[:, c["frame"]], np.arange(T + n))
+    blank = rows[:n]
+    assert (blank[:, c["success"]] == 0).all() and (blank[:, c["confidence"]] == 0).all()
+    assert (blank[:, c["status"]] == 3).all() and np.isnan(blank[:, c["pose_Tx"] : c["status"]]).all()
+    tracked = np.delete(rows[n:], [c["frame"], c["timestamp"]], axis=1)
+    np.testing.assert_allclose(tracked, np.delete(ref, [c["frame"], c["timestamp"]], axis=1), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(rows[:, c["timestamp"]], np.arange(T + n) / 25.0, atol=1e-3)
+    assert summary.frames == T + n and summary.lost >= n
+    side = json.loads((tmp_path / "a" / "late.json").read_text())
+    assert side["start"]["first_frame"] == n and side["frames"] == T + n and side["lost_frames"][:n] == [0, 1, 2]
+    assert side["detector_calls"] == json.loads((tmp_path / "b" / "cut.json").read_text())["detector_calls"] + n
+    for kind in ("overlay", "normalised"):
+        assert read_video(output_paths(tmp_path / "a", "late")[kind]).shape[0] == T + n
+    # The command line's progress says it is searching.
+    rc = main(["track", str(late), "--out", str(tmp_path / "c"), "--detector", "blank"])
+    assert rc == 0 and re.search(r"^late +searching for a face: none in 1 frame", capsys.readouterr().err, re.M)
+
+
+def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_path, monkeypatch):
+    """Interrupted before and after its first face, such a video resumes: its rows before the face kept, its
+    tracked rows replayed from the first face on, the rest as the uninterrupted run's."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 2
+
+    def detector(image_rgb):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
+    track_videos([late], config)
+    _, ref = read_track_csv(tmp_path / "ref" / "late.csv")
+    for keep in (1, n + 2):  # (the first: interrupted among the rows without a face, as a kill would leave it)
+        out = tmp_path / f"out{keep}"
+
+        def interrupt(p):
+            if p.done == n + 3 and not p.searching:
+                raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            track_videos([late], replace(config, out_dir=out), progress=interrupt)
+        part = out / "late.csv.partial"
+        lines = part.read_text().splitlines(keepends=True)
+        part.write_text("".join(lines[: keep + 1]) + lines[keep + 1][:20])
+        assert read_track_csv(part)[1].shape[0] == keep
+        track_videos([late], replace(config, out_dir=out, resume=True))
+        _, rows = read_track_csv(out / "late.csv")
+        assert rows.shape == ref.shape
+        np.testing.assert_allclose(rows, ref, rtol=1e-5, atol=1e-4, equal_nan=True)
+        assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
 
 
 def test_redetect_below_must_be_finite(tmp_path):
@@ -2389,3 +2481,70 @@ def test_a_folder_gone_read_only_while_finalising_says_why_and_closes_every_writ
     with pytest.raises(OutputError, match=r"a\.csv\.partial: cannot rename it to a\.csv \(Permission denied"):
         track_videos([a, b], config)  # the cause
     assert len(made) == 4 and all(v.writer is None for v in made)
+
+
+def test_a_second_run_into_the_same_outputs_is_refused_while_the_first_goes_on(clip, tmp_path, capsys):
+    """Two runs writing one video's outputs at once corrupted each other (and a fresh one deleted the other's
+    partial files): the second is refused, with one line naming the first's pid; the lock goes with the run that
+    held it, also when it is interrupted or fails, and another video's outputs in the same folder are not locked."""
+    import socket
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    other = _short_npy(video, tmp_path / "other.npy", 2)
+    out = tmp_path / "out"
+    lock = out / "short.lock"
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    seen = []
+
+    def second_run(p):
+        if p.done == 2 and not seen:
+            seen.append(lock.read_text())
+            with pytest.raises(OutputError, match=r"short.lock: another run \(pid \d+ on .*\) is writing the outputs"):
+                track_videos([short], config)
+            seen.append(main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet"]))
+            assert track_videos([other], config)[0].frames == 2  # another video: not locked
+
+    assert track_videos([short], config, progress=second_run)[0].frames == 4
+    assert seen[0] == f"{os.getpid()} {socket.gethostname()}\n" and seen[1] == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchface: error: ") and "\n" not in err and "give another --out" in err
+    assert not lock.exists() and read_track_csv(out / "short.csv")[1].shape[0] == 4
+
+    def interrupt(p):
+        assert lock.is_file()
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([short], config, progress=interrupt)
+    assert not lock.exists() and (out / "short.csv.partial").is_file()
+    with pytest.raises(InputError):
+        track_videos([short], replace(config, focal=500.0, resume=True))  # refused: other settings
+    assert not lock.exists()
+
+
+def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path):
+    """A run killed (SIGKILL, a crash) leaves its lock: the next run takes it over, saying so; a lock whose process
+    still runs is not."""
+    import socket
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    out.mkdir()
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait()
+    (out / "short.lock").write_text(f"{ended.pid} {socket.gethostname()}\n")
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    with pytest.warns(RuntimeWarning, match=rf"taking over the lock of a run that has ended \(pid {ended.pid}\)"):
+        assert track_videos([short], config)[0].frames == 2
+    assert not (out / "short.lock").exists() and not list(out.glob("*.stale"))
+    running = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / "short.lock").write_text(f"{running.pid} {socket.gethostname()}\n")
+        with pytest.raises(OutputError, match=rf"another run \(pid {running.pid} on"):
+            track_videos([short], config)
+        assert (out / "short.lock").read_text().startswith(f"{running.pid} ")  # (left to its run)
+    finally:
+        running.kill()
+        running.wait()

@@ -207,16 +207,16 @@ def test_csv_writer_on_a_full_disk_names_its_file_and_stops_cleanly(tmp_path):
 
 
 def test_a_full_disk_while_resuming_leaves_the_partial_csv_and_no_temporary_file(tmp_path, monkeypatch):
-    """Resuming rewrites the partial CSV's complete rows through ``<name>.csv.partial.tmp``; on a full disk that
-    file was left behind, cut off."""
+    """Resuming a partial CSV of other line ends rewrites its complete rows through ``<name>.csv.partial.tmp``
+    (one as the writer writes it is appended to in place); on a full disk that file was left behind, cut off."""
     from pathlib import Path
 
     from torchface.io import OutputError
 
     cols = ("frame", "confidence")
     part = tmp_path / "clip.csv.partial"
-    text = "frame,confidence\n0,0.9\n1,0.8\n"
-    part.write_text(text)
+    text = b"frame,confidence\r\n0,0.9\r\n1,0.8\r\n"
+    part.write_bytes(text)
     real = Path.write_text
 
     def full_disk(self, data, *args, **kwargs):
@@ -226,7 +226,7 @@ def test_a_full_disk_while_resuming_leaves_the_partial_csv_and_no_temporary_file
     monkeypatch.setattr(Path, "write_text", full_disk)
     with pytest.raises(OutputError, match=r"clip\.csv\.partial: cannot write \(No space left on device\)"):
         TrackCsvWriter(tmp_path / "clip.csv", cols, resume=True)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.csv.partial"] and part.read_text() == text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.csv.partial"] and part.read_bytes() == text
 
 
 def test_a_damaged_complete_line_is_refused_not_read_as_the_end(tmp_path):
@@ -353,3 +353,56 @@ def test_a_full_disk_or_a_read_only_folder_when_closing_names_the_file(tmp_path,
     with pytest.raises(OutputError, match=r"other\.csv\.partial: cannot rename it to other\.csv \(Permission denied"):
         writer.close()
     assert (tmp_path / "other.csv.partial").is_file() and not (tmp_path / "other.csv").exists()
+
+
+def _rows(n):
+    rng = np.random.default_rng(5)
+    return np.column_stack([np.arange(n), np.arange(n) / 25, np.ones(n), rng.uniform(size=n), rng.normal(size=n)])
+
+
+def test_resume_appends_after_the_last_complete_row_without_rewriting_the_rows(tmp_path, monkeypatch):
+    """A resumed partial CSV was written again whole, every row formatted anew (18.8 s per hour of video at 30
+    frames/s): it is now cut after its last complete row and appended to, in place, and the file comes out as an
+    uninterrupted writer's, byte for byte (a cut row, blank lines at the end, NaN cells)."""
+    import torchface.io.table as table
+
+    cols = ("frame", "timestamp", "success", "confidence", "x")
+    rows = _rows(40)
+    rows[7, 4] = math.nan
+    with TrackCsvWriter(tmp_path / "ref.csv", cols) as w:
+        w.write(rows)
+    for keep, tail in ((25, "25,1.0"), (25, ""), (3, "\n\n"), (0, "")):
+        with TrackCsvWriter(tmp_path / "v.csv", cols) as w:
+            w.write(rows[:keep])
+            w.stop()
+        part = tmp_path / "v.csv.partial"
+        with open(part, "a", encoding="utf-8") as f:
+            f.write(tail)
+        inode = part.stat().st_ino
+        formatted = []
+        real = table._format_row
+        monkeypatch.setattr(table, "_format_row", lambda c, r: formatted.append(1) or real(c, r))
+        w = TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
+        assert w.rows_done == keep and not formatted and part.stat().st_ino == inode  # nothing written again
+        np.testing.assert_array_equal(w.previous, read_track_csv(tmp_path / "ref.csv")[1][:keep])
+        w.write(rows[keep:])
+        w.close()
+        monkeypatch.setattr(table, "_format_row", real)
+        assert (tmp_path / "v.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes(), (keep, tail)
+        (tmp_path / "v.csv").unlink()
+
+
+def test_a_partial_csv_with_other_line_ends_is_written_again_when_resumed(tmp_path):
+    """A partial CSV this writer would not have written (Windows line ends, a byte-order mark: saved by another
+    program) is written again with its rows, so that the new rows are not appended to lines of another form."""
+    cols = ("frame", "timestamp", "success", "confidence", "x")
+    rows = _rows(10)
+    with TrackCsvWriter(tmp_path / "ref.csv", cols) as w:
+        w.write(rows)
+    text = (tmp_path / "ref.csv").read_text().splitlines(keepends=True)
+    for head, eol in ((b"", "\r\n"), (b"\xef\xbb\xbf", "\n")):
+        (tmp_path / "v.csv.partial").write_bytes(head + "".join(text[:5]).replace("\n", eol).encode())
+        with TrackCsvWriter(tmp_path / "v.csv", cols, resume=True) as w:
+            assert w.rows_done == 4
+            w.write(rows[4:])
+        assert (tmp_path / "v.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
