@@ -107,9 +107,9 @@ class LookaheadConfig:
             pyramid's blur mixes the background into the face near the outline, and the background does not
             turn with the head: those points pull the mesh smaller in the image, i.e. deeper. On a rendered 18
             degree turn at 600 mm (CANDIDE-3, 1 degree a frame, exact first-frame landmarks, the default
-            :class:`~torchface.tracker.FaceTracker`) the re-anchored mesh ends 4.3 / 25.6 / 34.5 mm too deep at
-            640x480 / 320x240 / 160x120 without the margin (17.5-25.6 mm at 320x240 for turns of 0.5-2 degrees a
-            frame), 0.3 / 4.2 / -0.1 mm with 2. Not the default: those points carry yaw and pitch, and with 2 the
+            :class:`~torchface.tracker.FaceTracker`) the re-anchored mesh ends 4.3 / 25.4 / 33.2 mm too deep at
+            640x480 / 320x240 / 160x120 without the margin (17.8-25.4 mm at 320x240 for turns of 0.5-2 degrees a
+            frame), 0.3 / 5.6 / -0.3 mm with 2. Not the default: those points carry yaw and pitch, and with 2 the
             standard scenarios' rotation errors grew (``expressions`` 0.20 -> 0.46 degrees mean, ``scan_motion``
             0.83 -> 0.97) while their translation errors hardly changed (README, Known limitations), and the
             refinement took 2.9 s instead of 1.3 at 640x480.
