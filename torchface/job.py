@@ -53,7 +53,10 @@ degrees of yaw and 0.9 mm, with the same error against the ground truth). Their 
 is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
 clip (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees)
 and statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
-frame's (mean confidence 0.88 against 0.78).
+frame's (mean confidence 0.88 against 0.78). A loss can end at another frame for the same reason: on a 160x120 clip
+interrupted in a loss (frames of noise), the uninterrupted run's tracking found the face again at the first frame
+after the noise against the re-anchoring frame's entry (confidence 0.77), the resumed run (which lacked it) a frame
+later, at its recovery attempt.
 """
 
 from __future__ import annotations

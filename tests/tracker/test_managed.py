@@ -981,7 +981,8 @@ def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_until_a_detector_star
     (no shape prior) the fit fails (FAILED), yet the next frame matched the failed fit's own templates and reference
     at confidence 1.0 and ended the loss: CONVERGED, success True, 89 degrees off. With the default fit it converged
     (success True) at confidence 0 against its own reference, whose patches the normalised face does not show, so
-    that no later frame or recovery candidate could ever score above 0. Both now fail at initialise and stay LOST
+    that no later frame or recovery candidate could ever score above 0 (the fit itself fails such landmarks now:
+    FitConfig.max_facing_deg). Both now fail at initialise and stay LOST
     until a detector's landmarks start the stream afresh (at the first recovery attempt, frame 2)."""
     frames, gt = gentle
     config = LEAVE_CFG if fit == "held" else replace(LEAVE_CFG, fit=TrackerConfig().fit)

@@ -75,6 +75,22 @@ class FitConfig:
             6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 12.1. It does not see the
             shape and expression units trading with the pose (a sparse subset's main error: README, Known
             limitations).
+        max_facing_deg: a fit that turned the face more than this many degrees from facing the camera (the angle
+            between its forward axis and the ray to its landmarks' centroid) is FAILED; None: only a face turned away
+            (90 degrees and more) is. A face seen edge-on hides half its landmarks, yet projects them onto a line,
+            and that is how the fit explained (nearly) collinear landmarks that the layout check
+            (``max_rotation_std_deg``) passes, since the face's depth relief determines the edge-on pose well
+            (CANDIDE-3 frontal, at yaw +-40, pitch +-20 and a mixed pose, at 450 and 900 mm, 0-2 px of noise; this
+            and the tracker's fit): the 68 landmarks moved onto one row or a slanted line CONVERGED 85-90 degrees
+            from facing the camera, 64-113 degrees off (rotation standard deviation 0.24-0.28); the 17 jaw points
+            moved onto a line 75-90 degrees (0.40-0.57); subsets of 4-12 points (eye corners, one eye, both eyes,
+            nose, upper lip, the 5-point one) so moved 75-90 degrees, 36-147 off; and the 8 inner lip points as
+            they are (2 px of noise, 900 mm) 89 degrees, 76 off. 75: the evaluation's scenarios face the camera
+            within 46 degrees (the long runs within 61), and no good fit (within 10 degrees of the truth) above
+            faced it beyond 50; the model's own 68 landmarks fit to within 1.5 degrees up to 85 degrees of yaw or
+            pitch (FAILED now above 75), but no detector sees a face's landmarks there. Landmarks on a line that a
+            face facing the camera within 75 degrees explains are not caught (of the 2808 line cases above, 795
+            still CONVERGED more than 30 degrees off), nor can be by the fit's geometry alone.
         reference_focal_px: the focal length (pixels) at which the precisions above hold as given: 640, that of
             ``Intrinsics.default(640, 480)`` (the standard scenarios' camera, where they were tuned), whose fits
             the scaling leaves as they were, to the bit (a factor of exactly 1). None: no scaling, the precisions
@@ -90,6 +106,7 @@ class FitConfig:
     max_iterations: int = 50
     refine_shape_prior_precision: float | None = None
     max_rotation_std_deg: float | None = 15.0
+    max_facing_deg: float | None = 75.0
     reference_focal_px: float | None = 640.0
 
     def __post_init__(self) -> None:
@@ -101,6 +118,10 @@ class FitConfig:
         if std is not None and not std > 0:  # NaN would fail nothing, 0 everything
             raise ValueError(f"max_rotation_std_deg must be positive or None, got {std!r}")
         object.__setattr__(self, "max_rotation_std_deg", std)
+        facing = check_optional_real(self.max_facing_deg, "max_facing_deg")
+        if facing is not None and not 0 < facing < 90:  # 90 and more: the turned-away check does it
+            raise ValueError(f"max_facing_deg must be in (0, 90) degrees or None, got {facing!r}")
+        object.__setattr__(self, "max_facing_deg", facing)
         if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
                                    or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
             raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
@@ -137,7 +158,7 @@ class LandmarkFit:
         rms_px: ``(B,)`` weighted RMS landmark reprojection error in pixels.
         status: ``(B,)`` int64 :class:`~torchface.solver.SolveStatus`: the solver's, or FAILED for a sample whose
             landmarks hold no pose (or that has fewer than 4 of them), or whose fit put a used landmark behind the
-            camera or turned the face away from it (:func:`fit_landmarks`).
+            camera or turned the face away from it or nearly edge-on (:func:`fit_landmarks`).
     """
 
     rotation: Tensor
@@ -444,12 +465,13 @@ def fit_landmarks(
         one point: no pose to find), when the fit put a landmark of positive weight behind the camera, where
         its residual no longer counts (far-off landmarks, thousands of image widths out, can end so), or when it
         turned the face away from the camera (more than 90 degrees from facing it), where its landmarks could not
-        be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose), when its RMS error
-        is at least 0.7 of the landmarks' RMS spread about their centroid (it explains less than half their layout:
-        mirrored landmarks that did not turn the face away end so, collapsed to a far face), or when the solver
-        stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the default
-        ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose), or when the
-        landmarks' layout does not determine the rotation (:attr:`FitConfig.max_rotation_std_deg`: e.g. the nose
+        be seen (the landmarks of a face seen from behind, or mirrored ones, can fit such a pose), or nearly so
+        (more than :attr:`FitConfig.max_facing_deg`, 75: seen edge-on, as collinear landmarks were fitted), when
+        its RMS error is at least 0.7 of the landmarks' RMS spread about their centroid (it explains less than half
+        their layout: mirrored landmarks that did not turn the face away end so, collapsed to a far face), or when
+        the solver stopped short of a minimum (weights so small against the priors, about 1e-15 or less with the
+        default ones, that the solver's damping swamps the pose's steps: it stopped near the start's pose), or when
+        the landmarks' layout does not determine the rotation (:attr:`FitConfig.max_rotation_std_deg`: e.g. the nose
         bridge alone, 4 nearly collinear points: from 2 px noisy landmarks 53-146 degrees off, some CONVERGED).
         Four landmarks suffice: the solver needs as many residuals as the parameters without a prior (the pose's
         six; the shape units and the expression have priors, unless given a precision of 0). A sample with fewer
@@ -562,6 +584,9 @@ def fit_landmarks(
     R = axis_angle_to_matrix(x[:, :3])
     centre = torch.einsum("bij,bj->bi", R, model_c) + x[:, 3:6]
     away = (R[:, :, 2] * centre).sum(-1) <= 0
+    if config.max_facing_deg is not None:  # nearly edge-on: how (nearly) collinear landmarks were explained
+        cos = (R[:, :, 2] * centre).sum(-1) / centre.norm(dim=-1).clamp_min(torch.finfo(dtype).tiny)
+        away = away | ~(cos >= math.cos(math.radians(config.max_facing_deg)))
     # A fit that explains less than half the landmarks' layout is no face's (mirrored landmarks collapse so).
     unexplained = rms >= _MAX_RMS_SPREAD * spread_px
     failed = (spread_px < _MIN_SPREAD_PX) | dropped | away | stalled | unexplained

@@ -35,6 +35,7 @@ landmark fit.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -52,8 +53,8 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, shape_precisions,
-    shape_prior_vector,
+    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, prior_scale,
+    shape_precisions, shape_prior_vector,
 )
 from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
 
@@ -86,7 +87,9 @@ class LookaheadConfig:
             side, which separates the pitch from the vertical proportions that the frontal view confounds.
         shape_prior_precision: prior precision of the re-estimated shape units (one value, or one per unit of
             the model as :attr:`~torchface.tracker.fit.FitConfig.shape_prior_precision`); None: the landmark
-            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go.
+            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go. Given, as
+            the landmark fit's, at its ``reference_focal_px`` (scaled with them: ``prior_scale`` of
+            :func:`refine_first_fit`).
         fit_expression: re-estimate the starting expression (the first frame's; each keyframe's points add the
             expression change the tracker measured there, ``key_expression`` of :func:`refine_first_fit`).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
@@ -104,9 +107,9 @@ class LookaheadConfig:
             pyramid's blur mixes the background into the face near the outline, and the background does not
             turn with the head: those points pull the mesh smaller in the image, i.e. deeper. On a rendered 18
             degree turn at 600 mm (CANDIDE-3, 1 degree a frame, exact first-frame landmarks, the default
-            :class:`~torchface.tracker.FaceTracker`) the re-anchored mesh ends 4.3 / 25.6 / 34.5 mm too deep at
-            640x480 / 320x240 / 160x120 without the margin (17.5-25.6 mm at 320x240 for turns of 0.5-2 degrees a
-            frame), 0.3 / 4.2 / -0.1 mm with 2. Not the default: those points carry yaw and pitch, and with 2 the
+            :class:`~torchface.tracker.FaceTracker`) the re-anchored mesh ends 4.3 / 25.4 / 33.2 mm too deep at
+            640x480 / 320x240 / 160x120 without the margin (17.8-25.4 mm at 320x240 for turns of 0.5-2 degrees a
+            frame), 0.3 / 5.6 / -0.3 mm with 2. Not the default: those points carry yaw and pitch, and with 2 the
             standard scenarios' rotation errors grew (``expressions`` 0.20 -> 0.46 degrees mean, ``scan_motion``
             0.83 -> 0.97) while their translation errors hardly changed (README, Known limitations), and the
             refinement took 2.9 s instead of 1.3 at 640x480.
@@ -264,14 +267,17 @@ def _near_background(background: Tensor, points: Tensor, intrinsics: Intrinsics,
     return near[uv[:, 1].clamp(0, near.shape[0] - 1), uv[:, 0].clamp(0, near.shape[1] - 1)]
 
 
-def landmark_fit_priors(model: FaceModel, fit_config: FitConfig) -> dict:
+def landmark_fit_priors(model: FaceModel, fit_config: FitConfig, intrinsics: Intrinsics) -> dict:
     """The landmark fit's settings as :func:`refine_first_fit` takes them (keyword arguments): its shape
-    precisions per unit, bounds, expression precision and held units, for ``model``."""
+    precisions per unit, bounds, expression precision and held units, for ``model``, and the factor on the
+    precisions for the camera ``intrinsics`` that :func:`~torchface.tracker.fit.fit_landmarks` applies
+    (:func:`~torchface.tracker.fit.prior_scale`: exactly 1 at the reference focal length, 640 px)."""
     precision = shape_precisions(fit_config, model.shape_names, torch.float64, "cpu")
     return dict(
         shape_prior_precision=tuple(precision.tolist()), shape_bound=fit_config.shape_bound,
         expression_prior_precision=fit_config.expression_prior_precision,
         held_shape_units=held_shape_indices(fit_config, model.shape_names),
+        prior_scale=prior_scale(fit_config, intrinsics),
     )
 
 
@@ -291,6 +297,7 @@ def refine_first_fit(
     shape_bound: float = 1.0,
     expression_prior_precision: float = 2.0,
     held_shape_units: tuple[int, ...] = (),
+    prior_scale: float = 1.0,
     config: LookaheadConfig = LookaheadConfig(),
     backend: Backend = Backend.AUTO,
 ) -> LandmarkFit:
@@ -315,6 +322,15 @@ def refine_first_fit(
         held_shape_units: the shape units the landmark fit held
             (:func:`~torchface.tracker.fit.held_shape_indices`): those re-estimated when ``config.shape_units``
             is None.
+        prior_scale: the factor on every prior precision (those above and ``config.shape_prior_precision``), so
+            that the landmark terms and the priors weigh against each other as in the fit refined:
+            :func:`~torchface.tracker.fit.prior_scale` of its config for the camera, which
+            :func:`landmark_fit_priors` gives and :func:`lookahead_fit` and the online start pass (they passed the
+            precisions unscaled: at 160 x 120, whose fit scales them by 1/16, the refinement held the shape units 16
+            times as hard as the fit did; with the photometric term negligible, a frame's refinement came out 0.03
+            degrees (320 x 240) and 0.22 (160 x 120) from that of the same scene at 640 x 480, now the same). 1: as
+            given, in the camera's squared pixels. The photometric term is not scaled (``photometric_weight`` was
+            tuned at 640 x 480).
         config: :class:`LookaheadConfig`.
         backend: :class:`~torchface.backend.Backend` of the first frame's template points (the tracker's
             :attr:`~torchface.tracker.step.TrackerConfig.backend`).
@@ -326,8 +342,8 @@ def refine_first_fit(
         model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, key_expression=key_expression,
         landmark_weights=landmark_weights,
         shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
-        expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units, config=config,
-        backend=backend,
+        expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units,
+        prior_scale=prior_scale, config=config, backend=backend,
     )[0]  # fmt: skip
 
 
@@ -347,6 +363,7 @@ def _refine_first_fit(
     expression_prior_precision: float,
     config: LookaheadConfig,
     held_shape_units: tuple[int, ...] = (),
+    prior_scale: float = 1.0,
     analytic: bool = True,
     backend: Backend = Backend.AUTO,
 ) -> tuple[LandmarkFit, Tensor, Tensor]:
@@ -373,6 +390,9 @@ def _refine_first_fit(
                                          or tuple(landmark_weights.shape) != (L,)):  # fmt: skip
         got = tuple(landmark_weights.shape) if isinstance(landmark_weights, Tensor) else type(landmark_weights).__name__
         raise ValueError(f"landmark_weights must be ({L},) or None, got {got}")
+    pscale = check_real(prior_scale, "prior_scale")
+    if not (math.isfinite(pscale) and pscale > 0):  # (NaN, infinite or negative precisions would reach the solve)
+        raise ValueError(f"prior_scale must be a positive finite number, got {prior_scale!r}")
     S, A = model.num_shape, model.num_animation
     free_units = held_shape_units if config.shape_units is None else config.shape_units
     if any(s >= S for s in free_units):
@@ -421,10 +441,10 @@ def _refine_first_fit(
     lo[o_sig:o_al], hi[o_sig:o_al] = -shape_bound, shape_bound
     if config.shape_prior_precision is not None:
         shape_prior_precision = config.shape_prior_precision
-    prior[o_sig:o_al] = shape_prior_vector(shape_prior_precision, S, dt, dev)[free_su]
+    prior[o_sig:o_al] = shape_prior_vector(shape_prior_precision, S, dt, dev)[free_su] * pscale
     if nA:
         lo[o_al:o_k], hi[o_al:o_k] = m.animation_ranges[:, 0], m.animation_ranges[:, 1]
-        prior[o_al:o_k] = expression_prior_precision
+        prior[o_al:o_k] = expression_prior_precision * pscale
     x = torch.maximum(torch.minimum(x, hi), lo)
 
     def coeffs(x: Tensor) -> tuple[Tensor, Tensor]:
@@ -704,7 +724,7 @@ def lookahead_fit(
         if all(len(k) == 2 for k in keys):
             break
     R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
-    streams, priors = [], landmark_fit_priors(model, fc)
+    streams, priors = [], landmark_fit_priors(model, fc, intrinsics)
     for b in range(B):
         one = fit.select(slice(b, b + 1))
         if len(keys[b]) >= config.min_keyframes:

@@ -1258,7 +1258,7 @@ def _reanchor(
     ms = _management(state)
     fc = config.fit
     fits, now_R, now_t = [], [], []
-    priors = landmark_fit_priors(model, fc)
+    priors = landmark_fit_priors(model, fc, state.intrinsics)
     with torch.inference_mode(False):
         for b in index.tolist():
             ks = keys[b]
