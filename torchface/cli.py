@@ -15,7 +15,8 @@ be read partway stops that video only: the summary of the others, completed, is 
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
 SIGTERM) and keeps its rows for ``--resume``. A progress display whose reader has gone (``2>&1 | head -1``) stops
 and the run goes on; a summary whose reader has gone exits with status 141 (128 + SIGPIPE, as ``cat`` does), the
-outputs complete. A closed stdout or stderr (``>&-``) is taken as ``/dev/null``.
+outputs complete. A closed stdout or stderr (``>&-``) is taken as ``/dev/null``. The job's warnings print one
+line ``torchface: warning: ...`` each, above the progress bars.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TextIO
@@ -99,6 +101,14 @@ class ProgressDisplay:
             self.stream.flush()
         except (OSError, ValueError):  # a broken pipe, a closed file: the display stops, the job goes on
             self.broken = True
+
+    def note(self, line: str) -> None:
+        """Print ``line`` (a warning) to stay: on a terminal above the bars, which are redrawn below it (written
+        between them, the next redraw's cursor movement overwrote it with a bar and left a stale bar above)."""
+        if self.tty:
+            self._draw(done=line)
+        else:
+            self._write(line + "\n")
 
     def _line(self, p) -> str:
         if getattr(p, "searching", False):  # (the job looks for the first frame with a face)
@@ -265,6 +275,34 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = ()) -> Non
     out.flush()
 
 
+@contextlib.contextmanager
+def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
+    """Within the block, a warning that torchface issues is printed as one line ``torchface: warning: ...`` on
+    stderr, as its errors are (``torchface: error: ...``), through the progress ``display`` where there is one;
+    one that other code issues, as Python prints it. (They were printed as Python prints them, with the file and
+    line of the code that called ``track_videos`` and the warning's class: ``.../torchface/cli.py:287:
+    RuntimeWarning: ...``.)"""
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    previous = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if file is not None or not os.path.abspath(filename).startswith(package):
+            previous(message, category, filename, lineno, file, line)
+            return
+        text = " ".join(str(message).split())
+        text = f"torchface: warning: {text.removeprefix('torchface: ')}"
+        if display is not None and not display.broken:
+            display.note(text)
+        else:
+            _say(text)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
+
+
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
     online_refine=True, max_batch=128,
@@ -279,7 +317,8 @@ def _run_track(
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     try:
-        summaries = track_videos(videos, config, progress=display)
+        with _warnings_as_lines(display):
+            summaries = track_videos(videos, config, progress=display)
     except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
         if display is not None:
             display.flush()

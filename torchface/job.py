@@ -411,13 +411,33 @@ def _alive(pid: int) -> bool:
     return True
 
 
+#: Seconds after which an empty lock file is taken as left by a run that ended as it created it (its run writes
+#: its pid and host into it at once: killed in between, or a machine that crashed before the file reached the
+#: disk, leaves it empty, and every later run was refused, "another run is writing", until it was removed by hand).
+EMPTY_LOCK_S: float = 10.0
+
+
+def _ended_lock(owner: tuple[int, str] | None, seen: os.stat_result) -> str | None:
+    """How a lock file (``owner``, :func:`_lock_owner`, and ``seen``, its ``stat``) was left by a run that has
+    ended, for the warning that takes it over; None where its run may still be going on (a process of this host
+    that exists, another host's, a file that names no process and is not empty)."""
+    if owner is None:
+        if seen.st_size == 0 and time.time() - seen.st_mtime > EMPTY_LOCK_S:
+            return f"a run that ended as it created it (the lock is empty, {EMPTY_LOCK_S:g} s after it was made)"
+        return None
+    if owner[1] == socket.gethostname() and not _alive(owner[0]):
+        return f"a run that has ended (pid {owner[0]})"
+    return None
+
+
 def _take_locks(out_dir: Path, names: Sequence[str]) -> list[Path]:
     """Lock the outputs of videos ``names`` in ``out_dir`` against another run (two runs writing one video's
     outputs at once corrupted each other's CSV, or one deleted what the other was writing): ``<name>.lock``,
     created exclusively (``O_EXCL``) holding this process's pid and host. A lock whose process has ended (a run
-    killed with SIGKILL, a machine that crashed) is taken over, with a :class:`RuntimeWarning` naming it; a lock of
-    a process still running (or of another host, or that names no process) is an :class:`OutputError` naming it.
-    Returns the locks taken (:func:`_release_locks` removes them; those taken before an error are removed).
+    killed with SIGKILL, a machine that crashed), or an empty one older than :data:`EMPTY_LOCK_S` (a run that ended
+    before it wrote its lock), is taken over, with a :class:`RuntimeWarning` naming it; a lock of a process still
+    running (or of another host, or that names no process) is an :class:`OutputError` naming it. Returns the locks
+    taken (:func:`_release_locks` removes them; those taken before an error are removed).
     """
     me = f"{os.getpid()} {socket.gethostname()}\n"
     taken: list[Path] = []
@@ -428,10 +448,13 @@ def _take_locks(out_dir: Path, names: Sequence[str]) -> list[Path]:
                 try:
                     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
                 except FileExistsError:
+                    try:
+                        seen = path.stat()
+                    except FileNotFoundError:  # (released meanwhile)
+                        continue
                     owner = _lock_owner(path)
-                    if owner is None or owner[1] != socket.gethostname() or _alive(owner[0]):
-                        if owner is None and not path.exists():  # (released meanwhile)
-                            continue
+                    ended = _ended_lock(owner, seen)
+                    if ended is None:
                         who = "another run" if owner is None else f"another run (pid {owner[0]} on {owner[1]})"
                         raise OutputError(f"{path}: {who} is writing the outputs of {name} in {out_dir}: wait for it "
                                           "to end, or give another --out (or remove this file if no torchface run "
@@ -441,19 +464,25 @@ def _take_locks(out_dir: Path, names: Sequence[str]) -> list[Path]:
                         os.replace(path, stale)
                     except FileNotFoundError:
                         continue
-                    if _lock_owner(stale) != owner:  # another run's new lock, moved by mistake: put back
-                        os.replace(stale, path)
+                    except OSError as exc:  # (a folder with the sticky bit, and the lock another user's)
+                        raise OutputError(f"{path}: cannot take over the lock of {ended} ({exc.strerror or exc}): "
+                                          "remove it") from None  # fmt: skip
+                    moved = stale.stat()
+                    if _lock_owner(stale) != owner or (moved.st_ino, moved.st_mtime_ns) != (seen.st_ino,
+                                                                                            seen.st_mtime_ns):
+                        os.replace(stale, path)  # another run's new lock, moved by mistake: put back
                         continue
                     stale.unlink(missing_ok=True)
-                    warnings.warn(f"{path}: taking over the lock of a run that has ended (pid {owner[0]}): its "
-                                  "partial outputs are resumed or replaced as this run's", RuntimeWarning,
-                                  stacklevel=3)  # fmt: skip
+                    warnings.warn(f"{path}: taking over the lock of {ended}: its partial outputs are resumed or "
+                                  "replaced as this run's", RuntimeWarning, stacklevel=3)  # fmt: skip
                     continue
                 except OSError as exc:
                     raise OutputError(f"{path}: cannot create the lock file ({exc.strerror or exc})") from None
                 taken.append(path)
                 try:
                     os.write(fd, me.encode("utf-8"))
+                except OSError as exc:  # (a full disk: no empty lock left behind, below)
+                    raise OutputError(f"{path}: cannot write the lock file ({exc.strerror or exc})") from None
                 finally:
                     os.close(fd)
                 break
@@ -466,11 +495,14 @@ def _take_locks(out_dir: Path, names: Sequence[str]) -> list[Path]:
 
 
 def _release_locks(locks: Sequence[Path]) -> None:
-    """Remove the locks :func:`_take_locks` took (never raises ``OSError``: a folder gone read-only keeps them,
-    and the next run takes them over, their process having ended)."""
+    """Remove the locks :func:`_take_locks` took, those that are still this run's (a lock removed by hand while
+    the run went on, and taken by another run, is that run's); never raises ``OSError``: a folder gone read-only
+    keeps them, and the next run takes them over, their process having ended."""
+    mine = (os.getpid(), socket.gethostname())
     for path in locks:
         with contextlib.suppress(OSError):
-            path.unlink(missing_ok=True)
+            if _lock_owner(path) in (mine, None):  # (None: this run's, not written: a full disk, an interruption)
+                path.unlink()
 
 
 def _written_names(name: str) -> list[str]:

@@ -2562,3 +2562,117 @@ def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path):
     finally:
         running.kill()
         running.wait()
+
+
+def _screen(text: str) -> list[str]:
+    """What a terminal shows after ``text``: lines, with the cursor movements the progress display writes
+    (``ESC[nF`` n lines up, ``ESC[2K`` the line cleared, ``ESC[J`` the rest cleared) applied."""
+    lines, row = [""], 0
+    for part in re.split(r"(\x1b\[\d*[A-Za-z]|\n)", text):
+        if part == "\n":
+            row += 1
+            if row == len(lines):
+                lines.append("")
+        elif m := re.fullmatch(r"\x1b\[(\d*)([A-Za-z])", part):
+            n, code = int(m[1] or 1), m[2]
+            if code == "F":
+                row = max(row - n, 0)
+            elif code == "K":
+                lines[row] = ""
+            elif code == "J":
+                del lines[row + 1 :]
+                lines[row] = ""
+        else:
+            lines[row] += part
+    return [line for line in lines if line]
+
+
+def test_the_command_says_a_lock_taken_over_in_a_warning_line_of_its_own(clip, tmp_path, capsys):
+    """A lock taken over was printed as Python prints a warning, ``.../torchface/cli.py:319: RuntimeWarning: ...``
+    (with the line of code that called the job); the command prints it as it prints its errors, one line
+    ``torchface: warning: ...``, and on a terminal above the progress bars, which are redrawn below it (written
+    between them, the next redraw moved the cursor up over it and wrote a bar there)."""
+    import io
+    import socket
+
+    import warnings
+
+    import torchface.job
+    from torchface.job import Progress
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    out.mkdir()
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait()
+    (out / "short.lock").write_text(f"{ended.pid} {socket.gethostname()}\n")
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 0
+    err = capsys.readouterr().err
+    said = f"torchface: warning: {out / 'short.lock'}: taking over the lock of a run that has ended (pid {ended.pid})"
+    assert err.startswith(said) and err.count("\n") == 1 and "RuntimeWarning" not in err, err
+    from torchface.cli import ProgressDisplay, _warnings_as_lines
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    display = ProgressDisplay(tty)
+    display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
+    display(Progress(1, 2, "b", 1, 10, 2.0, 0.9))
+    with _warnings_as_lines(display):  # (one that the job issues while the bars are drawn)
+        warnings.warn_explicit("b: taken as no face", RuntimeWarning, torchface.job.__file__, 1)
+    display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))
+    display.flush()
+    screen = _screen(tty.getvalue())
+    assert screen[0] == "torchface: warning: b: taken as no face" and len(screen) == 3, screen
+    assert screen[1].startswith("a ") and "2/10" in screen[1] and screen[2].startswith("b ") and "1/10" in screen[2]
+
+
+def test_an_empty_lock_is_taken_over_once_old_and_a_run_releases_only_its_own_lock(clip, tmp_path):
+    """A run killed between creating its lock and writing its pid into it (or a machine that crashed before the
+    file reached the disk) left an empty lock, and every later run was refused ("another run is writing") until it
+    was removed by hand: an empty lock older than EMPTY_LOCK_S is taken over, a newer one is not (its run is
+    about to write it). A lock removed by hand while its run went on, and taken by another run, is that run's: the
+    first run's end removed it, leaving the second run's outputs unlocked."""
+    import socket
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / "short.lock"
+    config = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None)
+    lock.write_text("")
+    with pytest.raises(OutputError, match=r"short.lock: another run is writing the outputs of short"):
+        track_videos([short], config)
+    old = lock.stat().st_mtime - 3600  # (EMPTY_LOCK_S: 10)
+    os.utime(lock, (old, old))
+    with pytest.warns(RuntimeWarning, match=r"short.lock: taking over the lock of a run that ended as it created it"):
+        assert track_videos([short], config)[0].frames == 2
+    assert not lock.exists() and not list(out.glob("*.stale"))
+    other = f"{os.getpid() + 1} {socket.gethostname()}-other\n"
+
+    def taken_by_another_run(p):  # (the lock removed by hand, and another run's made)
+        lock.unlink()
+        lock.write_text(other)
+
+    track_videos([short], config, progress=taken_by_another_run)
+    assert lock.read_text() == other
+
+
+def test_a_lock_that_cannot_be_written_is_an_output_error_and_left_nowhere(tmp_path, monkeypatch):
+    """A lock file created but not written (a full disk) was a bare OSError; it is the job's OutputError, naming
+    the file, and the empty file is removed (it would refuse every later run until taken over)."""
+    import errno
+
+    import torchface.job as job
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(job.os, "write", full)
+    with pytest.raises(OutputError, match=r"a\.lock: cannot write the lock file \(No space left on device\)"):
+        job._take_locks(tmp_path, ["a"])
+    assert not (tmp_path / "a.lock").exists()
