@@ -14,7 +14,8 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   detector about the video's frames: the first frame (and each next one up to the first with a face), those
   re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves out; both 0
   without a detector; a resumed run does not ask about the rows it replays, but for a re-detection due after the
-  last one, which the tracking goes on from);
+  last one, which the tracking goes on from, and for the frames up to the first with a face, which it looks for
+  again);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);

@@ -444,6 +444,8 @@ def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subje
         with pytest.raises(SystemExit) as info:
             evaluate.main([*base, *extra])
         assert info.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_doc_figures_measures_on_tiny_runs(capsys):
     """scripts/doc_figures.py, the command that measures the figures README.md, TrackerConfig.min_face_width_px and
     lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments on one clip of a few frames and refuses bad
