@@ -978,8 +978,11 @@ def main(argv: list[str] | None = None) -> int:
     global LOOKAHEAD, ONLINE_REFINE, TRUTH_FIT
     if args.truth_fit and args.lookahead:
         parser.error("--truth-fit and --lookahead both choose the first fit; give one")
-    if args.truth_fit and (bad := [n for n in names if n in ("scan_motion", "long_run_scan")]):
-        parser.error(f"--truth-fit: {', '.join(bad)} show the James scan, not the tracker's model")
+    # (each scenario's subject, from its spec: a scenario of another subject failed in truth_fit, mid-run)
+    subjects = {n: make_scenario(n, scenario_size(n, "small")[2], 64, 48).subject for n in names}
+    if args.truth_fit and (bad := [n for n in names if subjects[n] != "candide3"]):
+        shown = ", ".join(sorted({subjects[n] for n in bad}))
+        parser.error(f"--truth-fit: {', '.join(bad)} show {shown}, not the tracker's model (CANDIDE-3)")
     TRUTH_FIT = args.truth_fit
     if args.lookahead_frames < 2:
         parser.error(f"--lookahead-frames must be >= 2, got {args.lookahead_frames}")

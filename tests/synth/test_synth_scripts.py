@@ -439,7 +439,7 @@ def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subje
     with pytest.raises(ValueError, match="CANDIDE-3"):
         evaluate.truth_fit(model, james)
     base = ["--frames", "2", "--size", "64x48", "--cache", "none", "--ablations", "none", "--no-auroc"]
-    for extra, message in ((["--scenarios", "scan_motion", "--truth-fit"], "show the James scan"),
+    for extra, message in ((["--scenarios", "long_run_scan", "--truth-fit"], "long_run_scan show james, not"),
                            (["--scenarios", "expressions", "--truth-fit", "--lookahead"], "give one")):
         with pytest.raises(SystemExit) as info:
             evaluate.main([*base, *extra])
