@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -59,6 +60,13 @@ def plain_run(clip, tmp_path_factory):
     out = tmp_path_factory.mktemp("plain")
     rc = main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"])
     return rc, out
+
+
+class _Tty(io.StringIO):
+    """A terminal's stream, as the progress display sees it (``isatty``), holding what is written to it."""
+
+    def isatty(self) -> bool:
+        return True
 
 
 def _pose(csv):
@@ -1385,7 +1393,6 @@ def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeyp
 
 
 def test_progress_display_terminal_and_log(monkeypatch):
-    import io
 
     monkeypatch.setenv("TERM", "xterm")
 
@@ -1400,11 +1407,7 @@ def test_progress_display_terminal_and_log(monkeypatch):
     lines = log.getvalue().splitlines()
     assert len(lines) == 2 and "1/10" in lines[0] and "10/10" in lines[1] and "conf 0.50" in lines[1]
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    tty = Tty()
+    tty = _Tty()
     display = ProgressDisplay(tty)
     display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
     display(Progress(1, 2, "b", 1, None, 2.0, 0.9))
@@ -1417,19 +1420,13 @@ def test_progress_display_terminal_and_log(monkeypatch):
 def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monkeypatch):
     """The job reports every stream after every step; a terminal redraw writes every bar, so redrawing at each
     report wrote B * B bars per step. Within one redraw interval only new and finished videos redraw."""
-    import io
-
     import torchface.cli as cli
     from torchface.job import Progress
-
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
 
     clock = [100.0]
     monkeypatch.setenv("TERM", "xterm")
     monkeypatch.setattr(cli.time, "monotonic", lambda: clock[0])
-    tty = Tty()
+    tty = _Tty()
     display = cli.ProgressDisplay(tty)
     B = 32
     for k in range(B):  # the first step: each video appears once (B redraws)
@@ -1454,8 +1451,6 @@ def test_progress_display_shows_a_finished_video_once_while_its_batch_goes_on(mo
     """The job goes on reporting a short video of a batch after it has finished, at every step of the longer ones:
     a log printed its finished line again at every step (a 1-frame video beside a 1000-frame one: 1000 lines), a
     terminal redrew every bar at each of its reports (B * B lines per step again)."""
-    import io
-
     import torchface.cli as cli
     from torchface.job import Progress
 
@@ -1471,11 +1466,7 @@ def test_progress_display_shows_a_finished_video_once_while_its_batch_goes_on(mo
     assert [line.split()[0] for line in lines] == ["short", "long", "short", "long"], lines  # first, finished
     assert "2/2" in lines[2] and "50/50" in lines[3]
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    tty = Tty()
+    tty = _Tty()
     display = cli.ProgressDisplay(tty)
     display(Progress(0, 2, "short", 1, 2, 5.0, 0.9))
     display(Progress(1, 2, "long", 1, 50, 5.0, 0.9))
@@ -1495,17 +1486,11 @@ def test_progress_display_on_a_terminal_redraws_only_the_videos_being_tracked(mo
     the finished batches were redrawn with each step's (300 lines a redraw), and a block taller than the terminal
     cannot be redrawn in place (the cursor stops at its first row): the bars ran down the screen. Finished videos'
     lines now stay above the bars of the videos being tracked, which fit the terminal."""
-    import io
-
     import torchface.cli as cli
     from torchface.job import Progress
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
     monkeypatch.setenv("TERM", "xterm")
-    tty = Tty()
+    tty = _Tty()
     display = cli.ProgressDisplay(tty, redraw_s=0.0)
     monkeypatch.setattr(display, "_rows", lambda: 24)
     N, B = 300, 100  # three batches of 100, two frames each
@@ -2043,17 +2028,11 @@ def test_names_that_are_not_utf8_are_refused_not_a_crash(clip, tmp_path):
 def test_progress_display_on_a_dumb_terminal_writes_lines_not_cursor_moves(monkeypatch):
     """TERM=dumb (Emacs' shell and compilation buffers: a pty without cursor movement) got the bars' escape codes,
     shown there as "^[[2K" and "^[[1F" garbage."""
-    import io
-
     from torchface.cli import ProgressDisplay
     from torchface.job import Progress
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
     monkeypatch.setenv("TERM", "dumb")
-    tty = Tty()
+    tty = _Tty()
     display = ProgressDisplay(tty)
     display(Progress(0, 1, "a", 1, 10, 2.0, 0.9))
     display(Progress(0, 1, "a", 10, 10, 2.0, 0.9))
@@ -2422,8 +2401,6 @@ def test_progress_display_finishes_a_video_that_went_past_its_declared_count(mon
     """A container whose frame count is an estimate may decode more frames (declared 5, decoded 7): its bar went
     on past 5/5, and when the job reported it ended (7/7) the display took no notice: a log's last line for it
     said 5/5 (finished at the estimate), a terminal kept its bar among those of the videos being tracked."""
-    import io
-
     import torchface.cli as cli
     from torchface.job import Progress
 
@@ -2438,11 +2415,7 @@ def test_progress_display_finishes_a_video_that_went_past_its_declared_count(mon
     lines = log.getvalue().splitlines()
     assert "7/7" in lines[-1] and len(lines) == 3, lines  # first, at the estimate, at its end
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    tty = Tty()
+    tty = _Tty()
     display = cli.ProgressDisplay(tty)
     display(Progress(1, 2, "long", 1, 50, 5.0, 0.9))
     for p in reports + reports[-1:]:
@@ -2537,9 +2510,10 @@ def test_a_second_run_into_the_same_outputs_is_refused_while_the_first_goes_on(c
     assert not lock.exists()
 
 
-def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path):
-    """A run killed (SIGKILL, a crash) leaves its lock: the next run takes it over, saying so; a lock whose process
-    still runs is not."""
+def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path, capsys):
+    """A run killed (SIGKILL, a crash) leaves its lock: the next run takes it over, saying so (the command in a line
+    of its own, ``torchface: warning: ...``, as it says its errors: it printed Python's ``.../torchface/cli.py:319:
+    RuntimeWarning: ...`` with the line of code that called the job); a lock whose process still runs is not."""
     import socket
 
     video, lm, _ = clip
@@ -2553,6 +2527,11 @@ def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path):
     with pytest.warns(RuntimeWarning, match=rf"taking over the lock of a run that has ended \(pid {ended.pid}\)"):
         assert track_videos([short], config)[0].frames == 2
     assert not (out / "short.lock").exists() and not list(out.glob("*.stale"))
+    (out / "short.lock").write_text(f"{ended.pid} {socket.gethostname()}\n")
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 0
+    err = capsys.readouterr().err
+    said = f"torchface: warning: {out / 'short.lock'}: taking over the lock of a run that has ended (pid {ended.pid})"
+    assert err.startswith(said) and err.count("\n") == 1 and "RuntimeWarning" not in err, err
     running = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         (out / "short.lock").write_text(f"{running.pid} {socket.gethostname()}\n")
@@ -2587,40 +2566,20 @@ def _screen(text: str) -> list[str]:
     return [line for line in lines if line]
 
 
-def test_the_command_says_a_lock_taken_over_in_a_warning_line_of_its_own(clip, tmp_path, capsys):
-    """A lock taken over was printed as Python prints a warning, ``.../torchface/cli.py:319: RuntimeWarning: ...``
-    (with the line of code that called the job); the command prints it as it prints its errors, one line
-    ``torchface: warning: ...``, and on a terminal above the progress bars, which are redrawn below it (written
-    between them, the next redraw moved the cursor up over it and wrote a bar there)."""
-    import io
-    import socket
-
+def test_a_warning_on_a_terminal_stays_above_the_progress_bars(monkeypatch):
+    """The job's warnings (a lock taken over, a detection taken as no face) go through the progress display: on a
+    terminal, written between the bars, the next redraw moved the cursor up over the warning and wrote a bar there;
+    the warning now stays above the bars, which are redrawn below it."""
     import warnings
 
     import torchface.job
+    from torchface.cli import ProgressDisplay, _warnings_as_lines
     from torchface.job import Progress
 
-    video, lm, _ = clip
-    short = _short_npy(video, tmp_path / "short.npy", 2)
-    out = tmp_path / "out"
-    out.mkdir()
-    ended = subprocess.Popen([sys.executable, "-c", "pass"])
-    ended.wait()
-    (out / "short.lock").write_text(f"{ended.pid} {socket.gethostname()}\n")
-    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 0
-    err = capsys.readouterr().err
-    said = f"torchface: warning: {out / 'short.lock'}: taking over the lock of a run that has ended (pid {ended.pid})"
-    assert err.startswith(said) and err.count("\n") == 1 and "RuntimeWarning" not in err, err
-    from torchface.cli import ProgressDisplay, _warnings_as_lines
-
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    tty = Tty()
-    display = ProgressDisplay(tty)
-    display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
+    monkeypatch.setenv("TERM", "xterm")
+    display = ProgressDisplay(tty := _Tty())
     display(Progress(1, 2, "b", 1, 10, 2.0, 0.9))
+    display(Progress(0, 2, "a", 1, 10, 2.0, 0.9))
     with _warnings_as_lines(display):  # (one that the job issues while the bars are drawn)
         warnings.warn_explicit("b: taken as no face", RuntimeWarning, torchface.job.__file__, 1)
     display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))
