@@ -1393,7 +1393,6 @@ def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeyp
 
 
 def test_progress_display_terminal_and_log(monkeypatch):
-
     monkeypatch.setenv("TERM", "xterm")
 
     from torchface.cli import ProgressDisplay
