@@ -675,10 +675,11 @@ def _no_face_row(columns: tuple[str, ...], frame: int, fps: float, managed: bool
     return row
 
 
-def _no_face_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
-    """What is wrong with the rows of a partial CSV before its video's first face (None: nothing): each must be
-    the row :func:`_no_face_row` writes for its frame (its ``frame``, ``success`` 0, no pose), else they were made
-    with another start (the frame where the detector first finds a face is found again on resume)."""
+def _no_face_problem(rows: np.ndarray, columns: tuple[str, ...], start: int) -> str | None:
+    """What is wrong with the rows of a partial CSV before its video's first face, frame ``start`` (its first
+    ``start`` rows, or all of them where it holds fewer; None: nothing): each must be the row :func:`_no_face_row`
+    writes for its frame (its ``frame``, ``success`` 0, no pose), else they were made with another start (the frame
+    where the detector first finds a face is found again on resume)."""
     idx = {c: i for i, c in enumerate(columns)}
     wrong = np.flatnonzero(rows[:, idx["frame"]] != np.arange(rows.shape[0]))
     if wrong.size:
@@ -686,7 +687,7 @@ def _no_face_problem(rows: np.ndarray, columns: tuple[str, ...]) -> str | None:
     used = [idx[c] for c in ("success", *POSE_COLUMNS[:3])]
     bad = np.flatnonzero((rows[:, used[0]] != 0) | np.isfinite(rows[:, used[1:]]).any(1))
     if bad.size:
-        return f"frame {bad[0]} has a pose, but the detector finds the first face at frame {rows.shape[0]}"
+        return f"frame {bad[0]} has a pose, but the detector finds the first face at frame {start}"
     return None
 
 
@@ -1405,7 +1406,7 @@ def _track_group(
                                  f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
             # (the rows before the first face replay nothing into the state: the tracked rows after them do)
             s.replay = s.csv.previous[s.start :] if s.csv.rows_done > s.start else None
-            problem = _no_face_problem(s.csv.previous[: s.start], columns)
+            problem = _no_face_problem(s.csv.previous[: s.start], columns, s.start)
             if problem is None and s.replay is not None:
                 problem = _replay_problem(s.replay, columns, s.start)
             if problem is not None:  # (its values went into the state: NaN, a missing frame, a scaled rotation...)

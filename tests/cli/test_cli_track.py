@@ -1189,6 +1189,39 @@ def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_pat
         assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
 
 
+def test_a_resume_whose_first_face_moved_later_names_that_frame(clip, tmp_path, monkeypatch):
+    """A partial CSV tracked from frame 1 (the detector found a face there then) and resumed where the detector
+    finds the first face at frame 4 (another detector, or one not deterministic) is refused as damaged, naming
+    the frame where the face is found now; it named the count of rows it had checked (3), no frame of the video."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    asked = []
+
+    def from_the_second_call(image_rgb):  # (the frames before the face are all black: told apart by the call)
+        asked.append(1)
+        return gt.landmarks_px[0].numpy().astype(np.float64) if len(asked) > 1 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "moody", lambda: from_the_second_call)
+    late = _with_blank_frames(video, tmp_path / "late.npy", 4)
+    config = JobConfig(out_dir=tmp_path / "out", detector="moody", refine_first=None)
+
+    def interrupt(p):
+        if p.done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([late], config, progress=interrupt)
+    assert read_track_csv(tmp_path / "out" / "late.csv.partial")[1].shape[0] == 3
+
+    def detector(image_rgb):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "moody", lambda: detector)
+    with pytest.raises(InputError, match=r"frame 1 has a pose, but the detector finds the first face at frame 4\)"):
+        track_videos([late], replace(config, resume=True))
+
+
 def test_redetect_below_must_be_finite(tmp_path):
     """``redetect_below=nan`` counted every frame low (``conf >= nan`` is False): the detector was asked every
     ``redetect_after`` frames whatever the confidence, silently."""
