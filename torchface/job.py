@@ -32,7 +32,8 @@ run did.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last.
 While a run goes on, ``<stem>.lock`` (holding its pid and host) keeps another run from writing the same video's
-outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed) is taken over. A run
+outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed), or left empty
+(killed as it made it), is taken over (:func:`_take_locks`). A run
 without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
