@@ -1222,3 +1222,53 @@ def test_a_hard_cut_to_another_face_is_lost_and_stays_lost(model):
         lost_at = CUT + tc.lost_after_very_low - 1
         assert all(s == LOST for s in status[lost_at:]), table
         assert all(float(r.confidence[0]) < tc.very_low_confidence for r in results[CUT:]), table
+
+
+@pytest.mark.parametrize("with_detector", [True, False])
+def test_a_cut_before_the_online_start_ends_its_wait_instead_of_re_anchoring_on_it(model, with_detector):
+    """A default FaceTracker (online look-ahead start on) at 160x120, cut from clip A to the same face 20 mm across,
+    60 mm nearer and turned 12 degrees: the cut's frame is tracked 54.5 degrees off at confidence 0.74 (one wrong
+    confident frame). That frame turned 10 degrees from the first, so it was the look-ahead's keyframe: the stream
+    was re-anchored on it, scored 0.02 from then on against the rebuilt reference and was LOST to the end, with the
+    detector too (the renderer's landmarks; its candidates scored 0.02). A turn of more than
+    ``KEYFRAME_MAX_STEP_DEG`` (20) degrees from the pose a step started from, a jump no head makes between two
+    frames, now ends the stream's wait (it keeps its landmark fit): the next frame is right, 0.4 degrees off, and
+    every frame after it too, confident."""
+    from torchface.tracker.lookahead import KEYFRAME_MAX_STEP_DEG
+
+    w, h = 160, 120
+    cut, nb = 5, 6
+    sa = torch.linspace(0, 1, cut, dtype=D)[:, None]
+    sb = torch.linspace(0, 1, nb, dtype=D)[:, None]
+    ypr = torch.cat([sa * torch.tensor([4.0, -2.0, 1.0], dtype=D),
+                     torch.tensor([16.0, -2.0, 1.0], dtype=D) + sb * torch.tensor([2.0, 0.0, 0.0], dtype=D)])
+    t = torch.cat([torch.tensor([-30.0, 0.0, 450.0], dtype=D) + sa * torch.tensor([4.0, 0.0, 0.0], dtype=D),
+                   torch.tensor([-6.0, 0.0, 390.0], dtype=D) + sb * torch.tensor([3.0, 0.0, 0.0], dtype=D)])
+    rendered = []
+    for rows in (slice(0, cut), slice(cut, cut + nb)):  # two clips: each its own rendering
+        n = rows.stop - rows.start
+        rendered.append(render_sequence(SequenceSpec(
+            name="cut", subject="candide3", intrinsics=Intrinsics.default(w, h), rotation=euler_to_matrix(ypr[rows]),
+            translation=t[rows], anim=torch.zeros(n, model.num_animation, dtype=D), light=default_light(n),
+            background=BackgroundSpec(seed=3), photo="james",
+        )))  # fmt: skip
+    frames = torch.cat([f for f, _ in rendered]).float()
+    truth = torch.cat([g.rotation for _, g in rendered])
+    lms = torch.cat([g.landmarks_px for _, g in rendered]).float()
+    current = [0]
+    tracker = FaceTracker(model=model, detector=(lambda b: lms[current[0]][None]) if with_detector else None)
+    results = [tracker.initialise(frames[:1], lms[:1])]
+    for i in range(1, frames.shape[0]):
+        current[0] = i
+        results.append(tracker(frames[i : i + 1]))
+    R = torch.cat([r.rotation for r in results]).double()
+    err = geodesic_angle_deg(R @ R[0].mT, truth @ truth[0].mT)
+    table = _cut_table(results, err)
+    step = geodesic_angle_deg(R[cut], R[cut - 1])
+    assert float(step) > KEYFRAME_MAX_STEP_DEG and float(err[cut]) > 30.0, table  # the cut's wrong frame
+    assert bool(results[cut].success[0]) and float(results[cut].confidence[0]) > 0.5, table  # ... and confident
+    ms = tracker.state.management
+    assert ms.first is None and ms.head_rotation is None, table  # no longer waiting, never re-anchored
+    for i in range(cut + 1, len(results)):
+        assert bool(results[i].success[0]) and float(err[i]) < 1.0, table
+        assert float(results[i].confidence[0]) >= 0.5, table
