@@ -18,11 +18,19 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                scripts/data/grid_landmarks) whose frames 30-39 are shifted --shift px sideways (a camera pan), tracked
                by a default FaceTracker (online start on): how far the rest of the clip's rotations are from the
                clean run's, with the view check, with it off (VIEW_TURN_FRACTION = 0) and without the online start.
+  hard-cuts    The README's "Hard cuts" behaviour: clip A (5 frames, CANDIDE-3 30 mm left of the axis at 450 mm,
+               turning 4 degrees) cut straight to clip B (--frames frames) with the face moved --dx mm across,
+               --dz mm in depth and turned --dyaw degrees (every combination), tracked as one stream at --size by a
+               default FaceTracker, with the renderer's landmarks as the detector and without one (mosaic search):
+               the frames after the cut reported successful but over --max-error degrees off (2; and those of
+               them at confidence 0.1 or more), and the first frame from which every frame is successful and
+               within it. --photo astronaut makes B another person.
 
 Examples:
     python scripts/doc_figures.py face-width
     python scripts/doc_figures.py small-frames --sizes 96x72,128x96,160x120
     python scripts/doc_figures.py grid-pan --clip bbaf2n --shift -120
+    python scripts/doc_figures.py hard-cuts --dx 90 --dz -120 --dyaw 0,21
 """
 
 from __future__ import annotations
@@ -181,6 +189,63 @@ def grid_pan(args: argparse.Namespace) -> None:
               f"frames {a}-{b - 1}: yaw {float(yaw):+.1f} in the camera frame, {float(view):+.1f} seen along the ray")
 
 
+def hard_cuts(args: argparse.Namespace) -> None:
+    model = load_candide3()
+    w, h = args.size
+    cam = Intrinsics.default(w, h)
+    cut = 5
+    s = torch.linspace(0, 1, cut, dtype=D)[:, None]
+    frames_a, gt_a = _render(cam, euler_to_matrix(s * torch.tensor([4.0, -2.0, 1.0], dtype=D)),
+                             torch.tensor([-30.0, 0.0, 450.0], dtype=D) + s * torch.tensor([4.0, 0.0, 0.0], dtype=D), 3)
+    s = torch.linspace(0, 1, args.frames, dtype=D)[:, None]
+    most = args.max_error
+    print(f"{w}x{h}; cut at frame {cut} to {args.photo!r}, frames {cut}-{cut + args.frames - 1}; wrong = successful "
+          f"and over {most:g} degrees off (those at confidence >= 0.1: frame/degrees/confidence); right from = the "
+          f"first frame from which every frame is successful and within {most:g} degrees")
+    print(f"{'dx mm':>6} {'dz mm':>6} {'dyaw':>5} | {'detector: wrong, at conf >= 0.1, right from':<44} | search: ...")
+    for dx in args.dx:
+        for dz in args.dz:
+            for dyaw in args.dyaw:
+                R_b = euler_to_matrix(torch.tensor([4.0 + dyaw, -2.0, 1.0], dtype=D)
+                                      + s * torch.tensor([2.0, 0.0, 0.0], dtype=D))  # fmt: skip
+                t_b = torch.tensor([-26.0 + dx, 0.0, 450.0 + dz], dtype=D) + s * torch.tensor([3.0, 0.0, 0.0], dtype=D)
+                frames_b, gt_b = _render(cam, R_b, t_b, 3, args.photo)
+                frames = torch.cat([frames_a, frames_b])
+                truth = torch.cat([gt_a.rotation, gt_b.rotation])
+                landmarks = torch.cat([gt_a.landmarks_px, gt_b.landmarks_px]).float()
+                cells = []
+                for with_detector in (True, False):
+                    current = [0]
+
+                    def oracle(batch: torch.Tensor) -> torch.Tensor:  # the renderer's landmarks of the frame
+                        return landmarks[current[0]][None].expand(batch.shape[0], -1, -1)
+
+                    tracker = FaceTracker(model=model, detector=oracle if with_detector else None)
+                    results = [tracker.initialise(frames[:1], landmarks[:1])]
+                    for i in range(1, frames.shape[0]):
+                        current[0] = i
+                        results.append(tracker(frames[i : i + 1]))
+                    R = torch.cat([r.rotation for r in results]).double()
+                    err = geodesic_angle_deg(R @ R[0].mT, truth @ truth[0].mT)
+                    right = [bool(r.success[0]) and float(e) <= most for r, e in zip(results, err)]
+                    wrong = [i for i in range(cut, len(results)) if bool(results[i].success[0]) and not right[i]]
+                    sure = [f"{i}/{float(err[i]):.1f}/{float(results[i].confidence[0]):.2f}" for i in wrong
+                            if float(results[i].confidence[0]) >= 0.1]  # fmt: skip
+                    back = next((i for i in range(cut, len(results)) if all(right[i:])), None)
+                    cells.append(f"{len(wrong)}, [{' '.join(sure)}], {'never' if back is None else back}")
+                print(f"{dx:>6.0f} {dz:>6.0f} {dyaw:>5.0f} | {cells[0]:<44} | {cells[1]}")
+
+
+def _numbers(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers, comma separated, got {text!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected finite numbers, got {text!r}")
+    return values
+
+
 def _sizes(text: str) -> list[tuple[int, int]]:
     try:
         sizes = [tuple(int(v) for v in item.split("x")) for item in text.split(",")]
@@ -223,6 +288,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--landmarks-dir", type=Path, default=ROOT / "scripts" / "data" / "grid_landmarks",
                    help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
     p.set_defaults(run=grid_pan)
+    p = sub.add_parser("hard-cuts", help="a video cut to the face elsewhere (README: Hard cuts)")
+    p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(320, 240), help="frame size WxH")
+    p.add_argument("--dx", type=_numbers, default=_numbers("8,20,45"), help="jumps across, mm, comma separated")
+    p.add_argument("--dz", type=_numbers, default=_numbers("0,-60,100"), help="jumps in depth, mm")
+    p.add_argument("--dyaw", type=_numbers, default=_numbers("0,12,-30"), help="turns at the cut, degrees")
+    p.add_argument("--photo", default="james", choices=("james", "astronaut"), help="clip B's face texture")
+    p.add_argument("--frames", type=int, default=10, help="frames of clip B")
+    p.add_argument("--max-error", type=float, default=2.0, help="a frame further off is wrong, degrees")
+    p.set_defaults(run=hard_cuts)
     args = parser.parse_args(argv)
     for name in ("clips", "frames"):
         if getattr(args, name, 1) < 1:

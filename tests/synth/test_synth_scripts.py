@@ -448,8 +448,9 @@ def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subje
 
 def test_doc_figures_measures_on_tiny_runs(capsys):
     """scripts/doc_figures.py, the command that measures the figures README.md, TrackerConfig.min_face_width_px and
-    lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments on one clip of a few frames and refuses bad
-    arguments in one line (grid-pan, which needs the GRID clips of ../shared/assets, is run by hand)."""
+    lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments (face-width, small-frames, hard-cuts) on one
+    clip of a few frames and refuses bad arguments in one line (grid-pan, which needs the GRID clips of
+    ../shared/assets, is run by hand)."""
     figures = _load("doc_figures")
     assert figures.main(["face-width", "--widths", "27", "--clips", "1", "--frames", "3"]) == 0
     row = capsys.readouterr().out.splitlines()[-1].split()
@@ -457,7 +458,12 @@ def test_doc_figures_measures_on_tiny_runs(capsys):
     assert figures.main(["small-frames", "--sizes", "160x120", "--photos", "james", "--frames", "10"]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
     assert [r[:4] for r in rows] == [["james", "160x120", "3", "40x30"], ["james", "160x120", "2", "80x60"]]
+    assert figures.main(["hard-cuts", "--size", "160x120", "--dx", "45", "--dz", "0", "--dyaw", "0,12",
+                         "--frames", "2"]) == 0
+    rows = [line.split("|") for line in capsys.readouterr().out.splitlines()[2:]]
+    assert [r[0].split() for r in rows] == [["45", "0", "0"], ["45", "0", "12"]] and all(len(r) == 3 for r in rows)
     for argv, message in ((["face-width", "--clips", "0"], "--clips must be >= 1"),
+                          (["hard-cuts", "--dx", "1,x"], "expected numbers"),
                           (["face-width", "--widths", "20,x"], "widths must be numbers"),
                           (["small-frames", "--sizes", "160"], "sizes must be WxH"),
                           (["small-frames", "--frames", "9"], "--frames must be >= 10"),

@@ -208,6 +208,20 @@ def view_yaw_deg(rotation: Tensor, translation: Tensor | None = None) -> Tensor:
 #: frame it would without the check (the five standard scenarios track as before).
 VIEW_TURN_FRACTION: float = 0.5
 
+#: The online start (:func:`~torchface.tracker.managed.initialise_managed`'s ``refine_first``) stops waiting for a
+#: stream's keyframe, which then keeps its landmark fit, when the stream's estimate turns more than this (degrees)
+#: from the pose its step started from (the previous frame's): a jump no head makes between two frames (a head
+#: turning 400 degrees a second at 25 fps turns 16 a frame), which a video cut gives. A 160x120 cut to the same face
+#: 20 mm across, 60 mm nearer and turned 12 degrees was tracked 54.5 degrees off at confidence 0.74 on the cut's
+#: frame; that frame became the keyframe, and the stream re-anchored on it scored 0.02 from then on and stayed LOST
+#: to the end, with a detector too (without the online start it was right, 0.4 degrees, from the next frame). The
+#: look-ahead relates the first frame to a later view of the same shot; after a cut even a right keyframe misleads it
+#: (cut 8 mm across, 60 nearer, turned -30 degrees: re-anchored on the cut's frame, 2.7 degrees off, or on the next,
+#: 1.2 off, the stream went on 15 mm aside at confidence 0.01-0.19; 0.93-0.97 with this). Never reached in the
+#: evaluation's scenarios: at full size each waits until its re-anchoring (frames 7-70) with steps of at most 2.6
+#: degrees (long runs 0.95), so they track as before.
+KEYFRAME_MAX_STEP_DEG: float = 20.0
+
 
 def is_keyframe_turn(rel_yaw: Tensor, rel_view_yaw: Tensor, yaw_deg: float) -> Tensor:
     """Whether a yaw change (degrees, towards the side looked for: positive) is a keyframe's turn: ``yaw_deg`` in

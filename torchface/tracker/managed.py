@@ -97,7 +97,8 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_first_fit, is_keyframe_turn, landmark_fit_priors, levels_of, view_yaw_deg,
+    KEYFRAME_MAX_STEP_DEG, LookaheadConfig, _refine_first_fit, is_keyframe_turn, landmark_fit_priors, levels_of,
+    view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -202,7 +203,8 @@ class ManagementState:
 @dataclass(frozen=True, eq=False)
 class FirstPoseWatch:
     """The online look-ahead start (``initialise_managed(refine_first=...)``): what a stream keeps until its head
-    has turned (``min_keyframes`` sides), when its first frame's pose is re-estimated and the stream re-anchored.
+    has turned (``min_keyframes`` sides), when its first frame's pose is re-estimated and the stream re-anchored, or
+    until a video cut (:data:`~torchface.tracker.lookahead.KEYFRAME_MAX_STEP_DEG`) ends its wait.
 
     Attributes:
         config: :class:`~torchface.tracker.lookahead.LookaheadConfig` (``yaw_deg``, ``min_keyframes``,
@@ -1072,7 +1074,8 @@ def managed_step(
         result = _regraded(result, graded[1], own)
     reported = _in_head_frame(result, ms)  # the offsets this frame was tracked under
     if ms.first is not None:  # the online look-ahead start (initialise_managed(refine_first=...))
-        new_state = _watch_first_pose(model, config, new_state, frames, watched)
+        start = axis_angle_to_matrix(state.params.detach()[:, layout.rotation])  # the pose the solve started from
+        new_state = _watch_first_pose(model, config, new_state, frames, watched, start)
     if graded is not None:
         new_state = replace(new_state, params=torch.where(own.unsqueeze(-1), graded[0], new_state.params))
     return new_state, reported
@@ -1212,10 +1215,13 @@ def _reset_mosaic_rows(mosaic: Mosaic, index: Tensor, sub: Mosaic) -> Mosaic:
 
 
 def _watch_first_pose(
-    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, result: TrackResult
+    model: FaceModel, config: TrackerConfig, state: TrackerState, frames: Tensor, result: TrackResult,
+    start_rotation: Tensor,
 ) -> TrackerState:
     """Keyframes for the streams still waiting (``result`` in the internal frame), and the re-anchoring of those
-    that have them all (:func:`initialise_managed`'s ``refine_first``)."""
+    that have them all (:func:`initialise_managed`'s ``refine_first``). ``start_rotation`` ``(B, 3, 3)``: the
+    rotation each stream's step started from (the previous frame's estimate); a stream whose estimate turned more
+    than :data:`~torchface.tracker.lookahead.KEYFRAME_MAX_STEP_DEG` from it (a video cut) stops waiting."""
     ms = _management(state)
     w = ms.first
     if w is None:  # no stream waits for its keyframes (managed_step calls this only while one does)
@@ -1224,7 +1230,10 @@ def _watch_first_pose(
     rel = result.ypr_deg[:, 0] - w.yaw0.to(result.ypr_deg.dtype)
     view_rel = rel.to(torch.float64) if w.view_yaw0 is None else (
         view_yaw_deg(result.rotation, result.translation) - w.view_yaw0.to(torch.float64))
-    ok = w.pending & result.success & (result.confidence >= lc.min_confidence)
+    # A video cut (a jump no head makes between two frames) ends the stream's wait: it keeps its landmark fit
+    cut = w.pending & (geodesic_angle_deg(result.rotation, start_rotation.to(result.rotation.dtype))
+                       > KEYFRAME_MAX_STEP_DEG)  # fmt: skip
+    ok = w.pending & ~cut & result.success & (result.confidence >= lc.min_confidence)
     keys = list(w.keys)
     with torch.inference_mode(False):
         sides = w.sides.clone()
@@ -1238,7 +1247,7 @@ def _watch_first_pose(
                     keys[b] = keys[b] + (key,)
     ready = w.pending & (sides.sum(-1) >= lc.min_keyframes)
     seen = w.frames_seen + 1
-    pending = w.pending & ~ready & (seen < lc.max_frames)
+    pending = w.pending & ~ready & ~cut & (seen < lc.max_frames)
     if bool(ready.any()):
         state = _reanchor(model, config, state, w, keys, ready.nonzero().squeeze(-1), frames)
         ms = _management(state)
