@@ -1341,7 +1341,8 @@ def _with_replayed_loss(
         if bool(lost[k]) and rows[-1, residual_col] == 0:  # a failed solve (no residual confidence) while lost: the
             reverted.append(k)  # tracker went on from the confident parameters, not from the held ones of its row
     ms = replace(ms, lost=lost, low_count=low, very_low_count=very_low, since_attempt=since,
-                 confident_params=confident, attempts=attempts, adopted_scale=scale)  # fmt: skip
+                 confident_params=confident, attempts=attempts, adopted_scale=scale,
+                 unmatched=None, unmatched_face=None)  # fmt: skip
     params = state.params
     if reverted:
         params = params.clone()

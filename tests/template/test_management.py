@@ -96,6 +96,9 @@ def test_config_defaults_and_validation():
         with pytest.raises(ValueError, match="too few fiducial patches"):
             TemplateConfig(normalised_size=small)
     assert TemplateConfig(normalised_size=48).normalised_size == 48
+    assert TemplateConfig().restart_after_unmatched == 0  # off: a face-borne occluder also restarts (README)
+    with pytest.raises(ValueError, match="restart_after_unmatched"):
+        TemplateConfig(restart_after_unmatched=-1)
 
 
 def test_pose_bins_known_answers():

@@ -34,7 +34,9 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
    when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
    ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went
-   astray, however well its patches match).
+   astray, however well its patches match). With a detector and ``restart_after_unmatched`` (off by default),
+   a stream whose detected face nothing of its mosaic matched at that many attempts in a row, the same face each
+   time (a cut to another person), starts afresh from the detector's landmarks.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
@@ -162,6 +164,12 @@ class ManagementState:
             have not started since: their templates hold no points and their dissimilarity reference no face
             (they hold their estimate, LOST, at confidence 0), so a detector's landmarks initialise them afresh
             (:func:`managed_step`) instead of recovering against them. None: every stream started.
+        unmatched: ``(B,)`` int64 consecutive recovery attempts in the stream's current loss at which the detector
+            found a face that no candidate matched (none adopted; :attr:`TemplateConfig.restart_after_unmatched
+            <torchface.template.management.TemplateConfig.restart_after_unmatched>`), each showing the same face as the
+            one before it. None: none yet.
+        unmatched_face: the normalised face and mask ``((B, 3, G, G), (B, 1, G, G))`` the detector's landmarks placed
+            at the last of those attempts (rows without one: zeros). None: no stream counts one.
     """
 
     mosaic: Mosaic
@@ -179,6 +187,8 @@ class ManagementState:
     attempts: Tensor | None = None
     adopted_scale: Tensor | None = None
     unstarted: Tensor | None = None
+    unmatched: Tensor | None = None
+    unmatched_face: tuple[Tensor, Tensor] | None = None
 
     def select(self, index: Tensor) -> "ManagementState":
         """The management of streams ``index`` (a ``(B',)`` int64 tensor: :meth:`TrackerState.select
@@ -192,11 +202,12 @@ class ManagementState:
             first = first.select(index)
             first = first if bool(first.pending.any()) else None
         ypr = None if self.params_ypr is None else (self.params_ypr[0][index], self.params_ypr[1][index])
+        face = None if self.unmatched_face is None else (self.unmatched_face[0][index], self.unmatched_face[1][index])
         return ManagementState(
             self.mosaic.select(index), self.layout, self.entry[index], self.low_count[index],
             self.very_low_count[index], self.lost[index], self.confident_params[index], self.since_attempt[index],
             ypr, first, pick(self.head_rotation), pick(self.head_translation), pick(self.attempts),
-            pick(self.adopted_scale), pick(self.unstarted),
+            pick(self.adopted_scale), pick(self.unstarted), pick(self.unmatched), face,
         )  # fmt: skip
 
 
@@ -735,12 +746,13 @@ def _recovery_starts(
 def _recover(
     model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
     detector: LandmarkDetector | None, depth_scales: list[float],
-) -> tuple[Tensor, TrackerState, TrackResult, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, TrackerState, TrackResult, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Re-initialise the lost streams ``index``: candidates, a normal solve from each, their confidence.
 
     Returns:
         found ``(B',)``, the sub-batch's solved state and result, confidence ``(B',)``, dissimilarity ``(B',)``,
-        the fraction of the face inside the frame ``(B',)`` and the entries ``(B',)`` used.
+        the fraction of the face inside the frame ``(B',)``, the entries ``(B',)`` used and the candidates' start
+        parameters ``(B', P)``.
     """
     starts, entries, found = _recovery_starts(model, config, state, ms, frames, index, detector, depth_scales)
     templates = entry_templates(model, state.shape_coeffs[index], ms.mosaic, index, entries, config.backend)
@@ -751,14 +763,52 @@ def _recover(
     solved, result = track_step(model, config, sub, frames[index], conservative=every)
     conf, diss, inside, _ = _confidence(model, config, ms, frames[index], solved, result.status, index,
                                         rotation=result.rotation)  # fmt: skip
-    return found, solved, result, conf, diss, inside, entries
+    return found, solved, result, conf, diss, inside, entries, starts
+
+
+def _count_unmatched(
+    model: FaceModel, config: TrackerConfig, state: TrackerState, ms: ManagementState, frames: Tensor, index: Tensor,
+    starts: Tensor, blind: Tensor,
+) -> tuple[Tensor, tuple[Tensor, Tensor] | None]:
+    """:attr:`ManagementState.unmatched` and ``unmatched_face`` after the recovery attempt of the lost streams
+    ``index`` ``(B',)``, whose detector found a face that nothing of the mosaic matched where ``blind`` ``(B',)``
+    (``starts`` ``(B', P)``: its landmark fit). Such an attempt counts on from the one before only when the face
+    normalised at the fit matches the one normalised then (dissimilarity confidence at least
+    ``confidence_threshold`` against it): a new person in view looks the same five frames later, an occluder
+    passing over the face does not (320x240, 75% of the face covered: 0.000-0.005 against 0.996 for a cut to
+    another person). Any other attempt sets the count to 0, or 1 for the first blind one."""
+    tc = config.template
+    count = torch.zeros_like(ms.low_count) if ms.unmatched is None else ms.unmatched.clone()
+    kept = ms.unmatched_face
+    count[index[~blind]] = 0
+    rows = index[blind]
+    if not rows.numel():
+        return count, kept
+    aa, t, alpha, light = _layout(model).split(starts[blind])
+    image, mask = reference_face(_rows(frames, rows), model, ms.layout, state.shape_coeffs[rows], alpha, aa, t, light,
+                                 state.intrinsics, tc, backend=config.backend)  # fmt: skip
+    same = torch.zeros_like(blind[blind])
+    before = count[rows] > 0
+    if kept is not None and bool(before.any()):
+        at = rows[before]
+        reference = build_dissimilarity_reference(kept[0][at], kept[1][at], tc.dissimilarity, config.backend)
+        diss = dissimilarity(reference, image[before], mask[before], backend=config.backend)
+        same[before] = diss.confidence >= tc.confidence_threshold
+    count[rows] = torch.where(same, count[rows] + 1, torch.ones_like(count[rows]))
+    B = count.shape[0]
+    if kept is None:
+        kept = (image.new_zeros((B, *image.shape[1:])), mask.new_zeros((B, *mask.shape[1:])))
+    kept = (kept[0].clone(), kept[1].clone())
+    kept[0][rows], kept[1][rows] = image, mask
+    return count, kept
 
 
 def _restart(
     model: FaceModel, config: TrackerConfig, state: TrackerState, result: TrackResult, frames: Tensor,
     restart: Tensor, detector: LandmarkDetector,
 ) -> tuple[TrackerState, TrackResult, Tensor]:
-    """The streams ``restart`` ``(B,)`` that never started (:attr:`ManagementState.unstarted`) initialised from this
+    """The streams ``restart`` ``(B,)`` that never started (:attr:`ManagementState.unstarted`), or whose detector found
+    a face their mosaic never matched (``TemplateConfig.restart_after_unmatched``), initialised from this
     frame and the detector's landmarks, where it finds a face (half the landmarks) and the initialisation succeeds:
     their fit, templates, mosaic and reference are this frame's, their management starts afresh, and their result
     is the initialisation's (without the online look-ahead start). Returns the state, the result and the streams
@@ -791,7 +841,7 @@ def _restart(
         def put_some(x: Tensor | None, y: Tensor | float) -> Tensor | None:  # a field that may be None
             return None if x is None else put(x, y)
 
-        unstarted = put_some(ms.unstarted, False)  # (never None: restart is within it)
+        unstarted = put_some(ms.unstarted, False)
         eye = torch.eye(3, dtype=model.dtype, device=model.device)
         new_ms = replace(
             ms, mosaic=_reset_mosaic_rows(ms.mosaic, rows, sub_ms.mosaic), entry=put(ms.entry, 0),
@@ -799,7 +849,7 @@ def _restart(
             confident_params=put(ms.confident_params, sub.params), since_attempt=put(ms.since_attempt, 0),
             params_ypr=None, head_rotation=put_some(ms.head_rotation, eye),
             head_translation=put_some(ms.head_translation, 0.0), attempts=put_some(ms.attempts, 0),
-            adopted_scale=put_some(ms.adopted_scale, 1.0),
+            adopted_scale=put_some(ms.adopted_scale, 1.0), unmatched=put_some(ms.unmatched, 0),
             unstarted=unstarted if unstarted is not None and bool(unstarted.any()) else None,
         )  # fmt: skip
         prior = state.anim_prior_mean
@@ -969,6 +1019,7 @@ def managed_step(
         attempt = attempt & ~restart
         since = torch.where(restart, torch.zeros_like(since), since)
     adopted_scale = ms.adopted_scale if ms.adopted_scale is not None else torch.ones_like(conf)
+    unmatched, unmatched_face = ms.unmatched, ms.unmatched_face  # (None: no detector attempt has counted yet)
     recovery = bool(attempt.any())
     if recovery:
         index = attempt.nonzero().squeeze(-1)
@@ -976,7 +1027,7 @@ def managed_step(
         made = torch.zeros_like(index) if ms.attempts is None else ms.attempts[index]
         scales = [tc.depth_scale(n) for n in made.tolist()] if detector is None else [1.0] * len(index)
         tried = torch.tensor(scales, dtype=state.params.dtype, device=state.params.device)
-        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = _recover(
+        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = _recover(
             model, config, state, ms, frames, index, detector, scales
         )
         # A candidate that beats the continued track and scores at least adopt_min_confidence (below it the
@@ -996,6 +1047,13 @@ def managed_step(
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
         ok = adopt & (r_conf >= tc.recover_confidence)
+        if detector is not None and tc.restart_after_unmatched > 0:
+            # The detector found a face and neither its candidate nor the continued track scores
+            # adopt_min_confidence: the mosaic matches nothing there (a cut to another person: both score 0.00).
+            # After restart_after_unmatched such attempts in a row, each showing the same face, the stream starts
+            # afresh from the detector's landmarks (below).
+            blind = found & (r_conf < tc.adopt_min_confidence) & (conf[index] < tc.adopt_min_confidence)
+            unmatched, unmatched_face = _count_unmatched(model, config, state, ms, frames, index, r_starts, blind)
         if bool(adopt.any()):
             rows = index[adopt]
             params, params_ypr, face = params.clone(), None, None  # the normalised faces are the track's
@@ -1049,10 +1107,18 @@ def managed_step(
     attempts = torch.zeros_like(ms.low_count) if ms.attempts is None else ms.attempts
     attempts = torch.where(lost, attempts + attempt, torch.zeros_like(attempts))  # in the current loss
     adopted_scale = torch.where(lost, adopted_scale, torch.ones_like(adopted_scale))
+    if unmatched is not None:
+        unmatched = torch.where(lost, unmatched, torch.zeros_like(unmatched))  # in the current loss
+        if not bool(unmatched.any()):
+            unmatched_face = None
+        if detector is not None and tc.restart_after_unmatched > 0:
+            again = unmatched >= tc.restart_after_unmatched
+            if bool(again.any()):
+                restart = again if restart is None else restart | again
     ms = ManagementState(
         mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
         None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
-        attempts, adopted_scale, ms.unstarted,
+        attempts, adopted_scale, ms.unstarted, unmatched, unmatched_face,
     )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
