@@ -394,9 +394,9 @@ def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(
     seen = {}
 
     def rec(*args, **kwargs):
-        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry = real(*args, **kwargs)
+        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = real(*args, **kwargs)
         seen["found"], seen["params"] = found.clone(), r_state.params.clone()
-        return found, r_state, r_result, torch.full_like(r_conf, forced), r_diss, r_inside, r_entry
+        return found, r_state, r_result, torch.full_like(r_conf, forced), r_diss, r_inside, r_entry, r_starts
 
     monkeypatch.setattr(managed, "_recover", rec)
     config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=angle,
