@@ -24,7 +24,8 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                default FaceTracker, with the renderer's landmarks as the detector and without one (mosaic search):
                the frames after the cut reported successful but over --max-error degrees off (2; and those of
                them at confidence 0.1 or more), and the first frame from which every frame is successful and
-               within it. --photo astronaut makes B another person.
+               within it. --photo astronaut makes B another person; --restart-after-unmatched 2 sets
+               TemplateConfig.restart_after_unmatched (off by default).
 
 Examples:
     python scripts/doc_figures.py face-width
@@ -48,6 +49,7 @@ from torchface.model.candide import load_candide3
 from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import GroundTruth, SequenceSpec, render_sequence
+from torchface.template.management import TemplateConfig
 from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
 
 D = torch.float64
@@ -199,6 +201,7 @@ def hard_cuts(args: argparse.Namespace) -> None:
                              torch.tensor([-30.0, 0.0, 450.0], dtype=D) + s * torch.tensor([4.0, 0.0, 0.0], dtype=D), 3)
     s = torch.linspace(0, 1, args.frames, dtype=D)[:, None]
     most = args.max_error
+    config = TrackerConfig(template=TemplateConfig(restart_after_unmatched=args.restart_after_unmatched))
     print(f"{w}x{h}; cut at frame {cut} to {args.photo!r}, frames {cut}-{cut + args.frames - 1}; wrong = successful "
           f"and over {most:g} degrees off (those at confidence >= 0.1: frame/degrees/confidence); right from = the "
           f"first frame from which every frame is successful and within {most:g} degrees")
@@ -220,7 +223,7 @@ def hard_cuts(args: argparse.Namespace) -> None:
                     def oracle(batch: torch.Tensor) -> torch.Tensor:  # the renderer's landmarks of the frame
                         return landmarks[current[0]][None].expand(batch.shape[0], -1, -1)
 
-                    tracker = FaceTracker(model=model, detector=oracle if with_detector else None)
+                    tracker = FaceTracker(config, model=model, detector=oracle if with_detector else None)
                     results = [tracker.initialise(frames[:1], landmarks[:1])]
                     for i in range(1, frames.shape[0]):
                         current[0] = i
@@ -296,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--photo", default="james", choices=("james", "astronaut"), help="clip B's face texture")
     p.add_argument("--frames", type=int, default=10, help="frames of clip B")
     p.add_argument("--max-error", type=float, default=2.0, help="a frame further off is wrong, degrees")
+    p.add_argument("--restart-after-unmatched", type=int, default=0,
+                   help="TemplateConfig.restart_after_unmatched (0: off, the default)")
     p.set_defaults(run=hard_cuts)
     args = parser.parse_args(argv)
     for name in ("clips", "frames"):
