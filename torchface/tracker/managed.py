@@ -894,7 +894,8 @@ def managed_step(
         state: from :func:`initialise_managed` or the previous step.
         frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
         detector: optional :data:`LandmarkDetector` used to re-initialise lost streams (called with the
-            frames of the streams attempting a recovery only); None searches the mosaic instead.
+            frames of the streams attempting a recovery only, and once more with those of the streams that start
+            afresh: never started, or ``TemplateConfig.restart_after_unmatched``); None searches the mosaic instead.
         donate: the caller hands ``state`` over and will not use it again (:class:`~torchface.FaceTracker` does):
             where streams change mosaic entry, their new templates are written into ``state``'s template tensors
             instead of into copies of every stream's (which then also change). False: ``state`` is left as it was.
