@@ -30,6 +30,7 @@ import threading
 import time
 import warnings
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
@@ -218,6 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="track without the online look-ahead start (on by default: once the head has turned 10 degrees, the "
         "first pose and the shape units the landmark fit held are re-estimated from that view, in one pass)",
     )  # fmt: skip
+    track.add_argument(
+        "--restart-after-unmatched", type=_count, default=0, metavar="K",
+        help="with --detector: a lost video starts afresh from the detector's face after K recovery attempts in a "
+        "row that found the same face but not the one being tracked (a cut to another person; TemplateConfig."
+        "restart_after_unmatched; default 0, off: a heavy occluder carried with the face can trigger it)",
+    )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
         "--max-batch", type=_threads, default=128,
@@ -305,15 +312,22 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
 
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
-    online_refine=True, max_batch=128,
+    online_refine=True, max_batch=128, restart_after_unmatched=0,
 ) -> int:
     from torchface.job import JobConfig, VideosStopped, track_videos
+    from torchface.template.management import TemplateConfig
     from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.step import TrackerConfig
 
+    tracker = TrackerConfig()
+    if restart_after_unmatched:
+        if detector is None:  # (main refuses it as a usage error first)
+            raise ValueError("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
+        tracker = replace(tracker, template=replace(tracker.template, restart_after_unmatched=restart_after_unmatched))
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
-        refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch,
+        refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     try:
@@ -370,6 +384,17 @@ def _render_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _count(text: str) -> int:
+    """An integer >= 0 (``--restart-after-unmatched``)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
+
+
 def _threads(text: str) -> int:
     """``--threads``: an integer >= 1."""
     try:
@@ -397,6 +422,8 @@ def main(argv: list[str] | None = None) -> int:
             extra = []
     if extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.command == "track" and args.restart_after_unmatched and args.detector is None:
+        parser.error("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
     try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
         import torch
 
@@ -445,7 +472,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "track":
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
-                          not args.no_online_refine, args.max_batch)  # fmt: skip
+                          not args.no_online_refine, args.max_batch, args.restart_after_unmatched)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

@@ -1062,6 +1062,28 @@ def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     assert "--resume" in capsys.readouterr().err
 
 
+def test_restart_after_unmatched_reaches_the_tracker_and_needs_a_detector(monkeypatch, capsys, tmp_path):
+    """``--restart-after-unmatched K`` (TemplateConfig.restart_after_unmatched, off by default) is the job's tracker
+    setting; it restarts from the detector's landmarks, so without ``--detector`` it is a usage error, and a
+    negative or non-integer K is refused by the parser."""
+    import torchface.job
+
+    seen = []
+    monkeypatch.setattr(torchface.job, "track_videos", lambda videos, config, progress=None: seen.append(config) or [])
+    base = ["track", "x.mp4", "--out", str(tmp_path), "--quiet"]
+    assert main([*base, "--detector", "dlib", "--restart-after-unmatched", "3"]) == 0
+    assert main([*base, "--detector", "dlib"]) == 0
+    assert [c.tracker.template.restart_after_unmatched for c in seen] == [3, 0]
+    assert seen[1].tracker == JobConfig(out_dir=tmp_path).tracker  # the default run keeps the default tracker
+    for extra, message in ((["--landmarks", "l.csv", "--restart-after-unmatched", "2"], "needs --detector"),
+                           (["--detector", "dlib", "--restart-after-unmatched", "-1"], "must be an integer >= 0"),
+                           (["--detector", "dlib", "--restart-after-unmatched", "two"], "must be an integer >= 0")):
+        with pytest.raises(SystemExit) as info:
+            main([*base, *extra])
+        assert info.value.code == 2 and message in capsys.readouterr().err
+    assert len(seen) == 2
+
+
 def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
     """``track_videos("clip.avi", ...)`` took each character as an input ("same outputs 'p'"), a Path gave
     "'PosixPath' object is not iterable", and ``JobConfig(landmarks="lm.csv")`` asked for one file per character."""
