@@ -560,3 +560,46 @@ def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypa
                     for name in ("pix_to_face", "bary", "zbuf", "facing"):
                         assert torch.equal(getattr(native, name), getattr(ref, name)), (name, path, cull)
         assert covered  # the mesh is seen (so equality says something)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_window_coverage_is_each_windows_part_of_the_canvas(candidate_path, dtype):
+    """_cover_windows (a pyramid's levels stacked on their finest level's canvas): the native kernel tests and
+    stores each sample's window alone; every group's coverage is the whole canvas's part there, bit for bit
+    (triangles, facing, and the fragments evaluated from it), as the torch code gives it, with the meshes reaching
+    beyond the smaller windows, culled or not; each group's tensors are contiguous."""
+    if candidate_path != "native":
+        pytest.skip("compares the native path with the torch paths itself")
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model.candide import load_candide3
+    from torchface.rendering.rasterizer import _cover_windows
+
+    model = load_candide3(dtype=dtype)
+    g = torch.Generator().manual_seed(3)
+    ypr = ((torch.rand(7, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([120.0, 60.0, 40.0])).to(dtype)
+    t = (torch.tensor([0.0, 0.0, 300.0]) + (torch.rand(7, 3, generator=g, dtype=torch.float64) - 0.5) * 80.0).to(dtype)
+    verts = model.mean @ euler_to_matrix(ypr).mT + t[:, None]
+    canvas = Intrinsics.default(96, 80)
+    windows = [(3, 80, 96), (2, 40, 47), (1, 19, 25), (1, 1, 1)]
+    for cull in (False, True):
+        whole = rasterize_coverage(verts, model.faces, canvas, cull_backfaces=cull, backend=Backend.TORCH)
+        parts = _cover_windows(verts, model.faces, canvas, windows, cull_backfaces=cull, backend=Backend.NATIVE)
+        start = 0
+        for (n, h, w), part in zip(windows, parts):
+            want = whole.part(slice(start, start + n), h, w)
+            assert part.pix_to_face.shape == (n, h, w) and part.pix_to_face.is_contiguous()
+            assert part.facing.is_contiguous() and part.batch_offset == start
+            assert torch.equal(part.pix_to_face, want.pix_to_face) and torch.equal(part.facing, want.facing)
+            got, ref = part.fragments(), want.fragments()
+            for name in ("pix_to_face", "bary", "zbuf", "facing"):
+                assert torch.equal(getattr(got, name), getattr(ref, name)), (name, n, h, w, cull)
+            start += n
+        assert int((parts[1].pix_to_face >= 0).sum()) > 500  # the faces are in the windows
+        assert bool((whole.pix_to_face[3:5, 40:] >= 0).any())  # and beyond the smaller ones
+        torch_parts = _cover_windows(verts, model.faces, canvas, windows, cull_backfaces=cull, backend=Backend.TORCH)
+        for part, other in zip(parts, torch_parts):
+            assert torch.equal(part.pix_to_face, other.pix_to_face) and torch.equal(part.facing, other.facing)
+    with pytest.raises(ValueError, match="windows must split the 7 samples"):
+        _cover_windows(verts, model.faces, canvas, [(3, 80, 96)])
+    with pytest.raises(ValueError, match="within the 80x96 canvas"):
+        _cover_windows(verts, model.faces, canvas, [(7, 81, 96)])

@@ -9,18 +9,23 @@
  * row 12 k = n . v0; oriented); skip (B F) uint8, the rows not tested; x_first, x_last, y_first, y_last (B F)
  * int64, each row's pixel box (clamped by the caller); ray_a (W), ray_b (H); out: pix_to_face (B, H, W) int64
  * and facing (B, H, W) int8 from front (B F) uint8; depth (B, H, W) REAL workspace.
+ * Windows (sizes not NULL): stream b's image is only the top-left sizes[2 b] x sizes[2 b + 1] (height x width) of
+ * the H x W one, written at element starts[b] of the outputs (C order, that size): the same triangles at its
+ * pixels as without them, the rest of the image neither tested nor written (rasterizer._cover's windows).
  */
 
 /* Streams [b0, b1). Returns 0. */
 int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
-    const int F = p->F, H = p->H, W = p->W;
-    const size_t N = (size_t)p->B * F, HW = (size_t)H * W;
+    const int F = p->F;
+    const size_t N = (size_t)p->B * F;
     const REAL *c = (const REAL *)p->coefficients, *ray_a = (const REAL *)p->ray_a, *ray_b = (const REAL *)p->ray_b;
     const REAL near = (REAL)p->near;
     for (int b = b0; b < b1; ++b) {
-        int64_t *face = p->pix_to_face + (size_t)b * HW;
-        int8_t *facing = p->facing + (size_t)b * HW;
-        REAL *depth = (REAL *)p->depth + (size_t)b * HW;
+        const int64_t H = p->sizes ? p->sizes[2 * (size_t)b] : p->H, W = p->sizes ? p->sizes[2 * (size_t)b + 1] : p->W;
+        const size_t HW = (size_t)H * W, start = p->sizes ? (size_t)p->starts[b] : (size_t)b * HW;
+        int64_t *face = p->pix_to_face + start;
+        int8_t *facing = p->facing + start;
+        REAL *depth = (REAL *)p->depth + start;
         for (size_t i = 0; i < HW; ++i) {
             face[i] = -1;
             depth[i] = (REAL)INFINITY;
@@ -32,7 +37,8 @@ int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
             const REAL b0c = c[4 * N + r], b1c = c[5 * N + r], b2c = c[6 * N + r], b3c = c[7 * N + r];
             const REAL c0 = c[8 * N + r], c1 = c[9 * N + r], c2 = c[10 * N + r], c3 = c[11 * N + r];
             const REAL k = c[12 * N + r];
-            const int64_t x0 = p->x_first[r], x1 = p->x_last[r], y0 = p->y_first[r], y1 = p->y_last[r];
+            const int64_t x0 = p->x_first[r], y0 = p->y_first[r];
+            const int64_t x1 = p->x_last[r] < W - 1 ? p->x_last[r] : W - 1, y1 = p->y_last[r] < H - 1 ? p->y_last[r] : H - 1;
             for (int64_t y = y0; y <= y1; ++y) {
                 const REAL by = ray_b[y];
                 /* the per-row part (c[4:8] b + c[8:12]), as both torch paths compute it */

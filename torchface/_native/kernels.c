@@ -90,6 +90,7 @@ typedef struct {
     int64_t *pix_to_face;
     int8_t *facing;
     void *depth;
+    const int64_t *sizes, *starts;
 } TFCoverProblem;
 
 /* Mirrored by torchface._native.SelectProblem (ctypes): keep the two in the same order; see select_pixels.h. */
@@ -175,7 +176,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 14; }
+int tf_abi_version(void) { return 15; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

@@ -20,7 +20,7 @@ from torchface.geometry._checks import check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import Coverage, rasterize_coverage
+from torchface.rendering.rasterizer import Coverage, _cover_windows
 from torchface.rendering.visibility import vertex_normals
 
 
@@ -312,15 +312,16 @@ def rasterize_windows(
         to rounding; its barycentric coordinates and depths are evaluated where the caller asks): the windows are
         stacked along the batch on a canvas of the largest size, each through :func:`_window_verts` (one call's
         fixed cost instead of one per level: an entry's coarse levels cost nearly as much as its finest when
-        rasterized alone).
+        rasterized alone); the native z-buffer tests and stores each window at its own size
+        (:func:`~torchface.rendering.rasterizer._cover_windows`).
     """
     first = cameras[0]  # the canvas projects as the first camera (its window's vertices are only shifted)
     canvas = Intrinsics(max(c.width for c in cameras), max(c.height for c in cameras), first.fx, first.fy, first.cx,
                         first.cy)  # fmt: skip
     stacked = torch.cat([_window_verts(verts_cam, c, o, canvas) for c, o in zip(cameras, offsets)])
-    coverage = rasterize_coverage(stacked, model.faces, canvas, cull_backfaces=True, backend=backend)
     B = verts_cam.shape[0]
-    return [coverage.part(slice(i * B, (i + 1) * B), c.height, c.width) for i, c in enumerate(cameras)]
+    return _cover_windows(stacked, model.faces, canvas, [(B, c.height, c.width) for c in cameras],
+                          cull_backfaces=True, backend=backend)  # fmt: skip
 
 
 #: :func:`select_pixels_posed` tests the facing of every point of a triangle only where the triangle's lower
