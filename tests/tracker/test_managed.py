@@ -260,6 +260,45 @@ def test_new_entry_reuses_the_confidences_normalised_face_exactly(model, turns, 
     assert calls  # entries were added
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_face_windows_are_each_streams_window_computed_alone(model, dtype):
+    """_face_windows (every stream's window at once, for new mosaic entries) gives the windows the per-stream
+    computation it replaced gave (kept here as the reference), bit for bit: faces inside the frame, partly or wholly
+    outside it, behind the camera and with non-finite vertices, for several corner grids q (and a frame size that is
+    not a multiple of q)."""
+    from torchface.tracker.managed import _face_windows
+    from torchface.tracker.step import clamp_projection
+    from torchface.geometry.projection import project_points
+
+    def alone(verts_cam, intrinsics, q):  # the per-stream code _new_entries ran before
+        uv = project_points(verts_cam[model.surface_vertex_mask].unsqueeze(0), intrinsics)[0]
+        uv = clamp_projection(uv, intrinsics.width, intrinsics.height)
+        lo, hi = uv.amin(0), uv.amax(0)
+        pad = 0.05 * (hi - lo) + 8
+        x0 = max(0, int(float(lo[0] - pad[0])) // q * q)
+        y0 = max(0, int(float(lo[1] - pad[1])) // q * q)
+        x1 = min(intrinsics.width, -(-int(float(hi[0] + pad[0])) // q) * q)
+        y1 = min(intrinsics.height, -(-int(float(hi[1] + pad[1])) // q) * q)
+        return x0, y0, max(x1 - x0, q), max(y1 - y0, q)
+
+    g = torch.Generator().manual_seed(11)
+    n = 40
+    ypr = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([160.0, 80.0, 60.0])
+    t = torch.tensor([0.0, 0.0, 600.0]) + (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor(
+        [1400.0, 1000.0, 900.0])
+    t[0] = torch.tensor([0.0, 0.0, -300.0])  # behind the camera
+    t[1] = torch.tensor([5000.0, 0.0, 400.0])  # far to the right: clamped at twice the width
+    verts = (model.mean.to(torch.float64) @ euler_to_matrix(ypr).mT + t[:, None]).to(dtype)
+    verts[2, 5] = float("nan")
+    verts[3, 7, 0] = float("inf")
+    for cam, q in ((Intrinsics.default(640, 480), 4), (Intrinsics.default(333, 250), 8), (Intrinsics.default(
+            320, 240), 1), (Intrinsics.default(160, 120), 2)):
+        got = _face_windows(model, verts, cam, q)
+        assert got.dtype == torch.int64 and got.shape == (n, 4)
+        assert got.tolist() == [list(alone(verts[i], cam, q)) for i in range(n)], (cam, q)
+        assert bool((got[:, :2] >= 0).all()) and bool((got[:, 2:] >= q).all())
+
+
 def test_mosaic_bins_are_keyed_to_the_first_pose(model, turns_pitched):
     """A head that starts 6 degrees off the camera's axis in pitch (the usual case: the bins' pitch never comes
     within ``bin_centre_fraction`` of a camera-keyed centre) still grows its mosaic as it turns: the bins are

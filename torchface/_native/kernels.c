@@ -149,6 +149,19 @@ typedef struct {
     void *out_value;
 } TFTopProblem;
 
+/* Mirrored by torchface._native.PickProblem (ctypes): keep the two in the same order; see top_pixels.h. */
+typedef struct {
+    int B, H, W, F, batch_offset;
+    int64_t k, num_columns;
+    const int64_t *index;
+    const float *value;
+    const int64_t *pix_to_face;
+    const void *gray, *coefficients, *ray_a, *ray_b;
+    int64_t *out_face;
+    void *out_bary, *out_intensity;
+    uint8_t *out_valid;
+} TFPickProblem;
+
 /* Mirrored by torchface._native.PyramidProblem (ctypes): keep the two in the same order; see gray_pyramid.h. */
 typedef struct {
     int B, height, width, levels;
@@ -176,7 +189,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 15; }
+int tf_abi_version(void) { return 16; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

@@ -358,7 +358,9 @@ def select_pixels_posed(
     camera and offsets) and the mask erosion counts in grid steps. 1: every pixel. ``seed``: the selection keys'
     draw (:func:`select_template_pixels`). ``backend``: the candidates' tests and scores by the native kernel
     (``torchface/_native/select_pixels.h``, the same tests with the same arithmetic; every pixel, no expression
-    priority or quota) or the torch code; the top-k choice and what follows are the torch code's either way."""
+    priority or quota) or the torch code; the top-k choice (:func:`top_scores`) and the chosen pixels' triangles,
+    barycentric coordinates and gray values by native kernels too where they can run (``top_pixels.h``, the torch
+    code's arithmetic: the same template either way)."""
     full_h, full_w = intrinsics.height, intrinsics.width
     B = gray.shape[0]
     verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
@@ -517,9 +519,15 @@ def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor,
                 dtype: torch.dtype, backend: Backend = Backend.AUTO) -> TemplatePixels:  # fmt: skip
     """The ``max_points`` highest-scoring pixels ``score (B, H W)`` (-1: not a candidate; :func:`top_scores`'
     order) as :class:`TemplatePixels`: their triangle (``face_flat (B, H W)``), barycentric coordinates
-    (``frags``) and gray value (``gray (B, 1, H, W)``), in ``dtype``."""
+    (``frags``) and gray value (``gray (B, 1, H, W)``), in ``dtype``; by the native kernel where ``backend``, the
+    dtypes (float32 scores; gray, coefficients and ``dtype`` one dtype) and the inputs allow (:func:`_native_pick`:
+    a score of tensor operations per pyramid level cost about 0.4 ms per new mosaic entry)."""
     B, W = gray.shape[0], gray.shape[-1]
     top, pix = top_scores(score, max_points, backend)
+    coefficients = frags.coefficients.detach()
+    if (top.dtype == torch.float32 and gray.dtype == coefficients.dtype == dtype
+            and use_native(backend, (coefficients, gray), "template pixels")):
+        return _native_pick(top, pix, frags, gray)
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     rows = torch.arange(B, device=pix.device).repeat_interleave(pix.shape[1])
@@ -527,6 +535,31 @@ def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor,
     bary = frags.barycentrics(rows, pix_row, pix.reshape(-1) - pix_row * W).reshape(B, pix.shape[1], 3)
     bary = bary.to(dtype)
     intensity = torch.gather(gray.flatten(1), 1, pix).to(dtype)
+    return TemplatePixels(face_index, bary, intensity, valid)
+
+
+def _native_pick(top: Tensor, pix: Tensor, frags: Coverage, gray: Tensor) -> TemplatePixels:
+    """:func:`_top_pixels`' pixels at the chosen candidates ``pix (B, k)`` (their float32 scores ``top (B, k)``)
+    by the native kernel (``torchface/_native/top_pixels.h``: the same arithmetic as the torch code), in the
+    dtype of ``gray (B, 1, H, W)`` and of the coverage's coefficients."""
+    from torchface import _native
+
+    B, k = pix.shape
+    H, W = gray.shape[-2:]
+    dtype = gray.dtype
+    inputs = [x.contiguous() for x in (pix, top, frags.pix_to_face, gray, frags.coefficients.detach(), frags.ray_a,
+                                       frags.ray_b)]  # fmt: skip
+    face_index = torch.empty(B, k, dtype=torch.int64)
+    bary, intensity = torch.empty(B, k, 3, dtype=dtype), torch.empty(B, k, dtype=dtype)
+    valid = torch.empty(B, k, dtype=torch.bool)
+    names = ("index", "value", "pix_to_face", "gray", "coefficients", "ray_a", "ray_b")
+    prob = _native.PickProblem(
+        B=B, H=H, W=W, F=frags.num_faces, batch_offset=frags.batch_offset, k=k,
+        num_columns=frags.coefficients.shape[1], **{n: x.data_ptr() for n, x in zip(names, inputs)},
+        out_face=face_index.data_ptr(), out_bary=bary.data_ptr(), out_intensity=intensity.data_ptr(),
+        out_valid=valid.data_ptr(),
+    )  # fmt: skip
+    _native.run("pick_pixels", dtype == torch.float64, prob, B, 1)
     return TemplatePixels(face_index, bary, intensity, valid)
 
 

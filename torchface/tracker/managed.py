@@ -514,20 +514,22 @@ def estimate_confidence(
     return _confidence(model, config, ms, frames, state, status)[:2]
 
 
-def _face_window(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q: int) -> tuple[int, int, int, int]:
-    """Full-resolution pixel window ``(x0, y0, w, h)`` around one stream's projected face ``verts_cam (V, 3)``,
-    enlarged by 5% of its size and 8 pixels on each side, inside the image, corners on multiples of ``q``
-    (so that every pyramid level's window is pixel-aligned with that level)."""
-    uv = project_points(verts_cam[model.surface_vertex_mask].unsqueeze(0), intrinsics)[0]
+def _face_windows(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q: int) -> Tensor:
+    """Full-resolution pixel windows int64 ``(n, 4)`` ``(x0, y0, w, h)`` around the projected faces ``verts_cam
+    (n, V, 3)``, each enlarged by 5% of its size and 8 pixels on each side, inside the image, corners on multiples
+    of ``q`` (so that every pyramid level's window is pixel-aligned with that level): a corner's coordinate
+    (in the vertices' dtype) truncated toward zero, then rounded outwards to ``q``. Every stream at once (one per
+    stream, with four conversions of a value to a Python number each, cost 0.1 ms a stream)."""
+    uv = project_points(verts_cam[:, model.surface_vertex_mask], intrinsics)
     W, H = intrinsics.width, intrinsics.height
     uv = clamp_projection(uv, W, H)
-    lo, hi = uv.amin(0), uv.amax(0)
+    lo, hi = uv.amin(1), uv.amax(1)  # (n, 2) each
     pad = 0.05 * (hi - lo) + 8
-    x0 = max(0, int(float(lo[0] - pad[0])) // q * q)
-    y0 = max(0, int(float(lo[1] - pad[1])) // q * q)
-    x1 = min(W, -(-int(float(hi[0] + pad[0])) // q) * q)
-    y1 = min(H, -(-int(float(hi[1] + pad[1])) // q) * q)
-    return x0, y0, max(x1 - x0, q), max(y1 - y0, q)
+    first = torch.div((lo - pad).to(torch.int64), q, rounding_mode="floor") * q  # int(): toward zero
+    last = -torch.div(-(hi + pad).to(torch.int64), q, rounding_mode="floor") * q
+    first = first.clamp(min=0)
+    last = torch.minimum(last, torch.tensor([W, H], dtype=torch.int64, device=last.device))
+    return torch.cat([first, (last - first).clamp(min=q)], -1)
 
 
 def _new_entries(
@@ -554,10 +556,7 @@ def _new_entries(
     image, mask = face
     reference = build_dissimilarity_reference(image, mask, config.template.dissimilarity, config.backend)
     q = 2 ** (config.num_levels - 1)
-    windows = torch.tensor(
-        [_face_window(model, posed.verts_cam[i], state.intrinsics, q) for i in range(index.shape[0])],
-        device=index.device,
-    )  # (n, 4) x0, y0, w, h at full resolution
+    windows = _face_windows(model, posed.verts_cam, state.intrinsics, q).to(index.device)  # (n, 4) x0, y0, w, h
     # Each level's window (one size for the streams concerned), or the whole level where it would hold fewer
     # pixels than the level's slots.
     cameras, heights, widths, offsets, strides = [], [], [], [], []
