@@ -491,6 +491,54 @@ def test_donated_state_gives_the_same_track_and_a_kept_state_is_left_as_it_was(m
     assert all(torch.equal(a, b) for a, b in zip(runs[False][1], runs[True][1]))
 
 
+def test_entry_templates_written_in_place_are_the_scattered_ones(model, turns):
+    """A donated state's templates get a changed entry's templates written into their own rows by the native
+    interpolation (_entry_templates_in_place): the same tensors as entry_templates then _scatter_templates, point-last
+    copies included, bit for bit (rows first overwritten with NaN, so every value is written); where a level cannot
+    be written in place (no point-last copies yet, an inference tensor) nothing is written and the caller scatters."""
+    from torchface.template.management import entry_templates
+    from torchface.template.points import Template
+    from torchface.tracker.managed import _entry_templates_in_place, _scatter_templates
+
+    frames, gt = turns
+    config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
+    _, state = track(model, config, torch.cat([frames[:, :12], frames[:, 2:14]]), landmarks(gt).expand(2, -1, -1))
+    mosaic = state.management.mosaic
+    assert int(mosaic.num_entries.min()) >= 2
+    streams, entries = torch.tensor([1, 0]), (mosaic.num_entries - 1)[[1, 0]]
+    shape = state.shape_coeffs[streams]
+
+    def copied(t):
+        new = Template(*(x.clone() for x in (t.face_index, t.bary, t.points, t.basis, t.normals, t.intensity,
+                                             t.valid)))  # fmt: skip
+        object.__setattr__(new, "_point_last", tuple(x.clone() for x in t.point_last))
+        return new
+
+    want = _scatter_templates(tuple(copied(t) for t in state.templates), streams,
+                              entry_templates(model, shape, mosaic, streams, entries))  # fmt: skip
+    into = tuple(copied(t) for t in state.templates)
+    for t in into:
+        for x in (t.points, t.basis, t.normals, t.intensity, t.bary, *t.point_last):
+            x[streams] = float("nan")
+    got = _entry_templates_in_place(model, shape, mosaic, streams, entries, into, config.backend)
+    assert got is not None
+    for g, w, t in zip(got, want, into):
+        assert g.points is t.points and g.point_last[2] is t.point_last[2]  # written in place
+        for name in ("face_index", "bary", "points", "basis", "normals", "intensity", "valid"):
+            assert torch.equal(getattr(g, name), getattr(w, name)), name
+        for a, b in zip(g.point_last, w.point_last):
+            assert torch.equal(a, b)
+    # Not writable in place: nothing written.
+    bare = tuple(Template(*(x.clone() for x in (t.face_index, t.bary, t.points, t.basis, t.normals, t.intensity,
+                                                t.valid))) for t in state.templates)  # fmt: skip
+    assert _entry_templates_in_place(model, shape, mosaic, streams, entries, bare, config.backend) is None
+    with torch.inference_mode():
+        frozen = tuple(copied(t) for t in state.templates)
+    before = [x.clone() for x in frozen[0].point_last]
+    assert _entry_templates_in_place(model, shape, mosaic, streams, entries, frozen, config.backend) is None
+    assert all(torch.equal(a, b) for a, b in zip(frozen[0].point_last, before))
+
+
 def test_batch_equals_each_stream_alone(model, gentle, leaves):
     """A clean stream and one that leaves the frame: each alone equals the same stream in the batch."""
     fa, ga = gentle

@@ -68,7 +68,7 @@ _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h", "gray_pyramid.h",
             "visible.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 16
+_ABI_VERSION = 17
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -204,7 +204,7 @@ class TemplateProblem(ctypes.Structure):
         *((name, ctypes.c_int) for name in ("B", "V", "A", "N")),
         *((name, ctypes.c_void_p) for name in ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary",
                                                "out_points", "out_basis", "out_normals", "out_points_t",
-                                               "out_normals_t", "out_basis_t")),  # fmt: skip
+                                               "out_normals_t", "out_basis_t", "out_rows")),  # fmt: skip
     ]
 
 

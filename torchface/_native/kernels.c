@@ -138,6 +138,7 @@ typedef struct {
     const int64_t *faces, *face_index;
     const void *bary;
     void *out_points, *out_basis, *out_normals, *out_points_t, *out_normals_t, *out_basis_t;
+    const int64_t *out_rows;
 } TFTemplateProblem;
 
 /* Mirrored by torchface._native.TopProblem (ctypes): keep the two in the same order; see top_pixels.h. */
@@ -189,7 +190,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 16; }
+int tf_abi_version(void) { return 17; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

@@ -700,6 +700,56 @@ def _template_at_native(
     return tpl
 
 
+def _rows_writable(model: FaceModel, into: Template, dtype: torch.dtype) -> bool:
+    """Whether :func:`_template_rows_native` can write into ``into``: it holds its point-last copies
+    (:attr:`Template.point_last`) and its tensors are normal (not inference) tensors, and those the kernel writes
+    contiguous, of ``dtype`` and of the template's layout."""
+    cached = into.__dict__.get("_point_last")
+    if cached is None:
+        return False
+    B, N = into.face_index.shape
+    A = model.num_animation
+    want = ((B, N, 3), (B, N, 3, A), (B, N, 3), (B, 3, N), (B, 3, N), (B, A, 3, N))
+    outs = (into.points, into.basis, into.normals, *cached)
+    return not any(
+        x.is_inference() or not x.is_contiguous() or x.dtype != dtype or tuple(x.shape) != shape
+        for x, shape in zip(outs, want)
+    ) and not any(getattr(into, f).is_inference() for f in ("face_index", "bary", "intensity", "valid"))
+
+
+def _template_rows_native(
+    model: FaceModel, neutral: tuple[Tensor, Tensor], pixels: TemplatePixels, into: Template, rows: Tensor
+) -> Template:
+    """:func:`template_at` of ``pixels`` (batch ``B'``, as many points as ``into``) written by the native kernel
+    straight into rows ``rows`` (int64 ``(B',)``, distinct) of ``into``'s tensors and of its point-last copies
+    (:attr:`Template.point_last`), in place (:func:`_rows_writable` must hold; the kernel must be able to run):
+    the template of ``into``'s batch with those rows replaced, on the same tensors, as copying a fresh template
+    into them gives. ``neutral``: the ``B'`` streams' neutral vertices and vertex normals ``(B', V, 3)``."""
+    from torchface import _native
+
+    verts, vertex_normals_neutral = neutral
+    dtype = verts.dtype
+    cached = into.__dict__["_point_last"]
+    with torch.inference_mode(False):
+        inputs = [x.contiguous() for x in (verts, vertex_normals_neutral, model.animation_units,
+                                           model.faces.to(torch.int64), pixels.face_index.to(torch.int64),
+                                           pixels.bary.to(dtype), rows.to(torch.int64))]  # fmt: skip
+        names = ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary", "out_rows")
+        outs = ("out_points", "out_basis", "out_normals", "out_points_t", "out_normals_t", "out_basis_t")
+        prob = _native.TemplateProblem(
+            B=rows.shape[0], V=model.num_vertices, A=model.num_animation, N=into.face_index.shape[1],
+            **{n: x.data_ptr() for n, x in zip(names, inputs)},
+            **{n: x.data_ptr() for n, x in zip(outs, (into.points, into.basis, into.normals, *cached))},
+        )  # fmt: skip
+        _native.run("template_at", dtype == torch.float64, prob, rows.shape[0], torch.get_num_threads())
+        for name in ("face_index", "bary", "intensity", "valid"):
+            x = getattr(into, name)
+            x[rows] = getattr(pixels, name).to(x.dtype)
+    new = Template(into.face_index, into.bary, into.points, into.basis, into.normals, into.intensity, into.valid)
+    object.__setattr__(new, "_point_last", cached)
+    return new
+
+
 def point_normals(model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
     """``(B, N, 3)`` the unit head-frame normals (zero expression) of points given by triangle ``(B, N)`` and
     barycentric coordinates ``(B, N, 3)``: :attr:`Template.normals` without the rest of :func:`template_at`."""

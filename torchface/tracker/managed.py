@@ -53,7 +53,7 @@ from torchface._autocast import full_precision
 from torchface import _native
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
-from torchface.backend import use_native
+from torchface.backend import Backend, use_native
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
@@ -88,6 +88,8 @@ from torchface.template.management import (
 from torchface.template.points import (
     Template,
     TemplatePixels,
+    _rows_writable,
+    _template_rows_native,
     interpolated_normals,
     posed_mesh,
     rasterize_windows,
@@ -415,6 +417,28 @@ def _scatter_templates(
                 object.__setattr__(new, "_point_last", tuple(lasts))
             out.append(new)
     return tuple(out)
+
+
+def _entry_templates_in_place(
+    model: FaceModel, shape_coeffs: Tensor, mosaic: Mosaic, streams: Tensor, entries: Tensor,
+    templates: tuple[Template, ...], backend: Backend,
+) -> tuple[Template, ...] | None:
+    """``_scatter_templates(templates, streams, entry_templates(...), in_place=True)``: the templates of entries
+    ``entries (B',)`` of streams ``streams (B',)`` (shape units ``shape_coeffs (B', S)``) written into rows
+    ``streams`` of ``templates``' own tensors (those of a donated state) by the native interpolation, point-last
+    copies included, without making them apart first (a fresh template per level, then copied into the state's:
+    1.5 ms per step at 32 streams). The same values. None (nothing written) where a level's tensors do not allow
+    it (:func:`~torchface.template.points._rows_writable`) or the kernel cannot run."""
+    verts = model.deform(shape_coeffs, None)
+    neutral = verts, vertex_normals(verts, model.faces)
+    levels = [TemplatePixels(*(getattr(lv, name)[streams, entries] for name in ("face_index", "bary", "intensity",
+                                                                               "valid"))) for lv in mosaic.levels]
+    if not use_native(backend, (verts, neutral[1], levels[0].bary, model.animation_units), "template") or not all(
+        _rows_writable(model, t, verts.dtype) and t.face_index.shape[1] == px.face_index.shape[1]
+        for t, px in zip(templates, levels)
+    ):
+        return None
+    return tuple(_template_rows_native(model, neutral, px, t, streams) for t, px in zip(templates, levels))
 
 
 def _normal_template(t: Template) -> Template:
@@ -896,9 +920,15 @@ def managed_step(
     if use_mosaic:
         changed = (entry != ms.entry).nonzero().squeeze(-1)
         if changed.numel():
-            sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed],
-                                  config.backend)
-            templates = _scatter_templates(templates, changed, sub, in_place=donate)
+            written = None
+            if donate:  # straight into the state's templates where they allow it (_entry_templates_in_place)
+                written = _entry_templates_in_place(model, state.shape_coeffs[changed], ms.mosaic, changed,
+                                                    entry[changed], templates, config.backend)  # fmt: skip
+            if written is None:
+                sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed],
+                                      config.backend)  # fmt: skip
+                written = _scatter_templates(templates, changed, sub, in_place=donate)
+            templates = written
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
     # Lost streams keep the pose levels' prior in the refinement pass: with a weak one (refine_prior_precision)
