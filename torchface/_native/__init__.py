@@ -10,7 +10,7 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 - ``dissimilarity.h``: the dissimilarity confidence's smoothing and patch tracking, and a reference's patches;
 - ``normalised_face.h``: the normalised face without the z-buffer;
 - ``confidence.h``: the last two (and the nearest mosaic entry) as template management's per-frame confidence;
-- ``coverage.h``: the rasterizer's coverage (z-buffer);
+- ``coverage.h``: the rasterizer's coverage (z-buffer) and its per-triangle coefficients;
 - ``select_pixels.h``: a template's candidate pixels and their selection scores;
 - ``management.h``: template management's per-frame decisions (entry selection, gating);
 - ``template_at.h``: a template from its compact form;
@@ -60,15 +60,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem",
-           "ConfProblem", "CoverProblem", "SelectProblem", "ManageProblem", "TemplateProblem", "PickProblem",
-           "PyramidProblem", "VisibleProblem", "LOSS_CODES"]
+           "ConfProblem", "CoverProblem", "CoeffProblem", "SelectProblem", "ManageProblem", "TemplateProblem",
+           "PickProblem", "PyramidProblem", "VisibleProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h", "gray_pyramid.h",
             "visible.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 17
+_ABI_VERSION = 18
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -159,6 +159,16 @@ class CoverProblem(ctypes.Structure):
         *((name, ctypes.c_void_p) for name in ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last",
                                                "y_first", "y_last", "pix_to_face", "facing", "depth", "sizes",
                                                "starts")),  # fmt: skip
+    ]
+
+
+class CoeffProblem(ctypes.Structure):
+    """``TFCoeffProblem`` of ``kernels.c`` (same field order): the rasterizer's per-triangle coefficients (see
+    ``coverage.h``)."""
+
+    _fields_ = [
+        ("N", ctypes.c_int), ("large", ctypes.c_double), ("eps", ctypes.c_double),
+        *((name, ctypes.c_void_p) for name in ("tri", "coefficients", "front", "usable", "scaled")),
     ]
 
 
@@ -467,7 +477,8 @@ def _load() -> None:
         return
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
-                          ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
+                          ("tf_coverage", CoverProblem), ("tf_face_coefficients", CoeffProblem),
+                          ("tf_select_pixels", SelectProblem),
                           ("tf_reference_patches", LKProblem), ("tf_select_entries", ManageProblem),
                           ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem),
                           ("tf_top_pixels", TopProblem), ("tf_pick_pixels", PickProblem),

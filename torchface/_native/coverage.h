@@ -62,3 +62,74 @@ int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
     }
     return 0;
 }
+
+/* The rasterizer's per-triangle coefficients (torchface.rendering.rasterizer._face_coefficients) of rows [r0, r1)
+ * of tri (N, 3, 3) (corner, xyz): the cross products c0 = v1 x e12, c1 = v2 x e20, c2 = v0 x e01 and
+ * n = e01 x e02 (component i: a_{i+1} b_{i+2} - a_{i+2} b_{i+1}), k = n . v0, all times sign(n . v0), in table
+ * (13, N) row j + 4 i (function j, component i), then k; front (N) uint8 (k < 0) and usable (N) uint8 (finite,
+ * |n| > eps max_edge^2, |k| > eps |n| |v0|), with the torch code's operations in its order (a sum of three
+ * terms as (x + y) + z), so the same values bit for bit. A row with a non-finite corner is all zeros and not
+ * usable (the torch code zeroes its corners); a row with a coordinate beyond `large` is not computed and flagged
+ * in scaled (N) uint8: the torch code scales those (the caller runs it instead). */
+static inline void FN(tf_cross)(const REAL *a, const REAL *b, REAL *out) {
+    for (int i = 0; i < 3; ++i) out[i] = a[(i + 1) % 3] * b[(i + 2) % 3] - a[(i + 2) % 3] * b[(i + 1) % 3];
+}
+
+int FN(tf_face_coefficients)(const TFCoeffProblem *p, int r0, int r1) {
+    const size_t N = (size_t)p->N;
+    const REAL *tri = (const REAL *)p->tri, large = (REAL)p->large, eps = (REAL)p->eps;
+    REAL *out = (REAL *)p->coefficients;
+    for (int r = r0; r < r1; ++r) {
+        const REAL *t = tri + 9 * (size_t)r;
+        int finite = 1;
+        REAL largest = 0;
+        for (int i = 0; i < 9; ++i) {
+            finite &= isfinite(t[i]) != 0;
+            REAL a = t[i] < 0 ? -t[i] : t[i];
+            largest = a > largest ? a : largest;
+        }
+        p->scaled[r] = 0;
+        if (!finite) {
+            for (int j = 0; j < 13; ++j) out[(size_t)j * N + r] = (REAL)0;
+            p->front[r] = 0;
+            p->usable[r] = 0;
+            continue;
+        }
+        if (largest > large) {
+            p->scaled[r] = 1;
+            continue;
+        }
+        const REAL *v0 = t, *v1 = t + 3, *v2 = t + 6;
+        REAL e01[3], e02[3], e12[3], e20[3], cr[4][3];
+        for (int i = 0; i < 3; ++i) {
+            e01[i] = v1[i] - v0[i];
+            e02[i] = v2[i] - v0[i];
+            e12[i] = v2[i] - v1[i];
+            e20[i] = v0[i] - v2[i];
+        }
+        FN(tf_cross)(v1, e12, cr[0]);
+        FN(tf_cross)(v2, e20, cr[1]);
+        FN(tf_cross)(v0, e01, cr[2]);
+        FN(tf_cross)(e01, e02, cr[3]);
+        const REAL *n = cr[3];
+        const REAL k = (n[0] * v0[0] + n[1] * v0[1]) + n[2] * v0[2];
+        const int front = k < (REAL)0;
+        const REAL sign = front ? (REAL)-1 : (REAL)1;
+        const REAL n_norm = (REAL)sqrt((double)((n[0] * n[0] + n[1] * n[1]) + n[2] * n[2]));
+        const REAL *edges[3] = {e01, e02, e12};
+        REAL max_edge_sq = 0;
+        for (int e = 0; e < 3; ++e) {
+            const REAL *x = edges[e];
+            REAL sq = (x[0] * x[0] + x[1] * x[1]) + x[2] * x[2];
+            max_edge_sq = e == 0 || sq > max_edge_sq ? sq : max_edge_sq;
+        }
+        const REAL v0_norm = (REAL)sqrt((double)((v0[0] * v0[0] + v0[1] * v0[1]) + v0[2] * v0[2]));
+        const REAL k_abs = k < (REAL)0 ? -k : k;
+        p->front[r] = (uint8_t)front;
+        p->usable[r] = (uint8_t)(n_norm > eps * max_edge_sq && k_abs > eps * n_norm * v0_norm);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 4; ++j) out[(size_t)(j + 4 * i) * N + r] = cr[j][i] * sign;
+        out[12 * N + r] = k * sign;
+    }
+    return 0;
+}

@@ -93,6 +93,15 @@ typedef struct {
     const int64_t *sizes, *starts;
 } TFCoverProblem;
 
+/* Mirrored by torchface._native.CoeffProblem (ctypes): keep the two in the same order; see coverage.h. */
+typedef struct {
+    int N;
+    double large, eps;
+    const void *tri;
+    void *coefficients;
+    uint8_t *front, *usable, *scaled;
+} TFCoeffProblem;
+
 /* Mirrored by torchface._native.SelectProblem (ctypes): keep the two in the same order; see select_pixels.h. */
 typedef struct {
     int B, H, W, V, F, erode, full_w, batch_offset, num_columns;
@@ -190,7 +199,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 17; }
+int tf_abi_version(void) { return 18; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

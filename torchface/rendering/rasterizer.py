@@ -242,11 +242,14 @@ def _large_coordinate(dtype: torch.dtype) -> float:
     return 2.0 ** (math.frexp(torch.finfo(dtype).max)[1] // 4 - 4)
 
 
-def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _face_coefficients(tri: Tensor, native: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Per-triangle ray-test coefficients, oriented so that a hit in front of the camera is positive.
 
     Args:
         tri: ``(N, 3, 3)`` triangle corners in the camera frame (``N = B F`` sample-face rows).
+        native: by the native kernel (``torchface/_native/coverage.h``: the same operations in the same order, so
+            the same values), for a caller that has checked it can run (no gradient asked for); the torch code
+            where a triangle needs the scaling below.
 
     Returns:
         ``table (13, N)``: for the ray ``d = (a, b, 1)``, function ``j = 0..3`` is
@@ -256,6 +259,10 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         (finite, non-degenerate, not edge-on).
     """
     tri = tri.reshape(-1, 3, 3)
+    if native:
+        done = _native_face_coefficients(tri)
+        if done is not None:
+            return done
     finite = isfinite(tri).reshape(-1, 9).all(-1)  # (N,)
     # A triangle with a non-finite corner is unusable; its corners are zeroed (torch.where, not a product) so that
     # no NaN reaches the coefficients: a zero gradient times a NaN coefficient would be NaN for the shared vertices.
@@ -296,6 +303,24 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         k = k * torch.exp2(s)
     # Rows j + 4 i: function j (c0, c1, c2, n) times component i of the ray; then k.
     return torch.cat([cr.transpose(0, 1).reshape(12, -1), k.unsqueeze(0)]) * sign, front, usable
+
+
+def _native_face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+    """:func:`_face_coefficients` of ``tri (N, 3, 3)`` by the native kernel, or None where a triangle has a
+    coordinate beyond :func:`_large_coordinate` (the torch code scales it)."""
+    from torchface import _native
+
+    N, dtype = tri.shape[0], tri.dtype
+    tri = tri.detach().contiguous()
+    coeffs = torch.empty(13, N, dtype=dtype)
+    front, usable, scaled = (torch.empty(N, dtype=torch.bool) for _ in range(3))
+    prob = _native.CoeffProblem(
+        N=N, large=_large_coordinate(dtype), eps=torch.finfo(dtype).eps * _DEGENERATE_EPS_FACTOR,
+        tri=tri.data_ptr(), coefficients=coeffs.data_ptr(), front=front.data_ptr(), usable=usable.data_ptr(),
+        scaled=scaled.data_ptr(),
+    )  # fmt: skip
+    _native.run("face_coefficients", dtype == torch.float64, prob, N, 1)
+    return None if bool(scaled.any()) else (coeffs, front, usable)
 
 
 def _project_corners(tri: Tensor, intrinsics: Intrinsics, near: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -592,7 +617,10 @@ def _cover(
         raise ValueError(f"at most 2**31 - 1 faces are supported, got {F}")
 
     tri = _triangles(verts_cam, faces)  # (B, F, 3, 3)
-    coeffs, front, usable = _face_coefficients(tri)  # (13, B F), (B F,), (B F,)
+    # The coefficients natively where no gradient is asked for (they are differentiable in the torch code).
+    native = not (torch.is_grad_enabled() and verts_cam.requires_grad) and use_native(
+        backend, (verts_cam.detach(),), "rasterizer")
+    coeffs, front, usable = _face_coefficients(tri, native)  # (13, B F), (B F,), (B F,)
     if cull_backfaces:
         usable = usable & front
     ray_a = (torch.arange(W, device=device, dtype=dtype) - intrinsics.cx) / intrinsics.fx
@@ -705,10 +733,11 @@ def rasterize(
         intrinsics: the camera; the output is ``H x W = intrinsics.height x intrinsics.width``.
         cull_backfaces: drop triangles with ``n . v0 >= 0`` before the depth test.
         near: hits at depth ``Z <= near`` (millimetres) are discarded.
-        backend: :class:`~torchface.backend.Backend` of the z-buffer (which triangle each pixel sees): the native
-            kernel tests every pixel of each triangle's bounding box with the same arithmetic, so the fragments
-            are the same bit for bit; the barycentric coordinates and depths are then evaluated (differentiably)
-            by the torch code either way.
+        backend: :class:`~torchface.backend.Backend` of the z-buffer (which triangle each pixel sees) and, where
+            no gradient is asked for, of the triangles' ray-test coefficients: the native kernels test every pixel
+            of each triangle's bounding box and compute the coefficients with the same arithmetic, so the
+            fragments are the same bit for bit; the barycentric coordinates and depths are then evaluated
+            (differentiably) by the torch code either way.
 
     Returns:
         :class:`Fragments` with ``(B, H, W)`` ``pix_to_face``/``zbuf``/``facing`` and ``(B, H, W, 3)``
