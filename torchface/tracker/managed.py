@@ -427,8 +427,8 @@ def _entry_templates_in_place(
     ``entries (B',)`` of streams ``streams (B',)`` (shape units ``shape_coeffs (B', S)``) written into rows
     ``streams`` of ``templates``' own tensors (those of a donated state) by the native interpolation, point-last
     copies included, without making them apart first (a fresh template per level, then copied into the state's:
-    1.5 ms per step at 32 streams). The same values. None (nothing written) where a level's tensors do not allow
-    it (:func:`~torchface.template.points._rows_writable`) or the kernel cannot run."""
+    about 0.5 ms more per step at 32 streams, one thread). The same values. None (nothing written) where a level's
+    tensors do not allow it (:func:`~torchface.template.points._rows_writable`) or the kernel cannot run."""
     verts = model.deform(shape_coeffs, None)
     neutral = verts, vertex_normals(verts, model.faces)
     levels = [TemplatePixels(*(getattr(lv, name)[streams, entries] for name in ("face_index", "bary", "intensity",
@@ -543,7 +543,7 @@ def _face_windows(model: FaceModel, verts_cam: Tensor, intrinsics: Intrinsics, q
     (n, V, 3)``, each enlarged by 5% of its size and 8 pixels on each side, inside the image, corners on multiples
     of ``q`` (so that every pyramid level's window is pixel-aligned with that level): a corner's coordinate
     (in the vertices' dtype) truncated toward zero, then rounded outwards to ``q``. Every stream at once (one per
-    stream, with four conversions of a value to a Python number each, cost 0.1 ms a stream)."""
+    stream, with four conversions of a value to a Python number each, cost about 0.1 ms a stream)."""
     uv = project_points(verts_cam[:, model.surface_vertex_mask], intrinsics)
     W, H = intrinsics.width, intrinsics.height
     uv = clamp_projection(uv, W, H)
