@@ -560,3 +560,88 @@ def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypa
                     for name in ("pix_to_face", "bary", "zbuf", "facing"):
                         assert torch.equal(getattr(native, name), getattr(ref, name)), (name, path, cull)
         assert covered  # the mesh is seen (so equality says something)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_window_coverage_is_each_windows_part_of_the_canvas(candidate_path, dtype):
+    """_cover_windows (a pyramid's levels stacked on their finest level's canvas): the native kernel tests and
+    stores each sample's window alone; every group's coverage is the whole canvas's part there, bit for bit
+    (triangles, facing, and the fragments evaluated from it), as the torch code gives it, with the meshes reaching
+    beyond the smaller windows, culled or not; each group's tensors are contiguous."""
+    if candidate_path != "native":
+        pytest.skip("compares the native path with the torch paths itself")
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model.candide import load_candide3
+    from torchface.rendering.rasterizer import _cover_windows
+
+    model = load_candide3(dtype=dtype)
+    g = torch.Generator().manual_seed(3)
+    ypr = ((torch.rand(7, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([120.0, 60.0, 40.0])).to(dtype)
+    t = (torch.tensor([0.0, 0.0, 300.0]) + (torch.rand(7, 3, generator=g, dtype=torch.float64) - 0.5) * 80.0).to(dtype)
+    verts = model.mean @ euler_to_matrix(ypr).mT + t[:, None]
+    canvas = Intrinsics.default(96, 80)
+    windows = [(3, 80, 96), (2, 40, 47), (1, 19, 25), (1, 1, 1)]
+    for cull in (False, True):
+        whole = rasterize_coverage(verts, model.faces, canvas, cull_backfaces=cull, backend=Backend.TORCH)
+        parts = _cover_windows(verts, model.faces, canvas, windows, cull_backfaces=cull, backend=Backend.NATIVE)
+        start = 0
+        for (n, h, w), part in zip(windows, parts):
+            want = whole.part(slice(start, start + n), h, w)
+            assert part.pix_to_face.shape == (n, h, w) and part.pix_to_face.is_contiguous()
+            assert part.facing.is_contiguous() and part.batch_offset == start
+            assert torch.equal(part.pix_to_face, want.pix_to_face) and torch.equal(part.facing, want.facing)
+            got, ref = part.fragments(), want.fragments()
+            for name in ("pix_to_face", "bary", "zbuf", "facing"):
+                assert torch.equal(getattr(got, name), getattr(ref, name)), (name, n, h, w, cull)
+            start += n
+        assert int((parts[1].pix_to_face >= 0).sum()) > 500  # the faces are in the windows
+        assert bool((whole.pix_to_face[3:5, 40:] >= 0).any())  # and beyond the smaller ones
+        torch_parts = _cover_windows(verts, model.faces, canvas, windows, cull_backfaces=cull, backend=Backend.TORCH)
+        for part, other in zip(parts, torch_parts):
+            assert torch.equal(part.pix_to_face, other.pix_to_face) and torch.equal(part.facing, other.facing)
+    with pytest.raises(ValueError, match="windows must split the 7 samples"):
+        _cover_windows(verts, model.faces, canvas, [(3, 80, 96)])
+    with pytest.raises(ValueError, match="within the 80x96 canvas"):
+        _cover_windows(verts, model.faces, canvas, [(7, 81, 96)])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_face_coefficients_are_the_torch_codes_bit_for_bit(candidate_path, dtype):
+    """The native per-triangle coefficients (``torchface/_native/coverage.h``) are the torch code's bit for bit:
+    table, front and usable, on random soups and the CANDIDE-3 mesh at random poses, with degenerate (zero-area,
+    collinear) and non-finite triangles; a triangle beyond the large-coordinate limit sends the whole call back to
+    the torch code (which scales it), and so does a gradient asked for."""
+    if candidate_path != "native":
+        pytest.skip("compares the native path with the torch path itself")
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model.candide import load_candide3
+    from torchface.rendering.rasterizer import _face_coefficients, _large_coordinate, _triangles
+
+    model = load_candide3(dtype=torch.float64)
+    g = torch.Generator().manual_seed(9)
+    ypr = (torch.rand(5, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([180.0, 90.0, 60.0])
+    t = torch.tensor([0.0, 0.0, 450.0]) + (torch.rand(5, 3, generator=g, dtype=torch.float64) - 0.5) * 300.0
+    face = _triangles(model.mean @ euler_to_matrix(ypr).mT + t[:, None], model.faces).reshape(-1, 3, 3)
+    soup = (torch.rand(4000, 3, 3, generator=g, dtype=torch.float64) - 0.5) * 200 + torch.tensor([0.0, 0.0, 100.0])
+    soup[:50, 2] = soup[:50, 0]  # zero area
+    soup[50:100, 2] = 2 * soup[50:100, 1] - soup[50:100, 0]  # collinear
+    soup[100:150, :, 2] = 0.0  # edge-on through the camera centre
+    soup[150, 1, 0] = float("nan")
+    soup[151, 2, 2] = float("inf")
+    soup[152:160] *= 1e-6  # tiny
+    for tri in (face, soup):
+        tri = tri.to(dtype)
+        got = _face_coefficients(tri, native=True)
+        want = _face_coefficients(tri)
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype and torch.equal(a, b)
+    assert bool(want[2].any()) and not bool(want[2][:152].any())  # the soup: usable, and unusable degenerate rows
+    big = soup.to(dtype).clone()
+    big[3000] *= 4 * _large_coordinate(dtype) / 100
+    got, want = _face_coefficients(big, native=True), _face_coefficients(big)
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    assert float(want[0][12, 3000].abs()) > 0 and bool(want[2][3000])  # the scaled triangle, by the torch code
+    v = soup[:20].to(dtype).clone().requires_grad_(True)
+    coverage = rasterize_coverage(v.reshape(1, -1, 3), torch.arange(60).reshape(20, 3), Intrinsics.default(64, 48),
+                                  backend=Backend.NATIVE)  # fmt: skip
+    assert coverage.coefficients.requires_grad

@@ -842,3 +842,39 @@ def test_an_empty_batch_gives_an_empty_template(scene, backend):
     tpl = build(s, max_points=50, gradient_threshold=0.01, backend=backend)
     A = scene["model"].num_animation
     assert tpl.points.shape == (0, 50, 3) and tpl.basis.shape == (0, 50, 3, A) and tpl.intensity.shape == (0, 50)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_template_pixels_at_the_chosen_candidates_are_the_torch_codes(scene, dtype):
+    """_top_pixels' native pass over the chosen pixels (``torchface/_native/top_pixels.h``: triangle, barycentric
+    coordinates, gray value, candidate or not) gives the torch code's TemplatePixels bit for bit: pyramid levels
+    rasterized together (windows after the first sit further into the coefficient table), whole images and
+    windows, with more slots than candidates (background and non-candidate pixels chosen)."""
+    from torchface.template.points import _top_pixels, rasterize_windows
+
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    s = scene
+    model = load_candide3(dtype=dtype)
+    posed = posed_mesh(model, s["shape"].to(dtype), s["anim"].to(dtype), s["R"].to(dtype), s["t"].to(dtype))
+    offsets = [torch.tensor([[40, 20], [30, 28]]), torch.tensor([[20, 10], [15, 14]]), None]
+    cams = []
+    for level, (h, w) in enumerate([(70, 80), (35, 40), (H // 4, W // 4)]):
+        full = level_intrinsics(s["cam"], level, H >> level, W >> level)
+        cams.append(Intrinsics(w, h, full.fx, full.fy, full.cx, full.cy))
+    g = torch.Generator().manual_seed(4)
+    picked = 0
+    for cam, frags in zip(cams, rasterize_windows(model, posed.verts_cam, cams, offsets)):
+        gray = torch.rand(2, 1, cam.height, cam.width, generator=g, dtype=dtype)
+        face_flat = frags.pix_to_face.flatten(1)
+        score = torch.rand(2, cam.height * cam.width, generator=g)  # float32, as the selection's keys
+        score[torch.rand(score.shape, generator=g) < 0.5] = -1.0
+        for k in (7, cam.height * cam.width // 3, cam.height * cam.width):
+            nat = _top_pixels(score, face_flat, frags, gray, k, dtype, Backend.NATIVE)
+            ref = _top_pixels(score, face_flat, frags, gray, k, dtype, Backend.TORCH)
+            for f in ("face_index", "bary", "intensity", "valid"):
+                assert getattr(nat, f).dtype == getattr(ref, f).dtype, f
+                assert torch.equal(getattr(nat, f), getattr(ref, f)), (cam, k, f)
+            picked += int(((face_flat.gather(1, torch.topk(score, k, dim=1).indices) >= 0)).sum())
+        assert not bool(nat.valid.all()) and bool((nat.bary == 0).all(-1).any())  # non-candidates, background
+    assert picked > 1000

@@ -262,6 +262,45 @@ def test_new_entry_reuses_the_confidences_normalised_face_exactly(model, turns, 
     assert calls  # entries were added
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_face_windows_are_each_streams_window_computed_alone(model, dtype):
+    """_face_windows (every stream's window at once, for new mosaic entries) gives the windows the per-stream
+    computation it replaced gave (kept here as the reference), bit for bit: faces inside the frame, partly or wholly
+    outside it, behind the camera and with non-finite vertices, for several corner grids q (and a frame size that is
+    not a multiple of q)."""
+    from torchface.tracker.managed import _face_windows
+    from torchface.tracker.step import clamp_projection
+    from torchface.geometry.projection import project_points
+
+    def alone(verts_cam, intrinsics, q):  # the per-stream code _new_entries ran before
+        uv = project_points(verts_cam[model.surface_vertex_mask].unsqueeze(0), intrinsics)[0]
+        uv = clamp_projection(uv, intrinsics.width, intrinsics.height)
+        lo, hi = uv.amin(0), uv.amax(0)
+        pad = 0.05 * (hi - lo) + 8
+        x0 = max(0, int(float(lo[0] - pad[0])) // q * q)
+        y0 = max(0, int(float(lo[1] - pad[1])) // q * q)
+        x1 = min(intrinsics.width, -(-int(float(hi[0] + pad[0])) // q) * q)
+        y1 = min(intrinsics.height, -(-int(float(hi[1] + pad[1])) // q) * q)
+        return x0, y0, max(x1 - x0, q), max(y1 - y0, q)
+
+    g = torch.Generator().manual_seed(11)
+    n = 40
+    ypr = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([160.0, 80.0, 60.0])
+    t = torch.tensor([0.0, 0.0, 600.0]) + (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor(
+        [1400.0, 1000.0, 900.0])
+    t[0] = torch.tensor([0.0, 0.0, -300.0])  # behind the camera
+    t[1] = torch.tensor([5000.0, 0.0, 400.0])  # far to the right: clamped at twice the width
+    verts = (model.mean.to(torch.float64) @ euler_to_matrix(ypr).mT + t[:, None]).to(dtype)
+    verts[2, 5] = float("nan")
+    verts[3, 7, 0] = float("inf")
+    for cam, q in ((Intrinsics.default(640, 480), 4), (Intrinsics.default(333, 250), 8), (Intrinsics.default(
+            320, 240), 1), (Intrinsics.default(160, 120), 2)):
+        got = _face_windows(model, verts, cam, q)
+        assert got.dtype == torch.int64 and got.shape == (n, 4)
+        assert got.tolist() == [list(alone(verts[i], cam, q)) for i in range(n)], (cam, q)
+        assert bool((got[:, :2] >= 0).all()) and bool((got[:, 2:] >= q).all())
+
+
 def test_mosaic_bins_are_keyed_to_the_first_pose(model, turns_pitched):
     """A head that starts 6 degrees off the camera's axis in pitch (the usual case: the bins' pitch never comes
     within ``bin_centre_fraction`` of a camera-keyed centre) still grows its mosaic as it turns: the bins are
@@ -452,6 +491,54 @@ def test_donated_state_gives_the_same_track_and_a_kept_state_is_left_as_it_was(m
         assert torch.equal(a.axis_angle, b.axis_angle) and torch.equal(a.mosaic_entry, b.mosaic_entry)
         assert torch.equal(a.confidence, b.confidence)
     assert all(torch.equal(a, b) for a, b in zip(runs[False][1], runs[True][1]))
+
+
+def test_entry_templates_written_in_place_are_the_scattered_ones(model, turns):
+    """A donated state's templates get a changed entry's templates written into their own rows by the native
+    interpolation (_entry_templates_in_place): the same tensors as entry_templates then _scatter_templates, point-last
+    copies included, bit for bit (rows first overwritten with NaN, so every value is written); where a level cannot
+    be written in place (no point-last copies yet, an inference tensor) nothing is written and the caller scatters."""
+    from torchface.template.management import entry_templates
+    from torchface.template.points import Template
+    from torchface.tracker.managed import _entry_templates_in_place, _scatter_templates
+
+    frames, gt = turns
+    config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
+    _, state = track(model, config, torch.cat([frames[:, :12], frames[:, 2:14]]), landmarks(gt).expand(2, -1, -1))
+    mosaic = state.management.mosaic
+    assert int(mosaic.num_entries.min()) >= 2
+    streams, entries = torch.tensor([1, 0]), (mosaic.num_entries - 1)[[1, 0]]
+    shape = state.shape_coeffs[streams]
+
+    def copied(t):
+        new = Template(*(x.clone() for x in (t.face_index, t.bary, t.points, t.basis, t.normals, t.intensity,
+                                             t.valid)))  # fmt: skip
+        object.__setattr__(new, "_point_last", tuple(x.clone() for x in t.point_last))
+        return new
+
+    want = _scatter_templates(tuple(copied(t) for t in state.templates), streams,
+                              entry_templates(model, shape, mosaic, streams, entries))  # fmt: skip
+    into = tuple(copied(t) for t in state.templates)
+    for t in into:
+        for x in (t.points, t.basis, t.normals, t.intensity, t.bary, *t.point_last):
+            x[streams] = float("nan")
+    got = _entry_templates_in_place(model, shape, mosaic, streams, entries, into, config.backend)
+    assert got is not None
+    for g, w, t in zip(got, want, into):
+        assert g.points is t.points and g.point_last[2] is t.point_last[2]  # written in place
+        for name in ("face_index", "bary", "points", "basis", "normals", "intensity", "valid"):
+            assert torch.equal(getattr(g, name), getattr(w, name)), name
+        for a, b in zip(g.point_last, w.point_last):
+            assert torch.equal(a, b)
+    # Not writable in place: nothing written.
+    bare = tuple(Template(*(x.clone() for x in (t.face_index, t.bary, t.points, t.basis, t.normals, t.intensity,
+                                                t.valid))) for t in state.templates)  # fmt: skip
+    assert _entry_templates_in_place(model, shape, mosaic, streams, entries, bare, config.backend) is None
+    with torch.inference_mode():
+        frozen = tuple(copied(t) for t in state.templates)
+    before = [x.clone() for x in frozen[0].point_last]
+    assert _entry_templates_in_place(model, shape, mosaic, streams, entries, frozen, config.backend) is None
+    assert all(torch.equal(a, b) for a, b in zip(frozen[0].point_last, before))
 
 
 def test_batch_equals_each_stream_alone(model, gentle, leaves):

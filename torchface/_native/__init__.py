@@ -10,11 +10,12 @@ and loads it. ``kernels.c`` includes, each as its torch code computes it:
 - ``dissimilarity.h``: the dissimilarity confidence's smoothing and patch tracking, and a reference's patches;
 - ``normalised_face.h``: the normalised face without the z-buffer;
 - ``confidence.h``: the last two (and the nearest mosaic entry) as template management's per-frame confidence;
-- ``coverage.h``: the rasterizer's coverage (z-buffer);
+- ``coverage.h``: the rasterizer's coverage (z-buffer) and its per-triangle coefficients;
 - ``select_pixels.h``: a template's candidate pixels and their selection scores;
 - ``management.h``: template management's per-frame decisions (entry selection, gating);
 - ``template_at.h``: a template from its compact form;
-- ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k);
+- ``top_pixels.h``: the top-k of a template's candidate pixels (a stable descending sort's first k), and the
+  template's pixels there;
 - ``gray_pyramid.h``: a tracking step's gray crop pyramid (:func:`torchface.tracker.step.gray_crop_pyramid`);
 - ``visible.h``: which surface points the camera sees, given the coverage
   (:func:`torchface.rendering.visibility.points_visible`).
@@ -59,15 +60,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem",
-           "ConfProblem", "CoverProblem", "SelectProblem", "ManageProblem", "TemplateProblem", "PyramidProblem", "VisibleProblem",
-           "LOSS_CODES"]
+           "ConfProblem", "CoverProblem", "CoeffProblem", "SelectProblem", "ManageProblem", "TemplateProblem",
+           "PickProblem", "PyramidProblem", "VisibleProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h", "gray_pyramid.h",
             "visible.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 14
+_ABI_VERSION = 18
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -156,7 +157,18 @@ class CoverProblem(ctypes.Structure):
         *((name, ctypes.c_int) for name in ("B", "F", "H", "W")),
         ("near", ctypes.c_double),
         *((name, ctypes.c_void_p) for name in ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last",
-                                               "y_first", "y_last", "pix_to_face", "facing", "depth")),  # fmt: skip
+                                               "y_first", "y_last", "pix_to_face", "facing", "depth", "sizes",
+                                               "starts")),  # fmt: skip
+    ]
+
+
+class CoeffProblem(ctypes.Structure):
+    """``TFCoeffProblem`` of ``kernels.c`` (same field order): the rasterizer's per-triangle coefficients (see
+    ``coverage.h``)."""
+
+    _fields_ = [
+        ("N", ctypes.c_int), ("large", ctypes.c_double), ("eps", ctypes.c_double),
+        *((name, ctypes.c_void_p) for name in ("tri", "coefficients", "front", "usable", "scaled")),
     ]
 
 
@@ -202,7 +214,7 @@ class TemplateProblem(ctypes.Structure):
         *((name, ctypes.c_int) for name in ("B", "V", "A", "N")),
         *((name, ctypes.c_void_p) for name in ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary",
                                                "out_points", "out_basis", "out_normals", "out_points_t",
-                                               "out_normals_t", "out_basis_t")),  # fmt: skip
+                                               "out_normals_t", "out_basis_t", "out_rows")),  # fmt: skip
     ]
 
 
@@ -213,6 +225,18 @@ class TopProblem(ctypes.Structure):
     _fields_ = [
         ("B", ctypes.c_int), ("N", ctypes.c_int64), ("k", ctypes.c_int64),
         *((name, ctypes.c_void_p) for name in ("score", "out_index", "out_value")),
+    ]
+
+
+class PickProblem(ctypes.Structure):
+    """``TFPickProblem`` of ``kernels.c`` (same field order): a template's pixels at its chosen candidates (see
+    ``top_pixels.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "H", "W", "F", "batch_offset")),
+        ("k", ctypes.c_int64), ("num_columns", ctypes.c_int64),
+        *((name, ctypes.c_void_p) for name in ("index", "value", "pix_to_face", "gray", "coefficients", "ray_a",
+                                               "ray_b", "out_face", "out_bary", "out_intensity", "out_valid")),
     ]
 
 
@@ -453,10 +477,12 @@ def _load() -> None:
         return
     for name, problem in (("tf_solve_level", LevelProblem), ("tf_dissimilarity", LKProblem),
                           ("tf_normalised_face", FaceProblem), ("tf_confidence", ConfProblem),
-                          ("tf_coverage", CoverProblem), ("tf_select_pixels", SelectProblem),
+                          ("tf_coverage", CoverProblem), ("tf_face_coefficients", CoeffProblem),
+                          ("tf_select_pixels", SelectProblem),
                           ("tf_reference_patches", LKProblem), ("tf_select_entries", ManageProblem),
                           ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem),
-                          ("tf_top_pixels", TopProblem), ("tf_gray_pyramid", PyramidProblem),
+                          ("tf_top_pixels", TopProblem), ("tf_pick_pixels", PickProblem),
+                          ("tf_gray_pyramid", PyramidProblem),
                           ("tf_visible", VisibleProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)

@@ -9,18 +9,23 @@
  * row 12 k = n . v0; oriented); skip (B F) uint8, the rows not tested; x_first, x_last, y_first, y_last (B F)
  * int64, each row's pixel box (clamped by the caller); ray_a (W), ray_b (H); out: pix_to_face (B, H, W) int64
  * and facing (B, H, W) int8 from front (B F) uint8; depth (B, H, W) REAL workspace.
+ * Windows (sizes not NULL): stream b's image is only the top-left sizes[2 b] x sizes[2 b + 1] (height x width) of
+ * the H x W one, written at element starts[b] of the outputs (C order, that size): the same triangles at its
+ * pixels as without them, the rest of the image neither tested nor written (rasterizer._cover's windows).
  */
 
 /* Streams [b0, b1). Returns 0. */
 int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
-    const int F = p->F, H = p->H, W = p->W;
-    const size_t N = (size_t)p->B * F, HW = (size_t)H * W;
+    const int F = p->F;
+    const size_t N = (size_t)p->B * F;
     const REAL *c = (const REAL *)p->coefficients, *ray_a = (const REAL *)p->ray_a, *ray_b = (const REAL *)p->ray_b;
     const REAL near = (REAL)p->near;
     for (int b = b0; b < b1; ++b) {
-        int64_t *face = p->pix_to_face + (size_t)b * HW;
-        int8_t *facing = p->facing + (size_t)b * HW;
-        REAL *depth = (REAL *)p->depth + (size_t)b * HW;
+        const int64_t H = p->sizes ? p->sizes[2 * (size_t)b] : p->H, W = p->sizes ? p->sizes[2 * (size_t)b + 1] : p->W;
+        const size_t HW = (size_t)H * W, start = p->sizes ? (size_t)p->starts[b] : (size_t)b * HW;
+        int64_t *face = p->pix_to_face + start;
+        int8_t *facing = p->facing + start;
+        REAL *depth = (REAL *)p->depth + start;
         for (size_t i = 0; i < HW; ++i) {
             face[i] = -1;
             depth[i] = (REAL)INFINITY;
@@ -32,7 +37,8 @@ int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
             const REAL b0c = c[4 * N + r], b1c = c[5 * N + r], b2c = c[6 * N + r], b3c = c[7 * N + r];
             const REAL c0 = c[8 * N + r], c1 = c[9 * N + r], c2 = c[10 * N + r], c3 = c[11 * N + r];
             const REAL k = c[12 * N + r];
-            const int64_t x0 = p->x_first[r], x1 = p->x_last[r], y0 = p->y_first[r], y1 = p->y_last[r];
+            const int64_t x0 = p->x_first[r], y0 = p->y_first[r];
+            const int64_t x1 = p->x_last[r] < W - 1 ? p->x_last[r] : W - 1, y1 = p->y_last[r] < H - 1 ? p->y_last[r] : H - 1;
             for (int64_t y = y0; y <= y1; ++y) {
                 const REAL by = ray_b[y];
                 /* the per-row part (c[4:8] b + c[8:12]), as both torch paths compute it */
@@ -53,6 +59,77 @@ int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
         }
         for (size_t i = 0; i < HW; ++i)
             facing[i] = face[i] < 0 ? 0 : (p->front[(size_t)b * F + face[i]] ? 1 : -1);
+    }
+    return 0;
+}
+
+/* The rasterizer's per-triangle coefficients (torchface.rendering.rasterizer._face_coefficients) of rows [r0, r1)
+ * of tri (N, 3, 3) (corner, xyz): the cross products c0 = v1 x e12, c1 = v2 x e20, c2 = v0 x e01 and
+ * n = e01 x e02 (component i: a_{i+1} b_{i+2} - a_{i+2} b_{i+1}), k = n . v0, all times sign(n . v0), in table
+ * (13, N) row j + 4 i (function j, component i), then k; front (N) uint8 (k < 0) and usable (N) uint8 (finite,
+ * |n| > eps max_edge^2, |k| > eps |n| |v0|), with the torch code's operations in its order (a sum of three
+ * terms as (x + y) + z), so the same values bit for bit. A row with a non-finite corner is all zeros and not
+ * usable (the torch code zeroes its corners); a row with a coordinate beyond `large` is not computed and flagged
+ * in scaled (N) uint8: the torch code scales those (the caller runs it instead). */
+static inline void FN(tf_cross)(const REAL *a, const REAL *b, REAL *out) {
+    for (int i = 0; i < 3; ++i) out[i] = a[(i + 1) % 3] * b[(i + 2) % 3] - a[(i + 2) % 3] * b[(i + 1) % 3];
+}
+
+int FN(tf_face_coefficients)(const TFCoeffProblem *p, int r0, int r1) {
+    const size_t N = (size_t)p->N;
+    const REAL *tri = (const REAL *)p->tri, large = (REAL)p->large, eps = (REAL)p->eps;
+    REAL *out = (REAL *)p->coefficients;
+    for (int r = r0; r < r1; ++r) {
+        const REAL *t = tri + 9 * (size_t)r;
+        int finite = 1;
+        REAL largest = 0;
+        for (int i = 0; i < 9; ++i) {
+            finite &= isfinite(t[i]) != 0;
+            REAL a = t[i] < 0 ? -t[i] : t[i];
+            largest = a > largest ? a : largest;
+        }
+        p->scaled[r] = 0;
+        if (!finite) {
+            for (int j = 0; j < 13; ++j) out[(size_t)j * N + r] = (REAL)0;
+            p->front[r] = 0;
+            p->usable[r] = 0;
+            continue;
+        }
+        if (largest > large) {
+            p->scaled[r] = 1;
+            continue;
+        }
+        const REAL *v0 = t, *v1 = t + 3, *v2 = t + 6;
+        REAL e01[3], e02[3], e12[3], e20[3], cr[4][3];
+        for (int i = 0; i < 3; ++i) {
+            e01[i] = v1[i] - v0[i];
+            e02[i] = v2[i] - v0[i];
+            e12[i] = v2[i] - v1[i];
+            e20[i] = v0[i] - v2[i];
+        }
+        FN(tf_cross)(v1, e12, cr[0]);
+        FN(tf_cross)(v2, e20, cr[1]);
+        FN(tf_cross)(v0, e01, cr[2]);
+        FN(tf_cross)(e01, e02, cr[3]);
+        const REAL *n = cr[3];
+        const REAL k = (n[0] * v0[0] + n[1] * v0[1]) + n[2] * v0[2];
+        const int front = k < (REAL)0;
+        const REAL sign = front ? (REAL)-1 : (REAL)1;
+        const REAL n_norm = (REAL)sqrt((double)((n[0] * n[0] + n[1] * n[1]) + n[2] * n[2]));
+        const REAL *edges[3] = {e01, e02, e12};
+        REAL max_edge_sq = 0;
+        for (int e = 0; e < 3; ++e) {
+            const REAL *x = edges[e];
+            REAL sq = (x[0] * x[0] + x[1] * x[1]) + x[2] * x[2];
+            max_edge_sq = e == 0 || sq > max_edge_sq ? sq : max_edge_sq;
+        }
+        const REAL v0_norm = (REAL)sqrt((double)((v0[0] * v0[0] + v0[1] * v0[1]) + v0[2] * v0[2]));
+        const REAL k_abs = k < (REAL)0 ? -k : k;
+        p->front[r] = (uint8_t)front;
+        p->usable[r] = (uint8_t)(n_norm > eps * max_edge_sq && k_abs > eps * n_norm * v0_norm);
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 4; ++j) out[(size_t)(j + 4 * i) * N + r] = cr[j][i] * sign;
+        out[12 * N + r] = k * sign;
     }
     return 0;
 }

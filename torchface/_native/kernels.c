@@ -90,7 +90,17 @@ typedef struct {
     int64_t *pix_to_face;
     int8_t *facing;
     void *depth;
+    const int64_t *sizes, *starts;
 } TFCoverProblem;
+
+/* Mirrored by torchface._native.CoeffProblem (ctypes): keep the two in the same order; see coverage.h. */
+typedef struct {
+    int N;
+    double large, eps;
+    const void *tri;
+    void *coefficients;
+    uint8_t *front, *usable, *scaled;
+} TFCoeffProblem;
 
 /* Mirrored by torchface._native.SelectProblem (ctypes): keep the two in the same order; see select_pixels.h. */
 typedef struct {
@@ -137,6 +147,7 @@ typedef struct {
     const int64_t *faces, *face_index;
     const void *bary;
     void *out_points, *out_basis, *out_normals, *out_points_t, *out_normals_t, *out_basis_t;
+    const int64_t *out_rows;
 } TFTemplateProblem;
 
 /* Mirrored by torchface._native.TopProblem (ctypes): keep the two in the same order; see top_pixels.h. */
@@ -147,6 +158,19 @@ typedef struct {
     int64_t *out_index;
     void *out_value;
 } TFTopProblem;
+
+/* Mirrored by torchface._native.PickProblem (ctypes): keep the two in the same order; see top_pixels.h. */
+typedef struct {
+    int B, H, W, F, batch_offset;
+    int64_t k, num_columns;
+    const int64_t *index;
+    const float *value;
+    const int64_t *pix_to_face;
+    const void *gray, *coefficients, *ray_a, *ray_b;
+    int64_t *out_face;
+    void *out_bary, *out_intensity;
+    uint8_t *out_valid;
+} TFPickProblem;
 
 /* Mirrored by torchface._native.PyramidProblem (ctypes): keep the two in the same order; see gray_pyramid.h. */
 typedef struct {
@@ -175,7 +199,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 14; }
+int tf_abi_version(void) { return 18; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

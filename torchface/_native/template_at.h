@@ -7,7 +7,9 @@
  * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
  * Layouts (C order): verts, vertex_normals (B, V, 3); anim_units (A, V, 3); faces (F, 3) int64; face_index (B, N)
  * int64 (a negative index counts as 0); bary (B, N, 3); out: points (B, N, 3), basis (B, N, 3, A), normals
- * (B, N, 3), points_t (B, 3, N), normals_t (B, 3, N), basis_t (B, A, 3, N).
+ * (B, N, 3), points_t (B, 3, N), normals_t (B, 3, N), basis_t (B, A, 3, N); with out_rows (B) int64 (not NULL),
+ * stream b's values go to row out_rows[b] of outputs of any number of rows (a tracker state's templates, written in
+ * place).
  */
 
 int FN(tf_template_at)(const TFTemplateProblem *p, int b0, int b1) {
@@ -18,10 +20,11 @@ int FN(tf_template_at)(const TFTemplateProblem *p, int b0, int b1) {
         const REAL *vn = (const REAL *)p->vertex_normals + (size_t)b * V * 3;
         const int64_t *fi = p->face_index + (size_t)b * N;
         const REAL *bary = (const REAL *)p->bary + (size_t)b * N * 3;
-        REAL *pts = (REAL *)p->out_points + (size_t)b * N * 3, *nrm = (REAL *)p->out_normals + (size_t)b * N * 3;
-        REAL *basis = (REAL *)p->out_basis + (size_t)b * N * 3 * A;
-        REAL *pts_t = (REAL *)p->out_points_t + (size_t)b * 3 * N, *nrm_t = (REAL *)p->out_normals_t + (size_t)b * 3 * N;
-        REAL *basis_t = (REAL *)p->out_basis_t + (size_t)b * A * 3 * N;
+        const size_t o = p->out_rows ? (size_t)p->out_rows[b] : (size_t)b;
+        REAL *pts = (REAL *)p->out_points + o * N * 3, *nrm = (REAL *)p->out_normals + o * N * 3;
+        REAL *basis = (REAL *)p->out_basis + o * N * 3 * A;
+        REAL *pts_t = (REAL *)p->out_points_t + o * 3 * N, *nrm_t = (REAL *)p->out_normals_t + o * 3 * N;
+        REAL *basis_t = (REAL *)p->out_basis_t + o * A * 3 * N;
         for (int n = 0; n < N; ++n) {
             const int64_t f = fi[n] < 0 ? 0 : fi[n];
             const int64_t *tri = p->faces + 3 * f;

@@ -130,3 +130,49 @@ int FN(tf_top_pixels)(const TFTopProblem *p, int b0, int b1) {
     free(s);
     return status;
 }
+
+/* A template's pixels at the chosen candidates (torchface.template.points._top_pixels after its top-k): at each
+ * of a stream's k chosen pixels (index, value from tf_top_pixels on the float32 scores), its triangle (the
+ * coverage's, 0 for background), its barycentric coordinates (rasterizer.Coverage.barycentrics: e_i =
+ * c_i a + (c_{4+i} b + c_{8+i}) over (e_0 + e_1) + e_2, zeros for background), its gray value and whether it is
+ * a candidate (value >= 0): the same arithmetic as the torch code, in one pass instead of a score of tensor
+ * operations per pyramid level.
+ * Layouts (C order): index (B, k) int64, value (B, k) float32; pix_to_face (B, H W) int64; gray (B, H W);
+ * coefficients (13, num_columns), stream b's triangle f being column (b + batch_offset) F + f; ray_a (W),
+ * ray_b (H); out: face_index (B, k) int64, bary (B, k, 3), intensity (B, k), valid (B, k) uint8.
+ */
+int FN(tf_pick_pixels)(const TFPickProblem *p, int b0, int b1) {
+    const int64_t k = p->k, W = p->W, HW = (int64_t)p->H * p->W, F = p->F;
+    const size_t N = (size_t)p->num_columns;
+    const REAL *coef = (const REAL *)p->coefficients, *ray_a = (const REAL *)p->ray_a, *ray_b = (const REAL *)p->ray_b;
+    for (int b = b0; b < b1; ++b) {
+        const int64_t *index = p->index + (size_t)b * k, *face = p->pix_to_face + (size_t)b * HW;
+        const float *value = p->value + (size_t)b * k;
+        const REAL *gray = (const REAL *)p->gray + (size_t)b * HW;
+        int64_t *out_face = p->out_face + (size_t)b * k;
+        REAL *bary = (REAL *)p->out_bary + (size_t)b * k * 3, *intensity = (REAL *)p->out_intensity + (size_t)b * k;
+        uint8_t *valid = p->out_valid + (size_t)b * k;
+        for (int64_t j = 0; j < k; ++j) {
+            const int64_t pix = index[j], f = face[pix];
+            out_face[j] = f < 0 ? 0 : f;
+            intensity[j] = gray[pix];
+            valid[j] = (uint8_t)(value[j] >= 0.0f);
+            REAL *w = bary + 3 * j;
+            if (f < 0) {
+                w[0] = w[1] = w[2] = (REAL)0;
+                continue;
+            }
+            const int64_t row = pix / W, col = pix - row * W;
+            const size_t c = (size_t)(((int64_t)b + p->batch_offset) * F + f);
+            const REAL a = ray_a[col], bb = ray_b[row];
+            const REAL e0 = coef[0 * N + c] * a + (coef[4 * N + c] * bb + coef[8 * N + c]);
+            const REAL e1 = coef[1 * N + c] * a + (coef[5 * N + c] * bb + coef[9 * N + c]);
+            const REAL e2 = coef[2 * N + c] * a + (coef[6 * N + c] * bb + coef[10 * N + c]);
+            const REAL sum = (e0 + e1) + e2;
+            w[0] = e0 / sum;
+            w[1] = e1 / sum;
+            w[2] = e2 / sum;
+        }
+    }
+    return 0;
+}

@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from collections.abc import Sequence
 from typing import Literal, overload
 
 import torch
@@ -241,11 +242,14 @@ def _large_coordinate(dtype: torch.dtype) -> float:
     return 2.0 ** (math.frexp(torch.finfo(dtype).max)[1] // 4 - 4)
 
 
-def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _face_coefficients(tri: Tensor, native: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Per-triangle ray-test coefficients, oriented so that a hit in front of the camera is positive.
 
     Args:
         tri: ``(N, 3, 3)`` triangle corners in the camera frame (``N = B F`` sample-face rows).
+        native: by the native kernel (``torchface/_native/coverage.h``: the same operations in the same order, so
+            the same values), for a caller that has checked it can run (no gradient asked for); the torch code
+            where a triangle needs the scaling below.
 
     Returns:
         ``table (13, N)``: for the ray ``d = (a, b, 1)``, function ``j = 0..3`` is
@@ -255,6 +259,10 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         (finite, non-degenerate, not edge-on).
     """
     tri = tri.reshape(-1, 3, 3)
+    if native:
+        done = _native_face_coefficients(tri)
+        if done is not None:
+            return done
     finite = isfinite(tri).reshape(-1, 9).all(-1)  # (N,)
     # A triangle with a non-finite corner is unusable; its corners are zeroed (torch.where, not a product) so that
     # no NaN reaches the coefficients: a zero gradient times a NaN coefficient would be NaN for the shared vertices.
@@ -295,6 +303,24 @@ def _face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         k = k * torch.exp2(s)
     # Rows j + 4 i: function j (c0, c1, c2, n) times component i of the ray; then k.
     return torch.cat([cr.transpose(0, 1).reshape(12, -1), k.unsqueeze(0)]) * sign, front, usable
+
+
+def _native_face_coefficients(tri: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+    """:func:`_face_coefficients` of ``tri (N, 3, 3)`` by the native kernel, or None where a triangle has a
+    coordinate beyond :func:`_large_coordinate` (the torch code scales it)."""
+    from torchface import _native
+
+    N, dtype = tri.shape[0], tri.dtype
+    tri = tri.detach().contiguous()
+    coeffs = torch.empty(13, N, dtype=dtype)
+    front, usable, scaled = (torch.empty(N, dtype=torch.bool) for _ in range(3))
+    prob = _native.CoeffProblem(
+        N=N, large=_large_coordinate(dtype), eps=torch.finfo(dtype).eps * _DEGENERATE_EPS_FACTOR,
+        tri=tri.data_ptr(), coefficients=coeffs.data_ptr(), front=front.data_ptr(), usable=usable.data_ptr(),
+        scaled=scaled.data_ptr(),
+    )  # fmt: skip
+    _native.run("face_coefficients", dtype == torch.float64, prob, N, 1)
+    return None if bool(scaled.any()) else (coeffs, front, usable)
 
 
 def _project_corners(tri: Tensor, intrinsics: Intrinsics, near: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -522,21 +548,35 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
 def _native_cover(
     coeffs: Tensor, front: Tensor, skip: Tensor, x_first: Tensor, x_last: Tensor, y_first: Tensor, y_last: Tensor,
     ray_a: Tensor, ray_b: Tensor, B: int, F: int, H: int, W: int, near: float,
+    windows: Sequence[tuple[int, int, int]] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``pix_to_face (B H W,)`` int64 and ``facing (B H W,)`` int8 by the native kernel (``_native/coverage.h``):
     every pixel of each ``(sample, face)`` row's box ``[x_first, x_last] x [y_first, y_last]`` (int64 ``(B F,)``
-    each, inside the image) tested with the torch code's arithmetic, unless ``skip``."""
+    each, inside the image) tested with the torch code's arithmetic, unless ``skip``. ``windows``: per group of
+    consecutive samples, ``(count, height, width)``: those samples' images are the top-left ``height x width`` of
+    the ``H x W`` one, each stored whole (C order) after the previous sample's: outputs of ``sum(count height
+    width)`` elements (:func:`_cover_windows`)."""
     from torchface import _native
 
     dtype = coeffs.dtype
     args = [x.contiguous() for x in (coeffs, ray_a, ray_b, skip.to(torch.uint8), front.to(torch.uint8), x_first,
                                      x_last, y_first, y_last)]  # fmt: skip
-    pix_to_face = torch.empty(B * H * W, dtype=torch.int64)
-    facing = torch.empty(B * H * W, dtype=torch.int8)
-    depth = torch.empty(B * H * W, dtype=dtype)
+    sizes = starts = None
+    total = B * H * W
+    if windows is not None:
+        hw = [(h, w) for n, h, w in windows for _ in range(n)]
+        sizes = torch.tensor(hw, dtype=torch.int64).reshape(-1, 2)
+        areas = sizes.prod(-1)
+        starts = torch.cumsum(areas, 0) - areas
+        total = int(areas.sum())
+    pix_to_face = torch.empty(total, dtype=torch.int64)
+    facing = torch.empty(total, dtype=torch.int8)
+    depth = torch.empty(total, dtype=dtype)
     names = ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last", "y_first", "y_last")
     prob = _native.CoverProblem(B=B, F=F, H=H, W=W, near=float(near), **{n: x.data_ptr() for n, x in zip(names, args)},
-                                pix_to_face=pix_to_face.data_ptr(), facing=facing.data_ptr(), depth=depth.data_ptr())
+                                pix_to_face=pix_to_face.data_ptr(), facing=facing.data_ptr(), depth=depth.data_ptr(),
+                                sizes=None if sizes is None else sizes.data_ptr(),
+                                starts=None if starts is None else starts.data_ptr())  # fmt: skip
     _native.run("coverage", dtype == torch.float64, prob, B, torch.get_num_threads())
     return pix_to_face, facing
 
@@ -544,20 +584,26 @@ def _native_cover(
 @overload
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
-    backend: Backend = ..., pixels: Literal[True] = ...,
+    backend: Backend = ..., pixels: Literal[True] = ..., windows: None = ...,
 ) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor]]: ...
 @overload
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
-    backend: Backend = ..., *, pixels: Literal[False],
+    backend: Backend = ..., *, pixels: Literal[False], windows: None = ...,
 ) -> tuple[Coverage, None]: ...
+@overload
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
-    backend: Backend = Backend.AUTO, pixels: bool = True,
-) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor] | None]:
+    backend: Backend = ..., *, pixels: Literal[False], windows: Sequence[tuple[int, int, int]],
+) -> tuple[list[Coverage], None]: ...
+def _cover(
+    verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
+    backend: Backend = Backend.AUTO, pixels: bool = True, windows: Sequence[tuple[int, int, int]] | None = None,
+) -> tuple[Coverage | list[Coverage], tuple[Tensor, Tensor, Tensor] | None]:
     """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, sample
     ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each); None without ``pixels``
-    where the native kernel found the coverage (listing them is a pass over every pixel)."""
+    where the native kernel found the coverage (listing them is a pass over every pixel). With ``windows``
+    (without ``pixels``): :func:`_cover_windows`' list of coverages instead."""
     _check_mesh(verts_cam, faces, "verts_cam")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -571,7 +617,10 @@ def _cover(
         raise ValueError(f"at most 2**31 - 1 faces are supported, got {F}")
 
     tri = _triangles(verts_cam, faces)  # (B, F, 3, 3)
-    coeffs, front, usable = _face_coefficients(tri)  # (13, B F), (B F,), (B F,)
+    # The coefficients natively where no gradient is asked for (they are differentiable in the torch code).
+    native = not (torch.is_grad_enabled() and verts_cam.requires_grad) and use_native(
+        backend, (verts_cam.detach(),), "rasterizer")
+    coeffs, front, usable = _face_coefficients(tri, native)  # (13, B F), (B F,), (B F,)
     if cull_backfaces:
         usable = usable & front
     ray_a = (torch.arange(W, device=device, dtype=dtype) - intrinsics.cx) / intrinsics.fx
@@ -592,8 +641,16 @@ def _cover(
         if use_native(backend, (verts_cam.detach(),), "rasterizer"):  # the same coverage, bit for bit (tests)
             pix_to_face, facing = _native_cover(
                 coeffs.detach(), front, skip | (heights == 0), box_first, x_last.clamp(-1, W - 1), y_first, y_last,
-                ray_a, ray_b, B, F, H, W, near,
+                ray_a, ray_b, B, F, H, W, near, windows,
             )  # fmt: skip
+            if windows is not None:  # each group's samples stored whole at their window's size, one after another
+                parts, start, at = [], 0, 0
+                for n, h, w in windows:
+                    block = slice(at, at + n * h * w)
+                    parts.append(Coverage(pix_to_face[block].view(n, h, w), facing[block].view(n, h, w), coeffs,
+                                          ray_a, ray_b, F, start))  # fmt: skip
+                    start, at = start + n, at + n * h * w
+                return parts, None
             coverage = Coverage(pix_to_face.reshape(B, H, W), facing.reshape(B, H, W), coeffs, ray_a, ray_b, F)
             if not pixels:
                 return coverage, None
@@ -621,7 +678,37 @@ def _cover(
         facing = torch.zeros(num_pixels, dtype=torch.int8, device=device)
         facing.index_put_((pix_idx,), torch.where(is_front, 1, -1).to(torch.int8))
     coverage = Coverage(pix_to_face.reshape(B, H, W), facing.reshape(B, H, W), coeffs, ray_a, ray_b, F)
+    if windows is not None:
+        return _parts(coverage, windows), None
     return coverage, (pix_idx, pix_b, pix_bf)
+
+
+def _parts(coverage: Coverage, windows: Sequence[tuple[int, int, int]]) -> list[Coverage]:
+    """``coverage``'s :meth:`Coverage.part` per group of ``windows`` (``(count, height, width)``, in order)."""
+    parts, start = [], 0
+    for n, h, w in windows:
+        parts.append(coverage.part(slice(start, start + n), h, w))
+        start += n
+    return parts
+
+
+def _cover_windows(
+    verts_cam: Tensor, faces: Tensor, canvas: Intrinsics, windows: Sequence[tuple[int, int, int]], *,
+    cull_backfaces: bool = False, near: float = NEAR_PLANE_MM, backend: Backend = Backend.AUTO,
+) -> list[Coverage]:
+    """:func:`rasterize_coverage` of ``verts_cam (B, V, 3)`` through ``canvas`` split into groups of consecutive
+    samples, ``windows`` ``(count, height, width)`` each (counts summing to ``B``, sizes within the canvas): per
+    group, the coverage of its samples in the top-left ``height x width`` of the image, what
+    ``rasterize_coverage(...).part(...)`` gives, the same triangles at every pixel (the groups' ``batch_offset``
+    place them in the shared coefficient table). The native kernel tests and stores each sample's window alone,
+    each group's tensors contiguous, instead of every sample's whole canvas (a pyramid's coarse levels on its
+    finest level's canvas: 2.3 times the pixels to clear and keep)."""
+    if sum(n for n, _, _ in windows) != verts_cam.shape[0] or any(
+        not (0 <= h <= canvas.height and 0 <= w <= canvas.width) for _, h, w in windows
+    ):
+        raise ValueError(f"windows must split the {verts_cam.shape[0]} samples into groups within the "
+                         f"{canvas.height}x{canvas.width} canvas, got {list(windows)}")  # fmt: skip
+    return _cover(verts_cam, faces, canvas, cull_backfaces, near, backend, pixels=False, windows=windows)[0]
 
 
 def rasterize(
@@ -646,10 +733,11 @@ def rasterize(
         intrinsics: the camera; the output is ``H x W = intrinsics.height x intrinsics.width``.
         cull_backfaces: drop triangles with ``n . v0 >= 0`` before the depth test.
         near: hits at depth ``Z <= near`` (millimetres) are discarded.
-        backend: :class:`~torchface.backend.Backend` of the z-buffer (which triangle each pixel sees): the native
-            kernel tests every pixel of each triangle's bounding box with the same arithmetic, so the fragments
-            are the same bit for bit; the barycentric coordinates and depths are then evaluated (differentiably)
-            by the torch code either way.
+        backend: :class:`~torchface.backend.Backend` of the z-buffer (which triangle each pixel sees) and, where
+            no gradient is asked for, of the triangles' ray-test coefficients: the native kernels test every pixel
+            of each triangle's bounding box and compute the coefficients with the same arithmetic, so the
+            fragments are the same bit for bit; the barycentric coordinates and depths are then evaluated
+            (differentiably) by the torch code either way.
 
     Returns:
         :class:`Fragments` with ``(B, H, W)`` ``pix_to_face``/``zbuf``/``facing`` and ``(B, H, W, 3)``

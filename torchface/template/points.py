@@ -20,7 +20,7 @@ from torchface.geometry._checks import check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import Coverage, rasterize_coverage
+from torchface.rendering.rasterizer import Coverage, _cover_windows
 from torchface.rendering.visibility import vertex_normals
 
 
@@ -312,15 +312,16 @@ def rasterize_windows(
         to rounding; its barycentric coordinates and depths are evaluated where the caller asks): the windows are
         stacked along the batch on a canvas of the largest size, each through :func:`_window_verts` (one call's
         fixed cost instead of one per level: an entry's coarse levels cost nearly as much as its finest when
-        rasterized alone).
+        rasterized alone); the native z-buffer tests and stores each window at its own size
+        (:func:`~torchface.rendering.rasterizer._cover_windows`).
     """
     first = cameras[0]  # the canvas projects as the first camera (its window's vertices are only shifted)
     canvas = Intrinsics(max(c.width for c in cameras), max(c.height for c in cameras), first.fx, first.fy, first.cx,
                         first.cy)  # fmt: skip
     stacked = torch.cat([_window_verts(verts_cam, c, o, canvas) for c, o in zip(cameras, offsets)])
-    coverage = rasterize_coverage(stacked, model.faces, canvas, cull_backfaces=True, backend=backend)
     B = verts_cam.shape[0]
-    return [coverage.part(slice(i * B, (i + 1) * B), c.height, c.width) for i, c in enumerate(cameras)]
+    return _cover_windows(stacked, model.faces, canvas, [(B, c.height, c.width) for c in cameras],
+                          cull_backfaces=True, backend=backend)  # fmt: skip
 
 
 #: :func:`select_pixels_posed` tests the facing of every point of a triangle only where the triangle's lower
@@ -357,7 +358,9 @@ def select_pixels_posed(
     camera and offsets) and the mask erosion counts in grid steps. 1: every pixel. ``seed``: the selection keys'
     draw (:func:`select_template_pixels`). ``backend``: the candidates' tests and scores by the native kernel
     (``torchface/_native/select_pixels.h``, the same tests with the same arithmetic; every pixel, no expression
-    priority or quota) or the torch code; the top-k choice and what follows are the torch code's either way."""
+    priority or quota) or the torch code; the top-k choice (:func:`top_scores`) and the chosen pixels' triangles,
+    barycentric coordinates and gray values by native kernels too where they can run (``top_pixels.h``, the torch
+    code's arithmetic: the same template either way)."""
     full_h, full_w = intrinsics.height, intrinsics.width
     B = gray.shape[0]
     verts_model, verts_cam, normals_cam = posed.verts_model, posed.verts_cam, posed.normals_cam
@@ -516,9 +519,15 @@ def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor,
                 dtype: torch.dtype, backend: Backend = Backend.AUTO) -> TemplatePixels:  # fmt: skip
     """The ``max_points`` highest-scoring pixels ``score (B, H W)`` (-1: not a candidate; :func:`top_scores`'
     order) as :class:`TemplatePixels`: their triangle (``face_flat (B, H W)``), barycentric coordinates
-    (``frags``) and gray value (``gray (B, 1, H, W)``), in ``dtype``."""
+    (``frags``) and gray value (``gray (B, 1, H, W)``), in ``dtype``; by the native kernel where ``backend``, the
+    dtypes (float32 scores; gray, coefficients and ``dtype`` one dtype) and the inputs allow (:func:`_native_pick`:
+    the torch code's score of tensor operations cost about 0.3 ms per pyramid level of a new mosaic entry)."""
     B, W = gray.shape[0], gray.shape[-1]
     top, pix = top_scores(score, max_points, backend)
+    coefficients = frags.coefficients.detach()
+    if (top.dtype == torch.float32 and gray.dtype == coefficients.dtype == dtype
+            and use_native(backend, (coefficients, gray), "template pixels")):
+        return _native_pick(top, pix, frags, gray)
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
     rows = torch.arange(B, device=pix.device).repeat_interleave(pix.shape[1])
@@ -526,6 +535,31 @@ def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor,
     bary = frags.barycentrics(rows, pix_row, pix.reshape(-1) - pix_row * W).reshape(B, pix.shape[1], 3)
     bary = bary.to(dtype)
     intensity = torch.gather(gray.flatten(1), 1, pix).to(dtype)
+    return TemplatePixels(face_index, bary, intensity, valid)
+
+
+def _native_pick(top: Tensor, pix: Tensor, frags: Coverage, gray: Tensor) -> TemplatePixels:
+    """:func:`_top_pixels`' pixels at the chosen candidates ``pix (B, k)`` (their float32 scores ``top (B, k)``)
+    by the native kernel (``torchface/_native/top_pixels.h``: the same arithmetic as the torch code), in the
+    dtype of ``gray (B, 1, H, W)`` and of the coverage's coefficients."""
+    from torchface import _native
+
+    B, k = pix.shape
+    H, W = gray.shape[-2:]
+    dtype = gray.dtype
+    inputs = [x.contiguous() for x in (pix, top, frags.pix_to_face, gray, frags.coefficients.detach(), frags.ray_a,
+                                       frags.ray_b)]  # fmt: skip
+    face_index = torch.empty(B, k, dtype=torch.int64)
+    bary, intensity = torch.empty(B, k, 3, dtype=dtype), torch.empty(B, k, dtype=dtype)
+    valid = torch.empty(B, k, dtype=torch.bool)
+    names = ("index", "value", "pix_to_face", "gray", "coefficients", "ray_a", "ray_b")
+    prob = _native.PickProblem(
+        B=B, H=H, W=W, F=frags.num_faces, batch_offset=frags.batch_offset, k=k,
+        num_columns=frags.coefficients.shape[1], **{n: x.data_ptr() for n, x in zip(names, inputs)},
+        out_face=face_index.data_ptr(), out_bary=bary.data_ptr(), out_intensity=intensity.data_ptr(),
+        out_valid=valid.data_ptr(),
+    )  # fmt: skip
+    _native.run("pick_pixels", dtype == torch.float64, prob, B, 1)
     return TemplatePixels(face_index, bary, intensity, valid)
 
 
@@ -664,6 +698,56 @@ def _template_at_native(
     tpl = Template(face_index, bary, points, basis, normals, intensity, valid)
     object.__setattr__(tpl, "_point_last", (points_t, normals_t, basis_t))
     return tpl
+
+
+def _rows_writable(model: FaceModel, into: Template, dtype: torch.dtype) -> bool:
+    """Whether :func:`_template_rows_native` can write into ``into``: it holds its point-last copies
+    (:attr:`Template.point_last`) and its tensors are normal (not inference) tensors, and those the kernel writes
+    contiguous, of ``dtype`` and of the template's layout."""
+    cached = into.__dict__.get("_point_last")
+    if cached is None:
+        return False
+    B, N = into.face_index.shape
+    A = model.num_animation
+    want = ((B, N, 3), (B, N, 3, A), (B, N, 3), (B, 3, N), (B, 3, N), (B, A, 3, N))
+    outs = (into.points, into.basis, into.normals, *cached)
+    return not any(
+        x.is_inference() or not x.is_contiguous() or x.dtype != dtype or tuple(x.shape) != shape
+        for x, shape in zip(outs, want)
+    ) and not any(getattr(into, f).is_inference() for f in ("face_index", "bary", "intensity", "valid"))
+
+
+def _template_rows_native(
+    model: FaceModel, neutral: tuple[Tensor, Tensor], pixels: TemplatePixels, into: Template, rows: Tensor
+) -> Template:
+    """:func:`template_at` of ``pixels`` (batch ``B'``, as many points as ``into``) written by the native kernel
+    straight into rows ``rows`` (int64 ``(B',)``, distinct) of ``into``'s tensors and of its point-last copies
+    (:attr:`Template.point_last`), in place (:func:`_rows_writable` must hold; the kernel must be able to run):
+    the template of ``into``'s batch with those rows replaced, on the same tensors, as copying a fresh template
+    into them gives. ``neutral``: the ``B'`` streams' neutral vertices and vertex normals ``(B', V, 3)``."""
+    from torchface import _native
+
+    verts, vertex_normals_neutral = neutral
+    dtype = verts.dtype
+    cached = into.__dict__["_point_last"]
+    with torch.inference_mode(False):
+        inputs = [x.contiguous() for x in (verts, vertex_normals_neutral, model.animation_units,
+                                           model.faces.to(torch.int64), pixels.face_index.to(torch.int64),
+                                           pixels.bary.to(dtype), rows.to(torch.int64))]  # fmt: skip
+        names = ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary", "out_rows")
+        outs = ("out_points", "out_basis", "out_normals", "out_points_t", "out_normals_t", "out_basis_t")
+        prob = _native.TemplateProblem(
+            B=rows.shape[0], V=model.num_vertices, A=model.num_animation, N=into.face_index.shape[1],
+            **{n: x.data_ptr() for n, x in zip(names, inputs)},
+            **{n: x.data_ptr() for n, x in zip(outs, (into.points, into.basis, into.normals, *cached))},
+        )  # fmt: skip
+        _native.run("template_at", dtype == torch.float64, prob, rows.shape[0], torch.get_num_threads())
+        for name in ("face_index", "bary", "intensity", "valid"):
+            x = getattr(into, name)
+            x[rows] = getattr(pixels, name).to(x.dtype)
+    new = Template(into.face_index, into.bary, into.points, into.basis, into.normals, into.intensity, into.valid)
+    object.__setattr__(new, "_point_last", cached)
+    return new
 
 
 def point_normals(model: FaceModel, shape_coeffs: Tensor, face_index: Tensor, bary: Tensor) -> Tensor:
