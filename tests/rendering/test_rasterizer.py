@@ -645,3 +645,27 @@ def test_native_face_coefficients_are_the_torch_codes_bit_for_bit(candidate_path
     coverage = rasterize_coverage(v.reshape(1, -1, 3), torch.arange(60).reshape(20, 3), Intrinsics.default(64, 48),
                                   backend=Backend.NATIVE)  # fmt: skip
     assert coverage.coefficients.requires_grad
+
+
+@pytest.mark.parametrize("backend", [Backend.AUTO, Backend.NATIVE])
+def test_forward_ad_tangents_are_the_torch_codes(candidate_path, backend):
+    """Vertices that are a forward-AD dual tensor give ``zbuf`` and ``bary`` the torch code's tangents with every
+    backend (the native coefficients, taken for vertices that do not require grad, dropped the tangent: None)."""
+    import torch.autograd.forward_ad as fwAD
+
+    if candidate_path != "native":
+        pytest.skip("compares the native path with the torch path itself")
+    verts, faces = random_surface(3, 2)
+    cam = Intrinsics.default(40, 30)
+    tangent = torch.randn(verts.shape, generator=torch.Generator().manual_seed(1), dtype=verts.dtype)
+    out = {}
+    for b in (Backend.TORCH, backend):
+        with fwAD.dual_level():
+            frag = rasterize(fwAD.make_dual(verts, tangent), faces, cam, backend=b)
+            out[b] = [fwAD.unpack_dual(x).tangent for x in (frag.zbuf, frag.bary)] + [frag.pix_to_face]
+    torch_out, other = out[Backend.TORCH], out[backend]
+    assert bool((torch_out[2] >= 0).any()) and torch.equal(other[2], torch_out[2])
+    for got, want in zip(other[:2], torch_out[:2]):
+        assert want is not None and got is not None
+        fg = torch_out[2] >= 0
+        torch.testing.assert_close(got[fg], want[fg], rtol=1e-12, atol=1e-12)

@@ -191,6 +191,25 @@ def test_template_at_with_the_persons_neutral_mesh_given(scene):
         template_at(*args, neutral=(verts[:1], vertex_normals(verts, s["model"].faces)))
 
 
+def test_selected_barycentrics_carry_the_poses_gradient_by_default(scene):
+    """A pose that requires grad gives the chosen pixels' barycentric coordinates the torch code's gradient with
+    the default backend (the native pick, taken where the detached coefficients allowed it, dropped it: no grad;
+    Backend.NATIVE refuses such a pose, as its candidate tests always did)."""
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    s = scene
+    grads = []
+    for b in (Backend.TORCH, Backend.AUTO):
+        t = s["t"].clone().requires_grad_(True)
+        px = select_template_pixels(s["model"], s["shape"], s["anim"], s["R"], t, s["gray"], s["cam"],
+                                    max_points=300, gradient_threshold=0.01, min_facing_cos=-1.0, backend=b)
+        assert px.bary.requires_grad and bool(px.valid.any())
+        bary = px.bary[px.valid]
+        grads.append(torch.autograd.grad((bary * torch.arange(3.0)).sum() + bary.pow(2).sum(), t)[0])
+    assert bool(grads[0].abs().sum() > 0)
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-5, atol=1e-6)
+
+
 def test_posed_selection_and_interpolated_normals_are_the_same(scene):
     """What a pyramid's levels share (the posed mesh, the person's vertex normals) computed once gives exactly
     select_template_pixels and point_normals."""

@@ -617,9 +617,11 @@ def _cover(
         raise ValueError(f"at most 2**31 - 1 faces are supported, got {F}")
 
     tri = _triangles(verts_cam, faces)  # (B, F, 3, 3)
-    # The coefficients natively where no gradient is asked for (they are differentiable in the torch code).
-    native = not (torch.is_grad_enabled() and verts_cam.requires_grad) and use_native(
-        backend, (verts_cam.detach(),), "rasterizer")
+    # The coefficients natively where no derivative is asked for (they are differentiable in the torch code): not
+    # for vertices that require grad, nor for a forward-AD dual tensor (its detached copy, which the z-buffer's
+    # test below looks at, has no tangent: the native table dropped it, and every zbuf/bary tangent was None).
+    # Backend.NATIVE does not refuse such vertices here: its z-buffer runs on them.
+    native = use_native(Backend.AUTO if backend is Backend.NATIVE else backend, (verts_cam,), "rasterizer")
     coeffs, front, usable = _face_coefficients(tri, native)  # (13, B F), (B F,), (B F,)
     if cull_backfaces:
         usable = usable & front

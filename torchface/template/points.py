@@ -524,9 +524,13 @@ def _top_pixels(score: Tensor, face_flat: Tensor, frags: Coverage, gray: Tensor,
     the torch code's score of tensor operations cost about 0.3 ms per pyramid level of a new mosaic entry)."""
     B, W = gray.shape[0], gray.shape[-1]
     top, pix = top_scores(score, max_points, backend)
-    coefficients = frags.coefficients.detach()
+    # Natively where no derivative is asked for: the torch code's barycentric coordinates are differentiable in the
+    # coefficients (a pose that requires grad) and its gray values in ``gray`` (not an error with Backend.NATIVE:
+    # the stages before may have run natively).
+    coefficients = frags.coefficients
     if (top.dtype == torch.float32 and gray.dtype == coefficients.dtype == dtype
-            and use_native(backend, (coefficients, gray), "template pixels")):
+            and use_native(Backend.AUTO if backend is Backend.NATIVE else backend, (coefficients, gray),
+                           "template pixels")):  # fmt: skip
         return _native_pick(top, pix, frags, gray)
     valid = top >= 0
     face_index = torch.gather(face_flat, 1, pix).clamp_min(0)
