@@ -539,6 +539,22 @@ def test_entry_templates_written_in_place_are_the_scattered_ones(model, turns):
     before = [x.clone() for x in frozen[0].point_last]
     assert _entry_templates_in_place(model, shape, mosaic, streams, entries, frozen, config.backend) is None
     assert all(torch.equal(a, b) for a, b in zip(frozen[0].point_last, before))
+    # Nor where a template requires grad (autograd would not see the kernel's writes: _scatter_templates records them).
+    graded = tuple(copied(t) for t in state.templates)
+    graded[1].basis.requires_grad_(True)
+    assert _entry_templates_in_place(model, shape, mosaic, streams, entries, graded, config.backend) is None
+    # The kernel's writes are in-place changes for autograd, as _scatter_templates' are: a graph that saved a template
+    # tensor refuses to backpropagate through its old values (it went on silently with the new ones).
+    for scatter in (True, False):
+        into = tuple(copied(t) for t in state.templates)
+        weight = torch.ones((), dtype=into[0].points.dtype, requires_grad=True)
+        saved = (into[0].point_last[0] * weight).sum()  # (mul saves its input)
+        if scatter:
+            _scatter_templates(into, streams, entry_templates(model, shape, mosaic, streams, entries), in_place=True)
+        else:
+            assert _entry_templates_in_place(model, shape, mosaic, streams, entries, into, config.backend) is not None
+        with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+            saved.backward()
 
 
 def test_batch_equals_each_stream_alone(model, gentle, leaves):

@@ -706,8 +706,9 @@ def _template_at_native(
 
 def _rows_writable(model: FaceModel, into: Template, dtype: torch.dtype) -> bool:
     """Whether :func:`_template_rows_native` can write into ``into``: it holds its point-last copies
-    (:attr:`Template.point_last`) and its tensors are normal (not inference) tensors, and those the kernel writes
-    contiguous, of ``dtype`` and of the template's layout."""
+    (:attr:`Template.point_last`) and its tensors are normal (not inference) tensors that do not require grad
+    (autograd would not see the kernel's writes), and those the kernel writes contiguous, of ``dtype`` and of the
+    template's layout."""
     cached = into.__dict__.get("_point_last")
     if cached is None:
         return False
@@ -716,7 +717,7 @@ def _rows_writable(model: FaceModel, into: Template, dtype: torch.dtype) -> bool
     want = ((B, N, 3), (B, N, 3, A), (B, N, 3), (B, 3, N), (B, 3, N), (B, A, 3, N))
     outs = (into.points, into.basis, into.normals, *cached)
     return not any(
-        x.is_inference() or not x.is_contiguous() or x.dtype != dtype or tuple(x.shape) != shape
+        x.is_inference() or x.requires_grad or not x.is_contiguous() or x.dtype != dtype or tuple(x.shape) != shape
         for x, shape in zip(outs, want)
     ) and not any(getattr(into, f).is_inference() for f in ("face_index", "bary", "intensity", "valid"))
 
@@ -746,6 +747,9 @@ def _template_rows_native(
             **{n: x.data_ptr() for n, x in zip(outs, (into.points, into.basis, into.normals, *cached))},
         )  # fmt: skip
         _native.run("template_at", dtype == torch.float64, prob, rows.shape[0], torch.get_num_threads())
+        # in-place changes for autograd, as torch's own writes are: a graph that saved one of these tensors refuses
+        # to backpropagate through its old values ("modified by an inplace operation") instead of using the new
+        torch.autograd.graph.increment_version((into.points, into.basis, into.normals, *cached))
         for name in ("face_index", "bary", "intensity", "valid"):
             x = getattr(into, name)
             x[rows] = getattr(pixels, name).to(x.dtype)
