@@ -248,8 +248,8 @@ def _face_coefficients(tri: Tensor, native: bool = False) -> tuple[Tensor, Tenso
     Args:
         tri: ``(N, 3, 3)`` triangle corners in the camera frame (``N = B F`` sample-face rows).
         native: by the native kernel (``torchface/_native/coverage.h``: the same operations in the same order, so
-            the same values), for a caller that has checked it can run (no gradient asked for); the torch code
-            where a triangle needs the scaling below.
+            the same values), for a caller that has checked it can run (no derivative asked for: no grad, no
+            forward-AD tangent); the torch code where a triangle needs the scaling below.
 
     Returns:
         ``table (13, N)``: for the ray ``d = (a, b, 1)``, function ``j = 0..3`` is
@@ -736,10 +736,10 @@ def rasterize(
         cull_backfaces: drop triangles with ``n . v0 >= 0`` before the depth test.
         near: hits at depth ``Z <= near`` (millimetres) are discarded.
         backend: :class:`~torchface.backend.Backend` of the z-buffer (which triangle each pixel sees) and, where
-            no gradient is asked for, of the triangles' ray-test coefficients: the native kernels test every pixel
-            of each triangle's bounding box and compute the coefficients with the same arithmetic, so the
-            fragments are the same bit for bit; the barycentric coordinates and depths are then evaluated
-            (differentiably) by the torch code either way.
+            no derivative is asked for (no grad, no forward-AD tangent), of the triangles' ray-test coefficients:
+            the native kernels test every pixel of each triangle's bounding box and compute the coefficients with
+            the same arithmetic, so the fragments are the same bit for bit; the barycentric coordinates and depths
+            are then evaluated (differentiably) by the torch code either way.
 
     Returns:
         :class:`Fragments` with ``(B, H, W)`` ``pix_to_face``/``zbuf``/``facing`` and ``(B, H, W, 3)``
