@@ -1344,6 +1344,38 @@ def test_a_hard_cut_to_another_face_stays_lost_by_default_and_restarts_from_the_
             assert float(results[i].confidence[0]) >= tc.confidence_threshold, table
 
 
+def test_a_failed_restart_after_unmatched_attempts_is_tried_again_at_the_next_attempt_only(model, monkeypatch):
+    """A restart after ``restart_after_unmatched`` unmatched attempts whose initialisation fails (here: every one)
+    leaves the stream LOST with its count reached; it is tried again at the next recovery attempt (if that one is
+    unmatched too), not at every frame in between (each a detector call and a landmark fit: at frames 10, 11, 12
+    and 13 with attempts every 2 frames, where the attempts were at 10 and 12)."""
+    import torchface.tracker.managed as managed
+
+    clip = _cut_clip(CUT_B["moved"], photo="astronaut", b_place=False)
+    tc = CFG.template
+    every, k = 2, 2
+    config = replace(CFG, template=replace(tc, recovery_every=every, restart_after_unmatched=k))
+    frames_at, attempts_at = [], []
+    real_recover = managed._recover
+
+    def recover(model_, config_, state, *args, **kw):
+        attempts_at.append(state.frame_index + 1)  # (the step's frame)
+        return real_recover(model_, config_, state, *args, **kw)
+
+    def failed_restart(model_, config_, state, result, frames, restart, detector):
+        frames_at.append(state.frame_index)  # (the new state's: the step's frame)
+        return state, result, restart.nonzero().squeeze(-1)[:0]  # nothing started
+
+    monkeypatch.setattr(managed, "_recover", recover)
+    monkeypatch.setattr(managed, "_restart", failed_restart)
+    results, err = _track_cut(model, clip, True, config)
+    table = _cut_table(results, err)
+    lost_at = CUT + tc.lost_after_very_low - 1
+    assert all(int(r.status[0]) == LOST for r in results[lost_at:]), table
+    assert len(frames_at) >= 2, (frames_at, attempts_at)  # the count was reached, and again after the failure
+    assert frames_at == [f for f in attempts_at if f >= frames_at[0]], (frames_at, attempts_at)
+
+
 def test_an_occluder_passing_over_the_face_is_not_restarted_from_the_detector(model, monkeypatch):
     """75% of the face covered by an occluder moving across it (frames 3-19), with a detector that finds the face
     under it (the renderer's landmarks) and ``restart_after_unmatched`` 2: nothing of the mosaic matches the

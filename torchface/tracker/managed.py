@@ -1145,7 +1145,9 @@ def managed_step(
         if not bool(unmatched.any()):
             unmatched_face = None
         if detector is not None and tc.restart_after_unmatched > 0:
-            again = unmatched >= tc.restart_after_unmatched
+            # at the attempt that reached the count (or went past it: a restart whose initialisation failed is
+            # tried again at the next attempt, not at every frame between, each a detector call and a landmark fit)
+            again = attempt & (unmatched >= tc.restart_after_unmatched)
             if bool(again.any()):
                 restart = again if restart is None else restart | again
     ms = ManagementState(
