@@ -12,10 +12,10 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
   detector about the video's frames: the first frame (and each next one up to the first with a face), those
-  re-detections, and the tracker's recovery attempts of a lost stream, which ``redetections`` leaves out; both 0
-  without a detector; a resumed run does not ask about the rows it replays, but for a re-detection due after the
-  last one, which the tracking goes on from, and for the frames up to the first with a face, which it looks for
-  again);
+  re-detections, and the tracker's recovery attempts (and restarts, ``restart_after_unmatched``) of a lost stream,
+  which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the rows it
+  replays, but for a re-detection due after the last one, which the tracking goes on from, and for the frames up to
+  the first with a face, which it looks for again);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -1537,7 +1537,7 @@ def _track_group(
             frames = torch.stack(nxt).to(device=device, dtype=dtype)
             if all(s.replay is not None and t < len(s.replay) for s in live):
                 continue  # every live stream replays this frame from its CSV: nothing to track
-            current.frames, current.asked = frames, set()
+            current.frames, current.asked = frames, {}
             state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
             _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
         t_track = time.perf_counter() - t_track0
@@ -1856,26 +1856,32 @@ def _drawn_pose(
 
 @dataclass(eq=False)
 class _Current:
-    """The frames of the step being tracked, and the streams the recovery callback has matched in it."""
+    """The frames of the step being tracked, and how often the recovery callback has matched each stream in it."""
 
     frames: Tensor
-    asked: set[int] = field(default_factory=set)
+    asked: dict[int, int] = field(default_factory=dict)
 
 
 def _recovery_near(streams: list[_Stream], current: _Current):
     """The ``near`` points (:class:`torchface.detect.Detector`) of a frame the tracker's recovery asks the detector
     about: the last confident position of the stream whose frame of ``current.frames`` it is (the callback is given
-    the lost streams' frames only, in stream order: of streams with equal frames, the first not yet asked about)."""
+    the lost streams' frames only, in stream order: of streams with equal frames, the one asked about least often
+    in this step, the first of those). A stream is asked about twice in a step when a restart follows its recovery
+    attempt (``TemplateConfig.restart_after_unmatched``): the second call counts too and asks for its face again
+    (it was taken as no stream's: no ``near``, not counted)."""
 
     def near_of(frame: Tensor) -> np.ndarray | None:
+        best = None
         for k, s in enumerate(streams):
-            if s.done or k in current.asked:
+            if s.done or (best is not None and current.asked.get(k, 0) >= current.asked.get(best, 0)):
                 continue
             if torch.equal(current.frames[k].to(device=frame.device, dtype=frame.dtype), frame):
-                current.asked.add(k)
-                s.detector_calls += 1
-                return s.near
-        return None
+                best = k
+        if best is None:
+            return None
+        current.asked[best] = current.asked.get(best, 0) + 1
+        streams[best].detector_calls += 1
+        return streams[best].near
 
     return near_of
 

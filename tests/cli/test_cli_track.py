@@ -1424,6 +1424,28 @@ def test_recovery_asks_for_the_lost_streams_own_face():
     assert [s.detector_calls for s in streams] == [1, 0, 1, 1]
 
 
+def test_a_restart_after_a_recovery_in_one_step_asks_for_the_streams_own_face_again():
+    """With ``--restart-after-unmatched`` the tracker asks the detector about a lost stream's frame twice in a
+    step (its recovery attempt, then its restart): the second call is matched to the stream too (its ``near``
+    points, counted in ``detector_calls``; it was no stream's: no ``near``, not counted), and of two streams on
+    equal frames each is matched once per call."""
+    from torchface.detect import _Batched
+    from torchface.job import _Current, _recovery_near, _Stream
+
+    frames = torch.rand(4, 3, 8, 10)
+    frames[3] = frames[2]
+    streams = [_Stream(str(k), None, np.zeros((68, 2)), "", None) for k in range(4)]
+    for k, s in enumerate(streams):
+        s.near = np.full((5, 2), float(k))
+    asked = []
+    callback = _Batched(lambda image, near=None: asked.append(near), "x", _recovery_near(streams, _Current(frames)))
+    callback(frames[[0, 2, 3]].double())  # the recovery attempts
+    callback(frames[[0]].double())  # stream 0's restart
+    callback(frames[[2, 3]].double())  # (both restarted)
+    assert [None if a is None else float(a[0, 0]) for a in asked] == [0.0, 2.0, 3.0, 0.0, 2.0, 3.0]
+    assert [s.detector_calls for s in streams] == [2, 0, 2, 2]
+
+
 def test_the_sidecar_counts_the_detectors_recovery_calls(clip, tmp_path, monkeypatch):
     """The tracker's recoveries of a lost stream ask the detector too: the sidecar said ``redetections: 0`` of a
     stream the detector had re-initialised (a GRID clip whose face left and came back elsewhere); its
