@@ -1344,6 +1344,30 @@ def test_a_hard_cut_to_another_face_stays_lost_by_default_and_restarts_from_the_
             assert float(results[i].confidence[0]) >= tc.confidence_threshold, table
 
 
+def test_a_stream_restarted_from_the_detector_stops_waiting_for_the_online_starts_keyframes(model):
+    """A stream that starts afresh from the detector (_restart: never started, or restart_after_unmatched) while
+    the online start still waits for its keyframes stops waiting (its result is the initialisation's, without the
+    online start): it kept waiting, and at its keyframe it would have been re-anchored on the first frame it had
+    before the restart (another person's, after a cut), its templates and mosaic rebuilt from that frame."""
+    from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.managed import _restart
+
+    frames, rotation, lms, visible = _cut_clip(CUT_B["moved"], photo="astronaut", b_place=False)
+    state, _ = initialise_managed(model, CFG, frames[:, 0].expand(2, -1, -1, -1), lms[:1].float().expand(2, -1, -1),
+                                  Intrinsics.default(W, H), refine_first=LookaheadConfig())  # fmt: skip
+    state, result = managed_step(model, CFG, state, frames[:, 1].expand(2, -1, -1, -1))
+    assert bool(state.management.first.pending.all())
+    at = CUT + 1
+    new, _, started = _restart(model, CFG, state, result, frames[:, at].expand(2, -1, -1, -1),
+                               torch.tensor([False, True]), lambda b: lms[at][None].float().expand(b.shape[0], -1, -1))
+    assert started.tolist() == [1]
+    first = new.management.first
+    assert first is not None and first.pending.tolist() == [True, False]  # stream 0 still waits, 1 no longer
+    both, _, started = _restart(model, CFG, new, result, frames[:, at].expand(2, -1, -1, -1),
+                                torch.tensor([True, False]), lambda b: lms[at][None].float().expand(b.shape[0], -1, -1))
+    assert started.tolist() == [0] and both.management.first is None  # no stream waits
+
+
 def test_a_failed_restart_after_unmatched_attempts_is_tried_again_at_the_next_attempt_only(model, monkeypatch):
     """A restart after ``restart_after_unmatched`` unmatched attempts whose initialisation fails (here: every one)
     leaves the stream LOST with its count reached; it is tried again at the next recovery attempt (if that one is

@@ -837,8 +837,8 @@ def _restart(
     a face their mosaic never matched (``TemplateConfig.restart_after_unmatched``), initialised from this
     frame and the detector's landmarks, where it finds a face (half the landmarks) and the initialisation succeeds:
     their fit, templates, mosaic and reference are this frame's, their management starts afresh, and their result
-    is the initialisation's (without the online look-ahead start). Returns the state, the result and the streams
-    that started (int64 ``(n,)``)."""
+    is the initialisation's (without the online look-ahead start: a stream still waiting for its keyframes stops
+    waiting). Returns the state, the result and the streams that started (int64 ``(n,)``)."""
     ms = cast(ManagementState, state.management)  # managed_step's: a managed state
     index = restart.nonzero().squeeze(-1)
     with torch.no_grad():
@@ -868,6 +868,12 @@ def _restart(
             return None if x is None else put(x, y)
 
         unstarted = put_some(ms.unstarted, False)
+        # no longer waiting for the online start's keyframes: re-anchored at them, a stream restarted after a cut
+        # got its first frame's templates and mosaic back (another person's)
+        first = ms.first
+        if first is not None:
+            first = replace(first, pending=put(first.pending, False))
+            first = first if bool(first.pending.any()) else None
         eye = torch.eye(3, dtype=model.dtype, device=model.device)
         new_ms = replace(
             ms, mosaic=_reset_mosaic_rows(ms.mosaic, rows, sub_ms.mosaic), entry=put(ms.entry, 0),
@@ -876,7 +882,7 @@ def _restart(
             params_ypr=None, head_rotation=put_some(ms.head_rotation, eye),
             head_translation=put_some(ms.head_translation, 0.0), attempts=put_some(ms.attempts, 0),
             adopted_scale=put_some(ms.adopted_scale, 1.0), unmatched=put_some(ms.unmatched, 0),
-            unstarted=unstarted if unstarted is not None and bool(unstarted.any()) else None,
+            unstarted=unstarted if unstarted is not None and bool(unstarted.any()) else None, first=first,
         )  # fmt: skip
         prior = state.anim_prior_mean
         state = replace(
