@@ -494,9 +494,9 @@ def test_a_numpy_integer_size_is_taken_as_an_int(model):
     assert face.layout.mask.shape == (32, 32)
 
 
-def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject, layout):
-    """normalised_face_posed on the mesh normalised_face poses gives its output exactly; a mesh of the wrong
-    shape or batch is a clear ValueError."""
+def _posed_scene(model, subject):
+    """The posed entry point's scene: the subject rendered turned 20 degrees, a light, and the camera-frame mesh
+    ``normalised_face`` poses for it: ``(frame, light, verts_cam, (sigma, alpha, aa, t))``."""
     from torchface.geometry.transforms import transform_points
 
     sigma = subject.shape_coeffs[None]
@@ -506,6 +506,13 @@ def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject
     frame = _render(subject, sigma, alpha, aa, t).image
     light = torch.tensor([[0.1, 0.02, 0.05, -0.05, 0.1]])
     verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(sigma, alpha))
+    return frame, light, verts_cam, (sigma, alpha, aa, t)
+
+
+def test_posed_entry_point_is_normalised_face_and_checks_its_mesh(model, subject, layout):
+    """normalised_face_posed on the mesh normalised_face poses gives its output exactly; a mesh of the wrong
+    shape or batch is a clear ValueError."""
+    frame, light, verts_cam, (sigma, alpha, aa, t) = _posed_scene(model, subject)
     for zbuffer in (True, False):
         want = normalised_face(frame, model, layout, sigma, alpha, aa, t, light, CAM, zbuffer=zbuffer)
         got = normalised_face_posed(frame, model, layout, verts_cam, light, CAM, zbuffer=zbuffer)
@@ -528,15 +535,7 @@ def test_posed_entry_point_casts_half_frames_and_names_a_light_of_another_dtype(
     against the same values in float32). A light of another dtype than the mesh is a TypeError naming it (was
     "expected scalar type Double but found Float" from inside the sampling), and a float64 mesh with a float64 light
     keeps working."""
-    from torchface.geometry.transforms import transform_points
-
-    sigma = subject.shape_coeffs[None]
-    alpha = torch.zeros(1, model.num_animation)
-    aa = matrix_to_axis_angle(euler_to_matrix(torch.tensor([[20.0, -5.0, 3.0]])))
-    t = torch.tensor([[5.0, -4.0, 470.0]])
-    frame = _render(subject, sigma, alpha, aa, t).image
-    light = torch.tensor([[0.1, 0.02, 0.05, -0.05, 0.1]])
-    verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(sigma, alpha))
+    frame, light, verts_cam, _ = _posed_scene(model, subject)
     for zbuffer in (True, False):
         for dtype in (torch.float16, torch.bfloat16):
             half = frame.to(dtype)

@@ -450,6 +450,17 @@ def test_initialise_names_intrinsics_that_are_not_intrinsics():
                 layer.initialise(frames, landmarks, bad)  # type: ignore[arg-type]
 
 
+def _assert_finite_and_the_others_as_alone(layer, clips, lms, grad, out) -> None:
+    """``out = layer.forward_clip(grad, lms)`` of three clips whose middle one failed: finite images, parameters and
+    gradients, and clips 0 and 2 as tracked without the middle one."""
+    assert bool(torch.isfinite(out.image).all()) and bool(torch.isfinite(out.params).all())
+    out.image.sum().backward()
+    assert grad.grad is not None and bool(torch.isfinite(grad.grad).all())
+    rest = layer.forward_clip(clips[[0, 2]], lms[[0, 2]])
+    torch.testing.assert_close(out.image[[0, 2]].detach(), rest.image)
+    torch.testing.assert_close(out.params[[0, 2]].detach(), rest.params)
+
+
 @pytest.mark.parametrize("mode", [LayerMode.DETACHED, LayerMode.UNROLLED])
 def test_a_clip_without_landmarks_fails_alone_and_the_others_are_as_without_it(model, mode):
     """A batch of clips, one without a face found in its first frame (landmarks all NaN): ``initialise`` raised
@@ -465,12 +476,7 @@ def test_a_clip_without_landmarks_fails_alone_and_the_others_are_as_without_it(m
     out = layer.forward_clip(grad, lms)
     assert out.track.status.tolist()[1] == 2 and float(out.track.confidence[1]) == 0.0
     assert bool(out.track.success[[0, 2]].all())
-    assert bool(torch.isfinite(out.image).all()) and bool(torch.isfinite(out.params).all())
-    out.image.sum().backward()
-    assert grad.grad is not None and bool(torch.isfinite(grad.grad).all())
-    rest = layer.forward_clip(clips[[0, 2]], lms[[0, 2]])
-    torch.testing.assert_close(out.image[[0, 2]].detach(), rest.image)
-    torch.testing.assert_close(out.params[[0, 2]].detach(), rest.params)
+    _assert_finite_and_the_others_as_alone(layer, clips, lms, grad, out)
 
 
 def test_the_layers_outputs_share_no_memory_with_the_state_it_hands_on(model, small):
@@ -529,9 +535,4 @@ def test_a_clip_whose_start_failed_is_failed_at_every_frame(model, mode):
     grad = clips.clone().requires_grad_()
     out = layer.forward_clip(grad, lms)
     assert torch.equal(out.params[1, 2].detach(), out.params[1, 0].detach())
-    assert bool(torch.isfinite(out.image).all()) and bool(torch.isfinite(out.params).all())
-    out.image.sum().backward()
-    assert grad.grad is not None and bool(torch.isfinite(grad.grad).all())
-    rest = layer.forward_clip(clips[[0, 2]], lms[[0, 2]])
-    torch.testing.assert_close(out.image[[0, 2]].detach(), rest.image)
-    torch.testing.assert_close(out.params[[0, 2]].detach(), rest.params)
+    _assert_finite_and_the_others_as_alone(layer, clips, lms, grad, out)
