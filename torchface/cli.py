@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
@@ -220,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
         "first pose and the shape units the landmark fit held are re-estimated from that view, in one pass)",
     )  # fmt: skip
     track.add_argument(
-        "--restart-after-unmatched", type=_count, default=0, metavar="K",
+        "--restart-after-unmatched", type=_int_at_least(0), default=0, metavar="K",
         help="with --detector: a lost video starts afresh from the detector's face after K recovery attempts in a "
         "row that found the same face but not the one being tracked (a cut to another person; TemplateConfig."
         "restart_after_unmatched; default 0, off: a heavy occluder carried with the face can trigger it)",
@@ -384,26 +384,23 @@ def _render_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _count(text: str) -> int:
-    """An integer >= 0 (``--restart-after-unmatched``)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return value
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse ``type``: an integer >= ``minimum`` (``--threads``, ``--max-batch``: 1; ``--restart-after-unmatched``:
+    0), else a one-line usage error."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}")
+        return value
+
+    return parse
 
 
-def _threads(text: str) -> int:
-    """``--threads``: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return value
+_threads = _int_at_least(1)
 
 
 def main(argv: list[str] | None = None) -> int:
