@@ -26,18 +26,26 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                them at confidence 0.1 or more), and the first frame from which every frame is successful and
                within it. --photo astronaut makes B another person; --restart-after-unmatched 2 sets
                TemplateConfig.restart_after_unmatched (off by default).
+  lid-fit      The README's "Eyes closed" analysis: how far the first frame's landmark fit puts the eyelids on the
+               `expressions` scenario (frame 0 of scripts/evaluate.py's render at --size, cached under --cache) over --draws
+               draws of evaluate.py's 2 px landmark noise (seeds 0..), with the default FitConfig and without a
+               starting expression (fit_expression=False): the mean vertical distance, in pixels, of the upper lid's
+               vertices (those Eyes closed moves down) from the truth's, and of the eye opening (upper minus lower
+               lid); the fraction of draws within 0.3 and 0.5 px, next to the upper lid's travel at full closure.
 
 Examples:
     python scripts/doc_figures.py face-width
     python scripts/doc_figures.py small-frames --sizes 96x72,128x96,160x120
     python scripts/doc_figures.py grid-pan --clip bbaf2n --shift -120
     python scripts/doc_figures.py hard-cuts --dx 90 --dz -120 --dyaw 0,21
+    python scripts/doc_figures.py lid-fit --draws 100
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -47,7 +55,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg, matrix_to_euler
 from torchface.model.candide import load_candide3
 from torchface.synth.background import BackgroundSpec
-from torchface.synth.scenarios import default_light
+from torchface.synth.scenarios import default_light, scenario_size
 from torchface.synth.sequence import GroundTruth, SequenceSpec, render_sequence
 from torchface.template.management import TemplateConfig
 from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
@@ -55,6 +63,7 @@ from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
 D = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
 GRID = ROOT.parent / "shared" / "assets" / "grid"
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
 
 
 def _render(cam: Intrinsics, rotation: torch.Tensor, translation: torch.Tensor, seed: int,
@@ -239,6 +248,48 @@ def hard_cuts(args: argparse.Namespace) -> None:
                 print(f"{dx:>6.0f} {dz:>6.0f} {dyaw:>5.0f} | {cells[0]:<44} | {cells[1]}")
 
 
+def lid_fit(args: argparse.Namespace) -> None:
+    import evaluate  # scripts/evaluate.py (its render cache and its landmark noise): imported here, as it is slow
+
+    from torchface.geometry.projection import project_points
+    from torchface.tracker.fit import FitConfig, fit_landmarks
+
+    model = load_candide3()
+    w, h, n = scenario_size("expressions", args.size)
+    gt = evaluate.load_sequence("expressions", w, h, n, None if args.cache == "none" else Path(args.cache)).gt
+    unit = model.animation_names.index("AUV6 Eyes closed")
+    shift = model.animation_units[unit, :, 1]  # model y points up: Eyes closed moves the upper lid down
+    upper, lower = (shift > 1e-6).nonzero().flatten(), (shift < -1e-6).nonzero().flatten()
+
+    def lids_y(rotation: torch.Tensor, translation: torch.Tensor, shape: torch.Tensor, anim: torch.Tensor) -> torch.Tensor:
+        v = model.deform(shape.to(model.dtype), anim.to(model.dtype)).to(D)
+        return project_points(v @ rotation.to(D).mT + translation.to(D)[:, None], gt.intrinsics)[0, :, 1]
+
+    shape = torch.as_tensor(gt.shape_coeffs, dtype=D)[None]
+    truth = lids_y(gt.rotation[:1], gt.translation[:1], shape, gt.au[:1])
+    closed = gt.au[:1].clone()
+    closed[0, unit] = 1.0
+    travel = (lids_y(gt.rotation[:1], gt.translation[:1], shape, closed) - truth)[upper].abs().mean()
+    print(f"expressions {w}x{h}, frame 0; {args.draws} draws of {evaluate.LANDMARK_NOISE_PX:g} px landmark noise; "
+          f"the upper lid moves {float(travel):.1f} px at full closure")
+    print(f"{'fit':<26} {'|upper lid| px: median':>22} {'p10':>5} {'p90':>5} {'<0.3':>5} {'<0.5':>5} | "
+          f"{'|opening| px: median':>20} {'<0.3':>5} {'<0.5':>5}")
+    default = TrackerConfig().fit
+    for label, config in (("default", default), ("no starting expression", replace(default, fit_expression=False))):
+        up, opening = [], []
+        for seed in range(args.draws):
+            fit = fit_landmarks(model, evaluate.initial_landmarks(gt, seed).to(model.dtype), gt.intrinsics,
+                                config=config)  # fmt: skip
+            dy = lids_y(fit.rotation, fit.translation, fit.shape_coeffs, fit.anim_coeffs) - truth
+            up.append(float(dy[upper].abs().mean()))
+            opening.append(float((dy[upper] - dy[lower]).abs().mean()))
+        u, o = torch.tensor(up, dtype=D), torch.tensor(opening, dtype=D)
+        q = torch.quantile(u, torch.tensor([0.5, 0.1, 0.9], dtype=D)).tolist()
+        print(f"{label:<26} {q[0]:>22.2f} {q[1]:>5.2f} {q[2]:>5.2f} {float((u < 0.3).to(D).mean()):>5.2f} "
+              f"{float((u < 0.5).to(D).mean()):>5.2f} | {float(o.median()):>20.2f} {float((o < 0.3).to(D).mean()):>5.2f} "
+              f"{float((o < 0.5).to(D).mean()):>5.2f}")
+
+
 def _numbers(text: str) -> list[float]:
     try:
         values = [float(v) for v in text.split(",")]
@@ -302,8 +353,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--restart-after-unmatched", type=int, default=0,
                    help="TemplateConfig.restart_after_unmatched (0: off, the default)")
     p.set_defaults(run=hard_cuts)
+    p = sub.add_parser("lid-fit", help="the eyelids' error after the first frame's landmark fit (README: Eyes closed)")
+    p.add_argument("--draws", type=int, default=100, help="landmark-noise draws (seeds 0..)")
+    p.add_argument("--size", default="full", choices=("small", "full"), help="the scenario's size (full: 640x480)")
+    p.add_argument("--cache", default=str(ROOT / "out" / "sequences"),
+                   help="evaluate.py's render cache folder; 'none' renders in memory")
+    p.set_defaults(run=lid_fit)
     args = parser.parse_args(argv)
-    for name in ("clips", "frames"):
+    for name in ("clips", "frames", "draws"):
         if getattr(args, name, 1) < 1:
             parser.error(f"--{name} must be >= 1")
     if args.figure == "small-frames" and args.frames < 10:

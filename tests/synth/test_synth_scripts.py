@@ -448,7 +448,7 @@ def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subje
 
 def test_doc_figures_measures_on_tiny_runs(capsys):
     """scripts/doc_figures.py, the command that measures the figures README.md, TrackerConfig.min_face_width_px and
-    lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments (face-width, small-frames, hard-cuts) on one
+    lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments (face-width, small-frames, hard-cuts, lid-fit) on one
     clip of a few frames and refuses bad arguments in one line (grid-pan, which needs the GRID clips of
     ../shared/assets, is run by hand)."""
     figures = _load("doc_figures")
@@ -462,6 +462,11 @@ def test_doc_figures_measures_on_tiny_runs(capsys):
                          "--frames", "2"]) == 0
     rows = [line.split("|") for line in capsys.readouterr().out.splitlines()[2:]]
     assert [r[0].split() for r in rows] == [["45", "0", "0"], ["45", "0", "12"]] and all(len(r) == 3 for r in rows)
+    assert figures.main(["lid-fit", "--size", "small", "--cache", "none", "--draws", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "3 draws of 2 px landmark noise" in lines[-4] and [r.split()[0] for r in lines[-2:]] == ["default", "no"]
+    medians = [float(r.split("|")[0].split()[-5]) for r in lines[-2:]]
+    assert all(0 < m < 5 for m in medians)  # the lids land off the truth, by pixels rather than millimetres
     for argv, message in ((["face-width", "--clips", "0"], "--clips must be >= 1"),
                           (["hard-cuts", "--dx", "1,x"], "expected numbers"),
                           (["face-width", "--widths", "20,x"], "widths must be numbers"),
