@@ -222,10 +222,10 @@ VIEW_TURN_FRACTION: float = 0.5
 #: 1.2 off, the stream went on 15 mm aside at confidence 0.01-0.19; 0.93-0.97 with this). Never reached in the
 #: evaluation's scenarios: at full size each waits until its re-anchoring (frames 7-70) with steps of at most 2.6
 #: degrees (long runs 0.95), so they track as before. :func:`lookahead_fit` ends a stream's look-ahead at such a
-#: turn too (no keyframe from the cut's frame on): refined against the two frames after a cut (keyframes 5 and 6),
-#: the first frame of that 160x120 clip came out 4.2 degrees and 35 mm off, against the landmark fit's 1.0 and 0.4.
-#: The standard scenarios' look-ahead windows turn at most 5.4 degrees a step (640x480, landmark-noise draws 0-3), so
-#: their keyframes and ``evaluate.py --lookahead`` figures are as before.
+#: turn too (no keyframe from the cut's frame on): refined against the cut's frame and the next (its keyframes),
+#: the first frame of that 160x120 clip came out 4.2 degrees and 35 mm off, against the landmark fit's 1.0 degree
+#: and 0.9 mm. The standard scenarios' look-ahead windows turn at most 5.4 degrees a step (640x480, landmark-noise
+#: draws 0-3), so their keyframes and ``evaluate.py --lookahead`` figures are as before.
 KEYFRAME_MAX_STEP_DEG: float = 20.0
 
 
