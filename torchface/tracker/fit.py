@@ -108,6 +108,9 @@ class FitConfig:
     max_rotation_std_deg: float | None = 15.0
     max_facing_deg: float | None = 75.0
     reference_focal_px: float | None = 640.0
+    sparse_landmark_count: int = 20
+    sparse_shape_prior_precision: float = 64.0
+    sparse_expression_prior_precision: float = 200.0
 
     def __post_init__(self) -> None:
         for name in ("held_shape_precision", "shape_bound", "expression_prior_precision"):  # "1": "'<' not supported"
@@ -131,6 +134,10 @@ class FitConfig:
             raise ValueError(f"reference_focal_px must be a positive number of pixels or None, got {focal!r}")
         object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))  # "no" was true
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
+        count = check_int(self.sparse_landmark_count, "sparse_landmark_count", 0)
+        object.__setattr__(self, "sparse_landmark_count", count)
+        for name in ("sparse_shape_prior_precision", "sparse_expression_prior_precision"):
+            object.__setattr__(self, name, check_real(getattr(self, name), name))
         shape = self.shape_prior_precision
         precisions = shape if isinstance(shape, tuple) else (shape,)
         if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
@@ -141,7 +148,8 @@ class FitConfig:
             raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
         if any(
             isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0
-            for p in (*precisions, self.expression_prior_precision, self.held_shape_precision)
+            for p in (*precisions, self.expression_prior_precision, self.held_shape_precision,
+                      self.sparse_shape_prior_precision, self.sparse_expression_prior_precision)
         ):
             raise ValueError("prior precisions must be finite and non-negative")
         if not self.shape_bound > 0:
@@ -546,18 +554,20 @@ def fit_landmarks(
         prior.append(torch.full((A,), config.expression_prior_precision * scale, dtype=dtype, device=device))
     # The parameters without a prior need the residuals: the shape units' and expression's priors determine theirs
     # (4 landmarks, 8 residuals, fit the pose; asking for P residuals failed every fit from fewer than 10 points).
+    # (Counted on the dense priors: a sparse sample's are at least as strong.)
     unregularised = int((torch.cat(prior) == 0).sum())
+    lower_all, upper_all = torch.cat(lower), torch.cat(upper)
+    prior_all = _sparse_priors(torch.cat(prior), (w > 0).sum(-1), S, A, config, scale)  # (P,), or (B, P): sparse
     res = least_squares(
         residual_fn,
         x0,
         SolverConfig(max_iterations=config.max_iterations),
-        lower=torch.cat(lower),
-        upper=torch.cat(upper),
-        prior_precision=torch.cat(prior),
+        lower=lower_all,
+        upper=upper_all,
+        prior_precision=prior_all,
         min_valid=unregularised,
     )
     x = res.params
-    lower_all, upper_all, prior_all = torch.cat(lower), torch.cat(upper), torch.cat(prior)
     stalled = _stalled(residual_fn, x, lower_all, upper_all, prior_all, w.sum(-1))
     if config.refine_shape_prior_precision is not None and S > 0:
         hold = torch.ones(x.shape[1], dtype=torch.bool, device=device)
@@ -565,10 +575,10 @@ def fit_landmarks(
         lo2 = torch.where(hold, x, lower_all.expand_as(x))
         hi2 = torch.where(hold, x, upper_all.expand_as(x))
         prior2 = prior_all.clone()
-        prior2[6 : 6 + S] = config.refine_shape_prior_precision * scale
+        prior2[..., 6 : 6 + S] = config.refine_shape_prior_precision * scale
         res2 = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
-            prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum()),
+            prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum(-1).max()),
         )
         failed2 = res2.failed | _stalled(residual_fn, res2.params, lo2, hi2, prior2, w.sum(-1))
         x = torch.where(failed2.unsqueeze(-1), x, res2.params)
@@ -597,6 +607,27 @@ def fit_landmarks(
         failed = failed | ~(rotation_std_deg(J[..., :6], valid, w, noise) <= config.max_rotation_std_deg)
     status = torch.where(failed, int(SolveStatus.FAILED), res.status)
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status).to(dtype=model_dtype)
+
+
+def _sparse_priors(prior: Tensor, count: Tensor, S: int, A: int, config: FitConfig, scale: float) -> Tensor:
+    """The landmark fit's prior precisions with a sparse sample's (:attr:`FitConfig.sparse_landmark_count`) shape
+    and expression precisions raised to at least :attr:`FitConfig.sparse_shape_prior_precision` and
+    :attr:`FitConfig.sparse_expression_prior_precision` (times ``scale``, :func:`prior_scale`).
+
+    Args:
+        prior: ``(P,)`` the dense precisions, ``P = 6 + S + A`` (the pose's six first, 0).
+        count: ``(B,)`` the samples' landmarks of positive weight.
+
+    Returns:
+        ``prior`` itself when no sample is sparse (the fit is then the dense one, to the bit), else ``(B, P)``.
+    """
+    sparse = count < config.sparse_landmark_count
+    if not bool(sparse.any()):
+        return prior
+    floor = torch.zeros_like(prior)
+    floor[6 : 6 + S] = config.sparse_shape_prior_precision * scale
+    floor[6 + S : 6 + S + A] = config.sparse_expression_prior_precision * scale
+    return torch.where(sparse.unsqueeze(-1), torch.maximum(prior, floor), prior)
 
 
 def _landmark_width_mm(model: FaceModel) -> float:
