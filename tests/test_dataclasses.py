@@ -78,7 +78,7 @@ def _settings() -> dict[type, dict]:
 
 
 #: A valid value of the int fields whose default is None.
-_VALID_FOR_NONE = {"clip_stride": 2, "min_separation": 5, "shape_units": (0, 2)}
+_VALID_FOR_NONE = {"clip_stride": 2, "min_separation": 5, "shape_units": (0, 2), "sparse_landmark_count": 20}
 
 
 def _kinds(cls: type) -> dict[str, str]:

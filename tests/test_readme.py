@@ -101,6 +101,11 @@ def test_readme_defaults_are_the_code_defaults():
         "`TrackerConfig.expression_sparsity=0.1`": TrackerConfig().expression_sparsity == 0.1,
         "(`TemplateConfig.clean_radius_deg`, 3°)": TemplateConfig().clean_radius_deg == 3.0,
         "(`FitConfig.held_shape_units`, precision 256,": FitConfig().held_shape_precision == 256.0,
+        "(`FitConfig.sparse_landmark_count`, None: 6 + S, + A": FitConfig().sparse_landmark_count is None,
+        "at a precision of at least 64\n    (`sparse_shape_prior_precision`":
+            FitConfig().sparse_shape_prior_precision == 64.0,
+        "the expression at 200\n    (`sparse_expression_prior_precision`)":
+            FitConfig().sparse_expression_prior_precision == 200.0,
         "`max_frames` (150)": LookaheadConfig().max_frames == 150,
         "when its head has turned 10°": LookaheadConfig().yaw_deg == 10.0,
         "depths around its last confident one (0.85-1.2 of it)": TemplateConfig().search_depth_factors[::2] == (0.85, 1.2),

@@ -17,7 +17,9 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_optional_real, check_real
+from torchface.geometry._checks import (
+    check_bool, check_int, check_intrinsics, check_optional_int, check_optional_real, check_real,
+)
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
 from torchface.geometry.so3 import axis_angle_to_matrix
@@ -73,8 +75,8 @@ class FitConfig:
             James scan rendered frontal, at yaw +-40, pitch +-20 and a mixed pose, at 450 and 900 mm); the 68
             landmarks 0.5-0.9, the 51 inner ones up to 1.7, 5-point subsets (eye corners, nose, mouth corners) up to
             6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 12.1. It does not see the
-            shape and expression units trading with the pose (a sparse subset's main error: README, Known
-            limitations).
+            shape and expression units trading with the pose (a sparse subset's main error, which
+            ``sparse_landmark_count`` holds: README, Known limitations).
         max_facing_deg: a fit that turned the face more than this many degrees from facing the camera (the angle
             between its forward axis and the ray to its landmarks' centroid) is FAILED; None: only a face turned away
             (90 degrees and more) is. A face seen edge-on hides half its landmarks, yet projects them onto a line,
@@ -95,6 +97,30 @@ class FitConfig:
             ``Intrinsics.default(640, 480)`` (the standard scenarios' camera, where they were tuned), whose fits
             the scaling leaves as they were, to the bit (a factor of exactly 1). None: no scaling, the precisions
             in the squared pixels of whatever camera is given (the fit before session 43).
+        sparse_landmark_count: a sample fitted from fewer landmarks than this (finite, of positive weight: a subset
+            given by ``landmark_indices``, or NaN or zero-weight rows) is sparse: its shape units' precisions are
+            raised to at least ``sparse_shape_prior_precision`` and, with ``fit_expression``, its animation units'
+            to at least ``sparse_expression_prior_precision``. None: the fit's unknowns, ``6 + S`` (``+ A`` with
+            ``fit_expression``): CANDIDE-3's 20, 31 for the tracker's fit; fewer landmarks give fewer than two
+            residuals per unknown. 0: no sample is sparse. Few points cannot separate the pose from the units that
+            move them, and the weak dense priors let those units absorb what is pose: the 5 points of a detector
+            (outer eye corners, nose tip, mouth corners), 2 px of noise, the mean face frontal, at yaw 20 and -30
+            and a mixed pose (80 draws) were fitted 4.8 / 12.6 degrees off (mean / worst; the tracker's fit,
+            expression precision 2, 6.1 / 18.7), dlib's 5 (eye corners, nose base) 7.7 / 21.8, 10 points (eye
+            corners, nose, mouth corners) 4.8 / 10.6; held, 3.4 / 7.5 (3.5 / 7.7), 6.5 / 16.7 and 3.7 / 8.5.
+            Random subsets (the mean face, a CANDIDE-3 person and the James scan, yaw to 40 and pitch to 20 degrees,
+            450 and 900 mm) gained most below the unknowns' count (12 points: 6.7 to 5.8 degrees mean, the
+            tracker's fit 8.9 to 5.9; 20 and 26, the tracker's fit: 4.8 to 4.4, 4.3 to 4.0), little above it (32,
+            the tracker's fit: 4.3 to 4.0; means within 0.1 degree from 40 points on). A denser sample keeps the
+            dense priors, its fit the same to the bit (the 68 landmarks, as the evaluation and the tracker's start
+            fit them, unless the model has more than 68 unknowns: the ICT Face Model has 106, 159 with the
+            expression).
+        sparse_shape_prior_precision: a sparse sample's least shape precision (at ``reference_focal_px``): 64, the
+            prior of a population whose shape coefficients spread about 0.25 about the mean, for landmarks of 2 px
+            of noise. Stronger priors fit the mean face better still but bias a face unlike it (the subjects'
+            CANDIDE-3 shapes, coefficients up to 0.72), weaker ones let the units trade with the pose again.
+        sparse_expression_prior_precision: a sparse sample's least expression precision (with ``fit_expression``;
+            at ``reference_focal_px``): 200, ``FitConfig()``'s ``expression_prior_precision``.
     """
 
     shape_prior_precision: float | tuple[float, ...] = 2.0
@@ -108,6 +134,9 @@ class FitConfig:
     max_rotation_std_deg: float | None = 15.0
     max_facing_deg: float | None = 75.0
     reference_focal_px: float | None = 640.0
+    sparse_landmark_count: int | None = None
+    sparse_shape_prior_precision: float = 64.0
+    sparse_expression_prior_precision: float = 200.0
 
     def __post_init__(self) -> None:
         for name in ("held_shape_precision", "shape_bound", "expression_prior_precision"):  # "1": "'<' not supported"
@@ -131,6 +160,10 @@ class FitConfig:
             raise ValueError(f"reference_focal_px must be a positive number of pixels or None, got {focal!r}")
         object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))  # "no" was true
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
+        count = check_optional_int(self.sparse_landmark_count, "sparse_landmark_count", 0)
+        object.__setattr__(self, "sparse_landmark_count", count)
+        for name in ("sparse_shape_prior_precision", "sparse_expression_prior_precision"):
+            object.__setattr__(self, name, check_real(getattr(self, name), name))
         shape = self.shape_prior_precision
         precisions = shape if isinstance(shape, tuple) else (shape,)
         if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
@@ -141,7 +174,8 @@ class FitConfig:
             raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
         if any(
             isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0
-            for p in (*precisions, self.expression_prior_precision, self.held_shape_precision)
+            for p in (*precisions, self.expression_prior_precision, self.held_shape_precision,
+                      self.sparse_shape_prior_precision, self.sparse_expression_prior_precision)
         ):
             raise ValueError("prior precisions must be finite and non-negative")
         if not self.shape_bound > 0:
@@ -546,18 +580,20 @@ def fit_landmarks(
         prior.append(torch.full((A,), config.expression_prior_precision * scale, dtype=dtype, device=device))
     # The parameters without a prior need the residuals: the shape units' and expression's priors determine theirs
     # (4 landmarks, 8 residuals, fit the pose; asking for P residuals failed every fit from fewer than 10 points).
+    # (Counted on the dense priors: a sparse sample's are at least as strong.)
     unregularised = int((torch.cat(prior) == 0).sum())
+    lower_all, upper_all = torch.cat(lower), torch.cat(upper)
+    prior_all = _sparse_priors(torch.cat(prior), (w > 0).sum(-1), S, A, config, scale)  # (P,), or (B, P): sparse
     res = least_squares(
         residual_fn,
         x0,
         SolverConfig(max_iterations=config.max_iterations),
-        lower=torch.cat(lower),
-        upper=torch.cat(upper),
-        prior_precision=torch.cat(prior),
+        lower=lower_all,
+        upper=upper_all,
+        prior_precision=prior_all,
         min_valid=unregularised,
     )
     x = res.params
-    lower_all, upper_all, prior_all = torch.cat(lower), torch.cat(upper), torch.cat(prior)
     stalled = _stalled(residual_fn, x, lower_all, upper_all, prior_all, w.sum(-1))
     if config.refine_shape_prior_precision is not None and S > 0:
         hold = torch.ones(x.shape[1], dtype=torch.bool, device=device)
@@ -565,10 +601,10 @@ def fit_landmarks(
         lo2 = torch.where(hold, x, lower_all.expand_as(x))
         hi2 = torch.where(hold, x, upper_all.expand_as(x))
         prior2 = prior_all.clone()
-        prior2[6 : 6 + S] = config.refine_shape_prior_precision * scale
+        prior2[..., 6 : 6 + S] = config.refine_shape_prior_precision * scale
         res2 = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
-            prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum()),
+            prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum(-1).max()),
         )
         failed2 = res2.failed | _stalled(residual_fn, res2.params, lo2, hi2, prior2, w.sum(-1))
         x = torch.where(failed2.unsqueeze(-1), x, res2.params)
@@ -597,6 +633,29 @@ def fit_landmarks(
         failed = failed | ~(rotation_std_deg(J[..., :6], valid, w, noise) <= config.max_rotation_std_deg)
     status = torch.where(failed, int(SolveStatus.FAILED), res.status)
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status).to(dtype=model_dtype)
+
+
+def _sparse_priors(prior: Tensor, count: Tensor, S: int, A: int, config: FitConfig, scale: float) -> Tensor:
+    """The landmark fit's prior precisions, a sparse sample's (fewer landmarks than
+    :attr:`FitConfig.sparse_landmark_count`; None: ``6 + S + A``, the fit's unknowns) shape and expression ones raised
+    to at least :attr:`FitConfig.sparse_shape_prior_precision` and :attr:`FitConfig.sparse_expression_prior_precision`
+    (times ``scale``, :func:`prior_scale`). ``A``: the animation units fitted (0 without ``fit_expression``).
+
+    Args:
+        prior: ``(P,)`` the dense precisions, ``P = 6 + S + A`` (the pose's six first, 0).
+        count: ``(B,)`` the samples' landmarks of positive weight.
+
+    Returns:
+        ``prior`` itself when no sample is sparse (the fit is then the dense one, to the bit), else ``(B, P)``.
+    """
+    least = 6 + S + A if config.sparse_landmark_count is None else config.sparse_landmark_count
+    sparse = count < least
+    if not bool(sparse.any()):
+        return prior
+    floor = torch.zeros_like(prior)
+    floor[6 : 6 + S] = config.sparse_shape_prior_precision * scale
+    floor[6 + S : 6 + S + A] = config.sparse_expression_prior_precision * scale
+    return torch.where(sparse.unsqueeze(-1), torch.maximum(prior, floor), prior)
 
 
 def _landmark_width_mm(model: FaceModel) -> float:
