@@ -323,7 +323,8 @@ def test_mosaic_storage_grown_by_several_slots_gives_the_same_track(model, wande
         assert torch.equal(m.used[:, :k], used) and not m.used[:, k:].any() and not mosaic.used[:, k:].any()
         pairs = [(getattr(a, f.name), getattr(b, f.name)) for a, b in zip(mosaic.levels, m.levels) for f in fields(a)]
         pairs += [(mosaic.rotation, m.rotation), (mosaic.ypr_deg, m.ypr_deg), (mosaic.bins, m.bins)]
-        pairs += list(zip(management._reference_tensors(mosaic.references), management._reference_tensors(m.references)))
+        refs = management._reference_tensors
+        pairs += list(zip(refs(mosaic.references), refs(m.references)))
         for x, y in pairs:
             assert torch.equal(x[:, :k][used], y[:, :k][used]), policy
 

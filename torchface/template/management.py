@@ -569,11 +569,12 @@ def _grown_capacity(capacity: int, need: int, limit: int | None) -> int:
     """The entry slots a mosaic of ``capacity`` slots grows to when an entry needs ``need > capacity``: doubled, by
     at most :data:`_GROWTH_CHUNK` slots, and not beyond ``limit`` (None: no limit), but at least ``need``.
 
-    Growing copies every per-entry tensor of the mosaic (levels, references, poses). Grown one slot at a time, a
-    32-stream run of benchmark.py's frames (11 entries at most) grew it 10 times at 2.5-8.5 ms each (a third of a
-    millisecond per step over the run); grown so, 4 times, with at most ``_GROWTH_CHUNK - 1`` slots unused (about
-    0.15 MB per stream and slot at the default sizes) and at most ``TemplateConfig.max_entries`` slots in all
-    when that is the ``limit``, as one slot at a time."""
+    Growing copies every per-entry tensor of the mosaic (levels, references, poses) into new memory. Grown one slot
+    at a time, benchmark.py's 32 streams (117 steps, 11 entries at most, one thread) grew it 10 times, 2-14 ms each
+    (58-65 ms in all); grown so, 4 times (42-44 ms in all; entries written into slots grown before cost what
+    the others do, 0.7 ms a call). The cost: at most ``_GROWTH_CHUNK - 1`` unused slots per stream (0.16 MB each
+    at the default sizes; there 12 slots, 60 MB, against 11, 55 MB), and with ``limit``
+    (``TemplateConfig.max_entries``) no more slots than one at a time makes when the mosaics fill up."""
     grown = capacity + min(max(capacity, 1), _GROWTH_CHUNK)
     if limit is not None:
         grown = min(grown, limit)

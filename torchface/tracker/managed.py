@@ -1453,6 +1453,6 @@ def _reanchor(
         if bool(fresh.any()):
             rows = index[fresh]
             tpl, ref = _new_entries(model, config, state, ms, frames, rows, None)
-            mosaic, _ = add_entries(ms.mosaic, rows, tpl, R_now[fresh], bins[fresh], ref)
+            mosaic, _ = add_entries(ms.mosaic, rows, tpl, R_now[fresh], bins[fresh], ref, max_capacity=tc.max_entries)
             state = replace(state, management=replace(ms, mosaic=mosaic))
     return state
