@@ -155,7 +155,7 @@ def test_mosaic_add_select_and_grow():
     ypr0 = torch.zeros(B, 3, dtype=D)
     m = new_mosaic(_fake_templates(B, N, 0), euler_to_matrix(ypr0), ypr0, ref, cfg)
     assert m.capacity == 1 and m.num_entries.tolist() == [1, 1, 1]
-    # Stream 1 and 2 get an entry at yaw 30; stream 2 another at yaw -30: capacity grows to 3.
+    # Stream 1 and 2 get an entry at yaw 30; stream 2 another at yaw -30: the storage grows to 2 slots, then 4.
     ypr = torch.tensor([[30.0, 0.0, 0.0], [30.0, 0.0, 0.0]], dtype=D)
     bins, _ = pose_bins(ypr, cfg)
     new = _fake_templates(2, N, 1)
@@ -173,7 +173,8 @@ def test_mosaic_add_select_and_grow():
     bins2 = pose_bins(ypr2, cfg)[0]
     m, slots = add_entries(m, torch.tensor([2]), _fake_templates(1, N, 2), euler_to_matrix(ypr2), bins2,
                            _fake_reference(1, seed=2))  # fmt: skip
-    assert slots.tolist() == [2] and m.capacity == 3 and m.num_entries.tolist() == [1, 2, 3]
+    assert slots.tolist() == [2] and m.capacity == 4 and m.num_entries.tolist() == [1, 2, 3]
+    assert not m.used[:, 3].any() and not m.levels[0].valid[:, 3].any()  # the slot grown ahead holds nothing
     assert has_bin(m, torch.tensor([[2, 0], [2, 0], [-2, 0]])).tolist() == [False, True, True]
     # a subset of the streams, in any order: the same answers as their rows of the whole batch
     assert has_bin(m, torch.tensor([[-2, 0], [2, 0]]), streams=torch.tensor([2, 0])).tolist() == [True, False]
@@ -207,6 +208,42 @@ def test_mosaic_add_select_and_grow():
     assert select_entries(m, far, cur, 2.0, reference_radius_deg=20.0).tolist() == [0, 1, 2]
     # The stored yaw/pitch/roll of every used entry is its rotation's, through adding and growing.
     assert torch.equal(m.ypr_deg[m.used], matrix_to_euler(m.rotation[m.used]))
+
+
+def test_mosaic_storage_grows_by_doubling_in_chunks_of_at_most_four_up_to_max_capacity():
+    """add_entries grows the mosaic's storage by several slots at once (it grew one slot at a time: every per-entry
+    tensor copied at each new entry beyond the last), so most entries are written in place into slots grown
+    before; never beyond ``max_capacity`` unless the entries need more. The entries' values are those added."""
+    cfg = TemplateConfig()
+    B, N = 2, 10
+    ypr0 = torch.zeros(B, 3, dtype=D)
+    stream = torch.tensor([1])
+
+    def grow(limit, additions):
+        m = new_mosaic(_fake_templates(B, N, 0), euler_to_matrix(ypr0), ypr0, _fake_reference(B, seed=0), cfg)
+        capacities, copies, added, rotations = [], 0, [], []
+        for k in range(1, additions + 1):
+            ypr = torch.tensor([[5.0 * k, 0.0, 0.0]], dtype=D)
+            t, r = _fake_templates(1, N, k), _fake_reference(1, seed=k)
+            rotations.append(euler_to_matrix(ypr)[0])
+            new, slot = add_entries(m, stream, t, rotations[-1][None], pose_bins(ypr, cfg)[0], r, max_capacity=limit)
+            assert slot.tolist() == [k]
+            copies += new.levels[0].intensity is not m.levels[0].intensity
+            m = new
+            capacities.append(m.capacity)
+            added.append((t, r))
+        return m, capacities, copies, added, rotations
+
+    m, capacities, copies, added, rotations = grow(16, 17)
+    assert capacities == [2, 4, 4, 8, 8, 8, 8, 12, 12, 12, 12, 16, 16, 16, 16, 17, 18]  # the limit: then as needed
+    assert copies == 7  # one per growth (it was 17)
+    assert m.num_entries.tolist() == [1, 18] and not m.used[0, 1:].any()
+    for k, (t, r) in enumerate(added, start=1):
+        assert torch.equal(m.levels[1].intensity[1, k], t[1].intensity[0])
+        assert torch.equal(m.references.image[1, k], r.image[0]) and torch.equal(m.rotation[1, k], rotations[k - 1])
+    assert grow(None, 17)[1][11:] == [16, 16, 16, 16, 20, 20]  # no limit: chunks of 4 on
+    assert grow(5, 6)[1] == [2, 4, 4, 5, 6, 7] and grow(3, 3)[1] == [2, 3, 4]
+    assert grow(1, 2)[1] == [2, 3]  # a limit below what the entries need: what they need
 
 
 def test_add_entries_shares_storage_only_where_no_other_mosaic_wrote():

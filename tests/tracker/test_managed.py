@@ -14,7 +14,7 @@ answers on small rendered sequences (320x240, two pyramid levels).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import pytest
 import torch
@@ -260,6 +260,73 @@ def test_new_entry_reuses_the_confidences_normalised_face_exactly(model, turns, 
     config = replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))
     track(model, config, frames[:, :20], landmarks(gt))
     assert calls  # entries were added
+
+
+@pytest.fixture(scope="module")
+def wander():
+    """Two streams, 26 frames: yaw 0 -> 30, pitch 0 -> 15 there, yaw back to 0 at that pitch (3 degree steps), and
+    the mirror image (yaw and pitch negated) 3 frames later: 6 and 5 pose bins, one after another."""
+    up = [3.0 * i for i in range(11)]
+    ypr = ([[y, 0.0, 0.0] for y in up] + [[30.0, 3.0 * i, 0.0] for i in range(1, 6)]
+           + [[30.0 - 3.0 * i, 15.0, 0.0] for i in range(1, 11)])  # fmt: skip
+    other = [[0.0, 0.0, 0.0]] * 3 + [[-y, -p, r] for y, p, r in ypr[:-3]]
+    clips = [render_sequence(spec_of(name, angles, [[0.0, 0.0, 450.0]] * len(angles)))
+             for name, angles in (("wander", ypr), ("wander_mirrored", other))]  # fmt: skip
+    return torch.stack([f for f, _ in clips]), torch.cat([landmarks(gt) for _, gt in clips])
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_mosaic_storage_grown_by_several_slots_gives_the_same_track(model, wander, monkeypatch, backend):
+    """The mosaic's storage grows by several entry slots at once (template.management._grown_capacity), so that
+    most new entries are written into slots grown before. The unused slots change nothing: the track, every
+    result field and the stored entries are those of a mosaic grown one slot at a time (as before) and of one
+    holding ``max_entries`` slots from the first frame, bit for bit, through entries added at different frames
+    in the two streams and switches between them."""
+    import torchface.template.management as management
+    from torchface.backend import Backend
+
+    frames, lm = wander
+    config = replace(CFG, backend=Backend(backend), template=TemplateConfig(reference_radius_deg=10.0))
+    grown = management._grown_capacity
+
+    def run(policy: str):
+        monkeypatch.setattr(management, "_grown_capacity", (lambda c, need, limit: need) if policy == "one" else grown)
+        state, res = initialise_managed(model, config, frames[:, 0], lm, Intrinsics.default(W, H))
+        if policy == "max_entries":
+            ms = state.management
+            state = replace(state, management=replace(ms, mosaic=management._grow(ms.mosaic, 15)))
+        results, capacities = [res], []
+        for i in range(1, frames.shape[1]):
+            state, res = managed_step(model, config, state, frames[:, i], donate=True)
+            results.append(res)
+            capacities.append(state.management.mosaic.capacity)
+        return results, state, capacities
+
+    runs = {policy: run(policy) for policy in ("grown", "one", "max_entries")}
+    results, state, capacities = runs["grown"]
+    mosaic = state.management.mosaic
+    assert mosaic.num_entries.tolist() == [6, 5] and capacities[-1] == 8  # 2, 4, 8 slots (1 to 6, one at a time)
+    assert runs["one"][2][-1] == 6 and runs["max_entries"][2][-1] == 16
+    entries = torch.stack([r.mosaic_entry for r in results])
+    assert len(set(entries[:, 0].tolist())) == 6 and not torch.equal(entries[:, 0], entries[:, 1])  # switches
+    for policy in ("one", "max_entries"):
+        other_results, other, _ = runs[policy]
+        for a, b in zip(results, other_results):
+            for f in fields(a):
+                x, y = getattr(a, f.name), getattr(b, f.name)
+                assert torch.equal(x, y) if isinstance(x, torch.Tensor) else x == y, (policy, f.name)
+        assert torch.equal(state.params, other.params)
+        for t, u in zip(state.templates, other.templates):
+            assert all(torch.equal(getattr(t, f.name), getattr(u, f.name)) for f in fields(t)), policy
+        m, k = other.management.mosaic, int(mosaic.num_entries.max())
+        used = mosaic.used[:, :k]
+        assert torch.equal(m.used[:, :k], used) and not m.used[:, k:].any() and not mosaic.used[:, k:].any()
+        pairs = [(getattr(a, f.name), getattr(b, f.name)) for a, b in zip(mosaic.levels, m.levels) for f in fields(a)]
+        pairs += [(mosaic.rotation, m.rotation), (mosaic.ypr_deg, m.ypr_deg), (mosaic.bins, m.bins)]
+        refs = management._reference_tensors
+        pairs += list(zip(refs(mosaic.references), refs(m.references)))
+        for x, y in pairs:
+            assert torch.equal(x[:, :k][used], y[:, :k][used]), policy
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -1138,7 +1138,8 @@ def managed_step(
             index = add.nonzero().squeeze(-1)
             faces = None if face is None else (face[0][index], face[1][index])
             templates_new, reference_new = _new_entries(model, config, new_state, ms, frames, index, faces)
-            mosaic, _ = add_entries(mosaic, index, templates_new, result.rotation[index], bins[index], reference_new)
+            mosaic, _ = add_entries(mosaic, index, templates_new, result.rotation[index], bins[index], reference_new,
+                                    max_capacity=tc.max_entries)  # fmt: skip
     ms = replace(ms, mosaic=mosaic, entry=entry)
     if tc.texture_update and bool(confident.any()):
         templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
@@ -1457,6 +1458,6 @@ def _reanchor(
         if bool(fresh.any()):
             rows = index[fresh]
             tpl, ref = _new_entries(model, config, state, ms, frames, rows, None)
-            mosaic, _ = add_entries(ms.mosaic, rows, tpl, R_now[fresh], bins[fresh], ref)
+            mosaic, _ = add_entries(ms.mosaic, rows, tpl, R_now[fresh], bins[fresh], ref, max_capacity=tc.max_entries)
             state = replace(state, management=replace(ms, mosaic=mosaic))
     return state
