@@ -166,6 +166,38 @@ def test_photometric_term_alone_brings_wrong_free_units_back(model):
     assert float(geodesic_angle_deg(out.rotation.double(), gt.rotation[:1])) < 2.0
 
 
+def test_kept_shape_units_stay_at_the_landmark_fits_values(model):
+    """``kept_shape_units`` names held units that the default ``shape_units=None`` leaves alone: the start of the
+    test above (the eyes' vertical position 0.3 off, the jaw 0.4), both the eyes' and the nose's vertical position
+    held by the landmark fit. Kept, the eyes' unit stays at the start's 0.3 to the bit while the nose's is still
+    re-estimated; not kept, the eyes' unit moves (to -0.39: with the nose free too, the two trade)."""
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    R = gt.rotation.to(torch.float32)
+    jaw, eyes = model.animation_names.index("AUV11 Jaw drop"), model.shape_names.index("Eyes vertical position")
+    nose = model.shape_names.index("Nose vertical position")
+    shape, anim = torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation)
+    shape[0, eyes], anim[0, jaw] = 0.3, 0.4
+    start = LandmarkFit(R[:1], matrix_to_axis_angle(R[:1]), gt.translation[:1].float(), shape, anim, torch.zeros(1),
+                        torch.zeros(1, dtype=torch.int64))  # fmt: skip
+    lm = torch.full((model.num_landmarks, 2), float("nan"))
+    out = {}
+    for kept in ((), ("Eyes vertical position", "a unit the model lacks")):
+        cfg = LookaheadConfig(kept_shape_units=kept, iterations=(8, 6), max_points=1500)
+        out[kept] = refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
+                                     config=cfg, shape_prior_precision=0.0, expression_prior_precision=0.0,
+                                     held_shape_units=tuple(sorted((eyes, nose))))  # fmt: skip
+    free, kept = out[()].shape_coeffs[0], out[("Eyes vertical position", "a unit the model lacks")].shape_coeffs[0]
+    assert abs(float(free[eyes]) - 0.3) > 0.1 and torch.equal(kept[eyes], shape[0, eyes]), (free[eyes], kept[eyes])
+    assert float(kept[nose]) != 0.0 and float(free[nose]) != 0.0  # the other held unit is re-estimated in both
+    others = torch.ones(model.num_shape, dtype=torch.bool)
+    others[[eyes, nose]] = False
+    assert torch.equal(kept[others], shape[0, others])
+    for bad in (["Eyes vertical position"], ("a", "a"), (1,)):
+        with pytest.raises(ValueError, match="kept_shape_units"):
+            LookaheadConfig(kept_shape_units=bad)
+
+
 def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
     """Keyframes at +-20 degrees with the jaw dropped 0.6 after a neutral first frame (the render's face, true
     poses, exact landmarks). Untold, the refinement pulls the jaw the keyframes show into the starting
