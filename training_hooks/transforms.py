@@ -381,7 +381,8 @@ def track_sequence(
             CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a
             :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
             settings) whose tracking the frames continue (every frame goes through
-            :func:`~torchface.tracker.managed.managed_step`).
+            :func:`~torchface.tracker.managed.managed_step`); the state is left as it was, so the same frames
+            from it give the same sequence again.
         config: :class:`FaceTrackingConfig` (tracker settings, face size and storage, threads).
         model: the face model (float32, CPU; normally CANDIDE-3 from :func:`~torchface.model.load_candide3`).
         normaliser: a :class:`~torchface.normalise.NormalisedFace` of ``model`` with ``config``'s size and margin.
@@ -403,6 +404,7 @@ def track_sequence(
     landmarks = torch.zeros(0, 2, dtype=torch.float64)
     first_frame = 0
     tracker = config.tracker  # the settings tracked with: with config.pyramid's levels (set at the first frame)
+    own_state = not isinstance(start, TrackerState)  # (made here from landmarks: donated to managed_step)
     if isinstance(start, TrackerState):
         if start.params.shape[0] != 1:
             B = start.params.shape[0]
@@ -437,7 +439,10 @@ def track_sequence(
                         f"the TrackerState tracks {state.intrinsics.width}x{state.intrinsics.height} frames, "
                         f"got {size[1]}x{size[0]}"
                     )
-                state, result = managed_step(model, tracker, state, frame, donate=True)
+                # Donated (templates written in place at a mosaic entry change) only where the state is this
+                # function's own: a caller's state, and those that share its template tensors, are left as
+                # they were (a second call from it was 1.5 degrees off the first on a 55-degree turn).
+                state, result = managed_step(model, tracker, state, frame, donate=own_state)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
                 alpha = state.neutral_anim_coeffs(alpha)
