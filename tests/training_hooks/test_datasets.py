@@ -342,6 +342,28 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
 
 
+def test_a_frame_to_convert_names_the_datasets_setting(clips, config, tmp_path):
+    """Grayscale frames (a first one, a later one, or counted under DDP) are refused with the dataset's way out,
+    DatasetConfig(convert=True): the message told a Python user to "pass --convert", the command line's flag."""
+    frames = read_video_uint8(clips[0].video)  # (T, 3, H, W) uint8
+    gray = frames.float().mean(1).round().to(torch.uint8).numpy()  # (T, H, W)
+    np.save(tmp_path / "gray.npy", gray)
+    folder = tmp_path / "later_gray"
+    folder.mkdir()
+    for t in range(frames.shape[0]):
+        image = frames[t].permute(1, 2, 0).numpy()[..., ::-1]
+        cv2.imwrite(str(folder / f"{t:03d}.png"), image if t < 2 else gray[t])
+    lm = [clips[0].landmarks]
+    cfg = replace(config, cache_dir=None)
+    for run in (lambda: list(VideoDataset([tmp_path / "gray.npy"], lm, cfg)),
+                lambda: VideoDataset([tmp_path / "gray.npy"], lm, cfg).num_items(0),
+                lambda: list(FrameFolderDataset([folder], lm, cfg))):  # fmt: skip
+        with pytest.raises(InputError, match="grayscale") as info:
+            run()
+        assert "DatasetConfig(convert=True)" in str(info.value) and "--convert" not in str(info.value)
+    assert len(list(FrameFolderDataset([folder], lm, replace(cfg, convert=True)))) == frames.shape[0]
+
+
 def test_cache_dir_annotation_takes_the_documented_str(tmp_path):
     # The README's DatasetConfig(cache_dir="cache") worked, but the field was annotated `Path | None`: a type checker
     # (the package ships py.typed) refused the documented call. The value is still kept as a Path.
