@@ -202,7 +202,12 @@ class TrackedSequence:
         confidence: ``(T,)`` float32 in ``[0, 1]`` (``TrackResult.confidence``: the dissimilarity confidence with
             template management, else the solver's residual confidence).
         status: ``(T,)`` int64 :class:`~torchface.tracker.TrackStatus` (2 = FAILED: parameters held, 3 = LOST).
-        shape_coeffs: ``(S_u,)`` float32 the person's shape units (fixed after the first frame).
+        shape_coeffs: ``(S_u,)`` float32 the person's shape units after the last frame: the first frame's landmark
+            fit's, unless the online look-ahead start (:attr:`FaceTrackingConfig.refine_first`, the default)
+            re-estimated them once the head had turned (by up to 0.21 on a rendered 30-degree turn); the frames before
+            were normalised with the fit's. The per-frame pose is then reported in the head frame of the first result
+            (``TrackResult.rotation``), so that it stays continuous: with these units it places the mesh near, not
+            exactly on, the one the faces were resampled from.
         landmarks: ``(K, 2)`` float64 first-frame landmarks the tracking started from (pixels; the model's ``K``,
             68 for CANDIDE-3), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
