@@ -481,7 +481,8 @@ class NormaliseFaces:
     what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip: data, without
     gradients (frames that require grad are refused; :class:`~training_hooks.layer.NormalisedFaceLayer` makes faces
     differentiable w.r.t. the frames). Frames that continue
-    a :class:`~torchface.tracker.TrackerState` are numbered on from it (``frame`` starts at its ``frame_index``).
+    a :class:`~torchface.tracker.TrackerState` are numbered on from it (``frame`` starts at its ``frame_index``); the
+    state is left as it was (a :class:`~torchface.tracker.FaceTracker`'s ``state`` too), so it can be continued again.
     The face model and the canonical layout are built on first use.
 
     Args:
