@@ -353,6 +353,22 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
     return frame.to(torch.float32).unsqueeze(0)
 
 
+def _layout_hint(frames: Tensor) -> str:
+    """How to make refused ``frames`` a ``(T, 3, H, W)`` clip (:meth:`NormaliseFaces.__call__`'s message; empty where
+    nothing is to say): frames read by OpenCV or NumPy are channels last, gray or RGBA (the message named the shape
+    alone)."""
+    shape = tuple(frames.shape)
+    if frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        return " (channels last (T, H, W, C): frames.permute(0, 3, 1, 2))"
+    if frames.dim() == 4 and shape[1] == 1:
+        return " (gray frames: frames.expand(-1, 3, -1, -1))"
+    if frames.dim() == 4 and shape[1] == 4:
+        return " (RGBA: drop the alpha, frames[:, :3])"
+    if frames.dim() == 3:
+        return " (one frame (3, H, W): frames[None]; gray frames (T, H, W): frames[:, None].expand(-1, 3, -1, -1))"
+    return ""
+
+
 def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated."""
     if isinstance(landmarks, np.ndarray):  # copied: a read-only array (np.load's mmap) made torch warn; and
@@ -526,7 +542,7 @@ class NormaliseFaces:
         if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
             raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}")
         if frames.dim() != 4 or frames.shape[1] != 3:
-            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}")
+            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}{_layout_hint(frames)}")
         if torch.is_grad_enabled() and frames.requires_grad:  # (its faces were detached without a word)
             raise ValueError(
                 "frames require grad, but NormaliseFaces makes data items (stored faces, no gradient): for faces "

@@ -417,6 +417,21 @@ def test_transform_rejects_bad_input(clips):
         normalise.track(torch.cat([frames[1:2], frames[2:3] * 255.0]), state)
 
 
+def test_the_transform_says_how_to_lay_out_refused_frames(clips):
+    """Frames as OpenCV or NumPy hold them (channels last), gray or RGBA: the message said only "frames must be a
+    (T, 3, H, W) tensor, got (6, 128, 128, 3)"; it now says how to make the clip."""
+    frames = read_video_uint8(clips[0].video)  # (T, 3, H, W) uint8
+    normalise = NormaliseFaces(TRACKING)
+    for bad, hint in ((frames.permute(0, 2, 3, 1), r"frames\.permute\(0, 3, 1, 2\)"),
+                      (frames[:, :1], r"frames\.expand\(-1, 3, -1, -1\)"),
+                      (torch.cat([frames, frames[:, :1]], 1), r"frames\[:, :3\]"),
+                      (frames[:, 0], r"frames\[:, None\]")):  # fmt: skip
+        with pytest.raises(ValueError, match=r"\(T, 3, H, W\).*" + hint):
+            normalise(bad, clips[0].landmarks)
+    fixed = normalise(frames[:, :1].expand(-1, 3, -1, -1), clips[0].landmarks)  # the hint's clip is taken
+    assert fixed["face"].shape[:2] == (frames.shape[0], 3)
+
+
 def test_read_only_landmarks_are_taken_without_a_warning():
     """Landmarks in a read-only array (``np.load(..., mmap_mode="r")``, ``np.frombuffer``) made torch print "The
     given NumPy array is not writable" (a UserWarning, once per process: checked in a child process)."""
