@@ -382,7 +382,9 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
         raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
     if not bool(torch.isfinite(landmarks).all()):
         raise ValueError("landmarks must be finite")
-    return landmarks.to(torch.float64)
+    # The sequence's own CPU copy, out of any graph: the caller's float64 tensor itself was kept (a buffer refilled
+    # for the next video changed the sequence's landmarks), and one that required grad failed TrackCache.store.
+    return landmarks.detach().to(device="cpu", dtype=torch.float64, copy=True)
 
 
 def track_sequence(

@@ -432,6 +432,23 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
     assert fixed["face"].shape[:2] == (frames.shape[0], 3)
 
 
+def test_a_sequence_keeps_its_own_copy_of_the_landmarks(clips, tmp_path):
+    """track_sequence kept the caller's float64 landmark tensor itself: refilling that buffer for the next video
+    changed the tracked sequence's landmarks (and what the cache would store), and landmarks that required grad
+    made TrackCache.store fail (numpy() of a tensor that requires grad)."""
+    from training_hooks import TrackCache
+
+    frames = read_video_uint8(clips[0].video)[:2]
+    buffer = torch.tensor(clips[0].landmarks, dtype=torch.float64)
+    normalise = NormaliseFaces(TRACKING)
+    sequence, _ = normalise.track(frames, buffer)
+    buffer += 5.0
+    assert torch.equal(sequence.landmarks, torch.tensor(clips[0].landmarks))
+    graded, _ = normalise.track(frames, torch.tensor(clips[0].landmarks, requires_grad=True))
+    assert not graded.landmarks.requires_grad
+    TrackCache(tmp_path / "cache").store("b" * 64, graded)
+
+
 def test_read_only_landmarks_are_taken_without_a_warning():
     """Landmarks in a read-only array (``np.load(..., mmap_mode="r")``, ``np.frombuffer``) made torch print "The
     given NumPy array is not writable" (a UserWarning, once per process: checked in a child process)."""
