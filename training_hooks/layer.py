@@ -158,6 +158,8 @@ class LayerConfig:
         for name in ("keep_expression", "normalise_light"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         object.__setattr__(self, "margin", check_real(self.margin, "margin"))  # "0.05" was taken (a str)
+        if not 0.0 <= float(self.margin) <= 0.45:  # (was found only when a layer was built from it)
+            raise ValueError(f"margin must be in [0, 0.45] (a fraction of the image size), got {self.margin}")
         if self.mode is LayerMode.UNROLLED and self.start is UnrollStart.PREVIOUS and self.unrolled_iterations == 0:
             # (each frame was resampled at the previous frame's estimate: no tracking at all, a frame's motion off)
             raise ValueError(

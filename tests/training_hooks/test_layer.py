@@ -323,6 +323,9 @@ def test_exceptions(model, small):
         LayerConfig(unrolled_levels=4)
     with pytest.raises(ValueError):
         LayerConfig(size=2)
+    for margin in (0.9, -0.1, float("nan")):  # refused when made, as FaceTrackingConfig's face_margin (was: when the
+        with pytest.raises(ValueError, match="margin must be in"):  # layer was built from the config)
+            LayerConfig(margin=margin)
     layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
     with pytest.raises(TypeError, match="TrackerState"):
         layer(frames[1:2], None)
