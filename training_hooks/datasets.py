@@ -68,6 +68,7 @@ import random
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,7 +82,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from torchface.geometry._checks import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
-from torchface.io.video import open_frames, opencv_path
+from torchface.io.video import CONVERT_HINT, open_frames, opencv_path
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
@@ -140,6 +141,24 @@ def _shared_state(num_videos: int, epoch: int = 0) -> Tensor:
     state = torch.full((_COUNTS + num_videos,), -1, dtype=torch.int64)
     state[_EPOCH], state[_WARNED] = epoch, 0
     return state
+
+
+#: The end of :mod:`torchface.io`'s message for a frame to convert, as a dataset says it (the command line's
+#: ``--convert`` is ``DatasetConfig(convert=True)`` here).
+_DATASET_CONVERT_HINT: str = CONVERT_HINT.replace("pass --convert", "set DatasetConfig(convert=True)")
+
+
+@contextmanager
+def _dataset_hint() -> Iterator[None]:
+    """Re-raise :mod:`torchface.io`'s refusal of a grayscale, RGBA, 16-bit or odd-sized frame with the dataset's
+    setting in place of the command line's ``--convert``."""
+    try:
+        yield
+    except InputError as exc:
+        text = str(exc)
+        if not text.endswith(CONVERT_HINT):
+            raise
+        raise InputError(text[: -len(CONVERT_HINT)] + _DATASET_CONVERT_HINT) from None
 
 
 def _process_group() -> tuple[int, int] | None:
@@ -420,7 +439,8 @@ class VideoDataset(IterableDataset):
             c = self.config
             frames = self._cached_frames(index)
             if frames is None:
-                frames = _count_frames(self.videos[index], c.convert)
+                with _dataset_hint():
+                    frames = _count_frames(self.videos[index], c.convert)
             counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
         return int(counts[index])
 
@@ -541,7 +561,8 @@ class VideoDataset(IterableDataset):
                 check_landmarks(known, W, H, f"{path}: landmarks")
                 self.stats.videos += 1
                 return stored, True
-        reader = open_frames(path, convert=self.config.convert)
+        with _dataset_hint():
+            reader = open_frames(path, convert=self.config.convert)
         try:
             first = next(reader)
             landmarks = self._first_landmarks(index, first, content)
@@ -554,7 +575,8 @@ class VideoDataset(IterableDataset):
                         self.stats.videos += 1
                         return stored, True
             t0 = time.perf_counter()
-            sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
+            with _dataset_hint():  # (a later frame's format is found as it is read)
+                sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
             self.stats.tracking_s += time.perf_counter() - t0
         finally:
             reader.close()

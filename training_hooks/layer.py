@@ -119,7 +119,8 @@ class LayerConfig:
             canonical image keeps the expression (texture displaced where the face moved) with pose and
             light undone: what an expression classifier needs. False undoes the expression too (paper Section 4).
         normalise_light: undo the estimated light (inverse of Eq. 19); False keeps the frame's light.
-        unrolled_iterations: ``K``, Gauss-Newton iterations per unrolled pyramid level (``UNROLLED`` only).
+        unrolled_iterations: ``K``, Gauss-Newton iterations per unrolled pyramid level (``UNROLLED`` only; at
+            least 1 from :attr:`UnrollStart.PREVIOUS`, where ``K = 0`` would not track at all).
         unrolled_levels: how many of the finest pyramid levels are unrolled, coarse to fine (``UNROLLED``).
         start: :class:`UnrollStart` (``UNROLLED`` only).
         tracker: the tracker's settings (the detached estimate, and the objective of the unrolled iterations).
@@ -157,6 +158,15 @@ class LayerConfig:
         for name in ("keep_expression", "normalise_light"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         object.__setattr__(self, "margin", check_real(self.margin, "margin"))  # "0.05" was taken (a str)
+        if not 0.0 <= float(self.margin) <= 0.45:  # (was found only when a layer was built from it)
+            raise ValueError(f"margin must be in [0, 0.45] (a fraction of the image size), got {self.margin}")
+        if self.mode is LayerMode.UNROLLED and self.start is UnrollStart.PREVIOUS and self.unrolled_iterations == 0:
+            # (each frame was resampled at the previous frame's estimate: no tracking at all, a frame's motion off)
+            raise ValueError(
+                "unrolled_iterations=0 from UnrollStart.PREVIOUS does no tracking (each frame would be resampled at "
+                "the previous frame's estimate): use unrolled_iterations >= 1, or UnrollStart.TRACKED (K = 0 is the "
+                "detached mode)"
+            )
         if not 1 <= self.unrolled_levels <= self.tracker.num_levels:
             raise ValueError(
                 f"unrolled_levels must be in [1, tracker.num_levels = {self.tracker.num_levels}], "

@@ -26,6 +26,7 @@ except ImportError:  # pragma: no cover - depends on what is installed
             "training_hooks.lightning needs PyTorch Lightning: pip install \"torchface[lightning]\" (or lightning)"
         ) from None
 
+from torchface.geometry._checks import check_int
 from training_hooks.collate import collate_clips
 from training_hooks.datasets import VideoDataset
 from training_hooks.hooks import TrackingQualityLogger
@@ -138,10 +139,10 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         for name, ds in (("train", train), ("val", val)):
             if ds is not None and not isinstance(ds, VideoDataset):
                 raise TypeError(f"{name} must be a VideoDataset or FrameFolderDataset, got {type(ds).__name__}")
-        if batch_size < 1 or num_workers < 0:
-            raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {batch_size}, {num_workers}")
-        self.train, self.val = train, val
-        self.batch_size, self.num_workers, self.collate_fn = int(batch_size), int(num_workers), collate_fn
+        # (a float was cut, 2.5 -> 2, True taken as 1 and "8" a comparison's TypeError: the settings' rule for counts)
+        self.batch_size = check_int(batch_size, "batch_size", 1)
+        self.num_workers = check_int(num_workers, "num_workers", 0)
+        self.train, self.val, self.collate_fn = train, val, collate_fn
 
     def _loader(self, dataset: VideoDataset) -> DataLoader:
         collate = self.collate_fn

@@ -202,7 +202,12 @@ class TrackedSequence:
         confidence: ``(T,)`` float32 in ``[0, 1]`` (``TrackResult.confidence``: the dissimilarity confidence with
             template management, else the solver's residual confidence).
         status: ``(T,)`` int64 :class:`~torchface.tracker.TrackStatus` (2 = FAILED: parameters held, 3 = LOST).
-        shape_coeffs: ``(S_u,)`` float32 the person's shape units (fixed after the first frame).
+        shape_coeffs: ``(S_u,)`` float32 the person's shape units after the last frame: the first frame's landmark
+            fit's, unless the online look-ahead start (:attr:`FaceTrackingConfig.refine_first`, the default)
+            re-estimated them once the head had turned (by up to 0.21 on a rendered 30-degree turn); the frames before
+            were normalised with the fit's. The per-frame pose is then reported in the head frame of the first result
+            (``TrackResult.rotation``), so that it stays continuous: with these units it places the mesh near, not
+            exactly on, the one the faces were resampled from.
         landmarks: ``(K, 2)`` float64 first-frame landmarks the tracking started from (pixels; the model's ``K``,
             68 for CANDIDE-3), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
@@ -348,6 +353,22 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
     return frame.to(torch.float32).unsqueeze(0)
 
 
+def _layout_hint(frames: Tensor) -> str:
+    """How to make refused ``frames`` a ``(T, 3, H, W)`` clip (:meth:`NormaliseFaces.__call__`'s message; empty where
+    nothing is to say): frames read by OpenCV or NumPy are channels last, gray or RGBA (the message named the shape
+    alone)."""
+    shape = tuple(frames.shape)
+    if frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        return " (channels last (T, H, W, C): frames.permute(0, 3, 1, 2))"
+    if frames.dim() == 4 and shape[1] == 1:
+        return " (gray frames: frames.expand(-1, 3, -1, -1))"
+    if frames.dim() == 4 and shape[1] == 4:
+        return " (RGBA: drop the alpha, frames[:, :3])"
+    if frames.dim() == 3:
+        return " (one frame (3, H, W): frames[None]; gray frames (T, H, W): frames[:, None].expand(-1, 3, -1, -1))"
+    return ""
+
+
 def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated."""
     if isinstance(landmarks, np.ndarray):  # copied: a read-only array (np.load's mmap) made torch warn; and
@@ -361,7 +382,9 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
         raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
     if not bool(torch.isfinite(landmarks).all()):
         raise ValueError("landmarks must be finite")
-    return landmarks.to(torch.float64)
+    # The sequence's own CPU copy, out of any graph: the caller's float64 tensor itself was kept (a buffer refilled
+    # for the next video changed the sequence's landmarks), and one that required grad failed TrackCache.store.
+    return landmarks.detach().to(device="cpu", dtype=torch.float64, copy=True)
 
 
 def track_sequence(
@@ -381,7 +404,8 @@ def track_sequence(
             CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a
             :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
             settings) whose tracking the frames continue (every frame goes through
-            :func:`~torchface.tracker.managed.managed_step`).
+            :func:`~torchface.tracker.managed.managed_step`); the state is left as it was, so the same frames
+            from it give the same sequence again.
         config: :class:`FaceTrackingConfig` (tracker settings, face size and storage, threads).
         model: the face model (float32, CPU; normally CANDIDE-3 from :func:`~torchface.model.load_candide3`).
         normaliser: a :class:`~torchface.normalise.NormalisedFace` of ``model`` with ``config``'s size and margin.
@@ -403,6 +427,7 @@ def track_sequence(
     landmarks = torch.zeros(0, 2, dtype=torch.float64)
     first_frame = 0
     tracker = config.tracker  # the settings tracked with: with config.pyramid's levels (set at the first frame)
+    own_state = not isinstance(start, TrackerState)  # (made here from landmarks: donated to managed_step)
     if isinstance(start, TrackerState):
         if start.params.shape[0] != 1:
             B = start.params.shape[0]
@@ -437,7 +462,10 @@ def track_sequence(
                         f"the TrackerState tracks {state.intrinsics.width}x{state.intrinsics.height} frames, "
                         f"got {size[1]}x{size[0]}"
                     )
-                state, result = managed_step(model, tracker, state, frame, donate=True)
+                # Donated (templates written in place at a mosaic entry change) only where the state is this
+                # function's own: a caller's state, and those that share its template tensors, are left as
+                # they were (a second call from it was 1.5 degrees off the first on a 55-degree turn).
+                state, result = managed_step(model, tracker, state, frame, donate=own_state)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
                 alpha = state.neutral_anim_coeffs(alpha)
@@ -471,7 +499,8 @@ class NormaliseFaces:
     what :class:`~training_hooks.datasets.VideoDataset` yields for the same frames as one clip: data, without
     gradients (frames that require grad are refused; :class:`~training_hooks.layer.NormalisedFaceLayer` makes faces
     differentiable w.r.t. the frames). Frames that continue
-    a :class:`~torchface.tracker.TrackerState` are numbered on from it (``frame`` starts at its ``frame_index``).
+    a :class:`~torchface.tracker.TrackerState` are numbered on from it (``frame`` starts at its ``frame_index``); the
+    state is left as it was (a :class:`~torchface.tracker.FaceTracker`'s ``state`` too), so it can be continued again.
     The face model and the canonical layout are built on first use.
 
     Args:
@@ -515,7 +544,7 @@ class NormaliseFaces:
         if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
             raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}")
         if frames.dim() != 4 or frames.shape[1] != 3:
-            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}")
+            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}{_layout_hint(frames)}")
         if torch.is_grad_enabled() and frames.requires_grad:  # (its faces were detached without a word)
             raise ValueError(
                 "frames require grad, but NormaliseFaces makes data items (stored faces, no gradient): for faces "

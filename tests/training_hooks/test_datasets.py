@@ -261,6 +261,30 @@ def test_a_continued_sequence_numbers_its_frames_on(clips, tmp_path):
     assert cache.load("a" * 64).first_frame == 3
 
 
+def test_continuing_a_state_leaves_it_as_it_was():
+    """NormaliseFaces (track_sequence) continuing a caller's TrackerState leaves it as it was: the same frames from
+    the same state give the same items twice, and those of a copy of it. Its first steps handed the state to
+    managed_step as donated, which writes a new mosaic entry's templates into the state's own tensors: on a head
+    turning to 55 degrees, a second call from the state was 0.027 rad (1.5 degrees) off the first."""
+    import copy
+
+    from torchface.synth.sequence import render_sequence
+
+    from th_data import gentle
+
+    frames, gt = render_sequence(gentle("turn", "james", (55.0, 0.0, 0.0), (0.0, 0.0, 0.0), {}, seed=3, num_frames=12))
+    frames = frames.float()
+    normalise = NormaliseFaces(TRACKING)
+    _, state = normalise.track(frames[:4], gt.landmarks_px[0].numpy())
+    fork = copy.deepcopy(state)
+    first = normalise(frames[4:], state)
+    assert int(first["status"].max()) < 2  # (tracked throughout)
+    again, of_fork = normalise(frames[4:], state), normalise(frames[4:], fork)
+    for name in first:
+        assert torch.equal(again[name], first[name]), name
+        assert torch.equal(of_fork[name], first[name]), name
+
+
 def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
@@ -318,6 +342,28 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
 
 
+def test_a_frame_to_convert_names_the_datasets_setting(clips, config, tmp_path):
+    """Grayscale frames (a first one, a later one, or counted under DDP) are refused with the dataset's way out,
+    DatasetConfig(convert=True): the message told a Python user to "pass --convert", the command line's flag."""
+    frames = read_video_uint8(clips[0].video)  # (T, 3, H, W) uint8
+    gray = frames.float().mean(1).round().to(torch.uint8).numpy()  # (T, H, W)
+    np.save(tmp_path / "gray.npy", gray)
+    folder = tmp_path / "later_gray"
+    folder.mkdir()
+    for t in range(frames.shape[0]):
+        image = frames[t].permute(1, 2, 0).numpy()[..., ::-1]
+        cv2.imwrite(str(folder / f"{t:03d}.png"), image if t < 2 else gray[t])
+    lm = [clips[0].landmarks]
+    cfg = replace(config, cache_dir=None)
+    for run in (lambda: list(VideoDataset([tmp_path / "gray.npy"], lm, cfg)),
+                lambda: VideoDataset([tmp_path / "gray.npy"], lm, cfg).num_items(0),
+                lambda: list(FrameFolderDataset([folder], lm, cfg))):  # fmt: skip
+        with pytest.raises(InputError, match="grayscale") as info:
+            run()
+        assert "DatasetConfig(convert=True)" in str(info.value) and "--convert" not in str(info.value)
+    assert len(list(FrameFolderDataset([folder], lm, replace(cfg, convert=True)))) == frames.shape[0]
+
+
 def test_cache_dir_annotation_takes_the_documented_str(tmp_path):
     # The README's DatasetConfig(cache_dir="cache") worked, but the field was annotated `Path | None`: a type checker
     # (the package ships py.typed) refused the documented call. The value is still kept as a Path.
@@ -369,6 +415,38 @@ def test_transform_rejects_bad_input(clips):
     _, state = normalise.track(frames[:1], clips[0].landmarks)
     with pytest.raises(ValueError, match=r"frame 1: .*divide by 255"):  # also when a clip continues a state
         normalise.track(torch.cat([frames[1:2], frames[2:3] * 255.0]), state)
+
+
+def test_the_transform_says_how_to_lay_out_refused_frames(clips):
+    """Frames as OpenCV or NumPy hold them (channels last), gray or RGBA: the message said only "frames must be a
+    (T, 3, H, W) tensor, got (6, 128, 128, 3)"; it now says how to make the clip."""
+    frames = read_video_uint8(clips[0].video)  # (T, 3, H, W) uint8
+    normalise = NormaliseFaces(TRACKING)
+    for bad, hint in ((frames.permute(0, 2, 3, 1), r"frames\.permute\(0, 3, 1, 2\)"),
+                      (frames[:, :1], r"frames\.expand\(-1, 3, -1, -1\)"),
+                      (torch.cat([frames, frames[:, :1]], 1), r"frames\[:, :3\]"),
+                      (frames[:, 0], r"frames\[:, None\]")):  # fmt: skip
+        with pytest.raises(ValueError, match=r"\(T, 3, H, W\).*" + hint):
+            normalise(bad, clips[0].landmarks)
+    fixed = normalise(frames[:, :1].expand(-1, 3, -1, -1), clips[0].landmarks)  # the hint's clip is taken
+    assert fixed["face"].shape[:2] == (frames.shape[0], 3)
+
+
+def test_a_sequence_keeps_its_own_copy_of_the_landmarks(clips, tmp_path):
+    """track_sequence kept the caller's float64 landmark tensor itself: refilling that buffer for the next video
+    changed the tracked sequence's landmarks (and what the cache would store), and landmarks that required grad
+    made TrackCache.store fail (numpy() of a tensor that requires grad)."""
+    from training_hooks import TrackCache
+
+    frames = read_video_uint8(clips[0].video)[:2]
+    buffer = torch.tensor(clips[0].landmarks, dtype=torch.float64)
+    normalise = NormaliseFaces(TRACKING)
+    sequence, _ = normalise.track(frames, buffer)
+    buffer += 5.0
+    assert torch.equal(sequence.landmarks, torch.tensor(clips[0].landmarks))
+    graded, _ = normalise.track(frames, torch.tensor(clips[0].landmarks, requires_grad=True))
+    assert not graded.landmarks.requires_grad
+    TrackCache(tmp_path / "cache").store("b" * 64, graded)
 
 
 def test_read_only_landmarks_are_taken_without_a_warning():

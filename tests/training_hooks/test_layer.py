@@ -323,6 +323,9 @@ def test_exceptions(model, small):
         LayerConfig(unrolled_levels=4)
     with pytest.raises(ValueError):
         LayerConfig(size=2)
+    for margin in (0.9, -0.1, float("nan")):  # refused when made, as FaceTrackingConfig's face_margin (was: when the
+        with pytest.raises(ValueError, match="margin must be in"):  # layer was built from the config)
+            LayerConfig(margin=margin)
     layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)
     with pytest.raises(TypeError, match="TrackerState"):
         layer(frames[1:2], None)
@@ -352,6 +355,18 @@ def test_exceptions(model, small):
         layer.initialise(frames[:1], landmarks[:1].numpy())
     with pytest.raises(ValueError, match="divide by 255"):
         layer(frames[1:2] * 255.0, state)
+
+
+def test_unrolling_zero_iterations_from_the_previous_estimate_is_refused(model, small):
+    """UNROLLED from the PREVIOUS estimate with K = 0 has no tracking at all: each frame was resampled, without a
+    word, at the previous frame's pose (0.054-0.064 rad and 1-2.7 mm off the detached layer's on a clip turning
+    3 degrees a frame). Refused when made; K = 0 from the TRACKED estimate (the detached mode) and PREVIOUS with
+    K >= 1 are taken, as is any K in the DETACHED mode (where start and K are not used)."""
+    with pytest.raises(ValueError, match="unrolled_iterations=0.*PREVIOUS"):
+        LayerConfig(mode=LayerMode.UNROLLED, start=UnrollStart.PREVIOUS, unrolled_iterations=0)
+    LayerConfig(mode=LayerMode.UNROLLED, start=UnrollStart.TRACKED, unrolled_iterations=0)
+    LayerConfig(mode=LayerMode.UNROLLED, start=UnrollStart.PREVIOUS, unrolled_iterations=1)
+    LayerConfig(mode=LayerMode.DETACHED, start=UnrollStart.PREVIOUS, unrolled_iterations=0)
 
 
 def test_a_half_precision_layer_says_it_needs_float32(small):

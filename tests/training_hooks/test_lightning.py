@@ -94,3 +94,9 @@ def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
     assert TrackedFaceDataModule(clip_data).val_dataloader() == []
     with pytest.raises(TypeError, match="VideoDataset"):
         TrackedFaceDataModule([1, 2, 3])
+    # counts as the settings take them: 2.5 was cut to 2 and True taken as a batch of 1
+    for bad in (2.5, True, "8"):
+        with pytest.raises(TypeError, match="batch_size"):
+            TrackedFaceDataModule(clip_data, batch_size=bad)
+    with pytest.raises(ValueError, match="num_workers"):
+        TrackedFaceDataModule(clip_data, num_workers=-1)
