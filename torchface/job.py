@@ -71,6 +71,7 @@ import math
 import os
 import re
 import socket
+import sys
 import time
 import unicodedata
 import warnings
@@ -401,9 +402,9 @@ def _lock_owner(path: Path) -> tuple[int, str] | None:
 
 
 def _alive(pid: int) -> bool:
-    """Whether process ``pid`` of this host exists (one of another user's too; on Windows, not known: True)."""
-    if os.name == "nt":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
-        return True
+    """Whether process ``pid`` of this host exists (one of another user's too; on Windows :func:`_alive_windows`)."""
+    if sys.platform == "win32":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
+        return _alive_windows(pid)
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -411,6 +412,35 @@ def _alive(pid: int) -> bool:
     except (PermissionError, OSError):  # another user's: it exists
         return True
     return True
+
+
+def _alive_windows(pid: int) -> bool:
+    """Whether process ``pid`` is running, on Windows: opened for a query (``OpenProcess``), its exit code is
+    ``STILL_ACTIVE``; one that cannot be opened is not there (``ERROR_INVALID_PARAMETER``), or is another user's
+    (access denied: running). A process that exited with code 259 (``STILL_ACTIVE``) is taken as running: its lock
+    is left alone, as before, not taken over. (Every lock was left alone there: a run killed in the Task Manager, or
+    a crash, left its lock, and every later run was refused until it was removed by hand.)"""
+    import ctypes
+    from ctypes import wintypes
+
+    kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)  # type: ignore[attr-defined,unused-ignore]
+    kernel32.OpenProcess.argtypes = (wintypes.DWORD, wintypes.BOOL, wintypes.DWORD)
+    kernel32.OpenProcess.restype = wintypes.HANDLE
+    kernel32.GetExitCodeProcess.argtypes = (wintypes.HANDLE, ctypes.POINTER(wintypes.DWORD))
+    kernel32.GetExitCodeProcess.restype = wintypes.BOOL
+    kernel32.CloseHandle.argtypes = (wintypes.HANDLE,)
+    kernel32.CloseHandle.restype = wintypes.BOOL
+    query_limited_information, still_active, invalid_parameter = 0x1000, 259, 87
+    handle = kernel32.OpenProcess(query_limited_information, False, pid)
+    if not handle:
+        return ctypes.get_last_error() != invalid_parameter  # type: ignore[attr-defined,unused-ignore]
+    try:
+        code = wintypes.DWORD()
+        if not kernel32.GetExitCodeProcess(handle, ctypes.byref(code)):
+            return True  # (not known: left alone)
+        return code.value == still_active
+    finally:
+        kernel32.CloseHandle(handle)
 
 
 #: Seconds after which an empty lock file is taken as left by a run that ended as it created it (its run writes

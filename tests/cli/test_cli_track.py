@@ -2711,3 +2711,47 @@ def test_a_lock_that_cannot_be_written_is_an_output_error_and_left_nowhere(tmp_p
     with pytest.raises(OutputError, match=r"a\.lock: cannot write the lock file \(No space left on device\)"):
         job._take_locks(tmp_path, ["a"])
     assert not (tmp_path / "a.lock").exists()
+
+
+def test_a_lock_left_by_an_ended_run_on_windows_is_taken_over(tmp_path, monkeypatch):
+    """On Windows every lock was taken as its run's (``os.kill(pid, 0)`` does not ask there): a run killed in the
+    Task Manager left a lock that refused every later run. Its process is asked about with ``OpenProcess`` and
+    ``GetExitCodeProcess`` (a fake kernel32 here): an exited one, or one that is not there, has ended; a running
+    one, or another user's (access denied), has not."""
+    import ctypes
+    import socket
+
+    import torchface.job as job
+
+    processes = {10: 259, 11: 0, 12: 1}  # pid -> exit code (259: STILL_ACTIVE); 13: another user's; others: none
+    opened, closed, error = [], [], [0]
+
+    def open_process(access, inherit, pid):
+        if pid == 13 or pid not in processes:
+            error[0] = 5 if pid == 13 else 87  # ERROR_ACCESS_DENIED, ERROR_INVALID_PARAMETER
+            return None
+        opened.append(pid)
+        return 1000 + pid
+
+    def exit_code(handle, code):
+        code._obj.value = processes[handle - 1000]
+        return 1
+
+    kernel32 = type("Kernel32", (), {})()
+    kernel32.OpenProcess, kernel32.GetExitCodeProcess = open_process, exit_code
+    kernel32.CloseHandle = lambda handle: closed.append(handle)
+    monkeypatch.setattr(ctypes, "WinDLL", lambda name, use_last_error=False: kernel32, raising=False)
+    monkeypatch.setattr(ctypes, "get_last_error", lambda: error[0], raising=False)
+    monkeypatch.setattr(sys, "platform", "win32")
+    monkeypatch.setattr(os, "name", "nt")  # (what the check looked at)
+    try:
+        alive = {pid: job._alive(pid) for pid in (10, 11, 12, 13, 14)}
+        host = socket.gethostname()
+        seen = os.stat(__file__)
+        ended = job._ended_lock((11, host), seen)
+        running = job._ended_lock((10, host), seen)
+    finally:
+        monkeypatch.undo()
+    assert alive == {10: True, 11: False, 12: False, 13: True, 14: False}
+    assert sorted(opened) == [10, 10, 11, 11, 12] and sorted(closed) == [1000 + pid for pid in sorted(opened)]
+    assert ended == "a run that has ended (pid 11)" and running is None
