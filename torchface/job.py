@@ -1161,6 +1161,9 @@ def track_videos(
             up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
             outputs of one of the videos there (its ``<stem>.lock``, :func:`_take_locks`).
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
+        KeyboardInterrupt: (Ctrl-C) passed on, its writers stopped, with a ``kept`` attribute saying what the run
+            leaves for ``resume`` (:func:`_kept_outputs`: the partial CSVs and their complete rows, the videos
+            complete; or that nothing was written, interrupted before tracking).
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
@@ -1194,8 +1197,61 @@ def track_videos(
     locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
         return _track_locked(inputs, names, config, detector, out_dir, progress)
+    except KeyboardInterrupt as exc:  # (before its outputs were written: nothing of the run is there)
+        _say_kept(exc, "nothing was written (interrupted before tracking, while checking the inputs or looking for "
+                       "a first face): run the same command again")  # fmt: skip
+        raise
     finally:
         _release_locks(locks)
+
+
+def _say_kept(exc: BaseException, kept: str) -> None:
+    """Say on the interruption ``exc`` (a ``KeyboardInterrupt``) what the run leaves for ``--resume``: its ``kept``
+    attribute, which the command line prints; unless a step nearer the interruption has said it."""
+    if getattr(exc, "kept", None) is None:
+        exc.kept = kept  # type: ignore[attr-defined]
+
+
+def _complete_rows(csv: Path) -> int:
+    """The complete rows (lines ended) after the header of a (partial) CSV; 0 where it cannot be read."""
+    try:
+        with open(csv, "rb") as f:
+            lines = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+    except OSError:
+        return 0
+    return max(lines - 1, 0)
+
+
+def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
+    """What an interrupted run leaves of the outputs of videos ``names`` in ``out_dir`` (looked at once its writers
+    are stopped), and what to do: the videos complete (their JSON written), the rows a resumed run goes on from (a
+    partial CSV's complete rows, or a CSV under its final name without its JSON: interrupted while finalising,
+    every row written), the videos of which nothing is kept (a CSV without rows: a resumed run starts it afresh)."""
+    complete, rows, none = [], [], []
+    for name in names:
+        p = output_paths(out_dir, name)
+        partial = partial_path(p["csv"])
+        n = _complete_rows(partial) if partial.is_file() else 0
+        if p["json"].is_file() and p["csv"].is_file() and not partial.exists():
+            complete.append(name)
+        elif n:  # (the file a resumed run goes on from, where both are there)
+            rows.append(f"{partial} ({n} row{'s' if n > 1 else ''})")
+        elif p["csv"].is_file():
+            n = _complete_rows(p["csv"])
+            rows.append(f"{p['csv']} (all {n} row{'s' if n > 1 else ''}, not finalised)")
+        else:
+            none.append(name)
+
+    def listed(items: list[str]) -> str:
+        return ", ".join(items[:10]) + (f" and {len(items) - 10} more" if len(items) > 10 else "")
+
+    said = ([f"rows kept in {listed(rows)}"] if rows else []) + ([f"complete: {listed(complete)}"] if complete else [])
+    if not rows and not none:
+        return f"every video is complete ({listed(complete)})"
+    if not said:
+        return "no row was kept: run the same command again"
+    said += [f"nothing kept of {listed(none)}"] if none else []
+    return "; ".join(said) + ": run the same command with --resume to continue"
 
 
 def _track_locked(
@@ -1222,6 +1278,19 @@ def _track_locked(
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
     streams = _open_inputs(pending, sub, detector, progress) if pending else []
+    try:
+        return _track_opened(streams, inputs, config, detector, out_dir, progress, summaries)
+    except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
+        _say_kept(exc, _kept_outputs(out_dir, names))
+        raise
+
+
+def _track_opened(
+    streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, out_dir: Path,
+    progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary],
+) -> list[VideoSummary]:
+    """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`; ``summaries``: of the
+    videos ``resume`` skipped): track and write them, batch by batch."""
     if not config.resume:  # a fresh run
         _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:

@@ -1059,7 +1059,98 @@ def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
 
     monkeypatch.setattr(torchface.job, "track_videos", boom)
     assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 130
-    assert "--resume" in capsys.readouterr().err
+    assert "nothing was written: run the same command again" in capsys.readouterr().err  # (the job said nothing)
+
+
+def _interrupt_message(capsys) -> str:
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if line.startswith("torchface: interrupted; ")]
+    assert len(said) == 1, err
+    return said[0].removeprefix("torchface: interrupted; ")
+
+
+def test_interrupted_while_looking_for_the_first_face_says_nothing_was_written(clip, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the detector looked for a first face (a video opening on black frames) said "complete rows are
+    kept in <out>/<video>.csv.partial: run the same command with --resume": no such file was there (nothing is
+    written before tracking), and an earlier interrupted run's, where there was one, was not this run's."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(1)
+        if len(calls) == 3:  # (on the third black frame)
+            raise KeyboardInterrupt
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", 4)
+    out = tmp_path / "out"
+    assert main(["track", str(late), "--out", str(out), "--detector", "blank", "--quiet"]) == 130
+    said = _interrupt_message(capsys)
+    assert said.startswith("nothing was written") and said.endswith("run the same command again"), said
+    assert sorted(p.name for p in out.iterdir()) == []
+
+
+def test_interrupted_while_tracking_names_the_rows_kept_and_the_videos_complete(clip, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while tracking the second of three batches: the message names the partial CSV and its rows (as many as
+    it holds), the video complete and the one not started (it said "<out>/<video>.csv.partial" of every video)."""
+    import torchface.job
+
+    video, lm, _ = clip
+    inputs = [_short_npy(video, tmp_path / f"{name}.npy", 5) for name in ("a", "b", "c")]
+    out = tmp_path / "out"
+    steps = []
+    real_step = torchface.job.managed_step
+
+    def interrupted_step(*args, **kwargs):
+        steps.append(1)
+        if len(steps) == 4 + 3:  # a: frames 1-4; b: frames 1-3, interrupted before frame 4
+            raise KeyboardInterrupt
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "managed_step", interrupted_step)
+    args = ["track", *map(str, inputs), "--out", str(out), "--max-batch", "1", "--no-online-refine", "--quiet"]
+    for f in inputs:
+        args += ["--landmarks", str(lm)]
+    assert main(args) == 130
+    said = _interrupt_message(capsys)
+    assert read_track_csv(out / "b.csv.partial")[1].shape[0] == 3 and (out / "a.json").is_file()
+    assert said == (f"rows kept in {out / 'b.csv.partial'} (3 rows); complete: a; nothing kept of c: run the same "
+                    "command with --resume to continue")  # fmt: skip
+    monkeypatch.setattr(torchface.job, "managed_step", real_step)
+    assert main([*args, "--resume"]) == 0
+    assert [read_track_csv(out / f"{n}.csv")[1].shape[0] for n in "abc"] == [5, 5, 5]
+
+
+@pytest.mark.parametrize("where", ["video", "meshes", "json"])
+def test_interrupted_while_finalising_names_the_csv_under_its_final_name(clip, tmp_path, monkeypatch, capsys, where):
+    """Ctrl-C while a video's outputs were finalised (the overlay video being closed, the meshes moved, the JSON
+    written): its CSV had its final name, and the message named a ``.csv.partial`` that was not there."""
+    import torchface.job
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 3)
+    out = tmp_path / "out"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    if where == "video":
+        monkeypatch.setattr(torchface.job._VideoOut, "close", interrupted)
+    elif where == "meshes":
+        monkeypatch.setattr(torchface.job, "plot_track", interrupted)  # (before the meshes are moved)
+    else:
+        monkeypatch.setattr(torchface.job, "write_json", interrupted)
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--meshes", "--quiet"]
+    assert main(args) == 130
+    said = _interrupt_message(capsys)
+    assert not (out / "short.csv.partial").exists() and read_track_csv(out / "short.csv")[1].shape[0] == 3
+    assert said == (f"rows kept in {out / 'short.csv'} (all 3 rows, not finalised): run the same command with "
+                    "--resume to continue")  # fmt: skip
+    monkeypatch.undo()
+    assert main([*args, "--resume"]) == 0 and json.loads((out / "short.json").read_text())["frames"] == 3
 
 
 def test_restart_after_unmatched_reaches_the_tracker_and_needs_a_detector(monkeypatch, capsys, tmp_path):
@@ -1917,7 +2008,7 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
         monkeypatch.setattr(torchface.job, "track_videos", terminated)
         assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 143
         err = capsys.readouterr().err
-        assert "terminated" in err and "--resume" in err and str(tmp_path) in err
+        assert "terminated; nothing was written: run the same command again" in err
         assert signal.getsignal(signal.SIGTERM) is outside  # restored
     finally:
         signal.signal(signal.SIGTERM, before)
