@@ -14,8 +14,9 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   detector about the video's frames: the first frame (and each next one up to the first with a face), those
   re-detections, and the tracker's recovery attempts (and restarts, ``restart_after_unmatched``) of a lost stream,
   which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the rows it
-  replays, but for a re-detection due after the last one, which the tracking goes on from, and for the frames up to
-  the first with a face, which it looks for again);
+  replays, nor about the frames up to the first with a face, which its record says (:func:`_recorded_first_face`;
+  a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
+  which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -42,7 +43,8 @@ rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.p
 without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
-and modification time, the first-frame landmarks and every setting the rows depend on: a resume with other settings, or
+and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does not
+look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other settings, or
 after the input file changed, is refused (settings compared field by field, by value; a field added to or removed from
 the settings since the interrupted run's version is not compared), as is a damaged or missing record or a damaged
 partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
@@ -710,7 +712,7 @@ def _no_face_problem(rows: np.ndarray, columns: tuple[str, ...], start: int) -> 
     """What is wrong with the rows of a partial CSV before its video's first face, frame ``start`` (its first
     ``start`` rows, or all of them where it holds fewer; None: nothing): each must be the row :func:`_no_face_row`
     writes for its frame (its ``frame``, ``success`` 0, no pose), else they were made with another start (the frame
-    where the detector first finds a face is found again on resume)."""
+    where the detector first finds a face is found again on resume where the record does not say it)."""
     idx = {c: i for i, c in enumerate(columns)}
     wrong = np.flatnonzero(rows[:, idx["frame"]] != np.arange(rows.shape[0]))
     if wrong.size:
@@ -831,21 +833,61 @@ def _said_difference(name: str, then: object, now: object) -> str:
     return f"{name} {then} then, {now} now"
 
 
-def _write_record(path: Path, video: Path, anchor: _Anchor | None, settings: dict[str, object]) -> None:
+def _write_record(
+    path: Path, video: Path, anchor: _Anchor | None, settings: dict[str, object], first_face: dict | None = None
+) -> None:
     """Write (atomically) what a resumed run needs besides the partial CSV's rows: the input it belongs to, the
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
     result's (the rows' frame), so that the rest is tracked from the same templates and the rows go on in the same
     frame, the shape the rows up to the re-anchoring were tracked with (their mesh is re-drawn with it), and the
-    re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them)."""
+    re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them); and, for a
+    video started from the detector, ``first_face`` (:func:`_first_face`: where it found the first face, which a
+    resumed run does not look for again, :func:`_recorded_first_face`; absent in records of earlier versions)."""
     tmp = path.with_name(path.name + ".tmp")
     record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings, "settings_as": "json"}
+    if first_face is not None:
+        record["first_face"] = first_face
     try:
         tmp.write_text(json.dumps(record), encoding="utf-8")
     except OSError as exc:  # a full disk: say where, and leave no temporary file behind
         tmp.unlink(missing_ok=True)
         raise OutputError(f"{path}: cannot write the resume record ({exc.strerror or exc})") from None
     os.replace(tmp, path)
+
+
+def _first_face(s: _Stream) -> dict | None:
+    """Where the detector found the first face of ``s``'s video, as its record keeps it (:func:`_write_record`):
+    ``{"frame": s.start, "landmarks": (68, 2) pixels}``; None for a video started from a landmarks file."""
+    if not s.landmarks_source.startswith("detector:"):
+        return None
+    return {"frame": s.start, "landmarks": np.asarray(s.landmarks, dtype=np.float64).tolist()}
+
+
+def _recorded_first_face(config: JobConfig, reader: FrameReader, name: str) -> tuple[int, np.ndarray] | None:
+    """``(frame, (68, 2) landmarks)``: where the interrupted run whose record (:func:`_write_record`) is beside video
+    ``name``'s partial CSV found the first face, for a resumed run to start there without asking the detector about
+    the frames before it again (a minute of title frames at 30 frames/s: 1800 calls); None where the record does not
+    say (none, one of an earlier version or unreadable) or would not be resumed (made from another input, with
+    other settings: :func:`_read_record` refuses it, or the search finds the face elsewhere, as before)."""
+    path = _record_path(output_paths(Path(config.out_dir), name)["csv"])
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+        made_from, made_with, first = record["input"], record["settings"], record["first_face"]
+        frame, points = first["frame"], np.asarray(first["landmarks"], dtype=np.float64)
+        if not isinstance(made_from, str) or not isinstance(made_with, dict) or record.get("settings_as") != "json":
+            return None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0 or points.shape != (68, 2):
+        return None
+    if not np.isfinite(points).all() or Path(made_from).resolve() != Path(reader.info.path).resolve():
+        return None
+    found = _Stream(name, reader, points, f"detector:{config.detector}", reader.info.num_frames, start=frame)
+    now = _settings(config, found)  # (the landmarks and the frame among them)
+    if any(k not in made_with or _setting_differences(made_with[k], now[k]) for k in now) or set(made_with) - set(now):
+        return None
+    return frame, points
 
 
 def _numbers(value: object, shape: tuple[int, ...]) -> bool:
@@ -1081,7 +1123,8 @@ def _open_inputs(
     about each next frame until it finds one (``progress`` reports the search, :attr:`Progress.searching`): the
     video is tracked from that frame (``_Stream.start``), as the video cut to start there would be, and its rows
     before it have no estimate (:func:`_no_face_row`; it was refused). A video in none of whose frames it finds a
-    face is an :class:`InputError` (nothing of the run is written).
+    face is an :class:`InputError` (nothing of the run is written). A resumed video starts where the interrupted
+    run's record says it found the face (:func:`_recorded_first_face`), the detector not asked again.
     """
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
@@ -1089,8 +1132,13 @@ def _open_inputs(
         with open_frames(path, convert=config.convert) as reader:
             frame = next(reader)
             lm = config.landmarks[k] if config.landmarks else None
-            start, t0 = 0, time.perf_counter()
-            found = _first_landmarks(reader, frame, lm, detector, config.detector)
+            start, t0, calls = 0, time.perf_counter(), int(lm is None)
+            recorded = _recorded_first_face(config, reader, name) if config.resume and lm is None else None
+            if recorded is not None:  # (the interrupted run's search: not made again)
+                start, points = recorded
+                found, calls = (points, f"detector:{config.detector}"), 0
+            else:
+                found = _first_landmarks(reader, frame, lm, detector, config.detector)
             while found is None:  # (only with a detector: a landmarks file's are the first frame's)
                 if progress is not None:
                     rate = (start + 1) / max(time.perf_counter() - t0, 1e-9)
@@ -1102,10 +1150,11 @@ def _open_inputs(
                                      "frames: nothing to track (give the 68 landmarks of its first frame with "
                                      "--landmarks FILE if it shows one)") from None  # fmt: skip
                 start += 1
+                calls += 1
                 found = _first_landmarks(reader, frame, lm, detector, config.detector)
             points, source = found
-        streams.append(_Stream(name, reader, points, source, reader.info.num_frames,
-                               detector_calls=(start + 1) * int(lm is None), start=start))  # fmt: skip
+        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls,
+                               start=start))  # fmt: skip
     return streams
 
 
@@ -1473,7 +1522,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
             "first_shape_coeffs": s.first_shape,  # the rows up to ``frame`` place the mesh with it
             "params": state.params[k].tolist(),  # the frame's refined parameters, which its row does not hold
         }  # fmt: skip
-        _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings)
+        _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings, _first_face(s))
 
 
 def _track_group(
@@ -1523,7 +1572,7 @@ def _track_group(
                     # interrupted between the re-anchoring step and its row: the rows from the next one on are
                     # tracked re-anchored, the last replayed one was not (its mesh is placed with its own pose)
                     s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
-            _write_record(record, s.reader.info.path, s.anchor, s.settings)
+            _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
             _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")

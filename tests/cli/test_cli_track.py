@@ -1305,7 +1305,8 @@ def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_pat
 def test_a_resume_whose_first_face_moved_later_names_that_frame(clip, tmp_path, monkeypatch):
     """A partial CSV tracked from frame 1 (the detector found a face there then) and resumed where the detector
     finds the first face at frame 4 (another detector, or one not deterministic) is refused as damaged, naming
-    the frame where the face is found now; it named the count of rows it had checked (3), no frame of the video."""
+    the frame where the face is found now; it named the count of rows it had checked (3), no frame of the video.
+    (A record of an earlier version, which does not say where the face was found: the search is made again.)"""
     import torchface.detect
 
     video, lm, gt = clip
@@ -1331,6 +1332,10 @@ def test_a_resume_whose_first_face_moved_later_names_that_frame(clip, tmp_path, 
         return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
 
     monkeypatch.setitem(torchface.detect.DETECTORS, "moody", lambda: detector)
+    record_path = tmp_path / "out" / "late.record.partial"
+    record = json.loads(record_path.read_text())
+    del record["first_face"]
+    record_path.write_text(json.dumps(record))
     with pytest.raises(InputError, match=r"frame 1 has a pose, but the detector finds the first face at frame 4\)"):
         track_videos([late], replace(config, resume=True))
 
@@ -2846,3 +2851,51 @@ def test_a_lock_left_by_an_ended_run_on_windows_is_taken_over(tmp_path, monkeypa
     assert alive == {10: True, 11: False, 12: False, 13: True, 14: False}
     assert sorted(opened) == [10, 10, 11, 11, 12] and sorted(closed) == [1000 + pid for pid in sorted(opened)]
     assert ended == "a run that has ended (pid 11)" and running is None
+
+
+def test_a_resumed_video_whose_face_appears_later_is_not_searched_again(clip, tmp_path, monkeypatch):
+    """A resumed run asked the detector about every frame before the first face again (a minute of title frames:
+    1800 calls), although the interrupted run had found it: the record says where, and the resumed run starts there
+    without asking about those frames, its outputs those of the uninterrupted run. A record of an earlier version
+    (without it) still resumes, searching again."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 2
+    asked = []
+
+    def detector(image_rgb, near=None):
+        asked.append(int(image_rgb.max()))
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
+    track_videos([late], config)
+    _, ref = read_track_csv(tmp_path / "ref" / "late.csv")
+    ref_side = json.loads((tmp_path / "ref" / "late.json").read_text())
+
+    def interrupt(p):
+        if p.done == n + 2 and not p.searching:  # (rows 0..n+1: the tracking resumed from its third frame)
+            raise KeyboardInterrupt
+
+    for earlier_version in (False, True):
+        out = tmp_path / f"out{int(earlier_version)}"
+        with pytest.raises(KeyboardInterrupt):
+            track_videos([late], replace(config, out_dir=out), progress=interrupt)
+        record_path = out / "late.record.partial"
+        record = json.loads(record_path.read_text())
+        assert record["first_face"]["frame"] == n
+        if earlier_version:
+            del record["first_face"]
+            record_path.write_text(json.dumps(record))
+        asked.clear()
+        track_videos([late], replace(config, out_dir=out, resume=True))
+        assert (0 in asked) == earlier_version, asked  # (the black frames: searched again only without the record)
+        if not earlier_version:
+            assert asked[:1] != [0]
+        _, rows = read_track_csv(out / "late.csv")
+        np.testing.assert_allclose(rows, ref, rtol=1e-5, atol=1e-4, equal_nan=True)
+        side = json.loads((out / "late.json").read_text())
+        assert side["start"] == ref_side["start"] and side["initial_landmarks_px"] == ref_side["initial_landmarks_px"]
+        assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
