@@ -77,6 +77,7 @@ import sys
 import time
 import unicodedata
 import warnings
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -630,6 +631,8 @@ class _Stream:
     # the first frame tracked: the first where the detector found a face (0: the first frame). The tracking loop
     # counts frames from it (its stream's t = frame - start); the rows before it have no estimate (_no_face_row)
     start: int = 0
+    # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
+    stamps: deque[float] = field(default_factory=deque)
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -642,6 +645,14 @@ class _Stream:
         if self.csv is None or self.overlay is None or self.normalised is None:
             raise ValueError(f"{self.name}: its outputs are not open")
         return self.csv, self.overlay, self.normalised
+
+
+def _next_frame(s: _Stream) -> Tensor:
+    """The next frame of ``s``'s input (``StopIteration`` at its end), its time kept in ``s.stamps`` until its row is
+    written."""
+    frame = next(s.reader)
+    s.stamps.append(0.0 if s.reader.timestamp is None else s.reader.timestamp)  # (None: never, once a frame is read)
+    return frame
 
 
 def _row_values(rows: np.ndarray, columns: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -694,14 +705,15 @@ def _replay_problem(rows: np.ndarray, columns: tuple[str, ...], first: int = 0) 
     return None
 
 
-def _no_face_row(columns: tuple[str, ...], frame: int, fps: float, managed: bool) -> np.ndarray:
-    """``(C,)`` the CSV row of a frame before the detector first found a face (``_Stream.start``): no estimate
+def _no_face_row(columns: tuple[str, ...], frame: int, timestamp: float, managed: bool) -> np.ndarray:
+    """``(C,)`` the CSV row of frame ``frame`` (at ``timestamp`` seconds, :attr:`FrameReader.timestamp
+    <torchface.io.video.FrameReader.timestamp>`) before the detector first found a face (``_Stream.start``): no estimate
     (``nan``), ``success`` 0 and ``confidence`` 0 as an unusable row, status LOST with template management (``managed``;
     as a stream whose start failed reads until a face is found) else FAILED, no iteration, point or mosaic entry
     (-1)."""
     row = np.full(len(columns), math.nan)
     status = TrackStatus.LOST if managed else TrackStatus.FAILED
-    values = {"frame": frame, "timestamp": frame / fps, "success": 0, "confidence": 0.0, "status": int(status),
+    values = {"frame": frame, "timestamp": timestamp, "success": 0, "confidence": 0.0, "status": int(status),
               "iterations": 0, "num_points": 0, "mosaic_entry": -1}  # fmt: skip
     for name, value in values.items():
         row[columns.index(name)] = value
@@ -735,15 +747,16 @@ def _write_no_face(s: _Stream, columns: tuple[str, ...], config: JobConfig, conf
     G = config.normalised_size
     nowhere = np.full((4, 2), math.nan)  # (no mesh vertex, no axis drawn)
     for t in range(s.start):
+        stamp = s.stamps.popleft()
         if t >= replayed:
-            csv.write(_no_face_row(columns, t, s.reader.info.fps, managed)[None])
+            csv.write(_no_face_row(columns, t, stamp, managed)[None])
         bgr = cv2.cvtColor(_to_uint8_rgb(s.frame()), cv2.COLOR_RGB2BGR)
         overlay.write(draw_overlay(bgr, nowhere, np.zeros((0, 2), np.int64), nowhere, 0.0, False, f"#{t}",
                                    conf_label, "NO FACE"))  # fmt: skip
         normalised.write(np.zeros((G, G, 3), np.uint8))
         s.frames += 1
         try:
-            s.last_frame = next(s.reader)
+            s.last_frame = _next_frame(s)
         except StopIteration:  # (read when the run started: the input has changed since)
             raise InputError(f"{s.reader.info.path}: it ends before frame {s.start}, where the run found its first "
                              "face when it started: was it replaced?") from None  # fmt: skip
@@ -1171,7 +1184,8 @@ def _reopen(streams: Sequence[_Stream], convert: bool) -> None:
             if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
                 raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} now, "
                                  f"{info.width}x{info.height} when the run started: was it replaced?")  # fmt: skip
-            s.last_frame = next(s.reader)
+            s.stamps.clear()
+            s.last_frame = _next_frame(s)
     except BaseException:
         for s in streams:
             s.reader.close()
@@ -1183,6 +1197,7 @@ def _release(streams: Sequence[_Stream]) -> None:
     for s in streams:
         s.reader.close()
         s.last_frame, s.ahead = None, []
+        s.stamps.clear()
 
 
 def track_videos(
@@ -1655,7 +1670,7 @@ def _track_group(
                         elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
                             s.done = True
                         else:
-                            s.last_frame = next(s.reader)
+                            s.last_frame = _next_frame(s)
                     except StopIteration:
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
@@ -1880,7 +1895,7 @@ def _lookahead_fit(
     for s in streams:
         while len(s.ahead) < la.max_frames - 1 and s.error is None:
             try:
-                s.ahead.append(next(s.reader))
+                s.ahead.append(_next_frame(s))
             except StopIteration:
                 break
             except InputError as exc:  # this video stops after the frames read; the others go on
@@ -1925,12 +1940,13 @@ def _write_step(
     for k, s in enumerate(streams):
         if not live[k]:
             continue
+        stamp = s.stamps.popleft()  # (its frame's time, replayed or not)
         if replaying[k] and s.replay is not None:  # (replaying: its replay holds row t)
             written[k] = s.replay[t]
         else:
             row = rows[k].copy()
             row[0] = t + s.start
-            row[1] = (t + s.start) / s.reader.info.fps
+            row[1] = stamp
             s.outputs()[0].write(row[None])
             s.tracked += 1
             written[k] = read_back(columns, row[None])[0]

@@ -2899,3 +2899,55 @@ def test_a_resumed_video_whose_face_appears_later_is_not_searched_again(clip, tm
         side = json.loads((out / "late.json").read_text())
         assert side["start"] == ref_side["start"] and side["initial_landmarks_px"] == ref_side["initial_landmarks_px"]
         assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
+
+
+def test_a_variable_frame_rate_videos_rows_have_their_frames_times(clip, tmp_path, monkeypatch):
+    """The ``timestamp`` column was ``frame / fps`` whatever the container said: a variable-frame-rate video's rows
+    (a phone's) were put on a grid its frames are not on. They have the container's times (a reader with a fake
+    clock here), the rows before the first face too, and a resumed run's rows the same."""
+    import torchface.detect
+    import torchface.job
+
+    video, lm, gt = clip
+    n = 2
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    ms = [0.0, 50.0, 70.0, 140.0, 150.0, 230.0, 260.0, 300.0, 390.0, 400.0, 470.0, 520.0, 530.0, 600.0]
+    real_open = torchface.job.open_frames
+
+    def variable_rate(path, convert=False):
+        reader = real_open(path, convert=convert)
+        times = iter(ms)
+        reader.clock = lambda: next(times)
+        return reader
+
+    def detector(image_rgb, near=None):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setattr(torchface.job, "open_frames", variable_rate)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
+    track_videos([late], config)
+    cols, rows = read_track_csv(tmp_path / "a" / "late.csv")
+    np.testing.assert_allclose(rows[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+    out = tmp_path / "b"
+
+    def interrupt(p):
+        if p.done == n + 3 and not p.searching:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([late], replace(config, out_dir=out), progress=interrupt)
+    track_videos([late], replace(config, out_dir=out, resume=True))
+    _, resumed = read_track_csv(out / "late.csv")
+    np.testing.assert_allclose(resumed[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+    # The frames read ahead (--lookahead) keep theirs until their rows are written (a spy for the fit: its time).
+    from torchface.tracker import fit_landmarks
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[]]
+
+    monkeypatch.setattr(torchface.job, "lookahead_fit", spy)
+    track_videos([late], replace(config, out_dir=tmp_path / "c", lookahead=LookaheadConfig(max_frames=6)))
+    _, ahead = read_track_csv(tmp_path / "c" / "late.csv")
+    np.testing.assert_allclose(ahead[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
