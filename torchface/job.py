@@ -1260,13 +1260,13 @@ def track_videos(
                 raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
     locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
-        return _track_locked(inputs, names, config, detector, out_dir, progress)
-    except KeyboardInterrupt as exc:  # (before its outputs were written: nothing of the run is there)
-        _say_kept(exc, "nothing was written (interrupted before tracking, while checking the inputs or looking for "
-                       "a first face): run the same command again")  # fmt: skip
+        try:
+            return _track_locked(inputs, names, config, detector, out_dir, progress)
+        finally:
+            _release_locks(locks)
+    except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
+        _say_kept(exc, _kept_outputs(out_dir, names))
         raise
-    finally:
-        _release_locks(locks)
 
 
 def _say_kept(exc: BaseException, kept: str) -> None:
@@ -1295,12 +1295,13 @@ def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
     for name in names:
         p = output_paths(out_dir, name)
         partial = partial_path(p["csv"])
-        n = _complete_rows(partial) if partial.is_file() else 0
+        recorded = _record_path(p["csv"]).is_file()  # (rows without it are not resumed: _read_record)
+        n = _complete_rows(partial) if partial.is_file() and recorded else 0
         if p["json"].is_file() and p["csv"].is_file() and not partial.exists():
             complete.append(name)
         elif n:  # (the file a resumed run goes on from, where both are there)
             rows.append(f"{partial} ({n} row{'s' if n > 1 else ''})")
-        elif p["csv"].is_file():
+        elif p["csv"].is_file() and recorded:
             n = _complete_rows(p["csv"])
             rows.append(f"{p['csv']} (all {n} row{'s' if n > 1 else ''}, not finalised)")
         else:
@@ -1341,12 +1342,13 @@ def _track_locked(
         if config.landmarks:
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
-    streams = _open_inputs(pending, sub, detector, progress) if pending else []
     try:
-        return _track_opened(streams, inputs, config, detector, out_dir, progress, summaries)
-    except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
-        _say_kept(exc, _kept_outputs(out_dir, names))
+        streams = _open_inputs(pending, sub, detector, progress) if pending else []
+    except KeyboardInterrupt as exc:  # (nothing of this run is there; an earlier run's outputs are as they were)
+        _say_kept(exc, "nothing was written (interrupted before tracking, while checking the inputs or looking for "
+                       "a first face): run the same command again")  # fmt: skip
         raise
+    return _track_opened(streams, inputs, config, detector, out_dir, progress, summaries)
 
 
 def _track_opened(

@@ -1684,11 +1684,18 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     import torchface.job as job
     from torchface.tracker.lookahead import LookaheadConfig
 
+    class Reader:  # (its frames, and no time: FrameReader.timestamp)
+        def __init__(self, frames):
+            self.frames, self.timestamp = iter(frames), None
+
+        def __next__(self):
+            return next(self.frames)
+
     g = torch.Generator().manual_seed(0)
     videos = [torch.rand(n, 3, 8, 10, generator=g) for n in (5, 3)]
     streams = []
     for v in videos:
-        s = job._Stream("v", iter(v[1:]), np.zeros((68, 2)), "", len(v))
+        s = job._Stream("v", Reader(v[1:]), np.zeros((68, 2)), "", len(v))
         s.last_frame = v[0]
         streams.append(s)
     seen = {}
