@@ -43,10 +43,11 @@ rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.p
 without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
-and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does not
-look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other settings, or
-after the input file changed, is refused (settings compared field by field, by value; a field added to or removed from
-the settings since the interrupted run's version is not compared), as is a damaged or missing record or a damaged
+and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does
+not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
+settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
+or removed from the settings since the interrupted run's version is not compared), as is a damaged or missing record
+or a damaged
 partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
 CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
@@ -1147,9 +1148,10 @@ def _open_inputs(
             lm = config.landmarks[k] if config.landmarks else None
             start, t0, calls = 0, time.perf_counter(), int(lm is None)
             recorded = _recorded_first_face(config, reader, name) if config.resume and lm is None else None
+            found: tuple[np.ndarray, str] | None = None
             if recorded is not None:  # (the interrupted run's search: not made again)
-                start, points = recorded
-                found, calls = (points, f"detector:{config.detector}"), 0
+                start, calls = recorded[0], 0
+                found = recorded[1], f"detector:{config.detector}"
             else:
                 found = _first_landmarks(reader, frame, lm, detector, config.detector)
             while found is None:  # (only with a detector: a landmarks file's are the first frame's)
