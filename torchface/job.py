@@ -47,9 +47,8 @@ and modification time, the first-frame landmarks (and the frame where the detect
 not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
 settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
 or removed from the settings since the interrupted run's version is not compared), as is a damaged or missing record
-or a damaged
-partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
-CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
+or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows
+already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
 partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed
