@@ -331,20 +331,22 @@ def _run_track(
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
+    summaries = None
     try:
-        with _warnings_as_lines(display):
-            summaries = track_videos(videos, config, progress=display)
-    except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
-        if display is not None:
-            display.flush()
-        _print_summary(exc.summaries, sys.stdout, exc.stopped)
-        raise
-    try:
+        try:
+            with _warnings_as_lines(display):
+                summaries = track_videos(videos, config, progress=display)
+        except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
+            if display is not None:
+                display.flush()
+            _print_summary(exc.summaries, sys.stdout, exc.stopped)
+            raise
         if display is not None:
             display.flush()  # the last reports, when a redraw was due later
         _print_summary(summaries, sys.stdout)
-    except KeyboardInterrupt as exc:
-        exc.kept = "every video is complete"  # type: ignore[attr-defined]
+    except KeyboardInterrupt as exc:  # (the job says what it leaves; interrupted once it has returned: complete)
+        if summaries is not None and getattr(exc, "kept", None) is None:
+            exc.kept = "every video is complete"  # type: ignore[attr-defined]
         raise
     return 0
 

@@ -2958,3 +2958,20 @@ def test_a_variable_frame_rate_videos_rows_have_their_frames_times(clip, tmp_pat
     track_videos([late], replace(config, out_dir=tmp_path / "c", lookahead=LookaheadConfig(max_frames=6)))
     _, ahead = read_track_csv(tmp_path / "c" / "late.csv")
     np.testing.assert_allclose(ahead[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+
+
+def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the summary was printed (the outputs complete) said the rows were kept in a ``.csv.partial`` for
+    --resume: there was none."""
+    import torchface.cli
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.cli, "_print_summary", interrupted)
+    out = tmp_path / "out"
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 130
+    assert _interrupt_message(capsys) == "every video is complete" and (out / "short.json").is_file()
