@@ -13,7 +13,8 @@ Errors about the input or the output folder print one line ``torchface: error: .
 (grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given; a frame that cannot
 be read partway stops that video only: the summary of the others, completed, is printed before the error);
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
-SIGTERM) and keeps its rows for ``--resume``. A progress display whose reader has gone (``2>&1 | head -1``) stops
+SIGTERM) and keeps its rows for ``--resume``, saying what it leaves (the partial CSVs and their rows, the videos
+complete, or that nothing was written). A progress display whose reader has gone (``2>&1 | head -1``) stops
 and the run goes on; a summary whose reader has gone exits with status 141 (128 + SIGPIPE, as ``cat`` does), the
 outputs complete. A closed stdout or stderr (``>&-``) is taken as ``/dev/null``. The job's warnings print one
 line ``torchface: warning: ...`` each, above the progress bars.
@@ -330,17 +331,23 @@ def _run_track(
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
+    summaries = None
     try:
-        with _warnings_as_lines(display):
-            summaries = track_videos(videos, config, progress=display)
-    except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
+        try:
+            with _warnings_as_lines(display):
+                summaries = track_videos(videos, config, progress=display)
+        except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
+            if display is not None:
+                display.flush()
+            _print_summary(exc.summaries, sys.stdout, exc.stopped)
+            raise
         if display is not None:
-            display.flush()
-        _print_summary(exc.summaries, sys.stdout, exc.stopped)
+            display.flush()  # the last reports, when a redraw was due later
+        _print_summary(summaries, sys.stdout)
+    except KeyboardInterrupt as exc:  # (the job says what it leaves; interrupted once it has returned: complete)
+        if summaries is not None and getattr(exc, "kept", None) is None:
+            exc.kept = "every video is complete"  # type: ignore[attr-defined]
         raise
-    if display is not None:
-        display.flush()  # the last reports, when a redraw was due later
-    _print_summary(summaries, sys.stdout)
     return 0
 
 
@@ -449,9 +456,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt as exc:
         how = "terminated" if isinstance(exc, _Terminated) else "interrupted"
-        if args.command == "track":
-            then = (f"complete rows are kept in {args.out}/<video>.csv.partial: run the same command with --resume "
-                    "to continue")  # fmt: skip
+        if args.command == "track":  # (the job says what it leaves; interrupted outside it, before it wrote)
+            then = getattr(exc, "kept", None) or "nothing was written: run the same command again"
         else:
             then = "run it again to start over"
         _say(f"\ntorchface: {how}; {then}")

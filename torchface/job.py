@@ -14,8 +14,9 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   detector about the video's frames: the first frame (and each next one up to the first with a face), those
   re-detections, and the tracker's recovery attempts (and restarts, ``restart_after_unmatched``) of a lost stream,
   which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the rows it
-  replays, but for a re-detection due after the last one, which the tracking goes on from, and for the frames up to
-  the first with a face, which it looks for again);
+  replays, nor about the frames up to the first with a face, which its record says (:func:`_recorded_first_face`;
+  a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
+  which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
@@ -42,11 +43,12 @@ rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.p
 without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
-and modification time, the first-frame landmarks and every setting the rows depend on: a resume with other settings, or
-after the input file changed, is refused (settings compared field by field, by value; a field added to or removed from
-the settings since the interrupted run's version is not compared), as is a damaged or missing record or a damaged
-partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows already written are read back from the
-CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
+and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does
+not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
+settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
+or removed from the settings since the interrupted run's version is not compared), as is a damaged or missing record
+or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows
+already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
 partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed
@@ -71,9 +73,11 @@ import math
 import os
 import re
 import socket
+import sys
 import time
 import unicodedata
 import warnings
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -401,9 +405,9 @@ def _lock_owner(path: Path) -> tuple[int, str] | None:
 
 
 def _alive(pid: int) -> bool:
-    """Whether process ``pid`` of this host exists (one of another user's too; on Windows, not known: True)."""
-    if os.name == "nt":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
-        return True
+    """Whether process ``pid`` of this host exists (one of another user's too; on Windows :func:`_alive_windows`)."""
+    if sys.platform == "win32":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
+        return _alive_windows(pid)
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -411,6 +415,35 @@ def _alive(pid: int) -> bool:
     except (PermissionError, OSError):  # another user's: it exists
         return True
     return True
+
+
+def _alive_windows(pid: int) -> bool:
+    """Whether process ``pid`` is running, on Windows: opened for a query (``OpenProcess``), its exit code is
+    ``STILL_ACTIVE``; one that cannot be opened is not there (``ERROR_INVALID_PARAMETER``), or is another user's
+    (access denied: running). A process that exited with code 259 (``STILL_ACTIVE``) is taken as running: its lock
+    is left alone, as before, not taken over. (Every lock was left alone there: a run killed in the Task Manager, or
+    a crash, left its lock, and every later run was refused until it was removed by hand.)"""
+    import ctypes
+    from ctypes import wintypes
+
+    kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)  # type: ignore[attr-defined,unused-ignore]
+    kernel32.OpenProcess.argtypes = (wintypes.DWORD, wintypes.BOOL, wintypes.DWORD)
+    kernel32.OpenProcess.restype = wintypes.HANDLE
+    kernel32.GetExitCodeProcess.argtypes = (wintypes.HANDLE, ctypes.POINTER(wintypes.DWORD))
+    kernel32.GetExitCodeProcess.restype = wintypes.BOOL
+    kernel32.CloseHandle.argtypes = (wintypes.HANDLE,)
+    kernel32.CloseHandle.restype = wintypes.BOOL
+    query_limited_information, still_active, invalid_parameter = 0x1000, 259, 87
+    handle = kernel32.OpenProcess(query_limited_information, False, pid)
+    if not handle:
+        return ctypes.get_last_error() != invalid_parameter  # type: ignore[attr-defined,unused-ignore]
+    try:
+        code = wintypes.DWORD()
+        if not kernel32.GetExitCodeProcess(handle, ctypes.byref(code)):
+            return True  # (not known: left alone)
+        return code.value == still_active
+    finally:
+        kernel32.CloseHandle(handle)
 
 
 #: Seconds after which an empty lock file is taken as left by a run that ended as it created it (its run writes
@@ -598,6 +631,8 @@ class _Stream:
     # the first frame tracked: the first where the detector found a face (0: the first frame). The tracking loop
     # counts frames from it (its stream's t = frame - start); the rows before it have no estimate (_no_face_row)
     start: int = 0
+    # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
+    stamps: deque[float] = field(default_factory=deque)
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -610,6 +645,14 @@ class _Stream:
         if self.csv is None or self.overlay is None or self.normalised is None:
             raise ValueError(f"{self.name}: its outputs are not open")
         return self.csv, self.overlay, self.normalised
+
+
+def _next_frame(s: _Stream) -> Tensor:
+    """The next frame of ``s``'s input (``StopIteration`` at its end), its time kept in ``s.stamps`` until its row is
+    written."""
+    frame = next(s.reader)
+    s.stamps.append(0.0 if s.reader.timestamp is None else s.reader.timestamp)  # (None: never, once a frame is read)
+    return frame
 
 
 def _row_values(rows: np.ndarray, columns: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -662,14 +705,15 @@ def _replay_problem(rows: np.ndarray, columns: tuple[str, ...], first: int = 0) 
     return None
 
 
-def _no_face_row(columns: tuple[str, ...], frame: int, fps: float, managed: bool) -> np.ndarray:
-    """``(C,)`` the CSV row of a frame before the detector first found a face (``_Stream.start``): no estimate
+def _no_face_row(columns: tuple[str, ...], frame: int, timestamp: float, managed: bool) -> np.ndarray:
+    """``(C,)`` the CSV row of frame ``frame`` (at ``timestamp`` seconds, :attr:`FrameReader.timestamp
+    <torchface.io.video.FrameReader.timestamp>`) before the detector first found a face (``_Stream.start``): no estimate
     (``nan``), ``success`` 0 and ``confidence`` 0 as an unusable row, status LOST with template management (``managed``;
     as a stream whose start failed reads until a face is found) else FAILED, no iteration, point or mosaic entry
     (-1)."""
     row = np.full(len(columns), math.nan)
     status = TrackStatus.LOST if managed else TrackStatus.FAILED
-    values = {"frame": frame, "timestamp": frame / fps, "success": 0, "confidence": 0.0, "status": int(status),
+    values = {"frame": frame, "timestamp": timestamp, "success": 0, "confidence": 0.0, "status": int(status),
               "iterations": 0, "num_points": 0, "mosaic_entry": -1}  # fmt: skip
     for name, value in values.items():
         row[columns.index(name)] = value
@@ -680,7 +724,7 @@ def _no_face_problem(rows: np.ndarray, columns: tuple[str, ...], start: int) -> 
     """What is wrong with the rows of a partial CSV before its video's first face, frame ``start`` (its first
     ``start`` rows, or all of them where it holds fewer; None: nothing): each must be the row :func:`_no_face_row`
     writes for its frame (its ``frame``, ``success`` 0, no pose), else they were made with another start (the frame
-    where the detector first finds a face is found again on resume)."""
+    where the detector first finds a face is found again on resume where the record does not say it)."""
     idx = {c: i for i, c in enumerate(columns)}
     wrong = np.flatnonzero(rows[:, idx["frame"]] != np.arange(rows.shape[0]))
     if wrong.size:
@@ -703,15 +747,16 @@ def _write_no_face(s: _Stream, columns: tuple[str, ...], config: JobConfig, conf
     G = config.normalised_size
     nowhere = np.full((4, 2), math.nan)  # (no mesh vertex, no axis drawn)
     for t in range(s.start):
+        stamp = s.stamps.popleft()
         if t >= replayed:
-            csv.write(_no_face_row(columns, t, s.reader.info.fps, managed)[None])
+            csv.write(_no_face_row(columns, t, stamp, managed)[None])
         bgr = cv2.cvtColor(_to_uint8_rgb(s.frame()), cv2.COLOR_RGB2BGR)
         overlay.write(draw_overlay(bgr, nowhere, np.zeros((0, 2), np.int64), nowhere, 0.0, False, f"#{t}",
                                    conf_label, "NO FACE"))  # fmt: skip
         normalised.write(np.zeros((G, G, 3), np.uint8))
         s.frames += 1
         try:
-            s.last_frame = next(s.reader)
+            s.last_frame = _next_frame(s)
         except StopIteration:  # (read when the run started: the input has changed since)
             raise InputError(f"{s.reader.info.path}: it ends before frame {s.start}, where the run found its first "
                              "face when it started: was it replaced?") from None  # fmt: skip
@@ -801,21 +846,61 @@ def _said_difference(name: str, then: object, now: object) -> str:
     return f"{name} {then} then, {now} now"
 
 
-def _write_record(path: Path, video: Path, anchor: _Anchor | None, settings: dict[str, object]) -> None:
+def _write_record(
+    path: Path, video: Path, anchor: _Anchor | None, settings: dict[str, object], first_face: dict | None = None
+) -> None:
     """Write (atomically) what a resumed run needs besides the partial CSV's rows: the input it belongs to, the
     settings the rows were made with (:func:`_settings`) and, once the online start has re-anchored the stream
     (``anchor``), the first frame's refined fit and the offset between the re-anchored frame and the first
     result's (the rows' frame), so that the rest is tracked from the same templates and the rows go on in the same
     frame, the shape the rows up to the re-anchoring were tracked with (their mesh is re-drawn with it), and the
-    re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them)."""
+    re-anchoring frame's refined parameters, which its row does not hold (the tracking went on from them); and, for a
+    video started from the detector, ``first_face`` (:func:`_first_face`: where it found the first face, which a
+    resumed run does not look for again, :func:`_recorded_first_face`; absent in records of earlier versions)."""
     tmp = path.with_name(path.name + ".tmp")
     record = {"input": str(video.resolve()), "anchor": anchor, "settings": settings, "settings_as": "json"}
+    if first_face is not None:
+        record["first_face"] = first_face
     try:
         tmp.write_text(json.dumps(record), encoding="utf-8")
     except OSError as exc:  # a full disk: say where, and leave no temporary file behind
         tmp.unlink(missing_ok=True)
         raise OutputError(f"{path}: cannot write the resume record ({exc.strerror or exc})") from None
     os.replace(tmp, path)
+
+
+def _first_face(s: _Stream) -> dict | None:
+    """Where the detector found the first face of ``s``'s video, as its record keeps it (:func:`_write_record`):
+    ``{"frame": s.start, "landmarks": (68, 2) pixels}``; None for a video started from a landmarks file."""
+    if not s.landmarks_source.startswith("detector:"):
+        return None
+    return {"frame": s.start, "landmarks": np.asarray(s.landmarks, dtype=np.float64).tolist()}
+
+
+def _recorded_first_face(config: JobConfig, reader: FrameReader, name: str) -> tuple[int, np.ndarray] | None:
+    """``(frame, (68, 2) landmarks)``: where the interrupted run whose record (:func:`_write_record`) is beside video
+    ``name``'s partial CSV found the first face, for a resumed run to start there without asking the detector about
+    the frames before it again (a minute of title frames at 30 frames/s: 1800 calls); None where the record does not
+    say (none, one of an earlier version or unreadable) or would not be resumed (made from another input, with
+    other settings: :func:`_read_record` refuses it, or the search finds the face elsewhere, as before)."""
+    path = _record_path(output_paths(Path(config.out_dir), name)["csv"])
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+        made_from, made_with, first = record["input"], record["settings"], record["first_face"]
+        frame, points = first["frame"], np.asarray(first["landmarks"], dtype=np.float64)
+        if not isinstance(made_from, str) or not isinstance(made_with, dict) or record.get("settings_as") != "json":
+            return None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0 or points.shape != (68, 2):
+        return None
+    if not np.isfinite(points).all() or Path(made_from).resolve() != Path(reader.info.path).resolve():
+        return None
+    found = _Stream(name, reader, points, f"detector:{config.detector}", reader.info.num_frames, start=frame)
+    now = _settings(config, found)  # (the landmarks and the frame among them)
+    if any(k not in made_with or _setting_differences(made_with[k], now[k]) for k in now) or set(made_with) - set(now):
+        return None
+    return frame, points
 
 
 def _numbers(value: object, shape: tuple[int, ...]) -> bool:
@@ -1051,7 +1136,8 @@ def _open_inputs(
     about each next frame until it finds one (``progress`` reports the search, :attr:`Progress.searching`): the
     video is tracked from that frame (``_Stream.start``), as the video cut to start there would be, and its rows
     before it have no estimate (:func:`_no_face_row`; it was refused). A video in none of whose frames it finds a
-    face is an :class:`InputError` (nothing of the run is written).
+    face is an :class:`InputError` (nothing of the run is written). A resumed video starts where the interrupted
+    run's record says it found the face (:func:`_recorded_first_face`), the detector not asked again.
     """
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
@@ -1059,8 +1145,14 @@ def _open_inputs(
         with open_frames(path, convert=config.convert) as reader:
             frame = next(reader)
             lm = config.landmarks[k] if config.landmarks else None
-            start, t0 = 0, time.perf_counter()
-            found = _first_landmarks(reader, frame, lm, detector, config.detector)
+            start, t0, calls = 0, time.perf_counter(), int(lm is None)
+            recorded = _recorded_first_face(config, reader, name) if config.resume and lm is None else None
+            found: tuple[np.ndarray, str] | None = None
+            if recorded is not None:  # (the interrupted run's search: not made again)
+                start, calls = recorded[0], 0
+                found = recorded[1], f"detector:{config.detector}"
+            else:
+                found = _first_landmarks(reader, frame, lm, detector, config.detector)
             while found is None:  # (only with a detector: a landmarks file's are the first frame's)
                 if progress is not None:
                     rate = (start + 1) / max(time.perf_counter() - t0, 1e-9)
@@ -1072,10 +1164,11 @@ def _open_inputs(
                                      "frames: nothing to track (give the 68 landmarks of its first frame with "
                                      "--landmarks FILE if it shows one)") from None  # fmt: skip
                 start += 1
+                calls += 1
                 found = _first_landmarks(reader, frame, lm, detector, config.detector)
             points, source = found
-        streams.append(_Stream(name, reader, points, source, reader.info.num_frames,
-                               detector_calls=(start + 1) * int(lm is None), start=start))  # fmt: skip
+        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls,
+                               start=start))  # fmt: skip
     return streams
 
 
@@ -1092,7 +1185,8 @@ def _reopen(streams: Sequence[_Stream], convert: bool) -> None:
             if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
                 raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} now, "
                                  f"{info.width}x{info.height} when the run started: was it replaced?")  # fmt: skip
-            s.last_frame = next(s.reader)
+            s.stamps.clear()
+            s.last_frame = _next_frame(s)
     except BaseException:
         for s in streams:
             s.reader.close()
@@ -1104,6 +1198,7 @@ def _release(streams: Sequence[_Stream]) -> None:
     for s in streams:
         s.reader.close()
         s.last_frame, s.ahead = None, []
+        s.stamps.clear()
 
 
 def track_videos(
@@ -1131,6 +1226,9 @@ def track_videos(
             up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
             outputs of one of the videos there (its ``<stem>.lock``, :func:`_take_locks`).
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
+        KeyboardInterrupt: (Ctrl-C) passed on, its writers stopped, with a ``kept`` attribute saying what the run
+            leaves for ``resume`` (:func:`_kept_outputs`: the partial CSVs and their complete rows, the videos
+            complete; or that nothing was written, interrupted before tracking).
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
@@ -1163,9 +1261,63 @@ def track_videos(
                 raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
     locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
-        return _track_locked(inputs, names, config, detector, out_dir, progress)
-    finally:
-        _release_locks(locks)
+        try:
+            return _track_locked(inputs, names, config, detector, out_dir, progress)
+        finally:
+            _release_locks(locks)
+    except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
+        _say_kept(exc, _kept_outputs(out_dir, names))
+        raise
+
+
+def _say_kept(exc: BaseException, kept: str) -> None:
+    """Say on the interruption ``exc`` (a ``KeyboardInterrupt``) what the run leaves for ``--resume``: its ``kept``
+    attribute, which the command line prints; unless a step nearer the interruption has said it."""
+    if getattr(exc, "kept", None) is None:
+        exc.kept = kept  # type: ignore[attr-defined]
+
+
+def _complete_rows(csv: Path) -> int:
+    """The complete rows (lines ended) after the header of a (partial) CSV; 0 where it cannot be read."""
+    try:
+        with open(csv, "rb") as f:
+            lines = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+    except OSError:
+        return 0
+    return max(lines - 1, 0)
+
+
+def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
+    """What an interrupted run leaves of the outputs of videos ``names`` in ``out_dir`` (looked at once its writers
+    are stopped), and what to do: the videos complete (their JSON written), the rows a resumed run goes on from (a
+    partial CSV's complete rows, or a CSV under its final name without its JSON: interrupted while finalising,
+    every row written), the videos of which nothing is kept (a CSV without rows: a resumed run starts it afresh)."""
+    complete, rows, none = [], [], []
+    for name in names:
+        p = output_paths(out_dir, name)
+        partial = partial_path(p["csv"])
+        recorded = _record_path(p["csv"]).is_file()  # (rows without it are not resumed: _read_record)
+        n = _complete_rows(partial) if partial.is_file() and recorded else 0
+        if p["json"].is_file() and p["csv"].is_file() and not partial.exists():
+            complete.append(name)
+        elif n:  # (the file a resumed run goes on from, where both are there)
+            rows.append(f"{partial} ({n} row{'s' if n > 1 else ''})")
+        elif p["csv"].is_file() and recorded:
+            n = _complete_rows(p["csv"])
+            rows.append(f"{p['csv']} (all {n} row{'s' if n > 1 else ''}, not finalised)")
+        else:
+            none.append(name)
+
+    def listed(items: list[str]) -> str:
+        return ", ".join(items[:10]) + (f" and {len(items) - 10} more" if len(items) > 10 else "")
+
+    said = ([f"rows kept in {listed(rows)}"] if rows else []) + ([f"complete: {listed(complete)}"] if complete else [])
+    if not rows and not none:
+        return f"every video is complete ({listed(complete)})"
+    if not said:
+        return "no row was kept: run the same command again"
+    said += [f"nothing kept of {listed(none)}"] if none else []
+    return "; ".join(said) + ": run the same command with --resume to continue"
 
 
 def _track_locked(
@@ -1191,7 +1343,21 @@ def _track_locked(
         if config.landmarks:
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
-    streams = _open_inputs(pending, sub, detector, progress) if pending else []
+    try:
+        streams = _open_inputs(pending, sub, detector, progress) if pending else []
+    except KeyboardInterrupt as exc:  # (nothing of this run is there; an earlier run's outputs are as they were)
+        _say_kept(exc, "nothing was written (interrupted before tracking, while checking the inputs or looking for "
+                       "a first face): run the same command again")  # fmt: skip
+        raise
+    return _track_opened(streams, inputs, config, detector, out_dir, progress, summaries)
+
+
+def _track_opened(
+    streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, out_dir: Path,
+    progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary],
+) -> list[VideoSummary]:
+    """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`; ``summaries``: of the
+    videos ``resume`` skipped): track and write them, batch by batch."""
     if not config.resume:  # a fresh run
         _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
@@ -1374,7 +1540,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
             "first_shape_coeffs": s.first_shape,  # the rows up to ``frame`` place the mesh with it
             "params": state.params[k].tolist(),  # the frame's refined parameters, which its row does not hold
         }  # fmt: skip
-        _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings)
+        _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings, _first_face(s))
 
 
 def _track_group(
@@ -1424,7 +1590,7 @@ def _track_group(
                     # interrupted between the re-anchoring step and its row: the rows from the next one on are
                     # tracked re-anchored, the last replayed one was not (its mesh is placed with its own pose)
                     s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
-            _write_record(record, s.reader.info.path, s.anchor, s.settings)
+            _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
             s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
             _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")
@@ -1507,7 +1673,7 @@ def _track_group(
                         elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
                             s.done = True
                         else:
-                            s.last_frame = next(s.reader)
+                            s.last_frame = _next_frame(s)
                     except StopIteration:
                         s.done = True
                     except InputError as exc:  # this video stops; the others of the batch go on
@@ -1732,7 +1898,7 @@ def _lookahead_fit(
     for s in streams:
         while len(s.ahead) < la.max_frames - 1 and s.error is None:
             try:
-                s.ahead.append(next(s.reader))
+                s.ahead.append(_next_frame(s))
             except StopIteration:
                 break
             except InputError as exc:  # this video stops after the frames read; the others go on
@@ -1777,12 +1943,13 @@ def _write_step(
     for k, s in enumerate(streams):
         if not live[k]:
             continue
+        stamp = s.stamps.popleft()  # (its frame's time, replayed or not)
         if replaying[k] and s.replay is not None:  # (replaying: its replay holds row t)
             written[k] = s.replay[t]
         else:
             row = rows[k].copy()
             row[0] = t + s.start
-            row[1] = (t + s.start) / s.reader.info.fps
+            row[1] = stamp
             s.outputs()[0].write(row[None])
             s.tracked += 1
             written[k] = read_back(columns, row[None])[0]

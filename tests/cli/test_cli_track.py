@@ -1059,7 +1059,98 @@ def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
 
     monkeypatch.setattr(torchface.job, "track_videos", boom)
     assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 130
-    assert "--resume" in capsys.readouterr().err
+    assert "nothing was written: run the same command again" in capsys.readouterr().err  # (the job said nothing)
+
+
+def _interrupt_message(capsys) -> str:
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if line.startswith("torchface: interrupted; ")]
+    assert len(said) == 1, err
+    return said[0].removeprefix("torchface: interrupted; ")
+
+
+def test_interrupted_while_looking_for_the_first_face_says_nothing_was_written(clip, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the detector looked for a first face (a video opening on black frames) said "complete rows are
+    kept in <out>/<video>.csv.partial: run the same command with --resume": no such file was there (nothing is
+    written before tracking), and an earlier interrupted run's, where there was one, was not this run's."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    calls = []
+
+    def detector(image_rgb):
+        calls.append(1)
+        if len(calls) == 3:  # (on the third black frame)
+            raise KeyboardInterrupt
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", 4)
+    out = tmp_path / "out"
+    assert main(["track", str(late), "--out", str(out), "--detector", "blank", "--quiet"]) == 130
+    said = _interrupt_message(capsys)
+    assert said.startswith("nothing was written") and said.endswith("run the same command again"), said
+    assert sorted(p.name for p in out.iterdir()) == []
+
+
+def test_interrupted_while_tracking_names_the_rows_kept_and_the_videos_complete(clip, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while tracking the second of three batches: the message names the partial CSV and its rows (as many as
+    it holds), the video complete and the one not started (it said "<out>/<video>.csv.partial" of every video)."""
+    import torchface.job
+
+    video, lm, _ = clip
+    inputs = [_short_npy(video, tmp_path / f"{name}.npy", 5) for name in ("a", "b", "c")]
+    out = tmp_path / "out"
+    steps = []
+    real_step = torchface.job.managed_step
+
+    def interrupted_step(*args, **kwargs):
+        steps.append(1)
+        if len(steps) == 4 + 3:  # a: frames 1-4; b: frames 1-3, interrupted before frame 4
+            raise KeyboardInterrupt
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "managed_step", interrupted_step)
+    args = ["track", *map(str, inputs), "--out", str(out), "--max-batch", "1", "--no-online-refine", "--quiet"]
+    for f in inputs:
+        args += ["--landmarks", str(lm)]
+    assert main(args) == 130
+    said = _interrupt_message(capsys)
+    assert read_track_csv(out / "b.csv.partial")[1].shape[0] == 3 and (out / "a.json").is_file()
+    assert said == (f"rows kept in {out / 'b.csv.partial'} (3 rows); complete: a; nothing kept of c: run the same "
+                    "command with --resume to continue")  # fmt: skip
+    monkeypatch.setattr(torchface.job, "managed_step", real_step)
+    assert main([*args, "--resume"]) == 0
+    assert [read_track_csv(out / f"{n}.csv")[1].shape[0] for n in "abc"] == [5, 5, 5]
+
+
+@pytest.mark.parametrize("where", ["video", "meshes", "json"])
+def test_interrupted_while_finalising_names_the_csv_under_its_final_name(clip, tmp_path, monkeypatch, capsys, where):
+    """Ctrl-C while a video's outputs were finalised (the overlay video being closed, the meshes moved, the JSON
+    written): its CSV had its final name, and the message named a ``.csv.partial`` that was not there."""
+    import torchface.job
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 3)
+    out = tmp_path / "out"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    if where == "video":
+        monkeypatch.setattr(torchface.job._VideoOut, "close", interrupted)
+    elif where == "meshes":
+        monkeypatch.setattr(torchface.job, "plot_track", interrupted)  # (before the meshes are moved)
+    else:
+        monkeypatch.setattr(torchface.job, "write_json", interrupted)
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--meshes", "--quiet"]
+    assert main(args) == 130
+    said = _interrupt_message(capsys)
+    assert not (out / "short.csv.partial").exists() and read_track_csv(out / "short.csv")[1].shape[0] == 3
+    assert said == (f"rows kept in {out / 'short.csv'} (all 3 rows, not finalised): run the same command with "
+                    "--resume to continue")  # fmt: skip
+    monkeypatch.undo()
+    assert main([*args, "--resume"]) == 0 and json.loads((out / "short.json").read_text())["frames"] == 3
 
 
 def test_restart_after_unmatched_reaches_the_tracker_and_needs_a_detector(monkeypatch, capsys, tmp_path):
@@ -1214,7 +1305,8 @@ def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_pat
 def test_a_resume_whose_first_face_moved_later_names_that_frame(clip, tmp_path, monkeypatch):
     """A partial CSV tracked from frame 1 (the detector found a face there then) and resumed where the detector
     finds the first face at frame 4 (another detector, or one not deterministic) is refused as damaged, naming
-    the frame where the face is found now; it named the count of rows it had checked (3), no frame of the video."""
+    the frame where the face is found now; it named the count of rows it had checked (3), no frame of the video.
+    (A record of an earlier version, which does not say where the face was found: the search is made again.)"""
     import torchface.detect
 
     video, lm, gt = clip
@@ -1240,6 +1332,10 @@ def test_a_resume_whose_first_face_moved_later_names_that_frame(clip, tmp_path, 
         return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
 
     monkeypatch.setitem(torchface.detect.DETECTORS, "moody", lambda: detector)
+    record_path = tmp_path / "out" / "late.record.partial"
+    record = json.loads(record_path.read_text())
+    del record["first_face"]
+    record_path.write_text(json.dumps(record))
     with pytest.raises(InputError, match=r"frame 1 has a pose, but the detector finds the first face at frame 4\)"):
         track_videos([late], replace(config, resume=True))
 
@@ -1588,11 +1684,18 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     import torchface.job as job
     from torchface.tracker.lookahead import LookaheadConfig
 
+    class Reader:  # (its frames, and no time: FrameReader.timestamp)
+        def __init__(self, frames):
+            self.frames, self.timestamp = iter(frames), None
+
+        def __next__(self):
+            return next(self.frames)
+
     g = torch.Generator().manual_seed(0)
     videos = [torch.rand(n, 3, 8, 10, generator=g) for n in (5, 3)]
     streams = []
     for v in videos:
-        s = job._Stream("v", iter(v[1:]), np.zeros((68, 2)), "", len(v))
+        s = job._Stream("v", Reader(v[1:]), np.zeros((68, 2)), "", len(v))
         s.last_frame = v[0]
         streams.append(s)
     seen = {}
@@ -1917,7 +2020,7 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
         monkeypatch.setattr(torchface.job, "track_videos", terminated)
         assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 143
         err = capsys.readouterr().err
-        assert "terminated" in err and "--resume" in err and str(tmp_path) in err
+        assert "terminated; nothing was written: run the same command again" in err
         assert signal.getsignal(signal.SIGTERM) is outside  # restored
     finally:
         signal.signal(signal.SIGTERM, before)
@@ -2711,3 +2814,165 @@ def test_a_lock_that_cannot_be_written_is_an_output_error_and_left_nowhere(tmp_p
     with pytest.raises(OutputError, match=r"a\.lock: cannot write the lock file \(No space left on device\)"):
         job._take_locks(tmp_path, ["a"])
     assert not (tmp_path / "a.lock").exists()
+
+
+def test_a_lock_left_by_an_ended_run_on_windows_is_taken_over(tmp_path, monkeypatch):
+    """On Windows every lock was taken as its run's (``os.kill(pid, 0)`` does not ask there): a run killed in the
+    Task Manager left a lock that refused every later run. Its process is asked about with ``OpenProcess`` and
+    ``GetExitCodeProcess`` (a fake kernel32 here): an exited one, or one that is not there, has ended; a running
+    one, or another user's (access denied), has not."""
+    import ctypes
+    import socket
+
+    import torchface.job as job
+
+    processes = {10: 259, 11: 0, 12: 1}  # pid -> exit code (259: STILL_ACTIVE); 13: another user's; others: none
+    opened, closed, error = [], [], [0]
+
+    def open_process(access, inherit, pid):
+        if pid == 13 or pid not in processes:
+            error[0] = 5 if pid == 13 else 87  # ERROR_ACCESS_DENIED, ERROR_INVALID_PARAMETER
+            return None
+        opened.append(pid)
+        return 1000 + pid
+
+    def exit_code(handle, code):
+        code._obj.value = processes[handle - 1000]
+        return 1
+
+    kernel32 = type("Kernel32", (), {})()
+    kernel32.OpenProcess, kernel32.GetExitCodeProcess = open_process, exit_code
+    kernel32.CloseHandle = lambda handle: closed.append(handle)
+    monkeypatch.setattr(ctypes, "WinDLL", lambda name, use_last_error=False: kernel32, raising=False)
+    monkeypatch.setattr(ctypes, "get_last_error", lambda: error[0], raising=False)
+    monkeypatch.setattr(sys, "platform", "win32")
+    monkeypatch.setattr(os, "name", "nt")  # (what the check looked at)
+    try:
+        alive = {pid: job._alive(pid) for pid in (10, 11, 12, 13, 14)}
+        host = socket.gethostname()
+        seen = os.stat(__file__)
+        ended = job._ended_lock((11, host), seen)
+        running = job._ended_lock((10, host), seen)
+    finally:
+        monkeypatch.undo()
+    assert alive == {10: True, 11: False, 12: False, 13: True, 14: False}
+    assert sorted(opened) == [10, 10, 11, 11, 12] and sorted(closed) == [1000 + pid for pid in sorted(opened)]
+    assert ended == "a run that has ended (pid 11)" and running is None
+
+
+def test_a_resumed_video_whose_face_appears_later_is_not_searched_again(clip, tmp_path, monkeypatch):
+    """A resumed run asked the detector about every frame before the first face again (a minute of title frames:
+    1800 calls), although the interrupted run had found it: the record says where, and the resumed run starts there
+    without asking about those frames, its outputs those of the uninterrupted run. A record of an earlier version
+    (without it) still resumes, searching again."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 2
+    asked = []
+
+    def detector(image_rgb, near=None):
+        asked.append(int(image_rgb.max()))
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
+    track_videos([late], config)
+    _, ref = read_track_csv(tmp_path / "ref" / "late.csv")
+    ref_side = json.loads((tmp_path / "ref" / "late.json").read_text())
+
+    def interrupt(p):
+        if p.done == n + 2 and not p.searching:  # (rows 0..n+1: the tracking resumed from its third frame)
+            raise KeyboardInterrupt
+
+    for earlier_version in (False, True):
+        out = tmp_path / f"out{int(earlier_version)}"
+        with pytest.raises(KeyboardInterrupt):
+            track_videos([late], replace(config, out_dir=out), progress=interrupt)
+        record_path = out / "late.record.partial"
+        record = json.loads(record_path.read_text())
+        assert record["first_face"]["frame"] == n
+        if earlier_version:
+            del record["first_face"]
+            record_path.write_text(json.dumps(record))
+        asked.clear()
+        track_videos([late], replace(config, out_dir=out, resume=True))
+        assert (0 in asked) == earlier_version, asked  # (the black frames: searched again only without the record)
+        if not earlier_version:
+            assert asked[:1] != [0]
+        _, rows = read_track_csv(out / "late.csv")
+        np.testing.assert_array_equal(rows[: n + 2], ref[: n + 2])  # (the rows kept, before the tracking resumed)
+        np.testing.assert_allclose(rows, ref, rtol=1e-5, atol=1e-4, equal_nan=True)  # (replayed from 9 digits)
+        side = json.loads((out / "late.json").read_text())
+        assert side["start"] == ref_side["start"] and side["initial_landmarks_px"] == ref_side["initial_landmarks_px"]
+        assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
+
+
+def test_a_variable_frame_rate_videos_rows_have_their_frames_times(clip, tmp_path, monkeypatch):
+    """The ``timestamp`` column was ``frame / fps`` whatever the container said: a variable-frame-rate video's rows
+    (a phone's) were put on a grid its frames are not on. They have the container's times (a reader with a fake
+    clock here), the rows before the first face too, and a resumed run's rows the same."""
+    import torchface.detect
+    import torchface.job
+
+    video, lm, gt = clip
+    n = 2
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    ms = [0.0, 50.0, 70.0, 140.0, 150.0, 230.0, 260.0, 300.0, 390.0, 400.0, 470.0, 520.0, 530.0, 600.0]
+    real_open = torchface.job.open_frames
+
+    def variable_rate(path, convert=False):
+        reader = real_open(path, convert=convert)
+        times = iter(ms)
+        reader.clock = lambda: next(times)
+        return reader
+
+    def detector(image_rgb, near=None):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setattr(torchface.job, "open_frames", variable_rate)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
+    track_videos([late], config)
+    cols, rows = read_track_csv(tmp_path / "a" / "late.csv")
+    np.testing.assert_allclose(rows[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+    out = tmp_path / "b"
+
+    def interrupt(p):
+        if p.done == n + 3 and not p.searching:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([late], replace(config, out_dir=out), progress=interrupt)
+    track_videos([late], replace(config, out_dir=out, resume=True))
+    _, resumed = read_track_csv(out / "late.csv")
+    np.testing.assert_allclose(resumed[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+    # The frames read ahead (--lookahead) keep theirs until their rows are written (a spy for the fit: its time).
+    from torchface.tracker import fit_landmarks
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[]]
+
+    monkeypatch.setattr(torchface.job, "lookahead_fit", spy)
+    track_videos([late], replace(config, out_dir=tmp_path / "c", lookahead=LookaheadConfig(max_frames=6)))
+    _, ahead = read_track_csv(tmp_path / "c" / "late.csv")
+    np.testing.assert_allclose(ahead[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+
+
+def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the summary was printed (the outputs complete) said the rows were kept in a ``.csv.partial`` for
+    --resume: there was none."""
+    import torchface.cli
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.cli, "_print_summary", interrupted)
+    out = tmp_path / "out"
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 130
+    assert _interrupt_message(capsys) == "every video is complete" and (out / "short.json").is_file()

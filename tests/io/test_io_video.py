@@ -353,3 +353,30 @@ def test_closing_an_npy_reader_unmaps_its_file(tmp_path):
     assert not mapped()
     with pytest.raises(StopIteration):  # as a closed video's reader
         next(reader)
+
+
+def test_frame_times_are_the_containers_where_they_go_forward(tmp_path):
+    """Every frame's time was ``frame / fps``: a variable-frame-rate video's rows were placed on a grid its frames
+    are not on. The reader gives the container's time (``CAP_PROP_POS_MSEC``, a fake clock here) where it is a number
+    that goes forward, else the last such time plus ``1 / fps`` per frame; without a clock, ``frame / fps``."""
+    from torchface.io.video import FrameReader, VideoInfo
+
+    ms = iter([0.0, 40.0, 100.0, 120.0, float("nan"), 200.0, 200.0, -5.0, 300.0])
+    frame = torch.zeros(3, 32, 32)
+    info = VideoInfo(tmp_path / "v.mp4", "video", 32, 32, 25.0, 9, "uint8 BGR")
+    rest = iter([(np.zeros((32, 32, 3), np.uint8), True)] * 8)
+    reader = FrameReader(info, frame, rest, clock=lambda: next(ms))
+    times = []
+    for _ in reader:
+        times.append(reader.timestamp)
+    np.testing.assert_allclose(times, [0.0, 0.04, 0.1, 0.12, 0.16, 0.2, 0.24, 0.28, 0.3], atol=1e-12)
+    np.save(tmp_path / "clip.npy", np.zeros((4, 32, 32, 3), np.uint8))
+    with open_frames(tmp_path / "clip.npy") as reader:
+        assert [reader.timestamp for _ in reader] == [k / 25.0 for k in range(4)]
+    path = str(tmp_path / "cfr.avi")
+    writer = cv2.VideoWriter(path, cv2.VideoWriter.fourcc(*"MJPG"), 30.0, (32, 32))
+    for k in range(5):
+        writer.write(np.full((32, 32, 3), 40 * k, np.uint8))
+    writer.release()
+    with open_frames(path) as reader:  # a constant-rate video's container times are frame / fps
+        np.testing.assert_allclose([reader.timestamp for _ in reader], np.arange(5) / 30.0, atol=1e-6)

@@ -3,7 +3,9 @@ writer that flushes every row and renames the file only when complete.
 
 Columns (units; frames as in :mod:`torchface.conventions`)
 ---------------------------------------------------------
-- ``frame`` (0-based index), ``timestamp`` (seconds, ``frame / fps``), ``success`` (1/0: the frame's estimate
+- ``frame`` (0-based index), ``timestamp`` (seconds: the video container's time of the frame, where it gives one
+  that goes forward, as a variable-frame-rate video's; else ``frame / fps``: :class:`~torchface.io.video.FrameReader`
+  ``.timestamp``), ``success`` (1/0: the frame's estimate
   is usable: not failed, stream not lost), ``confidence`` (``[0, 1]``; with template management, the default,
   the dissimilarity confidence of the normalised face, paper Section 4.1; else the residual confidence);
 - ``pose_Tx, pose_Ty, pose_Tz``: the head origin in the OpenCV camera frame (x right, y down, z forward), mm;
@@ -159,7 +161,7 @@ def result_rows(result, frame_indices: Tensor | np.ndarray, fps: float) -> np.nd
     Args:
         result: a :class:`~torchface.tracker.TrackResult` with batch B.
         frame_indices: ``(B,)`` frame index of each row.
-        fps: frames per second (``timestamp = frame / fps``).
+        fps: frames per second (``timestamp = frame / fps``; the job writes the frame's time from its reader).
     """
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps}")

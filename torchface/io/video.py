@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -212,7 +212,11 @@ class FrameReader:
 
     Validation happens as frames are read: a frame of another stored size than the first, or (without
     ``convert``) a grayscale, RGBA, 16-bit or odd-sized frame, raises :class:`InputError` naming its index.
-    :attr:`frames_read` counts the frames returned so far.
+    :attr:`frames_read` counts the frames returned so far; :attr:`timestamp` is the time of the last one in seconds:
+    the container's (``clock``, milliseconds of the frame just read: ``CAP_PROP_POS_MSEC``) where it is a number,
+    at least 0 and later than the previous frame's, else the last such time plus ``1 / fps`` per frame since (the
+    first frame: 0). So a variable-frame-rate video's frames get their own times, and the frames of an image
+    folder, an array, or a container that gives no times, ``frame / fps``.
     """
 
     def __init__(
@@ -224,8 +228,12 @@ class FrameReader:
         stored_size: tuple[int, int] | None = None,
         convert: bool = False,
         files: list[Path] | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         self.info = info
+        self.clock = clock
+        self.timestamp: float | None = None  # (seconds) of the last frame returned; None before the first
+        self._timed = (0, 0.0)  # (frame, seconds) of the last frame timed by the container
         self._files = files
         self.stored_size = stored_size or (info.height, info.width)
         self.convert = convert
@@ -241,6 +249,7 @@ class FrameReader:
         if self._first is not None:
             frame, self._first = self._first, None
             self.frames_read = 1
+            self._stamp()
             return frame
         array, bgr = next(self._rest)
         where = f"{self.info.path}: frame {self.frames_read}"
@@ -253,7 +262,25 @@ class FrameReader:
             )
         frame, _ = frame_to_tensor(array, bgr, where, self.convert)
         self.frames_read += 1
+        self._stamp()
         return frame
+
+    def _stamp(self) -> None:
+        """Set :attr:`timestamp` of the frame just returned (frame ``frames_read - 1``)."""
+        k = self.frames_read - 1
+        ms = math.nan
+        if self.clock is not None:
+            try:
+                ms = float(self.clock())
+            except (TypeError, ValueError):
+                ms = math.nan
+        seconds = ms / 1000.0
+        if math.isfinite(seconds) and seconds >= 0 and (self.timestamp is None or seconds > self.timestamp):
+            self._timed = (k, seconds)
+            self.timestamp = seconds
+        else:  # (no time, or one that does not go forward: the container's last plus 1 / fps per frame)
+            at, when = self._timed
+            self.timestamp = when + (k - at) / self.info.fps
 
     def close(self) -> None:
         """Release the underlying decoder, and the frames not read (a ``.npy`` array's mapping: it held the file
@@ -451,4 +478,5 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     fps = 25.0 if assumed else fps
     declared = int(count) if math.isfinite(count) and count >= 1 else None
     info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv, assumed)
-    return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert)
+    return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert,
+                       clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC))  # fmt: skip
