@@ -300,6 +300,21 @@ def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model
         tracker.pyramid = True
 
 
+def test_landmarks_of_weight_zero_do_not_choose_the_pyramid(model):
+    """``weights`` 0 means "ignore" (the fit leaves such a point out), but ``pyramid="auto"`` measured the face with
+    every finite landmark: two points of weight 0 in the corners of the 640x360 frame gave its 190-pixel face five
+    pyramid levels instead of three. They are now left out, as NaN points are."""
+    frames, lm, _ = sideways_clip(640, 360, n=1)
+    stray = lm.clone()
+    stray[0], stray[8] = torch.tensor([639.0, 359.0]), torch.tensor([0.0, 0.0])
+    weights = torch.ones(1, 68)
+    weights[0, [0, 8]] = 0.0
+    tracker = FaceTracker(model=model, refine_first=None)
+    tracker.initialise(frames, stray[None], weights=weights)
+    assert tracker.state.num_levels == tracker.tracking_config.num_levels == 3
+    assert tracker.tracking_config is tracker.config
+
+
 def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_is(model):
     """``tracker.config = replace(tracker.tracking_config, ...)`` (the settings the sequence runs with, one changed)
     mid-sequence on an HD face: the levels initialise added were added to it once more (the state's 4 levels became

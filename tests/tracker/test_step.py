@@ -1381,6 +1381,24 @@ def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
         pyramid_for_faces(base, torch.zeros(68, 2), (480, 640))
 
 
+def test_pyramid_for_faces_leaves_out_the_points_the_fit_ignores():
+    """A landmark of weight 0 (or negative, NaN, infinite: what the fit ignores) counted toward the face's size:
+    a detector's stray point of confidence 0 made a 200-pixel face look 1000 pixels wide, with two more levels."""
+    from torchface.tracker import pyramid_for_faces
+
+    lm = torch.tensor([[[10.0, 20.0], [210.0, 120.0], [1010.0, 20.0]]] * 4)  # a 200-pixel face and a stray point
+    base = TrackerConfig()
+    assert pyramid_for_faces(base, lm, (1080, 1920)).num_levels == 5  # (no weights: the stray point counts)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        weights = torch.tensor([[1.0, 1.0, bad]] * 4)
+        assert pyramid_for_faces(base, lm, (1080, 1920), weights) is base, bad
+    assert pyramid_for_faces(base, lm, (1080, 1920), torch.tensor([[True, True, False]] * 4)) is base
+    with pytest.raises(ValueError, match=r"weights must be \(4, 3\) \(B, K\), got \(4, 2\)"):
+        pyramid_for_faces(base, lm, (1080, 1920), torch.ones(4, 2))
+    with pytest.raises(TypeError, match="weights must be a .B, K. tensor or None, got list"):
+        pyramid_for_faces(base, lm, (1080, 1920), [[1.0, 1.0, 0.0]] * 4)
+
+
 def _rendered_clip(w: int, h: int, n: int, move_mm: float, distance_mm: float = 450.0):
     """A CANDIDE-3 clip at ``w x h``: 10 degrees of yaw and ``move_mm`` sideways over ``n`` frames at
     ``distance_mm``; ``frames (n, 3, h, w)`` float32 and the ground truth."""

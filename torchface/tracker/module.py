@@ -280,7 +280,7 @@ class FaceTracker(nn.Module):
         config = self.config
         if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
             check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
-            config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width))
+            config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width), weights)
         self._state, result = initialise_managed(
             self.model, config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )

@@ -813,7 +813,9 @@ def check_initialise_inputs(
 PYRAMID_REFERENCE_FACE_PX: float = 180.0
 
 
-def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[int, int]) -> TrackerConfig:
+def pyramid_for_faces(
+    config: TrackerConfig, landmarks_px: Tensor, size: tuple[int, int], weights: Tensor | None = None
+) -> TrackerConfig:
     """``config`` with coarser pyramid levels added where the faces are larger than the pyramid is made for.
 
     A frame-to-frame motion is followed when the coarsest level sees it as a few pixels, and a face's motion in
@@ -834,6 +836,10 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
             of the batch decides (its streams share one pyramid): none is made smaller than the reference at the
             coarsest level.
         size: ``(H, W)`` of the frames.
+        weights: ``(B, K)`` the landmarks' weights, or None: a point the landmark fit ignores (weight 0, negative,
+            NaN or infinite: :func:`~torchface.tracker.fit.landmark_targets`) is left out of its face's size, as a
+            missing one is (:class:`~torchface.tracker.FaceTracker` passes its ``weights``: two points of weight 0 at
+            the corners of a 640x360 frame gave a 190-pixel face five levels instead of three).
 
     Returns:
         ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
@@ -848,8 +854,15 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     check_landmark_type(landmarks_px, "(B, K, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
         raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
+    if weights is not None and not isinstance(weights, Tensor):
+        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}")
+    if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
+        raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
     points = landmarks_px.detach().to(torch.float64)
     seen = torch.isfinite(points).all(-1, keepdim=True)  # (B, K, 1)
+    if weights is not None:  # (the points the fit leaves out: landmark_targets)
+        w = weights.detach().to(dtype=torch.float64, device=points.device)
+        seen = seen & (torch.isfinite(w) & (w > 0)).unsqueeze(-1)
     lo = torch.where(seen, points, math.inf).amin(1)
     hi = torch.where(seen, points, -math.inf).amax(1)
     faces = (hi - lo).amax(-1)  # (B,) the larger side of each box; -inf or NaN without two points
