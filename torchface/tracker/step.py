@@ -749,6 +749,8 @@ def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
             lo, hi = (float(v) for v in torch.aminmax(seen.nan_to_num(nan=0.5, posinf=pos, neginf=neg)))
         if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
             hint = " (0-255 values? divide by 255)" if hi > FRAME_VALUE_RANGE[1] and lo >= FRAME_VALUE_RANGE[0] else ""
+            if not (math.isfinite(lo) and math.isfinite(hi)):  # (an infinite pixel was "0-255 values? divide by 255")
+                hint = " (infinite pixels: mark missing ones NaN)"
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
