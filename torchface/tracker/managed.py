@@ -114,6 +114,7 @@ from torchface.tracker.step import (
     check_api_types,
     check_frames,
     check_initialise_inputs,
+    check_state_model,
     check_step_inputs,
     clamp_projection,
     fail_templates,
@@ -542,6 +543,7 @@ def estimate_confidence(
     """
     check_api_types(model, config, state, with_state=True)
     ms = _management(state)
+    check_state_model(model, state)  # (as the steps: another dtype said "convert the model", other units a size error)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     B = state.params.shape[0]
     if frames.shape[0] != B:  # the native kernel read past the state's streams (a segmentation fault)
