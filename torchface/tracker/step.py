@@ -421,14 +421,19 @@ class TrackResult:
             when that fit estimates no expression.
         facs: ``(B, n_facs)`` FACS AU values linked to ``expression``; facs_names: their names.
         illumination: ``(B, L)`` illumination parameters; illumination_names: their names.
-        status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level;
-        cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest level.
+        status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level (0 from
+        :func:`initialise`); cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest
+        level (0 from :func:`initialise`).
         num_points: ``(B,)`` valid template points at the finest level.
         confidence: ``(B,)`` in ``[0, 1]``. From :func:`track_step` alone: the residual confidence (fraction of
             valid points times ``exp(-(rms / 0.1)^2)``); with template management
             (:func:`~torchface.tracker.managed.managed_step`): the dissimilarity confidence of the normalised
-            face (paper Section 4.1), 0 for a FAILED sample.
-        residual_confidence: ``(B,)`` the residual confidence (set by template management; None otherwise).
+            face (paper Section 4.1), 0 for a FAILED sample. From :func:`initialise` (the first frame): the
+            landmark fit's ``exp(-rms_px / 5)`` (:attr:`~torchface.tracker.fit.LandmarkFit.rms_px`, pixels), 0 for
+            a FAILED stream; from :func:`~torchface.tracker.managed.initialise_managed`: the first frame's
+            dissimilarity confidence against its own reference, that fit's in ``residual_confidence``.
+        residual_confidence: ``(B,)`` the residual confidence (set by template management; None otherwise; the
+            first frame's: its landmark fit's, above).
         dissimilarity: ``(B,)`` mean fiducial-patch displacement on the normalised face (its pixels; set by
             template management, NaN where it was not measured; None otherwise).
         mosaic_entry: ``(B,)`` int64 the mosaic entry the frame was aligned against (0 = the reference; set by
