@@ -139,9 +139,10 @@ def test_batched_detector_hands_contiguous_images_and_takes_points_of_any_stride
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_batched_detector_keeps_the_landmarks_precision_for_half_precision_frames(dtype):
-    """The tracker takes frames of any float dtype; the batched detector's landmarks came back in the frames' dtype,
-    so half-precision frames rounded them to its grid: bfloat16 frames put 640x480 landmarks up to 1.84 px off (2 px
-    steps above 256, 4 above 512), float16 up to 0.25 px. They are now at least float32 (float64 frames: float64)."""
+    """The batched detector's landmarks came back in the frames' dtype, so half-precision frames handed to it
+    directly (the tracker converts its frames to the model's dtype first) rounded them to that dtype's grid:
+    bfloat16 frames put 640x480 landmarks up to 1.84 px off (2 px steps above 256, 4 above 512), float16 up to
+    0.25 px. They are now at least float32 (float64 frames: float64)."""
     points = np.stack([np.linspace(300.3, 620.7, 68), np.linspace(100.1, 400.9, 68)], axis=1)
     out = batched(lambda image: points)(torch.full((2, 3, 480, 640), 0.5, dtype=dtype))
     assert out.dtype == torch.float32
