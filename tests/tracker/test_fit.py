@@ -396,6 +396,9 @@ def test_bad_inputs_raise(model):
             fit_landmarks(model, lm, CAM, bad)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="intrinsics must be"):
         fit_landmarks(model, lm, None)  # type: ignore[arg-type]
+    for bad in (None, {"mean": 1}):  # (an AttributeError: 'NoneType' object has no attribute 'num_landmarks')
+        with pytest.raises(TypeError, match=f"model must be a FaceModel, got {type(bad).__name__}"):
+            fit_landmarks(bad, lm, CAM)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="shape_bound"):
         FitConfig(shape_bound=0.0)
     with pytest.raises(ValueError, match="max_iterations"):

@@ -479,6 +479,8 @@ def fit_landmarks(
         estimate (:func:`_missing_fit`: frontal, centred on the principal point, a quarter of the frame wide,
         mean shape, ``rms_px`` 0); the others are fitted as they are alone (it raised a ValueError for the batch).
     """
+    if not isinstance(model, FaceModel):  # None was an AttributeError ('NoneType' ... 'num_landmarks')
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     if not isinstance(config, FitConfig):  # None was an AttributeError ('NoneType' ... 'fit_expression')
         raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
