@@ -926,7 +926,7 @@ def managed_step(
         model: the face model used at initialisation.
         config: :class:`~torchface.tracker.step.TrackerConfig`; ``config.template`` sets the management.
         state: from :func:`initialise_managed` or the previous step.
-        frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+        frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) the next frame of each stream, float in [0, 1].
         detector: optional :data:`LandmarkDetector` used to re-initialise lost streams (called with the
             frames of the streams attempting a recovery only, and once more with those of the streams that start
             afresh: never started, or ``TemplateConfig.restart_after_unmatched``); None searches the mosaic instead.

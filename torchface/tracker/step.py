@@ -950,12 +950,13 @@ def initialise(
     Args:
         model: the face model.
         config: :class:`TrackerConfig`.
-        frames: ``(B, 3, H, W)`` first frames, float in [0, 1].
+        frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) first frames, float in [0, 1].
         landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing). A stream with fewer than
             :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
             alone, FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose.
         intrinsics: camera of ``frames``.
-        weights: ``(B, K)`` landmark confidences or None.
+        weights: ``(B, K)`` landmark confidences (0 = ignore; their scale counts against the fit's priors:
+            :func:`~torchface.tracker.fit.fit_landmarks`) or None.
         fit: the first frames' fit when already made (batch ``B``; e.g. refined by
             :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
 
@@ -1111,7 +1112,7 @@ def track_step(
         model: the face model used at initialisation.
         config: :class:`TrackerConfig`.
         state: from :func:`initialise` or the previous step.
-        frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+        frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) the next frame of each stream, float in [0, 1].
         conservative: optional ``(B,)`` bool, streams whose refinement pass uses ``expression_prior_precision``
             instead of ``refine_prior_precision``, and whose expression prior stays Gaussian
             (no :attr:`TrackerConfig.expression_sparsity`) in both passes; template management passes its lost
