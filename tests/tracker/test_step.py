@@ -1457,17 +1457,23 @@ def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
     [
         (lambda f: to_gray(f)[0, 0], r"one gray frame: frames\[None, None\]"),
         (lambda f: to_gray(f)[:, 0], r"gray frames \(B, H, W\): frames\[:, None\]"),
+        (lambda f: f[0], r"one frame \(C, H, W\): frames\[None\]"),
+        (lambda f: f[0].permute(1, 2, 0), r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]\)$"),
+        (lambda f: (f[0].permute(1, 2, 0) * 255).round().to(torch.uint8),  # (an image from OpenCV or PIL)
+         r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]; uint8 frames: pass"),
+        (lambda f: to_gray(f)[:, 0].expand(5, -1, -1), r"\(gray frames \(B, H, W\): frames\[:, None\]\)$"),
         (lambda f: f.permute(0, 2, 3, 1), r"channels last \(B, H, W, C\): frames.permute\(0, 3, 1, 2\)"),
         (lambda f: torch.cat([f, torch.ones_like(f[:, :1])], 1), r"RGBA: drop the alpha, frames\[:, :3\]"),
         (lambda f: (f * 65535).round().to(torch.uint16), r"16-bit frames: pass frames.float\(\) / 65535"),
         (lambda f: (f * 255).round().to(torch.uint8), r"uint8 frames: pass frames.float\(\) / 255"),
     ],
-    ids=["HW", "BHW", "BHWC", "RGBA", "uint16", "uint8"],
+    ids=["HW", "BHW", "CHW", "HWC", "HWC-uint8", "5HW", "BHWC", "RGBA", "uint16", "uint8"],
 )
 def test_refused_frames_say_how_to_make_them(two_streams, make, hint):
     """Gray (H, W) or (B, H, W), channels-last, RGBA and 16-bit frames were refused with "frames must be (B, 3, H,
     W) float in [0, 1], got ..." alone (only uint8 had a hint), which also left out the (B, 1, H, W) gray frames
-    that are accepted."""
+    that are accepted. One (H, W, 3) image, as OpenCV, PIL and numpy hold it, was told "one frame (C, H, W):
+    frames[None]", which made a (1, H, W, 3) frame; it is now told to permute it."""
     frames, gts = two_streams
     bad = make(frames[:1, 0].float())
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float in \[0, 1\], got .*" + hint):

@@ -693,6 +693,12 @@ def _frame_hint(frames: Tensor) -> str:
     shape = tuple(frames.shape)
     if frames.dim() == 2:
         hints.append("one gray frame: frames[None, None]")
+    elif frames.dim() == 3 and shape[0] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        # an image as OpenCV, PIL and numpy hold it (it was told "one frame (C, H, W): frames[None]", which gave a
+        # (1, H, W, C) frame)
+        hints.append("one channels-last frame (H, W, C): frames.permute(2, 0, 1)[None]")
+    elif frames.dim() == 3 and shape[0] not in (1, 3, 4):
+        hints.append("gray frames (B, H, W): frames[:, None]")
     elif frames.dim() == 3:
         hints.append("one frame (C, H, W): frames[None]; gray frames (B, H, W): frames[:, None]")
     elif frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
