@@ -1458,7 +1458,8 @@ def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
         (lambda f: to_gray(f)[0, 0], r"one gray frame: frames\[None, None\]"),
         (lambda f: to_gray(f)[:, 0], r"gray frames \(B, H, W\): frames\[:, None\]"),
         (lambda f: f[0], r"one frame \(C, H, W\): frames\[None\]"),
-        (lambda f: f[0].permute(1, 2, 0), r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]\)$"),
+        (lambda f: f[0].permute(1, 2, 0),
+         r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]\)$"),
         (lambda f: (f[0].permute(1, 2, 0) * 255).round().to(torch.uint8),  # (an image from OpenCV or PIL)
          r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]; uint8 frames: pass"),
         (lambda f: to_gray(f)[:, 0].expand(5, -1, -1), r"\(gray frames \(B, H, W\): frames\[:, None\]\)$"),
