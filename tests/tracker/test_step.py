@@ -681,6 +681,12 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
     cam, lm = Intrinsics.default(W, H), landmarks_of(gts)
     with pytest.raises(ValueError, match="one set per frame"):
         initialise(model, BASE, frames[:, 0], lm[:1], cam)
+    # one stream's (68, 2) set, as a landmark file holds it, and (B, 2, 68) x and y rows: told how to make them
+    one = r"with B = 1 \(one set per frame\), got \(68, 2\): one stream's, landmarks_px\[None\]$"
+    with pytest.raises(ValueError, match=one):
+        initialise(model, BASE, frames[:1, 0], lm[0], cam)
+    with pytest.raises(ValueError, match=r"got \(2, 2, 68\) \(x, y rows: landmarks_px.transpose\(1, 2\)\)$"):
+        initialise(model, BASE, frames[:, 0], lm.transpose(1, 2), cam)
     # Each of these used to be accepted, then fail later (mid-stream at the online start's re-anchoring, or
     # deep inside torch) with a message that did not say what was wrong.
     with pytest.raises(ValueError, match="at least one stream"):

@@ -809,10 +809,14 @@ def check_initialise_inputs(
     check_landmark_type(landmarks_px, f"({B}, {K}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
         got = tuple(landmarks_px.shape)
-        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}")
+        # (a (K, 2) set for one stream, as a landmark file holds it, was told no more than that)
+        hint = ": one stream's, landmarks_px[None]" if B == 1 and got == (K, 2) else ""
+        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
+        # ((B, 2, K): x and y rows, as some detectors give them)
+        hint = " (x, y rows: landmarks_px.transpose(1, 2))" if tuple(landmarks_px.shape[1:]) == (2, K) else ""
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
-                         f"got {tuple(landmarks_px.shape)}")  # fmt: skip
+                         f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
         raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
     if weights is not None and tuple(weights.shape) != (B, K):
