@@ -379,8 +379,10 @@ def test_bad_inputs_raise(model):
     lm = torch.zeros(1, 68, 2, dtype=D)
     with pytest.raises(ValueError, match=r"\(B, 68, 2\)"):
         fit_landmarks(model, torch.zeros(1, 68, 3, dtype=D), CAM)
-    with pytest.raises(ValueError, match=r"\(B, 68, 2\)"):
+    with pytest.raises(ValueError, match=r"\(B, 68, 2\) .*got \(68, 2\): one sample's, landmarks_px\[None\]$"):
         fit_landmarks(model, torch.zeros(68, 2, dtype=D), CAM)
+    with pytest.raises(ValueError, match=r"got \(1, 2, 68\) \(x, y rows: landmarks_px.transpose\(1, 2\)\)$"):
+        fit_landmarks(model, torch.zeros(1, 2, 68, dtype=D), CAM)
     with pytest.raises(ValueError, match=r"\(B, 5, 2\)"):
         fit_landmarks(model, lm, CAM, landmark_indices=torch.arange(5))
     with pytest.raises(ValueError, match=r"weights must be \(B, K\)"):

@@ -311,7 +311,10 @@ def _check_landmarks(
     missing, which :func:`fit_landmarks` reports as FAILED)."""
     check_landmark_type(landmarks_px, f"(B, {k}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
-        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {tuple(landmarks_px.shape)}")
+        got = tuple(landmarks_px.shape)
+        hint = (": one sample's, landmarks_px[None]" if got == (k, 2)
+                else " (x, y rows: landmarks_px.transpose(1, 2))" if got[1:] == (2, k) else "")  # fmt: skip
+        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}{hint}")
     B = landmarks_px.shape[0]
     if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError
         raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}")
