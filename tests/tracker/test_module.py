@@ -460,3 +460,30 @@ def test_a_stream_whose_start_failed_is_never_reported_tracked(model, three_stre
     # Initialised again (from good landmarks), the stream tracks.
     tracker.initialise(frames[:, 3], three_streams[1])
     assert bool(tracker(frames[:, 4]).success.all())
+
+
+# ----------------------------------------------------------------------------------------------- detector
+
+
+@pytest.mark.parametrize(
+    "answer, error, message",
+    [
+        (lambda lm: lm.numpy(), TypeError, r"must return a \(1, 68, 2\) tensor of pixel landmarks .*got ndarray"),
+        (lambda lm: [lm[0]], TypeError, r"must return a \(1, 68, 2\) tensor of pixel landmarks .*got list"),
+        (lambda lm: lm > 0, TypeError, r"must return real pixel coordinates .*got torch.bool"),
+        (lambda lm: lm[0], ValueError, r"must return \(1, 68, 2\) landmarks \(NaN rows: no face\), got \(68, 2\)"),
+    ],
+    ids=["numpy", "list", "bool", "unbatched"],
+)
+def test_a_detector_that_breaks_its_contract_is_named(model, three_streams, answer, error, message):
+    """A detector must answer ``(B', K, 2)`` pixel landmarks. Bool ones were fitted as pixels 0 and 1 (a fit that
+    failed, the stream silently left LOST); a numpy array or a list said "must return (1, 68, 2) landmarks ...,
+    got ndarray", as if its shape were wrong."""
+    frames, lm = three_streams
+    missing = lm[:1].clone()
+    missing[0] = float("nan")  # the stream starts FAILED: the detector is asked at its first recovery attempt
+    tracker = FaceTracker(CFG, model, detector=lambda batch: answer(lm[:1].expand(batch.shape[0], -1, -1)))
+    tracker.initialise(frames[:1, 0], missing)
+    with pytest.raises(error, match=message):
+        for t in range(1, frames.shape[1]):
+            tracker(frames[:1, t])

@@ -684,8 +684,16 @@ def _texture_update(
 
 
 def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
-    if not isinstance(landmarks, Tensor) or landmarks.dim() != 3 or tuple(landmarks.shape) != (count, k, 2):
-        got = tuple(landmarks.shape) if isinstance(landmarks, Tensor) else type(landmarks).__name__
+    """Refuse what a :data:`LandmarkDetector` answered for ``count`` frames unless it is ``(count, k, 2)`` real pixel
+    landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream silently left LOST), and a numpy
+    array or a list was told its shape was wrong."""
+    if not isinstance(landmarks, Tensor):
+        raise TypeError(f"the detector must return a ({count}, {k}, 2) tensor of pixel landmarks (NaN rows: no "
+                        f"face), got {type(landmarks).__name__}")  # fmt: skip
+    if landmarks.dtype == torch.bool or landmarks.is_complex():
+        raise TypeError(f"the detector must return real pixel coordinates (float or int), got {landmarks.dtype}")
+    if tuple(landmarks.shape) != (count, k, 2):
+        got = tuple(landmarks.shape)
         raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
     return landmarks
 
