@@ -44,7 +44,9 @@ def __getattr__(name: str) -> Any:
         value = getattr(importlib.import_module(_SOURCES[name]), name)
         globals()[name] = value
         return value
-    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+    # (an identifier alone: hasattr(torchface, "foo.bar") raised ModuleNotFoundError, and "tracker.step" gave
+    # torchface.tracker.step, as no attribute lookup should)
+    if name.isidentifier() and not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
         return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 

@@ -379,8 +379,10 @@ def test_bad_inputs_raise(model):
     lm = torch.zeros(1, 68, 2, dtype=D)
     with pytest.raises(ValueError, match=r"\(B, 68, 2\)"):
         fit_landmarks(model, torch.zeros(1, 68, 3, dtype=D), CAM)
-    with pytest.raises(ValueError, match=r"\(B, 68, 2\)"):
+    with pytest.raises(ValueError, match=r"\(B, 68, 2\) .*got \(68, 2\): one sample's, landmarks_px\[None\]$"):
         fit_landmarks(model, torch.zeros(68, 2, dtype=D), CAM)
+    with pytest.raises(ValueError, match=r"got \(1, 2, 68\) \(x, y rows: landmarks_px.transpose\(1, 2\)\)$"):
+        fit_landmarks(model, torch.zeros(1, 2, 68, dtype=D), CAM)
     with pytest.raises(ValueError, match=r"\(B, 5, 2\)"):
         fit_landmarks(model, lm, CAM, landmark_indices=torch.arange(5))
     with pytest.raises(ValueError, match=r"weights must be \(B, K\)"):
@@ -396,6 +398,9 @@ def test_bad_inputs_raise(model):
             fit_landmarks(model, lm, CAM, bad)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="intrinsics must be"):
         fit_landmarks(model, lm, None)  # type: ignore[arg-type]
+    for bad in (None, {"mean": 1}):  # (an AttributeError: 'NoneType' object has no attribute 'num_landmarks')
+        with pytest.raises(TypeError, match=f"model must be a FaceModel, got {type(bad).__name__}"):
+            fit_landmarks(bad, lm, CAM)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="shape_bound"):
         FitConfig(shape_bound=0.0)
     with pytest.raises(ValueError, match="max_iterations"):

@@ -808,6 +808,19 @@ def test_estimate_confidence_refuses_frames_of_another_batch_or_scale(model, gen
         estimate_confidence(model, CFG, state, frames[:, 1] * 255.0)
 
 
+def test_estimate_confidence_names_a_model_that_is_not_the_states(model, gentle):
+    """A model in another dtype than the state's, or of other units, is refused as the steps refuse it
+    (check_state_model): a float32 state scored with a float64 model said "shape coefficients must have the model's
+    dtype torch.float64 ... (convert the model with FaceModel.to(dtype=...))", which pointed at the model alone."""
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    with pytest.raises(TypeError, match="the state is torch.float32 on cpu, the model torch.float64 on cpu"):
+        estimate_confidence(model.to(dtype=torch.float64), CFG, state, frames[:, 1])
+    fewer_shape = replace(model, shape_units=model.shape_units[:5], shape_names=model.shape_names[:5])
+    with pytest.raises(ValueError, match="a model of 14 shape and 11 animation units, this model has 5 and 11"):
+        estimate_confidence(fewer_shape, CFG, state, frames[:, 1])
+
+
 def test_initialise_managed_names_frames_that_are_not_a_tensor(model, gentle):
     """A numpy frame: the TypeError initialise and the steps give (it was "'numpy.ndarray' object has no attribute
     'detach'" from the managed start, before any check)."""

@@ -300,6 +300,21 @@ def test_a_tracker_adds_coarser_levels_for_a_large_face_unless_told_not_to(model
         tracker.pyramid = True
 
 
+def test_landmarks_of_weight_zero_do_not_choose_the_pyramid(model):
+    """``weights`` 0 means "ignore" (the fit leaves such a point out), but ``pyramid="auto"`` measured the face with
+    every finite landmark: two points of weight 0 in the corners of the 640x360 frame gave its 190-pixel face five
+    pyramid levels instead of three. They are now left out, as NaN points are."""
+    frames, lm, _ = sideways_clip(640, 360, n=1)
+    stray = lm.clone()
+    stray[0], stray[8] = torch.tensor([639.0, 359.0]), torch.tensor([0.0, 0.0])
+    weights = torch.ones(1, 68)
+    weights[0, [0, 8]] = 0.0
+    tracker = FaceTracker(model=model, refine_first=None)
+    tracker.initialise(frames, stray[None], weights=weights)
+    assert tracker.state.num_levels == tracker.tracking_config.num_levels == 3
+    assert tracker.tracking_config is tracker.config
+
+
 def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_is(model):
     """``tracker.config = replace(tracker.tracking_config, ...)`` (the settings the sequence runs with, one changed)
     mid-sequence on an HD face: the levels initialise added were added to it once more (the state's 4 levels became
@@ -445,3 +460,30 @@ def test_a_stream_whose_start_failed_is_never_reported_tracked(model, three_stre
     # Initialised again (from good landmarks), the stream tracks.
     tracker.initialise(frames[:, 3], three_streams[1])
     assert bool(tracker(frames[:, 4]).success.all())
+
+
+# ----------------------------------------------------------------------------------------------- detector
+
+
+@pytest.mark.parametrize(
+    "answer, error, message",
+    [
+        (lambda lm: lm.numpy(), TypeError, r"must return a \(1, 68, 2\) tensor of pixel landmarks .*got ndarray"),
+        (lambda lm: [lm[0]], TypeError, r"must return a \(1, 68, 2\) tensor of pixel landmarks .*got list"),
+        (lambda lm: lm > 0, TypeError, r"must return real pixel coordinates .*got torch.bool"),
+        (lambda lm: lm[0], ValueError, r"must return \(1, 68, 2\) landmarks \(NaN rows: no face\), got \(68, 2\)"),
+    ],
+    ids=["numpy", "list", "bool", "unbatched"],
+)
+def test_a_detector_that_breaks_its_contract_is_named(model, three_streams, answer, error, message):
+    """A detector must answer ``(B', K, 2)`` pixel landmarks. Bool ones were fitted as pixels 0 and 1 (a fit that
+    failed, the stream silently left LOST); a numpy array or a list said "must return (1, 68, 2) landmarks ...,
+    got ndarray", as if its shape were wrong."""
+    frames, lm = three_streams
+    missing = lm[:1].clone()
+    missing[0] = float("nan")  # the stream starts FAILED: the detector is asked at its first recovery attempt
+    tracker = FaceTracker(CFG, model, detector=lambda batch: answer(lm[:1].expand(batch.shape[0], -1, -1)))
+    tracker.initialise(frames[:1, 0], missing)
+    with pytest.raises(error, match=message):
+        for t in range(1, frames.shape[1]):
+            tracker(frames[:1, t])

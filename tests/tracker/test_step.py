@@ -502,8 +502,8 @@ def test_initialise_refuses_frames_on_another_value_scale(model, two_streams):
         initialise(model, BASE, nan_255, lm, cam)
     inf = first.clone()
     inf[1, 2, 5, 5] = float("inf")
-    with pytest.raises(ValueError, match=r"to inf"):
-        initialise(model, BASE, inf, lm, cam)
+    with pytest.raises(ValueError, match=r"to inf \(infinite pixels: mark missing ones NaN\)$"):  # (was "divide by
+        initialise(model, BASE, inf, lm, cam)  # 255", as if the frame were 0-255)
     overshoot = first.clone()
     overshoot[0, 0, 0, 0], overshoot[1, 0, 0, 0] = 1.04, -0.03  # a corner pixel, outside the face
     nan = first.clone()
@@ -681,6 +681,12 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
     cam, lm = Intrinsics.default(W, H), landmarks_of(gts)
     with pytest.raises(ValueError, match="one set per frame"):
         initialise(model, BASE, frames[:, 0], lm[:1], cam)
+    # one stream's (68, 2) set, as a landmark file holds it, and (B, 2, 68) x and y rows: told how to make them
+    one = r"with B = 1 \(one set per frame\), got \(68, 2\): one stream's, landmarks_px\[None\]$"
+    with pytest.raises(ValueError, match=one):
+        initialise(model, BASE, frames[:1, 0], lm[0], cam)
+    with pytest.raises(ValueError, match=r"got \(2, 2, 68\) \(x, y rows: landmarks_px.transpose\(1, 2\)\)$"):
+        initialise(model, BASE, frames[:, 0], lm.transpose(1, 2), cam)
     # Each of these used to be accepted, then fail later (mid-stream at the online start's re-anchoring, or
     # deep inside torch) with a message that did not say what was wrong.
     with pytest.raises(ValueError, match="at least one stream"):
@@ -1381,6 +1387,24 @@ def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
         pyramid_for_faces(base, torch.zeros(68, 2), (480, 640))
 
 
+def test_pyramid_for_faces_leaves_out_the_points_the_fit_ignores():
+    """A landmark of weight 0 (or negative, NaN, infinite: what the fit ignores) counted toward the face's size:
+    a detector's stray point of confidence 0 made a 200-pixel face look 1000 pixels wide, with two more levels."""
+    from torchface.tracker import pyramid_for_faces
+
+    lm = torch.tensor([[[10.0, 20.0], [210.0, 120.0], [1010.0, 20.0]]] * 4)  # a 200-pixel face and a stray point
+    base = TrackerConfig()
+    assert pyramid_for_faces(base, lm, (1080, 1920)).num_levels == 5  # (no weights: the stray point counts)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        weights = torch.tensor([[1.0, 1.0, bad]] * 4)
+        assert pyramid_for_faces(base, lm, (1080, 1920), weights) is base, bad
+    assert pyramid_for_faces(base, lm, (1080, 1920), torch.tensor([[True, True, False]] * 4)) is base
+    with pytest.raises(ValueError, match=r"weights must be \(4, 3\) \(B, K\), got \(4, 2\)"):
+        pyramid_for_faces(base, lm, (1080, 1920), torch.ones(4, 2))
+    with pytest.raises(TypeError, match="weights must be a .B, K. tensor or None, got list"):
+        pyramid_for_faces(base, lm, (1080, 1920), [[1.0, 1.0, 0.0]] * 4)
+
+
 def _rendered_clip(w: int, h: int, n: int, move_mm: float, distance_mm: float = 450.0):
     """A CANDIDE-3 clip at ``w x h``: 10 degrees of yaw and ``move_mm`` sideways over ``n`` frames at
     ``distance_mm``; ``frames (n, 3, h, w)`` float32 and the ground truth."""
@@ -1439,17 +1463,24 @@ def test_a_frame_of_another_size_is_named_width_by_height(model, two_streams):
     [
         (lambda f: to_gray(f)[0, 0], r"one gray frame: frames\[None, None\]"),
         (lambda f: to_gray(f)[:, 0], r"gray frames \(B, H, W\): frames\[:, None\]"),
+        (lambda f: f[0], r"one frame \(C, H, W\): frames\[None\]"),
+        (lambda f: f[0].permute(1, 2, 0),
+         r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]\)$"),
+        (lambda f: (f[0].permute(1, 2, 0) * 255).round().to(torch.uint8),  # (an image from OpenCV or PIL)
+         r"\(one channels-last frame \(H, W, C\): frames.permute\(2, 0, 1\)\[None\]; uint8 frames: pass"),
+        (lambda f: to_gray(f)[:, 0].expand(5, -1, -1), r"\(gray frames \(B, H, W\): frames\[:, None\]\)$"),
         (lambda f: f.permute(0, 2, 3, 1), r"channels last \(B, H, W, C\): frames.permute\(0, 3, 1, 2\)"),
         (lambda f: torch.cat([f, torch.ones_like(f[:, :1])], 1), r"RGBA: drop the alpha, frames\[:, :3\]"),
         (lambda f: (f * 65535).round().to(torch.uint16), r"16-bit frames: pass frames.float\(\) / 65535"),
         (lambda f: (f * 255).round().to(torch.uint8), r"uint8 frames: pass frames.float\(\) / 255"),
     ],
-    ids=["HW", "BHW", "BHWC", "RGBA", "uint16", "uint8"],
+    ids=["HW", "BHW", "CHW", "HWC", "HWC-uint8", "5HW", "BHWC", "RGBA", "uint16", "uint8"],
 )
 def test_refused_frames_say_how_to_make_them(two_streams, make, hint):
     """Gray (H, W) or (B, H, W), channels-last, RGBA and 16-bit frames were refused with "frames must be (B, 3, H,
     W) float in [0, 1], got ..." alone (only uint8 had a hint), which also left out the (B, 1, H, W) gray frames
-    that are accepted."""
+    that are accepted. One (H, W, 3) image, as OpenCV, PIL and numpy hold it, was told "one frame (C, H, W):
+    frames[None]", which made a (1, H, W, 3) frame; it is now told to permute it."""
     frames, gts = two_streams
     bad = make(frames[:1, 0].float())
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float in \[0, 1\], got .*" + hint):

@@ -165,8 +165,9 @@ def _dlib() -> Detector:
 def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"], "Tensor"]:
     """``detector`` (one image at a time) as a batched re-initialisation callback
     (:data:`~torchface.tracker.managed.LandmarkDetector`, for :class:`~torchface.FaceTracker` ``detector=``):
-    ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks, a NaN row where it found no face
-    (gray ``(B, 1, H, W)`` frames, which the tracker takes, reach ``detector`` as gray RGB images).
+    ``frames (B, 3, H, W)`` float in [0, 1] -> ``(B, 68, 2)`` pixel landmarks (float64 for float64 frames, else
+    float32), a NaN row where it found no face (gray ``(B, 1, H, W)`` frames, which the tracker takes, reach
+    ``detector`` as gray RGB images).
     ``name``: the detector's, for error messages. It pickles when ``detector`` does (``load_detector``'s do), so
     that a tracker holding it can be checkpointed (``torch.save(tracker)``).
 
@@ -235,7 +236,10 @@ class _Batched:
                              f"{tuple(frames.shape)} {frames.dtype}")  # fmt: skip
         if frames.shape[1] == 1:  # gray frames (the tracker takes them): the per-image detector takes RGB images
             frames = frames.expand(-1, 3, -1, -1)
-        out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=frames.dtype, device=frames.device)
+        # At least float32 (float64 frames: float64): in half-precision frames' dtype the landmarks were rounded to
+        # its grid (bfloat16: 2 px steps above 256, 4 above 512)
+        dtype = torch.promote_types(frames.dtype, torch.float32)
+        out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=dtype, device=frames.device)
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
             # C-contiguous, as an image from OpenCV or PIL is (a view of the (3, H, W) frame was not: OpenCV
@@ -253,7 +257,7 @@ class _Batched:
                 self.warned = warned or points is None  # said once: not at every detection of a face at the edge
             if points is not None:
                 # (a view with a negative stride, yx[:, ::-1], is refused by torch)
-                out[b] = torch.as_tensor(np.ascontiguousarray(points), dtype=frames.dtype, device=frames.device)
+                out[b] = torch.as_tensor(np.ascontiguousarray(points), dtype=dtype, device=frames.device)
         return out
 
 

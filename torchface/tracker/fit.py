@@ -345,7 +345,10 @@ def _check_landmarks(
     missing, which :func:`fit_landmarks` reports as FAILED)."""
     check_landmark_type(landmarks_px, f"(B, {k}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
-        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {tuple(landmarks_px.shape)}")
+        got = tuple(landmarks_px.shape)
+        hint = (": one sample's, landmarks_px[None]" if got == (k, 2)
+                else " (x, y rows: landmarks_px.transpose(1, 2))" if got[1:] == (2, k) else "")  # fmt: skip
+        raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}{hint}")
     B = landmarks_px.shape[0]
     if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError
         raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}")
@@ -489,7 +492,11 @@ def fit_landmarks(
         landmarks_px: ``(B, K, 2)`` pixel positions of the model's landmarks (all of them, or those listed in
             ``landmark_indices``). A NaN or infinite coordinate marks a missing point.
         intrinsics: the camera.
-        weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones.
+        weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones. They multiply
+            each landmark's squared pixel error against the priors, so their scale counts: 1 is what the priors
+            (:class:`FitConfig`) are set for, and weights all halved make the priors count twice as much (2 px
+            noisy landmarks on a 320x240 face: 0.03-0.08 degrees and 0.2-0.3 mm from the fit with ones; all 0.01:
+            0.4-0.6 degrees and 3-4 mm).
         landmark_indices: ``(K,)`` int64 rows of the model's landmark table, or None for all.
         config: :class:`FitConfig`.
 
@@ -512,7 +519,11 @@ def fit_landmarks(
         finite landmarks of positive weight (all NaN: no face found in its frame) is FAILED, at a placeholder
         estimate (:func:`_missing_fit`: frontal, centred on the principal point, a quarter of the frame wide,
         mean shape, ``rms_px`` 0); the others are fitted as they are alone (it raised a ValueError for the batch).
+        Not differentiable: the solve runs without autograd, so no gradient reaches ``landmarks_px`` or
+        ``weights`` (the fit's tensors do not require grad).
     """
+    if not isinstance(model, FaceModel):  # None was an AttributeError ('NoneType' ... 'num_landmarks')
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     if not isinstance(config, FitConfig):  # None was an AttributeError ('NoneType' ... 'fit_expression')
         raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices

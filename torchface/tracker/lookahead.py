@@ -58,7 +58,7 @@ from torchface.tracker.fit import (
     FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, prior_scale,
     shape_precisions, shape_prior_vector,
 )
-from torchface.tracker.step import TrackerConfig, gray_pyramid, level_intrinsics
+from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics
 
 __all__ = ["LookaheadConfig", "select_keyframes", "view_yaw_deg", "refine_first_fit", "lookahead_fit"]
 
@@ -737,6 +737,9 @@ def lookahead_fit(
     """
     from torchface.tracker.managed import initialise_managed, managed_step
 
+    check_api_types(model, tracker_config)  # (None was an AttributeError: 'NoneType' object has no attribute 'dtype')
+    if not isinstance(config, LookaheadConfig):
+        raise TypeError(f"config must be a LookaheadConfig, got {type(config).__name__}")
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
         raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 5 or frames.shape[1] < 2 or not frames.is_floating_point():  # uint8 went on as 0-255 floats

@@ -114,6 +114,7 @@ from torchface.tracker.step import (
     check_api_types,
     check_frames,
     check_initialise_inputs,
+    check_state_model,
     check_step_inputs,
     clamp_projection,
     fail_templates,
@@ -542,6 +543,7 @@ def estimate_confidence(
     """
     check_api_types(model, config, state, with_state=True)
     ms = _management(state)
+    check_state_model(model, state)  # (as the steps: another dtype said "convert the model", other units a size error)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     B = state.params.shape[0]
     if frames.shape[0] != B:  # the native kernel read past the state's streams (a segmentation fault)
@@ -682,8 +684,16 @@ def _texture_update(
 
 
 def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
-    if not isinstance(landmarks, Tensor) or landmarks.dim() != 3 or tuple(landmarks.shape) != (count, k, 2):
-        got = tuple(landmarks.shape) if isinstance(landmarks, Tensor) else type(landmarks).__name__
+    """Refuse what a :data:`LandmarkDetector` answered for ``count`` frames unless it is ``(count, k, 2)`` real pixel
+    landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream silently left LOST), and a numpy
+    array or a list was told its shape was wrong."""
+    if not isinstance(landmarks, Tensor):
+        raise TypeError(f"the detector must return a ({count}, {k}, 2) tensor of pixel landmarks (NaN rows: no "
+                        f"face), got {type(landmarks).__name__}")  # fmt: skip
+    if landmarks.dtype == torch.bool or landmarks.is_complex():
+        raise TypeError(f"the detector must return real pixel coordinates (float or int), got {landmarks.dtype}")
+    if tuple(landmarks.shape) != (count, k, 2):
+        got = tuple(landmarks.shape)
         raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
     return landmarks
 
@@ -924,7 +934,7 @@ def managed_step(
         model: the face model used at initialisation.
         config: :class:`~torchface.tracker.step.TrackerConfig`; ``config.template`` sets the management.
         state: from :func:`initialise_managed` or the previous step.
-        frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+        frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) the next frame of each stream, float in [0, 1].
         detector: optional :data:`LandmarkDetector` used to re-initialise lost streams (called with the
             frames of the streams attempting a recovery only, and once more with those of the streams that start
             afresh: never started, or ``TemplateConfig.restart_after_unmatched``); None searches the mosaic instead.

@@ -250,7 +250,7 @@ class FaceTracker(nn.Module):
         """Start tracking from the first frames and their landmarks.
 
         Args:
-            frames: ``(B, 3, H, W)`` float in [0, 1] (values outside
+            frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in [0, 1] (values outside
                 :data:`~torchface.tracker.step.FRAME_VALUE_RANGE` are refused: divide 0-255 frames by 255).
             landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; NaN or
                 infinite: missing. A stream whose start fails (fewer than 4: no face found in its frame; landmarks
@@ -258,7 +258,8 @@ class FaceTracker(nn.Module):
                 FAILED and holds its finite estimate at confidence 0, LOST until the ``detector`` finds its face
                 (FAILED at every frame without template management); the others track as without it.
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
-            weights: ``(B, K)`` landmark confidences (0 = ignore) or None.
+            weights: ``(B, K)`` landmark confidences (0 = ignore; their scale weighs the landmarks against the
+                fit's priors, 1 as they are set for: :func:`~torchface.tracker.fit.fit_landmarks`) or None.
             fit: the first frames' fit when already made (e.g. by
                 :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks. The online start
                 (``refine_first``) still re-anchors from it once the head turns: ``torchface track --lookahead``
@@ -280,7 +281,7 @@ class FaceTracker(nn.Module):
         config = self.config
         if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
             check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
-            config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width))
+            config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width), weights)
         self._state, result = initialise_managed(
             self.model, config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )
@@ -289,7 +290,8 @@ class FaceTracker(nn.Module):
 
     @torch.no_grad()
     def forward(self, frames: Tensor) -> TrackResult:
-        """Track the next frame of every stream: ``(B, 3, H, W)`` -> :class:`TrackResult`."""
+        """Track the next frame of every stream: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray ->
+        :class:`TrackResult`."""
         if self._state is None:
             raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
         config = self.tracking_config

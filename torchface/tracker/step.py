@@ -421,14 +421,19 @@ class TrackResult:
             when that fit estimates no expression.
         facs: ``(B, n_facs)`` FACS AU values linked to ``expression``; facs_names: their names.
         illumination: ``(B, L)`` illumination parameters; illumination_names: their names.
-        status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level;
-        cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest level.
+        status: ``(B,)`` int64 :class:`TrackStatus`; iterations: ``(B,)`` at the finest level (0 from
+        :func:`initialise`); cost: ``(B,)`` RMS residual (gray levels in [0, 1]) over the valid points at the finest
+        level (0 from :func:`initialise`).
         num_points: ``(B,)`` valid template points at the finest level.
         confidence: ``(B,)`` in ``[0, 1]``. From :func:`track_step` alone: the residual confidence (fraction of
             valid points times ``exp(-(rms / 0.1)^2)``); with template management
             (:func:`~torchface.tracker.managed.managed_step`): the dissimilarity confidence of the normalised
-            face (paper Section 4.1), 0 for a FAILED sample.
-        residual_confidence: ``(B,)`` the residual confidence (set by template management; None otherwise).
+            face (paper Section 4.1), 0 for a FAILED sample. From :func:`initialise` (the first frame): the
+            landmark fit's ``exp(-rms_px / 5)`` (:attr:`~torchface.tracker.fit.LandmarkFit.rms_px`, pixels), 0 for
+            a FAILED stream; from :func:`~torchface.tracker.managed.initialise_managed`: the first frame's
+            dissimilarity confidence against its own reference, that fit's in ``residual_confidence``.
+        residual_confidence: ``(B,)`` the residual confidence (set by template management; None otherwise; the
+            first frame's: its landmark fit's, above).
         dissimilarity: ``(B,)`` mean fiducial-patch displacement on the normalised face (its pixels; set by
             template management, NaN where it was not measured; None otherwise).
         mosaic_entry: ``(B,)`` int64 the mosaic entry the frame was aligned against (0 = the reference; set by
@@ -688,6 +693,12 @@ def _frame_hint(frames: Tensor) -> str:
     shape = tuple(frames.shape)
     if frames.dim() == 2:
         hints.append("one gray frame: frames[None, None]")
+    elif frames.dim() == 3 and shape[0] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        # an image as OpenCV, PIL and numpy hold it (it was told "one frame (C, H, W): frames[None]", which gave a
+        # (1, H, W, C) frame)
+        hints.append("one channels-last frame (H, W, C): frames.permute(2, 0, 1)[None]")
+    elif frames.dim() == 3 and shape[0] not in (1, 3, 4):
+        hints.append("gray frames (B, H, W): frames[:, None]")
     elif frames.dim() == 3:
         hints.append("one frame (C, H, W): frames[None]; gray frames (B, H, W): frames[:, None]")
     elif frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
@@ -749,6 +760,8 @@ def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
             lo, hi = (float(v) for v in torch.aminmax(seen.nan_to_num(nan=0.5, posinf=pos, neginf=neg)))
         if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
             hint = " (0-255 values? divide by 255)" if hi > FRAME_VALUE_RANGE[1] and lo >= FRAME_VALUE_RANGE[0] else ""
+            if not (math.isfinite(lo) and math.isfinite(hi)):  # (an infinite pixel was "0-255 values? divide by 255")
+                hint = " (infinite pixels: mark missing ones NaN)"
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
@@ -796,10 +809,14 @@ def check_initialise_inputs(
     check_landmark_type(landmarks_px, f"({B}, {K}, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[0] != B:
         got = tuple(landmarks_px.shape)
-        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}")
+        # (a (K, 2) set for one stream, as a landmark file holds it, was told no more than that)
+        hint = ": one stream's, landmarks_px[None]" if B == 1 and got == (K, 2) else ""
+        raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
+        # ((B, 2, K): x and y rows, as some detectors give them)
+        hint = " (x, y rows: landmarks_px.transpose(1, 2))" if tuple(landmarks_px.shape[1:]) == (2, K) else ""
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
-                         f"got {tuple(landmarks_px.shape)}")  # fmt: skip
+                         f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
         raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
     if weights is not None and tuple(weights.shape) != (B, K):
@@ -813,7 +830,9 @@ def check_initialise_inputs(
 PYRAMID_REFERENCE_FACE_PX: float = 180.0
 
 
-def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[int, int]) -> TrackerConfig:
+def pyramid_for_faces(
+    config: TrackerConfig, landmarks_px: Tensor, size: tuple[int, int], weights: Tensor | None = None
+) -> TrackerConfig:
     """``config`` with coarser pyramid levels added where the faces are larger than the pyramid is made for.
 
     A frame-to-frame motion is followed when the coarsest level sees it as a few pixels, and a face's motion in
@@ -834,6 +853,10 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
             of the batch decides (its streams share one pyramid): none is made smaller than the reference at the
             coarsest level.
         size: ``(H, W)`` of the frames.
+        weights: ``(B, K)`` the landmarks' weights, or None: a point the landmark fit ignores (weight 0, negative,
+            NaN or infinite: :func:`~torchface.tracker.fit.landmark_targets`) is left out of its face's size, as a
+            missing one is (:class:`~torchface.tracker.FaceTracker` passes its ``weights``: two points of weight 0 at
+            the corners of a 640x360 frame gave a 190-pixel face five levels instead of three).
 
     Returns:
         ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
@@ -848,8 +871,15 @@ def pyramid_for_faces(config: TrackerConfig, landmarks_px: Tensor, size: tuple[i
     check_landmark_type(landmarks_px, "(B, K, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
         raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
+    if weights is not None and not isinstance(weights, Tensor):
+        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}")
+    if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
+        raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
     points = landmarks_px.detach().to(torch.float64)
     seen = torch.isfinite(points).all(-1, keepdim=True)  # (B, K, 1)
+    if weights is not None:  # (the points the fit leaves out: landmark_targets)
+        w = weights.detach().to(dtype=torch.float64, device=points.device)
+        seen = seen & (torch.isfinite(w) & (w > 0)).unsqueeze(-1)
     lo = torch.where(seen, points, math.inf).amin(1)
     hi = torch.where(seen, points, -math.inf).amax(1)
     faces = (hi - lo).amax(-1)  # (B,) the larger side of each box; -inf or NaN without two points
@@ -930,12 +960,13 @@ def initialise(
     Args:
         model: the face model.
         config: :class:`TrackerConfig`.
-        frames: ``(B, 3, H, W)`` first frames, float in [0, 1].
+        frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) first frames, float in [0, 1].
         landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing). A stream with fewer than
             :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
             alone, FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose.
         intrinsics: camera of ``frames``.
-        weights: ``(B, K)`` landmark confidences or None.
+        weights: ``(B, K)`` landmark confidences (0 = ignore; their scale counts against the fit's priors:
+            :func:`~torchface.tracker.fit.fit_landmarks`) or None.
         fit: the first frames' fit when already made (batch ``B``; e.g. refined by
             :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
 
@@ -1091,7 +1122,7 @@ def track_step(
         model: the face model used at initialisation.
         config: :class:`TrackerConfig`.
         state: from :func:`initialise` or the previous step.
-        frames: ``(B, 3, H, W)`` the next frame of each stream, float in [0, 1].
+        frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) the next frame of each stream, float in [0, 1].
         conservative: optional ``(B,)`` bool, streams whose refinement pass uses ``expression_prior_precision``
             instead of ``refine_prior_precision``, and whose expression prior stays Gaussian
             (no :attr:`TrackerConfig.expression_sparsity`) in both passes; template management passes its lost
