@@ -244,6 +244,13 @@ def test_mosaic_storage_grows_by_doubling_in_chunks_of_at_most_four_up_to_max_ca
     assert grow(None, 17)[1][11:] == [16, 16, 16, 16, 20, 20]  # no limit: chunks of 4 on
     assert grow(5, 6)[1] == [2, 4, 4, 5, 6, 7] and grow(3, 3)[1] == [2, 3, 4]
     assert grow(1, 2)[1] == [2, 3]  # a limit below what the entries need: what they need
+    # a count or None: "16" was "'<' not supported between 'str' and 'int'" from inside the growth, 0 or True taken
+    m = new_mosaic(_fake_templates(B, N, 0), euler_to_matrix(ypr0), ypr0, _fake_reference(B, seed=0), cfg)
+    args = (m, stream, _fake_templates(1, N, 1), euler_to_matrix(ypr0[:1]), pose_bins(ypr0[:1], cfg)[0],
+            _fake_reference(1, seed=1))  # fmt: skip
+    for bad, error in (("16", TypeError), (2.0, TypeError), (True, TypeError), (0, ValueError)):
+        with pytest.raises(error, match=r"max_capacity must be an int >= 1 or None, got"):
+            add_entries(*args, max_capacity=bad)
 
 
 def test_add_entries_shares_storage_only_where_no_other_mosaic_wrote():

@@ -463,13 +463,16 @@ def test_lookahead_fit_names_numpy_and_uint8_frames(model):
 def test_lookahead_fit_names_a_model_or_config_of_another_type(model):
     """None (or a dict) for the model, the tracker's config or the look-ahead's config raised AttributeErrors
     ('NoneType' object has no attribute 'dtype' / 'fit' / 'max_frames'), where the other functional entry points
-    (initialise, managed_step, ...) name them in a TypeError."""
+    (initialise, managed_step, ...) name them in a TypeError. The tracker's config is named as this function names
+    it, ``tracker_config``: "config must be a TrackerConfig" named the look-ahead's ``config`` (a LookaheadConfig
+    given in its place was told it was the one to change)."""
     frames, cam = torch.rand(1, 2, 3, H, W), Intrinsics.default(W, H)
     lm = torch.zeros(1, model.num_landmarks, 2)
     for args, kwargs, message in (
-        ((None, CFG), {}, "model must be a FaceModel, got NoneType"),
-        ((model, None), {}, "config must be a TrackerConfig, got NoneType"),
-        ((model, CFG), {"config": {"yaw_deg": 10.0}}, "config must be a LookaheadConfig, got dict"),
+        ((None, CFG), {}, "^model must be a FaceModel, got NoneType$"),
+        ((model, None), {}, "^tracker_config must be a TrackerConfig, got NoneType$"),
+        ((model, LookaheadConfig()), {}, "^tracker_config must be a TrackerConfig, got LookaheadConfig$"),
+        ((model, CFG), {"config": {"yaw_deg": 10.0}}, "^config must be a LookaheadConfig, got dict$"),
     ):
         with pytest.raises(TypeError, match=message):
             lookahead_fit(*args, frames, lm, cam, **kwargs)

@@ -56,7 +56,7 @@ from torch import Tensor
 
 from torchface.appearance.illumination import remove_illumination
 from torchface.backend import Backend, use_native
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_real
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_optional_int, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -624,6 +624,8 @@ def add_entries(
     they are copied first (copying the whole mosaic took 5 ms per added entry at 32 streams). So a second entry
     added from the same ``mosaic`` (a branch) copies rather than overwrite the first.
     """
+    # (a count: "16" was a TypeError from inside the growth, "'<' not supported between instances of 'str' and 'int'")
+    max_capacity = check_optional_int(max_capacity, "max_capacity", 1)
     with torch.inference_mode(False):
         return _add_entries(mosaic, streams, templates, rotation, bins, reference, max_capacity)
 

@@ -737,7 +737,9 @@ def lookahead_fit(
     """
     from torchface.tracker.managed import initialise_managed, managed_step
 
-    check_api_types(model, tracker_config)  # (None was an AttributeError: 'NoneType' object has no attribute 'dtype')
+    # (None was an AttributeError: 'NoneType' object has no attribute 'dtype'; a TrackerConfig is "tracker_config"
+    # here: "config must be a TrackerConfig" named this function's LookaheadConfig)
+    check_api_types(model, tracker_config, config_name="tracker_config")
     if not isinstance(config, LookaheadConfig):
         raise TypeError(f"config must be a LookaheadConfig, got {type(config).__name__}")
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"

@@ -773,16 +773,20 @@ def check_model_precision(model: FaceModel) -> None:
                         "matrices): load it in float32 (load_candide3(dtype=torch.float32)) or use torch.autocast")  # fmt: skip
 
 
-def check_api_types(model: object, config: object, state: object = None, *, with_state: bool = False) -> None:
+def check_api_types(
+    model: object, config: object, state: object = None, *, with_state: bool = False, config_name: str = "config"
+) -> None:
     """Refuse a ``model`` that is not a :class:`FaceModel`, a ``config`` that is not a :class:`TrackerConfig` and
     (``with_state``) a ``state`` that is not a :class:`TrackerState`, by name: the functional entry points
     (:func:`initialise`, :func:`track_step`, :func:`~torchface.tracker.managed.managed_step`, ...) raised an
-    AttributeError ('NoneType' object has no attribute 'intrinsics') where ``FaceTracker`` names them."""
+    AttributeError ('NoneType' object has no attribute 'intrinsics') where ``FaceTracker`` names them.
+    ``config_name``: the caller's name for ``config`` (``lookahead_fit``'s is ``tracker_config``, its ``config`` a
+    :class:`~torchface.tracker.lookahead.LookaheadConfig`)."""
     if not isinstance(model, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     check_model_precision(model)
     if not isinstance(config, TrackerConfig):
-        raise TypeError(f"config must be a TrackerConfig, got {type(config).__name__}")
+        raise TypeError(f"{config_name} must be a TrackerConfig, got {type(config).__name__}")
     if with_state and not isinstance(state, TrackerState):
         raise TypeError(f"state must be a TrackerState (from initialise or a previous step), got {type(state).__name__}")
 
