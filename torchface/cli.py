@@ -332,11 +332,13 @@ def _run_track(
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = None
+    stopped: tuple[str, ...] = ()
     try:
         try:
             with _warnings_as_lines(display):
                 summaries = track_videos(videos, config, progress=display)
         except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
+            stopped = exc.stopped
             if display is not None:
                 display.flush()
             _print_summary(exc.summaries, sys.stdout, exc.stopped)
@@ -345,7 +347,12 @@ def _run_track(
             display.flush()  # the last reports, when a redraw was due later
         _print_summary(summaries, sys.stdout)
     except KeyboardInterrupt as exc:  # (the job says what it leaves; interrupted once it has returned: complete)
-        if summaries is not None and getattr(exc, "kept", None) is None:
+        if getattr(exc, "kept", None) is None and stopped:  # (it said "nothing was written")
+            partial = ", ".join(os.path.join(str(out_dir), f"{name}.csv.partial") for name in stopped)
+            whose = "its" if len(stopped) == 1 else "their"
+            kept = f"every video is complete but {', '.join(stopped)}, stopped at a frame that could not be read: "
+            exc.kept = kept + f"{whose} rows are kept in {partial}"  # type: ignore[attr-defined]
+        elif summaries is not None and getattr(exc, "kept", None) is None:
             exc.kept = "every video is complete"  # type: ignore[attr-defined]
         raise
     return 0

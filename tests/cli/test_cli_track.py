@@ -2976,3 +2976,30 @@ def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip
     out = tmp_path / "out"
     assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 130
     assert _interrupt_message(capsys) == "every video is complete" and (out / "short.json").is_file()
+
+
+def test_interrupted_while_the_summary_of_a_stopped_run_is_printed_names_the_partial_csv(clip, tmp_path, monkeypatch,
+                                                                                        capsys):  # fmt: skip
+    """Ctrl-C while the summary was printed after a video had stopped at a frame that could not be read (the others
+    complete, its rows in its partial CSV): the message said "nothing was written: run the same command again"."""
+    import torchface.cli
+
+    video, lm, _ = clip
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    for i, f in enumerate(_clip_frames_uint8(video, 3)):
+        cv2.imwrite(str(folder / f"{i}.png"), f[..., ::-1])
+    (folder / "2.png").write_bytes(b"not an image")
+    good = _short_npy(video, tmp_path / "good.npy", 2)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.cli, "_print_summary", interrupted)
+    out = tmp_path / "out"
+    args = ["track", str(good), str(folder), "--out", str(out), "--quiet", "--no-online-refine"]
+    assert main(args + ["--landmarks", str(lm)] * 2) == 130
+    said = _interrupt_message(capsys)
+    assert said == (f"every video is complete but broken, stopped at a frame that could not be read: its rows are "
+                    f"kept in {out / 'broken.csv.partial'}")  # fmt: skip
+    assert read_track_csv(out / "broken.csv.partial")[1].shape[0] == 2 and (out / "good.json").is_file()
