@@ -196,6 +196,10 @@ def test_kept_shape_units_stay_at_the_landmark_fits_values(model):
     for bad in (["Eyes vertical position"], ("a", "a"), (1,)):
         with pytest.raises(ValueError, match="kept_shape_units"):
             LookaheadConfig(kept_shape_units=bad)
+    # with shape_units given (every unit re-estimated named) the kept units were ignored without a word
+    with pytest.raises(ValueError, match=r"kept_shape_units \('Eyes vertical position',\) applies with shape_units="):
+        LookaheadConfig(shape_units=(eyes, nose), kept_shape_units=("Eyes vertical position",))
+    assert LookaheadConfig(shape_units=(nose,)).kept_shape_units == ()
 
 
 def test_keyframe_expressions_keep_their_change_out_of_the_start(model):

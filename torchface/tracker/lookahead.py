@@ -94,7 +94,7 @@ class LookaheadConfig:
             the landmark fit's, at its ``reference_focal_px`` (scaled with them: ``prior_scale`` of
             :func:`refine_first_fit`).
         kept_shape_units: names of held units that ``shape_units=None`` leaves at the landmark fit's values
-            (names the model lacks are ignored); empty by default. ``("Eyes vertical position",)`` with
+            (names the model lacks are ignored; refused with ``shape_units`` given); empty by default. ``("Eyes vertical position",)`` with
             ``fit_expression=False`` leaves the eyelids where the first frame's landmarks placed them, which eyes
             closed needs (README, Known limitations, "Eyes closed"): with the tracker's ``expression_quota=0.06``
             and ``expression_sparsity=0.03`` on the 640x480 ``expressions`` scenario from exact first-frame
@@ -156,6 +156,9 @@ class LookaheadConfig:
         kept = self.kept_shape_units
         if not isinstance(kept, tuple) or not all(isinstance(n, str) for n in kept) or len(set(kept)) != len(kept):
             raise ValueError(f"kept_shape_units must be a tuple of distinct unit names, got {kept!r}")
+        if kept and self.shape_units is not None:  # (they were ignored: shape_units names every unit re-estimated)
+            raise ValueError(f"kept_shape_units {kept} applies with shape_units=None (the held units); with "
+                             f"shape_units={self.shape_units} given, leave the kept units out of it")  # fmt: skip
         if self.min_keyframes not in (1, 2):
             raise ValueError(f"min_keyframes must be 1 or 2 (one keyframe per side), got {self.min_keyframes!r}")
         if not 0.0 <= self.min_confidence <= 1.0:
