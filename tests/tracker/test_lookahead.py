@@ -356,6 +356,38 @@ def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     torch.testing.assert_close(state.shape_coeffs, fit.shape_coeffs[:1], rtol=0, atol=0)
 
 
+def test_lookahead_fit_does_not_wait_for_a_stream_whose_start_failed(model, monkeypatch):
+    """A stream whose start failed (no face in its first frame: NaN landmarks) is LOST with no reference to be
+    confident against, so it finds no keyframe; the look-ahead went on tracking the batch up to ``max_frames`` for
+    it (34 steps here, where the other stream had both keyframes after 23). It stops once every started stream has
+    its keyframes or is cut, as the online start waits only for the streams that started; the fits are those of the
+    started stream alone and the failed stream's landmark fit."""
+    import torchface.tracker.managed as managed
+
+    up = [3.0 * i for i in range(9)]
+    yaw = up + up[-2::-1] + [-v for v in up[1:]] + [-24.0] * 10  # both keyframes by frame 23 of 35
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = gt.landmarks_px.float()[:1]
+    both = torch.stack([frames, frames])
+    lms = torch.cat([lm, torch.full_like(lm, float("nan"))])
+    cfg = LookaheadConfig(yaw_deg=20.0, min_keyframes=2, iterations=(6, 4), max_points=1500)
+    steps = []
+    real = managed.managed_step
+
+    def counted(*args, **kwargs):
+        steps.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(managed, "managed_step", counted)
+    fit, keys = lookahead_fit(model, CFG, both, lms, gt.intrinsics, config=cfg)
+    assert keys == [[yaw.index(21.0), yaw.index(-21.0)], []] and len(steps) == yaw.index(-21.0), (keys, len(steps))
+    alone, _ = lookahead_fit(model, CFG, frames[None], lm, gt.intrinsics, config=cfg)
+    torch.testing.assert_close(fit.rotation[:1], alone.rotation, rtol=0, atol=1e-5)
+    plain = fit_landmarks(model, lms, gt.intrinsics, config=CFG.fit)
+    assert int(fit.status[1]) == int(plain.status[1]) == 2 and torch.equal(fit.translation[1], plain.translation[1])
+
+
 def _cut_at(model, cut: int, turn_a: float, yaw_b: float, frames: int = 11):
     """A 160x120 clip A (``cut`` frames, the face 30 mm left of the axis at 450 mm turning ``turn_a`` degrees of
     yaw, 4 mm across) then, with no transition, clip B: the same face 20 mm further across, 60 mm nearer, at

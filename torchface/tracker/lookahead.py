@@ -759,7 +759,10 @@ def lookahead_fit(
     expressions = [first.expression]
     T = min(frames.shape[1], config.max_frames)
     keys: list[list[int]] = [[] for _ in range(B)]
-    uncut = torch.ones(B, dtype=torch.bool, device=first.success.device)  # no video cut yet (as the online start)
+    # The streams whose look-ahead goes on, as the online start's that wait: started (a failed start, a LOST stream
+    # with no reference to be confident against, finds no keyframe: the others were tracked up to max_frames for it)
+    # and no video cut yet
+    uncut = first.success.detach().clone()
     for i in range(1, T):
         start = axis_angle_to_matrix(state.params.detach()[:, 0:3])  # the pose the step starts from
         state, res = managed_step(model, tracker_config, state, frames[:, i])
