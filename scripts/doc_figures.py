@@ -258,7 +258,8 @@ def lid_fit(args: argparse.Namespace) -> None:
     w, h, n = scenario_size("expressions", args.size)
     gt = evaluate.load_sequence("expressions", w, h, n, None if args.cache == "none" else Path(args.cache)).gt
     unit = model.animation_names.index("AUV6 Eyes closed")
-    shift = model.animation_units[unit, :, 1]  # model y points up: Eyes closed moves the upper lid down
+    # model y points down (torchface.conventions): Eyes closed moves the upper lid down (+y), the lower one up
+    shift = model.animation_units[unit, :, 1]
     upper, lower = (shift > 1e-6).nonzero().flatten(), (shift < -1e-6).nonzero().flatten()
 
     def lids_y(rotation: torch.Tensor, translation: torch.Tensor, shape: torch.Tensor, anim: torch.Tensor) -> torch.Tensor:
