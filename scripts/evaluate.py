@@ -266,6 +266,8 @@ def initial_landmarks(gt: GroundTruth, seed: int) -> Tensor:
     return torch.where(gt.landmarks_visible[:1].unsqueeze(-1), lm, torch.full_like(lm, float("nan")))
 
 
+# --eyelids: the shape units the online start leaves at the landmark fit's values (LookaheadConfig.kept_shape_units).
+EYELID_KEPT_UNITS: tuple[str, ...] = ("Eyes vertical position",)
 # --lookahead: the look-ahead initialisation's settings, or None for the plain first-frame fit.
 LOOKAHEAD: LookaheadConfig | None = None
 # The online look-ahead start's settings (FaceTracker(refine_first=...), the default), or None for none
@@ -896,6 +898,12 @@ def main(argv: list[str] | None = None) -> int:
         "animation units' reweighted L1 prior, or 'none' for the Gaussian prior",
     )
     parser.add_argument(
+        "--eyelids", action="store_true",
+        help="the eyelid configuration (README, Known limitations, eyes closed): expression quota 0.06 and sparsity "
+        "0.03 (unless given), TemplateConfig(conservative_when_unconfident=True), and an online start that keeps the "
+        "landmark fit's eyelids (LookaheadConfig(kept_shape_units=EYELID_KEPT_UNITS, fit_expression=False))",
+    )
+    parser.add_argument(
         "--noise-seeds", default="",
         help="comma list of landmark-noise seeds: each standard scenario is tracked again (full configuration) "
         "once per seed and a table of the seeds follows its own (how much the figures depend on the noise draw)",
@@ -989,7 +997,8 @@ def main(argv: list[str] | None = None) -> int:
     LOOKAHEAD = LookaheadConfig(max_frames=args.lookahead_frames) if args.lookahead else None
     # --lookahead is the other way to refine the first pose: the runs start from its fit, without the online start
     online = not (args.no_online_refine or args.lookahead)
-    ONLINE_REFINE = LookaheadConfig(max_frames=args.lookahead_frames) if online else None
+    eyelids = dict(kept_shape_units=EYELID_KEPT_UNITS, fit_expression=False) if args.eyelids else {}
+    ONLINE_REFINE = LookaheadConfig(max_frames=args.lookahead_frames, **eyelids) if online else None
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     earlier: list[FrameSeries] = []
@@ -1001,6 +1010,9 @@ def main(argv: list[str] | None = None) -> int:
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
+    if args.eyelids:
+        base = replace(base, expression_quota=0.06, expression_sparsity=0.03,
+                       template=replace(base.template, conservative_when_unconfident=True))  # fmt: skip
     if args.expression_quota is not None:  # every run's configuration (ablations and long ones included)
         base = replace(base, expression_quota=args.expression_quota)
     if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior

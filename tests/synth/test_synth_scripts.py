@@ -474,3 +474,36 @@ def test_doc_figures_measures_on_tiny_runs(capsys):
                           (["small-frames", "--frames", "9"], "--frames must be >= 10"),
                           (["grid-pan", "--clip", "nosuchclip"], "no GRID clip nosuchclip.mpg")):  # fmt: skip
         assert message in _usage_error(figures.main, argv, capsys)
+
+
+def test_evaluate_eyelids_sets_the_eyelid_configuration(monkeypatch):
+    """--eyelids (README, Known limitations, eyes closed) tracks with expression quota 0.06, sparsity 0.03, the
+    conservative prior on unconfident frames and an online start that keeps the landmark fit's eyelids; a quota or
+    sparsity given beside it wins; without it every setting is the default."""
+    import pytest
+
+    from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.step import TrackerConfig
+
+    evaluate = _load("evaluate")
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def spy(model, config, *args, **kwargs):
+        seen.append((config, evaluate.ONLINE_REFINE))
+        raise Stop
+
+    monkeypatch.setattr(evaluate, "track_sequence", spy)
+    base = ["--scenarios", "expressions", "--frames", "2", "--size", "64x48", "--cache", "none", "--ablations",
+            "none", "--no-auroc"]  # fmt: skip
+    for flags in ([], ["--eyelids"], ["--eyelids", "--expression-quota", "0.02"]):
+        with pytest.raises(Stop):
+            evaluate.main([*base, *flags])
+    (plain, plain_start), (eyes, eyes_start), (quota, _) = seen
+    assert plain == TrackerConfig() and plain_start == LookaheadConfig()
+    assert (eyes.expression_quota, eyes.expression_sparsity, eyes.template.conservative_when_unconfident) == (
+        0.06, 0.03, True)
+    assert eyes_start.kept_shape_units == ("Eyes vertical position",) and not eyes_start.fit_expression
+    assert (quota.expression_quota, quota.expression_sparsity) == (0.02, 0.03)

@@ -437,9 +437,12 @@ def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detect
         assert calls and all(c[0] == 1 for c in calls)
 
 
-def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, leaves, monkeypatch):
+@pytest.mark.parametrize("unconfident", [False, True])
+def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, leaves, monkeypatch, unconfident):
     """The frame's solve gets ``conservative`` = the streams lost before it (a weak refinement prior let a lost
-    track fit a wrong pose well enough to pass the recovery confidence)."""
+    track fit a wrong pose well enough to pass the recovery confidence); with
+    ``TemplateConfig(conservative_when_unconfident=True)`` also those whose last frame was not confident (not yet
+    lost)."""
     import torchface.tracker.managed as managed
 
     frames, gt = leaves
@@ -448,16 +451,27 @@ def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, 
 
     def spy(model_, config_, state_, frames_, *, conservative=None, near_template=None):
         if state_.management is not None:  # the frame's solve, not a recovery candidate's
-            seen.append((conservative.clone(), state_.management.lost.clone()))
+            ms = state_.management
+            seen.append((conservative.clone(), ms.lost.clone(), ms.lost | (ms.low_count > 0)))
         return real(model_, config_, state_, frames_, conservative=conservative, near_template=near_template)
 
     monkeypatch.setattr(managed, "track_checked_step", spy)
-    state, _ = initialise_managed(model, LEAVE_CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, conservative_when_unconfident=unconfident))
+    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     for i in range(1, frames.shape[1]):
-        state, _ = managed_step(model, LEAVE_CFG, state, frames[:, i])
+        state, _ = managed_step(model, config, state, frames[:, i])
     assert len(seen) == frames.shape[1] - 1
-    assert all(torch.equal(c, lost) for c, lost in seen)
-    assert any(bool(c.any()) for c, _ in seen) and not all(bool(c.any()) for c, _ in seen)
+    assert all(torch.equal(c, unsure if unconfident else lost) for c, lost, unsure in seen)
+    assert any(bool(c.any()) for c, _, _ in seen) and not all(bool(c.any()) for c, _, _ in seen)
+    # A stream whose last frame was not confident, not lost (this clip's face leaves at once: set it up).
+    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    seen.clear()
+    ms = state.management
+    state = replace(state, management=replace(ms, low_count=torch.ones_like(ms.low_count)))
+    managed_step(model, config, state, frames[:, 1])
+    assert not bool(seen[0][1].any()) and bool(seen[0][0].all()) == unconfident
+    with pytest.raises(TypeError, match="conservative_when_unconfident"):
+        TemplateConfig(conservative_when_unconfident="yes")
 
 
 def test_a_managed_step_checks_the_frames_values_once(model, gentle, monkeypatch):

@@ -222,6 +222,13 @@ class TemplateConfig:
             detector, 2: the stream restarted from the occluded face and was reported successful for 23 frames
             at confidence 0.86-1.00 drifting to 5 degrees off, then LOST once the occluder left, where without it
             those frames were LOST and it recovered 0.2 degrees off two frames after).
+        conservative_when_unconfident: a stream whose last frame was not confident (below
+            ``confidence_threshold``) is solved as a lost one is: the expression under the Gaussian prior, without
+            the weak refinement prior and the sparsity (``track_step(conservative=)``). Off by default (lost
+            streams only). With weak expression priors an occluder pushes the units before the stream is lost,
+            and the pose follows them: with ``TrackerConfig(expression_quota=0.06, expression_sparsity=0.03)`` and
+            the eyelid-keeping online start (README, Known limitations, "Eyes closed") the first occluder of the
+            CANDIDE-3 long run took 33 frames to recover from; with this on, 0.
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
             halved once more (:func:`search_mosaic`).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
@@ -287,9 +294,10 @@ class TemplateConfig:
     search_min_inside: float = 0.8
     clean_radius_deg: float = 3.0
     clean_rejected_fraction: float = 0.01
+    conservative_when_unconfident: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("enabled", "mosaic", "texture_update"):
+        for name in ("enabled", "mosaic", "texture_update", "conservative_when_unconfident"):
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not isinstance(self.dissimilarity, DissimilarityConfig):
             raise TypeError(f"dissimilarity must be a DissimilarityConfig, got {type(self.dissimilarity).__name__}")

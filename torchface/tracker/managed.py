@@ -1003,16 +1003,18 @@ def managed_step(
             templates = written
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
-    # Lost streams keep the pose levels' prior in the refinement pass: with a weak one (refine_prior_precision)
+    # Lost streams (and, with TemplateConfig.conservative_when_unconfident, those whose last frame was not confident)
+    # keep the pose levels' prior in the refinement pass: with a weak one (refine_prior_precision)
     # a lost track's units fitted a wrong pose well enough to pass the recovery confidence, and the stream
     # stayed lost at that pose (measured on the CANDIDE-3 long run after the face left the frame).
     # Streams near the pose their entry was built at are solved with Huber at the finest level on a clean frame
     # (TemplateConfig.clean_radius_deg).
+    conservative = ms.lost | (ms.low_count > 0) if tc.conservative_when_unconfident else ms.lost
     if tc.clean_radius_deg > 0 and near is None:
         rows = torch.arange(entry.shape[0], device=entry.device)
         near = (ms.mosaic.ypr_deg[rows, entry, :2] - ypr[:, :2]).norm(dim=-1) <= tc.clean_radius_deg
     solved, result = track_checked_step(  # (track_step, without checking the inputs again)
-        model, config, replace(state, templates=templates), frames, conservative=ms.lost, near_template=near
+        model, config, replace(state, templates=templates), frames, conservative=conservative, near_template=near
     )
     # Where the caller asked for gradients (frames or parameters that require grad, with grad mode on), the
     # solver's estimates carry them, as track_step's do; template management is a decision layer and works on
