@@ -1221,6 +1221,18 @@ def _with_blank_frames(video, path, n):
     return path
 
 
+def _late_face_reference(monkeypatch, tmp_path, video, detector, n):
+    """``video`` with ``n`` black frames first (``late.npy``), tracked uninterrupted from the first face that
+    ``detector`` (registered as "blank") finds, into ``tmp_path/ref``: ``(late, config, reference rows)``."""
+    import torchface.detect
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
+    track_videos([late], config)
+    return late, config, read_track_csv(tmp_path / "ref" / "late.csv")[1]
+
+
 def test_a_video_whose_face_appears_later_is_tracked_from_that_frame(clip, tmp_path, monkeypatch, capsys):
     """Clips that start on a black frame (a title card, an empty room) were refused ("found no face in the first
     frame"). The detector is asked about each next frame, and tracking starts at the first where it finds a face:
@@ -1269,19 +1281,13 @@ def test_a_video_whose_face_appears_later_is_tracked_from_that_frame(clip, tmp_p
 def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_path, monkeypatch):
     """Interrupted before and after its first face, such a video resumes: its rows before the face kept, its
     tracked rows replayed from the first face on, the rest as the uninterrupted run's."""
-    import torchface.detect
-
     video, lm, gt = clip
     n = 2
 
     def detector(image_rgb):
         return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
 
-    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
-    late = _with_blank_frames(video, tmp_path / "late.npy", n)
-    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
-    track_videos([late], config)
-    _, ref = read_track_csv(tmp_path / "ref" / "late.csv")
+    late, config, ref = _late_face_reference(monkeypatch, tmp_path, video, detector, n)
     for keep in (1, n + 2):  # (the first: interrupted among the rows without a face, as a kill would leave it)
         out = tmp_path / f"out{keep}"
 
@@ -2865,8 +2871,6 @@ def test_a_resumed_video_whose_face_appears_later_is_not_searched_again(clip, tm
     1800 calls), although the interrupted run had found it: the record says where, and the resumed run starts there
     without asking about those frames, its outputs those of the uninterrupted run. A record of an earlier version
     (without it) still resumes, searching again."""
-    import torchface.detect
-
     video, lm, gt = clip
     n = 2
     asked = []
@@ -2875,11 +2879,7 @@ def test_a_resumed_video_whose_face_appears_later_is_not_searched_again(clip, tm
         asked.append(int(image_rgb.max()))
         return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
 
-    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
-    late = _with_blank_frames(video, tmp_path / "late.npy", n)
-    config = JobConfig(out_dir=tmp_path / "ref", detector="blank", refine_first=None)
-    track_videos([late], config)
-    _, ref = read_track_csv(tmp_path / "ref" / "late.csv")
+    late, config, ref = _late_face_reference(monkeypatch, tmp_path, video, detector, n)
     ref_side = json.loads((tmp_path / "ref" / "late.json").read_text())
 
     def interrupt(p):
