@@ -182,12 +182,12 @@ def test_kept_shape_units_stay_at_the_landmark_fits_values(model):
                         torch.zeros(1, dtype=torch.int64))  # fmt: skip
     lm = torch.full((model.num_landmarks, 2), float("nan"))
     out = {}
-    for kept in ((), ("Eyes vertical position", "a unit the model lacks")):
+    for kept in ((), ("Eyes vertical position",)):
         cfg = LookaheadConfig(kept_shape_units=kept, iterations=(8, 6), max_points=1500)
         out[kept] = refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
                                      config=cfg, shape_prior_precision=0.0, expression_prior_precision=0.0,
                                      held_shape_units=tuple(sorted((eyes, nose))))  # fmt: skip
-    free, kept = out[()].shape_coeffs[0], out[("Eyes vertical position", "a unit the model lacks")].shape_coeffs[0]
+    free, kept = out[()].shape_coeffs[0], out[("Eyes vertical position",)].shape_coeffs[0]
     assert abs(float(free[eyes]) - 0.3) > 0.1 and torch.equal(kept[eyes], shape[0, eyes]), (free[eyes], kept[eyes])
     assert float(kept[nose]) != 0.0 and float(free[nose]) != 0.0  # the other held unit is re-estimated in both
     others = torch.ones(model.num_shape, dtype=torch.bool)
@@ -196,6 +196,12 @@ def test_kept_shape_units_stay_at_the_landmark_fits_values(model):
     for bad in (["Eyes vertical position"], ("a", "a"), (1,)):
         with pytest.raises(ValueError, match="kept_shape_units"):
             LookaheadConfig(kept_shape_units=bad)
+    with pytest.raises(ValueError, match=r"kept_shape_units \['Eyes vertical positon'\] are not among"):
+        refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
+                         config=LookaheadConfig(kept_shape_units=("Eyes vertical positon",)))  # a misspelt name
+    with pytest.raises(ValueError, match=r"refine_first.kept_shape_units \['Eyes vertical positon'\] are not"):
+        initialise_managed(model, CFG, frames[:1], gt.landmarks_px[:1].float(), gt.intrinsics,
+                           refine_first=LookaheadConfig(kept_shape_units=("Eyes vertical positon",)))  # at the start
     # with shape_units given (every unit re-estimated named) the kept units were ignored without a word
     with pytest.raises(ValueError, match=r"kept_shape_units \('Eyes vertical position',\) applies with shape_units="):
         LookaheadConfig(shape_units=(eyes, nose), kept_shape_units=("Eyes vertical position",))

@@ -94,7 +94,8 @@ class LookaheadConfig:
             the landmark fit's, at its ``reference_focal_px`` (scaled with them: ``prior_scale`` of
             :func:`refine_first_fit`).
         kept_shape_units: names of held units that ``shape_units=None`` leaves at the landmark fit's values
-            (names the model lacks are ignored; refused with ``shape_units`` given); empty by default. ``("Eyes vertical position",)`` with
+            (each must be one of the model's shape units: :func:`refine_first_fit` checks; refused with
+            ``shape_units`` given); empty by default. ``("Eyes vertical position",)`` with
             ``fit_expression=False`` leaves the eyelids where the first frame's landmarks placed them, which eyes
             closed needs (README, Known limitations, "Eyes closed"): with the tracker's ``expression_quota=0.06``
             and ``expression_sparsity=0.03`` on the 640x480 ``expressions`` scenario from exact first-frame
@@ -430,6 +431,9 @@ def _refine_first_fit(
         raise ValueError(f"prior_scale must be a positive finite number, got {prior_scale!r}")
     S, A = model.num_shape, model.num_animation
     if config.shape_units is None:
+        missing = [n for n in config.kept_shape_units if n not in model.shape_names]
+        if missing:  # (a misspelt name would otherwise keep nothing, without a word)
+            raise ValueError(f"kept_shape_units {missing} are not among the model's shape units {model.shape_names}")
         kept = {i for i, name in enumerate(model.shape_names) if name in config.kept_shape_units}
         free_units = tuple(i for i in held_shape_units if i not in kept)
     else:

@@ -330,6 +330,10 @@ def initialise_managed(
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
+        missing = [n for n in refine_first.kept_shape_units if n not in model.shape_names]
+        if missing:  # (here, not at the head's first turn, frames later)
+            raise ValueError(f"refine_first.kept_shape_units {missing} are not among the model's shape units "
+                             f"{model.shape_names}")  # fmt: skip
         if fit is None:
             check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
