@@ -27,8 +27,8 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                within it. --photo astronaut makes B another person; --restart-after-unmatched 2 sets
                TemplateConfig.restart_after_unmatched (off by default).
   lid-fit      The README's "Eyes closed" analysis: how far the first frame's landmark fit puts the eyelids on the
-               `expressions` scenario (frame 0 of scripts/evaluate.py's render at --size, cached under --cache) over --draws
-               draws of evaluate.py's 2 px landmark noise (seeds 0..), with the default FitConfig and without a
+               `expressions` scenario (frame 0 of scripts/evaluate.py's render at --size, cached under --cache) over
+               --draws draws of evaluate.py's 2 px landmark noise (seeds 0..), with the default FitConfig and without a
                starting expression (fit_expression=False): the mean vertical distance, in pixels, of the upper lid's
                vertices (those Eyes closed moves down) from the truth's, and of the eye opening (upper minus lower
                lid); the fraction of draws within 0.3 and 0.5 px, next to the upper lid's travel at full closure.
@@ -252,7 +252,7 @@ def lid_fit(args: argparse.Namespace) -> None:
     import evaluate  # scripts/evaluate.py (its render cache and its landmark noise): imported here, as it is slow
 
     from torchface.geometry.projection import project_points
-    from torchface.tracker.fit import FitConfig, fit_landmarks
+    from torchface.tracker.fit import fit_landmarks
 
     model = load_candide3()
     w, h, n = scenario_size("expressions", args.size)
@@ -262,7 +262,8 @@ def lid_fit(args: argparse.Namespace) -> None:
     shift = model.animation_units[unit, :, 1]
     upper, lower = (shift > 1e-6).nonzero().flatten(), (shift < -1e-6).nonzero().flatten()
 
-    def lids_y(rotation: torch.Tensor, translation: torch.Tensor, shape: torch.Tensor, anim: torch.Tensor) -> torch.Tensor:
+    def lids_y(rotation: torch.Tensor, translation: torch.Tensor, shape: torch.Tensor, anim: torch.Tensor,
+               ) -> torch.Tensor:  # fmt: skip
         v = model.deform(shape.to(model.dtype), anim.to(model.dtype)).to(D)
         return project_points(v @ rotation.to(D).mT + translation.to(D)[:, None], gt.intrinsics)[0, :, 1]
 
@@ -286,9 +287,9 @@ def lid_fit(args: argparse.Namespace) -> None:
             opening.append(float((dy[upper] - dy[lower]).abs().mean()))
         u, o = torch.tensor(up, dtype=D), torch.tensor(opening, dtype=D)
         q = torch.quantile(u, torch.tensor([0.5, 0.1, 0.9], dtype=D)).tolist()
-        print(f"{label:<26} {q[0]:>22.2f} {q[1]:>5.2f} {q[2]:>5.2f} {float((u < 0.3).to(D).mean()):>5.2f} "
-              f"{float((u < 0.5).to(D).mean()):>5.2f} | {float(o.median()):>20.2f} {float((o < 0.3).to(D).mean()):>5.2f} "
-              f"{float((o < 0.5).to(D).mean()):>5.2f}")
+        within = [float((x < limit).to(D).mean()) for x in (u, o) for limit in (0.3, 0.5)]
+        print(f"{label:<26} {q[0]:>22.2f} {q[1]:>5.2f} {q[2]:>5.2f} {within[0]:>5.2f} {within[1]:>5.2f} | "
+              f"{float(o.median()):>20.2f} {within[2]:>5.2f} {within[3]:>5.2f}")
 
 
 def _numbers(text: str) -> list[float]:

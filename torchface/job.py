@@ -40,7 +40,8 @@ replace an input or a landmarks file, or an output folder that is an image-folde
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
 rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
 ``resume=True`` a video whose JSON exists is skipped (refused when made from another input, with other settings or
-without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete row: the first frame is
+without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete
+row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
 and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does
@@ -48,7 +49,8 @@ not look for them again, :func:`_recorded_first_face`) and every setting the row
 settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
 or removed from the settings since the interrupted run's version is not compared), as is a damaged or missing record
 or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows
-already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss bookkeeping (lost or not, the frames of low
+already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
+bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
 the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
 partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed

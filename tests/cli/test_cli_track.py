@@ -2974,7 +2974,8 @@ def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip
 
     monkeypatch.setattr(torchface.cli, "_print_summary", interrupted)
     out = tmp_path / "out"
-    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 130
+    argv = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]
+    assert main(argv) == 130
     assert _interrupt_message(capsys) == "every video is complete" and (out / "short.json").is_file()
 
 

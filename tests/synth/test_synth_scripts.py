@@ -448,8 +448,8 @@ def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subje
 
 def test_doc_figures_measures_on_tiny_runs(capsys):
     """scripts/doc_figures.py, the command that measures the figures README.md, TrackerConfig.min_face_width_px and
-    lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments (face-width, small-frames, hard-cuts, lid-fit) on one
-    clip of a few frames and refuses bad arguments in one line (grid-pan, which needs the GRID clips of
+    lookahead.VIEW_TURN_FRACTION quote, runs its rendered experiments (face-width, small-frames, hard-cuts, lid-fit) on
+    one clip of a few frames and refuses bad arguments in one line (grid-pan, which needs the GRID clips of
     ../shared/assets, is run by hand)."""
     figures = _load("doc_figures")
     assert figures.main(["face-width", "--widths", "27", "--clips", "1", "--frames", "3"]) == 0
