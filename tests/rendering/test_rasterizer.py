@@ -529,6 +529,19 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(cpu.bary, gpu.bary.cpu(), atol=1e-5, rtol=0)
 
 
+def _candide_at_random_poses(model, n: int, g: torch.Generator, near_first: bool = False) -> torch.Tensor:
+    """``(n, V, 3)`` float64 camera-frame vertices of ``model``'s mean face at ``n`` random poses drawn from ``g``
+    (yaw, pitch, roll within +-90, 45, 30 degrees, turned away too; 450 mm +-150 mm each way); with ``near_first``
+    the first 30 mm from the camera, its triangles crossing the near plane."""
+    from torchface.geometry.so3 import euler_to_matrix
+
+    ypr = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([180.0, 90.0, 60.0])
+    t = torch.tensor([0.0, 0.0, 450.0]) + (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 300.0
+    if near_first:
+        t[0, 2] = 30.0
+    return model.mean @ euler_to_matrix(ypr).mT + t[:, None]
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypatch, dtype):
     """The native z-buffer tests every pixel of each box with the torch code's arithmetic: the same fragments bit
@@ -537,15 +550,10 @@ def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypa
     back-face culling."""
     if candidate_path != "native":
         pytest.skip("compares the native path with the torch paths itself")
-    from torchface.geometry.so3 import euler_to_matrix
     from torchface.model.candide import load_candide3
 
     model = load_candide3(dtype=torch.float64)
-    g = torch.Generator().manual_seed(5)
-    ypr = (torch.rand(6, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([180.0, 90.0, 60.0])
-    t = torch.tensor([0.0, 0.0, 450.0]) + (torch.rand(6, 3, generator=g, dtype=torch.float64) - 0.5) * 300.0
-    t[0, 2] = 30.0  # close: triangles cross the near plane
-    face = model.mean @ euler_to_matrix(ypr).mT + t[:, None]
+    face = _candide_at_random_poses(model, 6, torch.Generator().manual_seed(5), near_first=True)
     near_plane = torch.tensor([[[-30.0, -20.0, -10.0], [40.0, -20.0, 90.0], [0.0, 40.0, 90.0]]], dtype=torch.float64)
     meshes = [random_soup(8, 2, 30), random_surface(9, 2), (near_plane, torch.tensor([[0, 1, 2]])), (face, model.faces)]
     for verts, faces in meshes:
@@ -613,15 +621,12 @@ def test_native_face_coefficients_are_the_torch_codes_bit_for_bit(candidate_path
     the torch code (which scales it), and so does a gradient asked for."""
     if candidate_path != "native":
         pytest.skip("compares the native path with the torch path itself")
-    from torchface.geometry.so3 import euler_to_matrix
     from torchface.model.candide import load_candide3
     from torchface.rendering.rasterizer import _face_coefficients, _large_coordinate, _triangles
 
     model = load_candide3(dtype=torch.float64)
     g = torch.Generator().manual_seed(9)
-    ypr = (torch.rand(5, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([180.0, 90.0, 60.0])
-    t = torch.tensor([0.0, 0.0, 450.0]) + (torch.rand(5, 3, generator=g, dtype=torch.float64) - 0.5) * 300.0
-    face = _triangles(model.mean @ euler_to_matrix(ypr).mT + t[:, None], model.faces).reshape(-1, 3, 3)
+    face = _triangles(_candide_at_random_poses(model, 5, g), model.faces).reshape(-1, 3, 3)
     soup = (torch.rand(4000, 3, 3, generator=g, dtype=torch.float64) - 0.5) * 200 + torch.tensor([0.0, 0.0, 100.0])
     soup[:50, 2] = soup[:50, 0]  # zero area
     soup[50:100, 2] = 2 * soup[50:100, 1] - soup[50:100, 0]  # collinear

@@ -398,29 +398,37 @@ def test_cached_pose_angles_change_nothing(model, turns):
             assert torch.equal(getattr(r1, name), getattr(r2, name)), (i, name)
 
 
-@pytest.mark.parametrize("with_detector", [False, True])
-def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detector):
-    frames, gt = leaves
-    calls = []
+def _track_with_renderer_detector(model, config, frames, lms, visible, with_detector: bool, calls=None) -> list:
+    """Managed tracking of ``frames (1, T, 3, H, W)`` from the renderer's first landmarks ``lms (T, K, 2)``, each
+    result checked finite; with ``with_detector``, the detector gives the renderer's landmarks of the frame being
+    tracked (NaN rows where fewer than 40 are ``visible (T, K)``: no face found), and appends each batch's shape to
+    ``calls`` where given."""
     current = [0]
 
     def detector(batch: torch.Tensor) -> torch.Tensor:
-        # The renderer's landmarks of the frame being tracked (NaN when the face is not visible).
-        i = current[0]
-        calls.append(batch.shape)
-        lm = gt.landmarks_px[i].clone().float()
-        if int(gt.landmarks_visible[i].sum()) < 40:
+        if calls is not None:
+            calls.append(batch.shape)
+        lm = lms[current[0]].clone().float()
+        if int(visible[current[0]].sum()) < 40:
             lm[:] = float("nan")
         return lm[None].expand(batch.shape[0], -1, -1)
 
-    config = LEAVE_CFG
-    state, res = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    state, res = initialise_managed(model, config, frames[:, 0], lms[:1].float(), Intrinsics.default(W, H))
     results = [res]
     for i in range(1, frames.shape[1]):
         current[0] = i
         state, res = managed_step(model, config, state, frames[:, i], detector if with_detector else None)
         results.append(res)
         assert_finite(res)
+    return results
+
+
+@pytest.mark.parametrize("with_detector", [False, True])
+def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detector):
+    frames, gt = leaves
+    calls = []
+    results = _track_with_renderer_detector(model, LEAVE_CFG, frames, gt.landmarks_px, gt.landmarks_visible,
+                                            with_detector, calls)  # fmt: skip
     status = [int(r.status[0]) for r in results]
     assert all(status[i] == LOST for i in OUT_FRAMES), status
     assert all(not bool(results[i].success[0]) for i in OUT_FRAMES)
@@ -1353,21 +1361,7 @@ def _track_cut(model, clip, with_detector: bool, config: TrackerConfig = CFG):
     """Managed tracking of a :func:`_cut_clip` (the renderer's landmarks as the detector); returns the results and
     the rotation error relative to frame 0 ``(T,)`` (degrees)."""
     frames, rotation, lms, visible = clip
-    current = [0]
-
-    def detector(batch: torch.Tensor) -> torch.Tensor:
-        lm = lms[current[0]].clone().float()
-        if int(visible[current[0]].sum()) < 40:
-            lm[:] = float("nan")
-        return lm[None].expand(batch.shape[0], -1, -1)
-
-    state, res = initialise_managed(model, config, frames[:, 0], lms[:1].float(), Intrinsics.default(W, H))
-    results = [res]
-    for i in range(1, frames.shape[1]):
-        current[0] = i
-        state, res = managed_step(model, config, state, frames[:, i], detector if with_detector else None)
-        results.append(res)
-        assert_finite(res)
+    results = _track_with_renderer_detector(model, config, frames, lms, visible, with_detector)
     R = torch.stack([r.rotation[0].double() for r in results])
     return results, geodesic_angle_deg(R @ R[0].mT, rotation @ rotation[0].mT)
 
