@@ -1289,6 +1289,11 @@ def _complete_rows(csv: Path) -> int:
     return max(lines - 1, 0)
 
 
+def _listed(items: Sequence[str]) -> str:
+    """``items`` comma separated for a message, the first ten named and the rest counted."""
+    return ", ".join(items[:10]) + (f" and {len(items) - 10} more" if len(items) > 10 else "")
+
+
 def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
     """What an interrupted run leaves of the outputs of videos ``names`` in ``out_dir`` (looked at once its writers
     are stopped), and what to do: the videos complete (their JSON written), the rows a resumed run goes on from (a
@@ -1310,15 +1315,13 @@ def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
         else:
             none.append(name)
 
-    def listed(items: list[str]) -> str:
-        return ", ".join(items[:10]) + (f" and {len(items) - 10} more" if len(items) > 10 else "")
-
-    said = ([f"rows kept in {listed(rows)}"] if rows else []) + ([f"complete: {listed(complete)}"] if complete else [])
+    said = [f"rows kept in {_listed(rows)}"] if rows else []
+    said += [f"complete: {_listed(complete)}"] if complete else []
     if not rows and not none:
-        return f"every video is complete ({listed(complete)})"
+        return f"every video is complete ({_listed(complete)})"
     if not said:
         return "no row was kept: run the same command again"
-    said += [f"nothing kept of {listed(none)}"] if none else []
+    said += [f"nothing kept of {_listed(none)}"] if none else []
     return "; ".join(said) + ": run the same command with --resume to continue"
 
 
@@ -1389,8 +1392,7 @@ def _track_opened(
     failed = [s for s in streams if s.error is not None]
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
-        named = ", ".join(done[:10]) + (f" and {len(done) - 10} more" if len(done) > 10 else "")
-        rest = f"; the other videos were completed ({named}): --resume skips them" if done else ""
+        rest = f"; the other videos were completed ({_listed(done)}): --resume skips them" if done else ""
         what = "; ".join(str(s.error) for s in failed)
         raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
                             [summaries[str(v)] for v in inputs if str(v) in summaries],
