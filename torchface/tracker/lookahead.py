@@ -245,6 +245,13 @@ VIEW_TURN_FRACTION: float = 0.5
 KEYFRAME_MAX_STEP_DEG: float = 20.0
 
 
+def is_video_cut(start_rotation: Tensor, rotation: Tensor) -> Tensor:
+    """``(B,)`` bool: whether a step from ``start_rotation`` to ``rotation`` (both ``(B, 3, 3)``) turned more than
+    :data:`KEYFRAME_MAX_STEP_DEG`, a jump no head makes between two frames (a video cut): it ends a stream's wait
+    for keyframes, online and in :func:`lookahead_fit`."""
+    return geodesic_angle_deg(rotation, start_rotation.to(rotation.dtype)) > KEYFRAME_MAX_STEP_DEG
+
+
 def is_keyframe_turn(rel_yaw: Tensor, rel_view_yaw: Tensor, yaw_deg: float) -> Tensor:
     """Whether a yaw change (degrees, towards the side looked for: positive) is a keyframe's turn: ``yaw_deg`` in
     the camera frame and :data:`VIEW_TURN_FRACTION` of it seen along the camera's ray (:func:`view_yaw_deg`)."""
@@ -772,7 +779,7 @@ def lookahead_fit(
         state, res = managed_step(model, tracker_config, state, frames[:, i])
         # A video cut (a turn of more than KEYFRAME_MAX_STEP_DEG in one step) ends a stream's look-ahead: the frames
         # from it on show another shot, and no keyframe may come from there
-        uncut = uncut & ~(geodesic_angle_deg(res.rotation, start.to(res.rotation.dtype)) > KEYFRAME_MAX_STEP_DEG)
+        uncut = uncut & ~is_video_cut(start, res.rotation)
         rotations.append(res.rotation)
         translations.append(res.translation)
         expressions.append(res.expression)

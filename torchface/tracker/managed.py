@@ -101,8 +101,7 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    KEYFRAME_MAX_STEP_DEG, LookaheadConfig, _refine_first_fit, is_keyframe_turn, landmark_fit_priors, levels_of,
-    view_yaw_deg,
+    LookaheadConfig, _refine_first_fit, is_keyframe_turn, is_video_cut, landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -1355,8 +1354,7 @@ def _watch_first_pose(
     view_rel = rel.to(torch.float64) if w.view_yaw0 is None else (
         view_yaw_deg(result.rotation, result.translation) - w.view_yaw0.to(torch.float64))
     # A video cut (a jump no head makes between two frames) ends the stream's wait: it keeps its landmark fit
-    cut = w.pending & (geodesic_angle_deg(result.rotation, start_rotation.to(result.rotation.dtype))
-                       > KEYFRAME_MAX_STEP_DEG)  # fmt: skip
+    cut = w.pending & is_video_cut(start_rotation, result.rotation)
     ok = w.pending & ~cut & result.success & (result.confidence >= lc.min_confidence)
     keys = list(w.keys)
     with torch.inference_mode(False):
