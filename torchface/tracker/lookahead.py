@@ -36,6 +36,7 @@ landmark fit.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import torch
@@ -178,6 +179,21 @@ class LookaheadConfig:
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")
         if self.shape_prior_precision is not None:
             FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation
+
+
+def kept_shape_indices(
+    config: LookaheadConfig, shape_names: Sequence[str], name: str = "kept_shape_units"
+) -> set[int]:
+    """Indices (into ``shape_names``, the model's) of :attr:`LookaheadConfig.kept_shape_units`.
+
+    Raises:
+        ValueError: a name that is not the model's (a misspelt one would otherwise keep nothing, without a word),
+            the message naming the setting as ``name``.
+    """
+    missing = [n for n in config.kept_shape_units if n not in shape_names]
+    if missing:
+        raise ValueError(f"{name} {missing} are not among the model's shape units {tuple(shape_names)}")
+    return {i for i, n in enumerate(shape_names) if n in config.kept_shape_units}
 
 
 def levels_of(config: LookaheadConfig, num_levels: int) -> LookaheadConfig:
@@ -438,10 +454,7 @@ def _refine_first_fit(
         raise ValueError(f"prior_scale must be a positive finite number, got {prior_scale!r}")
     S, A = model.num_shape, model.num_animation
     if config.shape_units is None:
-        missing = [n for n in config.kept_shape_units if n not in model.shape_names]
-        if missing:  # (a misspelt name would otherwise keep nothing, without a word)
-            raise ValueError(f"kept_shape_units {missing} are not among the model's shape units {model.shape_names}")
-        kept = {i for i, name in enumerate(model.shape_names) if name in config.kept_shape_units}
+        kept = kept_shape_indices(config, model.shape_names)
         free_units = tuple(i for i in held_shape_units if i not in kept)
     else:
         free_units = config.shape_units

@@ -101,7 +101,8 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_first_fit, is_keyframe_turn, is_video_cut, landmark_fit_priors, levels_of, view_yaw_deg,
+    LookaheadConfig, _refine_first_fit, is_keyframe_turn, is_video_cut, kept_shape_indices, landmark_fit_priors,
+    levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -329,10 +330,7 @@ def initialise_managed(
             raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
-        missing = [n for n in refine_first.kept_shape_units if n not in model.shape_names]
-        if missing:  # (here, not at the head's first turn, frames later)
-            raise ValueError(f"refine_first.kept_shape_units {missing} are not among the model's shape units "
-                             f"{model.shape_names}")  # fmt: skip
+        kept_shape_indices(refine_first, model.shape_names, "refine_first.kept_shape_units")  # (now, not at the turn)
         if fit is None:
             check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
