@@ -317,13 +317,28 @@ def demo_inputs() -> tuple[Path, Path]:
 
 
 class _VideoOut:
-    """An ``mp4v`` MP4 written to ``<name>.partial.mp4`` and renamed on :meth:`close`."""
+    """An ``mp4v`` MP4 at ``fps`` frames/s written to ``<name>.partial.mp4`` and renamed on :meth:`close`.
 
-    def __init__(self, path: Path, width: int, height: int, fps: float) -> None:
+    Written one frame per :meth:`write`, or, with ``timed``, in step with the input's time (what ffmpeg's
+    ``-vsync cfr`` does): each frame goes to the slot of its time (``round((time - first time) * fps)``, the first
+    frame's slot 0), the previous frame repeated into the slots before it that no frame reached (:attr:`duplicated`),
+    and a frame whose slot is written already left out (:attr:`dropped`). A constant-rate input's frames (times
+    ``k / fps``, within half a frame) are written one each, as without ``timed``; a variable-frame-rate one's (a
+    phone's) play at their times, where one frame per slot at the nominal rate ran ahead of the input wherever its
+    frames were further apart (a 30 -> 15 frames/s stretch played twice as fast).
+    """
+
+    def __init__(self, path: Path, width: int, height: int, fps: float, timed: bool = False) -> None:
         self.path = path
         self.tmp = path.with_name(path.stem + ".partial" + path.suffix)
         self.size = (int(width), int(height))
-        self.frames = 0
+        self.fps = float(fps)
+        self.timed = timed
+        self.frames = 0  # written to the file (duplicates included)
+        self.duplicated = 0  # (timed) slots filled with the previous frame again
+        self.dropped = 0  # (timed) frames left out: their slot was written already
+        self._origin: float | None = None  # (timed) the first frame's time, slot 0
+        self._last: np.ndarray | None = None  # (timed) the last frame written, repeated into a gap
         fourcc = cv2.VideoWriter.fourcc(*"mp4v")
         writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
         if not writer.isOpened():
@@ -332,9 +347,25 @@ class _VideoOut:
             raise OutputError(f"{self.tmp}: cannot open an mp4v video writer")
         self.writer: cv2.VideoWriter | None = writer  # None once closed or aborted
 
-    def write(self, image_bgr: np.ndarray) -> None:
+    def write(self, image_bgr: np.ndarray, time: float | None = None) -> None:
+        """Write one frame (``(H, W, 3)`` uint8 BGR); ``time``: its input's time in seconds, which places it in a
+        ``timed`` video (ignored otherwise; required there)."""
         if self.writer is None:
             raise ValueError(f"{self.path}: the video is closed")
+        if self.timed:
+            if time is None or not math.isfinite(time):
+                raise ValueError(f"{self.path}: a frame of a timed video needs its time, got {time}")
+            if self._origin is None:
+                self._origin = time
+            slot = math.floor((time - self._origin) * self.fps + 0.5)
+            if slot < self.frames:  # (its slot holds an earlier frame)
+                self.dropped += 1
+                return
+            while self.frames < slot and self._last is not None:  # (a gap: the previous frame shown on)
+                self.writer.write(self._last)
+                self.frames += 1
+                self.duplicated += 1
+            self._last = image_bgr
         self.writer.write(image_bgr)
         self.frames += 1
 
@@ -752,9 +783,11 @@ def _write_no_face(s: _Stream, columns: tuple[str, ...], config: JobConfig, conf
         stamp = s.stamps.popleft()
         if t >= replayed:
             csv.write(_no_face_row(columns, t, stamp, managed)[None])
+        else:
+            _check_replayed_time(s, csv.previous[t], columns, stamp, t)
         bgr = cv2.cvtColor(_to_uint8_rgb(s.frame()), cv2.COLOR_RGB2BGR)
         overlay.write(draw_overlay(bgr, nowhere, np.zeros((0, 2), np.int64), nowhere, 0.0, False, f"#{t}",
-                                   conf_label, "NO FACE"))  # fmt: skip
+                                   conf_label, "NO FACE"), stamp)  # fmt: skip
         normalised.write(np.zeros((G, G, 3), np.uint8))
         s.frames += 1
         try:
@@ -762,6 +795,29 @@ def _write_no_face(s: _Stream, columns: tuple[str, ...], config: JobConfig, conf
         except StopIteration:  # (read when the run started: the input has changed since)
             raise InputError(f"{s.reader.info.path}: it ends before frame {s.start}, where the run found its first "
                              "face when it started: was it replaced?") from None  # fmt: skip
+
+
+#: How far (seconds) a replayed row's ``timestamp`` may be from its frame's time now (:func:`_check_replayed_time`):
+#: the CSV's millisecond rounding of each, and a container that keeps its times in milliseconds against the
+#: ``frame / fps`` of an earlier version (the same frames of a constant-rate video: within 1 ms).
+REPLAY_TIME_TOLERANCE: float = 1.5e-3
+
+
+def _check_replayed_time(s: _Stream, row: np.ndarray, columns: tuple[str, ...], stamp: float, frame: int) -> None:
+    """Refuse to resume rows whose times are not their frames' (``row``: the replayed row of frame ``frame``;
+    ``stamp``: its time as the reader gives it now): rows an earlier version wrote with ``frame / fps`` (before the
+    ``timestamp`` column was the container's time) of a variable-frame-rate video, which the resumed rows would have
+    gone on from with the other rule, one CSV holding both.
+
+    Raises:
+        InputError: the row's ``timestamp`` is more than :data:`REPLAY_TIME_TOLERANCE` from ``stamp``.
+    """
+    then = float(row[columns.index("timestamp")])
+    if not abs(then - stamp) <= REPLAY_TIME_TOLERANCE:
+        where = s.csv.partial if s.csv is not None else s.name
+        raise InputError(f"{where}: cannot resume, its row of frame {frame} says timestamp {then:.3f} s, but that "
+                         f"frame of {s.reader.info.path} is at {stamp:.3f} s (rows of an earlier version, which "
+                         "wrote frame / fps, of a variable-frame-rate video): run without --resume")  # fmt: skip
 
 
 def _record_path(csv: Path) -> Path:
@@ -1595,7 +1651,7 @@ def _track_group(
                     # tracked re-anchored, the last replayed one was not (its mesh is placed with its own pose)
                     s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
             _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
-            s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps)
+            s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
             s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
             _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")
         if config.meshes:
@@ -1843,6 +1899,7 @@ def _finalise(
         "redetections": s.redetections,
         "detector_calls": s.detector_calls,
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
+        "videos": _video_timing(s),
     }
     write_json(p["json"], sidecar)
     _record_path(p["csv"]).unlink(missing_ok=True)
@@ -1850,6 +1907,22 @@ def _finalise(
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short)  # fmt: skip
+
+
+def _video_timing(s: _Stream) -> dict:
+    """The sidecar's ``videos``: how the frames of the overlay and of the normalised face relate to the CSV's rows.
+    The overlay is ``time_synced`` (:class:`_VideoOut`'s ``timed``): a constant-rate video at ``input.fps`` whose
+    frames show each row at its ``timestamp`` (``duplicated_frames``: slots that showed the previous row again, where
+    the input's frames are further apart than ``1 / fps``; ``dropped_frames``: rows not shown, their slot taken by an
+    earlier one; both 0 for a constant-rate input, one frame per row). The normalised face is one frame per row
+    (``frames`` the rows; frame ``i`` is row ``i``, a dataset's order), not in step with the rows' times where they are
+    not ``i / fps``."""
+    overlay, normalised = s.outputs()[1:]
+    return {
+        "overlay": {"fps": overlay.fps, "frames": overlay.frames, "time_synced": True,
+                    "duplicated_frames": overlay.duplicated, "dropped_frames": overlay.dropped},
+        "normalised": {"fps": normalised.fps, "frames": normalised.frames, "time_synced": False},
+    }  # fmt: skip
 
 
 def _start_record(config: JobConfig, s: _Stream) -> dict:
@@ -1944,11 +2017,13 @@ def _write_step(
     if not any(live):
         return
     written = rows.copy()
+    stamps: dict[int, float] = {}
     for k, s in enumerate(streams):
         if not live[k]:
             continue
-        stamp = s.stamps.popleft()  # (its frame's time, replayed or not)
+        stamp = stamps[k] = s.stamps.popleft()  # (its frame's time, replayed or not: it places its overlay frame)
         if replaying[k] and s.replay is not None:  # (replaying: its replay holds row t)
+            _check_replayed_time(s, s.replay[t], columns, stamp, t + s.start)
             written[k] = s.replay[t]
         else:
             row = rows[k].copy()
@@ -1980,7 +2055,7 @@ def _write_step(
         unusable = "FAILED" if int(row[st]) == int(TrackStatus.FAILED) else "LOST"  # (both were drawn "LOST")
         _, overlay, normalised = s.outputs()
         overlay.write(draw_overlay(bgr, verts_px[k], edges, axes_px[k], conf, ok, f"#{t + s.start}", conf_label,
-                                   unusable))  # fmt: skip
+                                   unusable), stamps[k])  # fmt: skip
         normalised.write(cv2.cvtColor(_to_uint8_rgb(norm_img[k]), cv2.COLOR_RGB2BGR))
         if mesh_dirs is not None:
             import trimesh

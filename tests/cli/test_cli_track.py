@@ -23,7 +23,7 @@ from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.io import read_track_csv
 from torchface.io.table import openface_euler
 from torchface.job import JobConfig, output_paths, track_videos
-from torchface.synth.io import read_video
+from torchface.synth.io import read_video, read_video_uint8
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 
@@ -2959,6 +2959,158 @@ def test_a_variable_frame_rate_videos_rows_have_their_frames_times(clip, tmp_pat
     track_videos([late], replace(config, out_dir=tmp_path / "c", lookahead=LookaheadConfig(max_frames=6)))
     _, ahead = read_track_csv(tmp_path / "c" / "late.csv")
     np.testing.assert_allclose(ahead[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
+
+
+def _timed_reader(monkeypatch, ms):
+    """Make the job's inputs give the frame times ``ms`` (milliseconds, as ``CAP_PROP_POS_MSEC``: a fake clock) for
+    as long as ``ms`` is set (a list: ``ms[:] = ...`` changes it for the next run; empty: no clock)."""
+    import torchface.job
+
+    real_open = torchface.job.open_frames
+
+    def opened(path, convert=False):
+        reader = real_open(path, convert=convert)
+        if ms:
+            times = iter(list(ms))
+            reader.clock = lambda: next(times)
+        return reader
+
+    monkeypatch.setattr(torchface.job, "open_frames", opened)
+
+
+def _solid(bgr):
+    return np.full((48, 64, 3), bgr, np.uint8)
+
+
+def test_a_timed_video_shows_each_frame_at_the_slot_of_its_time(tmp_path):
+    """The overlay was written one frame per input frame at the nominal rate: a variable-frame-rate input's overlay
+    ran ahead of it. A timed video puts each frame at the slot of its time (the previous frame repeated into a gap,
+    a frame whose slot is taken left out), and a constant-rate input's frames one each (times jittered within half
+    a frame)."""
+    from torchface.job import _VideoOut
+
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (255, 0, 255)]
+    times = [0.0, 0.05, 0.07, 0.14, 0.15, 0.23]  # at 25 frames/s: slots 0, 1, 2, 4 (3.5), 4 (3.75: taken), 6 (5.75)
+    out = _VideoOut(tmp_path / "vfr.mp4", 64, 48, 25.0, timed=True)
+    for c, when in zip(colours, [t + 1.0 for t in times]):  # (slots count from the first frame's time)
+        out.write(_solid(c), when)
+    out.close()
+    assert (out.frames, out.duplicated, out.dropped) == (7, 2, 1)
+    shown = read_video_uint8(tmp_path / "vfr.mp4").permute(0, 2, 3, 1).numpy()[:, 24, 32, ::-1]  # (RGB -> BGR)
+    nearest = [int(np.argmin([np.abs(px.astype(int) - c).sum() for c in colours])) for px in shown]
+    assert nearest == [0, 1, 2, 2, 3, 3, 5], nearest
+    rng = np.random.default_rng(0)
+    steady = _VideoOut(tmp_path / "cfr.mp4", 64, 48, 30.0, timed=True)
+    for k in range(20):  # (slots count from the first frame's time: its own is on the grid here)
+        steady.write(_solid(colours[k % 6]), k / 30.0 + (rng.uniform(-0.45, 0.45) / 30.0 if k else 0.0))
+    steady.close()
+    assert (steady.frames, steady.duplicated, steady.dropped) == (20, 0, 0)
+    assert read_video_uint8(tmp_path / "cfr.mp4").shape[0] == 20
+    with pytest.raises(ValueError, match="needs its time"):
+        _VideoOut(tmp_path / "x.mp4", 64, 48, 25.0, timed=True).write(_solid(colours[0]))
+
+
+def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip, tmp_path, monkeypatch):
+    """The overlay of a variable-frame-rate video (a phone's) was one frame per input frame at the nominal rate, so
+    that it drifted ahead of the input wherever the frames were further apart. It is written at the nominal rate
+    with each row at its timestamp's slot, the previous row shown on in a gap; the normalised face stays one frame
+    per row (a dataset); the sidecar says both. A resumed run writes the same overlay; a constant-rate video's
+    (times within half a frame of k / fps) is one frame per row, as it was."""
+    import torchface.detect
+    import torchface.job
+
+    video, lm, gt = clip
+    n = 2
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)  # (25 frames/s assumed: slots of 40 ms)
+    ms = [0.0, 50.0, 70.0, 140.0, 150.0, 230.0, 260.0, 300.0, 390.0, 400.0, 470.0, 520.0, 530.0, 600.0]
+    slots = np.floor(np.array(ms) / 40.0 + 0.5)  # 0 1 2 4 [4] 6 7 8 10 [10] 12 13 [13] 15
+    clock = list(ms)
+    _timed_reader(monkeypatch, clock)
+
+    def detector(image_rgb, near=None):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    def labelled(bgr, verts, edges, axes, conf, ok, label, *rest):  # (a flat frame of the frame's number: which
+        return np.full_like(bgr, 15 * int(label[1:]))  # frame an overlay frame shows, through mp4v's coding)
+
+    def shown(path):
+        return [round(float(f.float().mean()) / 15) for f in read_video_uint8(path)]
+
+    monkeypatch.setattr(torchface.job, "draw_overlay", labelled)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
+    track_videos([late], config)
+    paths = output_paths(tmp_path / "a", "late")
+    # slot 3 (no frame) shows frame 2 again; slot 4 frame 3 (frame 4, also at slot 4, left out); ...
+    assert shown(paths["overlay"]) == [0, 1, 2, 2, 3, 3, 5, 6, 7, 7, 8, 8, 10, 11, 11, 13]
+    assert len(shown(paths["overlay"])) == slots[-1] + 1
+    assert read_video_uint8(paths["normalised"]).shape[0] == T + n
+    videos = json.loads(paths["json"].read_text())["videos"]
+    assert videos["overlay"] == {"fps": 25.0, "frames": 16, "time_synced": True, "duplicated_frames": 5,
+                                 "dropped_frames": 3}  # fmt: skip
+    assert videos["normalised"] == {"fps": 25.0, "frames": T + n, "time_synced": False}
+    out = tmp_path / "b"
+
+    def interrupt(p):
+        if p.done == n + 3 and not p.searching:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([late], replace(config, out_dir=out), progress=interrupt)
+    assert not output_paths(out, "late")["overlay"].exists()
+    assert not (out / "late_overlay.partial.mp4").exists()  # (an interrupted video's is not kept)
+    track_videos([late], replace(config, out_dir=out, resume=True))
+    assert json.loads(output_paths(out, "late")["json"].read_text())["videos"] == videos
+    assert shown(output_paths(out, "late")["overlay"]) == shown(paths["overlay"])
+    # a constant-rate container's times (milliseconds, within half a frame of k / 25): one overlay frame per row
+    clock[:] = [k * 40.0 + (7.0 if k % 3 else -9.0) for k in range(T + n)]
+    clock[0] = 0.0
+    track_videos([late], replace(config, out_dir=tmp_path / "c"))
+    steady = output_paths(tmp_path / "c", "late")
+    assert json.loads(steady["json"].read_text())["videos"]["overlay"]["frames"] == T + n
+    assert shown(steady["overlay"]) == list(range(T + n))
+
+
+@pytest.mark.parametrize("differ_at", [1, 3])  # (a row before the first face, and a tracked one)
+def test_resuming_rows_timed_by_frame_over_fps_of_a_variable_frame_rate_video_is_refused(clip, tmp_path, monkeypatch,
+                                                                                          differ_at):
+    """An earlier version wrote ``timestamp = frame / fps``: resuming its partial CSV of a variable-frame-rate video
+    went on with the container's times, one CSV mixing the two (and its overlay now placed by them). Such rows are
+    refused with a one-line error, the partial CSV kept for a run without --resume; a run whose rows have the
+    frames' times resumes."""
+    import torchface.detect
+
+    video, lm, gt = clip
+    n = 2
+    late = _with_blank_frames(video, tmp_path / "late.npy", n)
+    clock: list[float] = []  # no clock: frame / fps, as the earlier version's rows of any video
+    _timed_reader(monkeypatch, clock)
+
+    def detector(image_rgb, near=None):
+        return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
+
+    def interrupt(p):
+        if p.done == n + 4 and not p.searching:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([late], config, progress=interrupt)
+    partial = tmp_path / "a" / "late.csv.partial"
+    kept = partial.read_bytes()
+    clock[:] = [k * 40.0 + (10.0 if k >= differ_at else 0.0) for k in range(T + n)]  # frame k 10 ms later
+    with pytest.raises(InputError, match=rf"late\.csv\.partial: cannot resume, its row of frame {differ_at} says "
+                                         rf"timestamp {differ_at * 0.04:.3f} s, but that frame of .* is at "
+                                         rf"{differ_at * 0.04 + 0.01:.3f} s .*run without --resume"):  # fmt: skip
+        track_videos([late], replace(config, resume=True))
+    assert partial.read_bytes() == kept
+    assert not list((tmp_path / "a").glob("*.mp4"))
+    clock[:] = [k * 40.0 + 1.0 for k in range(T + n)]  # (within the CSV's millisecond rounding of frame / fps)
+    track_videos([late], replace(config, resume=True))
+    _, rows = read_track_csv(tmp_path / "a" / "late.csv")
+    assert rows.shape[0] == T + n
 
 
 def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip, tmp_path, monkeypatch, capsys):
