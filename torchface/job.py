@@ -17,9 +17,12 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   replays, nor about the frames up to the first with a face, which its record says (:func:`_recorded_first_face`;
   a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
   which the tracking goes on from);
-- ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame;
+- ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
+  input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
+  one frame per row for a constant-rate input);
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
-- ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`);
+- ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`), one frame per CSV row (the sidecar's
+  ``videos``, :func:`_video_timing`);
 - ``<stem>_meshes/NNNNNN.ply`` with ``meshes=True``: the posed mesh per frame, camera frame, millimetres.
 
 A video whose first frame shows no face to the detector (a title card, a black frame) is searched frame by frame
@@ -48,7 +51,8 @@ and modification time, the first-frame landmarks (and the frame where the detect
 not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
 settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
 or removed from the settings since the interrupted run's version is not compared), as is a damaged or missing record
-or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one); the parameters of the rows
+or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one, or whose ``timestamp`` is not
+its frame's time, :func:`_check_replayed_time`); the parameters of the rows
 already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
 bookkeeping (lost or not, the frames of low
 confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
