@@ -3071,6 +3071,70 @@ def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip,
     assert shown(steady["overlay"]) == list(range(T + n))
 
 
+def _variable_rate_mp4(path, frames_bgr, fps, durations):
+    """An ``mp4v`` MP4 of ``frames_bgr`` whose frames last ``durations`` (in frames of ``fps``; they must add up to
+    the frame count, which the file's edit list keeps): OpenCV writes a constant rate, so its sample durations
+    (the ``stts`` box) are written again here. Skips the test where OpenCV's file is not laid out as this expects
+    (its index, ``moov``, after the frames, with one ``stts`` entry)."""
+    import struct
+
+    assert sum(durations) == len(frames_bgr) == len(durations)
+    h, w = frames_bgr[0].shape[:2]
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), float(fps), (w, h))
+    for f in frames_bgr:
+        out.write(f)
+    out.release()
+    data = bytearray(path.read_bytes())
+    boxes, off, end = [], 0, len(data)
+    for name in (b"moov", b"trak", b"mdia", b"minf", b"stbl", b"stts"):
+        while off + 8 <= end and data[off + 4 : off + 8] != name:
+            off += struct.unpack(">I", data[off : off + 4])[0] or end
+        if off + 8 > end or (name == b"moov" and b"mdat" not in data[:off]):
+            pytest.skip(f"OpenCV's MP4 has no {name.decode()} box where expected")
+        boxes.append(off)
+        end = off + struct.unpack(">I", data[off : off + 4])[0]
+        off += 8
+    stts = boxes[-1]
+    size, entries, count, unit = struct.unpack(">I4x4xIII", data[stts : stts + 24])
+    if (size, entries, count) != (24, 1, len(frames_bgr)):
+        pytest.skip("OpenCV's MP4 has another stts box")
+    body = struct.pack(">II", 0, len(durations)) + b"".join(struct.pack(">II", 1, round(d * unit)) for d in durations)
+    data[stts : stts + size] = struct.pack(">I4s", 8 + len(body), b"stts") + body
+    for o in boxes[:-1]:  # (the frames come before the index: no chunk offset moves)
+        data[o : o + 4] = struct.pack(">I", struct.unpack(">I", data[o : o + 4])[0] + 8 + len(body) - size)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_a_variable_frame_rate_mp4s_overlay_shows_each_row_at_its_time(clip, tmp_path, monkeypatch):
+    """A real variable-frame-rate MP4 (the clip's frames 1/25 s apart, but for two gaps of 2/25 s and three of
+    half that): OpenCV gives its frames' times, the CSV holds them, and the overlay (at the container's 25 frames/s)
+    shows each row at its time: 13 frames for the 12 rows, the first frame of the gaps shown on, a row whose slot
+    the one before took left out. The normalised face keeps one frame per row."""
+    import torchface.job
+
+    video, lm, _ = clip
+    durations = [1, 1, 2, 1, 0.5, 0.5, 2, 1, 1, 0.5, 1, 0.5]  # (frames of 1 / 25 s)
+    starts = np.concatenate([[0.0], np.cumsum(durations)[:-1]])  # 0 1 2 4 5 5.5 6 8 9 10 10.5 11.5
+    frames = [np.ascontiguousarray(f) for f in read_video_uint8(video).permute(0, 2, 3, 1).numpy()[..., ::-1]]
+    vfr = _variable_rate_mp4(tmp_path / "vfr.mp4", frames, 25.0, durations)
+
+    def labelled(bgr, verts, edges, axes, conf, ok, label, *rest):  # (a flat frame of the frame's number)
+        return np.full_like(bgr, 15 * int(label[1:]))
+
+    monkeypatch.setattr(torchface.job, "draw_overlay", labelled)
+    track_videos([vfr], JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), refine_first=None))
+    paths = output_paths(tmp_path / "out", "vfr")
+    cols, rows = read_track_csv(paths["csv"])
+    np.testing.assert_allclose(rows[:, cols.index("timestamp")], starts / 25.0, atol=1e-9)
+    shown = [round(float(f.float().mean()) / 15) for f in read_video_uint8(paths["overlay"])]
+    assert shown == [0, 1, 2, 2, 3, 4, 5, 5, 7, 8, 9, 10, 11], shown  # slot 6: frame 5 (at 5.5), frame 6 left out
+    assert read_video_uint8(paths["normalised"]).shape[0] == T
+    videos = json.loads(paths["json"].read_text())["videos"]
+    assert (videos["overlay"]["frames"], videos["overlay"]["duplicated_frames"], videos["overlay"]["dropped_frames"],
+            videos["normalised"]["frames"]) == (13, 2, 1, T)  # fmt: skip
+
+
 @pytest.mark.parametrize("differ_at", [1, 3])  # (a row before the first face, and a tracked one)
 def test_resuming_rows_timed_by_frame_over_fps_of_a_variable_frame_rate_video_is_refused(clip, tmp_path, monkeypatch,
                                                                                           differ_at):
