@@ -820,8 +820,9 @@ def _check_replayed_time(s: _Stream, row: np.ndarray, columns: tuple[str, ...], 
     if not abs(then - stamp) <= REPLAY_TIME_TOLERANCE:
         where = s.csv.partial if s.csv is not None else s.name
         raise InputError(f"{where}: cannot resume, its row of frame {frame} says timestamp {then:.3f} s, but that "
-                         f"frame of {s.reader.info.path} is at {stamp:.3f} s (rows of an earlier version, which "
-                         "wrote frame / fps, of a variable-frame-rate video): run without --resume")  # fmt: skip
+                         f"frame of {s.reader.info.path} is at {stamp:.3f} s (rows written with other frame times: "
+                         "by an earlier version, which wrote frame / fps, of a variable-frame-rate video): run without "
+                         "--resume")  # fmt: skip
 
 
 def _record_path(csv: Path) -> Path:
