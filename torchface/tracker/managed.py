@@ -1387,7 +1387,6 @@ def _reanchor(
     ms = _management(state)
     fc = config.fit
     fits, now_R, now_t = [], [], []
-    priors = landmark_fit_priors(model, fc, state.intrinsics)
     with torch.inference_mode(False):
         # One refinement per stream, one after another: each stream re-anchors once per video, and a batched
         # refinement (points, keyframes and Levenberg-Marquardt decisions padded per stream) would save at most about
@@ -1396,6 +1395,9 @@ def _reanchor(
         # 3.9 times one at 640x480 (0.35 s with its 3000), before the rasterizations that grow with the streams.
         for b in index.tolist():
             ks = keys[b]
+            # (per stream: a sparse start, one of few landmarks, keeps the fit's sparse priors)
+            priors = landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b],
+                                         None if w.weights is None else w.weights[b])  # fmt: skip
             one, key_R, key_t = _refine_first_fit(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
