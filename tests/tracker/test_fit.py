@@ -882,5 +882,6 @@ def test_a_sparse_sample_needs_only_the_residuals_its_raised_priors_leave_free(m
     held = FitConfig(sparse_shape_prior_precision=1e6, refine_shape_prior_precision=0.5)
     fit = fit_landmarks(model, noisy[:, FIVE], CAM, landmark_indices=FIVE, config=held)
     assert float(fit.shape_coeffs.abs().max()) < 1e-3  # held by the sparse prior at both solves
-    free = fit_landmarks(model, noisy[:, FIVE], CAM, landmark_indices=FIVE, config=replace(held, sparse_landmark_count=0))
+    free = fit_landmarks(model, noisy[:, FIVE], CAM, landmark_indices=FIVE,
+                         config=replace(held, sparse_landmark_count=0))  # fmt: skip
     assert float(free.shape_coeffs.abs().max()) > 0.1  # (what the dense refining solve does)

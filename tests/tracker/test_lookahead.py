@@ -1002,10 +1002,9 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
 
     def spy(model, frames, intrinsics, landmarks_px, *args, **kwargs):
         out = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)
-        dense = real(model, frames, intrinsics, landmarks_px, *args,
-                     **{**kwargs, "min_shape_prior_precision": 0.0, "min_expression_prior_precision": 0.0})
-        count = int(torch.isfinite(landmarks_px).all(-1).sum())
-        seen[count] = (kwargs["min_shape_prior_precision"], kwargs["min_expression_prior_precision"], out[0], dense[0])
+        least = [kwargs.pop(name, None) for name in ("min_shape_prior_precision", "min_expression_prior_precision")]
+        dense = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)  # (the least precisions 0)
+        seen[int(torch.isfinite(landmarks_px).all(-1).sum())] = (*least, out[0], dense[0])
         return out
 
     monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
@@ -1014,10 +1013,6 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
     for i in range(1, frames.shape[1]):
         tracker(frames[:, i])
     assert sorted(seen) == [5, 68]
-    fc = cfg.fit
-    assert seen[68][:2] == (0.0, 0.0) and seen[5][:2] == (fc.sparse_shape_prior_precision,
-                                                          fc.sparse_expression_prior_precision)  # fmt: skip
-    assert torch.equal(seen[68][2].anim_coeffs, seen[68][3].anim_coeffs)
     sparse, dense = seen[5][2], seen[5][3]
     held = [model.shape_names.index(n) for n in CANDIDE3_VERTICAL_UNITS]
 
@@ -1028,6 +1023,11 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
     # error 0.82 -> 0.59 (the first frame's rotation 1.22 -> 1.39 degrees off, the landmark fit's 3.0)
     assert float(sparse.anim_coeffs.abs().max()) < 0.3 < 0.6 < float(dense.anim_coeffs.abs().max())
     assert shape_error(sparse) < shape_error(dense) - 0.1
+    fc = cfg.fit
+    assert seen[68][:2] == (0.0, 0.0) and seen[5][:2] == (fc.sparse_shape_prior_precision,
+                                                          fc.sparse_expression_prior_precision)  # fmt: skip
+    for name in LandmarkFit.__dataclass_fields__:  # the dense stream's refinement: its precisions as they are
+        assert torch.equal(getattr(seen[68][2], name), getattr(seen[68][3], name)), name
     calls = {}
     real_refine = lookahead.refine_first_fit
 
@@ -1080,3 +1080,18 @@ def test_dense_starts_are_refined_as_before_whatever_the_sparse_settings(model):
         for one, other in zip(results, runs[0][0]):
             for name in ("rotation", "translation", "expression", "confidence"):
                 assert torch.equal(getattr(one, name), getattr(other, name)), name
+
+
+def test_refinement_checks_its_least_precisions(model):
+    """``min_shape_prior_precision`` and ``min_expression_prior_precision`` (a sparse start's, from
+    ``landmark_fit_priors``) must be finite and non-negative numbers, as the precisions they bound."""
+    frames, gt, lm = _scene_at(model, 160, 120)
+    fit = fit_landmarks(model, lm[None], gt.intrinsics, config=TrackerConfig().fit)
+    for name in ("min_shape_prior_precision", "min_expression_prior_precision"):
+        for bad in (-1.0, float("nan"), float("inf")):
+            with pytest.raises(ValueError, match=f"{name} must be finite and non-negative"):
+                refine_first_fit(model, frames, gt.intrinsics, lm, fit, gt.rotation[1:].float(),
+                                 gt.translation[1:].float(), **{name: bad})  # fmt: skip
+        with pytest.raises(TypeError, match=f"{name} must be a real number"):
+            refine_first_fit(model, frames, gt.intrinsics, lm, fit, gt.rotation[1:].float(),
+                             gt.translation[1:].float(), **{name: "64"})  # fmt: skip

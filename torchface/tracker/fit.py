@@ -114,7 +114,8 @@ class FitConfig:
             the tracker's fit: 4.3 to 4.0; means within 0.1 degree from 40 points on). A denser sample keeps the
             dense priors, its fit the same to the bit (the 68 landmarks, as the evaluation and the tracker's start
             fit them, unless the model has more than 68 unknowns: the ICT Face Model has 106, 159 with the
-            expression).
+            expression). The look-ahead refinements hold a sparse start's re-estimated units at these precisions too
+            (:func:`~torchface.tracker.lookahead.landmark_fit_priors`).
         sparse_shape_prior_precision: a sparse sample's least shape precision (at ``reference_focal_px``): 64, the
             prior of a population whose shape coefficients spread about 0.25 about the mean, for landmarks of 2 px
             of noise. Stronger priors fit the mean face better still but bias a face unlike it (the subjects'

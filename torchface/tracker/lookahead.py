@@ -91,7 +91,9 @@ class LookaheadConfig:
             side, which separates the pitch from the vertical proportions that the frontal view confounds.
         shape_prior_precision: prior precision of the re-estimated shape units (one value, or one per unit of
             the model as :attr:`~torchface.tracker.fit.FitConfig.shape_prior_precision`); None: the landmark
-            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go. Given, as
+            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go (a sparse
+            start's at least :attr:`~torchface.tracker.fit.FitConfig.sparse_shape_prior_precision`, as its fit held
+            them: :func:`landmark_fit_priors`). Given, as
             the landmark fit's, at its ``reference_focal_px`` (scaled with them: ``prior_scale`` of
             :func:`refine_first_fit`).
         kept_shape_units: names of held units that ``shape_units=None`` leaves at the landmark fit's values
@@ -847,7 +849,8 @@ def lookahead_fit(
         if len(keys[b]) >= config.min_keyframes:
             idx = torch.tensor([0] + keys[b], device=frames.device)
             # (per stream: a batch can mix dense and sparse starts)
-            priors = landmark_fit_priors(model, fc, intrinsics, landmarks_px[b], None if weights is None else weights[b])
+            priors = landmark_fit_priors(model, fc, intrinsics, landmarks_px[b],
+                                         None if weights is None else weights[b])  # fmt: skip
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
                 key_expression=expr[b, keys[b]],

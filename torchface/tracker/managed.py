@@ -309,7 +309,8 @@ def initialise_managed(
     each stream keeps its first frame (``(3, H, W)`` in memory) until it has confidently turned ``yaw_deg`` (10) to
     one side (``min_keyframes`` 1; or to each side with 2; at most ``max_frames`` frames); then
     :func:`~torchface.tracker.lookahead.refine_first_fit` re-estimates the first frame's pose, its starting
-    expression and the held shape units from those keyframes (each with its tracked expression change), the
+    expression and the held shape units from those keyframes (each with its tracked expression change; a sparse
+    start's units held as its fit held them: :attr:`~torchface.tracker.fit.FitConfig.sparse_landmark_count`), the
     stream's templates and mosaic are rebuilt from the first frame at that pose, and from the next frame on its
     reported pose (``rotation``, ``axis_angle``, ``translation``, ``ypr_deg``) is the re-anchored estimate expressed
     in the head frame of its first result: reported poses stay continuous and relative to the first frame's, while
