@@ -615,6 +615,30 @@ def test_min_valid_lets_a_prior_stand_in_for_residuals() -> None:
             least_squares(fn, x0, GN, prior_precision=lam, min_valid=bad)
 
 
+def test_min_valid_per_sample() -> None:
+    """A ``(B,)`` ``min_valid``: each sample's own, for per-sample priors (the landmark fit's sparse samples, whose
+    raised priors leave fewer parameters to the residuals). The two residuals of the test above solve sample 0,
+    which needs 2, and sample 1, which needs 3, is FAILED at ``x0``; sample 0 as alone with ``min_valid=2``."""
+    A = torch.tensor([[[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]]], dtype=D).expand(2, 2, 3)
+    b = torch.tensor([[1.0, 2.0]], dtype=D).expand(2, 2)
+    lam = torch.tensor([0.0, 0.0, 4.0], dtype=D)
+
+    def fn(x: torch.Tensor):
+        return (A[: x.shape[0]] @ x[..., None]).squeeze(2) - b[: x.shape[0]], A[: x.shape[0]], None
+
+    x0 = torch.zeros(2, 3, dtype=D)
+    res = least_squares(fn, x0, GN, prior_precision=lam, min_valid=torch.tensor([2, 3]))
+    alone = least_squares(fn, x0[:1], GN, prior_precision=lam, min_valid=2)
+    assert res.status.tolist() == [CONV, FAIL]
+    torch.testing.assert_close(res.params[:1], alone.params, rtol=0, atol=0)
+    assert torch.equal(res.params[1], x0[1])
+    with pytest.raises(ValueError, match="min_valid must be >= 0"):
+        least_squares(fn, x0, GN, prior_precision=lam, min_valid=torch.tensor([2, -1]))
+    for bad in (torch.tensor([2.0, 3.0]), torch.tensor([2]), torch.tensor([True, False])):
+        with pytest.raises(TypeError, match=r"min_valid must be an int, a \(2,\) integer tensor or None"):
+            least_squares(fn, x0, GN, prior_precision=lam, min_valid=bad)
+
+
 @pytest.mark.parametrize("config", METHODS)
 def test_every_residual_rejected_is_failed(config: SolverConfig) -> None:
     """Sample 1's residuals share an offset of 1000 the model cannot explain, so their spread (the centred robust

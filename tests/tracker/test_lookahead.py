@@ -965,3 +965,133 @@ def test_the_refinement_weighs_the_fits_priors_as_the_fit_at_any_image_size(mode
         refine_first_fit(model, frames, cam, lm, fit, key_R, gt.translation[1:].float(), prior_scale="1")
     with pytest.raises(ValueError, match="prior_scale must be a positive finite number"):
         refine_first_fit(model, frames, cam, lm, fit, key_R, gt.translation[1:].float(), prior_scale=0.0)
+
+
+#: A 5-point detector's landmarks (outer eye corners, nose tip, mouth corners) as rows of the iBUG-68 table.
+FIVE = [36, 45, 30, 48, 54]
+
+
+def _dense_and_five_point_starts(model, frames_up_to: float = 24.0):
+    """A turn to ``frames_up_to`` degrees of yaw in 3-degree steps (:func:`render`) and a batch of two streams of it:
+    frames ``(2, T, 3, H, W)``, the ground truth, and the first frame's landmarks ``(2, 68, 2)`` with 1 px of noise
+    (seed 0), all 68 for stream 0 and only :data:`FIVE` for stream 1 (NaN rows)."""
+    yaw = [3.0 * i for i in range(int(frames_up_to / 3) + 1)]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    noise = torch.randn(1, model.num_landmarks, 2, generator=torch.Generator().manual_seed(0))
+    lm = gt.landmarks_px.float()[:1] + noise
+    five = torch.full_like(lm, float("nan"))
+    five[:, FIVE] = lm[:, FIVE]
+    return torch.stack([frames, frames]), gt, torch.cat([lm, five])
+
+
+def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatch):
+    """A start from fewer landmarks than the fit's unknowns (a 5-point detector's) is fitted with the sparse priors
+    (:attr:`FitConfig.sparse_landmark_count`), and its refinements, online and :func:`lookahead_fit`, re-estimated the
+    held shape units and the starting expression with the dense precisions (2 and the tracker's 2): the 5 points'
+    noise went into the expression, which the refinement ran to its range's bound (1.0; the truth is 0). They hold a
+    sparse stream's units as its fit did now (``landmark_fit_priors`` per stream: at least 64 and 200), a dense stream
+    of the same batch as before (0: its precisions as they are)."""
+    import torchface.tracker.managed as managed_module
+    from torchface.tracker import lookahead
+
+    frames, gt, lm = _dense_and_five_point_starts(model)
+    cfg = replace(CFG, fit=TrackerConfig().fit)
+    seen = {}
+    real = managed_module._refine_first_fit
+
+    def spy(model, frames, intrinsics, landmarks_px, *args, **kwargs):
+        out = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)
+        least = [kwargs.pop(name, None) for name in ("min_shape_prior_precision", "min_expression_prior_precision")]
+        dense = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)  # (the least precisions 0)
+        seen[int(torch.isfinite(landmarks_px).all(-1).sum())] = (*least, out[0], dense[0])
+        return out
+
+    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    tracker = FaceTracker(cfg, model=model, refine_first=LookaheadConfig(iterations=(6, 4), max_points=1500))
+    tracker.initialise(frames[:, 0], lm, gt.intrinsics)
+    for i in range(1, frames.shape[1]):
+        tracker(frames[:, i])
+    assert sorted(seen) == [5, 68]
+    sparse, dense = seen[5][2], seen[5][3]
+    held = [model.shape_names.index(n) for n in CANDIDE3_VERTICAL_UNITS]
+
+    def shape_error(fit):
+        return float((fit.shape_coeffs[0, held] - gt.shape_coeffs[held]).abs().max())
+
+    # measured: the starting expression's largest coefficient 0.72 -> 0.20 (truth 0), the re-estimated units' largest
+    # error 0.82 -> 0.59 (the first frame's rotation 1.22 -> 1.39 degrees off, the landmark fit's 3.0)
+    assert float(sparse.anim_coeffs.abs().max()) < 0.3 < 0.6 < float(dense.anim_coeffs.abs().max())
+    assert shape_error(sparse) < shape_error(dense) - 0.1
+    fc = cfg.fit
+    assert seen[68][:2] == (0.0, 0.0) and seen[5][:2] == (fc.sparse_shape_prior_precision,
+                                                          fc.sparse_expression_prior_precision)  # fmt: skip
+    for name in LandmarkFit.__dataclass_fields__:  # the dense stream's refinement: its precisions as they are
+        assert torch.equal(getattr(seen[68][2], name), getattr(seen[68][3], name)), name
+    calls = {}
+    real_refine = lookahead.refine_first_fit
+
+    def spy_refine(model, frames, intrinsics, landmarks_px, *args, **kwargs):
+        calls[int(torch.isfinite(landmarks_px).all(-1).sum())] = (kwargs["min_shape_prior_precision"],
+                                                                  kwargs["min_expression_prior_precision"])
+        return real_refine(model, frames, intrinsics, landmarks_px, *args, **kwargs)
+
+    monkeypatch.setattr(lookahead, "refine_first_fit", spy_refine)
+    fit, keys = lookahead_fit(model, cfg, frames, lm, gt.intrinsics, config=LookaheadConfig(iterations=(6, 4),
+                                                                                             max_points=1500))
+    assert all(keys) and calls == {68: seen[68][:2], 5: seen[5][:2]}
+    assert float(fit.anim_coeffs[1].abs().max()) < 0.3
+
+
+def test_dense_starts_are_refined_as_before_whatever_the_sparse_settings(model):
+    """A start from the 68 landmarks (as the evaluation gives them) or the 49 inner ones is no sparse one: its
+    refinements take the dense precisions as they did (``landmark_fit_priors`` with its landmarks is the call without
+    them, least precisions 0), and a batch of such streams tracks through the online start's re-anchoring and
+    :func:`lookahead_fit` to the bit as with sparse precisions of 1e6, or with none sparse (``sparse_landmark_count``
+    0)."""
+    from torchface.tracker import lookahead
+
+    frames, gt, lm = _dense_and_five_point_starts(model, 15.0)
+    inner = torch.full_like(lm[:1], float("nan"))
+    rows = [i for i in range(17, 68) if i not in (60, 64)]
+    inner[:, rows] = lm[:1, rows]
+    lm = torch.cat([lm[:1], inner])
+    fc = TrackerConfig().fit
+    for b in range(2):
+        priors = lookahead.landmark_fit_priors(model, fc, gt.intrinsics, lm[b])
+        assert priors == lookahead.landmark_fit_priors(model, fc, gt.intrinsics)
+        assert priors["min_shape_prior_precision"] == priors["min_expression_prior_precision"] == 0.0
+    la = LookaheadConfig(iterations=(6, 4), max_points=1500)
+    runs = []
+    for fit in (fc, replace(fc, sparse_shape_prior_precision=1e6, sparse_expression_prior_precision=1e6),
+                replace(fc, sparse_landmark_count=0)):
+        cfg = replace(CFG, fit=fit)
+        tracker = FaceTracker(cfg, model=model, refine_first=la)
+        results = [tracker.initialise(frames[:, 0], lm, gt.intrinsics)]
+        results += [tracker(frames[:, i]) for i in range(1, frames.shape[1])]
+        head = tracker.state.management.head_rotation
+        assert head is not None and not torch.equal(head[0], torch.eye(3)) and not torch.equal(head[1], torch.eye(3))
+        ahead, keys = lookahead_fit(model, cfg, frames, lm, gt.intrinsics, config=la)
+        assert all(keys)
+        runs.append((results, ahead))
+    for results, ahead in runs[1:]:
+        for name in LandmarkFit.__dataclass_fields__:
+            assert torch.equal(getattr(ahead, name), getattr(runs[0][1], name)), name
+        for one, other in zip(results, runs[0][0]):
+            for name in ("rotation", "translation", "expression", "confidence"):
+                assert torch.equal(getattr(one, name), getattr(other, name)), name
+
+
+def test_refinement_checks_its_least_precisions(model):
+    """``min_shape_prior_precision`` and ``min_expression_prior_precision`` (a sparse start's, from
+    ``landmark_fit_priors``) must be finite and non-negative numbers, as the precisions they bound."""
+    frames, gt, lm = _scene_at(model, 160, 120)
+    fit = fit_landmarks(model, lm[None], gt.intrinsics, config=TrackerConfig().fit)
+    for name in ("min_shape_prior_precision", "min_expression_prior_precision"):
+        for bad in (-1.0, float("nan"), float("inf")):
+            with pytest.raises(ValueError, match=f"{name} must be finite and non-negative"):
+                refine_first_fit(model, frames, gt.intrinsics, lm, fit, gt.rotation[1:].float(),
+                                 gt.translation[1:].float(), **{name: bad})  # fmt: skip
+        with pytest.raises(TypeError, match=f"{name} must be a real number"):
+            refine_first_fit(model, frames, gt.intrinsics, lm, fit, gt.rotation[1:].float(),
+                             gt.translation[1:].float(), **{name: "64"})  # fmt: skip

@@ -334,7 +334,7 @@ def least_squares(
     prior_precision: torch.Tensor | None = None,
     prior_mean: torch.Tensor | None = None,
     robust: RobustLoss | SwitchedRobustLoss | None = None,
-    min_valid: int | None = None,
+    min_valid: int | torch.Tensor | None = None,
 ) -> SolveResult:
     """Minimise ``sum_n rho(r_n(x); s) + 1/2 sum_p lambda_p (x_p - mu_p)**2`` for ``B`` samples at once.
 
@@ -376,7 +376,8 @@ def least_squares(
             least squares.
         min_valid: the fewest valid residuals a sample needs (FAILED with fewer); ``None`` for ``P``. Fewer than
             ``P`` can do where a prior determines the other parameters (e.g. ``P`` less the number of parameters
-            with a positive ``prior_precision``).
+            with a positive ``prior_precision``). A ``(B,)`` integer tensor: each sample's own (per-sample
+            ``prior_precision``).
 
     Returns:
         :class:`SolveResult` with ``params (B, P)``, ``cost (B,)`` and ``initial_cost (B,)`` (sums, as
@@ -418,7 +419,15 @@ def least_squares(
         raise ValueError("prior_mean needs prior_precision")
     mu = None if prior_mean is None else _batched_param("prior_mean", prior_mean, B, P, dtype)
     use_robust = robust is not None and robust.kind is not RobustKind.NONE
-    min_valid = check_optional_int(min_valid, "min_valid", 0)
+    if isinstance(min_valid, torch.Tensor):
+        if min_valid.shape != (B,) or min_valid.dtype.is_floating_point or min_valid.dtype == torch.bool:
+            raise TypeError(f"min_valid must be an int, a ({B},) integer tensor or None, got {min_valid.dtype} "
+                            f"{tuple(min_valid.shape)}")  # fmt: skip
+        if bool((min_valid < 0).any()):
+            raise ValueError(f"min_valid must be >= 0, got {min_valid.tolist()}")
+        min_valid = min_valid.to(x0.device)
+    else:
+        min_valid = check_optional_int(min_valid, "min_valid", 0)
 
     grad_ctx = contextlib.nullcontext() if config.differentiable else torch.no_grad()
     with grad_ctx:
@@ -435,7 +444,7 @@ def _run(
     lam: torch.Tensor | None,
     mu: torch.Tensor | None,
     robust: RobustLoss | SwitchedRobustLoss | None,
-    min_valid: int,
+    min_valid: int | torch.Tensor,
 ) -> SolveResult:
     B, P = x0.shape
     dtype, device = x0.dtype, x0.device

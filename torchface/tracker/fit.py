@@ -114,7 +114,8 @@ class FitConfig:
             the tracker's fit: 4.3 to 4.0; means within 0.1 degree from 40 points on). A denser sample keeps the
             dense priors, its fit the same to the bit (the 68 landmarks, as the evaluation and the tracker's start
             fit them, unless the model has more than 68 unknowns: the ICT Face Model has 106, 159 with the
-            expression).
+            expression). The look-ahead refinements hold a sparse start's re-estimated units at these precisions too
+            (:func:`~torchface.tracker.lookahead.landmark_fit_priors`).
         sparse_shape_prior_precision: a sparse sample's least shape precision (at ``reference_focal_px``): 64, the
             prior of a population whose shape coefficients spread about 0.25 about the mean, for landmarks of 2 px
             of noise. Stronger priors fit the mean face better still but bias a face unlike it (the subjects'
@@ -589,12 +590,9 @@ def fit_landmarks(
         lower.append(model.animation_ranges[:, 0].to(dtype))
         upper.append(model.animation_ranges[:, 1].to(dtype))
         prior.append(torch.full((A,), config.expression_prior_precision * scale, dtype=dtype, device=device))
-    # The parameters without a prior need the residuals: the shape units' and expression's priors determine theirs
-    # (4 landmarks, 8 residuals, fit the pose; asking for P residuals failed every fit from fewer than 10 points).
-    # (Counted on the dense priors: a sparse sample's are at least as strong.)
-    unregularised = int((torch.cat(prior) == 0).sum())
     lower_all, upper_all = torch.cat(lower), torch.cat(upper)
-    prior_all = _sparse_priors(torch.cat(prior), (w > 0).sum(-1), S, A, config, scale)  # (P,), or (B, P): sparse
+    sparse = sparse_samples(config, (w > 0).sum(-1), S, model.num_animation)
+    prior_all = _sparse_priors(torch.cat(prior), sparse, S, A, config, scale)  # (P,), or (B, P): sparse
     res = least_squares(
         residual_fn,
         x0,
@@ -602,7 +600,7 @@ def fit_landmarks(
         lower=lower_all,
         upper=upper_all,
         prior_precision=prior_all,
-        min_valid=unregularised,
+        min_valid=_unregularised(prior_all),
     )
     x = res.params
     stalled = _stalled(residual_fn, x, lower_all, upper_all, prior_all, w.sum(-1))
@@ -613,9 +611,10 @@ def fit_landmarks(
         hi2 = torch.where(hold, x, upper_all.expand_as(x))
         prior2 = prior_all.clone()
         prior2[..., 6 : 6 + S] = config.refine_shape_prior_precision * scale
+        prior2 = _sparse_priors(prior2, sparse, S, A, config, scale)  # a sparse sample's shape still held
         res2 = least_squares(
             residual_fn, x, SolverConfig(max_iterations=config.max_iterations), lower=lo2, upper=hi2,
-            prior_precision=prior2, min_valid=int(((prior2 == 0) & ~hold).sum(-1).max()),
+            prior_precision=prior2, min_valid=_unregularised(torch.where(hold, 1.0, prior2)),  # (held: no unknowns)
         )
         failed2 = res2.failed | _stalled(residual_fn, res2.params, lo2, hi2, prior2, w.sum(-1))
         x = torch.where(failed2.unsqueeze(-1), x, res2.params)
@@ -646,26 +645,47 @@ def fit_landmarks(
     return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status).to(dtype=model_dtype)
 
 
-def _sparse_priors(prior: Tensor, count: Tensor, S: int, A: int, config: FitConfig, scale: float) -> Tensor:
-    """The landmark fit's prior precisions, a sparse sample's (fewer landmarks than
-    :attr:`FitConfig.sparse_landmark_count`; None: ``6 + S + A``, the fit's unknowns) shape and expression ones raised
+def sparse_samples(config: FitConfig, count: Tensor, num_shape: int, num_animation: int) -> Tensor:
+    """``(B,)`` bool: the samples :func:`fit_landmarks` fits with the sparse priors, those with fewer landmarks of
+    positive weight than :attr:`FitConfig.sparse_landmark_count` (None: the fit's unknowns, ``6 + S``, ``+ A`` with
+    ``fit_expression``). The look-ahead refinements hold a sparse start's units as the fit did
+    (:func:`~torchface.tracker.lookahead.landmark_fit_priors`).
+
+    Args:
+        count: ``(B,)`` the samples' landmarks of positive weight (finite ones: :func:`landmark_targets`).
+        num_shape, num_animation: the model's ``S`` and ``A`` (``A`` counted with ``fit_expression`` only).
+    """
+    unknowns = 6 + num_shape + (num_animation if config.fit_expression else 0)
+    return count < (unknowns if config.sparse_landmark_count is None else config.sparse_landmark_count)
+
+
+def _unregularised(prior: Tensor) -> int | Tensor:
+    """The residuals a sample's solve needs (``min_valid``): as many as its parameters without a prior, ``prior``'s
+    zeros (``(P,)``: an int; ``(B, P)``: per sample, a sparse sample's raised priors counted). The shape units' and
+    the expression's priors determine theirs: 4 landmarks, 8 residuals, fit the pose (asking for ``P`` residuals
+    failed every fit from fewer than 10 points). Counted on the dense priors, a 5-point sample with a precision set to
+    0 by hand needed 16 residuals or more, had 10, and was FAILED, though its sparse priors held those units."""
+    zeros = (prior == 0).sum(-1)
+    return int(zeros) if prior.dim() == 1 else zeros
+
+
+def _sparse_priors(prior: Tensor, sparse: Tensor, S: int, A: int, config: FitConfig, scale: float) -> Tensor:
+    """The landmark fit's prior precisions, a sparse sample's (:func:`sparse_samples`) shape and expression ones raised
     to at least :attr:`FitConfig.sparse_shape_prior_precision` and :attr:`FitConfig.sparse_expression_prior_precision`
     (times ``scale``, :func:`prior_scale`). ``A``: the animation units fitted (0 without ``fit_expression``).
 
     Args:
-        prior: ``(P,)`` the dense precisions, ``P = 6 + S + A`` (the pose's six first, 0).
-        count: ``(B,)`` the samples' landmarks of positive weight.
+        prior: ``(P,)`` or ``(B, P)`` the dense precisions, ``P = 6 + S + A`` (the pose's six first, 0).
+        sparse: ``(B,)`` bool, the sparse samples.
 
     Returns:
         ``prior`` itself when no sample is sparse (the fit is then the dense one, to the bit), else ``(B, P)``.
     """
-    least = 6 + S + A if config.sparse_landmark_count is None else config.sparse_landmark_count
-    sparse = count < least
     if not bool(sparse.any()):
         return prior
     floor = torch.zeros_like(prior)
-    floor[6 : 6 + S] = config.sparse_shape_prior_precision * scale
-    floor[6 + S : 6 + S + A] = config.sparse_expression_prior_precision * scale
+    floor[..., 6 : 6 + S] = config.sparse_shape_prior_precision * scale
+    floor[..., 6 + S : 6 + S + A] = config.sparse_expression_prior_precision * scale
     return torch.where(sparse.unsqueeze(-1), torch.maximum(prior, floor), prior)
 
 

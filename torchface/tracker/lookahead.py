@@ -57,7 +57,7 @@ from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
     FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, prior_scale,
-    shape_precisions, shape_prior_vector,
+    shape_precisions, shape_prior_vector, sparse_samples,
 )
 from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics
 
@@ -91,7 +91,9 @@ class LookaheadConfig:
             side, which separates the pitch from the vertical proportions that the frontal view confounds.
         shape_prior_precision: prior precision of the re-estimated shape units (one value, or one per unit of
             the model as :attr:`~torchface.tracker.fit.FitConfig.shape_prior_precision`); None: the landmark
-            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go. Given, as
+            fit's. 2 (the landmark fit's default for the units it does not hold) lets the held units go (a sparse
+            start's at least :attr:`~torchface.tracker.fit.FitConfig.sparse_shape_prior_precision`, as its fit held
+            them: :func:`landmark_fit_priors`). Given, as
             the landmark fit's, at its ``reference_focal_px`` (scaled with them: ``prior_scale`` of
             :func:`refine_first_fit`).
         kept_shape_units: names of held units that ``shape_units=None`` leaves at the landmark fit's values
@@ -326,17 +328,37 @@ def _near_background(background: Tensor, points: Tensor, intrinsics: Intrinsics,
     return near[uv[:, 1].clamp(0, near.shape[0] - 1), uv[:, 0].clamp(0, near.shape[1] - 1)]
 
 
-def landmark_fit_priors(model: FaceModel, fit_config: FitConfig, intrinsics: Intrinsics) -> dict:
+def landmark_fit_priors(
+    model: FaceModel, fit_config: FitConfig, intrinsics: Intrinsics, landmarks_px: Tensor | None = None,
+    landmark_weights: Tensor | None = None,
+) -> dict:
     """The landmark fit's settings as :func:`refine_first_fit` takes them (keyword arguments): its shape
-    precisions per unit, bounds, expression precision and held units, for ``model``, and the factor on the
+    precisions per unit, bounds, expression precision and held units, for ``model``, the factor on the
     precisions for the camera ``intrinsics`` that :func:`~torchface.tracker.fit.fit_landmarks` applies
-    (:func:`~torchface.tracker.fit.prior_scale`: exactly 1 at the reference focal length, 640 px)."""
+    (:func:`~torchface.tracker.fit.prior_scale`: exactly 1 at the reference focal length, 640 px), and the least
+    precisions of a sparse start.
+
+    Args:
+        landmarks_px: ``(L, 2)`` one stream's first-frame landmarks and landmark_weights ``(L,)`` (or None), as given
+            to the fit: a stream the fit found sparse (:func:`~torchface.tracker.fit.sparse_samples`) is refined with
+            its shape and expression precisions at least
+            :attr:`~torchface.tracker.fit.FitConfig.sparse_shape_prior_precision` and
+            :attr:`~torchface.tracker.fit.FitConfig.sparse_expression_prior_precision` (``min_shape_prior_precision``,
+            ``min_expression_prior_precision``; 0 for a dense one, and without ``landmarks_px``).
+    """
     precision = shape_precisions(fit_config, model.shape_names, torch.float64, "cpu")
+    sparse = False
+    if landmarks_px is not None:
+        lm = landmarks_px.detach().to(dtype=model.dtype)  # (positive in the model's dtype, as the fit counts them)
+        count = (landmark_targets(lm, landmark_weights)[1] > 0).sum(-1)
+        sparse = bool(sparse_samples(fit_config, count, model.num_shape, model.num_animation))
     return dict(
         shape_prior_precision=tuple(precision.tolist()), shape_bound=fit_config.shape_bound,
         expression_prior_precision=fit_config.expression_prior_precision,
         held_shape_units=held_shape_indices(fit_config, model.shape_names),
         prior_scale=prior_scale(fit_config, intrinsics),
+        min_shape_prior_precision=fit_config.sparse_shape_prior_precision if sparse else 0.0,
+        min_expression_prior_precision=fit_config.sparse_expression_prior_precision if sparse else 0.0,
     )
 
 
@@ -357,6 +379,8 @@ def refine_first_fit(
     expression_prior_precision: float = 2.0,
     held_shape_units: tuple[int, ...] = (),
     prior_scale: float = 1.0,
+    min_shape_prior_precision: float = 0.0,
+    min_expression_prior_precision: float = 0.0,
     config: LookaheadConfig = LookaheadConfig(),
     backend: Backend = Backend.AUTO,
 ) -> LandmarkFit:
@@ -390,6 +414,10 @@ def refine_first_fit(
             degrees (320 x 240) and 0.22 (160 x 120) from that of the same scene at 640 x 480, now the same). 1: as
             given, in the camera's squared pixels. The photometric term is not scaled (``photometric_weight`` was
             tuned at 640 x 480).
+        min_shape_prior_precision, min_expression_prior_precision: the least precisions of the re-estimated shape
+            units and expression (before ``prior_scale``, as the others), whatever the ones above and
+            ``config.shape_prior_precision``: those of a sparse start (:func:`landmark_fit_priors`, as the fit held
+            them; 0 for a dense one). The dense precisions let a 5-point start's units absorb the pose again.
         config: :class:`LookaheadConfig`.
         backend: :class:`~torchface.backend.Backend` of the first frame's template points (the tracker's
             :attr:`~torchface.tracker.step.TrackerConfig.backend`).
@@ -402,7 +430,8 @@ def refine_first_fit(
         landmark_weights=landmark_weights,
         shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
         expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units,
-        prior_scale=prior_scale, config=config, backend=backend,
+        prior_scale=prior_scale, min_shape_prior_precision=min_shape_prior_precision,
+        min_expression_prior_precision=min_expression_prior_precision, config=config, backend=backend,
     )[0]  # fmt: skip
 
 
@@ -423,6 +452,8 @@ def _refine_first_fit(
     config: LookaheadConfig,
     held_shape_units: tuple[int, ...] = (),
     prior_scale: float = 1.0,
+    min_shape_prior_precision: float = 0.0,
+    min_expression_prior_precision: float = 0.0,
     analytic: bool = True,
     backend: Backend = Backend.AUTO,
 ) -> tuple[LandmarkFit, Tensor, Tensor]:
@@ -452,6 +483,12 @@ def _refine_first_fit(
     pscale = check_real(prior_scale, "prior_scale")
     if not (math.isfinite(pscale) and pscale > 0):  # (NaN, infinite or negative precisions would reach the solve)
         raise ValueError(f"prior_scale must be a positive finite number, got {prior_scale!r}")
+    least = {}
+    for name, value in (("min_shape_prior_precision", min_shape_prior_precision),
+                        ("min_expression_prior_precision", min_expression_prior_precision)):  # fmt: skip
+        least[name] = check_real(value, name)
+        if not (math.isfinite(least[name]) and least[name] >= 0):
+            raise ValueError(f"{name} must be finite and non-negative, got {value!r}")
     S, A = model.num_shape, model.num_animation
     if config.shape_units is None:
         kept = kept_shape_indices(config, model.shape_names)
@@ -508,6 +545,10 @@ def _refine_first_fit(
     if nA:
         lo[o_al:o_k], hi[o_al:o_k] = m.animation_ranges[:, 0], m.animation_ranges[:, 1]
         prior[o_al:o_k] = expression_prior_precision * pscale
+    if least["min_shape_prior_precision"] > 0:  # a sparse start (0: dense, its precisions as they are, to the bit)
+        prior[o_sig:o_al] = prior[o_sig:o_al].clamp_min(least["min_shape_prior_precision"] * pscale)
+    if least["min_expression_prior_precision"] > 0:
+        prior[o_al:o_k] = prior[o_al:o_k].clamp_min(least["min_expression_prior_precision"] * pscale)
     x = torch.maximum(torch.minimum(x, hi), lo)
 
     def coeffs(x: Tensor) -> tuple[Tensor, Tensor]:
@@ -802,11 +843,14 @@ def lookahead_fit(
         if all(len(k) == 2 or not going for k, going in zip(keys, uncut.tolist())):
             break
     R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
-    streams, priors = [], landmark_fit_priors(model, fc, intrinsics)
+    streams = []
     for b in range(B):
         one = fit.select(slice(b, b + 1))
         if len(keys[b]) >= config.min_keyframes:
             idx = torch.tensor([0] + keys[b], device=frames.device)
+            # (per stream: a batch can mix dense and sparse starts)
+            priors = landmark_fit_priors(model, fc, intrinsics, landmarks_px[b],
+                                         None if weights is None else weights[b])  # fmt: skip
             one = refine_first_fit(
                 model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
                 key_expression=expr[b, keys[b]],

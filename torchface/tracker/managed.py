@@ -309,7 +309,8 @@ def initialise_managed(
     each stream keeps its first frame (``(3, H, W)`` in memory) until it has confidently turned ``yaw_deg`` (10) to
     one side (``min_keyframes`` 1; or to each side with 2; at most ``max_frames`` frames); then
     :func:`~torchface.tracker.lookahead.refine_first_fit` re-estimates the first frame's pose, its starting
-    expression and the held shape units from those keyframes (each with its tracked expression change), the
+    expression and the held shape units from those keyframes (each with its tracked expression change; a sparse
+    start's units held as its fit held them: :attr:`~torchface.tracker.fit.FitConfig.sparse_landmark_count`), the
     stream's templates and mosaic are rebuilt from the first frame at that pose, and from the next frame on its
     reported pose (``rotation``, ``axis_angle``, ``translation``, ``ypr_deg``) is the re-anchored estimate expressed
     in the head frame of its first result: reported poses stay continuous and relative to the first frame's, while
@@ -1387,7 +1388,6 @@ def _reanchor(
     ms = _management(state)
     fc = config.fit
     fits, now_R, now_t = [], [], []
-    priors = landmark_fit_priors(model, fc, state.intrinsics)
     with torch.inference_mode(False):
         # One refinement per stream, one after another: each stream re-anchors once per video, and a batched
         # refinement (points, keyframes and Levenberg-Marquardt decisions padded per stream) would save at most about
@@ -1396,6 +1396,9 @@ def _reanchor(
         # 3.9 times one at 640x480 (0.35 s with its 3000), before the rasterizations that grow with the streams.
         for b in index.tolist():
             ks = keys[b]
+            # (per stream: a sparse start, one of few landmarks, keeps the fit's sparse priors)
+            priors = landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b],
+                                         None if w.weights is None else w.weights[b])  # fmt: skip
             one, key_R, key_t = _refine_first_fit(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
