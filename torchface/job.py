@@ -635,6 +635,9 @@ class _Stream:
     start: int = 0
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
+    # with --lookahead: the frames its first fit was refined against (lookahead_fit's keyframes, counted as its rows
+    # are); empty: its head did not turn within the frames read ahead, and it starts from the landmark fit
+    keyframes: list[int] = field(default_factory=list)
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -1858,6 +1861,8 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
+    ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
+    a video whose head did not turn ``yaw_deg`` within the frames read ahead, which starts from the landmark fit.
     ``first_frame``: the frame tracking started at (its landmarks are ``initial_landmarks_px``): 0, or the first
     frame where the detector found a face (the rows before it have no estimate). ``reanchored_at_frame``: the frame
     whose step re-anchored the stream (None: not, or not known: a record of an earlier version). The rows after it
@@ -1880,6 +1885,7 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     at = None if anchor is None else anchor.get("frame")  # (the record counts from the first tracked frame)
     return {
         "method": method,
+        "lookahead_keyframes": list(s.keyframes) if method == "lookahead" else None,
         "first_frame": s.start,
         "reanchored_at_frame": None if at is None else at + s.start,
         "head_rotation": None if anchor is None else anchor["head_rotation"],
@@ -1920,8 +1926,11 @@ def _lookahead_fit(
             frames[k, j + 1] = frame
             s.ahead[j] = frames[k, j + 1]
         frames[k, len(s.ahead) + 1 :] = frames[k, len(s.ahead)]
-    fit, _ = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
-                           config=la)  # fmt: skip
+    fit, keys = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
+                              config=la)  # fmt: skip
+    for stream, k in zip(streams, keys):  # the sidecar's start.lookahead_keyframes ("lookahead" alone did not say
+        # whether the first fit was refined at all); a shorter video's repeated last frame is that frame
+        stream.keyframes = sorted({stream.start + min(int(i), len(stream.ahead)) for i in k})
     return fit
 
 
