@@ -1621,6 +1621,7 @@ def _track_group(
             fit = _with_recorded_fits(fit, list(anchored.items()))
         state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
                                            refine_first=config.refine_first if online else None)  # fmt: skip
+        _warn_failed_starts(streams, result.success, detector is not None)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
         if online and any(s.replay is not None for s in streams):
@@ -1853,6 +1854,20 @@ def _finalise(
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short)  # fmt: skip
+
+
+def _warn_failed_starts(streams: list[_Stream], success: Tensor, detector: bool) -> None:
+    """Warn (one line per video) where the start from the first frame's landmarks failed (``initialise``: landmarks
+    that hold no pose, a face too small, a frame without texture there, such as a black one): every row of that
+    video was written unusable (``success`` 0) with nothing said but the summary's lost count."""
+    for s, ok in zip(streams, success.tolist()):
+        if ok or s.replay is not None:  # (a resumed video's start failed in the interrupted run too: said then)
+            continue
+        then = ("it is lost until the detector finds a face it can start from" if detector else
+                "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
+        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that hold no "
+                      f"pose, or a face too small or without texture there: a black frame): {then}", RuntimeWarning,
+                      stacklevel=3)  # fmt: skip
 
 
 def _start_record(config: JobConfig, s: _Stream) -> dict:

@@ -1683,6 +1683,26 @@ def test_progress_display_on_a_terminal_redraws_only_the_videos_being_tracked(mo
     assert len(finished) == N  # each finished video's line written once
 
 
+def test_a_video_whose_start_fails_is_warned_about(clip, tmp_path):
+    """Landmarks given for a first frame that is black (a fade-in): the start fails (no texture there) and every row
+    was written unusable (success 0, confidence 0) with nothing said but the summary's lost count. The run now warns
+    about that video, one line naming it; the batch's other video, which starts, is not named."""
+    import warnings
+
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 4)
+    black = tmp_path / "black.npy"
+    np.save(black, np.concatenate([np.zeros_like(frames[:1]), frames[1:]]))
+    good = _short_npy(video, tmp_path / "good.npy", 4)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summaries = track_videos([black, good], JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm)))
+    said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("black: the start from the landmarks of frame 0 failed"), said
+    assert "give the landmarks of a frame that shows the face" in said[0]
+    assert [s.lost for s in summaries] == [4, 0]
+
+
 def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     """``--lookahead`` keeps each video's frames read ahead for the tracking pass and hands the look-ahead fit the
     batch of them: the batch holds the frames and the lists keep views of it (stacked, every frame was held three
