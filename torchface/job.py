@@ -1943,9 +1943,9 @@ def _lookahead_fit(
         frames[k, len(s.ahead) + 1 :] = frames[k, len(s.ahead)]
     fit, keys = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
                               config=la)  # fmt: skip
-    for stream, k in zip(streams, keys):  # the sidecar's start.lookahead_keyframes ("lookahead" alone did not say
-        # whether the first fit was refined at all); a shorter video's repeated last frame is that frame
-        stream.keyframes = sorted({stream.start + min(int(i), len(stream.ahead)) for i in k})
+    for stream, found in zip(streams, keys):  # the sidecar's start.lookahead_keyframes ("lookahead" alone did not
+        # say whether the first fit was refined at all); a shorter video's repeated last frame is that frame
+        stream.keyframes = sorted({stream.start + min(int(i), len(stream.ahead)) for i in found})
     return fit
 
 
