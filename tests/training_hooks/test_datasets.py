@@ -329,6 +329,13 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([tmp_path], [lm])
     with pytest.raises(ValueError, match="VideoDataset"):
         FrameFolderDataset([video], [lm])
+    # a mistyped path: said so (it was told to use the other dataset, "takes folders of frames", or the other way round)
+    for dataset, missing in ((VideoDataset, tmp_path / "typo.avi"), (FrameFolderDataset, tmp_path / "typo")):
+        with pytest.raises(InputError, match=r"typo(\.avi)?: no such file or folder$"):
+            dataset([missing], [lm])
+    (tmp_path / "gone.avi").symlink_to(tmp_path / "moved.avi")
+    with pytest.raises(InputError, match=r"gone\.avi: no such file or folder \(a symbolic link to a missing target\)"):
+        VideoDataset([tmp_path / "gone.avi"], [lm])
     with pytest.raises(ValueError, match="empty"):
         VideoDataset([], [])
     with pytest.raises(ValueError, match="clip_stride needs clip_length"):
