@@ -816,7 +816,7 @@ class NormalisedFace(nn.Module):
             if intrinsics is None:
                 if not isinstance(frames, Tensor):  # a numpy array was "must be (B, C, H, W), got (B, C, H, W)"
                     raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}"
-                        f"{_not_tensor_hint(frames)}")  # fmt: skip
+                                    f"{_not_tensor_hint(frames)}")  # fmt: skip
                 if frames.dim() != 4:
                     raise ValueError(f"frames must be (B, C, H, W), got {tuple(frames.shape)}")
                 intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])
