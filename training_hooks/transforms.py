@@ -331,12 +331,18 @@ class TrackedSequence:
 
 def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Tensor:
     """One frame ``(3, H, W)`` float in [0, 1] or uint8 -> ``(1, 3, H, W)`` float32, validated."""
+    # (frames streamed from OpenCV, (H, W, 3) BGR arrays or tensors of them: the messages named the layout alone)
     if isinstance(frame, np.ndarray):
-        raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array")
+        hint = ""
+        if frame.ndim == 3 and frame.shape[-1] == 3:
+            hint = (" (an (H, W, 3) image, BGR as OpenCV reads it: torch.from_numpy(image[..., ::-1].copy())"
+                    ".permute(2, 0, 1); an RGB one without [..., ::-1])")
+        raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array{hint}")
     if not isinstance(frame, Tensor):
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
     if frame.dim() != 3 or frame.shape[0] != 3:
-        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}")
+        hint = " (channels last (H, W, 3): frame.permute(2, 0, 1))" if frame.dim() == 3 and frame.shape[-1] == 3 else ""
+        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}{hint}")
     if frame.dtype == torch.uint8:
         frame = frame.to(torch.float32) / 255.0
     elif not frame.is_floating_point():
