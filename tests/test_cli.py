@@ -69,6 +69,17 @@ def test_parser_requires_a_command():
     assert build_parser().parse_args(["demo"]).out.name == "torchface-demo"
 
 
+def test_version_prints_the_package_version(capsys):
+    """``torchface --version`` (a script recording what made its results) was "error: the following arguments are
+    required: command", status 2; it prints ``torchface <version>`` and exits with 0."""
+    import torchface
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"torchface {torchface.__version__}"
+
+
 def test_track_threads_sets_torchs_threads_and_rejects_non_positive(monkeypatch, tmp_path, capsys):
     import torch
 

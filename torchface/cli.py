@@ -35,6 +35,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
+from torchface import __version__  # (torch is not imported: the package's names load on first use)
+
 __all__ = ["main", "build_parser", "ProgressDisplay"]
 
 EXIT_USAGE = 2
@@ -187,6 +189,8 @@ def build_parser() -> argparse.ArgumentParser:
     description = (__doc__ or "The torchface command: track videos, run the demo, render a synthetic clip.")
     description = description.splitlines()[0].replace("``", "")  # (reST quotes: printed as they were in --help)
     parser = argparse.ArgumentParser(prog="torchface", description=description)
+    # (a script recording what made its results asked `torchface --version` and was told a command is required)
+    parser.add_argument("--version", action="version", version=f"torchface {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     track = sub.add_parser("track", help="track the face in one or more videos")

@@ -670,6 +670,9 @@ class _Stream:
     start: int = 0
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
+    # with --lookahead: the frames its first fit was refined against (lookahead_fit's keyframes, counted as its rows
+    # are); empty: its head did not turn within the frames read ahead, and it starts from the landmark fit
+    keyframes: list[int] = field(default_factory=list)
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -1679,6 +1682,7 @@ def _track_group(
             fit = _with_recorded_fits(fit, list(anchored.items()))
         state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
                                            refine_first=config.refine_first if online else None)  # fmt: skip
+        _warn_failed_starts(streams, result.success, detector is not None)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
         if online and any(s.replay is not None for s in streams):
@@ -1930,12 +1934,28 @@ def _video_timing(s: _Stream) -> dict:
     }  # fmt: skip
 
 
+def _warn_failed_starts(streams: list[_Stream], success: Tensor, detector: bool) -> None:
+    """Warn (one line per video) where the start from the first frame's landmarks failed (``initialise``: landmarks
+    that hold no pose, a face too small, a frame without texture there, such as a black one): every row of that
+    video was written unusable (``success`` 0) with nothing said but the summary's lost count."""
+    for s, ok in zip(streams, success.tolist()):
+        if ok or s.replay is not None:  # (a resumed video's start failed in the interrupted run too: said then)
+            continue
+        then = ("it is lost until the detector finds a face it can start from" if detector else
+                "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
+        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that hold no "
+                      f"pose, or a face too small or without texture there: a black frame): {then}", RuntimeWarning,
+                      stacklevel=3)  # fmt: skip
+
+
 def _start_record(config: JobConfig, s: _Stream) -> dict:
     """The sidecar's ``start``: how the video's first pose was found and, once the online start re-anchored it,
     what turns the CSV's pose into the pose that places the mesh.
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
+    ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
+    a video whose head did not turn ``yaw_deg`` within the frames read ahead, which starts from the landmark fit.
     ``first_frame``: the frame tracking started at (its landmarks are ``initial_landmarks_px``): 0, or the first
     frame where the detector found a face (the rows before it have no estimate). ``reanchored_at_frame``: the frame
     whose step re-anchored the stream (None: not, or not known: a record of an earlier version). The rows after it
@@ -1958,6 +1978,7 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     at = None if anchor is None else anchor.get("frame")  # (the record counts from the first tracked frame)
     return {
         "method": method,
+        "lookahead_keyframes": list(s.keyframes) if method == "lookahead" else None,
         "first_frame": s.start,
         "reanchored_at_frame": None if at is None else at + s.start,
         "head_rotation": None if anchor is None else anchor["head_rotation"],
@@ -1998,8 +2019,11 @@ def _lookahead_fit(
             frames[k, j + 1] = frame
             s.ahead[j] = frames[k, j + 1]
         frames[k, len(s.ahead) + 1 :] = frames[k, len(s.ahead)]
-    fit, _ = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
-                           config=la)  # fmt: skip
+    fit, keys = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
+                              config=la)  # fmt: skip
+    for stream, found in zip(streams, keys):  # the sidecar's start.lookahead_keyframes ("lookahead" alone did not
+        # say whether the first fit was refined at all); a shorter video's repeated last frame is that frame
+        stream.keyframes = sorted({stream.start + min(int(i), len(stream.ahead)) for i in found})
     return fit
 
 

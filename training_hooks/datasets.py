@@ -240,6 +240,14 @@ class DatasetStats:
     cache: CacheStats = field(default_factory=CacheStats)
 
 
+def _check_exists(path: Path) -> None:
+    """Refuse a video or folder that is not there by saying so (a mistyped path was told "VideoDataset takes video
+    files or .npy arrays (use FrameFolderDataset for folders)", or the other way round)."""
+    if not path.exists():
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else ""
+        raise InputError(f"{path}: no such file or folder{link}")
+
+
 def clip_bounds(
     num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool
 ) -> list[tuple[int, int]]:
@@ -334,6 +342,7 @@ class VideoDataset(IterableDataset):
         self._detected: dict[str, np.ndarray] = {}
 
     def _check_source(self, path: Path) -> None:
+        _check_exists(path)
         if not path.is_file():
             raise ValueError(
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
@@ -712,6 +721,7 @@ class FrameFolderDataset(VideoDataset):
     """
 
     def _check_source(self, path: Path) -> None:
+        _check_exists(path)
         if not path.is_dir():
             raise ValueError(f"{path}: FrameFolderDataset takes folders of frames (use VideoDataset for video files)")
 

@@ -45,7 +45,7 @@ from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.module import PYRAMID_CHOICES
 from torchface.tracker.step import (
-    TrackerConfig, TrackerState, TrackStatus, add_coarser_levels, check_frames, pyramid_for_faces,
+    TrackerConfig, TrackerState, TrackStatus, _not_tensor_hint, add_coarser_levels, check_frames, pyramid_for_faces,
 )  # fmt: skip
 
 __all__ = [
@@ -331,12 +331,18 @@ class TrackedSequence:
 
 def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Tensor:
     """One frame ``(3, H, W)`` float in [0, 1] or uint8 -> ``(1, 3, H, W)`` float32, validated."""
+    # (frames streamed from OpenCV, (H, W, 3) BGR arrays or tensors of them: the messages named the layout alone)
     if isinstance(frame, np.ndarray):
-        raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array")
+        hint = ""
+        if frame.ndim == 3 and frame.shape[-1] == 3:
+            hint = (" (an (H, W, 3) image, BGR as OpenCV reads it: torch.from_numpy(image[..., ::-1].copy())"
+                    ".permute(2, 0, 1); an RGB one without [..., ::-1])")
+        raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array{hint}")
     if not isinstance(frame, Tensor):
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
     if frame.dim() != 3 or frame.shape[0] != 3:
-        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}")
+        hint = " (channels last (H, W, 3): frame.permute(2, 0, 1))" if frame.dim() == 3 and frame.shape[-1] == 3 else ""
+        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}{hint}")
     if frame.dtype == torch.uint8:
         frame = frame.to(torch.float32) / 255.0
     elif not frame.is_floating_point():
@@ -542,7 +548,8 @@ class NormaliseFaces:
     def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
         """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
         if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
-            raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}")
+            raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}"
+                            f"{_not_tensor_hint(frames, per='(T, 3, H, W)', to_float=False)}")  # fmt: skip
         if frames.dim() != 4 or frames.shape[1] != 3:
             raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}{_layout_hint(frames)}")
         if torch.is_grad_enabled() and frames.requires_grad:  # (its faces were detached without a word)

@@ -1683,6 +1683,26 @@ def test_progress_display_on_a_terminal_redraws_only_the_videos_being_tracked(mo
     assert len(finished) == N  # each finished video's line written once
 
 
+def test_a_video_whose_start_fails_is_warned_about(clip, tmp_path):
+    """Landmarks given for a first frame that is black (a fade-in): the start fails (no texture there) and every row
+    was written unusable (success 0, confidence 0) with nothing said but the summary's lost count. The run now warns
+    about that video, one line naming it; the batch's other video, which starts, is not named."""
+    import warnings
+
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 4)
+    black = tmp_path / "black.npy"
+    np.save(black, np.concatenate([np.zeros_like(frames[:1]), frames[1:]]))
+    good = _short_npy(video, tmp_path / "good.npy", 4)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summaries = track_videos([black, good], JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm)))
+    said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("black: the start from the landmarks of frame 0 failed"), said
+    assert "give the landmarks of a frame that shows the face" in said[0]
+    assert [s.lost for s in summaries] == [4, 0]
+
+
 def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     """``--lookahead`` keeps each video's frames read ahead for the tracking pass and hands the look-ahead fit the
     batch of them: the batch holds the frames and the lists keep views of it (stacked, every frame was held three
@@ -1708,7 +1728,7 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
 
     def spy(model, tracker, frames, *args, **kwargs):
         seen["frames"] = frames
-        return "fit", None
+        return "fit", [[1, 3], [2, 3]]  # (the second video's frame 3 is its last, frame 2, repeated)
 
     monkeypatch.setattr(job, "lookahead_fit", spy)
 
@@ -1725,6 +1745,8 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
         for j, frame in enumerate(s.ahead):
             assert torch.equal(frame, videos[k][j + 1])
             assert frame.untyped_storage().data_ptr() == frames.untyped_storage().data_ptr()  # a view, not a copy
+    # each video's keyframes, for the sidecar's start.lookahead_keyframes: a repeated last frame is that frame
+    assert [s.keyframes for s in streams] == [[1, 3], [2]]
 
 
 def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, tmp_path, monkeypatch):
@@ -1740,11 +1762,14 @@ def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, 
 
     def spy(model, tracker_config, frames, landmarks_px, intrinsics, weights=None, config=None):
         seen.append(frames.clone())
-        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[]]
+        return fit_landmarks(model, landmarks_px, intrinsics, weights, config=tracker_config.fit), [[2, 4]]
 
     monkeypatch.setattr(job, "lookahead_fit", spy)
     config = JobConfig(out_dir=tmp_path, landmarks=(lm,), lookahead=LookaheadConfig(max_frames=6))
     track_videos([video], config)
+    # the sidecar says which frames the first fit was refined against ("lookahead" alone did not say whether it was)
+    start = json.loads(output_paths(tmp_path, NAME)["json"].read_text())["start"]
+    assert start["method"] == "lookahead" and start["lookahead_keyframes"] == [2, 4]
     frames = read_video(video, max_frames=6)
     assert len(seen) == 1 and seen[0].shape == (1, 6, 3, H, W)
     torch.testing.assert_close(seen[0][0], frames, rtol=0, atol=1e-6)
@@ -1777,6 +1802,7 @@ def test_lookahead_never_falls_back_to_the_online_start(clip, tmp_path, monkeypa
     for name in ("one", "two"):
         start = json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]
         assert start["method"] == "lookahead" and start["reanchored_at_frame"] is None
+        assert start["lookahead_keyframes"] == []  # nothing to refine against: the landmark fit
 
 
 def test_lookahead_of_a_batch_is_not_capped_by_its_shortest_video(clip, tmp_path, monkeypatch):

@@ -229,6 +229,11 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "f.npy", np.full((2, 40, 40), 2.0, np.float32)) or p / "f.npy", r"in \[0, 1\]"),
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),
         (lambda p: np.save(p / "one.npy", np.zeros((48, 64, 3), np.uint8)) or p / "one.npy", r"one colour image"),
+        # a PyTorch clip's .numpy(), (T, 3, H, W): told to transpose it (it was "expected an (H, W) or (H, W, 1|3|4)
+        # image, got shape (3, 48, 64)", about a frame)
+        (lambda p: np.save(p / "chw.npy", np.zeros((2, 3, 48, 64), np.uint8)) or p / "chw.npy",
+         r"chw\.npy: shape \(2, 3, 48, 64\) looks like channels-first frames \(T, C, H, W\).*"
+         r"array\.transpose\(0, 2, 3, 1\)"),
         (lambda p: (p / "d").mkdir() or p / "d", "no images"),
         (lambda p: (p / "e.npy").write_bytes(b"") == 0 and p / "e.npy", "not a readable .npy"),  # was EOFError
     ],

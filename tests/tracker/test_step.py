@@ -1487,6 +1487,37 @@ def test_refused_frames_say_how_to_make_them(two_streams, make, hint):
         FaceTracker(BASE, refine_first=None).initialise(bad, landmarks_of(gts)[:1])
 
 
+@pytest.mark.parametrize("layout", ["HW3-uint8", "NHW3-uint8", "HW-uint8", "HW3-float32"])
+def test_numpy_frames_are_told_how_to_make_them_tensors(two_streams, model, layout):
+    """A NumPy image as OpenCV reads it, ``(H, W, 3)`` uint8 BGR (the common case), was refused with "frames must be
+    a torch.Tensor ... got ndarray" alone. The message now gives the conversion; run as written (with ``image`` or
+    ``frames`` the array), it makes the frames the tracker takes, in RGB order: those the array was made from. The
+    normalised face says the same."""
+    from torchface.normalise import NormalisedFace
+
+    frames, gts = two_streams
+    rgb = (frames[:1, 0].float() * 255).round().to(torch.uint8)  # (1, 3, H, W)
+    hwc = rgb.permute(0, 2, 3, 1).numpy()
+    array, want = {
+        "HW3-uint8": (hwc[0, :, :, ::-1].copy(), rgb.float() / 255),  # BGR, as cv2.imread / VideoCapture give it
+        "NHW3-uint8": (hwc[..., ::-1].copy(), rgb.float() / 255),
+        "HW-uint8": (hwc[0, :, :, 1].copy(), rgb[:, 1:2].float() / 255),
+        "HW3-float32": (hwc[0, :, :, ::-1].astype(np.float32) / 255, rgb.float() / 255),
+    }[layout]
+    tracker = FaceTracker(BASE, refine_first=None)
+    with pytest.raises(TypeError, match=r"got ndarray \(.*torch\.from_numpy") as info:
+        tracker.initialise(array, landmarks_of(gts)[:1])
+    recipe = str(info.value).split(": ", 2)[-1]
+    recipe = recipe.split("; ")[0] if "; " in recipe else recipe[:-1]  # the expression, without the closing ")"
+    made = eval(recipe, {"torch": torch, "image": array, "frames": array})
+    torch.testing.assert_close(made, want, rtol=0, atol=1e-6)
+    assert bool(tracker.initialise(made, landmarks_of(gts)[:1]).success[0])
+    with pytest.raises(TypeError, match=r"got ndarray \(.*torch\.from_numpy"):
+        NormalisedFace(model)(array, tracker.state)
+    with pytest.raises(TypeError, match=r"got list \(a list of frames: torch\.stack\(frames\), one frame per stream\)"):
+        tracker([made[0]])
+
+
 def test_a_face_too_small_to_track_fails_at_initialise_and_scores_0_in_the_steps(model):
     """A face 13-18 px wide was tracked with errors of 8 to 60 degrees at confidences of 0.3-1.0 (success True):
     :attr:`TrackerConfig.min_face_width_px` (20) now fails such a stream at initialise and gives a step whose

@@ -329,6 +329,13 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([tmp_path], [lm])
     with pytest.raises(ValueError, match="VideoDataset"):
         FrameFolderDataset([video], [lm])
+    # a mistyped path: said so (it was told to use the other dataset, "takes folders of frames", or the other way round)
+    for dataset, missing in ((VideoDataset, tmp_path / "typo.avi"), (FrameFolderDataset, tmp_path / "typo")):
+        with pytest.raises(InputError, match=r"typo(\.avi)?: no such file or folder$"):
+            dataset([missing], [lm])
+    (tmp_path / "gone.avi").symlink_to(tmp_path / "moved.avi")
+    with pytest.raises(InputError, match=r"gone\.avi: no such file or folder \(a symbolic link to a missing target\)"):
+        VideoDataset([tmp_path / "gone.avi"], [lm])
     with pytest.raises(ValueError, match="empty"):
         VideoDataset([], [])
     with pytest.raises(ValueError, match="clip_stride needs clip_length"):
@@ -430,6 +437,19 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
             normalise(bad, clips[0].landmarks)
     fixed = normalise(frames[:, :1].expand(-1, 3, -1, -1), clips[0].landmarks)  # the hint's clip is taken
     assert fixed["face"].shape[:2] == (frames.shape[0], 3)
+    # frames streamed one by one (track: any iterable), as OpenCV gives them: (H, W, 3) BGR arrays, or tensors of
+    # them; the messages said "got a numpy array" or "got (128, 128, 3)" alone
+    bgr = [f.permute(1, 2, 0).numpy()[..., ::-1] for f in frames[:2]]
+    recipe = r"torch\.from_numpy\(image\[\.\.\., ::-1\]\.copy\(\)\)\.permute\(2, 0, 1\)"
+    with pytest.raises(TypeError, match=r"frame 0: frames must be torch tensors \(3, H, W\), got a numpy array \(.*"
+                       + recipe):  # fmt: skip
+        normalise.track(iter(bgr), clips[0].landmarks)
+    with pytest.raises(ValueError, match=r"frame 0: .*got \(\d+, \d+, 3\) \(channels last \(H, W, 3\): frame\.permute"):
+        normalise.track((torch.from_numpy(image.copy()) for image in bgr), clips[0].landmarks)
+    streamed, _ = normalise.track((torch.from_numpy(image[..., ::-1].copy()).permute(2, 0, 1) for image in bgr),
+                                  clips[0].landmarks)  # the recipe, as written: the frames of the clip
+    direct, _ = normalise.track(frames[:2], clips[0].landmarks)
+    assert torch.equal(streamed.faces, direct.faces)
 
 
 def test_a_sequence_keeps_its_own_copy_of_the_landmarks(clips, tmp_path):

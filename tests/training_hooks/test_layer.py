@@ -344,6 +344,12 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params.numpy(), iterations=1)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray"):
         NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))
+    # OpenCV's (T, H, W, 3) uint8 BGR frames: told how to make the clip (uint8 taken as it is), not "got ndarray" alone
+    bgr = (frames * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()[..., ::-1]
+    hint = r"got ndarray \(NumPy frames \(N, H, W, 3\), BGR as OpenCV reads them: "
+    hint += r"torch.from_numpy\(frames\[\.\.\., ::-1\]"
+    with pytest.raises(TypeError, match=hint + r"\.copy\(\)\)\.permute\(0, 3, 1, 2\); RGB ones"):
+        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(bgr, torch.zeros(68, 2))
     # Frames that require grad: the transform's faces are data (they were detached without a word).
     graded = frames.clone().requires_grad_(True)
     with pytest.raises(ValueError, match="NormaliseFaces makes data items.*NormalisedFaceLayer"):

@@ -230,3 +230,7 @@ def test_plot_track_draws_the_aus_one_unit_links_as_one_line(tmp_path, monkeypat
     assert labels == ["AU26_r = AU27_r", "AU23_r = AU24_r", "AU42_r = AU43_r", "AU04_r"]
     assert plot_module.au_groups(cols, rows) == [("AU04_r",), ("AU23_r", "AU24_r"), ("AU26_r", "AU27_r"),
                                                  ("AU42_r", "AU43_r")]
+    # the axis said "AU intensity", but the AUxx_r columns are no intensities (OpenFace's 0-5): they are the linked
+    # unit's signed change from the first frame (negative for the opposite movement), and the axis says so
+    ylabel = figures[0].axes[1].get_ylabel()
+    assert "intensity" not in ylabel and "frame 0" in ylabel, ylabel

@@ -443,6 +443,11 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             # (H, W, C): one colour image, not a clip of W-pixel-high gray frames
             raise InputError(f"{p}: shape {array.shape} looks like one colour image; a clip is (T, H, W, C): save "
                              "it as array[None] (or (T, H, W) for gray frames)")  # fmt: skip
+        if array.ndim == 4 and array.shape[1] in (1, 3, 4) and array.shape[3] not in (1, 3, 4):
+            # (T, C, H, W): frames as PyTorch holds them (a tensor's .numpy()); it said "frame 0: expected an (H, W)
+            # or (H, W, 1|3|4) image, got shape (3, H, W)"
+            raise InputError(f"{p}: shape {array.shape} looks like channels-first frames (T, C, H, W), as PyTorch "
+                             "holds them; a clip is (T, H, W, C): save it as array.transpose(0, 2, 3, 1)")  # fmt: skip
         rest = _array_frames(array[1:])
         first, fmt = frame_to_tensor(np.array(array[0]), False, f"{p}: frame 0", convert)
         _check_size(p, first)

@@ -340,6 +340,13 @@ def _frame_hint(frames: Tensor) -> str:
     return hint(frames)
 
 
+def _not_tensor_hint(frames: object) -> str:
+    """The tracker's hint for frames that are not a tensor (a NumPy image as OpenCV reads it: it said "got ndarray")."""
+    from torchface.tracker.step import _not_tensor_hint as hint  # (step imports this module)
+
+    return hint(frames)
+
+
 def _check_params(name: str, x: object, count: int, batch: int, model: FaceModel) -> Tensor:
     """Validate a ``(B, count)`` parameter tensor in the model's dtype and device."""
     if not isinstance(x, Tensor):
@@ -460,7 +467,7 @@ def normalised_face(
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if not isinstance(frames, Tensor):
-        raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}")
+        raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}{_not_tensor_hint(frames)}")
     if frames.dim() != 4 or not frames.is_floating_point():
         raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
                          f"{_frame_hint(frames)}")  # fmt: skip
@@ -559,7 +566,8 @@ def normalised_face_posed(
     """
     _check_precision(model)
     if not isinstance(frames, Tensor):  # (a numpy array's message named its shape, the right one, as the wrong one)
-        raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}")
+        raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}"
+                        f"{_not_tensor_hint(frames)}")  # fmt: skip
     B, C = frames.shape[:2] if frames.dim() == 4 else (-1, -1)
     want = (B, model.num_vertices, 3)
     if B < 0 or not isinstance(verts_cam, Tensor) or tuple(verts_cam.shape) != want:
@@ -807,7 +815,8 @@ class NormalisedFace(nn.Module):
                 )
             if intrinsics is None:
                 if not isinstance(frames, Tensor):  # a numpy array was "must be (B, C, H, W), got (B, C, H, W)"
-                    raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}")
+                    raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}"
+                                    f"{_not_tensor_hint(frames)}")  # fmt: skip
                 if frames.dim() != 4:
                     raise ValueError(f"frames must be (B, C, H, W), got {tuple(frames.shape)}")
                 intrinsics = Intrinsics.default(frames.shape[-1], frames.shape[-2])

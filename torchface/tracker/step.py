@@ -685,6 +685,29 @@ FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 STEP_VALUE_ROW_STRIDE: int = 16
 
 
+def _not_tensor_hint(frames: object, per: str = "one frame per stream", to_float: bool = True) -> str:
+    """How to pass refused frames that are not a tensor (:func:`check_frames`' TypeError; empty where nothing is to
+    say): a NumPy image as OpenCV reads it, ``(H, W, 3)`` uint8 BGR (the common case: the message said "got ndarray"
+    alone), NumPy frames ``(N, H, W, 3)``, a gray image, or a list of frames. ``per``: what ``torch.stack`` of a
+    list gives; ``to_float``: the caller takes float frames in [0, 1] only (``NormaliseFaces`` takes uint8 too)."""
+    if isinstance(frames, (list, tuple)):
+        return f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
+    shape, dtype = getattr(frames, "shape", None), str(getattr(frames, "dtype", ""))
+    if type(frames).__name__ != "ndarray" or not isinstance(shape, tuple):
+        return ""
+    scale = {"uint8": ".float() / 255", "uint16": ".float() / 65535"}.get(dtype, ".float()")
+    scale = scale if to_float or dtype != "uint8" else ""
+    if len(shape) == 3 and shape[-1] == 3:
+        return (f" (a NumPy image (H, W, 3), BGR as OpenCV reads it: torch.from_numpy(image[..., ::-1].copy())"
+                f".permute(2, 0, 1)[None]{scale}; an RGB one without [..., ::-1])")
+    if len(shape) == 4 and shape[-1] == 3:
+        return (f" (NumPy frames (N, H, W, 3), BGR as OpenCV reads them: torch.from_numpy(frames[..., ::-1].copy())"
+                f".permute(0, 3, 1, 2){scale}; RGB ones without [..., ::-1])")
+    if len(shape) == 2:
+        return f" (a NumPy gray image (H, W): torch.from_numpy(image)[None, None]{scale})"
+    return f" (a NumPy array: torch.from_numpy(array){scale}, laid out (B, C, H, W))"
+
+
 def _frame_hint(frames: Tensor) -> str:
     """How to make refused frames ``(B, 3, H, W)`` / ``(B, 1, H, W)`` float in [0, 1] (:func:`check_frames`'s
     message; empty where nothing is to say): a missing batch or channel dimension, channels last, RGBA, integer
@@ -731,7 +754,7 @@ def check_frames(
     """
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
-                        f"got {type(frames).__name__}")  # fmt: skip
+                        f"got {type(frames).__name__}{_not_tensor_hint(frames)}")  # fmt: skip
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
         raise ValueError(
             f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
