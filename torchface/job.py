@@ -1682,7 +1682,8 @@ def _track_group(
             fit = _with_recorded_fits(fit, list(anchored.items()))
         state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
                                            refine_first=config.refine_first if online else None)  # fmt: skip
-        _warn_failed_starts(streams, result.success, detector is not None)
+        # (a detector starts a failed stream afresh only with template management: managed_step's restart)
+        _warn_failed_starts(streams, result.success, detector is not None and config.tracker.template.enabled)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
         if online and any(s.replay is not None for s in streams):
@@ -1934,14 +1935,16 @@ def _video_timing(s: _Stream) -> dict:
     }  # fmt: skip
 
 
-def _warn_failed_starts(streams: list[_Stream], success: Tensor, detector: bool) -> None:
+def _warn_failed_starts(streams: list[_Stream], success: Tensor, restarts: bool) -> None:
     """Warn (one line per video) where the start from the first frame's landmarks failed (``initialise``: landmarks
     that hold no pose, a face too small, a frame without texture there, such as a black one): every row of that
-    video was written unusable (``success`` 0) with nothing said but the summary's lost count."""
+    video was written unusable (``success`` 0) with nothing said but the summary's lost count. ``restarts``: a
+    detector starts such a stream afresh (with template management only: without it, its rows stay unusable, and
+    the warning said it would be lost until the detector found a face)."""
     for s, ok in zip(streams, success.tolist()):
         if ok or s.replay is not None:  # (a resumed video's start failed in the interrupted run too: said then)
             continue
-        then = ("it is lost until the detector finds a face it can start from" if detector else
+        then = ("it is lost until the detector finds a face it can start from" if restarts else
                 "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
         warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that hold no "
                       f"pose, or a face too small or without texture there: a black frame): {then}", RuntimeWarning,

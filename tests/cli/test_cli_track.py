@@ -1703,6 +1703,35 @@ def test_a_video_whose_start_fails_is_warned_about(clip, tmp_path):
     assert [s.lost for s in summaries] == [4, 0]
 
 
+def test_a_failed_start_is_said_to_be_restarted_only_where_the_detector_restarts_it(clip, tmp_path, monkeypatch):
+    """With a detector, a failed start (landmarks found on a black first frame) was said to be "lost until the
+    detector finds a face it can start from" with template management off too, where nothing restarts it: every row
+    stayed unusable (status 2). The warning says so there; with template management the stream is restarted."""
+    import warnings
+
+    import torchface.detect
+
+    video, _, gt = clip
+    frames = _clip_frames_uint8(video, T)
+    black = tmp_path / "black.npy"
+    np.save(black, np.concatenate([np.zeros_like(frames[:1]), frames[1:]]))
+    monkeypatch.setitem(torchface.detect.DETECTORS, "always",
+                        lambda: lambda image_rgb, near=None: gt.landmarks_px[0].numpy().astype(np.float64))
+    for managed in (True, False):
+        config = JobConfig(out_dir=tmp_path / str(managed), detector="always", redetect_after=2)
+        config = replace(config, tracker=replace(config.tracker,
+                                                 template=replace(config.tracker.template, enabled=managed)))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            track_videos([black], config)
+        said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
+        cols, rows = read_track_csv(output_paths(tmp_path / str(managed), "black")["csv"])
+        restarted = bool((rows[:, cols.index("success")] > 0).any())
+        assert len(said) == 1 and restarted == managed, (said, restarted)
+        assert ("lost until the detector finds a face" in said[0]) == managed, said[0]
+        assert ("every row is unusable" in said[0]) == (not managed), said[0]
+
+
 def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     """``--lookahead`` keeps each video's frames read ahead for the tracking pass and hands the look-ahead fit the
     batch of them: the batch holds the frames and the lists keep views of it (stacked, every frame was held three
