@@ -671,7 +671,8 @@ class _Stream:
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
     # with --lookahead: the frames its first fit was refined against (lookahead_fit's keyframes, counted as its rows
-    # are); empty: its head did not turn within the frames read ahead, and it starts from the landmark fit
+    # are); empty: its head did not turn (to min_keyframes sides) within the frames read ahead, and it starts from
+    # the landmark fit
     keyframes: list[int] = field(default_factory=list)
 
     def frame(self) -> Tensor:
@@ -1958,7 +1959,8 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
     ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
-    a video whose head did not turn ``yaw_deg`` within the frames read ahead, which starts from the landmark fit.
+    a video whose head did not turn ``yaw_deg`` within the frames read ahead (to ``min_keyframes`` sides), which
+    starts from the landmark fit.
     ``first_frame``: the frame tracking started at (its landmarks are ``initial_landmarks_px``): 0, or the first
     frame where the detector found a face (the rows before it have no estimate). ``reanchored_at_frame``: the frame
     whose step re-anchored the stream (None: not, or not known: a record of an earlier version). The rows after it
@@ -2025,8 +2027,10 @@ def _lookahead_fit(
     fit, keys = lookahead_fit(model, config.tracker, frames.to(device=model.device, dtype=model.dtype), lm, intr,
                               config=la)  # fmt: skip
     for stream, found in zip(streams, keys):  # the sidecar's start.lookahead_keyframes ("lookahead" alone did not
-        # say whether the first fit was refined at all); a shorter video's repeated last frame is that frame
-        stream.keyframes = sorted({stream.start + min(int(i), len(stream.ahead)) for i in found})
+        # say whether the first fit was refined at all); a shorter video's repeated last frame is that frame; fewer
+        # than min_keyframes: not refined (lookahead_fit keeps the landmark fit), none listed
+        refined = len(found) >= la.min_keyframes
+        stream.keyframes = sorted({stream.start + min(int(i), len(stream.ahead)) for i in found}) if refined else []
     return fit
 
 

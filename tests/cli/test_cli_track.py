@@ -1776,6 +1776,14 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
             assert frame.untyped_storage().data_ptr() == frames.untyped_storage().data_ptr()  # a view, not a copy
     # each video's keyframes, for the sidecar's start.lookahead_keyframes: a repeated last frame is that frame
     assert [s.keyframes for s in streams] == [[1, 3], [2]]
+    # a video with fewer keyframes than min_keyframes keeps the landmark fit (lookahead_fit): none listed (its one
+    # keyframe was listed, as if its first fit had been refined against it)
+    for s, v in zip(streams, videos):
+        s.ahead, s.reader, s.last_frame = [], Reader(v[1:]), v[0]
+    monkeypatch.setattr(job, "lookahead_fit", lambda *args, **kwargs: ("fit", [[1, 3], [2]]))
+    assert job._lookahead_fit(Model(), replace(config, lookahead=LookaheadConfig(max_frames=4, min_keyframes=2)),
+                              streams, None, None) == "fit"  # fmt: skip
+    assert [s.keyframes for s in streams] == [[1, 3], []]
 
 
 def test_lookahead_reads_ahead_and_tracks_every_frame_in_order(clip, plain_run, tmp_path, monkeypatch):
