@@ -2983,18 +2983,11 @@ def test_a_variable_frame_rate_videos_rows_have_their_frames_times(clip, tmp_pat
     n = 2
     late = _with_blank_frames(video, tmp_path / "late.npy", n)
     ms = [0.0, 50.0, 70.0, 140.0, 150.0, 230.0, 260.0, 300.0, 390.0, 400.0, 470.0, 520.0, 530.0, 600.0]
-    real_open = torchface.job.open_frames
-
-    def variable_rate(path, convert=False):
-        reader = real_open(path, convert=convert)
-        times = iter(ms)
-        reader.clock = lambda: next(times)
-        return reader
+    _timed_reader(monkeypatch, ms)
 
     def detector(image_rgb, near=None):
         return gt.landmarks_px[0].numpy().astype(np.float64) if image_rgb.max() > 0 else None
 
-    monkeypatch.setattr(torchface.job, "open_frames", variable_rate)
     monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
     config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
     track_videos([late], config)
