@@ -548,8 +548,8 @@ class NormaliseFaces:
     def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
         """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
         if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
-            raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}"
-                            f"{_not_tensor_hint(frames, per='(T, 3, H, W)', to_float=False)}")  # fmt: skip
+            hint = _not_tensor_hint(frames, per="(T, 3, H, W)", to_float=False, rgb_only=True)
+            raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}{hint}")
         if frames.dim() != 4 or frames.shape[1] != 3:
             raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}{_layout_hint(frames)}")
         if torch.is_grad_enabled() and frames.requires_grad:  # (its faces were detached without a word)

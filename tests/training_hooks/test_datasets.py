@@ -450,6 +450,13 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
                                   clips[0].landmarks)  # the recipe, as written: the frames of the clip
     direct, _ = normalise.track(frames[:2], clips[0].landmarks)
     assert torch.equal(streamed.faces, direct.faces)
+    # a NumPy gray image: the recipe made (1, 1, H, W), which the transform refused in turn ("gray frames: ..."); run
+    # as written, it makes a clip the transform takes
+    gray = frames[0, 1].numpy().copy()
+    with pytest.raises(TypeError, match=r"got ndarray \(a NumPy gray image") as info:
+        normalise(gray, clips[0].landmarks)
+    made = eval(str(info.value).split(": ", 1)[-1][:-1], {"torch": torch, "image": gray})
+    assert normalise(made, clips[0].landmarks)["face"].shape[:2] == (1, 3)
 
 
 def test_a_sequence_keeps_its_own_copy_of_the_landmarks(clips, tmp_path):

@@ -685,11 +685,14 @@ FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 STEP_VALUE_ROW_STRIDE: int = 16
 
 
-def _not_tensor_hint(frames: object, per: str = "one frame per stream", to_float: bool = True) -> str:
+def _not_tensor_hint(frames: object, per: str = "one frame per stream", to_float: bool = True, rgb_only: bool = False
+                     ) -> str:  # fmt: skip
     """How to pass refused frames that are not a tensor (:func:`check_frames`' TypeError; empty where nothing is to
     say): a NumPy image as OpenCV reads it, ``(H, W, 3)`` uint8 BGR (the common case: the message said "got ndarray"
     alone), NumPy frames ``(N, H, W, 3)``, a gray image, or a list of frames. ``per``: what ``torch.stack`` of a
-    list gives; ``to_float``: the caller takes float frames in [0, 1] only (``NormaliseFaces`` takes uint8 too)."""
+    list gives; ``to_float``: the caller takes float frames in [0, 1] only (``NormaliseFaces`` takes uint8 too);
+    ``rgb_only``: the caller takes 3 channels only (``NormaliseFaces``: a gray image's ``(1, 1, H, W)`` was refused
+    again), a gray image's three channels given too."""
     if isinstance(frames, (list, tuple)):
         return f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
     shape, dtype = getattr(frames, "shape", None), str(getattr(frames, "dtype", ""))
@@ -704,7 +707,8 @@ def _not_tensor_hint(frames: object, per: str = "one frame per stream", to_float
         return (f" (NumPy frames (N, H, W, 3), BGR as OpenCV reads them: torch.from_numpy(frames[..., ::-1].copy())"
                 f".permute(0, 3, 1, 2){scale}; RGB ones without [..., ::-1])")
     if len(shape) == 2:
-        return f" (a NumPy gray image (H, W): torch.from_numpy(image)[None, None]{scale})"
+        rgb = ".expand(-1, 3, -1, -1)" if rgb_only else ""
+        return f" (a NumPy gray image (H, W): torch.from_numpy(image)[None, None]{rgb}{scale})"
     return f" (a NumPy array: torch.from_numpy(array){scale}, laid out (B, C, H, W))"
 
 
