@@ -326,7 +326,9 @@ class _VideoOut:
     Written one frame per :meth:`write`, or, with ``timed``, in step with the input's time (what ffmpeg's
     ``-vsync cfr`` does): each frame goes to the slot of its time (``round((time - first time) * fps)``, the first
     frame's slot 0), the previous frame repeated into the slots before it that no frame reached (:attr:`duplicated`),
-    and a frame whose slot is written already left out (:attr:`dropped`). A constant-rate input's frames (times
+    and a frame whose slot is written already left out of it (:attr:`dropped`: those not shown at all; one left out
+    is the previous frame for a gap after it, which showed the frame written before it, older, and never this one).
+    A constant-rate input's frames (times
     ``k / fps``, within half a frame) are written one each, as without ``timed``; a variable-frame-rate one's (a
     phone's) play at their times, where one frame per slot at the nominal rate ran ahead of the input wherever its
     frames were further apart (a 30 -> 15 frames/s stretch played twice as fast).
@@ -340,9 +342,10 @@ class _VideoOut:
         self.timed = timed
         self.frames = 0  # written to the file (duplicates included)
         self.duplicated = 0  # (timed) slots filled with the previous frame again
-        self.dropped = 0  # (timed) frames left out: their slot was written already
+        self.dropped = 0  # (timed) frames not shown: their slot was written already, and no gap followed them
         self._origin: float | None = None  # (timed) the first frame's time, slot 0
-        self._last: np.ndarray | None = None  # (timed) the last frame written, repeated into a gap
+        self._last: np.ndarray | None = None  # (timed) the last frame given, repeated into a gap
+        self._shown = True  # (timed) whether _last is in the file (False: left out of its slot)
         fourcc = cv2.VideoWriter.fourcc(*"mp4v")
         writer = cv2.VideoWriter(opencv_path(self.tmp, OutputError), fourcc, float(fps), self.size)
         if not writer.isOpened():
@@ -364,12 +367,17 @@ class _VideoOut:
             slot = math.floor((time - self._origin) * self.fps + 0.5)
             if slot < self.frames:  # (its slot holds an earlier frame)
                 self.dropped += 1
+                self._last, self._shown = image_bgr, False  # (the input shows it from its time on)
                 return
             while self.frames < slot and self._last is not None:  # (a gap: the previous frame shown on)
                 self.writer.write(self._last)
                 self.frames += 1
-                self.duplicated += 1
-            self._last = image_bgr
+                if self._shown:
+                    self.duplicated += 1
+                else:  # (one left out of its slot, shown in the gap after it)
+                    self.dropped -= 1
+                    self._shown = True
+            self._last, self._shown = image_bgr, True
         self.writer.write(image_bgr)
         self.frames += 1
 

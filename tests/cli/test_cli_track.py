@@ -3051,10 +3051,17 @@ def test_a_timed_video_shows_each_frame_at_the_slot_of_its_time(tmp_path):
     for c, when in zip(colours, [t + 1.0 for t in times]):  # (slots count from the first frame's time)
         out.write(_solid(c), when)
     out.close()
-    assert (out.frames, out.duplicated, out.dropped) == (7, 2, 1)
+    # slot 5 (0.20 s) shows frame 4 (0.15 s), the input's then, left out of its slot 4: it showed frame 3 (0.14 s)
+    # again, and frame 4 nowhere
+    assert (out.frames, out.duplicated, out.dropped) == (7, 1, 0)
     shown = read_video_uint8(tmp_path / "vfr.mp4").permute(0, 2, 3, 1).numpy()[:, 24, 32, ::-1]  # (RGB -> BGR)
     nearest = [int(np.argmin([np.abs(px.astype(int) - c).sum() for c in colours])) for px in shown]
-    assert nearest == [0, 1, 2, 2, 3, 3, 5], nearest
+    assert nearest == [0, 1, 2, 2, 3, 4, 5], nearest
+    last = _VideoOut(tmp_path / "end.mp4", 64, 48, 25.0, timed=True)  # (a frame left out, and no gap after it)
+    for c, when in zip(colours, [0.0, 0.04, 0.05]):
+        last.write(_solid(c), when)
+    last.close()
+    assert (last.frames, last.duplicated, last.dropped) == (2, 0, 1)
     rng = np.random.default_rng(0)
     steady = _VideoOut(tmp_path / "cfr.mp4", 64, 48, 30.0, timed=True)
     for k in range(20):  # (slots count from the first frame's time: its own is on the grid here)
@@ -3097,13 +3104,14 @@ def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip,
     config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
     track_videos([late], config)
     paths = output_paths(tmp_path / "a", "late")
-    # slot 3 (no frame) shows frame 2 again; slot 4 frame 3 (frame 4, also at slot 4, left out); ...
-    assert shown(paths["overlay"]) == [0, 1, 2, 2, 3, 3, 5, 6, 7, 7, 8, 8, 10, 11, 11, 13]
+    # slot 3 (no frame) shows frame 2 again; slot 4 frame 3 (frame 4, also at slot 4, left out of it); slot 5 (no
+    # frame) frame 4, the input's at that time (it showed frame 3 again, and frames 4, 9 and 12 nowhere); ...
+    assert shown(paths["overlay"]) == [0, 1, 2, 2, 3, 4, 5, 6, 7, 7, 8, 9, 10, 11, 12, 13]
     assert len(shown(paths["overlay"])) == slots[-1] + 1
     assert read_video_uint8(paths["normalised"]).shape[0] == T + n
     videos = json.loads(paths["json"].read_text())["videos"]
-    assert videos["overlay"] == {"fps": 25.0, "frames": 16, "time_synced": True, "duplicated_frames": 5,
-                                 "dropped_frames": 3}  # fmt: skip
+    assert videos["overlay"] == {"fps": 25.0, "frames": 16, "time_synced": True, "duplicated_frames": 2,
+                                 "dropped_frames": 0}  # fmt: skip
     assert videos["normalised"] == {"fps": 25.0, "frames": T + n, "time_synced": False}
     out = tmp_path / "b"
 
@@ -3165,8 +3173,8 @@ def _variable_rate_mp4(path, frames_bgr, fps, durations):
 def test_a_variable_frame_rate_mp4s_overlay_shows_each_row_at_its_time(clip, tmp_path, monkeypatch):
     """A real variable-frame-rate MP4 (the clip's frames 1/25 s apart, but for two gaps of 2/25 s and three of
     half that): OpenCV gives its frames' times, the CSV holds them, and the overlay (at the container's 25 frames/s)
-    shows each row at its time: 13 frames for the 12 rows, the first frame of the gaps shown on, a row whose slot
-    the one before took left out. The normalised face keeps one frame per row."""
+    shows each row at its time: 13 frames for the 12 rows, the first frame of a gap shown on, a row whose slot the
+    one before took left out of it (and shown in the gap after it). The normalised face keeps one frame per row."""
     import torchface.job
 
     video, lm, _ = clip
@@ -3184,11 +3192,12 @@ def test_a_variable_frame_rate_mp4s_overlay_shows_each_row_at_its_time(clip, tmp
     cols, rows = read_track_csv(paths["csv"])
     np.testing.assert_allclose(rows[:, cols.index("timestamp")], starts / 25.0, atol=1e-9)
     shown = [round(float(f.float().mean()) / 15) for f in read_video_uint8(paths["overlay"])]
-    assert shown == [0, 1, 2, 2, 3, 4, 5, 5, 7, 8, 9, 10, 11], shown  # slot 6: frame 5 (at 5.5), frame 6 left out
+    # slot 6: frame 5 (at 5.5), frame 6 left out of it and shown at slot 7 (it showed frame 5 again there)
+    assert shown == [0, 1, 2, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11], shown
     assert read_video_uint8(paths["normalised"]).shape[0] == T
     videos = json.loads(paths["json"].read_text())["videos"]
     assert (videos["overlay"]["frames"], videos["overlay"]["duplicated_frames"], videos["overlay"]["dropped_frames"],
-            videos["normalised"]["frames"]) == (13, 2, 1, T)  # fmt: skip
+            videos["normalised"]["frames"]) == (13, 1, 0, T)  # fmt: skip
 
 
 @pytest.mark.parametrize("differ_at", [1, 3])  # (a row before the first face, and a tracked one)
