@@ -326,12 +326,12 @@ class _VideoOut:
     Written one frame per :meth:`write`, or, with ``timed``, in step with the input's time (what ffmpeg's
     ``-vsync cfr`` does): each frame goes to the slot of its time (``round((time - first time) * fps)``, the first
     frame's slot 0), the previous frame repeated into the slots before it that no frame reached (:attr:`duplicated`),
-    and a frame whose slot is written already left out of it (:attr:`dropped`: those not shown at all; one left out
-    is the previous frame for a gap after it, which showed the frame written before it, older, and never this one).
-    A constant-rate input's frames (times
-    ``k / fps``, within half a frame) are written one each, as without ``timed``; a variable-frame-rate one's (a
-    phone's) play at their times, where one frame per slot at the nominal rate ran ahead of the input wherever its
-    frames were further apart (a 30 -> 15 frames/s stretch played twice as fast).
+    and a frame whose slot is written already left out of it (:attr:`dropped`: those shown nowhere), but shown in a
+    gap right after it, as the input's previous frame (the gap showed the frame written before it, older, and the
+    left-out frame nowhere). A constant-rate input's frames (times ``k / fps``, within half a frame) are written one
+    each, as without ``timed``; a variable-frame-rate one's (a phone's) play at their times, where one frame per slot
+    at the nominal rate ran ahead of the input wherever its frames were further apart (a 30 -> 15 frames/s stretch
+    played twice as fast).
     """
 
     def __init__(self, path: Path, width: int, height: int, fps: float, timed: bool = False) -> None:
