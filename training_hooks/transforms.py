@@ -341,7 +341,10 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
     if not isinstance(frame, Tensor):
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
     if frame.dim() != 3 or frame.shape[0] != 3:
-        hint = " (channels last (H, W, 3): frame.permute(2, 0, 1))" if frame.dim() == 3 and frame.shape[-1] == 3 else ""
+        hint = ""
+        if frame.dim() == 3 and frame.shape[-1] == 3:  # (the permute alone, of an OpenCV image's, tracked it in BGR)
+            hint = (" (channels last (H, W, 3): frame.permute(2, 0, 1); BGR as OpenCV reads it: "
+                    "frame.flip(-1).permute(2, 0, 1))")
         raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}{hint}")
     if frame.dtype == torch.uint8:
         frame = frame.to(torch.float32) / 255.0

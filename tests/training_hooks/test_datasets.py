@@ -446,10 +446,15 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
         normalise.track(iter(bgr), clips[0].landmarks)
     with pytest.raises(ValueError, match=r"frame 0: .*got \(\d+, \d+, 3\) \(channels last \(H, W, 3\): frame\.permute"):
         normalise.track((torch.from_numpy(image.copy()) for image in bgr), clips[0].landmarks)
+    # ... and for such a tensor of an OpenCV image, BGR: the permute alone (all the hint said) tracked it in BGR order
+    with pytest.raises(ValueError, match=r"BGR as OpenCV reads it: frame\.flip\(-1\)\.permute\(2, 0, 1\)"):
+        normalise.track((torch.from_numpy(image.copy()) for image in bgr), clips[0].landmarks)
+    flipped, _ = normalise.track((torch.from_numpy(image.copy()).flip(-1).permute(2, 0, 1) for image in bgr),
+                                 clips[0].landmarks)  # fmt: skip
     streamed, _ = normalise.track((torch.from_numpy(image[..., ::-1].copy()).permute(2, 0, 1) for image in bgr),
                                   clips[0].landmarks)  # the recipe, as written: the frames of the clip
     direct, _ = normalise.track(frames[:2], clips[0].landmarks)
-    assert torch.equal(streamed.faces, direct.faces)
+    assert torch.equal(streamed.faces, direct.faces) and torch.equal(flipped.faces, direct.faces)
     # a NumPy gray image: the recipe made (1, 1, H, W), which the transform refused in turn ("gray frames: ..."); run
     # as written, it makes a clip the transform takes
     gray = frames[0, 1].numpy().copy()
