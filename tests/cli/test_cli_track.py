@@ -1221,6 +1221,18 @@ def _with_blank_frames(video, path, n):
     return path
 
 
+def _interrupted_at(video, config, rows):
+    """Run ``config`` on ``video`` and interrupt it (Ctrl-C) once ``rows`` of its rows are written, after any search
+    for its first face."""
+
+    def interrupt(p):
+        if p.done == rows and not p.searching:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], config, progress=interrupt)
+
+
 def _late_face_reference(monkeypatch, tmp_path, video, detector, n):
     """``video`` with ``n`` black frames first (``late.npy``), tracked uninterrupted from the first face that
     ``detector`` (registered as "blank") finds, into ``tmp_path/ref``: ``(late, config, reference rows)``."""
@@ -1290,13 +1302,7 @@ def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_pat
     late, config, ref = _late_face_reference(monkeypatch, tmp_path, video, detector, n)
     for keep in (1, n + 2):  # (the first: interrupted among the rows without a face, as a kill would leave it)
         out = tmp_path / f"out{keep}"
-
-        def interrupt(p):
-            if p.done == n + 3 and not p.searching:
-                raise KeyboardInterrupt
-
-        with pytest.raises(KeyboardInterrupt):
-            track_videos([late], replace(config, out_dir=out), progress=interrupt)
+        _interrupted_at(late, replace(config, out_dir=out), n + 3)
         part = out / "late.csv.partial"
         lines = part.read_text().splitlines(keepends=True)
         part.write_text("".join(lines[: keep + 1]) + lines[keep + 1][:20])
@@ -2994,13 +3000,7 @@ def test_a_variable_frame_rate_videos_rows_have_their_frames_times(clip, tmp_pat
     cols, rows = read_track_csv(tmp_path / "a" / "late.csv")
     np.testing.assert_allclose(rows[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
     out = tmp_path / "b"
-
-    def interrupt(p):
-        if p.done == n + 3 and not p.searching:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        track_videos([late], replace(config, out_dir=out), progress=interrupt)
+    _interrupted_at(late, replace(config, out_dir=out), n + 3)
     track_videos([late], replace(config, out_dir=out, resume=True))
     _, resumed = read_track_csv(out / "late.csv")
     np.testing.assert_allclose(resumed[:, cols.index("timestamp")], np.array(ms) / 1000, atol=1e-9)
@@ -3114,13 +3114,7 @@ def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip,
                                  "dropped_frames": 0}  # fmt: skip
     assert videos["normalised"] == {"fps": 25.0, "frames": T + n, "time_synced": False}
     out = tmp_path / "b"
-
-    def interrupt(p):
-        if p.done == n + 3 and not p.searching:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        track_videos([late], replace(config, out_dir=out), progress=interrupt)
+    _interrupted_at(late, replace(config, out_dir=out), n + 3)
     assert not output_paths(out, "late")["overlay"].exists()
     assert not (out / "late_overlay.partial.mp4").exists()  # (an interrupted video's is not kept)
     track_videos([late], replace(config, out_dir=out, resume=True))
@@ -3220,13 +3214,7 @@ def test_resuming_rows_timed_by_frame_over_fps_of_a_variable_frame_rate_video_is
 
     monkeypatch.setitem(torchface.detect.DETECTORS, "blank", lambda: detector)
     config = JobConfig(out_dir=tmp_path / "a", detector="blank", refine_first=None)
-
-    def interrupt(p):
-        if p.done == n + 4 and not p.searching:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        track_videos([late], config, progress=interrupt)
+    _interrupted_at(late, config, n + 4)
     partial = tmp_path / "a" / "late.csv.partial"
     kept = partial.read_bytes()
     clock[:] = [k * 40.0 + (10.0 if k >= differ_at else 0.0) for k in range(T + n)]  # frame k 10 ms later
