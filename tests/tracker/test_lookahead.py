@@ -1084,8 +1084,16 @@ def test_dense_starts_are_refined_as_before_whatever_the_sparse_settings(model):
 
 def test_refinement_checks_its_least_precisions(model):
     """``min_shape_prior_precision`` and ``min_expression_prior_precision`` (a sparse start's, from
-    ``landmark_fit_priors``) must be finite and non-negative numbers, as the precisions they bound."""
+    ``landmark_fit_priors``) must be finite and non-negative numbers, as the precisions they bound.
+    ``landmark_fit_priors`` takes one stream's landmarks: a batch's ``(B, L, 2)`` was "Boolean value of Tensor with
+    more than one value is ambiguous"."""
+    from torchface.tracker.lookahead import landmark_fit_priors
+
     frames, gt, lm = _scene_at(model, 160, 120)
+    fc = TrackerConfig().fit
+    with pytest.raises(ValueError, match=r"landmarks_px must be one stream's \(L, 2\) landmarks, got \(2, 68, 2\)"):
+        landmark_fit_priors(model, fc, gt.intrinsics, torch.stack([lm, lm]))
+    assert landmark_fit_priors(model, fc, gt.intrinsics, lm)["min_shape_prior_precision"] == 0.0
     fit = fit_landmarks(model, lm[None], gt.intrinsics, config=TrackerConfig().fit)
     for name in ("min_shape_prior_precision", "min_expression_prior_precision"):
         for bad in (-1.0, float("nan"), float("inf")):

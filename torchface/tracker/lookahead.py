@@ -349,6 +349,10 @@ def landmark_fit_priors(
     precision = shape_precisions(fit_config, model.shape_names, torch.float64, "cpu")
     sparse = False
     if landmarks_px is not None:
+        check_landmark_type(landmarks_px, "(L, 2)")
+        if landmarks_px.dim() != 2 or landmarks_px.shape[-1] != 2:  # (a batch's (B, L, 2) was "Boolean value of
+            # Tensor with more than one value is ambiguous")
+            raise ValueError(f"landmarks_px must be one stream's (L, 2) landmarks, got {tuple(landmarks_px.shape)}")
         lm = landmarks_px.detach().to(dtype=model.dtype)  # (positive in the model's dtype, as the fit counts them)
         count = (landmark_targets(lm, landmark_weights)[1] > 0).sum(-1)
         sparse = bool(sparse_samples(fit_config, count, model.num_shape, model.num_animation))
