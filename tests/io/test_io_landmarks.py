@@ -152,3 +152,105 @@ def test_check_landmarks_returns_its_own_contiguous_copy():
     assert np.array_equal(checked, points) and checked.flags.c_contiguous and checked.flags.writeable
     yx[0] = 0.0
     assert np.array_equal(checked, points)
+
+
+def _dyadic_points() -> np.ndarray:
+    """Points on a 1/64 pixel grid: ``x + 1`` and ``x - 1`` are exact in float64, so a round trip compares exactly."""
+    return np.round(_points() * 64.0) / 64.0
+
+
+def _pts_text(pts: np.ndarray, n_points: int | None = None, newline: str = "\n") -> str:
+    """An iBUG / 300-W ``.pts`` file of 0-based ``pts``: 1-based, as the 300-W files are."""
+    lines = ["version: 1", f"n_points:  {len(pts) if n_points is None else n_points}", "{"]
+    lines += [f"{x + 1} {y + 1}" for x, y in pts] + ["}"]
+    return newline.join(lines) + newline
+
+
+def test_ibug_pts_files_are_read_one_based(tmp_path):
+    """An iBUG / 300-W ``.pts`` file was refused ("line 2 is not numbers: 'n_points:  68'"). Its 1-based points read
+    exactly as the 0-based points written (pixel centre (1, 1) is torchface's (0, 0)), as a ``.pts`` name or any
+    name whose text starts with ``version:`` / ``n_points:``, with CRLF line ends or a byte order mark."""
+    pts = _dyadic_points()
+    pts[0] = [0.0, 0.0]  # the top-left pixel's centre: (1, 1) in the file
+    (tmp_path / "lm.pts").write_text(_pts_text(pts))
+    assert np.array_equal(read_landmarks(tmp_path / "lm.pts", 100, 100), pts)
+    assert "1.0 1.0" in (tmp_path / "lm.pts").read_text()
+    (tmp_path / "LM.PTS").write_bytes(b"\xef\xbb\xbf" + _pts_text(pts, newline="\r\n").encode())
+    (tmp_path / "lm.txt").write_text(_pts_text(pts)[len("version: 1\n"):])  # (no version line: n_points first)
+    for name in ("LM.PTS", "lm.txt"):
+        assert np.array_equal(read_landmarks(tmp_path / name, 100, 100), pts), name
+
+
+def test_pts_coordinates_lose_one_exactly_in_decimal(tmp_path):
+    """``1.1`` in a ``.pts`` is the ``0.1`` a CSV would hold (float ``1.1 - 1`` is 0.10000000000000009)."""
+    pts = _dyadic_points()
+    text = _pts_text(pts).splitlines()
+    text[3] = "1.1 2.3"
+    (tmp_path / "lm.pts").write_text("\n".join(text) + "\n")
+    got = read_landmarks(tmp_path / "lm.pts", 100, 100)
+    assert got[0].tolist() == [0.1, 1.3] and np.array_equal(got[1:], pts[1:])
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda t: t.replace(t.splitlines()[-2] + "\n", ""), r"line 71: 67 points before '\}', but n_points \(line 2"),
+        (lambda t: t.replace("{\n", ""), r"line 3: expected 'version: 1', 'n_points: 68' or '\{' of a \.pts file"),
+        (lambda t: "version: 1\nn_points: 68\n", r"no '\{' line: not a \.pts file"),
+        (lambda t: t.replace("}\n", ""), r"line 71: the \.pts points end without their closing '\}'"),
+        (lambda t: t.replace(t.splitlines()[5], "12.5 abc"), r"line 6 is not a \.pts point 'x y': '12.5 abc'"),
+        (lambda t: t.replace(t.splitlines()[5], "12.5 13.5 1"), r"line 6 is not a \.pts point 'x y'"),
+        (lambda t: t.replace(t.splitlines()[5], "12.5,13.5"), r"line 6 is not a \.pts point 'x y'"),
+        (lambda t: t + "{\n", r"line 73: text after the closing '\}'"),
+        (lambda t: t.replace("version: 1", "version: 2"), r"line 1: \.pts version '2', only version 1 is read"),
+        (lambda t: t.replace("n_points:  68", "n_points: many"), r"line 2: n_points is not a count: 'many'"),
+        (lambda t: t.replace("n_points:  68", "68 points"), r"line 2: expected 'version: 1', 'n_points: 68' or '\{'"),
+        (lambda t: t.replace(t.splitlines()[5], "nan 13.5"), r"landmark\(s\) \[2\] are NaN"),
+    ],
+)
+def test_malformed_pts_files_name_the_file_and_line(tmp_path, edit, message):
+    (tmp_path / "bad.pts").write_text(edit(_pts_text(_dyadic_points())))
+    with pytest.raises(InputError, match=message) as info:
+        read_landmarks(tmp_path / "bad.pts", 100, 100)
+    assert str(info.value).startswith(str(tmp_path / "bad.pts")) and "\n" not in str(info.value)
+
+
+def test_pts_files_of_another_scheme_are_refused_by_count(tmp_path):
+    """A 39-point profile ``.pts`` (menpo's), well formed: refused as not the 68 iBUG points."""
+    (tmp_path / "profile.pts").write_text(_pts_text(_dyadic_points()[:39]))
+    with pytest.raises(InputError, match="expected 68 iBUG landmarks, got 39"):
+        read_landmarks(tmp_path / "profile.pts", 100, 100)
+
+
+def test_one_row_per_point_csv_with_an_index_column(tmp_path):
+    """``ibug_index,x,y,meaning`` (the layout of the package's own ``astronaut_landmarks.csv``) was refused ("line 4
+    is not numbers"): its rows, in any order, place the points by index; the text columns are ignored."""
+    pts = _points()
+    order = np.random.default_rng(2).permutation(68)
+    rows = [f'{k},{pts[k, 0]},{pts[k, 1]},"point {k}, by eye"' for k in order]
+    (tmp_path / "long.csv").write_text("# hand-marked\nibug_index,x,y,meaning\n" + "\n".join(rows) + "\n")
+    assert np.array_equal(read_landmarks(tmp_path / "long.csv", 100, 100), pts)
+    rows = [f"{pts[k, 1]};{k};{pts[k, 0]}" for k in order]
+    (tmp_path / "semi.csv").write_text("Y;Point;X\n" + "\n".join(rows) + "\n")
+    assert np.array_equal(read_landmarks(tmp_path / "semi.csv", 100, 100), pts)
+
+
+def test_one_row_per_point_csv_refusals_say_what_is_wrong(tmp_path):
+    """The package's 22 hand-marked points: refused naming the missing indices (a landmarks file's 68 are all needed);
+    an index repeated, out of 0-67 or not a number names its line."""
+    from torchface.synth.subjects import _data_path
+
+    missing = r"gives 22 of the 68 iBUG points \(missing 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, \.\.\.\)"
+    with pytest.raises(InputError, match=missing):
+        read_landmarks(_data_path("photos", "astronaut_landmarks.csv"), 512, 512)
+    body = "\n".join(f"{k},{10 + k * 0.5},{20 + k * 0.25}" for k in range(68))
+    for edit, message in [
+        (lambda b: b + "\n5,1,2", r"line 70: point 5 again \(first on line 7\)"),
+        (lambda b: b.replace("0,10.0,20.0", "68,10.0,20.0"), "line 2: point index 68 is not an iBUG index 0-67"),
+        (lambda b: b.replace("0,10.0,20.0", "zero,10.0,20.0"), "line 2 is not 'index, x, y' numbers"),
+        (lambda b: b.replace("0,10.0,20.0", "0,10.0"), "line 2 is not 'index, x, y' numbers"),
+    ]:
+        (tmp_path / "bad.csv").write_text("index,x,y\n" + edit(body) + "\n")
+        with pytest.raises(InputError, match=message) as info:
+            read_landmarks(tmp_path / "bad.csv", 100, 100)
+        assert "\n" not in str(info.value)

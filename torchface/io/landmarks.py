@@ -1,4 +1,4 @@
-"""Landmark files for initialisation: 68 iBUG points of the first frame, as CSV or NPY.
+"""Landmark files for initialisation: 68 iBUG points of the first frame, as CSV, iBUG ``.pts`` or NPY.
 
 Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:`torchface.conventions`):
 
@@ -9,13 +9,25 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 - OpenFace's per-frame CSV (FeatureExtraction, ``frame, face_id, timestamp, confidence, success, ...``): a header
   with ``x_0 ... x_67`` and ``y_0 ... y_67`` among other columns (OpenFace's 3D ``X_k``, gaze, AUs, ...); the points
   are the first row's (its first frame), which must have ``success`` 1 when the file has that column;
+- CSV, one row per point: a header naming an ``ibug_index`` column (0-67, as torchface's arrays index the points;
+  also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
+  in any order; every one of the 68 points once (a file that gives fewer, as the hand-marked
+  ``torchface/data/photos/astronaut_landmarks.csv``'s 22, is refused, naming the missing indices: the tracker's
+  Python API takes NaN rows for missing points, a landmarks file's points are all needed);
+- iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
+  ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
+  coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
+  tools read them), so 1 is subtracted: a ``.pts`` point ``(1, 1)`` is torchface's ``(0, 0)``, the same pixel
+  centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
 """
 
 from __future__ import annotations
 
+import csv
 import os
 import re
+from decimal import Context, Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -69,16 +81,130 @@ def _openface_row(p: Path, header: str, rows: list[list[float]]) -> np.ndarray |
     return np.asarray([[rows[0][where[x]], rows[0][where[y]]] for x, y in zip(xs, ys)], dtype=np.float64)
 
 
-def _parse_csv(p: Path) -> np.ndarray:
+#: Header names of the point-index column of a one-row-per-point CSV.
+_INDEX_COLUMNS: tuple[str, ...] = ("ibug_index", "index", "point", "landmark")
+
+#: Decimal arithmetic wide enough that ``x - 1`` of any float's digits is exact (the caller's context may be narrow).
+_EXACT = Context(prec=64)
+
+
+def _read_text(p: Path) -> str:
     try:
-        text = p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
+        return p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read landmarks ({exc.__class__.__name__})") from None
+
+
+def _is_pts(p: Path, text: str) -> bool:
+    """Whether ``text`` is an iBUG ``.pts`` file: its name ends in ``.pts``, or its first line is ``version:`` or
+    ``n_points:``."""
+    first = next((line.strip() for line in text.splitlines() if line.strip()), "")
+    return p.suffix.lower() == ".pts" or re.match(r"(version|n_points)\s*:", first.lower()) is not None
+
+
+def _parse_pts(p: Path, text: str) -> np.ndarray:
+    """An iBUG / 300-W ``.pts`` file's points ``(K, 2)``, 1 subtracted (1-based to torchface's 0-based pixel
+    centres, exactly: in decimal before rounding to float64). ``K`` is checked against its ``n_points``."""
+    expected: tuple[int, int] | None = None  # (n_points, its line)
+    points: list[list[float]] = []
+    state = "header"  # -> "points" after '{' -> "end" after '}'
+    number = 0
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        if state == "end":
+            raise InputError(f"{p}: line {number}: text after the closing '}}' of the .pts points: {line[:60]!r}")
+        if state == "header":
+            if line == "{":
+                state = "points"
+                continue
+            m = re.fullmatch(r"([A-Za-z_]+)\s*:\s*(.*)", line)
+            if m is None:
+                raise InputError(f"{p}: line {number}: expected 'version: 1', 'n_points: 68' or '{{' of a .pts "
+                                 f"file, got {line[:60]!r}")  # fmt: skip
+            key, value = m.group(1).lower(), m.group(2).strip()
+            if key == "version" and value not in ("1", "1.0"):
+                raise InputError(f"{p}: line {number}: .pts version {value[:20]!r}, only version 1 is read")
+            if key == "n_points":
+                if not value.isdigit():
+                    raise InputError(f"{p}: line {number}: n_points is not a count: {value[:20]!r}")
+                expected = (int(value), number)
+            continue
+        if line == "}":
+            state = "end"
+            if expected is not None and len(points) != expected[0]:
+                raise InputError(f"{p}: line {number}: {len(points)} points before '}}', but n_points (line "
+                                 f"{expected[1]}) says {expected[0]}")  # fmt: skip
+            continue
+        cells = line.split()
+        try:
+            if len(cells) != 2:
+                raise InvalidOperation
+            points.append([float(_EXACT.subtract(Decimal(c), 1)) for c in cells])
+        except (InvalidOperation, ValueError):
+            raise InputError(f"{p}: line {number} is not a .pts point 'x y': {line[:60]!r}") from None
+    if state == "header":
+        raise InputError(f"{p}: no '{{' line: not a .pts file (version: 1, n_points: 68, {{, 68 lines 'x y', }})")
+    if state == "points":
+        raise InputError(f"{p}: line {number}: the .pts points end without their closing '}}'")
+    return np.asarray(points, dtype=np.float64).reshape(-1, 2)
+
+
+def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
+    """``(delimiter, index, x, y)`` column positions when ``header`` names a point-index column and ``x``, ``y``
+    (a one-row-per-point CSV); None otherwise. ``delimiter`` None: cells separated by spaces."""
+    delimiter = next((d for d in (",", ";", "\t") if d in header), None)
+    names = [n.lower() for n in _split(header, delimiter)]
+    index = next((names.index(n) for n in _INDEX_COLUMNS if n in names), None)
+    if index is None or "x" not in names or "y" not in names:
+        return None
+    return delimiter, index, names.index("x"), names.index("y")
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    """A line's cells at ``delimiter`` (quotes honoured; None: spaces), stripped, quotes around a cell dropped."""
+    cells = line.split() if delimiter is None else next(csv.reader([line], delimiter=delimiter))
+    return [c.strip().strip("\"'").strip() for c in cells]
+
+
+def _parse_long(p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int]) -> np.ndarray:
+    """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers)."""
+    delimiter, index, x, y = columns
+    points = np.full((NUM_LANDMARKS, 2), np.nan)
+    seen: dict[int, int] = {}
+    for number, line in lines:
+        cells = _split(line, delimiter)
+        try:
+            k_text, point = cells[index], [float(cells[x]), float(cells[y])]
+            k = int(k_text)
+        except (IndexError, ValueError):
+            raise InputError(f"{p}: line {number} is not 'index, x, y' numbers: {line[:60]!r}") from None
+        if not 0 <= k < NUM_LANDMARKS:
+            raise InputError(f"{p}: line {number}: point index {k} is not an iBUG index 0-{NUM_LANDMARKS - 1}")
+        if k in seen:
+            raise InputError(f"{p}: line {number}: point {k} again (first on line {seen[k]})")
+        seen[k] = number
+        points[k] = point
+    missing = [k for k in range(NUM_LANDMARKS) if k not in seen]
+    if missing:
+        shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
+        raise InputError(f"{p}: gives {len(seen)} of the {NUM_LANDMARKS} iBUG points (missing {shown}): a landmarks "
+                         f"file must give all {NUM_LANDMARKS}")  # fmt: skip
+    return points
+
+
+def _parse_csv(p: Path, text: str) -> np.ndarray:
     rows: list[list[float]] = []
     header: str | None = None
+    long: tuple[str | None, int, int, int] | None = None
+    long_lines: list[tuple[int, str]] = []
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
+            continue
+        if long is not None:  # one row per point: its other cells may be text (a point's meaning)
+            long_lines.append((number, line))
             continue
         cells = _cells(line)
         try:
@@ -87,6 +213,9 @@ def _parse_csv(p: Path) -> np.ndarray:
             if rows or header is not None:  # one header line at most, before the numbers
                 raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
             header = line
+            long = _long_columns(header)
+    if long is not None:
+        return _parse_long(p, long_lines, long)
     if header is not None:
         openface = _openface_row(p, header, rows)
         if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
@@ -144,7 +273,7 @@ def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.
     """Read and check 68 first-frame landmarks for a ``width x height`` video.
 
     Args:
-        path: a ``.csv`` (or any text) or ``.npy`` file, see the module docstring.
+        path: a ``.csv`` (or any text), iBUG ``.pts`` or ``.npy`` file, see the module docstring.
         width: frame width W.
         height: frame height H.
 
@@ -166,7 +295,8 @@ def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.
         except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
     else:
-        points = _parse_csv(p)
+        text = _read_text(p)
+        points = _parse_pts(p, text) if _is_pts(p, text) else _parse_csv(p, text)
     if not np.issubdtype(np.asarray(points).dtype, np.number):
         raise InputError(f"{p}: landmarks must be numbers, got {np.asarray(points).dtype}")
     return check_landmarks(points, width, height, str(p))
