@@ -100,7 +100,7 @@ __all__ = [
     "loader_throughput",
 ]
 
-#: First-frame landmarks of one video: a ``(68, 2)`` array or tensor in pixels, or a ``.csv`` / ``.npy`` file
+#: First-frame landmarks of one video: a ``(68, 2)`` array or tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file
 #: (:func:`torchface.io.read_landmarks`).
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).

@@ -512,6 +512,25 @@ def test_each_video_may_be_followed_by_its_landmarks(clip, tmp_path, capsys, mon
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
 
 
+def test_a_pts_landmarks_file_tracks_as_its_csv_form(clip, tmp_path, capsys):
+    """``--landmarks x.pts`` (iBUG / 300-W, 1-based) was refused ("line 2 is not numbers: 'n_points:  68'"): the
+    ground truth's first-frame landmarks as a ``.pts`` track the clip to the same rows as the same points in a CSV
+    (points on a 1/64 pixel grid, so that the file's ``x + 1`` is exact)."""
+    video, _, gt = clip
+    np.save(tmp_path / "a.npy", _clip_frames_uint8(video, 2))
+    points = np.round(gt.landmarks_px[0].double().numpy() * 64.0) / 64.0
+    np.savetxt(tmp_path / "lm.csv", points, delimiter=",", header="x,y", comments="")
+    pts_lines = "".join(f"{x + 1} {y + 1}\n" for x, y in points)
+    (tmp_path / "lm.pts").write_text(f"version: 1\nn_points:  68\n{{\n{pts_lines}}}\n")
+    for name in ("csv", "pts"):
+        rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(tmp_path / f"lm.{name}"), "--out",
+                   str(tmp_path / name), "--quiet", "--no-online-refine"])  # fmt: skip
+        assert rc == 0, capsys.readouterr().err
+    assert (tmp_path / "pts" / "a.csv").read_text() == (tmp_path / "csv" / "a.csv").read_text()
+    sides = [json.loads((tmp_path / name / "a.json").read_text()) for name in ("csv", "pts")]
+    assert sides[0]["initial_landmarks_px"] == sides[1]["initial_landmarks_px"] == points.tolist()
+
+
 def test_batch_fps_is_the_batchs_frames_over_its_time(clip, tmp_path):
     """``timings_s.batch_fps`` was ``B * fps`` of each video: in a batch of a 3-frame and a 1-frame video the two
     sidecars gave two different speeds for one batch, the longer one's 1.5 times the batch's."""

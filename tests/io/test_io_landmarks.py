@@ -254,3 +254,6 @@ def test_one_row_per_point_csv_refusals_say_what_is_wrong(tmp_path):
         with pytest.raises(InputError, match=message) as info:
             read_landmarks(tmp_path / "bad.csv", 100, 100)
         assert "\n" not in str(info.value)
+    (tmp_path / "id.csv").write_text("id,x,y\n" + body + "\n")  # an index column of another name: says which
+    with pytest.raises(InputError, match=r"rows of 'x, y' \(or, one row per point, a header naming ibug_index, x"):
+        read_landmarks(tmp_path / "id.csv", 100, 100)

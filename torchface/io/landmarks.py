@@ -227,7 +227,8 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
         return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
-        raise InputError(f"{p}: expected rows of 'x, y', got rows of {sorted(widths)} values")
+        raise InputError(f"{p}: expected rows of 'x, y' (or, one row per point, a header naming ibug_index, x and y "
+                         f"columns), got rows of {sorted(widths)} values")  # fmt: skip
     return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
 
 
