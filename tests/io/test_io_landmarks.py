@@ -206,6 +206,8 @@ def test_pts_coordinates_lose_one_exactly_in_decimal(tmp_path):
         (lambda t: t.replace("n_points:  68", "n_points: many"), r"line 2: n_points is not a count: 'many'"),
         (lambda t: t.replace("n_points:  68", "68 points"), r"line 2: expected 'version: 1', 'n_points: 68' or '\{'"),
         (lambda t: t.replace(t.splitlines()[5], "nan 13.5"), r"landmark\(s\) \[2\] are NaN"),
+        (lambda t: t.replace(t.splitlines()[5], "1e999999999 13.5"), r"landmark\(s\) \[2\] are NaN or infinite"),
+        (lambda t: t.replace(t.splitlines()[5], "sNaN 13.5"), r"line 6 is not a \.pts point 'x y'"),
     ],
 )
 def test_malformed_pts_files_name_the_file_and_line(tmp_path, edit, message):

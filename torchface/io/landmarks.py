@@ -27,7 +27,7 @@ from __future__ import annotations
 import csv
 import os
 import re
-from decimal import Context, Decimal, InvalidOperation
+from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, DecimalException
 from pathlib import Path
 
 import numpy as np
@@ -84,8 +84,9 @@ def _openface_row(p: Path, header: str, rows: list[list[float]]) -> np.ndarray |
 #: Header names of the point-index column of a one-row-per-point CSV.
 _INDEX_COLUMNS: tuple[str, ...] = ("ibug_index", "index", "point", "landmark")
 
-#: Decimal arithmetic wide enough that ``x - 1`` of any float's digits is exact (the caller's context may be narrow).
-_EXACT = Context(prec=64)
+#: Decimal arithmetic wide enough that ``x - 1`` of any float's digits is exact (the caller's context may be narrow),
+#: and a number beyond float64's range is one (infinite as a float: refused as such), not an overflow.
+_EXACT = Context(prec=64, Emax=MAX_EMAX, Emin=MIN_EMIN)
 
 
 def _read_text(p: Path) -> str:
@@ -140,9 +141,9 @@ def _parse_pts(p: Path, text: str) -> np.ndarray:
         cells = line.split()
         try:
             if len(cells) != 2:
-                raise InvalidOperation
+                raise ValueError
             points.append([float(_EXACT.subtract(Decimal(c), 1)) for c in cells])
-        except (InvalidOperation, ValueError):
+        except (DecimalException, ValueError):
             raise InputError(f"{p}: line {number} is not a .pts point 'x y': {line[:60]!r}") from None
     if state == "header":
         raise InputError(f"{p}: no '{{' line: not a .pts file (version: 1, n_points: 68, {{, 68 lines 'x y', }})")
@@ -164,7 +165,10 @@ def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
 
 def _split(line: str, delimiter: str | None) -> list[str]:
     """A line's cells at ``delimiter`` (quotes honoured; None: spaces), stripped, quotes around a cell dropped."""
-    cells = line.split() if delimiter is None else next(csv.reader([line], delimiter=delimiter))
+    try:
+        cells = line.split() if delimiter is None else next(csv.reader([line], delimiter=delimiter))
+    except csv.Error:  # (a NUL character on older Pythons): split without quoting
+        cells = line.split(delimiter)
     return [c.strip().strip("\"'").strip() for c in cells]
 
 
