@@ -299,7 +299,12 @@ def initialise_managed(
 
     The first frame's normalised face becomes the dissimilarity reference and its templates the mosaic's
     entry 0. Arguments and returns as :func:`~torchface.tracker.step.initialise`; with
-    ``config.template.enabled`` False the state has no management (``management`` None).
+    ``config.template.enabled`` False the state has no management (``management`` None). Besides
+    :func:`~torchface.tracker.step.initialise`'s failures, a stream FAILS (confidence 0, no template points; a
+    detector given to :func:`managed_step` starts it afresh) whose first normalised face shows too few of its own
+    fiducial patches to score any frame, or whose fitted face has less than
+    :attr:`~torchface.template.management.TemplateConfig.min_inside_fraction` of its vertices inside the frame
+    (first landmarks that put the face mostly outside it: :func:`managed_step` would declare every frame LOST).
 
     ``refine_first``: the online look-ahead start, None for none (the default here; :class:`FaceTracker` starts with
     it by default). From one frontal view the landmark fit cannot tell the head's pitch from the face's vertical
