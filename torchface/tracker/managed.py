@@ -370,7 +370,7 @@ def initialise_managed(
     # the few in-view vertices against themselves (0.99-1.0: landmarks scaled x3 about the image centre, a third of
     # the face in view), and searched its mosaic of that face for good. Failed, it scores 0 and a detector restarts it.
     verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(state.shape_coeffs, alpha))
-    blind = blind | (~failed & (face_inside_fraction(model, verts_cam, intrinsics) < tc.min_inside_fraction))
+    blind = blind | (~failed & (face_inside_fraction(model, verts_cam, state.intrinsics) < tc.min_inside_fraction))
     if bool(blind.any()):
         failed = failed | blind
         state = replace(state, templates=tuple(fail_templates(state.templates, blind)))  # (as initialise's failures)
