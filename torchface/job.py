@@ -1946,7 +1946,8 @@ def _video_timing(s: _Stream) -> dict:
 
 def _warn_failed_starts(streams: list[_Stream], success: Tensor, restarts: bool) -> None:
     """Warn (one line per video) where the start from the first frame's landmarks failed (``initialise``: landmarks
-    that hold no pose, a face too small, a frame without texture there, such as a black one): every row of that
+    that hold no pose, a face too small, a frame without texture there, such as a black one; with template management,
+    a face mostly outside the frame): every row of that
     video was written unusable (``success`` 0) with nothing said but the summary's lost count. ``restarts``: a
     detector starts such a stream afresh (with template management only: without it, its rows stay unusable, and
     the warning said it would be lost until the detector found a face)."""
@@ -1956,7 +1957,8 @@ def _warn_failed_starts(streams: list[_Stream], success: Tensor, restarts: bool)
         then = ("it is lost until the detector finds a face it can start from" if restarts else
                 "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
         warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that hold no "
-                      f"pose, or a face too small or without texture there: a black frame): {then}", RuntimeWarning,
+                      f"pose or put the face mostly outside the frame, or a face too small or without texture there: "
+                      f"a black frame): {then}", RuntimeWarning,
                       stacklevel=3)  # fmt: skip
 
 

@@ -1728,6 +1728,30 @@ def test_a_video_whose_start_fails_is_warned_about(clip, tmp_path):
     assert [s.lost for s in summaries] == [4, 0]
 
 
+def test_a_detected_face_mostly_outside_the_frame_is_a_failed_start_warned_about(clip, tmp_path, monkeypatch):
+    """A detector whose face lies half outside the frame (the clip's landmarks shifted right by half the frame: 54% of
+    them inside, which the detector's check accepts, 50% of the fitted face's vertices): the video started from it
+    (row 0 success 1), then every row was written lost at confidence 0.997-0.999, with nothing said. The start now fails
+    (too little of the face in view: TemplateConfig.min_inside_fraction), the run warns about that video in one line,
+    and its rows read success 0 at confidence 0 (each restart from such a detection fails likewise)."""
+    import warnings
+
+    import torchface.detect
+
+    video, _, gt = clip
+    short = _short_npy(video, tmp_path / "half.npy", 6)
+    half = (gt.landmarks_px[0] + torch.tensor([0.5 * W, 0.0], dtype=gt.landmarks_px.dtype)).numpy().astype(np.float64)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "half", lambda: lambda image_rgb, near=None: half)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([short], JobConfig(out_dir=tmp_path / "out", detector="half", redetect_after=2))
+    said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("half: the start from the landmarks of frame 0 failed"), said
+    assert "mostly outside the frame" in said[0]
+    cols, rows = read_track_csv(output_paths(tmp_path / "out", "half")["csv"])
+    assert not rows[:, cols.index("success")].any() and float(rows[:, cols.index("confidence")].max()) == 0.0
+
+
 def test_a_failed_start_is_said_to_be_restarted_only_where_the_detector_restarts_it(clip, tmp_path, monkeypatch):
     """With a detector, a failed start (landmarks found on a black first frame) was said to be "lost until the
     detector finds a face it can start from" with template management off too, where nothing restarts it: every row

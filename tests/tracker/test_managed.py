@@ -1234,6 +1234,47 @@ def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_without_a_detector(mo
         assert float(conf[0]) == 0.0
 
 
+@pytest.mark.parametrize("placed", ["shifted", "scaled"])
+def test_a_start_with_the_face_mostly_outside_the_frame_fails_and_a_detector_starts_it(model, gentle, placed):
+    """First landmarks that put the face mostly outside the frame (shifted by 45% of the frame right and 40% down,
+    or scaled x5 about the face's centre: 46% of the landmarks in view): ``initialise_managed`` started the stream
+    (CONVERGED, confidence 1.0) from the few in-view vertices, and every later frame was LOST (the face left the
+    frame: ``min_inside_fraction``) at confidence 0.99-1.0, even with a detector giving the true landmarks at each
+    recovery attempt (its candidates could not beat the track's 0.99 against the mosaic of that start). The start now
+    FAILS (confidence 0, no template points), the frames before the detector's attempt are LOST at confidence 0,
+    and the detector's landmarks start the stream afresh (frame 2); the other stream of the batch tracks as alone."""
+    frames, gt = gentle
+    lm = landmarks(gt)
+    if placed == "shifted":
+        off = lm + torch.tensor([0.45 * W, 0.4 * H])
+    else:
+        centre = lm.mean(1, keepdim=True)
+        off = (lm - centre) * 5.0 + centre
+    both = torch.cat([frames, frames])
+    current = [0]
+
+    def detector(batch: torch.Tensor) -> torch.Tensor:
+        return gt.landmarks_px[current[0]].float()[None].expand(batch.shape[0], -1, -1)
+
+    state, res = initialise_managed(model, LEAVE_CFG, both[:, 0], torch.cat([lm, off]), Intrinsics.default(W, H))
+    assert res.status.tolist() == [0, int(TrackStatus.FAILED)] and float(res.confidence[1]) == 0.0
+    assert int(res.num_points[1]) == 0 and bool(res.success[0])
+    results = [res]
+    for i in range(1, both.shape[1]):
+        current[0] = i
+        state, res = managed_step(model, LEAVE_CFG, state, both[:, i], detector)
+        assert_finite(res)
+        results.append(res)
+    assert int(results[1].status[1]) == LOST and float(results[1].confidence[1]) == 0.0
+    assert all(bool(r.success[1]) and float(r.confidence[1]) > 0.5 for r in results[2:])
+    R = torch.stack([r.rotation[1].double() for r in results[2:]])
+    assert float(geodesic_angle_deg(R, gt.rotation[2:]).max()) < 1.0
+    alone, _ = track(model, LEAVE_CFG, frames, lm, detector)
+    for a, r in zip(alone, results):
+        assert torch.equal(r.status[:1], a.status)
+        torch.testing.assert_close(r.rotation[:1], a.rotation)
+
+
 @pytest.mark.parametrize(("num_levels", "size"), [(3, (6, 8)), (2, (3, 3)), (1, (1, 1))])  # size: (H, W)
 def test_a_lost_stream_on_frames_whose_coarsest_level_is_one_pixel_stays_lost_without_a_crash(
     model, monkeypatch, num_levels, size

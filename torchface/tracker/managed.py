@@ -299,7 +299,12 @@ def initialise_managed(
 
     The first frame's normalised face becomes the dissimilarity reference and its templates the mosaic's
     entry 0. Arguments and returns as :func:`~torchface.tracker.step.initialise`; with
-    ``config.template.enabled`` False the state has no management (``management`` None).
+    ``config.template.enabled`` False the state has no management (``management`` None). Besides
+    :func:`~torchface.tracker.step.initialise`'s failures, a stream FAILS (confidence 0, no template points; a
+    detector given to :func:`managed_step` starts it afresh) whose first normalised face shows too few of its own
+    fiducial patches to score any frame, or whose fitted face has less than
+    :attr:`~torchface.template.management.TemplateConfig.min_inside_fraction` of its vertices inside the frame
+    (first landmarks that put the face mostly outside it: :func:`managed_step` would declare every frame LOST).
 
     ``refine_first``: the online look-ahead start, None for none (the default here; :class:`FaceTracker` starts with
     it by default). From one frontal view the landmark fit cannot tell the head's pitch from the face's vertical
@@ -360,6 +365,12 @@ def initialise_managed(
     # landmarks fitted the face edge-on, pitch 87 degrees, CONVERGED at confidence 0). It fails, as a fit without a
     # pose does (a detector can then start it afresh: managed_step).
     blind = ~failed & (diss.confidence <= 0)
+    # A first fit with less than min_inside_fraction of its face inside the frame fails too: managed_step declares
+    # such a frame lost at once, so the stream started, then reported every later frame LOST at the confidence of
+    # the few in-view vertices against themselves (0.99-1.0: landmarks scaled x3 about the image centre, a third of
+    # the face in view), and searched its mosaic of that face for good. Failed, it scores 0 and a detector restarts it.
+    verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(state.shape_coeffs, alpha))
+    blind = blind | (~failed & (face_inside_fraction(model, verts_cam, state.intrinsics) < tc.min_inside_fraction))
     if bool(blind.any()):
         failed = failed | blind
         state = replace(state, templates=tuple(fail_templates(state.templates, blind)))  # (as initialise's failures)

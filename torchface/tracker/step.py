@@ -428,10 +428,13 @@ class TrackResult:
         confidence: ``(B,)`` in ``[0, 1]``. From :func:`track_step` alone: the residual confidence (fraction of
             valid points times ``exp(-(rms / 0.1)^2)``); with template management
             (:func:`~torchface.tracker.managed.managed_step`): the dissimilarity confidence of the normalised
-            face (paper Section 4.1), 0 for a FAILED sample. From :func:`initialise` (the first frame): the
-            landmark fit's ``exp(-rms_px / 5)`` (:attr:`~torchface.tracker.fit.LandmarkFit.rms_px`, pixels), 0 for
-            a FAILED stream; from :func:`~torchface.tracker.managed.initialise_managed`: the first frame's
-            dissimilarity confidence against its own reference, that fit's in ``residual_confidence``.
+            face (paper Section 4.1), 0 for a FAILED sample; a LOST sample's is still its frame's score, which
+            can be high (a face leaving the frame is LOST once less than ``min_inside_fraction`` of it is in
+            view, while its in-view part may still match): select on :attr:`success` as well. From
+            :func:`initialise` (the first frame): the landmark fit's ``exp(-rms_px / 5)``
+            (:attr:`~torchface.tracker.fit.LandmarkFit.rms_px`, pixels), 0 for a FAILED stream; from
+            :func:`~torchface.tracker.managed.initialise_managed`: the first frame's dissimilarity confidence
+            against its own reference, that fit's in ``residual_confidence``.
         residual_confidence: ``(B,)`` the residual confidence (set by template management; None otherwise; the
             first frame's: its landmark fit's, above).
         dissimilarity: ``(B,)`` mean fiducial-patch displacement on the normalised face (its pixels; set by
