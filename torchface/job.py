@@ -19,7 +19,7 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
-  one frame per row for a constant-rate input);
+  one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`), one frame per CSV row (the sidecar's
   ``videos``, :func:`_video_timing`);
@@ -320,6 +320,15 @@ def demo_inputs() -> tuple[Path, Path]:
     return root / "bbaf2n.mpg", root / "bbaf2n_landmarks68.csv"
 
 
+#: The longest gap (seconds of slots that no frame reached) that a timed video (:class:`_VideoOut`, the overlay) fills
+#: with the frame before it. A longer one is not the input's frames further apart (a phone's variable rate: tens of
+#: milliseconds; a camera that stalled: a few seconds) but a broken time: a container's time far ahead, MPEG-TS
+#: streams concatenated (their clocks restart elsewhere), where filling it wrote ``fps`` copies of one frame per second
+#: of the jump (an hour's: 90,000 frames at 25 frames/s, gigabytes of 1080p). Such a gap is left out: the next frame
+#: goes to the next slot, and the later frames' slots count on from there.
+OVERLAY_MAX_GAP_S: float = 10.0
+
+
 class _VideoOut:
     """An ``mp4v`` MP4 at ``fps`` frames/s written to ``<name>.partial.mp4`` and renamed on :meth:`close`.
 
@@ -331,7 +340,9 @@ class _VideoOut:
     left-out frame nowhere). A constant-rate input's frames (times ``k / fps``, within half a frame) are written one
     each, as without ``timed``; a variable-frame-rate one's (a phone's) play at their times, where one frame per slot
     at the nominal rate ran ahead of the input wherever its frames were further apart (a 30 -> 15 frames/s stretch
-    played twice as fast).
+    played twice as fast). A gap longer than :data:`OVERLAY_MAX_GAP_S` (a broken time) is not filled
+    (:attr:`skipped_gaps`, :attr:`skipped_s`; a ``RuntimeWarning`` at the first): the frame goes to the next slot
+    (after one showing a frame left out of its slot), the later frames' slots counted on from it.
     """
 
     def __init__(self, path: Path, width: int, height: int, fps: float, timed: bool = False) -> None:
@@ -343,7 +354,9 @@ class _VideoOut:
         self.frames = 0  # written to the file (duplicates included)
         self.duplicated = 0  # (timed) slots filled with the previous frame again
         self.dropped = 0  # (timed) frames not shown: their slot was written already, and no gap followed them
-        self._origin: float | None = None  # (timed) the first frame's time, slot 0
+        self.skipped_gaps = 0  # (timed) gaps longer than OVERLAY_MAX_GAP_S, not filled
+        self.skipped_s = 0.0  # (timed) the seconds of slots they would have filled
+        self._origin: float | None = None  # (timed) the time of slot 0 (the first frame's; moved on by a skipped gap)
         self._last: np.ndarray | None = None  # (timed) the last frame given, repeated into a gap
         self._shown = True  # (timed) whether _last is in the file (False: left out of its slot)
         fourcc = cv2.VideoWriter.fourcc(*"mp4v")
@@ -365,6 +378,8 @@ class _VideoOut:
             if self._origin is None:
                 self._origin = time
             slot = math.floor((time - self._origin) * self.fps + 0.5)
+            if slot - self.frames > OVERLAY_MAX_GAP_S * self.fps:  # a broken time, not a gap to fill
+                slot = self._skip_gap(slot, time)
             if slot < self.frames:  # (its slot holds an earlier frame)
                 self.dropped += 1
                 self._last, self._shown = image_bgr, False  # (the input shows it from its time on)
@@ -380,6 +395,21 @@ class _VideoOut:
             self._last, self._shown = image_bgr, True
         self.writer.write(image_bgr)
         self.frames += 1
+
+    def _skip_gap(self, slot: int, time: float) -> int:
+        """The slot of a frame at ``time`` whose own ``slot`` is more than :data:`OVERLAY_MAX_GAP_S` ahead: the next
+        one (after one showing the frame before it, where that was left out of its slot); slot 0's time moved so that
+        the later frames' slots count on from it. Warned once per video."""
+        new = self.frames + (0 if self._shown else 1)
+        self.skipped_gaps += 1
+        self.skipped_s += (slot - new) / self.fps
+        if self.skipped_gaps == 1:
+            warnings.warn(f"{self.path}: the input's time jumps {(slot - new) / self.fps:.1f} s ahead at {time:.3f} s "
+                          f"(a broken time, or streams joined): gaps over {OVERLAY_MAX_GAP_S:g} s are not filled, the "
+                          "overlay goes on at the next frame (the sidecar's videos.overlay.skipped_gaps)",
+                          RuntimeWarning, stacklevel=4)  # fmt: skip
+        self._origin = time - new / self.fps
+        return new
 
     def close(self) -> None:
         """Rename the video to its final name once it reads back whole (OpenCV's writer ignores write errors:
@@ -1933,13 +1963,16 @@ def _video_timing(s: _Stream) -> dict:
     The overlay is ``time_synced`` (:class:`_VideoOut`'s ``timed``): a constant-rate video at ``input.fps`` whose
     frames show each row at its ``timestamp`` (``duplicated_frames``: slots that showed the previous row again, where
     the input's frames are further apart than ``1 / fps``; ``dropped_frames``: rows not shown, their slot taken by an
-    earlier one; both 0 for a constant-rate input, one frame per row). The normalised face is one frame per row
+    earlier one; both 0 for a constant-rate input, one frame per row; ``skipped_gaps``: gaps between two rows' times
+    longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled, ``skipped_seconds`` their length: the overlay
+    went on at the next slot, and is behind the rows' times by that much from there). The normalised face is one frame per row
     (``frames`` the rows; frame ``i`` is row ``i``, a dataset's order), not in step with the rows' times where they are
     not ``i / fps``."""
     overlay, normalised = s.outputs()[1:]
     return {
         "overlay": {"fps": overlay.fps, "frames": overlay.frames, "time_synced": True,
-                    "duplicated_frames": overlay.duplicated, "dropped_frames": overlay.dropped},
+                    "duplicated_frames": overlay.duplicated, "dropped_frames": overlay.dropped,
+                    "skipped_gaps": overlay.skipped_gaps, "skipped_seconds": round(overlay.skipped_s, 3)},
         "normalised": {"fps": normalised.fps, "frames": normalised.frames, "time_synced": False},
     }  # fmt: skip
 

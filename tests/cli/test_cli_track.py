@@ -3073,6 +3073,54 @@ def test_a_timed_video_shows_each_frame_at_the_slot_of_its_time(tmp_path):
         _VideoOut(tmp_path / "x.mp4", 64, 48, 25.0, timed=True).write(_solid(colours[0]))
 
 
+def test_a_timed_videos_jump_in_time_is_not_filled(tmp_path):
+    """One time far ahead (a broken container time, MPEG-TS streams joined) made the timed overlay repeat the frame
+    before it into every slot up to it: 90,000 frames for an hour's jump at 25 frames/s. A gap longer than
+    OVERLAY_MAX_GAP_S is not filled (warned once): the frame goes to the next slot (after one showing a frame left
+    out of its slot), the later frames counted on from it; a shorter gap is filled as before."""
+    from torchface.job import OVERLAY_MAX_GAP_S, _VideoOut
+
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (255, 0, 255)]
+    # slots 0, 1, [1: frame 2 left out], then an hour later: frame 2 shown at slot 2, frame 3 at 3 (slot 0's time
+    # moved to 3600 - 3 / 25 s, 3599.88 s skipped), so 3600.04 at slot 4, 3600.12 at 6 (slot 5 repeats frame 4)
+    times = [0.0, 0.04, 0.05, 3600.0, 3600.04, 3600.12]
+    out = _VideoOut(tmp_path / "jump.mp4", 64, 48, 25.0, timed=True)
+    with pytest.warns(RuntimeWarning, match=r"jump\.mp4: the input's time jumps 3599\.9 s ahead at 3600\.000 s .*"
+                                            r"gaps over 10 s are not filled") as said:  # fmt: skip
+        for c, when in zip(colours, times):
+            out.write(_solid(c), when)
+        out.write(_solid(colours[0]), 7200.0)  # (a second jump: counted, not warned again)
+    out.close()
+    assert len([w for w in said if issubclass(w.category, RuntimeWarning)]) == 1
+    assert (out.frames, out.duplicated, out.dropped, out.skipped_gaps) == (8, 1, 0, 2)
+    assert out.skipped_s == pytest.approx(3599.88 + 3599.84)  # (the second: to slot 7)
+    shown = read_video_uint8(tmp_path / "jump.mp4").permute(0, 2, 3, 1).numpy()[:, 24, 32, ::-1]  # (RGB -> BGR)
+    nearest = [int(np.argmin([np.abs(px.astype(int) - c).sum() for c in colours])) for px in shown]
+    assert nearest == [0, 1, 2, 3, 4, 4, 5, 0], nearest
+    long = _VideoOut(tmp_path / "pause.mp4", 64, 48, 25.0, timed=True)  # (a gap just under the limit: filled)
+    for c, when in zip(colours, [0.0, OVERLAY_MAX_GAP_S - 0.04]):
+        long.write(_solid(c), when)
+    long.close()
+    assert (long.frames, long.duplicated, long.skipped_gaps) == (round(OVERLAY_MAX_GAP_S * 25), 248, 0)
+
+
+def test_a_jump_in_a_videos_time_is_said_and_recorded_not_filled(clip, tmp_path, monkeypatch, capsys):
+    """A container time an hour ahead from frame 6 on: the overlay was 90,006 frames (an hour of frame 5). It has one
+    frame per row, the job says so in one warning line, and the sidecar's videos.overlay records the skipped gap."""
+    video, lm, _ = clip
+    clip_npy = _short_npy(video, tmp_path / "joined.npy", T)
+    _timed_reader(monkeypatch, [k * 40.0 + (3_600_000.0 if k >= 6 else 0.0) for k in range(T)])
+    out = tmp_path / "out"
+    assert main(["track", str(clip_npy), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]
+                ) == 0  # fmt: skip
+    said = [line for line in capsys.readouterr().err.splitlines() if line.startswith("torchface: warning: ")]
+    assert len(said) == 1 and "joined_overlay.mp4: the input's time jumps 3600.0 s ahead at 3600.240 s" in said[0]
+    overlay = json.loads((out / "joined.json").read_text())["videos"]["overlay"]
+    assert (overlay["frames"], overlay["duplicated_frames"], overlay["skipped_gaps"]) == (T, 0, 1)
+    assert overlay["skipped_seconds"] == pytest.approx(3600.0)
+    assert read_video_uint8(out / "joined_overlay.mp4").shape[0] == T
+
+
 def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip, tmp_path, monkeypatch):
     """The overlay of a variable-frame-rate video (a phone's) was one frame per input frame at the nominal rate, so
     that it drifted ahead of the input wherever the frames were further apart. It is written at the nominal rate
@@ -3111,7 +3159,7 @@ def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip,
     assert read_video_uint8(paths["normalised"]).shape[0] == T + n
     videos = json.loads(paths["json"].read_text())["videos"]
     assert videos["overlay"] == {"fps": 25.0, "frames": 16, "time_synced": True, "duplicated_frames": 2,
-                                 "dropped_frames": 0}  # fmt: skip
+                                 "dropped_frames": 0, "skipped_gaps": 0, "skipped_seconds": 0.0}  # fmt: skip
     assert videos["normalised"] == {"fps": 25.0, "frames": T + n, "time_synced": False}
     out = tmp_path / "b"
     _interrupted_at(late, replace(config, out_dir=out), n + 3)
