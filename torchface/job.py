@@ -271,19 +271,34 @@ class VideoSummary:
 
 
 class VideosStopped(InputError):
-    """Some videos stopped at a frame that could not be read; raised by :func:`track_videos` once every other video
-    is complete (their rows so far are kept in ``<stem>.csv.partial``).
+    """Some videos stopped partway: at a frame that could not be read, or, resumed, at a replayed row whose
+    ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised by :func:`track_videos` once every
+    other video is complete (their rows so far are kept in ``<stem>.csv.partial``).
 
     Attributes:
         summaries: the :class:`VideoSummary` of every other video (completed, or skipped by ``resume``), in input
             order: what the run would have returned for them.
         stopped: the output names of the videos that stopped, in input order.
+        reasons: why each of them stopped (``"stopped at a frame that could not be read"``, ...), in that order.
     """
 
-    def __init__(self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str]) -> None:
+    def __init__(
+        self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str], reasons: Sequence[str] = ()
+    ) -> None:
         super().__init__(message)
         self.summaries = list(summaries)
         self.stopped = tuple(stopped)
+        self.reasons = tuple(reasons) or (UNREADABLE_FRAME,) * len(self.stopped)
+
+
+#: :attr:`VideosStopped.reasons` of a video stopped at a frame that could not be read.
+UNREADABLE_FRAME = "stopped at a frame that could not be read"
+
+
+class _ReplayedTimeError(InputError):
+    """A resumed video's replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`)."""
+
+    reason = "stopped resuming at a row whose timestamp is not its frame's time"
 
 
 def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
@@ -856,15 +871,19 @@ def _check_replayed_time(s: _Stream, row: np.ndarray, columns: tuple[str, ...], 
     gone on from with the other rule, one CSV holding both.
 
     Raises:
-        InputError: the row's ``timestamp`` is more than :data:`REPLAY_TIME_TOLERANCE` from ``stamp``.
+        InputError: (``_ReplayedTimeError``) the row's ``timestamp`` is more than :data:`REPLAY_TIME_TOLERANCE` from
+            ``stamp``. Met before the first face (:func:`_write_no_face`), it stops the batch before its tracking,
+            as the other refusals of a resume do; met at a tracked row, it stops that video only (its times are
+            known only as its frames are read: reading them ahead decoded the replayed frames twice), as a frame
+            that cannot be read does: the others go on, and :class:`VideosStopped` says it once they are complete.
     """
     then = float(row[columns.index("timestamp")])
     if not abs(then - stamp) <= REPLAY_TIME_TOLERANCE:
         where = s.csv.partial if s.csv is not None else s.name
-        raise InputError(f"{where}: cannot resume, its row of frame {frame} says timestamp {then:.3f} s, but that "
-                         f"frame of {s.reader.info.path} is at {stamp:.3f} s (rows written with other frame times: "
-                         "by an earlier version, which wrote frame / fps, of a variable-frame-rate video): run without "
-                         "--resume")  # fmt: skip
+        raise _ReplayedTimeError(f"{where}: cannot resume, its row of frame {frame} says timestamp {then:.3f} s, but "
+                                 f"that frame of {s.reader.info.path} is at {stamp:.3f} s (rows written with other "
+                                 "frame times: by an earlier version, which wrote frame / fps, of a variable-frame-rate "
+                                 "video): run without --resume")  # fmt: skip
 
 
 def _record_path(csv: Path) -> Path:
@@ -1324,8 +1343,9 @@ def track_videos(
     Raises:
         TypeError: ``videos`` is one path, not a sequence of them.
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts).
-        VideosStopped: (an InputError) a later frame that cannot be read stopped a video; raised once every other
-            video is complete, with their summaries.
+        VideosStopped: (an InputError) a later frame that cannot be read stopped a video, or a resumed video's
+            replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised once every
+            other video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
             up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
@@ -1496,10 +1516,13 @@ def _track_opened(
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
         rest = f"; the other videos were completed ({_listed(done)}): --resume skips them" if done else ""
-        what = "; ".join(str(s.error) for s in failed)
-        raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
-                            [summaries[str(v)] for v in inputs if str(v) in summaries],
-                            [s.name for s in failed])  # fmt: skip
+        unread = [str(s.error) for s in failed if not isinstance(s.error, _ReplayedTimeError)]
+        what = "; ".join([*[str(s.error) for s in failed if isinstance(s.error, _ReplayedTimeError)],
+                          *(["; ".join(unread) + " (mend or remove the frame and track that video again without "
+                             "--resume)"] if unread else [])])  # fmt: skip
+        reasons = [getattr(s.error, "reason", UNREADABLE_FRAME) for s in failed]
+        raise VideosStopped(f"{what}{rest}", [summaries[str(v)] for v in inputs if str(v) in summaries],
+                            [s.name for s in failed], reasons)  # fmt: skip
     return [summaries[str(v)] for v in inputs]
 
 
@@ -2100,8 +2123,12 @@ def _write_step(
             continue
         stamp = stamps[k] = s.stamps.popleft()  # (its frame's time, replayed or not: it places its overlay frame)
         if replaying[k] and s.replay is not None:  # (replaying: its replay holds row t)
-            _check_replayed_time(s, s.replay[t], columns, stamp, t + s.start)
             written[k] = s.replay[t]
+            try:
+                _check_replayed_time(s, s.replay[t], columns, stamp, t + s.start)
+            except _ReplayedTimeError as exc:  # this video stops (its partial CSV as it was), the batch goes on
+                s.done, s.error, live[k] = True, exc, False
+                s.reader.close()
         else:
             row = rows[k].copy()
             row[0] = t + s.start

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import typing
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -3276,6 +3277,50 @@ def test_resuming_rows_timed_by_frame_over_fps_of_a_variable_frame_rate_video_is
     track_videos([late], replace(config, resume=True))
     _, rows = read_track_csv(tmp_path / "a" / "late.csv")
     assert rows.shape[0] == T + n
+
+
+def test_a_resumed_videos_rows_of_other_times_stop_that_video_only(clip, tmp_path, monkeypatch, capsys):
+    """Rows whose ``timestamp`` is not their frame's time are met only as the replay reaches them, mid-batch: the
+    refusal stopped the whole batch there, the other video of the batch (tracked in this run so far) not completed.
+    It stops that video only, as a frame that cannot be read does: the other is completed and summarised, then the
+    error (status 2), which names the partial CSV, kept as it was, and does not say to mend a frame."""
+    import torchface.job
+
+    video, lm, _ = clip
+    a, b = _short_npy(video, tmp_path / "a.npy", T), _short_npy(video, tmp_path / "b.npy", T)
+    clocks: dict[str, list[float]] = {}
+    real_open = torchface.job.open_frames
+
+    def opened(path, convert=False):  # (a fake clock for the inputs named in clocks)
+        reader = real_open(path, convert=convert)
+        if clocks.get(Path(path).stem):
+            times = iter(list(clocks[Path(path).stem]))
+            reader.clock = lambda: next(times)
+        return reader
+
+    monkeypatch.setattr(torchface.job, "open_frames", opened)
+    out = tmp_path / "out"
+
+    def interrupt(p):
+        if p.done == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None), progress=interrupt)
+    kept = (out / "a.csv.partial").read_bytes()
+    assert read_track_csv(out / "a.csv.partial")[1].shape[0] >= 4
+    clocks["a"] = [k * 40.0 + (10.0 if k >= 3 else 0.0) for k in range(T)]  # (frame 3 on: 10 ms later than its row)
+    rc = main(["track", str(a), str(b), "--out", str(out), "--landmarks", str(lm), "--landmarks", str(lm), "--quiet",
+               "--no-online-refine", "--resume"])  # fmt: skip
+    captured = capsys.readouterr()
+    assert rc == 2 and captured.err.startswith("torchface: error: ") and captured.err.count("\n") == 1
+    assert re.search(r"a\.csv\.partial: cannot resume, its row of frame 3 says timestamp 0\.120 s, but that frame of "
+                     r".* is at 0\.130 s .*run without --resume; the other videos were completed \(b\)", captured.err)
+    assert "mend or remove" not in captured.err
+    assert f"b: {T} frames" in captured.out
+    assert "a: stopped resuming at a row whose timestamp is not its frame's time, not completed" in captured.out
+    assert (out / "b.json").is_file() and read_track_csv(out / "b.csv")[1].shape[0] == T
+    assert (out / "a.csv.partial").read_bytes() == kept and not list(out.glob("a*.mp4"))
 
 
 def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip, tmp_path, monkeypatch, capsys):
