@@ -960,14 +960,17 @@ def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
 
 
 def _said_difference(name: str, then: object, now: object) -> str:
-    """How a message says that setting ``name`` was ``then`` and is ``now``: the two values, or for settings
-    dataclasses (dicts; None where off) whether it was on, or which of their fields differ."""
+    """How a message says that setting ``name`` was ``then`` and is ``now``: the two values (None: ``default`` for
+    ``--focal``, ``max(W, H)``; else ``none``), or for settings dataclasses (dicts; None where off) whether it was on,
+    or which of their fields differ."""
     if isinstance(then, dict) and isinstance(now, dict):
         fields = sorted(_setting_differences(then, now))
         return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
-    return f"{name} {then} then, {now} now"
+    # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal)
+    unset = "default" if name == "--focal" else "none"
+    return f"{name} {unset if then is None else then} then, {unset if now is None else now} now"
 
 
 def _write_record(

@@ -565,7 +565,7 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
     assert run("--no-online-refine") == 0
     assert run("--no-online-refine", "--resume") == 0 and "already complete" in capsys.readouterr().out
     _assert_clean_failure(run("--no-online-refine", "--resume", "--focal", "150"), capsys, tmp_path / "nothing",
-                          "made with other settings (--focal None then, 150.0 now)")  # fmt: skip
+                          "made with other settings (--focal default then, 150.0 now)")  # fmt: skip
     _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(online start off then, on now)")
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
 
@@ -1917,6 +1917,7 @@ def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys
     assert main(args + ["--focal", "320"]) == 2
     err = capsys.readouterr().err
     assert "cannot resume" in err and "--focal 300.0 then, 320.0 now" in err
+    assert main(args) == 2 and "--focal 300.0 then, default now" in capsys.readouterr().err  # (not "None now")
     assert main(args + ["--focal", "300", "--no-online-refine"]) == 2
     assert "online start" in capsys.readouterr().err
     np.save(short, np.load(short)[:3])  # another clip at the same path
