@@ -270,6 +270,10 @@ class VideoSummary:
     declared_frames: int | None = None
 
 
+#: :attr:`VideosStopped.reasons` of a video stopped at a frame that could not be read.
+UNREADABLE_FRAME = "stopped at a frame that could not be read"
+
+
 class VideosStopped(InputError):
     """Some videos stopped partway: at a frame that could not be read, or, resumed, at a replayed row whose
     ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised by :func:`track_videos` once every
@@ -289,10 +293,6 @@ class VideosStopped(InputError):
         self.summaries = list(summaries)
         self.stopped = tuple(stopped)
         self.reasons = tuple(reasons) or (UNREADABLE_FRAME,) * len(self.stopped)
-
-
-#: :attr:`VideosStopped.reasons` of a video stopped at a frame that could not be read.
-UNREADABLE_FRAME = "stopped at a frame that could not be read"
 
 
 class _ReplayedTimeError(InputError):
@@ -1519,10 +1519,10 @@ def _track_opened(
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
         rest = f"; the other videos were completed ({_listed(done)}): --resume skips them" if done else ""
-        unread = [str(s.error) for s in failed if not isinstance(s.error, _ReplayedTimeError)]
-        what = "; ".join([*[str(s.error) for s in failed if isinstance(s.error, _ReplayedTimeError)],
-                          *(["; ".join(unread) + " (mend or remove the frame and track that video again without "
-                             "--resume)"] if unread else [])])  # fmt: skip
+        unread = "; ".join(str(s.error) for s in failed if not isinstance(s.error, _ReplayedTimeError))
+        unread += " (mend or remove the frame and track that video again without --resume)" if unread else ""
+        refused = [str(s.error) for s in failed if isinstance(s.error, _ReplayedTimeError)]
+        what = "; ".join(refused + ([unread] if unread else []))
         reasons = [getattr(s.error, "reason", UNREADABLE_FRAME) for s in failed]
         raise VideosStopped(f"{what}{rest}", [summaries[str(v)] for v in inputs if str(v) in summaries],
                             [s.name for s in failed], reasons)  # fmt: skip
@@ -1991,9 +1991,9 @@ def _video_timing(s: _Stream) -> dict:
     the input's frames are further apart than ``1 / fps``; ``dropped_frames``: rows not shown, their slot taken by an
     earlier one; both 0 for a constant-rate input, one frame per row; ``skipped_gaps``: gaps between two rows' times
     longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled, ``skipped_seconds`` their length: the overlay
-    went on at the next slot, and is behind the rows' times by that much from there). The normalised face is one frame per row
-    (``frames`` the rows; frame ``i`` is row ``i``, a dataset's order), not in step with the rows' times where they are
-    not ``i / fps``."""
+    went on at the next slot, and is behind the rows' times by that much from there). The normalised face is one
+    frame per row (``frames`` the rows; frame ``i`` is row ``i``, a dataset's order), not in step with the rows' times
+    where they are not ``i / fps``."""
     overlay, normalised = s.outputs()[1:]
     return {
         "overlay": {"fps": overlay.fps, "frames": overlay.frames, "time_synced": True,
