@@ -263,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = ()) -> None:
+def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reasons: tuple[str, ...] = ()) -> None:
     out.write("\nsummary\n")
     for s in summaries:
         if s.skipped:
@@ -276,9 +276,8 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = ()) -> Non
         if s.declared_frames is not None:
             out.write(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
                       "(truncated or damaged?)\n")  # fmt: skip
-    for name in stopped:  # (VideosStopped: the error printed after the summary says where and why)
-        out.write(f"  {name}: stopped at a frame that could not be read, not completed (its rows so far are kept "
-                  f"in {name}.csv.partial)\n")  # fmt: skip
+    for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)
+        out.write(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)\n")
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
         meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
@@ -337,15 +336,16 @@ def _run_track(
     display = None if quiet else ProgressDisplay()
     summaries = None
     stopped: tuple[str, ...] = ()
+    reasons: tuple[str, ...] = ()
     try:
         try:
             with _warnings_as_lines(display):
                 summaries = track_videos(videos, config, progress=display)
         except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
-            stopped = exc.stopped
+            stopped, reasons = exc.stopped, exc.reasons
             if display is not None:
                 display.flush()
-            _print_summary(exc.summaries, sys.stdout, exc.stopped)
+            _print_summary(exc.summaries, sys.stdout, exc.stopped, exc.reasons)
             raise
         if display is not None:
             display.flush()  # the last reports, when a redraw was due later
@@ -354,7 +354,7 @@ def _run_track(
         if getattr(exc, "kept", None) is None and stopped:  # (it said "nothing was written")
             partial = ", ".join(os.path.join(str(out_dir), f"{name}.csv.partial") for name in stopped)
             whose = "its" if len(stopped) == 1 else "their"
-            kept = f"every video is complete but {', '.join(stopped)}, stopped at a frame that could not be read: "
+            kept = f"every video is complete but {'; '.join(f'{n}, {why}' for n, why in zip(stopped, reasons))}: "
             exc.kept = kept + f"{whose} rows are kept in {partial}"  # type: ignore[attr-defined]
         elif summaries is not None and getattr(exc, "kept", None) is None:
             exc.kept = "every video is complete"  # type: ignore[attr-defined]

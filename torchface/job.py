@@ -19,7 +19,7 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   which the tracking goes on from);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
-  one frame per row for a constant-rate input);
+  one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
 - ``<stem>_plot.png``: yaw/pitch/roll, the most active AUs and the confidence over time;
 - ``<stem>_normalised.mp4``: the normalised face (:mod:`torchface.normalise`), one frame per CSV row (the sidecar's
   ``videos``, :func:`_video_timing`);
@@ -270,20 +270,35 @@ class VideoSummary:
     declared_frames: int | None = None
 
 
+#: :attr:`VideosStopped.reasons` of a video stopped at a frame that could not be read.
+UNREADABLE_FRAME = "stopped at a frame that could not be read"
+
+
 class VideosStopped(InputError):
-    """Some videos stopped at a frame that could not be read; raised by :func:`track_videos` once every other video
-    is complete (their rows so far are kept in ``<stem>.csv.partial``).
+    """Some videos stopped partway: at a frame that could not be read, or, resumed, at a replayed row whose
+    ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised by :func:`track_videos` once every
+    other video is complete (their rows so far are kept in ``<stem>.csv.partial``).
 
     Attributes:
         summaries: the :class:`VideoSummary` of every other video (completed, or skipped by ``resume``), in input
             order: what the run would have returned for them.
         stopped: the output names of the videos that stopped, in input order.
+        reasons: why each of them stopped (``"stopped at a frame that could not be read"``, ...), in that order.
     """
 
-    def __init__(self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str]) -> None:
+    def __init__(
+        self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str], reasons: Sequence[str] = ()
+    ) -> None:
         super().__init__(message)
         self.summaries = list(summaries)
         self.stopped = tuple(stopped)
+        self.reasons = tuple(reasons) or (UNREADABLE_FRAME,) * len(self.stopped)
+
+
+class _ReplayedTimeError(InputError):
+    """A resumed video's replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`)."""
+
+    reason = "stopped resuming at a row whose timestamp is not its frame's time"
 
 
 def output_paths(out_dir: Path, name: str) -> dict[str, Path]:
@@ -320,6 +335,15 @@ def demo_inputs() -> tuple[Path, Path]:
     return root / "bbaf2n.mpg", root / "bbaf2n_landmarks68.csv"
 
 
+#: The longest gap (seconds of slots that no frame reached) that a timed video (:class:`_VideoOut`, the overlay) fills
+#: with the frame before it. A longer one is not the input's frames further apart (a phone's variable rate: tens of
+#: milliseconds; a camera that stalled: a few seconds) but a broken time: a container's time far ahead, MPEG-TS
+#: streams concatenated (their clocks restart elsewhere), where filling it wrote ``fps`` copies of one frame per second
+#: of the jump (an hour's: 90,000 frames at 25 frames/s, gigabytes of 1080p). Such a gap is left out: the next frame
+#: goes to the next slot, and the later frames' slots count on from there.
+OVERLAY_MAX_GAP_S: float = 10.0
+
+
 class _VideoOut:
     """An ``mp4v`` MP4 at ``fps`` frames/s written to ``<name>.partial.mp4`` and renamed on :meth:`close`.
 
@@ -331,7 +355,9 @@ class _VideoOut:
     left-out frame nowhere). A constant-rate input's frames (times ``k / fps``, within half a frame) are written one
     each, as without ``timed``; a variable-frame-rate one's (a phone's) play at their times, where one frame per slot
     at the nominal rate ran ahead of the input wherever its frames were further apart (a 30 -> 15 frames/s stretch
-    played twice as fast).
+    played twice as fast). A gap longer than :data:`OVERLAY_MAX_GAP_S` (a broken time) is not filled
+    (:attr:`skipped_gaps`, :attr:`skipped_s`; a ``RuntimeWarning`` at the first): the frame goes to the next slot
+    (after one showing a frame left out of its slot), the later frames' slots counted on from it.
     """
 
     def __init__(self, path: Path, width: int, height: int, fps: float, timed: bool = False) -> None:
@@ -343,7 +369,9 @@ class _VideoOut:
         self.frames = 0  # written to the file (duplicates included)
         self.duplicated = 0  # (timed) slots filled with the previous frame again
         self.dropped = 0  # (timed) frames not shown: their slot was written already, and no gap followed them
-        self._origin: float | None = None  # (timed) the first frame's time, slot 0
+        self.skipped_gaps = 0  # (timed) gaps longer than OVERLAY_MAX_GAP_S, not filled
+        self.skipped_s = 0.0  # (timed) the seconds of slots they would have filled
+        self._origin: float | None = None  # (timed) the time of slot 0 (the first frame's; moved on by a skipped gap)
         self._last: np.ndarray | None = None  # (timed) the last frame given, repeated into a gap
         self._shown = True  # (timed) whether _last is in the file (False: left out of its slot)
         fourcc = cv2.VideoWriter.fourcc(*"mp4v")
@@ -365,6 +393,8 @@ class _VideoOut:
             if self._origin is None:
                 self._origin = time
             slot = math.floor((time - self._origin) * self.fps + 0.5)
+            if slot - self.frames > OVERLAY_MAX_GAP_S * self.fps:  # a broken time, not a gap to fill
+                slot = self._skip_gap(slot, time)
             if slot < self.frames:  # (its slot holds an earlier frame)
                 self.dropped += 1
                 self._last, self._shown = image_bgr, False  # (the input shows it from its time on)
@@ -380,6 +410,21 @@ class _VideoOut:
             self._last, self._shown = image_bgr, True
         self.writer.write(image_bgr)
         self.frames += 1
+
+    def _skip_gap(self, slot: int, time: float) -> int:
+        """The slot of a frame at ``time`` whose own ``slot`` is more than :data:`OVERLAY_MAX_GAP_S` ahead: the next
+        one (after one showing the frame before it, where that was left out of its slot); slot 0's time moved so that
+        the later frames' slots count on from it. Warned once per video."""
+        new = self.frames + (0 if self._shown else 1)
+        self.skipped_gaps += 1
+        self.skipped_s += (slot - new) / self.fps
+        if self.skipped_gaps == 1:
+            warnings.warn(f"{self.path}: the input's time jumps {(slot - new) / self.fps:.1f} s ahead at {time:.3f} s "
+                          f"(a broken time, or streams joined): gaps over {OVERLAY_MAX_GAP_S:g} s are not filled, the "
+                          "overlay goes on at the next frame (the sidecar's videos.overlay.skipped_gaps)",
+                          RuntimeWarning, stacklevel=4)  # fmt: skip
+        self._origin = time - new / self.fps
+        return new
 
     def close(self) -> None:
         """Rename the video to its final name once it reads back whole (OpenCV's writer ignores write errors:
@@ -826,15 +871,19 @@ def _check_replayed_time(s: _Stream, row: np.ndarray, columns: tuple[str, ...], 
     gone on from with the other rule, one CSV holding both.
 
     Raises:
-        InputError: the row's ``timestamp`` is more than :data:`REPLAY_TIME_TOLERANCE` from ``stamp``.
+        InputError: (``_ReplayedTimeError``) the row's ``timestamp`` is more than :data:`REPLAY_TIME_TOLERANCE` from
+            ``stamp``. Met before the first face (:func:`_write_no_face`), it stops the batch before its tracking,
+            as the other refusals of a resume do; met at a tracked row, it stops that video only (its times are
+            known only as its frames are read: reading them ahead decoded the replayed frames twice), as a frame
+            that cannot be read does: the others go on, and :class:`VideosStopped` says it once they are complete.
     """
     then = float(row[columns.index("timestamp")])
     if not abs(then - stamp) <= REPLAY_TIME_TOLERANCE:
         where = s.csv.partial if s.csv is not None else s.name
-        raise InputError(f"{where}: cannot resume, its row of frame {frame} says timestamp {then:.3f} s, but that "
-                         f"frame of {s.reader.info.path} is at {stamp:.3f} s (rows written with other frame times: "
-                         "by an earlier version, which wrote frame / fps, of a variable-frame-rate video): run without "
-                         "--resume")  # fmt: skip
+        raise _ReplayedTimeError(f"{where}: cannot resume, its row of frame {frame} says timestamp {then:.3f} s, but "
+                                 f"that frame of {s.reader.info.path} is at {stamp:.3f} s (rows written with other "
+                                 "frame times: by an earlier version, which wrote frame / fps, of a variable-frame-rate "
+                                 "video): run without --resume")  # fmt: skip
 
 
 def _record_path(csv: Path) -> Path:
@@ -911,14 +960,17 @@ def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
 
 
 def _said_difference(name: str, then: object, now: object) -> str:
-    """How a message says that setting ``name`` was ``then`` and is ``now``: the two values, or for settings
-    dataclasses (dicts; None where off) whether it was on, or which of their fields differ."""
+    """How a message says that setting ``name`` was ``then`` and is ``now``: the two values (None: ``default`` for
+    ``--focal``, ``max(W, H)``; else ``none``), or for settings dataclasses (dicts; None where off) whether it was on,
+    or which of their fields differ."""
     if isinstance(then, dict) and isinstance(now, dict):
         fields = sorted(_setting_differences(then, now))
         return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
-    return f"{name} {then} then, {now} now"
+    # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal)
+    unset = "default" if name == "--focal" else "none"
+    return f"{name} {unset if then is None else then} then, {unset if now is None else now} now"
 
 
 def _write_record(
@@ -1294,8 +1346,9 @@ def track_videos(
     Raises:
         TypeError: ``videos`` is one path, not a sequence of them.
         InputError: a bad input (each video's first frame and landmarks are checked before tracking starts).
-        VideosStopped: (an InputError) a later frame that cannot be read stopped a video; raised once every other
-            video is complete, with their summaries.
+        VideosStopped: (an InputError) a later frame that cannot be read stopped a video, or a resumed video's
+            replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised once every
+            other video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
             up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
@@ -1466,10 +1519,13 @@ def _track_opened(
     if failed:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
         rest = f"; the other videos were completed ({_listed(done)}): --resume skips them" if done else ""
-        what = "; ".join(str(s.error) for s in failed)
-        raise VideosStopped(f"{what} (mend or remove the frame and track that video again without --resume){rest}",
-                            [summaries[str(v)] for v in inputs if str(v) in summaries],
-                            [s.name for s in failed])  # fmt: skip
+        unread = "; ".join(str(s.error) for s in failed if not isinstance(s.error, _ReplayedTimeError))
+        unread += " (mend or remove the frame and track that video again without --resume)" if unread else ""
+        refused = [str(s.error) for s in failed if isinstance(s.error, _ReplayedTimeError)]
+        what = "; ".join(refused + ([unread] if unread else []))
+        reasons = [getattr(s.error, "reason", UNREADABLE_FRAME) for s in failed]
+        raise VideosStopped(f"{what}{rest}", [summaries[str(v)] for v in inputs if str(v) in summaries],
+                            [s.name for s in failed], reasons)  # fmt: skip
     return [summaries[str(v)] for v in inputs]
 
 
@@ -1933,13 +1989,16 @@ def _video_timing(s: _Stream) -> dict:
     The overlay is ``time_synced`` (:class:`_VideoOut`'s ``timed``): a constant-rate video at ``input.fps`` whose
     frames show each row at its ``timestamp`` (``duplicated_frames``: slots that showed the previous row again, where
     the input's frames are further apart than ``1 / fps``; ``dropped_frames``: rows not shown, their slot taken by an
-    earlier one; both 0 for a constant-rate input, one frame per row). The normalised face is one frame per row
-    (``frames`` the rows; frame ``i`` is row ``i``, a dataset's order), not in step with the rows' times where they are
-    not ``i / fps``."""
+    earlier one; both 0 for a constant-rate input, one frame per row; ``skipped_gaps``: gaps between two rows' times
+    longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled, ``skipped_seconds`` their length: the overlay
+    went on at the next slot, and is behind the rows' times by that much from there). The normalised face is one
+    frame per row (``frames`` the rows; frame ``i`` is row ``i``, a dataset's order), not in step with the rows' times
+    where they are not ``i / fps``."""
     overlay, normalised = s.outputs()[1:]
     return {
         "overlay": {"fps": overlay.fps, "frames": overlay.frames, "time_synced": True,
-                    "duplicated_frames": overlay.duplicated, "dropped_frames": overlay.dropped},
+                    "duplicated_frames": overlay.duplicated, "dropped_frames": overlay.dropped,
+                    "skipped_gaps": overlay.skipped_gaps, "skipped_seconds": round(overlay.skipped_s, 3)},
         "normalised": {"fps": normalised.fps, "frames": normalised.frames, "time_synced": False},
     }  # fmt: skip
 
@@ -2069,8 +2128,12 @@ def _write_step(
             continue
         stamp = stamps[k] = s.stamps.popleft()  # (its frame's time, replayed or not: it places its overlay frame)
         if replaying[k] and s.replay is not None:  # (replaying: its replay holds row t)
-            _check_replayed_time(s, s.replay[t], columns, stamp, t + s.start)
             written[k] = s.replay[t]
+            try:
+                _check_replayed_time(s, s.replay[t], columns, stamp, t + s.start)
+            except _ReplayedTimeError as exc:  # this video stops (its partial CSV as it was), the batch goes on
+                s.done, s.error, live[k] = True, exc, False
+                s.reader.close()
         else:
             row = rows[k].copy()
             row[0] = t + s.start

@@ -45,7 +45,7 @@ from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.module import PYRAMID_CHOICES
 from torchface.tracker.step import (
-    TrackerConfig, TrackerState, TrackStatus, _not_tensor_hint, add_coarser_levels, check_frames, pyramid_for_faces,
+    TrackerConfig, TrackerState, TrackStatus, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces,
 )  # fmt: skip
 
 __all__ = [
@@ -551,7 +551,7 @@ class NormaliseFaces:
     def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
         """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
         if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
-            hint = _not_tensor_hint(frames, per="(T, 3, H, W)", to_float=False, rgb_only=True)
+            hint = not_tensor_hint(frames, per="(T, 3, H, W)", to_float=False, rgb_only=True, layout="(T, 3, H, W)")
             raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}{hint}")
         if frames.dim() != 4 or frames.shape[1] != 3:
             raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}{_layout_hint(frames)}")

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import typing
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -583,7 +584,7 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
     assert run("--no-online-refine") == 0
     assert run("--no-online-refine", "--resume") == 0 and "already complete" in capsys.readouterr().out
     _assert_clean_failure(run("--no-online-refine", "--resume", "--focal", "150"), capsys, tmp_path / "nothing",
-                          "made with other settings (--focal None then, 150.0 now)")  # fmt: skip
+                          "made with other settings (--focal default then, 150.0 now)")  # fmt: skip
     _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(online start off then, on now)")
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
 
@@ -1959,6 +1960,7 @@ def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys
     assert main(args + ["--focal", "320"]) == 2
     err = capsys.readouterr().err
     assert "cannot resume" in err and "--focal 300.0 then, 320.0 now" in err
+    assert main(args) == 2 and "--focal 300.0 then, default now" in capsys.readouterr().err  # (not "None now")
     assert main(args + ["--focal", "300", "--no-online-refine"]) == 2
     assert "online start" in capsys.readouterr().err
     np.save(short, np.load(short)[:3])  # another clip at the same path
@@ -3116,6 +3118,54 @@ def test_a_timed_video_shows_each_frame_at_the_slot_of_its_time(tmp_path):
         _VideoOut(tmp_path / "x.mp4", 64, 48, 25.0, timed=True).write(_solid(colours[0]))
 
 
+def test_a_timed_videos_jump_in_time_is_not_filled(tmp_path):
+    """One time far ahead (a broken container time, MPEG-TS streams joined) made the timed overlay repeat the frame
+    before it into every slot up to it: 90,000 frames for an hour's jump at 25 frames/s. A gap longer than
+    OVERLAY_MAX_GAP_S is not filled (warned once): the frame goes to the next slot (after one showing a frame left
+    out of its slot), the later frames counted on from it; a shorter gap is filled as before."""
+    from torchface.job import OVERLAY_MAX_GAP_S, _VideoOut
+
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (255, 0, 255)]
+    # slots 0, 1, [1: frame 2 left out], then an hour later: frame 2 shown at slot 2, frame 3 at 3 (slot 0's time
+    # moved to 3600 - 3 / 25 s, 3599.88 s skipped), so 3600.04 at slot 4, 3600.12 at 6 (slot 5 repeats frame 4)
+    times = [0.0, 0.04, 0.05, 3600.0, 3600.04, 3600.12]
+    out = _VideoOut(tmp_path / "jump.mp4", 64, 48, 25.0, timed=True)
+    with pytest.warns(RuntimeWarning, match=r"jump\.mp4: the input's time jumps 3599\.9 s ahead at 3600\.000 s .*"
+                                            r"gaps over 10 s are not filled") as said:  # fmt: skip
+        for c, when in zip(colours, times):
+            out.write(_solid(c), when)
+        out.write(_solid(colours[0]), 7200.0)  # (a second jump: counted, not warned again)
+    out.close()
+    assert len([w for w in said if issubclass(w.category, RuntimeWarning)]) == 1
+    assert (out.frames, out.duplicated, out.dropped, out.skipped_gaps) == (8, 1, 0, 2)
+    assert out.skipped_s == pytest.approx(3599.88 + 3599.84)  # (the second: to slot 7)
+    shown = read_video_uint8(tmp_path / "jump.mp4").permute(0, 2, 3, 1).numpy()[:, 24, 32, ::-1]  # (RGB -> BGR)
+    nearest = [int(np.argmin([np.abs(px.astype(int) - c).sum() for c in colours])) for px in shown]
+    assert nearest == [0, 1, 2, 3, 4, 4, 5, 0], nearest
+    long = _VideoOut(tmp_path / "pause.mp4", 64, 48, 25.0, timed=True)  # (a gap just under the limit: filled)
+    for c, when in zip(colours, [0.0, OVERLAY_MAX_GAP_S - 0.04]):
+        long.write(_solid(c), when)
+    long.close()
+    assert (long.frames, long.duplicated, long.skipped_gaps) == (round(OVERLAY_MAX_GAP_S * 25), 248, 0)
+
+
+def test_a_jump_in_a_videos_time_is_said_and_recorded_not_filled(clip, tmp_path, monkeypatch, capsys):
+    """A container time an hour ahead from frame 6 on: the overlay was 90,006 frames (an hour of frame 5). It has one
+    frame per row, the job says so in one warning line, and the sidecar's videos.overlay records the skipped gap."""
+    video, lm, _ = clip
+    clip_npy = _short_npy(video, tmp_path / "joined.npy", T)
+    _timed_reader(monkeypatch, [k * 40.0 + (3_600_000.0 if k >= 6 else 0.0) for k in range(T)])
+    out = tmp_path / "out"
+    assert main(["track", str(clip_npy), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]
+                ) == 0  # fmt: skip
+    said = [line for line in capsys.readouterr().err.splitlines() if line.startswith("torchface: warning: ")]
+    assert len(said) == 1 and "joined_overlay.mp4: the input's time jumps 3600.0 s ahead at 3600.240 s" in said[0]
+    overlay = json.loads((out / "joined.json").read_text())["videos"]["overlay"]
+    assert (overlay["frames"], overlay["duplicated_frames"], overlay["skipped_gaps"]) == (T, 0, 1)
+    assert overlay["skipped_seconds"] == pytest.approx(3600.0)
+    assert read_video_uint8(out / "joined_overlay.mp4").shape[0] == T
+
+
 def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip, tmp_path, monkeypatch):
     """The overlay of a variable-frame-rate video (a phone's) was one frame per input frame at the nominal rate, so
     that it drifted ahead of the input wherever the frames were further apart. It is written at the nominal rate
@@ -3154,7 +3204,7 @@ def test_a_variable_frame_rate_videos_overlay_stays_in_step_with_its_times(clip,
     assert read_video_uint8(paths["normalised"]).shape[0] == T + n
     videos = json.loads(paths["json"].read_text())["videos"]
     assert videos["overlay"] == {"fps": 25.0, "frames": 16, "time_synced": True, "duplicated_frames": 2,
-                                 "dropped_frames": 0}  # fmt: skip
+                                 "dropped_frames": 0, "skipped_gaps": 0, "skipped_seconds": 0.0}  # fmt: skip
     assert videos["normalised"] == {"fps": 25.0, "frames": T + n, "time_synced": False}
     out = tmp_path / "b"
     _interrupted_at(late, replace(config, out_dir=out), n + 3)
@@ -3271,6 +3321,50 @@ def test_resuming_rows_timed_by_frame_over_fps_of_a_variable_frame_rate_video_is
     track_videos([late], replace(config, resume=True))
     _, rows = read_track_csv(tmp_path / "a" / "late.csv")
     assert rows.shape[0] == T + n
+
+
+def test_a_resumed_videos_rows_of_other_times_stop_that_video_only(clip, tmp_path, monkeypatch, capsys):
+    """Rows whose ``timestamp`` is not their frame's time are met only as the replay reaches them, mid-batch: the
+    refusal stopped the whole batch there, the other video of the batch (tracked in this run so far) not completed.
+    It stops that video only, as a frame that cannot be read does: the other is completed and summarised, then the
+    error (status 2), which names the partial CSV, kept as it was, and does not say to mend a frame."""
+    import torchface.job
+
+    video, lm, _ = clip
+    a, b = _short_npy(video, tmp_path / "a.npy", T), _short_npy(video, tmp_path / "b.npy", T)
+    clocks: dict[str, list[float]] = {}
+    real_open = torchface.job.open_frames
+
+    def opened(path, convert=False):  # (a fake clock for the inputs named in clocks)
+        reader = real_open(path, convert=convert)
+        if clocks.get(Path(path).stem):
+            times = iter(list(clocks[Path(path).stem]))
+            reader.clock = lambda: next(times)
+        return reader
+
+    monkeypatch.setattr(torchface.job, "open_frames", opened)
+    out = tmp_path / "out"
+
+    def interrupt(p):
+        if p.done == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None), progress=interrupt)
+    kept = (out / "a.csv.partial").read_bytes()
+    assert read_track_csv(out / "a.csv.partial")[1].shape[0] >= 4
+    clocks["a"] = [k * 40.0 + (10.0 if k >= 3 else 0.0) for k in range(T)]  # (frame 3 on: 10 ms later than its row)
+    rc = main(["track", str(a), str(b), "--out", str(out), "--landmarks", str(lm), "--landmarks", str(lm), "--quiet",
+               "--no-online-refine", "--resume"])  # fmt: skip
+    captured = capsys.readouterr()
+    assert rc == 2 and captured.err.startswith("torchface: error: ") and captured.err.count("\n") == 1
+    assert re.search(r"a\.csv\.partial: cannot resume, its row of frame 3 says timestamp 0\.120 s, but that frame of "
+                     r".* is at 0\.130 s .*run without --resume; the other videos were completed \(b\)", captured.err)
+    assert "mend or remove" not in captured.err
+    assert f"b: {T} frames" in captured.out
+    assert "a: stopped resuming at a row whose timestamp is not its frame's time, not completed" in captured.out
+    assert (out / "b.json").is_file() and read_track_csv(out / "b.csv")[1].shape[0] == T
+    assert (out / "a.csv.partial").read_bytes() == kept and not list(out.glob("a*.mp4"))
 
 
 def test_interrupted_once_the_job_has_returned_says_every_video_is_complete(clip, tmp_path, monkeypatch, capsys):

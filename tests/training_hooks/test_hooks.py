@@ -277,3 +277,21 @@ def test_batch_values_of_the_wrong_shape_or_type_are_named():
     assert tracking_quality(clip)["confidence_min"] == 0.5
     with pytest.raises(ValueError, match=r"must be \(B, T, 3\)"):
         tracking_quality({**clip, "ypr_deg": torch.zeros(1, 3)})
+
+
+def test_training_hooks_use_only_torchface_public_names():
+    """``training_hooks`` imported the private ``_not_tensor_hint`` of ``torchface.tracker.step`` (a rename there
+    would break it without a word): what it imports from ``torchface`` is public (now ``not_tensor_hint``), but for
+    the two its code marks as the same project's internals (the reference path's bounds, and whether the native
+    kernels load, which the cache key records)."""
+    import ast
+    from pathlib import Path
+
+    import training_hooks
+
+    private = []
+    for path in sorted(Path(training_hooks.__file__).parent.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "torchface":
+                private += [f"{path.name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+    assert sorted(private) == ["cache.py: torchface._native", "layer.py: torchface.tracker.step._bounds"], private

@@ -342,8 +342,9 @@ def test_exceptions(model, small):
         layer.forward_clip(frames[None].numpy(), torch.zeros(1, 68, 2, dtype=D))  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="start must be a"):
         unrolled_params(model, SMALL, state, frames[1:2], state.params.numpy(), iterations=1)  # type: ignore[arg-type]
-    with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray"):
-        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))
+    with pytest.raises(TypeError, match=r"frames must be a \(T, 3, H, W\) torch.Tensor, got ndarray \(a NumPy array: "
+                                        r"torch.from_numpy\(array\).float\(\), laid out \(T, 3, H, W\)\)"):  # (it said
+        NormaliseFaces(FaceTrackingConfig(tracker=SMALL, face_size=16))(frames.numpy(), torch.zeros(68, 2))  # (B, C, ..)
     # OpenCV's (T, H, W, 3) uint8 BGR frames: told how to make the clip (uint8 taken as it is), not "got ndarray" alone
     bgr = (frames * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()[..., ::-1]
     hint = r"got ndarray \(NumPy frames \(N, H, W, 3\), BGR as OpenCV reads them: "

@@ -342,7 +342,7 @@ def _frame_hint(frames: Tensor) -> str:
 
 def _not_tensor_hint(frames: object) -> str:
     """The tracker's hint for frames that are not a tensor (a NumPy image as OpenCV reads it: it said "got ndarray")."""
-    from torchface.tracker.step import _not_tensor_hint as hint  # (step imports this module)
+    from torchface.tracker.step import not_tensor_hint as hint  # (step imports this module)
 
     return hint(frames)
 

@@ -688,14 +688,32 @@ FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 STEP_VALUE_ROW_STRIDE: int = 16
 
 
-def _not_tensor_hint(frames: object, per: str = "one frame per stream", to_float: bool = True, rgb_only: bool = False
-                     ) -> str:  # fmt: skip
-    """How to pass refused frames that are not a tensor (:func:`check_frames`' TypeError; empty where nothing is to
-    say): a NumPy image as OpenCV reads it, ``(H, W, 3)`` uint8 BGR (the common case: the message said "got ndarray"
-    alone), NumPy frames ``(N, H, W, 3)``, a gray image, or a list of frames. ``per``: what ``torch.stack`` of a
-    list gives; ``to_float``: the caller takes float frames in [0, 1] only (``NormaliseFaces`` takes uint8 too);
-    ``rgb_only``: the caller takes 3 channels only (``NormaliseFaces``: a gray image's ``(1, 1, H, W)`` was refused
-    again), a gray image's three channels given too."""
+def not_tensor_hint(
+    frames: object, per: str = "one frame per stream", to_float: bool = True, rgb_only: bool = False,
+    layout: str = "(B, C, H, W)",
+) -> str:
+    """How to pass frames that are not a tensor, for a ``TypeError`` that refuses them: ``" (...)"`` to append to
+    its message, empty where nothing is to say (:func:`check_frames`'; ``training_hooks.NormaliseFaces``'). It
+    covers a NumPy image as OpenCV reads it, ``(H, W, 3)`` uint8 BGR (the common case: the message said "got
+    ndarray" alone), NumPy frames ``(N, H, W, 3)``, a gray image ``(H, W)``, another NumPy array, and a list of
+    frames.
+
+    Args:
+        frames: what was passed.
+        per: what ``torch.stack`` of a list of frames gives the caller.
+        to_float: the caller takes float frames in [0, 1] only (``NormaliseFaces`` takes uint8 too).
+        rgb_only: the caller takes 3 channels only (``NormaliseFaces``: a gray image's ``(1, 1, H, W)`` was refused
+            again), a gray image's three channels given too.
+        layout: the caller's frame layout, said for another NumPy array (``NormaliseFaces``: ``(T, 3, H, W)``; it
+            was told ``(B, C, H, W)``, the tracker's).
+
+    Example:
+        >>> import numpy as np
+        >>> not_tensor_hint(np.zeros((480, 640), np.uint8))
+        ' (a NumPy gray image (H, W): torch.from_numpy(image)[None, None].float() / 255)'
+        >>> not_tensor_hint(np.zeros((8, 3, 4, 4), np.float32), layout="(T, 3, H, W)")
+        ' (a NumPy array: torch.from_numpy(array).float(), laid out (T, 3, H, W))'
+    """
     if isinstance(frames, (list, tuple)):
         return f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
     shape, dtype = getattr(frames, "shape", None), str(getattr(frames, "dtype", ""))
@@ -712,7 +730,7 @@ def _not_tensor_hint(frames: object, per: str = "one frame per stream", to_float
     if len(shape) == 2:
         rgb = ".expand(-1, 3, -1, -1)" if rgb_only else ""
         return f" (a NumPy gray image (H, W): torch.from_numpy(image)[None, None]{rgb}{scale})"
-    return f" (a NumPy array: torch.from_numpy(array){scale}, laid out (B, C, H, W))"
+    return f" (a NumPy array: torch.from_numpy(array){scale}, laid out {layout})"
 
 
 def _frame_hint(frames: Tensor) -> str:
@@ -761,7 +779,7 @@ def check_frames(
     """
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
-                        f"got {type(frames).__name__}{_not_tensor_hint(frames)}")  # fmt: skip
+                        f"got {type(frames).__name__}{not_tensor_hint(frames)}")  # fmt: skip
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
         raise ValueError(
             f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
