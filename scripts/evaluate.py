@@ -105,7 +105,7 @@ ABLATIONS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "no_expression": lambda c: replace(c, use_expression=False),
     "no_robust": lambda c: replace(c, robust=RobustKind.NONE),
     "all_pixels": lambda c: replace(c, gradient_threshold=0.0),
-    "no_management": lambda c: replace(c, template=replace(c.template, enabled=False)),
+    "no_management": lambda c: replace(c, template=replace(c.template, enabled=False), motion_prediction=0.0),  # (needs it)
 }
 
 #: Configurations of the long runs (section a): name -> how it changes the default configuration. mosaic is the
@@ -116,7 +116,7 @@ LONG_CONFIGS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "mosaic": lambda c: c,
     "no_mosaic": lambda c: replace(c, template=replace(c.template, mosaic=False)),
     "texture_update": lambda c: replace(c, template=replace(c.template, texture_update=True)),
-    "bare": lambda c: replace(c, template=replace(c.template, enabled=False)),
+    "bare": lambda c: replace(c, template=replace(c.template, enabled=False), motion_prediction=0.0),  # (needs it)
 }
 
 #: The long runs' configuration whose returns are held to the target and pooled with the standard scenarios'
@@ -919,6 +919,10 @@ def main(argv: list[str] | None = None) -> int:
         help="a diagnostic: start every run from the ground truth's first-frame pose, shape and expression "
         "instead of the fit to noisy landmarks (CANDIDE-3 scenarios only; not with --lookahead)",
     )
+    parser.add_argument(
+        "--motion-prediction", type=float, default=None, metavar="K",
+        help="TrackerConfig.motion_prediction for every run (0: off, the default; 1: full constant velocity)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -948,6 +952,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     if args.hold < 1:
         parser.error(f"--hold must be >= 1, got {args.hold}")
+    if args.motion_prediction is not None and not 0.0 <= args.motion_prediction <= 1.0:
+        parser.error(f"--motion-prediction must be in [0, 1], got {args.motion_prediction}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     sparsity: float | None = None
@@ -1015,6 +1021,8 @@ def main(argv: list[str] | None = None) -> int:
                        template=replace(base.template, conservative_when_unconfident=True))  # fmt: skip
     if args.expression_quota is not None:  # every run's configuration (ablations and long ones included)
         base = replace(base, expression_quota=args.expression_quota)
+    if args.motion_prediction is not None:  # the same
+        base = replace(base, motion_prediction=args.motion_prediction)
     if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior
         base = replace(base, expression_sparsity=sparsity)
     results: dict[str, dict[str, object]] = {}

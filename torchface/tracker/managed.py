@@ -173,6 +173,12 @@ class ManagementState:
             one before it. None: none yet.
         unmatched_face: the normalised face and mask ``((B, 3, G, G), (B, 1, G, G))`` the detector's landmarks placed
             at the last of those attempts (rows without one: zeros). None: no stream counts one.
+        previous_pose: ``(B, 6)`` axis-angle and translation of the frame before the one whose estimate
+            ``TrackerState.params`` holds (:attr:`~torchface.tracker.step.TrackerConfig.motion_prediction`'s
+            velocity). None: not kept (the prediction off, or no step yet).
+        steady: ``(B,)`` int64 consecutive confident frames ending with the one whose estimate the state holds, none
+            of them lost, recovered, re-anchored or restarted (an initialisation counts 0); the motion prediction
+            applies where it is at least 2. None: not kept (the prediction off, or no step yet).
     """
 
     mosaic: Mosaic
@@ -192,6 +198,8 @@ class ManagementState:
     unstarted: Tensor | None = None
     unmatched: Tensor | None = None
     unmatched_face: tuple[Tensor, Tensor] | None = None
+    previous_pose: Tensor | None = None
+    steady: Tensor | None = None
 
     def select(self, index: Tensor) -> "ManagementState":
         """The management of streams ``index`` (a ``(B',)`` int64 tensor: :meth:`TrackerState.select
@@ -210,7 +218,8 @@ class ManagementState:
             self.mosaic.select(index), self.layout, self.entry[index], self.low_count[index],
             self.very_low_count[index], self.lost[index], self.confident_params[index], self.since_attempt[index],
             ypr, first, pick(self.head_rotation), pick(self.head_translation), pick(self.attempts),
-            pick(self.adopted_scale), pick(self.unstarted), pick(self.unmatched), face,
+            pick(self.adopted_scale), pick(self.unstarted), pick(self.unmatched), face, pick(self.previous_pose),
+            pick(self.steady),
         )  # fmt: skip
 
 
@@ -906,6 +915,7 @@ def _restart(
             head_translation=put_some(ms.head_translation, 0.0), attempts=put_some(ms.attempts, 0),
             adopted_scale=put_some(ms.adopted_scale, 1.0), unmatched=put_some(ms.unmatched, 0),
             unstarted=unstarted if unstarted is not None and bool(unstarted.any()) else None, first=first,
+            steady=put_some(ms.steady, 0),
         )  # fmt: skip
         prior = state.anim_prior_mean
         state = replace(
@@ -987,6 +997,14 @@ def managed_step(
     check_step_inputs(model, config, state, frames)
     frames = frames.to(dtype=model.dtype, device=model.device)
     layout = _layout(model)
+    # 0. TrackerConfig.motion_prediction: the solve (and the entry, the crop, the visibility) starts from a
+    # constant-velocity prediction where the last two frames were steadily confident.
+    pose_now = None  # the previous frame's pose (the next step's previous_pose), kept with the prediction on
+    if config.motion_prediction > 0.0:
+        pose_now = state.params.detach()[:, :6].clone()
+        if ms.previous_pose is not None and ms.steady is not None and bool((ms.steady >= 2).any()):
+            state = replace(state, params=_predicted_start(state.params, ms.previous_pose, ms.steady >= 2,
+                                                           config.motion_prediction, layout))  # fmt: skip
 
     # 1. The mosaic entry nearest each stream's pose (templates rebuilt only where the entry changes).
     entry, templates = ms.entry, state.templates
@@ -1182,10 +1200,16 @@ def managed_step(
             again = attempt & (unmatched >= tc.restart_after_unmatched)
             if bool(again.any()):
                 restart = again if restart is None else restart | again
+    steady = None
+    if pose_now is not None:  # (confident excludes the lost, the reverted and the adopted that stay lost)
+        run = torch.zeros_like(ms.low_count) if ms.steady is None else ms.steady
+        steady = torch.where(confident, run + 1, torch.zeros_like(run))
+        if adopted is not None:  # a recovery candidate's pose: no velocity across it (it starts a run when confident)
+            steady[adopted] = confident[adopted].to(steady.dtype)
     ms = ManagementState(
         mosaic, ms.layout, entry, low_count, very_low_count, lost, confident_params, since,
         None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
-        attempts, adopted_scale, ms.unstarted, unmatched, unmatched_face,
+        attempts, adopted_scale, ms.unstarted, unmatched, unmatched_face, pose_now, steady,
     )
     status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
     result = replace(
@@ -1212,6 +1236,20 @@ def managed_step(
     if graded is not None:
         new_state = replace(new_state, params=torch.where(own.unsqueeze(-1), graded[0], new_state.params))
     return new_state, reported
+
+
+def _predicted_start(params: Tensor, previous: Tensor, apply: Tensor, k: float, layout: ParamLayout) -> Tensor:
+    """``params`` ``(B, P)`` whose pose, in rows ``apply`` ``(B,)``, is moved on by ``k`` times the motion from
+    ``previous`` ``(B, 6)`` (axis-angle, translation) to it: rotation ``(R R_prev^T)^k R`` (the relative rotation's
+    axis-angle scaled by ``k``), translation ``t + k (t - t_prev)``; the other rows and parameters as they are."""
+    aa, t = params[:, layout.rotation], params[:, layout.translation]
+    previous = previous.to(params.dtype)
+    R = axis_angle_to_matrix(aa)
+    turn = matrix_to_axis_angle(torch.matmul(R, axis_angle_to_matrix(previous[:, :3]).transpose(1, 2)))
+    aa_next = matrix_to_axis_angle(torch.matmul(axis_angle_to_matrix(k * turn), R))
+    t_next = t + k * (t - previous[:, 3:6])
+    moved = torch.cat([aa_next, t_next, params[:, layout.translation.stop :]], dim=-1)
+    return torch.where(apply.unsqueeze(-1), moved, params)
 
 
 def _graded(solved: TrackerState, result: TrackResult) -> tuple[Tensor, TrackResult] | None:
@@ -1470,9 +1508,13 @@ def _reanchor(
         # loss from the next frame on falls back to (kept at the unrefined pose, 2 degrees and 11 mm off).
         confident_params = ms.confident_params.clone()
         confident_params[index] = params[index]
+        steady = ms.steady
+        if steady is not None:  # the pose moved to the refined one: no velocity across it
+            steady = steady.clone()
+            steady[index] = 0
     mosaic = _reset_mosaic_rows(ms.mosaic, index, _management(sub).mosaic)
     ms = replace(ms, mosaic=mosaic, entry=entry, head_rotation=head_R, head_translation=head_t, params_ypr=None,
-                 confident_params=confident_params)  # fmt: skip
+                 confident_params=confident_params, steady=steady)  # fmt: skip
     state = replace(state, params=params, templates=templates, shape_coeffs=shape, anim_prior_mean=prior,
                     management=ms)  # fmt: skip
     # This frame, at its refined pose, becomes the stream's second mosaic entry (the head is turned: without it

@@ -210,6 +210,14 @@ class TrackerConfig:
         template: template management (:class:`~torchface.template.management.TemplateConfig`): dissimilarity
             confidence, gating, the pose-keyed mosaic, loss and recovery; used by
             :func:`torchface.tracker.managed.managed_step` (:func:`track_step` alone ignores it).
+        motion_prediction: ``k`` in [0, 1]: each frame's solve starts from a constant-velocity prediction of the
+            pose instead of the previous frame's estimate: rotation ``(R_t R_{t-1}^T)^k R_t``, translation
+            ``t_t + k (t_t - t_{t-1})`` (expression and light start where they were). Applied per stream only where
+            the previous two frames were both confident with no loss, recovery, re-anchoring or restart between
+            them (:func:`torchface.tracker.managed.managed_step`; it needs template management, whose confidence
+            decides that). 0 (the default): off, the previous frame's estimate as before; 1: full constant
+            velocity; between them damped. It widens the motion per frame the solve captures (README, Known
+            limitations, "Fast motion").
     """
 
     num_levels: int = 3
@@ -242,6 +250,7 @@ class TrackerConfig:
     crop_margin: float = 0.25
     selection_seed: int = 0
     template: TemplateConfig = field(default_factory=TemplateConfig)
+    motion_prediction: float = 0.0
 
     def __post_init__(self) -> None:
         # Settings read only at the first frame or deep in a step were refused there with another name, or not at
@@ -259,7 +268,7 @@ class TrackerConfig:
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations"))  # 6.5 was taken here
         for name in ("gradient_threshold", "function_tolerance", "refine_scale_floor", "expression_priority",
                      "expression_quota", "expression_prior_precision", "min_contrast", "min_face_width_px",
-                     "crop_margin"):  # fmt: skip
+                     "crop_margin", "motion_prediction"):  # fmt: skip
             object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.2": "must be real number"
         for name in ("robust_c", "refine_prior_precision", "expression_sparsity"):
             object.__setattr__(self, name, check_optional_real(getattr(self, name), name))
@@ -302,6 +311,11 @@ class TrackerConfig:
             raise ValueError(f"crop_margin must be finite and >= 0 (a fraction of the face's size), got {self.crop_margin}")
         if not (math.isfinite(self.min_face_width_px) and self.min_face_width_px >= 0.0):
             raise ValueError(f"min_face_width_px must be finite and >= 0 (pixels), got {self.min_face_width_px}")
+        if not 0.0 <= self.motion_prediction <= 1.0:  # (NaN too)
+            raise ValueError(f"motion_prediction must be a fraction in [0, 1] (0: off), got {self.motion_prediction}")
+        if self.motion_prediction > 0.0 and not self.template.enabled:
+            raise ValueError("motion_prediction needs template management (template.enabled): its confidence "
+                             "decides where the prediction applies")
         if not isinstance(self.robust, RobustKind):
             raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
         if not isinstance(self.backend, Backend):
