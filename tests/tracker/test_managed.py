@@ -14,13 +14,15 @@ answers on small rendered sequences (320x240, two pyramid levels).
 
 from __future__ import annotations
 
+import io
+import math
 from dataclasses import fields, replace
 
 import pytest
 import torch
 
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg
+from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, geodesic_angle_deg, matrix_to_axis_angle
 from torchface.model.candide import load_candide3
 from torchface.synth.background import BackgroundSpec, OccluderSpec
 from torchface.synth.scenarios import default_light
@@ -1666,3 +1668,118 @@ def test_fast_sideways_motion_scores_zero_only_where_the_solve_missed_the_face(m
         assert missed == 0, table
     else:  # beyond the capture range: two misses, then the recovery, over and over
         assert missed >= len(conf) // 2 and sum(c >= tc.confidence_threshold for c in conf[1:]) >= 4, table
+
+
+# ----------------------------------------------------------------------------- motion prediction
+
+
+def _swing(T: int = 14, period: int = 24, amp_mm: float = 100.0, sign: float = 1.0, rest: int = 0):
+    """A frontal face at 450 mm swinging sideways from rest, ``x = -sign amp cos(2 pi i / period)`` after ``rest``
+    still frames: peak speed ``amp 2 pi / period`` mm a frame (26 mm, 18 px at 320x240, with the defaults: beyond
+    the plain start's capture range, README "Fast motion"). Returns ``frames (T, 3, H, W)`` and the ground truth."""
+    x = [-sign * amp_mm * math.cos(2 * math.pi * max(i - rest, 0) / period) for i in range(T)]
+    return render_sequence(spec_of("swing", [[0.0, 0.0, 0.0]] * T, [[a, 0.0, 450.0] for a in x]))
+
+
+@pytest.fixture(scope="module")
+def swing():
+    return _swing()
+
+
+def _follow(frames, gt, config):
+    tracker = FaceTracker(config)
+    results = [tracker.initialise(frames[:1], gt.landmarks_px[:1].float())]
+    results += [tracker(frames[i : i + 1]) for i in range(1, frames.shape[0])]
+    return results, tracker
+
+
+@pytest.mark.parametrize("k", [0.5, 1.0])
+def test_motion_prediction_follows_a_swing_the_plain_start_misses(model, swing, k):
+    """README, Known limitations, "Fast motion": a face swinging sideways from rest to 26 mm a frame (18 px at
+    320x240) is missed from the fifth frame on with the plain start (confidence 0, the solve tens of degrees off,
+    then lost and recovered over and over); with ``TrackerConfig.motion_prediction`` (0.5 or 1) every frame is
+    followed, right and confident."""
+    frames, gt = swing
+    plain, _ = _follow(frames, gt, TrackerConfig())
+    err = rel_error(plain, gt)
+    assert sum(float(r.confidence[0]) < 0.1 and float(e) > 10.0 for r, e in zip(plain, err)) >= 3
+    results, tracker = _follow(frames, gt, TrackerConfig(motion_prediction=k))
+    err = rel_error(results, gt)
+    table = "\n".join(f"{i}: {TrackStatus(int(r.status[0])).name} conf={float(r.confidence[0]):.3f} err={float(e):.2f}"
+                      for i, (r, e) in enumerate(zip(results, err)))  # fmt: skip
+    for r, e in zip(results, err.tolist()):
+        assert bool(r.success[0]) and float(r.confidence[0]) >= 0.8 and e < 1.0, table
+    t = torch.stack([r.translation[0].double() for r in results])
+    assert float(((t - t[0]) - (gt.translation - gt.translation[0])).norm(dim=-1).max()) < 5.0, table
+    ms = tracker.state.management
+    assert int(ms.steady[0]) == frames.shape[0] - 1  # every step confident (the first frame counts 0)
+
+
+def test_motion_prediction_off_keeps_the_step_and_on_waits_for_two_confident_frames(model, swing):
+    """The default (0) keeps no velocity and is the plain step, to the bit; with the prediction on, the first two
+    steps (no two confident frames yet) are the plain step's to the bit too, and the third starts elsewhere."""
+    frames, gt = swing
+    frames = frames[:5][None]
+    lm = landmarks(gt)
+    off, s_off = track(model, CFG, frames, lm)
+    assert s_off.management.previous_pose is None and s_off.management.steady is None
+    on, s_on = track(model, replace(CFG, motion_prediction=1.0), frames, lm)
+    for i in range(3):
+        for f in ("rotation", "translation", "anim_coeffs", "illumination", "status", "confidence", "dissimilarity"):
+            assert torch.equal(getattr(off[i], f), getattr(on[i], f)), (i, f)
+    assert not torch.equal(off[3].translation, on[3].translation)
+    assert s_on.management.steady.tolist() == [4]
+
+
+def test_predicted_start_composes_the_rotation_and_damps_the_velocity():
+    """``_predicted_start``: rotation ``(R_t R_{t-1}^T)^k R_t``, translation ``t_t + k (t_t - t_{t-1})``, only in
+    the rows asked; the other parameters as they are."""
+    from torchface.tracker.managed import _predicted_start
+
+    layout = ParamLayout(2, 1)
+    prev = torch.tensor([[0.1, -0.2, 0.3, 10.0, 0.0, 450.0]] * 3, dtype=D)
+    params = torch.tensor([[0.3, 0.1, 0.2, 30.0, -4.0, 440.0, 0.5, -0.5, 0.25]] * 3, dtype=D)
+    R0, R1 = axis_angle_to_matrix(prev[:1, :3])[0], axis_angle_to_matrix(params[:1, :3])[0]
+    for k in (1.0, 0.5):
+        out = _predicted_start(params, prev, torch.tensor([True, False, True]), k, layout)
+        assert torch.equal(out[1], params[1]) and torch.equal(out[:, 6:], params[:, 6:])
+        step = R1 @ R0.mT
+        want = step @ R1 if k == 1.0 else axis_angle_to_matrix(0.5 * matrix_to_axis_angle(step)[None])[0] @ R1
+        torch.testing.assert_close(axis_angle_to_matrix(out[:1, :3])[0], want, rtol=0, atol=1e-12)
+        torch.testing.assert_close(out[0, 3:6], params[0, 3:6] + k * (params[0, 3:6] - prev[0, 3:6]))
+    half = _predicted_start(params, prev, torch.ones(3, dtype=torch.bool), 0.5, layout)
+    full = _predicted_start(half, params, torch.ones(3, dtype=torch.bool), 1.0, layout)  # two half steps: one step
+    one = _predicted_start(params, prev, torch.ones(3, dtype=torch.bool), 1.0, layout)
+    torch.testing.assert_close(axis_angle_to_matrix(full[:, :3]), axis_angle_to_matrix(one[:, :3]), rtol=0, atol=1e-12)
+
+
+def test_motion_prediction_batch_equals_each_stream_and_select_and_save_keep_it(model):
+    """Two swings (one mirrored, starting two frames later) in one batch track as each alone; a stream selected from
+    the batch, and the tracker saved and loaded, go on with its velocity as the batch would."""
+    config = replace(CFG, motion_prediction=1.0)
+    a, ga = _swing(T=10)
+    b, gb = _swing(T=10, sign=-1.0, rest=2)
+    frames, lm = torch.stack([a, b]), torch.cat([landmarks(ga), landmarks(gb)])
+    together, _ = track(model, config, frames, lm)
+    for s in range(2):
+        alone, _ = track(model, config, frames[s : s + 1], lm[s : s + 1])
+        for i, (x, y) in enumerate(zip(alone, together)):
+            assert int(x.status[0]) == int(y.status[s]) and float(x.confidence[0]) >= 0.8, (s, i)
+            torch.testing.assert_close(x.axis_angle[0], y.axis_angle[s], rtol=0, atol=1e-4)
+            torch.testing.assert_close(x.translation[0], y.translation[s], rtol=0, atol=1e-2)
+    state, _ = initialise_managed(model, config, frames[:, 0], lm, Intrinsics.default(W, H))
+    for i in range(1, 6):
+        state, _ = managed_step(model, config, state, frames[:, i])
+    assert state.management.steady.tolist() == [5, 5]
+    sub = state.select([1])
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=False)
+    for i in range(6, 10):
+        sub, r_sub = managed_step(model, config, sub, frames[1:, i])
+        loaded, r_loaded = managed_step(model, config, loaded, frames[:, i])
+        torch.testing.assert_close(r_sub.axis_angle, together[i].axis_angle[1:], rtol=0, atol=1e-4)
+        torch.testing.assert_close(r_sub.translation, together[i].translation[1:], rtol=0, atol=1e-2)
+        assert torch.equal(r_loaded.axis_angle, together[i].axis_angle) and torch.equal(
+            r_loaded.translation, together[i].translation)

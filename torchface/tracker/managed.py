@@ -1000,10 +1000,12 @@ def managed_step(
     # 0. TrackerConfig.motion_prediction: the solve (and the entry, the crop, the visibility) starts from a
     # constant-velocity prediction where the last two frames were steadily confident.
     pose_now = None  # the previous frame's pose (the next step's previous_pose), kept with the prediction on
+    predicted, unpredicted = None, state  # the streams that start from a prediction; the state without it
     if config.motion_prediction > 0.0:
         pose_now = state.params.detach()[:, :6].clone()
         if ms.previous_pose is not None and ms.steady is not None and bool((ms.steady >= 2).any()):
-            state = replace(state, params=_predicted_start(state.params, ms.previous_pose, ms.steady >= 2,
+            predicted = ms.steady >= 2
+            state = replace(state, params=_predicted_start(state.params, ms.previous_pose, predicted,
                                                            config.motion_prediction, layout))  # fmt: skip
 
     # 1. The mosaic entry nearest each stream's pose (templates rebuilt only where the entry changes).
@@ -1061,6 +1063,33 @@ def managed_step(
     conf, diss, inside, face = _confidence(
         model, config, ms, frames, solved, result.status, ypr_deg=result.ypr_deg, rotation=result.rotation
     )
+    # A predicted start that the frame contradicts (the head stopped or turned back: a velocity reversed at 16 mm a
+    # frame put the prediction 32 mm off, beyond the solve's capture range) scores very low: those streams are
+    # solved again from the previous frame's estimate, and keep the better of the two (README, "Fast motion").
+    retried = None  # the streams whose estimate is the plain start's (rows)
+    if predicted is not None:
+        again = predicted & ((conf < tc.very_low_confidence) | (result.status == _FAILED))
+        if bool(again.any()):
+            index = again.nonzero().squeeze(-1)
+            sub = _subset_state(unpredicted, index, unpredicted.params.detach()[index], entry_templates(
+                model, state.shape_coeffs[index], ms.mosaic, index, entry[index], config.backend))  # fmt: skip
+            with torch.no_grad():  # (a management decision: its estimate carries no gradient)
+                p_state, p_result = track_step(model, config, sub, frames[index], conservative=conservative[index],
+                                               near_template=None if near is None else near[index])  # fmt: skip
+            p_conf, p_diss, p_inside, _ = _confidence(model, config, ms, frames[index], p_state, p_result.status,
+                                                      index, rotation=p_result.rotation)  # fmt: skip
+            better = (p_conf > conf[index]) & (p_result.status != _FAILED)
+            if bool(better.any()):
+                rows, face = index[better], None
+                solved = replace(solved, params=solved.params.clone())
+                solved.params[rows] = p_state.params[better].to(solved.params.dtype)
+                result = _scatter_result(result, rows, replace(
+                    p_result, **{f.name: getattr(p_result, f.name)[better] for f in fields(TrackResult)
+                                 if isinstance(getattr(p_result, f.name), Tensor)},
+                ))  # fmt: skip
+                conf, diss, inside = conf.clone(), diss.clone(), inside.clone()
+                conf[rows], diss[rows], inside[rows] = p_conf[better], p_diss[better], p_inside[better]
+                retried = rows
 
     # 3. Gating and loss.
     failed = result.status == _FAILED  # (a stream that never started scores 0: _confidence)
@@ -1226,6 +1255,8 @@ def managed_step(
         own = ~reverted
         if adopted is not None:
             own[adopted] = False
+        if retried is not None:
+            own[retried] = False
         if started is not None:
             own[started] = False
         result = _regraded(result, graded[1], own)
