@@ -1071,10 +1071,10 @@ def managed_step(
         again = predicted & ((conf < tc.very_low_confidence) | (result.status == _FAILED))
         if bool(again.any()):
             index = again.nonzero().squeeze(-1)
-            sub = _subset_state(unpredicted, index, unpredicted.params.detach()[index], entry_templates(
+            plain = _subset_state(unpredicted, index, unpredicted.params.detach()[index], entry_templates(
                 model, state.shape_coeffs[index], ms.mosaic, index, entry[index], config.backend))  # fmt: skip
             with torch.no_grad():  # (a management decision: its estimate carries no gradient)
-                p_state, p_result = track_step(model, config, sub, frames[index], conservative=conservative[index],
+                p_state, p_result = track_step(model, config, plain, frames[index], conservative=conservative[index],
                                                near_template=None if near is None else near[index])  # fmt: skip
             p_conf, p_diss, p_inside, _ = _confidence(model, config, ms, frames[index], p_state, p_result.status,
                                                       index, rotation=p_result.rotation)  # fmt: skip
