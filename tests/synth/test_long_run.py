@@ -395,6 +395,22 @@ def test_evaluate_expression_quota_sets_every_runs_config(monkeypatch):
         ev.main(base + ["--expression-quota", "1.5"])
 
 
+def test_evaluate_motion_prediction_sets_every_runs_config(monkeypatch):
+    """--motion-prediction: every run gets that TrackerConfig.motion_prediction but the one without template
+    management (no_management: the prediction needs it), which runs off; without it 0; out of [0, 1] is refused."""
+    ev = _load_evaluate()
+    seen = _spy_track_sequence(ev, monkeypatch, "motion_prediction")
+    base = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "160x120", "--cache", "none", "--no-auroc",
+            "--progress-every", "0", "--ablations", "no_robust,no_management"]  # fmt: skip
+    assert ev.main(base + ["--motion-prediction", "0.5"]) == 0
+    assert seen == [("pose_sweep/full", 0.5), ("pose_sweep/no_robust", 0.5), ("pose_sweep/no_management", 0.0)]
+    seen.clear()
+    assert ev.main(base) == 0
+    assert [k for _, k in seen] == [0.0] * 3
+    with pytest.raises(SystemExit):
+        ev.main(base + ["--motion-prediction", "1.5"])
+
+
 def test_evaluate_expression_sparsity_sets_every_runs_config(monkeypatch):
     """--expression-sparsity: every run gets that TrackerConfig.expression_sparsity, 'none' the Gaussian prior;
     without it the default's; a delta that is not a number > 0 is refused."""

@@ -1715,6 +1715,20 @@ def test_motion_prediction_follows_a_swing_the_plain_start_misses(model, swing, 
     assert int(ms.steady[0]) == frames.shape[0] - 1  # every step confident (the first frame counts 0)
 
 
+def test_motion_prediction_solves_again_from_the_plain_start_at_a_reversal(model):
+    """A face moving 16 mm a frame sideways (within the plain start's capture range) that turns back at once: the
+    prediction is then 32 mm off at the reversal (beyond the range; without the retry from the plain start, k = 1
+    missed that frame, confidence 0 and 55 degrees off); the predicted solve that scores very low is solved again
+    from the previous estimate, and every frame is followed, right and confident, as with the prediction off."""
+    _, frames, gt = _sideways(16.0, T=12)
+    results, _ = _follow(frames, gt, TrackerConfig(motion_prediction=1.0))
+    err = rel_error(results, gt)
+    table = "\n".join(f"{i}: {TrackStatus(int(r.status[0])).name} conf={float(r.confidence[0]):.3f} err={float(e):.2f}"
+                      for i, (r, e) in enumerate(zip(results, err)))  # fmt: skip
+    for r, e in zip(results, err.tolist()):
+        assert bool(r.success[0]) and float(r.confidence[0]) >= 0.8 and e < 1.0, table
+
+
 def test_motion_prediction_off_keeps_the_step_and_on_waits_for_two_confident_frames(model, swing):
     """The default (0) keeps no velocity and is the plain step, to the bit; with the prediction on, the first two
     steps (no two confident frames yet) are the plain step's to the bit too, and the third starts elsewhere."""

@@ -379,6 +379,25 @@ def test_track_step_rejects_bad_frames(model, two_streams, l2_runs):
             track_step(model, L2, states[0], frames[:, 1], **{name: torch.ones(2)})
 
 
+def test_motion_prediction_is_validated():
+    """TrackerConfig.motion_prediction: a fraction in [0, 1] (0, the default, off), a real number, and only with
+    template management (whose confidence decides where it applies)."""
+    assert TrackerConfig().motion_prediction == 0.0
+    assert TrackerConfig(motion_prediction=np.float32(0.5)).motion_prediction == 0.5
+    assert TrackerConfig(motion_prediction=1).motion_prediction == 1
+    for bad in (-0.1, 1.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="motion_prediction must be a fraction"):
+            TrackerConfig(motion_prediction=bad)
+    for bad in ("0.5", True, None):
+        with pytest.raises(TypeError, match="motion_prediction"):
+            TrackerConfig(motion_prediction=bad)  # type: ignore[arg-type]
+    from torchface.template.management import TemplateConfig
+
+    with pytest.raises(ValueError, match="motion_prediction needs template management"):
+        TrackerConfig(motion_prediction=0.5, template=TemplateConfig(enabled=False))
+    assert TrackerConfig(motion_prediction=0.0, template=TemplateConfig(enabled=False)).motion_prediction == 0.0
+
+
 def test_config_validation():
     with pytest.raises(ValueError, match="num_levels"):
         TrackerConfig(num_levels=0, iterations=())
