@@ -98,14 +98,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module bes
 from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
-#: Ablation name -> how it changes the full configuration.
+#: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
+#: which needs it).
 ABLATIONS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "full": lambda c: c,
     "no_illumination": lambda c: replace(c, use_illumination=False),
     "no_expression": lambda c: replace(c, use_expression=False),
     "no_robust": lambda c: replace(c, robust=RobustKind.NONE),
     "all_pixels": lambda c: replace(c, gradient_threshold=0.0),
-    "no_management": lambda c: replace(c, template=replace(c.template, enabled=False), motion_prediction=0.0),  # (needs it)
+    "no_management": lambda c: replace(c, template=replace(c.template, enabled=False), motion_prediction=0.0),
 }
 
 #: Configurations of the long runs (section a): name -> how it changes the default configuration. mosaic is the
@@ -116,7 +117,7 @@ LONG_CONFIGS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "mosaic": lambda c: c,
     "no_mosaic": lambda c: replace(c, template=replace(c.template, mosaic=False)),
     "texture_update": lambda c: replace(c, template=replace(c.template, texture_update=True)),
-    "bare": lambda c: replace(c, template=replace(c.template, enabled=False), motion_prediction=0.0),  # (needs it)
+    "bare": lambda c: replace(c, template=replace(c.template, enabled=False), motion_prediction=0.0),
 }
 
 #: The long runs' configuration whose returns are held to the target and pooled with the standard scenarios'

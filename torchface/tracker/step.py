@@ -217,8 +217,8 @@ class TrackerConfig:
             them (:func:`torchface.tracker.managed.managed_step`; it needs template management, whose confidence
             decides that). 0 (the default): off, the previous frame's estimate as before; 1: full constant
             velocity; between them damped. A predicted solve that scores below the very-low confidence (the head
-            stopped or turned back) is solved again from the previous frame's estimate. It widens the motion per frame the solve captures (README, Known
-            limitations, "Fast motion").
+            stopped or turned back) is solved again from the previous frame's estimate. It widens the motion per
+            frame the solve captures (README, Known limitations, "Fast motion").
     """
 
     num_levels: int = 3
