@@ -40,7 +40,9 @@ from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, 
 from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
-from torchface.tracker.fit import FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, fit_landmarks
+from torchface.tracker.fit import (
+    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, fit_landmarks, landmark_targets,
+)
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
@@ -943,10 +945,8 @@ def pyramid_for_faces(
     if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
         raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
     points = landmarks_px.detach().to(torch.float64)
-    seen = torch.isfinite(points).all(-1, keepdim=True)  # (B, K, 1)
-    if weights is not None:  # (the points the fit leaves out: landmark_targets)
-        w = weights.detach().to(dtype=torch.float64, device=points.device)
-        seen = seen & (torch.isfinite(w) & (w > 0)).unsqueeze(-1)
+    # (B, K, 1): the points the fit uses (finite, of positive weight: landmark_targets)
+    seen = (landmark_targets(points, None if weights is None else weights.detach())[1] > 0).unsqueeze(-1)
     lo = torch.where(seen, points, math.inf).amin(1)
     hi = torch.where(seen, points, -math.inf).amax(1)
     faces = (hi - lo).amax(-1)  # (B,) the larger side of each box; -inf or NaN without two points
