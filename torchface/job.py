@@ -946,6 +946,13 @@ def _from_repr(text: str) -> object:
         return text
 
 
+def _changed_settings(made_with: dict, now: dict[str, object]) -> list[str]:
+    """The names of the settings ``now`` that a record's ``made_with`` does not hold, or holds with another value
+    (:func:`_setting_differences`): what a resume is refused over (:func:`_read_record`), and what leaves the
+    record's first face unused (:func:`_recorded_first_face`)."""
+    return [k for k in now if k not in made_with or _setting_differences(made_with[k], now[k])]
+
+
 def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
     """Where the setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) differs from ``now``: the
     dotted names of the fields that differ (``""``: the whole value). Numbers compare by value (``5`` and ``5.0``
@@ -1025,7 +1032,7 @@ def _recorded_first_face(config: JobConfig, reader: FrameReader, name: str) -> t
         return None
     found = _Stream(name, reader, points, f"detector:{config.detector}", reader.info.num_frames, start=frame)
     now = _settings(config, found)  # (the landmarks and the frame among them)
-    if any(k not in made_with or _setting_differences(made_with[k], now[k]) for k in now) or set(made_with) - set(now):
+    if _changed_settings(made_with, now) or set(made_with) - set(now):
         return None
     return frame, points
 
@@ -1096,7 +1103,7 @@ def _read_record(
         raise InputError(f"{path}: cannot resume, this record is damaged ({problem}): run without --resume")
     _check_made_from(made_from, video, f"{path}: the partial results were")
     # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
-    differ = [k for k in settings if k not in made_with or _setting_differences(made_with[k], settings[k])]
+    differ = _changed_settings(made_with, settings)
     if differ:
         what = "; ".join(_said_difference(k, made_with.get(k), settings[k]) for k in differ)
         raise InputError(
