@@ -11,7 +11,9 @@ and template management's per-frame decisions. Each is tested against its torch 
 :attr:`Backend.AUTO` (the default of :class:`~torchface.tracker.TrackerConfig`) takes the native kernels where
 they can run: CPU tensors of float32 or float64 that ask for no gradient (nor tangent: ``torch.func``, forward
 AD), on a machine with a C compiler;
-elsewhere, and whenever the environment sets ``TORCHFACE_NATIVE=0``, the torch code runs.
+elsewhere, and whenever the environment sets ``TORCHFACE_NATIVE=0``, the torch code runs. :func:`native_available`
+says whether the kernels can run on this machine (for a package built on torchface that records it, such as
+``training_hooks``' cache key), :func:`native_unavailable_reason` why not.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from torch import Tensor
 from torchface import _native
 from torchface._compiling import is_compiling, is_transformed
 
-__all__ = ["Backend", "use_native"]
+__all__ = ["Backend", "native_available", "native_unavailable_reason", "use_native"]
 
 
 class Backend(enum.Enum):
@@ -37,6 +39,29 @@ class Backend(enum.Enum):
     TORCH = "torch"
     #: Always the native kernel: an error where it cannot run.
     NATIVE = "native"
+
+
+def native_available() -> bool:
+    """Whether the native kernels can run on this machine: their library is built (at the first call, a few seconds
+    once, then cached) and loaded, and the environment does not turn them off (``TORCHFACE_NATIVE=0``). Where it is
+    False, :attr:`Backend.AUTO` runs the torch code and :attr:`Backend.NATIVE` raises (:func:`use_native`).
+
+    Example:
+        >>> native_available() in (True, False)
+        True
+    """
+    return _native.library() is not None
+
+
+def native_unavailable_reason() -> str | None:
+    """Why :func:`native_available` is False (no C compiler, a failed build, ``TORCHFACE_NATIVE=0``); None where the
+    kernels are available or were not asked for yet.
+
+    Example:
+        >>> native_available() or native_unavailable_reason() is not None
+        True
+    """
+    return _native.unavailable_reason()
 
 
 def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], what: str, max_params: int = 0,
@@ -64,8 +89,8 @@ def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], wha
         why = "does not run under torch.func transforms or forward AD (use Backend.TORCH)"
     elif max_params and num_params > max_params:
         why = f"supports at most {max_params} parameters, got {num_params}"
-    elif _native.library() is None:
-        why = f"is unavailable: {_native.unavailable_reason()}"
+    elif not native_available():
+        why = f"is unavailable: {native_unavailable_reason()}"
     if why is None:
         return True
     if backend is Backend.NATIVE:

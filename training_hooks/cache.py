@@ -45,8 +45,7 @@ import numpy as np
 import torch
 
 import torchface
-from torchface import _native
-from torchface.backend import Backend
+from torchface.backend import Backend, native_available
 from torchface.io.video import image_files
 from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 
@@ -135,7 +134,7 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     if points.shape != (68, 2):
         raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
     h = hashlib.blake2b(digest_size=32)
-    native = config.tracker.backend is not Backend.TORCH and _native.library() is not None
+    native = config.tracker.backend is not Backend.TORCH and native_available()
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
         f"native={native}", content, repr(config), extra,

@@ -79,7 +79,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from torchface.geometry._checks import check_bool, check_int, check_optional_int
+from torchface.extending import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_frames, opencv_path

@@ -44,10 +44,8 @@ from typing import TypeVar
 import torch
 from torch import Tensor, nn
 
-from torchface._autocast import full_precision
-from torchface._compiling import is_compiling
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_real
+from torchface.extending import check_bool, check_int, check_intrinsics, check_real, full_precision, is_compiling
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -69,13 +67,11 @@ from torchface.tracker.step import (
     add_coarser_levels,
     check_frames,
     initialise,
+    parameter_bounds,
     pyramid_for_faces,
     reference_levels,
     track_step,
 )
-
-# The reference path's bounds (animation units boxed to their ranges, disabled terms pinned), for K = 0.
-from torchface.tracker.step import _bounds  # a private helper of the same project
 
 __all__ = [
     "LayerMode",
@@ -277,7 +273,7 @@ def unrolled_params(
 
     if iterations == 0:
         with torch.no_grad():
-            lower, upper = _bounds(model, config, state.params.detach(), layout)
+            lower, upper = parameter_bounds(model, config, state.params.detach(), layout)  # the reference path's
         return torch.minimum(torch.maximum(start, lower), upper)
     x, _ = reference_levels(model, config, state, frames, start, [_unrolled_solver(iterations)] * levels)
     return x

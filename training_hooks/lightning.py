@@ -26,7 +26,7 @@ except ImportError:  # pragma: no cover - depends on what is installed
             "training_hooks.lightning needs PyTorch Lightning: pip install \"torchface[lightning]\" (or lightning)"
         ) from None
 
-from torchface.geometry._checks import check_int
+from torchface.extending import check_int
 from training_hooks.collate import collate_clips
 from training_hooks.datasets import VideoDataset
 from training_hooks.hooks import TrackingQualityLogger

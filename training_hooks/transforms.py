@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
+from torchface.extending import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel

@@ -265,6 +265,17 @@ def test_without_the_library_auto_runs_the_torch_code_and_native_says_why(monkey
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, backend=NATIVE, **args)
 
 
+def test_native_available_says_whether_the_library_loads_and_why_not(monkeypatch):
+    """The public question a package built on torchface asks (``training_hooks``' cache key records the answer)."""
+    from torchface.backend import native_available, native_unavailable_reason
+
+    assert native_available() == (_native.library() is not None)
+    assert native_available() or native_unavailable_reason() == _native.unavailable_reason() is not None
+    monkeypatch.setattr(_native, "_library", None)  # (library() was asked above: it is not built again)
+    monkeypatch.setattr(_native, "_reason", "no C compiler found (test)")
+    assert not native_available() and native_unavailable_reason() == "no C compiler found (test)"
+
+
 def test_a_thread_asking_while_another_builds_the_library_waits_for_it(monkeypatch):
     """The first :func:`_native.library` calls from two threads at once: the second waits for the first's build
     and gets the library too (it used to get None, with no reason, and ran the torch code or raised)."""

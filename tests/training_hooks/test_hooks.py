@@ -3,7 +3,10 @@ clip batches, tracking-quality statistics against a NumPy reference, epoch accum
 
 from __future__ import annotations
 
+import ast
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -279,19 +282,71 @@ def test_batch_values_of_the_wrong_shape_or_type_are_named():
         tracking_quality({**clip, "ypr_deg": torch.zeros(1, 3)})
 
 
-def test_training_hooks_use_only_torchface_public_names():
-    """``training_hooks`` imported the private ``_not_tensor_hint`` of ``torchface.tracker.step`` (a rename there
-    would break it without a word): what it imports from ``torchface`` is public (now ``not_tensor_hint``), but for
-    the two its code marks as the same project's internals (the reference path's bounds, and whether the native
-    kernels load, which the cache key records)."""
-    import ast
-    from pathlib import Path
+def _private_torchface_uses(folder: Path) -> list[str]:
+    """``file:line: name`` of each private ``torchface`` name the ``.py`` files under ``folder`` use: a module path or
+    an imported name with a part that starts with ``_`` (``torchface._native``, ``torchface.geometry._checks``,
+    ``torchface.tracker.step._bounds``), an attribute of that kind read from a name bound to ``torchface`` or to
+    anything imported from it (``torchface.backend._native``, ``step._bounds``; dunders such as ``__version__`` are
+    public), or such a dotted path in a string (``importlib.import_module("torchface._native")``)."""
 
+    def private(dotted: str) -> bool:
+        parts = dotted.split(".")
+        return parts[0] == "torchface" and any(p.startswith("_") and not p.startswith("__") for p in parts)
+
+    found = []
+    for path in sorted(folder.rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        bound: dict[str, str] = {}  # local name -> the torchface path it stands for
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.split(".")[0] == "torchface":
+                        bound[a.asname or a.name.split(".")[0]] = a.name if a.asname else "torchface"
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "torchface":
+                for a in node.names:
+                    bound[a.asname or a.name] = f"{node.module}.{a.name}"
+        for node in ast.walk(tree):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+                chain, value = [node.attr], node.value
+                while isinstance(value, ast.Attribute):
+                    chain.append(value.attr)
+                    value = value.value
+                if isinstance(value, ast.Name) and value.id in bound:
+                    names = [".".join([bound[value.id], *reversed(chain)])]
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                names = [node.value] if re.fullmatch(r"torchface(\.\w+)+", node.value) else []
+            found += [f"{path.name}:{node.lineno}: {name}" for name in names if private(name)]
+    return sorted(found)
+
+
+def test_training_hooks_use_only_torchface_public_names():
+    """``training_hooks`` is a package outside ``torchface`` and uses its public names only: it imported
+    ``torchface._native`` (whether the native kernels load, for the cache key), ``torchface.tracker.step._bounds``
+    (the reference path's bounds), the settings' checks from ``torchface.geometry._checks``, and
+    ``torchface._autocast`` / ``torchface._compiling``; now ``torchface.backend.native_available``,
+    ``torchface.tracker.step.parameter_bounds`` and :mod:`torchface.extending`."""
     import training_hooks
 
-    private = []
-    for path in sorted(Path(training_hooks.__file__).parent.rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "torchface":
-                private += [f"{path.name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
-    assert sorted(private) == ["cache.py: torchface._native", "layer.py: torchface.tracker.step._bounds"], private
+    assert _private_torchface_uses(Path(training_hooks.__file__).parent) == []
+
+
+def test_the_private_name_scan_finds_each_kind_of_use(tmp_path):
+    """The scan above finds private names however they are reached (a scan that finds nothing passes anything)."""
+    (tmp_path / "a.py").write_text(
+        "import importlib\nimport torchface\nimport torchface._native as n\nfrom torchface import _native\n"
+        "from torchface.geometry._checks import check_int\nfrom torchface.tracker import step\n"
+        "from torchface.backend import native_available, Backend\n"
+        "x = torchface.__version__, torchface.backend._native.library(), step._bounds, Backend._member_map_\n"
+        "importlib.import_module('torchface._compiling')\n",
+        encoding="utf-8",
+    )
+    assert _private_torchface_uses(tmp_path) == [
+        "a.py:3: torchface._native", "a.py:4: torchface._native", "a.py:5: torchface.geometry._checks.check_int",
+        "a.py:8: torchface.backend.Backend._member_map_", "a.py:8: torchface.backend._native",
+        "a.py:8: torchface.tracker.step._bounds", "a.py:9: torchface._compiling",
+    ]  # fmt: skip

@@ -984,8 +984,33 @@ def _layout(model: FaceModel) -> ParamLayout:
     return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
 
 
-def _bounds(model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: ParamLayout) -> tuple[Tensor, Tensor]:
-    """Box bounds: animation units in the model's ranges; disabled terms pinned to their current value."""
+def parameter_bounds(
+    model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: ParamLayout
+) -> tuple[Tensor, Tensor]:
+    """The box bounds of a REFERENCE step's solve (:func:`reference_levels`): the animation units in the model's
+    ranges (``model.animation_ranges``), or pinned to ``x_prev``'s where ``config.use_expression`` is False; the
+    illumination pinned to 0 where ``config.use_illumination`` is False; pose and the rest unbounded.
+
+    Args:
+        model: the face model (its ``animation_ranges`` ``(A, 2)``).
+        config: the tracker settings (``use_expression``, ``use_illumination``).
+        x_prev: ``(B, P)`` the previous estimate (``state.params``), ``P = layout.size``.
+        layout: the packed parameters' :class:`~torchface.tracker.ParamLayout`.
+
+    Returns:
+        ``(lower, upper)``, each ``(B, P)`` in ``x_prev``'s dtype and device (``-inf`` / ``inf`` where unbounded).
+
+    Example:
+        >>> from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
+        >>> from torchface.model import load_candide3
+        >>> model = load_candide3()
+        >>> layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
+        >>> lower, upper = parameter_bounds(model, TrackerConfig(), torch.zeros(1, layout.size), layout)
+        >>> lower.shape, bool(torch.equal(upper[0, layout.animation], model.animation_ranges[:, 1]))
+        (torch.Size([1, 22]), True)
+        >>> bool(torch.isinf(lower[:, layout.translation]).all())
+        True
+    """
     B, P = x_prev.shape
     lower = torch.full((B, P), float("-inf"), dtype=x_prev.dtype, device=x_prev.device)
     upper = torch.full((B, P), float("inf"), dtype=x_prev.dtype, device=x_prev.device)
@@ -1328,7 +1353,7 @@ def reference_levels(
     Per level: :func:`frame_residuals` of the state's template on the frame's gray pyramid level, the light
     basis with the normals rotated by the previous estimate (``state.params``), z-buffer visibility at the
     previous estimate (when ``config.zbuffer_visibility``, a constant mask), the animation units boxed to the
-    model's ranges (:func:`_bounds`), the expression prior and IRLS weights of ``config.robust`` with the
+    model's ranges (:func:`parameter_bounds`), the expression prior and IRLS weights of ``config.robust`` with the
     level's scale floor. A sample whose solve fails keeps the previous level's estimate. Shared by
     :func:`track_step` (``config.solver`` REFERENCE) and the differentiable unrolled layer of ``training_hooks``;
     everything that depends on ``frames`` and ``start`` stays in the autograd graph when the solvers are
@@ -1356,7 +1381,7 @@ def reference_levels(
         else:
             masks = [t.valid for t in state.templates]
         R_prev = axis_angle_to_matrix(previous[:, layout.rotation])
-        lower, upper = _bounds(model, config, previous, layout)
+        lower, upper = parameter_bounds(model, config, previous, layout)
     prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
     prior_mean = prior_mean_vector(config, state, layout)
     if config.use_expression:

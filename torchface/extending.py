@@ -1,0 +1,52 @@
+"""What a package built on torchface (as ``training_hooks`` is) uses of its internals, under public names.
+
+A package outside ``torchface`` imports public names only (none that starts with ``_``, from no module whose name
+does): a private one may be renamed or changed without a word. This module names those such a package needs to
+follow torchface's own rules:
+
+- the settings' argument checks (README, "Python API"): :func:`check_bool` for flags, :func:`check_int` /
+  :func:`check_optional_int` for counts, :func:`check_real` / :func:`check_optional_real` for numbers, and
+  :func:`check_intrinsics`, each a ``TypeError`` or ``ValueError`` that names the setting;
+- :func:`full_precision`, the decorator that runs torchface's public entry points in the dtype of their inputs
+  inside a caller's ``torch.autocast`` region;
+- :func:`is_compiling`, whether ``torch.compile`` (or ``torch.export``) traces the running code, on every torch
+  torchface supports (the native kernels must not be traced: :mod:`torchface.backend`).
+
+Whether the native kernels can run is :func:`torchface.backend.native_available`; the tracker's own pieces (a
+step's bounds, its level loop) are public in :mod:`torchface.tracker.step`.
+
+Example:
+    >>> import numpy as np
+    >>> check_int(np.int64(3), "clip_length", 1), check_optional_real(None, "focal")
+    (3, None)
+    >>> check_bool("no", "keep_short_clips")
+    Traceback (most recent call last):
+        ...
+    TypeError: keep_short_clips must be a bool, got str 'no'
+    >>> is_compiling()
+    False
+"""
+
+from __future__ import annotations
+
+from torchface._autocast import full_precision
+from torchface._compiling import is_compiling
+from torchface.geometry._checks import (
+    check_bool,
+    check_int,
+    check_intrinsics,
+    check_optional_int,
+    check_optional_real,
+    check_real,
+)
+
+__all__ = [
+    "check_bool",
+    "check_int",
+    "check_intrinsics",
+    "check_optional_int",
+    "check_optional_real",
+    "check_real",
+    "full_precision",
+    "is_compiling",
+]
