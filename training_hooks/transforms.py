@@ -333,10 +333,7 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
     """One frame ``(3, H, W)`` float in [0, 1] or uint8 -> ``(1, 3, H, W)`` float32, validated."""
     # (frames streamed from OpenCV, (H, W, 3) BGR arrays or tensors of them: the messages named the layout alone)
     if isinstance(frame, np.ndarray):
-        hint = ""
-        if frame.ndim == 3 and frame.shape[-1] == 3:
-            hint = (" (an (H, W, 3) image, BGR as OpenCV reads it: torch.from_numpy(image[..., ::-1].copy())"
-                    ".permute(2, 0, 1); an RGB one without [..., ::-1])")
+        hint = not_tensor_hint(frame, to_float=False, rgb_only=True, layout="(3, H, W)", one_frame=True)
         raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array{hint}")
     if not isinstance(frame, Tensor):
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")

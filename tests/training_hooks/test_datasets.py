@@ -464,6 +464,34 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
     assert normalise(made, clips[0].landmarks)["face"].shape[:2] == (1, 3)
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float64])
+def test_a_streamed_numpy_frame_is_told_the_trackers_recipe_for_one_frame(dtype):
+    """A frame streamed to ``track`` as a NumPy array is told how to make it by the tracker's own rule
+    (:func:`torchface.tracker.step.not_tensor_hint`, for one frame ``(3, H, W)`` that may be uint8), not by a copy of
+    its image case: a gray image ``(H, W)`` was told nothing, and the copy said "an (H, W, 3) image". Each recipe,
+    run as written, makes a frame the transform takes."""
+    from torchface.tracker.step import not_tensor_hint
+    from training_hooks.transforms import _frame_tensor
+
+    scale = {np.uint8: 255, np.uint16: 65535, np.float64: 1.0}[dtype]
+    rgb = (np.random.default_rng(0).random((24, 32, 3)) * scale).astype(dtype)
+    normalise = NormaliseFaces(TRACKING)
+    for image, says in ((rgb[..., ::-1], r"a NumPy image \(H, W, 3\), BGR as OpenCV reads it: "),
+                        (rgb[..., 1], r"a NumPy gray image \(H, W\): "),
+                        (rgb.transpose(2, 0, 1), r"a NumPy array: ")):  # fmt: skip
+        with pytest.raises(TypeError, match=r"frame 0: frames must be torch tensors \(3, H, W\), got a numpy array \("
+                           + says) as info:  # fmt: skip
+            normalise.track(iter([image]), np.zeros((68, 2)))
+        hint = str(info.value).split("got a numpy array", 1)[1]
+        assert hint == not_tensor_hint(image, to_float=False, rgb_only=True, layout="(3, H, W)", one_frame=True)
+        recipe = hint[2:-1].split(": ", 1)[1].split(";")[0].split(", laid out")[0]  # (the text in " (...)")
+        made = eval(recipe, {"torch": torch, "image": image.copy(), "array": image.copy()})
+        frame = _frame_tensor(made, 0, None)  # taken: (1, 3, H, W) float32 in [0, 1], RGB
+        assert frame.shape == (1, 3, 24, 32)
+        if image.ndim == 3 and image.shape[-1] == 3:  # the BGR image's recipe gives back the RGB frame
+            assert torch.allclose(frame[0], torch.from_numpy(rgb.astype(np.float64) / scale).permute(2, 0, 1).float())
+
+
 def test_a_sequence_keeps_its_own_copy_of_the_landmarks(clips, tmp_path):
     """track_sequence kept the caller's float64 landmark tensor itself: refilling that buffer for the next video
     changed the tracked sequence's landmarks (and what the cache would store), and landmarks that required grad

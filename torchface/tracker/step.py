@@ -707,13 +707,13 @@ STEP_VALUE_ROW_STRIDE: int = 16
 
 def not_tensor_hint(
     frames: object, per: str = "one frame per stream", to_float: bool = True, rgb_only: bool = False,
-    layout: str = "(B, C, H, W)",
+    layout: str = "(B, C, H, W)", *, one_frame: bool = False,
 ) -> str:
     """How to pass frames that are not a tensor, for a ``TypeError`` that refuses them: ``" (...)"`` to append to
-    its message, empty where nothing is to say (:func:`check_frames`'; ``training_hooks.NormaliseFaces``'). It
-    covers a NumPy image as OpenCV reads it, ``(H, W, 3)`` uint8 BGR (the common case: the message said "got
-    ndarray" alone), NumPy frames ``(N, H, W, 3)``, a gray image ``(H, W)``, another NumPy array, and a list of
-    frames.
+    its message, empty where nothing is to say (:func:`check_frames`'; ``training_hooks.NormaliseFaces``', and
+    ``training_hooks.track_sequence``'s for each streamed frame). It covers a NumPy image as OpenCV reads it,
+    ``(H, W, 3)`` uint8 BGR (the common case: the message said "got ndarray" alone), NumPy frames ``(N, H, W, 3)``,
+    a gray image ``(H, W)``, another NumPy array, and a list of frames.
 
     Args:
         frames: what was passed.
@@ -723,6 +723,8 @@ def not_tensor_hint(
             again), a gray image's three channels given too.
         layout: the caller's frame layout, said for another NumPy array (``NormaliseFaces``: ``(T, 3, H, W)``; it
             was told ``(B, C, H, W)``, the tracker's).
+        one_frame: the caller takes one frame ``(C, H, W)`` at a time, without a batch dimension (``track_sequence``'s
+            frames: an image's recipe adds none); a list is then no list of frames, and nothing is said of it.
 
     Example:
         >>> import numpy as np
@@ -730,23 +732,27 @@ def not_tensor_hint(
         ' (a NumPy gray image (H, W): torch.from_numpy(image)[None, None].float() / 255)'
         >>> not_tensor_hint(np.zeros((8, 3, 4, 4), np.float32), layout="(T, 3, H, W)")
         ' (a NumPy array: torch.from_numpy(array).float(), laid out (T, 3, H, W))'
+        >>> not_tensor_hint(np.zeros((480, 640), np.uint8), to_float=False, rgb_only=True, one_frame=True)
+        ' (a NumPy gray image (H, W): torch.from_numpy(image)[None].expand(3, -1, -1))'
     """
     if isinstance(frames, (list, tuple)):
-        return f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
+        return "" if one_frame else f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
     shape, dtype = getattr(frames, "shape", None), str(getattr(frames, "dtype", ""))
     if type(frames).__name__ != "ndarray" or not isinstance(shape, tuple):
         return ""
     scale = {"uint8": ".float() / 255", "uint16": ".float() / 65535"}.get(dtype, ".float()")
     scale = scale if to_float or dtype != "uint8" else ""
+    batch = "" if one_frame else "[None]"
     if len(shape) == 3 and shape[-1] == 3:
         return (f" (a NumPy image (H, W, 3), BGR as OpenCV reads it: torch.from_numpy(image[..., ::-1].copy())"
-                f".permute(2, 0, 1)[None]{scale}; an RGB one without [..., ::-1])")
-    if len(shape) == 4 and shape[-1] == 3:
+                f".permute(2, 0, 1){batch}{scale}; an RGB one without [..., ::-1])")
+    if len(shape) == 4 and shape[-1] == 3 and not one_frame:
         return (f" (NumPy frames (N, H, W, 3), BGR as OpenCV reads them: torch.from_numpy(frames[..., ::-1].copy())"
                 f".permute(0, 3, 1, 2){scale}; RGB ones without [..., ::-1])")
     if len(shape) == 2:
-        rgb = ".expand(-1, 3, -1, -1)" if rgb_only else ""
-        return f" (a NumPy gray image (H, W): torch.from_numpy(image)[None, None]{rgb}{scale})"
+        rgb = (".expand(3, -1, -1)" if one_frame else ".expand(-1, 3, -1, -1)") if rgb_only else ""
+        index = "[None]" if one_frame else "[None, None]"
+        return f" (a NumPy gray image (H, W): torch.from_numpy(image){index}{rgb}{scale})"
     return f" (a NumPy array: torch.from_numpy(array){scale}, laid out {layout})"
 
 
