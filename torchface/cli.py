@@ -7,6 +7,7 @@ Examples::
     torchface track a.mp4 b.mp4 --out results --detector dlib   # same-size videos are tracked as one batch
     torchface track clip.mp4 --out results --landmarks lm.csv --resume   # continue an interrupted run
     torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
+    torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2

@@ -54,13 +54,14 @@ or removed from the settings since the interrupted run's version is not compared
 or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one, or whose ``timestamp`` is not
 its frame's time, :func:`_check_replayed_time`); the parameters of the rows
 already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
-bookkeeping (lost or not, the frames of low
-confidence counted, the last confident parameters), so that a video interrupted while its face was lost goes on lost, as
-the uninterrupted run would. A CSV under its final name without its JSON (interrupted while finalising) is resumed as a
-partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns, the resumed
-rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up to 0.4
-degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more, as it
-is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
+bookkeeping (lost or not, the frames of low confidence counted, the last confident parameters), so that a video
+interrupted while its face was lost goes on lost, as the uninterrupted run would, and, with
+``TrackerConfig.motion_prediction``, its velocity (:func:`_with_replayed_motion`), so that the next frames start from
+the prediction the uninterrupted run made. A CSV under its final name without its JSON (interrupted while finalising) is
+resumed as a partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns,
+the resumed rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up
+to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more,
+as it is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
 clip (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees)
 and statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
 frame's (mean confidence 0.88 against 0.78). A loss can end at another frame for the same reason: on a 160x120 clip
