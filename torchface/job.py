@@ -2301,8 +2301,10 @@ def _maybe_redetect(
     confident position (when it takes ``near``); re-fit their pose (shape and template kept). Streams whose next
     row is replayed too (``replayed``) only count their low frames again: what a re-detection there gave is in the
     next rows already (the detector was asked on every replayed row due one, for nothing but the time and the
-    sidecar's counts); the last replayed row's is made again, as the tracking goes on from it."""
-    params = state.params
+    sidecar's counts); the last replayed row's is made again, as the tracking goes on from it. A re-fitted stream's
+    motion prediction (``ManagementState.steady``) starts again: no velocity across the re-fit (with ``redetect_below``
+    above the confidence threshold, the next frame started from the jump to the detector's pose, repeated)."""
+    params, refitted = state.params, []
     for k, s in enumerate(streams):
         if s.done or s.low_count < config.redetect_after:
             continue
@@ -2326,4 +2328,12 @@ def _maybe_redetect(
         p[layout.translation] = fit.translation[0]
         params = torch.cat([params[:k], p[None], params[k + 1 :]])
         s.redetections += 1
-    return state if params is state.params else replace(state, params=params)
+        refitted.append(k)
+    if not refitted:
+        return state
+    ms = state.management
+    if ms is not None and ms.steady is not None:
+        steady = ms.steady.clone()
+        steady[refitted] = 0
+        state = replace(state, management=replace(ms, steady=steady))
+    return replace(state, params=params)

@@ -1250,6 +1250,42 @@ def test_resume_with_motion_prediction_goes_on_as_the_uninterrupted_run(tmp_path
     assert json.loads((tmp_path / "alone" / "clip.json").read_text())["config"]["tracker"]["motion_prediction"] == 1.0
 
 
+def test_a_redetection_restarts_the_motion_prediction(tmp_path, monkeypatch):
+    """A re-detection moves a stream's pose to the detector's: with motion prediction, the next frame starts from
+    the previous estimate, not from a velocity across that jump (ManagementState.steady 0, as after a re-anchoring).
+    (With ``redetect_below`` above the confidence threshold, confident frames are re-detected too, and the steady run
+    went on: the next frame started from the jump to the detector's pose, repeated.)"""
+    import torchface.detect
+    import torchface.job
+    from torchface.tracker.step import TrackerConfig
+
+    gt = _save_rendered(tmp_path / "c", 160, 120, 450.0, 60.0, n=10)
+    clip, lm = tmp_path / "c" / "clip.npy", tmp_path / "c" / "lm.csv"
+    calls, steps = [], []
+    real_step = torchface.job.managed_step
+
+    def spying_step(model, config, state, frames, *args, **kwargs):
+        new_state, result = real_step(model, config, state, frames, *args, **kwargs)
+        steps.append((int(state.management.steady[0]) if state.management.steady is not None else None,
+                      int(new_state.management.steady[0]), len(calls)))  # fmt: skip
+        return new_state, result
+
+    def first_face(image_rgb):  # the face where it was at the first frame: 20 mm and more behind it from frame 3
+        calls.append(len(steps))
+        return gt.landmarks_px[0].numpy().astype(np.float64)
+
+    monkeypatch.setattr(torchface.job, "managed_step", spying_step)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "first", lambda: first_face)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), detector="first", redetect_after=3,
+                       redetect_below=1.01, tracker=TrackerConfig(motion_prediction=1.0))  # fmt: skip
+    track_videos([clip], config)
+    assert calls, "re-detections"
+    after = [(i, s) for i, s in enumerate(steps[1:], 1) if s[2] > steps[i - 1][2]]  # a re-detection before the step
+    assert any(steps[i - 1][1] >= 2 for i, _ in after), steps  # (re-detected while steadily confident)
+    assert all(s[0] == 0 for _, s in after), steps
+    assert all(s[0] == steps[i - 1][1] for i, s in enumerate(steps[1:], 1) if (i, s) not in after), steps
+
+
 def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
     """``track_videos("clip.avi", ...)`` took each character as an input ("same outputs 'p'"), a Path gave
     "'PosixPath' object is not iterable", and ``JobConfig(landmarks="lm.csv")`` asked for one file per character."""
