@@ -7,6 +7,7 @@ Examples::
     torchface track a.mp4 b.mp4 --out results --detector dlib   # same-size videos are tracked as one batch
     torchface track clip.mp4 --out results --landmarks lm.csv --resume   # continue an interrupted run
     torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
+    torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import signal
 import sys
@@ -230,6 +232,12 @@ def build_parser() -> argparse.ArgumentParser:
         "row that found the same face but not the one being tracked (a cut to another person; TemplateConfig."
         "restart_after_unmatched; default 0, off: a heavy occluder carried with the face can trigger it)",
     )  # fmt: skip
+    track.add_argument(
+        "--motion-prediction", type=_fraction, default=0.0, metavar="K",
+        help="start each frame's solve from a constant-velocity prediction, K times the last two confident frames' "
+        "motion (TrackerConfig.motion_prediction; 0 to 1, default 0: off, from the previous frame's estimate); "
+        "widens the motion a frame can follow for motion that builds up",
+    )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
         "--max-batch", type=_threads, default=128,
@@ -316,7 +324,7 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
 
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
-    online_refine=True, max_batch=128, restart_after_unmatched=0,
+    online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0,
 ) -> int:
     from torchface.job import JobConfig, VideosStopped, track_videos
     from torchface.template.management import TemplateConfig
@@ -328,6 +336,8 @@ def _run_track(
         if detector is None:  # (main refuses it as a usage error first)
             raise ValueError("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
         tracker = replace(tracker, template=replace(tracker.template, restart_after_unmatched=restart_after_unmatched))
+    if motion_prediction:
+        tracker = replace(tracker, motion_prediction=motion_prediction)
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
@@ -421,6 +431,17 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
 _threads = _int_at_least(1)
 
 
+def _fraction(text: str) -> float:
+    """An argparse ``type``: a number in [0, 1] (``--motion-prediction``), else a one-line usage error."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value <= 1.0:  # (NaN too)
+        raise argparse.ArgumentTypeError(f"must be a number in [0, 1], got {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchface`` console script; returns the exit status."""
     for name in ("stdout", "stderr"):
@@ -486,7 +507,8 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "track":
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
-                          not args.no_online_refine, args.max_batch, args.restart_after_unmatched)  # fmt: skip
+                          not args.no_online_refine, args.max_batch, args.restart_after_unmatched,
+                          args.motion_prediction)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

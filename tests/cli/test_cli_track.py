@@ -1195,6 +1195,97 @@ def test_restart_after_unmatched_reaches_the_tracker_and_needs_a_detector(monkey
     assert len(seen) == 2
 
 
+def test_motion_prediction_reaches_the_tracker_and_is_a_fraction(monkeypatch, capsys, tmp_path):
+    """``--motion-prediction K`` (TrackerConfig.motion_prediction, off by default) is the job's tracker setting, as
+    ``--restart-after-unmatched`` is; a K outside [0, 1] or not a number is refused by the parser in one line. (The
+    command had no way to turn it on.)"""
+    import torchface.job
+
+    seen = []
+    monkeypatch.setattr(torchface.job, "track_videos", lambda videos, config, progress=None: seen.append(config) or [])
+    base = ["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv", "--quiet"]
+    assert main([*base, "--motion-prediction", "0.5"]) == 0
+    assert main(base) == 0 and main([*base, "--motion-prediction", "0"]) == 0
+    assert [c.tracker.motion_prediction for c in seen] == [0.5, 0.0, 0.0]
+    assert seen[1].tracker == seen[2].tracker == JobConfig(out_dir=tmp_path).tracker  # off: the default tracker
+    for bad in ("1.5", "-0.1", "nan", "half"):
+        with pytest.raises(SystemExit) as info:
+            main([*base, "--motion-prediction", bad])
+        assert info.value.code == 2 and "must be a number in [0, 1]" in capsys.readouterr().err
+    assert len(seen) == 3
+
+
+def test_resume_with_motion_prediction_goes_on_as_the_uninterrupted_run(tmp_path, capsys):
+    """A video tracked with ``--motion-prediction`` and interrupted goes on, resumed, from the velocity its replayed
+    rows say (ManagementState.previous_pose, steady), as the uninterrupted run did: every row as that run's, resumed
+    alone or with a new video in its batch. (The replay restored the pose and the loss bookkeeping, not the velocity:
+    resumed alone, the two frames after the resume were solved from the previous estimate, 0.18 mm and 0.17 degrees
+    off the uninterrupted run's rows, in other iterations.) A resume with another --motion-prediction is refused,
+    naming it; the sidecar records it."""
+    from torchface.tracker.step import TrackerConfig
+
+    _save_rendered(tmp_path / "c", 160, 120, 450.0, 60.0, n=10)  # 6.7 mm a frame sideways: steadily confident
+    clip, lm = tmp_path / "c" / "clip.npy", tmp_path / "c" / "lm.csv"
+    fresh = tmp_path / "c" / "fresh.npy"
+    fresh.write_bytes(clip.read_bytes())
+    args = ["--landmarks", str(lm), "--quiet", "--motion-prediction", "1"]
+    assert main(["track", str(clip), "--out", str(tmp_path / "ref"), *args]) == 0
+    cols, want = read_track_csv(tmp_path / "ref" / "clip.csv")
+    assert main(["track", str(clip), "--out", str(tmp_path / "plain"), *args[:3]]) == 0  # without it
+    _, plain = read_track_csv(tmp_path / "plain" / "clip.csv")
+    assert np.abs(plain - want)[:, cols.index("pose_Tz")].max() > 0.1  # (the prediction changes the rows)
+    for out, videos in ((tmp_path / "alone", [clip]), (tmp_path / "batch", [clip, fresh])):
+        _interrupted(clip, out, lm, 5, tracker=TrackerConfig(motion_prediction=1.0))  # rows 0-4 written
+        if len(videos) == 1:
+            assert main(["track", str(clip), "--out", str(out), "--resume", *args[:3], "--motion-prediction",
+                         "0.5"]) == 2  # fmt: skip
+            assert "cannot resume" in (err := capsys.readouterr().err) and "motion_prediction" in err
+        landmarks = ["--landmarks", str(lm)] * (len(videos) - 1)
+        assert main(["track", *map(str, videos), "--out", str(out), "--resume", *landmarks, *args]) == 0
+        for video in videos:
+            _, got = read_track_csv(out / f"{video.stem}.csv")
+            assert got.shape == want.shape
+            worst = np.abs(got - want).max(0)
+            assert worst.max() < 1e-3, (out.name, video.stem, {c: float(w) for c, w in zip(cols, worst) if w >= 1e-3})
+    assert json.loads((tmp_path / "alone" / "clip.json").read_text())["config"]["tracker"]["motion_prediction"] == 1.0
+
+
+def test_a_redetection_restarts_the_motion_prediction(tmp_path, monkeypatch):
+    """A re-detection moves a stream's pose to the detector's: with motion prediction, the next frame starts from
+    the previous estimate, not from a velocity across that jump (ManagementState.steady 0, as after a re-anchoring).
+    (With ``redetect_below`` above the confidence threshold, confident frames are re-detected too, and the steady run
+    went on: the next frame started from the jump to the detector's pose, repeated.)"""
+    import torchface.detect
+    import torchface.job
+    from torchface.tracker.step import TrackerConfig
+
+    gt = _save_rendered(tmp_path / "c", 160, 120, 450.0, 60.0, n=10)
+    clip, lm = tmp_path / "c" / "clip.npy", tmp_path / "c" / "lm.csv"
+    calls, steps = [], []
+    real_step = torchface.job.managed_step
+
+    def spying_step(model, config, state, frames, *args, **kwargs):
+        new_state, result = real_step(model, config, state, frames, *args, **kwargs)
+        steps.append((int(state.management.steady[0]) if state.management.steady is not None else None,
+                      int(new_state.management.steady[0]), len(calls)))  # fmt: skip
+        return new_state, result
+
+    def first_face(image_rgb):  # the face where it was at the first frame: 20 mm and more behind it from frame 3
+        calls.append(len(steps))
+        return gt.landmarks_px[0].numpy().astype(np.float64)
+
+    monkeypatch.setattr(torchface.job, "managed_step", spying_step)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "first", lambda: first_face)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), detector="first", redetect_after=3,
+                       redetect_below=1.01, tracker=TrackerConfig(motion_prediction=1.0))  # fmt: skip
+    track_videos([clip], config)
+    assert calls, "re-detections"
+    after = [(i, s) for i, s in enumerate(steps[1:], 1) if s[2] > steps[i - 1][2]]  # a re-detection before the step
+    assert any(steps[i - 1][1] >= 2 for i, _ in after), steps  # (re-detected while steadily confident)
+    assert all(s[0] == 0 for _, s in after), steps
+    assert all(s[0] == steps[i - 1][1] for i, s in enumerate(steps[1:], 1) if (i, s) not in after), steps
+
+
 def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
     """``track_videos("clip.avi", ...)`` took each character as an input ("same outputs 'p'"), a Path gave
     "'PosixPath' object is not iterable", and ``JobConfig(landmarks="lm.csv")`` asked for one file per character."""
