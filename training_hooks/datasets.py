@@ -468,7 +468,7 @@ class VideoDataset(IterableDataset):
             source = None if self.landmarks is None else self.landmarks[index]
             if landmarks is None and isinstance(source, (str, os.PathLike)):
                 # the frame size only checks the points (sequence() checks them against it): the same float64 array
-                landmarks = read_landmarks(source, 1 << 30, 1 << 30)
+                landmarks = read_landmarks(source, 1 << 30, 1 << 30, missing=False)
         except (InputError, OSError):
             return None
         if landmarks is None:
@@ -525,7 +525,7 @@ class VideoDataset(IterableDataset):
             return self._detected[content]
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
-            return read_landmarks(source, W, H)
+            return read_landmarks(source, W, H, missing=False)  # (its transform refuses NaN rows)
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
