@@ -139,10 +139,10 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
     np.savetxt(tmp_path / "lm67.csv", pts[:67], delimiter=",")
     rc = run(video, "--landmarks", tmp_path / "lm67.csv")
     _assert_clean_failure(rc, capsys, out, "expected 68 iBUG landmarks, got 67")
-    nan = pts.copy()
-    nan[30] = np.nan
-    np.save(tmp_path / "lm_nan.npy", nan)
-    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_nan.npy"), capsys, out, "NaN")
+    inf = pts.copy()
+    inf[30, 0] = np.inf  # (a NaN row is a missing point: test_landmarks_files_with_missing_points_track_as_...)
+    np.save(tmp_path / "lm_inf.npy", inf)
+    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_inf.npy"), capsys, out, "[30] are infinite")
     far = pts + [W, 0]
     np.save(tmp_path / "lm_far.npy", far)
     _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_far.npy"), capsys, out, "outside the 160x120 frame")

@@ -23,8 +23,8 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
 weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
 their order): in a CSV an ``x, y`` pair of empty cells (``,``; a separator ending every line, ``x,y,``, is not a
-cell) or of ``nan``, ``NA``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a ``.pts`` line
-``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
+cell) or of ``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a
+``.pts`` line ``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
 one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
 another count (a ``.pts`` of 60 points: which are missing is not known).
@@ -296,7 +296,8 @@ def check_landmarks(
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputError(f"{where}: expected {NUM_LANDMARKS} (x, y) points, got an array of shape {points.shape}")
     if points.shape[0] != NUM_LANDMARKS:
-        raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}")
+        hint = " (a missing point stays, as a NaN row: empty cells, 'nan nan')" if missing else ""
+        raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}{hint}")
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():
         raise InputError(f"{where}: landmark(s) {np.flatnonzero(~given).tolist()[:8]} are NaN or infinite")
