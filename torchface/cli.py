@@ -205,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument(
         "--landmarks", type=Path, action="append", default=None,
         help="68 iBUG landmarks of the first frame (CSV, iBUG/300-W .pts, NPY, or OpenFace's per-frame CSV: its "
-        "first row); give it once per video, in order",
+        "first row; a missing point as empty cells or NaN, at least 4 given); give it once per video, in order",
     )  # fmt: skip
     track.add_argument("--detector", default=None, help="detector for initialisation and re-initialisation (dlib)")
     track.add_argument("--focal", type=float, default=None, help="focal length in pixels (default max(W, H))")

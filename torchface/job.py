@@ -2017,7 +2017,7 @@ def _finalise(
                   "shape_coeffs": s.final_shape},  # fmt: skip
         "start": _start_record(config, s),
         "pyramid_levels": levels,
-        "initial_landmarks_px": s.landmarks.tolist(),
+        "initial_landmarks_px": s.landmarks.tolist(),  # (a file's missing point, NaN: [null, null])
         "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
         "frames": int(len(rows)),
         "declared_frames": s.total,

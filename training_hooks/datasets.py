@@ -101,7 +101,8 @@ __all__ = [
 ]
 
 #: First-frame landmarks of one video: a ``(68, 2)`` array or tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file
-#: (:func:`torchface.io.read_landmarks`).
+#: (:func:`torchface.io.read_landmarks`) with all 68 points given: the tracking transform takes no missing point, so a
+#: file with NaN rows (which ``torchface track`` takes) is refused here.
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
@@ -468,7 +469,7 @@ class VideoDataset(IterableDataset):
             source = None if self.landmarks is None else self.landmarks[index]
             if landmarks is None and isinstance(source, (str, os.PathLike)):
                 # the frame size only checks the points (sequence() checks them against it): the same float64 array
-                landmarks = read_landmarks(source, 1 << 30, 1 << 30)
+                landmarks = read_landmarks(source, 1 << 30, 1 << 30, missing=False)
         except (InputError, OSError):
             return None
         if landmarks is None:
@@ -525,7 +526,7 @@ class VideoDataset(IterableDataset):
             return self._detected[content]
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
-            return read_landmarks(source, W, H)
+            return read_landmarks(source, W, H, missing=False)  # (LandmarkSource: all 68)
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):

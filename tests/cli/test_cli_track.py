@@ -139,10 +139,10 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
     np.savetxt(tmp_path / "lm67.csv", pts[:67], delimiter=",")
     rc = run(video, "--landmarks", tmp_path / "lm67.csv")
     _assert_clean_failure(rc, capsys, out, "expected 68 iBUG landmarks, got 67")
-    nan = pts.copy()
-    nan[30] = np.nan
-    np.save(tmp_path / "lm_nan.npy", nan)
-    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_nan.npy"), capsys, out, "NaN")
+    inf = pts.copy()
+    inf[30, 0] = np.inf  # (a NaN row is a missing point: test_landmarks_files_with_missing_points_track_as_...)
+    np.save(tmp_path / "lm_inf.npy", inf)
+    _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_inf.npy"), capsys, out, "[30] are infinite")
     far = pts + [W, 0]
     np.save(tmp_path / "lm_far.npy", far)
     _assert_clean_failure(run(video, "--landmarks", tmp_path / "lm_far.npy"), capsys, out, "outside the 160x120 frame")
@@ -3501,3 +3501,60 @@ def test_interrupted_while_the_summary_of_a_stopped_run_is_printed_names_the_par
     assert said == (f"every video is complete but broken, stopped at a frame that could not be read: its rows are "
                     f"kept in {out / 'broken.csv.partial'}")  # fmt: skip
     assert read_track_csv(out / "broken.csv.partial")[1].shape[0] == 2 and (out / "good.json").is_file()
+
+
+def test_landmarks_files_with_missing_points_track_as_the_python_api_given_nan_rows(clip, tmp_path, capsys):
+    """A landmarks file with points left out (occluded by the detector that wrote it) was refused in every layout
+    ("landmark(s) [0, 1, ...] are NaN or infinite", "gives 56 of the 68 iBUG points"); the Python API takes the
+    same points as NaN rows. Each layout now tracks the clip to the same rows, whose first frame's pose is the
+    Python API's (``FaceTracker.initialise``) from the NaN rows, and not the pose of all 68 points. Fewer than the
+    landmark fit's 4 points given: a one-line error naming the file and the count."""
+    from torchface.tracker import FaceTracker
+    from torchface.tracker.fit import MIN_FIT_LANDMARKS
+
+    video, _, gt = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    points = np.round(gt.landmarks_px[0].double().numpy() * 64.0) / 64.0  # (.pts: x + 1 exact)
+    gone = [*range(9, 17), 42, 43, 44, 45]  # the jaw's left side and the left eye, as a turned head hides them
+    want = points.copy()
+    want[gone] = np.nan
+    cells = [["", ""] if k in gone else [repr(float(x)), repr(float(y))] for k, (x, y) in enumerate(points)]
+    files = {
+        "rows.csv": "x,y\n" + "".join(f"{x},{y}\n" for x, y in cells),
+        "long.csv": "ibug_index,x,y\n" + "".join(f"{k},{x},{y}\n" for k, (x, y) in enumerate(cells) if x),
+        "lm.pts": "version: 1\nn_points: 68\n{\n" + "".join(f"{x + 1} {y + 1}\n" for x, y in want) + "}\n",
+        "openface.csv": "frame, face_id, timestamp, confidence, success, "
+        + ", ".join([f"x_{k}" for k in range(68)] + [f"y_{k}" for k in range(68)]) + "\n1, 0, 0.0, 0.98, 1, "
+        + ", ".join([x for x, _ in cells] + [y for _, y in cells]) + "\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    np.save(tmp_path / "lm.npy", want)
+    names = [*files, "lm.npy"]
+    for name in names:
+        rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(tmp_path / name), "--out",
+                   str(tmp_path / f"out_{name}"), "--quiet", "--no-online-refine"])  # fmt: skip
+        assert rc == 0, (name, capsys.readouterr().err)
+        side = json.loads((tmp_path / f"out_{name}" / "a.json").read_text())
+        assert side["initial_landmarks_px"] == [[None, None] if k in gone else p for k, p in enumerate(points.tolist())]
+    first = (tmp_path / f"out_{names[0]}" / "a.csv").read_text()
+    for name in names[1:]:
+        assert (tmp_path / f"out_{name}" / "a.csv").read_text() == first, name
+    _, rows, R, t = _pose(tmp_path / f"out_{names[0]}" / "a.csv")
+    assert rows.shape[0] == 2
+    tracker = FaceTracker(refine_first=None)  # (--no-online-refine)
+    frames0 = torch.from_numpy(frames[:1]).permute(0, 3, 1, 2).float() / 255
+    api = tracker.initialise(frames0, torch.from_numpy(want)[None].float())
+    full = FaceTracker(refine_first=None).initialise(frames0, torch.from_numpy(points)[None].float())
+    np.testing.assert_allclose(R[0].numpy(), api.rotation[0].double().numpy(), atol=1e-6)
+    np.testing.assert_allclose(t[0], api.translation[0].double().numpy(), rtol=1e-6, atol=1e-4)
+    assert np.abs(t[0] - full.translation[0].double().numpy()).max() > 1e-2  # (the missing points counted for 0)
+    few = np.full((68, 2), np.nan)
+    few[[30, 36, 45]] = points[[30, 36, 45]]
+    np.save(tmp_path / "few.npy", few)
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(tmp_path / "few.npy"), "--out",
+               str(tmp_path / "out_few"), "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2 and f"few.npy: 3 of the 68 iBUG points given" in err
+    assert f"the landmark fit needs at least {MIN_FIT_LANDMARKS}" in err and len(err.strip().splitlines()) == 1, err

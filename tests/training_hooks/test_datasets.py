@@ -190,6 +190,18 @@ def test_landmark_sources_agree(clips, config, tmp_path):
     assert len(seen) == 1
 
 
+def test_a_landmarks_file_with_missing_points_is_refused_naming_it(clips, config, tmp_path):
+    """``torchface track`` takes a landmarks file with missing points (NaN rows); the dataset's tracking transform
+    takes none, so such a file is an InputError naming it, not the transform's ValueError ("landmarks must be
+    finite") without the file's name."""
+    clip = clips[1]
+    partial = np.array(clip.landmarks, dtype=np.float64)
+    partial[[9, 10, 11]] = np.nan
+    np.save(tmp_path / "partial.npy", partial)
+    with pytest.raises(InputError, match=r"partial\.npy: landmark\(s\) \[9, 10, 11\] are NaN or infinite"):
+        collect(VideoDataset([clip.video], [tmp_path / "partial.npy"], replace(config, cache_dir=None)), 0)
+
+
 def test_transform_equals_dataset_output(clips, config):
     """NormaliseFaces on the decoded frames and landmarks equals the dataset's whole-video clip; continuing from
     a TrackerState equals tracking the whole sequence in one go."""

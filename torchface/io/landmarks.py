@@ -11,20 +11,29 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   are the first row's (its first frame), which must have ``success`` 1 when the file has that column;
 - CSV, one row per point: a header naming an ``ibug_index`` column (0-67, as torchface's arrays index the points;
   also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
-  in any order; every one of the 68 points once (a file that gives fewer, as the hand-marked
-  ``torchface/data/photos/astronaut_landmarks.csv``'s 22, is refused, naming the missing indices: the tracker's
-  Python API takes NaN rows for missing points, a landmarks file's points are all needed);
+  in any order; each point once at most, a point without a row missing (the hand-marked
+  ``torchface/data/photos/astronaut_landmarks.csv`` gives 22);
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
   tools read them), so 1 is subtracted: a ``.pts`` point ``(1, 1)`` is torchface's ``(0, 0)``, the same pixel
   centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
+
+Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
+weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
+their order): in a CSV an ``x, y`` pair of empty cells (``,``; a separator ending every line, ``x,y,``, is not a
+cell) or of ``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a
+``.pts`` line ``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
+:data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
+one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
+another count (a ``.pts`` of 60 points: which are missing is not known).
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import os
 import re
 from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, DecimalException
@@ -41,18 +50,38 @@ NUM_LANDMARKS: int = 68
 
 
 def _cells(line: str) -> list[str]:
-    """A line's cells: separated by commas, semicolons, tabs or spaces; quotes around a cell dropped."""
+    """A line's cells: separated by commas, semicolons, tabs or spaces; quotes around a cell dropped. An empty cell
+    between separators is kept in its place (``1,,2``: three cells, the second ``""``, a missing value)."""
     for sep in (";", "\t"):
         line = line.replace(sep, ",")
     if "," not in line:
         line = ",".join(line.split())
-    return [c.strip().strip("\"'").strip() for c in line.split(",") if c.strip() != ""]
+    return [c.strip().strip("\"'").strip() for c in line.split(",")]
+
+
+def _trimmed(cells: list[str], width: int) -> list[str]:
+    """``cells`` without the empty cells at their end beyond ``width`` (a separator ending every line, as some
+    spreadsheets write them: ``x,y,``)."""
+    end = len(cells)
+    while end > width and cells[end - 1] == "":
+        end -= 1
+    return cells[:end]
+
+
+#: Cells (lower case) that mean a missing value: an empty cell, as pandas and spreadsheets write NaN, R's ``NA``,
+#: JSON's and SQL's ``null``, Python's ``None``; ``nan`` is read by ``float`` itself.
+_MISSING_CELLS: frozenset[str] = frozenset({"", "na", "n/a", "null", "none"})
+
+
+def _number(cell: str) -> float:
+    """A cell's number; NaN for a missing value (:data:`_MISSING_CELLS`). Raises ValueError for other text."""
+    return math.nan if cell.lower() in _MISSING_CELLS else float(cell)
 
 
 def _named_row(header: str, row: list[float]) -> np.ndarray | None:
     """One row's values placed by a header naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``, ...; ``k`` from 0
     or 1, each once): ``(K, 2)``; None when the header does not name them so."""
-    names = _cells(header)
+    names = _trimmed(_cells(header), 0)
     keys = [m for n in names if (m := re.fullmatch(r"([xy])[_ ]?(\d+)", n.lower())) is not None]
     if len(names) != len(row) or len(row) % 2 or len(keys) != len(names):
         return None
@@ -68,7 +97,7 @@ def _named_row(header: str, row: list[float]) -> np.ndarray | None:
 def _openface_row(p: Path, header: str, rows: list[list[float]]) -> np.ndarray | None:
     """The first row's ``x_k``, ``y_k`` cells ``(K, 2)`` when the header names them (exactly so, lower case: OpenFace's
     3D ``X_k`` are other columns) among other columns, every row as wide as the header; else None."""
-    names = _cells(header)
+    names = _trimmed(_cells(header), 0)
     if not rows or any(len(r) != len(names) for r in rows):
         return None
     where = {n: i for i, n in enumerate(names)}
@@ -173,14 +202,15 @@ def _split(line: str, delimiter: str | None) -> list[str]:
 
 
 def _parse_long(p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int]) -> np.ndarray:
-    """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers)."""
+    """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers); a
+    point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing)."""
     delimiter, index, x, y = columns
     points = np.full((NUM_LANDMARKS, 2), np.nan)
     seen: dict[int, int] = {}
     for number, line in lines:
         cells = _split(line, delimiter)
         try:
-            k_text, point = cells[index], [float(cells[x]), float(cells[y])]
+            k_text, point = cells[index], [_number(cells[x]), _number(cells[y])]  # (empty: missing, NaN)
             k = int(k_text)
         except (IndexError, ValueError):
             raise InputError(f"{p}: line {number} is not 'index, x, y' numbers: {line[:60]!r}") from None
@@ -190,16 +220,11 @@ def _parse_long(p: Path, lines: list[tuple[int, str]], columns: tuple[str | None
             raise InputError(f"{p}: line {number}: point {k} again (first on line {seen[k]})")
         seen[k] = number
         points[k] = point
-    missing = [k for k in range(NUM_LANDMARKS) if k not in seen]
-    if missing:
-        shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
-        raise InputError(f"{p}: gives {len(seen)} of the {NUM_LANDMARKS} iBUG points (missing {shown}): a landmarks "
-                         f"file must give all {NUM_LANDMARKS}")  # fmt: skip
-    return points
+    return points  # (a point without a row stays NaN: missing)
 
 
 def _parse_csv(p: Path, text: str) -> np.ndarray:
-    rows: list[list[float]] = []
+    data: list[list[str]] = []  # the number rows' cells
     header: str | None = None
     long: tuple[str | None, int, int, int] | None = None
     long_lines: list[tuple[int, str]] = []
@@ -212,14 +237,21 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
             continue
         cells = _cells(line)
         try:
-            rows.append([float(c) for c in cells])
+            for c in cells:
+                _number(c)
         except ValueError:
-            if rows or header is not None:  # one header line at most, before the numbers
+            if data or header is not None:  # one header line at most, before the numbers
                 raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
             header = line
             long = _long_columns(header)
+            continue
+        data.append(cells)
     if long is not None:
         return _parse_long(p, long_lines, long)
+    # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
+    # leaves beyond the row's width: the header's, else one row of 136 or rows of 2 (``x,y,``: x and y).
+    width = len(_trimmed(_cells(header), 0)) if header is not None else 2 if len(data) > 1 else 2 * NUM_LANDMARKS
+    rows = [[_number(c) for c in _trimmed(cells, width)] for cells in data]
     if header is not None:
         openface = _openface_row(p, header, rows)
         if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
@@ -237,18 +269,23 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
 
 
 def check_landmarks(
-    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0
+    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False
 ) -> np.ndarray:
     """Check ``(68, 2)`` pixel landmarks against a ``width x height`` frame; returns them as float64.
 
     ``min_inside``: the fraction of the points that must lie inside the frame (1: all of them, as a landmarks file
     gives; a detector's, 0.5: dlib's predictor places the chin of a face at the frame's edge outside it).
 
+    ``missing``: whether a NaN row ``(nan, nan)`` is a missing point (a landmarks file's occluded points), passed on
+    as NaN for the landmark fit to give weight 0, as the tracker's Python API takes it; the points given (finite
+    rows) must then be at least the fit's :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4), and ``min_inside``
+    counts them alone. False: every point must be finite (a detector's, which gives all or none).
+
     The points returned are a C-contiguous copy of ``points``.
 
     Raises:
-        InputError: wrong count, non-finite values, or (more than ``1 - min_inside`` of the) points outside the
-            frame.
+        InputError: wrong count, non-finite values (with ``missing``: infinite ones, a row with one coordinate NaN,
+            or fewer than 4 points given), or (more than ``1 - min_inside`` of the) points outside the frame.
     """
     # a copy, C-contiguous (a detector's view with a negative stride: torch refuses it; its reused buffer)
     points = np.array(points, dtype=np.float64, order="C")
@@ -259,13 +296,25 @@ def check_landmarks(
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputError(f"{where}: expected {NUM_LANDMARKS} (x, y) points, got an array of shape {points.shape}")
     if points.shape[0] != NUM_LANDMARKS:
-        raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}")
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} are NaN or infinite")
+        hint = " (a missing point stays, as a NaN row: empty cells, 'nan nan')" if missing else ""
+        raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}{hint}")
+    given = np.isfinite(points).all(axis=1)
+    if not missing and not given.all():
+        raise InputError(f"{where}: landmark(s) {np.flatnonzero(~given).tolist()[:8]} are NaN or infinite")
+    if missing:
+        for bad, what in ((np.isinf(points).any(axis=1), "are infinite (a missing point is a NaN row)"),
+                          (np.isnan(points).any(axis=1) & ~np.isnan(points).all(axis=1),
+                           "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
+            if bad.any():
+                raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} {what}")
+        from torchface.tracker.fit import MIN_FIT_LANDMARKS  # (here: the tracker imports torch and the model)
+
+        if given.sum() < MIN_FIT_LANDMARKS:
+            raise InputError(f"{where}: {int(given.sum())} of the {NUM_LANDMARKS} iBUG points given, the others "
+                             f"missing (NaN): the landmark fit needs at least {MIN_FIT_LANDMARKS}")  # fmt: skip
     u, v = points[:, 0], points[:, 1]
-    outside = (u < -0.5) | (u > width - 0.5) | (v < -0.5) | (v > height - 0.5)
-    if outside.sum() > (1.0 - min_inside) * NUM_LANDMARKS:
+    outside = (u < -0.5) | (u > width - 0.5) | (v < -0.5) | (v > height - 0.5)  # (False for a missing point)
+    if outside.sum() > (1.0 - min_inside) * int(given.sum()):
         k = int(np.flatnonzero(outside)[0])
         raise InputError(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
@@ -274,19 +323,24 @@ def check_landmarks(
     return points
 
 
-def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.ndarray:
+def read_landmarks(
+    path: str | os.PathLike[str], width: int, height: int, *, missing: bool = True
+) -> np.ndarray:
     """Read and check 68 first-frame landmarks for a ``width x height`` video.
 
     Args:
         path: a ``.csv`` (or any text), iBUG ``.pts`` or ``.npy`` file, see the module docstring.
         width: frame width W.
         height: frame height H.
+        missing: whether the file may leave points out (NaN rows, see the module docstring; at least 4 given, the
+            landmark fit's :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`); False: all 68 must be given.
 
     Returns:
-        ``(68, 2)`` float64 pixel coordinates.
+        ``(68, 2)`` float64 pixel coordinates, a NaN row for each missing point.
 
     Raises:
-        InputError: missing or unreadable file, wrong count, NaN, or out-of-frame points.
+        InputError: missing or unreadable file, wrong count, infinite values, too few points given (or, without
+            ``missing``, any NaN), or out-of-frame points.
 
     Example:
         >>> # points = read_landmarks("first_frame.csv", 640, 480)   # (68, 2)
@@ -304,4 +358,4 @@ def read_landmarks(path: str | os.PathLike[str], width: int, height: int) -> np.
         points = _parse_pts(p, text) if _is_pts(p, text) else _parse_csv(p, text)
     if not np.issubdtype(np.asarray(points).dtype, np.number):
         raise InputError(f"{p}: landmarks must be numbers, got {np.asarray(points).dtype}")
-    return check_landmarks(points, width, height, str(p))
+    return check_landmarks(points, width, height, str(p), missing=missing)
