@@ -469,7 +469,7 @@ class VideoDataset(IterableDataset):
             source = None if self.landmarks is None else self.landmarks[index]
             if landmarks is None and isinstance(source, (str, os.PathLike)):
                 # the frame size only checks the points (sequence() checks them against it): the same float64 array
-                landmarks = read_landmarks(source, 1 << 30, 1 << 30, missing=False)
+                landmarks = read_landmarks(source, 1 << 30, 1 << 30)
         except (InputError, OSError):
             return None
         if landmarks is None:
@@ -526,12 +526,12 @@ class VideoDataset(IterableDataset):
             return self._detected[content]
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
-            return read_landmarks(source, W, H, missing=False)  # (LandmarkSource: all 68)
+            return read_landmarks(source, W, H)  # (missing points, NaN rows, taken as torchface track takes them)
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
             raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
-        return check_landmarks(source, W, H, where)
+        return check_landmarks(source, W, H, where, missing=True)
 
     def _known_landmarks(self, index: int, content: str) -> np.ndarray | None:
         """Landmarks known without decoding the video (an array or tensor, or a detection remembered in this
@@ -547,7 +547,7 @@ class VideoDataset(IterableDataset):
             raise InputError(
                 f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}"
             )
-        return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks")
+        return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks", missing=True)
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
@@ -567,8 +567,9 @@ class VideoDataset(IterableDataset):
         if cache is not None and known is not None:
             stored = cache.load(cache_key(content, self.config.tracking, known, extra))
             if stored is not None:
-                H, W = stored.frame_size
-                check_landmarks(known, W, H, f"{path}: landmarks")
+                if self.detector is None:  # (a detection was checked against this video's first frame when made)
+                    H, W = stored.frame_size
+                    check_landmarks(known, W, H, f"{path}: landmarks", missing=True)
                 self.stats.videos += 1
                 return stored, True
         with _dataset_hint():
