@@ -2,7 +2,8 @@
 
 :class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
-landmarks (:func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
+landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them;
+:func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
 its end before its items are yielded (a :class:`~training_hooks.transforms.TrackedSequence`, whose items may be
@@ -101,8 +102,10 @@ __all__ = [
 ]
 
 #: First-frame landmarks of one video: a ``(68, 2)`` array or tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file
-#: (:func:`torchface.io.read_landmarks`) with all 68 points given: the tracking transform takes no missing point, so a
-#: file with NaN rows (which ``torchface track`` takes) is refused here.
+#: (:func:`torchface.io.read_landmarks`). A missing point (occluded) is a NaN row, given weight 0 by the landmark fit,
+#: as ``torchface track`` takes a file's and :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>`
+#: an array's: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) given; a row with one coordinate NaN, an
+#: infinite value or a given point outside the frame is refused (:func:`torchface.io.check_landmarks`).
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
@@ -288,8 +291,9 @@ class VideoDataset(IterableDataset):
     Args:
         videos: video files OpenCV decodes (``.avi``, ``.mp4``, ...) or ``.npy`` frame arrays ``(T, H, W, 3)``.
         landmarks: the first frame's 68 iBUG landmarks per video (:data:`LandmarkSource`: a ``(68, 2)`` array or
-            tensor in pixels, or a ``.csv`` / ``.npy`` file), or one :data:`Detector` applied to every video's
-            first frame (its answer is remembered per process).
+            tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file; NaN rows for missing points, at least 4
+            given), or one :data:`Detector` applied to every video's first frame (its answer is remembered per
+            process; all 68 points, as ``torchface track --detector`` takes them).
         config: :class:`DatasetConfig`.
 
     Raises:
@@ -535,7 +539,8 @@ class VideoDataset(IterableDataset):
 
     def _known_landmarks(self, index: int, content: str) -> np.ndarray | None:
         """Landmarks known without decoding the video (an array or tensor, or a detection remembered in this
-        process), checked for shape and finiteness but not yet against the frame size; None otherwise."""
+        process), checked for shape and values (NaN rows: missing points) but not yet against the frame size; None
+        otherwise."""
         if self.detector is not None:
             return self._detected.get(content)
         source = self.landmarks[index]  # type: ignore[index]

@@ -1,7 +1,7 @@
 """Frames to normalised faces: the tracking core shared by the datasets and the :class:`NormaliseFaces` transform.
 
-A sequence of frames is tracked from its first frame's 68 iBUG landmarks (or continued from a
-:class:`~torchface.tracker.TrackerState`) with the functional tracker as :class:`~torchface.tracker.FaceTracker`
+A sequence of frames is tracked from its first frame's 68 iBUG landmarks (NaN rows: missing points), or continued
+from a :class:`~torchface.tracker.TrackerState`, with the functional tracker as :class:`~torchface.tracker.FaceTracker`
 runs it (:func:`~torchface.tracker.managed.initialise_managed`, :func:`~torchface.tracker.managed.managed_step`:
 template management as ``TrackerConfig.template`` says; lost streams recover by the mosaic search, no
 detector), one stream at a time (``B = 1``), and every frame is resampled into the normalised face
@@ -210,7 +210,7 @@ class TrackedSequence:
             (``TrackResult.rotation``), so that it stays continuous: with these units it places the mesh near, not
             exactly on, the one the faces were resampled from.
         landmarks: ``(K, 2)`` float64 first-frame landmarks the tracking started from (pixels; the model's ``K``,
-            68 for CANDIDE-3), or ``(0, 2)``
+            68 for CANDIDE-3; a NaN row for a missing point), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
         frame_size: ``(H, W)`` of the frames.
         first_frame: index of the first frame in the tracked sequence: 0 when the tracking started here from
@@ -393,8 +393,9 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
         what = "iBUG points" if count == 68 else "points, the model's landmarks,"
         raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
     nan = torch.isnan(landmarks)
+    half = nan.any(-1) & ~nan.all(-1)
     for bad, what in ((torch.isinf(landmarks).any(-1), "are infinite (a missing point is a NaN row)"),
-                      (nan.any(-1) & ~nan.all(-1), "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
+                      (half, "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
         if bool(bad.any()):
             raise ValueError(f"landmarks: landmark(s) {torch.nonzero(bad).flatten().tolist()[:8]} {what}")
     given = int((~nan.any(-1)).sum())
@@ -421,7 +422,10 @@ def track_sequence(
         frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
             :class:`~torchface.io.FrameReader`; consumed one at a time.
         start: ``(K, 2)`` the model's ``K`` landmarks of the first frame in pixels (the 68 iBUG points for
-            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a
+            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`, as
+            :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` starts it; a missing point is
+            a NaN row, left out of the landmark fit: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4)
+            given, no row with one coordinate NaN, nothing infinite, as ``torchface track`` takes a file's), or a
             :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
             settings) whose tracking the frames continue (every frame goes through
             :func:`~torchface.tracker.managed.managed_step`); the state is left as it was, so the same frames
@@ -437,7 +441,8 @@ def track_sequence(
         numbers the frames as one tracking of the whole sequence does).
 
     Raises:
-        TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks or state; no frame at all.
+        TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks (shape, an infinite value, a
+            row with one coordinate NaN, fewer than 4 points given) or state; no frame at all.
     """
     if not isinstance(config, FaceTrackingConfig):
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
@@ -511,7 +516,8 @@ def track_sequence(
 
 
 class NormaliseFaces:
-    """Transform: ``(frames (T, 3, H, W), landmarks (68, 2) | TrackerState)`` -> normalised faces and parameters.
+    """Transform: ``(frames (T, 3, H, W), landmarks (68, 2) | TrackerState)`` -> normalised faces and parameters
+    (NaN rows of the landmarks: missing points, :func:`track_sequence`).
 
     A torchvision-style callable for pipelines that already hold frames: it tracks the frames with
     :func:`track_sequence` and returns the clip item of :meth:`TrackedSequence.item` (``face (T, C, S, S)``
