@@ -7,7 +7,7 @@ Key (:func:`cache_key`): a BLAKE2b hash of
 - the :class:`~training_hooks.transforms.FaceTrackingConfig`'s full ``repr`` (the nested
   :class:`~torchface.tracker.TrackerConfig` and its :class:`~torchface.tracker.FitConfig` included: every field,
   face size and storage, focal length, thread count);
-- the first-frame landmarks (float64 bytes);
+- the first-frame landmarks (float64 bytes; a missing point, a NaN row, as one NaN whatever its bits);
 - any extra text the caller adds (the datasets add their frame-conversion setting);
 - the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
   and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`.
@@ -118,7 +118,8 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     Args:
         content: :func:`content_hash` of the video.
         config: the tracking settings (their full ``repr`` is hashed).
-        landmarks: ``(68, 2)`` first-frame landmarks in pixels (hashed as float64).
+        landmarks: ``(68, 2)`` first-frame landmarks in pixels (hashed as float64); a NaN row (a missing point) is
+            hashed as the same NaN whatever its bits.
         extra: anything else that changes the result (e.g. a frame-conversion setting).
 
     Example:
@@ -133,6 +134,7 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     points = np.ascontiguousarray(np.asarray(landmarks, dtype=np.float64))
     if points.shape != (68, 2):
         raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
+    points = np.where(np.isnan(points), np.nan, points)  # one NaN for a missing point (0 / 0's has the sign bit)
     h = hashlib.blake2b(digest_size=32)
     native = config.tracker.backend is not Backend.TORCH and native_available()
     parts = (

@@ -2,7 +2,8 @@
 
 :class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
-landmarks (:func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
+landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them;
+:func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
 its end before its items are yielded (a :class:`~training_hooks.transforms.TrackedSequence`, whose items may be
@@ -101,8 +102,10 @@ __all__ = [
 ]
 
 #: First-frame landmarks of one video: a ``(68, 2)`` array or tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file
-#: (:func:`torchface.io.read_landmarks`) with all 68 points given: the tracking transform takes no missing point, so a
-#: file with NaN rows (which ``torchface track`` takes) is refused here.
+#: (:func:`torchface.io.read_landmarks`). A missing point (occluded) is a NaN row, given weight 0 by the landmark fit,
+#: as ``torchface track`` takes a file's and :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>`
+#: an array's: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) given; a row with one coordinate NaN, an
+#: infinite value or a given point outside the frame is refused (:func:`torchface.io.check_landmarks`).
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
@@ -288,8 +291,9 @@ class VideoDataset(IterableDataset):
     Args:
         videos: video files OpenCV decodes (``.avi``, ``.mp4``, ...) or ``.npy`` frame arrays ``(T, H, W, 3)``.
         landmarks: the first frame's 68 iBUG landmarks per video (:data:`LandmarkSource`: a ``(68, 2)`` array or
-            tensor in pixels, or a ``.csv`` / ``.npy`` file), or one :data:`Detector` applied to every video's
-            first frame (its answer is remembered per process).
+            tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file; NaN rows for missing points, at least 4
+            given), or one :data:`Detector` applied to every video's first frame (its answer is remembered per
+            process; all 68 points, as ``torchface track --detector`` takes them).
         config: :class:`DatasetConfig`.
 
     Raises:
@@ -469,7 +473,7 @@ class VideoDataset(IterableDataset):
             source = None if self.landmarks is None else self.landmarks[index]
             if landmarks is None and isinstance(source, (str, os.PathLike)):
                 # the frame size only checks the points (sequence() checks them against it): the same float64 array
-                landmarks = read_landmarks(source, 1 << 30, 1 << 30, missing=False)
+                landmarks = read_landmarks(source, 1 << 30, 1 << 30)
         except (InputError, OSError):
             return None
         if landmarks is None:
@@ -526,16 +530,17 @@ class VideoDataset(IterableDataset):
             return self._detected[content]
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
-            return read_landmarks(source, W, H, missing=False)  # (LandmarkSource: all 68)
+            return read_landmarks(source, W, H)  # (missing points, NaN rows, taken as torchface track takes them)
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
             raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
-        return check_landmarks(source, W, H, where)
+        return check_landmarks(source, W, H, where, missing=True)
 
     def _known_landmarks(self, index: int, content: str) -> np.ndarray | None:
         """Landmarks known without decoding the video (an array or tensor, or a detection remembered in this
-        process), checked for shape and finiteness but not yet against the frame size; None otherwise."""
+        process), checked for shape and values (NaN rows: missing points) but not yet against the frame size; None
+        otherwise."""
         if self.detector is not None:
             return self._detected.get(content)
         source = self.landmarks[index]  # type: ignore[index]
@@ -547,7 +552,7 @@ class VideoDataset(IterableDataset):
             raise InputError(
                 f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}"
             )
-        return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks")
+        return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks", missing=True)
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
@@ -567,8 +572,9 @@ class VideoDataset(IterableDataset):
         if cache is not None and known is not None:
             stored = cache.load(cache_key(content, self.config.tracking, known, extra))
             if stored is not None:
-                H, W = stored.frame_size
-                check_landmarks(known, W, H, f"{path}: landmarks")
+                if self.detector is None:  # (a detection was checked against this video's first frame when made)
+                    H, W = stored.frame_size
+                    check_landmarks(known, W, H, f"{path}: landmarks", missing=True)
                 self.stats.videos += 1
                 return stored, True
         with _dataset_hint():

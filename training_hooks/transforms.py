@@ -1,7 +1,7 @@
 """Frames to normalised faces: the tracking core shared by the datasets and the :class:`NormaliseFaces` transform.
 
-A sequence of frames is tracked from its first frame's 68 iBUG landmarks (or continued from a
-:class:`~torchface.tracker.TrackerState`) with the functional tracker as :class:`~torchface.tracker.FaceTracker`
+A sequence of frames is tracked from its first frame's 68 iBUG landmarks (NaN rows: missing points), or continued
+from a :class:`~torchface.tracker.TrackerState`, with the functional tracker as :class:`~torchface.tracker.FaceTracker`
 runs it (:func:`~torchface.tracker.managed.initialise_managed`, :func:`~torchface.tracker.managed.managed_step`:
 template management as ``TrackerConfig.template`` says; lost streams recover by the mosaic search, no
 detector), one stream at a time (``B = 1``), and every frame is resampled into the normalised face
@@ -40,6 +40,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
+from torchface.tracker.fit import MIN_FIT_LANDMARKS
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
@@ -209,7 +210,7 @@ class TrackedSequence:
             (``TrackResult.rotation``), so that it stays continuous: with these units it places the mesh near, not
             exactly on, the one the faces were resampled from.
         landmarks: ``(K, 2)`` float64 first-frame landmarks the tracking started from (pixels; the model's ``K``,
-            68 for CANDIDE-3), or ``(0, 2)``
+            68 for CANDIDE-3; a NaN row for a missing point), or ``(0, 2)``
             when it continued from a :class:`~torchface.tracker.TrackerState`.
         frame_size: ``(H, W)`` of the frames.
         first_frame: index of the first frame in the tracked sequence: 0 when the tracking started here from
@@ -376,7 +377,12 @@ def _layout_hint(frames: Tensor) -> str:
 
 
 def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
-    """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated."""
+    """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated.
+
+    A missing point is a NaN row, which the landmark fit gives weight 0 (as :class:`~torchface.tracker.FaceTracker`
+    takes it); the rules of a landmarks file (:func:`torchface.io.check_landmarks` with ``missing``): at least
+    :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` points given, no row with one coordinate NaN, nothing infinite.
+    """
     if isinstance(landmarks, np.ndarray):  # copied: a read-only array (np.load's mmap) made torch warn; and
         # contiguous: a view with a negative stride (yx[:, ::-1]) was torch's "At least one stride ... is negative"
         landmarks = torch.tensor(np.ascontiguousarray(landmarks, dtype=np.float64))
@@ -386,8 +392,17 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     if tuple(landmarks.shape) != (count, 2):
         what = "iBUG points" if count == 68 else "points, the model's landmarks,"
         raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
-    if not bool(torch.isfinite(landmarks).all()):
-        raise ValueError("landmarks must be finite")
+    nan = torch.isnan(landmarks)
+    half = nan.any(-1) & ~nan.all(-1)
+    for bad, what in ((torch.isinf(landmarks).any(-1), "are infinite (a missing point is a NaN row)"),
+                      (half, "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
+        if bool(bad.any()):
+            raise ValueError(f"landmarks: landmark(s) {torch.nonzero(bad).flatten().tolist()[:8]} {what}")
+    given = int((~nan.any(-1)).sum())
+    if given < MIN_FIT_LANDMARKS:  # (the Python API starts such a stream FAILED; a dataset's item would be junk)
+        what = "iBUG points" if count == 68 else "points"
+        raise ValueError(f"landmarks: {given} of the {count} {what} given, the others missing (NaN): the landmark fit "
+                         f"needs at least {MIN_FIT_LANDMARKS}")  # fmt: skip
     # The sequence's own CPU copy, out of any graph: the caller's float64 tensor itself was kept (a buffer refilled
     # for the next video changed the sequence's landmarks), and one that required grad failed TrackCache.store.
     return landmarks.detach().to(device="cpu", dtype=torch.float64, copy=True)
@@ -407,7 +422,10 @@ def track_sequence(
         frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
             :class:`~torchface.io.FrameReader`; consumed one at a time.
         start: ``(K, 2)`` the model's ``K`` landmarks of the first frame in pixels (the 68 iBUG points for
-            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`), or a
+            CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`, as
+            :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` starts it; a missing point is
+            a NaN row, left out of the landmark fit: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4)
+            given, no row with one coordinate NaN, nothing infinite, as ``torchface track`` takes a file's), or a
             :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
             settings) whose tracking the frames continue (every frame goes through
             :func:`~torchface.tracker.managed.managed_step`); the state is left as it was, so the same frames
@@ -423,7 +441,8 @@ def track_sequence(
         numbers the frames as one tracking of the whole sequence does).
 
     Raises:
-        TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks or state; no frame at all.
+        TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks (shape, an infinite value, a
+            row with one coordinate NaN, fewer than 4 points given) or state; no frame at all.
     """
     if not isinstance(config, FaceTrackingConfig):
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
@@ -497,7 +516,8 @@ def track_sequence(
 
 
 class NormaliseFaces:
-    """Transform: ``(frames (T, 3, H, W), landmarks (68, 2) | TrackerState)`` -> normalised faces and parameters.
+    """Transform: ``(frames (T, 3, H, W), landmarks (68, 2) | TrackerState)`` -> normalised faces and parameters
+    (NaN rows of the landmarks: missing points, :func:`track_sequence`).
 
     A torchvision-style callable for pipelines that already hold frames: it tracks the frames with
     :func:`track_sequence` and returns the clip item of :meth:`TrackedSequence.item` (``face (T, C, S, S)``

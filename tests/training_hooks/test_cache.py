@@ -202,6 +202,20 @@ def test_content_hash_and_key(tmp_path, clips):
     assert _HASH_MEMO  # the per-process memo is used
 
 
+def test_a_missing_point_has_one_key_whatever_its_nan(clips):
+    """A missing landmark is a NaN row, whatever the NaN's bits: NumPy's ``0 / 0`` (a computed NaN, the sign bit set
+    on x86) and a file's ``nan`` were different cache keys for the same landmarks (tracked again, stored twice); a
+    missing point and a given one still differ."""
+    lm = clips[0].landmarks
+    read, computed = lm.copy(), lm.copy()
+    read[[3, 4]] = np.nan
+    with np.errstate(invalid="ignore"):
+        computed[[3, 4]] = np.zeros((2, 2)) / np.zeros((2, 2))
+    assert np.isnan(computed[3]).all() and read.tobytes() != computed.tobytes()
+    key = cache_key("0" * 64, TRACKING, read)
+    assert cache_key("0" * 64, TRACKING, computed) == key != cache_key("0" * 64, TRACKING, lm)
+
+
 def test_the_hash_memo_keeps_one_small_entry_per_path(tmp_path):
     """The per-process memo of content hashes (a dataset's main process or persistent workers hash every video
     each epoch) keeps one entry per path, of a fixed size: it was keyed by the files' stats, so each version of a

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 import typing
 from dataclasses import replace
 from pathlib import Path
@@ -190,16 +191,108 @@ def test_landmark_sources_agree(clips, config, tmp_path):
     assert len(seen) == 1
 
 
-def test_a_landmarks_file_with_missing_points_is_refused_naming_it(clips, config, tmp_path):
-    """``torchface track`` takes a landmarks file with missing points (NaN rows); the dataset's tracking transform
-    takes none, so such a file is an InputError naming it, not the transform's ValueError ("landmarks must be
-    finite") without the file's name."""
-    clip = clips[1]
-    partial = np.array(clip.landmarks, dtype=np.float64)
-    partial[[9, 10, 11]] = np.nan
-    np.save(tmp_path / "partial.npy", partial)
-    with pytest.raises(InputError, match=r"partial\.npy: landmark\(s\) \[9, 10, 11\] are NaN or infinite"):
-        collect(VideoDataset([clip.video], [tmp_path / "partial.npy"], replace(config, cache_dir=None)), 0)
+#: Points left out (NaN rows) in the missing-point tests: the right jaw and the right eye's corners.
+MISSING = [0, 1, 2, 3, 4, 5, 6, 7, 36, 39]
+
+
+def _with_missing(landmarks: np.ndarray, rows=MISSING) -> np.ndarray:
+    partial = np.array(landmarks, dtype=np.float64)
+    partial[rows] = np.nan
+    return partial
+
+
+def test_missing_landmark_points_track_as_the_trackers_python_api(clips, config, tmp_path):
+    """``torchface track`` and ``FaceTracker.initialise`` take first-frame landmarks with missing points (NaN rows,
+    weight 0 in the fit), the dataset and its transform refused them ("landmarks must be finite"; a file "are NaN or
+    infinite"). Now an array, a tensor, an NPY file and a CSV with empty cells, given to VideoDataset, and the
+    array given to NormaliseFaces, track as FaceTracker does from the same NaN rows: first-frame pose equal to float
+    tolerance, every later frame's too; and a second epoch reads the cache."""
+    from torchface.tracker import FaceTracker
+    from training_hooks.transforms import torch_threads
+
+    clip = clips[0]
+    partial = _with_missing(clip.landmarks)
+    frames = read_video(clip.video)
+    tracker = FaceTracker(TRACKING.tracker, refine_first=TRACKING.refine_first)
+    with torch_threads(TRACKING.num_threads):
+        results = [tracker.initialise(frames[:1], torch.from_numpy(partial).float()[None])]
+        results += [tracker(frames[t : t + 1]) for t in range(1, FRAMES)]
+    rotation = torch.cat([r.rotation for r in results]).float()
+    translation = torch.cat([r.translation for r in results]).float()
+    npy, csv = tmp_path / "partial.npy", tmp_path / "partial.csv"
+    np.save(npy, partial)
+    lines = ["x,y"] + [",".join("" if np.isnan(v) else repr(float(v)) for v in row) for row in partial]
+    csv.write_text("\n".join(lines) + "\n")
+    cfg = replace(config, cache_dir=None)
+    full = collect(VideoDataset([clip.video], [clip.landmarks], cfg), 0)
+    ref = collect(VideoDataset([clip.video], [partial], cfg), 0)
+    for k in range(FRAMES):
+        item = ref[(0, k)]
+        assert torch.allclose(item["rotation"], rotation[k], atol=1e-5), k
+        assert torch.allclose(item["translation"], translation[k], atol=1e-3), k
+    # (the points were left out of the fit: the first pose is not that of all 68)
+    assert not torch.allclose(full[(0, 0)]["translation"], ref[(0, 0)]["translation"], atol=1e-3)
+    for source in ([torch.from_numpy(partial)], [npy], [str(csv)]):
+        assert_items_equal(ref, collect(VideoDataset([clip.video], source, cfg), 0))
+    out = NormaliseFaces(TRACKING)(frames, partial)
+    whole = next(iter(VideoDataset([clip.video], [partial], replace(cfg, clip_length=FRAMES))))
+    for name in out:
+        assert torch.equal(out[name], whole[name]), name
+    cached = VideoDataset([clip.video], [npy], config)
+    assert_items_equal(ref, collect(cached, 0), skip=("cached",))
+    again = collect(VideoDataset([clip.video], [partial], config), 0)  # (the file's and the array's key: one entry)
+    assert all(bool(item["cached"]) for item in again.values())
+    assert_items_equal(ref, again, skip=("cached",))
+    assert VideoDataset([clip.video], [csv], config)._cached_frames(0) == FRAMES  # counted from the cache
+
+
+def test_landmarks_with_too_few_points_half_nan_rows_or_infinite_values_are_refused(clips, config, tmp_path):
+    """The command line's rules for missing points (torchface.io.check_landmarks): at least MIN_FIT_LANDMARKS (4)
+    given, no row with one coordinate NaN, no infinite value; one-line errors naming the video (an array) or the file,
+    and the transform's ValueError saying the same."""
+    clip = clips[0]
+    cfg = replace(config, cache_dir=None)
+    few = np.full((68, 2), np.nan)
+    few[[30, 36, 45]] = clip.landmarks[[30, 36, 45]]
+    half = np.array(clip.landmarks)
+    half[[12, 40], 0] = np.nan
+    inf = np.array(clip.landmarks)
+    inf[50, 1] = np.inf
+    cases = [
+        (few, r"3 of the 68 iBUG points given, the others missing \(NaN\): the landmark fit needs at least 4"),
+        (half, r"landmark\(s\) \[12, 40\] have one coordinate NaN \(a missing point has neither\)"),
+        (inf, r"landmark\(s\) \[50\] are infinite \(a missing point is a NaN row\)"),
+    ]
+    frames = read_video(clip.video)[:2]
+    for i, (points, message) in enumerate(cases):
+        npy = tmp_path / f"bad{i}.npy"
+        np.save(npy, points)
+        with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {message}$"):
+            list(VideoDataset([clip.video], [points], cfg))
+        with pytest.raises(InputError, match=rf"^{re.escape(str(npy))}: {message}$"):
+            list(VideoDataset([clip.video], [npy], cfg))
+        # (known without decoding: checked for the cache key)
+        with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {message}$"):
+            VideoDataset([clip.video], [torch.from_numpy(points)], config).sequence(0)
+        with pytest.raises(ValueError, match=rf"^landmarks: {message}$"):
+            NormaliseFaces(TRACKING)(frames, points)
+    four = np.full((68, 2), np.nan)
+    four[[30, 36, 45, 48]] = clip.landmarks[[30, 36, 45, 48]]
+    assert len(list(VideoDataset([clip.video], [four], cfg))) == FRAMES  # (the fit's minimum: tracked)
+
+
+def test_detector_landmarks_at_the_frame_edge_are_taken_from_the_cache_too(clips, config):
+    """A detector's landmarks may lie partly outside the frame (dlib's chin), and were taken when tracked, but a
+    later epoch in the same process, reading the cache, checked them as a file's (all inside): "1 landmark(s)
+    outside the 128x128 frame"."""
+    clip = clips[0]
+    edge = np.array(clip.landmarks, dtype=np.float64)
+    edge[7:10, 1] = 129.0
+    data = VideoDataset([clip.video], lambda image: edge, config)
+    first = collect(data, 0)
+    second = collect(data, 0)
+    assert all(bool(item["cached"]) for item in second.values())
+    assert_items_equal(first, second, skip=("cached",))
 
 
 def test_transform_equals_dataset_output(clips, config):
