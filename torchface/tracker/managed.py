@@ -1148,10 +1148,18 @@ def managed_step(
         # lost, but the next frames refine a candidate near the face rather than a track gone astray (James long
         # run, face back in view at 15 degrees of yaw: the candidates were 1-4 degrees off and scored 0.01-0.48
         # after one solve, the continued track 50-100 degrees off and 0, and the loss lasted 53 frames).
-        adopt = found & (r_result.status != _FAILED) & (r_conf > conf[index]) & (r_conf >= tc.adopt_min_confidence)
+        # A continued track whose face is out of the frame (under min_inside_fraction inside: the rule that declared
+        # it lost) competes with no candidate: its confidence is that of the few patches still in view (a face
+        # half out at the edge scored 0.95-0.98), and the stream goes on from its last confident parameters anyway.
+        # Any candidate that passes its own checks (found, solved, adopt_min_confidence, in the frame, within the
+        # searched depths) replaces it: a face back in view, turned 30 degrees, scored 0.90 and stayed LOST while
+        # such a track outscored it (tests/tracker/test_managed.py, two views of the face).
+        away = inside[index] < tc.min_inside_fraction
+        beats = (r_conf > conf[index]) | away
+        adopt = found & (r_result.status != _FAILED) & beats & (r_conf >= tc.adopt_min_confidence)
         R_track = axis_angle_to_matrix(params[index][:, layout.rotation])
         apart = geodesic_angle_deg(r_result.rotation, R_track)
-        apart = apart > tc.adopt_min_angle_deg
+        apart = (apart > tc.adopt_min_angle_deg) | away
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
             near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
