@@ -31,10 +31,13 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    that is at least 2 pixels a side and holds template points;
    :func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
    candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence`` replaces it
-   (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
-   when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
-   ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went
-   astray, however well its patches match). With a detector and ``restart_after_unmatched`` (off by default),
+   (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track, in the
+   frame (``min_inside_fraction``) and, when searched, within the searched depths; a continued track whose face is
+   out of the frame competes with no candidate (its confidence is that of the patches still in view): any
+   candidate that reaches ``adopt_min_confidence``, in the frame and, when searched, within the searched depths
+   replaces it. The loss ends when the continued track or a candidate reaches ``recover_confidence``. A lost
+   stream's continued track outside the searched depths scores 0 (it went astray, however well its patches
+   match). With a detector and ``restart_after_unmatched`` (off by default),
    a stream whose detected face nothing of its mosaic matched at that many attempts in a row, the same face each
    time (a cut to another person), starts afresh from the detector's landmarks.
 
