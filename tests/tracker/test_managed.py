@@ -23,11 +23,12 @@ import torch
 
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, euler_to_matrix, geodesic_angle_deg, matrix_to_axis_angle
+from torchface.geometry.transforms import transform_points
 from torchface.model.candide import load_candide3
 from torchface.synth.background import BackgroundSpec, OccluderSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
-from torchface.template.management import TemplateConfig
+from torchface.template.management import TemplateConfig, face_inside_fraction
 from torchface.tracker import (
     FaceTracker,
     FitConfig,
@@ -445,6 +446,50 @@ def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detect
     assert float(min(r.confidence[0] for r in results[ok[0] :])) >= 0.5
     if with_detector:
         assert calls and all(c[0] == 1 for c in calls)
+
+
+#: ``two_views``: the face is back in full view (on the left, turned) from this frame on.
+TWO_BACK = 11
+
+
+@pytest.fixture(scope="module")
+def two_views():
+    """The face moves right until 42 % of it is outside the frame (frame 8 on; LOST: ``min_inside_fraction``) and
+    stays there; from ``TWO_BACK`` on a second view of it, in full view on the left and turned -30 degrees of yaw, is
+    composited in (two renders over the same backdrop). ``frames (1, T, 3, H, W)``, the first view's ground truth
+    and the second's."""
+    T = TWO_BACK + 8
+    xa = [150.0 + 8 * i for i in range(9)] + [214.0] * (T - 9)
+    xb = [5000.0] * TWO_BACK + [-60.0] * (T - TWO_BACK)  # (5000 mm: out of the picture)
+    fa, ga = render_sequence(spec_of("edge", [[0.0, 0.0, 0.0]] * T, [[x, 0.0, 450.0] for x in xa]))
+    fb, gb = render_sequence(spec_of("back", [[-30.0, 0.0, 0.0]] * T, [[x, 0.0, 450.0] for x in xb]))
+    backdrop, _ = render_sequence(spec_of("none", [[0.0, 0.0, 0.0]] * T, [[5000.0, 0.0, 450.0]] * T))
+    first = (fa - backdrop).abs().amax(1, keepdim=True) > 0  # the first view's pixels
+    return torch.where(first, fa, fb)[None], ga, gb
+
+
+def test_a_continued_track_out_of_the_frame_loses_to_any_candidate(model, two_views):
+    """A lost stream whose continued track is out of the frame (under ``min_inside_fraction`` of its face inside)
+    goes on from a recovery candidate that passes the candidate's own checks, whatever the track's confidence: that
+    of the patches still in view is meaningless. Before, the candidate had to beat it: the track on the view half out
+    at the edge scored 0.98, the searched candidate on the face back in view 0.90 (turned away from the mosaic's
+    only entry), and the stream stayed LOST to the end (8 frames, 4 attempts)."""
+    frames, ga, gb = two_views
+    results, state = track(model, LEAVE_CFG, frames, landmarks(ga))
+    status = [int(r.status[0]) for r in results]
+    before = results[TWO_BACK - 1]  # the premise: LOST, out of the frame, confident on what is still in view
+    verts = transform_points(before.rotation, before.translation, model.deform(state.shape_coeffs, before.anim_coeffs))
+    assert float(face_inside_fraction(model, verts, Intrinsics.default(W, H))[0]) < TemplateConfig().min_inside_fraction
+    assert status[TWO_BACK - 1] == LOST and float(before.confidence[0]) > 0.9, (status, float(before.confidence[0]))
+    # Recovered at the first attempt after the face is back (every 2 frames), then tracked on it.
+    ok = [i for i in range(TWO_BACK, len(results)) if bool(results[i].success[0])]
+    assert ok and ok[0] <= TWO_BACK + 1, status
+    assert all(bool(results[i].success[0]) for i in range(ok[0], len(results))), status
+    R = torch.stack([r.rotation[0].double() for r in results[ok[0] :]])
+    err = geodesic_angle_deg(R @ results[0].rotation[0].double().mT, gb.rotation[ok[0] :] @ ga.rotation[0].mT)
+    assert float(err.max()) < 2.0, err
+    t = torch.stack([r.translation[0].double() for r in results[ok[0] :]])
+    assert float((t - gb.translation[ok[0] :]).norm(dim=-1).max()) < 15.0, t
 
 
 @pytest.mark.parametrize("unconfident", [False, True])

@@ -31,10 +31,13 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    that is at least 2 pixels a side and holds template points;
    :func:`~torchface.template.management.search_mosaic`); each candidate is refined by a normal solve. A
    candidate whose confidence beats the continued track's and reaches ``adopt_min_confidence`` replaces it
-   (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track and,
-   when searched, within the searched depths; the loss ends when the continued track or a candidate reaches
-   ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went
-   astray, however well its patches match). With a detector and ``restart_after_unmatched`` (off by default),
+   (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track, in the
+   frame (``min_inside_fraction``) and, when searched, within the searched depths; a continued track whose face is
+   out of the frame competes with no candidate (its confidence is that of the patches still in view): any
+   candidate that reaches ``adopt_min_confidence``, in the frame and, when searched, within the searched depths
+   replaces it. The loss ends when the continued track or a candidate reaches ``recover_confidence``. A lost
+   stream's continued track outside the searched depths scores 0 (it went astray, however well its patches
+   match). With a detector and ``restart_after_unmatched`` (off by default),
    a stream whose detected face nothing of its mosaic matched at that many attempts in a row, the same face each
    time (a cut to another person), starts afresh from the detector's landmarks.
 
@@ -1148,10 +1151,18 @@ def managed_step(
         # lost, but the next frames refine a candidate near the face rather than a track gone astray (James long
         # run, face back in view at 15 degrees of yaw: the candidates were 1-4 degrees off and scored 0.01-0.48
         # after one solve, the continued track 50-100 degrees off and 0, and the loss lasted 53 frames).
-        adopt = found & (r_result.status != _FAILED) & (r_conf > conf[index]) & (r_conf >= tc.adopt_min_confidence)
+        # A continued track whose face is out of the frame (under min_inside_fraction inside: the rule that declared
+        # it lost) competes with no candidate: its confidence is that of the few patches still in view (a face
+        # half out at the edge scored 0.95-0.98), and the stream goes on from its last confident parameters anyway.
+        # Any candidate that passes its own checks (found, solved, adopt_min_confidence, in the frame, within the
+        # searched depths) replaces it: a face back in view, turned 30 degrees, scored 0.90 and stayed LOST while
+        # such a track outscored it (tests/tracker/test_managed.py, two views of the face).
+        away = inside[index] < tc.min_inside_fraction
+        beats = (r_conf > conf[index]) | away
+        adopt = found & (r_result.status != _FAILED) & beats & (r_conf >= tc.adopt_min_confidence)
         R_track = axis_angle_to_matrix(params[index][:, layout.rotation])
         apart = geodesic_angle_deg(r_result.rotation, R_track)
-        apart = apart > tc.adopt_min_angle_deg
+        apart = (apart > tc.adopt_min_angle_deg) | away
         adopt = adopt & (apart | (r_conf >= tc.recover_confidence))
         if detector is None:  # a searched candidate whose solve left the searched depths went astray itself
             near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
