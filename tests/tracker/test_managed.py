@@ -492,6 +492,28 @@ def test_a_continued_track_out_of_the_frame_loses_to_any_candidate(model, two_vi
     assert float((t - gb.translation[ok[0] :]).norm(dim=-1).max()) < 15.0, t
 
 
+
+def test_a_continued_track_out_of_the_frame_gives_way_only_to_a_confident_candidate(model, two_views, monkeypatch):
+    """Out of the frame, the continued track competes with no candidate, but the candidate must itself be confident
+    (``confidence_threshold``), not only reach ``adopt_min_confidence``: a weak match (here the candidate's score
+    capped at 0.2) must not take the stream from a face that may come back at the same edge. The stream stays LOST."""
+    import torchface.tracker.managed as managed
+
+    real = managed._recover
+    capped = []
+
+    def weak(*args, **kwargs):
+        out = list(real(*args, **kwargs))
+        capped.append(float(out[3].max()))
+        out[3] = out[3].clamp(max=0.2)  # r_conf: between adopt_min_confidence (0.01) and confidence_threshold (0.3)
+        return tuple(out)
+
+    monkeypatch.setattr(managed, "_recover", weak)
+    frames, ga, _ = two_views
+    results, _ = track(model, LEAVE_CFG, frames, landmarks(ga))
+    assert max(capped) > 0.5, capped  # the candidate would have been adopted (as in the test above) but for the cap
+    assert not any(bool(results[i].success[0]) for i in range(TWO_BACK, len(results))), [int(r.status[0]) for r in results]
+
 @pytest.mark.parametrize("unconfident", [False, True])
 def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, leaves, monkeypatch, unconfident):
     """The frame's solve gets ``conservative`` = the streams lost before it (a weak refinement prior let a lost

@@ -191,8 +191,8 @@ class TemplateConfig:
             A searched candidate must also lie within the searched depths (``search_depth_factors``, widened by
             10%): one whose solve ran to twice the depth replaced a track 5.6 degrees off (scan_motion without
             expression terms). A continued track whose face is out of the frame (``min_inside_fraction``) is no
-            competitor: any candidate that passes its own checks (``adopt_min_confidence``, in the frame, within
-            the searched depths) replaces it, nearer than this or scoring less (a track on a face half out at the
+            competitor: any candidate that passes its own checks (in the frame, within the searched depths) and is
+            itself confident (``confidence_threshold``) replaces it, nearer than this or scoring less (a track on a face half out at the
             edge scored 0.95-0.98 on the patches still in view and kept a candidate on the face back in view,
             0.90, from being adopted: the stream stayed LOST).
         adopt_min_confidence: and the candidate must score at least this. A candidate's solve that ran off

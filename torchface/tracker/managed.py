@@ -34,8 +34,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    (the stream goes on from the candidate) when it lies more than ``adopt_min_angle_deg`` from the track, in the
    frame (``min_inside_fraction``) and, when searched, within the searched depths; a continued track whose face is
    out of the frame competes with no candidate (its confidence is that of the patches still in view): any
-   candidate that reaches ``adopt_min_confidence``, in the frame and, when searched, within the searched depths
-   replaces it. The loss ends when the continued track or a candidate reaches ``recover_confidence``. A lost
+   candidate that is itself confident (``confidence_threshold``), in the frame and, when searched, within the
+   searched depths replaces it. The loss ends when the continued track or a candidate reaches ``recover_confidence``. A lost
    stream's continued track outside the searched depths scores 0 (it went astray, however well its patches
    match). With a detector and ``restart_after_unmatched`` (off by default),
    a stream whose detected face nothing of its mosaic matched at that many attempts in a row, the same face each
@@ -1154,11 +1154,13 @@ def managed_step(
         # A continued track whose face is out of the frame (under min_inside_fraction inside: the rule that declared
         # it lost) competes with no candidate: its confidence is that of the few patches still in view (a face
         # half out at the edge scored 0.95-0.98), and the stream goes on from its last confident parameters anyway.
-        # Any candidate that passes its own checks (found, solved, adopt_min_confidence, in the frame, within the
-        # searched depths) replaces it: a face back in view, turned 30 degrees, scored 0.90 and stayed LOST while
-        # such a track outscored it (tests/tracker/test_managed.py, two views of the face).
+        # A candidate that passes its own checks (found, solved, in the frame, within the searched depths) and is
+        # itself confident (confidence_threshold, not only adopt_min_confidence: a weak match on the background must
+        # not take the stream from a face that may come back at the same edge) replaces it: a face back in view,
+        # turned 30 degrees, scored 0.90 and stayed LOST while such a track outscored it (tests/tracker/
+        # test_managed.py, two views of the face).
         away = inside[index] < tc.min_inside_fraction
-        beats = (r_conf > conf[index]) | away
+        beats = (r_conf > conf[index]) | (away & (r_conf >= tc.confidence_threshold))
         adopt = found & (r_result.status != _FAILED) & beats & (r_conf >= tc.adopt_min_confidence)
         R_track = axis_angle_to_matrix(params[index][:, layout.rotation])
         apart = geodesic_angle_deg(r_result.rotation, R_track)
