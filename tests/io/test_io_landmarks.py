@@ -127,6 +127,28 @@ def test_check_landmarks_min_inside_lets_a_detectors_points_cross_the_edge():
         check_landmarks(points + 500.0, 100, 100, "detector", min_inside=0.5)
 
 
+def test_a_wrong_count_says_how_the_callers_source_writes_a_missing_point(tmp_path):
+    """With ``missing``, a wrong count's error says a missing point stays as a NaN row, in the words of the source:
+    a CSV's empty cells, a ``.pts`` line ``nan nan``, an NPY's or an array's NaN row. An array (the Python API,
+    training_hooks' VideoDataset) was told about files: "(a missing point stays, as a NaN row: empty cells, 'nan
+    nan')"."""
+    pts = _dyadic_points()[:67]
+    with pytest.raises(InputError) as info:
+        check_landmarks(pts, 100, 100, "clip.mp4: landmarks", missing=True)
+    expected = "expected 68 iBUG landmarks, got 67 (a missing point stays, as a NaN row"
+    assert str(info.value) == f"clip.mp4: landmarks: {expected})"
+    np.save(tmp_path / "short.npy", pts)
+    (tmp_path / "short.csv").write_text("x,y\n" + "".join(f"{x},{y}\n" for x, y in pts))
+    (tmp_path / "short.pts").write_text(_pts_text(pts))
+    for name, how in (("short.npy", ""), ("short.csv", ": empty cells or nan"), ("short.pts", ": a line 'nan nan'")):
+        with pytest.raises(InputError) as info:
+            read_landmarks(tmp_path / name, 100, 100)
+        assert str(info.value) == f"{tmp_path / name}: {expected}{how})"
+    with pytest.raises(InputError) as info:  # (without missing points: no hint)
+        check_landmarks(pts, 100, 100, "detector")
+    assert str(info.value) == "detector: expected 68 iBUG landmarks, got 67"
+
+
 def test_missing_and_garbled_files(tmp_path):
     with pytest.raises(InputError, match="no such landmarks file"):
         read_landmarks(tmp_path / "nope.csv", 100, 100)

@@ -452,20 +452,25 @@ def test_face_leaves_the_frame_is_lost_then_recovered(model, leaves, with_detect
 TWO_BACK = 11
 
 
-@pytest.fixture(scope="module")
-def two_views():
+def _edge_and_back(yaw_deg: float, photo: str = "james"):
     """The face moves right until 42 % of it is outside the frame (frame 8 on; LOST: ``min_inside_fraction``) and
-    stays there; from ``TWO_BACK`` on a second view of it, in full view on the left and turned -30 degrees of yaw, is
-    composited in (two renders over the same backdrop). ``frames (1, T, 3, H, W)``, the first view's ground truth
-    and the second's."""
+    stays there; from ``TWO_BACK`` on a second face (``photo``), in full view on the left and turned ``yaw_deg`` of
+    yaw, is composited in (two renders over the same backdrop). ``frames (1, T, 3, H, W)``, the first face's ground
+    truth and the second's."""
     T = TWO_BACK + 8
     xa = [150.0 + 8 * i for i in range(9)] + [214.0] * (T - 9)
     xb = [5000.0] * TWO_BACK + [-60.0] * (T - TWO_BACK)  # (5000 mm: out of the picture)
     fa, ga = render_sequence(spec_of("edge", [[0.0, 0.0, 0.0]] * T, [[x, 0.0, 450.0] for x in xa]))
-    fb, gb = render_sequence(spec_of("back", [[-30.0, 0.0, 0.0]] * T, [[x, 0.0, 450.0] for x in xb]))
+    fb, gb = render_sequence(spec_of("back", [[yaw_deg, 0.0, 0.0]] * T, [[x, 0.0, 450.0] for x in xb], photo=photo))
     backdrop, _ = render_sequence(spec_of("none", [[0.0, 0.0, 0.0]] * T, [[5000.0, 0.0, 450.0]] * T))
     first = (fa - backdrop).abs().amax(1, keepdim=True) > 0  # the first view's pixels
     return torch.where(first, fa, fb)[None], ga, gb
+
+
+@pytest.fixture(scope="module")
+def two_views():
+    """:func:`_edge_and_back` of the same face: its second view turned -30 degrees of yaw."""
+    return _edge_and_back(-30.0)
 
 
 def test_a_continued_track_out_of_the_frame_loses_to_any_candidate(model, two_views):
@@ -513,6 +518,38 @@ def test_a_continued_track_out_of_the_frame_gives_way_only_to_a_confident_candid
     results, _ = track(model, LEAVE_CFG, frames, landmarks(ga))
     assert max(capped) > 0.5, capped  # the candidate would have been adopted (as in the test above) but for the cap
     assert not any(bool(results[i].success[0]) for i in range(TWO_BACK, len(results))), [int(r.status[0]) for r in results]
+
+def test_a_cut_to_another_person_beside_a_track_out_of_the_frame_restarts_from_the_detector(model):
+    """``restart_after_unmatched`` counts an attempt as unmatched when the detector's candidate scores under
+    ``adopt_min_confidence`` and the continued track does too or is out of the frame (its confidence is that of
+    the patches still in view, as for the adoption): here the first person's face stays 42 % out at the right
+    edge (the track on it scores 0.98, LOST) and another person (the astronaut photograph) appears on the left,
+    found by the detector (the renderer's landmarks) from ``TWO_BACK`` on. With the setting 2 the stream starts
+    afresh at the second unmatched attempt and is tracked on the new face to the end; before, the track's 0.98
+    counted as a match and the stream stayed LOST to the end, as it does with the setting off (0)."""
+    frames, ga, gb = _edge_and_back(0.0, photo="astronaut")
+    T = frames.shape[1]
+    new = torch.arange(T) >= TWO_BACK
+    lms = torch.where(new[:, None, None], gb.landmarks_px, ga.landmarks_px)
+    visible = gb.landmarks_visible & new[:, None]  # (no face found before the second one: NaN landmarks)
+    every, k = 2, 2
+    runs = []
+    for setting in (0, k):
+        config = replace(CFG, template=replace(CFG.template, recovery_every=every, restart_after_unmatched=setting))
+        runs.append(_track_with_renderer_detector(model, config, frames, lms, visible, True))
+    off, on = ([int(r.status[0]) for r in results] for results in runs)
+    assert all(s == LOST for s in off[TWO_BACK - 3 :]), off  # the premise: LOST at the edge, and to the end
+    assert float(runs[0][-1].confidence[0]) > 0.9, float(runs[0][-1].confidence[0])  # the track's patches in view
+    # Attempts at the loss (frame 8) and every 2 frames on: the first k with the new face in view (12, 14) are
+    # unmatched and show the same face; the k-th restarts the stream.
+    back = 8 + every * math.ceil((TWO_BACK - 8) / every) + (k - 1) * every
+    assert all(s == LOST for s in on[:back][TWO_BACK - 3 :]), on
+    for i in range(back, T):
+        r = runs[1][i]
+        assert bool(r.success[0]) and float(r.confidence[0]) >= CFG.template.confidence_threshold, (i, on)
+        assert float((r.translation[0].double() - gb.translation[i]).norm()) < 15.0, (i, r.translation[0])
+        assert float(geodesic_angle_deg(r.rotation[0].double(), gb.rotation[i])) < 2.0, i
+
 
 @pytest.mark.parametrize("unconfident", [False, True])
 def test_lost_streams_are_tracked_with_the_conservative_refinement_prior(model, leaves, monkeypatch, unconfident):

@@ -276,6 +276,10 @@ def test_landmarks_with_too_few_points_half_nan_rows_or_infinite_values_are_refu
             VideoDataset([clip.video], [torch.from_numpy(points)], config).sequence(0)
         with pytest.raises(ValueError, match=rf"^landmarks: {message}$"):
             NormaliseFaces(TRACKING)(frames, points)
+    # A wrong count: an array is told a missing point stays a NaN row, not about a file's empty cells or 'nan nan'
+    short = re.escape("expected 68 iBUG landmarks, got 67 (a missing point stays, as a NaN row)")
+    with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {short}$"):
+        list(VideoDataset([clip.video], [np.array(clip.landmarks)[:67]], cfg))
     four = np.full((68, 2), np.nan)
     four[[30, 36, 45, 48]] = clip.landmarks[[30, 36, 45, 48]]
     assert len(list(VideoDataset([clip.video], [four], cfg))) == FRAMES  # (the fit's minimum: tracked)

@@ -269,7 +269,8 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
 
 
 def check_landmarks(
-    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False
+    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False,
+    missing_as: str = "",
 ) -> np.ndarray:
     """Check ``(68, 2)`` pixel landmarks against a ``width x height`` frame; returns them as float64.
 
@@ -280,6 +281,10 @@ def check_landmarks(
     as NaN for the landmark fit to give weight 0, as the tracker's Python API takes it; the points given (finite
     rows) must then be at least the fit's :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4), and ``min_inside``
     counts them alone. False: every point must be finite (a detector's, which gives all or none).
+
+    ``missing_as``: how the points' source writes a missing point, for the error on a wrong count (with
+    ``missing``: "a missing point stays, as a NaN row", then ``: {missing_as}`` where given; :func:`read_landmarks`
+    gives its file format's way, e.g. ``"empty cells or nan"`` for a CSV; an array's caller none).
 
     The points returned are a C-contiguous copy of ``points``.
 
@@ -296,7 +301,7 @@ def check_landmarks(
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputError(f"{where}: expected {NUM_LANDMARKS} (x, y) points, got an array of shape {points.shape}")
     if points.shape[0] != NUM_LANDMARKS:
-        hint = " (a missing point stays, as a NaN row: empty cells, 'nan nan')" if missing else ""
+        hint = f" (a missing point stays, as a NaN row{': ' + missing_as if missing_as else ''})" if missing else ""
         raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}{hint}")
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():
@@ -353,9 +358,12 @@ def read_landmarks(
             points = np.load(p, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
+        missing_as = ""  # (an NPY's missing point is a NaN row)
     else:
         text = _read_text(p)
-        points = _parse_pts(p, text) if _is_pts(p, text) else _parse_csv(p, text)
+        pts = _is_pts(p, text)
+        points = _parse_pts(p, text) if pts else _parse_csv(p, text)
+        missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
     if not np.issubdtype(np.asarray(points).dtype, np.number):
         raise InputError(f"{p}: landmarks must be numbers, got {np.asarray(points).dtype}")
-    return check_landmarks(points, width, height, str(p), missing=missing)
+    return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as)

@@ -216,7 +216,9 @@ class TemplateConfig:
         restart_after_unmatched: with a detector, a lost stream starts afresh from the detector's landmarks
             (a new initialisation: templates, mosaic and reference from that frame) after this many recovery
             attempts in a row at which the detector found a face and neither its candidate nor the continued
-            track scored ``adopt_min_confidence``, each showing the same face as the one before (its normalised
+            track scored ``adopt_min_confidence`` (a track out of the frame, under ``min_inside_fraction`` inside,
+            counts as scoring nothing: its confidence is that of the patches still in view, 0.98 for a face half
+            out at the edge), each showing the same face as the one before (its normalised
             face, placed by the detector's landmarks, matches the previous attempt's at ``confidence_threshold``;
             1: the first such attempt, unchecked): the face on screen is not the one the mosaic holds (a cut to
             another person, README, Known limitations, "Hard cuts": both score 0.00, and the two attempts' faces

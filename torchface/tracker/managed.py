@@ -38,7 +38,8 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    searched depths replaces it. The loss ends when the continued track or a candidate reaches ``recover_confidence``. A lost
    stream's continued track outside the searched depths scores 0 (it went astray, however well its patches
    match). With a detector and ``restart_after_unmatched`` (off by default),
-   a stream whose detected face nothing of its mosaic matched at that many attempts in a row, the same face each
+   a stream whose detected face nothing of its mosaic matched at that many attempts in a row (the candidate and
+   the continued track under ``adopt_min_confidence``, or the track out of the frame), the same face each
    time (a cut to another person), starts afresh from the detector's landmarks.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
@@ -1175,8 +1176,10 @@ def managed_step(
             # The detector found a face and neither its candidate nor the continued track scores
             # adopt_min_confidence: the mosaic matches nothing there (a cut to another person: both score 0.00).
             # After restart_after_unmatched such attempts in a row, each showing the same face, the stream starts
-            # afresh from the detector's landmarks (below).
-            blind = found & (r_conf < tc.adopt_min_confidence) & (conf[index] < tc.adopt_min_confidence)
+            # afresh from the detector's landmarks (below). A continued track out of the frame matches nothing
+            # whatever it scores (``away``, as for the adoption above): a cut to another person while the first
+            # one's face stood half out at the edge, whose patches still in view scored 0.98, stayed LOST to the end.
+            blind = found & (r_conf < tc.adopt_min_confidence) & ((conf[index] < tc.adopt_min_confidence) | away)
             unmatched, unmatched_face = _count_unmatched(model, config, state, ms, frames, index, r_starts, blind)
         if bool(adopt.any()):
             rows = index[adopt]
