@@ -50,7 +50,8 @@ refined fit recorded in ``<stem>.record.partial`` (which also names the input th
 and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does
 not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
 settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
-or removed from the settings since the interrupted run's version is not compared), as is a damaged or missing record
+the settings since the interrupted run's version is compared at its default, what that version did, one removed since
+is not compared), as is a damaged or missing record
 or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one, or whose ``timestamp`` is not
 its frame's time, :func:`_check_replayed_time`); the parameters of the rows
 already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
@@ -86,7 +87,7 @@ import unicodedata
 import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -910,12 +911,18 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
     late = {"first face at frame": stream.start} if stream.start else {}
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16], **late,
-        **_as_json({
-            "--focal": None if config.focal is None else float(config.focal), "--convert": config.convert,
-            "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
-            "--detector": config.detector, "re-detection": (config.redetect_after, config.redetect_below),
-            "normalised size": config.normalised_size,
-        }),
+        **_as_json(_setting_values(config)),
+    }  # fmt: skip
+
+
+def _setting_values(config: JobConfig) -> dict[str, object]:
+    """The settings of :func:`_settings` that change the tracking, under its names, as Python values (the settings
+    dataclasses themselves: :func:`_with_defaults` takes the defaults of the fields a record lacks from them)."""
+    return {
+        "--focal": None if config.focal is None else float(config.focal), "--convert": config.convert,
+        "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
+        "--detector": config.detector, "re-detection": (config.redetect_after, config.redetect_below),
+        "normalised size": config.normalised_size,
     }  # fmt: skip
 
 
@@ -954,11 +961,38 @@ def _changed_settings(made_with: dict, now: dict[str, object]) -> list[str]:
     return [k for k in now if k not in made_with or _setting_differences(made_with[k], now[k])]
 
 
+def _with_defaults(then: object, value: object) -> object:
+    """The setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) with each field that it lacks and
+    the settings dataclass of ``value`` (the setting now, a Python value: :func:`_setting_values`,
+    :func:`_result_settings`) has, at that field's default, as JSON, nested dataclasses alike: a field added to a
+    settings dataclass since ``then`` was written is compared as what the earlier version did, which a version
+    that added it kept by default (a partial run's record from before ``motion_prediction`` existed, resumed with
+    ``--motion-prediction 0.5``, mixed two settings in one video). A field without a default stays absent (not
+    compared, :func:`_setting_differences`), as does one that ``then`` has and ``value``'s dataclass no longer
+    does (removed since)."""
+    if isinstance(then, dict) and is_dataclass(value) and not isinstance(value, type):
+        out = dict(then)
+        for f in fields(value):
+            if f.name in then:
+                out[f.name] = _with_defaults(then[f.name], getattr(value, f.name))
+            elif f.default is not MISSING:
+                out[f.name] = _as_json(f.default)
+            elif f.default_factory is not MISSING:
+                out[f.name] = _as_json(f.default_factory())
+        return out
+    if isinstance(then, dict) and isinstance(value, dict):  # (the settings by name: their own keys compared)
+        return {k: _with_defaults(v, value[k]) if k in value else v for k, v in then.items()}
+    if isinstance(then, list) and isinstance(value, (list, tuple)) and len(then) == len(value):
+        return [_with_defaults(a, b) for a, b in zip(then, value)]
+    return then
+
+
 def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
-    """Where the setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) differs from ``now``: the
-    dotted names of the fields that differ (``""``: the whole value). Numbers compare by value (``5`` and ``5.0``
-    are one setting); a field that only one of them has (one added to, or removed from, a settings dataclass
-    between versions) is not compared: a version that added it kept what the earlier one did by default."""
+    """Where the setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`; the fields it lacks filled
+    with their defaults first, :func:`_with_defaults`) differs from ``now``: the dotted names of the fields that
+    differ (``""``: the whole value). Numbers compare by value (``5`` and ``5.0`` are one setting); a field that
+    only one of them has (one removed from a settings dataclass between versions, or one without a default) is not
+    compared."""
     if isinstance(then, dict) and isinstance(now, dict):
         return [d for k in then.keys() & now.keys() for d in _setting_differences(then[k], now[k], f"{at}{k}.")]
     if isinstance(then, list) and isinstance(now, list) and len(then) == len(now):
@@ -1033,6 +1067,7 @@ def _recorded_first_face(config: JobConfig, reader: FrameReader, name: str) -> t
         return None
     found = _Stream(name, reader, points, f"detector:{config.detector}", reader.info.num_frames, start=frame)
     now = _settings(config, found)  # (the landmarks and the frame among them)
+    made_with = _with_defaults(made_with, _setting_values(config))
     if _changed_settings(made_with, now) or set(made_with) - set(now):
         return None
     return frame, points
@@ -1074,10 +1109,13 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
 
 
 def _read_record(
-    path: Path, video: Path, settings: dict[str, object], num_shape: int, num_animation: int
+    path: Path, video: Path, settings: dict[str, object], values: dict[str, object], num_shape: int,
+    num_animation: int,
 ) -> _Anchor | None:
-    """The re-anchoring in a partial run's record (None: none); ``num_shape``, ``num_animation``: the model's
-    units, the sizes of the re-anchoring's fields.
+    """The re-anchoring in a partial run's record (None: none); ``settings``: this run's (:func:`_settings`),
+    ``values``: its :func:`_setting_values` (the defaults of the fields a record of an earlier version lacks,
+    :func:`_with_defaults`); ``num_shape``, ``num_animation``: the model's units, the sizes of the re-anchoring's
+    fields.
 
     Raises:
         InputError: the record belongs to another input, was made with other settings or from an input file
@@ -1099,6 +1137,7 @@ def _read_record(
                          for k, v in made_with.items()}  # fmt: skip
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{path}: cannot resume, this record is unreadable: run without --resume") from None
+    made_with = _with_defaults(made_with, values)  # (a field added since: its default, what that version did)
     problem = _anchor_problem(anchor, num_shape, num_animation)
     if problem is not None:  # (it raised a bare TypeError or RuntimeError later, or resumed from NaN silently)
         raise InputError(f"{path}: cannot resume, this record is damaged ({problem}): run without --resume")
@@ -1226,7 +1265,8 @@ def _check_inputs_kept(
 def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
     settings than ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a
-    sidecar without one of them: not compared), or without the meshes ``config.meshes`` asks for."""
+    sidecar without one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
+    :func:`_with_defaults`), or without the meshes ``config.meshes`` asks for."""
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
         made, made_with = sidecar["input"], sidecar.get("config", {})
@@ -1237,6 +1277,7 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
     now = _as_json(_result_settings(config))  # as the sidecar holds them
+    made_with = _with_defaults(made_with, _result_settings(config))  # (a field added since: at its default)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
@@ -1767,7 +1808,8 @@ def _track_group(
             record = _record_path(p["csv"])
             s.anchor = None
             if s.csv.rows_done:  # (made with other settings, a detector among them, its rows are not this run's)
-                s.anchor = _read_record(record, s.reader.info.path, s.settings, model.num_shape, model.num_animation)
+                s.anchor = _read_record(record, s.reader.info.path, s.settings, _setting_values(config),
+                                        model.num_shape, model.num_animation)  # fmt: skip
             if s.replay is None:  # (no tracked row: nothing re-anchored)
                 s.anchor = None
             elif s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):

@@ -2117,6 +2117,40 @@ def test_resume_skips_complete_outputs_whose_settings_are_equal_in_another_versi
         track_videos([short], replace(config, resume=True))
 
 
+def test_a_settings_field_an_earlier_versions_record_lacks_is_compared_at_its_default(clip, tmp_path):
+    """A field added to a settings dataclass since a partial run's record (or a complete run's sidecar) was written
+    was not compared: a record from before ``motion_prediction`` existed, resumed with ``--motion-prediction 0.5``,
+    was accepted (rows 0-1 tracked without it, the rest with it, in one video). Now it is compared at its default,
+    what the earlier version did: refused, naming it (nested fields alike), and resumed with the default."""
+    from torchface.tracker.step import TrackerConfig
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    base = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None, resume=True)
+    record_path = out / "short.record.partial"
+    for field, other, name in ((("motion_prediction",), TrackerConfig(motion_prediction=0.5), "motion_prediction"),
+                               (("template", "recovery_every"), replace(TrackerConfig(), template=replace(
+                                   TrackerConfig().template, recovery_every=3)), r"template\.recovery_every")):
+        _interrupted(short, out, lm, 2, refine_first=None)
+        record = json.loads(record_path.read_text())
+        holder = record["settings"]["tracker settings"]
+        for key in field[:-1]:
+            holder = holder[key]
+        del holder[field[-1]]  # a field added since
+        record_path.write_text(json.dumps(record))
+        with pytest.raises(InputError, match=rf"other settings or input \(tracker settings: {name}\)"):
+            track_videos([short], replace(base, tracker=other))
+    assert track_videos([short], base)[0].frames == 4
+    path = output_paths(out, "short")["json"]  # complete outputs (the sidecar's config.tracker) alike
+    sidecar = json.loads(path.read_text())
+    del sidecar["config"]["tracker"]["motion_prediction"]
+    path.write_text(json.dumps(sidecar))
+    with pytest.raises(InputError, match=r"other settings \(tracker: motion_prediction\)"):
+        track_videos([short], replace(base, tracker=TrackerConfig(motion_prediction=0.5)))
+    assert track_videos([short], base)[0].skipped
+
+
 def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch):
     """Ctrl-C after the CSV got its final name but before the JSON (written last) used to leave a CSV that --resume
     ignored (it tracked the whole video again) and, in a batch, the other videos' partial MP4s: now the CSV is
