@@ -961,7 +961,7 @@ def _changed_settings(made_with: dict, now: dict[str, object]) -> list[str]:
     return [k for k in now if k not in made_with or _setting_differences(made_with[k], now[k])]
 
 
-def _with_defaults(then: object, value: object) -> object:
+def _with_defaults(then: Any, value: object) -> Any:
     """The setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) with each field that it lacks and
     the settings dataclass of ``value`` (the setting now, a Python value: :func:`_setting_values`,
     :func:`_result_settings`) has, at that field's default, as JSON, nested dataclasses alike: a field added to a
