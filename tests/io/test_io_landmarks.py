@@ -320,6 +320,24 @@ def test_complete_files_read_as_before_with_empty_cells_in_place(tmp_path):
         read_landmarks(tmp_path / "gap.csv", 100, 100)
 
 
+def test_a_separator_ending_every_line_under_a_header_of_other_words_is_no_cell(tmp_path):
+    """Rows ``x,y,`` under a header line that does not name the cells (a title of three words or more, ``x,y,note``
+    with the note left empty) were read as before the missing points, ``x, y``; since, the header's width decided
+    which empty cells at a row's end were cells: "expected rows of 'x, y' ..., got rows of [3] values". A missing
+    point under such a header stays a NaN row."""
+    pts = _points()
+    rows = [f"{x},{y}," for x, y in pts]
+    for name, header in (("title.csv", "first frame landmarks"), ("note.csv", "x,y,note"),
+                         ("semicolons.csv", "landmarks of frame 0")):  # fmt: skip
+        body = [r.replace(",", ";") for r in rows] if name == "semicolons.csv" else rows
+        (tmp_path / name).write_text(header + "\n" + "\n".join(body) + "\n")
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+    want = pts.copy()
+    want[:2] = np.nan
+    (tmp_path / "gap.csv").write_text("first frame landmarks\n,,\n,\n" + "\n".join(rows[2:]) + "\n")
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "gap.csv", 100, 100), want)
+
+
 def test_too_few_points_given_are_refused_naming_the_file_and_the_count(tmp_path):
     """Fewer than the landmark fit's MIN_FIT_LANDMARKS (4) points given: refused, naming the file and the count; 4
     are read (the fit decides whether they hold a pose). Infinite values, a point with one coordinate missing, a

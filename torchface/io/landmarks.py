@@ -78,6 +78,11 @@ def _number(cell: str) -> float:
     return math.nan if cell.lower() in _MISSING_CELLS else float(cell)
 
 
+def _number_rows(data: list[list[str]], width: int) -> list[list[float]]:
+    """The rows' cells as numbers (NaN: missing), each without the empty cells at its end beyond ``width``."""
+    return [[_number(c) for c in _trimmed(cells, width)] for cells in data]
+
+
 def _named_row(header: str, row: list[float]) -> np.ndarray | None:
     """One row's values placed by a header naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``, ...; ``k`` from 0
     or 1, each once): ``(K, 2)``; None when the header does not name them so."""
@@ -249,17 +254,18 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     if long is not None:
         return _parse_long(p, long_lines, long)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
-    # leaves beyond the row's width: the header's, else one row of 136 or rows of 2 (``x,y,``: x and y).
-    width = len(_trimmed(_cells(header), 0)) if header is not None else 2 if len(data) > 1 else 2 * NUM_LANDMARKS
-    rows = [[_number(c) for c in _trimmed(cells, width)] for cells in data]
+    # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
+    # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
     if header is not None:
+        rows = _number_rows(data, len(_trimmed(_cells(header), 0)))
         openface = _openface_row(p, header, rows)
         if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
             return openface
-    if len(rows) == 1:
-        named = None if header is None else _named_row(header, rows[0])
+        named = _named_row(header, rows[0]) if len(rows) == 1 else None
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
             return named
+    rows = _number_rows(data, 2 if len(data) > 1 else 2 * NUM_LANDMARKS)
+    if len(rows) == 1:
         return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
