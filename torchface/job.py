@@ -1810,8 +1810,8 @@ def _track_group(
             if k in anchored and anchored[k].get("first_shape_coeffs") is not None:  # resumed from the record
                 s.first_shape = list(anchored[k]["first_shape_coeffs"])  # (the state's: the refined shape)
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
-        for s in streams:
-            s.near = s.landmarks
+        for s in streams:  # (a landmarks file's given points: a detector's `near` is told no missing one, NaN)
+            s.near = s.landmarks[np.isfinite(s.landmarks).all(axis=1)]
         # The streams in the tracker's state, in its order (with their output paths and first poses): a video that
         # has ended leaves it before the next step (TrackerState.select), so that the batch shrinks as its videos end.
         live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)

@@ -3558,3 +3558,29 @@ def test_landmarks_files_with_missing_points_track_as_the_python_api_given_nan_r
     err = capsys.readouterr().err
     assert rc == 2 and f"few.npy: 3 of the 68 iBUG points given" in err
     assert f"the landmark fit needs at least {MIN_FIT_LANDMARKS}" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_detector_is_asked_near_the_given_points_of_a_landmarks_file_with_missing_ones(tmp_path, monkeypatch):
+    """A re-detection before the first confident frame asks a detector that takes ``near`` (torchface.detect.Detector:
+    ``(N, 2)`` pixel points of the face wanted) near the first frame's landmarks: a file's missing points reached it
+    as NaN rows (a detector of the protocol's that took their centre got NaN). It is given the points given."""
+    import torchface.detect
+
+    gt = _save_rendered(tmp_path / "c", 160, 120, 450.0, 6.0, n=3)
+    points = gt.landmarks_px[0].double().numpy()
+    partial = points.copy()
+    partial[[*range(9, 17), 42, 43, 44, 45]] = np.nan
+    np.save(tmp_path / "partial.npy", partial)
+    asked = []
+
+    def detector(image_rgb, near=None):
+        asked.append(None if near is None else np.array(near))
+        return points
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "near", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(tmp_path / "partial.npy",), detector="near",
+                       redetect_after=1, redetect_below=1.01, refine_first=None)  # (every frame re-detected)
+    track_videos([tmp_path / "c" / "clip.npy"], config)
+    assert asked and asked[0] is not None
+    given = ~np.isnan(partial).any(axis=1)
+    np.testing.assert_array_equal(asked[0], partial[given])  # (the first frame's: no confident frame yet)
