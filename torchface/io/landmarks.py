@@ -43,7 +43,7 @@ import numpy as np
 
 from torchface.io.errors import InputError
 
-__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks"]
+__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points_problem"]
 
 #: Points in the iBUG-68 scheme.
 NUM_LANDMARKS: int = 68
@@ -274,6 +274,37 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
 
 
+def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str | None:
+    """What is wrong, as one line, with ``(K, 2)`` pixel landmarks whose NaN rows are missing points (a landmarks
+    file's, :func:`check_landmarks` with ``missing``; ``training_hooks``' first-frame landmarks), or None: an infinite
+    coordinate, a row with one coordinate NaN, or fewer points given than the landmark fit's
+    :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4). ``what`` names the points.
+
+    Example:
+        >>> points = np.full((68, 2), np.nan)
+        >>> points[:3] = 10.0
+        >>> missing_points_problem(points)
+        '3 of the 68 iBUG points given, the others missing (NaN): the landmark fit needs at least 4'
+        >>> points[3:8] = 20.0
+        >>> missing_points_problem(points) is None
+        True
+    """
+    points = np.asarray(points, dtype=np.float64)
+    nan = np.isnan(points)
+    half = nan.any(axis=1) & ~nan.all(axis=1)
+    for bad, say in ((np.isinf(points).any(axis=1), "are infinite (a missing point is a NaN row)"),
+                     (half, "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
+        if bad.any():
+            return f"landmark(s) {np.flatnonzero(bad).tolist()[:8]} {say}"
+    from torchface.tracker.fit import MIN_FIT_LANDMARKS  # (here: the tracker imports torch and the model)
+
+    given = int((~nan.any(axis=1)).sum())
+    if given < MIN_FIT_LANDMARKS:
+        return (f"{given} of the {len(points)} {what} given, the others missing (NaN): the landmark fit needs at "
+                f"least {MIN_FIT_LANDMARKS}")  # fmt: skip
+    return None
+
+
 def check_landmarks(
     points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False
 ) -> np.ndarray:
@@ -307,17 +338,9 @@ def check_landmarks(
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():
         raise InputError(f"{where}: landmark(s) {np.flatnonzero(~given).tolist()[:8]} are NaN or infinite")
-    if missing:
-        for bad, what in ((np.isinf(points).any(axis=1), "are infinite (a missing point is a NaN row)"),
-                          (np.isnan(points).any(axis=1) & ~np.isnan(points).all(axis=1),
-                           "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
-            if bad.any():
-                raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} {what}")
-        from torchface.tracker.fit import MIN_FIT_LANDMARKS  # (here: the tracker imports torch and the model)
-
-        if given.sum() < MIN_FIT_LANDMARKS:
-            raise InputError(f"{where}: {int(given.sum())} of the {NUM_LANDMARKS} iBUG points given, the others "
-                             f"missing (NaN): the landmark fit needs at least {MIN_FIT_LANDMARKS}")  # fmt: skip
+    problem = missing_points_problem(points) if missing else None
+    if problem is not None:
+        raise InputError(f"{where}: {problem}")
     u, v = points[:, 0], points[:, 1]
     outside = (u < -0.5) | (u > width - 0.5) | (v < -0.5) | (v > height - 0.5)  # (False for a missing point)
     if outside.sum() > (1.0 - min_inside) * int(given.sum()):
