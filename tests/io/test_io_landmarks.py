@@ -304,7 +304,7 @@ def test_missing_points_read_as_nan_rows_in_every_layout(tmp_path):
         got = read_landmarks(tmp_path / name, 100, 100)
         np.testing.assert_array_equal(got, want, err_msg=name)  # (NaN where NaN, the rest exactly)
     with pytest.raises(InputError, match=r"landmark\(s\) \[0, 1, 2, 3, 36, 48, 67\] are NaN or infinite"):
-        read_landmarks(tmp_path / "rows.csv", 100, 100, missing=False)  # (training_hooks' datasets: all 68)
+        read_landmarks(tmp_path / "rows.csv", 100, 100, missing=False)  # (all 68 asked for)
 
 
 def test_complete_files_read_as_before_with_empty_cells_in_place(tmp_path):
