@@ -712,6 +712,9 @@ class _Stream:
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
     detection_warned: bool = False  # a re-detection's unusable landmarks were warned about (once per video)
+    # the last replayed row (its t) after which a re-detection was due, its detector not asked again (the next rows
+    # hold what it gave): the motion prediction's run of steady frames starts after it (_with_replayed_motion)
+    replayed_redetection: int | None = None
     near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
@@ -1706,10 +1709,12 @@ def _with_replayed_motion(
     the motion prediction's velocity (:attr:`TrackerConfig.motion_prediction`, ``ManagementState.previous_pose`` and
     ``steady``) those rows say, so that the next frame starts from the prediction the uninterrupted run made: the
     confident rows (status converged or iteration limit, ``confidence`` at least ``confidence_threshold``) that end
-    the rows, the first row (the initialisation) and the online start's re-anchoring frame counting none, and the
-    pose of the row before the last, in the stream's own frame. (Without it a resumed stream went two frames without
-    the prediction: 0.18 mm and 0.17 degrees off the uninterrupted run's rows, on the test clip.) A restart
-    (``TemplateConfig.restart_after_unmatched``), which its row does not show, counts as a confident frame."""
+    the rows, the first row (the initialisation), the online start's re-anchoring frame and a row after which a
+    re-detection was due (:attr:`_Stream.replayed_redetection`: taken as made, its detector not asked again)
+    counting none, and the pose of the row before the last, in the stream's own frame. (Without it a resumed stream
+    went two frames without the prediction: 0.18 mm and 0.17 degrees off the uninterrupted run's rows, on the test
+    clip.) A restart (``TemplateConfig.restart_after_unmatched``), which its row does not show, counts as a
+    confident frame."""
     ms = state.management
     if ms is None or not ended or config.motion_prediction <= 0.0:
         return state
@@ -1724,10 +1729,11 @@ def _with_replayed_motion(
         status, conf = rows[:, status_col], rows[:, conf_col]
         ok = (conf >= tc.confidence_threshold) & ~np.isin(status, bad)
         a = streams[k].anchor
-        at = None if a is None else a.get("frame")
+        # (after these rows no velocity: the re-anchoring frame's, and a replayed re-detection's, taken as made)
+        restarts = {None if a is None else a.get("frame"), streams[k].replayed_redetection}
         run = 0
         for t in range(1, len(rows)):  # (row 0 is the initialisation: it counts none)
-            run = run + 1 if bool(ok[t]) and t != at else 0
+            run = run + 1 if bool(ok[t]) and t not in restarts else 0
         steady[k] = run
         if len(rows) >= 2:
             pose = _params_from_rows(rows[-2:-1], columns, layout).to(dtype=P.dtype, device=P.device)
@@ -1852,8 +1858,8 @@ def _track_group(
             if k in anchored and anchored[k].get("first_shape_coeffs") is not None:  # resumed from the record
                 s.first_shape = list(anchored[k]["first_shape_coeffs"])  # (the state's: the refined shape)
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
-        for s in streams:
-            s.near = s.landmarks
+        for s in streams:  # (a landmarks file's given points: a detector's `near` is told no missing one, NaN)
+            s.near = s.landmarks[np.isfinite(s.landmarks).all(axis=1)]
         # The streams in the tracker's state, in its order (with their output paths and first poses): a video that
         # has ended leaves it before the next step (TrackerState.select), so that the batch shrinks as its videos end.
         live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)
@@ -2352,6 +2358,7 @@ def _maybe_redetect(
             continue
         s.low_count = 0
         if replayed[k]:
+            s.replayed_redetection = s.frames - s.start - 1  # (this row's t: its row is written)
             continue
         s.detector_calls += 1
         image = _to_uint8_rgb(frames[k])

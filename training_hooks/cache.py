@@ -134,7 +134,7 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     points = np.ascontiguousarray(np.asarray(landmarks, dtype=np.float64))
     if points.shape != (68, 2):
         raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
-    points = np.where(np.isnan(points), np.nan, points)  # one NaN for a missing point (0 / 0's has the sign bit)
+    points = np.where(np.isnan(points), np.nan, points)  # one NaN for a missing point (x86's 0 / 0 has the sign bit)
     h = hashlib.blake2b(digest_size=32)
     native = config.tracker.backend is not Backend.TORCH and native_available()
     parts = (

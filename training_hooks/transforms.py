@@ -37,10 +37,10 @@ from torch import Tensor
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.extending import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
+from torchface.io.landmarks import missing_points_problem
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
-from torchface.tracker.fit import MIN_FIT_LANDMARKS
 from torchface.tracker.lookahead import LookaheadConfig
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
@@ -380,7 +380,7 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated.
 
     A missing point is a NaN row, which the landmark fit gives weight 0 (as :class:`~torchface.tracker.FaceTracker`
-    takes it); the rules of a landmarks file (:func:`torchface.io.check_landmarks` with ``missing``): at least
+    takes it); the rules of a landmarks file (:func:`torchface.io.landmarks.missing_points_problem`): at least
     :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` points given, no row with one coordinate NaN, nothing infinite.
     """
     if isinstance(landmarks, np.ndarray):  # copied: a read-only array (np.load's mmap) made torch warn; and
@@ -392,17 +392,11 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     if tuple(landmarks.shape) != (count, 2):
         what = "iBUG points" if count == 68 else "points, the model's landmarks,"
         raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
-    nan = torch.isnan(landmarks)
-    half = nan.any(-1) & ~nan.all(-1)
-    for bad, what in ((torch.isinf(landmarks).any(-1), "are infinite (a missing point is a NaN row)"),
-                      (half, "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
-        if bool(bad.any()):
-            raise ValueError(f"landmarks: landmark(s) {torch.nonzero(bad).flatten().tolist()[:8]} {what}")
-    given = int((~nan.any(-1)).sum())
-    if given < MIN_FIT_LANDMARKS:  # (the Python API starts such a stream FAILED; a dataset's item would be junk)
-        what = "iBUG points" if count == 68 else "points"
-        raise ValueError(f"landmarks: {given} of the {count} {what} given, the others missing (NaN): the landmark fit "
-                         f"needs at least {MIN_FIT_LANDMARKS}")  # fmt: skip
+    # (too few points given: the Python API starts such a stream FAILED; a dataset's item would be junk)
+    points = landmarks.detach().to(device="cpu", dtype=torch.float64).numpy()
+    problem = missing_points_problem(points, "iBUG points" if count == 68 else "points")
+    if problem is not None:
+        raise ValueError(f"landmarks: {problem}")
     # The sequence's own CPU copy, out of any graph: the caller's float64 tensor itself was kept (a buffer refilled
     # for the next video changed the sequence's landmarks), and one that required grad failed TrackCache.store.
     return landmarks.detach().to(device="cpu", dtype=torch.float64, copy=True)

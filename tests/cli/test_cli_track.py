@@ -1286,6 +1286,31 @@ def test_a_redetection_restarts_the_motion_prediction(tmp_path, monkeypatch):
     assert all(s[0] == steps[i - 1][1] for i, s in enumerate(steps[1:], 1) if (i, s) not in after), steps
 
 
+def test_a_resume_after_a_replayed_redetection_goes_on_without_its_velocity(tmp_path, monkeypatch):
+    """A re-detection restarts the motion prediction (steady 0); a resumed video rebuilt the velocity from its
+    replayed rows, which do not show a re-detection made after one of them: interrupted two rows after one (rows 0-3,
+    re-detected after row 2), the resumed run predicted frame 4 across the re-fit, 0.02 off the uninterrupted run's
+    pose (which started it from frame 3's estimate); now every confident row is that run's."""
+    import torchface.detect
+    from torchface.tracker.step import TrackerConfig
+
+    gt = _save_rendered(tmp_path / "c", 160, 120, 450.0, 60.0, n=12)
+    clip, lm = tmp_path / "c" / "clip.npy", tmp_path / "c" / "lm.csv"
+    monkeypatch.setitem(torchface.detect.DETECTORS, "first", lambda: lambda image: gt.landmarks_px[0].double().numpy())
+    settings = dict(detector="first", redetect_after=3, redetect_below=1.01, refine_first=None,
+                    tracker=TrackerConfig(motion_prediction=1.0))  # (re-detected after rows 2 and 5, confident)
+    track_videos([clip], JobConfig(out_dir=tmp_path / "ref", landmarks=(lm,), **settings))
+    cols, want = read_track_csv(tmp_path / "ref" / "clip.csv")
+    confident = np.flatnonzero(want[:, cols.index("confidence")] >= 0.3)
+    assert set(range(6)) <= set(confident)
+    _interrupted(clip, tmp_path / "out", lm, 4, **settings)  # rows 0-3 written
+    track_videos([clip], JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), resume=True, **settings))
+    _, got = read_track_csv(tmp_path / "out" / "clip.csv")
+    pose = [cols.index(c) for c in ("pose_Rx", "pose_Ry", "pose_Rz", "pose_Tx", "pose_Ty", "pose_Tz")]
+    worst = np.abs(got - want)[np.ix_(confident, pose)].max(axis=1)
+    assert worst.max() < 1e-3, dict(zip(confident.tolist(), worst.round(4).tolist()))
+
+
 def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
     """``track_videos("clip.avi", ...)`` took each character as an input ("same outputs 'p'"), a Path gave
     "'PosixPath' object is not iterable", and ``JobConfig(landmarks="lm.csv")`` asked for one file per character."""
@@ -3592,3 +3617,29 @@ def test_landmarks_files_with_missing_points_track_as_the_python_api_given_nan_r
     err = capsys.readouterr().err
     assert rc == 2 and f"few.npy: 3 of the 68 iBUG points given" in err
     assert f"the landmark fit needs at least {MIN_FIT_LANDMARKS}" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_detector_is_asked_near_the_given_points_of_a_landmarks_file_with_missing_ones(tmp_path, monkeypatch):
+    """A re-detection before the first confident frame asks a detector that takes ``near`` (torchface.detect.Detector:
+    ``(N, 2)`` pixel points of the face wanted) near the first frame's landmarks: a file's missing points reached it
+    as NaN rows (a detector of the protocol's that took their centre got NaN). It is given the points given."""
+    import torchface.detect
+
+    gt = _save_rendered(tmp_path / "c", 160, 120, 450.0, 6.0, n=3)
+    points = gt.landmarks_px[0].double().numpy()
+    partial = points.copy()
+    partial[[*range(9, 17), 42, 43, 44, 45]] = np.nan
+    np.save(tmp_path / "partial.npy", partial)
+    asked = []
+
+    def detector(image_rgb, near=None):
+        asked.append(None if near is None else np.array(near))
+        return points
+
+    monkeypatch.setitem(torchface.detect.DETECTORS, "near", lambda: detector)
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(tmp_path / "partial.npy",), detector="near",
+                       redetect_after=1, redetect_below=1.01, refine_first=None)  # (every frame re-detected)
+    track_videos([tmp_path / "c" / "clip.npy"], config)
+    assert asked and asked[0] is not None
+    given = ~np.isnan(partial).any(axis=1)
+    np.testing.assert_array_equal(asked[0], partial[given])  # (the first frame's: no confident frame yet)

@@ -326,7 +326,7 @@ def test_missing_points_read_as_nan_rows_in_every_layout(tmp_path):
         got = read_landmarks(tmp_path / name, 100, 100)
         np.testing.assert_array_equal(got, want, err_msg=name)  # (NaN where NaN, the rest exactly)
     with pytest.raises(InputError, match=r"landmark\(s\) \[0, 1, 2, 3, 36, 48, 67\] are NaN or infinite"):
-        read_landmarks(tmp_path / "rows.csv", 100, 100, missing=False)  # (training_hooks' datasets: all 68)
+        read_landmarks(tmp_path / "rows.csv", 100, 100, missing=False)  # (all 68 asked for)
 
 
 def test_complete_files_read_as_before_with_empty_cells_in_place(tmp_path):
@@ -340,6 +340,24 @@ def test_complete_files_read_as_before_with_empty_cells_in_place(tmp_path):
     (tmp_path / "gap.csv").write_text("".join(f"{x},{y}\n" for x, y in pts[:-1]) + "1,,2\n")
     with pytest.raises(InputError, match=r"rows of \[2, 3\] values"):
         read_landmarks(tmp_path / "gap.csv", 100, 100)
+
+
+def test_a_separator_ending_every_line_under_a_header_of_other_words_is_no_cell(tmp_path):
+    """Rows ``x,y,`` under a header line that does not name the cells (a title of three words or more, ``x,y,note``
+    with the note left empty) were read as before the missing points, ``x, y``; since, the header's width decided
+    which empty cells at a row's end were cells: "expected rows of 'x, y' ..., got rows of [3] values". A missing
+    point under such a header stays a NaN row."""
+    pts = _points()
+    rows = [f"{x},{y}," for x, y in pts]
+    for name, header in (("title.csv", "first frame landmarks"), ("note.csv", "x,y,note"),
+                         ("semicolons.csv", "landmarks of frame 0")):  # fmt: skip
+        body = [r.replace(",", ";") for r in rows] if name == "semicolons.csv" else rows
+        (tmp_path / name).write_text(header + "\n" + "\n".join(body) + "\n")
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+    want = pts.copy()
+    want[:2] = np.nan
+    (tmp_path / "gap.csv").write_text("first frame landmarks\n,,\n,\n" + "\n".join(rows[2:]) + "\n")
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "gap.csv", 100, 100), want)
 
 
 def test_too_few_points_given_are_refused_naming_the_file_and_the_count(tmp_path):

@@ -46,7 +46,7 @@ class DetectorUnavailable(ImportError):
 class Detector(Protocol):
     """``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks in pixels, or None when no face is found``.
 
-    A detector may also take a keyword ``near``: ``(N, 2)`` pixel points of the face wanted (None: any); of
+    A detector may also take a keyword ``near``: ``(N, 2)`` finite pixel points of the face wanted (None: any); of
     several faces it then returns the one nearest them. A job passes it the tracked face's last confident position
     at a re-detection, so that a stream lost beside another face comes back to its own (``dlib`` takes it; without
     it, ``dlib`` returns the largest face).

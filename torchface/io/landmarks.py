@@ -43,7 +43,7 @@ import numpy as np
 
 from torchface.io.errors import InputError
 
-__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks"]
+__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points_problem"]
 
 #: Points in the iBUG-68 scheme.
 NUM_LANDMARKS: int = 68
@@ -76,6 +76,11 @@ _MISSING_CELLS: frozenset[str] = frozenset({"", "na", "n/a", "null", "none"})
 def _number(cell: str) -> float:
     """A cell's number; NaN for a missing value (:data:`_MISSING_CELLS`). Raises ValueError for other text."""
     return math.nan if cell.lower() in _MISSING_CELLS else float(cell)
+
+
+def _number_rows(data: list[list[str]], width: int) -> list[list[float]]:
+    """The rows' cells as numbers (NaN: missing), each without the empty cells at its end beyond ``width``."""
+    return [[_number(c) for c in _trimmed(cells, width)] for cells in data]
 
 
 def _named_row(header: str, row: list[float]) -> np.ndarray | None:
@@ -249,23 +254,55 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     if long is not None:
         return _parse_long(p, long_lines, long)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
-    # leaves beyond the row's width: the header's, else one row of 136 or rows of 2 (``x,y,``: x and y).
-    width = len(_trimmed(_cells(header), 0)) if header is not None else 2 if len(data) > 1 else 2 * NUM_LANDMARKS
-    rows = [[_number(c) for c in _trimmed(cells, width)] for cells in data]
+    # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
+    # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
     if header is not None:
+        rows = _number_rows(data, len(_trimmed(_cells(header), 0)))
         openface = _openface_row(p, header, rows)
         if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
             return openface
-    if len(rows) == 1:
-        named = None if header is None else _named_row(header, rows[0])
+        named = _named_row(header, rows[0]) if len(rows) == 1 else None
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
             return named
+    rows = _number_rows(data, 2 if len(data) > 1 else 2 * NUM_LANDMARKS)
+    if len(rows) == 1:
         return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
         raise InputError(f"{p}: expected rows of 'x, y' (or, one row per point, a header naming ibug_index, x and y "
                          f"columns), got rows of {sorted(widths)} values")  # fmt: skip
     return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+
+
+def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str | None:
+    """What is wrong, as one line, with ``(K, 2)`` pixel landmarks whose NaN rows are missing points (a landmarks
+    file's, :func:`check_landmarks` with ``missing``; ``training_hooks``' first-frame landmarks), or None: an infinite
+    coordinate, a row with one coordinate NaN, or fewer points given than the landmark fit's
+    :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4). ``what`` names the points.
+
+    Example:
+        >>> points = np.full((68, 2), np.nan)
+        >>> points[:3] = 10.0
+        >>> missing_points_problem(points)
+        '3 of the 68 iBUG points given, the others missing (NaN): the landmark fit needs at least 4'
+        >>> points[3:8] = 20.0
+        >>> missing_points_problem(points) is None
+        True
+    """
+    points = np.asarray(points, dtype=np.float64)
+    nan = np.isnan(points)
+    half = nan.any(axis=1) & ~nan.all(axis=1)
+    for bad, say in ((np.isinf(points).any(axis=1), "are infinite (a missing point is a NaN row)"),
+                     (half, "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
+        if bad.any():
+            return f"landmark(s) {np.flatnonzero(bad).tolist()[:8]} {say}"
+    from torchface.tracker.fit import MIN_FIT_LANDMARKS  # (here: the tracker imports torch and the model)
+
+    given = int((~nan.any(axis=1)).sum())
+    if given < MIN_FIT_LANDMARKS:
+        return (f"{given} of the {len(points)} {what} given, the others missing (NaN): the landmark fit needs at "
+                f"least {MIN_FIT_LANDMARKS}")  # fmt: skip
+    return None
 
 
 def check_landmarks(
@@ -306,17 +343,9 @@ def check_landmarks(
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():
         raise InputError(f"{where}: landmark(s) {np.flatnonzero(~given).tolist()[:8]} are NaN or infinite")
-    if missing:
-        for bad, what in ((np.isinf(points).any(axis=1), "are infinite (a missing point is a NaN row)"),
-                          (np.isnan(points).any(axis=1) & ~np.isnan(points).all(axis=1),
-                           "have one coordinate NaN (a missing point has neither)")):  # fmt: skip
-            if bad.any():
-                raise InputError(f"{where}: landmark(s) {np.flatnonzero(bad).tolist()[:8]} {what}")
-        from torchface.tracker.fit import MIN_FIT_LANDMARKS  # (here: the tracker imports torch and the model)
-
-        if given.sum() < MIN_FIT_LANDMARKS:
-            raise InputError(f"{where}: {int(given.sum())} of the {NUM_LANDMARKS} iBUG points given, the others "
-                             f"missing (NaN): the landmark fit needs at least {MIN_FIT_LANDMARKS}")  # fmt: skip
+    problem = missing_points_problem(points) if missing else None
+    if problem is not None:
+        raise InputError(f"{where}: {problem}")
     u, v = points[:, 0], points[:, 1]
     outside = (u < -0.5) | (u > width - 0.5) | (v < -0.5) | (v > height - 0.5)  # (False for a missing point)
     if outside.sum() > (1.0 - min_inside) * int(given.sum()):
