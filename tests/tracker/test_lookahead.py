@@ -998,16 +998,19 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
     frames, gt, lm = _dense_and_five_point_starts(model)
     cfg = replace(CFG, fit=TrackerConfig().fit)
     seen = {}
-    real = managed_module._refine_first_fit
+    real = managed_module._stream_start
 
     def spy(model, frames, intrinsics, landmarks_px, *args, **kwargs):
         out = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)
-        least = [kwargs.pop(name, None) for name in ("min_shape_prior_precision", "min_expression_prior_precision")]
-        dense = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)  # (the least precisions 0)
-        seen[int(torch.isfinite(landmarks_px).all(-1).sum())] = (*least, out[0], dense[0])
+        least = [kwargs.pop(name) for name in ("min_shape_prior_precision", "min_expression_prior_precision")]
+        dense = real(model, frames, intrinsics, landmarks_px, *args, min_shape_prior_precision=0.0,
+                     min_expression_prior_precision=0.0, **kwargs)  # fmt: skip
+        la = kwargs["config"]
+        seen[int(torch.isfinite(landmarks_px).all(-1).sum())] = (
+            *least, *(lookahead._refine_starts(model, [s], intrinsics, la)[0] for s in (out, dense)))
         return out
 
-    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    monkeypatch.setattr(managed_module, "_stream_start", spy)
     tracker = FaceTracker(cfg, model=model, refine_first=LookaheadConfig(iterations=(6, 4), max_points=1500))
     tracker.initialise(frames[:, 0], lm, gt.intrinsics)
     for i in range(1, frames.shape[1]):
@@ -1103,3 +1106,110 @@ def test_refinement_checks_its_least_precisions(model):
         with pytest.raises(TypeError, match=f"{name} must be a real number"):
             refine_first_fit(model, frames, gt.intrinsics, lm, fit, gt.rotation[1:].float(),
                              gt.translation[1:].float(), **{name: "64"})  # fmt: skip
+
+
+def _three_starts(model, la):
+    """Three streams' refinement problems (``lookahead._stream_start``) of the first frame and a 12-degree keyframe:
+    landmarks with 1.5 px of noise of seeds 0 and 1 (their template points differ in number: the batch pads them), and
+    a five-point start with weights (the sparse priors)."""
+    from torchface.tracker import lookahead
+
+    frames, gt = render([[0.0, 0.0, 0.0], [12.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = torch.cat([gt.landmarks_px.float()[:1] + 1.5 * torch.randn(1, model.num_landmarks, 2,
+                                                                    generator=torch.Generator().manual_seed(seed))
+                    for seed in (0, 1, 2)])  # fmt: skip
+    lm[2, [i for i in range(model.num_landmarks) if i not in FIVE]] = float("nan")
+    weights = [None, None, torch.linspace(0.5, 1.0, model.num_landmarks)]
+    fc = TrackerConfig().fit
+    starts = []
+    for b in range(3):
+        fit = fit_landmarks(model, lm[b : b + 1], gt.intrinsics, None if weights[b] is None else weights[b][None],
+                            config=fc)  # fmt: skip
+        starts.append(lookahead._stream_start(
+            model, frames, gt.intrinsics, lm[b], fit, gt.rotation[1:].float(), gt.translation[1:].float(),
+            key_expression=torch.zeros(1, model.num_animation), landmark_weights=weights[b], config=la,
+            backend=CFG.backend, **lookahead.landmark_fit_priors(model, fc, gt.intrinsics, lm[b], weights[b]),
+        ))  # fmt: skip
+    return starts, gt
+
+
+def _assert_refined_alike(model, together, starts, intrinsics, la):
+    """``together`` (``_refine_starts``' output for ``starts``) equals each start refined alone, to 1e-5 relative."""
+    from torchface.tracker import lookahead
+
+    fit, key_R, key_t = together
+    for b, start in enumerate(starts):
+        one, one_R, one_t = lookahead._refine_starts(model, [start], intrinsics, la)
+        for name in LandmarkFit.__dataclass_fields__:
+            torch.testing.assert_close(getattr(fit, name)[b : b + 1], getattr(one, name), rtol=1e-5, atol=1e-6,
+                                       msg=lambda m, n=name: f"stream {b} {n}: {m}")  # fmt: skip
+        torch.testing.assert_close(key_R[b : b + 1], one_R, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(key_t[b : b + 1], one_t, rtol=1e-5, atol=1e-6)
+
+
+def test_streams_refined_together_equal_each_refined_alone(model):
+    """The online start refines the streams that re-anchor on one frame in one batched solve
+    (``lookahead._refine_starts``: each stream's own damping, steps and stopping; their points padded to the most of
+    them): each stream's refined fit and keyframe pose equal its refinement alone, to 1e-5 relative, with streams of
+    different point counts, a sparse start and landmark weights in the batch, and in any order. (One after another,
+    8 streams stalled their re-anchoring frame 8 times one's cost.)"""
+    # (a gradient threshold that leaves fewer points than the cap: the streams select 1561, 1724 and 1383)
+    la = LookaheadConfig(iterations=(4, 3), max_points=5000, gradient_threshold=0.05)
+    starts, gt = _three_starts(model, la)
+    from torchface.tracker import lookahead
+
+    assert len({s.fi.shape[0] for s in starts}) > 1  # the padding is exercised
+    _assert_refined_alike(model, lookahead._refine_starts(model, starts, gt.intrinsics, la), starts, gt.intrinsics, la)
+    turned = starts[::-1]
+    _assert_refined_alike(model, lookahead._refine_starts(model, turned, gt.intrinsics, la), turned, gt.intrinsics, la)
+    one = lookahead._refine_starts(model, starts[:1], gt.intrinsics, la)[0]
+    assert not torch.equal(one.rotation, starts[0].x.new_zeros(0))  # (smoke: a batch of one)
+
+
+def test_a_mixed_batch_re_anchors_its_turned_streams_in_one_solve(model, monkeypatch):
+    """A batch of four streams: two turn (landmark noise of seeds 0 and 1) and re-anchor on the same frame, one's
+    frames stop before the turn, one loses its face (blank frames from frame 1). The two are refined in one batched
+    solve on that frame, each as alone (1e-5); tracked alone they re-anchor on the same frame, to the same poses and
+    template points (to the float32 tracking's differences between a batch and one stream); the other two track as
+    without the online start (to float32 rounding)."""
+    import torchface.tracker.managed as managed_module
+    from torchface.tracker import lookahead
+
+    yaw = [0.0, 4.0, 8.0, 12.0, 16.0, 12.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    still, blank = frames.clone(), frames.clone()
+    still[2:] = frames[1]
+    blank[1:] = 0.5
+    clips = torch.stack([frames, frames, still, blank])
+    lm = torch.cat([gt.landmarks_px.float()[:1] + 1.5 * torch.randn(1, model.num_landmarks, 2,
+                                                                    generator=torch.Generator().manual_seed(seed))
+                    for seed in (0, 1, 0, 0)])  # fmt: skip
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+    calls = []
+    real = managed_module._refine_starts
+
+    def spy(model, starts, intrinsics, config, **kwargs):
+        out = real(model, starts, intrinsics, config, **kwargs)
+        calls.append((list(starts), out, config))
+        return out
+
+    monkeypatch.setattr(managed_module, "_refine_starts", spy)
+    R_on, at, tracker = _track(model, clips, lm, gt.intrinsics, la)
+    turn = yaw.index(12.0)
+    assert at == [turn, turn, None, None], at
+    assert len(calls) == 1 and len(calls[0][0]) == 2  # one solve of both turned streams
+    starts, together, cfg = calls[0]
+    _assert_refined_alike(model, together, starts, gt.intrinsics, cfg)
+    pts = [t.points for t in tracker.state.templates]
+    R_off, _, _ = _track(model, clips, lm, gt.intrinsics, None)
+    # (not to the bit: from the re-anchoring on, the batch's mosaic holds the turned streams' new entries, and the
+    # still stream's rotations moved by 4e-8 on that frame, the old one-at-a-time refinement's as this one's)
+    torch.testing.assert_close(R_on[2:], R_off[2:], rtol=0, atol=1e-6)
+    for b in range(2):
+        R_alone, at_alone, alone = _track(model, clips[b : b + 1], lm[b : b + 1], gt.intrinsics, la)
+        assert at_alone == [turn]
+        torch.testing.assert_close(R_alone[0], R_on[b], rtol=0, atol=1e-4)
+        for level, t in enumerate(alone.state.templates):
+            torch.testing.assert_close(t.points[0], pts[level][b], rtol=1e-4, atol=1e-3)

@@ -104,8 +104,8 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_first_fit, is_keyframe_turn, is_video_cut, kept_shape_indices, landmark_fit_priors,
-    levels_of, view_yaw_deg,
+    LookaheadConfig, _refine_starts, _stream_start, is_keyframe_turn, is_video_cut, kept_shape_indices,
+    landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -1480,29 +1480,34 @@ def _reanchor(
     reported poses in the head frame of their first result."""
     ms = _management(state)
     fc = config.fit
-    fits, now_R, now_t = [], [], []
+    streams = index.tolist()
+    la = levels_of(w.config, config.num_levels)
     with torch.inference_mode(False):
-        # One refinement per stream, one after another: each stream re-anchors once per video, and a batched
-        # refinement (points, keyframes and Levenberg-Marquardt decisions padded per stream) would save at most about
-        # half of a step where several do: 0.35 s of CPU per stream at 320x240 on one thread (96% of the
-        # re-anchoring; 1.5 s for 4 streams, 2.7 for 8), and one refinement over 4 or 8 times the points costs 2.2 or
-        # 3.9 times one at 640x480 (0.35 s with its 3000), before the rasterizations that grow with the streams.
-        for b in index.tolist():
+        # Each stream's problem set up alone (its template points, priors: a sparse start keeps the fit's sparse
+        # priors), then one batched refinement of the streams re-anchoring on this frame (Levenberg-Marquardt per
+        # stream, each as alone): one after another, B streams stalled this frame B times one's cost (a probe at
+        # 320x240 on one thread: 0.58 s for one stream, 2.6 s for 4).
+        starts = []
+        for b in streams:
             ks = keys[b]
-            # (per stream: a sparse start, one of few landmarks, keeps the fit's sparse priors)
-            priors = landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b],
-                                         None if w.weights is None else w.weights[b])  # fmt: skip
-            one, key_R, key_t = _refine_first_fit(
+            starts.append(_stream_start(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
                 key_expression=torch.stack([k[3] for k in ks]),
-                landmark_weights=None if w.weights is None else w.weights[b],
-                config=levels_of(w.config, config.num_levels),
-                backend=config.backend, **priors,
-            )  # fmt: skip
-            fits.append(one)
-            now_R.append(key_R[-1])
-            now_t.append(key_t[-1])
+                landmark_weights=None if w.weights is None else w.weights[b], config=la, backend=config.backend,
+                **landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b],
+                                      None if w.weights is None else w.weights[b]),
+            ))  # fmt: skip
+        # (streams of another keyframe count, which min_keyframes=1 never gives on one frame, are solved apart)
+        groups: dict[int, list[int]] = {}
+        for i, s in enumerate(starts):
+            groups.setdefault(s.key_alpha.shape[0], []).append(i)
+        fits, now_R, now_t = [None] * len(streams), [None] * len(streams), [None] * len(streams)
+        for members in groups.values():
+            out, key_R, key_t = _refine_starts(model, [starts[i] for i in members], state.intrinsics, la,
+                                               backend=config.backend)  # fmt: skip
+            for j, i in enumerate(members):
+                fits[i], now_R[i], now_t[i] = out.select(slice(j, j + 1)), key_R[j, -1], key_t[j, -1]
         fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))
         fit = fit.to(model.device, model.dtype)
     weights = None if w.weights is None else w.weights[index]
