@@ -1154,8 +1154,10 @@ def test_streams_refined_together_equal_each_refined_alone(model):
     them): each stream's refined fit and keyframe pose equal its refinement alone, to 1e-5 relative, with streams of
     different point counts, a sparse start and landmark weights in the batch, and in any order. (One after another,
     8 streams stalled their re-anchoring frame 8 times one's cost.)"""
-    # (a gradient threshold that leaves fewer points than the cap: the streams select 1561, 1724 and 1383)
-    la = LookaheadConfig(iterations=(4, 3), max_points=5000, gradient_threshold=0.05)
+    # (a gradient threshold that leaves fewer points than the cap: the streams select 1561, 1724 and 1383; enough
+    # iterations that some steps are refused, so that each stream's own damping counts: one damping for the batch
+    # moved their first poses by 0.3-0.8 mm)
+    la = LookaheadConfig(iterations=(10, 8), max_points=5000, gradient_threshold=0.05)
     starts, gt = _three_starts(model, la)
     from torchface.tracker import lookahead
 
@@ -1163,8 +1165,6 @@ def test_streams_refined_together_equal_each_refined_alone(model):
     _assert_refined_alike(model, lookahead._refine_starts(model, starts, gt.intrinsics, la), starts, gt.intrinsics, la)
     turned = starts[::-1]
     _assert_refined_alike(model, lookahead._refine_starts(model, turned, gt.intrinsics, la), turned, gt.intrinsics, la)
-    one = lookahead._refine_starts(model, starts[:1], gt.intrinsics, la)[0]
-    assert not torch.equal(one.rotation, starts[0].x.new_zeros(0))  # (smoke: a batch of one)
 
 
 def test_a_mixed_batch_re_anchors_its_turned_streams_in_one_solve(model, monkeypatch):
