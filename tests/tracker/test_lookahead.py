@@ -825,13 +825,13 @@ def test_online_start_refines_on_the_trackers_levels(model, monkeypatch):
     import torchface.tracker.managed as managed_module
 
     seen = []
-    real = managed_module._refine_first_fit
+    real = managed_module._refine_starts
 
-    def spy(*args, config, **kwargs):
+    def spy(model, starts, intrinsics, config, **kwargs):
         seen.append(config.iterations)
-        return real(*args, config=config, **kwargs)
+        return real(model, starts, intrinsics, config, **kwargs)
 
-    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    monkeypatch.setattr(managed_module, "_refine_starts", spy)
     yaw = [0.0, 4.0, 8.0, 12.0]
     frames, gt = render([[y, 0.0, 0.0] for y in yaw])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
@@ -884,14 +884,14 @@ def test_a_refined_start_that_fails_leaves_the_stream_on_its_plain_start(model, 
     FAILED for good). It now goes on from its plain start, as the tracker without the online start does."""
     import torchface.tracker.managed as managed_module
 
-    real, calls = managed_module._refine_first_fit, []
+    real, calls = managed_module._refine_starts, []
 
     def far(*args, **kwargs):
         calls.append(1)
         fit, key_R, key_t = real(*args, **kwargs)
         return replace(fit, translation=fit.translation * 8), key_R, key_t * 8
 
-    monkeypatch.setattr(managed_module, "_refine_first_fit", far)
+    monkeypatch.setattr(managed_module, "_refine_starts", far)
     yaw = [0.0, 4.0, 8.0, 12.0, 10.0, 8.0]
     frames, gt = render([[y, 0.0, 0.0] for y in yaw])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
