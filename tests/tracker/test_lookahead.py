@@ -1203,6 +1203,7 @@ def test_a_mixed_batch_re_anchors_its_turned_streams_in_one_solve(model, monkeyp
     starts, together, cfg = calls[0]
     _assert_refined_alike(model, together, starts, gt.intrinsics, cfg)
     pts = [t.points for t in tracker.state.templates]
+    assert tracker(clips[:, -1]).success.tolist() == [True, True, True, False]  # (stream 3 LOST from frame 1 on)
     R_off, _, _ = _track(model, clips, lm, gt.intrinsics, None)
     # (not to the bit: from the re-anchoring on, the batch's mosaic holds the turned streams' new entries, and the
     # still stream's rotations moved by 4e-8 on that frame, the old one-at-a-time refinement's as this one's)
