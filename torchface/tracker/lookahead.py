@@ -656,9 +656,9 @@ def _masked_median(values: Tensor, mask: Tensor) -> Tensor:
 
 
 def _dot3(g: Tensor, units: Tensor) -> Tensor:
-    """``(..., C)`` the dot products of ``g`` ``(..., 3)`` with each of ``units`` ``(..., 3, C)``, as three products
-    (a batched matrix product of (1, 3) by (3, C) matrices took twice as long)."""
-    return g[..., 0:1] * units[..., 0, :] + g[..., 1:2] * units[..., 1, :] + g[..., 2:3] * units[..., 2, :]
+    """``(B, N, C)`` the dot products of ``g`` ``(B, N, 3)`` with each of ``units`` ``(B, 3, N, C)`` (by coordinate),
+    as three products (a batched matrix product of (1, 3) by (3, C) matrices took twice as long)."""
+    return g[..., 0:1] * units[:, 0] + g[..., 1:2] * units[:, 1] + g[..., 2:3] * units[:, 2]
 
 
 def _refine_starts(
@@ -706,19 +706,27 @@ def _refine_starts(
     bary = torch.stack([pad_points(s.bary, 0) for s in starts])
     bary[..., 0] = torch.where(valid, bary[..., 0], 1.0)
     X_start = torch.stack([pad_points(s.X_start, 0) for s in starts])  # (B, N, 3)
-    # The units' displacements (B, N, 3, C) and (B, L, 3, C) for the Jacobian, and (B, C, 3 N), (B, C, 3 L) for
-    # X = X_start + d XU, one vector-matrix product per stream (einsum over (B, N, C, 3) copied it to such a layout
-    # at every call: a sixth of the batched refinement's time)
-    XU = torch.stack([pad_points(s.X_units, 0) for s in starts]).transpose(-1, -2).contiguous()
+    # The units' displacements by coordinate, (B, 3, N, C) and (B, L, 3, C), for the Jacobian, and (B, C, 3 N),
+    # (B, C, 3 L) for X = X_start + d XU, one vector-matrix product per stream (einsum over (B, N, C, 3) copied it to
+    # such a layout at every call: a sixth of the batched refinement's time)
+    XU = torch.stack([pad_points(s.X_units, 0) for s in starts]).transpose(-1, -2)  # (B, N, 3, C)
     LU = torch.stack([s.L_units for s in starts]).transpose(-1, -2).contiguous()
     XU_rows, LU_rows = XU.flatten(1, 2).transpose(1, 2).contiguous(), LU.flatten(1, 2).transpose(1, 2).contiguous()
+    XU = XU.permute(0, 2, 1, 3).contiguous()
     key_delta = torch.stack([pad_points(s.key_delta, 1) for s in starts])  # (B, K, N, 3)
     L_start = torch.stack([s.L_start for s in starts])
 
-    def deformed(d: Tensor) -> tuple[Tensor, Tensor]:
-        """The points ``(B, N, 3)`` and landmarks ``(B, L, 3)`` (head frame) at coefficients ``x_start + d``."""
-        return (X_start + (d[:, None] @ XU_rows).view(X_start.shape),
-                L_start + (d[:, None] @ LU_rows).view(L_start.shape))  # fmt: skip
+    def pick(t: Tensor, rows: Tensor | None) -> Tensor:
+        """``t``'s streams ``rows`` (a ``(B',)`` index; None: all)."""
+        return t if rows is None else t[rows]
+
+    def deformed(d: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The points ``(B, N, 3)`` and landmarks ``(B, L, 3)`` (head frame) at coefficients ``x_start + d`` (of
+        streams ``rows``)."""
+        X0, L0 = pick(X_start, rows), pick(L_start, rows)
+        return (X0 + (d[:, None] @ pick(XU_rows, rows)).view(X0.shape),
+                L0 + (d[:, None] @ pick(LU_rows, rows)).view(L0.shape))  # fmt: skip
+
     target, lw = torch.stack([s.target for s in starts]), torch.stack([s.lw for s in starts])  # (B, L, 2), (B, L)
     x_start, key_alpha = torch.stack([s.x_start for s in starts]), torch.stack([s.key_alpha for s in starts])
     sig0, al0 = torch.stack([s.sig0 for s in starts]), torch.stack([s.al0 for s in starts])
@@ -738,15 +746,16 @@ def _refine_starts(
         key = x[:, o_k:].reshape(-1, K, 11)
         return axis_angle_to_matrix(key[..., 0:3]), key[..., 3:6]
 
-    def geometry(x: Tensor, level: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def geometry(x: Tensor, level: int, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Points' pixels in frame 0 ``(B, N, 2)`` and the keyframes ``(B, K, N, 2)``, landmark pixels ``(B, L, 2)``,
-        the keyframes' rotations ``(B, K, 3, 3)`` and the points ``(B, N, 3)`` (head frame)."""
-        X, lmk = deformed(x[:, o_sig:o_k] - x_start)
+        the keyframes' rotations ``(B, K, 3, 3)`` and the points ``(B, N, 3)`` (head frame); ``rows``: ``x`` holds
+        those streams only."""
+        X, lmk = deformed(x[:, o_sig:o_k] - pick(x_start, rows), rows)
         R0t = axis_angle_to_matrix(x[:, 0:3]).transpose(-1, -2)
         uv0 = project_points(X @ R0t + x[:, None, 3:6], intrs[level])
         uvl = project_points(lmk @ R0t + x[:, None, 3:6], intrinsics)
         Rk, tk = key_poses(x)
-        Pk = (X[:, None] + key_delta) @ Rk.transpose(-1, -2) + tk[:, :, None]  # (B, K, N, 3)
+        Pk = (X[:, None] + pick(key_delta, rows)) @ Rk.transpose(-1, -2) + tk[:, :, None]  # (B, K, N, 3)
         uvk = project_points(Pk.flatten(0, 1), intrs[level]).unflatten(0, (-1, K))
         return uv0, uvk, uvl, Rk, X
 
@@ -784,11 +793,11 @@ def _refine_starts(
             mask = (seen[:, :1] & seen[:, 1:] & inside(uv0)[:, None] & inside(uvk)) & valid[:, None]
             return mask, normals
 
-    def samples(level: int, uv0: Tensor, uvk: Tensor) -> tuple[Tensor, Tensor]:
+    def samples(level: int, uv0: Tensor, uvk: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Intensity and gradient ``(B, N, 3)`` of frame 0 at ``uv0`` and ``(B, K, N, 3)`` of the keyframes at
-        ``uvk``."""
-        s = sample_at_pixels(imgs[level].flatten(0, 1), torch.cat([uv0[:, None], uvk], 1).flatten(0, 1))[0]
-        s = s.unflatten(0, (B, K + 1))
+        ``uvk`` (of streams ``rows``)."""
+        uv = torch.cat([uv0[:, None], uvk], 1).flatten(0, 1)
+        s = sample_at_pixels(pick(imgs[level], rows).flatten(0, 1), uv)[0].unflatten(0, (-1, K + 1))
         return s[:, 0], s[:, 1:]
 
     def residual(x: Tensor, I0: Tensor, Ik: Tensor, Rk: Tensor, normals: Tensor) -> Tensor:
@@ -805,11 +814,12 @@ def _refine_starts(
         Ik = sk[..., 0] + ((uvk - uvks) * sk[..., 1:]).sum(-1)
         return residual(x, I0, Ik, Rk, normals), uvl
 
-    def exact(x: Tensor, level: int, normals: Tensor, geo: tuple | None = None) -> tuple[Tensor, Tensor, tuple]:
+    def exact(x: Tensor, level: int, normals: Tensor, geo: tuple | None = None,
+              rows: Tensor | None = None) -> tuple[Tensor, Tensor, tuple]:  # fmt: skip
         """``(B, K, N)`` residuals with both images sampled at ``x``'s pixels, the landmark pixels and the
-        samples."""
-        uv0, uvk, uvl, Rk, _ = geometry(x, level) if geo is None else geo
-        s0, sk = samples(level, uv0, uvk)
+        samples (``rows``: ``x`` and ``normals`` hold those streams only)."""
+        uv0, uvk, uvl, Rk, _ = geometry(x, level, rows) if geo is None else geo
+        s0, sk = samples(level, uv0, uvk, rows)
         return residual(x, s0[..., 0], sk[..., 0], Rk, normals), uvl, (uv0, uvk, s0, sk)
 
     def jacobian(x: Tensor, level: int, lin: tuple[Tensor, ...], normals: Tensor, sw: Tensor) -> Tensor:
@@ -862,13 +872,15 @@ def _refine_starts(
             Jlm = Jlm * lw.sqrt()[..., None, None]
             return torch.cat([torch.cat(rows, 1), Jlm.flatten(1, 2), torch.diag_embed(prior.sqrt())], 1)
 
-    def cost(x: Tensor, r: Tensor, uvl: Tensor, mask: Tensor, scale: Tensor) -> Tensor:
-        """``(B,)`` the minimised cost at ``x`` from its exact residuals ``r`` and landmark pixels ``uvl``."""
+    def cost(x: Tensor, r: Tensor, uvl: Tensor, mask: Tensor, scale: Tensor, rows: Tensor | None = None) -> Tensor:
+        """``(B,)`` the minimised cost at ``x`` from its exact residuals ``r`` and landmark pixels ``uvl`` (``rows``:
+        those of these streams only)."""
         c = config.huber_k * scale[..., None]
         a = r.abs()
         hub = torch.where(a <= c, a * a, 2 * c * a - c * c)
         return (config.photometric_weight * (hub * mask).flatten(1).sum(-1)
-                + (((uvl - target) ** 2).sum(-1) * lw).sum(-1) + (prior * x * x).sum(-1))  # fmt: skip
+                + (((uvl - pick(target, rows)) ** 2).sum(-1) * pick(lw, rows)).sum(-1)
+                + (pick(prior, rows) * x * x).sum(-1))  # fmt: skip
 
     for li, level in enumerate(levels):
         mu = x.new_full((B,), 1e-3)
@@ -915,7 +927,14 @@ def _refine_starts(
                 finite = torch.isfinite(x_new).all(-1)
                 x_new = torch.where(finite[:, None], x_new, x)
                 with torch.no_grad():
-                    after = cost(x_new, *exact(x_new, level, normals)[:2], mask, scale)
+                    if bool(trying.all()):
+                        after = cost(x_new, *exact(x_new, level, normals)[:2], mask, scale)
+                    else:  # (a further try is for few streams: the others are not evaluated)
+                        rows = trying.nonzero().squeeze(-1)
+                        xr = x_new[rows]
+                        after = torch.full_like(before, float("inf")).index_put(
+                            (rows,), cost(xr, *exact(xr, level, normals[rows], rows=rows)[:2], mask[rows],
+                                          scale[rows], rows))  # fmt: skip
                 better = trying & finite & (after < before)
                 x = torch.where(better[:, None], x_new, x)
                 mu = torch.where(better, (mu / 10).clamp_min(1e-9), torch.where(trying, mu * 10, mu))
