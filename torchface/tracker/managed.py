@@ -1486,7 +1486,7 @@ def _reanchor(
         # Each stream's problem set up alone (its template points; its priors: a sparse start keeps the fit's sparse
         # priors), then one batched refinement of the streams re-anchoring on this frame (Levenberg-Marquardt with
         # each stream's own damping and stopping: each as alone, to 1e-5). Refined one after another, 8 streams at
-        # 320x240 took this frame 2.6-3.2 s of CPU on one thread; together 2.0 (README, "Speed and the native
+        # 320x240 took this frame 2.6-3.3 s of CPU on one thread; together 1.7-1.8 (README, "Speed and the native
         # kernels"): the solve's arithmetic grows with the streams, its per-operation overhead no longer.
         starts = []
         for b in streams:
