@@ -1503,12 +1503,14 @@ def _reanchor(
         groups: dict[int, list[int]] = {}
         for i, s in enumerate(starts):
             groups.setdefault(s.key_alpha.shape[0], []).append(i)
-        fits, now_R, now_t = [None] * len(streams), [None] * len(streams), [None] * len(streams)
+        refined: dict[int, tuple[LandmarkFit, Tensor, Tensor]] = {}  # per stream: its fit, this frame's pose
         for members in groups.values():
             out, key_R, key_t = _refine_starts(model, [starts[i] for i in members], state.intrinsics, la,
                                                backend=config.backend)  # fmt: skip
             for j, i in enumerate(members):
-                fits[i], now_R[i], now_t[i] = out.select(slice(j, j + 1)), key_R[j, -1], key_t[j, -1]
+                refined[i] = out.select(slice(j, j + 1)), key_R[j, -1], key_t[j, -1]
+        fits = [refined[i][0] for i in range(len(streams))]
+        now_R, now_t = [refined[i][1] for i in range(len(streams))], [refined[i][2] for i in range(len(streams))]
         fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))
         fit = fit.to(model.device, model.dtype)
     weights = None if w.weights is None else w.weights[index]
