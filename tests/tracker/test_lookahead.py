@@ -1170,7 +1170,8 @@ def test_streams_refined_together_equal_each_refined_alone(model):
 def test_a_mixed_batch_re_anchors_its_turned_streams_in_one_solve(model, monkeypatch):
     """A batch of four streams: two turn (landmark noise of seeds 0 and 1) and re-anchor on the same frame, one's
     frames stop before the turn, one loses its face (blank frames from frame 1). The two are refined in one batched
-    solve on that frame, each as alone (1e-5); tracked alone they re-anchor on the same frame, to the same poses and
+    solve on that frame, each as alone (1e-5), and as in two solves (``managed.REANCHOR_BATCH``, the most streams a solve
+    takes, at 1); tracked alone they re-anchor on the same frame, to the same poses and
     template points (to the float32 tracking's differences between a batch and one stream); the other two track as
     without the online start (to float32 rounding)."""
     import torchface.tracker.managed as managed_module
@@ -1208,6 +1209,11 @@ def test_a_mixed_batch_re_anchors_its_turned_streams_in_one_solve(model, monkeyp
     # (not to the bit: from the re-anchoring on, the batch's mosaic holds the turned streams' new entries, and the
     # still stream's rotations moved by 4e-8 on that frame, the old one-at-a-time refinement's as this one's)
     torch.testing.assert_close(R_on[2:], R_off[2:], rtol=0, atol=1e-6)
+    monkeypatch.setattr(managed_module, "REANCHOR_BATCH", 1)  # at most one stream a solve: two solves, the same
+    calls.clear()
+    R_one, at_one, _ = _track(model, clips, lm, gt.intrinsics, la)
+    assert at_one == at and [len(c[0]) for c in calls] == [1, 1]
+    torch.testing.assert_close(R_one, R_on, rtol=0, atol=1e-6)
     for b in range(2):
         R_alone, at_alone, alone = _track(model, clips[b : b + 1], lm[b : b + 1], gt.intrinsics, la)
         assert at_alone == [turn]
