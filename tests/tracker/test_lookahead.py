@@ -1032,17 +1032,25 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
     for name in LandmarkFit.__dataclass_fields__:  # the dense stream's refinement: its precisions as they are
         assert torch.equal(getattr(seen[68][2], name), getattr(seen[68][3], name)), name
     calls = {}
-    real_refine = lookahead.refine_first_fit
+    real_start = lookahead._stream_start
 
-    def spy_refine(model, frames, intrinsics, landmarks_px, *args, **kwargs):
+    def spy_start(model, frames, intrinsics, landmarks_px, *args, **kwargs):
         calls[int(torch.isfinite(landmarks_px).all(-1).sum())] = (kwargs["min_shape_prior_precision"],
                                                                   kwargs["min_expression_prior_precision"])
-        return real_refine(model, frames, intrinsics, landmarks_px, *args, **kwargs)
+        return real_start(model, frames, intrinsics, landmarks_px, *args, **kwargs)
 
-    monkeypatch.setattr(lookahead, "refine_first_fit", spy_refine)
+    monkeypatch.setattr(lookahead, "_stream_start", spy_start)
+    solves, real_solve = [], lookahead._refine_starts
+
+    def spy_solve(model, starts, *args, **kwargs):
+        solves.append(len(starts))
+        return real_solve(model, starts, *args, **kwargs)
+
+    monkeypatch.setattr(lookahead, "_refine_starts", spy_solve)
     fit, keys = lookahead_fit(model, cfg, frames, lm, gt.intrinsics, config=LookaheadConfig(iterations=(6, 4),
                                                                                              max_points=1500))
     assert all(keys) and calls == {68: seen[68][:2], 5: seen[5][:2]}
+    assert solves == [2]  # both streams (one keyframe each) in one batched solve, as the online start's
     assert float(fit.anim_coeffs[1].abs().max()) < 0.3
 
 

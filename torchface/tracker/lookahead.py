@@ -972,8 +972,8 @@ def lookahead_fit(
     turned ``config.yaw_deg`` to both sides, ``config.max_frames`` frames are used or a video cut ends its
     look-ahead (a turn of more than :data:`KEYFRAME_MAX_STEP_DEG` in one step, as the online start: its keyframes
     come from the frames before the cut); a stream with at least
-    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit`, the others keep :func:`fit_landmarks`'s
-    fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
+    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit` (those streams refined in one batched solve,
+    each as alone), the others keep :func:`fit_landmarks`'s fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
     ``FaceTracker.initialise(..., fit=...)``).
 
     Args:
@@ -983,7 +983,7 @@ def lookahead_fit(
     Returns:
         The fit (batch ``B``) and each stream's keyframes.
     """
-    from torchface.tracker.managed import initialise_managed, managed_step
+    from torchface.tracker.managed import REANCHOR_BATCH, initialise_managed, managed_step
 
     # (None was an AttributeError: 'NoneType' object has no attribute 'dtype'; a TrackerConfig is "tracker_config"
     # here: "config must be a TrackerConfig" named this function's LookaheadConfig)
@@ -1023,19 +1023,30 @@ def lookahead_fit(
         if all(len(k) == 2 or not going for k, going in zip(keys, uncut.tolist())):
             break
     R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
-    streams = []
+    la = levels_of(config, tracker_config.num_levels)
+
+    def problem(b: int) -> _Start:
+        idx = torch.tensor([0] + keys[b], device=frames.device)
+        w = None if weights is None else weights[b]
+        # (priors per stream: a batch can mix dense and sparse starts)
+        return _stream_start(
+            model, frames[b, idx], intrinsics, landmarks_px[b], fit.select(slice(b, b + 1)), R[b, keys[b]],
+            t[b, keys[b]], key_expression=expr[b, keys[b]], landmark_weights=w, config=la,
+            backend=tracker_config.backend, **landmark_fit_priors(model, fc, intrinsics, landmarks_px[b], w),
+        )  # fmt: skip
+
+    # The streams with their keyframes refined together, as the online start's (one batched solve per keyframe
+    # count, at most REANCHOR_BATCH streams each): each as alone
+    streams = [fit.select(slice(b, b + 1)) for b in range(B)]
+    groups: dict[int, list[int]] = {}
     for b in range(B):
-        one = fit.select(slice(b, b + 1))
         if len(keys[b]) >= config.min_keyframes:
-            idx = torch.tensor([0] + keys[b], device=frames.device)
-            # (per stream: a batch can mix dense and sparse starts)
-            priors = landmark_fit_priors(model, fc, intrinsics, landmarks_px[b],
-                                         None if weights is None else weights[b])  # fmt: skip
-            one = refine_first_fit(
-                model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
-                key_expression=expr[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b],
-                config=levels_of(config, tracker_config.num_levels), backend=tracker_config.backend, **priors,
-            )  # fmt: skip
-        streams.append(one)
+            groups.setdefault(len(keys[b]), []).append(b)
+    for members in groups.values():
+        for c in range(0, len(members), REANCHOR_BATCH):
+            chunk = members[c : c + REANCHOR_BATCH]
+            refined = _refine_starts(model, [problem(b) for b in chunk], intrinsics, la,
+                                     backend=tracker_config.backend)[0]  # fmt: skip
+            for j, b in enumerate(chunk):
+                streams[b] = refined.select(slice(j, j + 1))
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys
