@@ -475,7 +475,7 @@ def _refine_first_fit(
     return refined, key_R[0], key_t[0]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _Start:
     """One stream's refinement problem (:func:`_stream_start`), which :func:`_refine_starts` solves with others.
 
