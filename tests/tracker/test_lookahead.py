@@ -825,13 +825,13 @@ def test_online_start_refines_on_the_trackers_levels(model, monkeypatch):
     import torchface.tracker.managed as managed_module
 
     seen = []
-    real = managed_module._refine_first_fit
+    real = managed_module._refine_starts
 
-    def spy(*args, config, **kwargs):
+    def spy(model, starts, intrinsics, config, **kwargs):
         seen.append(config.iterations)
-        return real(*args, config=config, **kwargs)
+        return real(model, starts, intrinsics, config, **kwargs)
 
-    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    monkeypatch.setattr(managed_module, "_refine_starts", spy)
     yaw = [0.0, 4.0, 8.0, 12.0]
     frames, gt = render([[y, 0.0, 0.0] for y in yaw])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
@@ -884,14 +884,14 @@ def test_a_refined_start_that_fails_leaves_the_stream_on_its_plain_start(model, 
     FAILED for good). It now goes on from its plain start, as the tracker without the online start does."""
     import torchface.tracker.managed as managed_module
 
-    real, calls = managed_module._refine_first_fit, []
+    real, calls = managed_module._refine_starts, []
 
     def far(*args, **kwargs):
         calls.append(1)
         fit, key_R, key_t = real(*args, **kwargs)
         return replace(fit, translation=fit.translation * 8), key_R, key_t * 8
 
-    monkeypatch.setattr(managed_module, "_refine_first_fit", far)
+    monkeypatch.setattr(managed_module, "_refine_starts", far)
     yaw = [0.0, 4.0, 8.0, 12.0, 10.0, 8.0]
     frames, gt = render([[y, 0.0, 0.0] for y in yaw])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
@@ -998,16 +998,19 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
     frames, gt, lm = _dense_and_five_point_starts(model)
     cfg = replace(CFG, fit=TrackerConfig().fit)
     seen = {}
-    real = managed_module._refine_first_fit
+    real = managed_module._stream_start
 
     def spy(model, frames, intrinsics, landmarks_px, *args, **kwargs):
         out = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)
-        least = [kwargs.pop(name, None) for name in ("min_shape_prior_precision", "min_expression_prior_precision")]
-        dense = real(model, frames, intrinsics, landmarks_px, *args, **kwargs)  # (the least precisions 0)
-        seen[int(torch.isfinite(landmarks_px).all(-1).sum())] = (*least, out[0], dense[0])
+        least = [kwargs.pop(name) for name in ("min_shape_prior_precision", "min_expression_prior_precision")]
+        dense = real(model, frames, intrinsics, landmarks_px, *args, min_shape_prior_precision=0.0,
+                     min_expression_prior_precision=0.0, **kwargs)  # fmt: skip
+        la = kwargs["config"]
+        seen[int(torch.isfinite(landmarks_px).all(-1).sum())] = (
+            *least, *(lookahead._refine_starts(model, [s], intrinsics, la)[0] for s in (out, dense)))
         return out
 
-    monkeypatch.setattr(managed_module, "_refine_first_fit", spy)
+    monkeypatch.setattr(managed_module, "_stream_start", spy)
     tracker = FaceTracker(cfg, model=model, refine_first=LookaheadConfig(iterations=(6, 4), max_points=1500))
     tracker.initialise(frames[:, 0], lm, gt.intrinsics)
     for i in range(1, frames.shape[1]):
@@ -1029,17 +1032,25 @@ def test_a_sparse_start_is_refined_with_the_fits_sparse_priors(model, monkeypatc
     for name in LandmarkFit.__dataclass_fields__:  # the dense stream's refinement: its precisions as they are
         assert torch.equal(getattr(seen[68][2], name), getattr(seen[68][3], name)), name
     calls = {}
-    real_refine = lookahead.refine_first_fit
+    real_start = lookahead._stream_start
 
-    def spy_refine(model, frames, intrinsics, landmarks_px, *args, **kwargs):
+    def spy_start(model, frames, intrinsics, landmarks_px, *args, **kwargs):
         calls[int(torch.isfinite(landmarks_px).all(-1).sum())] = (kwargs["min_shape_prior_precision"],
                                                                   kwargs["min_expression_prior_precision"])
-        return real_refine(model, frames, intrinsics, landmarks_px, *args, **kwargs)
+        return real_start(model, frames, intrinsics, landmarks_px, *args, **kwargs)
 
-    monkeypatch.setattr(lookahead, "refine_first_fit", spy_refine)
+    monkeypatch.setattr(lookahead, "_stream_start", spy_start)
+    solves, real_solve = [], lookahead._refine_starts
+
+    def spy_solve(model, starts, *args, **kwargs):
+        solves.append(len(starts))
+        return real_solve(model, starts, *args, **kwargs)
+
+    monkeypatch.setattr(lookahead, "_refine_starts", spy_solve)
     fit, keys = lookahead_fit(model, cfg, frames, lm, gt.intrinsics, config=LookaheadConfig(iterations=(6, 4),
                                                                                              max_points=1500))
     assert all(keys) and calls == {68: seen[68][:2], 5: seen[5][:2]}
+    assert solves == [2]  # both streams (one keyframe each) in one batched solve, as the online start's
     assert float(fit.anim_coeffs[1].abs().max()) < 0.3
 
 
@@ -1103,3 +1114,117 @@ def test_refinement_checks_its_least_precisions(model):
         with pytest.raises(TypeError, match=f"{name} must be a real number"):
             refine_first_fit(model, frames, gt.intrinsics, lm, fit, gt.rotation[1:].float(),
                              gt.translation[1:].float(), **{name: "64"})  # fmt: skip
+
+
+def _three_starts(model, la):
+    """Three streams' refinement problems (``lookahead._stream_start``) of the first frame and a 12-degree keyframe:
+    landmarks with 1.5 px of noise of seeds 0 and 1 (their template points differ in number: the batch pads them), and
+    a five-point start with weights (the sparse priors)."""
+    from torchface.tracker import lookahead
+
+    frames, gt = render([[0.0, 0.0, 0.0], [12.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = torch.cat([gt.landmarks_px.float()[:1] + 1.5 * torch.randn(1, model.num_landmarks, 2,
+                                                                    generator=torch.Generator().manual_seed(seed))
+                    for seed in (0, 1, 2)])  # fmt: skip
+    lm[2, [i for i in range(model.num_landmarks) if i not in FIVE]] = float("nan")
+    weights = [None, None, torch.linspace(0.5, 1.0, model.num_landmarks)]
+    fc = TrackerConfig().fit
+    starts = []
+    for b in range(3):
+        fit = fit_landmarks(model, lm[b : b + 1], gt.intrinsics, None if weights[b] is None else weights[b][None],
+                            config=fc)  # fmt: skip
+        starts.append(lookahead._stream_start(
+            model, frames, gt.intrinsics, lm[b], fit, gt.rotation[1:].float(), gt.translation[1:].float(),
+            key_expression=torch.zeros(1, model.num_animation), landmark_weights=weights[b], config=la,
+            backend=CFG.backend, **lookahead.landmark_fit_priors(model, fc, gt.intrinsics, lm[b], weights[b]),
+        ))  # fmt: skip
+    return starts, gt
+
+
+def _assert_refined_alike(model, together, starts, intrinsics, la):
+    """``together`` (``_refine_starts``' output for ``starts``) equals each start refined alone, to 1e-5 relative."""
+    from torchface.tracker import lookahead
+
+    fit, key_R, key_t = together
+    for b, start in enumerate(starts):
+        one, one_R, one_t = lookahead._refine_starts(model, [start], intrinsics, la)
+        for name in LandmarkFit.__dataclass_fields__:
+            torch.testing.assert_close(getattr(fit, name)[b : b + 1], getattr(one, name), rtol=1e-5, atol=1e-6,
+                                       msg=lambda m, n=name: f"stream {b} {n}: {m}")  # fmt: skip
+        torch.testing.assert_close(key_R[b : b + 1], one_R, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(key_t[b : b + 1], one_t, rtol=1e-5, atol=1e-6)
+
+
+def test_streams_refined_together_equal_each_refined_alone(model):
+    """The online start refines the streams that re-anchor on one frame in one batched solve
+    (``lookahead._refine_starts``: each stream's own damping, steps and stopping; their points padded to the most of
+    them): each stream's refined fit and keyframe pose equal its refinement alone, to 1e-5 relative, with streams of
+    different point counts, a sparse start and landmark weights in the batch, and in any order. (One after another,
+    8 streams stalled their re-anchoring frame 8 times one's cost.)"""
+    # (a gradient threshold that leaves fewer points than the cap: the streams select 1561, 1724 and 1383; enough
+    # iterations that some steps are refused, so that each stream's own damping counts: one damping for the batch
+    # moved their first poses by 0.3-0.8 mm)
+    la = LookaheadConfig(iterations=(10, 8), max_points=5000, gradient_threshold=0.05)
+    starts, gt = _three_starts(model, la)
+    from torchface.tracker import lookahead
+
+    assert len({s.fi.shape[0] for s in starts}) > 1  # the padding is exercised
+    _assert_refined_alike(model, lookahead._refine_starts(model, starts, gt.intrinsics, la), starts, gt.intrinsics, la)
+    turned = starts[::-1]
+    _assert_refined_alike(model, lookahead._refine_starts(model, turned, gt.intrinsics, la), turned, gt.intrinsics, la)
+
+
+def test_a_mixed_batch_re_anchors_its_turned_streams_in_one_solve(model, monkeypatch):
+    """A batch of four streams: two turn (landmark noise of seeds 0 and 1) and re-anchor on the same frame, one's
+    frames stop before the turn, one loses its face (blank frames from frame 1). The two are refined in one batched
+    solve on that frame, each as alone (1e-5), and as in two solves (``managed.REANCHOR_BATCH``, the most streams a solve
+    takes, at 1); tracked alone they re-anchor on the same frame, to the same poses and
+    template points (to the float32 tracking's differences between a batch and one stream); the other two track as
+    without the online start (to float32 rounding)."""
+    import torchface.tracker.managed as managed_module
+    from torchface.tracker import lookahead
+
+    yaw = [0.0, 4.0, 8.0, 12.0, 16.0, 12.0]
+    frames, gt = render([[y, 0.0, 0.0] for y in yaw])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    still, blank = frames.clone(), frames.clone()
+    still[2:] = frames[1]
+    blank[1:] = 0.5
+    clips = torch.stack([frames, frames, still, blank])
+    lm = torch.cat([gt.landmarks_px.float()[:1] + 1.5 * torch.randn(1, model.num_landmarks, 2,
+                                                                    generator=torch.Generator().manual_seed(seed))
+                    for seed in (0, 1, 0, 0)])  # fmt: skip
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+    calls = []
+    real = managed_module._refine_starts
+
+    def spy(model, starts, intrinsics, config, **kwargs):
+        out = real(model, starts, intrinsics, config, **kwargs)
+        calls.append((list(starts), out, config))
+        return out
+
+    monkeypatch.setattr(managed_module, "_refine_starts", spy)
+    R_on, at, tracker = _track(model, clips, lm, gt.intrinsics, la)
+    turn = yaw.index(12.0)
+    assert at == [turn, turn, None, None], at
+    assert len(calls) == 1 and len(calls[0][0]) == 2  # one solve of both turned streams
+    starts, together, cfg = calls[0]
+    _assert_refined_alike(model, together, starts, gt.intrinsics, cfg)
+    pts = [t.points for t in tracker.state.templates]
+    assert tracker(clips[:, -1]).success.tolist() == [True, True, True, False]  # (stream 3 LOST from frame 1 on)
+    R_off, _, _ = _track(model, clips, lm, gt.intrinsics, None)
+    # (not to the bit: from the re-anchoring on, the batch's mosaic holds the turned streams' new entries, and the
+    # still stream's rotations moved by 4e-8 on that frame, the old one-at-a-time refinement's as this one's)
+    torch.testing.assert_close(R_on[2:], R_off[2:], rtol=0, atol=1e-6)
+    monkeypatch.setattr(managed_module, "REANCHOR_BATCH", 1)  # at most one stream a solve: two solves, the same
+    calls.clear()
+    R_one, at_one, _ = _track(model, clips, lm, gt.intrinsics, la)
+    assert at_one == at and [len(c[0]) for c in calls] == [1, 1]
+    torch.testing.assert_close(R_one, R_on, rtol=0, atol=1e-6)
+    for b in range(2):
+        R_alone, at_alone, alone = _track(model, clips[b : b + 1], lm[b : b + 1], gt.intrinsics, la)
+        assert at_alone == [turn]
+        torch.testing.assert_close(R_alone[0], R_on[b], rtol=0, atol=1e-4)
+        for level, t in enumerate(alone.state.templates):
+            torch.testing.assert_close(t.points[0], pts[level][b], rtol=1e-4, atol=1e-3)

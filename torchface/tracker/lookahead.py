@@ -464,6 +464,75 @@ def _refine_first_fit(
     """:func:`refine_first_fit`, also returning the keyframes' refined poses: rotation ``(K, 3, 3)`` and
     translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose. ``analytic``: the
     Jacobian in closed form (False: by forward-mode autograd, the reference the tests compare it with)."""
+    start = _stream_start(
+        model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, key_expression=key_expression,
+        landmark_weights=landmark_weights, shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
+        expression_prior_precision=expression_prior_precision, config=config, held_shape_units=held_shape_units,
+        prior_scale=prior_scale, min_shape_prior_precision=min_shape_prior_precision,
+        min_expression_prior_precision=min_expression_prior_precision, backend=backend,
+    )  # fmt: skip
+    refined, key_R, key_t = _refine_starts(model, [start], intrinsics, config, analytic=analytic, backend=backend)
+    return refined, key_R[0], key_t[0]
+
+
+@dataclass(frozen=True, eq=False)
+class _Start:
+    """One stream's refinement problem (:func:`_stream_start`), which :func:`_refine_starts` solves with others.
+
+    ``x``, ``lo``, ``hi``, ``prior`` ``(P,)`` the packed start, bounds and prior precisions (``[aa0 (3), t0 (3), free
+    shape units (nf), expression (nA), per keyframe: aa, t, light (11)]``); ``imgs`` per pyramid level the frames'
+    ``(1 + K, 3, h, w)`` intensity and gradients; ``fi`` ``(N,)``, ``bary`` ``(N, 3)`` the first frame's template
+    points; ``target`` ``(L, 2)``, ``lw`` ``(L,)`` the landmark targets and weights; ``X_start`` ``(N, 3)`` and
+    ``L_start`` ``(L, 3)`` the points and landmarks at the starting coefficients ``x_start`` ``(C,)``, ``X_units``
+    ``(N, C, 3)`` and ``L_units`` ``(L, C, 3)`` their displacements per free coefficient; ``key_alpha`` ``(K, A)``
+    and ``key_delta`` ``(K, N, 3)`` the keyframes' own expression and its points' offsets; ``sig0`` ``(S,)``,
+    ``al0`` ``(A,)`` the starting coefficients; ``free_units`` the re-estimated shape units; ``status`` the fit's."""
+
+    x: Tensor
+    lo: Tensor
+    hi: Tensor
+    prior: Tensor
+    imgs: tuple[Tensor, ...]
+    fi: Tensor
+    bary: Tensor
+    target: Tensor
+    lw: Tensor
+    X_start: Tensor
+    L_start: Tensor
+    X_units: Tensor
+    L_units: Tensor
+    x_start: Tensor
+    key_alpha: Tensor
+    key_delta: Tensor
+    sig0: Tensor
+    al0: Tensor
+    free_units: tuple[int, ...]
+    status: Tensor
+
+
+def _stream_start(
+    model: FaceModel,
+    frames: Tensor,
+    intrinsics: Intrinsics,
+    landmarks_px: Tensor,
+    fit: LandmarkFit,
+    key_rotation: Tensor,
+    key_translation: Tensor,
+    *,
+    key_expression: Tensor | None,
+    landmark_weights: Tensor | None,
+    shape_prior_precision: float | tuple[float, ...],
+    shape_bound: float,
+    expression_prior_precision: float,
+    config: LookaheadConfig,
+    held_shape_units: tuple[int, ...],
+    prior_scale: float,
+    min_shape_prior_precision: float,
+    min_expression_prior_precision: float,
+    backend: Backend,
+) -> _Start:
+    """One stream's arguments of :func:`refine_first_fit` checked and turned into its :class:`_Start` (its template
+    points selected in the first frame, its pyramid built)."""
     K = frames.shape[0] - 1
     if frames.dim() != 4 or K < 1 or frames.shape[1] not in (1, 3):  # gray frames too, as the tracker takes them
         raise ValueError(f"frames must be (1 + K, 3 or 1, H, W) with K >= 1 keyframes, got {tuple(frames.shape)}")
@@ -506,15 +575,14 @@ def _refine_first_fit(
     free_su = torch.tensor(free_units, dtype=torch.long, device=dev)
     nf = len(free_units)
     nA = A if config.fit_expression else 0
-    levels = list(reversed(range(len(config.iterations))))
-    side = 3 * 2 ** (len(levels) - 2) if len(levels) > 1 else 1  # pyr_down needs 3 pixels a side (as the tracker)
+    levels = len(config.iterations)
+    side = 3 * 2 ** (levels - 2) if levels > 1 else 1  # pyr_down needs 3 pixels a side (as the tracker)
     if min(frames.shape[-2:]) < side:
-        raise ValueError(f"frames must be at least {side}x{side} pixels for the refinement's {len(levels)} pyramid "
+        raise ValueError(f"frames must be at least {side}x{side} pixels for the refinement's {levels} pyramid "
                          f"levels (config.iterations), got {frames.shape[-1]}x{frames.shape[-2]}")  # fmt: skip
-    pyramid = gray_pyramid(frames.to(device=dev, dtype=dt), len(levels))  # the tracker's levels
+    pyramid = gray_pyramid(frames.to(device=dev, dtype=dt), levels)  # the tracker's levels
     gray = pyramid[0]
-    imgs = [image_with_gradients(g) for g in pyramid]
-    intrs = [level_intrinsics(intrinsics, lv, g.shape[-2], g.shape[-1]) for lv, g in enumerate(pyramid)]
+    imgs = tuple(image_with_gradients(g) for g in pyramid)
 
     sig0, al0 = fit.shape_coeffs.to(dt), fit.anim_coeffs.to(dt)
     px = select_template_pixels(
@@ -526,7 +594,6 @@ def _refine_first_fit(
     fi, bary = px.face_index[:, keep], px.bary[:, keep]
     target, lw = landmark_targets(landmarks_px.to(device=dev, dtype=dt).contiguous(),  # as fit_landmarks
                                   None if landmark_weights is None else landmark_weights.to(dt).contiguous())
-    # x = [aa0 (3), t0 (3), free shape units (nf), expression (nA), per keyframe: aa, t, light (11)]
     o_sig, o_al = 6, 6 + nf
     o_k = o_al + nA
     P = o_k + 11 * K
@@ -555,10 +622,6 @@ def _refine_first_fit(
         prior[o_al:o_k] = prior[o_al:o_k].clamp_min(least["min_expression_prior_precision"] * pscale)
     x = torch.maximum(torch.minimum(x, hi), lo)
 
-    def coeffs(x: Tensor) -> tuple[Tensor, Tensor]:
-        sig = sig0[0].index_put((free_su,), x[o_sig:o_al]) if nf else sig0[0]
-        return sig, (x[o_al:o_k] if nA else al0[0])
-
     # The points and landmarks are linear in the free units (Eq. 1): the starting ones plus the units' gathered
     # displacements times the change of the coefficients. Gathered once, so that jacfwd's tangents go through
     # (N, 3) sums instead of deforming the whole mesh (2.3 -> 1.8 s per refinement on one thread, benchmark.py's
@@ -580,204 +643,317 @@ def _refine_first_fit(
         key_delta = torch.einsum("ka,nad->knd", key_alpha, X_anim)
     else:
         key_delta = X_start.new_zeros(K, X_start.shape[0], 3)
+    return _Start(x, lo, hi, prior, imgs, fi[0], bary[0], target, lw, X_start, L_start, X_units, L_units, x_start,
+                  key_alpha, key_delta, sig0[0], al0[0], tuple(free_units), fit.status.clone())  # fmt: skip
 
-    def geometry(x: Tensor, level: int) -> tuple[Tensor, Tensor, Tensor, list[Tensor], Tensor]:
-        """Points' pixels in frame 0 ``(N, 2)`` and the keyframes ``(K, N, 2)``, landmark pixels, rotations and
-        the points ``(N, 3)`` (head frame)."""
-        d = x[o_sig:o_k] - x_start
-        X = X_start + torch.einsum("c,ncd->nd", d, X_units)
-        lmk = L_start + torch.einsum("c,lcd->ld", d, L_units)
-        R0 = axis_angle_to_matrix(x[0:3])
-        uv0 = project_points((X @ R0.T + x[3:6])[None], intrs[level])[0]
-        uvl = project_points((lmk @ R0.T + x[3:6])[None], intrinsics)[0]
-        uvk, Rk = [], []
-        for k in range(K):
-            b = o_k + 11 * k
-            R = axis_angle_to_matrix(x[b : b + 3])
-            uvk.append(project_points(((X + key_delta[k]) @ R.T + x[b + 3 : b + 6])[None], intrs[level])[0])
-            Rk.append(R)
-        return uv0, torch.stack(uvk), uvl, Rk, X
+
+def _masked_median(values: Tensor, mask: Tensor) -> Tensor:
+    """``(...)`` the median of ``values`` ``(..., N)`` where ``mask`` (the lower middle one of an even count, as
+    :func:`torch.median`); 0 where ``mask`` holds nowhere."""
+    count = mask.sum(-1, keepdim=True)
+    ordered = torch.where(mask, values, torch.full_like(values, float("inf"))).sort(-1).values
+    return ordered.gather(-1, ((count - 1).clamp_min(0) // 2)).squeeze(-1).where(count.squeeze(-1) > 0, 0.0)
+
+
+def _dot3(g: Tensor, units: Tensor) -> Tensor:
+    """``(B, N, C)`` the dot products of ``g`` ``(B, N, 3)`` with each of ``units`` ``(B, 3, N, C)`` (by coordinate),
+    as three products (a batched matrix product of (1, 3) by (3, C) matrices took twice as long)."""
+    return g[..., 0:1] * units[:, 0] + g[..., 1:2] * units[:, 1] + g[..., 2:3] * units[:, 2]
+
+
+def _refine_starts(
+    model: FaceModel, starts: Sequence[_Start], intrinsics: Intrinsics, config: LookaheadConfig, *,
+    analytic: bool = True, backend: Backend = Backend.AUTO,
+) -> tuple[LandmarkFit, Tensor, Tensor]:
+    """The refinements of streams ``starts`` (:func:`_stream_start`; the same keyframe count, free units and frame
+    size), solved together: one batched Levenberg-Marquardt over the streams, each with its own damping, steps and
+    stopping as alone (a stream whose level stops, no visible point or no step lowering its cost, waits for the
+    others' with its parameters as they are). Their points are padded to the most points of a stream, the padding
+    masked out of every residual.
+
+    Returns:
+        The refined :class:`LandmarkFit` (batch ``B``, the model's dtype) and the keyframes' refined poses, rotation
+        ``(B, K, 3, 3)`` and translation ``(B, K, 3)``.
+    """
+    B = len(starts)
+    s0_ = starts[0]
+    K = s0_.key_alpha.shape[0]
+    if any(s.key_alpha.shape[0] != K or s.free_units != s0_.free_units or s.x.shape != s0_.x.shape for s in starts):
+        raise ValueError("streams refined together must have the same keyframe count and re-estimated units")
+    dt, dev = torch.float64, model.device
+    m = model.to(dtype=dt)
+    nf = len(s0_.free_units)
+    free_su = torch.tensor(s0_.free_units, dtype=torch.long, device=dev)
+    nA = model.num_animation if config.fit_expression else 0
+    o_sig, o_al = 6, 6 + nf
+    o_k = o_al + nA
+    P = o_k + 11 * K
+    levels = list(reversed(range(len(config.iterations))))
+    imgs = [torch.stack([s.imgs[lv] for s in starts]) for lv in range(len(levels))]  # (B, 1 + K, 3, h, w)
+    intrs = [level_intrinsics(intrinsics, lv, g.shape[-2], g.shape[-1]) for lv, g in enumerate(imgs)]
+    N = max(s.fi.shape[0] for s in starts)
+
+    def pad_points(t: Tensor, dim: int) -> Tensor:
+        extra = N - t.shape[dim]
+        if not extra:
+            return t
+        shape = list(t.shape)
+        shape[dim] = extra
+        return torch.cat([t, t.new_zeros(shape)], dim)
+
+    valid = torch.stack([pad_points(torch.ones(s.fi.shape[0], dtype=torch.bool, device=dev), 0) for s in starts])
+    fi = torch.stack([pad_points(s.fi, 0) for s in starts])  # padding: triangle 0 at its first corner
+    bary = torch.stack([pad_points(s.bary, 0) for s in starts])
+    bary[..., 0] = torch.where(valid, bary[..., 0], 1.0)
+    X_start = torch.stack([pad_points(s.X_start, 0) for s in starts])  # (B, N, 3)
+    # The units' displacements by coordinate, (B, 3, N, C) and (B, L, 3, C), for the Jacobian, and (B, C, 3 N),
+    # (B, C, 3 L) for X = X_start + d XU, one vector-matrix product per stream (einsum over (B, N, C, 3) copied it to
+    # such a layout at every call: a sixth of the batched refinement's time)
+    XU = torch.stack([pad_points(s.X_units, 0) for s in starts]).transpose(-1, -2)  # (B, N, 3, C)
+    LU = torch.stack([s.L_units for s in starts]).transpose(-1, -2).contiguous()
+    XU_rows, LU_rows = XU.flatten(1, 2).transpose(1, 2).contiguous(), LU.flatten(1, 2).transpose(1, 2).contiguous()
+    XU = XU.permute(0, 2, 1, 3).contiguous()
+    key_delta = torch.stack([pad_points(s.key_delta, 1) for s in starts])  # (B, K, N, 3)
+    L_start = torch.stack([s.L_start for s in starts])
+
+    def pick(t: Tensor, rows: Tensor | None) -> Tensor:
+        """``t``'s streams ``rows`` (a ``(B',)`` index; None: all)."""
+        return t if rows is None else t[rows]
+
+    def deformed(d: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The points ``(B, N, 3)`` and landmarks ``(B, L, 3)`` (head frame) at coefficients ``x_start + d`` (of
+        streams ``rows``)."""
+        X0, L0 = pick(X_start, rows), pick(L_start, rows)
+        return (X0 + (d[:, None] @ pick(XU_rows, rows)).view(X0.shape),
+                L0 + (d[:, None] @ pick(LU_rows, rows)).view(L0.shape))  # fmt: skip
+
+    target, lw = torch.stack([s.target for s in starts]), torch.stack([s.lw for s in starts])  # (B, L, 2), (B, L)
+    x_start, key_alpha = torch.stack([s.x_start for s in starts]), torch.stack([s.key_alpha for s in starts])
+    sig0, al0 = torch.stack([s.sig0 for s in starts]), torch.stack([s.al0 for s in starts])
+    x = torch.stack([s.x for s in starts])  # (B, P)
+    lo, hi, prior = (torch.stack([getattr(s, n) for s in starts]) for n in ("lo", "hi", "prior"))
+
+    def coeffs(x: Tensor) -> tuple[Tensor, Tensor]:
+        """``(B, S)`` shape and ``(B, A)`` expression coefficients of ``x``."""
+        if not nf:
+            return sig0, (x[:, o_al:o_k] if nA else al0)
+        sig = sig0.clone()
+        sig[:, free_su] = x[:, o_sig:o_al]
+        return sig, (x[:, o_al:o_k] if nA else al0)
+
+    def key_poses(x: Tensor) -> tuple[Tensor, Tensor]:
+        """The keyframes' rotations ``(B, K, 3, 3)`` and translations ``(B, K, 3)``."""
+        key = x[:, o_k:].reshape(-1, K, 11)
+        return axis_angle_to_matrix(key[..., 0:3]), key[..., 3:6]
+
+    def geometry(x: Tensor, level: int, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Points' pixels in frame 0 ``(B, N, 2)`` and the keyframes ``(B, K, N, 2)``, landmark pixels ``(B, L, 2)``,
+        the keyframes' rotations ``(B, K, 3, 3)`` and the points ``(B, N, 3)`` (head frame); ``rows``: ``x`` holds
+        those streams only."""
+        X, lmk = deformed(x[:, o_sig:o_k] - pick(x_start, rows), rows)
+        R0t = axis_angle_to_matrix(x[:, 0:3]).transpose(-1, -2)
+        uv0 = project_points(X @ R0t + x[:, None, 3:6], intrs[level])
+        uvl = project_points(lmk @ R0t + x[:, None, 3:6], intrinsics)
+        Rk, tk = key_poses(x)
+        Pk = (X[:, None] + pick(key_delta, rows)) @ Rk.transpose(-1, -2) + tk[:, :, None]  # (B, K, N, 3)
+        uvk = project_points(Pk.flatten(0, 1), intrs[level]).unflatten(0, (-1, K))
+        return uv0, uvk, uvl, Rk, X
 
     def visibility(x: Tensor, level: int, geo: tuple) -> tuple[Tensor, Tensor]:
-        """``(K, N)`` bool: visible, facing and inside in frame 0 and keyframe k; the points' normals
-        (``geo``: :func:`geometry` at ``x``)."""
+        """``(B, K, N)`` bool: visible, facing and inside in frame 0 and keyframe k; the points' normals
+        ``(B, N, 3)`` (``geo``: :func:`geometry` at ``x``)."""
         with torch.no_grad():
             sig, al = coeffs(x)
             uv0, uvk, _, Rk, X = geo
-            normals = point_normals(m, sig[None], fi, bary)[0]
-            poses = [(axis_angle_to_matrix(x[0:3]), x[3:6])] + [(Rk[k], x[o_k + 11 * k + 3 : o_k + 11 * k + 6])
-                                                                 for k in range(K)]  # fmt: skip
-            alphas = [al] + [al + key_alpha[k] for k in range(K)]
-            points = [X] + [X + key_delta[k] for k in range(K)]
-            seen = []
+            normals = point_normals(m, sig, fi, bary)
+            R = torch.cat([axis_angle_to_matrix(x[:, None, 0:3]), Rk], 1)  # (B, 1 + K, 3, 3)
+            t = torch.cat([x[:, None, 3:6], key_poses(x)[1]], 1)  # (B, 1 + K, 3)
+            alphas = torch.cat([al[:, None], al[:, None] + key_alpha], 1)  # (B, 1 + K, A)
+            points = torch.cat([X[:, None], X[:, None] + key_delta], 1)  # (B, 1 + K, N, 3)
+            verts = m.deform(sig[:, None].expand(-1, K + 1, -1).flatten(0, 1), alphas.flatten(0, 1))
+            Rt = R.flatten(0, 1).transpose(-1, -2)
+            # one rasterization of the B (1 + K) poses (each alone allocated its buffers B (1 + K) times)
+            frags = rasterize_coverage(verts @ Rt + t.flatten(0, 1)[:, None], m.faces, intrinsics,
+                                       cull_backfaces=True, backend=backend)  # fmt: skip
+            pts = points.flatten(0, 1) @ Rt + t.flatten(0, 1)[:, None]  # (B (1 + K), N, 3)
+            vis = points_visible(pts, fi.repeat_interleave(K + 1, 0), frags, intrinsics, backend=backend)
             radius = config.silhouette_margin * 2**level  # in full-resolution pixels
-            for (R, t), a, Xf in zip(poses, alphas, points):  # one rasterization each: stacked, the (1 + K)-frame
-                verts = m.deform(sig[None], a[None])[0]  # buffers cost more to allocate
-                frags = rasterize_coverage((verts @ R.T + t)[None], m.faces, intrinsics, cull_backfaces=True,
-                                           backend=backend)
-                pts = Xf @ R.T + t
-                vis = points_visible(pts[None], fi, frags, intrinsics, backend=backend)[0]
-                if radius:
-                    vis = vis & ~_near_background(frags.pix_to_face[0] < 0, pts, intrinsics, radius)
-                cos = -((normals @ R.T) * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)
-                seen.append(vis & (cos >= config.min_facing_cos))
+            if radius:
+                background = frags.pix_to_face < 0
+                vis = vis & ~torch.stack([_near_background(background[i], pts[i], intrinsics, radius)
+                                          for i in range(pts.shape[0])])  # fmt: skip
+            nrm = normals.repeat_interleave(K + 1, 0) @ Rt
+            cos = -(nrm * torch.nn.functional.normalize(pts, dim=-1)).sum(-1)
+            seen = (vis & (cos >= config.min_facing_cos)).unflatten(0, (B, K + 1))
             h, w = imgs[level].shape[-2:]
 
             def inside(uv: Tensor) -> Tensor:
                 return (uv[..., 0] >= 1) & (uv[..., 0] <= w - 2) & (uv[..., 1] >= 1) & (uv[..., 1] <= h - 2)
 
-            mask = torch.stack([seen[0] & seen[k + 1] & inside(uv0) & inside(uvk[k]) for k in range(K)])
+            mask = (seen[:, :1] & seen[:, 1:] & inside(uv0)[:, None] & inside(uvk)) & valid[:, None]
             return mask, normals
 
-    def samples(level: int, uv0: Tensor, uvk: Tensor) -> tuple[Tensor, Tensor]:
-        """Intensity and gradient ``(N, 3)`` of frame 0 at ``uv0`` and ``(K, N, 3)`` of the keyframes at ``uvk``."""
-        return sample_at_pixels(imgs[level][:1], uv0[None])[0][0], sample_at_pixels(imgs[level][1:], uvk)[0]
+    def samples(level: int, uv0: Tensor, uvk: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Intensity and gradient ``(B, N, 3)`` of frame 0 at ``uv0`` and ``(B, K, N, 3)`` of the keyframes at
+        ``uvk`` (of streams ``rows``)."""
+        uv = torch.cat([uv0[:, None], uvk], 1).flatten(0, 1)
+        s = sample_at_pixels(pick(imgs[level], rows).flatten(0, 1), uv)[0].unflatten(0, (-1, K + 1))
+        return s[:, 0], s[:, 1:]
 
-    def residual(x: Tensor, I0: Tensor, Ik: Tensor, Rk: list[Tensor], normals: Tensor) -> Tensor:
-        """``(K, N)`` keyframe intensities ``Ik`` minus frame 0's ``I0 (N,)`` under each keyframe's light."""
-        res = []
-        for k in range(K):
-            light = x[o_k + 11 * k + 6 : o_k + 11 * k + 11]
-            res.append(Ik[k] - (I0 * (1 + light[0] + (normals @ Rk[k].T) @ light[2:5]) + light[1]))
-        return torch.stack(res)
+    def residual(x: Tensor, I0: Tensor, Ik: Tensor, Rk: Tensor, normals: Tensor) -> Tensor:
+        """``(B, K, N)`` keyframe intensities ``Ik`` minus frame 0's ``I0 (B, N)`` under each keyframe's light."""
+        light = x[:, o_k:].reshape(-1, K, 11)[..., 6:11]  # (B, K, 5)
+        shade = ((normals[:, None] @ Rk.transpose(-1, -2)) @ light[..., 2:5, None]).squeeze(-1)  # (B, K, N)
+        return Ik - (I0[:, None] * (1 + light[..., 0:1] + shade) + light[..., 1:2])
 
     def photometric(x: Tensor, level: int, lin: tuple[Tensor, ...], normals: Tensor) -> tuple[Tensor, Tensor]:
-        """``(K, N)`` residuals linearised in the pixel coordinates at ``lin`` and the landmark pixels."""
+        """``(B, K, N)`` residuals linearised in the pixel coordinates at ``lin`` and the landmark pixels."""
         uv0, uvk, uvl, Rk, _ = geometry(x, level)
         uv0s, uvks, s0, sk = lin
-        I0 = s0[:, 0] + ((uv0 - uv0s) * s0[:, 1:]).sum(-1)
+        I0 = s0[..., 0] + ((uv0 - uv0s) * s0[..., 1:]).sum(-1)
         Ik = sk[..., 0] + ((uvk - uvks) * sk[..., 1:]).sum(-1)
         return residual(x, I0, Ik, Rk, normals), uvl
 
-    def exact(x: Tensor, level: int, normals: Tensor, geo: tuple | None = None) -> tuple[Tensor, Tensor, tuple]:
-        """``(K, N)`` residuals with both images sampled at ``x``'s pixels, the landmark pixels and the samples."""
-        uv0, uvk, uvl, Rk, _ = geometry(x, level) if geo is None else geo
-        s0, sk = samples(level, uv0, uvk)
-        return residual(x, s0[:, 0], sk[..., 0], Rk, normals), uvl, (uv0, uvk, s0, sk)
+    def exact(x: Tensor, level: int, normals: Tensor, geo: tuple | None = None,
+              rows: Tensor | None = None) -> tuple[Tensor, Tensor, tuple]:  # fmt: skip
+        """``(B, K, N)`` residuals with both images sampled at ``x``'s pixels, the landmark pixels and the
+        samples (``rows``: ``x`` and ``normals`` hold those streams only)."""
+        uv0, uvk, uvl, Rk, _ = geometry(x, level, rows) if geo is None else geo
+        s0, sk = samples(level, uv0, uvk, rows)
+        return residual(x, s0[..., 0], sk[..., 0], Rk, normals), uvl, (uv0, uvk, s0, sk)
 
     def jacobian(x: Tensor, level: int, lin: tuple[Tensor, ...], normals: Tensor, sw: Tensor) -> Tensor:
-        """The Jacobian of ``residuals`` at ``x`` in closed form: the chain rule through the projections and
-        rotations (``d(R X) / d w = -hat(R X) J_l(w)`` for axis-angle ``w``, :func:`left_jacobian`), the same
-        values as forward-mode autograd (tests/tracker/test_lookahead.py) in one pass instead of one per
+        """``(B, M, P)`` the Jacobian of ``residuals`` at ``x`` in closed form: the chain rule through the
+        projections and rotations (``d(R X) / d w = -hat(R X) J_l(w)`` for axis-angle ``w``, :func:`left_jacobian`),
+        the same values as forward-mode autograd (tests/tracker/test_lookahead.py) in one pass instead of one per
         parameter."""
         with torch.no_grad():
             uv0s, uvks, s0, sk = lin
-            d = x[o_sig:o_k] - x_start
-            X = X_start + torch.einsum("c,ncd->nd", d, X_units)  # (N, 3) head frame
-            lmk = L_start + torch.einsum("c,lcd->ld", d, L_units)  # (L, 3)
+            X, lmk = deformed(x[:, o_sig:o_k] - x_start)  # (B, N, 3), (B, L, 3) head frame
             intr = intrs[level]
-            R0 = axis_angle_to_matrix(x[0:3])
-            Jl0 = left_jacobian(x[0:3])
-
-            def proj_jac(Pc: Tensor, cam: Intrinsics) -> Tensor:
-                """``(M, 2, 3)`` d(u, v) / d(camera point) of ``(M, 3)`` points."""
-                return project_points_jacobian(Pc[None], cam)[0]
-
-            RX0 = X @ R0.T
-            uv0 = project_points((RX0 + x[3:6])[None], intr)[0]
-            gp0 = torch.einsum("nu,nud->nd", s0[:, 1:], proj_jac(RX0 + x[3:6], intr))  # (N, 3) dI0 / dP0
-            units_cam0 = torch.einsum("ij,ncj->nci", R0, X_units)  # (N, C, 3)
+            R0 = axis_angle_to_matrix(x[:, 0:3])
+            Jl0 = left_jacobian(x[:, 0:3])
+            t0 = x[:, None, 3:6]
+            RX0 = X @ R0.transpose(-1, -2)
+            uv0 = project_points(RX0 + t0, intr)
+            gp0 = torch.einsum("bnu,bnud->bnd", s0[..., 1:], project_points_jacobian(RX0 + t0, intr))  # dI0 / dP0
             dI0 = torch.cat([
-                -torch.einsum("nd,nde->ne", gp0, hat(RX0)) @ Jl0,  # rotation (N, 3)
+                -torch.einsum("bnd,bnde->bne", gp0, hat(RX0)) @ Jl0,  # rotation (B, N, 3)
                 gp0,  # translation
-                torch.einsum("nd,ncd->nc", gp0, units_cam0),  # shape / expression units
-            ], 1)  # (N, 6 + C)  # fmt: skip
+                _dot3(gp0 @ R0, XU),  # shape / expression units: (R0 u) . g = u . (R0^T g)
+            ], -1)  # (B, N, 6 + C)  # fmt: skip
+            I0 = s0[..., 0] + ((uv0 - uv0s) * s0[..., 1:]).sum(-1)  # frame 0 linearised, as in photometric
             rows = []
             for k in range(K):
                 b = o_k + 11 * k
-                Rk, Jlk = axis_angle_to_matrix(x[b : b + 3]), left_jacobian(x[b : b + 3])
-                light = x[b + 6 : b + 11]
-                RXk = (X + key_delta[k]) @ Rk.T
-                nk = normals @ Rk.T  # (N, 3)
-                gpk = torch.einsum("nu,nud->nd", sk[k, :, 1:], proj_jac(RXk + x[b + 3 : b + 6], intr))
-                I0 = s0[:, 0] + ((uv0 - uv0s) * s0[:, 1:]).sum(-1)  # frame 0 linearised, as in photometric
-                gain = 1 + light[0] + nk @ light[2:5]  # (N,)
-                Jk = x.new_zeros(X.shape[0], P)
-                Jk[:, : o_k] = -gain[:, None] * dI0
-                Jk[:, o_sig:o_k] += torch.einsum("nd,ncd->nc", gpk, torch.einsum("ij,ncj->nci", Rk, X_units))
-                Jk[:, b : b + 3] = -torch.einsum("nd,nde->ne", gpk, hat(RXk)) @ Jlk
-                Jk[:, b : b + 3] -= I0[:, None] * (-(torch.einsum("d,nde->ne", light[2:5], hat(nk)) @ Jlk))
-                Jk[:, b + 3 : b + 6] = gpk
-                Jk[:, b + 6] = -I0
-                Jk[:, b + 7] = -1.0
-                Jk[:, b + 8 : b + 11] = -I0[:, None] * nk
-                rows.append(Jk * sw[k][:, None])
-            PL = lmk @ R0.T + x[3:6]
-            jl = proj_jac(PL, intrinsics)  # (L, 2, 3)
-            Jlm = x.new_zeros(lmk.shape[0], 2, P)
-            Jlm[:, :, 0:3] = -torch.einsum("lud,lde->lue", jl, hat(lmk @ R0.T)) @ Jl0
-            Jlm[:, :, 3:6] = jl
-            Jlm[:, :, o_sig:o_k] = torch.einsum("lud,lcd->luc", jl, torch.einsum("ij,lcj->lci", R0, L_units))
-            Jlm = Jlm * lw.sqrt()[:, None, None]
-            return torch.cat([torch.cat(rows), Jlm.reshape(-1, P), torch.diag(prior.sqrt())])
+                Rk, Jlk = axis_angle_to_matrix(x[:, b : b + 3]), left_jacobian(x[:, b : b + 3])
+                light = x[:, b + 6 : b + 11]
+                RXk = (X + key_delta[:, k]) @ Rk.transpose(-1, -2)
+                nk = normals @ Rk.transpose(-1, -2)  # (B, N, 3)
+                gpk = torch.einsum("bnu,bnud->bnd", sk[:, k, :, 1:],
+                                   project_points_jacobian(RXk + x[:, None, b + 3 : b + 6], intr))  # fmt: skip
+                gain = 1 + light[:, 0:1] + (nk @ light[:, 2:5, None]).squeeze(-1)  # (B, N)
+                Jk = x.new_zeros(B, N, P)
+                Jk[..., :o_k] = -gain[..., None] * dI0
+                Jk[..., o_sig:o_k] += _dot3(gpk @ Rk, XU)
+                Jk[..., b : b + 3] = -torch.einsum("bnd,bnde->bne", gpk, hat(RXk)) @ Jlk
+                Jk[..., b : b + 3] -= I0[..., None] * (-(torch.einsum("bd,bnde->bne", light[:, 2:5], hat(nk)) @ Jlk))
+                Jk[..., b + 3 : b + 6] = gpk
+                Jk[..., b + 6] = -I0
+                Jk[..., b + 7] = -1.0
+                Jk[..., b + 8 : b + 11] = -I0[..., None] * nk
+                rows.append(Jk * sw[:, k, :, None])
+            RL = lmk @ R0.transpose(-1, -2)
+            jl = project_points_jacobian(RL + t0, intrinsics)  # (B, L, 2, 3)
+            Jlm = x.new_zeros(B, lmk.shape[1], 2, P)
+            Jlm[..., 0:3] = -torch.einsum("blud,blde->blue", jl, hat(RL)) @ Jl0[:, None]
+            Jlm[..., 3:6] = jl
+            Jlm[..., o_sig:o_k] = (jl @ R0[:, None]) @ LU
+            Jlm = Jlm * lw.sqrt()[..., None, None]
+            return torch.cat([torch.cat(rows, 1), Jlm.flatten(1, 2), torch.diag_embed(prior.sqrt())], 1)
 
-    def cost(x: Tensor, r: Tensor, uvl: Tensor, mask: Tensor, scale: Tensor) -> float:
-        """The minimised cost at ``x`` from its exact residuals ``r`` and landmark pixels ``uvl``."""
-        c = config.huber_k * scale[:, None]
+    def cost(x: Tensor, r: Tensor, uvl: Tensor, mask: Tensor, scale: Tensor, rows: Tensor | None = None) -> Tensor:
+        """``(B,)`` the minimised cost at ``x`` from its exact residuals ``r`` and landmark pixels ``uvl`` (``rows``:
+        those of these streams only)."""
+        c = config.huber_k * scale[..., None]
         a = r.abs()
         hub = torch.where(a <= c, a * a, 2 * c * a - c * c)
-        return float(config.photometric_weight * (hub * mask).sum() + (((uvl - target) ** 2).sum(-1) * lw).sum()
-                     + (prior * x * x).sum())  # fmt: skip
+        return (config.photometric_weight * (hub * mask).flatten(1).sum(-1)
+                + (((uvl - pick(target, rows)) ** 2).sum(-1) * pick(lw, rows)).sum(-1)
+                + (pick(prior, rows) * x * x).sum(-1))  # fmt: skip
 
     for li, level in enumerate(levels):
-        mu = 1e-3
+        mu = x.new_full((B,), 1e-3)
+        going = torch.ones(B, dtype=torch.bool, device=dev)  # the streams whose iterations at this level go on
         for _ in range(config.iterations[li]):
             with torch.no_grad():
                 geo = geometry(x, level)
             mask, normals = visibility(x, level, geo)
-            if not bool(mask.any()):
+            going = going & mask.flatten(1).any(-1)
+            if not bool(going.any()):
                 break
             with torch.no_grad():
                 r, uvl, lin = exact(x, level, normals, geo)
-                scale = torch.stack([
-                    (1.4826 * (r[k][mask[k]] - r[k][mask[k]].median()).abs().median()).clamp_min(1e-3)
-                    if bool(mask[k].any()) else r.new_tensor(1.0) for k in range(K)
-                ])  # fmt: skip
-                c = config.huber_k * scale[:, None]
+                med = _masked_median(r, mask)
+                scale = (1.4826 * _masked_median((r - med[..., None]).abs(), mask)).clamp_min(1e-3)
+                scale = scale.where(mask.any(-1), 1.0)
+                c = config.huber_k * scale[..., None]
                 irls = torch.where(r.abs() <= c, torch.ones_like(r), c / r.abs().clamp_min(1e-12))
                 sw = (config.photometric_weight * irls * mask).sqrt()
                 before = cost(x, r, uvl, mask, scale)
 
             def residuals(xx: Tensor) -> Tensor:
                 rp, uvl = photometric(xx, level, lin, normals)
-                return torch.cat([(rp * sw).reshape(-1), ((uvl - target) * lw.sqrt()[:, None]).reshape(-1),
-                                  prior.sqrt() * xx])  # fmt: skip
+                return torch.cat([(rp * sw).flatten(1), ((uvl - target) * lw.sqrt()[..., None]).flatten(1),
+                                  prior.sqrt() * xx], 1)  # fmt: skip
 
             if analytic:
                 J = jacobian(x, level, lin, normals, sw)
             else:
                 from torch.func import jacfwd  # imported here: its first use imports torch._dynamo (1.5 s)
 
-                J = jacfwd(residuals)(x)
+                J = jacfwd(residuals)(x).diagonal(0, 0, 2).permute(2, 0, 1)  # each stream's own block
             res0 = residuals(x).detach()
-            H, g = J.T @ J, J.T @ res0
-            accepted = False
+            Jt = J.transpose(-1, -2)
+            H, g = Jt @ J, (Jt @ res0[..., None]).squeeze(-1)
+            # (a stream that stopped takes no step: an identity system, which no empty mask makes singular)
+            H = torch.where(going[:, None, None], H, torch.eye(P, dtype=dt, device=dev))
+            g = torch.where(going[:, None], g, 0.0)
+            damp = torch.diag_embed(torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-9))
+            trying = going.clone()  # the streams still looking for a step that lowers their cost
             for _ in range(8):
-                step = -torch.linalg.solve(H + mu * torch.diag(torch.diag(H).clamp_min(1e-9)), g)
+                step = -torch.linalg.solve(H + mu[:, None, None] * damp, g)
                 x_new = torch.maximum(torch.minimum(x + step, hi), lo)
-                if not bool(torch.isfinite(x_new).all()):
-                    mu *= 10
-                    continue
+                finite = torch.isfinite(x_new).all(-1)
+                x_new = torch.where(finite[:, None], x_new, x)
                 with torch.no_grad():
-                    after = cost(x_new, *exact(x_new, level, normals)[:2], mask, scale)
-                if after < before:
-                    x, mu, accepted = x_new, max(mu / 10, 1e-9), True
+                    if bool(trying.all()):
+                        after = cost(x_new, *exact(x_new, level, normals)[:2], mask, scale)
+                    else:  # (a further try is for few streams: the others are not evaluated)
+                        rows = trying.nonzero().squeeze(-1)
+                        xr = x_new[rows]
+                        after = torch.full_like(before, float("inf")).index_put(
+                            (rows,), cost(xr, *exact(xr, level, normals[rows], rows=rows)[:2], mask[rows],
+                                          scale[rows], rows))  # fmt: skip
+                better = trying & finite & (after < before)
+                x = torch.where(better[:, None], x_new, x)
+                mu = torch.where(better, (mu / 10).clamp_min(1e-9), torch.where(trying, mu * 10, mu))
+                trying = trying & ~better
+                if not bool(trying.any()):
                     break
-                mu *= 10
-            if not accepted:
-                break
+            going = going & ~trying  # a stream that found no step stops at this level
 
     sig, al = coeffs(x)
-    R0 = axis_angle_to_matrix(x[0:3])[None]
+    R0 = axis_angle_to_matrix(x[:, 0:3])
     uvl = geometry(x, 0)[2]  # landmark pixels (full resolution at every level)
-    rms = ((((uvl - target) ** 2).sum(-1) * lw).sum() / lw.sum().clamp_min(torch.finfo(lw.dtype).tiny)).sqrt()
+    rms = ((((uvl - target) ** 2).sum(-1) * lw).sum(-1) / lw.sum(-1).clamp_min(torch.finfo(lw.dtype).tiny)).sqrt()
     out_dt = model.dtype
     refined = LandmarkFit(
-        R0.to(out_dt), x[0:3][None].to(out_dt), x[3:6][None].to(out_dt), sig[None].to(out_dt), al[None].to(out_dt),
-        rms[None].to(out_dt), fit.status.clone(),
+        R0.to(out_dt), x[:, 0:3].to(out_dt), x[:, 3:6].to(out_dt), sig.to(out_dt), al.to(out_dt), rms.to(out_dt),
+        torch.cat([s.status for s in starts]),
     )
-    key = x[o_k:].reshape(K, 11)
-    return refined, axis_angle_to_matrix(key[:, 0:3]).to(out_dt), key[:, 3:6].to(out_dt)
+    key_R, key_t = key_poses(x)
+    return refined, key_R.to(out_dt), key_t.to(out_dt)
 
 
 @full_precision
@@ -796,8 +972,8 @@ def lookahead_fit(
     turned ``config.yaw_deg`` to both sides, ``config.max_frames`` frames are used or a video cut ends its
     look-ahead (a turn of more than :data:`KEYFRAME_MAX_STEP_DEG` in one step, as the online start: its keyframes
     come from the frames before the cut); a stream with at least
-    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit`, the others keep :func:`fit_landmarks`'s
-    fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
+    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit` (those streams refined in one batched solve,
+    each as alone), the others keep :func:`fit_landmarks`'s fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
     ``FaceTracker.initialise(..., fit=...)``).
 
     Args:
@@ -807,7 +983,7 @@ def lookahead_fit(
     Returns:
         The fit (batch ``B``) and each stream's keyframes.
     """
-    from torchface.tracker.managed import initialise_managed, managed_step
+    from torchface.tracker.managed import REANCHOR_BATCH, initialise_managed, managed_step
 
     # (None was an AttributeError: 'NoneType' object has no attribute 'dtype'; a TrackerConfig is "tracker_config"
     # here: "config must be a TrackerConfig" named this function's LookaheadConfig)
@@ -847,19 +1023,30 @@ def lookahead_fit(
         if all(len(k) == 2 or not going for k, going in zip(keys, uncut.tolist())):
             break
     R, t, expr = torch.stack(rotations, 1), torch.stack(translations, 1), torch.stack(expressions, 1)
-    streams = []
+    la = levels_of(config, tracker_config.num_levels)
+
+    def problem(b: int) -> _Start:
+        idx = torch.tensor([0] + keys[b], device=frames.device)
+        w = None if weights is None else weights[b]
+        # (priors per stream: a batch can mix dense and sparse starts)
+        return _stream_start(
+            model, frames[b, idx], intrinsics, landmarks_px[b], fit.select(slice(b, b + 1)), R[b, keys[b]],
+            t[b, keys[b]], key_expression=expr[b, keys[b]], landmark_weights=w, config=la,
+            backend=tracker_config.backend, **landmark_fit_priors(model, fc, intrinsics, landmarks_px[b], w),
+        )  # fmt: skip
+
+    # The streams with their keyframes refined together, as the online start's (one batched solve per keyframe
+    # count, at most REANCHOR_BATCH streams each): each as alone
+    streams = [fit.select(slice(b, b + 1)) for b in range(B)]
+    groups: dict[int, list[int]] = {}
     for b in range(B):
-        one = fit.select(slice(b, b + 1))
         if len(keys[b]) >= config.min_keyframes:
-            idx = torch.tensor([0] + keys[b], device=frames.device)
-            # (per stream: a batch can mix dense and sparse starts)
-            priors = landmark_fit_priors(model, fc, intrinsics, landmarks_px[b],
-                                         None if weights is None else weights[b])  # fmt: skip
-            one = refine_first_fit(
-                model, frames[b, idx], intrinsics, landmarks_px[b], one, R[b, keys[b]], t[b, keys[b]],
-                key_expression=expr[b, keys[b]],
-                landmark_weights=None if weights is None else weights[b],
-                config=levels_of(config, tracker_config.num_levels), backend=tracker_config.backend, **priors,
-            )  # fmt: skip
-        streams.append(one)
+            groups.setdefault(len(keys[b]), []).append(b)
+    for members in groups.values():
+        for c in range(0, len(members), REANCHOR_BATCH):
+            chunk = members[c : c + REANCHOR_BATCH]
+            refined = _refine_starts(model, [problem(b) for b in chunk], intrinsics, la,
+                                     backend=tracker_config.backend)[0]  # fmt: skip
+            for j, b in enumerate(chunk):
+                streams[b] = refined.select(slice(j, j + 1))
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

@@ -105,8 +105,8 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_first_fit, is_keyframe_turn, is_video_cut, kept_shape_indices, landmark_fit_priors,
-    levels_of, view_yaw_deg,
+    LookaheadConfig, _refine_starts, _Start, _stream_start, is_keyframe_turn, is_video_cut, kept_shape_indices,
+    landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -1473,6 +1473,13 @@ def _watch_first_pose(
     return replace(state, management=replace(ms, first=first))
 
 
+#: The online start's re-anchoring refines at most this many streams in one batched solve (more that re-anchor on
+#: one frame go in further solves): the solve holds each stream's frames' pyramids with their gradients in float64,
+#: 19 MB a stream with one keyframe at 640x480 (128 streams at once would have held 2.5 GB, twice over while they were
+#: stacked), and 16 already share its per-operation overhead (a stream's result does not depend on the others').
+REANCHOR_BATCH: int = 16
+
+
 def _reanchor(
     model: FaceModel, config: TrackerConfig, state: TrackerState, w: FirstPoseWatch,
     keys: list[tuple[tuple[Tensor, Tensor, Tensor, Tensor], ...]], index: Tensor, frames: Tensor,
@@ -1483,29 +1490,39 @@ def _reanchor(
     reported poses in the head frame of their first result."""
     ms = _management(state)
     fc = config.fit
-    fits, now_R, now_t = [], [], []
+    streams = index.tolist()
+    la = levels_of(w.config, config.num_levels)
     with torch.inference_mode(False):
-        # One refinement per stream, one after another: each stream re-anchors once per video, and a batched
-        # refinement (points, keyframes and Levenberg-Marquardt decisions padded per stream) would save at most about
-        # half of a step where several do: 0.35 s of CPU per stream at 320x240 on one thread (96% of the
-        # re-anchoring; 1.5 s for 4 streams, 2.7 for 8), and one refinement over 4 or 8 times the points costs 2.2 or
-        # 3.9 times one at 640x480 (0.35 s with its 3000), before the rasterizations that grow with the streams.
-        for b in index.tolist():
+        # Each stream's problem set up alone (its template points; its priors: a sparse start keeps the fit's sparse
+        # priors), then one batched refinement of the streams re-anchoring on this frame (Levenberg-Marquardt with
+        # each stream's own damping and stopping: each as alone, to 1e-5). Refined one after another, 8 streams at
+        # 320x240 took this frame 2.6-3.3 s of CPU on one thread; together 1.7-1.8 (README, "Speed and the native
+        # kernels"): the solve's arithmetic grows with the streams, its per-operation overhead no longer.
+        def start(b: int) -> _Start:
             ks = keys[b]
-            # (per stream: a sparse start, one of few landmarks, keeps the fit's sparse priors)
-            priors = landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b],
-                                         None if w.weights is None else w.weights[b])  # fmt: skip
-            one, key_R, key_t = _refine_first_fit(
+            weights = None if w.weights is None else w.weights[b]
+            return _stream_start(
                 model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
-                key_expression=torch.stack([k[3] for k in ks]),
-                landmark_weights=None if w.weights is None else w.weights[b],
-                config=levels_of(w.config, config.num_levels),
-                backend=config.backend, **priors,
+                key_expression=torch.stack([k[3] for k in ks]), landmark_weights=weights, config=la,
+                backend=config.backend, **landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b], weights),
             )  # fmt: skip
-            fits.append(one)
-            now_R.append(key_R[-1])
-            now_t.append(key_t[-1])
+
+        # (streams of another keyframe count, which min_keyframes=1 never gives on one frame, are solved apart; at
+        # most REANCHOR_BATCH at once, each chunk's problems set up just before its solve)
+        groups: dict[int, list[int]] = {}
+        for i, b in enumerate(streams):
+            groups.setdefault(len(keys[b]), []).append(i)
+        refined: dict[int, tuple[LandmarkFit, Tensor, Tensor]] = {}  # per stream: its fit, this frame's pose
+        for members in groups.values():
+            for c in range(0, len(members), REANCHOR_BATCH):
+                chunk = members[c : c + REANCHOR_BATCH]
+                out, key_R, key_t = _refine_starts(model, [start(streams[i]) for i in chunk], state.intrinsics, la,
+                                                   backend=config.backend)  # fmt: skip
+                for j, i in enumerate(chunk):
+                    refined[i] = out.select(slice(j, j + 1)), key_R[j, -1], key_t[j, -1]
+        fits = [refined[i][0] for i in range(len(streams))]
+        now_R, now_t = [refined[i][1] for i in range(len(streams))], [refined[i][2] for i in range(len(streams))]
         fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))
         fit = fit.to(model.device, model.dtype)
     weights = None if w.weights is None else w.weights[index]
