@@ -1015,7 +1015,8 @@ def search_mosaic(
     Each is scored by the zero-mean normalised cross-correlation between its level-``level`` template
     intensities and the image sampled at their projections, over points facing the camera (placements with
     fewer than ``search_min_inside`` of them inside the image score -1). Two stages: the head origin on a grid
-    of step ``2 * search_step_px`` on the image halved once more (a quarter of ``search_points`` points),
+    of step ``search_step_px`` on the image halved once more (``2 * search_step_px`` pixels of ``gray``; a
+    quarter of ``search_points`` points),
     then, around the four best placements, a grid of step 1 pixel on ``gray`` itself with ``search_points``
     points.
 
