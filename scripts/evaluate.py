@@ -926,8 +926,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--search-step-px", type=float, default=None, metavar="PX",
-        help="TemplateConfig.search_step_px for every run (the mosaic search's first-stage grid step, pixels of the "
-        "coarsest pyramid level; default: TemplateConfig's)",
+        help="TemplateConfig.search_step_px for every run (the mosaic search's first-stage grid step, in pixels of the "
+        "searched pyramid level halved once more; default: TemplateConfig's)",
     )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
