@@ -924,6 +924,11 @@ def main(argv: list[str] | None = None) -> int:
         "--motion-prediction", type=float, default=None, metavar="K",
         help="TrackerConfig.motion_prediction for every run (0: off, the default; 1: full constant velocity)",
     )
+    parser.add_argument(
+        "--search-step-px", type=float, default=None, metavar="PX",
+        help="TemplateConfig.search_step_px for every run (the mosaic search's first-stage grid step, in pixels of the "
+        "searched pyramid level halved once more; default: TemplateConfig's)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -955,6 +960,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--hold must be >= 1, got {args.hold}")
     if args.motion_prediction is not None and not 0.0 <= args.motion_prediction <= 1.0:
         parser.error(f"--motion-prediction must be in [0, 1], got {args.motion_prediction}")
+    if args.search_step_px is not None and not args.search_step_px > 0.0:
+        parser.error(f"--search-step-px must be positive, got {args.search_step_px}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     sparsity: float | None = None
@@ -1024,6 +1031,8 @@ def main(argv: list[str] | None = None) -> int:
         base = replace(base, expression_quota=args.expression_quota)
     if args.motion_prediction is not None:  # the same
         base = replace(base, motion_prediction=args.motion_prediction)
+    if args.search_step_px is not None:  # the same
+        base = replace(base, template=replace(base.template, search_step_px=args.search_step_px))
     if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior
         base = replace(base, expression_sparsity=sparsity)
     results: dict[str, dict[str, object]] = {}

@@ -507,3 +507,38 @@ def test_evaluate_eyelids_sets_the_eyelid_configuration(monkeypatch):
         0.06, 0.03, True)
     assert eyes_start.kept_shape_units == ("Eyes vertical position",) and not eyes_start.fit_expression
     assert (quota.expression_quota, quota.expression_sparsity) == (0.02, 0.03)
+
+
+def test_evaluate_search_step_px_sets_every_runs_search_grid(monkeypatch, capsys):
+    """--search-step-px sets TemplateConfig.search_step_px of every run (nothing else); without it the default;
+    zero or negative is a one-line error before any work."""
+    from dataclasses import replace
+
+    import pytest
+
+    from torchface.tracker.step import TrackerConfig
+
+    evaluate = _load("evaluate")
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def spy(model, config, *args, **kwargs):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(evaluate, "track_sequence", spy)
+    base = ["--scenarios", "expressions", "--frames", "2", "--size", "64x48", "--cache", "none", "--ablations",
+            "none", "--no-auroc"]  # fmt: skip
+    for flags in ([], ["--search-step-px", "1.5"]):
+        with pytest.raises(Stop):
+            evaluate.main([*base, *flags])
+    plain, stepped = seen
+    assert plain == TrackerConfig()
+    assert stepped.template.search_step_px == 1.5
+    assert stepped == replace(TrackerConfig(), template=replace(TrackerConfig().template, search_step_px=1.5))
+    for bad in ("0", "-2"):
+        with pytest.raises(SystemExit) as info:
+            evaluate.main([*base, "--search-step-px", bad])
+        assert info.value.code == 2 and "--search-step-px must be positive" in capsys.readouterr().err

@@ -236,7 +236,8 @@ class TemplateConfig:
             the eyelid-keeping online start (README, Known limitations, "Eyes closed") the first occluder of the
             CANDIDE-3 long run took 33 frames to recover from; with this on, 0.
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
-            halved once more (:func:`search_mosaic`).
+            halved once more (:func:`search_mosaic`). 2 finds faces the default grid misses, wrong placements too,
+            at twice the cost (README, Known limitations, Fast motion: measured on the long runs).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
         search_depth_widening: from a loss's second recovery attempt on (without a detector), each search also
             tries ``search_depth_factors`` scaled by the next of these in turn, and a candidate found there may be
@@ -1015,7 +1016,8 @@ def search_mosaic(
     Each is scored by the zero-mean normalised cross-correlation between its level-``level`` template
     intensities and the image sampled at their projections, over points facing the camera (placements with
     fewer than ``search_min_inside`` of them inside the image score -1). Two stages: the head origin on a grid
-    of step ``2 * search_step_px`` on the image halved once more (a quarter of ``search_points`` points),
+    of step ``search_step_px`` on the image halved once more (``2 * search_step_px`` pixels of ``gray``; a
+    quarter of ``search_points`` points),
     then, around the four best placements, a grid of step 1 pixel on ``gray`` itself with ``search_points``
     points.
 
