@@ -960,8 +960,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--hold must be >= 1, got {args.hold}")
     if args.motion_prediction is not None and not 0.0 <= args.motion_prediction <= 1.0:
         parser.error(f"--motion-prediction must be in [0, 1], got {args.motion_prediction}")
-    if args.search_step_px is not None and not args.search_step_px > 0.0:
-        parser.error(f"--search-step-px must be positive, got {args.search_step_px}")
+    if args.search_step_px is not None and not (math.isfinite(args.search_step_px) and args.search_step_px > 0.0):
+        parser.error(f"--search-step-px must be positive and finite, got {args.search_step_px}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     sparsity: float | None = None

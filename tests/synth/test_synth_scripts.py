@@ -538,7 +538,7 @@ def test_evaluate_search_step_px_sets_every_runs_search_grid(monkeypatch, capsys
     assert plain == TrackerConfig()
     assert stepped.template.search_step_px == 1.5
     assert stepped == replace(TrackerConfig(), template=replace(TrackerConfig().template, search_step_px=1.5))
-    for bad in ("0", "-2"):
+    for bad in ("0", "-2", "inf", "nan"):  # (inf passed: the first recovery's search raised a RuntimeError)
         with pytest.raises(SystemExit) as info:
             evaluate.main([*base, "--search-step-px", bad])
         assert info.value.code == 2 and "--search-step-px must be positive" in capsys.readouterr().err

@@ -99,6 +99,11 @@ def test_config_defaults_and_validation():
     assert TemplateConfig().restart_after_unmatched == 0  # off: a face-borne occluder also restarts (README)
     with pytest.raises(ValueError, match="restart_after_unmatched"):
         TemplateConfig(restart_after_unmatched=-1)
+    # An infinite (or NaN) grid step passed as positive: the first recovery's search raised a RuntimeError ("cannot
+    # reshape tensor of 0 elements"; its coarse grid was empty and its fine one int(inf) wide)
+    for step in (float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="search_step_px"):
+            TemplateConfig(search_step_px=step)
 
 
 def test_pose_bins_known_answers():

@@ -333,6 +333,8 @@ class TemplateConfig:
                              f"confidence), got {self.normalised_size}")  # fmt: skip
         if not (self.yaw_bin_deg > 0 and self.pitch_bin_deg > 0 and self.search_step_px > 0):
             raise ValueError("yaw_bin_deg, pitch_bin_deg and search_step_px must be positive")
+        if not math.isfinite(self.search_step_px):  # (inf: an empty coarse grid, a fine one int(inf) wide)
+            raise ValueError(f"search_step_px must be finite, got {self.search_step_px}")
         if not 0 < self.bin_centre_fraction <= 0.5:
             raise ValueError(f"bin_centre_fraction must be in (0, 0.5], got {self.bin_centre_fraction}")
         if not self.entry_reach > 0:
