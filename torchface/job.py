@@ -964,7 +964,7 @@ def _changed_settings(made_with: dict, now: dict[str, object]) -> list[str]:
     return [k for k in now if k not in made_with or _setting_differences(made_with[k], now[k])]
 
 
-def _with_defaults(then: Any, value: object) -> Any:
+def _with_defaults(then: Any, value: object, default: object = None) -> Any:
     """The setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) with each field that it lacks and
     the settings dataclass of ``value`` (the setting now, a Python value: :func:`_setting_values`,
     :func:`_result_settings`) has, at that field's default, as JSON, nested dataclasses alike: a field added to a
@@ -972,16 +972,26 @@ def _with_defaults(then: Any, value: object) -> Any:
     that added it kept by default (a partial run's record from before ``motion_prediction`` existed, resumed with
     ``--motion-prediction 0.5``, mixed two settings in one video). A field without a default stays absent (not
     compared, :func:`_setting_differences`), as does one that ``then`` has and ``value``'s dataclass no longer
-    does (removed since)."""
+    does (removed since). ``default``: ``value``'s default where it is a field of another dataclass (that field's
+    default), whose fields' values are the defaults of a nested one's fields: TrackerConfig's ``fit`` is
+    ``FitConfig(fit_expression=True, ...)``, and a record without ``fit.fit_expression`` compared at
+    ``FitConfig()``'s (False) was refused with the default settings."""
     if isinstance(then, dict) and is_dataclass(value) and not isinstance(value, type):
+        own = default if type(default) is type(value) else None
         out = dict(then)
         for f in fields(value):
-            if f.name in then:
-                out[f.name] = _with_defaults(then[f.name], getattr(value, f.name))
+            if own is not None:
+                d = getattr(own, f.name)
             elif f.default is not MISSING:
-                out[f.name] = _as_json(f.default)
+                d = f.default
             elif f.default_factory is not MISSING:
-                out[f.name] = _as_json(f.default_factory())
+                d = f.default_factory()
+            else:  # (no default: absent, not compared)
+                d = MISSING
+            if f.name in then:
+                out[f.name] = _with_defaults(then[f.name], getattr(value, f.name), None if d is MISSING else d)
+            elif d is not MISSING:
+                out[f.name] = _as_json(d)
         return out
     if isinstance(then, dict) and isinstance(value, dict):  # (the settings by name: their own keys compared)
         return {k: _with_defaults(v, value[k]) if k in value else v for k, v in then.items()}

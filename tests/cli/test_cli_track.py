@@ -2176,6 +2176,47 @@ def test_a_settings_field_an_earlier_versions_record_lacks_is_compared_at_its_de
     assert track_videos([short], base)[0].skipped
 
 
+def test_a_nested_settings_field_a_record_lacks_is_compared_at_the_enclosing_default(clip, tmp_path):
+    """A field of a nested settings dataclass that a record (or a sidecar) lacks is compared at the default the run
+    gets, the enclosing default's: TrackerConfig's ``fit`` is ``FitConfig(fit_expression=True, ...)`` and
+    TemplateConfig's ``dissimilarity`` sets its own ``patch_size`` and more. It was compared at the class's default
+    (``FitConfig().fit_expression``, False): a record without the field, resumed with the default settings, was
+    refused ("tracker settings: fit.fit_expression"), and one resumed with the class's default was accepted."""
+    from torchface.tracker.step import TrackerConfig
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    base = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None, resume=True)
+    record_path = out / "short.record.partial"
+    tc = TrackerConfig()
+    diss = tc.template.dissimilarity
+    classes = (replace(tc, fit=replace(tc.fit, fit_expression=type(tc.fit)().fit_expression)),
+               replace(tc, template=replace(tc.template, dissimilarity=replace(
+                   diss, patch_size=type(diss)().patch_size))))  # fmt: skip
+    assert classes[0] != tc and classes[1] != tc  # (the enclosing defaults differ from the classes')
+    for field, other, name in ((("fit", "fit_expression"), classes[0], r"fit\.fit_expression"),
+                               (("template", "dissimilarity", "patch_size"), classes[1],
+                                r"template\.dissimilarity\.patch_size")):  # fmt: skip
+        _interrupted(short, out, lm, 2, refine_first=None)
+        record = json.loads(record_path.read_text())
+        holder = record["settings"]["tracker settings"]
+        for key in field[:-1]:
+            holder = holder[key]
+        del holder[field[-1]]  # (a record of a version before the field)
+        record_path.write_text(json.dumps(record))
+        with pytest.raises(InputError, match=rf"other settings or input \(tracker settings: {name}\)"):
+            track_videos([short], replace(base, tracker=other))
+    assert track_videos([short], base)[0].frames == 4  # resumed with the defaults
+    path = output_paths(out, "short")["json"]  # complete outputs (the sidecar's config.tracker) alike
+    sidecar = json.loads(path.read_text())
+    del sidecar["config"]["tracker"]["fit"]["fit_expression"]
+    path.write_text(json.dumps(sidecar))
+    assert track_videos([short], base)[0].skipped
+    with pytest.raises(InputError, match=r"other settings \(tracker: fit\.fit_expression"):
+        track_videos([short], replace(base, tracker=classes[0]))
+
+
 def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch):
     """Ctrl-C after the CSV got its final name but before the JSON (written last) used to leave a CSV that --resume
     ignored (it tracked the whole video again) and, in a batch, the other videos' partial MP4s: now the CSV is
