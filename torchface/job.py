@@ -50,8 +50,9 @@ refined fit recorded in ``<stem>.record.partial`` (which also names the input th
 and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does
 not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
 settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
-the settings since the interrupted run's version is compared at its default, what that version did, one removed since
-is not compared), as is a damaged or missing record
+the settings since the interrupted run's version is compared at its default, what that version did where the
+field's default kept the earlier behaviour (most do; not, e.g., ``min_face_width_px`` or ``reference_focal_px``),
+one removed since is not compared), as is a damaged or missing record
 or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one, or whose ``timestamp`` is not
 its frame's time, :func:`_check_replayed_time`); the parameters of the rows
 already written are read back from the CSV, and the videos are re-drawn from them; so is the stream's loss
@@ -968,8 +969,9 @@ def _with_defaults(then: Any, value: object, default: object = None) -> Any:
     """The setting ``then`` (as a record or a sidecar holds it, :func:`_as_json`) with each field that it lacks and
     the settings dataclass of ``value`` (the setting now, a Python value: :func:`_setting_values`,
     :func:`_result_settings`) has, at that field's default, as JSON, nested dataclasses alike: a field added to a
-    settings dataclass since ``then`` was written is compared as what the earlier version did, which a version
-    that added it kept by default (a partial run's record from before ``motion_prediction`` existed, resumed with
+    settings dataclass since ``then`` was written is compared as what the earlier version did, where a version
+    that added it kept that by default, as most did (not all: ``min_face_width_px``, ``max_rotation_std_deg``,
+    ``max_facing_deg`` and ``reference_focal_px`` changed what the tracker does at their defaults) (a partial run's record from before ``motion_prediction`` existed, resumed with
     ``--motion-prediction 0.5``, mixed two settings in one video). A field without a default stays absent (not
     compared, :func:`_setting_differences`), as does one that ``then`` has and ``value``'s dataclass no longer
     does (removed since). ``default``: ``value``'s default where it is a field of another dataclass (that field's

@@ -497,7 +497,6 @@ def test_a_continued_track_out_of_the_frame_loses_to_any_candidate(model, two_vi
     assert float((t - gb.translation[ok[0] :]).norm(dim=-1).max()) < 15.0, t
 
 
-
 def test_a_continued_track_out_of_the_frame_gives_way_only_to_a_confident_candidate(model, two_views, monkeypatch):
     """Out of the frame, the continued track competes with no candidate, but the candidate must itself be confident
     (``confidence_threshold``), not only reach ``adopt_min_confidence``: a weak match (here the candidate's score
@@ -517,7 +516,9 @@ def test_a_continued_track_out_of_the_frame_gives_way_only_to_a_confident_candid
     frames, ga, _ = two_views
     results, _ = track(model, LEAVE_CFG, frames, landmarks(ga))
     assert max(capped) > 0.5, capped  # the candidate would have been adopted (as in the test above) but for the cap
-    assert not any(bool(results[i].success[0]) for i in range(TWO_BACK, len(results))), [int(r.status[0]) for r in results]
+    status = [int(r.status[0]) for r in results]
+    assert not any(bool(results[i].success[0]) for i in range(TWO_BACK, len(results))), status
+
 
 def test_a_cut_to_another_person_beside_a_track_out_of_the_frame_restarts_from_the_detector(model):
     """``restart_after_unmatched`` counts an attempt as unmatched when the detector's candidate scores under
