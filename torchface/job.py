@@ -971,8 +971,9 @@ def _with_defaults(then: Any, value: object, default: object = None) -> Any:
     :func:`_result_settings`) has, at that field's default, as JSON, nested dataclasses alike: a field added to a
     settings dataclass since ``then`` was written is compared as what the earlier version did, where a version
     that added it kept that by default, as most did (not all: ``min_face_width_px``, ``max_rotation_std_deg``,
-    ``max_facing_deg`` and ``reference_focal_px`` changed what the tracker does at their defaults) (a partial run's record from before ``motion_prediction`` existed, resumed with
-    ``--motion-prediction 0.5``, mixed two settings in one video). A field without a default stays absent (not
+    ``max_facing_deg`` and ``reference_focal_px`` changed what the tracker does at their defaults); a partial
+    run's record from before ``motion_prediction`` existed, resumed with ``--motion-prediction 0.5``, mixed two
+    settings in one video. A field without a default stays absent (not
     compared, :func:`_setting_differences`), as does one that ``then`` has and ``value``'s dataclass no longer
     does (removed since). ``default``: ``value``'s default where it is a field of another dataclass (that field's
     default), whose fields' values are the defaults of a nested one's fields: TrackerConfig's ``fit`` is

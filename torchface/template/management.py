@@ -192,9 +192,9 @@ class TemplateConfig:
             10%): one whose solve ran to twice the depth replaced a track 5.6 degrees off (scan_motion without
             expression terms). A continued track whose face is out of the frame (``min_inside_fraction``) is no
             competitor: any candidate that passes its own checks (in the frame, within the searched depths) and is
-            itself confident (``confidence_threshold``) replaces it, nearer than this or scoring less (a track on a face half out at the
-            edge scored 0.95-0.98 on the patches still in view and kept a candidate on the face back in view,
-            0.90, from being adopted: the stream stayed LOST).
+            itself confident (``confidence_threshold``) replaces it, nearer than this or scoring less (a track on a
+            face half out at the edge scored 0.95-0.98 on the patches still in view and kept a candidate on the
+            face back in view, 0.90, from being adopted: the stream stayed LOST).
         adopt_min_confidence: and the candidate must score at least this. A candidate's solve that ran off
             the face scores near 0 (1e-4 and below), and so, beside a track judged lost, does a continued
             track that is right but seen from a view its reference does not cover: in benchmark.py's 32

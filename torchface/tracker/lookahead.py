@@ -971,9 +971,9 @@ def lookahead_fit(
     Each stream is tracked (template management as ``tracker_config``) over ``frames[:, 1:]`` until its head has
     turned ``config.yaw_deg`` to both sides, ``config.max_frames`` frames are used or a video cut ends its
     look-ahead (a turn of more than :data:`KEYFRAME_MAX_STEP_DEG` in one step, as the online start: its keyframes
-    come from the frames before the cut); a stream with at least
-    ``config.min_keyframes`` keyframes gets :func:`refine_first_fit` (those streams refined in one batched solve,
-    each as alone), the others keep :func:`fit_landmarks`'s fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
+    come from the frames before the cut); a stream with at least ``config.min_keyframes`` keyframes gets
+    :func:`refine_first_fit` (those streams refined in one batched solve, each as alone), the others keep
+    :func:`fit_landmarks`'s fit. Start tracking from ``frames[:, 0]`` again with ``initialise(..., fit=...)`` (or
     ``FaceTracker.initialise(..., fit=...)``).
 
     Args:

@@ -35,12 +35,12 @@ templates, with the policy of the paper's Section 4 (the pieces are in :mod:`tor
    frame (``min_inside_fraction``) and, when searched, within the searched depths; a continued track whose face is
    out of the frame competes with no candidate (its confidence is that of the patches still in view): any
    candidate that is itself confident (``confidence_threshold``), in the frame and, when searched, within the
-   searched depths replaces it. The loss ends when the continued track or a candidate reaches ``recover_confidence``. A lost
-   stream's continued track outside the searched depths scores 0 (it went astray, however well its patches
-   match). With a detector and ``restart_after_unmatched`` (off by default),
-   a stream whose detected face nothing of its mosaic matched at that many attempts in a row (the candidate and
-   the continued track under ``adopt_min_confidence``, or the track out of the frame), the same face each
-   time (a cut to another person), starts afresh from the detector's landmarks.
+   searched depths replaces it. The loss ends when the continued track or a candidate reaches
+   ``recover_confidence``. A lost stream's continued track outside the searched depths scores 0 (it went astray,
+   however well its patches match). With a detector and ``restart_after_unmatched`` (off by default), a stream
+   whose detected face nothing of its mosaic matched at that many attempts in a row (the candidate and the
+   continued track under ``adopt_min_confidence``, or the track out of the frame), the same face each time (a cut
+   to another person), starts afresh from the detector's landmarks.
 
 All per-frame work is batched over the B streams; adding an entry, switching entries and recovery touch only
 the streams concerned (the recovery search loops over its lost streams).
