@@ -42,8 +42,9 @@ without ``resume`` first removes what earlier runs wrote for all its videos (bef
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
 rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped (refused when made from another input, with other settings or
-without the meshes asked for: :func:`_check_resumable`) and one with a partial CSV continues after its last complete
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input, from other first-frame
+landmarks than its landmarks file holds now, with other settings or without the meshes asked for:
+:func:`_check_resumable`) and one with a partial CSV continues after its last complete
 row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
@@ -1278,10 +1279,15 @@ def _check_inputs_kept(
                                   "rename that file")  # fmt: skip
 
 
-def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> None:
-    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, or with other
-    settings than ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a
-    sidecar without one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
+def _check_resumable(
+    video: Path, paths: dict[str, Path], config: JobConfig, landmarks: str | os.PathLike[str] | None = None
+) -> None:
+    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from other
+    first-frame landmarks than the file ``landmarks`` now holds (the sidecar's ``initial_landmarks_px``, compared
+    exactly, as the sidecar stores them, a missing point's ``[null, null]`` equal to a NaN row; a file fixed in place
+    kept the results of its old points; a sidecar without them: not compared), or with other settings than
+    ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a sidecar without
+    one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
     :func:`_with_defaults`), or without the meshes ``config.meshes`` asks for."""
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
@@ -1289,9 +1295,20 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
         made_from = made.get("resolved_path", made["path"])  # sidecars before resolved_path: the path as given
         if not isinstance(made_from, str) or not isinstance(made_with, dict):  # (null or a number: a TypeError's
             raise TypeError  # traceback from Path)
+        points = sidecar.get("initial_landmarks_px") if landmarks is not None else None
+        made_lm = None if points is None else np.array(
+            [[np.nan if c is None else float(c) for c in p] for p in points], dtype=np.float64
+        )  # fmt: skip
+        size = (int(made["width"]), int(made["height"])) if made_lm is not None else (0, 0)  # (the points' frame)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
+    if made_lm is not None and landmarks is not None:
+        now_lm = read_landmarks(landmarks, *size)
+        if made_lm.shape != now_lm.shape or not np.array_equal(made_lm, now_lm, equal_nan=True):
+            what = _landmarks_difference(made_lm, now_lm)
+            raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from other first-frame "
+                             f"landmarks than {os.fspath(landmarks)} holds now ({what}): run without --resume")
     now = _as_json(_result_settings(config))  # as the sidecar holds them
     made_with = _with_defaults(made_with, _result_settings(config))  # (a field added since: at its default)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
@@ -1305,6 +1322,23 @@ def _check_resumable(video: Path, paths: dict[str, Path], config: JobConfig) -> 
     if config.meshes and not (paths["meshes"].is_dir() and _frame_meshes(paths["meshes"])):
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made without --meshes (no "
                          f"{paths['meshes'].name}/): run without --meshes, or without --resume")  # fmt: skip
+
+
+def _landmarks_difference(then: np.ndarray, now: np.ndarray) -> str:
+    """How first-frame landmarks ``then`` and ``now`` (``(68, 2)``, NaN rows: missing points) differ, in words: the
+    count of points that differ and the first of them: ``2 points differ, e.g. point 5: (10.0, 20.0) then, missing
+    now``."""
+    if then.shape != now.shape:
+        return f"{len(then)} points then, {len(now)} now"
+    same = (then == now) | (np.isnan(then) & np.isnan(now))
+    differ = np.flatnonzero(~same.all(axis=1))
+    k = int(differ[0])
+
+    def said(p: np.ndarray) -> str:
+        return "missing" if np.isnan(p).all() else f"({float(p[0])!r}, {float(p[1])!r})"
+
+    many = f"{len(differ)} points differ, e.g." if len(differ) > 1 else "1 point differs:"
+    return f"{many} point {k}: {said(then[k])} then, {said(now[k])} now"
 
 
 def _result_settings(config: JobConfig) -> dict[str, object]:
@@ -1527,7 +1561,7 @@ def _track_locked(
     for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
-            _check_resumable(v, paths, config)
+            _check_resumable(v, paths, config, config.landmarks[k] if config.landmarks else None)
             cols, rows = read_track_csv(paths["csv"])
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0

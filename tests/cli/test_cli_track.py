@@ -589,6 +589,48 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
 
 
+def test_resume_refuses_to_skip_complete_outputs_made_from_other_landmarks(clip, tmp_path, capsys):
+    """--resume skipped a complete video as done without comparing the landmarks: a user who fixed the landmarks
+    file in place and re-ran with --resume kept the results of the old points, silently. Now the sidecar's
+    ``initial_landmarks_px`` is compared with the file's points (a missing point's ``[null, null]`` with its empty
+    cells: equal), and other points are refused, as other settings are; the same points under another name are
+    skipped."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    pts = np.loadtxt(lm, delimiter=",", skiprows=1)
+    marks = tmp_path / "marks.csv"
+
+    def write(points, path=marks):
+        path.write_text("x,y\n" + "".join(",\n" if np.isnan(p).all() else f"{float(p[0])!r},{float(p[1])!r}\n" for p in points))
+
+    def run(*extra, path=marks):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(path), "--quiet", "--no-online-refine",
+                     *extra])  # fmt: skip
+
+    pts[[0, 60]] = np.nan  # (two missing points: null in the sidecar)
+    write(pts)
+    assert run() == 0
+    assert json.loads(output_paths(out, "short")["json"].read_text())["initial_landmarks_px"][0] == [None, None]
+    assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+    write(pts, tmp_path / "copy.csv")
+    assert run("--resume", path=tmp_path / "copy.csv") == 0 and "already complete" in capsys.readouterr().out
+    pts = pts.tolist()  # (floats: their repr is the file's and the message's)
+    fixed = np.array(pts)
+    fixed[30] += [0.5, 0.0]  # (the file fixed in place)
+    write(fixed)
+    _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing",
+                          f"complete outputs were made from other first-frame landmarks than {marks} holds now (1 "
+                          f"point differs: point 30: ({pts[30][0]!r}, {pts[30][1]!r}) then, ({float(fixed[30, 0])!r}, "
+                          f"{float(fixed[30, 1])!r}) now): run without --resume")  # fmt: skip
+    fixed[0] = [40.0, 40.0]  # (a missing point given)
+    write(fixed)
+    _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(2 points differ, e.g. point 0: missing then")
+    assert run() == 0  # (tracked again from the fixed points)
+    assert json.loads(output_paths(out, "short")["json"].read_text())["initial_landmarks_px"][30][0] == fixed[30, 0]
+    assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+
+
 def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_for(clip, tmp_path, capsys):
     """``--resume --meshes`` over a video completed without --meshes skipped it as complete: no meshes, no word
     (the summary's file list only leaves out "_meshes/"). Now refused, as other settings are; with its meshes there

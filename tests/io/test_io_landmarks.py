@@ -408,3 +408,29 @@ def test_the_packages_hand_marked_22_points_are_read_with_the_others_missing():
     assert len(given) == 22 and int(np.isfinite(got).all(1).sum()) == 22
     for k, xy in given.items():
         assert tuple(got[k]) == xy
+
+
+def test_a_column_empty_on_every_row_of_x_y_rows_is_no_cell(tmp_path):
+    """A spreadsheet's export of cells from its column B (``,x,y`` rows) was read before the missing points (every
+    empty cell dropped), then refused ("got rows of [3] values"): a column empty on every row is no cell (leading, in
+    between, trailing), a row of empty cells a missing point; a column empty on some rows only is refused as before."""
+    pts = _points()
+    want = pts.copy()
+    want[[3, 40]] = np.nan
+    rows = [f"{x},{y}" for x, y in pts]
+    files = {
+        "column_b.csv": "".join(f",{r}\n" for r in rows),
+        "column_b_header.csv": ",x,y\n" + "".join(f",{r},\n" for r in rows),
+        "column_c.csv": "".join(f";;{r.replace(',', ';')}\n" for r in rows),
+        "between.csv": "".join(f"{x},,{y}\n" for x, y in pts),
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+    gaps = [",,," if k == 3 else "," if k == 40 else f",{r}" for k, r in enumerate(rows)]  # (missing: 3 and 40)
+    (tmp_path / "gaps.csv").write_text("\n".join(gaps) + "\n")
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "gaps.csv", 100, 100), want)
+    (tmp_path / "some.csv").write_text("".join(f",{r}\n" for r in rows[:-1]) + "1,2,3\n")
+    with pytest.raises(InputError, match=r"got rows of \[3\] values") as info:
+        read_landmarks(tmp_path / "some.csv", 100, 100)
+    assert "\n" not in str(info.value)

@@ -23,8 +23,9 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
 weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
 their order): in a CSV an ``x, y`` pair of empty cells (``,``; a separator ending every line, ``x,y,``, is not a
-cell) or of ``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a
-``.pts`` line ``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
+cell, nor is a column empty on every row of ``x, y`` rows: ``,x,y``, a spreadsheet's cells from its column B) or of
+``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a ``.pts`` line
+``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
 one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
 another count (a ``.pts`` of 60 points: which are missing is not known).
@@ -81,6 +82,18 @@ def _number(cell: str) -> float:
 def _number_rows(data: list[list[str]], width: int) -> list[list[float]]:
     """The rows' cells as numbers (NaN: missing), each without the empty cells at its end beyond ``width``."""
     return [[_number(c) for c in _trimmed(cells, width)] for cells in data]
+
+
+def _without_empty_columns(data: list[list[str]]) -> list[list[str]] | None:
+    """The rows without the columns that are empty on every row (a spreadsheet's export that starts at column B:
+    ``,x,y``; a row too short to reach a column is empty there), a row of empty cells alone kept as a missing point
+    ``["", ""]``; None when no column is empty on every row."""
+    width = max((len(cells) for cells in data), default=0)
+    keep = [j for j in range(width) if any(j < len(cells) and cells[j] != "" for cells in data)]
+    if len(keep) == width:
+        return None
+    rows = [[cells[j] for j in keep if j < len(cells)] for cells in data]
+    return [row if any(row) else ["", ""] for row in rows]
 
 
 def _named_row(header: str, row: list[float]) -> np.ndarray | None:
@@ -265,6 +278,9 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
             return named
     rows = _number_rows(data, 2 if len(data) > 1 else 2 * NUM_LANDMARKS)
+    kept = _without_empty_columns(data) if len(rows) > 1 and {len(r) for r in rows} != {2} else None
+    if kept is not None and {len(r) for r in _number_rows(kept, 2)} == {2}:  # ``,x,y``: x, y (as before the
+        rows = _number_rows(kept, 2)  # missing points, which dropped every empty cell), a missing point ``,,``
     if len(rows) == 1:
         return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
