@@ -4,6 +4,8 @@ bad inputs rejected with one-line errors."""
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,6 +13,9 @@ import pytest
 import torch
 
 from torchface.io import InputError, frame_to_tensor, open_frames
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import write_rotated_mp4  # noqa: E402
 
 
 def _frames(reader) -> torch.Tensor:
@@ -385,3 +390,33 @@ def test_frame_times_are_the_containers_where_they_go_forward(tmp_path):
     writer.release()
     with open_frames(path) as reader:  # a constant-rate video's container times are frame / fps
         np.testing.assert_allclose([reader.timestamp for _ in reader], np.arange(5) / 30.0, atol=1e-6)
+
+
+_VideoCapture = cv2.VideoCapture
+
+
+def _opencv_411_capture(*args) -> cv2.VideoCapture:
+    """A capture as OpenCV 4.11 opened one: ``CAP_PROP_ORIENTATION_AUTO`` off by default (4.10 and 4.12 on). (Not a
+    subclass of ``cv2.VideoCapture``: the garbage collector crashed the process on one's instances.)"""
+    cap = _VideoCapture(*args)
+    cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
+    return cap
+
+
+@pytest.mark.parametrize("opencv_default", ["installed", "4.11"])
+@pytest.mark.parametrize("rotate", [90, 180, 270])
+def test_a_phone_videos_frames_come_out_as_displayed(tmp_path, monkeypatch, rotate, opencv_default):
+    """A video stored landscape with a display rotation (a phone's portrait video) reads as a viewer shows it: frames
+    turned ``rotate`` degrees clockwise, and the info's width and height theirs. Under OpenCV 4.11's default
+    (auto-rotation off) the frames came out as stored, 64x48 for a 48x64 portrait video, so that landmarks given in
+    the displayed frame (as any viewer shows it) fell elsewhere, and what was tracked depended on the OpenCV."""
+    stored = np.kron(np.random.default_rng(rotate).integers(0, 256, (3, 6, 8, 3)), np.ones((1, 8, 8, 1)))
+    write_rotated_mp4(tmp_path / "plain.mp4", stored.astype(np.uint8), 0)
+    write_rotated_mp4(tmp_path / "phone.mp4", stored.astype(np.uint8), rotate)
+    plain = _frames(open_frames(tmp_path / "plain.mp4"))  # (3, 3, 48, 64)
+    if opencv_default == "4.11":
+        monkeypatch.setattr(cv2, "VideoCapture", _opencv_411_capture)
+    reader = open_frames(tmp_path / "phone.mp4")
+    w, h = (48, 64) if rotate in (90, 270) else (64, 48)
+    assert (reader.info.width, reader.info.height) == (w, h)
+    torch.testing.assert_close(_frames(reader), torch.rot90(plain, -rotate // 90, dims=(2, 3)), rtol=0, atol=0)

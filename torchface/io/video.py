@@ -21,6 +21,9 @@ A video file's stored format is read from OpenCV's pixel-format FourCC and the u
 uint16 colour frame is 16-bit, and four channels whose alpha is not fully opaque are RGBA (an opaque alpha,
 as in OpenCV's own FFV1 colour videos, is colour padding and accepted).
 
+A video file is read as a viewer shows it: a display rotation in its container (a phone video's ``rotate`` tag or
+display matrix) turns its frames (:func:`open_capture`), and ``width`` and ``height`` are the turned frames'.
+
 Every frame becomes a ``(3, H, W)`` float32 RGB tensor in ``[0, 1]`` (:mod:`torchface.conventions`), 8-bit
 values divided by 255. Anything else (another dtype, float values outside ``[0, 1]`` or non-finite, a frame
 smaller than :data:`MIN_SIZE` on a side, a frame whose size differs from the first frame's) raises
@@ -54,6 +57,7 @@ __all__ = [
     "VideoInfo",
     "format_problems",
     "frame_to_tensor",
+    "open_capture",
     "open_frames",
 ]
 
@@ -342,6 +346,22 @@ def opencv_path(path: str | os.PathLike[str], error: type[Exception] = InputErro
     return text
 
 
+def open_capture(path: str | os.PathLike[str], error: type[Exception] = InputError) -> cv2.VideoCapture:
+    """A ``cv2.VideoCapture`` of a video file whose frames come out as a viewer shows them: turned by the
+    container's display rotation (a phone video's ``rotate`` tag or display matrix, 90, 180 or 270 degrees), so a
+    portrait video stored landscape reads as portrait frames (``CAP_PROP_ORIENTATION_AUTO`` set on: OpenCV 4.11
+    left it off by default, where 4.10 and 4.12 turn the frames, so the orientation depended on the OpenCV
+    installed). A name that is not valid UTF-8 is refused with ``error`` (:func:`opencv_path`); whether the file
+    opened is for the caller to check (``isOpened``).
+
+    Example:
+        >>> # cap = open_capture("portrait.mp4"); ok, bgr = cap.read()   # bgr: (H, W, 3) as displayed
+    """
+    cap = cv2.VideoCapture(opencv_path(path, error))
+    cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)  # before the first read (a backend without it returns False)
+    return cap
+
+
 def _image_frames(files: list[Path]) -> Iterator[tuple[np.ndarray, bool]]:
     for f in files:
         img = cv2.imread(opencv_path(f), cv2.IMREAD_UNCHANGED)
@@ -379,7 +399,7 @@ def _stored_layout(p: Path, cap: cv2.VideoCapture, decoded: np.ndarray) -> np.nd
         return np.empty((h, w), np.uint16 if deep else np.uint8)
     if tag not in _RGB_FOURCCS:
         return decoded
-    probe = cv2.VideoCapture(str(p))
+    probe = open_capture(p)  # turned as the frames are (else a rotated video's probe did not match them)
     try:
         probe.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         ok, raw = probe.read()
@@ -456,7 +476,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         return FrameReader(info, first, rest, stored_size=array.shape[1:3], convert=convert)
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: permission denied")
-    cap = cv2.VideoCapture(opencv_path(p))
+    cap = open_capture(p)
     if not cap.isOpened():
         cap.release()
         raise InputError(f"{p}: not a video OpenCV can open (unreadable, corrupt or an unknown format)")
