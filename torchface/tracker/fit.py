@@ -533,10 +533,25 @@ def fit_landmarks(
     model_dtype, device = model.dtype, model.device
     check_intrinsics(intrinsics)  # None was an AttributeError ('NoneType' object has no attribute 'fx')
     target, w = _check_landmarks(landmarks_px, weights, k, model_dtype, device)
-    B = target.shape[0]
     enough = (w > 0).sum(-1) >= MIN_FIT_LANDMARKS
     if not bool(enough.all()):  # samples without landmarks (no face found): FAILED; the others fitted alone
         return _fit_with_missing(model, landmarks_px, intrinsics, weights, idx, config, enough)
+    return _fit(model, target, w, idx, intrinsics, config)
+
+
+def _fit(
+    model: FaceModel, target: Tensor, w: Tensor, idx: Tensor, intrinsics: Intrinsics, config: FitConfig,
+    roll: Tensor | None = None,
+) -> LandmarkFit:
+    """:func:`fit_landmarks` of checked landmarks (``(B, K, 2)`` ``target`` and ``(B, K)`` weights ``w``, from
+    :func:`_check_landmarks`, every sample with enough of them) from a frontal start turned by ``roll`` ``(B,)``
+    radians about the optical axis (clockwise in the image); None: no roll, and a FAILED sample is fitted again
+    from its landmarks' roll (:func:`_image_roll`), the retry kept where it did not fail (a face upside down, roll
+    150-210 degrees, failed from the frontal start at 50-60 px RMS error; the samples that did not fail are left
+    as they are, to the bit)."""
+    model_dtype, device = model.dtype, model.device
+    k, B = int(idx.numel()), target.shape[0]
+    checked_target, checked_w, checked_intrinsics = target, w, intrinsics
     # Solved in float64 (_fit_dtype; MPS: the model's dtype) and cast back at the end (see the docstring).
     dtype = _fit_dtype(model_dtype, device)
     target, w = target.to(dtype), w.to(dtype)
@@ -578,6 +593,10 @@ def fit_landmarks(
     ty = (centroid[:, 1] - intrinsics.cy) * z / intrinsics.fy - model_c[:, 1]
     x0 = torch.zeros(B, 6 + S + A, dtype=dtype, device=device)
     x0[:, 3], x0[:, 4], x0[:, 5] = tx, ty, z - model_c[:, 2]
+    if roll is not None:  # turned about the optical axis, the landmarks' centroid kept where it was
+        x0[:, 2] = roll.to(dtype)
+        turned = torch.einsum("bij,bj->bi", axis_angle_to_matrix(x0[:, :3]), model_c)
+        x0[:, 3:6] = x0[:, 3:6] + model_c - turned
 
     inf = torch.full((6,), float("inf"), dtype=dtype, device=device)
     lower = [-inf, torch.full((S,), -config.shape_bound, dtype=dtype, device=device)]
@@ -642,7 +661,40 @@ def fit_landmarks(
         noise = torch.where(z > 0, noise, torch.full_like(noise, math.inf))
         failed = failed | ~(rotation_std_deg(J[..., :6], valid, w, noise) <= config.max_rotation_std_deg)
     status = torch.where(failed, int(SolveStatus.FAILED), res.status)
-    return LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status).to(dtype=model_dtype)
+    fit = LandmarkFit(R, x[:, :3], x[:, 3:6], x[:, 6 : 6 + S], anim, rms, status).to(dtype=model_dtype)
+    again = failed & (spread_px >= _MIN_SPREAD_PX)  # (landmarks at one point have no roll either)
+    if roll is not None or not bool(again.any()):
+        return fit
+    rows = again.nonzero().squeeze(-1)
+    start = _image_roll(target[rows], w[rows], mean_l)
+    retry = _fit(model, checked_target[rows], checked_w[rows], idx, checked_intrinsics, config, start)
+    keep = retry.status != int(SolveStatus.FAILED)
+    if not bool(keep.any()):
+        return fit
+    rows, retry = rows[keep], retry.select(keep)
+    parts = []
+    for name in LandmarkFit.__dataclass_fields__:
+        v = getattr(fit, name).clone()
+        v[rows] = getattr(retry, name)
+        parts.append(v)
+    return LandmarkFit(*parts)
+
+
+def _image_roll(target: Tensor, w: Tensor, mean_l: Tensor) -> Tensor:
+    """``(B,)`` radians: the rotation in the image (clockwise, about the optical axis) that best turns the model's
+    frontal landmarks onto ``target`` (weighted 2D Procrustes about the weighted centroids: every landmark of positive
+    weight counts, so missing points, the eyes' among them, need no fallback).
+
+    Args:
+        target: ``(B, K, 2)`` pixels; w: ``(B, K)`` weights (0: missing); mean_l: ``(K, 3)`` the model's landmarks (mm).
+    """
+    wk = w / w.sum(-1, keepdim=True)
+    b = target - (target * wk.unsqueeze(-1)).sum(1, keepdim=True)
+    a = mean_l[:, :2].unsqueeze(0)
+    a = a - (a * wk.unsqueeze(-1)).sum(1, keepdim=True)
+    cross = (wk * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])).sum(-1)
+    dot = (wk * (a * b).sum(-1)).sum(-1)
+    return torch.atan2(cross, dot)
 
 
 def sparse_samples(config: FitConfig, count: Tensor, num_shape: int, num_animation: int) -> Tensor:
