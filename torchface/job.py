@@ -2152,9 +2152,9 @@ def _video_timing(s: _Stream) -> dict:
 
 def _warn_failed_starts(streams: list[_Stream], success: Tensor, restarts: bool) -> None:
     """Warn (one line per video) where the start from the first frame's landmarks failed (``initialise``: landmarks
-    that hold no pose, a face too small, a frame without texture there, such as a black one; with template management,
-    a face mostly outside the frame): every row of that
-    video was written unusable (``success`` 0) with nothing said but the summary's lost count. ``restarts``: a
+    that no face fits, at one point, collinear or mirrored; a face upside down in the frame starts:
+    :func:`fit_landmarks` retries from its landmarks' roll), a face too small, a frame without texture there, such
+    as a black one; with template management, a face mostly outside the frame): every row of that video was written unusable (``success`` 0) with nothing said but the summary's lost count. ``restarts``: a
     detector starts such a stream afresh (with template management only: without it, its rows stay unusable, and
     the warning said it would be lost until the detector found a face)."""
     for s, ok in zip(streams, success.tolist()):
@@ -2162,10 +2162,10 @@ def _warn_failed_starts(streams: list[_Stream], success: Tensor, restarts: bool)
             continue
         then = ("it is lost until the detector finds a face it can start from" if restarts else
                 "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
-        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that hold no "
-                      f"pose or put the face mostly outside the frame, or a face too small or without texture there: "
-                      f"a black frame): {then}", RuntimeWarning,
-                      stacklevel=3)  # fmt: skip
+        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that no face "
+                      f"fits, such as points at one spot, on one line or mirrored, or that put the face mostly "
+                      f"outside the frame, or a face too small or without texture there: a black frame): {then}",
+                      RuntimeWarning, stacklevel=3)  # fmt: skip
 
 
 def _start_record(config: JobConfig, s: _Stream) -> dict:

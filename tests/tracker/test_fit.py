@@ -721,8 +721,11 @@ def test_collinear_landmarks_fitted_edge_on_fail(model):
             slipped = turned & (unchecked.status != 2)
             edge_on += int(slipped.sum())
             assert bool((geodesic_angle_deg(unchecked.rotation, R)[slipped] > 45.0).all())
+            # (a FAILED fit is fitted again from the landmarks' roll: where the check failed it, that retry may
+            # have passed without the check, and its values are then the retry's)
+            same = (fit.status != 2) | (unchecked.status == 2)
             for name in ("rotation", "translation", "shape_coeffs", "anim_coeffs", "rms_px"):
-                assert torch.equal(getattr(fit, name), getattr(unchecked, name)), name
+                assert torch.equal(getattr(fit, name)[same], getattr(unchecked, name)[same]), name
         if config == TrackerConfig().fit:  # every stream of the 68 on a line, exact or noisy, failed none
             for x, _ in cases[:2] + cases[3:5]:
                 unchecked = fit_landmarks(model, x, CAM, config=replace(config, max_facing_deg=None))
