@@ -72,3 +72,14 @@ def write_rotated_mp4(path: str | os.PathLike[str], frames_bgr: np.ndarray, rota
     struct.pack_into(">4i", data, at, cos << 16, -sin << 16, 0, sin << 16)  # a, b, u (0), c
     struct.pack_into(">i", data, at + 16, cos << 16)  # d
     open(path, "wb").write(bytes(data))
+
+
+_VideoCapture = cv2.VideoCapture  # (OpenCV's own, before a test replaces it with the one below)
+
+
+def opencv_411_capture(*args) -> cv2.VideoCapture:
+    """A capture as OpenCV 4.11 opened one: ``CAP_PROP_ORIENTATION_AUTO`` off by default (4.10 and 4.12 on). (Not a
+    subclass of ``cv2.VideoCapture``: the garbage collector crashed the process on one's instances.)"""
+    cap = _VideoCapture(*args)
+    cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
+    return cap

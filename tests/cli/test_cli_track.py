@@ -3728,24 +3728,13 @@ def test_a_detector_is_asked_near_the_given_points_of_a_landmarks_file_with_miss
     np.testing.assert_array_equal(asked[0], partial[given])  # (the first frame's: no confident frame yet)
 
 
-_VideoCapture = cv2.VideoCapture
-
-
-def _opencv_411_capture(*args) -> cv2.VideoCapture:
-    """A capture as OpenCV 4.11 opened one: ``CAP_PROP_ORIENTATION_AUTO`` off by default (4.10 and 4.12 on). (Not a
-    subclass of ``cv2.VideoCapture``: the garbage collector crashed the process on one's instances.)"""
-    cap = _VideoCapture(*args)
-    cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
-    return cap
-
-
 def test_a_phone_video_is_tracked_as_displayed_with_landmarks_of_the_displayed_frame(tmp_path, monkeypatch):
     """A portrait phone video stored turned, with a display rotation (the ``rotate`` tag, 90 degrees clockwise): the
     landmarks are those of the frame a viewer shows, and so are the sidecar's size, the overlay's frames and the
     pose (upright: roll near 0, as the same frames stored upright give). Under OpenCV 4.11's default (auto-rotation
     off) the frames were read as stored (288x360): the start from the landmarks failed ('every row is unusable')."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from _helpers import write_rotated_mp4
+    from _helpers import opencv_411_capture, write_rotated_mp4
 
     from torchface.job import demo_inputs
 
@@ -3755,7 +3744,7 @@ def test_a_phone_video_is_tracked_as_displayed_with_landmarks_of_the_displayed_f
     cap.release()
     write_rotated_mp4(tmp_path / "upright.mp4", shown, 0)
     write_rotated_mp4(tmp_path / "phone.mp4", np.ascontiguousarray(np.rot90(shown, 1, axes=(1, 2))), 90)  # stored
-    monkeypatch.setattr(cv2, "VideoCapture", _opencv_411_capture)
+    monkeypatch.setattr(cv2, "VideoCapture", opencv_411_capture)
     for name in ("upright", "phone"):
         assert main(["track", str(tmp_path / f"{name}.mp4"), "--out", str(tmp_path / name), "--landmarks", str(lm),
                      "--quiet", "--no-online-refine"]) == 0  # fmt: skip

@@ -15,7 +15,7 @@ import torch
 from torchface.io import InputError, frame_to_tensor, open_frames
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _helpers import write_rotated_mp4  # noqa: E402
+from _helpers import opencv_411_capture, write_rotated_mp4  # noqa: E402
 
 
 def _frames(reader) -> torch.Tensor:
@@ -392,17 +392,6 @@ def test_frame_times_are_the_containers_where_they_go_forward(tmp_path):
         np.testing.assert_allclose([reader.timestamp for _ in reader], np.arange(5) / 30.0, atol=1e-6)
 
 
-_VideoCapture = cv2.VideoCapture
-
-
-def _opencv_411_capture(*args) -> cv2.VideoCapture:
-    """A capture as OpenCV 4.11 opened one: ``CAP_PROP_ORIENTATION_AUTO`` off by default (4.10 and 4.12 on). (Not a
-    subclass of ``cv2.VideoCapture``: the garbage collector crashed the process on one's instances.)"""
-    cap = _VideoCapture(*args)
-    cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
-    return cap
-
-
 @pytest.mark.parametrize("opencv_default", ["installed", "4.11"])
 @pytest.mark.parametrize("rotate", [90, 180, 270])
 def test_a_phone_videos_frames_come_out_as_displayed(tmp_path, monkeypatch, rotate, opencv_default):
@@ -415,7 +404,7 @@ def test_a_phone_videos_frames_come_out_as_displayed(tmp_path, monkeypatch, rota
     write_rotated_mp4(tmp_path / "phone.mp4", stored.astype(np.uint8), rotate)
     plain = _frames(open_frames(tmp_path / "plain.mp4"))  # (3, 3, 48, 64)
     if opencv_default == "4.11":
-        monkeypatch.setattr(cv2, "VideoCapture", _opencv_411_capture)
+        monkeypatch.setattr(cv2, "VideoCapture", opencv_411_capture)
     reader = open_frames(tmp_path / "phone.mp4")
     w, h = (48, 64) if rotate in (90, 270) else (64, 48)
     assert (reader.info.width, reader.info.height) == (w, h)
