@@ -688,7 +688,8 @@ def test_closed_form_jacobian_refines_as_forward_mode_autograd(model):
     """The refinement's Jacobian in closed form (the default) and by forward-mode autograd (the reference) give the
     same refined fit and keyframe poses: landmarks with noise, a free shape unit, the expression, and every
     keyframe's pose and light moving."""
-    from torchface.tracker.lookahead import _refine_first_fit
+    from torchface.backend import Backend
+    from torchface.tracker.lookahead import _refine_starts, _stream_start
 
     frames, gt = render([[0.0, 0.0, 0.0], [22.0, 3.0, 1.0], [-21.0, -2.0, 0.0]])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
@@ -704,13 +705,16 @@ def test_closed_form_jacobian_refines_as_forward_mode_autograd(model):
                         anim, torch.zeros(1), torch.zeros(1, dtype=torch.int64))  # fmt: skip
     cfg = LookaheadConfig(shape_units=(eyes,), iterations=(4, 3), max_points=800)
     key_expression = 0.2 * torch.rand(2, model.num_animation, generator=g)  # each keyframe's own expression offset
+    problem = _stream_start(
+        model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(), landmark_weights=None,
+        shape_prior_precision=2.0, shape_bound=1.0, expression_prior_precision=2.0, config=cfg,
+        key_expression=key_expression, held_shape_units=(), prior_scale=1.0, min_shape_prior_precision=0.0,
+        min_expression_prior_precision=0.0, backend=Backend.AUTO,
+    )  # fmt: skip
     out = {}
     for analytic in (True, False):
-        out[analytic] = _refine_first_fit(
-            model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(), landmark_weights=None,
-            shape_prior_precision=2.0, shape_bound=1.0, expression_prior_precision=2.0, config=cfg,
-            key_expression=key_expression, analytic=analytic,
-        )  # fmt: skip
+        fit, key_R, key_t = _refine_starts(model, [problem], gt.intrinsics, cfg, analytic=analytic)
+        out[analytic] = fit, key_R[0], key_t[0]
     (a, Ra, ta), (b, Rb, tb) = out[True], out[False]
     for name in ("axis_angle", "translation", "shape_coeffs", "anim_coeffs"):
         torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-5)

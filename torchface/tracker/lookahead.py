@@ -429,41 +429,6 @@ def refine_first_fit(
     Returns:
         The refined :class:`LandmarkFit` (batch 1, the model's dtype); ``rms_px`` is its landmark RMS.
     """
-    return _refine_first_fit(
-        model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, key_expression=key_expression,
-        landmark_weights=landmark_weights,
-        shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
-        expression_prior_precision=expression_prior_precision, held_shape_units=held_shape_units,
-        prior_scale=prior_scale, min_shape_prior_precision=min_shape_prior_precision,
-        min_expression_prior_precision=min_expression_prior_precision, config=config, backend=backend,
-    )[0]  # fmt: skip
-
-
-def _refine_first_fit(
-    model: FaceModel,
-    frames: Tensor,
-    intrinsics: Intrinsics,
-    landmarks_px: Tensor,
-    fit: LandmarkFit,
-    key_rotation: Tensor,
-    key_translation: Tensor,
-    *,
-    key_expression: Tensor | None = None,
-    landmark_weights: Tensor | None,
-    shape_prior_precision: float | tuple[float, ...],
-    shape_bound: float,
-    expression_prior_precision: float,
-    config: LookaheadConfig,
-    held_shape_units: tuple[int, ...] = (),
-    prior_scale: float = 1.0,
-    min_shape_prior_precision: float = 0.0,
-    min_expression_prior_precision: float = 0.0,
-    analytic: bool = True,
-    backend: Backend = Backend.AUTO,
-) -> tuple[LandmarkFit, Tensor, Tensor]:
-    """:func:`refine_first_fit`, also returning the keyframes' refined poses: rotation ``(K, 3, 3)`` and
-    translation ``(K, 3)`` (the model's dtype), in the frame of the refined first pose. ``analytic``: the
-    Jacobian in closed form (False: by forward-mode autograd, the reference the tests compare it with)."""
     start = _stream_start(
         model, frames, intrinsics, landmarks_px, fit, key_rotation, key_translation, key_expression=key_expression,
         landmark_weights=landmark_weights, shape_prior_precision=shape_prior_precision, shape_bound=shape_bound,
@@ -471,8 +436,7 @@ def _refine_first_fit(
         prior_scale=prior_scale, min_shape_prior_precision=min_shape_prior_precision,
         min_expression_prior_precision=min_expression_prior_precision, backend=backend,
     )  # fmt: skip
-    refined, key_R, key_t = _refine_starts(model, [start], intrinsics, config, analytic=analytic, backend=backend)
-    return refined, key_R[0], key_t[0]
+    return _refine_starts(model, [start], intrinsics, config, backend=backend)[0]
 
 
 @dataclass(frozen=True, eq=False)
