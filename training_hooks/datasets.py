@@ -74,7 +74,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -83,7 +82,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from torchface.extending import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
 from torchface.io.landmarks import check_landmarks, read_landmarks
-from torchface.io.video import CONVERT_HINT, open_frames, opencv_path
+from torchface.io.video import CONVERT_HINT, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
@@ -709,7 +708,7 @@ def _count_frames(path: Path, convert: bool) -> int:
     with open_frames(path, convert=convert) as reader:
         if reader.info.kind != "video":
             return int(reader.info.num_frames or 0)  # (exact for images and arrays)
-    cap = cv2.VideoCapture(opencv_path(path))
+    cap = open_capture(path)  # (the reader's own opening: turned as displayed, odd names refused alike)
     try:
         count = 0
         while cap.read()[0]:
