@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Measure the figures README.md and the docstrings quote from small experiments that no other script runs.
+"""Measure the figures README.md, docs/ and the docstrings quote from small experiments that no other script runs.
 
 Each subcommand prints the table its text quotes (one thread, under a minute on a 2-core CPU):
 
@@ -9,7 +9,7 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                the head turning out to 15 degrees of yaw each way (pitch and roll up to 8 and 5 degrees, seeded),
                at the depth that makes the frontal face that wide (face_width_px), tracked by a default
                FaceTracker.
-  small-frames The README's "Small frames" limitation: the `leaves` clip of tests/tracker/test_managed.py (a
+  small-frames docs/limitations.md's "Small frames": the `leaves` clip of tests/tracker/test_managed.py (a
                rendered face leaving the frame for 4 frames and coming back 60 mm aside, here for --frames
                frames) at small frame sizes, default FaceTracker, with the default levels and one fewer: the first
                frame found after the return, from the mosaic search at the coarsest level, or with a detector
@@ -18,7 +18,7 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                scripts/data/grid_landmarks) whose frames 30-39 are shifted --shift px sideways (a camera pan), tracked
                by a default FaceTracker (online start on): how far the rest of the clip's rotations are from the
                clean run's, with the view check, with it off (VIEW_TURN_FRACTION = 0) and without the online start.
-  hard-cuts    The README's "Hard cuts" behaviour: clip A (5 frames, CANDIDE-3 30 mm left of the axis at 450 mm,
+  hard-cuts    docs/limitations.md's "Hard cuts": clip A (5 frames, CANDIDE-3 30 mm left of the axis at 450 mm,
                turning 4 degrees) cut straight to clip B (--frames frames) with the face moved --dx mm across,
                --dz mm in depth and turned --dyaw degrees (every combination), tracked as one stream at --size by a
                default FaceTracker, with the renderer's landmarks as the detector and without one (mosaic search):
@@ -26,7 +26,7 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                them at confidence 0.1 or more), and the first frame from which every frame is successful and
                within it. --photo astronaut makes B another person; --restart-after-unmatched 2 sets
                TemplateConfig.restart_after_unmatched (off by default).
-  lid-fit      The README's "Eyes closed" analysis: how far the first frame's landmark fit puts the eyelids on the
+  lid-fit      docs/limitations.md's "Eyes closed": how far the first frame's landmark fit puts the eyelids on the
                `expressions` scenario (frame 0 of scripts/evaluate.py's render at --size, cached under --cache) over
                --draws draws of evaluate.py's 2 px landmark noise (seeds 0..), with the default FitConfig and without a
                starting expression (fit_expression=False): the mean vertical distance, in pixels, of the upper lid's
@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clips", type=int, default=10, help="clips per width (seeds 0..)")
     p.add_argument("--frames", type=int, default=30, help="frames per clip")
     p.set_defaults(run=face_width)
-    p = sub.add_parser("small-frames", help="recovery of a face back in a small frame (README: Small frames)")
+    p = sub.add_parser("small-frames", help="recovery of a face back in a small frame (docs/limitations.md: Small frames)")
     sizes = "96x72,112x84,128x96,144x108,160x120,176x132,224x168,320x240"
     p.add_argument("--sizes", type=_sizes, default=_sizes(sizes), help="frame sizes WxH, comma separated")
     p.add_argument("--photos", default="james,astronaut", type=lambda s: s.split(","), help="face textures")
@@ -344,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--landmarks-dir", type=Path, default=ROOT / "scripts" / "data" / "grid_landmarks",
                    help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
     p.set_defaults(run=grid_pan)
-    p = sub.add_parser("hard-cuts", help="a video cut to the face elsewhere (README: Hard cuts)")
+    p = sub.add_parser("hard-cuts", help="a video cut to the face elsewhere (docs/limitations.md: Hard cuts)")
     p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(320, 240), help="frame size WxH")
     p.add_argument("--dx", type=_numbers, default=_numbers("8,20,45"), help="jumps across, mm, comma separated")
     p.add_argument("--dz", type=_numbers, default=_numbers("0,-60,100"), help="jumps in depth, mm")
@@ -355,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--restart-after-unmatched", type=int, default=0,
                    help="TemplateConfig.restart_after_unmatched (0: off, the default)")
     p.set_defaults(run=hard_cuts)
-    p = sub.add_parser("lid-fit", help="the eyelids' error after the first frame's landmark fit (README: Eyes closed)")
+    p = sub.add_parser("lid-fit", help="the eyelids' error after the first frame's landmark fit (docs/limitations.md: Eyes closed)")
     p.add_argument("--draws", type=int, default=100, help="landmark-noise draws (seeds 0..)")
     p.add_argument("--size", default="full", choices=("small", "full"), help="the scenario's size (full: 640x480)")
     p.add_argument("--cache", default=str(ROOT / "out" / "sequences"),

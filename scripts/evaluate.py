@@ -890,8 +890,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--expression-quota", type=float,
         help="TrackerConfig.expression_quota of every run (default: TrackerConfig's, 0): the fraction of the "
-        "first templates' finest-level points reserved for each animation unit's region (README, Known "
-        "limitations: eyes closed)",
+        "first templates' finest-level points reserved for each animation unit's region (docs/limitations.md: "
+        "eyes closed)",
     )
     parser.add_argument(
         "--expression-sparsity", default=None,
@@ -900,7 +900,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--eyelids", action="store_true",
-        help="the eyelid configuration (README, Known limitations, eyes closed): expression quota 0.06 and sparsity "
+        help="the eyelid configuration (docs/limitations.md, eyes closed): expression quota 0.06 and sparsity "
         "0.03 (unless given), TemplateConfig(conservative_when_unconfident=True), and an online start that keeps the "
         "landmark fit's eyelids (LookaheadConfig(kept_shape_units=EYELID_KEPT_UNITS, fit_expression=False))",
     )

@@ -1,5 +1,6 @@
-"""What README.md states that the code can check: its command lines parse, its CSV table names the columns written in
-their order, the defaults it quotes are the dataclasses', and the names and files it points to exist."""
+"""What README.md (and the pages under docs/ it links to) states that the code can check: its command lines parse, its
+CSV table names the columns written in their order, the defaults it quotes are the dataclasses', and the names, files
+and sections it points to exist."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text(encoding="utf-8")
+DOCS = {path.relative_to(ROOT).as_posix(): path.read_text(encoding="utf-8") for path in sorted((ROOT / "docs").glob("*.md"))}
+EVERYTHING = "\n".join([README, *DOCS.values()])  # (README.md and the docs/ pages: what the user reads)
 
 
 def _code_blocks(language: str) -> list[str]:
@@ -107,7 +110,7 @@ def _levels_for_face(size_px: float) -> int:
 
 
 def test_readme_defaults_are_the_code_defaults():
-    """Defaults the README quotes (each quoted as the README writes it, so that a change of either side fails)."""
+    """Defaults the README and docs/ quote (each quoted as they write it, so that a change of either side fails)."""
     from torchface.job import JobConfig
     from torchface.template import DissimilarityConfig, TemplateConfig
     from torchface.tracker import FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
@@ -139,8 +142,9 @@ def test_readme_defaults_are_the_code_defaults():
         # (it said "under 255": faces of 254.56-255 pixels, 180·√2 and up, got a level)
         "faces under 254.5\npixels keep the config either way": [_levels_for_face(f) for f in (254.5, 254.6)] == [3, 4],
     }
+    words = " ".join(EVERYTHING.split())  # (compared with the line breaks and indents as spaces: a reflow is no change)
     for text, holds in claims.items():
-        assert text in README, f"README no longer says {text!r}: update this test with it"
+        assert " ".join(text.split()) in words, f"README.md / docs/ no longer say {text!r}: update this test with it"
         assert holds, f"README says {text!r}; the code's default differs"
 
 
@@ -169,12 +173,37 @@ def test_readme_names_exist_where_it_says(dotted):
 
 
 def test_readme_paths_exist():
-    """Every repository path the README quotes (``torchface/...``, ``scripts/...``, ``tests/...``) exists."""
-    paths = set(re.findall(r"`((?:torchface|scripts|tests)/[^`\s]*)`", README))
-    paths |= set(re.findall(r"\]\(((?:torchface|scripts|tests)/[^)]*)\)", README))
+    """Every repository path the README and docs/ quote (``torchface/...``, ``scripts/...``, ``tests/...``) exists."""
+    paths = set(re.findall(r"`((?:torchface|scripts|tests)/[^`\s]*)`", EVERYTHING))
+    paths |= set(re.findall(r"\]\(((?:torchface|scripts|tests)/[^)]*)\)", EVERYTHING))
     assert len(paths) > 20
     missing = sorted(p for p in paths if not (ROOT / p.rstrip("/")).exists())
     assert not missing, missing
+
+
+def _github_anchor(heading: str) -> str:
+    """The anchor GitHub gives a Markdown heading: lower case, punctuation but ``-`` and ``_`` dropped, spaces to ``-``."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_readme_links_to_docs_resolve():
+    """Every link of the README to a page under docs/ (and the pages' links to each other) names a page that exists
+    and, with ``#anchor``, one of its headings: the README's "Known limitations" is a list of such links."""
+    sources = {"README.md": README, **DOCS}
+    links = [
+        (source, target)
+        for source, text in sources.items()
+        for target in re.findall(r"\]\(((?:docs/)?[\w./-]*\.md(?:#[^)]*)?|#[^)]*)\)", text)
+    ]
+    assert sum(target.startswith("docs/") for _, target in links) >= 15, links
+    for source, target in links:
+        page, _, anchor = target.partition("#")
+        path = (ROOT / source).parent / page if page else ROOT / source  # (relative to the linking page, as Markdown)
+        assert path.exists(), f"{source} links to {target}: no such page"
+        if anchor:
+            headings = re.findall(r"^#+ (.+)$", path.read_text(encoding="utf-8"), flags=re.M)
+            anchors = {_github_anchor(h) for h in headings}
+            assert anchor in anchors, f"{source} links to {target}: no such heading there ({sorted(anchors)})"
 
 
 def test_readme_python_api_example_runs_and_gives_the_shapes_it_states():

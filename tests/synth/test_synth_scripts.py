@@ -414,7 +414,7 @@ def test_track_grid_refuses_negative_overlay_frames(tmp_path, capsys):
 
 
 def test_evaluate_truth_fit_starts_from_the_ground_truth_and_refuses_other_subjects(capsys):
-    """--truth-fit (a diagnostic of the README's eyes-closed analysis) starts the tracker from frame 0's true pose,
+    """--truth-fit (a diagnostic of docs/limitations.md's eyes-closed analysis) starts the tracker from frame 0's true pose,
     shape and expression: the first result is the truth; the James scan (not the tracker's model) is refused, and so
     is --lookahead beside it (both choose the first fit)."""
     import pytest
@@ -477,7 +477,7 @@ def test_doc_figures_measures_on_tiny_runs(capsys):
 
 
 def test_evaluate_eyelids_sets_the_eyelid_configuration(monkeypatch):
-    """--eyelids (README, Known limitations, eyes closed) tracks with expression quota 0.06, sparsity 0.03, the
+    """--eyelids (docs/limitations.md, eyes closed) tracks with expression quota 0.06, sparsity 0.03, the
     conservative prior on unconfident frames and an online start that keeps the landmark fit's eyelids; a quota or
     sparsity given beside it wins; without it every setting is the default."""
     import pytest

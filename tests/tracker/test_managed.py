@@ -1553,7 +1553,7 @@ def test_a_hard_cut_to_another_face_stays_lost_by_default_and_restarts_from_the_
     ``restart_after_unmatched`` 2 and the detector, the second recovery attempt whose detected face nothing of the
     mosaic matches, and which shows the same face as the first, starts the stream afresh from the detector's
     landmarks: tracked (0.00-0.2 degrees off, confident) from then on; without a detector the setting does nothing
-    (README, Known limitations, "Hard cuts")."""
+    (docs/limitations.md, "Hard cuts")."""
     clip = _cut_clip(CUT_B["moved"], photo="astronaut", b_place=False)
     tc = CFG.template
     lost_at = CUT + tc.lost_after_very_low - 1
@@ -1642,7 +1642,7 @@ def test_an_occluder_passing_over_the_face_is_not_restarted_from_the_detector(mo
     detected face (the stream is LOST, its attempts blind), but the faces normalised at successive attempts differ
     where the occluder moved (dissimilarity confidence 0.000-0.005 against 0.996 for a cut to another person), so
     the count never reaches 2 and the stream is not restarted from an occluded face: every result equals the
-    tracking with the setting off. (An occluder carried with the face does restart it: README, "Hard cuts".)"""
+    tracking with the setting off. (An occluder carried with the face does restart it: docs/limitations.md, "Hard cuts".)"""
     import torchface.tracker.managed as managed
 
     T = 22
@@ -1748,7 +1748,7 @@ def _sideways(step_mm: float, T: int = 16) -> tuple[list[float], torch.Tensor, o
 
 @pytest.mark.parametrize("step_mm", [16.0, 24.0])
 def test_fast_sideways_motion_scores_zero_only_where_the_solve_missed_the_face(model, step_mm):
-    """README, Known limitations, "Fast motion": the default FaceTracker at 320x240 follows a face moving 16 mm a
+    """docs/limitations.md, "Fast motion": the default FaceTracker at 320x240 follows a face moving 16 mm a
     frame sideways at 450 mm (11 px) at every frame, right and confident; at 24 mm (17 px, beyond the solve's
     capture range) its confidence alternates between 0 and 0.99, and every frame at confidence 0 is one whose
     solve missed the face (measured 25-96 degrees off), every confident one right (under 2 degrees; mostly the
@@ -1781,7 +1781,7 @@ def test_fast_sideways_motion_scores_zero_only_where_the_solve_missed_the_face(m
 def _swing(T: int = 14, period: int = 24, amp_mm: float = 100.0, sign: float = 1.0, rest: int = 0):
     """A frontal face at 450 mm swinging sideways from rest, ``x = -sign amp cos(2 pi i / period)`` after ``rest``
     still frames: peak speed ``amp 2 pi / period`` mm a frame (26 mm, 18 px at 320x240, with the defaults: beyond
-    the plain start's capture range, README "Fast motion"). Returns ``frames (T, 3, H, W)`` and the ground truth."""
+    the plain start's capture range, docs/limitations.md, "Fast motion"). Returns ``frames (T, 3, H, W)`` and the ground truth."""
     x = [-sign * amp_mm * math.cos(2 * math.pi * max(i - rest, 0) / period) for i in range(T)]
     return render_sequence(spec_of("swing", [[0.0, 0.0, 0.0]] * T, [[a, 0.0, 450.0] for a in x]))
 
@@ -1800,7 +1800,7 @@ def _follow(frames, gt, config):
 
 @pytest.mark.parametrize("k", [0.5, 1.0])
 def test_motion_prediction_follows_a_swing_the_plain_start_misses(model, swing, k):
-    """README, Known limitations, "Fast motion": a face swinging sideways from rest to 26 mm a frame (18 px at
+    """docs/limitations.md, "Fast motion": a face swinging sideways from rest to 26 mm a frame (18 px at
     320x240) is missed from the fifth frame on with the plain start (confidence 0, the solve tens of degrees off,
     then lost and recovered over and over); with ``TrackerConfig.motion_prediction`` (0.5 or 1) every frame is
     followed, right and confident."""
@@ -1905,7 +1905,7 @@ def test_motion_prediction_batch_equals_each_stream_and_select_and_save_keep_it(
 
 
 def test_motion_prediction_carries_no_velocity_into_an_occluder_or_through_the_loss(model):
-    """README, "Fast motion" (the long runs' first occluder): an occluder that covers the face drops the confidence
+    """docs/limitations.md, "Fast motion" (the long runs' first occluder): an occluder that covers the face drops the confidence
     on its first frame (predicted: the last two frames were confident), and from the next frame on, through the loss
     and until two confident frames again, every step with the prediction on is the plain step from the same state,
     to the bit: no velocity from before the occluder, none from the lost track. (Where the long runs' recoveries

@@ -221,7 +221,7 @@ class TemplateConfig:
             out at the edge), each showing the same face as the one before (its normalised
             face, placed by the detector's landmarks, matches the previous attempt's at ``confidence_threshold``;
             1: the first such attempt, unchecked): the face on screen is not the one the mosaic holds (a cut to
-            another person, README, Known limitations, "Hard cuts": both score 0.00, and the two attempts' faces
+            another person, docs/limitations.md, "Hard cuts": both score 0.00, and the two attempts' faces
             match at 0.996). An occluder moving across the face does not count on (0.000-0.005). Without a
             detector it does nothing. Off (0) by default: a heavy occluder carried with the face does count on
             (320x240, half or three quarters of the face covered for 30 frames, the renderer's landmarks as the
@@ -233,11 +233,11 @@ class TemplateConfig:
             the weak refinement prior and the sparsity (``track_step(conservative=)``). Off by default (lost
             streams only). With weak expression priors an occluder pushes the units before the stream is lost,
             and the pose follows them: with ``TrackerConfig(expression_quota=0.06, expression_sparsity=0.03)`` and
-            the eyelid-keeping online start (README, Known limitations, "Eyes closed") the first occluder of the
+            the eyelid-keeping online start (docs/limitations.md, "Eyes closed") the first occluder of the
             CANDIDE-3 long run took 33 frames to recover from; with this on, 0.
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
             halved once more (:func:`search_mosaic`). 2 finds faces the default grid misses, wrong placements too,
-            at twice the cost (README, Known limitations, Fast motion: measured on the long runs).
+            at twice the cost (docs/limitations.md, Fast motion: measured on the long runs).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
         search_depth_widening: from a loss's second recovery attempt on (without a detector), each search also
             tries ``search_depth_factors`` scaled by the next of these in turn, and a candidate found there may be

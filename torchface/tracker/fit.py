@@ -76,7 +76,7 @@ class FitConfig:
             landmarks 0.5-0.9, the 51 inner ones up to 1.7, 5-point subsets (eye corners, nose, mouth corners) up to
             6.6, and every fit within 3 degrees of the truth from 2 px noisy landmarks up to 12.1. It does not see the
             shape and expression units trading with the pose (a sparse subset's main error, which
-            ``sparse_landmark_count`` holds: README, Known limitations).
+            ``sparse_landmark_count`` holds: docs/limitations.md).
         max_facing_deg: a fit that turned the face more than this many degrees from facing the camera (the angle
             between its forward axis and the ray to its landmarks' centroid) is FAILED; None: only a face turned away
             (90 degrees and more) is. A face seen edge-on hides half its landmarks, yet projects them onto a line,

@@ -100,7 +100,7 @@ class LookaheadConfig:
             (each must be one of the model's shape units: :func:`refine_first_fit` checks; refused with
             ``shape_units`` given); empty by default. ``("Eyes vertical position",)`` with
             ``fit_expression=False`` leaves the eyelids where the first frame's landmarks placed them, which eyes
-            closed needs (README, Known limitations, "Eyes closed"): with the tracker's ``expression_quota=0.06``
+            closed needs (docs/limitations.md, "Eyes closed"): with the tracker's ``expression_quota=0.06``
             and ``expression_sparsity=0.03`` on the 640x480 ``expressions`` scenario from exact first-frame
             landmarks, eyes closed RMSE 0.031 / r 0.99 (0.090 with this start's defaults, 0.105 keeping the eyes'
             position but re-estimating the expression, 0.150 the other way round; 0.034 without the online start).
@@ -125,7 +125,7 @@ class LookaheadConfig:
             640x480 / 320x240 / 160x120 without the margin (17.8-25.4 mm at 320x240 for turns of 0.5-2 degrees a
             frame), 0.3 / 5.6 / -0.3 mm with 2. Not the default: those points carry yaw and pitch, and with 2 the
             standard scenarios' rotation errors grew (``expressions`` 0.20 -> 0.46 degrees mean, ``scan_motion``
-            0.83 -> 0.97) while their translation errors hardly changed (README, Known limitations), and the
+            0.83 -> 0.97) while their translation errors hardly changed (docs/limitations.md), and the
             refinement took 2.9 s instead of 1.3 at 640x480.
     """
 

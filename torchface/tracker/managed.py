@@ -335,7 +335,7 @@ def initialise_managed(
     the mesh placed by the state's parameters (overlays, normalised faces) follows the refined estimate. The
     re-anchoring is a one-off stall of the stream's step (about 0.4 s on a 2-core CPU: the refinement and a new
     start); the frames before it keep the plain start's error, and a stream that never turns keeps the landmark
-    fit. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3`` (README, "Known limitations"):
+    fit. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3`` (docs/limitations.md):
     ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.3.
 
     Example:
@@ -1069,7 +1069,7 @@ def managed_step(
     )
     # A predicted start that the frame contradicts (the head stopped or turned back: a velocity reversed at 16 mm a
     # frame put the prediction 32 mm off, beyond the solve's capture range) scores very low: those streams are
-    # solved again from the previous frame's estimate, and keep the better of the two (README, "Fast motion").
+    # solved again from the previous frame's estimate, and keep the better of the two (docs/limitations.md, "Fast motion").
     retried = None  # the streams whose estimate is the plain start's (rows)
     if predicted is not None:
         again = predicted & ((conf < tc.very_low_confidence) | (result.status == _FAILED))
@@ -1496,8 +1496,7 @@ def _reanchor(
         # Each stream's problem set up alone (its template points; its priors: a sparse start keeps the fit's sparse
         # priors), then one batched refinement of the streams re-anchoring on this frame (Levenberg-Marquardt with
         # each stream's own damping and stopping: each as alone, to 1e-5). Refined one after another, 8 streams at
-        # 320x240 took this frame 2.6-3.3 s of CPU on one thread; together 1.7-1.8 (README, "Speed and the native
-        # kernels"): the solve's arithmetic grows with the streams, its per-operation overhead no longer.
+        # 320x240 took this frame 2.6-3.3 s of CPU on one thread; together 1.7-1.8 (docs/speed.md): the solve's arithmetic grows with the streams, its per-operation overhead no longer.
         def start(b: int) -> _Start:
             ks = keys[b]
             weights = None if w.weights is None else w.weights[b]

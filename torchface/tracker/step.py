@@ -120,7 +120,7 @@ class TrackerConfig:
         expression_prior_weights: one factor per animation unit (the model's order) on that precision and on
             ``refine_prior_precision``: units the image can hardly tell apart can be weighted so that their
             shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the eyelid
-            vertices nearly as Eyes closed does; README, Known limitations). None: 1 for every unit.
+            vertices nearly as Eyes closed does; docs/limitations.md). None: 1 for every unit.
         expression_sparsity: ``delta`` > 0 turns that Gaussian prior into a reweighted L1 (Laplace) prior,
             which prefers few active units: before each pass, unit ``j``'s precision is multiplied by
             ``delta / max(|alpha_j - mu_j|, delta)`` (``alpha``: the estimate the pass starts from, i.e. the
@@ -206,8 +206,7 @@ class TrackerConfig:
         selection_seed: which draw of the pixels' selection keys picks each template's ``max_points`` among its
             candidate pixels (the first frame's and the mosaic entries'; a function of the pixel, so batches
             and single streams agree). 0 is the default draw; any other seed draws another, equally uniform
-            subset. The figures of a turn on a face unlike the model move with the draw (README, Known
-            limitations: ``scan_motion``'s max error 4.85, 5.49 and 5.35 degrees with seeds 0, 1 and 2), which
+            subset. The figures of a turn on a face unlike the model move with the draw (docs/limitations.md: ``scan_motion``'s max error 4.85, 5.49 and 5.35 degrees with seeds 0, 1 and 2), which
             ``scripts/evaluate.py --selection-seeds`` measures.
         template: template management (:class:`~torchface.template.management.TemplateConfig`): dissimilarity
             confidence, gating, the pose-keyed mosaic, loss and recovery; used by
@@ -220,7 +219,7 @@ class TrackerConfig:
             decides that). 0 (the default): off, the previous frame's estimate as before; 1: full constant
             velocity; between them damped. A predicted solve that scores below the very-low confidence (the head
             stopped or turned back) is solved again from the previous frame's estimate. It widens the motion per
-            frame the solve captures (README, Known limitations, "Fast motion").
+            frame the solve captures (docs/limitations.md, "Fast motion").
     """
 
     num_levels: int = 3
