@@ -3,8 +3,8 @@
 
 Each subcommand prints the table its text quotes (one thread, under a minute on a 2-core CPU):
 
-  face-width   TrackerConfig.min_face_width_px's docstring (and the README's paragraph on it): rotation error
-               against the face's width on rendered CANDIDE-3 clips at 320x240, with the test off
+  face-width   TrackerConfig.min_face_width_px's docstring (and docs/python-api.md's paragraph on it): rotation
+               error against the face's width on rendered CANDIDE-3 clips at 320x240, with the test off
                (min_face_width_px=0). Per width, --clips clips of --frames frames: exact first-frame landmarks,
                the head turning out to 15 degrees of yaw each way (pitch and roll up to 8 and 5 degrees, seeded),
                at the depth that makes the frontal face that wide (face_width_px), tracked by a default

@@ -39,7 +39,7 @@ def test_the_built_metadata_declares_what_the_readme_says_without_deprecations(t
     assert "torchface = torchface.cli:main" in (info / "entry_points.txt").read_text()
 
 
-def test_the_source_distribution_carries_the_tests_and_scripts(tmp_path):
+def test_the_source_distribution_carries_the_tests_scripts_and_docs(tmp_path):
     # Without MANIFEST.in setuptools put only tests/test_*.py in the sdist: 6 of the suite's files, and none of the
     # scripts that tests/test_peers.py and tests/test_venv_setup.py exercise.
     import tarfile
@@ -54,9 +54,10 @@ def test_the_source_distribution_carries_the_tests_and_scripts(tmp_path):
     assert out.returncode == 0, out.stderr
     with tarfile.open(tmp_path / out.stdout.strip().splitlines()[-1]) as sdist:
         names = {name.split("/", 1)[1] for name in sdist.getnames() if "/" in name}
-    wanted = {str(p.relative_to(ROOT)) for folder in ("tests", "scripts") for p in (ROOT / folder).rglob("*")
+    wanted = {str(p.relative_to(ROOT)) for folder in ("tests", "scripts", "docs") for p in (ROOT / folder).rglob("*")
               if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}  # fmt: skip
-    assert "tests/tracker/test_native.py" in wanted and "scripts/_venv.sh" in wanted
+    # (docs/: the pages tests/test_readme.py reads beside README.md; the sdist had none, so that test failed there)
+    assert "tests/tracker/test_native.py" in wanted and "scripts/_venv.sh" in wanted and "docs/cli.md" in wanted
     assert "LICENSE" in names
     assert not wanted - names, sorted(wanted - names)[:10]
     assert not any(name.endswith(".pyc") for name in names)

@@ -54,13 +54,15 @@ def test_readme_shows_the_top_level_options():
 
 
 def test_readme_options_of_track_are_the_parsers():
-    """Every ``--option`` the README's "Tracking a video" section names is one of ``torchface track``'s."""
+    """Every ``--option`` the README's "Tracking a video" section and docs/cli.md (its full reference) name is one of
+    ``torchface track``'s."""
     import argparse
 
     from torchface.cli import build_parser
 
     section = README.split("## Tracking a video", 1)[1].split("\n## ", 1)[0]
     section = re.sub(r"```bash\n.*?```", "", section, flags=re.S)  # (its command lines: the test above)
+    section += DOCS["docs/cli.md"]
     named = set(re.findall(r"(?<![\w-])--[a-z][a-z-]*", section)) - {"--"}
     subs = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     known = {o for a in subs.choices["track"]._actions for o in a.option_strings}

@@ -4,9 +4,9 @@ A package outside ``torchface`` imports public names only (none that starts with
 does): a private one may be renamed or changed without a word. This module names those such a package needs to
 follow torchface's own rules:
 
-- the settings' argument checks (README, "Python API"): :func:`check_bool` for flags, :func:`check_int` /
-  :func:`check_optional_int` for counts, :func:`check_real` / :func:`check_optional_real` for numbers, and
-  :func:`check_intrinsics`, each a ``TypeError`` or ``ValueError`` that names the setting;
+- the settings' argument checks (docs/python-api.md, "Results and settings"): :func:`check_bool` for flags,
+  :func:`check_int` / :func:`check_optional_int` for counts, :func:`check_real` / :func:`check_optional_real` for
+  numbers, and :func:`check_intrinsics`, each a ``TypeError`` or ``ValueError`` that names the setting;
 - :func:`full_precision`, the decorator that runs torchface's public entry points in the dtype of their inputs
   inside a caller's ``torch.autocast`` region;
 - :func:`is_compiling`, whether ``torch.compile`` (or ``torch.export``) traces the running code, on every torch

@@ -914,7 +914,7 @@ def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
 
 def test_every_output_shows_its_csv_row(clip, tmp_path, monkeypatch):
     """Each frame's overlay (wireframe, head axes), normalised face and PLY mesh are drawn from its CSV row as written
-    and the sidecar's ``start``: the mesh placed as the README says on every row, the re-anchoring frame's (it showed
+    and the sidecar's ``start``: the mesh placed as docs/cli.md says on every row, the re-anchoring frame's (it showed
     the re-anchored pose, which its row does not hold: 8 mm off) and that of a lost frame whose solve failed (it
     showed the parameters the tracker falls back to, 455 mm from the pose its row holds) included, and the head axes
     at the row's pose (after the re-anchoring they were drawn at the mesh's: they jumped by the head offset)."""

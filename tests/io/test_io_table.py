@@ -152,8 +152,8 @@ def test_to_jsonable_writes_any_path_as_its_text(tmp_path):
 
 
 def test_openface_differences_the_readme_lists_match_candide3s_au_columns():
-    """README ("Differences from OpenFace's per-frame CSV"): the AUs without a column and the AU columns that repeat
-    one animation unit's value are CANDIDE-3's."""
+    """docs/cli.md ("Differences from OpenFace's per-frame CSV"): the AUs without a column and the AU columns that
+    repeat one animation unit's value are CANDIDE-3's."""
     from torchface.io.table import facs_column_stem
     from torchface.model.candide import read_auv_facs_table
 

@@ -35,7 +35,7 @@ def test_rgb_uint8_array_round_trip(tmp_path):
 
 
 def test_float16_array_is_read_as_float_in_0_1(tmp_path):
-    """The README takes ``.npy`` float arrays in [0, 1]; a float16 one (half the size of float32) was refused as
+    """docs/cli.md takes ``.npy`` float arrays in [0, 1]; a float16 one (half the size of float32) was refused as
     "unsupported pixel type float16 (expected uint8, uint16 or float in [0, 1])", which it is."""
     arr = np.random.default_rng(0).random((2, 40, 50, 3)).astype(np.float16)
     np.save(tmp_path / "half.npy", arr)

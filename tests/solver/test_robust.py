@@ -280,7 +280,7 @@ def test_the_tracker_config_and_the_loss_take_the_same_constants() -> None:
 
 def test_min_scale_of_another_type_is_a_type_error() -> None:
     """``RobustLoss(min_scale="0.5")`` was taken (``float()`` of the string passed the range check) and failed in
-    the solver's ``clamp_min``; a numpy float is kept as a Python float (the settings' rule, README)."""
+    the solver's ``clamp_min``; a numpy float is kept as a Python float (the settings' rule, docs/python-api.md)."""
     import numpy as np
 
     for bad in ("0.5", True, None):

@@ -319,7 +319,7 @@ def test_a_step_after_initialise_from_first_frames_that_require_grad_carries_the
 
 
 def test_a_graph_carried_over_two_steps_of_more_than_eight_streams_back_propagates(model, turn):
-    """A state whose parameters carry a graph (the recurrent use the README describes), more than
+    """A state whose parameters carry a graph (the recurrent use docs/python-api.md describes), more than
     ``_PYRAMID_CHUNK`` (8) streams: the steps built their pyramids in the state's shared workspace, so the second
     step wrote over the levels the first one's backward reads: "one of the variables needed for gradient
     computation has been modified by an inplace operation". Each of 9 identical streams now gets the same gradient,
@@ -435,7 +435,7 @@ def _storages(tree) -> set[int]:
 
 @pytest.mark.parametrize("mode", ["default", "inference_mode", "grad"])
 def test_results_share_no_memory_with_the_state(model, turn, mode):
-    """README, Python API: what the steps hand back is "modifiable in place". No tensor of a result may share memory
+    """docs/python-api.md: what the steps hand back is "modifiable in place". No tensor of a result may share memory
     with the state the next step starts from (the results' pose, expression and light were views of the state's
     ``params``, ``managed_step``'s ``ypr_deg`` the state's ``params_ypr``, ``initialise_managed``'s ``rotation``
     the mosaic's first entry's: ``result.translation += offset`` moved the tracked head), whether the step runs in

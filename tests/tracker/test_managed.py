@@ -858,8 +858,8 @@ def test_errors(model, gentle):
 
 def test_a_lost_stream_of_gray_frames_gives_its_detector_rgb_frames(model, gentle):
     """FaceTracker tracks gray (B, 1, H, W) frames, and its detector's contract is ``frames (B, 3, H, W) ->
-    landmarks`` (README): at a loss it was handed the gray frames as they were (a network taking 3 channels failed,
-    and the batched dlib detector refused its (H, W, 1) images mid-run)."""
+    landmarks`` (docs/python-api.md): at a loss it was handed the gray frames as they were (a network taking 3
+    channels failed, and the batched dlib detector refused its (H, W, 1) images mid-run)."""
     frames, gt = gentle
     state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     lost = replace(state.management, lost=torch.ones(1, dtype=torch.bool), since_attempt=torch.full((1,), 10))
@@ -1328,7 +1328,7 @@ def test_a_stream_whose_first_fit_holds_no_pose_stays_lost_without_a_detector(mo
     """Without a detector a stream whose initialisation failed is recovered by a search of its mosaic, which holds
     the failed fit's own templates and reference: the candidate scored 0.98 against them at the first attempt
     (frame 2) and ended the loss, CONVERGED and success True at a pitch of 89 degrees; estimate_confidence scored
-    the stream 0.96 where managed_step scores it 0. It now stays LOST (README) and scores 0 everywhere."""
+    the stream 0.96 where managed_step scores it 0. It now stays LOST (docs/python-api.md) and scores 0 everywhere."""
     frames, gt = gentle
     lm = landmarks(gt)
     line = torch.stack([lm[..., 0], torch.full_like(lm[..., 1], float(lm[..., 1].mean()))], -1)

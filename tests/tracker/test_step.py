@@ -560,7 +560,7 @@ def test_steps_refuse_frames_on_another_value_scale(model, two_streams, l2_runs)
 
 
 def test_face_tracker_tracks_any_layout_of_the_same_frames_alike(model, two_streams):
-    """README, Python API: channels-last, strided, batch-expanded, float64 frames and float64, integer-valued or
+    """docs/python-api.md: channels-last, strided, batch-expanded, float64 frames and float64, integer-valued or
     transposed-view landmarks track as the contiguous float32 ones do; gray frames as the RGB frames' ``to_gray``."""
     frames, gts = two_streams
     lm = landmarks_of(gts).round()

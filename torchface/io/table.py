@@ -34,7 +34,8 @@ Columns (units; frames as in :mod:`torchface.conventions`)
 
 The names follow OpenFace where the quantity matches, but the file is not OpenFace's: no space after the header's
 commas, no ``face_id``, ``frame`` from 0 (OpenFace's from 1), and ``AUxx_r`` is a signed animation-unit change, not
-OpenFace's 0-5 intensity, with only the AUs CANDIDE-3 animates (README, "Differences from OpenFace's per-frame CSV").
+OpenFace's 0-5 intensity, with only the AUs CANDIDE-3 animates (docs/cli.md, "Differences from OpenFace's per-frame
+CSV").
 """
 
 from __future__ import annotations

@@ -725,8 +725,9 @@ def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
 
 
 def _as_rgb(frames: Tensor) -> Tensor:
-    """``frames`` as the detector's contract has them, ``(B, 3, H, W)`` RGB (README): gray ``(B, 1, H, W)`` frames,
-    which the tracker tracks, expanded to three equal channels (a view); RGB frames as they are."""
+    """``frames`` as the detector's contract has them, ``(B, 3, H, W)`` RGB (docs/python-api.md): gray
+    ``(B, 1, H, W)`` frames, which the tracker tracks, expanded to three equal channels (a view); RGB frames as they
+    are."""
     return frames.expand(-1, 3, -1, -1) if frames.shape[1] == 1 else frames
 
 

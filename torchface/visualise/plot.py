@@ -95,7 +95,7 @@ def plot_track(
             axes[1].plot(t, rows[:, idx[groups[k][0]]], label=" = ".join(groups[k]))
         axes[1].legend(loc="upper right", fontsize=8)
     # (it read "AU intensity": these are not OpenFace's 0-5 intensities but the linked animation unit's signed change
-    # from the first frame, dimensionless, README "Differences from OpenFace's per-frame CSV")
+    # from the first frame, dimensionless, docs/cli.md "Differences from OpenFace's per-frame CSV")
     axes[1].set_ylabel("AU change from frame 0")
     measured = "dissimilarity" in idx and bool(np.isfinite(rows[:, idx["dissimilarity"]]).any())
     kind = "dissimilarity" if measured else "residual"
