@@ -41,10 +41,10 @@ from torchface.io.landmarks import missing_points_problem
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
-from torchface.tracker.lookahead import LookaheadConfig
+from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
-from torchface.tracker.module import PYRAMID_CHOICES
+from torchface.tracker.module import check_pyramid
 from torchface.tracker.step import (
     TrackerConfig, TrackerState, TrackStatus, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces,
 )  # fmt: skip
@@ -128,12 +128,8 @@ class FaceTrackingConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
-        if not isinstance(self.pyramid, str):
-            raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(self.pyramid).__name__}")
-        if self.pyramid not in PYRAMID_CHOICES:
-            raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {self.pyramid!r}")
-        if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
+        check_pyramid(self.pyramid)
+        check_refine_first(self.refine_first)
         object.__setattr__(self, "face_size", check_int(self.face_size, "face_size", 16))
         object.__setattr__(self, "keep_expression", check_bool(self.keep_expression, "keep_expression"))
         object.__setattr__(self, "face_margin", check_real(self.face_margin, "face_margin"))  # "0.05" was taken (a str)

@@ -105,8 +105,8 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_starts, _Start, _stream_start, is_keyframe_turn, is_video_cut, kept_shape_indices,
-    landmark_fit_priors, levels_of, view_yaw_deg,
+    LookaheadConfig, _refine_starts, _Start, _stream_start, check_refine_first, is_keyframe_turn, is_video_cut,
+    kept_shape_indices, landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -344,9 +344,8 @@ def initialise_managed(
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
     check_api_types(model, config)
+    check_refine_first(refine_first)
     if refine_first is not None:
-        if not isinstance(refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
         kept_shape_indices(refine_first, model.shape_names, "refine_first.kept_shape_units")  # (now, not at the turn)
