@@ -46,7 +46,7 @@ from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.module import check_pyramid
 from torchface.tracker.step import (
-    TrackerConfig, TrackerState, TrackStatus, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces,
+    TrackerConfig, TrackerState, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces, usable_status,
 )  # fmt: skip
 
 __all__ = [
@@ -272,7 +272,7 @@ class TrackedSequence:
     @property
     def success(self) -> Tensor:
         """``(T,)`` bool: the frame's estimate is usable (status neither FAILED nor LOST)."""
-        return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
+        return usable_status(self.status)
 
     def item(self, frames: int | slice) -> dict[str, Tensor]:
         """The dataset item of one frame (``frames`` an int) or of a clip (a slice, step 1).
@@ -319,7 +319,7 @@ class TrackedSequence:
             "confidence": self.confidence[index].clone(),
             # (from this item's statuses: self.success[index] was a view of the whole sequence's T flags, computed
             # again for every item, and sent whole with each item from a DataLoader worker)
-            "success": (status != int(TrackStatus.FAILED)) & (status != int(TrackStatus.LOST)),
+            "success": usable_status(status),
             "status": status.clone(),
             "frame": frame,
             "shape_coeffs": self.shape_coeffs.clone(),

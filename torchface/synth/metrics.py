@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
-from torchface.tracker.step import TrackStatus
+from torchface.tracker.step import TrackStatus, usable_status
 
 __all__ = [
     "LOST_THRESHOLD_DEG",
@@ -432,7 +432,7 @@ def sequence_metrics(
         init_rot_err_deg=float(init_rot),
         init_trans_err_mm=float(t_abs[0]),
         converged=float((st == int(TrackStatus.CONVERGED)).double().mean()),
-        success=float(((st != int(TrackStatus.FAILED)) & (st != int(TrackStatus.LOST))).double().mean()),
+        success=float(usable_status(st).double().mean()),
         lost_frames=lost,
         lost_fraction=lost / (T - 1),
         au_rmse=au_rmse,
