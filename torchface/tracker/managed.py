@@ -493,6 +493,12 @@ def _normal_template(t: Template) -> Template:
     return new
 
 
+def _result_rows(result: TrackResult, index: Tensor) -> TrackResult:
+    """``result``'s samples ``index`` (tensor fields; the others, the names, as they are)."""
+    return replace(result, **{f.name: getattr(result, f.name)[index] for f in fields(TrackResult)
+                              if isinstance(getattr(result, f.name), Tensor)})  # fmt: skip
+
+
 def _scatter_result(result: TrackResult, index: Tensor, sub: TrackResult) -> TrackResult:
     """``result`` with the samples ``index`` replaced by ``sub``'s (tensor fields only)."""
     changes: dict[str, Any] = {}  # field name -> its tensor (replace checks a value against every field's type)
@@ -889,8 +895,7 @@ def _restart(
         return state, result, rows[:0]
     if not bool(ok.all()):
         sub = sub.select(ok)
-        sub_result = replace(sub_result, **{f.name: getattr(sub_result, f.name)[ok] for f in fields(TrackResult)
-                                            if isinstance(getattr(sub_result, f.name), Tensor)})  # fmt: skip
+        sub_result = _result_rows(sub_result, ok)
     rows = rows[ok]
     sub_ms = cast(ManagementState, sub.management)  # initialise_managed's with template management: managed
     with torch.inference_mode(False):
@@ -1086,10 +1091,7 @@ def managed_step(
                 rows, face = index[better], None
                 solved = replace(solved, params=solved.params.clone())
                 solved.params[rows] = p_state.params[better].to(solved.params.dtype)
-                result = _scatter_result(result, rows, replace(
-                    p_result, **{f.name: getattr(p_result, f.name)[better] for f in fields(TrackResult)
-                                 if isinstance(getattr(p_result, f.name), Tensor)},
-                ))  # fmt: skip
+                result = _scatter_result(result, rows, _result_rows(p_result, better))
                 conf, diss, inside = conf.clone(), diss.clone(), inside.clone()
                 conf[rows], diss[rows], inside[rows] = p_conf[better], p_diss[better], p_inside[better]
                 retried = rows
@@ -1185,10 +1187,7 @@ def managed_step(
             params, params_ypr, face = params.clone(), None, None  # the normalised faces are the track's
             params[rows] = r_state.params[adopt]
             adopted = rows
-            result = _scatter_result(result, rows, replace(
-                r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
-                             if isinstance(getattr(r_result, f.name), Tensor)},
-            ))  # fmt: skip
+            result = _scatter_result(result, rows, _result_rows(r_result, adopt))
             conf, diss = conf.clone(), diss.clone()
             conf[rows], diss[rows] = r_conf[adopt], r_diss[adopt]
             entry = entry.clone()
