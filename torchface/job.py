@@ -115,7 +115,7 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
-from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
+from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, TrackStatus, pyramid_for_faces
@@ -213,8 +213,7 @@ class JobConfig:
     def __post_init__(self) -> None:
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
             raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
-        if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
+        check_refine_first(self.refine_first)
         object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))
         object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):

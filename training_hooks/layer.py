@@ -58,7 +58,7 @@ from torchface.normalise.face import (
 )
 from torchface.solver.least_squares import SolverConfig, SolverMethod
 from torchface.tracker.fit import check_landmark_type
-from torchface.tracker.module import PYRAMID_CHOICES
+from torchface.tracker.module import check_pyramid
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
@@ -139,10 +139,7 @@ class LayerConfig:
     pyramid: str = "auto"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.pyramid, str):
-            raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(self.pyramid).__name__}")
-        if self.pyramid not in PYRAMID_CHOICES:
-            raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {self.pyramid!r}")
+        check_pyramid(self.pyramid)
         if not isinstance(self.mode, LayerMode):
             raise TypeError(f"mode must be a LayerMode, got {type(self.mode).__name__}")
         if not isinstance(self.start, UnrollStart):

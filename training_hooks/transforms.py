@@ -41,12 +41,12 @@ from torchface.io.landmarks import missing_points_problem
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFace
-from torchface.tracker.lookahead import LookaheadConfig
+from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
-from torchface.tracker.module import PYRAMID_CHOICES
+from torchface.tracker.module import check_pyramid
 from torchface.tracker.step import (
-    TrackerConfig, TrackerState, TrackStatus, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces,
+    TrackerConfig, TrackerState, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces, usable_status,
 )  # fmt: skip
 
 __all__ = [
@@ -128,12 +128,8 @@ class FaceTrackingConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
-        if not isinstance(self.pyramid, str):
-            raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(self.pyramid).__name__}")
-        if self.pyramid not in PYRAMID_CHOICES:
-            raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {self.pyramid!r}")
-        if self.refine_first is not None and not isinstance(self.refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(self.refine_first).__name__}")
+        check_pyramid(self.pyramid)
+        check_refine_first(self.refine_first)
         object.__setattr__(self, "face_size", check_int(self.face_size, "face_size", 16))
         object.__setattr__(self, "keep_expression", check_bool(self.keep_expression, "keep_expression"))
         object.__setattr__(self, "face_margin", check_real(self.face_margin, "face_margin"))  # "0.05" was taken (a str)
@@ -276,7 +272,7 @@ class TrackedSequence:
     @property
     def success(self) -> Tensor:
         """``(T,)`` bool: the frame's estimate is usable (status neither FAILED nor LOST)."""
-        return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
+        return usable_status(self.status)
 
     def item(self, frames: int | slice) -> dict[str, Tensor]:
         """The dataset item of one frame (``frames`` an int) or of a clip (a slice, step 1).
@@ -323,7 +319,7 @@ class TrackedSequence:
             "confidence": self.confidence[index].clone(),
             # (from this item's statuses: self.success[index] was a view of the whole sequence's T flags, computed
             # again for every item, and sent whole with each item from a DataLoader worker)
-            "success": (status != int(TrackStatus.FAILED)) & (status != int(TrackStatus.LOST)),
+            "success": usable_status(status),
             "status": status.clone(),
             "frame": frame,
             "shape_coeffs": self.shape_coeffs.clone(),

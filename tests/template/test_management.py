@@ -478,28 +478,18 @@ def test_search_mosaic_widened_depths_find_a_face_that_came_back_farther(model, 
 
 
 def _ncc_by_projection(gray, intr, X, T, w, t, min_inside):
-    """The search's correlation written with project_points and sample_at_pixels on the (.., 3) points (as it was):
-    the reference :func:`~torchface.template.management._ncc` must equal to the bit."""
+    """The search's correlation of the placed points projected with project_points and sampled with sample_at_pixels
+    on the (.., 3) points (as it was): the reference :func:`~torchface.template.management._ncc` must equal to the
+    bit. The correlation of the samples is the package's (:func:`~torchface.template.management._sampled_ncc`): the
+    projection and the sampling are what the search writes out coordinate by coordinate."""
     from torchface.appearance.sampling import sample_at_pixels
     from torchface.geometry.projection import project_points
+    from torchface.template.management import _sampled_ncc
 
     H, P = t.shape[:2]
-    usable = torch.isfinite(T)
-    T, w = torch.where(usable, T, 0.0), w * usable.to(w.dtype)
     cam = X.unsqueeze(1) + t.unsqueeze(2)
     vals, inside = sample_at_pixels(gray, project_points(cam.reshape(1, -1, 3), intr))
-    vals = vals[..., 0].reshape(H, P, -1)
-    finite = torch.isfinite(vals)
-    vals = torch.where(finite, vals, 0.0)
-    wgt = (inside.reshape(H, P, -1) & finite).to(gray.dtype) * w.unsqueeze(1)
-    cnt = wgt.sum(-1)
-    mean_v = (vals * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
-    mean_t = (T.unsqueeze(1) * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
-    a = (vals - mean_v) * wgt
-    b = (T.unsqueeze(1) - mean_t) * wgt
-    ncc = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-6)
-    placed = (cnt >= min_inside * w.sum(-1, keepdim=True)) & (cnt > 0)
-    return torch.where(placed, ncc, torch.full_like(ncc, -1.0))
+    return _sampled_ncc(vals[..., 0].reshape(H, P, -1), inside.reshape(H, P, -1), T, w, min_inside)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
-from torchface.tracker.step import TrackStatus
+from torchface.tracker.step import TrackStatus, usable_status
 
 __all__ = [
     "LOST_THRESHOLD_DEG",
@@ -61,6 +61,14 @@ def _check_same(a: Tensor, b: Tensor, names: str) -> None:
         raise ValueError(f"{names} must have the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
 
 
+def _rotation_pair_dtype(R_est: Tensor, R_gt: Tensor) -> torch.dtype:
+    """Check ``R_est`` and ``R_gt``, both ``(*, T, 3, 3)`` float rotations of the same shape; their common dtype."""
+    _check_rotations(R_est, "R_est")
+    _check_rotations(R_gt, "R_gt")
+    _check_same(R_est, R_gt, "R_est and R_gt")
+    return torch.promote_types(R_est.dtype, R_gt.dtype)
+
+
 def relative_rotations(R: Tensor) -> Tensor:
     """Rotations relative to the first frame, ``R_t R_0^T``.
 
@@ -98,10 +106,7 @@ def relative_rotation_error_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
         >>> relative_rotation_error_deg(est, gt).round(decimals=6)
         tensor([0., 5.], dtype=torch.float64)
     """
-    _check_rotations(R_est, "R_est")
-    _check_rotations(R_gt, "R_gt")
-    _check_same(R_est, R_gt, "R_est and R_gt")
-    dtype = torch.promote_types(R_est.dtype, R_gt.dtype)
+    dtype = _rotation_pair_dtype(R_est, R_gt)
     return geodesic_angle_deg(relative_rotations(R_est.to(dtype)), relative_rotations(R_gt.to(dtype)))
 
 
@@ -118,10 +123,7 @@ def relative_ypr_error_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
     Returns:
         ``(*, T, 3)`` signed yaw, pitch, roll errors (estimate minus truth), degrees.
     """
-    _check_rotations(R_est, "R_est")
-    _check_rotations(R_gt, "R_gt")
-    _check_same(R_est, R_gt, "R_est and R_gt")
-    dtype = torch.promote_types(R_est.dtype, R_gt.dtype)
+    dtype = _rotation_pair_dtype(R_est, R_gt)
     d = matrix_to_euler(relative_rotations(R_est.to(dtype))) - matrix_to_euler(relative_rotations(R_gt.to(dtype)))
     wrapped = torch.remainder(d + 180.0, 360.0) - 180.0  # [-180, 180)
     return torch.where(wrapped == -180.0, torch.full_like(wrapped, 180.0), wrapped)  # (-180, 180] as documented
@@ -150,12 +152,9 @@ def rotation_jitter_deg(R_est: Tensor, R_gt: Tensor) -> Tensor:
         >>> float(rotation_jitter_deg(est, gt)) < 1e-9  # a constant bias is no jitter
         True
     """
-    _check_rotations(R_est, "R_est")
-    _check_rotations(R_gt, "R_gt")
-    _check_same(R_est, R_gt, "R_est and R_gt")
+    dtype = torch.promote_types(_rotation_pair_dtype(R_est, R_gt), torch.float64)
     if R_est.shape[-3] < 3:
         raise ValueError(f"jitter needs T >= 3 frames, got {R_est.shape[-3]}")
-    dtype = torch.promote_types(torch.promote_types(R_est.dtype, R_gt.dtype), torch.float64)
     err = relative_rotations(R_est.to(dtype)) @ relative_rotations(R_gt.to(dtype)).transpose(-1, -2)
     e = torch.rad2deg(matrix_to_axis_angle(err))  # (*, T, 3)
     d2 = e[..., 2:, :] - 2.0 * e[..., 1:-1, :] + e[..., :-2, :]
@@ -433,7 +432,7 @@ def sequence_metrics(
         init_rot_err_deg=float(init_rot),
         init_trans_err_mm=float(t_abs[0]),
         converged=float((st == int(TrackStatus.CONVERGED)).double().mean()),
-        success=float(((st != int(TrackStatus.FAILED)) & (st != int(TrackStatus.LOST))).double().mean()),
+        success=float(usable_status(st).double().mean()),
         lost_frames=lost,
         lost_fraction=lost / (T - 1),
         au_rmse=au_rmse,

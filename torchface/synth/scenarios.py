@@ -150,6 +150,12 @@ def _pose(ypr: Tensor, num_frames: int, drift_mm: tuple[float, float, float]) ->
     return euler_to_matrix(ypr), t
 
 
+def _sweep_pose(num_frames: int) -> tuple[Tensor, Tensor]:
+    """The pose of :func:`pose_sweep` and :func:`scan_motion`: the sweep through ``_SWEEP_KEYS`` (yaw, pitch, roll),
+    the translation drifting by (12, 6, 10) mm."""
+    return _pose(keyframe_path(torch.tensor(_SWEEP_KEYS), num_frames), num_frames, (12.0, 6.0, 10.0))
+
+
 def _moderate_motion(num_frames: int, phase: float = 0.0) -> Tensor:
     """Gentle head motion: yaw +-15, pitch +-8, roll +-5 degrees (sums of sines)."""
     s = torch.linspace(0.0, 1.0, num_frames, dtype=torch.float64)
@@ -185,8 +191,7 @@ def _check(num_frames: int, width: int, height: int) -> None:
 def pose_sweep(num_frames: int, width: int, height: int) -> SequenceSpec:
     """CANDIDE-3, neutral face, sweeping yaw (+-45), pitch (+-25) and roll (+-20), static background."""
     _check(num_frames, width, height)
-    ypr = keyframe_path(torch.tensor(_SWEEP_KEYS), num_frames)
-    R, t = _pose(ypr, num_frames, (12.0, 6.0, 10.0))
+    R, t = _sweep_pose(num_frames)
     subject = get_subject("candide3")
     return SequenceSpec(
         name="pose_sweep",
@@ -297,8 +302,7 @@ def occlusion(num_frames: int, width: int, height: int) -> SequenceSpec:
 def scan_motion(num_frames: int, width: int, height: int) -> SequenceSpec:
     """The James scan over the pose range of :func:`pose_sweep` (rigid: no animation units)."""
     _check(num_frames, width, height)
-    ypr = keyframe_path(torch.tensor(_SWEEP_KEYS), num_frames)
-    R, t = _pose(ypr, num_frames, (12.0, 6.0, 10.0))
+    R, t = _sweep_pose(num_frames)
     return SequenceSpec(
         name="scan_motion",
         subject="james",

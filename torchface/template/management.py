@@ -935,8 +935,6 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
     if rows < H:
         return torch.cat([_ncc(gray, intrinsics, X[i : i + rows], T[i : i + rows], w[i : i + rows], t[i : i + rows],
                                min_inside) for i in range(0, H, rows)])  # fmt: skip
-    usable = torch.isfinite(T)  # an entry built from a frame with infinite pixels (only first frames are checked)
-    T, w = torch.where(usable, T, 0.0), w * usable.to(w.dtype)
     u, v, ok, grid = _project_placed(X, t, intrinsics, gray.shape[-2], gray.shape[-1])
     # sample_at_pixels' bilinear sampling and inside test (the values of project_points and sample_at_pixels of the
     # placed points, to the bit; tests/template/test_management.py), on the coordinates one by one: their (.., 2)
@@ -946,12 +944,21 @@ def _ncc(gray: Tensor, intrinsics: Intrinsics, X: Tensor, T: Tensor, w: Tensor, 
                                            align_corners=True).reshape(H, P, -1)  # fmt: skip
     h, wd = gray.shape[-2:]
     inside = (u >= 0) & (u <= wd - 1) & (v >= 0) & (v <= h - 1) & ok
+    return _sampled_ncc(vals, inside, T, w, min_inside)
+
+
+def _sampled_ncc(vals: Tensor, inside: Tensor, T: Tensor, w: Tensor, min_inside: float) -> Tensor:
+    """:func:`_ncc` of the samples: ``vals (H, P, n)`` the image at the placed points, ``inside (H, P, n)`` bool
+    where they lie inside it, ``T (H, n)`` the points' intensities and ``w (H, n)`` their weights (a sample or an
+    intensity that is not finite takes no part)."""
+    usable = torch.isfinite(T)  # an entry built from a frame with infinite pixels (only first frames are checked)
+    T, w = torch.where(usable, T, 0.0), w * usable.to(w.dtype)
     # A NaN (or infinite) sample would make its placement's score NaN, which topk ranks first and no comparison
     # then accepts: one NaN row in the frame left every search empty.
     finite = torch.isfinite(vals)
     if not bool(finite.all()):
         vals, inside = torch.where(finite, vals, 0.0), inside & finite
-    wgt = inside.to(gray.dtype) * w.unsqueeze(1)
+    wgt = inside.to(vals.dtype) * w.unsqueeze(1)
     cnt = wgt.sum(-1)
     mean_v = (vals * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)
     mean_t = (T.unsqueeze(1) * wgt).sum(-1, keepdim=True) / cnt.clamp_min(1).unsqueeze(-1)

@@ -183,6 +183,13 @@ class LookaheadConfig:
             FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation
 
 
+def check_refine_first(refine_first: object) -> None:
+    """Refuse a ``refine_first`` setting (:func:`~torchface.tracker.managed.initialise_managed`, ``FaceTracker``,
+    ``TrackJob``, training_hooks' ``FaceTrackingConfig``) that is neither a :class:`LookaheadConfig` nor None."""
+    if refine_first is not None and not isinstance(refine_first, LookaheadConfig):
+        raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
+
+
 def kept_shape_indices(
     config: LookaheadConfig, shape_names: Sequence[str], name: str = "kept_shape_units"
 ) -> set[int]:

@@ -105,8 +105,8 @@ from torchface.template.points import (
 from torchface.tracker.fit import LandmarkFit, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_starts, _Start, _stream_start, is_keyframe_turn, is_video_cut, kept_shape_indices,
-    landmark_fit_priors, levels_of, view_yaw_deg,
+    LookaheadConfig, _refine_starts, _Start, _stream_start, check_refine_first, is_keyframe_turn, is_video_cut,
+    kept_shape_indices, landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -344,9 +344,8 @@ def initialise_managed(
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
     check_api_types(model, config)
+    check_refine_first(refine_first)
     if refine_first is not None:
-        if not isinstance(refine_first, LookaheadConfig):
-            raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
         kept_shape_indices(refine_first, model.shape_names, "refine_first.kept_shape_units")  # (now, not at the turn)
@@ -492,6 +491,12 @@ def _normal_template(t: Template) -> Template:
     if cached is not None and not any(x.is_inference() for x in cached):
         object.__setattr__(new, "_point_last", cached)
     return new
+
+
+def _result_rows(result: TrackResult, index: Tensor) -> TrackResult:
+    """``result``'s samples ``index`` (tensor fields; the others, the names, as they are)."""
+    return replace(result, **{f.name: getattr(result, f.name)[index] for f in fields(TrackResult)
+                              if isinstance(getattr(result, f.name), Tensor)})  # fmt: skip
 
 
 def _scatter_result(result: TrackResult, index: Tensor, sub: TrackResult) -> TrackResult:
@@ -891,8 +896,7 @@ def _restart(
         return state, result, rows[:0]
     if not bool(ok.all()):
         sub = sub.select(ok)
-        sub_result = replace(sub_result, **{f.name: getattr(sub_result, f.name)[ok] for f in fields(TrackResult)
-                                            if isinstance(getattr(sub_result, f.name), Tensor)})  # fmt: skip
+        sub_result = _result_rows(sub_result, ok)
     rows = rows[ok]
     sub_ms = cast(ManagementState, sub.management)  # initialise_managed's with template management: managed
     with torch.inference_mode(False):
@@ -1088,10 +1092,7 @@ def managed_step(
                 rows, face = index[better], None
                 solved = replace(solved, params=solved.params.clone())
                 solved.params[rows] = p_state.params[better].to(solved.params.dtype)
-                result = _scatter_result(result, rows, replace(
-                    p_result, **{f.name: getattr(p_result, f.name)[better] for f in fields(TrackResult)
-                                 if isinstance(getattr(p_result, f.name), Tensor)},
-                ))  # fmt: skip
+                result = _scatter_result(result, rows, _result_rows(p_result, better))
                 conf, diss, inside = conf.clone(), diss.clone(), inside.clone()
                 conf[rows], diss[rows], inside[rows] = p_conf[better], p_diss[better], p_inside[better]
                 retried = rows
@@ -1187,10 +1188,7 @@ def managed_step(
             params, params_ypr, face = params.clone(), None, None  # the normalised faces are the track's
             params[rows] = r_state.params[adopt]
             adopted = rows
-            result = _scatter_result(result, rows, replace(
-                r_result, **{f.name: getattr(r_result, f.name)[adopt] for f in fields(TrackResult)
-                             if isinstance(getattr(r_result, f.name), Tensor)},
-            ))  # fmt: skip
+            result = _scatter_result(result, rows, _result_rows(r_result, adopt))
             conf, diss = conf.clone(), diss.clone()
             conf[rows], diss[rows] = r_conf[adopt], r_diss[adopt]
             entry = entry.clone()

@@ -14,7 +14,7 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import apply_to_tensor_fields
 from torchface.tracker.fit import LandmarkFit
-from torchface.tracker.lookahead import LookaheadConfig
+from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
 from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
 from torchface.tracker.step import (
     TrackerConfig, TrackerState, TrackResult, add_coarser_levels, check_frames, check_initialise_inputs,
@@ -30,6 +30,15 @@ _SETTINGS = frozenset({"config", "model", "detector", "refine_first", "pyramid"}
 PYRAMID_CHOICES: tuple[str, ...] = ("auto", "config")
 
 
+def check_pyramid(pyramid: object) -> None:
+    """Refuse a ``pyramid`` setting (:class:`FaceTracker`'s, training_hooks' configs') not in
+    :data:`PYRAMID_CHOICES`."""
+    if not isinstance(pyramid, str):
+        raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(pyramid).__name__}")
+    if pyramid not in PYRAMID_CHOICES:
+        raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {pyramid!r}")
+
+
 def _check_setting(name: str, value: Any) -> None:
     """Raise TypeError where ``value`` cannot be the :class:`FaceTracker` setting ``name``."""
     if name == "config" and not isinstance(value, TrackerConfig):
@@ -38,12 +47,10 @@ def _check_setting(name: str, value: Any) -> None:
         raise TypeError(f"model must be a FaceModel, got {type(value).__name__}")
     if name == "model":  # a float16 model failed at initialise: '"cholesky_cpu" not implemented for 'Half''
         check_model_precision(value)
-    if name == "pyramid" and not isinstance(value, str):
-        raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(value).__name__}")
-    if name == "pyramid" and value not in PYRAMID_CHOICES:
-        raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {value!r}")
-    if name == "refine_first" and value is not None and not isinstance(value, LookaheadConfig):
-        raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(value).__name__}")
+    if name == "pyramid":
+        check_pyramid(value)
+    if name == "refine_first":
+        check_refine_first(value)
     if name == "detector" and value is not None:
         if not callable(value):
             raise TypeError(f"detector must be callable (frames -> landmarks), got {type(value).__name__}")

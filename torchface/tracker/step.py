@@ -77,6 +77,12 @@ class TrackStatus(enum.IntEnum):
     LOST = 3
 
 
+def usable_status(status: Tensor) -> Tensor:
+    """``(*)`` bool of ``status (*)`` integer :class:`TrackStatus`: the estimate is usable, neither FAILED nor LOST
+    (:attr:`TrackResult.success`)."""
+    return (status != int(TrackStatus.FAILED)) & (status != int(TrackStatus.LOST))
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     """Settings of the tracker.
@@ -488,7 +494,7 @@ class TrackResult:
         0.1 by default), so the first frames of a loss are still successful, with their low ``confidence``:
         where single frames matter, threshold the confidence as well (e.g. a face turned upside down for 10
         frames read success True, confidence 0.00, 28 degrees off, on its first 2)."""
-        return (self.status != int(TrackStatus.FAILED)) & (self.status != int(TrackStatus.LOST))
+        return usable_status(self.status)
 
 
 @dataclass(frozen=True, eq=False)
