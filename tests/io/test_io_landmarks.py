@@ -434,3 +434,35 @@ def test_a_column_empty_on_every_row_of_x_y_rows_is_no_cell(tmp_path):
     with pytest.raises(InputError, match=r"got rows of \[3\] values") as info:
         read_landmarks(tmp_path / "some.csv", 100, 100)
     assert "\n" not in str(info.value)
+
+
+def test_one_row_with_an_empty_column_before_its_136_values_is_read(tmp_path):
+    """One row ``,x0,y0,...,x67,y67`` (a spreadsheet's export with an index column left empty) was read before the
+    missing points (every empty cell dropped), then refused ("an array of shape (137,)"): an empty column before one
+    row's 136 values is no cell, as a column empty on every row of ``x, y`` rows; the 136 values keep their missing
+    points. A row of 136 cells is all values: its empty first cell is point 0's ``x`` missing, refused as before."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    values = [repr(float(v)) for v in pts.reshape(-1)]
+    gaps = ["" if k // 2 in set(_MISSING) else v for k, v in enumerate(values)]
+    named = [f"x_{k}" for k in range(68)] + [f"y_{k}" for k in range(68)]
+    files = {
+        "index_empty.csv": ("," + ",".join(values) + "\n", pts),
+        "index_empty_trailing.csv": ("," + ",".join(values) + ",\r\n", pts),
+        "column_c.csv": (";;" + ";".join(values) + "\n", pts),
+        "index_empty_gaps.csv": ("," + ",".join(gaps) + "\n", want),
+        "index_empty_header.csv": ("," + ",".join(f"{c}{k}" for k in range(68) for c in "xy") + "\n,"
+                                   + ",".join(values) + "\n", pts),  # fmt: skip
+        "index_empty_named.csv": ("," + ",".join(named) + "\n," + ",".join(values[0::2] + values[1::2]) + "\n", pts),
+    }
+    for name, (text, expected) in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), expected, err_msg=name)
+    (tmp_path / "x0_missing.csv").write_text("," + ",".join(values[1:]) + "\n")  # 136 cells: x0 missing
+    with pytest.raises(InputError, match=r"landmark\(s\) \[0\] have one coordinate NaN"):
+        read_landmarks(tmp_path / "x0_missing.csv", 100, 100)
+    (tmp_path / "both_ends.csv").write_text(",," + ",".join(values[:-2]) + ",,\n")  # point 0 or point 67 missing?
+    with pytest.raises(InputError, match=r"one row of 138 cells, empty at both ends: which 136 are the x, y values"):
+        read_landmarks(tmp_path / "both_ends.csv", 100, 100)
+    (tmp_path / "id.csv").write_text("id," + ",".join(named) + "\n," + ",".join(values[0::2] + values[1::2]) + "\n")
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "id.csv", 100, 100), pts)  # a named column: OpenFace's way

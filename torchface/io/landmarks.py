@@ -23,7 +23,10 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
 weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
 their order): in a CSV an ``x, y`` pair of empty cells (``,``; a separator ending every line, ``x,y,``, is not a
-cell, nor is a column empty on every row of ``x, y`` rows: ``,x,y``, a spreadsheet's cells from its column B) or of
+cell, nor is a column empty on every row of ``x, y`` rows: ``,x,y``, a spreadsheet's cells from its column B, nor
+an empty column before one row's 136 values: ``,x0,y0,...``, 137 cells, where its last cell is empty too the 136
+whose empty cells pair up as missing points, refused where two cuts do; but the cells of ``x, y`` rows 2 wide and of
+one row 136 wide are all values, an empty one a missing coordinate: ``,y0,x1,...`` has point 0's ``x`` missing) or of
 ``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a ``.pts`` line
 ``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
@@ -96,10 +99,31 @@ def _without_empty_columns(data: list[list[str]]) -> list[list[str]] | None:
     return [row if any(row) else ["", ""] for row in rows]
 
 
-def _named_row(header: str, row: list[float]) -> np.ndarray | None:
-    """One row's values placed by a header naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``, ...; ``k`` from 0
-    or 1, each once): ``(K, 2)``; None when the header does not name them so."""
-    names = _trimmed(_cells(header), 0)
+def _one_row_values(p: Path, cells: list[str], names: list[str]) -> tuple[list[str], list[str]]:
+    """One row's ``cells`` and its header's ``names`` (``[]``: no header) cut to the row's ``2 * 68`` values where it
+    holds more cells, the others empty in both (and not named by the header): a spreadsheet's export with a column
+    before the values left empty, ``,x0,y0,...``, as the rows-of-``x, y`` layout drops a column empty on every row
+    (:func:`_without_empty_columns`), or a separator ending the line, ``x0,...,y67,``. Where both ends are empty (a
+    column before the values, or a missing point 0 and a separator after them) the values are those whose empty
+    cells come in ``x, y`` pairs (a missing point; a single empty coordinate is refused in any case); refused when
+    more than one cut pairs them. A row of at most 136 cells is returned as it is: its empty cells are values."""
+    width = 2 * NUM_LANDMARKS
+    blank = [c == "" and (j >= len(names) or names[j] == "") for j, c in enumerate(cells)]
+    starts = [s for s in range(len(cells) - width + 1) if all(blank[:s]) and all(blank[s + width :])]
+    if not starts:
+        return cells, names
+    paired = [s for s in starts if all((cells[j] == "") == (cells[j + 1] == "") for j in range(s, s + width, 2))]
+    if len(paired) > 1:
+        raise InputError(f"{p}: one row of {len(cells)} cells, empty at both ends: which {width} are the x, y values "
+                         f"is not known (a column before them left empty, or a missing point and a separator after "
+                         f"them); remove the empty cells at one end")  # fmt: skip
+    s = (paired or starts)[0]
+    return cells[s : s + width], names[s : s + width]
+
+
+def _named_row(names: list[str], row: list[float]) -> np.ndarray | None:
+    """One row's values placed by a header's cells ``names`` naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``,
+    ...; ``k`` from 0 or 1, each once): ``(K, 2)``; None when the header does not name them so."""
     keys = [m for n in names if (m := re.fullmatch(r"([xy])[_ ]?(\d+)", n.lower())) is not None]
     if len(names) != len(row) or len(row) % 2 or len(keys) != len(names):
         return None
@@ -112,10 +136,9 @@ def _named_row(header: str, row: list[float]) -> np.ndarray | None:
     return np.asarray([index[w] for w in wanted], dtype=np.float64).reshape(K, 2)
 
 
-def _openface_row(p: Path, header: str, rows: list[list[float]]) -> np.ndarray | None:
-    """The first row's ``x_k``, ``y_k`` cells ``(K, 2)`` when the header names them (exactly so, lower case: OpenFace's
-    3D ``X_k`` are other columns) among other columns, every row as wide as the header; else None."""
-    names = _trimmed(_cells(header), 0)
+def _openface_row(p: Path, names: list[str], rows: list[list[float]]) -> np.ndarray | None:
+    """The first row's ``x_k``, ``y_k`` cells ``(K, 2)`` when the header's cells ``names`` name them (exactly so, lower
+    case: OpenFace's 3D ``X_k`` are other columns) among other columns, every row as wide as the header; else None."""
     if not rows or any(len(r) != len(names) for r in rows):
         return None
     where = {n: i for i, n in enumerate(names)}
@@ -269,12 +292,16 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
+    names = _trimmed(_cells(header), 0) if header is not None else []
+    if len(data) == 1:  # one row of 136 with a column before it left empty (``,x0,y0,...``): that column is no cell
+        cells, names = _one_row_values(p, data[0], names)
+        data = [cells]
     if header is not None:
-        rows = _number_rows(data, len(_trimmed(_cells(header), 0)))
-        openface = _openface_row(p, header, rows)
+        rows = _number_rows(data, len(names))
+        openface = _openface_row(p, names, rows)
         if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
             return openface
-        named = _named_row(header, rows[0]) if len(rows) == 1 else None
+        named = _named_row(names, rows[0]) if len(rows) == 1 else None
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
             return named
     rows = _number_rows(data, 2 if len(data) > 1 else 2 * NUM_LANDMARKS)
