@@ -141,3 +141,34 @@ def test_landmark_visibility_known_answers():
     # Batched == per sample.
     both = landmark_visibility(torch.cat([verts, verts.flip(1)]), faces, pts.expand(2, -1, -1), pf, cam)
     assert both[0].tolist() == vis[0].tolist()
+
+
+@pytest.mark.parametrize("opencv_default", ["installed", "4.11"])
+def test_video_readers_turn_a_phone_video_as_the_trackers_input_reader_does(tmp_path, monkeypatch, opencv_default):
+    """``read_video_uint8`` / ``iter_video_uint8`` opened a video with a plain ``cv2.VideoCapture``: under OpenCV
+    4.11's default (display rotation not applied) a phone's portrait video came out landscape, 64x48, where the
+    tracker's reader (``torchface.io.open_frames``) gives 48x64 as displayed. They open it the same way now; a file
+    that is no video is a ValueError (``iter_video_uint8`` yielded no frame without a word)."""
+    import sys
+    from pathlib import Path
+
+    import cv2
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from _helpers import opencv_411_capture, write_rotated_mp4
+
+    from torchface.io import open_frames
+
+    stored = np.kron(np.random.default_rng(0).integers(0, 256, (2, 6, 8, 3)), np.ones((1, 8, 8, 1))).astype(np.uint8)
+    write_rotated_mp4(tmp_path / "phone.mp4", stored, 90)
+    with open_frames(tmp_path / "phone.mp4") as reader:
+        want = torch.stack([(frame * 255).round().to(torch.uint8) for frame in reader])  # (2, 3, 64, 48)
+    if opencv_default == "4.11":
+        monkeypatch.setattr(cv2, "VideoCapture", opencv_411_capture)
+    assert want.shape == (2, 3, 64, 48)
+    torch.testing.assert_close(read_video_uint8(tmp_path / "phone.mp4"), want, rtol=0, atol=0)
+    torch.testing.assert_close(torch.cat(list(iter_video_uint8(tmp_path / "phone.mp4"))), want, rtol=0, atol=0)
+    (tmp_path / "notes.avi").write_text("not a video\n")
+    for read in (read_video_uint8, lambda p: list(iter_video_uint8(p))):
+        with pytest.raises(ValueError, match=r"notes\.avi: OpenCV cannot open this file as a video"):
+            read(tmp_path / "notes.avi")

@@ -2,7 +2,9 @@
 
 Writing goes to a temporary name in the destination folder and is renamed when complete, so a
 reader never sees a half-written file. The codec is the first of :data:`LOSSLESS_CODECS` that this
-OpenCV build can write; FFV1 in AVI is lossless and reads back bit-exactly with ``cv2.VideoCapture``.
+OpenCV build can write; FFV1 in AVI is lossless and reads back bit-exactly with ``cv2.VideoCapture``. The readers open
+a video as the tracker's input is opened (:func:`torchface.io.video.open_capture`: a phone video's display rotation
+applied on every OpenCV).
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import cv2
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchface.io.video import open_capture
 
 __all__ = [
     "LOSSLESS_CODECS",
@@ -119,11 +123,26 @@ def write_video(path: str | os.PathLike[str], frames: Tensor, fps: float = 25.0)
         return sink.codec
 
 
+def _open(path: str | os.PathLike[str]) -> cv2.VideoCapture:
+    """An open capture of the video file ``path``, opened as :func:`torchface.io.video.open_capture` opens the
+    tracker's input (turned by the container's display rotation on every OpenCV).
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: a name that is not valid UTF-8, or a file OpenCV cannot open as a video.
+    """
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no video at {os.fspath(path)}")
+    cap = open_capture(path, ValueError)
+    if not cap.isOpened():
+        cap.release()
+        raise ValueError(f"{os.fspath(path)}: OpenCV cannot open this file as a video")
+    return cap
+
+
 def read_video_uint8(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
     """Read a video into ``(T, 3, H, W)`` uint8 RGB (a quarter of the memory of :func:`read_video`)."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no video at {path}")
-    cap = cv2.VideoCapture(os.fspath(path))  # str() of a PathLike that is not a Path is its repr
+    cap = _open(path)
     frames: list[np.ndarray] = []
     try:
         while max_frames is None or len(frames) < max_frames:
@@ -144,9 +163,7 @@ def iter_video_uint8(path: str | os.PathLike[str]) -> Iterator[Tensor]:
     Example:
         >>> # for frame in iter_video_uint8("seq.avi"): ...   # (1, 3, H, W) uint8
     """
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no video at {path}")
-    cap = cv2.VideoCapture(os.fspath(path))
+    cap = _open(path)
     try:
         while True:
             ok, img = cap.read()
