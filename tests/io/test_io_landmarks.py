@@ -466,3 +466,20 @@ def test_one_row_with_an_empty_column_before_its_136_values_is_read(tmp_path):
         read_landmarks(tmp_path / "both_ends.csv", 100, 100)
     (tmp_path / "id.csv").write_text("id," + ",".join(named) + "\n," + ",".join(values[0::2] + values[1::2]) + "\n")
     np.testing.assert_array_equal(read_landmarks(tmp_path / "id.csv", 100, 100), pts)  # a named column: OpenFace's way
+
+
+def test_spreadsheets_other_text_encodings_are_read(tmp_path):
+    """Excel's "Unicode Text" (UTF-16 after a byte order mark, tab-separated) and an 8-bit export (Windows-1252: a
+    header or comment with an accent) were refused: "cannot read landmarks (UnicodeDecodeError)"; their numbers are
+    read as from UTF-8. A binary file (a PNG given as landmarks) is refused in one line as no text."""
+    pts = _points()
+    rows = "".join(f"{x}\t{y}\r\n" for x, y in pts)
+    (tmp_path / "unicode_text.txt").write_bytes(("\ufeffx\ty\r\n" + rows).encode("utf-16-le"))
+    (tmp_path / "unicode_text_be.txt").write_bytes(("\ufeffx\ty\r\n" + rows).encode("utf-16-be"))
+    (tmp_path / "cp1252.csv").write_bytes(("# visage, côté gauche – frame 0\nx;y\n" + rows).encode("cp1252"))
+    for name in ("unicode_text.txt", "unicode_text_be.txt", "cp1252.csv"):
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+    (tmp_path / "face.png").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00\x00\x00\x10")
+    with pytest.raises(InputError, match=r"face\.png: not a text file \(NUL bytes\): landmarks are a CSV") as info:
+        read_landmarks(tmp_path / "face.png", 100, 100)
+    assert "\n" not in str(info.value)

@@ -5,7 +5,8 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
   ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
-  spaces, optionally quoted; UTF-8 with or without a byte order mark;
+  spaces, optionally quoted; UTF-8 with or without a byte order mark, UTF-16 after its byte order mark (a
+  spreadsheet's "Unicode Text"), or 8-bit (Windows-1252, Latin-1: the numbers are ASCII in all of them);
 - OpenFace's per-frame CSV (FeatureExtraction, ``frame, face_id, timestamp, confidence, success, ...``): a header
   with ``x_0 ... x_67`` and ``y_0 ... y_67`` among other columns (OpenFace's 3D ``X_k``, gaze, AUs, ...); the points
   are the first row's (its first frame), which must have ``success`` 1 when the file has that column;
@@ -36,6 +37,7 @@ another count (a ``.pts`` of 60 points: which are missing is not known).
 
 from __future__ import annotations
 
+import codecs
 import csv
 import math
 import os
@@ -160,10 +162,23 @@ _EXACT = Context(prec=64, Emax=MAX_EMAX, Emin=MIN_EMIN)
 
 
 def _read_text(p: Path) -> str:
+    """The file's text: UTF-8 (a byte order mark, Excel's "CSV UTF-8", is not a cell), UTF-16 after its byte order
+    mark (Excel's "Unicode Text", tab-separated), else a spreadsheet's 8-bit export (Windows-1252 / Latin-1: its
+    numbers read the same, its header's and comments' accents may not). A file with NUL bytes is not text."""
     try:
-        return p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read landmarks ({exc.__class__.__name__})") from None
+        data = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read landmarks ({exc.strerror or exc.__class__.__name__})") from None
+    utf16 = data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE))
+    try:
+        text = data.decode("utf-16" if utf16 else "utf-8-sig")
+    except UnicodeDecodeError:
+        if utf16:
+            raise InputError(f"{p}: cannot read landmarks (a UTF-16 byte order mark, then no UTF-16 text)") from None
+        text = data.decode("latin-1")
+    if "\x00" in text:
+        raise InputError(f"{p}: not a text file (NUL bytes): landmarks are a CSV, an iBUG .pts or a .npy file")
+    return text
 
 
 def _is_pts(p: Path, text: str) -> bool:
