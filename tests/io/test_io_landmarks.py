@@ -483,3 +483,49 @@ def test_spreadsheets_other_text_encodings_are_read(tmp_path):
     with pytest.raises(InputError, match=r"face\.png: not a text file \(NUL bytes\): landmarks are a CSV") as info:
         read_landmarks(tmp_path / "face.png", 100, 100)
     assert "\n" not in str(info.value)
+
+
+def test_decimal_commas_of_a_european_spreadsheet_are_read(tmp_path):
+    """A spreadsheet of a decimal-comma locale writes ``12,5;40,25`` (semicolons, or tabs in its "Unicode Text"):
+    refused ("got rows of [4] values"; a one-row-per-point file: "not 'index, x, y' numbers"). Where cells are
+    separated by semicolons or tabs and no number has a decimal point, a comma between digits is one; a decimal
+    point anywhere keeps commas as they were (separators: ``1,234.5;56.5`` is 3 cells, refused)."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+
+    def comma(v: float) -> str:
+        return repr(float(v)).replace(".", ",")
+
+    rows = [["", ""] if k in _MISSING else [comma(x), comma(y)] for k, (x, y) in enumerate(pts)]
+    files = {
+        "semicolons.csv": "x;y\n" + "".join(";".join(r) + "\n" for r in rows),
+        "tabs.txt": "x\ty\r\n" + "".join("\t".join(r) + "\r\n" for r in rows),
+        "one_row.csv": ";".join(c for r in rows for c in r) + "\n",
+        "quoted.csv": "".join(";".join(f'"{c}"' for c in r) + "\n" for r in rows),
+        "long.csv": "# frame 0\nibug_index;x;y;meaning\n" + "".join(f"{k};{';'.join(r)};a, b\n" for k, r in enumerate(rows)),
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    (tmp_path / "grouped.csv").write_text("x;y\n" + "".join(f"{x:,.1f};{y:.1f}\n" for x, y in pts * 100))
+    with pytest.raises(InputError, match=r"got rows of \[3\] values"):  # (1,234.5: a thousands separator, no cell)
+        read_landmarks(tmp_path / "grouped.csv", 10000, 10000)
+
+
+def test_tab_separated_empty_cells_at_a_lines_ends_are_cells(tmp_path):
+    """A tab-separated file (a spreadsheet's "Unicode Text") writes a missing point as empty cells, ``\\t``: the line
+    was stripped of its tabs, so a missing point's row vanished ("expected 68 iBUG landmarks, got 61"), one row's
+    leading missing point shifted the cells after it, and a one-row-per-point ``5\\t\\t`` was refused ("not 'index,
+    x, y' numbers"). Tabs at a line's ends now separate cells, as commas do."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    rows = [["", ""] if k in _MISSING else [repr(float(x)), repr(float(y))] for k, (x, y) in enumerate(pts)]
+    files = {
+        "rows.tsv": "x\ty\n" + "".join("\t".join(r) + "\n" for r in rows),
+        "one_row.tsv": "\t".join(c for r in rows for c in r) + "\n",
+        "long.tsv": "index\tx\ty\n" + "".join(f"{k}\t{chr(9).join(r)}\n" for k, r in enumerate(rows)),
+        "column_b.tsv": "".join("\t" + "\t".join(r) + "\n" for r in rows),  # (an empty column: no cell)
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)

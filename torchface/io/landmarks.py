@@ -5,7 +5,8 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
   ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
-  spaces, optionally quoted; UTF-8 with or without a byte order mark, UTF-16 after its byte order mark (a
+  spaces, optionally quoted (a spreadsheet's of a decimal-comma locale, ``12,5;40,25``: where cells are separated by
+  semicolons or tabs and no number has a decimal point, a comma between digits is one); UTF-8 with or without a byte order mark, UTF-16 after its byte order mark (a
   spreadsheet's "Unicode Text"), or 8-bit (Windows-1252, Latin-1: the numbers are ASCII in all of them);
 - OpenFace's per-frame CSV (FeatureExtraction, ``frame, face_id, timestamp, confidence, success, ...``): a header
   with ``x_0 ... x_67`` and ``y_0 ... y_67`` among other columns (OpenFace's 3D ``X_k``, gaze, AUs, ...); the points
@@ -55,14 +56,25 @@ __all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points
 NUM_LANDMARKS: int = 68
 
 
-def _cells(line: str) -> list[str]:
+def _cells(line: str, decimal_comma: bool = False) -> list[str]:
     """A line's cells: separated by commas, semicolons, tabs or spaces; quotes around a cell dropped. An empty cell
-    between separators is kept in its place (``1,,2``: three cells, the second ``""``, a missing value)."""
+    between separators is kept in its place (``1,,2``: three cells, the second ``""``, a missing value).
+    ``decimal_comma`` (:func:`_decimal_comma`): semicolons and tabs alone separate cells, a comma is a decimal point."""
     for sep in (";", "\t"):
-        line = line.replace(sep, ",")
+        line = line.replace(sep, "," if not decimal_comma else "\x00")
+    if decimal_comma:
+        line = line.replace(",", ".").replace("\x00", ",")
     if "," not in line:
         line = ",".join(line.split())
     return [c.strip().strip("\"'").strip() for c in line.split(",")]
+
+
+def _decimal_comma(lines: list[str]) -> bool:
+    """Whether ``lines`` (a CSV's, comments left out) are a spreadsheet's of a locale with a decimal comma: cells
+    separated by semicolons or tabs, a comma between digits (``12,5;40,25``), and no decimal point between digits
+    anywhere (a decimal point says the commas are something else: ``1,234.5``, refused as not a number)."""
+    text = "\n".join(lines)
+    return (";" in text or "\t" in text) and re.search(r"\d,\d", text) is not None and re.search(r"\d\.\d", text) is None
 
 
 def _trimmed(cells: list[str], width: int) -> list[str]:
@@ -248,23 +260,27 @@ def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
     return delimiter, index, names.index("x"), names.index("y")
 
 
-def _split(line: str, delimiter: str | None) -> list[str]:
-    """A line's cells at ``delimiter`` (quotes honoured; None: spaces), stripped, quotes around a cell dropped."""
+def _split(line: str, delimiter: str | None, decimal_comma: bool = False) -> list[str]:
+    """A line's cells at ``delimiter`` (quotes honoured; None: spaces), stripped, quotes around a cell dropped;
+    ``decimal_comma``: a comma in a cell is its decimal point (:func:`_decimal_comma`)."""
     try:
         cells = line.split() if delimiter is None else next(csv.reader([line], delimiter=delimiter))
     except csv.Error:  # (a NUL character on older Pythons): split without quoting
         cells = line.split(delimiter)
-    return [c.strip().strip("\"'").strip() for c in cells]
+    return [c.strip().strip("\"'").strip().replace(",", "." if decimal_comma else ",") for c in cells]
 
 
-def _parse_long(p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int]) -> np.ndarray:
+def _parse_long(
+    p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int], decimal_comma: bool = False
+) -> np.ndarray:
     """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers); a
-    point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing)."""
+    point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing). ``decimal_comma``:
+    see :func:`_decimal_comma`."""
     delimiter, index, x, y = columns
     points = np.full((NUM_LANDMARKS, 2), np.nan)
     seen: dict[int, int] = {}
     for number, line in lines:
-        cells = _split(line, delimiter)
+        cells = _split(line, delimiter, decimal_comma and delimiter in (";", "\t"))
         try:
             k_text, point = cells[index], [_number(cells[x]), _number(cells[y])]  # (empty: missing, NaN)
             k = int(k_text)
@@ -284,14 +300,18 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     header: str | None = None
     long: tuple[str | None, int, int, int] | None = None
     long_lines: list[tuple[int, str]] = []
-    for number, line in enumerate(text.splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
+    lines = text.splitlines()
+    comma = _decimal_comma([line for line in lines if not line.strip().startswith("#")])
+    # tab-separated: a tab at a line's ends separates cells, empty ones (``\t``: a missing point; ``5\t\t``)
+    tabs = any("\t" in line.strip() for line in lines)
+    for number, line in enumerate(lines, start=1):
+        line = line.strip(" \r\n\f\v") if tabs else line.strip()
+        if not line or line.lstrip().startswith("#"):
             continue
         if long is not None:  # one row per point: its other cells may be text (a point's meaning)
             long_lines.append((number, line))
             continue
-        cells = _cells(line)
+        cells = _cells(line, comma)
         try:
             for c in cells:
                 _number(c)
@@ -303,11 +323,11 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
             continue
         data.append(cells)
     if long is not None:
-        return _parse_long(p, long_lines, long)
+        return _parse_long(p, long_lines, long, comma)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
-    names = _trimmed(_cells(header), 0) if header is not None else []
+    names = _trimmed(_cells(header, comma), 0) if header is not None else []
     if len(data) == 1:  # one row of 136 with a column before it left empty (``,x0,y0,...``): that column is no cell
         cells, names = _one_row_values(p, data[0], names)
         data = [cells]
