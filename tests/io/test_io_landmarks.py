@@ -529,3 +529,22 @@ def test_tab_separated_empty_cells_at_a_lines_ends_are_cells(tmp_path):
     for name, text in files.items():
         (tmp_path / name).write_text(text)
         np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+
+
+def test_npy_landmarks_that_are_no_real_points_array_say_so(tmp_path):
+    """An ``.npz`` archive under an ``.npy`` name (``np.savez``) was refused as "landmarks must be numbers, got <U5"
+    (its file names), with the archive left open; complex points were read with their imaginary part dropped (a
+    ``ComplexWarning``). Now each is a one-line InputError; float16, int and ``(1, 68, 2)`` arrays are read."""
+    pts = _dyadic_points()
+    np.savez(tmp_path / "lm.npz", pts)
+    (tmp_path / "lm.npz").rename(tmp_path / "archive.npy")
+    np.save(tmp_path / "complex.npy", pts.astype(np.complex128))
+    with pytest.raises(InputError, match=r"archive\.npy: an \.npz archive of arrays \(arr_0\), not one \.npy array"):
+        read_landmarks(tmp_path / "archive.npy", 100, 100)
+    with pytest.raises(InputError, match=r"complex\.npy: landmarks must be real numbers, got complex128"):
+        read_landmarks(tmp_path / "complex.npy", 100, 100)
+    with pytest.raises(InputError, match=r"detector: landmarks must be real numbers, got bool"):
+        check_landmarks(pts > 50, 100, 100, "detector")
+    for name, array in (("f16.npy", pts.astype(np.float16)[None]), ("int.npy", pts.astype(np.int32))):
+        np.save(tmp_path / name, array)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), array.reshape(68, 2), err_msg=name)

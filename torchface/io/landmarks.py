@@ -404,9 +404,13 @@ def check_landmarks(
     The points returned are a C-contiguous copy of ``points``.
 
     Raises:
-        InputError: wrong count, non-finite values (with ``missing``: infinite ones, a row with one coordinate NaN,
-            or fewer than 4 points given), or (more than ``1 - min_inside`` of the) points outside the frame.
+        InputError: not real numbers (bool, complex, text), wrong count, non-finite values (with ``missing``:
+            infinite ones, a row with one coordinate NaN, or fewer than 4 points given), or (more than
+            ``1 - min_inside`` of the) points outside the frame.
     """
+    dtype = np.asarray(points).dtype
+    if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):  # (complex: its imaginary part
+        raise InputError(f"{where}: landmarks must be real numbers, got {dtype}")  # was dropped with a warning)
     # a copy, C-contiguous (a detector's view with a negative stride: torch refuses it; its reused buffer)
     points = np.array(points, dtype=np.float64, order="C")
     if points.ndim == 3 and points.shape[0] == 1:
@@ -465,12 +469,14 @@ def read_landmarks(
             points = np.load(p, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
+        if not isinstance(points, np.ndarray):  # an .npz archive under an .npy name (np.savez): its arrays
+            points.close()
+            raise InputError(f"{p}: an .npz archive of arrays ({', '.join(points.files)[:60]}), not one .npy array: "
+                             "save the (68, 2) points with np.save")  # fmt: skip
         missing_as = ""  # (an NPY's missing point is a NaN row)
     else:
         text = _read_text(p)
         pts = _is_pts(p, text)
         points = _parse_pts(p, text) if pts else _parse_csv(p, text)
         missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
-    if not np.issubdtype(np.asarray(points).dtype, np.number):
-        raise InputError(f"{p}: landmarks must be numbers, got {np.asarray(points).dtype}")
     return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as)
