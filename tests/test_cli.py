@@ -178,3 +178,20 @@ def test_a_ctrl_c_while_torch_is_imported_is_one_line_and_130(tmp_path):
     help_text = subprocess.run([sys.executable, "-c", code, "track", "--help"], cwd=root, capture_output=True,
                                text=True, timeout=120)  # fmt: skip
     assert help_text.returncode == 0 and "usage: torchface track" in help_text.stdout, help_text.stderr[-2000:]
+
+
+def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, capsys, monkeypatch):
+    """``Path("")`` is ``.``: ``torchface track "$VIDEO" --out "$OUT"`` with a variable unset tracked the current
+    folder's images as a video (its own outputs among them) and wrote its outputs there. An empty video, ``--out``
+    or ``--landmarks`` (also a video after ``--landmarks``) is now a one-line usage error, before anything is read."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a.npy").write_bytes(b"")
+    for argv in (["track", "", "--out", "o"], ["track", "a.npy", "--out", ""], ["render-demo", "--out", ""],
+                 ["track", "a.npy", "--landmarks", "", "--out", "o"],
+                 ["track", "a.npy", "--landmarks", "l.csv", "", "--out", "o"]):  # fmt: skip
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "an empty path (an unset shell variable?)" in err, (argv, err)
+        assert err.endswith("give a file or folder\n") and "Traceback" not in err  # (argparse: usage, one error line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
