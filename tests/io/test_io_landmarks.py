@@ -161,6 +161,9 @@ def test_missing_and_garbled_files(tmp_path):
     (tmp_path / "three.csv").write_text("1,2,3\n4,5,6\n")
     with pytest.raises(InputError, match="rows of 'x, y'"):
         read_landmarks(tmp_path / "three.csv", 100, 100)
+    (tmp_path / "lm.csv").mkdir()  # a folder was "no such landmarks file", though there is one by that name
+    with pytest.raises(InputError, match=r"lm\.csv: a folder, not a landmarks file"):
+        read_landmarks(tmp_path / "lm.csv", 100, 100)
 
 
 def test_check_landmarks_returns_its_own_contiguous_copy():

@@ -463,7 +463,7 @@ def read_landmarks(
     """
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{p}: no such landmarks file")
+        raise InputError(f"{p}: {'a folder, not a landmarks file' if p.is_dir() else 'no such landmarks file'}")
     if p.suffix.lower() == ".npy":
         try:
             points = np.load(p, allow_pickle=False)
