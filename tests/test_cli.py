@@ -195,3 +195,25 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, capsys,
         assert info.value.code == 2 and "an empty path (an unset shell variable?)" in err, (argv, err)
         assert err.endswith("give a file or folder\n") and "Traceback" not in err  # (argparse: usage, one error line)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a Linux file system")
+def test_render_demo_and_video_sink_refuse_a_name_that_is_not_utf8_not_a_crash(tmp_path):
+    """``render-demo --out`` / ``VideoSink`` with a name that is not valid UTF-8 (Latin-1 bytes) crashed the process in
+    OpenCV's writer (a segmentation fault), ``render-demo`` after making the folder. Now a one-line error, nothing
+    made. In child processes, so that a crash fails this test, not the session."""
+    import os
+
+    bad = os.fsdecode(b"bad\xff")
+    runs = {
+        "render-demo": "from torchface.cli import main; "
+        f"sys.exit(main(['render-demo', '--out', {bad!r}, '--frames', '2', '--width', '32', '--height', '32']))",
+        "VideoSink": f"import os, torch; from torchface.synth.io import write_video; os.mkdir({'sink' + bad!r}); "
+        f"write_video(os.path.join({'sink' + bad!r}, 'v.avi'), torch.zeros(2, 3, 16, 16))",
+    }
+    for what, code in runs.items():
+        done = subprocess.run([sys.executable, "-c", "import sys; " + code], cwd=tmp_path, capture_output=True,
+                              text=True, errors="replace", timeout=120)  # fmt: skip
+        err = done.stderr.strip().splitlines()
+        assert done.returncode in (1, 2) and err and "the name is not valid UTF-8" in err[-1], (what, done)
+    assert not (tmp_path / bad).exists() and os.listdir(tmp_path / f"sink{bad}") == []

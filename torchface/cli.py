@@ -384,6 +384,7 @@ def _render_progress(label: str, start: float):
 def _render_demo(args: argparse.Namespace) -> int:
     """Render a synthetic sequence with ground truth (the renderer's former ``demo`` command)."""
     from torchface.io.errors import dangling_link
+    from torchface.io.video import opencv_path
     from torchface.synth.scenarios import SCENARIOS, make_scenario
     from torchface.synth.sequence import write_sequence
 
@@ -399,6 +400,7 @@ def _render_demo(args: argparse.Namespace) -> int:
     for folder in (args.out, *args.out.parents):
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"--out {args.out}: {folder} is a file, not a folder")
+    opencv_path(args.out, ValueError)  # (the video is written by OpenCV: refused before the folder is made)
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)
     start = time.perf_counter()
     files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchface.io.video import open_capture
+from torchface.io.video import open_capture, opencv_path
 
 __all__ = [
     "LOSSLESS_CODECS",
@@ -55,6 +55,10 @@ class VideoSink:
         height: frame height H.
         fps: frames per second stored in the file.
 
+    Raises:
+        ValueError: an odd or too small size, or a name that is not valid UTF-8 (OpenCV cannot write it).
+        RuntimeError: no codec of :data:`LOSSLESS_CODECS` opens the file.
+
     Example:
         >>> # with VideoSink("seq.avi", 640, 480) as sink: sink.write(frames)  # frames (T, 3, H, W)
     """
@@ -67,11 +71,12 @@ class VideoSink:
             # would no longer match the ground truth's intrinsics and landmarks
             raise ValueError(f"video frames must have an even width and height >= 2, got {self.width}x{self.height}")
         self._tmp = self.path.with_name(self.path.name + ".partial" + self.path.suffix)
+        tmp = opencv_path(self._tmp, ValueError)  # (a name that is not UTF-8 crashed OpenCV's writer: a segfault)
         self._writer: cv2.VideoWriter | None = None
         self.codec = ""
         self.frames_written = 0
         for code in LOSSLESS_CODECS:
-            writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter.fourcc(*code), float(fps), (self.width, self.height))
+            writer = cv2.VideoWriter(tmp, cv2.VideoWriter.fourcc(*code), float(fps), (self.width, self.height))
             if writer.isOpened():
                 self._writer, self.codec = writer, code
                 break
