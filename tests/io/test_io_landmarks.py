@@ -505,7 +505,8 @@ def test_decimal_commas_of_a_european_spreadsheet_are_read(tmp_path):
         "tabs.txt": "x\ty\r\n" + "".join("\t".join(r) + "\r\n" for r in rows),
         "one_row.csv": ";".join(c for r in rows for c in r) + "\n",
         "quoted.csv": "".join(";".join(f'"{c}"' for c in r) + "\n" for r in rows),
-        "long.csv": "# frame 0\nibug_index;x;y;meaning\n" + "".join(f"{k};{';'.join(r)};a, b\n" for k, r in enumerate(rows)),
+        "long.csv": "# frame 0\nibug_index;x;y;meaning\n"
+        + "".join(f"{k};{';'.join(r)};a, b\n" for k, r in enumerate(rows)),
     }
     for name, text in files.items():
         (tmp_path / name).write_text(text)
@@ -551,3 +552,24 @@ def test_npy_landmarks_that_are_no_real_points_array_say_so(tmp_path):
     for name, array in (("f16.npy", pts.astype(np.float16)[None]), ("int.npy", pts.astype(np.int32))):
         np.save(tmp_path / name, array)
         np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), array.reshape(68, 2), err_msg=name)
+
+
+def test_pandas_to_csv_with_its_index_is_read(tmp_path):
+    """``pd.DataFrame(points).to_csv(path)`` (pandas' default keeps its index: a header ``,0,1`` or, with named
+    columns, ``,x,y``, then rows ``k,x,y``) was refused ("got rows of [3] values"): its index is the point's, as in a
+    one-row-per-point CSV (a missing point: empty cells, or no row after ``dropna()``)."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+
+    def rows(empty: bool) -> str:
+        gone = set(_MISSING)
+        return "".join(f"{k},," + "\n" if k in gone and empty else "" if k in gone else f"{k},{x!r},{y!r}\n"
+                       for k, (x, y) in enumerate(pts.tolist()))  # fmt: skip
+
+    files = {"numbered.csv": ",0,1\n" + rows(True), "named.csv": ",x,y\n" + rows(False),
+             "semicolons.csv": ";x;y\n" + rows(True).replace(",", ";"), "crlf.csv": ",0,1\r\n" + rows(False)}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    (tmp_path / "no_index.csv").write_text(",x,y\n" + "".join(f",{x!r},{y!r}\n" for x, y in pts.tolist()))
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "no_index.csv", 100, 100), pts)  # (column B, as before)

@@ -5,16 +5,18 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
   ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
-  spaces, optionally quoted (a spreadsheet's of a decimal-comma locale, ``12,5;40,25``: where cells are separated by
-  semicolons or tabs and no number has a decimal point, a comma between digits is one); UTF-8 with or without a byte order mark, UTF-16 after its byte order mark (a
-  spreadsheet's "Unicode Text"), or 8-bit (Windows-1252, Latin-1: the numbers are ASCII in all of them);
+  spaces, optionally quoted (a spreadsheet's of a decimal-comma locale, ``12,5;40,25``: where cells are separated
+  by semicolons or tabs and no number has a decimal point, a comma between digits is one); UTF-8 with or without a
+  byte order mark, UTF-16 after its byte order mark (a spreadsheet's "Unicode Text"), or 8-bit (Windows-1252,
+  Latin-1: the numbers are ASCII in all of them);
 - OpenFace's per-frame CSV (FeatureExtraction, ``frame, face_id, timestamp, confidence, success, ...``): a header
   with ``x_0 ... x_67`` and ``y_0 ... y_67`` among other columns (OpenFace's 3D ``X_k``, gaze, AUs, ...); the points
   are the first row's (its first frame), which must have ``success`` 1 when the file has that column;
 - CSV, one row per point: a header naming an ``ibug_index`` column (0-67, as torchface's arrays index the points;
   also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
   in any order; each point once at most, a point without a row missing (the hand-marked
-  ``torchface/data/photos/astronaut_landmarks.csv`` gives 22);
+  ``torchface/data/photos/astronaut_landmarks.csv`` gives 22); also pandas' ``DataFrame.to_csv`` with its index
+  (a header ``,x,y`` or ``,0,1``, then rows ``k, x, y``): the index is the point's;
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
@@ -72,9 +74,10 @@ def _cells(line: str, decimal_comma: bool = False) -> list[str]:
 def _decimal_comma(lines: list[str]) -> bool:
     """Whether ``lines`` (a CSV's, comments left out) are a spreadsheet's of a locale with a decimal comma: cells
     separated by semicolons or tabs, a comma between digits (``12,5;40,25``), and no decimal point between digits
-    anywhere (a decimal point says the commas are something else: ``1,234.5``, refused as not a number)."""
+    anywhere (a decimal point says the commas are something else, separators: ``1,234.5;40.5`` is 3 cells)."""
     text = "\n".join(lines)
-    return (";" in text or "\t" in text) and re.search(r"\d,\d", text) is not None and re.search(r"\d\.\d", text) is None
+    separated = ";" in text or "\t" in text
+    return separated and re.search(r"\d,\d", text) is not None and re.search(r"\d\.\d", text) is None
 
 
 def _trimmed(cells: list[str], width: int) -> list[str]:
@@ -249,10 +252,15 @@ def _parse_pts(p: Path, text: str) -> np.ndarray:
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
 
 
+def _delimiter(line: str) -> str | None:
+    """The character that separates ``line``'s cells: a comma, semicolon or tab; None: spaces."""
+    return next((d for d in (",", ";", "\t") if d in line), None)
+
+
 def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
     """``(delimiter, index, x, y)`` column positions when ``header`` names a point-index column and ``x``, ``y``
     (a one-row-per-point CSV); None otherwise. ``delimiter`` None: cells separated by spaces."""
-    delimiter = next((d for d in (",", ";", "\t") if d in header), None)
+    delimiter = _delimiter(header)
     names = [n.lower() for n in _split(header, delimiter)]
     index = next((names.index(n) for n in _INDEX_COLUMNS if n in names), None)
     if index is None or "x" not in names or "y" not in names:
@@ -322,8 +330,15 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
             long = _long_columns(header)
             continue
         data.append(cells)
+        long_lines.append((number, line))
     if long is not None:
         return _parse_long(p, long_lines, long, comma)
+    # pandas' DataFrame.to_csv with its index (the point's): a header ``,x,y`` (``,0,1``: numbers), rows ``k,x,y``
+    first = _trimmed(_cells(header, comma), 0) if header is not None else data[0] if data else []
+    if [n.lower() for n in first] in (["", "x", "y"], ["", "0", "1"]):
+        indexed = long_lines if header is not None else long_lines[1:]
+        if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in data[len(data) - len(indexed) :]):
+            return _parse_long(p, indexed, (_delimiter(indexed[0][1]), 0, 1, 2), comma)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
