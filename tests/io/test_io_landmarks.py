@@ -573,3 +573,36 @@ def test_pandas_to_csv_with_its_index_is_read(tmp_path):
         np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
     (tmp_path / "no_index.csv").write_text(",x,y\n" + "".join(f",{x!r},{y!r}\n" for x, y in pts.tolist()))
     np.testing.assert_array_equal(read_landmarks(tmp_path / "no_index.csv", 100, 100), pts)  # (column B, as before)
+
+
+def test_json_landmarks_and_a_torchface_sidecar_are_read(tmp_path):
+    """A ``.json`` of ``[x, y]`` pairs (as the sidecar's ``initial_landmarks_px``, ``[null, null]`` a missing point)
+    was read as CSV text and refused as "expected 68 iBUG landmarks, got 0 (... empty cells or nan)"; a list of
+    pairs, a flat list of 136 numbers and a torchface sidecar (a run started from the landmarks another one did) are
+    read; other JSON is refused in one line."""
+    import json
+
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    pairs = [None if np.isnan(p).any() else p.tolist() for p in want]
+    pairs = [[None, None] if p is None else p for p in pairs]
+    files = {
+        "pairs.json": pairs,
+        "flat.json": [c for p in pairs for c in p],
+        "sidecar.json": {"torchface_output": "track", "initial_landmarks_px": pairs, "frames": 3},
+    }
+    for name, value in files.items():
+        (tmp_path / name).write_text(json.dumps(value))
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    bad = {
+        "broken.json": ("[[1, 2],", r"broken\.json: not valid JSON \(Expecting value, line 1\)"),
+        "other.json": ('{"points": []}', r"other\.json: a JSON object without initial_landmarks_px"),
+        "text.json": (json.dumps([["1", "2"]] * 68), r"text\.json: expected a JSON list of 68 \[x, y\] pairs"),
+        "triples.json": (json.dumps([[1, 2, 3]] * 68), r"triples\.json: expected a JSON list of 68 \[x, y\] pairs"),
+        "short.json": (json.dumps(pairs[:60]), r"got 60 \(a missing point stays, as a NaN row: \[null, null\]\)"),
+    }
+    for name, (text, message) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=message) as info:
+            read_landmarks(tmp_path / name, 100, 100)
+        assert "\n" not in str(info.value)

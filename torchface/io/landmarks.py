@@ -22,7 +22,9 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
   tools read them), so 1 is subtracted: a ``.pts`` point ``(1, 1)`` is torchface's ``(0, 0)``, the same pixel
   centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
-- NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
+- NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``;
+- JSON (``.json``): a list of 68 ``[x, y]`` pairs (or of 136 numbers), or an object holding them as
+  ``initial_landmarks_px``: a torchface sidecar, so a run can start from the landmarks another one started from.
 
 Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
 weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
@@ -32,7 +34,7 @@ an empty column before one row's 136 values: ``,x0,y0,...``, 137 cells, where it
 whose empty cells pair up as missing points, refused where two cuts do; but the cells of ``x, y`` rows 2 wide and of
 one row 136 wide are all values, an empty one a missing coordinate: ``,y0,x1,...`` has point 0's ``x`` missing) or of
 ``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a ``.pts`` line
-``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
+``nan nan``, NaN in an NPY, ``[null, null]`` in a JSON. At least 4 points must be given (the landmark fit's
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
 one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
 another count (a ``.pts`` of 60 points: which are missing is not known).
@@ -42,6 +44,7 @@ from __future__ import annotations
 
 import codecs
 import csv
+import json
 import math
 import os
 import re
@@ -194,6 +197,39 @@ def _read_text(p: Path) -> str:
     if "\x00" in text:
         raise InputError(f"{p}: not a text file (NUL bytes): landmarks are a CSV, an iBUG .pts or a .npy file")
     return text
+
+
+def _parse_json(p: Path, text: str) -> np.ndarray:
+    """A JSON file's points: a list of ``[x, y]`` pairs (``null``: missing) or of numbers, or an object holding such
+    a list as ``initial_landmarks_px`` (a torchface sidecar's first-frame landmarks)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{p}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    if isinstance(value, dict):
+        if value.get("initial_landmarks_px") is None:
+            raise InputError(f"{p}: a JSON object without initial_landmarks_px (a torchface sidecar's): expected a "
+                             f"list of {NUM_LANDMARKS} [x, y] pairs, or a sidecar")  # fmt: skip
+        value = value["initial_landmarks_px"]
+
+    def number(c: object) -> float:
+        if c is None:
+            return math.nan
+        if isinstance(c, bool) or not isinstance(c, (int, float)):
+            raise ValueError
+        return float(c)
+
+    try:
+        if not isinstance(value, list):
+            raise ValueError
+        if all(not isinstance(v, list) for v in value):  # 136 numbers x0, y0, x1, ...
+            return np.asarray([number(v) for v in value], dtype=np.float64)
+        if not all(isinstance(v, list) and len(v) == 2 for v in value):
+            raise ValueError
+        return np.asarray([[number(c) for c in v] for v in value], dtype=np.float64).reshape(-1, 2)
+    except ValueError:
+        raise InputError(f"{p}: expected a JSON list of {NUM_LANDMARKS} [x, y] pairs of numbers (null: missing), "
+                         f"got {json.dumps(value)[:60]}") from None  # fmt: skip
 
 
 def _is_pts(p: Path, text: str) -> bool:
@@ -460,7 +496,7 @@ def read_landmarks(
     """Read and check 68 first-frame landmarks for a ``width x height`` video.
 
     Args:
-        path: a ``.csv`` (or any text), iBUG ``.pts`` or ``.npy`` file, see the module docstring.
+        path: a ``.csv`` (or any text), iBUG ``.pts``, ``.npy`` or ``.json`` file, see the module docstring.
         width: frame width W.
         height: frame height H.
         missing: whether the file may leave points out (NaN rows, see the module docstring; at least 4 given, the
@@ -492,6 +528,9 @@ def read_landmarks(
     else:
         text = _read_text(p)
         pts = _is_pts(p, text)
-        points = _parse_pts(p, text) if pts else _parse_csv(p, text)
-        missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
+        if p.suffix.lower() == ".json":
+            points, missing_as = _parse_json(p, text), "[null, null]"
+        else:
+            points = _parse_pts(p, text) if pts else _parse_csv(p, text)
+            missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
     return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as)
