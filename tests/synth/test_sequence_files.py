@@ -98,6 +98,17 @@ def test_video_sink_is_atomic(tmp_path):
     assert not (tmp_path / "b.avi").exists() and not list(tmp_path.glob("*.partial*"))
 
 
+def test_video_sink_names_a_missing_folder_or_a_folder_given_as_the_file(tmp_path):
+    """A missing folder, or a folder as the file name, was "no OpenCV video codec among (...) could open ..." (and
+    OpenCV's assertion text on stderr for a name without a suffix): each is named, nothing written."""
+    VideoSink(tmp_path / "a.avi", 16, 8).close()
+    with pytest.raises(FileNotFoundError, match=r"no folder .*nodir to write the video in"):
+        VideoSink(tmp_path / "nodir" / "c.avi", 16, 8)
+    with pytest.raises(IsADirectoryError, match=r"a folder, not a video file name"):
+        write_video(tmp_path, torch.zeros(1, 3, 8, 16))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.avi"]
+
+
 def test_write_sequence_matches_in_memory_render(tmp_path):
     spec, frames, gt = _light_switch_small()
     seen = []

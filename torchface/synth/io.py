@@ -56,6 +56,8 @@ class VideoSink:
         fps: frames per second stored in the file.
 
     Raises:
+        FileNotFoundError: ``path``'s folder does not exist.
+        IsADirectoryError: ``path`` is a folder.
         ValueError: an odd or too small size, or a name that is not valid UTF-8 (OpenCV cannot write it).
         RuntimeError: no codec of :data:`LOSSLESS_CODECS` opens the file.
 
@@ -70,6 +72,10 @@ class VideoSink:
             # FFV1 and the other 4:2:0 codecs write odd sizes cropped to even ones without a word, so the file
             # would no longer match the ground truth's intrinsics and landmarks
             raise ValueError(f"video frames must have an even width and height >= 2, got {self.width}x{self.height}")
+        if not self.path.parent.is_dir():  # (OpenCV's writer fails without a word: "no codec could open" misled)
+            raise FileNotFoundError(f"{self.path}: no folder {self.path.parent} to write the video in")
+        if self.path.is_dir():
+            raise IsADirectoryError(f"{self.path}: a folder, not a video file name (e.g. {self.path / 'clip.avi'})")
         self._tmp = self.path.with_name(self.path.name + ".partial" + self.path.suffix)
         tmp = opencv_path(self._tmp, ValueError)  # (a name that is not UTF-8 crashed OpenCV's writer: a segfault)
         self._writer: cv2.VideoWriter | None = None
