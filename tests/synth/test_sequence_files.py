@@ -183,3 +183,23 @@ def test_video_readers_turn_a_phone_video_as_the_trackers_input_reader_does(tmp_
     for read in (read_video_uint8, lambda p: list(iter_video_uint8(p))):
         with pytest.raises(ValueError, match=r"notes\.avi: OpenCV cannot open this file as a video"):
             read(tmp_path / "notes.avi")
+
+
+def test_video_sink_that_cannot_write_its_file_says_why(tmp_path):
+    """Where the file cannot be written (a read-only folder; its temporary name taken by a folder) OpenCV's writer
+    fails without a word: "no OpenCV video codec among (...) could open ...", a RuntimeError that ``render-demo``
+    printed as a traceback. Now the OSError of the file system, naming the file (``render-demo``: one line)."""
+    (tmp_path / "b.avi.partial.avi").mkdir()
+    with pytest.raises(IsADirectoryError) as info:
+        VideoSink(tmp_path / "b.avi", 16, 8)
+    assert info.value.filename == str(tmp_path / "b.avi.partial.avi")
+    if os.geteuid() != 0:  # (root writes in a read-only folder)
+        folder = tmp_path / "read_only"
+        folder.mkdir()
+        folder.chmod(0o500)
+        try:
+            with pytest.raises(PermissionError):
+                VideoSink(folder / "c.avi", 16, 8)
+            assert list(folder.iterdir()) == []
+        finally:
+            folder.chmod(0o700)

@@ -57,6 +57,7 @@ class VideoSink:
 
     Raises:
         FileNotFoundError: ``path``'s folder does not exist.
+        OSError: the file cannot be written there (a read-only folder, a full disk), naming it.
         IsADirectoryError: ``path`` is a folder.
         ValueError: an odd or too small size, or a name that is not valid UTF-8 (OpenCV cannot write it).
         RuntimeError: no codec of :data:`LOSSLESS_CODECS` opens the file.
@@ -81,6 +82,8 @@ class VideoSink:
         self._writer: cv2.VideoWriter | None = None
         self.codec = ""
         self.frames_written = 0
+        with open(self._tmp, "wb"):  # OSError naming the file where it cannot be written (a read-only folder): the
+            pass  # writer fails without a word, and "no OpenCV video codec ... could open" misled
         for code in LOSSLESS_CODECS:
             writer = cv2.VideoWriter(tmp, cv2.VideoWriter.fourcc(*code), float(fps), (self.width, self.height))
             if writer.isOpened():
@@ -88,6 +91,7 @@ class VideoSink:
                 break
             writer.release()
         if self._writer is None:
+            self._tmp.unlink(missing_ok=True)
             raise RuntimeError(f"no OpenCV video codec among {LOSSLESS_CODECS} could open {self._tmp}")
 
     def write(self, frames: Tensor) -> None:
