@@ -178,3 +178,42 @@ def test_a_ctrl_c_while_torch_is_imported_is_one_line_and_130(tmp_path):
     help_text = subprocess.run([sys.executable, "-c", code, "track", "--help"], cwd=root, capture_output=True,
                                text=True, timeout=120)  # fmt: skip
     assert help_text.returncode == 0 and "usage: torchface track" in help_text.stdout, help_text.stderr[-2000:]
+
+
+def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, capsys, monkeypatch):
+    """``Path("")`` is ``.``: ``torchface track "$VIDEO" --out "$OUT"`` with a variable unset tracked the current
+    folder's images as a video (its own outputs among them) and wrote its outputs there. An empty video, ``--out``
+    or ``--landmarks`` (also a video after ``--landmarks``) is now a one-line usage error, before anything is read."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a.npy").write_bytes(b"")
+    for argv in (["track", "", "--out", "o"], ["track", "a.npy", "--out", ""], ["render-demo", "--out", ""],
+                 ["track", "a.npy", "--landmarks", "", "--out", "o"],
+                 ["track", "a.npy", "--landmarks", "l.csv", "", "--out", "o"]):  # fmt: skip
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "an empty path (an unset shell variable?)" in err, (argv, err)
+        assert err.endswith("give a file or folder\n") and "Traceback" not in err  # (argparse: usage, one error line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a Linux file system")
+def test_render_demo_and_video_sink_refuse_a_name_that_is_not_utf8_not_a_crash(tmp_path):
+    """``render-demo --out`` / ``VideoSink`` with a name that is not valid UTF-8 (Latin-1 bytes) crashed the process in
+    OpenCV's writer (a segmentation fault), ``render-demo`` after making the folder. Now a one-line error, nothing
+    made. In child processes, so that a crash fails this test, not the session."""
+    import os
+
+    bad = os.fsdecode(b"bad\xff")
+    runs = {
+        "render-demo": "from torchface.cli import main; "
+        f"sys.exit(main(['render-demo', '--out', {bad!r}, '--frames', '2', '--width', '32', '--height', '32']))",
+        "VideoSink": f"import os, torch; from torchface.synth.io import write_video; os.mkdir({'sink' + bad!r}); "
+        f"write_video(os.path.join({'sink' + bad!r}, 'v.avi'), torch.zeros(2, 3, 16, 16))",
+    }
+    for what, code in runs.items():
+        done = subprocess.run([sys.executable, "-c", "import sys; " + code], cwd=tmp_path, capture_output=True,
+                              text=True, errors="replace", timeout=120)  # fmt: skip
+        err = done.stderr.strip().splitlines()
+        assert done.returncode in (1, 2) and err and "the name is not valid UTF-8" in err[-1], (what, done)
+    assert not (tmp_path / bad).exists() and os.listdir(tmp_path / f"sink{bad}") == []

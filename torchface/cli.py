@@ -197,14 +197,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     track = sub.add_parser("track", help="track the face in one or more videos")
     track.add_argument(
-        "videos", nargs="+", type=Path,
+        "videos", nargs="+", type=_path,
         help="video files, image folders or .npy frame arrays (each may be followed by its --landmarks: a.mp4 "
         "--landmarks a.csv b.mp4 --landmarks b.csv)",
     )  # fmt: skip
-    track.add_argument("--out", type=Path, required=True, help="output folder")
+    track.add_argument("--out", type=_path, required=True, help="output folder")
     track.add_argument(
-        "--landmarks", type=Path, action="append", default=None,
-        help="68 iBUG landmarks of the first frame (CSV, iBUG/300-W .pts, NPY, or OpenFace's per-frame CSV: its "
+        "--landmarks", type=_path, action="append", default=None,
+        help="68 iBUG landmarks of the first frame (CSV, iBUG/300-W .pts, NPY, JSON (also a torchface .json "
+        "sidecar: the landmarks that run started from), or OpenFace's per-frame CSV: its "
         "first row; a missing point as empty cells or NaN, at least 4 given); give it once per video, in order",
     )  # fmt: skip
     track.add_argument("--detector", default=None, help="detector for initialisation and re-initialisation (dlib)")
@@ -253,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="track the embedded sample clip and write everything to ./torchface-demo/")
     demo.add_argument(
-        "--out", type=Path, default=Path("torchface-demo"), help="output folder (default ./torchface-demo)"
+        "--out", type=_path, default=Path("torchface-demo"), help="output folder (default ./torchface-demo)"
     )
     demo.add_argument("--device", default="cpu", help="torch device (default cpu)")
     demo.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
@@ -262,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     render = sub.add_parser("render-demo", help="render a short synthetic sequence with ground truth")
     render.add_argument(
-        "--out", type=Path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)"
+        "--out", type=_path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)"
     )
     render.add_argument("--scenario", default="pose_sweep", help="scenario name (default pose_sweep)")
     render.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
@@ -384,6 +385,7 @@ def _render_progress(label: str, start: float):
 def _render_demo(args: argparse.Namespace) -> int:
     """Render a synthetic sequence with ground truth (the renderer's former ``demo`` command)."""
     from torchface.io.errors import dangling_link
+    from torchface.io.video import opencv_path
     from torchface.synth.scenarios import SCENARIOS, make_scenario
     from torchface.synth.sequence import write_sequence
 
@@ -399,6 +401,7 @@ def _render_demo(args: argparse.Namespace) -> int:
     for folder in (args.out, *args.out.parents):
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"--out {args.out}: {folder} is a file, not a folder")
+    opencv_path(args.out, ValueError)  # (the video is written by OpenCV: refused before the folder is made)
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)
     start = time.perf_counter()
     files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))
@@ -410,6 +413,15 @@ def _render_demo(args: argparse.Namespace) -> int:
     print(f"  metadata      {files.metadata}")
     print("load it with torchface.synth.load_ground_truth and torchface.synth.read_video")
     return 0
+
+
+def _path(text: str) -> Path:
+    """An argparse ``type``: a path, refused (a one-line usage error) where it is empty: ``Path("")`` is ``.``, so
+    ``torchface track "$VIDEO" --out "$OUT"`` with the variables unset tracked the current folder's images and wrote
+    its outputs there."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): give a file or folder")
+    return Path(text)
 
 
 def _int_at_least(minimum: int) -> Callable[[str], int]:
@@ -454,7 +466,10 @@ def main(argv: list[str] | None = None) -> int:
         # b.csv``, as a script pairs them) was refused as "unrecognized arguments: b.mp4"; after ``--`` any name
         cut = extra.index("--") if "--" in extra else len(extra)
         if not any(x.startswith("-") for x in extra[:cut]):
-            args.videos += [Path(x) for x in extra[:cut] + extra[cut + 1 :]]
+            try:
+                args.videos += [_path(x) for x in extra[:cut] + extra[cut + 1 :]]
+            except argparse.ArgumentTypeError as exc:
+                parser.error(f"argument videos: {exc}")
             extra = []
     if extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")

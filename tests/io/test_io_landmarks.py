@@ -161,6 +161,9 @@ def test_missing_and_garbled_files(tmp_path):
     (tmp_path / "three.csv").write_text("1,2,3\n4,5,6\n")
     with pytest.raises(InputError, match="rows of 'x, y'"):
         read_landmarks(tmp_path / "three.csv", 100, 100)
+    (tmp_path / "lm.csv").mkdir()  # a folder was "no such landmarks file", though there is one by that name
+    with pytest.raises(InputError, match=r"lm\.csv: a folder, not a landmarks file"):
+        read_landmarks(tmp_path / "lm.csv", 100, 100)
 
 
 def test_check_landmarks_returns_its_own_contiguous_copy():
@@ -434,3 +437,172 @@ def test_a_column_empty_on_every_row_of_x_y_rows_is_no_cell(tmp_path):
     with pytest.raises(InputError, match=r"got rows of \[3\] values") as info:
         read_landmarks(tmp_path / "some.csv", 100, 100)
     assert "\n" not in str(info.value)
+
+
+def test_one_row_with_an_empty_column_before_its_136_values_is_read(tmp_path):
+    """One row ``,x0,y0,...,x67,y67`` (a spreadsheet's export with an index column left empty) was read before the
+    missing points (every empty cell dropped), then refused ("an array of shape (137,)"): an empty column before one
+    row's 136 values is no cell, as a column empty on every row of ``x, y`` rows; the 136 values keep their missing
+    points. A row of 136 cells is all values: its empty first cell is point 0's ``x`` missing, refused as before."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    values = [repr(float(v)) for v in pts.reshape(-1)]
+    gaps = ["" if k // 2 in set(_MISSING) else v for k, v in enumerate(values)]
+    named = [f"x_{k}" for k in range(68)] + [f"y_{k}" for k in range(68)]
+    files = {
+        "index_empty.csv": ("," + ",".join(values) + "\n", pts),
+        "index_empty_trailing.csv": ("," + ",".join(values) + ",\r\n", pts),
+        "column_c.csv": (";;" + ";".join(values) + "\n", pts),
+        "index_empty_gaps.csv": ("," + ",".join(gaps) + "\n", want),
+        "index_empty_header.csv": ("," + ",".join(f"{c}{k}" for k in range(68) for c in "xy") + "\n,"
+                                   + ",".join(values) + "\n", pts),  # fmt: skip
+        "index_empty_named.csv": ("," + ",".join(named) + "\n," + ",".join(values[0::2] + values[1::2]) + "\n", pts),
+    }
+    for name, (text, expected) in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), expected, err_msg=name)
+    (tmp_path / "x0_missing.csv").write_text("," + ",".join(values[1:]) + "\n")  # 136 cells: x0 missing
+    with pytest.raises(InputError, match=r"landmark\(s\) \[0\] have one coordinate NaN"):
+        read_landmarks(tmp_path / "x0_missing.csv", 100, 100)
+    (tmp_path / "both_ends.csv").write_text(",," + ",".join(values[:-2]) + ",,\n")  # point 0 or point 67 missing?
+    with pytest.raises(InputError, match=r"one row of 138 cells, empty at both ends: which 136 are the x, y values"):
+        read_landmarks(tmp_path / "both_ends.csv", 100, 100)
+    (tmp_path / "id.csv").write_text("id," + ",".join(named) + "\n," + ",".join(values[0::2] + values[1::2]) + "\n")
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "id.csv", 100, 100), pts)  # a named column: OpenFace's way
+
+
+def test_spreadsheets_other_text_encodings_are_read(tmp_path):
+    """Excel's "Unicode Text" (UTF-16 after a byte order mark, tab-separated) and an 8-bit export (Windows-1252: a
+    header or comment with an accent) were refused: "cannot read landmarks (UnicodeDecodeError)"; their numbers are
+    read as from UTF-8. A binary file (a PNG given as landmarks) is refused in one line as no text."""
+    pts = _points()
+    rows = "".join(f"{x}\t{y}\r\n" for x, y in pts)
+    (tmp_path / "unicode_text.txt").write_bytes(("\ufeffx\ty\r\n" + rows).encode("utf-16-le"))
+    (tmp_path / "unicode_text_be.txt").write_bytes(("\ufeffx\ty\r\n" + rows).encode("utf-16-be"))
+    (tmp_path / "cp1252.csv").write_bytes(("# visage, côté gauche – frame 0\nx;y\n" + rows).encode("cp1252"))
+    for name in ("unicode_text.txt", "unicode_text_be.txt", "cp1252.csv"):
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+    (tmp_path / "face.png").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00\x00\x00\x10")
+    with pytest.raises(InputError, match=r"face\.png: not a text file \(NUL bytes\): landmarks are a CSV") as info:
+        read_landmarks(tmp_path / "face.png", 100, 100)
+    assert "\n" not in str(info.value)
+
+
+def test_decimal_commas_of_a_european_spreadsheet_are_read(tmp_path):
+    """A spreadsheet of a decimal-comma locale writes ``12,5;40,25`` (semicolons, or tabs in its "Unicode Text"):
+    refused ("got rows of [4] values"; a one-row-per-point file: "not 'index, x, y' numbers"). Where cells are
+    separated by semicolons or tabs and no number has a decimal point, a comma between digits is one; a decimal
+    point anywhere keeps commas as they were (separators: ``1,234.5;56.5`` is 3 cells, refused)."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+
+    def comma(v: float) -> str:
+        return repr(float(v)).replace(".", ",")
+
+    rows = [["", ""] if k in _MISSING else [comma(x), comma(y)] for k, (x, y) in enumerate(pts)]
+    files = {
+        "semicolons.csv": "x;y\n" + "".join(";".join(r) + "\n" for r in rows),
+        "tabs.txt": "x\ty\r\n" + "".join("\t".join(r) + "\r\n" for r in rows),
+        "one_row.csv": ";".join(c for r in rows for c in r) + "\n",
+        "quoted.csv": "".join(";".join(f'"{c}"' for c in r) + "\n" for r in rows),
+        "long.csv": "# frame 0\nibug_index;x;y;meaning\n"
+        + "".join(f"{k};{';'.join(r)};a, b\n" for k, r in enumerate(rows)),
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    (tmp_path / "grouped.csv").write_text("x;y\n" + "".join(f"{x:,.1f};{y:.1f}\n" for x, y in pts * 100))
+    with pytest.raises(InputError, match=r"got rows of \[3\] values"):  # (1,234.5: a thousands separator, no cell)
+        read_landmarks(tmp_path / "grouped.csv", 10000, 10000)
+
+
+def test_tab_separated_empty_cells_at_a_lines_ends_are_cells(tmp_path):
+    """A tab-separated file (a spreadsheet's "Unicode Text") writes a missing point as empty cells, ``\\t``: the line
+    was stripped of its tabs, so a missing point's row vanished ("expected 68 iBUG landmarks, got 61"), one row's
+    leading missing point shifted the cells after it, and a one-row-per-point ``5\\t\\t`` was refused ("not 'index,
+    x, y' numbers"). Tabs at a line's ends now separate cells, as commas do."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    rows = [["", ""] if k in _MISSING else [repr(float(x)), repr(float(y))] for k, (x, y) in enumerate(pts)]
+    files = {
+        "rows.tsv": "x\ty\n" + "".join("\t".join(r) + "\n" for r in rows),
+        "one_row.tsv": "\t".join(c for r in rows for c in r) + "\n",
+        "long.tsv": "index\tx\ty\n" + "".join(f"{k}\t{chr(9).join(r)}\n" for k, r in enumerate(rows)),
+        "column_b.tsv": "".join("\t" + "\t".join(r) + "\n" for r in rows),  # (an empty column: no cell)
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+
+
+def test_npy_landmarks_that_are_no_real_points_array_say_so(tmp_path):
+    """An ``.npz`` archive under an ``.npy`` name (``np.savez``) was refused as "landmarks must be numbers, got <U5"
+    (its file names), with the archive left open; complex points were read with their imaginary part dropped (a
+    ``ComplexWarning``). Now each is a one-line InputError; float16, int and ``(1, 68, 2)`` arrays are read."""
+    pts = _dyadic_points()
+    np.savez(tmp_path / "lm.npz", pts)
+    (tmp_path / "lm.npz").rename(tmp_path / "archive.npy")
+    np.save(tmp_path / "complex.npy", pts.astype(np.complex128))
+    with pytest.raises(InputError, match=r"archive\.npy: an \.npz archive of arrays \(arr_0\), not one \.npy array"):
+        read_landmarks(tmp_path / "archive.npy", 100, 100)
+    with pytest.raises(InputError, match=r"complex\.npy: landmarks must be real numbers, got complex128"):
+        read_landmarks(tmp_path / "complex.npy", 100, 100)
+    with pytest.raises(InputError, match=r"detector: landmarks must be real numbers, got bool"):
+        check_landmarks(pts > 50, 100, 100, "detector")
+    for name, array in (("f16.npy", pts.astype(np.float16)[None]), ("int.npy", pts.astype(np.int32))):
+        np.save(tmp_path / name, array)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), array.reshape(68, 2), err_msg=name)
+
+
+def test_pandas_to_csv_with_its_index_is_read(tmp_path):
+    """``pd.DataFrame(points).to_csv(path)`` (pandas' default keeps its index: a header ``,0,1`` or, with named
+    columns, ``,x,y``, then rows ``k,x,y``) was refused ("got rows of [3] values"): its index is the point's, as in a
+    one-row-per-point CSV (a missing point: empty cells, or no row after ``dropna()``)."""
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+
+    def rows(empty: bool) -> str:
+        gone = set(_MISSING)
+        return "".join(f"{k},," + "\n" if k in gone and empty else "" if k in gone else f"{k},{x!r},{y!r}\n"
+                       for k, (x, y) in enumerate(pts.tolist()))  # fmt: skip
+
+    files = {"numbered.csv": ",0,1\n" + rows(True), "named.csv": ",x,y\n" + rows(False),
+             "semicolons.csv": ";x;y\n" + rows(True).replace(",", ";"), "crlf.csv": ",0,1\r\n" + rows(False)}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    (tmp_path / "no_index.csv").write_text(",x,y\n" + "".join(f",{x!r},{y!r}\n" for x, y in pts.tolist()))
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "no_index.csv", 100, 100), pts)  # (column B, as before)
+
+
+def test_json_landmarks_and_a_torchface_sidecar_are_read(tmp_path):
+    """A ``.json`` of ``[x, y]`` pairs (as the sidecar's ``initial_landmarks_px``, ``[null, null]`` a missing point)
+    was read as CSV text and refused as "expected 68 iBUG landmarks, got 0 (... empty cells or nan)"; a list of
+    pairs, a flat list of 136 numbers and a torchface sidecar (a run started from the landmarks another one did) are
+    read; other JSON is refused in one line."""
+    import json
+
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    pairs = [None if np.isnan(p).any() else p.tolist() for p in want]
+    pairs = [[None, None] if p is None else p for p in pairs]
+    files = {
+        "pairs.json": pairs,
+        "flat.json": [c for p in pairs for c in p],
+        "sidecar.json": {"torchface_output": "track", "initial_landmarks_px": pairs, "frames": 3},
+    }
+    for name, value in files.items():
+        (tmp_path / name).write_text(json.dumps(value))
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    bad = {
+        "broken.json": ("[[1, 2],", r"broken\.json: not valid JSON \(Expecting value, line 1\)"),
+        "other.json": ('{"points": []}', r"other\.json: a JSON object without initial_landmarks_px"),
+        "text.json": (json.dumps([["1", "2"]] * 68), r"text\.json: expected a JSON list of 68 \[x, y\] pairs"),
+        "triples.json": (json.dumps([[1, 2, 3]] * 68), r"triples\.json: expected a JSON list of 68 \[x, y\] pairs"),
+        "short.json": (json.dumps(pairs[:60]), r"got 60 \(a missing point stays, as a NaN row: \[null, null\]\)"),
+    }
+    for name, (text, message) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=message) as info:
+            read_landmarks(tmp_path / name, 100, 100)
+        assert "\n" not in str(info.value)

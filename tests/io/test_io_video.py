@@ -241,6 +241,9 @@ def test_frame_size_change_mid_video(tmp_path):
          r"array\.transpose\(0, 2, 3, 1\)"),
         (lambda p: (p / "d").mkdir() or p / "d", "no images"),
         (lambda p: (p / "e.npy").write_bytes(b"") == 0 and p / "e.npy", "not a readable .npy"),  # was EOFError
+        # an .npz under an .npy name (np.savez): it was a traceback, AttributeError 'NpzFile' object has no 'ndim'
+        (lambda p: np.savez(p / "a.npz", frames=np.zeros((2, 40, 40, 3))) or (p / "a.npz").rename(p / "a.npy"),
+         r"a\.npy: an \.npz archive of arrays \(frames\), not one \.npy array: save the frames with np\.save"),
     ],
 )
 def test_bad_inputs(tmp_path, make, message):

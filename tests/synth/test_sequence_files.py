@@ -98,6 +98,17 @@ def test_video_sink_is_atomic(tmp_path):
     assert not (tmp_path / "b.avi").exists() and not list(tmp_path.glob("*.partial*"))
 
 
+def test_video_sink_names_a_missing_folder_or_a_folder_given_as_the_file(tmp_path):
+    """A missing folder, or a folder as the file name, was "no OpenCV video codec among (...) could open ..." (and
+    OpenCV's assertion text on stderr for a name without a suffix): each is named, nothing written."""
+    VideoSink(tmp_path / "a.avi", 16, 8).close()
+    with pytest.raises(FileNotFoundError, match=r"no folder .*nodir to write the video in"):
+        VideoSink(tmp_path / "nodir" / "c.avi", 16, 8)
+    with pytest.raises(IsADirectoryError, match=r"a folder, not a video file name"):
+        write_video(tmp_path, torch.zeros(1, 3, 8, 16))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.avi"]
+
+
 def test_write_sequence_matches_in_memory_render(tmp_path):
     spec, frames, gt = _light_switch_small()
     seen = []
@@ -141,3 +152,54 @@ def test_landmark_visibility_known_answers():
     # Batched == per sample.
     both = landmark_visibility(torch.cat([verts, verts.flip(1)]), faces, pts.expand(2, -1, -1), pf, cam)
     assert both[0].tolist() == vis[0].tolist()
+
+
+@pytest.mark.parametrize("opencv_default", ["installed", "4.11"])
+def test_video_readers_turn_a_phone_video_as_the_trackers_input_reader_does(tmp_path, monkeypatch, opencv_default):
+    """``read_video_uint8`` / ``iter_video_uint8`` opened a video with a plain ``cv2.VideoCapture``: under OpenCV
+    4.11's default (display rotation not applied) a phone's portrait video came out landscape, 64x48, where the
+    tracker's reader (``torchface.io.open_frames``) gives 48x64 as displayed. They open it the same way now; a file
+    that is no video is a ValueError (``iter_video_uint8`` yielded no frame without a word)."""
+    import sys
+    from pathlib import Path
+
+    import cv2
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from _helpers import opencv_411_capture, write_rotated_mp4
+
+    from torchface.io import open_frames
+
+    stored = np.kron(np.random.default_rng(0).integers(0, 256, (2, 6, 8, 3)), np.ones((1, 8, 8, 1))).astype(np.uint8)
+    write_rotated_mp4(tmp_path / "phone.mp4", stored, 90)
+    with open_frames(tmp_path / "phone.mp4") as reader:
+        want = torch.stack([(frame * 255).round().to(torch.uint8) for frame in reader])  # (2, 3, 64, 48)
+    if opencv_default == "4.11":
+        monkeypatch.setattr(cv2, "VideoCapture", opencv_411_capture)
+    assert want.shape == (2, 3, 64, 48)
+    torch.testing.assert_close(read_video_uint8(tmp_path / "phone.mp4"), want, rtol=0, atol=0)
+    torch.testing.assert_close(torch.cat(list(iter_video_uint8(tmp_path / "phone.mp4"))), want, rtol=0, atol=0)
+    (tmp_path / "notes.avi").write_text("not a video\n")
+    for read in (read_video_uint8, lambda p: list(iter_video_uint8(p))):
+        with pytest.raises(ValueError, match=r"notes\.avi: OpenCV cannot open this file as a video"):
+            read(tmp_path / "notes.avi")
+
+
+def test_video_sink_that_cannot_write_its_file_says_why(tmp_path):
+    """Where the file cannot be written (a read-only folder; its temporary name taken by a folder) OpenCV's writer
+    fails without a word: "no OpenCV video codec among (...) could open ...", a RuntimeError that ``render-demo``
+    printed as a traceback. Now the OSError of the file system, naming the file (``render-demo``: one line)."""
+    (tmp_path / "b.avi.partial.avi").mkdir()
+    with pytest.raises(IsADirectoryError) as info:
+        VideoSink(tmp_path / "b.avi", 16, 8)
+    assert info.value.filename == str(tmp_path / "b.avi.partial.avi")
+    if os.geteuid() != 0:  # (root writes in a read-only folder)
+        folder = tmp_path / "read_only"
+        folder.mkdir()
+        folder.chmod(0o500)
+        try:
+            with pytest.raises(PermissionError):
+                VideoSink(folder / "c.avi", 16, 8)
+            assert list(folder.iterdir()) == []
+        finally:
+            folder.chmod(0o700)

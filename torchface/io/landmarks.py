@@ -5,27 +5,36 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
   ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
-  spaces, optionally quoted; UTF-8 with or without a byte order mark;
+  spaces, optionally quoted (a spreadsheet's of a decimal-comma locale, ``12,5;40,25``: where cells are separated
+  by semicolons or tabs and no number has a decimal point, a comma between digits is one); UTF-8 with or without a
+  byte order mark, UTF-16 after its byte order mark (a spreadsheet's "Unicode Text"), or 8-bit (Windows-1252,
+  Latin-1: the numbers are ASCII in all of them);
 - OpenFace's per-frame CSV (FeatureExtraction, ``frame, face_id, timestamp, confidence, success, ...``): a header
   with ``x_0 ... x_67`` and ``y_0 ... y_67`` among other columns (OpenFace's 3D ``X_k``, gaze, AUs, ...); the points
   are the first row's (its first frame), which must have ``success`` 1 when the file has that column;
 - CSV, one row per point: a header naming an ``ibug_index`` column (0-67, as torchface's arrays index the points;
   also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
   in any order; each point once at most, a point without a row missing (the hand-marked
-  ``torchface/data/photos/astronaut_landmarks.csv`` gives 22);
+  ``torchface/data/photos/astronaut_landmarks.csv`` gives 22); also pandas' ``DataFrame.to_csv`` with its index
+  (a header ``,x,y`` or ``,0,1``, then rows ``k, x, y``): the index is the point's;
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
   tools read them), so 1 is subtracted: a ``.pts`` point ``(1, 1)`` is torchface's ``(0, 0)``, the same pixel
   centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
-- NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``.
+- NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``;
+- JSON (``.json``): a list of 68 ``[x, y]`` pairs (or of 136 numbers), or an object holding them as
+  ``initial_landmarks_px``: a torchface sidecar, so a run can start from the landmarks another one started from.
 
 Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
 weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
 their order): in a CSV an ``x, y`` pair of empty cells (``,``; a separator ending every line, ``x,y,``, is not a
-cell, nor is a column empty on every row of ``x, y`` rows: ``,x,y``, a spreadsheet's cells from its column B) or of
+cell, nor is a column empty on every row of ``x, y`` rows: ``,x,y``, a spreadsheet's cells from its column B, nor
+an empty column before one row's 136 values: ``,x0,y0,...``, 137 cells, where its last cell is empty too the 136
+whose empty cells pair up as missing points, refused where two cuts do; but the cells of ``x, y`` rows 2 wide and of
+one row 136 wide are all values, an empty one a missing coordinate: ``,y0,x1,...`` has point 0's ``x`` missing) or of
 ``nan``, ``NA``, ``N/A``, ``null`` or ``None``, a one-row-per-point CSV's point without a row, a ``.pts`` line
-``nan nan``, NaN in an NPY. At least 4 points must be given (the landmark fit's
+``nan nan``, NaN in an NPY, ``[null, null]`` in a JSON. At least 4 points must be given (the landmark fit's
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
 one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
 another count (a ``.pts`` of 60 points: which are missing is not known).
@@ -33,7 +42,9 @@ another count (a ``.pts`` of 60 points: which are missing is not known).
 
 from __future__ import annotations
 
+import codecs
 import csv
+import json
 import math
 import os
 import re
@@ -50,14 +61,26 @@ __all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points
 NUM_LANDMARKS: int = 68
 
 
-def _cells(line: str) -> list[str]:
+def _cells(line: str, decimal_comma: bool = False) -> list[str]:
     """A line's cells: separated by commas, semicolons, tabs or spaces; quotes around a cell dropped. An empty cell
-    between separators is kept in its place (``1,,2``: three cells, the second ``""``, a missing value)."""
+    between separators is kept in its place (``1,,2``: three cells, the second ``""``, a missing value).
+    ``decimal_comma`` (:func:`_decimal_comma`): semicolons and tabs alone separate cells, a comma is a decimal point."""
     for sep in (";", "\t"):
-        line = line.replace(sep, ",")
+        line = line.replace(sep, "," if not decimal_comma else "\x00")
+    if decimal_comma:
+        line = line.replace(",", ".").replace("\x00", ",")
     if "," not in line:
         line = ",".join(line.split())
     return [c.strip().strip("\"'").strip() for c in line.split(",")]
+
+
+def _decimal_comma(lines: list[str]) -> bool:
+    """Whether ``lines`` (a CSV's, comments left out) are a spreadsheet's of a locale with a decimal comma: cells
+    separated by semicolons or tabs, a comma between digits (``12,5;40,25``), and no decimal point between digits
+    anywhere (a decimal point says the commas are something else, separators: ``1,234.5;40.5`` is 3 cells)."""
+    text = "\n".join(lines)
+    separated = ";" in text or "\t" in text
+    return separated and re.search(r"\d,\d", text) is not None and re.search(r"\d\.\d", text) is None
 
 
 def _trimmed(cells: list[str], width: int) -> list[str]:
@@ -96,10 +119,31 @@ def _without_empty_columns(data: list[list[str]]) -> list[list[str]] | None:
     return [row if any(row) else ["", ""] for row in rows]
 
 
-def _named_row(header: str, row: list[float]) -> np.ndarray | None:
-    """One row's values placed by a header naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``, ...; ``k`` from 0
-    or 1, each once): ``(K, 2)``; None when the header does not name them so."""
-    names = _trimmed(_cells(header), 0)
+def _one_row_values(p: Path, cells: list[str], names: list[str]) -> tuple[list[str], list[str]]:
+    """One row's ``cells`` and its header's ``names`` (``[]``: no header) cut to the row's ``2 * 68`` values where it
+    holds more cells, the others empty in both (and not named by the header): a spreadsheet's export with a column
+    before the values left empty, ``,x0,y0,...``, as the rows-of-``x, y`` layout drops a column empty on every row
+    (:func:`_without_empty_columns`), or a separator ending the line, ``x0,...,y67,``. Where both ends are empty (a
+    column before the values, or a missing point 0 and a separator after them) the values are those whose empty
+    cells come in ``x, y`` pairs (a missing point; a single empty coordinate is refused in any case); refused when
+    more than one cut pairs them. A row of at most 136 cells is returned as it is: its empty cells are values."""
+    width = 2 * NUM_LANDMARKS
+    blank = [c == "" and (j >= len(names) or names[j] == "") for j, c in enumerate(cells)]
+    starts = [s for s in range(len(cells) - width + 1) if all(blank[:s]) and all(blank[s + width :])]
+    if not starts:
+        return cells, names
+    paired = [s for s in starts if all((cells[j] == "") == (cells[j + 1] == "") for j in range(s, s + width, 2))]
+    if len(paired) > 1:
+        raise InputError(f"{p}: one row of {len(cells)} cells, empty at both ends: which {width} are the x, y values "
+                         f"is not known (a column before them left empty, or a missing point and a separator after "
+                         f"them); remove the empty cells at one end")  # fmt: skip
+    s = (paired or starts)[0]
+    return cells[s : s + width], names[s : s + width]
+
+
+def _named_row(names: list[str], row: list[float]) -> np.ndarray | None:
+    """One row's values placed by a header's cells ``names`` naming each cell ``x<k>`` or ``y<k>`` (``x_0``, ``X 1``,
+    ...; ``k`` from 0 or 1, each once): ``(K, 2)``; None when the header does not name them so."""
     keys = [m for n in names if (m := re.fullmatch(r"([xy])[_ ]?(\d+)", n.lower())) is not None]
     if len(names) != len(row) or len(row) % 2 or len(keys) != len(names):
         return None
@@ -112,10 +156,9 @@ def _named_row(header: str, row: list[float]) -> np.ndarray | None:
     return np.asarray([index[w] for w in wanted], dtype=np.float64).reshape(K, 2)
 
 
-def _openface_row(p: Path, header: str, rows: list[list[float]]) -> np.ndarray | None:
-    """The first row's ``x_k``, ``y_k`` cells ``(K, 2)`` when the header names them (exactly so, lower case: OpenFace's
-    3D ``X_k`` are other columns) among other columns, every row as wide as the header; else None."""
-    names = _trimmed(_cells(header), 0)
+def _openface_row(p: Path, names: list[str], rows: list[list[float]]) -> np.ndarray | None:
+    """The first row's ``x_k``, ``y_k`` cells ``(K, 2)`` when the header's cells ``names`` name them (exactly so, lower
+    case: OpenFace's 3D ``X_k`` are other columns) among other columns, every row as wide as the header; else None."""
     if not rows or any(len(r) != len(names) for r in rows):
         return None
     where = {n: i for i, n in enumerate(names)}
@@ -137,10 +180,56 @@ _EXACT = Context(prec=64, Emax=MAX_EMAX, Emin=MIN_EMIN)
 
 
 def _read_text(p: Path) -> str:
+    """The file's text: UTF-8 (a byte order mark, Excel's "CSV UTF-8", is not a cell), UTF-16 after its byte order
+    mark (Excel's "Unicode Text", tab-separated), else a spreadsheet's 8-bit export (Windows-1252 / Latin-1: its
+    numbers read the same, its header's and comments' accents may not). A file with NUL bytes is not text."""
     try:
-        return p.read_text(encoding="utf-8-sig")  # -sig: a byte order mark (Excel's "CSV UTF-8") is not a cell
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read landmarks ({exc.__class__.__name__})") from None
+        data = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read landmarks ({exc.strerror or exc.__class__.__name__})") from None
+    utf16 = data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE))
+    try:
+        text = data.decode("utf-16" if utf16 else "utf-8-sig")
+    except UnicodeDecodeError:
+        if utf16:
+            raise InputError(f"{p}: cannot read landmarks (a UTF-16 byte order mark, then no UTF-16 text)") from None
+        text = data.decode("latin-1")
+    if "\x00" in text:
+        raise InputError(f"{p}: not a text file (NUL bytes): landmarks are a CSV, an iBUG .pts or a .npy file")
+    return text
+
+
+def _parse_json(p: Path, text: str) -> np.ndarray:
+    """A JSON file's points: a list of ``[x, y]`` pairs (``null``: missing) or of numbers, or an object holding such
+    a list as ``initial_landmarks_px`` (a torchface sidecar's first-frame landmarks)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{p}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    if isinstance(value, dict):
+        if value.get("initial_landmarks_px") is None:
+            raise InputError(f"{p}: a JSON object without initial_landmarks_px (a torchface sidecar's): expected a "
+                             f"list of {NUM_LANDMARKS} [x, y] pairs, or a sidecar")  # fmt: skip
+        value = value["initial_landmarks_px"]
+
+    def number(c: object) -> float:
+        if c is None:
+            return math.nan
+        if isinstance(c, bool) or not isinstance(c, (int, float)):
+            raise ValueError
+        return float(c)
+
+    try:
+        if not isinstance(value, list):
+            raise ValueError
+        if all(not isinstance(v, list) for v in value):  # 136 numbers x0, y0, x1, ...
+            return np.asarray([number(v) for v in value], dtype=np.float64)
+        if not all(isinstance(v, list) and len(v) == 2 for v in value):
+            raise ValueError
+        return np.asarray([[number(c) for c in v] for v in value], dtype=np.float64).reshape(-1, 2)
+    except ValueError:
+        raise InputError(f"{p}: expected a JSON list of {NUM_LANDMARKS} [x, y] pairs of numbers (null: missing), "
+                         f"got {json.dumps(value)[:60]}") from None  # fmt: skip
 
 
 def _is_pts(p: Path, text: str) -> bool:
@@ -199,10 +288,15 @@ def _parse_pts(p: Path, text: str) -> np.ndarray:
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
 
 
+def _delimiter(line: str) -> str | None:
+    """The character that separates ``line``'s cells: a comma, semicolon or tab; None: spaces."""
+    return next((d for d in (",", ";", "\t") if d in line), None)
+
+
 def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
     """``(delimiter, index, x, y)`` column positions when ``header`` names a point-index column and ``x``, ``y``
     (a one-row-per-point CSV); None otherwise. ``delimiter`` None: cells separated by spaces."""
-    delimiter = next((d for d in (",", ";", "\t") if d in header), None)
+    delimiter = _delimiter(header)
     names = [n.lower() for n in _split(header, delimiter)]
     index = next((names.index(n) for n in _INDEX_COLUMNS if n in names), None)
     if index is None or "x" not in names or "y" not in names:
@@ -210,23 +304,27 @@ def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
     return delimiter, index, names.index("x"), names.index("y")
 
 
-def _split(line: str, delimiter: str | None) -> list[str]:
-    """A line's cells at ``delimiter`` (quotes honoured; None: spaces), stripped, quotes around a cell dropped."""
+def _split(line: str, delimiter: str | None, decimal_comma: bool = False) -> list[str]:
+    """A line's cells at ``delimiter`` (quotes honoured; None: spaces), stripped, quotes around a cell dropped;
+    ``decimal_comma``: a comma in a cell is its decimal point (:func:`_decimal_comma`)."""
     try:
         cells = line.split() if delimiter is None else next(csv.reader([line], delimiter=delimiter))
     except csv.Error:  # (a NUL character on older Pythons): split without quoting
         cells = line.split(delimiter)
-    return [c.strip().strip("\"'").strip() for c in cells]
+    return [c.strip().strip("\"'").strip().replace(",", "." if decimal_comma else ",") for c in cells]
 
 
-def _parse_long(p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int]) -> np.ndarray:
+def _parse_long(
+    p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int], decimal_comma: bool = False
+) -> np.ndarray:
     """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers); a
-    point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing)."""
+    point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing). ``decimal_comma``:
+    see :func:`_decimal_comma`."""
     delimiter, index, x, y = columns
     points = np.full((NUM_LANDMARKS, 2), np.nan)
     seen: dict[int, int] = {}
     for number, line in lines:
-        cells = _split(line, delimiter)
+        cells = _split(line, delimiter, decimal_comma and delimiter in (";", "\t"))
         try:
             k_text, point = cells[index], [_number(cells[x]), _number(cells[y])]  # (empty: missing, NaN)
             k = int(k_text)
@@ -246,14 +344,18 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     header: str | None = None
     long: tuple[str | None, int, int, int] | None = None
     long_lines: list[tuple[int, str]] = []
-    for number, line in enumerate(text.splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
+    lines = text.splitlines()
+    comma = _decimal_comma([line for line in lines if not line.strip().startswith("#")])
+    # tab-separated: a tab at a line's ends separates cells, empty ones (``\t``: a missing point; ``5\t\t``)
+    tabs = any("\t" in line.strip() for line in lines)
+    for number, line in enumerate(lines, start=1):
+        line = line.strip(" \r\n\f\v") if tabs else line.strip()
+        if not line or line.lstrip().startswith("#"):
             continue
         if long is not None:  # one row per point: its other cells may be text (a point's meaning)
             long_lines.append((number, line))
             continue
-        cells = _cells(line)
+        cells = _cells(line, comma)
         try:
             for c in cells:
                 _number(c)
@@ -264,17 +366,28 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
             long = _long_columns(header)
             continue
         data.append(cells)
+        long_lines.append((number, line))
     if long is not None:
-        return _parse_long(p, long_lines, long)
+        return _parse_long(p, long_lines, long, comma)
+    # pandas' DataFrame.to_csv with its index (the point's): a header ``,x,y`` (``,0,1``: numbers), rows ``k,x,y``
+    first = _trimmed(_cells(header, comma), 0) if header is not None else data[0] if data else []
+    if [n.lower() for n in first] in (["", "x", "y"], ["", "0", "1"]):
+        indexed = long_lines if header is not None else long_lines[1:]
+        if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in data[len(data) - len(indexed) :]):
+            return _parse_long(p, indexed, (_delimiter(indexed[0][1]), 0, 1, 2), comma)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
+    names = _trimmed(_cells(header, comma), 0) if header is not None else []
+    if len(data) == 1:  # one row of 136 with a column before it left empty (``,x0,y0,...``): that column is no cell
+        cells, names = _one_row_values(p, data[0], names)
+        data = [cells]
     if header is not None:
-        rows = _number_rows(data, len(_trimmed(_cells(header), 0)))
-        openface = _openface_row(p, header, rows)
+        rows = _number_rows(data, len(names))
+        openface = _openface_row(p, names, rows)
         if openface is not None:  # OpenFace's per-frame CSV: the first frame's x_k, y_k among its other columns
             return openface
-        named = _named_row(header, rows[0]) if len(rows) == 1 else None
+        named = _named_row(names, rows[0]) if len(rows) == 1 else None
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
             return named
     rows = _number_rows(data, 2 if len(data) > 1 else 2 * NUM_LANDMARKS)
@@ -342,9 +455,13 @@ def check_landmarks(
     The points returned are a C-contiguous copy of ``points``.
 
     Raises:
-        InputError: wrong count, non-finite values (with ``missing``: infinite ones, a row with one coordinate NaN,
-            or fewer than 4 points given), or (more than ``1 - min_inside`` of the) points outside the frame.
+        InputError: not real numbers (bool, complex, text), wrong count, non-finite values (with ``missing``:
+            infinite ones, a row with one coordinate NaN, or fewer than 4 points given), or (more than
+            ``1 - min_inside`` of the) points outside the frame.
     """
+    dtype = np.asarray(points).dtype
+    if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):  # (complex: its imaginary part
+        raise InputError(f"{where}: landmarks must be real numbers, got {dtype}")  # was dropped with a warning)
     # a copy, C-contiguous (a detector's view with a negative stride: torch refuses it; its reused buffer)
     points = np.array(points, dtype=np.float64, order="C")
     if points.ndim == 3 and points.shape[0] == 1:
@@ -379,7 +496,7 @@ def read_landmarks(
     """Read and check 68 first-frame landmarks for a ``width x height`` video.
 
     Args:
-        path: a ``.csv`` (or any text), iBUG ``.pts`` or ``.npy`` file, see the module docstring.
+        path: a ``.csv`` (or any text), iBUG ``.pts``, ``.npy`` or ``.json`` file, see the module docstring.
         width: frame width W.
         height: frame height H.
         missing: whether the file may leave points out (NaN rows, see the module docstring; at least 4 given, the
@@ -397,18 +514,23 @@ def read_landmarks(
     """
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{p}: no such landmarks file")
+        raise InputError(f"{p}: {'a folder, not a landmarks file' if p.is_dir() else 'no such landmarks file'}")
     if p.suffix.lower() == ".npy":
         try:
             points = np.load(p, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
+        if not isinstance(points, np.ndarray):  # an .npz archive under an .npy name (np.savez): its arrays
+            points.close()
+            raise InputError(f"{p}: an .npz archive of arrays ({', '.join(points.files)[:60]}), not one .npy array: "
+                             "save the (68, 2) points with np.save")  # fmt: skip
         missing_as = ""  # (an NPY's missing point is a NaN row)
     else:
         text = _read_text(p)
         pts = _is_pts(p, text)
-        points = _parse_pts(p, text) if pts else _parse_csv(p, text)
-        missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
-    if not np.issubdtype(np.asarray(points).dtype, np.number):
-        raise InputError(f"{p}: landmarks must be numbers, got {np.asarray(points).dtype}")
+        if p.suffix.lower() == ".json":
+            points, missing_as = _parse_json(p, text), "[null, null]"
+        else:
+            points = _parse_pts(p, text) if pts else _parse_csv(p, text)
+            missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
     return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as)

@@ -455,6 +455,10 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             array = np.load(p, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file (np.save interrupted)
             raise InputError(f"{p}: not a readable .npy array ({exc})") from None
+        if not isinstance(array, np.ndarray):  # an .npz archive under an .npy name (np.savez): AttributeError 'ndim'
+            array.close()
+            raise InputError(f"{p}: an .npz archive of arrays ({', '.join(array.files)[:60]}), not one .npy array: "
+                             "save the frames with np.save")  # fmt: skip
         if array.ndim not in (3, 4):
             raise InputError(f"{p}: expected a (T, H, W) or (T, H, W, C) array, got shape {array.shape}")
         if array.shape[0] == 0:

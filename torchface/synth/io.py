@@ -2,7 +2,9 @@
 
 Writing goes to a temporary name in the destination folder and is renamed when complete, so a
 reader never sees a half-written file. The codec is the first of :data:`LOSSLESS_CODECS` that this
-OpenCV build can write; FFV1 in AVI is lossless and reads back bit-exactly with ``cv2.VideoCapture``.
+OpenCV build can write; FFV1 in AVI is lossless and reads back bit-exactly with ``cv2.VideoCapture``. The readers open
+a video as the tracker's input is opened (:func:`torchface.io.video.open_capture`: a phone video's display rotation
+applied on every OpenCV).
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import cv2
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchface.io.video import open_capture, opencv_path
 
 __all__ = [
     "LOSSLESS_CODECS",
@@ -51,6 +55,13 @@ class VideoSink:
         height: frame height H.
         fps: frames per second stored in the file.
 
+    Raises:
+        FileNotFoundError: ``path``'s folder does not exist.
+        OSError: the file cannot be written there (a read-only folder, a full disk), naming it.
+        IsADirectoryError: ``path`` is a folder.
+        ValueError: an odd or too small size, or a name that is not valid UTF-8 (OpenCV cannot write it).
+        RuntimeError: no codec of :data:`LOSSLESS_CODECS` opens the file.
+
     Example:
         >>> # with VideoSink("seq.avi", 640, 480) as sink: sink.write(frames)  # frames (T, 3, H, W)
     """
@@ -62,17 +73,25 @@ class VideoSink:
             # FFV1 and the other 4:2:0 codecs write odd sizes cropped to even ones without a word, so the file
             # would no longer match the ground truth's intrinsics and landmarks
             raise ValueError(f"video frames must have an even width and height >= 2, got {self.width}x{self.height}")
+        if not self.path.parent.is_dir():  # (OpenCV's writer fails without a word: "no codec could open" misled)
+            raise FileNotFoundError(f"{self.path}: no folder {self.path.parent} to write the video in")
+        if self.path.is_dir():
+            raise IsADirectoryError(f"{self.path}: a folder, not a video file name (e.g. {self.path / 'clip.avi'})")
         self._tmp = self.path.with_name(self.path.name + ".partial" + self.path.suffix)
+        tmp = opencv_path(self._tmp, ValueError)  # (a name that is not UTF-8 crashed OpenCV's writer: a segfault)
         self._writer: cv2.VideoWriter | None = None
         self.codec = ""
         self.frames_written = 0
+        with open(self._tmp, "wb"):  # OSError naming the file where it cannot be written (a read-only folder): the
+            pass  # writer fails without a word, and "no OpenCV video codec ... could open" misled
         for code in LOSSLESS_CODECS:
-            writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter.fourcc(*code), float(fps), (self.width, self.height))
+            writer = cv2.VideoWriter(tmp, cv2.VideoWriter.fourcc(*code), float(fps), (self.width, self.height))
             if writer.isOpened():
                 self._writer, self.codec = writer, code
                 break
             writer.release()
         if self._writer is None:
+            self._tmp.unlink(missing_ok=True)
             raise RuntimeError(f"no OpenCV video codec among {LOSSLESS_CODECS} could open {self._tmp}")
 
     def write(self, frames: Tensor) -> None:
@@ -119,11 +138,26 @@ def write_video(path: str | os.PathLike[str], frames: Tensor, fps: float = 25.0)
         return sink.codec
 
 
+def _open(path: str | os.PathLike[str]) -> cv2.VideoCapture:
+    """An open capture of the video file ``path``, opened as :func:`torchface.io.video.open_capture` opens the
+    tracker's input (turned by the container's display rotation on every OpenCV).
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: a name that is not valid UTF-8, or a file OpenCV cannot open as a video.
+    """
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no video at {os.fspath(path)}")
+    cap = open_capture(path, ValueError)
+    if not cap.isOpened():
+        cap.release()
+        raise ValueError(f"{os.fspath(path)}: OpenCV cannot open this file as a video")
+    return cap
+
+
 def read_video_uint8(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
     """Read a video into ``(T, 3, H, W)`` uint8 RGB (a quarter of the memory of :func:`read_video`)."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no video at {path}")
-    cap = cv2.VideoCapture(os.fspath(path))  # str() of a PathLike that is not a Path is its repr
+    cap = _open(path)
     frames: list[np.ndarray] = []
     try:
         while max_frames is None or len(frames) < max_frames:
@@ -144,9 +178,7 @@ def iter_video_uint8(path: str | os.PathLike[str]) -> Iterator[Tensor]:
     Example:
         >>> # for frame in iter_video_uint8("seq.avi"): ...   # (1, 3, H, W) uint8
     """
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no video at {path}")
-    cap = cv2.VideoCapture(os.fspath(path))
+    cap = _open(path)
     try:
         while True:
             ok, img = cap.read()

@@ -123,10 +123,10 @@ def grid_photo() -> Photo:
 
     The camera is a guess like the astronaut portrait's (focal length 3x the width, nearly orthographic).
     """
-    import cv2
+    from torchface.io.video import open_capture
 
     video = _data_path("grid", "bbaf2n.mpg")
-    cap = cv2.VideoCapture(str(video))
+    cap = open_capture(video, FileNotFoundError)
     ok, bgr = cap.read()
     cap.release()
     if not ok:
