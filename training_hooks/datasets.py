@@ -337,6 +337,12 @@ class VideoDataset(IterableDataset):
                 )
             if len(landmarks) != len(self.videos):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
+            for i, source in enumerate(landmarks):  # (a list of points, lm.tolist(), failed in the worker)
+                if not isinstance(source, (np.ndarray, Tensor, str, os.PathLike)):
+                    raise TypeError(
+                        f"landmarks[{i}] ({self.videos[i]}) must be a (68, 2) array or tensor, or a landmarks file, "
+                        f"got {type(source).__name__}"
+                    )
             self.detector, self.landmarks = None, tuple(landmarks)
         self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it

@@ -505,6 +505,17 @@ def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
         list(DataLoader(VideoDataset([clip.video], [clip.landmarks[:60]], cfg), batch_size=None, num_workers=1))
 
 
+def test_landmarks_of_another_kind_are_refused_when_the_dataset_is_made(tmp_path):
+    """A video's landmarks as a list of points (``lm.tolist()``) were taken by VideoDataset and refused in the
+    DataLoader worker, once its video was opened; they are a TypeError naming the entry and its video at once."""
+    video = tmp_path / "a.avi"
+    video.write_bytes(b"")  # (never opened)
+    points = np.zeros((68, 2))
+    with pytest.raises(TypeError, match=r"landmarks\[1\] \(.*a.avi\) must be a \(68, 2\) array .*got list"):
+        VideoDataset([video, video], [points, points.tolist()])
+    VideoDataset([video] * 4, [points, torch.zeros(68, 2), "a.csv", tmp_path / "a.npy"])  # the kinds it takes
+
+
 def test_detector_landmarks_of_a_face_at_the_frame_edge_are_taken(clips, config):
     """dlib's predictor places the chin of a face at the frame's edge just outside it: a detector's landmarks may
     lie partly outside the frame (they were refused as a landmarks file's), not mostly."""
