@@ -394,6 +394,21 @@ def test_continuing_a_state_leaves_it_as_it_was():
         assert torch.equal(of_fork[name], first[name]), name
 
 
+def test_a_state_of_another_dtype_is_refused_naming_the_transforms_model(clips):
+    """NormaliseFaces continuing a float64 FaceTracker's state said "track a state with the model in the dtype and
+    device it was initialised with (or initialise again)": the model is the transform's own, float32 CANDIDE-3,
+    which its user does not hold. The message says so, and what to continue instead."""
+    from torchface.tracker import FaceTracker
+
+    clip = clips[2]
+    frames = read_video(clip.video)[:2]
+    tracker = FaceTracker(TRACKING.tracker, refine_first=None).double()
+    tracker.initialise(frames[:1], torch.from_numpy(clip.landmarks)[None])
+    with pytest.raises(TypeError, match=r"TrackerState to continue is torch.float64 .* torch.float32 model .*"
+                                        r"NormaliseFaces.*FaceTracker left in torch.float32"):
+        NormaliseFaces(TRACKING)(frames[1:], tracker.state)
+
+
 def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
