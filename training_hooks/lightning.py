@@ -11,7 +11,7 @@ torchface or :mod:`training_hooks` does, so they work without it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 from torch.utils.data import DataLoader
@@ -113,7 +113,7 @@ class _EpochLoader(DataLoader):
         super().__init__(*args, **kwargs)
         self._epoch_of = epoch
 
-    def __iter__(self):  # type: ignore[override]
+    def __iter__(self) -> Iterator[Any]:  # type: ignore[override]
         epoch = self._epoch_of()
         if epoch is not None:
             self.dataset.set_epoch(epoch)  # type: ignore[attr-defined]
