@@ -531,6 +531,24 @@ def test_landmarks_of_another_kind_are_refused_when_the_dataset_is_made(tmp_path
     VideoDataset([video] * 4, [points, torch.zeros(68, 2), "a.csv", tmp_path / "a.npy"])  # the kinds it takes
 
 
+def test_landmarks_stacked_as_facetracker_takes_them_give_one_entry_per_video(clips, config):
+    """FaceTracker.initialise takes a batch's landmarks as one (B, 68, 2) tensor; the dataset refused that stack
+    ("must be a sequence ... got Tensor"). An (N, 68, 2) array or tensor is N entries, the items those of the list;
+    one video's (68, 2) array alone is still refused, its shape named."""
+    videos = [c.video for c in clips[:2]]
+    stack = np.stack([c.landmarks for c in clips[:2]])
+    cfg = replace(config, cache_dir=None)
+    want = collect(VideoDataset(videos, [c.landmarks for c in clips[:2]], cfg), 0)
+    for given in (stack, torch.from_numpy(stack)):
+        data = VideoDataset(videos, given, cfg)
+        assert len(data.landmarks) == 2 and np.array_equal(np.asarray(data.landmarks[1]), clips[1].landmarks)
+        assert_items_equal(collect(data, 0), want)
+    with pytest.raises(TypeError, match=r"\(N, 68, 2\) stack .*got ndarray of shape \(68, 2\)"):
+        VideoDataset(videos[:1], clips[0].landmarks, cfg)
+    with pytest.raises(ValueError, match="one entry per video"):
+        VideoDataset(videos, stack[:1], cfg)
+
+
 def test_detector_landmarks_of_a_face_at_the_frame_edge_are_taken(clips, config):
     """dlib's predictor places the chin of a face at the frame's edge just outside it: a detector's landmarks may
     lie partly outside the frame (they were refused as a landmarks file's), not mostly."""
