@@ -291,8 +291,10 @@ class VideoDataset(IterableDataset):
         videos: video files OpenCV decodes (``.avi``, ``.mp4``, ...) or ``.npy`` frame arrays ``(T, H, W, 3)``.
         landmarks: the first frame's 68 iBUG landmarks per video (:data:`LandmarkSource`: a ``(68, 2)`` array or
             tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file; NaN rows for missing points, at least 4
-            given), or one :data:`Detector` applied to every video's first frame (its answer is remembered per
-            process; all 68 points, as ``torchface track --detector`` takes them).
+            given), or all of them stacked, one ``(N, 68, 2)`` array or tensor (as
+            :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` takes a batch's), or one
+            :data:`Detector` applied to every video's first frame (its answer is remembered per process; all 68
+            points, as ``torchface track --detector`` takes them).
         config: :class:`DatasetConfig`.
 
     Raises:
@@ -308,7 +310,7 @@ class VideoDataset(IterableDataset):
     def __init__(
         self,
         videos: Sequence[str | os.PathLike[str]],
-        landmarks: Sequence[LandmarkSource] | Detector,
+        landmarks: Sequence[LandmarkSource] | np.ndarray | Tensor | Detector,
         config: DatasetConfig | None = None,
     ) -> None:
         super().__init__()
@@ -326,17 +328,27 @@ class VideoDataset(IterableDataset):
         if cache_dir is not None and cache_dir.exists() and not cache_dir.is_dir():
             # (found here, not after the first video has been tracked)
             raise ValueError(f"{cache_dir}: cache_dir exists and is not a folder")
+        if isinstance(landmarks, (np.ndarray, Tensor)) and landmarks.ndim == 3:
+            # (N, 68, 2), the batch FaceTracker.initialise takes: one entry per video (it was "must be a sequence")
+            landmarks = list(landmarks.detach() if isinstance(landmarks, Tensor) else landmarks)
         if callable(landmarks) and not isinstance(landmarks, (np.ndarray, Tensor)):
             self.detector: Detector | None = landmarks
             self.landmarks: tuple[LandmarkSource, ...] | None = None
         else:
             if isinstance(landmarks, (str, os.PathLike, np.ndarray, Tensor)) or not isinstance(landmarks, Sequence):
+                shape = f" of shape {tuple(landmarks.shape)}" if isinstance(landmarks, (np.ndarray, Tensor)) else ""
                 raise TypeError(
-                    "landmarks must be a sequence with one (68, 2) array/tensor or landmarks file per video, or a "
-                    f"detector callable, got {type(landmarks).__name__}"
+                    "landmarks must be a sequence with one (68, 2) array/tensor or landmarks file per video, an "
+                    f"(N, 68, 2) stack of them, or a detector callable, got {type(landmarks).__name__}{shape}"
                 )
             if len(landmarks) != len(self.videos):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
+            for i, source in enumerate(landmarks):  # (a list of points, lm.tolist(), failed in the worker)
+                if not isinstance(source, (np.ndarray, Tensor, str, os.PathLike)):
+                    raise TypeError(
+                        f"landmarks[{i}] ({self.videos[i]}) must be a (68, 2) array or tensor, or a landmarks file, "
+                        f"got {type(source).__name__}"
+                    )
             self.detector, self.landmarks = None, tuple(landmarks)
         self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it

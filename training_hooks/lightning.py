@@ -11,7 +11,7 @@ torchface or :mod:`training_hooks` does, so they work without it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 from torch.utils.data import DataLoader
@@ -104,6 +104,22 @@ class TrackingQualityCallback(pl.Callback):
         self._on_epoch_end("val", pl_module)
 
 
+class _EpochLoader(DataLoader):
+    """A ``DataLoader`` that hands its dataset ``epoch()`` (:meth:`VideoDataset.set_epoch
+    <training_hooks.datasets.VideoDataset.set_epoch>`; None: left as it is) each time an epoch's iteration starts
+    (:class:`TrackedFaceDataModule`'s training loader)."""
+
+    def __init__(self, *args: Any, epoch: Callable[[], int | None], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._epoch_of = epoch
+
+    def __iter__(self) -> Iterator[Any]:  # type: ignore[override]
+        epoch = self._epoch_of()
+        if epoch is not None:
+            self.dataset.set_epoch(epoch)  # type: ignore[attr-defined]
+        return super().__iter__()
+
+
 class TrackedFaceDataModule(pl.LightningDataModule):
     """``LightningDataModule`` over tracked datasets (:class:`~training_hooks.datasets.VideoDataset` /
     :class:`~training_hooks.datasets.FrameFolderDataset`).
@@ -116,9 +132,12 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         collate_fn: None picks :func:`~training_hooks.collate.collate_clips` for clip datasets and PyTorch's default
             for frame datasets.
 
-    Before each training epoch's loader is built the trainer's epoch is passed to
-    :meth:`~training_hooks.datasets.VideoDataset.set_epoch` (shuffling); set ``reload_dataloaders_every_n_epochs=1``
-    on the trainer so that happens every epoch.
+    Each training epoch's iteration of the loader passes the trainer's epoch to
+    :meth:`~training_hooks.datasets.VideoDataset.set_epoch` first, so that the shuffling
+    (:attr:`DatasetConfig.shuffle_buffer <training_hooks.datasets.DatasetConfig.shuffle_buffer>`) draws a new order
+    every epoch with the trainer's defaults too (Lightning builds the loader once and calls ``set_epoch`` on samplers
+    alone, which an iterable dataset's loader has none of: every epoch repeated the first one's order unless the
+    trainer had ``reload_dataloaders_every_n_epochs=1``).
 
     Distributed (DDP) training: each rank's loaders yield that rank's share of the videos (video ``i`` -> rank
     ``i % world_size``, :mod:`training_hooks.datasets`, "Sharding"; the datasets are iterable, so Lightning adds no
@@ -144,17 +163,25 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         self.num_workers = check_int(num_workers, "num_workers", 0)
         self.train, self.val, self.collate_fn = train, val, collate_fn
 
-    def _loader(self, dataset: VideoDataset) -> DataLoader:
+    def _loader(self, dataset: VideoDataset, epochs: bool = False) -> DataLoader:
         collate = self.collate_fn
         if collate is None and dataset.config.clip_length is not None:
             collate = collate_clips
-        return DataLoader(dataset, batch_size=self.batch_size, num_workers=self.num_workers, collate_fn=collate)
+        kwargs: dict[str, Any] = dict(batch_size=self.batch_size, num_workers=self.num_workers, collate_fn=collate)
+        if epochs:
+            return _EpochLoader(dataset, epoch=self._trainer_epoch, **kwargs)
+        return DataLoader(dataset, **kwargs)
+
+    def _trainer_epoch(self) -> int | None:
+        """The attached trainer's current epoch, or None without a trainer."""
+        trainer = getattr(self, "trainer", None)
+        return None if trainer is None else int(trainer.current_epoch)
 
     def train_dataloader(self) -> DataLoader:
-        trainer = getattr(self, "trainer", None)
-        if trainer is not None:
-            self.train.set_epoch(trainer.current_epoch)
-        return self._loader(self.train)
+        epoch = self._trainer_epoch()
+        if epoch is not None:
+            self.train.set_epoch(epoch)
+        return self._loader(self.train, epochs=True)
 
     def val_dataloader(self) -> DataLoader | list:
         return [] if self.val is None else self._loader(self.val)

@@ -447,6 +447,14 @@ def track_sequence(
         if start.params.shape[0] != 1:
             B = start.params.shape[0]
             raise ValueError(f"a TrackerState to continue must hold one stream (B = 1), got B = {B}")
+        kept = (start.params.dtype, start.params.device)
+        if kept != (model.dtype, model.device):  # (was managed_step's "track a state with the model in the dtype
+            # ... it was initialised with", a model NormaliseFaces holds: float32 CANDIDE-3 on the CPU)
+            raise TypeError(
+                f"the TrackerState to continue is {kept[0]} on {kept[1]}, but the frames are tracked by a "
+                f"{model.dtype} model on {model.device} (NormaliseFaces' and the datasets' CANDIDE-3): continue a "
+                f"state tracked so (a FaceTracker left in {model.dtype} on {model.device}), or start from landmarks"
+            )
         state = start
         first_frame = int(start.frame_index)
         if config.pyramid == "auto":  # the coarser levels its initialisation added (else: managed_step's error)

@@ -90,6 +90,17 @@ def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_m
     assert FaceTracker(detector=batched(detect)).detector is not None
 
 
+def test_a_batched_detector_given_one_image_names_the_per_image_detector():
+    """``VideoDataset(videos, batched(load_detector("dlib")))`` (the detector FaceTracker takes) handed it the first
+    frame as an (H, W, 3) uint8 image, and the worker failed with "frames must be a torch.Tensor (B, 3, H, W) ...
+    got ndarray": the message now says it is the batched adapter and to pass the per-image detector."""
+    detect = batched(lambda image: None)
+    with pytest.raises(TypeError, match=r"batched detector .*\(12, 16, 3\) image.*per-image detector itself"):
+        detect(np.zeros((12, 16, 3), np.uint8))
+    with pytest.raises(TypeError, match="must be a torch.Tensor"):  # any other array: the layout it takes
+        detect(np.zeros((1, 3, 12, 16), np.float32))
+
+
 def test_batched_detector_for_facetracker():
     """``batched``: a per-image detector as FaceTracker's ``frames (B, 3, H, W) -> (B, 68, 2)`` callback; it sees
     each frame as (H, W, 3) uint8 RGB; None is a NaN row; a wrong count is refused naming the detector."""

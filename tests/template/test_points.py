@@ -897,3 +897,22 @@ def test_native_template_pixels_at_the_chosen_candidates_are_the_torch_codes(sce
             picked += int(((face_flat.gather(1, torch.topk(score, k, dim=1).indices) >= 0)).sum())
         assert not bool(nat.valid.all()) and bool((nat.bary == 0).all(-1).any())  # non-candidates, background
     assert picked > 1000
+
+
+def test_selection_keys_do_not_follow_torchs_default_dtype():
+    """The template-point keys were ``torch.rand`` in torch's default dtype: under ``torch.set_default_dtype(
+    torch.float64)`` (common in scientific code) the same seed drew other keys, so a float32 tracker took another
+    subset of template points and its poses moved (0.24 degrees within 10 frames of a GRID clip, 3 streams). They
+    are float32, the same draw, whatever the default."""
+    from torchface.template.points import _cpu_selection_keys
+
+    previous = torch.get_default_dtype()
+    _cpu_selection_keys.cache_clear()  # (drawn once per size: a draw cached before would hide the default's effect)
+    try:
+        torch.set_default_dtype(torch.float64)
+        under_float64 = _selection_keys(37, 41, torch.device("cpu")).clone()
+    finally:
+        torch.set_default_dtype(previous)
+        _cpu_selection_keys.cache_clear()
+    keys = _selection_keys(37, 41, torch.device("cpu"))
+    assert keys.dtype == torch.float32 and torch.equal(under_float64, keys)

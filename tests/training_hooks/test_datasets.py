@@ -394,6 +394,21 @@ def test_continuing_a_state_leaves_it_as_it_was():
         assert torch.equal(of_fork[name], first[name]), name
 
 
+def test_a_state_of_another_dtype_is_refused_naming_the_transforms_model(clips):
+    """NormaliseFaces continuing a float64 FaceTracker's state said "track a state with the model in the dtype and
+    device it was initialised with (or initialise again)": the model is the transform's own, float32 CANDIDE-3,
+    which its user does not hold. The message says so, and what to continue instead."""
+    from torchface.tracker import FaceTracker
+
+    clip = clips[2]
+    frames = read_video(clip.video)[:2]
+    tracker = FaceTracker(TRACKING.tracker, refine_first=None).double()
+    tracker.initialise(frames[:1], torch.from_numpy(clip.landmarks)[None])
+    with pytest.raises(TypeError, match=r"TrackerState to continue is torch.float64 .* torch.float32 model .*"
+                                        r"NormaliseFaces.*FaceTracker left in torch.float32"):
+        NormaliseFaces(TRACKING)(frames[1:], tracker.state)
+
+
 def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
@@ -503,6 +518,35 @@ def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
         list(VideoDataset([clip.video], lambda image: None, cfg))
     with pytest.raises(InputError, match=str(clip.video.name)):
         list(DataLoader(VideoDataset([clip.video], [clip.landmarks[:60]], cfg), batch_size=None, num_workers=1))
+
+
+def test_landmarks_of_another_kind_are_refused_when_the_dataset_is_made(tmp_path):
+    """A video's landmarks as a list of points (``lm.tolist()``) were taken by VideoDataset and refused in the
+    DataLoader worker, once its video was opened; they are a TypeError naming the entry and its video at once."""
+    video = tmp_path / "a.avi"
+    video.write_bytes(b"")  # (never opened)
+    points = np.zeros((68, 2))
+    with pytest.raises(TypeError, match=r"landmarks\[1\] \(.*a.avi\) must be a \(68, 2\) array .*got list"):
+        VideoDataset([video, video], [points, points.tolist()])
+    VideoDataset([video] * 4, [points, torch.zeros(68, 2), "a.csv", tmp_path / "a.npy"])  # the kinds it takes
+
+
+def test_landmarks_stacked_as_facetracker_takes_them_give_one_entry_per_video(clips, config):
+    """FaceTracker.initialise takes a batch's landmarks as one (B, 68, 2) tensor; the dataset refused that stack
+    ("must be a sequence ... got Tensor"). An (N, 68, 2) array or tensor is N entries, the items those of the list;
+    one video's (68, 2) array alone is still refused, its shape named."""
+    videos = [c.video for c in clips[:2]]
+    stack = np.stack([c.landmarks for c in clips[:2]])
+    cfg = replace(config, cache_dir=None)
+    want = collect(VideoDataset(videos, [c.landmarks for c in clips[:2]], cfg), 0)
+    for given in (stack, torch.from_numpy(stack)):
+        data = VideoDataset(videos, given, cfg)
+        assert len(data.landmarks) == 2 and np.array_equal(np.asarray(data.landmarks[1]), clips[1].landmarks)
+        assert_items_equal(collect(data, 0), want)
+    with pytest.raises(TypeError, match=r"\(N, 68, 2\) stack .*got ndarray of shape \(68, 2\)"):
+        VideoDataset(videos[:1], clips[0].landmarks, cfg)
+    with pytest.raises(ValueError, match="one entry per video"):
+        VideoDataset(videos, stack[:1], cfg)
 
 
 def test_detector_landmarks_of_a_face_at_the_frame_edge_are_taken(clips, config):

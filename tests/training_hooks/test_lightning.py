@@ -100,3 +100,35 @@ def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
             TrackedFaceDataModule(clip_data, batch_size=bad)
     with pytest.raises(ValueError, match="num_workers"):
         TrackedFaceDataModule(clip_data, num_workers=-1)
+
+
+def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, config):
+    """Lightning builds the training loader once and calls ``set_epoch`` on samplers alone (an iterable dataset's
+    loader has none): with the trainer's defaults every epoch repeated epoch 0's shuffled order. Each epoch now
+    yields the order of ``set_epoch(epoch)``, as with ``reload_dataloaders_every_n_epochs=1``."""
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], replace(config, shuffle_buffer=8))
+    expected = []
+    for epoch in range(3):
+        data.set_epoch(epoch)
+        expected.append([(int(i["video"]), int(i["frame"])) for i in data])
+    assert expected[0] != expected[1] and expected[1] != expected[2]
+
+    class Recorder(TinyModel):
+        def __init__(self) -> None:
+            super().__init__()
+            self.seen: dict[int, list[tuple[int, int]]] = {}
+
+        def training_step(self, batch, batch_idx):
+            order = self.seen.setdefault(self.current_epoch, [])
+            order.extend(zip(batch["video"].tolist(), batch["frame"].tolist()))
+            return super().training_step(batch, batch_idx)
+
+    module = Recorder()
+    trainer = pl.Trainer(
+        max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        accelerator="cpu", num_sanity_val_steps=0,
+    )  # fmt: skip
+    trainer.fit(module, datamodule=TrackedFaceDataModule(data, batch_size=4, num_workers=0))
+    assert [module.seen[e] for e in range(3)] == expected

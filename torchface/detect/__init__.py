@@ -288,6 +288,14 @@ class _Batched:
 
         from torchface.io.landmarks import NUM_LANDMARKS
 
+        if isinstance(frames, np.ndarray) and frames.ndim == 3 and frames.shape[-1] == 3:
+            # (one image, as training_hooks' VideoDataset hands its detector: it was "frames must be a
+            # torch.Tensor (B, 3, H, W) ... got ndarray", which named neither the adapter nor the fix)
+            raise TypeError(
+                f"this is a batched detector (torchface.detect.batched: frames (B, 3, H, W) -> (B, 68, 2), for "
+                f"FaceTracker(detector=)), given one {frames.shape} image: where one image at a time is detected "
+                f"(training_hooks' VideoDataset), pass the per-image detector itself, load_detector(...)"
+            )
         if not isinstance(frames, torch.Tensor):
             raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
                             f"got {type(frames).__name__}")  # fmt: skip

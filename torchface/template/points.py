@@ -148,7 +148,9 @@ def _selection_keys(height: int, width: int, device: torch.device, seed: int = 0
 def _cpu_selection_keys(height: int, width: int, seed: int = 0) -> Tensor:
     """:func:`_selection_keys` on the CPU, drawn once per image size and seed (callers must not modify it)."""
     gen = torch.Generator(device="cpu").manual_seed(height * 100003 + width + seed)
-    return torch.rand(height * width, generator=gen)
+    # float32 whatever torch's default dtype: under torch.set_default_dtype(torch.float64) the same seed drew other
+    # keys, another template subset, and a float32 tracker's poses moved (0.24 degrees within 10 GRID frames)
+    return torch.rand(height * width, generator=gen, dtype=torch.float32)
 
 
 def select_template_pixels(
