@@ -226,3 +226,33 @@ def test_readme_python_api_example_runs_and_gives_the_shapes_it_states():
     assert result.expression.shape == result.anim_coeffs.shape == (1, 11)  # "CANDIDE-3 with its 11 animation units"
     assert result.status.shape == result.confidence.shape == (1,) and result.illumination.shape == (1, 5)
     assert faces.shape == (1, 3, 128, 128) and bool(torch.isfinite(faces).all())
+
+
+def test_docs_keeping_the_expression_recipe_is_what_keep_expression_gives():
+    """docs/python-api.md's "Keeping the expression" block, run after the README's Python API block, gives the faces
+    ``LayerConfig(keep_expression=True)`` gives (the same resampling at the person's neutral), and they differ from
+    the README's expression-free ``faces`` on a frame of the ``expressions`` clip where the face has an expression."""
+    import torch
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+    from torchface.normalise import NormalisedFace
+    from training_hooks import LayerConfig, NormalisedFaceLayer
+
+    (api,) = [b for b in _code_blocks("python") if "FaceTracker(TrackerConfig())" in b]
+    section = DOCS["docs/python-api.md"].split("## Keeping the expression", 1)[1].split("\n## ", 1)[0]
+    (recipe,) = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    frames, gt = render_sequence(make_scenario("expressions", 40, 160, 120))
+    scope = {"frames0": frames[:1], "landmarks0": gt.landmarks_px[:1].float(), "frames1": frames[1:2]}
+    exec(compile(api, "README.md", "exec"), scope)
+    tracker = scope["tracker"]
+    for t in range(2, 40):  # on to a frame with an expression (the README block tracked frame 1)
+        tracker(frames[t : t + 1])
+    scope["frames1"] = frames[39:40]
+    exec(compile(recipe, "docs/python-api.md", "exec"), scope)
+    layer = NormalisedFaceLayer(LayerConfig(keep_expression=True, size=128), model=tracker.model)
+    expected = layer.normalise(frames[39:40], tracker.state, tracker.state.params).image
+    assert scope["faces"].shape == (1, 3, 128, 128)
+    assert torch.equal(scope["faces"], expected)
+    expression_free = NormalisedFace(tracker.model)(frames[39:40], tracker.state).image
+    assert (scope["faces"] - expression_free).abs().max() > 0.05
