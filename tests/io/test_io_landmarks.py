@@ -606,3 +606,40 @@ def test_json_landmarks_and_a_torchface_sidecar_are_read(tmp_path):
         with pytest.raises(InputError, match=message) as info:
             read_landmarks(tmp_path / name, 100, 100)
         assert "\n" not in str(info.value)
+
+
+def test_decimal_comma_reading_leaves_comma_separated_files_as_they_were(tmp_path):
+    """Files of integer pixels whose commas separate cells and that hold a semicolon elsewhere were read before the
+    decimal commas, then refused: a title line ``Landmarks; frame 0`` over ``x,y`` rows ("got rows of [1] values":
+    each ``12,40`` read as 12.40) and one row of pairs ``x0,y0;x1,y1;...`` ("got 34"). A comma is a decimal one only
+    on lines whose cells semicolons or tabs separate, and where only the comma-separated reading gives 68 points,
+    that reading is kept."""
+    pts = np.round(_points()).astype(int)
+    rows = "".join(f"{x},{y}\n" for x, y in pts)
+    files = {
+        "title.csv": "Landmarks; frame 0\n" + rows,
+        "pairs.csv": ";".join(f"{x},{y}" for x, y in pts) + "\n",
+        "pairs_tabs.txt": "\t".join(f"{x},{y}" for x, y in pts) + "\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+
+
+def test_thousands_separators_are_refused_not_read_as_decimal_commas(tmp_path):
+    """A tab- or semicolon-separated export of integer pixels formatted with thousands separators (``3,402\\t2,536``,
+    a 4K frame) was refused before the decimal commas ("got rows of [2, 3, 4] values"), then read as decimal commas:
+    every such point silently 1000 times nearer the corner (3.402, 2.536). Where every comma has three digits after
+    it and 1-3 before (a thousands group or a decimal comma), the file is refused, saying so."""
+    pts = np.round(_points() * 40).astype(int)  # up to about 4000 x 3000
+    assert (pts >= 1000).any() and (pts < 1000).any()
+    for name, sep in (("tabs.txt", "\t"), ("semicolons.csv", ";")):
+        (tmp_path / name).write_text("".join(f"{x:,}{sep}{y:,}\n" for x, y in pts))
+        with pytest.raises(InputError, match=r"a thousands separator or a decimal comma"):
+            read_landmarks(tmp_path / name, 4096, 4096)
+    (tmp_path / "three_decimals.csv").write_text("".join(f"{x / 8:.3f};{y / 8:.3f}\n" for x, y in pts).replace(".", ","))
+    with pytest.raises(InputError, match=r"a thousands separator or a decimal comma"):
+        read_landmarks(tmp_path / "three_decimals.csv", 4096, 4096)
+    (tmp_path / "mixed.csv").write_text("".join(f"{x / 8:.3f};{y / 8:.2f}\n" for x, y in pts).replace(".", ","))
+    want = np.column_stack([pts[:, 0] / 8, [float(f"{y / 8:.2f}") for y in pts[:, 1]]])  # (a decimal comma, 2 digits)
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "mixed.csv", 4096, 4096), want)

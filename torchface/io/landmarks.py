@@ -76,11 +76,24 @@ def _cells(line: str, decimal_comma: bool = False) -> list[str]:
 
 def _decimal_comma(lines: list[str]) -> bool:
     """Whether ``lines`` (a CSV's, comments left out) are a spreadsheet's of a locale with a decimal comma: cells
-    separated by semicolons or tabs, a comma between digits (``12,5;40,25``), and no decimal point between digits
-    anywhere (a decimal point says the commas are something else, separators: ``1,234.5;40.5`` is 3 cells)."""
+    separated by semicolons or tabs, a comma between digits (``12,5;40,25``) only on lines so separated (a title
+    ``Landmarks; frame 0`` over ``12,40`` rows: the commas separate), and no decimal point between digits anywhere (a
+    decimal point says the commas are something else, separators: ``1,234.5;40.5`` is 3 cells)."""
     text = "\n".join(lines)
-    separated = ";" in text or "\t" in text
-    return separated and re.search(r"\d,\d", text) is not None and re.search(r"\d\.\d", text) is None
+    commas = [line for line in lines if re.search(r"\d,\d", line)]
+    return bool(commas) and all(";" in c or "\t" in c for c in commas) and re.search(r"\d\.\d", text) is None
+
+
+def _check_not_grouped(p: Path, lines: list[str]) -> None:
+    """Refuse decimal-comma ``lines`` (:func:`_decimal_comma`) where every number with a comma has three digits after
+    it and one to three before (``3,402;2,536``): thousands separators of integer pixels as much as decimal commas
+    (read as decimal commas, a 4K frame's points were silently 1000 times nearer its corner)."""
+    cells = [c.strip().strip("\"'").strip() for line in lines for c in re.split(r"[;\t]", line)]
+    with_comma = [c for c in cells if re.search(r"\d,\d", c)]
+    if with_comma and all(re.fullmatch(r"[-+]?\d{1,3}(,\d{3})+", c) for c in with_comma):
+        raise InputError(f"{p}: every number with a comma has 3 digits after it ({with_comma[0]}): a thousands "
+                         f"separator or a decimal comma? Save the numbers without thousands separators (or with "
+                         f"another number of decimals)")  # fmt: skip
 
 
 def _trimmed(cells: list[str], width: int) -> list[str]:
@@ -340,12 +353,35 @@ def _parse_long(
 
 
 def _parse_csv(p: Path, text: str) -> np.ndarray:
+    """A CSV's points (:func:`_parse_csv_as`), its commas read as decimal ones where :func:`_decimal_comma` says so,
+    unless only the comma-separated reading gives 68 points (one row of pairs ``x0,y0;x1,y1;...`` of integers)."""
+    lines = [line for line in text.splitlines() if not line.strip().startswith("#")]
+    if not _decimal_comma(lines):
+        return _parse_csv_as(p, text, False)
+    _check_not_grouped(p, lines)
+    try:
+        points: np.ndarray | None = _parse_csv_as(p, text, True)
+    except InputError as exc:
+        points, error = None, exc
+    if points is None or points.size != 2 * NUM_LANDMARKS:
+        try:
+            separated = _parse_csv_as(p, text, False)
+            if separated.size == 2 * NUM_LANDMARKS:
+                return separated
+        except InputError:
+            pass
+    if points is None:
+        raise error
+    return points
+
+
+def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
+    """A CSV's points; ``comma``: its commas are decimal ones (:func:`_decimal_comma`)."""
     data: list[list[str]] = []  # the number rows' cells
     header: str | None = None
     long: tuple[str | None, int, int, int] | None = None
     long_lines: list[tuple[int, str]] = []
     lines = text.splitlines()
-    comma = _decimal_comma([line for line in lines if not line.strip().startswith("#")])
     # tab-separated: a tab at a line's ends separates cells, empty ones (``\t``: a missing point; ``5\t\t``)
     tabs = any("\t" in line.strip() for line in lines)
     for number, line in enumerate(lines, start=1):
