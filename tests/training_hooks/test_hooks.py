@@ -393,3 +393,14 @@ def test_the_private_name_scan_finds_each_kind_of_use(tmp_path):
         "a.py:8: torchface.backend.Backend._member_map_", "a.py:8: torchface.backend._native",
         "a.py:8: torchface.tracker.step._bounds", "a.py:9: torchface._compiling",
     ]  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.bool, torch.uint8])
+def test_face_coverage_of_low_precision_masks_is_exact(dtype):
+    """A bfloat16 mask's frame means were taken in bfloat16 (the float64 cast left out to avoid the copy): 5000 of
+    128 x 128 pixels read 0.3047 instead of 0.30518 (the float64 mean before); each frame's mean is now accumulated
+    and returned in float32 at least."""
+    mask = torch.zeros(4, 1, 128, 128)
+    mask.view(4, -1)[:, :5000] = 1
+    got = tracking_quality({"confidence": torch.ones(4), "mask": mask.to(dtype)})["face_coverage"]
+    assert got == 5000 / 128**2
