@@ -643,3 +643,25 @@ def test_thousands_separators_are_refused_not_read_as_decimal_commas(tmp_path):
     (tmp_path / "mixed.csv").write_text("".join(f"{x / 8:.3f};{y / 8:.2f}\n" for x, y in pts).replace(".", ","))
     want = np.column_stack([pts[:, 0] / 8, [float(f"{y / 8:.2f}") for y in pts[:, 1]]])  # (a decimal comma, 2 digits)
     np.testing.assert_array_equal(read_landmarks(tmp_path / "mixed.csv", 4096, 4096), want)
+
+
+def test_pandas_and_one_row_per_point_files_with_decimal_commas_are_read(tmp_path):
+    """``DataFrame.to_csv(path, sep=";", decimal=",")`` (a decimal-comma locale's pandas: ``;x;y`` then rows
+    ``0;16,75;29,0``) was refused with "line 2 is not 'index, x, y' numbers" (it is): the index layout split the rows
+    at their first comma, the decimal one; a one-row-per-point header with a comma in a column name (``meaning,
+    notes``) was split there too ("line 2 is not numbers"). The decimal commas' separator, ``;`` or a tab, is now
+    the cells'."""
+    pts = _dyadic_points()
+
+    def comma(v: float) -> str:
+        return repr(float(v)).replace(".", ",")
+
+    files = {
+        "pandas.csv": ";x;y\n" + "".join(f"{k};{comma(x)};{comma(y)}\n" for k, (x, y) in enumerate(pts)),
+        "pandas_tabs.tsv": "\t0\t1\n" + "".join(f"{k}\t{comma(x)}\t{comma(y)}\n" for k, (x, y) in enumerate(pts)),
+        "long.csv": "ibug_index;x;y;meaning, notes\n"
+        + "".join(f"{k};{comma(x)};{comma(y)};jaw\n" for k, (x, y) in enumerate(pts)),
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)

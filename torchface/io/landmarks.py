@@ -301,15 +301,17 @@ def _parse_pts(p: Path, text: str) -> np.ndarray:
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
 
 
-def _delimiter(line: str) -> str | None:
-    """The character that separates ``line``'s cells: a comma, semicolon or tab; None: spaces."""
-    return next((d for d in (",", ";", "\t") if d in line), None)
+def _delimiter(line: str, decimal_comma: bool = False) -> str | None:
+    """The character that separates ``line``'s cells: a comma, semicolon or tab (``decimal_comma``,
+    :func:`_decimal_comma`: a semicolon or tab, a comma being a decimal point); None: spaces."""
+    return next((d for d in ((";", "\t") if decimal_comma else (",", ";", "\t")) if d in line), None)
 
 
-def _long_columns(header: str) -> tuple[str | None, int, int, int] | None:
+def _long_columns(header: str, decimal_comma: bool = False) -> tuple[str | None, int, int, int] | None:
     """``(delimiter, index, x, y)`` column positions when ``header`` names a point-index column and ``x``, ``y``
-    (a one-row-per-point CSV); None otherwise. ``delimiter`` None: cells separated by spaces."""
-    delimiter = _delimiter(header)
+    (a one-row-per-point CSV); None otherwise. ``delimiter`` None: cells separated by spaces (``decimal_comma``: see
+    :func:`_delimiter`)."""
+    delimiter = _delimiter(header, decimal_comma)
     names = [n.lower() for n in _split(header, delimiter)]
     index = next((names.index(n) for n in _INDEX_COLUMNS if n in names), None)
     if index is None or "x" not in names or "y" not in names:
@@ -399,7 +401,7 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
             if data or header is not None:  # one header line at most, before the numbers
                 raise InputError(f"{p}: line {number} is not numbers: {line[:60]!r}") from None
             header = line
-            long = _long_columns(header)
+            long = _long_columns(header, comma)
             continue
         data.append(cells)
         long_lines.append((number, line))
@@ -410,7 +412,7 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
     if [n.lower() for n in first] in (["", "x", "y"], ["", "0", "1"]):
         indexed = long_lines if header is not None else long_lines[1:]
         if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in data[len(data) - len(indexed) :]):
-            return _parse_long(p, indexed, (_delimiter(indexed[0][1]), 0, 1, 2), comma)
+            return _parse_long(p, indexed, (_delimiter(indexed[0][1], comma), 0, 1, 2), comma)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
