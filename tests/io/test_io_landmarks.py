@@ -665,3 +665,19 @@ def test_pandas_and_one_row_per_point_files_with_decimal_commas_are_read(tmp_pat
     for name, text in files.items():
         (tmp_path / name).write_text(text)
         np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+
+
+def test_a_sidecar_of_a_run_started_after_frame_0_is_refused(tmp_path):
+    """A sidecar's ``initial_landmarks_px`` are those of the frame its run started at, ``start.first_frame``: 0, or
+    with a detector the first frame where it found a face. Such a sidecar given as ``--landmarks`` (the first frame's)
+    was read without a word: frame 12's points placed on frame 0's face. It is refused, naming the frame."""
+    import json
+
+    pts = _dyadic_points()
+    sidecar = {"torchface_output": "track", "initial_landmarks_px": pts.tolist(), "start": {"first_frame": 12}}
+    (tmp_path / "late.json").write_text(json.dumps(sidecar))
+    with pytest.raises(InputError, match=r"late\.json: that run started at frame 12 .* not the first frame's"):
+        read_landmarks(tmp_path / "late.json", 100, 100)
+    sidecar["start"]["first_frame"] = 0
+    (tmp_path / "first.json").write_text(json.dumps(sidecar))
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "first.json", 100, 100), pts)

@@ -24,7 +24,8 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``;
 - JSON (``.json``): a list of 68 ``[x, y]`` pairs (or of 136 numbers), or an object holding them as
-  ``initial_landmarks_px``: a torchface sidecar, so a run can start from the landmarks another one started from.
+  ``initial_landmarks_px``: a torchface sidecar, so a run can start from the landmarks another one started from
+  (one whose ``start.first_frame`` is 0: a run its detector started later, on that frame's landmarks, is refused).
 
 Missing points (a detector's occluded ones): a point may be left out as a NaN row, which the landmark fit gives
 weight 0, as the tracker's Python API does a NaN row; the file keeps its count of 68 (its points are placed by
@@ -223,6 +224,11 @@ def _parse_json(p: Path, text: str) -> np.ndarray:
         if value.get("initial_landmarks_px") is None:
             raise InputError(f"{p}: a JSON object without initial_landmarks_px (a torchface sidecar's): expected a "
                              f"list of {NUM_LANDMARKS} [x, y] pairs, or a sidecar")  # fmt: skip
+        start = value.get("start")
+        first = start.get("first_frame") if isinstance(start, dict) else None
+        if isinstance(first, int) and first != 0:  # (a detector's first face: those landmarks are that frame's)
+            raise InputError(f"{p}: that run started at frame {first} (where its detector first found the face): its "
+                             f"initial_landmarks_px are that frame's, not the first frame's")  # fmt: skip
         value = value["initial_landmarks_px"]
 
     def number(c: object) -> float:
