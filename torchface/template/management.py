@@ -220,7 +220,8 @@ class TemplateConfig:
             face taken for a profile with strong expression units) scored 0.47-0.82 on one patch, ended the loss
             and stayed successful for 18 frames (README, Known limitations, "Fast motion"). Only lost streams
             are judged so: a right track at a turned pose keeps its confidence (a floor for every frame,
-            ``DissimilarityConfig.min_present_fraction``, doubled the false losses at turned poses).
+            ``DissimilarityConfig.min_present_fraction``, doubled the false losses at turned poses). Such a score
+            counts as matching nothing for ``restart_after_unmatched`` too.
         recovery_every: a lost stream attempts a recovery when it is lost and then every this many frames (an
             attempt costs about three frames' time: the search, then a solve).
         restart_after_unmatched: with a detector, a lost stream starts afresh from the detector's landmarks
