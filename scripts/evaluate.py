@@ -929,6 +929,11 @@ def main(argv: list[str] | None = None) -> int:
         help="TemplateConfig.search_step_px for every run (the mosaic search's first-stage grid step, in pixels of the "
         "searched pyramid level halved once more; default: TemplateConfig's)",
     )
+    parser.add_argument(
+        "--recover-min-patches", type=int, default=None, metavar="N",
+        help="TemplateConfig.recover_min_patches for every run (a lost stream's track or recovery candidate whose "
+        "dissimilarity rests on fewer present fiducial patches scores 0; default: TemplateConfig's, 0: off)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -962,6 +967,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--motion-prediction must be in [0, 1], got {args.motion_prediction}")
     if args.search_step_px is not None and not (math.isfinite(args.search_step_px) and args.search_step_px > 0.0):
         parser.error(f"--search-step-px must be positive and finite, got {args.search_step_px}")
+    if args.recover_min_patches is not None and args.recover_min_patches < 0:
+        parser.error(f"--recover-min-patches must be >= 0, got {args.recover_min_patches}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     sparsity: float | None = None
@@ -1033,6 +1040,8 @@ def main(argv: list[str] | None = None) -> int:
         base = replace(base, motion_prediction=args.motion_prediction)
     if args.search_step_px is not None:  # the same
         base = replace(base, template=replace(base.template, search_step_px=args.search_step_px))
+    if args.recover_min_patches is not None:  # the same
+        base = replace(base, template=replace(base.template, recover_min_patches=args.recover_min_patches))
     if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior
         base = replace(base, expression_sparsity=sparsity)
     results: dict[str, dict[str, object]] = {}

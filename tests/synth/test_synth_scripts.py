@@ -509,6 +509,39 @@ def test_evaluate_eyelids_sets_the_eyelid_configuration(monkeypatch):
     assert (quota.expression_quota, quota.expression_sparsity) == (0.02, 0.03)
 
 
+def test_evaluate_recover_min_patches_sets_every_runs_setting(monkeypatch, capsys):
+    """--recover-min-patches sets TemplateConfig.recover_min_patches of every run (nothing else); without it the
+    default (0: off); a negative count is a one-line error before any work."""
+    from dataclasses import replace
+
+    import pytest
+
+    from torchface.tracker.step import TrackerConfig
+
+    evaluate = _load("evaluate")
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def spy(model, config, *args, **kwargs):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(evaluate, "track_sequence", spy)
+    base = ["--scenarios", "expressions", "--frames", "2", "--size", "64x48", "--cache", "none", "--ablations",
+            "none", "--no-auroc"]  # fmt: skip
+    for flags in ([], ["--recover-min-patches", "3"]):
+        with pytest.raises(Stop):
+            evaluate.main([*base, *flags])
+    plain, thin = seen
+    assert plain == TrackerConfig()
+    assert thin == replace(TrackerConfig(), template=replace(TrackerConfig().template, recover_min_patches=3))
+    with pytest.raises(SystemExit) as info:
+        evaluate.main([*base, "--recover-min-patches", "-1"])
+    assert info.value.code == 2 and "--recover-min-patches must be >= 0" in capsys.readouterr().err
+
+
 def test_evaluate_search_step_px_sets_every_runs_search_grid(monkeypatch, capsys):
     """--search-step-px sets TemplateConfig.search_step_px of every run (nothing else); without it the default;
     zero or negative is a one-line error before any work."""

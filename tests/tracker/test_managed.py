@@ -831,6 +831,45 @@ def test_a_lost_track_off_the_searched_depths_does_not_end_its_loss(model, gentl
     torch.testing.assert_close(kept.rotation, ended.rotation)  # the same solve; only the gating differs
 
 
+@pytest.mark.parametrize(("native", "attempt"), [(True, False), (False, False), (True, True)])
+def test_a_lost_track_on_too_few_fiducial_patches_does_not_end_its_loss(model, gentle, native, attempt, monkeypatch):
+    """``TemplateConfig.recover_min_patches``: a lost stream whose entry's reference holds one textured patch (a
+    profile entry: the James long run's -59 degree entry held two, one of them present) scores on that patch
+    alone and ends its loss by default; with ``recover_min_patches=3`` its track, and with a recovery attempt its
+    candidate too, score 0 and it stays lost. A stream that is not lost keeps its confidence on the same patch,
+    and a lost one whose reference holds all its patches ends the loss with the setting on."""
+    if not native:
+        monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    ms = state.management
+    refs = ms.mosaic.references
+    first = int(refs.patch_valid[0, 0].nonzero()[0])
+    one = torch.zeros_like(refs.patch_valid)
+    one[:, :, first] = refs.patch_valid[:, :, first]
+    thin = replace(ms, mosaic=replace(ms.mosaic, references=replace(refs, patch_valid=one)))
+    since = CFG.template.recovery_every - 1 if attempt else 0  # (the step counts one more: an attempt, or none)
+
+    def lost(m):
+        return replace(m, lost=torch.ones(1, dtype=torch.bool), since_attempt=torch.full_like(m.since_attempt, since))
+
+    on = replace(CFG, template=replace(CFG.template, recover_min_patches=3))
+    _, ended = managed_step(model, CFG, replace(state, management=lost(thin)), frames[:, 1])
+    assert bool(ended.success[0]) and float(ended.confidence[0]) >= CFG.template.recover_confidence  # the control
+    after, kept = managed_step(model, on, replace(state, management=lost(thin)), frames[:, 1])
+    assert not bool(kept.success[0]) and float(kept.confidence[0]) == 0.0
+    assert bool(after.management.lost[0])
+    if not attempt:
+        torch.testing.assert_close(kept.rotation, ended.rotation)  # the same solve; only the gating differs
+    _, tracked = managed_step(model, on, replace(state, management=thin), frames[:, 1])
+    _, default = managed_step(model, CFG, replace(state, management=thin), frames[:, 1])
+    assert bool(tracked.success[0]) and float(tracked.confidence[0]) == float(default.confidence[0]) > 0.5
+    _, full = managed_step(model, on, replace(state, management=lost(ms)), frames[:, 1])
+    assert bool(full.success[0])
+    with pytest.raises(ValueError, match="recover_min_patches"):
+        TemplateConfig(recover_min_patches=-1)
+
+
 def test_errors(model, gentle):
     frames, gt = gentle
     bare_state, _ = initialise(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))

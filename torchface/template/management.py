@@ -211,6 +211,17 @@ class TemplateConfig:
             landmark-noise draw 2 (and README's per-unit shape prior with ``LookaheadConfig(min_keyframes=1,
             yaw_deg=10)``), lost under an occluder, the track drifted to twice the depth and 51 degrees
             off, scored 0.58 and ended the loss.
+        recover_min_patches: a lost stream's continued track, and a recovery candidate, whose dissimilarity rests
+            on fewer than this many present fiducial patches (:attr:`~torchface.template.dissimilarity.
+            DissimilarityResult.present`, against the entry nearest it) scores 0: it neither ends the loss nor is
+            adopted. 0 (the default) or 1: off. A profile entry's reference holds few textured patches (the
+            James long run's -59 degree entry two, of which one was present), and a mean over one of them says
+            nothing: there, with ``TrackerConfig(motion_prediction=0.5)``, a lost track 65-72 degrees off (the
+            face taken for a profile with strong expression units) scored 0.47-0.82 on one patch, ended the loss
+            and stayed successful for 18 frames (README, Known limitations, "Fast motion"). Only lost streams
+            are judged so: a right track at a turned pose keeps its confidence (a floor for every frame,
+            ``DissimilarityConfig.min_present_fraction``, doubled the false losses at turned poses). Such a score
+            counts as matching nothing for ``restart_after_unmatched`` too.
         recovery_every: a lost stream attempts a recovery when it is lost and then every this many frames (an
             attempt costs about three frames' time: the search, then a solve).
         restart_after_unmatched: with a detector, a lost stream starts afresh from the detector's landmarks
@@ -293,6 +304,7 @@ class TemplateConfig:
     adopt_min_confidence: float = 0.01
     recover_confidence: float = 0.35
     recovery_every: int = 5
+    recover_min_patches: int = 0
     restart_after_unmatched: int = 0
     search_step_px: float = 3.0
     search_depth_factors: tuple[float, ...] = (0.85, 1.0, 1.2)
@@ -315,13 +327,15 @@ class TemplateConfig:
                      "clean_rejected_fraction"):  # fmt: skip
             object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.5": "'<' not supported"
         for name in ("max_entries", "normalised_size", "entry_stride", "lost_after", "lost_after_very_low",
-                     "recovery_every", "search_points", "restart_after_unmatched"):  # fmt: skip
+                     "recovery_every", "search_points", "restart_after_unmatched", "recover_min_patches"):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name))
         if min(self.max_entries, self.lost_after, self.lost_after_very_low, self.recovery_every) < 1:
             raise ValueError(
                 "max_entries, lost_after, lost_after_very_low and recovery_every must be >= 1, got "
                 f"{self.max_entries}, {self.lost_after}, {self.lost_after_very_low}, {self.recovery_every}"
             )
+        if self.recover_min_patches < 0:
+            raise ValueError(f"recover_min_patches must be >= 0 (0: off), got {self.recover_min_patches}")
         if self.restart_after_unmatched < 0:
             raise ValueError(f"restart_after_unmatched must be >= 0 (0: off), got {self.restart_after_unmatched}")
         if self.entry_stride < 1:

@@ -949,6 +949,27 @@ def _within_searched_depths(
     return (ratio >= lo * scales.clamp(max=1.0)) & (ratio <= hi * scales.clamp(min=1.0))
 
 
+def _thin(
+    model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, params: Tensor,
+    shape_coeffs: Tensor, intrinsics: Intrinsics, rows: Tensor,
+) -> Tensor:
+    """``(B',)`` bool: the estimates ``params`` ``(B', P)`` of the streams ``rows`` (their ``frames``
+    ``(B', C, H, W)`` and ``shape_coeffs``) whose dissimilarity, against the mosaic entry nearest each as
+    :func:`_confidence` measures it, rests on fewer than ``TemplateConfig.recover_min_patches`` present fiducial
+    patches (README, Known limitations, "Fast motion": a lost track 65-72 degrees off scored 0.47-0.82 on one)."""
+    aa, t, alpha, light = _layout(model).split(params)
+    R = axis_angle_to_matrix(aa)
+    nearest = torch.zeros_like(rows)
+    if ms.mosaic.capacity > 1:
+        nearest = nearest_entries(ms.mosaic, matrix_to_euler(R), streams=rows)
+    reference = ms.mosaic.references.select((rows, nearest))
+    verts_cam = transform_points(R, t, model.deform(shape_coeffs, alpha))
+    face = reference_face(frames, model, ms.layout, shape_coeffs, alpha, aa, t, light, intrinsics, config.template,
+                          verts_cam=verts_cam, backend=config.backend)  # fmt: skip
+    present = dissimilarity(reference, *face, backend=config.backend).present.sum(-1)
+    return present < config.template.recover_min_patches
+
+
 @full_precision
 @without_autograd(step_grad_inputs)
 def managed_step(
@@ -1107,6 +1128,14 @@ def managed_step(
     if bool(ms.lost.any()):
         near = _within_searched_depths(solved.params, ms.confident_params, layout, tc, ms.adopted_scale)
         conf = torch.where(ms.lost & ~near, torch.zeros_like(conf), conf)
+        # With TemplateConfig.recover_min_patches, a lost stream's track whose confidence rests on too few fiducial
+        # patches scores 0 as well (James long run with motion_prediction 0.5: 65-72 degrees off, 0.47-0.82 on one).
+        if tc.recover_min_patches > 1:
+            index = ms.lost.nonzero().squeeze(-1)
+            thin = _thin(model, config, ms, frames[index], solved.params[index], solved.shape_coeffs[index],
+                         solved.intrinsics, index)  # fmt: skip
+            conf = conf.clone()
+            conf[index[thin]] = 0.0
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
         confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
@@ -1147,6 +1176,10 @@ def managed_step(
         found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = _recover(
             model, config, state, ms, frames, index, detector, scales
         )
+        if tc.recover_min_patches > 1:  # a candidate on too few fiducial patches scores 0 (as the track above)
+            thin = _thin(model, config, ms, frames[index], r_state.params, r_state.shape_coeffs, r_state.intrinsics,
+                         index)  # fmt: skip
+            r_conf = torch.where(thin, torch.zeros_like(r_conf), r_conf)
         # A candidate that beats the continued track and scores at least adopt_min_confidence (below it the
         # candidate's solve ran off the face: benchmark.py's streams adopted candidates 60-100 degrees off that
         # scored 0.000 beside right tracks scoring less), and disagrees with it by more than adopt_min_angle_deg, is
