@@ -1994,3 +1994,40 @@ def test_plausible_entry_deg_is_validated():
     for bad in (-1.0, math.inf, math.nan):
         with pytest.raises(ValueError, match="plausible_entry_deg"):
             TemplateConfig(plausible_entry_deg=bad)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_lost_track_turned_too_fast_from_its_last_confident_pose_does_not_end_its_loss_when_asked(
+    model, gentle, native, monkeypatch
+):
+    """With ``plausible_turn_deg = (base, per_frame)`` a lost stream's track farther than ``base + per_frame * n``
+    from its last confident pose (``n``: frames since it) scores 0 and stays lost; within it, or with the check off
+    (the default), the same track ends its loss."""
+    if not native:
+        monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    ms = state.management
+    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
+                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
+                                             low_count=torch.full_like(ms.low_count, 3)))  # fmt: skip
+    _, ended = managed_step(model, CFG, lost, frames[:, 1])
+    assert bool(ended.success[0]) and float(ended.confidence[0]) > 0.5  # the control: the loss ends
+    R_c = axis_angle_to_matrix(ms.confident_params[:, 0:3]).to(ended.rotation.dtype)
+    turned = float(geodesic_angle_deg(ended.rotation[0], R_c[0]))
+    assert turned > 1e-3, turned
+    # 4 frames since the last confident one: base + 4 * per_frame just above and just below the turn
+    _, still = managed_step(model, replace(CFG, template=replace(CFG.template, plausible_turn_deg=(
+        turned / 2, turned / 8 + 1e-3))), lost, frames[:, 1])  # fmt: skip
+    assert bool(still.success[0])
+    after, kept = managed_step(model, replace(CFG, template=replace(CFG.template, plausible_turn_deg=(
+        turned / 2, turned / 8 - 1e-3))), lost, frames[:, 1])  # fmt: skip
+    assert not bool(kept.success[0]) and float(kept.confidence[0]) == 0.0
+    assert bool(after.management.lost[0])
+    torch.testing.assert_close(kept.rotation, ended.rotation)  # the same solve; only the gating differs
+
+
+def test_plausible_turn_deg_is_validated():
+    for bad in ((1.0,), (-1.0, 0.0), (1.0, math.nan), (math.inf, 0.0)):
+        with pytest.raises(ValueError, match="plausible_turn_deg"):
+            TemplateConfig(plausible_turn_deg=bad)
