@@ -243,11 +243,14 @@ class TemplateConfig:
             loss, and a recovery candidate so far from the entry its search matched is not adopted (a confidence
             against a view that far away is no evidence of the pose). 0 (the default) turns the check off.
             Investigated against the long runs' wrong recoveries with ``search_step_px`` 2 (README, Known
-            limitations, Fast motion).
+            limitations, Fast motion): it does not separate them (wrong candidates 12-18 degrees from their entry,
+            the right one 14); ``plausible_turn_deg`` does.
         plausible_turn_deg: ``(base, per_frame)``: a lost stream's pose must lie within ``base + per_frame * n``
             degrees of its last confident pose, ``n`` frames after it, or it scores 0 (the continued track) or is
             not adopted (a recovery candidate), as above: a head does not turn faster than that. ``(0, 0)`` (the
-            default) turns the check off.
+            default) turns the check off. ``(15, 1)`` with ``search_step_px`` 2 removed the CANDIDE-3 long run's
+            wrong recovery (draw 0: a successful frame 62 degrees off, now 5) and left the James scan and draw 3
+            as they were; ``(15, 0.5)`` held a right track on the James scan lost 8 frames longer.
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
         search_depth_widening: from a loss's second recovery attempt on (without a detector), each search also
             tries ``search_depth_factors`` scaled by the next of these in turn, and a candidate found there may be
