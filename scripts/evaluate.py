@@ -935,12 +935,6 @@ def main(argv: list[str] | None = None) -> int:
         "than BASE + PER_FRAME * frames from its last confident pose neither ends the loss nor is adopted; default: "
         "TemplateConfig's, 0 0: off)",
     )
-    parser.add_argument(
-        "--plausible-entry-deg", type=float, default=None, metavar="DEG",
-        help="TemplateConfig.plausible_entry_deg for every run (a lost stream's track or recovery candidate farther "
-        "than this from the mosaic entry it was scored against neither ends the loss nor is adopted; default: "
-        "TemplateConfig's, 0: off)",
-    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -1047,8 +1041,6 @@ def main(argv: list[str] | None = None) -> int:
         base = replace(base, template=replace(base.template, search_step_px=args.search_step_px))
     if args.plausible_turn_deg is not None:  # the same (TemplateConfig checks the value)
         base = replace(base, template=replace(base.template, plausible_turn_deg=tuple(args.plausible_turn_deg)))
-    if args.plausible_entry_deg is not None:  # the same (TemplateConfig checks the value)
-        base = replace(base, template=replace(base.template, plausible_entry_deg=args.plausible_entry_deg))
     if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior
         base = replace(base, expression_sparsity=sparsity)
     results: dict[str, dict[str, object]] = {}

@@ -238,13 +238,6 @@ class TemplateConfig:
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
             halved once more (:func:`search_mosaic`). 2 finds faces the default grid misses, wrong placements too,
             at twice the cost (README, Known limitations, Fast motion: measured on the long runs).
-        plausible_entry_deg: a lost stream's pose must lie within this many degrees of the rotation of the mosaic
-            entry it was scored against, or it scores 0: a continued track so far from its entry does not end the
-            loss, and a recovery candidate so far from the entry its search matched is not adopted (a confidence
-            against a view that far away is no evidence of the pose). 0 (the default) turns the check off.
-            Investigated against the long runs' wrong recoveries with ``search_step_px`` 2 (README, Known
-            limitations, Fast motion): it does not separate them (wrong candidates 12-18 degrees from their entry,
-            the right one 14); ``plausible_turn_deg`` does.
         plausible_turn_deg: ``(base, per_frame)``: a lost stream's pose must lie within ``base + per_frame * n``
             degrees of its last confident pose, ``n`` frames after it, or it scores 0 (the continued track) or is
             not adopted (a recovery candidate), as above: a head does not turn faster than that. ``(0, 0)`` (the
@@ -315,7 +308,6 @@ class TemplateConfig:
     clean_radius_deg: float = 3.0
     clean_rejected_fraction: float = 0.01
     conservative_when_unconfident: bool = False
-    plausible_entry_deg: float = 0.0
     plausible_turn_deg: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
@@ -327,7 +319,7 @@ class TemplateConfig:
                      "reference_radius_deg", "min_facing_cos", "confidence_threshold", "add_confidence", "entry_reach",
                      "very_low_confidence", "min_inside_fraction", "adopt_min_angle_deg", "adopt_min_confidence",
                      "recover_confidence", "search_step_px", "search_min_inside", "clean_radius_deg",
-                     "clean_rejected_fraction", "plausible_entry_deg"):  # fmt: skip
+                     "clean_rejected_fraction"):  # fmt: skip
             object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.5": "'<' not supported"
         for name in ("max_entries", "normalised_size", "entry_stride", "lost_after", "lost_after_very_low",
                      "recovery_every", "search_points", "restart_after_unmatched"):  # fmt: skip
@@ -358,8 +350,6 @@ class TemplateConfig:
             raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
         if not self.clean_radius_deg >= 0:
             raise ValueError(f"clean_radius_deg must be >= 0, got {self.clean_radius_deg}")
-        if not (math.isfinite(self.plausible_entry_deg) and self.plausible_entry_deg >= 0):
-            raise ValueError(f"plausible_entry_deg must be finite and >= 0 (0: off), got {self.plausible_entry_deg}")
         turn = tuple(float(check_real(v, "plausible_turn_deg")) for v in self.plausible_turn_deg)
         if len(turn) != 2 or not all(math.isfinite(v) and v >= 0 for v in turn):
             raise ValueError(f"plausible_turn_deg must be two finite values >= 0, got {self.plausible_turn_deg}")

@@ -1105,15 +1105,11 @@ def managed_step(
     if bool(ms.lost.any()):
         near = _within_searched_depths(solved.params, ms.confident_params, layout, tc, ms.adopted_scale)
         conf = torch.where(ms.lost & ~near, torch.zeros_like(conf), conf)
-        if tc.plausible_turn_deg[0] > 0:  # (opt-in) nor does one turned faster than a head turns
+        if max(tc.plausible_turn_deg) > 0:  # (opt-in) nor does one turned faster than a head turns
             turned = geodesic_angle_deg(result.rotation, axis_angle_to_matrix(
                 ms.confident_params[:, layout.rotation]).to(result.rotation.dtype))  # fmt: skip
             reach = tc.plausible_turn_deg[0] + tc.plausible_turn_deg[1] * (ms.low_count + 1).to(turned.dtype)
             conf = torch.where(ms.lost & (turned > reach), torch.zeros_like(conf), conf)
-        if tc.plausible_entry_deg > 0:  # (opt-in) nor does one far from the entry it was scored against
-            rows = torch.arange(entry.shape[0], device=entry.device)
-            off = geodesic_angle_deg(result.rotation, ms.mosaic.rotation[rows, entry].to(result.rotation.dtype))
-            conf = torch.where(ms.lost & (off > tc.plausible_entry_deg), torch.zeros_like(conf), conf)
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
         confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
@@ -1180,14 +1176,11 @@ def managed_step(
             near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
-        if tc.plausible_turn_deg[0] > 0:  # (opt-in) nor one turned from the last confident pose faster than a head
+        if max(tc.plausible_turn_deg) > 0:  # (opt-in) nor one turned from the last confident pose faster than a head
             turned = geodesic_angle_deg(r_result.rotation, axis_angle_to_matrix(
                 ms.confident_params[index][:, layout.rotation]).to(r_result.rotation.dtype))  # fmt: skip
             reach = tc.plausible_turn_deg[0] + tc.plausible_turn_deg[1] * (ms.low_count[index] + 1).to(turned.dtype)
             adopt = adopt & (turned <= reach)
-        if tc.plausible_entry_deg > 0:  # (opt-in) a candidate far from the entry its search matched ran off it
-            matched = ms.mosaic.rotation[index, r_entry].to(r_result.rotation.dtype)
-            adopt = adopt & (geodesic_angle_deg(r_result.rotation, matched) <= tc.plausible_entry_deg)
         ok = adopt & (r_conf >= tc.recover_confidence)
         if detector is not None and tc.restart_after_unmatched > 0:
             # The detector found a face and neither its candidate nor the continued track scores
