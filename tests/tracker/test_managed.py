@@ -1997,6 +1997,30 @@ def test_a_lost_track_turned_too_fast_from_its_last_confident_pose_does_not_end_
     torch.testing.assert_close(kept.rotation, ended.rotation)  # the same solve; only the gating differs
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_a_lost_frame_above_the_threshold_but_below_recovery_still_counts_as_not_confident(
+    model, gentle, native, monkeypatch
+):
+    """A lost stream's track that scores above ``confidence_threshold`` but below ``recover_confidence`` stays lost
+    and its pose is not confident: ``low_count`` goes on counting (the frames since ``confident_params``, which
+    ``plausible_turn_deg``'s reach grows with), it does not restart at 0 (it did: the reach then shrank back to
+    ``base + per_frame`` while the last confident pose stayed the one before the loss)."""
+    if not native:
+        monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    ms = state.management
+    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
+                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
+                                             low_count=torch.full_like(ms.low_count, 20)))  # fmt: skip
+    strict = replace(CFG, template=replace(CFG.template, recover_confidence=0.9999, recovery_every=1000))
+    after, res = managed_step(model, strict, lost, frames[:, 1])
+    assert CFG.template.confidence_threshold <= float(res.confidence[0]) < 0.9999, float(res.confidence[0])
+    assert bool(after.management.lost[0])
+    torch.testing.assert_close(after.management.confident_params, ms.confident_params)
+    assert int(after.management.low_count[0]) == 21
+
+
 def test_plausible_turn_deg_is_validated():
     for bad in ((1.0,), (-1.0, 0.0), (1.0, math.nan), (math.inf, 0.0)):
         with pytest.raises(ValueError, match="plausible_turn_deg"):

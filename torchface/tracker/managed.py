@@ -154,7 +154,8 @@ class ManagementState:
             references per entry).
         layout: the normalised-face layout the dissimilarity is measured on (shared by the batch).
         entry: ``(B,)`` int64 the mosaic entry whose templates are ``TrackerState.templates``.
-        low_count: ``(B,)`` int64 consecutive frames below the confidence threshold.
+        low_count: ``(B,)`` int64 consecutive frames not confident (below the confidence threshold, or lost):
+            the frames since ``confident_params``.
         very_low_count: ``(B,)`` int64 consecutive frames below the very-low confidence threshold.
         lost: ``(B,)`` bool, the stream is lost.
         confident_params: ``(B, P)`` the parameters of the last confident frame.
@@ -1125,6 +1126,12 @@ def managed_step(
         since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
         since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
         attempt = lost & (since >= tc.recovery_every)
+    # A lost stream's frame scoring between confidence_threshold and recover_confidence is not confident either
+    # (confident_params keeps the pose before the loss): low_count counts it, so that it stays the frames since that
+    # pose, which plausible_turn_deg's reach grows with (it had restarted there: James scan, landmark-noise draw 2,
+    # 2-px grid, (15, 1): a right track 17-18 degrees from that pose held lost 27 frames longer). Nothing else reads
+    # a lost stream's count: defaults unchanged.
+    low_count = torch.where(confident & lost, ms.low_count + 1, low_count)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
     params_ypr: Tensor | None  # None: not known (rows reverted to the confident parameters or adopted)
     params, params_ypr = solved.params, result.ypr_deg.clone()  # (a copy: the caller may modify the result's)
