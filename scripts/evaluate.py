@@ -968,6 +968,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--motion-prediction must be in [0, 1], got {args.motion_prediction}")
     if args.search_step_px is not None and not (math.isfinite(args.search_step_px) and args.search_step_px > 0.0):
         parser.error(f"--search-step-px must be positive and finite, got {args.search_step_px}")
+    if args.plausible_turn_deg is not None and not all(math.isfinite(v) and v >= 0 for v in args.plausible_turn_deg):
+        parser.error(f"--plausible-turn-deg must be two finite values >= 0, got {args.plausible_turn_deg}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     sparsity: float | None = None
