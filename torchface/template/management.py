@@ -242,8 +242,8 @@ class TemplateConfig:
             degrees of its last confident pose, ``n`` frames after it, or it scores 0 (the continued track) or is
             not adopted (a recovery candidate), as above: a head does not turn faster than that. ``(0, 0)`` (the
             default) turns the check off. ``(15, 1)`` with ``search_step_px`` 2 removed the CANDIDE-3 long run's
-            wrong recovery (draw 0: a successful frame 62 degrees off, now 5) and left the James scan and draw 3
-            as they were; ``(15, 0.5)`` held a right track on the James scan lost 8 frames longer.
+            wrong recovery (draw 0: a successful frame 62 degrees off, now 5) and left the other long runs as they
+            were (landmark-noise draws 0-3; with the default grid, all of them).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
         search_depth_widening: from a loss's second recovery attempt on (without a detector), each search also
             tries ``search_depth_factors`` scaled by the next of these in turn, and a candidate found there may be
