@@ -933,6 +933,10 @@ def main(argv: list[str] | None = None) -> int:
         "--recover-min-patches", type=int, default=None, metavar="N",
         help="TemplateConfig.recover_min_patches for every run (a lost stream's track or recovery candidate whose "
         "dissimilarity rests on fewer present fiducial patches scores 0; default: TemplateConfig's, 0: off)",
+        "--plausible-turn-deg", type=float, nargs=2, default=None, metavar=("BASE", "PER_FRAME"),
+        help="TemplateConfig.plausible_turn_deg for every run (a lost stream's track or recovery candidate farther "
+        "than BASE + PER_FRAME * frames from its last confident pose neither ends the loss nor is adopted; default: "
+        "TemplateConfig's, 0 0: off)",
     )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
@@ -969,6 +973,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--search-step-px must be positive and finite, got {args.search_step_px}")
     if args.recover_min_patches is not None and args.recover_min_patches < 0:
         parser.error(f"--recover-min-patches must be >= 0, got {args.recover_min_patches}")
+    if args.plausible_turn_deg is not None and not all(math.isfinite(v) and v >= 0 for v in args.plausible_turn_deg):
+        parser.error(f"--plausible-turn-deg must be two finite values >= 0, got {args.plausible_turn_deg}")
     if args.expression_quota is not None and not 0.0 <= args.expression_quota <= 1.0:
         parser.error(f"--expression-quota must be in [0, 1], got {args.expression_quota}")
     sparsity: float | None = None
@@ -1042,6 +1048,8 @@ def main(argv: list[str] | None = None) -> int:
         base = replace(base, template=replace(base.template, search_step_px=args.search_step_px))
     if args.recover_min_patches is not None:  # the same
         base = replace(base, template=replace(base.template, recover_min_patches=args.recover_min_patches))
+    if args.plausible_turn_deg is not None:  # the same (TemplateConfig checks the value)
+        base = replace(base, template=replace(base.template, plausible_turn_deg=tuple(args.plausible_turn_deg)))
     if args.expression_sparsity is not None:  # the same: 'none' is the Gaussian prior
         base = replace(base, expression_sparsity=sparsity)
     results: dict[str, dict[str, object]] = {}

@@ -1689,7 +1689,8 @@ def _with_replayed_loss(
     """``state`` whose streams ``k`` of ``ended`` (``(k, rows)``: every row replayed from its CSV, the last one this
     frame's) carry the loss bookkeeping those rows say: lost when the last row is LOST (the next step then goes on
     with the loss, attempting a recovery at once, as the interrupted run would have, instead of starting afresh and
-    reporting frames on the background successful), the counts of trailing frames below the confidence thresholds,
+    reporting frames on the background successful), the counts of trailing frames not confident (lost ones too:
+    ``TrackerState.management.low_count``) and below the very-low threshold,
     and the last confident row's parameters (status converged or iteration limit, confidence at least
     ``confidence_threshold``; and the online start's re-anchoring frame, whose refined parameters the record keeps:
     :func:`_anchor_params`) as the parameters a loss falls back to; a last row lost with a failed solve (residual
@@ -1709,8 +1710,8 @@ def _with_replayed_loss(
         failed = status == int(TrackStatus.FAILED)
         ok = (conf >= tc.confidence_threshold) & ~failed & (status != int(TrackStatus.LOST))
         n_low = n_very_low = 0
-        for c, f in zip(conf.tolist(), failed.tolist()):  # the counts managed_step keeps, from the first row on
-            n_low = 0 if (c >= tc.confidence_threshold and not f) else n_low + 1
+        for c, f, o in zip(conf.tolist(), failed.tolist(), ok.tolist()):  # managed_step's counts, from the first
+            n_low = 0 if o else n_low + 1  # row on (a lost row counts, whatever its confidence)
             n_very_low = n_very_low + 1 if (c < tc.very_low_confidence or f) else 0
         low[k], very_low[k] = n_low, n_very_low
         lost[k] = bool(status[-1] == int(TrackStatus.LOST))

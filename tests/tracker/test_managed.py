@@ -1971,3 +1971,96 @@ def test_motion_prediction_carries_no_velocity_into_an_occluder_or_through_the_l
     # predicted before the occluder and on its first frame, then not until two confident frames after it
     assert all(predicted[2 : first]) and not any(predicted[first : last + 1]), predicted
     assert statuses.count(LOST) >= 5 and statuses[last - 1] != LOST and predicted[-1], statuses
+
+
+@pytest.mark.parametrize("plausible", [(0.0, 0.0), (180.0, 0.0), (1e-3, 0.0), (0.0, 1e-4)])
+def test_a_candidate_turned_too_fast_from_its_last_confident_pose_is_not_adopted_when_asked(
+    model, leaves, monkeypatch, plausible
+):
+    """A recovery candidate that beats its track is adopted with ``plausible_turn_deg`` off ((0, 0)) or wide (180
+    degrees), and dropped where it lies farther than ``base + per_frame * n`` from the last confident pose: a
+    tiny base, or a base of 0 with a tiny per-frame allowance (the check is on then too)."""
+    import torchface.tracker.managed as managed
+
+    frames, gt = leaves
+    real = managed._recover
+    seen = {}
+
+    def rec(*args, **kwargs):
+        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = real(*args, **kwargs)
+        seen["found"], seen["params"] = found.clone(), r_state.params.clone()
+        return found, r_state, r_result, torch.full_like(r_conf, 0.3), r_diss, r_inside, r_entry, r_starts
+
+    monkeypatch.setattr(managed, "_recover", rec)
+    config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=0.0,
+                                                  plausible_turn_deg=plausible))  # fmt: skip
+    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    checked = 0
+    for i in range(1, frames.shape[1]):
+        seen.clear()
+        state, res = managed_step(model, config, state, frames[:, i])
+        if i >= BACK and seen and bool(seen["found"][0]):  # the face is back: the candidate is on it
+            assert torch.equal(state.params, seen["params"]) == (plausible in ((0.0, 0.0), (180.0, 0.0))), i
+            checked += 1
+    assert checked >= 1, checked
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_lost_track_turned_too_fast_from_its_last_confident_pose_does_not_end_its_loss_when_asked(
+    model, gentle, native, monkeypatch
+):
+    """With ``plausible_turn_deg = (base, per_frame)`` a lost stream's track farther than ``base + per_frame * n``
+    from its last confident pose (``n``: frames since it) scores 0 and stays lost; within it, or with the check off
+    (the default), the same track ends its loss."""
+    if not native:
+        monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    ms = state.management
+    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
+                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
+                                             low_count=torch.full_like(ms.low_count, 3)))  # fmt: skip
+    _, ended = managed_step(model, CFG, lost, frames[:, 1])
+    assert bool(ended.success[0]) and float(ended.confidence[0]) > 0.5  # the control: the loss ends
+    R_c = axis_angle_to_matrix(ms.confident_params[:, 0:3]).to(ended.rotation.dtype)
+    turned = float(geodesic_angle_deg(ended.rotation[0], R_c[0]))
+    assert turned > 1e-3, turned
+    # 4 frames since the last confident one: base + 4 * per_frame just above and just below the turn
+    _, still = managed_step(model, replace(CFG, template=replace(CFG.template, plausible_turn_deg=(
+        turned / 2, turned / 8 + 1e-3))), lost, frames[:, 1])  # fmt: skip
+    assert bool(still.success[0])
+    after, kept = managed_step(model, replace(CFG, template=replace(CFG.template, plausible_turn_deg=(
+        turned / 2, turned / 8 - 1e-3))), lost, frames[:, 1])  # fmt: skip
+    assert not bool(kept.success[0]) and float(kept.confidence[0]) == 0.0
+    assert bool(after.management.lost[0])
+    torch.testing.assert_close(kept.rotation, ended.rotation)  # the same solve; only the gating differs
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_lost_frame_above_the_threshold_but_below_recovery_still_counts_as_not_confident(
+    model, gentle, native, monkeypatch
+):
+    """A lost stream's track that scores above ``confidence_threshold`` but below ``recover_confidence`` stays lost
+    and its pose is not confident: ``low_count`` goes on counting (the frames since ``confident_params``, which
+    ``plausible_turn_deg``'s reach grows with), it does not restart at 0 (it did: the reach then shrank back to
+    ``base + per_frame`` while the last confident pose stayed the one before the loss)."""
+    if not native:
+        monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    ms = state.management
+    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
+                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
+                                             low_count=torch.full_like(ms.low_count, 20)))  # fmt: skip
+    strict = replace(CFG, template=replace(CFG.template, recover_confidence=0.9999, recovery_every=1000))
+    after, res = managed_step(model, strict, lost, frames[:, 1])
+    assert CFG.template.confidence_threshold <= float(res.confidence[0]) < 0.9999, float(res.confidence[0])
+    assert bool(after.management.lost[0])
+    torch.testing.assert_close(after.management.confident_params, ms.confident_params)
+    assert int(after.management.low_count[0]) == 21
+
+
+def test_plausible_turn_deg_is_validated():
+    for bad in ((1.0,), (-1.0, 0.0), (1.0, math.nan), (math.inf, 0.0)):
+        with pytest.raises(ValueError, match="plausible_turn_deg"):
+            TemplateConfig(plausible_turn_deg=bad)

@@ -249,6 +249,12 @@ class TemplateConfig:
         search_step_px: grid step of the mosaic search's first stage, pixels of the coarsest pyramid level
             halved once more (:func:`search_mosaic`). 2 finds faces the default grid misses, wrong placements too,
             at twice the cost (docs/limitations.md, Fast motion: measured on the long runs).
+        plausible_turn_deg: ``(base, per_frame)``: a lost stream's pose must lie within ``base + per_frame * n``
+            degrees of its last confident pose, ``n`` frames after it, or it scores 0 (the continued track) or is
+            not adopted (a recovery candidate), as above: a head does not turn faster than that. ``(0, 0)`` (the
+            default) turns the check off. ``(15, 1)`` with ``search_step_px`` 2 removed the CANDIDE-3 long run's
+            wrong recovery (draw 0: a successful frame 62 degrees off, now 5) and left the other long runs as they
+            were (landmark-noise draws 0-3; with the default grid, all of them).
         search_depth_factors: depths tried by the search, as factors of the last confident depth.
         search_depth_widening: from a loss's second recovery attempt on (without a detector), each search also
             tries ``search_depth_factors`` scaled by the next of these in turn, and a candidate found there may be
@@ -314,6 +320,7 @@ class TemplateConfig:
     clean_radius_deg: float = 3.0
     clean_rejected_fraction: float = 0.01
     conservative_when_unconfident: bool = False
+    plausible_turn_deg: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for name in ("enabled", "mosaic", "texture_update", "conservative_when_unconfident"):
@@ -357,6 +364,10 @@ class TemplateConfig:
             raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
         if not self.clean_radius_deg >= 0:
             raise ValueError(f"clean_radius_deg must be >= 0, got {self.clean_radius_deg}")
+        turn = tuple(float(check_real(v, "plausible_turn_deg")) for v in self.plausible_turn_deg)
+        if len(turn) != 2 or not all(math.isfinite(v) and v >= 0 for v in turn):
+            raise ValueError(f"plausible_turn_deg must be two finite values >= 0, got {self.plausible_turn_deg}")
+        object.__setattr__(self, "plausible_turn_deg", turn)
         if self.switch_margin_deg < 0 or self.reference_radius_deg < 0 or not self.adopt_min_angle_deg >= 0:
             raise ValueError(
                 "switch_margin_deg, reference_radius_deg and adopt_min_angle_deg must be >= 0, got "

@@ -154,7 +154,8 @@ class ManagementState:
             references per entry).
         layout: the normalised-face layout the dissimilarity is measured on (shared by the batch).
         entry: ``(B,)`` int64 the mosaic entry whose templates are ``TrackerState.templates``.
-        low_count: ``(B,)`` int64 consecutive frames below the confidence threshold.
+        low_count: ``(B,)`` int64 consecutive frames not confident (below the confidence threshold, or lost):
+            the frames since ``confident_params``.
         very_low_count: ``(B,)`` int64 consecutive frames below the very-low confidence threshold.
         lost: ``(B,)`` bool, the stream is lost.
         confident_params: ``(B, P)`` the parameters of the last confident frame.
@@ -1136,6 +1137,11 @@ def managed_step(
                          solved.intrinsics, index)  # fmt: skip
             conf = conf.clone()
             conf[index[thin]] = 0.0
+        if max(tc.plausible_turn_deg) > 0:  # (opt-in) nor does one turned faster than a head turns
+            turned = geodesic_angle_deg(result.rotation, axis_angle_to_matrix(
+                ms.confident_params[:, layout.rotation]).to(result.rotation.dtype))  # fmt: skip
+            reach = tc.plausible_turn_deg[0] + tc.plausible_turn_deg[1] * (ms.low_count + 1).to(turned.dtype)
+            conf = torch.where(ms.lost & (turned > reach), torch.zeros_like(conf), conf)
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
         confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
@@ -1151,6 +1157,12 @@ def managed_step(
         since = torch.where(lost, ms.since_attempt + 1, torch.zeros_like(ms.since_attempt))
         since = torch.where(lost & ~ms.lost, torch.full_like(since, tc.recovery_every), since)  # at once when lost
         attempt = lost & (since >= tc.recovery_every)
+    # A lost stream's frame scoring between confidence_threshold and recover_confidence is not confident either
+    # (confident_params keeps the pose before the loss): low_count counts it, so that it stays the frames since that
+    # pose, which plausible_turn_deg's reach grows with (it had restarted there: James scan, landmark-noise draw 2,
+    # 2-px grid, (15, 1): a right track 17-18 degrees from that pose held lost 27 frames longer). Nothing else reads
+    # a lost stream's count: defaults unchanged.
+    low_count = torch.where(confident & lost, ms.low_count + 1, low_count)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
     params_ypr: Tensor | None  # None: not known (rows reverted to the confident parameters or adopted)
     params, params_ypr = solved.params, result.ypr_deg.clone()  # (a copy: the caller may modify the result's)
@@ -1206,6 +1218,11 @@ def managed_step(
             near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
+        if max(tc.plausible_turn_deg) > 0:  # (opt-in) nor one turned from the last confident pose faster than a head
+            turned = geodesic_angle_deg(r_result.rotation, axis_angle_to_matrix(
+                ms.confident_params[index][:, layout.rotation]).to(r_result.rotation.dtype))  # fmt: skip
+            reach = tc.plausible_turn_deg[0] + tc.plausible_turn_deg[1] * (ms.low_count[index] + 1).to(turned.dtype)
+            adopt = adopt & (turned <= reach)
         ok = adopt & (r_conf >= tc.recover_confidence)
         if detector is not None and tc.restart_after_unmatched > 0:
             # The detector found a face and neither its candidate nor the continued track scores
