@@ -933,6 +933,8 @@ def main(argv: list[str] | None = None) -> int:
         "--recover-min-patches", type=int, default=None, metavar="N",
         help="TemplateConfig.recover_min_patches for every run (a lost stream's track or recovery candidate whose "
         "dissimilarity rests on fewer present fiducial patches scores 0; default: TemplateConfig's, 0: off)",
+    )
+    parser.add_argument(
         "--plausible-turn-deg", type=float, nargs=2, default=None, metavar=("BASE", "PER_FRAME"),
         help="TemplateConfig.plausible_turn_deg for every run (a lost stream's track or recovery candidate farther "
         "than BASE + PER_FRAME * frames from its last confident pose neither ends the loss nor is adopted; default: "
