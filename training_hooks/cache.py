@@ -24,16 +24,19 @@ file left by a writer that was killed (``.<key>.<pid>.<id>.partial``) is never r
 :class:`TrackCache` deletes such files older than a day. Reading
 checks the zip structure, the digest, the key and the arrays' shapes and dtypes; anything wrong (a truncated,
 partial or corrupted file) is reported with a :class:`CacheWarning`, deleted and treated as a miss, so the
-sequence is tracked again: a damaged file is never used. :meth:`TrackCache.num_frames` reads the ``meta`` record
+sequence is tracked again: a damaged file is never used (a file that another process has stored under its name
+since it was read is kept). :meth:`TrackCache.num_frames` reads the ``meta`` record
 alone (a dataset counts a cached video's frames with it instead of decoding the video).
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
 import os
+import stat
 import time
 import uuid
 import warnings
@@ -208,10 +211,12 @@ class TrackCache:
         return self.root / f"{key}.npz"
 
     def load(self, key: str) -> TrackedSequence | None:
-        """The stored sequence of ``key``, or None when there is none or the file is damaged (then it is deleted
-        and a :class:`CacheWarning` says why)."""
+        """The stored sequence of ``key``, or None when there is none or the file is damaged (then it is deleted,
+        unless another process has stored a new file under its name since it was read, and a :class:`CacheWarning`
+        says why)."""
         path = self.path(key)
-        if not path.is_file():
+        read = _identity(path)
+        if read is None:
             self.stats.misses += 1
             return None
         try:
@@ -221,12 +226,17 @@ class TrackCache:
             self.stats.misses += 1
             return None
         except Exception as exc:  # any failure to read back means the file is not trustworthy
+            # Deleted only if it is still the file read: another process (a DataLoader worker, a rank) that found it
+            # damaged too may have tracked the sequence and stored a good file under its name meanwhile.
+            now = _identity(path)
+            if now == read:
+                path.unlink(missing_ok=True)
+            what = "deleted" if now in (None, read) else "a new file replaced it meanwhile, kept"
             warnings.warn(
-                f"{path}: damaged cache file ({type(exc).__name__}: {exc}); deleted, tracking again",
+                f"{path}: damaged cache file ({type(exc).__name__}: {exc}); {what}, tracking again",
                 CacheWarning,
                 stacklevel=2,
             )
-            path.unlink(missing_ok=True)
             self.stats.corrupt += 1
             self.stats.misses += 1
             return None
@@ -291,6 +301,17 @@ class TrackCache:
             raise
         self.stats.writes += 1
         return path
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """``(device, inode)`` of the regular file at ``path``, or None where there is none."""
+    try:
+        st = path.stat()
+    except OSError as exc:
+        if exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):  # (as Path.is_file takes them)
+            return None
+        raise
+    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
 
 
 def _read(path: Path, key: str) -> TrackedSequence:

@@ -144,6 +144,37 @@ def test_damaged_cache_file_is_detected_and_recomputed(two, config, damage):
     assert cached_videos(epoch(data)) == {0: True}
 
 
+def test_a_damaged_file_replaced_while_it_was_read_is_kept(two, config, monkeypatch):
+    """Two processes (DataLoader workers, ranks) that find a cache file damaged both track the video again, and the
+    first to finish stores a good file under its name. The other then deleted that good file (it deleted the name,
+    not the file it had read): the next epoch tracked the video once more. Now a file replaced since it was read
+    is kept."""
+    import training_hooks.cache as cache_module
+
+    videos, lms = two
+    data = VideoDataset(videos[:1], lms[:1], config)
+    epoch(data)
+    (path,) = config.cache_dir.glob("*.npz")
+    good = path.read_bytes()
+    path.write_bytes(good[: len(good) // 2])
+    real = cache_module._read
+
+    def read_while_another_process_stores(p, key):
+        try:
+            return real(p, key)
+        finally:  # the other process's store (TrackCache.store: a temporary file renamed into place)
+            fresh = p.with_name("fresh.tmp")
+            fresh.write_bytes(good)
+            os.replace(fresh, p)
+
+    monkeypatch.setattr(cache_module, "_read", read_while_another_process_stores)
+    with pytest.warns(CacheWarning, match="damaged cache file .*; a new file replaced it meanwhile, kept"):
+        assert cache_module.TrackCache(config.cache_dir).load(path.stem) is None
+    monkeypatch.undo()
+    assert path.read_bytes() == good
+    assert cached_videos(epoch(data)) == {0: True}
+
+
 def test_failed_write_leaves_no_file(two, config, monkeypatch):
     videos, lms = two
 

@@ -64,6 +64,9 @@ def _rank(rank: int, init_file: str, videos: list[str], landmarks: list, out_dir
         with warnings.catch_warnings():
             warnings.simplefilter("error", DistributedWarning)
             out["frames"] = keyed(DataLoader(data, batch_size=None, num_workers=2, multiprocessing_context="fork"))
+            # Every rank's frames are tracked and stored before any rank goes on: rank 1's balanced loader repeats
+            # rank 0's video 2, and a rank 0 running late read rank 1's entry in its frames stage (cached=True).
+            dist.barrier()
             spawned = DataLoader(clip_data, batch_size=None, num_workers=1, multiprocessing_context="spawn")
             out["clips"] = keyed(spawned)
             loader = DataLoader(VideoDataset(videos, landmarks, balanced), batch_size=4, num_workers=2)
@@ -76,6 +79,7 @@ def _rank(rank: int, init_file: str, videos: list[str], landmarks: list, out_dir
         sent = pickle.dumps(data)
         every = pickle.dumps(VideoDataset(videos, landmarks, DatasetConfig(tracking=TRACKING, shard_ranks=False)))
         dist.barrier()
+        out["cache_entries"] = sorted(p.name for p in (Path(out_dir) / "cache").glob("*.npz"))  # (every stage done)
     finally:
         dist.destroy_process_group()
     received = pickle.loads(sent)  # no group here: the sender's (rank, world size) split the videos
@@ -124,6 +128,12 @@ def test_ranks_split_the_videos_and_their_items_equal_the_single_process_ones(dd
     rank r gets the videos i % 2 == r, the union is every item once and each equals the one-process item
     (clips read in a spawned DataLoader worker of each rank here)."""
     assert len(single["frames"]) == len(clips) * FRAMES and len(single["clips"]) == len(clips) * 2
+    # One entry per video, written by the forked frame workers. More: a spawned clip worker, which imports the code
+    # afresh, computed other keys and tracked again (cached False): the code changed on disk during the run (a merge
+    # that added a config field changes every key's repr part).
+    assert len(ddp_run[0]["cache_entries"]) == len(clips), (
+        "a spawned worker computed other cache keys than its rank (was the code changed on disk during the run?)"
+    )
     assert_union_is_every_item_once([r["clips"] for r in ddp_run], single["clips"])
     assert [sorted({v for v, _ in r["clips"]}) for r in ddp_run] == [[0, 2], [1]]
     assert all(bool(item["cached"]) for r in ddp_run for item in r["clips"].values())
