@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import pytest
 
 SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
 
@@ -510,12 +511,21 @@ def test_evaluate_eyelids_sets_the_eyelid_configuration(monkeypatch):
     assert (quota.expression_quota, quota.expression_sparsity) == (0.02, 0.03)
 
 
-def test_evaluate_recover_min_patches_sets_every_runs_setting(monkeypatch, capsys):
-    """--recover-min-patches sets TemplateConfig.recover_min_patches of every run (nothing else); without it the
-    default (0: off); a negative count is a one-line error before any work."""
+@pytest.mark.parametrize(
+    "flag, value, field, expected, bad, message",
+    [
+        # (inf passed --search-step-px: the first recovery's search raised a RuntimeError)
+        ("--search-step-px", ["1.5"], "search_step_px", 1.5, [["0"], ["-2"], ["inf"], ["nan"]], "must be positive"),
+        ("--recover-min-patches", ["3"], "recover_min_patches", 3, [["-1"]], "must be >= 0"),
+        ("--plausible-turn-deg", ["15", "1"], "plausible_turn_deg", (15.0, 1.0), [["-1", "0"], ["inf", "1"]],
+         "must be two finite values >= 0"),
+    ],
+)  # fmt: skip
+def test_evaluate_template_flags_set_every_runs_setting(monkeypatch, capsys, flag, value, field, expected, bad,
+                                                        message):  # fmt: skip
+    """--search-step-px, --recover-min-patches and --plausible-turn-deg set their TemplateConfig field of every run
+    (nothing else); without the flag the default; a bad value is a one-line error before any work."""
     from dataclasses import replace
-
-    import pytest
 
     from torchface.tracker.step import TrackerConfig
 
@@ -532,47 +542,14 @@ def test_evaluate_recover_min_patches_sets_every_runs_setting(monkeypatch, capsy
     monkeypatch.setattr(evaluate, "track_sequence", spy)
     base = ["--scenarios", "expressions", "--frames", "2", "--size", "64x48", "--cache", "none", "--ablations",
             "none", "--no-auroc"]  # fmt: skip
-    for flags in ([], ["--recover-min-patches", "3"]):
+    for flags in ([], [flag, *value]):
         with pytest.raises(Stop):
             evaluate.main([*base, *flags])
-    plain, thin = seen
+    plain, given = seen
     assert plain == TrackerConfig()
-    assert thin == replace(TrackerConfig(), template=replace(TrackerConfig().template, recover_min_patches=3))
-    with pytest.raises(SystemExit) as info:
-        evaluate.main([*base, "--recover-min-patches", "-1"])
-    assert info.value.code == 2 and "--recover-min-patches must be >= 0" in capsys.readouterr().err
-
-
-def test_evaluate_search_step_px_sets_every_runs_search_grid(monkeypatch, capsys):
-    """--search-step-px sets TemplateConfig.search_step_px of every run (nothing else); without it the default;
-    zero or negative is a one-line error before any work."""
-    from dataclasses import replace
-
-    import pytest
-
-    from torchface.tracker.step import TrackerConfig
-
-    evaluate = _load("evaluate")
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def spy(model, config, *args, **kwargs):
-        seen.append(config)
-        raise Stop
-
-    monkeypatch.setattr(evaluate, "track_sequence", spy)
-    base = ["--scenarios", "expressions", "--frames", "2", "--size", "64x48", "--cache", "none", "--ablations",
-            "none", "--no-auroc"]  # fmt: skip
-    for flags in ([], ["--search-step-px", "1.5"]):
-        with pytest.raises(Stop):
-            evaluate.main([*base, *flags])
-    plain, stepped = seen
-    assert plain == TrackerConfig()
-    assert stepped.template.search_step_px == 1.5
-    assert stepped == replace(TrackerConfig(), template=replace(TrackerConfig().template, search_step_px=1.5))
-    for bad in ("0", "-2", "inf", "nan"):  # (inf passed: the first recovery's search raised a RuntimeError)
+    assert getattr(given.template, field) == expected
+    assert given == replace(TrackerConfig(), template=replace(TrackerConfig().template, **{field: expected}))
+    for values in bad:
         with pytest.raises(SystemExit) as info:
-            evaluate.main([*base, "--search-step-px", bad])
-        assert info.value.code == 2 and "--search-step-px must be positive" in capsys.readouterr().err
+            evaluate.main([*base, flag, *values])
+        assert info.value.code == 2 and f"{flag} {message}" in capsys.readouterr().err

@@ -2005,6 +2005,15 @@ def test_a_candidate_turned_too_fast_from_its_last_confident_pose_is_not_adopted
     assert checked >= 1, checked
 
 
+def _declared_lost(state, low_count: int):
+    """``state`` with its one stream declared lost ``low_count`` frames after its last confident one (no recovery
+    attempt made yet)."""
+    ms = state.management
+    return replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
+                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
+                                             low_count=torch.full_like(ms.low_count, low_count)))  # fmt: skip
+
+
 @pytest.mark.parametrize("native", [True, False])
 def test_a_lost_track_turned_too_fast_from_its_last_confident_pose_does_not_end_its_loss_when_asked(
     model, gentle, native, monkeypatch
@@ -2017,9 +2026,7 @@ def test_a_lost_track_turned_too_fast_from_its_last_confident_pose_does_not_end_
     frames, gt = gentle
     state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     ms = state.management
-    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
-                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
-                                             low_count=torch.full_like(ms.low_count, 3)))  # fmt: skip
+    lost = _declared_lost(state, low_count=3)
     _, ended = managed_step(model, CFG, lost, frames[:, 1])
     assert bool(ended.success[0]) and float(ended.confidence[0]) > 0.5  # the control: the loss ends
     R_c = axis_angle_to_matrix(ms.confident_params[:, 0:3]).to(ended.rotation.dtype)
@@ -2049,9 +2056,7 @@ def test_a_lost_frame_above_the_threshold_but_below_recovery_still_counts_as_not
     frames, gt = gentle
     state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     ms = state.management
-    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
-                                             since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
-                                             low_count=torch.full_like(ms.low_count, 20)))  # fmt: skip
+    lost = _declared_lost(state, low_count=20)
     strict = replace(CFG, template=replace(CFG.template, recover_confidence=0.9999, recovery_every=1000))
     after, res = managed_step(model, strict, lost, frames[:, 1])
     assert CFG.template.confidence_threshold <= float(res.confidence[0]) < 0.9999, float(res.confidence[0])
