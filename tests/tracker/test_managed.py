@@ -611,6 +611,23 @@ def test_a_managed_step_checks_the_frames_values_once(model, gentle, monkeypatch
         managed_step(model, CFG, state, frames[:, 2] * 255)
 
 
+
+def _recover_scoring(monkeypatch, confidence: float) -> dict:
+    """Make every recovery candidate score ``confidence``; returns the dict where each attempt leaves which streams
+    found one (``found``) and the candidates' parameters (``params``)."""
+    import torchface.tracker.managed as managed
+
+    real = managed._recover
+    seen: dict = {}
+
+    def rec(*args, **kwargs):
+        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = real(*args, **kwargs)
+        seen["found"], seen["params"] = found.clone(), r_state.params.clone()
+        return found, r_state, r_result, torch.full_like(r_conf, confidence), r_diss, r_inside, r_entry, r_starts
+
+    monkeypatch.setattr(managed, "_recover", rec)
+    return seen
+
 @pytest.mark.parametrize(
     ("forced", "angle", "floor", "adopted"),
     [(0.3, 0.0, 0.01, True), (0.3, 180.0, 0.01, False), (-1.0, 0.0, 0.0, False), (0.3, 0.0, 0.4, False)],
@@ -622,18 +639,8 @@ def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(
     ``adopt_min_confidence``, and more than ``adopt_min_angle_deg`` from the track, is adopted: the stream stays
     LOST and goes on from the candidate's parameters. One that does not beat the track, scores below
     ``adopt_min_confidence`` or lies within ``adopt_min_angle_deg`` of it (180: always), is dropped."""
-    import torchface.tracker.managed as managed
-
     frames, gt = leaves
-    real = managed._recover
-    seen = {}
-
-    def rec(*args, **kwargs):
-        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = real(*args, **kwargs)
-        seen["found"], seen["params"] = found.clone(), r_state.params.clone()
-        return found, r_state, r_result, torch.full_like(r_conf, forced), r_diss, r_inside, r_entry, r_starts
-
-    monkeypatch.setattr(managed, "_recover", rec)
+    seen = _recover_scoring(monkeypatch, forced)
     config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=angle,
                                                   adopt_min_confidence=floor))
     state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
@@ -1980,18 +1987,8 @@ def test_a_candidate_turned_too_fast_from_its_last_confident_pose_is_not_adopted
     """A recovery candidate that beats its track is adopted with ``plausible_turn_deg`` off ((0, 0)) or wide (180
     degrees), and dropped where it lies farther than ``base + per_frame * n`` from the last confident pose: a
     tiny base, or a base of 0 with a tiny per-frame allowance (the check is on then too)."""
-    import torchface.tracker.managed as managed
-
     frames, gt = leaves
-    real = managed._recover
-    seen = {}
-
-    def rec(*args, **kwargs):
-        found, r_state, r_result, r_conf, r_diss, r_inside, r_entry, r_starts = real(*args, **kwargs)
-        seen["found"], seen["params"] = found.clone(), r_state.params.clone()
-        return found, r_state, r_result, torch.full_like(r_conf, 0.3), r_diss, r_inside, r_entry, r_starts
-
-    monkeypatch.setattr(managed, "_recover", rec)
+    seen = _recover_scoring(monkeypatch, 0.3)
     config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=0.0,
                                                   plausible_turn_deg=plausible))  # fmt: skip
     state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
