@@ -218,7 +218,7 @@ class TemplateConfig:
             James long run's -59 degree entry two, of which one was present), and a mean over one of them says
             nothing: there, with ``TrackerConfig(motion_prediction=0.5)``, a lost track 65-72 degrees off (the
             face taken for a profile with strong expression units) scored 0.47-0.82 on one patch, ended the loss
-            and stayed successful for 18 frames (README, Known limitations, "Fast motion"). Only lost streams
+            and stayed successful for 18 frames (docs/limitations.md, "Fast motion"). Only lost streams
             are judged so: a right track at a turned pose keeps its confidence (a floor for every frame,
             ``DissimilarityConfig.min_present_fraction``, doubled the false losses at turned poses). Such a score
             counts as matching nothing for ``restart_after_unmatched`` too.

@@ -957,7 +957,7 @@ def _thin(
     """``(B',)`` bool: the estimates ``params`` ``(B', P)`` of the streams ``rows`` (their ``frames``
     ``(B', C, H, W)`` and ``shape_coeffs``) whose dissimilarity, against the mosaic entry nearest each as
     :func:`_confidence` measures it, rests on fewer than ``TemplateConfig.recover_min_patches`` present fiducial
-    patches (README, Known limitations, "Fast motion": a lost track 65-72 degrees off scored 0.47-0.82 on one)."""
+    patches (docs/limitations.md, "Fast motion": a lost track 65-72 degrees off scored 0.47-0.82 on one)."""
     aa, t, alpha, light = _layout(model).split(params)
     R = axis_angle_to_matrix(aa)
     nearest = torch.zeros_like(rows)
@@ -1096,7 +1096,8 @@ def managed_step(
     )
     # A predicted start that the frame contradicts (the head stopped or turned back: a velocity reversed at 16 mm a
     # frame put the prediction 32 mm off, beyond the solve's capture range) scores very low: those streams are
-    # solved again from the previous frame's estimate, and keep the better of the two (docs/limitations.md, "Fast motion").
+    # solved again from the previous frame's estimate, and keep the better of the two (docs/limitations.md, "Fast
+    # motion").
     retried = None  # the streams whose estimate is the plain start's (rows)
     if predicted is not None:
         again = predicted & ((conf < tc.very_low_confidence) | (result.status == _FAILED))
@@ -1545,7 +1546,8 @@ def _reanchor(
         # Each stream's problem set up alone (its template points; its priors: a sparse start keeps the fit's sparse
         # priors), then one batched refinement of the streams re-anchoring on this frame (Levenberg-Marquardt with
         # each stream's own damping and stopping: each as alone, to 1e-5). Refined one after another, 8 streams at
-        # 320x240 took this frame 2.6-3.3 s of CPU on one thread; together 1.7-1.8 (docs/speed.md): the solve's arithmetic grows with the streams, its per-operation overhead no longer.
+        # 320x240 took this frame 2.6-3.3 s of CPU on one thread; together 1.7-1.8 (docs/speed.md): the solve's
+        # arithmetic grows with the streams, its per-operation overhead no longer.
         def start(b: int) -> _Start:
             ks = keys[b]
             weights = None if w.weights is None else w.weights[b]
