@@ -681,3 +681,54 @@ def test_a_sidecar_of_a_run_started_after_frame_0_is_refused(tmp_path):
     sidecar["start"]["first_frame"] = 0
     (tmp_path / "first.json").write_text(json.dumps(sidecar))
     np.testing.assert_array_equal(read_landmarks(tmp_path / "first.json", 100, 100), pts)
+
+
+def test_json_of_one_frame_of_points_is_read_as_an_npy_of_that_shape(tmp_path):
+    """A ``.json`` ``[[[x, y], ...]]`` (one frame's points, shape ``(1, 68, 2)``, as
+    ``json.dump(points[None].tolist())`` writes them) was refused ("expected a JSON list of 68 [x, y] pairs"), though an ``.npy`` of that shape is read.
+    It is read the same; ``(1, 136)``, refused as an ``.npy``, and two frames stay refused."""
+    import json
+
+    pts = _dyadic_points()
+    want = _with_missing(pts)
+    pairs = [[None, None] if np.isnan(p).any() else p.tolist() for p in want]
+    for name, value in (("frame.json", [pairs]), ("sidecar.json", {"initial_landmarks_px": [pairs]})):
+        (tmp_path / name).write_text(json.dumps(value))
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    np.save(tmp_path / "flat.npy", pts.reshape(1, 136))
+    with pytest.raises(InputError, match=r"got an array of shape \(1, 136\)"):  # (the .npy path refuses it too)
+        read_landmarks(tmp_path / "flat.npy", 100, 100)
+    bad = {"flat.json": [[c for p in pts.tolist() for c in p]], "two.json": [pts.tolist(), pts.tolist()]}
+    for name, value in bad.items():
+        (tmp_path / name).write_text(json.dumps(value))
+        with pytest.raises(InputError, match=r"expected a JSON list of 68 \[x, y\] pairs"):
+            read_landmarks(tmp_path / name, 100, 100)
+
+
+def test_r_write_csv_with_its_1_based_row_names_is_read(tmp_path):
+    """R's ``write.csv(points)`` (a header ``"","x","y"``, rows ``"1",x,y`` ... ``"68",x,y``: its row names, 1-based)
+    was taken for pandas' 0-based index and refused: "point index 68 is not an iBUG index 0-67". An index column of
+    exactly 1..68 in order under an empty header cell cannot be a 0-based one (0-67 has no 68, and 68 rows leave no
+    point out): 1 is subtracted. An index that reaches 68 otherwise (rows left out, reordered) is refused, the
+    message naming a 1-based index; pandas' 0-based files read as before."""
+    pts = _dyadic_points()
+    want = pts.copy()
+    want[5] = np.nan
+    cells = [("NA", "NA") if k == 5 else (repr(x), repr(y)) for k, (x, y) in enumerate(pts.tolist())]
+    rows = [f'"{k + 1}",{x},{y}\n' for k, (x, y) in enumerate(cells)]
+    files = {"r.csv": '"","x","y"\n' + "".join(rows),
+             "r_semicolons.csv": '"";"x";"y"\n' + "".join(rows).replace(",", ";"),
+             "pandas_from_1.csv": ",x,y\n" + "".join(r.replace('"', "") for r in rows)}  # fmt: skip
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+    (tmp_path / "pandas.csv").write_text(",x,y\n" + "".join(f"{k},{x},{y}\n" for k, (x, y) in enumerate(cells)))
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "pandas.csv", 100, 100), want)  # (0-based, as before)
+    bad = {"r_dropped.csv": '"","x","y"\n' + "".join(rows[:5] + rows[6:]),  # na.omit: 1..68 without 6, 67 rows
+           "r_swapped.csv": '"","x","y"\n' + "".join(rows[:66] + rows[67:] + rows[66:67])}  # fmt: skip
+    for name, text in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=r"point index 68 is not an iBUG index 0-67: a 1-based index \(R's row "
+                                             r"names\?\)") as info:  # fmt: skip
+            read_landmarks(tmp_path / name, 100, 100)
+        assert "\n" not in str(info.value)

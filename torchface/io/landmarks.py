@@ -16,14 +16,17 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
   in any order; each point once at most, a point without a row missing (the hand-marked
   ``torchface/data/photos/astronaut_landmarks.csv`` gives 22); also pandas' ``DataFrame.to_csv`` with its index
-  (a header ``,x,y`` or ``,0,1``, then rows ``k, x, y``): the index is the point's;
+  (a header ``,x,y`` or ``,0,1``, then rows ``k, x, y``): the index is the point's; R's ``write.csv`` with its row
+  names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): an index of exactly 1..68 in order, 68 rows, is
+  1-based (a 0-based one has no 68), 1 subtracted; another index reaching 68 is refused;
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
   tools read them), so 1 is subtracted: a ``.pts`` point ``(1, 1)`` is torchface's ``(0, 0)``, the same pixel
   centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)``;
-- JSON (``.json``): a list of 68 ``[x, y]`` pairs (or of 136 numbers), or an object holding them as
+- JSON (``.json``): a list of 68 ``[x, y]`` pairs (or of 136 numbers; or one frame's pairs ``[[[x, y], ...]]``,
+  as an NPY ``(1, 68, 2)``), or an object holding them as
   ``initial_landmarks_px``: a torchface sidecar, so a run can start from the landmarks another one started from
   (one whose ``start.first_frame`` is 0: a run its detector started later, on that frame's landmarks, is refused).
 
@@ -214,8 +217,9 @@ def _read_text(p: Path) -> str:
 
 
 def _parse_json(p: Path, text: str) -> np.ndarray:
-    """A JSON file's points: a list of ``[x, y]`` pairs (``null``: missing) or of numbers, or an object holding such
-    a list as ``initial_landmarks_px`` (a torchface sidecar's first-frame landmarks)."""
+    """A JSON file's points: a list of ``[x, y]`` pairs (``null``: missing; also in a list of one, one frame's:
+    ``(1, 68, 2)``) or of numbers, or an object holding such a list as ``initial_landmarks_px`` (a torchface
+    sidecar's first-frame landmarks)."""
     try:
         value = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -241,6 +245,8 @@ def _parse_json(p: Path, text: str) -> np.ndarray:
     try:
         if not isinstance(value, list):
             raise ValueError
+        if len(value) == 1 and isinstance(value[0], list) and value[0] and all(isinstance(v, list) for v in value[0]):
+            value = value[0]  # one frame's points ``[[[x, y], ...]]``, (1, 68, 2), as an NPY of that shape is read
         if all(not isinstance(v, list) for v in value):  # 136 numbers x0, y0, x1, ...
             return np.asarray([number(v) for v in value], dtype=np.float64)
         if not all(isinstance(v, list) and len(v) == 2 for v in value):
@@ -336,11 +342,13 @@ def _split(line: str, delimiter: str | None, decimal_comma: bool = False) -> lis
 
 
 def _parse_long(
-    p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int], decimal_comma: bool = False
+    p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int], decimal_comma: bool = False,
+    base: int = 0, unnamed: bool = False,
 ) -> np.ndarray:
     """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers); a
     point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing). ``decimal_comma``:
-    see :func:`_decimal_comma`."""
+    see :func:`_decimal_comma`. ``base``: the index of point 0 (1: R's row names, 1..68). ``unnamed``: the index
+    column's header cell is empty (pandas' index, or R's row names: an index 68 is said to be 1-based)."""
     delimiter, index, x, y = columns
     points = np.full((NUM_LANDMARKS, 2), np.nan)
     seen: dict[int, int] = {}
@@ -348,11 +356,15 @@ def _parse_long(
         cells = _split(line, delimiter, decimal_comma and delimiter in (";", "\t"))
         try:
             k_text, point = cells[index], [_number(cells[x]), _number(cells[y])]  # (empty: missing, NaN)
-            k = int(k_text)
+            k = int(k_text) - base
         except (IndexError, ValueError):
             raise InputError(f"{p}: line {number} is not 'index, x, y' numbers: {line[:60]!r}") from None
         if not 0 <= k < NUM_LANDMARKS:
-            raise InputError(f"{p}: line {number}: point index {k} is not an iBUG index 0-{NUM_LANDMARKS - 1}")
+            one_based = (f": a 1-based index (R's row names?), read only as 1..{NUM_LANDMARKS} in order on "
+                         f"{NUM_LANDMARKS} rows; write it 0-based or leave it out (write.csv(..., row.names = FALSE))"
+                         if unnamed and k == NUM_LANDMARKS else "")  # fmt: skip
+            raise InputError(f"{p}: line {number}: point index {k} is not an iBUG index 0-{NUM_LANDMARKS - 1}"
+                             f"{one_based}")  # fmt: skip
         if k in seen:
             raise InputError(f"{p}: line {number}: point {k} again (first on line {seen[k]})")
         seen[k] = number
@@ -417,8 +429,13 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
     first = _trimmed(_cells(header, comma), 0) if header is not None else data[0] if data else []
     if [n.lower() for n in first] in (["", "x", "y"], ["", "0", "1"]):
         indexed = long_lines if header is not None else long_lines[1:]
-        if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in data[len(data) - len(indexed) :]):
-            return _parse_long(p, indexed, (_delimiter(indexed[0][1], comma), 0, 1, 2), comma)
+        index_rows = data[len(data) - len(indexed) :]
+        if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in index_rows):
+            # R's write.csv: its row names 1..68 (``"1",x,y``), 1-based; 68 rows cannot be a 0-based index (0-67 has
+            # no 68, and each of its points has a row); another index reaching 68 is refused, said to be 1-based
+            one_based = [c[0] for c in index_rows] == [str(k) for k in range(1, NUM_LANDMARKS + 1)]
+            columns = (_delimiter(indexed[0][1], comma), 0, 1, 2)
+            return _parse_long(p, indexed, columns, comma, base=int(one_based), unnamed=True)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
