@@ -68,7 +68,9 @@ from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, apply_to_tensor_fields, build_normalised_layout
 from torchface.rendering.visibility import vertex_normals
 from torchface.solver.least_squares import SolveStatus
-from torchface.template.dissimilarity import DissimilarityReference, build_dissimilarity_reference, dissimilarity
+from torchface.template.dissimilarity import (
+    DissimilarityReference, DissimilarityResult, build_dissimilarity_reference, dissimilarity,
+)
 from torchface.template.management import (
     Mosaic,
     MosaicLevel,
@@ -551,15 +553,26 @@ def _confidence(
     if native is not None:
         native_diss, native_conf, inside, face, _ = native
         return torch.where(failed, torch.zeros_like(native_conf), native_conf), native_diss, inside, face
-    nearest = torch.zeros_like(rows) if ypr is None else nearest_entries(ms.mosaic, ypr, streams=rows)
-    verts_cam = transform_points(R, t, model.deform(state.shape_coeffs, alpha))
-    reference = ms.mosaic.references.select((rows, nearest))
-    # frame_dissimilarity's two halves, so that the normalised face can also serve a new mosaic entry.
-    face = reference_face(frames, model, ms.layout, state.shape_coeffs, alpha, aa, t, light, state.intrinsics,
-                          config.template, verts_cam=verts_cam, backend=config.backend)  # fmt: skip
-    diss = dissimilarity(reference, *face, backend=config.backend)
+    diss, face, verts_cam = _nearest_dissimilarity(model, config, ms, frames, rows, ypr, state.shape_coeffs, aa, R,
+                                                   t, alpha, light, state.intrinsics)  # fmt: skip
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     return conf, diss.dissimilarity, face_inside_fraction(model, verts_cam, state.intrinsics), face
+
+
+def _nearest_dissimilarity(
+    model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, rows: Tensor, ypr: Tensor | None,
+    shape_coeffs: Tensor, aa: Tensor, R: Tensor, t: Tensor, alpha: Tensor, light: Tensor, intrinsics: Intrinsics,
+) -> tuple[DissimilarityResult, tuple[Tensor, Tensor], Tensor]:
+    """The torch path of :func:`_confidence`: the dissimilarity of the streams ``rows``' estimates (``aa``, ``R``,
+    ``t``, ``alpha``, ``light``, ``shape_coeffs``) against the reference of the mosaic entry nearest each (``ypr``
+    ``(B', 3)``; None: entry 0), the normalised face and mask it was measured on, and the posed vertices
+    ``(B', V, 3)`` (frame_dissimilarity's two halves, so that the normalised face can also serve a new entry)."""
+    nearest = torch.zeros_like(rows) if ypr is None else nearest_entries(ms.mosaic, ypr, streams=rows)
+    verts_cam = transform_points(R, t, model.deform(shape_coeffs, alpha))
+    reference = ms.mosaic.references.select((rows, nearest))
+    face = reference_face(frames, model, ms.layout, shape_coeffs, alpha, aa, t, light, intrinsics, config.template,
+                          verts_cam=verts_cam, backend=config.backend)  # fmt: skip
+    return dissimilarity(reference, *face, backend=config.backend), face, verts_cam
 
 
 @full_precision
@@ -960,15 +973,23 @@ def _thin(
     patches (docs/limitations.md, "Fast motion": a lost track 65-72 degrees off scored 0.47-0.82 on one)."""
     aa, t, alpha, light = _layout(model).split(params)
     R = axis_angle_to_matrix(aa)
-    nearest = torch.zeros_like(rows)
-    if ms.mosaic.capacity > 1:
-        nearest = nearest_entries(ms.mosaic, matrix_to_euler(R), streams=rows)
-    reference = ms.mosaic.references.select((rows, nearest))
-    verts_cam = transform_points(R, t, model.deform(shape_coeffs, alpha))
-    face = reference_face(frames, model, ms.layout, shape_coeffs, alpha, aa, t, light, intrinsics, config.template,
-                          verts_cam=verts_cam, backend=config.backend)  # fmt: skip
-    present = dissimilarity(reference, *face, backend=config.backend).present.sum(-1)
-    return present < config.template.recover_min_patches
+    ypr = matrix_to_euler(R) if ms.mosaic.capacity > 1 else None
+    diss, _, _ = _nearest_dissimilarity(model, config, ms, frames, rows, ypr, shape_coeffs, aa, R, t, alpha, light,
+                                        intrinsics)  # fmt: skip
+    return diss.present.sum(-1) < config.template.recover_min_patches
+
+
+def _turned_too_far(
+    rotation: Tensor, confident_params: Tensor, low_count: Tensor, tc: TemplateConfig, layout: ParamLayout
+) -> Tensor:
+    """``(B,)`` bool: ``rotation`` ``(B, 3, 3)`` lies farther from the last confident pose (``confident_params``
+    ``(B, P)``) than ``TemplateConfig.plausible_turn_deg`` lets a head turn in the ``low_count + 1`` frames since it
+    (all False with the check off)."""
+    if max(tc.plausible_turn_deg) <= 0:
+        return torch.zeros(rotation.shape[0], dtype=torch.bool, device=rotation.device)
+    turned = geodesic_angle_deg(rotation, axis_angle_to_matrix(confident_params[:, layout.rotation]).to(rotation.dtype))
+    base, per_frame = tc.plausible_turn_deg
+    return turned > base + per_frame * (low_count + 1).to(turned.dtype)
 
 
 @full_precision
@@ -1138,11 +1159,9 @@ def managed_step(
                          solved.intrinsics, index)  # fmt: skip
             conf = conf.clone()
             conf[index[thin]] = 0.0
-        if max(tc.plausible_turn_deg) > 0:  # (opt-in) nor does one turned faster than a head turns
-            turned = geodesic_angle_deg(result.rotation, axis_angle_to_matrix(
-                ms.confident_params[:, layout.rotation]).to(result.rotation.dtype))  # fmt: skip
-            reach = tc.plausible_turn_deg[0] + tc.plausible_turn_deg[1] * (ms.low_count + 1).to(turned.dtype)
-            conf = torch.where(ms.lost & (turned > reach), torch.zeros_like(conf), conf)
+        # (opt-in) nor does one turned faster than a head turns
+        too_far = _turned_too_far(result.rotation, ms.confident_params, ms.low_count, tc, layout)
+        conf = torch.where(ms.lost & too_far, torch.zeros_like(conf), conf)
     gate = _native_gate(ms, result.ypr_deg, conf, inside, failed, tc) if native else None
     if gate is not None:
         confident, low_count, very_low_count, lost, reverted, since, attempt, add_if_kept, bins_if_kept = gate
@@ -1219,11 +1238,8 @@ def managed_step(
             near = _within_searched_depths(r_state.params, ms.confident_params[index], layout, tc, tried)
             adopt = adopt & (near | (r_conf >= tc.recover_confidence))
         adopt = adopt & (r_inside >= tc.min_inside_fraction)
-        if max(tc.plausible_turn_deg) > 0:  # (opt-in) nor one turned from the last confident pose faster than a head
-            turned = geodesic_angle_deg(r_result.rotation, axis_angle_to_matrix(
-                ms.confident_params[index][:, layout.rotation]).to(r_result.rotation.dtype))  # fmt: skip
-            reach = tc.plausible_turn_deg[0] + tc.plausible_turn_deg[1] * (ms.low_count[index] + 1).to(turned.dtype)
-            adopt = adopt & (turned <= reach)
+        # (opt-in) nor one turned from the last confident pose faster than a head turns
+        adopt = adopt & ~_turned_too_far(r_result.rotation, ms.confident_params[index], ms.low_count[index], tc, layout)
         ok = adopt & (r_conf >= tc.recover_confidence)
         if detector is not None and tc.restart_after_unmatched > 0:
             # The detector found a face and neither its candidate nor the continued track scores
