@@ -612,11 +612,13 @@ def test_a_managed_step_checks_the_frames_values_once(model, gentle, monkeypatch
 
 
 
-def _recover_scoring(monkeypatch, confidence: float) -> dict:
-    """Make every recovery candidate score ``confidence``; returns the dict where each attempt leaves which streams
-    found one (``found``) and the candidates' parameters (``params``)."""
+def _candidates_back(model, config, leaves, monkeypatch, confidence: float):
+    """Track the ``leaves`` clip with every recovery candidate scoring ``confidence``; yields ``(state, result,
+    candidate_params)`` after each step of the face's return (frame ``BACK`` on) where a recovery attempt found a
+    candidate (on the face)."""
     import torchface.tracker.managed as managed
 
+    frames, gt = leaves
     real = managed._recover
     seen: dict = {}
 
@@ -626,7 +628,13 @@ def _recover_scoring(monkeypatch, confidence: float) -> dict:
         return found, r_state, r_result, torch.full_like(r_conf, confidence), r_diss, r_inside, r_entry, r_starts
 
     monkeypatch.setattr(managed, "_recover", rec)
-    return seen
+    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    for i in range(1, frames.shape[1]):
+        seen.clear()
+        state, res = managed_step(model, config, state, frames[:, i])
+        if i >= BACK and seen and bool(seen["found"][0]):  # the face is back: the candidate is on it
+            yield state, res, seen["params"]
+
 
 @pytest.mark.parametrize(
     ("forced", "angle", "floor", "adopted"),
@@ -639,21 +647,15 @@ def test_lost_stream_goes_on_from_a_candidate_that_beats_its_track(
     ``adopt_min_confidence``, and more than ``adopt_min_angle_deg`` from the track, is adopted: the stream stays
     LOST and goes on from the candidate's parameters. One that does not beat the track, scores below
     ``adopt_min_confidence`` or lies within ``adopt_min_angle_deg`` of it (180: always), is dropped."""
-    frames, gt = leaves
-    seen = _recover_scoring(monkeypatch, forced)
     config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=angle,
                                                   adopt_min_confidence=floor))
-    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     checked = 0
-    for i in range(1, frames.shape[1]):
-        seen.clear()
-        state, res = managed_step(model, config, state, frames[:, i])
-        if i >= BACK and seen and bool(seen["found"][0]):  # the face is back: the candidate is on it
-            assert int(res.status[0]) == LOST and bool(state.management.lost[0])
-            assert torch.equal(state.params, seen["params"]) == adopted
-            if adopted:
-                assert float(res.confidence[0]) == pytest.approx(forced)
-            checked += 1
+    for state, res, candidate in _candidates_back(model, config, leaves, monkeypatch, forced):
+        assert int(res.status[0]) == LOST and bool(state.management.lost[0])
+        assert torch.equal(state.params, candidate) == adopted
+        if adopted:
+            assert float(res.confidence[0]) == pytest.approx(forced)
+        checked += 1
     assert checked >= 1, checked
 
 
@@ -1987,28 +1989,25 @@ def test_a_candidate_turned_too_fast_from_its_last_confident_pose_is_not_adopted
     """A recovery candidate that beats its track is adopted with ``plausible_turn_deg`` off ((0, 0)) or wide (180
     degrees), and dropped where it lies farther than ``base + per_frame * n`` from the last confident pose: a
     tiny base, or a base of 0 with a tiny per-frame allowance (the check is on then too)."""
-    frames, gt = leaves
-    seen = _recover_scoring(monkeypatch, 0.3)
     config = replace(LEAVE_CFG, template=replace(LEAVE_CFG.template, adopt_min_angle_deg=0.0,
                                                   plausible_turn_deg=plausible))  # fmt: skip
-    state, _ = initialise_managed(model, config, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     checked = 0
-    for i in range(1, frames.shape[1]):
-        seen.clear()
-        state, res = managed_step(model, config, state, frames[:, i])
-        if i >= BACK and seen and bool(seen["found"][0]):  # the face is back: the candidate is on it
-            assert torch.equal(state.params, seen["params"]) == (plausible in ((0.0, 0.0), (180.0, 0.0))), i
-            checked += 1
+    for state, _, candidate in _candidates_back(model, config, leaves, monkeypatch, 0.3):
+        assert torch.equal(state.params, candidate) == (plausible in ((0.0, 0.0), (180.0, 0.0))), checked
+        checked += 1
     assert checked >= 1, checked
 
 
-def _declared_lost(state, low_count: int):
-    """``state`` with its one stream declared lost ``low_count`` frames after its last confident one (no recovery
-    attempt made yet)."""
+def _declared_lost(model, gentle, low_count: int):
+    """The ``gentle`` clip's frames, its managed start (``CFG``) and that state with its one stream declared lost
+    ``low_count`` frames after its last confident one (no recovery attempt made yet)."""
+    frames, gt = gentle
+    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
     ms = state.management
-    return replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
+    lost = replace(state, management=replace(ms, lost=torch.ones(1, dtype=torch.bool),
                                              since_attempt=torch.zeros(1, dtype=ms.since_attempt.dtype),
                                              low_count=torch.full_like(ms.low_count, low_count)))  # fmt: skip
+    return frames, state, lost
 
 
 @pytest.mark.parametrize("native", [True, False])
@@ -2020,10 +2019,8 @@ def test_a_lost_track_turned_too_fast_from_its_last_confident_pose_does_not_end_
     (the default), the same track ends its loss."""
     if not native:
         monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
-    frames, gt = gentle
-    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    frames, state, lost = _declared_lost(model, gentle, low_count=3)
     ms = state.management
-    lost = _declared_lost(state, low_count=3)
     _, ended = managed_step(model, CFG, lost, frames[:, 1])
     assert bool(ended.success[0]) and float(ended.confidence[0]) > 0.5  # the control: the loss ends
     R_c = axis_angle_to_matrix(ms.confident_params[:, 0:3]).to(ended.rotation.dtype)
@@ -2050,10 +2047,8 @@ def test_a_lost_frame_above_the_threshold_but_below_recovery_still_counts_as_not
     ``base + per_frame`` while the last confident pose stayed the one before the loss)."""
     if not native:
         monkeypatch.setattr("torchface.tracker.managed._native_gate", lambda *a, **k: None)
-    frames, gt = gentle
-    state, _ = initialise_managed(model, CFG, frames[:, 0], landmarks(gt), Intrinsics.default(W, H))
+    frames, state, lost = _declared_lost(model, gentle, low_count=20)
     ms = state.management
-    lost = _declared_lost(state, low_count=20)
     strict = replace(CFG, template=replace(CFG.template, recover_confidence=0.9999, recovery_every=1000))
     after, res = managed_step(model, strict, lost, frames[:, 1])
     assert CFG.template.confidence_threshold <= float(res.confidence[0]) < 0.9999, float(res.confidence[0])
