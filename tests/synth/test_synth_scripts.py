@@ -142,6 +142,7 @@ def test_benchmark_scripts_refuse_bad_counts_in_one_line(capsys):
         "benchmark_dataloader": (["--videos", "0"], ["--frames", "-2"], ["--width", "321"], ["--height", "16"],
                                  ["--face-size", "8"], ["--batch-size", "0"], ["--workers", "0,x"],
                                  ["--workers", "-1"], ["--repeats", "0"]),
+        "benchmark_device": (["--steps", "0"], ["--threads", "0"], ["--width", "321"], ["--frames", "3"]),
     }  # fmt: skip
     for name, argvs in cases.items():
         script = _load(name)
@@ -151,6 +152,29 @@ def test_benchmark_scripts_refuse_bad_counts_in_one_line(capsys):
             err = capsys.readouterr().err
             assert info.value.code == 2 and f"argument {argv[0]}: must be" in err, (name, argv, err)
             assert "Traceback" not in err and ": error: argument " in err.strip().splitlines()[-1], err
+
+
+def test_benchmark_device_on_the_cpu(tmp_path, capsys):
+    """scripts/benchmark_device.py with ``--device cpu`` (the GPU rows' code, run where there is no GPU): a row per
+    batch, the ratio where both were run, on-track errors, and its JSON."""
+    import json
+
+    script = _load("benchmark_device")
+    out = tmp_path / "bench.json"
+    argv = ["--device", "cpu", "--batches", "1,3", "--cpu-batches", "1", "--steps", "2", "--width", "160",
+            "--height", "120", "--frames", "12", "--threads", "1", "--cache", str(tmp_path), "--json", str(out)]
+    assert script.main(argv) == 0
+    table = capsys.readouterr().out
+    assert "device_batch_3" in table and "cpu_batch_1" in table
+    figures = json.loads(out.read_text())
+    assert sorted(figures) == ["cpu_batch_1", "device_batch_1", "device_batch_3"]
+    assert "ratio_to_cpu" in figures["device_batch_1"] and "ratio_to_cpu" not in figures["device_batch_3"]
+    for row in figures.values():
+        assert row["success"] == 1.0 and row["mean_error_deg"] < 3.0 and row["fps"] > 0
+    for bad in (["--batches", "1,x"], ["--cpu-batches", "0"], ["--device", "gpu0"]):
+        with pytest.raises(SystemExit) as info:
+            script.main(bad)
+        assert info.value.code == 2 and "Traceback" not in capsys.readouterr().err
 
 
 def test_benchmark_reads_its_batch_lists_as_its_check_does():
