@@ -224,3 +224,64 @@ def test_track_command_on_the_device(tmp_path):
         poses.append(torch.from_numpy(R).reshape(-1, 3, 3).double())
     assert poses[0].shape == poses[1].shape and poses[0].shape[0] == 12
     assert float(geodesic_angle_deg(poses[1], poses[0]).max()) < 0.1
+
+
+def _amp_dtype() -> torch.dtype:
+    return torch.float16 if torch.device(DEVICE).type == "cuda" else torch.bfloat16
+
+
+def test_layer_inside_the_devices_autocast_equals_full_precision(streams):
+    """A training step's ``torch.autocast`` on the device (float16 on CUDA): the float32 layer tracks, unrolls and
+    resamples in float32, bit-identical to the run outside it, while the caller's own products still autocast."""
+    from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
+
+    frames, lm, _ = streams
+    frames, lm = frames.to(DEVICE), lm.to(DEVICE)
+    device_type = torch.device(DEVICE).type
+    for mode in (LayerMode.DETACHED, LayerMode.UNROLLED):
+        layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=32, tracker=CFG)).to(DEVICE)
+        state, _ = layer.initialise(frames[:, 0], lm)
+        ref = layer(frames[:, 1], state)
+        with torch.autocast(device_type, dtype=_amp_dtype()):
+            state_amp, _ = layer.initialise(frames[:, 0], lm)
+            out = layer(frames[:, 1], state_amp)
+            ones = torch.ones(32 * 32 * 3, 1, device=DEVICE)
+            assert (out.image.flatten(1) @ ones).dtype == _amp_dtype()
+        assert torch.equal(state_amp.params, state.params), mode
+        assert torch.equal(out.params, ref.params) and torch.equal(out.image, ref.image), mode
+
+
+def test_a_compiled_network_holding_the_layer(streams):
+    """``torch.compile`` (its default backend: Triton kernels on CUDA) of a network that holds the layer: the tracking
+    runs eagerly inside it (a graph break), the rest compiled; the faces, the network's output and the gradient
+    w.r.t. the frame pixels equal the eager network's to float32 rounding."""
+    from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
+
+    frames, lm, _ = streams
+
+    class Net(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=32, tracker=CFG))
+            self.head = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.ReLU(), torch.nn.Flatten(),
+                                            torch.nn.LazyLinear(2))  # fmt: skip
+
+        def forward(self, frame, state):
+            out = self.layer(frame, state)
+            return out.image, self.head(out.image)
+
+    torch.manual_seed(0)
+    net = Net().to(DEVICE)
+    state, _ = net.layer.initialise(frames[:, 0].to(DEVICE), lm.to(DEVICE))
+    net(frames[:, 1].to(DEVICE), state)  # the lazy layer's shape
+    outs = []
+    for run in (net, torch.compile(net)):
+        frame = frames[:, 1].to(DEVICE).clone().requires_grad_(True)
+        image, logits = run(frame, state)
+        logits.square().sum().backward()
+        outs.append((image.detach(), logits.detach(), frame.grad))
+    (ie, le, ge), (ic, lc, gc) = outs
+    assert bool(torch.isfinite(gc).all()) and float(ge.abs().sum()) > 0
+    torch.testing.assert_close(ic, ie, rtol=0, atol=1e-5)
+    torch.testing.assert_close(lc, le, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(gc, ge, rtol=1e-3, atol=1e-6)
