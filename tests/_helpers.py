@@ -83,3 +83,41 @@ def opencv_411_capture(*args) -> cv2.VideoCapture:
     cap = _VideoCapture(*args)
     cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
     return cap
+
+
+def leave_and_return_streams(width: int = 320, height: int = 240, frames: int = 12):
+    """Two rendered streams ``(2, T, 3, H, W)``: a gentle turn (12, -5, 4 degrees of yaw, pitch, roll and a few mm),
+    and a face that moves, leaves the frame to the right (frames 4-7) and comes back on the left (8 on); their first
+    landmarks ``(2, 68, 2)`` float32 and ground truths. For tests of loss and recovery on any device."""
+    s = torch.linspace(0, 1, frames, dtype=D)
+    ypr = (s[:, None] * torch.tensor([12.0, -5.0, 4.0], dtype=D)).tolist()
+    txyz = (torch.tensor([0.0, 0.0, 450.0], dtype=D) + s[:, None] * torch.tensor([8.0, -4.0, 10.0], dtype=D)).tolist()
+    x = ([0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-60.0] * frames)[:frames]
+
+    def spec(name: str, ypr: list[list[float]], txyz: list[list[float]]) -> SequenceSpec:
+        return SequenceSpec(
+            name=name, subject="candide3", intrinsics=Intrinsics.default(width, height),
+            rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor(txyz, dtype=D),
+            anim=torch.zeros(frames, load_candide3().num_animation, dtype=D), light=default_light(frames),
+            background=BackgroundSpec(seed=3), photo="james",
+        )  # fmt: skip
+
+    fa, ga = render_sequence(spec("gentle", ypr, txyz))
+    fb, gb = render_sequence(spec("leaves", [[0.0, 0.0, 0.0]] * frames, [[xi, 0.0, 450.0] for xi in x]))
+    lm = torch.stack([ga.landmarks_px[0], gb.landmarks_px[0]]).float()
+    return torch.stack([fa, fb]), lm, (ga, gb)
+
+
+def managed_track(model, config, frames: torch.Tensor, landmarks: torch.Tensor) -> list:
+    """``initialise_managed`` on ``frames[:, 0]`` then ``managed_step`` on each later frame of ``frames (B, T, C, H,
+    W)``, inputs moved to the model's device; the list of results."""
+    from torchface.tracker import initialise_managed, managed_step
+
+    h, w = frames.shape[-2:]
+    state, res = initialise_managed(model, config, frames[:, 0].to(model.device), landmarks.to(model.device),
+                                    Intrinsics.default(w, h))  # fmt: skip
+    results = [res]
+    for i in range(1, frames.shape[1]):
+        state, res = managed_step(model, config, state, frames[:, i].to(model.device))
+        results.append(res)
+    return results

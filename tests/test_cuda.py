@@ -19,7 +19,9 @@ against themselves: a check of the tests' own code on a machine without a GPU).
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,13 +29,13 @@ import torch
 
 from torchface.backend import Backend
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import euler_to_matrix, geodesic_angle_deg
+from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.model.candide import load_candide3
-from torchface.synth.background import BackgroundSpec
-from torchface.synth.scenarios import default_light
-from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.template.management import TemplateConfig
 from torchface.tracker import FaceTracker, FitConfig, TrackerConfig, initialise_managed, managed_step
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _helpers import leave_and_return_streams, managed_track  # noqa: E402
 
 DEVICE = os.environ.get("TORCHFACE_TEST_DEVICE", "cuda")
 pytestmark = pytest.mark.skipif(
@@ -51,40 +53,11 @@ CFG = TrackerConfig(
 BACK = 8
 
 
-def _spec(name: str, ypr: list[list[float]], txyz: list[list[float]]) -> SequenceSpec:
-    T = len(ypr)
-    return SequenceSpec(
-        name=name, subject="candide3", intrinsics=Intrinsics.default(W, H),
-        rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor(txyz, dtype=D),
-        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
-        background=BackgroundSpec(seed=3), photo="james",
-    )  # fmt: skip
-
-
 @pytest.fixture(scope="module")
 def streams():
     """Two 12-frame streams ``(2, 12, 3, H, W)``: a gentle turn, and a face that leaves the frame and comes back;
     their first landmarks ``(2, 68, 2)`` and ground truths."""
-    T = 12
-    s = torch.linspace(0, 1, T, dtype=D)
-    ypr = (s[:, None] * torch.tensor([12.0, -5.0, 4.0], dtype=D)).tolist()
-    txyz = (torch.tensor([0.0, 0.0, 450.0], dtype=D) + s[:, None] * torch.tensor([8.0, -4.0, 10.0], dtype=D)).tolist()
-    fa, ga = render_sequence(_spec("gentle", ypr, txyz))
-    x = [0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-60.0] * 4
-    fb, gb = render_sequence(_spec("leaves", [[0.0, 0.0, 0.0]] * T, [[xi, 0.0, 450.0] for xi in x]))
-    frames = torch.stack([fa, fb])
-    lm = torch.stack([ga.landmarks_px[0], gb.landmarks_px[0]]).float()
-    return frames, lm, (ga, gb)
-
-
-def _track(model, config, frames, lm):
-    state, res = initialise_managed(model, config, frames[:, 0].to(model.device), lm.to(model.device),
-                                    Intrinsics.default(W, H))  # fmt: skip
-    results = [res]
-    for i in range(1, frames.shape[1]):
-        state, res = managed_step(model, config, state, frames[:, i].to(model.device))
-        results.append(res)
-    return results
+    return leave_and_return_streams(W, H, 12)
 
 
 def _finite(res, device):
@@ -98,8 +71,8 @@ def test_managed_tracking_equals_the_cpu_torch_code(streams):
     """float64, loss and recovery included: the same status, mosaic entry and estimates as the CPU's torch code."""
     frames, lm, (ga, gb) = streams
     config = replace(CFG, backend=Backend.TORCH)
-    cpu = _track(load_candide3(dtype=D), config, frames, lm)
-    dev = _track(load_candide3(dtype=D, device=DEVICE), config, frames, lm)
+    cpu = managed_track(load_candide3(dtype=D), config, frames, lm)
+    dev = managed_track(load_candide3(dtype=D, device=DEVICE), config, frames, lm)
     for i, (c, g) in enumerate(zip(cpu, dev)):
         _finite(g, DEVICE)
         assert torch.equal(c.status, g.status.cpu()), i
@@ -285,3 +258,39 @@ def test_a_compiled_network_holding_the_layer(streams):
     torch.testing.assert_close(ic, ie, rtol=0, atol=1e-5)
     torch.testing.assert_close(lc, le, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(gc, ge, rtol=1e-3, atol=1e-6)
+
+
+def test_deterministic_algorithms_on_the_device(streams, monkeypatch):
+    """``torch.use_deterministic_algorithms(True)`` (a reproducible training run): torch's CUDA ``nanmedian`` and the
+    image backward of ``grid_sample`` and of the reflected pad raise there, so the tracker could not track a frame
+    nor the layer train; torchface._deterministic's substitutes run instead. Two runs are bit-identical, and equal
+    the run without the mode to float32 rounding."""
+    from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
+
+    frames, lm, _ = streams
+    monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # (cuBLAS's own condition for deterministic products)
+
+    def run():
+        torch.manual_seed(0)
+        results = managed_track(load_candide3(device=DEVICE), CFG, frames, lm)
+        layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=32, tracker=CFG)).to(DEVICE)
+        state, _ = layer.initialise(frames[:, 0].to(DEVICE), lm.to(DEVICE))
+        frame = frames[:, 1].to(DEVICE).requires_grad_()
+        out = layer(frame, state)
+        out.image.square().sum().backward()
+        poses = torch.stack([r.axis_angle for r in results]).cpu()
+        return poses, torch.stack([r.status for r in results]).cpu(), out.image.detach().cpu(), frame.grad.cpu()
+
+    free = run()
+    previous = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        first, second = run(), run()
+    finally:
+        torch.use_deterministic_algorithms(previous)
+    for a, b in zip(first, second):
+        assert torch.equal(a, b)
+    assert torch.equal(first[1], free[1])
+    torch.testing.assert_close(first[0], free[0], rtol=0, atol=1e-4)
+    torch.testing.assert_close(first[2], free[2], rtol=0, atol=1e-4)
+    torch.testing.assert_close(first[3], free[3], rtol=1e-3, atol=1e-5)

@@ -7,6 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchface._deterministic import grid_sample_border, reflect_pad
+
 
 #: ITU-R BT.601 luma weights of R, G and B (kornia's ``rgb_to_grayscale`` defaults).
 _BT601: tuple[float, float, float] = (0.299, 0.587, 0.114)
@@ -85,7 +87,7 @@ def sample_at_pixels(images: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]
     # non-finite points go to pixel (0, 0), a torch.where so that their gradient is 0, not NaN.
     points_px = torch.where(finite, points_px, 0.0)
     grid = pixels_to_grid(points_px, h, w).unsqueeze(1)  # (B, 1, N, 2)
-    values = F.grid_sample(images, grid.to(images.dtype), mode="bilinear", padding_mode="border", align_corners=True)
+    values = grid_sample_border(images, grid.to(images.dtype))
     u, v = points_px[..., 0], points_px[..., 1]
     inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & finite.squeeze(-1)
     return values.squeeze(2).transpose(1, 2), inside
@@ -164,7 +166,7 @@ def pyr_down(images: Tensor, out: Tensor | None = None) -> Tensor:
             f"out must be {(*images.shape[:2], h2, w2)} {images.dtype} on {images.device}, "
             f"got {tuple(out.shape)} {out.dtype} on {out.device}"
         )
-    p = F.pad(images, (2, 2, 2, 2), mode="reflect")
+    p = reflect_pad(images, 2)
     rows = torch.mul(p[..., 0 : 2 * h2 : 2, :], _PYR_TAPS[0])
     for k in range(1, len(_PYR_TAPS)):
         rows.add_(p[..., k : k + 2 * h2 : 2, :], alpha=_PYR_TAPS[k])

@@ -26,6 +26,7 @@ from typing import cast
 
 import torch
 
+from torchface._deterministic import nanmedian_values
 from torchface._scalar import scalar
 from torchface.geometry._checks import check_real
 
@@ -280,7 +281,7 @@ def _masked_median(x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, t
     smallest value above it. Empty rows give 0.
     """
     xm = torch.where(mask, x, torch.full_like(x, torch.nan))
-    lo = torch.nanmedian(xm, dim=1).values
+    lo = nanmedian_values(xm, dim=1)
     count = mask.sum(dim=1)
     lo = torch.where(count > 0, lo, torch.zeros_like(lo))
     n_le = (mask & (x <= lo.unsqueeze(1))).sum(dim=1)

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 from typing import cast
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchface import _native
+from torchface._deterministic import grid_sample_border, nanmedian_values
 from torchface._scalar import isfinite, scalar
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
@@ -70,7 +70,7 @@ class LevelCamera:
 def _masked_median_abs(r: Tensor, valid: Tensor) -> Tensor:
     """``(B,)`` median of ``|r|`` over valid entries (1 where a row has none)."""
     x = torch.where(valid, r.abs(), scalar(float("nan"), r))
-    med = torch.nanmedian(x, dim=-1).values
+    med = nanmedian_values(x, dim=-1)
     return torch.nan_to_num(med, nan=1.0)
 
 
@@ -219,9 +219,7 @@ def linearise(
     xy = Xc[:, :2] * iz  # (B, 2, N)
     shift = k.grid_shift if jacobian else k.grid_shift[:, :, :1]  # the stencil, or the points alone
     grid = torch.addcmul(shift, xy.unsqueeze(2), k.grid_scale)  # (B, 2, 5 or 1, N) in [-1, 1] inside the crop
-    vals = F.grid_sample(
-        image, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
-    ).view(B, -1, N)
+    vals = grid_sample_border(image, grid.permute(0, 2, 3, 1)).view(B, -1, N)
     intensity = vals[:, 0]
     r = torch.baddbmm((intensity - tpl.intensity).unsqueeze(1), light.unsqueeze(1), nlb).view(B, N)
     inside = (grid[:, :, 0].abs() <= scalar(1.0, grid)).all(1)
@@ -229,9 +227,7 @@ def linearise(
     valid = mask & front & inside & facing
     if holes is not None:  # the samples the image with its holes gives, for the masks and the reported intensity
         with torch.no_grad():
-            seen = F.grid_sample(
-                holes, grid.detach().permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
-            ).view(B, -1, N)
+            seen = grid_sample_border(holes, grid.detach().permute(0, 2, 3, 1)).view(B, -1, N)
         valid = valid & isfinite(seen.sum(1))  # (without holes: r is not finite there, or the stencil, below)
         intensity = torch.where(isfinite(seen[:, 0]), intensity, seen[:, 0])
     if not jacobian:

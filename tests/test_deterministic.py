@@ -1,0 +1,125 @@
+"""Tests of torchface._deterministic: the substitutes for CUDA operations that raise under
+``torch.use_deterministic_algorithms(True)``, checked against torch's operations on the CPU (forced with ``FORCE``);
+the tracker and the layer through them; torch's operations everywhere else. The CUDA run itself:
+tests/test_cuda.py."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from torchface import _deterministic
+from torchface._deterministic import grid_sample_border, nanmedian_values, reflect_pad
+from torchface.template.management import TemplateConfig
+from torchface.tracker import TrackerConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _helpers import leave_and_return_streams, managed_track  # noqa: E402
+
+D = torch.float64
+
+
+@pytest.fixture
+def forced(monkeypatch):
+    monkeypatch.setattr(_deterministic, "FORCE", True)
+
+
+def test_nanmedian_values_equal_torchs(forced):
+    """The same values as ``torch.nanmedian``: NaN entries skipped, the lower middle of an even count, ties, an
+    infinite entry, a row of NaN (NaN), along the last and an inner dimension, float32 and float64."""
+    gen = torch.Generator().manual_seed(0)
+    for dtype in (torch.float32, D):
+        x = torch.randn(6, 9, 5, generator=gen, dtype=dtype).round(decimals=1)  # (ties)
+        x[torch.rand(x.shape, generator=gen) < 0.3] = torch.nan
+        x[0, :, 0] = torch.nan
+        x[1, 2, :] = torch.nan
+        x[2, 3, 1] = torch.inf
+        x[3, 4, 2] = -torch.inf
+        for dim in (-1, 1, 0):
+            torch.testing.assert_close(nanmedian_values(x, dim), torch.nanmedian(x, dim=dim).values, rtol=0, atol=0,
+                                       equal_nan=True)  # fmt: skip
+    assert bool(torch.isnan(nanmedian_values(torch.full((2, 3), torch.nan), 1)).all())
+
+
+def _grid(gen: torch.Generator, B: int, H: int, W: int) -> torch.Tensor:
+    """``(B, 4, 6, 2)`` points: inside, outside, on the border lines and on pixel centres."""
+    g = torch.rand(B, 4, 6, 2, generator=gen, dtype=D) * 2.6 - 1.3
+    g[:, 0, :, 0] = torch.tensor([-1.0, 1.0, 0.0, 1.0, -1.0, 0.5], dtype=D)  # x on the borders
+    g[:, 0, :, 1] = torch.tensor([-1.0, -1.0, 1.0, 1.0, 0.25, 1.0], dtype=D)
+    g[:, 1, :, 0] = torch.arange(6, dtype=D) / (W - 1) * 2 - 1  # pixel centres
+    return g
+
+
+def test_grid_sample_border_equals_torchs_values_and_gradients(forced):
+    gen = torch.Generator().manual_seed(1)
+    images = torch.rand(2, 3, 7, 9, generator=gen, dtype=D, requires_grad=True)
+    grid = _grid(gen, 2, 7, 9).requires_grad_()
+    weight = torch.rand(2, 3, 4, 6, generator=gen, dtype=D)
+    outs = []
+    for run in (grid_sample_border, lambda i, g: F.grid_sample(i, g, "bilinear", "border", align_corners=True)):
+        out = run(images, grid)
+        gi, gg = torch.autograd.grad((out * weight).sum(), (images, grid))
+        outs.append((out, gi, gg))
+    for a, b in zip(*outs):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    inner = (torch.rand(2, 3, 5, 2, generator=gen, dtype=D) * 1.8 - 0.9).requires_grad_()  # off pixel centres
+    assert torch.autograd.gradcheck(grid_sample_border, (images, inner))
+
+
+def test_reflect_pad_equals_torchs(forced):
+    images = torch.rand(2, 3, 5, 7, dtype=D, requires_grad=True)
+    weight = torch.rand(2, 3, 9, 11, dtype=D)
+    ours, theirs = reflect_pad(images, 2), F.pad(images, (2, 2, 2, 2), mode="reflect")
+    assert torch.equal(ours, theirs)
+    g1, g2 = (torch.autograd.grad((p * weight).sum(), images)[0] for p in (ours, theirs))
+    torch.testing.assert_close(g1, g2, rtol=0, atol=1e-15)
+
+
+def test_torchs_operations_off_cuda_even_in_deterministic_mode(monkeypatch):
+    """The substitutes run only where torch's CUDA kernels would raise: on the CPU (and without the mode) torch's
+    own operations run, so nothing else changes."""
+    calls = []
+    monkeypatch.setattr(torch, "nanmedian", lambda *a, **k: calls.append(1) or torch.sort(a[0]).values.max(-1))
+    x = torch.rand(2, 4, requires_grad=True)
+    previous = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        nanmedian_values(x)
+        assert calls == [1]
+        assert not _deterministic._substitute(x, backward=True) and not _deterministic._substitute(x, backward=False)
+    finally:
+        torch.use_deterministic_algorithms(previous)
+
+
+def test_tracking_and_the_layer_through_the_substitutes(monkeypatch):
+    """Managed tracking (the torch code) and ``NormalisedFaceLayer``'s unrolled backward with every substitute
+    forced: the same statuses and estimates as torch's operations give, to float64 rounding."""
+    from torchface.backend import Backend
+    from torchface.model.candide import load_candide3
+    from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
+
+    frames, lm, _ = leave_and_return_streams(160, 120, 6)
+    config = TrackerConfig(num_levels=2, max_points=400, iterations=(6, 4), backend=Backend.TORCH,
+                           template=TemplateConfig(recovery_every=2))  # fmt: skip
+    runs = []
+    for force in (False, True):
+        monkeypatch.setattr(_deterministic, "FORCE", force)
+        results = managed_track(load_candide3(dtype=D), config, frames, lm)
+        layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=24, tracker=config)).double()
+        state, _ = layer.initialise(frames[:, 0], lm)
+        frame = frames[:, 1].to(D).requires_grad_()
+        out = layer(frame, state)
+        out.image.square().sum().backward()
+        runs.append((results, out.image.detach(), frame.grad))
+    (a, ia, ga), (b, ib, gb) = runs
+    for ra, rb in zip(a, b):
+        assert torch.equal(ra.status, rb.status)
+        torch.testing.assert_close(ra.axis_angle, rb.axis_angle, rtol=0, atol=1e-9)
+        torch.testing.assert_close(ra.confidence, rb.confidence, rtol=0, atol=1e-9)
+    torch.testing.assert_close(ia, ib, rtol=0, atol=1e-9)
+    torch.testing.assert_close(ga, gb, rtol=1e-6, atol=1e-9)
+
