@@ -10,7 +10,10 @@ test runs the same thing twice, once on the GPU and once on the CPU with :attr:`
 - the normalised face and its gradient with respect to the frame pixels, and ``NormalisedFaceLayer`` (the training
   use: a layer moved with ``.cuda()``, unrolled iterations, a backward pass);
 - ``torchface track --device cuda``: the CSV's poses against the CPU run's;
-- CPU frames and landmarks given to a model on the GPU are moved to it.
+- CPU frames and landmarks given to a model on the GPU are moved to it;
+- added after session 49's GPU time was spent, not yet run on a GPU: the layer inside CUDA's autocast, a
+  ``torch.compile``d network holding the layer, and ``torch.use_deterministic_algorithms(True)``
+  (:mod:`torchface._deterministic`).
 
 Skipped without CUDA. ``TORCHFACE_TEST_DEVICE`` names another device to test instead (``cpu`` runs the comparisons
 against themselves: a check of the tests' own code on a machine without a GPU).
