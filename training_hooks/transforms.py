@@ -211,7 +211,9 @@ class TrackedSequence:
         frame_size: ``(H, W)`` of the frames.
         first_frame: index of the first frame in the tracked sequence: 0 when the tracking started here from
             landmarks, the state's :attr:`~torchface.tracker.TrackerState.frame_index` (frames it had seen) when
-            it continued a :class:`~torchface.tracker.TrackerState`; items' ``frame`` counts from it.
+            it continued a :class:`~torchface.tracker.TrackerState`, the video's frame where a dataset's detector
+            found the first face (:meth:`VideoDataset.sequence <training_hooks.datasets.VideoDataset.sequence>`);
+            items' ``frame`` counts from it.
     """
 
     faces: Tensor
