@@ -2,13 +2,24 @@
 
 :class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
-landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them;
+landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them; or a
+:data:`Detector`'s, from the first frame where it finds a face, below;
 :func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
 its end before its items are yielded (a :class:`~training_hooks.transforms.TrackedSequence`, whose items may be
 shuffled), so a worker holds every frame's face and parameters of the video it tracks: about 66 KB a frame with
 the default 128-pixel uint8 faces (7 GB for an hour of video at 30 frames/s): cut long videos into parts.
+
+With a :data:`Detector` in place of landmarks, a video whose first frame shows no face (a title card, a black
+frame, an empty room) is searched frame by frame as ``torchface track --detector`` searches it
+(:func:`torchface.detect.search_first_face`) and tracked from the first frame where the detector finds one, as the
+video cut to start there would be: its items are those of the cut video, but for ``frame``, which stays the frame's
+number in the video (the sequence's :attr:`~training_hooks.transforms.TrackedSequence.first_frame` is where the
+face was found); the frames before it give no item. A video in none of whose frames it finds a face is an
+:class:`~torchface.io.InputError` naming it and the frames searched (no cap: it is searched to its end). Each
+video is searched once per dataset: the detection is shared with the dataset's ``DataLoader`` workers and kept for
+later epochs (a new dataset searches again, then finds its sequence in the cache).
 
 Sharding: each video is tracked by exactly one process, from its start to its end, so that process owns its
 tracker state and no state crosses processes. In a ``torch.distributed`` process group (DDP: default group,
@@ -36,7 +47,8 @@ the fewest (:attr:`RankBalance.DROP`: the rest are left out, as ``drop_last=True
 ``num_workers`` on every rank, and each video's item count before it is tracked: the workers count the frames of
 their worker's videos on every rank (:meth:`VideoDataset.num_items`: image folders and ``.npy`` arrays at no cost,
 a video file whose tracked sequence is in the cache by the count stored with it (the file is hashed, not decoded),
-other video files decoded through without tracking), each video once per dataset (the counts are shared with the
+other video files decoded through without tracking; with a detector, the frames from the first with a face on,
+the video searched first, as above), each video once per dataset (the counts are shared with the
 workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``),
 so the union of the ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off:
 each rank yields its own videos' items once and the counts differ unless the videos split evenly (wrap the
@@ -46,12 +58,13 @@ says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` mak
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
-back in later epochs (:mod:`training_hooks.cache`: content-and-config keys, atomic writes, damaged files
-tracked again). Each item says where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and
+back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
+they are of, atomic writes, damaged files tracked again). Each item says where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and
 misses in the current process.
 
-Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`) plus
-``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()`` bool. Frame items stack with
+Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`: ``frame``,
+the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()``
+bool. Frame items stack with
 PyTorch's default collate; clip items of different lengths with :func:`~training_hooks.collate.collate_clips`.
 
 Example:
@@ -82,7 +95,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from torchface.detect import search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
-from torchface.io.landmarks import check_landmarks, read_landmarks
+from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
@@ -153,7 +166,7 @@ def _shared_detections(num_videos: int) -> tuple[Tensor, Tensor]:
     frame (-1: not searched yet) and the video's :func:`~training_hooks.cache.content_hash` as four words, and
     ``(num_videos, 68, 2)`` float64, the landmarks found in that frame."""
     where = torch.full((num_videos, 5), -1, dtype=torch.int64).share_memory_()
-    return where, torch.zeros(num_videos, 68, 2, dtype=torch.float64).share_memory_()
+    return where, torch.zeros(num_videos, NUM_LANDMARKS, 2, dtype=torch.float64).share_memory_()
 
 
 def _content_words(content: str) -> Tensor:
@@ -314,8 +327,10 @@ class VideoDataset(IterableDataset):
             tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file; NaN rows for missing points, at least 4
             given), or all of them stacked, one ``(N, 68, 2)`` array or tensor (as
             :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` takes a batch's), or one
-            :data:`Detector` applied to every video's first frame (its answer is remembered per process; all 68
-            points, as ``torchface track --detector`` takes them).
+            :data:`Detector` asked about each video's frames from the first on until it finds a face, the video
+            tracked from that frame (:meth:`sequence`, as ``torchface track --detector`` does; its answer is
+            remembered by the dataset, for its ``DataLoader`` workers and later epochs too; all 68 points, as
+            ``--detector`` takes them).
         config: :class:`DatasetConfig`.
 
     Raises:
@@ -501,9 +516,9 @@ class VideoDataset(IterableDataset):
         """Frames of video file ``index`` from the cache, without decoding it: the frame count recorded with its
         tracked sequence (:meth:`TrackCache.num_frames <training_hooks.cache.TrackCache.num_frames>`), under the key
         :meth:`sequence` looks it up by. None without a cache or an entry, for an image folder or ``.npy`` array
-        (counted at no cost), with landmarks not known before decoding (a detector's, until it ran in this
-        process: :meth:`_face_frame`), or when the video or its landmarks cannot be read (decoding then reports
-        what is wrong)."""
+        (counted at no cost), with landmarks not known before decoding (a detector's, until this dataset has
+        searched the video: :meth:`_face_frame`), or when the video or its landmarks cannot be read (decoding then
+        reports what is wrong)."""
         path, cache = self.videos[index], self.cache
         if cache is None or not cache.root.is_dir() or path.is_dir() or path.suffix.lower() == ".npy":
             return None  # (no cache yet: nothing to hash the video for; folders and arrays: open_frames' kinds)
