@@ -1379,7 +1379,9 @@ def _open_inputs(
                 points, source = recorded[1], f"detector:{config.detector}"
             else:  # (only a detector finds no face: a landmarks file's are the first frame's)
                 find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector)
-                searching = None if progress is None else partial(_report_search, progress, k, len(videos), name, reader, t0)
+                searching: Callable[[int], None] | None = None
+                if progress is not None:
+                    searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
                 start, _, (points, source) = search_first_face(
                     itertools.chain([frame], reader), find, f"{path}: the {config.detector} detector",
                     " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,

@@ -59,13 +59,13 @@ says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` mak
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
 back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
-they are of, atomic writes, damaged files tracked again). Each item says where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and
-misses in the current process.
+they are of, atomic writes, damaged files tracked again). Each item says where it came from (``cached``), and
+:attr:`VideoDataset.stats` counts hits and misses in the current process.
 
 Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`: ``frame``,
 the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()``
-bool. Frame items stack with
-PyTorch's default collate; clip items of different lengths with :func:`~training_hooks.collate.collate_clips`.
+bool. Frame items stack with PyTorch's default collate; clip items of different lengths with
+:func:`~training_hooks.collate.collate_clips`.
 
 Example:
     >>> from torch.utils.data import DataLoader
