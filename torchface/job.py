@@ -78,6 +78,7 @@ from __future__ import annotations
 import ast
 import contextlib
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -90,6 +91,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
+from functools import partial
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -100,7 +102,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.detect import _Batched, accepts_near, usable_detection
+from torchface.detect import _Batched, accepts_near, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
@@ -1370,31 +1372,33 @@ def _open_inputs(
         with open_frames(path, convert=config.convert) as reader:
             frame = next(reader)
             lm = config.landmarks[k] if config.landmarks else None
-            start, t0, calls = 0, time.perf_counter(), int(lm is None)
+            t0 = time.perf_counter()
             recorded = _recorded_first_face(config, reader, name) if config.resume and lm is None else None
-            found: tuple[np.ndarray, str] | None = None
             if recorded is not None:  # (the interrupted run's search: not made again)
                 start, calls = recorded[0], 0
-                found = recorded[1], f"detector:{config.detector}"
-            else:
-                found = _first_landmarks(reader, frame, lm, detector, config.detector)
-            while found is None:  # (only with a detector: a landmarks file's are the first frame's)
+                points, source = recorded[1], f"detector:{config.detector}"
+            else:  # (only a detector finds no face: a landmarks file's are the first frame's)
+                find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector)
+                searching: Callable[[int], None] | None = None
                 if progress is not None:
-                    rate = (start + 1) / max(time.perf_counter() - t0, 1e-9)
-                    progress(Progress(k, len(videos), name, start + 1, reader.info.num_frames, rate, 0.0, True))
-                try:
-                    frame = next(reader)
-                except StopIteration:
-                    raise InputError(f"{path}: the {config.detector} detector found no face in any of its {start + 1} "
-                                     "frames: nothing to track (give the 68 landmarks of its first frame with "
-                                     "--landmarks FILE if it shows one)") from None  # fmt: skip
-                start += 1
-                calls += 1
-                found = _first_landmarks(reader, frame, lm, detector, config.detector)
-            points, source = found
+                    searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
+                start, _, (points, source) = search_first_face(
+                    itertools.chain([frame], reader), find, f"{path}: the {config.detector} detector",
+                    " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
+                )  # fmt: skip
+                calls = start + 1 if lm is None else 0
         streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls,
                                start=start))  # fmt: skip
     return streams
+
+
+def _report_search(
+    progress: Callable[[Progress], None], index: int, count: int, name: str, reader: FrameReader, t0: float, done: int
+) -> None:
+    """Report that the detector has found no face in the first ``done`` frames of stream ``index``'s video ``name``
+    (:attr:`Progress.searching`; ``t0``: when the search started)."""
+    rate = done / max(time.perf_counter() - t0, 1e-9)
+    progress(Progress(index, count, name, done, reader.info.num_frames, rate, 0.0, True))
 
 
 def _reopen(streams: Sequence[_Stream], convert: bool) -> None:

@@ -7,7 +7,8 @@ Key (:func:`cache_key`): a BLAKE2b hash of
 - the :class:`~training_hooks.transforms.FaceTrackingConfig`'s full ``repr`` (the nested
   :class:`~torchface.tracker.TrackerConfig` and its :class:`~torchface.tracker.FitConfig` included: every field,
   face size and storage, focal length, thread count);
-- the first-frame landmarks (float64 bytes; a missing point, a NaN row, as one NaN whatever its bits);
+- the first-frame landmarks (float64 bytes; a missing point, a NaN row, as one NaN whatever its bits) and the
+  frame they are of, where it is not the video's first (a dataset's detector found no face before it);
 - any extra text the caller adds (the datasets add their frame-conversion setting);
 - the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
   and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`.
@@ -49,6 +50,7 @@ import torch
 
 import torchface
 from torchface.backend import Backend, native_available
+from torchface.extending import check_int
 from torchface.io.video import image_files
 from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 
@@ -115,7 +117,9 @@ def content_hash(path: str | os.PathLike[str]) -> str:
     return digest
 
 
-def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, extra: str = "") -> str:
+def cache_key(
+    content: str, config: FaceTrackingConfig, landmarks: np.ndarray, extra: str = "", first_frame: int = 0
+) -> str:
     """The cache key of a sequence (module docstring): 64 hex digits.
 
     Args:
@@ -124,6 +128,9 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
         landmarks: ``(68, 2)`` first-frame landmarks in pixels (hashed as float64); a NaN row (a missing point) is
             hashed as the same NaN whatever its bits.
         extra: anything else that changes the result (e.g. a frame-conversion setting).
+        first_frame: the video's frame the landmarks are of, where the tracking starts (a dataset's detector found
+            no face before it); hashed where it is not 0, so that the key of a sequence tracked from the video's
+            first frame is the one it had before the frame counted.
 
     Example:
         >>> from training_hooks.transforms import FaceTrackingConfig
@@ -134,6 +141,7 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     """
     if not isinstance(config, FaceTrackingConfig):
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
+    first_frame = check_int(first_frame, "first_frame", 0)
     points = np.ascontiguousarray(np.asarray(landmarks, dtype=np.float64))
     if points.shape != (68, 2):
         raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
@@ -142,7 +150,7 @@ def cache_key(content: str, config: FaceTrackingConfig, landmarks: np.ndarray, e
     native = config.tracker.backend is not Backend.TORCH and native_available()
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
-        f"native={native}", content, repr(config), extra,
+        f"native={native}", content, repr(config), extra, *([f"first_frame={first_frame}"] if first_frame else []),
     )  # fmt: skip
     for part in parts:
         data = part.encode("utf-8")

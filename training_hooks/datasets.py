@@ -2,13 +2,24 @@
 
 :class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
-landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them;
+landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them; or a
+:data:`Detector`'s, from the first frame where it finds a face, below;
 :func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
 its end before its items are yielded (a :class:`~training_hooks.transforms.TrackedSequence`, whose items may be
 shuffled), so a worker holds every frame's face and parameters of the video it tracks: about 66 KB a frame with
 the default 128-pixel uint8 faces (7 GB for an hour of video at 30 frames/s): cut long videos into parts.
+
+With a :data:`Detector` in place of landmarks, a video whose first frame shows no face (a title card, a black
+frame, an empty room) is searched frame by frame as ``torchface track --detector`` searches it
+(:func:`torchface.detect.search_first_face`) and tracked from the first frame where the detector finds one, as the
+video cut to start there would be: its items are those of the cut video, but for ``frame``, which stays the frame's
+number in the video (the sequence's :attr:`~training_hooks.transforms.TrackedSequence.first_frame` is where the
+face was found); the frames before it give no item. A video in none of whose frames it finds a face is an
+:class:`~torchface.io.InputError` naming it and the frames searched (no cap: it is searched to its end). Each
+video is searched once per dataset: the detection is shared with the dataset's ``DataLoader`` workers and kept for
+later epochs (a new dataset searches again, then finds its sequence in the cache).
 
 Sharding: each video is tracked by exactly one process, from its start to its end, so that process owns its
 tracker state and no state crosses processes. In a ``torch.distributed`` process group (DDP: default group,
@@ -36,7 +47,8 @@ the fewest (:attr:`RankBalance.DROP`: the rest are left out, as ``drop_last=True
 ``num_workers`` on every rank, and each video's item count before it is tracked: the workers count the frames of
 their worker's videos on every rank (:meth:`VideoDataset.num_items`: image folders and ``.npy`` arrays at no cost,
 a video file whose tracked sequence is in the cache by the count stored with it (the file is hashed, not decoded),
-other video files decoded through without tracking), each video once per dataset (the counts are shared with the
+other video files decoded through without tracking; with a detector, the frames from the first with a face on,
+the video searched first, as above), each video once per dataset (the counts are shared with the
 workers' copies, and kept for later epochs). Repeated items equal the originals (same ``video`` and ``frame``),
 so the union of the ranks' epochs is every item at least once (PAD). :attr:`RankBalance.UNEVEN` turns this off:
 each rank yields its own videos' items once and the counts differ unless the videos split evenly (wrap the
@@ -46,13 +58,14 @@ says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` mak
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
-back in later epochs (:mod:`training_hooks.cache`: content-and-config keys, atomic writes, damaged files
-tracked again). Each item says where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and
-misses in the current process.
+back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
+they are of, atomic writes, damaged files tracked again). Each item says where it came from (``cached``), and
+:attr:`VideoDataset.stats` counts hits and misses in the current process.
 
-Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`) plus
-``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()`` bool. Frame items stack with
-PyTorch's default collate; clip items of different lengths with :func:`~training_hooks.collate.collate_clips`.
+Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`: ``frame``,
+the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()``
+bool. Frame items stack with PyTorch's default collate; clip items of different lengths with
+:func:`~training_hooks.collate.collate_clips`.
 
 Example:
     >>> from torch.utils.data import DataLoader
@@ -70,7 +83,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,9 +92,10 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from torchface.detect import search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
-from torchface.io.landmarks import check_landmarks, read_landmarks
+from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
@@ -144,6 +158,26 @@ def _shared_state(num_videos: int, epoch: int = 0) -> Tensor:
     state = torch.full((_COUNTS + num_videos,), -1, dtype=torch.int64)
     state[_EPOCH], state[_WARNED] = epoch, 0
     return state
+
+
+def _shared_detections(num_videos: int) -> tuple[Tensor, Tensor]:
+    """Where a dataset's detector found each video's first face, in shared memory as :func:`_shared_state` (so that
+    neither a ``DataLoader`` worker nor a later epoch searches a video again): ``(num_videos, 5)`` int64, the
+    frame (-1: not searched yet) and the video's :func:`~training_hooks.cache.content_hash` as four words, and
+    ``(num_videos, 68, 2)`` float64, the landmarks found in that frame."""
+    where = torch.full((num_videos, 5), -1, dtype=torch.int64).share_memory_()
+    return where, torch.zeros(num_videos, NUM_LANDMARKS, 2, dtype=torch.float64).share_memory_()
+
+
+def _content_words(content: str) -> Tensor:
+    """``(4,)`` int64: a :func:`~training_hooks.cache.content_hash` (64 hex digits) as :func:`_shared_detections`
+    keeps it."""
+    return torch.from_numpy(np.frombuffer(bytes.fromhex(content), dtype=np.int64).copy())
+
+
+def _detector_image(frame: Tensor) -> np.ndarray:
+    """A ``(3, H, W)`` float frame in ``[0, 1]`` as the ``(H, W, 3)`` uint8 RGB image a :data:`Detector` takes."""
+    return (frame.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).contiguous().numpy()
 
 
 #: The end of :mod:`torchface.io`'s message for a frame to convert, as a dataset says it (the command line's
@@ -293,8 +327,10 @@ class VideoDataset(IterableDataset):
             tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file; NaN rows for missing points, at least 4
             given), or all of them stacked, one ``(N, 68, 2)`` array or tensor (as
             :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` takes a batch's), or one
-            :data:`Detector` applied to every video's first frame (its answer is remembered per process; all 68
-            points, as ``torchface track --detector`` takes them).
+            :data:`Detector` asked about each video's frames from the first on until it finds a face, the video
+            tracked from that frame (:meth:`sequence`, as ``torchface track --detector`` does; its answer is
+            remembered by the dataset, for its ``DataLoader`` workers and later epochs too; all 68 points, as
+            ``--detector`` takes them).
         config: :class:`DatasetConfig`.
 
     Raises:
@@ -355,7 +391,7 @@ class VideoDataset(IterableDataset):
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
         self._cache: TrackCache | None = None
-        self._detected: dict[str, np.ndarray] = {}
+        self._found_at, self._found = _shared_detections(len(self.videos))
 
     def _check_source(self, path: Path) -> None:
         _check_exists(path)
@@ -367,6 +403,9 @@ class VideoDataset(IterableDataset):
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "_shared" not in state:  # pickled before the shared state existed
             state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))
+        if "_found_at" not in state:  # pickled before the detections were shared (its own were per process)
+            state.pop("_detected", None)
+            state["_found_at"], state["_found"] = _shared_detections(len(state["videos"]))
         self.__dict__.update(state)
 
     @property
@@ -448,24 +487,28 @@ class VideoDataset(IterableDataset):
         ]
 
     def num_items(self, index: int) -> int:
-        """Items of video ``index`` (:func:`clip_bounds` of its frame count), counted without tracking: an image
-        folder's images, a ``.npy`` array's length, a video file's frames as its tracked sequence in the cache
+        """Items of video ``index`` (:func:`clip_bounds` of its tracked frames' count), counted without tracking: an
+        image folder's images, a ``.npy`` array's length, a video file's frames as its tracked sequence in the cache
         holds them (:meth:`_cached_frames`: the file is hashed, not decoded) or else decoded through (a container's
-        stated count can be approximate). Remembered by the dataset, for its copies in ``DataLoader`` workers too
+        stated count can be approximate); with a detector, the frames from the first one with a face on (found by
+        the search :meth:`sequence` makes, once: decoded up to it, the detector asked about each frame, and
+        remembered for the tracking). Remembered by the dataset, for its copies in ``DataLoader`` workers too
         (shared memory): each video is counted once, by the first process that needs it.
 
         Raises:
-            torchface.io.InputError: the video cannot be read (the message names the file).
+            torchface.io.InputError: the video cannot be read, or the detector finds no face in any of its frames
+                (the message names the file).
         """
         if not 0 <= index < len(self.videos):
             raise IndexError(f"video {index} out of range for {len(self.videos)} videos")
         counts = self._shared[_COUNTS:]
         if int(counts[index]) < 0:
             c = self.config
+            start = self._face_frame(index)  # (before the cache is asked: the key holds the detection)
             frames = self._cached_frames(index)
             if frames is None:
                 with _dataset_hint():
-                    frames = _count_frames(self.videos[index], c.convert)
+                    frames = _count_frames(self.videos[index], c.convert) - start
             counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
         return int(counts[index])
 
@@ -473,27 +516,32 @@ class VideoDataset(IterableDataset):
         """Frames of video file ``index`` from the cache, without decoding it: the frame count recorded with its
         tracked sequence (:meth:`TrackCache.num_frames <training_hooks.cache.TrackCache.num_frames>`), under the key
         :meth:`sequence` looks it up by. None without a cache or an entry, for an image folder or ``.npy`` array
-        (counted at no cost), with landmarks not known before decoding (a detector's, until it ran in this
-        process), or when the video or its landmarks cannot be read (decoding then reports what is wrong)."""
+        (counted at no cost), with landmarks not known before decoding (a detector's, until this dataset has
+        searched the video: :meth:`_face_frame`), or when the video or its landmarks cannot be read (decoding then
+        reports what is wrong)."""
         path, cache = self.videos[index], self.cache
         if cache is None or not cache.root.is_dir() or path.is_dir() or path.suffix.lower() == ".npy":
             return None  # (no cache yet: nothing to hash the video for; folders and arrays: open_frames' kinds)
         try:
             content = content_hash(path)
-            landmarks = self._known_landmarks(index, content)
+            known = self._known_start(index, content)
             source = None if self.landmarks is None else self.landmarks[index]
-            if landmarks is None and isinstance(source, (str, os.PathLike)):
+            if known is None and isinstance(source, (str, os.PathLike)):
                 # the frame size only checks the points (sequence() checks them against it): the same float64 array
-                landmarks = read_landmarks(source, 1 << 30, 1 << 30)
+                known = 0, read_landmarks(source, 1 << 30, 1 << 30)
         except (InputError, OSError):
             return None
-        if landmarks is None:
+        if known is None:
             return None
-        return cache.num_frames(cache_key(content, self.config.tracking, landmarks, self._key_extra()))
+        return cache.num_frames(self._key(content, *known))
 
     def _key_extra(self) -> str:
         """The dataset's part of its cache keys (:func:`~training_hooks.cache.cache_key`'s ``extra``)."""
         return f"convert={self.config.convert}"
+
+    def _key(self, content: str, start: int, landmarks: np.ndarray) -> str:
+        """The cache key of a video of content ``content`` tracked from frame ``start``'s ``landmarks``."""
+        return cache_key(content, self.config.tracking, landmarks, self._key_extra(), first_frame=start)
 
     def count_items(self) -> list[int]:
         """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch)."""
@@ -525,35 +573,81 @@ class VideoDataset(IterableDataset):
         target = self._balanced_count(worker_id, num_workers, world_size)
         return sum(self.num_items(i) for i in own) if target is None else target
 
-    def _first_landmarks(self, index: int, first: Tensor, content: str) -> np.ndarray:
-        """``(68, 2)`` float64 landmarks of video ``index``, validated against its first frame."""
+    def _detection(self, index: int, content: str) -> tuple[int, np.ndarray] | None:
+        """``(frame, (68, 2) landmarks)``: where the detector found the first face of video ``index`` of content
+        ``content``, as remembered by this dataset (shared with its workers' copies, kept for later epochs); None
+        where it has not searched that content."""
+        where = self._found_at[index]
+        if int(where[0]) < 0 or not torch.equal(where[1:], _content_words(content)):
+            return None
+        return int(where[0]), self._found[index].numpy().copy()
+
+    def _search(self, index: int, frames: Iterator[Tensor], content: str) -> tuple[int, Tensor, np.ndarray]:
+        """The detector's first face in video ``index``'s ``frames`` (:func:`torchface.detect.search_first_face`, as
+        ``torchface track --detector`` looks for it): ``(its frame, the frame, (68, 2) landmarks)``, remembered
+        (:meth:`_detection`); the frames after it are left in ``frames``. A detection made earlier is not made
+        again: its frame is read, the detector not asked."""
+        path = self.videos[index]
+        known = self._detection(index, content)
+        if known is not None:
+            start, points = known
+            return start, next(itertools.islice(frames, start, None)), points
+        first = next(frames)
+        H, W = first.shape[-2:]
+        where = f"{path}: landmarks (detector)"
+
+        def find(frame: Tensor) -> np.ndarray | None:
+            points = self.detector(_detector_image(frame))  # type: ignore[misc]
+            # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
+            return None if points is None else check_landmarks(np.asarray(points), W, H, where, min_inside=0.5)
+
+        start, frame, points = search_first_face(
+            itertools.chain([first], frames), find, f"{path}: the detector",
+            " (leave it out of the videos, or give every video's first-frame landmarks instead of a detector)",
+        )  # fmt: skip
+        self._found[index] = torch.from_numpy(points)
+        self._found_at[index, 1:] = _content_words(content)
+        self._found_at[index, 0] = start  # (last: the entry is whole once its frame is set)
+        return start, frame, points
+
+    def _face_frame(self, index: int) -> int:
+        """The frame video ``index`` is tracked from: 0, or with a detector the first where it finds a face
+        (:meth:`_search`, made here where it has not been made)."""
+        if self.detector is None:
+            return 0
+        path = self.videos[index]
+        content = content_hash(path)
+        known = self._detection(index, content)
+        if known is not None:
+            return known[0]
+        with _dataset_hint():
+            with open_frames(path, convert=self.config.convert) as reader:
+                return self._search(index, reader, content)[0]
+
+    def _first_landmarks(self, index: int, reader: Iterator[Tensor], content: str) -> tuple[int, Tensor, np.ndarray]:
+        """``(start, frame, (68, 2) float64 landmarks)`` of video ``index``: the frame its tracking starts from (0,
+        or with a detector the first where it finds a face, :meth:`_search`), read from ``reader`` (the frames after
+        it left there), and its landmarks, validated against it."""
+        if self.detector is not None:
+            return self._search(index, reader, content)
+        first = next(reader)
         H, W = first.shape[-2:]
         where = f"{self.videos[index]}: landmarks"
-        if self.detector is not None:
-            if content not in self._detected:
-                image = (first.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).contiguous().numpy()
-                points = self.detector(image)
-                if points is None:
-                    raise InputError(f"{self.videos[index]}: the detector found no face in the first frame")
-                # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
-                found = check_landmarks(np.asarray(points), W, H, f"{where} (detector)", min_inside=0.5)
-                self._detected[content] = found
-            return self._detected[content]
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
-            return read_landmarks(source, W, H)  # (missing points, NaN rows, taken as torchface track takes them)
+            return 0, first, read_landmarks(source, W, H)  # (missing points, NaN rows, as torchface track takes them)
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
             raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
-        return check_landmarks(source, W, H, where, missing=True)
+        return 0, first, check_landmarks(source, W, H, where, missing=True)
 
-    def _known_landmarks(self, index: int, content: str) -> np.ndarray | None:
-        """Landmarks known without decoding the video (an array or tensor, or a detection remembered in this
-        process), checked for shape and values (NaN rows: missing points) but not yet against the frame size; None
-        otherwise."""
+    def _known_start(self, index: int, content: str) -> tuple[int, np.ndarray] | None:
+        """``(start, landmarks)`` known without decoding the video: an array or tensor (start 0), or a detection
+        made earlier (:meth:`_detection`), checked for shape and values (NaN rows: missing points) but not yet
+        against the frame size; None otherwise."""
         if self.detector is not None:
-            return self._detected.get(content)
+            return self._detection(index, content)
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
             return None
@@ -563,14 +657,18 @@ class VideoDataset(IterableDataset):
             raise InputError(
                 f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}"
             )
-        return check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks", missing=True)
+        return 0, check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks", missing=True)
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
 
-        With landmarks given as arrays or tensors (or a detection made earlier in this process) a cache hit does not
-        decode the video at all: it hashes the file, reads the cache file and checks the landmarks against the
-        stored frame size.
+        With a detector, the video is tracked from the first frame where it finds a face (:meth:`_search`), as
+        the video cut to start there would be: the sequence's :attr:`~training_hooks.transforms.TrackedSequence.
+        first_frame` is that frame, so that items' ``frame`` numbers the video's frames.
+
+        With landmarks given as arrays or tensors (or a detection this dataset made earlier, in any of its
+        processes) a cache hit does not decode the video at all: it hashes the file, reads the cache file and
+        checks the landmarks against the stored frame size.
 
         Raises:
             torchface.io.InputError: the video or its landmarks cannot be used (the message names the file).
@@ -578,24 +676,23 @@ class VideoDataset(IterableDataset):
         path = self.videos[index]
         content = content_hash(path)
         cache = self.cache
-        extra = self._key_extra()
-        known = self._known_landmarks(index, content)
+        known = self._known_start(index, content)
         if cache is not None and known is not None:
-            stored = cache.load(cache_key(content, self.config.tracking, known, extra))
+            stored = cache.load(self._key(content, *known))
             if stored is not None:
-                if self.detector is None:  # (a detection was checked against this video's first frame when made)
+                if self.detector is None:  # (a detection was checked against this video's frame when made)
                     H, W = stored.frame_size
-                    check_landmarks(known, W, H, f"{path}: landmarks", missing=True)
+                    check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True)
                 self.stats.videos += 1
                 return stored, True
         with _dataset_hint():
             reader = open_frames(path, convert=self.config.convert)
         try:
-            first = next(reader)
-            landmarks = self._first_landmarks(index, first, content)
+            with _dataset_hint():  # (a later frame's format is found as the search reads it)
+                start, first, landmarks = self._first_landmarks(index, reader, content)
             key = None
             if cache is not None:
-                key = cache_key(content, self.config.tracking, landmarks, extra)
+                key = self._key(content, start, landmarks)
                 if known is None:  # not looked up yet
                     stored = cache.load(key)
                     if stored is not None:
@@ -607,6 +704,8 @@ class VideoDataset(IterableDataset):
             self.stats.tracking_s += time.perf_counter() - t0
         finally:
             reader.close()
+        if start:  # (the frames' numbers in the video, as the stored sequence keeps them)
+            sequence = replace(sequence, first_frame=start)
         self.stats.videos += 1
         self.stats.frames_tracked += sequence.num_frames
         if cache is not None and key is not None:

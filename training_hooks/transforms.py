@@ -205,13 +205,15 @@ class TrackedSequence:
             were normalised with the fit's. The per-frame pose is then reported in the head frame of the first result
             (``TrackResult.rotation``), so that it stays continuous: with these units it places the mesh near, not
             exactly on, the one the faces were resampled from.
-        landmarks: ``(K, 2)`` float64 first-frame landmarks the tracking started from (pixels; the model's ``K``,
-            68 for CANDIDE-3; a NaN row for a missing point), or ``(0, 2)``
-            when it continued from a :class:`~torchface.tracker.TrackerState`.
+        landmarks: ``(K, 2)`` float64 landmarks of the frame the tracking started from (:attr:`first_frame`;
+            pixels; the model's ``K``, 68 for CANDIDE-3; a NaN row for a missing point), or ``(0, 2)`` when it
+            continued from a :class:`~torchface.tracker.TrackerState`.
         frame_size: ``(H, W)`` of the frames.
         first_frame: index of the first frame in the tracked sequence: 0 when the tracking started here from
             landmarks, the state's :attr:`~torchface.tracker.TrackerState.frame_index` (frames it had seen) when
-            it continued a :class:`~torchface.tracker.TrackerState`; items' ``frame`` counts from it.
+            it continued a :class:`~torchface.tracker.TrackerState`, the video's frame where a dataset's detector
+            found the first face (:meth:`VideoDataset.sequence <training_hooks.datasets.VideoDataset.sequence>`);
+            items' ``frame`` counts from it.
     """
 
     faces: Tensor

@@ -18,14 +18,16 @@ from torch.utils.data import DataLoader
 
 from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.io import InputError
-from torchface.synth.io import read_video, read_video_uint8
+from torchface.synth.io import read_video, read_video_uint8, write_video
 from training_hooks import (
     DatasetConfig,
     FrameFolderDataset,
     NormaliseFaces,
     VideoDataset,
+    cache_key,
     clip_bounds,
     collate_clips,
+    content_hash,
 )
 from training_hooks.transforms import PER_FRAME_KEYS
 
@@ -839,3 +841,101 @@ def test_hd_video_is_tracked_with_the_coarser_levels_its_face_needs():
         track_sequence(frames[2:], state, given, model, normaliser)
     with pytest.raises(ValueError, match=r"pyramid must be one of \('auto', 'config'\), got 'off'"):
         FaceTrackingConfig(pyramid="off")
+
+
+# ------------------------------------------------------------------------- a detector: the first frame with a face
+
+
+def _black_first(clip, tmp_path: Path, black: int, name: str = "late") -> tuple[Path, Path]:
+    """The clip with ``black`` black frames before it: a video file and a folder of PNG frames (both lossless)."""
+    frames = read_video(clip.video)
+    late = torch.cat([torch.zeros(black, *frames.shape[1:]), frames])
+    video, folder = tmp_path / f"{name}.avi", tmp_path / name
+    write_video(video, late)
+    folder.mkdir()
+    for t, frame in enumerate(read_video_uint8(video)):
+        cv2.imwrite(str(folder / f"{t:03d}.png"), frame.permute(1, 2, 0).numpy()[..., ::-1])
+    return video, folder
+
+
+class _FaceWhereShown:
+    """A stand-in detector from the rendered ground truth: the clip's first-frame landmarks in a frame that is not
+    black, None in a black one; counts its calls in a file (DataLoader workers are other processes)."""
+
+    def __init__(self, landmarks: np.ndarray, log: Path) -> None:
+        self.landmarks, self.log = landmarks, log
+
+    def __call__(self, image: np.ndarray) -> np.ndarray | None:
+        with open(self.log, "a") as f:
+            f.write("x")
+        return self.landmarks if image.max() > 0 else None
+
+    @property
+    def calls(self) -> int:
+        return len(self.log.read_text()) if self.log.exists() else 0
+
+
+def test_a_detector_tracks_from_the_first_frame_with_a_face_as_the_cut_video(clips, config, tmp_path):
+    """With a detector, a video whose first frames are black was an InputError ("the detector found no face in the
+    first frame"), as ``torchface track --detector`` searches on. Now the dataset searches too: its items are those
+    of the clip without the black frames, ``frame`` the video's frame number (the clip's plus 3), per frame and per
+    clip, from a video file and from a folder of frames; the items counted without tracking are those yielded."""
+    clip, black = clips[0], 3
+    video, folder = _black_first(clip, tmp_path, black)
+    cfg = replace(config, cache_dir=None)
+    for c in (cfg, replace(cfg, clip_length=4, clip_stride=1)):
+        detector = _FaceWhereShown(clip.landmarks, tmp_path / f"calls{c.clip_length}.txt")
+        want = collect(VideoDataset([clip.video], _FaceWhereShown(clip.landmarks, tmp_path / "ref.txt"), c), 0)
+        for data in (VideoDataset([video], detector, c), FrameFolderDataset([folder], detector, c)):
+            assert data.count_items() == [len(want)] and data.stats.frames_tracked == 0  # counted, not tracked
+            got = collect(data, 0)
+            assert [k[1] - black for k in got] == [k[1] for k in want]
+            for (_, frame), a in got.items():
+                b = want[(0, frame - black)]
+                assert torch.equal(a["frame"], b["frame"] + black)
+                for name in a:
+                    if name != "frame":
+                        assert torch.equal(a[name], b[name]), name
+            assert data.stats.frames_tracked == FRAMES
+        # each video searched once (frames 0..3 asked about), when counted: not again when tracked
+        assert detector.calls == 2 * (black + 1)
+
+
+def test_a_cached_video_whose_face_appears_later_is_not_searched_again(clips, config, tmp_path):
+    """The cache key holds the detected landmarks and the frame they are of; a later epoch (fresh DataLoader workers)
+    reads the cache without asking the detector again, as does the dataset's own process; a new dataset searches
+    once more, and finds its sequence in the cache under that key."""
+    clip, black = clips[1], 2
+    video, _ = _black_first(clip, tmp_path, black)
+    detector = _FaceWhereShown(clip.landmarks, tmp_path / "calls.txt")
+    data = VideoDataset([video], detector, config)
+    first = collect(data, 1)
+    assert detector.calls == black + 1 and not any(bool(it["cached"]) for it in first.values())
+    assert sorted(k[1] for k in first) == list(range(black, black + FRAMES))
+    for workers in (1, 0):  # a later epoch in new worker processes, then in the dataset's own
+        again = collect(data, workers)
+        assert detector.calls == black + 1 and all(bool(it["cached"]) for it in again.values())
+        assert_items_equal(first, again, skip=("cached",))
+    fresh = VideoDataset([video], detector, config)
+    assert_items_equal(first, collect(fresh, 0), skip=("cached",))
+    assert detector.calls == 2 * (black + 1) and fresh.stats.cache.hits == 1 and fresh.stats.frames_tracked == 0
+    # the frame is in the key: the same landmarks at the first frame are another key (and its key is as before)
+    content = content_hash(video)
+    at_first = cache_key(content, TRACKING, clip.landmarks, "convert=False")
+    assert cache_key(content, TRACKING, clip.landmarks, "convert=False", first_frame=0) == at_first
+    found = cache_key(content, TRACKING, clip.landmarks, "convert=False", first_frame=black)
+    assert found != at_first and [p.stem for p in data.cache.root.glob("*.npz")] == [found]
+
+
+def test_a_video_without_a_face_names_the_frames_searched(clips, config, tmp_path):
+    """A video in none of whose frames the detector finds a face is an InputError naming it and how many frames
+    were searched, when counted and when iterated, as ``torchface track --detector`` says it."""
+    video = tmp_path / "black.avi"
+    write_video(video, torch.zeros(5, 3, 128, 128))
+    detector = _FaceWhereShown(clips[0].landmarks, tmp_path / "calls.txt")
+    message = rf"^{re.escape(str(video))}: the detector found no face in any of its 5 frames: nothing to track"
+    with pytest.raises(InputError, match=message):
+        VideoDataset([video], detector, config).num_items(0)
+    with pytest.raises(InputError, match=message):
+        list(VideoDataset([video], detector, config))
+    assert detector.calls == 10

@@ -340,6 +340,37 @@ def test_item_counts_without_tracking(clips, uneven, config, tmp_path, monkeypat
     assert FrameFolderDataset([folder], [clips[0].landmarks], config).count_items() == [FRAMES]
 
 
+def test_a_video_whose_face_appears_later_is_counted_from_that_frame(clips, config, tmp_path, monkeypatch):
+    """With a detector, a video's items are those from the first frame with a face on (the black frames before it
+    are searched, not tracked): the counts that balance the ranks are counted so, without tracking, and a rank
+    yields exactly the count promised. A 3-black-frame + 6-frame video was counted 9 items (its decoded frames), so
+    the rank with a 4-frame video repeated items up to 9 while the other gave 6."""
+    late = tmp_path / "late.npy"
+    frames = read_video_uint8(clips[0].video)
+    np.save(late, torch.cat([torch.zeros(3, *frames.shape[1:], dtype=torch.uint8), frames]).permute(0, 2, 3, 1))
+    short = tmp_path / "short.avi"
+    write_video(short, read_video(clips[1].video, 4))
+    first = {bytes(frames[0].permute(1, 2, 0).numpy()): clips[0].landmarks,
+             bytes(read_video_uint8(short)[0].permute(1, 2, 0).numpy()): clips[1].landmarks}  # fmt: skip
+    calls = []
+
+    def detector(image: np.ndarray) -> np.ndarray | None:  # the first face frame's ground truth; black: no face
+        calls.append(image.max())
+        return first[bytes(image)] if image.max() > 0 else None
+
+    for c, counts in ((config, [6, 4]), (replace(config, **CLIPS), [2, 1])):
+        data = VideoDataset([late, short], detector, replace(c, cache_dir=None))
+        calls.clear()
+        assert data.count_items() == counts and data.stats.frames_tracked == 0 and len(calls) == 5
+        assert [data.worker_items(0, 1, r, 2) for r in range(2)] == [counts[0]] * 2
+        ranks = []
+        for r in range(2):
+            simulate(monkeypatch, r, 2, 0, 1)
+            ranks.append([(int(it["video"]), int(it["frame"].reshape(-1)[0])) for it in data])
+        assert [len(r) for r in ranks] == [counts[0]] * 2 and len(calls) == 5  # (searched once: when counted)
+        assert {f for v, f in ranks[0]} == ({3, 4, 5, 6, 7, 8} if c.clip_length is None else {3, 6})
+
+
 def test_a_cached_video_is_counted_without_decoding(clips, config, tmp_path, monkeypatch):
     """Every rank counts every video (RankBalance.PAD), and each video file was decoded through to count its frames,
     at every run start, its tracked sequence in the cache or not. Now a video whose sequence is in the cache (the key
@@ -382,10 +413,13 @@ def test_a_cached_video_is_counted_without_decoding(clips, config, tmp_path, mon
     assert data.cache.num_frames(key) is None and entry.exists()
     counted.clear()
     assert VideoDataset(videos, sources, config).count_items() == decoded and len(counted) == 2
-    # a detector's landmarks are not known before the first frame is decoded
+    # a detector's landmarks are not known before the video is searched for its first face (decoded up to it,
+    # here its first frame); then the count stored with its sequence is taken where the cache has it (video 0,
+    # tracked again if its file was the damaged one), else the video is decoded through (video 2)
+    assert len(list(VideoDataset(videos[:1], sources[:1], config))) == lengths[0]
     counted.clear()
-    assert VideoDataset(videos[:1], lambda image: clips[0].landmarks, config).count_items() == decoded[:1]
-    assert counted == videos[:1]
+    detected = VideoDataset([videos[0], videos[2]], lambda image: clips[0].landmarks, config)
+    assert detected.count_items() == [decoded[0], decoded[2]] and counted == [videos[2]]
 
 
 def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, monkeypatch, tmp_path):

@@ -28,15 +28,18 @@ from __future__ import annotations
 
 import importlib.util
 import inspect
+from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Protocol, cast
+from typing import TYPE_CHECKING, Callable, Protocol, TypeVar, cast
 
 import numpy as np
 
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["DETECTORS", "Detector", "DetectorUnavailable", "accepts_near", "batched", "load_detector"]
+__all__ = [
+    "DETECTORS", "Detector", "DetectorUnavailable", "accepts_near", "batched", "load_detector", "search_first_face",
+]  # fmt: skip
 
 
 class DetectorUnavailable(ImportError):
@@ -242,6 +245,50 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
     if not callable(detector):
         raise TypeError(f"detector must be callable (image -> landmarks), got {type(detector).__name__}")
     return _Batched(detector, name, None)
+
+
+_Frame = TypeVar("_Frame")
+_Found = TypeVar("_Found")
+
+
+def search_first_face(
+    frames: Iterable[_Frame],
+    find: Callable[[_Frame], _Found | None],
+    what: str,
+    hint: str = "",
+    searching: Callable[[int], None] | None = None,
+) -> tuple[int, _Frame, _Found]:
+    """The first of ``frames`` in which ``find`` finds a face (a title card, a black frame or an empty room before
+    it): ``(its index, the frame, what find returned)``, the frames after it left unread in ``frames`` (an
+    iterator: the tracking goes on from it), as the video cut to start there would be. ``torchface track
+    --detector`` (:func:`torchface.job.track_videos`) and training_hooks' datasets both start a video so.
+
+    Args:
+        frames: the video's frames, read one at a time; no cap: a video is searched to its end.
+        find: a frame -> its landmarks (checked), or None where it shows no face.
+        what: who looks, for the error (``"clip.mp4: the dlib detector"``).
+        hint: what to do instead, appended to the error.
+        searching: called with the number of frames looked at in vain so far, before the next one is read.
+
+    Raises:
+        torchface.io.InputError: no frame shows a face: ``"<what> found no face in any of its <n> frames: nothing
+            to track<hint>"``.
+
+    Example:
+        >>> search_first_face(iter([0, 0, 5, 6]), lambda f: f or None, "clip")
+        (2, 5, 5)
+    """
+    count = 0
+    for frame in frames:
+        found = find(frame)
+        if found is not None:
+            return count, frame, found
+        count += 1
+        if searching is not None:
+            searching(count)
+    from torchface.io import InputError
+
+    raise InputError(f"{what} found no face in any of its {count} frames: nothing to track{hint}")
 
 
 def usable_detection(
