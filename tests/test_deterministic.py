@@ -70,6 +70,27 @@ def test_grid_sample_border_equals_torchs_values_and_gradients(forced):
     assert torch.autograd.gradcheck(grid_sample_border, (images, inner))
 
 
+def test_grid_sample_border_reads_non_finite_points_as_torch_does(forced):
+    """A NaN coordinate (a diverged stream's point) reads column / row 0 and an infinite one the border, as
+    grid_sample does; the substitute took NaN through ``clamp`` into the gather: "index -9223372036854775808 is out
+    of bounds" (a device-side assert on CUDA). Its image gradient stays finite, the point's own is 0. (torch's CPU
+    backward with a NaN point crashes the process: not compared.)"""
+    gen = torch.Generator().manual_seed(2)
+    images = torch.rand(2, 3, 4, 5, generator=gen, dtype=D)
+    grid = _grid(gen, 2, 4, 5)
+    grid[0, 0, :4, 0] = torch.tensor([torch.nan, torch.inf, -torch.inf, 0.3], dtype=D)
+    grid[1, 1, :, 1] = torch.nan
+    grid[1, 2, 0] = torch.nan
+    theirs = F.grid_sample(images, grid, "bilinear", "border", align_corners=True)
+    torch.testing.assert_close(grid_sample_border(images, grid), theirs, rtol=0, atol=1e-12)
+    pixel = torch.rand(1, 1, 1, 1, generator=gen, dtype=D)  # (W - 1 = 0: an infinite coordinate times 0 is NaN)
+    point = torch.tensor([[[[torch.inf, torch.nan]]]], dtype=D)
+    assert torch.equal(grid_sample_border(pixel, point), pixel)
+    images.requires_grad_(), grid.requires_grad_()
+    gi, gg = torch.autograd.grad(grid_sample_border(images, grid).sum(), (images, grid))
+    assert bool(gi.isfinite().all()) and not bool(gg[1, 2, 0].any()) and not bool(gg[0, 0, 0].any())
+
+
 def test_reflect_pad_equals_torchs(forced):
     images = torch.rand(2, 3, 5, 7, dtype=D, requires_grad=True)
     weight = torch.rand(2, 3, 9, 11, dtype=D)

@@ -60,9 +60,11 @@ def nanmedian_values(x: Tensor, dim: int = -1) -> Tensor:
 
 def _clip(coordinate: Tensor, limit: int) -> Tensor:
     """``coordinate`` clipped to ``[0, limit]`` with grid_sample's gradient: 1 strictly inside, 0 on the border and
-    outside it (``clamp``'s is 1 on the border too)."""
+    outside it (``clamp``'s is 1 on the border too); a NaN one at 0, as grid_sample reads it (``clamp`` keeps NaN,
+    whose gather index was out of range: "index -9223372036854775808 is out of bounds", a device-side assert on
+    CUDA)."""
     inside = (coordinate > 0) & (coordinate < limit)
-    return torch.where(inside, coordinate, coordinate.detach().clamp(0, limit))
+    return torch.where(inside, coordinate, coordinate.detach().nan_to_num(nan=0.0).clamp(0, limit))
 
 
 def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
@@ -72,7 +74,8 @@ def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     Args:
         images: ``(B, C, H, W)``.
         grid: ``(B, Ho, Wo, 2)`` normalised coordinates ``(x, y)`` in ``[-1, 1]`` (``align_corners=True``), of
-            ``images``' dtype; finite.
+            ``images``' dtype; outside it the border is read (an infinite one too), a NaN one reads column / row 0
+            as grid_sample does (the tracker's points of a diverged or lost stream).
 
     Returns:
         ``(B, C, Ho, Wo)``.
