@@ -164,7 +164,9 @@ def _shared_detections(num_videos: int) -> tuple[Tensor, Tensor]:
     """Where a dataset's detector found each video's first face, in shared memory as :func:`_shared_state` (so that
     neither a ``DataLoader`` worker nor a later epoch searches a video again): ``(num_videos, 5)`` int64, the
     frame (-1: not searched yet) and the video's :func:`~training_hooks.cache.content_hash` as four words, and
-    ``(num_videos, 68, 2)`` float64, the landmarks found in that frame."""
+    ``(num_videos, 68, 2)`` float64, the landmarks found in that frame: 1128 bytes a video, so a dataset without a
+    detector passes ``num_videos=0`` (with landmarks for each of a million clips it held 1.1 GB of ``/dev/shm``,
+    whose default size in a Docker container is 64 MB)."""
     where = torch.full((num_videos, 5), -1, dtype=torch.int64).share_memory_()
     return where, torch.zeros(num_videos, NUM_LANDMARKS, 2, dtype=torch.float64).share_memory_()
 
@@ -391,7 +393,7 @@ class VideoDataset(IterableDataset):
         self.stats = DatasetStats()
         self._normalise: NormaliseFaces | None = None
         self._cache: TrackCache | None = None
-        self._found_at, self._found = _shared_detections(len(self.videos))
+        self._found_at, self._found = _shared_detections(len(self.videos) if self.detector is not None else 0)
 
     def _check_source(self, path: Path) -> None:
         _check_exists(path)
@@ -405,7 +407,8 @@ class VideoDataset(IterableDataset):
             state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))
         if "_found_at" not in state:  # pickled before the detections were shared (its own were per process)
             state.pop("_detected", None)
-            state["_found_at"], state["_found"] = _shared_detections(len(state["videos"]))
+            searched = len(state["videos"]) if state.get("detector") is not None else 0
+            state["_found_at"], state["_found"] = _shared_detections(searched)
         self.__dict__.update(state)
 
     @property
@@ -605,6 +608,7 @@ class VideoDataset(IterableDataset):
             itertools.chain([first], frames), find, f"{path}: the detector",
             " (leave it out of the videos, or give every video's first-frame landmarks instead of a detector)",
         )  # fmt: skip
+        self._found_at[index, 0] = -1  # (an entry of the video's earlier content, if any: void while rewritten)
         self._found[index] = torch.from_numpy(points)
         self._found_at[index, 1:] = _content_words(content)
         self._found_at[index, 0] = start  # (last: the entry is whole once its frame is set)
