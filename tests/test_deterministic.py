@@ -91,6 +91,18 @@ def test_grid_sample_border_reads_non_finite_points_as_torch_does(forced):
     assert bool(gi.isfinite().all()) and not bool(gg[1, 2, 0].any()) and not bool(gg[0, 0, 0].any())
 
 
+def test_grid_sample_border_reads_the_right_pixel_of_a_large_frame(forced):
+    """A frame of more than 2**24 pixels (3 x 6000001 here; a 6K or 8K frame in NormalisedFace): the corners' flat
+    index row * W + column was computed in the image's float32, where integers past 2**24 round to even, so a point
+    in the last row read a neighbouring pixel (0.84 off torch's sample); now in integers."""
+    gen = torch.Generator().manual_seed(3)
+    images = torch.rand(1, 1, 3, 6_000_001, generator=gen)
+    grid = torch.rand(1, 1, 500, 2, generator=gen) * 2 - 1
+    grid[..., 1] = 1.0  # the last row: flat indices from 12000002 to 18000002
+    theirs = F.grid_sample(images, grid, "bilinear", "border", align_corners=True)
+    torch.testing.assert_close(grid_sample_border(images, grid), theirs, rtol=0, atol=1e-6)
+
+
 def test_reflect_pad_equals_torchs(forced):
     images = torch.rand(2, 3, 5, 7, dtype=D, requires_grad=True)
     weight = torch.rand(2, 3, 9, 11, dtype=D)

@@ -92,8 +92,9 @@ def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     flat = images.reshape(B, C, H * W)
 
     def corner(x: Tensor, y: Tensor) -> Tensor:
-        # A corner past the last row or column has weight 0 (its point lies on that border): read the border.
-        index = (y.clamp(max=H - 1) * W + x.clamp(max=W - 1)).long().expand(B, C, Ho * Wo)
+        # A corner past the last row or column has weight 0 (its point lies on that border): read the border. The
+        # index in integers: in float32, row * W + column is exact only below 2**24 (a 16.7-megapixel frame).
+        index = (y.clamp(max=H - 1).long() * W + x.clamp(max=W - 1).long()).expand(B, C, Ho * Wo)
         return torch.gather(flat, 2, index)
 
     out = (
