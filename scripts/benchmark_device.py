@@ -4,8 +4,9 @@
 Each row tracks B streams with the default settings (``TrackerConfig()``: template management on, float32) through
 ``managed_step``, as :class:`~torchface.tracker.FaceTracker` steps, and prints ms per step, frames per second, the
 mean rotation error against the ground truth, the fraction of successful frames, and the peak memory per stream.
-The device rows run the torch code (the native kernels are CPU only); the CPU rows, the reference, run the default
-backend (the native kernels where a C compiler is found) on all of this machine's cores. The ratio is device frames/s
+On a GPU the device rows run the torch code (the native kernels are CPU only; with ``--device cpu`` they run there
+too); the CPU rows, the reference, run the default backend (the native kernels where a C compiler is found) on all
+of this machine's cores. The ratio is device frames/s
 over CPU frames/s at the same B where both were run.
 
 Frames: the ``pose_sweep`` scenario at ``--width`` x ``--height``, rendered by torchface's renderer (cached under
