@@ -146,8 +146,8 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"{label}_batch_{b}"] = r
             print(f"  {where} B={b}: {r['fps']:.0f} frames/s", file=sys.stderr)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else str(device)
-    print(f"\ntorchface tracker on {name} ({device}) (device rows) against the CPU (cpu rows; {args.threads} threads of "
-          f"{os.cpu_count()} cores), {args.width}x{args.height}, default settings, {args.steps} timed steps per row")
+    print(f"\ntorchface tracker on {name} ({device}) (device rows) against the CPU (cpu rows; {args.threads} threads "
+          f"of {os.cpu_count()} cores), {args.width}x{args.height}, default settings, {args.steps} timed steps per row")
     print(f"{'row':<18}{'ms/step':>10}{'frames/s':>10}{'vs CPU':>8}{'mean err':>10}{'max err':>9}{'success':>9}"
           f"{'points':>8}{'iters':>7}{'MB/stream':>11}")
     for key, r in figures.items():
