@@ -180,6 +180,7 @@ def load_mesh_model(
     shape_names: Sequence[str] | None = None,
     landmark_vertices: object = None,
     landmark_names: Sequence[str] | None = None,
+    landmark_weights: object = None,
     animation_ranges: object = None,
     facs_links: dict[str, tuple[str, ...]] | None = None,
     scale_to_mm: float = 1.0,
@@ -210,8 +211,14 @@ def load_mesh_model(
         shape_units: ``(S, V, 3)`` identity displacements (not whole meshes, as ``blendshapes``), or ``None``.
         shape_names: ``S`` names (default ``"shape{i}"``).
         landmark_vertices: ``(K,)`` int vertex index per landmark (floats only when whole numbers, as
-            ``np.loadtxt`` reads them), or ``None`` for ``K = 0``.
+            ``np.loadtxt`` reads them), ``(K, J)`` (``J <= 3``) with ``landmark_weights`` for landmarks between
+            vertices, or ``None`` for ``K = 0``. Tracking needs at least four (:func:`~torchface.tracker.initialise`
+            fits the first frame's pose to them); a face detector's, and ``torchface track``'s, are the 68 iBUG
+            points in their order.
         landmark_names: ``K`` names (default ``"landmark{k}"``).
+        landmark_weights: ``(K, J)`` weights of ``(K, J)`` ``landmark_vertices``, ``l_k = sum_j w[k, j]
+            verts[idx[k, j]]`` (barycentric coordinates in a triangle, as CANDIDE-3's table holds them; rows sum
+            to one within 1e-6), or ``None``: each landmark on its vertex.
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
@@ -234,8 +241,9 @@ def load_mesh_model(
             collection of them, ``scale_to_mm`` is not a number, or
             ``landmark_vertices`` are not integers.
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
-            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D or holds
-            fractions, the file holds no triangles, they are not wound consistently or the frontal view sees
+            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
+            ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
+            finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or the frontal view sees
             mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive and finite.
 
     Example:
@@ -296,22 +304,45 @@ def load_mesh_model(
     _check_displacements(anim, anim_names, vertices, "blendshapes")
     _check_displacements(shape, shp_names, vertices, "shape_units")
     if landmark_vertices is None:
-        lm = np.zeros((0,), dtype=np.int64)
+        if landmark_weights is not None:
+            raise ValueError("landmark_weights were given without landmark_vertices")
+        lm_idx, lm_w = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
     else:
         raw = np.asarray(landmark_vertices)
-        if raw.ndim not in (1, 2) or (raw.ndim == 2 and raw.shape[1] != 1):
+        if landmark_weights is not None:
+            if raw.ndim == 1:
+                raw = raw[:, None]
+            if raw.ndim != 2 or not 1 <= raw.shape[1] <= 3:
+                raise ValueError(f"landmark_vertices with landmark_weights must be (K, J) vertex indices, J <= 3 "
+                                 f"(a landmark in a triangle), got shape {raw.shape}")  # fmt: skip
+        elif raw.ndim not in (1, 2) or (raw.ndim == 2 and raw.shape[1] != 1):
             raise ValueError(
                 f"landmark_vertices must be (K,) vertex indices, one per landmark, got shape {raw.shape} (a landmark "
-                "between vertices needs a FaceModel built with landmark_vertices and landmark_weights)"
+                "between vertices takes (K, J) indices with landmark_weights of that shape)"
             )
         if raw.dtype == bool or not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
             raise TypeError(f"landmark_vertices must be integer vertex indices, got dtype {raw.dtype}")
         if np.issubdtype(raw.dtype, np.floating) and not np.array_equal(raw, np.round(raw)):
             raise ValueError("landmark_vertices must be whole vertex indices, got non-integer (or non-finite) values")
-        lm = raw.astype(np.int64).reshape(-1)
-        if lm.size and (lm.min() < 0 or lm.max() >= num_v):
-            raise ValueError(f"landmark_vertices must index vertices in [0, {num_v}), got [{lm.min()}, {lm.max()}]")
-    lm_names = _as_names(landmark_names, lm.shape[0], "landmark_names", "landmark")
+        lm_idx = raw.astype(np.int64).reshape(raw.shape[0], -1)
+        if lm_idx.size and (lm_idx.min() < 0 or lm_idx.max() >= num_v):
+            raise ValueError(
+                f"landmark_vertices must index vertices in [0, {num_v}), got [{lm_idx.min()}, {lm_idx.max()}]"
+            )
+        lm_w = np.ones((lm_idx.shape[0], 1)) if landmark_weights is None else np.asarray(landmark_weights, np.float64)
+        if landmark_weights is not None:
+            lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
+            if lm_w.shape != lm_idx.shape:
+                raise ValueError(f"landmark_weights must have landmark_vertices' shape {lm_idx.shape}, got {lm_w.shape}")
+            sums = lm_w.sum(axis=1)
+            if not np.isfinite(lm_w).all() or (sums.size and np.abs(sums - 1.0).max() > 1e-6):
+                raise ValueError("landmark_weights must be finite with rows that sum to one (within 1e-6), got sums "
+                                 f"in [{sums.min():.6g}, {sums.max():.6g}]")  # fmt: skip
+        # FaceModel holds three (vertex, weight) pairs a landmark: the first vertex again, at weight 0, pads them
+        pad = 3 - lm_idx.shape[1]
+        lm_idx = np.concatenate([lm_idx, np.repeat(lm_idx[:, :1], pad, axis=1)], axis=1)
+        lm_w = np.concatenate([lm_w, np.zeros((lm_w.shape[0], pad))], axis=1)
+    lm_names = _as_names(landmark_names, lm_idx.shape[0], "landmark_names", "landmark")
     if animation_ranges is None:
         ranges = np.tile(np.array([[0.0, 1.0]]), (anim.shape[0], 1))
     else:
@@ -350,8 +381,8 @@ def load_mesh_model(
         animation_units=tensor(anim @ linear),
         animation_names=anim_names,
         animation_ranges=tensor(ranges),
-        landmark_vertices=torch.as_tensor(np.stack([lm, lm, lm], axis=1), dtype=torch.int64, device=device),
-        landmark_weights=tensor(np.tile(np.array([1.0, 0.0, 0.0]), (lm.shape[0], 1))),
+        landmark_vertices=torch.as_tensor(np.ascontiguousarray(lm_idx), dtype=torch.int64, device=device),
+        landmark_weights=tensor(lm_w),
         landmark_names=lm_names,
         facs_names=facs_names,
         facs_matrix=tensor(facs_matrix),
