@@ -12,7 +12,7 @@ import trimesh
 
 from torchface.model.mesh_loader import ICT_MM_PER_UNIT, ICT_TO_HEAD, load_ict_face_model, load_mesh_model
 
-ASSETS = Path(__file__).resolve().parents[3] / "shared" / "assets"
+ASSETS = Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[3] / "shared" / "assets")
 ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
 JAMES_OBJ = ASSETS / "james" / "james.obj"
 
@@ -358,3 +358,42 @@ def test_candide3_through_load_mesh_model_is_load_candide3(dtype):
     for f in fields(ref):
         a, b = getattr(mine, f.name), getattr(ref, f.name)
         assert (torch.equal(a, b) and a.dtype == b.dtype) if isinstance(b, torch.Tensor) else a == b, f.name
+
+
+@pytest.mark.skipif(not ICT_NPZ.exists(), reason="../shared/assets/ict_facekit is absent")
+def test_ict_face_areas_keep_the_first_vertices_and_their_triangles():
+    """load_ict_face_model(area=...): the ICT README's face areas, its first 9409 / 6706 vertices and the triangles on
+    them alone (the whole head, with the neck and the eyeballs, lost a rendered face: docs/python-api.md)."""
+    head = load_ict_face_model(ICT_NPZ, num_expressions=2, num_identities=1)
+    for area, (v, f) in {"face": (9409, 18461), "narrow": (6706, 13120)}.items():
+        model = load_ict_face_model(ICT_NPZ, num_expressions=2, num_identities=1, area=area)
+        assert (model.num_vertices, model.num_faces, model.name) == (v, f, f"ICT Face Model Light ({area})")
+        keep = (head.faces < v).all(1)
+        assert torch.equal(model.faces, head.faces[keep]) and int(head.faces[~keep].max(1).values.min()) >= v
+        for name in ("mean", "animation_units", "shape_units"):
+            assert torch.equal(getattr(model, name), getattr(head, name)[..., :v, :])
+        assert torch.equal(model.landmark_vertices, head.landmark_vertices)
+    with pytest.raises(ValueError, match="area must be one of"):
+        load_ict_face_model(ICT_NPZ, area="eyes")
+
+
+def test_68_landmarks_not_in_ibug_layout_warn():
+    """68 landmarks in another order than iBUG-68's (here left and right swapped, as a table written from the
+    viewer's side gives them) were taken silently, and every stream's first-frame fit against a detector's landmarks
+    then FAILED with no reason given; they now warn. CANDIDE-3's table does not."""
+    import warnings
+
+    from torchface.model import load_candide3
+    from torchface.model.candide import read_landmark_table
+
+    c = load_candide3(dtype=torch.float64)
+    mesh = trimesh.Trimesh(c.mean.numpy(), c.faces.numpy(), process=False)
+    idx, w, _, _ = read_landmark_table()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh_model(mesh, landmark_vertices=idx, landmark_weights=w)
+    mirror = np.r_[16:-1:-1, 26:16:-1, 27:31, 35:30:-1, 45:41:-1, 47:45:-1, 39:35:-1, 41:39:-1,
+                   54:47:-1, 59:54:-1, 64:59:-1, 67:64:-1]  # fmt: skip
+    assert sorted(mirror.tolist()) == list(range(68))
+    with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points"):
+        load_mesh_model(mesh, landmark_vertices=idx[mirror], landmark_weights=w[mirror])

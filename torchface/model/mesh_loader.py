@@ -166,6 +166,22 @@ def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
         )
 
 
+def _check_ibug_layout(weighted: np.ndarray, name: str) -> None:
+    """Warn when 68 landmarks (``(68, J, 3)`` weighted head-frame vertices, summed over ``J``) are not laid out as the
+    iBUG-68 points: the subject's right (``-x``) before their left (jaw end 0 and outer eye corner 36 against 16 and
+    45), the brows (19, 24) above (``-y``) the nose tip (30) and that above the chin (8)."""
+    lm = weighted.sum(axis=1)
+    x, y = lm[:, 0], lm[:, 1]
+    if not (x[0] < x[16] and x[36] < x[45] and max(y[19], y[24]) < y[30] < y[8]):
+        warnings.warn(
+            f"{name}: the 68 landmarks are not laid out as the iBUG-68 points (0-16 the jaw from the subject's right, "
+            "36 and 45 the outer eye corners, 8 the chin; the head frame's +x is the subject's left, +y down): a "
+            "face detector gives those, in that order, and the first frame's fit fails on mirrored or reordered ones",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def _obj_vertices(path: Path) -> np.ndarray | None:
     """``(V, 3)`` the positions of an OBJ file's ``v`` lines, in order (None when it cannot be read as text)."""
     try:
@@ -371,6 +387,8 @@ def load_mesh_model(
             UserWarning,
             stacklevel=2,
         )
+    if lm_idx.shape[0] == 68:
+        _check_ibug_layout((vertices @ linear)[lm_idx] * lm_w[:, :, None], default_name if name is None else name)
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 
