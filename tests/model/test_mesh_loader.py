@@ -310,7 +310,8 @@ def test_landmark_weights_place_landmarks_between_vertices():
     torch.testing.assert_close(lm[1], torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64))
     two = load_mesh_model(mesh, landmark_vertices=[[1, 2]], landmark_weights=[[0.25, 0.75]], dtype=torch.float64)
     assert two.landmark_vertices.tolist() == [[1, 2, 1]] and two.landmark_weights.tolist() == [[0.25, 0.75, 0.0]]
-    torch.testing.assert_close(two.landmarks_3d(two.mean[None])[0, 0], torch.tensor([0.25, 0.75, 0.0], dtype=torch.float64))
+    expected = torch.tensor([0.25, 0.75, 0.0], dtype=torch.float64)
+    torch.testing.assert_close(two.landmarks_3d(two.mean[None])[0, 0], expected)
     one = load_mesh_model(mesh, landmark_vertices=[3, 1], landmark_weights=[1.0, 1.0])
     assert one.landmark_vertices.tolist() == load_mesh_model(mesh, landmark_vertices=[3, 1]).landmark_vertices.tolist()
     with pytest.raises(ValueError, match="rows that sum to one"):

@@ -58,7 +58,8 @@ def test_docs_example_candide3_through_load_mesh_model_tracks_as_load_candide3(s
         for name in FIELDS:
             assert torch.equal(getattr(a, name), getattr(b, name)), (t, name)
     last = frames[:, -1]
-    assert torch.equal(NormalisedFace(mine.model)(last, mine.state).image, NormalisedFace(ref.model)(last, ref.state).image)
+    faces = NormalisedFace(mine.model)(last, mine.state).image
+    assert torch.equal(faces, NormalisedFace(ref.model)(last, ref.state).image)
     clip = frames[:1, :3]
     a = NormalisedFaceLayer(LayerConfig(), scope["model"].to(torch.float32)).forward_clip(clip, lm[:1])
     b = NormalisedFaceLayer(LayerConfig(), load_candide3()).forward_clip(clip, lm[:1])

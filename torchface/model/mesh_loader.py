@@ -264,8 +264,13 @@ def load_mesh_model(
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
             (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
-            finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or the frontal view sees
-            mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive and finite.
+            finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or
+            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not
+            positive and finite.
+
+    Warns:
+        UserWarning: the mesh spans less than 50 mm or more than 2 m (``scale_to_mm``), or 68 landmarks are not laid
+            out as the iBUG-68 points (mirrored or in another order: a face detector's landmarks are those).
 
     Example:
         >>> import trimesh
@@ -354,7 +359,9 @@ def load_mesh_model(
         if landmark_weights is not None:
             lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
             if lm_w.shape != lm_idx.shape:
-                raise ValueError(f"landmark_weights must have landmark_vertices' shape {lm_idx.shape}, got {lm_w.shape}")
+                raise ValueError(
+                    f"landmark_weights must have landmark_vertices' shape {lm_idx.shape}, got {lm_w.shape}"
+                )
             sums = lm_w.sum(axis=1)
             if not np.isfinite(lm_w).all() or (sums.size and np.abs(sums - 1.0).max() > 1e-6):
                 raise ValueError("landmark_weights must be finite with rows that sum to one (within 1e-6), got sums "
