@@ -362,9 +362,10 @@ def test_candide3_through_load_mesh_model_is_load_candide3(dtype):
 
 
 @pytest.mark.skipif(not ICT_NPZ.exists(), reason="../shared/assets/ict_facekit is absent")
-def test_ict_face_areas_keep_the_first_vertices_and_their_triangles():
-    """load_ict_face_model(area=...): the ICT README's face areas, its first 9409 / 6706 vertices and the triangles on
-    them alone (the whole head, with the neck and the eyeballs, lost a rendered face: docs/python-api.md)."""
+def test_ict_face_areas_keep_their_vertices_and_triangles():
+    """load_ict_face_model(area=...): the ICT README's face areas, its first 9409 / 6706 vertices (and the eyeballs
+    after them) and the triangles on them alone (the whole head, with the neck, lost a rendered face:
+    docs/python-api.md)."""
     head = load_ict_face_model(ICT_NPZ, num_expressions=2, num_identities=1)
     for area, (v, f) in {"face": (9409, 18461), "narrow": (6706, 13120)}.items():
         model = load_ict_face_model(ICT_NPZ, num_expressions=2, num_identities=1, area=area)
@@ -374,6 +375,16 @@ def test_ict_face_areas_keep_the_first_vertices_and_their_triangles():
         for name in ("mean", "animation_units", "shape_units"):
             assert torch.equal(getattr(model, name), getattr(head, name)[..., :v, :])
         assert torch.equal(model.landmark_vertices, head.landmark_vertices)
+    eyes = load_ict_face_model(ICT_NPZ, num_expressions=2, num_identities=1, area="narrow_eyes")
+    keep = torch.cat([torch.arange(6706), torch.arange(21451, 24591)])  # the narrow area, then the eyeballs
+    assert (eyes.num_vertices, eyes.num_faces) == (9846, 19384)
+    for name in ("mean", "animation_units", "shape_units"):
+        assert torch.equal(getattr(eyes, name), getattr(head, name)[..., keep, :])
+    new_index = torch.full((head.num_vertices,), -1, dtype=torch.int64)
+    new_index[keep] = torch.arange(keep.numel())
+    inside = (new_index[head.faces] >= 0).all(1)
+    assert torch.equal(eyes.faces, new_index[head.faces[inside]])
+    assert torch.equal(keep[eyes.landmark_vertices], head.landmark_vertices)
     with pytest.raises(ValueError, match="area must be one of"):
         load_ict_face_model(ICT_NPZ, area="eyes")
 

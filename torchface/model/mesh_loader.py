@@ -32,10 +32,16 @@ ICT_TO_HEAD = np.diag([1.0, -1.0, -1.0])
 #: The ICT Face Model is in centimetres (outer eye corners 8.9 apart, head 24.8 wide).
 ICT_MM_PER_UNIT = 10.0
 
-#: The ICT Face Model's face areas (its README's "Face Area Details"): the first this many vertices, and the
-#: triangles on them alone. ``"head"``: every vertex (head and neck, mouth and eye sockets, gums, teeth, eyeballs,
-#: eyelashes).
-ICT_AREAS: dict[str, int] = {"head": 26719, "face": 9409, "narrow": 6706}
+#: The ICT Face Model's areas (its README's "Face Model Topology" and "Face Area Details"): the ``[start, stop)``
+#: vertex ranges each keeps, in this order, and the triangles on them alone. ``"head"``: every vertex (head and neck,
+#: mouth and eye sockets, gums, teeth, eyeballs, eyelashes); ``"face"``: the full face area; ``"narrow"``: the
+#: narrow face area; ``"narrow_eyes"``: the narrow face area and the two eyeballs, which fill its eye holes.
+ICT_AREAS: dict[str, tuple[tuple[int, int], ...]] = {
+    "head": ((0, 26719),),
+    "face": ((0, 9409),),
+    "narrow": ((0, 6706),),
+    "narrow_eyes": ((0, 6706), (21451, 24591)),
+}
 
 #: The range (mm) of the largest side of a face model's bounding box that :func:`load_mesh_model` takes without a
 #: warning.
@@ -443,23 +449,25 @@ def load_ict_face_model(
             expression_names, identity_deltas, identity_names, landmarks68``).
         num_expressions: keep the first this many expressions (default all 53).
         num_identities: keep the first this many identities (default all 100).
-        area: ``"head"`` (every vertex), ``"face"`` (the face's skin, 9409 vertices) or ``"narrow"`` (the narrow face
-            area, 6706 vertices: forehead to chin, cheek to cheek, without ears, neck or the inside of the mouth and
-            eyes) (:data:`ICT_AREAS`). To track, ``"narrow"``: with the whole head the tracker aligns the neck, the
-            back of the head and the eyeballs to the frame too, and lost a rendered CANDIDE-3 face on 37 of 80
-            frames of a pose sweep (docs/python-api.md, "Other face models").
+        area: ``"head"`` (every vertex), ``"face"`` (the face's skin, 9409 vertices), ``"narrow"`` (the narrow face
+            area, 6706 vertices: forehead to chin, cheek to cheek, without ears, neck or the inside of the mouth, and
+            with holes at the eyes) or ``"narrow_eyes"`` (that and the eyeballs, 9846 vertices) (:data:`ICT_AREAS`;
+            a part's vertices keep their order, the parts follow one another). To track, ``"narrow_eyes"``: with the
+            whole head the tracker aligns the neck and the back of the head to the frame too, and lost a rendered
+            CANDIDE-3 face on 37 of 80 frames of a pose sweep (docs/python-api.md, "Other face models").
         dtype: floating dtype of the model tensors.
         device: device of the model tensors.
 
     Returns:
-        The model with ``V = 26719``, ``F = 52220`` (``"face"``: 9409, 18461; ``"narrow"``: 6706, 13120).
+        The model with ``V = 26719``, ``F = 52220`` (``"face"``: 9409, 18461; ``"narrow"``: 6706, 13120;
+        ``"narrow_eyes"``: 9846, 19384).
 
     Raises:
         ValueError: a requested count is negative or exceeds what the file holds, a key is missing, or ``area`` is
             none of :data:`ICT_AREAS` (or the file is not the model's 26719 vertices).
     """
     if area not in ICT_AREAS:
-        raise ValueError(f"area must be one of {sorted(ICT_AREAS)}, got {area!r}")
+        raise ValueError(f"area must be one of {list(ICT_AREAS)}, got {area!r}")
     with np.load(Path(npz_path), allow_pickle=False) as data:
         missing = {"neutral", "faces", "expression_deltas", "expression_names", "identity_deltas",
                    "identity_names", "landmarks68"} - set(data.files)
@@ -477,23 +485,32 @@ def load_ict_face_model(
         n_exp, n_id = counts["expression_deltas"], counts["identity_deltas"]
         import trimesh
 
-        n_v = ICT_AREAS[area]
-        if data["neutral"].shape[0] != ICT_AREAS["head"] and area != "head":
-            raise ValueError(f"{npz_path} holds {data['neutral'].shape[0]} vertices, not the ICT Face Model's "
-                             f"{ICT_AREAS['head']}: its areas are unknown (area='head' loads it whole)")  # fmt: skip
-        faces = data["faces"][(data["faces"] < n_v).all(axis=1)] if n_v < data["neutral"].shape[0] else data["faces"]
-        if int(data["landmarks68"].max()) >= n_v:
-            raise ValueError(f"{npz_path}'s landmarks lie outside the {area!r} area's {n_v} vertices")
-        mesh = trimesh.Trimesh(data["neutral"][:n_v], faces, process=False)
+        total = data["neutral"].shape[0]
+        if area == "head":
+            keep = np.arange(total)
+        elif total != ICT_AREAS["head"][0][1]:
+            raise ValueError(f"{npz_path} holds {total} vertices, not the ICT Face Model's {ICT_AREAS['head'][0][1]}: "
+                             "its areas are unknown (area='head' loads it whole)")  # fmt: skip
+        else:
+            keep = np.concatenate([np.arange(start, stop) for start, stop in ICT_AREAS[area]])
+        new_index = np.full(total, -1, dtype=np.int64)
+        new_index[keep] = np.arange(keep.shape[0])
+        faces = new_index[data["faces"]]
+        faces = faces[(faces >= 0).all(axis=1)]
+        landmarks = new_index[data["landmarks68"]]
+        if (landmarks < 0).any():
+            raise ValueError(f"{npz_path}'s landmarks lie outside the {area!r} area")
+        part: slice | np.ndarray = slice(None) if area == "head" else keep  # (the whole model: no copies)
+        mesh = trimesh.Trimesh(data["neutral"][part], faces, process=False)
         expr_names = tuple(str(s) for s in data["expression_names"][:n_exp])
         links = {n: ARKIT_TO_FACS.get(n.rsplit("_", 1)[0] if n.endswith(("_L", "_R")) else n, ()) for n in expr_names}
         return load_mesh_model(
             mesh,
-            blendshapes=data["expression_deltas"][:n_exp, :n_v],
+            blendshapes=data["expression_deltas"][:n_exp][:, part],
             blendshape_names=expr_names,
-            shape_units=data["identity_deltas"][:n_id, :n_v],
+            shape_units=data["identity_deltas"][:n_id][:, part],
             shape_names=tuple(str(s) for s in data["identity_names"][:n_id]),
-            landmark_vertices=data["landmarks68"],
+            landmark_vertices=landmarks,
             landmark_names=tuple(f"ibug{k}" for k in range(data["landmarks68"].shape[0])),
             facs_links=links,
             scale_to_mm=ICT_MM_PER_UNIT,
