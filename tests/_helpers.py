@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import struct
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,6 +20,11 @@ from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 
 D = torch.float64
+
+#: The shared assets beside the checkout (``../shared/assets``: the ICT Face Model, the James scan's sources; not
+#: shipped), or where ``TORCHFACE_ASSETS`` says. Tests that need them skip without them.
+ASSETS = Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets")
+ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
 
 
 def sideways_clip(w: int, h: int, n: int = 3) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

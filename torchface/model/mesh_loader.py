@@ -24,13 +24,24 @@ import torch
 from torchface._names import name_tuple
 from torchface.model.face_model import FaceModel
 
-__all__ = ["load_mesh_model", "load_ict_face_model", "ICT_TO_HEAD", "ICT_MM_PER_UNIT", "ARKIT_TO_FACS"]
+__all__ = ["load_mesh_model", "load_ict_face_model", "ICT_TO_HEAD", "ICT_MM_PER_UNIT", "ICT_AREAS", "ARKIT_TO_FACS"]
 
 #: ICT Face Model frame (+x subject's left, +y up, +z toward the viewer) to the head frame: 180 deg about x.
 ICT_TO_HEAD = np.diag([1.0, -1.0, -1.0])
 
 #: The ICT Face Model is in centimetres (outer eye corners 8.9 apart, head 24.8 wide).
 ICT_MM_PER_UNIT = 10.0
+
+#: The ICT Face Model's areas (its README's "Face Model Topology" and "Face Area Details"): the ``[start, stop)``
+#: vertex ranges each keeps, in this order, and the triangles on them alone. ``"head"``: every vertex (head and neck,
+#: mouth and eye sockets, gums, teeth, eyeballs, eyelashes); ``"face"``: the full face area; ``"narrow"``: the
+#: narrow face area; ``"narrow_eyes"``: the narrow face area and the two eyeballs, which fill its eye holes.
+ICT_AREAS: dict[str, tuple[tuple[int, int], ...]] = {
+    "head": ((0, 26719),),
+    "face": ((0, 9409),),
+    "narrow": ((0, 6706),),
+    "narrow_eyes": ((0, 6706), (21451, 24591)),
+}
 
 #: The range (mm) of the largest side of a face model's bounding box that :func:`load_mesh_model` takes without a
 #: warning.
@@ -161,6 +172,22 @@ def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
         )
 
 
+def _check_ibug_layout(weighted: np.ndarray, name: str) -> None:
+    """Warn when 68 landmarks (``(68, J, 3)`` weighted head-frame vertices, summed over ``J``) are not laid out as the
+    iBUG-68 points: the subject's right (``-x``) before their left (jaw end 0 and outer eye corner 36 against 16 and
+    45), the brows (19, 24) above (``-y``) the nose tip (30) and that above the chin (8)."""
+    lm = weighted.sum(axis=1)
+    x, y = lm[:, 0], lm[:, 1]
+    if not (x[0] < x[16] and x[36] < x[45] and max(y[19], y[24]) < y[30] < y[8]):
+        warnings.warn(
+            f"{name}: the 68 landmarks are not laid out as the iBUG-68 points (0-16 the jaw from the subject's right, "
+            "36 and 45 the outer eye corners, 8 the chin; the head frame's +x is the subject's left, +y down): a "
+            "face detector gives those, in that order, and the first frame's fit fails on mirrored or reordered ones",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def _obj_vertices(path: Path) -> np.ndarray | None:
     """``(V, 3)`` the positions of an OBJ file's ``v`` lines, in order (None when it cannot be read as text)."""
     try:
@@ -180,6 +207,7 @@ def load_mesh_model(
     shape_names: Sequence[str] | None = None,
     landmark_vertices: object = None,
     landmark_names: Sequence[str] | None = None,
+    landmark_weights: object = None,
     animation_ranges: object = None,
     facs_links: dict[str, tuple[str, ...]] | None = None,
     scale_to_mm: float = 1.0,
@@ -210,8 +238,14 @@ def load_mesh_model(
         shape_units: ``(S, V, 3)`` identity displacements (not whole meshes, as ``blendshapes``), or ``None``.
         shape_names: ``S`` names (default ``"shape{i}"``).
         landmark_vertices: ``(K,)`` int vertex index per landmark (floats only when whole numbers, as
-            ``np.loadtxt`` reads them), or ``None`` for ``K = 0``.
+            ``np.loadtxt`` reads them), ``(K, J)`` (``J <= 3``) with ``landmark_weights`` for landmarks between
+            vertices, or ``None`` for ``K = 0``. Tracking needs at least four (:func:`~torchface.tracker.initialise`
+            fits the first frame's pose to them); a face detector's, and ``torchface track``'s, are the 68 iBUG
+            points in their order.
         landmark_names: ``K`` names (default ``"landmark{k}"``).
+        landmark_weights: ``(K, J)`` weights of ``(K, J)`` ``landmark_vertices``, ``l_k = sum_j w[k, j]
+            verts[idx[k, j]]`` (barycentric coordinates in a triangle, as CANDIDE-3's table holds them; rows sum
+            to one within 1e-6), or ``None``: each landmark on its vertex.
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
@@ -234,9 +268,15 @@ def load_mesh_model(
             collection of them, ``scale_to_mm`` is not a number, or
             ``landmark_vertices`` are not integers.
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
-            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D or holds
-            fractions, the file holds no triangles, they are not wound consistently or the frontal view sees
-            mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not positive and finite.
+            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
+            ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
+            finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or
+            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not
+            positive and finite.
+
+    Warns:
+        UserWarning: the mesh spans less than 50 mm or more than 2 m (``scale_to_mm``), or 68 landmarks are not laid
+            out as the iBUG-68 points (mirrored or in another order: a face detector's landmarks are those).
 
     Example:
         >>> import trimesh
@@ -296,22 +336,47 @@ def load_mesh_model(
     _check_displacements(anim, anim_names, vertices, "blendshapes")
     _check_displacements(shape, shp_names, vertices, "shape_units")
     if landmark_vertices is None:
-        lm = np.zeros((0,), dtype=np.int64)
+        if landmark_weights is not None:
+            raise ValueError("landmark_weights were given without landmark_vertices")
+        lm_idx, lm_w = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
     else:
         raw = np.asarray(landmark_vertices)
-        if raw.ndim not in (1, 2) or (raw.ndim == 2 and raw.shape[1] != 1):
+        if landmark_weights is not None:
+            if raw.ndim == 1:
+                raw = raw[:, None]
+            if raw.ndim != 2 or not 1 <= raw.shape[1] <= 3:
+                raise ValueError(f"landmark_vertices with landmark_weights must be (K, J) vertex indices, J <= 3 "
+                                 f"(a landmark in a triangle), got shape {raw.shape}")  # fmt: skip
+        elif raw.ndim not in (1, 2) or (raw.ndim == 2 and raw.shape[1] != 1):
             raise ValueError(
                 f"landmark_vertices must be (K,) vertex indices, one per landmark, got shape {raw.shape} (a landmark "
-                "between vertices needs a FaceModel built with landmark_vertices and landmark_weights)"
+                "between vertices takes (K, J) indices with landmark_weights of that shape)"
             )
         if raw.dtype == bool or not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
             raise TypeError(f"landmark_vertices must be integer vertex indices, got dtype {raw.dtype}")
         if np.issubdtype(raw.dtype, np.floating) and not np.array_equal(raw, np.round(raw)):
             raise ValueError("landmark_vertices must be whole vertex indices, got non-integer (or non-finite) values")
-        lm = raw.astype(np.int64).reshape(-1)
-        if lm.size and (lm.min() < 0 or lm.max() >= num_v):
-            raise ValueError(f"landmark_vertices must index vertices in [0, {num_v}), got [{lm.min()}, {lm.max()}]")
-    lm_names = _as_names(landmark_names, lm.shape[0], "landmark_names", "landmark")
+        lm_idx = raw.astype(np.int64).reshape(raw.shape[0], -1)
+        if lm_idx.size and (lm_idx.min() < 0 or lm_idx.max() >= num_v):
+            raise ValueError(
+                f"landmark_vertices must index vertices in [0, {num_v}), got [{lm_idx.min()}, {lm_idx.max()}]"
+            )
+        lm_w = np.ones((lm_idx.shape[0], 1)) if landmark_weights is None else np.asarray(landmark_weights, np.float64)
+        if landmark_weights is not None:
+            lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
+            if lm_w.shape != lm_idx.shape:
+                raise ValueError(
+                    f"landmark_weights must have landmark_vertices' shape {lm_idx.shape}, got {lm_w.shape}"
+                )
+            sums = lm_w.sum(axis=1)
+            if not np.isfinite(lm_w).all() or (sums.size and np.abs(sums - 1.0).max() > 1e-6):
+                raise ValueError("landmark_weights must be finite with rows that sum to one (within 1e-6), got sums "
+                                 f"in [{sums.min():.6g}, {sums.max():.6g}]")  # fmt: skip
+        # FaceModel holds three (vertex, weight) pairs a landmark: the first vertex again, at weight 0, pads them
+        pad = 3 - lm_idx.shape[1]
+        lm_idx = np.concatenate([lm_idx, np.repeat(lm_idx[:, :1], pad, axis=1)], axis=1)
+        lm_w = np.concatenate([lm_w, np.zeros((lm_w.shape[0], pad))], axis=1)
+    lm_names = _as_names(landmark_names, lm_idx.shape[0], "landmark_names", "landmark")
     if animation_ranges is None:
         ranges = np.tile(np.array([[0.0, 1.0]]), (anim.shape[0], 1))
     else:
@@ -335,6 +400,8 @@ def load_mesh_model(
             UserWarning,
             stacklevel=2,
         )
+    if lm_idx.shape[0] == 68:
+        _check_ibug_layout((vertices @ linear)[lm_idx] * lm_w[:, :, None], default_name if name is None else name)
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 
@@ -350,8 +417,8 @@ def load_mesh_model(
         animation_units=tensor(anim @ linear),
         animation_names=anim_names,
         animation_ranges=tensor(ranges),
-        landmark_vertices=torch.as_tensor(np.stack([lm, lm, lm], axis=1), dtype=torch.int64, device=device),
-        landmark_weights=tensor(np.tile(np.array([1.0, 0.0, 0.0]), (lm.shape[0], 1))),
+        landmark_vertices=torch.as_tensor(np.ascontiguousarray(lm_idx), dtype=torch.int64, device=device),
+        landmark_weights=tensor(lm_w),
         landmark_names=lm_names,
         facs_names=facs_names,
         facs_matrix=tensor(facs_matrix),
@@ -364,6 +431,7 @@ def load_ict_face_model(
     num_expressions: int | None = None,
     num_identities: int | None = None,
     *,
+    area: str = "head",
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
 ) -> FaceModel:
@@ -381,15 +449,25 @@ def load_ict_face_model(
             expression_names, identity_deltas, identity_names, landmarks68``).
         num_expressions: keep the first this many expressions (default all 53).
         num_identities: keep the first this many identities (default all 100).
+        area: ``"head"`` (every vertex), ``"face"`` (the face's skin, 9409 vertices), ``"narrow"`` (the narrow face
+            area, 6706 vertices: forehead to chin, cheek to cheek, without ears, neck or the inside of the mouth, and
+            with holes at the eyes) or ``"narrow_eyes"`` (that and the eyeballs, 9846 vertices) (:data:`ICT_AREAS`;
+            a part's vertices keep their order, the parts follow one another). To track, ``"narrow_eyes"``: with the
+            whole head the tracker aligns the neck and the back of the head to the frame too, and lost a rendered
+            CANDIDE-3 face on 37 of 80 frames of a pose sweep (docs/python-api.md, "Other face models").
         dtype: floating dtype of the model tensors.
         device: device of the model tensors.
 
     Returns:
-        The model with ``V = 26719``, ``F = 52220``.
+        The model with ``V = 26719``, ``F = 52220`` (``"face"``: 9409, 18461; ``"narrow"``: 6706, 13120;
+        ``"narrow_eyes"``: 9846, 19384).
 
     Raises:
-        ValueError: a requested count is negative or exceeds what the file holds, or a key is missing.
+        ValueError: a requested count is negative or exceeds what the file holds, a key is missing, or ``area`` is
+            none of :data:`ICT_AREAS` (or the file is not the model's 26719 vertices).
     """
+    if area not in ICT_AREAS:
+        raise ValueError(f"area must be one of {list(ICT_AREAS)}, got {area!r}")
     with np.load(Path(npz_path), allow_pickle=False) as data:
         missing = {"neutral", "faces", "expression_deltas", "expression_names", "identity_deltas",
                    "identity_names", "landmarks68"} - set(data.files)
@@ -407,21 +485,37 @@ def load_ict_face_model(
         n_exp, n_id = counts["expression_deltas"], counts["identity_deltas"]
         import trimesh
 
-        mesh = trimesh.Trimesh(data["neutral"], data["faces"], process=False)
+        total = data["neutral"].shape[0]
+        if area == "head":
+            keep = np.arange(total)
+        elif total != ICT_AREAS["head"][0][1]:
+            raise ValueError(f"{npz_path} holds {total} vertices, not the ICT Face Model's {ICT_AREAS['head'][0][1]}: "
+                             "its areas are unknown (area='head' loads it whole)")  # fmt: skip
+        else:
+            keep = np.concatenate([np.arange(start, stop) for start, stop in ICT_AREAS[area]])
+        new_index = np.full(total, -1, dtype=np.int64)
+        new_index[keep] = np.arange(keep.shape[0])
+        faces = new_index[data["faces"]]
+        faces = faces[(faces >= 0).all(axis=1)]
+        landmarks = new_index[data["landmarks68"]]
+        if (landmarks < 0).any():
+            raise ValueError(f"{npz_path}'s landmarks lie outside the {area!r} area")
+        part: slice | np.ndarray = slice(None) if area == "head" else keep  # (the whole model: no copies)
+        mesh = trimesh.Trimesh(data["neutral"][part], faces, process=False)
         expr_names = tuple(str(s) for s in data["expression_names"][:n_exp])
         links = {n: ARKIT_TO_FACS.get(n.rsplit("_", 1)[0] if n.endswith(("_L", "_R")) else n, ()) for n in expr_names}
         return load_mesh_model(
             mesh,
-            blendshapes=data["expression_deltas"][:n_exp],
+            blendshapes=data["expression_deltas"][:n_exp][:, part],
             blendshape_names=expr_names,
-            shape_units=data["identity_deltas"][:n_id],
+            shape_units=data["identity_deltas"][:n_id][:, part],
             shape_names=tuple(str(s) for s in data["identity_names"][:n_id]),
-            landmark_vertices=data["landmarks68"],
+            landmark_vertices=landmarks,
             landmark_names=tuple(f"ibug{k}" for k in range(data["landmarks68"].shape[0])),
             facs_links=links,
             scale_to_mm=ICT_MM_PER_UNIT,
             to_head_frame=ICT_TO_HEAD,
-            name="ICT Face Model Light",
+            name="ICT Face Model Light" if area == "head" else f"ICT Face Model Light ({area})",
             dtype=dtype,
             device=device,
         )

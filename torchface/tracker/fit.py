@@ -338,6 +338,17 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
 MIN_FIT_LANDMARKS: int = 4
 
 
+def check_model_landmarks(model: FaceModel) -> None:
+    """Refuse a model with fewer than :data:`MIN_FIT_LANDMARKS` landmarks: the first frame's pose is fitted to them,
+    and such a model failed every stream (fewer than four) or raised an IndexError from inside (none)."""
+    if model.num_landmarks < MIN_FIT_LANDMARKS:
+        raise ValueError(
+            f"the model {model.name!r} has {model.num_landmarks} landmarks: the first frame's pose is fitted to the "
+            f"model's landmarks, at least {MIN_FIT_LANDMARKS} of them (load_mesh_model's landmark_vertices; a face "
+            "detector gives the 68 iBUG points, in their order)"
+        )
+
+
 def _check_landmarks(
     landmarks_px: Tensor, weights: Tensor | None, k: int, dtype: torch.dtype, device: torch.device
 ) -> tuple[Tensor, Tensor]:
@@ -533,6 +544,7 @@ def fit_landmarks(
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
     if not isinstance(config, FitConfig):  # None was an AttributeError ('NoneType' ... 'fit_expression')
         raise TypeError(f"config must be a FitConfig, got {type(config).__name__}")
+    check_model_landmarks(model)
     idx = torch.arange(model.num_landmarks, device=model.device) if landmark_indices is None else landmark_indices
     _check_landmark_indices(idx, model.num_landmarks)
     k = int(idx.numel())

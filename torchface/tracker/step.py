@@ -41,7 +41,8 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, fit_landmarks, landmark_targets,
+    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks, fit_landmarks,
+    landmark_targets,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -877,6 +878,7 @@ def check_initialise_inputs(
     rows), ``(B, K)`` tensor weights, ``config.expression_prior_weights`` of the model's length, and a
     ``config.num_levels`` the frames' size allows."""
     check_api_types(model, config)
+    check_model_landmarks(model)  # (a model without landmarks: an IndexError from the pyramid's face size)
     check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
     check_frames(frames, intrinsics, values=True, size_of="the intrinsics' size")  # (nothing is tracked yet)
     B, K = frames.shape[0], model.num_landmarks
