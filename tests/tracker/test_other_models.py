@@ -89,6 +89,28 @@ def test_a_model_with_fewer_than_four_landmarks_is_refused_at_initialise(count, 
         fit_landmarks(model, landmarks, Intrinsics.default(320, 240))
 
 
+def test_a_model_whose_landmarks_lie_on_the_midline_is_refused_at_initialise(streams):
+    """A model with eight landmarks, all on the face's midline (nose bridge to chin), passed the four-landmark check,
+    and its landmark fit CONVERGED, but the tracker takes a face's size from its landmarks' width (0 mm here:
+    face_width_px): every face was too small and every stream FAILED, then LOST, without a word. It is refused with
+    a ValueError that says so; four landmarks spanning the face (eye corners, nose tip, chin) are taken."""
+    frames, lm, _ = streams
+    mid = np.array([27, 28, 29, 30, 33, 51, 57, 8])
+    c = load_candide3(dtype=torch.float64)
+    table, weights = c.landmark_vertices.numpy(), c.landmark_weights.numpy()
+    mesh = trimesh.Trimesh(c.mean.numpy(), c.faces.numpy(), process=False)
+    model = load_mesh_model(mesh, blendshapes=c.animation_units, landmark_vertices=table[mid],
+                            landmark_weights=weights[mid])  # fmt: skip
+    with pytest.raises(ValueError, match=r"landmarks span 0 mm across its mean face, which is 125 mm wide"):
+        FaceTracker(TrackerConfig(), model).initialise(frames[:1, 0], lm[:1, mid])
+    with pytest.raises(ValueError, match="landmarks span 0 mm"):
+        fit_landmarks(model, lm[:1, mid], Intrinsics.default(320, 240))
+    four = np.array([36, 45, 30, 8])
+    model = load_mesh_model(mesh, blendshapes=c.animation_units, landmark_vertices=table[four],
+                            landmark_weights=weights[four])  # fmt: skip
+    assert int(FaceTracker(TrackerConfig(), model).initialise(frames[:1, 0], lm[:1, four]).status[0]) == 0
+
+
 @pytest.mark.skipif(not ICT_NPZ.is_file(), reason="../shared/assets/ict_facekit is absent")
 def test_the_ict_face_model_tracks_the_james_scan():
     """The ICT Face Model's narrow face area and eyeballs track a rendered James scan turning (a face unlike it) with

@@ -338,14 +338,32 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
 MIN_FIT_LANDMARKS: int = 4
 
 
+#: The least horizontal extent of a model's landmarks on its mean shape, as a fraction of its surface's width, that
+#: :func:`check_model_landmarks` takes. The tracker measures a face's size by its landmarks' extent
+#: (:func:`~torchface.tracker.step.face_width_px`, :attr:`~torchface.tracker.step.TrackerConfig.min_face_width_px`,
+#: the landmark fit's rotation check): landmarks on the face's midline span none, and every stream FAILED.
+MIN_LANDMARK_WIDTH_FRACTION: float = 0.1
+
+
 def check_model_landmarks(model: FaceModel) -> None:
     """Refuse a model with fewer than :data:`MIN_FIT_LANDMARKS` landmarks: the first frame's pose is fitted to them,
-    and such a model failed every stream (fewer than four) or raised an IndexError from inside (none)."""
+    and such a model failed every stream (fewer than four) or raised an IndexError from inside (none). Refuse one
+    whose landmarks span, across the face, less than :data:`MIN_LANDMARK_WIDTH_FRACTION` of its surface's width
+    (all on the midline: every face was too small, :func:`~torchface.tracker.step.too_small`, and every stream
+    FAILED without a word)."""
     if model.num_landmarks < MIN_FIT_LANDMARKS:
         raise ValueError(
             f"the model {model.name!r} has {model.num_landmarks} landmarks: the first frame's pose is fitted to the "
             f"model's landmarks, at least {MIN_FIT_LANDMARKS} of them (load_mesh_model's landmark_vertices; a face "
             "detector gives the 68 iBUG points, in their order)"
+        )
+    width, surface = _landmark_width_mm(model), _surface_width_mm(model)
+    if not width >= MIN_LANDMARK_WIDTH_FRACTION * surface:
+        raise ValueError(
+            f"the model {model.name!r}'s landmarks span {width:.3g} mm across its mean face, which is {surface:.3g} mm "
+            "wide: the tracker takes a face's size in the frame from its landmarks' width (face_width_px, "
+            "TrackerConfig.min_face_width_px), so every face was too small and every stream FAILED; give landmarks "
+            f"that span at least {MIN_LANDMARK_WIDTH_FRACTION:g} of the face's width (not all on its midline)"
         )
 
 
@@ -770,6 +788,19 @@ def _landmark_width_mm(model: FaceModel) -> float:
 
 
 _LANDMARK_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKeyDictionary()
+
+
+def _surface_width_mm(model: FaceModel) -> float:
+    """The horizontal extent (mm) of the model's surface (the vertices its triangles use) on its mean shape, computed
+    once per model."""
+    width = _SURFACE_WIDTH.get(model)
+    if width is None:
+        x = model.mean.detach()[model.surface_vertex_mask, 0]
+        width = _SURFACE_WIDTH[model] = float(x.amax() - x.amin())
+    return width
+
+
+_SURFACE_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKeyDictionary()
 
 
 def _fit_dtype(model_dtype: torch.dtype, device: torch.device) -> torch.dtype:
