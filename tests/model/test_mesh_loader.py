@@ -409,3 +409,25 @@ def test_68_landmarks_not_in_ibug_layout_warn():
     assert sorted(mirror.tolist()) == list(range(68))
     with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points"):
         load_mesh_model(mesh, landmark_vertices=idx[mirror], landmark_weights=w[mirror])
+
+
+@pytest.mark.parametrize(
+    "vertices, weights",
+    [([], None), (np.zeros(0, dtype=np.int64), None), (np.zeros((0, 1), dtype=np.int64), None), ([], []),
+     (np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3)))],
+)  # fmt: skip
+def test_an_empty_landmark_list_gives_a_model_without_landmarks(vertices, weights):
+    """An empty landmark list (a model to render or normalise with, whose landmarks are not known) gave a model with
+    K = 0 until landmark_weights came; since, a numpy error ('cannot reshape array of size 0 into shape
+    (0,newaxis)'). It gives K = 0 again, with or without (empty) weights."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    model = load_mesh_model(mesh, landmark_vertices=vertices, landmark_weights=weights)
+    assert model.num_landmarks == 0 and model.landmark_vertices.shape == model.landmark_weights.shape == (0, 3)
+
+
+def test_landmark_weights_of_another_shape_name_the_shapes_given():
+    """(K,) landmark_vertices with (K, 3) weights were refused naming the vertices' shape as (K, 1), a shape the
+    caller never gave; the message names the shapes given."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    with pytest.raises(ValueError, match=r"landmark_vertices' shape \(2,\), got \(2, 3\)"):
+        load_mesh_model(mesh, landmark_vertices=[1, 2], landmark_weights=[[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])

@@ -356,7 +356,8 @@ def load_mesh_model(
             raise TypeError(f"landmark_vertices must be integer vertex indices, got dtype {raw.dtype}")
         if np.issubdtype(raw.dtype, np.floating) and not np.array_equal(raw, np.round(raw)):
             raise ValueError("landmark_vertices must be whole vertex indices, got non-integer (or non-finite) values")
-        lm_idx = raw.astype(np.int64).reshape(raw.shape[0], -1)
+        # (K, J): reshape(K, -1) raised for K = 0 ("cannot reshape array of size 0"), an empty list taken before
+        lm_idx = raw.astype(np.int64).reshape(raw.shape[0], raw.shape[1] if raw.ndim == 2 else 1)
         if lm_idx.size and (lm_idx.min() < 0 or lm_idx.max() >= num_v):
             raise ValueError(
                 f"landmark_vertices must index vertices in [0, {num_v}), got [{lm_idx.min()}, {lm_idx.max()}]"
@@ -365,9 +366,8 @@ def load_mesh_model(
         if landmark_weights is not None:
             lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
             if lm_w.shape != lm_idx.shape:
-                raise ValueError(
-                    f"landmark_weights must have landmark_vertices' shape {lm_idx.shape}, got {lm_w.shape}"
-                )
+                raise ValueError(f"landmark_weights must have landmark_vertices' shape {np.shape(landmark_vertices)}, "
+                                 f"got {np.shape(landmark_weights)}")  # fmt: skip
             sums = lm_w.sum(axis=1)
             if not np.isfinite(lm_w).all() or (sums.size and np.abs(sums - 1.0).max() > 1e-6):
                 raise ValueError("landmark_weights must be finite with rows that sum to one (within 1e-6), got sums "
