@@ -68,7 +68,7 @@ class FaceTracker(nn.Module):
 
     The per-sequence state (:class:`TrackerState`) is explicit: :attr:`state` after each call, and
     :meth:`reset` clears it. The model defaults to CANDIDE-3 with its 11 AUVs; any :class:`FaceModel` with at
-    least four landmarks tracks (docs/python-api.md, "Other face models": your own mesh through
+    least four landmarks across the face tracks (docs/python-api.md, "Other face models": your own mesh through
     :func:`~torchface.model.load_mesh_model`, the ICT Face Model). Template management
     (dissimilarity confidence, mosaic, loss and recovery) follows ``config.template``; ``detector`` (a
     :data:`~torchface.tracker.managed.LandmarkDetector`, ``frames (B, 3, H, W) -> landmarks (B, K, 2)`` with NaN
