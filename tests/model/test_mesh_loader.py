@@ -431,3 +431,17 @@ def test_landmark_weights_of_another_shape_name_the_shapes_given():
     mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
     with pytest.raises(ValueError, match=r"landmark_vertices' shape \(2,\), got \(2, 3\)"):
         load_mesh_model(mesh, landmark_vertices=[1, 2], landmark_weights=[[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])
+
+
+def test_facs_links_naming_no_blendshape_are_refused():
+    """facs_links keyed by a name that is no blendshape's (a misspelt "JawOpen" for "jawOpen", or links written for
+    the default names "blendshape{i}" while names were given) linked nothing, and result.facs lost those AUs without
+    a word; a list of pairs raised an AttributeError ('list' object has no attribute 'get'). Both are refused."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    blend, names = np.zeros((2, 5, 3)), ["jawOpen", "smile"]
+    with pytest.raises(ValueError, match=r"facs_links names \['JawOpen'\], which are not blendshape names"):
+        load_mesh_model(mesh, blendshapes=blend, blendshape_names=names, facs_links={"JawOpen": "AU26"})
+    with pytest.raises(TypeError, match="facs_links must be a dict"):
+        load_mesh_model(mesh, blendshapes=blend, blendshape_names=names, facs_links=[("jawOpen", "AU26")])
+    model = load_mesh_model(mesh, blendshapes=blend, blendshape_names=names, facs_links={"smile": "AU12"})
+    assert model.facs_names == ("AU12",) and model.facs_matrix.tolist() == [[0.0, 1.0]]

@@ -14,7 +14,7 @@ import math
 import numbers
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -249,7 +249,7 @@ def load_mesh_model(
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
-            is one AU, not four; names not listed link to nothing).
+            is one AU, not four; blendshapes not listed link to nothing; a name that is no blendshape's is refused).
         scale_to_mm: millimetres per mesh unit (1000 for a mesh in metres, 10 in centimetres). A model whose used
             vertices then span less than 50 mm or more than 2 m (a face is 100-300 mm) is loaded with a
             ``UserWarning``: the pose is found at any scale, but translations come out scaled by the mistake, and
@@ -264,15 +264,15 @@ def load_mesh_model(
 
     Raises:
         TypeError: ``mesh`` is neither a Trimesh nor a path, ``dtype`` is not floating, a name list is
-            one string (a sequence of names is expected), a ``facs_links`` value is neither an AU name nor a
-            collection of them, ``scale_to_mm`` is not a number, or
-            ``landmark_vertices`` are not integers.
+            one string (a sequence of names is expected), ``facs_links`` is not a dict or a value of it is neither
+            an AU name nor a collection of them, ``scale_to_mm`` is not a number, or ``landmark_vertices`` are not
+            integers.
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
             (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
             finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or
-            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, or ``scale_to_mm`` is not
-            positive and finite.
+            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
+            positive and finite, or a ``facs_links`` name is not a blendshape name.
 
     Warns:
         UserWarning: the mesh spans less than 50 mm or more than 2 m (``scale_to_mm``), or 68 landmarks are not laid
@@ -383,6 +383,11 @@ def load_mesh_model(
         ranges = np.asarray(animation_ranges, dtype=np.float64)
         if ranges.shape != (anim.shape[0], 2):
             raise ValueError(f"animation_ranges must have shape ({anim.shape[0]}, 2), got {ranges.shape}")
+    if facs_links is not None and not isinstance(facs_links, Mapping):
+        raise TypeError(f"facs_links must be a dict of blendshape name -> AU names, got {type(facs_links).__name__}")
+    unknown = sorted(str(n) for n in set(facs_links or {}) - set(anim_names))
+    if unknown:  # (a misspelt name linked nothing, and result.facs lost its AUs without a word)
+        raise ValueError(f"facs_links names {unknown}, which are not blendshape names {anim_names}")
     links = [_facs_link((facs_links or {}).get(n, ()), n) for n in anim_names]
     facs_names = tuple(sorted({au for link in links for au in link}, key=lambda au: (len(au), au)))
     facs_matrix = np.zeros((len(facs_names), anim.shape[0]))
