@@ -791,11 +791,12 @@ _LANDMARK_WIDTH: "weakref.WeakKeyDictionary[FaceModel, float]" = weakref.WeakKey
 
 
 def _surface_width_mm(model: FaceModel) -> float:
-    """The horizontal extent (mm) of the model's surface (the vertices its triangles use) on its mean shape, computed
-    once per model."""
+    """The horizontal extent (mm) of the model's surface (the vertices its triangles use; all of them for a model
+    without triangles) on its mean shape, computed once per model."""
     width = _SURFACE_WIDTH.get(model)
     if width is None:
-        x = model.mean.detach()[model.surface_vertex_mask, 0]
+        x, used = model.mean.detach()[:, 0], model.surface_vertex_mask
+        x = x[used] if bool(used.any()) else x
         width = _SURFACE_WIDTH[model] = float(x.amax() - x.amin())
     return width
 
