@@ -445,3 +445,38 @@ def test_facs_links_naming_no_blendshape_are_refused():
         load_mesh_model(mesh, blendshapes=blend, blendshape_names=names, facs_links=[("jawOpen", "AU26")])
     model = load_mesh_model(mesh, blendshapes=blend, blendshape_names=names, facs_links={"smile": "AU12"})
     assert model.facs_names == ("AU12",) and model.facs_matrix.tolist() == [[0.0, 1.0]]
+
+
+def test_68_landmarks_with_a_part_mirrored_warn_and_an_asymmetric_face_does_not():
+    """The iBUG-layout warning looked at the jaw's ends, the outer eye corners and three heights only: a table with
+    the brows, the mouth or the eyes in mirrored order alone (or every row one point late) loaded silently, and the
+    first frame's fit landed far off (brows mirrored: 663 mm deep for 450, 4.6 degrees off on a rendered turn). They
+    now warn; CANDIDE-3 made asymmetric (one side 12% wider, vertices moved by up to 3 mm, turned 15 degrees) and
+    the ICT Face Model's table (when its file is there) do not."""
+    import warnings
+
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model import load_candide3
+    from torchface.model.candide import read_landmark_table
+
+    c = load_candide3(dtype=torch.float64)
+    idx, w, _, _ = read_landmark_table()
+    mesh = trimesh.Trimesh(c.mean.numpy(), c.faces.numpy(), process=False)
+    base = np.arange(68)
+    parts = {"brows": (slice(17, 27), np.r_[26:16:-1]), "eyes": (slice(36, 48), np.r_[42:48, 36:42]),
+             "mouth": (slice(48, 68), np.r_[54:47:-1, 59:54:-1, 64:59:-1, 67:64:-1])}  # fmt: skip
+    for where, order in parts.values():
+        table = base.copy()
+        table[where] = order
+        with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points"):
+            load_mesh_model(mesh, landmark_vertices=idx[table], landmark_weights=w[table])
+    with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points"):
+        load_mesh_model(mesh, landmark_vertices=idx[np.roll(base, 1)], landmark_weights=w[np.roll(base, 1)])
+    rng = np.random.default_rng(5)
+    v = c.mean.numpy() * np.where(c.mean.numpy()[:, :1] > 0, [1.12, 1.0, 1.0], 1.0)
+    v = (v + rng.uniform(-3.0, 3.0, v.shape)) @ euler_to_matrix(torch.tensor([15.0, -10.0, 15.0])).numpy().T
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh_model(trimesh.Trimesh(v, c.faces.numpy(), process=False), landmark_vertices=idx, landmark_weights=w)
+        if ICT_NPZ.exists():
+            load_ict_face_model(ICT_NPZ, num_expressions=1, num_identities=1, area="narrow")
