@@ -111,6 +111,18 @@ def test_a_model_whose_landmarks_lie_on_the_midline_is_refused_at_initialise(str
     assert int(FaceTracker(TrackerConfig(), model).initialise(frames[:1, 0], lm[:1, four]).status[0]) == 0
 
 
+def test_a_half_precision_model_of_ones_own_is_told_how_to_convert_it(streams):
+    """A float16 model is refused; the message told a user with their own model to load it with
+    load_candide3(dtype=torch.float32), CANDIDE-3's loader; it says model.to(dtype=torch.float32)."""
+    frames, lm, _ = streams
+    c = load_candide3(dtype=torch.float64)
+    model = load_mesh_model(trimesh.Trimesh(c.mean.numpy(), c.faces.numpy(), process=False),
+                            landmark_vertices=c.landmark_vertices.numpy(), landmark_weights=c.landmark_weights.numpy(),
+                            dtype=torch.float16)  # fmt: skip
+    with pytest.raises(TypeError, match=r"the model is torch.float16 .*model\.to\(dtype=torch\.float32\)"):
+        FaceTracker(TrackerConfig(), model).initialise(frames[:1, 0], lm[:1])
+
+
 @pytest.mark.skipif(not ICT_NPZ.is_file(), reason="../shared/assets/ict_facekit is absent")
 def test_the_ict_face_model_tracks_the_james_scan():
     """The ICT Face Model's narrow face area and eyeballs track a rendered James scan turning (a face unlike it) with

@@ -847,7 +847,8 @@ def check_model_precision(model: FaceModel) -> None:
     kernels ('"cholesky_cpu" not implemented for 'Half'' from deep inside the landmark fit)."""
     if model.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"the tracker tracks in float32 or float64, the model is {model.dtype} (its solver factorises "
-                        "matrices): load it in float32 (load_candide3(dtype=torch.float32)) or use torch.autocast")  # fmt: skip
+                        "matrices): convert it, model.to(dtype=torch.float32), or load it so (the loaders' dtype="
+                        "torch.float32), or use torch.autocast")  # fmt: skip
 
 
 def check_api_types(
