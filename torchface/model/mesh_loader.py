@@ -355,6 +355,7 @@ def load_mesh_model(
         lm_idx, lm_w = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
     else:
         raw = np.asarray(landmark_vertices)
+        given = raw.shape  # (the shape named in an error: (K,) stays (K,), not the (K, 1) it is taken as)
         if landmark_weights is not None:
             if raw.ndim == 1:
                 raw = raw[:, None]
@@ -378,10 +379,10 @@ def load_mesh_model(
             )
         lm_w = np.ones((lm_idx.shape[0], 1)) if landmark_weights is None else np.asarray(landmark_weights, np.float64)
         if landmark_weights is not None:
+            weights_given = lm_w.shape
             lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
             if lm_w.shape != lm_idx.shape:
-                raise ValueError(f"landmark_weights must have landmark_vertices' shape {np.shape(landmark_vertices)}, "
-                                 f"got {np.shape(landmark_weights)}")  # fmt: skip
+                raise ValueError(f"landmark_weights must have landmark_vertices' shape {given}, got {weights_given}")
             sums = lm_w.sum(axis=1)
             if not np.isfinite(lm_w).all() or (sums.size and np.abs(sums - 1.0).max() > 1e-6):
                 raise ValueError("landmark_weights must be finite with rows that sum to one (within 1e-6), got sums "
