@@ -353,7 +353,7 @@ OVERLAY_MAX_GAP_S: float = 10.0
 
 #: Frames queued to a video's encoding thread (:class:`_Encoder`) at most: a few (a 1080p frame is 6 MB), enough to
 #: even out the tracking's and the encoder's paces; 0: no thread, each frame written as it is given.
-ENCODE_QUEUE: int = int(os.environ.get("TF_ENCODE_QUEUE", "3"))
+ENCODE_QUEUE: int = 3
 
 
 class _Encoder:
