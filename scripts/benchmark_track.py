@@ -5,8 +5,9 @@ The command as a user runs it (a new process: imports, first-frame fit, tracking
 normalised face videos, the plot), on ``--frames`` frames of the ``pose_sweep`` scenario rendered by torchface's own
 renderer and written as ``mp4v`` MP4 (cached under ``--cache``): 640x480, and the same frames scaled 2.25x and padded
 to 1920x1080 (the landmarks moved with them). Printed per size: end-to-end frames per second (frames over the
-process's wall time, best of ``--repeats``, median beside it) and the tracking loop's (the sidecar's
-``timings_s.fps``: reading, tracking and writing each frame, without the imports, the start and the finishing).
+process's wall time, best of ``--repeats``, median beside it), the CPU time it took (all its threads: steadier than
+the wall time on a shared machine) and the tracking loop's frames per second (the sidecar's ``timings_s.fps``:
+reading, tracking and writing each frame, without the imports, the start and the finishing).
 
 ``--reference DIR`` runs another checkout of torchface (its folder, put first on ``PYTHONPATH``; e.g. a worktree of
 the previous version) on the same clips in the same run, alternating which goes first, so that a slow or fast phase
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -67,16 +69,20 @@ def _clips(cache: Path, count: int) -> dict[str, tuple[Path, Path]]:
     return out
 
 
-def _run(checkout: Path, video: Path, lm: Path, out: Path) -> tuple[float, float]:
-    """Wall seconds of one ``torchface track`` run of ``checkout``, and its loop's frames per second."""
+def _run(checkout: Path, video: Path, lm: Path, out: Path) -> tuple[float, float, float]:
+    """Wall seconds of one ``torchface track`` run of ``checkout``, its CPU seconds (all its threads), and its loop's
+    frames per second."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(checkout), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from torchface.cli import main; sys.exit(main())"
     cmd = [sys.executable, "-c", code, "track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     sidecar = json.loads((out / f"{video.stem}.json").read_text())
-    return wall, float(sidecar["timings_s"]["fps"])
+    return wall, cpu, float(sidecar["timings_s"]["fps"])
 
 
 def _difference(a: Path, b: Path, name: str) -> str | None:
@@ -123,22 +129,25 @@ def main() -> None:
     runs = {"this": ROOT} | ({"reference": args.reference.resolve()} if args.reference is not None else {})
     print(f"torchface track, {args.frames} frames of pose_sweep (mp4v), {os.cpu_count()} CPUs, "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; best (median) of {args.repeats}")  # fmt: skip
-    print(f"{'size':>10} {'checkout':>10} {'end-to-end fps':>18} {'wall s':>14} {'loop fps':>14}")
+    print(f"{'size':>10} {'checkout':>10} {'end-to-end fps':>18} {'wall s':>14} {'CPU s':>14} {'loop fps':>14}")
     with tempfile.TemporaryDirectory() as tmp:
         for size in sizes:
             video, lm = clips[size]
             walls: dict[str, list[float]] = {k: [] for k in runs}
             loops: dict[str, list[float]] = {k: [] for k in runs}
+            cpus: dict[str, list[float]] = {k: [] for k in runs}
             for r in range(args.repeats):
                 order = list(runs) if r % 2 == 0 else list(runs)[::-1]
                 for k in order:
-                    wall, loop = _run(runs[k], video, lm, Path(tmp) / k)
+                    wall, cpu, loop = _run(runs[k], video, lm, Path(tmp) / k)
                     walls[k].append(wall)
+                    cpus[k].append(cpu)
                     loops[k].append(loop)
             for k in runs:
                 best, med = min(walls[k]), statistics.median(walls[k])
                 fps = f"{args.frames / best:.1f} ({args.frames / med:.1f})"
-                print(f"{size:>10} {k:>10} {fps:>18} {f'{best:.2f} ({med:.2f})':>14} "
+                cpu = f"{min(cpus[k]):.2f} ({statistics.median(cpus[k]):.2f})"
+                print(f"{size:>10} {k:>10} {fps:>18} {f'{best:.2f} ({med:.2f})':>14} {cpu:>14} "
                       f"{f'{max(loops[k]):.1f} ({statistics.median(loops[k]):.1f})':>14}")  # fmt: skip
             if "reference" in runs:
                 diff = _difference(Path(tmp) / "this", Path(tmp) / "reference", video.stem)
