@@ -77,7 +77,10 @@ def _run(checkout: Path, video: Path, lm: Path, out: Path) -> tuple[float, float
     cmd = [sys.executable, "-c", code, "track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
+    # (run in the output's folder: `python -c` puts the working folder first on sys.path, and run from a checkout it
+    # imported that checkout's torchface whatever PYTHONPATH said)
+    out.mkdir(parents=True, exist_ok=True)
+    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, cwd=out)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
