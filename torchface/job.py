@@ -351,9 +351,10 @@ def demo_inputs() -> tuple[Path, Path]:
 OVERLAY_MAX_GAP_S: float = 10.0
 
 
-#: Frames queued to a video's encoding thread (:class:`_Encoder`) at most: a few (a 1080p frame is 6 MB), enough to
-#: even out the tracking's and the encoder's paces; 0: no thread, each frame written as it is given.
-ENCODE_QUEUE: int = 3
+#: Frames queued to a video's encoding thread (:class:`_Encoder`) at most (a 1080p frame is 6 MB; the frames of a gap
+#: the overlay fills are one array): a step gives each video one frame, which its thread has encoded long before the
+#: next step's (4.5 ms a 1080p frame); 0: no thread, each frame written as it is given.
+ENCODE_QUEUE: int = 2
 
 
 class _Encoder:
