@@ -148,3 +148,42 @@ def test_interrupted_while_encoding_leaves_no_video_and_no_thread(clip, tmp_path
     assert not list(out.glob("*.mp4")) and not _encoders()
     monkeypatch.undo()
     assert main([*args, "--resume"]) == 0 and len(_decoded(out / f"{video.stem}_overlay.mp4")) == 8
+
+
+def test_sigterm_while_waiting_on_a_full_encoding_queue_stops_cleanly(clip, tmp_path, monkeypatch, capsys):
+    """SIGTERM arriving while the tracking waits for a slow encoder (its queue full): status 143 as before, the
+    rows kept for --resume, no video left, the encoding threads joined (none outlives the run)."""
+    import os
+    import signal
+
+    video, lm = clip
+    real_init, real_put = _Encoder.__init__, _Encoder.write
+    waiting = []
+
+    class Stalled:
+        """The overlay's writer: its first frame takes 1 s, then SIGTERM comes (the tracking waits by then)."""
+
+        def __init__(self, writer):
+            self.real, self.calls = writer, 0
+
+        def write(self, image):
+            self.calls += 1
+            if self.calls == 1:
+                time.sleep(1.0)
+                os.kill(os.getpid(), signal.SIGTERM)
+            self.real.write(image)
+
+    def stalled_init(self, writer, name):
+        real_init(self, Stalled(writer) if "overlay" in name else writer, name)
+
+    def put(self, image):
+        waiting.append(self._queue.full())
+        real_put(self, image)
+
+    monkeypatch.setattr(_Encoder, "__init__", stalled_init)
+    monkeypatch.setattr(_Encoder, "write", put)
+    out = tmp_path / "out"
+    rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 143 and "torchface: terminated; rows kept in" in err and "not finalised" not in err, err
+    assert waiting[-1] and not list(out.glob("*.mp4")) and not _encoders()
