@@ -1947,9 +1947,9 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     import torchface.job as job
     from torchface.tracker.lookahead import LookaheadConfig
 
-    class Reader:  # (its frames, and no time: FrameReader.timestamp)
+    class Reader:  # (its frames, no time (FrameReader.timestamp), no 8-bit image)
         def __init__(self, frames):
-            self.frames, self.timestamp = iter(frames), None
+            self.frames, self.timestamp, self.image = iter(frames), None, None
 
         def __next__(self):
             return next(self.frames)

@@ -28,8 +28,20 @@ def clip(tmp_path_factory):
     return files.video, lm
 
 
+@pytest.fixture(autouse=True)
+def _threads_before():
+    """The encoding threads running before the test (another module's video left open): not the test's."""
+    global _BEFORE
+    _BEFORE = set(threading.enumerate())
+    yield
+
+
+_BEFORE: set[threading.Thread] = set()
+
+
 def _encoders() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name.startswith("torchface encoder")]
+    """The encoding threads the test started that are still running."""
+    return [t for t in threading.enumerate() if t.name.startswith("torchface encoder") and t not in _BEFORE]
 
 
 def _decoded(path):
@@ -55,18 +67,30 @@ def test_the_uint8_images_are_the_previous_formulas(dtype):
     assert frame[0, 0, 1] == 1.5 / 255  # (the frame itself is left as it was)
 
 
-def test_outputs_are_the_same_with_and_without_the_encoding_threads(clip, tmp_path, monkeypatch):
-    """The CSV byte for byte, the JSON but its timings and every frame of both videos, encoded in their threads
-    (the default) and in the tracking's thread (``ENCODE_QUEUE = 0``); no encoding thread outlives a run."""
+@pytest.mark.parametrize("options", [[], ["--lookahead"], ["images"]])
+def test_outputs_are_the_same_with_and_without_the_faster_paths(clip, tmp_path, monkeypatch, options):
+    """The CSV byte for byte, the JSON but its timings and every frame of both videos, with the videos encoded in
+    their threads and the overlay drawn on the frames as read (the defaults), and with both encoded in the
+    tracking's thread (``ENCODE_QUEUE = 0``) and the overlay drawn on the frames converted back to 8 bits; a video,
+    with the look-ahead start (frames read ahead), an image folder. No encoding thread outlives a run."""
     video, lm = clip
-    outs = {}
-    for queued in (0, torchface.job.ENCODE_QUEUE):
-        monkeypatch.setattr(torchface.job, "ENCODE_QUEUE", queued)
-        outs[queued] = tmp_path / f"q{queued}"
-        assert main(["track", str(video), "--landmarks", str(lm), "--out", str(outs[queued]), "--quiet"]) == 0
-        assert not _encoders()
-    a, b = outs.values()
     name = video.stem
+    if options == ["images"]:  # (the clip's frames as PNG files, named as the video)
+        video, options = tmp_path / name, []
+        video.mkdir()
+        for k, f in enumerate(_decoded(clip[0])):
+            cv2.imwrite(str(video / f"{k:03d}.png"), f)
+    outs = {}
+    for fast in (False, True):
+        with monkeypatch.context() as m:
+            if not fast:
+                m.setattr(torchface.job, "ENCODE_QUEUE", 0)
+                m.setattr(torchface.job, "_frame_bgr", lambda frame, image: _to_uint8_bgr(frame))
+            outs[fast] = tmp_path / f"fast{fast}"
+            args = ["track", str(video), "--landmarks", str(lm), "--out", str(outs[fast]), "--quiet", *options]
+            assert main(args) == 0
+            assert not _encoders()
+    a, b = outs.values()
     assert (a / f"{name}.csv").read_bytes() == (b / f"{name}.csv").read_bytes()
 
     def sidecar(path):
@@ -187,3 +211,24 @@ def test_sigterm_while_waiting_on_a_full_encoding_queue_stops_cleanly(clip, tmp_
     err = capsys.readouterr().err
     assert rc == 143 and "torchface: terminated; rows kept in" in err and "not finalised" not in err, err
     assert waiting[-1] and not list(out.glob("*.mp4")) and not _encoders()
+
+
+def test_a_reader_keeps_the_8bit_image_each_frame_was_read_from(clip, tmp_path):
+    """``FrameReader.image``: the decoded BGR image of the frame just read, which the frame converted back to 8 bits
+    gives exactly; None where the frame is not one converted as is (an RGB array, a frame ``convert`` crops)."""
+    from torchface.io import open_frames
+
+    video, _ = clip
+    with open_frames(video) as reader:
+        for frame in reader:
+            assert reader.image is not None and reader.image.dtype == np.uint8
+            np.testing.assert_array_equal(reader.image, _to_uint8_bgr(frame))
+            np.testing.assert_array_equal(reader.image, _to_uint8_bgr(frame.double()))
+        assert reader.frames_read == 8
+    assert reader.image is None  # (closed: not kept)
+    rgb = np.zeros((2, 40, 50, 3), np.uint8)
+    np.save(tmp_path / "rgb.npy", rgb)
+    np.save(tmp_path / "odd.npy", np.zeros((2, 41, 50, 3), np.uint8))
+    for name, convert in (("rgb.npy", False), ("odd.npy", True)):
+        with open_frames(tmp_path / name, convert=convert) as reader:
+            assert [reader.image for _ in reader] == [None, None]

@@ -204,6 +204,16 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     return data.permute(2, 0, 1).contiguous(), fmt
 
 
+def _bgr_image(array: np.ndarray, bgr: bool) -> np.ndarray | None:
+    """The ``(H, W, 3)`` uint8 BGR image whose :func:`frame_to_tensor` frame ``f`` gives it back exactly as
+    ``round(clamp(f, 0, 1) * 255)`` (in float32 or float64: ``k / 255`` rounds back to ``k`` for every 8-bit ``k``),
+    so that what draws on the frame need not convert it back: ``array`` itself where it is such an image of even
+    width and height (a video's decoded frames, an image folder's colour images), else None (another format, RGB
+    order, or a frame that ``convert`` crops)."""
+    ok = isinstance(array, np.ndarray) and array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] == 3
+    return array if ok and bgr and array.shape[0] % 2 == 0 and array.shape[1] % 2 == 0 else None
+
+
 def _conversion(array: np.ndarray, fmt: str, problems: list[str]) -> str:
     """Describe what ``convert=True`` did to a frame with these problems (empty if nothing)."""
     if not problems:
@@ -222,7 +232,8 @@ class FrameReader:
 
     Validation happens as frames are read: a frame of another stored size than the first, or (without
     ``convert``) a grayscale, RGBA, 16-bit or odd-sized frame, raises :class:`InputError` naming its index.
-    :attr:`frames_read` counts the frames returned so far; :attr:`timestamp` is the time of the last one in seconds:
+    :attr:`frames_read` counts the frames returned so far; :attr:`image` is the 8-bit BGR image the last one was
+    converted from (:func:`_bgr_image`); :attr:`timestamp` is the time of the last one in seconds:
     the container's (``clock``, milliseconds of the frame just read: ``CAP_PROP_POS_MSEC``) where it is a number,
     at least 0 and later than the previous frame's, else the last such time plus ``1 / fps`` per frame since (the
     first frame: 0). So a variable-frame-rate video's frames get their own times, and the frames of an image
@@ -239,8 +250,11 @@ class FrameReader:
         convert: bool = False,
         files: list[Path] | None = None,
         clock: Callable[[], float] | None = None,
+        first_image: np.ndarray | None = None,
     ) -> None:
         self.info = info
+        self.image: np.ndarray | None = None  # (_bgr_image of the last frame returned)
+        self._first_image = first_image
         self.clock = clock
         self.timestamp: float | None = None  # (seconds) of the last frame returned; None before the first
         self._timed = (0, 0.0)  # (frame, seconds) of the last frame timed by the container
@@ -258,6 +272,7 @@ class FrameReader:
     def __next__(self) -> Tensor:
         if self._first is not None:
             frame, self._first = self._first, None
+            self.image, self._first_image = self._first_image, None
             self.frames_read = 1
             self._stamp()
             return frame
@@ -271,6 +286,7 @@ class FrameReader:
                 f"{self.stored_size[1]}x{self.stored_size[0]} (the frame size must not change)"
             )
         frame, _ = frame_to_tensor(array, bgr, where, self.convert)
+        self.image = _bgr_image(array, bgr)
         self.frames_read += 1
         self._stamp()
         return frame
@@ -299,6 +315,7 @@ class FrameReader:
             self._closer()
             self._closer = None
         self._first, self._rest = None, iter(())
+        self.image = self._first_image = None
 
     def __enter__(self) -> "FrameReader":
         return self
@@ -450,10 +467,12 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         rest = _image_frames(files)
         first_arr, _ = next(rest)
         first, fmt = frame_to_tensor(first_arr, True, f"{files[0]}", convert)
+        first_image = _bgr_image(first_arr, True)
         _check_size(p, first)
         conv = _conversion(first_arr, fmt, format_problems(first_arr))
         info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv, True)
-        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files)
+        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files,
+                           first_image=first_image)  # fmt: skip
     if p.suffix.lower() == ".npy":
         try:
             # Mapped, not read: frames are read as they are tracked, so that a long clip does not have to fit in
@@ -500,6 +519,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         if problems and not convert:
             raise InputError(_problem_message(f"{p}", problems))
         first, _ = frame_to_tensor(img, True, f"{p}: frame 0", convert)
+        first_image = _bgr_image(img, True)
         _check_size(p, first)
     except BaseException:  # any failure: the decoder was kept open by the traceback for as long as it was held
         cap.release()
@@ -514,4 +534,4 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     declared = int(count) if math.isfinite(count) and count >= 1 else None
     info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv, assumed)
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert,
-                       clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC))  # fmt: skip
+                       clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC), first_image=first_image)  # fmt: skip
