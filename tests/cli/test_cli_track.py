@@ -1947,9 +1947,9 @@ def test_lookahead_holds_the_frames_read_ahead_once(monkeypatch):
     import torchface.job as job
     from torchface.tracker.lookahead import LookaheadConfig
 
-    class Reader:  # (its frames, and no time: FrameReader.timestamp)
+    class Reader:  # (its frames, no time (FrameReader.timestamp), no 8-bit image)
         def __init__(self, frames):
-            self.frames, self.timestamp = iter(frames), None
+            self.frames, self.timestamp, self.image = iter(frames), None, None
 
         def __next__(self):
             return next(self.frames)
@@ -2430,7 +2430,8 @@ def test_a_video_output_cut_short_is_not_renamed_as_complete(tmp_path):
     out = _VideoOut(path, 64, 48, 25.0)
     for _ in range(5):
         out.write(np.zeros((48, 64, 3), np.uint8))
-    out.writer.release()  # what close() does first; then the disk "fills": the file ends early
+    out._encoder.finish()  # what close() does first (the frames queued written, the writer released); then the
+    out.writer.release()  # disk "fills": the file ends early
     with open(out.tmp, "r+b") as f:
         f.truncate(out.tmp.stat().st_size // 2)
     with pytest.raises(OutputError, match="could not be written completely"):

@@ -412,3 +412,18 @@ def test_a_phone_videos_frames_come_out_as_displayed(tmp_path, monkeypatch, rota
     w, h = (48, 64) if rotate in (90, 270) else (64, 48)
     assert (reader.info.width, reader.info.height) == (w, h)
     torch.testing.assert_close(_frames(reader), torch.rot90(plain, -rotate // 90, dims=(2, 3)), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bgr", [True, False])
+@pytest.mark.parametrize("size", [(48, 64), (49, 65)])
+def test_uint8_colour_frames_by_planes_are_the_whole_image_conversion(bgr, size):
+    """An 8-bit colour frame (a video's) is converted by planes: the values of converting the (H, W, 3) image and
+    flipping and permuting it, a read-only or odd-sized (converted) one's too, contiguous."""
+    h, w = size
+    array = np.random.default_rng(3).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    array.flags.writeable = False
+    want = torch.from_numpy(array[: h - h % 2, : w - w % 2].astype(np.float32)) / 255.0
+    want = (want.flip(2) if bgr else want).permute(2, 0, 1)
+    got, fmt = frame_to_tensor(array, bgr, "x", convert=h % 2 == 1)
+    assert torch.equal(got, want) and got.is_contiguous() and got.dtype == torch.float32
+    assert fmt == ("uint8 BGR" if bgr else "uint8 RGB")

@@ -179,6 +179,13 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     channels = {1: "gray", 3: "BGR" if bgr else "RGB", 4: "BGRA" if bgr else "RGBA"}[array.shape[2]]
     h, w = array.shape[:2]
     array = array[: h - h % 2, : w - w % 2]
+    fmt = f"{array.dtype} {channels}"
+    if array.dtype == np.uint8 and array.shape[2] == 3:
+        # (a video's frames: the planes split and stacked in RGB order, then converted, gives the same values three
+        # times faster than converting (H, W, 3) and flipping and permuting the floats: 11.5 -> 3.7 ms at 1080p)
+        planes = cv2.split(array)
+        chw = np.stack(planes[::-1] if bgr else planes)
+        return torch.from_numpy(chw).to(torch.float32) / 255.0, fmt
     if array.dtype == np.uint8:
         # a read-only array (np.frombuffer's, of an ffmpeg pipe's bytes) is copied: torch warned that it "does not
         # support non-writable tensors" for a tensor converted to float32 right away
@@ -188,7 +195,6 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
         data = torch.from_numpy(array.astype(np.float32)) / 65535.0
     else:
         data = torch.from_numpy(array.astype(np.float32))
-    fmt = f"{array.dtype} {channels}"
     if data.shape[2] == 1:
         data = data.expand(-1, -1, 3)
     elif data.shape[2] == 4:
@@ -196,6 +202,16 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     if bgr:
         data = data.flip(2)
     return data.permute(2, 0, 1).contiguous(), fmt
+
+
+def _bgr_image(array: np.ndarray, bgr: bool) -> np.ndarray | None:
+    """The ``(H, W, 3)`` uint8 BGR image whose :func:`frame_to_tensor` frame ``f`` gives it back exactly as
+    ``round(clamp(f, 0, 1) * 255)`` (in float32 or float64: ``k / 255`` rounds back to ``k`` for every 8-bit ``k``),
+    so that what draws on the frame need not convert it back: ``array`` itself where it is such an image of even
+    width and height (a video's decoded frames, an image folder's colour images), else None (another format, RGB
+    order, or a frame that ``convert`` crops)."""
+    ok = isinstance(array, np.ndarray) and array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] == 3
+    return array if ok and bgr and array.shape[0] % 2 == 0 and array.shape[1] % 2 == 0 else None
 
 
 def _conversion(array: np.ndarray, fmt: str, problems: list[str]) -> str:
@@ -216,7 +232,8 @@ class FrameReader:
 
     Validation happens as frames are read: a frame of another stored size than the first, or (without
     ``convert``) a grayscale, RGBA, 16-bit or odd-sized frame, raises :class:`InputError` naming its index.
-    :attr:`frames_read` counts the frames returned so far; :attr:`timestamp` is the time of the last one in seconds:
+    :attr:`frames_read` counts the frames returned so far; :attr:`image` is the 8-bit BGR image the last one was
+    converted from (:func:`_bgr_image`); :attr:`timestamp` is the time of the last one in seconds:
     the container's (``clock``, milliseconds of the frame just read: ``CAP_PROP_POS_MSEC``) where it is a number,
     at least 0 and later than the previous frame's, else the last such time plus ``1 / fps`` per frame since (the
     first frame: 0). So a variable-frame-rate video's frames get their own times, and the frames of an image
@@ -233,8 +250,11 @@ class FrameReader:
         convert: bool = False,
         files: list[Path] | None = None,
         clock: Callable[[], float] | None = None,
+        first_image: np.ndarray | None = None,
     ) -> None:
         self.info = info
+        self.image: np.ndarray | None = None  # (_bgr_image of the last frame returned)
+        self._first_image = first_image
         self.clock = clock
         self.timestamp: float | None = None  # (seconds) of the last frame returned; None before the first
         self._timed = (0, 0.0)  # (frame, seconds) of the last frame timed by the container
@@ -252,6 +272,7 @@ class FrameReader:
     def __next__(self) -> Tensor:
         if self._first is not None:
             frame, self._first = self._first, None
+            self.image, self._first_image = self._first_image, None
             self.frames_read = 1
             self._stamp()
             return frame
@@ -265,6 +286,7 @@ class FrameReader:
                 f"{self.stored_size[1]}x{self.stored_size[0]} (the frame size must not change)"
             )
         frame, _ = frame_to_tensor(array, bgr, where, self.convert)
+        self.image = _bgr_image(array, bgr)
         self.frames_read += 1
         self._stamp()
         return frame
@@ -293,6 +315,7 @@ class FrameReader:
             self._closer()
             self._closer = None
         self._first, self._rest = None, iter(())
+        self.image = self._first_image = None
 
     def __enter__(self) -> "FrameReader":
         return self
@@ -444,10 +467,12 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         rest = _image_frames(files)
         first_arr, _ = next(rest)
         first, fmt = frame_to_tensor(first_arr, True, f"{files[0]}", convert)
+        first_image = _bgr_image(first_arr, True)
         _check_size(p, first)
         conv = _conversion(first_arr, fmt, format_problems(first_arr))
         info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv, True)
-        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files)
+        return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files,
+                           first_image=first_image)  # fmt: skip
     if p.suffix.lower() == ".npy":
         try:
             # Mapped, not read: frames are read as they are tracked, so that a long clip does not have to fit in
@@ -494,6 +519,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         if problems and not convert:
             raise InputError(_problem_message(f"{p}", problems))
         first, _ = frame_to_tensor(img, True, f"{p}: frame 0", convert)
+        first_image = _bgr_image(img, True)
         _check_size(p, first)
     except BaseException:  # any failure: the decoder was kept open by the traceback for as long as it was held
         cap.release()
@@ -508,4 +534,4 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     declared = int(count) if math.isfinite(count) and count >= 1 else None
     info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv, assumed)
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert,
-                       clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC))  # fmt: skip
+                       clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC), first_image=first_image)  # fmt: skip
