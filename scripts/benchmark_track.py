@@ -116,7 +116,7 @@ def _difference(a: Path, b: Path, name: str) -> str | None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--frames", type=integer(2), default=120, help="frames of the clip (default 120)")
     ap.add_argument("--repeats", type=integer(1), default=3, help="runs per checkout and size (default 3)")
     ap.add_argument("--sizes", default=",".join(SIZES), help=f"comma-separated, of {', '.join(SIZES)}")
