@@ -104,7 +104,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.detect import _Batched, accepts_near, search_first_face, usable_detection
+from torchface.detect import _Batched, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
@@ -765,14 +765,9 @@ def _frame_bgr(frame: Tensor, image: np.ndarray | None) -> np.ndarray:
     return _to_uint8_bgr(frame)
 
 
-def _to_uint8_rgb(frame: Tensor) -> np.ndarray:
-    """``(3, H, W)`` float RGB in ``[0, 1]`` -> ``(H, W, 3)`` uint8 RGB (a view of the planes, as a detector takes)."""
-    return _to_uint8(frame).transpose(1, 2, 0)
-
-
 def _to_uint8_bgr(frame: Tensor) -> np.ndarray:
     """``(3, H, W)`` float RGB in ``[0, 1]`` -> a contiguous ``(H, W, 3)`` uint8 BGR image, as
-    ``cv2.cvtColor(_to_uint8_rgb(frame), cv2.COLOR_RGB2BGR)`` gives it, three times faster (the planes merged in
+    ``cv2.cvtColor(detector_image(frame), cv2.COLOR_RGB2BGR)`` gives it, three times faster (the planes merged in
     their new order: the conversion of a strided RGB view took 16 ms a 1080p frame, this 4)."""
     planes = _to_uint8(frame)
     return cv2.merge([planes[2], planes[1], planes[0]])
@@ -1294,7 +1289,7 @@ def _first_landmarks(
     W, H = reader.info.width, reader.info.height
     if landmarks is not None:  # (str() of an os.PathLike that is not a Path, an os.DirEntry, is its repr)
         return read_landmarks(landmarks, W, H), os.fspath(landmarks)
-    points = detector(_to_uint8_rgb(first))
+    points = detector(detector_image(first))
     if points is None:
         return None
     # (half of them inside: dlib's predictor places the chin of a face at the frame's edge just outside it)
@@ -2513,7 +2508,7 @@ def _maybe_redetect(
             s.replayed_redetection = s.frames - s.start - 1  # (this row's t: its row is written)
             continue
         s.detector_calls += 1
-        image = _to_uint8_rgb(frames[k])
+        image = detector_image(frames[k])
         points = detector(image, near=s.near) if accepts_near(detector) else detector(image)
         if points is None:
             continue

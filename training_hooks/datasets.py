@@ -92,7 +92,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from torchface.detect import search_first_face
+from torchface.detect import detector_image, search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
@@ -175,11 +175,6 @@ def _content_words(content: str) -> Tensor:
     """``(4,)`` int64: a :func:`~training_hooks.cache.content_hash` (64 hex digits) as :func:`_shared_detections`
     keeps it."""
     return torch.from_numpy(np.frombuffer(bytes.fromhex(content), dtype=np.int64).copy())
-
-
-def _detector_image(frame: Tensor) -> np.ndarray:
-    """A ``(3, H, W)`` float frame in ``[0, 1]`` as the ``(H, W, 3)`` uint8 RGB image a :data:`Detector` takes."""
-    return (frame.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).contiguous().numpy()
 
 
 #: The end of :mod:`torchface.io`'s message for a frame to convert, as a dataset says it (the command line's
@@ -600,7 +595,7 @@ class VideoDataset(IterableDataset):
         where = f"{path}: landmarks (detector)"
 
         def find(frame: Tensor) -> np.ndarray | None:
-            points = self.detector(_detector_image(frame))  # type: ignore[misc]
+            points = self.detector(detector_image(frame))  # type: ignore[misc]
             # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
             return None if points is None else check_landmarks(np.asarray(points), W, H, where, min_inside=0.5)
 

@@ -14,7 +14,8 @@ import torch
 
 import torchface.job
 from torchface.cli import main
-from torchface.job import _Encoder, _to_uint8_bgr, _to_uint8_rgb, _VideoOut
+from torchface.detect import detector_image
+from torchface.job import _Encoder, _to_uint8_bgr, _VideoOut
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 
@@ -63,7 +64,7 @@ def test_the_uint8_images_are_the_previous_formulas(dtype):
     bgr = _to_uint8_bgr(frame)
     assert bgr.flags.c_contiguous and bgr.shape == (30, 40, 3) and bgr.dtype == np.uint8
     np.testing.assert_array_equal(bgr, cv2.cvtColor(old_rgb, cv2.COLOR_RGB2BGR))
-    np.testing.assert_array_equal(_to_uint8_rgb(frame), old_rgb)
+    np.testing.assert_array_equal(detector_image(frame), old_rgb)
     assert frame[0, 0, 1] == 1.5 / 255  # (the frame itself is left as it was)
 
 

@@ -38,7 +38,8 @@ if TYPE_CHECKING:
     from torch import Tensor
 
 __all__ = [
-    "DETECTORS", "Detector", "DetectorUnavailable", "accepts_near", "batched", "load_detector", "search_first_face",
+    "DETECTORS", "Detector", "DetectorUnavailable", "accepts_near", "batched", "detector_image", "load_detector",
+    "search_first_face",
 ]  # fmt: skip
 
 
@@ -247,6 +248,23 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
     return _Batched(detector, name, None)
 
 
+def detector_image(frame: "Tensor") -> np.ndarray:
+    """A ``(3, H, W)`` float RGB frame in ``[0, 1]`` (any device; values outside clamped) as the image a
+    :data:`Detector` takes: ``(H, W, 3)`` uint8 RGB, rounded, C-contiguous as an image from OpenCV or PIL is (a view
+    of the ``(3, H, W)`` frame was not: OpenCV refused to draw on it).
+
+    Example:
+        >>> import torch
+        >>> image = detector_image(torch.full((3, 2, 4), 0.5))
+        >>> image.shape, image.dtype, int(image[0, 0, 0]), image.flags.c_contiguous
+        ((2, 4, 3), dtype('uint8'), 128, True)
+    """
+    import torch
+
+    image = (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    return np.ascontiguousarray(image)
+
+
 _Frame = TypeVar("_Frame")
 _Found = TypeVar("_Found")
 
@@ -357,10 +375,7 @@ class _Batched:
         out = torch.full((frames.shape[0], NUM_LANDMARKS, 2), float("nan"), dtype=dtype, device=frames.device)
         H, W = frames.shape[-2], frames.shape[-1]
         for b in range(frames.shape[0]):
-            # C-contiguous, as an image from OpenCV or PIL is (a view of the (3, H, W) frame was not: OpenCV
-            # refused to draw on it)
-            image = (frames[b].detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-            image = np.ascontiguousarray(image)
+            image = detector_image(frames[b])
             near = None if self.near_of is None else self.near_of(frames[b])
             if self.takes_near:  # accepts_near: it takes the keyword
                 points = cast(_NearDetector, self.detector)(image, near=near)
