@@ -44,11 +44,12 @@ def _clips(cache: Path, count: int) -> dict[str, tuple[Path, Path]]:
            for size in SIZES}  # fmt: skip
     if all(v.is_file() and lm.is_file() for v, lm in out.values()):
         return out
+    from torchface.synth.io import frames_to_uint8
     from torchface.synth.scenarios import make_scenario
     from torchface.synth.sequence import render_sequence
 
     frames, gt = render_sequence(make_scenario("pose_sweep", max(count, 2), 640, 480))
-    rgb = (frames[:count].clamp(0, 1) * 255).round().byte().permute(0, 2, 3, 1).numpy()
+    frames_bgr = frames_to_uint8(frames[:count])
     lm = gt.landmarks_px[0].double().numpy()
     cache.mkdir(parents=True, exist_ok=True)
     for size, scale in SIZES.items():
@@ -56,8 +57,7 @@ def _clips(cache: Path, count: int) -> dict[str, tuple[Path, Path]]:
         video, lm_csv = out[size]
         writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (W, H))
         pad = (W - round(640 * scale)) // 2
-        for f in rgb:
-            bgr = cv2.cvtColor(f, cv2.COLOR_RGB2BGR)
+        for bgr in frames_bgr:
             if scale != 1.0:
                 big = np.zeros((H, W, 3), np.uint8)
                 big[:, pad : W - pad] = cv2.resize(bgr, (W - 2 * pad, H), interpolation=cv2.INTER_LINEAR)
