@@ -15,7 +15,7 @@ import torch
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import euler_to_matrix
 from torchface.model.candide import load_candide3
-from torchface.synth.background import BackgroundSpec
+from torchface.synth.background import BackgroundSpec, OccluderSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 
@@ -91,6 +91,19 @@ def opencv_411_capture(*args) -> cv2.VideoCapture:
     return cap
 
 
+def candide_spec(name: str, ypr: list[list[float]], txyz: list[list[float]], width: int, height: int, *,
+                 photo: str = "james", occluder: OccluderSpec | None = None) -> SequenceSpec:
+    """A rendered CANDIDE-3 sequence at rest (no expression) with the default light and background seed 3: its
+    per-frame yaw/pitch/roll (degrees) and translation (mm) as lists of ``[a, b, c]``, at ``width x height``."""
+    T = len(ypr)
+    return SequenceSpec(
+        name=name, subject="candide3", intrinsics=Intrinsics.default(width, height),
+        rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor(txyz, dtype=D),
+        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
+        background=BackgroundSpec(seed=3), occluder=occluder, photo=photo,
+    )  # fmt: skip
+
+
 def leave_and_return_streams(width: int = 320, height: int = 240, frames: int = 12):
     """Two rendered streams ``(2, T, 3, H, W)``: a gentle turn (12, -5, 4 degrees of yaw, pitch, roll and a few mm),
     and a face that moves, leaves the frame to the right (frames 4-7) and comes back on the left (8 on); their first
@@ -99,17 +112,9 @@ def leave_and_return_streams(width: int = 320, height: int = 240, frames: int = 
     ypr = (s[:, None] * torch.tensor([12.0, -5.0, 4.0], dtype=D)).tolist()
     txyz = (torch.tensor([0.0, 0.0, 450.0], dtype=D) + s[:, None] * torch.tensor([8.0, -4.0, 10.0], dtype=D)).tolist()
     x = ([0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-60.0] * frames)[:frames]
-
-    def spec(name: str, ypr: list[list[float]], txyz: list[list[float]]) -> SequenceSpec:
-        return SequenceSpec(
-            name=name, subject="candide3", intrinsics=Intrinsics.default(width, height),
-            rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor(txyz, dtype=D),
-            anim=torch.zeros(frames, load_candide3().num_animation, dtype=D), light=default_light(frames),
-            background=BackgroundSpec(seed=3), photo="james",
-        )  # fmt: skip
-
-    fa, ga = render_sequence(spec("gentle", ypr, txyz))
-    fb, gb = render_sequence(spec("leaves", [[0.0, 0.0, 0.0]] * frames, [[xi, 0.0, 450.0] for xi in x]))
+    fa, ga = render_sequence(candide_spec("gentle", ypr, txyz, width, height))
+    still = [[0.0, 0.0, 0.0]] * frames
+    fb, gb = render_sequence(candide_spec("leaves", still, [[xi, 0.0, 450.0] for xi in x], width, height))
     lm = torch.stack([ga.landmarks_px[0], gb.landmarks_px[0]]).float()
     return torch.stack([fa, fb]), lm, (ga, gb)
 

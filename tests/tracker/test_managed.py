@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import io
 import math
+import sys
 from dataclasses import fields, replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -42,6 +44,9 @@ from torchface.tracker import (
     track_step,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import candide_spec  # noqa: E402
+
 W, H = 320, 240
 D = torch.float64
 LOST = int(TrackStatus.LOST)
@@ -58,13 +63,7 @@ def model():
 
 def spec_of(name: str, ypr: list[list[float]], txyz: list[list[float]], *, photo: str = "james",
             occluder: OccluderSpec | None = None) -> SequenceSpec:
-    T = len(ypr)
-    return SequenceSpec(
-        name=name, subject="candide3", intrinsics=Intrinsics.default(W, H),
-        rotation=euler_to_matrix(torch.tensor(ypr, dtype=D)), translation=torch.tensor(txyz, dtype=D),
-        anim=torch.zeros(T, load_candide3().num_animation, dtype=D), light=default_light(T),
-        background=BackgroundSpec(seed=3), occluder=occluder, photo=photo,
-    )  # fmt: skip
+    return candide_spec(name, ypr, txyz, W, H, photo=photo, occluder=occluder)
 
 
 def track(model, config, frames, landmarks, detector=None):
