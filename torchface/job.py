@@ -103,6 +103,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._device import check_device
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
@@ -728,26 +729,9 @@ def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[s
 
 
 def _check_device(device_or_name: str | torch.device) -> None:
-    name = device_or_name  # a torch.device as --device names it ("cuda:0"), not by its repr
-    if isinstance(device_or_name, torch.device):
-        name = str(device_or_name)
-    try:
-        device = torch.device(name)
-    except (RuntimeError, ValueError):
-        raise ValueError(f"unknown torch device {name!r} (expected e.g. cpu, cuda, cuda:1, mps)") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {name!r} is not available: this torch build sees no CUDA GPU; use --device cpu")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        raise ValueError(f"device {name!r} is not available: {torch.cuda.device_count()} CUDA device(s) here")
-    if device.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"device {name!r} is not available here; use --device cpu")
-    if device.type == "meta":
-        raise ValueError("device 'meta' holds no data: use a device that computes (cpu, cuda, ...)")
-    try:  # any other backend (xpu, hpu, privateuse1, ...): it must hold a tensor here
-        torch.zeros(1, device=device)
-    except Exception as exc:  # noqa: BLE001 - backends raise AssertionError, RuntimeError, ModuleNotFoundError...
-        detail = " ".join(str(exc).split()) or type(exc).__name__
-        raise ValueError(f"device {name!r} is not available here ({detail}); use --device cpu") from None
+    """A ``ValueError`` naming ``JobConfig.device`` and the devices here where this machine cannot compute on it
+    (:func:`torchface._device.check_device`)."""
+    check_device(device_or_name)
 
 
 def _to_uint8(frame: Tensor) -> np.ndarray:

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchface._device import check_device
 from torchface.conventions import MM_PER_CANDIDE_UNIT
 from torchface.model.face_model import FaceModel
 from torchface.model.topology import make_winding_consistent, orient_outward, unused_vertices
@@ -469,7 +470,8 @@ def load_candide3(
 
     Raises:
         TypeError: ``animation`` is not an :class:`AnimationSet` or ``dtype`` is not floating.
-        ValueError: the packaged data files disagree with each other.
+        ValueError: ``device`` is not a device this machine has (``"cuda"`` without CUDA, ``"mps"`` off Apple
+            silicon, ``"meta"``; the message lists those it has), or the packaged data files disagree with each other.
 
     Example:
         >>> model = load_candide3()
@@ -482,6 +484,7 @@ def load_candide3(
         raise TypeError(f"animation must be an AnimationSet, got {type(animation).__name__}")
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
+    device = check_device(device)
     wfm = parse_wfm(_data_text("candide3.wfm", encoding="latin-1"))
     num_v = wfm.vertices.shape[0]
 

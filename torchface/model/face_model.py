@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchface._device import check_device
 from torchface.geometry.mesh import face_normals, vertex_normals
 
 __all__ = [
@@ -329,6 +330,7 @@ class FaceModel:
             device, dtype = None, device
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+        device = check_device(device)  # (a device this machine lacks: one ValueError that lists those it has)
         changes: dict[str, Any] = {}  # field name -> value, of each field's own type
         for f in fields(self):
             value = getattr(self, f.name)

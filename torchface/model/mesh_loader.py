@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchface._device import check_device
 from torchface._names import name_tuple
 from torchface.model.face_model import FaceModel
 
@@ -286,7 +287,8 @@ def load_mesh_model(
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
             finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or
             the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
-            positive and finite, or a ``facs_links`` name is not a blendshape name.
+            positive and finite, a ``facs_links`` name is not a blendshape name, or ``device`` is not a device this
+            machine has (the message lists those it has).
 
     Warns:
         UserWarning: the mesh spans less than 50 mm or more than 2 m (``scale_to_mm``), or 68 landmarks are not laid
@@ -303,6 +305,7 @@ def load_mesh_model(
 
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
+    device = check_device(device)
     obj_vertices = None
     if isinstance(mesh, (str, os.PathLike)):  # any path-like (an os.DirEntry too), not only a Path
         default_name = Path(mesh).stem
@@ -484,10 +487,12 @@ def load_ict_face_model(
 
     Raises:
         ValueError: a requested count is negative or exceeds what the file holds, a key is missing, or ``area`` is
-            none of :data:`ICT_AREAS` (or the file is not the model's 26719 vertices).
+            none of :data:`ICT_AREAS` (or the file is not the model's 26719 vertices), or ``device`` is not a
+            device this machine has.
     """
     if area not in ICT_AREAS:
         raise ValueError(f"area must be one of {list(ICT_AREAS)}, got {area!r}")
+    device = check_device(device)  # (before the file is read)
     with np.load(Path(npz_path), allow_pickle=False) as data:
         missing = {"neutral", "faces", "expression_deltas", "expression_names", "identity_deltas",
                    "identity_names", "landmarks68"} - set(data.files)

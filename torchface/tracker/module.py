@@ -9,6 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchface._device import check_cuda_device, check_to_device
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -144,10 +145,16 @@ class FaceTracker(nn.Module):
             >>> tracker.model.dtype
             torch.float64
         """
+        check_to_device(*args, **kwargs)  # (a device this machine lacks: one ValueError listing those it has)
         device, dtype, _, _ = torch._C._nn._parse_to(*args, **kwargs)
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"FaceTracker.to only accepts floating point dtypes, got {dtype}")
         return super().to(*args, **kwargs)
+
+    def cuda(self, device: torch.device | str | int | None = None) -> "FaceTracker":
+        """``nn.Module.cuda``, with a machine without that GPU a ``ValueError`` naming the devices it has."""
+        check_cuda_device(device)
+        return super().cuda(device)
 
     def _apply(self, fn, recurse: bool = True) -> "FaceTracker":
         """What ``.to``, ``.double()``, ``.float()``, ``.cuda()`` and ``.cpu()`` do: move the face model (a plain

@@ -1,0 +1,100 @@
+"""The one check of a torch device a user names: where torchface first takes one (``load_candide3(device=...)``,
+``load_mesh_model``, ``FaceModel.to``, ``FaceTracker.to`` / ``.cuda``, ``NormalisedFace.to`` / ``.cuda``, the job's
+``JobConfig.device``), so that a device this machine lacks is one ``ValueError`` naming it and the devices there are
+(torch's own was an ``AssertionError`` "Torch not compiled with CUDA enabled" from deep inside the model's loading,
+an "Expected one of cpu, cuda, ipu, xpu, ..." list of every backend torch knows for a typo, and
+"Tensor.item() cannot be called on meta tensors" from the model's checks for ``"meta"``).
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["available_devices", "check_device"]
+
+
+def available_devices() -> list[str]:
+    """The devices this process can compute on, as ``--device`` / ``.to`` take them: ``cpu``, each CUDA GPU
+    (``cuda:0``, ...), ``mps`` on Apple silicon, each XPU.
+
+    Example:
+        >>> available_devices()[0]
+        'cpu'
+    """
+    names = ["cpu"]
+    if torch.cuda.is_available():
+        names += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    if torch.backends.mps.is_available():
+        names.append("mps")
+    xpu = getattr(torch, "xpu", None)
+    if xpu is not None and xpu.is_available():
+        names += [f"xpu:{i}" for i in range(xpu.device_count())]
+    return names
+
+
+def check_device(device: torch.device | str | int | None) -> torch.device | None:
+    """``device`` as a ``torch.device`` (None as None), or a ``ValueError`` that names it and the devices this
+    machine has when it is no device name, holds no data (``meta``) or is not here (``cuda`` in a torch built without
+    CUDA or on a machine without a GPU, ``cuda:7`` with fewer GPUs, ``mps`` off Apple silicon). An int is a CUDA
+    index, as ``nn.Module.cuda(0)`` takes it. Free for the CPU (no query of any backend).
+
+    Example:
+        >>> check_device("cpu")
+        device(type='cpu')
+        >>> check_device("gpu0")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+            ...
+        ValueError: unknown torch device 'gpu0' (expected e.g. cpu, cuda, cuda:1, mps); devices here: cpu...
+    """
+    if device is None or isinstance(device, torch.device) and device.type == "cpu":
+        return device
+    if isinstance(device, bool) or not isinstance(device, (torch.device, str, int)):
+        raise TypeError(f"device must be a torch.device, a str or an int, got {type(device).__name__} {device!r}")
+    try:
+        parsed = torch.device("cuda", device) if isinstance(device, int) else torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"unknown torch device {device!r} (expected e.g. cpu, cuda, cuda:1, mps); devices here: "
+                         f"{', '.join(available_devices())}") from None  # fmt: skip
+    if parsed.type == "cpu":
+        return parsed
+    name = str(parsed)  # ("cuda:0" as --device takes it, not a torch.device's repr)
+    here = f"devices here: {', '.join(available_devices())}"
+    if parsed.type == "meta":
+        raise ValueError(f"device 'meta' holds no data: use a device that computes; {here}")
+    if parsed.type == "cuda":
+        if not torch.backends.cuda.is_built():
+            raise ValueError(f"device {name!r} is not available: this torch build sees no CUDA GPU (torch "
+                             f"{torch.__version__} is built without CUDA); {here}")  # fmt: skip
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} is not available: this torch build sees no CUDA GPU; {here}")
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r} is not available: {torch.cuda.device_count()} CUDA device(s) here "
+                             f"(cuda:0 to cuda:{torch.cuda.device_count() - 1}); {here}")  # fmt: skip
+        return parsed
+    if parsed.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise ValueError(f"device {name!r} is not available here (MPS needs Apple silicon and a torch built with "
+                             f"it); {here}")  # fmt: skip
+        return parsed
+    try:  # any other backend (xpu, hpu, privateuse1, ...): it must hold a tensor here
+        torch.zeros(1, device=parsed)
+    except Exception as exc:  # noqa: BLE001 - backends raise AssertionError, RuntimeError, ModuleNotFoundError...
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(f"device {name!r} is not available here ({detail}); {here}") from None
+    return parsed
+
+
+def check_to_device(*args: object, **kwargs: object) -> None:
+    """:func:`check_device` of the device in an ``nn.Module.to`` / ``Tensor.to`` call's arguments (``.to("cuda")``,
+    ``.to(device=..., dtype=...)``, ``.to("cuda", torch.float64)``), before torch parses them; a call without one
+    (``.to(torch.float64)``, ``.to(tensor)``) passes."""
+    device = kwargs.get("device", args[0] if args else None)
+    if isinstance(device, (str, torch.device)) or isinstance(device, int) and not isinstance(device, bool):
+        check_device(device)
+
+
+def check_cuda_device(device: torch.device | str | int | None) -> None:
+    """:func:`check_device` of ``nn.Module.cuda(device)``'s argument (None: the current CUDA device, an int: its
+    index)."""
+    check_device(torch.device("cuda") if device is None else torch.device("cuda", device) if isinstance(device, int)
+                 else device)  # fmt: skip
