@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -220,3 +222,16 @@ def test_construction_refuses_repeated_unit_names(model):
         FaceModel(**dict(fields, animation_names=tuple(names)))
     with pytest.raises(ValueError, match="facs_names must be distinct"):
         FaceModel(**dict(fields, facs_names=("AU2",) * model.facs_matrix.shape[0]))
+
+
+def test_construction_refuses_negative_landmark_weights(model):
+    """A landmark weight below zero puts the landmark off its triangle (``(1.5, -0.5, 0)`` sums to one and was taken);
+    FaceModel and load_mesh_model now share one rule (``check_landmark_weights``): non-negative, rows within 1e-2 of
+    one, the landmark named in the message."""
+    fields = {f.name: getattr(model, f.name) for f in dataclasses.fields(model)}
+    off = model.landmark_weights.clone()
+    off[5] = torch.tensor([1.5, -0.5, 0.0])
+    with pytest.raises(ValueError, match=r"must be non-negative .* got -0\.5 for landmark 5 \('jaw5: one third"):
+        FaceModel(**dict(fields, landmark_weights=off))
+    rounded = model.to(torch.bfloat16).to(torch.float32)  # rounded weights (sums of 1.002) still pass
+    assert rounded.landmark_weights.min() >= 0

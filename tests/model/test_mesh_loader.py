@@ -314,9 +314,9 @@ def test_landmark_weights_place_landmarks_between_vertices():
     torch.testing.assert_close(two.landmarks_3d(two.mean[None])[0, 0], expected)
     one = load_mesh_model(mesh, landmark_vertices=[3, 1], landmark_weights=[1.0, 1.0])
     assert one.landmark_vertices.tolist() == load_mesh_model(mesh, landmark_vertices=[3, 1]).landmark_vertices.tolist()
-    with pytest.raises(ValueError, match="rows that sum to one"):
+    with pytest.raises(ValueError, match="rows must sum to one"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[0.2, 0.3, 0.4]])
-    with pytest.raises(ValueError, match="rows that sum to one"):
+    with pytest.raises(ValueError, match="landmark_weights hold non-finite values"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[np.nan, 0.5, 0.5]])
     with pytest.raises(ValueError, match=r"landmark_vertices' shape \(1, 3\), got \(1, 2\)"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[0.5, 0.5]])
@@ -480,3 +480,21 @@ def test_68_landmarks_with_a_part_mirrored_warn_and_an_asymmetric_face_does_not(
         load_mesh_model(trimesh.Trimesh(v, c.faces.numpy(), process=False), landmark_vertices=idx, landmark_weights=w)
         if ICT_NPZ.exists():
             load_ict_face_model(ICT_NPZ, num_expressions=1, num_identities=1, area="narrow")
+
+
+def test_landmark_weights_follow_face_models_rule_and_are_scaled_to_sum_to_one():
+    """load_mesh_model wanted rows summing to one within 1e-6 and FaceModel within 1e-2 (a model cast to half and
+    back), and both took negative weights (a landmark off its triangle: ``(1.5, -0.5, 0)``). Now one rule,
+    FaceModel's ``check_landmark_weights``: non-negative, rows within 1e-2 of one; load_mesh_model scales each row
+    to sum to one exactly (a table of three decimals, 0.333 each, was refused), a row that does is kept to the
+    bit."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    with pytest.raises(ValueError, match=r"must be non-negative .* got -0\.5 for landmark 1 \('tip'\)"):
+        load_mesh_model(mesh, landmark_vertices=[[1, 2, 3], [0, 1, 2]], landmark_names=["base", "tip"],
+                        landmark_weights=[[0.2, 0.3, 0.5], [1.5, -0.5, 0.0]])  # fmt: skip
+    thirds = load_mesh_model(mesh, landmark_vertices=[[1, 2, 3], [0, 1, 1]], dtype=torch.float64,
+                             landmark_weights=[[0.333, 0.333, 0.333], [0.5, 0.5, 0.0]])  # fmt: skip
+    torch.testing.assert_close(thirds.landmark_weights[0], torch.full((3,), 1 / 3, dtype=torch.float64))
+    assert thirds.landmark_weights[1].tolist() == [0.5, 0.5, 0.0]
+    with pytest.raises(ValueError, match=r"rows must sum to one \(within 0\.01\), got 0\.98 for landmark 0"):
+        load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[0.3, 0.3, 0.38]])

@@ -101,6 +101,46 @@ def deform_vertices(
     return verts
 
 
+#: How far from one a row of landmark weights may sum (:func:`check_landmark_weights`): a model cast to half or
+#: bfloat16 and back (``.to(dtype)``) keeps its weights rounded (sums of 1.002), a table written with three
+#: decimals sums to 0.999; ``load_mesh_model`` scales each row it is given to sum to one exactly.
+LANDMARK_WEIGHT_SUM_TOLERANCE = 1e-2
+
+
+def check_landmark_weights(weights: Tensor, names: tuple[str, ...] | None = None) -> None:
+    """Refuse ``(K, J)`` landmark weights that do not place each landmark on the mesh's surface: weights that are not
+    finite, a negative one (a landmark is a point of a triangle or of its edge, barycentric weights in ``[0, 1]``:
+    a negative weight puts it off the triangle, in front of or behind the surface; ``(1.5, -0.5, 0)`` was taken), or
+    a row that does not sum to one within :data:`LANDMARK_WEIGHT_SUM_TOLERANCE` (a row of 0.9 moves its landmark a
+    tenth of the way to the head frame's origin). ``names`` (``K``) name the landmark in the message.
+
+    Example:
+        >>> check_landmark_weights(torch.tensor([[0.5, 0.5, 0.0], [1.5, -0.5, 0.0]]), ("a", "b"))
+        Traceback (most recent call last):
+            ...
+        ValueError: landmark_weights must be non-negative (barycentric in a triangle: a landmark on the surface), got -0.5 for landmark 1 ('b')
+    """
+    if not weights.numel():
+        return
+    w = weights.detach().to(torch.float64)
+    if not bool(torch.isfinite(w).all()):
+        raise ValueError("landmark_weights hold non-finite values (NaN or inf)")
+    rows = w.min(dim=1).values
+    k = int(rows.argmin())
+    if float(rows[k]) < 0:
+        named = f" ({names[k]!r})" if names is not None and k < len(names) else ""
+        raise ValueError(f"landmark_weights must be non-negative (barycentric in a triangle: a landmark on the "
+                         f"surface), got {float(rows[k]):.6g} for landmark {k}{named}")  # fmt: skip
+    off = (w.sum(dim=1) - 1.0).abs()
+    k = int(off.argmax())
+    if float(off[k]) > LANDMARK_WEIGHT_SUM_TOLERANCE:
+        named = f" ({names[k]!r})" if names is not None and k < len(names) else ""
+        sums = w.sum(dim=1)
+        raise ValueError(f"landmark_weights rows must sum to one (within {LANDMARK_WEIGHT_SUM_TOLERANCE:g}), got "
+                         f"{float(sums[k]):.6g} for landmark {k}{named} (sums in [{float(sums.min()):.6g}, "
+                         f"{float(sums.max()):.6g}])")  # fmt: skip
+
+
 def interpolate_landmarks(verts: Tensor, landmark_vertices: Tensor, landmark_weights: Tensor) -> Tensor:
     """Landmarks as weighted vertex combinations, ``l_k = sum_j w[k, j] * verts[idx[k, j]]``.
 
@@ -139,7 +179,8 @@ class FaceModel:
         animation_names: ``A`` names.
         animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient.
         landmark_vertices: ``(K, 3)`` int64 vertex indices of each landmark.
-        landmark_weights: ``(K, 3)`` weights, ``l_k = sum_j w[k, j] verts[idx[k, j]]``; rows sum to one.
+        landmark_weights: ``(K, 3)`` non-negative weights, ``l_k = sum_j w[k, j] verts[idx[k, j]]``; rows sum to
+            one (within 1e-2).
         landmark_names: ``K`` names (iBUG-68 order when ``K = 68``).
         facs_names: FACS action unit names, e.g. ``("AU2", "AU4", ...)``.
         facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.
@@ -147,7 +188,8 @@ class FaceModel:
 
     Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
     distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
-    and that the landmark weights' rows sum to one (within 1e-2), and raises ``ValueError`` (``TypeError`` for a
+    and that the landmark weights are non-negative with rows that sum to one (within 1e-2:
+    :func:`check_landmark_weights`), and raises ``ValueError`` (``TypeError`` for a
     field of the wrong type) otherwise.
 
     Example:
@@ -230,11 +272,7 @@ class FaceModel:
         if reversed_ranges:
             names = [self.animation_names[a] for a in reversed_ranges]
             raise ValueError(f"animation_ranges must be [lo, hi] with lo <= hi, reversed for {names}")
-        row_sums = self.landmark_weights.to(torch.float64).sum(dim=1)
-        # 1e-2: a model cast to half or bfloat16 and back (.to(dtype)) keeps its weights rounded (sums of 1.002)
-        if row_sums.numel() and float((row_sums - 1.0).abs().max()) > 1e-2:
-            raise ValueError(f"landmark_weights rows must sum to one, got sums in [{float(row_sums.min()):.4g}, "
-                             f"{float(row_sums.max()):.4g}]")  # fmt: skip
+        check_landmark_weights(self.landmark_weights, self.landmark_names)
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
             got = (int(self.faces.min()), int(self.faces.max()))
             raise ValueError(f"faces index vertices outside [0, {num_v}): min/max {got}")

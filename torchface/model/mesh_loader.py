@@ -23,7 +23,7 @@ import torch
 
 from torchface._device import check_device
 from torchface._names import name_tuple
-from torchface.model.face_model import FaceModel
+from torchface.model.face_model import FaceModel, check_landmark_weights
 
 __all__ = ["load_mesh_model", "load_ict_face_model", "ICT_TO_HEAD", "ICT_MM_PER_UNIT", "ICT_AREAS", "ARKIT_TO_FACS"]
 
@@ -258,9 +258,10 @@ def load_mesh_model(
             fits the first frame's pose to them); a face detector's, and ``torchface track``'s, are the 68 iBUG
             points in their order.
         landmark_names: ``K`` names (default ``"landmark{k}"``).
-        landmark_weights: ``(K, J)`` weights of ``(K, J)`` ``landmark_vertices``, ``l_k = sum_j w[k, j]
-            verts[idx[k, j]]`` (barycentric coordinates in a triangle, as CANDIDE-3's table holds them; rows sum
-            to one within 1e-6), or ``None``: each landmark on its vertex.
+        landmark_weights: ``(K, J)`` non-negative weights of ``(K, J)`` ``landmark_vertices``, ``l_k = sum_j w[k, j]
+            verts[idx[k, j]]`` (barycentric coordinates in a triangle, as CANDIDE-3's table holds them; rows that
+            sum to one within 1e-2, a table of three decimals, are scaled to sum to one exactly: the rule of
+            :func:`~torchface.model.face_model.check_landmark_weights`), or ``None``: each landmark on its vertex.
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
@@ -285,7 +286,7 @@ def load_mesh_model(
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
             (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
-            finite or a row does not sum to one, the file holds no triangles, they are not wound consistently or
+            finite, one is negative or a row does not sum to one within 1e-2, the file holds no triangles, they are not wound consistently or
             the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
             positive and finite, a ``facs_links`` name is not a blendshape name, or ``device`` is not a device this
             machine has (the message lists those it has).
@@ -386,10 +387,12 @@ def load_mesh_model(
             lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
             if lm_w.shape != lm_idx.shape:
                 raise ValueError(f"landmark_weights must have landmark_vertices' shape {given}, got {weights_given}")
-            sums = lm_w.sum(axis=1)
-            if not np.isfinite(lm_w).all() or (sums.size and np.abs(sums - 1.0).max() > 1e-6):
-                raise ValueError("landmark_weights must be finite with rows that sum to one (within 1e-6), got sums "
-                                 f"in [{sums.min():.6g}, {sums.max():.6g}]")  # fmt: skip
+            # FaceModel's rule (non-negative, rows summing to one within 1e-2; it was within 1e-6 here and negative
+            # weights passed both), then each row scaled to sum to one exactly (one that does is kept to the bit)
+            names = _as_names(landmark_names, lm_idx.shape[0], "landmark_names", "landmark")
+            check_landmark_weights(torch.from_numpy(lm_w), names)
+            if lm_w.size:
+                lm_w = lm_w / lm_w.sum(axis=1, keepdims=True)
         # FaceModel holds three (vertex, weight) pairs a landmark: the first vertex again, at weight 0, pads them
         pad = 3 - lm_idx.shape[1]
         lm_idx = np.concatenate([lm_idx, np.repeat(lm_idx[:, :1], pad, axis=1)], axis=1)
