@@ -1609,3 +1609,17 @@ def test_a_stream_whose_start_failed_fails_every_bare_step(model, two_streams, s
         torch.testing.assert_close(res.rotation[1:], expected.rotation, rtol=0, atol=1e-5)
         torch.testing.assert_close(res.translation[1:], expected.translation, rtol=0, atol=1e-3)
         assert torch.equal(res.status[1:], expected.status)
+
+
+def test_face_width_px_names_a_translation_of_the_wrong_shape():
+    """``face_width_px(model, translation (3,), cam)``, one estimate's translation without its batch dimension,
+    raised "too many indices for tensor of dimension 1" from inside: a ValueError naming the shape now."""
+    from torchface.tracker import face_width_px
+
+    model, cam = load_candide3(), Intrinsics.default(320, 240)
+    one = torch.tensor([0.0, 0.0, 3000.0])
+    with pytest.raises(ValueError, match=r"translation must be \(B, 3\) .* got \(3,\): one estimate's, translation"):
+        face_width_px(model, one, cam)
+    with pytest.raises(ValueError, match=r"translation must be \(B, 3\) head origins in mm, got list"):
+        face_width_px(model, [[0.0, 0.0, 3000.0]], cam)  # type: ignore[arg-type]
+    assert face_width_px(model, one[None], cam).shape == (1,)

@@ -346,6 +346,11 @@ def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics)
         >>> round(float(w), 1)
         13.4
     """
+    if not isinstance(translation, Tensor) or translation.dim() != 2 or translation.shape[1] != 3:
+        # (a (3,) translation raised "too many indices for tensor of dimension 1" from inside)
+        got = tuple(translation.shape) if isinstance(translation, Tensor) else type(translation).__name__
+        hint = ": one estimate's, translation[None]" if got == (3,) else ""
+        raise ValueError(f"translation must be (B, 3) head origins in mm, got {got}{hint}")
     z = translation[:, 2]
     ahead = z > NEAR_PLANE_MM
     width = intrinsics.fx * _landmark_width_mm(model) / torch.where(ahead, z, torch.ones_like(z))
