@@ -59,7 +59,7 @@ def test_a_device_this_machine_lacks_is_one_value_error_naming_it_and_those_it_h
 
 @pytest.mark.skipif(not NO_CUDA, reason="this machine has CUDA")
 @pytest.mark.parametrize("module", ["FaceTracker", "NormalisedFace"])
-@pytest.mark.parametrize("index", [None, 0, "cuda:1"])
+@pytest.mark.parametrize("index", [None, 0, torch.device("cuda", 1)])
 def test_cuda_without_a_gpu_is_the_same_value_error(module, index):
     made = FaceTracker(refine_first=None) if module == "FaceTracker" else NormalisedFace(load_candide3(), size=32)
     with pytest.raises(ValueError, match=r"^device 'cuda(:\d)?' is not available: .*devices here: cpu"):

@@ -763,7 +763,7 @@ class NormalisedFace(nn.Module):
         check_to_device(*args, **kwargs)
         return super().to(*args, **kwargs)
 
-    def cuda(self, device: torch.device | str | int | None = None) -> "NormalisedFace":
+    def cuda(self, device: int | torch.device | None = None) -> "NormalisedFace":
         """``nn.Module.cuda``; without that GPU a ``ValueError`` naming the devices this machine has."""
         check_cuda_device(device)
         return super().cuda(device)

@@ -151,7 +151,7 @@ class FaceTracker(nn.Module):
             raise TypeError(f"FaceTracker.to only accepts floating point dtypes, got {dtype}")
         return super().to(*args, **kwargs)
 
-    def cuda(self, device: torch.device | str | int | None = None) -> "FaceTracker":
+    def cuda(self, device: int | torch.device | None = None) -> "FaceTracker":
         """``nn.Module.cuda``, with a machine without that GPU a ``ValueError`` naming the devices it has."""
         check_cuda_device(device)
         return super().cuda(device)
