@@ -1623,3 +1623,16 @@ def test_face_width_px_names_a_translation_of_the_wrong_shape():
     with pytest.raises(ValueError, match=r"translation must be \(B, 3\) head origins in mm, got list"):
         face_width_px(model, [[0.0, 0.0, 3000.0]], cam)  # type: ignore[arg-type]
     assert face_width_px(model, one[None], cam).shape == (1,)
+
+
+def test_frames_on_another_value_scale_are_told_what_they_look_like(model, two_streams):
+    """The hint of a frame out of [0, 1] fits its values: 0 to 1.8 (a brightness augmentation past 1) was told
+    "0-255 values? divide by 255", which makes it black; mean/std-normalised frames (-2 to 2) were told nothing."""
+    frames, gts = two_streams
+    lm, cam, first = landmarks_of(gts), Intrinsics.default(W, H), frames[:, 0]
+    with pytest.raises(ValueError, match=r"to 1\.[0-9]+ \(brightened past 1\? frames\.clamp\(0, 1\)\)$"):
+        initialise(model, BASE, first * 1.8, lm, cam)
+    with pytest.raises(ValueError, match=r"values from -2.* \(normalised with a mean and standard deviation\? "):
+        initialise(model, BASE, (first - 0.5) / 0.25, lm, cam)
+    with pytest.raises(ValueError, match=r"\(0-255 values\? divide by 255\)$"):
+        initialise(model, BASE, first * 255.0, lm, cam)

@@ -841,9 +841,16 @@ def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
             pos, neg = (math.inf, -math.inf) if row_stride == 1 else (0.5, 0.5)
             lo, hi = (float(v) for v in torch.aminmax(seen.nan_to_num(nan=0.5, posinf=pos, neginf=neg)))
         if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
-            hint = " (0-255 values? divide by 255)" if hi > FRAME_VALUE_RANGE[1] and lo >= FRAME_VALUE_RANGE[0] else ""
+            # (frames of 0 to 1.8, an augmentation's brightness past 1, were told "0-255 values? divide by 255", and
+            # mean/std-normalised ones, -2 to 2, nothing)
             if not (math.isfinite(lo) and math.isfinite(hi)):  # (an infinite pixel was "0-255 values? divide by 255")
                 hint = " (infinite pixels: mark missing ones NaN)"
+            elif lo < FRAME_VALUE_RANGE[0]:
+                hint = " (normalised with a mean and standard deviation? pass the frames in [0, 1], before that)"
+            elif hi > 2.0:
+                hint = " (0-255 values? divide by 255)"
+            else:
+                hint = " (brightened past 1? frames.clamp(0, 1))"
             raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
