@@ -104,6 +104,11 @@ def test_config_defaults_and_validation():
     for step in (float("inf"), float("nan")):
         with pytest.raises(ValueError, match="search_step_px"):
             TemplateConfig(search_step_px=step)
+    # NaN margins passed "< 0" (every comparison with NaN is False: the tracker never changed entry, or never
+    # aligned against the first frame's near it)
+    for name in ("switch_margin_deg", "reference_radius_deg", "adopt_min_angle_deg"):
+        with pytest.raises(ValueError, match=r"switch_margin_deg, reference_radius_deg and adopt_min_angle_deg must"):
+            TemplateConfig(**{name: float("nan")})
 
 
 def test_pose_bins_known_answers():

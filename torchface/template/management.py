@@ -368,7 +368,8 @@ class TemplateConfig:
         if len(turn) != 2 or not all(math.isfinite(v) and v >= 0 for v in turn):
             raise ValueError(f"plausible_turn_deg must be two finite values >= 0, got {self.plausible_turn_deg}")
         object.__setattr__(self, "plausible_turn_deg", turn)
-        if self.switch_margin_deg < 0 or self.reference_radius_deg < 0 or not self.adopt_min_angle_deg >= 0:
+        # (not >= 0: NaN passed "< 0", and every comparison with it is False)
+        if not (self.switch_margin_deg >= 0 and self.reference_radius_deg >= 0 and self.adopt_min_angle_deg >= 0):
             raise ValueError(
                 "switch_margin_deg, reference_radius_deg and adopt_min_angle_deg must be >= 0, got "
                 f"{self.switch_margin_deg}, {self.reference_radius_deg}, {self.adopt_min_angle_deg}"

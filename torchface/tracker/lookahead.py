@@ -174,7 +174,7 @@ class LookaheadConfig:
             )
         if not self.iterations:
             raise ValueError(f"iterations must be a non-empty tuple of ints >= 0, got {self.iterations!r}")
-        if self.gradient_threshold < 0:
+        if not self.gradient_threshold >= 0:  # (NaN passed "< 0": no point passes a NaN threshold)
             raise ValueError(f"gradient_threshold must be >= 0, got {self.gradient_threshold}")
         units = self.shape_units
         if units is not None and len(set(units)) != len(units):
