@@ -200,3 +200,21 @@ def test_real_settings_keep_ints_and_the_default_reprs():
     text = repr(FaceTrackingConfig(face_margin=0, focal=300))
     assert "face_margin=0, " in text and "focal=300, " in text
     assert FitConfig(held_shape_precision=np.float32(256.0)).held_shape_precision == 256.0
+
+
+def test_settings_that_hold_settings_or_names_refuse_other_types_naming_them():
+    """``JobConfig`` took anything as its ``tracker``, ``lookahead``, ``detector`` and ``device``: ``lookahead="yes"``
+    was an AttributeError ("'str' object has no attribute 'max_frames'") once its videos were opened; the other
+    settings already refused a nested setting of another type when made. Now every one does, naming the field."""
+    checked = 0
+    for cls, base in _settings().items():
+        made = cls(**base)
+        for f in dataclasses.fields(cls):
+            value = getattr(made, f.name)
+            if not (dataclasses.is_dataclass(value) or f.name in ("lookahead", "detector", "device")):
+                continue
+            for bad in ({}, 3.5):
+                with pytest.raises(TypeError, match=rf"^{f.name} must be"):
+                    cls(**{**base, f.name: bad})
+            checked += 1
+    assert checked >= 8

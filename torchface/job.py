@@ -219,6 +219,16 @@ class JobConfig:
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
             raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
         check_refine_first(self.refine_first)
+        # (the types of the settings that hold settings or names: a lookahead="yes" was an AttributeError "'str'
+        # object has no attribute 'max_frames'" once the videos were opened, a tracker dict a TypeError there)
+        if not isinstance(self.tracker, TrackerConfig):
+            raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
+        if self.lookahead is not None and not isinstance(self.lookahead, LookaheadConfig):
+            raise TypeError(f"lookahead must be a LookaheadConfig or None, got {type(self.lookahead).__name__}")
+        if self.detector is not None and not isinstance(self.detector, str):
+            raise TypeError(f"detector must be a detector name (str) or None, got {type(self.detector).__name__}")
+        if not isinstance(self.device, (str, torch.device)):
+            raise TypeError(f"device must be a device name (str) or a torch.device, got {type(self.device).__name__}")
         object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))
         object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
