@@ -38,7 +38,7 @@ from torchface.tracker import (
     initialise_managed,
     track_step,
 )
-from torchface.tracker.step import TrackSolver, crop_windows, gray_pyramid
+from torchface.tracker.step import TrackSolver, crop_windows, gray_pyramid, level_intrinsics
 
 W, H = 320, 240
 T = 6
@@ -1636,3 +1636,21 @@ def test_frames_on_another_value_scale_are_told_what_they_look_like(model, two_s
         initialise(model, BASE, (first - 0.5) / 0.25, lm, cam)
     with pytest.raises(ValueError, match=r"\(0-255 values\? divide by 255\)$"):
         initialise(model, BASE, first * 255.0, lm, cam)
+
+
+def test_gray_pyramid_and_level_intrinsics_refuse_what_they_cannot_mean():
+    """``gray_pyramid`` of uint8 frames gave a uint8 finest level and float 0-255 coarser ones, and ``num_levels``
+    0 or -3 one level; ``level_intrinsics`` of level -1 doubled the focal length. Each is a named error now."""
+    frames = torch.rand(1, 3, 32, 32)
+    with pytest.raises(ValueError, match=r"frames must be \(B, C, H, W\) float .* torch\.uint8 \(uint8 frames: pass"):
+        gray_pyramid((frames * 255).to(torch.uint8), 2)
+    for bad in (0, -3):
+        with pytest.raises(ValueError, match=rf"num_levels must be an int >= 1, got {bad}"):
+            gray_pyramid(frames, bad)
+    assert len(gray_pyramid(frames, 3)) == 3
+    cam = Intrinsics.default(32, 32)
+    with pytest.raises(ValueError, match="level must be an int >= 0, got -1"):
+        level_intrinsics(cam, -1, 32, 32)
+    with pytest.raises(TypeError, match="level must be an int >= 0, got float 1.5"):
+        level_intrinsics(cam, 1.5, 16, 16)  # type: ignore[arg-type]
+    assert level_intrinsics(cam, 1, 16, 16).fx == cam.fx / 2

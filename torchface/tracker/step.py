@@ -649,7 +649,9 @@ def prior_mean_vector(config: TrackerConfig, state: TrackerState, layout: ParamL
 
 
 def level_intrinsics(intrinsics: Intrinsics, level: int, height: int, width: int) -> Intrinsics:
-    """Camera of pyramid level ``level`` (each level halves the previous with pixel-centre alignment)."""
+    """Camera of pyramid level ``level`` (``>= 0``, 0 the finest; each level halves the previous with pixel-centre
+    alignment). A negative level (it doubled the focal length) or a fractional one is refused."""
+    check_int(level, "level", 0)
     s = 0.5**level
     return Intrinsics(
         width, height, intrinsics.fx * s, intrinsics.fy * s, (intrinsics.cx + 0.5) * s - 0.5, (intrinsics.cy + 0.5) * s - 0.5
@@ -657,7 +659,14 @@ def level_intrinsics(intrinsics: Intrinsics, level: int, height: int, width: int
 
 
 def gray_pyramid(frames: Tensor, num_levels: int) -> list[Tensor]:
-    """``(B, C, H, W)`` frames -> gray levels, finest first, each ``(B, 1, H_l, W_l)`` (:func:`pyr_down`)."""
+    """``(B, C, H, W)`` float frames -> ``num_levels`` (``>= 1``) gray levels, finest first, each
+    ``(B, 1, H_l, W_l)`` (:func:`pyr_down`). Integer frames are refused (uint8 ones gave a uint8 finest level and
+    float 0-255 coarser ones), as is a ``num_levels`` below 1 (0 and -3 gave one level)."""
+    check_int(num_levels, "num_levels", 1)
+    if not isinstance(frames, Tensor) or frames.dim() != 4 or not frames.is_floating_point():
+        got = f"{tuple(frames.shape)} {frames.dtype}" if isinstance(frames, Tensor) else type(frames).__name__
+        hint = _frame_hint(frames) if isinstance(frames, Tensor) else ""
+        raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {got}{hint}")
     gray = to_gray(frames)
     levels = [gray]
     for _ in range(num_levels - 1):
