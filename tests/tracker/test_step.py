@@ -706,6 +706,9 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
         initialise(model, BASE, frames[:1, 0], lm[0], cam)
     with pytest.raises(ValueError, match=r"got \(2, 2, 68\) \(x, y rows: landmarks_px.transpose\(1, 2\)\)$"):
         initialise(model, BASE, frames[:, 0], lm.transpose(1, 2), cam)
+    xyz = torch.cat([lm, torch.zeros_like(lm[..., :1])], -1)  # a 3D detector's (x, y, z) points: was told no more
+    with pytest.raises(ValueError, match=r"got \(2, 68, 3\) \(x, y, z points, .*: landmarks_px\[\.\.\., :2\]\)$"):
+        initialise(model, BASE, frames[:, 0], xyz, cam)
     # Each of these used to be accepted, then fail later (mid-stream at the online start's re-anchoring, or
     # deep inside torch) with a message that did not say what was wrong.
     with pytest.raises(ValueError, match="at least one stream"):

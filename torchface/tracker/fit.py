@@ -377,7 +377,9 @@ def _check_landmarks(
     if landmarks_px.dim() != 3 or landmarks_px.shape[1:] != (k, 2):
         got = tuple(landmarks_px.shape)
         hint = (": one sample's, landmarks_px[None]" if got == (k, 2)
-                else " (x, y rows: landmarks_px.transpose(1, 2))" if got[1:] == (2, k) else "")  # fmt: skip
+                else " (x, y rows: landmarks_px.transpose(1, 2))" if got[1:] == (2, k)
+                else " (x, y, z points, as 3D landmark detectors give them: landmarks_px[..., :2])"
+                if got[1:] == (k, 3) else "")  # fmt: skip
         raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}{hint}")
     B = landmarks_px.shape[0]
     if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError

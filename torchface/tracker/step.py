@@ -918,7 +918,9 @@ def check_initialise_inputs(
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
         # ((B, 2, K): x and y rows, as some detectors give them)
-        hint = " (x, y rows: landmarks_px.transpose(1, 2))" if tuple(landmarks_px.shape[1:]) == (2, K) else ""
+        hint = (" (x, y rows: landmarks_px.transpose(1, 2))" if tuple(landmarks_px.shape[1:]) == (2, K)
+                else " (x, y, z points, as 3D landmark detectors give them: landmarks_px[..., :2])"
+                if tuple(landmarks_px.shape[1:]) == (K, 3) else "")  # fmt: skip
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
                          f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
