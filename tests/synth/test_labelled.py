@@ -118,3 +118,26 @@ def test_clip_spec_and_render_errors():
     spec = ClipSpec(2, 64, 64, 300.0, (0, 0, 0), (0, 0, 0), anim[:3], 0.4, (0, 0, -1), 0.5)
     with pytest.raises(ValueError, match="A = 11"):
         render_clip(s, spec)
+
+
+def test_clip_spec_refuses_values_that_render_nan_or_nothing():
+    """A NaN ambient rendered NaN frames, a NaN pose a clip whose labels were NaN, and a zero light direction or
+    an infinite distance were taken: a ValueError naming the field now."""
+    anim = torch.zeros(11)
+    ok = dict(num_frames=2, width=64, height=64, distance_mm=300.0, ypr_deg=(0, 0, 0), translation_mm=(0, 0, 0),
+              anim=anim, ambient=0.4, light_direction=(0, 0, -1), light_intensity=0.5)  # fmt: skip
+    nan = float("nan")
+    for name, bad, match in [
+        ("ambient", nan, "ambient must be finite and >= 0, got nan"),
+        ("light_intensity", -1.0, "light_intensity must be finite and >= 0"),
+        ("distance_mm", float("inf"), "distance_mm must be positive and finite"),
+        ("ypr_deg", (nan, 0.0, 0.0), r"ypr_deg must be three finite numbers"),
+        ("translation_mm", (0.0, 0.0), r"translation_mm must be three finite numbers"),
+        ("light_direction", (0, 0, 0), "light_direction must be a non-zero direction"),
+        ("anim", torch.full((11,), nan), "anim must be finite"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            ClipSpec(**{**ok, name: bad})
+    with pytest.raises(TypeError, match="ypr_deg must be"):
+        ClipSpec(**{**ok, "ypr_deg": 30.0})
+    ClipSpec(**ok)  # (ints taken, as before)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import math
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
@@ -265,8 +266,24 @@ class ClipSpec:
             raise ValueError(f"frames must be at least 16x16, got {self.width}x{self.height}")
         if not isinstance(self.anim, Tensor) or self.anim.dim() != 1:
             raise ValueError(f"anim must be a (A,) tensor, got {getattr(self.anim, 'shape', type(self.anim).__name__)}")
-        if not self.distance_mm > 0:
-            raise ValueError(f"distance_mm must be positive, got {self.distance_mm}")
+        if not (self.distance_mm > 0 and math.isfinite(self.distance_mm)):
+            raise ValueError(f"distance_mm must be positive and finite, got {self.distance_mm}")
+        # (NaN was taken: a NaN ambient rendered NaN frames, a NaN pose a clip whose labels were NaN)
+        for name in ("ambient", "light_intensity"):
+            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} must be finite and >= 0, got {getattr(self, name)}")
+        for name in ("ypr_deg", "translation_mm", "light_direction"):
+            value = getattr(self, name)
+            try:
+                triple = tuple(float(check_real(v, name)) for v in value)
+            except TypeError:
+                raise TypeError(f"{name} must be three numbers, got {value!r}") from None
+            if len(triple) != 3 or not all(math.isfinite(v) for v in triple):
+                raise ValueError(f"{name} must be three finite numbers, got {value!r}")
+        if not any(float(v) != 0 for v in self.light_direction):
+            raise ValueError(f"light_direction must be a non-zero direction, got {self.light_direction!r}")
+        if not bool(torch.isfinite(self.anim).all()):
+            raise ValueError("anim must be finite, got NaN or infinite values")
 
 
 #: Frame 0's light: ambient 0.45 plus a key light from the upper left (as the standard scenarios).
