@@ -119,7 +119,7 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.model.model_file import face_model_digest, load_face_model
 from torchface.normalise.face import NormalisedFace
-from torchface.tracker.fit import LandmarkFit, fit_landmarks
+from torchface.tracker.fit import LandmarkFit, check_model_landmarks, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
@@ -1026,8 +1026,8 @@ def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str,
     }  # fmt: skip
 
 
-#: :func:`~torchface.model.face_model_digest` of each model a job tracks with (the same object all through the job).
-_digest = lru_cache(maxsize=4)(face_model_digest)
+#: :func:`~torchface.model.face_model_digest` of the model a job tracks with (one object all through the job).
+_digest = lru_cache(maxsize=1)(face_model_digest)
 
 
 @lru_cache(maxsize=1)
@@ -1714,11 +1714,17 @@ def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
 
 
 def _job_model(config: JobConfig) -> FaceModel:
-    """The face model of ``config`` (on the CPU): CANDIDE-3, or the file ``config.model``, refused with a detector
-    where its landmarks are not the detector's 68 iBUG points."""
+    """The face model of ``config`` (on the CPU): CANDIDE-3, or the file ``config.model``, refused where its
+    landmarks cannot start a track (:func:`~torchface.tracker.fit.check_model_landmarks`: fewer than four, or all on
+    the midline; the first frame's fit refused it, after the outputs of earlier runs were removed) or, with a
+    detector, are not the detector's 68 iBUG points."""
     if config.model is None:
         return load_candide3()
     model = load_face_model(config.model)
+    try:
+        check_model_landmarks(model)
+    except ValueError as exc:
+        raise InputError(f"{os.fspath(config.model)}: {exc}") from None
     if config.detector is not None and model.num_landmarks != NUM_LANDMARKS:
         raise InputError(
             f"{os.fspath(config.model)}: the face model {model.name!r} has {model.num_landmarks} landmarks, and the "

@@ -137,3 +137,17 @@ def test_what_a_model_cannot_track_is_refused_before_anything_is_written(clip, t
     assert not out.exists() or not list(out.iterdir())
     with pytest.raises(TypeError, match="model must be a path"):
         JobConfig(out, model=load_candide3())  # type: ignore[arg-type]
+
+
+def test_a_model_whose_landmarks_cannot_start_a_track_is_refused_up_front(clip, tmp_path):
+    """Three landmarks (the first frame's pose needs four): refused naming the model file, before anything is
+    written (the landmarks file's check said only "3 of the 3 landmarks given")."""
+    video, root = clip
+    c = load_candide3()
+    save_face_model(replace(c, landmark_vertices=c.landmark_vertices[:3], landmark_weights=c.landmark_weights[:3],
+                            landmark_names=c.landmark_names[:3]), tmp_path / "three.npz")  # fmt: skip
+    np.savetxt(tmp_path / "lm3.csv", np.loadtxt(root / "lm68.csv", delimiter=",")[:3], delimiter=",")
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"three.npz: the model 'CANDIDE-3 v3.1.6' has 3 landmarks"):
+        track_videos([video], JobConfig(out, landmarks=(tmp_path / "lm3.csv",), model=tmp_path / "three.npz"))
+    assert not out.exists()
