@@ -26,6 +26,7 @@ import os
 import zipfile
 from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -83,7 +84,7 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
     """
     if not isinstance(model, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
-    arrays: dict[str, np.ndarray] = {"format": np.array(FORMAT), "format_version": np.array(FORMAT_VERSION)}
+    arrays: dict[str, Any] = {"format": np.array(FORMAT), "format_version": np.array(FORMAT_VERSION)}  # (Any: savez)
     for f in fields(model):
         value = getattr(model, f.name)
         if isinstance(value, torch.Tensor):
