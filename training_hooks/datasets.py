@@ -3,8 +3,8 @@
 :class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
 landmarks (:data:`LandmarkSource`; the model's ``K`` with :attr:`FaceTrackingConfig.model
-<training_hooks.transforms.FaceTrackingConfig.model>`: NaN rows for missing points, as ``torchface track`` takes them; or a
-:data:`Detector`'s, from the first frame where it finds a face, below;
+<training_hooks.transforms.FaceTrackingConfig.model>`: NaN rows for missing points, as ``torchface track`` takes
+them; or a :data:`Detector`'s, from the first frame where it finds a face, below;
 :func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
