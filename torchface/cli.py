@@ -204,7 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--out", type=_path, required=True, help="output folder")
     track.add_argument(
         "--landmarks", type=_path, action="append", default=None,
-        help="68 iBUG landmarks of the first frame (CSV, iBUG/300-W .pts, NPY, JSON (also a torchface .json "
+        help="68 iBUG landmarks of the first frame (with --model, the model's, in its order) (CSV, iBUG/300-W .pts, "
+        "NPY, JSON (also a torchface .json "
         "sidecar: the landmarks that run started from), or OpenFace's per-frame CSV: its "
         "first row; a missing point as empty cells or NaN, at least 4 given); give it once per video, in order",
     )  # fmt: skip
