@@ -204,11 +204,17 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--out", type=_path, required=True, help="output folder")
     track.add_argument(
         "--landmarks", type=_path, action="append", default=None,
-        help="68 iBUG landmarks of the first frame (CSV, iBUG/300-W .pts, NPY, JSON (also a torchface .json "
+        help="68 iBUG landmarks of the first frame (with --model, the model's, in its order) (CSV, iBUG/300-W .pts, "
+        "NPY, JSON (also a torchface .json "
         "sidecar: the landmarks that run started from), or OpenFace's per-frame CSV: its "
         "first row; a missing point as empty cells or NaN, at least 4 given); give it once per video, in order",
     )  # fmt: skip
     track.add_argument("--detector", default=None, help="detector for initialisation and re-initialisation (dlib)")
+    track.add_argument(
+        "--model", type=_path, default=None, metavar="FILE",
+        help="face model file to track with (torchface.model.save_face_model writes one; default: CANDIDE-3); "
+        "--landmarks then give its landmarks, in its order, and --detector needs a model of the 68 iBUG points",
+    )  # fmt: skip
     track.add_argument("--focal", type=float, default=None, help="focal length in pixels (default max(W, H))")
     track.add_argument("--device", default="cpu", help="torch device (default cpu)")
     track.add_argument("--resume", action="store_true", help="continue after the last complete frame of a previous run")
@@ -325,7 +331,7 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
 
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
-    online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0,
+    online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None,
 ) -> int:
     from torchface.job import JobConfig, VideosStopped, track_videos
     from torchface.template.management import TemplateConfig
@@ -342,7 +348,7 @@ def _run_track(
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
-        refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker,
+        refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker, model=model,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = None
@@ -523,7 +529,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
                           not args.no_online_refine, args.max_batch, args.restart_after_unmatched,
-                          args.motion_prediction)  # fmt: skip
+                          args.motion_prediction, args.model)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

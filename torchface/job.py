@@ -93,7 +93,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
-from functools import partial
+from functools import lru_cache, partial
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -110,7 +110,7 @@ from torchface.geometry._checks import check_bool, check_int, check_optional_rea
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError, dangling_link
-from torchface.io.landmarks import check_landmarks, read_landmarks
+from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
 from torchface.io.table import (
     POSE_COLUMNS, ROTATION_COLUMNS, TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns,
@@ -118,8 +118,9 @@ from torchface.io.table import (
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
+from torchface.model.model_file import face_model_digest, load_face_model
 from torchface.normalise.face import NormalisedFace
-from torchface.tracker.fit import LandmarkFit, fit_landmarks
+from torchface.tracker.fit import LandmarkFit, check_model_landmarks, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
@@ -155,8 +156,9 @@ class JobConfig:
 
     Attributes:
         out_dir: output folder (created if missing); a ``str`` or any ``os.PathLike``, as the paths below.
-        landmarks: one landmarks file per video (68 iBUG points of its first frame), or empty to use the
-            detector; a sequence even for one video (a single path raises TypeError).
+        landmarks: one landmarks file per video (68 iBUG points of its first frame; with ``model``, that model's
+            landmarks, in its order: :func:`torchface.io.read_landmarks`'s ``count``), or empty to use the detector;
+            a sequence even for one video (a single path raises TypeError).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given (on the first
             frame, and each next one until it finds a face: the video is tracked from there), to re-initialise
             the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames,
@@ -197,6 +199,13 @@ class JobConfig:
             after the re-anchoring frame, whose row holds the estimate made before the re-anchoring: the record keeps
             the refined parameters the run went on from, 0.08 mm and 0.2 degrees off without them); one not yet
             re-anchored is tracked on without the online start.
+        model: a face model file (:func:`torchface.model.save_face_model` writes one; loaded in float32 with
+            :func:`torchface.model.load_face_model`'s checks before any input is opened) to track with, or None for
+            CANDIDE-3 (:func:`torchface.model.load_candide3`). The CSV's animation and FACS columns are the model's
+            (:func:`torchface.io.track_columns`), the sidecar's ``model`` names it (``name``, ``file``, ``sha256``:
+            :func:`torchface.model.face_model_digest`, and its sizes), and a resume with another model is refused. A
+            detector gives the 68 iBUG points: with ``detector`` a model of another landmark count is refused (give
+            landmarks files of its own points).
     """
 
     out_dir: str | os.PathLike[str]
@@ -214,8 +223,11 @@ class JobConfig:
     lookahead: LookaheadConfig | None = None
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
     max_batch: int = 128
+    model: str | os.PathLike[str] | None = None
 
     def __post_init__(self) -> None:
+        if self.model is not None and not isinstance(self.model, (str, os.PathLike)):
+            raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
             raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
         check_refine_first(self.refine_first)
@@ -985,11 +997,12 @@ def _record_path(csv: Path) -> Path:
     return csv.with_name(csv.stem + ".record.partial")
 
 
-def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
+def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
     """What a video's rows depend on besides its frames' content: the input file's identity (size and modification
-    time; an image folder's count and newest file) and its first-frame landmarks, as text, and every setting that
-    changes the tracking, as JSON values (:func:`_as_json`). A resumed run must agree on all of them
-    (:func:`_read_record`, :func:`_setting_differences`)."""
+    time; an image folder's count and newest file) and its first-frame landmarks, as text, every setting that
+    changes the tracking, as JSON values (:func:`_as_json`), and ``model`` where it is not CANDIDE-3
+    (:func:`_model_setting`). A resumed run must agree on all of them (:func:`_read_record`,
+    :func:`_setting_differences`)."""
     path = Path(stream.reader.info.path)
     if path.is_dir():
         stats = [f.stat() for f in image_files(path)]
@@ -1003,8 +1016,30 @@ def _settings(config: JobConfig, stream: _Stream) -> dict[str, object]:
     late = {"first face at frame": stream.start} if stream.start else {}
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16], **late,
-        **_as_json(_setting_values(config)),
+        **_as_json(_setting_values(config)), **_model_setting(model),
     }  # fmt: skip
+
+
+#: :func:`~torchface.model.face_model_digest` of the model a job tracks with (one object all through the job).
+_digest = lru_cache(maxsize=1)(face_model_digest)
+
+
+@lru_cache(maxsize=1)
+def _candide_digest() -> str:
+    """The digest of :func:`load_candide3`'s model, what every job tracked with before ``JobConfig.model``."""
+    return face_model_digest(load_candide3())
+
+
+def _model_label(model: FaceModel) -> str:
+    """How a record and a message name ``model``: its name and the start of its digest."""
+    return f"{model.name} (sha256 {_digest(model)[:16]})"
+
+
+def _model_setting(model: FaceModel) -> dict[str, str]:
+    """The ``--model`` entry of :func:`_settings`: the model's name and digest (:func:`_model_label`); none for
+    CANDIDE-3, given or not (records of earlier versions, made with it, have none; :func:`_read_record` refuses a
+    record with the entry resumed without it)."""
+    return {} if _digest(model) == _candide_digest() else {"--model": _model_label(model)}
 
 
 def _setting_values(config: JobConfig) -> dict[str, object]:
@@ -1115,7 +1150,7 @@ def _said_difference(name: str, then: object, now: object) -> str:
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal)
-    unset = "default" if name == "--focal" else "none"
+    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)"}.get(name, "none")
     return f"{name} {unset if then is None else then} then, {unset if now is None else now} now"
 
 
@@ -1150,7 +1185,9 @@ def _first_face(s: _Stream) -> dict | None:
     return {"frame": s.start, "landmarks": np.asarray(s.landmarks, dtype=np.float64).tolist()}
 
 
-def _recorded_first_face(config: JobConfig, reader: FrameReader, name: str) -> tuple[int, np.ndarray] | None:
+def _recorded_first_face(
+    config: JobConfig, reader: FrameReader, name: str, model: FaceModel
+) -> tuple[int, np.ndarray] | None:
     """``(frame, (68, 2) landmarks)``: where the interrupted run whose record (:func:`_write_record`) is beside video
     ``name``'s partial CSV found the first face, for a resumed run to start there without asking the detector about
     the frames before it again (a minute of title frames at 30 frames/s: 1800 calls); None where the record does not
@@ -1170,7 +1207,7 @@ def _recorded_first_face(config: JobConfig, reader: FrameReader, name: str) -> t
     if not np.isfinite(points).all() or Path(made_from).resolve() != Path(reader.info.path).resolve():
         return None
     found = _Stream(name, reader, points, f"detector:{config.detector}", reader.info.num_frames, start=frame)
-    now = _settings(config, found)  # (the landmarks and the frame among them)
+    now = _settings(config, found, model)  # (the landmarks and the frame among them)
     made_with = _with_defaults(made_with, _setting_values(config))
     if _changed_settings(made_with, now) or set(made_with) - set(now):
         return None
@@ -1248,13 +1285,29 @@ def _read_record(
     _check_made_from(made_from, video, f"{path}: the partial results were")
     # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
     differ = _changed_settings(made_with, settings)
+    differ += ["--model"] if "--model" in made_with and "--model" not in settings else []  # (made with a model)
     if differ:
-        what = "; ".join(_said_difference(k, made_with.get(k), settings[k]) for k in differ)
+        what = "; ".join(_said_difference(k, made_with.get(k), settings.get(k)) for k in differ)
         raise InputError(
             f"{path}: cannot resume, the partial results were made with other settings or input ({what}): run "
             "with the interrupted run's settings, or without --resume"
         )
     return anchor
+
+
+def _check_record_model(path: Path, settings: dict[str, object]) -> None:
+    """Refuse to resume the partial run of record ``path`` (:func:`_write_record`) where another face model made it
+    than ``settings``' (:func:`_settings`' ``--model``, :func:`_model_setting`): checked before the partial CSV's
+    columns are compared with this run's (:class:`~torchface.io.table.TrackCsvWriter`'s "its columns differ" said
+    nothing of the model). No record, or one that cannot be read: left to :func:`_read_record`."""
+    try:
+        made = json.loads(path.read_text(encoding="utf-8"))["settings"].get("--model")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return
+    if made != settings.get("--model"):
+        raise InputError(f"{path}: cannot resume, the partial results were made with another face model "
+                         f"({_said_difference('--model', made, settings.get('--model'))}): run with the interrupted "
+                         "run's --model, or without --resume")  # fmt: skip
 
 
 def _check_made_from(made_from: str, video: Path, subject: str) -> None:
@@ -1276,13 +1329,14 @@ def _rows_to_internal(params: Tensor, head_R: Tensor, head_t: Tensor, layout: Pa
 
 
 def _first_landmarks(
-    reader: FrameReader, first: Tensor, landmarks: str | os.PathLike[str] | None, detector, detector_name: str | None
+    reader: FrameReader, first: Tensor, landmarks: str | os.PathLike[str] | None, detector, detector_name: str | None,
+    count: int = NUM_LANDMARKS,
 ) -> tuple[np.ndarray, str] | None:
-    """The landmarks of frame ``first`` (a landmarks file's, or the detector's) and where they come from; None
-    where the detector finds no face in it."""
+    """The landmarks of frame ``first`` (a landmarks file's, of ``count`` points: the model's, or the detector's)
+    and where they come from; None where the detector finds no face in it."""
     W, H = reader.info.width, reader.info.height
     if landmarks is not None:  # (str() of an os.PathLike that is not a Path, an os.DirEntry, is its repr)
-        return read_landmarks(landmarks, W, H), os.fspath(landmarks)
+        return read_landmarks(landmarks, W, H, count=count), os.fspath(landmarks)
     points = detector(detector_image(first))
     if points is None:
         return None
@@ -1367,7 +1421,8 @@ def _check_inputs_kept(
 
 
 def _check_resumable(
-    video: Path, paths: dict[str, Path], config: JobConfig, landmarks: str | os.PathLike[str] | None = None
+    video: Path, paths: dict[str, Path], config: JobConfig, model: FaceModel,
+    landmarks: str | os.PathLike[str] | None = None,
 ) -> None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from other
     first-frame landmarks than the file ``landmarks`` now holds (the sidecar's ``initial_landmarks_px``, compared
@@ -1375,7 +1430,8 @@ def _check_resumable(
     kept the results of its old points; a sidecar without them: not compared), or with other settings than
     ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a sidecar without
     one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
-    :func:`_with_defaults`), or without the meshes ``config.meshes`` asks for."""
+    :func:`_with_defaults`), with another face model than ``model`` (the sidecar's ``model.sha256``; a sidecar without
+    it was made with CANDIDE-3), or without the meshes ``config.meshes`` asks for."""
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
         made, made_with = sidecar["input"], sidecar.get("config", {})
@@ -1387,11 +1443,17 @@ def _check_resumable(
             [[np.nan if c is None else float(c) for c in p] for p in points], dtype=np.float64
         )  # fmt: skip
         size = (int(made["width"]), int(made["height"])) if made_lm is not None else (0, 0)  # (the points' frame)
+        made_model = sidecar.get("model", {})
+        made_digest, made_name = made_model.get("sha256", _candide_digest()), made_model.get("name", "CANDIDE-3")
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
+    if made_digest != _digest(model):  # (skipped as complete: the CSV's columns and values were another model's)
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with another face model "
+                         f"({made_name}, sha256 {str(made_digest)[:16]}, then; {_model_label(model)} now): run with "
+                         "their --model, or without --resume")  # fmt: skip
     if made_lm is not None and landmarks is not None:
-        now_lm = read_landmarks(landmarks, *size)
+        now_lm = read_landmarks(landmarks, *size, count=model.num_landmarks)
         if made_lm.shape != now_lm.shape or not np.array_equal(made_lm, now_lm, equal_nan=True):
             what = _landmarks_difference(made_lm, now_lm)
             raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from other first-frame "
@@ -1438,7 +1500,8 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
 
 
 def _open_inputs(
-    videos: Sequence[Path], config: JobConfig, detector, progress: Callable[[Progress], None] | None = None
+    videos: Sequence[Path], config: JobConfig, detector, model: FaceModel,
+    progress: Callable[[Progress], None] | None = None,
 ) -> list[_Stream]:
     """Check every input before any tracking starts: open it, read its first frame, find its first-frame landmarks;
     then close it again (its batch reopens it, :func:`_reopen`): with all of them held open until the end, a run
@@ -1459,12 +1522,13 @@ def _open_inputs(
             frame = next(reader)
             lm = config.landmarks[k] if config.landmarks else None
             t0 = time.perf_counter()
-            recorded = _recorded_first_face(config, reader, name) if config.resume and lm is None else None
+            recorded = _recorded_first_face(config, reader, name, model) if config.resume and lm is None else None
             if recorded is not None:  # (the interrupted run's search: not made again)
                 start, calls = recorded[0], 0
                 points, source = recorded[1], f"detector:{config.detector}"
             else:  # (only a detector finds no face: a landmarks file's are the first frame's)
-                find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector)
+                find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector,
+                               count=model.num_landmarks)  # fmt: skip
                 searching: Callable[[int], None] | None = None
                 if progress is not None:
                     searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
@@ -1555,6 +1619,7 @@ def track_videos(
         raise InputError("no input video given")
     if config.landmarks and len(config.landmarks) != len(inputs):
         raise InputError(f"give one landmarks file per video: {len(inputs)} videos, {len(config.landmarks)} files")
+    model = _job_model(config)  # (checked before the detector is loaded and any input opened)
     detector = None
     if config.detector is not None:
         from torchface.detect import load_detector
@@ -1580,7 +1645,8 @@ def track_videos(
     locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
         try:
-            return _track_locked(inputs, names, config, detector, out_dir, progress)
+            model = model.to(device=torch.device(config.device))
+            return _track_locked(inputs, names, config, detector, model, out_dir, progress)
         finally:
             _release_locks(locks)
     except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
@@ -1641,8 +1707,30 @@ def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
     return "; ".join(said) + ": run the same command with --resume to continue"
 
 
+def _job_model(config: JobConfig) -> FaceModel:
+    """The face model of ``config`` (on the CPU): CANDIDE-3, or the file ``config.model``, refused where its
+    landmarks cannot start a track (:func:`~torchface.tracker.fit.check_model_landmarks`: fewer than four, or all on
+    the midline; the first frame's fit refused it, after the outputs of earlier runs were removed) or, with a
+    detector, are not the detector's 68 iBUG points."""
+    if config.model is None:
+        return load_candide3()
+    model = load_face_model(config.model)
+    try:
+        check_model_landmarks(model)
+    except ValueError as exc:
+        raise InputError(f"{os.fspath(config.model)}: {exc}") from None
+    if config.detector is not None and model.num_landmarks != NUM_LANDMARKS:
+        raise InputError(
+            f"{os.fspath(config.model)}: the face model {model.name!r} has {model.num_landmarks} landmarks, and the "
+            f"{config.detector} detector gives the {NUM_LANDMARKS} iBUG points (the first frame's, and those of "
+            f"re-detection and recovery): give --landmarks files of the model's {model.num_landmarks} points, without "
+            "--detector"
+        )
+    return model
+
+
 def _track_locked(
-    inputs: list[Path], names: list[str], config: JobConfig, detector, out_dir: Path,
+    inputs: list[Path], names: list[str], config: JobConfig, detector, model: FaceModel, out_dir: Path,
     progress: Callable[[Progress], None] | None,
 ) -> list[VideoSummary]:
     """:func:`track_videos` once its inputs are checked and its outputs locked (:func:`_take_locks`)."""
@@ -1652,7 +1740,7 @@ def _track_locked(
     for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
-            _check_resumable(v, paths, config, config.landmarks[k] if config.landmarks else None)
+            _check_resumable(v, paths, config, model, config.landmarks[k] if config.landmarks else None)
             cols, rows = read_track_csv(paths["csv"])
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
@@ -1665,16 +1753,16 @@ def _track_locked(
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
     try:
-        streams = _open_inputs(pending, sub, detector, progress) if pending else []
+        streams = _open_inputs(pending, sub, detector, model, progress) if pending else []
     except KeyboardInterrupt as exc:  # (nothing of this run is there; an earlier run's outputs are as they were)
         _say_kept(exc, "nothing was written (interrupted before tracking, while checking the inputs or looking for "
                        "a first face): run the same command again")  # fmt: skip
         raise
-    return _track_opened(streams, inputs, config, detector, out_dir, progress, summaries)
+    return _track_opened(streams, inputs, config, detector, model, out_dir, progress, summaries)
 
 
 def _track_opened(
-    streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, out_dir: Path,
+    streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, model: FaceModel, out_dir: Path,
     progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary],
 ) -> list[VideoSummary]:
     """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`; ``summaries``: of the
@@ -1682,7 +1770,6 @@ def _track_opened(
     if not config.resume:  # a fresh run
         _clear_earlier_outputs(out_dir, [s.name for s in streams])
     try:
-        model = load_candide3().to(device=torch.device(config.device))
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
         # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
         groups: dict[tuple[int, int, int], list[int]] = {}
@@ -1933,8 +2020,10 @@ def _track_group(
     t_start = time.perf_counter()
     try:
         for s, p in zip(streams, paths):
-            s.settings = _settings(config, s)
+            s.settings = _settings(config, s, model)
             partial = partial_path(p["csv"])
+            if config.resume:  # (before the CSV's columns, the model's, are compared with the partial one's)
+                _check_record_model(_record_path(p["csv"]), s.settings)
             if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
                 os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
             s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
@@ -2198,9 +2287,10 @@ def _finalise(
             "frame": "OpenCV: x right, y down, z forward; millimetres",
             "pixels": "(u, v) = (column, row), pixel centres at integers: the top-left pixel's centre is (0, 0)",
         },  # fmt: skip
-        "model": {"name": "CANDIDE-3", "vertices": model.num_vertices, "triangles": model.num_faces,
-                  "animation_units": list(model.animation_names), "facs": list(model.facs_names),
-                  "shape_units": model.num_shape,
+        "model": {"name": model.name, "file": None if config.model is None else os.fspath(config.model),
+                  "sha256": _digest(model), "vertices": model.num_vertices, "triangles": model.num_faces,
+                  "landmarks": model.num_landmarks, "animation_units": list(model.animation_names),
+                  "facs": list(model.facs_names), "shape_units": model.num_shape,
                   "shape_coeffs": s.final_shape},  # fmt: skip
         "start": _start_record(config, s),
         "pyramid_levels": levels,

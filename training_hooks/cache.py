@@ -9,6 +9,8 @@ Key (:func:`cache_key`): a BLAKE2b hash of
   face size and storage, focal length, thread count);
 - the first-frame landmarks (float64 bytes; a missing point, a NaN row, as one NaN whatever its bits) and the
   frame they are of, where it is not the video's first (a dataset's detector found no face before it);
+- the face model file's content (:func:`content_hash`), where the config names one
+  (:attr:`~training_hooks.transforms.FaceTrackingConfig.model`);
 - any extra text the caller adds (the datasets add their frame-conversion setting);
 - the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
   and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`.
@@ -125,8 +127,8 @@ def cache_key(
     Args:
         content: :func:`content_hash` of the video.
         config: the tracking settings (their full ``repr`` is hashed).
-        landmarks: ``(68, 2)`` first-frame landmarks in pixels (hashed as float64); a NaN row (a missing point) is
-            hashed as the same NaN whatever its bits.
+        landmarks: ``(68, 2)`` first-frame landmarks in pixels (with the config's ``model``, its ``K``; hashed as
+            float64); a NaN row (a missing point) is hashed as the same NaN whatever its bits.
         extra: anything else that changes the result (e.g. a frame-conversion setting).
         first_frame: the video's frame the landmarks are of, where the tracking starts (a dataset's detector found
             no face before it); hashed where it is not 0, so that the key of a sequence tracked from the video's
@@ -143,14 +145,16 @@ def cache_key(
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
     first_frame = check_int(first_frame, "first_frame", 0)
     points = np.ascontiguousarray(np.asarray(landmarks, dtype=np.float64))
-    if points.shape != (68, 2):
-        raise ValueError(f"landmarks must be (68, 2), got {points.shape}")
+    if points.ndim != 2 or points.shape[1] != 2 or (config.model is None and points.shape[0] != 68):
+        count = "68" if config.model is None else "K"  # (a model file's K is not known without reading it)
+        raise ValueError(f"landmarks must be ({count}, 2), got {points.shape}")
     points = np.where(np.isnan(points), np.nan, points)  # one NaN for a missing point (x86's 0 / 0 has the sign bit)
     h = hashlib.blake2b(digest_size=32)
     native = config.tracker.backend is not Backend.TORCH and native_available()
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
         f"native={native}", content, repr(config), extra, *([f"first_frame={first_frame}"] if first_frame else []),
+        *([f"model={content_hash(config.model)}"] if config.model is not None else []),  # (not in the repr)
     )  # fmt: skip
     for part in parts:
         data = part.encode("utf-8")

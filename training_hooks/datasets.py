@@ -2,8 +2,9 @@
 
 :class:`VideoDataset` (video files or ``.npy`` frame arrays) and :class:`FrameFolderDataset` (folders of
 images, read in name order) are iterable datasets. Each video is tracked from its first frame's 68 iBUG
-landmarks (:data:`LandmarkSource`: NaN rows for missing points, as ``torchface track`` takes them; or a
-:data:`Detector`'s, from the first frame where it finds a face, below;
+landmarks (:data:`LandmarkSource`; the model's ``K`` with :attr:`FaceTrackingConfig.model
+<training_hooks.transforms.FaceTrackingConfig.model>`: NaN rows for missing points, as ``torchface track`` takes
+them; or a :data:`Detector`'s, from the first frame where it finds a face, below;
 :func:`~training_hooks.transforms.track_sequence`, one stream at a time) and every frame becomes a
 normalised face with its parameters; the dataset yields one item per frame, or one per clip of
 :attr:`DatasetConfig.clip_length` frames every :attr:`DatasetConfig.clip_stride` frames. A video is tracked to
@@ -383,10 +384,18 @@ class VideoDataset(IterableDataset):
                         f"got {type(source).__name__}"
                     )
             self.detector, self.landmarks = None, tuple(landmarks)
+        self._normalise: NormaliseFaces | None = None
+        if self.detector is not None and self.config.tracking.model is not None:
+            # (a detector gives the 68 iBUG points: refused here, not in a worker at the first video)
+            if self.model.num_landmarks != NUM_LANDMARKS:
+                raise ValueError(
+                    f"{os.fspath(self.config.tracking.model)}: the face model {self.model.name!r} has "
+                    f"{self.model.num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "
+                    "each video's first-frame landmarks of the model instead of a detector"
+                )
         self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
-        self._normalise: NormaliseFaces | None = None
         self._cache: TrackCache | None = None
         self._found_at, self._found = _shared_detections(len(self.videos) if self.detector is not None else 0)
 
@@ -430,8 +439,14 @@ class VideoDataset(IterableDataset):
 
     @property
     def model(self) -> FaceModel:
-        """The face model tracked with (CANDIDE-3)."""
+        """The face model tracked with (CANDIDE-3, or :attr:`FaceTrackingConfig.model
+        <training_hooks.transforms.FaceTrackingConfig.model>`'s)."""
         return self.transform.model
+
+    @property
+    def num_landmarks(self) -> int:
+        """The first-frame landmarks' count: the model's ``K`` (68 for CANDIDE-3, known without loading it)."""
+        return NUM_LANDMARKS if self.config.tracking.model is None else self.model.num_landmarks
 
     @property
     def cache(self) -> TrackCache | None:
@@ -526,7 +541,7 @@ class VideoDataset(IterableDataset):
             source = None if self.landmarks is None else self.landmarks[index]
             if known is None and isinstance(source, (str, os.PathLike)):
                 # the frame size only checks the points (sequence() checks them against it): the same float64 array
-                known = 0, read_landmarks(source, 1 << 30, 1 << 30)
+                known = 0, read_landmarks(source, 1 << 30, 1 << 30, count=self.num_landmarks)
         except (InputError, OSError):
             return None
         if known is None:
@@ -634,12 +649,13 @@ class VideoDataset(IterableDataset):
         where = f"{self.videos[index]}: landmarks"
         source = self.landmarks[index]  # type: ignore[index]
         if isinstance(source, (str, os.PathLike)):
-            return 0, first, read_landmarks(source, W, H)  # (missing points, NaN rows, as torchface track takes them)
+            # (missing points, NaN rows, as torchface track takes them)
+            return 0, first, read_landmarks(source, W, H, count=self.num_landmarks)
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
             raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
-        return 0, first, check_landmarks(source, W, H, where, missing=True)
+        return 0, first, check_landmarks(source, W, H, where, missing=True, count=self.num_landmarks)
 
     def _known_start(self, index: int, content: str) -> tuple[int, np.ndarray] | None:
         """``(start, landmarks)`` known without decoding the video: an array or tensor (start 0), or a detection
@@ -656,7 +672,8 @@ class VideoDataset(IterableDataset):
             raise InputError(
                 f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}"
             )
-        return 0, check_landmarks(source, 1 << 30, 1 << 30, f"{self.videos[index]}: landmarks", missing=True)
+        where = f"{self.videos[index]}: landmarks"
+        return 0, check_landmarks(source, 1 << 30, 1 << 30, where, missing=True, count=self.num_landmarks)
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
@@ -681,7 +698,7 @@ class VideoDataset(IterableDataset):
             if stored is not None:
                 if self.detector is None:  # (a detection was checked against this video's frame when made)
                     H, W = stored.frame_size
-                    check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True)
+                    check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True, count=self.num_landmarks)
                 self.stats.videos += 1
                 return stored, True
         with _dataset_hint():

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import enum
 import numbers
+import os
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
@@ -40,6 +41,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.io.landmarks import missing_points_problem
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
+from torchface.model.model_file import load_face_model
 from torchface.normalise.face import NormalisedFace
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
 from torchface.tracker.params import ParamLayout
@@ -113,6 +115,12 @@ class FaceTrackingConfig:
             and a :class:`~torchface.tracker.TrackerState` continued with the levels it holds beyond
             ``tracker``'s. ``"config"``: ``tracker.num_levels`` as given. The state :func:`track_sequence` returns
             says which (:attr:`~torchface.tracker.TrackerState.num_levels`).
+        model: a face model file (:func:`torchface.model.save_face_model` writes one, as for ``torchface track
+            --model``) that :class:`NormaliseFaces` and the datasets track with, loaded in float32 with
+            :func:`torchface.model.load_face_model`, or None for CANDIDE-3. The first-frame landmarks are then the
+            model's ``K``, in its order (a detector's 68 iBUG points need a model of those). Not in the ``repr``: the
+            cache key holds the file's content hash instead (:func:`~training_hooks.cache.cache_key`), and the key of
+            a config without a model is the one it had before this field.
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -124,8 +132,11 @@ class FaceTrackingConfig:
     keep_expression: bool = False
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
     pyramid: str = "auto"
+    model: str | os.PathLike[str] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
+        if self.model is not None and not isinstance(self.model, (str, os.PathLike)):
+            raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         check_pyramid(self.pyramid)
@@ -547,9 +558,11 @@ class NormaliseFaces:
 
     @property
     def model(self) -> FaceModel:
-        """The face model (CANDIDE-3, float32), loaded on first use."""
+        """The face model (float32): CANDIDE-3, or the file of :attr:`FaceTrackingConfig.model`, loaded on first
+        use."""
         if self._model is None:
-            self._model = load_candide3()
+            path = self.config.model
+            self._model = load_candide3() if path is None else load_face_model(path)
         return self._model
 
     @property

@@ -105,7 +105,7 @@ def test_track_writes_every_output(full_run):
     side = json.loads(paths["json"].read_text())
     assert side["frames"] == T and side["lost_frames"] == [] and side["camera"]["fx"] == max(W, H)
     assert side["versions"]["torch"] and side["config"]["tracker"]["num_levels"] >= 1
-    assert side["timings_s"]["fps"] > 0 and side["model"]["name"] == "CANDIDE-3"
+    assert side["timings_s"]["fps"] > 0 and side["model"]["name"] == "CANDIDE-3 v3.1.6"
     assert side["input"]["fps"] > 0 and side["input"]["fps_assumed"] is False  # the video states its rate
     assert read_video(paths["overlay"]).shape == (T, 3, H, W)
     assert read_video(paths["normalised"]).shape == (T, 3, 128, 128)

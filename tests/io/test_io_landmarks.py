@@ -732,3 +732,24 @@ def test_r_write_csv_with_its_1_based_row_names_is_read(tmp_path):
                                              r"names\?\)") as info:  # fmt: skip
             read_landmarks(tmp_path / name, 100, 100)
         assert "\n" not in str(info.value)
+
+
+def test_count_reads_a_face_models_landmarks(tmp_path):
+    """``count``: another model's K points (torchface track --model) from the layouts of any count; the 68-point
+    layouts, and a file of another count, are refused naming the count expected."""
+    points = _points()[:26]
+    np.savetxt(tmp_path / "a.csv", points, delimiter=",")
+    np.save(tmp_path / "a.npy", points)
+    (tmp_path / "a.pts").write_text("version: 1\nn_points: 26\n{\n" + "".join(f"{x + 1} {y + 1}\n" for x, y in points)
+                                    + "}\n")  # fmt: skip
+    for name in ("a.csv", "a.npy", "a.pts"):
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 640, 480, count=26), points)
+    with pytest.raises(InputError, match=r"expected 68 iBUG landmarks, got 26"):
+        read_landmarks(tmp_path / "a.csv", 640, 480)
+    np.savetxt(tmp_path / "b.csv", _points(), delimiter=",")
+    with pytest.raises(InputError, match=r"expected 26 landmarks \(the face model's\), got 68"):
+        read_landmarks(tmp_path / "b.csv", 640, 480, count=26)
+    few = np.full((26, 2), np.nan)
+    few[:3] = points[:3]
+    with pytest.raises(InputError, match="3 of the 26 landmarks given"):
+        check_landmarks(few, 640, 480, "x", missing=True, count=26)

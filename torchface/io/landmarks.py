@@ -497,9 +497,10 @@ def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str
 
 def check_landmarks(
     points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False,
-    missing_as: str = "",
+    missing_as: str = "", count: int = NUM_LANDMARKS,
 ) -> np.ndarray:
-    """Check ``(68, 2)`` pixel landmarks against a ``width x height`` frame; returns them as float64.
+    """Check ``(count, 2)`` pixel landmarks (68 iBUG points by default) against a ``width x height`` frame; returns
+    them as float64.
 
     ``min_inside``: the fraction of the points that must lie inside the frame (1: all of them, as a landmarks file
     gives; a detector's, 0.5: dlib's predictor places the chin of a face at the frame's edge outside it).
@@ -512,6 +513,9 @@ def check_landmarks(
     ``missing_as``: how the points' source writes a missing point, for the error on a wrong count (with
     ``missing``: "a missing point stays, as a NaN row", then ``: {missing_as}`` where given; :func:`read_landmarks`
     gives its file format's way, e.g. ``"empty cells or nan"`` for a CSV; an array's caller none).
+
+    ``count``: the number of points, a face model's ``K`` (:attr:`~torchface.model.FaceModel.num_landmarks`;
+    ``torchface track --model``): its landmarks, in its order, rather than the 68 iBUG points.
 
     The points returned are a C-contiguous copy of ``points``.
 
@@ -530,14 +534,16 @@ def check_landmarks(
     if points.ndim == 1 and points.size % 2 == 0:
         points = points.reshape(-1, 2)
     if points.ndim != 2 or points.shape[1] != 2:
-        raise InputError(f"{where}: expected {NUM_LANDMARKS} (x, y) points, got an array of shape {points.shape}")
-    if points.shape[0] != NUM_LANDMARKS:
+        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {points.shape}")
+    if points.shape[0] != count:
         hint = f" (a missing point stays, as a NaN row{': ' + missing_as if missing_as else ''})" if missing else ""
-        raise InputError(f"{where}: expected {NUM_LANDMARKS} iBUG landmarks, got {points.shape[0]}{hint}")
+        what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
+        raise InputError(f"{where}: expected {count} {what}, got {points.shape[0]}{hint}")
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():
         raise InputError(f"{where}: landmark(s) {np.flatnonzero(~given).tolist()[:8]} are NaN or infinite")
-    problem = missing_points_problem(points) if missing else None
+    named = "iBUG points" if count == NUM_LANDMARKS else "landmarks"
+    problem = missing_points_problem(points, named) if missing else None
     if problem is not None:
         raise InputError(f"{where}: {problem}")
     u, v = points[:, 0], points[:, 1]
@@ -552,9 +558,9 @@ def check_landmarks(
 
 
 def read_landmarks(
-    path: str | os.PathLike[str], width: int, height: int, *, missing: bool = True
+    path: str | os.PathLike[str], width: int, height: int, *, missing: bool = True, count: int = NUM_LANDMARKS
 ) -> np.ndarray:
-    """Read and check 68 first-frame landmarks for a ``width x height`` video.
+    """Read and check 68 first-frame landmarks (or ``count``) for a ``width x height`` video.
 
     Args:
         path: a ``.csv`` (or any text), iBUG ``.pts``, ``.npy`` or ``.json`` file, see the module docstring.
@@ -562,9 +568,13 @@ def read_landmarks(
         height: frame height H.
         missing: whether the file may leave points out (NaN rows, see the module docstring; at least 4 given, the
             landmark fit's :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`); False: all 68 must be given.
+        count: the number of points: a face model's ``K`` landmarks (``torchface track --model``) in its order,
+            rather than the 68 iBUG points. The layouts whose form is the 68 points' (one row of 136 values, one
+            row per point with an iBUG index, OpenFace's CSV) are read as 68 (and refused for another count); rows
+            of ``x, y``, ``.pts``, NPY and JSON lists hold any count.
 
     Returns:
-        ``(68, 2)`` float64 pixel coordinates, a NaN row for each missing point.
+        ``(count, 2)`` float64 pixel coordinates, a NaN row for each missing point.
 
     Raises:
         InputError: missing or unreadable file, wrong count, infinite values, too few points given (or, without
@@ -594,4 +604,4 @@ def read_landmarks(
         else:
             points = _parse_pts(p, text) if pts else _parse_csv(p, text)
             missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
-    return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as)
+    return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as, count=count)

@@ -14,6 +14,7 @@ from torchface.model.face_model import (
     vertex_normals,
 )
 from torchface.model.mesh_loader import load_ict_face_model, load_mesh_model
+from torchface.model.model_file import face_model_digest, load_face_model, save_face_model
 
 __all__ = [
     "AnimationSet",
@@ -22,11 +23,14 @@ __all__ = [
     "WfmUnit",
     "candide3_fapu",
     "deform_vertices",
+    "face_model_digest",
     "face_normals",
     "interpolate_landmarks",
     "load_candide3",
+    "load_face_model",
     "load_ict_face_model",
     "load_mesh_model",
     "parse_wfm",
+    "save_face_model",
     "vertex_normals",
 ]

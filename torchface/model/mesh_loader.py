@@ -181,7 +181,7 @@ _IBUG_MIRROR = np.r_[16:-1:-1, 26:16:-1, 27:31, 35:30:-1, 45:41:-1, 47:45:-1, 39
 _IBUG_RIGHT = np.r_[0:8, 17:22, 31:33, 36:42, 48:51, 58:62, 67]
 
 
-def _check_ibug_layout(weighted: np.ndarray, name: str) -> None:
+def _check_ibug_layout(weighted: np.ndarray, name: str, stacklevel: int = 3) -> None:
     """Warn when 68 landmarks (``(68, J, 3)`` weighted head-frame vertices, summed over ``J``) are not laid out as the
     iBUG-68 points: the subject's right (``-x``) before their left (jaw end 0 and outer eye corner 36 against 16 and
     45, and no more than one of the other left-right pairs the other way round: a part mirrored alone, the brows or
@@ -199,8 +199,31 @@ def _check_ibug_layout(weighted: np.ndarray, name: str) -> None:
             "face detector gives those, in that order, and the first frame's fit fails or goes astray on mirrored or "
             "reordered ones",
             UserWarning,
+            stacklevel=stacklevel,
+        )
+
+
+def _check_surface(
+    vertices: np.ndarray, faces: np.ndarray, lm_idx: np.ndarray, lm_w: np.ndarray, name: str, said: str, ask: str
+) -> None:
+    """The checks of a face model's surface that :func:`load_mesh_model` and
+    :func:`~torchface.model.model_file.load_face_model` both make, on ``(V, 3)`` head-frame millimetre ``vertices``,
+    ``(F, 3)`` ``faces`` and ``(K, J)`` landmarks ``lm_idx`` / ``lm_w``: the winding (:func:`_check_winding`, a
+    ``ValueError``), the span of the used vertices (a ``UserWarning`` outside 50 mm - 2 m; ``said`` follows the span
+    in it, ``ask`` is its question about the unit) and, for 68 landmarks, their iBUG-68 layout (a ``UserWarning``,
+    :func:`_check_ibug_layout`). Warnings name the caller of the loader that calls this."""
+    _check_winding(vertices, faces)
+    used = vertices[np.unique(faces)]
+    span = float((used.max(axis=0) - used.min(axis=0)).max())
+    if not _FACE_SPAN_MM[0] <= span <= _FACE_SPAN_MM[1]:
+        warnings.warn(
+            f"the mesh spans {span:.3g} mm {said}; a face is 100-300 mm: {ask} Tracked translations come out "
+            "scaled by the same mistake, and a face of a few millimetres fails the landmark fit",
+            UserWarning,
             stacklevel=3,
         )
+    if lm_idx.shape[0] == 68:
+        _check_ibug_layout(vertices[lm_idx] * lm_w[:, :, None], name, stacklevel=4)
 
 
 def _obj_vertices(path: Path) -> np.ndarray | None:
@@ -415,19 +438,9 @@ def load_mesh_model(
     for a, link in enumerate(links):
         for au in link:
             facs_matrix[facs_names.index(au), a] = 1.0
-    _check_winding(vertices @ linear, faces)
-    used = vertices[np.unique(faces)] @ linear
-    span = float((used.max(axis=0) - used.min(axis=0)).max())
-    if not _FACE_SPAN_MM[0] <= span <= _FACE_SPAN_MM[1]:
-        warnings.warn(
-            f"the mesh spans {span:.3g} mm with scale_to_mm={scale_to_mm:g}; a face is 100-300 mm: is scale_to_mm "
-            "the millimetres per mesh unit (1000 for metres, 10 for centimetres)? Tracked translations come out "
-            "scaled by the same mistake, and a face of a few millimetres fails the landmark fit",
-            UserWarning,
-            stacklevel=2,
-        )
-    if lm_idx.shape[0] == 68:
-        _check_ibug_layout((vertices @ linear)[lm_idx] * lm_w[:, :, None], default_name if name is None else name)
+    said = f"with scale_to_mm={scale_to_mm:g}"
+    scale = "is scale_to_mm the millimetres per mesh unit (1000 for metres, 10 for centimetres)?"
+    _check_surface(vertices @ linear, faces, lm_idx, lm_w, default_name if name is None else name, said, scale)
     mask = np.zeros(num_v, dtype=bool)
     mask[faces.ravel()] = True
 

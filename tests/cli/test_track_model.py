@@ -1,0 +1,153 @@
+"""``torchface track --model FILE`` (``JobConfig.model``): CANDIDE-3 through a face model file tracks as the default
+to the byte; another model writes its own columns and sidecar entry; a resume with another model, a detector with a
+model of other landmarks, landmarks files of another count and bad model files are refused before tracking."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from torchface.cli import main
+from torchface.io import InputError, read_track_csv
+from torchface.job import JobConfig, output_paths, track_videos
+from torchface.model import face_model_digest, load_candide3, save_face_model
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+
+T, W, H, NAME = 6, 160, 120, "expressions"
+#: The other model's landmarks: 26 of CANDIDE-3's 68 iBUG points (brows, nose, eyes, mouth), in this order.
+SUBSET = list(range(17, 68, 2))
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    root = tmp_path_factory.mktemp("clip")
+    files = write_sequence(make_scenario(NAME, T, W, H), root)
+    points = load_ground_truth(files.ground_truth).landmarks_px[0].numpy()
+    np.savetxt(root / "lm68.csv", points, delimiter=",")
+    np.savetxt(root / "lm26.csv", points[SUBSET], delimiter=",")
+    save_face_model(load_candide3(dtype=torch.float64), root / "candide3.npz")
+    c = load_candide3(dtype=torch.float64)
+    other = replace(c, name="CANDIDE-3, 6 AUVs, 26 landmarks", animation_units=c.animation_units[:6],
+                    animation_names=c.animation_names[:6], animation_ranges=c.animation_ranges[:6],
+                    facs_matrix=c.facs_matrix[:, :6], landmark_vertices=c.landmark_vertices[SUBSET],
+                    landmark_weights=c.landmark_weights[SUBSET],
+                    landmark_names=tuple(c.landmark_names[k] for k in SUBSET))  # fmt: skip
+    save_face_model(other, root / "other.npz")
+    return files.video, root
+
+
+@pytest.fixture(scope="module")
+def default_run(clip, tmp_path_factory):
+    video, root = clip
+    out = tmp_path_factory.mktemp("default")
+    track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",)))
+    return output_paths(out, NAME)
+
+
+def test_candide3_through_a_model_file_tracks_as_the_default_to_the_byte(clip, default_run, tmp_path):
+    """The CSV of --model FILE (CANDIDE-3 saved in float64) is the default run's byte for byte; the sidecar's model
+    entry names the model, its file and its digest (it said "CANDIDE-3" whatever tracked)."""
+    video, root = clip
+    rc = main(["track", str(video), "--out", str(tmp_path), "--landmarks", str(root / "lm68.csv"), "--model",
+               str(root / "candide3.npz"), "--quiet"])  # fmt: skip
+    assert rc == 0
+    mine = output_paths(tmp_path, NAME)
+    assert mine["csv"].read_bytes() == default_run["csv"].read_bytes()
+    side, ref = (json.loads(p["json"].read_text())["model"] for p in (mine, default_run))
+    assert side["sha256"] == ref["sha256"] == face_model_digest(load_candide3())
+    assert side["name"] == ref["name"] == "CANDIDE-3 v3.1.6" and side["landmarks"] == 68
+    assert side["file"] == str(root / "candide3.npz") and ref["file"] is None
+    assert side["shape_coeffs"] == ref["shape_coeffs"]
+    # the same model, given or not, is one setting: the complete outputs are resumed (skipped), not refused
+    assert main(["track", str(video), "--out", str(tmp_path), "--landmarks", str(root / "lm68.csv"), "--resume",
+                 "--quiet"]) == 0  # fmt: skip
+
+
+def test_another_model_tracks_with_its_own_landmarks_and_columns(clip, default_run, tmp_path):
+    """A model of 6 animation units and 26 landmarks, from a landmarks file of its 26 points: its columns, its
+    sidecar entry; resuming its complete outputs with CANDIDE-3 is refused (they were skipped as complete)."""
+    video, root = clip
+    track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm26.csv",), model=root / "other.npz"))
+    paths = output_paths(tmp_path, NAME)
+    cols, rows = read_track_csv(paths["csv"])
+    ref_cols, ref_rows = read_track_csv(default_run["csv"])
+    anim = [c for c in cols if c.startswith("anim_")]
+    assert len(anim) == 6 and anim == [c for c in ref_cols if c.startswith("anim_")][:6]
+    assert rows.shape[0] == T and rows[:, cols.index("success")].all()
+    yaw = cols.index("yaw_deg")
+    assert np.abs(rows[:, yaw] - ref_rows[:, ref_cols.index("yaw_deg")]).max() < 3.0  # the same head
+    side = json.loads(paths["json"].read_text())["model"]
+    assert side["name"] == "CANDIDE-3, 6 AUVs, 26 landmarks" and side["landmarks"] == 26
+    assert len(side["animation_units"]) == 6 and side["sha256"] != face_model_digest(load_candide3())
+    with pytest.raises(InputError, match="made with another face model .*CANDIDE-3 v3.1.6"):
+        track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm68.csv",), resume=True))
+
+
+def test_a_partial_run_is_not_resumed_with_another_model(clip, tmp_path):
+    """Interrupted with one model, resumed with CANDIDE-3 (or the other way round): refused, naming the models,
+    before the CSV's columns are compared ("its columns differ" said nothing of the model); with its own model the
+    resume completes it."""
+    video, root = clip
+    other = JobConfig(tmp_path, landmarks=(root / "lm26.csv",), model=root / "other.npz")
+
+    def interrupt(p):
+        if p.done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], other, progress=interrupt)
+    partial = tmp_path / f"{NAME}.csv.partial"
+    kept = partial.read_bytes()
+    with pytest.raises(InputError, match=r"another face model \(--model CANDIDE-3, 6 AUVs, 26 landmarks \(sha256 "
+                                         r"[0-9a-f]{16}\) then, CANDIDE-3 \(no --model\) now\)"):  # fmt: skip
+        track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm68.csv",), resume=True))
+    assert partial.read_bytes() == kept
+    track_videos([video], replace(other, resume=True))
+    assert read_track_csv(tmp_path / f"{NAME}.csv")[1].shape[0] == T
+    out = tmp_path / "second"  # made with CANDIDE-3, resumed with the other model
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",)), progress=interrupt)
+    with pytest.raises(InputError, match=r"another face model \(--model CANDIDE-3 \(no --model\) then, CANDIDE-3, 6"):
+        track_videos([video], replace(other, out_dir=out, resume=True))
+
+
+def test_what_a_model_cannot_track_is_refused_before_anything_is_written(clip, tmp_path, capsys):
+    video, root = clip
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="has 26 landmarks, and the dlib detector gives the 68 iBUG points"):
+        track_videos([video], JobConfig(out, detector="dlib", model=root / "other.npz"))  # (dlib need not be there)
+    with pytest.raises(InputError, match=r"lm68.csv: expected 26 landmarks \(the face model's\), got 68"):
+        track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",), model=root / "other.npz"))
+    with pytest.raises(InputError, match="expected 68 iBUG landmarks, got 26"):
+        track_videos([video], JobConfig(out, landmarks=(root / "lm26.csv",), model=root / "candide3.npz"))
+    bad = tmp_path / "bad.npz"
+    bad.write_text("not a model\n")
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(root / "lm68.csv"), "--model", str(bad),
+               "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0 and "not a torchface face model file" in err, err
+    rc = main(["track", str(video), "--out", str(out), "--landmarks", str(root / "lm68.csv"), "--model",
+               str(tmp_path / "nope.npz"), "--quiet"])  # fmt: skip
+    assert rc == 2 and "no such face model file" in capsys.readouterr().err
+    assert not out.exists() or not list(out.iterdir())
+    with pytest.raises(TypeError, match="model must be a path"):
+        JobConfig(out, model=load_candide3())  # type: ignore[arg-type]
+
+
+def test_a_model_whose_landmarks_cannot_start_a_track_is_refused_up_front(clip, tmp_path):
+    """Three landmarks (the first frame's pose needs four): refused naming the model file, before anything is
+    written (the landmarks file's check said only "3 of the 3 landmarks given")."""
+    video, root = clip
+    c = load_candide3()
+    save_face_model(replace(c, landmark_vertices=c.landmark_vertices[:3], landmark_weights=c.landmark_weights[:3],
+                            landmark_names=c.landmark_names[:3]), tmp_path / "three.npz")  # fmt: skip
+    np.savetxt(tmp_path / "lm3.csv", np.loadtxt(root / "lm68.csv", delimiter=",")[:3], delimiter=",")
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"three.npz: the model 'CANDIDE-3 v3.1.6' has 3 landmarks"):
+        track_videos([video], JobConfig(out, landmarks=(tmp_path / "lm3.csv",), model=tmp_path / "three.npz"))
+    assert not out.exists()

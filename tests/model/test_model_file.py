@@ -1,0 +1,152 @@
+"""save_face_model / load_face_model: the face model file that ``torchface track --model`` reads; its round trip is
+exact, its content digest, and what it refuses (a missing, foreign, later or damaged file, a model that fails
+load_mesh_model's checks)."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from torchface.io.errors import InputError
+from torchface.model import (
+    AnimationSet,
+    face_model_digest,
+    load_candide3,
+    load_face_model,
+    load_mesh_model,
+    save_face_model,
+)
+from torchface.model.model_file import FORMAT_VERSION
+
+
+def _same(a, b) -> bool:
+    """Every field of two FaceModels equal, tensors to the bit and in the same dtype."""
+    for f in fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, torch.Tensor):
+            if x.dtype != y.dtype or x.shape != y.shape or not torch.equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16])
+def test_round_trip_is_exact_in_the_models_dtype(tmp_path, dtype):
+    model = load_candide3(AnimationSet.AUV_AND_FAP, dtype=dtype)
+    path = tmp_path / "candide"  # (no suffix: written as named, not candide.npz)
+    save_face_model(model, path)
+    assert path.is_file() and not (tmp_path / "candide.npz").exists()
+    assert _same(load_face_model(path, dtype=dtype), model)
+
+
+def test_a_float64_file_loads_as_the_loaders_float32(tmp_path):
+    """A model saved in float64 is rounded once on loading, as load_candide3 rounds its float64 arithmetic."""
+    save_face_model(load_candide3(dtype=torch.float64), tmp_path / "c.npz")
+    assert _same(load_face_model(tmp_path / "c.npz"), load_candide3())
+
+
+def test_a_mesh_model_round_trips_with_its_own_names(tmp_path):
+    c = load_candide3(dtype=torch.float64)
+    mesh = trimesh.Trimesh(c.mean.numpy(), c.faces.numpy(), process=False)
+    model = load_mesh_model(mesh, blendshapes=c.animation_units[:2], blendshape_names=["a", "b"],
+                            facs_links={"a": ("AU1", "AU2")}, landmark_vertices=c.landmark_vertices[:, 0],
+                            name="mine")  # fmt: skip
+    save_face_model(model, tmp_path / "m.npz")
+    back = load_face_model(tmp_path / "m.npz")
+    assert _same(back, model) and back.name == "mine" and back.num_shape == 0
+
+
+def test_digest_follows_the_content_not_the_dtype_label():
+    a = load_candide3()
+    assert face_model_digest(a) == face_model_digest(load_candide3())
+    assert face_model_digest(a) != face_model_digest(load_candide3(dtype=torch.float64))  # other values
+    assert face_model_digest(a) != face_model_digest(replace(a, name="other"))
+    assert face_model_digest(a) != face_model_digest(load_candide3(AnimationSet.AUV_AND_FAP))
+
+
+def _archive(path, **changes) -> None:
+    """Rewrite the face model file ``path`` with entries changed (None: removed)."""
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update({k: v for k, v in changes.items() if v is not None})
+    for k in [k for k, v in changes.items() if v is None]:
+        del arrays[k]
+    with open(path, "wb") as out:
+        np.savez(out, **arrays)
+
+
+def test_bad_files_are_refused_with_one_line(tmp_path):
+    good = tmp_path / "good.npz"
+    save_face_model(load_candide3(), good)
+    cases = {"missing": (tmp_path / "nope.npz", "no such face model file"), "folder": (tmp_path, "a folder")}
+    text = tmp_path / "text.npz"
+    text.write_text("hello\n")
+    cases["text"] = (text, "not a torchface face model file .*: not an .npz archive")
+    npy = tmp_path / "one.npy"
+    np.save(npy, np.zeros(3))
+    cases["npy"] = (npy, "one .npy array")
+    empty = tmp_path / "empty.npz"
+    empty.write_bytes(b"")
+    cases["empty"] = (empty, "not an .npz archive")
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(good.read_bytes()[:2000])
+    cases["truncated"] = (cut, "not a torchface face model file")
+    other = tmp_path / "other.npz"
+    np.savez(other, mean=np.zeros((3, 3)))
+    cases["foreign"] = (other, "its format entry is missing")
+    for name, change, said in (
+        ("later", {"format_version": np.array(FORMAT_VERSION + 1)}, "written by a later torchface"),
+        ("lacks", {"faces": None}, "it lacks faces"),
+        ("kind", {"faces": np.zeros((2, 3))}, "faces holds float64, not integer values"),
+        ("shape", {"landmark_weights": np.ones((68, 2), np.float32)}, "landmark_weights must have shape"),
+        ("nan", {"mean": np.full((113, 3), np.nan, np.float32)}, "mean holds non-finite values"),
+    ):
+        p = tmp_path / f"{name}.npz"
+        p.write_bytes(good.read_bytes())
+        _archive(p, **change)
+        cases[name] = (p, said)
+    for name, (path, said) in cases.items():
+        with pytest.raises(InputError, match=said) as info:
+            load_face_model(path)
+        assert "\n" not in str(info.value), name
+    with zipfile.ZipFile(cut.with_name("pickled.npz"), "w") as z:  # an object array: never unpickled
+        buf = io.BytesIO()
+        np.save(buf, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+        z.writestr("format.npy", buf.getvalue())
+    with pytest.raises(InputError, match="not a torchface face model file"):
+        load_face_model(cut.with_name("pickled.npz"))
+
+
+def test_the_checks_of_load_mesh_model_are_made(tmp_path):
+    """A model wound inward is refused as load_mesh_model refuses it; a blendshape that is a whole mesh too; 68
+    landmarks mirrored warn as there."""
+    c = load_candide3()
+    p = tmp_path / "m.npz"
+    save_face_model(replace(c, faces=c.faces.flip(1)), p)
+    with pytest.raises(InputError, match="faces away from the viewer"):
+        load_face_model(p)
+    whole = c.animation_units.clone()
+    whole[0] = c.mean
+    save_face_model(replace(c, animation_units=whole), p)
+    with pytest.raises(InputError, match="is a whole mesh, not a displacement"):
+        load_face_model(p)
+    save_face_model(replace(c, mean=c.mean * torch.tensor([-1.0, 1.0, 1.0]), faces=c.faces.flip(1)), p)
+    with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points"):
+        load_face_model(p)
+
+
+def test_save_refuses_what_it_cannot_keep(tmp_path):
+    with pytest.raises(TypeError, match="must be a FaceModel"):
+        save_face_model("candide", tmp_path / "x.npz")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="NUL"):
+        save_face_model(replace(load_candide3(), name="a\0"), tmp_path / "x.npz")
+    assert not list(tmp_path.iterdir())
+    with pytest.raises(TypeError, match="floating"):
+        load_face_model(tmp_path / "x.npz", dtype=torch.int64)

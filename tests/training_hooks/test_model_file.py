@@ -1,0 +1,61 @@
+"""``FaceTrackingConfig(model=FILE)``: NormaliseFaces and the datasets track with a face model file (as ``torchface
+track --model``): CANDIDE-3 through the file gives the default's items to the bit; another model takes its own
+landmarks and keys its cache entries apart; a detector with a model of other landmarks is refused when the dataset is
+made. The default config's cache key and repr are those of before the field."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from th_data import TRACKING
+from torchface.synth.io import read_video
+from torchface.model import load_candide3, save_face_model
+from training_hooks import DatasetConfig, FaceTrackingConfig, NormaliseFaces, VideoDataset, cache_key
+
+#: The other model's landmarks: 26 of CANDIDE-3's iBUG points, in this order.
+SUBSET = list(range(17, 68, 2))
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("models")
+    save_face_model(load_candide3(dtype=torch.float64), root / "candide3.npz")
+    c = load_candide3(dtype=torch.float64)
+    other = replace(c, name="other", animation_units=c.animation_units[:6], animation_names=c.animation_names[:6],
+                    animation_ranges=c.animation_ranges[:6], facs_matrix=c.facs_matrix[:, :6],
+                    landmark_vertices=c.landmark_vertices[SUBSET], landmark_weights=c.landmark_weights[SUBSET],
+                    landmark_names=tuple(c.landmark_names[k] for k in SUBSET))  # fmt: skip
+    save_face_model(other, root / "other.npz")
+    return root / "candide3.npz", root / "other.npz"
+
+
+def test_candide3_through_a_file_normalises_as_the_default(clips, files):
+    frames = read_video(clips[0].video)[:3]
+    a = NormaliseFaces(TRACKING)(frames, clips[0].landmarks)
+    b = NormaliseFaces(replace(TRACKING, model=files[0]))(frames, clips[0].landmarks)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_another_model_tracks_from_its_landmarks_with_its_own_cache_entries(clips, files, tmp_path):
+    other = replace(TRACKING, model=files[1])
+    lm = clips[0].landmarks[SUBSET]
+    config = DatasetConfig(tracking=other, cache_dir=tmp_path / "cache", clip_length=3)
+    items = list(VideoDataset([clips[0].video], [lm], config))
+    assert items and items[0]["anim_coeffs"].shape[-1] == 6 and bool(items[0]["success"].all())
+    with pytest.raises(Exception, match=r"expected 26 landmarks \(the face model's\), got 68"):
+        list(VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None)))
+    content = "0" * 64
+    assert cache_key(content, other, lm) != cache_key(content, replace(other, model=files[0]), lm)
+    assert "model" not in repr(TRACKING) and repr(other) == repr(TRACKING)  # (the key holds the file's hash)
+
+
+def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, files):
+    with pytest.raises(ValueError, match="has 26 landmarks, and a detector gives the 68 iBUG points"):
+        VideoDataset([clips[0].video], lambda image: None,
+                     DatasetConfig(tracking=replace(TRACKING, model=files[1])))  # fmt: skip
+    with pytest.raises(TypeError, match="model must be a path"):
+        FaceTrackingConfig(model=load_candide3())  # type: ignore[arg-type]
