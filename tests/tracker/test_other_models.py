@@ -135,8 +135,9 @@ def test_a_stream_lost_in_a_batch_tracks_as_alone_to_the_bit(which, beside_a_nea
     tracked alone to the bit at every frame, its LOST ones included (float32, CANDIDE-3 and the ICT Face Model), and
     so does the nearer one. The fast solver tracks in a crop as large as the batch's largest face, so a stream's crop
     offset depends on the others; its pixels were fx x + (cx - offset), rounded at the crop's scale: here up to
-    0.002 mm (CANDIDE-3, a LOST frame) and 6e-5 mm (ICT) apart, and with the ICT model on 640x480's occlusion scenario a LOST track on the background
-    drifted up to 80 mm from its course alone (the solve's convergence test flipped), then agreed after recovery."""
+    0.002 mm (CANDIDE-3, a LOST frame) and 6e-5 mm (ICT) apart, and with the ICT model on 640x480's occlusion
+    scenario a LOST track on the background drifted up to 80 mm from its course alone (the solve's convergence test
+    flipped), then agreed after recovery."""
     if which == "ict" and not ICT_NPZ.is_file():
         pytest.skip("../shared/assets/ict_facekit is absent")
     model = load_candide3() if which == "candide3" else load_ict_face_model(ICT_NPZ, area="narrow_eyes")
