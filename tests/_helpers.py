@@ -104,13 +104,14 @@ def candide_spec(name: str, ypr: list[list[float]], txyz: list[list[float]], wid
     )  # fmt: skip
 
 
-def leave_and_return_streams(width: int = 320, height: int = 240, frames: int = 12):
-    """Two rendered streams ``(2, T, 3, H, W)``: a gentle turn (12, -5, 4 degrees of yaw, pitch, roll and a few mm),
-    and a face that moves, leaves the frame to the right (frames 4-7) and comes back on the left (8 on); their first
-    landmarks ``(2, 68, 2)`` float32 and ground truths. For tests of loss and recovery on any device."""
+def leave_and_return_streams(width: int = 320, height: int = 240, frames: int = 12, depth_mm: float = 450.0):
+    """Two rendered streams ``(2, T, 3, H, W)``: a gentle turn (12, -5, 4 degrees of yaw, pitch, roll and a few mm)
+    at ``depth_mm``, and a face at 450 mm that moves, leaves the frame to the right (frames 4-7) and comes back on the
+    left (8 on); their first landmarks ``(2, 68, 2)`` float32 and ground truths. For tests of loss and recovery on
+    any device (with a nearer turn, its face sizes the batch's crop: test_other_models.py)."""
     s = torch.linspace(0, 1, frames, dtype=D)
     ypr = (s[:, None] * torch.tensor([12.0, -5.0, 4.0], dtype=D)).tolist()
-    txyz = (torch.tensor([0.0, 0.0, 450.0], dtype=D) + s[:, None] * torch.tensor([8.0, -4.0, 10.0], dtype=D)).tolist()
+    txyz = (torch.tensor([0.0, 0.0, depth_mm], dtype=D) + s[:, None] * torch.tensor([8.0, -4.0, 10.0], dtype=D)).tolist()
     x = ([0.0, 5.0, 10.0, 15.0] + [400.0] * 4 + [-60.0] * frames)[:frames]
     fa, ga = render_sequence(candide_spec("gentle", ypr, txyz, width, height))
     still = [[0.0, 0.0, 0.0]] * frames

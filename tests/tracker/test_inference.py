@@ -293,7 +293,9 @@ def test_a_state_made_in_a_callers_inference_mode_serves_frames_that_require_gra
     frame = frames[:, 2].clone().requires_grad_(True)
     new_state, got = step(model, CFG, state, frame)  # (first: a step without grad would cache normal tensors)
     _, want = step(model, CFG, state, frames[:, 2])
-    torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-5)
+    # (the torch solver, which gives the gradient, and the native one agree to float32's rounding: 3e-5 mm is one
+    # unit in the last place of a depth of 450 mm)
+    torch.testing.assert_close(got.translation, want.translation, rtol=0, atol=1e-4)
     (grad,) = torch.autograd.grad(got.translation.sum(), frame)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
     step(model, CFG, new_state.detach(), frames[:, 3].clone().requires_grad_(True))  # and on from there

@@ -16,7 +16,7 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _helpers import ICT_NPZ, leave_and_return_streams  # noqa: E402
 
-from torchface import FaceTracker, NormalisedFace, TrackerConfig  # noqa: E402
+from torchface import FaceTracker, NormalisedFace, TrackerConfig, _native  # noqa: E402
 from torchface.geometry.camera import Intrinsics  # noqa: E402
 from torchface.model import load_candide3, load_ict_face_model, load_mesh_model  # noqa: E402
 from torchface.synth.metrics import relative_rotation_error_deg  # noqa: E402
@@ -121,6 +121,40 @@ def test_a_half_precision_model_of_ones_own_is_told_how_to_convert_it(streams):
                             dtype=torch.float16)  # fmt: skip
     with pytest.raises(TypeError, match=r"the model is torch.float16 .*model\.to\(dtype=torch\.float32\)"):
         FaceTracker(TrackerConfig(), model).initialise(frames[:1, 0], lm[:1])
+
+
+@pytest.fixture(scope="module")
+def beside_a_nearer_face():
+    return leave_and_return_streams(frames=12, depth_mm=300.0)  # the turning face nearer: it sizes the batch's crop
+
+
+@pytest.mark.skipif(_native.library() is None, reason="native kernels unavailable (the torch solver rounds per crop)")
+@pytest.mark.parametrize("which", ["candide3", "ict"])
+def test_a_stream_lost_in_a_batch_tracks_as_alone_to_the_bit(which, beside_a_nearer_face):
+    """A face that leaves the frame and comes back, tracked in a batch beside a nearer face, equals the same stream
+    tracked alone to the bit at every frame, its LOST ones included (float32, CANDIDE-3 and the ICT Face Model), and
+    so does the nearer one. The fast solver tracks in a crop as large as the batch's largest face, so a stream's crop
+    offset depends on the others; its pixels were fx x + (cx - offset), rounded at the crop's scale: here up to
+    0.002 mm (CANDIDE-3, a LOST frame) and 6e-5 mm (ICT) apart, and with the ICT model on 640x480's occlusion
+    scenario a LOST track on the background drifted up to 80 mm from its course alone (the solve's convergence test
+    flipped), then agreed after recovery."""
+    if which == "ict" and not ICT_NPZ.is_file():
+        pytest.skip("../shared/assets/ict_facekit is absent")
+    model = load_candide3() if which == "candide3" else load_ict_face_model(ICT_NPZ, area="narrow_eyes")
+    frames, lm, _ = beside_a_nearer_face
+
+    def track(rows: slice) -> list:
+        tracker = FaceTracker(TrackerConfig(), model)
+        results = [tracker.initialise(frames[rows, 0], lm[rows])]
+        return results + [tracker(frames[rows, t]) for t in range(1, frames.shape[1])]
+
+    together = track(slice(0, 2))
+    assert any(int(r.status[1]) == 3 for r in together) and int(together[-1].status[1]) != 3  # lost, recovered
+    for b in range(2):
+        alone = track(slice(b, b + 1))
+        for t, (a, r) in enumerate(zip(alone, together)):
+            for name in FIELDS:
+                assert torch.equal(getattr(a, name)[0], getattr(r, name)[b]), (b, t, name)
 
 
 @pytest.mark.skipif(not ICT_NPZ.is_file(), reason="../shared/assets/ict_facekit is absent")

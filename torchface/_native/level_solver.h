@@ -48,11 +48,15 @@ static inline REAL FN(sample_border)(const REAL *img, int h, int w, REAL x, REAL
 
 /* linearise's geometry, point by point (vectorised; the arrays are separate, as restrict says): R X, the
  * projection x = X_c / Z, y = Y_c / Z and pixel (u, v) in the crop, and inside (1 / 0): in front of the near plane,
- * inside the crop and facing the camera. */
+ * inside the crop and facing the camera. (u, v) is the frame's pixel fx x + cx less the crop's offset (ox, oy),
+ * integers: exact wherever the point lies right of and below the crop's corner, so that its pixel and fractions are
+ * the whole frame's wherever the crop lies. (fx x + (cx - ox) rounded at the crop's scale, and the crop's size is
+ * the batch's largest face's: a stream in a batch was tracked to the rounding apart from the same stream alone, and
+ * in float32 an ICT Face Model track LOST on the background drifted up to 80 mm apart; test_other_models.py.) */
 __attribute__((noinline)) static void FN(geometry)(int N, const REAL *restrict X0, const REAL *restrict X1, const REAL *restrict X2,
                          const REAL *restrict n0, const REAL *restrict n1, const REAL *restrict n2, const REAL *R,
-                         const REAL *t, REAL fx, REAL fy, REAL u0, REAL v0, REAL umax, REAL vmax, REAL *restrict Xr0,
-                         REAL *restrict Xr1, REAL *restrict Xr2, REAL *restrict xs, REAL *restrict ys,
+                         const REAL *t, REAL fx, REAL fy, REAL cx, REAL cy, REAL ox, REAL oy, REAL umax, REAL vmax,
+                         REAL *restrict Xr0, REAL *restrict Xr1, REAL *restrict Xr2, REAL *restrict xs, REAL *restrict ys,
                          REAL *restrict izs, REAL *restrict us, REAL *restrict vs, REAL *restrict inside) {
     const REAL r00 = R[0], r01 = R[1], r02 = R[2], r10 = R[3], r11 = R[4], r12 = R[5], r20 = R[6], r21 = R[7],
                r22 = R[8], t0 = t[0], t1 = t[1], t2 = t[2], near = (REAL)TF_NEAR_PLANE_MM;
@@ -66,7 +70,7 @@ __attribute__((noinline)) static void FN(geometry)(int N, const REAL *restrict X
         REAL c0 = a0 + t0, c1 = a1 + t1, Z = a2 + t2;
         REAL iz = (REAL)1 / (Z > near ? Z : near);
         REAL x = c0 * iz, y = c1 * iz;
-        REAL u = fx * x + u0, v = fy * y + v0;
+        REAL u = (fx * x + cx) - ox, v = (fy * y + cy) - oy;
         xs[n] = x;
         ys[n] = y;
         izs[n] = iz;
@@ -125,7 +129,7 @@ static void FN(linearise)(const TFLevelProblem *p, int b, const REAL *R, const R
     const uint8_t *mask = p->mask + (size_t)b * N;
     const REAL *off = (const REAL *)p->offsets + 2 * b;
     const REAL fx = (REAL)p->fx, fy = (REAL)p->fy;
-    const REAL u0 = (REAL)p->cx - off[0], v0 = (REAL)p->cy - off[1];
+    const REAL cx = (REAL)p->cx, cy = (REAL)p->cy;
     const REAL hfx = (REAL)0.5 * fx, hfy = (REAL)0.5 * fy;
     const REAL umax = (REAL)(w - 1), vmax = (REAL)(h - 1);
     REAL *restrict X0 = out->tmp, *restrict X1 = X0 + NP, *restrict X2 = X1 + NP;
@@ -150,8 +154,8 @@ static void FN(linearise)(const TFLevelProblem *p, int b, const REAL *R, const R
     }
     /* turned and moved into the camera frame, projected; validity but for the sampled values (as 0 / 1 in s0,
      * a REAL row, for a vectorised loop) */
-    FN(geometry)(N, X0, X1, X2, nrm, nrm + N, nrm + 2 * N, R, t, fx, fy, u0, v0, umax, vmax, Xr0, Xr1, Xr2, xs, ys,
-                 izs, us, vs, s0);
+    FN(geometry)(N, X0, X1, X2, nrm, nrm + N, nrm + 2 * N, R, t, fx, fy, cx, cy, off[0], off[1], umax, vmax, Xr0, Xr1,
+                 Xr2, xs, ys, izs, us, vs, s0);
     for (int n = 0; n < N; ++n) valid[n] = (uint8_t)((mask[n] != 0) & (s0[n] != (REAL)0));
     /* the image at the points (and one pixel either side along u and v), point by point */
     for (int n = 0; n < N; ++n) {
