@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchface._device import available_devices, check_device
+from torchface._device import available_devices, check_device, check_to_device
 from torchface.model import FaceModel, load_candide3, load_mesh_model
 from torchface.normalise import NormalisedFace
 from torchface.tracker import FaceTracker, TrackerConfig
@@ -71,6 +71,7 @@ def test_a_cuda_index_beyond_the_gpus_says_how_many_there_are(monkeypatch):
     monkeypatch.setattr(torch.backends.cuda, "is_built", lambda: True)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: torch.device("cuda"))
     with pytest.raises(ValueError, match=r"^device 'cuda:7' is not available: 2 CUDA device\(s\) here \(cuda:0 to "
                                          r"cuda:1\); devices here: cpu, cuda:0, cuda:1"):  # fmt: skip
         check_device("cuda:7")
@@ -86,3 +87,16 @@ def test_devices_that_are_here_and_calls_without_a_device_pass():
     assert load_candide3(device=torch.device("cpu")).device.type == "cpu"
     with pytest.raises(TypeError, match="device must be a torch.device, a str or an int, got float 1.5"):
         check_device(1.5)  # type: ignore[arg-type]
+
+
+def test_an_int_is_the_current_accelerators_index(monkeypatch):
+    """``.to(0)`` / ``torch.device(0)`` is index 0 of the current accelerator (torch's reading): on Apple silicon
+    ``mps:0`` (simulated), refused before as "device 'cuda:0' is not available"; without an accelerator one
+    ValueError saying what an int names."""
+    with pytest.raises(ValueError, match=r"^device 0 is not available: an int is an accelerator's \(a GPU's\) index, "
+                                         r"and this machine has none; devices here: cpu"):  # fmt: skip
+        check_device(0)
+    monkeypatch.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: torch.device("mps"))
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
+    assert check_device(0) == torch.device("mps", 0)
+    check_to_device(0, torch.float32)  # (FaceTracker.to(0, torch.float32)'s check)

@@ -35,8 +35,9 @@ def available_devices() -> list[str]:
 def check_device(device: torch.device | str | int | None) -> torch.device | None:
     """``device`` as a ``torch.device`` (None as None), or a ``ValueError`` that names it and the devices this
     machine has when it is no device name, holds no data (``meta``) or is not here (``cuda`` in a torch built without
-    CUDA or on a machine without a GPU, ``cuda:7`` with fewer GPUs, ``mps`` off Apple silicon). An int is a CUDA
-    index, as ``nn.Module.cuda(0)`` takes it. Free for the CPU (no query of any backend).
+    CUDA or on a machine without a GPU, ``cuda:7`` with fewer GPUs, ``mps`` off Apple silicon). An int is read as
+    torch reads it (``.to(0)``, ``torch.device(0)``): an index of the current accelerator (``mps:0`` on Apple silicon,
+    ``cuda:0`` with a GPU; CUDA's alone in an older torch). Free for the CPU (no query of any backend).
 
     Example:
         >>> check_device("cpu")
@@ -50,11 +51,21 @@ def check_device(device: torch.device | str | int | None) -> torch.device | None
         return device
     if isinstance(device, bool) or not isinstance(device, (torch.device, str, int)):
         raise TypeError(f"device must be a torch.device, a str or an int, got {type(device).__name__} {device!r}")
-    try:
-        parsed = torch.device("cuda", device) if isinstance(device, int) else torch.device(device)
-    except (RuntimeError, ValueError):
-        raise ValueError(f"unknown torch device {device!r} (expected e.g. cpu, cuda, cuda:1, mps); devices here: "
-                         f"{', '.join(available_devices())}") from None  # fmt: skip
+    if isinstance(device, int) and device >= 0:
+        # (torch's reading, torch.device(0): the current accelerator's index; it was taken as CUDA's, and an Apple
+        # silicon machine's .to(0) refused as "device 'cuda:0' is not available")
+        accelerator = getattr(torch, "accelerator", None)  # (torch < 2.6: CUDA's)
+        kind = accelerator.current_accelerator() if accelerator is not None else torch.device("cuda")
+        if kind is None:  # (torch's own: "Cannot access accelerator device when none is available")
+            raise ValueError(f"device {device} is not available: an int is an accelerator's (a GPU's) index, and "
+                             f"this machine has none; devices here: {', '.join(available_devices())}")  # fmt: skip
+        parsed = torch.device(kind.type, device)
+    else:
+        try:
+            parsed = torch.device(device)
+        except (RuntimeError, ValueError):
+            raise ValueError(f"unknown torch device {device!r} (expected e.g. cpu, cuda, cuda:1, mps); devices here: "
+                             f"{', '.join(available_devices())}") from None  # fmt: skip
     if parsed.type == "cpu":
         return parsed
     name = str(parsed)  # ("cuda:0" as --device takes it, not a torch.device's repr)

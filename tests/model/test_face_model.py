@@ -235,3 +235,16 @@ def test_construction_refuses_negative_landmark_weights(model):
         FaceModel(**dict(fields, landmark_weights=off))
     rounded = model.to(torch.bfloat16).to(torch.float32)  # rounded weights (sums of 1.002) still pass
     assert rounded.landmark_weights.min() >= 0
+
+
+def test_construction_takes_a_rounding_error_below_zero_in_landmark_weights(model):
+    """A landmark on a triangle's edge has a barycentric weight of zero, computed as a rounding error below it
+    (-6e-8 in float32): it was refused as "must be non-negative"; a weight within 1e-2 below zero passes, as a row
+    sum within 1e-2 of one does."""
+    fields = {f.name: getattr(model, f.name) for f in dataclasses.fields(model)}
+    edge = model.landmark_weights.clone()
+    edge[5] = torch.tensor([0.4, 0.6 + 6e-8, -6e-8], dtype=edge.dtype)
+    assert FaceModel(**dict(fields, landmark_weights=edge)).landmark_weights[5, 2] == -6e-8
+    edge[5] = torch.tensor([0.4, 0.62, -0.02], dtype=edge.dtype)  # (2e-2 below zero: off the triangle)
+    with pytest.raises(ValueError, match=r"must be non-negative .* got -0\.02 for landmark 5"):
+        FaceModel(**dict(fields, landmark_weights=edge))

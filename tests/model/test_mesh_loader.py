@@ -316,7 +316,7 @@ def test_landmark_weights_place_landmarks_between_vertices():
     assert one.landmark_vertices.tolist() == load_mesh_model(mesh, landmark_vertices=[3, 1]).landmark_vertices.tolist()
     with pytest.raises(ValueError, match="rows must sum to one"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[0.2, 0.3, 0.4]])
-    with pytest.raises(ValueError, match="landmark_weights hold non-finite values"):
+    with pytest.raises(ValueError, match=r"landmark_weights must be finite, got \[nan, 0\.5, 0\.5\] for landmark 0"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[np.nan, 0.5, 0.5]])
     with pytest.raises(ValueError, match=r"landmark_vertices' shape \(1, 3\), got \(1, 2\)"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[0.5, 0.5]])
@@ -498,3 +498,18 @@ def test_landmark_weights_follow_face_models_rule_and_are_scaled_to_sum_to_one()
     assert thirds.landmark_weights[1].tolist() == [0.5, 0.5, 0.0]
     with pytest.raises(ValueError, match=r"rows must sum to one \(within 0\.01\), got 0\.98 for landmark 0"):
         load_mesh_model(mesh, landmark_vertices=[[1, 2, 3]], landmark_weights=[[0.3, 0.3, 0.38]])
+
+
+def test_landmark_weights_a_rounding_error_below_zero_and_names_given_as_an_iterator():
+    """Barycentric coordinates of a point on a triangle's edge come out a rounding error below zero (-6e-8 from
+    float32 numbers): they were refused as "must be non-negative", as were landmark names given as an iterator once
+    landmark_weights were ("landmark_names must hold 2 names, got 0": read twice). Such a weight is made zero, the
+    row scaled to sum to one; the names are taken."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    model = load_mesh_model(mesh, landmark_vertices=[[1, 2, 3], [0, 1, 2]], dtype=torch.float64,
+                            landmark_weights=[[0.5, 0.50000006, -6e-8], [0.25, 0.75, 0.0]],
+                            landmark_names=iter(["edge", "inside"]))  # fmt: skip
+    assert model.landmark_names == ("edge", "inside")
+    w = model.landmark_weights
+    assert float(w.min()) == 0.0 and w[0, 2] == 0.0 and w[1].tolist() == [0.25, 0.75, 0.0]
+    torch.testing.assert_close(w.sum(dim=1), torch.ones(2, dtype=torch.float64), rtol=0, atol=1e-15)

@@ -378,7 +378,8 @@ def test_nan_weight_is_ignored(model):
 def test_bad_inputs_raise(model):
     lm = torch.zeros(1, 68, 2, dtype=D)
     # (x, y, z) points, as 3D landmark detectors give them: told how to take their x and y
-    with pytest.raises(ValueError, match=r"\(B, 68, 2\) .*got \(1, 68, 3\) \(x, y, z points, .*: landmarks_px\[\.\.\., :2\]\)$"):
+    xyz = r"\(B, 68, 2\) .*got \(1, 68, 3\) \(x, y, z points, .*: landmarks_px\[\.\.\., :2\]\)$"
+    with pytest.raises(ValueError, match=xyz):
         fit_landmarks(model, torch.zeros(1, 68, 3, dtype=D), CAM)
     with pytest.raises(ValueError, match=r"\(B, 68, 2\) .*got \(68, 2\): one sample's, landmarks_px\[None\]$"):
         fit_landmarks(model, torch.zeros(68, 2, dtype=D), CAM)

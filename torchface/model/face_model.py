@@ -101,18 +101,21 @@ def deform_vertices(
     return verts
 
 
-#: How far from one a row of landmark weights may sum (:func:`check_landmark_weights`): a model cast to half or
-#: bfloat16 and back (``.to(dtype)``) keeps its weights rounded (sums of 1.002), a table written with three
-#: decimals sums to 0.999; ``load_mesh_model`` scales each row it is given to sum to one exactly.
+#: How far from one a row of landmark weights may sum, and how far below zero a weight may be
+#: (:func:`check_landmark_weights`): a model cast to half or bfloat16 and back (``.to(dtype)``) keeps its weights
+#: rounded (sums of 1.002), a table written with three decimals sums to 0.999, and barycentric coordinates computed
+#: for a point on a triangle's edge come out a rounding error below zero (-1e-17 in float64, -6e-8 in float32, more
+#: from float32 landmark positions); ``load_mesh_model`` clamps those to zero and scales each row to sum to one.
 LANDMARK_WEIGHT_SUM_TOLERANCE = 1e-2
 
 
 def check_landmark_weights(weights: Tensor, names: tuple[str, ...] | None = None) -> None:
     """Refuse ``(K, J)`` landmark weights that do not place each landmark on the mesh's surface: weights that are not
     finite, a negative one (a landmark is a point of a triangle or of its edge, barycentric weights in ``[0, 1]``:
-    a negative weight puts it off the triangle, in front of or behind the surface; ``(1.5, -0.5, 0)`` was taken), or
-    a row that does not sum to one within :data:`LANDMARK_WEIGHT_SUM_TOLERANCE` (a row of 0.9 moves its landmark a
-    tenth of the way to the head frame's origin). ``names`` (``K``) name the landmark in the message.
+    a negative weight puts it off the triangle, in front of or behind the surface; ``(1.5, -0.5, 0)`` was taken;
+    one within :data:`LANDMARK_WEIGHT_SUM_TOLERANCE` below zero, a rounding error, passes), or a row that does not
+    sum to one within :data:`LANDMARK_WEIGHT_SUM_TOLERANCE` (a row of 0.9 moves its landmark a tenth of the way to
+    the head frame's origin). ``names`` (``K``) name the landmark in the message.
 
     Example:
         >>> check_landmark_weights(torch.tensor([[0.5, 0.5, 0.0], [1.5, -0.5, 0.0]]), ("a", "b"))
@@ -123,21 +126,24 @@ def check_landmark_weights(weights: Tensor, names: tuple[str, ...] | None = None
     if not weights.numel():
         return
     w = weights.detach().to(torch.float64)
-    if not bool(torch.isfinite(w).all()):
-        raise ValueError("landmark_weights hold non-finite values (NaN or inf)")
+
+    def named(k: int) -> str:
+        return f"landmark {k}" + (f" ({names[k]!r})" if names is not None and k < len(names) else "")
+
+    finite = torch.isfinite(w).all(dim=1)
+    if not bool(finite.all()):
+        k = int((~finite).nonzero()[0, 0])
+        raise ValueError(f"landmark_weights must be finite, got {w[k].tolist()} for {named(k)}")
     rows = w.min(dim=1).values
     k = int(rows.argmin())
-    if float(rows[k]) < 0:
-        named = f" ({names[k]!r})" if names is not None and k < len(names) else ""
+    if float(rows[k]) < -LANDMARK_WEIGHT_SUM_TOLERANCE:
         raise ValueError(f"landmark_weights must be non-negative (barycentric in a triangle: a landmark on the "
-                         f"surface), got {float(rows[k]):.6g} for landmark {k}{named}")  # fmt: skip
-    off = (w.sum(dim=1) - 1.0).abs()
-    k = int(off.argmax())
-    if float(off[k]) > LANDMARK_WEIGHT_SUM_TOLERANCE:
-        named = f" ({names[k]!r})" if names is not None and k < len(names) else ""
-        sums = w.sum(dim=1)
+                         f"surface), got {float(rows[k]):.6g} for {named(k)}")  # fmt: skip
+    sums = w.sum(dim=1)
+    k = int((sums - 1.0).abs().argmax())
+    if abs(float(sums[k]) - 1.0) > LANDMARK_WEIGHT_SUM_TOLERANCE:
         raise ValueError(f"landmark_weights rows must sum to one (within {LANDMARK_WEIGHT_SUM_TOLERANCE:g}), got "
-                         f"{float(sums[k]):.6g} for landmark {k}{named} (sums in [{float(sums.min()):.6g}, "
+                         f"{float(sums[k]):.6g} for {named(k)} (sums in [{float(sums.min()):.6g}, "
                          f"{float(sums.max()):.6g}])")  # fmt: skip
 
 
@@ -179,8 +185,8 @@ class FaceModel:
         animation_names: ``A`` names.
         animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient.
         landmark_vertices: ``(K, 3)`` int64 vertex indices of each landmark.
-        landmark_weights: ``(K, 3)`` non-negative weights, ``l_k = sum_j w[k, j] verts[idx[k, j]]``; rows sum to
-            one (within 1e-2).
+        landmark_weights: ``(K, 3)`` non-negative weights (within 1e-2), ``l_k = sum_j w[k, j] verts[idx[k, j]]``;
+            rows sum to one (within 1e-2).
         landmark_names: ``K`` names (iBUG-68 order when ``K = 68``).
         facs_names: FACS action unit names, e.g. ``("AU2", "AU4", ...)``.
         facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.

@@ -283,7 +283,8 @@ def load_mesh_model(
         landmark_names: ``K`` names (default ``"landmark{k}"``).
         landmark_weights: ``(K, J)`` non-negative weights of ``(K, J)`` ``landmark_vertices``, ``l_k = sum_j w[k, j]
             verts[idx[k, j]]`` (barycentric coordinates in a triangle, as CANDIDE-3's table holds them; rows that
-            sum to one within 1e-2, a table of three decimals, are scaled to sum to one exactly: the rule of
+            sum to one within 1e-2, a table of three decimals, are scaled to sum to one exactly, and a weight within
+            1e-2 below zero, a rounding error, is made zero: the rule of
             :func:`~torchface.model.face_model.check_landmark_weights`), or ``None``: each landmark on its vertex.
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
             convention).
@@ -309,7 +310,8 @@ def load_mesh_model(
         ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
             (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
-            finite, one is negative or a row does not sum to one within 1e-2, the file holds no triangles, they are not wound consistently or
+            finite, one is negative or a row does not sum to one (each within 1e-2), the file holds no triangles,
+            they are not wound consistently or
             the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
             positive and finite, a ``facs_links`` name is not a blendshape name, or ``device`` is not a device this
             machine has (the message lists those it has).
@@ -410,11 +412,14 @@ def load_mesh_model(
             lm_w = lm_w[:, None] if lm_w.ndim == 1 else lm_w
             if lm_w.shape != lm_idx.shape:
                 raise ValueError(f"landmark_weights must have landmark_vertices' shape {given}, got {weights_given}")
-            # FaceModel's rule (non-negative, rows summing to one within 1e-2; it was within 1e-6 here and negative
-            # weights passed both), then each row scaled to sum to one exactly (one that does is kept to the bit)
-            names = _as_names(landmark_names, lm_idx.shape[0], "landmark_names", "landmark")
-            check_landmark_weights(torch.from_numpy(lm_w), names)
+            # FaceModel's rule (non-negative, rows summing to one, each within 1e-2; it was within 1e-6 here and
+            # negative weights passed both), then a rounding error below zero clamped to it and each row scaled to
+            # sum to one exactly (one that does, without a negative weight, is kept to the bit). (The names made a
+            # tuple once: an iterator of them was used up here, and refused below as "must hold 2 names, got 0".)
+            landmark_names = _as_names(landmark_names, lm_idx.shape[0], "landmark_names", "landmark")
+            check_landmark_weights(torch.from_numpy(lm_w), landmark_names)
             if lm_w.size:
+                lm_w = np.maximum(lm_w, 0.0)
                 lm_w = lm_w / lm_w.sum(axis=1, keepdims=True)
         # FaceModel holds three (vertex, weight) pairs a landmark: the first vertex again, at weight 0, pads them
         pad = 3 - lm_idx.shape[1]
