@@ -221,3 +221,22 @@ def test_scripts_command_lines_in_the_docs_name_options_their_scripts_have():
         assert options <= _script_options(script), (script, sorted(options - _script_options(script)))
         if script == "doc_figures.py" and rest.strip():
             assert rest.split()[0] in subcommands, rest
+
+
+def test_readme_scripts_section_names_options_of_the_scripts_each_item_is_about():
+    """Each item of the README's "Scripts" list is about the scripts it names: every ``--option`` it quotes (without
+    the script's name beside it: ``--noise-seeds 0,1,2,3`` of evaluate.py) is one of theirs, and every name in
+    brackets that doc_figures.py's item gives as a subcommand is one."""
+    section = PAGES["README.md"].split("\n## Scripts\n", 1)[1].split("\n## ", 1)[0]
+    items = [" ".join(item.split()) for item in re.split(r"^- ", section, flags=re.M)[1:]]
+    assert len(items) >= 10
+    for item in items:
+        scripts = re.findall(r"`scripts/(\w+\.py)", item)
+        assert scripts and all((ROOT / "scripts" / s).is_file() for s in scripts), item[:80]
+        options = {o for o in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", item) if o != "--no-deps"}  # (pip's)
+        theirs = set().union(*(_script_options(s) for s in scripts))
+        assert options <= theirs, (scripts, sorted(options - theirs))
+    (figures,) = [i for i in items if i.startswith("`scripts/doc_figures.py`")]
+    subcommands = set(re.findall(r'add_parser\(\s*"([\w-]+)"', (ROOT / "scripts" / "doc_figures.py").read_text()))
+    named = set(re.findall(r"`([a-z]+(?:-[a-z]+)+)`", figures))
+    assert named and named <= subcommands, sorted(named - subcommands)
