@@ -240,3 +240,40 @@ def test_readme_scripts_section_names_options_of_the_scripts_each_item_is_about(
     subcommands = set(re.findall(r'add_parser\(\s*"([\w-]+)"', (ROOT / "scripts" / "doc_figures.py").read_text()))
     named = set(re.findall(r"`([a-z]+(?:-[a-z]+)+)`", figures))
     assert named and named <= subcommands, sorted(named - subcommands)
+
+
+# Settings spans that name a placeholder rather than a value, and why they are not built.
+SETTINGS_PLACEHOLDERS = {
+    "...": "an elided argument (`FaceTracker(detector=...)`, `TrackerConfig(backend=...)`)",
+    "=)": "a keyword named alone (`FaceTracker(detector=)`)",
+    '.to("cuda")': "needs a CUDA GPU (tests/test_cuda.py)",
+}
+
+
+def test_settings_the_docs_quote_are_valid():
+    """Every inline ``TrackerConfig(...)``, ``TemplateConfig(...)``, ``FaceTracker(...)`` ... of README.md and docs/
+    (the settings a user copies: `TemplateConfig(restart_after_unmatched=2)`, the eyelid configuration, ...) is
+    built as written (``k`` and ``model``, the placeholders the text names, as a number in [0, 1] and CANDIDE-3):
+    a renamed or removed field, or a value the checks refuse, fails here."""
+    from torchface.job import JobConfig
+    from torchface.model import load_candide3
+    from torchface.template import DissimilarityConfig, TemplateConfig
+    from torchface.tracker import FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
+    from training_hooks import DatasetConfig, FaceTrackingConfig, LayerConfig
+
+    scope = {c.__name__: c for c in (JobConfig, DissimilarityConfig, TemplateConfig, FaceTracker, FitConfig,
+                                     LookaheadConfig, TrackerConfig, DatasetConfig, FaceTrackingConfig, LayerConfig)}
+    scope.update(k=0.5, model=load_candide3())
+    names = "|".join(scope)
+    built = 0
+    for page, text in PAGES.items():
+        for span in re.findall(r"`([^`]+)`", re.sub(r"```.*?```", "", text, flags=re.S)):
+            code = " ".join(span.split())
+            if not re.match(rf"(?:{names})\(", code) or any(p in code for p in SETTINGS_PLACEHOLDERS):
+                continue
+            try:
+                eval(code, dict(scope))  # noqa: S307 (the docs' own text)
+            except Exception as error:  # noqa: BLE001
+                raise AssertionError(f"{page}: `{code}` does not build: {type(error).__name__}: {error}") from error
+            built += 1
+    assert built >= 25
