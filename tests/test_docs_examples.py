@@ -26,7 +26,8 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = {p: (ROOT / p).read_text(encoding="utf-8") for p in ["README.md", *sorted(f"docs/{f.name}" for f in (ROOT / "docs").glob("*.md"))]}
+PAGE_NAMES = ["README.md", *sorted(f"docs/{f.name}" for f in (ROOT / "docs").glob("*.md"))]
+PAGES = {p: (ROOT / p).read_text(encoding="utf-8") for p in PAGE_NAMES}
 
 
 def _blocks(language: str) -> list[tuple[str, str, str]]:
@@ -43,13 +44,16 @@ def _blocks(language: str) -> list[tuple[str, str, str]]:
 # checks what its text says), or skipped for the reason given. A block not listed fails
 # test_every_python_block_is_run_or_skipped_for_a_reason.
 RUN_HERE = {
-    ("README.md", "Learning pipelines: `training_hooks`"): "test_readme_training_hooks_block_runs_and_gives_the_shapes_it_states",
+    ("README.md", "Learning pipelines: `training_hooks`"):
+        "test_readme_training_hooks_block_runs_and_gives_the_shapes_it_states",
     ("docs/python-api.md", "Keeping the expression"): "test_keeping_the_expression_block_runs_in_a_fresh_namespace",
 }  # fmt: skip
 RUN_ELSEWHERE = {
-    ("README.md", "Python API"): "tests/test_readme.py::test_readme_python_api_example_runs_and_gives_the_shapes_it_states",
+    ("README.md", "Python API"):
+        "tests/test_readme.py::test_readme_python_api_example_runs_and_gives_the_shapes_it_states",
     ("docs/python-api.md", "Other face models"):
-        "tests/tracker/test_other_models.py::test_docs_example_candide3_through_load_mesh_model_tracks_as_load_candide3",
+        "tests/tracker/test_other_models.py::"
+        "test_docs_example_candide3_through_load_mesh_model_tracks_as_load_candide3",
 }  # fmt: skip
 SKIPPED: dict[tuple[str, str], str] = {}  # (none yet: a block that needs a GPU, MediaPipe or a user's video goes here)
 
@@ -63,7 +67,8 @@ def test_every_python_block_is_run_or_skipped_for_a_reason():
     found = [(p, h) for p, h, _ in _blocks("python")]
     assert len(found) == len(set(found)), "two python blocks under one heading: tell them apart here"
     listed = {**RUN_HERE, **RUN_ELSEWHERE, **SKIPPED}
-    assert set(found) == set(listed), f"not listed: {sorted(set(found) - set(listed))}; gone: {sorted(set(listed) - set(found))}"
+    unlisted, gone = sorted(set(found) - set(listed)), sorted(set(listed) - set(found))
+    assert not unlisted and not gone, f"not listed: {unlisted}; listed but gone: {gone}"
     for name in RUN_HERE.values():
         assert callable(globals().get(name)), name
     for target in RUN_ELSEWHERE.values():
@@ -135,13 +140,14 @@ def _readme_command_lines() -> list[str]:
 
 # The README's shell lines that are not ``torchface ...`` (its first block), and why they are not run here.
 SHELL_SKIPPED = {
-    "bash scripts/demo.sh": "makes ./.venv with pip (downloads): tests/test_venv_setup.py runs it with stand-in Pythons",
+    "bash scripts/demo.sh": "makes ./.venv with pip (downloads): tests/test_venv_setup.py runs it, stand-in Pythons",
     "bash scripts/test.sh": "makes ./.venv with pip and runs the whole suite: tests/test_venv_setup.py as above",
 }
 
 
 def test_readme_shell_lines_are_all_accounted_for():
-    lines = [line.split("#")[0].strip() for page, _, b in _blocks("bash") if page == "README.md" for line in b.splitlines()]
+    blocks = [b for page, _, b in _blocks("bash") if page == "README.md"]
+    lines = [line.split("#")[0].strip() for b in blocks for line in b.splitlines()]
     others = {line for line in lines if line and not line.startswith("torchface ")}
     assert others == set(SHELL_SKIPPED), sorted(others ^ set(SHELL_SKIPPED))
     assert all(re.search(rf"`{re.escape(s)}`|\b{re.escape(s)}\b", PAGES["README.md"]) for s in SHELL_SKIPPED)
