@@ -11,8 +11,10 @@ Usage:
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -23,6 +25,9 @@ from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.tracker import FaceTracker, TrackerConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import integer  # noqa: E402
 
 
 def main(batches: list[int]) -> None:
@@ -59,4 +64,7 @@ def main(batches: list[int]) -> None:
 
 
 if __name__ == "__main__":
-    main([int(a) for a in sys.argv[1:]] or [1, 4, 8])
+    # (it read sys.argv as integers: --help, the docs' way to learn a script, was a ValueError traceback)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("batches", nargs="*", type=integer(1), metavar="B", help="streams per run (default 1 4 8)")
+    main(parser.parse_args().batches or [1, 4, 8])
