@@ -332,9 +332,10 @@ class VideoDataset(IterableDataset):
         config: :class:`DatasetConfig`.
 
     Raises:
-        TypeError, ValueError: bad arguments (checked here); problems with a video's content
-            (:class:`~torchface.io.InputError`) surface when it is read, in the worker, and reach the caller
-            through the ``DataLoader``.
+        TypeError, ValueError: bad arguments (checked here; also a missing or damaged face model file of
+            :attr:`FaceTrackingConfig.model <training_hooks.transforms.FaceTrackingConfig.model>`, an
+            :class:`~torchface.io.InputError`); problems with a video's content (:class:`~torchface.io.InputError`)
+            surface when it is read, in the worker, and reach the caller through the ``DataLoader``.
 
     Example:
         >>> # data = VideoDataset(["a.avi"], [np.load("a_lm.npy")], DatasetConfig(clip_length=8))
@@ -385,9 +386,10 @@ class VideoDataset(IterableDataset):
                     )
             self.detector, self.landmarks = None, tuple(landmarks)
         self._normalise: NormaliseFaces | None = None
-        if self.detector is not None and self.config.tracking.model is not None:
-            # (a detector gives the 68 iBUG points: refused here, not in a worker at the first video)
-            if self.model.num_landmarks != NUM_LANDMARKS:
+        if self.config.tracking.model is not None:
+            # (the model file read and checked here, not in each worker at its first video: a missing or damaged
+            # file was found only when the first video was tracked; a detector gives the 68 iBUG points)
+            if self.model.num_landmarks != NUM_LANDMARKS and self.detector is not None:
                 raise ValueError(
                     f"{os.fspath(self.config.tracking.model)}: the face model {self.model.name!r} has "
                     f"{self.model.num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from th_data import TRACKING
+from torchface.io import InputError
 from torchface.synth.io import read_video
 from torchface.model import load_candide3, save_face_model
 from training_hooks import DatasetConfig, FaceTrackingConfig, NormaliseFaces, VideoDataset, cache_key
@@ -59,3 +60,12 @@ def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, 
                      DatasetConfig(tracking=replace(TRACKING, model=files[1])))  # fmt: skip
     with pytest.raises(TypeError, match="model must be a path"):
         FaceTrackingConfig(model=load_candide3())  # type: ignore[arg-type]
+
+
+def test_a_bad_model_file_is_refused_when_the_dataset_is_made(clips, tmp_path):
+    """A missing or damaged model file with landmarks given: refused by VideoDataset(...) itself, as with a detector
+    (it was found only when the first video was tracked, in each DataLoader worker)."""
+    (tmp_path / "bad.npz").write_text("not a model\n")
+    for path, said in ((tmp_path / "nope.npz", "no such face model file"), (tmp_path / "bad.npz", "not a torchface")):
+        with pytest.raises(InputError, match=said):
+            VideoDataset([clips[0].video], [clips[0].landmarks], DatasetConfig(tracking=replace(TRACKING, model=path)))
