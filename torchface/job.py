@@ -1625,6 +1625,9 @@ def track_videos(
         from torchface.detect import load_detector
 
         detector = load_detector(config.detector)
+    elif not config.landmarks and model.num_landmarks != NUM_LANDMARKS:  # (a detector is refused for it)
+        raise InputError(f"no initialisation: give --landmarks FILE (the {model.num_landmarks} landmarks of the face "
+                         f"model {model.name!r}, of the first frame, in its order)")  # fmt: skip
     elif not config.landmarks:
         raise InputError(
             "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"

@@ -121,6 +121,10 @@ def test_what_a_model_cannot_track_is_refused_before_anything_is_written(clip, t
     out = tmp_path / "out"
     with pytest.raises(InputError, match="has 26 landmarks, and the dlib detector gives the 68 iBUG points"):
         track_videos([video], JobConfig(out, detector="dlib", model=root / "other.npz"))  # (dlib need not be there)
+    # (neither landmarks nor a detector: it said "give --landmarks FILE (68 iBUG points ...) or --detector NAME")
+    said = r"give --landmarks FILE \(the 26 landmarks of the face model 'CANDIDE-3, 6 AUVs, 26 landmarks', of the first"
+    with pytest.raises(InputError, match=said + r" frame, in its order\)$"):
+        track_videos([video], JobConfig(out, model=root / "other.npz"))
     with pytest.raises(InputError, match=r"lm68.csv: expected 26 landmarks \(the face model's\), got 68"):
         track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",), model=root / "other.npz"))
     with pytest.raises(InputError, match="expected 68 iBUG landmarks, got 26"):
