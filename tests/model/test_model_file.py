@@ -147,6 +147,9 @@ def test_save_refuses_what_it_cannot_keep(tmp_path):
         save_face_model("candide", tmp_path / "x.npz")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="NUL"):
         save_face_model(replace(load_candide3(), name="a\0"), tmp_path / "x.npz")
+    c = load_candide3()  # (the message names the name: it said "a name ends in a NUL character")
+    with pytest.raises(ValueError, match=r"animation_names: 'AUV3 Brow lowerer\\x00' ends in a NUL"):
+        save_face_model(replace(c, animation_names=tuple(n + "\0" if k == 3 else n for k, n in enumerate(c.animation_names))), tmp_path / "x.npz")
     assert not list(tmp_path.iterdir())
     with pytest.raises(TypeError, match="floating"):
         load_face_model(tmp_path / "x.npz", dtype=torch.int64)

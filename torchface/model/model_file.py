@@ -91,8 +91,10 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
             arrays[f.name] = _array(value)
         else:
             texts = (value,) if f.name == "name" else value
-            if any(t.endswith("\0") for t in texts):
-                raise ValueError(f"{f.name}: a name ends in a NUL character, which the file cannot keep")
+            bad = [t for t in texts if t.endswith("\0")]
+            if bad:  # (which one: a model has dozens of names)
+                raise ValueError(f"{f.name}: {bad[0]!r} ends in a NUL character, which the file cannot keep (numpy's "
+                                 "text arrays drop it)")  # fmt: skip
             arrays[f.name] = np.array(value) if f.name == "name" else np.array(list(value), dtype=np.str_)
     target = Path(path)
     tmp = target.with_name(target.name + ".partial")
