@@ -16,6 +16,9 @@ So a model saved and loaded in its own dtype is the same to the bit, and one sav
 round their ``float64`` arithmetic: ``load_face_model(p)`` of ``save_face_model(load_candide3(dtype=torch.float64),
 p)`` equals ``load_candide3()`` to the bit. ``torchface track --model FILE`` (:class:`torchface.job.JobConfig`'s
 ``model``) tracks with such a file.
+
+Entries of other names are left unread (a later version that adds one without changing what these mean keeps the
+format version).
 """
 
 from __future__ import annotations
