@@ -90,6 +90,7 @@ import threading
 import time
 import unicodedata
 import warnings
+import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
@@ -1020,8 +1021,17 @@ def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str,
     }  # fmt: skip
 
 
-#: :func:`~torchface.model.face_model_digest` of the model a job tracks with (one object all through the job).
-_digest = lru_cache(maxsize=1)(face_model_digest)
+#: :func:`~torchface.model.face_model_digest` of the models jobs track with, while they exist (one object all through
+#: a job; an ``lru_cache`` kept the last job's model, on its device, alive after the job).
+_DIGESTS: weakref.WeakKeyDictionary[FaceModel, str] = weakref.WeakKeyDictionary()
+
+
+def _digest(model: FaceModel) -> str:
+    """:func:`~torchface.model.face_model_digest` of ``model``, computed once per model object."""
+    digest = _DIGESTS.get(model)
+    if digest is None:
+        digest = _DIGESTS[model] = face_model_digest(model)
+    return digest
 
 
 @lru_cache(maxsize=1)
@@ -1625,6 +1635,9 @@ def track_videos(
         from torchface.detect import load_detector
 
         detector = load_detector(config.detector)
+    elif not config.landmarks and model.num_landmarks != NUM_LANDMARKS:  # (a detector is refused for it)
+        raise InputError(f"no initialisation: give --landmarks FILE (the {model.num_landmarks} landmarks of the face "
+                         f"model {model.name!r}, of the first frame, in its order)")  # fmt: skip
     elif not config.landmarks:
         raise InputError(
             "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"

@@ -10,7 +10,7 @@ Key (:func:`cache_key`): a BLAKE2b hash of
 - the first-frame landmarks (float64 bytes; a missing point, a NaN row, as one NaN whatever its bits) and the
   frame they are of, where it is not the video's first (a dataset's detector found no face before it);
 - the face model file's content (:func:`content_hash`), where the config names one
-  (:attr:`~training_hooks.transforms.FaceTrackingConfig.model`);
+  (:attr:`~training_hooks.transforms.FaceTrackingConfig.model`; a dataset's: as it read the model from it);
 - any extra text the caller adds (the datasets add their frame-conversion setting);
 - the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
   and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`.
@@ -120,7 +120,8 @@ def content_hash(path: str | os.PathLike[str]) -> str:
 
 
 def cache_key(
-    content: str, config: FaceTrackingConfig, landmarks: np.ndarray, extra: str = "", first_frame: int = 0
+    content: str, config: FaceTrackingConfig, landmarks: np.ndarray, extra: str = "", first_frame: int = 0,
+    model_content: str | None = None,
 ) -> str:
     """The cache key of a sequence (module docstring): 64 hex digits.
 
@@ -133,6 +134,9 @@ def cache_key(
         first_frame: the video's frame the landmarks are of, where the tracking starts (a dataset's detector found
             no face before it); hashed where it is not 0, so that the key of a sequence tracked from the video's
             first frame is the one it had before the frame counted.
+        model_content: with the config's ``model``, the :func:`content_hash` of the model file as it was when the
+            model tracked with was read from it (the datasets give theirs: a file saved again since keys apart the
+            sequences of the model read before); None: the file as it is now.
 
     Example:
         >>> from training_hooks.transforms import FaceTrackingConfig
@@ -143,6 +147,8 @@ def cache_key(
     """
     if not isinstance(config, FaceTrackingConfig):
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
+    if model_content is not None and config.model is None:
+        raise ValueError("model_content is the content of config.model's file, and config has no model")
     first_frame = check_int(first_frame, "first_frame", 0)
     points = np.ascontiguousarray(np.asarray(landmarks, dtype=np.float64))
     if points.ndim != 2 or points.shape[1] != 2 or (config.model is None and points.shape[0] != 68):
@@ -154,7 +160,7 @@ def cache_key(
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
         f"native={native}", content, repr(config), extra, *([f"first_frame={first_frame}"] if first_frame else []),
-        *([f"model={content_hash(config.model)}"] if config.model is not None else []),  # (not in the repr)
+        *([f"model={model_content or content_hash(config.model)}"] if config.model is not None else []),  # (no repr)
     )  # fmt: skip
     for part in parts:
         data = part.encode("utf-8")

@@ -332,9 +332,10 @@ class VideoDataset(IterableDataset):
         config: :class:`DatasetConfig`.
 
     Raises:
-        TypeError, ValueError: bad arguments (checked here); problems with a video's content
-            (:class:`~torchface.io.InputError`) surface when it is read, in the worker, and reach the caller
-            through the ``DataLoader``.
+        TypeError, ValueError: bad arguments (checked here; also a missing or damaged face model file of
+            :attr:`FaceTrackingConfig.model <training_hooks.transforms.FaceTrackingConfig.model>`, an
+            :class:`~torchface.io.InputError`); problems with a video's content (:class:`~torchface.io.InputError`)
+            surface when it is read, in the worker, and reach the caller through the ``DataLoader``.
 
     Example:
         >>> # data = VideoDataset(["a.avi"], [np.load("a_lm.npy")], DatasetConfig(clip_length=8))
@@ -385,12 +386,21 @@ class VideoDataset(IterableDataset):
                     )
             self.detector, self.landmarks = None, tuple(landmarks)
         self._normalise: NormaliseFaces | None = None
-        if self.detector is not None and self.config.tracking.model is not None:
-            # (a detector gives the 68 iBUG points: refused here, not in a worker at the first video)
-            if self.model.num_landmarks != NUM_LANDMARKS:
+        self._model_content: str | None = None  # (content_hash of the model file as the model was read from it)
+        if self.config.tracking.model is not None:
+            # (the model file read and checked here, not in each worker at its first video: a missing or damaged
+            # file was found only when the first video was tracked; a detector gives the 68 iBUG points)
+            path = self.config.tracking.model
+            before = content_hash(path) if Path(path).is_file() else None
+            model = self.model  # (InputError for a missing or damaged file; the workers get the model read here)
+            self._model_content = content_hash(path)
+            if before != self._model_content:
+                raise InputError(f"{os.fspath(path)}: the face model file changed while it was read: make the "
+                                 "dataset again")  # fmt: skip
+            if model.num_landmarks != NUM_LANDMARKS and self.detector is not None:
                 raise ValueError(
-                    f"{os.fspath(self.config.tracking.model)}: the face model {self.model.name!r} has "
-                    f"{self.model.num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "
+                    f"{os.fspath(path)}: the face model {model.name!r} has "
+                    f"{model.num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "
                     "each video's first-frame landmarks of the model instead of a detector"
                 )
         self._shared = _shared_state(len(self.videos)).share_memory_()
@@ -554,7 +564,10 @@ class VideoDataset(IterableDataset):
 
     def _key(self, content: str, start: int, landmarks: np.ndarray) -> str:
         """The cache key of a video of content ``content`` tracked from frame ``start``'s ``landmarks``."""
-        return cache_key(content, self.config.tracking, landmarks, self._key_extra(), first_frame=start)
+        # (the model file's content as the model tracked with was read from it: a file saved again since, while
+        # this dataset's workers still track with the model read before, keyed that model's sequences as the new one's)
+        return cache_key(content, self.config.tracking, landmarks, self._key_extra(), first_frame=start,
+                         model_content=self._model_content)  # fmt: skip
 
     def count_items(self) -> list[int]:
         """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch)."""

@@ -4,6 +4,7 @@ model of other landmarks, landmarks files of another count and bad model files a
 
 from __future__ import annotations
 
+import gc
 import json
 from dataclasses import replace
 
@@ -14,7 +15,7 @@ import torch
 from torchface.cli import main
 from torchface.io import InputError, read_track_csv
 from torchface.job import JobConfig, output_paths, track_videos
-from torchface.model import face_model_digest, load_candide3, save_face_model
+from torchface.model import FaceModel, face_model_digest, load_candide3, save_face_model
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 
@@ -121,6 +122,10 @@ def test_what_a_model_cannot_track_is_refused_before_anything_is_written(clip, t
     out = tmp_path / "out"
     with pytest.raises(InputError, match="has 26 landmarks, and the dlib detector gives the 68 iBUG points"):
         track_videos([video], JobConfig(out, detector="dlib", model=root / "other.npz"))  # (dlib need not be there)
+    # (neither landmarks nor a detector: it said "give --landmarks FILE (68 iBUG points ...) or --detector NAME")
+    said = r"give --landmarks FILE \(the 26 landmarks of the face model 'CANDIDE-3, 6 AUVs, 26 landmarks', of the first"
+    with pytest.raises(InputError, match=said + r" frame, in its order\)$"):
+        track_videos([video], JobConfig(out, model=root / "other.npz"))
     with pytest.raises(InputError, match=r"lm68.csv: expected 26 landmarks \(the face model's\), got 68"):
         track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",), model=root / "other.npz"))
     with pytest.raises(InputError, match="expected 68 iBUG landmarks, got 26"):
@@ -151,3 +156,12 @@ def test_a_model_whose_landmarks_cannot_start_a_track_is_refused_up_front(clip, 
     with pytest.raises(InputError, match=r"three.npz: the model 'CANDIDE-3 v3.1.6' has 3 landmarks"):
         track_videos([video], JobConfig(out, landmarks=(tmp_path / "lm3.csv",), model=tmp_path / "three.npz"))
     assert not out.exists()
+
+
+def test_a_job_keeps_no_model_alive_after_it(clip, tmp_path):
+    """The job's model (on its device) is not held once the job is over (an lru_cache of its digest kept the last
+    job's model alive: on a GPU, its memory)."""
+    video, root = clip
+    track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm26.csv",), model=root / "other.npz"))
+    gc.collect()
+    assert not [o for o in gc.get_objects() if isinstance(o, FaceModel) and o.name.endswith("26 landmarks")]

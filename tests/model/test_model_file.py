@@ -147,6 +147,61 @@ def test_save_refuses_what_it_cannot_keep(tmp_path):
         save_face_model("candide", tmp_path / "x.npz")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="NUL"):
         save_face_model(replace(load_candide3(), name="a\0"), tmp_path / "x.npz")
+    c = load_candide3()  # (the message names the name: it said "a name ends in a NUL character")
+    with pytest.raises(ValueError, match=r"animation_names: 'AUV3 Brow lowerer\\x00' ends in a NUL"):
+        save_face_model(replace(c, animation_names=tuple(n + "\0" if k == 3 else n for k, n in enumerate(c.animation_names))), tmp_path / "x.npz")
     assert not list(tmp_path.iterdir())
     with pytest.raises(TypeError, match="floating"):
         load_face_model(tmp_path / "x.npz", dtype=torch.int64)
+
+
+def test_device_is_checked_before_the_file_is_read(tmp_path):
+    """A device this machine lacks is load_candide3's one ValueError naming it (it was torch's RuntimeError "Invalid
+    device string", an AssertionError "Torch not compiled with CUDA enabled" or, for "meta", a RuntimeError from the
+    model's checks), before the file is read, as load_mesh_model checks it."""
+    save_face_model(load_candide3(), tmp_path / "c.npz")
+    for path in (tmp_path / "c.npz", tmp_path / "nope.npz"):
+        for device in ("gpu0", "meta"):
+            with pytest.raises(ValueError, match=f"'{device}'.*devices here: cpu"):
+                load_face_model(path, device=device)
+
+
+def test_a_file_of_the_other_byte_order_loads_as_its_own(tmp_path):
+    """Arrays of the other byte order (np.savez keeps the writing machine's: a big-endian one's file) load as the
+    same model (torch refused them: a bare ValueError "given numpy array has byte order different ...")."""
+    model = load_candide3()
+    p = tmp_path / "c.npz"
+    save_face_model(model, p)
+    with np.load(p, allow_pickle=False) as data:
+        swapped = {k: data[k].astype(data[k].dtype.newbyteorder("S")) for k in data.files}
+    assert swapped["mean"].dtype.byteorder != "=" and swapped["name"].dtype.byteorder != "="
+    _archive(p, **swapped)
+    assert _same(load_face_model(p), model)
+
+
+def test_unsigned_indices_load_and_a_damaged_compressed_archive_is_refused(tmp_path):
+    """``faces`` / ``landmark_vertices`` as uint32 (a mesh library's usual index type) load (they were refused as
+    "uint32, not integer values"); a damaged np.savez_compressed archive is one InputError line (zlib.error came
+    out bare)."""
+    model = load_candide3()
+    p = tmp_path / "c.npz"
+    save_face_model(model, p)
+    _archive(p, faces=model.faces.numpy().astype(np.uint32), landmark_vertices=model.landmark_vertices.numpy()
+             .astype(np.uint16))  # fmt: skip
+    assert _same(load_face_model(p), model)
+    _archive(p, faces=np.full((184, 3), 2**63 + 5, dtype=np.uint64))  # (no int64: refused as an index)
+    with pytest.raises(InputError):
+        load_face_model(p)
+    save_face_model(model, p)
+    with np.load(p, allow_pickle=False) as data:
+        np.savez_compressed(tmp_path / "z.npz", **{k: data[k] for k in data.files})
+    assert _same(load_face_model(tmp_path / "z.npz"), model)
+    raw = bytearray((tmp_path / "z.npz").read_bytes())
+    with zipfile.ZipFile(tmp_path / "z.npz") as z:
+        info = z.getinfo("mean.npy")
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)
+    raw[start : start + info.compress_size] = b"\xff" * info.compress_size  # (deflate: an invalid block type)
+    (tmp_path / "z.npz").write_bytes(bytes(raw))
+    with pytest.raises(InputError, match="not a torchface face model file") as info_:
+        load_face_model(tmp_path / "z.npz")
+    assert "\n" not in str(info_.value)

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from th_data import TRACKING
+from torchface.io import InputError
 from torchface.synth.io import read_video
 from torchface.model import load_candide3, save_face_model
 from training_hooks import DatasetConfig, FaceTrackingConfig, NormaliseFaces, VideoDataset, cache_key
@@ -59,3 +60,37 @@ def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, 
                      DatasetConfig(tracking=replace(TRACKING, model=files[1])))  # fmt: skip
     with pytest.raises(TypeError, match="model must be a path"):
         FaceTrackingConfig(model=load_candide3())  # type: ignore[arg-type]
+
+
+def test_a_bad_model_file_is_refused_when_the_dataset_is_made(clips, tmp_path):
+    """A missing or damaged model file with landmarks given: refused by VideoDataset(...) itself, as with a detector
+    (it was found only when the first video was tracked, in each DataLoader worker)."""
+    (tmp_path / "bad.npz").write_text("not a model\n")
+    for path, said in ((tmp_path / "nope.npz", "no such face model file"), (tmp_path / "bad.npz", "not a torchface")):
+        with pytest.raises(InputError, match=said):
+            VideoDataset([clips[0].video], [clips[0].landmarks], DatasetConfig(tracking=replace(TRACKING, model=path)))
+
+
+def test_a_model_file_saved_again_does_not_take_the_sequences_of_the_model_read_before(clips, files, tmp_path):
+    """A dataset tracks with the model it read when made; the file saved again (another model) before it tracks:
+    its cache entries are keyed by the content it read, so a dataset made after, of the new file, tracks with the new
+    model (the entries were keyed by the file's content when stored: the new model's key held the old model's
+    sequence, and the new dataset's items came from it)."""
+    path = tmp_path / "model.npz"
+    path.write_bytes(files[1].read_bytes())  # (the 26-landmark model of 6 animation units)
+    lm = clips[0].landmarks[SUBSET]
+    config = DatasetConfig(tracking=replace(TRACKING, model=path), cache_dir=tmp_path / "cache", clip_length=3)
+    first = VideoDataset([clips[0].video], [lm], config)
+    c = load_candide3(dtype=torch.float64)
+    five = replace(c, name="five", animation_units=c.animation_units[:5], animation_names=c.animation_names[:5],
+                   animation_ranges=c.animation_ranges[:5], facs_matrix=c.facs_matrix[:, :5],
+                   landmark_vertices=c.landmark_vertices[SUBSET], landmark_weights=c.landmark_weights[SUBSET],
+                   landmark_names=tuple(c.landmark_names[k] for k in SUBSET))  # fmt: skip
+    save_face_model(five, path)
+    assert next(iter(first))["anim_coeffs"].shape[-1] == 6  # (the model it read)
+    item = next(iter(VideoDataset([clips[0].video], [lm], config)))
+    assert item["anim_coeffs"].shape[-1] == 5
+    content = "0" * 64
+    assert cache_key(content, config.tracking, lm, model_content="1" * 64) != cache_key(content, config.tracking, lm)
+    with pytest.raises(ValueError, match="config has no model"):
+        cache_key(content, TRACKING, clips[0].landmarks, model_content="1" * 64)

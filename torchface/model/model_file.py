@@ -16,6 +16,9 @@ So a model saved and loaded in its own dtype is the same to the bit, and one sav
 round their ``float64`` arithmetic: ``load_face_model(p)`` of ``save_face_model(load_candide3(dtype=torch.float64),
 p)`` equals ``load_candide3()`` to the bit. ``torchface track --model FILE`` (:class:`torchface.job.JobConfig`'s
 ``model``) tracks with such a file.
+
+Entries of other names are left unread (a later version that adds one without changing what these mean keeps the
+format version).
 """
 
 from __future__ import annotations
@@ -23,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import zipfile
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -31,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchface._device import check_device
 from torchface.io.errors import InputError, OutputError
 from torchface.model.face_model import FaceModel
 from torchface.model.mesh_loader import _check_displacements, _check_surface
@@ -47,10 +50,10 @@ FORMAT_VERSION: int = 1
 _NAMES = ("shape_names", "animation_names", "landmark_names", "facs_names")
 
 #: The tensor fields of :class:`FaceModel` and the numpy kinds the file may hold them in (``f`` floating,
-#: ``i`` integer, ``b`` bool).
+#: ``iu`` integer, signed or not: a mesh's indices are often ``uint32``; ``b`` bool).
 _TENSORS = {
-    "mean": "f", "faces": "i", "shape_units": "f", "animation_units": "f", "animation_ranges": "f",
-    "landmark_vertices": "i", "landmark_weights": "f", "facs_matrix": "f", "surface_vertex_mask": "b",
+    "mean": "f", "faces": "iu", "shape_units": "f", "animation_units": "f", "animation_ranges": "f",
+    "landmark_vertices": "iu", "landmark_weights": "f", "facs_matrix": "f", "surface_vertex_mask": "b",
 }  # fmt: skip
 
 
@@ -91,8 +94,10 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
             arrays[f.name] = _array(value)
         else:
             texts = (value,) if f.name == "name" else value
-            if any(t.endswith("\0") for t in texts):
-                raise ValueError(f"{f.name}: a name ends in a NUL character, which the file cannot keep")
+            bad = [t for t in texts if t.endswith("\0")]
+            if bad:  # (which one: a model has dozens of names)
+                raise ValueError(f"{f.name}: {bad[0]!r} ends in a NUL character, which the file cannot keep (numpy's "
+                                 "text arrays drop it)")  # fmt: skip
             arrays[f.name] = np.array(value) if f.name == "name" else np.array(list(value), dtype=np.str_)
     target = Path(path)
     tmp = target.with_name(target.name + ".partial")
@@ -120,10 +125,14 @@ def _read(p: Path) -> dict[str, np.ndarray]:
                 raise InputError(f"{not_one}: not an .npz archive")
             with np.load(f, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:  # (a truncated archive, ...)
-        if isinstance(exc, InputError):
-            raise
+    except (InputError, MemoryError):
+        raise
+    # (a damaged archive: BadZipFile, EOFError, ValueError; a damaged compressed one, np.savez_compressed's, also
+    # zlib.error, NotImplementedError or tokenize's TokenError: they came out bare)
+    except Exception as exc:  # noqa: BLE001
         raise InputError(f"{not_one}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    # (an array of the other byte order, as a big-endian machine writes it: torch refused it, a bare ValueError)
+    arrays = {k: v.astype(v.dtype.newbyteorder("="), copy=False) for k, v in arrays.items()}
     fmt = arrays.get("format")
     if fmt is None or fmt.dtype.kind != "U" or fmt.shape != () or str(fmt) != FORMAT:
         raise InputError(f"{not_one}: its format entry is missing or not {FORMAT!r}")
@@ -143,9 +152,9 @@ def _read(p: Path) -> dict[str, np.ndarray]:
         if arrays[key].ndim != rank or (arrays[key].dtype.kind != "U" and arrays[key].size):
             raise InputError(f"{p}: a damaged face model file: {key} is not {'a text' if rank == 0 else 'texts'}")
     for key, kind in _TENSORS.items():
-        if arrays[key].dtype.kind != kind:
+        if arrays[key].dtype.kind not in kind:
             raise InputError(f"{p}: a damaged face model file: {key} holds {arrays[key].dtype}, not "
-                             f"{ {'f': 'floating', 'i': 'integer', 'b': 'bool'}[kind]} values")  # fmt: skip
+                             f"{ {'f': 'floating', 'iu': 'integer', 'b': 'bool'}[kind]} values")  # fmt: skip
     return arrays
 
 
@@ -173,6 +182,7 @@ def load_face_model(
 
     Raises:
         TypeError: ``dtype`` is not a floating ``torch.dtype``.
+        ValueError: ``device`` is not a device this machine has (the message lists those it has).
         InputError: (a ``ValueError``) the file is missing, is not a face model file, is one of a later format
             version, is damaged (an entry missing or of the wrong kind), or its model fails a check above.
 
@@ -182,12 +192,13 @@ def load_face_model(
     """
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
+    device = check_device(device)  # (before the file is read; "cuda" without CUDA was an AssertionError)
     p = Path(path)
     arrays = _read(p)
     names = {key: tuple(str(n) for n in arrays[key]) for key in _NAMES}
     values: dict[str, object] = {"name": str(arrays["name"]), **names}
     for key, kind in _TENSORS.items():
-        as_type = {"f": dtype, "i": torch.int64, "b": torch.bool}[kind]
+        as_type = {"f": dtype, "iu": torch.int64, "b": torch.bool}[kind]
         values[key] = torch.as_tensor(np.ascontiguousarray(arrays[key]), dtype=as_type, device=device)
     try:
         model = FaceModel(**values)  # type: ignore[arg-type]
