@@ -544,8 +544,8 @@ READ_AHEAD_STREAMS: int = 4
 
 class _ReadAhead:
     """A :class:`~torchface.io.video.FrameReader` read by a thread of its own, up to :data:`READ_AHEAD` frames ahead
-    of the tracking: the decoding and the conversion to a float frame (about 1.4 ms a 640x480 frame, 8-10 ms at
-    1080p, on one core) overlap the tracking of the frame before (OpenCV and torch release the GIL). Gives what the
+    of the tracking: the decoding and the conversion to a float frame (about 1.3 ms of CPU a 640x480 frame, 8 ms at
+    1080p) overlap the tracking of the frame before (OpenCV and torch release the GIL). Gives what the
     reader gives: the frames (``next``), each one's :attr:`timestamp` and :attr:`image`, the reader's :attr:`info`,
     and the error that ended its reading (``StopIteration`` at its end, an :class:`InputError` at a bad frame) at the
     frame where the reader raised it, and again at every later ``next``. The reader is the thread's until
