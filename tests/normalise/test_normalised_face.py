@@ -970,8 +970,10 @@ def test_z_buffered_face_from_the_coverage_equals_every_pixels_fragments(model, 
     the layout's points' pixels (``rasterize_coverage``, the native visibility test), not the fragments of every
     covered pixel of the face's window (``rasterize``; 3.5 -> 1.1 ms a 640x480 frame in ``torchface track``): the
     same image and mask, bit for bit, as the torch code's fragments, over poses whose far side the nose and cheek
-    hide, one that leaves the frame and one behind the camera, with and without illumination."""
+    hide, one that leaves the frame and one behind the camera, with and without illumination; so does the torch
+    code's coverage and test at the points (where no native kernel is built)."""
     import torchface.normalise.face as face_module
+    import torchface.rendering.visibility as visibility
     from torchface import _native
     from torchface.backend import Backend
 
@@ -993,6 +995,13 @@ def test_z_buffered_face_from_the_coverage_equals_every_pixels_fragments(model, 
         ref = normalised_face(frames, m, lay, sigma, alpha, aa, t, illum, CAM, backend=Backend.TORCH)
         with monkeypatch.context() as mp:  # (the fragments of every covered pixel are not evaluated)
             mp.setattr(face_module, "rasterize", lambda *a, **k: pytest.fail("rasterize called"))
+            out = normalised_face(frames, m, lay, sigma, alpha, aa, t, illum, CAM)
+        assert torch.equal(out.mask, ref.mask) and torch.equal(out.image, ref.image)
+        with monkeypatch.context() as mp:  # the coverage and the test at the points by the torch code (no compiler)
+            mp.setattr(face_module, "rasterize", lambda *a, **k: pytest.fail("rasterize called"))
+            cover = face_module.rasterize_coverage
+            mp.setattr(face_module, "rasterize_coverage", lambda *a, **k: cover(*a, **{**k, "backend": Backend.TORCH}))
+            mp.setattr(visibility, "_native_visible", lambda *a, **k: None)
             out = normalised_face(frames, m, lay, sigma, alpha, aa, t, illum, CAM)
         assert torch.equal(out.mask, ref.mask) and torch.equal(out.image, ref.image)
         counts = ref.mask.sum((1, 2, 3))
