@@ -242,7 +242,7 @@ def test_a_reader_keeps_the_8bit_image_each_frame_was_read_from(clip, tmp_path):
 def test_a_read_ahead_reader_gives_the_readers_frames_times_images_and_errors_at_their_frame(clip, tmp_path):
     """:class:`_ReadAhead` gives the frames, times and 8-bit images the reader gives, in order; an image folder whose
     frame 3 has another size: frames 0-2, then the reader's InputError at frame 3, again at the next call; the
-    thread has ended by then, and ``close`` closes the reader."""
+    thread ends after it, and ``close`` closes the reader."""
     from torchface.io import InputError, open_frames
 
     video, _ = clip
@@ -267,6 +267,7 @@ def test_a_read_ahead_reader_gives_the_readers_frames_times_images_and_errors_at
     for _ in range(2):
         with pytest.raises(InputError, match="frame 3"):
             next(ahead)
+    ahead._thread.join(10)  # (it ends once it has handed the error over)
     assert not ahead._thread.is_alive()
     ahead.close()
 
