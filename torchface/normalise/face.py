@@ -73,7 +73,7 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.geometry.transforms import transform_points
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import rasterize
+from torchface.rendering.rasterizer import Coverage, Fragments, rasterize, rasterize_coverage
 from torchface.rendering.visibility import points_visible
 
 if TYPE_CHECKING:
@@ -665,8 +665,15 @@ def _normalised_face_posed(
             compiling = is_compiling()
             crop = intrinsics if compiling else _face_crop(verts_cam.detach(), model.surface_vertex_mask, intrinsics)
             raster_backend = Backend.TORCH if compiling or _transformed(verts_cam) else backend
-            frags = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
-            visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance)
+            if raster_backend is Backend.TORCH:
+                frags: Fragments | Coverage = rasterize(verts_cam.detach(), model.faces, crop, backend=raster_backend)
+            else:
+                # The coverage alone, the depth evaluated at the layout's points' pixels only (natively): the same
+                # answer as every covered pixel's fragments, evaluated in torch (with the visibility test, in
+                # `torchface track`: 3.5 -> 1.1 ms of CPU a 640x480 frame, 10.5 -> 2.3 at 1080p).
+                frags = rasterize_coverage(verts_cam.detach(), model.faces, crop, backend=raster_backend)
+            visible = points_visible(points_cam, layout.face_index, frags, crop, depth_tolerance=depth_tolerance,
+                                     backend=raster_backend)  # fmt: skip
         front = ~back.detach().index_select(1, layout.face_index)  # (B, M)
         ray = torch.nn.functional.normalize(points_cam.detach(), dim=-1)
         facing_cos = -(normals.detach() * ray).sum(-1)
