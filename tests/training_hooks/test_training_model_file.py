@@ -62,6 +62,23 @@ def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, 
         FaceTrackingConfig(model=load_candide3())  # type: ignore[arg-type]
 
 
+def test_the_landmarks_messages_name_the_models_count(clips, files, tmp_path):
+    """With a model of 26 landmarks, a landmarks argument of the wrong type and a landmarks file of the wrong form
+    are told the model's (26, 2) points (they were told "(68, 2)", the iBUG points the model does not take)."""
+    config = DatasetConfig(tracking=replace(TRACKING, model=files[1]))
+    with pytest.raises(TypeError, match=r"one \(26, 2\) array/tensor .* an \(N, 26, 2\) stack"):
+        VideoDataset([clips[0].video], "first.csv", config)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"must be a \(26, 2\) array or tensor"):
+        VideoDataset([clips[0].video], [clips[0].landmarks[SUBSET].tolist()], config)  # type: ignore[list-item]
+    (tmp_path / "first.json").write_text('{"frame": 0}')
+    with pytest.raises(InputError, match=r"expected a list of 26 \[x, y\] pairs"):
+        list(VideoDataset([clips[0].video], [tmp_path / "first.json"], config))
+    with open(tmp_path / "first.npy", "wb") as f:  # (an .npz archive under an .npy name)
+        np.savez(f, points=clips[0].landmarks[SUBSET])
+    with pytest.raises(InputError, match=r"save the \(26, 2\) points with np.save"):
+        list(VideoDataset([clips[0].video], [tmp_path / "first.npy"], config))
+
+
 def test_a_bad_model_file_is_refused_when_the_dataset_is_made(clips, tmp_path):
     """A missing or damaged model file with landmarks given: refused by VideoDataset(...) itself, as with a detector
     (it was found only when the first video was tracked, in each DataLoader worker)."""
