@@ -1,7 +1,7 @@
 """``FaceTrackingConfig(model=FILE)``: NormaliseFaces and the datasets track with a face model file (as ``torchface
 track --model``): CANDIDE-3 through the file gives the default's items to the bit; another model takes its own
 landmarks and keys its cache entries apart; a detector with a model of other landmarks is refused when the dataset is
-made. The default config's cache key and repr are those of before the field."""
+made. The default config's cache key and repr are those of before the field; a config with a model shows it."""
 
 from __future__ import annotations
 
@@ -51,7 +51,18 @@ def test_another_model_tracks_from_its_landmarks_with_its_own_cache_entries(clip
         list(VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None)))
     content = "0" * 64
     assert cache_key(content, other, lm) != cache_key(content, replace(other, model=files[0]), lm)
-    assert "model" not in repr(TRACKING) and repr(other) == repr(TRACKING)  # (the key holds the file's hash)
+    assert "model" not in repr(TRACKING)  # (the default repr and key are those of before the field)
+
+
+def test_a_printed_config_names_its_model_and_the_key_holds_its_content_not_its_path(files, tmp_path):
+    """``repr`` shows ``model`` when given (it was left out: a printed config hid the model); the cache key hashes
+    the repr without it and the file's content, so the same file at another path keys the same sequences."""
+    other = replace(TRACKING, model=files[1])
+    assert repr(other) == repr(TRACKING)[:-1] + f", model={files[1]!r})"
+    moved = tmp_path / "moved.npz"
+    moved.write_bytes(files[1].read_bytes())
+    lm = np.zeros((len(SUBSET), 2))
+    assert cache_key("0" * 64, other, lm) == cache_key("0" * 64, replace(TRACKING, model=moved), lm)
 
 
 def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, files):
