@@ -1,5 +1,6 @@
 """A device this machine lacks, wherever torchface first takes one (``load_candide3(device=...)``, ``load_mesh_model``,
-``FaceModel.to``, ``FaceTracker.to`` / ``.cuda``, ``NormalisedFace.to`` / ``.cuda``): one ``ValueError`` naming the
+``FaceModel.to``, ``FaceTracker.to`` / ``.cuda``, ``NormalisedFace.to`` / ``.cuda``, the ``.to`` of ``LandmarkFit``,
+``NormalisedFaceLayout``, ``TexturedMesh``, ``LightState``): one ``ValueError`` naming the
 device and the devices here. Before, torch's own error came from deep inside: an ``AssertionError`` "Torch not
 compiled with CUDA enabled" for ``"cuda"``, a list of every backend torch knows for a typo, and "Tensor.item() cannot
 be called on meta tensors" from the model's checks for ``"meta"``."""
@@ -12,8 +13,9 @@ import torch
 
 from torchface._device import available_devices, check_device, check_to_device
 from torchface.model import FaceModel, load_candide3, load_mesh_model
-from torchface.normalise import NormalisedFace
-from torchface.tracker import FaceTracker, TrackerConfig
+from torchface.normalise import NormalisedFace, build_normalised_layout
+from torchface.rendering import LightState, TexturedMesh
+from torchface.tracker import FaceTracker, LandmarkFit, TrackerConfig
 
 NO_CUDA = not torch.cuda.is_available()
 NO_MPS = not torch.backends.mps.is_available()
@@ -34,6 +36,13 @@ _TAKERS = {
     "FaceTracker.to": lambda d: FaceTracker(TrackerConfig(), refine_first=None).to(d),
     "FaceTracker.to(device=, dtype=)": lambda d: FaceTracker(refine_first=None).to(device=d, dtype=torch.float64),
     "NormalisedFace.to": lambda d: NormalisedFace(load_candide3(), size=32).to(d),
+    # (the lower-level .to of the results and pieces: torch's own error before)
+    "LandmarkFit.to": lambda d: LandmarkFit(*(torch.zeros(1, *s) for s in ((3, 3), (3,), (3,), (2,), (2,), ())),
+                                            torch.zeros(1, dtype=torch.int64)).to(d),
+    "NormalisedFaceLayout.to": lambda d: build_normalised_layout(load_candide3(), 16, 0.1).to(d),
+    "TexturedMesh.to": lambda d: TexturedMesh(torch.zeros(3, 3), torch.tensor([[0, 1, 2]]), torch.zeros(3, 2),
+                                              torch.ones(3, 4, 4)).to(d, torch.float64),
+    "LightState.to(device=)": lambda d: LightState.ambient_only(torch.ones(2)).to(device=d),
 }
 
 

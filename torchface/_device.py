@@ -1,9 +1,11 @@
 """The one check of a torch device a user names: where torchface first takes one (``load_candide3(device=...)``,
-``load_mesh_model``, ``FaceModel.to``, ``FaceTracker.to`` / ``.cuda``, ``NormalisedFace.to`` / ``.cuda``, the job's
-``JobConfig.device``), so that a device this machine lacks is one ``ValueError`` naming it and the devices there are
-(torch's own was an ``AssertionError`` "Torch not compiled with CUDA enabled" from deep inside the model's loading,
-an "Expected one of cpu, cuda, ipu, xpu, ..." list of every backend torch knows for a typo, and
-"Tensor.item() cannot be called on meta tensors" from the model's checks for ``"meta"``).
+``load_mesh_model``, ``FaceModel.to``, ``FaceTracker.to`` / ``.cuda``, ``NormalisedFace.to`` / ``.cuda``, the ``.to``
+of ``LandmarkFit``, ``NormalisedFaceLayout``, ``TexturedMesh`` and ``LightState``, training_hooks'
+``NormalisedFaceLayer`` through :mod:`torchface.extending`, the job's ``JobConfig.device``), so that a device this
+machine lacks is one ``ValueError`` naming it and the devices there are (torch's own was an ``AssertionError``
+"Torch not compiled with CUDA enabled" from deep inside the model's loading, an "Expected one of cpu, cuda, ipu, xpu,
+..." list of every backend torch knows for a typo, and "Tensor.item() cannot be called on meta tensors" from the
+model's checks for ``"meta"``).
 """
 
 from __future__ import annotations

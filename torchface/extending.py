@@ -10,7 +10,10 @@ follow torchface's own rules:
 - :func:`full_precision`, the decorator that runs torchface's public entry points in the dtype of their inputs
   inside a caller's ``torch.autocast`` region;
 - :func:`is_compiling`, whether ``torch.compile`` (or ``torch.export``) traces the running code, on every torch
-  torchface supports (the native kernels must not be traced: :mod:`torchface.backend`).
+  torchface supports (the native kernels must not be traced: :mod:`torchface.backend`);
+- the device check (docs/python-api.md, "Devices and dtypes"): :func:`check_device` of a device argument,
+  :func:`check_to_device` of an ``nn.Module.to`` call's arguments and :func:`check_cuda_device` of ``.cuda``'s, each
+  one ``ValueError`` that names a device this machine lacks and the devices it has.
 
 Whether the native kernels can run is :func:`torchface.backend.native_available`; the tracker's own pieces (a
 step's bounds, its level loop) are public in :mod:`torchface.tracker.step`.
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
+from torchface._device import check_cuda_device, check_device, check_to_device
 from torchface.geometry._checks import (
     check_bool,
     check_int,
@@ -42,11 +46,14 @@ from torchface.geometry._checks import (
 
 __all__ = [
     "check_bool",
+    "check_cuda_device",
+    "check_device",
     "check_int",
     "check_intrinsics",
     "check_optional_int",
     "check_optional_real",
     "check_real",
+    "check_to_device",
     "full_precision",
     "is_compiling",
 ]

@@ -168,7 +168,9 @@ class JobConfig:
             for the face nearest the stream's last confident position (:class:`torchface.detect.Detector`'s
             ``near``), not another one in view.
         focal: focal length in pixels (default ``max(W, H)``, :meth:`Intrinsics.default`).
-        device: torch device for tracking (a name or a ``torch.device``).
+        device: torch device for tracking (a name or a ``torch.device``); one this machine lacks is refused when the
+            config is made (:func:`torchface.extending.check_device`'s ``ValueError``, naming the devices here), as
+            ``FaceTracker.to`` refuses it.
         resume: continue interrupted videos (see the module docstring).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames (gray to RGB, alpha dropped, 16-bit
             scaled, last row / column cropped; :func:`torchface.io.open_frames`) instead of rejecting them.
@@ -242,6 +244,7 @@ class JobConfig:
             raise TypeError(f"detector must be a detector name (str) or None, got {type(self.detector).__name__}")
         if not isinstance(self.device, (str, torch.device)):
             raise TypeError(f"device must be a device name (str) or a torch.device, got {type(self.device).__name__}")
+        check_device(self.device)  # (it was refused only when the job ran; kept as given: the sidecar writes it)
         object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))
         object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
@@ -821,12 +824,6 @@ def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[s
             raise OutputError(f"{v}: its outputs' names would be too long for {out_dir} ({longest!r} is "
                               f"{len(os.fsencode(longest))} bytes, at most {limit}): rename the input to at most "
                               f"{spare} bytes before its extension")  # fmt: skip
-
-
-def _check_device(device_or_name: str | torch.device) -> None:
-    """A ``ValueError`` naming ``JobConfig.device`` and the devices here where this machine cannot compute on it
-    (:func:`torchface._device.check_device`)."""
-    check_device(device_or_name)
 
 
 def _to_uint8(frame: Tensor) -> np.ndarray:
@@ -1716,7 +1713,6 @@ def track_videos(
         raise InputError(
             "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"
         )
-    _check_device(config.device)
     out_dir = Path(config.out_dir)
     _check_out_dir(out_dir)
     names = [output_name(v) for v in inputs]

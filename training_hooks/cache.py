@@ -44,7 +44,7 @@ import time
 import uuid
 import warnings
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -127,7 +127,8 @@ def cache_key(
 
     Args:
         content: :func:`content_hash` of the video.
-        config: the tracking settings (their full ``repr`` is hashed).
+        config: the tracking settings (their ``repr`` is hashed, that of ``model=None``: the model file's content
+            is hashed instead of its path, so that the same file moved keeps its sequences).
         landmarks: ``(68, 2)`` first-frame landmarks in pixels (with the config's ``model``, its ``K``; hashed as
             float64); a NaN row (a missing point) is hashed as the same NaN whatever its bits.
         extra: anything else that changes the result (e.g. a frame-conversion setting).
@@ -157,10 +158,11 @@ def cache_key(
     points = np.where(np.isnan(points), np.nan, points)  # one NaN for a missing point (x86's 0 / 0 has the sign bit)
     h = hashlib.blake2b(digest_size=32)
     native = config.tracker.backend is not Backend.TORCH and native_available()
+    settings = repr(config if config.model is None else replace(config, model=None))  # (the file's content below)
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
-        f"native={native}", content, repr(config), extra, *([f"first_frame={first_frame}"] if first_frame else []),
-        *([f"model={model_content or content_hash(config.model)}"] if config.model is not None else []),  # (no repr)
+        f"native={native}", content, settings, extra, *([f"first_frame={first_frame}"] if first_frame else []),
+        *([f"model={model_content or content_hash(config.model)}"] if config.model is not None else []),
     )  # fmt: skip
     for part in parts:
         data = part.encode("utf-8")

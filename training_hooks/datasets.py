@@ -363,8 +363,25 @@ class VideoDataset(IterableDataset):
         if cache_dir is not None and cache_dir.exists() and not cache_dir.is_dir():
             # (found here, not after the first video has been tracked)
             raise ValueError(f"{cache_dir}: cache_dir exists and is not a folder")
+        self._normalise: NormaliseFaces | None = None
+        self._model_content: str | None = None  # (content_hash of the model file as the model was read from it)
+        if self.config.tracking.model is not None:
+            # (the model file read and checked here, not in each worker at its first video: a missing or damaged
+            # file was found only when the first video was tracked; read before the landmarks' checks, which name
+            # its K)
+            path = self.config.tracking.model
+            before = content_hash(path) if Path(path).is_file() else None
+            # (InputError for a missing or damaged file; the workers get the model read here)
+            num_landmarks = self.model.num_landmarks
+            self._model_content = content_hash(path)
+            if before != self._model_content:
+                raise InputError(f"{os.fspath(path)}: the face model file changed while it was read: make the "
+                                 "dataset again")  # fmt: skip
+        else:
+            num_landmarks = NUM_LANDMARKS
+        one = f"({num_landmarks}, 2)"  # (the 68 iBUG points, or the model's K landmarks)
         if isinstance(landmarks, (np.ndarray, Tensor)) and landmarks.ndim == 3:
-            # (N, 68, 2), the batch FaceTracker.initialise takes: one entry per video (it was "must be a sequence")
+            # (N, K, 2), the batch FaceTracker.initialise takes: one entry per video (it was "must be a sequence")
             landmarks = list(landmarks.detach() if isinstance(landmarks, Tensor) else landmarks)
         if callable(landmarks) and not isinstance(landmarks, (np.ndarray, Tensor)):
             self.detector: Detector | None = landmarks
@@ -373,36 +390,24 @@ class VideoDataset(IterableDataset):
             if isinstance(landmarks, (str, os.PathLike, np.ndarray, Tensor)) or not isinstance(landmarks, Sequence):
                 shape = f" of shape {tuple(landmarks.shape)}" if isinstance(landmarks, (np.ndarray, Tensor)) else ""
                 raise TypeError(
-                    "landmarks must be a sequence with one (68, 2) array/tensor or landmarks file per video, an "
-                    f"(N, 68, 2) stack of them, or a detector callable, got {type(landmarks).__name__}{shape}"
+                    f"landmarks must be a sequence with one {one} array/tensor or landmarks file per video, an "
+                    f"(N, {one[1:]} stack of them, or a detector callable, got {type(landmarks).__name__}{shape}"
                 )
             if len(landmarks) != len(self.videos):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             for i, source in enumerate(landmarks):  # (a list of points, lm.tolist(), failed in the worker)
                 if not isinstance(source, (np.ndarray, Tensor, str, os.PathLike)):
                     raise TypeError(
-                        f"landmarks[{i}] ({self.videos[i]}) must be a (68, 2) array or tensor, or a landmarks file, "
+                        f"landmarks[{i}] ({self.videos[i]}) must be a {one} array or tensor, or a landmarks file, "
                         f"got {type(source).__name__}"
                     )
             self.detector, self.landmarks = None, tuple(landmarks)
-        self._normalise: NormaliseFaces | None = None
-        self._model_content: str | None = None  # (content_hash of the model file as the model was read from it)
-        if self.config.tracking.model is not None:
-            # (the model file read and checked here, not in each worker at its first video: a missing or damaged
-            # file was found only when the first video was tracked; a detector gives the 68 iBUG points)
-            path = self.config.tracking.model
-            before = content_hash(path) if Path(path).is_file() else None
-            model = self.model  # (InputError for a missing or damaged file; the workers get the model read here)
-            self._model_content = content_hash(path)
-            if before != self._model_content:
-                raise InputError(f"{os.fspath(path)}: the face model file changed while it was read: make the "
-                                 "dataset again")  # fmt: skip
-            if model.num_landmarks != NUM_LANDMARKS and self.detector is not None:
-                raise ValueError(
-                    f"{os.fspath(path)}: the face model {model.name!r} has "
-                    f"{model.num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "
-                    "each video's first-frame landmarks of the model instead of a detector"
-                )
+        if self.detector is not None and num_landmarks != NUM_LANDMARKS:
+            raise ValueError(
+                f"{os.fspath(path)}: the face model {self.model.name!r} has "
+                f"{num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "
+                "each video's first-frame landmarks of the model instead of a detector"
+            )
         self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
@@ -667,7 +672,8 @@ class VideoDataset(IterableDataset):
         if isinstance(source, Tensor):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
-            raise InputError(f"{where} must be a (68, 2) array, tensor or file, got {type(source).__name__}")
+            raise InputError(f"{where} must be a ({self.num_landmarks}, 2) array, tensor or file, got "
+                             f"{type(source).__name__}")  # fmt: skip
         return 0, first, check_landmarks(source, W, H, where, missing=True, count=self.num_landmarks)
 
     def _known_start(self, index: int, content: str) -> tuple[int, np.ndarray] | None:
@@ -683,7 +689,8 @@ class VideoDataset(IterableDataset):
             source = source.detach().cpu().numpy()
         if not isinstance(source, np.ndarray):
             raise InputError(
-                f"{self.videos[index]}: landmarks must be a (68, 2) array, tensor or file, got {type(source).__name__}"
+                f"{self.videos[index]}: landmarks must be a ({self.num_landmarks}, 2) array, tensor or file, got "
+                f"{type(source).__name__}"
             )
         where = f"{self.videos[index]}: landmarks"
         return 0, check_landmarks(source, 1 << 30, 1 << 30, where, missing=True, count=self.num_landmarks)

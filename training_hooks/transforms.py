@@ -118,9 +118,10 @@ class FaceTrackingConfig:
         model: a face model file (:func:`torchface.model.save_face_model` writes one, as for ``torchface track
             --model``) that :class:`NormaliseFaces` and the datasets track with, loaded in float32 with
             :func:`torchface.model.load_face_model`, or None for CANDIDE-3. The first-frame landmarks are then the
-            model's ``K``, in its order (a detector's 68 iBUG points need a model of those). Not in the ``repr``: the
-            cache key holds the file's content hash instead (:func:`~training_hooks.cache.cache_key`), and the key of
-            a config without a model is the one it had before this field.
+            model's ``K``, in its order (a detector's 68 iBUG points need a model of those). In the ``repr`` only
+            when given (a config without one has the ``repr`` it had before this field); the cache key hashes the
+            ``repr`` without it and the file's content instead (:func:`~training_hooks.cache.cache_key`: the same
+            file moved keeps its sequences).
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -152,6 +153,13 @@ class FaceTrackingConfig:
         if self.focal is not None and not float(self.focal) > 0:
             raise ValueError(f"focal must be positive pixels or None, got {self.focal}")
         object.__setattr__(self, "num_threads", check_int(self.num_threads, "num_threads", 1))
+
+    def __repr__(self) -> str:
+        """The dataclass ``repr``, with ``model`` last when it is given (a printed config hid the model); without
+        it, the ``repr`` of before the field, which :func:`~training_hooks.cache.cache_key` hashes."""
+        shown = [f"{f.name}={getattr(self, f.name)!r}" for f in fields(self) if f.repr]
+        shown += [] if self.model is None else [f"model={self.model!r}"]
+        return f"{type(self).__qualname__}({', '.join(shown)})"
 
 
 @contextmanager

@@ -2332,13 +2332,17 @@ def test_devices_this_torch_cannot_use_are_one_line_errors(clip, tmp_path, capsy
 
 def test_an_unusable_torch_device_in_the_job_config_is_named_as_torch_writes_it(clip, tmp_path):
     """``JobConfig(device=torch.device("cuda", 0))`` on a machine without CUDA said "device device(type='cuda',
-    index=0) is not available": the device's repr, not the name ``--device`` takes."""
-    video, lm, _ = clip
+    index=0) is not available": the device's repr, not the name ``--device`` takes. It is refused when the config is
+    made, as the other settings and ``FaceTracker.to`` are (it was accepted, and refused only by ``track_videos``)."""
+    _, lm, _ = clip
     if torch.cuda.is_available():
         pytest.skip("this machine has a CUDA GPU")
-    config = JobConfig(out_dir=tmp_path / "o", landmarks=(lm,), device=torch.device("cuda", 0))
-    with pytest.raises(ValueError, match=r"^device 'cuda:0' is not available: "):
-        track_videos([video], config)
+    for device in (torch.device("cuda", 0), "cuda:0"):
+        with pytest.raises(ValueError, match=r"^device 'cuda:0' is not available: "):
+            JobConfig(out_dir=tmp_path / "o", landmarks=(lm,), device=device)
+    with pytest.raises(ValueError, match=r"^unknown torch device 'gpu0'"):
+        JobConfig(out_dir=tmp_path / "o", device="gpu0")
+    assert JobConfig(out_dir=tmp_path / "o", device=torch.device("cpu")).device == torch.device("cpu")  # (as given)
 
 
 def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path):

@@ -313,6 +313,29 @@ def test_double_moves_the_layer_model_and_layout(small):
     assert layer.model.dtype == torch.float32 and layer.layout.bary.dtype == torch.float32
 
 
+@pytest.mark.parametrize(
+    "move, message",
+    [
+        pytest.param(lambda layer: layer.to("cuda"), r"^device 'cuda' is not available: ",
+                     marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
+        pytest.param(lambda layer: layer.cuda(), r"^device 'cuda' is not available: ",
+                     marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
+        (lambda layer: layer.to("gpu0"), r"^unknown torch device 'gpu0'"),
+        (lambda layer: layer.to(device="meta", dtype=torch.float64), r"^device 'meta' holds no data"),
+    ],
+    ids=["to(cuda)", "cuda()", "to(gpu0)", "to(device=meta)"],
+)  # fmt: skip
+def test_a_device_this_machine_lacks_is_torchfaces_value_error(move, message):
+    """``NormalisedFaceLayer.to`` / ``.cuda`` check the device as ``NormalisedFace``'s do (torch's own error before: an
+    AssertionError 'Torch not compiled with CUDA enabled', torch's list of backends for 'gpu0'); the layer is left
+    as it was."""
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL))
+    with pytest.raises(ValueError, match=message) as caught:
+        move(layer)
+    assert "devices here: cpu" in str(caught.value)
+    assert layer.model.dtype == torch.float32 and layer.layout.bary.device.type == "cpu"
+
+
 def test_exceptions(model, small):
     frames, state, _ = small
     with pytest.raises(TypeError):

@@ -1,7 +1,7 @@
 """``FaceTrackingConfig(model=FILE)``: NormaliseFaces and the datasets track with a face model file (as ``torchface
 track --model``): CANDIDE-3 through the file gives the default's items to the bit; another model takes its own
 landmarks and keys its cache entries apart; a detector with a model of other landmarks is refused when the dataset is
-made. The default config's cache key and repr are those of before the field."""
+made. The default config's cache key and repr are those of before the field; a config with a model shows it."""
 
 from __future__ import annotations
 
@@ -51,7 +51,18 @@ def test_another_model_tracks_from_its_landmarks_with_its_own_cache_entries(clip
         list(VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None)))
     content = "0" * 64
     assert cache_key(content, other, lm) != cache_key(content, replace(other, model=files[0]), lm)
-    assert "model" not in repr(TRACKING) and repr(other) == repr(TRACKING)  # (the key holds the file's hash)
+    assert "model" not in repr(TRACKING)  # (the default repr and key are those of before the field)
+
+
+def test_a_printed_config_names_its_model_and_the_key_holds_its_content_not_its_path(files, tmp_path):
+    """``repr`` shows ``model`` when given (it was left out: a printed config hid the model); the cache key hashes
+    the repr without it and the file's content, so the same file at another path keys the same sequences."""
+    other = replace(TRACKING, model=files[1])
+    assert repr(other) == repr(TRACKING)[:-1] + f", model={files[1]!r})"
+    moved = tmp_path / "moved.npz"
+    moved.write_bytes(files[1].read_bytes())
+    lm = np.zeros((len(SUBSET), 2))
+    assert cache_key("0" * 64, other, lm) == cache_key("0" * 64, replace(TRACKING, model=moved), lm)
 
 
 def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, files):
@@ -60,6 +71,23 @@ def test_a_detector_with_a_model_of_other_landmarks_is_refused_when_made(clips, 
                      DatasetConfig(tracking=replace(TRACKING, model=files[1])))  # fmt: skip
     with pytest.raises(TypeError, match="model must be a path"):
         FaceTrackingConfig(model=load_candide3())  # type: ignore[arg-type]
+
+
+def test_the_landmarks_messages_name_the_models_count(clips, files, tmp_path):
+    """With a model of 26 landmarks, a landmarks argument of the wrong type and a landmarks file of the wrong form
+    are told the model's (26, 2) points (they were told "(68, 2)", the iBUG points the model does not take)."""
+    config = DatasetConfig(tracking=replace(TRACKING, model=files[1]))
+    with pytest.raises(TypeError, match=r"one \(26, 2\) array/tensor .* an \(N, 26, 2\) stack"):
+        VideoDataset([clips[0].video], "first.csv", config)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"must be a \(26, 2\) array or tensor"):
+        VideoDataset([clips[0].video], [clips[0].landmarks[SUBSET].tolist()], config)  # type: ignore[list-item]
+    (tmp_path / "first.json").write_text('{"frame": 0}')
+    with pytest.raises(InputError, match=r"expected a list of 26 \[x, y\] pairs"):
+        list(VideoDataset([clips[0].video], [tmp_path / "first.json"], config))
+    with open(tmp_path / "first.npy", "wb") as f:  # (an .npz archive under an .npy name)
+        np.savez(f, points=clips[0].landmarks[SUBSET])
+    with pytest.raises(InputError, match=r"save the \(26, 2\) points with np.save"):
+        list(VideoDataset([clips[0].video], [tmp_path / "first.npy"], config))
 
 
 def test_a_bad_model_file_is_refused_when_the_dataset_is_made(clips, tmp_path):

@@ -216,10 +216,10 @@ def _read_text(p: Path) -> str:
     return text
 
 
-def _parse_json(p: Path, text: str) -> np.ndarray:
+def _parse_json(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
     """A JSON file's points: a list of ``[x, y]`` pairs (``null``: missing; also in a list of one, one frame's:
     ``(1, 68, 2)``) or of numbers, or an object holding such a list as ``initial_landmarks_px`` (a torchface
-    sidecar's first-frame landmarks)."""
+    sidecar's first-frame landmarks). ``count``: the points expected, as the messages name them."""
     try:
         value = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -227,7 +227,7 @@ def _parse_json(p: Path, text: str) -> np.ndarray:
     if isinstance(value, dict):
         if value.get("initial_landmarks_px") is None:
             raise InputError(f"{p}: a JSON object without initial_landmarks_px (a torchface sidecar's): expected a "
-                             f"list of {NUM_LANDMARKS} [x, y] pairs, or a sidecar")  # fmt: skip
+                             f"list of {count} [x, y] pairs, or a sidecar")  # fmt: skip
         start = value.get("start")
         first = start.get("first_frame") if isinstance(start, dict) else None
         if isinstance(first, int) and first != 0:  # (a detector's first face: those landmarks are that frame's)
@@ -253,7 +253,7 @@ def _parse_json(p: Path, text: str) -> np.ndarray:
             raise ValueError
         return np.asarray([[number(c) for c in v] for v in value], dtype=np.float64).reshape(-1, 2)
     except ValueError:
-        raise InputError(f"{p}: expected a JSON list of {NUM_LANDMARKS} [x, y] pairs of numbers (null: missing), "
+        raise InputError(f"{p}: expected a JSON list of {count} [x, y] pairs of numbers (null: missing), "
                          f"got {json.dumps(value)[:60]}") from None  # fmt: skip
 
 
@@ -594,13 +594,13 @@ def read_landmarks(
         if not isinstance(points, np.ndarray):  # an .npz archive under an .npy name (np.savez): its arrays
             points.close()
             raise InputError(f"{p}: an .npz archive of arrays ({', '.join(points.files)[:60]}), not one .npy array: "
-                             "save the (68, 2) points with np.save")  # fmt: skip
+                             f"save the ({count}, 2) points with np.save")  # fmt: skip
         missing_as = ""  # (an NPY's missing point is a NaN row)
     else:
         text = _read_text(p)
         pts = _is_pts(p, text)
         if p.suffix.lower() == ".json":
-            points, missing_as = _parse_json(p, text), "[null, null]"
+            points, missing_as = _parse_json(p, text, count), "[null, null]"
         else:
             points = _parse_pts(p, text) if pts else _parse_csv(p, text)
             missing_as = "a line 'nan nan'" if pts else "empty cells or nan"

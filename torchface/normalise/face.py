@@ -61,7 +61,7 @@ from torch import Tensor, nn
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import check_cuda_device, check_to_device
+from torchface._device import check_cuda_device, check_device, check_to_device
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -182,6 +182,7 @@ class NormalisedFaceLayout:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "NormalisedFaceLayout":
         """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
+        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
         return NormalisedFaceLayout(
             self.size, self.margin, self.intrinsics, self.translation.to(device=device, dtype=dtype), self.num_faces,
             self.pixel_index.to(device=device), self.face_index.to(device=device),

@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor, nn
 
+from torchface._device import check_device
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering.rasterizer import Fragments, rasterize
 
@@ -113,6 +114,7 @@ class TexturedMesh:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "TexturedMesh":
         """A copy on ``device`` with float tensors cast to ``dtype`` (faces stay int64)."""
+        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
         return TexturedMesh(
             self.verts.to(device=device, dtype=dtype),
             self.faces.to(device=device, dtype=torch.int64),
@@ -178,6 +180,7 @@ class LightState:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "LightState":
         """A copy on ``device`` cast to ``dtype``."""
+        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
         return LightState(
             self.ambient.to(device=device, dtype=dtype),
             self.directions.to(device=device, dtype=dtype),

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._device import check_device
 from torchface.geometry._checks import (
     check_bool, check_int, check_intrinsics, check_optional_int, check_optional_real, check_real,
 )
@@ -210,6 +211,7 @@ class LandmarkFit:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "LandmarkFit":
         """A copy on ``device`` with the floating tensors in ``dtype`` (``status`` keeps its integer dtype)."""
+        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
         return LandmarkFit(*(
             v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
             for v in (getattr(self, f) for f in self.__dataclass_fields__)
