@@ -563,9 +563,9 @@ class _VideoOut:
 #: Frames each video's reading thread (:class:`_ReadAhead`) holds decoded and converted ahead of the tracking at most,
 #: in batches of at most :data:`READ_AHEAD_STREAMS` videos; 0: no thread, each frame read when it is needed.
 READ_AHEAD: int = 1
-#: The most videos of a batch that are read by threads of their own (:data:`READ_AHEAD`): a thread and up to two
-#: frames more in memory per video (a 640x480 frame and its 8-bit image take 4.6 MB), where a large batch's memory
-#: is mostly its frames; its videos are read in the tracking's thread.
+#: The most videos of a batch that are read by threads of their own (:data:`READ_AHEAD`): a thread and
+#: :data:`READ_AHEAD` frames more in memory per video (a 640x480 frame and its 8-bit image take 4.6 MB, 1080p 31 MB),
+#: where a large batch's memory is mostly its frames; its videos are read in the tracking's thread.
 READ_AHEAD_STREAMS: int = 4
 
 
@@ -586,19 +586,26 @@ class _ReadAhead:
         self.image: np.ndarray | None = None  # (FrameReader.image of the last frame given)
         self._queue: queue.Queue[tuple[Tensor, float | None, np.ndarray | None] | BaseException] = queue.Queue(
             max(READ_AHEAD, 1))
+        # A frame is read only into a free place of the queue (taken before, given back by ``next``): a thread that
+        # read its next frame while it waited on a full queue held READ_AHEAD + 1 frames ahead (a 1080p video's
+        # reader 2 x 31 MB, not 31).
+        self._free = threading.Semaphore(max(READ_AHEAD, 1))
         self._end: BaseException | None = None  # what ended the reading, once given
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"torchface reader {reader.info.path}", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        while not self._stop.is_set():
+        while True:
+            self._free.acquire()  # (close() gives one back: the thread then sees _stop)
+            if self._stop.is_set():
+                return
             item: tuple[Tensor, float | None, np.ndarray | None] | BaseException
             try:
                 item = (next(self.reader), self.reader.timestamp, self.reader.image)
             except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread at its frame
                 item = exc
-            self._queue.put(item)  # (close() takes what is queued: a put waiting on a full queue goes on)
+            self._queue.put(item)  # (never waits: the place was taken above)
             if isinstance(item, BaseException):
                 return
 
@@ -611,6 +618,7 @@ class _ReadAhead:
         if self._stop.is_set():  # closed: no more frames, as a closed FrameReader
             raise StopIteration
         item = self._queue.get()
+        self._free.release()
         if isinstance(item, BaseException):
             self._end = item
             raise item
@@ -620,11 +628,8 @@ class _ReadAhead:
     def close(self) -> None:
         """End the thread (the frames read ahead dropped) and close the reader; the reader gives no more frames."""
         self._stop.set()
-        while self._thread.is_alive():
-            with contextlib.suppress(queue.Empty):
-                while True:
-                    self._queue.get_nowait()
-            self._thread.join(0.01)
+        self._free.release()  # (a thread waiting for a free place wakes and ends; one reading ends after that frame)
+        self._thread.join()
         with contextlib.suppress(queue.Empty):
             while True:
                 self._queue.get_nowait()

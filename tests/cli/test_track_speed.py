@@ -290,6 +290,31 @@ def test_a_read_ahead_reader_closed_with_frames_queued_ends_its_thread(clip):
         next(ahead)
 
 
+@pytest.mark.parametrize("ahead", [1, 2])
+def test_a_read_ahead_reader_holds_at_most_read_ahead_frames_ahead(clip, monkeypatch, ahead):
+    """``READ_AHEAD`` frames ahead of the tracking at most, as documented: the thread reads a frame only into a free
+    place of its queue (it read the next one while it waited on a full queue: READ_AHEAD + 1 frames ahead, 2 x 31 MB
+    per 1080p video at the default); the frames still in order, the next ones read once the tracking takes one."""
+    from torchface.io import open_frames
+
+    video, _ = clip
+    monkeypatch.setattr(torchface.job, "READ_AHEAD", ahead)
+    ahead_reader = _ReadAhead(open_frames(video))
+    try:
+        with open_frames(video) as plain:
+            want = list(plain)
+        for k in range(3):
+            assert torch.equal(next(ahead_reader), want[k])
+            deadline = time.monotonic() + 10
+            while not ahead_reader._queue.full() and time.monotonic() < deadline:  # (the thread has read ahead)
+                time.sleep(0.01)
+            time.sleep(0.3)  # (time for one more frame of 160x120: well under a millisecond)
+            assert ahead_reader.reader.frames_read == k + 1 + ahead
+    finally:
+        ahead_reader.close()
+    assert not ahead_reader._thread.is_alive()
+
+
 def test_a_batch_of_more_videos_than_read_ahead_streams_is_read_in_the_tracking_thread(clip, tmp_path, monkeypatch):
     """``READ_AHEAD_STREAMS``: the videos of a larger batch are read by the tracking's thread (no reading thread
     started), those of a batch within it each by its own; the same outputs."""
