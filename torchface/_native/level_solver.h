@@ -465,7 +465,7 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
 
     double H[TF_MAX_P * TF_MAX_P], grad[TF_MAX_P], Hd[TF_MAX_P * TF_MAX_P], delta[TF_MAX_P];
     double bestH[TF_MAX_P * TF_MAX_P], best_grad[TF_MAX_P];
-    double prior[TF_MAX_P], d_alpha[TF_MAX_P], moved[TF_MAX_P];
+    double prior[TF_MAX_P], d_alpha[TF_MAX_P];
     REAL bestR[9], bestt[3], best_alpha[TF_MAX_P], best_light[TF_MAX_P];
     double best_cost = 0.0, best_s = 1.0;
     int have_best = 0, all_free = 1;
@@ -580,13 +580,14 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
             REAL v = alpha[a] + (REAL)delta[6 + a];
             v = v < lo[a] ? lo[a] : v;
             v = v > hi[a] ? hi[a] : v;
-            moved[a] = (double)(v - alpha[a]); /* the change the bounds let through */
+            /* the convergence tests read the change made: a unit the data pushes against its bound moves by 0 */
+            delta[6 + a] = (double)(v - alpha[a]);
             alpha[a] = v;
         }
         for (int l = 0; l < L; ++l) light[l] += (REAL)delta[6 + A + l];
         iters += active;
-        int small = 1; /* on the change made: a unit the data pushes against its bound moves by 0 */
-        for (int i = 0; i < P; ++i) small &= fabs(i >= 6 && i < 6 + A ? moved[i - 6] : delta[i]) < p->step_tolerance[i];
+        int small = 1;
+        for (int i = 0; i < P; ++i) small &= fabs(delta[i]) < p->step_tolerance[i];
         active = active && good && !small;
         if (p->function_tolerance > 0) {
             double pred = 0.0;
