@@ -77,6 +77,7 @@ SETTINGS = {
     "residuals_only": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), keep_linearisation=False),
     "ftol": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), function_tolerance=3e-3, step_tolerance=(2e-4, 0.05, 2e-3)),
     "no_iterations": dict(robust=None, iterations=0),
+    "at_bounds": dict(robust=RobustLoss(RobustKind.TUKEY, 4.685), bounds=(-0.1, 0.3), step_tolerance=(2e-4, 0.05, 2e-3)),
 }
 
 
@@ -98,9 +99,10 @@ def _arguments(setting: dict, B: int, dtype=D) -> dict:
     if robust == "switched":
         switch = torch.tensor([[True], [False], [True]][:B])
         robust = SwitchedRobustLoss(RobustLoss(RobustKind.TUKEY, 4.685), RobustLoss(RobustKind.HUBER, 4.685), switch)
+    lo, hi = s.pop("bounds", (-5.0, 5.0))  # (-0.1, 0.3): some of the truth's units (-0.4 .. 0.5) held at a bound
     args = dict(
-        iterations=s.pop("iterations", 8), free=free, alpha_lower=torch.full((A,), -5.0, dtype=dtype),
-        alpha_upper=torch.full((A,), 5.0, dtype=dtype), alpha_prior=prior, robust=robust,
+        iterations=s.pop("iterations", 8), free=free, alpha_lower=torch.full((A,), lo, dtype=dtype),
+        alpha_upper=torch.full((A,), hi, dtype=dtype), alpha_prior=prior, robust=robust,
         alpha_mean=None if mean is None else torch.full((B, A), mean, dtype=dtype), scale_floor=0.002,
         step_tolerance=s.pop("step_tolerance", 1e-8), function_tolerance=s.pop("function_tolerance", 0.0),
     )

@@ -579,7 +579,10 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
         for (int a = 0; a < A; ++a) {
             REAL v = alpha[a] + (REAL)delta[6 + a];
             v = v < lo[a] ? lo[a] : v;
-            alpha[a] = v > hi[a] ? hi[a] : v;
+            v = v > hi[a] ? hi[a] : v;
+            /* the convergence tests read the change made: a unit the data pushes against its bound moves by 0 */
+            delta[6 + a] = (double)(v - alpha[a]);
+            alpha[a] = v;
         }
         for (int l = 0; l < L; ++l) light[l] += (REAL)delta[6 + A + l];
         iters += active;

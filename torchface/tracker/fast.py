@@ -345,7 +345,10 @@ def solve_level(
             report the outcome there; without it (an intermediate pyramid level, whose result the next level
             checks) the outcome describes the last linearisation.
         step_tolerance: converged when every increment is below these: rotation (radians), translation
-            (millimetres), animation and illumination coefficients (units); one float applies to all.
+            (millimetres), animation and illumination coefficients (units); one float applies to all. An
+            animation unit's increment, here and in ``function_tolerance``'s test, is its change after the
+            bounds' clip (projected Gauss-Newton): a unit held at its bound by the data moves by 0 instead of
+            keeping the level to its iteration cap.
         function_tolerance: also converged when the step's predicted decrease of the cost,
             ``-(grad . delta + delta^T H delta / 2)`` of the reweighted linear model, is below this fraction of
             the cost (0: off). The parameter test alone is slow to pass along directions the images hardly
@@ -492,13 +495,17 @@ def solve_level(
         dR = axis_angle_to_matrix(delta[:, 0:3])
         R = torch.bmm(dR, R)
         t = t + delta[:, 3:6]
-        alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
+        moved = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
+        # The convergence tests read the change made: a unit the data pushes against its bound moves by 0 (its
+        # unclipped increment never came out small, and the level ran to its iteration cap).
+        taken = torch.cat((delta[:, :6], moved - alpha, delta[:, 6 + A :]), -1).detach()
+        alpha = moved
         light = light + delta[:, 6 + A :]
         iters = iters + active
-        active = active & good & ~(delta.abs() < tol).all(-1)
+        active = active & good & ~(taken.abs() < tol).all(-1)
         if function_tolerance > 0:  # 0 is off: rounding can make the predicted decrease of a tiny step negative
             # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
-            pred = -(delta * (grad + scalar(0.5, H) * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
+            pred = -(taken * (grad + scalar(0.5, H) * torch.bmm(H, taken.unsqueeze(-1)).squeeze(-1))).sum(-1)
             active = active & ~(pred < scalar(function_tolerance, cost) * cost)
         if not bool(active.any()):
             break
