@@ -10,9 +10,12 @@ model's checks for ``"meta"``).
 
 from __future__ import annotations
 
-import torch
+from typing import Any
 
-__all__ = ["available_devices", "check_device"]
+import torch
+from torch import nn
+
+__all__ = ["DeviceCheckedModule", "available_devices", "check_cuda_device", "check_device", "check_to_device"]
 
 
 def available_devices() -> list[str]:
@@ -111,3 +114,20 @@ def check_cuda_device(device: torch.device | str | int | None) -> None:
     index)."""
     check_device(torch.device("cuda") if device is None else torch.device("cuda", device) if isinstance(device, int)
                  else device)  # fmt: skip
+
+
+class DeviceCheckedModule(nn.Module):
+    """An ``nn.Module`` whose ``.to`` and ``.cuda`` check the device first (:func:`check_to_device`,
+    :func:`check_cuda_device`): one ``ValueError`` naming a device this machine lacks and those it has. The base of
+    ``FaceTracker``, ``NormalisedFace`` and training_hooks' ``NormalisedFaceLayer`` (a parent network's ``.to`` moves
+    them through ``_apply``, which never sees the device's name: torch's own error there)."""
+
+    def to(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+        """``nn.Module.to``; a device this machine lacks is a ``ValueError`` naming the devices it has."""
+        check_to_device(*args, **kwargs)
+        return super().to(*args, **kwargs)
+
+    def cuda(self, device: int | torch.device | None = None) -> Any:  # type: ignore[override]
+        """``nn.Module.cuda``; without that GPU a ``ValueError`` naming the devices this machine has."""
+        check_cuda_device(device)
+        return super().cuda(device)

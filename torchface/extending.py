@@ -13,7 +13,8 @@ follow torchface's own rules:
   torchface supports (the native kernels must not be traced: :mod:`torchface.backend`);
 - the device check (docs/python-api.md, "Devices and dtypes"): :func:`check_device` of a device argument,
   :func:`check_to_device` of an ``nn.Module.to`` call's arguments and :func:`check_cuda_device` of ``.cuda``'s, each
-  one ``ValueError`` that names a device this machine lacks and the devices it has.
+  one ``ValueError`` that names a device this machine lacks and the devices it has, and
+  :class:`DeviceCheckedModule`, an ``nn.Module`` whose ``.to`` and ``.cuda`` run them.
 
 Whether the native kernels can run is :func:`torchface.backend.native_available`; the tracker's own pieces (a
 step's bounds, its level loop) are public in :mod:`torchface.tracker.step`.
@@ -34,7 +35,7 @@ from __future__ import annotations
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import check_cuda_device, check_device, check_to_device
+from torchface._device import DeviceCheckedModule, check_cuda_device, check_device, check_to_device
 from torchface.geometry._checks import (
     check_bool,
     check_int,
@@ -45,6 +46,7 @@ from torchface.geometry._checks import (
 )
 
 __all__ = [
+    "DeviceCheckedModule",
     "check_bool",
     "check_cuda_device",
     "check_device",

@@ -39,19 +39,18 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.extending import (
+    DeviceCheckedModule,
     check_bool,
-    check_cuda_device,
     check_int,
     check_intrinsics,
     check_real,
-    check_to_device,
     full_precision,
     is_compiling,
 )
@@ -285,7 +284,7 @@ def unrolled_params(
     return x
 
 
-class NormalisedFaceLayer(nn.Module):
+class NormalisedFaceLayer(DeviceCheckedModule):
     """Normalised faces of tracked frames as a layer: ``(frames, state) -> LayerResult`` (module docstring).
 
     Holds the face model, the canonical layout and the settings; the per-sequence tracker state is passed in
@@ -317,16 +316,6 @@ class NormalisedFaceLayer(nn.Module):
         if not isinstance(self.model, FaceModel):
             raise TypeError(f"model must be a FaceModel, got {type(self.model).__name__}")
         self.layout: NormalisedFaceLayout = build_normalised_layout(self.model, self.config.size, self.config.margin)
-
-    def to(self, *args: Any, **kwargs: Any) -> "NormalisedFaceLayer":  # type: ignore[override]
-        """``nn.Module.to``; a device this machine lacks is a ``ValueError`` naming the devices it has."""
-        check_to_device(*args, **kwargs)
-        return super().to(*args, **kwargs)
-
-    def cuda(self, device: int | torch.device | None = None) -> "NormalisedFaceLayer":
-        """``nn.Module.cuda``; without that GPU a ``ValueError`` naming the devices this machine has."""
-        check_cuda_device(device)
-        return super().cuda(device)
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFaceLayer":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""

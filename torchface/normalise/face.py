@@ -54,14 +54,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import check_cuda_device, check_device, check_to_device
+from torchface._device import DeviceCheckedModule, check_device
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -729,7 +729,7 @@ def _normalised_face_native(
     return NormalisedFaceResult(image.reshape(B, C, G, G), mask.reshape(B, 1, G, G))
 
 
-class NormalisedFace(nn.Module):
+class NormalisedFace(DeviceCheckedModule):
     """Thin module holding a model and its canonical layout; calls :func:`normalised_face`.
 
     Args:
@@ -765,16 +765,6 @@ class NormalisedFace(nn.Module):
             raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
         if not 0.0 <= self.min_facing_cos < 1.0:
             raise ValueError(f"min_facing_cos must be in [0, 1), got {min_facing_cos}")
-
-    def to(self, *args: Any, **kwargs: Any) -> "NormalisedFace":  # type: ignore[override]
-        """``nn.Module.to``; a device this machine lacks is a ``ValueError`` naming the devices it has."""
-        check_to_device(*args, **kwargs)
-        return super().to(*args, **kwargs)
-
-    def cuda(self, device: int | torch.device | None = None) -> "NormalisedFace":
-        """``nn.Module.cuda``; without that GPU a ``ValueError`` naming the devices this machine has."""
-        check_cuda_device(device)
-        return super().cuda(device)
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""

@@ -7,9 +7,9 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from torchface._device import check_cuda_device, check_to_device
+from torchface._device import DeviceCheckedModule, check_to_device
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -64,7 +64,7 @@ def _check_setting(name: str, value: Any) -> None:
             )
 
 
-class FaceTracker(nn.Module):
+class FaceTracker(DeviceCheckedModule):
     """Track B face streams at once; a thin loop over the functional :func:`managed_step`.
 
     The per-sequence state (:class:`TrackerState`) is explicit: :attr:`state` after each call, and
@@ -150,11 +150,6 @@ class FaceTracker(nn.Module):
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"FaceTracker.to only accepts floating point dtypes, got {dtype}")
         return super().to(*args, **kwargs)
-
-    def cuda(self, device: int | torch.device | None = None) -> "FaceTracker":
-        """``nn.Module.cuda``, with a machine without that GPU a ``ValueError`` naming the devices it has."""
-        check_cuda_device(device)
-        return super().cuda(device)
 
     def _apply(self, fn, recurse: bool = True) -> "FaceTracker":
         """What ``.to``, ``.double()``, ``.float()``, ``.cuda()`` and ``.cpu()`` do: move the face model (a plain
