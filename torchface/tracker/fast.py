@@ -455,7 +455,8 @@ def solve_level(
         if not all_free:
             Jt = torch.where(free_rows, Jt, scalar(0.0, Jt))
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
-        prior_cost = (half_prior_alpha * d_alpha * d_alpha).sum(-1)
+        prior_grad = prior_alpha * d_alpha
+        prior_cost = (prior_grad * d_alpha).sum(-1) * scalar(0.5, d_alpha)  # (halving is exact: = sum(p/2 d^2))
         if best is not None:  # the step is judged at the scale of the last accepted estimate
             judged = _cost(r, robust, best[7]) + prior_cost
             accept = (judged <= best[6]) & isfinite(judged)
@@ -485,7 +486,7 @@ def solve_level(
             Jw = Jt * wgt.unsqueeze(1)
             H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
         grad = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)
-        grad[:, 6 : 6 + A] += prior_alpha * d_alpha
+        grad[:, 6 : 6 + A].add_(prior_grad)
         if best is not None:
             if all_accepted:  # the common case: no selection
                 lam = (lam / scalar(3.0, lam)).clamp_min(1e-6)
@@ -514,11 +515,13 @@ def solve_level(
         alpha = torch.clamp(alpha + delta[:, 6 : 6 + A], alpha_lower, alpha_upper)
         light = light + delta[:, 6 + A :]
         iters = iters + active
-        active = active & good & ~(delta.abs() < tol).all(-1)
+        stop = (delta.abs() < tol).all(-1)
         if function_tolerance > 0:  # 0 is off: rounding can make the predicted decrease of a tiny step negative
-            # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
-            pred = -(delta * (grad + scalar(0.5, H) * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
-            active = active & ~(pred < scalar(function_tolerance, cost) * cost)
+            # Predicted decrease of the (undamped) model, -(g.d + d^T H d / 2), below the tolerance times the cost
+            # where it was built: g.d + d^T H d / 2 above minus that (negation is exact: the same test).
+            change = (delta * (grad + scalar(0.5, H) * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
+            stop = stop | (change > scalar(-function_tolerance, cost) * cost)
+        active = step & ~stop
         if not bool(active.any()):
             break
     if not final_check:
