@@ -283,16 +283,23 @@ def robust_scale_of(r: Tensor, valid: Tensor, scale_floor: float) -> Tensor:
 
 
 def _weights(
-    r: Tensor, valid: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, scale_floor: float
-) -> tuple[Tensor, Tensor, Tensor]:
-    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` (:func:`robust_scale_of`) and the
-    cost ``(B,)`` at that scale (:func:`_cost`)."""
+    r: Tensor, valid: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, scale_floor: float,
+    judge_scale: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` (:func:`robust_scale_of`), the
+    cost ``(B,)`` at that scale (:func:`_cost`) and, with ``judge_scale`` ``(B, 1)``, the cost at that scale (else
+    None). The two costs are one pass over ``(2, B, N)``: the same values as two, in fewer (dispatched)
+    operations."""
     s = robust_scale_of(r, valid, scale_floor)
     w = valid.to(r.dtype)
     if robust is None:
-        return w, s, _cost(r, None, s)
-    rho, rw = robust.rho_and_weight(r, s)
-    return w * rw, s, rho.sum(-1)
+        return w, s, _cost(r, None, s), None if judge_scale is None else _cost(r, None, judge_scale)
+    if judge_scale is None:
+        rho, rw = robust.rho_and_weight(r, s)
+        return w * rw, s, rho.sum(-1), None
+    rho, rw = robust.rho_and_weight(r.expand(2, *r.shape), torch.stack((judge_scale, s)))
+    judged, cost = rho.sum(-1).unbind(0)
+    return w * rw[1], s, cost, judged
 
 
 def _cost(r: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, s: Tensor) -> Tensor:
@@ -457,11 +464,13 @@ def solve_level(
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
         prior_grad = prior_alpha * d_alpha
         prior_cost = (prior_grad * d_alpha).sum(-1) * scalar(0.5, d_alpha)  # (halving is exact: = sum(p/2 d^2))
-        if best is not None:  # the step is judged at the scale of the last accepted estimate
-            judged = _cost(r, robust, best[7]) + prior_cost
+        # The step is judged at the scale of the last accepted estimate; the new cost, at the new scale, is
+        # compared against at the next iteration.
+        wgt, s, cost, judged = _weights(r, valid, robust, scale_floor, None if best is None else best[7])
+        cost = cost + prior_cost
+        if judged is not None:
+            judged = judged + prior_cost
             accept = (judged <= best[6]) & isfinite(judged)
-        wgt, s, cost = _weights(r, valid, robust, scale_floor)
-        cost = cost + prior_cost  # at the new scale, compared against at the next iteration
         # The weights are zero at invalid points, which so add nothing: J is not masked (a select over J cost 28
         # microseconds against 3 for the product at one stream, 1500 points). Unless J is not finite there (a
         # gradient next to a non-finite pixel is already left out by linearise; a non-finite start handed on, or
@@ -477,12 +486,12 @@ def solve_level(
             valid = valid & isfinite(Jt).all(1)
             r = torch.where(valid, r, scalar(0.0, r))
             Jt = torch.where(valid.unsqueeze(1), Jt, scalar(0.0, Jt))
-            if best is not None:
-                judged = _cost(r, robust, best[7]) + prior_cost
+            wgt, s, cost, judged = _weights(r, valid, robust, scale_floor, None if best is None else best[7])
+            cost = cost + prior_cost
+            if judged is not None:
+                judged = judged + prior_cost
                 accept = (judged <= best[6]) & isfinite(judged)
                 all_accepted = bool(accept.all())
-            wgt, s, cost = _weights(r, valid, robust, scale_floor)
-            cost = cost + prior_cost
             Jw = Jt * wgt.unsqueeze(1)
             H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
         grad = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)
