@@ -531,7 +531,7 @@ def solve_level(
             change = (delta * (grad + scalar(0.5, H) * torch.bmm(H, delta.unsqueeze(-1)).squeeze(-1))).sum(-1)
             stop = stop | (change > scalar(-function_tolerance, cost) * cost)
         active = step & ~stop
-        if not bool(active.any()):
+        if it + 1 < iterations and not bool(active.any()):  # (after the last iteration: no read, no wait)
             break
     if not final_check:
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite, constants=constants)
