@@ -468,7 +468,7 @@ def solve_level(
         # compared against at the next iteration.
         wgt, s, cost, judged = _weights(r, valid, robust, scale_floor, None if best is None else best[7])
         cost = cost + prior_cost
-        if judged is not None:
+        if best is not None and judged is not None:  # (judged is given exactly when best is)
             judged = judged + prior_cost
             accept = (judged <= best[6]) & isfinite(judged)
         # The weights are zero at invalid points, which so add nothing: J is not masked (a select over J cost 28
@@ -488,7 +488,7 @@ def solve_level(
             Jt = torch.where(valid.unsqueeze(1), Jt, scalar(0.0, Jt))
             wgt, s, cost, judged = _weights(r, valid, robust, scale_floor, None if best is None else best[7])
             cost = cost + prior_cost
-            if judged is not None:
+            if best is not None and judged is not None:  # (judged is given exactly when best is)
                 judged = judged + prior_cost
                 accept = (judged <= best[6]) & isfinite(judged)
                 all_accepted = bool(accept.all())
