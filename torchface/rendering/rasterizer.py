@@ -67,6 +67,7 @@ from typing import Literal, overload
 import torch
 from torch import Tensor
 
+from torchface._compiling import is_compiling
 from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
@@ -239,7 +240,8 @@ def _index_range(faces: Tensor) -> tuple[int, int]:
     counter): a mesh's faces are checked at every rasterization, and each read waits for the device (on a GPU, a
     synchronisation; the tracker rasterizes twice per frame)."""
     cached = _INDEX_RANGES.get(id(faces))
-    trackable = not faces.is_inference()  # (an inference tensor has no version counter)
+    # (an inference tensor has no version counter; while torch.compile traces, no cache: torchface._scalar)
+    trackable = not faces.is_inference() and not is_compiling()
     if trackable and cached is not None and cached[0]() is faces and cached[1] == faces._version:
         return cached[2], cached[3]
     lo, hi = (int(v) for v in torch.stack([faces.min(), faces.max()]).tolist())
