@@ -121,6 +121,40 @@ def test_exceptions(verts, faces, error):
         rasterize(verts, faces, CAM)
 
 
+class _HostReads(torch.overrides.TorchFunctionMode):
+    """Counts the reads of tensor values on the host (``bool``, ``int``, ``float``, ``item``, ``tolist``): each
+    waits for the device (on a GPU, a synchronisation)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if getattr(func, "__name__", "") in ("__bool__", "__int__", "__float__", "__index__", "item", "tolist"):
+            self.count += 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_the_face_index_check_reads_a_face_tensor_once_and_again_after_it_changed():
+    """The check that faces index the vertices reads the faces' index range on the host once per face tensor (it
+    was read twice at every rasterization, the tracker's two a frame included); an in-place change of the faces is
+    still caught (the tensor's version counter), as is another tensor."""
+    verts, faces = random_soup(0, 1, 3)
+    faces = faces.clone()
+    rasterize(verts, faces, CAM)
+    with _HostReads() as reads:
+        rasterizer_module._check_mesh(verts, faces)
+        rasterizer_module._check_mesh(verts, faces)
+    assert reads.count == 0
+    faces[0, 1] = verts.shape[1]  # in place: one past the last vertex
+    with pytest.raises(ValueError, match="faces must index the 9 vertices"):
+        rasterize(verts, faces, CAM)
+    faces[0, 1] = 0
+    rasterize(verts, faces, CAM)
+    with pytest.raises(ValueError, match="got indices in \\[-1, "):
+        rasterize(verts, torch.where(faces == 0, -1, faces), CAM)
+
+
 def test_empty_mesh_and_empty_batch():
     frag = rasterize(torch.rand(2, 4, 3) + 1.0, torch.zeros(0, 3, dtype=torch.int64), CAM)
     assert (frag.pix_to_face == -1).all() and torch.isinf(frag.zbuf).all() and frag.bary.shape == (2, 24, 32, 3)

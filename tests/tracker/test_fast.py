@@ -507,3 +507,33 @@ def test_cached_constants_first_made_in_inference_mode_serve_a_differentiable_pa
                       alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None, backend=Backend.TORCH)
     assert fast._solver_constants.cache_info().currsize == 2
     assert torch.equal(out[1], t0) and not torch.equal(out[0], R0)
+
+
+def test_the_torch_solver_reads_the_host_twice_per_iteration():
+    """Each host read of a device value (``bool``, ``item``, ``tolist``, ...) waits for the device: on a GPU, a
+    synchronisation, worse than a kernel launch. The torch solver reads one flag for the system's finiteness and the
+    steps' acceptance together (two reads before), one for whether any stream goes on (none after the last
+    iteration), and after the loop the final check's acceptance; its free mask is a host tensor (the tracker's is
+    made on the CPU) and not counted."""
+
+    class HostReads(torch.overrides.TorchFunctionMode):
+        def __init__(self, skip: torch.Tensor) -> None:
+            super().__init__()
+            self.count, self.skip = 0, skip
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            name = getattr(func, "__name__", "")
+            if name in ("__bool__", "__int__", "__float__", "__index__", "item", "tolist") and args[0] is not self.skip:
+                self.count += 1
+            return func(*args, **(kwargs or {}))
+
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    with HostReads(free) as reads:
+        out = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=6, free=free,
+                          alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=RobustLoss(RobustKind.TUKEY),
+                          step_tolerance=1e-12, function_tolerance=0.0, backend=Backend.TORCH)[4]
+    assert out.iterations.tolist() == [6, 6]  # (every step accepted: no read for a rejection)
+    assert reads.count == 2 * 6  # (3 * 6 before: 18)

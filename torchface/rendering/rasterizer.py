@@ -59,6 +59,7 @@ by ``s`` gives the same fragments with ``s`` times the depths.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, replace
 from collections.abc import Sequence
 from typing import Literal, overload
@@ -66,6 +67,7 @@ from typing import Literal, overload
 import torch
 from torch import Tensor
 
+from torchface._compiling import is_compiling
 from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
@@ -223,10 +225,30 @@ def _check_mesh(verts: Tensor, faces: Tensor, name: str = "verts") -> None:
         raise TypeError(f"faces must be int32 or int64, got {faces.dtype}")
     if faces.device != verts.device:
         raise ValueError(f"faces must be on {name}' device {verts.device}, got {faces.device}")
-    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= verts.shape[1]):
-        raise ValueError(
-            f"faces must index the {verts.shape[1]} vertices, got indices in [{int(faces.min())}, {int(faces.max())}]"
-        )
+    if faces.numel():
+        lo, hi = _index_range(faces)
+        if lo < 0 or hi >= verts.shape[1]:
+            raise ValueError(f"faces must index the {verts.shape[1]} vertices, got indices in [{lo}, {hi}]")
+
+
+#: :func:`_index_range`'s results: ``id(faces)`` -> (a weak reference to it, its version counter, min, max).
+_INDEX_RANGES: dict[int, tuple[weakref.ref[Tensor], int, int, int]] = {}
+
+
+def _index_range(faces: Tensor) -> tuple[int, int]:
+    """The smallest and largest index of ``faces``, read on the host once per face tensor and change (its version
+    counter): a mesh's faces are checked at every rasterization, and each read waits for the device (on a GPU, a
+    synchronisation; the tracker rasterizes twice per frame)."""
+    cached = _INDEX_RANGES.get(id(faces))
+    # (an inference tensor has no version counter; while torch.compile traces, no cache: torchface._scalar)
+    trackable = not faces.is_inference() and not is_compiling()
+    if trackable and cached is not None and cached[0]() is faces and cached[1] == faces._version:
+        return cached[2], cached[3]
+    lo, hi = (int(v) for v in torch.stack([faces.min(), faces.max()]).tolist())
+    if trackable:
+        key = id(faces)
+        _INDEX_RANGES[key] = (weakref.ref(faces, lambda _: _INDEX_RANGES.pop(key, None)), faces._version, lo, hi)
+    return lo, hi
 
 
 def _triangles(verts: Tensor, faces: Tensor) -> Tensor:

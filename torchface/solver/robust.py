@@ -72,7 +72,8 @@ _DEFAULT_C: dict[RobustKind, float] = {
 
 def _as_scale(scale: torch.Tensor | float, r: torch.Tensor) -> torch.Tensor:
     """``scale`` as a tensor on ``r``'s device and dtype, clamped to a dtype-tied positive floor."""
-    s = torch.as_tensor(scale, dtype=r.dtype, device=r.device)
+    s = scale if isinstance(scale, torch.Tensor) and scale.dtype == r.dtype and scale.device == r.device else (
+        torch.as_tensor(scale, dtype=r.dtype, device=r.device))  # (as_tensor of such a tensor: one more operation)
     return s.clamp_min(torch.finfo(r.dtype).tiny ** 0.5)
 
 

@@ -335,6 +335,8 @@ def inverse_compositional_lk(
                 # p is finite: a step needs a finite dp
                 active = active & (p.norm(dim=-1) <= scalar(max_displacement, p))
             made += 1
+            if made == budget:  # (no read of the active count: it would wait for the device, for nothing)
+                break
             left = int(active.sum())
             if left == 0 or left <= few:
                 break

@@ -113,6 +113,12 @@ class _LevelConstants:
     points_t: Tensor  # (B, 3, N)
     normals_t: Tensor  # (B, 3, N)
     basis_t: Tensor  # (B, A, 3, N)
+    # Views of the above in the shapes linearise uses, made once per level rather than at every linearisation
+    # (each view is one more dispatched operation: on a GPU at one stream, the dispatches are the step's time).
+    point_shift: Tensor  # (B, 2, 1, 1) grid_shift's first column: the points alone, without the stencil
+    points_flat: Tensor  # (B, 1, 3 N)
+    basis_flat: Tensor  # (B, A, 3 N)
+    basis_xyz: tuple[Tensor, Tensor, Tensor]  # basis_t's x, y and z rows, (B, A, N) each
 
 
 #: Where :func:`linearise` samples the image, in pixels from each point: the point, then ``+u``, ``+v``, ``-u``,
@@ -142,7 +148,13 @@ def _level_constants(cam: LevelCamera, like: Tensor, tpl: Template) -> _LevelCon
         cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, dtype, device
     )
     shift = (centre - cam.offset.to(dtype)) * to_grid - 1.0  # (B, 2)
-    return _LevelConstants(half_focal, grid_scale, (shift.unsqueeze(-1) + stencil).unsqueeze(-1), *tpl.point_last)
+    grid_shift = (shift.unsqueeze(-1) + stencil).unsqueeze(-1)
+    points_t, normals_t, basis_t = tpl.point_last
+    B, A, _, N = basis_t.shape
+    return _LevelConstants(
+        half_focal, grid_scale, grid_shift, points_t, normals_t, basis_t, grid_shift[:, :, :1],
+        points_t.view(B, 1, 3 * N), basis_t.view(B, A, 3 * N), cast("tuple[Tensor, Tensor, Tensor]", basis_t.unbind(2)),
+    )  # fmt: skip
 
 
 @functools.lru_cache(maxsize=64)
@@ -210,14 +222,14 @@ def linearise(
     k = _level_constants(cam, R, tpl) if constants is None else constants
     nlb = -light_basis.transpose(1, 2) if neg_light_basis_t is None else neg_light_basis_t  # (B, L, N)
     A, L = k.basis_t.shape[1], nlb.shape[1]
-    Xm = torch.baddbmm(k.points_t.view(B, 1, 3 * N), alpha.unsqueeze(1), k.basis_t.view(B, A, 3 * N)).view(B, 3, N)
+    Xm = torch.baddbmm(k.points_flat, alpha.unsqueeze(1), k.basis_flat).view(B, 3, N)
     Xr = torch.bmm(R, Xm)  # turned about the head's origin, (B, 3, N)
     Xc = Xr + t.unsqueeze(-1)
     Z = Xc[:, 2]
     front = Z > scalar(NEAR_PLANE_MM, Z)
     iz = Z.clamp_min(NEAR_PLANE_MM).reciprocal().unsqueeze(1)  # (B, 1, N)
     xy = Xc[:, :2] * iz  # (B, 2, N)
-    shift = k.grid_shift if jacobian else k.grid_shift[:, :, :1]  # the stencil, or the points alone
+    shift = k.grid_shift if jacobian else k.point_shift  # the stencil, or the points alone
     grid = torch.addcmul(shift, xy.unsqueeze(2), k.grid_scale)  # (B, 2, 5 or 1, N) in [-1, 1] inside the crop
     vals = grid_sample_border(image, grid.permute(0, 2, 3, 1)).view(B, -1, N)
     intensity = vals[:, 0]
@@ -250,14 +262,15 @@ def linearise(
     gz = torch.sum(gxy * xy, 1, keepdim=True, out=block(5, 6)).neg_()
     g = torch.cat([gxy, gz], dim=1) if Jt is None else Jt[:, 3:6]  # dI/dX_cam (B, 3, N)
     j_rot = torch.linalg.cross(Xr, g, dim=1, out=block(0, 3))
-    g_model = torch.bmm(R.transpose(1, 2), g).unsqueeze(1)  # (B, 1, 3, N)
-    basis = k.basis_t
-    j_anim = torch.mul(basis[:, :, 0], g_model[:, :, 0], out=block(6, 6 + A))
+    # dI/dX_cam turned into the head frame: its x, y and z rows, (B, 1, N) each
+    mx, my, mz = torch.bmm(R.transpose(1, 2), g).unsqueeze(2).unbind(1)
+    bx, by, bz = k.basis_xyz
+    j_anim = torch.mul(bx, mx, out=block(6, 6 + A))
     if Jt is None:
-        j_anim = torch.addcmul(torch.addcmul(j_anim, basis[:, :, 1], g_model[:, :, 1]), basis[:, :, 2], g_model[:, :, 2])
+        j_anim = torch.addcmul(torch.addcmul(j_anim, by, my), bz, mz)
         Jt = torch.cat([j_rot, g, j_anim, nlb], dim=1)
     else:
-        j_anim.addcmul_(basis[:, :, 1], g_model[:, :, 1]).addcmul_(basis[:, :, 2], g_model[:, :, 2])
+        j_anim.addcmul_(by, my).addcmul_(bz, mz)
         Jt[:, 6 + A :] = nlb
     return r, Jt.transpose(1, 2), valid, intensity
 
@@ -270,16 +283,23 @@ def robust_scale_of(r: Tensor, valid: Tensor, scale_floor: float) -> Tensor:
 
 
 def _weights(
-    r: Tensor, valid: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, scale_floor: float
-) -> tuple[Tensor, Tensor, Tensor]:
-    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` (:func:`robust_scale_of`) and the
-    cost ``(B,)`` at that scale (:func:`_cost`)."""
+    r: Tensor, valid: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, scale_floor: float,
+    judge_scale: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """IRLS weights ``(B, N)`` (zero where invalid), the robust scale ``(B, 1)`` (:func:`robust_scale_of`), the
+    cost ``(B,)`` at that scale (:func:`_cost`) and, with ``judge_scale`` ``(B, 1)``, the cost at that scale (else
+    None). The two costs are one pass over ``(2, B, N)``: the same values as two, in fewer (dispatched)
+    operations."""
     s = robust_scale_of(r, valid, scale_floor)
     w = valid.to(r.dtype)
     if robust is None:
-        return w, s, _cost(r, None, s)
-    rho, rw = robust.rho_and_weight(r, s)
-    return w * rw, s, rho.sum(-1)
+        return w, s, _cost(r, None, s), None if judge_scale is None else _cost(r, None, judge_scale)
+    if judge_scale is None:
+        rho, rw = robust.rho_and_weight(r, s)
+        return w * rw, s, rho.sum(-1), None
+    rho, rw = robust.rho_and_weight(r.expand(2, *r.shape), torch.stack((judge_scale, s)))
+    judged, cost = rho.sum(-1).unbind(0)
+    return w * rw[1], s, cost, judged
 
 
 def _cost(r: Tensor, robust: RobustLoss | SwitchedRobustLoss | None, s: Tensor) -> Tensor:
@@ -391,10 +411,14 @@ def solve_level(
         )
     # Everything that does not change across iterations is computed once here (what depends on the settings alone
     # once per setting: _solver_constants).
+    # (free is read on the host: a mask on a GPU costs a synchronisation here; the tracker's is a CPU tensor)
     free_key = tuple(bool(v) for v in free.tolist())
     all_free = all(free_key)
     if isinstance(alpha_prior, Tensor):  # one precision per stream: (B, P) priors, (B, P, P) Hessian terms
-        freef = free.to(dtype)
+        _, _, _, fixed_diag, free_rows, free_mask, tol = _solver_constants(
+            free_key, A, 0.0, tuple(step_tolerance), dtype, device
+        )
+        freef = free_mask.to(dtype)
         prior = torch.zeros(B, P, dtype=dtype, device=device)
         ap = alpha_prior.to(dtype)
         prior[:, 6 : 6 + A] = ap.unsqueeze(-1) if ap.dim() == 1 else ap.expand(B, A)
@@ -402,9 +426,6 @@ def solve_level(
         prior_alpha = prior[..., 6 : 6 + A]
         half_prior_alpha = 0.5 * prior_alpha
         prior_H = torch.diag_embed(prior)
-        _, _, _, fixed_diag, free_rows, free_mask, tol = _solver_constants(
-            free_key, A, 0.0, tuple(step_tolerance), dtype, device
-        )
     else:
         prior_alpha, half_prior_alpha, prior_H, fixed_diag, free_rows, free_mask, tol = _solver_constants(
             free_key, A, float(alpha_prior), tuple(step_tolerance), dtype, device
@@ -444,12 +465,15 @@ def solve_level(
         if not all_free:
             Jt = torch.where(free_rows, Jt, scalar(0.0, Jt))
         d_alpha = alpha if alpha_mean is None else alpha - alpha_mean
-        prior_cost = (half_prior_alpha * d_alpha * d_alpha).sum(-1)
-        if best is not None:  # the step is judged at the scale of the last accepted estimate
-            judged = _cost(r, robust, best[7]) + prior_cost
+        prior_grad = prior_alpha * d_alpha
+        prior_cost = (prior_grad * d_alpha).sum(-1) * scalar(0.5, d_alpha)  # (halving is exact: = sum(p/2 d^2))
+        # The step is judged at the scale of the last accepted estimate; the new cost, at the new scale, is
+        # compared against at the next iteration.
+        wgt, s, cost, judged = _weights(r, valid, robust, scale_floor, None if best is None else best[7])
+        cost = cost + prior_cost
+        if best is not None and judged is not None:  # (judged is given exactly when best is)
+            judged = judged + prior_cost
             accept = (judged <= best[6]) & isfinite(judged)
-        wgt, s, cost = _weights(r, valid, robust, scale_floor)
-        cost = cost + prior_cost  # at the new scale, compared against at the next iteration
         # The weights are zero at invalid points, which so add nothing: J is not masked (a select over J cost 28
         # microseconds against 3 for the product at one stream, 1500 points). Unless J is not finite there (a
         # gradient next to a non-finite pixel is already left out by linearise; a non-finite start handed on, or
@@ -457,21 +481,26 @@ def solve_level(
         # instead of failing the sample.
         Jw = Jt * wgt.unsqueeze(1)
         H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
-        if not bool(isfinite(H).all()):
+        # The common case, H finite and (past the first iteration) every stream's step accepted, is one host read:
+        # each read waits for the device (on a GPU, a synchronisation).
+        H_finite = isfinite(H).all()
+        all_accepted = bool(H_finite if best is None else H_finite & accept.all())
+        if not all_accepted and not bool(H_finite):
             valid = valid & isfinite(Jt).all(1)
             r = torch.where(valid, r, scalar(0.0, r))
             Jt = torch.where(valid.unsqueeze(1), Jt, scalar(0.0, Jt))
-            if best is not None:
-                judged = _cost(r, robust, best[7]) + prior_cost
-                accept = (judged <= best[6]) & isfinite(judged)
-            wgt, s, cost = _weights(r, valid, robust, scale_floor)
+            wgt, s, cost, judged = _weights(r, valid, robust, scale_floor, None if best is None else best[7])
             cost = cost + prior_cost
+            if best is not None and judged is not None:  # (judged is given exactly when best is)
+                judged = judged + prior_cost
+                accept = (judged <= best[6]) & isfinite(judged)
+                all_accepted = bool(accept.all())
             Jw = Jt * wgt.unsqueeze(1)
             H = torch.baddbmm(prior_H, Jw, Jt.transpose(1, 2))
         grad = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)
-        grad[:, 6 : 6 + A] += prior_alpha * d_alpha
+        grad[:, 6 : 6 + A].add_(prior_grad)
         if best is not None:
-            if bool(accept.all()):  # the common case: one host sync, no selection
+            if all_accepted:  # the common case: no selection
                 lam = (lam / scalar(3.0, lam)).clamp_min(1e-6)
             else:  # undo rejected steps
                 R, t, alpha, light, H, grad, cost, s = _select(accept, (R, t, alpha, light, H, grad, cost, s), best)
@@ -502,12 +531,14 @@ def solve_level(
         alpha = moved
         light = light + delta[:, 6 + A :]
         iters = iters + active
-        active = active & good & ~(taken.abs() < tol).all(-1)
+        stop = (taken.abs() < tol).all(-1)
         if function_tolerance > 0:  # 0 is off: rounding can make the predicted decrease of a tiny step negative
-            # Predicted decrease of the (undamped) model: -(g.d + d^T H d / 2), against the cost where it was built.
-            pred = -(taken * (grad + scalar(0.5, H) * torch.bmm(H, taken.unsqueeze(-1)).squeeze(-1))).sum(-1)
-            active = active & ~(pred < scalar(function_tolerance, cost) * cost)
-        if not bool(active.any()):
+            # Predicted decrease of the (undamped) model, -(g.d + d^T H d / 2), below the tolerance times the cost
+            # where it was built: g.d + d^T H d / 2 above minus that (negation is exact: the same test).
+            change = (taken * (grad + scalar(0.5, H) * torch.bmm(H, taken.unsqueeze(-1)).squeeze(-1))).sum(-1)
+            stop = stop | (change > scalar(-function_tolerance, cost) * cost)
+        active = step & ~stop
+        if it + 1 < iterations and not bool(active.any()):  # (after the last iteration: no read, no wait)
             break
     if not final_check:
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite, constants=constants)

@@ -1767,7 +1767,7 @@ def _fast_step(
         else:
             masks, visibility = list(cached[1]), cached
     R_prev = R
-    free = torch.ones(layout.size, dtype=torch.bool, device=R.device)
+    free = torch.ones(layout.size, dtype=torch.bool)  # on the host: solve_level reads it there
     if not config.use_expression:
         free[layout.animation] = False
     if not config.use_illumination:
