@@ -32,6 +32,15 @@ Each subcommand prints the table its text quotes (one thread, under a minute on 
                starting expression (fit_expression=False): the mean vertical distance, in pixels, of the upper lid's
                vertices (those Eyes closed moves down) from the truth's, and of the eye opening (upper minus lower
                lid); the fraction of draws within 0.3 and 0.5 px, next to the upper lid's travel at full closure.
+  other-models docs/python-api.md's "Other face models" table: the `scan_motion` (James scan) and `pose_sweep`
+               (CANDIDE-3) scenarios rendered at --size, --frames frames, tracked as one stream by a default
+               FaceTracker with exact first-frame landmarks and CANDIDE-3, then the ICT Face Model
+               (TORCHFACE_ASSETS or ../shared/assets; skipped when absent) with each --areas area ("head": the whole
+               head): the rotation error relative to the first frame (mean over every frame, max), the frames LOST and
+               at MAX_ITERATIONS, the mean (median) ms of the steps after the first frame and initialise's seconds, of
+               the fastest of --runs runs. --video tracks the frames as 8-bit video; --no-expression,
+               --expression-prior-precision and --shape-bound change TrackerConfig (use_expression,
+               expression_prior_precision, fit.shape_bound).
 
 Examples:
     python scripts/doc_figures.py face-width
@@ -39,13 +48,17 @@ Examples:
     python scripts/doc_figures.py grid-pan --clip bbaf2n --shift -120
     python scripts/doc_figures.py hard-cuts --dx 90 --dz -120 --dyaw 0,21
     python scripts/doc_figures.py lid-fit --draws 100
+    python scripts/doc_figures.py other-models --areas narrow_eyes --no-expression
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import statistics
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -62,7 +75,9 @@ from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
 
 D = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
-GRID = ROOT.parent / "shared" / "assets" / "grid"
+ASSETS = Path(os.environ.get("TORCHFACE_ASSETS") or ROOT.parent / "shared" / "assets")
+GRID = ASSETS / "grid"
+ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
 
 
@@ -292,6 +307,55 @@ def lid_fit(args: argparse.Namespace) -> None:
               f"{float(o.median()):>20.2f} {within[2]:>5.2f} {within[3]:>5.2f}")
 
 
+def other_models(args: argparse.Namespace) -> None:
+    from torchface.model import load_ict_face_model
+    from torchface.synth.metrics import relative_rotation_error_deg
+    from torchface.synth.scenarios import make_scenario
+
+    w, h = args.size
+    config = TrackerConfig(use_expression=not args.no_expression)
+    if args.expression_prior_precision is not None:
+        config = replace(config, expression_prior_precision=args.expression_prior_precision)
+    if args.shape_bound is not None:
+        config = replace(config, fit=replace(config.fit, shape_bound=args.shape_bound))
+    models = [("CANDIDE-3", load_candide3)]
+    if ICT_NPZ.is_file():
+        models += [(f"ICT {area}", lambda area=area: load_ict_face_model(ICT_NPZ, area=area)) for area in args.areas]
+    else:
+        print(f"no ICT Face Model at {ICT_NPZ} (TORCHFACE_ASSETS): CANDIDE-3 only")
+    print(f"{w}x{h}, {args.frames} frames{' as 8-bit video' if args.video else ''}, one stream, one thread; "
+          f"use_expression={config.use_expression}, expression_prior_precision={config.expression_prior_precision:g}, "
+          f"fit.shape_bound={config.fit.shape_bound:g}; ms: mean (median) of the steps after the first frame, "
+          f"fastest of {args.runs} runs")
+    print(f"{'scenario':<12} {'model':<16} {'rotation mean / max':>20} {'LOST':>4} {'MAX_IT':>6} {'ms per frame':>14} "
+          f"{'initialise':>10}")
+    for scenario in ("scan_motion", "pose_sweep"):
+        frames, gt = render_sequence(make_scenario(scenario, args.frames, w, h))
+        if args.video:
+            frames = (frames * 255.0).round() / 255.0
+        landmarks = gt.landmarks_px[:1].float()
+        for label, load in models:
+            model = load()
+            runs = []
+            for _ in range(args.runs):
+                tracker = FaceTracker(config, model)
+                start = time.perf_counter()
+                results = [tracker.initialise(frames[:1], landmarks)]
+                first = time.perf_counter() - start
+                steps = []
+                for t in range(1, frames.shape[0]):
+                    start = time.perf_counter()
+                    results.append(tracker(frames[t : t + 1]))
+                    steps.append(time.perf_counter() - start)
+                runs.append((sum(steps), steps, first, results))
+            _, steps, first, results = min(runs, key=lambda run: run[0])
+            error = relative_rotation_error_deg(torch.cat([r.rotation for r in results]).double(), gt.rotation)
+            status = [int(r.status[0]) for r in results[1:]]
+            ms = f"{1000 * statistics.mean(steps):.1f} ({1000 * statistics.median(steps):.1f})"
+            print(f"{scenario:<12} {label:<16} {f'{float(error.mean()):.2f} / {float(error.max()):.2f}':>20} "
+                  f"{status.count(3):>4} {status.count(1):>6} {ms:>14} {first:>8.2f} s", flush=True)
+
+
 def _numbers(text: str) -> list[float]:
     try:
         values = [float(v) for v in text.split(",")]
@@ -361,8 +425,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache", default=str(ROOT / "out" / "sequences"),
                    help="evaluate.py's render cache folder; 'none' renders in memory")
     p.set_defaults(run=lid_fit)
+    p = sub.add_parser("other-models", help="CANDIDE-3 and the ICT Face Model's areas (docs/python-api.md: Other face models)")
+    p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(640, 480), help="frame size WxH")
+    p.add_argument("--frames", type=int, default=80, help="frames per scenario")
+    p.add_argument("--runs", type=int, default=3, help="runs per row; the fastest is reported")
+    p.add_argument("--areas", default="narrow_eyes,narrow,face,head", type=lambda s: s.split(","),
+                   help="load_ict_face_model areas, comma separated")  # fmt: skip
+    p.add_argument("--video", action="store_true", help="track the frames rounded to 8 bits")
+    p.add_argument("--no-expression", action="store_true", help="TrackerConfig(use_expression=False)")
+    p.add_argument("--expression-prior-precision", type=float, default=None,
+                   help="TrackerConfig.expression_prior_precision (default: its default)")
+    p.add_argument("--shape-bound", type=float, default=None, help="FitConfig.shape_bound (default: its default)")
+    p.set_defaults(run=other_models)
     args = parser.parse_args(argv)
-    for name in ("clips", "frames", "draws"):
+    for name in ("clips", "frames", "draws", "runs"):
         if getattr(args, name, 1) < 1:
             parser.error(f"--{name} must be >= 1")
     if args.figure == "small-frames" and args.frames < 10:
