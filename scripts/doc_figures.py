@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Measure the figures README.md, docs/ and the docstrings quote from small experiments that no other script runs.
 
-Each subcommand prints the table its text quotes (one thread, under a minute on a 2-core CPU):
+Each subcommand prints the table its text quotes (one thread, a minute or less on a 2-core CPU; other-models 2):
 
   face-width   TrackerConfig.min_face_width_px's docstring (and docs/python-api.md's paragraph on it): rotation
                error against the face's width on rendered CANDIDE-3 clips at 320x240, with the test off
@@ -441,6 +441,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("clips", "frames", "draws", "runs"):
         if getattr(args, name, 1) < 1:
             parser.error(f"--{name} must be >= 1")
+    if args.figure == "other-models" and args.frames < 2:
+        parser.error("--frames must be >= 2 (the steps after the first frame are timed)")
     if args.figure == "small-frames" and args.frames < 10:
         parser.error("--frames must be >= 10 (8 before the face's return)")
     if args.figure == "grid-pan" and not (args.grid / f"{args.clip}.mpg").is_file():
