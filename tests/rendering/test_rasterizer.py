@@ -187,6 +187,21 @@ def test_the_face_index_check_reads_again_after_a_change_made_while_it_read(monk
         rasterizer_module._check_mesh(verts, faces)
 
 
+def test_the_face_index_check_under_a_torch_func_transform():
+    """Faces passed through a ``torch.func`` transform are wrappers without memory: the check reads their range
+    without caching it (its stamp, which reads the memory's address, failed: "Cannot access data pointer of Tensor
+    that doesn't have storage"), and still refuses an index one past the last vertex."""
+    verts, faces = random_soup(0, 1, 3)
+
+    def depth(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        return torch.nan_to_num(rasterize(v, f, CAM).zbuf, posinf=0.0).sum()
+
+    grad = torch.func.grad(depth)(verts, faces)
+    torch.testing.assert_close(grad, torch.autograd.grad(depth(verts.requires_grad_(), faces), verts)[0])
+    with pytest.raises(ValueError, match="faces must index the 9 vertices"):
+        torch.func.grad(depth)(verts.detach(), torch.where(faces == faces.max(), verts.shape[1], faces))
+
+
 def test_empty_mesh_and_empty_batch():
     frag = rasterize(torch.rand(2, 4, 3) + 1.0, torch.zeros(0, 3, dtype=torch.int64), CAM)
     assert (frag.pix_to_face == -1).all() and torch.isinf(frag.zbuf).all() and frag.bary.shape == (2, 24, 32, 3)

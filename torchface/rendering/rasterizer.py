@@ -67,7 +67,7 @@ from typing import Literal, overload
 import torch
 from torch import Tensor
 
-from torchface._compiling import is_compiling
+from torchface._compiling import is_compiling, is_transformed
 from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
@@ -241,8 +241,9 @@ def _index_range(faces: Tensor) -> tuple[int, int]:
     rasterizes twice per frame). A change is its version counter (any in-place operation, through a view too) or
     its memory, shape or strides (``faces.data = other`` keeps the counter); writes the counter does not see
     (through ``faces.data``'s or ``faces.numpy()``'s values, or another tensor on the same memory) are not."""
-    # (an inference tensor has no version counter; while torch.compile traces, no cache: torchface._scalar)
-    trackable = not faces.is_inference() and not is_compiling()
+    # (an inference tensor has no version counter, a torch.func transform's wrapper no memory; while torch.compile
+    # traces, no cache: torchface._scalar)
+    trackable = not faces.is_inference() and not is_compiling() and not is_transformed(faces)
     stamp: tuple[object, ...] = ()
     if trackable:
         # taken before the values are read: a change made meanwhile (another thread's) is read at the next call
