@@ -155,6 +155,53 @@ def test_the_face_index_check_reads_a_face_tensor_once_and_again_after_it_change
         rasterize(verts, torch.where(faces == 0, -1, faces), CAM)
 
 
+def test_the_face_index_check_sees_faces_given_other_values_through_data():
+    """``faces.data = other`` gives the same tensor (object) other values and keeps its version counter: the cached
+    index range was handed back, and faces one past the last vertex reached the gather (an IndexError on the CPU, a
+    device-side assert on a GPU) instead of the check's ValueError."""
+    verts, faces = random_soup(0, 1, 3)
+    faces = faces.clone()
+    rasterize(verts, faces, CAM)
+    faces.data = torch.where(faces == faces.max(), verts.shape[1], faces)
+    with pytest.raises(ValueError, match="faces must index the 9 vertices"):
+        rasterize(verts, faces, CAM)
+
+
+def test_the_face_index_check_reads_again_after_a_change_made_while_it_read(monkeypatch):
+    """A change of the faces made while the check read their range (another thread's; here right after the read)
+    is read at the next check: the version counter kept with the range is the one from before the read (the one
+    after it was kept, and the range read before the change was handed back from then on)."""
+    verts, faces = random_soup(0, 1, 3)
+    faces = faces.clone()
+    tolist = torch.Tensor.tolist
+
+    def tolist_then_change(self: torch.Tensor):
+        values = tolist(self)
+        faces[0, 1] = verts.shape[1]  # in place: one past the last vertex
+        return values
+
+    monkeypatch.setattr(torch.Tensor, "tolist", tolist_then_change)
+    rasterizer_module._check_mesh(verts, faces)  # the range read before the change: in range
+    monkeypatch.setattr(torch.Tensor, "tolist", tolist)
+    with pytest.raises(ValueError, match="faces must index the 9 vertices"):
+        rasterizer_module._check_mesh(verts, faces)
+
+
+def test_the_face_index_check_under_a_torch_func_transform():
+    """Faces passed through a ``torch.func`` transform are wrappers without memory: the check reads their range
+    without caching it (its stamp, which reads the memory's address, failed: "Cannot access data pointer of Tensor
+    that doesn't have storage"), and still refuses an index one past the last vertex."""
+    verts, faces = random_soup(0, 1, 3)
+
+    def depth(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        return torch.nan_to_num(rasterize(v, f, CAM).zbuf, posinf=0.0).sum()
+
+    grad = torch.func.grad(depth)(verts, faces)
+    torch.testing.assert_close(grad, torch.autograd.grad(depth(verts.requires_grad_(), faces), verts)[0])
+    with pytest.raises(ValueError, match="faces must index the 9 vertices"):
+        torch.func.grad(depth)(verts.detach(), torch.where(faces == faces.max(), verts.shape[1], faces))
+
+
 def test_empty_mesh_and_empty_batch():
     frag = rasterize(torch.rand(2, 4, 3) + 1.0, torch.zeros(0, 3, dtype=torch.int64), CAM)
     assert (frag.pix_to_face == -1).all() and torch.isinf(frag.zbuf).all() and frag.bary.shape == (2, 24, 32, 3)

@@ -537,3 +537,19 @@ def test_the_torch_solver_reads_the_host_twice_per_iteration():
                           step_tolerance=1e-12, function_tolerance=0.0, backend=Backend.TORCH)[4]
     assert out.iterations.tolist() == [6, 6]  # (every step accepted: no read for a rejection)
     assert reads.count == 2 * 6  # (3 * 6 before: 18)
+
+
+def test_no_iteration_without_the_final_check_reports_no_linearisation(backend):
+    """``iterations=0`` with ``final_check=False``: nothing linearised, the start handed back and no point reported
+    (the native solver's zeros). The torch code read the loop's last residuals, which it never made: an
+    UnboundLocalError ('r')."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    R1, t1, a1, l1, out = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=0, free=free,
+                                      alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=None, final_check=False,
+                                      backend=backend)  # fmt: skip
+    assert torch.equal(R1, R) and torch.equal(t1, t) and torch.equal(a1, a) and torch.equal(l1, lam)
+    assert out.residual.shape == tpl.valid.shape and not bool(out.residual.any()) and not bool(out.valid.any())
+    assert out.iterations.tolist() == [0, 0] and out.converged.tolist() == [False, False]

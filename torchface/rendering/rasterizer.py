@@ -67,7 +67,7 @@ from typing import Literal, overload
 import torch
 from torch import Tensor
 
-from torchface._compiling import is_compiling
+from torchface._compiling import is_compiling, is_transformed
 from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
@@ -231,23 +231,30 @@ def _check_mesh(verts: Tensor, faces: Tensor, name: str = "verts") -> None:
             raise ValueError(f"faces must index the {verts.shape[1]} vertices, got indices in [{lo}, {hi}]")
 
 
-#: :func:`_index_range`'s results: ``id(faces)`` -> (a weak reference to it, its version counter, min, max).
-_INDEX_RANGES: dict[int, tuple[weakref.ref[Tensor], int, int, int]] = {}
+#: :func:`_index_range`'s results: ``id(faces)`` -> (a weak reference to it, its stamp, min, max).
+_INDEX_RANGES: dict[int, tuple[weakref.ref[Tensor], tuple[object, ...], int, int]] = {}
 
 
 def _index_range(faces: Tensor) -> tuple[int, int]:
-    """The smallest and largest index of ``faces``, read on the host once per face tensor and change (its version
-    counter): a mesh's faces are checked at every rasterization, and each read waits for the device (on a GPU, a
-    synchronisation; the tracker rasterizes twice per frame)."""
-    cached = _INDEX_RANGES.get(id(faces))
-    # (an inference tensor has no version counter; while torch.compile traces, no cache: torchface._scalar)
-    trackable = not faces.is_inference() and not is_compiling()
-    if trackable and cached is not None and cached[0]() is faces and cached[1] == faces._version:
-        return cached[2], cached[3]
+    """The smallest and largest index of ``faces``, read on the host once per face tensor and change: a mesh's faces
+    are checked at every rasterization, and each read waits for the device (on a GPU, a synchronisation; the tracker
+    rasterizes twice per frame). A change is its version counter (any in-place operation, through a view too) or
+    its memory, shape or strides (``faces.data = other`` keeps the counter); writes the counter does not see
+    (through ``faces.data``'s or ``faces.numpy()``'s values, or another tensor on the same memory) are not."""
+    # (an inference tensor has no version counter, a torch.func transform's wrapper no memory; while torch.compile
+    # traces, no cache: torchface._scalar)
+    trackable = not faces.is_inference() and not is_compiling() and not is_transformed(faces)
+    stamp: tuple[object, ...] = ()
+    if trackable:
+        # taken before the values are read: a change made meanwhile (another thread's) is read at the next call
+        stamp = (faces._version, faces.data_ptr(), faces.shape, faces.stride())
+        cached = _INDEX_RANGES.get(id(faces))
+        if cached is not None and cached[0]() is faces and cached[1] == stamp:
+            return cached[2], cached[3]
     lo, hi = (int(v) for v in torch.stack([faces.min(), faces.max()]).tolist())
     if trackable:
         key = id(faces)
-        _INDEX_RANGES[key] = (weakref.ref(faces, lambda _: _INDEX_RANGES.pop(key, None)), faces._version, lo, hi)
+        _INDEX_RANGES[key] = (weakref.ref(faces, lambda _: _INDEX_RANGES.pop(key, None)), stamp, lo, hi)
     return lo, hi
 
 

@@ -541,6 +541,8 @@ def solve_level(
         if it + 1 < iterations and not bool(active.any()):  # (after the last iteration: no read, no wait)
             break
     if not final_check:
+        if iterations < 1:  # no linearisation to report: none of the points, as the native solver reports
+            r, valid = torch.zeros(B, N, dtype=dtype, device=device), torch.zeros(B, N, dtype=torch.bool, device=device)
         outcome = LevelOutcome(r, valid, torch.zeros_like(r), iters, ~active & finite, finite, constants=constants)
         return R, t, alpha, light, outcome
     last = lin_last(R, t, alpha, light)
