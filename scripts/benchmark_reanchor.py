@@ -65,6 +65,6 @@ def main(batches: list[int]) -> None:
 
 if __name__ == "__main__":
     # (it read sys.argv as integers: --help, the docs' way to learn a script, was a ValueError traceback)
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("batches", nargs="*", type=integer(1), metavar="B", help="streams per run (default 1 4 8)")
     main(parser.parse_args().batches or [1, 4, 8])
