@@ -50,9 +50,6 @@ RUN_HERE = {
     ("docs/python-api.md", "Saving a model for `torchface track`"):
         "test_saving_a_model_block_runs_on_candide3_written_as_an_obj",
 }  # fmt: skip
-# Blocks listed ahead of a change merged at the same time (session 50: `torchface track --model` and its docs), which
-# the check that every listed block exists leaves out while they are not on the page.
-ARRIVING = {("docs/python-api.md", "Saving a model for `torchface track`")}
 RUN_ELSEWHERE = {
     ("README.md", "Python API"):
         "tests/test_readme.py::test_readme_python_api_example_runs_and_gives_the_shapes_it_states",
@@ -72,7 +69,7 @@ def test_every_python_block_is_run_or_skipped_for_a_reason():
     found = [(p, h) for p, h, _ in _blocks("python")]
     assert len(found) == len(set(found)), "two python blocks under one heading: tell them apart here"
     listed = {**RUN_HERE, **RUN_ELSEWHERE, **SKIPPED}
-    unlisted, gone = sorted(set(found) - set(listed)), sorted(set(listed) - set(found) - ARRIVING)
+    unlisted, gone = sorted(set(found) - set(listed)), sorted(set(listed) - set(found))
     assert not unlisted and not gone, f"not listed: {unlisted}; listed but gone: {gone}"
     for name in RUN_HERE.values():
         assert callable(globals().get(name)), name
@@ -141,14 +138,11 @@ def test_saving_a_model_block_runs_on_candide3_written_as_an_obj(tmp_path, monke
 
     from torchface.model import load_candide3
 
-    key = ("docs/python-api.md", "Saving a model for `torchface track`")
-    found = [c for p, h, c in _blocks("python") if (p, h) == key]
-    if not found:
-        pytest.skip("docs/python-api.md has no such block yet (it comes with `torchface track --model`)")
     monkeypatch.chdir(tmp_path)
     candide = load_candide3(dtype=torch.float64)
     trimesh.Trimesh(candide.mean.numpy(), candide.faces.numpy(), process=False).export("my_face.obj")
-    code = found[0].replace("blendshapes=...", "blendshapes=candide.animation_units")
+    code = _block("docs/python-api.md", "Saving a model for `torchface track`")
+    code = code.replace("blendshapes=...", "blendshapes=candide.animation_units")
     code = code.replace("landmark_vertices=...", "landmark_vertices=candide.landmark_vertices[:, 0]")
     assert not any("..." in line.split("#")[0] for line in code.splitlines()), "a placeholder not filled here"
     scope = {"candide": candide}
