@@ -109,3 +109,29 @@ def test_an_int_is_the_current_accelerators_index(monkeypatch):
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
     assert check_device(0) == torch.device("mps", 0)
     check_to_device(0, torch.float32)  # (FaceTracker.to(0, torch.float32)'s check)
+
+
+def test_device_checked_module_is_a_base_for_ones_own_modules_typed_as_their_class():
+    """``torchface.extending.DeviceCheckedModule``, the base of FaceTracker, NormalisedFace and NormalisedFaceLayer, as
+    a package's own module uses it: ``.to`` / ``.cuda`` refuse a device this machine lacks with the one ValueError,
+    move it otherwise and return it, typed as the caller's class (they were typed ``Any``: mypy revealed ``Any`` for
+    ``NormalisedFace(model).to("cpu")``, ``NormalisedFace`` before)."""
+    import typing
+
+    from torchface.extending import DeviceCheckedModule
+
+    class Mine(DeviceCheckedModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.weight = torch.nn.Parameter(torch.ones(2))
+
+    mine = Mine()
+    with pytest.raises(ValueError, match=r"^unknown torch device 'gpu0' .*devices here: "):
+        mine.to("gpu0")
+    if NO_CUDA:
+        with pytest.raises(ValueError, match=r"^device 'cuda' is not available: .*devices here: cpu"):
+            mine.cuda()
+    assert mine.to(torch.float64) is mine and mine.weight.dtype == torch.float64
+    for method in (DeviceCheckedModule.to, DeviceCheckedModule.cuda):
+        hints = typing.get_type_hints(method)
+        assert isinstance(hints["return"], typing.TypeVar) and hints["return"] is hints["self"], method.__name__

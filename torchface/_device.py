@@ -10,10 +10,12 @@ model's checks for ``"meta"``).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
+
+_Module = TypeVar("_Module", bound="DeviceCheckedModule")
 
 __all__ = ["DeviceCheckedModule", "available_devices", "check_cuda_device", "check_device", "check_to_device"]
 
@@ -120,14 +122,15 @@ class DeviceCheckedModule(nn.Module):
     """An ``nn.Module`` whose ``.to`` and ``.cuda`` check the device first (:func:`check_to_device`,
     :func:`check_cuda_device`): one ``ValueError`` naming a device this machine lacks and those it has. The base of
     ``FaceTracker``, ``NormalisedFace`` and training_hooks' ``NormalisedFaceLayer`` (a parent network's ``.to`` moves
-    them through ``_apply``, which never sees the device's name: torch's own error there)."""
+    them through ``_apply``, which never sees the device's name: torch's own error there). Both return the module, typed
+    as its own class (they were typed ``Any``: ``NormalisedFace(model).to("cpu")`` lost its type to a checker)."""
 
-    def to(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+    def to(self: _Module, *args: Any, **kwargs: Any) -> _Module:  # type: ignore[override]
         """``nn.Module.to``; a device this machine lacks is a ``ValueError`` naming the devices it has."""
         check_to_device(*args, **kwargs)
         return super().to(*args, **kwargs)
 
-    def cuda(self, device: int | torch.device | None = None) -> Any:  # type: ignore[override]
+    def cuda(self: _Module, device: int | torch.device | None = None) -> _Module:  # type: ignore[override]
         """``nn.Module.cuda``; without that GPU a ``ValueError`` naming the devices this machine has."""
         check_cuda_device(device)
         return super().cuda(device)
