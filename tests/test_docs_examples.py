@@ -235,6 +235,13 @@ def _script_options(script: str) -> set[str]:
     return set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", (ROOT / "scripts" / script).read_text(encoding="utf-8")))
 
 
+def _subcommand_options(subcommand: str) -> set[str]:
+    """The options doc_figures.py's ``subcommand`` defines: those quoted between its ``add_parser`` and the next."""
+    source = (ROOT / "scripts" / "doc_figures.py").read_text(encoding="utf-8")
+    (part,) = [p for p in re.split(r"add_parser\(\s*", source)[1:] if p.startswith(f'"{subcommand}"')]
+    return set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", part.split("set_defaults(", 1)[0]))
+
+
 def test_scripts_command_lines_in_the_docs_name_options_their_scripts_have():
     """Every ``scripts/NAME.py ...`` command line README.md and docs/ quote names a script that exists, takes
     ``--help`` (an argparse parser: benchmark_reanchor.py read its arguments as integers, and ``--help`` was a
@@ -255,6 +262,8 @@ def test_scripts_command_lines_in_the_docs_name_options_their_scripts_have():
         assert options <= _script_options(script), (script, sorted(options - _script_options(script)))
         if script == "doc_figures.py" and rest.strip():
             assert rest.split()[0] in subcommands, rest
+            theirs = _subcommand_options(rest.split()[0])  # (not another subcommand's: `other-models --photo`)
+            assert options <= theirs, (rest.split()[0], sorted(options - theirs))
 
 
 def test_readme_scripts_section_names_options_of_the_scripts_each_item_is_about():
