@@ -753,3 +753,21 @@ def test_count_reads_a_face_models_landmarks(tmp_path):
     few[:3] = points[:3]
     with pytest.raises(InputError, match="3 of the 26 landmarks given"):
         check_landmarks(few, 640, 480, "x", missing=True, count=26)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("version: 1\nn_points: 26\n26 pairs follow\n", r"expected 'version: 1', 'n_points: 26' or '\{' of a \.pts"),
+        ("version: 1\nn_points: 26\n", r"not a \.pts file \(version: 1, n_points: 26, \{, 26 lines 'x y', \}\)$"),
+    ],
+    ids=["a line not of the header", "no opening brace"],
+)  # fmt: skip
+def test_a_broken_pts_header_names_the_models_count(tmp_path, text, message):
+    """A ``.pts`` file of a face model's K landmarks (``count``) whose header is broken: the message names K's layout,
+    not the 68 iBUG points' (it said ``n_points: 68`` and ``68 lines`` for a 26-landmark model)."""
+    (tmp_path / "a.pts").write_text(text)
+    with pytest.raises(InputError, match=message):
+        read_landmarks(tmp_path / "a.pts", 640, 480, count=26)
+    with pytest.raises(InputError, match=message.replace("26", "68")):  # (the default: the iBUG points')
+        read_landmarks(tmp_path / "a.pts", 640, 480)

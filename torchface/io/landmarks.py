@@ -264,9 +264,10 @@ def _is_pts(p: Path, text: str) -> bool:
     return p.suffix.lower() == ".pts" or re.match(r"(version|n_points)\s*:", first.lower()) is not None
 
 
-def _parse_pts(p: Path, text: str) -> np.ndarray:
+def _parse_pts(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
     """An iBUG / 300-W ``.pts`` file's points ``(K, 2)``, 1 subtracted (1-based to torchface's 0-based pixel
-    centres, exactly: in decimal before rounding to float64). ``K`` is checked against its ``n_points``."""
+    centres, exactly: in decimal before rounding to float64). ``K`` is checked against its ``n_points``; ``count``:
+    the points expected, as the messages name them."""
     expected: tuple[int, int] | None = None  # (n_points, its line)
     points: list[list[float]] = []
     state = "header"  # -> "points" after '{' -> "end" after '}'
@@ -283,7 +284,7 @@ def _parse_pts(p: Path, text: str) -> np.ndarray:
                 continue
             m = re.fullmatch(r"([A-Za-z_]+)\s*:\s*(.*)", line)
             if m is None:
-                raise InputError(f"{p}: line {number}: expected 'version: 1', 'n_points: 68' or '{{' of a .pts "
+                raise InputError(f"{p}: line {number}: expected 'version: 1', 'n_points: {count}' or '{{' of a .pts "
                                  f"file, got {line[:60]!r}")  # fmt: skip
             key, value = m.group(1).lower(), m.group(2).strip()
             if key == "version" and value not in ("1", "1.0"):
@@ -307,7 +308,8 @@ def _parse_pts(p: Path, text: str) -> np.ndarray:
         except (DecimalException, ValueError):
             raise InputError(f"{p}: line {number} is not a .pts point 'x y': {line[:60]!r}") from None
     if state == "header":
-        raise InputError(f"{p}: no '{{' line: not a .pts file (version: 1, n_points: 68, {{, 68 lines 'x y', }})")
+        raise InputError(f"{p}: no '{{' line: not a .pts file (version: 1, n_points: {count}, {{, {count} lines 'x y', "
+                         "})")  # fmt: skip
     if state == "points":
         raise InputError(f"{p}: line {number}: the .pts points end without their closing '}}'")
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -602,6 +604,6 @@ def read_landmarks(
         if p.suffix.lower() == ".json":
             points, missing_as = _parse_json(p, text, count), "[null, null]"
         else:
-            points = _parse_pts(p, text) if pts else _parse_csv(p, text)
+            points = _parse_pts(p, text, count) if pts else _parse_csv(p, text)
             missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
     return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as, count=count)
