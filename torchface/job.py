@@ -106,7 +106,7 @@ from torch import Tensor
 
 from torchface._device import check_device
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.detect import _Batched, accepts_near, detector_image, search_first_face, usable_detection
+from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
@@ -831,12 +831,6 @@ def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[s
                               f"{spare} bytes before its extension")  # fmt: skip
 
 
-def _to_uint8(frame: Tensor) -> np.ndarray:
-    """``(3, H, W)`` float RGB in ``[0, 1]`` -> ``(3, H, W)`` uint8 planes (rounded, clamped)."""
-    scaled = frame.detach().clamp(0, 1)  # (a new tensor: scaled and rounded in place, 6.7 -> 4 ms a 1080p frame)
-    return scaled.mul_(255).round_().to(torch.uint8).cpu().numpy()
-
-
 def _frame_bgr(frame: Tensor, image: np.ndarray | None) -> np.ndarray:
     """What :func:`_to_uint8_bgr` makes of a frame read from ``image`` (its ``FrameReader.image``; None: not known),
     without converting it: ``image`` itself, whose values the frame's give back exactly in float32 and float64
@@ -850,7 +844,7 @@ def _to_uint8_bgr(frame: Tensor) -> np.ndarray:
     """``(3, H, W)`` float RGB in ``[0, 1]`` -> a contiguous ``(H, W, 3)`` uint8 BGR image, as
     ``cv2.cvtColor(detector_image(frame), cv2.COLOR_RGB2BGR)`` gives it, three times faster (the planes merged in
     their new order: the conversion of a strided RGB view took 16 ms a 1080p frame, this 4)."""
-    planes = _to_uint8(frame)
+    planes = _uint8_planes(frame)
     return cv2.merge([planes[2], planes[1], planes[0]])
 
 

