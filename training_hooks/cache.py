@@ -13,7 +13,11 @@ Key (:func:`cache_key`): a BLAKE2b hash of
   (:attr:`~training_hooks.transforms.FaceTrackingConfig.model`; a dataset's: as it read the model from it);
 - any extra text the caller adds (the datasets add their frame-conversion setting);
 - the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
-  and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`.
+  and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`;
+- the installed code itself (:func:`code_version`: a digest of every file of the ``torchface`` and
+  ``training_hooks`` packages), so that a change of the tracking that keeps the version (an editable install
+  pulled or edited, as ``scripts/test.sh`` and ``scripts/demo.sh`` install it) keys apart the sequences the
+  code tracked before.
 
 So a changed config, video or landmark set is a different file: a stale entry is never read, it is only left
 behind (delete ``cache_dir`` to reclaim the space).
@@ -56,7 +60,7 @@ from torchface.extending import check_int
 from torchface.io.video import image_files
 from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 
-__all__ = ["CACHE_FORMAT", "CacheWarning", "CacheStats", "TrackCache", "cache_key", "content_hash"]
+__all__ = ["CACHE_FORMAT", "CacheWarning", "CacheStats", "TrackCache", "cache_key", "code_version", "content_hash"]
 
 #: Version of the file layout; part of every key.
 CACHE_FORMAT: int = 2
@@ -72,6 +76,36 @@ _STALE_PARTIAL_S = 24 * 3600.0
 #: unchanged file is hashed once. One entry per path, replaced when the file changes, and of a fixed size (the
 #: stats themselves as the key held 46 kB for a folder of 500 images, and every changed file added an entry).
 _HASH_MEMO: dict[str, tuple[bytes, str]] = {}
+#: The installed code's :func:`code_version`, computed once per process.
+_CODE_VERSION: list[str] = []
+
+
+def _package_digest(roots: tuple[Path, ...]) -> str:
+    """BLAKE2b hex digest of every file under the folders ``roots`` (path relative to its root, length and bytes, in
+    name order), ``__pycache__`` folders left out: the content of installed packages (:func:`code_version`)."""
+    h = hashlib.blake2b(digest_size=32)
+    for root in roots:
+        root = Path(root)
+        h.update(root.name.encode("utf-8") + b"\0")
+        for f in sorted(p for p in root.rglob("*") if p.is_file() and "__pycache__" not in p.relative_to(root).parts):
+            data = f.read_bytes()
+            h.update(f.relative_to(root).as_posix().encode("utf-8") + b"\0" + len(data).to_bytes(8, "little"))
+            h.update(data)
+    return h.hexdigest()
+
+
+def code_version() -> str:
+    """The digest (:func:`_package_digest`) of the installed ``torchface`` and ``training_hooks`` packages: their
+    source, the native kernels' C source and the model data, as they are when this process first asks (once per
+    process: a spawned ``DataLoader`` worker reads them again). Part of every :func:`cache_key`: ``torchface.
+    __version__`` stays the same across the commits of an editable install, whose tracking may change between them
+    (a cache filled before a ``git pull`` was read after it). About 30 ms.
+    """
+    if not _CODE_VERSION:
+        import training_hooks
+
+        _CODE_VERSION.append(_package_digest((Path(torchface.__file__).parent, Path(training_hooks.__file__).parent)))
+    return _CODE_VERSION[0]
 
 
 class CacheWarning(UserWarning):
@@ -161,7 +195,8 @@ def cache_key(
     settings = repr(config if config.model is None else replace(config, model=None))  # (the file's content below)
     parts = (
         f"format={CACHE_FORMAT}", f"torchface={torchface.__version__}", f"torch={torch.__version__}",
-        f"native={native}", content, settings, extra, *([f"first_frame={first_frame}"] if first_frame else []),
+        f"native={native}", f"code={code_version()}", content, settings, extra,
+        *([f"first_frame={first_frame}"] if first_frame else []),
         *([f"model={model_content or content_hash(config.model)}"] if config.model is not None else []),
     )  # fmt: skip
     for part in parts:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -280,6 +281,47 @@ def test_torchface_version_is_part_of_the_key(monkeypatch, clips):
     k = cache_key("0" * 64, TRACKING, clips[0].landmarks)
     monkeypatch.setattr(torchface, "__version__", "99.0")
     assert cache_key("0" * 64, TRACKING, clips[0].landmarks) != k
+
+
+def test_a_cache_filled_by_other_code_of_the_same_version_is_not_read(two, config, monkeypatch):
+    """An editable install keeps ``torchface.__version__`` across the commits it is pulled to, and their tracking may
+    differ: a cache filled before a ``git pull`` was read after it (``cached`` True, the old code's items)."""
+    from training_hooks import cache as cache_module
+
+    videos, lms = two
+    first = epoch(VideoDataset(videos, lms, config))
+    assert cached_videos(epoch(VideoDataset(videos, lms, config))) == {0: True, 1: True}
+    monkeypatch.setattr(cache_module, "_CODE_VERSION", ["0" * 64])  # the same installed files, edited
+    again = epoch(VideoDataset(videos, lms, config))
+    assert cached_videos(again) == {0: False, 1: False}
+    assert same_items(first, again)  # (the code did not change here: the same items)
+
+
+def test_the_code_version_is_a_digest_of_the_packages_files(tmp_path):
+    """:func:`code_version` digests every file of the two packages (source, C kernels, model data), not their
+    ``__pycache__``, whatever the folder they are installed in."""
+    import torchface
+    import training_hooks
+    from training_hooks.cache import _package_digest, code_version
+
+    installed = tuple(Path(m.__file__).parent for m in (torchface, training_hooks))
+    assert code_version() == _package_digest(installed) and len(code_version()) == 64
+    copies = tuple(tmp_path / root.name for root in installed)
+    for root, copy in zip(installed, copies):
+        shutil.copytree(root, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert _package_digest(copies) == code_version()  # (moved: the same digest)
+    (copies[0] / "__pycache__").mkdir(exist_ok=True)
+    (copies[0] / "__pycache__" / "step.cpython-311.pyc").write_bytes(b"compiled")
+    assert _package_digest(copies) == code_version()
+    for edited in ("tracker/step.py", "_native/kernels.c", "data/candide3.wfm"):
+        path = copies[0] / edited
+        before = path.read_bytes()
+        path.write_bytes(before + b"\n")
+        assert _package_digest(copies) != code_version(), edited
+        path.write_bytes(before)
+    path = copies[1] / "transforms.py"
+    path.write_bytes(path.read_bytes() + b"\n")
+    assert _package_digest(copies) != code_version()
 
 
 def test_torch_version_and_native_kernels_are_part_of_the_key(monkeypatch, clips):
