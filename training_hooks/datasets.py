@@ -283,6 +283,41 @@ def _check_exists(path: Path) -> None:
         raise InputError(f"{path}: no such file or folder{link}")
 
 
+def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarray | str | os.PathLike:
+    """One video's landmarks as a dataset keeps them, checked as far as they can be without its frames.
+
+    A tensor is kept as a NumPy array (``.detach().cpu().numpy()``, bfloat16 as float32: the values the landmark fit
+    takes, and the cache key): a ``DataLoader`` worker started by ``spawn`` or ``forkserver`` received each tensor
+    through shared memory, one file descriptor apiece, and a dataset of 3000 videos with a tensor each stopped at
+    the first batch with "Too many open files" under the usual limit of 1024 (an array travels by value, as the
+    datasets' arrays did); a CUDA tensor is moved to the CPU once, here, not in each worker. An array's or tensor's
+    shape, and a file's existence, are checked here (:class:`~torchface.io.InputError` naming the video), not in
+    the worker once its video comes up, after the videos before it were tracked: the values (NaN rows, infinite
+    values, points outside the frame) are checked there, against the frame, as before.
+    """
+    where = f"{video}: landmarks"
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        if not path.is_file():  # (read_landmarks' words)
+            problem = "a folder, not a landmarks file" if path.is_dir() else "no such landmarks file"
+            raise InputError(f"{where}: {path}: {problem}")
+        return source
+    if isinstance(source, Tensor):
+        source = source.detach().cpu()
+        source = (source.to(torch.float32) if source.dtype == torch.bfloat16 else source).numpy()
+    shape = tuple(np.shape(source))
+    if len(shape) == 3 and shape[0] == 1:  # (the layouts torchface.io.check_landmarks reads: (1, K, 2), (2K,))
+        shape = shape[1:]
+    if len(shape) == 1 and shape[0] % 2 == 0:
+        shape = (shape[0] // 2, 2)
+    if len(shape) != 2 or shape[1] != 2:
+        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {np.shape(source)}")
+    if shape[0] != count:
+        what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
+        raise InputError(f"{where}: expected {count} {what}, got {shape[0]} (a missing point stays, as a NaN row)")
+    return source
+
+
 def clip_bounds(
     num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool
 ) -> list[tuple[int, int]]:
@@ -333,9 +368,11 @@ class VideoDataset(IterableDataset):
 
     Raises:
         TypeError, ValueError: bad arguments (checked here; also a missing or damaged face model file of
-            :attr:`FaceTrackingConfig.model <training_hooks.transforms.FaceTrackingConfig.model>`, an
-            :class:`~torchface.io.InputError`); problems with a video's content (:class:`~torchface.io.InputError`)
-            surface when it is read, in the worker, and reach the caller through the ``DataLoader``.
+            :attr:`FaceTrackingConfig.model <training_hooks.transforms.FaceTrackingConfig.model>`, a landmarks
+            array or tensor of another count of points, or a missing landmarks file, an
+            :class:`~torchface.io.InputError`); problems with a video's content or its landmarks' values
+            (:class:`~torchface.io.InputError`) surface when it is read, in the worker, and reach the caller through
+            the ``DataLoader``.
 
     Example:
         >>> # data = VideoDataset(["a.avi"], [np.load("a_lm.npy")], DatasetConfig(clip_length=8))
@@ -401,7 +438,8 @@ class VideoDataset(IterableDataset):
                         f"landmarks[{i}] ({self.videos[i]}) must be a {one} array or tensor, or a landmarks file, "
                         f"got {type(source).__name__}"
                     )
-            self.detector, self.landmarks = None, tuple(landmarks)
+            kept = tuple(_kept_landmarks(s, self.videos[i], num_landmarks) for i, s in enumerate(landmarks))
+            self.detector, self.landmarks = None, kept
         if self.detector is not None and num_landmarks != NUM_LANDMARKS:
             raise ValueError(
                 f"{os.fspath(path)}: the face model {self.model.name!r} has "

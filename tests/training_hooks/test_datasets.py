@@ -530,7 +530,55 @@ def test_landmarks_of_another_kind_are_refused_when_the_dataset_is_made(tmp_path
     points = np.zeros((68, 2))
     with pytest.raises(TypeError, match=r"landmarks\[1\] \(.*a.avi\) must be a \(68, 2\) array .*got list"):
         VideoDataset([video, video], [points, points.tolist()])
-    VideoDataset([video] * 4, [points, torch.zeros(68, 2), "a.csv", tmp_path / "a.npy"])  # the kinds it takes
+    for name in ("a.csv", "a.npy"):
+        (tmp_path / name).write_bytes(b"")  # (never read)
+    VideoDataset([video] * 4, [points, torch.zeros(68, 2), str(tmp_path / "a.csv"), tmp_path / "a.npy"])  # its kinds
+
+
+def test_landmarks_of_another_count_or_a_missing_file_are_refused_when_the_dataset_is_made(tmp_path):
+    """A video's landmarks of another count of points (dlib's 5, a (67, 2) slice) or a landmarks file that is not
+    there were taken by VideoDataset and refused in the DataLoader worker once their video came up, after every
+    video before it had been tracked; they are an InputError naming the video when the dataset is made (the values
+    are checked against the frame in the worker, as before)."""
+    video = tmp_path / "a.avi"
+    video.write_bytes(b"")  # (never opened)
+    points = np.zeros((68, 2))
+    for bad, what in ((points[:67], "expected 68 iBUG landmarks, got 67"), (torch.zeros(5, 2), "got 5"),
+                      (np.zeros((68, 3)), r"expected 68 \(x, y\) points, got an array of shape \(68, 3\)"),
+                      (tmp_path / "b.csv", "b.csv: no such landmarks file"),
+                      (str(tmp_path), "a folder, not a landmarks file")):  # fmt: skip
+        with pytest.raises(InputError, match=rf"a\.avi: landmarks: .*{what}"):
+            VideoDataset([video, video], [points, bad])
+    # the layouts the worker reads (torchface.io.check_landmarks) are still taken: (1, 68, 2), (136,)
+    data = VideoDataset([video] * 3, [points[None], points.reshape(-1), torch.zeros(68, 2, dtype=torch.bfloat16)])
+    assert all(isinstance(lm, np.ndarray) for lm in data.landmarks)
+
+
+def test_many_videos_with_tensor_landmarks_reach_a_spawned_worker(clips, tmp_path):
+    """Each video's landmarks tensor went to a DataLoader worker started by spawn through shared memory, a file
+    descriptor apiece: 3000 videos stopped the first batch with "Too many open files" under a limit of 1024 (here
+    400 under 256, in a child process). The dataset keeps them as NumPy arrays, sent by value."""
+    import subprocess
+    import sys
+
+    code = (
+        "import resource, sys, numpy as np, torch\n"
+        "from torch.utils.data import DataLoader\n"
+        "from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset\n"
+        "resource.setrlimit(resource.RLIMIT_NOFILE, (256, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))\n"
+        "lm = torch.from_numpy(np.load(sys.argv[2]))\n"
+        "data = VideoDataset([sys.argv[1]] * 400, [lm.clone() for _ in range(400)],\n"
+        "                    DatasetConfig(tracking=FaceTrackingConfig(face_size=16)))\n"
+        "loader = DataLoader(data, batch_size=None, num_workers=1, multiprocessing_context='spawn')\n"
+        "item = next(iter(loader))\n"
+        "print('ok', int(item['video']), int(item['frame']))"
+    )  # fmt: skip
+    np.save(tmp_path / "lm.npy", clips[0].landmarks)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parents[2]),
+                                                                      os.environ.get("PYTHONPATH")]))}  # fmt: skip
+    run = subprocess.run([sys.executable, "-c", code, str(clips[0].video), str(tmp_path / "lm.npy")],
+                         capture_output=True, text=True, timeout=300, env=env)  # fmt: skip
+    assert run.returncode == 0 and run.stdout.split() == ["ok", "0", "0"], run.stderr[-1500:]
 
 
 def test_landmarks_stacked_as_facetracker_takes_them_give_one_entry_per_video(clips, config):
