@@ -283,6 +283,13 @@ def _check_exists(path: Path) -> None:
         raise InputError(f"{path}: no such file or folder{link}")
 
 
+def _as_numpy(points: Tensor) -> np.ndarray:
+    """Landmarks ``points`` as a NumPy array of their values: ``.detach().cpu().numpy()``, bfloat16 as float32
+    (which NumPy lacks)."""
+    points = points.detach().cpu()
+    return (points.to(torch.float32) if points.dtype == torch.bfloat16 else points).numpy()
+
+
 def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarray | str | os.PathLike:
     """One video's landmarks as a dataset keeps them, checked as far as they can be without its frames.
 
@@ -303,8 +310,7 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
             raise InputError(f"{where}: {path}: {problem}")
         return source
     if isinstance(source, Tensor):
-        source = source.detach().cpu()
-        source = (source.to(torch.float32) if source.dtype == torch.bfloat16 else source).numpy()
+        source = _as_numpy(source)
     shape = tuple(np.shape(source))
     if len(shape) == 3 and shape[0] == 1:  # (the layouts torchface.io.check_landmarks reads: (1, K, 2), (2K,))
         shape = shape[1:]
@@ -419,7 +425,7 @@ class VideoDataset(IterableDataset):
         one = f"({num_landmarks}, 2)"  # (the 68 iBUG points, or the model's K landmarks)
         if isinstance(landmarks, (np.ndarray, Tensor)) and landmarks.ndim == 3:
             # (N, K, 2), the batch FaceTracker.initialise takes: one entry per video (it was "must be a sequence")
-            landmarks = list(landmarks.detach() if isinstance(landmarks, Tensor) else landmarks)
+            landmarks = list(_as_numpy(landmarks) if isinstance(landmarks, Tensor) else landmarks)  # (moved once)
         if callable(landmarks) and not isinstance(landmarks, (np.ndarray, Tensor)):
             self.detector: Detector | None = landmarks
             self.landmarks: tuple[LandmarkSource, ...] | None = None
