@@ -530,35 +530,52 @@ def test_on_cuda_as_on_the_cpu() -> None:
 
 def test_a_smoother_leaves_the_tracker_as_it_is() -> None:
     """Off is the code without it: tracking a small rendered clip with a smoother reading every result gives the
-    tracker's results (and state) bit for bit as tracking without one, and the smoothed pose differs from them."""
+    tracker's results (and state) bit for bit as tracking without one, and the smoothed pose differs from them.
+    Given the tracker's state, the stream the online start re-anchors starts afresh at that frame; the other (a
+    still head) goes on as without the state."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from _helpers import sideways_clip
 
-    from torchface.tracker import FaceTracker, FitConfig, TrackerConfig
+    from torchface.tracker import FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
 
-    frames, landmarks, _ = sideways_clip(320, 240, n=5)
-    frames = torch.stack([frames, frames.flip(-1)], 1)  # (T, 2, 3, H, W): two streams
-    lm = torch.stack([landmarks, torch.stack([319 - landmarks[:, 0], landmarks[:, 1]], -1)])
+    frames, landmarks, _ = sideways_clip(320, 240, n=6)
+    frames = torch.stack([frames, frames[:1].expand_as(frames)], 1)  # (T, 2, 3, H, W): turning, still
+    lm = torch.stack([landmarks, landmarks])
     config = TrackerConfig(num_levels=2, max_points=400, iterations=(4, 3), fit=FitConfig(held_shape_units=()))
     fields = ("rotation", "axis_angle", "translation", "ypr_deg", "anim_coeffs", "expression", "confidence", "status")
 
-    def track(smoother: ResultSmoother | None) -> tuple[list[TrackResult], list[TrackResult], torch.Tensor]:
-        tracker = FaceTracker(config)
-        raw, smooth = [tracker.initialise(frames[0], lm)], []
+    def track(smoother: ResultSmoother | None):
+        tracker = FaceTracker(config, refine_first=LookaheadConfig(yaw_deg=5.0))
+        raw, smooth, offsets = [tracker.initialise(frames[0], lm)], [], []
         for k in range(1, frames.shape[0]):
             raw.append(tracker(frames[k]))
-        for r in raw if smoother is not None else ():
-            smooth.append(smoother(r))
-        return raw, smooth, tracker.state.params.clone()
+            ms = tracker.state.management
+            offsets.append(None if ms.head_rotation is None else ms.head_rotation.clone())
+            if smoother is not None:  # (online, given the tracker's state, as a user calls it)
+                smooth.append(smoother(raw[-1], tracker_state=tracker.state))
+        return raw, smooth, offsets, tracker
 
-    base, _, params = track(None)
-    raw, smooth, params_s = track(ResultSmoother(fps=FPS, model=load_candide3()))
+    base, _, _, tracker = track(None)
+    raw, smooth, offsets, tracker_s = track(ResultSmoother(fps=FPS, model=load_candide3()))
     for a, b in zip(base, raw):
         for name in fields:
             assert torch.equal(getattr(a, name), getattr(b, name)), name
-    assert torch.equal(params, params_s)
-    assert torch.equal(smooth[0].rotation, raw[0].rotation)  # the first frame: raw
-    assert not torch.equal(smooth[-1].rotation, raw[-1].rotation)
+    assert torch.equal(tracker.state.params, tracker_s.state.params)
+    assert bool(torch.stack([r.success for r in raw]).all())
+    assert torch.equal(smooth[0].rotation, raw[1].rotation)  # the first frame the smoother sees: raw
+    assert not torch.equal(smooth[-1].rotation[0], raw[-1].rotation[0])
+    # the re-anchoring of stream 0 (at 5 degrees of yaw)
+    eye = torch.eye(3)
+    at = next(k for k, D in enumerate(offsets) if D is not None and not torch.equal(D[0], eye))
+    assert torch.equal(offsets[at][1], eye)  # (the still stream: not re-anchored)
+    plain = ResultSmoother(fps=FPS)
+    without = [plain(r) for r in raw[1:]]
+    assert torch.equal(smooth[at].rotation[0], raw[at + 1].rotation[0])  # afresh there
+    assert not torch.equal(without[at].rotation[0], raw[at + 1].rotation[0])
+    for a, b in zip(smooth, without):  # the still stream as without the state
+        assert torch.equal(a.rotation[1], b.rotation[1]) and torch.equal(a.translation[1], b.translation[1])
+    with pytest.raises(TypeError, match="tracker_state"):
+        ResultSmoother(fps=FPS)(raw[-1], tracker_state=tracker.state.management)  # type: ignore[arg-type]

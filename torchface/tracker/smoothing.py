@@ -51,7 +51,7 @@ from torch import Tensor
 from torchface.geometry._checks import check_real
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
-from torchface.tracker.step import TrackResult
+from torchface.tracker.step import TrackerState, TrackResult
 
 __all__ = [
     "OneEuroConfig",
@@ -483,8 +483,10 @@ class ResultSmoother:
 
     Opt-in and outside the tracker: the tracker's own results (and its state, which it tracks from) stay raw, and
     the smoother returns new :class:`~torchface.tracker.TrackResult` objects. Streams start afresh at their first
-    result, at the first successful frame after an unsuccessful one (a loss and its recovery) and where ``restart``
-    says; call :meth:`reset` when the tracker is initialised again, :meth:`select` when it keeps some streams.
+    result, at the first successful frame after an unsuccessful one (a loss and its recovery: a detector's
+    re-initialisation too), where ``restart`` says and, given the tracker's state, after the online start
+    re-anchors them; call :meth:`reset` when the tracker is initialised again, :meth:`select` when it keeps some
+    streams.
 
     Args:
         config: what to smooth and how (:class:`SmoothingConfig`; its defaults smooth the pose).
@@ -497,7 +499,7 @@ class ResultSmoother:
         >>> smooth = smoother(tracker.initialise(frames[:, 0], landmarks))             # doctest: +SKIP
         >>> for t in range(1, T):                                                      # doctest: +SKIP
         ...     raw = tracker(frames[:, t])                                            # the tracker's own
-        ...     smooth = smoother(raw)                                                 # smoothed pose
+        ...     smooth = smoother(raw, tracker_state=tracker.state)                    # smoothed pose
     """
 
     def __init__(
@@ -520,6 +522,7 @@ class ResultSmoother:
         self.facs_matrix = None if model is None else model.facs_matrix.detach()
         self._state: SmoothingState | None = None
         self._frames: Tensor | None = None  # (B,) frames counted per stream, for calls without timestamps
+        self._offsets: tuple[Tensor, Tensor] | None = None  # the tracker's re-anchoring offsets at the last call
 
     @property
     def state(self) -> SmoothingState | None:
@@ -530,6 +533,7 @@ class ResultSmoother:
         """Forget every stream: the next result starts them all afresh."""
         self._state = None
         self._frames = None
+        self._offsets = None
 
     def select(self, index: Sequence[int] | Tensor) -> "ResultSmoother":
         """Keep only streams ``index`` (as :meth:`FaceTracker.select <torchface.tracker.FaceTracker.select>`);
@@ -539,10 +543,35 @@ class ResultSmoother:
         self._state = self._state.select(index)
         if self._frames is not None:
             self._frames = self._frames[torch.as_tensor(index, device=self._frames.device)]
+        if self._offsets is not None:
+            rows = torch.as_tensor(index, device=self._offsets[0].device)
+            self._offsets = (self._offsets[0][rows], self._offsets[1][rows])
         return self
 
+    def _reanchored(self, state: TrackerState, B: int, device: torch.device) -> Tensor:
+        """``(B,)`` bool: the streams whose re-anchoring offsets (``ManagementState.head_rotation`` and
+        ``head_translation``: set once the online start re-anchors a stream) changed since the last call's
+        ``state``."""
+        if not isinstance(state, TrackerState):
+            raise TypeError(f"tracker_state must be the tracker's TrackerState, got {type(state).__name__}")
+        ms = state.management
+        changed = torch.zeros(B, dtype=torch.bool, device=device)
+        if ms is None or ms.head_rotation is None or ms.head_translation is None:
+            return changed
+        D, d = ms.head_rotation.detach().clone(), ms.head_translation.detach().clone()
+        if D.shape[0] != B:
+            raise ValueError(f"tracker_state holds {D.shape[0]} streams, the result {B}")
+        before = self._offsets
+        if before is None:  # (none recorded yet: a stream whose offset is not the identity was re-anchored)
+            eye = torch.eye(3, dtype=D.dtype, device=D.device)
+            before = (eye.expand_as(D), torch.zeros_like(d))
+        changed = ((D != before[0]).flatten(1).any(1) | (d != before[1]).any(1)).to(device)
+        self._offsets = (D, d)
+        return changed
+
     def __call__(
-        self, result: TrackResult, timestamps: Tensor | None = None, restart: Tensor | None = None
+        self, result: TrackResult, timestamps: Tensor | None = None, restart: Tensor | None = None,
+        tracker_state: TrackerState | None = None,
     ) -> TrackResult:
         """The smoothed ``result`` of the next frame of every stream.
 
@@ -550,7 +579,10 @@ class ResultSmoother:
             result: the tracker's result, batch B (the same streams, in the same order, as the previous call's).
             timestamps: ``(B,)`` the frames' times in seconds (a video's presentation times), or None: the
                 smoother's ``fps`` (each stream's frames counted from its first result).
-            restart: ``(B,)`` bool, streams that start afresh at this frame (a re-anchoring, a new video), or None.
+            restart: ``(B,)`` bool, streams that start afresh at this frame (a new video in a slot), or None.
+            tracker_state: the tracker's state after this result (``tracker.state``), or None: streams that the
+                online start has re-anchored since the last call's state start afresh (the pose stays continuous
+                through a re-anchoring, but the re-anchored estimate may step).
         """
         if not isinstance(result, TrackResult):
             raise TypeError(f"result must be a TrackResult, got {type(result).__name__}")
@@ -566,5 +598,8 @@ class ResultSmoother:
             time = frames / self.fps
         else:
             time = torch.as_tensor(timestamps, dtype=torch.float64, device=device)
+        if tracker_state is not None:
+            again = self._reanchored(tracker_state, B, device)
+            restart = again if restart is None else _stream_mask(restart, B, "restart", device, False) | again
         out, self._state = smooth_result(result, self._state, time, self.config, self.facs_matrix, restart)
         return out
