@@ -7,7 +7,8 @@ pyramid, :func:`~torchface.tracker.step.pyramid_for_faces`) into batches of up t
 the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on as a smaller one), and writes per video
 (``<stem>`` is the input's file name without suffix):
 
-- ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
+- ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units; with
+  ``JobConfig.smoothing``, ``torchface track --smooth``, the smoothed pose's ``smooth_*`` columns after them);
 - ``<stem>.json``: versions, settings, camera, model, how the video started (``start``, :func:`_start_record`),
   timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the

@@ -579,3 +579,25 @@ def test_a_smoother_leaves_the_tracker_as_it_is() -> None:
         assert torch.equal(a.rotation[1], b.rotation[1]) and torch.equal(a.translation[1], b.translation[1])
     with pytest.raises(TypeError, match="tracker_state"):
         ResultSmoother(fps=FPS)(raw[-1], tracker_state=tracker.state.management)  # type: ignore[arg-type]
+
+
+def test_docs_smoothing_block_runs_as_written() -> None:
+    """docs/python-api.md's "Smoothing the outputs" block, its placeholders a small rendered clip (one stream): the
+    smoothed result is a TrackResult whose pose differs from the tracker's raw one, and the first one is raw."""
+    import re
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    sys.path.insert(0, str(root / "tests"))
+    from _helpers import sideways_clip
+
+    text = (root / "docs" / "python-api.md").read_text(encoding="utf-8")
+    section = text.split("## Smoothing the outputs\n", 1)[1].split("\n## ", 1)[0]
+    (code,) = re.findall(r"^```python\n(.*?)^```", section, flags=re.S | re.M)
+    frames, landmarks, _ = sideways_clip(320, 240, n=4)
+    scope = {"frames0": frames[:1], "landmarks0": landmarks[None], "later_frames": [f[None] for f in frames[1:]]}
+    exec(compile(code, "docs/python-api.md", "exec"), scope)  # noqa: S102 (the docs' own block)
+    smooth, raw = scope["smooth"], scope["raw"]
+    assert isinstance(smooth, TrackResult) and smooth.rotation.shape == (1, 3, 3)
+    assert not torch.equal(smooth.rotation, raw.rotation) and not torch.equal(smooth.translation, raw.translation)

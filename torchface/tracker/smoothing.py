@@ -34,9 +34,11 @@ previous state; float64 gradcheck in ``tests/tracker/test_smoothing.py``. The fi
 tracker's state holds its own estimates, and :class:`ResultSmoother` only reads results.
 
 Defaults (:class:`SmoothingConfig`), chosen from ``scripts/evaluate.py --smoothing`` and
-``scripts/track_grid.py --smoothing`` (docs/python-api.md, "Smoothing the outputs"): rotation
-``min_cutoff=1.0`` Hz, ``beta=2.0`` Hz per rad/s; translation ``min_cutoff=1.0`` Hz, ``beta=0.05`` Hz per mm/s;
-``d_cutoff=1.0`` Hz; expression off.
+``scripts/track_grid.py --smoothing`` (docs/python-api.md, "Smoothing the outputs"): rotation ``min_cutoff=1.0`` Hz,
+``beta=100`` Hz per rad/s, ``d_cutoff=5.0`` Hz; translation ``min_cutoff=1.0`` Hz, ``beta=1.0`` Hz per mm/s,
+``d_cutoff=5.0`` Hz; expression off. In fast motion the lag tends to ``1 / (2 pi beta)`` (0.09 degrees, 0.16 mm):
+the GRID clips' pose jitter 0.097 -> 0.066 degrees, the rendered scenarios' mean rotation error up 0.01-0.03
+degrees.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -394,7 +397,7 @@ def smooth_result(
                          "state as the tracker's streams change, or reset it")  # fmt: skip
     dt = time - state.time if state is not None else torch.ones_like(time)  # (the first frame starts anyway)
     valid = result.success.to(result.rotation.device)
-    changes: dict[str, Tensor] = {}
+    changes: dict[str, Any] = {}  # (replace checks each value against every field's type)
     rot = trans = expr = None
     if config.rotation is not None:
         R, rot = one_euro_rotation_step(result.rotation, None if state is None else state.rotation,
