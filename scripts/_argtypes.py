@@ -7,6 +7,10 @@ import argparse
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchface.tracker.smoothing import SmoothingConfig
 
 
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
@@ -63,3 +67,31 @@ def device_problem(name: str) -> str | None:
     except (RuntimeError, AssertionError, ValueError) as exc:  # (torch raises each for some backend)
         return " ".join(str(exc).split()) or type(exc).__name__
     return "the meta device holds no data" if device.type == "meta" else None
+
+
+def smoothing_settings(text: str) -> list[tuple[str, "SmoothingConfig"]]:
+    """The scripts' ``--smoothing`` settings: a comma list of ``default`` (:class:`~torchface.tracker.SmoothingConfig`'s
+    defaults) or ``MC:BETA[:DC]`` (the rotation's One-Euro filter: ``min_cutoff`` in Hz, ``beta`` in Hz per rad/s,
+    ``d_cutoff`` in Hz, default 1; the translation's filter at its default), as ``(label, config)``.
+
+    Raises:
+        ValueError: a setting that is neither (the message names it).
+    """
+    from torchface.tracker.smoothing import OneEuroConfig, SmoothingConfig
+
+    out: list[tuple[str, SmoothingConfig]] = []
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        if item == "default":
+            out.append(("smooth default", SmoothingConfig()))
+            continue
+        try:
+            values = [float(v) for v in item.split(":")]
+            if len(values) not in (2, 3):
+                raise ValueError("two or three numbers")
+            rotation = OneEuroConfig(*values)
+        except ValueError as exc:
+            raise ValueError(f"--smoothing: {item!r} is not default or MC:BETA[:DC] ({exc})") from None
+        out.append((f"smooth {item}", SmoothingConfig(rotation=rotation)))
+    return out

@@ -16,7 +16,9 @@ of the landmark noise (full configuration) and a table of the seeds follows, wit
 the starting pose and expression come from one noisy fit, so one seed's figures can be luckier or unluckier
 than another's.
 --selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
-default landmark noise. Every managed run tracks with the online look-ahead start, the tracker's default
+default landmark noise. --smoothing adds rows of the full run's pose smoothed over time at each listed setting
+(torchface.tracker.smoothing, the One-Euro filter of ResultSmoother and `torchface track --smooth`), filtered offline
+from the run's per-frame estimates (the filter does not feed the tracking): its error, lag and jitter. Every managed run tracks with the online look-ahead start, the tracker's default
 (FaceTracker(refine_first=LookaheadConfig()), torchface.tracker.managed); --no-online-refine turns it off, and
 --lookahead instead refines the first fit from frames read ahead before tracking (two passes).
 
@@ -49,6 +51,7 @@ Examples:
     python scripts/evaluate.py --scenarios standard --ablations none --noise-seeds 0,1,2,3 --no-online-refine
     python scripts/evaluate.py --scenarios expressions --ablations none --truth-fit --no-online-refine  # from the truth
     python scripts/evaluate.py --scenarios standard --ablations none --mediapipe-python /path/to/mp-env/bin/python
+    python scripts/evaluate.py --scenarios standard --ablations none --smoothing default,1:30:5,1:10  # smoothing
     python scripts/evaluate.py          # everything: standard tables, section (a), section (b)
 """
 
@@ -92,10 +95,11 @@ from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_trut
 from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.module import FaceTracker
+from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
+from _argtypes import device_problem, file_problem, folder_problem, smoothing_settings  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
@@ -389,6 +393,16 @@ def track_sequence(
     return track_frames(model, config, frames, seq.gt, landmarks, label, progress_every)
 
 
+def smoothed_run(out: RunOutput, fps: float, config: SmoothingConfig) -> RunOutput:
+    """``out`` with its rotations and translations smoothed over time by :func:`smooth_pose_series` (frames at
+    ``fps``; a stream starts afresh after each unsuccessful frame), as ``ResultSmoother`` would have smoothed them
+    online."""
+    T = out.rotation.shape[0]
+    time = torch.arange(T, dtype=torch.float64)[None] / fps
+    R, t = smooth_pose_series(out.rotation[None], out.translation[None], out.success[None], time, config)
+    return replace(out, rotation=R[0], translation=t[0])
+
+
 def score(model: FaceModel, gt: GroundTruth, out: RunOutput) -> SequenceMetrics:
     """Metrics of one run; animation units are matched to the ground truth by name."""
     anim_est = anim_gt = ranges = None
@@ -455,6 +469,9 @@ def table(name: str, rows: dict[str, dict[str, float]], info: str) -> str:
         )
         lines.append(" ".join(v.rjust(w) if i else v.ljust(w) for i, (v, (_, w)) in enumerate(zip(vals, COLUMNS))))
     lines.append("   jitter: the rotation error's frame-to-frame noise, RMS angle (torchface.synth.metrics.rotation_jitter_deg)")
+    if any(cfg.startswith("smooth ") for cfg in rows):
+        lines.append("   smooth ...: the full run's pose smoothed offline (--smoothing; torchface.tracker.smoothing), "
+                     "the same run's AUs and statuses")
     if "mediapipe" in rows:
         lines.append("   mediapipe: MediaPipe's FaceLandmarker (VIDEO mode) on the same frames, its facial transformation "
                      "matrix's rotation; no translation (its own units), no AUs")
@@ -940,6 +957,13 @@ def main(argv: list[str] | None = None) -> int:
         "than BASE + PER_FRAME * frames from its last confident pose neither ends the loss nor is adopted; default: "
         "TemplateConfig's, 0 0: off)",
     )
+    parser.add_argument(
+        "--smoothing", default="",
+        help="comma list of output-smoothing settings (default, or MC:BETA[:DC]: the rotation's One-Euro filter, "
+        "min_cutoff in Hz, beta in Hz per rad/s, d_cutoff in Hz (default 1); the translation's at its default): "
+        "each standard scenario's full run gets a row per setting, its pose smoothed offline "
+        "(torchface.tracker.smoothing)",
+    )
     parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
         "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
@@ -999,6 +1023,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--selection-seeds must be integers >= 0, got {args.selection_seeds!r}")
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
+    try:
+        smoothing = smoothing_settings(args.smoothing)
+    except ValueError as exc:
+        parser.error(str(exc))
     if args.long_frames is not None and args.long_frames < 100:
         parser.error(f"--long-frames must be >= 100 (a long run's events need them), got {args.long_frames}")
     for option, path in (("--json", args.json), ("--save-series", args.save_series)):
@@ -1133,6 +1161,11 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 if args.json is not None:
                     write_json(args.json, results)
+                if abl == "full":  # the same run's pose smoothed over time, per setting (offline: no tracking)
+                    for label_s, config_s in smoothing:
+                        m = score(model, seq.gt, smoothed_run(out, seq.gt.fps, config_s)).as_dict()
+                        m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
+                        rows[label_s] = results[f"{name}/{label_s}"] = m
             if args.mediapipe_python is not None:
                 log(f"{name}/mediapipe: MediaPipe FaceLandmarker on {t} frames {w}x{h}")
                 mp_figures = mediapipe_row(seq, args.mediapipe_python)

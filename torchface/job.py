@@ -7,7 +7,8 @@ pyramid, :func:`~torchface.tracker.step.pyramid_for_faces`) into batches of up t
 the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on as a smaller one), and writes per video
 (``<stem>`` is the input's file name without suffix):
 
-- ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units);
+- ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units; with
+  ``JobConfig.smoothing``, ``torchface track --smooth``, the smoothed pose's ``smooth_*`` columns after them);
 - ``<stem>.json``: versions, settings, camera, model, how the video started (``start``, :func:`_start_record`),
   timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
@@ -114,7 +115,8 @@ from torchface.io.errors import InputError, OutputError, dangling_link
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
 from torchface.io.table import (
-    POSE_COLUMNS, ROTATION_COLUMNS, TrackCsvWriter, partial_path, read_back, read_track_csv, result_rows, track_columns,
+    POSE_COLUMNS, ROTATION_COLUMNS, SMOOTH_COLUMNS, TrackCsvWriter, partial_path, pose_values, read_back, read_track_csv,
+    result_rows, track_columns,
 )
 from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
 from torchface.model.candide import load_candide3
@@ -125,6 +127,7 @@ from torchface.tracker.fit import LandmarkFit, check_model_landmarks, fit_landma
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
+from torchface.tracker.smoothing import SmoothingConfig, SmoothingState, one_euro_rotation_step, one_euro_step
 from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, TrackStatus, pyramid_for_faces
 from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
@@ -209,6 +212,16 @@ class JobConfig:
             :func:`torchface.model.face_model_digest`, and its sizes), and a resume with another model is refused. A
             detector gives the 68 iBUG points: with ``detector`` a model of another landmark count is refused (give
             landmarks files of its own points).
+        smoothing: smooth the pose over time (``torchface track --smooth``: :class:`~torchface.tracker.SmoothingConfig`,
+            its ``rotation`` and ``translation`` filters; an ``expression`` filter is refused: the job smooths the
+            pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw columns, which a
+            resumed run replays into the tracker, and appends :data:`~torchface.io.table.SMOOTH_COLUMNS`; the
+            overlay and the meshes show the smoothed pose, the normalised face is resampled at the raw one. The
+            filter runs on each row as written (replayed rows too: a resumed video's filter goes on from the state
+            the interrupted run had), at the frames' times, and starts afresh at a video's first tracked row, after
+            an unsuccessful row, after the online start's re-anchoring frame and after a row where a re-detection
+            was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
+            with another setting is refused.
     """
 
     out_dir: str | os.PathLike[str]
@@ -227,8 +240,14 @@ class JobConfig:
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
     max_batch: int = 128
     model: str | os.PathLike[str] | None = None
+    smoothing: SmoothingConfig | None = None
 
     def __post_init__(self) -> None:
+        if self.smoothing is not None and not isinstance(self.smoothing, SmoothingConfig):
+            raise TypeError(f"smoothing must be a SmoothingConfig or None, got {type(self.smoothing).__name__}")
+        if self.smoothing is not None and self.smoothing.expression is not None:
+            raise ValueError("smoothing.expression must be None: torchface track smooths the pose only (the rows' "
+                             "expression stays raw; ResultSmoother smooths it in Python)")  # fmt: skip
         if self.model is not None and not isinstance(self.model, (str, os.PathLike)):
             raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
@@ -881,6 +900,8 @@ class _Stream:
     # the last replayed row (its t) after which a re-detection was due, its detector not asked again (the next rows
     # hold what it gave): the motion prediction's run of steady frames starts after it (_with_replayed_motion)
     replayed_redetection: int | None = None
+    # a re-detection was due after its last row (asked or replayed): the pose smoothing starts afresh at its next row
+    smooth_restart: bool = False
     near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
@@ -924,13 +945,16 @@ def _next_frame(s: _Stream) -> Tensor:
     return frame
 
 
-def _row_values(rows: np.ndarray, columns: tuple[str, ...]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _row_values(
+    rows: np.ndarray, columns: tuple[str, ...], pose: str = ""
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``(B, C)`` CSV rows -> float64 ``(R (B, 3, 3), t (B, 3) mm, anim (B, A), light (B, L))``: the values a row
-    holds of the pose, the expression (``anim_*``) and the light (``illum_*``)."""
+    holds of the pose, the expression (``anim_*``) and the light (``illum_*``); ``pose``: the pose columns' prefix
+    (``"smooth_"``: the smoothed pose of :data:`~torchface.io.table.SMOOTH_COLUMNS`)."""
     idx = {c: i for i, c in enumerate(columns)}
     data = torch.as_tensor(rows, dtype=torch.float64)
-    R = data[:, [idx[c] for c in ROTATION_COLUMNS]].reshape(-1, 3, 3)
-    t = data[:, [idx[c] for c in POSE_COLUMNS[:3]]]
+    R = data[:, [idx[pose + c] for c in ROTATION_COLUMNS]].reshape(-1, 3, 3)
+    t = data[:, [idx[pose + c] for c in POSE_COLUMNS[:3]]]
     anim = data[:, [i for i, c in enumerate(columns) if c.startswith("anim_")]]
     light = data[:, [i for i, c in enumerate(columns) if c.startswith("illum_")]]
     return R, t, anim, light
@@ -1128,6 +1152,8 @@ def _setting_values(config: JobConfig) -> dict[str, object]:
         "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
         "--detector": config.detector, "re-detection": (config.redetect_after, config.redetect_below),
         "normalised size": config.normalised_size,
+        # (only when on: the records of runs without it, and of earlier versions, hold none)
+        **({"--smooth": config.smoothing} if config.smoothing is not None else {}),
     }  # fmt: skip
 
 
@@ -1388,6 +1414,22 @@ def _check_record_model(path: Path, settings: dict[str, object]) -> None:
                          "run's --model, or without --resume")  # fmt: skip
 
 
+def _check_record_smoothing(path: Path, settings: dict[str, object]) -> None:
+    """Refuse to resume the partial run of record ``path`` made with another ``--smooth`` setting than ``settings``'
+    (:func:`_settings`), before the partial CSV's columns are compared (with ``--smooth`` on one side only they
+    differ, and "its columns differ" said nothing of why). No record, or one that cannot be read: left to
+    :func:`_read_record`."""
+    try:
+        made = json.loads(path.read_text(encoding="utf-8"))["settings"].get("--smooth")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return
+    now = settings.get("--smooth")
+    if (made is None) != (now is None) or (made is not None and _setting_differences(made, now)):
+        raise InputError(f"{path}: cannot resume, the partial results were made with another smoothing "
+                         f"({_said_difference('--smooth', made, now)}): run with the interrupted run's --smooth "
+                         "setting, or without --resume")  # fmt: skip
+
+
 def _check_made_from(made_from: str, video: Path, subject: str) -> None:
     """Refuse to resume results made from ``made_from``, not from ``video`` (``subject``: what the message says
     they are, with its verb: "<csv> was", "<record>: the partial results were")."""
@@ -1537,11 +1579,12 @@ def _check_resumable(
             raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from other first-frame "
                              f"landmarks than {os.fspath(landmarks)} holds now ({what}): run without --resume")
     now = _as_json(_result_settings(config))  # as the sidecar holds them
+    made_with = {"smoothing": None, **made_with}  # (sidecars before --smooth: made without it)
     made_with = _with_defaults(made_with, _result_settings(config))  # (a field added since: at its default)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
-                 "detector": "--detector"}  # fmt: skip
+                 "detector": "--detector", "smoothing": "--smooth"}  # fmt: skip
         what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
@@ -1574,7 +1617,7 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
     return {"tracker": config.tracker, "focal": config.focal, "detector": config.detector,
             "lookahead": config.lookahead, "online_start": config.refine_first, "convert": config.convert,
             "normalised_size": config.normalised_size, "redetect_after": config.redetect_after,
-            "redetect_below": config.redetect_below}  # fmt: skip
+            "redetect_below": config.redetect_below, "smoothing": config.smoothing}  # fmt: skip
 
 
 def _open_inputs(
@@ -2094,6 +2137,7 @@ def _track_group(
     device, dtype = model.device, model.dtype
     layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
     columns = track_columns(model.animation_names, model.facs_names, tuple(_illumination_names()))
+    columns += SMOOTH_COLUMNS if config.smoothing is not None else ()
     edges = mesh_edges(model.faces)
     normaliser = NormalisedFace(model, size=config.normalised_size)
     G = config.normalised_size
@@ -2106,6 +2150,7 @@ def _track_group(
             partial = partial_path(p["csv"])
             if config.resume:  # (before the CSV's columns, the model's, are compared with the partial one's)
                 _check_record_model(_record_path(p["csv"]), s.settings)
+                _check_record_smoothing(_record_path(p["csv"]), s.settings)
             if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
                 os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
             s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
@@ -2168,6 +2213,7 @@ def _track_group(
             if k in anchored and anchored[k].get("first_shape_coeffs") is not None:  # resumed from the record
                 s.first_shape = list(anchored[k]["first_shape_coeffs"])  # (the state's: the refined shape)
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
+        smooth: SmoothingState | None = None  # the pose filter's state (JobConfig.smoothing), stream by stream
         for s in streams:  # (a landmarks file's given points: a detector's `near` is told no missing one, NaN)
             s.near = s.landmarks[np.isfinite(s.landmarks).all(axis=1)]
         # The streams in the tracker's state, in its order (with their output paths and first poses): a video that
@@ -2201,9 +2247,12 @@ def _track_group(
                 state = _with_replayed_loss(state, ended, columns, layout, run.tracker, live)
                 state = _with_replayed_motion(state, ended, columns, layout, run.tracker, live)
             new_rows = result_rows(result, np.full(len(live), t), 1.0)
-            _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
-                        normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
-                        "dissim. conf" if config.tracker.template.enabled else "conf")  # fmt: skip
+            if config.smoothing is not None:  # (filled by _write_step)
+                new_rows = np.concatenate([new_rows, np.full((len(live), len(SMOOTH_COLUMNS)), math.nan)], axis=1)
+            smooth = _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
+                                 normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
+                                 "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
+                                 smooth)  # fmt: skip
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
                                         [r is not None and t < len(r) - 1 for r in replays])
@@ -2241,6 +2290,7 @@ def _track_group(
                 # every step until the longest video ended)
                 _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
                 state, result = state.select(keep), _select_result(result, keep)
+                smooth = None if smooth is None else smooth.select(keep)
                 first_R, first_t = first_R[keep], first_t[keep]
                 live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
                 live_paths, live_mesh = [live_paths[k] for k in keep], [live_mesh[k] for k in keep]
@@ -2525,17 +2575,21 @@ def _write_step(
     model: FaceModel, state: TrackerState, result, frames: Tensor, streams: list[_Stream], replaying: list[bool],
     columns: tuple[str, ...], rows: np.ndarray, t: int, intr: Intrinsics, edges: np.ndarray,
     normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
-    conf_label: str,
-) -> None:
+    conf_label: str, smoothing: SmoothingConfig | None = None, smooth: SmoothingState | None = None,
+) -> SmoothingState | None:
     """Write frame ``t`` of every live stream (its frame ``t + start``, ``_Stream.start``): its CSV row (unless
     replayed), then its overlay, normalised face and mesh, drawn from that row as the CSV holds it
-    (:func:`_drawn_pose`)."""
+    (:func:`_drawn_pose`). With ``smoothing`` (``rows`` then end with :data:`~torchface.io.table.SMOOTH_COLUMNS`,
+    to be filled), the rows' pose as written (a replayed row's as the CSV holds it) goes through the filter, whose
+    state ``smooth`` (None: every stream starts) this returns for the next frame; the overlay and the meshes are
+    drawn at the smoothed pose, the normalised face resampled at the raw one."""
     live = [not s.done for s in streams]
     if not any(live):
-        return
+        return smooth
     written = rows.copy()
     stamps: dict[int, float] = {}
     images: dict[int, np.ndarray | None] = {}
+    new: dict[int, np.ndarray] = {}  # the rows to write (not replayed)
     for k, s in enumerate(streams):
         if not live[k]:
             continue
@@ -2552,12 +2606,23 @@ def _write_step(
             row = rows[k].copy()
             row[0] = t + s.start
             row[1] = stamp
-            s.outputs()[0].write(row[None])
-            s.tracked += 1
+            new[k] = row
             written[k] = read_back(columns, row[None])[0]
+    if smoothing is not None:
+        values, smooth = _smooth_rows(smoothing, smooth, written, columns, streams, live, stamps, t)
+        for k, row in new.items():  # (a replayed row holds what the interrupted run's filter gave it)
+            row[-len(SMOOTH_COLUMNS) :] = values[k]
+            written[k] = read_back(columns, row[None])[0]
+    for k, row in new.items():
+        streams[k].outputs()[0].write(row[None])
+        streams[k].tracked += 1
     R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
-    verts_uv, _ = overlay_geometry(model, shape, alpha, R_mesh, t_mesh, intr)
-    axes_uv = axes_geometry(R, trans, intr)  # the axes of the CSV's pose, not of the mesh's placement
+    if smoothing is not None:  # (what is drawn: the smoothed pose; what is resampled from the frame: the raw one)
+        R_s, trans_s, R_mesh_s, t_mesh_s, _, _, _ = _drawn_pose(model, state, streams, written, columns, t, "smooth_")
+    else:
+        R_s, trans_s, R_mesh_s, t_mesh_s = R, trans, R_mesh, t_mesh
+    verts_uv, _ = overlay_geometry(model, shape, alpha, R_mesh_s, t_mesh_s, intr)
+    axes_uv = axes_geometry(R_s, trans_s, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
     norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
@@ -2583,7 +2648,7 @@ def _write_step(
         if mesh_dirs is not None:
             import trimesh
 
-            verts = torch.matmul(model.deform(shape[k : k + 1], alpha[k : k + 1]), R_mesh[k].T) + t_mesh[k]
+            verts = torch.matmul(model.deform(shape[k : k + 1], alpha[k : k + 1]), R_mesh_s[k].T) + t_mesh_s[k]
             mesh = trimesh.Trimesh(verts[0].detach().cpu().numpy(), model.faces.cpu().numpy(), process=False)
             ply = mesh_dirs[k] / f"{t + s.start:06d}.ply"
             try:
@@ -2592,10 +2657,45 @@ def _write_step(
                 ply.unlink(missing_ok=True)
                 raise OutputError(f"{ply}: cannot write ({exc.strerror or exc})") from None
         s.frames += 1
+    return smooth
+
+
+def _smooth_rows(
+    config: SmoothingConfig, state: SmoothingState | None, written: np.ndarray, columns: tuple[str, ...],
+    streams: list[_Stream], live: list[bool], stamps: dict[int, float], t: int,
+) -> tuple[np.ndarray, SmoothingState]:
+    """The :data:`~torchface.io.table.SMOOTH_COLUMNS` ``(B, 18)`` of frame ``t``'s rows ``written`` ``(B, C)`` (as
+    written: raw columns read back, or replayed): their pose filtered over time (:mod:`torchface.tracker.smoothing`,
+    float64 on the CPU, at the frames' times ``stamps``) from the filter's ``state`` (None: every stream starts),
+    and the filter's next state. A row starts its stream
+    afresh where it is unsuccessful (passed through; the next successful one starts), after the online start's
+    re-anchoring frame (``_Stream.anchor``'s ``frame``: the rows after it are the re-anchored estimate) and after a
+    row where a re-detection was due (``_Stream.smooth_restart``); each depends on the rows alone, so a resumed run's
+    filter, given the replayed rows, goes on as the interrupted run's did. Streams no longer live are passed
+    through."""
+    B = written.shape[0]
+    R, trans, _, _ = _row_values(written, columns)
+    ok = torch.as_tensor(written[:, columns.index("success")] > 0.5) & torch.as_tensor(live)
+    time = torch.tensor([stamps.get(k, 0.0) for k in range(B)], dtype=torch.float64)
+    restart = torch.zeros(B, dtype=torch.bool)
+    for k, s in enumerate(streams):
+        at = None if s.anchor is None else s.anchor.get("frame")
+        restart[k] = s.smooth_restart or (at is not None and t == at + 1)
+        s.smooth_restart = False
+    dt = time - state.time if state is not None else torch.ones_like(time)  # (the first row starts anyway)
+    rot = trans_state = None
+    if config.rotation is not None:
+        R, rot = one_euro_rotation_step(R, None if state is None else state.rotation, dt, config.rotation, valid=ok,
+                                        restart=restart)  # fmt: skip
+    if config.translation is not None:
+        trans, trans_state = one_euro_step(trans, None if state is None else state.translation, dt,
+                                           config.translation, valid=ok, restart=restart)  # fmt: skip
+    return pose_values(R, trans), SmoothingState(rot, trans_state, None, time)
 
 
 def _drawn_pose(
-    model: FaceModel, state: TrackerState, streams: list[_Stream], rows: np.ndarray, columns: tuple[str, ...], t: int
+    model: FaceModel, state: TrackerState, streams: list[_Stream], rows: np.ndarray, columns: tuple[str, ...], t: int,
+    pose: str = "",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """What the outputs of frame ``t`` show, from its ``(B, C)`` CSV rows as written (:func:`read_back`) and the
     sidecar's ``start`` (:func:`_start_record`), so that every output agrees with the CSV and a replayed row is drawn
@@ -2604,8 +2704,9 @@ def _drawn_pose(
     :func:`_head_offset` and the state's shape, the sidecar's ``model.shape_coeffs``; else the row's own pose and
     the first shape, ``start.first_shape_coeffs``), ``alpha`` the rows' ``anim_*``, ``light`` their ``illum_*``.
     The model's dtype and device; a lost or failed row is drawn as the CSV holds it (not at the parameters the
-    tracker falls back to)."""
-    R, trans, alpha, light = _row_values(rows, columns)
+    tracker falls back to). ``pose``: the prefix of the pose columns drawn (``"smooth_"``: the smoothed pose,
+    ``JobConfig.smoothing``)."""
+    R, trans, alpha, light = _row_values(rows, columns, pose)
     R_mesh, t_mesh = R.clone(), trans.clone()
     shape = state.shape_coeffs.detach().to("cpu", torch.float64).clone()
     for k, s in enumerate(streams):
@@ -2671,6 +2772,7 @@ def _maybe_redetect(
         if s.done or s.low_count < config.redetect_after:
             continue
         s.low_count = 0
+        s.smooth_restart = True  # (due, whether or not it finds a face: the rows alone say it, replayed or not)
         if replayed[k]:
             s.replayed_redetection = s.frames - s.start - 1  # (this row's t: its row is written)
             continue

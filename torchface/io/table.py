@@ -55,15 +55,18 @@ import torch
 from torch import Tensor
 
 from torchface._names import name_tuple
+from torchface.geometry.so3 import matrix_to_euler
 from torchface.io.errors import InputError, OutputError
 
 __all__ = [
     "POSE_COLUMNS",
     "ROTATION_COLUMNS",
+    "SMOOTH_COLUMNS",
     "TrackCsvWriter",
     "column_name",
     "openface_euler",
     "partial_path",
+    "pose_values",
     "read_back",
     "read_track_csv",
     "result_rows",
@@ -76,6 +79,10 @@ POSE_COLUMNS: tuple[str, ...] = (
 )  # fmt: skip
 #: Rotation-matrix columns, row-major.
 ROTATION_COLUMNS: tuple[str, ...] = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+#: The columns ``torchface track --smooth`` appends after the others (``JobConfig.smoothing``): the pose smoothed
+#: over time (:mod:`torchface.tracker.smoothing`), as :data:`POSE_COLUMNS` and :data:`ROTATION_COLUMNS` hold the
+#: raw one, each name prefixed ``smooth_`` (:func:`pose_values` of the smoothed pose).
+SMOOTH_COLUMNS: tuple[str, ...] = tuple(f"smooth_{c}" for c in POSE_COLUMNS + ROTATION_COLUMNS)
 _LEAD = ("frame", "timestamp", "success", "confidence")
 _TAIL = ("status", "iterations", "num_points", "cost", "residual_confidence", "dissimilarity", "mosaic_entry")
 _INT_COLUMNS = frozenset({"frame", "success", "status", "iterations", "num_points", "mosaic_entry"})
@@ -154,6 +161,15 @@ def openface_euler(R: Tensor) -> Tensor:
     rx = torch.where(locked, torch.atan2(R[:, 2, 1], R[:, 1, 1]), torch.atan2(-R[:, 1, 2], R[:, 2, 2]))
     rz = torch.where(locked, torch.zeros_like(ry), torch.atan2(-R[:, 0, 1], R[:, 0, 0]))
     return torch.stack([rx, ry, rz], dim=-1)
+
+
+def pose_values(R: Tensor, t: Tensor) -> np.ndarray:
+    """``(B, 18)`` float64, the pose's cells of a row in the order of ``POSE_COLUMNS + ROTATION_COLUMNS`` (and of
+    :data:`SMOOTH_COLUMNS`): ``t`` (mm), OpenFace's angles (:func:`openface_euler`), yaw, pitch, roll in degrees
+    (:func:`~torchface.geometry.so3.matrix_to_euler`) and ``R`` row-major, of ``R (B, 3, 3)`` and ``t (B, 3)``."""
+    R = R.detach().to("cpu", torch.float64)
+    t = t.detach().to("cpu", torch.float64).reshape(-1, 3)
+    return torch.cat([t, openface_euler(R), matrix_to_euler(R), R.reshape(-1, 9)], dim=1).numpy()
 
 
 def result_rows(result, frame_indices: Tensor | np.ndarray, fps: float) -> np.ndarray:

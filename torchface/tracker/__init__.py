@@ -15,6 +15,18 @@ from torchface.tracker.managed import (
 from torchface.tracker.module import FaceTracker
 from torchface.tracker.objective import frame_residuals, warp_points
 from torchface.tracker.params import ParamLayout
+from torchface.tracker.smoothing import (
+    OneEuroConfig,
+    OneEuroState,
+    ResultSmoother,
+    SmoothingConfig,
+    SmoothingState,
+    one_euro_alpha,
+    one_euro_rotation_step,
+    one_euro_step,
+    smooth_pose_series,
+    smooth_result,
+)
 from torchface.tracker.step import (
     TrackerConfig,
     TrackerState,
@@ -37,7 +49,12 @@ __all__ = [
     "LandmarkFit",
     "LookaheadConfig",
     "ManagementState",
+    "OneEuroConfig",
+    "OneEuroState",
     "ParamLayout",
+    "ResultSmoother",
+    "SmoothingConfig",
+    "SmoothingState",
     "TrackResult",
     "TrackStatus",
     "TrackerConfig",
@@ -53,9 +70,14 @@ __all__ = [
     "level_intrinsics",
     "lookahead_fit",
     "managed_step",
+    "one_euro_alpha",
+    "one_euro_rotation_step",
+    "one_euro_step",
     "pyramid_for_faces",
     "refine_first_fit",
     "select_keyframes",
+    "smooth_pose_series",
+    "smooth_result",
     "view_yaw_deg",
     "track_step",
     "warp_points",

@@ -1,0 +1,156 @@
+"""``torchface track --smooth`` (``JobConfig.smoothing``): the smoothed pose columns beside the raw ones, the raw rows
+as without it, the overlay drawn at the smoothed pose, the filter restored on ``--resume``, and the refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import torchface.job
+from torchface.cli import main
+from torchface.io import read_track_csv, to_jsonable
+from torchface.io.table import POSE_COLUMNS, ROTATION_COLUMNS, SMOOTH_COLUMNS
+from torchface.job import JobConfig, track_videos
+from torchface.synth.io import read_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+from torchface.tracker import OneEuroConfig, SmoothingConfig, smooth_pose_series
+
+T, W, H = 10, 160, 120
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """The ``expressions`` scenario's first frames (its head turns past 10 degrees at frame 2: the online start
+    re-anchors there), lossless as an ``.npy`` array, and its first landmarks."""
+    root = tmp_path_factory.mktemp("clip")
+    files = write_sequence(make_scenario("expressions", T, W, H), root)
+    gt = load_ground_truth(files.ground_truth)
+    lm = root / "first_frame.csv"
+    np.savetxt(lm, gt.landmarks_px[0].numpy(), delimiter=",", header="x,y", comments="")
+    video = root / "clip.npy"
+    np.save(video, (read_video(files.video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    return video, lm
+
+
+@pytest.fixture(scope="module")
+def runs(clip, tmp_path_factory):
+    """The clip tracked without and with ``--smooth`` (the latter recording the head axes its overlay drew)."""
+    video, lm = clip
+    plain, smooth = tmp_path_factory.mktemp("plain"), tmp_path_factory.mktemp("smooth")
+    assert main(["track", str(video), "--out", str(plain), "--landmarks", str(lm), "--quiet"]) == 0
+    drawn = []
+    original = torchface.job.axes_geometry
+
+    def record(R, t, intr):
+        drawn.append((R.detach().double().clone(), t.detach().double().clone()))
+        return original(R, t, intr)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(torchface.job, "axes_geometry", record)
+        assert main(["track", str(video), "--out", str(smooth), "--landmarks", str(lm), "--quiet", "--smooth"]) == 0
+    return plain, smooth, drawn
+
+
+def offline(cols, rows, restart_after: int | None) -> np.ndarray:
+    """The smoothed pose columns of ``rows`` as the filter gives them offline (the rows' times and success, a start
+    afresh after the re-anchoring frame ``restart_after``)."""
+    data = torch.from_numpy(rows)
+    R = data[:, [cols.index(c) for c in ROTATION_COLUMNS]].reshape(1, -1, 3, 3)
+    t = data[:, [cols.index(c) for c in POSE_COLUMNS[:3]]][None]
+    restart = torch.zeros(1, len(rows), dtype=torch.bool)
+    if restart_after is not None:
+        restart[0, restart_after + 1] = True
+    R_s, t_s = smooth_pose_series(R, t, (data[:, cols.index("success")] > 0.5)[None],
+                                  data[:, cols.index("timestamp")][None], SmoothingConfig(), restart)  # fmt: skip
+    return np.concatenate([t_s[0].numpy(), R_s[0].reshape(-1, 9).numpy()], 1)
+
+
+def smooth_cells(cols, rows) -> np.ndarray:
+    """The rows' smoothed translation and rotation matrix ``(T, 12)``."""
+    names = [f"smooth_{c}" for c in POSE_COLUMNS[:3] + ROTATION_COLUMNS]
+    return rows[:, [cols.index(c) for c in names]]
+
+
+def test_smooth_adds_columns_and_leaves_the_raw_rows_as_without_it(runs) -> None:
+    plain, smooth, drawn = runs
+    cols_p, rows_p = read_track_csv(plain / "clip.csv")
+    cols_s, rows_s = read_track_csv(smooth / "clip.csv")
+    assert not any(c.startswith("smooth_") for c in cols_p)
+    assert cols_s == cols_p + SMOOTH_COLUMNS
+    # off is the code without it, and the filter never feeds the tracker: every raw cell as the plain run's
+    assert np.array_equal(rows_s[:, : len(cols_p)], rows_p, equal_nan=True)
+    sidecar, plain_sidecar = (json.loads((d / "clip.json").read_text()) for d in (smooth, plain))
+    assert sidecar["config"]["smoothing"] == to_jsonable(SmoothingConfig())
+    assert plain_sidecar["config"]["smoothing"] is None
+    at = sidecar["start"]["reanchored_at_frame"]
+    assert at is not None and at + 1 < T  # (the clip re-anchors: a start afresh after it)
+    got = smooth_cells(cols_s, rows_s)
+    raw = rows_s[:, [cols_s.index(c) for c in POSE_COLUMNS[:3] + ROTATION_COLUMNS]]
+    np.testing.assert_allclose(got, offline(cols_s, rows_s, at), rtol=1e-7, atol=1e-6)
+    assert np.array_equal(got[0], raw[0]) and np.array_equal(got[at + 1], raw[at + 1])  # starts: the raw pose
+    assert np.abs(got[1:] - raw[1:]).max() > 1e-3  # and smoothed elsewhere
+    # the overlay's head axes are drawn at the smoothed pose
+    assert len(drawn) == T
+    R_drawn = torch.cat([R for R, _ in drawn]).numpy().reshape(T, 9)
+    np.testing.assert_allclose(R_drawn, got[:, 3:], rtol=0, atol=1e-6)
+
+
+def test_smooth_resume_goes_on_from_the_interrupted_filter(clip, runs, tmp_path, capsys) -> None:
+    """Interrupted after 5 rows and resumed with ``--smooth``: the replayed rows are kept, and the filter goes on from
+    the state the replayed rows give it (the row after the resume is filtered from them, not started afresh), as
+    the offline filter over the whole CSV. Resumed without ``--smooth``, or a plain partial run resumed with it:
+    refused, naming the smoothing."""
+    video, lm = clip
+    out = tmp_path / "out"
+
+    def interrupt(p):
+        if p.done == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), smoothing=SmoothingConfig()), progress=interrupt)
+    cols, kept = read_track_csv(out / "clip.csv.partial")
+    assert kept.shape[0] == 5
+    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--resume"]) == 2
+    assert "another smoothing" in capsys.readouterr().err
+    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--resume",
+                 "--smooth"]) == 0  # fmt: skip
+    cols, rows = read_track_csv(out / "clip.csv")
+    assert rows.shape[0] == T and np.array_equal(rows[:5], kept)
+    at = json.loads((out / "clip.json").read_text())["start"]["reanchored_at_frame"]
+    got = smooth_cells(cols, rows)
+    np.testing.assert_allclose(got, offline(cols, rows, at), rtol=1e-7, atol=1e-6)
+    raw5 = rows[5, [cols.index(c) for c in POSE_COLUMNS[:3] + ROTATION_COLUMNS]]
+    if at != 4:  # (row 5 is not a start afresh: it was filtered from the replayed rows' state)
+        assert np.abs(got[5] - raw5).max() > 1e-4
+    # a plain partial run resumed with --smooth
+    plain = tmp_path / "plain"
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], JobConfig(out_dir=plain, landmarks=(lm,)), progress=interrupt)
+    assert main(["track", str(video), "--out", str(plain), "--landmarks", str(lm), "--quiet", "--resume",
+                 "--smooth"]) == 2  # fmt: skip
+    assert "another smoothing" in capsys.readouterr().err
+
+
+def test_complete_outputs_without_smooth_are_not_skipped_by_a_smooth_resume(clip, runs, tmp_path, capsys) -> None:
+    video, lm = clip
+    plain, _, _ = runs
+    out = tmp_path / "out"
+    out.mkdir()
+    for f in plain.iterdir():
+        if f.is_file():
+            (out / f.name).write_bytes(f.read_bytes())
+    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--quiet", "--resume",
+                 "--smooth"]) == 2  # fmt: skip
+    assert "--smooth off then, on now" in capsys.readouterr().err
+
+
+def test_job_smoothing_setting_is_checked(tmp_path) -> None:
+    with pytest.raises(TypeError, match="smoothing must be a SmoothingConfig"):
+        JobConfig(out_dir=tmp_path, smoothing=True)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="pose only"):
+        JobConfig(out_dir=tmp_path, smoothing=SmoothingConfig(expression=OneEuroConfig()))
