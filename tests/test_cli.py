@@ -217,3 +217,25 @@ def test_render_demo_and_video_sink_refuse_a_name_that_is_not_utf8_not_a_crash(t
         err = done.stderr.strip().splitlines()
         assert done.returncode in (1, 2) and err and "the name is not valid UTF-8" in err[-1], (what, done)
     assert not (tmp_path / bad).exists() and os.listdir(tmp_path / f"sink{bad}") == []
+
+
+def test_a_landmarks_file_among_the_videos_is_named_as_such(tmp_path, capsys, monkeypatch):
+    """``clips/*.mp4 --landmarks lm/*.csv`` (a glob after ``--landmarks``, which takes one file) gave ``--landmarks``
+    the first file and took the others as videos: the error was "give one landmarks file per video: 3 videos, 1
+    files" for 2 videos and 2 files. A landmarks file among the inputs is now a usage error naming it, saying how
+    to give one file per video (or, without ``--landmarks``, to give it with ``--landmarks``); nothing is read."""
+    monkeypatch.chdir(tmp_path)
+    for name in ("a.mp4", "b.mp4", "a.csv", "b.csv"):
+        (tmp_path / name).write_bytes(b"")
+    for argv, said in ((["a.mp4", "b.mp4", "--landmarks", "a.csv", "b.csv"], "--landmarks takes one file"),
+                       (["a.mp4", "b.csv"], "give it with --landmarks FILE")):  # fmt: skip
+        with pytest.raises(SystemExit) as info:
+            main(["track", *argv, "--out", "o"])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "argument videos: b.csv is a landmarks file, not a video" in err, (argv, err)
+        assert said in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "frames.json").mkdir()  # (an image folder of any name is an input)
+    assert main(["track", "frames.json", "--out", "o"]) == 2  # (refused for want of landmarks, not as a landmarks file)
+    err = capsys.readouterr().err
+    assert "no initialisation: give --landmarks FILE" in err and "is a landmarks file" not in err

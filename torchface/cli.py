@@ -448,6 +448,27 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
 
 _threads = _int_at_least(1)
 
+#: Suffixes of landmarks files (``--landmarks``, :func:`torchface.io.read_landmarks`) that no frame input has
+#: (``.npy`` is both).
+_LANDMARKS_SUFFIXES: tuple[str, ...] = (".csv", ".tsv", ".txt", ".pts", ".json")
+
+
+def _landmarks_among_videos(videos: list[Path], landmarks: list[Path] | None) -> str | None:
+    """A usage error's text (None: none) where an input of ``torchface track`` is a landmarks file (a file named
+    ``.csv``, ``.pts``, ...: :data:`_LANDMARKS_SUFFIXES`): ``clips/*.mp4 --landmarks lm/*.csv`` gave ``--landmarks``
+    the first file and took the others as videos, and the error said "give one landmarks file per video: 3 videos,
+    1 files" of 2 videos and 2 files; an input that is not a video was refused as one OpenCV cannot open."""
+    stray = [v for v in videos if v.suffix.lower() in _LANDMARKS_SUFFIXES and not v.is_dir()]
+    if not stray:
+        return None
+    named = ", ".join(map(str, stray[:3])) + (f" and {len(stray) - 3} more" if len(stray) > 3 else "")
+    said = f"argument videos: {named} {'is a landmarks file' if len(stray) == 1 else 'are landmarks files'}, not a video"
+    if landmarks is None:
+        return f"{said}: give it with --landmarks FILE"
+    return (f"{said}: --landmarks takes one file, so give it before each (--landmarks a.csv --landmarks b.csv, or "
+            "a.mp4 --landmarks a.csv b.mp4 --landmarks b.csv); after a glob (--landmarks lm/*.csv) the files after "
+            "the first were taken as videos")  # fmt: skip
+
 
 def _fraction(text: str) -> float:
     """An argparse ``type``: a number in [0, 1] (``--motion-prediction``), else a one-line usage error."""
@@ -479,6 +500,8 @@ def main(argv: list[str] | None = None) -> int:
             extra = []
     if extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.command == "track" and (stray := _landmarks_among_videos(args.videos, args.landmarks)) is not None:
+        parser.error(stray)
     if args.command == "track" and args.restart_after_unmatched and args.detector is None:
         parser.error("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
     try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
