@@ -239,3 +239,33 @@ def test_a_landmarks_file_among_the_videos_is_named_as_such(tmp_path, capsys, mo
     assert main(["track", "frames.json", "--out", "o"]) == 2  # (refused for want of landmarks, not as a landmarks file)
     err = capsys.readouterr().err
     assert "no initialisation: give --landmarks FILE" in err and "is a landmarks file" not in err
+
+
+def test_the_summary_is_written_in_one_piece():
+    """docs/cli.md: with ``| head -1`` the summary, "written at the end in one piece", reaches the pipe before its
+    reader goes (status 0). It was written a line at a time: with Python's output unbuffered (``PYTHONUNBUFFERED=1``,
+    as many containers and CI set it) ``torchface track ... | head -1`` exited with 141 after the first lines."""
+    from torchface.cli import _print_summary
+    from torchface.job import VideoSummary
+
+    class Writes:
+        def __init__(self) -> None:
+            self.calls: list[str] = []
+
+        def write(self, text: str) -> int:
+            self.calls.append(text)
+            return len(text)
+
+        def flush(self) -> None:
+            pass
+
+    done = [VideoSummary(n, Path(f"{n}.mp4"), (Path(f"o/{n}.csv"),), 30, 1, 0.9, 12.0, False, 40) for n in "abc"]
+    out = Writes()
+    _print_summary(done, out, ("d",), ("stopped at a frame that could not be read",))  # type: ignore[arg-type]
+    assert len(out.calls) == 1, out.calls
+    lines = out.calls[0].splitlines()
+    assert lines[:3] == ["", "summary", "  a: 30 frames, 12.0 fps, mean confidence 0.90, 1 lost frame(s)"]
+    assert lines[3] == "    warning: a.mp4 declares 40 frames, 30 could be decoded (truncated or damaged?)"
+    assert lines[-2] == ("  d: stopped at a frame that could not be read, not completed (its rows so far are kept in "
+                         "d.csv.partial)")
+    assert lines[-1].startswith("outputs in o/ (per video: .csv") and out.calls[0].endswith("\n")

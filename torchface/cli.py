@@ -279,25 +279,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reasons: tuple[str, ...] = ()) -> None:
-    out.write("\nsummary\n")
+    """Write the run's summary to ``out`` in one piece (one ``write``): written a line at a time (with Python's
+    output unbuffered, ``PYTHONUNBUFFERED=1`` as many containers set it), ``torchface track ... | head -1`` exited
+    with 141, its reader gone after the first line, where docs/cli.md says the summary reaches the pipe whole."""
+    lines = ["", "summary"]
     for s in summaries:
         if s.skipped:
-            out.write(f"  {s.name}: already complete ({s.frames} frames), skipped\n")
+            lines.append(f"  {s.name}: already complete ({s.frames} frames), skipped")
             continue
-        out.write(
-            f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
-            f"{s.lost} lost frame(s)\n"
-        )
+        lines.append(f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
+                     f"{s.lost} lost frame(s)")  # fmt: skip
         if s.declared_frames is not None:
-            out.write(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
-                      "(truncated or damaged?)\n")  # fmt: skip
+            lines.append(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
+                         "(truncated or damaged?)")  # fmt: skip
     for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)
-        out.write(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)\n")
+        lines.append(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)")
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
         meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
         kinds = ".csv, .json, _overlay.mp4, _plot.png, _normalised.mp4" + (", _meshes/" if meshes else "")
-        out.write(f"outputs in {folder}/ (per video: {kinds})\n")
+        lines.append(f"outputs in {folder}/ (per video: {kinds})")
+    out.write("\n".join(lines) + "\n")
     out.flush()
 
 
