@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -269,3 +270,26 @@ def test_the_summary_is_written_in_one_piece():
     assert lines[-2] == ("  d: stopped at a frame that could not be read, not completed (its rows so far are kept in "
                          "d.csv.partial)")
     assert lines[-1].startswith("outputs in o/ (per video: .csv") and out.calls[0].endswith("\n")
+
+
+def test_a_damaged_videos_error_is_one_line_without_ffmpegs_log(tmp_path):
+    """docs/cli.md: bad input is a one-line ``torchface: error: ...``. An empty ``.mp4`` also printed FFmpeg's own
+    log line above it (``[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found``; a damaged frame's, ``[mjpeg @
+    0x...] overread 8``, went between the progress bars). The command leaves FFmpeg's log out unless
+    ``OPENCV_FFMPEG_LOGLEVEL`` asks for it. (A process of its own: OpenCV reads the variable once, when its FFmpeg
+    backend is first used.)"""
+    root = Path(__file__).resolve().parent.parent
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    (tmp_path / "lm.csv").write_text("".join(f"{10 + k},{20 + k % 7}\n" for k in range(68)))
+    argv = ["track", "empty.mp4", "--landmarks", "lm.csv", "--out", "o", "--quiet"]
+    code = "import sys\nfrom torchface.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, "-c", code, *argv], cwd=tmp_path, capture_output=True, text=True, env=env,
+                         timeout=120)  # fmt: skip
+    assert out.returncode == 2, (out.returncode, out.stderr[-2000:])
+    assert out.stderr.splitlines() == [f"torchface: error: {Path('empty.mp4')}: not a video OpenCV can open "
+                                       "(unreadable, corrupt or an unknown format)"], out.stderr[-2000:]  # fmt: skip
+    asked = subprocess.run([sys.executable, "-c", code, *argv], cwd=tmp_path, capture_output=True, text=True,
+                           env={**env, "OPENCV_FFMPEG_LOGLEVEL": "16"}, timeout=120)  # fmt: skip
+    assert asked.returncode == 2 and len(asked.stderr) > len(out.stderr), asked.stderr[-2000:]  # (FFmpeg's, asked for)

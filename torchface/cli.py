@@ -45,6 +45,10 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE
+#: ``OPENCV_FFMPEG_LOGLEVEL`` of a ``torchface`` command where the environment sets none: FFmpeg's ``AV_LOG_QUIET``
+#: (its messages about a damaged input repeat what torchface says in one line; ``OPENCV_FFMPEG_LOGLEVEL=16``, FFmpeg's
+#: errors, shows them).
+FFMPEG_LOG_QUIET = "-8"
 
 
 class _Terminated(KeyboardInterrupt):
@@ -506,6 +510,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(stray)
     if args.command == "track" and args.restart_after_unmatched and args.detector is None:
         parser.error("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
+    # FFmpeg's own log lines (``[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found`` above the one-line error of
+    # an empty or damaged video, ``[mjpeg @ 0x...] overread 8`` at each damaged frame, between the progress bars)
+    # are left out unless asked for (OpenCV reads the variable when its FFmpeg backend is first used)
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", FFMPEG_LOG_QUIET)
     try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
         import torch
 
