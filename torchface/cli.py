@@ -468,7 +468,8 @@ def _landmarks_among_videos(videos: list[Path], landmarks: list[Path] | None) ->
     if not stray:
         return None
     named = ", ".join(map(str, stray[:3])) + (f" and {len(stray) - 3} more" if len(stray) > 3 else "")
-    said = f"argument videos: {named} {'is a landmarks file' if len(stray) == 1 else 'are landmarks files'}, not a video"
+    what = "is a landmarks file" if len(stray) == 1 else "are landmarks files"
+    said = f"argument videos: {named} {what}, not a video"
     if landmarks is None:
         return f"{said}: give it with --landmarks FILE"
     return (f"{said}: --landmarks takes one file, so give it before each (--landmarks a.csv --landmarks b.csv, or "

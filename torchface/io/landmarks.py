@@ -17,9 +17,9 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
   in any order; each point once at most, a point without a row missing (the hand-marked
   ``torchface/data/photos/astronaut_landmarks.csv`` gives 22); also pandas' ``DataFrame.to_csv`` with its index
-  (a header ``,x,y``, ``,y,x`` or ``,0,1``, then rows ``k, x, y``): the index is the point's; R's ``write.csv`` with its row
-  names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): an index of exactly 1..68 in order, 68 rows, is
-  1-based (a 0-based one has no 68), 1 subtracted; another index reaching 68 is refused;
+  (a header ``,x,y``, ``,y,x`` or ``,0,1``, then rows ``k, x, y``): the index is the point's; R's ``write.csv``
+  with its row names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): an index of exactly 1..68 in order,
+  68 rows, is 1-based (a 0-based one has no 68), 1 subtracted; another index reaching 68 is refused;
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
