@@ -1592,32 +1592,65 @@ def _open_inputs(
     before it have no estimate (:func:`_no_face_row`; it was refused). A video in none of whose frames it finds a
     face is an :class:`InputError` (nothing of the run is written). A resumed video starts where the interrupted
     run's record says it found the face (:func:`_recorded_first_face`), the detector not asked again.
+
+    Raises:
+        InputError: inputs that cannot be tracked: one's error as :func:`_open_input` says it, several named in one
+            message (``2 of the 40 inputs refused, nothing tracked: (1) ... (2) ...``, the first
+            :data:`MAX_REFUSED_SHOWN`): every input is checked (the error named the first alone, and a run over many
+            videos was refused again for each of the others in turn).
     """
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
+    refused: list[str] = []  # (every input is checked: one error names them all, not the first alone)
     for k, (path, name) in enumerate(zip(videos, names)):
-        with open_frames(path, convert=config.convert) as reader:
-            frame = next(reader)
-            lm = config.landmarks[k] if config.landmarks else None
-            t0 = time.perf_counter()
-            recorded = _recorded_first_face(config, reader, name, model) if config.resume and lm is None else None
-            if recorded is not None:  # (the interrupted run's search: not made again)
-                start, calls = recorded[0], 0
-                points, source = recorded[1], f"detector:{config.detector}"
-            else:  # (only a detector finds no face: a landmarks file's are the first frame's)
-                find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector,
-                               count=model.num_landmarks)  # fmt: skip
-                searching: Callable[[int], None] | None = None
-                if progress is not None:
-                    searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
-                start, _, (points, source) = search_first_face(
-                    itertools.chain([frame], reader), find, f"{path}: the {config.detector} detector",
-                    " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
-                )  # fmt: skip
-                calls = start + 1 if lm is None else 0
-        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls,
-                               start=start))  # fmt: skip
+        try:
+            stream = _open_input(path, name, k, videos, config, detector, model, progress)
+        except InputError as exc:
+            refused.append(str(exc))
+            continue
+        streams.append(stream)
+    if len(refused) == 1:
+        raise InputError(refused[0])
+    if refused:
+        shown = " ".join(f"({i}) {m}" for i, m in enumerate(refused[:MAX_REFUSED_SHOWN], start=1))
+        more = f" and {len(refused) - MAX_REFUSED_SHOWN} more" if len(refused) > MAX_REFUSED_SHOWN else ""
+        raise InputError(f"{len(refused)} of the {len(videos)} inputs refused, nothing tracked: {shown}{more}")
     return streams
+
+
+#: The refused inputs that :func:`_open_inputs`' error names (the others are counted).
+MAX_REFUSED_SHOWN = 10
+
+
+def _open_input(
+    path: Path, name: str, k: int, videos: Sequence[Path], config: JobConfig, detector, model: FaceModel,
+    progress: Callable[[Progress], None] | None,
+) -> _Stream:
+    """:func:`_open_inputs`' check of input ``k`` (``path``, output stem ``name``), closed again: its stream.
+
+    Raises:
+        InputError: the input cannot be tracked (unreadable, a bad first frame or landmarks file, no face found).
+    """
+    with open_frames(path, convert=config.convert) as reader:
+        frame = next(reader)
+        lm = config.landmarks[k] if config.landmarks else None
+        t0 = time.perf_counter()
+        recorded = _recorded_first_face(config, reader, name, model) if config.resume and lm is None else None
+        if recorded is not None:  # (the interrupted run's search: not made again)
+            start, calls = recorded[0], 0
+            points, source = recorded[1], f"detector:{config.detector}"
+        else:  # (only a detector finds no face: a landmarks file's are the first frame's)
+            find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector,
+                           count=model.num_landmarks)  # fmt: skip
+            searching: Callable[[int], None] | None = None
+            if progress is not None:
+                searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
+            start, _, (points, source) = search_first_face(
+                itertools.chain([frame], reader), find, f"{path}: the {config.detector} detector",
+                " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
+            )  # fmt: skip
+            calls = start + 1 if lm is None else 0
+    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start)
 
 
 def _report_search(
@@ -1679,7 +1712,8 @@ def track_videos(
 
     Raises:
         TypeError: ``videos`` is one path, not a sequence of them.
-        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts).
+        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts; the
+            message names every input refused, :func:`_open_inputs`).
         VideosStopped: (an InputError) a later frame that cannot be read stopped a video, or a resumed video's
             replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised once every
             other video is complete, with their summaries.
