@@ -233,6 +233,16 @@ class JobConfig:
             raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
             raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
+        # (the paths: out_dir=None was a TypeError of Path's once the job ran, and out_dir="" the current folder,
+        # which the command line refuses as an unset variable's; a list of landmarks files is kept as a tuple)
+        _check_path(self.out_dir, "out_dir", "'.' for the current folder")
+        try:
+            object.__setattr__(self, "landmarks", tuple(self.landmarks))
+        except TypeError:
+            raise TypeError(f"landmarks must be a tuple of paths, one per video, got {type(self.landmarks).__name__}"
+                            ) from None  # fmt: skip
+        for k, lm in enumerate(self.landmarks):
+            _check_path(lm, f"landmarks[{k}]", "a landmarks file")
         check_refine_first(self.refine_first)
         # (the types of the settings that hold settings or names: a lookahead="yes" was an AttributeError "'str'
         # object has no attribute 'max_frames'" once the videos were opened, a tracker dict a TypeError there)
@@ -257,6 +267,15 @@ class JobConfig:
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
         if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
             raise ValueError(f"redetect_below must be a finite confidence, got {self.redetect_below}")
+
+
+def _check_path(path: object, name: str, give: str) -> None:
+    """Refuse a :class:`JobConfig` path ``name`` that is not a ``str`` or ``os.PathLike`` (``TypeError``) or is
+    empty (``ValueError``, saying to ``give`` what is meant: ``Path("")`` is the current folder)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a path (a str or an os.PathLike), got {type(path).__name__}")
+    if os.fspath(path) == "":
+        raise ValueError(f"{name} is an empty path (an unset variable?): give {give}")
 
 
 @dataclass(frozen=True)

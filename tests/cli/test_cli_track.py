@@ -3791,3 +3791,21 @@ def test_every_refused_input_is_named_in_one_error(tmp_path, capsys):
     assert "good.npy" not in said
     rc = main(["track", str(tmp_path / "empty.npy"), str(tmp_path / "good.npy"), *args, "--landmarks", str(lm)])
     _assert_clean_failure(rc, capsys, out, f"torchface: error: {tmp_path / 'empty.npy'}: ")
+
+
+def test_job_config_refuses_a_missing_or_empty_path_when_made(tmp_path, monkeypatch):
+    """Settings are checked when made (README: a wrong type is a TypeError, out of range a ValueError), but
+    ``JobConfig`` took any ``out_dir`` and landmarks paths: ``out_dir=None`` was a TypeError of ``Path``'s once the
+    job ran, and ``out_dir=""`` (a script's unset variable) wrote the outputs into the current folder, which the
+    command line refuses (``--out ""``). A list of landmarks files is kept as the tuple the field is."""
+    monkeypatch.chdir(tmp_path)
+    for bad, error, said in ((dict(out_dir=None), TypeError, "out_dir must be a path"),
+                             (dict(out_dir=""), ValueError, "out_dir is an empty path"),
+                             (dict(out_dir="o", landmarks=(None,)), TypeError, r"landmarks\[0\] must be a path"),
+                             (dict(out_dir="o", landmarks=("a.csv", "")), ValueError, r"landmarks\[1\] is an empty"),
+                             (dict(out_dir="o", landmarks=5), TypeError, "landmarks must be a tuple")):  # fmt: skip
+        with pytest.raises(error, match=said):
+            JobConfig(**bad)
+    assert list(tmp_path.iterdir()) == []
+    config = JobConfig(out_dir=".", landmarks=["a.csv", Path("b.csv")])
+    assert config.landmarks == ("a.csv", Path("b.csv")) and isinstance(config.landmarks, tuple)
