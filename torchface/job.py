@@ -1730,9 +1730,10 @@ def track_videos(
         One :class:`VideoSummary` per video, in input order.
 
     Raises:
-        TypeError: ``videos`` is one path, not a sequence of them.
-        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts; the
-            message names every input refused, :func:`_open_inputs`).
+        TypeError: ``videos`` is one path, not a sequence of them, or holds something else than paths.
+        InputError: an empty path among ``videos`` (``Path("")`` is the current folder); a bad input (each video's
+            first frame and landmarks are checked before tracking starts; the message names every input refused,
+            :func:`_open_inputs`).
         VideosStopped: (an InputError) a later frame that cannot be read stopped a video, or a resumed video's
             replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised once every
             other video is complete, with their summaries.
@@ -1747,6 +1748,13 @@ def track_videos(
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
+    videos = list(videos)
+    for k, v in enumerate(videos):  # (Path("") is ".": the current folder's images were tracked as a video)
+        if not isinstance(v, (str, os.PathLike)):
+            raise TypeError(f"videos[{k}] must be a path (a str or an os.PathLike), got {type(v).__name__}")
+        if os.fspath(v) == "":
+            raise InputError(f"videos[{k}] is an empty path (an unset variable?): give a video file, an image folder "
+                             "('.' for the current one) or a .npy array")  # fmt: skip
     inputs = [Path(v) for v in videos]
     if not inputs:
         raise InputError("no input video given")

@@ -3793,11 +3793,13 @@ def test_every_refused_input_is_named_in_one_error(tmp_path, capsys):
     _assert_clean_failure(rc, capsys, out, f"torchface: error: {tmp_path / 'empty.npy'}: ")
 
 
-def test_job_config_refuses_a_missing_or_empty_path_when_made(tmp_path, monkeypatch):
+def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, monkeypatch):
     """Settings are checked when made (README: a wrong type is a TypeError, out of range a ValueError), but
     ``JobConfig`` took any ``out_dir`` and landmarks paths: ``out_dir=None`` was a TypeError of ``Path``'s once the
     job ran, and ``out_dir=""`` (a script's unset variable) wrote the outputs into the current folder, which the
-    command line refuses (``--out ""``). A list of landmarks files is kept as the tuple the field is."""
+    command line refuses (``--out ""``); ``track_videos([""], ...)`` tracked the current folder's images as a video
+    (the command line refuses an empty video path too). A list of landmarks files is kept as the tuple the field
+    is."""
     monkeypatch.chdir(tmp_path)
     for bad, error, said in ((dict(out_dir=None), TypeError, "out_dir must be a path"),
                              (dict(out_dir=""), ValueError, "out_dir is an empty path"),
@@ -3807,5 +3809,11 @@ def test_job_config_refuses_a_missing_or_empty_path_when_made(tmp_path, monkeypa
         with pytest.raises(error, match=said):
             JobConfig(**bad)
     assert list(tmp_path.iterdir()) == []
+    np.save(tmp_path / "frames.npy", np.zeros((2, 48, 64, 3), np.uint8))  # (an input the current folder is not)
+    for videos, error, said in (([""], InputError, r"videos\[0\] is an empty path"),
+                                (["frames.npy", None], TypeError, r"videos\[1\] must be a path")):  # fmt: skip
+        with pytest.raises(error, match=said):  # (track_videos([""]) tracked the current folder's images)
+            track_videos(videos, JobConfig(out_dir="o", landmarks=("a.csv",) * len(videos)))
+    assert [p.name for p in tmp_path.iterdir()] == ["frames.npy"]
     config = JobConfig(out_dir=".", landmarks=["a.csv", Path("b.csv")])
     assert config.landmarks == ("a.csv", Path("b.csv")) and isinstance(config.landmarks, tuple)
