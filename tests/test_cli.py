@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -217,3 +218,79 @@ def test_render_demo_and_video_sink_refuse_a_name_that_is_not_utf8_not_a_crash(t
         err = done.stderr.strip().splitlines()
         assert done.returncode in (1, 2) and err and "the name is not valid UTF-8" in err[-1], (what, done)
     assert not (tmp_path / bad).exists() and os.listdir(tmp_path / f"sink{bad}") == []
+
+
+def test_a_landmarks_file_among_the_videos_is_named_as_such(tmp_path, capsys, monkeypatch):
+    """``clips/*.mp4 --landmarks lm/*.csv`` (a glob after ``--landmarks``, which takes one file) gave ``--landmarks``
+    the first file and took the others as videos: the error was "give one landmarks file per video: 3 videos, 1
+    files" for 2 videos and 2 files. A landmarks file among the inputs is now a usage error naming it, saying how
+    to give one file per video (or, without ``--landmarks``, to give it with ``--landmarks``); nothing is read."""
+    monkeypatch.chdir(tmp_path)
+    for name in ("a.mp4", "b.mp4", "a.csv", "b.csv"):
+        (tmp_path / name).write_bytes(b"")
+    for argv, said in ((["a.mp4", "b.mp4", "--landmarks", "a.csv", "b.csv"], "--landmarks takes one file"),
+                       (["a.mp4", "b.csv"], "give it with --landmarks FILE")):  # fmt: skip
+        with pytest.raises(SystemExit) as info:
+            main(["track", *argv, "--out", "o"])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "argument videos: b.csv is a landmarks file, not a video" in err, (argv, err)
+        assert said in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "frames.json").mkdir()  # (an image folder of any name is an input)
+    assert main(["track", "frames.json", "--out", "o"]) == 2  # (refused for want of landmarks, not as a landmarks file)
+    err = capsys.readouterr().err
+    assert "no initialisation: give --landmarks FILE" in err and "is a landmarks file" not in err
+
+
+def test_the_summary_is_written_in_one_piece():
+    """docs/cli.md: with ``| head -1`` the summary, "written at the end in one piece", reaches the pipe before its
+    reader goes (status 0). It was written a line at a time: with Python's output unbuffered (``PYTHONUNBUFFERED=1``,
+    as many containers and CI set it) ``torchface track ... | head -1`` exited with 141 after the first lines."""
+    from torchface.cli import _print_summary
+    from torchface.job import VideoSummary
+
+    class Writes:
+        def __init__(self) -> None:
+            self.calls: list[str] = []
+
+        def write(self, text: str) -> int:
+            self.calls.append(text)
+            return len(text)
+
+        def flush(self) -> None:
+            pass
+
+    done = [VideoSummary(n, Path(f"{n}.mp4"), (Path(f"o/{n}.csv"),), 30, 1, 0.9, 12.0, False, 40) for n in "abc"]
+    out = Writes()
+    _print_summary(done, out, ("d",), ("stopped at a frame that could not be read",))  # type: ignore[arg-type]
+    assert len(out.calls) == 1, out.calls
+    lines = out.calls[0].splitlines()
+    assert lines[:3] == ["", "summary", "  a: 30 frames, 12.0 fps, mean confidence 0.90, 1 lost frame(s)"]
+    assert lines[3] == "    warning: a.mp4 declares 40 frames, 30 could be decoded (truncated or damaged?)"
+    assert lines[-2] == ("  d: stopped at a frame that could not be read, not completed (its rows so far are kept in "
+                         "d.csv.partial)")
+    assert lines[-1].startswith("outputs in o/ (per video: .csv") and out.calls[0].endswith("\n")
+
+
+def test_a_damaged_videos_error_is_one_line_without_ffmpegs_log(tmp_path):
+    """docs/cli.md: bad input is a one-line ``torchface: error: ...``. An empty ``.mp4`` also printed FFmpeg's own
+    log line above it (``[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found``; a damaged frame's, ``[mjpeg @
+    0x...] overread 8``, went between the progress bars). The command leaves FFmpeg's log out unless
+    ``OPENCV_FFMPEG_LOGLEVEL`` asks for it. (A process of its own: OpenCV reads the variable once, when its FFmpeg
+    backend is first used.)"""
+    root = Path(__file__).resolve().parent.parent
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    (tmp_path / "lm.csv").write_text("".join(f"{10 + k},{20 + k % 7}\n" for k in range(68)))
+    argv = ["track", "empty.mp4", "--landmarks", "lm.csv", "--out", "o", "--quiet"]
+    code = "import sys\nfrom torchface.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, "-c", code, *argv], cwd=tmp_path, capture_output=True, text=True, env=env,
+                         timeout=120)  # fmt: skip
+    assert out.returncode == 2, (out.returncode, out.stderr[-2000:])
+    assert out.stderr.splitlines() == [f"torchface: error: {Path('empty.mp4')}: not a video OpenCV can open "
+                                       "(unreadable, corrupt or an unknown format)"], out.stderr[-2000:]  # fmt: skip
+    asked = subprocess.run([sys.executable, "-c", code, *argv], cwd=tmp_path, capture_output=True, text=True,
+                           env={**env, "OPENCV_FFMPEG_LOGLEVEL": "16"}, timeout=120)  # fmt: skip
+    said = asked.stdout + asked.stderr  # (OpenCV's logger writes FFmpeg's lines to stdout where the level is set)
+    assert asked.returncode == 2 and len(said) > len(out.stdout + out.stderr), said[-2000:]  # (FFmpeg's, asked for)

@@ -46,6 +46,10 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE
+#: ``OPENCV_FFMPEG_LOGLEVEL`` of a ``torchface`` command where the environment sets none: FFmpeg's ``AV_LOG_QUIET``
+#: (its messages about a damaged input repeat what torchface says in one line; ``OPENCV_FFMPEG_LOGLEVEL=16``, FFmpeg's
+#: errors, shows them).
+FFMPEG_LOG_QUIET = "-8"
 
 
 class _Terminated(KeyboardInterrupt):
@@ -286,25 +290,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reasons: tuple[str, ...] = ()) -> None:
-    out.write("\nsummary\n")
+    """Write the run's summary to ``out`` in one piece (one ``write``): written a line at a time (with Python's
+    output unbuffered, ``PYTHONUNBUFFERED=1`` as many containers set it), ``torchface track ... | head -1`` exited
+    with 141, its reader gone after the first line, where docs/cli.md says the summary reaches the pipe whole."""
+    lines = ["", "summary"]
     for s in summaries:
         if s.skipped:
-            out.write(f"  {s.name}: already complete ({s.frames} frames), skipped\n")
+            lines.append(f"  {s.name}: already complete ({s.frames} frames), skipped")
             continue
-        out.write(
-            f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
-            f"{s.lost} lost frame(s)\n"
-        )
+        lines.append(f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
+                     f"{s.lost} lost frame(s)")  # fmt: skip
         if s.declared_frames is not None:
-            out.write(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
-                      "(truncated or damaged?)\n")  # fmt: skip
+            lines.append(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
+                         "(truncated or damaged?)")  # fmt: skip
     for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)
-        out.write(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)\n")
+        lines.append(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)")
     if summaries:
         folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
         meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
         kinds = ".csv, .json, _overlay.mp4, _plot.png, _normalised.mp4" + (", _meshes/" if meshes else "")
-        out.write(f"outputs in {folder}/ (per video: {kinds})\n")
+        lines.append(f"outputs in {folder}/ (per video: {kinds})")
+    out.write("\n".join(lines) + "\n")
     out.flush()
 
 
@@ -457,6 +463,28 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
 
 _threads = _int_at_least(1)
 
+#: Suffixes of landmarks files (``--landmarks``, :func:`torchface.io.read_landmarks`) that no frame input has
+#: (``.npy`` is both).
+_LANDMARKS_SUFFIXES: tuple[str, ...] = (".csv", ".tsv", ".txt", ".pts", ".json")
+
+
+def _landmarks_among_videos(videos: list[Path], landmarks: list[Path] | None) -> str | None:
+    """A usage error's text (None: none) where an input of ``torchface track`` is a landmarks file (a file named
+    ``.csv``, ``.pts``, ...: :data:`_LANDMARKS_SUFFIXES`): ``clips/*.mp4 --landmarks lm/*.csv`` gave ``--landmarks``
+    the first file and took the others as videos, and the error said "give one landmarks file per video: 3 videos,
+    1 files" of 2 videos and 2 files; an input that is not a video was refused as one OpenCV cannot open."""
+    stray = [v for v in videos if v.suffix.lower() in _LANDMARKS_SUFFIXES and not v.is_dir()]
+    if not stray:
+        return None
+    named = ", ".join(map(str, stray[:3])) + (f" and {len(stray) - 3} more" if len(stray) > 3 else "")
+    what = "is a landmarks file" if len(stray) == 1 else "are landmarks files"
+    said = f"argument videos: {named} {what}, not a video"
+    if landmarks is None:
+        return f"{said}: give it with --landmarks FILE"
+    return (f"{said}: --landmarks takes one file, so give it before each (--landmarks a.csv --landmarks b.csv, or "
+            "a.mp4 --landmarks a.csv b.mp4 --landmarks b.csv); after a glob (--landmarks lm/*.csv) the files after "
+            "the first were taken as videos")  # fmt: skip
+
 
 def _fraction(text: str) -> float:
     """An argparse ``type``: a number in [0, 1] (``--motion-prediction``), else a one-line usage error."""
@@ -488,8 +516,14 @@ def main(argv: list[str] | None = None) -> int:
             extra = []
     if extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.command == "track" and (stray := _landmarks_among_videos(args.videos, args.landmarks)) is not None:
+        parser.error(stray)
     if args.command == "track" and args.restart_after_unmatched and args.detector is None:
         parser.error("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
+    # FFmpeg's own log lines (``[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found`` above the one-line error of
+    # an empty or damaged video, ``[mjpeg @ 0x...] overread 8`` at each damaged frame, between the progress bars)
+    # are left out unless asked for (OpenCV reads the variable when its FFmpeg backend is first used)
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", FFMPEG_LOG_QUIET)
     try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
         import torch
 

@@ -252,6 +252,16 @@ class JobConfig:
             raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
             raise TypeError(f"landmarks must be a tuple of paths, one per video, e.g. (Path({str(self.landmarks)!r}),)")
+        # (the paths: out_dir=None was a TypeError of Path's once the job ran, and out_dir="" the current folder,
+        # which the command line refuses as an unset variable's; a list of landmarks files is kept as a tuple)
+        _check_path(self.out_dir, "out_dir", "'.' for the current folder")
+        try:
+            object.__setattr__(self, "landmarks", tuple(self.landmarks))
+        except TypeError:
+            raise TypeError(f"landmarks must be a tuple of paths, one per video, got {type(self.landmarks).__name__}"
+                            ) from None  # fmt: skip
+        for k, lm in enumerate(self.landmarks):
+            _check_path(lm, f"landmarks[{k}]", "a landmarks file")
         check_refine_first(self.refine_first)
         # (the types of the settings that hold settings or names: a lookahead="yes" was an AttributeError "'str'
         # object has no attribute 'max_frames'" once the videos were opened, a tracker dict a TypeError there)
@@ -276,6 +286,15 @@ class JobConfig:
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
         if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
             raise ValueError(f"redetect_below must be a finite confidence, got {self.redetect_below}")
+
+
+def _check_path(path: object, name: str, give: str) -> None:
+    """Refuse a :class:`JobConfig` path ``name`` that is not a ``str`` or ``os.PathLike`` (``TypeError``) or is
+    empty (``ValueError``, saying to ``give`` what is meant: ``Path("")`` is the current folder)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a path (a str or an os.PathLike), got {type(path).__name__}")
+    if os.fspath(path) == "":
+        raise ValueError(f"{name} is an empty path (an unset variable?): give {give}")
 
 
 @dataclass(frozen=True)
@@ -1635,32 +1654,65 @@ def _open_inputs(
     before it have no estimate (:func:`_no_face_row`; it was refused). A video in none of whose frames it finds a
     face is an :class:`InputError` (nothing of the run is written). A resumed video starts where the interrupted
     run's record says it found the face (:func:`_recorded_first_face`), the detector not asked again.
+
+    Raises:
+        InputError: inputs that cannot be tracked: one's error as :func:`_open_input` says it, several named in one
+            message (``2 of the 40 inputs refused, nothing tracked: (1) ... (2) ...``, the first
+            :data:`MAX_REFUSED_SHOWN`): every input is checked (the error named the first alone, and a run over many
+            videos was refused again for each of the others in turn).
     """
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
+    refused: list[str] = []  # (every input is checked: one error names them all, not the first alone)
     for k, (path, name) in enumerate(zip(videos, names)):
-        with open_frames(path, convert=config.convert) as reader:
-            frame = next(reader)
-            lm = config.landmarks[k] if config.landmarks else None
-            t0 = time.perf_counter()
-            recorded = _recorded_first_face(config, reader, name, model) if config.resume and lm is None else None
-            if recorded is not None:  # (the interrupted run's search: not made again)
-                start, calls = recorded[0], 0
-                points, source = recorded[1], f"detector:{config.detector}"
-            else:  # (only a detector finds no face: a landmarks file's are the first frame's)
-                find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector,
-                               count=model.num_landmarks)  # fmt: skip
-                searching: Callable[[int], None] | None = None
-                if progress is not None:
-                    searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
-                start, _, (points, source) = search_first_face(
-                    itertools.chain([frame], reader), find, f"{path}: the {config.detector} detector",
-                    " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
-                )  # fmt: skip
-                calls = start + 1 if lm is None else 0
-        streams.append(_Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls,
-                               start=start))  # fmt: skip
+        try:
+            stream = _open_input(path, name, k, videos, config, detector, model, progress)
+        except InputError as exc:
+            refused.append(str(exc))
+            continue
+        streams.append(stream)
+    if len(refused) == 1:
+        raise InputError(refused[0])
+    if refused:
+        shown = " ".join(f"({i}) {m}" for i, m in enumerate(refused[:MAX_REFUSED_SHOWN], start=1))
+        more = f" and {len(refused) - MAX_REFUSED_SHOWN} more" if len(refused) > MAX_REFUSED_SHOWN else ""
+        raise InputError(f"{len(refused)} of the {len(videos)} inputs refused, nothing tracked: {shown}{more}")
     return streams
+
+
+#: The refused inputs that :func:`_open_inputs`' error names (the others are counted).
+MAX_REFUSED_SHOWN = 10
+
+
+def _open_input(
+    path: Path, name: str, k: int, videos: Sequence[Path], config: JobConfig, detector, model: FaceModel,
+    progress: Callable[[Progress], None] | None,
+) -> _Stream:
+    """:func:`_open_inputs`' check of input ``k`` (``path``, output stem ``name``), closed again: its stream.
+
+    Raises:
+        InputError: the input cannot be tracked (unreadable, a bad first frame or landmarks file, no face found).
+    """
+    with open_frames(path, convert=config.convert) as reader:
+        frame = next(reader)
+        lm = config.landmarks[k] if config.landmarks else None
+        t0 = time.perf_counter()
+        recorded = _recorded_first_face(config, reader, name, model) if config.resume and lm is None else None
+        if recorded is not None:  # (the interrupted run's search: not made again)
+            start, calls = recorded[0], 0
+            points, source = recorded[1], f"detector:{config.detector}"
+        else:  # (only a detector finds no face: a landmarks file's are the first frame's)
+            find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector,
+                           count=model.num_landmarks)  # fmt: skip
+            searching: Callable[[int], None] | None = None
+            if progress is not None:
+                searching = partial(_report_search, progress, k, len(videos), name, reader, t0)
+            start, _, (points, source) = search_first_face(
+                itertools.chain([frame], reader), find, f"{path}: the {config.detector} detector",
+                " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
+            )  # fmt: skip
+            calls = start + 1 if lm is None else 0
+    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start)
 
 
 def _report_search(
@@ -1721,8 +1773,10 @@ def track_videos(
         One :class:`VideoSummary` per video, in input order.
 
     Raises:
-        TypeError: ``videos`` is one path, not a sequence of them.
-        InputError: a bad input (each video's first frame and landmarks are checked before tracking starts).
+        TypeError: ``videos`` is one path, not a sequence of them, or holds something else than paths.
+        InputError: an empty path among ``videos`` (``Path("")`` is the current folder); a bad input (each video's
+            first frame and landmarks are checked before tracking starts; the message names every input refused,
+            :func:`_open_inputs`).
         VideosStopped: (an InputError) a later frame that cannot be read stopped a video, or a resumed video's
             replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised once every
             other video is complete, with their summaries.
@@ -1737,6 +1791,13 @@ def track_videos(
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
+    videos = list(videos)
+    for k, v in enumerate(videos):  # (Path("") is ".": the current folder's images were tracked as a video)
+        if not isinstance(v, (str, os.PathLike)):
+            raise TypeError(f"videos[{k}] must be a path (a str or an os.PathLike), got {type(v).__name__}")
+        if os.fspath(v) == "":
+            raise InputError(f"videos[{k}] is an empty path (an unset variable?): give a video file, an image folder "
+                             "('.' for the current one) or a .npy array")  # fmt: skip
     inputs = [Path(v) for v in videos]
     if not inputs:
         raise InputError("no input video given")

@@ -3765,3 +3765,55 @@ def test_a_phone_video_is_tracked_as_displayed_with_landmarks_of_the_displayed_f
     assert rows[:, cols.index("success")].all()
     assert np.abs(rows[:, cols.index("roll_deg")]).max() < 10.0
     assert geodesic_angle_deg(R, R0).max() < 1.0 and np.abs(t - t0).max() < 5.0
+
+
+def test_every_refused_input_is_named_in_one_error(tmp_path, capsys):
+    """A folder of videos with several bad ones among them: the error named the first alone, so a run over many
+    videos was refused again for each of the others in turn (with ``--detector`` after a search through each good
+    video's frames for a face, every time). Every input is now checked and the one-line error names each refused
+    one (nothing is tracked or written, as before); one refused input reads as it did."""
+    frames = np.full((3, 48, 64, 3), 128, np.uint8)
+    np.save(tmp_path / "good.npy", frames)
+    (tmp_path / "empty.npy").write_bytes(b"")
+    np.save(tmp_path / "gray.npy", frames[..., 0])  # (refused without --convert)
+    lm = tmp_path / "lm.csv"
+    lm.write_text("".join(f"{10 + k % 40},{10 + k % 25}\n" for k in range(68)))
+    out = tmp_path / "out"
+    args = ["--landmarks", str(lm), "--out", str(out), "--quiet"]
+    rc = main(["track", str(tmp_path / "empty.npy"), str(tmp_path / "good.npy"), str(tmp_path / "gray.npy"),
+               *args, "--landmarks", str(lm), "--landmarks", str(lm)])  # fmt: skip
+    _assert_clean_failure(rc, capsys, out, "2 of the 3 inputs refused, nothing tracked: (1) ")
+    with pytest.raises(InputError) as info:
+        track_videos([tmp_path / "empty.npy", tmp_path / "good.npy", tmp_path / "gray.npy"],
+                     JobConfig(out_dir=out, landmarks=(lm, lm, lm)))  # fmt: skip
+    said = str(info.value)
+    assert said.index(f"(1) {tmp_path / 'empty.npy'}") < said.index(f"(2) {tmp_path / 'gray.npy'}"), said
+    assert "good.npy" not in said
+    rc = main(["track", str(tmp_path / "empty.npy"), str(tmp_path / "good.npy"), *args, "--landmarks", str(lm)])
+    _assert_clean_failure(rc, capsys, out, f"torchface: error: {tmp_path / 'empty.npy'}: ")
+
+
+def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, monkeypatch):
+    """Settings are checked when made (README: a wrong type is a TypeError, out of range a ValueError), but
+    ``JobConfig`` took any ``out_dir`` and landmarks paths: ``out_dir=None`` was a TypeError of ``Path``'s once the
+    job ran, and ``out_dir=""`` (a script's unset variable) wrote the outputs into the current folder, which the
+    command line refuses (``--out ""``); ``track_videos([""], ...)`` tracked the current folder's images as a video
+    (the command line refuses an empty video path too). A list of landmarks files is kept as the tuple the field
+    is."""
+    monkeypatch.chdir(tmp_path)
+    for bad, error, said in ((dict(out_dir=None), TypeError, "out_dir must be a path"),
+                             (dict(out_dir=""), ValueError, "out_dir is an empty path"),
+                             (dict(out_dir="o", landmarks=(None,)), TypeError, r"landmarks\[0\] must be a path"),
+                             (dict(out_dir="o", landmarks=("a.csv", "")), ValueError, r"landmarks\[1\] is an empty"),
+                             (dict(out_dir="o", landmarks=5), TypeError, "landmarks must be a tuple")):  # fmt: skip
+        with pytest.raises(error, match=said):
+            JobConfig(**bad)
+    assert list(tmp_path.iterdir()) == []
+    np.save(tmp_path / "frames.npy", np.zeros((2, 48, 64, 3), np.uint8))  # (an input the current folder is not)
+    for videos, error, said in (([""], InputError, r"videos\[0\] is an empty path"),
+                                (["frames.npy", None], TypeError, r"videos\[1\] must be a path")):  # fmt: skip
+        with pytest.raises(error, match=said):  # (track_videos([""]) tracked the current folder's images)
+            track_videos(videos, JobConfig(out_dir="o", landmarks=("a.csv",) * len(videos)))
+    assert [p.name for p in tmp_path.iterdir()] == ["frames.npy"]
+    config = JobConfig(out_dir=".", landmarks=["a.csv", Path("b.csv")])
+    assert config.landmarks == ("a.csv", Path("b.csv")) and isinstance(config.landmarks, tuple)

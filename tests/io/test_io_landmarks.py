@@ -771,3 +771,24 @@ def test_a_broken_pts_header_names_the_models_count(tmp_path, text, message):
         read_landmarks(tmp_path / "a.pts", 640, 480, count=26)
     with pytest.raises(InputError, match=message.replace("26", "68")):  # (the default: the iBUG points')
         read_landmarks(tmp_path / "a.pts", 640, 480)
+
+
+def test_a_header_naming_the_columns_y_x_is_read_in_that_order(tmp_path):
+    """Image coordinates are often written as (row, column): ``DataFrame(points[:, ::-1], columns=["y", "x"])``'s
+    ``to_csv`` (a header ``y,x``; with its index ``,y,x``, as R's ``"","y","x"``) was read as ``x, y``, every point
+    transposed (94 px off on a rendered clip's first frame, whose start then failed or fitted another face). The
+    header says which column is which; ``x,y`` and no header read as before."""
+    pts = _points()
+    files = {
+        "yx.csv": "y,x\n" + "".join(f"{y!r},{x!r}\n" for x, y in pts.tolist()),
+        "YX_tabs.csv": "Y\tX\n" + "".join(f"{y!r}\t{x!r}\n" for x, y in pts.tolist()),
+        "yx_column_b.csv": ",y,x\n" + "".join(f",{y!r},{x!r}\n" for x, y in pts.tolist()),
+        "yx_indexed.csv": ",y,x\n" + "".join(f"{k},{y!r},{x!r}\n" for k, (x, y) in enumerate(pts.tolist())),
+        "yx_r.csv": '"","y","x"\n' + "".join(f'"{k + 1}",{y!r},{x!r}\n' for k, (x, y) in enumerate(pts.tolist())),
+        "xy.csv": "x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in pts.tolist()),
+        "xy_indexed.csv": ",x,y\n" + "".join(f"{k},{x!r},{y!r}\n" for k, (x, y) in enumerate(pts.tolist())),
+        "plain.csv": "".join(f"{x!r},{y!r}\n" for x, y in pts.tolist()),
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)

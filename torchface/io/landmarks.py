@@ -2,7 +2,8 @@
 
 Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:`torchface.conventions`):
 
-- CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped), or one row of
+- CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped; a header ``y, x`` says
+  the columns are the other way round, as image coordinates (row, column) are written), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
   ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
   spaces, optionally quoted (a spreadsheet's of a decimal-comma locale, ``12,5;40,25``: where cells are separated
@@ -16,9 +17,9 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   also ``index``, ``point`` or ``landmark``) and ``x``, ``y`` columns, other columns (a ``meaning``) ignored, rows
   in any order; each point once at most, a point without a row missing (the hand-marked
   ``torchface/data/photos/astronaut_landmarks.csv`` gives 22); also pandas' ``DataFrame.to_csv`` with its index
-  (a header ``,x,y`` or ``,0,1``, then rows ``k, x, y``): the index is the point's; R's ``write.csv`` with its row
-  names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): an index of exactly 1..68 in order, 68 rows, is
-  1-based (a 0-based one has no 68), 1 subtracted; another index reaching 68 is refused;
+  (a header ``,x,y``, ``,y,x`` or ``,0,1``, then rows ``k, x, y``): the index is the point's; R's ``write.csv``
+  with its row names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): an index of exactly 1..68 in order,
+  68 rows, is 1-based (a 0-based one has no 68), 1 subtracted; another index reaching 68 is refused;
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
@@ -428,15 +429,17 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
     if long is not None:
         return _parse_long(p, long_lines, long, comma)
     # pandas' DataFrame.to_csv with its index (the point's): a header ``,x,y`` (``,0,1``: numbers), rows ``k,x,y``
+    # (or ``,y,x``: the points' columns in that order, ``DataFrame(points[:, ::-1], columns=["y", "x"])``)
     first = _trimmed(_cells(header, comma), 0) if header is not None else data[0] if data else []
-    if [n.lower() for n in first] in (["", "x", "y"], ["", "0", "1"]):
+    if [n.lower() for n in first] in (["", "x", "y"], ["", "0", "1"], ["", "y", "x"]):
         indexed = long_lines if header is not None else long_lines[1:]
         index_rows = data[len(data) - len(indexed) :]
         if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in index_rows):
             # R's write.csv: its row names 1..68 (``"1",x,y``), 1-based; 68 rows cannot be a 0-based index (0-67 has
             # no 68, and each of its points has a row); another index reaching 68 is refused, said to be 1-based
             one_based = [c[0] for c in index_rows] == [str(k) for k in range(1, NUM_LANDMARKS + 1)]
-            columns = (_delimiter(indexed[0][1], comma), 0, 1, 2)
+            x, y = (2, 1) if first[1].lower() == "y" else (1, 2)
+            columns = (_delimiter(indexed[0][1], comma), 0, x, y)
             return _parse_long(p, indexed, columns, comma, base=int(one_based), unnamed=True)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
@@ -463,7 +466,10 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
         raise InputError(f"{p}: expected rows of 'x, y' (or, one row per point, a header naming ibug_index, x and y "
                          f"columns), got rows of {sorted(widths)} values")  # fmt: skip
-    return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+    points = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+    # a header naming the columns ``y, x`` (image coordinates as (row, column): ``DataFrame(points[:, ::-1],
+    # columns=["y", "x"]).to_csv(index=False)``) says which is which: they were read as x, y, the face transposed
+    return points[:, ::-1].copy() if [n.lower() for n in names if n] == ["y", "x"] else points
 
 
 def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str | None:
