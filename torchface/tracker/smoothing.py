@@ -487,8 +487,8 @@ class ResultSmoother:
     Opt-in and outside the tracker: the tracker's own results (and its state, which it tracks from) stay raw, and
     the smoother returns new :class:`~torchface.tracker.TrackResult` objects. Streams start afresh at their first
     result, at the first successful frame after an unsuccessful one (a loss and its recovery: a detector's
-    re-initialisation too), where ``restart`` says and, given the tracker's state, after the online start
-    re-anchors them; call :meth:`reset` when the tracker is initialised again, :meth:`select` when it keeps some
+    re-initialisation too), where ``restart`` says and, given the tracker's state, at the first result after the
+    online start re-anchors them (as ``torchface track --smooth`` starts after the re-anchoring frame); call :meth:`reset` when the tracker is initialised again, :meth:`select` when it keeps some
     streams.
 
     Args:
@@ -526,6 +526,9 @@ class ResultSmoother:
         self._state: SmoothingState | None = None
         self._frames: Tensor | None = None  # (B,) frames counted per stream, for calls without timestamps
         self._offsets: tuple[Tensor, Tensor] | None = None  # the tracker's re-anchoring offsets at the last call
+        # (B,) bool: streams re-anchored in the last call's step, whose next result is the first of the re-anchored
+        # estimate (managed_step reports a frame at the offsets it was tracked under, then re-anchors)
+        self._reanchoring: Tensor | None = None
 
     @property
     def state(self) -> SmoothingState | None:
@@ -537,6 +540,7 @@ class ResultSmoother:
         self._state = None
         self._frames = None
         self._offsets = None
+        self._reanchoring = None
 
     def select(self, index: Sequence[int] | Tensor) -> "ResultSmoother":
         """Keep only streams ``index`` (as :meth:`FaceTracker.select <torchface.tracker.FaceTracker.select>`);
@@ -549,6 +553,8 @@ class ResultSmoother:
         if self._offsets is not None:
             rows = torch.as_tensor(index, device=self._offsets[0].device)
             self._offsets = (self._offsets[0][rows], self._offsets[1][rows])
+        if self._reanchoring is not None:
+            self._reanchoring = self._reanchoring[torch.as_tensor(index, device=self._reanchoring.device)]
         return self
 
     def _reanchored(self, state: TrackerState, B: int, device: torch.device) -> Tensor:
@@ -583,9 +589,10 @@ class ResultSmoother:
             timestamps: ``(B,)`` the frames' times in seconds (a video's presentation times), or None: the
                 smoother's ``fps`` (each stream's frames counted from its first result).
             restart: ``(B,)`` bool, streams that start afresh at this frame (a new video in a slot), or None.
-            tracker_state: the tracker's state after this result (``tracker.state``), or None: streams that the
-                online start has re-anchored since the last call's state start afresh (the pose stays continuous
-                through a re-anchoring, but the re-anchored estimate may step).
+            tracker_state: the tracker's state after this result (``tracker.state``), or None: a stream that the
+                online start re-anchored in this result's step (its offsets changed since the last call's state)
+                starts afresh at its next result, the first of the re-anchored estimate (the result of the
+                re-anchoring frame itself is the estimate tracked before it, which the refined one may step from).
         """
         if not isinstance(result, TrackResult):
             raise TypeError(f"result must be a TrackResult, got {type(result).__name__}")
@@ -601,8 +608,9 @@ class ResultSmoother:
             time = frames / self.fps
         else:
             time = torch.as_tensor(timestamps, dtype=torch.float64, device=device)
-        if tracker_state is not None:
-            again = self._reanchored(tracker_state, B, device)
-            restart = again if restart is None else _stream_mask(restart, B, "restart", device, False) | again
+        restart = None if restart is None else _stream_mask(restart, B, "restart", device, False)
+        if self._reanchoring is not None:  # (re-anchored in the last call's step: this result is the new estimate's)
+            restart = self._reanchoring if restart is None else restart | self._reanchoring
+        self._reanchoring = None if tracker_state is None else self._reanchored(tracker_state, B, device)
         out, self._state = smooth_result(result, self._state, time, self.config, self.facs_matrix, restart)
         return out
