@@ -2745,13 +2745,20 @@ def _smooth_rows(
         s.smooth_restart = False
     dt = time - state.time if state is not None else torch.ones_like(time)  # (the first row starts anyway)
     rot = trans_state = None
+    R_raw = R
     if config.rotation is not None:
         R, rot = one_euro_rotation_step(R, None if state is None else state.rotation, dt, config.rotation, valid=ok,
                                         restart=restart)  # fmt: skip
     if config.translation is not None:
         trans, trans_state = one_euro_step(trans, None if state is None else state.translation, dt,
                                            config.translation, valid=ok, restart=restart)  # fmt: skip
-    return pose_values(R, trans), SmoothingState(rot, trans_state, None, time)
+    values = pose_values(R, trans)
+    # a rotation passed through (a start, an unsuccessful row): the row's own angle cells, not those recomputed from
+    # its rounded matrix (up to 4e-6 degrees apart), so that a start's smooth_* cells are its raw ones exactly
+    kept = (R == R_raw).flatten(1).all(1).numpy()
+    angles = np.array([columns.index(c) for c in POSE_COLUMNS[3:]])
+    values[kept, 3 : len(POSE_COLUMNS)] = written[np.ix_(kept, angles)]
+    return values, SmoothingState(rot, trans_state, None, time)
 
 
 def _drawn_pose(

@@ -14,8 +14,8 @@ Key (:func:`cache_key`): a BLAKE2b hash of
 - any extra text the caller adds (the datasets add their frame-conversion setting);
 - the torchface and torch versions, whether torchface's native kernels run (:mod:`torchface.backend`; they
   and the torch code agree to float tolerance, not bit for bit) and :data:`CACHE_FORMAT`;
-- the installed code itself (:func:`code_version`: a digest of every file of the ``torchface`` and
-  ``training_hooks`` packages), so that a change of the tracking that keeps the version (an editable install
+- the installed code itself (:func:`code_version`: a digest of the files of the ``torchface`` and
+  ``training_hooks`` packages, hidden files, editors' swap and backup files and byte-code left out), so that a change of the tracking that keeps the version (an editable install
   pulled or edited, as ``scripts/test.sh`` and ``scripts/demo.sh`` install it) keys apart the sequences the
   code tracked before.
 
@@ -48,8 +48,11 @@ import time
 import uuid
 import warnings
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -59,6 +62,9 @@ from torchface.backend import Backend, native_available
 from torchface.extending import check_int
 from torchface.io.video import image_files
 from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
+
+if TYPE_CHECKING:  # (importlib.resources.abc: Python 3.11 on)
+    from importlib.resources.abc import Traversable
 
 __all__ = ["CACHE_FORMAT", "CacheWarning", "CacheStats", "TrackCache", "cache_key", "code_version", "content_hash"]
 
@@ -80,31 +86,63 @@ _HASH_MEMO: dict[str, tuple[bytes, str]] = {}
 _CODE_VERSION: list[str] = []
 
 
-def _package_digest(roots: tuple[Path, ...]) -> str:
-    """BLAKE2b hex digest of every file under the folders ``roots`` (path relative to its root, length and bytes, in
-    name order), ``__pycache__`` folders left out: the content of installed packages (:func:`code_version`)."""
+#: File names :func:`code_version` leaves out, besides hidden ones (``.x.swp``, ``.#x``, ``.DS_Store``, hidden
+#: folders) and ``__pycache__`` folders: what editors, patch tools and Python leave beside the code, which no
+#: process runs and which come and go, or change as one types, while a run goes on (a worker started later
+#: digested them differently from its rank and tracked its cached videos again).
+_NOT_CODE_SUFFIXES: tuple[str, ...] = ("~", ".pyc", ".pyo", ".swp", ".swo", ".swx", ".tmp", ".bak", ".orig", ".rej")
+
+
+def _is_code_name(name: str) -> bool:
+    """Whether a file or folder called ``name`` counts in :func:`code_version` (:data:`_NOT_CODE_SUFFIXES`)."""
+    if name.startswith(".") or name == "__pycache__" or (name.startswith("#") and name.endswith("#")):
+        return False  # (hidden; Python's byte-code; an Emacs auto-save)
+    return not name.endswith(_NOT_CODE_SUFFIXES)
+
+
+def _code_files(folder: Traversable, prefix: str) -> Iterator[tuple[str, bytes]]:
+    """``(path relative to the package, bytes)`` of the files under ``folder``, in name order: a folder that is a
+    symbolic link is not walked (as ``Path.rglob``), a file that cannot be read as it is listed (removed meanwhile:
+    an editor's atomic save) is left out."""
+    for child in sorted(folder.iterdir(), key=lambda c: c.name):
+        if not _is_code_name(child.name):
+            continue
+        try:
+            if isinstance(child, Path) and child.is_symlink() and child.is_dir():
+                continue
+            if child.is_dir():
+                yield from _code_files(child, f"{prefix}{child.name}/")
+            elif child.is_file():
+                yield f"{prefix}{child.name}", child.read_bytes()
+        except OSError:
+            continue
+
+
+def _package_digest(roots: tuple[Traversable, ...]) -> str:
+    """BLAKE2b hex digest of the files under the package folders ``roots`` (path relative to its root, length and
+    bytes, in name order; :func:`_is_code_name` says which count): the content of installed packages
+    (:func:`code_version`). ``roots``: folders (``Path``) or ``importlib.resources.files`` of packages, which also
+    reads a package imported from a zip archive (``Path(module.__file__).parent`` there is no folder: it digested
+    no file, the same for every code)."""
     h = hashlib.blake2b(digest_size=32)
     for root in roots:
-        root = Path(root)
         h.update(root.name.encode("utf-8") + b"\0")
-        for f in sorted(p for p in root.rglob("*") if p.is_file() and "__pycache__" not in p.relative_to(root).parts):
-            data = f.read_bytes()
-            h.update(f.relative_to(root).as_posix().encode("utf-8") + b"\0" + len(data).to_bytes(8, "little"))
+        for name, data in _code_files(root, ""):
+            h.update(name.encode("utf-8") + b"\0" + len(data).to_bytes(8, "little"))
             h.update(data)
     return h.hexdigest()
 
 
 def code_version() -> str:
     """The digest (:func:`_package_digest`) of the installed ``torchface`` and ``training_hooks`` packages: their
-    source, the native kernels' C source and the model data, as they are when this process first asks (once per
-    process: a spawned ``DataLoader`` worker reads them again). Part of every :func:`cache_key`: ``torchface.
-    __version__`` stays the same across the commits of an editable install, whose tracking may change between them
-    (a cache filled before a ``git pull`` was read after it). About 30 ms.
+    source, the native kernels' C source and the model data (not hidden files, editors' swap and backup files nor
+    byte-code: :func:`_is_code_name`), as they are when this process first asks (once per process: a spawned
+    ``DataLoader`` worker reads them again). Part of every :func:`cache_key`: ``torchface.__version__`` stays the
+    same across the commits of an editable install, whose tracking may change between them (a cache filled before
+    a ``git pull`` was read after it). About 30 ms (2.9 MB).
     """
     if not _CODE_VERSION:
-        import training_hooks
-
-        _CODE_VERSION.append(_package_digest((Path(torchface.__file__).parent, Path(training_hooks.__file__).parent)))
+        _CODE_VERSION.append(_package_digest(tuple(resources.files(name) for name in ("torchface", "training_hooks"))))
     return _CODE_VERSION[0]
 
 

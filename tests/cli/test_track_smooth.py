@@ -92,6 +92,11 @@ def test_smooth_adds_columns_and_leaves_the_raw_rows_as_without_it(runs) -> None
     raw = rows_s[:, [cols_s.index(c) for c in POSE_COLUMNS[:3] + ROTATION_COLUMNS]]
     np.testing.assert_allclose(got, offline(cols_s, rows_s, at), rtol=1e-7, atol=1e-6)
     assert np.array_equal(got[0], raw[0]) and np.array_equal(got[at + 1], raw[at + 1])  # starts: the raw pose
+    # every cell of a start, its angles too (recomputed from the rounded matrix they were up to 4e-6 degrees off)
+    cells = [cols_s.index(c) for c in POSE_COLUMNS + ROTATION_COLUMNS]
+    smooth_all = rows_s[:, [cols_s.index(c) for c in SMOOTH_COLUMNS]]
+    for k in (0, at + 1):
+        assert np.array_equal(smooth_all[k], rows_s[k, cells]), k
     assert np.abs(got[1:] - raw[1:]).max() > 1e-3  # and smoothed elsewhere
     # the overlay's head axes are drawn at the smoothed pose
     assert len(drawn) == T
@@ -135,6 +140,54 @@ def test_smooth_resume_goes_on_from_the_interrupted_filter(clip, runs, tmp_path,
                  "--smooth"]) == 2  # fmt: skip
     assert "another smoothing" in capsys.readouterr().err
 
+
+
+def test_smooth_resume_rebuilds_the_uninterrupted_filter_state_bit_for_bit(clip, tmp_path, monkeypatch) -> None:
+    """A real interruption (KeyboardInterrupt after 6 rows, past the re-anchoring) resumed with ``--smooth``: the
+    filter state that the replayed rows rebuild is, bit for bit, the one the uninterrupted run had after the same
+    rows, and so are their smoothed values; the first resumed row is filtered from that state. (The rows tracked
+    after a resume are not the uninterrupted run's to the bit: they go on from the CSV's rounded values, ~1e-5,
+    with or without --smooth; so the states, not the later rows, are compared.)"""
+    video, lm = clip
+    original = torchface.job._smooth_rows
+
+    def recording(log: dict):
+        def wrapped(config, state, written, columns, streams, live, stamps, t):
+            values, new = original(config, state, written, columns, streams, live, stamps, t)
+            log[t] = (values.copy(), new)
+            return values, new
+
+        return wrapped
+
+    def tensors(s):
+        parts = [getattr(f, n) for f in (s.rotation, s.translation) for n in ("value", "raw", "rate", "started")]
+        return [s.time, *parts]
+
+    whole, resumed = {}, {}
+    monkeypatch.setattr(torchface.job, "_smooth_rows", recording(whole))
+    track_videos([video], JobConfig(out_dir=tmp_path / "whole", landmarks=(lm,), smoothing=SmoothingConfig()))
+    at = json.loads((tmp_path / "whole" / "clip.json").read_text())["start"]["reanchored_at_frame"]
+    assert at is not None and at + 1 < 6  # (the replayed rows hold the start after the re-anchoring)
+    out = tmp_path / "out"
+
+    def interrupt(p):
+        if p.done == 6:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.job, "_smooth_rows", original)
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), smoothing=SmoothingConfig()), progress=interrupt)
+    monkeypatch.setattr(torchface.job, "_smooth_rows", recording(resumed))
+    track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), smoothing=SmoothingConfig(), resume=True))
+    assert sorted(resumed) == sorted(whole) == list(range(T))
+    for t in range(6):
+        assert np.array_equal(resumed[t][0], whole[t][0]), t
+        assert all(torch.equal(a, b) for a, b in zip(tensors(resumed[t][1]), tensors(whole[t][1]))), t
+    cols, rows = read_track_csv(out / "clip.csv")
+    _, rows_whole = read_track_csv(tmp_path / "whole" / "clip.csv")
+    assert np.array_equal(rows[:6], rows_whole[:6], equal_nan=True)
+    raw6 = rows[6, [cols.index(c) for c in POSE_COLUMNS[:3] + ROTATION_COLUMNS]]
+    assert np.abs(smooth_cells(cols, rows)[6] - raw6).max() > 1e-4  # (filtered from that state, not started afresh)
 
 def test_complete_outputs_without_smooth_are_not_skipped_by_a_smooth_resume(clip, runs, tmp_path, capsys) -> None:
     video, lm = clip

@@ -392,6 +392,49 @@ def test_non_positive_time_step_restarts() -> None:
     assert not torch.equal(out[3], x[:, 3]) and not torch.equal(out[5], x[:, 5])
 
 
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_no_nan_from_finite_input_at_extreme_steps_and_speeds(dtype) -> None:
+    """Finite input never gives NaN, nor a state that does later: a positive time step too small to divide by (a
+    float32 subnormal: the derivative was infinite and the state NaN for good), a cutoff too large for alpha's
+    ``r / (1 + r)`` (inf / inf: a huge beta, a jump of 1e30), a huge step. Tiny steps tend to the filter's limit:
+    the output holds the previous one, the derivative ``2 pi d_cutoff`` times the move."""
+    cfg = OneEuroConfig(min_cutoff=1.0, beta=100.0, d_cutoff=5.0)
+    tiny = torch.finfo(dtype).tiny * 1e-3  # (subnormal, positive)
+    for step in (tiny, 1e-30, 1e30):
+        _, state = one_euro_step(torch.zeros(2, 3, dtype=dtype), None, DT, cfg)
+        y, state = one_euro_step(torch.ones(2, 3, dtype=dtype), state, step, cfg)
+        z, state = one_euro_step(torch.full((2, 3), 2.0, dtype=dtype), state, DT, cfg)
+        assert torch.isfinite(y).all() and torch.isfinite(z).all() and torch.isfinite(state.rate).all(), step
+    _, state = one_euro_step(torch.zeros(1, 3, dtype=dtype), None, DT, cfg)
+    y, state = one_euro_step(torch.ones(1, 3, dtype=dtype), state, tiny, cfg)
+    assert float(y.abs().max()) < 1e-6  # (held)
+    torch.testing.assert_close(state.rate, torch.full((1, 3), 2 * math.pi * 5.0, dtype=dtype))
+    for config, jump in ((OneEuroConfig(beta=1e38), 1.0), (cfg, 1e30)):
+        _, state = one_euro_step(torch.zeros(1, 3, dtype=dtype), None, DT, config)
+        y, state = one_euro_step(torch.full((1, 3), jump, dtype=dtype), state, DT, config)
+        assert torch.isfinite(y).all() and torch.isfinite(state.rate).all()
+        torch.testing.assert_close(y, torch.full((1, 3), jump, dtype=dtype))  # (alpha's limit, 1: no lag)
+    R = random_rotations(1, 3, seed=3).to(dtype)
+    _, rstate = one_euro_rotation_step(R[:, 0], None, DT, cfg)
+    for k, step in ((1, tiny), (2, DT)):
+        Q, rstate = one_euro_rotation_step(R[:, k], rstate, step, cfg)
+        assert torch.isfinite(Q).all() and torch.isfinite(rstate.rate).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_16_bit_signals_are_filtered_in_float32(dtype) -> None:
+    """A 16-bit signal is filtered in float32 and returned in its dtype: in float16 the square of a 100 mm/s
+    move's speed overflowed (NaN out of a realistic translation)."""
+    x = torch.cumsum(torch.full((2, 8, 3), 4.0, dtype=D), 1)  # 100 mm/s at 25 frames/s
+    cfg = OneEuroConfig(min_cutoff=1.0, beta=1.0, d_cutoff=5.0)
+    half = run_vector(x.to(dtype), cfg)
+    assert half.dtype == dtype and torch.isfinite(half).all()
+    torch.testing.assert_close(half.float(), run_vector(x.to(dtype).float(), cfg).to(dtype).float())
+    R = random_rotations(1, 5, seed=4)
+    Q = run_rotation(R.to(dtype), cfg)
+    assert Q.dtype == dtype and torch.isfinite(Q).all()
+
 # ------------------------------------------------------------------------------------------------------ gradients
 
 
@@ -531,8 +574,8 @@ def test_on_cuda_as_on_the_cpu() -> None:
 def test_a_smoother_leaves_the_tracker_as_it_is() -> None:
     """Off is the code without it: tracking a small rendered clip with a smoother reading every result gives the
     tracker's results (and state) bit for bit as tracking without one, and the smoothed pose differs from them.
-    Given the tracker's state, the stream the online start re-anchors starts afresh at that frame; the other (a
-    still head) goes on as without the state."""
+    Given the tracker's state, the stream the online start re-anchors starts afresh at its first re-anchored result
+    (the frame after the re-anchoring one); the other (a still head) goes on as without the state."""
     import sys
     from pathlib import Path
 
@@ -573,8 +616,14 @@ def test_a_smoother_leaves_the_tracker_as_it_is() -> None:
     assert torch.equal(offsets[at][1], eye)  # (the still stream: not re-anchored)
     plain = ResultSmoother(fps=FPS)
     without = [plain(r) for r in raw[1:]]
-    assert torch.equal(smooth[at].rotation[0], raw[at + 1].rotation[0])  # afresh there
-    assert not torch.equal(without[at].rotation[0], raw[at + 1].rotation[0])
+    # managed_step reports the re-anchoring frame (raw[at + 1]) at the estimate tracked before it, and the refined,
+    # re-anchored estimate from the next frame on (here a step of ~18 degrees): afresh at that next result, as
+    # torchface track --smooth starts after the re-anchoring frame, not at the frame itself (which smeared the step)
+    assert at + 1 < len(smooth)
+    assert torch.equal(smooth[at + 1].rotation[0], raw[at + 2].rotation[0])
+    assert torch.equal(smooth[at + 1].translation[0], raw[at + 2].translation[0])
+    assert not torch.equal(smooth[at].rotation[0], raw[at + 1].rotation[0])  # (the re-anchoring frame: filtered)
+    assert not torch.equal(without[at + 1].rotation[0], raw[at + 2].rotation[0])
     for a, b in zip(smooth, without):  # the still stream as without the state
         assert torch.equal(a.rotation[1], b.rotation[1]) and torch.equal(a.translation[1], b.translation[1])
     with pytest.raises(TypeError, match="tracker_state"):

@@ -324,6 +324,55 @@ def test_the_code_version_is_a_digest_of_the_packages_files(tmp_path):
     assert _package_digest(copies) != code_version()
 
 
+
+def test_the_code_version_leaves_out_editor_files_and_reads_a_zip_import(tmp_path, monkeypatch):
+    """What editors and tools leave beside the code (swap, backup and auto-save files, hidden files and folders,
+    stray byte-code), which come and go or change as one types while a run goes on, does not change the digest (a
+    ``DataLoader`` worker started later keyed its videos apart from its rank's and tracked them again); a file
+    removed between the listing and its reading is left out, not an error; packages imported from a zip archive
+    are digested from it (their ``Path(__file__).parent`` is no folder: no file was read, one digest for any code)."""
+    import zipfile
+    from importlib import resources
+
+    import torchface
+    import training_hooks
+    from training_hooks.cache import _package_digest, code_version
+
+    assert code_version() == _package_digest(tuple(resources.files(n) for n in ("torchface", "training_hooks")))
+    copies = tuple(tmp_path / "site" / Path(m.__file__).parent.name for m in (torchface, training_hooks))
+    for module, copy in zip((torchface, training_hooks), copies):
+        shutil.copytree(Path(module.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    base = _package_digest(copies)
+    assert base == code_version()
+    tracker = copies[0] / "tracker"
+    for junk in (".step.py.swp", "step.py~", "#step.py#", ".#step.py", ".DS_Store", "step.cpython-311.pyc",
+                 "step.py.orig", ".mypy_cache/3.11/x.json", ".idea/workspace.xml"):  # fmt: skip
+        (tracker / junk).parent.mkdir(parents=True, exist_ok=True)
+        (tracker / junk).write_bytes(b"not code")
+    assert _package_digest(copies) == base
+    (tracker / ".step.py.swp").write_bytes(b"typed on")
+    assert _package_digest(copies) == base
+    read = Path.read_bytes
+
+    def vanishing(path: Path) -> bytes:
+        if path.name == "new.py":
+            raise FileNotFoundError(2, "No such file or directory", str(path))
+        return read(path)
+
+    (tracker / "new.py").write_bytes(b"x = 1\n")
+    assert _package_digest(copies) != base  # (a new module counts)
+    with monkeypatch.context() as m:
+        m.setattr(Path, "read_bytes", vanishing)
+        assert _package_digest(copies) == base  # (gone as it was read: left out, no error)
+    (tracker / "new.py").unlink()
+    archive = tmp_path / "packages.zip"
+    with zipfile.ZipFile(archive, "w") as z:
+        for copy in copies:
+            for f in sorted(copy.rglob("*")):
+                if f.is_file():
+                    z.write(f, f.relative_to(copy.parent).as_posix())
+    assert _package_digest(tuple(zipfile.Path(archive, f"{c.name}/") for c in copies)) == base
+
 def test_torch_version_and_native_kernels_are_part_of_the_key(monkeypatch, clips):
     """The native kernels and the torch code agree to float tolerance only: a run with ``TORCHFACE_NATIVE=0`` (or
     another torch) must not read the other's entry."""

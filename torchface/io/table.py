@@ -30,7 +30,12 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   points used), ``cost`` (RMS residual per point, intensity units);
 - ``residual_confidence`` (``[0, 1]``, from the solver's residual), ``dissimilarity`` (mean fiducial-patch
   displacement on the normalised face, its pixels; ``nan`` when not measured), ``mosaic_entry`` (the template
-  mosaic entry aligned against, 0 = the first frame's; -1 when not reported).
+  mosaic entry aligned against, 0 = the first frame's; -1 when not reported);
+- with ``torchface track --smooth`` (``JobConfig.smoothing``), after all of them, :data:`SMOOTH_COLUMNS`
+  (``smooth_pose_Tx`` ... ``smooth_roll_deg``, ``smooth_r00`` ... ``smooth_r22``): the pose smoothed over time
+  (:mod:`torchface.tracker.smoothing`), in the raw pose columns' units, frames and conventions (re-anchored rows
+  too); a row where the filter starts afresh or that is unsuccessful holds its raw cells exactly (docs/cli.md,
+  "Smoothing"). The other columns stay raw.
 
 The names follow OpenFace where the quantity matches, but the file is not OpenFace's: no space after the header's
 commas, no ``face_id``, ``frame`` from 0 (OpenFace's from 1), and ``AUxx_r`` is a signed animation-unit change, not

@@ -26,7 +26,10 @@ usable frame after one that is not: a frame that is not ``valid`` (``TrackResult
 whose input is not finite passes its input through unchanged and leaves the stream to start afresh, so that the
 jump of a recovery after a loss is not smeared over the frames that follow it. Non-finite input is passed through, never
 raised on and never mixed into the filter's state (the tracker never reports NaN; a NaN row of a user's signal
-stays that row's).
+stays that row's). Finite input gives finite output, however small a positive time step (the derivative's update is
+computed as ``a_d / T_e = 2 pi d_cutoff / (1 + 2 pi d_cutoff T_e)`` times the move, never divided by ``T_e``) and
+however high the cutoff (``alpha`` is 1 where ``r`` overflows), short of values whose difference overflows the
+dtype; float16 and bfloat16 signals are filtered in float32 (their state too) and returned in their dtype.
 
 Gradients: every operation is differentiable (the speed's norm is written to be finite at zero speed and the SO(3)
 logarithm is finite at the identity), so the filtered signal can be back-propagated to the inputs and the
@@ -163,7 +166,9 @@ def one_euro_alpha(cutoff_hz: Tensor, dt: Tensor) -> Tensor:
         tensor(0.2008)
     """
     r = (2.0 * math.pi) * cutoff_hz * dt
-    return r / (1.0 + r)
+    big = torch.isinf(r)  # (a cutoff or a step so large that r overflows: the limit, 1; inf / inf was NaN)
+    r = torch.where(big, torch.ones_like(r), r)  # (both branches finite: gradients stay finite)
+    return torch.where(big, torch.ones_like(r), r / (1.0 + r))
 
 
 def _speed(rate: Tensor) -> Tensor:
@@ -206,17 +211,19 @@ def _filter(
     """The One-Euro step shared by the vector and rotation filters: ``difference(x, y)`` the tangent vector from
     ``y`` to ``x`` (``(B, ..., D)``), ``advance(x, prev, delta, alpha)`` the output ``alpha`` of the way from the
     previous output ``prev`` to ``x`` (``delta = difference(x, prev)``); ``identity`` a finite value of one (what
-    a non-finite first input keeps)."""
+    a non-finite first input keeps). 16-bit signals are filtered in float32 (their state too) and returned in
+    their dtype: a speed's square overflowed float16 (NaN from a 100 mm/s move)."""
     if not isinstance(config, OneEuroConfig):
         raise TypeError(f"config must be a OneEuroConfig, got {type(config).__name__}")
     if not isinstance(x, Tensor) or not x.is_floating_point():
         raise TypeError(f"the signal must be a floating-point tensor, got {getattr(x, 'dtype', type(x).__name__)}")
+    given, x = x, x.to(torch.promote_types(x.dtype, torch.float32))  # (16-bit: filtered in float32)
+    identity = identity.to(x.dtype)
     B = x.shape[0]
     dt = _time_steps(dt, B, x)
     valid = _stream_mask(valid, B, "valid", x.device, True)
     restart = _stream_mask(restart, B, "restart", x.device, False)
-    finite = torch.isfinite(x.flatten(1)).all(1) if x[0].numel() else torch.ones(B, dtype=torch.bool,
-                                                                                   device=x.device)
+    finite = torch.isfinite(x.flatten(1)).all(1)  # ((B, 0) signals: all True)
     timed = torch.isfinite(dt) & (dt > 0)
     ok = valid & finite  # a usable frame: filtered, or the start of the stream (a bad time step: the start)
     if state is None:
@@ -232,16 +239,19 @@ def _filter(
     dt_safe = torch.where(timed, dt, torch.ones_like(dt))
     moved = difference(x_safe, prev_raw)  # (B, ..., D) tangent vectors
     step = _rows(dt_safe, moved)
-    raw_rate = moved / step
     if prev_rate is None:
-        prev_rate = torch.zeros_like(raw_rate)
-    a_d = one_euro_alpha(torch.as_tensor(config.d_cutoff, dtype=x.dtype, device=x.device), step)
-    rate = prev_rate + a_d * (raw_rate - prev_rate)
+        prev_rate = torch.zeros_like(moved)
+    # dx^ = dx^_prev + a_d (moved / T_e - dx^_prev), with a_d / T_e = 2 pi f_d / (1 + 2 pi f_d T_e): no division by
+    # the step, which a positive step too small to divide by (1e-40 s in float32) made infinite, the state NaN for
+    # good; as T_e -> 0 it tends to dx^_prev + 2 pi f_d moved, as the filter does
+    r_d = (2.0 * math.pi * config.d_cutoff) * step
+    a_d = r_d / (1.0 + r_d)
+    rate = prev_rate + ((2.0 * math.pi * config.d_cutoff) / (1.0 + r_d) * moved - a_d * prev_rate)
     cutoff = config.min_cutoff + config.beta * _speed(rate)  # (B, ...)
     a = one_euro_alpha(cutoff, dt_safe.view(B, *([1] * (cutoff.dim() - 1)))).unsqueeze(-1)
     smoothed = advance(x_safe, prev_value, difference(x_safe, prev_value), a)
     fresh = ~started | restart | ~ok | ~timed  # the input passes through
-    out = torch.where(_rows(fresh, x), x, smoothed)
+    out = torch.where(_rows(fresh, x), given, smoothed.to(given.dtype))
     rate = torch.where(_rows(fresh, rate), torch.zeros_like(rate), rate)
     value = torch.where(_rows(fresh, x), x_safe, smoothed)
     return out, OneEuroState(value=value, raw=x_safe, rate=rate, started=ok)
@@ -487,8 +497,8 @@ class ResultSmoother:
     Opt-in and outside the tracker: the tracker's own results (and its state, which it tracks from) stay raw, and
     the smoother returns new :class:`~torchface.tracker.TrackResult` objects. Streams start afresh at their first
     result, at the first successful frame after an unsuccessful one (a loss and its recovery: a detector's
-    re-initialisation too), where ``restart`` says and, given the tracker's state, after the online start
-    re-anchors them; call :meth:`reset` when the tracker is initialised again, :meth:`select` when it keeps some
+    re-initialisation too), where ``restart`` says and, given the tracker's state, at the first result after the
+    online start re-anchors them (as ``torchface track --smooth`` starts after the re-anchoring frame); call :meth:`reset` when the tracker is initialised again, :meth:`select` when it keeps some
     streams.
 
     Args:
@@ -526,6 +536,9 @@ class ResultSmoother:
         self._state: SmoothingState | None = None
         self._frames: Tensor | None = None  # (B,) frames counted per stream, for calls without timestamps
         self._offsets: tuple[Tensor, Tensor] | None = None  # the tracker's re-anchoring offsets at the last call
+        # (B,) bool: streams re-anchored in the last call's step, whose next result is the first of the re-anchored
+        # estimate (managed_step reports a frame at the offsets it was tracked under, then re-anchors)
+        self._reanchoring: Tensor | None = None
 
     @property
     def state(self) -> SmoothingState | None:
@@ -537,6 +550,7 @@ class ResultSmoother:
         self._state = None
         self._frames = None
         self._offsets = None
+        self._reanchoring = None
 
     def select(self, index: Sequence[int] | Tensor) -> "ResultSmoother":
         """Keep only streams ``index`` (as :meth:`FaceTracker.select <torchface.tracker.FaceTracker.select>`);
@@ -549,6 +563,8 @@ class ResultSmoother:
         if self._offsets is not None:
             rows = torch.as_tensor(index, device=self._offsets[0].device)
             self._offsets = (self._offsets[0][rows], self._offsets[1][rows])
+        if self._reanchoring is not None:
+            self._reanchoring = self._reanchoring[torch.as_tensor(index, device=self._reanchoring.device)]
         return self
 
     def _reanchored(self, state: TrackerState, B: int, device: torch.device) -> Tensor:
@@ -583,9 +599,10 @@ class ResultSmoother:
             timestamps: ``(B,)`` the frames' times in seconds (a video's presentation times), or None: the
                 smoother's ``fps`` (each stream's frames counted from its first result).
             restart: ``(B,)`` bool, streams that start afresh at this frame (a new video in a slot), or None.
-            tracker_state: the tracker's state after this result (``tracker.state``), or None: streams that the
-                online start has re-anchored since the last call's state start afresh (the pose stays continuous
-                through a re-anchoring, but the re-anchored estimate may step).
+            tracker_state: the tracker's state after this result (``tracker.state``), or None: a stream that the
+                online start re-anchored in this result's step (its offsets changed since the last call's state)
+                starts afresh at its next result, the first of the re-anchored estimate (the result of the
+                re-anchoring frame itself is the estimate tracked before it, which the refined one may step from).
         """
         if not isinstance(result, TrackResult):
             raise TypeError(f"result must be a TrackResult, got {type(result).__name__}")
@@ -601,8 +618,9 @@ class ResultSmoother:
             time = frames / self.fps
         else:
             time = torch.as_tensor(timestamps, dtype=torch.float64, device=device)
-        if tracker_state is not None:
-            again = self._reanchored(tracker_state, B, device)
-            restart = again if restart is None else _stream_mask(restart, B, "restart", device, False) | again
+        restart = None if restart is None else _stream_mask(restart, B, "restart", device, False)
+        if self._reanchoring is not None:  # (re-anchored in the last call's step: this result is the new estimate's)
+            restart = self._reanchoring if restart is None else restart | self._reanchoring
+        self._reanchoring = None if tracker_state is None else self._reanchored(tracker_state, B, device)
         out, self._state = smooth_result(result, self._state, time, self.config, self.facs_matrix, restart)
         return out
