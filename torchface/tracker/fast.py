@@ -43,6 +43,10 @@ from torchface.template.points import Template
 #: (millimetres), animation and illumination coefficients (units), at full resolution.
 STEP_TOLERANCE: tuple[float, float, float] = (2e-4, 0.05, 2e-3)
 
+#: Where :func:`solve_level` takes an animation unit to be at a bound, as a fraction of its range: within
+#: ``BOUND_MARGIN * (upper - lower)`` of it (the native solver's ``TF_BOUND_MARGIN``).
+BOUND_MARGIN: float = 1e-6
+
 #: Default second convergence test of :func:`solve_level`: the step's predicted cost decrease (of the
 #: linearised, reweighted problem) below this fraction of the cost.
 FUNCTION_TOLERANCE: float = 3e-3
@@ -441,6 +445,13 @@ def solve_level(
         holes = image.detach()
         image = torch.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
     neg_light_basis_t = light_basis.transpose(1, 2).neg()  # (B, L, N), contiguous
+    # Where an animation unit counts as at its bound (the active set, below): within BOUND_MARGIN of its range
+    # (in the dtype, as the native solver computes it); the pose and light columns of the held mask are never set.
+    lower, upper = alpha_lower.to(dtype), alpha_upper.to(dtype)
+    margin = (upper - lower) * BOUND_MARGIN
+    lower_in, upper_in = lower + margin, upper - margin
+    no_pose = torch.zeros(B, 6, dtype=torch.bool, device=device)
+    no_light = torch.zeros(B, P - 6 - A, dtype=torch.bool, device=device)
     iters = torch.zeros(B, dtype=torch.int64, device=device)
     active = torch.ones(B, dtype=torch.bool, device=device)
     finite = torch.ones(B, dtype=torch.bool, device=device)
@@ -513,13 +524,25 @@ def solve_level(
         Hd = torch.diag_embed(diag + floor).mul_(lam).add_(H)
         if not all_free:
             Hd = Hd + fixed_diag
+        # The active set: an animation unit at a bound that the gradient pushes outward is held there, out of the
+        # system (its row and column of Hd zero, 1 on the diagonal, 0 on the right-hand side: its step is 0), so
+        # that the other parameters' step is the one with that unit fixed.
+        g_alpha = grad[:, 6 : 6 + A]
+        zero = scalar(0.0, g_alpha)
+        outward = ((alpha <= lower_in) & (g_alpha > zero)) | ((alpha >= upper_in) & (g_alpha < zero))
+        held = torch.cat((no_pose, outward, no_light), -1)  # (B, P)
+        if not all_free:
+            held = held & free_mask
+        kept = ~held
+        Hd = torch.where(kept.unsqueeze(-1) & kept.unsqueeze(-2), Hd, torch.diag_embed(held.to(dtype)))
+        rhs = torch.where(held, scalar(0.0, grad), grad)
         L, info = torch.linalg.cholesky_ex(Hd)
-        delta = torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1).neg()  # not in place: autograd keeps the output
+        delta = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1).neg()  # not in place: autograd keeps the output
         n_valid = valid.sum(-1)
         good = (info == scalar(0, info)) & isfinite(delta.sum(-1)) & (n_valid >= scalar(P, n_valid))
         finite = finite & (good | ~active)
         step = active & good
-        moves = step.unsqueeze(-1) if all_free else step.unsqueeze(-1) & free_mask
+        moves = step.unsqueeze(-1) & kept if all_free else step.unsqueeze(-1) & kept & free_mask
         delta = torch.where(moves, delta, scalar(0.0, delta))
         dR = axis_angle_to_matrix(delta[:, 0:3])
         R = torch.bmm(dR, R)
@@ -532,11 +555,13 @@ def solve_level(
         light = light + delta[:, 6 + A :]
         iters = iters + active
         stop = (taken.abs() < tol).all(-1)
-        if function_tolerance > 0:  # 0 is off: rounding can make the predicted decrease of a tiny step negative
-            # Predicted decrease of the (undamped) model, -(g.d + d^T H d / 2), below the tolerance times the cost
-            # where it was built: g.d + d^T H d / 2 above minus that (negation is exact: the same test).
+        if function_tolerance > 0:  # 0 is off
+            # Predicted decrease of the (undamped) model, -(g.d + d^T H d / 2), in [0, tolerance times the cost
+            # where it was built): g.d + d^T H d / 2 in (minus that, 0] (negation is exact: the same test). A
+            # negative prediction (a step that the bounds' clip took away from the model's minimum, or rounding on
+            # a tiny step, which the step test stops) does not stop the level: the model is not trusted there.
             change = (taken * (grad + scalar(0.5, H) * torch.bmm(H, taken.unsqueeze(-1)).squeeze(-1))).sum(-1)
-            stop = stop | (change > scalar(-function_tolerance, cost) * cost)
+            stop = stop | ((change <= scalar(0.0, change)) & (change > scalar(-function_tolerance, cost) * cost))
         active = step & ~stop
         if it + 1 < iterations and not bool(active.any()):  # (after the last iteration: no read, no wait)
             break
