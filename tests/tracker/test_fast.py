@@ -18,7 +18,14 @@ from torchface.template import Template
 from torchface.tracker import frame_residuals
 from torchface import _native
 from torchface.backend import Backend
-from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, linearise, solve_level
+from torchface.tracker.fast import (
+    BOUND_MARGIN,
+    FUNCTION_TOLERANCE,
+    STEP_TOLERANCE,
+    LevelCamera,
+    linearise,
+    solve_level,
+)
 
 # The synthetic template, images and parameters of the objective tests (this folder on sys.path, whatever
 # pytest's import mode).
@@ -286,11 +293,11 @@ def test_solve_level_survives_an_unobservable_animation_unit(backend):
 @pytest.mark.parametrize("test", ["step", "predicted_decrease"])
 def test_a_unit_the_data_holds_at_its_bound_converges(test, backend):
     """Animation unit 1's lower bound (-0.15) above stream 0's truth (-0.2): the data pushes it against the bound
-    every iteration. The convergence tests (each alone here) read the change the bounds let through (projected
-    Gauss-Newton), so the level converges with the unit held there, near the solution with the unit fixed at its
-    bound. They read the unclipped increment, whose step never came out small and whose predicted decrease the
-    bounds never let through: the level ran to its cap (30 of 30 iterations, not converged; the step test: 63 to
-    converge from 300), reported MAX_ITERATIONS. Stream 1 (truth 0.25, off the bound) is the control."""
+    every iteration. The convergence tests (each alone here) read the change the bounds let through, so the level
+    converges with the unit held there, at the solution with the unit fixed at its bound. They read the unclipped
+    increment, whose step never came out small and whose predicted decrease the bounds never let through: the level
+    ran to its cap (30 of 30 iterations, not converged; the step test: 63 to converge from 300), reported
+    MAX_ITERATIONS. Stream 1 (truth 0.25, off the bound) is the control."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
     free = torch.ones(LAYOUT.size, dtype=torch.bool)
@@ -303,8 +310,9 @@ def test_a_unit_the_data_holds_at_its_bound_converges(test, backend):
                                       free=free, **kw)
     assert out.converged.tolist() == [True, True] and int(out.iterations[0]) <= 8, out.iterations
     assert a1[0, 1].item() == -0.15
-    # measured 0.13 degree, 0.07 mm, 0.002 AU from the fixed unit's solution (the start was 1.5 degrees off); the
-    # solver clips the whole step instead of holding the unit, and crawls there: 0.06 degree off after 300 iterations
+    # measured 5e-6 degree, 3e-4 mm, 3e-7 AU from the fixed unit's solution (the start was 1.5 degrees off). The
+    # solver clipped the whole step instead of holding the unit, and crawled there: 0.13 degree, 0.07 mm, 0.002 AU
+    # off (0.06 degree after 300 iterations).
     fixed = free.clone()
     fixed[6 + 1] = False
     a_held = a.clone()
@@ -365,7 +373,8 @@ def test_one_step_at_a_bound_is_the_box_constrained_minimum_of_the_model(push, b
         lob[0] = bound[b]
         one = Template(*(getattr(tpl, f)[b : b + 1] for f in tpl.__dataclass_fields__))
         cb = LevelCamera(cam.fx, cam.fy, cam.cx, cam.cy, cam.offset[b : b + 1], cam.height, cam.width)
-        args = (one, image[b : b + 1], cb, R[b : b + 1], t[b : b + 1], a[b : b + 1], lam[b : b + 1], light_basis[b : b + 1])
+        args = (one, image[b : b + 1], cb, R[b : b + 1], t[b : b + 1], a[b : b + 1], lam[b : b + 1],
+                light_basis[b : b + 1])  # fmt: skip
         R1, t1, a1, l1, _ = solve_level(*args, one.valid, iterations=1, free=free, alpha_lower=lob, alpha_upper=hi,
                                         alpha_prior=0.0, robust=None, damping=damping, final_check=False,
                                         step_tolerance=1e-12, function_tolerance=0.0, backend=backend)  # fmt: skip
@@ -385,6 +394,26 @@ def test_one_step_at_a_bound_is_the_box_constrained_minimum_of_the_model(push, b
             assert float((free_step[7] - step[7]).abs()) > 0.05
         else:
             assert float(step[6]) > 0.05 and torch.allclose(step, free_step, rtol=0, atol=1e-9)
+
+
+
+@pytest.mark.parametrize("gap", [0.4, 2.0])
+def test_a_unit_within_the_bound_margin_counts_as_at_the_bound(gap, backend):
+    """The outward case above with unit 0 started ``gap`` margins (BOUND_MARGIN of its range, 4.55e-6 here) inside
+    its bound: within the margin it is held (it keeps its start, 0.4 margins inside), beyond it it takes the free
+    step, which the clip stops at the bound."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem(coupled=0.1)
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    lo[0] = 0.45
+    start = 0.45 + gap * BOUND_MARGIN * (5.0 - 0.45)
+    x0 = _perturbed(x_true, 0.3)
+    x0[:, 6] = start
+    R, t, a, lam = split(x0)
+    *_, a1, _, _ = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=1,
+                               free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi,
+                               alpha_prior=0.0, robust=None, final_check=False, step_tolerance=1e-12,
+                               function_tolerance=0.0, backend=backend)  # fmt: skip
+    assert a1[:, 0].tolist() == ([start] * 2 if gap < 1 else [0.45] * 2)
 
 
 def test_a_unit_pushed_past_its_bound_with_a_coupled_partner_reaches_the_constrained_optimum(backend):

@@ -2,7 +2,8 @@
  *
  * The same algorithm as torchface.tracker.fast.solve_level (its torch implementation is the reference the tests
  * compare against): the residuals and local Jacobian of fast.linearise, IRLS weights at a robust scale
- * 1.4826 * median |r| (floored), a Gaussian prior on the animation units, box bounds by projection, and step
+ * 1.4826 * median |r| (floored), a Gaussian prior on the animation units, box bounds on them (a unit at a bound
+ * that the gradient pushes outward held out of the step, then the step clipped to the bounds), and step
  * acceptance with damping. Each stream iterates on its own until it has converged, which is what the torch code
  * does for a batch of one.
  *
