@@ -15,6 +15,7 @@
 #define TF_NEAR_PLANE_MM 1.0 /* torchface.conventions.NEAR_PLANE_MM */
 #define TF_MAD_TO_SIGMA 1.482602218505602
 #define TF_MAX_P 64
+#define TF_BOUND_MARGIN 1e-6 /* torchface.tracker.fast.BOUND_MARGIN */
 enum { TF_LOSS_NONE = 0, TF_LOSS_HUBER = 1, TF_LOSS_CAUCHY = 2, TF_LOSS_TUKEY = 3, TF_LOSS_GEMAN_MCCLURE = 4 };
 
 /* Mirrored by torchface._native.LevelProblem (ctypes): keep the two in the same order. Arrays of the dtype are

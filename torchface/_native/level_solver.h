@@ -2,7 +2,8 @@
  *
  * The same algorithm as torchface.tracker.fast.solve_level (its torch implementation is the reference the tests
  * compare against): the residuals and local Jacobian of fast.linearise, IRLS weights at a robust scale
- * 1.4826 * median |r| (floored), a Gaussian prior on the animation units, box bounds by projection, and step
+ * 1.4826 * median |r| (floored), a Gaussian prior on the animation units, box bounds on them (a unit at a bound
+ * that the gradient pushes outward held out of the step, then the step clipped to the bounds), and step
  * acceptance with damping. Each stream iterates on its own until it has converged, which is what the torch code
  * does for a batch of one.
  *
@@ -555,10 +556,27 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
             Hd[i * P + i] += (H[i * P + i] + floor_) * lam;
             if (!all_free && !p->free[i]) Hd[i * P + i] += 1.0;
         }
+        /* The active set: an animation unit at a bound (within TF_BOUND_MARGIN of its range) that the gradient
+         * pushes outward (-grad points past the bound) is held there, out of the system (its row and column of
+         * the damped matrix zero, 1 on the diagonal, 0 on the right-hand side: its step is 0), so that the
+         * others' step is the one with that unit fixed; a unit that the step then takes past a bound is clipped
+         * below. */
+        uint8_t held[TF_MAX_P];
+        for (int i = 0; i < P; ++i) held[i] = 0;
+        for (int a = 0; a < A; ++a) {
+            const int i = 6 + a;
+            const REAL margin = (hi[a] - lo[a]) * (REAL)TF_BOUND_MARGIN;
+            const REAL lo_in = lo[a] + margin, hi_in = hi[a] - margin;
+            const int outward = (alpha[a] <= lo_in && grad[i] > 0.0) || (alpha[a] >= hi_in && grad[i] < 0.0);
+            held[i] = (uint8_t)(p->free[i] && outward);
+            if (!held[i]) continue;
+            for (int j = 0; j < P; ++j) Hd[i * P + j] = Hd[j * P + i] = 0.0;
+            Hd[i * P + i] = 1.0;
+        }
         int info = FN(cholesky)(Hd, P);
         int good = info == 0;
         if (good) {
-            for (int i = 0; i < P; ++i) delta[i] = grad[i];
+            for (int i = 0; i < P; ++i) delta[i] = held[i] ? 0.0 : grad[i];
             FN(cholesky_solve)(Hd, P, delta);
             double sum = 0.0;
             for (int i = 0; i < P; ++i) {
@@ -570,7 +588,7 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
         finite = finite && (good || !active);
         int step = active && good;
         for (int i = 0; i < P; ++i) {
-            if (!step || !p->free[i]) delta[i] = 0.0;
+            if (!step || !p->free[i] || held[i]) delta[i] = 0.0;
             /* the increment as the torch code applies it: rounded to REAL */
             delta[i] = (double)(REAL)delta[i];
         }
@@ -597,7 +615,9 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
                 pred += delta[i] * (grad[i] + 0.5 * hd);
             }
             pred = -pred;
-            active = active && !(pred < p->function_tolerance * cost);
+            /* a negative prediction (a step that clipping at the bounds took away from the model's minimum, or
+             * rounding) does not stop the level: the model is not trusted there (the iteration cap still ends it) */
+            active = active && !(pred >= 0.0 && pred < p->function_tolerance * cost);
         }
         if (!active) break;
     }
