@@ -9,6 +9,7 @@ Examples::
     torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
     torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
     torchface track clip.mp4 --out results --landmarks lm.csv --smooth   # + the pose smoothed over time (smooth_*)
+    torchface track clips/*.mp4 --out results --detector dlib --keep-going   # skip the bad ones (status 3)
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
@@ -165,6 +166,11 @@ class ProgressDisplay:
             self.last_draw = time.monotonic()
 
     def __call__(self, p) -> None:
+        if getattr(p, "skipped", False):  # (--keep-going: a warning line says it) its line, a search's, goes
+            if self.lines.pop(p.index, None) is not None and self.tty:
+                self._draw()
+                self.last_draw = time.monotonic()
+            return
         if self.finished.get(p.index) == p.done:  # finished before, reported again while its batch goes on
             return
         # (just now; a container whose frame count was an estimate may go on past it: a bar again, finished when
@@ -404,8 +410,7 @@ def _run_track(
         if display is not None:
             display.flush()  # the last reports, when a redraw was due later
         _print_summary(summaries, sys.stdout)
-        incomplete = [s for s in summaries if not s.complete]  # (--keep-going)
-        if incomplete:
+        if keep_going and not all(s.complete for s in summaries):  # (without it, every one is: or an error)
             _say(f"torchface: {_incomplete(summaries)}")
             return EXIT_INCOMPLETE
     except KeyboardInterrupt as exc:  # (the job says what it leaves; interrupted once it has returned: complete)

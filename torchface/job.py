@@ -321,7 +321,10 @@ class Progress:
     """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames
     (``total``: the count the input declares, None where unknown; once the video has ended, the frames it had).
     ``searching``: the detector has found no face in the ``done`` frames looked at so far (before any tracking,
-    :func:`track_videos` looks for the first frame with a face; ``fps``: the frames looked at per second)."""
+    :func:`track_videos` looks for the first frame with a face; ``fps``: the frames looked at per second).
+    ``skipped``: (``JobConfig.keep_going``) the input is skipped, not tracked (its last report: a display drops its
+    line; ``done`` 0). ``index`` is the input's place among those checked (all of them, but those ``resume`` found
+    complete), ``count`` their number."""
 
     index: int
     count: int
@@ -331,6 +334,7 @@ class Progress:
     fps: float
     confidence: float
     searching: bool = False
+    skipped: bool = False
 
 
 @dataclass(frozen=True)
@@ -966,6 +970,7 @@ class _Stream:
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
     refused: str | None = None  # (keep_going) why it was skipped as its batch opened: nothing of it tracked
+    index: int = 0  # its place among the inputs checked (Progress.index)
     # its shape coefficients and neutral animation coefficients in the state after its last frame (taken when its
     # stream leaves the batch's state: the sidecar's model.shape_coeffs and start.neutral_anim_coeffs)
     final_shape: list[float] | None = None
@@ -1713,6 +1718,7 @@ def _open_inputs(
             stream = _open_input(path, name, k, videos, config, detector, model, progress)
         except InputError as exc:
             if skipped is not None:  # (keep_going: said as it is skipped, the others tracked)
+                _report_skipped(progress, k, len(videos), name)
                 skipped[k] = _warn_skipped(path, exc)
                 continue
             refused.append(str(exc))
@@ -1739,6 +1745,12 @@ def _warn_skipped(path: Path, exc: BaseException, what: str = "skipped") -> str:
     said = message.removeprefix(f"{path}: ")  # (most name the input first: not twice)
     warnings.warn(f"{what} {path}: {said}", InputSkipped, stacklevel=2)
     return message
+
+
+def _report_skipped(progress: Callable[[Progress], None] | None, index: int, count: int, name: str) -> None:
+    """Report (:attr:`Progress.skipped`) that input ``index`` of ``count`` (output stem ``name``) is skipped."""
+    if progress is not None:
+        progress(Progress(index, count, name, 0, None, 0.0, 0.0, skipped=True))
 
 
 def _refused_summary(path: Path, name: str, message: str) -> VideoSummary:
@@ -1788,7 +1800,7 @@ def _open_input(
                 " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
             )  # fmt: skip
             calls = start + 1 if lm is None else 0
-    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start)
+    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start, index=k)
 
 
 def _report_search(
@@ -2015,12 +2027,12 @@ def _track_locked(
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
             try:
                 _check_resumable(v, paths, config, model, config.landmarks[k] if config.landmarks else None)
+                cols, rows = read_track_csv(paths["csv"])
             except InputError as exc:
                 if not config.keep_going:
                     raise
                 summaries[str(v)] = _refused_summary(v, name, _warn_skipped(v, exc))  # (its outputs as they were)
                 continue
-            cols, rows = read_track_csv(paths["csv"])
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
             outs = tuple(p for p in paths.values() if p.exists())
@@ -2040,15 +2052,16 @@ def _track_locked(
         raise
     for i, message in (skipped or {}).items():
         summaries[str(pending[i])] = _refused_summary(pending[i], output_name(pending[i]), message)
-    return _track_opened(streams, inputs, config, detector, model, out_dir, progress, summaries)
+    return _track_opened(streams, inputs, config, detector, model, out_dir, progress, summaries, len(pending))
 
 
 def _track_opened(
     streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, model: FaceModel, out_dir: Path,
-    progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary],
+    progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary], count: int,
 ) -> list[VideoSummary]:
-    """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`; ``summaries``: of the
-    videos ``resume`` skipped): track and write them, batch by batch."""
+    """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`, of the ``count`` inputs
+    checked; ``summaries``: of the videos ``resume`` skipped, and those ``keep_going`` skipped): track and write them,
+    batch by batch."""
     if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
         _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values() if x.refused])
     try:
@@ -2063,10 +2076,13 @@ def _track_opened(
                    for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
         for members in batches:
             _reopen([streams[i] for i in members], config.convert, config.keep_going)
-            members = [i for i in members if streams[i].refused is None]  # (keep_going: the others)
-            batch = [streams[i] for i in members]
+            for i in members:
+                if streams[i].refused is not None:  # (keep_going: the others are tracked)
+                    _report_skipped(progress, streams[i].index, count, streams[i].name)
+            batch = [streams[i] for i in members if streams[i].refused is None]
+            places = [s.index for s in batch]  # (Progress.index)
             try:
-                tracked = _track_group(model, batch, config, detector, progress, len(streams), members) if batch else []
+                tracked = _track_group(model, batch, config, detector, progress, count, places) if batch else []
             finally:
                 _release(batch)
             for s, summary in zip(batch, tracked):
@@ -2296,7 +2312,8 @@ def _track_group(
     """Track one batch of same-size videos to the end and finalise their outputs; per video its summary, or None
     for one stopped by a frame that could not be read (``_Stream.error``; its partial CSV kept) or, with
     ``keep_going``, one whose outputs could not be opened (:func:`_open_outputs`: ``_Stream.refused``; not tracked,
-    the others tracked as a batch without it)."""
+    the others tracked as a batch without it). ``members``: the streams' places among the ``count`` inputs checked
+    (:attr:`Progress.index`)."""
     out_dir = Path(config.out_dir)
     info = streams[0].reader.info
     H, W = info.height, info.width
@@ -2312,7 +2329,7 @@ def _track_group(
     t_start = time.perf_counter()
     batch = list(streams)  # (keep_going: those whose outputs cannot be opened leave it, and are abandoned)
     try:
-        for s, p in zip(batch, paths):
+        for k, (s, p) in enumerate(zip(batch, paths)):
             try:
                 _open_outputs(s, p, config, model, columns, (W, H))
             except InputError as exc:  # (a partial run that cannot be resumed: damaged, other settings, ...)
@@ -2320,6 +2337,7 @@ def _track_group(
                     raise
                 _abandon(s)  # (its partial CSV as it was, or as far as its complete rows)
                 s.csv = s.overlay = s.normalised = None
+                _report_skipped(progress, members[k], count, s.name)
                 s.refused = _warn_skipped(Path(s.reader.info.path), exc)
         if any(s.refused is not None for s in batch):
             opened = [k for k, s in enumerate(batch) if s.refused is None]

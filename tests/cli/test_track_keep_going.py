@@ -4,6 +4,7 @@ the good ones' outputs are those of a run without the bad ones; ``--resume`` ret
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import warnings
@@ -13,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from torchface.cli import EXIT_INCOMPLETE, main
+from torchface.cli import EXIT_INCOMPLETE, ProgressDisplay, main
 from torchface.io import InputError
 from torchface.job import InputSkipped, JobConfig, VideosStopped, VideoSummary, output_paths, track_videos
 from torchface.synth.io import read_video
@@ -36,6 +37,13 @@ def clip(tmp_path_factory):
                comments="")  # fmt: skip
     frames = (read_video(files.video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
     return frames, lm
+
+
+class _Tty(io.StringIO):
+    """A terminal's stream, as the progress display sees it (``isatty``), holding what is written to it."""
+
+    def isatty(self) -> bool:
+        return True
 
 
 def _folder(frames: np.ndarray, path: Path, bad: int | None = None) -> Path:
@@ -150,6 +158,19 @@ def test_a_faceless_video_under_the_detector_is_skipped(clip, tmp_path, monkeypa
     assert "  black: skipped, not tracked: " in captured.out and "  face: 3 frames" in captured.out
     _same_outputs(tmp_path / "out", tmp_path / "ref", "face")
     assert _written(tmp_path / "out", "black") == []
+    # Its progress: searched, then reported skipped (a terminal's display drops its "searching" bar, which stayed
+    # among the bars of the videos being tracked); the others keep their place among the inputs.
+    reports, tty = [], _Tty()
+    display = ProgressDisplay(tty)
+    config = JobConfig(out_dir=tmp_path / "api", detector="bright", refine_first=None, keep_going=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputSkipped)
+        track_videos(list(map(Path, both)), config, progress=lambda p: (reports.append(p), display(p)))
+    assert [(p.index, p.done, p.searching, p.skipped) for p in reports if p.name == "black"] == [
+        (0, k, True, False) for k in range(1, T + 1)
+    ] + [(0, 0, False, True)]  # fmt: skip
+    assert {(p.index, p.count) for p in reports if p.name == "face"} == {(1, 2)}
+    assert "searching" in tty.getvalue() and display.lines == {}  # (no bar left: the tracked one finished)
 
 
 def test_track_videos_returns_a_summary_per_input_that_says_why(clip, tmp_path):
