@@ -272,3 +272,46 @@ def test_resume_skips_complete_outputs_it_must_not_take_as_complete(clip, tmp_pa
     assert "  b: skipped, not tracked: " in captured.out and "other first-frame landmarks" in captured.out
     assert f"torchface: warning: skipped {tmp_path / 'b.npy'}: " in captured.err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_inputs_refused_as_their_batch_opens_are_skipped_and_their_batch_goes_on(clip, tmp_path):
+    """Inputs refused after the checks, as their batch opens: one deleted meanwhile (its batch's first frame cannot
+    be read) and, resumed, one whose partial rows are damaged. With ``keep_going`` each is skipped (its partial rows
+    as they were), and the others of its batch are tracked."""
+    frames, lm = clip
+    for name in ("a", "b", "c"):
+        np.save(tmp_path / f"{name}.npy", frames)
+    inputs = [tmp_path / f"{name}.npy" for name in ("a", "b", "c")]
+
+    def delete_c(p):  # (one video a batch: c's batch opens after a's and b's are complete)
+        if p.name == "a" and p.done == T:
+            inputs[2].unlink()
+
+    config = JobConfig(out_dir=tmp_path / "out", landmarks=(lm,) * 3, refine_first=None, max_batch=1, keep_going=True)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        a, b, c = track_videos(inputs, config, progress=delete_c)
+    assert a.complete and b.complete and c.refused is not None and "no such file" in c.refused
+    assert c.refused == f"{inputs[2]}: no such file or folder"
+    assert [str(w.message) for w in said if w.category is InputSkipped] == [f"skipped {c.refused}"]
+    assert _written(tmp_path / "out", "c") == []
+
+    def interrupt(p):
+        if p.done == 2 and not p.skipped:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):  # (a and b tracked together, interrupted after 2 rows)
+        track_videos(inputs[:2], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None), progress=interrupt)
+    damaged = out / "b.csv.partial"
+    damaged.write_text(damaged.read_text() + "not,a,row\n")
+    kept = damaged.read_bytes()
+    with pytest.raises(InputError, match="b.csv.partial"):
+        track_videos(inputs[:2], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None, resume=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputSkipped)
+        a, b = track_videos(inputs[:2], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None, resume=True,
+                                                  keep_going=True))  # fmt: skip
+    assert a.complete and a.frames == T and (out / "a.json").is_file()
+    assert b.refused is not None and b.refused.startswith(f"{damaged}: line 4 is not a row") and "damaged" in b.refused
+    assert damaged.read_bytes() == kept and not (out / "b.csv").exists()
