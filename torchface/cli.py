@@ -9,11 +9,15 @@ Examples::
     torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
     torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
     torchface track clip.mp4 --out results --landmarks lm.csv --smooth   # + the pose smoothed over time (smooth_*)
+    torchface track clips/*.mp4 --out results --detector dlib --keep-going   # skip the bad ones (status 3)
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
 (grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given; a frame that cannot
-be read partway stops that video only: the summary of the others, completed, is printed before the error);
+be read partway stops that video only: the summary of the others, completed, is printed before the error); with
+``--keep-going`` an input that cannot be tracked is skipped instead (one line ``torchface: warning: skipped ...``),
+the others tracked, and a run that skipped any, or in which a video stopped partway, exits with status 3 after its
+summary, which lists them with why;
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
 SIGTERM) and keeps its rows for ``--resume``, saying what it leaves (the partial CSVs and their rows, the videos
 complete, or that nothing was written). A progress display whose reader has gone (``2>&1 | head -1``) stops
@@ -43,6 +47,8 @@ from torchface import __version__  # (torch is not imported: the package's names
 __all__ = ["main", "build_parser", "ProgressDisplay"]
 
 EXIT_USAGE = 2
+#: ``torchface track --keep-going``: an input was skipped or a video stopped partway; every other one is complete.
+EXIT_INCOMPLETE = 3
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE
@@ -160,6 +166,11 @@ class ProgressDisplay:
             self.last_draw = time.monotonic()
 
     def __call__(self, p) -> None:
+        if getattr(p, "skipped", False):  # (--keep-going: a warning line says it) its line, a search's, goes
+            if self.lines.pop(p.index, None) is not None and self.tty:
+                self._draw()
+                self.last_draw = time.monotonic()
+            return
         if self.finished.get(p.index) == p.done:  # finished before, reported again while its batch goes on
             return
         # (just now; a container whose frame count was an estimate may go on past it: a bar again, finished when
@@ -256,6 +267,12 @@ def build_parser() -> argparse.ArgumentParser:
         "CSV keeps its raw pose and adds smooth_* columns, the overlay and the meshes show the smoothed pose, the "
         "sidecar's config.smoothing says it (default: off)",
     )  # fmt: skip
+    track.add_argument(
+        "--keep-going", action="store_true",
+        help="skip the inputs that cannot be tracked (unreadable, empty, a bad landmarks file, no face found, ...), "
+        "each named on stderr as it is skipped, and track the others; the summary lists them with why, and the "
+        "exit status is 3 where any was skipped or stopped partway (default: one refuses the run, status 2)",
+    )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
         "--max-batch", type=_threads, default=128,
@@ -295,6 +312,13 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
     with 141, its reader gone after the first line, where docs/cli.md says the summary reaches the pipe whole."""
     lines = ["", "summary"]
     for s in summaries:
+        if s.refused is not None:  # (--keep-going)
+            lines.append(f"  {s.name}: skipped, not tracked: {s.refused}")
+            continue
+        if s.stopped is not None:  # (--keep-going)
+            kept = f"its {s.frames} row(s) so far are kept in {s.name}.csv.partial" if s.outputs else "no row kept"
+            lines.append(f"  {s.name}: stopped partway, not completed ({kept}): {s.stopped}")
+            continue
         if s.skipped:
             lines.append(f"  {s.name}: already complete ({s.frames} frames), skipped")
             continue
@@ -305,8 +329,9 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
                          "(truncated or damaged?)")  # fmt: skip
     for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)
         lines.append(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)")
-    if summaries:
-        folder = Path(summaries[0].outputs[0]).parent if summaries[0].outputs else None
+    written = [s for s in summaries if s.outputs]  # (--keep-going: a skipped input has none)
+    if written:
+        folder = Path(written[0].outputs[0]).parent
         meshes = any(Path(o).name.endswith("_meshes") for s in summaries for o in s.outputs)  # (--meshes)
         kinds = ".csv, .json, _overlay.mp4, _plot.png, _normalised.mp4" + (", _meshes/" if meshes else "")
         lines.append(f"outputs in {folder}/ (per video: {kinds})")
@@ -345,8 +370,9 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
     online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None, smooth=False,
+    keep_going=False,
 ) -> int:
-    from torchface.job import JobConfig, VideosStopped, track_videos
+    from torchface.job import InputSkipped, JobConfig, VideosStopped, track_videos
     from torchface.template.management import TemplateConfig
     from torchface.tracker.lookahead import LookaheadConfig
     from torchface.tracker.smoothing import SmoothingConfig
@@ -363,7 +389,7 @@ def _run_track(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker, model=model,
-        smoothing=SmoothingConfig() if smooth else None,
+        smoothing=SmoothingConfig() if smooth else None, keep_going=keep_going,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = None
@@ -371,7 +397,9 @@ def _run_track(
     reasons: tuple[str, ...] = ()
     try:
         try:
-            with _warnings_as_lines(display):
+            with _warnings_as_lines(display), warnings.catch_warnings():
+                # (each skipped input's line, also where one of the same text was warned before in this process)
+                warnings.simplefilter("always", InputSkipped)
                 summaries = track_videos(videos, config, progress=display)
         except VideosStopped as exc:  # the other videos are complete: their summary, then the error (status 2)
             stopped, reasons = exc.stopped, exc.reasons
@@ -382,6 +410,9 @@ def _run_track(
         if display is not None:
             display.flush()  # the last reports, when a redraw was due later
         _print_summary(summaries, sys.stdout)
+        if keep_going and not all(s.complete for s in summaries):  # (without it, every one is: or an error)
+            _say(f"torchface: {_incomplete(summaries)}")
+            return EXIT_INCOMPLETE
     except KeyboardInterrupt as exc:  # (the job says what it leaves; interrupted once it has returned: complete)
         if getattr(exc, "kept", None) is None and stopped:  # (it said "nothing was written")
             partial = ", ".join(os.path.join(str(out_dir), f"{name}.csv.partial") for name in stopped)
@@ -392,6 +423,20 @@ def _run_track(
             exc.kept = "every video is complete"  # type: ignore[attr-defined]
         raise
     return 0
+
+
+def _incomplete(summaries) -> str:
+    """The last line of a ``--keep-going`` run that skipped inputs or whose videos stopped partway: how many of each,
+    named (the first 10), and that the others are complete."""
+    said = []
+    for what, names in (("skipped", [s.name for s in summaries if s.refused is not None]),
+                        ("stopped partway", [s.name for s in summaries if s.stopped is not None])):  # fmt: skip
+        if names:
+            shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+            said.append(f"{len(names)} {what} ({shown})")
+    done = sum(s.complete for s in summaries)
+    return (f"{' and '.join(said)} of the {len(summaries)} inputs, {done} complete (exit status {EXIT_INCOMPLETE}; "
+            "the summary says why)")  # fmt: skip
 
 
 def _render_progress(label: str, start: float):
@@ -572,7 +617,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
                           not args.no_online_refine, args.max_batch, args.restart_after_unmatched,
-                          args.motion_prediction, args.model, args.smooth)  # fmt: skip
+                          args.motion_prediction, args.model, args.smooth, args.keep_going)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

@@ -31,6 +31,11 @@ and tracked from the first frame where it finds one (:func:`_open_inputs`; ``sta
 rows before it without an estimate (:func:`_no_face_row`); one without any face is refused before anything is
 written.
 
+With ``JobConfig.keep_going`` (``torchface track --keep-going``) an input that is refused (by the checks before
+tracking, as its batch opens, or, resumed, as its partial run is read) is skipped with a warning (:class:`InputSkipped`)
+and the others are tracked as they would be without it (its batch goes on without it); a video stopped partway is
+returned with the others; every input gets a :class:`VideoSummary` that says which (``refused``, ``stopped``).
+
 Every output of a frame is drawn from its CSV row as written and the JSON's ``start`` (:func:`_drawn_pose`), so that
 they agree with the CSV, lost and failed rows included, and a resumed run draws its replayed rows as the interrupted
 run did.
@@ -134,6 +139,7 @@ from torchface.visualise.plot import plot_track
 
 __all__ = [
     "DEMO_ATTRIBUTION",
+    "InputSkipped",
     "JobConfig",
     "Progress",
     "VideoSummary",
@@ -222,6 +228,18 @@ class JobConfig:
             an unsuccessful row, after the online start's re-anchoring frame and after a row where a re-detection
             was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
             with another setting is refused.
+        keep_going: go on past inputs that cannot be tracked (``torchface track --keep-going``): an input that the
+            checks before tracking refuse (unreadable, empty, a bad first frame or landmarks file, no face found by
+            the detector; with ``resume``, rows or complete outputs that cannot be resumed) is skipped with an
+            :class:`InputSkipped` warning as it is, and the others are tracked; a video that stops partway is
+            returned, not raised (:class:`VideosStopped`). Every input then gets a :class:`VideoSummary`, whose
+            ``refused`` or ``stopped`` says why it was not completed. Nothing of a skipped input is written (a
+            fresh run removes what earlier runs wrote for it, as for every input; a resumed run leaves its partial
+            rows as they were). With ``resume``, a skipped input is checked again (tracked once mended), and a
+            partial CSV whose input file has changed since its rows were written (mended) is tracked afresh, with a
+            warning, where without ``keep_going`` the resume is refused. False (the default): the first refused
+            input refuses the whole run (every refused input named), nothing tracked. The results of the videos
+            tracked do not depend on it.
     """
 
     out_dir: str | os.PathLike[str]
@@ -241,6 +259,7 @@ class JobConfig:
     max_batch: int = 128
     model: str | os.PathLike[str] | None = None
     smoothing: SmoothingConfig | None = None
+    keep_going: bool = False
 
     def __post_init__(self) -> None:
         if self.smoothing is not None and not isinstance(self.smoothing, SmoothingConfig):
@@ -278,7 +297,7 @@ class JobConfig:
         object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
-        for name in ("resume", "convert", "meshes"):  # "no" was true
+        for name in ("resume", "convert", "meshes", "keep_going"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         for name, low in (("normalised_size", None), ("redetect_after", 0), ("max_batch", 1)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
@@ -302,7 +321,10 @@ class Progress:
     """One progress report: stream ``index`` (of ``count``) named ``name`` has ``done`` of ``total`` frames
     (``total``: the count the input declares, None where unknown; once the video has ended, the frames it had).
     ``searching``: the detector has found no face in the ``done`` frames looked at so far (before any tracking,
-    :func:`track_videos` looks for the first frame with a face; ``fps``: the frames looked at per second)."""
+    :func:`track_videos` looks for the first frame with a face; ``fps``: the frames looked at per second).
+    ``skipped``: (``JobConfig.keep_going``) the input is skipped, not tracked (its last report: a display drops its
+    line; ``done`` 0). ``index`` is the input's place among those checked (all of them, but those ``resume`` found
+    complete), ``count`` their number."""
 
     index: int
     count: int
@@ -312,6 +334,7 @@ class Progress:
     fps: float
     confidence: float
     searching: bool = False
+    skipped: bool = False
 
 
 @dataclass(frozen=True)
@@ -329,6 +352,13 @@ class VideoSummary:
             complete.
         declared_frames: the frame count the input declares (a video container's), when known and the frames
             decoded fell short of it (a truncated or damaged file); None otherwise.
+        refused: with ``JobConfig.keep_going``, why the input was skipped without being tracked: the error that
+            refuses the run without it (:class:`InputError`'s message: ``"a.mp4: ..."``); nothing of it was written
+            (``outputs`` empty, ``frames`` and ``lost`` 0, ``mean_confidence`` and ``fps`` 0.0). None otherwise.
+        stopped: with ``JobConfig.keep_going``, why the video stopped partway (the error :class:`VideosStopped`
+            says without it: a frame that could not be read, ...); ``outputs`` holds its partial CSV, whose complete
+            rows ``frames``, ``lost`` and ``mean_confidence`` count (``fps`` 0.0), kept for ``resume``; its other
+            outputs were not written. None otherwise.
     """
 
     name: str
@@ -340,6 +370,20 @@ class VideoSummary:
     fps: float
     skipped: bool = False
     declared_frames: int | None = None
+    refused: str | None = None
+    stopped: str | None = None
+
+    @property
+    def complete(self) -> bool:
+        """Whether the video's outputs are complete: tracked by this run, or found complete by ``resume``
+        (``skipped``); False for a video ``refused`` or ``stopped``."""
+        return self.refused is None and self.stopped is None
+
+
+class InputSkipped(UserWarning):
+    """Warned (one per input) by :func:`track_videos` with ``JobConfig.keep_going`` as it skips an input that cannot
+    be tracked, or as a video stops partway (its :class:`VideoSummary`'s ``refused`` and ``stopped`` say it too);
+    ``torchface track --keep-going`` prints it as one line ``torchface: warning: skipped ...``."""
 
 
 #: :attr:`VideosStopped.reasons` of a video stopped at a frame that could not be read.
@@ -925,6 +969,8 @@ class _Stream:
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
+    refused: str | None = None  # (keep_going) why it was skipped as its batch opened: nothing of it tracked
+    index: int = 0  # its place among the inputs checked (Progress.index)
     # its shape coefficients and neutral animation coefficients in the state after its last frame (taken when its
     # stream leaves the batch's state: the sidecar's model.shape_coeffs and start.neutral_anim_coeffs)
     final_shape: list[float] | None = None
@@ -1641,7 +1687,7 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
 
 def _open_inputs(
     videos: Sequence[Path], config: JobConfig, detector, model: FaceModel,
-    progress: Callable[[Progress], None] | None = None,
+    progress: Callable[[Progress], None] | None = None, skipped: dict[int, str] | None = None,
 ) -> list[_Stream]:
     """Check every input before any tracking starts: open it, read its first frame, find its first-frame landmarks;
     then close it again (its batch reopens it, :func:`_reopen`): with all of them held open until the end, a run
@@ -1654,6 +1700,9 @@ def _open_inputs(
     before it have no estimate (:func:`_no_face_row`; it was refused). A video in none of whose frames it finds a
     face is an :class:`InputError` (nothing of the run is written). A resumed video starts where the interrupted
     run's record says it found the face (:func:`_recorded_first_face`), the detector not asked again.
+
+    With ``skipped`` (``JobConfig.keep_going``) a refused input is skipped (:func:`_warn_skipped`) and its message
+    kept in ``skipped`` under its index in ``videos``; the streams of the others are returned.
 
     Raises:
         InputError: inputs that cannot be tracked: one's error as :func:`_open_input` says it, several named in one
@@ -1668,6 +1717,10 @@ def _open_inputs(
         try:
             stream = _open_input(path, name, k, videos, config, detector, model, progress)
         except InputError as exc:
+            if skipped is not None:  # (keep_going: said as it is skipped, the others tracked)
+                _report_skipped(progress, k, len(videos), name)
+                skipped[k] = _warn_skipped(path, exc)
+                continue
             refused.append(str(exc))
             continue
         streams.append(stream)
@@ -1682,6 +1735,41 @@ def _open_inputs(
 
 #: The refused inputs that :func:`_open_inputs`' error names (the others are counted).
 MAX_REFUSED_SHOWN = 10
+
+
+def _warn_skipped(path: Path, exc: BaseException, what: str = "skipped") -> str:
+    """Warn (:class:`InputSkipped`, one line) that input ``path`` is ``what`` (skipped, or stopped partway) because of
+    ``exc`` (an :class:`InputError`), as it is (``JobConfig.keep_going``); returns ``exc``'s message on one line (the
+    :class:`VideoSummary`'s ``refused`` or ``stopped``)."""
+    message = " ".join(str(exc).split())
+    said = message.removeprefix(f"{path}: ")  # (most name the input first: not twice)
+    warnings.warn(f"{what} {path}: {said}", InputSkipped, stacklevel=2)
+    return message
+
+
+def _report_skipped(progress: Callable[[Progress], None] | None, index: int, count: int, name: str) -> None:
+    """Report (:attr:`Progress.skipped`) that input ``index`` of ``count`` (output stem ``name``) is skipped."""
+    if progress is not None:
+        progress(Progress(index, count, name, 0, None, 0.0, 0.0, skipped=True))
+
+
+def _refused_summary(path: Path, name: str, message: str) -> VideoSummary:
+    """The :class:`VideoSummary` of input ``path`` (output stem ``name``) skipped for ``message``
+    (``JobConfig.keep_going``): nothing of it written."""
+    return VideoSummary(name, path, (), 0, 0, 0.0, 0.0, refused=message)
+
+
+def _stopped_summary(s: _Stream, csv: Path, message: str) -> VideoSummary:
+    """The :class:`VideoSummary` of ``s``'s video, stopped partway for ``message`` (``JobConfig.keep_going``): its
+    partial CSV (``csv``'s ``.partial``) and its complete rows, as that file holds them."""
+    partial = partial_path(csv)
+    frames, lost, mean = _complete_rows(partial), 0, 0.0
+    with contextlib.suppress(InputError, OSError, ValueError, IndexError):  # (the counts of its lines alone)
+        cols, rows = read_track_csv(partial)
+        frames, lost = len(rows), int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
+        mean = float(rows[:, cols.index("confidence")].mean()) if len(rows) else 0.0
+    outs = (partial,) if partial.is_file() else ()
+    return VideoSummary(s.name, Path(s.reader.info.path), outs, frames, lost, mean, 0.0, stopped=message)
 
 
 def _open_input(
@@ -1712,7 +1800,7 @@ def _open_input(
                 " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
             )  # fmt: skip
             calls = start + 1 if lm is None else 0
-    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start)
+    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start, index=k)
 
 
 def _report_search(
@@ -1724,8 +1812,10 @@ def _report_search(
     progress(Progress(index, count, name, done, reader.info.num_frames, rate, 0.0, True))
 
 
-def _reopen(streams: Sequence[_Stream], convert: bool) -> None:
-    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame.
+def _reopen(streams: Sequence[_Stream], convert: bool, keep_going: bool = False) -> None:
+    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame. With
+    ``keep_going``, one that cannot be is closed and skipped (:func:`_warn_skipped`; ``_Stream.refused``), the
+    others opened.
 
     Raises:
         InputError: an input that cannot be opened now, or whose frames have changed size since it was checked.
@@ -1733,15 +1823,21 @@ def _reopen(streams: Sequence[_Stream], convert: bool) -> None:
     try:
         for s in streams:
             info = s.reader.info
-            s.reader = open_frames(info.path, convert=convert)
-            if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
-                raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} now, "
-                                 f"{info.width}x{info.height} when the run started: was it replaced?")  # fmt: skip
-            if READ_AHEAD > 0 and len(streams) <= READ_AHEAD_STREAMS:
-                s.reader = _ReadAhead(s.reader)
-            s.stamps.clear()
-            s.images.clear()
-            s.last_frame = _next_frame(s)
+            try:
+                s.reader = open_frames(info.path, convert=convert)
+                if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
+                    raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} "
+                                     f"now, {info.width}x{info.height} when the run started: was it replaced?")
+                if READ_AHEAD > 0 and len(streams) <= READ_AHEAD_STREAMS:
+                    s.reader = _ReadAhead(s.reader)
+                s.stamps.clear()
+                s.images.clear()
+                s.last_frame = _next_frame(s)
+            except InputError as exc:
+                if not keep_going:
+                    raise
+                s.reader.close()
+                s.refused = _warn_skipped(Path(info.path), exc)
     except BaseException:
         for s in streams:
             s.reader.close()
@@ -1770,16 +1866,19 @@ def track_videos(
         progress: called after every batch step with one :class:`Progress` per stream.
 
     Returns:
-        One :class:`VideoSummary` per video, in input order.
+        One :class:`VideoSummary` per video, in input order; with ``config.keep_going`` the inputs skipped and the
+        videos stopped partway among them (their ``refused``, ``stopped``; ``complete`` False), where without it the
+        run raises (``InputError``, :class:`VideosStopped`).
 
     Raises:
         TypeError: ``videos`` is one path, not a sequence of them, or holds something else than paths.
         InputError: an empty path among ``videos`` (``Path("")`` is the current folder); a bad input (each video's
             first frame and landmarks are checked before tracking starts; the message names every input refused,
-            :func:`_open_inputs`).
-        VideosStopped: (an InputError) a later frame that cannot be read stopped a video, or a resumed video's
-            replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`); raised once every
-            other video is complete, with their summaries.
+            :func:`_open_inputs`; with ``keep_going`` it is skipped instead); two inputs of one output name, or the
+            number of landmarks files (with ``keep_going`` too).
+        VideosStopped: (an InputError; not with ``keep_going``) a later frame that cannot be read stopped a video, or
+            a resumed video's replayed row whose ``timestamp`` is not its frame's time (:func:`_check_replayed_time`);
+            raised once every other video is complete, with their summaries.
         OutputError: the output folder cannot be written, or an output would replace an input or a landmarks
             file, or the output folder is an image-folder input, or an output's name (with its temporary suffix,
             up to 23 bytes) would be too long for the output folder's file system, or another run is writing the
@@ -1926,8 +2025,14 @@ def _track_locked(
     for k, (v, name) in enumerate(zip(inputs, names)):
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
-            _check_resumable(v, paths, config, model, config.landmarks[k] if config.landmarks else None)
-            cols, rows = read_track_csv(paths["csv"])
+            try:
+                _check_resumable(v, paths, config, model, config.landmarks[k] if config.landmarks else None)
+                cols, rows = read_track_csv(paths["csv"])
+            except InputError as exc:
+                if not config.keep_going:
+                    raise
+                summaries[str(v)] = _refused_summary(v, name, _warn_skipped(v, exc))  # (its outputs as they were)
+                continue
             conf = rows[:, cols.index("confidence")] if len(rows) else np.zeros(0)
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
             outs = tuple(p for p in paths.values() if p.exists())
@@ -1938,23 +2043,27 @@ def _track_locked(
         if config.landmarks:
             pending_lm.append(config.landmarks[k])
     sub = replace(config, landmarks=tuple(pending_lm))
+    skipped: dict[int, str] | None = {} if config.keep_going else None
     try:
-        streams = _open_inputs(pending, sub, detector, model, progress) if pending else []
+        streams = _open_inputs(pending, sub, detector, model, progress, skipped) if pending else []
     except KeyboardInterrupt as exc:  # (nothing of this run is there; an earlier run's outputs are as they were)
         _say_kept(exc, "nothing was written (interrupted before tracking, while checking the inputs or looking for "
                        "a first face): run the same command again")  # fmt: skip
         raise
-    return _track_opened(streams, inputs, config, detector, model, out_dir, progress, summaries)
+    for i, message in (skipped or {}).items():
+        summaries[str(pending[i])] = _refused_summary(pending[i], output_name(pending[i]), message)
+    return _track_opened(streams, inputs, config, detector, model, out_dir, progress, summaries, len(pending))
 
 
 def _track_opened(
     streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, model: FaceModel, out_dir: Path,
-    progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary],
+    progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary], count: int,
 ) -> list[VideoSummary]:
-    """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`; ``summaries``: of the
-    videos ``resume`` skipped): track and write them, batch by batch."""
-    if not config.resume:  # a fresh run
-        _clear_earlier_outputs(out_dir, [s.name for s in streams])
+    """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`, of the ``count`` inputs
+    checked; ``summaries``: of the videos ``resume`` skipped, and those ``keep_going`` skipped): track and write them,
+    batch by batch."""
+    if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
+        _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values() if x.refused])
     try:
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
         # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
@@ -1966,20 +2075,31 @@ def _track_opened(
         batches = [m[i : i + n] for (H, W, _), m in groups.items()
                    for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
         for members in batches:
-            batch = [streams[i] for i in members]
-            _reopen(batch, config.convert)
+            _reopen([streams[i] for i in members], config.convert, config.keep_going)
+            for i in members:
+                if streams[i].refused is not None:  # (keep_going: the others are tracked)
+                    _report_skipped(progress, streams[i].index, count, streams[i].name)
+            batch = [streams[i] for i in members if streams[i].refused is None]
+            places = [s.index for s in batch]  # (Progress.index)
             try:
-                tracked = _track_group(model, batch, config, detector, progress, len(streams), members)
+                tracked = _track_group(model, batch, config, detector, progress, count, places) if batch else []
             finally:
                 _release(batch)
             for s, summary in zip(batch, tracked):
                 if summary is not None:
                     summaries[str(s.reader.info.path)] = summary
+                elif s.error is not None and config.keep_going:  # (said as its batch ends)
+                    message = _warn_skipped(Path(s.reader.info.path), s.error, "stopped")
+                    summaries[str(s.reader.info.path)] = _stopped_summary(s, output_paths(out_dir, s.name)["csv"],
+                                                                          message)  # fmt: skip
+        for s in streams:  # (keep_going: refused as its batch opened)
+            if s.refused is not None:
+                summaries[str(s.reader.info.path)] = _refused_summary(Path(s.reader.info.path), s.name, s.refused)
     finally:
         for s in streams:
             s.reader.close()
     failed = [s for s in streams if s.error is not None]
-    if failed:  # after every other video is complete
+    if failed and not config.keep_going:  # after every other video is complete
         done = [s.name for s in streams if s.error is None]
         rest = f"; the other videos were completed ({_listed(done)}): --resume skips them" if done else ""
         unread = "; ".join(str(s.error) for s in failed if not isinstance(s.error, _ReplayedTimeError))
@@ -2190,7 +2310,10 @@ def _track_group(
     model: FaceModel, streams: list[_Stream], config: JobConfig, detector, progress, count: int, members: list[int]
 ) -> list[VideoSummary | None]:
     """Track one batch of same-size videos to the end and finalise their outputs; per video its summary, or None
-    for one stopped by a frame that could not be read (``_Stream.error``; its partial CSV kept)."""
+    for one stopped by a frame that could not be read (``_Stream.error``; its partial CSV kept) or, with
+    ``keep_going``, one whose outputs could not be opened (:func:`_open_outputs`: ``_Stream.refused``; not tracked,
+    the others tracked as a batch without it). ``members``: the streams' places among the ``count`` inputs checked
+    (:attr:`Progress.index`)."""
     out_dir = Path(config.out_dir)
     info = streams[0].reader.info
     H, W = info.height, info.width
@@ -2201,47 +2324,27 @@ def _track_group(
     columns += SMOOTH_COLUMNS if config.smoothing is not None else ()
     edges = mesh_edges(model.faces)
     normaliser = NormalisedFace(model, size=config.normalised_size)
-    G = config.normalised_size
     paths = [output_paths(out_dir, s.name) for s in streams]
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
+    batch = list(streams)  # (keep_going: those whose outputs cannot be opened leave it, and are abandoned)
     try:
-        for s, p in zip(streams, paths):
-            s.settings = _settings(config, s, model)
-            partial = partial_path(p["csv"])
-            if config.resume:  # (before the CSV's columns, the model's, are compared with the partial one's)
-                _check_record_model(_record_path(p["csv"]), s.settings)
-                _check_record_smoothing(_record_path(p["csv"]), s.settings)
-            if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
-                os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
-            s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
-            exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
-            if exact and s.total is not None and s.csv.rows_done > s.total:
-                raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
-                                 f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
-            # (the rows before the first face replay nothing into the state: the tracked rows after them do)
-            s.replay = s.csv.previous[s.start :] if s.csv.rows_done > s.start else None
-            problem = _no_face_problem(s.csv.previous[: s.start], columns, s.start)
-            if problem is None and s.replay is not None:
-                problem = _replay_problem(s.replay, columns, s.start)
-            if problem is not None:  # (its values went into the state: NaN, a missing frame, a scaled rotation...)
-                raise InputError(f"{s.csv.partial}: cannot resume, its rows are damaged ({problem}): run without "
-                                 "--resume")  # fmt: skip
-            record = _record_path(p["csv"])
-            s.anchor = None
-            if s.csv.rows_done:  # (made with other settings, a detector among them, its rows are not this run's)
-                s.anchor = _read_record(record, s.reader.info.path, s.settings, _setting_values(config),
-                                        model.num_shape, model.num_animation)  # fmt: skip
-            if s.replay is None:  # (no tracked row: nothing re-anchored)
-                s.anchor = None
-            elif s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
-                    # interrupted between the re-anchoring step and its row: the rows from the next one on are
-                    # tracked re-anchored, the last replayed one was not (its mesh is placed with its own pose)
-                    s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
-            _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
-            s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
-            s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
-            _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")
+        for k, (s, p) in enumerate(zip(batch, paths)):
+            try:
+                _open_outputs(s, p, config, model, columns, (W, H))
+            except InputError as exc:  # (a partial run that cannot be resumed: damaged, other settings, ...)
+                if not config.keep_going:
+                    raise
+                _abandon(s)  # (its partial CSV as it was, or as far as its complete rows)
+                s.csv = s.overlay = s.normalised = None
+                _report_skipped(progress, members[k], count, s.name)
+                s.refused = _warn_skipped(Path(s.reader.info.path), exc)
+        if any(s.refused is not None for s in batch):
+            opened = [k for k, s in enumerate(batch) if s.refused is None]
+            streams, paths = [streams[k] for k in opened], [paths[k] for k in opened]
+            mesh_tmp, members = [mesh_tmp[k] for k in opened], [members[k] for k in opened]
+            if not streams:
+                return [None] * len(batch)
         if config.meshes:
             for d in mesh_tmp:
                 d.mkdir(parents=True, exist_ok=True)
@@ -2366,7 +2469,7 @@ def _track_group(
         t_track = time.perf_counter() - t_track0
         _keep_final(state, live, layout, list(range(len(live))))
     except BaseException:
-        for s in streams:
+        for s in batch:
             _abandon(s)
         raise
     summaries: list[VideoSummary | None] = []
@@ -2384,7 +2487,84 @@ def _track_group(
         for s in streams[finished:]:
             _abandon(s)
         raise
-    return summaries
+    by_stream = {id(s): summary for s, summary in zip(streams, summaries)}
+    return [by_stream.get(id(s)) for s in batch]
+
+
+def _open_outputs(
+    s: _Stream, p: dict[str, Path], config: JobConfig, model: FaceModel, columns: tuple[str, ...], size: tuple[int, int]
+) -> None:
+    """Open the outputs of ``s``'s video (``p``: its paths, :func:`output_paths`; ``size``: ``(W, H)``) before its
+    batch's first frame: its CSV (with ``resume``, its partial one's rows checked and kept to replay, and its record
+    read: the re-anchoring), its record written, its videos started and its rows before the first face written.
+
+    With ``keep_going`` and ``resume``, a partial run made from the input file as it was before it changed (mended:
+    :func:`_changed_input`) is removed first, and the video tracked afresh, with a warning.
+
+    Raises:
+        InputError: the partial run cannot be resumed (damaged rows or record, other settings, another model, ...).
+    """
+    W, H = size
+    G = config.normalised_size
+    s.settings = _settings(config, s, model)
+    if config.keep_going and config.resume:
+        changed = _changed_input(_record_path(p["csv"]), Path(s.reader.info.path), s.settings)
+        if changed is not None:
+            _clear_earlier_outputs(Path(config.out_dir), [s.name])
+            warnings.warn(f"{s.reader.info.path}: the input has changed since the rows in {partial_path(p['csv'])} "
+                          f"were tracked ({changed}): tracked afresh", RuntimeWarning, stacklevel=3)  # fmt: skip
+    partial = partial_path(p["csv"])
+    if config.resume:  # (before the CSV's columns, the model's, are compared with the partial one's)
+        _check_record_model(_record_path(p["csv"]), s.settings)
+        _check_record_smoothing(_record_path(p["csv"]), s.settings)
+    if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
+        os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
+    s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
+    exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
+    if exact and s.total is not None and s.csv.rows_done > s.total:
+        raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
+                         f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
+    # (the rows before the first face replay nothing into the state: the tracked rows after them do)
+    s.replay = s.csv.previous[s.start :] if s.csv.rows_done > s.start else None
+    problem = _no_face_problem(s.csv.previous[: s.start], columns, s.start)
+    if problem is None and s.replay is not None:
+        problem = _replay_problem(s.replay, columns, s.start)
+    if problem is not None:  # (its values went into the state: NaN, a missing frame, a scaled rotation...)
+        raise InputError(f"{s.csv.partial}: cannot resume, its rows are damaged ({problem}): run without "
+                         "--resume")  # fmt: skip
+    record = _record_path(p["csv"])
+    s.anchor = None
+    if s.csv.rows_done:  # (made with other settings, a detector among them, its rows are not this run's)
+        s.anchor = _read_record(record, s.reader.info.path, s.settings, _setting_values(config),
+                                model.num_shape, model.num_animation)  # fmt: skip
+    if s.replay is None:  # (no tracked row: nothing re-anchored)
+        s.anchor = None
+    elif s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
+        # interrupted between the re-anchoring step and its row: the rows from the next one on are tracked
+        # re-anchored, the last replayed one was not (its mesh is placed with its own pose)
+        s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
+    _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
+    s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
+    s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
+    _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")
+
+
+def _changed_input(record: Path, video: Path, settings: dict[str, object]) -> str | None:
+    """How the input file of a partial run whose record is ``record`` (:func:`_write_record`) has changed since
+    (``"<size and time> then, <size and time> now"``, :func:`_settings`' ``input file``), where the record was made
+    from ``video`` (the same path); None where it has not, or the record says nothing of it (none, unreadable, of
+    another input: :func:`_read_record` refuses it)."""
+    try:
+        made = json.loads(record.read_text(encoding="utf-8"))
+        made_from, then = made["input"], made["settings"]["input file"]
+        if not isinstance(made_from, str) or not isinstance(then, str):
+            return None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    now = settings["input file"]
+    if Path(made_from).resolve() != video.resolve() or then == now:
+        return None
+    return f"{then} then, {now} now"
 
 
 def _keep_final(state: TrackerState, streams: list[_Stream], layout: ParamLayout, ks: list[int]) -> None:
