@@ -5,6 +5,7 @@ backends (the torch code and the native solver; tests/tracker/test_native.py com
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -414,6 +415,30 @@ def test_a_unit_within_the_bound_margin_counts_as_at_the_bound(gap, backend):
                                alpha_prior=0.0, robust=None, final_check=False, step_tolerance=1e-12,
                                function_tolerance=0.0, backend=backend)  # fmt: skip
     assert a1[:, 0].tolist() == ([start] * 2 if gap < 1 else [0.45] * 2)
+
+
+@pytest.mark.parametrize("bounds", [(-5.0, math.inf), (-math.inf, 5.0), (-math.inf, math.inf)])
+def test_an_infinite_bound_is_no_bound(bounds, backend):
+    """An animation unit's bound may be infinite (no bound on that side; the clip lets everything through): no unit
+    is then at that bound, and the solve is the one with finite bounds that no unit comes near (-5 and 5 here), to
+    the bit. The margin BOUND_MARGIN * (upper - lower) was infinite: the lower bound's inner edge -5 + inf = inf, so
+    every unit whose gradient pointed down was held at a 'lower bound' wherever it was (and with -inf below, the
+    upper's inner edge 5 - inf = -inf held every unit the gradient pushed up): measured 1.8 and 1.1 degrees, 8.4 mm,
+    0.1 AU (-5, inf) and 0.024 degree, 0.012 mm, 0.005 AU (-inf, 5) off the finite bounds' solve, both solvers."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    free = torch.ones(LAYOUT.size, dtype=torch.bool)
+    kw = dict(iterations=8, free=free, alpha_prior=0.0, robust=None, backend=backend)
+    args = (tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
+    finite = solve_level(*args, alpha_lower=torch.full((A,), -5.0, dtype=D), alpha_upper=torch.full((A,), 5.0, dtype=D),
+                         **kw)  # fmt: skip
+    got = solve_level(*args, alpha_lower=torch.full((A,), bounds[0], dtype=D),
+                      alpha_upper=torch.full((A,), bounds[1], dtype=D), **kw)  # fmt: skip
+    assert float((finite[2] - a).abs().max()) > 0.05  # the units moved (so that holding them would show)
+    for x, y in zip(got[:4], finite[:4]):
+        assert torch.equal(x, y)
+    for field in ("iterations", "converged", "residual"):
+        assert torch.equal(getattr(got[4], field), getattr(finite[4], field)), field
 
 
 def test_a_unit_pushed_past_its_bound_with_a_coupled_partner_reaches_the_constrained_optimum(backend):

@@ -565,7 +565,10 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
         for (int i = 0; i < P; ++i) held[i] = 0;
         for (int a = 0; a < A; ++a) {
             const int i = 6 + a;
-            const REAL margin = (hi[a] - lo[a]) * (REAL)TF_BOUND_MARGIN;
+            /* no margin for an infinite range (a bound at -inf or inf): an infinite one put the other bound's inner
+             * edge at -inf or inf, holding every unit the gradient pushed towards it */
+            const REAL span = hi[a] - lo[a];
+            const REAL margin = isfinite(span) ? span * (REAL)TF_BOUND_MARGIN : (REAL)0;
             const REAL lo_in = lo[a] + margin, hi_in = hi[a] - margin;
             const int outward = (alpha[a] <= lo_in && grad[i] > 0.0) || (alpha[a] >= hi_in && grad[i] < 0.0);
             held[i] = (uint8_t)(p->free[i] && outward);

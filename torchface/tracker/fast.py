@@ -356,25 +356,25 @@ def solve_level(
     point) stays put instead of making the system singular.
 
     The animation units' bounds are kept by an active set: before each solve, a unit at a bound (within
-    :data:`BOUND_MARGIN` of its range) that the gradient pushes outward (at the lower bound ``grad > 0``, at the upper
-    ``grad < 0``) is held there: its row and column of the damped matrix become the identity's and its right-hand
-    side 0, so its step is 0 and the other parameters' step is the one with it fixed (as for a parameter that is
-    not ``free``). A unit the step then takes past a bound is clipped to it. Clipping the free step alone moved the
-    others as if a unit on its bound had gone past it: with coupled units (CANDIDE-3's three eyelid units move the
-    lid's points nearly alike) a wrong step, and a level that ended away from the constrained optimum. Measured on
-    the 640x480 standard scenarios (evaluate.py; CANDIDE-3's lid tightener is held at its lower bound in about a
-    third of the iterations of ``expressions``): the rotation means moved by -0.07 to +0.004 degree (occlusion 0.50 ->
-    0.42, its worst frame 5.57 -> 3.09; scan_motion 0.83 -> 0.76, its worst 3.00 -> 3.12), the iterations per
-    frame by +0.1% to +1.2%.
+    :data:`BOUND_MARGIN` of its range; exactly at it where the range is infinite) that the gradient pushes outward
+    (at the lower bound ``grad > 0``, at the upper ``grad < 0``) is held there: its row and column of the damped
+    matrix become the identity's and its right-hand side 0, so its step is 0 and the other parameters' step is the
+    one with it fixed (as for a parameter that is not ``free``). A unit the step then takes past a bound is clipped
+    to it. Clipping the free step alone moved the others as if a unit on its bound had gone past it: with coupled
+    units (CANDIDE-3's three eyelid units move the lid's points nearly alike) a wrong step, and a level that ended
+    away from the constrained optimum. Measured on the 640x480 standard scenarios (evaluate.py; CANDIDE-3's lid
+    tightener is held at its lower bound in about a third of the iterations of ``expressions``): the rotation means
+    moved by -0.07 to +0.004 degree (occlusion 0.50 -> 0.42, its worst frame 5.57 -> 3.09; scan_motion 0.83 -> 0.76,
+    its worst 3.00 -> 3.12), the iterations per frame by +0.1% to +1.2%.
 
     Args:
         tpl: the level's template (``N`` points); image: ``(B, 1, h, w)`` the gray crop at this level.
         cam: the level camera; R ``(B, 3, 3)``, t ``(B, 3)``, alpha ``(B, A)``, light ``(B, L)``: the start.
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
-        alpha_lower, alpha_upper: ``(A,)`` bounds; alpha_prior: precision of a Gaussian prior on alpha, centred on
-            ``alpha_mean`` ``(B, A)`` (None: zero); a float, ``(B,)`` for one precision per stream, or ``(B, A)``
-            for one per stream and unit.
+        alpha_lower, alpha_upper: ``(A,)`` bounds (``-inf`` / ``inf``: none on that side); alpha_prior: precision of
+            a Gaussian prior on alpha, centred on ``alpha_mean`` ``(B, A)`` (None: zero); a float, ``(B,)`` for one
+            precision per stream, or ``(B, A)`` for one per stream and unit.
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
         damping: initial Levenberg damping relative to ``diag(H)``.
@@ -461,8 +461,11 @@ def solve_level(
     neg_light_basis_t = light_basis.transpose(1, 2).neg()  # (B, L, N), contiguous
     # Where an animation unit counts as at its bound (the active set, below): within BOUND_MARGIN of its range
     # (in the dtype, as the native solver computes it); the pose and light columns of the held mask are never set.
+    # An infinite range (a bound at -inf or inf: none on that side) has no margin: an infinite one put the other
+    # bound's inner edge at -inf or inf (every unit the gradient pushed towards it held, wherever it was).
     lower, upper = alpha_lower.to(dtype), alpha_upper.to(dtype)
-    margin = (upper - lower) * BOUND_MARGIN
+    span = upper - lower
+    margin = torch.where(isfinite(span), span * BOUND_MARGIN, torch.zeros_like(span))
     lower_in, upper_in = lower + margin, upper - margin
     no_pose = torch.zeros(B, 6, dtype=torch.bool, device=device)
     no_light = torch.zeros(B, P - 6 - A, dtype=torch.bool, device=device)
