@@ -419,8 +419,13 @@ def _run_track(
             whose = "its" if len(stopped) == 1 else "their"
             kept = f"every video is complete but {'; '.join(f'{n}, {why}' for n, why in zip(stopped, reasons))}: "
             exc.kept = kept + f"{whose} rows are kept in {partial}"  # type: ignore[attr-defined]
-        elif summaries is not None and getattr(exc, "kept", None) is None:
-            exc.kept = "every video is complete"  # type: ignore[attr-defined]
+        elif summaries is not None and getattr(exc, "kept", None) is None:  # (keep_going: some may not be)
+            kept_in = {s.name: os.path.join(str(out_dir), f"{s.name}.csv.partial") for s in summaries}
+            but = [f"{s.name}, skipped (nothing written)" if s.refused is not None else
+                   f"{s.name}, stopped partway: its rows are kept in {kept_in[s.name]}"
+                   for s in summaries if not s.complete]  # fmt: skip
+            said = ", and ".join([", ".join(but[:-1]), but[-1]] if len(but) > 1 else but)
+            exc.kept = "every video is complete" + (f" but {said}" if but else "")  # type: ignore[attr-defined]
         raise
     return 0
 

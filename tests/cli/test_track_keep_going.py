@@ -341,3 +341,26 @@ def test_a_changed_input_tracked_afresh_keeps_its_earlier_rows_aside(clip, tmp_p
         assert (out / "broken.csv.partial").read_bytes() == rows  # the fresh run's, stopped at the same frame
     assert (out / "broken.record.partial.earlier").read_bytes() == record
     assert not (out / "broken.csv").exists()
+
+
+def test_interrupted_once_the_job_has_returned_names_what_it_skipped_and_what_stopped(clip, tmp_path, monkeypatch,
+                                                                                      capsys):  # fmt: skip
+    """Ctrl-C (or SIGTERM) while a ``--keep-going`` run's summary was printed said "every video is complete", where
+    one input was skipped and a video had stopped partway (its rows in its partial CSV)."""
+    import torchface.cli
+
+    frames, lm = clip
+    np.save(tmp_path / "good.npy", frames)
+    np.save(tmp_path / "gray.npy", frames[..., 0])
+    broken = _folder(frames, tmp_path / "broken", bad=2)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.cli, "_print_summary", interrupted)
+    out = tmp_path / "out"
+    assert _track([tmp_path / "good.npy", tmp_path / "gray.npy", broken], [lm] * 3, out, "--keep-going") == 130
+    said = capsys.readouterr().err.splitlines()[-1]
+    assert said == (f"torchface: interrupted; every video is complete but gray, skipped (nothing written), and "
+                    f"broken, stopped partway: its rows are kept in {out / 'broken.csv.partial'}"), said
+    assert (out / "good.json").is_file() and (out / "broken.csv.partial").is_file()
