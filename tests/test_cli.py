@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from torchface.cli import build_parser, main
+from torchface.cli import FFMPEG_LOG_QUIET, build_parser, main
 from torchface.synth.io import read_video
 from torchface.synth.sequence import load_ground_truth
 
@@ -294,3 +294,25 @@ def test_a_damaged_videos_error_is_one_line_without_ffmpegs_log(tmp_path):
                            env={**env, "OPENCV_FFMPEG_LOGLEVEL": "16"}, timeout=120)  # fmt: skip
     said = asked.stdout + asked.stderr  # (OpenCV's logger writes FFmpeg's lines to stdout where the level is set)
     assert asked.returncode == 2 and len(said) > len(out.stdout + out.stderr), said[-2000:]  # (FFmpeg's, asked for)
+
+
+def test_main_leaves_the_ffmpeg_log_variable_as_it_found_it(tmp_path, monkeypatch):
+    """``main`` sets ``OPENCV_FFMPEG_LOGLEVEL`` (FFmpeg's log left out) for its run only: called in a notebook or a
+    test, it left it set for the rest of the process and every process started from it; one the caller set is
+    kept."""
+    argv = ["track", str(tmp_path / "missing.mp4"), "--landmarks", str(tmp_path / "lm.csv"), "--out",
+            str(tmp_path / "o"), "--quiet"]  # fmt: skip
+    seen = []
+    monkeypatch.setattr("torchface.cli._dispatch", lambda args: seen.append(os.environ.get("OPENCV_FFMPEG_LOGLEVEL"))
+                        or 0)  # fmt: skip
+    monkeypatch.delenv("OPENCV_FFMPEG_LOGLEVEL", raising=False)
+    assert main(argv) == 0 and seen == [FFMPEG_LOG_QUIET]  # (set while it runs)
+    assert "OPENCV_FFMPEG_LOGLEVEL" not in os.environ
+    monkeypatch.setattr("torchface.cli._dispatch", lambda args: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        main(argv)
+    assert "OPENCV_FFMPEG_LOGLEVEL" not in os.environ
+    monkeypatch.setenv("OPENCV_FFMPEG_LOGLEVEL", "16")
+    monkeypatch.setattr("torchface.cli._dispatch", lambda args: seen.append(os.environ.get("OPENCV_FFMPEG_LOGLEVEL"))
+                        or 0)  # fmt: skip
+    assert main(argv) == 0 and seen[-1] == "16" and os.environ["OPENCV_FFMPEG_LOGLEVEL"] == "16"

@@ -419,8 +419,13 @@ def _run_track(
             whose = "its" if len(stopped) == 1 else "their"
             kept = f"every video is complete but {'; '.join(f'{n}, {why}' for n, why in zip(stopped, reasons))}: "
             exc.kept = kept + f"{whose} rows are kept in {partial}"  # type: ignore[attr-defined]
-        elif summaries is not None and getattr(exc, "kept", None) is None:
-            exc.kept = "every video is complete"  # type: ignore[attr-defined]
+        elif summaries is not None and getattr(exc, "kept", None) is None:  # (keep_going: some may not be)
+            kept_in = {s.name: os.path.join(str(out_dir), f"{s.name}.csv.partial") for s in summaries}
+            but = [f"{s.name}, skipped (nothing written)" if s.refused is not None else
+                   f"{s.name}, stopped partway: its rows are kept in {kept_in[s.name]}"
+                   for s in summaries if not s.complete]  # fmt: skip
+            said = ", and ".join([", ".join(but[:-1]), but[-1]] if len(but) > 1 else but)
+            exc.kept = "every video is complete" + (f" but {said}" if but else "")  # type: ignore[attr-defined]
         raise
     return 0
 
@@ -565,10 +570,30 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(stray)
     if args.command == "track" and args.restart_after_unmatched and args.detector is None:
         parser.error("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
-    # FFmpeg's own log lines (``[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found`` above the one-line error of
-    # an empty or damaged video, ``[mjpeg @ 0x...] overread 8`` at each damaged frame, between the progress bars)
-    # are left out unless asked for (OpenCV reads the variable when its FFmpeg backend is first used)
-    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", FFMPEG_LOG_QUIET)
+    with _ffmpeg_log_quiet():
+        return _run(args)
+
+
+@contextlib.contextmanager
+def _ffmpeg_log_quiet() -> Iterator[None]:
+    """Leave FFmpeg's own log lines (``[mov,mp4,m4a,3gp,3g2,mj2 @ 0x...] moov atom not found`` above the one-line
+    error of an empty or damaged video, ``[mjpeg @ 0x...] overread 8`` at each damaged frame, between the progress
+    bars) out unless asked for: ``OPENCV_FFMPEG_LOGLEVEL`` set to :data:`FFMPEG_LOG_QUIET` where unset, for the
+    command's run only (:func:`main` called in a notebook or a test left it set for the rest of the process and the
+    processes it started). OpenCV reads it once per process, when its FFmpeg backend is first used: in such a process
+    FFmpeg's level stays what the first use found."""
+    unset = "OPENCV_FFMPEG_LOGLEVEL" not in os.environ
+    if unset:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = FFMPEG_LOG_QUIET
+    try:
+        yield
+    finally:
+        if unset and os.environ.get("OPENCV_FFMPEG_LOGLEVEL") == FFMPEG_LOG_QUIET:
+            del os.environ["OPENCV_FFMPEG_LOGLEVEL"]
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the command ``args`` (parsed and checked by :func:`main`); returns its exit status."""
     try:  # torch's import (every command needs it) takes seconds: a Ctrl-C there printed a long traceback
         import torch
 

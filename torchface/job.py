@@ -236,8 +236,10 @@ class JobConfig:
             ``refused`` or ``stopped`` says why it was not completed. Nothing of a skipped input is written (a
             fresh run removes what earlier runs wrote for it, as for every input; a resumed run leaves its partial
             rows as they were). With ``resume``, a skipped input is checked again (tracked once mended), and a
-            partial CSV whose input file has changed since its rows were written (mended) is tracked afresh, with a
-            warning, where without ``keep_going`` the resume is refused. False (the default): the first refused
+            partial CSV whose input file has changed since its rows were written (mended; its size or modification
+            time: a ``touch`` is enough) is tracked afresh, with a warning, its earlier rows and record kept aside
+            (``<stem>.csv.partial.earlier``, ``.earlier-2``, ...: no run removes them), where without ``keep_going``
+            the resume is refused. False (the default): the first refused
             input refuses the whole run (every refused input named), nothing tracked. The results of the videos
             tracked do not depend on it.
     """
@@ -2509,10 +2511,12 @@ def _open_outputs(
     s.settings = _settings(config, s, model)
     if config.keep_going and config.resume:
         changed = _changed_input(_record_path(p["csv"]), Path(s.reader.info.path), s.settings)
-        if changed is not None:
+        if changed is not None:  # (its size or time: a ``touch`` is enough; its rows are kept, not removed)
+            aside = _set_aside(p["csv"])
             _clear_earlier_outputs(Path(config.out_dir), [s.name])
+            kept = f", its earlier rows kept in {aside}" if aside is not None else ""
             warnings.warn(f"{s.reader.info.path}: the input has changed since the rows in {partial_path(p['csv'])} "
-                          f"were tracked ({changed}): tracked afresh", RuntimeWarning, stacklevel=3)  # fmt: skip
+                          f"were tracked ({changed}): tracked afresh{kept}", RuntimeWarning, stacklevel=3)  # fmt: skip
     partial = partial_path(p["csv"])
     if config.resume:  # (before the CSV's columns, the model's, are compared with the partial one's)
         _check_record_model(_record_path(p["csv"]), s.settings)
@@ -2547,6 +2551,27 @@ def _open_outputs(
     s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
     s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
     _write_no_face(s, columns, config, "dissim. conf" if config.tracker.template.enabled else "conf")
+
+
+def _set_aside(csv: Path) -> Path | None:
+    """Keep the partial CSV of ``csv`` and its record (:func:`_record_path`), which a resumed run tracks afresh
+    (``JobConfig.keep_going``: its input file has changed since), under names of their own, which no run writes nor
+    removes: ``<name>.csv.partial.earlier`` and ``<name>.record.partial.earlier`` (``.earlier-2``, ... where those are
+    taken). Returns where the rows are kept; None where there were none (nothing moved)."""
+    partial, record = partial_path(csv), _record_path(csv)
+    if not partial.is_file():
+        return None
+    n = 1
+    while True:
+        tag = ".earlier" if n == 1 else f".earlier-{n}"
+        rows, rec = partial.with_name(partial.name + tag), record.with_name(record.name + tag)
+        if not rows.exists() and not rec.exists():
+            break
+        n += 1
+    if record.is_file():
+        os.replace(record, rec)
+    os.replace(partial, rows)
+    return rows
 
 
 def _changed_input(record: Path, video: Path, settings: dict[str, object]) -> str | None:

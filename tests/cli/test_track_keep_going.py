@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 import warnings
 from pathlib import Path
@@ -243,7 +244,9 @@ def test_resume_retries_what_was_skipped_and_never_leaves_a_partial_output_looki
     assert rc == 0, said.err
     assert f"torchface: warning: {broken}: the input has changed since the rows in" in said.err, said.err
     assert "tracked afresh" in said.err and "good: already complete" in said.out
-    assert not [p for p in out.iterdir() if "partial" in p.name]
+    # (no partial output left but the stopped run's rows, kept aside: they were made from the file as it was)
+    aside = sorted(p.name for p in out.iterdir() if "partial" in p.name)
+    assert aside == ["broken.csv.partial.earlier", "broken.record.partial.earlier"], aside
     assert _track(inputs[1:], [lm] * 2, tmp_path / "ref") == 0  # the two tracked as one batch, fresh
     for name in ("gray", "broken"):
         _same_outputs(out, tmp_path / "ref", name)
@@ -315,3 +318,49 @@ def test_inputs_refused_as_their_batch_opens_are_skipped_and_their_batch_goes_on
     assert a.complete and a.frames == T and (out / "a.json").is_file()
     assert b.refused is not None and b.refused.startswith(f"{damaged}: line 4 is not a row") and "damaged" in b.refused
     assert damaged.read_bytes() == kept and not (out / "b.csv").exists()
+
+
+def test_a_changed_input_tracked_afresh_keeps_its_earlier_rows_aside(clip, tmp_path, capsys):
+    """``--resume --keep-going`` tracks afresh a partial run whose input file has changed since (its size or time:
+    a ``touch`` is enough), but loses none of its rows: they (and their record) are kept aside under a name of their
+    own, which the warning gives, and a second such resume keeps the first one's aside too, under another."""
+    frames, lm = clip
+    broken = _folder(frames, tmp_path / "broken", bad=2)
+    out = tmp_path / "out"
+    assert _track([broken], [lm], out, "--keep-going") == 3
+    rows, record = (out / "broken.csv.partial").read_bytes(), (out / "broken.record.partial").read_bytes()
+    capsys.readouterr()
+    for n, aside in enumerate(("broken.csv.partial.earlier", "broken.csv.partial.earlier-2")):
+        image = broken / "0.png"
+        os.utime(image, ns=(image.stat().st_atime_ns, image.stat().st_mtime_ns + 10**9 * (n + 1)))  # touched only
+        assert _track([broken], [lm], out, "--keep-going", "--resume") == 3
+        said = capsys.readouterr()
+        assert "tracked afresh" in said.err and f"earlier rows kept in {out / aside}" in said.err, said.err
+        assert (out / aside).read_bytes() == rows  # (the same frames: the same rows, tracked afresh)
+        assert (out / aside.replace(".csv.", ".record.")).read_bytes() != b""
+        assert (out / "broken.csv.partial").read_bytes() == rows  # the fresh run's, stopped at the same frame
+    assert (out / "broken.record.partial.earlier").read_bytes() == record
+    assert not (out / "broken.csv").exists()
+
+
+def test_interrupted_once_the_job_has_returned_names_what_it_skipped_and_what_stopped(clip, tmp_path, monkeypatch,
+                                                                                      capsys):  # fmt: skip
+    """Ctrl-C (or SIGTERM) while a ``--keep-going`` run's summary was printed said "every video is complete", where
+    one input was skipped and a video had stopped partway (its rows in its partial CSV)."""
+    import torchface.cli
+
+    frames, lm = clip
+    np.save(tmp_path / "good.npy", frames)
+    np.save(tmp_path / "gray.npy", frames[..., 0])
+    broken = _folder(frames, tmp_path / "broken", bad=2)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torchface.cli, "_print_summary", interrupted)
+    out = tmp_path / "out"
+    assert _track([tmp_path / "good.npy", tmp_path / "gray.npy", broken], [lm] * 3, out, "--keep-going") == 130
+    said = capsys.readouterr().err.splitlines()[-1]
+    assert said == (f"torchface: interrupted; every video is complete but gray, skipped (nothing written), and "
+                    f"broken, stopped partway: its rows are kept in {out / 'broken.csv.partial'}"), said
+    assert (out / "good.json").is_file() and (out / "broken.csv.partial").is_file()
