@@ -792,3 +792,17 @@ def test_a_header_naming_the_columns_y_x_is_read_in_that_order(tmp_path):
     for name, text in files.items():
         (tmp_path / name).write_text(text)
         np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), pts, err_msg=name)
+
+
+def test_a_header_naming_y_first_in_other_words_is_refused(tmp_path):
+    """A two-column header naming the y (row) column first in words other than exactly ``y,x`` (``y_px,x_px``,
+    ``lm_y,lm_x``, ``row,col``) was read as ``x, y`` without a word, every point swapped: it is refused, naming the
+    header; the same words x first (``x_px,y_px``, ``col,row`` is not read as a y-first pair) read as before."""
+    pts = _points()
+    for header in ("y_px,x_px", "lm_y,lm_x", "row,col", "Y (px),X (px)", "rows,columns"):
+        (tmp_path / "a.csv").write_text(header + "\n" + "".join(f"{y!r},{x!r}\n" for x, y in pts.tolist()))
+        with pytest.raises(InputError, match=r"names the y \(row\) column first: name the columns exactly 'x,y'"):
+            read_landmarks(tmp_path / "a.csv", 100, 100)
+    for header in ("x_px,y_px", "lm_x,lm_y", "u,v", "px,py"):
+        (tmp_path / "b.csv").write_text(header + "\n" + "".join(f"{x!r},{y!r}\n" for x, y in pts.tolist()))
+        np.testing.assert_array_equal(read_landmarks(tmp_path / "b.csv", 100, 100), pts, err_msg=header)

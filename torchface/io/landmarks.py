@@ -3,7 +3,8 @@
 Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:`torchface.conventions`):
 
 - CSV: 68 rows of ``x, y`` (an optional header line and ``#`` comment lines are skipped; a header ``y, x`` says
-  the columns are the other way round, as image coordinates (row, column) are written), or one row of
+  the columns are the other way round, as image coordinates (row, column) are written; a two-column header naming
+  the y column first in other words, ``y_px, x_px`` or ``row, col``, is refused), or one row of
   136 numbers ``x0, y0, x1, y1, ...`` (in the order a header names them when it names every cell ``x<k>`` or
   ``y<k>``, e.g. ``x_0, ..., x_67, y_0, ..., y_67``); cells separated by commas, semicolons, tabs or
   spaces, optionally quoted (a spreadsheet's of a decimal-comma locale, ``12,5;40,25``: where cells are separated
@@ -469,7 +470,20 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
     points = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
     # a header naming the columns ``y, x`` (image coordinates as (row, column): ``DataFrame(points[:, ::-1],
     # columns=["y", "x"]).to_csv(index=False)``) says which is which: they were read as x, y, the face transposed
-    return points[:, ::-1].copy() if [n.lower() for n in names if n] == ["y", "x"] else points
+    words = [n.lower() for n in names if n]
+    if words == ["y", "x"]:
+        return points[:, ::-1].copy()
+    if len(words) == 2 and _names_y_first(words):  # ``y_px, x_px``, ``row, col``: read as x, y, every point swapped
+        raise InputError(f"{p}: the header {', '.join(names)!r} names the y (row) column first: name the columns "
+                         "exactly 'x,y' or 'y,x' (their order is then read from the header), or drop the header")
+    return points
+
+
+def _names_y_first(names: list[str]) -> bool:
+    """Whether two header cells ``names`` (lower case) name a y (row) column before an x (column) one in words other
+    than exactly ``y, x``: ``y_px, x_px``, ``lm_y, lm_x``, ``row, col``. Those were read as x, y without a word."""
+    tokens = [set(re.split(r"[^a-z]+", n)) - {""} for n in names]
+    return bool(tokens[0] & {"y", "row", "rows"}) and bool(tokens[1] & {"x", "col", "cols", "column", "columns"})
 
 
 def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str | None:
