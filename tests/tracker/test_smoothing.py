@@ -543,6 +543,8 @@ def test_result_smoother_timestamps_select_and_reset() -> None:
     assert torch.equal(forked(x).rotation, again(x).rotation)
     by_fps.reset()
     assert by_fps.state is None and torch.equal(by_fps(x).rotation, x.rotation)  # afresh: the raw rotation
+    by_fps(x)
+    assert by_fps.select([]).state.time.shape == (0,) and by_fps._frames.shape == (0,)  # (an empty list: no stream)
 
 
 def test_smooth_result_restart_and_checks() -> None:

@@ -336,6 +336,16 @@ def one_euro_rotation_step(
     return _filter(R, state, dt, config, valid, restart, eye, _rotation_difference, _rotation_advance)
 
 
+def _stream_index(index: Sequence[int] | Tensor, device: torch.device) -> Tensor:
+    """Stream indices ``index`` (a list, or an int64 tensor; or a ``(B,)`` bool mask) as a tensor on ``device``
+    (an empty list: no stream)."""
+    index = torch.as_tensor(index, device=device,
+                            dtype=torch.int64 if isinstance(index, (list, tuple)) and not index else None)
+    if index.dtype != torch.bool and (index.is_floating_point() or index.is_complex()):
+        raise TypeError(f"stream indices must be integers, got {index.dtype}")
+    return index
+
+
 @dataclass(frozen=True, eq=False)
 class SmoothingState:
     """:func:`smooth_result`'s state after a frame.
@@ -356,10 +366,7 @@ class SmoothingState:
     def select(self, index: Sequence[int] | Tensor) -> "SmoothingState":
         """The state of streams ``index`` (``(B',)`` stream indices, a list or int64 tensor; or a ``(B,)`` bool
         mask), as :meth:`TrackerState.select <torchface.tracker.TrackerState.select>` keeps them."""
-        index = torch.as_tensor(index, device=self.time.device,
-                                dtype=torch.int64 if isinstance(index, (list, tuple)) and not index else None)
-        if index.dtype != torch.bool and (index.is_floating_point() or index.is_complex()):
-            raise TypeError(f"stream indices must be integers, got {index.dtype}")
+        index = _stream_index(index, self.time.device)
 
         def pick(s: OneEuroState | None) -> OneEuroState | None:
             return None if s is None else s.select(index)
@@ -559,12 +566,12 @@ class ResultSmoother:
             raise RuntimeError("the smoother holds no streams yet: nothing to select")
         self._state = self._state.select(index)
         if self._frames is not None:
-            self._frames = self._frames[torch.as_tensor(index, device=self._frames.device)]
+            self._frames = self._frames[_stream_index(index, self._frames.device)]
         if self._offsets is not None:
-            rows = torch.as_tensor(index, device=self._offsets[0].device)
+            rows = _stream_index(index, self._offsets[0].device)
             self._offsets = (self._offsets[0][rows], self._offsets[1][rows])
         if self._reanchoring is not None:
-            self._reanchoring = self._reanchoring[torch.as_tensor(index, device=self._reanchoring.device)]
+            self._reanchoring = self._reanchoring[_stream_index(index, self._reanchoring.device)]
         return self
 
     def _reanchored(self, state: TrackerState, B: int, device: torch.device) -> Tensor:
