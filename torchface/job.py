@@ -951,6 +951,13 @@ class _Stream:
     overlay: _VideoOut | None = None
     normalised: _VideoOut | None = None
     replay: np.ndarray | None = None  # rows already in the CSV when resuming
+    # resumed while the online start still waited (not re-anchored, fewer rows than its max_frames): its replayed
+    # rows are tracked again from its first frame (not written, checked against the CSV's: _retracked_gap), not
+    # put into the state from the CSV, so that it re-anchors where the uninterrupted run did
+    retrack: bool = False
+    # the largest gap of its rows tracked again from the CSV's: (mm, degrees, confidence, frame of the largest
+    # translation gap, first frame whose status or success differs (or None))
+    retrack_gap: tuple[float, float, float, int, int | None] = (0.0, 0.0, 0.0, 0, None)
     frames: int = 0
     tracked: int = 0
     done: bool = False
@@ -2157,6 +2164,66 @@ def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, _Ancho
     return replace(state, management=replace(ms, head_rotation=head_R, head_translation=head_t))
 
 
+#: The largest gap, in millimetres, degrees and confidence, between a row tracked again on a resume
+#: (:attr:`_Stream.retrack`) and the CSV's row of that frame (as the CSV holds it, 9 significant digits) that
+#: :func:`_check_retracked` takes as the same row; a larger one, or another status, is warned about. The same run
+#: gives the same rows but for the CSV's rounding (measured: 0 on the test clips, alone and beside other videos);
+#: another batch composition parts by float rounding (3e-5 mm between a video tracked alone and in a batch of six).
+RETRACK_TOLERANCE: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
+
+
+def _online_start_pending(s: _Stream, lookahead: LookaheadConfig | None) -> bool:
+    """Whether the online start (``lookahead``: ``JobConfig.refine_first``) may still have been waiting for ``s``'s
+    head to turn when its run was interrupted: resumed (rows to replay), not re-anchored (no anchor recorded), and
+    fewer tracked rows than ``max_frames``, the frames the start watches (the uninterrupted run could re-anchor at
+    the next frame). Such a stream's rows are tracked again (:attr:`_Stream.retrack`): at most ``max_frames - 1``
+    frames (149 by default)."""
+    return lookahead is not None and s.replay is not None and s.anchor is None and len(s.replay) < lookahead.max_frames
+
+
+def _retracked_gap(new: np.ndarray, old: np.ndarray, columns: tuple[str, ...]) -> tuple[float, float, float, bool]:
+    """The gap between a row tracked again (``new``, ``(C,)``, as :func:`~torchface.io.table.result_rows` gives it)
+    and the CSV's row of that frame (``old``, ``(C,)``, as read back): translation (mm, Euclidean), rotation (degrees,
+    from the rotation matrices: ``|R1 - R2|_F / sqrt(2)``, the angle to first order, well conditioned at 0),
+    confidence, and whether the status or the success differs."""
+    new = read_back(columns, new[None])[0]  # (as the CSV would hold it)
+    pose = [columns.index(c) for c in POSE_COLUMNS[:3]]
+    rot = [columns.index(c) for c in ROTATION_COLUMNS]
+    mm = float(np.linalg.norm(new[pose] - old[pose]))
+    deg = math.degrees(float(np.linalg.norm(new[rot] - old[rot])) / math.sqrt(2.0))
+    ci, st, su = columns.index("confidence"), columns.index("status"), columns.index("success")
+    conf = abs(float(new[ci]) - float(old[ci]))
+    return mm, deg, conf, bool(new[st] != old[st] or new[su] != old[su])
+
+
+def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tuple[str, ...], t: int, n: int) -> None:
+    """Keep the largest gap of ``s``'s row ``t`` tracked again (``new``) from its CSV row (``old``) in
+    :attr:`_Stream.retrack_gap`; after the last of its ``n`` rows, warn (``RuntimeWarning``) where a gap passed
+    :data:`RETRACK_TOLERANCE` or a status differed: the CSV's rows were not met again (another version, another
+    machine), and the rows from the next frame on go on from the frames tracked again, not from the CSV's."""
+    mm, deg, conf, other = _retracked_gap(new, old, columns)
+    big_mm, big_deg, big_conf, at, first_other = s.retrack_gap
+    if mm > big_mm:
+        at = t + s.start
+    if other and first_other is None:
+        first_other = t + s.start
+    s.retrack_gap = (max(mm, big_mm), max(deg, big_deg), max(conf, big_conf), at, first_other)
+    if t != n - 1:
+        return
+    big_mm, big_deg, big_conf, at, first_other = s.retrack_gap
+    tol_mm, tol_deg, tol_conf = RETRACK_TOLERANCE
+    if big_mm <= tol_mm and big_deg <= tol_deg and big_conf <= tol_conf and first_other is None:
+        return
+    status = "" if first_other is None else f"; another status or success from frame {first_other} on"
+    warnings.warn(
+        f"{s.reader.info.path}: its {n} rows written before the interruption, tracked again from its first frame for "
+        f"the online start (not re-anchored then), were not met again: up to {big_mm:.3g} mm (frame {at}), "
+        f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
+        f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
+        RuntimeWarning, stacklevel=2,
+    )  # fmt: skip
+
+
 def _without_online_start(state: TrackerState, resumed: list[bool]) -> TrackerState:
     """``state`` whose resumed streams (``resumed``) no longer wait for the online start: their rows so far were
     tracked with or without it, and the record (:func:`_write_record`) has put a re-anchored one back in its frame;
@@ -2359,6 +2426,8 @@ def _track_group(
         # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
         # from the landmark fit, not the online start its sidecar would not mention)
         online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
+        for s in streams:  # resumed while the online start still waited: its rows are tracked again (_Stream.retrack)
+            s.retrack = online and _online_start_pending(s, config.refine_first)
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
         anchored = {k: s.anchor for k, s in enumerate(streams)
                     if s.anchor is not None and config.tracker.template.enabled}  # fmt: skip
@@ -2371,8 +2440,8 @@ def _track_group(
         _warn_failed_starts(streams, result.success, detector is not None and config.tracker.template.enabled)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
-        if online and any(s.replay is not None for s in streams):
-            state = _without_online_start(state, [s.replay is not None for s in streams])
+        if online and any(s.replay is not None and not s.retrack for s in streams):
+            state = _without_online_start(state, [s.replay is not None and not s.retrack for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
             s.first_shape = state.shape_coeffs[k].tolist()
@@ -2391,10 +2460,11 @@ def _track_group(
         t = 0
         while True:
             replays = [s.replay if s.replay is not None and t < len(s.replay) else None for s in live]  # this frame's
-            replaying = [r is not None for r in replays]
-            if any(replaying):
-                idx = [k for k, r in enumerate(replays) if r is not None]
-                rows = np.stack([r[t] for r in replays if r is not None])
+            replaying = [r is not None for r in replays]  # (its row written already: drawn, not written again)
+            held = [None if s.retrack else r for s, r in zip(live, replays)]  # (put into the state from the CSV)
+            if any(r is not None for r in held):
+                idx = [k for k, r in enumerate(held) if r is not None]
+                rows = np.stack([r[t] for r in held if r is not None])
                 params = state.params.clone()
                 own = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
                 replayed = own
@@ -2409,19 +2479,23 @@ def _track_group(
                         replayed[i] = torch.as_tensor(kept, dtype=replayed.dtype, device=replayed.device)
                 params[idx] = replayed
                 state = replace(state, params=params)
-                ended = [(k, r) for k, r in enumerate(replays) if r is not None and t == len(r) - 1]
+                ended = [(k, r) for k, r in enumerate(held) if r is not None and t == len(r) - 1]
                 state = _with_replayed_loss(state, ended, columns, layout, run.tracker, live)
                 state = _with_replayed_motion(state, ended, columns, layout, run.tracker, live)
             new_rows = result_rows(result, np.full(len(live), t), 1.0)
             if config.smoothing is not None:  # (filled by _write_step)
                 new_rows = np.concatenate([new_rows, np.full((len(live), len(SMOOTH_COLUMNS)), math.nan)], axis=1)
+            for k, s in enumerate(live):  # a row tracked again: checked against the CSV's
+                r = replays[k]
+                if s.retrack and r is not None and not s.done:
+                    _check_retracked(s, new_rows[k], r[t], columns, t, len(r))
             smooth = _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
                                  normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
                                  "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
                                  smooth)  # fmt: skip
             if detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
-                                        [r is not None and t < len(r) - 1 for r in replays])
+                                        [r is not None and t < len(r) - 1 for r in held])
             nxt = []
             for s in live:
                 if not s.done:
@@ -2463,7 +2537,7 @@ def _track_group(
                 nxt = [nxt[k] for k in keep]
             # (one video: its frame itself, not a copy stacked: 2 ms of CPU a 1080p frame; nothing changes a frame)
             frames = (nxt[0].unsqueeze(0) if len(nxt) == 1 else torch.stack(nxt)).to(device=device, dtype=dtype)
-            if all(s.replay is not None and t < len(s.replay) for s in live):
+            if all(s.replay is not None and t < len(s.replay) and not s.retrack for s in live):
                 continue  # every live stream replays this frame from its CSV: nothing to track
             current.frames, current.asked = frames, {}
             state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
@@ -2754,7 +2828,8 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     what turns the CSV's pose into the pose that places the mesh.
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
-    (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored).
+    (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored within
+    the online start's ``max_frames``: one resumed sooner is tracked again from its first frame, :attr:`_Stream.retrack`).
     ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
     a video whose head did not turn ``yaw_deg`` within the frames read ahead (to ``min_keyframes`` sides), which
     starts from the landmark fit.
@@ -2772,7 +2847,7 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
         method = "lookahead"
-    elif online and (s.replay is None or s.anchor is not None):
+    elif online and (s.replay is None or s.anchor is not None or s.retrack):
         method = "online"
     else:
         method = "landmark fit"
