@@ -2828,8 +2828,9 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     what turns the CSV's pose into the pose that places the mesh.
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
-    (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored within
-    the online start's ``max_frames``: one resumed sooner is tracked again from its first frame, :attr:`_Stream.retrack`).
+    (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored
+    within the online start's ``max_frames``: one resumed sooner is tracked again from its first frame,
+    :attr:`_Stream.retrack`).
     ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
     a video whose head did not turn ``yaw_deg`` within the frames read ahead (to ``min_keyframes`` sides), which
     starts from the landmark fit.

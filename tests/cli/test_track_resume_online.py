@@ -1,0 +1,148 @@
+"""``torchface track --resume`` of a video interrupted before the online look-ahead start re-anchored it: its written
+rows are tracked again from its first frame (``torchface.job._Stream.retrack``), so that it re-anchors where the
+uninterrupted run did, and its CSV is the uninterrupted run's."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+import torchface.job
+from torchface.io import read_track_csv
+from torchface.job import JobConfig, track_videos
+from torchface.synth.io import read_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+from torchface.tracker.lookahead import LookaheadConfig
+
+#: The first N frames of ``pose_sweep`` rendered over 120 frames at 160x120: the head turns past 10 degrees of yaw
+#: at frame REANCHOR, where the online start re-anchors the stream (asserted below).
+N, REANCHOR = 8, 4
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sweep")
+    files = write_sequence(make_scenario("pose_sweep", 120, 160, 120), root)
+    lm = root / "first_frame.csv"
+    np.savetxt(lm, load_ground_truth(files.ground_truth).landmarks_px[0].numpy(), delimiter=",", header="x,y",
+               comments="")  # fmt: skip
+    frames = read_video(files.video, max_frames=N)
+    video = root / "sweep.npy"
+    np.save(video, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    return video, lm
+
+
+@pytest.fixture(scope="module")
+def reference(clip, tmp_path_factory):
+    """The uninterrupted run's rows and sidecar."""
+    video, lm = clip
+    out = tmp_path_factory.mktemp("ref")
+    track_videos([video], JobConfig(out_dir=out, landmarks=(lm,)))
+    side = json.loads((out / "sweep.json").read_text())
+    assert side["start"]["method"] == "online" and side["start"]["reanchored_at_frame"] == REANCHOR
+    return read_track_csv(out / "sweep.csv")[1], side
+
+
+def _interrupted(video, out, lm, stop_at, **kwargs):
+    def interrupt(p):
+        if p.done == stop_at:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), **kwargs), progress=interrupt)
+    assert read_track_csv(out / f"{video.stem}.csv.partial")[1].shape[0] == stop_at
+
+
+@pytest.mark.parametrize("stop_at", [1, 3, REANCHOR])
+def test_resume_before_the_reanchoring_goes_on_as_the_uninterrupted_run(clip, reference, tmp_path, stop_at):
+    """Interrupted before the online start re-anchored the stream (after 1, 3 or 4 rows: the re-anchoring comes at
+    frame 4's step), the resumed run re-anchors at the same frame and its rows are the uninterrupted run's. (Resumed
+    without the online start, they went on up to 20 mm, 2.1 degrees and 0.25 of confidence off.)"""
+    video, lm = clip
+    rows_ref, side_ref = reference
+    out = tmp_path / "out"
+    _interrupted(video, out, lm, stop_at)
+    assert json.loads((out / "sweep.record.partial").read_text())["anchor"] is None  # not re-anchored yet
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # the rows tracked again met the CSV's: no warning
+        track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
+    _, rows = read_track_csv(out / "sweep.csv")
+    assert rows.shape == rows_ref.shape
+    np.testing.assert_allclose(rows, rows_ref, rtol=0, atol=1e-6)
+    side = json.loads((out / "sweep.json").read_text())
+    assert side["start"] == side_ref["start"]
+    np.testing.assert_allclose(side["model"]["shape_coeffs"], side_ref["model"]["shape_coeffs"], rtol=0, atol=1e-9)
+
+
+def test_resume_before_the_reanchoring_beside_other_videos_goes_on_as_the_uninterrupted_run(clip, reference, tmp_path):
+    """The stream tracked again goes on as the uninterrupted run beside a new video of its batch and beside a resumed
+    one that the interrupted run had re-anchored (whose rows are put into the state from its CSV)."""
+    video, lm = clip
+    rows_ref, _ = reference
+    out = tmp_path / "out"
+    later = tmp_path / "later.npy"
+    later.write_bytes(video.read_bytes())
+    fresh = tmp_path / "fresh.npy"
+    fresh.write_bytes(video.read_bytes())
+    _interrupted(video, out, lm, 2)
+    _interrupted(later, out, lm, REANCHOR + 2)
+    assert json.loads((out / "later.record.partial").read_text())["anchor"] is not None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([video, later, fresh], JobConfig(out_dir=out, landmarks=(lm,) * 3, resume=True))
+    for name in ("sweep", "fresh"):  # (later's confidence parts where its template mosaic is used: not restored)
+        _, rows = read_track_csv(out / f"{name}.csv")
+        assert rows.shape == rows_ref.shape, name
+        np.testing.assert_allclose(rows, rows_ref, rtol=0, atol=1e-4, err_msg=name)
+
+
+def test_rows_not_met_again_are_warned_about_and_kept(clip, reference, tmp_path):
+    """A written row that tracking its frame again does not give (another version or machine; here an edited row)
+    is warned about, naming the gap, and kept as the CSV holds it; the next rows go on from the frames tracked
+    again."""
+    video, lm = clip
+    rows_ref, _ = reference
+    out = tmp_path / "out"
+    _interrupted(video, out, lm, 3)
+    partial = out / "sweep.csv.partial"
+    columns, kept = read_track_csv(partial)
+    lines = partial.read_text().splitlines(keepends=True)
+    cells = lines[2].rstrip("\n").split(",")  # row 1
+    tx = columns.index("pose_Tx")
+    cells[tx] = repr(float(cells[tx]) + 0.5)
+    lines[2] = ",".join(cells) + "\n"
+    partial.write_text("".join(lines))
+    with pytest.warns(RuntimeWarning, match=r"3 rows .* not met again: up to 0\.5 mm \(frame 1\)"):
+        track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
+    _, rows = read_track_csv(out / "sweep.csv")
+    assert rows.shape == rows_ref.shape
+    assert rows[1, tx] == pytest.approx(kept[1, tx] + 0.5, abs=1e-6)
+    np.testing.assert_allclose(rows[2:], rows_ref[2:], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("max_frames, tracked_again", [(3, False), (4, True)])
+def test_only_rows_within_the_online_starts_frames_are_tracked_again(clip, tmp_path, monkeypatch, max_frames,
+                                                                    tracked_again):  # fmt: skip
+    """The rows are tracked again only while the online start may still have waited: fewer rows than its
+    ``max_frames`` (3 rows with ``max_frames=4``: frame 3 is still watched; with 3, the watch had ended and the rows
+    are put into the state from the CSV): the extra tracking is bounded by ``max_frames``."""
+    video, lm = clip
+    out = tmp_path / "out"
+    online = LookaheadConfig(max_frames=max_frames)
+    _interrupted(video, out, lm, 3, refine_first=online)
+    steps = []
+    real = torchface.job.managed_step
+
+    def counted(*args, **kwargs):
+        steps.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "managed_step", counted)
+    track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), refine_first=online, resume=True))
+    assert len(steps) == (N - 1 if tracked_again else N - 3)
+    method = json.loads((out / "sweep.json").read_text())["start"]["method"]
+    assert method == ("online" if tracked_again else "landmark fit")
