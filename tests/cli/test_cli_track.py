@@ -312,13 +312,14 @@ def test_gray_16_bit_odd_size_and_rgba_inputs_are_tracked_with_convert(clip, tmp
     assert "1 lost" not in capsys.readouterr().out
 
 
-def test_resume_after_interruption(clip, plain_run, tmp_path):
+def test_resume_after_interruption(clip, full_run, tmp_path):
     """An interrupted run resumed: the rows written are kept, the rest tracked after them. Interrupted before the
     online look-ahead start re-anchored the stream (at frame 2, the first past 10 degrees of yaw), the resumed
-    batch goes without it (JobConfig.refine_first), so it matches the run without it. (After a re-anchoring:
-    the test below.)"""
+    run tracks its written row again and re-anchors where the uninterrupted run did, so it matches it (it used to
+    go on without the online start, as the run without it: tests/cli/test_track_resume_online.py). (After a
+    re-anchoring: the test below.)"""
     video, lm, _ = clip
-    _, full_out = plain_run
+    _, full_out = full_run
     n, stop_at = 6, 2  # the first 6 frames of the clip (decoded exactly: lossless), interrupted after 2
     frames = read_video(video, max_frames=n)
     short = tmp_path / "short.npy"
@@ -346,8 +347,9 @@ def test_resume_after_interruption(clip, plain_run, tmp_path):
     _, _, R_ref, t_ref = _pose(output_paths(full_out, NAME)["csv"])
     assert rows.shape[0] == n and np.array_equal(rows[:, 0], np.arange(n))
     np.testing.assert_array_equal(rows[: stop_at - 1], kept[: stop_at - 1])
-    assert float(geodesic_angle_deg(R, R_ref[:n]).max()) < 0.5
-    assert np.abs(t - t_ref[:n]).max() < 2.0
+    assert float(geodesic_angle_deg(R, R_ref[:n]).max()) < 1e-4
+    assert np.abs(t - t_ref[:n]).max() < 1e-4
+    assert json.loads(paths["json"].read_text())["start"]["reanchored_at_frame"] == 2
     assert read_video(paths["overlay"]).shape[0] == n
     assert json.loads(paths["json"].read_text())["frames"] == n
     # A complete video is skipped by --resume.
