@@ -17,7 +17,8 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   which ``redetections`` leaves out; both 0 without a detector; a resumed run does not ask about the rows it
   replays, nor about the frames up to the first with a face, which its record says (:func:`_recorded_first_face`;
   a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
-  which the tracking goes on from);
+  which the tracking goes on from, and the rows it tracks again for the online start, :attr:`_Stream.retrack`, as the
+  uninterrupted run did);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
   one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
@@ -67,7 +68,13 @@ bookkeeping (lost or not, the frames of low confidence counted, the last confide
 interrupted while its face was lost goes on lost, as the uninterrupted run would, and, with
 ``TrackerConfig.motion_prediction``, its velocity (:func:`_with_replayed_motion`), so that the next frames start from
 the prediction the uninterrupted run made. A CSV under its final name without its JSON (interrupted while finalising) is
-resumed as a partial one. The template mosaic built before the interruption is not restored: on a clip whose head turns,
+resumed as a partial one. A video interrupted while the online start still waited for its head to turn (not
+re-anchored, fewer rows than ``LookaheadConfig.max_frames``) is not put into the tracker's state from its rows: they
+are tracked again from its first frame, not written, each checked against the CSV's (:func:`_check_retracked`: a row
+not met again is warned about), so that it re-anchors where the uninterrupted run did and goes on as it, its mosaic included (measured: the
+resumed CSV byte-identical to the uninterrupted run's on rendered clips; 3-20 mm, 1-2 degrees and 0.25 of confidence
+off when it went on from its rows without the online start); at most ``max_frames - 1`` frames (149) tracked again.
+For the others the template mosaic built before the interruption is not restored: on a clip whose head turns,
 the resumed rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up
 to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more,
 as it is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
@@ -203,14 +210,17 @@ class JobConfig:
             3e-5 mm between one video tracked alone and in a batch of six).
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
-            and template management is on. A resumed video goes without it (the batch's new videos keep it); one that
-            the interrupted run had re-anchored (recorded in ``<name>.record.partial`` beside its partial CSV) starts
-            from that run's refined fit and offset, so its rows go on as an uninterrupted run's (measured: the
+            and template management is on. A resumed video that the interrupted run had re-anchored (recorded in
+            ``<name>.record.partial`` beside its partial CSV) starts from that run's refined fit and offset, so
+            its rows go on as an uninterrupted run's (measured: the
             test clip's translations within 3e-5 mm until the template mosaic, which is not restored, is used:
             module docstring; 3-5 mm off when it was resumed from the landmark fit; also when interrupted right
             after the re-anchoring frame, whose row holds the estimate made before the re-anchoring: the record keeps
             the refined parameters the run went on from, 0.08 mm and 0.2 degrees off without them); one not yet
-            re-anchored is tracked on without the online start.
+            re-anchored has its rows tracked again from its first frame while the start may still have waited (fewer
+            rows than ``max_frames``: module docstring), and so re-anchors where the uninterrupted run did (it went
+            on without the online start: 3-20 mm, 1-2 degrees off on rendered clips); after ``max_frames`` rows it
+            goes on without it, as the uninterrupted run did (the batch's new videos keep it).
         model: a face model file (:func:`torchface.model.save_face_model` writes one; loaded in float32 with
             :func:`torchface.model.load_face_model`'s checks before any input is opened) to track with, or None for
             CANDIDE-3 (:func:`torchface.model.load_candide3`). The CSV's animation and FACS columns are the model's
