@@ -2176,9 +2176,10 @@ def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, _Ancho
 
 #: The largest gap, in millimetres, degrees and confidence, between a row tracked again on a resume
 #: (:attr:`_Stream.retrack`) and the CSV's row of that frame (as the CSV holds it, 9 significant digits) that
-#: :func:`_check_retracked` takes as the same row; a larger one, or another status, is warned about. The same run
-#: gives the same rows but for the CSV's rounding (measured: 0 on the test clips, alone and beside other videos);
-#: another batch composition parts by float rounding (3e-5 mm between a video tracked alone and in a batch of six).
+#: :func:`_check_retracked` takes as the same row; a larger one, or another status, is warned about. Tracked alone
+#: again, a video gives its CSV's rows to the digit (measured: 0 on two rendered clips); beside other videos in its
+#: batch, by float rounding (1.5e-6 mm, 6e-6 degrees and 2e-7 of confidence, resumed after 3 rows beside two others;
+#: 3e-5 mm between a video tracked alone and in a batch of six, JobConfig.max_batch).
 RETRACK_TOLERANCE: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
 
 
