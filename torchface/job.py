@@ -71,9 +71,10 @@ the prediction the uninterrupted run made. A CSV under its final name without it
 resumed as a partial one. A video interrupted while the online start still waited for its head to turn (not
 re-anchored, fewer rows than ``LookaheadConfig.max_frames``) is not put into the tracker's state from its rows: they
 are tracked again from its first frame, not written, each checked against the CSV's (:func:`_check_retracked`: a row
-not met again is warned about), so that it re-anchors where the uninterrupted run did and goes on as it, its mosaic included (measured: the
-resumed CSV byte-identical to the uninterrupted run's on rendered clips; 3-20 mm, 1-2 degrees and 0.25 of confidence
-off when it went on from its rows without the online start); at most ``max_frames - 1`` frames (149) tracked again.
+not met again is warned about), so that it re-anchors where the uninterrupted run did and goes on as it, its mosaic
+included (measured: the resumed CSV byte-identical to the uninterrupted run's on rendered clips, also with a detector,
+``smoothing`` or ``motion_prediction``; 3-20 mm, 1-2 degrees and 0.25 of confidence off when it went on from its rows
+without the online start); at most ``max_frames - 1`` frames (149) tracked again.
 For the others the template mosaic built before the interruption is not restored: on a clip whose head turns,
 the resumed rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up
 to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more,
