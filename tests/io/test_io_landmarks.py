@@ -735,8 +735,8 @@ def test_r_write_csv_with_its_1_based_row_names_is_read(tmp_path):
 
 
 def test_count_reads_a_face_models_landmarks(tmp_path):
-    """``count``: another model's K points (torchface track --model) from the layouts of any count; the 68-point
-    layouts, and a file of another count, are refused naming the count expected."""
+    """``count``: another model's K points (torchface track --model); a file of another count is refused naming the
+    count expected (every layout: :func:`test_every_layout_holds_a_face_models_count`)."""
     points = _points()[:26]
     np.savetxt(tmp_path / "a.csv", points, delimiter=",")
     np.save(tmp_path / "a.npy", points)

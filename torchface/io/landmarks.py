@@ -44,6 +44,10 @@ one row 136 wide are all values, an empty one a missing coordinate: ``,y0,x1,...
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
 one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
 another count (a ``.pts`` of 60 points: which are missing is not known).
+
+A face model's ``K`` landmarks (``read_landmarks(count=K)``, ``torchface track --model``) come in the same layouts,
+``K`` points in the model's order where these say 68 (one row of ``2 K`` values, indices ``0`` to ``K - 1``, R's row
+names ``1`` to ``K``, ``x_0`` to ``x_{K-1}``).
 """
 
 from __future__ import annotations
