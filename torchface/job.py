@@ -1448,9 +1448,9 @@ def _read_record(
     num_animation: int,
 ) -> _Anchor | None:
     """The re-anchoring in a partial run's record ``loaded`` (:func:`_load_record`; None: none); ``settings``: this
-    run's (:func:`_settings`), ``values``: its :func:`_setting_values` (the defaults of the fields a record of an earlier version lacks,
-    :func:`_with_defaults`); ``num_shape``, ``num_animation``: the model's units, the sizes of the re-anchoring's
-    fields.
+    run's (:func:`_settings`), ``values``: its :func:`_setting_values` (the defaults of the fields a record of an
+    earlier version lacks, :func:`_with_defaults`); ``num_shape``, ``num_animation``: the model's units, the sizes of
+    the re-anchoring's fields.
 
     Raises:
         InputError: the record belongs to another input, was made with other settings or from an input file
@@ -1509,9 +1509,9 @@ def _check_record_model(loaded: _Record, settings: dict[str, object]) -> None:
 
 def _check_record_smoothing(loaded: _Record, settings: dict[str, object]) -> None:
     """Refuse to resume the partial run of record ``loaded`` (:func:`_load_record`) made with another ``--smooth``
-    setting than ``settings``' (:func:`_settings`), before the partial CSV's columns are compared (with ``--smooth`` on one side only they
-    differ, and "its columns differ" said nothing of why). No record, or one that cannot be read: left to
-    :func:`_read_record`."""
+    setting than ``settings``' (:func:`_settings`), before the partial CSV's columns are compared (with ``--smooth``
+    on one side only they differ, and "its columns differ" said nothing of why). No record, or one that cannot be
+    read: left to :func:`_read_record`."""
     try:
         made = loaded.value["settings"].get("--smooth")
     except (KeyError, TypeError, AttributeError):  # (None where it is missing or unreadable: a TypeError)

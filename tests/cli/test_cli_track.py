@@ -2387,7 +2387,8 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     assert "--resume" not in err and "start over" in err
 
 
-def test_sigterm_after_the_handler_is_restored_finds_the_outputs_complete(clip, full_run, monkeypatch, capsys, tmp_path):
+def test_sigterm_after_the_handler_is_restored_finds_the_outputs_complete(clip, full_run, monkeypatch, capsys,
+                                                                         tmp_path):  # fmt: skip
     """Once main() gives SIGTERM back (to its default, which kills the process with status 143 and no message: a
     SIGTERM while Python exits), every output is final and the summary is written: docs/cli.md says such a late
     SIGTERM leaves the outputs complete. Checked when the handler is restored: the files are those of a run that
