@@ -1438,14 +1438,37 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
     return None
 
 
+@dataclass(frozen=True)
+class _Record:
+    """A partial run's record (:func:`_write_record`) as read once on ``--resume``, for every check of it
+    (:func:`_changed_input`, :func:`_check_record_model`, :func:`_check_record_smoothing`, :func:`_read_record`;
+    each read and parsed the file itself, four times a video). ``found``: the file is there; ``readable``: it was
+    read and parsed as JSON, into ``value`` (None otherwise)."""
+
+    path: Path
+    found: bool
+    readable: bool
+    value: Any = None  # (JSON: any of its values; each check catches what a wrong one raises)
+
+
+def _load_record(path: Path) -> _Record:
+    """Read and parse the record at ``path`` (:class:`_Record`)."""
+    if not path.is_file():
+        return _Record(path, found=False, readable=False)
+    try:
+        return _Record(path, found=True, readable=True, value=json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError):
+        return _Record(path, found=True, readable=False)
+
+
 def _read_record(
-    path: Path, video: Path, settings: dict[str, object], values: dict[str, object], num_shape: int,
+    loaded: _Record, video: Path, settings: dict[str, object], values: dict[str, object], num_shape: int,
     num_animation: int,
 ) -> _Anchor | None:
-    """The re-anchoring in a partial run's record (None: none); ``settings``: this run's (:func:`_settings`),
-    ``values``: its :func:`_setting_values` (the defaults of the fields a record of an earlier version lacks,
-    :func:`_with_defaults`); ``num_shape``, ``num_animation``: the model's units, the sizes of the re-anchoring's
-    fields.
+    """The re-anchoring in a partial run's record ``loaded`` (:func:`_load_record`; None: none); ``settings``: this
+    run's (:func:`_settings`), ``values``: its :func:`_setting_values` (the defaults of the fields a record of an
+    earlier version lacks, :func:`_with_defaults`); ``num_shape``, ``num_animation``: the model's units, the sizes of
+    the re-anchoring's fields.
 
     Raises:
         InputError: the record belongs to another input, was made with other settings or from an input file
@@ -1453,11 +1476,14 @@ def _read_record(
             is missing (every partial CSV with rows has one, written before its first row: without it, nothing
             says what the rows were made with, and a resume with another --focal went on silently).
     """
-    if not path.is_file():
+    path = loaded.path
+    if not loaded.found:
         raise InputError(f"{path}: cannot resume, the partial CSV's record (what its rows were made with) is missing: "
                          "run without --resume")  # fmt: skip
     try:
-        record = json.loads(path.read_text(encoding="utf-8"))
+        if not loaded.readable:
+            raise ValueError
+        record = loaded.value
         made_from, anchor = record["input"], record["anchor"]
         made_with = record.get("settings", settings)  # records before settings: nothing to compare
         if not isinstance(made_with, dict) or not isinstance(made_from, str):
@@ -1484,33 +1510,33 @@ def _read_record(
     return anchor
 
 
-def _check_record_model(path: Path, settings: dict[str, object]) -> None:
-    """Refuse to resume the partial run of record ``path`` (:func:`_write_record`) where another face model made it
+def _check_record_model(loaded: _Record, settings: dict[str, object]) -> None:
+    """Refuse to resume the partial run of record ``loaded`` (:func:`_load_record`) where another face model made it
     than ``settings``' (:func:`_settings`' ``--model``, :func:`_model_setting`): checked before the partial CSV's
     columns are compared with this run's (:class:`~torchface.io.table.TrackCsvWriter`'s "its columns differ" said
     nothing of the model). No record, or one that cannot be read: left to :func:`_read_record`."""
     try:
-        made = json.loads(path.read_text(encoding="utf-8"))["settings"].get("--model")
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        made = loaded.value["settings"].get("--model")
+    except (KeyError, TypeError, AttributeError):  # (None where it is missing or unreadable: a TypeError)
         return
     if made != settings.get("--model"):
-        raise InputError(f"{path}: cannot resume, the partial results were made with another face model "
+        raise InputError(f"{loaded.path}: cannot resume, the partial results were made with another face model "
                          f"({_said_difference('--model', made, settings.get('--model'))}): run with the interrupted "
                          "run's --model, or without --resume")  # fmt: skip
 
 
-def _check_record_smoothing(path: Path, settings: dict[str, object]) -> None:
-    """Refuse to resume the partial run of record ``path`` made with another ``--smooth`` setting than ``settings``'
-    (:func:`_settings`), before the partial CSV's columns are compared (with ``--smooth`` on one side only they
-    differ, and "its columns differ" said nothing of why). No record, or one that cannot be read: left to
-    :func:`_read_record`."""
+def _check_record_smoothing(loaded: _Record, settings: dict[str, object]) -> None:
+    """Refuse to resume the partial run of record ``loaded`` (:func:`_load_record`) made with another ``--smooth``
+    setting than ``settings``' (:func:`_settings`), before the partial CSV's columns are compared (with ``--smooth``
+    on one side only they differ, and "its columns differ" said nothing of why). No record, or one that cannot be
+    read: left to :func:`_read_record`."""
     try:
-        made = json.loads(path.read_text(encoding="utf-8"))["settings"].get("--smooth")
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        made = loaded.value["settings"].get("--smooth")
+    except (KeyError, TypeError, AttributeError):  # (None where it is missing or unreadable: a TypeError)
         return
     now = settings.get("--smooth")
     if (made is None) != (now is None) or (made is not None and _setting_differences(made, now)):
-        raise InputError(f"{path}: cannot resume, the partial results were made with another smoothing "
+        raise InputError(f"{loaded.path}: cannot resume, the partial results were made with another smoothing "
                          f"({_said_difference('--smooth', made, now)}): run with the interrupted run's --smooth "
                          "setting, or without --resume")  # fmt: skip
 
@@ -2595,18 +2621,21 @@ def _open_outputs(
     W, H = size
     G = config.normalised_size
     s.settings = _settings(config, s, model)
+    record = _record_path(p["csv"])
+    loaded = _load_record(record) if config.resume else _Record(record, found=False, readable=False)
     if config.keep_going and config.resume:
-        changed = _changed_input(_record_path(p["csv"]), Path(s.reader.info.path), s.settings)
+        changed = _changed_input(loaded, Path(s.reader.info.path), s.settings)
         if changed is not None:  # (its size or time: a ``touch`` is enough; its rows are kept, not removed)
             aside = _set_aside(p["csv"])
             _clear_earlier_outputs(Path(config.out_dir), [s.name])
             kept = f", its earlier rows kept in {aside}" if aside is not None else ""
             warnings.warn(f"{s.reader.info.path}: the input has changed since the rows in {partial_path(p['csv'])} "
                           f"were tracked ({changed}): tracked afresh{kept}", RuntimeWarning, stacklevel=3)  # fmt: skip
+            loaded = _load_record(record)  # (set aside with the rows where there were rows: then none)
     partial = partial_path(p["csv"])
     if config.resume:  # (before the CSV's columns, the model's, are compared with the partial one's)
-        _check_record_model(_record_path(p["csv"]), s.settings)
-        _check_record_smoothing(_record_path(p["csv"]), s.settings)
+        _check_record_model(loaded, s.settings)
+        _check_record_smoothing(loaded, s.settings)
     if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
         os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
     s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
@@ -2622,10 +2651,9 @@ def _open_outputs(
     if problem is not None:  # (its values went into the state: NaN, a missing frame, a scaled rotation...)
         raise InputError(f"{s.csv.partial}: cannot resume, its rows are damaged ({problem}): run without "
                          "--resume")  # fmt: skip
-    record = _record_path(p["csv"])
     s.anchor = None
     if s.csv.rows_done:  # (made with other settings, a detector among them, its rows are not this run's)
-        s.anchor = _read_record(record, s.reader.info.path, s.settings, _setting_values(config),
+        s.anchor = _read_record(loaded, s.reader.info.path, s.settings, _setting_values(config),
                                 model.num_shape, model.num_animation)  # fmt: skip
     if s.replay is None:  # (no tracked row: nothing re-anchored)
         s.anchor = None
@@ -2660,17 +2688,17 @@ def _set_aside(csv: Path) -> Path | None:
     return rows
 
 
-def _changed_input(record: Path, video: Path, settings: dict[str, object]) -> str | None:
-    """How the input file of a partial run whose record is ``record`` (:func:`_write_record`) has changed since
+def _changed_input(loaded: _Record, video: Path, settings: dict[str, object]) -> str | None:
+    """How the input file of a partial run whose record is ``loaded`` (:func:`_load_record`) has changed since
     (``"<size and time> then, <size and time> now"``, :func:`_settings`' ``input file``), where the record was made
     from ``video`` (the same path); None where it has not, or the record says nothing of it (none, unreadable, of
     another input: :func:`_read_record` refuses it)."""
     try:
-        made = json.loads(record.read_text(encoding="utf-8"))
+        made = loaded.value
         made_from, then = made["input"], made["settings"]["input file"]
         if not isinstance(made_from, str) or not isinstance(then, str):
             return None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    except (KeyError, TypeError, AttributeError):  # (None where it is missing or unreadable: a TypeError)
         return None
     now = settings["input file"]
     if Path(made_from).resolve() != video.resolve() or then == now:

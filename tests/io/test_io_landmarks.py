@@ -735,8 +735,8 @@ def test_r_write_csv_with_its_1_based_row_names_is_read(tmp_path):
 
 
 def test_count_reads_a_face_models_landmarks(tmp_path):
-    """``count``: another model's K points (torchface track --model) from the layouts of any count; the 68-point
-    layouts, and a file of another count, are refused naming the count expected."""
+    """``count``: another model's K points (torchface track --model); a file of another count is refused naming the
+    count expected (every layout: :func:`test_every_layout_holds_a_face_models_count`)."""
     points = _points()[:26]
     np.savetxt(tmp_path / "a.csv", points, delimiter=",")
     np.save(tmp_path / "a.npy", points)
@@ -806,3 +806,34 @@ def test_a_header_naming_y_first_in_other_words_is_refused(tmp_path):
     for header in ("x_px,y_px", "lm_x,lm_y", "u,v", "px,py"):
         (tmp_path / "b.csv").write_text(header + "\n" + "".join(f"{x!r},{y!r}\n" for x, y in pts.tolist()))
         np.testing.assert_array_equal(read_landmarks(tmp_path / "b.csv", 100, 100), pts, err_msg=header)
+
+
+def test_every_layout_holds_a_face_models_count(tmp_path):
+    """``count`` (a face model's K landmarks, ``torchface track --model``) is the count of every layout: one row per
+    point with an index ``0``..``K - 1`` (a point without a row missing), pandas' ``to_csv`` with its index, R's
+    ``write.csv`` with its row names ``1``..``K``, one row of ``2 K`` values with an empty column before them, and a
+    row of integer pairs ``x0,y0;x1,y1;...``. The one-row-per-point layouts were read as the 68 iBUG points: a file of
+    the model's 26 points was refused as "expected 26 landmarks (the face model's), got 68"; an index past the
+    model's landmarks is refused naming them."""
+    K = 26
+    points = np.round(_points()[:K])  # (integers: the pairs row below)
+    want = points.copy()
+    want[5] = np.nan
+    given = [(k, x, y) for k, (x, y) in enumerate(points.tolist()) if k != 5]
+    files = {
+        "index.csv": ("landmark,x,y\n" + "".join(f"{k},{x},{y}\n" for k, x, y in given), want),
+        "pandas.csv": (",x,y\n" + "".join(f"{k},{x},{y}\n" for k, (x, y) in enumerate(points.tolist())), points),
+        "r.csv": ('"","x","y"\n' + "".join(f'"{k + 1}",{x},{y}\n' for k, (x, y) in enumerate(points.tolist())),
+                  points),
+        "row_column_b.csv": ("," + ",".join(repr(v) for v in points.reshape(-1).tolist()) + "\n", points),
+        "pairs.csv": (";".join(f"{int(x)},{int(y)}" for x, y in points.tolist()) + "\n", points),
+    }  # fmt: skip
+    for name, (text, expected) in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 640, 480, count=K), expected, err_msg=name)
+    (tmp_path / "ibug.csv").write_text("ibug_index,x,y\n" + "".join(f"{k},{x},{y}\n" for k, (x, y) in
+                                                                  enumerate(_points().tolist())))  # fmt: skip
+    with pytest.raises(InputError, match=r"line 28: point index 26 is not an index of the face model's 26 landmarks, "
+                                         r"0-25$"):  # fmt: skip
+        read_landmarks(tmp_path / "ibug.csv", 640, 480, count=K)
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "ibug.csv", 640, 480), _points())  # (68: as before)

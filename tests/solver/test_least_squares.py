@@ -4,6 +4,7 @@ prior, IRLS and gradients through the unrolled solve."""
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -666,3 +667,29 @@ def test_every_residual_rejected_is_failed(config: SolverConfig) -> None:
     delta, ok = solve_normal_equations(torch.zeros(1, 3, 2, dtype=D), torch.ones(1, 3, dtype=D),
                                        damping=torch.tensor([1e-3], dtype=D))  # fmt: skip
     assert ok.tolist() == [False] and delta.abs().sum() == 0
+
+
+@pytest.mark.parametrize(
+    "lower, upper, named",
+    [((math.nan, -5.0), (5.0, 5.0), "lower nan, upper 5.0 for sample 0, parameter 0"),
+     ((-5.0, -5.0), (5.0, math.nan), "lower -5.0, upper nan for sample 0, parameter 1"),
+     ((math.nan, -5.0), None, "lower nan for sample 0, parameter 0"),
+     (None, (5.0, math.nan), "upper nan for sample 0, parameter 1"),
+     ((math.inf, -5.0), None, "lower inf for sample 0, parameter 0"),
+     (None, (-math.inf, 5.0), "upper -inf for sample 0, parameter 0"),
+     ((-5.0, 6.0), (5.0, 5.0), "lower 6.0, upper 5.0 for sample 0, parameter 1")],
+)  # fmt: skip
+def test_unusable_bounds_are_refused_naming_the_parameter(lower, upper, named) -> None:
+    """A NaN bound (or one at the wrong infinity) is refused like crossed bounds, naming the sample and parameter:
+    it made its parameter NaN (inf) and the sample FAILED without a word."""
+
+    def fn(x: torch.Tensor):
+        return x - torch.tensor([1.0, -2.0], dtype=D), torch.eye(2, dtype=D).expand(x.shape[0], 2, 2), None
+
+    def bound(v):
+        return None if v is None else torch.tensor(v, dtype=D)
+
+    with pytest.raises(ValueError, match=re.escape(named)):
+        least_squares(fn, torch.zeros(1, 2, dtype=D), lower=bound(lower), upper=bound(upper))
+    ok = least_squares(fn, torch.zeros(1, 2, dtype=D), lower=torch.full((2,), -5.0, dtype=D))
+    assert ok.params.tolist() == [[1.0, -2.0]]

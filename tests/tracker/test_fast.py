@@ -748,3 +748,37 @@ def test_no_iteration_without_the_final_check_reports_no_linearisation(backend):
     assert torch.equal(R1, R) and torch.equal(t1, t) and torch.equal(a1, a) and torch.equal(l1, lam)
     assert out.residual.shape == tpl.valid.shape and not bool(out.residual.any()) and not bool(out.valid.any())
     assert out.iterations.tolist() == [0, 0] and out.converged.tolist() == [False, False]
+
+
+@pytest.mark.parametrize("iterations", [0, 3])
+@pytest.mark.parametrize(
+    "lower, upper", [(math.nan, 5.0), (-5.0, math.nan), (math.nan, math.nan), (6.0, 5.0), (math.inf, math.inf),
+                     (-math.inf, -math.inf)], ids=["nan-lower", "nan-upper", "nan-both", "crossed", "lower-inf",
+                                                   "upper-minus-inf"],
+)  # fmt: skip
+def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, backend):
+    """A NaN bound, bounds the wrong way round or a bound at the wrong infinity are refused with a ValueError naming
+    the unit. Before, the torch code failed every stream without a word (``finite`` False, the start handed back:
+    the clip made the unit NaN) while the native solver ran on as if that side had no bound, and bounds the wrong
+    way round put the unit at its upper bound in both."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    lo[2], hi[2] = lower, upper
+    with pytest.raises(ValueError, match=r"alpha_lower and alpha_upper must be bounds.*for animation unit 2"):
+        solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=iterations,
+                    free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0,
+                    robust=None, backend=backend)  # fmt: skip
+
+
+@pytest.mark.parametrize("shape", [(1,), (2, A), (A + 1,)])
+def test_bounds_of_another_shape_are_refused(shape, backend):
+    """The bounds are ``(A,)``: the native solver read ``A`` values wherever they were (past a shorter tensor's end;
+    a ``(B, A)`` one's first row for every stream)."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    lo, hi = torch.full(shape, -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    with pytest.raises(ValueError, match=rf"alpha_lower must be \({A},\), one bound per animation unit, got"):
+        solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3,
+                    free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0,
+                    robust=None, backend=backend)  # fmt: skip

@@ -44,6 +44,10 @@ one row 136 wide are all values, an empty one a missing coordinate: ``,y0,x1,...
 :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`: the pose's six parameters need as many residuals); a point with
 one coordinate missing, an infinite coordinate, or a given point outside the frame is refused, as is a file of
 another count (a ``.pts`` of 60 points: which are missing is not known).
+
+A face model's ``K`` landmarks (``read_landmarks(count=K)``, ``torchface track --model``) come in the same layouts,
+``K`` points in the model's order where these say 68 (one row of ``2 K`` values, indices ``0`` to ``K - 1``, R's row
+names ``1`` to ``K``, ``x_0`` to ``x_{K-1}``).
 """
 
 from __future__ import annotations
@@ -138,15 +142,18 @@ def _without_empty_columns(data: list[list[str]]) -> list[list[str]] | None:
     return [row if any(row) else ["", ""] for row in rows]
 
 
-def _one_row_values(p: Path, cells: list[str], names: list[str]) -> tuple[list[str], list[str]]:
-    """One row's ``cells`` and its header's ``names`` (``[]``: no header) cut to the row's ``2 * 68`` values where it
+def _one_row_values(
+    p: Path, cells: list[str], names: list[str], count: int = NUM_LANDMARKS
+) -> tuple[list[str], list[str]]:
+    """One row's ``cells`` and its header's ``names`` (``[]``: no header) cut to the row's ``2 * count`` values where it
     holds more cells, the others empty in both (and not named by the header): a spreadsheet's export with a column
     before the values left empty, ``,x0,y0,...``, as the rows-of-``x, y`` layout drops a column empty on every row
     (:func:`_without_empty_columns`), or a separator ending the line, ``x0,...,y67,``. Where both ends are empty (a
     column before the values, or a missing point 0 and a separator after them) the values are those whose empty
     cells come in ``x, y`` pairs (a missing point; a single empty coordinate is refused in any case); refused when
-    more than one cut pairs them. A row of at most 136 cells is returned as it is: its empty cells are values."""
-    width = 2 * NUM_LANDMARKS
+    more than one cut pairs them. A row of at most ``2 * count`` cells (136: the 68 iBUG points) is returned as it
+    is: its empty cells are values."""
+    width = 2 * count
     blank = [c == "" and (j >= len(names) or names[j] == "") for j, c in enumerate(cells)]
     starts = [s for s in range(len(cells) - width + 1) if all(blank[:s]) and all(blank[s + width :])]
     if not starts:
@@ -347,14 +354,17 @@ def _split(line: str, delimiter: str | None, decimal_comma: bool = False) -> lis
 
 def _parse_long(
     p: Path, lines: list[tuple[int, str]], columns: tuple[str | None, int, int, int], decimal_comma: bool = False,
-    base: int = 0, unnamed: bool = False,
+    base: int = 0, unnamed: bool = False, count: int = NUM_LANDMARKS,
 ) -> np.ndarray:
-    """``(68, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers); a
-    point without a row, or with empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing). ``decimal_comma``:
-    see :func:`_decimal_comma`. ``base``: the index of point 0 (1: R's row names, 1..68). ``unnamed``: the index
-    column's header cell is empty (pandas' index, or R's row names: an index 68 is said to be 1-based)."""
+    """``(count, 2)`` points of a one-row-per-point CSV (``lines``: its rows after the header, with their numbers;
+    ``count``: the 68 iBUG points, or a face model's landmarks, indexed in its order); a point without a row, or with
+    empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing). ``decimal_comma``: see :func:`_decimal_comma`.
+    ``base``: the index of point 0 (1: R's row names, 1..count). ``unnamed``: the index column's header cell is
+    empty (pandas' index, or R's row names: an index ``count`` is said to be 1-based)."""
     delimiter, index, x, y = columns
-    points = np.full((NUM_LANDMARKS, 2), np.nan)
+    points = np.full((count, 2), np.nan)
+    what = "an iBUG index" if count == NUM_LANDMARKS else f"an index of the face model's {count} landmarks,"
+    what += f" 0-{count - 1}"
     seen: dict[int, int] = {}
     for number, line in lines:
         cells = _split(line, delimiter, decimal_comma and delimiter in (";", "\t"))
@@ -363,12 +373,11 @@ def _parse_long(
             k = int(k_text) - base
         except (IndexError, ValueError):
             raise InputError(f"{p}: line {number} is not 'index, x, y' numbers: {line[:60]!r}") from None
-        if not 0 <= k < NUM_LANDMARKS:
-            one_based = (f": a 1-based index (R's row names?), read only as 1..{NUM_LANDMARKS} in order on "
-                         f"{NUM_LANDMARKS} rows; write it 0-based or leave it out (write.csv(..., row.names = FALSE))"
-                         if unnamed and k == NUM_LANDMARKS else "")  # fmt: skip
-            raise InputError(f"{p}: line {number}: point index {k} is not an iBUG index 0-{NUM_LANDMARKS - 1}"
-                             f"{one_based}")  # fmt: skip
+        if not 0 <= k < count:
+            one_based = (f": a 1-based index (R's row names?), read only as 1..{count} in order on "
+                         f"{count} rows; write it 0-based or leave it out (write.csv(..., row.names = FALSE))"
+                         if unnamed and k == count else "")  # fmt: skip
+            raise InputError(f"{p}: line {number}: point index {k} is not {what}{one_based}")
         if k in seen:
             raise InputError(f"{p}: line {number}: point {k} again (first on line {seen[k]})")
         seen[k] = number
@@ -376,21 +385,23 @@ def _parse_long(
     return points  # (a point without a row stays NaN: missing)
 
 
-def _parse_csv(p: Path, text: str) -> np.ndarray:
+def _parse_csv(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
     """A CSV's points (:func:`_parse_csv_as`), its commas read as decimal ones where :func:`_decimal_comma` says so,
-    unless only the comma-separated reading gives 68 points (one row of pairs ``x0,y0;x1,y1;...`` of integers)."""
+    unless only the comma-separated reading gives ``count`` points (one row of pairs ``x0,y0;x1,y1;...`` of
+    integers). ``count``: the points expected (68, or a face model's landmarks), which the one-row-per-point layouts
+    hold (indexed 0 to ``count - 1``)."""
     lines = [line for line in text.splitlines() if not line.strip().startswith("#")]
     if not _decimal_comma(lines):
-        return _parse_csv_as(p, text, False)
+        return _parse_csv_as(p, text, False, count)
     _check_not_grouped(p, lines)
     try:
-        points: np.ndarray | None = _parse_csv_as(p, text, True)
+        points: np.ndarray | None = _parse_csv_as(p, text, True, count)
     except InputError as exc:
         points, error = None, exc
-    if points is None or points.size != 2 * NUM_LANDMARKS:
+    if points is None or points.size != 2 * count:
         try:
-            separated = _parse_csv_as(p, text, False)
-            if separated.size == 2 * NUM_LANDMARKS:
+            separated = _parse_csv_as(p, text, False, count)
+            if separated.size == 2 * count:
                 return separated
         except InputError:
             pass
@@ -399,8 +410,9 @@ def _parse_csv(p: Path, text: str) -> np.ndarray:
     return points
 
 
-def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
-    """A CSV's points; ``comma``: its commas are decimal ones (:func:`_decimal_comma`)."""
+def _parse_csv_as(p: Path, text: str, comma: bool, count: int = NUM_LANDMARKS) -> np.ndarray:
+    """A CSV's points; ``comma``: its commas are decimal ones (:func:`_decimal_comma`); ``count``: as
+    :func:`_parse_csv`'s."""
     data: list[list[str]] = []  # the number rows' cells
     header: str | None = None
     long: tuple[str | None, int, int, int] | None = None
@@ -428,7 +440,7 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
         data.append(cells)
         long_lines.append((number, line))
     if long is not None:
-        return _parse_long(p, long_lines, long, comma)
+        return _parse_long(p, long_lines, long, comma, count=count)
     # pandas' DataFrame.to_csv with its index (the point's): a header ``,x,y`` (``,0,1``: numbers), rows ``k,x,y``
     # (or ``,y,x``: the points' columns in that order, ``DataFrame(points[:, ::-1], columns=["y", "x"])``)
     first = _trimmed(_cells(header, comma), 0) if header is not None else data[0] if data else []
@@ -436,18 +448,19 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
         indexed = long_lines if header is not None else long_lines[1:]
         index_rows = data[len(data) - len(indexed) :]
         if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in index_rows):
-            # R's write.csv: its row names 1..68 (``"1",x,y``), 1-based; 68 rows cannot be a 0-based index (0-67 has
-            # no 68, and each of its points has a row); another index reaching 68 is refused, said to be 1-based
-            one_based = [c[0] for c in index_rows] == [str(k) for k in range(1, NUM_LANDMARKS + 1)]
+            # R's write.csv: its row names 1..68 (``"1",x,y``; 1..count), 1-based; 68 rows cannot be a 0-based index
+            # (0-67 has no 68, and each of its points has a row); another index reaching 68 is refused, said to be
+            # 1-based
+            one_based = [c[0] for c in index_rows] == [str(k) for k in range(1, count + 1)]
             x, y = (2, 1) if first[1].lower() == "y" else (1, 2)
             columns = (_delimiter(indexed[0][1], comma), 0, x, y)
-            return _parse_long(p, indexed, columns, comma, base=int(one_based), unnamed=True)
+            return _parse_long(p, indexed, columns, comma, base=int(one_based), unnamed=True, count=count)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
     names = _trimmed(_cells(header, comma), 0) if header is not None else []
     if len(data) == 1:  # one row of 136 with a column before it left empty (``,x0,y0,...``): that column is no cell
-        cells, names = _one_row_values(p, data[0], names)
+        cells, names = _one_row_values(p, data[0], names, count)
         data = [cells]
     if header is not None:
         rows = _number_rows(data, len(names))
@@ -457,7 +470,7 @@ def _parse_csv_as(p: Path, text: str, comma: bool) -> np.ndarray:
         named = _named_row(names, rows[0]) if len(rows) == 1 else None
         if named is not None:  # e.g. OpenFace's x_0..x_67, y_0..y_67: not interleaved
             return named
-    rows = _number_rows(data, 2 if len(data) > 1 else 2 * NUM_LANDMARKS)
+    rows = _number_rows(data, 2 if len(data) > 1 else 2 * count)
     kept = _without_empty_columns(data) if len(rows) > 1 and {len(r) for r in rows} != {2} else None
     if kept is not None and {len(r) for r in _number_rows(kept, 2)} == {2}:  # ``,x,y``: x, y (as before the
         rows = _number_rows(kept, 2)  # missing points, which dropped every empty cell), a missing point ``,,``
@@ -591,9 +604,9 @@ def read_landmarks(
         missing: whether the file may leave points out (NaN rows, see the module docstring; at least 4 given, the
             landmark fit's :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`); False: all 68 must be given.
         count: the number of points: a face model's ``K`` landmarks (``torchface track --model``) in its order,
-            rather than the 68 iBUG points. The layouts whose form is the 68 points' (one row of 136 values, one
-            row per point with an iBUG index, OpenFace's CSV) are read as 68 (and refused for another count); rows
-            of ``x, y``, ``.pts``, NPY and JSON lists hold any count.
+            rather than the 68 iBUG points. Every layout holds that count: one row of ``2 * count`` values, one row
+            per point with an index ``0`` to ``count - 1`` in the model's order (pandas' index; R's row names
+            ``1`` to ``count``), OpenFace's ``x_k``, ``y_k`` columns, rows of ``x, y``, ``.pts``, NPY and JSON.
 
     Returns:
         ``(count, 2)`` float64 pixel coordinates, a NaN row for each missing point.
@@ -624,6 +637,6 @@ def read_landmarks(
         if p.suffix.lower() == ".json":
             points, missing_as = _parse_json(p, text, count), "[null, null]"
         else:
-            points = _parse_pts(p, text, count) if pts else _parse_csv(p, text)
+            points = _parse_pts(p, text, count) if pts else _parse_csv(p, text, count)
             missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
     return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as, count=count)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -304,6 +305,31 @@ def _batched_param(name: str, t: object, B: int, P: int, dtype: torch.dtype) -> 
     return t.expand(B, P)
 
 
+def _check_bounds(lo: torch.Tensor | None, hi: torch.Tensor | None) -> None:
+    """Refuse ``(B, P)`` bounds with a NaN, a lower bound at ``inf``, an upper at ``-inf`` or ``lo > hi``, naming
+    the first such sample and parameter (one host read where there is none). A NaN bound made its parameter NaN and
+    the sample FAILED without a word."""
+    inf = float("inf")
+    checks = []  # each False at NaN
+    if lo is not None:
+        checks.append(lo < lo.new_tensor(inf))
+    if hi is not None:
+        checks.append(hi > hi.new_tensor(-inf))
+    if lo is not None and hi is not None:
+        checks.append(lo <= hi)
+    if not checks:
+        return
+    ok = functools.reduce(torch.logical_and, checks)
+    if bool(ok.all()):
+        return
+    b, k = (int(v) for v in (~ok).nonzero()[0])
+    got = ", ".join(f"{name} {float(x[b, k])}" for name, x in (("lower", lo), ("upper", hi)) if x is not None)
+    raise ValueError(
+        "lower and upper must be bounds, lower <= upper, neither NaN, lower below inf and upper above -inf (-inf / "
+        f"inf: none on that side), got {got} for sample {b}, parameter {k}"
+    )
+
+
 # ----------------------------------------------------------------------------------------------------
 # The solver
 # ----------------------------------------------------------------------------------------------------
@@ -369,7 +395,8 @@ def least_squares(
         x0: ``(B, P)`` floating-point initial parameters.
         config: the :class:`SolverConfig`.
         lower: ``(P,)`` or ``(B, P)`` lower bounds (``-inf`` allowed), ``None`` for none.
-        upper: ``(P,)`` or ``(B, P)`` upper bounds (``+inf`` allowed), ``None`` for none.
+        upper: ``(P,)`` or ``(B, P)`` upper bounds (``+inf`` allowed), ``None`` for none. ``ValueError`` for
+            ``lower > upper``, a NaN bound, a lower bound at ``inf`` or an upper at ``-inf``.
         prior_precision: ``(P,)`` or ``(B, P)`` non-negative diagonal precision ``lambda``.
         prior_mean: ``(P,)`` or ``(B, P)`` prior mean ``mu`` (needs ``prior_precision``).
         robust: the :class:`RobustLoss` (or a per-sample :class:`SwitchedRobustLoss`); ``None`` for plain
@@ -410,8 +437,7 @@ def least_squares(
     dtype = x0.dtype
     lo = None if lower is None else _batched_param("lower", lower, B, P, dtype)
     hi = None if upper is None else _batched_param("upper", upper, B, P, dtype)
-    if lo is not None and hi is not None and bool((lo > hi).any()):
-        raise ValueError("lower must be <= upper everywhere")
+    _check_bounds(lo, hi)
     lam = None if prior_precision is None else _batched_param("prior_precision", prior_precision, B, P, dtype)
     if lam is not None and bool((lam < 0).any() | ~torch.isfinite(lam).all()):
         raise ValueError("prior_precision must be finite and non-negative")

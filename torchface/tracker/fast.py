@@ -319,6 +319,27 @@ def _select(keep: Tensor, new: tuple[Tensor, ...], old: tuple[Tensor, ...]) -> t
     return tuple(torch.where(keep.view(-1, *([1] * (n.dim() - 1))), n, o) for n, o in zip(new, old))
 
 
+def _bounds_valid(lower: Tensor, upper: Tensor) -> Tensor:
+    """``()`` bool on the bounds' device, without a host read: every animation bound pair ``(A,)`` is usable (no
+    NaN, ``lower <= upper``, ``lower < inf`` and ``upper > -inf``)."""
+    inf = scalar(float("inf"), lower)
+    return ((lower <= upper) & (lower < inf) & (upper > -inf)).all()  # (a NaN fails every comparison)
+
+
+def _check_bounds(lower: Tensor, upper: Tensor) -> None:
+    """Raise ``ValueError`` naming the first animation unit whose bounds ``(A,)`` are not usable (one host read
+    where they are; more to name it where not)."""
+    if bool(_bounds_valid(lower, upper)):
+        return
+    lo, hi = lower.detach().cpu().tolist(), upper.detach().cpu().tolist()
+    for j, (a, b) in enumerate(zip(lo, hi)):
+        if not (a <= b and a < float("inf") and b > float("-inf")):
+            raise ValueError(
+                "alpha_lower and alpha_upper must be bounds, lower <= upper, neither NaN, a lower bound below inf and "
+                f"an upper above -inf (-inf / inf: none on that side), got [{a}, {b}] for animation unit {j}"
+            )
+
+
 def solve_level(
     tpl: Template,
     image: Tensor,
@@ -372,7 +393,10 @@ def solve_level(
         cam: the level camera; R ``(B, 3, 3)``, t ``(B, 3)``, alpha ``(B, A)``, light ``(B, L)``: the start.
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
-        alpha_lower, alpha_upper: ``(A,)`` bounds (``-inf`` / ``inf``: none on that side); alpha_prior: precision of
+        alpha_lower, alpha_upper: ``(A,)`` bounds (``-inf`` / ``inf``: none on that side), ``lower <= upper``
+            (``ValueError`` for another shape, a NaN, ``lower > upper`` or a lower bound at ``inf``, an upper at
+            ``-inf``; the torch code finds the values' errors at its first host read, after the first
+            linearisation, so that checking them costs no synchronisation of its own); alpha_prior: precision of
             a Gaussian prior on alpha, centred on ``alpha_mean`` ``(B, A)`` (None: zero); a float, ``(B,)`` for one
             precision per stream, or ``(B, A)`` for one per stream and unit.
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
@@ -418,8 +442,12 @@ def solve_level(
     dtype, device = R.dtype, R.device
     if isinstance(step_tolerance, (int, float)):
         step_tolerance = (float(step_tolerance),) * 3
+    for name, bound in (("alpha_lower", alpha_lower), ("alpha_upper", alpha_upper)):
+        if tuple(bound.shape) != (A,):
+            raise ValueError(f"{name} must be ({A},), one bound per animation unit, got {tuple(bound.shape)}")
     if use_native(backend, (tpl.points, tpl.basis, tpl.normals, tpl.intensity, image, R, t, alpha, light, light_basis,
                             alpha_lower, alpha_upper, alpha_mean, alpha_prior, cam.offset), "level solver", 64, P):
+        _check_bounds(alpha_lower, alpha_upper)  # (host tensors: a read without a synchronisation)
         return _solve_level_native(
             tpl, image, cam, R, t, alpha, light, light_basis, mask, iterations=iterations, free=free,
             alpha_lower=alpha_lower, alpha_upper=alpha_upper, alpha_prior=alpha_prior, robust=robust,
@@ -467,6 +495,10 @@ def solve_level(
     span = upper - lower
     margin = torch.where(isfinite(span), span * BOUND_MARGIN, torch.zeros_like(span))
     lower_in, upper_in = lower + margin, upper - margin
+    # The bounds' check is read with the first iteration's flag (no read of its own); without an iteration, alone.
+    bounds_valid = _bounds_valid(lower, upper)
+    if iterations < 1:
+        _check_bounds(lower, upper)
     no_pose = torch.zeros(B, 6, dtype=torch.bool, device=device)
     no_light = torch.zeros(B, P - 6 - A, dtype=torch.bool, device=device)
     iters = torch.zeros(B, dtype=torch.int64, device=device)
@@ -512,7 +544,9 @@ def solve_level(
         # The common case, H finite and (past the first iteration) every stream's step accepted, is one host read:
         # each read waits for the device (on a GPU, a synchronisation).
         H_finite = isfinite(H).all()
-        all_accepted = bool(H_finite if best is None else H_finite & accept.all())
+        all_accepted = bool(H_finite & bounds_valid if best is None else H_finite & accept.all())
+        if best is None and not all_accepted:
+            _check_bounds(lower, upper)
         if not all_accepted and not bool(H_finite):
             valid = valid & isfinite(Jt).all(1)
             r = torch.where(valid, r, scalar(0.0, r))
