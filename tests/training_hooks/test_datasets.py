@@ -1027,3 +1027,49 @@ def test_a_dataset_without_a_detector_shares_no_detection_store(clips, config):
         shared = sum(t.untyped_storage().nbytes() for t in vars(data).values()
                      if isinstance(t, torch.Tensor) and t.is_shared())  # fmt: skip
         assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2))
+
+
+def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, tmp_path):
+    """One bad video stopped the whole epoch, with no way on. ``DatasetConfig(keep_going=True)`` skips it as
+    ``torchface track --keep-going`` does: a warning naming it, a record in ``data.skipped`` (its workers' too), its
+    items left out and the others' as they were; not tried again in later epochs. A video that cannot be counted
+    counts 0; one that fails only when tracked keeps its count. The default stays strict."""
+    import warnings
+
+    from training_hooks import SkippedVideoWarning
+
+    bad = tmp_path / "bad.avi"
+    bad.write_bytes(b"not a video" * 100)
+    videos = [clips[0].video, bad, clips[1].video]
+    landmarks = [clips[0].landmarks, clips[0].landmarks, clips[1].landmarks + 1000.0]  # video 2: outside its frame
+    with pytest.raises(InputError, match="bad.avi"):
+        list(VideoDataset(videos, landmarks, config))
+    with pytest.raises(InputError, match="outside"):
+        list(VideoDataset(videos[2:], landmarks[2:], config))
+    with pytest.raises(TypeError, match="keep_going"):
+        DatasetConfig(keep_going="yes")
+    reference = list(VideoDataset(videos[:1], landmarks[:1], config))
+    going = replace(config, keep_going=True)
+    data = VideoDataset(videos, landmarks, going)
+    assert data.skipped == {}
+    with pytest.warns(SkippedVideoWarning) as said:
+        items = list(data)
+    assert sorted(str(w.message).split(" (video")[0] for w in said) == [f"skipped {bad}", f"skipped {videos[2]}"]
+    assert [(int(i["video"]), int(i["frame"])) for i in items] == [(0, t) for t in range(FRAMES)]
+    assert all(torch.equal(a[k], b[k]) for a, b in zip(items, reference) for k in a if k != "cached")
+    assert sorted(data.skipped) == [1, 2]
+    assert data.skipped[1].startswith(f"{bad}: ") and "outside" in data.skipped[2]
+    assert data.skipped[2].startswith(f"{videos[2]}: ") and str(videos[2]) not in data.skipped[2][len(str(videos[2])):]
+    with warnings.catch_warnings():  # a later epoch: the skipped videos are not tried again (no second warning)
+        warnings.simplefilter("error")
+        assert [(int(i["video"]), int(i["frame"])) for i in data] == [(0, t) for t in range(FRAMES)]
+    # counts: the video that cannot be decoded counts 0 (skipped there), the one that fails when tracked keeps its own
+    fresh = VideoDataset(videos, landmarks, going)
+    with pytest.warns(SkippedVideoWarning, match="bad.avi"):
+        assert fresh.count_items() == [FRAMES, 0, FRAMES]
+    assert list(fresh.skipped) == [1]
+    # DataLoader workers (video 1 -> worker 1, videos 0 and 2 -> worker 0): their records reach the caller's dataset
+    loaded = VideoDataset(videos, landmarks, going)
+    batches = list(DataLoader(loaded, batch_size=4, num_workers=2, multiprocessing_context="fork"))
+    assert sorted(int(v) for b in batches for v in b["video"]) == [0] * FRAMES
+    assert loaded.skipped == data.skipped
