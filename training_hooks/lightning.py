@@ -11,6 +11,7 @@ torchface or :mod:`training_hooks` does, so they work without it.
 
 from __future__ import annotations
 
+import functools
 import math
 import multiprocessing
 from collections.abc import Callable, Iterator, Mapping
@@ -129,7 +130,7 @@ class TrackedFaceDataModule(pl.LightningDataModule):
 
     Args:
         train: the training dataset.
-        val: the validation dataset, or None.
+        val: the validation dataset, or None (no validation: the trainer sees no ``val_dataloader``).
         batch_size: items per batch.
         num_workers: ``DataLoader`` workers (tracking runs in them).
         collate_fn: None picks :func:`~training_hooks.collate.collate_clips` for clip datasets and PyTorch's default
@@ -197,6 +198,8 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         self.batch_size = check_int(batch_size, "batch_size", 1)
         self.num_workers = check_int(num_workers, "num_workers", 0)
         self.train, self.val, self.collate_fn = train, val, collate_fn
+        if val is None:
+            self._no_validation()
         # (checked here, not when the trainer first asks for a loader: DataLoader's own messages came then)
         workers = self.num_workers > 0
         self.pin_memory = None if pin_memory is None else check_bool(pin_memory, "pin_memory")
@@ -263,4 +266,16 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         return self._loader(self.train, epochs=True)
 
     def val_dataloader(self) -> DataLoader | list:
+        """The validation loader; ``[]`` without a validation dataset, where the trainer does not ask for it
+        (:meth:`_no_validation`)."""
         return [] if self.val is None else self._loader(self.val)
+
+    def _no_validation(self) -> None:
+        """Without a validation dataset, show the trainer this module's ``val_dataloader`` as not implemented, as a
+        ``LightningDataModule`` without one is (Lightning looks at the method, ``is_overridden``), so that it runs no
+        validation without a word: it asked for the loader, got ``[]`` and warned "Total length of `list` across ranks
+        is zero. Please make sure this was your intention." at every fit. Called directly, it still gives ``[]``."""
+        empty = functools.partial(TrackedFaceDataModule.val_dataloader, self)
+        # (is_overridden compares the code of the unwrapped method with LightningDataModule's)
+        empty.__wrapped__ = pl.LightningDataModule.val_dataloader  # type: ignore[attr-defined]
+        self.val_dataloader = empty  # type: ignore[method-assign]

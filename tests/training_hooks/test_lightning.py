@@ -56,6 +56,11 @@ class TinyModel(pl.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.1)
 
 
+# TinyModel has a validation_step; a module without validation data has Lightning say it skips the loop (its notice,
+# right for these tests' model; before, the module's [] drew "Total length of `list` across ranks is zero" instead).
+NO_VAL_NOTICE = pytest.mark.filterwarnings(r"ignore:You defined a `validation_step` but have no `val_dataloader`")
+
+
 def test_callback_logs_batch_and_epoch_quality(clips, config):
     from training_hooks.lightning import TrackedFaceDataModule, TrackingQualityCallback
 
@@ -102,6 +107,7 @@ def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
         TrackedFaceDataModule(clip_data, num_workers=-1)
 
 
+@NO_VAL_NOTICE
 def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, config):
     """Lightning builds the training loader once and calls ``set_epoch`` on samplers alone (an iterable dataset's
     loader has none): with the trainer's defaults every epoch repeated epoch 0's shuffled order. Each epoch now
@@ -179,6 +185,7 @@ def test_datamodule_passes_the_loader_settings_through(clips, config):
             TrackedFaceDataModule(data, **bad)
 
 
+@NO_VAL_NOTICE
 def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
     """Two persistent workers (the default with workers) over three epochs of a trainer: each epoch's items are the
     epoch's ``set_epoch`` order of two workers (the workers, kept, see the epoch through the dataset's shared
@@ -217,3 +224,45 @@ def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
     trainer.fit(module, datamodule=datamodule)
     assert datamodule.persistent_workers
     assert [module.seen[e] for e in range(3)] == expected
+
+
+@NO_VAL_NOTICE
+def test_datamodule_without_validation_data_runs_no_validation_loop_without_a_word(clips, config):
+    """Without ``val``, the module's ``val_dataloader`` gave ``[]``, which the trainer asked for and warned about at
+    every fit ("Total length of `list` across ranks is zero. Please make sure this was your intention."). It now
+    shows as not implemented, as in a ``LightningDataModule`` without one: no validation, no such warning (Lightning's
+    own "no `val_dataloader`" notice for a module with a ``validation_step``). With ``val``, validation runs."""
+    import copy
+    import pickle
+    import warnings
+
+    from lightning.pytorch.utilities.model_helpers import is_overridden
+
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    list(data)  # (fills the cache)
+    none = TrackedFaceDataModule(data, batch_size=4)
+    assert not is_overridden("val_dataloader", none) and none.val_dataloader() == []
+    assert is_overridden("val_dataloader", TrackedFaceDataModule(data, val=data))
+    for again in (pickle.loads(pickle.dumps(none)), copy.deepcopy(none)):
+        assert not is_overridden("val_dataloader", again) and again.val_dataloader() == []
+        assert again.val_dataloader.args[0] is again  # (bound to the copy, not to the original)
+
+    class Counting(TinyModel):
+        validated = 0
+
+        def validation_step(self, batch, batch_idx):
+            Counting.validated += 1
+
+    for module, expected in ((none, 0), (TrackedFaceDataModule(data, val=data, batch_size=4), 2)):
+        Counting.validated = 0
+        trainer = pl.Trainer(
+            max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+            enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0,
+        )  # fmt: skip
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            trainer.fit(Counting(), datamodule=module)
+        assert Counting.validated == expected
+        assert not [w for w in caught if "Total length" in str(w.message)], [str(w.message) for w in caught]
