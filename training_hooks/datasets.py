@@ -513,6 +513,27 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
+    def __len__(self) -> int:
+        """Refused with a ``TypeError`` saying how to count (``len()`` said "object of type 'VideoDataset' has no
+        len()"): an iterable dataset's items are counted without tracking by :meth:`count_items` (per video) and
+        :meth:`worker_items` (per ``DataLoader`` worker, for a loader's batches), never by ``len()`` (``DataLoader``,
+        Lightning, tqdm and the like take the ``TypeError`` as "no length", as before)."""
+        raise TypeError(
+            f"{type(self).__name__} is an iterable dataset and has no len(): count its items without tracking with "
+            "sum(data.count_items()), or a DataLoader's batches with data.worker_items(w, num_workers) per worker "
+            "(docs/training-hooks.md, 'Datasets and workers')"
+        )
+
+    def __getitem__(self, index: int) -> dict[str, Tensor]:
+        """Refused with a ``TypeError`` saying what to use (``data[0]`` was torch's "Subclasses of Dataset should
+        implement __getitem__", a ``NotImplementedError`` that read as a bug of the dataset): each video is tracked
+        from its first frame to its last in the one process that owns it, so there is no item by index."""
+        raise TypeError(
+            f"{type(self).__name__} is an iterable dataset (each video tracked start to end in the worker that owns "
+            "it) and has no items by index: iterate it (next(iter(data)) is the first item), or take video i's "
+            "tracked sequence, data.sequence(i)[0], and its frame t's item, .item(t)"
+        )
+
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "_shared" not in state:  # pickled before the shared state existed
             state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))

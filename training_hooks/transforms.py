@@ -18,8 +18,9 @@ as many as there are cores, and float reductions depend on the split).
 Storage: faces are kept as :class:`FaceStorage` (uint8 by default: clamped to ``[0, 1]`` and rounded to
 ``1 / 255``; items are float32 again), so freshly tracked items equal the cached ones bit for bit.
 
-Shapes: ``T`` frames, ``C`` channels (3, or 1 for gray frames), ``S`` the normalised-face side (:attr:`FaceTrackingConfig.face_size`),
-``A`` animation units, ``L`` illumination terms, ``H x W`` frames; conventions of :mod:`torchface.conventions`.
+Shapes: ``T`` frames, ``C`` channels (3, or 1 for gray frames), ``S`` the normalised-face side
+(:attr:`FaceTrackingConfig.face_size`), ``A`` animation units, ``L`` illumination terms, ``H x W`` frames; conventions
+of :mod:`torchface.conventions`.
 """
 
 from __future__ import annotations
@@ -358,7 +359,7 @@ def _frame_tensor(frame: object, index: int, shape: tuple[int, int, int] | None)
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
     if frame.dim() != 3 or frame.shape[0] not in (1, 3):
         hint = ""
-        if frame.dim() == 3 and frame.shape[-1] in (1, 3):  # (the permute alone, of an OpenCV image's, tracked it in BGR)
+        if frame.dim() == 3 and frame.shape[-1] in (1, 3):  # (the permute alone, of an OpenCV image, tracked BGR)
             hint = (" (channels last (H, W, 3): frame.permute(2, 0, 1); BGR as OpenCV reads it: "
                     "frame.flip(-1).permute(2, 0, 1))")
         elif frame.dim() == 3 and frame.shape[0] == 4:
@@ -462,8 +463,8 @@ def track_sequence(
         numbers the frames as one tracking of the whole sequence does).
 
     Raises:
-        TypeError, ValueError: bad frames (shape, dtype, a size change, gray after RGB or back), landmarks (shape, an infinite value, a
-            row with one coordinate NaN, fewer than 4 points given) or state; no frame at all.
+        TypeError, ValueError: bad frames (shape, dtype, a size change, gray after RGB or back), landmarks (shape, an
+            infinite value, a row with one coordinate NaN, fewer than 4 points given) or state; no frame at all.
     """
     if not isinstance(config, FaceTrackingConfig):
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")

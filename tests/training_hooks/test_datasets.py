@@ -1075,3 +1075,22 @@ def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, 
         batches = list(DataLoader(loaded, batch_size=4, num_workers=2, multiprocessing_context="fork"))
     assert sorted(int(v) for b in batches for v in b["video"]) == [0] * FRAMES
     assert loaded.skipped == data.skipped
+
+
+def test_len_and_indexing_say_what_to_use_instead(clips, config):
+    """An iterable dataset: ``data[0]`` was torch's "Subclasses of Dataset should implement __getitem__" (a
+    NotImplementedError, read as a bug), ``len(data)`` "has no len()" without a word of counting. Both are a
+    TypeError that says what to use; what takes "no length" from a TypeError (list(), a DataLoader, Lightning)
+    works as before."""
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    with pytest.raises(TypeError, match=r"has no len\(\): count its items without tracking with sum\(data\.count"):
+        len(data)
+    with pytest.raises(TypeError, match=r"has no len\(\)"):
+        len(DataLoader(data, batch_size=2))
+    with pytest.raises(TypeError, match=r"no items by index: iterate it .*data\.sequence\(i\)\[0\]"):
+        data[0]
+    items = list(data)  # (list() asks for a length hint: a TypeError is "none")
+    assert len(items) == sum(data.count_items()) == FRAMES
+    sequence, _ = data.sequence(0)  # the recipe: frame t's item
+    assert all(torch.equal(sequence.item(3)[k], items[3][k]) for k in sequence.item(3))
+    assert len(list(DataLoader(data, batch_size=4))) == 2

@@ -194,7 +194,8 @@ def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
 
     from training_hooks.lightning import TrackedFaceDataModule
 
-    data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], replace(config, shuffle_buffer=8))
+    shuffled = replace(config, shuffle_buffer=8)
+    data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], shuffled)
     expected = []
     for epoch in range(3):
         data.set_epoch(epoch)  # (fills the cache: the workers read it)
