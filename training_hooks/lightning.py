@@ -130,7 +130,8 @@ class TrackedFaceDataModule(pl.LightningDataModule):
 
     Args:
         train: the training dataset.
-        val: the validation dataset, or None (no validation: the trainer sees no ``val_dataloader``).
+        val: the validation dataset, or None (no validation: the trainer sees no ``val_dataloader``; give it here,
+            not by setting ``val`` later).
         batch_size: items per batch.
         num_workers: ``DataLoader`` workers (tracking runs in them).
         collate_fn: None picks :func:`~training_hooks.collate.collate_clips` for clip datasets and PyTorch's default
