@@ -57,6 +57,25 @@ training loop in ``DistributedDataParallel.join()``). With fewer videos than ran
 says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` makes every rank yield every item
 (for a dataset built with each rank's own list of videos; no balancing).
 
+Skipping (:attr:`DatasetConfig.keep_going`, off by default): a video that cannot be read or tracked (an
+:class:`~torchface.io.InputError` or ``OSError``) stops the epoch by default, as it stops ``torchface track``. With
+``keep_going`` it is skipped as ``torchface track --keep-going`` skips it: the process that finds it warns
+(:class:`SkippedVideoWarning`, naming the file and the error) and records it in :attr:`VideoDataset.skipped`
+(shared memory: the dataset the caller holds sees its workers' records), the video yields no item, and it is not
+tried again in later epochs (make the dataset again to retry it). A video is tracked whole before its items are
+yielded, so none of a skipped video's items is yielded (an error at its last frame too). The datasets are iterable
+(no ``__len__``, no ``__getitem__``: there is no index a sampler could ask for and get another video's item), so
+skipping changes no sampler's indices; what it changes is the epoch's item count:
+
+- :meth:`VideoDataset.num_items` counts a video without tracking it: a video that cannot even be counted (it does
+  not decode, or the detector finds no face in it) is skipped then and counts 0, on every rank alike; one that fails
+  only when tracked (landmarks outside its frame, a frame that fails to decode partway) keeps its count, so
+  :meth:`~VideoDataset.count_items` and :meth:`~VideoDataset.worker_items` are then an upper bound of the epoch's
+  items in one process (a schedule planned from them ends a few steps early; it never overruns).
+- Under DDP with :attr:`RankBalance.PAD` or ``DROP`` every rank still yields the balanced count per worker: a worker
+  whose video was skipped when tracked repeats its other videos' items in its place (as ``PAD`` repeats a short
+  worker's), so the ranks take the same number of steps and DDP does not hang. Each rank records its own skips.
+
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
 back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
@@ -110,6 +129,7 @@ __all__ = [
     "FrameFolderDataset",
     "LandmarkSource",
     "RankBalance",
+    "SkippedVideoWarning",
     "VideoDataset",
     "clip_bounds",
     "loader_throughput",
@@ -129,6 +149,13 @@ class DistributedWarning(UserWarning):
     """A ``torch.distributed`` process group has more ranks than a dataset has videos: a rank without a video
     repeats other ranks' items (:attr:`RankBalance.PAD`) or yields none (module docstring, "Sharding"). Warned
     once per dataset in each rank (by its first ``DataLoader`` worker, not again in later epochs)."""
+
+
+class SkippedVideoWarning(UserWarning):
+    """With :attr:`DatasetConfig.keep_going`, a video that cannot be read or tracked is skipped (its items left out)
+    instead of stopping the epoch: warned once per dataset, in the process that found it (a ``DataLoader`` worker
+    prints it to its stderr), and recorded in :attr:`VideoDataset.skipped`, which every process of the dataset sees.
+    ``torchface track --keep-going``'s :class:`~torchface.job.InputSkipped` for a dataset."""
 
 
 class RankBalance(enum.Enum):
@@ -170,6 +197,19 @@ def _shared_detections(num_videos: int) -> tuple[Tensor, Tensor]:
     whose default size in a Docker container is 64 MB)."""
     where = torch.full((num_videos, 5), -1, dtype=torch.int64).share_memory_()
     return where, torch.zeros(num_videos, NUM_LANDMARKS, 2, dtype=torch.float64).share_memory_()
+
+
+#: Bytes of a skipped video's record (:func:`_shared_skips`): a flag, then its reason, UTF-8, cut to fit.
+_SKIP_BYTES: int = 256
+
+
+def _shared_skips(num_videos: int) -> Tensor:
+    """Which videos a dataset with :attr:`DatasetConfig.keep_going` skipped and why, in shared memory as
+    :func:`_shared_state` (its ``DataLoader`` workers' skips reach the dataset the caller holds, and a later epoch does
+    not try a skipped video again): ``(num_videos, 256)`` uint8, per video a flag (1: skipped; written after the
+    reason) and the reason, UTF-8, zero-padded: 256 bytes a video, so a dataset without ``keep_going`` passes
+    ``num_videos=0``."""
+    return torch.zeros(num_videos, _SKIP_BYTES, dtype=torch.uint8).share_memory_()
 
 
 def _content_words(content: str) -> Tensor:
@@ -227,6 +267,11 @@ class DatasetConfig:
             rank ``i % world_size``, module docstring); False makes every rank yield every item.
         rank_balance: :class:`RankBalance`: how the ranks get equal item (and batch) counts when they split the
             videos; :attr:`RankBalance.PAD` (repeat items, the default), ``DROP`` or ``UNEVEN`` (no balancing).
+        keep_going: skip a video that cannot be read or tracked (an :class:`~torchface.io.InputError`: a file that
+            does not decode, landmarks outside its frame, a detector that finds no face; or an ``OSError``: the file
+            gone since the dataset was made) instead of raising, as ``torchface track --keep-going`` does: its items
+            are left out, a :class:`SkippedVideoWarning` says so and :attr:`VideoDataset.skipped` records it (module
+            docstring, "Skipping"). False (the default): the error stops the epoch.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -239,6 +284,7 @@ class DatasetConfig:
     seed: int = 0
     shard_ranks: bool = True
     rank_balance: RankBalance = RankBalance.PAD
+    keep_going: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracking, FaceTrackingConfig):
@@ -249,7 +295,7 @@ class DatasetConfig:
             raise ValueError("clip_stride needs clip_length")
         object.__setattr__(self, "shuffle_buffer", check_int(self.shuffle_buffer, "shuffle_buffer", 0))
         object.__setattr__(self, "seed", check_int(self.seed, "seed"))  # (was not checked: 2.5 or None seeded a draw)
-        for name in ("keep_short_clips", "convert", "shard_ranks"):  # "no" was true
+        for name in ("keep_short_clips", "convert", "shard_ranks", "keep_going"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not isinstance(self.rank_balance, RankBalance):
             raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
@@ -378,7 +424,8 @@ class VideoDataset(IterableDataset):
             array or tensor of another count of points, or a missing landmarks file, an
             :class:`~torchface.io.InputError`); problems with a video's content or its landmarks' values
             (:class:`~torchface.io.InputError`) surface when it is read, in the worker, and reach the caller through
-            the ``DataLoader``.
+            the ``DataLoader`` (with :attr:`DatasetConfig.keep_going`, the video is skipped instead:
+            :attr:`skipped`).
 
     Example:
         >>> # data = VideoDataset(["a.avi"], [np.load("a_lm.npy")], DatasetConfig(clip_length=8))
@@ -457,6 +504,7 @@ class VideoDataset(IterableDataset):
         self.stats = DatasetStats()
         self._cache: TrackCache | None = None
         self._found_at, self._found = _shared_detections(len(self.videos) if self.detector is not None else 0)
+        self._skips = _shared_skips(len(self.videos) if self.config.keep_going else 0)
 
     def _check_source(self, path: Path) -> None:
         _check_exists(path)
@@ -465,6 +513,27 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
+    def __len__(self) -> int:
+        """Refused with a ``TypeError`` saying how to count (``len()`` said "object of type 'VideoDataset' has no
+        len()"): an iterable dataset's items are counted without tracking by :meth:`count_items` (per video) and
+        :meth:`worker_items` (per ``DataLoader`` worker, for a loader's batches), never by ``len()`` (``DataLoader``,
+        Lightning, tqdm and the like take the ``TypeError`` as "no length", as before)."""
+        raise TypeError(
+            f"{type(self).__name__} is an iterable dataset and has no len(): count its items without tracking with "
+            "sum(data.count_items()), or a DataLoader's batches with data.worker_items(w, num_workers) per worker "
+            "(docs/training-hooks.md, 'Datasets and workers')"
+        )
+
+    def __getitem__(self, index: int) -> dict[str, Tensor]:
+        """Refused with a ``TypeError`` saying what to use (``data[0]`` was torch's "Subclasses of Dataset should
+        implement __getitem__", a ``NotImplementedError`` that read as a bug of the dataset): each video is tracked
+        from its first frame to its last in the one process that owns it, so there is no item by index."""
+        raise TypeError(
+            f"{type(self).__name__} is an iterable dataset (each video tracked start to end in the worker that owns "
+            "it) and has no items by index: iterate it (next(iter(data)) is the first item), or take video i's "
+            "tracked sequence, data.sequence(i)[0], and its frame t's item, .item(t)"
+        )
+
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "_shared" not in state:  # pickled before the shared state existed
             state["_shared"] = _shared_state(len(state["videos"]), int(state.pop("epoch", 0)))
@@ -472,6 +541,8 @@ class VideoDataset(IterableDataset):
             state.pop("_detected", None)
             searched = len(state["videos"]) if state.get("detector") is not None else 0
             state["_found_at"], state["_found"] = _shared_detections(searched)
+        if "_skips" not in state:  # pickled before keep_going existed
+            state["_skips"] = _shared_skips(0)
         self.__dict__.update(state)
 
     @property
@@ -567,20 +638,30 @@ class VideoDataset(IterableDataset):
         remembered for the tracking). Remembered by the dataset, for its copies in ``DataLoader`` workers too
         (shared memory): each video is counted once, by the first process that needs it.
 
+        With :attr:`DatasetConfig.keep_going`, a video that cannot be counted is skipped (:attr:`skipped`) and counts
+        0; a video skipped when tracked keeps its count (module docstring, "Skipping").
+
         Raises:
             torchface.io.InputError: the video cannot be read, or the detector finds no face in any of its frames
-                (the message names the file).
+                (the message names the file); not with :attr:`DatasetConfig.keep_going`.
         """
         if not 0 <= index < len(self.videos):
             raise IndexError(f"video {index} out of range for {len(self.videos)} videos")
         counts = self._shared[_COUNTS:]
         if int(counts[index]) < 0:
             c = self.config
-            start = self._face_frame(index)  # (before the cache is asked: the key holds the detection)
-            frames = self._cached_frames(index)
-            if frames is None:
-                with _dataset_hint():
-                    frames = _count_frames(self.videos[index], c.convert) - start
+            try:
+                start = self._face_frame(index)  # (before the cache is asked: the key holds the detection)
+                frames = self._cached_frames(index)
+                if frames is None:
+                    with _dataset_hint():
+                        frames = _count_frames(self.videos[index], c.convert) - start
+            except (InputError, OSError) as exc:
+                if not c.keep_going:
+                    raise
+                if not self._is_skipped(index):
+                    self._skip(index, exc)
+                frames = 0  # (skipped: no item, on every rank alike, the file being the same)
             counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
         return int(counts[index])
 
@@ -739,6 +820,54 @@ class VideoDataset(IterableDataset):
         where = f"{self.videos[index]}: landmarks"
         return 0, check_landmarks(source, 1 << 30, 1 << 30, where, missing=True, count=self.num_landmarks)
 
+    @property
+    def skipped(self) -> dict[int, str]:
+        """``{video index: why}`` of the videos skipped so far (:attr:`DatasetConfig.keep_going`), by any process of
+        this dataset (its ``DataLoader`` workers too: shared memory), in index order; ``why`` is the error's message
+        on one line, naming the file (cut to about 250 bytes). Empty without ``keep_going``. Under DDP, each rank's
+        own (the videos it read)."""
+        flags = self._skips[:, 0].nonzero().flatten().tolist() if self._skips.numel() else []
+        out = {}
+        for index in flags:
+            text = bytes(self._skips[index, 1:].numpy()).rstrip(b"\0").decode("utf-8", errors="ignore")
+            out[index] = f"{self.videos[index]}: {text}"
+        return out
+
+    def _is_skipped(self, index: int) -> bool:
+        """Whether video ``index`` was skipped (:attr:`skipped`): it is not tried again."""
+        return bool(self._skips.numel()) and bool(self._skips[index, 0])
+
+    def _skip(self, index: int, exc: BaseException) -> None:
+        """Record (:attr:`skipped`) and warn (:class:`SkippedVideoWarning`) that video ``index`` is skipped for
+        ``exc`` (:attr:`DatasetConfig.keep_going`)."""
+        path = self.videos[index]
+        said = " ".join(str(exc).split()).removeprefix(f"{path}: ")  # (most name the video first: not twice)
+        if isinstance(exc, OSError) and not isinstance(exc, InputError):
+            said = f"{type(exc).__name__}: {said}"
+        warnings.warn(
+            f"skipped {path} (video {index}): {said} (DatasetConfig(keep_going=True): its items are left out; "
+            f"the dataset's .skipped records it)",
+            SkippedVideoWarning,
+            stacklevel=2,
+        )
+        data = said.encode("utf-8")[: _SKIP_BYTES - 1]  # (a character cut in two is dropped when read)
+        self._skips[index, 1:] = 0
+        self._skips[index, 1 : 1 + len(data)] = torch.tensor(list(data), dtype=torch.uint8)
+        self._skips[index, 0] = 1  # (last: the record is whole once flagged)
+
+    def _tracked(self, index: int) -> tuple[TrackedSequence, bool] | None:
+        """:meth:`sequence`, or with :attr:`DatasetConfig.keep_going` None for a video that cannot be read or
+        tracked (:meth:`_skip`; not tried again)."""
+        if not self.config.keep_going:
+            return self.sequence(index)
+        if self._is_skipped(index):
+            return None
+        try:
+            return self.sequence(index)
+        except (InputError, OSError) as exc:
+            self._skip(index, exc)
+            return None
+
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
 
@@ -795,7 +924,11 @@ class VideoDataset(IterableDataset):
     def _items(
         self, index: int, rng: random.Random | None, tracked: tuple[TrackedSequence, bool] | None = None
     ) -> Iterator[dict[str, Tensor]]:
-        sequence, cached = self.sequence(index) if tracked is None else tracked
+        if tracked is None:
+            tracked = self._tracked(index)
+            if tracked is None:  # (skipped: DatasetConfig.keep_going)
+                return
+        sequence, cached = tracked
         c = self.config
         bounds = clip_bounds(sequence.num_frames, c.clip_length, c.clip_stride, c.keep_short_clips)
         if rng is not None:
@@ -819,7 +952,10 @@ class VideoDataset(IterableDataset):
         for index in videos:
             if count == target:
                 return
-            tracked = self.sequence(index)
+            tracked = self._tracked(index)
+            if tracked is None:  # (skipped, DatasetConfig.keep_going: its counted items are repeated ones instead)
+                short += self.num_items(index)
+                continue
             if short > 0 and sum(self.num_items(i) for i in kept) < short:
                 kept[index] = tracked
             for item in self._items(index, rng, tracked):
@@ -827,7 +963,9 @@ class VideoDataset(IterableDataset):
                     return
                 yield item
                 count += 1
-        repeat = [i for i in videos if self.num_items(i) > 0] or [i for i in slot if self.num_items(i) > 0]
+        repeat = [i for i in videos if self.num_items(i) > 0 and not self._is_skipped(i)] or [
+            i for i in slot if self.num_items(i) > 0 and not self._is_skipped(i)
+        ]
         while count < target:
             before = count
             for index in repeat:

@@ -11,7 +11,11 @@ torchface or :mod:`training_hooks` does, so they work without it.
 
 from __future__ import annotations
 
+import functools
+import math
+import multiprocessing
 from collections.abc import Callable, Iterator, Mapping
+from multiprocessing.context import BaseContext
 from typing import Any
 
 from torch.utils.data import DataLoader
@@ -26,7 +30,7 @@ except ImportError:  # pragma: no cover - depends on what is installed
             "training_hooks.lightning needs PyTorch Lightning: pip install \"torchface[lightning]\" (or lightning)"
         ) from None
 
-from torchface.extending import check_int
+from torchface.extending import check_bool, check_int, check_optional_int, check_real
 from training_hooks.collate import collate_clips
 from training_hooks.datasets import VideoDataset
 from training_hooks.hooks import TrackingQualityLogger
@@ -126,11 +130,37 @@ class TrackedFaceDataModule(pl.LightningDataModule):
 
     Args:
         train: the training dataset.
-        val: the validation dataset, or None.
+        val: the validation dataset, or None (no validation: the trainer sees no ``val_dataloader``; give it here,
+            not by setting ``val`` later).
         batch_size: items per batch.
         num_workers: ``DataLoader`` workers (tracking runs in them).
         collate_fn: None picks :func:`~training_hooks.collate.collate_clips` for clip datasets and PyTorch's default
             for frame datasets.
+
+    The other ``DataLoader`` settings (keyword-only; both loaders get them):
+
+    Args:
+        pin_memory: page-locked batches for a fast copy to the GPU. None (the default): True when the attached
+            trainer runs on a CUDA device (``trainer.strategy.root_device``), else False (no trainer, CPU training:
+            PyTorch warns that pinning without an accelerator does nothing).
+        persistent_workers: keep the workers (and each one's dataset copy: the face model loaded once, the cache
+            opened once) from one epoch to the next instead of starting them again. None (the default): True when
+            ``num_workers > 0`` (each epoch started ``num_workers`` processes again, each importing torchface and
+            loading the model; the epoch still reaches the persistent workers' datasets, shared memory). True with
+            ``num_workers = 0`` is refused, as ``DataLoader`` refuses it.
+        prefetch_factor: batches each worker loads ahead (None: PyTorch's default, 2 with workers); needs
+            ``num_workers > 0``.
+        multiprocessing_context: how the workers are started: ``"fork"``, ``"spawn"``, ``"forkserver"`` or a
+            ``multiprocessing`` context (None: the platform's default); needs ``num_workers > 0``.
+        drop_last: leave out the training loader's last, smaller batch of each worker (a ``DataLoader`` batches
+            each worker's items separately); the validation loader keeps every item.
+        timeout: seconds to wait for a worker's batch before raising (0: no limit).
+
+    There is no ``shuffle``, ``sampler`` or ``generator``: the datasets are iterable, and their shuffling is
+    :attr:`DatasetConfig.shuffle_buffer <training_hooks.datasets.DatasetConfig.shuffle_buffer>`, seeded by
+    :attr:`DatasetConfig.seed <training_hooks.datasets.DatasetConfig.seed>` and the epoch alone (not by torch's
+    random state, nor a ``DataLoader`` generator: the same items in the same order on every run). Workers' items
+    interleave in turn (``DataLoader(in_order=True)``, PyTorch's default), so the order is reproducible.
 
     Each training epoch's iteration of the loader passes the trainer's epoch to
     :meth:`~training_hooks.datasets.VideoDataset.set_epoch` first, so that the shuffling
@@ -153,6 +183,13 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         batch_size: int = 32,
         num_workers: int = 0,
         collate_fn: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None,
+        *,
+        pin_memory: bool | None = None,
+        persistent_workers: bool | None = None,
+        prefetch_factor: int | None = None,
+        multiprocessing_context: str | BaseContext | None = None,
+        drop_last: bool = False,
+        timeout: float = 0.0,
     ) -> None:
         super().__init__()
         for name, ds in (("train", train), ("val", val)):
@@ -162,12 +199,58 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         self.batch_size = check_int(batch_size, "batch_size", 1)
         self.num_workers = check_int(num_workers, "num_workers", 0)
         self.train, self.val, self.collate_fn = train, val, collate_fn
+        if val is None:
+            self._no_validation()
+        # (checked here, not when the trainer first asks for a loader: DataLoader's own messages came then)
+        workers = self.num_workers > 0
+        self.pin_memory = None if pin_memory is None else check_bool(pin_memory, "pin_memory")
+        self.persistent_workers = workers if persistent_workers is None else check_bool(
+            persistent_workers, "persistent_workers")  # fmt: skip
+        if self.persistent_workers and not workers:
+            raise ValueError("persistent_workers=True needs num_workers > 0 (with 0 the loading runs in the "
+                             "training process: there are no workers to keep)")  # fmt: skip
+        self.prefetch_factor = check_optional_int(prefetch_factor, "prefetch_factor", 1)
+        if self.prefetch_factor is not None and not workers:
+            raise ValueError(f"prefetch_factor={self.prefetch_factor} needs num_workers > 0 (each worker loads that "
+                             "many batches ahead; with 0 there are none)")  # fmt: skip
+        if multiprocessing_context is not None:
+            if isinstance(multiprocessing_context, str):
+                methods = multiprocessing.get_all_start_methods()
+                if multiprocessing_context not in methods:
+                    raise ValueError(f"multiprocessing_context must be one of {methods} or a multiprocessing "
+                                     f"context, got {multiprocessing_context!r}")  # fmt: skip
+            elif not isinstance(multiprocessing_context, BaseContext):
+                raise TypeError("multiprocessing_context must be a start method's name or a multiprocessing "
+                                f"context, got {type(multiprocessing_context).__name__}")  # fmt: skip
+            if not workers:
+                raise ValueError(f"multiprocessing_context={multiprocessing_context!r} needs num_workers > 0 (it "
+                                 "starts the workers; with 0 there are none)")  # fmt: skip
+        self.multiprocessing_context = multiprocessing_context
+        self.drop_last = check_bool(drop_last, "drop_last")
+        self.timeout = float(check_real(timeout, "timeout"))
+        if not 0.0 <= self.timeout < math.inf:  # (NaN too)
+            raise ValueError(f"timeout must be finite seconds >= 0 (0: no limit), got {timeout}")
+        if self.timeout > 0 and not workers:
+            raise ValueError(f"timeout={self.timeout} needs num_workers > 0 (it bounds the wait for a worker's batch)")
+
+    def _pin(self) -> bool:
+        """:attr:`pin_memory` as given, or (None) whether the attached trainer runs on a CUDA device."""
+        if self.pin_memory is not None:
+            return self.pin_memory
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return False
+        return trainer.strategy.root_device.type == "cuda"
 
     def _loader(self, dataset: VideoDataset, epochs: bool = False) -> DataLoader:
         collate = self.collate_fn
         if collate is None and dataset.config.clip_length is not None:
             collate = collate_clips
-        kwargs: dict[str, Any] = dict(batch_size=self.batch_size, num_workers=self.num_workers, collate_fn=collate)
+        kwargs: dict[str, Any] = dict(
+            batch_size=self.batch_size, num_workers=self.num_workers, collate_fn=collate, pin_memory=self._pin(),
+            drop_last=self.drop_last and epochs, timeout=self.timeout, persistent_workers=self.persistent_workers,
+            prefetch_factor=self.prefetch_factor, multiprocessing_context=self.multiprocessing_context,
+        )  # fmt: skip
         if epochs:
             return _EpochLoader(dataset, epoch=self._trainer_epoch, **kwargs)
         return DataLoader(dataset, **kwargs)
@@ -184,4 +267,16 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         return self._loader(self.train, epochs=True)
 
     def val_dataloader(self) -> DataLoader | list:
+        """The validation loader; ``[]`` without a validation dataset, where the trainer does not ask for it
+        (:meth:`_no_validation`)."""
         return [] if self.val is None else self._loader(self.val)
+
+    def _no_validation(self) -> None:
+        """Without a validation dataset, show the trainer this module's ``val_dataloader`` as not implemented, as a
+        ``LightningDataModule`` without one is (Lightning looks at the method, ``is_overridden``), so that it runs no
+        validation without a word: it asked for the loader, got ``[]`` and warned "Total length of `list` across ranks
+        is zero. Please make sure this was your intention." at every fit. Called directly, it still gives ``[]``."""
+        empty = functools.partial(TrackedFaceDataModule.val_dataloader, self)
+        # (is_overridden compares the code of the unwrapped method with LightningDataModule's)
+        empty.__wrapped__ = pl.LightningDataModule.val_dataloader  # type: ignore[attr-defined]
+        self.val_dataloader = empty  # type: ignore[method-assign]

@@ -18,8 +18,9 @@ as many as there are cores, and float reductions depend on the split).
 Storage: faces are kept as :class:`FaceStorage` (uint8 by default: clamped to ``[0, 1]`` and rounded to
 ``1 / 255``; items are float32 again), so freshly tracked items equal the cached ones bit for bit.
 
-Shapes: ``T`` frames, ``C = 3`` channels, ``S`` the normalised-face side (:attr:`FaceTrackingConfig.face_size`),
-``A`` animation units, ``L`` illumination terms, ``H x W`` frames; conventions of :mod:`torchface.conventions`.
+Shapes: ``T`` frames, ``C`` channels (3, or 1 for gray frames), ``S`` the normalised-face side
+(:attr:`FaceTrackingConfig.face_size`), ``A`` animation units, ``L`` illumination terms, ``H x W`` frames; conventions
+of :mod:`torchface.conventions`.
 """
 
 from __future__ import annotations
@@ -347,20 +348,26 @@ class TrackedSequence:
         }
 
 
-def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Tensor:
-    """One frame ``(3, H, W)`` float in [0, 1] or uint8 -> ``(1, 3, H, W)`` float32, validated."""
+def _frame_tensor(frame: object, index: int, shape: tuple[int, int, int] | None) -> Tensor:
+    """One frame ``(3, H, W)`` RGB or ``(1, H, W)`` gray, float in [0, 1] or uint8 -> ``(1, C, H, W)`` float32,
+    validated; ``shape``: the first frame's ``(C, H, W)`` (None for the first), which every later one must have."""
     # (frames streamed from OpenCV, (H, W, 3) BGR arrays or tensors of them: the messages named the layout alone)
     if isinstance(frame, np.ndarray):
-        hint = not_tensor_hint(frame, to_float=False, rgb_only=True, layout="(3, H, W)", one_frame=True)
+        hint = not_tensor_hint(frame, to_float=False, layout="(3, H, W)", one_frame=True)
         raise TypeError(f"frame {index}: frames must be torch tensors (3, H, W), got a numpy array{hint}")
     if not isinstance(frame, Tensor):
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
-    if frame.dim() != 3 or frame.shape[0] != 3:
+    if frame.dim() != 3 or frame.shape[0] not in (1, 3):
         hint = ""
-        if frame.dim() == 3 and frame.shape[-1] == 3:  # (the permute alone, of an OpenCV image's, tracked it in BGR)
+        if frame.dim() == 3 and frame.shape[-1] in (1, 3):  # (the permute alone, of an OpenCV image, tracked BGR)
             hint = (" (channels last (H, W, 3): frame.permute(2, 0, 1); BGR as OpenCV reads it: "
                     "frame.flip(-1).permute(2, 0, 1))")
-        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB, got {tuple(frame.shape)}{hint}")
+        elif frame.dim() == 3 and frame.shape[0] == 4:
+            hint = " (RGBA: drop the alpha, frame[:3])"
+        elif frame.dim() == 2:
+            hint = " (a gray frame (H, W): frame[None])"
+        raise ValueError(f"frame {index}: frames must be (3, H, W) RGB or (1, H, W) gray, got {tuple(frame.shape)}"
+                         f"{hint}")  # fmt: skip
     if frame.dtype == torch.uint8:
         frame = frame.to(torch.float32) / 255.0
     elif not frame.is_floating_point():
@@ -370,10 +377,14 @@ def _frame_tensor(frame: object, index: int, size: tuple[int, int] | None) -> Te
             check_frames(frame.unsqueeze(0), values=True)
         except ValueError as exc:
             raise ValueError(f"frame {index}: {exc}") from None
-    if size is not None and tuple(frame.shape[-2:]) != size:
+    if shape is not None and tuple(frame.shape[-2:]) != shape[1:]:
         raise ValueError(
-            f"frame {index} is {frame.shape[-1]}x{frame.shape[-2]} but the sequence started at {size[1]}x{size[0]}"
+            f"frame {index} is {frame.shape[-1]}x{frame.shape[-2]} but the sequence started at {shape[2]}x{shape[1]}"
         )
+    if shape is not None and frame.shape[0] != shape[0]:  # (the faces of one sequence stack: one channel count)
+        kinds = {1: "gray (1, H, W)", 3: "RGB (3, H, W)"}
+        raise ValueError(f"frame {index} is {kinds[frame.shape[0]]} but the sequence started {kinds[shape[0]]}: "
+                         "give one kind (a gray frame as RGB: frame.expand(3, -1, -1))")  # fmt: skip
     return frame.to(torch.float32).unsqueeze(0)
 
 
@@ -384,12 +395,10 @@ def _layout_hint(frames: Tensor) -> str:
     shape = tuple(frames.shape)
     if frames.dim() == 4 and shape[1] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
         return " (channels last (T, H, W, C): frames.permute(0, 3, 1, 2))"
-    if frames.dim() == 4 and shape[1] == 1:
-        return " (gray frames: frames.expand(-1, 3, -1, -1))"
     if frames.dim() == 4 and shape[1] == 4:
         return " (RGBA: drop the alpha, frames[:, :3])"
     if frames.dim() == 3:
-        return " (one frame (3, H, W): frames[None]; gray frames (T, H, W): frames[:, None].expand(-1, 3, -1, -1))"
+        return " (one frame (3, H, W): frames[None]; gray frames (T, H, W): frames[:, None])"
     return ""
 
 
@@ -430,8 +439,10 @@ def track_sequence(
     """Track a sequence frame by frame and normalise every frame (module docstring).
 
     Args:
-        frames: ``(3, H, W)`` frames (float in ``[0, 1]`` or uint8), e.g. a ``(T, 3, H, W)`` tensor or a
-            :class:`~torchface.io.FrameReader`; consumed one at a time.
+        frames: ``(3, H, W)`` RGB or ``(1, H, W)`` gray frames, one kind throughout (float in ``[0, 1]`` or
+            uint8), e.g. a ``(T, 3, H, W)`` tensor or a :class:`~torchface.io.FrameReader`; consumed one at a time.
+            Gray frames are tracked as :class:`~torchface.tracker.FaceTracker` tracks them (the tracker works on
+            gray levels either way) and give gray faces ``(T, 1, S, S)``.
         start: ``(K, 2)`` the model's ``K`` landmarks of the first frame in pixels (the 68 iBUG points for
             CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`, as
             :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` starts it; a missing point is
@@ -452,8 +463,8 @@ def track_sequence(
         numbers the frames as one tracking of the whole sequence does).
 
     Raises:
-        TypeError, ValueError: bad frames (shape, dtype, a size change), landmarks (shape, an infinite value, a
-            row with one coordinate NaN, fewer than 4 points given) or state; no frame at all.
+        TypeError, ValueError: bad frames (shape, dtype, a size change, gray after RGB or back), landmarks (shape, an
+            infinite value, a row with one coordinate NaN, fewer than 4 points given) or state; no frame at all.
     """
     if not isinstance(config, FaceTrackingConfig):
         raise TypeError(f"config must be a FaceTrackingConfig, got {type(config).__name__}")
@@ -488,11 +499,13 @@ def track_sequence(
         "illumination", "confidence", "status",
     )}  # fmt: skip
     size: tuple[int, int] | None = None
+    first_shape: tuple[int, int, int] | None = None  # (C, H, W) of the first frame
     with torch_threads(config.num_threads), torch.no_grad():
         for t, raw in enumerate(frames):
-            frame = _frame_tensor(raw, t, size).to(dtype=model.dtype, device=model.device)
+            frame = _frame_tensor(raw, t, first_shape).to(dtype=model.dtype, device=model.device)
             if size is None:
                 size = (int(frame.shape[-2]), int(frame.shape[-1]))
+                first_shape = (int(frame.shape[1]), *size)
             if state is None:
                 intrinsics = Intrinsics.default(size[1], size[0], config.focal)
                 lm = landmarks.to(dtype=model.dtype, device=model.device).unsqueeze(0)
@@ -537,6 +550,12 @@ def track_sequence(
 class NormaliseFaces:
     """Transform: ``(frames (T, 3, H, W), landmarks (68, 2) | TrackerState)`` -> normalised faces and parameters
     (NaN rows of the landmarks: missing points, :func:`track_sequence`).
+
+    Gray frames ``(T, 1, H, W)`` are taken as :class:`~torchface.tracker.FaceTracker` takes them and give gray faces
+    ``face (T, 1, S, S)``; their parameters are those of the same frames made RGB (``frames.expand(-1, 3, -1, -1)``,
+    whose faces are the gray face in each channel) to float rounding (the tracker's luminance of three equal
+    channels is the gray level to 1 ulp). A video file of gray frames is :class:`~training_hooks.datasets.
+    VideoDataset`'s with ``DatasetConfig(convert=True)``, which makes it RGB as ``torchface track --convert`` does.
 
     A torchvision-style callable for pipelines that already hold frames: it tracks the frames with
     :func:`track_sequence` and returns the clip item of :meth:`TrackedSequence.item` (``face (T, C, S, S)``
@@ -587,12 +606,14 @@ class NormaliseFaces:
         return track_sequence(frames, start, self.config, self.model, self.normaliser)
 
     def __call__(self, frames: Tensor, start: Tensor | np.ndarray | TrackerState) -> dict[str, Tensor]:
-        """Normalised faces of ``frames (T, 3, H, W)`` (float in [0, 1] or uint8) as a clip item (class docstring)."""
+        """Normalised faces of ``frames (T, 3, H, W)`` RGB or ``(T, 1, H, W)`` gray (float in [0, 1] or uint8) as a
+        clip item (class docstring)."""
         if not isinstance(frames, Tensor):  # (a ValueError, where track_sequence's numpy frames are a TypeError)
-            hint = not_tensor_hint(frames, per="(T, 3, H, W)", to_float=False, rgb_only=True, layout="(T, 3, H, W)")
+            hint = not_tensor_hint(frames, per="(T, 3, H, W)", to_float=False, layout="(T, 3, H, W)")
             raise TypeError(f"frames must be a (T, 3, H, W) torch.Tensor, got {type(frames).__name__}{hint}")
-        if frames.dim() != 4 or frames.shape[1] != 3:
-            raise ValueError(f"frames must be a (T, 3, H, W) tensor, got {tuple(frames.shape)}{_layout_hint(frames)}")
+        if frames.dim() != 4 or frames.shape[1] not in (1, 3):
+            raise ValueError(f"frames must be a (T, 3, H, W) RGB or (T, 1, H, W) gray tensor, got "
+                             f"{tuple(frames.shape)}{_layout_hint(frames)}")  # fmt: skip
         if torch.is_grad_enabled() and frames.requires_grad:  # (its faces were detached without a word)
             raise ValueError(
                 "frames require grad, but NormaliseFaces makes data items (stored faces, no gradient): for faces "

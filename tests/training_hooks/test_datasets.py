@@ -633,13 +633,12 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
     frames = read_video_uint8(clips[0].video)  # (T, 3, H, W) uint8
     normalise = NormaliseFaces(TRACKING)
     for bad, hint in ((frames.permute(0, 2, 3, 1), r"frames\.permute\(0, 3, 1, 2\)"),
-                      (frames[:, :1], r"frames\.expand\(-1, 3, -1, -1\)"),
                       (torch.cat([frames, frames[:, :1]], 1), r"frames\[:, :3\]"),
                       (frames[:, 0], r"frames\[:, None\]")):  # fmt: skip
         with pytest.raises(ValueError, match=r"\(T, 3, H, W\).*" + hint):
             normalise(bad, clips[0].landmarks)
-    fixed = normalise(frames[:, :1].expand(-1, 3, -1, -1), clips[0].landmarks)  # the hint's clip is taken
-    assert fixed["face"].shape[:2] == (frames.shape[0], 3)
+    fixed = normalise(frames[:, 0][:, None], clips[0].landmarks)  # the hint's gray clip is taken (gray faces)
+    assert fixed["face"].shape[:2] == (frames.shape[0], 1)
     # frames streamed one by one (track: any iterable), as OpenCV gives them: (H, W, 3) BGR arrays, or tensors of
     # them; the messages said "got a numpy array" or "got (128, 128, 3)" alone
     bgr = [f.permute(1, 2, 0).numpy()[..., ::-1] for f in frames[:2]]
@@ -658,13 +657,40 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
                                   clips[0].landmarks)  # the recipe, as written: the frames of the clip
     direct, _ = normalise.track(frames[:2], clips[0].landmarks)
     assert torch.equal(streamed.faces, direct.faces) and torch.equal(flipped.faces, direct.faces)
-    # a NumPy gray image: the recipe made (1, 1, H, W), which the transform refused in turn ("gray frames: ..."); run
-    # as written, it makes a clip the transform takes
+    # a NumPy gray image: run as written, the recipe makes a (1, 1, H, W) gray clip, which the transform takes
     gray = frames[0, 1].numpy().copy()
     with pytest.raises(TypeError, match=r"got ndarray \(a NumPy gray image") as info:
         normalise(gray, clips[0].landmarks)
     made = eval(str(info.value).split(": ", 1)[-1][:-1], {"torch": torch, "image": gray})
-    assert normalise(made, clips[0].landmarks)["face"].shape[:2] == (1, 3)
+    assert normalise(made, clips[0].landmarks)["face"].shape[:2] == (1, 1)
+
+
+def test_the_transform_takes_gray_frames_as_the_tracker_does(clips):
+    """``FaceTracker`` tracks ``(B, 1, H, W)`` gray frames; ``NormaliseFaces`` refused ``(T, 1, H, W)`` ("gray
+    frames: frames.expand(-1, 3, -1, -1)"). It takes them now, float or uint8, and normalises them into gray faces
+    ``(T, 1, S, S)``: the items of the same frames made RGB (``expand``), to float rounding (the luminance of three
+    equal channels is the gray level to 1 ulp: parameters measured within 3e-5 (translation, mm), faces within one
+    uint8 level of each channel)."""
+    frames = read_video_uint8(clips[0].video)  # (T, 3, H, W) uint8
+    gray = frames.float().mean(1, keepdim=True).round().to(torch.uint8)  # (T, 1, H, W)
+    normalise = NormaliseFaces(TRACKING)
+    for clip in (gray, gray.float() / 255.0):
+        item = normalise(clip, clips[0].landmarks)
+        rgb = normalise(clip.expand(-1, 3, -1, -1), clips[0].landmarks)
+        assert item["face"].shape == (FRAMES, 1, 32, 32) and item["mask"].shape == (FRAMES, 1, 32, 32)
+        for key, value in rgb.items():
+            if key == "face":
+                assert all(float((item["face"][:, 0] - value[:, c]).abs().max()) <= 1.01 / 255 for c in range(3))
+            elif value.is_floating_point():
+                assert torch.allclose(item[key], value, rtol=0.0, atol=1e-3), key
+            else:
+                assert torch.equal(item[key], value), key
+        assert bool(item["success"].all()) and float(item["confidence"].min()) > 0.5
+    # one kind per sequence (the faces stack): a gray frame after RGB ones is refused, saying so
+    with pytest.raises(ValueError, match=r"frame 2 is gray \(1, H, W\) but the sequence started RGB"):
+        normalise.track(iter([frames[0], frames[1], gray[2]]), clips[0].landmarks)
+    with pytest.raises(ValueError, match=r"\(T, 3, H, W\) RGB or \(T, 1, H, W\) gray tensor, got \(6, 2, "):
+        normalise(frames[:, :2], clips[0].landmarks)
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float64])
@@ -686,11 +712,11 @@ def test_a_streamed_numpy_frame_is_told_the_trackers_recipe_for_one_frame(dtype)
                            + says) as info:  # fmt: skip
             normalise.track(iter([image]), np.zeros((68, 2)))
         hint = str(info.value).split("got a numpy array", 1)[1]
-        assert hint == not_tensor_hint(image, to_float=False, rgb_only=True, layout="(3, H, W)", one_frame=True)
+        assert hint == not_tensor_hint(image, to_float=False, layout="(3, H, W)", one_frame=True)
         recipe = hint[2:-1].split(": ", 1)[1].split(";")[0].split(", laid out")[0]  # (the text in " (...)")
         made = eval(recipe, {"torch": torch, "image": image.copy(), "array": image.copy()})
-        frame = _frame_tensor(made, 0, None)  # taken: (1, 3, H, W) float32 in [0, 1], RGB
-        assert frame.shape == (1, 3, 24, 32)
+        frame = _frame_tensor(made, 0, None)  # taken: (1, C, H, W) float32 in [0, 1], RGB or gray (C = 1)
+        assert frame.shape == (1, 1 if image.ndim == 2 else 3, 24, 32)
         if image.ndim == 3 and image.shape[-1] == 3:  # the BGR image's recipe gives back the RGB frame
             assert torch.allclose(frame[0], torch.from_numpy(rgb.astype(np.float64) / scale).permute(2, 0, 1).float())
 
@@ -1001,3 +1027,70 @@ def test_a_dataset_without_a_detector_shares_no_detection_store(clips, config):
         shared = sum(t.untyped_storage().nbytes() for t in vars(data).values()
                      if isinstance(t, torch.Tensor) and t.is_shared())  # fmt: skip
         assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2))
+
+
+def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, tmp_path):
+    """One bad video stopped the whole epoch, with no way on. ``DatasetConfig(keep_going=True)`` skips it as
+    ``torchface track --keep-going`` does: a warning naming it, a record in ``data.skipped`` (its workers' too), its
+    items left out and the others' as they were; not tried again in later epochs. A video that cannot be counted
+    counts 0; one that fails only when tracked keeps its count. The default stays strict."""
+    import warnings
+
+    from training_hooks import SkippedVideoWarning
+
+    bad = tmp_path / "bad.avi"
+    bad.write_bytes(b"not a video" * 100)
+    videos = [clips[0].video, bad, clips[1].video]
+    landmarks = [clips[0].landmarks, clips[0].landmarks, clips[1].landmarks + 1000.0]  # video 2: outside its frame
+    with pytest.raises(InputError, match="bad.avi"):
+        list(VideoDataset(videos, landmarks, config))
+    with pytest.raises(InputError, match="outside"):
+        list(VideoDataset(videos[2:], landmarks[2:], config))
+    with pytest.raises(TypeError, match="keep_going"):
+        DatasetConfig(keep_going="yes")
+    reference = list(VideoDataset(videos[:1], landmarks[:1], config))
+    going = replace(config, keep_going=True)
+    data = VideoDataset(videos, landmarks, going)
+    assert data.skipped == {}
+    with pytest.warns(SkippedVideoWarning) as said:
+        items = list(data)
+    assert sorted(str(w.message).split(" (video")[0] for w in said) == [f"skipped {bad}", f"skipped {videos[2]}"]
+    assert [(int(i["video"]), int(i["frame"])) for i in items] == [(0, t) for t in range(FRAMES)]
+    assert all(torch.equal(a[k], b[k]) for a, b in zip(items, reference) for k in a if k != "cached")
+    assert sorted(data.skipped) == [1, 2]
+    assert data.skipped[1].startswith(f"{bad}: ") and "outside" in data.skipped[2]
+    assert data.skipped[2].startswith(f"{videos[2]}: ") and str(videos[2]) not in data.skipped[2][len(str(videos[2])):]
+    with warnings.catch_warnings():  # a later epoch: the skipped videos are not tried again (no second warning)
+        warnings.simplefilter("error")
+        assert [(int(i["video"]), int(i["frame"])) for i in data] == [(0, t) for t in range(FRAMES)]
+    # counts: the video that cannot be decoded counts 0 (skipped there), the one that fails when tracked keeps its own
+    fresh = VideoDataset(videos, landmarks, going)
+    with pytest.warns(SkippedVideoWarning, match="bad.avi"):
+        assert fresh.count_items() == [FRAMES, 0, FRAMES]
+    assert list(fresh.skipped) == [1]
+    # DataLoader workers (video 1 -> worker 1, videos 0 and 2 -> worker 0): their records reach the caller's dataset
+    loaded = VideoDataset(videos, landmarks, going)
+    with warnings.catch_warnings():  # (the workers' warnings go to their stderr; forked, they keep this filter)
+        warnings.simplefilter("ignore", SkippedVideoWarning)
+        batches = list(DataLoader(loaded, batch_size=4, num_workers=2, multiprocessing_context="fork"))
+    assert sorted(int(v) for b in batches for v in b["video"]) == [0] * FRAMES
+    assert loaded.skipped == data.skipped
+
+
+def test_len_and_indexing_say_what_to_use_instead(clips, config):
+    """An iterable dataset: ``data[0]`` was torch's "Subclasses of Dataset should implement __getitem__" (a
+    NotImplementedError, read as a bug), ``len(data)`` "has no len()" without a word of counting. Both are a
+    TypeError that says what to use; what takes "no length" from a TypeError (list(), a DataLoader, Lightning)
+    works as before."""
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    with pytest.raises(TypeError, match=r"has no len\(\): count its items without tracking with sum\(data\.count"):
+        len(data)
+    with pytest.raises(TypeError, match=r"has no len\(\)"):
+        len(DataLoader(data, batch_size=2))
+    with pytest.raises(TypeError, match=r"no items by index: iterate it .*data\.sequence\(i\)\[0\]"):
+        data[0]
+    items = list(data)  # (list() asks for a length hint: a TypeError is "none")
+    assert len(items) == sum(data.count_items()) == FRAMES
+    sequence, _ = data.sequence(0)  # the recipe: frame t's item
+    assert all(torch.equal(sequence.item(3)[k], items[3][k]) for k in sequence.item(3))
+    assert len(list(DataLoader(data, batch_size=4))) == 2

@@ -304,6 +304,33 @@ def test_ranks_yield_equal_counts_per_worker_by_default(uneven, config, monkeypa
     assert fresh.count_items() == list(LENGTHS)
 
 
+def test_skipped_videos_keep_the_ranks_counts_equal(uneven, config, monkeypatch):
+    """``DatasetConfig(keep_going=True)`` under DDP: a skipped video must not leave its rank short of items (DDP hangs
+    at the end of the epoch). Video 4 (rank 0, worker 0) fails when tracked (landmarks outside its frame): it keeps
+    its count and its worker repeats its other video's items in its place; video 3 (rank 1, worker 1) cannot be read
+    at all: it counts 0 on every rank, and its worker repeats those of its worker's videos on the other rank. Every
+    worker yields the balanced count, as without a skip."""
+    from training_hooks import SkippedVideoWarning
+
+    videos, landmarks = list(uneven[0]), list(uneven[1])
+    landmarks[4] = landmarks[4] + 1000.0
+    broken = videos[3].with_name("broken.npy")
+    broken.write_bytes(b"not an array" * 10)
+    videos[3] = broken
+    data = VideoDataset(videos, landmarks, replace(config, keep_going=True))
+    with pytest.warns(SkippedVideoWarning) as said:
+        ranks = [epoch(data, monkeypatch, r, 2, 2) for r in range(2)]
+    assert sorted(data.skipped) == [3, 4] and len(said) == 2
+    assert [[len(w) for w in r] for r in ranks] == [[10, 5], [10, 5]]
+    assert ranks[0] == [[(0, t) for t in range(6)] + [(0, t) for t in range(4)], [(2, t) for t in range(5)]]
+    assert ranks[1] == [[(1, t % 2) for t in range(10)], [(2, t) for t in range(5)]]
+    assert data.count_items() == [6, 2, 5, 0, 4]
+    assert [data.worker_items(w, 2, r, 2) for r in range(2) for w in range(2)] == [10, 5, 10, 5]
+    drop = VideoDataset(videos, landmarks, replace(config, keep_going=True, rank_balance=RankBalance.DROP))
+    with pytest.warns(SkippedVideoWarning):
+        assert [[len(w) for w in epoch(drop, monkeypatch, r, 2, 2)] for r in range(2)] == [[2, 0], [2, 0]]
+
+
 def test_drop_and_uneven_rank_balance(uneven, config, monkeypatch):
     """RankBalance.DROP: each worker yields as few as the same worker of the emptiest rank (the first ones of its
     own); UNEVEN: the rank's own items, as before."""

@@ -56,6 +56,11 @@ class TinyModel(pl.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.1)
 
 
+# TinyModel has a validation_step; a module without validation data has Lightning say it skips the loop (its notice,
+# right for these tests' model; before, the module's [] drew "Total length of `list` across ranks is zero" instead).
+NO_VAL_NOTICE = pytest.mark.filterwarnings(r"ignore:You defined a `validation_step` but have no `val_dataloader`")
+
+
 def test_callback_logs_batch_and_epoch_quality(clips, config):
     from training_hooks.lightning import TrackedFaceDataModule, TrackingQualityCallback
 
@@ -102,6 +107,7 @@ def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
         TrackedFaceDataModule(clip_data, num_workers=-1)
 
 
+@NO_VAL_NOTICE
 def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, config):
     """Lightning builds the training loader once and calls ``set_epoch`` on samplers alone (an iterable dataset's
     loader has none): with the trainer's defaults every epoch repeated epoch 0's shuffled order. Each epoch now
@@ -132,3 +138,132 @@ def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, c
     )  # fmt: skip
     trainer.fit(module, datamodule=TrackedFaceDataModule(data, batch_size=4, num_workers=0))
     assert [module.seen[e] for e in range(3)] == expected
+
+
+def test_datamodule_passes_the_loader_settings_through(clips, config):
+    """``TrackedFaceDataModule`` took batch size, workers and collate alone: ``pin_memory``, ``persistent_workers``,
+    ``prefetch_factor``, ``multiprocessing_context``, ``drop_last`` and ``timeout`` were a TypeError. Both loaders get
+    them (``drop_last`` the training one only); the defaults: persistent workers when there are workers, pinned
+    memory when the trainer runs on a CUDA device; settings a ``DataLoader`` would refuse later are refused here."""
+    from types import SimpleNamespace
+
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    module = TrackedFaceDataModule(
+        data, val=data, batch_size=2, num_workers=2, pin_memory=False, persistent_workers=False, prefetch_factor=3,
+        multiprocessing_context="spawn", drop_last=True, timeout=30.0,
+    )  # fmt: skip
+    for loader, last in ((module.train_dataloader(), True), (module.val_dataloader(), False)):
+        assert (loader.num_workers, loader.pin_memory, loader.persistent_workers, loader.prefetch_factor) == (2, False,
+                                                                                                            False, 3)
+        assert loader.multiprocessing_context.get_start_method() == "spawn"
+        assert (loader.drop_last, loader.timeout) == (last, 30.0)
+    # defaults: persistent workers with workers (none to keep without), pinning as the trainer's device says
+    defaults = TrackedFaceDataModule(data, val=data, num_workers=2)
+    assert defaults.train_dataloader().persistent_workers and defaults.val_dataloader().persistent_workers
+    assert not TrackedFaceDataModule(data).train_dataloader().persistent_workers
+    assert not defaults.train_dataloader().pin_memory  # (no trainer)
+    for device, pinned in (("cuda", True), ("cpu", False)):
+        defaults.trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device(device)), current_epoch=0)
+        assert defaults.val_dataloader().pin_memory is pinned
+    defaults.trainer = None
+    for bad, error, says in (
+        (dict(persistent_workers=True), ValueError, "persistent_workers=True needs num_workers > 0"),
+        (dict(prefetch_factor=2), ValueError, "prefetch_factor=2 needs num_workers > 0"),
+        (dict(multiprocessing_context="spawn"), ValueError, "needs num_workers > 0"),
+        (dict(timeout=5), ValueError, "timeout=5.0 needs num_workers > 0"),
+        (dict(num_workers=1, multiprocessing_context="spwan"), ValueError, "multiprocessing_context must be one of"),
+        (dict(num_workers=1, multiprocessing_context=3), TypeError, "multiprocessing_context must be"),
+        (dict(num_workers=1, prefetch_factor=0), ValueError, "prefetch_factor"),
+        (dict(num_workers=1, timeout=-1.0), ValueError, "timeout must be finite seconds >= 0"),
+        (dict(num_workers=1, timeout=float("nan")), ValueError, "timeout must be finite seconds >= 0"),
+        (dict(pin_memory="yes"), TypeError, "pin_memory"),
+        (dict(drop_last=1), TypeError, "drop_last"),
+    ):
+        with pytest.raises(error, match=says):
+            TrackedFaceDataModule(data, **bad)
+
+
+@NO_VAL_NOTICE
+def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
+    """Two persistent workers (the default with workers) over three epochs of a trainer: each epoch's items are the
+    epoch's ``set_epoch`` order of two workers (the workers, kept, see the epoch through the dataset's shared
+    memory), and the same whatever torch's random state (the shuffling is seeded by ``DatasetConfig.seed``)."""
+    from torch.utils.data import DataLoader
+
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    shuffled = replace(config, shuffle_buffer=8)
+    data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], shuffled)
+    expected = []
+    for epoch in range(3):
+        data.set_epoch(epoch)  # (fills the cache: the workers read it)
+        order = [(v, f) for b in DataLoader(data, batch_size=4, num_workers=2)
+                 for v, f in zip(b["video"].tolist(), b["frame"].tolist())]  # fmt: skip
+        expected.append(order)
+    assert expected[0] != expected[1] and expected[1] != expected[2]
+
+    class Recorder(TinyModel):
+        def __init__(self) -> None:
+            super().__init__()
+            self.seen: dict[int, list[tuple[int, int]]] = {}
+
+        def training_step(self, batch, batch_idx):
+            order = self.seen.setdefault(self.current_epoch, [])
+            order.extend(zip(batch["video"].tolist(), batch["frame"].tolist()))
+            return super().training_step(batch, batch_idx)
+
+    torch.manual_seed(1234)
+    module = Recorder()
+    data.set_epoch(0)
+    datamodule = TrackedFaceDataModule(data, batch_size=4, num_workers=2)
+    trainer = pl.Trainer(
+        max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        accelerator="cpu", num_sanity_val_steps=0,
+    )  # fmt: skip
+    trainer.fit(module, datamodule=datamodule)
+    assert datamodule.persistent_workers
+    assert [module.seen[e] for e in range(3)] == expected
+
+
+@NO_VAL_NOTICE
+def test_datamodule_without_validation_data_runs_no_validation_loop_without_a_word(clips, config):
+    """Without ``val``, the module's ``val_dataloader`` gave ``[]``, which the trainer asked for and warned about at
+    every fit ("Total length of `list` across ranks is zero. Please make sure this was your intention."). It now
+    shows as not implemented, as in a ``LightningDataModule`` without one: no validation, no such warning (Lightning's
+    own "no `val_dataloader`" notice for a module with a ``validation_step``). With ``val``, validation runs."""
+    import copy
+    import pickle
+    import warnings
+
+    from lightning.pytorch.utilities.model_helpers import is_overridden
+
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    list(data)  # (fills the cache)
+    none = TrackedFaceDataModule(data, batch_size=4)
+    assert not is_overridden("val_dataloader", none) and none.val_dataloader() == []
+    assert is_overridden("val_dataloader", TrackedFaceDataModule(data, val=data))
+    for again in (pickle.loads(pickle.dumps(none)), copy.deepcopy(none)):
+        assert not is_overridden("val_dataloader", again) and again.val_dataloader() == []
+        assert again.val_dataloader.args[0] is again  # (bound to the copy, not to the original)
+
+    class Counting(TinyModel):
+        validated = 0
+
+        def validation_step(self, batch, batch_idx):
+            Counting.validated += 1
+
+    for module, expected in ((none, 0), (TrackedFaceDataModule(data, val=data, batch_size=4), 2)):
+        Counting.validated = 0
+        trainer = pl.Trainer(
+            max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+            enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0,
+        )  # fmt: skip
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            trainer.fit(Counting(), datamodule=module)
+        assert Counting.validated == expected
+        assert not [w for w in caught if "Total length" in str(w.message)], [str(w.message) for w in caught]
