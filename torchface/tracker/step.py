@@ -22,6 +22,7 @@ from torch import Tensor
 from torchface import _native
 from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
+from torchface._device import check_holds_data
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
@@ -41,8 +42,8 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks, fit_landmarks,
-    landmark_targets,
+    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks, check_pixel_landmarks,
+    fit_landmarks, landmark_targets,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -823,6 +824,7 @@ def check_frames(
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
                         f"got {type(frames).__name__}{not_tensor_hint(frames)}")  # fmt: skip
+    check_holds_data(frames, "frames")
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
         raise ValueError(
             f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
@@ -927,6 +929,9 @@ def check_initialise_inputs(
         raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
     if weights is not None and tuple(weights.shape) != (B, K):
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
+    if weights is not None:
+        check_holds_data(weights, "weights")
+    check_pixel_landmarks(landmarks_px, frames.shape[-1], frames.shape[-2], weights)  # (not MediaPipe's [0, 1])
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
 
