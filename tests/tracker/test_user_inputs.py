@@ -136,3 +136,16 @@ def test_landmarks_that_are_not_a_tensor_are_told_how_to_make_one(clip, make, hi
                                         + hint):  # fmt: skip
         FaceTracker(CFG).initialise(frames[:1], make(lm))
     assert int(FaceTracker(CFG).initialise(frames[:1], torch.from_numpy(lm.numpy())[None]).status) == CONVERGED
+
+
+def test_frames_of_another_batch_size_are_told_how_the_streams_change(clip):
+    """A step given more or fewer frames than the streams initialised (a person entering or leaving a multi-stream
+    run) was told "expected 2 frames (one per stream), got 1" alone; it names ``select`` and ``initialise``, and the
+    ``select`` it names then takes the frame."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    tracker.initialise(frames[:2], lm[None].expand(2, -1, -1))
+    with pytest.raises(ValueError, match=r"^expected 2 frames \(one per stream\), got 1: the streams are those "
+                                         r"initialised \(select\(index\) keeps some of them, initialise starts"):
+        tracker(frames[1:2])
+    assert bool(tracker.select([0])(frames[1:2]).success)

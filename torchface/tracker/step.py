@@ -1215,7 +1215,10 @@ def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "Tracker
     check_reverse_mode("a tracking step", frames, state.params, state.shape_coeffs)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
-        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+        # (a stream added or dropped mid-run was told no more than the count)
+        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}: the "
+                         "streams are those initialised (select(index) keeps some of them, initialise starts "
+                         "another batch)")  # fmt: skip
     check_state_levels(config, state)
     check_state_model(model, state)
 
