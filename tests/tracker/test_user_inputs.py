@@ -149,3 +149,35 @@ def test_frames_of_another_batch_size_are_told_how_the_streams_change(clip):
                                          r"initialised \(select\(index\) keeps some of them, initialise starts"):
         tracker(frames[1:2])
     assert bool(tracker.select([0])(frames[1:2]).success)
+
+
+def test_a_landmarks_file_of_normalised_coordinates_is_refused_naming_it(tmp_path):
+    """``read_landmarks`` (``torchface track --landmarks``, ``training_hooks``' landmark files) read a file of
+    MediaPipe's normalised points as pixels: ``torchface track`` then tracked the video as a face under a pixel wide,
+    every row unsuccessful, exit status 0. It names the file and the pixels to give; a file of pixels, and one whose
+    missing points are NaN beside points in pixels, read as before."""
+    from torchface.io import InputError, read_landmarks
+
+    _, lm, _ = sideways_clip(W, H, 1)
+    path = tmp_path / "mediapipe.csv"
+    rows = normalised(lm).double().tolist()
+    path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in rows))
+    with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[0, 1\] x \[0, 1\]: normalised "
+                                         r"coordinates .* Give pixels, centres at integers: x \* 160 - 0.5, "
+                                         r"y \* 120 - 0.5$"):  # fmt: skip
+        read_landmarks(path, W, H)
+    pixels = [[x * W - 0.5, y * H - 0.5] for x, y in rows]
+    path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in pixels))
+    assert torch.allclose(torch.from_numpy(read_landmarks(path, W, H)), lm.double(), atol=1e-4)
+    path.write_text("x,y\n" + "".join("nan,nan\n" if k < 60 else f"{x!r},{y!r}\n" for k, (x, y) in enumerate(pixels)))
+    assert int(torch.isfinite(torch.from_numpy(read_landmarks(path, W, H))).all(-1).sum()) == 8
+
+
+def test_landmarks_checked_before_the_frame_size_is_known_are_told_the_rule(clip):
+    """``training_hooks`` checks a video's landmark array before it reads the video, with a size of 2**30: the
+    refusal of normalised points gives the rule then, not ``x * 1073741824``."""
+    from torchface.io import InputError, check_landmarks
+
+    _, lm = clip
+    with pytest.raises(InputError, match=r"^a.avi: landmarks: every point .* x \* W - 0.5, y \* H - 0.5$"):
+        check_landmarks(normalised(lm).numpy(), 1 << 30, 1 << 30, "a.avi: landmarks", missing=True)
