@@ -112,10 +112,10 @@ def check_holds_data(tensor: torch.Tensor, name: str) -> None:
     about ``torch.nonzero``'s meta registration (landmarks).
 
     Example:
-        >>> check_holds_data(torch.zeros(1, 3, 4, 4, device="meta"), "frames")
+        >>> check_holds_data(torch.zeros(1, 3, 4, 4, device="meta"), "frames")  # doctest: +ELLIPSIS
         Traceback (most recent call last):
             ...
-        ValueError: frames are on device 'meta', which holds no values: pass them on a device that computes (they are moved to the model's)
+        ValueError: frames are on device 'meta', which holds no values: pass them on a device that computes ...
     """
     if tensor.device.type == "meta":
         raise ValueError(f"{name} are on device 'meta', which holds no values: pass them on a device that computes "

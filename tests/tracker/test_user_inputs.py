@@ -87,7 +87,8 @@ def test_landmarks_in_normalised_coordinates_are_told_how_to_make_pixels(clip):
 @pytest.mark.parametrize(
     "landmarks, status",
     [
-        (lambda lm: torch.stack([normalised(lm), lm]), [FAILED, CONVERGED]),  # a stream in pixels: the other fails alone
+        # a stream in pixels: the other fails alone
+        (lambda lm: torch.stack([normalised(lm), lm]), [FAILED, CONVERGED]),
         (lambda lm: torch.zeros(2, 68, 2), [FAILED, FAILED]),  # zeros for "no face": at one point, as before
         (lambda lm: normalised(lm).where(torch.arange(68)[:, None] < 3, float("nan"))[None].expand(2, -1, -1),
          [FAILED, FAILED]),  # fewer than 4 landmarks: no face found, as before
@@ -181,3 +182,20 @@ def test_landmarks_checked_before_the_frame_size_is_known_are_told_the_rule(clip
     _, lm = clip
     with pytest.raises(InputError, match=r"^a.avi: landmarks: every point .* x \* W - 0.5, y \* H - 0.5$"):
         check_landmarks(normalised(lm).numpy(), 1 << 30, 1 << 30, "a.avi: landmarks", missing=True)
+
+
+def test_saved_results_load_with_torchs_weights_only_load_as_the_docs_say(clip, tmp_path):
+    """docs/python-api.md, "Selecting, copying and saving": results saved with ``torch.save`` load with torch's
+    weights-only ``torch.load`` once ``TrackResult`` is named (``safe_globals``), every field as it was."""
+    from torchface.tracker import TrackResult
+
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    results = [tracker.initialise(frames[:1], lm[None]), tracker(frames[1:2])]
+    torch.save(results, tmp_path / "results.pt")
+    with torch.serialization.safe_globals([TrackResult]):
+        loaded = torch.load(tmp_path / "results.pt", weights_only=True)
+    for a, b in zip(loaded, results):
+        assert type(a) is TrackResult and a.anim_names == b.anim_names
+        for name in ("rotation", "translation", "status", "confidence"):
+            assert torch.equal(getattr(a, name), getattr(b, name))
