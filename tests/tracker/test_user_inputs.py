@@ -199,3 +199,16 @@ def test_saved_results_load_with_torchs_weights_only_load_as_the_docs_say(clip, 
         assert type(a) is TrackResult and a.anim_names == b.anim_names
         for name in ("rotation", "translation", "status", "confidence"):
             assert torch.equal(getattr(a, name), getattr(b, name))
+
+
+def test_a_model_given_as_the_first_argument_is_told_where_it_goes():
+    """``FaceTracker(model)`` (the model first, as other libraries' modules take it) said "config must be a
+    TrackerConfig, got FaceModel" alone."""
+    from torchface.model import load_candide3
+
+    model = load_candide3()
+    with pytest.raises(TypeError, match=r"^config must be a TrackerConfig, got FaceModel: the model is the second "
+                                        r"argument, FaceTracker\(TrackerConfig\(\), model\) or "
+                                        r"FaceTracker\(model=model\)$"):
+        FaceTracker(model)  # type: ignore[arg-type]
+    assert FaceTracker(model=model).model is model
