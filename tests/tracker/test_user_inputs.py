@@ -212,3 +212,16 @@ def test_a_model_given_as_the_first_argument_is_told_where_it_goes():
                                         r"FaceTracker\(model=model\)$"):
         FaceTracker(model)  # type: ignore[arg-type]
     assert FaceTracker(model=model).model is model
+
+
+def test_frames_of_another_size_mid_stream_are_told_to_initialise_again(clip):
+    """A step given frames of another size than the stream's (the next video in a loop) said the size alone; it says
+    how to track them, and the ``initialise`` it names does."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    tracker.initialise(frames[:1], lm[None])
+    smaller = frames[1:2, :, : H - 20, : W - 20]
+    with pytest.raises(ValueError, match=r"^frames must be 160x120 \(W x H, the tracked size\), got 140x100: a stream "
+                                         r"keeps its size, initialise again to track frames of another$"):
+        tracker(smaller)
+    assert bool(tracker.initialise(smaller, lm[None]).success)

@@ -833,9 +833,12 @@ def check_frames(
     if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
         # W x H, as everywhere else (it said H x W: a tracker of 1920x1080 frames handed a portrait 1080x1920 frame
         # read "frames must be 1080x1920 (the tracked size), got 1920x1080")
+        # (mid-stream, a new video's frames were told the size alone)
+        tracked = size_of == "the tracked size"
+        hint = ": a stream keeps its size, initialise again to track frames of another" if tracked else ""
         raise ValueError(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, {size_of}), got "
-            f"{frames.shape[-1]}x{frames.shape[-2]}"
+            f"{frames.shape[-1]}x{frames.shape[-2]}{hint}"
         )
     if values:
         check_frame_values(frames, row_stride)
