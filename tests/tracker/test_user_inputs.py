@@ -225,3 +225,31 @@ def test_frames_of_another_size_mid_stream_are_told_to_initialise_again(clip):
                                          r"keeps its size, initialise again to track frames of another$"):
         tracker(smaller)
     assert bool(tracker.initialise(smaller, lm[None]).success)
+
+
+def test_the_packaged_grid_clip_tracks_from_python_as_the_docs_say():
+    """docs/python-api.md, "Frames and landmarks": ``open_frames`` and ``read_landmarks`` give what ``FaceTracker``
+    takes, RGB frames in [0, 1] (the BGR recipe for an OpenCV image gives the same values) and pixel landmarks, and
+    the packaged GRID clip tracks from them, step by step as the page writes it."""
+    import cv2
+    import numpy as np
+
+    from torchface.io import open_frames, read_landmarks
+
+    root = Path(__file__).resolve().parents[2] / "torchface" / "data" / "grid"
+    with open_frames(root / "bbaf2n.mpg") as reader:
+        first = next(reader)
+        landmarks = torch.from_numpy(read_landmarks(root / "bbaf2n_landmarks68.csv", reader.info.width,
+                                                    reader.info.height))[None]  # fmt: skip
+        tracker = FaceTracker(CFG)
+        results = [tracker.initialise(first[None], landmarks)]
+        for _, frame in zip(range(3), reader):
+            results.append(tracker(frame[None]))
+    assert first.shape == (3, 288, 360) and first.dtype == torch.float32
+    capture = cv2.VideoCapture(str(root / "bbaf2n.mpg"))
+    ok, image = capture.read()
+    capture.release()
+    assert ok
+    recipe = torch.from_numpy(np.ascontiguousarray(image[..., ::-1])).permute(2, 0, 1)[None].float() / 255
+    assert torch.equal(recipe[0], first)
+    assert all(bool(r.success) for r in results) and len(results) == 4
