@@ -364,7 +364,7 @@ def check_pixel_landmarks(
     """Refuse ``(B, K, 2)`` landmarks given in normalised image coordinates (x / W, y / H in [0, 1], as MediaPipe's
     face landmarker gives them) instead of pixels, with a ``ValueError`` that says how to make pixels of them.
 
-    They are refused where every stream with at least :data:`MIN_FIT_LANDMARKS` landmarks (finite, of positive
+    They are refused where every stream with at least :data:`MIN_FIT_LANDMARKS` landmarks (finite, of finite positive
     ``weights`` ``(B, K)`` where given) has all of them in ``[0, 1] x [0, 1]``, not all at one point, and none lies
     outside: such landmarks spread less than a pixel about their centroid (at most 0.71 px RMS), so the landmark fit
     FAILED every stream (:func:`fit_landmarks`) and the tracker reported status 2 with no word of why. A batch where
@@ -389,7 +389,8 @@ def check_pixel_landmarks(
     lm = landmarks_px.detach().to(torch.float64)
     given = torch.isfinite(lm).all(-1)  # (B, K)
     if weights is not None and tuple(weights.shape) == tuple(given.shape):
-        given = given & (weights.detach().to(lm.device) > 0)
+        w = weights.detach().to(lm)
+        given = given & torch.isfinite(w) & (w > 0)  # (the points landmark_targets weighs)
     usable = given.sum(-1) >= MIN_FIT_LANDMARKS  # (B,)
     inside = (((lm >= 0) & (lm <= 1)).all(-1) | ~given).all(-1)
     points = given.unsqueeze(-1)
