@@ -17,7 +17,10 @@ from torch import nn
 
 _Module = TypeVar("_Module", bound="DeviceCheckedModule")
 
-__all__ = ["DeviceCheckedModule", "available_devices", "check_cuda_device", "check_device", "check_to_device"]
+__all__ = [
+    "DeviceCheckedModule", "available_devices", "check_cuda_device", "check_device", "check_holds_data",
+    "check_to_device",
+]
 
 
 def available_devices() -> list[str]:
@@ -100,6 +103,23 @@ def check_device(device: torch.device | str | int | None) -> torch.device | None
         detail = " ".join(str(exc).split()) or type(exc).__name__
         raise ValueError(f"device {name!r} is not available here ({detail}); {here}") from None
     return parsed
+
+
+def check_holds_data(tensor: torch.Tensor, name: str) -> None:
+    """Refuse an input ``tensor`` (frames, landmarks, weights: ``name``) on the ``meta`` device, which holds shapes and
+    no values, with a ``ValueError`` naming it. Inputs on any other device are moved to the model's; a meta one failed
+    there, deep inside, with torch's "Cannot copy out of meta tensor; no data!" (frames) or a ``NotImplementedError``
+    about ``torch.nonzero``'s meta registration (landmarks).
+
+    Example:
+        >>> check_holds_data(torch.zeros(1, 3, 4, 4, device="meta"), "frames")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+            ...
+        ValueError: frames are on device 'meta', which holds no values: pass them on a device that computes ...
+    """
+    if tensor.device.type == "meta":
+        raise ValueError(f"{name} are on device 'meta', which holds no values: pass them on a device that computes "
+                         "(they are moved to the model's)")  # fmt: skip
 
 
 def check_to_device(*args: object, **kwargs: object) -> None:

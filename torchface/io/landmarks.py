@@ -556,8 +556,9 @@ def check_landmarks(
 
     Raises:
         InputError: not real numbers (bool, complex, text), wrong count, non-finite values (with ``missing``:
-            infinite ones, a row with one coordinate NaN, or fewer than 4 points given), or (more than
-            ``1 - min_inside`` of the) points outside the frame.
+            infinite ones, a row with one coordinate NaN, or fewer than 4 points given), (more than
+            ``1 - min_inside`` of the) points outside the frame, or points all within ``[0, 1] x [0, 1]`` and not
+            all at one point (normalised coordinates, MediaPipe's, not pixels).
     """
     dtype = np.asarray(points).dtype
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):  # (complex: its imaginary part
@@ -588,6 +589,16 @@ def check_landmarks(
         raise InputError(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
             f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
+        )
+    kept = points[given]
+    if len(kept) and ((kept >= 0) & (kept <= 1)).all() and np.ptp(kept, axis=0).max() > 0:
+        # (MediaPipe's normalised points passed as pixels: a face under a pixel wide, whose fit failed: every row
+        # of the video unsuccessful; the tracker's initialise refuses them too, naming no file)
+        # (training_hooks checks an array before it knows the frame size, with a size of 2**30: no numbers then)
+        w, h = (str(width), str(height)) if max(width, height) < 1 << 30 else ("W", "H")
+        raise InputError(
+            f"{where}: every point lies within [0, 1] x [0, 1]: normalised coordinates (x / W, y / H, as MediaPipe "
+            f"writes them)? Give pixels, centres at integers: x * {w} - 0.5, y * {h} - 0.5"
         )
     return points
 

@@ -61,7 +61,7 @@ from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import DeviceCheckedModule, check_device
+from torchface._device import DeviceCheckedModule, check_device, check_holds_data
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -470,6 +470,7 @@ def normalised_face(
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}{_not_tensor_hint(frames)}")
+    check_holds_data(frames, "frames")
     if frames.dim() != 4 or not frames.is_floating_point():
         raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
                          f"{_frame_hint(frames)}")  # fmt: skip

@@ -17,7 +17,8 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
-from torchface._device import check_device
+from torchface._compiling import is_compiling
+from torchface._device import check_device, check_holds_data
 from torchface.geometry._checks import (
     check_bool, check_int, check_intrinsics, check_optional_int, check_optional_real, check_real,
 )
@@ -313,13 +314,30 @@ def landmark_targets(landmarks_px: Tensor, weights: Tensor | None = None) -> tup
     return torch.where(finite, landmarks_px, torch.zeros_like(landmarks_px)), w
 
 
+def _landmarks_hint(landmarks_px: object, shape: str) -> str:
+    """How to pass landmarks that are not a tensor as the ``shape`` wanted (``"(B, 68, 2)"``, ``"(L, 2)"``), for
+    :func:`check_landmark_type`'s message: a NumPy array (what :func:`torchface.io.read_landmarks` returns, ``(K, 2)``
+    float64: it said "got ndarray" alone), a list or tuple of points; empty for anything else."""
+    wanted = shape.count(",") + 1
+    ndim = getattr(landmarks_px, "ndim", None)
+    if type(landmarks_px).__name__ == "ndarray" and isinstance(ndim, int):
+        if wanted == 3 and ndim == 2:
+            return " (a NumPy array of one stream's (K, 2) points, as read_landmarks gives them: " \
+                "torch.from_numpy(points)[None])"
+        return " (a NumPy array: torch.from_numpy(points))"
+    if isinstance(landmarks_px, (list, tuple)):
+        return f" (a {type(landmarks_px).__name__}: torch.tensor(points), laid out {shape})"
+    return ""
+
+
 def check_landmark_type(landmarks_px: object, shape: str) -> None:
     """Refuse ``landmarks_px`` that is not a tensor of real pixel coordinates (a TypeError naming ``shape``, the
     shape expected, e.g. ``"(B, 68, 2)"``): a numpy array failed later with an AttributeError, and bool ones were
     fitted as pixels 0 and 1."""
     if not isinstance(landmarks_px, Tensor):
         raise TypeError(f"landmarks_px must be a torch.Tensor {shape} of pixel coordinates, "
-                        f"got {type(landmarks_px).__name__}")  # fmt: skip
+                        f"got {type(landmarks_px).__name__}{_landmarks_hint(landmarks_px, shape)}")  # fmt: skip
+    check_holds_data(landmarks_px, "landmarks_px")
     if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():
         raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
 
@@ -338,6 +356,54 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
 #: The fewest landmarks (finite, of positive weight) a sample's :func:`fit_landmarks` needs: the pose's six
 #: parameters need as many residuals. A sample with fewer (a frame where no face was found: NaN rows) is FAILED.
 MIN_FIT_LANDMARKS: int = 4
+
+
+def check_pixel_landmarks(
+    landmarks_px: Tensor, width: int, height: int, weights: Tensor | None = None, *, name: str = "landmarks_px"
+) -> None:
+    """Refuse ``(B, K, 2)`` landmarks given in normalised image coordinates (x / W, y / H in [0, 1], as MediaPipe's
+    face landmarker gives them) instead of pixels, with a ``ValueError`` that says how to make pixels of them.
+
+    They are refused where every stream with at least :data:`MIN_FIT_LANDMARKS` landmarks (finite, of finite positive
+    ``weights`` ``(B, K)`` where given) has all of them in ``[0, 1] x [0, 1]``, not all at one point, and none lies
+    outside: such landmarks spread less than a pixel about their centroid (at most 0.71 px RMS), so the landmark fit
+    FAILED every stream (:func:`fit_landmarks`) and the tracker reported status 2 with no word of why. A batch where
+    some stream has landmarks in pixels fails such a stream alone, as before, and so does an answer of zeros for no
+    face (all at one point).
+
+    Args:
+        landmarks_px: ``(B, K, 2)`` landmarks, a tensor (checked by the caller).
+        width: ``W`` of the frames, in pixels.
+        height: ``H`` of the frames, in pixels.
+        weights: ``(B, K)`` landmark weights or None.
+        name: what the message calls the landmarks (``"the detector's landmarks"``).
+
+    Example:
+        >>> check_pixel_landmarks(torch.rand(1, 68, 2), 640, 480)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+            ...
+        ValueError: landmarks_px lie within [0, 1] x [0, 1]: normalised coordinates (x / W, y / H, as MediaPipe ...
+    """
+    if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2 or landmarks_px.numel() == 0 or is_compiling():
+        return
+    lm = landmarks_px.detach().to(torch.float64)
+    given = torch.isfinite(lm).all(-1)  # (B, K)
+    if weights is not None and tuple(weights.shape) == tuple(given.shape):
+        w = weights.detach().to(lm)
+        given = given & torch.isfinite(w) & (w > 0)  # (the points landmark_targets weighs)
+    usable = given.sum(-1) >= MIN_FIT_LANDMARKS  # (B,)
+    inside = (((lm >= 0) & (lm <= 1)).all(-1) | ~given).all(-1)
+    points = given.unsqueeze(-1)
+    lo = torch.where(points, lm, math.inf).amin(1)
+    hi = torch.where(points, lm, -math.inf).amax(1)
+    spread = ((hi - lo).amax(-1) > 0) & usable
+    normalised, in_pixels = usable & inside & spread, usable & ~inside
+    if bool(normalised.any()) and not bool(in_pixels.any()):
+        raise ValueError(
+            f"{name} lie within [0, 1] x [0, 1]: normalised coordinates (x / W, y / H, as MediaPipe gives them)? The "
+            f"tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) - 0.5 for "
+            f"these {width}x{height} frames (a fit to them failed: they span less than a pixel)"
+        )
 
 
 #: The least horizontal extent of a model's landmarks on its mean shape, as a fraction of its surface's width, that

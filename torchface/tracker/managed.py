@@ -104,7 +104,7 @@ from torchface.template.points import (
     select_pixels_posed,
     strided_window,
 )
-from torchface.tracker.fit import LandmarkFit, fit_landmarks
+from torchface.tracker.fit import LandmarkFit, check_pixel_landmarks, fit_landmarks
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
     LookaheadConfig, _refine_starts, _Start, _stream_start, check_refine_first, is_keyframe_turn, is_video_cut,
@@ -728,10 +728,12 @@ def _texture_update(
     return tuple(templates), replace(ms.mosaic, levels=tuple(levels))
 
 
-def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
-    """Refuse what a :data:`LandmarkDetector` answered for ``count`` frames unless it is ``(count, k, 2)`` real pixel
-    landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream silently left LOST), and a numpy
-    array or a list was told its shape was wrong."""
+def _check_detector_output(landmarks: object, count: int, k: int, width: int, height: int) -> Tensor:
+    """Refuse what a :data:`LandmarkDetector` answered for ``count`` frames of ``width x height`` unless it is
+    ``(count, k, 2)`` real pixel landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream
+    silently left LOST), a numpy array or a list was told its shape was wrong, and normalised ones in [0, 1]
+    (a MediaPipe detector's, :func:`~torchface.tracker.fit.check_pixel_landmarks`) failed every fit and left the
+    streams LOST without a word."""
     if not isinstance(landmarks, Tensor):
         raise TypeError(f"the detector must return a ({count}, {k}, 2) tensor of pixel landmarks (NaN rows: no "
                         f"face), got {type(landmarks).__name__}")  # fmt: skip
@@ -740,6 +742,7 @@ def _check_detector_output(landmarks: object, count: int, k: int) -> Tensor:
     if tuple(landmarks.shape) != (count, k, 2):
         got = tuple(landmarks.shape)
         raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
+    check_pixel_landmarks(landmarks, width, height, name="the detector's landmarks")
     return landmarks
 
 
@@ -788,7 +791,9 @@ def _recovery_starts(
     starts = conf_params.clone()
     if detector is not None:
         with torch.no_grad():
-            lm = _check_detector_output(detector(_as_rgb(frames[index])), n, model.num_landmarks)
+            lm = _check_detector_output(
+                detector(_as_rgb(frames[index])), n, model.num_landmarks, frames.shape[-1], frames.shape[-2]
+            )
         lm = lm.to(dtype=model.dtype, device=model.device)
         ok = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
         if bool(ok.any()):
@@ -898,7 +903,9 @@ def _restart(
     ms = cast(ManagementState, state.management)  # managed_step's: a managed state
     index = restart.nonzero().squeeze(-1)
     with torch.no_grad():
-        lm = _check_detector_output(detector(_as_rgb(frames[index])), index.shape[0], model.num_landmarks)
+        lm = _check_detector_output(
+            detector(_as_rgb(frames[index])), index.shape[0], model.num_landmarks, frames.shape[-1], frames.shape[-2]
+        )
     lm = lm.to(dtype=model.dtype, device=model.device)
     found = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
     rows = index[found]

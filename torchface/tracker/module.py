@@ -43,7 +43,10 @@ def check_pyramid(pyramid: object) -> None:
 def _check_setting(name: str, value: Any) -> None:
     """Raise TypeError where ``value`` cannot be the :class:`FaceTracker` setting ``name``."""
     if name == "config" and not isinstance(value, TrackerConfig):
-        raise TypeError(f"config must be a TrackerConfig, got {type(value).__name__}")
+        # (a model given first, as the model comes first in kornia's and torchvision's constructors, was told no more)
+        hint = ": the model is the second argument, FaceTracker(TrackerConfig(), model) or FaceTracker(model=model)" \
+            if isinstance(value, FaceModel) else ""
+        raise TypeError(f"config must be a TrackerConfig, got {type(value).__name__}{hint}")
     if name == "model" and not isinstance(value, FaceModel):
         raise TypeError(f"model must be a FaceModel, got {type(value).__name__}")
     if name == "model":  # a float16 model failed at initialise: '"cholesky_cpu" not implemented for 'Half''

@@ -22,6 +22,7 @@ from torch import Tensor
 from torchface import _native
 from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
+from torchface._device import check_holds_data
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
@@ -41,8 +42,8 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks, fit_landmarks,
-    landmark_targets,
+    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks, check_pixel_landmarks,
+    fit_landmarks, landmark_targets,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -823,6 +824,7 @@ def check_frames(
     if not isinstance(frames, Tensor):
         raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
                         f"got {type(frames).__name__}{not_tensor_hint(frames)}")  # fmt: skip
+    check_holds_data(frames, "frames")
     if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
         raise ValueError(
             f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got {tuple(frames.shape)} "
@@ -831,9 +833,12 @@ def check_frames(
     if intrinsics is not None and tuple(frames.shape[-2:]) != intrinsics.size:
         # W x H, as everywhere else (it said H x W: a tracker of 1920x1080 frames handed a portrait 1080x1920 frame
         # read "frames must be 1080x1920 (the tracked size), got 1920x1080")
+        # (mid-stream, a new video's frames were told the size alone)
+        tracked = size_of == "the tracked size"
+        hint = ": a stream keeps its size, initialise again to track frames of another" if tracked else ""
         raise ValueError(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, {size_of}), got "
-            f"{frames.shape[-1]}x{frames.shape[-2]}"
+            f"{frames.shape[-1]}x{frames.shape[-2]}{hint}"
         )
     if values:
         check_frame_values(frames, row_stride)
@@ -927,6 +932,9 @@ def check_initialise_inputs(
         raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
     if weights is not None and tuple(weights.shape) != (B, K):
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
+    if weights is not None:
+        check_holds_data(weights, "weights")
+    check_pixel_landmarks(landmarks_px, frames.shape[-1], frames.shape[-2], weights)  # (not MediaPipe's [0, 1])
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
 
@@ -1210,7 +1218,10 @@ def check_step_inputs(model: FaceModel, config: "TrackerConfig", state: "Tracker
     check_reverse_mode("a tracking step", frames, state.params, state.shape_coeffs)
     check_frames(frames, state.intrinsics, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     if frames.shape[0] != state.params.shape[0]:
-        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
+        # (a stream added or dropped mid-run was told no more than the count)
+        raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}: the "
+                         "streams are those initialised (select(index) keeps some of them, initialise starts "
+                         "another batch)")  # fmt: skip
     check_state_levels(config, state)
     check_state_model(model, state)
 

@@ -1,0 +1,255 @@
+"""Tests of what a Python user hands ``FaceTracker`` (and the functional pieces and ``NormalisedFace`` behind it) by
+mistake, from session 52's audit of the Python API: inputs on the ``meta`` device, landmarks in MediaPipe's
+normalised coordinates instead of pixels (from the caller and from a detector), and landmarks as NumPy arrays, as
+``torchface.io.read_landmarks`` returns them. Each was an error from deep inside torch, a silent FAILED status, or a
+``TypeError`` that did not say how to make a tensor. A small rendered clip (tests/_helpers.py's, 160x120).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchface.normalise import NormalisedFace
+from torchface.tracker import FaceTracker, FitConfig, TrackerConfig, TrackStatus
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import sideways_clip  # noqa: E402
+
+W, H = 160, 120
+CFG = TrackerConfig(
+    num_levels=2, max_points=400, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
+)
+CONVERGED, FAILED, LOST = int(TrackStatus.CONVERGED), int(TrackStatus.FAILED), int(TrackStatus.LOST)
+
+
+@pytest.fixture(scope="module")
+def clip():
+    """``frames (3, 3, H, W)`` and the first frame's landmarks ``(68, 2)`` in pixels."""
+    frames, landmarks, _ = sideways_clip(W, H, 3)
+    return frames, landmarks
+
+
+def normalised(landmarks: torch.Tensor) -> torch.Tensor:
+    """``landmarks`` ``(..., 2)`` in pixels (centres at integers) as MediaPipe gives them: x / W, y / H of the image's
+    edges, in [0, 1]."""
+    return (landmarks + 0.5) / torch.tensor([float(W), float(H)])
+
+
+def test_inputs_on_the_meta_device_are_named(clip):
+    """Inputs on another device are moved to the model's (docs/python-api.md, "Devices and dtypes"); ``meta`` tensors
+    hold no values to move. They failed deep inside torch: frames with "Cannot copy out of meta tensor; no data!"
+    (a NotImplementedError, at ``initialise``, at a step and in ``NormalisedFace``), landmarks with a
+    NotImplementedError about ``torch.nonzero``'s meta registration."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    message = r"^{} are on device 'meta', which holds no values: pass them on a device that computes"
+    with pytest.raises(ValueError, match=message.format("frames")):
+        tracker.initialise(frames[:1].to("meta"), lm[None])
+    with pytest.raises(ValueError, match=message.format("landmarks_px")):
+        tracker.initialise(frames[:1], lm[None].to("meta"))
+    with pytest.raises(ValueError, match=message.format("weights")):
+        tracker.initialise(frames[:1], lm[None], weights=torch.ones(1, 68, device="meta"))
+    tracker.initialise(frames[:1], lm[None])
+    with pytest.raises(ValueError, match=message.format("frames")):
+        tracker(frames[1:2].to("meta"))
+    assert bool(tracker(frames[1:2]).success)  # (the refused step left the state as it was)
+    with pytest.raises(ValueError, match=message.format("frames")):
+        NormalisedFace(tracker.model)(frames[1:2].to("meta"), tracker.state)
+
+
+def test_landmarks_in_normalised_coordinates_are_told_how_to_make_pixels(clip):
+    """Landmarks in [0, 1] (MediaPipe's face landmarker: x / W, y / H) were taken as pixels: a face less than a pixel
+    wide, which the landmark fit FAILED, and ``initialise`` returned status 2 without a word of why. They are refused
+    with how to make pixels of them, and the pixels made so start the stream as the landmarks in pixels do."""
+    frames, lm = clip
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[0, 1\] x \[0, 1\]: normalised coordinates .*"
+                                         r"landmarks \* torch.tensor\(\[160.0, 120.0\]\) - 0.5 for these 160x120"):
+        FaceTracker(CFG).initialise(frames[:1], normalised(lm)[None])
+    tracker = FaceTracker(CFG)
+    converted = tracker.initialise(frames[:1], (normalised(lm) * torch.tensor([160.0, 120.0]) - 0.5)[None])
+    reference = FaceTracker(CFG).initialise(frames[:1], lm[None])
+    assert int(converted.status) == CONVERGED
+    assert torch.allclose(converted.translation, reference.translation, atol=1e-3)
+    # Streams without a face (NaN rows) or with weight 0 on the points outside [0, 1] leave the others' say.
+    nan = torch.full_like(lm, float("nan"))
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[0, 1\]"):
+        FaceTracker(CFG).initialise(frames[:2], torch.stack([normalised(lm), nan]))
+    half = torch.cat([normalised(lm[:40]), lm[40:]])
+    weights = torch.cat([torch.ones(40), torch.zeros(28)])[None]
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[0, 1\]"):
+        FaceTracker(CFG).initialise(frames[:1], half[None], weights=weights)
+
+
+@pytest.mark.parametrize(
+    "landmarks, status",
+    [
+        # a stream in pixels: the other fails alone
+        (lambda lm: torch.stack([normalised(lm), lm]), [FAILED, CONVERGED]),
+        (lambda lm: torch.zeros(2, 68, 2), [FAILED, FAILED]),  # zeros for "no face": at one point, as before
+        (lambda lm: normalised(lm).where(torch.arange(68)[:, None] < 3, float("nan"))[None].expand(2, -1, -1),
+         [FAILED, FAILED]),  # fewer than 4 landmarks: no face found, as before
+    ],
+    ids=["one-stream-in-pixels", "zeros", "three-points"],
+)
+def test_landmarks_that_fail_alone_as_before(clip, landmarks, status):
+    """What is not taken for normalised coordinates fails the stream alone, as before the check: a batch where one
+    stream's landmarks are in pixels, zeros (at one point), too few points."""
+    frames, lm = clip
+    result = FaceTracker(CFG).initialise(frames[:2], landmarks(lm))
+    assert result.status.tolist() == status
+
+
+def test_a_detector_answering_normalised_coordinates_is_named(clip):
+    """A detector (``FaceTracker(detector=...)``) that answers MediaPipe's normalised coordinates failed every fit at
+    each recovery attempt: the stream stayed LOST without a word. One answering pixels starts it."""
+    frames, lm = clip
+    nan = torch.full((1, 68, 2), float("nan"))
+    tracker = FaceTracker(CFG, detector=lambda batch: normalised(lm)[None].expand(batch.shape[0], -1, -1).clone())
+    tracker.initialise(frames[:1], nan)  # starts FAILED: the detector is asked at its recovery attempts
+    with pytest.raises(ValueError, match=r"^the detector's landmarks lie within \[0, 1\] x \[0, 1\]"):
+        for t in (1, 2, 1, 2, 1, 2):
+            tracker(frames[t : t + 1])
+    tracker = FaceTracker(CFG, detector=lambda batch: lm[None].expand(batch.shape[0], -1, -1).clone())
+    tracker.initialise(frames[:1], nan)
+    statuses = [int(tracker(frames[t : t + 1]).status) for t in (1, 2, 1, 2, 1, 2)]
+    assert statuses[0] == LOST and CONVERGED in statuses
+
+
+@pytest.mark.parametrize(
+    "make, hint",
+    [
+        (lambda lm: lm.numpy(), r"got ndarray \(a NumPy array of one stream's \(K, 2\) points, as read_landmarks gives "
+                                r"them: torch.from_numpy\(points\)\[None\]\)$"),
+        (lambda lm: lm[None].numpy(), r"got ndarray \(a NumPy array: torch.from_numpy\(points\)\)$"),
+        (lambda lm: lm[None].tolist(), r"got list \(a list: torch.tensor\(points\), laid out \(1, 68, 2\)\)$"),
+    ],
+    ids=["numpy-one-stream", "numpy-batch", "list"],
+)
+def test_landmarks_that_are_not_a_tensor_are_told_how_to_make_one(clip, make, hint):
+    """``read_landmarks`` returns a ``(68, 2)`` NumPy array; handed to ``initialise`` it was told "got ndarray"
+    alone (frames in NumPy are told how to make a tensor). The hint given makes landmarks that start the stream."""
+    frames, lm = clip
+    with pytest.raises(TypeError, match=r"^landmarks_px must be a torch.Tensor \(1, 68, 2\) of pixel coordinates, "
+                                        + hint):  # fmt: skip
+        FaceTracker(CFG).initialise(frames[:1], make(lm))
+    assert int(FaceTracker(CFG).initialise(frames[:1], torch.from_numpy(lm.numpy())[None]).status) == CONVERGED
+
+
+def test_frames_of_another_batch_size_are_told_how_the_streams_change(clip):
+    """A step given more or fewer frames than the streams initialised (a person entering or leaving a multi-stream
+    run) was told "expected 2 frames (one per stream), got 1" alone; it names ``select`` and ``initialise``, and the
+    ``select`` it names then takes the frame."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    tracker.initialise(frames[:2], lm[None].expand(2, -1, -1))
+    with pytest.raises(ValueError, match=r"^expected 2 frames \(one per stream\), got 1: the streams are those "
+                                         r"initialised \(select\(index\) keeps some of them, initialise starts"):
+        tracker(frames[1:2])
+    assert bool(tracker.select([0])(frames[1:2]).success)
+
+
+def test_a_landmarks_file_of_normalised_coordinates_is_refused_naming_it(tmp_path):
+    """``read_landmarks`` (``torchface track --landmarks``, ``training_hooks``' landmark files) read a file of
+    MediaPipe's normalised points as pixels: ``torchface track`` then tracked the video as a face under a pixel wide,
+    every row unsuccessful, exit status 0. It names the file and the pixels to give; a file of pixels, and one whose
+    missing points are NaN beside points in pixels, read as before."""
+    from torchface.io import InputError, read_landmarks
+
+    _, lm, _ = sideways_clip(W, H, 1)
+    path = tmp_path / "mediapipe.csv"
+    rows = normalised(lm).double().tolist()
+    path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in rows))
+    with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[0, 1\] x \[0, 1\]: normalised "
+                                         r"coordinates .* Give pixels, centres at integers: x \* 160 - 0.5, "
+                                         r"y \* 120 - 0.5$"):  # fmt: skip
+        read_landmarks(path, W, H)
+    pixels = [[x * W - 0.5, y * H - 0.5] for x, y in rows]
+    path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in pixels))
+    assert torch.allclose(torch.from_numpy(read_landmarks(path, W, H)), lm.double(), atol=1e-4)
+    path.write_text("x,y\n" + "".join("nan,nan\n" if k < 60 else f"{x!r},{y!r}\n" for k, (x, y) in enumerate(pixels)))
+    assert int(torch.isfinite(torch.from_numpy(read_landmarks(path, W, H))).all(-1).sum()) == 8
+
+
+def test_landmarks_checked_before_the_frame_size_is_known_are_told_the_rule(clip):
+    """``training_hooks`` checks a video's landmark array before it reads the video, with a size of 2**30: the
+    refusal of normalised points gives the rule then, not ``x * 1073741824``."""
+    from torchface.io import InputError, check_landmarks
+
+    _, lm = clip
+    with pytest.raises(InputError, match=r"^a.avi: landmarks: every point .* x \* W - 0.5, y \* H - 0.5$"):
+        check_landmarks(normalised(lm).numpy(), 1 << 30, 1 << 30, "a.avi: landmarks", missing=True)
+
+
+def test_saved_results_load_with_torchs_weights_only_load_as_the_docs_say(clip, tmp_path):
+    """docs/python-api.md, "Selecting, copying and saving": results saved with ``torch.save`` load with torch's
+    weights-only ``torch.load`` once ``TrackResult`` is named (``safe_globals``), every field as it was."""
+    from torchface.tracker import TrackResult
+
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    results = [tracker.initialise(frames[:1], lm[None]), tracker(frames[1:2])]
+    torch.save(results, tmp_path / "results.pt")
+    with torch.serialization.safe_globals([TrackResult]):
+        loaded = torch.load(tmp_path / "results.pt", weights_only=True)
+    for a, b in zip(loaded, results):
+        assert type(a) is TrackResult and a.anim_names == b.anim_names
+        for name in ("rotation", "translation", "status", "confidence"):
+            assert torch.equal(getattr(a, name), getattr(b, name))
+
+
+def test_a_model_given_as_the_first_argument_is_told_where_it_goes():
+    """``FaceTracker(model)`` (the model first, as other libraries' modules take it) said "config must be a
+    TrackerConfig, got FaceModel" alone."""
+    from torchface.model import load_candide3
+
+    model = load_candide3()
+    with pytest.raises(TypeError, match=r"^config must be a TrackerConfig, got FaceModel: the model is the second "
+                                        r"argument, FaceTracker\(TrackerConfig\(\), model\) or "
+                                        r"FaceTracker\(model=model\)$"):
+        FaceTracker(model)  # type: ignore[arg-type]
+    assert FaceTracker(model=model).model is model
+
+
+def test_frames_of_another_size_mid_stream_are_told_to_initialise_again(clip):
+    """A step given frames of another size than the stream's (the next video in a loop) said the size alone; it says
+    how to track them, and the ``initialise`` it names does."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    tracker.initialise(frames[:1], lm[None])
+    smaller = frames[1:2, :, : H - 20, : W - 20]
+    with pytest.raises(ValueError, match=r"^frames must be 160x120 \(W x H, the tracked size\), got 140x100: a stream "
+                                         r"keeps its size, initialise again to track frames of another$"):
+        tracker(smaller)
+    assert bool(tracker.initialise(smaller, lm[None]).success)
+
+
+def test_the_packaged_grid_clip_tracks_from_python_as_the_docs_say():
+    """docs/python-api.md, "Frames and landmarks": ``open_frames`` and ``read_landmarks`` give what ``FaceTracker``
+    takes, RGB frames in [0, 1] (the BGR recipe for an OpenCV image gives the same values) and pixel landmarks, and
+    the packaged GRID clip tracks from them, step by step as the page writes it."""
+    import cv2
+    import numpy as np
+
+    from torchface.io import open_frames, read_landmarks
+
+    root = Path(__file__).resolve().parents[2] / "torchface" / "data" / "grid"
+    with open_frames(root / "bbaf2n.mpg") as reader:
+        first = next(reader)
+        landmarks = torch.from_numpy(read_landmarks(root / "bbaf2n_landmarks68.csv", reader.info.width,
+                                                    reader.info.height))[None]  # fmt: skip
+        tracker = FaceTracker(CFG)
+        results = [tracker.initialise(first[None], landmarks)]
+        for _, frame in zip(range(3), reader):
+            results.append(tracker(frame[None]))
+    assert first.shape == (3, 288, 360) and first.dtype == torch.float32
+    capture = cv2.VideoCapture(str(root / "bbaf2n.mpg"))
+    ok, image = capture.read()
+    capture.release()
+    assert ok
+    recipe = torch.from_numpy(np.ascontiguousarray(image[..., ::-1])).permute(2, 0, 1)[None].float() / 255
+    assert torch.equal(recipe[0], first)
+    assert all(bool(r.success) for r in results) and len(results) == 4
