@@ -88,9 +88,9 @@ may not have built again (measured when such videos resumed sooner went on from 
 (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees) and
 statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
 frame's, mean confidence 0.88 against 0.78). A loss can end at another frame for the same reason: on a 160x120 clip
-interrupted in a loss (frames of noise) with ``max_frames`` 6, the uninterrupted run's tracking found the face again
-at the first frame after the noise against the re-anchoring frame's entry (confidence 0.77), the resumed run (which
-lacked it) a frame later, at its recovery attempt.
+interrupted in a loss (frames of noise) and resumed from its rows, the uninterrupted run's tracking found the face
+again at the first frame after the noise against the re-anchoring frame's entry (confidence 0.77), the resumed run
+(which lacked it) a frame later, at its recovery attempt.
 """
 
 from __future__ import annotations
