@@ -53,7 +53,8 @@ rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.p
 landmarks than its landmarks file holds now, with other settings or without the meshes asked for:
 :func:`_check_resumable`) and one with a partial CSV continues after its last complete
 row: the first frame is
-initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored, from the
+initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored (after
+``LookaheadConfig.max_frames`` rows: sooner, it is tracked again, below), from the
 refined fit recorded in ``<stem>.record.partial`` (which also names the input the partial results belong to, its size
 and modification time, the first-frame landmarks (and the frame where the detector found them: a resumed run does
 not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
@@ -68,23 +69,28 @@ bookkeeping (lost or not, the frames of low confidence counted, the last confide
 interrupted while its face was lost goes on lost, as the uninterrupted run would, and, with
 ``TrackerConfig.motion_prediction``, its velocity (:func:`_with_replayed_motion`), so that the next frames start from
 the prediction the uninterrupted run made. A CSV under its final name without its JSON (interrupted while finalising) is
-resumed as a partial one. A video interrupted while the online start still waited for its head to turn (not
-re-anchored, fewer rows than ``LookaheadConfig.max_frames``) is not put into the tracker's state from its rows: they
-are tracked again from its first frame, not written, each checked against the CSV's (:func:`_check_retracked`: a row
-not met again is warned about), so that it re-anchors where the uninterrupted run did and goes on as it, its mosaic
-included (measured: the resumed CSV byte-identical to the uninterrupted run's on rendered clips, also with a detector,
-``smoothing`` or ``motion_prediction``; 3-20 mm, 1-2 degrees and 0.25 of confidence off when it went on from its rows
-without the online start); at most ``max_frames - 1`` frames (149) tracked again.
-For the others the template mosaic built before the interruption is not restored: on a clip whose head turns,
-the resumed rows can part from the uninterrupted run's by a few tenths of a degree once the mosaic is used (measured: up
-to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth). Their ``confidence`` can part by more,
-as it is measured against the mosaic entry nearest the pose, which the resumed run may not have built again: a 300-frame
-clip (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees)
-and statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
-frame's (mean confidence 0.88 against 0.78). A loss can end at another frame for the same reason: on a 160x120 clip
-interrupted in a loss (frames of noise), the uninterrupted run's tracking found the face again at the first frame
-after the noise against the re-anchoring frame's entry (confidence 0.77), the resumed run (which lacked it) a frame
-later, at its recovery attempt.
+resumed as a partial one. A video interrupted within the frames the online start watches (fewer rows than
+``LookaheadConfig.max_frames``), whether the start still waited for its head to turn or had re-anchored it, is not put
+into the tracker's state from its rows: they are tracked again from its first frame, not written, each checked against
+the CSV's (:func:`_check_retracked`: a row not met again is warned about), so that it re-anchors where the
+uninterrupted run did and goes on as it, its mosaic included (measured: the resumed CSV byte-identical to the
+uninterrupted run's on rendered clips, also with a detector, ``smoothing`` or ``motion_prediction``, and on 160x120
+pose sweeps of 20, 60 and 200 frames re-anchored before the interruption, resumed after 7 and 40 rows; 3-20 mm, 1-2
+degrees and 0.25 of confidence off when one not re-anchored went on from its rows without the online start, up to
+8.1 mm, 1.6 degrees and 0.45 when a re-anchored one went on from its record without its mosaic); at most
+``max_frames - 1`` frames (149) tracked again.
+For the others (``max_frames`` rows or more) the template mosaic built before the interruption is not restored: on a
+clip whose head turns, the resumed rows can part from the uninterrupted run's by tenths of a degree to a degree once
+the mosaic is used (measured: up to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth; a
+200-frame 160x120 pose sweep resumed after 170 rows, up to 1.05 mm, 1.4 degrees and 0.12 of confidence). Their
+``confidence`` can part by more, as it is measured against the mosaic entry nearest the pose, which the resumed run
+may not have built again (measured when such videos resumed sooner went on from their rows too: a 300-frame clip
+(160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees) and
+statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
+frame's, mean confidence 0.88 against 0.78). A loss can end at another frame for the same reason: on a 160x120 clip
+interrupted in a loss (frames of noise) and resumed from its rows, the uninterrupted run's tracking found the face
+again at the first frame after the noise against the re-anchoring frame's entry (confidence 0.77), the resumed run
+(which lacked it) a frame later, at its recovery attempt.
 """
 
 from __future__ import annotations
@@ -212,16 +218,18 @@ class JobConfig:
         refine_first: the online look-ahead start (:func:`torchface.tracker.managed.initialise_managed`, as
             :class:`~torchface.tracker.FaceTracker` starts by default), or None. Used when ``lookahead`` is None
             and template management is on. A resumed video that the interrupted run had re-anchored (recorded in
-            ``<name>.record.partial`` beside its partial CSV) starts from that run's refined fit and offset, so
-            its rows go on as an uninterrupted run's (measured: the
+            ``<name>.record.partial`` beside its partial CSV) after ``max_frames`` rows starts from that run's
+            refined fit and offset, so its rows go on as an uninterrupted run's (measured: the
             test clip's translations within 3e-5 mm until the template mosaic, which is not restored, is used:
             module docstring; 3-5 mm off when it was resumed from the landmark fit; also when interrupted right
             after the re-anchoring frame, whose row holds the estimate made before the re-anchoring: the record keeps
-            the refined parameters the run went on from, 0.08 mm and 0.2 degrees off without them); one not yet
-            re-anchored has its rows tracked again from its first frame while the start may still have waited (fewer
-            rows than ``max_frames``: module docstring), and so re-anchors where the uninterrupted run did (it went
-            on without the online start: 3-20 mm, 1-2 degrees off on rendered clips); after ``max_frames`` rows it
-            goes on without it, as the uninterrupted run did (the batch's new videos keep it).
+            the refined parameters the run went on from, 0.08 mm and 0.2 degrees off without them); with fewer rows
+            than ``max_frames``, re-anchored or not, it has its rows tracked again from its first frame (module
+            docstring), and so re-anchors where the uninterrupted run did, its mosaic built again (byte-identical
+            CSVs measured; one not re-anchored went on without the online start: 3-20 mm, 1-2 degrees off on
+            rendered clips; a re-anchored one from its record, without its mosaic: up to 8.1 mm, 1.6 degrees); one
+            not re-anchored after ``max_frames`` rows goes on without it, as the uninterrupted run did (the batch's
+            new videos keep it).
         model: a face model file (:func:`torchface.model.save_face_model` writes one; loaded in float32 with
             :func:`torchface.model.load_face_model`'s checks before any input is opened) to track with, or None for
             CANDIDE-3 (:func:`torchface.model.load_candide3`). The CSV's animation and FACS columns are the model's
@@ -962,9 +970,10 @@ class _Stream:
     overlay: _VideoOut | None = None
     normalised: _VideoOut | None = None
     replay: np.ndarray | None = None  # rows already in the CSV when resuming
-    # resumed while the online start still waited (not re-anchored, fewer rows than its max_frames): its replayed
+    # resumed within the online start's frames (fewer rows than its max_frames, re-anchored or not): its replayed
     # rows are tracked again from its first frame (not written, checked against the CSV's: _retracked_gap), not
-    # put into the state from the CSV, so that it re-anchors where the uninterrupted run did
+    # put into the state from the CSV, so that it re-anchors where the uninterrupted run did (its anchor cleared
+    # and recorded again) and builds its mosaic again
     retrack: bool = False
     # the largest gap of its rows tracked again from the CSV's: (mm, degrees, confidence, frame of the largest
     # translation gap, first frame whose status or success differs (or None))
@@ -2211,12 +2220,16 @@ RETRACK_TOLERANCE: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
 
 
 def _online_start_pending(s: _Stream, lookahead: LookaheadConfig | None) -> bool:
-    """Whether the online start (``lookahead``: ``JobConfig.refine_first``) may still have been waiting for ``s``'s
-    head to turn when its run was interrupted: resumed (rows to replay), not re-anchored (no anchor recorded), and
-    fewer tracked rows than ``max_frames``, the frames the start watches (the uninterrupted run could re-anchor at
-    the next frame). Such a stream's rows are tracked again (:attr:`_Stream.retrack`): at most ``max_frames - 1``
-    frames (149 by default)."""
-    return lookahead is not None and s.replay is not None and s.anchor is None and len(s.replay) < lookahead.max_frames
+    """Whether ``s``'s run was interrupted within the frames the online start (``lookahead``:
+    ``JobConfig.refine_first``) watches: resumed (rows to replay) with fewer tracked rows than ``max_frames``, so
+    that the start may still have been waiting for its head to turn (the uninterrupted run could re-anchor at the
+    next frame), or re-anchored it so recently that tracking its rows again costs little. Such a stream's rows are
+    tracked again (:attr:`_Stream.retrack`; at most ``max_frames - 1`` frames, 149 by default), re-anchored or not:
+    the tracking again re-anchors it where the uninterrupted run did and builds its template mosaic again, which a
+    stream put into the state from its rows lacks (measured on a 20-frame 160x120 ``pose_sweep`` re-anchored at frame
+    4 and resumed after 7 rows: up to 8.1 mm, 0.64 degrees and 0.30 of confidence off the uninterrupted run from the
+    record; byte-identical tracked again)."""
+    return lookahead is not None and s.replay is not None and len(s.replay) < lookahead.max_frames
 
 
 def _retracked_gap(new: np.ndarray, old: np.ndarray, columns: tuple[str, ...]) -> tuple[float, float, float, bool]:
@@ -2255,7 +2268,7 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
     warnings.warn(
         f"{s.reader.info.path}: its {n} rows written before the interruption, tracked again from its first frame for "
-        f"the online start (not re-anchored then), were not met again: up to {big_mm:.3g} mm (frame {at}), "
+        f"the online start, were not met again: up to {big_mm:.3g} mm (frame {at}), "
         f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
         f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
         RuntimeWarning, stacklevel=2,
@@ -2464,8 +2477,10 @@ def _track_group(
         # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
         # from the landmark fit, not the online start its sidecar would not mention)
         online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
-        for s in streams:  # resumed while the online start still waited: its rows are tracked again (_Stream.retrack)
+        for s in streams:  # resumed within the online start's frames: its rows are tracked again (_Stream.retrack)
             s.retrack = online and _online_start_pending(s, config.refine_first)
+            if s.retrack:  # (re-anchored before the interruption: the tracking again re-anchors it, and records it)
+                s.anchor = None
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
         anchored = {k: s.anchor for k, s in enumerate(streams)
                     if s.anchor is not None and config.tracker.template.enabled}  # fmt: skip
@@ -2659,7 +2674,8 @@ def _open_outputs(
         s.anchor = None
     elif s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
         # interrupted between the re-anchoring step and its row: the rows from the next one on are tracked
-        # re-anchored, the last replayed one was not (its mesh is placed with its own pose)
+        # re-anchored, the last replayed one was not (its mesh is placed with its own pose). (With the online
+        # start, whose re-anchoring comes within its max_frames, such a stream is tracked again: _Stream.retrack)
         s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
     _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
     s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)

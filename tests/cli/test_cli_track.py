@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 import typing
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -719,10 +720,14 @@ def test_an_output_whose_name_differs_from_a_landmarks_file_only_in_case_is_refu
 
 
 def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, full_run, tmp_path):
-    """Interrupted after the online start re-anchored the stream, a resumed run starts from the recorded refined
-    fit and offset: its rows go on as the uninterrupted run's and its sidecar has the refined shape. (Resumed
-    from the landmark fit, it used to jump 3.7 mm in depth at the resumed frame, and the sidecar's shape was not
-    the one the first rows were tracked with.)"""
+    """Interrupted after the online start re-anchored the stream, with at least as many rows as the start watches
+    (``LookaheadConfig.max_frames``, 8 here: fewer are tracked again, tests/cli/test_track_resume_online.py), a
+    resumed run starts from the recorded refined fit and offset: its rows go on as the uninterrupted run's and its
+    sidecar has the refined shape. (Resumed from the landmark fit, it used to jump 3.7 mm in depth at the resumed
+    frame, and the sidecar's shape was not the one the first rows were tracked with.)"""
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    online = LookaheadConfig(max_frames=8)  # (the clip re-anchors at frame 2 either way: kept rows equal below)
     video, lm, _ = clip
     _, full_out = full_run
     frames = read_video(video)
@@ -736,21 +741,20 @@ def test_resume_after_the_online_start_reanchored_goes_on_in_its_frame(clip, ful
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        track_videos([whole], JobConfig(out_dir=out, landmarks=(lm,)), progress=interrupt)
+        track_videos([whole], JobConfig(out_dir=out, landmarks=(lm,), refine_first=online), progress=interrupt)
     record = json.loads((out / f"{NAME}.record.partial").read_text())
     assert record["anchor"] is not None, "the clip's stream is re-anchored before the interruption"
     _, kept = read_track_csv(out / f"{NAME}.csv.partial")
     np.testing.assert_allclose(kept, ref[:stop_at], rtol=0, atol=1e-9)  # the same run up to there
     (tmp_path / "other").mkdir()
     np.save(tmp_path / "other" / whole.name, np.load(whole)[::-1])  # another input of the same name
-    rc = main(["track", str(tmp_path / "other" / whole.name), "--out", str(out), "--landmarks", str(lm), "--resume",
-               "--quiet"])  # fmt: skip
-    assert rc == 2 and (out / f"{NAME}.csv.partial").is_file()  # refused: the partial results are another input's
+    with pytest.raises(InputError, match="made from"):  # refused: the partial results are another input's
+        track_videos([tmp_path / "other" / whole.name], JobConfig(out_dir=out, landmarks=(lm,), refine_first=online,
+                                                                  resume=True))  # fmt: skip
+    assert (out / f"{NAME}.csv.partial").is_file()
     fresh = tmp_path / "fresh.npy"  # a new video in the same batch keeps the online start (it went without)
     fresh.write_bytes(whole.read_bytes())
-    rc = main(["track", str(whole), str(fresh), "--out", str(out), "--landmarks", str(lm), "--landmarks", str(lm),
-               "--resume", "--quiet"])  # fmt: skip
-    assert rc == 0
+    track_videos([whole, fresh], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=online, resume=True))
     _, rows, R, t = _pose(output_paths(out, NAME)["csv"])
     assert rows.shape[0] == T and not (out / f"{NAME}.record.partial").exists()
     _, rows_new, R_new, t_new = _pose(output_paths(out, "fresh")["csv"])
@@ -768,17 +772,21 @@ def test_resume_after_the_reanchoring_draws_the_first_rows_as_the_uninterrupted_
     """A resumed re-anchored stream places the mesh of its rows before the re-anchoring frame (overlay, normalised
     face, PLY) with their own pose and the first shape, as the uninterrupted run and the sidecar say, and its
     sidecar's ``first_shape_coeffs`` is the first fit's. (They were drawn with the re-anchoring offset applied and
-    the refined shape, about 1 px off at 160x120, and the sidecar gave the refined shape as the first one.)"""
+    the refined shape, about 1 px off at 160x120, and the sidecar gave the refined shape as the first one.) Its 7
+    rows are as many as the online start watches here (``max_frames``: fewer are tracked again)."""
+    from torchface.tracker.lookahead import LookaheadConfig
+
     video, lm, _ = clip
     short = _short_npy(video, tmp_path / "short.npy", 8)
     ref, out = tmp_path / "ref", tmp_path / "out"
-    track_videos([short], JobConfig(out_dir=ref, landmarks=(lm,), meshes=True))
+    online = LookaheadConfig(max_frames=7)
+    track_videos([short], JobConfig(out_dir=ref, landmarks=(lm,), meshes=True, refine_first=online))
     start_ref = json.loads((ref / "short.json").read_text())["start"]
     at = start_ref["reanchored_at_frame"]
     assert isinstance(at, int) and 0 < at < 7, "the clip's stream is re-anchored before the interruption"
-    _interrupted(short, out, lm, 7, meshes=True)
+    _interrupted(short, out, lm, 7, meshes=True, refine_first=online)
     assert json.loads((out / "short.record.partial").read_text())["anchor"] is not None
-    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), meshes=True, resume=True))
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), meshes=True, resume=True, refine_first=online))
     start = json.loads((out / "short.json").read_text())["start"]
     np.testing.assert_allclose(start["first_shape_coeffs"], start_ref["first_shape_coeffs"], rtol=0, atol=1e-9)
     import trimesh
@@ -808,15 +816,20 @@ def _decoded(video):
 def test_resume_right_after_the_reanchoring_frame_goes_on_from_its_refined_pose(clip, tmp_path):
     """Interrupted right after the re-anchoring frame, whose row holds the estimate made before the re-anchoring, a
     resumed run goes on from the refined pose the record keeps, as the uninterrupted run did (it went on from the
-    row's estimate: the next rows 0.08 mm and 0.2 degrees off the uninterrupted run's)."""
+    row's estimate: the next rows 0.08 mm and 0.2 degrees off the uninterrupted run's). The online start watches
+    ``at + 1`` frames here (``max_frames``: fewer rows are tracked again), the frame it re-anchors at the last."""
+    from torchface.tracker.lookahead import LookaheadConfig
+
     video, lm, _ = clip
     short = _short_npy(video, tmp_path / "short.npy", 8)
     ref, out = tmp_path / "ref", tmp_path / "out"
     track_videos([short], JobConfig(out_dir=ref, landmarks=(lm,)))
     at = json.loads((ref / "short.json").read_text())["start"]["reanchored_at_frame"]
     assert isinstance(at, int) and at < 6
-    _interrupted(short, out, lm, at + 1)  # rows 0..at written
-    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
+    online = LookaheadConfig(max_frames=at + 1)
+    _interrupted(short, out, lm, at + 1, refine_first=online)  # rows 0..at written
+    assert json.loads((out / "short.record.partial").read_text())["anchor"]["frame"] == at
+    track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), resume=True, refine_first=online))
     _, rows, R, t = _pose(out / "short.csv")
     _, rows_ref, R_ref, t_ref = _pose(ref / "short.csv")
     assert rows.shape == rows_ref.shape
@@ -824,10 +837,11 @@ def test_resume_right_after_the_reanchoring_frame_goes_on_from_its_refined_pose(
 
 
 def test_resume_between_the_reanchoring_and_its_row_places_the_next_rows_reanchored(clip, tmp_path):
-    """Interrupted after the re-anchoring step wrote its record but before its row was written, the resumed run tracks
-    that frame on from the record, re-anchored: its sidecar names the last replayed row as the re-anchoring frame, so
-    that the next rows' meshes are placed with the head offset, as they were tracked (the sidecar named the frame of
-    the missing row, whose mesh the rule then placed with its own pose and the first shape)."""
+    """Interrupted after the re-anchoring step wrote its record but before its row was written (fewer rows than the
+    online start watches, as every re-anchoring's row is), the resumed run tracks its rows again and re-anchors at
+    that frame, as the uninterrupted run did: its sidecar names it. (Resumed from the record, it named the last
+    replayed row, the frame before, so that the next rows' meshes were placed with the head offset they were tracked
+    with; before that, the frame of the missing row, whose mesh the rule then placed with its own pose.)"""
     video, lm, _ = clip
     short = _short_npy(video, tmp_path / "short.npy", 8)
     out = tmp_path / "out"
@@ -839,14 +853,18 @@ def test_resume_between_the_reanchoring_and_its_row_places_the_next_rows_reancho
     partial.write_text("".join(lines[: at + 1]))  # the header and rows 0..at-1: the re-anchoring frame's row is missing
     track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
     start = json.loads((out / "short.json").read_text())["start"]
-    assert start["method"] == "online" and start["reanchored_at_frame"] == at - 1
+    assert start["method"] == "online" and start["reanchored_at_frame"] == at
 
 
-def test_a_resumed_run_asks_the_detector_about_no_replayed_row_but_the_last(clip, tmp_path, monkeypatch):
+@pytest.mark.parametrize("max_frames", [4, None])
+def test_a_resumed_run_asks_the_detector_about_no_replayed_row_but_the_last(clip, tmp_path, monkeypatch, max_frames):
     """The replayed rows of a resumed run are not re-detected (every one due was, for nothing but the time: the next
     rows are read back), but for the last, whose re-detection the tracking goes on from, as the uninterrupted run
-    did; the resumed rows are the uninterrupted run's."""
+    did; the resumed rows are the uninterrupted run's. Its 4 rows are as many as the online start watches
+    (``max_frames`` 4); with fewer (the default 150), the rows are tracked again, re-detections included, as the
+    uninterrupted run did them."""
     import torchface.detect
+    from torchface.tracker.lookahead import LookaheadConfig
 
     video, lm, gt = clip
     short = _short_npy(video, tmp_path / "short.npy", 8)
@@ -858,6 +876,7 @@ def test_a_resumed_run_asks_the_detector_about_no_replayed_row_but_the_last(clip
 
     monkeypatch.setitem(torchface.detect.DETECTORS, "count", lambda: detector)
     kwargs = dict(landmarks=(lm,), detector="count", redetect_after=2, redetect_below=1.01)  # every frame low
+    kwargs["refine_first"] = LookaheadConfig() if max_frames is None else LookaheadConfig(max_frames=max_frames)
     track_videos([short], JobConfig(out_dir=tmp_path / "ref", **kwargs))
     assert len(calls) == 4  # after rows 1, 3, 5 and 7
     out = tmp_path / "out"
@@ -870,14 +889,17 @@ def test_a_resumed_run_asks_the_detector_about_no_replayed_row_but_the_last(clip
         track_videos([short], JobConfig(out_dir=out, **kwargs), progress=interrupt)  # rows 0-3
     calls.clear()
     track_videos([short], JobConfig(out_dir=out, resume=True, **kwargs))
-    assert len(calls) == 3  # after the last replayed row (3), then 5 and 7; not after the replayed row 1
-    assert json.loads((out / "short.json").read_text())["redetections"] == 3
+    if max_frames is None:  # tracked again: after rows 1, 3, 5 and 7, as the uninterrupted run
+        assert len(calls) == 4 and json.loads((out / "short.json").read_text())["redetections"] == 4
+    else:  # after the last replayed row (3), then 5 and 7; not after the replayed row 1
+        assert len(calls) == 3 and json.loads((out / "short.json").read_text())["redetections"] == 3
     _, rows, R, t = _pose(out / "short.csv")
     _, rows_ref, R_ref, t_ref = _pose(tmp_path / "ref" / "short.csv")
     assert float(geodesic_angle_deg(R, R_ref).max()) < 0.05 and np.abs(t - t_ref).max() < 0.1, np.abs(t - t_ref)
 
 
-def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
+@pytest.mark.parametrize("max_frames", [6, None])
+def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path, max_frames):
     """A run interrupted while its face is lost (or about to be: frames of noise after the clip's first frames) and
     resumed reports the frames after the interruption as the uninterrupted run does: LOST. (The resumed stream used
     to start afresh, with no loss and no low-confidence frames counted, and reported its next two frames of noise
@@ -886,10 +908,15 @@ def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
     the mosaic is not restored), so the face is found again by the tracking or by a recovery attempt, every
     ``recovery_every`` frames from the loss's first; with the refinements' priors scaled to the camera (1/16 at this
     160x120) the uninterrupted run found it at frame 10, against the re-anchoring frame's mosaic entry (0.77), the
-    resumed runs at their recovery attempt, frame 11."""
+    resumed runs at their recovery attempt, frame 11. That is with as many rows as the online start watches
+    (``max_frames`` 6); with fewer (the default 150), the rows are tracked again (torchface.job's ``_Stream.retrack``)
+    and the resumed run's are the uninterrupted run's, the loss's end included."""
+    from torchface.tracker.lookahead import LookaheadConfig
+
     video, lm, _ = clip
     cut = _cut_by_noise(video, tmp_path / "cut.npy")  # frames 4-9: noise
-    track_videos([cut], JobConfig(out_dir=tmp_path / "full", landmarks=(lm,)))
+    online = LookaheadConfig() if max_frames is None else LookaheadConfig(max_frames=max_frames)
+    track_videos([cut], JobConfig(out_dir=tmp_path / "full", landmarks=(lm,), refine_first=online))
     cols, ref = read_track_csv(output_paths(tmp_path / "full", "cut")["csv"])
     status, success = cols.index("status"), cols.index("success")
     assert (ref[6:10, status] == 3).all() and ref[-1, status] != 3, ref[:, status]  # the clip as expected
@@ -903,9 +930,13 @@ def test_resume_during_a_loss_goes_on_with_it(clip, tmp_path):
                 raise KeyboardInterrupt
 
         with pytest.raises(KeyboardInterrupt):
-            track_videos([cut], JobConfig(out_dir=out, landmarks=(lm,)), progress=interrupt)
-        track_videos([cut], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
+            track_videos([cut], JobConfig(out_dir=out, landmarks=(lm,), refine_first=online), progress=interrupt)
+        track_videos([cut], JobConfig(out_dir=out, landmarks=(lm,), resume=True, refine_first=online))
         _, rows = read_track_csv(output_paths(out, "cut")["csv"])
+        if max_frames is None:
+            np.testing.assert_allclose(rows, ref, rtol=0, atol=1e-6)
+            assert json.loads(output_paths(out, "cut")["json"].read_text())["lost_frames"] == lost
+            continue
         np.testing.assert_array_equal(rows[:10, status], ref[:10, status])  # through the noise
         np.testing.assert_array_equal(rows[:10, success], ref[:10, success])
         found = [int(np.argmax(r[6:, status] != 3)) + 6 for r in (ref, rows)]  # the loss's end
@@ -2261,11 +2292,18 @@ def test_a_nested_settings_field_a_record_lacks_is_compared_at_the_enclosing_def
         track_videos([short], replace(base, tracker=classes[0]))
 
 
-def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch):
+@pytest.mark.parametrize("max_frames", [3, None])
+def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, monkeypatch, max_frames):
     """Ctrl-C after the CSV got its final name but before the JSON (written last) used to leave a CSV that --resume
     ignored (it tracked the whole video again) and, in a batch, the other videos' partial MP4s: now the CSV is
-    resumed as partial (all its rows replayed) and the unfinished videos leave no partial MP4."""
+    resumed as partial (all its rows replayed) and the unfinished videos leave no partial MP4. Its 3 rows are as
+    many as the online start watches (``max_frames`` 3): nothing is tracked; with fewer rows than it watches (the
+    default 150), they are tracked again (torchface.job's ``_Stream.retrack``), checked against the CSV's, which
+    keeps them."""
     import torchface.job
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    online = LookaheadConfig() if max_frames is None else LookaheadConfig(max_frames=max_frames)
 
     video, lm, _ = clip
     a = _short_npy(video, tmp_path / "a.npy", 3)
@@ -2278,7 +2316,7 @@ def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, m
 
     monkeypatch.setattr(torchface.job, "write_json", interrupted_json)
     with pytest.raises(KeyboardInterrupt):
-        track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm)))
+        track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=online))
     assert (out / "a.csv").is_file() and not (out / "a.json").exists()
     assert not list(out.glob("*.partial.mp4"))
     _, rows_before = read_track_csv(out / "a.csv")
@@ -2291,8 +2329,11 @@ def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, m
         return real_step(*args, **kwargs)
 
     monkeypatch.setattr(torchface.job, "managed_step", counting_step)
-    summaries = track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), resume=True))
-    assert [s.frames for s in summaries] == [3, 3] and not tracked  # replayed, nothing tracked again
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # (rows tracked again: they met the CSV's)
+        summaries = track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), resume=True, refine_first=online))
+    assert [s.frames for s in summaries] == [3, 3]
+    assert len(tracked) == (2 if max_frames is None else 0)  # tracked again (frames 1 and 2), or replayed
     _, rows_after = read_track_csv(out / "a.csv")
     np.testing.assert_array_equal(rows_after, rows_before)
     assert json.loads((out / "b.json").read_text())["frames"] == 3

@@ -1,6 +1,7 @@
-"""``torchface track --resume`` of a video interrupted before the online look-ahead start re-anchored it: its written
-rows are tracked again from its first frame (``torchface.job._Stream.retrack``), so that it re-anchors where the
-uninterrupted run did, and its CSV is the uninterrupted run's."""
+"""``torchface track --resume`` of a video interrupted within the online look-ahead start's frames (fewer rows than
+``LookaheadConfig.max_frames``), before or after the start re-anchored it: its written rows are tracked again from its
+first frame (``torchface.job._Stream.retrack``), so that it re-anchors where the uninterrupted run did, builds its
+template mosaic again, and its CSV is the uninterrupted run's."""
 
 from __future__ import annotations
 
@@ -57,16 +58,20 @@ def _interrupted(video, out, lm, stop_at, **kwargs):
     assert read_track_csv(out / f"{video.stem}.csv.partial")[1].shape[0] == stop_at
 
 
-@pytest.mark.parametrize("stop_at", [1, 3, REANCHOR])
-def test_resume_before_the_reanchoring_goes_on_as_the_uninterrupted_run(clip, reference, tmp_path, stop_at):
+@pytest.mark.parametrize("stop_at", [1, 3, REANCHOR, REANCHOR + 1, REANCHOR + 3])
+def test_resume_within_the_online_starts_frames_goes_on_as_the_uninterrupted_run(clip, reference, tmp_path, stop_at):
     """Interrupted before the online start re-anchored the stream (after 1, 3 or 4 rows: the re-anchoring comes at
-    frame 4's step), the resumed run re-anchors at the same frame and its rows are the uninterrupted run's. (Resumed
-    without the online start, they went on up to 20 mm, 2.1 degrees and 0.25 of confidence off.)"""
+    frame 4's step) or after (5 or 7 rows: its record holds the re-anchoring), the resumed run re-anchors at the same
+    frame and its rows are the uninterrupted run's. (Resumed without the online start, before the re-anchoring, they
+    went on up to 20 mm, 2.1 degrees and 0.25 of confidence off; resumed from the record after it, without the
+    template mosaic built before the interruption, 7 rows of a 20-frame clip went on 8.1 mm, 0.64 degrees and 0.30 of
+    confidence off.)"""
     video, lm = clip
     rows_ref, side_ref = reference
     out = tmp_path / "out"
     _interrupted(video, out, lm, stop_at)
-    assert json.loads((out / "sweep.record.partial").read_text())["anchor"] is None  # not re-anchored yet
+    anchor = json.loads((out / "sweep.record.partial").read_text())["anchor"]
+    assert (anchor is None) == (stop_at <= REANCHOR)  # re-anchored before the interruption, or not yet
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)  # the rows tracked again met the CSV's: no warning
         track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
@@ -76,25 +81,36 @@ def test_resume_before_the_reanchoring_goes_on_as_the_uninterrupted_run(clip, re
     side = json.loads((out / "sweep.json").read_text())
     assert side["start"] == side_ref["start"]
     np.testing.assert_allclose(side["model"]["shape_coeffs"], side_ref["model"]["shape_coeffs"], rtol=0, atol=1e-9)
+    assert not (out / "sweep.record.partial").exists()
 
 
-def test_resume_before_the_reanchoring_beside_other_videos_goes_on_as_the_uninterrupted_run(clip, reference, tmp_path):
+@pytest.mark.parametrize("max_frames", [None, REANCHOR + 2])
+def test_resumes_tracked_again_beside_other_videos_go_on_as_the_uninterrupted_run(clip, reference, tmp_path,
+                                                                                 max_frames):  # fmt: skip
     """The stream tracked again goes on as the uninterrupted run beside a new video of its batch and beside a resumed
-    one that the interrupted run had re-anchored (whose rows are put into the state from its CSV)."""
+    one that the interrupted run had re-anchored: tracked again too, within the online start's frames (its rows went
+    on from the record, their confidence off where the mosaic was used); with ``max_frames`` 6, it has as many rows
+    as the start watched, and its rows are put into the state from its CSV and record."""
     video, lm = clip
-    rows_ref, _ = reference
+    rows_ref, side_ref = reference
+    kwargs = {} if max_frames is None else {"refine_first": LookaheadConfig(max_frames=max_frames)}
+    if max_frames is not None:  # (the same re-anchoring with fewer frames watched)
+        track_videos([video], JobConfig(out_dir=tmp_path / "ref", landmarks=(lm,), **kwargs))
+        rows_ref = read_track_csv(tmp_path / "ref" / "sweep.csv")[1]
+        assert json.loads((tmp_path / "ref" / "sweep.json").read_text())["start"] == side_ref["start"]
     out = tmp_path / "out"
     later = tmp_path / "later.npy"
     later.write_bytes(video.read_bytes())
     fresh = tmp_path / "fresh.npy"
     fresh.write_bytes(video.read_bytes())
-    _interrupted(video, out, lm, 2)
-    _interrupted(later, out, lm, REANCHOR + 2)
+    _interrupted(video, out, lm, 2, **kwargs)
+    _interrupted(later, out, lm, REANCHOR + 2, **kwargs)
     assert json.loads((out / "later.record.partial").read_text())["anchor"] is not None
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
-        track_videos([video, later, fresh], JobConfig(out_dir=out, landmarks=(lm,) * 3, resume=True))
-    for name in ("sweep", "fresh"):  # (later's confidence parts where its template mosaic is used: not restored)
+        track_videos([video, later, fresh], JobConfig(out_dir=out, landmarks=(lm,) * 3, resume=True, **kwargs))
+    names = ("sweep", "later", "fresh") if max_frames is None else ("sweep", "fresh")
+    for name in names:  # (from its record, later's confidence parts where its template mosaic is used: not restored)
         _, rows = read_track_csv(out / f"{name}.csv")
         assert rows.shape == rows_ref.shape, name
         np.testing.assert_allclose(rows, rows_ref, rtol=0, atol=1e-4, err_msg=name)

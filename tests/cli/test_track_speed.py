@@ -179,42 +179,64 @@ def test_interrupted_while_encoding_leaves_no_video_and_no_thread(clip, tmp_path
     assert main([*args, "--resume"]) == 0 and len(_decoded(out / f"{video.stem}_overlay.mp4")) == 8
 
 
-def test_sigterm_while_waiting_on_a_full_encoding_queue_stops_cleanly(clip, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("step_delay", [0.0, 0.6])
+def test_sigterm_while_waiting_on_a_full_encoding_queue_stops_cleanly(clip, tmp_path, monkeypatch, capsys,
+                                                                      step_delay):  # fmt: skip
     """SIGTERM arriving while the tracking waits for a slow encoder (its queue full): status 143 as before, the
-    rows kept for --resume, no video left, the encoding threads joined (none outlives the run)."""
+    rows kept for --resume, no video left, the encoding threads joined (none outlives the run). Also with each
+    tracking step made 0.6 s slower (a loaded machine: the test used to fail there, SIGTERM coming while it
+    tracked)."""
     import os
     import signal
 
     video, lm = clip
     real_init, real_put = _Encoder.__init__, _Encoder.write
-    waiting = []
+    waiting, stalled = [], []
 
     class Stalled:
-        """The overlay's writer: its first frame takes 1 s, then SIGTERM comes (the tracking waits by then)."""
+        """The overlay's writer: its first frame is held until the tracking waits on the encoder's full queue (a
+        later frame's ``put`` blocked in it), then SIGTERM comes. (It slept 1 s, taken as long enough for the
+        tracking to fill the queue: under load the tracking of the next frames took longer, and SIGTERM came while
+        it tracked, not while it waited.)"""
 
         def __init__(self, writer):
-            self.real, self.calls = writer, 0
+            self.real, self.calls, self.encoder, self.saw_waiter = writer, 0, None, False
 
         def write(self, image):
             self.calls += 1
             if self.calls == 1:
-                time.sleep(1.0)
+                q, deadline = self.encoder._queue, time.monotonic() + 120.0
+                while not self.saw_waiter and time.monotonic() < deadline:
+                    with q.mutex:  # (the tracking thread waits in q.not_full.wait(): a waiter of that condition)
+                        self.saw_waiter = q._qsize() >= q.maxsize and len(q.not_full._waiters) > 0
+                    time.sleep(0.005)
                 os.kill(os.getpid(), signal.SIGTERM)
             self.real.write(image)
 
     def stalled_init(self, writer, name):
         real_init(self, Stalled(writer) if "overlay" in name else writer, name)
+        if isinstance(self.writer, Stalled):
+            self.writer.encoder = self
+            stalled.append(self.writer)
 
     def put(self, image):
         waiting.append(self._queue.full())
         real_put(self, image)
 
+    real_step = torchface.job.managed_step
+
+    def slow_step(*args, **kwargs):
+        time.sleep(step_delay)
+        return real_step(*args, **kwargs)
+
     monkeypatch.setattr(_Encoder, "__init__", stalled_init)
     monkeypatch.setattr(_Encoder, "write", put)
+    monkeypatch.setattr(torchface.job, "managed_step", slow_step)
     out = tmp_path / "out"
     rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 143 and "torchface: terminated; rows kept in" in err and "not finalised" not in err, err
+    assert len(stalled) == 1 and stalled[0].saw_waiter, "SIGTERM came while the tracking waited on the full queue"
     assert waiting[-1] and not list(out.glob("*.mp4")) and not _encoders()
 
 
