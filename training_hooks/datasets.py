@@ -64,7 +64,7 @@ Skipping (:attr:`DatasetConfig.keep_going`, off by default): a video that cannot
 (shared memory: the dataset the caller holds sees its workers' records), the video yields no item, and it is not
 tried again in later epochs (make the dataset again to retry it). A video is tracked whole before its items are
 yielded, so none of a skipped video's items is yielded (an error at its last frame too). The datasets are iterable
-(no ``__len__``, no ``__getitem__``: there is no index a sampler could ask for and get another video's item), so
+(no ``len()``, no item by index: there is no index a sampler could ask for and get another video's item), so
 skipping changes no sampler's indices; what it changes is the epoch's item count:
 
 - :meth:`VideoDataset.num_items` counts a video without tracking it: a video that cannot even be counted (it does
@@ -513,21 +513,15 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
-    def __len__(self) -> int:
-        """Refused with a ``TypeError`` saying how to count (``len()`` said "object of type 'VideoDataset' has no
-        len()"): an iterable dataset's items are counted without tracking by :meth:`count_items` (per video) and
-        :meth:`worker_items` (per ``DataLoader`` worker, for a loader's batches), never by ``len()`` (``DataLoader``,
-        Lightning, tqdm and the like take the ``TypeError`` as "no length", as before)."""
-        raise TypeError(
-            f"{type(self).__name__} is an iterable dataset and has no len(): count its items without tracking with "
-            "sum(data.count_items()), or a DataLoader's batches with data.worker_items(w, num_workers) per worker "
-            "(docs/training-hooks.md, 'Datasets and workers')"
-        )
-
     def __getitem__(self, index: int) -> dict[str, Tensor]:
         """Refused with a ``TypeError`` saying what to use (``data[0]`` was torch's "Subclasses of Dataset should
         implement __getitem__", a ``NotImplementedError`` that read as a bug of the dataset): each video is tracked
-        from its first frame to its last in the one process that owns it, so there is no item by index."""
+        from its first frame to its last in the one process that owns it, so there is no item by index.
+
+        There is deliberately no ``__len__`` (``len(data)`` is Python's "has no len()" ``TypeError``): any
+        ``__len__`` makes the dataset a ``collections.abc.Sized``, and what checks that before calling ``len()``
+        (Lightning's ``str(datamodule)``: "Train dataloader: None") took one that raises for no loader at all.
+        Count with :meth:`count_items` and :meth:`worker_items`."""
         raise TypeError(
             f"{type(self).__name__} is an iterable dataset (each video tracked start to end in the worker that owns "
             "it) and has no items by index: iterate it (next(iter(data)) is the first item), or take video i's "
