@@ -271,7 +271,8 @@ class DatasetConfig:
             does not decode, landmarks outside its frame, a detector that finds no face; or an ``OSError``: the file
             gone since the dataset was made) instead of raising, as ``torchface track --keep-going`` does: its items
             are left out, a :class:`SkippedVideoWarning` says so and :attr:`VideoDataset.skipped` records it (module
-            docstring, "Skipping"). False (the default): the error stops the epoch.
+            docstring, "Skipping"). False (the default): the error stops the epoch. An error writing
+            :attr:`cache_dir` (a full disk, a read-only folder) is not the video's: it stops the epoch either way.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -857,10 +858,14 @@ class VideoDataset(IterableDataset):
         if self._is_skipped(index):
             return None
         try:
-            return self.sequence(index)
+            sequence, cached, key = self._read_or_track(index)
         except (InputError, OSError) as exc:
             self._skip(index, exc)
             return None
+        # (outside the try: the cache's write errors, a full disk or a read-only folder, are not the video's; they
+        # skipped every video, tracked or not, for good)
+        self._store(index, sequence, key)
+        return sequence, cached
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
@@ -876,6 +881,13 @@ class VideoDataset(IterableDataset):
         Raises:
             torchface.io.InputError: the video or its landmarks cannot be used (the message names the file).
         """
+        sequence, cached, key = self._read_or_track(index)
+        self._store(index, sequence, key)
+        return sequence, cached
+
+    def _read_or_track(self, index: int) -> tuple[TrackedSequence, bool, str | None]:
+        """:meth:`sequence` without storing it: the sequence, whether it came from the cache, and the cache key to
+        store a tracked one under (None: nothing to store)."""
         path = self.videos[index]
         content = content_hash(path)
         cache = self.cache
@@ -887,7 +899,7 @@ class VideoDataset(IterableDataset):
                     H, W = stored.frame_size
                     check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True, count=self.num_landmarks)
                 self.stats.videos += 1
-                return stored, True
+                return stored, True, None
         with _dataset_hint():
             reader = open_frames(path, convert=self.config.convert)
         try:
@@ -900,7 +912,7 @@ class VideoDataset(IterableDataset):
                     stored = cache.load(key)
                     if stored is not None:
                         self.stats.videos += 1
-                        return stored, True
+                        return stored, True, None
             t0 = time.perf_counter()
             with _dataset_hint():  # (a later frame's format is found as it is read)
                 sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
@@ -911,9 +923,13 @@ class VideoDataset(IterableDataset):
             sequence = replace(sequence, first_frame=start)
         self.stats.videos += 1
         self.stats.frames_tracked += sequence.num_frames
+        return sequence, False, key
+
+    def _store(self, index: int, sequence: TrackedSequence, key: str | None) -> None:
+        """Store video ``index``'s tracked ``sequence`` in the cache under ``key`` (None: nothing to store)."""
+        cache = self.cache
         if cache is not None and key is not None:
-            cache.store(key, sequence, source=str(path), config=self.config.tracking)
-        return sequence, False
+            cache.store(key, sequence, source=str(self.videos[index]), config=self.config.tracking)
 
     def _items(
         self, index: int, rng: random.Random | None, tracked: tuple[TrackedSequence, bool] | None = None

@@ -1105,3 +1105,25 @@ def test_len_and_indexing_say_what_to_use_instead(clips, config):
     assert str(TrackedFaceDataModule(data, val=data)).splitlines()[:2] == [
         "{Train dataloader: size=NA}", "{Validation dataloader: size=NA}"
     ]
+
+
+def test_keep_going_does_not_skip_a_video_for_the_caches_write_error(clips, config, tmp_path):
+    """With ``keep_going``, a cache that cannot be written (here a folder under a file: NotADirectoryError; a full
+    disk or a read-only folder alike) skipped every video as if it could not be read, after tracking it, and for
+    good: an epoch of no items, with a warning per video. The error is the cache's, not the video's: it stops the
+    epoch, as without ``keep_going``; nothing is recorded as skipped."""
+    import warnings
+
+    from training_hooks import SkippedVideoWarning
+
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("")
+    unwritable = replace(config, cache_dir=blocker / "cache")
+    with pytest.raises(OSError):
+        list(VideoDataset([clips[0].video], [clips[0].landmarks], unwritable))
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(unwritable, keep_going=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkippedVideoWarning)
+        with pytest.raises(OSError):
+            list(data)
+    assert data.skipped == {}
