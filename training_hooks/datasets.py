@@ -64,7 +64,7 @@ Skipping (:attr:`DatasetConfig.keep_going`, off by default): a video that cannot
 (shared memory: the dataset the caller holds sees its workers' records), the video yields no item, and it is not
 tried again in later epochs (make the dataset again to retry it). A video is tracked whole before its items are
 yielded, so none of a skipped video's items is yielded (an error at its last frame too). The datasets are iterable
-(no ``__len__``, no ``__getitem__``: there is no index a sampler could ask for and get another video's item), so
+(no ``len()``, no item by index: there is no index a sampler could ask for and get another video's item), so
 skipping changes no sampler's indices; what it changes is the epoch's item count:
 
 - :meth:`VideoDataset.num_items` counts a video without tracking it: a video that cannot even be counted (it does
@@ -271,7 +271,8 @@ class DatasetConfig:
             does not decode, landmarks outside its frame, a detector that finds no face; or an ``OSError``: the file
             gone since the dataset was made) instead of raising, as ``torchface track --keep-going`` does: its items
             are left out, a :class:`SkippedVideoWarning` says so and :attr:`VideoDataset.skipped` records it (module
-            docstring, "Skipping"). False (the default): the error stops the epoch.
+            docstring, "Skipping"). False (the default): the error stops the epoch. An error writing
+            :attr:`cache_dir` (a full disk, a read-only folder) is not the video's: it stops the epoch either way.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -513,21 +514,15 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
             )
 
-    def __len__(self) -> int:
-        """Refused with a ``TypeError`` saying how to count (``len()`` said "object of type 'VideoDataset' has no
-        len()"): an iterable dataset's items are counted without tracking by :meth:`count_items` (per video) and
-        :meth:`worker_items` (per ``DataLoader`` worker, for a loader's batches), never by ``len()`` (``DataLoader``,
-        Lightning, tqdm and the like take the ``TypeError`` as "no length", as before)."""
-        raise TypeError(
-            f"{type(self).__name__} is an iterable dataset and has no len(): count its items without tracking with "
-            "sum(data.count_items()), or a DataLoader's batches with data.worker_items(w, num_workers) per worker "
-            "(docs/training-hooks.md, 'Datasets and workers')"
-        )
-
     def __getitem__(self, index: int) -> dict[str, Tensor]:
         """Refused with a ``TypeError`` saying what to use (``data[0]`` was torch's "Subclasses of Dataset should
         implement __getitem__", a ``NotImplementedError`` that read as a bug of the dataset): each video is tracked
-        from its first frame to its last in the one process that owns it, so there is no item by index."""
+        from its first frame to its last in the one process that owns it, so there is no item by index.
+
+        There is deliberately no ``__len__`` (``len(data)`` is Python's "has no len()" ``TypeError``): any
+        ``__len__`` makes the dataset a ``collections.abc.Sized``, and what checks that before calling ``len()``
+        (Lightning's ``str(datamodule)``: "Train dataloader: None") took one that raises for no loader at all.
+        Count with :meth:`count_items` and :meth:`worker_items`."""
         raise TypeError(
             f"{type(self).__name__} is an iterable dataset (each video tracked start to end in the worker that owns "
             "it) and has no items by index: iterate it (next(iter(data)) is the first item), or take video i's "
@@ -863,10 +858,14 @@ class VideoDataset(IterableDataset):
         if self._is_skipped(index):
             return None
         try:
-            return self.sequence(index)
+            sequence, cached, key = self._read_or_track(index)
         except (InputError, OSError) as exc:
             self._skip(index, exc)
             return None
+        # (outside the try: the cache's write errors, a full disk or a read-only folder, are not the video's; they
+        # skipped every video, tracked or not, for good)
+        self._store(index, sequence, key)
+        return sequence, cached
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
         """Video ``index`` tracked (or read from the cache): its sequence and whether it came from the cache.
@@ -882,6 +881,13 @@ class VideoDataset(IterableDataset):
         Raises:
             torchface.io.InputError: the video or its landmarks cannot be used (the message names the file).
         """
+        sequence, cached, key = self._read_or_track(index)
+        self._store(index, sequence, key)
+        return sequence, cached
+
+    def _read_or_track(self, index: int) -> tuple[TrackedSequence, bool, str | None]:
+        """:meth:`sequence` without storing it: the sequence, whether it came from the cache, and the cache key to
+        store a tracked one under (None: nothing to store)."""
         path = self.videos[index]
         content = content_hash(path)
         cache = self.cache
@@ -893,7 +899,7 @@ class VideoDataset(IterableDataset):
                     H, W = stored.frame_size
                     check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True, count=self.num_landmarks)
                 self.stats.videos += 1
-                return stored, True
+                return stored, True, None
         with _dataset_hint():
             reader = open_frames(path, convert=self.config.convert)
         try:
@@ -906,7 +912,7 @@ class VideoDataset(IterableDataset):
                     stored = cache.load(key)
                     if stored is not None:
                         self.stats.videos += 1
-                        return stored, True
+                        return stored, True, None
             t0 = time.perf_counter()
             with _dataset_hint():  # (a later frame's format is found as it is read)
                 sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
@@ -917,9 +923,13 @@ class VideoDataset(IterableDataset):
             sequence = replace(sequence, first_frame=start)
         self.stats.videos += 1
         self.stats.frames_tracked += sequence.num_frames
+        return sequence, False, key
+
+    def _store(self, index: int, sequence: TrackedSequence, key: str | None) -> None:
+        """Store video ``index``'s tracked ``sequence`` in the cache under ``key`` (None: nothing to store)."""
+        cache = self.cache
         if cache is not None and key is not None:
-            cache.store(key, sequence, source=str(path), config=self.config.tracking)
-        return sequence, False
+            cache.store(key, sequence, source=str(self.videos[index]), config=self.config.tracking)
 
     def _items(
         self, index: int, rng: random.Random | None, tracked: tuple[TrackedSequence, bool] | None = None

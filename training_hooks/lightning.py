@@ -124,14 +124,37 @@ class _EpochLoader(DataLoader):
         return super().__iter__()
 
 
+class _OptionalValidation:
+    """:meth:`TrackedFaceDataModule.val_dataloader`, shown to the trainer as not implemented while the module has no
+    validation dataset (``val`` None), as in a ``LightningDataModule`` without one (Lightning looks at the method,
+    ``is_overridden``), so that it runs no validation without a word: it asked for the loader, got ``[]`` and warned
+    "Total length of `list` across ranks is zero. Please make sure this was your intention." at every fit. Called
+    directly, it still gives ``[]``. Looked up on each access (not set on the instance when it is made), so that a
+    ``val`` set later (in ``setup``) is validated on, and a subclass's own ``val_dataloader`` is its own (an instance
+    attribute hid both: no validation, without a word)."""
+
+    def __init__(self, method: Callable[[TrackedFaceDataModule], DataLoader | list]) -> None:
+        self.method = method
+
+    def __get__(self, module: TrackedFaceDataModule | None, owner: type | None = None) -> Any:
+        if module is None:
+            return self.method
+        if getattr(module, "val", None) is not None:
+            return self.method.__get__(module, owner)
+        empty = functools.partial(self.method, module)
+        # (is_overridden compares the code of the unwrapped method with LightningDataModule's)
+        empty.__wrapped__ = pl.LightningDataModule.val_dataloader  # type: ignore[attr-defined]
+        return empty
+
+
 class TrackedFaceDataModule(pl.LightningDataModule):
     """``LightningDataModule`` over tracked datasets (:class:`~training_hooks.datasets.VideoDataset` /
     :class:`~training_hooks.datasets.FrameFolderDataset`).
 
     Args:
         train: the training dataset.
-        val: the validation dataset, or None (no validation: the trainer sees no ``val_dataloader``; give it here,
-            not by setting ``val`` later).
+        val: the validation dataset, or None (no validation: the trainer sees no ``val_dataloader`` while ``val``
+            is None; one set later, e.g. in ``setup``, is validated on).
         batch_size: items per batch.
         num_workers: ``DataLoader`` workers (tracking runs in them).
         collate_fn: None picks :func:`~training_hooks.collate.collate_clips` for clip datasets and PyTorch's default
@@ -199,8 +222,6 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         self.batch_size = check_int(batch_size, "batch_size", 1)
         self.num_workers = check_int(num_workers, "num_workers", 0)
         self.train, self.val, self.collate_fn = train, val, collate_fn
-        if val is None:
-            self._no_validation()
         # (checked here, not when the trainer first asks for a loader: DataLoader's own messages came then)
         workers = self.num_workers > 0
         self.pin_memory = None if pin_memory is None else check_bool(pin_memory, "pin_memory")
@@ -266,17 +287,8 @@ class TrackedFaceDataModule(pl.LightningDataModule):
             self.train.set_epoch(epoch)
         return self._loader(self.train, epochs=True)
 
+    @_OptionalValidation
     def val_dataloader(self) -> DataLoader | list:
         """The validation loader; ``[]`` without a validation dataset, where the trainer does not ask for it
-        (:meth:`_no_validation`)."""
+        (:class:`_OptionalValidation`)."""
         return [] if self.val is None else self._loader(self.val)
-
-    def _no_validation(self) -> None:
-        """Without a validation dataset, show the trainer this module's ``val_dataloader`` as not implemented, as a
-        ``LightningDataModule`` without one is (Lightning looks at the method, ``is_overridden``), so that it runs no
-        validation without a word: it asked for the loader, got ``[]`` and warned "Total length of `list` across ranks
-        is zero. Please make sure this was your intention." at every fit. Called directly, it still gives ``[]``."""
-        empty = functools.partial(TrackedFaceDataModule.val_dataloader, self)
-        # (is_overridden compares the code of the unwrapped method with LightningDataModule's)
-        empty.__wrapped__ = pl.LightningDataModule.val_dataloader  # type: ignore[attr-defined]
-        self.val_dataloader = empty  # type: ignore[method-assign]

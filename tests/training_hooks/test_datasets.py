@@ -1079,11 +1079,15 @@ def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, 
 
 def test_len_and_indexing_say_what_to_use_instead(clips, config):
     """An iterable dataset: ``data[0]`` was torch's "Subclasses of Dataset should implement __getitem__" (a
-    NotImplementedError, read as a bug), ``len(data)`` "has no len()" without a word of counting. Both are a
-    TypeError that says what to use; what takes "no length" from a TypeError (list(), a DataLoader, Lightning)
-    works as before."""
+    NotImplementedError, read as a bug); it is a TypeError that says what to use. ``len(data)`` stays Python's "has
+    no len()": a ``__len__`` that raised made the dataset a ``collections.abc.Sized``, and Lightning's
+    ``str(datamodule)``, which asks ``len()`` only of a Sized dataset, then said "Train dataloader: None" (no loader)
+    instead of "size=NA". What takes "no length" from a TypeError (list(), a DataLoader) works as before."""
+    from collections.abc import Sized
+
     data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
-    with pytest.raises(TypeError, match=r"has no len\(\): count its items without tracking with sum\(data\.count"):
+    assert not isinstance(data, Sized)
+    with pytest.raises(TypeError, match=r"has no len\(\)"):
         len(data)
     with pytest.raises(TypeError, match=r"has no len\(\)"):
         len(DataLoader(data, batch_size=2))
@@ -1094,3 +1098,32 @@ def test_len_and_indexing_say_what_to_use_instead(clips, config):
     sequence, _ = data.sequence(0)  # the recipe: frame t's item
     assert all(torch.equal(sequence.item(3)[k], items[3][k]) for k in sequence.item(3))
     assert len(list(DataLoader(data, batch_size=4))) == 2
+    try:
+        from training_hooks.lightning import TrackedFaceDataModule
+    except ImportError:  # (Lightning is optional)
+        return
+    assert str(TrackedFaceDataModule(data, val=data)).splitlines()[:2] == [
+        "{Train dataloader: size=NA}", "{Validation dataloader: size=NA}"
+    ]
+
+
+def test_keep_going_does_not_skip_a_video_for_the_caches_write_error(clips, config, tmp_path):
+    """With ``keep_going``, a cache that cannot be written (here a folder under a file: NotADirectoryError; a full
+    disk or a read-only folder alike) skipped every video as if it could not be read, after tracking it, and for
+    good: an epoch of no items, with a warning per video. The error is the cache's, not the video's: it stops the
+    epoch, as without ``keep_going``; nothing is recorded as skipped."""
+    import warnings
+
+    from training_hooks import SkippedVideoWarning
+
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("")
+    unwritable = replace(config, cache_dir=blocker / "cache")
+    with pytest.raises(OSError):
+        list(VideoDataset([clips[0].video], [clips[0].landmarks], unwritable))
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(unwritable, keep_going=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkippedVideoWarning)
+        with pytest.raises(OSError):
+            list(data)
+    assert data.skipped == {}

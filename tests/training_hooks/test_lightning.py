@@ -267,3 +267,42 @@ def test_datamodule_without_validation_data_runs_no_validation_loop_without_a_wo
             trainer.fit(Counting(), datamodule=module)
         assert Counting.validated == expected
         assert not [w for w in caught if "Total length" in str(w.message)], [str(w.message) for w in caught]
+
+
+@NO_VAL_NOTICE
+def test_datamodule_validates_on_a_subclass_loader_or_a_val_set_in_setup(clips, config):
+    """The module without ``val`` hid ``val_dataloader`` behind an instance attribute made in ``__init__``: a
+    subclass's own ``val_dataloader`` was never called (the trainer saw none, and calling it gave ``[]``), and a
+    ``val`` set in ``setup`` (Lightning's place for datasets) ran no validation, without a word. Both validate, as
+    before that change; a module that never gets ``val`` still shows none."""
+    from lightning.pytorch.utilities.model_helpers import is_overridden
+
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    list(data)  # (fills the cache)
+
+    class OwnLoader(TrackedFaceDataModule):
+        def val_dataloader(self):
+            return DataLoader(data, batch_size=4)
+
+    class ValInSetup(TrackedFaceDataModule):
+        def setup(self, stage):
+            self.val = data
+
+    class Counting(TinyModel):
+        validated = 0
+
+        def validation_step(self, batch, batch_idx):
+            Counting.validated += 1
+
+    assert is_overridden("val_dataloader", OwnLoader(data)) and isinstance(OwnLoader(data).val_dataloader(), DataLoader)
+    for module, expected in ((OwnLoader(data, batch_size=4), 2), (ValInSetup(data, batch_size=4), 2),
+                             (TrackedFaceDataModule(data, batch_size=4), 0)):  # fmt: skip
+        Counting.validated = 0
+        trainer = pl.Trainer(
+            max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+            enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0,
+        )  # fmt: skip
+        trainer.fit(Counting(), datamodule=module)
+        assert Counting.validated == expected, type(module).__name__
