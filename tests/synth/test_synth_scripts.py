@@ -617,3 +617,19 @@ def test_evaluate_smoothing_restarts_where_the_online_smoother_does():
                                          torch.arange(gt.num_frames, dtype=torch.float64)[None] / gt.fps,
                                          SmoothingConfig())[0][0]  # fmt: skip
     assert (before[at + 1] - R_online[at + 1]).abs().max() > 1e-4  # (what the offline path gave without the start)
+
+
+def test_evaluate_json_holds_the_last_scenarios_smoothing_rows(tmp_path, capsys):
+    """--json with --smoothing and --no-auroc: the last scenario's smoothed rows, which the table prints, are in the
+    JSON too (they came after its last write, which only section (b) followed)."""
+    import json
+
+    evaluate = _load("evaluate")
+    out = tmp_path / "eval.json"
+    assert evaluate.main(["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--ablations", "none",
+                          "--cache", "none", "--threads", "1", "--no-auroc", "--progress-every", "0",
+                          "--smoothing", "default", "--json", str(out)]) == 0  # fmt: skip
+    assert "smooth default" in capsys.readouterr().out
+    figures = json.loads(out.read_text())
+    assert set(figures) == {"pose_sweep", "pose_sweep/smooth default"}
+    assert figures["pose_sweep/smooth default"]["num_frames"] == 3
