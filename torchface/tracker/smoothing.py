@@ -40,7 +40,7 @@ Defaults (:class:`SmoothingConfig`), chosen from ``scripts/evaluate.py --smoothi
 ``scripts/track_grid.py --smoothing`` (docs/python-api.md, "Smoothing the outputs"): rotation ``min_cutoff=1.0`` Hz,
 ``beta=100`` Hz per rad/s, ``d_cutoff=5.0`` Hz; translation ``min_cutoff=1.0`` Hz, ``beta=1.0`` Hz per mm/s,
 ``d_cutoff=5.0`` Hz; expression off. In fast motion the lag tends to ``1 / (2 pi beta)`` (0.09 degrees, 0.16 mm):
-the GRID clips' pose jitter 0.097 -> 0.066 degrees, the rendered scenarios' mean rotation error up 0.01-0.03
+the GRID clips' pose jitter 0.098 -> 0.067 degrees, the rendered scenarios' mean rotation error up 0.01-0.03
 degrees.
 """
 
