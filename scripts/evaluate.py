@@ -18,7 +18,8 @@ than another's.
 --selection-seeds does the same for the draw of the template points (TrackerConfig.selection_seed), with the
 default landmark noise. --smoothing adds rows of the full run's pose smoothed over time at each listed setting
 (torchface.tracker.smoothing, the One-Euro filter of ResultSmoother and `torchface track --smooth`), filtered offline
-from the run's per-frame estimates (the filter does not feed the tracking): its error, lag and jitter. Every managed run tracks with the online look-ahead start, the tracker's default
+from the run's per-frame estimates (the filter does not feed the tracking), starting afresh where the online smoother
+does (after unsuccessful frames and after the online start's re-anchoring frame): its error, lag and jitter. Every managed run tracks with the online look-ahead start, the tracker's default
 (FaceTracker(refine_first=LookaheadConfig()), torchface.tracker.managed); --no-online-refine turns it off, and
 --lookahead instead refines the first fit from frames read ahead before tracking (two passes).
 
@@ -95,7 +96,7 @@ from torchface.synth.sequence import GroundTruth, SequenceSpec, load_ground_trut
 from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.module import FaceTracker
-from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
+from torchface.tracker.smoothing import SmoothingConfig, reanchored_streams, smooth_pose_series
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
@@ -167,6 +168,8 @@ class RunOutput:
         (``TrackResult.expression``, which the animation-unit scores compare with the truth); status: ``(T,)`` int64;
         success: ``(T,)`` bool (``TrackResult.success``); confidence: ``(T,)`` in [0, 1];
         ms_per_frame: mean time of the tracker's calls on frames ``1 .. T-1``; init_ms: of the initialisation.
+        reanchored: ``(T,)`` bool, the frames whose step the online start re-anchored the stream in
+        (:func:`~torchface.tracker.smoothing.reanchored_streams`; the smoothing starts afresh at the next frame).
     """
 
     rotation: Tensor
@@ -177,6 +180,7 @@ class RunOutput:
     init_ms: float
     success: Tensor
     confidence: Tensor
+    reanchored: Tensor
 
 
 def _to_uint8(frames: Tensor) -> Tensor:
@@ -348,6 +352,8 @@ def track_frames(
     res = tracker.initialise(first, landmarks.to(device=dev, dtype=dt), gt.intrinsics, fit=fit)
     init_ms = 1e3 * (time.perf_counter() - start)
     results = [res]
+    reanchored, offsets = reanchored_streams(tracker.state, None)  # (as ResultSmoother reads them: tracker_state)
+    flags = [reanchored]
     R0_est = res.rotation.detach().to("cpu", torch.float64)
     busy = 0.0
     wall = time.perf_counter()
@@ -357,6 +363,8 @@ def track_frames(
         res = tracker(x)
         busy += time.perf_counter() - t0
         results.append(res)
+        reanchored, offsets = reanchored_streams(tracker.state, offsets)
+        flags.append(reanchored)
         if progress_every and (i % progress_every == 0 or i == T - 1):
             R_pair = torch.cat([R0_est, res.rotation.detach().to("cpu", torch.float64)])
             err = float(relative_rotation_error_deg(R_pair, gt.rotation[[0, i]])[1])
@@ -382,6 +390,7 @@ def track_frames(
         init_ms=init_ms,
         success=cat("success").to(torch.bool),
         confidence=cat("confidence").to(torch.float64),
+        reanchored=torch.cat(flags).cpu(),
     )
 
 
@@ -395,11 +404,12 @@ def track_sequence(
 
 def smoothed_run(out: RunOutput, fps: float, config: SmoothingConfig) -> RunOutput:
     """``out`` with its rotations and translations smoothed over time by :func:`smooth_pose_series` (frames at
-    ``fps``; a stream starts afresh after each unsuccessful frame), as ``ResultSmoother`` would have smoothed them
-    online."""
+    ``fps``; a stream starts afresh after each unsuccessful frame and after the online start's re-anchoring frame),
+    as ``ResultSmoother`` (given ``tracker_state``) smooths them online and ``torchface track --smooth`` its rows."""
     T = out.rotation.shape[0]
     time = torch.arange(T, dtype=torch.float64)[None] / fps
-    R, t = smooth_pose_series(out.rotation[None], out.translation[None], out.success[None], time, config)
+    R, t = smooth_pose_series(out.rotation[None], out.translation[None], out.success[None], time, config,
+                              reanchored=out.reanchored[None])  # fmt: skip
     return replace(out, rotation=R[0], translation=t[0])
 
 
@@ -1202,8 +1212,8 @@ def main(argv: list[str] | None = None) -> int:
         text, figures = auroc_section(earlier + series)
         print(text + "\n", flush=True)
         results.update({f"auroc/{k}": v for k, v in figures.items()})
-        if args.json is not None:
-            write_json(args.json, results)
+    if args.json is not None:  # (the last scenario's --smoothing rows come after its last write above)
+        write_json(args.json, results)
     return 0
 
 

@@ -8,8 +8,9 @@ torchface.synth.metrics.rotation_jitter_deg against a still head), tracking fps;
 runs on the same clips and its pose's jitter is printed beside. Landmarks of the first frames come from ``--landmarks-dir``
 (``<stem>.csv`` files, 68 iBUG points) or from ``--detector``. With --smoothing each clip's pose is also smoothed over
 time at each listed setting (torchface.tracker.smoothing, the One-Euro filter of ``torchface track --smooth``),
-offline from its CSV's rows (their times, their success), and the smoothed pose's jitter printed beside the raw
-one's, with how far the smoothed pose strays from the raw one (mean geodesic angle).
+offline from its CSV's rows (their times, their success, a start afresh after the online start's re-anchoring frame,
+the sidecar's start.reanchored_at_frame, as the job's own smoothing starts), and the smoothed pose's jitter printed
+beside the raw one's, with how far the smoothed pose strays from the raw one (mean geodesic angle).
 
 Examples:
     python scripts/track_grid.py --landmarks-dir /tmp/grid_lm --out out/grid
@@ -19,6 +20,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -51,14 +53,19 @@ def pose_jitter_deg(rotations: np.ndarray) -> float:
     return float(rotation_jitter_deg(R, torch.eye(3, dtype=torch.float64).expand_as(R)))
 
 
-def smoothed_rotations(cols: tuple[str, ...], rows: np.ndarray, config: SmoothingConfig) -> np.ndarray:
+def smoothed_rotations(cols: tuple[str, ...], rows: np.ndarray, config: SmoothingConfig,
+                       reanchored_at_frame: int | None = None) -> np.ndarray:  # fmt: skip
     """``(T, 3, 3)`` the rotations of a torchface CSV's rows smoothed over time as ``torchface track --smooth`` smooths
-    them (:func:`~torchface.tracker.smooth_pose_series`, at the rows' ``timestamp``, afresh after unsuccessful rows)."""
+    them (:func:`~torchface.tracker.smooth_pose_series`, at the rows' ``timestamp``, afresh after unsuccessful rows
+    and after the row of frame ``reanchored_at_frame``: the sidecar's ``start.reanchored_at_frame``, None: none)."""
     data = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
     R = data[:, [cols.index(c) for c in _ROTATION_COLUMNS]].reshape(1, -1, 3, 3)
     t = data[:, [cols.index(c) for c in ("pose_Tx", "pose_Ty", "pose_Tz")]][None]
     ok = (data[:, cols.index("success")] > 0.5)[None]
-    smooth, _ = smooth_pose_series(R, t, ok, data[:, cols.index("timestamp")][None], config)
+    reanchored = torch.zeros_like(ok)
+    if reanchored_at_frame is not None:
+        reanchored[0] = data[:, cols.index("frame")] == reanchored_at_frame
+    smooth, _ = smooth_pose_series(R, t, ok, data[:, cols.index("timestamp")][None], config, reanchored=reanchored)
     return smooth[0].numpy()
 
 
@@ -127,8 +134,10 @@ def main(argv: list[str] | None = None) -> int:
                 row["mediapipe_jitter_deg"] = pose_jitter_deg(opencv_rotations(run.matrices)[0])
                 row["mediapipe_frames_with_face"] = run.frames_with_face
                 extra = f"{row['mediapipe_jitter_deg']:>11.3f}"
+        at = json.loads(output_paths(args.out, s.name)["json"].read_text(encoding="utf-8"))["start"][
+            "reanchored_at_frame"] if smoothing else None  # fmt: skip
         for label, config_s in smoothing:  # the smoothed pose's jitter / how far it strays from the raw pose
-            smooth = smoothed_rotations(cols, rows, config_s) if len(rows) >= 3 else None
+            smooth = smoothed_rotations(cols, rows, config_s, at) if len(rows) >= 3 else None
             row[f"{label}/jitter_deg"] = pose_jitter_deg(smooth) if smooth is not None else float("nan")
             row[f"{label}/from_raw_deg"] = float(geodesic_angle_deg(
                 torch.from_numpy(smooth), torch.from_numpy(rotations)).mean()) if smooth is not None else float("nan")

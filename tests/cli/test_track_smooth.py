@@ -207,3 +207,28 @@ def test_job_smoothing_setting_is_checked(tmp_path) -> None:
         JobConfig(out_dir=tmp_path, smoothing=True)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="pose only"):
         JobConfig(out_dir=tmp_path, smoothing=SmoothingConfig(expression=OneEuroConfig()))
+
+
+def test_track_grid_smooths_offline_as_the_job_did(runs) -> None:
+    """scripts/track_grid.py --smoothing filters a run's CSV rows offline: given the sidecar's
+    start.reanchored_at_frame it starts afresh where ``--smooth`` did (the row after the re-anchoring frame), so its
+    rotations are the job's smooth_r* cells; without it (as before) they part after the re-anchoring."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "track_grid.py"
+    sys.path.insert(0, str(path.parent))
+    spec = importlib.util.spec_from_file_location("track_grid", path)
+    track_grid = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(track_grid)
+    _, smooth, _ = runs
+    cols, rows = read_track_csv(smooth / "clip.csv")
+    at = json.loads((smooth / "clip.json").read_text())["start"]["reanchored_at_frame"]
+    assert at is not None and at + 1 < T
+    job = smooth_cells(cols, rows)[:, 3:].reshape(-1, 3, 3)
+    got = track_grid.smoothed_rotations(cols, rows, SmoothingConfig(), at)
+    np.testing.assert_allclose(got, job, rtol=0, atol=1e-6)
+    assert np.array_equal(got[at + 1], rows[at + 1, [cols.index(c) for c in ROTATION_COLUMNS]].reshape(3, 3))
+    without = track_grid.smoothed_rotations(cols, rows, SmoothingConfig())
+    assert np.abs(without[at + 1] - job[at + 1]).max() > 1e-4

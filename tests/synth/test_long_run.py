@@ -211,7 +211,7 @@ def test_evaluate_sections_on_made_up_runs(tmp_path):
         return ev.RunOutput(
             rotation=offset @ gt.rotation, translation=gt.translation, anim=torch.zeros(T, 0, dtype=F64),
             status=torch.zeros(T, dtype=torch.int64), ms_per_frame=10.0, init_ms=1.0, success=success,
-            confidence=confidence,
+            confidence=confidence, reanchored=torch.zeros(T, dtype=torch.bool),
         )
 
     good_err = torch.full((T,), 0.5, dtype=F64)

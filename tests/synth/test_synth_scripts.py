@@ -577,3 +577,59 @@ def test_evaluate_template_flags_set_every_runs_setting(monkeypatch, capsys, fla
         with pytest.raises(SystemExit) as info:
             evaluate.main([*base, flag, *values])
         assert info.value.code == 2 and f"{flag} {message}" in capsys.readouterr().err
+
+
+def test_evaluate_smoothing_restarts_where_the_online_smoother_does():
+    """scripts/evaluate.py --smoothing filters each run's pose offline (smoothed_run): on a short tracked clip that
+    the online start re-anchors (the `expressions` scenario turns past 10 degrees at frame 2), the series is the one
+    ResultSmoother gives online, given the tracker's state, the stream started afresh after the re-anchoring frame
+    (before, the offline path missed that start and smeared the re-anchored estimate's step)."""
+    import torch
+
+    from torchface.model.candide import load_candide3
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import render_sequence
+    from torchface.tracker import FaceTracker, ResultSmoother, SmoothingConfig, TrackerConfig
+
+    evaluate = _load("evaluate")
+    model, config = load_candide3(), TrackerConfig()
+    frames, gt = render_sequence(make_scenario("expressions", 8, 160, 120))
+    frames = (frames.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)  # (as evaluate reads its cached video)
+    landmarks = gt.landmarks_px[:1].to(model.dtype)
+    out = evaluate.track_frames(model, config, (f[None] for f in frames), gt, landmarks, "clip", 0)
+    assert out.reanchored.dtype == torch.bool and int(out.reanchored.sum()) == 1
+    at = int(out.reanchored.nonzero()[0, 0])
+    assert at + 1 < gt.num_frames
+    tracker = FaceTracker(config, model=model, refine_first=evaluate.ONLINE_REFINE)
+    smoother = ResultSmoother(SmoothingConfig(), fps=gt.fps)
+    x = frames.to(model.dtype) / 255.0
+    online = [smoother(tracker.initialise(x[:1], landmarks, gt.intrinsics), tracker_state=tracker.state)]
+    online += [smoother(tracker(x[k : k + 1]), tracker_state=tracker.state) for k in range(1, gt.num_frames)]
+    R_online = torch.cat([r.rotation for r in online]).double()
+    t_online = torch.cat([r.translation for r in online]).double()
+    assert torch.equal(torch.cat([r.status for r in online]), out.status)  # (the same tracking)
+    smooth = evaluate.smoothed_run(out, gt.fps, SmoothingConfig())
+    # (offline in float64 from the float32 results, online in float32: equal to float32's rounding)
+    torch.testing.assert_close(smooth.rotation, R_online, rtol=0, atol=1e-6)
+    torch.testing.assert_close(smooth.translation, t_online, rtol=0, atol=1e-4)
+    assert torch.equal(smooth.rotation[at + 1], out.rotation[at + 1])  # afresh at the re-anchored estimate
+    before = evaluate.smooth_pose_series(out.rotation[None], out.translation[None], out.success[None],
+                                         torch.arange(gt.num_frames, dtype=torch.float64)[None] / gt.fps,
+                                         SmoothingConfig())[0][0]  # fmt: skip
+    assert (before[at + 1] - R_online[at + 1]).abs().max() > 1e-4  # (what the offline path gave without the start)
+
+
+def test_evaluate_json_holds_the_last_scenarios_smoothing_rows(tmp_path, capsys):
+    """--json with --smoothing and --no-auroc: the last scenario's smoothed rows, which the table prints, are in the
+    JSON too (they came after its last write, which only section (b) followed)."""
+    import json
+
+    evaluate = _load("evaluate")
+    out = tmp_path / "eval.json"
+    assert evaluate.main(["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--ablations", "none",
+                          "--cache", "none", "--threads", "1", "--no-auroc", "--progress-every", "0",
+                          "--smoothing", "default", "--json", str(out)]) == 0  # fmt: skip
+    assert "smooth default" in capsys.readouterr().out
+    figures = json.loads(out.read_text())
+    assert set(figures) == {"pose_sweep", "pose_sweep/smooth default"}
+    assert figures["pose_sweep/smooth default"]["num_frames"] == 3

@@ -652,3 +652,57 @@ def test_docs_smoothing_block_runs_as_written() -> None:
     smooth, raw = scope["smooth"], scope["raw"]
     assert isinstance(smooth, TrackResult) and smooth.rotation.shape == (1, 3, 3)
     assert not torch.equal(smooth.rotation, raw.rotation) and not torch.equal(smooth.translation, raw.translation)
+
+
+def test_offline_series_restarts_where_the_online_smoother_does() -> None:
+    """smooth_pose_series given the frames whose step re-anchored a stream (reanchored_streams after each step, what
+    ResultSmoother reads from tracker_state) smooths a tracked pose series as the online smoother did, bit for bit,
+    on a small rendered clip (two streams: one turning, which the online start re-anchors, one still); without them
+    (the offline path of scripts/evaluate.py --smoothing before) it smears the re-anchored estimate's step."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from _helpers import sideways_clip
+
+    from torchface.tracker import FaceTracker, FitConfig, LookaheadConfig, TrackerConfig, reanchored_streams
+
+    frames, landmarks, _ = sideways_clip(320, 240, n=6)
+    frames = torch.stack([frames, frames[:1].expand_as(frames)], 1)  # (T, 2, 3, H, W): turning, still
+    config = TrackerConfig(num_levels=2, max_points=400, iterations=(4, 3), fit=FitConfig(held_shape_units=()))
+    tracker = FaceTracker(config, refine_first=LookaheadConfig(yaw_deg=5.0))
+    smoother = ResultSmoother(fps=FPS)
+    raw = [tracker.initialise(frames[0], torch.stack([landmarks, landmarks]))]
+    smooth = [smoother(raw[0], tracker_state=tracker.state)]
+    flags, offsets = [], None
+    for k in range(frames.shape[0]):
+        if k:
+            raw.append(tracker(frames[k]))
+            smooth.append(smoother(raw[-1], tracker_state=tracker.state))
+        changed, offsets = reanchored_streams(tracker.state, offsets)
+        flags.append(changed)
+    reanchored = torch.stack(flags, 1)  # (B, T)
+    assert reanchored[0].sum() == 1 and not reanchored[1].any()  # (the turning stream re-anchors once, mid-clip)
+    at = int(reanchored[0].nonzero()[0, 0])
+    assert 0 < at < len(raw) - 1
+    R = torch.stack([r.rotation for r in raw], 1)
+    t = torch.stack([r.translation for r in raw], 1)
+    ok = torch.stack([r.success for r in raw], 1)
+    time = torch.arange(len(raw), dtype=D).expand(2, -1) / FPS
+    R_s, t_s = smooth_pose_series(R, t, ok, time, SmoothingConfig(), reanchored=reanchored)
+    assert torch.equal(R_s, torch.stack([s.rotation for s in smooth], 1))
+    assert torch.equal(t_s, torch.stack([s.translation for s in smooth], 1))
+    assert torch.equal(R_s[0, at + 1], R[0, at + 1])  # afresh at the first re-anchored estimate
+    R_old, _ = smooth_pose_series(R, t, ok, time, SmoothingConfig())
+    assert not torch.equal(R_old[0, at + 1], R[0, at + 1])
+    assert torch.equal(R_old[1], R_s[1])  # (the still stream: as without the flags)
+    # the same as restart= one frame later; the masks are checked as the other series
+    after = torch.zeros_like(reanchored)
+    after[:, 1:] = reanchored[:, :-1]
+    assert torch.equal(smooth_pose_series(R, t, ok, time, SmoothingConfig(), restart=after)[0], R_s)
+    with pytest.raises(ValueError, match="reanchored must be"):
+        smooth_pose_series(R, t, ok, time, SmoothingConfig(), reanchored=reanchored[:, 1:])
+    with pytest.raises(ValueError, match="bool"):
+        smooth_pose_series(R, t, ok, time, SmoothingConfig(), reanchored=reanchored.float())
+    with pytest.raises(TypeError, match="tracker_state"):
+        reanchored_streams(tracker.state.management, None)  # type: ignore[arg-type]

@@ -24,6 +24,7 @@ from torchface.tracker.smoothing import (
     one_euro_alpha,
     one_euro_rotation_step,
     one_euro_step,
+    reanchored_streams,
     smooth_pose_series,
     smooth_result,
 )
@@ -74,6 +75,7 @@ __all__ = [
     "one_euro_rotation_step",
     "one_euro_step",
     "pyramid_for_faces",
+    "reanchored_streams",
     "refine_first_fit",
     "select_keyframes",
     "smooth_pose_series",

@@ -40,7 +40,7 @@ Defaults (:class:`SmoothingConfig`), chosen from ``scripts/evaluate.py --smoothi
 ``scripts/track_grid.py --smoothing`` (docs/python-api.md, "Smoothing the outputs"): rotation ``min_cutoff=1.0`` Hz,
 ``beta=100`` Hz per rad/s, ``d_cutoff=5.0`` Hz; translation ``min_cutoff=1.0`` Hz, ``beta=1.0`` Hz per mm/s,
 ``d_cutoff=5.0`` Hz; expression off. In fast motion the lag tends to ``1 / (2 pi beta)`` (0.09 degrees, 0.16 mm):
-the GRID clips' pose jitter 0.097 -> 0.066 degrees, the rendered scenarios' mean rotation error up 0.01-0.03
+the GRID clips' pose jitter 0.098 -> 0.067 degrees, the rendered scenarios' mean rotation error up 0.01-0.03
 degrees.
 """
 
@@ -68,6 +68,7 @@ __all__ = [
     "one_euro_alpha",
     "one_euro_rotation_step",
     "one_euro_step",
+    "reanchored_streams",
     "smooth_pose_series",
     "smooth_result",
 ]
@@ -445,7 +446,7 @@ def smooth_result(
 
 def smooth_pose_series(
     rotation: Tensor, translation: Tensor, success: Tensor, time: Tensor, config: SmoothingConfig,
-    restart: Tensor | None = None,
+    restart: Tensor | None = None, reanchored: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:  # fmt: skip
     """Smooth whole recorded pose series offline, frame after frame, as :class:`ResultSmoother` smooths them online
     (e.g. the rows of a ``torchface track`` CSV: ``r00 .. r22``, ``pose_T*``, ``success``, ``timestamp``).
@@ -456,6 +457,11 @@ def smooth_pose_series(
         time: ``(B, T)`` the frames' times, seconds.
         config: its ``rotation`` and ``translation`` filters (None: that series is returned as it is).
         restart: ``(B, T)`` bool, frames where a stream starts afresh, or None.
+        reanchored: ``(B, T)`` bool, the frames whose tracking step the online start re-anchored the stream in
+            (:func:`reanchored_streams` after each step; a ``torchface track`` sidecar's
+            ``start.reanchored_at_frame``), or None: the stream starts afresh at the frame after each, the first of
+            the re-anchored estimate, as :class:`ResultSmoother` given ``tracker_state`` and
+            ``torchface track --smooth`` start it.
 
     Returns:
         ``(B, T, 3, 3)`` and ``(B, T, 3)`` the smoothed series.
@@ -474,12 +480,17 @@ def smooth_pose_series(
     if not isinstance(rotation, Tensor) or rotation.dim() != 4 or tuple(rotation.shape[2:]) != (3, 3):
         raise ValueError(f"rotation must be (B, T, 3, 3), got {getattr(rotation, 'shape', type(rotation).__name__)}")
     B, T = rotation.shape[:2]
+    masks = tuple((name, x) for name, x in (("restart", restart), ("reanchored", reanchored)) if x is not None)
     for name, x, shape in (("translation", translation, (B, T, 3)), ("success", success, (B, T)),
-                           ("time", time, (B, T))) + ((("restart", restart, (B, T)),) if restart is not None else ()):
+                           ("time", time, (B, T))) + tuple((name, x, (B, T)) for name, x in masks):
         if not isinstance(x, Tensor) or tuple(x.shape) != shape:
             raise ValueError(f"{name} must be {shape}, got {getattr(x, 'shape', type(x).__name__)}")
-    if success.dtype != torch.bool or (restart is not None and restart.dtype != torch.bool):
-        raise ValueError("success and restart must be bool tensors")
+    if success.dtype != torch.bool or any(x.dtype != torch.bool for _, x in masks):
+        raise ValueError("success, restart and reanchored must be bool tensors")
+    if reanchored is not None:  # (afresh at the frame after each re-anchoring step)
+        after = torch.zeros_like(reanchored)
+        after[:, 1:] = reanchored[:, :-1]
+        restart = after if restart is None else restart | after.to(restart.device)
     time = time.to(torch.float64)
     R_out, t_out = [], []
     rot = trans = None
@@ -496,6 +507,41 @@ def smooth_pose_series(
         R_out.append(R)
         t_out.append(t)
     return torch.stack(R_out, 1), torch.stack(t_out, 1)
+
+
+def reanchored_streams(
+    state: TrackerState, before: tuple[Tensor, Tensor] | None, num_streams: int | None = None,
+) -> tuple[Tensor, tuple[Tensor, Tensor] | None]:  # fmt: skip
+    """Which streams the online start has re-anchored since ``before``: those whose re-anchoring offsets
+    (``ManagementState.head_rotation`` ``(B, 3, 3)`` and ``head_translation`` ``(B, 3)``, set once the online start
+    re-anchors a stream) changed. :class:`ResultSmoother` asks it after each step it is given ``tracker_state`` at,
+    and the stream starts afresh at its next result; offline, the frames it flags are
+    :func:`smooth_pose_series`' ``reanchored``.
+
+    Args:
+        state: the tracker's state after a step (``tracker.state``).
+        before: the offsets this function returned for the previous step's state, or None (none yet: a stream whose
+            offset is not the identity has been re-anchored).
+        num_streams: B, checked against the state's streams (None: the state's).
+
+    Returns:
+        ``(B,)`` bool on the state's device, the re-anchored streams, and the offsets to pass as ``before`` next
+        time (detached copies; ``before`` itself while the state holds none).
+    """
+    if not isinstance(state, TrackerState):
+        raise TypeError(f"tracker_state must be the tracker's TrackerState, got {type(state).__name__}")
+    B = state.params.shape[0] if num_streams is None else num_streams
+    ms = state.management
+    if ms is None or ms.head_rotation is None or ms.head_translation is None:
+        return torch.zeros(B, dtype=torch.bool, device=state.params.device), before
+    D, d = ms.head_rotation.detach().clone(), ms.head_translation.detach().clone()
+    if D.shape[0] != B:
+        raise ValueError(f"tracker_state holds {D.shape[0]} streams, the result {B}")
+    if before is None:  # (none recorded yet: a stream whose offset is not the identity was re-anchored)
+        eye = torch.eye(3, dtype=D.dtype, device=D.device)
+        before = (eye.expand_as(D), torch.zeros_like(d))
+    changed = (D != before[0]).flatten(1).any(1) | (d != before[1]).any(1)
+    return changed, (D, d)
 
 
 class ResultSmoother:
@@ -575,25 +621,10 @@ class ResultSmoother:
         return self
 
     def _reanchored(self, state: TrackerState, B: int, device: torch.device) -> Tensor:
-        """``(B,)`` bool: the streams whose re-anchoring offsets (``ManagementState.head_rotation`` and
-        ``head_translation``: set once the online start re-anchors a stream) changed since the last call's
-        ``state``."""
-        if not isinstance(state, TrackerState):
-            raise TypeError(f"tracker_state must be the tracker's TrackerState, got {type(state).__name__}")
-        ms = state.management
-        changed = torch.zeros(B, dtype=torch.bool, device=device)
-        if ms is None or ms.head_rotation is None or ms.head_translation is None:
-            return changed
-        D, d = ms.head_rotation.detach().clone(), ms.head_translation.detach().clone()
-        if D.shape[0] != B:
-            raise ValueError(f"tracker_state holds {D.shape[0]} streams, the result {B}")
-        before = self._offsets
-        if before is None:  # (none recorded yet: a stream whose offset is not the identity was re-anchored)
-            eye = torch.eye(3, dtype=D.dtype, device=D.device)
-            before = (eye.expand_as(D), torch.zeros_like(d))
-        changed = ((D != before[0]).flatten(1).any(1) | (d != before[1]).any(1)).to(device)
-        self._offsets = (D, d)
-        return changed
+        """``(B,)`` bool: the streams the online start re-anchored since the last call's ``state``
+        (:func:`reanchored_streams`)."""
+        changed, self._offsets = reanchored_streams(state, self._offsets, B)
+        return changed.to(device)
 
     def __call__(
         self, result: TrackResult, timestamps: Tensor | None = None, restart: Tensor | None = None,
