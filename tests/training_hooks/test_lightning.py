@@ -56,6 +56,19 @@ class TinyModel(pl.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.1)
 
 
+class Recorder(TinyModel):
+    """TinyModel that records the (video, frame) items of each epoch's training batches, in order."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: dict[int, list[tuple[int, int]]] = {}
+
+    def training_step(self, batch, batch_idx):
+        order = self.seen.setdefault(self.current_epoch, [])
+        order.extend(zip(batch["video"].tolist(), batch["frame"].tolist()))
+        return super().training_step(batch, batch_idx)
+
+
 # TinyModel has a validation_step; a module without validation data has Lightning say it skips the loop (its notice,
 # right for these tests' model; before, the module's [] drew "Total length of `list` across ranks is zero" instead).
 NO_VAL_NOTICE = pytest.mark.filterwarnings(r"ignore:You defined a `validation_step` but have no `val_dataloader`")
@@ -120,16 +133,6 @@ def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, c
         data.set_epoch(epoch)
         expected.append([(int(i["video"]), int(i["frame"])) for i in data])
     assert expected[0] != expected[1] and expected[1] != expected[2]
-
-    class Recorder(TinyModel):
-        def __init__(self) -> None:
-            super().__init__()
-            self.seen: dict[int, list[tuple[int, int]]] = {}
-
-        def training_step(self, batch, batch_idx):
-            order = self.seen.setdefault(self.current_epoch, [])
-            order.extend(zip(batch["video"].tolist(), batch["frame"].tolist()))
-            return super().training_step(batch, batch_idx)
 
     module = Recorder()
     trainer = pl.Trainer(
@@ -203,16 +206,6 @@ def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
                  for v, f in zip(b["video"].tolist(), b["frame"].tolist())]  # fmt: skip
         expected.append(order)
     assert expected[0] != expected[1] and expected[1] != expected[2]
-
-    class Recorder(TinyModel):
-        def __init__(self) -> None:
-            super().__init__()
-            self.seen: dict[int, list[tuple[int, int]]] = {}
-
-        def training_step(self, batch, batch_idx):
-            order = self.seen.setdefault(self.current_epoch, [])
-            order.extend(zip(batch["video"].tolist(), batch["frame"].tolist()))
-            return super().training_step(batch, batch_idx)
 
     torch.manual_seed(1234)
     module = Recorder()
