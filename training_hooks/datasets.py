@@ -74,7 +74,9 @@ skipping changes no sampler's indices; what it changes is the epoch's item count
   items in one process (a schedule planned from them ends a few steps early; it never overruns).
 - Under DDP with :attr:`RankBalance.PAD` or ``DROP`` every rank still yields the balanced count per worker: a worker
   whose video was skipped when tracked repeats its other videos' items in its place (as ``PAD`` repeats a short
-  worker's), so the ranks take the same number of steps and DDP does not hang. Each rank records its own skips.
+  worker's), so the ranks take the same number of steps and DDP does not hang. Each rank records its own skips. A
+  worker left nothing to repeat (every video it could repeat skipped too) raises a ``RuntimeError`` naming them
+  rather than end short: a rank cannot tell whether another read those videos and takes more steps.
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -955,7 +957,12 @@ class VideoDataset(IterableDataset):
         self, videos: list[int], target: int, slot: list[int], rng: random.Random | None
     ) -> Iterator[dict[str, Tensor]]:
         """Exactly ``target`` items: those of ``videos`` (cut at ``target``), then repeated from the first of them
-        with items (or, if none has, of the worker's videos on every rank, ``slot``) up to ``target``."""
+        with items (or, if none has, of the worker's videos on every rank, ``slot``) up to ``target``.
+
+        Raises:
+            RuntimeError: fewer than ``target`` items to give, every video to repeat skipped
+                (:attr:`DatasetConfig.keep_going`), after yielding the rest: other ranks, whose videos were read,
+                would take more steps, and DDP hang at the end of the epoch (:meth:`_short_error`)."""
         count = 0
         short = target - sum(self.num_items(i) for i in videos)
         kept: dict[int, tuple[TrackedSequence, bool]] = {}  # the sequences to repeat: not tracked twice
@@ -985,7 +992,24 @@ class VideoDataset(IterableDataset):
                     yield item
                     count += 1
             if count == before:  # (counted items the tracking did not give: nothing to repeat)
-                return
+                raise self._short_error(count, target, slot)
+
+    def _short_error(self, count: int, target: int, slot: list[int]) -> RuntimeError:
+        """The error of a worker that yielded ``count`` of its balanced ``target`` items, the videos of ``slot`` it
+        could repeat in place of its skipped ones skipped too. A rank cannot tell whether the others fared alike (a
+        file read on one node and not on another, a flaky disk): it stops rather than leave DDP waiting."""
+        rank, _ = self.rank_and_world_size()
+        info = get_worker_info()
+        skipped = [str(self.videos[i]) for i in slot if self._is_skipped(i)]
+        named = ", ".join(skipped[:3]) + (f" and {len(skipped) - 3} more" if len(skipped) > 3 else "")
+        return RuntimeError(
+            f"{type(self).__name__}: DataLoader worker {0 if info is None else info.id} of rank {rank} yielded {count} "
+            f"of the {target} items every rank's worker yields (DatasetConfig.rank_balance "
+            f"RankBalance.{self.config.rank_balance.name}): the videos it repeats in place of skipped ones were "
+            f"skipped too ({named or 'none'}; .skipped says why), so other ranks would take more steps and DDP would "
+            "hang. Leave those videos out of the dataset (or fix what failed), or use RankBalance.UNEVEN with "
+            "DistributedDataParallel.join()"
+        )
 
     def _warn_distributed(self, rank: int, world: int) -> None:
         """Warn once per dataset (and rank) when the group has more ranks than the dataset has videos."""

@@ -331,6 +331,40 @@ def test_skipped_videos_keep_the_ranks_counts_equal(uneven, config, monkeypatch)
         assert [[len(w) for w in epoch(drop, monkeypatch, r, 2, 2)] for r in range(2)] == [[2, 0], [2, 0]]
 
 
+@pytest.mark.parametrize("mode", [RankBalance.PAD, RankBalance.DROP])
+def test_a_worker_left_nothing_to_repeat_says_so_instead_of_ending_short(uneven, config, monkeypatch, mode):
+    """Worker 1 repeats from videos 2 (rank 0, 5 items) and 3 (rank 1, 3 items). Each rank holds its own dataset;
+    on rank 0 both fail to read (an ``OSError``, e.g. a node's flaky disk), on rank 1 neither does. Rank 0's worker 1
+    yielded 0 items where rank 1's yielded 5 (PAD) or 3 (DROP), without a word: DDP hung at the end of the epoch.
+    It now raises, naming the skipped videos; the other worker, and the other rank, yield the balanced count."""
+    from training_hooks import SkippedVideoWarning
+
+    videos, landmarks = uneven
+    cfg = replace(config, keep_going=True, rank_balance=mode)
+    target = 5 if mode is RankBalance.PAD else 3
+    flaky = VideoDataset(videos, landmarks, cfg)  # rank 0's
+    read = flaky._read_or_track
+
+    def failing(index):
+        if index in (2, 3):
+            raise OSError(5, "Input/output error", str(videos[index]))
+        return read(index)
+
+    monkeypatch.setattr(flaky, "_read_or_track", failing)
+    fine = VideoDataset(videos, landmarks, cfg)  # rank 1's
+    simulate(monkeypatch, 1, 2, 1, 2)
+    assert len(list(fine)) == target == fine.worker_items(1, 2, 1, 2)
+    simulate(monkeypatch, 0, 2, 0, 2)
+    assert len(list(flaky)) == flaky.worker_items(0, 2, 0, 2)  # (worker 0: nothing skipped)
+    simulate(monkeypatch, 0, 2, 1, 2)
+    with pytest.warns(SkippedVideoWarning), pytest.raises(RuntimeError) as raised:
+        list(flaky)
+    said = str(raised.value)
+    assert said.startswith(f"VideoDataset: DataLoader worker 1 of rank 0 yielded 0 of the {target} items")
+    assert "DDP would hang" in said and "v2.npy" in said and "v3.npy" in said and "RankBalance.UNEVEN" in said
+    assert sorted(flaky.skipped) == [2, 3]
+
+
 def test_drop_and_uneven_rank_balance(uneven, config, monkeypatch):
     """RankBalance.DROP: each worker yields as few as the same worker of the emptiest rank (the first ones of its
     own); UNEVEN: the rank's own items, as before."""
