@@ -66,8 +66,9 @@ def test_landmarks_in_normalised_coordinates_are_told_how_to_make_pixels(clip):
     wide, which the landmark fit FAILED, and ``initialise`` returned status 2 without a word of why. They are refused
     with how to make pixels of them, and the pixels made so start the stream as the landmarks in pixels do."""
     frames, lm = clip
-    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[0, 1\] x \[0, 1\]: normalised coordinates .*"
-                                         r"landmarks \* torch.tensor\(\[160.0, 120.0\]\) - 0.5 for these 160x120"):
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\] x \[-0.5, 1.5\]: normalised "
+                                         r"coordinates .*landmarks \* torch.tensor\(\[160.0, 120.0\]\) "
+                                         r"- 0.5 for these 160x120"):
         FaceTracker(CFG).initialise(frames[:1], normalised(lm)[None])
     tracker = FaceTracker(CFG)
     converted = tracker.initialise(frames[:1], (normalised(lm) * torch.tensor([160.0, 120.0]) - 0.5)[None])
@@ -76,11 +77,16 @@ def test_landmarks_in_normalised_coordinates_are_told_how_to_make_pixels(clip):
     assert torch.allclose(converted.translation, reference.translation, atol=1e-3)
     # Streams without a face (NaN rows) or with weight 0 on the points outside [0, 1] leave the others' say.
     nan = torch.full_like(lm, float("nan"))
-    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\]"):
         FaceTracker(CFG).initialise(frames[:2], torch.stack([normalised(lm), nan]))
+    # A face partly out of the frame: MediaPipe's points a little outside [0, 1] (they failed without a word too).
+    partly_out = normalised(lm) - torch.stack([normalised(lm)[:, 0].min() + 0.05, torch.tensor(0.0)])
+    assert bool((partly_out[:, 0] < 0).any())
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\]"):
+        FaceTracker(CFG).initialise(frames[:1], partly_out[None])
     half = torch.cat([normalised(lm[:40]), lm[40:]])
     weights = torch.cat([torch.ones(40), torch.zeros(28)])[None]
-    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\]"):
         FaceTracker(CFG).initialise(frames[:1], half[None], weights=weights)
 
 
@@ -110,7 +116,7 @@ def test_a_detector_answering_normalised_coordinates_is_named(clip):
     nan = torch.full((1, 68, 2), float("nan"))
     tracker = FaceTracker(CFG, detector=lambda batch: normalised(lm)[None].expand(batch.shape[0], -1, -1).clone())
     tracker.initialise(frames[:1], nan)  # starts FAILED: the detector is asked at its recovery attempts
-    with pytest.raises(ValueError, match=r"^the detector's landmarks lie within \[0, 1\] x \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"^the detector's landmarks lie within \[-0.5, 1.5\] x \[-0.5, 1.5\]"):
         for t in (1, 2, 1, 2, 1, 2):
             tracker(frames[t : t + 1])
     tracker = FaceTracker(CFG, detector=lambda batch: lm[None].expand(batch.shape[0], -1, -1).clone())
@@ -163,9 +169,13 @@ def test_a_landmarks_file_of_normalised_coordinates_is_refused_naming_it(tmp_pat
     path = tmp_path / "mediapipe.csv"
     rows = normalised(lm).double().tolist()
     path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in rows))
-    with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[0, 1\] x \[0, 1\]: normalised "
-                                         r"coordinates .* Give pixels, centres at integers: x \* 160 - 0.5, "
+    with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[-0.5, 1.5\] x \[-0.5, 1.5\]: "
+                                         r"normalised coordinates .* Give pixels, centres at integers: x \* 160 - 0.5, "
                                          r"y \* 120 - 0.5$"):  # fmt: skip
+        read_landmarks(path, W, H)
+    x0 = min(x for x, _ in rows) + 0.05  # a face partly out of the frame: MediaPipe's points a little outside [0, 1]
+    path.write_text("x,y\n" + "".join(f"{x - x0!r},{y!r}\n" for x, y in rows))
+    with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[-0.5, 1.5\]"):
         read_landmarks(path, W, H)
     pixels = [[x * W - 0.5, y * H - 0.5] for x, y in rows]
     path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in pixels))

@@ -591,14 +591,15 @@ def check_landmarks(
             f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
         )
     kept = points[given]
-    if len(kept) and ((kept >= 0) & (kept <= 1)).all() and np.ptp(kept, axis=0).max() > 0:
+    if len(kept) and ((kept >= -0.5) & (kept <= 1.5)).all() and 0 < np.ptp(kept, axis=0).max() <= 1.5:
+        # (within [-0.5, 1.5]: MediaPipe's points of a face partly out of the frame lie a little outside [0, 1])
         # (MediaPipe's normalised points passed as pixels: a face under a pixel wide, whose fit failed: every row
         # of the video unsuccessful; the tracker's initialise refuses them too, naming no file)
         # (training_hooks checks an array before it knows the frame size, with a size of 2**30: no numbers then)
         w, h = (str(width), str(height)) if max(width, height) < 1 << 30 else ("W", "H")
         raise InputError(
-            f"{where}: every point lies within [0, 1] x [0, 1]: normalised coordinates (x / W, y / H, as MediaPipe "
-            f"writes them)? Give pixels, centres at integers: x * {w} - 0.5, y * {h} - 0.5"
+            f"{where}: every point lies within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as "
+            f"MediaPipe writes them)? Give pixels, centres at integers: x * {w} - 0.5, y * {h} - 0.5"
         )
     return points
 

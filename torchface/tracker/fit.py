@@ -365,9 +365,10 @@ def check_pixel_landmarks(
     face landmarker gives them) instead of pixels, with a ``ValueError`` that says how to make pixels of them.
 
     They are refused where every stream with at least :data:`MIN_FIT_LANDMARKS` landmarks (finite, of finite positive
-    ``weights`` ``(B, K)`` where given) has all of them in ``[0, 1] x [0, 1]``, not all at one point, and none lies
-    outside: such landmarks spread less than a pixel about their centroid (at most 0.71 px RMS), so the landmark fit
-    FAILED every stream (:func:`fit_landmarks`) and the tracker reported status 2 with no word of why. A batch where
+    ``weights`` ``(B, K)`` where given) has all of them in ``[-0.5, 1.5] x [-0.5, 1.5]`` (MediaPipe's points of a face
+    partly out of the frame lie a little outside ``[0, 1]``) spanning at most 1.5 along each axis, not all at one
+    point, and none lies outside: such landmarks spread about a pixel at most, so the landmark fit FAILED every stream
+    (:func:`fit_landmarks`) and the tracker reported status 2 with no word of why. A batch where
     some stream has landmarks in pixels fails such a stream alone, as before, and so does an answer of zeros for no
     face (all at one point).
 
@@ -382,27 +383,29 @@ def check_pixel_landmarks(
         >>> check_pixel_landmarks(torch.rand(1, 68, 2), 640, 480)  # doctest: +ELLIPSIS
         Traceback (most recent call last):
             ...
-        ValueError: landmarks_px lie within [0, 1] x [0, 1]: normalised coordinates (x / W, y / H, as MediaPipe ...
+        ValueError: landmarks_px lie within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as ...
     """
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2 or landmarks_px.numel() == 0 or is_compiling():
         return
-    lm = landmarks_px.detach().to(torch.float64)
+    lm = landmarks_px.detach().to(torch.promote_types(landmarks_px.dtype, torch.float32))  # (MPS has no float64)
     given = torch.isfinite(lm).all(-1)  # (B, K)
     if weights is not None and tuple(weights.shape) == tuple(given.shape):
         w = weights.detach().to(lm)
         given = given & torch.isfinite(w) & (w > 0)  # (the points landmark_targets weighs)
     usable = given.sum(-1) >= MIN_FIT_LANDMARKS  # (B,)
-    inside = (((lm >= 0) & (lm <= 1)).all(-1) | ~given).all(-1)
+    inside = (((lm >= -0.5) & (lm <= 1.5)).all(-1) | ~given).all(-1)
     points = given.unsqueeze(-1)
     lo = torch.where(points, lm, math.inf).amin(1)
     hi = torch.where(points, lm, -math.inf).amax(1)
-    spread = ((hi - lo).amax(-1) > 0) & usable
+    span = (hi - lo).amax(-1)  # (B,)
+    inside = inside & (span <= 1.5)
+    spread = (span > 0) & usable
     normalised, in_pixels = usable & inside & spread, usable & ~inside
     if bool(normalised.any()) and not bool(in_pixels.any()):
         raise ValueError(
-            f"{name} lie within [0, 1] x [0, 1]: normalised coordinates (x / W, y / H, as MediaPipe gives them)? The "
-            f"tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) - 0.5 for "
-            f"these {width}x{height} frames (a fit to them failed: they span less than a pixel)"
+            f"{name} lie within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as MediaPipe gives "
+            f"them)? The tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) "
+            f"- 0.5 for these {width}x{height} frames (a fit to them failed: they span about a pixel at most)"
         )
 
 
