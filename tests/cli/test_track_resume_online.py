@@ -180,8 +180,8 @@ def test_a_stream_tracked_again_without_its_reanchoring_records_none(clip, tmp_p
     out = tmp_path / "out"
     _interrupted(video, out, lm, REANCHOR + 1, refine_first=online)
     assert json.loads((out / "sweep.record.partial").read_text())["anchor"]["frame"] == REANCHOR
-    with monkeypatch.context() as m:
-        m.setattr(torchface.tracker.managed, "is_keyframe_turn", lambda rel, *_: torch.zeros_like(rel, dtype=torch.bool))
+    with monkeypatch.context() as m:  # (no turn is one: the stream does not re-anchor)
+        m.setattr(torchface.tracker.managed, "is_keyframe_turn", lambda rel, *_: torch.zeros_like(rel, dtype=bool))
         track_videos([video], JobConfig(out_dir=tmp_path / "plain", landmarks=(lm,), refine_first=online))
         assert json.loads((tmp_path / "plain" / "sweep.json").read_text())["start"]["reanchored_at_frame"] is None
 
