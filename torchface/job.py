@@ -2477,10 +2477,6 @@ def _track_group(
         # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
         # from the landmark fit, not the online start its sidecar would not mention)
         online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
-        for s in streams:  # resumed within the online start's frames: its rows are tracked again (_Stream.retrack)
-            s.retrack = online and _online_start_pending(s, config.refine_first)
-            if s.retrack:  # (re-anchored before the interruption: the tracking again re-anchors it, and records it)
-                s.anchor = None
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
         anchored = {k: s.anchor for k, s in enumerate(streams)
                     if s.anchor is not None and config.tracker.template.enabled}  # fmt: skip
@@ -2672,11 +2668,16 @@ def _open_outputs(
                                 model.num_shape, model.num_animation)  # fmt: skip
     if s.replay is None:  # (no tracked row: nothing re-anchored)
         s.anchor = None
-    elif s.anchor is not None and s.anchor.get("frame") is not None and s.anchor["frame"] >= len(s.replay):
-        # interrupted between the re-anchoring step and its row: the rows from the next one on are tracked
-        # re-anchored, the last replayed one was not (its mesh is placed with its own pose). (With the online
-        # start, whose re-anchoring comes within its max_frames, such a stream is tracked again: _Stream.retrack)
-        s.anchor = {**s.anchor, "frame": len(s.replay) - 1, "params": None}
+    # Resumed within the online start's frames: its rows are tracked again (_Stream.retrack), and its record says
+    # no re-anchoring until the tracking again re-anchors it (_record_anchors): one that does not (another machine's
+    # rounding at the turn's threshold) kept the first run's, and a resume after a second interruption took its
+    # rows as re-anchored. (A re-anchoring is recorded only by the online start, at a frame below its max_frames,
+    # which a resume compares with its own; so a record whose re-anchoring frame has no row yet, interrupted between
+    # the re-anchoring step and its row, is always one tracked again.)
+    online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
+    s.retrack = online and _online_start_pending(s, config.refine_first)
+    if s.retrack:
+        s.anchor = None
     _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
     s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
     s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
