@@ -327,6 +327,11 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
         if s.declared_frames is not None:
             lines.append(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
                          "(truncated or damaged?)")  # fmt: skip
+        if s.not_met_again:  # (--resume: the rows tracked again for the online start; warned about as they were)
+            rows, were = ("row", "was") if s.not_met_again == 1 else ("rows", "were")
+            lines.append(f"    warning: {s.not_met_again} {rows} written before the interruption {were} not "
+                         f"met again when tracked again: the CSV holds rows of two runs that disagree ({s.name}.json's "
+                         "resumed says by how much; track it without --resume for rows of one run)")  # fmt: skip
     for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)
         lines.append(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)")
     written = [s for s in summaries if s.outputs]  # (--keep-going: a skipped input has none)

@@ -10,7 +10,8 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
 - ``<stem>.csv``: one row per frame (:mod:`torchface.io.table` documents the columns and units; with
   ``JobConfig.smoothing``, ``torchface track --smooth``, the smoothed pose's ``smooth_*`` columns after them);
 - ``<stem>.json``: versions, settings, camera, model, how the video started (``start``, :func:`_start_record`),
-  timings, frame count and lost frames, ``redetections`` (re-detections of a low-confidence stream,
+  timings, what a resumed run kept and tracked again (``resumed``, :func:`_resumed_record`), frame count and lost
+  frames, ``redetections`` (re-detections of a low-confidence stream,
   ``redetect_after``, that found a face and re-fitted its pose) and ``detector_calls`` (how often this run asked the
   detector about the video's frames: the first frame (and each next one up to the first with a face), those
   re-detections, and the tracker's recovery attempts (and restarts, ``restart_after_unmatched``) of a lost stream,
@@ -72,7 +73,8 @@ the prediction the uninterrupted run made. A CSV under its final name without it
 resumed as a partial one. A video interrupted within the frames the online start watches (fewer rows than
 ``LookaheadConfig.max_frames``), whether the start still waited for its head to turn or had re-anchored it, is not put
 into the tracker's state from its rows: they are tracked again from its first frame, not written, each checked against
-the CSV's (:func:`_check_retracked`: a row not met again is warned about), so that it re-anchors where the
+the CSV's (:func:`_check_retracked`: a row not met again is warned about, counted in the sidecar's ``resumed`` and
+the summary's ``not_met_again``), so that it re-anchors where the
 uninterrupted run did and goes on as it, its mosaic included (measured: the resumed CSV byte-identical to the
 uninterrupted run's on rendered clips, also with a detector, ``smoothing`` or ``motion_prediction``, and on 160x120
 pose sweeps of 20, 60 and 200 frames re-anchored before the interruption, resumed after 7 and 40 rows; 3-20 mm, 1-2
@@ -369,8 +371,9 @@ class VideoSummary:
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output; the streams of one batch share that time, so the batch
             as a whole runs at the sum of its videos' ``fps``, the sidecar's ``timings_s.batch_fps``; a video
-            shorter than others of its batch gets a lower ``fps``); skipped: True when ``resume`` found it
-            complete.
+            shorter than others of its batch gets a lower ``fps``; resumed, its rows tracked again for the online
+            start count as tracked frames, the rows replayed from its CSV, only drawn, do not); skipped: True when
+            ``resume`` found it complete.
         declared_frames: the frame count the input declares (a video container's), when known and the frames
             decoded fell short of it (a truncated or damaged file); None otherwise.
         refused: with ``JobConfig.keep_going``, why the input was skipped without being tracked: the error that
@@ -380,6 +383,9 @@ class VideoSummary:
             says without it: a frame that could not be read, ...); ``outputs`` holds its partial CSV, whose complete
             rows ``frames``, ``lost`` and ``mean_confidence`` count (``fps`` 0.0), kept for ``resume``; its other
             outputs were not written. None otherwise.
+        not_met_again: with ``resume``, how many of the rows kept from the interrupted run that this run tracked
+            again for the online start it did not meet again (a ``RuntimeWarning`` said so; the sidecar's
+            ``resumed`` says by how much); the video is complete all the same. 0 otherwise.
     """
 
     name: str
@@ -393,6 +399,7 @@ class VideoSummary:
     declared_frames: int | None = None
     refused: str | None = None
     stopped: str | None = None
+    not_met_again: int = 0
 
     @property
     def complete(self) -> bool:
@@ -976,8 +983,11 @@ class _Stream:
     # and recorded again) and builds its mosaic again
     retrack: bool = False
     # the largest gap of its rows tracked again from the CSV's: (mm, degrees, confidence, frame of the largest
-    # translation gap, first frame whose status or success differs (or None))
+    # translation gap (its first tracked frame where there is none), first frame whose status or success differs (or
+    # None))
     retrack_gap: tuple[float, float, float, int, int | None] = (0.0, 0.0, 0.0, 0, None)
+    tracked_again: int = 0  # its rows tracked again so far (counted as tracked frames: timings_s.fps)
+    not_met_again: int = 0  # of them, those not met again (RETRACK_TOLERANCE; the sidecar's resumed)
     frames: int = 0
     tracked: int = 0
     done: bool = False
@@ -2248,27 +2258,30 @@ def _retracked_gap(new: np.ndarray, old: np.ndarray, columns: tuple[str, ...]) -
 
 
 def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tuple[str, ...], t: int, n: int) -> None:
-    """Keep the largest gap of ``s``'s row ``t`` tracked again (``new``) from its CSV row (``old``) in
-    :attr:`_Stream.retrack_gap`; after the last of its ``n`` rows, warn (``RuntimeWarning``) where a gap passed
-    :data:`RETRACK_TOLERANCE` or a status differed: the CSV's rows were not met again (another version, another
-    machine), and the rows from the next frame on go on from the frames tracked again, not from the CSV's."""
+    """Count ``s``'s row ``t`` tracked again (``new``; :attr:`_Stream.tracked_again`), keep its largest gap from its
+    CSV row (``old``) in :attr:`_Stream.retrack_gap`, and count it in :attr:`_Stream.not_met_again` where a gap passed
+    :data:`RETRACK_TOLERANCE` or its status differed; after the last of its ``n`` rows, warn (``RuntimeWarning``)
+    where one was not met again (another version, another machine): the rows from the next frame on go on from the
+    frames tracked again, not from the CSV's. The sidecar's ``resumed`` records them (:func:`_resumed_record`)."""
     mm, deg, conf, other = _retracked_gap(new, old, columns)
     big_mm, big_deg, big_conf, at, first_other = s.retrack_gap
-    if mm > big_mm:
+    if mm > big_mm or t == 0:
         at = t + s.start
     if other and first_other is None:
         first_other = t + s.start
     s.retrack_gap = (max(mm, big_mm), max(deg, big_deg), max(conf, big_conf), at, first_other)
-    if t != n - 1:
+    s.tracked_again += 1
+    tol_mm, tol_deg, tol_conf = RETRACK_TOLERANCE
+    if mm > tol_mm or deg > tol_deg or conf > tol_conf or other:
+        s.not_met_again += 1
+    if t != n - 1 or s.not_met_again == 0:
         return
     big_mm, big_deg, big_conf, at, first_other = s.retrack_gap
-    tol_mm, tol_deg, tol_conf = RETRACK_TOLERANCE
-    if big_mm <= tol_mm and big_deg <= tol_deg and big_conf <= tol_conf and first_other is None:
-        return
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
+    were = "was" if s.not_met_again == 1 else "were"
     warnings.warn(
-        f"{s.reader.info.path}: its {n} rows written before the interruption, tracked again from its first frame for "
-        f"the online start, were not met again: up to {big_mm:.3g} mm (frame {at}), "
+        f"{s.reader.info.path}: {s.not_met_again} of its {n} rows written before the interruption, tracked again from "
+        f"its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm (frame {at}), "
         f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
         f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
         RuntimeWarning, stacklevel=2,
@@ -2569,7 +2582,8 @@ def _track_group(
                 elapsed = max(time.perf_counter() - t_track0, 1e-9)
                 for k, s in enumerate(streams):
                     total = s.frames if s.done and s.error is None else s.total
-                    progress(Progress(members[k], count, s.name, s.frames, total, s.tracked / elapsed, s.confidence))
+                    fps = (s.tracked + s.tracked_again) / elapsed  # (its rows tracked again too: timings_s.fps)
+                    progress(Progress(members[k], count, s.name, s.frames, total, fps, s.confidence))
             if all(s.done for s in live):
                 break
             t += 1
@@ -2797,10 +2811,13 @@ def _finalise(
             mt.rmdir()
     conf = rows[:, cols.index("confidence")]
     lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
-    fps = s.tracked / max(t_track, 1e-9) if t_track > 0 else 0.0
+    # (a resumed video's rows tracked again for the online start are tracked frames: their time is in t_track; counted
+    # only its new rows, a 40-frame 160x120 pose sweep resumed after 20 rows gave 16-17 frames/s where the
+    # uninterrupted run gave 28-32, and 32-34 now)
+    fps = (s.tracked + s.tracked_again) / max(t_track, 1e-9) if t_track > 0 else 0.0
     # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
     # video to video of one batch where their lengths differ)
-    batch_fps = sum(x.tracked for x in streams) / max(t_track, 1e-9) if t_track > 0 else 0.0
+    batch_fps = sum(x.tracked + x.tracked_again for x in streams) / max(t_track, 1e-9) if t_track > 0 else 0.0
     sidecar = {
         "torchface_output": 1,
         "input": {
@@ -2826,6 +2843,7 @@ def _finalise(
         "pyramid_levels": levels,
         "initial_landmarks_px": s.landmarks.tolist(),  # (a file's missing point, NaN: [null, null])
         "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
+        "resumed": _resumed_record(s),
         "frames": int(len(rows)),
         "declared_frames": s.total,
         "lost_frames": lost,
@@ -2840,7 +2858,28 @@ def _finalise(
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
-                        float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short)  # fmt: skip
+                        float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short,
+                        not_met_again=s.not_met_again)  # fmt: skip
+
+
+def _resumed_record(s: _Stream) -> dict | None:
+    """The sidecar's ``resumed``: None where every row of the CSV is this run's (not resumed, or resumed without
+    rows); else ``rows``, the CSV's first rows, written by the interrupted run(s) and kept as they were (the rows
+    before the first face included), ``tracked_again``, how many of them (from the first face on) this run tracked
+    again for the online start (:attr:`_Stream.retrack`; 0: put into the tracker's state from the CSV), and
+    ``not_met_again``, how many of those passed :data:`RETRACK_TOLERANCE` or had another status or success
+    (:func:`_check_retracked`, which warns; the CSV keeps them, and the rows after them go on from the frames tracked
+    again, so its rows are of two runs that disagree), with ``largest_gap`` over the rows tracked again (None where
+    none was): ``mm``, ``degrees``, ``confidence``, ``frame`` (of the largest translation gap) and
+    ``other_status_from_frame`` (the first frame whose status or success differs, or None)."""
+    rows = 0 if s.csv is None else len(s.csv.previous)
+    if rows == 0:
+        return None
+    mm, deg, conf, at, first_other = s.retrack_gap
+    gap = None if s.tracked_again == 0 else {
+        "mm": mm, "degrees": deg, "confidence": conf, "frame": at, "other_status_from_frame": first_other,
+    }  # fmt: skip
+    return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap}
 
 
 def _video_timing(s: _Stream) -> dict:

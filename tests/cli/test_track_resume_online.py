@@ -140,6 +140,66 @@ def test_rows_not_met_again_are_warned_about_and_kept(clip, reference, tmp_path)
     np.testing.assert_allclose(rows[2:], rows_ref[2:], rtol=0, atol=1e-6)
 
 
+def test_rows_not_met_again_are_said_by_the_sidecar_and_the_summary(clip, tmp_path, capsys):
+    """Rows not met again are recorded in the sidecar's ``resumed`` (how many, the largest gap) and said by the
+    summary, not only by the warning line that scrolls by above the progress bars; the video is complete, so the
+    exit status stays 0. (Only the warning said it: a script that checked status 0 and read the sidecar missed
+    it.)"""
+    from torchface.cli import main
+
+    video, lm = clip
+    out = tmp_path / "out"
+    _interrupted(video, out, lm, 3)
+    partial = out / "sweep.csv.partial"
+    columns, _ = read_track_csv(partial)
+    lines = partial.read_text().splitlines(keepends=True)
+    cells = lines[2].rstrip("\n").split(",")  # row 1
+    tx = columns.index("pose_Tx")
+    cells[tx] = repr(float(cells[tx]) + 0.5)
+    lines[2] = ",".join(cells) + "\n"
+    partial.write_text("".join(lines))
+    assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
+    said = capsys.readouterr()
+    assert "3 rows written before the interruption" in said.err  # (the warning, as before)
+    assert "sweep: 8 frames" in said.out
+    assert "warning: 1 row written before the interruption was not met again when tracked again" in said.out, said.out
+    resumed = json.loads((out / "sweep.json").read_text())["resumed"]
+    gap = resumed.pop("largest_gap")
+    assert resumed == {"rows": 3, "tracked_again": 3, "not_met_again": 1}
+    assert gap["mm"] == pytest.approx(0.5, abs=1e-6) and gap["frame"] == 1 and gap["other_status_from_frame"] is None
+    assert gap["degrees"] < 1e-3 and gap["confidence"] < 1e-4
+
+
+@pytest.mark.parametrize("max_frames, tracked_again", [(3, 0), (None, 3)])
+def test_the_sidecar_says_what_was_resumed_and_fps_counts_the_frames_tracked_again(clip, tmp_path, max_frames,
+                                                                                  tracked_again):  # fmt: skip
+    """A resumed video's sidecar says how many of its rows the interrupted run wrote and how many of them were tracked
+    again (every one met again here); its ``timings_s.fps`` counts the frames it tracked again as tracked frames,
+    their time being in ``timings_s.track`` (it counted only the new rows: 5 of these 8 frames; a 40-frame sweep resumed
+    after 20 rows gave 16-17 frames/s where the uninterrupted run gave 28-32), not the rows put into the state from
+    the CSV. A video tracked afresh has ``resumed`` null."""
+    video, lm = clip
+    out = tmp_path / "out"
+    kwargs = {} if max_frames is None else {"refine_first": LookaheadConfig(max_frames=max_frames)}
+    track_videos([video], JobConfig(out_dir=tmp_path / "fresh", landmarks=(lm,), **kwargs))
+    fresh = json.loads((tmp_path / "fresh" / "sweep.json").read_text())
+    assert fresh["resumed"] is None
+    assert fresh["timings_s"]["fps"] * fresh["timings_s"]["track"] == pytest.approx(N)
+    _interrupted(video, out, lm, 3, **kwargs)
+    (summary,) = track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), resume=True, **kwargs))
+    side = json.loads((out / "sweep.json").read_text())
+    gap = side["resumed"].pop("largest_gap")
+    assert side["resumed"] == {"rows": 3, "tracked_again": tracked_again, "not_met_again": 0}
+    if tracked_again:  # (met again: within RETRACK_TOLERANCE)
+        assert gap["mm"] <= 1e-3 and gap["degrees"] <= 1e-3 and gap["confidence"] <= 1e-4, gap
+        assert gap["other_status_from_frame"] is None
+    else:
+        assert gap is None
+    timings = side["timings_s"]
+    assert timings["fps"] * timings["track"] == pytest.approx(N - 3 + tracked_again)
+    assert timings["batch_fps"] == timings["fps"] == summary.fps
+
+
 @pytest.mark.parametrize("max_frames, tracked_again", [(3, False), (4, True)])
 def test_only_rows_within_the_online_starts_frames_are_tracked_again(clip, tmp_path, monkeypatch, max_frames,
                                                                     tracked_again):  # fmt: skip
