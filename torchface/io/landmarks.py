@@ -591,8 +591,10 @@ def check_landmarks(
             f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
         )
     kept = points[given]
-    if len(kept) and ((kept >= -0.5) & (kept <= 1.5)).all() and 0 < np.ptp(kept, axis=0).max() <= 1.5:
-        # (within [-0.5, 1.5]: MediaPipe's points of a face partly out of the frame lie a little outside [0, 1])
+    if (len(kept) and min(width, height) >= 8 and ((kept >= -0.5) & (kept <= 1.5)).all()
+            and 0 < np.ptp(kept, axis=0).max() <= 1.5):
+        # (within [-0.5, 1.5]: MediaPipe's points of a face partly out of the frame lie a little outside [0, 1]; in
+        # frames of 8 pixels a side at least: tracker.fit.NORMALISED_CHECK_MIN_SIDE, as initialise checks them)
         # (MediaPipe's normalised points passed as pixels: a face under a pixel wide, whose fit failed: every row
         # of the video unsuccessful; the tracker's initialise refuses them too, naming no file)
         # (training_hooks checks an array before it knows the frame size, with a size of 2**30: no numbers then)

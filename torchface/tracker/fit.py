@@ -358,6 +358,11 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
 MIN_FIT_LANDMARKS: int = 4
 
 
+#: Frames with a side under this many pixels are not checked for normalised landmarks (:func:`check_pixel_landmarks`):
+#: a face in pixels there spans about a pixel as well (and fails, as before the check).
+NORMALISED_CHECK_MIN_SIDE = 8
+
+
 def check_pixel_landmarks(
     landmarks_px: Tensor, width: int, height: int, weights: Tensor | None = None, *, name: str = "landmarks_px"
 ) -> None:
@@ -370,7 +375,7 @@ def check_pixel_landmarks(
     point, and none lies outside: such landmarks spread about a pixel at most, so the landmark fit FAILED every stream
     (:func:`fit_landmarks`) and the tracker reported status 2 with no word of why. A batch where
     some stream has landmarks in pixels fails such a stream alone, as before, and so does an answer of zeros for no
-    face (all at one point).
+    face (all at one point), or any landmarks in frames with a side under :data:`NORMALISED_CHECK_MIN_SIDE` pixels.
 
     Args:
         landmarks_px: ``(B, K, 2)`` landmarks, a tensor (checked by the caller).
@@ -386,6 +391,8 @@ def check_pixel_landmarks(
         ValueError: landmarks_px lie within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as ...
     """
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2 or landmarks_px.numel() == 0 or is_compiling():
+        return
+    if min(width, height) < NORMALISED_CHECK_MIN_SIDE:  # (frames so small that a face in pixels spans a pixel too)
         return
     lm = landmarks_px.detach().to(torch.promote_types(landmarks_px.dtype, torch.float32))  # (MPS has no float64)
     given = torch.isfinite(lm).all(-1)  # (B, K)
