@@ -359,9 +359,11 @@ def _frame_tensor(frame: object, index: int, shape: tuple[int, int, int] | None)
         raise TypeError(f"frame {index}: expected a (3, H, W) tensor, got {type(frame).__name__}")
     if frame.dim() != 3 or frame.shape[0] not in (1, 3):
         hint = ""
-        if frame.dim() == 3 and frame.shape[-1] in (1, 3):  # (the permute alone, of an OpenCV image, tracked BGR)
+        if frame.dim() == 3 and frame.shape[-1] == 3:  # (the permute alone, of an OpenCV image, tracked BGR)
             hint = (" (channels last (H, W, 3): frame.permute(2, 0, 1); BGR as OpenCV reads it: "
                     "frame.flip(-1).permute(2, 0, 1))")
+        elif frame.dim() == 3 and frame.shape[-1] == 1:  # (gray, channels last: it was told (H, W, 3) and BGR)
+            hint = " (a gray frame channels last (H, W, 1): frame.permute(2, 0, 1))"
         elif frame.dim() == 3 and frame.shape[0] == 4:
             hint = " (RGBA: drop the alpha, frame[:3])"
         elif frame.dim() == 2:

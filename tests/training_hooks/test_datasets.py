@@ -1127,3 +1127,18 @@ def test_keep_going_does_not_skip_a_video_for_the_caches_write_error(clips, conf
         with pytest.raises(OSError):
             list(data)
     assert data.skipped == {}
+
+
+def test_a_gray_frame_channels_last_is_told_its_own_permute():
+    """A gray frame streamed channels last, ``(H, W, 1)`` (an OpenCV gray image ``[..., None]``), was told "channels
+    last (H, W, 3)" and the BGR flip of a colour image; it is told its own shape and the permute, which, run as
+    written, makes a frame the transform takes."""
+    from training_hooks.transforms import _frame_tensor
+
+    image = torch.rand(24, 32, 1)
+    with pytest.raises(ValueError, match=r"got \(24, 32, 1\) \(a gray frame channels last \(H, W, 1\): "
+                       r"frame\.permute\(2, 0, 1\)\)$") as info:  # fmt: skip
+        _frame_tensor(image, 0, None)
+    assert "BGR" not in str(info.value) and "(H, W, 3)" not in str(info.value)
+    recipe = str(info.value).rsplit(": ", 1)[1][:-1]
+    assert _frame_tensor(eval(recipe, {"frame": image}), 0, None).shape == (1, 1, 24, 32)
