@@ -557,8 +557,9 @@ def check_landmarks(
     Raises:
         InputError: not real numbers (bool, complex, text), wrong count, non-finite values (with ``missing``:
             infinite ones, a row with one coordinate NaN, or fewer than 4 points given), (more than
-            ``1 - min_inside`` of the) points outside the frame, or points all within ``[0, 1] x [0, 1]`` and not
-            all at one point (normalised coordinates, MediaPipe's, not pixels).
+            ``1 - min_inside`` of the) points outside the frame, or, in frames of 8 pixels a side at least, points
+            all within ``[-0.5, 1.5] x [-0.5, 1.5]`` spanning at most 1.5 and not all at one point (normalised
+            coordinates, MediaPipe's, not pixels; a little outside ``[0, 1]`` for a face partly out of the frame).
     """
     dtype = np.asarray(points).dtype
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):  # (complex: its imaginary part
