@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -116,6 +117,19 @@ def test_resumes_tracked_again_beside_other_videos_go_on_as_the_uninterrupted_ru
         np.testing.assert_allclose(rows, rows_ref, rtol=0, atol=1e-4, err_msg=name)
 
 
+def _shift_row_1(partial: Path) -> int:
+    """Move row 1's ``pose_Tx`` in the partial CSV ``partial`` by 0.5 mm (a row tracking again will not meet);
+    returns the column's index."""
+    columns, _ = read_track_csv(partial)
+    lines = partial.read_text().splitlines(keepends=True)
+    cells = lines[2].rstrip("\n").split(",")  # (line 0: the header)
+    tx = columns.index("pose_Tx")
+    cells[tx] = repr(float(cells[tx]) + 0.5)
+    lines[2] = ",".join(cells) + "\n"
+    partial.write_text("".join(lines))
+    return tx
+
+
 def test_rows_not_met_again_are_warned_about_and_kept(clip, reference, tmp_path):
     """A written row that tracking its frame again does not give (another version or machine; here an edited row)
     is warned about, naming the gap, and kept as the CSV holds it; the next rows go on from the frames tracked
@@ -124,14 +138,8 @@ def test_rows_not_met_again_are_warned_about_and_kept(clip, reference, tmp_path)
     rows_ref, _ = reference
     out = tmp_path / "out"
     _interrupted(video, out, lm, 3)
-    partial = out / "sweep.csv.partial"
-    columns, kept = read_track_csv(partial)
-    lines = partial.read_text().splitlines(keepends=True)
-    cells = lines[2].rstrip("\n").split(",")  # row 1
-    tx = columns.index("pose_Tx")
-    cells[tx] = repr(float(cells[tx]) + 0.5)
-    lines[2] = ",".join(cells) + "\n"
-    partial.write_text("".join(lines))
+    _, kept = read_track_csv(out / "sweep.csv.partial")
+    tx = _shift_row_1(out / "sweep.csv.partial")
     with pytest.warns(RuntimeWarning, match=r"3 rows .* not met again: up to 0\.5 mm \(frame 1\)"):
         track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), resume=True))
     _, rows = read_track_csv(out / "sweep.csv")
@@ -150,14 +158,7 @@ def test_rows_not_met_again_are_said_by_the_sidecar_and_the_summary(clip, tmp_pa
     video, lm = clip
     out = tmp_path / "out"
     _interrupted(video, out, lm, 3)
-    partial = out / "sweep.csv.partial"
-    columns, _ = read_track_csv(partial)
-    lines = partial.read_text().splitlines(keepends=True)
-    cells = lines[2].rstrip("\n").split(",")  # row 1
-    tx = columns.index("pose_Tx")
-    cells[tx] = repr(float(cells[tx]) + 0.5)
-    lines[2] = ",".join(cells) + "\n"
-    partial.write_text("".join(lines))
+    tx = _shift_row_1(out / "sweep.csv.partial")
     assert main(["track", str(video), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"]) == 0
     said = capsys.readouterr()
     assert "3 rows written before the interruption" in said.err  # (the warning, as before)
