@@ -2229,9 +2229,17 @@ def _with_recorded_offsets(state: TrackerState, recorded: list[tuple[int, _Ancho
 RETRACK_TOLERANCE: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
 
 
+def _online_start(config: JobConfig) -> LookaheadConfig | None:
+    """The online look-ahead start the job's videos are tracked with (``JobConfig.refine_first``), or None where
+    there is none: ``--lookahead`` instead, no template management (no re-anchoring without it), or none asked for."""
+    if config.lookahead is None and config.tracker.template.enabled:
+        return config.refine_first
+    return None
+
+
 def _online_start_pending(s: _Stream, lookahead: LookaheadConfig | None) -> bool:
-    """Whether ``s``'s run was interrupted within the frames the online start (``lookahead``:
-    ``JobConfig.refine_first``) watches: resumed (rows to replay) with fewer tracked rows than ``max_frames``, so
+    """Whether ``s``'s run was interrupted within the frames the online start (``lookahead``, :func:`_online_start`'s;
+    None: none) watches: resumed (rows to replay) with fewer tracked rows than ``max_frames``, so
     that the start may still have been waiting for its head to turn (the uninterrupted run could re-anchor at the
     next frame), or re-anchored it so recently that tracking its rows again costs little. Such a stream's rows are
     tracked again (:attr:`_Stream.retrack`; at most ``max_frames - 1`` frames, 149 by default), re-anchored or not:
@@ -2489,7 +2497,7 @@ def _track_group(
         fit = None if config.lookahead is None else _lookahead_fit(model, run, streams, lm, intr)
         # (refine_first only without --lookahead: a batch too short to look ahead, a 1-frame video in it, starts
         # from the landmark fit, not the online start its sidecar would not mention)
-        online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
+        online = _online_start(config)
         # (without template management there is no re-anchoring offset to apply: those rows resume as before)
         anchored = {k: s.anchor for k, s in enumerate(streams)
                     if s.anchor is not None and config.tracker.template.enabled}  # fmt: skip
@@ -2497,12 +2505,12 @@ def _track_group(
             fit = fit_landmarks(model, lm, intr, config=config.tracker.fit) if fit is None else fit
             fit = _with_recorded_fits(fit, list(anchored.items()))
         state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
-                                           refine_first=config.refine_first if online else None)  # fmt: skip
+                                           refine_first=online)  # fmt: skip
         # (a detector starts a failed stream afresh only with template management: managed_step's restart)
         _warn_failed_starts(streams, result.success, detector is not None and config.tracker.template.enabled)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
-        if online and any(s.replay is not None and not s.retrack for s in streams):
+        if online is not None and any(s.replay is not None and not s.retrack for s in streams):
             state = _without_online_start(state, [s.replay is not None and not s.retrack for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
@@ -2688,8 +2696,7 @@ def _open_outputs(
     # rows as re-anchored. (A re-anchoring is recorded only by the online start, at a frame below its max_frames,
     # which a resume compares with its own; so a record whose re-anchoring frame has no row yet, interrupted between
     # the re-anchoring step and its row, is always one tracked again.)
-    online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
-    s.retrack = online and _online_start_pending(s, config.refine_first)
+    s.retrack = _online_start_pending(s, _online_start(config))
     if s.retrack:
         s.anchor = None
     _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
@@ -2941,10 +2948,9 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     before the re-anchoring) were tracked with ``first_shape_coeffs`` and place the mesh with their own pose
     (:func:`_drawn_pose`).
     """
-    online = config.lookahead is None and config.tracker.template.enabled and config.refine_first is not None
     if config.lookahead is not None:
         method = "lookahead"
-    elif online and (s.replay is None or s.anchor is not None or s.retrack):
+    elif _online_start(config) is not None and (s.replay is None or s.anchor is not None or s.retrack):
         method = "online"
     else:
         method = "landmark fit"
