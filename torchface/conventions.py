@@ -51,6 +51,13 @@ covers ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``. The rasterizer samples at pixel ce
 sampling maps pixel coordinates to ``grid_sample``'s normalised coordinates with
 ``align_corners=True`` (``x_norm = 2 u / (W - 1) - 1``).
 
+Landmarks are pixels too. Points in normalised image coordinates (``x / W``, ``y / H``, MediaPipe's) are refused
+where they cannot be pixels of a trackable face: all within :data:`NORMALISED_LANDMARK_RANGE` along both axes
+(a little outside ``[0, 1]`` for a face partly out of the frame), spanning at most
+:data:`NORMALISED_LANDMARK_MAX_SPAN`, in frames of at least :data:`NORMALISED_CHECK_MIN_SIDE` pixels a side
+(:func:`torchface.tracker.fit.check_pixel_landmarks`, :func:`torchface.io.check_landmarks`); pixels of them:
+``x * W - 0.5``, ``y * H - 0.5``.
+
 Projection
 ----------
 Pinhole, no distortion: ``u = fx X / Z + cx``, ``v = fy Y / Z + cy``. By default
@@ -65,3 +72,13 @@ MM_PER_CANDIDE_UNIT: float = 63.0 / 0.613
 
 #: Points closer to the camera than this (millimetres) are treated as behind it.
 NEAR_PLANE_MM: float = 1.0
+
+#: Where landmarks in normalised image coordinates lie (module docstring, "Images and pixels"), along each axis.
+NORMALISED_LANDMARK_RANGE: tuple[float, float] = (-0.5, 1.5)
+
+#: The most such landmarks span along either axis (a face in pixels spanning no more fails the landmark fit).
+NORMALISED_LANDMARK_MAX_SPAN: float = 1.5
+
+#: Frames with a side under this many pixels are not checked for normalised landmarks: a face in pixels there
+#: spans about a pixel as well (and fails the fit, as it did before the check).
+NORMALISED_CHECK_MIN_SIDE: int = 8

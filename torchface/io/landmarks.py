@@ -63,6 +63,9 @@ from pathlib import Path
 
 import numpy as np
 
+from torchface.conventions import (
+    NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
+)
 from torchface.io.errors import InputError
 
 __all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points_problem"]
@@ -592,17 +595,17 @@ def check_landmarks(
             f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
         )
     kept = points[given]
-    if (len(kept) and min(width, height) >= 8 and ((kept >= -0.5) & (kept <= 1.5)).all()
-            and 0 < np.ptp(kept, axis=0).max() <= 1.5):
-        # (within [-0.5, 1.5]: MediaPipe's points of a face partly out of the frame lie a little outside [0, 1]; in
-        # frames of 8 pixels a side at least: tracker.fit.NORMALISED_CHECK_MIN_SIDE, as initialise checks them)
+    low, high = NORMALISED_LANDMARK_RANGE
+    if (len(kept) and min(width, height) >= NORMALISED_CHECK_MIN_SIDE and ((kept >= low) & (kept <= high)).all()
+            and 0 < np.ptp(kept, axis=0).max() <= NORMALISED_LANDMARK_MAX_SPAN):
+        # (the rule torchface.conventions writes down, as initialise checks it: check_pixel_landmarks)
         # (MediaPipe's normalised points passed as pixels: a face under a pixel wide, whose fit failed: every row
         # of the video unsuccessful; the tracker's initialise refuses them too, naming no file)
         # (training_hooks checks an array before it knows the frame size, with a size of 2**30: no numbers then)
         w, h = (str(width), str(height)) if max(width, height) < 1 << 30 else ("W", "H")
         raise InputError(
-            f"{where}: every point lies within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as "
-            f"MediaPipe writes them)? Give pixels, centres at integers: x * {w} - 0.5, y * {h} - 0.5"
+            f"{where}: every point lies within [{low}, {high}] x [{low}, {high}]: normalised coordinates (x / W, "
+            f"y / H, as MediaPipe writes them)? Give pixels, centres at integers: x * {w} - 0.5, y * {h} - 0.5"
         )
     return points
 

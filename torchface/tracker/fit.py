@@ -19,6 +19,9 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface._device import check_device, check_holds_data
+from torchface.conventions import (
+    NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
+)
 from torchface.geometry._checks import (
     check_bool, check_int, check_intrinsics, check_optional_int, check_optional_real, check_real,
 )
@@ -358,11 +361,6 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
 MIN_FIT_LANDMARKS: int = 4
 
 
-#: Frames with a side under this many pixels are not checked for normalised landmarks (:func:`check_pixel_landmarks`):
-#: a face in pixels there spans about a pixel as well (and fails, as before the check).
-NORMALISED_CHECK_MIN_SIDE = 8
-
-
 def check_pixel_landmarks(
     landmarks_px: Tensor, width: int, height: int, weights: Tensor | None = None, *, name: str = "landmarks_px"
 ) -> None:
@@ -375,7 +373,8 @@ def check_pixel_landmarks(
     point, and none lies outside: such landmarks spread about a pixel at most, so the landmark fit FAILED every stream
     (:func:`fit_landmarks`) and the tracker reported status 2 with no word of why. A batch where
     some stream has landmarks in pixels fails such a stream alone, as before, and so does an answer of zeros for no
-    face (all at one point), or any landmarks in frames with a side under :data:`NORMALISED_CHECK_MIN_SIDE` pixels.
+    face (all at one point), or any landmarks in frames with a side under
+    :data:`~torchface.conventions.NORMALISED_CHECK_MIN_SIDE` pixels (the ranges: :mod:`torchface.conventions`).
 
     Args:
         landmarks_px: ``(B, K, 2)`` landmarks, a tensor (checked by the caller).
@@ -400,18 +399,19 @@ def check_pixel_landmarks(
         w = weights.detach().to(lm)
         given = given & torch.isfinite(w) & (w > 0)  # (the points landmark_targets weighs)
     usable = given.sum(-1) >= MIN_FIT_LANDMARKS  # (B,)
-    inside = (((lm >= -0.5) & (lm <= 1.5)).all(-1) | ~given).all(-1)
+    low, high = NORMALISED_LANDMARK_RANGE
+    inside = (((lm >= low) & (lm <= high)).all(-1) | ~given).all(-1)
     points = given.unsqueeze(-1)
     lo = torch.where(points, lm, math.inf).amin(1)
     hi = torch.where(points, lm, -math.inf).amax(1)
     span = (hi - lo).amax(-1)  # (B,)
-    inside = inside & (span <= 1.5)
+    inside = inside & (span <= NORMALISED_LANDMARK_MAX_SPAN)
     spread = (span > 0) & usable
     normalised, in_pixels = usable & inside & spread, usable & ~inside
     if bool(normalised.any()) and not bool(in_pixels.any()):
         raise ValueError(
-            f"{name} lie within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as MediaPipe gives "
-            f"them)? The tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) "
+            f"{name} lie within [{low}, {high}] x [{low}, {high}]: normalised coordinates (x / W, y / H, as MediaPipe "
+            f"gives them)? The tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) "
             f"- 0.5 for these {width}x{height} frames (a fit to them failed: they span about a pixel at most)"
         )
 
