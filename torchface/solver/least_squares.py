@@ -31,6 +31,7 @@ from typing import Callable
 
 import torch
 
+from torchface._scalar import scalar
 from torchface.geometry._checks import check_bool, check_int, check_optional_int, check_real
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 
@@ -305,22 +306,26 @@ def _batched_param(name: str, t: object, B: int, P: int, dtype: torch.dtype) -> 
     return t.expand(B, P)
 
 
-def _check_bounds(lo: torch.Tensor | None, hi: torch.Tensor | None) -> None:
-    """Refuse ``(B, P)`` bounds with a NaN, a lower bound at ``inf``, an upper at ``-inf`` or ``lo > hi``, naming
-    the first such sample and parameter (one host read where there is none). A NaN bound made its parameter NaN and
-    the sample FAILED without a word."""
-    inf = float("inf")
+def _usable_bounds(lo: torch.Tensor | None, hi: torch.Tensor | None) -> torch.Tensor | None:
+    """Elementwise, whether lower bounds ``lo`` and upper bounds ``hi`` (broadcast; None: none on that side) can bound
+    a parameter: no NaN, ``lo < inf``, ``hi > -inf`` and ``lo <= hi`` (``-inf`` / ``inf``: none on that side). None
+    where both are None. No host read (``solve_level`` reads it with its first iteration's flag)."""
     checks = []  # each False at NaN
     if lo is not None:
-        checks.append(lo < lo.new_tensor(inf))
+        checks.append(lo < scalar(float("inf"), lo))
     if hi is not None:
-        checks.append(hi > hi.new_tensor(-inf))
+        checks.append(hi > scalar(float("-inf"), hi))
     if lo is not None and hi is not None:
         checks.append(lo <= hi)
-    if not checks:
-        return
-    ok = functools.reduce(torch.logical_and, checks)
-    if bool(ok.all()):
+    return functools.reduce(torch.logical_and, checks) if checks else None
+
+
+def _check_bounds(lo: torch.Tensor | None, hi: torch.Tensor | None) -> None:
+    """Refuse ``(B, P)`` bounds that are not :func:`_usable_bounds`: a NaN, a lower bound at ``inf``, an upper at
+    ``-inf`` or ``lo > hi``, naming the first such sample and parameter (one host read where there is none). A NaN
+    bound made its parameter NaN and the sample FAILED without a word."""
+    ok = _usable_bounds(lo, hi)
+    if ok is None or bool(ok.all()):
         return
     b, k = (int(v) for v in (~ok).nonzero()[0])
     got = ", ".join(f"{name} {float(x[b, k])}" for name, x in (("lower", lo), ("upper", hi)) if x is not None)

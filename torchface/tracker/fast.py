@@ -36,6 +36,7 @@ from torchface._scalar import isfinite, scalar
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.so3 import axis_angle_to_matrix
+from torchface.solver.least_squares import _usable_bounds
 from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss, SwitchedRobustLoss
 from torchface.template.points import Template
 
@@ -320,10 +321,10 @@ def _select(keep: Tensor, new: tuple[Tensor, ...], old: tuple[Tensor, ...]) -> t
 
 
 def _bounds_valid(lower: Tensor, upper: Tensor) -> Tensor:
-    """``()`` bool on the bounds' device, without a host read: every animation bound pair ``(A,)`` is usable (no
-    NaN, ``lower <= upper``, ``lower < inf`` and ``upper > -inf``)."""
-    inf = scalar(float("inf"), lower)
-    return ((lower <= upper) & (lower < inf) & (upper > -inf)).all()  # (a NaN fails every comparison)
+    """``()`` bool on the bounds' device, without a host read: every animation bound pair ``(A,)`` is usable
+    (``torchface.solver.least_squares._usable_bounds``: no NaN, ``lower <= upper``, ``lower < inf`` and
+    ``upper > -inf``)."""
+    return cast(Tensor, _usable_bounds(lower, upper)).all()
 
 
 def _check_bounds(lower: Tensor, upper: Tensor) -> None:
