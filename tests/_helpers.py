@@ -133,3 +133,19 @@ def managed_track(model, config, frames: torch.Tensor, landmarks: torch.Tensor) 
         state, res = managed_step(model, config, state, frames[:, i].to(model.device))
         results.append(res)
     return results
+
+
+def count_job_steps(monkeypatch) -> list[int]:
+    """From now on, count ``torchface.job``'s tracking steps (``managed_step`` calls, each still made): the returned
+    list gets one entry per step (``monkeypatch``: pytest's fixture, which undoes the patch)."""
+    import torchface.job
+
+    steps: list[int] = []
+    real = torchface.job.managed_step
+
+    def counted(*args, **kwargs):
+        steps.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "managed_step", counted)
+    return steps

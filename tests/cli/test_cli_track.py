@@ -29,6 +29,9 @@ from torchface.synth.io import read_video, read_video_uint8
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import count_job_steps  # noqa: E402
+
 T, W, H = 12, 160, 120
 NAME = "expressions"  # CANDIDE-3 textured from a photo, moderate head motion (to 15 deg), one AU after another
 #: Tracker tolerance on this clip (small, 160x120): geodesic rotation error per frame and
@@ -2321,14 +2324,7 @@ def test_interrupted_while_finalising_resumes_the_complete_csv(clip, tmp_path, m
     assert not list(out.glob("*.partial.mp4"))
     _, rows_before = read_track_csv(out / "a.csv")
     monkeypatch.setattr(torchface.job, "write_json", real)
-    tracked = []
-    real_step = torchface.job.managed_step
-
-    def counting_step(*args, **kwargs):
-        tracked.append(1)
-        return real_step(*args, **kwargs)
-
-    monkeypatch.setattr(torchface.job, "managed_step", counting_step)
+    tracked = count_job_steps(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)  # (rows tracked again: they met the CSV's)
         summaries = track_videos([a, b], JobConfig(out_dir=out, landmarks=(lm, lm), resume=True, refine_first=online))
@@ -3812,7 +3808,6 @@ def test_a_phone_video_is_tracked_as_displayed_with_landmarks_of_the_displayed_f
     landmarks are those of the frame a viewer shows, and so are the sidecar's size, the overlay's frames and the
     pose (upright: roll near 0, as the same frames stored upright give). Under OpenCV 4.11's default (auto-rotation
     off) the frames were read as stored (288x360): the start from the landmarks failed ('every row is unusable')."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from _helpers import opencv_411_capture, write_rotated_mp4
 
     from torchface.job import demo_inputs

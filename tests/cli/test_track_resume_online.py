@@ -6,19 +6,22 @@ template mosaic again, and its CSV is the uninterrupted run's."""
 from __future__ import annotations
 
 import json
+import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-import torchface.job
 from torchface.io import read_track_csv
 from torchface.job import JobConfig, track_videos
 from torchface.synth.io import read_video
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 from torchface.tracker.lookahead import LookaheadConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import count_job_steps  # noqa: E402
 
 #: The first N frames of ``pose_sweep`` rendered over 120 frames at 160x120: the head turns past 10 degrees of yaw
 #: at frame REANCHOR, where the online start re-anchors the stream (asserted below).
@@ -211,14 +214,7 @@ def test_only_rows_within_the_online_starts_frames_are_tracked_again(clip, tmp_p
     out = tmp_path / "out"
     online = LookaheadConfig(max_frames=max_frames)
     _interrupted(video, out, lm, 3, refine_first=online)
-    steps = []
-    real = torchface.job.managed_step
-
-    def counted(*args, **kwargs):
-        steps.append(1)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(torchface.job, "managed_step", counted)
+    steps = count_job_steps(monkeypatch)
     track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), refine_first=online, resume=True))
     assert len(steps) == (N - 1 if tracked_again else N - 3)
     method = json.loads((out / "sweep.json").read_text())["start"]["method"]
