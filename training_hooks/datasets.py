@@ -74,9 +74,12 @@ skipping changes no sampler's indices; what it changes is the epoch's item count
   items in one process (a schedule planned from them ends a few steps early; it never overruns).
 - Under DDP with :attr:`RankBalance.PAD` or ``DROP`` every rank still yields the balanced count per worker: a worker
   whose video was skipped when tracked repeats its other videos' items in its place (as ``PAD`` repeats a short
-  worker's), so the ranks take the same number of steps and DDP does not hang. Each rank records its own skips. A
-  worker left nothing to repeat (every video it could repeat skipped too) raises a ``RuntimeError`` naming them
-  rather than end short: a rank cannot tell whether another read those videos and takes more steps.
+  worker's), so the ranks take the same number of steps and DDP does not hang. It repeats the sequences it still
+  holds (those tracked after the skip, or the last one before it), so no video is tracked twice in a worker's epoch,
+  cache or not. Each rank records its own skips. A worker left nothing to repeat raises a ``RuntimeError`` rather
+  than end short, saying what happened with the counts: its videos and its worker's videos on the other ranks
+  skipped, or giving fewer items when tracked than counted (a file replaced since the dataset counted it). A rank
+  cannot tell whether another read those videos and takes more steps.
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -953,19 +956,32 @@ class VideoDataset(IterableDataset):
             item["cached"] = flag.clone()
             yield item
 
+    def _item_count(self, sequence: TrackedSequence) -> int:
+        """Items of a tracked ``sequence`` (:func:`clip_bounds` of its frames)."""
+        c = self.config
+        return len(clip_bounds(sequence.num_frames, c.clip_length, c.clip_stride, c.keep_short_clips))
+
     def _balanced_items(
         self, videos: list[int], target: int, slot: list[int], rng: random.Random | None
     ) -> Iterator[dict[str, Tensor]]:
         """Exactly ``target`` items: those of ``videos`` (cut at ``target``), then repeated from the first of them
         with items (or, if none has, of the worker's videos on every rank, ``slot``) up to ``target``.
 
+        No video is read or tracked twice: the sequences to repeat are held from when they were tracked, as many as
+        the items to repeat need, counted as the videos are tracked. Where a video skipped later (or one that gave
+        fewer items than counted) leaves more to repeat than those hold, the items repeated are those of the last
+        video tracked (held until the next is tracked, as it was anyway), then those held again, in turn.
+
         Raises:
-            RuntimeError: fewer than ``target`` items to give, every video to repeat skipped
-                (:attr:`DatasetConfig.keep_going`), after yielding the rest: other ranks, whose videos were read,
-                would take more steps, and DDP hang at the end of the epoch (:meth:`_short_error`)."""
+            RuntimeError: fewer than ``target`` items to give, after yielding the rest: other ranks would take more
+                steps, and DDP hang at the end of the epoch (:meth:`_short_error`: every video to repeat skipped,
+                :attr:`DatasetConfig.keep_going`, or tracking gave fewer items than counted)."""
         count = 0
-        short = target - sum(self.num_items(i) for i in videos)
-        kept: dict[int, tuple[TrackedSequence, bool]] = {}  # the sequences to repeat: not tracked twice
+        short = target - sum(self.num_items(i) for i in videos)  # items to repeat, as known so far
+        pool: list[tuple[int, tuple[TrackedSequence, bool] | None]] = []  # (video, sequence) to repeat, in order
+        held = 0  # items of the sequences in pool
+        last: tuple[int, tuple[TrackedSequence, bool]] | None = None  # the last video tracked with items
+        gave: dict[int, int] = {}  # items each tracked video gave (the error's account)
         for index in videos:
             if count == target:
                 return
@@ -973,42 +989,95 @@ class VideoDataset(IterableDataset):
             if tracked is None:  # (skipped, DatasetConfig.keep_going: its counted items are repeated ones instead)
                 short += self.num_items(index)
                 continue
-            if short > 0 and sum(self.num_items(i) for i in kept) < short:
-                kept[index] = tracked
+            n = gave[index] = self._item_count(tracked[0])
+            short += self.num_items(index) - n  # (a video that gave fewer items than counted: more to repeat)
+            if n > 0:
+                if held < short:
+                    pool.append((index, tracked))
+                    held += n
+                last = (index, tracked)
             for item in self._items(index, rng, tracked):
                 if count == target:
                     return
                 yield item
                 count += 1
-        repeat = [i for i in videos if self.num_items(i) > 0 and not self._is_skipped(i)] or [
-            i for i in slot if self.num_items(i) > 0 and not self._is_skipped(i)
-        ]
+        if count == target:
+            return
+        if last is not None and held < target - count and all(i != last[0] for i, _ in pool):
+            pool.append(last)  # (more to repeat than the sequences held from before hold: skipped videos)
+        if not pool:  # no video of its own gave an item: those of its worker on the other ranks, tracked here
+            pool = [(i, None) for i in slot if i not in gave and self.num_items(i) > 0 and not self._is_skipped(i)]
+        del last
+        held = 0
         while count < target:
             before = count
-            for index in repeat:
-                for item in self._items(index, rng, kept.get(index)):
+            for j, (index, tracked) in enumerate(pool):
+                if tracked is None:  # (another rank's video, not tracked here yet: tracked once, held if needed)
+                    tracked = self._tracked(index)
+                    if tracked is None:
+                        continue
+                    gave[index] = self._item_count(tracked[0])
+                    if held < target - count:
+                        pool[j] = index, tracked
+                        held += gave[index]
+                for item in self._items(index, rng, tracked):
                     if count == target:
                         return
                     yield item
                     count += 1
-            if count == before:  # (counted items the tracking did not give: nothing to repeat)
-                raise self._short_error(count, target, slot)
+            pool = [(i, t) for i, t in pool if t is not None]  # (skipped, or not held: never tracked twice)
+            if count == before:  # nothing to repeat
+                raise self._short_error(count, target, videos, slot, gave)
 
-    def _short_error(self, count: int, target: int, slot: list[int]) -> RuntimeError:
-        """The error of a worker that yielded ``count`` of its balanced ``target`` items, the videos of ``slot`` it
-        could repeat in place of its skipped ones skipped too. A rank cannot tell whether the others fared alike (a
-        file read on one node and not on another, a flaky disk): it stops rather than leave DDP waiting."""
+    def _short_error(
+        self, count: int, target: int, videos: list[int], slot: list[int], gave: dict[int, int]
+    ) -> RuntimeError:
+        """The error of a worker that yielded ``count`` of its balanced ``target`` items and has nothing left to
+        repeat (its ``videos``; ``slot``: its worker's videos on every rank; ``gave``: the items each video it tracked
+        gave). A rank cannot tell whether the others fared alike (a file read on one node and not on another, a
+        flaky disk): it stops rather than leave DDP waiting. The message says what happened, with counts: which
+        videos were skipped (:attr:`DatasetConfig.keep_going`), which gave fewer items when tracked than when
+        counted (a file changed since it was counted), which have no item."""
         rank, _ = self.rank_and_world_size()
         info = get_worker_info()
-        skipped = [str(self.videos[i]) for i in slot if self._is_skipped(i)]
-        named = ", ".join(skipped[:3]) + (f" and {len(skipped) - 3} more" if len(skipped) > 3 else "")
+
+        def named(indices: list[int]) -> str:
+            names = [str(self.videos[i]) for i in indices]
+            return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+        def what(indices: list[int]) -> str:
+            """What became of ``indices``' counted items, with counts."""
+            skipped = [i for i in indices if self._is_skipped(i)]
+            fewer = [i for i in indices if i in gave and gave[i] < self.num_items(i)]
+            empty = [i for i in indices if not self._is_skipped(i) and i not in fewer and self.num_items(i) == 0]
+            parts = [f"{len(skipped)} skipped ({named(skipped)})"] if skipped else []
+            if fewer:
+                said = ", ".join(f"{self.videos[i]}: {gave[i]} of {self.num_items(i)}" for i in fewer[:3])
+                more = f" and {len(fewer) - 3} more" if len(fewer) > 3 else ""
+                parts.append(f"{len(fewer)} gave fewer items when tracked than counted ({said}{more}: a file changed "
+                             "or replaced since the dataset counted it?)")  # fmt: skip
+            if empty:
+                parts.append(f"{len(empty)} with no item ({named(empty)})")
+            return ", ".join(parts) or "none gave an item"
+
+        own = set(videos)
+        others = [i for i in slot if i not in own]
+        counted = sum(self.num_items(i) for i in videos)
+        if videos:
+            s = "s" if len(videos) != 1 else ""
+            facts = [f"its own {len(videos)} video{s} ({counted} items counted): {what(videos)}"]
+        else:
+            facts = ["it has no video of its own"]
+        s = "s" if len(others) != 1 else ""
+        facts.append(f"the {len(others)} video{s} of its worker on the other ranks, repeated in their place: "
+                     + (what(others) if others else "none"))  # fmt: skip
+        why = " (.skipped says why)" if any(self._is_skipped(i) for i in slot) else ""
         return RuntimeError(
             f"{type(self).__name__}: DataLoader worker {0 if info is None else info.id} of rank {rank} yielded {count} "
             f"of the {target} items every rank's worker yields (DatasetConfig.rank_balance "
-            f"RankBalance.{self.config.rank_balance.name}): the videos it repeats in place of skipped ones were "
-            f"skipped too ({named or 'none'}; .skipped says why), so other ranks would take more steps and DDP would "
-            "hang. Leave those videos out of the dataset (or fix what failed), or use RankBalance.UNEVEN with "
-            "DistributedDataParallel.join()"
+            f"RankBalance.{self.config.rank_balance.name}) and has nothing left to repeat: " + "; ".join(facts) + why
+            + ". Other ranks would take more steps, and DDP would hang. Leave those videos out of the dataset (or fix "
+            "what failed), or use RankBalance.UNEVEN with DistributedDataParallel.join()"
         )
 
     def _warn_distributed(self, rank: int, world: int) -> None:

@@ -361,7 +361,9 @@ def test_a_worker_left_nothing_to_repeat_says_so_instead_of_ending_short(uneven,
         list(flaky)
     said = str(raised.value)
     assert said.startswith(f"VideoDataset: DataLoader worker 1 of rank 0 yielded 0 of the {target} items")
-    assert "DDP would hang" in said and "v2.npy" in said and "v3.npy" in said and "RankBalance.UNEVEN" in said
+    assert "DDP would hang" in said and "RankBalance.UNEVEN" in said
+    assert f"its own 1 video (5 items counted): 1 skipped ({videos[2]})" in said
+    assert f"the 1 video of its worker on the other ranks, repeated in their place: 1 skipped ({videos[3]})" in said
     assert sorted(flaky.skipped) == [2, 3]
 
 
@@ -517,3 +519,62 @@ def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, mo
         "DistributedWarning: VideoDataset has 1 videos for 2 torch.distributed ranks: rank 1 gets none and repeats "
         "items of other ranks' videos (tracking them again)"
     ]
+
+
+def _tracking_log(data, monkeypatch) -> list[int]:
+    """The videos `data` reads or tracks (its _read_or_track calls, a skipped one's too), in order."""
+    calls: list[int] = []
+    real = data._read_or_track
+    monkeypatch.setattr(data, "_read_or_track", lambda index: calls.append(index) or real(index))
+    return calls
+
+
+def test_a_repeated_video_is_not_tracked_twice(uneven, config, monkeypatch):
+    """Without a cache, the items a worker repeats in place of a skipped video's (DatasetConfig.keep_going) came
+    from tracking its first video a second time: rank 0's worker 0 (videos 0 and 4, 6 + 4 items; video 4 fails when
+    tracked) read videos [0, 4, 0]. It now repeats the sequence it still holds: [0, 4], the same 10 items. Rank 1's
+    worker 0 (video 1 fails, and video 4 where it repeats its worker's videos on rank 0) read [1, 0, 4, 0] to give
+    its 10 items (video 0's 6 frames, then 4 of them again); now [1, 0, 4]."""
+    from training_hooks import SkippedVideoWarning
+
+    videos, landmarks = list(uneven[0]), list(uneven[1])
+    landmarks[4] = landmarks[4] + 1000.0  # (outside its frame: fails when tracked, not when counted)
+    cfg = replace(config, cache_dir=None, keep_going=True)
+    data = VideoDataset(videos, landmarks, cfg)
+    calls = _tracking_log(data, monkeypatch)
+    simulate(monkeypatch, 0, 2, 0, 2)
+    with pytest.warns(SkippedVideoWarning):
+        items = [(int(it["video"]), int(it["frame"])) for it in data]
+    assert items == [(0, t) for t in range(6)] + [(0, t) for t in range(4)]
+    assert calls == [0, 4] and data.stats.frames_tracked == 6
+    landmarks[1] = landmarks[1] + 1000.0
+    other = VideoDataset(videos, landmarks, cfg)  # rank 1's
+    calls = _tracking_log(other, monkeypatch)
+    simulate(monkeypatch, 1, 2, 0, 2)
+    with pytest.warns(SkippedVideoWarning):
+        items = [(int(it["video"]), int(it["frame"])) for it in other]
+    assert items == [(0, t) for t in range(6)] + [(0, t) for t in range(4)]
+    assert calls == [1, 0, 4] and other.stats.frames_tracked == 6
+
+
+def test_a_short_worker_says_what_happened_without_a_skip(uneven, config, monkeypatch):
+    """A worker left nothing to repeat blamed skipped videos ("the videos it repeats in place of skipped ones were
+    skipped too (none; .skipped says why)") where none was skipped: here its video and its worker's video on the
+    other rank were counted one 4-frame clip each, then replaced by 2-frame files before the epoch (0 clips). The
+    message now says that, with the counts, and names no skip."""
+    videos, landmarks = list(uneven[0][:2]), list(uneven[1][:2])
+    np.save(videos[1], np.load(videos[0]))  # (6 frames, as video 0)
+    data = VideoDataset(videos, landmarks, replace(config, cache_dir=None, clip_length=4))
+    assert data.count_items() == [1, 1]
+    for path in videos:
+        np.save(path, np.load(path)[:2])
+    simulate(monkeypatch, 0, 2, 0, 1)
+    with pytest.raises(RuntimeError) as raised:
+        list(data)
+    said = str(raised.value)
+    assert said.startswith("VideoDataset: DataLoader worker 0 of rank 0 yielded 0 of the 1 items")
+    assert "skipped" not in said and "DDP would hang" in said
+    fewer = "1 gave fewer items when tracked than counted"
+    assert f"its own 1 video (1 items counted): {fewer} ({videos[0]}: 0 of 1" in said
+    assert f"the 1 video of its worker on the other ranks, repeated in their place: {fewer} ({videos[1]}" in said
+    assert f"({videos[1]}: 0 of 1: a file changed or replaced since the dataset counted it?)" in said
