@@ -60,10 +60,11 @@ says so, once per dataset in each rank. ``DatasetConfig(shard_ranks=False)`` mak
 Skipping (:attr:`DatasetConfig.keep_going`, off by default): a video that cannot be read or tracked (an
 :class:`~torchface.io.InputError` or ``OSError``) stops the epoch by default, as it stops ``torchface track``. With
 ``keep_going`` it is skipped as ``torchface track --keep-going`` skips it: the process that finds it warns
-(:class:`SkippedVideoWarning`, naming the file and the error) and records it in :attr:`VideoDataset.skipped`
-(shared memory: the dataset the caller holds sees its workers' records), the video yields no item, and it is not
-tried again in later epochs (make the dataset again to retry it). A video is tracked whole before its items are
-yielded, so none of a skipped video's items is yielded (an error at its last frame too). The datasets are iterable
+(:class:`SkippedVideoWarning`, naming the file and the error, once: another process of the dataset failing on it
+finds it recorded and says nothing; DDP ranks share nothing, so each warns of a video it cannot count) and records
+it in :attr:`VideoDataset.skipped` (shared memory: the dataset the caller holds sees its workers' records), the video
+yields no item, and it is not tried again in later epochs (make the dataset again to retry it). A video is tracked
+whole before its items are yielded, so none of a skipped video's items is yielded (an error at its last frame too). The datasets are iterable
 (no ``len()``, no item by index: there is no index a sampler could ask for and get another video's item), so
 skipping changes no sampler's indices; what it changes is the epoch's item count:
 
@@ -659,8 +660,7 @@ class VideoDataset(IterableDataset):
             except (InputError, OSError) as exc:
                 if not c.keep_going:
                     raise
-                if not self._is_skipped(index):
-                    self._skip(index, exc)
+                self._skip(index, exc)
                 frames = 0  # (skipped: no item, on every rank alike, the file being the same)
             counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
         return int(counts[index])
@@ -839,21 +839,29 @@ class VideoDataset(IterableDataset):
 
     def _skip(self, index: int, exc: BaseException) -> None:
         """Record (:attr:`skipped`) and warn (:class:`SkippedVideoWarning`) that video ``index`` is skipped for
-        ``exc`` (:attr:`DatasetConfig.keep_going`)."""
+        ``exc`` (:attr:`DatasetConfig.keep_going`), unless a process of the dataset (a ``DataLoader`` worker, the
+        caller counting) has recorded it already: it records before it warns, since a warning can take a while to
+        show (a busy stderr), and two processes that failed on one video at the same time both warned. (Two that
+        fail within the few microseconds it takes to record can still both warn: preventing that would take a
+        cross-process lock, and a ``multiprocessing`` lock held by the dataset would make it unpicklable but to the
+        processes ``multiprocessing`` starts. The ranks of a DDP group share nothing: each warns of a video it
+        cannot count, as each counts its workers' videos on every rank.)"""
+        if self._is_skipped(index):
+            return
         path = self.videos[index]
         said = " ".join(str(exc).split()).removeprefix(f"{path}: ")  # (most name the video first: not twice)
         if isinstance(exc, OSError) and not isinstance(exc, InputError):
             said = f"{type(exc).__name__}: {said}"
+        data = said.encode("utf-8")[: _SKIP_BYTES - 1]  # (a character cut in two is dropped when read)
+        self._skips[index, 1:] = 0
+        self._skips[index, 1 : 1 + len(data)] = torch.tensor(list(data), dtype=torch.uint8)
+        self._skips[index, 0] = 1  # (last: the record is whole once flagged)
         warnings.warn(
             f"skipped {path} (video {index}): {said} (DatasetConfig(keep_going=True): its items are left out; "
             f"the dataset's .skipped records it)",
             SkippedVideoWarning,
             stacklevel=2,
         )
-        data = said.encode("utf-8")[: _SKIP_BYTES - 1]  # (a character cut in two is dropped when read)
-        self._skips[index, 1:] = 0
-        self._skips[index, 1 : 1 + len(data)] = torch.tensor(list(data), dtype=torch.uint8)
-        self._skips[index, 0] = 1  # (last: the record is whole once flagged)
 
     def _tracked(self, index: int) -> tuple[TrackedSequence, bool] | None:
         """:meth:`sequence`, or with :attr:`DatasetConfig.keep_going` None for a video that cannot be read or

@@ -578,3 +578,45 @@ def test_a_short_worker_says_what_happened_without_a_skip(uneven, config, monkey
     assert f"its own 1 video (1 items counted): {fewer} ({videos[0]}: 0 of 1" in said
     assert f"the 1 video of its worker on the other ranks, repeated in their place: {fewer} ({videos[1]}" in said
     assert f"({videos[1]}: 0 of 1: a file changed or replaced since the dataset counted it?)" in said
+
+
+def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, config, monkeypatch, tmp_path):
+    """Two processes of one dataset (a rank's DataLoader worker and the rank itself planning its steps with
+    count_items(), here two forked processes) counting the same video that cannot be read at the same time: each
+    found it not skipped yet when it failed (the first warned before recording it, and its warning took a while to
+    show: a busy stderr), and both gave the SkippedVideoWarning. Now a process records the skip before it warns, and
+    one that finds it recorded says nothing (and counts it 0)."""
+    import multiprocessing
+    import time
+
+    videos, landmarks = uneven
+    data = VideoDataset(videos, landmarks, replace(config, cache_dir=None, keep_going=True))
+    log = tmp_path / "warnings.txt"
+
+    def slow_failure(path, convert):
+        time.sleep(0.3)  # (both processes fail after both have begun)
+        raise training_hooks.datasets.InputError(f"{path}: cannot decode")
+
+    def count() -> None:
+        def show(message, category, filename, lineno, file=None, line=None) -> None:
+            time.sleep(0.3)
+            with open(log, "a") as f:
+                f.write(f"{category.__name__}: {message}\n")
+
+        warnings.simplefilter("always")
+        warnings.showwarning = show
+        assert data.num_items(3) == 0
+
+    monkeypatch.setattr(training_hooks.datasets, "_count_frames", slow_failure)
+    fork = multiprocessing.get_context("fork")
+    processes = [fork.Process(target=count) for _ in range(2)]
+    for p in processes:
+        p.start()
+    for p in processes:
+        p.join(30)
+    assert [p.exitcode for p in processes] == [0, 0]
+    assert log.read_text().splitlines() == [
+        f"SkippedVideoWarning: skipped {videos[3]} (video 3): cannot decode (DatasetConfig(keep_going=True): its "
+        "items are left out; the dataset's .skipped records it)"
+    ]
+    assert data.skipped == {3: f"{videos[3]}: cannot decode"} and data.count_items()[3] == 0
