@@ -64,9 +64,9 @@ Skipping (:attr:`DatasetConfig.keep_going`, off by default): a video that cannot
 finds it recorded and says nothing; DDP ranks share nothing, so each warns of a video it cannot count) and records
 it in :attr:`VideoDataset.skipped` (shared memory: the dataset the caller holds sees its workers' records), the video
 yields no item, and it is not tried again in later epochs (make the dataset again to retry it). A video is tracked
-whole before its items are yielded, so none of a skipped video's items is yielded (an error at its last frame too). The datasets are iterable
-(no ``len()``, no item by index: there is no index a sampler could ask for and get another video's item), so
-skipping changes no sampler's indices; what it changes is the epoch's item count:
+whole before its items are yielded, so none of a skipped video's items is yielded (an error at its last frame too).
+The datasets are iterable (no ``len()``, no item by index: there is no index a sampler could ask for and get another
+video's item), so skipping changes no sampler's indices; what it changes is the epoch's item count:
 
 - :meth:`VideoDataset.num_items` counts a video without tracking it: a video that cannot even be counted (it does
   not decode, or the detector finds no face in it) is skipped then and counts 0, on every rank alike; one that fails
