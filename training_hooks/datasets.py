@@ -261,7 +261,8 @@ class DatasetConfig:
         keep_short_clips: also yield the last, shorter clip of a video whose end no full clip reaches (and a
             video shorter than ``clip_length`` as one short clip); otherwise such frames are left out.
         cache_dir: folder of the tracking cache (:mod:`training_hooks.cache`), a ``str`` or path-like kept as a
-            ``Path``; None tracks every epoch.
+            ``Path``; None tracks every epoch. An empty string is refused (``Path("")`` is the working folder:
+            say ``"."`` for it).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
@@ -307,6 +308,12 @@ class DatasetConfig:
         if not isinstance(self.rank_balance, RankBalance):
             raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
         if self.cache_dir is not None:
+            if not isinstance(self.cache_dir, (str, os.PathLike)):  # (was pathlib's "expected str, bytes or ...")
+                raise TypeError(f"cache_dir must be a folder (a str or path-like) or None, got "
+                                f"{type(self.cache_dir).__name__}")  # fmt: skip
+            if isinstance(self.cache_dir, str) and not self.cache_dir:  # (Path("") is ".": the cache went there)
+                raise ValueError('cache_dir is empty (the working folder): give a folder, or None for no cache ("." '
+                                 "for the working folder)")  # fmt: skip
             object.__setattr__(self, "cache_dir", Path(self.cache_dir))
 
 
@@ -553,13 +560,16 @@ class VideoDataset(IterableDataset):
 
     @epoch.setter
     def epoch(self, epoch: int) -> None:
-        self._shared[_EPOCH] = int(epoch)
+        self._shared[_EPOCH] = check_int(epoch, "epoch", 0)
 
     def set_epoch(self, epoch: int) -> None:
         """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
         ``DataLoader`` workers' copies of the dataset share it, so ``persistent_workers=True`` workers shuffle
-        each epoch anew too."""
-        self.epoch = int(epoch)
+        each epoch anew too.
+
+        Raises:
+            TypeError, ValueError: ``epoch`` is not an int >= 0 (``1.5`` and ``"2"`` were taken as 1 and 2)."""
+        self.epoch = epoch
 
     @property
     def transform(self) -> NormaliseFaces:
@@ -623,7 +633,9 @@ class VideoDataset(IterableDataset):
             >>> # VideoDataset(five_videos, ...).worker_videos(1, 2) -> [1, 3]
             >>> # VideoDataset(five_videos, ...).worker_videos(0, 2, rank=1, world_size=2) -> [1]  (worker 1: [3])
         """
+        num_workers, world_size = check_int(num_workers, "num_workers", 1), check_int(world_size, "world_size", 1)
         for name, value, count in (("worker_id", worker_id, num_workers), ("rank", rank, world_size)):
+            value = check_int(value, name)  # (True was worker 1)
             if not 0 <= value < count:
                 raise ValueError(f"{name} must be in [0, {count}), got {value}")
         return [
@@ -646,6 +658,7 @@ class VideoDataset(IterableDataset):
             torchface.io.InputError: the video cannot be read, or the detector finds no face in any of its frames
                 (the message names the file); not with :attr:`DatasetConfig.keep_going`.
         """
+        index = check_int(index, "index")  # (1.0 was torch's message about tensor indices)
         if not 0 <= index < len(self.videos):
             raise IndexError(f"video {index} out of range for {len(self.videos)} videos")
         counts = self._shared[_COUNTS:]

@@ -1142,3 +1142,32 @@ def test_a_gray_frame_channels_last_is_told_its_own_permute():
     assert "BGR" not in str(info.value) and "(H, W, 3)" not in str(info.value)
     recipe = str(info.value).rsplit(": ", 1)[1][:-1]
     assert _frame_tensor(eval(recipe, {"frame": image}), 0, None).shape == (1, 1, 24, 32)
+
+
+def test_bad_cache_dir_epoch_and_indices_are_named(tmp_path, monkeypatch):
+    """DatasetConfig(cache_dir="") made the working folder the cache (Path("") is "."), filling it with .npz files,
+    and cache_dir=3 was pathlib's "expected str, bytes or os.PathLike object, not int"; set_epoch(1.5) and
+    set_epoch("2") were taken as 1 and 2 without a word (and set_epoch("a") was int()'s message); num_items(1.0) was
+    torch's message about tensor indices and worker_videos(True, 2) worker 1's videos. Each now names the setting."""
+    video = tmp_path / "v.npy"
+    np.save(video, np.zeros((2, 16, 16, 3), dtype=np.uint8))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError, match=r"^cache_dir is empty \(the working folder\): give a folder, or None"):
+        DatasetConfig(cache_dir="")
+    with pytest.raises(TypeError, match=r"^cache_dir must be a folder \(a str or path-like\) or None, got int$"):
+        DatasetConfig(cache_dir=3)
+    assert DatasetConfig(cache_dir=".").cache_dir == DatasetConfig(cache_dir=Path("")).cache_dir == Path(".")  # (meant)
+    data = VideoDataset([video], [np.zeros((68, 2))])
+    for bad in (1.5, "2", True):
+        with pytest.raises(TypeError, match=r"^epoch must be an int >= 0, got"):
+            data.set_epoch(bad)
+    with pytest.raises(ValueError, match=r"^epoch must be an int >= 0, got -1$"):
+        data.set_epoch(-1)
+    data.set_epoch(np.int64(3))
+    assert data.epoch == 3
+    with pytest.raises(TypeError, match=r"^index must be an int, got float 1.0$"):
+        data.num_items(1.0)
+    with pytest.raises(TypeError, match=r"^worker_id must be an int, got bool True$"):
+        data.worker_videos(True, 2)
+    with pytest.raises(TypeError, match=r"^world_size must be an int >= 1, got float 2.0$"):
+        data.worker_items(0, 1, 0, 2.0)
