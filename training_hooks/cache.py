@@ -275,14 +275,15 @@ class TrackCache:
     """A folder of tracked sequences keyed by :func:`cache_key` (module docstring).
 
     Args:
-        root: the folder (created on first write).
+        root: the folder (created on first write); a relative one is taken against the working folder when the
+            cache is made (:attr:`root` is absolute: a later ``os.chdir`` does not move it).
 
     Example:
         >>> # cache = TrackCache("cache"); seq = cache.load(key) or track(...); cache.store(key, seq)
     """
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
-        self.root = Path(root)
+        self.root = Path(root).absolute()
         self.stats = CacheStats()
         self._swept = False
 

@@ -259,10 +259,13 @@ class DatasetConfig:
         clip_length: ``None`` yields one item per frame; an int yields clips of that many frames.
         clip_stride: frames between clip starts (default ``clip_length``: back-to-back clips).
         keep_short_clips: also yield the last, shorter clip of a video whose end no full clip reaches (and a
-            video shorter than ``clip_length`` as one short clip); otherwise such frames are left out.
-        cache_dir: folder of the tracking cache (:mod:`training_hooks.cache`), a ``str`` or path-like kept as a
-            ``Path``; None tracks every epoch. An empty string is refused (``Path("")`` is the working folder:
-            say ``"."`` for it).
+            video shorter than ``clip_length`` as one short clip); otherwise such frames are left out. Needs
+            ``clip_length`` (frame items have no short clip: refused without it, as ``clip_stride`` is).
+        cache_dir: folder of the tracking cache (:mod:`training_hooks.cache`), a ``str`` or path-like kept as an
+            absolute ``Path``: a relative one is taken against the working folder when the config is made
+            (``Path.absolute()``: symbolic links are kept as named), so a later ``os.chdir``, or a ``DataLoader``
+            worker in another folder, uses the same cache. None tracks every epoch. An empty string is refused
+            (``Path("")`` is the working folder: say ``"."`` for it).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
@@ -305,6 +308,8 @@ class DatasetConfig:
         object.__setattr__(self, "seed", check_int(self.seed, "seed"))  # (was not checked: 2.5 or None seeded a draw)
         for name in ("keep_short_clips", "convert", "shard_ranks", "keep_going"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
+        if self.keep_short_clips and self.clip_length is None:  # (was taken, and did nothing: every frame an item)
+            raise ValueError("keep_short_clips needs clip_length")
         if not isinstance(self.rank_balance, RankBalance):
             raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
         if self.cache_dir is not None:
@@ -314,7 +319,9 @@ class DatasetConfig:
             if isinstance(self.cache_dir, str) and not self.cache_dir:  # (Path("") is ".": the cache went there)
                 raise ValueError('cache_dir is empty (the working folder): give a folder, or None for no cache ("." '
                                  "for the working folder)")  # fmt: skip
-            object.__setattr__(self, "cache_dir", Path(self.cache_dir))
+            # (absolute now: a relative one was taken against the working folder when the cache was first used, so a
+            # dataset iterated after an os.chdir, or in a worker that had changed folder, filled a cache elsewhere)
+            object.__setattr__(self, "cache_dir", Path(self.cache_dir).absolute())
 
 
 @dataclass

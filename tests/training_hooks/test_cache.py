@@ -452,3 +452,13 @@ def test_a_file_that_cannot_be_read_now_is_kept(two, config, monkeypatch):
     with pytest.warns(CacheWarning, match="unreadable now"):
         assert cache_module.TrackCache(config.cache_dir).load(stored.stem) is None
     assert stored.is_file()
+
+
+def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkeypatch):
+    """TrackCache("cache") kept its root relative: after an os.chdir its entries were looked for (and written) in the
+    new working folder. The root is made absolute when the cache is made."""
+    monkeypatch.chdir(tmp_path)
+    cache = TrackCache("cache")
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert cache.root == tmp_path / "cache" and cache.path("d" * 64) == tmp_path / "cache" / f"{'d' * 64}.npz"

@@ -502,7 +502,7 @@ def test_cache_dir_annotation_takes_the_documented_str(tmp_path):
     # (the package ships py.typed) refused the documented call. The value is still kept as a Path.
     hint = typing.get_type_hints(DatasetConfig)["cache_dir"]
     assert str in typing.get_args(hint) and os.PathLike[str] in typing.get_args(hint)
-    assert DatasetConfig(cache_dir="cache").cache_dir == Path("cache")
+    assert DatasetConfig(cache_dir="cache").cache_dir == Path.cwd() / "cache"  # (made absolute: test below)
     (tmp_path / "c").mkdir()
     (entry,) = os.scandir(tmp_path)
     assert DatasetConfig(cache_dir=entry).cache_dir == tmp_path / "c"
@@ -1156,7 +1156,7 @@ def test_bad_cache_dir_epoch_and_indices_are_named(tmp_path, monkeypatch):
         DatasetConfig(cache_dir="")
     with pytest.raises(TypeError, match=r"^cache_dir must be a folder \(a str or path-like\) or None, got int$"):
         DatasetConfig(cache_dir=3)
-    assert DatasetConfig(cache_dir=".").cache_dir == DatasetConfig(cache_dir=Path("")).cache_dir == Path(".")  # (meant)
+    assert DatasetConfig(cache_dir=".").cache_dir == DatasetConfig(cache_dir=Path("")).cache_dir == tmp_path  # (meant)
     data = VideoDataset([video], [np.zeros((68, 2))])
     for bad in (1.5, "2", True):
         with pytest.raises(TypeError, match=r"^epoch must be an int >= 0, got"):
@@ -1171,3 +1171,33 @@ def test_bad_cache_dir_epoch_and_indices_are_named(tmp_path, monkeypatch):
         data.worker_videos(True, 2)
     with pytest.raises(TypeError, match=r"^world_size must be an int >= 1, got float 2.0$"):
         data.worker_items(0, 1, 0, 2.0)
+
+
+def test_keep_short_clips_without_clip_length_is_refused_as_clip_stride_is():
+    """``keep_short_clips=True`` without ``clip_length`` was taken and did nothing (every frame is an item: there is
+    no short clip to keep), while ``clip_stride`` without it was refused; both are refused alike."""
+    with pytest.raises(ValueError, match=r"^keep_short_clips needs clip_length$"):
+        DatasetConfig(keep_short_clips=True)
+    with pytest.raises(ValueError, match=r"^keep_short_clips needs clip_length$"):
+        replace(DatasetConfig(clip_length=4, keep_short_clips=True), clip_length=None)
+    assert DatasetConfig(keep_short_clips=False).keep_short_clips is False  # (the default, without clips)
+    assert DatasetConfig(clip_length=4, keep_short_clips=True).keep_short_clips is True
+
+
+def test_a_relative_cache_dir_is_the_folder_it_named_when_the_config_was_made(clips, tmp_path, monkeypatch):
+    """A relative cache_dir was kept relative and taken against the working folder when the cache was first used:
+    a dataset iterated after an os.chdir (or in a DataLoader worker whose process had changed folder) filled a
+    cache elsewhere and found none of its entries. It is made absolute when the config is made."""
+    monkeypatch.chdir(tmp_path)
+    config = DatasetConfig(tracking=TRACKING, cache_dir="cache")
+    assert config.cache_dir == tmp_path / "cache" and config.cache_dir.is_absolute()
+    assert DatasetConfig(cache_dir=Path("a/../b")).cache_dir == tmp_path / "a/../b"  # (as named: no symlink resolved)
+    assert DatasetConfig(cache_dir=".").cache_dir == tmp_path
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    first = next(iter(data))
+    assert not bool(first["cached"]) and data.cache.root == tmp_path / "cache"
+    assert any((tmp_path / "cache").iterdir()) and not any((tmp_path / "elsewhere").iterdir())
+    again = VideoDataset([clips[0].video], [clips[0].landmarks], config)  # (made in the other folder, same config)
+    assert bool(next(iter(again))["cached"])
