@@ -101,11 +101,15 @@ Example:
 
 from __future__ import annotations
 
+import copy
 import enum
+import functools
 import itertools
 import os
+import pickle
 import random
 import time
+import types
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -240,6 +244,78 @@ def _dataset_hint() -> Iterator[None]:
         if not text.endswith(CONVERT_HINT):
             raise
         raise InputError(text[: -len(CONVERT_HINT)] + _DATASET_CONVERT_HINT) from None
+
+
+def _by_reference(detector: object) -> object:
+    """The part of ``detector`` that pickle saves by reference (its module and qualified name, looked up again in
+    the process that reads it): a function itself, a ``functools.partial``'s function, a bound method's object's
+    class (or the class of a classmethod), a class itself, else the object's class. Pickling it alone is cheap (a
+    name, nothing of the detector's contents) and fails where the detector is a lambda or is defined inside a
+    function."""
+    if isinstance(detector, functools.partial):
+        return _by_reference(detector.func)
+    if isinstance(detector, types.MethodType):
+        owner = detector.__self__
+        return owner if isinstance(owner, type) else type(owner)
+    if isinstance(detector, (types.FunctionType, type)):
+        return detector
+    return type(detector)
+
+
+def _received_detector(detector: Detector) -> Detector:
+    """The detector a pickled :class:`_SentDetector` is read back as."""
+    return detector
+
+
+class _SentDetector:
+    """A dataset's detector as its ``__getstate__`` gives it: pickled, it checks first that the detector's
+    by-reference part (:func:`_by_reference`) pickles, and raises a ``pickle.PicklingError`` that names the
+    detector and what to do where it does not (pickle's own was "Can't pickle <function <lambda> at 0x...>:
+    attribute lookup <lambda> on __main__ failed", or "Can't pickle local object 'make.<locals>.find'", from a
+    ``DataLoader`` worker started by spawn or forkserver); it is read back as the detector itself. ``copy.copy`` and
+    ``copy.deepcopy`` of the dataset do not pickle (a lambda is copied as itself, as before): the dataset's
+    ``__setstate__`` unwraps it."""
+
+    def __init__(self, detector: Detector, dataset: str) -> None:
+        self.detector, self.dataset = detector, dataset
+
+    def __copy__(self) -> _SentDetector:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> _SentDetector:
+        return _SentDetector(copy.deepcopy(self.detector, memo), self.dataset)
+
+    def __reduce__(self) -> tuple[Callable[[Detector], Detector], tuple[Detector]]:
+        errors = (pickle.PicklingError, AttributeError, TypeError)  # (pickle's errors for a local object)
+        try:
+            pickle.dumps(_by_reference(self.detector))
+        except errors:
+            try:  # (a local class whose instances pickle by a __reduce__ of their own still pickle: nothing refused)
+                pickle.dumps(self.detector)
+            except errors as exc:
+                raise pickle.PicklingError(
+                    f"{self.dataset}'s detector {_detector_name(self.detector)} cannot be pickled ({exc}), and a "
+                    "DataLoader worker started by spawn or forkserver (the default start method on macOS and "
+                    "Windows, and on Linux from Python 3.14) receives the dataset pickled: make the detector a "
+                    "module-level function or an instance of a module-level class (not a lambda, nor a function or "
+                    "class defined inside a function), or start the workers by fork "
+                    '(DataLoader(multiprocessing_context="fork"), where the platform has it)'
+                ) from exc
+        return _received_detector, (self.detector,)
+
+
+def _detector_name(detector: object) -> str:
+    """``detector`` named for a message by its by-reference part (:func:`_by_reference`): ``module.qualname`` of a
+    function, else what it is of that (``an instance of module.Class``, ``a functools.partial of module.f``)."""
+    ref = _by_reference(detector)
+    name = f"{getattr(ref, '__module__', '?')}.{getattr(ref, '__qualname__', type(ref).__qualname__)}"
+    if ref is detector:
+        return name
+    if isinstance(detector, functools.partial):
+        return f"(a functools.partial of {_detector_name(detector.func)})"
+    if isinstance(detector, types.MethodType):
+        return f"(a method of {name})"
+    return f"(an instance of {name})"
 
 
 def _process_group() -> tuple[int, int] | None:
@@ -558,6 +634,8 @@ class VideoDataset(IterableDataset):
             state["_found_at"], state["_found"] = _shared_detections(searched)
         if "_skips" not in state:  # pickled before keep_going existed
             state["_skips"] = _shared_skips(0)
+        if isinstance(state.get("detector"), _SentDetector):  # (copied, not pickled: copy.copy of the dataset)
+            state["detector"] = state["detector"].detector
         self.__dict__.update(state)
 
     @property
@@ -611,6 +689,8 @@ class VideoDataset(IterableDataset):
         group = _process_group()
         if group is not None:
             state["_sender_group"] = group
+        if state.get("detector") is not None:  # (a lambda or local function: an error that says what to do)
+            state["detector"] = _SentDetector(state["detector"], type(self).__name__)
         return state
 
     def rank_and_world_size(self) -> tuple[int, int]:

@@ -3,10 +3,14 @@ clips, landmark sources, the transform's equality with the dataset, shuffling, b
 
 from __future__ import annotations
 
+import copy
+import functools
 import itertools
 import os
+import pickle
 import re
 import typing
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -1201,3 +1205,57 @@ def test_a_relative_cache_dir_is_the_folder_it_named_when_the_config_was_made(cl
     assert any((tmp_path / "cache").iterdir()) and not any((tmp_path / "elsewhere").iterdir())
     again = VideoDataset([clips[0].video], [clips[0].landmarks], config)  # (made in the other folder, same config)
     assert bool(next(iter(again))["cached"])
+
+
+def _no_face(image: np.ndarray) -> None:
+    """A module-level detector (pickles by name)."""
+    return None
+
+
+class _NoFace:
+    """A module-level detector class (its instances pickle)."""
+
+    def __call__(self, image: np.ndarray) -> None:
+        return None
+
+
+def test_a_detector_that_cannot_be_pickled_is_named_with_what_to_do(clips):
+    """A lambda or a function (or class) defined inside a function as the detector failed under a DataLoader worker
+    started by spawn or forkserver (macOS's and Windows' default) with pickle's own words ("Can't pickle <function
+    <lambda> at 0x...>: attribute lookup <lambda> on __main__ failed", "Can't pickle local object ..."), which name
+    neither the dataset nor what to do. It is a PicklingError naming the detector and the way out; copying the
+    dataset (no pickling) and module-level detectors are as before."""
+    video = clips[0].video
+
+    def local(image: np.ndarray) -> None:
+        return None
+
+    class Local:
+        def __call__(self, image: np.ndarray) -> None:
+            return None
+
+    here = r"\S*test_a_detector_that_cannot_be_pickled_is_named_with_what_to_do\.<locals>"
+    for detector, name in ((lambda image: None, rf"{here}\.<lambda>"), (local, rf"{here}\.local"),
+                           (Local(), rf"\(an instance of {here}\.Local\)"),
+                           (functools.partial(local), rf"\(a functools.partial of {here}\.local\)"),
+                           (Local().__call__, rf"\(a method of {here}\.Local\)")):  # fmt: skip
+        data = VideoDataset([video], detector)
+        with pytest.raises(pickle.PicklingError, match=rf"^VideoDataset's detector {name} cannot be pickled \(Can't "
+                           r"pickle .*\), and a DataLoader worker started by spawn or forkserver .*: make the "
+                           r"detector a module-level function or an instance of a module-level class .*"
+                           r'multiprocessing_context="fork"\), where the platform has it\)$'):  # fmt: skip
+            pickle.dumps(data)
+        assert copy.copy(data).detector is detector  # (copies do not pickle: as before)
+        assert type(copy.deepcopy(data).detector) is type(detector)
+    for detector in (_no_face, _NoFace(), functools.partial(_no_face), _NoFace().__call__):
+        back = pickle.loads(pickle.dumps(FrameFolderDataset([video.parent], detector)))
+        assert type(back.detector) is type(detector) and back.detector(np.zeros((4, 4, 3), np.uint8)) is None
+    assert pickle.loads(pickle.dumps(VideoDataset([video], _no_face))).detector is _no_face
+    landmarks = pickle.loads(pickle.dumps(VideoDataset([video], [clips[0].landmarks])))  # (no detector: as before)
+    assert landmarks.detector is None and np.array_equal(landmarks.landmarks[0], clips[0].landmarks)
+    # A spawned worker: refused when it is started (the dataset pickled for it), before it runs.
+    loader = DataLoader(VideoDataset([video], lambda image: None), batch_size=None, num_workers=1,
+                        multiprocessing_context="spawn")  # fmt: skip
+    with warnings.catch_warnings(), pytest.raises(pickle.PicklingError, match=r"<lambda> cannot be pickled"):
+        warnings.simplefilter("ignore", UserWarning)  # (torch's "Got pickle error when attempting to start ...")
+        next(iter(loader))
