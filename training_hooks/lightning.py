@@ -177,7 +177,19 @@ class TrackedFaceDataModule(pl.LightningDataModule):
             ``multiprocessing`` context (None: the platform's default); needs ``num_workers > 0``.
         drop_last: leave out the training loader's last, smaller batch of each worker (a ``DataLoader`` batches
             each worker's items separately); the validation loader keeps every item.
-        timeout: seconds to wait for a worker's batch before raising (0: no limit).
+        timeout: seconds to wait for a worker's batch before raising (0, the default: no limit). A worker yields
+            nothing of a video until it has tracked the whole video (:mod:`training_hooks.datasets`: its items come
+            from the tracked sequence), so the wait for a batch includes tracking every video whose items it
+            holds (more than one where a video has fewer items than ``batch_size`` plus
+            :attr:`DatasetConfig.shuffle_buffer <training_hooks.datasets.DatasetConfig.shuffle_buffer>`), and for
+            the first batch also the worker's start (a spawned one imports torch and torchface), the counting of
+            its videos on every rank under DDP (:attr:`DatasetConfig.rank_balance
+            <training_hooks.datasets.DatasetConfig.rank_balance>`: video files decoded through) and a detector's
+            search for the first face. A timeout shorter than that raises PyTorch's "DataLoader timed out after N
+            seconds" though nothing is wrong: give more than the longest video's tracking takes on the machine
+            that trains (time it: :func:`~training_hooks.datasets.loader_throughput`, or ``data.sequence(i)`` of
+            the longest video), or 0. It is not checked against the videos: their tracking time is not known
+            before they are tracked (a cached video is read in a fraction of it).
 
     There is no ``shuffle``, ``sampler`` or ``generator``: the datasets are iterable, and their shuffling is
     :attr:`DatasetConfig.shuffle_buffer <training_hooks.datasets.DatasetConfig.shuffle_buffer>`, seeded by

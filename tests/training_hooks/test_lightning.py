@@ -299,3 +299,45 @@ def test_datamodule_validates_on_a_subclass_loader_or_a_val_set_in_setup(clips, 
         )  # fmt: skip
         trainer.fit(Counting(), datamodule=module)
         assert Counting.validated == expected, type(module).__name__
+
+
+class _SlowFrames:
+    """``open_frames``' reader of a slow machine: ``delay`` seconds before each frame after the first."""
+
+    def __init__(self, reader, delay: float) -> None:
+        self.reader, self.delay, self.info, self.read = reader, delay, reader.info, 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        if self.read:
+            import time
+
+            time.sleep(self.delay)
+        self.read += 1
+        return next(self.reader)
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def test_datamodule_timeout_is_the_wait_for_a_whole_videos_tracking(clips, config, monkeypatch):
+    """The documented limit of ``timeout`` (docs/training-hooks.md): a worker yields nothing of a video before it has
+    tracked all of it, so a timeout longer than any one frame's reading and tracking (here 2 s against 1 s a frame)
+    but shorter than the video's (5 s for its 6 frames) trips at the first batch. The reader is slowed in the
+    forked worker; the first item waits for the whole video, not for its frame."""
+    import training_hooks.datasets as datasets_module
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    opened = datasets_module.open_frames
+    monkeypatch.setattr(datasets_module, "open_frames", lambda *a, **k: _SlowFrames(opened(*a, **k), 1.0))
+    data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(config, cache_dir=None))
+    loader = TrackedFaceDataModule(data, batch_size=1, num_workers=1, multiprocessing_context="fork", timeout=2.0,
+                                   persistent_workers=False).train_dataloader()  # fmt: skip
+    batches = iter(loader)
+    with pytest.raises(RuntimeError, match=r"DataLoader timed out after 2(\.0)? seconds"):
+        next(batches)
+    for worker in batches._workers:  # (stop the sleeping worker now, not after the loader's 5 s join)
+        worker.terminate()
+    del batches
