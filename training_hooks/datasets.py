@@ -151,7 +151,10 @@ __all__ = [
 #: an array's: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) given; a row with one coordinate NaN, an
 #: infinite value or a given point outside the frame is refused (:func:`torchface.io.check_landmarks`).
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
-#: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`).
+#: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`). A
+#: ``DataLoader`` worker started by ``spawn`` or ``forkserver`` (macOS's and Windows' default) receives it pickled:
+#: a module-level function or an instance of a module-level class (a lambda, or a function or class defined inside a
+#: function, is a ``pickle.PicklingError`` naming it then).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
 
 
