@@ -30,6 +30,13 @@ def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
     return parse
 
 
+def assets_folder() -> Path:
+    """The shared assets folder the scripts read (GRID clips, the ICT Face Model, the James scan): where the
+    ``TORCHFACE_ASSETS`` environment variable says, else ``../shared/assets`` beside the repository (as the tests
+    find it; track_grid.py and build_synth_data.py read only the latter, so that a set variable was ignored)."""
+    return Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets")
+
+
 def folder_problem(path: Path) -> str | None:
     """Why ``path`` cannot be made an output folder (None: it can): it, or a folder above it, is a file, or a symbolic
     link whose target does not exist (``mkdir`` said only "File exists", a traceback after the setup)."""

@@ -1,0 +1,56 @@
+"""The scripts of scripts/ as a scripted evaluation runs them: a user's mistake is a one-line error (argparse's exit
+2) before any work, an interrupted run leaves no output under its final name, and ``TORCHFACE_ASSETS`` is where the
+scripts look for the shared assets."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up by name
+    spec.loader.exec_module(module)
+    return module
+
+
+def _usage_error(main, argv, capsys) -> str:
+    """``main(argv)``'s one-line usage error (argparse's exit 2): its last stderr line."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "Traceback" not in err, (argv, err)
+    return err.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["small-frames", "--photos", "james,nosuch"], "'nosuch': choose from james, astronaut"),
+    (["other-models", "--areas", "face,nosuch"], "'nosuch': choose from head, face, narrow, narrow_eyes"),
+    (["face-width", "--frames", "1"], "--frames must be >= 2"),
+    (["hard-cuts", "--restart-after-unmatched", "-1"], "must be an integer >= 0"),
+    (["hard-cuts", "--max-error", "nan"], "must be a number > 0"),
+    (["grid-pan", "--grid", str(SCRIPTS / "data"), "--clip", "x"], "no GRID clip x.mpg"),
+])  # fmt: skip
+def test_doc_figures_refuses_bad_arguments_before_any_work(argv, message, capsys, monkeypatch):
+    """Each was a traceback (a bad --photos / --areas name, --frames 1, a negative --restart-after-unmatched) after
+    the rows before it had been measured, or a run that measured nothing (--max-error nan)."""
+    figures = _load("doc_figures")
+    monkeypatch.setattr(figures, "render_sequence", None)  # any rendering would fail the test: none may start
+    assert message in _usage_error(figures.main, argv, capsys)
+
+
+def test_doc_figures_checks_grid_pans_landmarks_and_lid_fits_cache(tmp_path, capsys):
+    figures = _load("doc_figures")
+    (tmp_path / "c1.mpg").write_bytes(b"")
+    argv = ["grid-pan", "--grid", str(tmp_path), "--clip", "c1", "--landmarks-dir", str(tmp_path)]
+    assert f"--landmarks-dir {tmp_path}: no c1.csv" in _usage_error(figures.main, argv, capsys)
+    (tmp_path / "file").write_text("")
+    argv = ["lid-fit", "--cache", str(tmp_path / "file"), "--size", "small"]
+    assert "--cache" in _usage_error(figures.main, argv, capsys)
