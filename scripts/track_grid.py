@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Track the GRID talking-head clips (../shared/assets/grid) as one batch and report per clip.
+"""Track the GRID talking-head clips (TORCHFACE_ASSETS's grid folder, else ../shared/assets/grid) as one batch and report per clip.
 
 Per clip: fraction of successful frames, mean confidence, the pose's jitter (with no ground truth, the
 frame-to-frame noise of the pose itself, which also counts the head's own small motion:
@@ -40,7 +40,7 @@ from torchface.synth.metrics import rotation_jitter_deg
 from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import smoothing_settings  # noqa: E402
+from _argtypes import assets_folder, folder_problem, smoothing_settings  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
@@ -69,12 +69,12 @@ def smoothed_rotations(cols: tuple[str, ...], rows: np.ndarray, config: Smoothin
     return smooth[0].numpy()
 
 
-GRID = Path(__file__).resolve().parents[2] / "shared" / "assets" / "grid"
+GRID = assets_folder() / "grid"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    parser.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips")
+    parser.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips (default: TORCHFACE_ASSETS's grid folder, else ../shared/assets/grid)")
     parser.add_argument("--landmarks-dir", type=Path, default=None, help="folder of <stem>.csv first-frame landmarks")
     parser.add_argument("--detector", default=None, help="detector name when no landmarks folder is given")
     parser.add_argument("--out", type=Path, default=Path("out/grid"), help="output folder")
@@ -91,9 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         smoothing = smoothing_settings(args.smoothing)
     except ValueError as exc:
         parser.error(str(exc))
-    if not args.grid.is_dir():
-        print(f"no GRID clips at {args.grid}", file=sys.stderr)
-        return 2
+    if not args.grid.is_dir():  # (a bare line without the usage's form before)
+        parser.error(f"--grid {args.grid}: no such folder (the GRID clips: --grid, or TORCHFACE_ASSETS)")
     clips = sorted(args.grid.glob("*.mpg"))
     if not clips:
         parser.error(f"--grid {args.grid}: no .mpg clips there")
@@ -103,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --landmarks-dir (first-frame landmarks <stem>.csv) or --detector NAME")
     if args.landmarks_dir is not None and not args.landmarks_dir.is_dir():
         parser.error(f"--landmarks-dir {args.landmarks_dir}: no such folder")
+    if (problem := folder_problem(args.out)) is not None:
+        parser.error(f"--out {args.out}: {problem}")
     check_python(parser, args.mediapipe_python)
     landmarks = tuple(args.landmarks_dir / f"{c.stem}.csv" for c in clips) if args.landmarks_dir else ()
     config = JobConfig(out_dir=args.out, landmarks=landmarks, detector=args.detector)

@@ -54,3 +54,22 @@ def test_doc_figures_checks_grid_pans_landmarks_and_lid_fits_cache(tmp_path, cap
     (tmp_path / "file").write_text("")
     argv = ["lid-fit", "--cache", str(tmp_path / "file"), "--size", "small"]
     assert "--cache" in _usage_error(figures.main, argv, capsys)
+
+
+def test_scripts_find_the_shared_assets_where_torchface_assets_says(tmp_path, capsys, monkeypatch):
+    """track_grid.py and build_synth_data.py read only ../shared/assets beside the repository (doc_figures.py and the
+    tests honoured ``TORCHFACE_ASSETS``): a set variable was ignored. Pointing nowhere, each says so in one line."""
+    monkeypatch.setenv("TORCHFACE_ASSETS", str(tmp_path / "nowhere"))
+    grid = _load("track_grid")
+    assert grid.GRID == tmp_path / "nowhere" / "grid"
+    message = _usage_error(grid.main, ["--detector", "dlib", "--out", str(tmp_path / "o")], capsys)
+    assert f"--grid {tmp_path / 'nowhere' / 'grid'}: no such folder" in message
+    build = _load("build_synth_data")
+    with pytest.raises(SystemExit, match=f"build_synth_data.py: error: no James assets at {tmp_path / 'nowhere'}"):
+        build.main([])
+    assert _load("doc_figures").ICT_NPZ.is_relative_to(tmp_path / "nowhere")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "clip.mpg").write_bytes(b"")
+    (tmp_path / "file").write_text("")
+    argv = ["--grid", str(tmp_path / "g"), "--detector", "dlib", "--out", str(tmp_path / "file")]
+    assert f"--out {tmp_path / 'file'}: not a folder path" in _usage_error(grid.main, argv, capsys)
