@@ -67,6 +67,7 @@ import math
 import sys
 import tempfile
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -729,16 +730,25 @@ def save_series(path: Path, series: list[FrameSeries]) -> None:
 
 
 def load_series(path: Path) -> list[FrameSeries]:
-    """Read what :func:`save_series` wrote."""
-    with np.load(path) as z:
-        count = len({k.split("/")[0] for k in z.files})
-        out = []
-        for i in range(count):
-            scenario, config, default = (str(x) for x in z[f"{i}/name"])
-            fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
-            ms, width, height = (float(x) for x in z[f"{i}/meta"])
-            out.append(FrameSeries(scenario, config, default == "default", **fields, ms_per_frame=ms, width=int(width),
-                                   height=int(height)))  # fmt: skip
+    """Read what :func:`save_series` wrote.
+
+    Raises:
+        ValueError: ``path`` is not such a file (another file, a truncated one), naming it.
+    """
+    try:
+        with np.load(path) as z:
+            count = len({k.split("/")[0] for k in z.files})
+            out = []
+            for i in range(count):
+                scenario, config, default = (str(x) for x in z[f"{i}/name"])
+                fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
+                ms, width, height = (float(x) for x in z[f"{i}/meta"])
+                out.append(FrameSeries(scenario, config, default == "default", **fields, ms_per_frame=ms,
+                                       width=int(width), height=int(height)))  # fmt: skip
+    except (OSError, ValueError, KeyError, EOFError, TypeError, AttributeError, zipfile.BadZipFile) as exc:
+        # (np.load's traceback: a text file, a truncated .npz, an .npy (no .files), another .npz (a missing key))
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(f"{path}: not a file of --save-series ({type(exc).__name__}: {why[:200]})") from None
     return out
 
 
@@ -892,7 +902,9 @@ def main(argv: list[str] | None = None) -> int:
         " truth from the cache) and all of them are pooled into section (b)",
     )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
-    parser.add_argument("--json", type=Path, help="write {scenario[/ablation or config]: {metric: value}} here")
+    parser.add_argument("--json", type=Path,
+                        help="write {scenario[/ablation or config]: {metric: value}} here when the run completes (the "
+                        "figures so far are in JSON.partial while it runs, and after a failed or interrupted run)")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise (default 0)")
@@ -1073,7 +1085,10 @@ def main(argv: list[str] | None = None) -> int:
         if item:
             if not Path(item).is_file():
                 parser.error(f"--add-series: no file {item}")
-            earlier += load_series(Path(item))
+            try:
+                earlier += load_series(Path(item))
+            except ValueError as exc:
+                parser.error(f"--add-series: {exc}")
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
@@ -1096,6 +1111,12 @@ def main(argv: list[str] | None = None) -> int:
     series: list[FrameSeries] = []
     tables: list[str] = []
 
+    def save_progress() -> None:
+        """The figures so far to ``<--json>.partial`` (the last write, of every figure, renames that file to the
+        --json path: a failed or interrupted run leaves no file there that looks like a whole run's figures)."""
+        if args.json is not None:
+            write_json(args.json.with_name(args.json.name + ".partial"), results)
+
     def rerun_full(
         seq: Sequence, size: tuple[int, int, int], rows: dict[str, dict[str, float]],
         variants: list[tuple[str, str, TrackerConfig, Tensor, bool]],
@@ -1114,8 +1135,7 @@ def main(argv: list[str] | None = None) -> int:
             m = score(model, seq.gt, out).as_dict()
             m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
             by[row] = results[label] = m
-            if args.json is not None:
-                write_json(args.json, results)
+            save_progress()
         return by
 
     with contextlib.ExitStack() as stack:
@@ -1146,8 +1166,7 @@ def main(argv: list[str] | None = None) -> int:
                         f"{_fmt(m.rot_err_mean_deg)} max {_fmt(m.rot_err_max_deg)} deg in view, lost {m.lost_frames}, "
                         f"recoveries {[r.frames_to_recover for r in m.recoveries]}, {out.ms_per_frame:.0f} ms/frame"
                     )
-                    if args.json is not None:
-                        write_json(args.json, results)
+                    save_progress()
                 info = f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"
                 tables.append(long_table(name, info, gt, runs, args.hold))
                 print(tables[-1] + "\n", flush=True)
@@ -1169,8 +1188,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{label}: rot err mean {_fmt(m['rot_err_mean_deg'])} max {_fmt(m['rot_err_max_deg'])} deg, "
                     f"lost {m['lost_frames']}, AU rmse {_fmt(m['au_rmse'], 3)}, {out.ms_per_frame:.0f} ms/frame"
                 )
-                if args.json is not None:
-                    write_json(args.json, results)
+                save_progress()
                 if abl == "full":  # the same run's pose smoothed over time, per setting (offline: no tracking)
                     for label_s, config_s in smoothing:
                         m = score(model, seq.gt, smoothed_run(out, seq.gt.fps, config_s)).as_dict()
@@ -1184,8 +1202,7 @@ def main(argv: list[str] | None = None) -> int:
                         "or no face found)")
                 else:
                     rows["mediapipe"] = results[f"{name}/mediapipe"] = mp_figures
-                    if args.json is not None:
-                        write_json(args.json, results)
+                    save_progress()
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
             # The full configuration again per landmark-noise seed, then per draw of the template points.

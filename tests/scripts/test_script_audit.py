@@ -73,3 +73,49 @@ def test_scripts_find_the_shared_assets_where_torchface_assets_says(tmp_path, ca
     (tmp_path / "file").write_text("")
     argv = ["--grid", str(tmp_path / "g"), "--detector", "dlib", "--out", str(tmp_path / "file")]
     assert f"--out {tmp_path / 'file'}: not a folder path" in _usage_error(grid.main, argv, capsys)
+
+
+def test_evaluate_json_appears_only_when_the_run_completes(tmp_path, monkeypatch):
+    """--json was rewritten after every run: an interrupted (or failed) evaluation left a file under the --json name
+    that held some scenarios and no section (b), as a whole run's would. Now the figures so far go to
+    ``<json>.partial`` and the --json file appears, whole, at the end (the .partial renamed onto it)."""
+    import json
+
+    evaluate = _load("evaluate")
+    out = tmp_path / "eval.json"
+    argv = ["--scenarios", "expressions,pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none",
+            "--ablations", "none", "--threads", "1", "--json", str(out)]  # fmt: skip
+    load, calls = evaluate.load_sequence, []
+
+    def interrupted(*a, **k):
+        calls.append(a[0])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return load(*a, **k)
+
+    monkeypatch.setattr(evaluate, "load_sequence", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.main(argv)
+    partial = tmp_path / "eval.json.partial"
+    assert not out.exists() and list(json.loads(partial.read_text())) == ["expressions"]
+    monkeypatch.setattr(evaluate, "load_sequence", load)
+    assert evaluate.main(argv) == 0
+    figures = json.loads(out.read_text())
+    assert not partial.exists() and {"expressions", "pose_sweep"} <= set(figures)
+    assert any(k.startswith("auroc/") for k in figures)
+
+
+def test_evaluate_add_series_refuses_a_file_that_is_not_a_series_in_one_line(tmp_path, capsys):
+    """``--add-series`` of another file (a text file, an .npy, another .npz, a truncated one) was np.load's
+    traceback."""
+    import numpy as np
+
+    evaluate = _load("evaluate")
+    (tmp_path / "a.txt").write_text("not a series\n")
+    np.save(tmp_path / "b.npy", np.zeros(3))
+    np.savez(tmp_path / "c.npz", x=np.zeros(3))
+    (tmp_path / "d.npz").write_bytes((tmp_path / "c.npz").read_bytes()[:40])
+    for name in ("a.txt", "b.npy", "c.npz", "d.npz"):
+        argv = ["--scenarios", "none", "--add-series", str(tmp_path / name)]
+        assert f"--add-series: {tmp_path / name}: not a file of --save-series" in _usage_error(evaluate.main, argv,
+                                                                                               capsys)  # fmt: skip
