@@ -4,8 +4,9 @@ first on ``sys.path``)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,6 +36,23 @@ def assets_folder() -> Path:
     ``TORCHFACE_ASSETS`` environment variable says, else ``../shared/assets`` beside the repository (as the tests
     find it; track_grid.py and build_synth_data.py read only the latter, so that a set variable was ignored)."""
     return Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets")
+
+
+@contextlib.contextmanager
+def written_whole(path: Path) -> Iterator[Path]:
+    """A temporary name beside ``path`` (``<stem>.partial<suffix>``, so that numpy and OpenCV keep the name as given)
+    to write the file to: renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full
+    disk), so that no truncated file is left under the final name, where a cache reader would take it for whole.
+
+    Example:
+        >>> # with written_whole(Path("out/frames.npy")) as tmp: np.save(tmp, frames)
+    """
+    tmp = path.with_name(f"{path.stem}.partial{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def folder_problem(path: Path) -> str | None:

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from dataclasses import replace
@@ -47,7 +46,7 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
-from _argtypes import file_problem, folder_problem  # noqa: E402
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
@@ -216,12 +215,8 @@ def main(argv: list[str] | None = None) -> int:
     if save is not None:
         save.parent.mkdir(parents=True, exist_ok=True)
         flat = {f"{v}/{n}/{k}": x for v, r in results.items() for n, d in r.items() for k, x in d.items()}
-        tmp = save.with_name(save.name + ".partial.npz")  # renamed when complete: no half-written file under its name
-        try:
+        with written_whole(save) as tmp:  # renamed when complete: no half-written file under its name
             np.savez(tmp, **flat)
-            os.replace(tmp, save)
-        finally:
-            tmp.unlink(missing_ok=True)
         print(f"wrote {save}")
     return 0
 

@@ -101,7 +101,13 @@ from torchface.tracker.smoothing import SmoothingConfig, reanchored_streams, smo
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import device_problem, file_problem, folder_problem, smoothing_settings  # noqa: E402
+from _argtypes import (  # noqa: E402
+    device_problem,
+    file_problem,
+    folder_problem,
+    smoothing_settings,
+    written_whole,
+)
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
@@ -721,12 +727,8 @@ def save_series(path: Path, series: list[FrameSeries]) -> None:
         for f in _SERIES_FIELDS:
             arrays[f"{i}/{f}"] = getattr(s, f).numpy()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial.npz")
-    try:
+    with written_whole(path) as tmp:
         np.savez_compressed(tmp, **arrays)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def load_series(path: Path) -> list[FrameSeries]:

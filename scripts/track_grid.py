@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Track the GRID talking-head clips (TORCHFACE_ASSETS's grid folder, else ../shared/assets/grid) as one batch and report per clip.
+"""Track the GRID talking-head clips (the shared assets' grid folder) as one batch and report per clip.
 
 Per clip: fraction of successful frames, mean confidence, the pose's jitter (with no ground truth, the
 frame-to-frame noise of the pose itself, which also counts the head's own small motion:
@@ -74,7 +74,8 @@ GRID = assets_folder() / "grid"
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    parser.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips (default: TORCHFACE_ASSETS's grid folder, else ../shared/assets/grid)")
+    parser.add_argument("--grid", type=Path, default=GRID,
+                        help="folder of GRID .mpg clips (default: TORCHFACE_ASSETS/grid, else ../shared/assets/grid)")
     parser.add_argument("--landmarks-dir", type=Path, default=None, help="folder of <stem>.csv first-frame landmarks")
     parser.add_argument("--detector", default=None, help="detector name when no landmarks folder is given")
     parser.add_argument("--out", type=Path, default=Path("out/grid"), help="output folder")

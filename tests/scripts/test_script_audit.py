@@ -119,3 +119,54 @@ def test_evaluate_add_series_refuses_a_file_that_is_not_a_series_in_one_line(tmp
         argv = ["--scenarios", "none", "--add-series", str(tmp_path / name)]
         assert f"--add-series: {tmp_path / name}: not a file of --save-series" in _usage_error(evaluate.main, argv,
                                                                                                capsys)  # fmt: skip
+
+
+def test_benchmark_cache_files_are_written_whole(tmp_path, monkeypatch):
+    """benchmark.py saved its frame cache (.pt) and MediaPipe's frames (.npy) straight under the names it reuses:
+    an interrupted save left a truncated file there, torch.load's traceback (or MediaPipe "not installed") on every
+    later run. Now each is written under a temporary name and renamed when whole."""
+    import argparse
+
+    import numpy as np
+    import torch
+
+    import torchface.synth.sequence as sequence
+
+    bench = _load("benchmark")
+    frames = torch.rand(6, 3, 8, 8)
+    monkeypatch.setattr(sequence, "render_sequence", lambda spec: (frames, argparse.Namespace(
+        landmarks_px=torch.zeros(6, 68, 2), intrinsics=None)))  # fmt: skip
+    real_save = torch.save
+
+    def interrupted_save(obj, f, *a, **k):
+        Path(f).write_bytes(b"PK\x03\x04 half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", interrupted_save)
+    with pytest.raises(KeyboardInterrupt):
+        bench._frames(tmp_path, 8, 8, 4)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(torch, "save", real_save)
+    got, _, _ = bench._frames(tmp_path, 8, 8, 4)
+    assert torch.equal(got, frames[:4]) and [p.name for p in tmp_path.iterdir()] == ["bench_pose_sweep_8x8_4.pt"]
+    assert torch.equal(bench._frames(tmp_path, 8, 8, 4)[0], frames[:4])  # from the cache
+
+    def interrupted_npy(file, arr, *a, **k):
+        Path(file).write_bytes(b"\x93NUMPY half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "save", interrupted_npy)
+    args = argparse.Namespace(cache=str(tmp_path), width=8, height=8, frames=4, mediapipe_python=None)
+    with pytest.raises(KeyboardInterrupt):
+        bench._mediapipe(args)
+    assert [p.name for p in tmp_path.iterdir()] == ["bench_pose_sweep_8x8_4.pt"]
+
+
+def test_benchmark_track_checks_its_cache_folder_before_rendering(tmp_path, capsys, monkeypatch):
+    """--cache under a file was mkdir's traceback once the clips had been rendered."""
+    track = _load("benchmark_track")
+    monkeypatch.setattr(track, "_clips", lambda *a: (_ for _ in ()).throw(AssertionError("rendering")))
+    (tmp_path / "file").write_text("")
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--cache", str(tmp_path / "file" / "c")])
+    message = _usage_error(lambda argv: track.main(), [], capsys)
+    assert f"--cache {tmp_path / 'file' / 'c'}: not a folder path" in message
