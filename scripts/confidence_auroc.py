@@ -165,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
     if not variants:
         parser.error(f"--variants: none given; choose from {', '.join(VARIANTS)}")
+    if variants == ["no_illum"] and "light_switch" not in names:  # (rendered, then nothing run nor printed: exit 0)
+        parser.error("--variants no_illum runs on light_switch only, which --scenarios leaves out")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     ev.check_size_for_video(parser, args.size, args.cache, names)
@@ -188,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.size is not None:
             w, h = args.size
         t = args.frames if args.frames is not None else t
+        if variants == ["no_illum"] and name != "light_switch":  # nothing of this scenario's to run
+            continue
         seq = ev.load_sequence(name, w, h, t, cache)
         if "standard" in variants or "inject" in variants:
             out = run(name, seq, model, base, args.seed, inject="inject" in variants)

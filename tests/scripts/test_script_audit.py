@@ -170,3 +170,11 @@ def test_benchmark_track_checks_its_cache_folder_before_rendering(tmp_path, caps
     monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--cache", str(tmp_path / "file" / "c")])
     message = _usage_error(lambda argv: track.main(), [], capsys)
     assert f"--cache {tmp_path / 'file' / 'c'}: not a folder path" in message
+
+
+def test_confidence_auroc_refuses_variants_that_run_nothing(capsys, monkeypatch):
+    """``--variants no_illum`` without light_switch rendered the scenarios, then printed nothing and exited 0."""
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    argv = ["--variants", "no_illum", "--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none"]
+    assert "no_illum runs on light_switch only" in _usage_error(auroc.main, argv, capsys)
