@@ -178,3 +178,27 @@ def test_confidence_auroc_refuses_variants_that_run_nothing(capsys, monkeypatch)
     monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
     argv = ["--variants", "no_illum", "--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none"]
     assert "no_illum runs on light_switch only" in _usage_error(auroc.main, argv, capsys)
+
+
+def test_track_grid_table_gives_units_and_no_bare_nan(tmp_path, capsys, monkeypatch):
+    """track_grid.py's table headed its pose jitter "jitter" (degrees? radians?) and printed "nan" for a clip too
+    short to measure (under three frames) and for the mean over no measured clip."""
+    import types
+
+    import numpy as np
+
+    grid = _load("track_grid")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "c1.mpg").write_bytes(b"")
+    (tmp_path / "o").mkdir()
+    cols = ("frame", "timestamp", "success", "confidence", *grid._ROTATION_COLUMNS)
+    rows = np.array([[t, t / 25, 1.0, 0.9, *np.eye(3).ravel()] for t in range(2)])
+    monkeypatch.setattr(grid, "track_videos", lambda *a, **k: [types.SimpleNamespace(name="c1", frames=2, fps=30.0)])
+    monkeypatch.setattr(grid, "read_track_csv", lambda path: (cols, rows))
+    assert grid.main(["--grid", str(tmp_path / "g"), "--detector", "dlib", "--out", str(tmp_path / "o")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header = next(line for line in lines if line.startswith("clip"))
+    assert "jitter deg" in header and "frames/s" in header
+    assert "nan" not in "\n".join(lines)
+    (row,) = [line for line in lines if line.startswith("c1")]
+    assert row.split()[5] == "-"
