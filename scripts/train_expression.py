@@ -45,7 +45,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import re
 import shutil
 import sys
@@ -76,7 +75,7 @@ from torchface.synth.subjects import Subject, candide_subject
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem, folder_problem  # noqa: E402
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -509,13 +508,12 @@ def main(argv: list[str] | None = None) -> int:
         f"mean confidence {float(faces2['confidence'].mean()):.2f}, yaw error median {float(yaw_err.median()):.1f} deg, "
         f"p90 {float(yaw_err.quantile(0.9)):.1f} deg")  # fmt: skip
 
-    saved = args.out / "faces.pt"  # the classifiers' inputs, for inspection
-    torch.save(
-        {"reference": faces2["reference"], "face": faces2["face"], "mask": faces2["mask"],
-         "crops": torch.from_numpy(crops), "labels": labels, "persons": [c.person for c in clips]},
-        saved.with_name(saved.name + ".partial"),
-    )  # fmt: skip
-    os.replace(saved.with_name(saved.name + ".partial"), saved)
+    with written_whole(args.out / "faces.pt") as tmp:  # the classifiers' inputs, for inspection
+        torch.save(
+            {"reference": faces2["reference"], "face": faces2["face"], "mask": faces2["mask"],
+             "crops": torch.from_numpy(crops), "labels": labels, "persons": [c.person for c in clips]},
+            tmp,
+        )  # fmt: skip
 
     # 5. train and test, leave one person out
     t0 = time.perf_counter()
@@ -581,13 +579,8 @@ def main(argv: list[str] | None = None) -> int:
                          "yaw_error_median_deg": float(yaw_err.median())},
             "times_s": times,
         }  # fmt: skip
-        tmp = args.json.with_name(args.json.name + ".partial")
-        try:
+        with written_whole(args.json) as tmp:
             tmp.write_text(json.dumps(figures, indent=1) + "\n")
-            os.replace(tmp, args.json)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
     return 0
 
 
