@@ -105,6 +105,7 @@ from _argtypes import (  # noqa: E402
     device_problem,
     file_problem,
     folder_problem,
+    integer,
     smoothing_settings,
     written_whole,
 )
@@ -988,9 +989,11 @@ def main(argv: list[str] | None = None) -> int:
         "each standard scenario's full run gets a row per setting, its pose smoothed offline "
         "(torchface.tracker.smoothing)",
     )
-    parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
+    # (a negative N was taken: every |N| frames)
+    parser.add_argument("--progress-every", type=integer(0), default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
-        "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
+        "--long-progress-every", type=integer(0), default=250,
+        help="progress line every N frames of a long run (0: none)",
     )
     args = parser.parse_args(argv)
 

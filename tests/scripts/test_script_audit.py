@@ -119,6 +119,8 @@ def test_evaluate_add_series_refuses_a_file_that_is_not_a_series_in_one_line(tmp
         argv = ["--scenarios", "none", "--add-series", str(tmp_path / name)]
         assert f"--add-series: {tmp_path / name}: not a file of --save-series" in _usage_error(evaluate.main, argv,
                                                                                                capsys)  # fmt: skip
+    for option in ("--progress-every", "--long-progress-every"):  # (taken before: a line every |N| frames)
+        assert f"argument {option}: must be an integer >= 0" in _usage_error(evaluate.main, [option, "-5"], capsys)
 
 
 def test_benchmark_cache_files_are_written_whole(tmp_path, monkeypatch):
