@@ -120,7 +120,9 @@ def test_evaluate_add_series_refuses_a_file_that_is_not_a_series_in_one_line(tmp
         assert f"--add-series: {tmp_path / name}: not a file of --save-series" in _usage_error(evaluate.main, argv,
                                                                                                capsys)  # fmt: skip
     for option in ("--progress-every", "--long-progress-every"):  # (taken before: a line every |N| frames)
-        assert f"argument {option}: must be an integer >= 0" in _usage_error(evaluate.main, [option, "-5"], capsys)
+        argv = ["--scenarios", "expressions", "--frames", "3", "--size", "64x48", "--cache", "none", "--ablations",
+                "none", "--no-auroc", "--threads", "1", option, "-5"]  # fmt: skip
+        assert f"argument {option}: must be an integer >= 0" in _usage_error(evaluate.main, argv, capsys)
 
 
 def test_benchmark_cache_files_are_written_whole(tmp_path, monkeypatch):
