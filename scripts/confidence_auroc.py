@@ -145,14 +145,15 @@ def report(label: str, data: dict[str, np.ndarray], good: float, bad: float) -> 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--scenarios", default="all", help=f"comma list from {', '.join(SCENARIOS)} (default all)")
-    parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {VARIANTS}")
+    parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {', '.join(VARIANTS)} (default all three)")
     parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")
     parser.add_argument("--size", type=ev._parse_size, default=None, help="WxH (default 640x480)")
     parser.add_argument("--cache", default="out/sequences",
                         help="sequence cache folder (default out/sequences; 'none': in memory)")
     parser.add_argument("--good", type=float, default=2.0, help="positives: error below this (deg)")
     parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the landmark noise (evaluate.py's --seed) and of the injected errors (default 0)")
     parser.add_argument("--save", type=Path, help="write the per-frame series here (.npz)")
     args = parser.parse_args(argv)
     names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",")]

@@ -55,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("video", type=Path, help="a video written by make_sequence.py (its .gt.npz beside it)")
     parser.add_argument("--frames", type=int, nargs="*", help="frame indices (default: 0, middle, extremes)")
     parser.add_argument("--scale", type=int, default=0, help="upscaling factor (default: to about 640 px wide)")
-    parser.add_argument("--out", type=Path, default=Path("out/overlay"))
+    parser.add_argument("--out", type=Path, default=Path("out/overlay"),
+                        help="folder of the PNGs, <name>_<frame>.png (default out/overlay)")
     args = parser.parse_args(argv)
     if args.scale < 0:
         parser.error(f"--scale must be >= 1 (or 0 for about 640 px wide), got {args.scale}")

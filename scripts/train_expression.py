@@ -437,7 +437,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("out/expression"), help="working folder (videos, cache)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the identities, clips and CNN initialisations (default 0)")
     p.add_argument("--json", type=Path, default=None, help="write the figures here")
     p.add_argument("--quick", action="store_true", help="a tiny run for a smoke test")
     p.add_argument("--crop-single", action="store_true", help="also train on the labelled crop alone (slower)")

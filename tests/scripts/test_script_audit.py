@@ -199,3 +199,42 @@ def test_track_grid_table_gives_units_and_no_bare_nan(tmp_path, capsys, monkeypa
     assert "nan" not in "\n".join(lines)
     (row,) = [line for line in lines if line.startswith("c1")]
     assert row.split()[5] == "-"
+
+
+def test_every_script_option_has_help():
+    """``--help`` is how a user learns a script: options without a help string showed a bare name
+    (benchmark_raster.py --dtype, confidence_auroc.py --seed, overlay_landmarks.py --out, train_expression.py
+    --seed). Every script's parser is built by its ``--help`` run, each argument recorded as it is added."""
+    import subprocess
+
+    code = (
+        "import argparse, runpy, sys\n"
+        "missing, current = [], ['']\n"
+        "add = argparse._ActionsContainer.add_argument\n"
+        "def recorded(self, *a, **k):\n"
+        "    action = add(self, *a, **k)\n"
+        "    if not action.help and not isinstance(action, argparse._HelpAction):\n"
+        "        missing.append(current[0] + ' ' + ('/'.join(action.option_strings) or action.dest))\n"
+        "    return action\n"
+        "argparse._ActionsContainer.add_argument = recorded\n"
+        "for path in sys.argv[1:]:\n"
+        "    current[0], sys.argv = path.rsplit('/', 1)[-1], [path, '--help']\n"
+        "    try:\n"
+        "        runpy.run_path(path, run_name='__main__')\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print('WITHOUT HELP:', missing, file=sys.stderr)\n"
+    )
+    scripts = sorted(str(p) for p in SCRIPTS.glob("*.py") if "ArgumentParser(" in p.read_text())
+    out = subprocess.run([sys.executable, "-c", code, *scripts], capture_output=True, text=True, timeout=300,
+                         cwd=SCRIPTS.parent)  # fmt: skip
+    assert out.returncode == 0 and out.stdout.count("usage:") == len(scripts), out.stderr[-2000:]
+    assert out.stderr.strip().splitlines()[-1] == "WITHOUT HELP: []"
+
+
+def test_benchmark_raster_refuses_the_meta_device(capsys, monkeypatch):
+    """``--device meta`` passed its check (an empty tensor can be made there) and was a NotImplementedError's
+    traceback in the first row; now _argtypes.device_problem, as evaluate.py and benchmark_device.py check."""
+    raster = _load("benchmark_raster")
+    monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
+    assert "--device meta: the meta device holds no data" in _usage_error(raster.main, ["--device", "meta"], capsys)
