@@ -6,12 +6,30 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 if TYPE_CHECKING:
     from torchface.tracker.smoothing import SmoothingConfig
+
+
+#: The exit status of a script stopped by Ctrl-C (as ``torchface``'s: 128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
+
+def run_command(main: Callable[[], int | None]) -> NoReturn:
+    """Run a script's ``main`` as its command and exit with its status; a Ctrl-C is one line on stderr and status
+    :data:`EXIT_INTERRUPTED`, as ``torchface``'s own commands do (a KeyboardInterrupt's traceback before, which a
+    scripted evaluation's log showed as a crash). The scripts write their outputs under temporary names until whole,
+    so an interrupted run leaves none of them under its final name."""
+    try:
+        status = main()
+    except KeyboardInterrupt:
+        print(f"\n{Path(sys.argv[0]).name}: interrupted", file=sys.stderr)
+        raise SystemExit(EXIT_INTERRUPTED) from None
+    raise SystemExit(status)
 
 
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:

@@ -46,6 +46,7 @@ from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
 from _argtypes import folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 from peers import check_python, run_mediapipe  # noqa: E402
 
 
@@ -462,4 +463,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -30,6 +30,7 @@ from torchface.rendering import rasterize
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import device_problem, file_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
 DEPTH_MM = 450.0
@@ -171,4 +172,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

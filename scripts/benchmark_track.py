@@ -30,6 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the modules beside this script, however it is run
 from _argtypes import folder_problem, integer, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = {"640x480": 1.0, "1920x1080": 2.25}
@@ -163,4 +164,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

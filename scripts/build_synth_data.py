@@ -17,6 +17,7 @@ from torchface.synth.subjects import build_candide_textures
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import assets_folder  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: What torchface.synth.james.build_james_data reads from the assets' james folder.
@@ -44,4 +45,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

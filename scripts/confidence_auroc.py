@@ -47,6 +47,7 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
 from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
@@ -227,4 +228,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

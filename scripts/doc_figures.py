@@ -77,6 +77,7 @@ D = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
 from _argtypes import assets_folder, folder_problem, integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 ASSETS = assets_folder()
 GRID = ASSETS / "grid"
@@ -487,4 +488,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

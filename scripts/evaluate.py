@@ -106,6 +106,7 @@ from _argtypes import (  # noqa: E402
     file_problem,
     folder_problem,
     integer,
+    run_command,
     smoothing_settings,
     written_whole,
 )
@@ -1240,4 +1241,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

@@ -26,6 +26,7 @@ from torchface.synth.sequence import load_ground_truth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import folder_problem  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 # iBUG-68 polylines: (start, end, closed).
 _GROUPS = ((0, 17, False), (17, 22, False), (22, 27, False), (27, 31, False), (31, 36, False),
@@ -98,4 +99,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

@@ -41,6 +41,7 @@ from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
 from _argtypes import assets_folder, folder_problem, smoothing_settings  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
@@ -184,4 +185,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

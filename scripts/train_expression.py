@@ -76,6 +76,7 @@ from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -586,4 +587,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command(main)

@@ -238,3 +238,27 @@ def test_benchmark_raster_refuses_the_meta_device(capsys, monkeypatch):
     raster = _load("benchmark_raster")
     monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
     assert "--device meta: the meta device holds no data" in _usage_error(raster.main, ["--device", "meta"], capsys)
+
+
+def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch):
+    """A Ctrl-C printed a KeyboardInterrupt's traceback, which a scripted evaluation's log shows as a crash; now, as
+    ``torchface``'s own commands, one line and exit status 130, for every script run as a command."""
+    import re
+
+    sys.path.insert(0, str(SCRIPTS))
+    import _argtypes
+
+    def interrupted() -> int:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sys, "argv", ["evaluate.py"])
+    with pytest.raises(SystemExit) as info:
+        _argtypes.run_command(interrupted)
+    assert info.value.code == 130 and capsys.readouterr().err.strip() == "evaluate.py: interrupted"
+    with pytest.raises(SystemExit) as info:
+        _argtypes.run_command(lambda: 3)
+    assert info.value.code == 3
+    for path in sorted(SCRIPTS.glob("*.py")):
+        _, main_block, block = path.read_text().partition('if __name__ == "__main__":\n')
+        if main_block:
+            assert re.search(r"^    run_command\(", block, re.M), path.name
