@@ -84,7 +84,10 @@ def _run(checkout: Path, video: Path, lm: Path, out: Path) -> tuple[float, float
     # (run in the output's folder: `python -c` puts the working folder first on sys.path, and run from a checkout it
     # imported that checkout's torchface whatever PYTHONPATH said)
     out.mkdir(parents=True, exist_ok=True)
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, cwd=out)
+    done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, cwd=out)
+    if done.returncode != 0:  # (a CalledProcessError's traceback before, under the command's own message)
+        raise SystemExit(f"benchmark_track.py: error: torchface track of {checkout} on {video.name} failed (exit "
+                         f"status {done.returncode}; its message is above)")
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

@@ -262,3 +262,16 @@ def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch
         _, main_block, block = path.read_text().partition('if __name__ == "__main__":\n')
         if main_block:
             assert re.search(r"^    run_command\(", block, re.M), path.name
+
+
+def test_benchmark_track_says_in_one_line_that_a_checkouts_run_failed(tmp_path, capsys):
+    """A --reference checkout whose ``torchface track`` fails (an older one without an option, a broken one) ended
+    the benchmark with a CalledProcessError's traceback under the command's own message."""
+    track = _load("benchmark_track")
+    (tmp_path / "ref" / "torchface").mkdir(parents=True)
+    (tmp_path / "ref" / "torchface" / "__init__.py").write_text("raise SystemExit(3)\n")
+    video, lm = tmp_path / "clip.mp4", tmp_path / "clip_lm.csv"
+    with pytest.raises(SystemExit) as info:
+        track._run(tmp_path / "ref", video, lm, tmp_path / "out")
+    assert str(info.value.code) == (f"benchmark_track.py: error: torchface track of {tmp_path / 'ref'} on clip.mp4 "
+                                    "failed (exit status 3; its message is above)")  # fmt: skip
