@@ -73,6 +73,18 @@ def written_whole(path: Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+def frame_size(text: str) -> tuple[int, int]:
+    """An argparse type: a frame size ``WxH`` (``640x480``; ``X`` too), each side at least 8, as ``(W, H)``, else a
+    one-line error. Odd sides are left to the caller, which refuses them where a video is written."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
+    return w, h
+
+
 def folder_problem(path: Path) -> str | None:
     """Why ``path`` cannot be made an output folder (None: it can): it, or a folder above it, is a file, or a symbolic
     link whose target does not exist (``mkdir`` said only "File exists", a traceback after the setup)."""

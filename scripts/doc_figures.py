@@ -76,7 +76,7 @@ from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
 D = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
-from _argtypes import assets_folder, folder_problem, integer  # noqa: E402
+from _argtypes import assets_folder, folder_problem, frame_size, integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 ASSETS = assets_folder()
@@ -370,13 +370,11 @@ def _numbers(text: str) -> list[float]:
 
 
 def _sizes(text: str) -> list[tuple[int, int]]:
+    """An argparse type: a comma list of frame sizes (:func:`_argtypes.frame_size`'s ``WxH``)."""
     try:
-        sizes = [tuple(int(v) for v in item.split("x")) for item in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...], got {text!r}") from None
-    if any(len(s) != 2 or min(s) < 8 for s in sizes):
-        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...] of at least 8x8, got {text!r}")
-    return sizes  # type: ignore[return-value]
+        return [frame_size(item) for item in text.split(",")]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...] of at least 8x8, got {text!r}") from None
 
 
 def _widths(text: str) -> list[float]:
@@ -439,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
     p.set_defaults(run=grid_pan)
     p = sub.add_parser("hard-cuts", help="a video cut to the face elsewhere (docs/limitations.md: Hard cuts)")
-    p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(320, 240), help="frame size WxH")
+    p.add_argument("--size", type=frame_size, default=(320, 240), help="frame size WxH")
     p.add_argument("--dx", type=_numbers, default=_numbers("8,20,45"), help="jumps across, mm, comma separated")
     p.add_argument("--dz", type=_numbers, default=_numbers("0,-60,100"), help="jumps in depth, mm")
     p.add_argument("--dyaw", type=_numbers, default=_numbers("0,12,-30"), help="turns at the cut, degrees")
@@ -456,7 +454,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="evaluate.py's render cache folder; 'none' renders in memory")
     p.set_defaults(run=lid_fit)
     p = sub.add_parser("other-models", help="CANDIDE-3 and the ICT Face Model's areas (docs/python-api.md: Other face models)")
-    p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(640, 480), help="frame size WxH")
+    p.add_argument("--size", type=frame_size, default=(640, 480), help="frame size WxH")
     p.add_argument("--frames", type=int, default=80, help="frames per scenario")
     p.add_argument("--runs", type=int, default=3, help="runs per row; the fastest is reported")
     p.add_argument("--areas", default="narrow_eyes,narrow,face,head", type=_names(tuple(ICT_AREAS)),

@@ -105,6 +105,7 @@ from _argtypes import (  # noqa: E402
     device_problem,
     file_problem,
     folder_problem,
+    frame_size,
     integer,
     run_command,
     smoothing_settings,
@@ -831,14 +832,9 @@ def _why_no_auroc(row: dict) -> str:
     return f"n/a (no frame below {GOOD_DEG:g} deg)"
 
 
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
-    if w < 8 or h < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
-    return w, h  # an odd side is refused in main where a video is written (the cache, the long scenarios)
+#: ``--size``'s type (:func:`_argtypes.frame_size`); an odd side is refused in main where a video is written (the
+#: cache, the long scenarios).
+_parse_size = frame_size
 
 
 def check_size_for_video(

@@ -29,11 +29,13 @@ def _usage_error(main, argv, capsys) -> str:
     (["face-width", "--frames", "1"], "--frames must be >= 2"),
     (["hard-cuts", "--restart-after-unmatched", "-1"], "must be an integer >= 0"),
     (["hard-cuts", "--max-error", "nan"], "must be a number > 0"),
+    (["hard-cuts", "--size", "320x240,640x480"], "size must be WxH"),  # (ran at the first size, the rest unread)
     (["grid-pan", "--grid", str(SCRIPTS / "data"), "--clip", "x"], "no GRID clip x.mpg"),
 ])  # fmt: skip
 def test_doc_figures_refuses_bad_arguments_before_any_work(argv, message, capsys, monkeypatch):
     """Each was a traceback (a bad --photos / --areas name, --frames 1, a negative --restart-after-unmatched) after
-    the rows before it had been measured, or a run that measured nothing (--max-error nan)."""
+    the rows before it had been measured, a run that measured nothing (--max-error nan), or one at the first of two
+    sizes given to --size."""
     figures = _load("doc_figures")
     monkeypatch.setattr(figures, "render_sequence", None)  # any rendering would fail the test: none may start
     assert message in _usage_error(figures.main, argv, capsys)
