@@ -152,6 +152,8 @@ def main() -> None:
                 order = list(runs) if r % 2 == 0 else list(runs)[::-1]
                 for k in order:
                     wall, cpu, loop = _run(runs[k], video, lm, Path(tmp) / k)
+                    # (a progress line per run: the rows came only after every run of a size, minutes of silence)
+                    print(f"  {size} {k}: run {r + 1}/{args.repeats}, {wall:.1f} s wall", file=sys.stderr, flush=True)
                     walls[k].append(wall)
                     cpus[k].append(cpu)
                     loops[k].append(loop)

@@ -277,3 +277,18 @@ def test_benchmark_track_says_in_one_line_that_a_checkouts_run_failed(tmp_path, 
         track._run(tmp_path / "ref", video, lm, tmp_path / "out")
     assert str(info.value.code) == (f"benchmark_track.py: error: torchface track of {tmp_path / 'ref'} on clip.mp4 "
                                     "failed (exit status 3; its message is above)")  # fmt: skip
+
+
+def test_benchmark_track_shows_progress_per_run(tmp_path, capsys, monkeypatch):
+    """benchmark_track.py printed a size's rows only after all its runs (2 checkouts x 3 repeats of a 1920x1080 clip:
+    minutes without a word); now a line per run on stderr, the table on stdout as before."""
+    track = _load("benchmark_track")
+    monkeypatch.setattr(track, "_clips", lambda cache, count: {s: (tmp_path / f"{s}.mp4", tmp_path / "lm.csv")
+                                                                for s in track.SIZES})  # fmt: skip
+    monkeypatch.setattr(track, "_run", lambda checkout, video, lm, out: (2.0, 1.5, 80.0))
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", "640x480", "--repeats", "2", "--frames", "4",
+                                      "--cache", str(tmp_path)])  # fmt: skip
+    track.main()
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == ["  640x480 this: run 1/2, 2.0 s wall", "  640x480 this: run 2/2, 2.0 s wall"]
+    assert "640x480" in captured.out.splitlines()[-1]
