@@ -25,7 +25,7 @@ from torchface.synth.io import frames_to_uint8, iter_video_uint8
 from torchface.synth.sequence import load_ground_truth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import folder_problem  # noqa: E402
+from _argtypes import folder_problem, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 # iBUG-68 polylines: (start, end, closed).
@@ -92,8 +92,9 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{gt.name} #{i} ypr=({ypr[0]:.0f},{ypr[1]:.0f},{ypr[2]:.0f})"
         cv2.putText(out, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         path = args.out / f"{gt.name}_{i:04d}.png"
-        if not cv2.imwrite(str(path), out):
-            raise SystemExit(f"overlay_landmarks.py: error: cannot write {path}")
+        with written_whole(path) as tmp:  # (an interrupted write left a truncated PNG under its name)
+            if not cv2.imwrite(str(tmp), out):
+                raise SystemExit(f"overlay_landmarks.py: error: cannot write {path}")
         print(f"  wrote {path} ({int(gt.landmarks_visible[i].sum())}/68 landmarks visible)")
     return 0
 

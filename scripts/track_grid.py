@@ -40,7 +40,7 @@ from torchface.synth.metrics import rotation_jitter_deg
 from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import assets_folder, folder_problem, smoothing_settings  # noqa: E402
+from _argtypes import assets_folder, folder_problem, smoothing_settings, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
@@ -166,8 +166,10 @@ def main(argv: list[str] | None = None) -> int:
                 images.append(img)
             i += 1
         cap.release()
-        if images:
-            cv2.imwrite(str(args.out / f"{s.name}_frames.png"), np.hstack(images))
+        if images:  # (written straight under its name before, and a failed write went without a word)
+            with written_whole(args.out / f"{s.name}_frames.png") as tmp:
+                if not cv2.imwrite(str(tmp), np.hstack(images)):
+                    raise SystemExit(f"track_grid.py: error: cannot write {args.out / f'{s.name}_frames.png'}")
     jitters = [r["jitter_deg"] for r in table if np.isfinite(r["jitter_deg"])]
     peers_jitter = [r["mediapipe_jitter_deg"] for r in table if "mediapipe_jitter_deg" in r]
     print(f"mean jitter over the clips: {_cell(np.mean(jitters) if jitters else float('nan'), 0)} deg" +

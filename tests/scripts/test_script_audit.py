@@ -292,3 +292,29 @@ def test_benchmark_track_shows_progress_per_run(tmp_path, capsys, monkeypatch):
     captured = capsys.readouterr()
     assert captured.err.splitlines() == ["  640x480 this: run 1/2, 2.0 s wall", "  640x480 this: run 2/2, 2.0 s wall"]
     assert "640x480" in captured.out.splitlines()[-1]
+
+
+def test_overlay_pngs_are_written_whole(tmp_path, capsys, monkeypatch):
+    """overlay_landmarks.py wrote each PNG straight under its name: an interrupt mid-write left a truncated image
+    there, among whole ones. Now each is written under a temporary name and renamed."""
+    import cv2
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import write_sequence
+
+    files = write_sequence(make_scenario("expressions", 2, 64, 48), tmp_path / "seq")
+    overlay = _load("overlay_landmarks")
+    real = cv2.imwrite
+    calls = []
+
+    def interrupted(path, image, *a):
+        calls.append(path)
+        if len(calls) == 2:
+            Path(path).write_bytes(b"\x89PNG half")
+            raise KeyboardInterrupt
+        return real(path, image, *a)
+
+    monkeypatch.setattr(cv2, "imwrite", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        overlay.main([str(files.video), "--frames", "0", "1", "--out", str(tmp_path / "ov")])
+    assert sorted(p.name for p in (tmp_path / "ov").iterdir()) == ["expressions_0000.png"]
