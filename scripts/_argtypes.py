@@ -4,13 +4,32 @@ first on ``sys.path``)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 if TYPE_CHECKING:
     from torchface.tracker.smoothing import SmoothingConfig
+
+
+#: The exit status of a script stopped by Ctrl-C (as ``torchface``'s: 128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
+
+def run_command(main: Callable[[], int | None]) -> NoReturn:
+    """Run a script's ``main`` as its command and exit with its status; a Ctrl-C is one line on stderr and status
+    :data:`EXIT_INTERRUPTED`, as ``torchface``'s own commands do (a KeyboardInterrupt's traceback before, which a
+    scripted evaluation's log showed as a crash). The scripts write their outputs under temporary names until whole,
+    so an interrupted run leaves none of them under its final name."""
+    try:
+        status = main()
+    except KeyboardInterrupt:
+        print(f"\n{Path(sys.argv[0]).name}: interrupted", file=sys.stderr)
+        raise SystemExit(EXIT_INTERRUPTED) from None
+    raise SystemExit(status)
 
 
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
@@ -28,6 +47,42 @@ def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def assets_folder() -> Path:
+    """The shared assets folder the scripts read (GRID clips, the ICT Face Model, the James scan): where the
+    ``TORCHFACE_ASSETS`` environment variable says, else ``../shared/assets`` beside the repository (as the tests
+    find it; track_grid.py and build_synth_data.py read only the latter, so that a set variable was ignored)."""
+    return Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets")
+
+
+@contextlib.contextmanager
+def written_whole(path: Path) -> Iterator[Path]:
+    """A temporary name beside ``path`` (``<stem>.partial<suffix>``, so that numpy and OpenCV keep the name as given)
+    to write the file to: renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full
+    disk), so that no truncated file is left under the final name, where a cache reader would take it for whole.
+
+    Example:
+        >>> # with written_whole(Path("out/frames.npy")) as tmp: np.save(tmp, frames)
+    """
+    tmp = path.with_name(f"{path.stem}.partial{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def frame_size(text: str) -> tuple[int, int]:
+    """An argparse type: a frame size ``WxH`` (``640x480``; ``X`` too), each side at least 8, as ``(W, H)``, else a
+    one-line error. Odd sides are left to the caller, which refuses them where a video is written."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
+    return w, h
 
 
 def folder_problem(path: Path) -> str | None:

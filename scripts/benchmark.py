@@ -45,7 +45,8 @@ import torch
 from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import folder_problem  # noqa: E402
+from _argtypes import folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 from peers import check_python, run_mediapipe  # noqa: E402
 
 
@@ -62,7 +63,8 @@ def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Ten
     # The slow first half of the sweep (a few degrees per frame), as a tracker sees a real head turn.
     d = {"frames": frames[:count].contiguous(), "landmarks": gt.landmarks_px[:count].float(), "intrinsics": gt.intrinsics}
     cache.mkdir(parents=True, exist_ok=True)
-    torch.save(d, path)
+    with written_whole(path) as tmp:  # (an interrupted save left a truncated cache file: torch.load's traceback next)
+        torch.save(d, tmp)
     return d["frames"], d["landmarks"], d["intrinsics"]
 
 
@@ -286,8 +288,9 @@ def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
 
     frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)
     path = Path(args.cache) / f"bench_pose_sweep_{args.width}x{args.height}_{args.frames}_rgb.npy"
-    if not path.exists():
-        np.save(path, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    if not path.exists():  # (a truncated file left by an interrupt failed MediaPipe's run: "not installed" next)
+        with written_whole(path) as tmp:
+            np.save(tmp, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
     run = run_mediapipe(path, args.mediapipe_python)
     if run is None:
         return None
@@ -460,4 +463,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

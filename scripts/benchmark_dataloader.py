@@ -31,6 +31,7 @@ from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset, load
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import file_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 SCENARIOS = ("expressions", "light_switch")
 
@@ -127,4 +128,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

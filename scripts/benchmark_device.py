@@ -37,6 +37,7 @@ from torchface.io.sidecar import write_json
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmark.py and _argtypes beside this script
 from _argtypes import device_problem, folder_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 from benchmark import _batch_list, _frames  # noqa: E402
 
 WARM_STEPS = 3
@@ -165,4 +166,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command(main)

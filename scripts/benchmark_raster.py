@@ -28,8 +28,9 @@ from torchface.io.sidecar import write_json
 from torchface.rendering import rasterize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem  # noqa: E402
+from _argtypes import device_problem, file_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
 DEPTH_MM = 450.0
@@ -99,16 +100,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=_integer(1), default=15, help="timed runs per row (default 15)")
     parser.add_argument("--warmup", type=_integer(0), default=3, help="untimed runs first (default 3)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                        help="dtype of the vertices rasterized (default float32)")
     parser.add_argument("--batches", type=_integer(1), nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
     parser.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     args = parser.parse_args(argv)
     # one-line errors before any timing, not tracebacks (a --json folder: after every row was timed)
-    try:
-        device = torch.device(args.device)
-        torch.empty(1, device=device)
-    except (RuntimeError, AssertionError) as exc:  # an unknown device, or torch built without it
-        parser.error(f"--device {args.device}: {' '.join(str(exc).split())}")
+    # (an unknown device, one torch was built without, or meta: a NotImplementedError's traceback in the first row)
+    if (problem := device_problem(args.device)) is not None:
+        parser.error(f"--device {args.device}: {problem}")
+    device = torch.device(args.device)
     if args.json is not None and (problem := file_problem(args.json)) is not None:
         parser.error(f"--json {args.json}: {problem}")
     if args.threads is not None:
@@ -171,4 +172,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

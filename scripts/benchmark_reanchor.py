@@ -28,6 +28,7 @@ from torchface.tracker import FaceTracker, TrackerConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 
 def main(batches: list[int]) -> None:
@@ -67,4 +68,5 @@ if __name__ == "__main__":
     # (it read sys.argv as integers: --help, the docs' way to learn a script, was a ValueError traceback)
     parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("batches", nargs="*", type=integer(1), metavar="B", help="streams per run (default 1 4 8)")
-    main(parser.parse_args().batches or [1, 4, 8])
+    batches = parser.parse_args().batches or [1, 4, 8]
+    run_command(lambda: main(batches))

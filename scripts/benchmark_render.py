@@ -29,6 +29,7 @@ from torchface.synth.subjects import get_subject
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 
 def _times_ms(fn, repeats: int, frames: int) -> tuple[float, float]:
@@ -86,4 +87,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

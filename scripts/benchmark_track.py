@@ -29,7 +29,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the modules beside this script, however it is run
-from _argtypes import integer  # noqa: E402
+from _argtypes import folder_problem, integer, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = {"640x480": 1.0, "1920x1080": 2.25}
@@ -55,17 +56,20 @@ def _clips(cache: Path, count: int) -> dict[str, tuple[Path, Path]]:
     for size, scale in SIZES.items():
         W, H = (int(x) for x in size.split("x"))
         video, lm_csv = out[size]
-        writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (W, H))
         pad = (W - round(640 * scale)) // 2
-        for bgr in frames_bgr:
-            if scale != 1.0:
-                big = np.zeros((H, W, 3), np.uint8)
-                big[:, pad : W - pad] = cv2.resize(bgr, (W - 2 * pad, H), interpolation=cv2.INTER_LINEAR)
-                bgr = big
-            writer.write(bgr)
-        writer.release()
+        # each under a temporary name until whole (as the other scripts' outputs): no truncated file under its name
+        with written_whole(video) as tmp:
+            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (W, H))
+            for bgr in frames_bgr:
+                if scale != 1.0:
+                    big = np.zeros((H, W, 3), np.uint8)
+                    big[:, pad : W - pad] = cv2.resize(bgr, (W - 2 * pad, H), interpolation=cv2.INTER_LINEAR)
+                    bgr = big
+                writer.write(bgr)
+            writer.release()
         moved = np.stack([(lm[:, 0] + 0.5) * scale - 0.5 + pad, (lm[:, 1] + 0.5) * scale - 0.5], 1)
-        np.savetxt(lm_csv, moved, delimiter=",")
+        with written_whole(lm_csv) as tmp:
+            np.savetxt(tmp, moved, delimiter=",")
     return out
 
 
@@ -80,7 +84,10 @@ def _run(checkout: Path, video: Path, lm: Path, out: Path) -> tuple[float, float
     # (run in the output's folder: `python -c` puts the working folder first on sys.path, and run from a checkout it
     # imported that checkout's torchface whatever PYTHONPATH said)
     out.mkdir(parents=True, exist_ok=True)
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, cwd=out)
+    done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, cwd=out)
+    if done.returncode != 0:  # (a CalledProcessError's traceback before, under the command's own message)
+        raise SystemExit(f"benchmark_track.py: error: torchface track of {checkout} on {video.name} failed (exit "
+                         f"status {done.returncode}; its message is above)")
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -126,6 +133,8 @@ def main() -> None:
     sizes = [s for s in args.sizes.split(",") if s]
     if unknown := [s for s in sizes if s not in SIZES]:
         ap.error(f"--sizes: unknown {', '.join(unknown)} (known: {', '.join(SIZES)})")
+    if (problem := folder_problem(args.cache)) is not None:  # (mkdir's traceback once the clips were rendered)
+        ap.error(f"--cache {args.cache}: {problem}")
     if args.reference is not None and not (args.reference / "torchface" / "__init__.py").is_file():
         ap.error(f"--reference: {args.reference} is not a torchface checkout (no torchface/__init__.py)")
     clips = _clips(args.cache, args.frames)
@@ -143,6 +152,8 @@ def main() -> None:
                 order = list(runs) if r % 2 == 0 else list(runs)[::-1]
                 for k in order:
                     wall, cpu, loop = _run(runs[k], video, lm, Path(tmp) / k)
+                    # (a progress line per run: the rows came only after every run of a size, minutes of silence)
+                    print(f"  {size} {k}: run {r + 1}/{args.repeats}, {wall:.1f} s wall", file=sys.stderr, flush=True)
                     walls[k].append(wall)
                     cpus[k].append(cpu)
                     loops[k].append(loop)
@@ -158,4 +169,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from dataclasses import replace
@@ -47,7 +46,8 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
-from _argtypes import file_problem, folder_problem  # noqa: E402
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
@@ -146,14 +146,15 @@ def report(label: str, data: dict[str, np.ndarray], good: float, bad: float) -> 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--scenarios", default="all", help=f"comma list from {', '.join(SCENARIOS)} (default all)")
-    parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {VARIANTS}")
+    parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {', '.join(VARIANTS)} (default all three)")
     parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")
     parser.add_argument("--size", type=ev._parse_size, default=None, help="WxH (default 640x480)")
     parser.add_argument("--cache", default="out/sequences",
                         help="sequence cache folder (default out/sequences; 'none': in memory)")
     parser.add_argument("--good", type=float, default=2.0, help="positives: error below this (deg)")
     parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the landmark noise (evaluate.py's --seed) and of the injected errors (default 0)")
     parser.add_argument("--save", type=Path, help="write the per-frame series here (.npz)")
     args = parser.parse_args(argv)
     names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",")]
@@ -166,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
     if not variants:
         parser.error(f"--variants: none given; choose from {', '.join(VARIANTS)}")
+    if variants == ["no_illum"] and "light_switch" not in names:  # (rendered, then nothing run nor printed: exit 0)
+        parser.error("--variants no_illum runs on light_switch only, which --scenarios leaves out")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     ev.check_size_for_video(parser, args.size, args.cache, names)
@@ -189,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.size is not None:
             w, h = args.size
         t = args.frames if args.frames is not None else t
+        if variants == ["no_illum"] and name != "light_switch":  # nothing of this scenario's to run
+            continue
         seq = ev.load_sequence(name, w, h, t, cache)
         if "standard" in variants or "inject" in variants:
             out = run(name, seq, model, base, args.seed, inject="inject" in variants)
@@ -216,15 +221,11 @@ def main(argv: list[str] | None = None) -> int:
     if save is not None:
         save.parent.mkdir(parents=True, exist_ok=True)
         flat = {f"{v}/{n}/{k}": x for v, r in results.items() for n, d in r.items() for k, x in d.items()}
-        tmp = save.with_name(save.name + ".partial.npz")  # renamed when complete: no half-written file under its name
-        try:
+        with written_whole(save) as tmp:  # renamed when complete: no half-written file under its name
             np.savez(tmp, **flat)
-            os.replace(tmp, save)
-        finally:
-            tmp.unlink(missing_ok=True)
         print(f"wrote {save}")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

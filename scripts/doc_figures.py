@@ -55,10 +55,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -75,10 +75,13 @@ from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
 
 D = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
-ASSETS = Path(os.environ.get("TORCHFACE_ASSETS") or ROOT.parent / "shared" / "assets")
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
+from _argtypes import assets_folder, folder_problem, frame_size, integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
+ASSETS = assets_folder()
 GRID = ASSETS / "grid"
 ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
 
 
 def _render(cam: Intrinsics, rotation: torch.Tensor, translation: torch.Tensor, seed: int,
@@ -367,13 +370,11 @@ def _numbers(text: str) -> list[float]:
 
 
 def _sizes(text: str) -> list[tuple[int, int]]:
+    """An argparse type: a comma list of frame sizes (:func:`_argtypes.frame_size`'s ``WxH``)."""
     try:
-        sizes = [tuple(int(v) for v in item.split("x")) for item in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...], got {text!r}") from None
-    if any(len(s) != 2 or min(s) < 8 for s in sizes):
-        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...] of at least 8x8, got {text!r}")
-    return sizes  # type: ignore[return-value]
+        return [frame_size(item) for item in text.split(",")]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"sizes must be WxH[,WxH...] of at least 8x8, got {text!r}") from None
 
 
 def _widths(text: str) -> list[float]:
@@ -386,7 +387,34 @@ def _widths(text: str) -> list[float]:
     return widths
 
 
+def _names(allowed: tuple[str, ...]) -> Callable[[str], list[str]]:
+    """An argparse type: a comma list of names from ``allowed`` (a bad one ended the run with a traceback, after the
+    rows before it had been measured)."""
+
+    def parse(text: str) -> list[str]:
+        names = [v.strip() for v in text.split(",")]
+        if bad := [v for v in names if v not in allowed]:
+            raise argparse.ArgumentTypeError(f"{', '.join(map(repr, bad))}: choose from {', '.join(allowed)}")
+        return names
+
+    return parse
+
+
+def _positive(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
+    from torchface.model.mesh_loader import ICT_AREAS
+    from torchface.synth.subjects import PHOTOS
+
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     sub = parser.add_subparsers(dest="figure", required=True)
     p = sub.add_parser("face-width", help="rotation error against the face's width (min_face_width_px)")
@@ -397,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("small-frames", help="recovery of a face back in a small frame (docs/limitations.md: Small frames)")
     sizes = "96x72,112x84,128x96,144x108,160x120,176x132,224x168,320x240"
     p.add_argument("--sizes", type=_sizes, default=_sizes(sizes), help="frame sizes WxH, comma separated")
-    p.add_argument("--photos", default="james,astronaut", type=lambda s: s.split(","), help="face textures")
+    p.add_argument("--photos", default="james,astronaut", type=_names(PHOTOS), help="face textures")
     p.add_argument("--frames", type=int, default=20, help="frames of the clip (8 before the return)")
     p.add_argument("--oracle", action="store_true", help="with a detector: the renderer's landmarks")
     p.set_defaults(run=small_frames)
@@ -409,14 +437,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
     p.set_defaults(run=grid_pan)
     p = sub.add_parser("hard-cuts", help="a video cut to the face elsewhere (docs/limitations.md: Hard cuts)")
-    p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(320, 240), help="frame size WxH")
+    p.add_argument("--size", type=frame_size, default=(320, 240), help="frame size WxH")
     p.add_argument("--dx", type=_numbers, default=_numbers("8,20,45"), help="jumps across, mm, comma separated")
     p.add_argument("--dz", type=_numbers, default=_numbers("0,-60,100"), help="jumps in depth, mm")
     p.add_argument("--dyaw", type=_numbers, default=_numbers("0,12,-30"), help="turns at the cut, degrees")
     p.add_argument("--photo", default="james", choices=("james", "astronaut"), help="clip B's face texture")
     p.add_argument("--frames", type=int, default=10, help="frames of clip B")
-    p.add_argument("--max-error", type=float, default=2.0, help="a frame further off is wrong, degrees")
-    p.add_argument("--restart-after-unmatched", type=int, default=0,
+    p.add_argument("--max-error", type=_positive, default=2.0, help="a frame further off is wrong, degrees")
+    p.add_argument("--restart-after-unmatched", type=integer(0), default=0,
                    help="TemplateConfig.restart_after_unmatched (0: off, the default)")
     p.set_defaults(run=hard_cuts)
     p = sub.add_parser("lid-fit", help="the eyelids' error after the first frame's landmark fit (docs/limitations.md: Eyes closed)")
@@ -426,10 +454,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="evaluate.py's render cache folder; 'none' renders in memory")
     p.set_defaults(run=lid_fit)
     p = sub.add_parser("other-models", help="CANDIDE-3 and the ICT Face Model's areas (docs/python-api.md: Other face models)")
-    p.add_argument("--size", type=lambda t: _sizes(t)[0], default=(640, 480), help="frame size WxH")
+    p.add_argument("--size", type=frame_size, default=(640, 480), help="frame size WxH")
     p.add_argument("--frames", type=int, default=80, help="frames per scenario")
     p.add_argument("--runs", type=int, default=3, help="runs per row; the fastest is reported")
-    p.add_argument("--areas", default="narrow_eyes,narrow,face,head", type=lambda s: s.split(","),
+    p.add_argument("--areas", default="narrow_eyes,narrow,face,head", type=_names(tuple(ICT_AREAS)),
                    help="load_ict_face_model areas, comma separated")  # fmt: skip
     p.add_argument("--video", action="store_true", help="track the frames rounded to 8 bits")
     p.add_argument("--no-expression", action="store_true", help="TrackerConfig(use_expression=False)")
@@ -441,16 +469,21 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("clips", "frames", "draws", "runs"):
         if getattr(args, name, 1) < 1:
             parser.error(f"--{name} must be >= 1")
-    if args.figure == "other-models" and args.frames < 2:
-        parser.error("--frames must be >= 2 (the steps after the first frame are timed)")
+    if args.figure in ("other-models", "face-width") and args.frames < 2:  # (face-width: a traceback before)
+        parser.error("--frames must be >= 2 (the frames after the first are tracked and measured)")
     if args.figure == "small-frames" and args.frames < 10:
         parser.error("--frames must be >= 10 (8 before the face's return)")
+    # (each a traceback before, most after some rows had been measured)
     if args.figure == "grid-pan" and not (args.grid / f"{args.clip}.mpg").is_file():
-        parser.error(f"no GRID clip {args.clip}.mpg in {args.grid}")
+        parser.error(f"no GRID clip {args.clip}.mpg in {args.grid} (--grid, or TORCHFACE_ASSETS's grid folder)")
+    if args.figure == "grid-pan" and not (args.landmarks_dir / f"{args.clip}.csv").is_file():
+        parser.error(f"--landmarks-dir {args.landmarks_dir}: no {args.clip}.csv (the clip's first-frame landmarks)")
+    if args.figure == "lid-fit" and args.cache != "none" and (problem := folder_problem(Path(args.cache))):
+        parser.error(f"--cache {args.cache}: {problem}")
     torch.set_num_threads(1)
     args.run(args)
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

@@ -67,6 +67,7 @@ import math
 import sys
 import tempfile
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -100,7 +101,16 @@ from torchface.tracker.smoothing import SmoothingConfig, reanchored_streams, smo
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import device_problem, file_problem, folder_problem, smoothing_settings  # noqa: E402
+from _argtypes import (  # noqa: E402
+    device_problem,
+    file_problem,
+    folder_problem,
+    frame_size,
+    integer,
+    run_command,
+    smoothing_settings,
+    written_whole,
+)
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
@@ -720,25 +730,30 @@ def save_series(path: Path, series: list[FrameSeries]) -> None:
         for f in _SERIES_FIELDS:
             arrays[f"{i}/{f}"] = getattr(s, f).numpy()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial.npz")
-    try:
+    with written_whole(path) as tmp:
         np.savez_compressed(tmp, **arrays)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def load_series(path: Path) -> list[FrameSeries]:
-    """Read what :func:`save_series` wrote."""
-    with np.load(path) as z:
-        count = len({k.split("/")[0] for k in z.files})
-        out = []
-        for i in range(count):
-            scenario, config, default = (str(x) for x in z[f"{i}/name"])
-            fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
-            ms, width, height = (float(x) for x in z[f"{i}/meta"])
-            out.append(FrameSeries(scenario, config, default == "default", **fields, ms_per_frame=ms, width=int(width),
-                                   height=int(height)))  # fmt: skip
+    """Read what :func:`save_series` wrote.
+
+    Raises:
+        ValueError: ``path`` is not such a file (another file, a truncated one), naming it.
+    """
+    try:
+        with np.load(path) as z:
+            count = len({k.split("/")[0] for k in z.files})
+            out = []
+            for i in range(count):
+                scenario, config, default = (str(x) for x in z[f"{i}/name"])
+                fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
+                ms, width, height = (float(x) for x in z[f"{i}/meta"])
+                out.append(FrameSeries(scenario, config, default == "default", **fields, ms_per_frame=ms,
+                                       width=int(width), height=int(height)))  # fmt: skip
+    except (OSError, ValueError, KeyError, EOFError, TypeError, AttributeError, zipfile.BadZipFile) as exc:
+        # (np.load's traceback: a text file, a truncated .npz, an .npy (no .files), another .npz (a missing key))
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(f"{path}: not a file of --save-series ({type(exc).__name__}: {why[:200]})") from None
     return out
 
 
@@ -817,14 +832,9 @@ def _why_no_auroc(row: dict) -> str:
     return f"n/a (no frame below {GOOD_DEG:g} deg)"
 
 
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 640x480), got {text!r}") from None
-    if w < 8 or h < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
-    return w, h  # an odd side is refused in main where a video is written (the cache, the long scenarios)
+#: ``--size``'s type (:func:`_argtypes.frame_size`); an odd side is refused in main where a video is written (the
+#: cache, the long scenarios).
+_parse_size = frame_size
 
 
 def check_size_for_video(
@@ -892,7 +902,9 @@ def main(argv: list[str] | None = None) -> int:
         " truth from the cache) and all of them are pooled into section (b)",
     )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
-    parser.add_argument("--json", type=Path, help="write {scenario[/ablation or config]: {metric: value}} here")
+    parser.add_argument("--json", type=Path,
+                        help="write {scenario[/ablation or config]: {metric: value}} here when the run completes (the "
+                        "figures so far are in JSON.partial while it runs, and after a failed or interrupted run)")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise (default 0)")
@@ -974,9 +986,11 @@ def main(argv: list[str] | None = None) -> int:
         "each standard scenario's full run gets a row per setting, its pose smoothed offline "
         "(torchface.tracker.smoothing)",
     )
-    parser.add_argument("--progress-every", type=int, default=20, help="progress line every N frames (0: none)")
+    # (a negative N was taken: every |N| frames)
+    parser.add_argument("--progress-every", type=integer(0), default=20, help="progress line every N frames (0: none)")
     parser.add_argument(
-        "--long-progress-every", type=int, default=250, help="progress line every N frames of a long run (0: none)"
+        "--long-progress-every", type=integer(0), default=250,
+        help="progress line every N frames of a long run (0: none)",
     )
     args = parser.parse_args(argv)
 
@@ -1073,7 +1087,10 @@ def main(argv: list[str] | None = None) -> int:
         if item:
             if not Path(item).is_file():
                 parser.error(f"--add-series: no file {item}")
-            earlier += load_series(Path(item))
+            try:
+                earlier += load_series(Path(item))
+            except ValueError as exc:
+                parser.error(f"--add-series: {exc}")
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
@@ -1096,6 +1113,12 @@ def main(argv: list[str] | None = None) -> int:
     series: list[FrameSeries] = []
     tables: list[str] = []
 
+    def save_progress() -> None:
+        """The figures so far to ``<--json>.partial`` (the last write, of every figure, renames that file to the
+        --json path: a failed or interrupted run leaves no file there that looks like a whole run's figures)."""
+        if args.json is not None:
+            write_json(args.json.with_name(args.json.name + ".partial"), results)
+
     def rerun_full(
         seq: Sequence, size: tuple[int, int, int], rows: dict[str, dict[str, float]],
         variants: list[tuple[str, str, TrackerConfig, Tensor, bool]],
@@ -1114,8 +1137,7 @@ def main(argv: list[str] | None = None) -> int:
             m = score(model, seq.gt, out).as_dict()
             m.update(ms_per_frame=out.ms_per_frame, init_ms=out.init_ms, width=w, height=h, num_frames=t)
             by[row] = results[label] = m
-            if args.json is not None:
-                write_json(args.json, results)
+            save_progress()
         return by
 
     with contextlib.ExitStack() as stack:
@@ -1146,8 +1168,7 @@ def main(argv: list[str] | None = None) -> int:
                         f"{_fmt(m.rot_err_mean_deg)} max {_fmt(m.rot_err_max_deg)} deg in view, lost {m.lost_frames}, "
                         f"recoveries {[r.frames_to_recover for r in m.recoveries]}, {out.ms_per_frame:.0f} ms/frame"
                     )
-                    if args.json is not None:
-                        write_json(args.json, results)
+                    save_progress()
                 info = f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"
                 tables.append(long_table(name, info, gt, runs, args.hold))
                 print(tables[-1] + "\n", flush=True)
@@ -1169,8 +1190,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{label}: rot err mean {_fmt(m['rot_err_mean_deg'])} max {_fmt(m['rot_err_max_deg'])} deg, "
                     f"lost {m['lost_frames']}, AU rmse {_fmt(m['au_rmse'], 3)}, {out.ms_per_frame:.0f} ms/frame"
                 )
-                if args.json is not None:
-                    write_json(args.json, results)
+                save_progress()
                 if abl == "full":  # the same run's pose smoothed over time, per setting (offline: no tracking)
                     for label_s, config_s in smoothing:
                         m = score(model, seq.gt, smoothed_run(out, seq.gt.fps, config_s)).as_dict()
@@ -1184,8 +1204,7 @@ def main(argv: list[str] | None = None) -> int:
                         "or no face found)")
                 else:
                     rows["mediapipe"] = results[f"{name}/mediapipe"] = mp_figures
-                    if args.json is not None:
-                        write_json(args.json, results)
+                    save_progress()
             tables.append(table(name, rows, f"{w}x{h}, {t} frames, init noise {LANDMARK_NOISE_PX:g} px"))
             print(tables[-1] + "\n", flush=True)
             # The full configuration again per landmark-noise seed, then per draw of the template points.
@@ -1218,4 +1237,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

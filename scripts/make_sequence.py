@@ -33,6 +33,7 @@ from torchface.synth.sequence import write_sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import folder_problem  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,4 +92,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

@@ -25,7 +25,8 @@ from torchface.synth.io import frames_to_uint8, iter_video_uint8
 from torchface.synth.sequence import load_ground_truth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import folder_problem  # noqa: E402
+from _argtypes import folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 # iBUG-68 polylines: (start, end, closed).
 _GROUPS = ((0, 17, False), (17, 22, False), (22, 27, False), (27, 31, False), (31, 36, False),
@@ -55,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("video", type=Path, help="a video written by make_sequence.py (its .gt.npz beside it)")
     parser.add_argument("--frames", type=int, nargs="*", help="frame indices (default: 0, middle, extremes)")
     parser.add_argument("--scale", type=int, default=0, help="upscaling factor (default: to about 640 px wide)")
-    parser.add_argument("--out", type=Path, default=Path("out/overlay"))
+    parser.add_argument("--out", type=Path, default=Path("out/overlay"),
+                        help="folder of the PNGs, <name>_<frame>.png (default out/overlay)")
     args = parser.parse_args(argv)
     if args.scale < 0:
         parser.error(f"--scale must be >= 1 (or 0 for about 640 px wide), got {args.scale}")
@@ -90,11 +92,12 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{gt.name} #{i} ypr=({ypr[0]:.0f},{ypr[1]:.0f},{ypr[2]:.0f})"
         cv2.putText(out, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         path = args.out / f"{gt.name}_{i:04d}.png"
-        if not cv2.imwrite(str(path), out):
-            raise SystemExit(f"overlay_landmarks.py: error: cannot write {path}")
+        with written_whole(path) as tmp:  # (an interrupted write left a truncated PNG under its name)
+            if not cv2.imwrite(str(tmp), out):
+                raise SystemExit(f"overlay_landmarks.py: error: cannot write {path}")
         print(f"  wrote {path} ({int(gt.landmarks_visible[i].sum())}/68 landmarks visible)")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

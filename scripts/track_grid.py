@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Track the GRID talking-head clips (../shared/assets/grid) as one batch and report per clip.
+"""Track the GRID talking-head clips (the shared assets' grid folder) as one batch and report per clip.
 
 Per clip: fraction of successful frames, mean confidence, the pose's jitter (with no ground truth, the
 frame-to-frame noise of the pose itself, which also counts the head's own small motion:
@@ -40,11 +40,18 @@ from torchface.synth.metrics import rotation_jitter_deg
 from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import smoothing_settings  # noqa: E402
+from _argtypes import assets_folder, folder_problem, smoothing_settings, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
 _ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+
+
+def _cell(value: float, width: int, digits: int = 3) -> str:
+    """A table cell: ``value`` to ``digits`` decimals, or ``-`` where there is none (NaN: a clip too short to
+    measure), right-aligned in ``width`` characters (a bare "nan" stood in the table before)."""
+    return f"{'-' if not np.isfinite(value) else f'{value:.{digits}f}':>{width}}"
 
 
 def pose_jitter_deg(rotations: np.ndarray) -> float:
@@ -69,12 +76,13 @@ def smoothed_rotations(cols: tuple[str, ...], rows: np.ndarray, config: Smoothin
     return smooth[0].numpy()
 
 
-GRID = Path(__file__).resolve().parents[2] / "shared" / "assets" / "grid"
+GRID = assets_folder() / "grid"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    parser.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips")
+    parser.add_argument("--grid", type=Path, default=GRID,
+                        help="folder of GRID .mpg clips (default: TORCHFACE_ASSETS/grid, else ../shared/assets/grid)")
     parser.add_argument("--landmarks-dir", type=Path, default=None, help="folder of <stem>.csv first-frame landmarks")
     parser.add_argument("--detector", default=None, help="detector name when no landmarks folder is given")
     parser.add_argument("--out", type=Path, default=Path("out/grid"), help="output folder")
@@ -91,9 +99,8 @@ def main(argv: list[str] | None = None) -> int:
         smoothing = smoothing_settings(args.smoothing)
     except ValueError as exc:
         parser.error(str(exc))
-    if not args.grid.is_dir():
-        print(f"no GRID clips at {args.grid}", file=sys.stderr)
-        return 2
+    if not args.grid.is_dir():  # (a bare line without the usage's form before)
+        parser.error(f"--grid {args.grid}: no such folder (the GRID clips: --grid, or TORCHFACE_ASSETS)")
     clips = sorted(args.grid.glob("*.mpg"))
     if not clips:
         parser.error(f"--grid {args.grid}: no .mpg clips there")
@@ -103,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --landmarks-dir (first-frame landmarks <stem>.csv) or --detector NAME")
     if args.landmarks_dir is not None and not args.landmarks_dir.is_dir():
         parser.error(f"--landmarks-dir {args.landmarks_dir}: no such folder")
+    if (problem := folder_problem(args.out)) is not None:
+        parser.error(f"--out {args.out}: {problem}")
     check_python(parser, args.mediapipe_python)
     landmarks = tuple(args.landmarks_dir / f"{c.stem}.csv" for c in clips) if args.landmarks_dir else ()
     config = JobConfig(out_dir=args.out, landmarks=landmarks, detector=args.detector)
@@ -114,9 +123,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     wall = time.perf_counter() - start
     table = []
-    peer = "  mp jitter" if args.mediapipe_python else ""
+    peer = f" {'mp jitter deg':>13}" if args.mediapipe_python else ""
     peer += "".join(f" {label.removeprefix('smooth '):>14}" for label, _ in smoothing)
-    print(f"\n{'clip':<16} {'frames':>6} {'success':>8} {'mean conf':>9} {'min conf':>8} {'jitter':>7} {'fps':>6}{peer}")
+    # (the units in the header: "jitter" alone left degrees or radians to guess)
+    print(f"\n{'clip':<16} {'frames':>6} {'success':>8} {'mean conf':>9} {'min conf':>8} {'jitter deg':>10} "
+          f"{'frames/s':>8}{peer}")
     for s, clip in zip(summaries, clips):
         cols, rows = read_track_csv(output_paths(args.out, s.name)["csv"])
         ok = rows[:, cols.index("success")]
@@ -129,11 +140,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.mediapipe_python:
             run = run_mediapipe(read_video_uint8(clip).permute(0, 2, 3, 1).numpy(), args.mediapipe_python, poses=True)
             if run is None or run.frames_with_face == 0:  # not installed there, or no face to score
-                extra = f"{'-':>11}"
+                extra = f" {'-':>13}"
             else:
                 row["mediapipe_jitter_deg"] = pose_jitter_deg(opencv_rotations(run.matrices)[0])
                 row["mediapipe_frames_with_face"] = run.frames_with_face
-                extra = f"{row['mediapipe_jitter_deg']:>11.3f}"
+                extra = f" {_cell(row['mediapipe_jitter_deg'], 13)}"
         at = json.loads(output_paths(args.out, s.name)["json"].read_text(encoding="utf-8"))["start"][
             "reanchored_at_frame"] if smoothing else None  # fmt: skip
         for label, config_s in smoothing:  # the smoothed pose's jitter / how far it strays from the raw pose
@@ -141,10 +152,10 @@ def main(argv: list[str] | None = None) -> int:
             row[f"{label}/jitter_deg"] = pose_jitter_deg(smooth) if smooth is not None else float("nan")
             row[f"{label}/from_raw_deg"] = float(geodesic_angle_deg(
                 torch.from_numpy(smooth), torch.from_numpy(rotations)).mean()) if smooth is not None else float("nan")
-            extra += f" {row[f'{label}/jitter_deg']:>6.3f} / {row[f'{label}/from_raw_deg']:.3f}"
+            extra += f" {_cell(row[f'{label}/jitter_deg'], 6)} / {_cell(row[f'{label}/from_raw_deg'], 5)}"
         table.append(row)
-        print(f"{s.name:<16} {s.frames:>6} {ok.mean():>8.3f} {conf.mean():>9.3f} {conf.min():>8.3f} {jitter:>7.3f} "
-              f"{s.fps:>6.2f}{extra}")
+        print(f"{s.name:<16} {s.frames:>6} {ok.mean():>8.3f} {conf.mean():>9.3f} {conf.min():>8.3f} {_cell(jitter, 10)} "
+              f"{s.fps:>8.2f}{extra}")
         cap = cv2.VideoCapture(str(output_paths(args.out, s.name)["overlay"]))
         images, i = [], 0
         while True:
@@ -155,17 +166,19 @@ def main(argv: list[str] | None = None) -> int:
                 images.append(img)
             i += 1
         cap.release()
-        if images:
-            cv2.imwrite(str(args.out / f"{s.name}_frames.png"), np.hstack(images))
+        if images:  # (written straight under its name before, and a failed write went without a word)
+            with written_whole(args.out / f"{s.name}_frames.png") as tmp:
+                if not cv2.imwrite(str(tmp), np.hstack(images)):
+                    raise SystemExit(f"track_grid.py: error: cannot write {args.out / f'{s.name}_frames.png'}")
     jitters = [r["jitter_deg"] for r in table if np.isfinite(r["jitter_deg"])]
     peers_jitter = [r["mediapipe_jitter_deg"] for r in table if "mediapipe_jitter_deg" in r]
-    print(f"mean jitter over the clips: {np.mean(jitters) if jitters else float('nan'):.3f} deg" +
+    print(f"mean jitter over the clips: {_cell(np.mean(jitters) if jitters else float('nan'), 0)} deg" +
           (f" (MediaPipe, {len(peers_jitter)} clips: {np.mean(peers_jitter):.3f} deg)" if peers_jitter else ""))
     for label, _ in smoothing:
         values = [r[f"{label}/jitter_deg"] for r in table if np.isfinite(r[f"{label}/jitter_deg"])]
         strays = [r[f"{label}/from_raw_deg"] for r in table if np.isfinite(r[f"{label}/from_raw_deg"])]
-        print(f"  {label}: mean jitter {np.mean(values) if values else float('nan'):.3f} deg, the smoothed pose "
-              f"{np.mean(strays) if strays else float('nan'):.3f} deg from the raw one on average "
+        print(f"  {label}: mean jitter {_cell(np.mean(values) if values else float('nan'), 0)} deg, the smoothed pose "
+              f"{_cell(np.mean(strays) if strays else float('nan'), 0)} deg from the raw one on average "
               "(each smoothed column: jitter / from raw, deg)")
     total = sum(s.frames for s in summaries)
     print(f"all {len(summaries)} clips: {total} frames in {wall:.1f} s wall ({total / wall:.2f} frames/s overall, batched)")
@@ -174,4 +187,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command(main)

@@ -45,7 +45,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import re
 import shutil
 import sys
@@ -76,7 +75,8 @@ from torchface.synth.subjects import Subject, candide_subject
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem, folder_problem  # noqa: E402
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -438,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("out/expression"), help="working folder (videos, cache)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the identities, clips and CNN initialisations (default 0)")
     p.add_argument("--json", type=Path, default=None, help="write the figures here")
     p.add_argument("--quick", action="store_true", help="a tiny run for a smoke test")
     p.add_argument("--crop-single", action="store_true", help="also train on the labelled crop alone (slower)")
@@ -509,13 +510,12 @@ def main(argv: list[str] | None = None) -> int:
         f"mean confidence {float(faces2['confidence'].mean()):.2f}, yaw error median {float(yaw_err.median()):.1f} deg, "
         f"p90 {float(yaw_err.quantile(0.9)):.1f} deg")  # fmt: skip
 
-    saved = args.out / "faces.pt"  # the classifiers' inputs, for inspection
-    torch.save(
-        {"reference": faces2["reference"], "face": faces2["face"], "mask": faces2["mask"],
-         "crops": torch.from_numpy(crops), "labels": labels, "persons": [c.person for c in clips]},
-        saved.with_name(saved.name + ".partial"),
-    )  # fmt: skip
-    os.replace(saved.with_name(saved.name + ".partial"), saved)
+    with written_whole(args.out / "faces.pt") as tmp:  # the classifiers' inputs, for inspection
+        torch.save(
+            {"reference": faces2["reference"], "face": faces2["face"], "mask": faces2["mask"],
+             "crops": torch.from_numpy(crops), "labels": labels, "persons": [c.person for c in clips]},
+            tmp,
+        )  # fmt: skip
 
     # 5. train and test, leave one person out
     t0 = time.perf_counter()
@@ -581,15 +581,10 @@ def main(argv: list[str] | None = None) -> int:
                          "yaw_error_median_deg": float(yaw_err.median())},
             "times_s": times,
         }  # fmt: skip
-        tmp = args.json.with_name(args.json.name + ".partial")
-        try:
+        with written_whole(args.json) as tmp:
             tmp.write_text(json.dumps(figures, indent=1) + "\n")
-            os.replace(tmp, args.json)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command(main)

@@ -4,9 +4,12 @@ folders' own helper modules are imported (tests/training_hooks/th_data.py, tests
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import struct
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import cv2
 import numpy as np
@@ -25,6 +28,21 @@ D = torch.float64
 #: shipped), or where ``TORCHFACE_ASSETS`` says. Tests that need them skip without them.
 ASSETS = Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets")
 ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
+
+
+#: The command-line scripts (scripts/ of the checkout).
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load_script(name: str) -> ModuleType:
+    """scripts/``name``.py imported afresh as module ``name`` (its module-level defaults, e.g. the assets folder,
+    read from the environment now), for a test to call its ``main`` or functions."""
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up by name
+    spec.loader.exec_module(module)
+    return module
 
 
 def sideways_clip(w: int, h: int, n: int = 3) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,0 +1,320 @@
+"""The scripts of scripts/ as a scripted evaluation runs them: a user's mistake is a one-line error (argparse's exit
+2) before any work, an interrupted run leaves no output under its final name, and ``TORCHFACE_ASSETS`` is where the
+scripts look for the shared assets."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+from _helpers import SCRIPTS  # noqa: E402
+from _helpers import load_script as _load  # noqa: E402
+
+
+def _usage_error(main, argv, capsys) -> str:
+    """``main(argv)``'s one-line usage error (argparse's exit 2): its last stderr line."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "Traceback" not in err, (argv, err)
+    return err.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["small-frames", "--photos", "james,nosuch"], "'nosuch': choose from james, astronaut"),
+    (["other-models", "--areas", "face,nosuch"], "'nosuch': choose from head, face, narrow, narrow_eyes"),
+    (["face-width", "--frames", "1"], "--frames must be >= 2"),
+    (["hard-cuts", "--restart-after-unmatched", "-1"], "must be an integer >= 0"),
+    (["hard-cuts", "--max-error", "nan"], "must be a number > 0"),
+    (["hard-cuts", "--size", "320x240,640x480"], "size must be WxH"),  # (ran at the first size, the rest unread)
+    (["grid-pan", "--grid", str(SCRIPTS / "data"), "--clip", "x"], "no GRID clip x.mpg"),
+])  # fmt: skip
+def test_doc_figures_refuses_bad_arguments_before_any_work(argv, message, capsys, monkeypatch):
+    """Each was a traceback (a bad --photos / --areas name, --frames 1, a negative --restart-after-unmatched) after
+    the rows before it had been measured, a run that measured nothing (--max-error nan), or one at the first of two
+    sizes given to --size."""
+    figures = _load("doc_figures")
+    monkeypatch.setattr(figures, "render_sequence", None)  # any rendering would fail the test: none may start
+    assert message in _usage_error(figures.main, argv, capsys)
+
+
+def test_doc_figures_checks_grid_pans_landmarks_and_lid_fits_cache(tmp_path, capsys):
+    figures = _load("doc_figures")
+    (tmp_path / "c1.mpg").write_bytes(b"")
+    argv = ["grid-pan", "--grid", str(tmp_path), "--clip", "c1", "--landmarks-dir", str(tmp_path)]
+    assert f"--landmarks-dir {tmp_path}: no c1.csv" in _usage_error(figures.main, argv, capsys)
+    (tmp_path / "file").write_text("")
+    argv = ["lid-fit", "--cache", str(tmp_path / "file"), "--size", "small"]
+    assert "--cache" in _usage_error(figures.main, argv, capsys)
+
+
+def test_scripts_find_the_shared_assets_where_torchface_assets_says(tmp_path, capsys, monkeypatch):
+    """track_grid.py and build_synth_data.py read only ../shared/assets beside the repository (doc_figures.py and the
+    tests honoured ``TORCHFACE_ASSETS``): a set variable was ignored. Pointing nowhere, each says so in one line."""
+    monkeypatch.setenv("TORCHFACE_ASSETS", str(tmp_path / "nowhere"))
+    grid = _load("track_grid")
+    assert grid.GRID == tmp_path / "nowhere" / "grid"
+    message = _usage_error(grid.main, ["--detector", "dlib", "--out", str(tmp_path / "o")], capsys)
+    assert f"--grid {tmp_path / 'nowhere' / 'grid'}: no such folder" in message
+    build = _load("build_synth_data")
+    with pytest.raises(SystemExit, match=f"build_synth_data.py: error: no James assets at {tmp_path / 'nowhere'}"):
+        build.main([])
+    assert _load("doc_figures").ICT_NPZ.is_relative_to(tmp_path / "nowhere")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "clip.mpg").write_bytes(b"")
+    (tmp_path / "file").write_text("")
+    argv = ["--grid", str(tmp_path / "g"), "--detector", "dlib", "--out", str(tmp_path / "file")]
+    assert f"--out {tmp_path / 'file'}: not a folder path" in _usage_error(grid.main, argv, capsys)
+
+
+def test_evaluate_json_appears_only_when_the_run_completes(tmp_path, monkeypatch):
+    """--json was rewritten after every run: an interrupted (or failed) evaluation left a file under the --json name
+    that held some scenarios and no section (b), as a whole run's would. Now the figures so far go to
+    ``<json>.partial`` and the --json file appears, whole, at the end (the .partial renamed onto it)."""
+    import json
+
+    evaluate = _load("evaluate")
+    out = tmp_path / "eval.json"
+    argv = ["--scenarios", "expressions,pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none",
+            "--ablations", "none", "--threads", "1", "--json", str(out)]  # fmt: skip
+    load, calls = evaluate.load_sequence, []
+
+    def interrupted(*a, **k):
+        calls.append(a[0])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return load(*a, **k)
+
+    monkeypatch.setattr(evaluate, "load_sequence", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.main(argv)
+    partial = tmp_path / "eval.json.partial"
+    assert not out.exists() and list(json.loads(partial.read_text())) == ["expressions"]
+    monkeypatch.setattr(evaluate, "load_sequence", load)
+    assert evaluate.main(argv) == 0
+    figures = json.loads(out.read_text())
+    assert not partial.exists() and {"expressions", "pose_sweep"} <= set(figures)
+    assert any(k.startswith("auroc/") for k in figures)
+
+
+def test_evaluate_add_series_refuses_a_file_that_is_not_a_series_in_one_line(tmp_path, capsys):
+    """``--add-series`` of another file (a text file, an .npy, another .npz, a truncated one) was np.load's
+    traceback."""
+    import numpy as np
+
+    evaluate = _load("evaluate")
+    (tmp_path / "a.txt").write_text("not a series\n")
+    np.save(tmp_path / "b.npy", np.zeros(3))
+    np.savez(tmp_path / "c.npz", x=np.zeros(3))
+    (tmp_path / "d.npz").write_bytes((tmp_path / "c.npz").read_bytes()[:40])
+    for name in ("a.txt", "b.npy", "c.npz", "d.npz"):
+        argv = ["--scenarios", "none", "--add-series", str(tmp_path / name)]
+        assert f"--add-series: {tmp_path / name}: not a file of --save-series" in _usage_error(evaluate.main, argv,
+                                                                                               capsys)  # fmt: skip
+    for option in ("--progress-every", "--long-progress-every"):  # (taken before: a line every |N| frames)
+        argv = ["--scenarios", "expressions", "--frames", "3", "--size", "64x48", "--cache", "none", "--ablations",
+                "none", "--no-auroc", "--threads", "1", option, "-5"]  # fmt: skip
+        assert f"argument {option}: must be an integer >= 0" in _usage_error(evaluate.main, argv, capsys)
+
+
+def test_benchmark_cache_files_are_written_whole(tmp_path, monkeypatch):
+    """benchmark.py saved its frame cache (.pt) and MediaPipe's frames (.npy) straight under the names it reuses:
+    an interrupted save left a truncated file there, torch.load's traceback (or MediaPipe "not installed") on every
+    later run. Now each is written under a temporary name and renamed when whole."""
+    import argparse
+
+    import numpy as np
+    import torch
+
+    import torchface.synth.sequence as sequence
+
+    bench = _load("benchmark")
+    frames = torch.rand(6, 3, 8, 8)
+    monkeypatch.setattr(sequence, "render_sequence", lambda spec: (frames, argparse.Namespace(
+        landmarks_px=torch.zeros(6, 68, 2), intrinsics=None)))  # fmt: skip
+    real_save = torch.save
+
+    def interrupted_save(obj, f, *a, **k):
+        Path(f).write_bytes(b"PK\x03\x04 half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", interrupted_save)
+    with pytest.raises(KeyboardInterrupt):
+        bench._frames(tmp_path, 8, 8, 4)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(torch, "save", real_save)
+    got, _, _ = bench._frames(tmp_path, 8, 8, 4)
+    assert torch.equal(got, frames[:4]) and [p.name for p in tmp_path.iterdir()] == ["bench_pose_sweep_8x8_4.pt"]
+    assert torch.equal(bench._frames(tmp_path, 8, 8, 4)[0], frames[:4])  # from the cache
+
+    def interrupted_npy(file, arr, *a, **k):
+        Path(file).write_bytes(b"\x93NUMPY half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "save", interrupted_npy)
+    args = argparse.Namespace(cache=str(tmp_path), width=8, height=8, frames=4, mediapipe_python=None)
+    with pytest.raises(KeyboardInterrupt):
+        bench._mediapipe(args)
+    assert [p.name for p in tmp_path.iterdir()] == ["bench_pose_sweep_8x8_4.pt"]
+
+
+def test_benchmark_track_checks_its_cache_folder_before_rendering(tmp_path, capsys, monkeypatch):
+    """--cache under a file was mkdir's traceback once the clips had been rendered."""
+    track = _load("benchmark_track")
+    monkeypatch.setattr(track, "_clips", lambda *a: (_ for _ in ()).throw(AssertionError("rendering")))
+    (tmp_path / "file").write_text("")
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--cache", str(tmp_path / "file" / "c")])
+    message = _usage_error(lambda argv: track.main(), [], capsys)
+    assert f"--cache {tmp_path / 'file' / 'c'}: not a folder path" in message
+
+
+def test_confidence_auroc_refuses_variants_that_run_nothing(capsys, monkeypatch):
+    """``--variants no_illum`` without light_switch rendered the scenarios, then printed nothing and exited 0."""
+    auroc = _load("confidence_auroc")
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(AssertionError("the run started")))
+    argv = ["--variants", "no_illum", "--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none"]
+    assert "no_illum runs on light_switch only" in _usage_error(auroc.main, argv, capsys)
+
+
+def test_track_grid_table_gives_units_and_no_bare_nan(tmp_path, capsys, monkeypatch):
+    """track_grid.py's table headed its pose jitter "jitter" (degrees? radians?) and printed "nan" for a clip too
+    short to measure (under three frames) and for the mean over no measured clip."""
+    import types
+
+    import numpy as np
+
+    grid = _load("track_grid")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "c1.mpg").write_bytes(b"")
+    (tmp_path / "o").mkdir()
+    cols = ("frame", "timestamp", "success", "confidence", *grid._ROTATION_COLUMNS)
+    rows = np.array([[t, t / 25, 1.0, 0.9, *np.eye(3).ravel()] for t in range(2)])
+    monkeypatch.setattr(grid, "track_videos", lambda *a, **k: [types.SimpleNamespace(name="c1", frames=2, fps=30.0)])
+    monkeypatch.setattr(grid, "read_track_csv", lambda path: (cols, rows))
+    assert grid.main(["--grid", str(tmp_path / "g"), "--detector", "dlib", "--out", str(tmp_path / "o")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header = next(line for line in lines if line.startswith("clip"))
+    assert "jitter deg" in header and "frames/s" in header
+    assert "nan" not in "\n".join(lines)
+    (row,) = [line for line in lines if line.startswith("c1")]
+    assert row.split()[5] == "-"
+
+
+def test_every_script_option_has_help():
+    """``--help`` is how a user learns a script: options without a help string showed a bare name
+    (benchmark_raster.py --dtype, confidence_auroc.py --seed, overlay_landmarks.py --out, train_expression.py
+    --seed). Every script's parser is built by its ``--help`` run, each argument recorded as it is added."""
+    import subprocess
+
+    code = (
+        "import argparse, runpy, sys\n"
+        "missing, current = [], ['']\n"
+        "add = argparse._ActionsContainer.add_argument\n"
+        "def recorded(self, *a, **k):\n"
+        "    action = add(self, *a, **k)\n"
+        "    if not action.help and not isinstance(action, argparse._HelpAction):\n"
+        "        missing.append(current[0] + ' ' + ('/'.join(action.option_strings) or action.dest))\n"
+        "    return action\n"
+        "argparse._ActionsContainer.add_argument = recorded\n"
+        "for path in sys.argv[1:]:\n"
+        "    current[0], sys.argv = path.rsplit('/', 1)[-1], [path, '--help']\n"
+        "    try:\n"
+        "        runpy.run_path(path, run_name='__main__')\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print('WITHOUT HELP:', missing, file=sys.stderr)\n"
+    )
+    scripts = sorted(str(p) for p in SCRIPTS.glob("*.py") if "ArgumentParser(" in p.read_text())
+    out = subprocess.run([sys.executable, "-c", code, *scripts], capture_output=True, text=True, timeout=300,
+                         cwd=SCRIPTS.parent)  # fmt: skip
+    assert out.returncode == 0 and out.stdout.count("usage:") == len(scripts), out.stderr[-2000:]
+    assert out.stderr.strip().splitlines()[-1] == "WITHOUT HELP: []"
+
+
+def test_benchmark_raster_refuses_the_meta_device(capsys, monkeypatch):
+    """``--device meta`` passed its check (an empty tensor can be made there) and was a NotImplementedError's
+    traceback in the first row; now _argtypes.device_problem, as evaluate.py and benchmark_device.py check."""
+    raster = _load("benchmark_raster")
+    monkeypatch.setattr(raster, "_candide_mesh", lambda: (_ for _ in ()).throw(AssertionError("timing")))
+    assert "--device meta: the meta device holds no data" in _usage_error(raster.main, ["--device", "meta"], capsys)
+
+
+def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch):
+    """A Ctrl-C printed a KeyboardInterrupt's traceback, which a scripted evaluation's log shows as a crash; now, as
+    ``torchface``'s own commands, one line and exit status 130, for every script run as a command."""
+    import re
+
+    sys.path.insert(0, str(SCRIPTS))
+    import _argtypes
+
+    def interrupted() -> int:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sys, "argv", ["evaluate.py"])
+    with pytest.raises(SystemExit) as info:
+        _argtypes.run_command(interrupted)
+    assert info.value.code == 130 and capsys.readouterr().err.strip() == "evaluate.py: interrupted"
+    with pytest.raises(SystemExit) as info:
+        _argtypes.run_command(lambda: 3)
+    assert info.value.code == 3
+    for path in sorted(SCRIPTS.glob("*.py")):
+        _, main_block, block = path.read_text().partition('if __name__ == "__main__":\n')
+        if main_block:
+            assert re.search(r"^    run_command\(", block, re.M), path.name
+
+
+def test_benchmark_track_says_in_one_line_that_a_checkouts_run_failed(tmp_path, capsys):
+    """A --reference checkout whose ``torchface track`` fails (an older one without an option, a broken one) ended
+    the benchmark with a CalledProcessError's traceback under the command's own message."""
+    track = _load("benchmark_track")
+    (tmp_path / "ref" / "torchface").mkdir(parents=True)
+    (tmp_path / "ref" / "torchface" / "__init__.py").write_text("raise SystemExit(3)\n")
+    video, lm = tmp_path / "clip.mp4", tmp_path / "clip_lm.csv"
+    with pytest.raises(SystemExit) as info:
+        track._run(tmp_path / "ref", video, lm, tmp_path / "out")
+    assert str(info.value.code) == (f"benchmark_track.py: error: torchface track of {tmp_path / 'ref'} on clip.mp4 "
+                                    "failed (exit status 3; its message is above)")  # fmt: skip
+
+
+def test_benchmark_track_shows_progress_per_run(tmp_path, capsys, monkeypatch):
+    """benchmark_track.py printed a size's rows only after all its runs (2 checkouts x 3 repeats of a 1920x1080 clip:
+    minutes without a word); now a line per run on stderr, the table on stdout as before."""
+    track = _load("benchmark_track")
+    monkeypatch.setattr(track, "_clips", lambda cache, count: {s: (tmp_path / f"{s}.mp4", tmp_path / "lm.csv")
+                                                                for s in track.SIZES})  # fmt: skip
+    monkeypatch.setattr(track, "_run", lambda checkout, video, lm, out: (2.0, 1.5, 80.0))
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", "640x480", "--repeats", "2", "--frames", "4",
+                                      "--cache", str(tmp_path)])  # fmt: skip
+    track.main()
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == ["  640x480 this: run 1/2, 2.0 s wall", "  640x480 this: run 2/2, 2.0 s wall"]
+    assert "640x480" in captured.out.splitlines()[-1]
+
+
+def test_overlay_pngs_are_written_whole(tmp_path, capsys, monkeypatch):
+    """overlay_landmarks.py wrote each PNG straight under its name: an interrupt mid-write left a truncated image
+    there, among whole ones. Now each is written under a temporary name and renamed."""
+    import cv2
+
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import write_sequence
+
+    files = write_sequence(make_scenario("expressions", 2, 64, 48), tmp_path / "seq")
+    overlay = _load("overlay_landmarks")
+    real = cv2.imwrite
+    calls = []
+
+    def interrupted(path, image, *a):
+        calls.append(path)
+        if len(calls) == 2:
+            Path(path).write_bytes(b"\x89PNG half")
+            raise KeyboardInterrupt
+        return real(path, image, *a)
+
+    monkeypatch.setattr(cv2, "imwrite", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        overlay.main([str(files.video), "--frames", "0", "1", "--out", str(tmp_path / "ov")])
+    assert sorted(p.name for p in (tmp_path / "ov").iterdir()) == ["expressions_0000.png"]
