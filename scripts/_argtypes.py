@@ -61,6 +61,8 @@ def written_whole(path: Path) -> Iterator[Path]:
     """A temporary name beside ``path`` (``<stem>.partial<suffix>``, so that numpy and OpenCV keep the name as given)
     to write the file to: renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full
     disk), so that no truncated file is left under the final name, where a cache reader would take it for whole.
+    numpy's ``save`` / ``savez`` add ``.npy`` / ``.npz`` to a name without it: give them ``path`` with that suffix,
+    or write through ``tmp.open("wb")``.
 
     Example:
         >>> # with written_whole(Path("out/frames.npy")) as tmp: np.save(tmp, frames)

@@ -730,8 +730,9 @@ def save_series(path: Path, series: list[FrameSeries]) -> None:
         for f in _SERIES_FIELDS:
             arrays[f"{i}/{f}"] = getattr(s, f).numpy()
     path.parent.mkdir(parents=True, exist_ok=True)
-    with written_whole(path) as tmp:
-        np.savez_compressed(tmp, **arrays)
+    # (through a file object: given a name, numpy adds .npz to one without it, and the rename found no file)
+    with written_whole(path) as tmp, tmp.open("wb") as f:
+        np.savez_compressed(f, **arrays)
 
 
 def load_series(path: Path) -> list[FrameSeries]:

@@ -318,3 +318,21 @@ def test_overlay_pngs_are_written_whole(tmp_path, capsys, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         overlay.main([str(files.video), "--frames", "0", "1", "--out", str(tmp_path / "ov")])
     assert sorted(p.name for p in (tmp_path / "ov").iterdir()) == ["expressions_0000.png"]
+
+
+@pytest.mark.parametrize("name", ["series", "series.bin", "series.npz"])
+def test_evaluate_save_series_writes_under_the_name_given(tmp_path, name):
+    """``save_series`` (--save-series) wrote to ``<path>.partial.npz`` and renamed it, so any name worked. Through
+    ``written_whole`` the temporary name is ``<stem>.partial<suffix>``, to which numpy adds ``.npz`` where it lacks
+    it: the rename then found no file (FileNotFoundError at the end of the whole evaluation) and left
+    ``series.partial.npz`` behind."""
+    import torch
+
+    evaluate = _load("evaluate")
+    t = torch.arange(4, dtype=torch.float64)
+    series = [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 12.5, 64, 48)]
+    evaluate.save_series(tmp_path / name, series)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+    (back,) = evaluate.load_series(tmp_path / name)
+    assert (back.scenario, back.config, back.default, back.width, back.height) == ("pose_sweep", "full", True, 64, 48)
+    assert torch.equal(back.error, t) and torch.equal(back.success, t > 0)
