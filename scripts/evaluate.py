@@ -64,6 +64,7 @@ import hashlib
 import itertools
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -1233,7 +1234,10 @@ def main(argv: list[str] | None = None) -> int:
         print(text + "\n", flush=True)
         results.update({f"auroc/{k}": v for k, v in figures.items()})
     if args.json is not None:  # (the last scenario's --smoothing rows come after its last write above)
-        write_json(args.json, results)
+        save_progress()
+        # (renamed here: write_json(args.json) wrote through a temporary <json>.partial, the progress file itself,
+        # and deleted it where the rename failed: a failed end lost the figures so far)
+        os.replace(args.json.with_name(args.json.name + ".partial"), args.json)
     return 0
 
 

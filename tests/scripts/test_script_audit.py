@@ -336,3 +336,28 @@ def test_evaluate_save_series_writes_under_the_name_given(tmp_path, name):
     (back,) = evaluate.load_series(tmp_path / name)
     assert (back.scenario, back.config, back.default, back.width, back.height) == ("pose_sweep", "full", True, 64, 48)
     assert torch.equal(back.error, t) and torch.equal(back.success, t > 0)
+
+
+def test_evaluate_keeps_the_figures_so_far_when_the_final_json_write_fails(tmp_path, monkeypatch):
+    """The last --json write went through torchface.io.sidecar.write_json, whose temporary name is
+    ``<json>.partial``: the progress file itself. Its rename failing (a full disk, a read-only folder) made sidecar
+    delete that temporary file, so a failed end lost the figures that --help says stay in ``JSON.partial`` after a
+    failed run. Now the last write renames the progress file explicitly, and a failed rename leaves it."""
+    import json
+    import os
+
+    evaluate = _load("evaluate")
+    out = tmp_path / "eval.json"
+    argv = ["--scenarios", "expressions", "--frames", "3", "--size", "64x48", "--cache", "none", "--ablations",
+            "none", "--no-auroc", "--threads", "1", "--json", str(out)]  # fmt: skip
+    real = os.replace
+
+    def full_disk(src, dst, *a, **k):
+        if Path(dst) == out:
+            raise OSError(28, "No space left on device")
+        return real(src, dst, *a, **k)
+
+    monkeypatch.setattr(os, "replace", full_disk)
+    with pytest.raises(OSError):
+        evaluate.main(argv)
+    assert not out.exists() and "expressions" in json.loads((tmp_path / "eval.json.partial").read_text())
