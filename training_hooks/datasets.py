@@ -152,9 +152,9 @@ __all__ = [
 #: infinite value or a given point outside the frame is refused (:func:`torchface.io.check_landmarks`).
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`). A
-#: ``DataLoader`` worker started by ``spawn`` or ``forkserver`` (macOS's and Windows' default) receives it pickled:
-#: a module-level function or an instance of a module-level class (a lambda, or a function or class defined inside a
-#: function, is a ``pickle.PicklingError`` naming it then).
+#: ``DataLoader`` worker started by ``spawn`` or ``forkserver`` (the default on macOS and Windows, and on Linux from
+#: Python 3.14) receives it pickled: a module-level function or an instance of a module-level class (a lambda, or a
+#: function or class defined inside a function, is a ``pickle.PicklingError`` naming it then).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
 
 
