@@ -593,13 +593,17 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
     data = VideoDataset(videos, landmarks, replace(config, cache_dir=None, keep_going=True))
     log = tmp_path / "warnings.txt"
 
+    delay = [0.3]  # (set per process: the second fails 0.2 s after the first, while the first's warning shows)
+
     def slow_failure(path, convert):
-        time.sleep(0.3)  # (both processes fail after both have begun)
+        time.sleep(delay[0])  # (both processes fail after both have begun)
         raise training_hooks.datasets.InputError(f"{path}: cannot decode")
 
-    def count() -> None:
+    def count(index: int) -> None:
+        delay[0] = 0.3 + 0.2 * index
+
         def show(message, category, filename, lineno, file=None, line=None) -> None:
-            time.sleep(0.3)
+            time.sleep(0.5)
             with open(log, "a") as f:
                 f.write(f"{category.__name__}: {message}\n")
 
@@ -609,7 +613,7 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
 
     monkeypatch.setattr(training_hooks.datasets, "_count_frames", slow_failure)
     fork = multiprocessing.get_context("fork")
-    processes = [fork.Process(target=count) for _ in range(2)]
+    processes = [fork.Process(target=count, args=(i,)) for i in range(2)]
     for p in processes:
         p.start()
     for p in processes:
