@@ -1233,7 +1233,8 @@ def initialise(
         than ``config.min_points`` template points, a face narrower than ``config.min_face_width_px``) keeps no
         template points (:func:`fail_templates`; ``num_points`` 0): each later :func:`track_step` FAILS and holds
         its estimate, at confidence 0, until it is initialised again (template management keeps it LOST until a
-        detector starts it).
+        detector starts it). The result's ``start_failure`` ``(B,)`` says why (:class:`StartFailure`: NONE where
+        the stream started).
     """
     check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
     frames = frames.to(dtype=model.dtype, device=model.device)
