@@ -6,6 +6,8 @@ failed (status FAILED) but not which reason, and a result could not be moved as 
 
 from __future__ import annotations
 
+import ast
+import re
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -103,6 +105,30 @@ def test_functional_initialise_gives_the_reasons_too(clip):
     assert first.status.tolist() == [CONVERGED, FAILED, FAILED, FAILED]
     assert first.start_failure.tolist() == [0, int(StartFailure.NO_LANDMARKS), int(StartFailure.FACE_TOO_SMALL),
                                             int(StartFailure.TOO_FEW_POINTS)]
+
+
+def test_docs_start_failure_block_runs_and_gives_what_it_states(clip):
+    """docs/python-api.md's "When `initialise` fails a stream" block, run as written on two streams (the second's
+    landmarks NaN rows): each line's value is what its comment states (the literal before any ``:`` gloss)."""
+    frames, lm = clip
+    text = (Path(__file__).resolve().parents[2] / "docs" / "python-api.md").read_text(encoding="utf-8")
+    start = text.index("### When `initialise` fails a stream")
+    (code,) = re.findall(r"^```python\n(.*?)^```", text[start : text.index("\n### ", start + 1)], flags=re.S | re.M)
+    scope = {"tracker": FaceTracker(CFG), "frames": frames[:1].expand(2, -1, -1, -1).clone(),
+             "landmarks": torch.stack([lm, torch.full_like(lm, float("nan"))])}  # fmt: skip
+    checked = 0
+    for line in code.splitlines():
+        statement, _, comment = line.partition("  # ")
+        if "=" in statement.split("(")[0]:
+            exec(statement, scope)
+            continue
+        try:
+            stated = ast.literal_eval(comment)
+        except (ValueError, SyntaxError):
+            stated = ast.literal_eval(comment.split(": ")[0])
+        assert eval(statement, scope) == stated, line
+        checked += 1
+    assert checked == 3
 
 
 def test_start_failure_codes_and_words():
