@@ -9,7 +9,7 @@ from __future__ import annotations
 import ast
 import re
 import sys
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import pytest
@@ -92,6 +92,23 @@ def test_a_failed_start_says_which_stream_and_why(clip, kind):
         assert int(step.status[good]) == int(next_alone.status[0]) and not bool(step.success[bad])
         torch.testing.assert_close(step.rotation[good], next_alone.rotation[0], rtol=0, atol=1e-6)
         torch.testing.assert_close(step.translation[good], next_alone.translation[0], rtol=0, atol=1e-4)
+
+
+def test_a_start_whose_normalised_face_shows_too_few_patches_says_so(clip):
+    """Collinear landmarks (every point on one row), with the fit's checks that fail them off
+    (``max_facing_deg=None``, ``max_rotation_std_deg=None``): the fit converges edge-on (pitch 87 degrees), and
+    template management fails the start, its normalised face showing too few fiducial patches (NO_PATCHES); the
+    good stream beside it is as alone."""
+    frames, lm = clip
+    config = replace(CFG, fit=FitConfig(max_facing_deg=None, max_rotation_std_deg=None))
+    line = torch.stack([lm[:, 0], torch.full_like(lm[:, 1], float(lm[:, 1].mean()))], -1)
+    first = FaceTracker(config).initialise(frames[:1].expand(2, -1, -1, -1), torch.stack([lm, line]))
+    alone = FaceTracker(config).initialise(frames[:1], lm[None])
+    assert first.status.tolist() == [CONVERGED, FAILED]
+    assert first.start_failure.tolist() == [0, int(StartFailure.NO_PATCHES)]
+    assert "fiducial patches" in first.start_failure_reasons[1]
+    for name in ("rotation", "translation", "confidence", "num_points"):
+        assert torch.equal(getattr(first, name)[0], getattr(alone, name)[0]), name
 
 
 def test_functional_initialise_gives_the_reasons_too(clip):
