@@ -118,14 +118,14 @@ class StartFailure(enum.IntEnum):
 
         Example:
             >>> StartFailure.NO_LANDMARKS.reason
-            'no face: fewer than 4 finite landmarks of positive weight'
+            'no face: too few finite landmarks of positive weight'
         """
         return _START_FAILURE_REASONS[self]
 
 
 _START_FAILURE_REASONS: dict[StartFailure, str | None] = {
     StartFailure.NONE: None,
-    StartFailure.NO_LANDMARKS: "no face: fewer than 4 finite landmarks of positive weight",
+    StartFailure.NO_LANDMARKS: "no face: too few finite landmarks of positive weight",
     StartFailure.NORMALISED_LANDMARKS: "landmarks in normalised [0, 1] coordinates, not pixels (x * W - 0.5, "
                                        "y * H - 0.5 makes pixels of them)",
     StartFailure.NO_POSE: "the landmark fit holds no pose (landmarks at one point, collinear, mirrored or seen from "
@@ -555,7 +555,7 @@ class TrackResult:
     Example:
         >>> first = tracker.initialise(frames, landmarks)                         # doctest: +SKIP
         >>> first.status.tolist(), first.start_failure_reasons                    # doctest: +SKIP
-        ([0, 2], (None, 'no face: fewer than 4 finite landmarks of positive weight'))
+        ([0, 2], (None, 'no face: too few finite landmarks of positive weight'))
         >>> first.cpu().translation.device                                        # doctest: +SKIP
         device(type='cpu')
     """
@@ -604,7 +604,9 @@ class TrackResult:
 
         device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
         if dtype is not None and (not isinstance(dtype, torch.dtype) or not dtype.is_floating_point):
-            raise TypeError(f"dtype must be a floating torch.dtype or None (the integer fields keep theirs), got {dtype!r}")
+            raise TypeError(
+                f"dtype must be a floating torch.dtype or None (the integer fields keep theirs), got {dtype!r}"
+            )
         return apply_to_tensor_fields(
             lambda t: t.to(device=device, dtype=dtype if t.is_floating_point() else None), self
         )
@@ -1271,9 +1273,10 @@ def initialise(
     _, w = landmark_targets(lm, None if weights is None else weights.detach().to(lm))
     missing = no_pose & ((w > 0).sum(-1) < MIN_FIT_LANDMARKS)  # (no face found: _missing_fit's placeholder)
     normalised = no_pose & normalised_streams(lm, frames.shape[-1], frames.shape[-2], w)
+    small = too_small(model, config, fit.translation, intrinsics)
     start_failure = start_failure_codes([
         (StartFailure.NO_LANDMARKS, missing), (StartFailure.NORMALISED_LANDMARKS, normalised),
-        (StartFailure.NO_POSE, no_pose), (StartFailure.FACE_TOO_SMALL, too_small(model, config, fit.translation, intrinsics)),
+        (StartFailure.NO_POSE, no_pose), (StartFailure.FACE_TOO_SMALL, small),
         (StartFailure.TOO_FEW_POINTS, templates[0].num_points < config.min_points),
     ])  # fmt: skip
     failed = start_failure != int(StartFailure.NONE)
