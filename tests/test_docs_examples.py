@@ -58,6 +58,8 @@ RUN_ELSEWHERE = {
         "test_docs_example_candide3_through_load_mesh_model_tracks_as_load_candide3",
     ("docs/python-api.md", "Smoothing the outputs"):
         "tests/tracker/test_smoothing.py::test_docs_smoothing_block_runs_as_written",
+    ("docs/python-api.md", "When `initialise` fails a stream"):
+        "tests/tracker/test_start_failure.py::test_docs_start_failure_block_runs_and_gives_what_it_states",
 }  # fmt: skip
 SKIPPED: dict[tuple[str, str], str] = {}  # (none yet: a block that needs a GPU, MediaPipe or a user's video goes here)
 

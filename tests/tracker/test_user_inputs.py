@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from torchface.normalise import NormalisedFace
-from torchface.tracker import FaceTracker, FitConfig, TrackerConfig, TrackStatus
+from torchface.tracker import FaceTracker, FitConfig, StartFailure, TrackerConfig, TrackStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _helpers import sideways_clip  # noqa: E402
@@ -111,18 +111,78 @@ def test_landmarks_that_fail_alone_as_before(clip, landmarks, status):
 
 def test_a_detector_answering_normalised_coordinates_is_named(clip):
     """A detector (``FaceTracker(detector=...)``) that answers MediaPipe's normalised coordinates failed every fit at
-    each recovery attempt: the stream stayed LOST without a word. One answering pixels starts it."""
+    each recovery attempt: the stream stayed LOST without a word. It was then refused with a ``ValueError`` at the
+    restart, which a detector answering pixels for other streams (two detectors behind one) raised too whenever the
+    normalised streams restarted alone. Now such a stream fails its restart alone: LOST, its result's
+    ``start_failure`` says NORMALISED_LANDMARKS, and a ``RuntimeWarning`` says how to make pixels. One answering
+    pixels starts it."""
     frames, lm = clip
     nan = torch.full((1, 68, 2), float("nan"))
     tracker = FaceTracker(CFG, detector=lambda batch: normalised(lm)[None].expand(batch.shape[0], -1, -1).clone())
     tracker.initialise(frames[:1], nan)  # starts FAILED: the detector is asked at its recovery attempts
-    with pytest.raises(ValueError, match=r"^the detector's landmarks lie within \[-0.5, 1.5\] x \[-0.5, 1.5\]"):
+    reasons = []
+    with pytest.warns(RuntimeWarning, match=r"^the detector's landmarks of some streams lie within \[-0.5, 1.5\] x "
+                                            r"\[-0.5, 1.5\]: normalised .*landmarks \* torch.tensor\(\[160.0, "
+                                            r"120.0\]\) - 0.5 for these 160x120 frames"):
         for t in (1, 2, 1, 2, 1, 2):
-            tracker(frames[t : t + 1])
+            result = tracker(frames[t : t + 1])
+            assert int(result.status) == LOST
+            if result.start_failure is not None:  # (a frame where the restart was tried)
+                reasons.append(int(result.start_failure))
+    assert reasons and set(reasons) == {int(StartFailure.NORMALISED_LANDMARKS)}
+    assert result.start_failure_reasons[0] is None or "normalised" in result.start_failure_reasons[0]
     tracker = FaceTracker(CFG, detector=lambda batch: lm[None].expand(batch.shape[0], -1, -1).clone())
     tracker.initialise(frames[:1], nan)
     statuses = [int(tracker(frames[t : t + 1]).status) for t in (1, 2, 1, 2, 1, 2)]
     assert statuses[0] == LOST and CONVERGED in statuses
+
+
+#: The value of the pixel (0, 0, 0) that marks the frames a mixed detector answers in normalised coordinates.
+_MARK = 0.123
+
+
+def _mixed_detector(lm: torch.Tensor):
+    """A detector answering ``lm`` in pixels for a frame, normalised for one marked with :data:`_MARK` (MediaPipe
+    behind one, dlib behind the other)."""
+    def detect(batch: torch.Tensor) -> torch.Tensor:
+        return torch.stack([normalised(lm) if abs(float(b[0, 0, 0]) - _MARK) < 1e-6 else lm.clone() for b in batch])
+
+    return detect
+
+
+@pytest.mark.parametrize("order", ["pixels-first", "normalised-first"])
+def test_a_detector_mixing_pixels_and_normalised_points_fails_those_streams_alone(clip, order):
+    """A detector that answers pixels for one stream and normalised [0, 1] points for another (each stream's first
+    landmarks missing, so both restart from the detector): the normalised stream fails its restart with the reason
+    NORMALISED_LANDMARKS and stays LOST, the other restarts and tracks as it does alone with a pixel detector; a
+    restart asked of the normalised stream alone (its partner already started) is no error either (it raised a
+    ``ValueError`` for the batch)."""
+    frames, lm = clip
+    marked = frames.clone()
+    marked[:, 0, 0, 0] = _MARK
+    good, bad = (0, 1) if order == "pixels-first" else (1, 0)
+    batch = torch.stack([frames, marked] if good == 0 else [marked, frames], 1)  # (T, 2, 3, H, W)
+    nan = torch.full((2, 68, 2), float("nan"))
+    tracker = FaceTracker(CFG, detector=_mixed_detector(lm))
+    alone = FaceTracker(CFG, detector=lambda b: lm[None].expand(b.shape[0], -1, -1).clone())
+    first = tracker.initialise(batch[0], nan)
+    alone.initialise(frames[:1], nan[:1])
+    assert first.start_failure.tolist() == [int(StartFailure.NO_LANDMARKS)] * 2
+    tried = 0
+    with pytest.warns(RuntimeWarning, match="normalised coordinates"):
+        for t in (1, 2) * 5:  # (restarts tried at the 5th and 10th frames)
+            result, reference = tracker(batch[t]), alone(frames[t : t + 1])
+            assert int(result.status[bad]) == LOST
+            if result.start_failure is not None:
+                tried += 1
+                assert int(result.start_failure[bad]) == int(StartFailure.NORMALISED_LANDMARKS)
+                assert int(result.start_failure[good]) == int(StartFailure.NONE)
+                assert result.start_failure_reasons[good] is None and "normalised" in result.start_failure_reasons[bad]
+            assert int(result.status[good]) == int(reference.status[0])
+            torch.testing.assert_close(result.rotation[good], reference.rotation[0], rtol=0, atol=1e-5)
+            torch.testing.assert_close(result.translation[good], reference.translation[0], rtol=0, atol=1e-3)
+    assert tried == 2  # (the first with both streams, the second with the normalised stream alone)
+    assert int(result.status[good]) != LOST
 
 
 @pytest.mark.parametrize(

@@ -29,6 +29,7 @@ from torchface.tracker.smoothing import (
     smooth_result,
 )
 from torchface.tracker.step import (
+    StartFailure,
     TrackerConfig,
     TrackerState,
     TrackResult,
@@ -56,6 +57,7 @@ __all__ = [
     "ResultSmoother",
     "SmoothingConfig",
     "SmoothingState",
+    "StartFailure",
     "TrackResult",
     "TrackStatus",
     "TrackerConfig",

@@ -361,6 +361,54 @@ def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
 MIN_FIT_LANDMARKS: int = 4
 
 
+def normalised_streams(
+    landmarks_px: Tensor, width: int, height: int, weights: Tensor | None = None
+) -> Tensor:
+    """``(B,)`` bool: the streams whose ``(B, K, 2)`` landmarks look like normalised image coordinates (x / W, y / H
+    in [0, 1], MediaPipe's) for ``width x height`` frames, by :func:`check_pixel_landmarks`' rule for one stream: at
+    least :data:`MIN_FIT_LANDMARKS` of them (finite, of finite positive ``weights`` ``(B, K)`` where given), all in
+    :data:`~torchface.conventions.NORMALISED_LANDMARK_RANGE` along each axis, spanning at most
+    :data:`~torchface.conventions.NORMALISED_LANDMARK_MAX_SPAN` and not all at one point: a face about a pixel wide
+    in pixels, which the landmark fit fails. All False for frames with a side under
+    :data:`~torchface.conventions.NORMALISED_CHECK_MIN_SIDE` pixels, landmarks not ``(B, K, 2)`` and under
+    ``torch.compile``. :func:`~torchface.tracker.step.initialise` fails such a stream alone (reason
+    :attr:`~torchface.tracker.step.StartFailure.NORMALISED_LANDMARKS`), and so does a detector's restart.
+
+    Example:
+        >>> normalised_streams(torch.stack([torch.rand(68, 2), torch.rand(68, 2) * 200]), 640, 480).tolist()
+        [True, False]
+    """
+    return _normalised_and_pixels(landmarks_px, width, height, weights)[0]
+
+
+def _normalised_and_pixels(
+    landmarks_px: Tensor, width: int, height: int, weights: Tensor | None
+) -> tuple[Tensor, Tensor]:
+    """``(B,)`` bool each: the streams whose landmarks look normalised (:func:`normalised_streams`) and those with
+    enough landmarks, some outside the normalised range (in pixels)."""
+    none = torch.zeros(landmarks_px.shape[0] if landmarks_px.dim() else 0, dtype=torch.bool,
+                       device=landmarks_px.device)  # fmt: skip
+    if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2 or landmarks_px.numel() == 0 or is_compiling():
+        return none, none
+    if min(width, height) < NORMALISED_CHECK_MIN_SIDE:  # (frames so small that a face in pixels spans a pixel too)
+        return none, none
+    lm = landmarks_px.detach().to(torch.promote_types(landmarks_px.dtype, torch.float32))  # (MPS has no float64)
+    given = torch.isfinite(lm).all(-1)  # (B, K)
+    if weights is not None and tuple(weights.shape) == tuple(given.shape):
+        w = weights.detach().to(lm)
+        given = given & torch.isfinite(w) & (w > 0)  # (the points landmark_targets weighs)
+    usable = given.sum(-1) >= MIN_FIT_LANDMARKS  # (B,)
+    low, high = NORMALISED_LANDMARK_RANGE
+    inside = (((lm >= low) & (lm <= high)).all(-1) | ~given).all(-1)
+    points = given.unsqueeze(-1)
+    lo = torch.where(points, lm, math.inf).amin(1)
+    hi = torch.where(points, lm, -math.inf).amax(1)
+    span = (hi - lo).amax(-1)  # (B,)
+    inside = inside & (span <= NORMALISED_LANDMARK_MAX_SPAN)
+    spread = (span > 0) & usable
+    return usable & inside & spread, usable & ~inside
+
+
 def check_pixel_landmarks(
     landmarks_px: Tensor, width: int, height: int, weights: Tensor | None = None, *, name: str = "landmarks_px"
 ) -> None:
@@ -389,25 +437,8 @@ def check_pixel_landmarks(
             ...
         ValueError: landmarks_px lie within [-0.5, 1.5] x [-0.5, 1.5]: normalised coordinates (x / W, y / H, as ...
     """
-    if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2 or landmarks_px.numel() == 0 or is_compiling():
-        return
-    if min(width, height) < NORMALISED_CHECK_MIN_SIDE:  # (frames so small that a face in pixels spans a pixel too)
-        return
-    lm = landmarks_px.detach().to(torch.promote_types(landmarks_px.dtype, torch.float32))  # (MPS has no float64)
-    given = torch.isfinite(lm).all(-1)  # (B, K)
-    if weights is not None and tuple(weights.shape) == tuple(given.shape):
-        w = weights.detach().to(lm)
-        given = given & torch.isfinite(w) & (w > 0)  # (the points landmark_targets weighs)
-    usable = given.sum(-1) >= MIN_FIT_LANDMARKS  # (B,)
+    normalised, in_pixels = _normalised_and_pixels(landmarks_px, width, height, weights)
     low, high = NORMALISED_LANDMARK_RANGE
-    inside = (((lm >= low) & (lm <= high)).all(-1) | ~given).all(-1)
-    points = given.unsqueeze(-1)
-    lo = torch.where(points, lm, math.inf).amin(1)
-    hi = torch.where(points, lm, -math.inf).amax(1)
-    span = (hi - lo).amax(-1)  # (B,)
-    inside = inside & (span <= NORMALISED_LANDMARK_MAX_SPAN)
-    spread = (span > 0) & usable
-    normalised, in_pixels = usable & inside & spread, usable & ~inside
     if bool(normalised.any()) and not bool(in_pixels.any()):
         raise ValueError(
             f"{name} lie within [{low}, {high}] x [{low}, {high}]: normalised coordinates (x / W, y / H, as MediaPipe "

@@ -48,6 +48,8 @@ the streams concerned (the recovery search loops over its lost streams).
 
 from __future__ import annotations
 
+import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 from typing import Any, cast
@@ -60,6 +62,7 @@ from torchface import _native
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
+from torchface.conventions import NORMALISED_LANDMARK_RANGE
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
@@ -104,7 +107,7 @@ from torchface.template.points import (
     select_pixels_posed,
     strided_window,
 )
-from torchface.tracker.fit import LandmarkFit, check_pixel_landmarks, fit_landmarks
+from torchface.tracker.fit import LandmarkFit, fit_landmarks, normalised_streams
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
     LookaheadConfig, _refine_starts, _Start, _stream_start, check_refine_first, is_keyframe_turn, is_video_cut,
@@ -113,6 +116,7 @@ from torchface.tracker.lookahead import (
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     STEP_VALUE_ROW_STRIDE,
+    StartFailure,
     TrackerConfig,
     TrackerState,
     TrackResult,
@@ -128,6 +132,7 @@ from torchface.tracker.step import (
     gray_pyramid_windows,
     initialise,
     level_intrinsics,
+    start_failure_codes,
     step_grad_inputs,
     too_small,
     track_checked_step,
@@ -379,19 +384,27 @@ def initialise_managed(
     # itself, and so would every later frame and recovery candidate: the stream could never be confident (collinear
     # landmarks fitted the face edge-on, pitch 87 degrees, CONVERGED at confidence 0). It fails, as a fit without a
     # pose does (a detector can then start it afresh: managed_step).
-    blind = ~failed & (diss.confidence <= 0)
+    no_patches = ~failed & (diss.confidence <= 0)
     # A first fit with less than min_inside_fraction of its face inside the frame fails too: managed_step declares
     # such a frame lost at once, so the stream started, then reported every later frame LOST at the confidence of
     # the few in-view vertices against themselves (0.99-1.0: landmarks scaled x3 about the image centre, a third of
     # the face in view), and searched its mosaic of that face for good. Failed, it scores 0 and a detector restarts it.
     verts_cam = transform_points(axis_angle_to_matrix(aa), t, model.deform(state.shape_coeffs, alpha))
-    blind = blind | (~failed & (face_inside_fraction(model, verts_cam, state.intrinsics) < tc.min_inside_fraction))
+    away = face_inside_fraction(model, verts_cam, state.intrinsics) < tc.min_inside_fraction
+    outside = ~failed & away
+    blind = no_patches | outside
+    # The reason: a face mostly outside the frame that also failed for want of template points is reported outside.
+    code = cast(Tensor, result.start_failure)  # (initialise's)
+    outside_code = outside | (away & (code == int(StartFailure.TOO_FEW_POINTS)))
+    code = torch.where(outside_code, int(StartFailure.OUTSIDE_FRAME), code)
+    code = torch.where(no_patches & ~outside, int(StartFailure.NO_PATCHES), code)
     if bool(blind.any()):
         failed = failed | blind
         state = replace(state, templates=tuple(fail_templates(state.templates, blind)))  # (as initialise's failures)
         result = replace(result, status=torch.where(blind, torch.full_like(result.status, _FAILED), result.status),
                          confidence=torch.where(blind, torch.zeros_like(result.confidence), result.confidence),
                          num_points=state.templates[0].num_points)  # fmt: skip
+    result = replace(result, start_failure=code)
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
     mosaic = new_mosaic(state.templates, result.rotation, result.ypr_deg, reference, tc)
     B = state.params.shape[0]
@@ -728,12 +741,20 @@ def _texture_update(
     return tuple(templates), replace(ms.mosaic, levels=tuple(levels))
 
 
-def _check_detector_output(landmarks: object, count: int, k: int, width: int, height: int) -> Tensor:
-    """Refuse what a :data:`LandmarkDetector` answered for ``count`` frames of ``width x height`` unless it is
-    ``(count, k, 2)`` real pixel landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream
-    silently left LOST), a numpy array or a list was told its shape was wrong, and normalised ones in [0, 1]
-    (a MediaPipe detector's, :func:`~torchface.tracker.fit.check_pixel_landmarks`) failed every fit and left the
-    streams LOST without a word."""
+def _check_detector_output(landmarks: object, count: int, k: int, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """What a :data:`LandmarkDetector` answered for ``count`` frames of ``width x height``, refused unless it is
+    ``(count, k, 2)`` real landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream silently
+    left LOST), a numpy array or a list was told its shape was wrong.
+
+    Returns:
+        The landmarks, with NaN rows (no face found) for the streams whose landmarks are in normalised coordinates
+        (:func:`~torchface.tracker.fit.normalised_streams`: x / W, y / H in [0, 1], a MediaPipe-like detector's),
+        and those streams ``(count,)`` bool, with a ``RuntimeWarning`` that says how to make pixels of them. They
+        fail alone (a restart's reason :attr:`~torchface.tracker.step.StartFailure.NORMALISED_LANDMARKS`), the other
+        streams of the answer going on: a detector that answers pixels for some streams and normalised points for
+        others (two detectors behind one) raised at a restart of the normalised streams alone, and had those
+        streams fitted as pixels (failed, LOST without a word) when asked together with the others.
+    """
     if not isinstance(landmarks, Tensor):
         raise TypeError(f"the detector must return a ({count}, {k}, 2) tensor of pixel landmarks (NaN rows: no "
                         f"face), got {type(landmarks).__name__}")  # fmt: skip
@@ -742,8 +763,21 @@ def _check_detector_output(landmarks: object, count: int, k: int, width: int, he
     if tuple(landmarks.shape) != (count, k, 2):
         got = tuple(landmarks.shape)
         raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
-    check_pixel_landmarks(landmarks, width, height, name="the detector's landmarks")
-    return landmarks
+    normalised = normalised_streams(landmarks, width, height)
+    if bool(normalised.any()):
+        low, high = NORMALISED_LANDMARK_RANGE
+        # (the same text each time, so that Python's warning filter shows it once, not at every recovery attempt)
+        warnings.warn(
+            f"the detector's landmarks of some streams lie within [{low}, {high}] x [{low}, {high}]: normalised "
+            f"coordinates (x / W, y / H, as MediaPipe gives them)? The tracker takes pixels, centres at integers: "
+            f"landmarks * torch.tensor([{width}.0, {height}.0]) - 0.5 for these {width}x{height} frames. Those streams "
+            "are taken as no face found (a restart's TrackResult.start_failure: NORMALISED_LANDMARKS)",
+            RuntimeWarning, stacklevel=2,
+        )  # fmt: skip
+        if not landmarks.is_floating_point():
+            landmarks = landmarks.to(torch.get_default_dtype())
+        landmarks = torch.where(normalised.to(landmarks.device)[:, None, None], math.nan, landmarks)
+    return landmarks, normalised
 
 
 def _as_rgb(frames: Tensor) -> Tensor:
@@ -791,7 +825,7 @@ def _recovery_starts(
     starts = conf_params.clone()
     if detector is not None:
         with torch.no_grad():
-            lm = _check_detector_output(
+            lm, _ = _check_detector_output(
                 detector(_as_rgb(frames[index])), n, model.num_landmarks, frames.shape[-1], frames.shape[-2]
             )
         lm = lm.to(dtype=model.dtype, device=model.device)
@@ -903,16 +937,26 @@ def _restart(
     ms = cast(ManagementState, state.management)  # managed_step's: a managed state
     index = restart.nonzero().squeeze(-1)
     with torch.no_grad():
-        lm = _check_detector_output(
+        lm, normalised = _check_detector_output(
             detector(_as_rgb(frames[index])), index.shape[0], model.num_landmarks, frames.shape[-1], frames.shape[-2]
         )
     lm = lm.to(dtype=model.dtype, device=model.device)
     found = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
+    normalised = normalised.to(found.device)
+    # why each stream asked did not start (NONE where it starts: initialise_managed's reasons below)
+    codes = torch.zeros_like(result.status)
+    codes[index] = start_failure_codes([(StartFailure.NORMALISED_LANDMARKS, normalised),
+                                        (StartFailure.NO_LANDMARKS, ~found)])  # fmt: skip
+    result = replace(result, start_failure=codes)
     rows = index[found]
     if not rows.numel():
         return state, result, rows
     sub, sub_result = initialise_managed(model, config, frames[rows], lm[found], state.intrinsics)
     ok = sub_result.status != _FAILED
+    if not bool(ok.all()):
+        codes = codes.clone()
+        codes[rows] = cast(Tensor, sub_result.start_failure)
+        result = replace(result, start_failure=codes)
     if not bool(ok.any()):
         return state, result, rows[:0]
     if not bool(ok.all()):
@@ -1391,7 +1435,9 @@ def _detached(result: TrackResult) -> TrackResult:
 
 
 #: TrackResult's fields that template management sets (the solver's estimates are the others).
-_DECISIONS = frozenset({"status", "confidence", "residual_confidence", "dissimilarity", "mosaic_entry"})
+_DECISIONS = frozenset(
+    {"status", "confidence", "residual_confidence", "dissimilarity", "mosaic_entry", "start_failure"}
+)
 
 
 def _regraded(result: TrackResult, graded: TrackResult, own: Tensor) -> TrackResult:

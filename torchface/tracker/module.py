@@ -270,7 +270,9 @@ class FaceTracker(DeviceCheckedModule):
                 infinite: missing. A stream whose start fails (fewer than 4: no face found in its frame; landmarks
                 that hold no pose, a face too small, a black frame: :func:`~torchface.tracker.initialise`) starts
                 FAILED and holds its finite estimate at confidence 0, LOST until the ``detector`` finds its face
-                (FAILED at every frame without template management); the others track as without it.
+                (FAILED at every frame without template management); the others track as without it. The result's
+                ``start_failure`` says why each stream failed (:class:`~torchface.tracker.step.StartFailure`; in
+                words: ``start_failure_reasons``).
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
             weights: ``(B, K)`` landmark confidences (0 = ignore; their scale weighs the landmarks against the
                 fit's priors, 1 as they are set for: :func:`~torchface.tracker.fit.fit_landmarks`) or None.

@@ -22,7 +22,7 @@ from torch import Tensor
 from torchface import _native
 from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
-from torchface._device import check_holds_data
+from torchface._device import check_device, check_holds_data
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
@@ -42,8 +42,8 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks, check_pixel_landmarks,
-    fit_landmarks, landmark_targets,
+    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks,
+    check_pixel_landmarks, fit_landmarks, landmark_targets, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -77,6 +77,81 @@ class TrackStatus(enum.IntEnum):
     #: The stream is lost (template management, :func:`torchface.tracker.managed.managed_step`): its
     #: confidence stayed low or the face left the frame, and no recovery has succeeded yet.
     LOST = 3
+
+
+class StartFailure(enum.IntEnum):
+    """Why a stream's start failed: :attr:`TrackResult.start_failure`, one code per stream, of a start
+    (:func:`initialise`, :func:`~torchface.tracker.managed.initialise_managed`, ``FaceTracker.initialise``) or of a
+    detector's restart in :func:`~torchface.tracker.managed.managed_step`. The stream's status says that it failed
+    (:class:`TrackStatus` FAILED at a start; a failed restart leaves it LOST); this says why, and
+    :attr:`TrackResult.start_failure_reasons` (or a code's :attr:`reason`) in words. Where several apply, the first
+    in this order is given."""
+
+    #: The stream started (or no start was tried for it).
+    NONE = 0
+    #: Fewer than :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) finite landmarks of positive weight: no face
+    #: found in its frame (NaN rows; a detector's answer with fewer than half its landmarks).
+    NO_LANDMARKS = 1
+    #: Landmarks in normalised image coordinates (x / W, y / H in [0, 1], MediaPipe's) beside streams in pixels
+    #: (:func:`~torchface.tracker.fit.normalised_streams`): a face about a pixel wide, which no fit holds.
+    NORMALISED_LANDMARKS = 2
+    #: The landmark fit holds no pose (:func:`~torchface.tracker.fit.fit_landmarks`: landmarks within a pixel of one
+    #: point, a fit turned away from the camera or nearly edge-on, behind it, mirrored landmarks, a stalled fit, a
+    #: layout that does not determine the rotation).
+    NO_POSE = 3
+    #: The fitted face is narrower than :attr:`TrackerConfig.min_face_width_px`.
+    FACE_TOO_SMALL = 4
+    #: Template management: less than :attr:`~torchface.template.management.TemplateConfig.min_inside_fraction` of
+    #: the fitted face's vertices inside the frame (landmarks that put the face mostly outside it; without template
+    #: management such a face fails only for want of template points, TOO_FEW_POINTS).
+    OUTSIDE_FRAME = 5
+    #: Fewer than :attr:`TrackerConfig.min_points` template points in its first frame: no texture where the face
+    #: is (a black or flat frame, NaN pixels).
+    TOO_FEW_POINTS = 6
+    #: Template management: the first normalised face shows too few of its own fiducial patches to score any frame
+    #: (a face fitted nearly edge-on).
+    NO_PATCHES = 7
+
+    @property
+    def reason(self) -> str | None:
+        """The code in words (None for :attr:`NONE`).
+
+        Example:
+            >>> StartFailure.NO_LANDMARKS.reason
+            'no face: too few finite landmarks of positive weight'
+        """
+        return _START_FAILURE_REASONS[self]
+
+
+_START_FAILURE_REASONS: dict[StartFailure, str | None] = {
+    StartFailure.NONE: None,
+    StartFailure.NO_LANDMARKS: "no face: too few finite landmarks of positive weight",
+    StartFailure.NORMALISED_LANDMARKS: "landmarks in normalised [0, 1] coordinates, not pixels (x * W - 0.5, "
+                                       "y * H - 0.5 makes pixels of them)",
+    StartFailure.NO_POSE: "the landmark fit holds no pose (landmarks at one point, collinear, mirrored or seen from "
+                          "behind: a fit turned away, edge-on or behind the camera)",
+    StartFailure.FACE_TOO_SMALL: "the face is narrower than TrackerConfig.min_face_width_px",
+    StartFailure.OUTSIDE_FRAME: "the fitted face lies mostly outside the frame (TemplateConfig.min_inside_fraction)",
+    StartFailure.TOO_FEW_POINTS: "too few template points: no texture where the face is (a black or flat frame, NaN "
+                                 "pixels)",
+    StartFailure.NO_PATCHES: "the first normalised face shows too few fiducial patches to score any frame",
+}  # fmt: skip
+
+
+def start_failure_codes(causes: Sequence[tuple[StartFailure, Tensor]]) -> Tensor:
+    """``(B,)`` int64 :class:`StartFailure` codes of ``(code, failed)`` pairs in order of precedence, each ``failed``
+    ``(B,)`` bool (at least one pair): a stream takes the first code whose ``failed`` holds, :attr:`StartFailure.NONE`
+    where none does.
+
+    Example:
+        >>> start_failure_codes([(StartFailure.NO_POSE, torch.tensor([True, False, False])),
+        ...                      (StartFailure.FACE_TOO_SMALL, torch.tensor([True, True, False]))]).tolist()
+        [3, 4, 0]
+    """
+    out = torch.zeros(causes[0][1].shape, dtype=torch.int64, device=causes[0][1].device)
+    for code, failed in reversed(causes):
+        out = torch.where(failed.to(out.device), int(code), out)
+    return out
 
 
 def usable_status(status: Tensor) -> Tensor:
@@ -470,6 +545,19 @@ class TrackResult:
             template management, NaN where it was not measured; None otherwise).
         mosaic_entry: ``(B,)`` int64 the mosaic entry the frame was aligned against (0 = the reference; set by
             template management; None otherwise).
+        start_failure: ``(B,)`` int64 :class:`StartFailure`: why each stream's start failed, where one was tried in
+            this call (:attr:`StartFailure.NONE` where the stream started or none was tried for it): every stream's
+            at :func:`initialise` and :func:`~torchface.tracker.managed.initialise_managed` (a FAILED stream's
+            reason); at a :func:`~torchface.tracker.managed.managed_step` where a detector's restart was tried, that
+            of the streams it did not start (they stay LOST); None for a step that tried no start.
+            :attr:`start_failure_reasons` gives them in words.
+
+    Example:
+        >>> first = tracker.initialise(frames, landmarks)                         # doctest: +SKIP
+        >>> first.status.tolist(), first.start_failure_reasons                    # doctest: +SKIP
+        ([0, 2], (None, 'no face: too few finite landmarks of positive weight'))
+        >>> first.cpu().translation.device                                        # doctest: +SKIP
+        device(type='cpu')
     """
 
     rotation: Tensor
@@ -491,6 +579,41 @@ class TrackResult:
     residual_confidence: Tensor | None = None
     dissimilarity: Tensor | None = None
     mosaic_entry: Tensor | None = None
+    start_failure: Tensor | None = None
+
+    @property
+    def start_failure_reasons(self) -> tuple[str | None, ...]:
+        """Per stream, why its start failed in words (:attr:`StartFailure.reason` of :attr:`start_failure`), None
+        where it did not fail or no start was tried (every stream's None where :attr:`start_failure` is None)."""
+        if self.start_failure is None:
+            return (None,) * int(self.status.shape[0])
+        return tuple(StartFailure(code).reason for code in self.start_failure.tolist())
+
+    def to(self, device: torch.device | str | int | None = None, dtype: torch.dtype | None = None) -> "TrackResult":
+        """The result on ``device`` with the floating tensors in ``dtype`` (a floating dtype; the integer ones,
+        ``status``, ``iterations``, ``num_points``, ``mosaic_entry`` and ``start_failure``, keep theirs); the names and
+        the fields that are None as they are, ``self`` unchanged (a tensor already on that device and in that dtype is
+        shared, as ``Tensor.to`` returns it). A device this machine lacks, or ``meta`` (no values),
+        is a ``ValueError`` naming it (docs/python-api.md, "Devices and dtypes").
+
+        Example:
+            >>> result.to(dtype=torch.float64).translation.dtype                      # doctest: +SKIP
+            torch.float64
+        """
+        from torchface.normalise.face import apply_to_tensor_fields
+
+        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
+        if dtype is not None and (not isinstance(dtype, torch.dtype) or not dtype.is_floating_point):
+            raise TypeError(
+                f"dtype must be a floating torch.dtype or None (the integer fields keep theirs), got {dtype!r}"
+            )
+        return apply_to_tensor_fields(
+            lambda t: t.to(device=device, dtype=dtype if t.is_floating_point() else None), self
+        )
+
+    def cpu(self) -> "TrackResult":
+        """``self.to("cpu")``: a copy with every tensor on the CPU."""
+        return self.to("cpu")
 
     @property
     def success(self) -> Tensor:
@@ -1112,7 +1235,8 @@ def initialise(
         than ``config.min_points`` template points, a face narrower than ``config.min_face_width_px``) keeps no
         template points (:func:`fail_templates`; ``num_points`` 0): each later :func:`track_step` FAILS and holds
         its estimate, at confidence 0, until it is initialised again (template management keeps it LOST until a
-        detector starts it).
+        detector starts it). The result's ``start_failure`` ``(B,)`` says why (:class:`StartFailure`: NONE where
+        the stream started).
     """
     check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
     frames = frames.to(dtype=model.dtype, device=model.device)
@@ -1144,10 +1268,19 @@ def initialise(
                 seed=config.selection_seed, backend=config.backend,
             )
         )
-    status = torch.where(fit.status == int(SolveStatus.FAILED), int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
-    status = torch.where(templates[0].num_points < config.min_points, int(TrackStatus.FAILED), status)
-    status = torch.where(too_small(model, config, fit.translation, intrinsics), int(TrackStatus.FAILED), status)
-    failed = status == int(TrackStatus.FAILED)
+    no_pose = fit.status == int(SolveStatus.FAILED)
+    lm = landmarks_px.detach().to(dtype=model.dtype, device=model.device)
+    _, w = landmark_targets(lm, None if weights is None else weights.detach().to(lm))
+    missing = no_pose & ((w > 0).sum(-1) < MIN_FIT_LANDMARKS)  # (no face found: _missing_fit's placeholder)
+    normalised = no_pose & normalised_streams(lm, frames.shape[-1], frames.shape[-2], w)
+    small = too_small(model, config, fit.translation, intrinsics)
+    start_failure = start_failure_codes([
+        (StartFailure.NO_LANDMARKS, missing), (StartFailure.NORMALISED_LANDMARKS, normalised),
+        (StartFailure.NO_POSE, no_pose), (StartFailure.FACE_TOO_SMALL, small),
+        (StartFailure.TOO_FEW_POINTS, templates[0].num_points < config.min_points),
+    ])  # fmt: skip
+    failed = start_failure != int(StartFailure.NONE)
+    status = torch.where(failed, int(TrackStatus.FAILED), int(TrackStatus.CONVERGED))
     if bool(failed.any()):
         templates = fail_templates(templates, failed)
     state = TrackerState(x, fit.shape_coeffs, tuple(templates), intrinsics, 1, anim_prior_mean=fit.anim_coeffs.clone())
@@ -1156,7 +1289,7 @@ def initialise(
     result = _result(
         model, layout, x, status, torch.zeros_like(status), torch.zeros_like(fit.rms_px), n_pts, conf, fit.anim_coeffs
     )
-    return state, result
+    return state, replace(result, start_failure=start_failure)
 
 
 def _result(

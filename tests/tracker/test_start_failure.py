@@ -1,0 +1,217 @@
+"""Why a stream's start failed (``TrackResult.start_failure``, :class:`~torchface.tracker.StartFailure`), and
+``TrackResult.to`` / ``.cpu``. Session 52's reviewers: a user with B streams learnt from ``initialise`` that some
+failed (status FAILED) but not which reason, and a result could not be moved as a tensor can. A small rendered clip
+(tests/_helpers.py's, 160x120).
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+from dataclasses import fields, replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchface.geometry.camera import Intrinsics
+from torchface.template.management import TemplateConfig
+from torchface.tracker import (
+    FaceTracker, FitConfig, StartFailure, TrackerConfig, TrackResult, TrackStatus, initialise,
+)  # fmt: skip
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import sideways_clip  # noqa: E402
+
+W, H = 160, 120
+CFG = TrackerConfig(
+    num_levels=2, max_points=400, iterations=(6, 4), fit=FitConfig(shape_prior_precision=0.0, held_shape_units=()),
+)
+CONVERGED, FAILED = int(TrackStatus.CONVERGED), int(TrackStatus.FAILED)
+
+
+@pytest.fixture(scope="module")
+def clip():
+    """``frames (3, 3, H, W)`` and the first frame's landmarks ``(68, 2)`` in pixels."""
+    frames, landmarks, _ = sideways_clip(W, H, 3)
+    return frames, landmarks
+
+
+def _shrunk(lm: torch.Tensor, scale: float) -> torch.Tensor:
+    """``lm`` ``(68, 2)`` scaled by ``scale`` about their centroid."""
+    c = lm.mean(0)
+    return (lm - c) * scale + c
+
+
+# (what makes the second stream's start fail: its frame, its landmarks) -> the reason
+KINDS = {
+    "no-face-found": (lambda f: f, lambda lm: torch.full_like(lm, float("nan")), StartFailure.NO_LANDMARKS),
+    "three-landmarks": (lambda f: f, lambda lm: lm.where(torch.arange(68)[:, None] < 3, float("nan")),
+                        StartFailure.NO_LANDMARKS),
+    "normalised-landmarks": (lambda f: f, lambda lm: (lm + 0.5) / torch.tensor([float(W), float(H)]),
+                             StartFailure.NORMALISED_LANDMARKS),
+    "landmarks-at-one-point": (lambda f: f, lambda lm: torch.full_like(lm, 50.0), StartFailure.NO_POSE),
+    "mirrored-landmarks": (lambda f: f, lambda lm: torch.stack([2 * lm[:, 0].mean() - lm[:, 0], lm[:, 1]], -1)[
+        torch.tensor([16 - i for i in range(17)] + list(range(17, 68)))], StartFailure.NO_POSE),
+    "face-too-small": (lambda f: f, lambda lm: _shrunk(lm, 0.1), StartFailure.FACE_TOO_SMALL),
+    "black-frame": (lambda f: torch.zeros_like(f), lambda lm: lm, StartFailure.TOO_FEW_POINTS),
+    "nan-frame": (lambda f: torch.full_like(f, float("nan")), lambda lm: lm, StartFailure.TOO_FEW_POINTS),
+    "face-mostly-outside": (lambda f: f, lambda lm: lm + torch.tensor([120.0, 0.0]), StartFailure.OUTSIDE_FRAME),
+}
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_a_failed_start_says_which_stream_and_why(clip, kind):
+    """A batch of one good stream and one whose start fails: the failed one is FAILED with its reason (code and
+    words), the good one CONVERGED with NONE, and the good stream's first result and next step are those it has
+    tracked alone. Either order in the batch."""
+    frames, lm = clip
+    make_frame, make_landmarks, reason = KINDS[kind]
+    bad_frame, bad_lm = make_frame(frames[0]), make_landmarks(lm)
+    alone = FaceTracker(CFG)
+    first_alone = alone.initialise(frames[:1], lm[None])
+    next_alone = alone(frames[1:2])
+    assert first_alone.start_failure.tolist() == [0] and first_alone.start_failure_reasons == (None,)
+    for good in (0, 1):
+        pair = [frames[0], bad_frame] if good == 0 else [bad_frame, frames[0]]
+        pair_lm = [lm, bad_lm] if good == 0 else [bad_lm, lm]
+        tracker = FaceTracker(CFG)
+        first = tracker.initialise(torch.stack(pair), torch.stack(pair_lm))
+        bad = 1 - good
+        assert first.status[good] == CONVERGED and first.status[bad] == FAILED
+        assert first.start_failure.dtype == torch.int64
+        assert first.start_failure.tolist()[bad] == int(reason) and first.start_failure.tolist()[good] == 0
+        assert first.start_failure_reasons[good] is None
+        assert first.start_failure_reasons[bad] == reason.reason and isinstance(reason.reason, str)
+        for name in ("rotation", "translation", "anim_coeffs", "confidence", "num_points"):
+            assert torch.equal(getattr(first, name)[good], getattr(first_alone, name)[0]), name
+        step = tracker(torch.stack([frames[1], make_frame(frames[1])][:: 1 if good == 0 else -1]))
+        assert step.start_failure is None  # (no start tried at this step)
+        assert step.start_failure_reasons == (None, None)
+        assert int(step.status[good]) == int(next_alone.status[0]) and not bool(step.success[bad])
+        torch.testing.assert_close(step.rotation[good], next_alone.rotation[0], rtol=0, atol=1e-6)
+        torch.testing.assert_close(step.translation[good], next_alone.translation[0], rtol=0, atol=1e-4)
+
+
+def test_a_start_whose_normalised_face_shows_too_few_patches_says_so(clip):
+    """Collinear landmarks (every point on one row), with the fit's checks that fail them off
+    (``max_facing_deg=None``, ``max_rotation_std_deg=None``): the fit converges edge-on (pitch 87 degrees), and
+    template management fails the start, its normalised face showing too few fiducial patches (NO_PATCHES); the
+    good stream beside it is as alone."""
+    frames, lm = clip
+    config = replace(CFG, fit=FitConfig(max_facing_deg=None, max_rotation_std_deg=None))
+    line = torch.stack([lm[:, 0], torch.full_like(lm[:, 1], float(lm[:, 1].mean()))], -1)
+    first = FaceTracker(config).initialise(frames[:1].expand(2, -1, -1, -1), torch.stack([lm, line]))
+    alone = FaceTracker(config).initialise(frames[:1], lm[None])
+    assert first.status.tolist() == [CONVERGED, FAILED]
+    assert first.start_failure.tolist() == [0, int(StartFailure.NO_PATCHES)]
+    assert "fiducial patches" in first.start_failure_reasons[1]
+    for name in ("rotation", "translation", "confidence", "num_points"):
+        assert torch.equal(getattr(first, name)[0], getattr(alone, name)[0]), name
+
+
+def test_functional_initialise_gives_the_reasons_too(clip):
+    """The bare :func:`~torchface.tracker.initialise` (no template management) reports the same codes; a face mostly
+    outside the frame fails there only for want of template points (TOO_FEW_POINTS), management's OUTSIDE_FRAME."""
+    frames, lm = clip
+    model = FaceTracker(CFG).model
+    config = TrackerConfig(num_levels=2, max_points=400, iterations=(6, 4), template=TemplateConfig(enabled=False))
+    lms = torch.stack([lm, torch.full_like(lm, float("nan")), _shrunk(lm, 0.1), lm + torch.tensor([120.0, 0.0])])
+    _, first = initialise(model, config, frames[:1].expand(4, -1, -1, -1), lms, Intrinsics.default(W, H))
+    assert first.status.tolist() == [CONVERGED, FAILED, FAILED, FAILED]
+    assert first.start_failure.tolist() == [0, int(StartFailure.NO_LANDMARKS), int(StartFailure.FACE_TOO_SMALL),
+                                            int(StartFailure.TOO_FEW_POINTS)]
+
+
+def test_docs_start_failure_block_runs_and_gives_what_it_states(clip):
+    """docs/python-api.md's "When `initialise` fails a stream" block, run as written on two streams (the second's
+    landmarks NaN rows): each line's value is what its comment states (the literal before any ``:`` gloss)."""
+    frames, lm = clip
+    text = (Path(__file__).resolve().parents[2] / "docs" / "python-api.md").read_text(encoding="utf-8")
+    start = text.index("### When `initialise` fails a stream")
+    (code,) = re.findall(r"^```python\n(.*?)^```", text[start : text.index("\n### ", start + 1)], flags=re.S | re.M)
+    scope = {"tracker": FaceTracker(CFG), "frames": frames[:1].expand(2, -1, -1, -1).clone(),
+             "landmarks": torch.stack([lm, torch.full_like(lm, float("nan"))])}  # fmt: skip
+    checked = 0
+    for line in code.splitlines():
+        statement, _, comment = line.partition("  # ")
+        if "=" in statement.split("(")[0]:
+            exec(statement, scope)
+            continue
+        try:
+            stated = ast.literal_eval(comment)
+        except (ValueError, SyntaxError):
+            stated = ast.literal_eval(comment.split(": ")[0])
+        assert eval(statement, scope) == stated, line
+        checked += 1
+    assert checked == 3
+
+
+def test_start_failure_codes_and_words():
+    """Every code but NONE has its words; the codes are the enum's ints (what ``start_failure`` holds)."""
+    assert StartFailure.NONE.reason is None
+    assert all(isinstance(code.reason, str) and code.reason for code in StartFailure if code is not StartFailure.NONE)
+    assert len({code.reason for code in StartFailure}) == len(StartFailure)
+    assert [int(code) for code in StartFailure] == list(range(len(StartFailure)))
+
+
+@pytest.fixture(scope="module")
+def result(clip):
+    """A managed step's :class:`TrackResult` (every optional field set) of two streams, float32."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    tracker.initialise(frames[:1].expand(2, -1, -1, -1), lm[None].expand(2, -1, -1))
+    return tracker(frames[1:2].expand(2, -1, -1, -1))
+
+
+def test_result_to_converts_floating_fields_only(result):
+    """``TrackResult.to(dtype=...)`` casts the floating tensors, keeps the integer ones' dtype and every value, keeps
+    the names (the same objects) and leaves the original as it was."""
+    before = {f.name: getattr(result, f.name) for f in fields(TrackResult)}
+    copies = {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in before.items()}
+    moved = result.to(dtype=torch.float64)
+    assert isinstance(moved, TrackResult) and moved is not result
+    tensors = 0
+    for f in fields(TrackResult):
+        old, new = getattr(result, f.name), getattr(moved, f.name)
+        if not isinstance(old, torch.Tensor):
+            assert new is old, f.name  # names, None
+            continue
+        tensors += 1
+        if old.is_floating_point():
+            assert new.dtype == torch.float64, f.name
+            assert torch.equal(new, old.double()), f.name
+        else:
+            assert new.dtype == old.dtype and torch.equal(new, old), f.name
+        assert getattr(result, f.name) is before[f.name] and torch.equal(before[f.name], copies[f.name])
+        assert old.dtype != torch.float64  # (the original's dtype: the step's, float32)
+    assert tensors == len(fields(TrackResult)) - 4  # all but the three name tuples and start_failure (None here)
+    assert moved.anim_names is result.anim_names and moved.start_failure is None
+    assert torch.equal(moved.success, result.success)
+    with pytest.raises(TypeError, match="dtype must be a floating torch.dtype"):
+        result.to(dtype=torch.int32)
+
+
+def test_result_to_device_and_cpu(result):
+    """``.to("cpu")`` and ``.cpu()`` give the CPU's result (here: the same values); ``meta`` (no values to hold) and a
+    device this machine lacks are a ``ValueError`` naming it, as everywhere torchface takes a device; with a GPU,
+    the round trip to it and back keeps every value."""
+    for moved in (result.to("cpu"), result.cpu(), result.to(torch.device("cpu"), torch.float32)):
+        for f in fields(TrackResult):
+            old, new = getattr(result, f.name), getattr(moved, f.name)
+            if isinstance(old, torch.Tensor):
+                assert new.device.type == "cpu" and new.dtype == old.dtype and torch.equal(new, old), f.name
+    with pytest.raises(ValueError, match="device 'meta' holds no data"):
+        result.to("meta")
+    with pytest.raises(ValueError, match="devices here"):
+        result.to("gpu0")
+    if torch.cuda.is_available():
+        there = result.to("cuda", torch.float64)
+        assert there.rotation.device.type == "cuda" and there.status.device.type == "cuda"
+        assert there.status.dtype == torch.int64 and there.rotation.dtype == torch.float64
+        back = there.cpu()
+        for f in fields(TrackResult):
+            old, new = getattr(result, f.name), getattr(back, f.name)
+            if isinstance(old, torch.Tensor):
+                assert new.device.type == "cpu" and torch.equal(new, old.double() if old.is_floating_point() else old)
