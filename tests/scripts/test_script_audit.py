@@ -266,6 +266,35 @@ def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch
             assert re.search(r"^    run_command\(", block, re.M), path.name
 
 
+def test_a_sigterm_stops_a_script_as_a_ctrl_c_does_with_status_143(tmp_path):
+    """SIGTERM (``timeout``, ``kill``, ``docker stop``) killed a script where it was: status -15 and its output's
+    temporary file left beside the final name. Now, as ``torchface``'s own commands, it stops as on Ctrl-C: one
+    line, exit status 143 (128 + SIGTERM), the partial output removed."""
+    import subprocess
+
+    out = tmp_path / "out" / "figures.json"
+    out.parent.mkdir()
+    code = f"""
+import os, signal, sys, time
+from pathlib import Path
+sys.path.insert(0, {str(SCRIPTS)!r})
+import _argtypes
+
+def main():
+    with _argtypes.written_whole(Path({str(out)!r})) as tmp:
+        tmp.write_text("half")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    return 0
+
+sys.argv[0] = "evaluate.py"
+_argtypes.run_command(main)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert (run.returncode, run.stderr.strip()) == (143, "evaluate.py: terminated")
+    assert list(out.parent.iterdir()) == []
+
+
 def test_benchmark_track_says_in_one_line_that_a_checkouts_run_failed(tmp_path, capsys):
     """A --reference checkout whose ``torchface track`` fails (an older one without an option, a broken one) ended
     the benchmark with a CalledProcessError's traceback under the command's own message."""
