@@ -45,7 +45,7 @@ import torch
 from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import folder_problem, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 from peers import MediaPipeTimeout, add_options, check_python, run_mediapipe  # noqa: E402
 
@@ -262,11 +262,17 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
         ap.error(f"every batch must be >= 1 and leave 4 frames of the {args.frames} (streams are offset copies)")
     if args.repeats < 1:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
-    if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
-        ap.error(f"--json {args.json}: not a file path in an existing folder")
+    if args.json is not None and (problem := file_problem(Path(args.json))) is not None:
+        ap.error(f"--json {args.json}: {problem}")
     if (problem := folder_problem(Path(args.cache))) is not None:  # (mkdir's traceback after the rendering)
         ap.error(f"--cache {args.cache}: {problem}")
     check_python(ap, args.mediapipe_python)
+
+
+def _write_json(path: Path, figures: dict[str, dict[str, float]]) -> None:
+    """``--json``: the figures, whole (:func:`write_json`), its folder made first, as the other scripts' --json."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, figures)
 
 
 def _baseline_mb(args: argparse.Namespace) -> float:
@@ -415,7 +421,7 @@ def main() -> None:
         figures = {}
         _management(args, figures)
         if args.json:
-            write_json(Path(args.json), figures)
+            _write_json(Path(args.json), figures)
         return
     base = _baseline_mb(args)
     figures: dict[str, dict[str, float]] = {}
@@ -466,7 +472,7 @@ def main() -> None:
         figures["mediapipe"] = mp
     _management(args, figures)
     if args.json:
-        write_json(Path(args.json), figures)
+        _write_json(Path(args.json), figures)
 
 
 if __name__ == "__main__":

@@ -242,6 +242,38 @@ def test_benchmark_raster_refuses_the_meta_device(capsys, monkeypatch):
     assert "--device meta: the meta device holds no data" in _usage_error(raster.main, ["--device", "meta"], capsys)
 
 
+@pytest.mark.parametrize("script", ["benchmark", "benchmark_device"])
+def test_benchmarks_check_json_as_the_other_scripts_do(script, tmp_path, capsys, monkeypatch):
+    """benchmark.py and benchmark_device.py checked --json their own way ("not a file path in an existing folder"):
+    a folder above that is a link to nowhere got that message, not why. Now _argtypes.file_problem's messages, as
+    the other scripts'; a folder that does not exist yet is made when the figures are written, as theirs is."""
+    bench = _load(script)
+    monkeypatch.setattr(bench, "_frames", None)  # no work may start
+    base = ["--device", "cpu"] if script == "benchmark_device" else []
+
+    def message(json_path: Path) -> str:
+        argv = [*base, "--cache", str(tmp_path / "cache"), "--json", str(json_path)]
+        monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+        return _usage_error(lambda _: bench.main() if script == "benchmark" else bench.main(argv), None, capsys)
+
+    assert message(tmp_path).endswith(f"--json {tmp_path}: not a file path (a folder, or under a file)")
+    (tmp_path / "gone").symlink_to(tmp_path / "nowhere")
+    assert message(tmp_path / "gone" / "b.json").endswith(
+        f"--json {tmp_path / 'gone' / 'b.json'}: {tmp_path / 'gone'} is a symbolic link to {tmp_path / 'nowhere'}, "
+        "which does not exist")  # fmt: skip
+
+
+def test_benchmark_device_makes_the_json_folder(tmp_path, capsys):
+    """--json in a folder that does not exist yet was refused; now it is made when the figures are written."""
+    import json
+
+    out = tmp_path / "new" / "sub" / "figures.json"
+    argv = ["--device", "cpu", "--batches", "1", "--cpu-batches", "", "--steps", "1", "--frames", "6", "--width",
+            "64", "--height", "64", "--threads", "1", "--cache", str(tmp_path / "cache"), "--json", str(out)]  # fmt: skip
+    assert _load("benchmark_device").main(argv) == 0
+    assert list(json.loads(out.read_text())) == ["device_batch_1"]
+
+
 def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch):
     """A Ctrl-C printed a KeyboardInterrupt's traceback, which a scripted evaluation's log shows as a crash; now, as
     ``torchface``'s own commands, one line and exit status 130, for every script run as a command."""
