@@ -274,6 +274,24 @@ def test_benchmark_device_makes_the_json_folder(tmp_path, capsys):
     assert list(json.loads(out.read_text())) == ["device_batch_1"]
 
 
+def test_confidence_auroc_shows_progress_while_a_scenario_is_tracked(capsys):
+    """confidence_auroc.py said nothing while a scenario was tracked (minutes at full size and length; a line only
+    when it was done); now, as evaluate.py, a progress line on stderr every --progress-every frames and at the
+    last, the tables on stdout as before."""
+    import re
+
+    auroc = _load("confidence_auroc")
+    base = ["--scenarios", "pose_sweep", "--frames", "6", "--size", "64x48", "--cache", "none"]
+    assert auroc.main([*base, "--variants", "standard", "--progress-every", "2"]) == 0
+    err = capsys.readouterr().err
+    lines = re.findall(r"^  pose_sweep: frame (\d+)/5 rot err [\d.]+ deg, status \d, confidence [\d.]+, [\d.]+ frames/s$",
+                       err, re.M)  # fmt: skip
+    assert lines == ["2", "4", "5"], err
+    assert auroc.main([*base, "--variants", "standard", "--progress-every", "0"]) == 0
+    assert " frame " not in capsys.readouterr().err
+    assert "must be an integer >= 0" in _usage_error(auroc.main, [*base, "--progress-every", "-1"], capsys)
+
+
 def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch):
     """A Ctrl-C printed a KeyboardInterrupt's traceback, which a scripted evaluation's log shows as a crash; now, as
     ``torchface``'s own commands, one line and exit status 130, for every script run as a command."""
