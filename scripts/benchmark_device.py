@@ -35,7 +35,7 @@ import torch
 from torchface.io.sidecar import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmark.py and _argtypes beside this script
-from _argtypes import device_problem, folder_problem  # noqa: E402
+from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 from benchmark import _batch_list, _frames  # noqa: E402
@@ -131,8 +131,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--device {args.device}: {problem}")
     if (problem := folder_problem(Path(args.cache))) is not None:
         ap.error(f"--cache {args.cache}: {problem}")
-    if args.json is not None and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
-        ap.error(f"--json {args.json}: not a file path in an existing folder")
+    if args.json is not None and (problem := file_problem(Path(args.json))) is not None:
+        ap.error(f"--json {args.json}: {problem}")
     device = torch.device(args.device)
     torch.set_num_threads(args.threads)
     print(f"rendering / loading {args.frames} frames at {args.width}x{args.height} ...", file=sys.stderr)
@@ -161,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['max_error_deg']:>8.2f}°{r['success']:>9.3f}{r['points']:>8.0f}{r['iterations']:>7.1f}{mb:>11}")
     print("errors: geodesic rotation error relative to each stream's first frame, degrees, over the timed steps")
     if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # (as the other scripts' --json)
         write_json(Path(args.json), figures)
     return 0
 

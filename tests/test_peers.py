@@ -101,3 +101,39 @@ def test_run_mediapipe_reports_short_clips(tmp_path, monkeypatch, frames):
     assert run is not None and (run.frames, run.frames_with_face, run.version) == (frames, frames, "0.0+stand-in")
     assert run.ms_per_frame >= 0.0 and run.matrices.shape == (frames, 4, 4)
     assert np.allclose(peers.opencv_rotations(run.matrices)[0], np.eye(3))
+
+
+def test_run_mediapipe_stops_a_peer_that_runs_past_its_timeout(tmp_path, monkeypatch):
+    """The peer's subprocess ran with no timeout: a MediaPipe that hangs (here a stand-in whose detection sleeps)
+    held evaluate.py, benchmark.py or track_grid.py for ever. Now it is stopped after ``timeout_s`` with a message
+    that says so and names the option; the scripts say it in one line and go on without the peer's figures."""
+    import os
+    import time
+
+    for name, text in _FAKE_MEDIAPIPE.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    vision = tmp_path / "mediapipe/tasks/python/vision.py"
+    vision.write_text(vision.read_text().replace("        return _Result()", "        import time; time.sleep(60)"))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    start = time.perf_counter()
+    with pytest.raises(peers.MediaPipeTimeout, match=r"did not finish 2 frames within 1.5 s .*--mediapipe-timeout"):
+        peers.run_mediapipe(np.zeros((2, 8, 8, 3), np.uint8), sys.executable, timeout_s=1.5)
+    assert time.perf_counter() - start < 30.0
+
+
+@pytest.mark.parametrize("script", ["evaluate", "benchmark", "track_grid"])
+def test_scripts_take_a_mediapipe_timeout(script, capsys, monkeypatch):
+    """Each script that runs the peer has ``--mediapipe-timeout SECONDS`` (a number > 0, else a one-line usage
+    error before any work)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _helpers import load_script
+
+    main = load_script(script).main
+    for bad in ("0", "-5", "nan", "inf", "soon"):
+        argv = ["--mediapipe-timeout", bad]
+        monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+        with pytest.raises(SystemExit) as info:
+            main() if script == "benchmark" else main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "--mediapipe-timeout: must be a number of seconds > 0" in err, err

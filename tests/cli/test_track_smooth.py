@@ -213,15 +213,13 @@ def test_track_grid_smooths_offline_as_the_job_did(runs) -> None:
     """scripts/track_grid.py --smoothing filters a run's CSV rows offline: given the sidecar's
     start.reanchored_at_frame it starts afresh where ``--smooth`` did (the row after the re-anchoring frame), so its
     rotations are the job's smooth_r* cells; without it (as before) they part after the re-anchoring."""
-    import importlib.util
     import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "scripts" / "track_grid.py"
-    sys.path.insert(0, str(path.parent))
-    spec = importlib.util.spec_from_file_location("track_grid", path)
-    track_grid = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(track_grid)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+    from _helpers import load_script
+
+    track_grid = load_script("track_grid")
     _, smooth, _ = runs
     cols, rows = read_track_csv(smooth / "clip.csv")
     at = json.loads((smooth / "clip.json").read_text())["start"]["reanchored_at_frame"]

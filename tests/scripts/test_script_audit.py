@@ -242,6 +242,56 @@ def test_benchmark_raster_refuses_the_meta_device(capsys, monkeypatch):
     assert "--device meta: the meta device holds no data" in _usage_error(raster.main, ["--device", "meta"], capsys)
 
 
+@pytest.mark.parametrize("script", ["benchmark", "benchmark_device"])
+def test_benchmarks_check_json_as_the_other_scripts_do(script, tmp_path, capsys, monkeypatch):
+    """benchmark.py and benchmark_device.py checked --json their own way ("not a file path in an existing folder"):
+    a folder above that is a link to nowhere got that message, not why. Now _argtypes.file_problem's messages, as
+    the other scripts'; a folder that does not exist yet is made when the figures are written, as theirs is."""
+    bench = _load(script)
+    monkeypatch.setattr(bench, "_frames", None)  # no work may start
+    base = ["--device", "cpu"] if script == "benchmark_device" else []
+
+    def message(json_path: Path) -> str:
+        argv = [*base, "--cache", str(tmp_path / "cache"), "--json", str(json_path)]
+        monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+        return _usage_error(lambda _: bench.main() if script == "benchmark" else bench.main(argv), None, capsys)
+
+    assert message(tmp_path).endswith(f"--json {tmp_path}: not a file path (a folder, or under a file)")
+    (tmp_path / "gone").symlink_to(tmp_path / "nowhere")
+    assert message(tmp_path / "gone" / "b.json").endswith(
+        f"--json {tmp_path / 'gone' / 'b.json'}: {tmp_path / 'gone'} is a symbolic link to {tmp_path / 'nowhere'}, "
+        "which does not exist")  # fmt: skip
+
+
+def test_benchmark_device_makes_the_json_folder(tmp_path, capsys):
+    """--json in a folder that does not exist yet was refused; now it is made when the figures are written."""
+    import json
+
+    out = tmp_path / "new" / "sub" / "figures.json"
+    argv = ["--device", "cpu", "--batches", "1", "--cpu-batches", "", "--steps", "1", "--frames", "6", "--width",
+            "64", "--height", "64", "--threads", "1", "--cache", str(tmp_path / "cache"), "--json", str(out)]  # fmt: skip
+    assert _load("benchmark_device").main(argv) == 0
+    assert list(json.loads(out.read_text())) == ["device_batch_1"]
+
+
+def test_confidence_auroc_shows_progress_while_a_scenario_is_tracked(capsys):
+    """confidence_auroc.py said nothing while a scenario was tracked (minutes at full size and length; a line only
+    when it was done); now, as evaluate.py, a progress line on stderr every --progress-every frames and at the
+    last, the tables on stdout as before."""
+    import re
+
+    auroc = _load("confidence_auroc")
+    base = ["--scenarios", "pose_sweep", "--frames", "6", "--size", "64x48", "--cache", "none"]
+    assert auroc.main([*base, "--variants", "standard", "--progress-every", "2"]) == 0
+    err = capsys.readouterr().err
+    lines = re.findall(r"^  pose_sweep: frame (\d+)/5 rot err [\d.]+ deg, status \d, confidence [\d.]+, [\d.]+ frames/s$",
+                       err, re.M)  # fmt: skip
+    assert lines == ["2", "4", "5"], err
+    assert auroc.main([*base, "--variants", "standard", "--progress-every", "0"]) == 0
+    assert " frame " not in capsys.readouterr().err
+    assert "must be an integer >= 0" in _usage_error(auroc.main, [*base, "--progress-every", "-1"], capsys)
+
+
 def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch):
     """A Ctrl-C printed a KeyboardInterrupt's traceback, which a scripted evaluation's log shows as a crash; now, as
     ``torchface``'s own commands, one line and exit status 130, for every script run as a command."""
@@ -264,6 +314,35 @@ def test_a_ctrl_c_stops_a_script_in_one_line_with_status_130(capsys, monkeypatch
         _, main_block, block = path.read_text().partition('if __name__ == "__main__":\n')
         if main_block:
             assert re.search(r"^    run_command\(", block, re.M), path.name
+
+
+def test_a_sigterm_stops_a_script_as_a_ctrl_c_does_with_status_143(tmp_path):
+    """SIGTERM (``timeout``, ``kill``, ``docker stop``) killed a script where it was: status -15 and its output's
+    temporary file left beside the final name. Now, as ``torchface``'s own commands, it stops as on Ctrl-C: one
+    line, exit status 143 (128 + SIGTERM), the partial output removed."""
+    import subprocess
+
+    out = tmp_path / "out" / "figures.json"
+    out.parent.mkdir()
+    code = f"""
+import os, signal, sys, time
+from pathlib import Path
+sys.path.insert(0, {str(SCRIPTS)!r})
+import _argtypes
+
+def main():
+    with _argtypes.written_whole(Path({str(out)!r})) as tmp:
+        tmp.write_text("half")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    return 0
+
+sys.argv[0] = "evaluate.py"
+_argtypes.run_command(main)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert (run.returncode, run.stderr.strip()) == (143, "evaluate.py: terminated")
+    assert list(out.parent.iterdir()) == []
 
 
 def test_benchmark_track_says_in_one_line_that_a_checkouts_run_failed(tmp_path, capsys):

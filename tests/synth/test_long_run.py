@@ -6,7 +6,6 @@ Rendering all of a long scenario is slow even when short, so the rendered checks
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from dataclasses import replace
@@ -28,6 +27,9 @@ from torchface.synth.scenarios import (
     scenario_size,
 )
 from torchface.synth.sequence import SequenceSpec, render_sequence, save_ground_truth
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+from _helpers import load_script  # noqa: E402
 
 F64 = torch.float64
 W, H = 80, 60
@@ -189,12 +191,7 @@ def test_overlapping_or_late_occluders_are_rejected():
 
 # ----------------------------------------------------------------------------------------- evaluate.py sections
 def _load_evaluate():
-    path = Path(__file__).resolve().parents[2] / "scripts" / "evaluate.py"
-    spec = importlib.util.spec_from_file_location("evaluate_under_test", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_script("evaluate")
 
 
 def test_evaluate_sections_on_made_up_runs(tmp_path):

@@ -555,18 +555,13 @@ def test_a_nan_pose_counts_as_lost() -> None:
 def test_the_worst_seed_of_a_seed_table_is_nan_when_a_seed_broke() -> None:
     """``evaluate.seed_table``'s "worst over N seeds" line: Python's ``max`` skipped a NaN after the first value
     (seeds 0.2 and NaN printed "worst ... rot mean 0.20")."""
-    import importlib.util
     import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "scripts" / "evaluate.py"
-    spec = importlib.util.spec_from_file_location("evaluate_for_seed_table", path)
-    evaluate = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = evaluate  # (its dataclasses look their module up)
-    try:
-        spec.loader.exec_module(evaluate)
-    finally:
-        del sys.modules[spec.name]
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+    from _helpers import load_script
+
+    evaluate = load_script("evaluate")
     keys = ("rot_err_median_deg", "yaw_err_deg", "pitch_err_deg", "roll_err_deg", "trans_err_mm", "trans_rel_err_mm",
             "au_rmse", "au_corr", "converged", "success", "ms_per_frame", "rot_jitter_deg", "au_inactive_rmse")
     ok = dict.fromkeys(keys, 0.1) | {"rot_err_mean_deg": 0.2, "rot_err_max_deg": 0.9, "lost_frames": 0}

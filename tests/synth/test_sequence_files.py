@@ -203,3 +203,40 @@ def test_video_sink_that_cannot_write_its_file_says_why(tmp_path):
             assert list(folder.iterdir()) == []
         finally:
             folder.chmod(0o700)
+
+
+def test_write_sequence_stopped_partway_never_leaves_a_new_video_beside_an_older_ground_truth(tmp_path, monkeypatch):
+    """write_sequence renamed the new video onto the old one and only then saved the ground truth: a Ctrl-C between
+    the two left a 4-frame video beside the 6-frame sequence's ``.gt.npz``, which a reader takes for its pair. Now the
+    older ground truth goes before the video's rename and the new ``.gt.npz`` comes last: stopped while rendering,
+    the older pair stays whole; stopped after the video, no ``.gt.npz`` is left."""
+    import torchface.synth.sequence as sequence
+
+    write_sequence(make_scenario("light_switch", 6, 64, 48), tmp_path)
+    shorter = make_scenario("light_switch", 4, 64, 48)
+
+    real = sequence.iter_sequence
+
+    def stopped_while_rendering(spec, batch_size):
+        yield next(real(spec, batch_size))  # a chunk written to the partial video, then Ctrl-C
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(sequence, "iter_sequence", stopped_while_rendering)
+        with pytest.raises(KeyboardInterrupt):
+            write_sequence(shorter, tmp_path)
+    assert read_video(tmp_path / "light_switch.avi").shape[0] == 6 == load_ground_truth(tmp_path / "light_switch").num_frames
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(np, "savez_compressed", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            write_sequence(shorter, tmp_path)
+    assert read_video(tmp_path / "light_switch.avi").shape[0] == 4
+    with pytest.raises(FileNotFoundError):
+        load_ground_truth(tmp_path / "light_switch")
+    assert not list(tmp_path.glob("*.partial*"))
+    files = write_sequence(shorter, tmp_path)  # a run again makes the pair whole
+    assert load_ground_truth(files.ground_truth).num_frames == 4 == read_video(files.video).shape[0]

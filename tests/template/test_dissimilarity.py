@@ -364,15 +364,12 @@ def test_float32_runs():
 
 
 def _auroc():
-    scripts = Path(__file__).resolve().parents[2] / "scripts"
-    if not (scripts / "confidence_auroc.py").is_file():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+    from _helpers import SCRIPTS, load_script
+
+    if not (SCRIPTS / "confidence_auroc.py").is_file():
         pytest.skip("scripts/confidence_auroc.py not present")
-    sys.path.insert(0, str(scripts))
-    try:
-        import confidence_auroc
-    finally:
-        sys.path.remove(str(scripts))
-    return confidence_auroc.auroc
+    return load_script("confidence_auroc").auroc
 
 
 def test_auroc_known_answers():

@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "train_expression.py"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+from _helpers import load_script  # noqa: E402
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("train_expression", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses and the render processes look the module up by name
-    spec.loader.exec_module(module)
-    return module
+    return load_script("train_expression")  # (registered by name: the render processes look the module up)
 
 
 def test_quick_run(tmp_path, capsys):

@@ -526,8 +526,9 @@ def save_ground_truth(
 ) -> tuple[Path, Path]:
     """Write ``<stem>.gt.npz`` (all arrays) and ``<stem>.gt.json`` (metadata); returns both paths.
 
-    Both are written to temporary names and renamed when complete. ``extra_metadata`` (JSON-able)
-    is merged into the ``.gt.json``.
+    Both are written to temporary names and renamed when complete, the ``.gt.json`` first: the ``.gt.npz``, which
+    :func:`load_ground_truth` reads, appears last, so that its presence means the pair is whole.
+    ``extra_metadata`` (JSON-able) is merged into the ``.gt.json``.
     """
     stem = Path(stem)
     npz_path = stem.with_name(stem.name + ".gt.npz")
@@ -540,14 +541,14 @@ def save_ground_truth(
     arrays["event_frames"] = np.array([e[1] for e in gt.events], dtype=np.int64)
     arrays["strings"] = np.array([gt.name, gt.model, gt.photo, gt.description], dtype=np.str_)
     arrays["fps"] = np.array(gt.fps, dtype=np.float64)
-    tmp_npz = npz_path.with_name(npz_path.name + ".partial.npz")
-    np.savez_compressed(tmp_npz, **arrays)
-    os.replace(tmp_npz, npz_path)
     tmp_json = json_path.with_name(json_path.name + ".partial")
     meta = _metadata(gt)
     meta.update(extra_metadata or {})
     tmp_json.write_text(json.dumps(meta, indent=1) + "\n")
     os.replace(tmp_json, json_path)
+    tmp_npz = npz_path.with_name(npz_path.name + ".partial.npz")
+    np.savez_compressed(tmp_npz, **arrays)
+    os.replace(tmp_npz, npz_path)
     return npz_path, json_path
 
 
@@ -595,7 +596,12 @@ def write_sequence(
 ) -> SequenceFiles:
     """Render ``spec`` into ``out_dir/<name>.avi`` (lossless) plus its ground truth files.
 
-    Frames are streamed to the video chunk by chunk, so memory does not grow with ``T``.
+    Frames are streamed to the video chunk by chunk, so memory does not grow with ``T``. The video is renamed into
+    place once whole (:class:`VideoSink`), after the ground truth of an earlier sequence of the same name in
+    ``out_dir`` is removed, and the new ground truth is written after it (:func:`save_ground_truth`, its ``.gt.npz``
+    last): a run stopped partway (Ctrl-C, a full disk) leaves the earlier pair as it was (stopped while rendering) or
+    a video without a ``.gt.npz``, never a new video beside an older ground truth, which a reader would take for its
+    pair.
 
     Args:
         spec: the sequence.
@@ -618,6 +624,8 @@ def write_sequence(
             if progress is not None:
                 progress(sink.frames_written, spec.num_frames)
         codec = sink.codec
+        for stale in (out / f"{spec.name}.gt.npz", out / f"{spec.name}.gt.json"):  # before the video's rename
+            stale.unlink(missing_ok=True)
     gt = _ground_truth(spec, subject, shape, rows)
     npz_path, json_path = save_ground_truth(gt, out / spec.name, {"video": video_path.name, "codec": codec.strip()})
     return SequenceFiles(video_path, npz_path, json_path, codec, spec.num_frames)
