@@ -236,7 +236,14 @@ def test_readme_command_lines_run_on_a_tiny_clip(tmp_path, monkeypatch, capsys):
 
 
 def _script_options(script: str) -> set[str]:
-    return set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", (ROOT / "scripts" / script).read_text(encoding="utf-8")))
+    """The options quoted in ``script``, with peers.py's MediaPipe options where it adds them (``add_options``)."""
+    source = (ROOT / "scripts" / script).read_text(encoding="utf-8")
+    options = set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", source))
+    if re.search(r"from peers import [^\n]*\badd_options\b", source):
+        peers = (ROOT / "scripts" / "peers.py").read_text(encoding="utf-8")
+        body = peers.split("def add_options(", 1)[1].split("\ndef ", 1)[0]
+        options |= set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", body))
+    return options
 
 
 def _subcommand_options(subcommand: str) -> set[str]:
@@ -275,8 +282,15 @@ def test_readme_scripts_section_names_options_of_the_scripts_each_item_is_about(
     the script's name beside it: ``--noise-seeds 0,1,2,3`` of evaluate.py) is one of theirs, and every name in
     brackets that doc_figures.py's item gives as a subcommand is one."""
     section = PAGES["README.md"].split("\n## Scripts\n", 1)[1].split("\n## ", 1)[0]
-    items = [" ".join(item.split()) for item in re.split(r"^- ", section, flags=re.M)[1:]]
+    items = [" ".join(item.split("\n\n", 1)[0].split()) for item in re.split(r"^- ", section, flags=re.M)[1:]]
     assert len(items) >= 10
+    # (a paragraph of its own, after the list, is about the scripts it names: `evaluate.py`, `benchmark.py`)
+    paragraphs = [" ".join(p.split()) for p in section.split("\n\n") if p.strip() and not p.lstrip().startswith("- ")]
+    for paragraph in paragraphs:
+        options = set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", paragraph))
+        scripts = re.findall(r"`(?:scripts/)?(\w+\.py)`", paragraph)
+        theirs = set().union(*(_script_options(s) for s in scripts if (ROOT / "scripts" / s).is_file()))
+        assert options <= theirs and all(options <= _script_options(s) for s in scripts), (paragraph[:80], scripts)
     for item in items:
         scripts = re.findall(r"`scripts/(\w+\.py)", item)
         assert scripts and all((ROOT / "scripts" / s).is_file() for s in scripts), item[:80]
