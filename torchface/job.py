@@ -126,6 +126,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface import _checkpoint
 from torchface._device import check_device
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
@@ -922,7 +923,7 @@ def _written_names(name: str) -> list[str]:
     """Every file name the job writes for video ``name``, final and temporary (``.partial``, ``.tmp``)."""
     return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial", f"{name}.lock",
             f"{name}_overlay.partial.mp4", f"{name}_normalised.partial.mp4", f"{name}_plot.partial.png",
-            f"{name}_meshes.partial"]  # fmt: skip
+            f"{name}_meshes.partial", f"{name}.state.partial.tmp"]  # fmt: skip
 
 
 def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[str]) -> None:
@@ -1026,6 +1027,12 @@ class _Stream:
     # are); empty: its head did not turn (to min_keyframes sides) within the frames read ahead, and it starts from
     # the landmark fit
     keyframes: list[int] = field(default_factory=list)
+    # its last row as written (read back: as the CSV holds it), which its checkpoint keeps (_write_checkpoints)
+    last_row: np.ndarray | None = None
+    # resumed: its checkpoint (_load_checkpoint), which its batch's state is put together from after its last row
+    # (_restored), and whether it was (the sidecar's resumed.checkpoint)
+    checkpoint: dict | None = None
+    from_checkpoint: bool = False
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -1192,6 +1199,174 @@ def _check_replayed_time(s: _Stream, row: np.ndarray, columns: tuple[str, ...], 
 def _record_path(csv: Path) -> Path:
     """The partial CSV's companion record (:func:`_write_record`, JSON): ``<name>.record.partial``."""
     return csv.with_name(csv.stem + ".record.partial")
+
+
+#: How often (every so many frames of a batch) ``torchface track`` writes each video's checkpoint
+#: (``<stem>.state.partial``, :func:`_write_checkpoints`), from which ``--resume`` goes on exactly as the uninterrupted
+#: run (:func:`_load_checkpoint`): the rows after the last checkpoint are tracked again. Written once the online
+#: start's frames are past (with it, a video interrupted sooner is tracked again from its first frame instead:
+#: :attr:`_Stream.retrack`). Measured at 160x120 (B = 1, the 2-core test machine, loaded): 15-30 ms and 1.15 MB per
+#: video and checkpoint (the state's templates and mosaic, most of it), against 60-180 ms per tracked frame: 1 ms
+#: a frame or less every 25 frames, where every frame would have cost 10-30 %.
+CHECKPOINT_EVERY: int = 25
+
+#: The version of the checkpoint's layout (another one is not read: resumed from the rows, with a warning).
+_CHECKPOINT_VERSION = 1
+
+
+def _checkpoint_path(csv: Path) -> Path:
+    """The partial CSV's checkpoint (:func:`_write_checkpoints`): ``<name>.state.partial``."""
+    return csv.with_name(csv.stem + ".state.partial")
+
+
+def _settings_text(settings: dict[str, object]) -> str:
+    """``settings`` (:func:`_settings`) as the checkpoint keeps them (JSON, keys sorted), to be compared as text."""
+    return json.dumps(_as_json(settings), sort_keys=True)
+
+
+def _write_checkpoints(
+    state: TrackerState, smooth: SmoothingState | None, first_R: Tensor, first_t: Tensor, live: list[_Stream],
+    paths: list[dict[str, Path]], t: int, written: list[bool],
+) -> None:
+    """Write (atomically: a temporary file renamed) the checkpoint of each live stream whose row ``t`` this step
+    wrote (``written``): what the tracking loop carries after that row (its re-detection made), for a resumed run to
+    go on from (:func:`_load_checkpoint`): its part of ``state`` (``TrackerState.select``: parameters, shape,
+    templates, the management's mosaic, counters and online-start watch, motion prediction), of ``smooth`` (the pose
+    filter) and of the first poses ``first_R`` ``(B, 3, 3)``, ``first_t`` ``(B, 3)``; the loop's ``t``, the CSV's
+    row count and last row (which a resume matches), the settings, the batch's videos in order (a resume tracks
+    those together again, :func:`_checkpoint_batches`) and the stream's own bookkeeping. Tensors and plain data
+    only (:func:`torchface._checkpoint.to_plain`), read with ``torch.load(weights_only=True)``."""
+    names = [s.name for s in live]
+    for k, s in enumerate(live):
+        if not written[k] or s.done or s.csv is None:
+            continue
+        part = state if len(live) == 1 else state.select([k])
+        data = {
+            "version": _CHECKPOINT_VERSION, "t": t, "rows": s.csv.rows_done, "start": s.start,
+            "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
+            "settings": _settings_text(s.settings), "batch": names, "index": k,
+            "state": _checkpoint.to_plain(part),
+            "smooth": None if smooth is None else _checkpoint.to_plain(smooth if len(live) == 1 else smooth.select([k])),
+            "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
+            "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
+                       "detection_warned": s.detection_warned,
+                       "near": None if s.near is None else torch.as_tensor(s.near)},
+        }  # fmt: skip
+        path = _checkpoint_path(paths[k]["csv"])
+        tmp = path.with_name(path.name + ".tmp")
+        try:
+            with open(tmp, "wb") as f:
+                torch.save(data, f)
+            os.replace(tmp, path)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
+
+
+def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel) -> dict | None:
+    """The checkpoint of ``s``'s partial run (:func:`_write_checkpoints`; ``csv``: its CSV's final path) where it is
+    there and matches its partial CSV: the same settings (other ones: None, without a word, the record's check says
+    why the resume is refused), a row count the CSV holds (rows after it, written after the checkpoint, are cut off
+    as the video's outputs open: tracked again), the same last row, and past the online start's frames (sooner the
+    rows are tracked again from the first frame: :attr:`_Stream.retrack`). None where there is none; None with one
+    warning line where it cannot be read or does not match (the resume goes on from the CSV's rows)."""
+    path = _checkpoint_path(csv)
+    if not path.is_file():
+        return None
+    partial = partial_path(csv)
+    rows_file = partial if partial.is_file() else csv
+    if not rows_file.is_file():  # (no rows: the video starts afresh)
+        return None
+    try:
+        data = torch.load(path, map_location=model.device, weights_only=True)
+        if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
+            raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
+        if data["settings"] != _settings_text(_settings(config, s, model)):
+            return None
+        n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
+        online = _online_start(config)
+        if online is not None and t + 1 < online.max_frames:
+            return None
+        _, rows = read_track_csv(rows_file)
+        if len(rows) < n or n != start + t + 1 or start != s.start:
+            raise ValueError(f"it is of row {n}, the CSV holds {len(rows)}")
+        if data["row"] is None or not np.array_equal(rows[n - 1], data["row"].cpu().numpy(), equal_nan=True):
+            raise ValueError(f"its row {n} is not the CSV's")
+        data["state"] = _checkpoint.from_plain(data["state"], model.device)
+        data["smooth"] = None if data["smooth"] is None else _checkpoint.from_plain(data["smooth"], model.device)
+        if (data["smooth"] is None) != (config.smoothing is None):
+            raise ValueError("its pose filter is not this run's")
+        return data
+    except Exception as exc:  # (damaged, another version's, not this CSV's: the rows are resumed as before)
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        warnings.warn(f"{path}: not used ({why}): the video goes on from its CSV's rows, not exactly as the "
+                      f"uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
+        return None
+
+
+def _cut_rows(csv: Path, rows: int) -> None:
+    """Cut the partial CSV of ``csv`` (or ``csv`` itself, not finalised) after its header and ``rows`` rows: the
+    rows written after the checkpoint a resume goes on from (tracked again)."""
+    partial = partial_path(csv)
+    path = partial if partial.is_file() else csv
+    with open(path, "r+b") as f:
+        data = f.read()
+        end = -1
+        for _ in range(rows + 1):
+            end = data.index(b"\n", end + 1)
+        f.truncate(end + 1)
+
+
+def _checkpoint_batches(streams: list[_Stream]) -> list[list[int]]:
+    """The batches of the streams resumed from their checkpoints (:attr:`_Stream.checkpoint`): each batch of the
+    interrupted run (its videos, the loop's ``t``) whose videos are resumed, in its order, tracked as that batch
+    again (the others: :func:`_track_opened`'s batches)."""
+    groups: dict[tuple[tuple[str, ...], int], list[int]] = {}
+    for i, s in enumerate(streams):
+        if s.checkpoint is not None:
+            groups.setdefault((tuple(s.checkpoint["batch"]), int(s.checkpoint["t"])), []).append(i)
+    return [sorted(m, key=lambda i: int(streams[i].checkpoint["index"])) for m in groups.values()]  # type: ignore[index]
+
+
+def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
+            ) -> tuple[TrackerState, SmoothingState | None, Tensor, Tensor] | None:  # fmt: skip
+    """The batch's state put together from its streams' checkpoints (:attr:`_Stream.checkpoint`, every stream
+    resumed from one, after the same row ``t``), in their order (:func:`torchface._checkpoint.join`): the state the
+    interrupted run carried after that row, with its pose filter (``smoothing``) and first poses; None, with a
+    warning, where they do not go together (the streams then go on from their CSV's rows)."""
+    cks = [s.checkpoint for s in streams]
+    if not any(c is not None for c in cks):
+        return None
+    try:
+        if any(c is None for c in cks):
+            raise ValueError("not every video of the batch has one")
+        if len({int(c["t"]) for c in cks}) != 1 or any(  # type: ignore[index]
+                s.replay is None or s.retrack or len(s.replay) != int(c["t"]) + 1  # type: ignore[index]
+                for s, c in zip(streams, cks)):  # fmt: skip
+            raise ValueError("the videos' rows do not end together")
+        state = _checkpoint.join([c["state"] for c in cks])  # type: ignore[index]
+        smooth = _checkpoint.join([c["smooth"] for c in cks]) if smoothing else None  # type: ignore[index]
+        first_R = torch.cat([c["first_R"] for c in cks]).to(device)  # type: ignore[index]
+        first_t = torch.cat([c["first_t"] for c in cks]).to(device)  # type: ignore[index]
+    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+        names = ", ".join(s.name for s, c in zip(streams, cks) if c is not None)
+        warnings.warn(f"the checkpoints of {names} not used ({exc}): they go on from their CSV's rows, not exactly "
+                      f"as the uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
+        for s in streams:
+            s.checkpoint = None
+        return None
+    return state, smooth, first_R, first_t
+
+
+def _restore_streams(streams: list[_Stream]) -> None:
+    """Put back each stream's own bookkeeping after its checkpoint's row (:func:`_write_checkpoints`)."""
+    for s in streams:
+        assert s.checkpoint is not None
+        b = s.checkpoint["stream"]
+        s.low_count, s.smooth_restart = int(b["low_count"]), bool(b["smooth_restart"])
+        s.detection_warned = bool(b["detection_warned"])
+        s.near = None if b["near"] is None else b["near"].cpu().numpy()
+        s.from_checkpoint = True
 
 
 def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
@@ -2132,13 +2307,21 @@ def _track_opened(
     try:
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
         # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
+        if config.resume:  # (a video resumed from its checkpoint is tracked with its batch's others again)
+            for s in streams:
+                s.checkpoint = _load_checkpoint(s, output_paths(out_dir, s.name)["csv"], config, model)
+        again = _checkpoint_batches(streams)
+        grouped = {i for m in again for i in m}
         groups: dict[tuple[int, int, int], list[int]] = {}
         for i, s in enumerate(streams):
+            if i in grouped:
+                continue
             H, W = s.reader.info.height, s.reader.info.width
             levels = pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
             groups.setdefault((H, W, levels), []).append(i)
         batches = [m[i : i + n] for (H, W, _), m in groups.items()
                    for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
+        batches = again + batches
         for members in batches:
             _reopen([streams[i] for i in members], config.convert, config.keep_going)
             for i in members:
@@ -2525,6 +2708,9 @@ def _track_group(
         # has ended leaves it before the next step (TrackerState.select), so that the batch shrinks as its videos end.
         live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)
         recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(live, current))
+        joined = _joined(streams, config.smoothing is not None, device)  # (resumed from their checkpoints)
+        restore_at = None if joined is None else len(streams[0].replay)  - 1  # type: ignore[arg-type]
+        checkpoint_from = 0 if online is None else online.max_frames  # (sooner: tracked again, _Stream.retrack)
         t_init = time.perf_counter() - t_start
         t_track0 = time.perf_counter()
         t = 0
@@ -2563,9 +2749,15 @@ def _track_group(
                                  normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
                                  "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
                                  smooth)  # fmt: skip
-            if detector is not None and config.redetect_after > 0:
+            if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
+                state, smooth, first_R, first_t = joined
+                _restore_streams(live)
+                joined = None
+            elif detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
                                         [r is not None and t < len(r) - 1 for r in held])
+            if (t + 1) % CHECKPOINT_EVERY == 0 and t + 1 >= checkpoint_from:
+                _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t, [not r for r in replaying])
             nxt = []
             for s in live:
                 if not s.done:
@@ -2671,6 +2863,8 @@ def _open_outputs(
         _check_record_smoothing(loaded, s.settings)
     if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
         os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
+    if config.resume and s.checkpoint is not None:  # (its rows after the checkpoint: tracked again)
+        _cut_rows(p["csv"], int(s.checkpoint["rows"]))
     s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
     exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
     if exact and s.total is not None and s.csv.rows_done > s.total:
@@ -2771,6 +2965,7 @@ def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
             p[kind].unlink(missing_ok=True)
         partial_path(p["csv"]).unlink(missing_ok=True)
         _record_path(p["csv"]).unlink(missing_ok=True)
+        _checkpoint_path(p["csv"]).unlink(missing_ok=True)
         for folder in (p["meshes"], p["meshes"].with_name(p["meshes"].name + ".partial")):
             if folder.is_dir():
                 for f in _frame_meshes(folder):
@@ -2862,6 +3057,7 @@ def _finalise(
     }
     write_json(p["json"], sidecar)
     _record_path(p["csv"]).unlink(missing_ok=True)
+    _checkpoint_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
@@ -2878,7 +3074,9 @@ def _resumed_record(s: _Stream) -> dict | None:
     (:func:`_check_retracked`, which warns; the CSV keeps them, and the rows after them go on from the frames tracked
     again, so its rows are of two runs that disagree), with ``largest_gap`` over the rows tracked again (None where
     none was): ``mm``, ``degrees``, ``confidence``, ``frame`` (of the largest translation gap) and
-    ``other_status_from_frame`` (the first frame whose status or success differs, or None)."""
+    ``other_status_from_frame`` (the first frame whose status or success differs, or None); ``checkpoint``: whether
+    the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`: the rows after it exactly
+    the uninterrupted run's) rather than from the CSV's last row."""
     rows = 0 if s.csv is None else len(s.csv.previous)
     if rows == 0:
         return None
@@ -2886,7 +3084,8 @@ def _resumed_record(s: _Stream) -> dict | None:
     gap = None if s.tracked_again == 0 else {
         "mm": mm, "degrees": deg, "confidence": conf, "frame": at, "other_status_from_frame": first_other,
     }  # fmt: skip
-    return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap}
+    return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap,
+            "checkpoint": s.from_checkpoint}
 
 
 def _video_timing(s: _Stream) -> dict:
@@ -3060,6 +3259,9 @@ def _write_step(
     for k, row in new.items():
         streams[k].outputs()[0].write(row[None])
         streams[k].tracked += 1
+    for k, s in enumerate(streams):
+        if live[k]:
+            s.last_row = written[k]
     R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
     if smoothing is not None:  # (what is drawn: the smoothed pose; what is resampled from the frame: the raw one)
         R_s, trans_s, R_mesh_s, t_mesh_s, _, _, _ = _drawn_pose(model, state, streams, written, columns, t, "smooth_")
