@@ -1,0 +1,140 @@
+"""``torchface track --resume`` of a video interrupted after the online start's frames, from the checkpoint the
+interrupted run wrote (``<stem>.state.partial``, ``torchface.job._write_checkpoints``): its tracker state with the
+templates and the mosaic, pose filter and bookkeeping, so that the resumed CSV and videos are the uninterrupted
+run's, byte for byte (from the CSV's last row alone, without the mosaic, they were not)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torchface.job
+from torchface.io import read_track_csv
+from torchface.job import JobConfig, track_videos
+from torchface.synth.io import read_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+from torchface.tracker.lookahead import LookaheadConfig
+from torchface.tracker.smoothing import SmoothingConfig
+
+#: Frames of the clips; the online start watches MAX_FRAMES of them, a checkpoint every EVERY frames (at 4 and 8
+#: rows), and the runs are interrupted after STOP rows: resumed from the checkpoint at 8 rows, rows 9-10 again.
+N, MAX_FRAMES, EVERY, STOP = 12, 4, 4, 10
+ONLINE = LookaheadConfig(max_frames=MAX_FRAMES)
+OUTPUTS = (".csv", "_overlay.mp4", "_normalised.mp4")
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    """Two clips of ``pose_sweep`` (160x120, its head turning), from its frames 0 and 3, with their first
+    frames' landmarks."""
+    root = tmp_path_factory.mktemp("sweep")
+    files = write_sequence(make_scenario("pose_sweep", 40, 160, 120), root)
+    gt = load_ground_truth(files.ground_truth)
+    frames = read_video(files.video, max_frames=N + 3)
+    out = []
+    for name, start in (("a", 0), ("b", 3)):
+        lm = root / f"{name}.csv"
+        np.savetxt(lm, gt.landmarks_px[start].numpy(), delimiter=",", header="x,y", comments="")
+        video = root / f"{name}.npy"
+        np.save(video, (frames[start : start + N].permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+        out.append((video, lm))
+    return out
+
+
+@pytest.fixture(autouse=True)
+def every(monkeypatch):
+    monkeypatch.setattr(torchface.job, "CHECKPOINT_EVERY", EVERY)
+
+
+def _config(out: Path, clips, **kwargs) -> JobConfig:
+    return JobConfig(out_dir=out, landmarks=tuple(lm for _, lm in clips), refine_first=ONLINE, **kwargs)
+
+
+def _interrupted(clips, out: Path, **kwargs) -> None:
+    def interrupt(p):
+        if p.done == STOP and p.index == len(clips) - 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([v for v, _ in clips], _config(out, clips, **kwargs), progress=interrupt)
+    for v, _ in clips:
+        assert read_track_csv(out / f"{v.stem}.csv.partial")[1].shape[0] == STOP
+        assert (out / f"{v.stem}.state.partial").is_file()
+
+
+def _same_outputs(a: Path, b: Path, names) -> list[str]:
+    """The outputs of ``names`` whose bytes differ between folders ``a`` and ``b``."""
+    return [n + s for n in names for s in OUTPUTS if (a / (n + s)).read_bytes() != (b / (n + s)).read_bytes()]
+
+
+@pytest.mark.parametrize("count, smoothing", [(1, None), (2, SmoothingConfig())], ids=["alone", "batch-smooth"])
+def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, smoothing, count):
+    """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
+    video of its batch, with or without ``--smooth``: resumed from the checkpoint at 8 rows (rows 9 and 10 cut off
+    and tracked again), the CSVs, overlays and normalised videos are the uninterrupted run's, byte for byte; the
+    sidecar says so (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's last row, without the
+    template mosaic, the pose filter's state and the rest, the resumed rows parted from the uninterrupted ones:
+    byte-identical before this change only where rows < max_frames were tracked again.)"""
+    clips = clips[:count]
+    names = [v.stem for v, _ in clips]
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips, smoothing=smoothing))
+    out = tmp_path / "out"
+    _interrupted(clips, out, smoothing=smoothing)
+    with open(out / f"{names[0]}.csv.partial", "a") as f:  # (a row cut off by a SIGKILL)
+        f.write(f"{STOP},0.4,1")
+    data = torch.load(out / f"{names[0]}.state.partial", weights_only=True)  # (tensors and plain data only)
+    assert data["rows"] == 8 and data["batch"] == names
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # (the checkpoints matched: no warning)
+        track_videos([v for v, _ in clips], _config(out, clips, resume=True, smoothing=smoothing))
+    assert _same_outputs(tmp_path / "ref", out, names) == []
+    for n in names:
+        assert json.loads((out / f"{n}.json").read_text())["resumed"]["checkpoint"] is True
+        assert not (out / f"{n}.state.partial").exists()
+
+
+def test_without_its_checkpoint_the_resumed_rows_part(clips, tmp_path):
+    """What the checkpoint is for: the same interruption resumed without it (removed) goes on from the CSV's last
+    row, and its rows part from the uninterrupted run's."""
+    clips = clips[:1]
+    track_videos([clips[0][0]], _config(tmp_path / "ref", clips))
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    (out / "a.state.partial").unlink()
+    track_videos([clips[0][0]], _config(out, clips, resume=True))
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
+    assert _same_outputs(tmp_path / "ref", out, ["a"])[:1] == ["a.csv"]
+
+
+@pytest.mark.parametrize("damage", ["row", "file"])
+def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_path, damage):
+    """A checkpoint whose last row is not the CSV's (a row edited) or that cannot be read (damaged) is not used:
+    one warning line naming it, and the video goes on from its CSV's rows, as before (none cut off)."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    if damage == "file":
+        ck.write_bytes(b"not a checkpoint")
+    else:
+        partial = out / "a.csv.partial"
+        lines = partial.read_text().splitlines(keepends=True)
+        cells = lines[8].split(",")  # (row 8: the checkpoint's last)
+        cells[2] = "0.5" if cells[2] != "0.5" else "0.25"
+        lines[8] = ",".join(cells)
+        partial.write_text("".join(lines))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
+    assert "\n" not in said[0]
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
