@@ -73,26 +73,38 @@ def _same_outputs(a: Path, b: Path, names) -> list[str]:
     return [n + s for n in names for s in OUTPUTS if (a / (n + s)).read_bytes() != (b / (n + s)).read_bytes()]
 
 
-@pytest.mark.parametrize("count, smoothing", [(1, None), (2, SmoothingConfig())], ids=["alone", "batch-smooth"])
-def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, smoothing, count):
+@pytest.mark.parametrize("count, smoothing, detector", [(1, None, False), (2, SmoothingConfig(), False),
+                                                       (1, None, True)], ids=["alone", "batch-smooth", "detector"])
+def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monkeypatch, count, smoothing, detector):
     """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
-    video of its batch, with or without ``--smooth``: resumed from the checkpoint at 8 rows (rows 9 and 10 cut off
-    and tracked again), the CSVs, overlays and normalised videos are the uninterrupted run's, byte for byte; the
-    sidecar says so (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's last row, without the
-    template mosaic, the pose filter's state and the rest, the resumed rows parted from the uninterrupted ones:
-    byte-identical before this change only where rows < max_frames were tracked again.)"""
+    video of its batch, with or without ``--smooth``, or with a detector re-detecting every other frame (one made
+    after the checkpoint's row): resumed from the checkpoint at 8 rows (rows 9 and 10 cut off and tracked again), the
+    CSVs, overlays and normalised videos are the uninterrupted run's, byte for byte; the sidecar says so
+    (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's last row, without the template mosaic, the
+    pose filter's state and the rest, the resumed rows parted from the uninterrupted ones: byte-identical before
+    this change only where rows < max_frames were tracked again. The detector's re-fit left the state's cached
+    angles untied from its parameters, which the join refused, and the checkpoint was not used.)"""
     clips = clips[:count]
     names = [v.stem for v, _ in clips]
-    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips, smoothing=smoothing))
+    kwargs: dict = {"smoothing": smoothing}
+    if detector:
+        import torchface.detect
+
+        first = np.loadtxt(clips[0][1], delimiter=",", skiprows=1)
+        monkeypatch.setitem(torchface.detect.DETECTORS, "first", lambda: lambda image_rgb: first.copy())
+        kwargs.update(detector="first", redetect_after=2, redetect_below=1.01)  # (every frame low)
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips, **kwargs))
+    if detector:
+        assert json.loads((tmp_path / "ref" / "a.json").read_text())["redetections"] > 0
     out = tmp_path / "out"
-    _interrupted(clips, out, smoothing=smoothing)
+    _interrupted(clips, out, **kwargs)
     with open(out / f"{names[0]}.csv.partial", "a") as f:  # (a row cut off by a SIGKILL)
         f.write(f"{STOP},0.4,1")
     data = torch.load(out / f"{names[0]}.state.partial", weights_only=True)  # (tensors and plain data only)
     assert data["rows"] == 8 and data["batch"] == names
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)  # (the checkpoints matched: no warning)
-        track_videos([v for v, _ in clips], _config(out, clips, resume=True, smoothing=smoothing))
+        track_videos([v for v, _ in clips], _config(out, clips, resume=True, **kwargs))
     assert _same_outputs(tmp_path / "ref", out, names) == []
     for n in names:
         assert json.loads((out / f"{n}.json").read_text())["resumed"]["checkpoint"] is True
