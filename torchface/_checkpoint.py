@@ -65,7 +65,10 @@ def to_plain(tree: object) -> Any:
             seen[id(x)] = len(seen)
             keep.append(x)
             if isinstance(x, Tensor):
-                return {"tensor": x.detach(), "id": seen[id(x)]}
+                t = x.detach()
+                if t.untyped_storage().nbytes() != t.numel() * t.element_size():  # a view: torch.save would write
+                    t = t.clone()  # its whole storage (a state's views of its buffers: 2.5 MB where 1.15 were its own)
+                return {"tensor": t, "id": seen[id(x)]}
             assert not isinstance(x, type)
             values = {f.name: walk(getattr(x, f.name)) for f in dataclasses.fields(x) if f.name not in SKIPPED_FIELDS}
             return {"dataclass": _name(type(x)), "id": seen[id(x)], "fields": values}

@@ -1002,10 +1002,10 @@ class _Stream:
     # None))
     retrack_gap: tuple[float, float, float, int, int | None] = (0.0, 0.0, 0.0, 0, None)
     tracked_again: int = 0  # its rows tracked again so far (counted as tracked frames: timings_s.fps)
+    not_met_again: int = 0  # of them, those not met again (RETRACK_TOLERANCE; the sidecar's resumed)
     # seconds of the loop spent on its rows replayed from the CSV (redrawn; tracked again not): timings_s.replay,
     # left out of its fps (timings_s.fps: the frames tracked in this run over the time spent tracking them)
     t_replay: float = 0.0
-    not_met_again: int = 0  # of them, those not met again (RETRACK_TOLERANCE; the sidecar's resumed)
     frames: int = 0
     tracked: int = 0
     done: bool = False
@@ -1047,7 +1047,7 @@ class _Stream:
     # its last row as written (read back: as the CSV holds it), which its checkpoint keeps (_write_checkpoints)
     last_row: np.ndarray | None = None
     # resumed: its checkpoint (_load_checkpoint), which its batch's state is put together from after its last row
-    # (_restored), and whether it was (the sidecar's resumed.checkpoint)
+    # (_joined), and whether it was (the sidecar's resumed.checkpoint)
     checkpoint: dict | None = None
     from_checkpoint: bool = False
 
@@ -1222,9 +1222,11 @@ def _record_path(csv: Path) -> Path:
 #: (``<stem>.state.partial``, :func:`_write_checkpoints`), from which ``--resume`` goes on exactly as the uninterrupted
 #: run (:func:`_load_checkpoint`): the rows after the last checkpoint are tracked again. Written once the online
 #: start's frames are past (with it, a video interrupted sooner is tracked again from its first frame instead:
-#: :attr:`_Stream.retrack`). Measured at 160x120 (B = 1, the 2-core test machine, loaded): 15-30 ms and 1.15 MB per
-#: video and checkpoint (the state's templates and mosaic, most of it), against 60-180 ms per tracked frame: 1 ms
-#: a frame or less every 25 frames, where every frame would have cost 10-30 %.
+#: :attr:`_Stream.retrack`). Measured on 200-frame 160x120 pose sweeps (the 2-core test machine, shared): 16-35 ms
+#: per checkpoint at B = 1 and 23 ms for the 3 videos of a batch (8 ms each), 2.5-2.7 MB per video (its template
+#: mosaic's 12 entries and its templates, most of it; their sizes are the model's and the pyramid's, not the
+#: frame's), against 30-50 ms per tracked frame: 0.6-1.4 ms a frame past frame 150 (0.2-0.35 ms a frame over the
+#: 200; the runs' track times alike within their noise), where every frame would have cost 30-100 %.
 CHECKPOINT_EVERY: int = 25
 
 #: The version of the checkpoint's layout (another one is not read: resumed from the rows, with a warning).
@@ -2728,7 +2730,7 @@ def _track_group(
         live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)
         recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(live, current))
         joined = _joined(streams, config.smoothing is not None, device)  # (resumed from their checkpoints)
-        restore_at = None if joined is None else len(streams[0].replay)  - 1  # type: ignore[arg-type]
+        restore_at = None if joined is None else len(streams[0].replay) - 1  # type: ignore[arg-type]
         checkpoint_from = 0 if online is None else online.max_frames  # (sooner: tracked again, _Stream.retrack)
         t_init = time.perf_counter() - t_start
         t_track0 = t_iter = time.perf_counter()

@@ -77,7 +77,7 @@ def _same_outputs(a: Path, b: Path, names) -> list[str]:
                                                        (1, None, True)], ids=["alone", "batch-smooth", "detector"])
 def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monkeypatch, count, smoothing, detector):
     """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
-    video of its batch, with or without ``--smooth``, or with a detector re-detecting every other frame (one made
+    video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a detector re-detecting every other frame (one made
     after the checkpoint's row): resumed from the checkpoint at 8 rows (rows 9 and 10 cut off and tracked again), the
     CSVs, overlays and normalised videos are the uninterrupted run's, byte for byte; the sidecar says so
     (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's last row, without the template mosaic, the
@@ -86,7 +86,7 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
     angles untied from its parameters, which the join refused, and the checkpoint was not used.)"""
     clips = clips[:count]
     names = [v.stem for v, _ in clips]
-    kwargs: dict = {"smoothing": smoothing}
+    kwargs: dict = {"smoothing": smoothing, "meshes": count == 1 and not detector}
     if detector:
         import torchface.detect
 
@@ -106,6 +106,10 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
         warnings.simplefilter("error", RuntimeWarning)  # (the checkpoints matched: no warning)
         track_videos([v for v, _ in clips], _config(out, clips, resume=True, **kwargs))
     assert _same_outputs(tmp_path / "ref", out, names) == []
+    if kwargs["meshes"]:  # (the meshes of the rows cut off written again)
+        ref, got = sorted((tmp_path / "ref" / "a_meshes").iterdir()), sorted((out / "a_meshes").iterdir())
+        assert [p.name for p in got] == [p.name for p in ref] and len(ref) == N
+        assert all(p.read_bytes() == q.read_bytes() for p, q in zip(ref, got))
     for n in names:
         assert json.loads((out / f"{n}.json").read_text())["resumed"]["checkpoint"] is True
         assert not (out / f"{n}.state.partial").exists()
