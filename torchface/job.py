@@ -1265,7 +1265,8 @@ def _write_checkpoints(
             "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
             "settings": _settings_text(s.settings), "batch": names, "index": k,
             "state": _checkpoint.to_plain(part),
-            "smooth": None if smooth is None else _checkpoint.to_plain(smooth if len(live) == 1 else smooth.select([k])),
+            "smooth": None if smooth is None else _checkpoint.to_plain(smooth if len(live) == 1
+                                                                        else smooth.select([k])),
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
                        "detection_warned": s.detection_warned,
@@ -1344,7 +1345,10 @@ def _checkpoint_batches(streams: list[_Stream]) -> list[list[int]]:
     for i, s in enumerate(streams):
         if s.checkpoint is not None:
             groups.setdefault((tuple(s.checkpoint["batch"]), int(s.checkpoint["t"])), []).append(i)
-    return [sorted(m, key=lambda i: int(streams[i].checkpoint["index"])) for m in groups.values()]  # type: ignore[index]
+    def place(i: int) -> int:
+        return int(streams[i].checkpoint["index"])  # type: ignore[index]
+
+    return [sorted(m, key=place) for m in groups.values()]
 
 
 def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
@@ -1364,11 +1368,12 @@ def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
                 for s, c in zip(streams, cks)):  # fmt: skip
             raise ValueError("the videos' rows do not end together")
         # (one video: its state as saved, the whole of it, a cache select would drop included)
-        state = cks[0]["state"] if len(cks) == 1 else _checkpoint.join([c["state"] for c in cks])  # type: ignore[index]
-        smooth = None if not smoothing else cks[0]["smooth"] if len(cks) == 1 else _checkpoint.join(  # type: ignore[index]
-            [c["smooth"] for c in cks])  # type: ignore[index]
-        first_R = torch.cat([c["first_R"] for c in cks]).to(device)  # type: ignore[index]
-        first_t = torch.cat([c["first_t"] for c in cks]).to(device)  # type: ignore[index]
+        parts = [c for c in cks if c is not None]
+        state = parts[0]["state"] if len(parts) == 1 else _checkpoint.join([c["state"] for c in parts])
+        smooth = None if not smoothing else parts[0]["smooth"] if len(parts) == 1 else _checkpoint.join(
+            [c["smooth"] for c in parts])  # fmt: skip
+        first_R = torch.cat([c["first_R"] for c in parts]).to(device)
+        first_t = torch.cat([c["first_t"] for c in parts]).to(device)
     except (ValueError, KeyError, TypeError, RuntimeError) as exc:
         names = ", ".join(s.name for s, c in zip(streams, cks) if c is not None)
         warnings.warn(f"the checkpoints of {names} not used ({exc}): they go on from their CSV's rows, not exactly "

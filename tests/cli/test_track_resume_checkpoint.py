@@ -77,13 +77,14 @@ def _same_outputs(a: Path, b: Path, names) -> list[str]:
                                                        (1, None, True)], ids=["alone", "batch-smooth", "detector"])
 def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monkeypatch, count, smoothing, detector):
     """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
-    video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a detector re-detecting every other frame (one made
-    after the checkpoint's row): resumed from the checkpoint at 8 rows (rows 9 and 10 cut off and tracked again), the
-    CSVs, overlays and normalised videos are the uninterrupted run's, byte for byte; the sidecar says so
-    (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's last row, without the template mosaic, the
-    pose filter's state and the rest, the resumed rows parted from the uninterrupted ones: byte-identical before
-    this change only where rows < max_frames were tracked again. The detector's re-fit left the state's cached
-    angles untied from its parameters, which the join refused, and the checkpoint was not used.)"""
+    video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a
+    detector re-detecting every other frame (one made after the checkpoint's row): resumed from the checkpoint at 8
+    rows (rows 9 and 10 cut off and tracked again), the CSVs, overlays and normalised videos are the uninterrupted
+    run's, byte for byte; the sidecar says so (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's
+    last row, without the template mosaic, the pose filter's state and the rest, the resumed rows parted from the
+    uninterrupted ones: byte-identical before this change only where rows < max_frames were tracked again. The
+    detector's re-fit left the state's cached angles untied from its parameters, which the join refused, and the
+    checkpoint was not used.)"""
     clips = clips[:count]
     names = [v.stem for v, _ in clips]
     kwargs: dict = {"smoothing": smoothing, "meshes": count == 1 and not detector}
