@@ -3172,8 +3172,9 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored
-    within the online start's ``max_frames``: one resumed sooner is tracked again from its first frame,
-    :attr:`_Stream.retrack`).
+    within the online start's ``max_frames``, resumed from its CSV's rows: one resumed sooner is tracked again from
+    its first frame, :attr:`_Stream.retrack`, and one resumed from its checkpoint goes on from the online start's
+    state, :attr:`_Stream.from_checkpoint`).
     ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
     a video whose head did not turn ``yaw_deg`` within the frames read ahead (to ``min_keyframes`` sides), which
     starts from the landmark fit.
@@ -3190,7 +3191,8 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     """
     if config.lookahead is not None:
         method = "lookahead"
-    elif _online_start(config) is not None and (s.replay is None or s.anchor is not None or s.retrack):
+    elif _online_start(config) is not None and (s.replay is None or s.anchor is not None or s.retrack
+                                                or s.from_checkpoint):  # fmt: skip
         method = "online"
     else:
         method = "landmark fit"

@@ -53,7 +53,8 @@ def every(monkeypatch):
 
 
 def _config(out: Path, clips, **kwargs) -> JobConfig:
-    return JobConfig(out_dir=out, landmarks=tuple(lm for _, lm in clips), refine_first=ONLINE, **kwargs)
+    kwargs.setdefault("refine_first", ONLINE)
+    return JobConfig(out_dir=out, landmarks=tuple(lm for _, lm in clips), **kwargs)
 
 
 def _interrupted(clips, out: Path, **kwargs) -> None:
@@ -73,9 +74,11 @@ def _same_outputs(a: Path, b: Path, names) -> list[str]:
     return [n + s for n in names for s in OUTPUTS if (a / (n + s)).read_bytes() != (b / (n + s)).read_bytes()]
 
 
-@pytest.mark.parametrize("count, smoothing, detector", [(1, None, False), (2, SmoothingConfig(), False),
-                                                       (1, None, True)], ids=["alone", "batch-smooth", "detector"])
-def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monkeypatch, count, smoothing, detector):
+@pytest.mark.parametrize("count, smoothing, detector, turn", [
+    (1, None, False, 10.0), (2, SmoothingConfig(), False, 10.0), (1, None, True, 10.0), (1, None, False, 80.0),
+], ids=["alone", "batch-smooth", "detector", "not-reanchored"])  # fmt: skip
+def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monkeypatch, count, smoothing, detector,
+                                                          turn):  # fmt: skip
     """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
     video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a
     detector re-detecting every other frame (one made after the checkpoint's row): resumed from the checkpoint at 8
@@ -84,10 +87,12 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
     last row, without the template mosaic, the pose filter's state and the rest, the resumed rows parted from the
     uninterrupted ones: byte-identical before this change only where rows < max_frames were tracked again. The
     detector's re-fit left the state's cached angles untied from its parameters, which the join refused, and the
-    checkpoint was not used.)"""
+    checkpoint was not used; a video the online start had not re-anchored (its head not turning ``turn`` degrees)
+    had its sidecar say ``landmark fit`` where the uninterrupted run said ``online``.)"""
     clips = clips[:count]
     names = [v.stem for v, _ in clips]
-    kwargs: dict = {"smoothing": smoothing, "meshes": count == 1 and not detector}
+    kwargs: dict = {"smoothing": smoothing, "meshes": count == 1 and not detector and turn == 10.0,
+                    "refine_first": LookaheadConfig(max_frames=MAX_FRAMES, yaw_deg=turn)}
     if detector:
         import torchface.detect
 
@@ -112,8 +117,16 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
         assert [p.name for p in got] == [p.name for p in ref] and len(ref) == N
         assert all(p.read_bytes() == q.read_bytes() for p, q in zip(ref, got))
     for n in names:
-        assert json.loads((out / f"{n}.json").read_text())["resumed"]["checkpoint"] is True
+        side, ref = (json.loads((d / f"{n}.json").read_text()) for d in (out, tmp_path / "ref"))
+        assert side["resumed"]["checkpoint"] is True
         assert not (out / f"{n}.state.partial").exists()
+        for d in (side, ref):  # (the rest of the sidecar, its start and final shape included, is the same too)
+            for key in ("resumed", "timings_s", "outputs", "redetections", "detector_calls"):
+                del d[key]
+            del d["config"]["resume"]
+        assert side == ref
+        assert side["start"]["method"] == "online"
+        assert turn == 10.0 or side["start"]["reanchored_at_frame"] is None
 
 
 def test_without_its_checkpoint_the_resumed_rows_part(clips, tmp_path):
