@@ -1046,8 +1046,8 @@ class _Stream:
     keyframes: list[int] = field(default_factory=list)
     # its last row as written (read back: as the CSV holds it), which its checkpoint keeps (_write_checkpoints)
     last_row: np.ndarray | None = None
-    # resumed: its checkpoint (_load_checkpoint), which its batch's state is put together from after its last row
-    # (_joined), and whether it was (the sidecar's resumed.checkpoint)
+    # resumed: its checkpoint's data (_load_checkpoint; its states read again by _joined), which its batch's state is
+    # put together from after its last row, and whether it was (the sidecar's resumed.checkpoint)
     checkpoint: dict | None = None
     from_checkpoint: bool = False
 
@@ -1312,11 +1312,10 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
             raise ValueError(f"it is of row {n}, the CSV holds {len(rows)}")
         if data["row"] is None or not np.array_equal(rows[n - 1], data["row"].cpu().numpy(), equal_nan=True):
             raise ValueError(f"its row {n} is not the CSV's")
-        data["state"] = _checkpoint.from_plain(data["state"], model.device)
-        data["smooth"] = None if data["smooth"] is None else _checkpoint.from_plain(data["smooth"], model.device)
         if (data["smooth"] is None) != (config.smoothing is None):
             raise ValueError("its pose filter is not this run's")
-        return data
+        _checkpoint.from_plain(data["state"])  # (read again as its batch starts: _joined; not kept meanwhile)
+        return {k: v for k, v in data.items() if k not in ("state", "smooth")} | {"path": path}
     except Exception as exc:  # (damaged, another version's, not this CSV's: the rows are resumed as before)
         why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         warnings.warn(f"{path}: not used ({why}): the video goes on from its CSV's rows, not exactly as the "
@@ -1354,9 +1353,10 @@ def _checkpoint_batches(streams: list[_Stream]) -> list[list[int]]:
 def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
             ) -> tuple[TrackerState, SmoothingState | None, Tensor, Tensor] | None:  # fmt: skip
     """The batch's state put together from its streams' checkpoints (:attr:`_Stream.checkpoint`, every stream
-    resumed from one, after the same row ``t``), in their order (:func:`torchface._checkpoint.join`): the state the
-    interrupted run carried after that row, with its pose filter (``smoothing``) and first poses; None, with a
-    warning, where they do not go together (the streams then go on from their CSV's rows)."""
+    resumed from one, after the same row ``t``; read again here, so that no more than one batch's are held), in
+    their order (:func:`torchface._checkpoint.join`): the state the interrupted run carried after that row, with its
+    pose filter (``smoothing``) and first poses; None, with a warning, where they do not go together (the streams
+    then go on from their CSV's rows; those after the checkpoint were cut off, and are tracked again)."""
     cks = [s.checkpoint for s in streams]
     if not any(c is not None for c in cks):
         return None
@@ -1368,13 +1368,15 @@ def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
                 for s, c in zip(streams, cks)):  # fmt: skip
             raise ValueError("the videos' rows do not end together")
         # (one video: its state as saved, the whole of it, a cache select would drop included)
-        parts = [c for c in cks if c is not None]
-        state = parts[0]["state"] if len(parts) == 1 else _checkpoint.join([c["state"] for c in parts])
-        smooth = None if not smoothing else parts[0]["smooth"] if len(parts) == 1 else _checkpoint.join(
-            [c["smooth"] for c in parts])  # fmt: skip
+        parts = [torch.load(c["path"], map_location=device, weights_only=True) for c in cks if c is not None]
+        states = [_checkpoint.from_plain(c["state"], device) for c in parts]
+        smooths = [_checkpoint.from_plain(c["smooth"], device) for c in parts] if smoothing else []
+        # (one video: its state as saved, the whole of it, a cache select would drop included)
+        state = states[0] if len(states) == 1 else _checkpoint.join(states)
+        smooth = None if not smoothing else smooths[0] if len(smooths) == 1 else _checkpoint.join(smooths)
         first_R = torch.cat([c["first_R"] for c in parts]).to(device)
         first_t = torch.cat([c["first_t"] for c in parts]).to(device)
-    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+    except Exception as exc:  # (the file changed since, or the states do not join: the rows as before)
         names = ", ".join(s.name for s, c in zip(streams, cks) if c is not None)
         warnings.warn(f"the checkpoints of {names} not used ({exc}): they go on from their CSV's rows, not exactly "
                       f"as the uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
@@ -2347,7 +2349,10 @@ def _track_opened(
             groups.setdefault((H, W, levels), []).append(i)
         batches = [m[i : i + n] for (H, W, _), m in groups.items()
                    for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
-        batches = again + batches
+        for m in reversed(again):  # (first; as many as max_batch and BATCH_PIXELS allow now: a part joined alone)
+            H, W = streams[m[0]].reader.info.height, streams[m[0]].reader.info.width
+            n = max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))
+            batches[:0] = [m[i : i + n] for i in range(0, len(m), n)]
         for members in batches:
             _reopen([streams[i] for i in members], config.convert, config.keep_going)
             for i in members:

@@ -168,3 +168,19 @@ def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_p
     side = json.loads((out / "a.json").read_text())
     assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
     assert read_track_csv(out / "a.csv")[1].shape[0] == N
+
+
+def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, tmp_path):
+    """A batch's videos resumed with a smaller ``max_batch`` are tracked in parts of their batch, each part's states
+    joined alone: every video goes on from its checkpoint, without a warning, its rows those of the uninterrupted
+    run to float rounding (the batch's composition: not to the byte)."""
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([v for v, _ in clips], _config(out, clips, resume=True, max_batch=1))
+    for v, _ in clips:
+        assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] is True
+        ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
