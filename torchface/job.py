@@ -1278,9 +1278,11 @@ def _write_checkpoints(
             with open(tmp, "wb") as f:
                 torch.save(data, f)
             os.replace(tmp, path)
-        except OSError as exc:
+        except BaseException as exc:  # (a full disk, or interrupted: the last checkpoint as it was, no temporary)
             tmp.unlink(missing_ok=True)
-            raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
+            if isinstance(exc, OSError):
+                raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
+            raise
 
 
 def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel) -> dict | None:
@@ -3008,7 +3010,8 @@ def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
             p[kind].unlink(missing_ok=True)
         partial_path(p["csv"]).unlink(missing_ok=True)
         _record_path(p["csv"]).unlink(missing_ok=True)
-        _checkpoint_path(p["csv"]).unlink(missing_ok=True)
+        for ck in (_checkpoint_path(p["csv"]), _checkpoint_path(p["csv"]).with_suffix(".partial.tmp")):
+            ck.unlink(missing_ok=True)
         for folder in (p["meshes"], p["meshes"].with_name(p["meshes"].name + ".partial")):
             if folder.is_dir():
                 for f in _frame_meshes(folder):
@@ -3060,7 +3063,7 @@ def _finalise(
     # only its new rows, a 40-frame 160x120 pose sweep resumed after 20 rows gave 16-17 frames/s where the
     # uninterrupted run gave 28-32, and 32-34 now. Its rows replayed from the CSV are not, nor is the time spent
     # redrawing them, s.t_replay: counted, a 200-frame sweep resumed after 170 rows gave 7.4 frames/s where the
-    # uninterrupted run gave 19)
+    # uninterrupted run gave 33; not counted, 32 where it gave 49: the 50 frames from its checkpoint a short run's)
     fps = (s.tracked + s.tracked_again) / max(t_track - s.t_replay, 1e-9) if t_track > 0 else 0.0
     # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
     # video to video of one batch where their lengths differ; without the time in which every video replayed)
