@@ -1246,7 +1246,7 @@ def _settings_text(settings: dict[str, object]) -> str:
 def _write_checkpoints(
     state: TrackerState, smooth: SmoothingState | None, first_R: Tensor, first_t: Tensor, live: list[_Stream],
     paths: list[dict[str, Path]], t: int, written: list[bool],
-) -> None:
+) -> bool:
     """Write (atomically: a temporary file renamed) the checkpoint of each live stream whose row ``t`` this step
     wrote (``written``): what the tracking loop carries after that row (its re-detection made), for a resumed run to
     go on from (:func:`_load_checkpoint`): its part of ``state`` (``TrackerState.select``: parameters, shape,
@@ -1254,19 +1254,27 @@ def _write_checkpoints(
     filter) and of the first poses ``first_R`` ``(B, 3, 3)``, ``first_t`` ``(B, 3)``; the loop's ``t``, the CSV's
     row count and last row (which a resume matches), the settings, the batch's videos in order (a resume tracks
     those together again, :func:`_checkpoint_batches`) and the stream's own bookkeeping. Tensors and plain data
-    only (:func:`torchface._checkpoint.to_plain`), read with ``torch.load(weights_only=True)``."""
+    only (:func:`torchface._checkpoint.to_plain`), read with ``torch.load(weights_only=True)``. Returns False, with
+    a warning, where the state holds what plain data cannot (a value of a kind ``to_plain`` does not know): the run
+    goes on without checkpoints, as an earlier version's (a checkpoint must not stop the tracking)."""
     names = [s.name for s in live]
     for k, s in enumerate(live):
         if not written[k] or s.done or s.csv is None:
             continue
         part = state if len(live) == 1 else state.select([k])
+        try:
+            plain = _checkpoint.to_plain(part)
+            plain_smooth = None if smooth is None else _checkpoint.to_plain(smooth if len(live) == 1
+                                                                            else smooth.select([k]))  # fmt: skip
+        except TypeError as exc:
+            warnings.warn(f"no checkpoints written ({exc}): an interrupted run resumes from its CSV's rows",
+                          RuntimeWarning, stacklevel=2)  # fmt: skip
+            return False
         data = {
             "version": _CHECKPOINT_VERSION, "t": t, "rows": s.csv.rows_done, "start": s.start,
             "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
             "settings": _settings_text(s.settings), "batch": names, "index": k,
-            "state": _checkpoint.to_plain(part),
-            "smooth": None if smooth is None else _checkpoint.to_plain(smooth if len(live) == 1
-                                                                        else smooth.select([k])),
+            "state": plain, "smooth": plain_smooth,
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
                        "detection_warned": s.detection_warned,
@@ -1283,6 +1291,7 @@ def _write_checkpoints(
             if isinstance(exc, OSError):
                 raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
             raise
+    return True
 
 
 def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel) -> dict | None:
@@ -2792,7 +2801,9 @@ def _track_group(
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
                                         [r is not None and t < len(r) - 1 for r in held])
             if (t + 1) % CHECKPOINT_EVERY == 0 and t + 1 >= checkpoint_from:
-                _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t, [not r for r in replaying])
+                if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
+                                          [not r for r in replaying]):  # fmt: skip
+                    checkpoint_from = sys.maxsize  # (warned: none for this batch)
             nxt = []
             for s in live:
                 if not s.done:

@@ -184,3 +184,26 @@ def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, 
         assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] is True
         ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
+
+
+def test_a_state_that_cannot_be_kept_tracks_on_without_checkpoints(clips, tmp_path, monkeypatch):
+    """A state holding what plain data cannot (here: ``to_plain`` refusing it, as it would a value of a kind added
+    to the state that it does not know) does not stop the tracking: one warning, no checkpoint, the outputs those
+    of a run with checkpoints."""
+    import torchface._checkpoint
+
+    clips = clips[:1]
+    track_videos([clips[0][0]], _config(tmp_path / "ref", clips))
+
+    def refuse(tree):
+        raise TypeError("cannot keep a Thing as plain data")
+
+    monkeypatch.setattr(torchface._checkpoint, "to_plain", refuse)
+    out = tmp_path / "out"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips))
+    said = [str(w.message) for w in caught if "checkpoint" in str(w.message)]
+    assert said == ["no checkpoints written (cannot keep a Thing as plain data): an interrupted run resumes from its "
+                    "CSV's rows"]  # fmt: skip
+    assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
