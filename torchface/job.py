@@ -81,7 +81,21 @@ pose sweeps of 20, 60 and 200 frames re-anchored before the interruption, resume
 degrees and 0.25 of confidence off when one not re-anchored went on from its rows without the online start, up to
 8.1 mm, 1.6 degrees and 0.45 when a re-anchored one went on from its record without its mosaic); at most
 ``max_frames - 1`` frames (149) tracked again.
-For the others (``max_frames`` rows or more) the template mosaic built before the interruption is not restored: on a
+Past those frames (from frame ``max_frames``; without the online start from frame :data:`CHECKPOINT_EVERY`), every
+:data:`CHECKPOINT_EVERY` frames the loop writes each video's checkpoint, ``<stem>.state.partial``
+(:func:`_write_checkpoints`: its part of the tracker's state, templates and mosaic included, of the pose filter, its
+first pose and bookkeeping; tensors and plain data, :mod:`torchface._checkpoint`, read with ``weights_only=True``),
+removed once the video is complete. A resume goes on from it where it matches the partial CSV
+(:func:`_load_checkpoint`: settings, row count, last row; else one warning line and the rows as below): the rows
+written after it are cut off and tracked again, and the videos of the checkpoint's batch are tracked as that batch
+again (:func:`_checkpoint_batches`), their states joined (:func:`torchface._checkpoint.join`, the inverse of
+``select``) after their last row (:func:`_joined`). Measured: a 200-frame 160x120 pose sweep interrupted after 170
+rows (its checkpoint at 150) resumed byte for byte as the uninterrupted run (CSV, overlay, normalised face) alone,
+with ``smoothing``, with a detector re-detecting every 5 frames and as a batch of 3 sweeps of 193-200 frames, where
+from its CSV's rows it went up to 1.03 mm, 1.2 degrees and 0.12 of confidence off (the batch: 3.9 mm, 3.3 degrees,
+0.65); cost: :data:`CHECKPOINT_EVERY`.
+For the others (``max_frames`` rows or more, without a checkpoint) the template mosaic built before the interruption
+is not restored: on a
 clip whose head turns, the resumed rows can part from the uninterrupted run's by tenths of a degree to a degree once
 the mosaic is used (measured: up to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth; a
 200-frame 160x120 pose sweep resumed after 170 rows, up to 1.05 mm, 1.4 degrees and 0.12 of confidence). Their
@@ -126,6 +140,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface import _checkpoint
 from torchface._device import check_device
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
@@ -922,7 +937,7 @@ def _written_names(name: str) -> list[str]:
     """Every file name the job writes for video ``name``, final and temporary (``.partial``, ``.tmp``)."""
     return [f"{name}.csv.partial.tmp", f"{name}.record.partial.tmp", f"{name}.json.partial", f"{name}.lock",
             f"{name}_overlay.partial.mp4", f"{name}_normalised.partial.mp4", f"{name}_plot.partial.png",
-            f"{name}_meshes.partial"]  # fmt: skip
+            f"{name}_meshes.partial", f"{name}.state.partial.tmp"]  # fmt: skip
 
 
 def _check_name_lengths(out_dir: Path, videos: Sequence[Path], names: Sequence[str]) -> None:
@@ -988,6 +1003,9 @@ class _Stream:
     retrack_gap: tuple[float, float, float, int, int | None] = (0.0, 0.0, 0.0, 0, None)
     tracked_again: int = 0  # its rows tracked again so far (counted as tracked frames: timings_s.fps)
     not_met_again: int = 0  # of them, those not met again (RETRACK_TOLERANCE; the sidecar's resumed)
+    # seconds of the loop spent on its rows replayed from the CSV (redrawn; tracked again not): timings_s.replay,
+    # left out of its fps (timings_s.fps: the frames tracked in this run over the time spent tracking them)
+    t_replay: float = 0.0
     frames: int = 0
     tracked: int = 0
     done: bool = False
@@ -1026,6 +1044,12 @@ class _Stream:
     # are); empty: its head did not turn (to min_keyframes sides) within the frames read ahead, and it starts from
     # the landmark fit
     keyframes: list[int] = field(default_factory=list)
+    # its last row as written (read back: as the CSV holds it), which its checkpoint keeps (_write_checkpoints)
+    last_row: np.ndarray | None = None
+    # resumed: its checkpoint's data (_load_checkpoint; its states read again by _joined), which its batch's state is
+    # put together from after its last row, and whether it was (the sidecar's resumed.checkpoint)
+    checkpoint: dict | None = None
+    from_checkpoint: bool = False
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -1192,6 +1216,196 @@ def _check_replayed_time(s: _Stream, row: np.ndarray, columns: tuple[str, ...], 
 def _record_path(csv: Path) -> Path:
     """The partial CSV's companion record (:func:`_write_record`, JSON): ``<name>.record.partial``."""
     return csv.with_name(csv.stem + ".record.partial")
+
+
+#: How often (every so many frames of a batch) ``torchface track`` writes each video's checkpoint
+#: (``<stem>.state.partial``, :func:`_write_checkpoints`), from which ``--resume`` goes on exactly as the uninterrupted
+#: run (:func:`_load_checkpoint`): the rows after the last checkpoint are tracked again. Written once the online
+#: start's frames are past (with it, a video interrupted sooner is tracked again from its first frame instead:
+#: :attr:`_Stream.retrack`). Measured on 200-frame 160x120 pose sweeps (the 2-core test machine, shared): 16-35 ms
+#: per checkpoint at B = 1 and 23 ms for the 3 videos of a batch (8 ms each), 2.5-2.7 MB per video (its template
+#: mosaic's 12 entries and its templates, most of it; their sizes are the model's and the pyramid's, not the
+#: frame's), against 30-50 ms per tracked frame: 0.6-1.4 ms a frame past frame 150 (0.2-0.35 ms a frame over the
+#: 200; the runs' track times alike within their noise), where every frame would have cost 30-100 %.
+CHECKPOINT_EVERY: int = 25
+
+#: The version of the checkpoint's layout (another one is not read: resumed from the rows, with a warning).
+_CHECKPOINT_VERSION = 1
+
+
+def _checkpoint_path(csv: Path) -> Path:
+    """The partial CSV's checkpoint (:func:`_write_checkpoints`): ``<name>.state.partial``."""
+    return csv.with_name(csv.stem + ".state.partial")
+
+
+def _settings_text(settings: dict[str, object]) -> str:
+    """``settings`` (:func:`_settings`) as the checkpoint keeps them (JSON, keys sorted), to be compared as text."""
+    return json.dumps(_as_json(settings), sort_keys=True)
+
+
+def _write_checkpoints(
+    state: TrackerState, smooth: SmoothingState | None, first_R: Tensor, first_t: Tensor, live: list[_Stream],
+    paths: list[dict[str, Path]], t: int, written: list[bool],
+) -> bool:
+    """Write (atomically: a temporary file renamed) the checkpoint of each live stream whose row ``t`` this step
+    wrote (``written``): what the tracking loop carries after that row (its re-detection made), for a resumed run to
+    go on from (:func:`_load_checkpoint`): its part of ``state`` (``TrackerState.select``: parameters, shape,
+    templates, the management's mosaic, counters and online-start watch, motion prediction), of ``smooth`` (the pose
+    filter) and of the first poses ``first_R`` ``(B, 3, 3)``, ``first_t`` ``(B, 3)``; the loop's ``t``, the CSV's
+    row count and last row (which a resume matches), the settings, the batch's videos in order (a resume tracks
+    those together again, :func:`_checkpoint_batches`) and the stream's own bookkeeping. Tensors and plain data
+    only (:func:`torchface._checkpoint.to_plain`), read with ``torch.load(weights_only=True)``. Returns False, with
+    a warning, where the state holds what plain data cannot (a value of a kind ``to_plain`` does not know): the run
+    goes on without checkpoints, as an earlier version's (a checkpoint must not stop the tracking)."""
+    names = [s.name for s in live]
+    for k, s in enumerate(live):
+        if not written[k] or s.done or s.csv is None:
+            continue
+        part = state if len(live) == 1 else state.select([k])
+        try:
+            plain = _checkpoint.to_plain(part)
+            plain_smooth = None if smooth is None else _checkpoint.to_plain(smooth if len(live) == 1
+                                                                            else smooth.select([k]))  # fmt: skip
+        except TypeError as exc:
+            warnings.warn(f"no checkpoints written ({exc}): an interrupted run resumes from its CSV's rows",
+                          RuntimeWarning, stacklevel=2)  # fmt: skip
+            return False
+        data = {
+            "version": _CHECKPOINT_VERSION, "t": t, "rows": s.csv.rows_done, "start": s.start,
+            "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
+            "settings": _settings_text(s.settings), "batch": names, "index": k,
+            "state": plain, "smooth": plain_smooth,
+            "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
+            "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
+                       "detection_warned": s.detection_warned,
+                       "near": None if s.near is None else torch.as_tensor(s.near)},
+        }  # fmt: skip
+        path = _checkpoint_path(paths[k]["csv"])
+        tmp = path.with_name(path.name + ".tmp")
+        try:
+            with open(tmp, "wb") as f:
+                torch.save(data, f)
+            os.replace(tmp, path)
+        except BaseException as exc:  # (a full disk, or interrupted: the last checkpoint as it was, no temporary)
+            tmp.unlink(missing_ok=True)
+            if isinstance(exc, OSError):
+                raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
+            raise
+    return True
+
+
+def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel) -> dict | None:
+    """The checkpoint of ``s``'s partial run (:func:`_write_checkpoints`; ``csv``: its CSV's final path) where it is
+    there and matches its partial CSV: the same settings (other ones: None, without a word, the record's check says
+    why the resume is refused), a row count the CSV holds (rows after it, written after the checkpoint, are cut off
+    as the video's outputs open: tracked again), the same last row, and past the online start's frames (sooner the
+    rows are tracked again from the first frame: :attr:`_Stream.retrack`). None where there is none; None with one
+    warning line where it cannot be read or does not match (the resume goes on from the CSV's rows)."""
+    path = _checkpoint_path(csv)
+    if not path.is_file():
+        return None
+    partial = partial_path(csv)
+    rows_file = partial if partial.is_file() else csv
+    if not rows_file.is_file():  # (no rows: the video starts afresh)
+        return None
+    try:
+        data = torch.load(path, map_location=model.device, weights_only=True)
+        if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
+            raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
+        if data["settings"] != _settings_text(_settings(config, s, model)):
+            return None
+        n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
+        online = _online_start(config)
+        if online is not None and t + 1 < online.max_frames:
+            return None
+        _, rows = read_track_csv(rows_file)
+        if len(rows) < n or n != start + t + 1 or start != s.start:
+            raise ValueError(f"it is of row {n}, the CSV holds {len(rows)}")
+        if data["row"] is None or not np.array_equal(rows[n - 1], data["row"].cpu().numpy(), equal_nan=True):
+            raise ValueError(f"its row {n} is not the CSV's")
+        if (data["smooth"] is None) != (config.smoothing is None):
+            raise ValueError("its pose filter is not this run's")
+        _checkpoint.from_plain(data["state"])  # (read again as its batch starts: _joined; not kept meanwhile)
+        return {k: v for k, v in data.items() if k not in ("state", "smooth")} | {"path": path}
+    except Exception as exc:  # (damaged, another version's, not this CSV's: the rows are resumed as before)
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        warnings.warn(f"{path}: not used ({why}): the video goes on from its CSV's rows, not exactly as the "
+                      f"uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
+        return None
+
+
+def _cut_rows(csv: Path, rows: int) -> None:
+    """Cut the partial CSV of ``csv`` (or ``csv`` itself, not finalised) after its header and ``rows`` rows: the
+    rows written after the checkpoint a resume goes on from (tracked again)."""
+    partial = partial_path(csv)
+    path = partial if partial.is_file() else csv
+    with open(path, "r+b") as f:
+        data = f.read()
+        end = -1
+        for _ in range(rows + 1):
+            end = data.index(b"\n", end + 1)
+        f.truncate(end + 1)
+
+
+def _checkpoint_batches(streams: list[_Stream]) -> list[list[int]]:
+    """The batches of the streams resumed from their checkpoints (:attr:`_Stream.checkpoint`): each batch of the
+    interrupted run (its videos, the loop's ``t``) whose videos are resumed, in its order, tracked as that batch
+    again (the others: :func:`_track_opened`'s batches)."""
+    groups: dict[tuple[tuple[str, ...], int], list[int]] = {}
+    for i, s in enumerate(streams):
+        if s.checkpoint is not None:
+            groups.setdefault((tuple(s.checkpoint["batch"]), int(s.checkpoint["t"])), []).append(i)
+    def place(i: int) -> int:
+        return int(streams[i].checkpoint["index"])  # type: ignore[index]
+
+    return [sorted(m, key=place) for m in groups.values()]
+
+
+def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
+            ) -> tuple[TrackerState, SmoothingState | None, Tensor, Tensor] | None:  # fmt: skip
+    """The batch's state put together from its streams' checkpoints (:attr:`_Stream.checkpoint`, every stream
+    resumed from one, after the same row ``t``; read again here, so that no more than one batch's are held), in
+    their order (:func:`torchface._checkpoint.join`): the state the interrupted run carried after that row, with its
+    pose filter (``smoothing``) and first poses; None, with a warning, where they do not go together (the streams
+    then go on from their CSV's rows; those after the checkpoint were cut off, and are tracked again)."""
+    cks = [s.checkpoint for s in streams]
+    if not any(c is not None for c in cks):
+        return None
+    try:
+        if any(c is None for c in cks):
+            raise ValueError("not every video of the batch has one")
+        if len({int(c["t"]) for c in cks}) != 1 or any(  # type: ignore[index]
+                s.replay is None or s.retrack or len(s.replay) != int(c["t"]) + 1  # type: ignore[index]
+                for s, c in zip(streams, cks)):  # fmt: skip
+            raise ValueError("the videos' rows do not end together")
+        # (one video: its state as saved, the whole of it, a cache select would drop included)
+        parts = [torch.load(c["path"], map_location=device, weights_only=True) for c in cks if c is not None]
+        states = [_checkpoint.from_plain(c["state"], device) for c in parts]
+        smooths = [_checkpoint.from_plain(c["smooth"], device) for c in parts] if smoothing else []
+        # (one video: its state as saved, the whole of it, a cache select would drop included)
+        state = states[0] if len(states) == 1 else _checkpoint.join(states)
+        smooth = None if not smoothing else smooths[0] if len(smooths) == 1 else _checkpoint.join(smooths)
+        first_R = torch.cat([c["first_R"] for c in parts]).to(device)
+        first_t = torch.cat([c["first_t"] for c in parts]).to(device)
+    except Exception as exc:  # (the file changed since, or the states do not join: the rows as before)
+        names = ", ".join(s.name for s, c in zip(streams, cks) if c is not None)
+        warnings.warn(f"the checkpoints of {names} not used ({exc}): they go on from their CSV's rows, not exactly "
+                      f"as the uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
+        for s in streams:
+            s.checkpoint = None
+        return None
+    return state, smooth, first_R, first_t
+
+
+def _restore_streams(streams: list[_Stream]) -> None:
+    """Put back each stream's own bookkeeping after its checkpoint's row (:func:`_write_checkpoints`)."""
+    for s in streams:
+        assert s.checkpoint is not None
+        b = s.checkpoint["stream"]
+        s.low_count, s.smooth_restart = int(b["low_count"]), bool(b["smooth_restart"])
+        s.detection_warned = bool(b["detection_warned"])
+        s.near = None if b["near"] is None else b["near"].cpu().numpy()
+        s.from_checkpoint = True
 
 
 def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
@@ -2132,13 +2346,24 @@ def _track_opened(
     try:
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
         # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
+        if config.resume:  # (a video resumed from its checkpoint is tracked with its batch's others again)
+            for s in streams:
+                s.checkpoint = _load_checkpoint(s, output_paths(out_dir, s.name)["csv"], config, model)
+        again = _checkpoint_batches(streams)
+        grouped = {i for m in again for i in m}
         groups: dict[tuple[int, int, int], list[int]] = {}
         for i, s in enumerate(streams):
+            if i in grouped:
+                continue
             H, W = s.reader.info.height, s.reader.info.width
             levels = pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
             groups.setdefault((H, W, levels), []).append(i)
         batches = [m[i : i + n] for (H, W, _), m in groups.items()
                    for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
+        for m in reversed(again):  # (first; as many as max_batch and BATCH_PIXELS allow now: a part joined alone)
+            H, W = streams[m[0]].reader.info.height, streams[m[0]].reader.info.width
+            n = max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))
+            batches[:0] = [m[i : i + n] for i in range(0, len(m), n)]
         for members in batches:
             _reopen([streams[i] for i in members], config.convert, config.keep_going)
             for i in members:
@@ -2525,12 +2750,17 @@ def _track_group(
         # has ended leaves it before the next step (TrackerState.select), so that the batch shrinks as its videos end.
         live, live_paths, live_mesh = list(streams), list(paths), list(mesh_tmp)
         recover = None if detector is None else _Batched(detector, config.detector, _recovery_near(live, current))
+        joined = _joined(streams, config.smoothing is not None, device)  # (resumed from their checkpoints)
+        restore_at = None if joined is None else len(streams[0].replay) - 1  # type: ignore[arg-type]
+        checkpoint_from = 0 if online is None else online.max_frames  # (sooner: tracked again, _Stream.retrack)
         t_init = time.perf_counter() - t_start
-        t_track0 = time.perf_counter()
+        t_track0 = t_iter = time.perf_counter()
+        t_idle = 0.0  # the loop's time in which every live stream replayed rows from its CSV (timings_s.batch_fps)
         t = 0
         while True:
             replays = [s.replay if s.replay is not None and t < len(s.replay) else None for s in live]  # this frame's
             replaying = [r is not None for r in replays]  # (its row written already: drawn, not written again)
+            redrawn = [s for s, r in zip(live, replaying) if r and not s.retrack]  # (_Stream.t_replay)
             held = [None if s.retrack else r for s, r in zip(live, replays)]  # (put into the state from the CSV)
             if any(r is not None for r in held):
                 idx = [k for k, r in enumerate(held) if r is not None]
@@ -2563,9 +2793,17 @@ def _track_group(
                                  normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
                                  "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
                                  smooth)  # fmt: skip
-            if detector is not None and config.redetect_after > 0:
+            if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
+                state, smooth, first_R, first_t = joined
+                _restore_streams(live)
+                joined = None
+            elif detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
                                         [r is not None and t < len(r) - 1 for r in held])
+            if (t + 1) % CHECKPOINT_EVERY == 0 and t + 1 >= checkpoint_from:
+                if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
+                                          [not r for r in replaying]):  # fmt: skip
+                    checkpoint_from = sys.maxsize  # (warned: none for this batch)
             nxt = []
             for s in live:
                 if not s.done:
@@ -2585,12 +2823,16 @@ def _track_group(
                     if s.done:  # its decoder (file, threads, buffers) not kept; its stream leaves the batch below
                         s.reader.close()
                 nxt.append(s.frame())
+            now = time.perf_counter()  # (this frame's rows written, the next frames read)
+            for s in redrawn:
+                s.t_replay += now - t_iter
+            t_idle += (now - t_iter) if len(redrawn) == len(live) else 0.0
             if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
                 # that it shows finished where its container's count was short, long or unknown)
-                elapsed = max(time.perf_counter() - t_track0, 1e-9)
+                elapsed = time.perf_counter() - t_track0
                 for k, s in enumerate(streams):
                     total = s.frames if s.done and s.error is None else s.total
-                    fps = (s.tracked + s.tracked_again) / elapsed  # (its rows tracked again too: timings_s.fps)
+                    fps = (s.tracked + s.tracked_again) / max(elapsed - s.t_replay, 1e-9)  # (timings_s.fps)
                     progress(Progress(members[k], count, s.name, s.frames, total, fps, s.confidence))
             if all(s.done for s in live):
                 break
@@ -2608,11 +2850,17 @@ def _track_group(
                 nxt = [nxt[k] for k in keep]
             # (one video: its frame itself, not a copy stacked: 2 ms of CPU a 1080p frame; nothing changes a frame)
             frames = (nxt[0].unsqueeze(0) if len(nxt) == 1 else torch.stack(nxt)).to(device=device, dtype=dtype)
+            t_iter = time.perf_counter()
             if all(s.replay is not None and t < len(s.replay) and not s.retrack for s in live):
                 continue  # every live stream replays this frame from its CSV: nothing to track
             current.frames, current.asked = frames, {}
             state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
             _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
+            now = time.perf_counter()  # (a step for the streams whose row t is tracked: for the others, not theirs)
+            for s in live:
+                if s.replay is not None and t < len(s.replay) and not s.retrack:
+                    s.t_replay += now - t_iter
+            t_iter = now
         t_track = time.perf_counter() - t_track0
         _keep_final(state, live, layout, list(range(len(live))))
     except BaseException:
@@ -2624,7 +2872,7 @@ def _track_group(
     try:
         for s, p, mt in zip(streams, paths, mesh_tmp):
             if s.error is None:
-                summaries.append(_finalise(model, s, p, mt, config, streams, intr, t_init, t_track,
+                summaries.append(_finalise(model, s, p, mt, config, streams, intr, t_init, t_track, t_idle,
                                            run.tracker.num_levels))
             else:  # its rows so far stay in the partial CSV; nothing else of it is kept
                 _abandon(s)
@@ -2671,6 +2919,8 @@ def _open_outputs(
         _check_record_smoothing(loaded, s.settings)
     if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
         os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
+    if config.resume and s.checkpoint is not None:  # (its rows after the checkpoint: tracked again)
+        _cut_rows(p["csv"], int(s.checkpoint["rows"]))
     s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
     exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
     if exact and s.total is not None and s.csv.rows_done > s.total:
@@ -2771,6 +3021,8 @@ def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
             p[kind].unlink(missing_ok=True)
         partial_path(p["csv"]).unlink(missing_ok=True)
         _record_path(p["csv"]).unlink(missing_ok=True)
+        for ck in (_checkpoint_path(p["csv"]), _checkpoint_path(p["csv"]).with_suffix(".partial.tmp")):
+            ck.unlink(missing_ok=True)
         for folder in (p["meshes"], p["meshes"].with_name(p["meshes"].name + ".partial")):
             if folder.is_dir():
                 for f in _frame_meshes(folder):
@@ -2790,7 +3042,7 @@ def _abandon(s: _Stream) -> None:
 
 def _finalise(
     model: FaceModel, s: _Stream, p: dict[str, Path], mt: Path, config: JobConfig, streams: list[_Stream],
-    intr: Intrinsics, t_init: float, t_track: float, levels: int,
+    intr: Intrinsics, t_init: float, t_track: float, t_idle: float, levels: int,
 ) -> VideoSummary:
     """Close one video's outputs under their final names, the JSON last (a CSV without its JSON is resumed as
     partial), then remove its resume record. ``levels``: the pyramid levels the batch was tracked with
@@ -2820,11 +3072,14 @@ def _finalise(
     lost = [int(f) for f, ok in zip(rows[:, 0], rows[:, cols.index("success")]) if ok < 0.5]
     # (a resumed video's rows tracked again for the online start are tracked frames: their time is in t_track; counted
     # only its new rows, a 40-frame 160x120 pose sweep resumed after 20 rows gave 16-17 frames/s where the
-    # uninterrupted run gave 28-32, and 32-34 now)
-    fps = (s.tracked + s.tracked_again) / max(t_track, 1e-9) if t_track > 0 else 0.0
+    # uninterrupted run gave 28-32, and 32-34 now. Its rows replayed from the CSV are not, nor is the time spent
+    # redrawing them, s.t_replay: counted, a 200-frame sweep resumed after 170 rows gave 7.4 frames/s where the
+    # uninterrupted run gave 33; not counted, 32 where it gave 49: the 50 frames from its checkpoint a short run's)
+    fps = (s.tracked + s.tracked_again) / max(t_track - s.t_replay, 1e-9) if t_track > 0 else 0.0
     # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
-    # video to video of one batch where their lengths differ)
-    batch_fps = sum(x.tracked + x.tracked_again for x in streams) / max(t_track, 1e-9) if t_track > 0 else 0.0
+    # video to video of one batch where their lengths differ; without the time in which every video replayed)
+    batch_fps = (sum(x.tracked + x.tracked_again for x in streams) / max(t_track - t_idle, 1e-9) if t_track > 0
+                 else 0.0)  # fmt: skip
     sidecar = {
         "torchface_output": 1,
         "input": {
@@ -2849,7 +3104,7 @@ def _finalise(
         "start": _start_record(config, s),
         "pyramid_levels": levels,
         "initial_landmarks_px": s.landmarks.tolist(),  # (a file's missing point, NaN: [null, null])
-        "timings_s": {"initialise": t_init, "track": t_track, "fps": fps, "batch_fps": batch_fps},
+        "timings_s": {"initialise": t_init, "track": t_track, "replay": s.t_replay, "fps": fps, "batch_fps": batch_fps},
         "resumed": _resumed_record(s),
         "frames": int(len(rows)),
         "declared_frames": s.total,
@@ -2862,6 +3117,7 @@ def _finalise(
     }
     write_json(p["json"], sidecar)
     _record_path(p["csv"]).unlink(missing_ok=True)
+    _checkpoint_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
@@ -2878,7 +3134,9 @@ def _resumed_record(s: _Stream) -> dict | None:
     (:func:`_check_retracked`, which warns; the CSV keeps them, and the rows after them go on from the frames tracked
     again, so its rows are of two runs that disagree), with ``largest_gap`` over the rows tracked again (None where
     none was): ``mm``, ``degrees``, ``confidence``, ``frame`` (of the largest translation gap) and
-    ``other_status_from_frame`` (the first frame whose status or success differs, or None)."""
+    ``other_status_from_frame`` (the first frame whose status or success differs, or None); ``checkpoint``: whether
+    the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`: the rows after it exactly
+    the uninterrupted run's) rather than from the CSV's last row."""
     rows = 0 if s.csv is None else len(s.csv.previous)
     if rows == 0:
         return None
@@ -2886,7 +3144,8 @@ def _resumed_record(s: _Stream) -> dict | None:
     gap = None if s.tracked_again == 0 else {
         "mm": mm, "degrees": deg, "confidence": conf, "frame": at, "other_status_from_frame": first_other,
     }  # fmt: skip
-    return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap}
+    return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap,
+            "checkpoint": s.from_checkpoint}
 
 
 def _video_timing(s: _Stream) -> dict:
@@ -2932,8 +3191,9 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
 
     ``method``: ``"lookahead"`` (``--lookahead``), ``"online"`` (the online look-ahead start), or ``"landmark fit"``
     (``--no-online-refine``, no template management, or a resumed video the interrupted run had not re-anchored
-    within the online start's ``max_frames``: one resumed sooner is tracked again from its first frame,
-    :attr:`_Stream.retrack`).
+    within the online start's ``max_frames``, resumed from its CSV's rows: one resumed sooner is tracked again from
+    its first frame, :attr:`_Stream.retrack`, and one resumed from its checkpoint goes on from the online start's
+    state, :attr:`_Stream.from_checkpoint`).
     ``lookahead_keyframes`` (``"lookahead"`` only, else None): the frames the first fit was refined against; empty for
     a video whose head did not turn ``yaw_deg`` within the frames read ahead (to ``min_keyframes`` sides), which
     starts from the landmark fit.
@@ -2950,7 +3210,8 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     """
     if config.lookahead is not None:
         method = "lookahead"
-    elif _online_start(config) is not None and (s.replay is None or s.anchor is not None or s.retrack):
+    elif _online_start(config) is not None and (s.replay is None or s.anchor is not None or s.retrack
+                                                or s.from_checkpoint):  # fmt: skip
         method = "online"
     else:
         method = "landmark fit"
@@ -3060,6 +3321,9 @@ def _write_step(
     for k, row in new.items():
         streams[k].outputs()[0].write(row[None])
         streams[k].tracked += 1
+    for k, s in enumerate(streams):
+        if live[k]:
+            s.last_row = written[k]
     R, trans, R_mesh, t_mesh, shape, alpha, light = _drawn_pose(model, state, streams, written, columns, t)
     if smoothing is not None:  # (what is drawn: the smoothed pose; what is resampled from the frame: the raw one)
         R_s, trans_s, R_mesh_s, t_mesh_s, _, _, _ = _drawn_pose(model, state, streams, written, columns, t, "smooth_")

@@ -1,0 +1,209 @@
+"""``torchface track --resume`` of a video interrupted after the online start's frames, from the checkpoint the
+interrupted run wrote (``<stem>.state.partial``, ``torchface.job._write_checkpoints``): its tracker state with the
+templates and the mosaic, pose filter and bookkeeping, so that the resumed CSV and videos are the uninterrupted
+run's, byte for byte (from the CSV's last row alone, without the mosaic, they were not)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torchface.job
+from torchface.io import read_track_csv
+from torchface.job import JobConfig, track_videos
+from torchface.synth.io import read_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+from torchface.tracker.lookahead import LookaheadConfig
+from torchface.tracker.smoothing import SmoothingConfig
+
+#: Frames of the clips; the online start watches MAX_FRAMES of them, a checkpoint every EVERY frames (at 4 and 8
+#: rows), and the runs are interrupted after STOP rows: resumed from the checkpoint at 8 rows, rows 9-10 again.
+N, MAX_FRAMES, EVERY, STOP = 12, 4, 4, 10
+ONLINE = LookaheadConfig(max_frames=MAX_FRAMES)
+OUTPUTS = (".csv", "_overlay.mp4", "_normalised.mp4")
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    """Two clips of ``pose_sweep`` (160x120, its head turning), from its frames 0 and 3, with their first
+    frames' landmarks."""
+    root = tmp_path_factory.mktemp("sweep")
+    files = write_sequence(make_scenario("pose_sweep", 40, 160, 120), root)
+    gt = load_ground_truth(files.ground_truth)
+    frames = read_video(files.video, max_frames=N + 3)
+    out = []
+    for name, start in (("a", 0), ("b", 3)):
+        lm = root / f"{name}.csv"
+        np.savetxt(lm, gt.landmarks_px[start].numpy(), delimiter=",", header="x,y", comments="")
+        video = root / f"{name}.npy"
+        np.save(video, (frames[start : start + N].permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+        out.append((video, lm))
+    return out
+
+
+@pytest.fixture(autouse=True)
+def every(monkeypatch):
+    monkeypatch.setattr(torchface.job, "CHECKPOINT_EVERY", EVERY)
+
+
+def _config(out: Path, clips, **kwargs) -> JobConfig:
+    kwargs.setdefault("refine_first", ONLINE)
+    return JobConfig(out_dir=out, landmarks=tuple(lm for _, lm in clips), **kwargs)
+
+
+def _interrupted(clips, out: Path, **kwargs) -> None:
+    def interrupt(p):
+        if p.done == STOP and p.index == len(clips) - 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([v for v, _ in clips], _config(out, clips, **kwargs), progress=interrupt)
+    for v, _ in clips:
+        assert read_track_csv(out / f"{v.stem}.csv.partial")[1].shape[0] == STOP
+        assert (out / f"{v.stem}.state.partial").is_file()
+
+
+def _same_outputs(a: Path, b: Path, names) -> list[str]:
+    """The outputs of ``names`` whose bytes differ between folders ``a`` and ``b``."""
+    return [n + s for n in names for s in OUTPUTS if (a / (n + s)).read_bytes() != (b / (n + s)).read_bytes()]
+
+
+@pytest.mark.parametrize("count, smoothing, detector, turn", [
+    (1, None, False, 10.0), (2, SmoothingConfig(), False, 10.0), (1, None, True, 10.0), (1, None, False, 80.0),
+], ids=["alone", "batch-smooth", "detector", "not-reanchored"])  # fmt: skip
+def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monkeypatch, count, smoothing, detector,
+                                                          turn):  # fmt: skip
+    """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
+    video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a
+    detector re-detecting every other frame (one made after the checkpoint's row): resumed from the checkpoint at 8
+    rows (rows 9 and 10 cut off and tracked again), the CSVs, overlays and normalised videos are the uninterrupted
+    run's, byte for byte; the sidecar says so (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's
+    last row, without the template mosaic, the pose filter's state and the rest, the resumed rows parted from the
+    uninterrupted ones: byte-identical before this change only where rows < max_frames were tracked again. The
+    detector's re-fit left the state's cached angles untied from its parameters, which the join refused, and the
+    checkpoint was not used; a video the online start had not re-anchored (its head not turning ``turn`` degrees)
+    had its sidecar say ``landmark fit`` where the uninterrupted run said ``online``.)"""
+    clips = clips[:count]
+    names = [v.stem for v, _ in clips]
+    kwargs: dict = {"smoothing": smoothing, "meshes": count == 1 and not detector and turn == 10.0,
+                    "refine_first": LookaheadConfig(max_frames=MAX_FRAMES, yaw_deg=turn)}
+    if detector:
+        import torchface.detect
+
+        first = np.loadtxt(clips[0][1], delimiter=",", skiprows=1)
+        monkeypatch.setitem(torchface.detect.DETECTORS, "first", lambda: lambda image_rgb: first.copy())
+        kwargs.update(detector="first", redetect_after=2, redetect_below=1.01)  # (every frame low)
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips, **kwargs))
+    if detector:
+        assert json.loads((tmp_path / "ref" / "a.json").read_text())["redetections"] > 0
+    out = tmp_path / "out"
+    _interrupted(clips, out, **kwargs)
+    with open(out / f"{names[0]}.csv.partial", "a") as f:  # (a row cut off by a SIGKILL)
+        f.write(f"{STOP},0.4,1")
+    data = torch.load(out / f"{names[0]}.state.partial", weights_only=True)  # (tensors and plain data only)
+    assert data["rows"] == 8 and data["batch"] == names
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # (the checkpoints matched: no warning)
+        track_videos([v for v, _ in clips], _config(out, clips, resume=True, **kwargs))
+    assert _same_outputs(tmp_path / "ref", out, names) == []
+    if kwargs["meshes"]:  # (the meshes of the rows cut off written again)
+        ref, got = sorted((tmp_path / "ref" / "a_meshes").iterdir()), sorted((out / "a_meshes").iterdir())
+        assert [p.name for p in got] == [p.name for p in ref] and len(ref) == N
+        assert all(p.read_bytes() == q.read_bytes() for p, q in zip(ref, got))
+    for n in names:
+        side, ref = (json.loads((d / f"{n}.json").read_text()) for d in (out, tmp_path / "ref"))
+        assert side["resumed"]["checkpoint"] is True
+        assert not (out / f"{n}.state.partial").exists()
+        for d in (side, ref):  # (the rest of the sidecar, its start and final shape included, is the same too)
+            for key in ("resumed", "timings_s", "outputs", "redetections", "detector_calls"):
+                del d[key]
+            del d["config"]["resume"]
+        assert side == ref
+        assert side["start"]["method"] == "online"
+        assert turn == 10.0 or side["start"]["reanchored_at_frame"] is None
+
+
+def test_without_its_checkpoint_the_resumed_rows_part(clips, tmp_path):
+    """What the checkpoint is for: the same interruption resumed without it (removed) goes on from the CSV's last
+    row, and its rows part from the uninterrupted run's."""
+    clips = clips[:1]
+    track_videos([clips[0][0]], _config(tmp_path / "ref", clips))
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    (out / "a.state.partial").unlink()
+    track_videos([clips[0][0]], _config(out, clips, resume=True))
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
+    assert _same_outputs(tmp_path / "ref", out, ["a"])[:1] == ["a.csv"]
+
+
+@pytest.mark.parametrize("damage", ["row", "file"])
+def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_path, damage):
+    """A checkpoint whose last row is not the CSV's (a row edited) or that cannot be read (damaged) is not used:
+    one warning line naming it, and the video goes on from its CSV's rows, as before (none cut off)."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    if damage == "file":
+        ck.write_bytes(b"not a checkpoint")
+    else:
+        partial = out / "a.csv.partial"
+        lines = partial.read_text().splitlines(keepends=True)
+        cells = lines[8].split(",")  # (row 8: the checkpoint's last)
+        cells[2] = "0.5" if cells[2] != "0.5" else "0.25"
+        lines[8] = ",".join(cells)
+        partial.write_text("".join(lines))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
+    assert "\n" not in said[0]
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+
+
+def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, tmp_path):
+    """A batch's videos resumed with a smaller ``max_batch`` are tracked in parts of their batch, each part's states
+    joined alone: every video goes on from its checkpoint, without a warning, its rows those of the uninterrupted
+    run to float rounding (the batch's composition: not to the byte)."""
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([v for v, _ in clips], _config(out, clips, resume=True, max_batch=1))
+    for v, _ in clips:
+        assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] is True
+        ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
+
+
+def test_a_state_that_cannot_be_kept_tracks_on_without_checkpoints(clips, tmp_path, monkeypatch):
+    """A state holding what plain data cannot (here: ``to_plain`` refusing it, as it would a value of a kind added
+    to the state that it does not know) does not stop the tracking: one warning, no checkpoint, the outputs those
+    of a run with checkpoints."""
+    import torchface._checkpoint
+
+    clips = clips[:1]
+    track_videos([clips[0][0]], _config(tmp_path / "ref", clips))
+
+    def refuse(tree):
+        raise TypeError("cannot keep a Thing as plain data")
+
+    monkeypatch.setattr(torchface._checkpoint, "to_plain", refuse)
+    out = tmp_path / "out"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips))
+    said = [str(w.message) for w in caught if "checkpoint" in str(w.message)]
+    assert said == ["no checkpoints written (cannot keep a Thing as plain data): an interrupted run resumes from its "
+                    "CSV's rows"]  # fmt: skip
+    assert _same_outputs(tmp_path / "ref", out, ["a"]) == []

@@ -1,0 +1,111 @@
+"""``torchface._checkpoint``: a tracker state as plain data (``torch.load(weights_only=True)``) and states of some
+streams joined back into one batch, the inverse of ``select``, bit for bit."""
+
+from __future__ import annotations
+
+import io
+from dataclasses import replace
+
+import pytest
+import torch
+
+from torchface import _checkpoint
+from torchface.geometry.camera import Intrinsics
+from torchface.model.candide import load_candide3
+from torchface.synth.io import read_video
+from torchface.synth.scenarios import make_scenario
+from torchface.synth.sequence import load_ground_truth, write_sequence
+from torchface.tracker import TrackerConfig, initialise_managed, managed_step
+from torchface.tracker.lookahead import LookaheadConfig
+from torchface.tracker.smoothing import SmoothingConfig, SmoothingState, one_euro_step
+
+T = 8  # frames tracked: the online start (max_frames 4) has ended, the mosaic holds entries
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    """A 3-stream state after T frames of ``pose_sweep`` (160x120), the streams' clips shifted by 0, 2 and 4
+    frames (so that their states differ), the model, config and the next frames."""
+    files = write_sequence(make_scenario("pose_sweep", 60, 160, 120), tmp_path_factory.mktemp("sweep"))
+    gt = load_ground_truth(files.ground_truth)
+    frames = read_video(files.video, max_frames=T + 5)
+    clips = torch.stack([frames[o : o + T + 1] for o in (0, 2, 4)])  # (3, T + 1, 3, H, W)
+    lm = torch.stack([gt.landmarks_px[o] for o in (0, 2, 4)])
+    model, config = load_candide3(), TrackerConfig()
+    state, _ = initialise_managed(model, config, clips[:, 0], lm, Intrinsics.default(160, 120),
+                                  refine_first=LookaheadConfig(max_frames=4))  # fmt: skip
+    for i in range(1, T):
+        state, _ = managed_step(model, config, state, clips[:, i])
+    return model, config, state, clips[:, T]
+
+
+def test_join_of_selected_streams_is_the_state_bit_for_bit(tracked):
+    """``join([s.select([0]), s.select([1, 2])])`` is ``s`` (every tensor, templates and mosaic included, bit for
+    bit; the parameters still held twice, by the state and the management's cached angles) and the next step from
+    it gives the same state and result as from ``s``. Streams joined in another order are the select of that
+    order."""
+    model, config, state, nxt = tracked
+    assert state.management is not None and state.management.mosaic is not None
+    assert state.management.first is None and bool((state.management.mosaic.used.sum(1) > 1).any())
+    joined = _checkpoint.join([state.select([0]), state.select([1, 2])])
+    assert _checkpoint.same_tree(joined, state)
+    ypr = joined.management.params_ypr
+    assert (ypr is not None and ypr[0] is joined.params) == (state.management.params_ypr is not None
+                                                             and state.management.params_ypr[0] is state.params)
+    assert _checkpoint.same_tree(_checkpoint.join([state.select([2]), state.select([0])]), state.select([2, 0]))
+    a, ra = managed_step(model, config, state.select([0, 1, 2]), nxt)
+    b, rb = managed_step(model, config, joined, nxt)
+    assert _checkpoint.same_tree(a, b)
+    assert torch.equal(ra.rotation, rb.rotation) and torch.equal(ra.confidence, rb.confidence)
+
+
+def test_a_different_state_is_not_the_same_tree(tracked):
+    """``same_tree`` tells states apart (so that the test above can fail): another stream's state, or one value
+    changed in the mosaic."""
+    _, _, state, _ = tracked
+    assert not _checkpoint.same_tree(state.select([0]), state.select([1]))
+    ms = state.management
+    level = ms.mosaic.levels[0]
+    changed = level.bary.clone()
+    changed.view(-1)[0] += 1e-6
+    other = replace(level, bary=changed)
+    assert not _checkpoint.same_tree(level, other)
+
+
+def test_plain_data_round_trips_through_torch_save_weights_only(tracked):
+    """``to_plain`` then ``torch.save`` / ``torch.load(weights_only=True)`` then ``from_plain`` gives the state back,
+    bit for bit, and one of a smoother's pose filter."""
+    _, _, state, _ = tracked
+    part = state.select([1])
+    buffer = io.BytesIO()
+    torch.save(_checkpoint.to_plain(part), buffer)
+    buffer.seek(0)
+    back = _checkpoint.from_plain(torch.load(buffer, weights_only=True))
+    assert _checkpoint.same_tree(back, part)
+    config = SmoothingConfig()
+    x0, x1 = torch.zeros(2, 3, dtype=torch.float64), torch.ones(2, 3, dtype=torch.float64)
+    _, trans = one_euro_step(x0, None, 0.04, config.translation)
+    _, trans = one_euro_step(x1, trans, 0.04, config.translation)
+    smooth = SmoothingState(None, trans, None, torch.tensor([0.04, 0.04], dtype=torch.float64))
+    assert isinstance(smooth, SmoothingState)
+    buffer = io.BytesIO()
+    torch.save(_checkpoint.to_plain(smooth), buffer)
+    buffer.seek(0)
+    again = _checkpoint.from_plain(torch.load(buffer, weights_only=True))
+    assert _checkpoint.same_tree(again, smooth)
+    assert _checkpoint.same_tree(_checkpoint.join([smooth.select([0]), smooth.select([1])]), smooth)
+
+
+def test_states_that_do_not_go_together_are_refused(tracked):
+    """Parts of other kinds, or whose shared values differ (another intrinsics), are refused with a ValueError; so
+    is plain data naming a class that is not torchface's."""
+    _, _, state, _ = tracked
+    with pytest.raises(ValueError, match="other kinds"):
+        _checkpoint.join([state.select([0]), state.select([1]).management])
+    moved = replace(state.select([1]), intrinsics=Intrinsics.default(320, 240))
+    with pytest.raises(ValueError, match="shared value differs"):
+        _checkpoint.join([state.select([0]), moved])
+    plain = _checkpoint.to_plain(state.select([0]))
+    plain["dataclass"] = "subprocess:Popen"
+    with pytest.raises(ValueError, match="not a torchface class"):
+        _checkpoint.from_plain(plain)
