@@ -111,6 +111,56 @@ def test_a_start_whose_normalised_face_shows_too_few_patches_says_so(clip):
         assert torch.equal(getattr(first, name)[0], getattr(alone, name)[0]), name
 
 
+#: A detector's answer per stream at a restart (its frame marked by the value of pixel (0, 0, 0), as
+#: test_user_inputs' mixed detector): the landmarks (of the first frame's ``lm``) and the restart's reason.
+RESTART_KINDS = {
+    0.11: (lambda lm: lm, StartFailure.NONE),
+    0.12: (KINDS["no-face-found"][1], StartFailure.NO_LANDMARKS),
+    0.13: (KINDS["mirrored-landmarks"][1], StartFailure.NO_POSE),
+    0.14: (KINDS["face-too-small"][1], StartFailure.FACE_TOO_SMALL),
+    0.15: (KINDS["face-mostly-outside"][1], StartFailure.OUTSIDE_FRAME),
+}
+
+
+def _restart_reasons(frames: torch.Tensor, lm: torch.Tensor, marks: list[float]) -> list[tuple[list[int], list[int]]]:
+    """``(start_failure, status)`` of each step of ``frames`` 1, 2, 1, 2, ... (10 steps) that tried a restart, for
+    streams whose first landmarks are missing (each restarts from the detector) and whose frames carry ``marks``."""
+    batch = frames[:, None].repeat(1, len(marks), 1, 1, 1)
+    for j, mark in enumerate(marks):
+        batch[:, j, 0, 0, 0] = mark
+
+    def detect(images: torch.Tensor) -> torch.Tensor:
+        return torch.stack([RESTART_KINDS[round(float(b[0, 0, 0]), 2)][0](lm).clone() for b in images])
+
+    tracker = FaceTracker(CFG, detector=detect)
+    tracker.initialise(batch[0], torch.full((len(marks), 68, 2), float("nan")))
+    tried = []
+    for t in (1, 2) * 5:
+        result = tracker(batch[t])
+        if result.start_failure is not None:
+            tried.append((result.start_failure.tolist(), result.status.tolist()))
+    return tried
+
+
+def test_a_failed_restart_gives_each_stream_its_own_reason(clip):
+    """A detector's restart of five streams, one it starts and four it cannot (no face found; landmarks without a
+    pose, a face too small, mostly outside the frame: the initialisation of the found streams fails them): each
+    stream's ``start_failure`` is its own reason at every step that tried a restart (NONE for the started one, and
+    for it at the later restart too, which is not its), the failed streams stay LOST, and each reason is the one
+    that stream gets restarted alone (batch-consistent)."""
+    frames, lm = clip
+    marks = list(RESTART_KINDS)
+    tried = _restart_reasons(frames, lm, marks)
+    assert len(tried) == 2  # (the restarts at the recovery attempts: the 5th and 10th steps)
+    expected = [int(RESTART_KINDS[m][1]) for m in marks]
+    for codes, status in tried:
+        assert codes == expected
+        assert [s == int(TrackStatus.LOST) for s in status] == [c != 0 for c in expected]
+    for mark in marks[1:]:
+        alone = _restart_reasons(frames, lm, [mark])
+        assert [codes for codes, _ in alone] == [[int(RESTART_KINDS[mark][1])]] * 2, mark
+
+
 def test_functional_initialise_gives_the_reasons_too(clip):
     """The bare :func:`~torchface.tracker.initialise` (no template management) reports the same codes; a face mostly
     outside the frame fails there only for want of template points (TOO_FEW_POINTS), management's OUTSIDE_FRAME."""

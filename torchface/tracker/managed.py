@@ -1072,8 +1072,10 @@ def managed_step(
         The new state and the frame's :class:`~torchface.tracker.step.TrackResult`, whose ``confidence`` is the
         dissimilarity confidence, ``residual_confidence`` the solver's, ``dissimilarity`` the patch displacement
         and ``mosaic_entry`` the entry aligned against; lost streams have status LOST (``success`` False).
-        With ``config.template.enabled`` False it is :func:`~torchface.tracker.step.track_step` (confidence =
-        residual confidence, dissimilarity NaN, entry 0).
+        ``start_failure`` is None, except at a step where a detector's restart was tried: there it is ``(B,)``
+        int64, the :class:`~torchface.tracker.step.StartFailure` of each stream the restart did not start (they stay
+        LOST; NONE for the others). With ``config.template.enabled`` False it is
+        :func:`~torchface.tracker.step.track_step` (confidence = residual confidence, dissimilarity NaN, entry 0).
 
     Raises:
         ValueError: bad frames, or a state without management while management is enabled.
