@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import secrets
 import signal
 import sys
 from collections.abc import Callable, Iterator
@@ -79,16 +80,19 @@ def assets_folder() -> Path:
 
 @contextlib.contextmanager
 def written_whole(path: Path) -> Iterator[Path]:
-    """A temporary name beside ``path`` (``<stem>.partial<suffix>``, so that numpy and OpenCV keep the name as given)
-    to write the file to: renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full
-    disk), so that no truncated file is left under the final name, where a cache reader would take it for whole.
-    numpy's ``save`` / ``savez`` add ``.npy`` / ``.npz`` to a name without it: give them ``path`` with that suffix,
-    or write through ``tmp.open("wb")``.
+    """A temporary name beside ``path`` to write the file to, this writer's own (``<stem>.partial-<pid>-<random>
+    <suffix>``, without the space: two processes writing the same file at once, as benchmark.py's child runs its
+    frame cache, each write their own and the last rename wins, a whole file either way; the one name before was
+    shared, the first rename took the other's half-written file and a failed writer's cleanup deleted the other's):
+    renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full disk), so that no
+    truncated file is left under the final name, where a cache reader would take it for whole. It ends in ``path``'s
+    suffix, so that numpy and OpenCV keep the name as given; numpy's ``save`` / ``savez`` add ``.npy`` / ``.npz`` to a
+    name without it: give them ``path`` with that suffix, or write through ``tmp.open("wb")``.
 
     Example:
         >>> # with written_whole(Path("out/frames.npy")) as tmp: np.save(tmp, frames)
     """
-    tmp = path.with_name(f"{path.stem}.partial{path.suffix}")
+    tmp = path.with_name(f"{path.stem}.partial-{os.getpid()}-{secrets.token_hex(4)}{path.suffix}")
     try:
         yield tmp
         os.replace(tmp, path)
