@@ -536,7 +536,8 @@ def test_evaluate_load_series_leaves_a_bug_in_its_own_code_a_traceback(tmp_path,
     assert evaluate.load_series(path)[0].height == 48
     good = dict(np.load(path))
     for key, value in [("0/name", np.array("pose_sweep")), ("0/meta", np.array(["a", "b", "c"])),
-                       ("0/error", np.array(["x"] * 4)), ("0/success", np.zeros(4)), ("0/in_view", np.zeros(3, bool))]:
+                       ("0/error", np.array(["x"] * 4)), ("0/confidence", np.zeros(())),
+                       ("0/error", np.zeros(())), ("0/success", np.zeros(4)), ("0/in_view", np.zeros(3, bool))]:
         np.savez(tmp_path / "w.npz", **{**good, key: value})
         with pytest.raises(ValueError, match=f"w.npz: not a file of --save-series .*{key}"):
             evaluate.load_series(tmp_path / "w.npz")
