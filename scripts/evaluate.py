@@ -861,17 +861,12 @@ def _why_no_auroc(row: dict) -> str:
     return f"n/a (no frame below {GOOD_DEG:g} deg)"
 
 
-#: ``--size``'s type (:func:`_argtypes.frame_size`); an odd side is refused in main where a video is written (the
-#: cache, the long scenarios).
-_parse_size = frame_size
-
-
 def check_size_for_video(
     parser: argparse.ArgumentParser, size: tuple[int, int] | None, cache: str, names: list[str]
 ) -> None:
     """Refuse an odd ``--size`` where a video is written: only a video needs even sides (its codec): the sequence
     cache, and the long scenarios, streamed from a video even with ``--cache none``; the standard scenarios render
-    and track in memory at any size (:func:`_parse_size` leaves odd sizes to this check)."""
+    and track in memory at any size (:func:`_argtypes.frame_size` leaves odd sizes to this check)."""
     if size is None or not (size[0] % 2 or size[1] % 2):
         return
     on_video = [n for n in names if n in LONG_SCENARIOS]
@@ -907,7 +902,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
     parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
     parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
-    parser.add_argument("--size", type=_parse_size, default=None,
+    parser.add_argument("--size", type=frame_size, default=None,
                         help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
     parser.add_argument("--cache", default="out/sequences",
                         help="sequence cache folder (default out/sequences); 'none' renders in memory")

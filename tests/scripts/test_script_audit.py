@@ -556,11 +556,6 @@ def test_scripts_use_no_private_name_of_another_script():
         used = [f"{n.value.id}.{n.attr}" for n in ast.walk(tree) if isinstance(n, ast.Attribute)
                 and isinstance(n.value, ast.Name) and n.value.id in aliases and n.attr.startswith("_")]  # fmt: skip
         assert used == [], (path.name, used)
-    auroc = _load("confidence_auroc")
-    sys.path.insert(0, str(SCRIPTS))
-    import _argtypes
-
-    assert auroc.ev.main.__module__ == "evaluate" and _argtypes.frame_size("64X48") == (64, 48)
 
 
 def test_a_ctrl_c_while_a_script_imports_torch_is_one_line_with_status_130(tmp_path):
