@@ -1,5 +1,6 @@
 """Argument types and path and device checks shared by the scripts beside this file (imported with this folder put
-first on ``sys.path``)."""
+first on ``sys.path``, before the scripts' heavy imports: imported by a script run as a command, it makes a Ctrl-C
+during those imports one line and exit status 130, as :func:`run_command` does in ``main``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import signal
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import TracebackType
 from typing import TYPE_CHECKING, NoReturn
 
 if TYPE_CHECKING:
@@ -52,6 +54,36 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
         if previous is not None and previous is not signal.SIG_IGN:
             signal.signal(signal.SIGTERM, previous)
     raise SystemExit(status)
+
+
+def _interrupted_imports_in_one_line() -> None:
+    """Where the running program (``__main__``) is a script beside this file, a KeyboardInterrupt that reaches the
+    top level (a Ctrl-C during the script's imports: torch takes seconds to load, before :func:`run_command` runs;
+    a KeyboardInterrupt's traceback before) is one line on stderr and exit status :data:`EXIT_INTERRUPTED`; any other
+    exception goes to the hook before. Imported by tests or another program, nothing changes. (From ``sys.excepthook``
+    the exit is ``os._exit``, after flushing stdout and stderr: no ``atexit`` handlers run, harmless here, as only an
+    interrupt outside :func:`run_command`, before the script's work, reaches it. A SIGTERM during the imports kills
+    the process silently, as the signal's default does: status 143 in a shell.)"""
+    main = sys.modules.get("__main__")
+    where = getattr(main, "__file__", None)
+    if where is None or Path(where).resolve().parent != Path(__file__).resolve().parent:
+        return
+    previous = sys.excepthook
+
+    def hook(kind: type[BaseException], value: BaseException, traceback: TracebackType | None) -> None:
+        if not issubclass(kind, KeyboardInterrupt):
+            previous(kind, value, traceback)
+            return
+        print(f"\n{Path(sys.argv[0]).name}: interrupted", file=sys.stderr)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(EXIT_INTERRUPTED)
+
+    sys.excepthook = hook
+
+
+_interrupted_imports_in_one_line()
 
 
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:

@@ -40,14 +40,16 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _argtypes import file_problem, folder_problem, frame_size, integer, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import numpy as np
 import torch
 from torch import Tensor
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
-from _argtypes import file_problem, folder_problem, frame_size, integer, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402

@@ -74,6 +74,19 @@ from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import (  # noqa: E402
+    device_problem,
+    file_problem,
+    folder_problem,
+    frame_size,
+    integer,
+    run_command,
+    smoothing_settings,
+    written_whole,
+)
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -102,17 +115,6 @@ from torchface.tracker.module import FaceTracker
 from torchface.tracker.smoothing import SmoothingConfig, reanchored_streams, smooth_pose_series
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import (  # noqa: E402
-    device_problem,
-    file_problem,
-    folder_problem,
-    frame_size,
-    integer,
-    run_command,
-    smoothing_settings,
-    written_whole,
-)
 from peers import DEFAULT_TIMEOUT_S, MediaPipeTimeout, add_options, check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
