@@ -1,15 +1,18 @@
 """Argument types and path and device checks shared by the scripts beside this file (imported with this folder put
-first on ``sys.path``)."""
+first on ``sys.path``, before the scripts' heavy imports: imported by a script run as a command, it makes a Ctrl-C
+during those imports one line and exit status 130, as :func:`run_command` does in ``main``)."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
 import os
+import secrets
 import signal
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import TracebackType
 from typing import TYPE_CHECKING, NoReturn
 
 if TYPE_CHECKING:
@@ -53,6 +56,36 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
     raise SystemExit(status)
 
 
+def _interrupted_imports_in_one_line() -> None:
+    """Where the running program (``__main__``) is a script beside this file, a KeyboardInterrupt that reaches the
+    top level (a Ctrl-C during the script's imports: torch takes seconds to load, before :func:`run_command` runs;
+    a KeyboardInterrupt's traceback before) is one line on stderr and exit status :data:`EXIT_INTERRUPTED`; any other
+    exception goes to the hook before. Imported by tests or another program, nothing changes. (From ``sys.excepthook``
+    the exit is ``os._exit``, after flushing stdout and stderr: no ``atexit`` handlers run, harmless here, as only an
+    interrupt outside :func:`run_command`, before the script's work, reaches it. A SIGTERM during the imports kills
+    the process silently, as the signal's default does: status 143 in a shell.)"""
+    main = sys.modules.get("__main__")
+    where = getattr(main, "__file__", None)
+    if where is None or Path(where).resolve().parent != Path(__file__).resolve().parent:
+        return
+    previous = sys.excepthook
+
+    def hook(kind: type[BaseException], value: BaseException, traceback: TracebackType | None) -> None:
+        if not issubclass(kind, KeyboardInterrupt):
+            previous(kind, value, traceback)
+            return
+        print(f"\n{Path(sys.argv[0]).name}: interrupted", file=sys.stderr)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(EXIT_INTERRUPTED)
+
+    sys.excepthook = hook
+
+
+_interrupted_imports_in_one_line()
+
+
 def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
     """An argparse type: an integer >= ``minimum`` (and even if asked), else a one-line error (a count of 0 or
     less gave a traceback after the setup)."""
@@ -79,16 +112,19 @@ def assets_folder() -> Path:
 
 @contextlib.contextmanager
 def written_whole(path: Path) -> Iterator[Path]:
-    """A temporary name beside ``path`` (``<stem>.partial<suffix>``, so that numpy and OpenCV keep the name as given)
-    to write the file to: renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full
-    disk), so that no truncated file is left under the final name, where a cache reader would take it for whole.
-    numpy's ``save`` / ``savez`` add ``.npy`` / ``.npz`` to a name without it: give them ``path`` with that suffix,
-    or write through ``tmp.open("wb")``.
+    """A temporary name beside ``path`` to write the file to, this writer's own (``<stem>.partial-<pid>-<random>
+    <suffix>``, without the space: two processes writing the same file at once, as benchmark.py's child runs its
+    frame cache, each write their own and the last rename wins, a whole file either way; the one name before was
+    shared, the first rename took the other's half-written file and a failed writer's cleanup deleted the other's):
+    renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full disk), so that no
+    truncated file is left under the final name, where a cache reader would take it for whole. It ends in ``path``'s
+    suffix, so that numpy and OpenCV keep the name as given; numpy's ``save`` / ``savez`` add ``.npy`` / ``.npz`` to a
+    name without it: give them ``path`` with that suffix, or write through ``tmp.open("wb")``.
 
     Example:
         >>> # with written_whole(Path("out/frames.npy")) as tmp: np.save(tmp, frames)
     """
-    tmp = path.with_name(f"{path.stem}.partial{path.suffix}")
+    tmp = path.with_name(f"{path.stem}.partial-{os.getpid()}-{secrets.token_hex(4)}{path.suffix}")
     try:
         yield tmp
         os.replace(tmp, path)

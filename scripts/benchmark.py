@@ -40,13 +40,15 @@ import sys
 import time
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import torch
 
 from torchface.io.sidecar import write_json
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 from peers import MediaPipeTimeout, add_options, check_python, run_mediapipe  # noqa: E402
 
 

@@ -20,6 +20,12 @@ import sys
 import tempfile
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import file_problem  # noqa: E402
+from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import numpy as np
 import torch
 
@@ -27,11 +33,6 @@ from torchface.io.sidecar import write_json
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset, loader_throughput
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem  # noqa: E402
-from _argtypes import integer as _integer  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 SCENARIOS = ("expressions", "light_switch")
 

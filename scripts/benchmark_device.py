@@ -30,14 +30,16 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
-from torchface.io.sidecar import write_json
-
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmark.py and _argtypes beside this script
 from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
+
+import torch
+
+from torchface.io.sidecar import write_json
+
 from benchmark import _batch_list, _frames  # noqa: E402
 
 WARM_STEPS = 3

@@ -20,17 +20,18 @@ import sys
 import time
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import device_problem, file_problem  # noqa: E402
+from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import torch
 import trimesh
 
 from torchface.geometry.camera import Intrinsics
 from torchface.io.sidecar import write_json
 from torchface.rendering import rasterize
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import device_problem, file_problem  # noqa: E402
-from _argtypes import integer as _integer  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
 DEPTH_MM = 450.0

@@ -16,6 +16,11 @@ import sys
 import time
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import torch
 
 from torchface.geometry.camera import Intrinsics
@@ -25,10 +30,6 @@ from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.tracker import FaceTracker, TrackerConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import integer  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 
 def main(batches: list[int]) -> None:

@@ -18,6 +18,11 @@ import sys
 import time
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import integer as _integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import torch
 
 from torchface.geometry.camera import Intrinsics
@@ -26,10 +31,6 @@ from torchface.rendering.shading import render
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import iter_sequence
 from torchface.synth.subjects import get_subject
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import integer as _integer  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 
 def _times_ms(fn, repeats: int, frames: int) -> tuple[float, float]:

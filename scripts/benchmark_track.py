@@ -60,6 +60,9 @@ def _clips(cache: Path, count: int) -> dict[str, tuple[Path, Path]]:
         # each under a temporary name until whole (as the other scripts' outputs): no truncated file under its name
         with written_whole(video) as tmp:
             writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (W, H))
+            if not writer.isOpened():  # (it writes nothing then: the rename's FileNotFoundError traceback before)
+                raise SystemExit(f"benchmark_track.py: error: OpenCV cannot write {video} (cv2.VideoWriter did not "
+                                 "open: no mp4v encoder in this OpenCV build?)")  # fmt: skip
             for bgr in frames_bgr:
                 if scale != 1.0:
                     big = np.zeros((H, W, 3), np.uint8)

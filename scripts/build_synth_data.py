@@ -12,12 +12,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from torchface.synth.james import build_james_data
-from torchface.synth.subjects import build_candide_textures
-
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import assets_folder  # noqa: E402
 from _argtypes import run_command  # noqa: E402
+
+from torchface.synth.james import build_james_data
+from torchface.synth.subjects import build_candide_textures
 
 ROOT = Path(__file__).resolve().parents[1]
 #: What torchface.synth.james.build_james_data reads from the assets' james folder.

@@ -40,14 +40,16 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _argtypes import file_problem, folder_problem, frame_size, integer, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import numpy as np
 import torch
 from torch import Tensor
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as ev  # noqa: E402
-from _argtypes import file_problem, folder_problem, integer, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
 from torchface.model.candide import load_candide3  # noqa: E402
@@ -156,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", default="all", help=f"comma list from {', '.join(SCENARIOS)} (default all)")
     parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {', '.join(VARIANTS)} (default all three)")
     parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")
-    parser.add_argument("--size", type=ev._parse_size, default=None, help="WxH (default 640x480)")
+    parser.add_argument("--size", type=frame_size, default=None, help="WxH (default 640x480)")
     parser.add_argument("--cache", default="out/sequences",
                         help="sequence cache folder (default out/sequences; 'none': in memory)")
     parser.add_argument("--good", type=float, default=2.0, help="positives: error below this (deg)")

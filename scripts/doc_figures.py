@@ -62,6 +62,11 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
+from _argtypes import assets_folder, folder_problem, frame_size, integer  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import torch
 
 from torchface.geometry.camera import Intrinsics
@@ -75,9 +80,6 @@ from torchface.tracker import FaceTracker, TrackerConfig, face_width_px
 
 D = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
-from _argtypes import assets_folder, folder_problem, frame_size, integer  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 ASSETS = assets_folder()
 GRID = ASSETS / "grid"

@@ -69,9 +69,23 @@ import sys
 import tempfile
 import time
 import zipfile
+import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import (  # noqa: E402
+    device_problem,
+    file_problem,
+    folder_problem,
+    frame_size,
+    integer,
+    run_command,
+    smoothing_settings,
+    written_whole,
+)
 
 import numpy as np
 import torch
@@ -101,17 +115,6 @@ from torchface.tracker.module import FaceTracker
 from torchface.tracker.smoothing import SmoothingConfig, reanchored_streams, smooth_pose_series
 from torchface.tracker.step import TrackerConfig, TrackStatus
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import (  # noqa: E402
-    device_problem,
-    file_problem,
-    folder_problem,
-    frame_size,
-    integer,
-    run_command,
-    smoothing_settings,
-    written_whole,
-)
 from peers import DEFAULT_TIMEOUT_S, MediaPipeTimeout, add_options, check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: Ablation name -> how it changes the full configuration (without template management: no motion prediction,
@@ -743,23 +746,46 @@ def load_series(path: Path) -> list[FrameSeries]:
     """Read what :func:`save_series` wrote.
 
     Raises:
-        ValueError: ``path`` is not such a file (another file, a truncated one), naming it.
+        ValueError: ``path`` is not such a file (another file, a truncated one, arrays of other shapes or types),
+            naming it. Only the errors a wrong file gives are turned into it (a TypeError or AttributeError of a bug
+            here read as the user's wrong file before).
     """
     try:
-        with np.load(path) as z:
+        z = np.load(path)  # (no pickles: allow_pickle stays False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"an .npy array {z.shape}, not an .npz archive")
+        with z:
             count = len({k.split("/")[0] for k in z.files})
             out = []
             for i in range(count):
-                scenario, config, default = (str(x) for x in z[f"{i}/name"])
-                fields = {f: torch.from_numpy(z[f"{i}/{f}"]) for f in _SERIES_FIELDS}
-                ms, width, height = (float(x) for x in z[f"{i}/meta"])
+                scenario, config, default = (str(x) for x in _series_array(z, f"{i}/name", "U", 3))
+                ms, width, height = (float(x) for x in _series_array(z, f"{i}/meta", "f", 3))
+                T = len(_series_array(z, f"{i}/error", "f", None))
+                fields = {f: torch.from_numpy(_series_array(z, f"{i}/{f}", "b" if f in ("success", "in_view") else "f",
+                                                            T)) for f in _SERIES_FIELDS}  # fmt: skip
                 out.append(FrameSeries(scenario, config, default == "default", **fields, ms_per_frame=ms,
                                        width=int(width), height=int(height)))  # fmt: skip
-    except (OSError, ValueError, KeyError, EOFError, TypeError, AttributeError, zipfile.BadZipFile) as exc:
-        # (np.load's traceback: a text file, a truncated .npz, an .npy (no .files), another .npz (a missing key))
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        # (np.load's and zipfile's errors: a text file, a pickle, a truncated or damaged .npz, another .npz (a missing
+        # key); ValueError too from the checks of _series_array)
         why = " ".join(str(exc).split()) or type(exc).__name__
         raise ValueError(f"{path}: not a file of --save-series ({type(exc).__name__}: {why[:200]})") from None
     return out
+
+
+def _series_array(z: np.lib.npyio.NpzFile, key: str, kind: str, length: int | None) -> np.ndarray:
+    """``z[key]``, checked to be of shape ``(length,)`` (any length where None) and numpy dtype kind ``kind`` (``U``
+    text, ``f`` float, ``b`` bool), as :func:`save_series` writes it.
+
+    Raises:
+        ValueError: it is not (naming the key, what was expected and what it holds).
+        KeyError: ``z`` has no ``key``.
+    """
+    a = z[key]
+    if a.ndim != 1 or (length is not None and len(a) != length) or a.dtype.kind != kind:
+        expected = {"U": "text", "f": "float", "b": "bool"}[kind]
+        raise ValueError(f"{key} must be ({'T' if length is None else length},) {expected}, got {a.shape} {a.dtype}")
+    return a
 
 
 def auroc_row(label: str, series: list[FrameSeries], successful_only: bool = False) -> dict[str, float]:
@@ -837,17 +863,12 @@ def _why_no_auroc(row: dict) -> str:
     return f"n/a (no frame below {GOOD_DEG:g} deg)"
 
 
-#: ``--size``'s type (:func:`_argtypes.frame_size`); an odd side is refused in main where a video is written (the
-#: cache, the long scenarios).
-_parse_size = frame_size
-
-
 def check_size_for_video(
     parser: argparse.ArgumentParser, size: tuple[int, int] | None, cache: str, names: list[str]
 ) -> None:
     """Refuse an odd ``--size`` where a video is written: only a video needs even sides (its codec): the sequence
     cache, and the long scenarios, streamed from a video even with ``--cache none``; the standard scenarios render
-    and track in memory at any size (:func:`_parse_size` leaves odd sizes to this check)."""
+    and track in memory at any size (:func:`_argtypes.frame_size` leaves odd sizes to this check)."""
     if size is None or not (size[0] % 2 or size[1] % 2):
         return
     on_video = [n for n in names if n in LONG_SCENARIOS]
@@ -883,7 +904,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
     parser.add_argument("--frames", type=int, help="frames per standard scenario (default: each one's full length)")
     parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
-    parser.add_argument("--size", type=_parse_size, default=None,
+    parser.add_argument("--size", type=frame_size, default=None,
                         help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
     parser.add_argument("--cache", default="out/sequences",
                         help="sequence cache folder (default out/sequences); 'none' renders in memory")

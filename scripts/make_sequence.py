@@ -20,6 +20,11 @@ import sys
 import time
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import folder_problem  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 from torchface.synth.scenarios import (
     ALL_SCENARIOS,
     LONG_RUN_MIN_FRAMES,
@@ -30,10 +35,6 @@ from torchface.synth.scenarios import (
     scenario_size,
 )
 from torchface.synth.sequence import write_sequence
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import folder_problem  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

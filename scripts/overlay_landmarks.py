@@ -15,6 +15,11 @@ import argparse
 import sys
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import cv2
 import numpy as np
 import torch
@@ -23,10 +28,6 @@ from torchface.geometry.projection import project_points
 from torchface.geometry.transforms import transform_points
 from torchface.synth.io import frames_to_uint8, iter_video_uint8
 from torchface.synth.sequence import load_ground_truth
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import folder_problem, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 # iBUG-68 polylines: (start, end, closed).
 _GROUPS = ((0, 17, False), (17, 22, False), (22, 27, False), (27, 31, False), (31, 36, False),

@@ -25,6 +25,11 @@ import sys
 import time
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
+from _argtypes import assets_folder, folder_problem, smoothing_settings, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import cv2
 import numpy as np
 import torch
@@ -39,9 +44,6 @@ from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.synth.metrics import rotation_jitter_deg
 from torchface.tracker.smoothing import SmoothingConfig, smooth_pose_series
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import assets_folder, folder_problem, smoothing_settings, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 from peers import MediaPipeTimeout, add_options, check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
 #: The rotation matrix's columns in torchface's CSV (torchface.io.table), row by row.

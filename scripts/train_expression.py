@@ -54,6 +54,11 @@ from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
+# _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
+from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import run_command  # noqa: E402
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -73,10 +78,6 @@ from torchface.synth.labelled import (
 )
 from torchface.synth.subjects import Subject, candide_subject
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
 
 
 @dataclass(frozen=True)

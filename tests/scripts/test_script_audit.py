@@ -440,3 +440,147 @@ def test_evaluate_keeps_the_figures_so_far_when_the_final_json_write_fails(tmp_p
     with pytest.raises(OSError):
         evaluate.main(argv)
     assert not out.exists() and "expressions" in json.loads((tmp_path / "eval.json.partial").read_text())
+
+
+def test_two_writers_of_one_file_each_write_their_own_temporary_file(tmp_path):
+    """``written_whole``'s temporary name was ``<stem>.partial<suffix>`` in every process: two runs writing the same
+    file at once (benchmark.py's frame cache, shared by its child runs) wrote into one temporary file, the first to
+    finish renamed the other's half-written one into place (the other's rename: FileNotFoundError), and a failed
+    one's cleanup deleted the other's. Now each writer's temporary name is its own, beside the file, ending in its
+    suffix (numpy and OpenCV keep the name), and removed when its block raises."""
+    import subprocess
+
+    sys.path.insert(0, str(SCRIPTS))
+    import _argtypes
+
+    out = tmp_path / "frames.npy"
+    with _argtypes.written_whole(out) as a, _argtypes.written_whole(out) as b:
+        assert a != b and a.parent == b.parent == tmp_path and a.suffix == b.suffix == ".npy", (a, b)
+        assert ".partial" in a.name and ".partial" in b.name
+        a.write_text("first")
+        b.write_text("second")
+    assert out.read_text() == "first" and list(tmp_path.iterdir()) == [out]  # (b renamed first, then a)
+    with _argtypes.written_whole(out) as a:
+        a.write_text("whole")
+        with pytest.raises(KeyboardInterrupt), _argtypes.written_whole(out) as b:
+            b.write_text("half")
+            raise KeyboardInterrupt
+        assert not b.exists() and a.read_text() == "whole"  # (the failed writer's cleanup left the other's file)
+    assert out.read_text() == "whole" and list(tmp_path.iterdir()) == [out]
+    code = (f"import pathlib, sys; sys.path.insert(0, {str(SCRIPTS)!r}); import _argtypes\n"
+            f"with _argtypes.written_whole(pathlib.Path({str(out)!r})) as t: t.write_text('other'); print(t)")  # fmt: skip
+    with _argtypes.written_whole(out) as a:
+        a.write_text("this")
+        other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        assert other.returncode == 0, other.stderr
+        assert Path(other.stdout.strip()) != a and a.read_text() == "this" and out.read_text() == "other"
+    assert out.read_text() == "this" and list(tmp_path.iterdir()) == [out]
+
+
+def test_benchmark_track_says_in_one_line_that_opencv_cannot_write_its_clip(tmp_path, monkeypatch):
+    """Where ``cv2.VideoWriter`` cannot open (its build lacks the mp4v codec) it writes nothing, and the rename of
+    the clip's temporary file was a FileNotFoundError's traceback."""
+    import argparse
+
+    import cv2
+    import torch
+
+    import torchface.synth.sequence as sequence
+
+    track = _load("benchmark_track")
+    monkeypatch.setattr(sequence, "render_sequence", lambda spec: (torch.rand(2, 3, 480, 640), argparse.Namespace(
+        landmarks_px=torch.zeros(2, 68, 2))))  # fmt: skip
+
+    class NoCodec:
+        fourcc = staticmethod(cv2.VideoWriter_fourcc)
+
+        def __init__(self, *args: object) -> None:
+            pass
+
+        def isOpened(self) -> bool:
+            return False
+
+        def write(self, image: object) -> None:
+            pass
+
+        def release(self) -> None:
+            pass
+
+    monkeypatch.setattr(cv2, "VideoWriter", NoCodec)
+    with pytest.raises(SystemExit) as info:
+        track._clips(tmp_path, 2)
+    video = tmp_path / "track_pose_sweep_640x480_2.mp4"
+    assert str(info.value.code) == (f"benchmark_track.py: error: OpenCV cannot write {video} (cv2.VideoWriter did "
+                                    "not open: no mp4v encoder in this OpenCV build?)")  # fmt: skip
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_evaluate_load_series_leaves_a_bug_in_its_own_code_a_traceback(tmp_path, monkeypatch):
+    """``load_series`` turned any TypeError and AttributeError into "not a file of --save-series", so a bug in the
+    loading code read as the user's wrong file. Now only what a wrong file raises is, and a wrong file whose arrays
+    have the wrong shapes or types (TypeError before) is named as one by the checks."""
+    import numpy as np
+    import torch
+
+    evaluate = _load("evaluate")
+    t = torch.arange(4, dtype=torch.float64)
+    path = tmp_path / "s.npz"
+    evaluate.save_series(path, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64, 48)])
+    for kind in (TypeError, AttributeError):
+        def bug(*args, kind=kind, **kwargs):
+            raise kind("a bug")
+
+        with monkeypatch.context() as m, pytest.raises(kind, match="a bug"):
+            m.setattr(evaluate, "FrameSeries", bug)
+            evaluate.load_series(path)
+    assert evaluate.load_series(path)[0].height == 48
+    good = dict(np.load(path))
+    for key, value in [("0/name", np.array("pose_sweep")), ("0/meta", np.array(["a", "b", "c"])),
+                       ("0/error", np.array(["x"] * 4)), ("0/confidence", np.zeros(())),
+                       ("0/error", np.zeros(())), ("0/success", np.zeros(4)), ("0/in_view", np.zeros(3, bool))]:
+        np.savez(tmp_path / "w.npz", **{**good, key: value})
+        with pytest.raises(ValueError, match=f"w.npz: not a file of --save-series .*{key}"):
+            evaluate.load_series(tmp_path / "w.npz")
+
+
+def test_scripts_use_no_private_name_of_another_script():
+    """confidence_auroc.py took ``--size``'s type from evaluate.py's private alias ``ev._parse_size``; the shared
+    argument types are _argtypes.py's."""
+    import ast
+
+    scripts = {p.stem for p in SCRIPTS.glob("*.py")}
+    for path in sorted(SCRIPTS.glob("*.py")):
+        tree = ast.parse(path.read_text())
+        aliases = {a.asname or a.name for node in ast.walk(tree) if isinstance(node, ast.Import)
+                   for a in node.names if a.name in scripts}  # fmt: skip
+        used = [f"{n.value.id}.{n.attr}" for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+                and isinstance(n.value, ast.Name) and n.value.id in aliases and n.attr.startswith("_")]  # fmt: skip
+        assert used == [], (path.name, used)
+
+
+def test_a_ctrl_c_while_a_script_imports_torch_is_one_line_with_status_130(tmp_path):
+    """A Ctrl-C during a script's top-of-file imports (torch takes seconds to load) printed a KeyboardInterrupt's
+    traceback: ``run_command`` catches it only in ``main``. Each script imports _argtypes first, which, in a script
+    run as a command, makes it one line and exit status 130. (A ``torch`` that raises KeyboardInterrupt when
+    imported stands in for the Ctrl-C.)"""
+    import ast
+    import os
+    import subprocess
+
+    (tmp_path / "torch.py").write_text("raise KeyboardInterrupt\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(SCRIPTS.parent)])}
+    stopped = []
+    for path in sorted(SCRIPTS.glob("*.py")):
+        if 'if __name__ == "__main__":' not in path.read_text():
+            continue
+        run = subprocess.run([sys.executable, str(path), "--help"], capture_output=True, text=True, env=env,
+                             timeout=60)  # fmt: skip
+        top = {a.name.split(".")[0] for n in ast.parse(path.read_text()).body if isinstance(n, ast.Import)
+               for a in n.names} | {n.module.split(".")[0] for n in ast.parse(path.read_text()).body
+                                    if isinstance(n, ast.ImportFrom) and n.module}  # fmt: skip
+        if top & {"torch", "torchface", "evaluate", "training_hooks"}:  # (each imports torch)
+            assert (run.returncode, run.stderr.strip()) == (130, f"{path.name}: interrupted"), (path.name, run.stderr)
+            stopped.append(path.name)
+        else:  # (benchmark_track.py imports torch only in the functions that need it)
+            assert run.returncode == 0 and "usage:" in run.stdout, (path.name, run.stderr)
+    assert len(stopped) >= 13 and "evaluate.py" in stopped, stopped
