@@ -133,7 +133,7 @@ from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from functools import lru_cache, partial
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -164,7 +164,14 @@ from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, loo
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.smoothing import SmoothingConfig, SmoothingState, one_euro_rotation_step, one_euro_step
-from torchface.tracker.step import TrackerConfig, TrackerState, TrackResult, TrackStatus, pyramid_for_faces
+from torchface.tracker.step import (
+    StartFailure,
+    TrackerConfig,
+    TrackerState,
+    TrackResult,
+    TrackStatus,
+    pyramid_for_faces,
+)
 from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
 from torchface.visualise.plot import plot_track
 
@@ -1035,6 +1042,9 @@ class _Stream:
     # the first frame tracked: the first where the detector found a face (0: the first frame). The tracking loop
     # counts frames from it (its stream's t = frame - start); the rows before it have no estimate (_no_face_row)
     start: int = 0
+    # why its start (at frame ``start``) failed, NONE where it started (TrackResult.start_failure): the warning's
+    # reason and the sidecar's start.failure
+    start_failure: StartFailure = StartFailure.NONE
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
     # and their 8-bit BGR images as read (FrameReader.image; None: drawn from the frame converted back), which the
@@ -2731,8 +2741,10 @@ def _track_group(
             fit = _with_recorded_fits(fit, list(anchored.items()))
         state, result = initialise_managed(model, run.tracker, frames, lm, intr, fit=fit,
                                            refine_first=online)  # fmt: skip
+        for s, code in zip(streams, cast(Tensor, result.start_failure).tolist()):  # (initialise's: always set)
+            s.start_failure = StartFailure(code)
         # (a detector starts a failed stream afresh only with template management: managed_step's restart)
-        _warn_failed_starts(streams, result.success, detector is not None and config.tracker.template.enabled)
+        _warn_failed_starts(streams, detector is not None and config.tracker.template.enabled)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
         if online is not None and any(s.replay is not None and not s.retrack for s in streams):
@@ -3167,22 +3179,21 @@ def _video_timing(s: _Stream) -> dict:
     }  # fmt: skip
 
 
-def _warn_failed_starts(streams: list[_Stream], success: Tensor, restarts: bool) -> None:
-    """Warn (one line per video) where the start from the first frame's landmarks failed (``initialise``: landmarks
-    that no face fits, at one point, collinear or mirrored; a face upside down in the frame starts:
-    :func:`fit_landmarks` retries from its landmarks' roll), a face too small, a frame without texture there, such
-    as a black one; with template management, a face mostly outside the frame): every row of that video was written unusable (``success`` 0) with nothing said but the summary's lost count. ``restarts``: a
-    detector starts such a stream afresh (with template management only: without it, its rows stay unusable, and
-    the warning said it would be lost until the detector found a face)."""
-    for s, ok in zip(streams, success.tolist()):
-        if ok or s.replay is not None:  # (a resumed video's start failed in the interrupted run too: said then)
+def _warn_failed_starts(streams: list[_Stream], restarts: bool) -> None:
+    """Warn (one line per video) where the start from the first frame's landmarks failed, with its reason
+    (:attr:`_Stream.start_failure`, :class:`~torchface.tracker.step.StartFailure`: its name and
+    :attr:`~torchface.tracker.step.StartFailure.reason`, such as landmarks that no face fits, a black first frame, a
+    face mostly outside the frame): every row of that video was written unusable (``success`` 0) with nothing said
+    but the summary's lost count, and the warning guessed the cause among them all. ``restarts``: a detector starts
+    such a stream afresh (with template management only: without it, its rows stay unusable, and the warning said it
+    would be lost until the detector found a face)."""
+    for s in streams:
+        if s.start_failure == StartFailure.NONE or s.replay is not None:  # (a resumed video's: said in its first run)
             continue
         then = ("it is lost until the detector finds a face it can start from" if restarts else
                 "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
-        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed (landmarks that no face "
-                      f"fits, such as points at one spot, on one line or mirrored, or that put the face mostly "
-                      f"outside the frame, or a face too small or without texture there: a black frame): {then}",
-                      RuntimeWarning, stacklevel=3)  # fmt: skip
+        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed ({s.start_failure.name}): "
+                      f"{s.start_failure.reason}; {then}", RuntimeWarning, stacklevel=3)
 
 
 def _start_record(config: JobConfig, s: _Stream) -> dict:
@@ -3207,6 +3218,11 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
     are the coefficients that place the mesh. The rows up to and including that frame (its row holds the estimate made
     before the re-anchoring) were tracked with ``first_shape_coeffs`` and place the mesh with their own pose
     (:func:`_drawn_pose`).
+    ``failure``: why the start at ``first_frame`` failed (:attr:`_Stream.start_failure`), ``{"name": ..., "reason":
+    ...}`` (:class:`~torchface.tracker.step.StartFailure`'s name, such as ``"TOO_FEW_POINTS"``, and its
+    :attr:`~torchface.tracker.step.StartFailure.reason`), or None where it started: its rows are unusable (``success``
+    0) from there, until a detector starts it afresh (with template management; a restart does not change it). A
+    resumed video's is that of its start made again from the same frame and landmarks.
     """
     if config.lookahead is not None:
         method = "lookahead"
@@ -3226,7 +3242,9 @@ def _start_record(config: JobConfig, s: _Stream) -> dict:
         "head_translation": None if anchor is None else anchor["head_translation"],
         "neutral_anim_coeffs": s.final_neutral,
         "first_shape_coeffs": s.first_shape,
-    }
+        "failure": None if s.start_failure == StartFailure.NONE else {"name": s.start_failure.name,
+                                                                      "reason": s.start_failure.reason},
+    }  # fmt: skip
 
 
 def _lookahead_fit(

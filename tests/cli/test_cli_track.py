@@ -1903,24 +1903,66 @@ def test_progress_display_on_a_terminal_redraws_only_the_videos_being_tracked(mo
     assert len(finished) == N  # each finished video's line written once
 
 
-def test_a_video_whose_start_fails_is_warned_about(clip, tmp_path):
+def test_a_video_whose_start_fails_is_warned_about_with_its_reason(clip, tmp_path):
     """Landmarks given for a first frame that is black (a fade-in): the start fails (no texture there) and every row
     was written unusable (success 0, confidence 0) with nothing said but the summary's lost count. The run now warns
-    about that video, one line naming it; the batch's other video, which starts, is not named."""
+    about that video, one line naming it; the batch's other videos, one that starts and one whose landmarks lie at
+    one point (no pose), are named or not as their own starts say. The warning guessed the cause in general words
+    (one line for every cause: landmarks no face fits, a face outside the frame, a black frame) and the sidecar said
+    nothing: each names its own reason now (StartFailure's name and words), the sidecar's ``start.failure`` too
+    (None where it started)."""
     import warnings
+
+    from torchface.tracker import StartFailure
 
     video, lm, _ = clip
     frames = _clip_frames_uint8(video, 4)
     black = tmp_path / "black.npy"
     np.save(black, np.concatenate([np.zeros_like(frames[:1]), frames[1:]]))
     good = _short_npy(video, tmp_path / "good.npy", 4)
+    spot = _short_npy(video, tmp_path / "spot.npy", 4)
+    at_one_point = tmp_path / "spot.csv"
+    np.savetxt(at_one_point, np.full((68, 2), [80.0, 60.0]), delimiter=",", header="x,y", comments="")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        summaries = track_videos([black, good], JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm)))
+        summaries = track_videos([black, good, spot],
+                                 JobConfig(out_dir=tmp_path / "out", landmarks=(lm, lm, at_one_point)))
     said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith("black: the start from the landmarks of frame 0 failed"), said
-    assert "give the landmarks of a frame that shows the face" in said[0]
-    assert [s.lost for s in summaries] == [4, 0]
+    assert len(said) == 2, said
+    dark = StartFailure.TOO_FEW_POINTS
+    assert said[0] == (f"black: the start from the landmarks of frame 0 failed (TOO_FEW_POINTS): {dark.reason}; every "
+                       f"row is unusable (success 0): give the landmarks of a frame that shows the face")
+    assert said[1].startswith(f"spot: the start from the landmarks of frame 0 failed (NO_POSE): "
+                              f"{StartFailure.NO_POSE.reason}; "), said[1]
+    assert "outside the frame" not in said[0] and "texture" not in said[1]
+    assert [s.lost for s in summaries] == [4, 0, 4]
+    failure = {name: json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]["failure"]
+               for name in ("black", "good", "spot")}
+    assert failure == {"black": {"name": "TOO_FEW_POINTS", "reason": dark.reason}, "good": None,
+                       "spot": {"name": "NO_POSE", "reason": StartFailure.NO_POSE.reason}}, failure
+
+
+def test_a_resumed_video_whose_start_failed_keeps_its_reason(clip, tmp_path):
+    """A video whose start failed (a black first frame), interrupted after 3 of its 6 rows and resumed: the resumed
+    run warns no more (its first run did) and its sidecar's ``start.failure`` is the uninterrupted run's, the start
+    made again from the same frame and landmarks."""
+    import warnings
+
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 6)
+    black = tmp_path / "black.npy"
+    np.save(black, np.concatenate([np.zeros_like(frames[:1]), frames[1:]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        track_videos([black], JobConfig(out_dir=tmp_path / "ref", landmarks=(lm,)))
+        _interrupted(black, tmp_path / "out", lm, 3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([black], JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), resume=True))
+    assert not [w for w in caught if "start from the landmarks" in str(w.message)]
+    ref, side = (json.loads(output_paths(tmp_path / d, "black")["json"].read_text()) for d in ("ref", "out"))
+    assert side["resumed"] and side["frames"] == 6
+    assert side["start"]["failure"] == ref["start"]["failure"] and ref["start"]["failure"]["name"] == "TOO_FEW_POINTS"
 
 
 def test_a_detected_face_mostly_outside_the_frame_is_a_failed_start_warned_about(clip, tmp_path, monkeypatch):
@@ -1941,8 +1983,11 @@ def test_a_detected_face_mostly_outside_the_frame_is_a_failed_start_warned_about
         warnings.simplefilter("always")
         track_videos([short], JobConfig(out_dir=tmp_path / "out", detector="half", redetect_after=2))
     said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith("half: the start from the landmarks of frame 0 failed"), said
-    assert "mostly outside the frame" in said[0]
+    assert len(said) == 1 and said[0].startswith("half: the start from the landmarks of frame 0 failed (OUTSIDE_FRAME): "
+                                                 "the fitted face lies mostly outside the frame"), said
+    assert "texture" not in said[0]  # (its reason alone: the warning listed every cause it could be)
+    start = json.loads(output_paths(tmp_path / "out", "half")["json"].read_text())["start"]
+    assert start["failure"]["name"] == "OUTSIDE_FRAME", start["failure"]
     cols, rows = read_track_csv(output_paths(tmp_path / "out", "half")["csv"])
     assert not rows[:, cols.index("success")].any() and float(rows[:, cols.index("confidence")].max()) == 0.0
 
