@@ -7,10 +7,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import secrets
 import signal
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, NoReturn
@@ -110,8 +109,7 @@ def assets_folder() -> Path:
     return Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets")
 
 
-@contextlib.contextmanager
-def written_whole(path: Path) -> Iterator[Path]:
+def written_whole(path: Path) -> contextlib.AbstractContextManager[Path]:
     """A temporary name beside ``path`` to write the file to, this writer's own (``<stem>.partial-<pid>-<random>
     <suffix>``, without the space: two processes writing the same file at once, as benchmark.py's child runs its
     frame cache, each write their own and the last rename wins, a whole file either way; the one name before was
@@ -119,17 +117,24 @@ def written_whole(path: Path) -> Iterator[Path]:
     renamed onto ``path`` when the block ends, removed when it raises (an interrupt, a full disk), so that no
     truncated file is left under the final name, where a cache reader would take it for whole. It ends in ``path``'s
     suffix, so that numpy and OpenCV keep the name as given; numpy's ``save`` / ``savez`` add ``.npy`` / ``.npz`` to a
-    name without it: give them ``path`` with that suffix, or write through ``tmp.open("wb")``.
+    name without it: give them ``path`` with that suffix, or write through ``tmp.open("wb")``. The package's
+    :func:`torchface._atomic.written_whole`, which its own writers (the synthetic sequences) use too.
 
     Example:
         >>> # with written_whole(Path("out/frames.npy")) as tmp: np.save(tmp, frames)
     """
-    tmp = path.with_name(f"{path.stem}.partial-{os.getpid()}-{secrets.token_hex(4)}{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    from torchface._atomic import written_whole as whole
+
+    return whole(path)
+
+
+def remove_dead_partials(folder: Path) -> list[Path]:
+    """Remove from ``folder`` (a folder the script owns, as benchmark.py's frame cache) the temporary files of
+    :func:`written_whole` left by runs killed outright (``kill -9``: no cleanup, a new name each run) whose process
+    is no longer running, and nothing else: :func:`torchface._atomic.remove_dead_partials`. Returns them."""
+    from torchface._atomic import remove_dead_partials as remove
+
+    return remove(folder)
 
 
 def frame_size(text: str) -> tuple[int, int]:

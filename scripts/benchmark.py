@@ -42,7 +42,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, remove_dead_partials, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import torch
@@ -52,11 +52,17 @@ from torchface.io.sidecar import write_json
 from peers import MediaPipeTimeout, add_options, check_python, run_mediapipe  # noqa: E402
 
 
-def _frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
+def pose_sweep_frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
+    """The first ``count`` frames of the ``pose_sweep`` scenario at ``width`` x ``height``, ``(count, 3, H, W)``
+    float in ``[0, 1]``, their ground-truth landmarks ``(count, 68, 2)`` (pixels) and the intrinsics: read from
+    ``cache`` (``bench_pose_sweep_<W>x<H>_<count>.pt``), rendered and saved there first when missing (benchmark.py's
+    and benchmark_device.py's frames). The temporary files that runs killed outright (``kill -9``) left in ``cache``
+    are removed first where their process is no longer running (:func:`_argtypes.remove_dead_partials`)."""
     from torchface.synth.scenarios import make_scenario
     from torchface.synth.sequence import render_sequence
 
     path = cache / f"bench_pose_sweep_{width}x{height}_{count}.pt"
+    remove_dead_partials(cache)  # (a new name each run: they would pile up)
     if path.exists():
         d = torch.load(path, weights_only=False)
         return d["frames"], d["landmarks"], d["intrinsics"]
@@ -77,7 +83,7 @@ def _streams(args: argparse.Namespace) -> tuple[object, torch.Tensor, torch.Tens
     from torchface.model.candide import load_candide3
 
     torch.set_num_threads(args.threads)
-    frames, landmarks, intr = _frames(Path(args.cache), args.width, args.height, args.frames)
+    frames, landmarks, intr = pose_sweep_frames(Path(args.cache), args.width, args.height, args.frames)
     B, T = args.batch, frames.shape[0]
     steps = T - B
     if steps < 4:
@@ -240,7 +246,7 @@ def _run_child(
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _batch_list(text: str) -> list[int]:
+def batch_list(text: str) -> list[int]:
     """``--batches`` / ``--malloc-batches``: a comma list of integers, empty items skipped (``"1,8,"``); raises
     ValueError on anything else. The check and the run read the lists alike (the run did not skip empty items: a
     trailing comma passed the check and failed after the single-stream runs)."""
@@ -256,7 +262,7 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
     try:
         batches = [1, 32]  # the template-management rows
         if not args.management_only:
-            batches += _batch_list(args.batches) + _batch_list(args.malloc_batches)
+            batches += batch_list(args.batches) + batch_list(args.malloc_batches)
     except ValueError:
         ap.error(f"--batches and --malloc-batches must be comma lists of integers, got {args.batches!r}, "
                  f"{args.malloc_batches!r}")  # fmt: skip
@@ -297,7 +303,7 @@ def _mediapipe(args: argparse.Namespace) -> dict[str, float | int | str] | None:
         MediaPipeTimeout: its run took longer than ``--mediapipe-timeout``."""
     import numpy as np
 
-    frames, _, _ = _frames(Path(args.cache), args.width, args.height, args.frames)
+    frames, _, _ = pose_sweep_frames(Path(args.cache), args.width, args.height, args.frames)
     path = Path(args.cache) / f"bench_pose_sweep_{args.width}x{args.height}_{args.frames}_rgb.npy"
     if not path.exists():  # (a truncated file left by an interrupt failed MediaPipe's run: "not installed" next)
         with written_whole(path) as tmp:
@@ -418,7 +424,7 @@ def main() -> None:
         return
     _check_arguments(ap, args)
     print(f"rendering / loading {args.frames} frames at {args.width}x{args.height} ...", file=sys.stderr)
-    _frames(Path(args.cache), args.width, args.height, args.frames)
+    pose_sweep_frames(Path(args.cache), args.width, args.height, args.frames)
     if args.management_only:
         figures = {}
         _management(args, figures)
@@ -431,8 +437,8 @@ def main() -> None:
         r = _run_child(args, 1, threads)
         figures[f"single_stream_{threads}_threads"] = r
         print(f"  B=1, {threads} thread(s): {r['ms_per_step']:.1f} ms/frame", file=sys.stderr)
-    rows = [(b, f"batch_{b}", None, "") for b in _batch_list(args.batches)]
-    malloc = _batch_list(args.malloc_batches)
+    rows = [(b, f"batch_{b}", None, "") for b in batch_list(args.batches)]
+    malloc = batch_list(args.malloc_batches)
     if malloc and not (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"):
         print("  allocator rows skipped: not Linux with glibc", file=sys.stderr)
         malloc = []

@@ -40,7 +40,7 @@ import torch
 
 from torchface.io.sidecar import write_json
 
-from benchmark import _batch_list, _frames  # noqa: E402
+from benchmark import batch_list, pose_sweep_frames  # noqa: E402
 
 WARM_STEPS = 3
 
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, help="write the figures as JSON here")
     args = ap.parse_args(argv)
     try:
-        batches, cpu_batches = _batch_list(args.batches), _batch_list(args.cpu_batches)
+        batches, cpu_batches = batch_list(args.batches), batch_list(args.cpu_batches)
     except ValueError:
         ap.error(f"--batches and --cpu-batches must be comma lists of integers, got {args.batches!r}, "
                  f"{args.cpu_batches!r}")  # fmt: skip
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device(args.device)
     torch.set_num_threads(args.threads)
     print(f"rendering / loading {args.frames} frames at {args.width}x{args.height} ...", file=sys.stderr)
-    frames, landmarks, intrinsics = _frames(Path(args.cache), args.width, args.height, args.frames)
+    frames, landmarks, intrinsics = pose_sweep_frames(Path(args.cache), args.width, args.height, args.frames)
     from torchface.synth.scenarios import make_scenario
 
     rotations = make_scenario("pose_sweep", 150, args.width, args.height).rotation[: args.frames].double()

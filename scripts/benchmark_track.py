@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the modules beside this script, however it is run
-from _argtypes import folder_problem, integer, written_whole  # noqa: E402
+from _argtypes import folder_problem, integer, remove_dead_partials, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,6 +43,7 @@ def _clips(cache: Path, count: int) -> dict[str, tuple[Path, Path]]:
 
     out = {size: (cache / f"track_pose_sweep_{size}_{count}.mp4", cache / f"track_pose_sweep_{size}_{count}_lm.csv")
            for size in SIZES}  # fmt: skip
+    remove_dead_partials(cache)  # (left by runs killed outright, a new name each run: they would pile up)
     if all(v.is_file() and lm.is_file() for v, lm in out.values()):
         return out
     from torchface.synth.io import frames_to_uint8

@@ -143,12 +143,12 @@ def test_benchmark_cache_files_are_written_whole(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", interrupted_save)
     with pytest.raises(KeyboardInterrupt):
-        bench._frames(tmp_path, 8, 8, 4)
+        bench.pose_sweep_frames(tmp_path, 8, 8, 4)
     assert list(tmp_path.iterdir()) == []
     monkeypatch.setattr(torch, "save", real_save)
-    got, _, _ = bench._frames(tmp_path, 8, 8, 4)
+    got, _, _ = bench.pose_sweep_frames(tmp_path, 8, 8, 4)
     assert torch.equal(got, frames[:4]) and [p.name for p in tmp_path.iterdir()] == ["bench_pose_sweep_8x8_4.pt"]
-    assert torch.equal(bench._frames(tmp_path, 8, 8, 4)[0], frames[:4])  # from the cache
+    assert torch.equal(bench.pose_sweep_frames(tmp_path, 8, 8, 4)[0], frames[:4])  # from the cache
 
     def interrupted_npy(file, arr, *a, **k):
         Path(file).write_bytes(b"\x93NUMPY half")
@@ -248,7 +248,7 @@ def test_benchmarks_check_json_as_the_other_scripts_do(script, tmp_path, capsys,
     a folder above that is a link to nowhere got that message, not why. Now _argtypes.file_problem's messages, as
     the other scripts'; a folder that does not exist yet is made when the figures are written, as theirs is."""
     bench = _load(script)
-    monkeypatch.setattr(bench, "_frames", None)  # no work may start
+    monkeypatch.setattr(bench, "pose_sweep_frames", None)  # no work may start
     base = ["--device", "cpu"] if script == "benchmark_device" else []
 
     def message(json_path: Path) -> str:
@@ -544,8 +544,9 @@ def test_evaluate_load_series_leaves_a_bug_in_its_own_code_a_traceback(tmp_path,
 
 
 def test_scripts_use_no_private_name_of_another_script():
-    """confidence_auroc.py took ``--size``'s type from evaluate.py's private alias ``ev._parse_size``; the shared
-    argument types are _argtypes.py's."""
+    """confidence_auroc.py took ``--size``'s type from evaluate.py's private alias ``ev._parse_size``, and
+    benchmark_device.py its frames and batch lists from benchmark.py's ``_frames`` and ``_batch_list`` (``from
+    benchmark import ...``); the shared argument types are _argtypes.py's, benchmark.py's shared helpers public."""
     import ast
 
     scripts = {p.stem for p in SCRIPTS.glob("*.py")}
@@ -555,6 +556,8 @@ def test_scripts_use_no_private_name_of_another_script():
                    for a in node.names if a.name in scripts}  # fmt: skip
         used = [f"{n.value.id}.{n.attr}" for n in ast.walk(tree) if isinstance(n, ast.Attribute)
                 and isinstance(n.value, ast.Name) and n.value.id in aliases and n.attr.startswith("_")]  # fmt: skip
+        used += [f"from {n.module} import {a.name}" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+                 and n.level == 0 and n.module in scripts for a in n.names if a.name.startswith("_")]  # fmt: skip
         assert used == [], (path.name, used)
 
 
@@ -584,3 +587,49 @@ def test_a_ctrl_c_while_a_script_imports_torch_is_one_line_with_status_130(tmp_p
         else:  # (benchmark_track.py imports torch only in the functions that need it)
             assert run.returncode == 0 and "usage:" in run.stdout, (path.name, run.stderr)
     assert len(stopped) >= 13 and "evaluate.py" in stopped, stopped
+
+
+def test_benchmark_caches_lose_the_temporary_files_of_killed_runs(tmp_path, monkeypatch):
+    """With a temporary name of each writer's own, a run killed outright (kill -9: no cleanup) leaves a new
+    ``*.partial-<pid>-<hex>*`` file in the frame cache each time. benchmark.py (and benchmark_device.py, through its
+    ``pose_sweep_frames``) and benchmark_track.py remove those of processes that are no longer running when they use
+    their cache; a running process's, a file in a folder below, and any other file stay."""
+    import argparse
+    import os
+    import signal
+    import subprocess
+
+    import torch
+
+    import torchface.synth.sequence as sequence
+
+    code = (f"import pathlib, sys, time; sys.path.insert(0, {str(SCRIPTS)!r}); import _argtypes\n"
+            f"with _argtypes.written_whole(pathlib.Path({str(tmp_path / 'bench_pose_sweep_8x8_4.pt')!r})) as t:\n"
+            "    t.write_bytes(b'half'); print(t, flush=True); time.sleep(60)")  # fmt: skip
+    killed = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    left = Path(killed.stdout.readline().strip())
+    os.kill(killed.pid, signal.SIGKILL)
+    killed.wait()
+    assert left.is_file() and left.parent == tmp_path and ".partial-" in left.name
+    running = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        live = Path(running.stdout.readline().strip())
+        (tmp_path / "below").mkdir()
+        other = [tmp_path / "notes.partial.txt", tmp_path / "below" / left.name, tmp_path / "x.partial-1-0123abcd"]
+        for p in other:
+            p.write_text("")
+        frames = torch.rand(6, 3, 8, 8)
+        monkeypatch.setattr(sequence, "render_sequence", lambda spec: (frames, argparse.Namespace(
+            landmarks_px=torch.zeros(6, 68, 2), intrinsics=None)))  # fmt: skip
+        bench = _load("benchmark")
+        got, _, _ = bench.pose_sweep_frames(tmp_path, 8, 8, 4)
+        assert torch.equal(got, frames[:4]) and not left.exists() and live.is_file(), sorted(tmp_path.iterdir())
+        assert all(p.exists() for p in other[:2])  # (pid 1 runs: x.partial-1-... stays too)
+        (tmp_path / left.name).write_bytes(b"")  # again, as benchmark_track.py's clips
+        track = _load("benchmark_track")
+        monkeypatch.setattr(track, "SIZES", {})
+        track._clips(tmp_path, 2)
+        assert not left.exists() and live.is_file() and all(p.exists() for p in other)
+    finally:
+        running.kill()
+        running.wait()

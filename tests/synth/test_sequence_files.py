@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import fields
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -185,14 +186,19 @@ def test_video_readers_turn_a_phone_video_as_the_trackers_input_reader_does(tmp_
             read(tmp_path / "notes.avi")
 
 
-def test_video_sink_that_cannot_write_its_file_says_why(tmp_path):
+def test_video_sink_that_cannot_write_its_file_says_why(tmp_path, monkeypatch):
     """Where the file cannot be written (a read-only folder; its temporary name taken by a folder) OpenCV's writer
     fails without a word: "no OpenCV video codec among (...) could open ...", a RuntimeError that ``render-demo``
     printed as a traceback. Now the OSError of the file system, naming the file (``render-demo``: one line)."""
-    (tmp_path / "b.avi.partial.avi").mkdir()
+    import torchface.synth.io as synth_io
+
+    taken = tmp_path / "b.partial-1-0123abcd.avi"  # (its name is the process's own: taken by a folder here)
+    taken.mkdir()
+    monkeypatch.setattr(synth_io, "partial_path", lambda path: taken)
     with pytest.raises(IsADirectoryError) as info:
         VideoSink(tmp_path / "b.avi", 16, 8)
-    assert info.value.filename == str(tmp_path / "b.avi.partial.avi")
+    assert info.value.filename == str(taken)
+    monkeypatch.undo()
     if os.geteuid() != 0:  # (root writes in a read-only folder)
         folder = tmp_path / "read_only"
         folder.mkdir()
@@ -240,3 +246,143 @@ def test_write_sequence_stopped_partway_never_leaves_a_new_video_beside_an_older
     assert not list(tmp_path.glob("*.partial*"))
     files = write_sequence(shorter, tmp_path)  # a run again makes the pair whole
     assert load_ground_truth(files.ground_truth).num_frames == 4 == read_video(files.video).shape[0]
+
+
+def _interleaved(monkeypatch, other):
+    """Run ``other()`` (a second writer of the same files) while this process's ``write_sequence`` renders: after its
+    first chunk has gone to the temporary video."""
+    import torchface.synth.sequence as sequence
+
+    real, calls = sequence.iter_sequence, []
+
+    def with_another_writer(spec, batch_size):
+        chunks = real(spec, batch_size)
+        yield next(chunks)
+        if not calls:
+            calls.append(1)
+            other()
+        yield from chunks
+
+    monkeypatch.setattr(sequence, "iter_sequence", with_another_writer)
+    return calls
+
+
+def test_two_writers_of_one_sequence_each_write_their_own_temporary_files(tmp_path, monkeypatch):
+    """write_sequence wrote every run's video to ``<name>.avi.partial.avi`` and its ground truth to
+    ``<name>.gt.npz.partial.npz`` / ``.gt.json.partial``: two runs rendering one sequence into one folder (evaluate.py
+    and confidence_auroc.py sharing a ``--cache``) wrote into the same temporary file, the first to finish renamed it
+    away and the other's rename failed (FileNotFoundError), and a failing run's cleanup deleted the other's file. Now
+    each writer's temporary names are its own: both finish, the pair is whole, nothing temporary is left."""
+    spec, frames, gt = _light_switch_small()
+    calls = _interleaved(monkeypatch, lambda: write_sequence(spec, tmp_path, batch_size=4))
+    files = write_sequence(spec, tmp_path, batch_size=4)
+    assert calls == [1]
+    expected = torch.from_numpy(frames_to_uint8(frames)).flip(-1).permute(0, 3, 1, 2).float() / 255
+    torch.testing.assert_close(read_video(files.video), expected, rtol=0, atol=0)
+    _assert_gt_equal(load_ground_truth(files.ground_truth), gt)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"light_switch{s}" for s in (".avi", ".gt.json", ".gt.npz")]
+
+
+def test_a_failing_writer_of_one_sequence_leaves_the_other_writers_files(tmp_path, monkeypatch):
+    """The other writer stopped while rendering (Ctrl-C): its cleanup removed the shared ``.partial.avi`` that this
+    run was still writing, whose rename then failed. Now it removes its own alone."""
+    import torchface.synth.sequence as sequence
+
+    spec, frames, gt = _light_switch_small()
+    real = sequence.iter_sequence
+
+    def stopped():
+        def stopped_while_rendering(spec, batch_size):
+            yield next(real(spec, batch_size))
+            raise KeyboardInterrupt
+
+        with monkeypatch.context() as m:
+            m.setattr(sequence, "iter_sequence", stopped_while_rendering)
+            with pytest.raises(KeyboardInterrupt):
+                write_sequence(spec, tmp_path, batch_size=4)
+
+    _interleaved(monkeypatch, stopped)
+    files = write_sequence(spec, tmp_path, batch_size=4)
+    assert read_video(files.video).shape[0] == 6
+    _assert_gt_equal(load_ground_truth(files.ground_truth), gt)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"light_switch{s}" for s in (".avi", ".gt.json", ".gt.npz")]
+
+
+def test_two_writers_of_one_ground_truth_each_write_their_own(tmp_path, monkeypatch):
+    """save_ground_truth's temporary ``.gt.npz.partial.npz`` was every writer's: another writer's save between this
+    one's write and rename took this one's file (its rename: FileNotFoundError); another writer failing partway left
+    its half-written file where this one renamed it into place (a truncated ``.gt.npz``). Now each has its own, and a
+    failed one's is removed."""
+    _, _, gt = _light_switch_small()
+    real = np.savez_compressed
+
+    def other_writer_between(fail):
+        def savez(file, **arrays):
+            real(file, **arrays)
+            if savez.nested:
+                return
+            savez.nested = True
+            if fail:
+                def half(file, **arrays):
+                    open(file, "wb").write(b"PK\x03\x04 half")
+                    raise KeyboardInterrupt
+
+                with monkeypatch.context() as m:
+                    m.setattr(np, "savez_compressed", half)
+                    with pytest.raises(KeyboardInterrupt):
+                        save_ground_truth(gt, tmp_path / "seq")
+            else:
+                save_ground_truth(gt, tmp_path / "seq")
+
+        savez.nested = False
+        return savez
+
+    for fail in (False, True):
+        with monkeypatch.context() as m:
+            m.setattr(np, "savez_compressed", other_writer_between(fail))
+            npz, js = save_ground_truth(gt, tmp_path / "seq")
+        _assert_gt_equal(load_ground_truth(npz), gt)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["seq.gt.json", "seq.gt.npz"], fail
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()  # (reaped: its pid names no process)
+    return child.pid
+
+
+def test_write_sequence_removes_its_temporary_files_left_by_a_killed_run(tmp_path):
+    """A run killed outright (kill -9) leaves its temporary files, a new one each time now that the names are each
+    process's own: write_sequence removes those of its own sequence whose process is gone, and nothing else (a running
+    process's, another sequence's, a file that only looks alike)."""
+    import subprocess
+    import sys
+
+    spec, _, gt = _light_switch_small()
+    dead, alive = _dead_pid(), os.getppid()
+    code = ("import time; from torchface.synth.io import VideoSink\n"
+            f"s = VideoSink({str(tmp_path / 'light_switch.avi')!r}, 16, 8); print(s._tmp, flush=True); time.sleep(60)")
+    root = str(Path(__file__).resolve().parents[2])  # (this checkout's torchface)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    killed = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=env)
+    left = Path(killed.stdout.readline().strip())
+    killed.kill()  # (SIGKILL: kill -9)
+    killed.wait()
+    assert left.is_file() and left.parent == tmp_path
+    gone = [left, tmp_path / f"light_switch.gt.partial-{dead}-0123abcd.npz",
+            tmp_path / f"light_switch.gt.partial-{dead}-89abcdef.json"]
+    kept = [tmp_path / f"light_switch.partial-{alive}-0123abcd.avi",  # a running process's
+            tmp_path / f"light_switch.partial-{os.getpid()}-0123abcd.avi",
+            tmp_path / f"pose_sweep.partial-{dead}-0123abcd.avi",  # another sequence's
+            tmp_path / f"light_switch.partial-{dead}-0123abcdx.avi",  # not such a name
+            tmp_path / f"light_switch.avi.partial-{dead}-0123abcd"]
+    for p in gone[1:] + kept:
+        p.write_bytes(b"")
+    (tmp_path / f"light_switch.partial-{dead}-deadbeef.avi").mkdir()  # a folder: not touched
+    write_sequence(spec, tmp_path, batch_size=4)
+    assert not any(p.exists() for p in gone) and all(p.exists() for p in kept)
+    assert (tmp_path / f"light_switch.partial-{dead}-deadbeef.avi").is_dir()
+    _assert_gt_equal(load_ground_truth(tmp_path / "light_switch"), gt)

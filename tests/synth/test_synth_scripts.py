@@ -176,12 +176,12 @@ def test_benchmark_reads_its_batch_lists_as_its_check_does():
     import pytest
 
     bench = _load("benchmark")
-    assert bench._batch_list("1,8,") == [1, 8] and bench._batch_list(" 32 , ,128") == [32, 128]
-    assert bench._batch_list("") == []
+    assert bench.batch_list("1,8,") == [1, 8] and bench.batch_list(" 32 , ,128") == [32, 128]
+    assert bench.batch_list("") == []
     with pytest.raises(ValueError):
-        bench._batch_list("1,x")
+        bench.batch_list("1,x")
     source = (SCRIPTS / "benchmark.py").read_text()
-    assert source.count('.split(",")') == 1  # the lists are parsed in _batch_list only
+    assert source.count('.split(",")') == 1  # the lists are parsed in batch_list only
 
 
 def test_every_script_answers_help_without_docstrings():

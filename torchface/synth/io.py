@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._atomic import partial_path
 from torchface.io.video import open_capture, opencv_path
 
 __all__ = [
@@ -50,7 +51,9 @@ class VideoSink:
     """Streams frames into a lossless video file; use as a context manager.
 
     Args:
-        path: destination (``.avi`` recommended); written as ``<path>.partial.avi`` then renamed.
+        path: destination (``.avi`` recommended); written as ``<stem>.partial-<pid>-<hex>.avi``, this process's own
+            (:func:`torchface._atomic.partial_path`: two writers of one file do not write into, or remove, each
+            other's), then renamed.
         width: frame width W.
         height: frame height H.
         fps: frames per second stored in the file.
@@ -77,7 +80,7 @@ class VideoSink:
             raise FileNotFoundError(f"{self.path}: no folder {self.path.parent} to write the video in")
         if self.path.is_dir():
             raise IsADirectoryError(f"{self.path}: a folder, not a video file name (e.g. {self.path / 'clip.avi'})")
-        self._tmp = self.path.with_name(self.path.name + ".partial" + self.path.suffix)
+        self._tmp = partial_path(self.path)
         tmp = opencv_path(self._tmp, ValueError)  # (a name that is not UTF-8 crashed OpenCV's writer: a segfault)
         self._writer: cv2.VideoWriter | None = None
         self.codec = ""

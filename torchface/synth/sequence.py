@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._atomic import remove_dead_partials, written_whole
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -526,7 +527,9 @@ def save_ground_truth(
 ) -> tuple[Path, Path]:
     """Write ``<stem>.gt.npz`` (all arrays) and ``<stem>.gt.json`` (metadata); returns both paths.
 
-    Both are written to temporary names and renamed when complete, the ``.gt.json`` first: the ``.gt.npz``, which
+    Both are written to temporary names of this process's own (``<stem>.gt.partial-<pid>-<hex>.npz``,
+    :func:`torchface._atomic.written_whole`: two processes writing the same pair each write their own, and one that
+    fails removes its own alone) and renamed when complete, the ``.gt.json`` first: the ``.gt.npz``, which
     :func:`load_ground_truth` reads, appears last, so that its presence means the pair is whole.
     ``extra_metadata`` (JSON-able) is merged into the ``.gt.json``.
     """
@@ -541,14 +544,12 @@ def save_ground_truth(
     arrays["event_frames"] = np.array([e[1] for e in gt.events], dtype=np.int64)
     arrays["strings"] = np.array([gt.name, gt.model, gt.photo, gt.description], dtype=np.str_)
     arrays["fps"] = np.array(gt.fps, dtype=np.float64)
-    tmp_json = json_path.with_name(json_path.name + ".partial")
     meta = _metadata(gt)
     meta.update(extra_metadata or {})
-    tmp_json.write_text(json.dumps(meta, indent=1) + "\n")
-    os.replace(tmp_json, json_path)
-    tmp_npz = npz_path.with_name(npz_path.name + ".partial.npz")
-    np.savez_compressed(tmp_npz, **arrays)
-    os.replace(tmp_npz, npz_path)
+    with written_whole(json_path) as tmp:
+        tmp.write_text(json.dumps(meta, indent=1) + "\n")
+    with written_whole(npz_path) as tmp:  # (its name ends in .npz: numpy keeps it)
+        np.savez_compressed(tmp, **arrays)
     return npz_path, json_path
 
 
@@ -601,7 +602,11 @@ def write_sequence(
     ``out_dir`` is removed, and the new ground truth is written after it (:func:`save_ground_truth`, its ``.gt.npz``
     last): a run stopped partway (Ctrl-C, a full disk) leaves the earlier pair as it was (stopped while rendering) or
     a video without a ``.gt.npz``, never a new video beside an older ground truth, which a reader would take for its
-    pair.
+    pair. Each file is written under a temporary name of this process's own (:mod:`torchface._atomic`), so that two
+    runs rendering the same sequence into one folder (two evaluations sharing a ``--cache``) do not write into, or
+    remove, each other's; the temporary files of this sequence left in ``out_dir`` by a run killed outright (``kill
+    -9``: no cleanup) are removed first where their process is no longer running
+    (:func:`torchface._atomic.remove_dead_partials`).
 
     Args:
         spec: the sequence.
@@ -617,6 +622,7 @@ def write_sequence(
     subject, shape = _resolve(spec)
     rows = _Rows(spec.num_frames)
     video_path = out / f"{spec.name}.avi"
+    remove_dead_partials(out, {video_path.name, f"{spec.name}.gt.npz", f"{spec.name}.gt.json"})
     with VideoSink(video_path, spec.intrinsics.width, spec.intrinsics.height, spec.fps) as sink:
         for img, frame_truth in iter_sequence(spec, batch_size):
             sink.write(img)
