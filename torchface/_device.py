@@ -134,12 +134,13 @@ def check_to_device(*args: object, **kwargs: object) -> None:
 def check_to_arguments(
     device: torch.device | str | int | torch.dtype | None, dtype: torch.dtype | None
 ) -> tuple[torch.device | None, torch.dtype | None]:
-    """The ``(device, dtype)`` of a result's ``.to(device, dtype)`` (``TrackResult``, ``LandmarkFit``), read as
-    ``Tensor.to`` reads them: ``.to(device)``, ``.to(dtype)`` (a dtype first: ``result.to(torch.float64)``),
-    ``.to(device, dtype)`` and either as a keyword; the device a ``torch.device``, a str or an int
-    (:func:`check_device`: a device this machine lacks is a ``ValueError`` naming those it has), the dtype a floating
-    one (the results' integer tensors keep theirs). Anything else is a ``TypeError`` that says what ``.to`` takes
-    (``.to(torch.float64)`` was refused as "device must be a torch.device, a str or an int, got dtype").
+    """The ``(device, dtype)`` of a frozen dataclass's ``.to(device, dtype)`` (``TrackResult``, ``LandmarkFit``,
+    ``FaceModel``), read as ``Tensor.to`` reads them: ``.to(device)``, ``.to(dtype)`` (a dtype first:
+    ``result.to(torch.float64)``), ``.to(device, dtype)`` and either as a keyword; the device a ``torch.device``, a
+    str or an int (:func:`check_device`: a device this machine lacks is a ``ValueError`` naming those it has), the
+    dtype a floating one (their integer tensors keep theirs). Anything else is a ``TypeError`` that says what ``.to``
+    takes (a result's ``.to(torch.float64)`` was refused as "device must be a torch.device, a str or an int, got
+    dtype").
 
     Example:
         >>> check_to_arguments(torch.float64, None)
