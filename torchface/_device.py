@@ -1,11 +1,11 @@
 """The one check of a torch device a user names: where torchface first takes one (``load_candide3(device=...)``,
 ``load_mesh_model``, ``FaceModel.to``, ``FaceTracker.to`` / ``.cuda``, ``NormalisedFace.to`` / ``.cuda``, the ``.to``
-of ``LandmarkFit``, ``NormalisedFaceLayout``, ``TexturedMesh`` and ``LightState``, training_hooks'
-``NormalisedFaceLayer`` through :mod:`torchface.extending`, the job's ``JobConfig.device``), so that a device this
-machine lacks is one ``ValueError`` naming it and the devices there are (torch's own was an ``AssertionError``
-"Torch not compiled with CUDA enabled" from deep inside the model's loading, an "Expected one of cpu, cuda, ipu, xpu,
-..." list of every backend torch knows for a typo, and "Tensor.item() cannot be called on meta tensors" from the
-model's checks for ``"meta"``).
+of ``TrackResult`` and ``LandmarkFit`` (:func:`check_to_arguments`), ``NormalisedFaceLayout``, ``TexturedMesh`` and
+``LightState``, training_hooks' ``NormalisedFaceLayer`` through :mod:`torchface.extending`, the job's
+``JobConfig.device``), so that a device this machine lacks is one ``ValueError`` naming it and the devices there are
+(torch's own was an ``AssertionError`` "Torch not compiled with CUDA enabled" from deep inside the model's loading, an
+"Expected one of cpu, cuda, ipu, xpu, ..." list of every backend torch knows for a typo, and "Tensor.item() cannot be
+called on meta tensors" from the model's checks for ``"meta"``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ _Module = TypeVar("_Module", bound="DeviceCheckedModule")
 
 __all__ = [
     "DeviceCheckedModule", "available_devices", "check_cuda_device", "check_device", "check_holds_data",
-    "check_to_device",
+    "check_to_arguments", "check_to_device",
 ]
 
 
@@ -129,6 +129,38 @@ def check_to_device(*args: object, **kwargs: object) -> None:
     device = kwargs.get("device", args[0] if args else None)
     if isinstance(device, (str, torch.device)) or isinstance(device, int) and not isinstance(device, bool):
         check_device(device)
+
+
+def check_to_arguments(
+    device: torch.device | str | int | torch.dtype | None, dtype: torch.dtype | None
+) -> tuple[torch.device | None, torch.dtype | None]:
+    """The ``(device, dtype)`` of a frozen dataclass's ``.to(device, dtype)`` (``TrackResult``, ``LandmarkFit``,
+    ``FaceModel``), read as ``Tensor.to`` reads them: ``.to(device)``, ``.to(dtype)`` (a dtype first:
+    ``result.to(torch.float64)``), ``.to(device, dtype)`` and either as a keyword; the device a ``torch.device``, a
+    str or an int (:func:`check_device`: a device this machine lacks is a ``ValueError`` naming those it has), the
+    dtype a floating one (their integer tensors keep theirs). Anything else is a ``TypeError`` that says what ``.to``
+    takes (a result's ``.to(torch.float64)`` was refused as "device must be a torch.device, a str or an int, got
+    dtype").
+
+    Example:
+        >>> check_to_arguments(torch.float64, None)
+        (None, torch.float64)
+        >>> check_to_arguments("cpu", torch.float32)
+        (device(type='cpu'), torch.float32)
+    """
+    if isinstance(device, torch.dtype):  # (.to(torch.float64), as Tensor.to and nn.Module.to take it)
+        if dtype is not None:
+            raise TypeError(f".to takes a device, then a dtype: got two dtypes, {device} and {dtype}")
+        device, dtype = None, device
+    if isinstance(device, torch.Tensor):  # (Tensor.to(other): its device and dtype)
+        raise TypeError(".to takes a device and / or a floating dtype, not a tensor: .to(other.device, other.dtype) "
+                        "for another tensor's")  # fmt: skip
+    if device is not None and (isinstance(device, bool) or not isinstance(device, (torch.device, str, int))):
+        raise TypeError(f".to takes a device (a torch.device, a str such as 'cuda', an int) and / or a floating "
+                        f"torch.dtype, got {type(device).__name__} {device!r}")  # fmt: skip
+    if dtype is not None and (not isinstance(dtype, torch.dtype) or not dtype.is_floating_point):
+        raise TypeError(f"dtype must be a floating torch.dtype or None (the integer fields keep theirs), got {dtype!r}")
+    return check_device(device), dtype
 
 
 def check_cuda_device(device: torch.device | str | int | None) -> None:

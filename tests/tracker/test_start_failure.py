@@ -18,7 +18,8 @@ import torch
 from torchface.geometry.camera import Intrinsics
 from torchface.template.management import TemplateConfig
 from torchface.tracker import (
-    FaceTracker, FitConfig, StartFailure, TrackerConfig, TrackResult, TrackStatus, initialise,
+    FaceTracker, FitConfig, LandmarkFit, StartFailure, TrackerConfig, TrackResult, TrackStatus, fit_landmarks,
+    initialise,
 )  # fmt: skip
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -174,6 +175,34 @@ def test_functional_initialise_gives_the_reasons_too(clip):
                                             int(StartFailure.TOO_FEW_POINTS)]
 
 
+@pytest.mark.parametrize("fit_kind", ["the-good-streams-fit", "its-own-fit-held"])
+def test_normalised_landmarks_fail_their_stream_whatever_the_fit(clip, fit_kind):
+    """A stream whose landmarks are normalised, beside one in pixels, fails with NORMALISED_LANDMARKS whatever its
+    landmark fit made of it: given a fit that holds a pose (``initialise``'s ``fit=``, as ``lookahead_fit``'s is
+    given), it was started at the pixel face's fit (NONE, CONVERGED), or failed for a later reason (its own fit held
+    with CONVERGED status: a face about a pixel wide, FACE_TOO_SMALL), as a detector's restart never leaves it. The
+    stream in pixels starts as with its own landmarks alone."""
+    frames, lm = clip
+    model = FaceTracker(CFG).model
+    config = TrackerConfig(num_levels=2, max_points=400, iterations=(6, 4), template=TemplateConfig(enabled=False))
+    intrinsics = Intrinsics.default(W, H)
+    lms = torch.stack([lm, KINDS["normalised-landmarks"][1](lm)])
+    if fit_kind == "the-good-streams-fit":
+        fit = fit_landmarks(model, lm[None].expand(2, -1, -1), intrinsics, config=config.fit)
+    else:
+        own = fit_landmarks(model, lms, intrinsics, config=config.fit)
+        fit = LandmarkFit(*(getattr(own, f.name) for f in fields(LandmarkFit)[:-1]), torch.zeros_like(own.status))
+    assert fit.status.tolist() == [CONVERGED, CONVERGED]
+    both = frames[:1].expand(2, -1, -1, -1)
+    state, first = initialise(model, config, both, lms, intrinsics, fit=fit)
+    _, alone = initialise(model, config, frames[:1], lm[None], intrinsics)
+    assert first.status.tolist() == [CONVERGED, FAILED]
+    assert first.start_failure.tolist() == [0, int(StartFailure.NORMALISED_LANDMARKS)]
+    assert int(first.num_points[1]) == 0 and float(first.confidence[1]) == 0.0
+    for name in ("rotation", "translation", "confidence", "num_points"):
+        assert torch.equal(getattr(first, name)[0], getattr(alone, name)[0]), name
+
+
 def test_docs_start_failure_block_runs_and_gives_what_it_states(clip):
     """docs/python-api.md's "When `initialise` fails a stream" block, run as written on two streams (the second's
     landmarks NaN rows): each line's value is what its comment states (the literal before any ``:`` gloss)."""
@@ -241,6 +270,58 @@ def test_result_to_converts_floating_fields_only(result):
     assert torch.equal(moved.success, result.success)
     with pytest.raises(TypeError, match="dtype must be a floating torch.dtype"):
         result.to(dtype=torch.int32)
+
+
+def test_result_to_takes_what_tensor_to_takes(result):
+    """``TrackResult.to`` and ``LandmarkFit.to`` read their arguments as ``Tensor.to`` does: a dtype first
+    (``.to(torch.float64)``, a ``TypeError`` from the device check before), a device (``torch.device``, str),
+    both, keywords, each giving what the keyword call gives; anything else is a ``TypeError`` saying what ``.to``
+    takes."""
+    reference = result.to(dtype=torch.float64)
+    fit = fit_landmarks(FaceTracker(CFG).model, torch.full((1, 68, 2), float("nan")), Intrinsics.default(W, H))
+    for moved in (result.to(torch.float64), result.to("cpu", torch.float64),
+                  result.to(torch.device("cpu"), dtype=torch.float64), result.to(device="cpu", dtype=torch.float64)):
+        for f in fields(TrackResult):
+            old, new = getattr(reference, f.name), getattr(moved, f.name)
+            if isinstance(old, torch.Tensor):
+                assert new.dtype == old.dtype and new.device == old.device and torch.equal(new, old), f.name
+            else:
+                assert new is old, f.name
+    for moved_fit in (fit.to(torch.float64), fit.to("cpu", torch.float64), fit.to(dtype=torch.float64)):
+        assert moved_fit.rotation.dtype == torch.float64 and moved_fit.status.dtype == torch.int64
+        assert torch.equal(moved_fit.translation, fit.translation.double())
+    for target in (result, fit):
+        with pytest.raises(TypeError, match="got two dtypes"):
+            target.to(torch.float64, torch.float32)
+        with pytest.raises(TypeError, match="not a tensor"):
+            target.to(torch.zeros(1, dtype=torch.float64))
+        with pytest.raises(TypeError, match=r"^.to takes a device .* got float 1.5"):
+            target.to(1.5)
+        with pytest.raises(TypeError, match="dtype must be a floating torch.dtype"):
+            target.to("cpu", torch.int64)
+        with pytest.raises(TypeError, match="dtype must be a floating torch.dtype"):
+            target.to(torch.int32)
+
+
+def test_result_to_moves_start_failure_as_an_integer_field(clip):
+    """An ``initialise`` result with a ``start_failure`` tensor (one stream started, one without landmarks): ``.to``
+    a dtype keeps its int64 codes (and ``status``, ``num_points``) as they are, and a device moves them with the
+    rest (on a GPU where there is one)."""
+    frames, lm = clip
+    no_face = torch.full_like(lm, float("nan"))
+    first = FaceTracker(CFG).initialise(frames[:1].expand(2, -1, -1, -1), torch.stack([lm, no_face]))
+    assert first.start_failure.tolist() == [0, int(StartFailure.NO_LANDMARKS)]
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    for device in devices:
+        calls = (first.to(device, torch.float64), first.to(device), first.to(device=device, dtype=torch.float64))
+        for moved in calls + ((first.to(torch.float64),) if device == "cpu" else ()):
+            assert moved.start_failure.dtype == torch.int64 and moved.start_failure.device.type == device
+            assert moved.start_failure.tolist() == first.start_failure.tolist()
+            assert moved.start_failure_reasons == first.start_failure_reasons
+            assert moved.rotation.device == moved.start_failure.device
+            for name in ("status", "num_points", "iterations"):
+                assert getattr(moved, name).dtype == getattr(first, name).dtype, name
+        assert first.start_failure.device.type == "cpu"  # (the original as it was)
 
 
 def test_result_to_device_and_cpu(result):

@@ -18,7 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchface._device import check_device
+from torchface._device import check_to_arguments
 from torchface.geometry.mesh import face_normals, vertex_normals
 
 __all__ = [
@@ -381,17 +381,12 @@ class FaceModel:
         return anim_coeffs @ self.facs_matrix.T
 
     def to(
-        self, device: torch.device | str | torch.dtype | None = None, dtype: torch.dtype | None = None
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
     ) -> "FaceModel":
         """A copy on ``device`` with floating tensors in ``dtype`` (index and mask tensors keep theirs).
-        ``model.to(torch.float64)`` (a dtype first, as ``nn.Module.to`` takes it) converts the dtype alone."""
-        if isinstance(device, torch.dtype):
-            if dtype is not None:
-                raise TypeError(f"two dtypes given: {device} and {dtype}")
-            device, dtype = None, device
-        if dtype is not None and not dtype.is_floating_point:
-            raise TypeError(f"dtype must be a floating dtype, got {dtype}")
-        device = check_device(device)  # (a device this machine lacks: one ValueError that lists those it has)
+        ``model.to(torch.float64)`` (a dtype first, as ``nn.Module.to`` takes it) converts the dtype alone; the
+        arguments are read as ``TrackResult.to`` reads them (:func:`~torchface._device.check_to_arguments`)."""
+        device, dtype = check_to_arguments(device, dtype)  # (a device not here: a ValueError naming those here)
         changes: dict[str, Any] = {}  # field name -> value, of each field's own type
         for f in fields(self):
             value = getattr(self, f.name)

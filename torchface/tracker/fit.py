@@ -18,7 +18,7 @@ from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import check_device, check_holds_data
+from torchface._device import check_holds_data, check_to_arguments
 from torchface.conventions import (
     NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
 )
@@ -213,9 +213,13 @@ class LandmarkFit:
         """The streams ``index`` (over ``B``; a slice keeps the batch dimension)."""
         return LandmarkFit(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "LandmarkFit":
-        """A copy on ``device`` with the floating tensors in ``dtype`` (``status`` keeps its integer dtype)."""
-        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
+    def to(
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
+    ) -> "LandmarkFit":
+        """A copy on ``device`` with the floating tensors in ``dtype`` (a floating dtype; ``status`` keeps its integer
+        dtype), called as ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords:
+        :func:`~torchface._device.check_to_arguments`, as ``TrackResult.to``)."""
+        device, dtype = check_to_arguments(device, dtype)  # (a device this machine lacks: a ValueError listing those)
         return LandmarkFit(*(
             v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
             for v in (getattr(self, f) for f in self.__dataclass_fields__)
@@ -429,7 +433,8 @@ def check_pixel_landmarks(
         width: ``W`` of the frames, in pixels.
         height: ``H`` of the frames, in pixels.
         weights: ``(B, K)`` landmark weights or None.
-        name: what the message calls the landmarks (``"the detector's landmarks"``).
+        name: what the message calls the landmarks (the argument's name, ``landmarks_px`` as ``initialise`` takes
+            them; a detector's answer is not checked here: :func:`normalised_streams` fails its streams alone).
 
     Example:
         >>> check_pixel_landmarks(torch.rand(1, 68, 2), 640, 480)  # doctest: +ELLIPSIS

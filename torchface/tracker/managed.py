@@ -953,13 +953,12 @@ def _restart(
         return state, result, rows
     sub, sub_result = initialise_managed(model, config, frames[rows], lm[found], state.intrinsics)
     ok = sub_result.status != _FAILED
-    if not bool(ok.all()):
+    if not bool(ok.all()):  # (one host read where every found stream starts)
         codes = codes.clone()
         codes[rows] = cast(Tensor, sub_result.start_failure)
         result = replace(result, start_failure=codes)
-    if not bool(ok.any()):
-        return state, result, rows[:0]
-    if not bool(ok.all()):
+        if not bool(ok.any()):
+            return state, result, rows[:0]
         sub = sub.select(ok)
         sub_result = _result_rows(sub_result, ok)
     rows = rows[ok]

@@ -22,7 +22,7 @@ from torch import Tensor
 from torchface import _native
 from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
-from torchface._device import check_device, check_holds_data
+from torchface._device import check_holds_data, check_to_arguments
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
@@ -85,7 +85,10 @@ class StartFailure(enum.IntEnum):
     detector's restart in :func:`~torchface.tracker.managed.managed_step`. The stream's status says that it failed
     (:class:`TrackStatus` FAILED at a start; a failed restart leaves it LOST); this says why, and
     :attr:`TrackResult.start_failure_reasons` (or a code's :attr:`reason`) in words. Where several apply, the first
-    in this order is given."""
+    in this order is given, but NORMALISED_LANDMARKS comes before NO_LANDMARKS: a detector's restart takes a stream's
+    normalised landmarks as no face found (NaN rows, with a warning), so there such a stream has both, and the
+    useful one is that its landmarks are normalised; at a start the two never meet (normalised landmarks are at
+    least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`, and NO_LANDMARKS means fewer)."""
 
     #: The stream started (or no start was tried for it).
     NONE = 0
@@ -589,24 +592,24 @@ class TrackResult:
             return (None,) * int(self.status.shape[0])
         return tuple(StartFailure(code).reason for code in self.start_failure.tolist())
 
-    def to(self, device: torch.device | str | int | None = None, dtype: torch.dtype | None = None) -> "TrackResult":
+    def to(
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
+    ) -> "TrackResult":
         """The result on ``device`` with the floating tensors in ``dtype`` (a floating dtype; the integer ones,
         ``status``, ``iterations``, ``num_points``, ``mosaic_entry`` and ``start_failure``, keep theirs); the names and
         the fields that are None as they are, ``self`` unchanged (a tensor already on that device and in that dtype is
-        shared, as ``Tensor.to`` returns it). A device this machine lacks, or ``meta`` (no values),
-        is a ``ValueError`` naming it (docs/python-api.md, "Devices and dtypes").
+        shared, as ``Tensor.to`` returns it). Called as ``Tensor.to`` is: ``.to(device)``, ``.to(dtype)``,
+        ``.to(device, dtype)`` or with keywords (:func:`~torchface._device.check_to_arguments`: anything else is a
+        ``TypeError``). A device this machine lacks, or ``meta`` (no values), is a ``ValueError`` naming it
+        (docs/python-api.md, "Devices and dtypes").
 
         Example:
-            >>> result.to(dtype=torch.float64).translation.dtype                      # doctest: +SKIP
+            >>> result.to(torch.float64).translation.dtype                      # doctest: +SKIP
             torch.float64
         """
         from torchface.normalise.face import apply_to_tensor_fields
 
-        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
-        if dtype is not None and (not isinstance(dtype, torch.dtype) or not dtype.is_floating_point):
-            raise TypeError(
-                f"dtype must be a floating torch.dtype or None (the integer fields keep theirs), got {dtype!r}"
-            )
+        device, dtype = check_to_arguments(device, dtype)  # (a device not here: a ValueError naming those here)
         return apply_to_tensor_fields(
             lambda t: t.to(device=device, dtype=dtype if t.is_floating_point() else None), self
         )
@@ -1272,7 +1275,12 @@ def initialise(
     lm = landmarks_px.detach().to(dtype=model.dtype, device=model.device)
     _, w = landmark_targets(lm, None if weights is None else weights.detach().to(lm))
     missing = no_pose & ((w > 0).sum(-1) < MIN_FIT_LANDMARKS)  # (no face found: _missing_fit's placeholder)
-    normalised = no_pose & normalised_streams(lm, frames.shape[-1], frames.shape[-2], w)
+    # Landmarks that look normalised (beside streams in pixels: check_initialise_inputs refuses a batch with none)
+    # fail their stream whatever the fit made of them, as a detector's restart fails them: they were given only
+    # where the fit failed, and a fit that held (a fit given, e.g. lookahead_fit's) started a face about a pixel
+    # wide, or failed for a later reason (FACE_TOO_SMALL, TOO_FEW_POINTS). (Never with MIN_FIT_LANDMARKS missing:
+    # normalised landmarks are at least that many, so the two codes never meet here.)
+    normalised = normalised_streams(lm, frames.shape[-1], frames.shape[-2], w)
     small = too_small(model, config, fit.translation, intrinsics)
     start_failure = start_failure_codes([
         (StartFailure.NO_LANDMARKS, missing), (StartFailure.NORMALISED_LANDMARKS, normalised),
