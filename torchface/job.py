@@ -1230,12 +1230,22 @@ def _record_path(csv: Path) -> Path:
 CHECKPOINT_EVERY: int = 25
 
 #: The version of the checkpoint's layout (another one is not read: resumed from the rows, with a warning).
-_CHECKPOINT_VERSION = 1
+_CHECKPOINT_VERSION = 2
 
 
 def _checkpoint_path(csv: Path) -> Path:
     """The partial CSV's checkpoint (:func:`_write_checkpoints`): ``<name>.state.partial``."""
     return csv.with_name(csv.stem + ".state.partial")
+
+
+def _checkpoint_origin(device: torch.device | str, dtype: torch.dtype) -> dict[str, str]:
+    """What a checkpoint's rows depend on besides the settings (:func:`_settings`, which a resume from the CSV's rows
+    may change): the torchface version, the device and the dtype it was tracked with. A checkpoint of other ones is
+    not used (:func:`_load_checkpoint`: its state, restored elsewhere, would not go on as the uninterrupted run)."""
+    import torchface
+
+    return {"torchface": str(torchface.__version__), "device": str(torch.device(device)),
+            "dtype": str(dtype).removeprefix("torch.")}  # fmt: skip
 
 
 def _settings_text(settings: dict[str, object]) -> str:
@@ -1252,7 +1262,8 @@ def _write_checkpoints(
     go on from (:func:`_load_checkpoint`): its part of ``state`` (``TrackerState.select``: parameters, shape,
     templates, the management's mosaic, counters and online-start watch, motion prediction), of ``smooth`` (the pose
     filter) and of the first poses ``first_R`` ``(B, 3, 3)``, ``first_t`` ``(B, 3)``; the loop's ``t``, the CSV's
-    row count and last row (which a resume matches), the settings, the batch's videos in order (a resume tracks
+    row count and last row (which a resume matches), the settings, the torchface version, device and dtype
+    (:func:`_checkpoint_origin`), the batch's videos in order (a resume tracks
     those together again, :func:`_checkpoint_batches`) and the stream's own bookkeeping. Tensors and plain data
     only (:func:`torchface._checkpoint.to_plain`), read with ``torch.load(weights_only=True)``. Returns False, with
     a warning, where the state holds what plain data cannot (a value of a kind ``to_plain`` does not know): the run
@@ -1274,6 +1285,7 @@ def _write_checkpoints(
             "version": _CHECKPOINT_VERSION, "t": t, "rows": s.csv.rows_done, "start": s.start,
             "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
             "settings": _settings_text(s.settings), "batch": names, "index": k,
+            "origin": _checkpoint_origin(state.params.device, state.params.dtype),
             "state": plain, "smooth": plain_smooth,
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
@@ -1298,7 +1310,8 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
     """The checkpoint of ``s``'s partial run (:func:`_write_checkpoints`; ``csv``: its CSV's final path) where it is
     there and matches its partial CSV: the same settings (other ones: None, without a word, the record's check says
     why the resume is refused), a row count the CSV holds (rows after it, written after the checkpoint, are cut off
-    as the video's outputs open: tracked again), the same last row, and past the online start's frames (sooner the
+    as the video's outputs open: tracked again), the same last row, the same torchface version, device and dtype
+    (:func:`_checkpoint_origin`), and past the online start's frames (sooner the
     rows are tracked again from the first frame: :attr:`_Stream.retrack`). None where there is none; None with one
     warning line where it cannot be read or does not match (the resume goes on from the CSV's rows)."""
     path = _checkpoint_path(csv)
@@ -1314,6 +1327,11 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
             raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
         if data["settings"] != _settings_text(_settings(config, s, model)):
             return None
+        origin, here = data.get("origin"), _checkpoint_origin(model.device, model.dtype)
+        if origin != here:  # (another version, device or dtype: a resume from the CSV's rows is allowed, not this)
+            diff = [f"{k} {origin.get(k) if isinstance(origin, dict) else None}, now {v}" for k, v in here.items()
+                    if not isinstance(origin, dict) or origin.get(k) != v]  # fmt: skip
+            raise ValueError(f"made with another {', '.join(diff)}")
         n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
         online = _online_start(config)
         if online is not None and t + 1 < online.max_frames:

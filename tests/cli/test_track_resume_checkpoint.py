@@ -207,3 +207,36 @@ def test_a_state_that_cannot_be_kept_tracks_on_without_checkpoints(clips, tmp_pa
     assert said == ["no checkpoints written (cannot keep a Thing as plain data): an interrupted run resumes from its "
                     "CSV's rows"]  # fmt: skip
     assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
+
+
+@pytest.mark.parametrize("other", ["version", "device", "dtype"])
+def test_a_checkpoint_of_another_version_device_or_dtype_is_not_used(clips, tmp_path, monkeypatch, other):
+    """A checkpoint made by another torchface version, on another device or in another dtype (which the settings,
+    compared for a resume from the CSV's rows, do not hold) is not restored: one warning line saying which, and the
+    video goes on from its CSV's rows (``resumed.checkpoint`` false). (Before, it was restored, its tensors moved to
+    this run's device, and the sidecar said the rows were the uninterrupted run's.) This machine has one device and
+    the job one dtype: the checkpoint is told it was made on another."""
+    import torchface
+
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    if other == "version":
+        monkeypatch.setattr(torchface, "__version__", "0.0.9")
+        said_other = "torchface 0.1.0, now 0.0.9"
+    else:
+        data = torch.load(ck, weights_only=True)
+        value = {"device": "cuda:0", "dtype": "float64"}[other]
+        data["origin"] = {**data.get("origin", {}), other: value}
+        torch.save(data, ck)
+        said_other = f"{other} {value}, now {'cpu' if other == 'device' else 'float32'}"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used (made with another {said_other})"), said
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    assert not ck.exists()
