@@ -224,7 +224,9 @@ def _streams(state: Any) -> int:
 def same_tree(a: object, b: object) -> bool:
     """Whether two state trees are the same: of the same classes and structure, every tensor equal (dtype, shape,
     values bit for bit, NaN where NaN) and every other value equal; the objects ``a`` holds twice held twice in
-    ``b`` too. Fields in :data:`SKIPPED_FIELDS` are not compared."""
+    ``b`` too. Fields in :data:`SKIPPED_FIELDS` are not compared, nor those a dataclass leaves out of its value
+    (``field(compare=False)``: a mosaic's ``claimed`` bookkeeping, None in a state after a detector's restart and
+    made again by ``select``, which changes no value the state's next steps compute)."""
     pairs: dict[int, int] = {}
 
     def walk(x: object, y: object) -> bool:
@@ -240,7 +242,7 @@ def same_tree(a: object, b: object) -> bool:
                     and bool(torch.equal(_bits(x), _bits(y))))
         if dataclasses.is_dataclass(x):
             return all(walk(getattr(x, f.name), getattr(y, f.name)) for f in dataclasses.fields(x)
-                       if f.name not in SKIPPED_FIELDS)  # fmt: skip
+                       if f.name not in SKIPPED_FIELDS and f.compare)  # fmt: skip
         if isinstance(x, (tuple, list)):
             assert isinstance(y, (tuple, list))
             return len(x) == len(y) and all(walk(u, v) for u, v in zip(x, y))
