@@ -3133,9 +3133,13 @@ def _finalise(
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
         "videos": _video_timing(s),
     }
+    # (its checkpoint, and a temporary one a SIGKILL cut off while it was written, before the JSON: a video killed
+    # between them is resumed from its complete CSV's rows, none tracked again; one left behind stayed beside the
+    # complete outputs, where no run removed it)
+    for ck in (_checkpoint_path(p["csv"]), _checkpoint_path(p["csv"]).with_suffix(".partial.tmp")):
+        ck.unlink(missing_ok=True)
     write_json(p["json"], sidecar)
     _record_path(p["csv"]).unlink(missing_ok=True)
-    _checkpoint_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),

@@ -240,3 +240,20 @@ def test_a_checkpoint_of_another_version_device_or_dtype_is_not_used(clips, tmp_
     assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
     assert read_track_csv(out / "a.csv")[1].shape[0] == N
     assert not ck.exists()
+
+
+def test_a_temporary_checkpoint_cut_off_is_removed_with_the_video_complete(clips, tmp_path, monkeypatch):
+    """A temporary checkpoint (``<stem>.state.partial.tmp``) left by a SIGKILL while it was written is not read,
+    and is removed once the resumed video is complete, as its checkpoint is, where the resumed run wrote no
+    checkpoint of its own (here: none due in the rows it tracked). It stayed beside the complete outputs."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    tmp = out / "a.state.partial.tmp"
+    tmp.write_bytes(b"\x80\x02cut off")
+    monkeypatch.setattr(torchface.job, "CHECKPOINT_EVERY", 100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is True
+    assert not tmp.exists() and not (out / "a.state.partial").exists()
