@@ -257,3 +257,26 @@ def test_a_temporary_checkpoint_cut_off_is_removed_with_the_video_complete(clips
         track_videos([clips[0][0]], _config(out, clips, resume=True))
     assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is True
     assert not tmp.exists() and not (out / "a.state.partial").exists()
+
+
+@pytest.mark.parametrize("mode", ["lookahead", "no-templates"])
+def test_resume_from_a_checkpoint_without_the_online_start(clips, tmp_path, mode):
+    """Without the online start (``--lookahead``, or no template management) checkpoints are written from frame
+    EVERY on (not from the online start's MAX_FRAMES): resumed from the one at 8 rows, the outputs are the
+    uninterrupted run's, byte for byte, and the sidecar's start is too."""
+    from torchface.template.management import TemplateConfig
+    from torchface.tracker import TrackerConfig
+
+    clips = clips[:1]
+    kwargs: dict = ({"lookahead": LookaheadConfig(max_frames=MAX_FRAMES)} if mode == "lookahead"
+                    else {"tracker": TrackerConfig(template=TemplateConfig(enabled=False))})  # fmt: skip
+    track_videos([clips[0][0]], _config(tmp_path / "ref", clips, **kwargs))
+    out = tmp_path / "out"
+    _interrupted(clips, out, **kwargs)
+    assert torch.load(out / "a.state.partial", weights_only=True)["rows"] == 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([clips[0][0]], _config(out, clips, resume=True, **kwargs))
+    assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
+    side, ref = (json.loads((d / "a.json").read_text()) for d in (out, tmp_path / "ref"))
+    assert side["resumed"]["checkpoint"] is True and side["start"] == ref["start"]
