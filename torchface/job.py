@@ -2822,6 +2822,12 @@ def _track_group(
                 if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
                                           [not r for r in replaying]):  # fmt: skip
                     checkpoint_from = sys.maxsize  # (warned: none for this batch)
+                else:  # the videos that ended before (their rows complete: a resume replays them, none tracked
+                    # again) keep no checkpoint of the batch they were in: resumed from it, alone, as the others have
+                    # newer ones of their own, their last rows were cut off and tracked again as another batch
+                    for s, p in zip(streams, paths):
+                        if s.done and s.error is None and all(s is not x for x in live):
+                            _checkpoint_path(p["csv"]).unlink(missing_ok=True)
             nxt = []
             for s in live:
                 if not s.done:

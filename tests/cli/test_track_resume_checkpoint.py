@@ -280,3 +280,31 @@ def test_resume_from_a_checkpoint_without_the_online_start(clips, tmp_path, mode
     assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
     side, ref = (json.loads((d / "a.json").read_text()) for d in (out, tmp_path / "ref"))
     assert side["resumed"]["checkpoint"] is True and side["start"] == ref["start"]
+
+
+def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clips, tmp_path):
+    """A batch of two videos, the second of 6 frames: it ends after the checkpoint at 4 rows, and the first goes on
+    alone (its checkpoint at 8 rows, of a batch of itself). Interrupted after 10 rows of the first, the second's CSV
+    is complete: resumed, its rows are kept (replayed, none tracked), not cut back to its checkpoint at 4 rows and
+    tracked again alone (its rows then parted from its batch's by float rounding), and both CSVs and videos are the
+    uninterrupted run's, byte for byte."""
+    short = tmp_path / "c.npy"
+    np.save(short, np.load(clips[1][0])[:6])
+    both = [clips[0], (short, clips[1][1])]
+    track_videos([v for v, _ in both], _config(tmp_path / "ref", both))
+    out = tmp_path / "out"
+
+    def interrupt(p):
+        if p.done == STOP and p.index == 0:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([v for v, _ in both], _config(out, both), progress=interrupt)
+    assert read_track_csv(out / "c.csv.partial")[1].shape[0] == 6
+    assert torch.load(out / "a.state.partial", weights_only=True)["batch"] == ["a"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([v for v, _ in both], _config(out, both, resume=True))
+    assert _same_outputs(tmp_path / "ref", out, ["a", "c"]) == []
+    side = json.loads((out / "c.json").read_text())
+    assert side["resumed"]["rows"] == 6 and side["resumed"]["tracked_again"] == 0
