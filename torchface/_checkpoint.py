@@ -47,6 +47,8 @@ def _class(name: object) -> type:
         obj = getattr(obj, part)
     if not isinstance(obj, type) or not (dataclasses.is_dataclass(obj) or issubclass(obj, (tuple, enum.Enum))):
         raise ValueError(f"{name}: not a dataclass, named tuple or enum")
+    if _name(obj) != name:  # (another module's class reached through a torchface module: torchface.job:os.stat_result)
+        raise ValueError(f"{name}: not a torchface class (it is {_name(obj)})")
     return obj
 
 

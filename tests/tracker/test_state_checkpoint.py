@@ -176,3 +176,14 @@ def test_a_state_after_a_restart_that_failed_a_stream_round_trips(tmp_path):
                 assert torch.equal(ra.start_failure, rb.start_failure)
                 assert int(ra.start_failure[1]) == int(StartFailure.NORMALISED_LANDMARKS)
     assert tried > 0
+
+
+def test_plain_data_naming_another_modules_class_through_torchface_is_refused(tracked):
+    """A class of another module reached through a torchface module's names (``torchface.job:os.stat_result``, a
+    named tuple of the standard library) is refused as not torchface's, as the module docstring says: it was built
+    (the name's module was checked, not the class's)."""
+    plain = {"tuple": "torchface.job:os.stat_result", "items": list(range(10))}
+    with pytest.raises(ValueError, match="not a torchface class"):
+        _checkpoint.from_plain(plain)
+    _, _, state, _ = tracked
+    assert _checkpoint.same_tree(_checkpoint.from_plain(_checkpoint.to_plain(state.select([0]))), state.select([0]))
