@@ -308,3 +308,21 @@ def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clip
     assert _same_outputs(tmp_path / "ref", out, ["a", "c"]) == []
     side = json.loads((out / "c.json").read_text())
     assert side["resumed"]["rows"] == 6 and side["resumed"]["tracked_again"] == 0
+
+
+def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
+    """A run without ``--resume`` removes an earlier run's checkpoint and temporary checkpoint of its videos before
+    it tracks: interrupted before its own first checkpoint, none is there (an earlier one would be another run's)."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    (out / "a.state.partial.tmp").write_bytes(b"cut off")
+
+    def interrupt(p):
+        if p.done == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([clips[0][0]], _config(out, clips), progress=interrupt)
+    assert read_track_csv(out / "a.csv.partial")[1].shape[0] == 2
+    assert not (out / "a.state.partial").exists() and not (out / "a.state.partial.tmp").exists()
