@@ -2813,6 +2813,10 @@ def _track_group(
                                  smooth)  # fmt: skip
             if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
                 state, smooth, first_R, first_t = joined
+                idx = [k for k, s in enumerate(streams) if any(s is x for x in live)]
+                if len(idx) < len(streams):  # (a video that stopped while its rows were replayed: InputError)
+                    state, first_R, first_t = state.select(idx), first_R[idx], first_t[idx]
+                    smooth = None if smooth is None else smooth.select(idx)
                 _restore_streams(live)
                 joined = None
             elif detector is not None and config.redetect_after > 0:

@@ -326,3 +326,34 @@ def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
         track_videos([clips[0][0]], _config(out, clips), progress=interrupt)
     assert read_track_csv(out / "a.csv.partial")[1].shape[0] == 2
     assert not (out / "a.state.partial").exists() and not (out / "a.state.partial.tmp").exists()
+
+
+def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(clips, tmp_path, monkeypatch):
+    """Two videos resumed from their checkpoints of one batch, the first of which cannot be read on (an
+    ``InputError`` at its 4th frame, while its rows are replayed: the others go on): the second goes on from its own
+    part of the batch's state, its rows those of the uninterrupted run to float rounding (tracked alone). (The
+    batch's whole state was put back after the checkpoint's row, the first video's stream included: the second
+    went on from the first's state.)"""
+    from torchface.io import InputError
+
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    read = torchface.job._next_frame
+
+    def flaky(s):
+        if s.name == "a" and s.frames == 3:
+            raise InputError(f"{s.reader.info.path}: cannot read frame 3")
+        return read(s)
+
+    monkeypatch.setattr(torchface.job, "_next_frame", flaky)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        try:
+            track_videos([v for v, _ in clips], _config(out, clips, resume=True, keep_going=True))
+        except InputError:
+            pass
+    assert not (out / "a.json").exists()
+    assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] is True
+    ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
