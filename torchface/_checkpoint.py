@@ -184,6 +184,9 @@ def join(parts: Sequence[Any], select: Callable[[Any, list[int]], Any] | None = 
             raise ValueError(f"{at}: parts of other kinds ({sorted({type(x).__name__ for x in xs})})")
         if isinstance(x0, Tensor):
             if p.shape != x0.shape:  # per stream
+                if p.dim() != x0.dim() or p.shape[1:] != x0.shape[1:]:
+                    raise ValueError(f"{at}: per stream along another dimension than its first ({tuple(x0.shape)} "
+                                     f"of {n0} streams, {tuple(p.shape)} of {n0 + 1})")  # fmt: skip
                 out: object = torch.cat([x.to(x0.device) for x in xs])
             else:
                 if any(x.shape != x0.shape or not torch.equal(x.to(x0.device), x0) for x in xs[1:]):

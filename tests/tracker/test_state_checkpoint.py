@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import io
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import pytest
 import torch
@@ -187,3 +187,22 @@ def test_plain_data_naming_another_modules_class_through_torchface_is_refused(tr
         _checkpoint.from_plain(plain)
     _, _, state, _ = tracked
     assert _checkpoint.same_tree(_checkpoint.from_plain(_checkpoint.to_plain(state.select([0]))), state.select([0]))
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """A state whose ``other`` ``(3, B)`` is per stream along its second dimension (``params`` ``(B, 2)``)."""
+
+    params: torch.Tensor
+    other: torch.Tensor
+
+    def select(self, index: list[int]) -> "_Columns":
+        return _Columns(self.params[index], self.other[:, index])
+
+
+def test_a_tensor_per_stream_along_another_dimension_is_refused():
+    """``join`` concatenates per-stream tensors along their first dimension: one whose streams lie along another
+    is refused (ValueError) rather than joined wrong (``(3, 1)`` and ``(3, 1)`` made ``(6, 1)``)."""
+    state = _Columns(torch.arange(4.0).reshape(2, 2), torch.arange(6.0).reshape(3, 2))
+    with pytest.raises(ValueError, match="per stream along another dimension"):
+        _checkpoint.join([state.select([0]), state.select([1])])
