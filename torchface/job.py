@@ -1325,6 +1325,7 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
         data = torch.load(path, map_location=model.device, weights_only=True)
         if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
             raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
+        _check_checkpoint_layout(data)
         if data["settings"] != _settings_text(_settings(config, s, model)):
             return None
         origin, here = data.get("origin"), _checkpoint_origin(model.device, model.dtype)
@@ -1350,6 +1351,32 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
         warnings.warn(f"{path}: not used ({why}): the video goes on from its CSV's rows, not exactly as the "
                       f"uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
         return None
+
+
+#: What a checkpoint holds (:func:`_write_checkpoints`), and its ``stream`` entry.
+_CHECKPOINT_KEYS = frozenset({"version", "t", "rows", "start", "row", "settings", "origin", "batch", "index", "state",
+                              "smooth", "first_R", "first_t", "stream"})  # fmt: skip
+_CHECKPOINT_STREAM_KEYS = frozenset({"low_count", "smooth_restart", "detection_warned", "near"})
+
+
+def _check_checkpoint_layout(data: dict) -> None:
+    """Raise ValueError where ``data`` lacks what :func:`_load_checkpoint` and the resume read of a checkpoint
+    (its batch and place in it, its bookkeeping, its first poses): a file of this version's number without them
+    (damaged, or not written by :func:`_write_checkpoints`) failed with a KeyError after the check, the run stopped."""
+    missing = sorted(_CHECKPOINT_KEYS - set(data))
+    stream = data.get("stream")
+    if isinstance(stream, dict):
+        missing += [f"stream.{k}" for k in sorted(_CHECKPOINT_STREAM_KEYS - set(stream))]
+    if missing:
+        raise ValueError(f"it lacks {', '.join(missing)}")
+    batch, index = data["batch"], data["index"]
+    if not isinstance(stream, dict) or not isinstance(batch, list) or not all(isinstance(n, str) for n in batch):
+        raise ValueError("its batch or bookkeeping is not of its layout")
+    if not isinstance(index, int) or not 0 <= index < len(batch):
+        raise ValueError(f"its place {index!r} is not in its batch of {len(batch)}")
+    for name, shape in (("first_R", (1, 3, 3)), ("first_t", (1, 3))):
+        if not isinstance(data[name], Tensor) or tuple(data[name].shape) != shape:
+            raise ValueError(f"its {name} is not {shape}")
 
 
 def _cut_rows(csv: Path, rows: int) -> None:

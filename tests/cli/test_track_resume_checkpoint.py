@@ -357,3 +357,27 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
     assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] is True
     ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("damage", ["batch", "stream", "index"])
+def test_a_checkpoint_lacking_part_of_its_layout_is_refused_with_a_warning(clips, tmp_path, damage):
+    """A checkpoint of this version's number that lacks an entry the resume reads after the check (its batch, its
+    bookkeeping) or whose place is not in its batch is not used: one warning line, the video goes on from its CSV's
+    rows. (It stopped the run with a KeyError.)"""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    data = torch.load(ck, weights_only=True)
+    if damage == "index":
+        data["index"] = 3
+    else:
+        del data[damage]
+    torch.save(data, ck)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
