@@ -142,7 +142,7 @@ def test_without_its_checkpoint_the_resumed_rows_part(clips, tmp_path):
     assert _same_outputs(tmp_path / "ref", out, ["a"])[:1] == ["a.csv"]
 
 
-@pytest.mark.parametrize("damage", ["row", "file"])
+@pytest.mark.parametrize("damage", ["row", "file", "truncated"])
 def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_path, damage):
     """A checkpoint whose last row is not the CSV's (a row edited) or that cannot be read (damaged) is not used:
     one warning line naming it, and the video goes on from its CSV's rows, as before (none cut off)."""
@@ -152,6 +152,8 @@ def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_p
     ck = out / "a.state.partial"
     if damage == "file":
         ck.write_bytes(b"not a checkpoint")
+    elif damage == "truncated":  # (its first half: a file cut off)
+        ck.write_bytes(ck.read_bytes()[: ck.stat().st_size // 2])
     else:
         partial = out / "a.csv.partial"
         lines = partial.read_text().splitlines(keepends=True)
