@@ -47,6 +47,8 @@ def _class(name: object) -> type:
         obj = getattr(obj, part)
     if not isinstance(obj, type) or not (dataclasses.is_dataclass(obj) or issubclass(obj, (tuple, enum.Enum))):
         raise ValueError(f"{name}: not a dataclass, named tuple or enum")
+    if _name(obj) != name:  # (another module's class reached through a torchface module: torchface.job:os.stat_result)
+        raise ValueError(f"{name}: not a torchface class (it is {_name(obj)})")
     return obj
 
 
@@ -182,6 +184,9 @@ def join(parts: Sequence[Any], select: Callable[[Any, list[int]], Any] | None = 
             raise ValueError(f"{at}: parts of other kinds ({sorted({type(x).__name__ for x in xs})})")
         if isinstance(x0, Tensor):
             if p.shape != x0.shape:  # per stream
+                if p.dim() != x0.dim() or p.shape[1:] != x0.shape[1:]:
+                    raise ValueError(f"{at}: per stream along another dimension than its first ({tuple(x0.shape)} "
+                                     f"of {n0} streams, {tuple(p.shape)} of {n0 + 1})")  # fmt: skip
                 out: object = torch.cat([x.to(x0.device) for x in xs])
             else:
                 if any(x.shape != x0.shape or not torch.equal(x.to(x0.device), x0) for x in xs[1:]):
@@ -224,7 +229,9 @@ def _streams(state: Any) -> int:
 def same_tree(a: object, b: object) -> bool:
     """Whether two state trees are the same: of the same classes and structure, every tensor equal (dtype, shape,
     values bit for bit, NaN where NaN) and every other value equal; the objects ``a`` holds twice held twice in
-    ``b`` too. Fields in :data:`SKIPPED_FIELDS` are not compared."""
+    ``b`` too. Fields in :data:`SKIPPED_FIELDS` are not compared, nor those a dataclass leaves out of its value
+    (``field(compare=False)``: a mosaic's ``claimed`` bookkeeping, None in a state after a detector's restart and
+    made again by ``select``, which changes no value the state's next steps compute)."""
     pairs: dict[int, int] = {}
 
     def walk(x: object, y: object) -> bool:
@@ -240,7 +247,7 @@ def same_tree(a: object, b: object) -> bool:
                     and bool(torch.equal(_bits(x), _bits(y))))
         if dataclasses.is_dataclass(x):
             return all(walk(getattr(x, f.name), getattr(y, f.name)) for f in dataclasses.fields(x)
-                       if f.name not in SKIPPED_FIELDS)  # fmt: skip
+                       if f.name not in SKIPPED_FIELDS and f.compare)  # fmt: skip
         if isinstance(x, (tuple, list)):
             assert isinstance(y, (tuple, list))
             return len(x) == len(y) and all(walk(u, v) for u, v in zip(x, y))

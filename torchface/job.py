@@ -1240,12 +1240,22 @@ def _record_path(csv: Path) -> Path:
 CHECKPOINT_EVERY: int = 25
 
 #: The version of the checkpoint's layout (another one is not read: resumed from the rows, with a warning).
-_CHECKPOINT_VERSION = 1
+_CHECKPOINT_VERSION = 2
 
 
 def _checkpoint_path(csv: Path) -> Path:
     """The partial CSV's checkpoint (:func:`_write_checkpoints`): ``<name>.state.partial``."""
     return csv.with_name(csv.stem + ".state.partial")
+
+
+def _checkpoint_origin(device: torch.device | str, dtype: torch.dtype) -> dict[str, str]:
+    """What a checkpoint's rows depend on besides the settings (:func:`_settings`, which a resume from the CSV's rows
+    may change): the torchface version, the device and the dtype it was tracked with. A checkpoint of other ones is
+    not used (:func:`_load_checkpoint`: its state, restored elsewhere, would not go on as the uninterrupted run)."""
+    import torchface
+
+    return {"torchface": str(torchface.__version__), "device": str(torch.device(device)),
+            "dtype": str(dtype).removeprefix("torch.")}  # fmt: skip
 
 
 def _settings_text(settings: dict[str, object]) -> str:
@@ -1262,7 +1272,8 @@ def _write_checkpoints(
     go on from (:func:`_load_checkpoint`): its part of ``state`` (``TrackerState.select``: parameters, shape,
     templates, the management's mosaic, counters and online-start watch, motion prediction), of ``smooth`` (the pose
     filter) and of the first poses ``first_R`` ``(B, 3, 3)``, ``first_t`` ``(B, 3)``; the loop's ``t``, the CSV's
-    row count and last row (which a resume matches), the settings, the batch's videos in order (a resume tracks
+    row count and last row (which a resume matches), the settings, the torchface version, device and dtype
+    (:func:`_checkpoint_origin`), the batch's videos in order (a resume tracks
     those together again, :func:`_checkpoint_batches`) and the stream's own bookkeeping. Tensors and plain data
     only (:func:`torchface._checkpoint.to_plain`), read with ``torch.load(weights_only=True)``. Returns False, with
     a warning, where the state holds what plain data cannot (a value of a kind ``to_plain`` does not know): the run
@@ -1284,6 +1295,7 @@ def _write_checkpoints(
             "version": _CHECKPOINT_VERSION, "t": t, "rows": s.csv.rows_done, "start": s.start,
             "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
             "settings": _settings_text(s.settings), "batch": names, "index": k,
+            "origin": _checkpoint_origin(state.params.device, state.params.dtype),
             "state": plain, "smooth": plain_smooth,
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
@@ -1308,7 +1320,8 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
     """The checkpoint of ``s``'s partial run (:func:`_write_checkpoints`; ``csv``: its CSV's final path) where it is
     there and matches its partial CSV: the same settings (other ones: None, without a word, the record's check says
     why the resume is refused), a row count the CSV holds (rows after it, written after the checkpoint, are cut off
-    as the video's outputs open: tracked again), the same last row, and past the online start's frames (sooner the
+    as the video's outputs open: tracked again), the same last row, the same torchface version, device and dtype
+    (:func:`_checkpoint_origin`), and past the online start's frames (sooner the
     rows are tracked again from the first frame: :attr:`_Stream.retrack`). None where there is none; None with one
     warning line where it cannot be read or does not match (the resume goes on from the CSV's rows)."""
     path = _checkpoint_path(csv)
@@ -1322,8 +1335,14 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
         data = torch.load(path, map_location=model.device, weights_only=True)
         if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
             raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
+        _check_checkpoint_layout(data)
         if data["settings"] != _settings_text(_settings(config, s, model)):
             return None
+        origin, here = data.get("origin"), _checkpoint_origin(model.device, model.dtype)
+        if origin != here:  # (another version, device or dtype: a resume from the CSV's rows is allowed, not this)
+            diff = [f"{k} {origin.get(k) if isinstance(origin, dict) else None}, now {v}" for k, v in here.items()
+                    if not isinstance(origin, dict) or origin.get(k) != v]  # fmt: skip
+            raise ValueError(f"made with another {', '.join(diff)}")
         n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
         online = _online_start(config)
         if online is not None and t + 1 < online.max_frames:
@@ -1342,6 +1361,32 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
         warnings.warn(f"{path}: not used ({why}): the video goes on from its CSV's rows, not exactly as the "
                       f"uninterrupted run", RuntimeWarning, stacklevel=2)  # fmt: skip
         return None
+
+
+#: What a checkpoint holds (:func:`_write_checkpoints`), and its ``stream`` entry.
+_CHECKPOINT_KEYS = frozenset({"version", "t", "rows", "start", "row", "settings", "origin", "batch", "index", "state",
+                              "smooth", "first_R", "first_t", "stream"})  # fmt: skip
+_CHECKPOINT_STREAM_KEYS = frozenset({"low_count", "smooth_restart", "detection_warned", "near"})
+
+
+def _check_checkpoint_layout(data: dict) -> None:
+    """Raise ValueError where ``data`` lacks what :func:`_load_checkpoint` and the resume read of a checkpoint
+    (its batch and place in it, its bookkeeping, its first poses): a file of this version's number without them
+    (damaged, or not written by :func:`_write_checkpoints`) failed with a KeyError after the check, the run stopped."""
+    missing = sorted(_CHECKPOINT_KEYS - set(data))
+    stream = data.get("stream")
+    if isinstance(stream, dict):
+        missing += [f"stream.{k}" for k in sorted(_CHECKPOINT_STREAM_KEYS - set(stream))]
+    if missing:
+        raise ValueError(f"it lacks {', '.join(missing)}")
+    batch, index = data["batch"], data["index"]
+    if not isinstance(stream, dict) or not isinstance(batch, list) or not all(isinstance(n, str) for n in batch):
+        raise ValueError("its batch or bookkeeping is not of its layout")
+    if not isinstance(index, int) or not 0 <= index < len(batch):
+        raise ValueError(f"its place {index!r} is not in its batch of {len(batch)}")
+    for name, shape in (("first_R", (1, 3, 3)), ("first_t", (1, 3))):
+        if not isinstance(data[name], Tensor) or tuple(data[name].shape) != shape:
+            raise ValueError(f"its {name} is not {shape}")
 
 
 def _cut_rows(csv: Path, rows: int) -> None:
@@ -2807,6 +2852,10 @@ def _track_group(
                                  smooth)  # fmt: skip
             if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
                 state, smooth, first_R, first_t = joined
+                idx = [k for k, s in enumerate(streams) if any(s is x for x in live)]
+                if len(idx) < len(streams):  # (a video that stopped while its rows were replayed: InputError)
+                    state, first_R, first_t = state.select(idx), first_R[idx], first_t[idx]
+                    smooth = None if smooth is None else smooth.select(idx)
                 _restore_streams(live)
                 joined = None
             elif detector is not None and config.redetect_after > 0:
@@ -2816,6 +2865,12 @@ def _track_group(
                 if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
                                           [not r for r in replaying]):  # fmt: skip
                     checkpoint_from = sys.maxsize  # (warned: none for this batch)
+                else:  # the videos that ended before (their rows complete: a resume replays them, none tracked
+                    # again) keep no checkpoint of the batch they were in: resumed from it, alone, as the others have
+                    # newer ones of their own, their last rows were cut off and tracked again as another batch
+                    for s, p in zip(streams, paths):
+                        if s.done and s.error is None and all(s is not x for x in live):
+                            _checkpoint_path(p["csv"]).unlink(missing_ok=True)
             nxt = []
             for s in live:
                 if not s.done:
@@ -3127,9 +3182,13 @@ def _finalise(
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
         "videos": _video_timing(s),
     }
+    # (its checkpoint, and a temporary one a SIGKILL cut off while it was written, before the JSON: a video killed
+    # between them is resumed from its complete CSV's rows, none tracked again; one left behind stayed beside the
+    # complete outputs, where no run removed it)
+    for ck in (_checkpoint_path(p["csv"]), _checkpoint_path(p["csv"]).with_suffix(".partial.tmp")):
+        ck.unlink(missing_ok=True)
     write_json(p["json"], sidecar)
     _record_path(p["csv"]).unlink(missing_ok=True)
-    _checkpoint_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),

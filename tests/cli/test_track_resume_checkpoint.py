@@ -142,7 +142,7 @@ def test_without_its_checkpoint_the_resumed_rows_part(clips, tmp_path):
     assert _same_outputs(tmp_path / "ref", out, ["a"])[:1] == ["a.csv"]
 
 
-@pytest.mark.parametrize("damage", ["row", "file"])
+@pytest.mark.parametrize("damage", ["row", "file", "truncated"])
 def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_path, damage):
     """A checkpoint whose last row is not the CSV's (a row edited) or that cannot be read (damaged) is not used:
     one warning line naming it, and the video goes on from its CSV's rows, as before (none cut off)."""
@@ -152,6 +152,8 @@ def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_p
     ck = out / "a.state.partial"
     if damage == "file":
         ck.write_bytes(b"not a checkpoint")
+    elif damage == "truncated":  # (its first half: a file cut off)
+        ck.write_bytes(ck.read_bytes()[: ck.stat().st_size // 2])
     else:
         partial = out / "a.csv.partial"
         lines = partial.read_text().splitlines(keepends=True)
@@ -207,3 +209,177 @@ def test_a_state_that_cannot_be_kept_tracks_on_without_checkpoints(clips, tmp_pa
     assert said == ["no checkpoints written (cannot keep a Thing as plain data): an interrupted run resumes from its "
                     "CSV's rows"]  # fmt: skip
     assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
+
+
+@pytest.mark.parametrize("other", ["version", "device", "dtype"])
+def test_a_checkpoint_of_another_version_device_or_dtype_is_not_used(clips, tmp_path, monkeypatch, other):
+    """A checkpoint made by another torchface version, on another device or in another dtype (which the settings,
+    compared for a resume from the CSV's rows, do not hold) is not restored: one warning line saying which, and the
+    video goes on from its CSV's rows (``resumed.checkpoint`` false). (Before, it was restored, its tensors moved to
+    this run's device, and the sidecar said the rows were the uninterrupted run's.) This machine has one device and
+    the job one dtype: the checkpoint is told it was made on another."""
+    import torchface
+
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    if other == "version":
+        monkeypatch.setattr(torchface, "__version__", "0.0.9")
+        said_other = "torchface 0.1.0, now 0.0.9"
+    else:
+        data = torch.load(ck, weights_only=True)
+        value = {"device": "cuda:0", "dtype": "float64"}[other]
+        data["origin"] = {**data.get("origin", {}), other: value}
+        torch.save(data, ck)
+        said_other = f"{other} {value}, now {'cpu' if other == 'device' else 'float32'}"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used (made with another {said_other})"), said
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    assert not ck.exists()
+
+
+def test_a_temporary_checkpoint_cut_off_is_removed_with_the_video_complete(clips, tmp_path, monkeypatch):
+    """A temporary checkpoint (``<stem>.state.partial.tmp``) left by a SIGKILL while it was written is not read,
+    and is removed once the resumed video is complete, as its checkpoint is, where the resumed run wrote no
+    checkpoint of its own (here: none due in the rows it tracked). It stayed beside the complete outputs."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    tmp = out / "a.state.partial.tmp"
+    tmp.write_bytes(b"\x80\x02cut off")
+    monkeypatch.setattr(torchface.job, "CHECKPOINT_EVERY", 100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is True
+    assert not tmp.exists() and not (out / "a.state.partial").exists()
+
+
+@pytest.mark.parametrize("mode", ["lookahead", "no-templates"])
+def test_resume_from_a_checkpoint_without_the_online_start(clips, tmp_path, mode):
+    """Without the online start (``--lookahead``, or no template management) checkpoints are written from frame
+    EVERY on (not from the online start's MAX_FRAMES): resumed from the one at 8 rows, the outputs are the
+    uninterrupted run's, byte for byte, and the sidecar's start is too."""
+    from torchface.template.management import TemplateConfig
+    from torchface.tracker import TrackerConfig
+
+    clips = clips[:1]
+    kwargs: dict = ({"lookahead": LookaheadConfig(max_frames=MAX_FRAMES)} if mode == "lookahead"
+                    else {"tracker": TrackerConfig(template=TemplateConfig(enabled=False))})  # fmt: skip
+    track_videos([clips[0][0]], _config(tmp_path / "ref", clips, **kwargs))
+    out = tmp_path / "out"
+    _interrupted(clips, out, **kwargs)
+    assert torch.load(out / "a.state.partial", weights_only=True)["rows"] == 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([clips[0][0]], _config(out, clips, resume=True, **kwargs))
+    assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
+    side, ref = (json.loads((d / "a.json").read_text()) for d in (out, tmp_path / "ref"))
+    assert side["resumed"]["checkpoint"] is True and side["start"] == ref["start"]
+
+
+def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clips, tmp_path):
+    """A batch of two videos, the second of 6 frames: it ends after the checkpoint at 4 rows, and the first goes on
+    alone (its checkpoint at 8 rows, of a batch of itself). Interrupted after 10 rows of the first, the second's CSV
+    is complete: resumed, its rows are kept (replayed, none tracked), not cut back to its checkpoint at 4 rows and
+    tracked again alone (its rows then parted from its batch's by float rounding), and both CSVs and videos are the
+    uninterrupted run's, byte for byte."""
+    short = tmp_path / "c.npy"
+    np.save(short, np.load(clips[1][0])[:6])
+    both = [clips[0], (short, clips[1][1])]
+    track_videos([v for v, _ in both], _config(tmp_path / "ref", both))
+    out = tmp_path / "out"
+
+    def interrupt(p):
+        if p.done == STOP and p.index == 0:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([v for v, _ in both], _config(out, both), progress=interrupt)
+    assert read_track_csv(out / "c.csv.partial")[1].shape[0] == 6
+    assert torch.load(out / "a.state.partial", weights_only=True)["batch"] == ["a"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([v for v, _ in both], _config(out, both, resume=True))
+    assert _same_outputs(tmp_path / "ref", out, ["a", "c"]) == []
+    side = json.loads((out / "c.json").read_text())
+    assert side["resumed"]["rows"] == 6 and side["resumed"]["tracked_again"] == 0
+
+
+def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
+    """A run without ``--resume`` removes an earlier run's checkpoint and temporary checkpoint of its videos before
+    it tracks: interrupted before its own first checkpoint, none is there (an earlier one would be another run's)."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    (out / "a.state.partial.tmp").write_bytes(b"cut off")
+
+    def interrupt(p):
+        if p.done == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([clips[0][0]], _config(out, clips), progress=interrupt)
+    assert read_track_csv(out / "a.csv.partial")[1].shape[0] == 2
+    assert not (out / "a.state.partial").exists() and not (out / "a.state.partial.tmp").exists()
+
+
+def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(clips, tmp_path, monkeypatch):
+    """Two videos resumed from their checkpoints of one batch, the first of which cannot be read on (an
+    ``InputError`` at its 4th frame, while its rows are replayed: the others go on): the second goes on from its own
+    part of the batch's state, its rows those of the uninterrupted run to float rounding (tracked alone). (The
+    batch's whole state was put back after the checkpoint's row, the first video's stream included: the second
+    went on from the first's state.)"""
+    from torchface.io import InputError
+
+    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    read = torchface.job._next_frame
+
+    def flaky(s):
+        if s.name == "a" and s.frames == 3:
+            raise InputError(f"{s.reader.info.path}: cannot read frame 3")
+        return read(s)
+
+    monkeypatch.setattr(torchface.job, "_next_frame", flaky)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        try:
+            track_videos([v for v, _ in clips], _config(out, clips, resume=True, keep_going=True))
+        except InputError:
+            pass
+    assert not (out / "a.json").exists()
+    assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] is True
+    ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("damage", ["batch", "stream", "index"])
+def test_a_checkpoint_lacking_part_of_its_layout_is_refused_with_a_warning(clips, tmp_path, damage):
+    """A checkpoint of this version's number that lacks an entry the resume reads after the check (its batch, its
+    bookkeeping) or whose place is not in its batch is not used: one warning line, the video goes on from its CSV's
+    rows. (It stopped the run with a KeyError.)"""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    data = torch.load(ck, weights_only=True)
+    if damage == "index":
+        data["index"] = 3
+    else:
+        del data[damage]
+    torch.save(data, ck)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
