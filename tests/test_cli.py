@@ -81,6 +81,26 @@ def test_version_prints_the_package_version(capsys):
     assert capsys.readouterr().out.strip() == f"torchface {torchface.__version__}"
 
 
+def test_python_dash_m_torchface_runs_the_command(tmp_path):
+    """``python -m torchface`` (a venv's Python without its bin/ on the PATH) was "No module named
+    torchface.__main__; 'torchface' is a package and cannot be directly executed"; it is the ``torchface`` command,
+    under its name: the version, and a bad input's one-line error with status 2."""
+    import torchface
+
+    root = str(Path(torchface.__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    run = subprocess.run([sys.executable, "-m", "torchface", "--version"], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=120)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == f"torchface {torchface.__version__}"
+    missing = str(tmp_path / "nope.mp4")
+    run = subprocess.run([sys.executable, "-m", "torchface", "track", missing, "--landmarks", missing,
+                          "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)  # fmt: skip
+    assert run.returncode == 2
+    assert run.stderr.strip().splitlines() == [f"torchface: error: {missing}: no such file or folder"]
+
+
 def test_track_threads_sets_torchs_threads_and_rejects_non_positive(monkeypatch, tmp_path, capsys):
     import torch
 

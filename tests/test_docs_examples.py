@@ -47,6 +47,7 @@ RUN_HERE = {
     ("README.md", "Learning pipelines: `training_hooks`"):
         "test_readme_training_hooks_block_runs_and_gives_the_shapes_it_states",
     ("docs/python-api.md", "Keeping the expression"): "test_keeping_the_expression_block_runs_in_a_fresh_namespace",
+    ("docs/python-api.md", "Frames and landmarks"): "test_frames_and_landmarks_block_tracks_the_packaged_clip_anywhere",
     ("docs/python-api.md", "Saving a model for `torchface track`"):
         "test_saving_a_model_block_runs_on_candide3_written_as_an_obj",
 }  # fmt: skip
@@ -132,6 +133,19 @@ def test_keeping_the_expression_block_runs_in_a_fresh_namespace():
     exec(compile(_block("docs/python-api.md", "Keeping the expression"), "docs/python-api.md", "exec"), scope)
     faces = scope["faces"]
     assert faces.shape == (1, 3, 128, 128) and bool(torch.isfinite(faces).all())  # "(B, 3, 128, 128)"
+
+
+def test_frames_and_landmarks_block_tracks_the_packaged_clip_anywhere(tmp_path, monkeypatch):
+    """docs/python-api.md's "Frames and landmarks" block, run as written from a folder that is not the checkout's
+    root (the page's inline example opened "torchface/data/grid/bbaf2n.mpg", which is there only): it tracks the
+    packaged clip's 75 frames, the last one successfully, at the shapes its comments state."""
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(_block("docs/python-api.md", "Frames and landmarks"), "docs/python-api.md", "exec"), scope)
+    result, tracker = scope["result"], scope["tracker"]
+    assert scope["first"].shape == (3, 288, 360) and scope["points"].shape == (68, 2)
+    assert result.ypr_deg.shape == (1, 3) and result.success.tolist() == [True]
+    assert tracker.state.frame_index == 75
 
 
 def test_saving_a_model_block_runs_on_candide3_written_as_an_obj(tmp_path, monkeypatch):

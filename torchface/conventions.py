@@ -58,6 +58,8 @@ where they cannot be pixels of a trackable face: all within :data:`NORMALISED_LA
 (:func:`torchface.tracker.fit.check_pixel_landmarks`, :func:`torchface.io.check_landmarks`); pixels of them:
 ``x * W - 0.5``, ``y * H - 0.5``. One stream's among streams in pixels, or a detector's for a stream
 (:func:`torchface.tracker.fit.normalised_streams`), fail that stream alone (``TrackResult.start_failure``).
+MediaPipe's face mesh points (:data:`MEDIAPIPE_MESH_POINT_COUNTS` of them) are not the iBUG-68 landmarks that
+CANDIDE-3 and the detectors use: a count of theirs where 68 are wanted is refused with :data:`MEDIAPIPE_MESH_HINT`.
 
 Projection
 ----------
@@ -83,3 +85,12 @@ NORMALISED_LANDMARK_MAX_SPAN: float = 1.5
 #: Frames with a side under this many pixels are not checked for normalised landmarks: a face in pixels there
 #: spans about a pixel as well (and fails the fit, as it did before the check).
 NORMALISED_CHECK_MIN_SIDE: int = 8
+
+#: Point counts of MediaPipe's face mesh (468 points; 478 with the irises' 10, FaceLandmarker's).
+MEDIAPIPE_MESH_POINT_COUNTS: tuple[int, ...] = (468, 478)
+
+#: Said where such a count of landmarks arrives where the 68 iBUG points are wanted (it was told the count alone).
+MEDIAPIPE_MESH_HINT: str = (
+    "MediaPipe's face mesh points? The 68 iBUG / 300-W landmarks are wanted, in their order (as dlib's 68-point "
+    "predictor, OpenFace and torchface.detect give them), in pixels"
+)

@@ -122,6 +122,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
 from torchface.detect import detector_image, search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int
 from torchface.io.errors import InputError
@@ -466,7 +467,10 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
         raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {np.shape(source)}")
     if shape[0] != count:
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
-        raise InputError(f"{where}: expected {count} {what}, got {shape[0]} (a missing point stays, as a NaN row)")
+        hint = "a missing point stays, as a NaN row"
+        if count == NUM_LANDMARKS and shape[0] in MEDIAPIPE_MESH_POINT_COUNTS:  # (was told the NaN row's rule)
+            hint = MEDIAPIPE_MESH_HINT
+        raise InputError(f"{where}: expected {count} {what}, got {shape[0]} ({hint})")
     return source
 
 

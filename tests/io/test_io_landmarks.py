@@ -127,6 +127,22 @@ def test_check_landmarks_min_inside_lets_a_detectors_points_cross_the_edge():
         check_landmarks(points + 500.0, 100, 100, "detector", min_inside=0.5)
 
 
+def test_mediapipe_face_mesh_points_are_told_the_68_ibug_points_are_wanted(tmp_path):
+    """MediaPipe's 478 (468) face mesh points, in a CSV or an array, were told "expected 68 iBUG landmarks, got 478"
+    and nothing more: the message says which points are wanted."""
+    rng = np.random.default_rng(0)
+    for n in (468, 478):
+        pts = rng.uniform(10, 90, (n, 2))
+        (tmp_path / "mesh.csv").write_text("x,y\n" + "".join(f"{x},{y}\n" for x, y in pts))
+        for call in (lambda: read_landmarks(tmp_path / "mesh.csv", 100, 100),
+                     lambda: check_landmarks(pts, 100, 100, "detector")):  # fmt: skip
+            with pytest.raises(InputError, match=rf"expected 68 iBUG landmarks, got {n} \(MediaPipe's face mesh "
+                                                 r"points\? The 68 iBUG / 300-W landmarks are wanted"):  # fmt: skip
+                call()
+    with pytest.raises(InputError, match=r"got 67 \(a missing point"):  # (other counts: as before)
+        check_landmarks(rng.uniform(10, 90, (67, 2)), 100, 100, "clip.mp4: landmarks", missing=True)
+
+
 def test_a_wrong_count_says_how_the_callers_source_writes_a_missing_point(tmp_path):
     """With ``missing``, a wrong count's error says a missing point stays as a NaN row, in the words of the source:
     a CSV's empty cells, a ``.pts`` line ``nan nan``, an NPY's or an array's NaN row. An array (the Python API,

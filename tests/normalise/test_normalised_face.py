@@ -450,6 +450,9 @@ def test_errors(model, layout):
         call(frames=(frames * 255).to(torch.uint8))
     with pytest.raises(ValueError, match="intrinsics' size"):
         call(frames=torch.rand(2, 3, 100, 100))
+    # channels-last frames were told "must be 320x240 (W x H, the intrinsics' size), got 3x320", no way out
+    with pytest.raises(ValueError, match=r"got 3x320 \(channels last \(B, H, W, C\): frames.permute\(0, 3, 1, 2\)\)"):
+        call(frames=frames.permute(0, 2, 3, 1))
     with pytest.raises(TypeError, match="frames must be a torch.Tensor"):
         call(frames=frames.numpy())
     with pytest.raises(ValueError, match=r"shape_coeffs must be \(B, 14\)"):

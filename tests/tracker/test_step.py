@@ -709,6 +709,10 @@ def test_initialise_rejects_landmarks_of_another_batch(model, two_streams):
     xyz = torch.cat([lm, torch.zeros_like(lm[..., :1])], -1)  # a 3D detector's (x, y, z) points: was told no more
     with pytest.raises(ValueError, match=r"got \(2, 68, 3\) \(x, y, z points, .*: landmarks_px\[\.\.\., :2\]\)$"):
         initialise(model, BASE, frames[:, 0], xyz, cam)
+    # MediaPipe's face mesh, 478 points (2 or 3 coordinates): was told the shape alone
+    for mesh in (torch.rand(2, 478, 2), torch.rand(2, 478, 3), torch.rand(2, 468, 2)):
+        with pytest.raises(ValueError, match=r"got \(2, 4[67]8, [23]\) \(MediaPipe's face mesh points\? The 68 iBUG"):
+            initialise(model, BASE, frames[:, 0], mesh, cam)
     # Each of these used to be accepted, then fail later (mid-stream at the online start's re-anchoring, or
     # deep inside torch) with a message that did not say what was wrong.
     with pytest.raises(ValueError, match="at least one stream"):

@@ -286,6 +286,10 @@ def test_landmarks_with_too_few_points_half_nan_rows_or_infinite_values_are_refu
     short = re.escape("expected 68 iBUG landmarks, got 67 (a missing point stays, as a NaN row)")
     with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {short}$"):
         list(VideoDataset([clip.video], [np.array(clip.landmarks)[:67]], cfg))
+    # MediaPipe's 478 face mesh points: told which points are wanted (it said a missing point stays a NaN row)
+    mesh = re.escape("expected 68 iBUG landmarks, got 478 (MediaPipe's face mesh points? The 68 iBUG")
+    with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {mesh}"):
+        VideoDataset([clip.video], [np.full((478, 2), 50.0)], cfg)
     four = np.full((68, 2), np.nan)
     four[[30, 36, 45, 48]] = clip.landmarks[[30, 36, 45, 48]]
     assert len(list(VideoDataset([clip.video], [four], cfg))) == FRAMES  # (the fit's minimum: tracked)

@@ -64,7 +64,8 @@ from pathlib import Path
 import numpy as np
 
 from torchface.conventions import (
-    NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
+    MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN,
+    NORMALISED_LANDMARK_RANGE,
 )
 from torchface.io.errors import InputError
 
@@ -578,6 +579,8 @@ def check_landmarks(
     if points.shape[0] != count:
         hint = f" (a missing point stays, as a NaN row{': ' + missing_as if missing_as else ''})" if missing else ""
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
+        if count == NUM_LANDMARKS and points.shape[0] in MEDIAPIPE_MESH_POINT_COUNTS:  # (told the count alone)
+            hint = f" ({MEDIAPIPE_MESH_HINT})"
         raise InputError(f"{where}: expected {count} {what}, got {points.shape[0]}{hint}")
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():

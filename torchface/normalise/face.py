@@ -475,9 +475,11 @@ def normalised_face(
         raise ValueError(f"frames must be (B, C, H, W) float in [0, 1], got {tuple(frames.shape)} {frames.dtype}"
                          f"{_frame_hint(frames)}")  # fmt: skip
     if tuple(frames.shape[-2:]) != intrinsics.size:
+        # channels-last frames (B, H, W, C) were told their size alone ("got 3x320"), not how to make them (B, C, H, W)
+        channels_last = frames.shape[1] not in (1, 3, 4) and frames.shape[-1] in (1, 3, 4)
         raise ValueError(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, the intrinsics' size), got "
-            f"{frames.shape[-1]}x{frames.shape[-2]}"
+            f"{frames.shape[-1]}x{frames.shape[-2]}{_frame_hint(frames) if channels_last else ''}"
         )
     if layout.num_faces != model.num_faces:
         raise ValueError(

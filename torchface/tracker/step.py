@@ -26,7 +26,7 @@ from torchface._device import check_holds_data, check_to_arguments
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
-from torchface.conventions import NEAR_PLANE_MM
+from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM
 from torchface.geometry._checks import (
     check_bool, check_int, check_intrinsics, check_ints, check_optional_real, check_real,
 )
@@ -1052,6 +1052,8 @@ def check_initialise_inputs(
         hint = (" (x, y rows: landmarks_px.transpose(1, 2))" if tuple(landmarks_px.shape[1:]) == (2, K)
                 else " (x, y, z points, as 3D landmark detectors give them: landmarks_px[..., :2])"
                 if tuple(landmarks_px.shape[1:]) == (K, 3) else "")  # fmt: skip
+        if K == 68 and landmarks_px.shape[1] in MEDIAPIPE_MESH_POINT_COUNTS:  # (CANDIDE-3's, the iBUG points)
+            hint = f" ({MEDIAPIPE_MESH_HINT})"  # (MediaPipe's (B, 478, 2 or 3) points were told the shape alone)
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
                          f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
