@@ -2986,9 +2986,18 @@ def _open_outputs(
         _check_record_smoothing(loaded, s.settings)
     if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
         os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
-    if config.resume and s.checkpoint is not None:  # (its rows after the checkpoint: tracked again)
-        _cut_rows(p["csv"], int(s.checkpoint["rows"]))
     s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
+    # Its rows after the checkpoint (tracked again) are left out of the checks below, and cut from the file only
+    # once the resume is accepted: a resume refused (damaged rows, another record) keeps them all.
+    cut = None if not config.resume or s.checkpoint is None else int(s.checkpoint["rows"])
+    if cut is not None:
+        if s.csv.rows_done < cut:  # (not the rows it was checked against: the file changed since)
+            warnings.warn(f"{s.checkpoint['path']}: not used (it is of row {cut}, the CSV holds {s.csv.rows_done}): "
+                          "the video goes on from its CSV's rows, not exactly as the uninterrupted run",
+                          RuntimeWarning, stacklevel=3)  # fmt: skip
+            s.checkpoint, cut = None, None
+        else:
+            s.csv.previous, s.csv.rows_done = s.csv.previous[:cut], cut
     exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
     if exact and s.total is not None and s.csv.rows_done > s.total:
         raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
@@ -3016,6 +3025,8 @@ def _open_outputs(
     s.retrack = _online_start_pending(s, _online_start(config))
     if s.retrack:
         s.anchor = None
+    if cut is not None:  # (accepted: the rows after the checkpoint go; the writer appends after its row)
+        _cut_rows(p["csv"], cut)
     _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
     s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
     s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)

@@ -383,3 +383,37 @@ def test_a_checkpoint_lacking_part_of_its_layout_is_refused_with_a_warning(clips
     assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
     assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
     assert read_track_csv(out / "a.csv")[1].shape[0] == N
+
+
+@pytest.mark.parametrize("damage", ["rows", "record"])
+def test_a_resume_refused_after_its_checkpoint_matched_keeps_every_row(clips, tmp_path, damage):
+    """A checkpoint that matches its CSV (at 8 rows of STOP) whose resume is then refused, by a damaged row before
+    it (row 5 says another frame) or a record that cannot be read: the run stops with the InputError, and the
+    partial CSV keeps its STOP rows, byte for byte (its rows after the checkpoint were cut off before the checks:
+    2 rows lost, up to CHECKPOINT_EVERY - 1 in a real run). Mended, the resume goes on from the checkpoint."""
+    from torchface.io import InputError
+
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    partial = out / "a.csv.partial"
+    if damage == "rows":
+        lines = partial.read_text().splitlines(keepends=True)
+        cells = lines[5].split(",")
+        cells[0] = "99"
+        lines[5] = ",".join(cells)
+        partial.write_text("".join(lines))
+    else:
+        record = out / "a.record.partial"
+        assert record.is_file()
+        kept_record = record.read_bytes()
+        record.write_text("{not json")
+    before = partial.read_bytes()
+    with pytest.raises(InputError, match="cannot resume"):
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    assert partial.read_bytes() == before and read_track_csv(partial)[1].shape[0] == STOP
+    if damage == "record":
+        record.write_bytes(kept_record)
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+        side = json.loads((out / "a.json").read_text())
+        assert side["resumed"]["checkpoint"] is True and side["resumed"]["rows"] == 8
