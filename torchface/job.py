@@ -1318,12 +1318,13 @@ def _write_checkpoints(
 
 def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel) -> dict | None:
     """The checkpoint of ``s``'s partial run (:func:`_write_checkpoints`; ``csv``: its CSV's final path) where it is
-    there and matches its partial CSV: the same settings (other ones: None, without a word, the record's check says
-    why the resume is refused), a row count the CSV holds (rows after it, written after the checkpoint, are cut off
-    as the video's outputs open: tracked again), the same last row, the same torchface version, device and dtype
-    (:func:`_checkpoint_origin`), and past the online start's frames (sooner the
-    rows are tracked again from the first frame: :attr:`_Stream.retrack`). None where there is none; None with one
-    warning line where it cannot be read or does not match (the resume goes on from the CSV's rows)."""
+    there and matches its partial CSV: the same torchface version, device and dtype (:func:`_checkpoint_origin`),
+    the same settings (other ones, which the record refuses: None without a word, the record's check says why the
+    resume is refused; ones the record accepts, written otherwise: not used, with the warning line), a row count the
+    CSV holds (rows after it, written after the checkpoint, are cut off once the resume is accepted: tracked again),
+    the same last row, and past the online start's frames (sooner the rows are tracked again from the first frame:
+    :attr:`_Stream.retrack`). None where there is none; None with one warning line where it cannot be read or does
+    not match (the resume goes on from the CSV's rows)."""
     path = _checkpoint_path(csv)
     if not path.is_file():
         return None
@@ -1336,13 +1337,19 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
         if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
             raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
         _check_checkpoint_layout(data)
-        if data["settings"] != _settings_text(_settings(config, s, model)):
-            return None
         origin, here = data.get("origin"), _checkpoint_origin(model.device, model.dtype)
         if origin != here:  # (another version, device or dtype: a resume from the CSV's rows is allowed, not this)
             diff = [f"{k} {origin.get(k) if isinstance(origin, dict) else None}, now {v}" for k, v in here.items()
                     if not isinstance(origin, dict) or origin.get(k) != v]  # fmt: skip
             raise ValueError(f"made with another {', '.join(diff)}")
+        settings = _settings(config, s, model)
+        if data["settings"] != _settings_text(settings):
+            made = json.loads(data["settings"])
+            if not isinstance(made, dict):
+                raise ValueError("its settings are not of its layout")
+            if _changed_settings(_with_defaults(made, _setting_values(config)), settings):  # (the resume is refused: the record's check says why)
+                return None
+            raise ValueError("its settings are written otherwise than this run's")  # (the record accepts them)
         n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
         online = _online_start(config)
         if online is not None and t + 1 < online.max_frames:

@@ -417,3 +417,38 @@ def test_a_resume_refused_after_its_checkpoint_matched_keeps_every_row(clips, tm
         track_videos([clips[0][0]], _config(out, clips, resume=True))
         side = json.loads((out / "a.json").read_text())
         assert side["resumed"]["checkpoint"] is True and side["resumed"]["rows"] == 8
+
+
+@pytest.mark.parametrize("change", ["written-otherwise", "refused"])
+def test_a_checkpoint_of_other_settings_is_refused_with_a_warning_where_the_record_accepts_them(clips, tmp_path,
+                                                                                               change):  # fmt: skip
+    """A checkpoint whose settings are not this run's text but the same settings (``visibility_interval`` 1.0 for 1,
+    as another version may write them), which the record accepts: not used, with one warning line, the video goes on
+    from its CSV's rows (it was dropped without a word). Other settings (``--focal 300``): no warning of
+    the checkpoint, the record's check refuses the resume and says why."""
+    from torchface.io import InputError
+
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    if change == "written-otherwise":
+        data = torch.load(ck, weights_only=True)
+        assert '"visibility_interval": 1,' in data["settings"]
+        data["settings"] = data["settings"].replace('"visibility_interval": 1,', '"visibility_interval": 1.0,')
+        torch.save(data, ck)
+    kwargs = {"focal": 300.0} if change == "refused" else {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        if change == "refused":
+            with pytest.raises(InputError, match="other settings"):
+                track_videos([clips[0][0]], _config(out, clips, resume=True, **kwargs))
+        else:
+            track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    if change == "refused":
+        assert said == []
+        return
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used (its settings"), said
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
