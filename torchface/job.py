@@ -133,7 +133,7 @@ from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from functools import lru_cache, partial
 from importlib import resources
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -1057,9 +1057,11 @@ class _Stream:
     # its last row as written (read back: as the CSV holds it), which its checkpoint keeps (_write_checkpoints)
     last_row: np.ndarray | None = None
     # resumed: its checkpoint's data (_load_checkpoint; its states read again by _joined), which its batch's state is
-    # put together from after its last row, and whether it was (the sidecar's resumed.checkpoint)
+    # put together from after its last row, and whether it was (the sidecar's resumed.checkpoint): "exact", with
+    # its whole batch as it was (its rows the uninterrupted run's), "split", in a part of it (a smaller --max-batch,
+    # some of its videos skipped or stopped: its rows the uninterrupted run's to float rounding), or False
     checkpoint: dict | None = None
-    from_checkpoint: bool = False
+    from_checkpoint: Literal["exact", "split", False] = False
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -1460,14 +1462,17 @@ def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
 
 
 def _restore_streams(streams: list[_Stream]) -> None:
-    """Put back each stream's own bookkeeping after its checkpoint's row (:func:`_write_checkpoints`)."""
+    """Put back each stream's own bookkeeping after its checkpoint's row (:func:`_write_checkpoints`), and say
+    whether the streams are their checkpoints' whole batch, in its order (:attr:`_Stream.from_checkpoint`)."""
+    whole = all(s.checkpoint is not None and list(s.checkpoint["batch"]) == [x.name for x in streams]
+                for s in streams)  # fmt: skip
     for s in streams:
         assert s.checkpoint is not None
         b = s.checkpoint["stream"]
         s.low_count, s.smooth_restart = int(b["low_count"]), bool(b["smooth_restart"])
         s.detection_warned = bool(b["detection_warned"])
         s.near = None if b["near"] is None else b["near"].cpu().numpy()
-        s.from_checkpoint = True
+        s.from_checkpoint = "exact" if whole else "split"
 
 
 def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
@@ -2916,6 +2921,9 @@ def _track_group(
                 # batch (tracked as in the whole one; kept in it, an ended video's last frame was tracked again at
                 # every step until the longest video ended)
                 _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
+                if any(live[k].error is not None for k in range(len(live)) if k not in keep):  # (a video stopped:
+                    for s in live:  # the batch goes on smaller than the uninterrupted run's)
+                        s.from_checkpoint = "split" if s.from_checkpoint else False
                 state, result = state.select(keep), _select_result(result, keep)
                 smooth = None if smooth is None else smooth.select(keep)
                 first_R, first_t = first_R[keep], first_t[keep]
@@ -3224,8 +3232,10 @@ def _resumed_record(s: _Stream) -> dict | None:
     again, so its rows are of two runs that disagree), with ``largest_gap`` over the rows tracked again (None where
     none was): ``mm``, ``degrees``, ``confidence``, ``frame`` (of the largest translation gap) and
     ``other_status_from_frame`` (the first frame whose status or success differs, or None); ``checkpoint``: whether
-    the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`: the rows after it exactly
-    the uninterrupted run's) rather than from the CSV's last row."""
+    the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`) rather than from the CSV's
+    last row: ``"exact"``, with its whole batch as it was (the rows after it the uninterrupted run's, byte for
+    byte), ``"split"``, in a part of its batch (a smaller ``max_batch``, some of its videos skipped, or one
+    stopped since: to float rounding), or False (:attr:`_Stream.from_checkpoint`)."""
     rows = 0 if s.csv is None else len(s.csv.previous)
     if rows == 0:
         return None

@@ -118,7 +118,7 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
         assert all(p.read_bytes() == q.read_bytes() for p, q in zip(ref, got))
     for n in names:
         side, ref = (json.loads((d / f"{n}.json").read_text()) for d in (out, tmp_path / "ref"))
-        assert side["resumed"]["checkpoint"] is True
+        assert side["resumed"]["checkpoint"] == "exact"
         assert not (out / f"{n}.state.partial").exists()
         for d in (side, ref):  # (the rest of the sidecar, its start and final shape included, is the same too)
             for key in ("resumed", "timings_s", "outputs", "redetections", "detector_calls"):
@@ -183,7 +183,7 @@ def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, 
         warnings.simplefilter("error", RuntimeWarning)
         track_videos([v for v, _ in clips], _config(out, clips, resume=True, max_batch=1))
     for v, _ in clips:
-        assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] is True
+        assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] == "split"
         ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
 
@@ -257,7 +257,7 @@ def test_a_temporary_checkpoint_cut_off_is_removed_with_the_video_complete(clips
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         track_videos([clips[0][0]], _config(out, clips, resume=True))
-    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is True
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] == "exact"
     assert not tmp.exists() and not (out / "a.state.partial").exists()
 
 
@@ -281,7 +281,7 @@ def test_resume_from_a_checkpoint_without_the_online_start(clips, tmp_path, mode
         track_videos([clips[0][0]], _config(out, clips, resume=True, **kwargs))
     assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
     side, ref = (json.loads((d / "a.json").read_text()) for d in (out, tmp_path / "ref"))
-    assert side["resumed"]["checkpoint"] is True and side["start"] == ref["start"]
+    assert side["resumed"]["checkpoint"] == "exact" and side["start"] == ref["start"]
 
 
 def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clips, tmp_path):
@@ -310,6 +310,7 @@ def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clip
     assert _same_outputs(tmp_path / "ref", out, ["a", "c"]) == []
     side = json.loads((out / "c.json").read_text())
     assert side["resumed"]["rows"] == 6 and side["resumed"]["tracked_again"] == 0
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] == "exact"  # (its batch: a alone)
 
 
 def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
@@ -356,7 +357,7 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
         except InputError:
             pass
     assert not (out / "a.json").exists()
-    assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] is True
+    assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] == "split"
     ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
 
@@ -416,7 +417,7 @@ def test_a_resume_refused_after_its_checkpoint_matched_keeps_every_row(clips, tm
         record.write_bytes(kept_record)
         track_videos([clips[0][0]], _config(out, clips, resume=True))
         side = json.loads((out / "a.json").read_text())
-        assert side["resumed"]["checkpoint"] is True and side["resumed"]["rows"] == 8
+        assert side["resumed"]["checkpoint"] == "exact" and side["resumed"]["rows"] == 8
 
 
 @pytest.mark.parametrize("change", ["written-otherwise", "refused"])
@@ -452,3 +453,4 @@ def test_a_checkpoint_of_other_settings_is_refused_with_a_warning_where_the_reco
     assert len(said) == 1 and said[0].startswith(f"{ck}: not used (its settings"), said
     side = json.loads((out / "a.json").read_text())
     assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+
