@@ -1403,12 +1403,11 @@ def _cut_rows(csv: Path, rows: int) -> None:
     rows written after the checkpoint a resume goes on from (tracked again)."""
     partial = partial_path(csv)
     path = partial if partial.is_file() else csv
-    with open(path, "r+b") as f:
-        data = f.read()
-        end = -1
+    with open(path, "r+b") as f:  # (line by line: not the whole file in memory; the writer's lines end in \n)
         for _ in range(rows + 1):
-            end = data.index(b"\n", end + 1)
-        f.truncate(end + 1)
+            if not f.readline().endswith(b"\n"):
+                raise ValueError(f"{path}: it holds fewer than {rows} complete rows")
+        f.truncate(f.tell())
 
 
 def _checkpoint_batches(streams: list[_Stream]) -> list[list[int]]:

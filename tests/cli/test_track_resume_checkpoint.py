@@ -454,3 +454,45 @@ def test_a_checkpoint_of_other_settings_is_refused_with_a_warning_where_the_reco
     side = json.loads((out / "a.json").read_text())
     assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
 
+
+def test_cut_rows_keeps_the_header_and_first_rows_reading_line_by_line(tmp_path, monkeypatch):
+    """``_cut_rows`` cuts a partial CSV after its header and ``rows`` rows, the bytes before the cut as they were,
+    reading it line by line (it read the whole file into memory: an hour's CSV at 30 frames/s, some 100 MB); too
+    few complete rows: ValueError, the file as it was."""
+    csv = tmp_path / "a.csv"
+    partial = tmp_path / "a.csv.partial"
+    lines = [b"frame,x\n"] + [f"{i},{i * 0.5:.9g}\n".encode() for i in range(10)]
+    opened = []
+
+    class NoWholeRead:
+        def __init__(self, f):
+            self.f = f
+
+        def read(self, *size):
+            if not size or size[0] is None or size[0] < 0:
+                raise AssertionError("the whole file read")
+            return self.f.read(*size)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    def watched(path, *args, **kwargs):
+        opened.append(path)
+        return NoWholeRead(open(path, *args, **kwargs))
+
+    monkeypatch.setattr(torchface.job, "open", watched, raising=False)
+    for rows in (0, 3, 10):
+        partial.write_bytes(b"".join(lines) + b"10,0.2")  # (a row cut off)
+        torchface.job._cut_rows(csv, rows)
+        assert partial.read_bytes() == b"".join(lines[: rows + 1])
+    assert opened == [partial] * 3
+    partial.write_bytes(b"".join(lines[:4]) + b"3,1.5")
+    with pytest.raises(ValueError, match="fewer than 4"):
+        torchface.job._cut_rows(csv, 4)
+    assert partial.read_bytes() == b"".join(lines[:4]) + b"3,1.5"
