@@ -19,7 +19,8 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   replays, nor about the frames up to the first with a face, which its record says (:func:`_recorded_first_face`;
   a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
   which the tracking goes on from, and the rows it tracks again for the online start, :attr:`_Stream.retrack`, as the
-  uninterrupted run did);
+  uninterrupted run did) and ``restart_failures`` (those restarts that failed, counted by
+  :class:`~torchface.tracker.step.StartFailure` name, ``{}`` where none; this run's alone, as ``detector_calls``);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
   one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
@@ -1045,6 +1046,9 @@ class _Stream:
     # why its start (at frame ``start``) failed, NONE where it started (TrackResult.start_failure): the warning's
     # reason and the sidecar's start.failure
     start_failure: StartFailure = StartFailure.NONE
+    # the detector's restarts of its lost stream that this run tried and that failed, counted by StartFailure name
+    # (TrackResult.start_failure of managed_step; the rows replayed from a CSV: none): the sidecar's restart_failures
+    restart_failures: dict[str, int] = field(default_factory=dict)
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
     # and their 8-bit BGR images as read (FrameReader.image; None: drawn from the frame converted back), which the
@@ -1349,7 +1353,8 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
             made = json.loads(data["settings"])
             if not isinstance(made, dict):
                 raise ValueError("its settings are not of its layout")
-            if _changed_settings(_with_defaults(made, _setting_values(config)), settings):  # (the resume is refused: the record's check says why)
+            # (settings the record refuses: the resume is refused, and the record's check says why)
+            if _changed_settings(_with_defaults(made, _setting_values(config)), settings):
                 return None
             raise ValueError("its settings are written otherwise than this run's")  # (the record accepts them)
         n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
@@ -2936,6 +2941,12 @@ def _track_group(
                 continue  # every live stream replays this frame from its CSV: nothing to track
             current.frames, current.asked = frames, {}
             state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
+            if result.start_failure is not None:  # (a detector's restart tried: why those it did not start failed)
+                for s, code in zip(live, result.start_failure.tolist()):
+                    held_here = s.replay is not None and t < len(s.replay) and not s.retrack  # (its row: the CSV's)
+                    if code != int(StartFailure.NONE) and not held_here:
+                        name = StartFailure(code).name
+                        s.restart_failures[name] = s.restart_failures.get(name, 0) + 1
             _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
             now = time.perf_counter()  # (a step for the streams whose row t is tracked: for the others, not theirs)
             for s in live:
@@ -3204,6 +3215,7 @@ def _finalise(
         "mean_confidence": float(conf.mean()) if len(conf) else 0.0,
         "redetections": s.redetections,
         "detector_calls": s.detector_calls,
+        "restart_failures": dict(sorted(s.restart_failures.items())),
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
         "videos": _video_timing(s),
     }
