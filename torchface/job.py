@@ -3014,10 +3014,11 @@ def _open_outputs(
     s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
     # Its rows after the checkpoint (tracked again) are left out of the checks below, and cut from the file only
     # once the resume is accepted: a resume refused (damaged rows, another record) keeps them all.
-    cut = None if not config.resume or s.checkpoint is None else int(s.checkpoint["rows"])
-    if cut is not None:
+    ck = s.checkpoint if config.resume else None
+    cut = None if ck is None else int(ck["rows"])
+    if ck is not None and cut is not None:
         if s.csv.rows_done < cut:  # (not the rows it was checked against: the file changed since)
-            warnings.warn(f"{s.checkpoint['path']}: not used (it is of row {cut}, the CSV holds {s.csv.rows_done}): "
+            warnings.warn(f"{ck['path']}: not used (it is of row {cut}, the CSV holds {s.csv.rows_done}): "
                           "the video goes on from its CSV's rows, not exactly as the uninterrupted run",
                           RuntimeWarning, stacklevel=3)  # fmt: skip
             s.checkpoint, cut = None, None

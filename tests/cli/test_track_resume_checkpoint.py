@@ -496,3 +496,27 @@ def test_cut_rows_keeps_the_header_and_first_rows_reading_line_by_line(tmp_path,
     with pytest.raises(ValueError, match="fewer than 4"):
         torchface.job._cut_rows(csv, 4)
     assert partial.read_bytes() == b"".join(lines[:4]) + b"3,1.5"
+
+
+def test_a_checkpoint_of_more_rows_than_the_csv_holds_as_it_opens_is_not_used(clips, tmp_path, monkeypatch):
+    """A checkpoint that matched its CSV as the run started, whose CSV holds fewer rows as its outputs open (changed
+    in between; here its row count said 99): not used, with one warning line, the video goes on from its CSV's STOP
+    rows (the cut raised a bare ValueError from ``bytes.index`` and stopped the run)."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    load = torchface.job._load_checkpoint
+
+    def more(*args, **kwargs):
+        found = load(*args, **kwargs)
+        return None if found is None else found | {"rows": 99}
+
+    monkeypatch.setattr(torchface.job, "_load_checkpoint", more)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{out / 'a.state.partial'}: not used (it is of row 99"), said
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
