@@ -19,7 +19,8 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   replays, nor about the frames up to the first with a face, which its record says (:func:`_recorded_first_face`;
   a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
   which the tracking goes on from, and the rows it tracks again for the online start, :attr:`_Stream.retrack`, as the
-  uninterrupted run did);
+  uninterrupted run did) and ``restart_failures`` (those restarts that failed, counted by
+  :class:`~torchface.tracker.step.StartFailure` name, ``{}`` where none; this run's alone, as ``detector_calls``);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
   one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
@@ -133,7 +134,7 @@ from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from functools import lru_cache, partial
 from importlib import resources
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -1045,6 +1046,9 @@ class _Stream:
     # why its start (at frame ``start``) failed, NONE where it started (TrackResult.start_failure): the warning's
     # reason and the sidecar's start.failure
     start_failure: StartFailure = StartFailure.NONE
+    # the detector's restarts of its lost stream that this run tried and that failed, counted by StartFailure name
+    # (TrackResult.start_failure of managed_step; the rows replayed from a CSV: none): the sidecar's restart_failures
+    restart_failures: dict[str, int] = field(default_factory=dict)
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
     # and their 8-bit BGR images as read (FrameReader.image; None: drawn from the frame converted back), which the
@@ -1057,9 +1061,11 @@ class _Stream:
     # its last row as written (read back: as the CSV holds it), which its checkpoint keeps (_write_checkpoints)
     last_row: np.ndarray | None = None
     # resumed: its checkpoint's data (_load_checkpoint; its states read again by _joined), which its batch's state is
-    # put together from after its last row, and whether it was (the sidecar's resumed.checkpoint)
+    # put together from after its last row, and whether it was (the sidecar's resumed.checkpoint): "exact", with
+    # its whole batch as it was (its rows the uninterrupted run's), "split", in a part of it (a smaller --max-batch,
+    # some of its videos skipped or stopped: its rows the uninterrupted run's to float rounding), or False
     checkpoint: dict | None = None
-    from_checkpoint: bool = False
+    from_checkpoint: Literal["exact", "split", False] = False
 
     def frame(self) -> Tensor:
         """:attr:`last_frame`, which every stream of a batch being tracked holds (:func:`_reopen` reads the first)."""
@@ -1318,12 +1324,13 @@ def _write_checkpoints(
 
 def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel) -> dict | None:
     """The checkpoint of ``s``'s partial run (:func:`_write_checkpoints`; ``csv``: its CSV's final path) where it is
-    there and matches its partial CSV: the same settings (other ones: None, without a word, the record's check says
-    why the resume is refused), a row count the CSV holds (rows after it, written after the checkpoint, are cut off
-    as the video's outputs open: tracked again), the same last row, the same torchface version, device and dtype
-    (:func:`_checkpoint_origin`), and past the online start's frames (sooner the
-    rows are tracked again from the first frame: :attr:`_Stream.retrack`). None where there is none; None with one
-    warning line where it cannot be read or does not match (the resume goes on from the CSV's rows)."""
+    there and matches its partial CSV: the same torchface version, device and dtype (:func:`_checkpoint_origin`),
+    the same settings (other ones, which the record refuses: None without a word, the record's check says why the
+    resume is refused; ones the record accepts, written otherwise: not used, with the warning line), a row count the
+    CSV holds (rows after it, written after the checkpoint, are cut off once the resume is accepted: tracked again),
+    the same last row, and past the online start's frames (sooner the rows are tracked again from the first frame:
+    :attr:`_Stream.retrack`). None where there is none; None with one warning line where it cannot be read or does
+    not match (the resume goes on from the CSV's rows)."""
     path = _checkpoint_path(csv)
     if not path.is_file():
         return None
@@ -1336,13 +1343,20 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
         if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
             raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
         _check_checkpoint_layout(data)
-        if data["settings"] != _settings_text(_settings(config, s, model)):
-            return None
         origin, here = data.get("origin"), _checkpoint_origin(model.device, model.dtype)
         if origin != here:  # (another version, device or dtype: a resume from the CSV's rows is allowed, not this)
             diff = [f"{k} {origin.get(k) if isinstance(origin, dict) else None}, now {v}" for k, v in here.items()
                     if not isinstance(origin, dict) or origin.get(k) != v]  # fmt: skip
             raise ValueError(f"made with another {', '.join(diff)}")
+        settings = _settings(config, s, model)
+        if data["settings"] != _settings_text(settings):
+            made = json.loads(data["settings"])
+            if not isinstance(made, dict):
+                raise ValueError("its settings are not of its layout")
+            # (settings the record refuses: the resume is refused, and the record's check says why)
+            if _changed_settings(_with_defaults(made, _setting_values(config)), settings):
+                return None
+            raise ValueError("its settings are written otherwise than this run's")  # (the record accepts them)
         n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
         online = _online_start(config)
         if online is not None and t + 1 < online.max_frames:
@@ -1394,12 +1408,11 @@ def _cut_rows(csv: Path, rows: int) -> None:
     rows written after the checkpoint a resume goes on from (tracked again)."""
     partial = partial_path(csv)
     path = partial if partial.is_file() else csv
-    with open(path, "r+b") as f:
-        data = f.read()
-        end = -1
+    with open(path, "r+b") as f:  # (line by line: not the whole file in memory; the writer's lines end in \n)
         for _ in range(rows + 1):
-            end = data.index(b"\n", end + 1)
-        f.truncate(end + 1)
+            if not f.readline().endswith(b"\n"):
+                raise ValueError(f"{path}: it holds fewer than {rows} complete rows")
+        f.truncate(f.tell())
 
 
 def _checkpoint_batches(streams: list[_Stream]) -> list[list[int]]:
@@ -1453,14 +1466,17 @@ def _joined(streams: list[_Stream], smoothing: bool, device: torch.device
 
 
 def _restore_streams(streams: list[_Stream]) -> None:
-    """Put back each stream's own bookkeeping after its checkpoint's row (:func:`_write_checkpoints`)."""
+    """Put back each stream's own bookkeeping after its checkpoint's row (:func:`_write_checkpoints`), and say
+    whether the streams are their checkpoints' whole batch, in its order (:attr:`_Stream.from_checkpoint`)."""
+    whole = all(s.checkpoint is not None and list(s.checkpoint["batch"]) == [x.name for x in streams]
+                for s in streams)  # fmt: skip
     for s in streams:
         assert s.checkpoint is not None
         b = s.checkpoint["stream"]
         s.low_count, s.smooth_restart = int(b["low_count"]), bool(b["smooth_restart"])
         s.detection_warned = bool(b["detection_warned"])
         s.near = None if b["near"] is None else b["near"].cpu().numpy()
-        s.from_checkpoint = True
+        s.from_checkpoint = "exact" if whole else "split"
 
 
 def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
@@ -2909,6 +2925,9 @@ def _track_group(
                 # batch (tracked as in the whole one; kept in it, an ended video's last frame was tracked again at
                 # every step until the longest video ended)
                 _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
+                if any(live[k].error is not None for k in range(len(live)) if k not in keep):  # (a video stopped:
+                    for s in live:  # the batch goes on smaller than the uninterrupted run's)
+                        s.from_checkpoint = "split" if s.from_checkpoint else False
                 state, result = state.select(keep), _select_result(result, keep)
                 smooth = None if smooth is None else smooth.select(keep)
                 first_R, first_t = first_R[keep], first_t[keep]
@@ -2922,6 +2941,12 @@ def _track_group(
                 continue  # every live stream replays this frame from its CSV: nothing to track
             current.frames, current.asked = frames, {}
             state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
+            if result.start_failure is not None:  # (a detector's restart tried: why those it did not start failed)
+                for s, code in zip(live, result.start_failure.tolist()):
+                    held_here = s.replay is not None and t < len(s.replay) and not s.retrack  # (its row: the CSV's)
+                    if code != int(StartFailure.NONE) and not held_here:
+                        name = StartFailure(code).name
+                        s.restart_failures[name] = s.restart_failures.get(name, 0) + 1
             _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
             now = time.perf_counter()  # (a step for the streams whose row t is tracked: for the others, not theirs)
             for s in live:
@@ -2986,9 +3011,19 @@ def _open_outputs(
         _check_record_smoothing(loaded, s.settings)
     if config.resume and p["csv"].is_file() and not p["json"].is_file() and not partial.exists():
         os.replace(p["csv"], partial)  # interrupted while finalising (the JSON comes last): resume its rows
-    if config.resume and s.checkpoint is not None:  # (its rows after the checkpoint: tracked again)
-        _cut_rows(p["csv"], int(s.checkpoint["rows"]))
     s.csv = TrackCsvWriter(p["csv"], columns, resume=config.resume)
+    # Its rows after the checkpoint (tracked again) are left out of the checks below, and cut from the file only
+    # once the resume is accepted: a resume refused (damaged rows, another record) keeps them all.
+    ck = s.checkpoint if config.resume else None
+    cut = None if ck is None else int(ck["rows"])
+    if ck is not None and cut is not None:
+        if s.csv.rows_done < cut:  # (not the rows it was checked against: the file changed since)
+            warnings.warn(f"{ck['path']}: not used (it is of row {cut}, the CSV holds {s.csv.rows_done}): "
+                          "the video goes on from its CSV's rows, not exactly as the uninterrupted run",
+                          RuntimeWarning, stacklevel=3)  # fmt: skip
+            s.checkpoint, cut = None, None
+        else:
+            s.csv.previous, s.csv.rows_done = s.csv.previous[:cut], cut
     exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
     if exact and s.total is not None and s.csv.rows_done > s.total:
         raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
@@ -3016,6 +3051,8 @@ def _open_outputs(
     s.retrack = _online_start_pending(s, _online_start(config))
     if s.retrack:
         s.anchor = None
+    if cut is not None:  # (accepted: the rows after the checkpoint go; the writer appends after its row)
+        _cut_rows(p["csv"], cut)
     _write_record(record, s.reader.info.path, s.anchor, s.settings, _first_face(s))
     s.overlay = _VideoOut(p["overlay"], W, H, s.reader.info.fps, timed=True)  # (in step with the frames' times)
     s.normalised = _VideoOut(p["normalised"], G, G, s.reader.info.fps)
@@ -3179,6 +3216,7 @@ def _finalise(
         "mean_confidence": float(conf.mean()) if len(conf) else 0.0,
         "redetections": s.redetections,
         "detector_calls": s.detector_calls,
+        "restart_failures": dict(sorted(s.restart_failures.items())),
         "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
         "videos": _video_timing(s),
     }
@@ -3206,8 +3244,10 @@ def _resumed_record(s: _Stream) -> dict | None:
     again, so its rows are of two runs that disagree), with ``largest_gap`` over the rows tracked again (None where
     none was): ``mm``, ``degrees``, ``confidence``, ``frame`` (of the largest translation gap) and
     ``other_status_from_frame`` (the first frame whose status or success differs, or None); ``checkpoint``: whether
-    the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`: the rows after it exactly
-    the uninterrupted run's) rather than from the CSV's last row."""
+    the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`) rather than from the CSV's
+    last row: ``"exact"``, with its whole batch as it was (the rows after it the uninterrupted run's, byte for
+    byte), ``"split"``, in a part of its batch (a smaller ``max_batch``, some of its videos skipped, or one
+    stopped since: to float rounding), or False (:attr:`_Stream.from_checkpoint`)."""
     rows = 0 if s.csv is None else len(s.csv.previous)
     if rows == 0:
         return None

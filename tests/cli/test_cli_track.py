@@ -3931,3 +3931,31 @@ def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, mo
     assert [p.name for p in tmp_path.iterdir()] == ["frames.npy"]
     config = JobConfig(out_dir=".", landmarks=["a.csv", Path("b.csv")])
     assert config.landmarks == ("a.csv", Path("b.csv")) and isinstance(config.landmarks, tuple)
+
+
+def test_a_detector_restart_that_fails_is_counted_in_the_sidecar(clip, tmp_path, monkeypatch):
+    """A lost stream's restarts from the detector's landmarks that fail (here a face half outside the frame, each
+    restart OUTSIDE_FRAME as its first start) are counted by reason in the sidecar's ``restart_failures`` (nothing
+    said of them before: ``start.failure`` is the first start's alone); the CSV is as before (its columns, success 0).
+    A video whose detector finds the face: ``{}``."""
+    import torchface.detect
+
+    video, _, gt = clip
+    short = _short_npy(video, tmp_path / "half.npy", 6)
+    half = (gt.landmarks_px[0] + torch.tensor([0.5 * W, 0.0], dtype=gt.landmarks_px.dtype)).numpy().astype(np.float64)
+    good = gt.landmarks_px[0].numpy().astype(np.float64)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "half", lambda: lambda image_rgb, near=None: half)
+    monkeypatch.setitem(torchface.detect.DETECTORS, "good", lambda: lambda image_rgb, near=None: good)
+    for name in ("half", "good"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            track_videos([short], JobConfig(out_dir=tmp_path / name, detector=name, redetect_after=2))
+        side = json.loads(output_paths(tmp_path / name, "half")["json"].read_text())
+        failures = side["restart_failures"]
+        if name == "good":
+            assert failures == {}
+            continue
+        assert list(failures) == ["OUTSIDE_FRAME"] and 1 <= failures["OUTSIDE_FRAME"] <= 5, failures
+        assert side["detector_calls"] > failures["OUTSIDE_FRAME"]
+        cols, rows = read_track_csv(output_paths(tmp_path / name, "half")["csv"])
+        assert rows.shape == (6, len(cols)) and not rows[:, cols.index("success")].any()

@@ -118,7 +118,7 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
         assert all(p.read_bytes() == q.read_bytes() for p, q in zip(ref, got))
     for n in names:
         side, ref = (json.loads((d / f"{n}.json").read_text()) for d in (out, tmp_path / "ref"))
-        assert side["resumed"]["checkpoint"] is True
+        assert side["resumed"]["checkpoint"] == "exact"
         assert not (out / f"{n}.state.partial").exists()
         for d in (side, ref):  # (the rest of the sidecar, its start and final shape included, is the same too)
             for key in ("resumed", "timings_s", "outputs", "redetections", "detector_calls"):
@@ -183,7 +183,7 @@ def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, 
         warnings.simplefilter("error", RuntimeWarning)
         track_videos([v for v, _ in clips], _config(out, clips, resume=True, max_batch=1))
     for v, _ in clips:
-        assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] is True
+        assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] == "split"
         ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
 
@@ -257,7 +257,7 @@ def test_a_temporary_checkpoint_cut_off_is_removed_with_the_video_complete(clips
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         track_videos([clips[0][0]], _config(out, clips, resume=True))
-    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is True
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] == "exact"
     assert not tmp.exists() and not (out / "a.state.partial").exists()
 
 
@@ -281,7 +281,7 @@ def test_resume_from_a_checkpoint_without_the_online_start(clips, tmp_path, mode
         track_videos([clips[0][0]], _config(out, clips, resume=True, **kwargs))
     assert _same_outputs(tmp_path / "ref", out, ["a"]) == []
     side, ref = (json.loads((d / "a.json").read_text()) for d in (out, tmp_path / "ref"))
-    assert side["resumed"]["checkpoint"] is True and side["start"] == ref["start"]
+    assert side["resumed"]["checkpoint"] == "exact" and side["start"] == ref["start"]
 
 
 def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clips, tmp_path):
@@ -310,6 +310,7 @@ def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clip
     assert _same_outputs(tmp_path / "ref", out, ["a", "c"]) == []
     side = json.loads((out / "c.json").read_text())
     assert side["resumed"]["rows"] == 6 and side["resumed"]["tracked_again"] == 0
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] == "exact"  # (its batch: a alone)
 
 
 def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
@@ -356,7 +357,7 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
         except InputError:
             pass
     assert not (out / "a.json").exists()
-    assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] is True
+    assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] == "split"
     ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
 
@@ -382,4 +383,140 @@ def test_a_checkpoint_lacking_part_of_its_layout_is_refused_with_a_warning(clips
     said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
     assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
     assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+
+
+@pytest.mark.parametrize("damage", ["rows", "record"])
+def test_a_resume_refused_after_its_checkpoint_matched_keeps_every_row(clips, tmp_path, damage):
+    """A checkpoint that matches its CSV (at 8 rows of STOP) whose resume is then refused, by a damaged row before
+    it (row 5 says another frame) or a record that cannot be read: the run stops with the InputError, and the
+    partial CSV keeps its STOP rows, byte for byte (its rows after the checkpoint were cut off before the checks:
+    2 rows lost, up to CHECKPOINT_EVERY - 1 in a real run). Mended, the resume goes on from the checkpoint."""
+    from torchface.io import InputError
+
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    partial = out / "a.csv.partial"
+    if damage == "rows":
+        lines = partial.read_text().splitlines(keepends=True)
+        cells = lines[5].split(",")
+        cells[0] = "99"
+        lines[5] = ",".join(cells)
+        partial.write_text("".join(lines))
+    else:
+        record = out / "a.record.partial"
+        assert record.is_file()
+        kept_record = record.read_bytes()
+        record.write_text("{not json")
+    before = partial.read_bytes()
+    with pytest.raises(InputError, match="cannot resume"):
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    assert partial.read_bytes() == before and read_track_csv(partial)[1].shape[0] == STOP
+    if damage == "record":
+        record.write_bytes(kept_record)
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+        side = json.loads((out / "a.json").read_text())
+        assert side["resumed"]["checkpoint"] == "exact" and side["resumed"]["rows"] == 8
+
+
+@pytest.mark.parametrize("change", ["written-otherwise", "refused"])
+def test_a_checkpoint_of_other_settings_is_refused_with_a_warning_where_the_record_accepts_them(clips, tmp_path,
+                                                                                               change):  # fmt: skip
+    """A checkpoint whose settings are not this run's text but the same settings (``visibility_interval`` 1.0 for 1,
+    as another version may write them), which the record accepts: not used, with one warning line, the video goes on
+    from its CSV's rows (it was dropped without a word). Other settings (``--focal 300``): no warning of
+    the checkpoint, the record's check refuses the resume and says why."""
+    from torchface.io import InputError
+
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    ck = out / "a.state.partial"
+    if change == "written-otherwise":
+        data = torch.load(ck, weights_only=True)
+        assert '"visibility_interval": 1,' in data["settings"]
+        data["settings"] = data["settings"].replace('"visibility_interval": 1,', '"visibility_interval": 1.0,')
+        torch.save(data, ck)
+    kwargs = {"focal": 300.0} if change == "refused" else {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        if change == "refused":
+            with pytest.raises(InputError, match="other settings"):
+                track_videos([clips[0][0]], _config(out, clips, resume=True, **kwargs))
+        else:
+            track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    if change == "refused":
+        assert said == []
+        return
+    assert len(said) == 1 and said[0].startswith(f"{ck}: not used (its settings"), said
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
+
+
+def test_cut_rows_keeps_the_header_and_first_rows_reading_line_by_line(tmp_path, monkeypatch):
+    """``_cut_rows`` cuts a partial CSV after its header and ``rows`` rows, the bytes before the cut as they were,
+    reading it line by line (it read the whole file into memory: an hour's CSV at 30 frames/s, some 100 MB); too
+    few complete rows: ValueError, the file as it was."""
+    csv = tmp_path / "a.csv"
+    partial = tmp_path / "a.csv.partial"
+    lines = [b"frame,x\n"] + [f"{i},{i * 0.5:.9g}\n".encode() for i in range(10)]
+    opened = []
+
+    class NoWholeRead:
+        def __init__(self, f):
+            self.f = f
+
+        def read(self, *size):
+            if not size or size[0] is None or size[0] < 0:
+                raise AssertionError("the whole file read")
+            return self.f.read(*size)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    def watched(path, *args, **kwargs):
+        opened.append(path)
+        return NoWholeRead(open(path, *args, **kwargs))
+
+    monkeypatch.setattr(torchface.job, "open", watched, raising=False)
+    for rows in (0, 3, 10):
+        partial.write_bytes(b"".join(lines) + b"10,0.2")  # (a row cut off)
+        torchface.job._cut_rows(csv, rows)
+        assert partial.read_bytes() == b"".join(lines[: rows + 1])
+    assert opened == [partial] * 3
+    partial.write_bytes(b"".join(lines[:4]) + b"3,1.5")
+    with pytest.raises(ValueError, match="fewer than 4"):
+        torchface.job._cut_rows(csv, 4)
+    assert partial.read_bytes() == b"".join(lines[:4]) + b"3,1.5"
+
+
+def test_a_checkpoint_of_more_rows_than_the_csv_holds_as_it_opens_is_not_used(clips, tmp_path, monkeypatch):
+    """A checkpoint that matched its CSV as the run started, whose CSV holds fewer rows as its outputs open (changed
+    in between; here its row count said 99): not used, with one warning line, the video goes on from its CSV's STOP
+    rows (the cut raised a bare ValueError from ``bytes.index`` and stopped the run)."""
+    clips = clips[:1]
+    out = tmp_path / "out"
+    _interrupted(clips, out)
+    load = torchface.job._load_checkpoint
+
+    def more(*args, **kwargs):
+        found = load(*args, **kwargs)
+        return None if found is None else found | {"rows": 99}
+
+    monkeypatch.setattr(torchface.job, "_load_checkpoint", more)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{out / 'a.state.partial'}: not used (it is of row 99"), said
+    side = json.loads((out / "a.json").read_text())
+    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
     assert read_track_csv(out / "a.csv")[1].shape[0] == N
