@@ -69,6 +69,21 @@ def _interrupted(clips, out: Path, **kwargs) -> None:
         assert (out / f"{v.stem}.state.partial").is_file()
 
 
+def _resumed_without_its_checkpoint(clips, out: Path, said_first: str) -> dict:
+    """Resume the first clip in ``out``: one warning about its checkpoint, starting ``said_first``, and the video
+    complete from its CSV's rows (``resumed.checkpoint`` False, N rows). The sidecar's ``resumed``."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        track_videos([clips[0][0]], _config(out, clips, resume=True))
+    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(said_first), said
+    assert "\n" not in said[0]
+    resumed = json.loads((out / "a.json").read_text())["resumed"]
+    assert resumed["checkpoint"] is False
+    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    return resumed
+
+
 def _same_outputs(a: Path, b: Path, names) -> list[str]:
     """The outputs of ``names`` whose bytes differ between folders ``a`` and ``b``."""
     return [n + s for n in names for s in OUTPUTS if (a / (n + s)).read_bytes() != (b / (n + s)).read_bytes()]
@@ -161,15 +176,7 @@ def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_p
         cells[2] = "0.5" if cells[2] != "0.5" else "0.25"
         lines[8] = ",".join(cells)
         partial.write_text("".join(lines))
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        track_videos([clips[0][0]], _config(out, clips, resume=True))
-    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
-    assert "\n" not in said[0]
-    side = json.loads((out / "a.json").read_text())
-    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
-    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    assert _resumed_without_its_checkpoint(clips, out, f"{ck}: not used (")["rows"] == STOP
 
 
 def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, tmp_path):
@@ -233,14 +240,8 @@ def test_a_checkpoint_of_another_version_device_or_dtype_is_not_used(clips, tmp_
         data["origin"] = {**data.get("origin", {}), other: value}
         torch.save(data, ck)
         said_other = f"{other} {value}, now {'cpu' if other == 'device' else 'float32'}"
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        track_videos([clips[0][0]], _config(out, clips, resume=True))
-    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith(f"{ck}: not used (made with another {said_other})"), said
-    side = json.loads((out / "a.json").read_text())
-    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
-    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    resumed = _resumed_without_its_checkpoint(clips, out, f"{ck}: not used (made with another {said_other})")
+    assert resumed["rows"] == STOP
     assert not ck.exists()
 
 
@@ -377,13 +378,7 @@ def test_a_checkpoint_lacking_part_of_its_layout_is_refused_with_a_warning(clips
     else:
         del data[damage]
     torch.save(data, ck)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        track_videos([clips[0][0]], _config(out, clips, resume=True))
-    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith(f"{ck}: not used ("), said
-    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] is False
-    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    _resumed_without_its_checkpoint(clips, out, f"{ck}: not used (")
 
 
 @pytest.mark.parametrize("damage", ["rows", "record"])
@@ -512,11 +507,5 @@ def test_a_checkpoint_of_more_rows_than_the_csv_holds_as_it_opens_is_not_used(cl
         return None if found is None else found | {"rows": 99}
 
     monkeypatch.setattr(torchface.job, "_load_checkpoint", more)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        track_videos([clips[0][0]], _config(out, clips, resume=True))
-    said = [str(w.message) for w in caught if "state.partial" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith(f"{out / 'a.state.partial'}: not used (it is of row 99"), said
-    side = json.loads((out / "a.json").read_text())
-    assert side["resumed"]["checkpoint"] is False and side["resumed"]["rows"] == STOP
-    assert read_track_csv(out / "a.csv")[1].shape[0] == N
+    resumed = _resumed_without_its_checkpoint(clips, out, f"{out / 'a.state.partial'}: not used (it is of row 99")
+    assert resumed["rows"] == STOP
