@@ -81,7 +81,7 @@ def test_python3_being_311_makes_the_venv_once(repo):
     assert out.returncode == 0, out.stderr
     log = _log(repo)
     assert [line.split()[:4] for line in log[:3]] == [["pip", "3.11", "install", "-q"]] * 3
-    assert log[3:] == ["run 3.11 pytest -q -n auto tests/x.py"]
+    assert log[3:] == ["run 3.11 pytest -q -n auto --maxprocesses=8 tests/x.py"]
     out = _run(repo, [bin_, tools])  # again: nothing installed
     assert out.returncode == 0 and len(_log(repo)) == 5 and "installing" not in out.stderr
 
@@ -98,7 +98,7 @@ def test_another_python_is_refused_with_what_to_do(repo):
     _fake_python(bin_ / "python3.11", "3.11")
     out = _run(repo, [bin_, tools])
     assert out.returncode == 0, out.stderr
-    assert _log(repo)[-1] == "run 3.11 pytest -q -n auto"
+    assert _log(repo)[-1] == "run 3.11 pytest -q -n auto --maxprocesses=8"
 
 
 def test_a_half_made_venv_is_made_again(repo):
@@ -111,7 +111,7 @@ def test_a_half_made_venv_is_made_again(repo):
     out = _run(repo, [bin_, tools])
     assert out.returncode == 0, out.stderr
     assert "making it again" in out.stderr
-    assert (repo / ".venv" / ".torchface-installed").exists() and _log(repo)[-1] == "run 3.11 pytest -q -n auto"
+    assert (repo / ".venv" / ".torchface-installed").exists() and _log(repo)[-1] == "run 3.11 pytest -q -n auto --maxprocesses=8"
 
 
 def test_a_venv_of_another_python_is_made_again(repo):
@@ -121,7 +121,7 @@ def test_a_venv_of_another_python_is_made_again(repo):
     (repo / ".venv" / ".torchface-installed").touch()  # a complete install, by a 3.12
     out = _run(repo, [bin_, tools])
     assert out.returncode == 0, out.stderr
-    assert _log(repo)[-1] == "run 3.11 pytest -q -n auto" and len(_log(repo)) == 4
+    assert _log(repo)[-1] == "run 3.11 pytest -q -n auto --maxprocesses=8" and len(_log(repo)) == 4
 
 
 def test_demo_runs_in_the_callers_folder(repo):
