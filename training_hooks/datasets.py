@@ -82,6 +82,15 @@ video's item), so skipping changes no sampler's indices; what it changes is the 
   skipped, or giving fewer items when tracked than counted (a file replaced since the dataset counted it). A rank
   cannot tell whether another read those videos and takes more steps.
 
+Short videos: a clip dataset (:attr:`DatasetConfig.clip_length`) without :attr:`~DatasetConfig.keep_short_clips`
+leaves out a video shorter than ``clip_length`` (it gives no clip). Each video's frame count is kept in shared
+memory as it is counted (:meth:`VideoDataset.num_items`) or tracked, and the process that first knows every count
+(:meth:`VideoDataset.count_items`, or the ``DataLoader`` worker that ends an epoch's pass last; under DDP, every
+count of its rank's videos) warns once per dataset (:class:`ShortVideoWarning`) of how many were too short, which,
+and their frames. Where none of the dataset's videos gives a clip (all too short, or skipped), the dataset yields
+nothing and a loop over it would take no step without a word: the end of the epoch's pass raises a ``ValueError``
+naming the videos and the way out, each epoch (:meth:`~VideoDataset.count_items` only warns).
+
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
 back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
@@ -140,6 +149,7 @@ __all__ = [
     "FrameFolderDataset",
     "LandmarkSource",
     "RankBalance",
+    "ShortVideoWarning",
     "SkippedVideoWarning",
     "VideoDataset",
     "clip_bounds",
@@ -170,6 +180,15 @@ class SkippedVideoWarning(UserWarning):
     instead of stopping the epoch: warned once per dataset, in the process that found it (a ``DataLoader`` worker
     prints it to its stderr), and recorded in :attr:`VideoDataset.skipped`, which every process of the dataset sees.
     ``torchface track --keep-going``'s :class:`~torchface.job.InputSkipped` for a dataset."""
+
+
+class ShortVideoWarning(UserWarning):
+    """Videos of a clip dataset (:attr:`DatasetConfig.clip_length`, without :attr:`~DatasetConfig.keep_short_clips`)
+    are shorter than ``clip_length`` and give no clip: the warning says how many, which, and their frame counts
+    against ``clip_length``. Warned once per dataset (not by each ``DataLoader`` worker, nor again in later epochs),
+    by the process that first knows every video's count: :meth:`VideoDataset.count_items`, or the ``DataLoader``
+    worker that finishes an epoch's pass last (each video counted when it was counted or tracked). Where no video
+    gives a clip the dataset yields nothing: that is a ``ValueError`` instead (module docstring, "Short videos")."""
 
 
 class RankBalance(enum.Enum):
@@ -224,6 +243,23 @@ def _shared_skips(num_videos: int) -> Tensor:
     reason) and the reason, UTF-8, zero-padded: 256 bytes a video, so a dataset without ``keep_going`` passes
     ``num_videos=0``."""
     return torch.zeros(num_videos, _SKIP_BYTES, dtype=torch.uint8).share_memory_()
+
+
+def _shared_frames(num_videos: int) -> Tensor:
+    """Each video's frame count as a clip dataset without ``keep_short_clips`` finds it (counted or tracked), to say
+    which videos are too short for a clip (:class:`ShortVideoWarning`): ``(1 + num_videos,)`` int64 in shared memory
+    as :func:`_shared_state`, entry 0 whether the warning was given, then per video its frames (those from the first
+    with a face, with a detector), -1 not known yet, -2 skipped (:attr:`DatasetConfig.keep_going`). 8 bytes a video;
+    a dataset whose videos cannot be too short (frame items, ``keep_short_clips``) passes ``num_videos=0`` (an empty
+    tensor)."""
+    state = torch.full((1 + num_videos,) if num_videos else (0,), -1, dtype=torch.int64)
+    if num_videos:
+        state[0] = 0
+    return state.share_memory_()
+
+
+#: :func:`_shared_frames`' entry of a skipped video.
+_SKIPPED_FRAMES: int = -2
 
 
 def _content_words(content: str) -> Tensor:
@@ -455,7 +491,7 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
         if not path.is_file():  # (read_landmarks' words)
             problem = "a folder, not a landmarks file" if path.is_dir() else "no such landmarks file"
             raise InputError(f"{where}: {path}: {problem}")
-        return source
+        return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):
         source = _as_numpy(source)
     shape = tuple(np.shape(source))
@@ -511,7 +547,11 @@ class VideoDataset(IterableDataset):
     """Normalised faces and tracked parameters of a list of videos (module docstring).
 
     Args:
-        videos: video files OpenCV decodes (``.avi``, ``.mp4``, ...) or ``.npy`` frame arrays ``(T, H, W, 3)``.
+        videos: video files OpenCV decodes (``.avi``, ``.mp4``, ...) or ``.npy`` frame arrays ``(T, H, W, 3)``;
+            kept in :attr:`videos` as absolute paths (``Path.absolute()``: a relative one is taken against the working
+            folder when the dataset is made, as a landmarks file is, so that a ``DataLoader`` worker, or an epoch
+            after an ``os.chdir`` (Lightning, Hydra), reads the same file; the cache keys hash the content, not the
+            path, and are unchanged).
         landmarks: the first frame's 68 iBUG landmarks per video (:data:`LandmarkSource`: a ``(68, 2)`` array or
             tensor in pixels, or a ``.csv`` / ``.pts`` / ``.npy`` file; NaN rows for missing points, at least 4
             given), or all of them stacked, one ``(N, 68, 2)`` array or tensor (as
@@ -548,7 +588,10 @@ class VideoDataset(IterableDataset):
             raise TypeError(f"config must be a DatasetConfig, got {type(self.config).__name__}")
         if isinstance(videos, (str, os.PathLike)) or not isinstance(videos, Sequence):
             raise TypeError(f"videos must be a sequence of paths, got {type(videos).__name__}")
-        self.videos = tuple(Path(v) for v in videos)
+        # (absolute, as cache_dir is: a relative path was taken against the working folder when the video was read,
+        # so a dataset iterated after an os.chdir (Lightning, Hydra), or in a worker that had changed folder, read
+        # another file or none; Path.absolute(): symbolic links kept as named)
+        self.videos = tuple(Path(v).absolute() for v in videos)
         if not self.videos:
             raise ValueError("videos is empty")
         for v in self.videos:
@@ -609,6 +652,8 @@ class VideoDataset(IterableDataset):
         self._cache: TrackCache | None = None
         self._found_at, self._found = _shared_detections(len(self.videos) if self.detector is not None else 0)
         self._skips = _shared_skips(len(self.videos) if self.config.keep_going else 0)
+        short = self.config.clip_length is not None and not self.config.keep_short_clips
+        self._frames = _shared_frames(len(self.videos) if short else 0)
 
     def _check_source(self, path: Path) -> None:
         _check_exists(path)
@@ -641,6 +686,8 @@ class VideoDataset(IterableDataset):
             state["_found_at"], state["_found"] = _shared_detections(searched)
         if "_skips" not in state:  # pickled before keep_going existed
             state["_skips"] = _shared_skips(0)
+        if "_frames" not in state:  # pickled before short videos were reported
+            state["_frames"] = _shared_frames(0)
         if isinstance(state.get("detector"), _SentDetector):  # (copied, not pickled: copy.copy of the dataset)
             state["detector"] = state["detector"].detector
         self.__dict__.update(state)
@@ -769,6 +816,8 @@ class VideoDataset(IterableDataset):
                     raise
                 self._skip(index, exc)
                 frames = 0  # (skipped: no item, on every rank alike, the file being the same)
+            else:
+                self._record_frames(index, frames)
             counts[index] = len(clip_bounds(frames, c.clip_length, c.clip_stride, c.keep_short_clips))
         return int(counts[index])
 
@@ -807,8 +856,77 @@ class VideoDataset(IterableDataset):
                          model_content=self._model_content)  # fmt: skip
 
     def count_items(self) -> list[int]:
-        """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch)."""
-        return [self.num_items(i) for i in range(len(self.videos))]
+        """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch). Videos shorter than
+        :attr:`DatasetConfig.clip_length` count 0 and are named by a :class:`ShortVideoWarning` (once per dataset),
+        also where none gives a clip (iterating the dataset then raises a ``ValueError``)."""
+        counts = [self.num_items(i) for i in range(len(self.videos))]
+        self._report_short(*self.rank_and_world_size(), final=False)
+        return counts
+
+    def _record_frames(self, index: int, frames: int) -> None:
+        """Keep video ``index``'s frame count (or :data:`_SKIPPED_FRAMES`) for :meth:`_report_short`
+        (:func:`_shared_frames`; nothing where no video can be too short)."""
+        if self._frames.numel():
+            self._frames[1 + index] = frames
+
+    def _no_clip_error(self) -> ValueError | None:
+        """The error of a clip dataset none of whose videos gives a clip (every video's count known: all too short
+        for :attr:`DatasetConfig.clip_length`, or skipped): it yields nothing, every epoch. None otherwise."""
+        frames = self._frames[1:] if self._frames.numel() else None
+        length = self.config.clip_length
+        if frames is None or bool((frames == -1).any()) or bool((frames >= length).any()):  # type: ignore[operator]
+            return None
+        short = [i for i, n in enumerate(frames.tolist()) if n >= 0]
+        if not short:  # (all skipped: SkippedVideoWarning said why, one by one)
+            return None
+        skipped = len(self.videos) - len(short)
+        also = f"; {skipped} more skipped (.skipped says why)" if skipped else ""
+        return ValueError(
+            f"{type(self).__name__} yields no item: {self._named_short(short)} (DatasetConfig.clip_length={length}, "
+            f"keep_short_clips=False){also}. Set DatasetConfig(keep_short_clips=True) to yield each as one shorter "
+            "clip (collate_clips pads them), or a clip_length of at most the shortest video's frames"
+        )
+
+    def _named_short(self, short: list[int]) -> str:
+        """``short`` videos (all shorter than ``clip_length``) with their frame counts, for a message."""
+        frames = self._frames[1:]
+        said = ", ".join(f"{self.videos[i]} ({int(frames[i])} frames)" for i in short[:3])
+        more = f" and {len(short) - 3} more" if len(short) > 3 else ""
+        n, total = len(short), len(self.videos)
+        if n == total == 1:
+            whole = "its only video"
+        else:
+            whole = f"all {n} videos" if n == total else f"{n} of the {total} videos"
+        verb = "is shorter than clip_length and gives" if n == 1 else "are shorter than clip_length and give"
+        return f"{whole} {verb} no clip: {said}{more}"
+
+    def _report_short(self, rank: int, world: int, final: bool) -> None:
+        """Warn once per dataset (:class:`ShortVideoWarning`) of the videos too short for a clip, when every video of
+        this rank (``i % world == rank``) has its frame count (:meth:`_record_frames`: counted or tracked by any
+        process of the dataset); ``final`` (the end of a ``DataLoader`` worker's pass, or of the only process's):
+        where no video of the dataset gives a clip, raise the ``ValueError`` of :meth:`_no_clip_error` instead, each
+        epoch (a loop over the dataset takes no step)."""
+        if not self._frames.numel():
+            return
+        frames = self._frames[1:]
+        if final:
+            error = self._no_clip_error()
+            if error is not None:
+                raise error
+        own = frames[rank::world] if world > 1 else frames
+        if int(self._frames[0]) or bool((own == -1).any()):  # (warned already, or not every count known yet)
+            return
+        length = self.config.clip_length
+        short = [i for i, n in enumerate(frames.tolist()) if 0 <= n < length]  # type: ignore[operator]
+        if not short:
+            return
+        self._frames[0] = 1  # (before warning: another process finishing meanwhile does not warn too)
+        warnings.warn(
+            f"{type(self).__name__}: {self._named_short(short)} (DatasetConfig.clip_length={length}): left out. "
+            "DatasetConfig(keep_short_clips=True) yields each as one shorter clip (collate_clips pads them)",
+            ShortVideoWarning,
+            stacklevel=3,
+        )
 
     def _balanced_count(self, worker_id: int, num_workers: int, world_size: int) -> int | None:
         """Items every rank's worker ``worker_id`` yields under :attr:`DatasetConfig.rank_balance`; None when the
@@ -963,6 +1081,7 @@ class VideoDataset(IterableDataset):
         self._skips[index, 1:] = 0
         self._skips[index, 1 : 1 + len(data)] = torch.tensor(list(data), dtype=torch.uint8)
         self._skips[index, 0] = 1  # (last: the record is whole once flagged)
+        self._record_frames(index, _SKIPPED_FRAMES)
         warnings.warn(
             f"skipped {path} (video {index}): {said} (DatasetConfig(keep_going=True): its items are left out; "
             f"the dataset's .skipped records it)",
@@ -985,6 +1104,7 @@ class VideoDataset(IterableDataset):
         # (outside the try: the cache's write errors, a full disk or a read-only folder, are not the video's; they
         # skipped every video, tracked or not, for good)
         self._store(index, sequence, key)
+        self._record_frames(index, sequence.num_frames)
         return sequence, cached
 
     def sequence(self, index: int) -> tuple[TrackedSequence, bool]:
@@ -1003,6 +1123,7 @@ class VideoDataset(IterableDataset):
         """
         sequence, cached, key = self._read_or_track(index)
         self._store(index, sequence, key)
+        self._record_frames(index, sequence.num_frames)
         return sequence, cached
 
     def _read_or_track(self, index: int) -> tuple[TrackedSequence, bool, str | None]:
@@ -1232,6 +1353,7 @@ class VideoDataset(IterableDataset):
         else:
             slot = [i for i in self._epoch_order() if (i // world) % workers == worker]
             items = self._balanced_items(videos, target, slot, rng)
+        items = self._then_report(items, rank, world)
         if rng is None:
             yield from items
             return
@@ -1245,6 +1367,14 @@ class VideoDataset(IterableDataset):
             yield item
         rng.shuffle(buffer)
         yield from buffer
+
+
+    def _then_report(
+        self, items: Iterator[dict[str, Tensor]], rank: int, world: int
+    ) -> Iterator[dict[str, Tensor]]:
+        """``items``, then (once they are all given: a pass cut short says nothing) :meth:`_report_short`."""
+        yield from items
+        self._report_short(rank, world, final=True)
 
 
 def _count_frames(path: Path, convert: bool) -> int:

@@ -31,6 +31,7 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -122,7 +123,10 @@ class FaceTrackingConfig:
             model's ``K``, in its order (a detector's 68 iBUG points need a model of those). In the ``repr`` only
             when given (a config without one has the ``repr`` it had before this field); the cache key hashes the
             ``repr`` without it and the file's content instead (:func:`~training_hooks.cache.cache_key`: the same
-            file moved keeps its sequences).
+            file moved keeps its sequences). Kept as an absolute ``Path``, as :attr:`DatasetConfig.cache_dir
+            <training_hooks.datasets.DatasetConfig.cache_dir>` is: a relative one is taken against the working folder
+            when the config is made, so a model loaded after an ``os.chdir`` (Lightning, Hydra) or in a
+            ``DataLoader`` worker is the file it named.
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -134,11 +138,15 @@ class FaceTrackingConfig:
     keep_expression: bool = False
     refine_first: LookaheadConfig | None = field(default_factory=LookaheadConfig)
     pyramid: str = "auto"
-    model: str | os.PathLike[str] | None = field(default=None, repr=False)
+    model: str | os.PathLike[str] | None = field(default=None, repr=False)  # stored as an absolute Path
 
     def __post_init__(self) -> None:
         if self.model is not None and not isinstance(self.model, (str, os.PathLike)):
             raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
+        if self.model is not None:  # (a relative one was read against the working folder when first loaded)
+            if isinstance(self.model, str) and not self.model:  # (Path("") is the working folder)
+                raise ValueError("model is empty: give a face model file, or None for CANDIDE-3")
+            object.__setattr__(self, "model", Path(self.model).absolute())
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         check_pyramid(self.pyramid)

@@ -1192,16 +1192,22 @@ def test_keep_short_clips_without_clip_length_is_refused_as_clip_stride_is():
     assert DatasetConfig(clip_length=4, keep_short_clips=True).keep_short_clips is True
 
 
-def test_a_relative_cache_dir_is_the_folder_it_named_when_the_config_was_made(clips, tmp_path, monkeypatch):
+def test_relative_paths_are_the_files_they_named_when_the_dataset_was_made(clips, tmp_path, monkeypatch):
     """A relative cache_dir was kept relative and taken against the working folder when the cache was first used:
     a dataset iterated after an os.chdir (or in a DataLoader worker whose process had changed folder) filled a
-    cache elsewhere and found none of its entries. It is made absolute when the config is made."""
+    cache elsewhere and found none of its entries. It is made absolute when the config is made. Relative videos
+    and landmarks files were kept relative too (Lightning and Hydra change the working folder): the epoch after an
+    os.chdir read another file or none. They are made absolute when the dataset is made; the cache key (the
+    content's) is the one of the absolute paths."""
     monkeypatch.chdir(tmp_path)
     config = DatasetConfig(tracking=TRACKING, cache_dir="cache")
     assert config.cache_dir == tmp_path / "cache" and config.cache_dir.is_absolute()
     assert DatasetConfig(cache_dir=Path("a/../b")).cache_dir == tmp_path / "a/../b"  # (as named: no symlink resolved)
     assert DatasetConfig(cache_dir=".").cache_dir == tmp_path
-    data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
+    (tmp_path / "a.avi").write_bytes(clips[0].video.read_bytes())
+    np.save(tmp_path / "a.npy", clips[0].landmarks)
+    data = VideoDataset(["a.avi"], ["a.npy"], config)
+    assert data.videos == (tmp_path / "a.avi",) and data.landmarks == (tmp_path / "a.npy",)
     (tmp_path / "elsewhere").mkdir()
     monkeypatch.chdir(tmp_path / "elsewhere")
     first = next(iter(data))
@@ -1263,3 +1269,58 @@ def test_a_detector_that_cannot_be_pickled_is_named_with_what_to_do(clips):
     with warnings.catch_warnings(), pytest.raises(pickle.PicklingError, match=r"<lambda> cannot be pickled"):
         warnings.simplefilter("ignore", UserWarning)  # (torch's "Got pickle error when attempting to start ...")
         next(iter(loader))
+
+
+def test_videos_shorter_than_clip_length_are_named_once_and_a_dataset_of_none_else_is_an_error(clips, config, tmp_path):
+    """A clip dataset whose videos were all shorter than clip_length yielded nothing without a word (a DataLoader
+    over it gave no batch), and one with some too short left them out silently. A ShortVideoWarning names them, with
+    their frames, once per dataset (not by each DataLoader worker, nor each epoch, nor count_items again); a dataset
+    none of whose videos gives a clip is a ValueError at the end of the epoch (each epoch), in the worker too."""
+    from training_hooks import ShortVideoWarning
+
+    short = tmp_path / "short.npy"
+    np.save(short, read_video_uint8(clips[1].video)[:3].permute(0, 2, 3, 1).numpy())  # (3, H, W, 3): 3 frames
+    videos, landmarks = [clips[0].video, short], [clips[0].landmarks, clips[1].landmarks]
+    cfg = replace(config, clip_length=4)
+    said = (f"VideoDataset: 1 of the 2 videos is shorter than clip_length and gives no clip: {short} (3 frames) "
+            "(DatasetConfig.clip_length=4): left out. DatasetConfig(keep_short_clips=True) yields each as one "
+            "shorter clip (collate_clips pads them)")  # fmt: skip
+    data = VideoDataset(videos, landmarks, cfg)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert [(int(i["video"]), i["frame"].tolist()) for i in data] == [(0, [0, 1, 2, 3])]
+        assert len(list(data)) == 1 and data.count_items() == [1, 0]  # (a later epoch, the counts: not again)
+    assert [(w.category, str(w.message)) for w in caught] == [(ShortVideoWarning, said)]
+    with pytest.warns(ShortVideoWarning) as caught:  # counted first (the cache, filled above, holds both)
+        assert VideoDataset(videos, landmarks, cfg).count_items() == [1, 0]
+    assert [str(w.message) for w in caught] == [said]
+    log = tmp_path / "warnings.txt"
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # (also in the forked workers)
+        with open(log, "a") as f:
+            f.write(f"{category.__name__}: {message}\n")
+
+    loaded = VideoDataset(videos, landmarks, cfg)  # video 0 -> worker 0, video 1 -> worker 1: the last one warns
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = show
+        assert len(list(DataLoader(loaded, batch_size=None, num_workers=2, multiprocessing_context="fork"))) == 1
+        assert loaded.count_items() == [1, 0]  # (the workers' warning is the dataset's: not again)
+    assert log.read_text().splitlines() == [f"ShortVideoWarning: {said}"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # keep_short_clips: nothing left out, nothing said
+        kept = VideoDataset(videos, landmarks, replace(cfg, keep_short_clips=True))
+        assert [i["frame"].tolist() for i in kept] == [[0, 1, 2, 3], [4, 5], [0, 1, 2]]
+    # no video long enough: an error naming them all, in one process and through a worker, every epoch
+    none = VideoDataset(videos, landmarks, replace(cfg, clip_length=FRAMES + 1))
+    error = (f"VideoDataset yields no item: all 2 videos are shorter than clip_length and give no clip: "
+             f"{videos[0]} ({FRAMES} frames), {short} (3 frames) (DatasetConfig.clip_length={FRAMES + 1}, "
+             "keep_short_clips=False). Set DatasetConfig(keep_short_clips=True) to yield each as one shorter clip "
+             "(collate_clips pads them), or a clip_length of at most the shortest video's frames")  # fmt: skip
+    for _ in range(2):
+        with pytest.raises(ValueError, match=f"^{re.escape(error)}$"):
+            list(none)
+    with pytest.raises(ValueError, match=re.escape(error)):
+        list(DataLoader(none, batch_size=None, num_workers=1, multiprocessing_context="fork"))
+    with pytest.warns(ShortVideoWarning, match="all 2 videos are shorter"):  # counting says so, and does not raise
+        assert VideoDataset(videos, landmarks, none.config).count_items() == [0, 0]

@@ -54,11 +54,19 @@ def test_another_model_tracks_from_its_landmarks_with_its_own_cache_entries(clip
     assert "model" not in repr(TRACKING)  # (the default repr and key are those of before the field)
 
 
-def test_a_printed_config_names_its_model_and_the_key_holds_its_content_not_its_path(files, tmp_path):
+def test_a_printed_config_names_its_model_and_the_key_holds_its_content_not_its_path(files, tmp_path, monkeypatch):
     """``repr`` shows ``model`` when given (it was left out: a printed config hid the model); the cache key hashes
-    the repr without it and the file's content, so the same file at another path keys the same sequences."""
+    the repr without it and the file's content, so the same file at another path keys the same sequences. A relative
+    ``model`` was kept relative and loaded against the working folder of the moment (a DataLoader worker, an epoch
+    after Lightning's or Hydra's os.chdir): it is made absolute when the config is made, its key unchanged."""
     other = replace(TRACKING, model=files[1])
     assert repr(other) == repr(TRACKING)[:-1] + f", model={files[1]!r})"
+    monkeypatch.chdir(files[1].parent)
+    relative = replace(TRACKING, model=files[1].name)
+    monkeypatch.chdir(tmp_path)
+    assert relative.model == files[1] and relative == other
+    with pytest.raises(ValueError, match="model is empty"):
+        replace(TRACKING, model="")
     moved = tmp_path / "moved.npz"
     moved.write_bytes(files[1].read_bytes())
     lm = np.zeros((len(SUBSET), 2))
