@@ -276,13 +276,23 @@ class TrackCache:
 
     Args:
         root: the folder (created on first write); a relative one is taken against the working folder when the
-            cache is made (:attr:`root` is absolute: a later ``os.chdir`` does not move it).
+            cache is made (:attr:`root` is absolute: a later ``os.chdir`` does not move it). An empty string is
+            refused, as :attr:`DatasetConfig.cache_dir <training_hooks.datasets.DatasetConfig.cache_dir>` refuses it
+            (``Path("")`` is the working folder: say ``"."`` for it).
+
+    Raises:
+        TypeError: ``root`` is not a ``str`` or path-like.
+        ValueError: ``root`` is an empty string.
 
     Example:
         >>> # cache = TrackCache("cache"); seq = cache.load(key) or track(...); cache.store(key, seq)
     """
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
+        if not isinstance(root, (str, os.PathLike)):  # (was pathlib's "expected str, bytes or os.PathLike object")
+            raise TypeError(f"root must be a folder (a str or path-like), got {type(root).__name__}")
+        if isinstance(root, str) and not root:  # (Path("") is ".": the cache filled the working folder unasked)
+            raise ValueError('root is empty (the working folder): give a folder ("." for the working folder)')
         self.root = Path(root).absolute()
         self.stats = CacheStats()
         self._swept = False

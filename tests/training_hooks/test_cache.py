@@ -462,3 +462,8 @@ def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkey
     (tmp_path / "elsewhere").mkdir()
     monkeypatch.chdir(tmp_path / "elsewhere")
     assert cache.root == tmp_path / "cache" and cache.path("d" * 64) == tmp_path / "cache" / f"{'d' * 64}.npz"
+    with pytest.raises(ValueError, match=r"^root is empty"):  # (was the working folder, unasked)
+        TrackCache("")
+    with pytest.raises(TypeError, match=r"^root must be a folder \(a str or path-like\), got NoneType$"):
+        TrackCache(None)  # type: ignore[arg-type]
+    assert TrackCache(".").root == tmp_path / "elsewhere"
