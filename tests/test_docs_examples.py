@@ -335,13 +335,14 @@ def test_settings_the_docs_quote_are_valid():
     from torchface.model import load_candide3
     from torchface.template import DissimilarityConfig, TemplateConfig
     from torchface.tracker import Backend, FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
-    from training_hooks import DatasetConfig, FaceTrackingConfig, LayerConfig
+    from training_hooks import DatasetConfig, FaceStorage, FaceTrackingConfig, LayerConfig
 
     scope = {c.__name__: c for c in (JobConfig, DissimilarityConfig, TemplateConfig, FaceTracker, FitConfig,
                                      LookaheadConfig, TrackerConfig, DatasetConfig, FaceTrackingConfig, LayerConfig)}
     names = "|".join(scope)
     scope.update(k=0.5, model=load_candide3(), path="model.npz")  # (placeholders the text names; a path: not opened)
     scope["Backend"] = Backend  # (a value the settings take: `TrackerConfig(backend=Backend.TORCH)`)
+    scope["FaceStorage"] = FaceStorage  # (one too: `FaceTrackingConfig(face_storage=FaceStorage.FLOAT32)`)
 
     def job_config(*args: object, **kwargs: object) -> JobConfig:  # (the docs name a field, `JobConfig(model=path)`,
         return JobConfig(*args, **kwargs) if args or "out_dir" in kwargs else JobConfig(".", **kwargs)  # no out_dir)

@@ -634,9 +634,12 @@ class VideoDataset(IterableDataset):
                 raise ValueError(f"landmarks must have one entry per video ({len(self.videos)}), got {len(landmarks)}")
             for i, source in enumerate(landmarks):  # (a list of points, lm.tolist(), failed in the worker)
                 if not isinstance(source, (np.ndarray, Tensor, str, os.PathLike)):
+                    # (a detector per video, [detector] * N, read as "got _DlibDetector", with no way out)
+                    once = (": a detector is given once for every video, as landmarks itself "
+                            "(VideoDataset(videos, detector, config))") if callable(source) else ""  # fmt: skip
                     raise TypeError(
                         f"landmarks[{i}] ({self.videos[i]}) must be a {one} array or tensor, or a landmarks file, "
-                        f"got {type(source).__name__}"
+                        f"got {type(source).__name__}{once}"
                     )
             kept = tuple(_kept_landmarks(s, self.videos[i], num_landmarks) for i, s in enumerate(landmarks))
             self.detector, self.landmarks = None, kept

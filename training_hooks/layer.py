@@ -435,6 +435,14 @@ class NormalisedFaceLayer(DeviceCheckedModule):
             raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
         if clips.dim() != 5 or clips.shape[1] < 1:
             raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}")
+        if isinstance(landmarks_px, Tensor) and landmarks_px.dim() == 3 and landmarks_px.shape[0] != clips.shape[0]:
+            # (initialise's "with B = T (one set per frame)" read as if T landmark sets were wanted)
+            B, T = clips.shape[:2]
+            hint = ": frames first, (T, B, C, H, W)? clips.transpose(0, 1)" if landmarks_px.shape[0] == T else ""
+            raise ValueError(
+                f"landmarks_px must be (B, K, 2), one set per clip, the first frame's: clips {tuple(clips.shape)} "
+                f"are B = {B} clips of T = {T} frames, got landmarks_px {tuple(landmarks_px.shape)}{hint}"
+            )
         clips = clips.to(dtype=self.model.dtype, device=self.model.device)
         state, track = self.initialise(clips[:, 0], landmarks_px, intrinsics)
         image, mask = self.normalise(clips[:, 0], state, state.params)

@@ -8,7 +8,7 @@ import pytest
 
 import torch
 
-from torchface.detect import DetectorUnavailable, _nearest, accepts_near, batched, load_detector
+from torchface.detect import DetectorUnavailable, _nearest, accepts_near, batched, detector_image, load_detector
 from torchface.io import InputError
 
 
@@ -82,6 +82,14 @@ def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_m
     detect = load_detector("dlib")
     with pytest.raises(TypeError, match=r"got a tensor of shape \(1, 3, 12, 16\).*torchface.detect.batched"):
         detect(torch.zeros(1, 3, 12, 16))
+    # one frame as torchface.io.open_frames yields it, (3, H, W) float: told the conversion, detector_image
+    with pytest.raises(TypeError, match=r"\(3, 12, 16\).*torchface.detect.detector_image\(frame\)"):
+        detect(torch.zeros(3, 12, 16))
+    with pytest.raises(ValueError, match=r"channels first\? image.transpose\(1, 2, 0\)"):
+        detect(np.zeros((3, 12, 16), np.uint8))
+    with pytest.raises(ValueError, match=r"floats in \[0, 1\]\? \(image \* 255\).round\(\).astype\(np.uint8\)"):
+        detect(np.zeros((12, 16, 3), np.float32))
+    assert detect(detector_image(torch.zeros(3, 12, 16))) is None  # the way named works (the stand-in: no face)
     assert detect(np.zeros((12, 16, 3), np.uint8)) is None  # the stand-in finds no face
     from torchface import FaceTracker
 

@@ -538,6 +538,10 @@ def test_landmarks_of_another_kind_are_refused_when_the_dataset_is_made(tmp_path
     points = np.zeros((68, 2))
     with pytest.raises(TypeError, match=r"landmarks\[1\] \(.*a.avi\) must be a \(68, 2\) array .*got list"):
         VideoDataset([video, video], [points, points.tolist()])
+    with pytest.raises(TypeError, match=r"landmarks\[0\] .*got function: a detector is given once for every video, "
+                                        r"as landmarks itself \(VideoDataset\(videos, detector, config\)\)"):
+        VideoDataset([video, video], [_no_face, _no_face])  # (a detector per video, as "per video" read)
+    VideoDataset([video, video], _no_face)  # (the way named)
     for name in ("a.csv", "a.npy"):
         (tmp_path / name).write_bytes(b"")  # (never read)
     VideoDataset([video] * 4, [points, torch.zeros(68, 2), str(tmp_path / "a.csv"), tmp_path / "a.npy"])  # its kinds

@@ -299,6 +299,10 @@ def test_forward_clip_shapes_and_first_frame(model):
     assert torch.isfinite(out.image).all()
     state, _ = layer.initialise(clips[:, 0], lms)
     torch.testing.assert_close(out.image[:, 0], layer.normalise(clips[:, 0], state, state.params).image)
+    # 2 sets of landmarks for 1 clip of 2 frames (as a (T, B, ...) stack gives): told one set per clip and the
+    # transpose (initialise's "with B = 1 (one set per frame)" suggested a set per frame)
+    with pytest.raises(ValueError, match=r"one set per clip.*B = 1 clips of T = 2 frames.*clips.transpose\(0, 1\)"):
+        layer.forward_clip(clips[:1], lms)
 
 
 def test_double_moves_the_layer_model_and_layout(small):

@@ -89,16 +89,24 @@ def _nearest(centres: np.ndarray, areas: np.ndarray, near: np.ndarray | None) ->
 
 def _check_image(image_rgb: np.ndarray) -> None:
     if not isinstance(image_rgb, np.ndarray) and type(image_rgb).__name__ == "Tensor":
+        shape = tuple(image_rgb.shape)
+        # (one frame as torchface.io.open_frames yields it, (3, H, W) float, was told only of the batched adapter)
+        frame = "torchface.detect.detector_image(frame)" if len(shape) == 3 else "detector_image(frames[i])"
         raise TypeError(
-            f"this detector takes one (H, W, 3) uint8 RGB image, got a tensor of shape {tuple(image_rgb.shape)}: "
+            f"this detector takes one (H, W, 3) uint8 RGB image, got a tensor of shape {shape}: "
             "FaceTracker(detector=) and managed_step re-initialise with a batched detector, "
-            "torchface.detect.batched(detector)"
+            f"torchface.detect.batched(detector); a (3, H, W) float frame in [0, 1] as that image: {frame}"
         )
     ok = isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[2] == 3
     if not ok or image_rgb.dtype != np.uint8:
+        hint = ""
+        if isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[0] in (1, 3) and not ok:
+            hint = " (channels first? image.transpose(1, 2, 0))"
+        elif ok and image_rgb.dtype.kind == "f":
+            hint = " (floats in [0, 1]? (image * 255).round().astype(np.uint8))"
         raise ValueError(
             f"image must be (H, W, 3) uint8 RGB, got {getattr(image_rgb, 'shape', type(image_rgb))} "
-            f"{getattr(image_rgb, 'dtype', '')}"
+            f"{getattr(image_rgb, 'dtype', '')}{hint}"
         )
 
 
