@@ -143,6 +143,7 @@ from torch import Tensor
 
 from torchface import _checkpoint
 from torchface._device import check_device
+from torchface._words import counted
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
@@ -677,7 +678,7 @@ class _VideoOut:
             if count != self.frames:
                 with contextlib.suppress(OSError):  # (a folder gone read-only: the error says why, not this)
                     self.tmp.unlink(missing_ok=True)
-                raise OutputError(f"{self.path}: the video could not be written completely ({self.frames} frames "
+                raise OutputError(f"{self.path}: the video could not be written completely ({counted(self.frames, 'frame')} "
                                   f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
@@ -2251,7 +2252,7 @@ def track_videos(
     if not inputs:
         raise InputError("no input video given")
     if config.landmarks and len(config.landmarks) != len(inputs):
-        raise InputError(f"give one landmarks file per video: {len(inputs)} videos, {len(config.landmarks)} files")
+        raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, {counted(len(config.landmarks), 'file')}")
     model = _job_model(config)  # (checked before the detector is loaded and any input opened)
     detector = None
     if config.detector is not None:
@@ -2584,7 +2585,7 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
     were = "was" if s.not_met_again == 1 else "were"
     warnings.warn(
-        f"{s.reader.info.path}: {s.not_met_again} of its {n} rows written before the interruption, tracked again from "
+        f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, tracked again from "
         f"its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm (frame {at}), "
         f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
         f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
@@ -3026,8 +3027,8 @@ def _open_outputs(
             s.csv.previous, s.csv.rows_done = s.csv.previous[:cut], cut
     exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
     if exact and s.total is not None and s.csv.rows_done > s.total:
-        raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
-                         f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
+        raise InputError(f"{s.csv.partial}: cannot resume, it holds {counted(s.csv.rows_done, 'row')} and "
+                         f"{s.reader.info.path} has {counted(s.total, 'frame')}: run without --resume")  # fmt: skip
     # (the rows before the first face replay nothing into the state: the tracked rows after them do)
     s.replay = s.csv.previous[s.start :] if s.csv.rows_done > s.start else None
     problem = _no_face_problem(s.csv.previous[: s.start], columns, s.start)
