@@ -1303,6 +1303,7 @@ def _write_checkpoints(
             "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
             "settings": _settings_text(s.settings), "batch": names, "index": k,
             "origin": _checkpoint_origin(state.params.device, state.params.dtype),
+            "threads": torch.get_num_threads(),  # (for information: _resumed_record)
             "state": plain, "smooth": plain_smooth,
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
@@ -3248,7 +3249,13 @@ def _resumed_record(s: _Stream) -> dict | None:
     the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`) rather than from the CSV's
     last row: ``"exact"``, with its whole batch as it was (the rows after it the uninterrupted run's, byte for
     byte), ``"split"``, in a part of its batch (a smaller ``max_batch``, some of its videos skipped, or one
-    stopped since: to float rounding), or False (:attr:`_Stream.from_checkpoint`)."""
+    stopped since: to float rounding), or False (:attr:`_Stream.from_checkpoint`); ``threads``, where it went on from
+    a checkpoint: ``checkpoint``, the CPU threads (``torch.get_num_threads()``) of the run that wrote it (None: one
+    written before they were recorded), and ``now``, this run's. For information only: another count changes no
+    result (the native kernels split the batch's streams among the threads, each stream's numbers its own; the
+    tracker's 40 frames of 3 scenarios at 640x480, B = 1 and 3, on 1, 2 and 5 threads, 20 frames at B = 6 on 1 and
+    2, and a resume from a checkpoint on another count than the interrupted run's: bit for bit the same), so a
+    checkpoint of another count is used as any other, without a word."""
     rows = 0 if s.csv is None else len(s.csv.previous)
     if rows == 0:
         return None
@@ -3256,8 +3263,11 @@ def _resumed_record(s: _Stream) -> dict | None:
     gap = None if s.tracked_again == 0 else {
         "mm": mm, "degrees": deg, "confidence": conf, "frame": at, "other_status_from_frame": first_other,
     }  # fmt: skip
+    threads = None
+    if s.from_checkpoint and s.checkpoint is not None:
+        threads = {"checkpoint": s.checkpoint.get("threads"), "now": torch.get_num_threads()}
     return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap,
-            "checkpoint": s.from_checkpoint}
+            "checkpoint": s.from_checkpoint, "threads": threads}
 
 
 def _video_timing(s: _Stream) -> dict:
