@@ -2016,7 +2016,7 @@ def _landmarks_difference(then: np.ndarray, now: np.ndarray) -> str:
     count of points that differ and the first of them: ``2 points differ, e.g. point 5: (10.0, 20.0) then, missing
     now``."""
     if then.shape != now.shape:
-        return f"{len(then)} points then, {len(now)} now"
+        return f"{counted(len(then), 'point')} then, {len(now)} now"
     same = (then == now) | (np.isnan(then) & np.isnan(now))
     differ = np.flatnonzero(~same.all(axis=1))
     k = int(differ[0])
