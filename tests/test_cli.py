@@ -285,11 +285,22 @@ def test_the_summary_is_written_in_one_piece():
     _print_summary(done, out, ("d",), ("stopped at a frame that could not be read",))  # type: ignore[arg-type]
     assert len(out.calls) == 1, out.calls
     lines = out.calls[0].splitlines()
-    assert lines[:3] == ["", "summary", "  a: 30 frames, 12.0 fps, mean confidence 0.90, 1 lost frame(s)"]
+    assert lines[:3] == ["", "summary", "  a: 30 frames, 12.0 fps, mean confidence 0.90, 1 lost frame"]
     assert lines[3] == "    warning: a.mp4 declares 40 frames, 30 could be decoded (truncated or damaged?)"
     assert lines[-2] == ("  d: stopped at a frame that could not be read, not completed (its rows so far are kept in "
                          "d.csv.partial)")
     assert lines[-1].startswith("outputs in o/ (per video: .csv") and out.calls[0].endswith("\n")
+    # one of a thing is said in the singular ("1 frames" was printed), none and many in the plural
+    one = [VideoSummary("e", Path("e.mp4"), (Path("o/e.csv"),), 1, 0, 0.9, 12.0, False, 1),
+           VideoSummary("f", Path("f.mp4"), (Path("o/f.csv"),), 1, 1, 0.9, 12.0, skipped=True),
+           VideoSummary("g", Path("g.mp4"), (Path("o/g.csv.partial"),), 1, 0, 0.9, 0.0, stopped="a bad frame")]
+    out = Writes()
+    _print_summary(one, out)  # type: ignore[arg-type]
+    lines = out.calls[0].splitlines()
+    assert lines[2:5] == ["  e: 1 frame, 12.0 fps, mean confidence 0.90, 0 lost frames",
+                          "    warning: e.mp4 declares 1 frame, 1 could be decoded (truncated or damaged?)",
+                          "  f: already complete (1 frame), skipped"], lines  # fmt: skip
+    assert lines[5] == "  g: stopped partway, not completed (its 1 row so far is kept in g.csv.partial): a bad frame"
 
 
 def test_a_damaged_videos_error_is_one_line_without_ffmpegs_log(tmp_path):

@@ -55,6 +55,45 @@ def written_whole(path: str | os.PathLike[str]) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+@contextlib.contextmanager
+def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder`` (an existing folder) for the block: a second process asking for it waits
+    until the first's block ends, so that the files one writer puts in place together (write_sequence's video and
+    ground truth) are never interleaved with another writer's. On POSIX the lock is ``flock`` on the folder itself:
+    nothing is written in it, and the system releases it when its process ends however it ends (``kill -9``). Where
+    there is no ``fcntl`` (Windows), a file ``.torchface-lock`` in the folder is locked (``msvcrt``) and left there.
+    Advisory: it orders only the writers that ask for it.
+
+    Example:
+        >>> # with folder_locked(out): os.replace(tmp_video, video); os.replace(tmp_truth, truth)
+    """
+    try:
+        import fcntl
+    except ImportError:  # (Windows)
+        import msvcrt
+
+        with open(os.path.join(folder, ".torchface-lock"), "a+b") as f:
+            f.seek(0)  # (the byte locked: the first; append mode opened it at its end)
+            while True:
+                try:
+                    msvcrt.locking(f.fileno(), msvcrt.LK_LOCK, 1)  # type: ignore[attr-defined]
+                    break
+                except OSError:  # (LK_LOCK tries for 10 s, then raises)
+                    continue
+            try:
+                yield
+            finally:
+                f.seek(0)
+                msvcrt.locking(f.fileno(), msvcrt.LK_UNLCK, 1)  # type: ignore[attr-defined]
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # (releases the lock)
+
+
 def _running(pid: int) -> bool:
     """Whether process ``pid`` may still be running on this machine (True where it cannot be told)."""
     if os.name != "posix" or pid <= 0 or pid == os.getpid():  # (os.kill(0, ...) signals the process group)

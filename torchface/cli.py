@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import TextIO
 
 from torchface import __version__  # (torch is not imported: the package's names load on first use)
+from torchface._words import counted, plural
 
 __all__ = ["main", "build_parser", "ProgressDisplay"]
 
@@ -129,13 +130,13 @@ class ProgressDisplay:
 
     def _line(self, p) -> str:
         if getattr(p, "searching", False):  # (the job looks for the first frame with a face)
-            return f"{p.name[:28]:<28} searching for a face: none in {p.done} frame(s) {p.fps:5.1f} fps"
+            return f"{p.name[:28]:<28} searching for a face: none in {counted(p.done, 'frame')} {p.fps:5.1f} fps"
         if p.total:
             frac = min(1.0, p.done / p.total)
             bar = "#" * int(round(frac * self.width))
             head = f"[{bar:<{self.width}}] {p.done}/{p.total}"
         else:
-            head = f"{p.done} frames"
+            head = counted(p.done, "frame")
         return f"{p.name[:28]:<28} {head} {p.fps:5.1f} fps conf {p.confidence:.2f}"
 
     def _rows(self) -> int | None:
@@ -152,7 +153,7 @@ class ProgressDisplay:
         rows = self._rows()
         if rows is not None and len(bars) > rows - 2:  # (the cursor cannot go back above the terminal's first row)
             keep = max(rows - 3, 1)
-            bars = bars[:keep] + [f"... and {len(bars) - keep} more videos being tracked"]
+            bars = bars[:keep] + [f"... and {counted(len(bars) - keep, 'more video')} being tracked"]
         out = ([done] if done is not None else []) + bars
         clear = "\x1b[J" if len(out) < self.drawn else ""  # (a shorter block: the old bars below it erased)
         self._write(up + "".join("\x1b[2K" + line + "\n" for line in out) + clear)
@@ -316,17 +317,19 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
             lines.append(f"  {s.name}: skipped, not tracked: {s.refused}")
             continue
         if s.stopped is not None:  # (--keep-going)
-            kept = f"its {s.frames} row(s) so far are kept in {s.name}.csv.partial" if s.outputs else "no row kept"
+            are = plural(s.frames, "is", "are")
+            kept = f"its {counted(s.frames, 'row')} so far {are} kept in {s.name}.csv.partial"
+            kept = kept if s.outputs else "no row kept"
             lines.append(f"  {s.name}: stopped partway, not completed ({kept}): {s.stopped}")
             continue
         if s.skipped:
-            lines.append(f"  {s.name}: already complete ({s.frames} frames), skipped")
+            lines.append(f"  {s.name}: already complete ({counted(s.frames, 'frame')}), skipped")
             continue
-        lines.append(f"  {s.name}: {s.frames} frames, {s.fps:.1f} fps, mean confidence {s.mean_confidence:.2f}, "
-                     f"{s.lost} lost frame(s)")  # fmt: skip
+        lines.append(f"  {s.name}: {counted(s.frames, 'frame')}, {s.fps:.1f} fps, "
+                     f"mean confidence {s.mean_confidence:.2f}, {counted(s.lost, 'lost frame')}")  # fmt: skip
         if s.declared_frames is not None:
-            lines.append(f"    warning: {s.input} declares {s.declared_frames} frames, {s.frames} could be decoded "
-                         "(truncated or damaged?)")  # fmt: skip
+            lines.append(f"    warning: {s.input} declares {counted(s.declared_frames, 'frame')}, {s.frames} could be "
+                         "decoded (truncated or damaged?)")  # fmt: skip
         if s.not_met_again:  # (--resume: the rows tracked again for the online start; warned about as they were)
             rows, were = ("row", "was") if s.not_met_again == 1 else ("rows", "were")
             lines.append(f"    warning: {s.not_met_again} {rows} written before the interruption {were} not "
@@ -445,14 +448,14 @@ def _incomplete(summaries) -> str:
             shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
             said.append(f"{len(names)} {what} ({shown})")
     done = sum(s.complete for s in summaries)
-    return (f"{' and '.join(said)} of the {len(summaries)} inputs, {done} complete (exit status {EXIT_INCOMPLETE}; "
-            "the summary says why)")  # fmt: skip
+    return (f"{' and '.join(said)} of the {counted(len(summaries), 'input')}, {done} complete "
+            f"(exit status {EXIT_INCOMPLETE}; the summary says why)")  # fmt: skip
 
 
 def _render_progress(label: str, start: float):
     def report(done: int, total: int) -> None:
         rate = done / max(time.perf_counter() - start, 1e-9)
-        sys.stdout.write(f"\r{label}: {done}/{total} frames ({rate:.1f} fps)")
+        sys.stdout.write(f"\r{label}: {done}/{total} {plural(total, 'frame')} ({rate:.1f} fps)")
         sys.stdout.flush()
 
     return report
@@ -483,7 +486,7 @@ def _render_demo(args: argparse.Namespace) -> int:
     files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))
     sys.stdout.write("\n")
     took = time.perf_counter() - start
-    print(f"wrote {files.num_frames} frames ({args.width}x{args.height}, {spec.subject}) in {took:.1f} s:")
+    print(f"wrote {counted(files.num_frames, 'frame')} ({args.width}x{args.height}, {spec.subject}) in {took:.1f} s:")
     print(f"  video         {files.video} (codec {files.codec.strip()})")
     print(f"  ground truth  {files.ground_truth}")
     print(f"  metadata      {files.metadata}")

@@ -143,6 +143,7 @@ from torch import Tensor
 
 from torchface import _checkpoint
 from torchface._device import check_device
+from torchface._words import counted
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
@@ -677,7 +678,7 @@ class _VideoOut:
             if count != self.frames:
                 with contextlib.suppress(OSError):  # (a folder gone read-only: the error says why, not this)
                     self.tmp.unlink(missing_ok=True)
-                raise OutputError(f"{self.path}: the video could not be written completely ({self.frames} frames "
+                raise OutputError(f"{self.path}: the video could not be written completely ({counted(self.frames, 'frame')} "
                                   f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
@@ -1302,6 +1303,7 @@ def _write_checkpoints(
             "row": None if s.last_row is None else torch.as_tensor(s.last_row, dtype=torch.float64),
             "settings": _settings_text(s.settings), "batch": names, "index": k,
             "origin": _checkpoint_origin(state.params.device, state.params.dtype),
+            "threads": torch.get_num_threads(),  # (for information: _resumed_record)
             "state": plain, "smooth": plain_smooth,
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
@@ -2014,7 +2016,7 @@ def _landmarks_difference(then: np.ndarray, now: np.ndarray) -> str:
     count of points that differ and the first of them: ``2 points differ, e.g. point 5: (10.0, 20.0) then, missing
     now``."""
     if then.shape != now.shape:
-        return f"{len(then)} points then, {len(now)} now"
+        return f"{counted(len(then), 'point')} then, {len(now)} now"
     same = (then == now) | (np.isnan(then) & np.isnan(now))
     differ = np.flatnonzero(~same.all(axis=1))
     k = int(differ[0])
@@ -2251,7 +2253,7 @@ def track_videos(
     if not inputs:
         raise InputError("no input video given")
     if config.landmarks and len(config.landmarks) != len(inputs):
-        raise InputError(f"give one landmarks file per video: {len(inputs)} videos, {len(config.landmarks)} files")
+        raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, {counted(len(config.landmarks), 'file')}")
     model = _job_model(config)  # (checked before the detector is loaded and any input opened)
     detector = None
     if config.detector is not None:
@@ -2584,7 +2586,7 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
     were = "was" if s.not_met_again == 1 else "were"
     warnings.warn(
-        f"{s.reader.info.path}: {s.not_met_again} of its {n} rows written before the interruption, tracked again from "
+        f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, tracked again from "
         f"its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm (frame {at}), "
         f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
         f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
@@ -3026,8 +3028,8 @@ def _open_outputs(
             s.csv.previous, s.csv.rows_done = s.csv.previous[:cut], cut
     exact = s.reader.info.kind in ("array", "images")  # a container's count may be an estimate
     if exact and s.total is not None and s.csv.rows_done > s.total:
-        raise InputError(f"{s.csv.partial}: cannot resume, it holds {s.csv.rows_done} rows and "
-                         f"{s.reader.info.path} has {s.total} frames: run without --resume")  # fmt: skip
+        raise InputError(f"{s.csv.partial}: cannot resume, it holds {counted(s.csv.rows_done, 'row')} and "
+                         f"{s.reader.info.path} has {counted(s.total, 'frame')}: run without --resume")  # fmt: skip
     # (the rows before the first face replay nothing into the state: the tracked rows after them do)
     s.replay = s.csv.previous[s.start :] if s.csv.rows_done > s.start else None
     problem = _no_face_problem(s.csv.previous[: s.start], columns, s.start)
@@ -3247,7 +3249,13 @@ def _resumed_record(s: _Stream) -> dict | None:
     the tracking went on from the interrupted run's checkpoint (:func:`_load_checkpoint`) rather than from the CSV's
     last row: ``"exact"``, with its whole batch as it was (the rows after it the uninterrupted run's, byte for
     byte), ``"split"``, in a part of its batch (a smaller ``max_batch``, some of its videos skipped, or one
-    stopped since: to float rounding), or False (:attr:`_Stream.from_checkpoint`)."""
+    stopped since: to float rounding), or False (:attr:`_Stream.from_checkpoint`); ``threads``, where it went on from
+    a checkpoint: ``checkpoint``, the CPU threads (``torch.get_num_threads()``) of the run that wrote it (None: one
+    written before they were recorded), and ``now``, this run's. For information only: another count changes no
+    result (the native kernels split the batch's streams among the threads, each stream's numbers its own; the
+    tracker's 40 frames of 3 scenarios at 640x480, B = 1 and 3, on 1, 2 and 5 threads, 20 frames at B = 6 on 1 and
+    2, and a resume from a checkpoint on another count than the interrupted run's: bit for bit the same), so a
+    checkpoint of another count is used as any other, without a word."""
     rows = 0 if s.csv is None else len(s.csv.previous)
     if rows == 0:
         return None
@@ -3255,8 +3263,11 @@ def _resumed_record(s: _Stream) -> dict | None:
     gap = None if s.tracked_again == 0 else {
         "mm": mm, "degrees": deg, "confidence": conf, "frame": at, "other_status_from_frame": first_other,
     }  # fmt: skip
+    threads = None
+    if s.from_checkpoint and s.checkpoint is not None:
+        threads = {"checkpoint": s.checkpoint.get("threads"), "now": torch.get_num_threads()}
     return {"rows": rows, "tracked_again": s.tracked_again, "not_met_again": s.not_met_again, "largest_gap": gap,
-            "checkpoint": s.from_checkpoint}
+            "checkpoint": s.from_checkpoint, "threads": threads}
 
 
 def _video_timing(s: _Stream) -> dict:

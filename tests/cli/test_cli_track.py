@@ -1812,7 +1812,8 @@ def test_progress_display_terminal_and_log(monkeypatch):
     display(Progress(0, 2, "a", 2, 10, 2.0, 0.9))  # (drawn when a redraw is due, or by flush)
     display.flush()
     text = tty.getvalue()
-    assert "\x1b[2F" in text and "1 frames" in text and "2/10" in text  # redraws both bars in place
+    assert "\x1b[2F" in text and "1 frame " in text and "2/10" in text  # redraws both bars in place
+    assert "1 frames" not in text  # (one frame, in the singular)
 
 
 def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monkeypatch):

@@ -235,7 +235,7 @@ def test_resume_retries_what_was_skipped_and_never_leaves_a_partial_output_looki
     assert not looks_complete("broken") and (out / "broken.csv.partial").is_file()
     rc, said = status("--resume")  # nothing mended: skipped and stopped again, the complete one left as it is
     assert rc == 3 and "good: already complete" in said.out and "gray: skipped" in said.out
-    assert "broken: stopped partway, not completed (its 2 row(s) so far" in said.out and not looks_complete("broken")
+    assert "broken: stopped partway, not completed (its 2 rows so far are kept" in said.out and not looks_complete("broken")
     np.save(tmp_path / "gray.npy", frames)  # mended
     _folder(frames, broken)
     assert _track(inputs, [lm] * 3, out, "--resume") == 2  # (without --keep-going: the changed input is refused)

@@ -97,8 +97,8 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
     """Interrupted after STOP rows (and its last row cut off, as a SIGKILL may leave it), alone or beside another
     video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a
     detector re-detecting every other frame (one made after the checkpoint's row): resumed from the checkpoint at 8
-    rows (rows 9 and 10 cut off and tracked again), the CSVs, overlays and normalised videos are the uninterrupted
-    run's, byte for byte; the sidecar says so (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's
+    rows (rows 9 and 10 cut off and tracked again) on another CPU thread count than the interrupted run's, the CSVs,
+    overlays and normalised videos are the uninterrupted run's, byte for byte; the sidecar says so (and both counts) (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's
     last row, without the template mosaic, the pose filter's state and the rest, the resumed rows parted from the
     uninterrupted ones: byte-identical before this change only where rows < max_frames were tracked again. The
     detector's re-fit left the state's cached angles untied from its parameters, which the join refused, and the
@@ -122,10 +122,16 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
     with open(out / f"{names[0]}.csv.partial", "a") as f:  # (a row cut off by a SIGKILL)
         f.write(f"{STOP},0.4,1")
     data = torch.load(out / f"{names[0]}.state.partial", weights_only=True)  # (tensors and plain data only)
-    assert data["rows"] == 8 and data["batch"] == names
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)  # (the checkpoints matched: no warning)
-        track_videos([v for v, _ in clips], _config(out, clips, resume=True, **kwargs))
+    threads = torch.get_num_threads()
+    assert data["rows"] == 8 and data["batch"] == names and data["threads"] == threads
+    other = 1 if threads > 1 else 2  # resumed on another thread count: the same rows (it changes no result)
+    try:
+        torch.set_num_threads(other)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)  # (the checkpoints matched: no warning)
+            track_videos([v for v, _ in clips], _config(out, clips, resume=True, **kwargs))
+    finally:
+        torch.set_num_threads(threads)
     assert _same_outputs(tmp_path / "ref", out, names) == []
     if kwargs["meshes"]:  # (the meshes of the rows cut off written again)
         ref, got = sorted((tmp_path / "ref" / "a_meshes").iterdir()), sorted((out / "a_meshes").iterdir())
@@ -134,6 +140,7 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
     for n in names:
         side, ref = (json.loads((d / f"{n}.json").read_text()) for d in (out, tmp_path / "ref"))
         assert side["resumed"]["checkpoint"] == "exact"
+        assert side["resumed"]["threads"] == {"checkpoint": threads, "now": other}
         assert not (out / f"{n}.state.partial").exists()
         for d in (side, ref):  # (the rest of the sidecar, its start and final shape included, is the same too)
             for key in ("resumed", "timings_s", "outputs", "redetections", "detector_calls"):

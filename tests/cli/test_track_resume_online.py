@@ -169,7 +169,7 @@ def test_rows_not_met_again_are_said_by_the_sidecar_and_the_summary(clip, tmp_pa
     assert "warning: 1 row written before the interruption was not met again when tracked again" in said.out, said.out
     resumed = json.loads((out / "sweep.json").read_text())["resumed"]
     gap = resumed.pop("largest_gap")
-    assert resumed == {"rows": 3, "tracked_again": 3, "not_met_again": 1, "checkpoint": False}
+    assert resumed == {"rows": 3, "tracked_again": 3, "not_met_again": 1, "checkpoint": False, "threads": None}
     assert gap["mm"] == pytest.approx(0.5, abs=1e-6) and gap["frame"] == 1 and gap["other_status_from_frame"] is None
     assert gap["degrees"] < 1e-3 and gap["confidence"] < 1e-4
 
@@ -195,7 +195,8 @@ def test_the_sidecar_says_what_was_resumed_and_fps_counts_the_frames_tracked_aga
     (summary,) = track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), resume=True, **kwargs))
     side = json.loads((out / "sweep.json").read_text())
     gap = side["resumed"].pop("largest_gap")
-    assert side["resumed"] == {"rows": 3, "tracked_again": tracked_again, "not_met_again": 0, "checkpoint": False}
+    assert side["resumed"] == {"rows": 3, "tracked_again": tracked_again, "not_met_again": 0, "checkpoint": False,
+                               "threads": None}
     if tracked_again:  # (met again: within RETRACK_TOLERANCE)
         assert gap["mm"] <= 1e-3 and gap["degrees"] <= 1e-3 and gap["confidence"] <= 1e-4, gap
         assert gap["other_status_from_frame"] is None

@@ -308,6 +308,56 @@ def test_a_failing_writer_of_one_sequence_leaves_the_other_writers_files(tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"light_switch{s}" for s in (".avi", ".gt.json", ".gt.npz")]
 
 
+_WRITER = """
+import sys, time
+from pathlib import Path
+import torchface.synth.io as synth_io
+import torchface.synth.sequence as sequence
+from torchface.synth.scenarios import make_scenario
+
+folder, frames, before_video, before_truth = Path(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
+real_iter, real_close, real_save = sequence.iter_sequence, synth_io.VideoSink.close, sequence.save_ground_truth
+
+def rendered_then_both(spec, batch_size):  # both writers put their files in place at once
+    yield from real_iter(spec, batch_size)
+    (folder.parent / f"ready-{frames}").touch()
+    while len(list(folder.parent.glob("ready-*"))) < 2:
+        time.sleep(0.005)
+
+def close(self):
+    time.sleep(before_video)
+    return real_close(self)
+
+def save(*args, **kwargs):
+    time.sleep(before_truth)
+    return real_save(*args, **kwargs)
+
+sequence.iter_sequence, synth_io.VideoSink.close, sequence.save_ground_truth = rendered_then_both, close, save
+sequence.write_sequence(make_scenario("light_switch", frames, 32, 24), folder)
+"""
+
+
+def test_two_writers_finishing_together_leave_one_writers_video_and_ground_truth(tmp_path):
+    """Two processes write one sequence name (2 and 3 frames) into one folder and finish together: the first renames
+    its video and is slow to save its ground truth, the second renames its video later and saves at once. Without a
+    lock the folder held the second's 3-frame video beside the first's 2-frame ground truth; now whichever goes first
+    puts both its files in place before the other begins (:func:`torchface._atomic.folder_locked`): the video and
+    the ground truth are one writer's, and nothing else is left in the folder."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    writers = [subprocess.Popen([sys.executable, "-c", _WRITER, str(folder), *args], env=env)
+               for args in (("2", "0", "0.8"), ("3", "0.3", "0"))]  # fmt: skip
+    assert [w.wait(timeout=120) for w in writers] == [0, 0]
+    truth = load_ground_truth(folder / "light_switch")
+    assert read_video(folder / "light_switch.avi").shape[0] == truth.num_frames
+    assert json.loads((folder / "light_switch.gt.json").read_text())["num_frames"] == truth.num_frames
+    assert sorted(p.name for p in folder.iterdir()) == [f"light_switch{s}" for s in (".avi", ".gt.json", ".gt.npz")]
+
+
 def test_two_writers_of_one_ground_truth_each_write_their_own(tmp_path, monkeypatch):
     """save_ground_truth's temporary ``.gt.npz.partial.npz`` was every writer's: another writer's save between this
     one's write and rename took this one's file (its rename: FileNotFoundError); another writer failing partway left

@@ -45,6 +45,12 @@ def _shrunk(lm: torch.Tensor, scale: float) -> torch.Tensor:
     return (lm - c) * scale + c
 
 
+def _mirrored(lm: torch.Tensor) -> torch.Tensor:
+    """``lm`` ``(68, 2)`` mirrored left-right about their mean x, the jaw line's points in their own order."""
+    return torch.stack([2 * lm[:, 0].mean() - lm[:, 0], lm[:, 1]], -1)[
+        torch.tensor([16 - i for i in range(17)] + list(range(17, 68)))]
+
+
 # (what makes the second stream's start fail: its frame, its landmarks) -> the reason
 KINDS = {
     "no-face-found": (lambda f: f, lambda lm: torch.full_like(lm, float("nan")), StartFailure.NO_LANDMARKS),
@@ -53,8 +59,7 @@ KINDS = {
     "normalised-landmarks": (lambda f: f, lambda lm: (lm + 0.5) / torch.tensor([float(W), float(H)]),
                              StartFailure.NORMALISED_LANDMARKS),
     "landmarks-at-one-point": (lambda f: f, lambda lm: torch.full_like(lm, 50.0), StartFailure.NO_POSE),
-    "mirrored-landmarks": (lambda f: f, lambda lm: torch.stack([2 * lm[:, 0].mean() - lm[:, 0], lm[:, 1]], -1)[
-        torch.tensor([16 - i for i in range(17)] + list(range(17, 68)))], StartFailure.NO_POSE),
+    "mirrored-landmarks": (lambda f: f, lambda lm: _mirrored(lm), StartFailure.NO_POSE),
     "face-too-small": (lambda f: f, lambda lm: _shrunk(lm, 0.1), StartFailure.FACE_TOO_SMALL),
     "black-frame": (lambda f: torch.zeros_like(f), lambda lm: lm, StartFailure.TOO_FEW_POINTS),
     "nan-frame": (lambda f: torch.full_like(f, float("nan")), lambda lm: lm, StartFailure.TOO_FEW_POINTS),
@@ -93,6 +98,18 @@ def test_a_failed_start_says_which_stream_and_why(clip, kind):
         assert int(step.status[good]) == int(next_alone.status[0]) and not bool(step.success[bad])
         torch.testing.assert_close(step.rotation[good], next_alone.rotation[0], rtol=0, atol=1e-6)
         torch.testing.assert_close(step.translation[good], next_alone.translation[0], rtol=0, atol=1e-4)
+
+
+def test_landmarks_far_outside_the_frame_say_so(clip):
+    """Landmarks 1000 px off the frame, and mirrored ones there: the fit fails them for a reason of its own (it said
+    FACE_TOO_SMALL and NO_POSE), but the reason is that the face lies outside the frame (OUTSIDE_FRAME); the stream
+    beside them starts. (A start that succeeds is untouched: the outside check only renames a failure.)"""
+    frames, lm = clip
+    far = torch.tensor([1000.0, 0.0])
+    lms = torch.stack([lm, lm + far, _mirrored(lm) + far])
+    first = FaceTracker(CFG).initialise(frames[:1].expand(3, -1, -1, -1), lms)
+    assert first.status.tolist() == [CONVERGED, FAILED, FAILED]
+    assert first.start_failure.tolist() == [0, int(StartFailure.OUTSIDE_FRAME), int(StartFailure.OUTSIDE_FRAME)]
 
 
 def test_a_start_whose_normalised_face_shows_too_few_patches_says_so(clip):

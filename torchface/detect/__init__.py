@@ -34,6 +34,8 @@ from typing import TYPE_CHECKING, Callable, Protocol, TypeVar, cast
 
 import numpy as np
 
+from torchface._words import counted
+
 if TYPE_CHECKING:
     from torch import Tensor
 
@@ -320,7 +322,7 @@ def search_first_face(
             searching(count)
     from torchface.io import InputError
 
-    raise InputError(f"{what} found no face in any of its {count} frames: nothing to track{hint}")
+    raise InputError(f"{what} found no face in any of its {counted(count, 'frame')}: nothing to track{hint}")
 
 
 def usable_detection(

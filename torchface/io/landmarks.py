@@ -63,6 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchface._words import counted
 from torchface.conventions import (
     MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN,
     NORMALISED_LANDMARK_RANGE,
@@ -310,7 +311,7 @@ def _parse_pts(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
         if line == "}":
             state = "end"
             if expected is not None and len(points) != expected[0]:
-                raise InputError(f"{p}: line {number}: {len(points)} points before '}}', but n_points (line "
+                raise InputError(f"{p}: line {number}: {counted(len(points), 'point')} before '}}', but n_points (line "
                                  f"{expected[1]}) says {expected[0]}")  # fmt: skip
             continue
         cells = line.split()

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchface._atomic import remove_dead_partials, written_whole
+from torchface._atomic import folder_locked, remove_dead_partials, written_whole
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -606,7 +606,10 @@ def write_sequence(
     runs rendering the same sequence into one folder (two evaluations sharing a ``--cache``) do not write into, or
     remove, each other's; the temporary files of this sequence left in ``out_dir`` by a run killed outright (``kill
     -9``: no cleanup) are removed first where their process is no longer running
-    (:func:`torchface._atomic.remove_dead_partials`).
+    (:func:`torchface._atomic.remove_dead_partials`). The files of one run go into place together: removing the
+    older ground truth, the video's rename and the new ground truth hold a lock on ``out_dir``
+    (:func:`torchface._atomic.folder_locked`), so that two runs finishing together leave one run's video and ground
+    truth, never one's video beside the other's ground truth (which differ where the two specs of one name do).
 
     Args:
         spec: the sequence.
@@ -630,8 +633,11 @@ def write_sequence(
             if progress is not None:
                 progress(sink.frames_written, spec.num_frames)
         codec = sink.codec
-        for stale in (out / f"{spec.name}.gt.npz", out / f"{spec.name}.gt.json"):  # before the video's rename
-            stale.unlink(missing_ok=True)
-    gt = _ground_truth(spec, subject, shape, rows)
-    npz_path, json_path = save_ground_truth(gt, out / spec.name, {"video": video_path.name, "codec": codec.strip()})
+        gt = _ground_truth(spec, subject, shape, rows)
+        with folder_locked(out):  # (another writer of this folder puts its files in place before or after ours)
+            for stale in (out / f"{spec.name}.gt.npz", out / f"{spec.name}.gt.json"):  # before the video's rename
+                stale.unlink(missing_ok=True)
+            sink.close()
+            extra: dict[str, object] = {"video": video_path.name, "codec": codec.strip()}
+            npz_path, json_path = save_ground_truth(gt, out / spec.name, extra)
     return SequenceFiles(video_path, npz_path, json_path, codec, spec.num_frames)

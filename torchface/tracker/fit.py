@@ -321,6 +321,27 @@ def landmark_targets(landmarks_px: Tensor, weights: Tensor | None = None) -> tup
     return torch.where(finite, landmarks_px, torch.zeros_like(landmarks_px)), w
 
 
+def landmarks_inside_fraction(landmarks_px: Tensor, weights: Tensor | None, width: int, height: int) -> Tensor:
+    """``(B,)`` the fraction of each stream's landmarks ``(B, K, 2)`` (those that count: finite, of finite positive
+    ``weights`` ``(B, K)`` where given, as :func:`landmark_targets` says) that lie inside ``width x height`` frames
+    (pixel centres ``[0, W - 1] x [0, H - 1]``, as
+    :func:`~torchface.template.management.face_inside_fraction` counts the face's vertices); 0 where none counts.
+    Read by :func:`~torchface.tracker.managed.initialise_managed` to say that a start failed because the face is
+    outside the frame (:attr:`~torchface.tracker.step.StartFailure.OUTSIDE_FRAME`).
+
+    Example:
+        >>> lm = torch.tensor([[[10.0, 10.0], [20.0, 20.0]], [[10.0, 10.0], [900.0, 20.0]]])
+        >>> landmarks_inside_fraction(lm, None, 64, 48).tolist()
+        [1.0, 0.5]
+    """
+    lm = landmarks_px.detach()
+    _, w = landmark_targets(lm, None if weights is None else weights.detach())
+    counted = w > 0
+    x, y = lm[..., 0], lm[..., 1]
+    inside = counted & (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    return inside.sum(-1) / counted.sum(-1).clamp_min(1)  # (float: true division of the counts)
+
+
 def _landmarks_hint(landmarks_px: object, shape: str) -> str:
     """How to pass landmarks that are not a tensor as the ``shape`` wanted (``"(B, 68, 2)"``, ``"(L, 2)"``), for
     :func:`check_landmark_type`'s message: a NumPy array (what :func:`torchface.io.read_landmarks` returns, ``(K, 2)``

@@ -107,7 +107,7 @@ from torchface.template.points import (
     select_pixels_posed,
     strided_window,
 )
-from torchface.tracker.fit import LandmarkFit, fit_landmarks, normalised_streams
+from torchface.tracker.fit import LandmarkFit, fit_landmarks, landmarks_inside_fraction, normalised_streams
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
     LookaheadConfig, _refine_starts, _Start, _stream_start, check_refine_first, is_keyframe_turn, is_video_cut,
@@ -398,6 +398,14 @@ def initialise_managed(
     outside_code = outside | (away & (code == int(StartFailure.TOO_FEW_POINTS)))
     code = torch.where(outside_code, int(StartFailure.OUTSIDE_FRAME), code)
     code = torch.where(no_patches & ~outside, int(StartFailure.NO_PATCHES), code)
+    # A start that failed from landmarks mostly outside the frame failed because the face is there, whatever the fit
+    # made of them: landmarks 1000 px off a 160x120 frame said FACE_TOO_SMALL, off a 640x480 one NO_POSE. (Failed
+    # starts only, their status and values as they were; a start that succeeded is untouched.)
+    inside = landmarks_inside_fraction(landmarks_px, weights, frames.shape[-1], frames.shape[-2])
+    lm_away = inside < tc.min_inside_fraction
+    later = (code != int(StartFailure.NONE)) & (code != int(StartFailure.NO_LANDMARKS))
+    later = later & (code != int(StartFailure.NORMALISED_LANDMARKS))
+    code = torch.where(lm_away.to(code.device) & later, int(StartFailure.OUTSIDE_FRAME), code)
     if bool(blind.any()):
         failed = failed | blind
         state = replace(state, templates=tuple(fail_templates(state.templates, blind)))  # (as initialise's failures)

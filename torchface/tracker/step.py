@@ -88,7 +88,8 @@ class StartFailure(enum.IntEnum):
     in this order is given, but NORMALISED_LANDMARKS comes before NO_LANDMARKS: a detector's restart takes a stream's
     normalised landmarks as no face found (NaN rows, with a warning), so there such a stream has both, and the
     useful one is that its landmarks are normalised; at a start the two never meet (normalised landmarks are at
-    least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`, and NO_LANDMARKS means fewer)."""
+    least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS`, and NO_LANDMARKS means fewer); and OUTSIDE_FRAME comes
+    before NO_POSE and FACE_TOO_SMALL where the landmarks lie mostly outside the frame (its comment)."""
 
     #: The stream started (or no start was tried for it).
     NONE = 0
@@ -106,7 +107,10 @@ class StartFailure(enum.IntEnum):
     FACE_TOO_SMALL = 4
     #: Template management: less than :attr:`~torchface.template.management.TemplateConfig.min_inside_fraction` of
     #: the fitted face's vertices inside the frame (landmarks that put the face mostly outside it; without template
-    #: management such a face fails only for want of template points, TOO_FEW_POINTS).
+    #: management such a face fails only for want of template points, TOO_FEW_POINTS). Also a start that failed for
+    #: a later reason (NO_POSE, FACE_TOO_SMALL, ...) from landmarks less than that fraction of which lie inside the
+    #: frame (:func:`~torchface.tracker.fit.landmarks_inside_fraction`; landmarks 1000 px off a 160x120 frame: the
+    #: fit said NO_POSE or FACE_TOO_SMALL), whatever this order says.
     OUTSIDE_FRAME = 5
     #: Fewer than :attr:`TrackerConfig.min_points` template points in its first frame: no texture where the face
     #: is (a black or flat frame, NaN pixels).
@@ -134,7 +138,8 @@ _START_FAILURE_REASONS: dict[StartFailure, str | None] = {
     StartFailure.NO_POSE: "the landmark fit holds no pose (landmarks at one point, collinear, mirrored or seen from "
                           "behind: a fit turned away, edge-on or behind the camera)",
     StartFailure.FACE_TOO_SMALL: "the face is narrower than TrackerConfig.min_face_width_px",
-    StartFailure.OUTSIDE_FRAME: "the fitted face lies mostly outside the frame (TemplateConfig.min_inside_fraction)",
+    StartFailure.OUTSIDE_FRAME: "the fitted face, or its landmarks, lie mostly outside the frame "
+                                "(TemplateConfig.min_inside_fraction)",
     StartFailure.TOO_FEW_POINTS: "too few template points: no texture where the face is (a black or flat frame, NaN "
                                  "pixels)",
     StartFailure.NO_PATCHES: "the first normalised face shows too few fiducial patches to score any frame",
