@@ -4,17 +4,51 @@ Under pytest-xdist (``scripts/test.sh`` runs ``-n auto``, one worker per core), 
 thread count where the cores are few (2 threads on a 2-core machine: the native kernels' multi-chunk dispatch and
 torch's threaded paths stay tested) and takes its share of the cores, at least 2, where they are many (16 workers
 of 16 threads each ran 256 threads on 16 cores).
+
+Which tests a worker runs, and in what order, changes from run to run, so no test may depend on what ran before it
+in its process:
+
+- torch's thread count is put back after each test: the scripts' ``main`` (evaluate.py ``--threads 1``,
+  doc_figures.py, the benchmarks), called in-process by their tests, set it for the rest of the process, and every
+  later test of that worker ran on one thread (the threaded paths untested, and slower);
+- the global random generators (torch's, NumPy's legacy one, :mod:`random`) are seeded before each test from its
+  node id: the tests that draw from them (``torch.rand`` without a generator) saw whatever state the tests before
+  them had left, a different draw at each run under xdist (one fixed order before).
 """
 
 from __future__ import annotations
 
 import os
+import random
+import zlib
 
+import numpy as np
+import pytest
 import torch
+
+#: The worker's torch thread count (set by :func:`pytest_configure`), put back after each test.
+_THREADS = torch.get_num_threads()
 
 
 def pytest_configure(config) -> None:
+    global _THREADS
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
     if workers:
         share = max(2, (os.cpu_count() or 1) // int(workers))
         torch.set_num_threads(min(torch.get_num_threads(), share))
+    _THREADS = torch.get_num_threads()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item) -> None:
+    seed = zlib.crc32(item.nodeid.encode())  # (the same for a test whichever worker runs it, and after whatever)
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    yield  # (the test's fixtures torn down first: one of them may have set the count)
+    if torch.get_num_threads() != _THREADS:
+        torch.set_num_threads(_THREADS)

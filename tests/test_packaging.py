@@ -45,9 +45,13 @@ def test_the_source_distribution_carries_the_tests_scripts_and_docs(tmp_path):
     import tarfile
 
     pytest.importorskip("setuptools")
-    source = tmp_path / "source"  # a copy without an earlier build's egg-info, whose file list setuptools reuses
+    # A copy without an earlier build's egg-info, whose file list setuptools reuses, nor the tools' caches: under
+    # pytest-xdist another worker's mypy (tests/test_typing.py) writes .pytest_cache/d/mypy meanwhile, and a
+    # journal file it removed between copytree's listing and its copy failed this test ("No such file").
+    source = tmp_path / "source"
     shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", ".venv", "*.egg-info", "build", "out",
-                                                                 "__pycache__", "*.pyc", "torchface-demo"))  # fmt: skip
+                                                                 "__pycache__", "*.pyc", "torchface-demo", ".*_cache",
+                                                                 ".coverage*"))  # fmt: skip
     code = "import sys, setuptools.build_meta as b; print(b.build_sdist(sys.argv[1]))"
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], cwd=source, capture_output=True, text=True,
                          timeout=120)  # fmt: skip

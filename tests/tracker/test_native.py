@@ -8,6 +8,7 @@ import dataclasses
 import os
 import subprocess
 import sys
+import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -382,6 +383,62 @@ def _fake_compiler(folder: Path) -> Path:
     cc.write_text('#!/bin/sh\necho "$@" >> "$0.log"\nwhile [ "$#" -gt 1 ]; do [ "$1" = -o ] && : > "$2"; shift; done\n')
     cc.chmod(0o755)
     return cc
+
+
+#: A stand-in compiler that writes its output in two parts, with a wait between them that lasts until a second
+#: compiler run has begun (5 s at most): a library read while it is being built is ``half`` instead of ``half+whole``.
+_HALTING_COMPILER = r"""#!/bin/sh
+out=; prev=
+for arg in "$@"; do [ "$prev" = -o ] && out=$arg; prev=$arg; done
+printf half > "$out"
+echo start >> "$0.log"
+n=0
+while [ "$(grep -c start "$0.log")" -lt 2 ] && [ "$n" -lt 100 ]; do sleep 0.05; n=$((n + 1)); done
+printf +whole >> "$out"
+echo end >> "$0.log"
+"""
+
+
+def _build_in_child(queue, cc: str, after_a_start: bool) -> None:
+    if after_a_start:  # the other process is mid-build: its output file is on disk, half written
+        log, waited = Path(cc + ".log"), 0
+        while not (log.exists() and "start" in log.read_text()) and waited < 400:
+            time.sleep(0.025)
+            waited += 1
+    target = _native._build(cc)
+    queue.put((str(target), target.read_text()))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_two_processes_building_into_an_empty_cache_folder_each_get_a_whole_library(tmp_path, monkeypatch):
+    """pytest-xdist workers (or data-loader workers) that import torchface at once on a fresh machine build the
+    library into the same empty ``$TORCHFACE_CACHE_DIR/native`` at the same time. The second starts while the
+    first's output is half written: it must not take that file for a built library, and each gets a whole one
+    (both builds run; the last rename wins), with no temporary file left behind."""
+    import multiprocessing
+
+    monkeypatch.setenv("TORCHFACE_CACHE_DIR", str(tmp_path / "cache"))  # (empty: not even made yet)
+    cc = tmp_path / "slow-cc"
+    cc.write_text(_HALTING_COMPILER)
+    cc.chmod(0o755)
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    children = [ctx.Process(target=_build_in_child, args=(queue, str(cc), second)) for second in (False, True)]
+    for child in children:
+        child.start()
+    try:
+        got = [queue.get(timeout=60) for _ in children]
+    finally:
+        for child in children:
+            child.join(timeout=30)
+            if child.is_alive():
+                child.kill()
+    assert [child.exitcode for child in children] == [0, 0]
+    assert [text for _, text in got] == ["half+whole"] * 2  # (the second took the first's half-written file)
+    assert Path(str(cc) + ".log").read_text().split() == ["start", "start", "end", "end"]  # the builds overlapped
+    path = got[0][0]
+    assert got[1][0] == path
+    assert [p.name for p in (tmp_path / "cache" / "native").iterdir()] == [Path(path).name]  # no .partial left
 
 
 def test_a_cached_build_is_named_by_the_cpu_it_was_built_for(tmp_path, monkeypatch):

@@ -80,9 +80,10 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
     Example:
         >>> import tempfile
         >>> from torchface.model import load_candide3
-        >>> path = Path(tempfile.mkdtemp()) / "candide3.npz"
-        >>> save_face_model(load_candide3(dtype=torch.float64), path)
-        >>> torch.equal(load_face_model(path).mean, load_candide3().mean)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "candide3.npz"
+        ...     save_face_model(load_candide3(dtype=torch.float64), path)
+        ...     torch.equal(load_face_model(path).mean, load_candide3().mean)
         True
     """
     if not isinstance(model, FaceModel):
