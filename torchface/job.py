@@ -272,6 +272,13 @@ class JobConfig:
             an unsuccessful row, after the online start's re-anchoring frame and after a row where a re-detection
             was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
             with another setting is refused.
+        keep_expression: write the normalised face with the expression kept (``torchface track --keep-expression``):
+            resampled at the person's neutral animation coefficients (the tracker state's
+            :meth:`~torchface.tracker.TrackerState.neutral_anim_coeffs`: the first frame's fit, or a restart's, which
+            the CSV's ``AUxx_r`` are measured from) instead of the row's, pose and light undone as without it, as
+            ``training_hooks``' ``FaceTrackingConfig(keep_expression=True)`` does. False (the default): the neutral
+            face, the outputs as without it. Only the normalised video depends on it; the sidecar's
+            ``config.keep_expression`` and the resume record say it, and a resume with another setting is refused.
         keep_going: go on past inputs that cannot be tracked (``torchface track --keep-going``): an input that the
             checks before tracking refuse (unreadable, empty, a bad first frame or landmarks file, no face found by
             the detector; with ``resume``, rows or complete outputs that cannot be resumed) is skipped with an
@@ -306,6 +313,7 @@ class JobConfig:
     model: str | os.PathLike[str] | None = None
     smoothing: SmoothingConfig | None = None
     keep_going: bool = False
+    keep_expression: bool = False
 
     def __post_init__(self) -> None:
         if self.smoothing is not None and not isinstance(self.smoothing, SmoothingConfig):
@@ -343,7 +351,7 @@ class JobConfig:
         object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
-        for name in ("resume", "convert", "meshes", "keep_going"):  # "no" was true
+        for name in ("resume", "convert", "meshes", "keep_going", "keep_expression"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         for name, low in (("normalised_size", None), ("redetect_after", 0), ("max_batch", 1)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
@@ -1543,6 +1551,7 @@ def _setting_values(config: JobConfig) -> dict[str, object]:
         "normalised size": config.normalised_size,
         # (only when on: the records of runs without it, and of earlier versions, hold none)
         **({"--smooth": config.smoothing} if config.smoothing is not None else {}),
+        **({"--keep-expression": True} if config.keep_expression else {}),
     }  # fmt: skip
 
 
@@ -1643,7 +1652,7 @@ def _said_difference(name: str, then: object, now: object) -> str:
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal)
-    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)"}.get(name, "none")
+    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)", "--keep-expression": "False"}.get(name, "none")
     return f"{name} {unset if then is None else then} then, {unset if now is None else now} now"
 
 
@@ -1804,7 +1813,8 @@ def _read_record(
     _check_made_from(made_from, video, f"{path}: the partial results were")
     # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
     differ = _changed_settings(made_with, settings)
-    differ += ["--model"] if "--model" in made_with and "--model" not in settings else []  # (made with a model)
+    # (made with a model, or with the expression kept: settings a record holds only when given)
+    differ += [k for k in ("--model", "--keep-expression") if k in made_with and k not in settings]
     if differ:
         what = "; ".join(_said_difference(k, made_with.get(k), settings.get(k)) for k in differ)
         raise InputError(
@@ -1994,12 +2004,12 @@ def _check_resumable(
             raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from other first-frame "
                              f"landmarks than {os.fspath(landmarks)} holds now ({what}): run without --resume")
     now = _as_json(_result_settings(config))  # as the sidecar holds them
-    made_with = {"smoothing": None, **made_with}  # (sidecars before --smooth: made without it)
+    made_with = {"smoothing": None, "keep_expression": False, **made_with}  # (sidecars before them: without)
     made_with = _with_defaults(made_with, _result_settings(config))  # (a field added since: at its default)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
-                 "detector": "--detector", "smoothing": "--smooth"}  # fmt: skip
+                 "detector": "--detector", "smoothing": "--smooth", "keep_expression": "--keep-expression"}  # fmt: skip
         what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
@@ -2032,7 +2042,8 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
     return {"tracker": config.tracker, "focal": config.focal, "detector": config.detector,
             "lookahead": config.lookahead, "online_start": config.refine_first, "convert": config.convert,
             "normalised_size": config.normalised_size, "redetect_after": config.redetect_after,
-            "redetect_below": config.redetect_below, "smoothing": config.smoothing}  # fmt: skip
+            "redetect_below": config.redetect_below, "smoothing": config.smoothing,
+            "keep_expression": config.keep_expression}  # fmt: skip
 
 
 def _open_inputs(
@@ -2865,7 +2876,7 @@ def _track_group(
             smooth = _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
                                  normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
                                  "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
-                                 smooth)  # fmt: skip
+                                 smooth, config.keep_expression)  # fmt: skip
             if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
                 state, smooth, first_R, first_t = joined
                 idx = [k for k, s in enumerate(streams) if any(s is x for x in live)]
@@ -3398,13 +3409,16 @@ def _write_step(
     columns: tuple[str, ...], rows: np.ndarray, t: int, intr: Intrinsics, edges: np.ndarray,
     normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
     conf_label: str, smoothing: SmoothingConfig | None = None, smooth: SmoothingState | None = None,
+    keep_expression: bool = False,
 ) -> SmoothingState | None:
     """Write frame ``t`` of every live stream (its frame ``t + start``, ``_Stream.start``): its CSV row (unless
     replayed), then its overlay, normalised face and mesh, drawn from that row as the CSV holds it
     (:func:`_drawn_pose`). With ``smoothing`` (``rows`` then end with :data:`~torchface.io.table.SMOOTH_COLUMNS`,
     to be filled), the rows' pose as written (a replayed row's as the CSV holds it) goes through the filter, whose
     state ``smooth`` (None: every stream starts) this returns for the next frame; the overlay and the meshes are
-    drawn at the smoothed pose, the normalised face resampled at the raw one."""
+    drawn at the smoothed pose, the normalised face resampled at the raw one. With ``keep_expression``
+    (:attr:`JobConfig.keep_expression`) the normalised face is resampled at the state's neutral animation
+    coefficients instead of the rows'."""
     live = [not s.done for s in streams]
     if not any(live):
         return smooth
@@ -3449,7 +3463,8 @@ def _write_step(
     verts_uv, _ = overlay_geometry(model, shape, alpha, R_mesh_s, t_mesh_s, intr)
     axes_uv = axes_geometry(R_s, trans_s, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
-    norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
+    norm_alpha = state.neutral_anim_coeffs(alpha) if keep_expression else alpha  # (the person's neutral)
+    norm = normaliser.from_params(frames, shape, norm_alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
     verts_px, axes_px = verts_uv.detach().cpu().numpy(), axes_uv.detach().cpu().numpy()
     ci = columns.index("confidence")
