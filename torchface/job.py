@@ -1030,6 +1030,7 @@ class _Stream:
     anchor: _Anchor | None = None  # the online start's re-anchoring, once recorded (_write_record)
     settings: dict[str, object] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
+    first_neutral: list[float] | None = None  # the neutral animation coefficients of its first rows (their AUxx_r's)
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
     detection_warned: bool = False  # a re-detection's unusable landmarks were warned about (once per video)
@@ -1740,6 +1741,9 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
     first = anchor.get("first_shape_coeffs")
     if first is not None and not _numbers(first, (num_shape,)):
         return f"anchor.first_shape_coeffs is not {num_shape} finite numbers"
+    first = anchor.get("first_anim_coeffs")  # (absent in records of earlier versions)
+    if first is not None and not _numbers(first, (num_animation,)):
+        return f"anchor.first_anim_coeffs is not {num_animation} finite numbers"
     params, size = anchor.get("params"), 6 + num_animation + NUM_ILLUMINATION_TERMS
     if params is not None and not _numbers(params, (size,)):  # (the replay put them into the state: a traceback)
         return f"anchor.params is not {size} finite numbers"
@@ -2494,6 +2498,21 @@ def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, _Anchor]]) -
     return LandmarkFit(**fields)
 
 
+def _neutral_anim(state: TrackerState, streams: list[_Stream], alpha: Tensor, t: int) -> Tensor:
+    """``(B, A)`` the neutral animation coefficients that the rows ``t`` of ``streams`` measure their ``AUxx_r`` from
+    (``alpha (B, A)``: their ``anim_*``, for the dtype and device), which :attr:`JobConfig.keep_expression` resamples
+    the normalised face at: the state's (:meth:`~torchface.tracker.TrackerState.neutral_anim_coeffs`: the first
+    frame's fit, a restart's, the online start's re-estimate after its re-anchoring frame), but the first fit's
+    (:attr:`_Stream.first_neutral`) for the rows up to and including the re-anchoring frame (estimated before it; a
+    run resumed from the record holds the re-estimate in its state)."""
+    neutral = state.neutral_anim_coeffs(alpha).clone()
+    for k, s in enumerate(streams):
+        a = s.anchor
+        if a is not None and s.first_neutral is not None and a.get("frame") is not None and t <= a["frame"]:
+            neutral[k] = torch.as_tensor(s.first_neutral, dtype=alpha.dtype, device=alpha.device)
+    return neutral
+
+
 def _head_offset(s: _Stream, t: int) -> tuple[list, list] | None:
     """The offset ``(D, d)`` (the sidecar's ``start.head_rotation``, ``start.head_translation``) that turns row
     ``t``'s pose into the pose placing its mesh, or None where the row places it with its own pose and the first
@@ -2749,6 +2768,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
             "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": neutral[k].tolist(),
             "head_rotation": D.tolist(), "head_translation": d.tolist(), "frame": frame,
             "first_shape_coeffs": s.first_shape,  # the rows up to ``frame`` place the mesh with it
+            "first_anim_coeffs": s.first_neutral,  # their AUxx_r are measured from it (JobConfig.keep_expression)
             "params": state.params[k].tolist(),  # the frame's refined parameters, which its row does not hold
         }  # fmt: skip
         _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings, _first_face(s))
@@ -2822,10 +2842,13 @@ def _track_group(
         if online is not None and any(s.replay is not None and not s.retrack for s in streams):
             state = _without_online_start(state, [s.replay is not None and not s.retrack for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
+        first_neutral = state.neutral_anim_coeffs(state.params[:, layout.animation]).tolist()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
-            s.first_shape = state.shape_coeffs[k].tolist()
+            s.first_shape, s.first_neutral = state.shape_coeffs[k].tolist(), first_neutral[k]
             if k in anchored and anchored[k].get("first_shape_coeffs") is not None:  # resumed from the record
                 s.first_shape = list(anchored[k]["first_shape_coeffs"])  # (the state's: the refined shape)
+            if k in anchored and anchored[k].get("first_anim_coeffs") is not None:  # (the state's: the refined one)
+                s.first_neutral = list(anchored[k]["first_anim_coeffs"])
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
         smooth: SmoothingState | None = None  # the pose filter's state (JobConfig.smoothing), stream by stream
         for s in streams:  # (a landmarks file's given points: a detector's `near` is told no missing one, NaN)
@@ -3463,7 +3486,7 @@ def _write_step(
     verts_uv, _ = overlay_geometry(model, shape, alpha, R_mesh_s, t_mesh_s, intr)
     axes_uv = axes_geometry(R_s, trans_s, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
-    norm_alpha = state.neutral_anim_coeffs(alpha) if keep_expression else alpha  # (the person's neutral)
+    norm_alpha = _neutral_anim(state, streams, alpha, t) if keep_expression else alpha
     norm = normaliser.from_params(frames, shape, norm_alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
     verts_px, axes_px = verts_uv.detach().cpu().numpy(), axes_uv.detach().cpu().numpy()
