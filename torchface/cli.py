@@ -270,8 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     track.add_argument(
         "--keep-expression", action="store_true",
-        help="write the normalised face with the expression kept: resampled at the person's neutral (the first "
-        "frame's fit) instead of each row's expression, pose and light undone (for expression classifiers; "
+        help="write the normalised face with the expression kept: resampled at the person's neutral (the one "
+        "the CSV's AUxx_r are measured from) instead of each row's expression, pose and light undone (for expression classifiers; "
         "training_hooks' FaceTrackingConfig(keep_expression=True)); the sidecar's config.keep_expression says it "
         "(default: off, the neutral face)",
     )  # fmt: skip

@@ -273,9 +273,9 @@ class JobConfig:
             was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
             with another setting is refused.
         keep_expression: write the normalised face with the expression kept (``torchface track --keep-expression``):
-            resampled at the person's neutral animation coefficients (the tracker state's
-            :meth:`~torchface.tracker.TrackerState.neutral_anim_coeffs`: the first frame's fit, or a restart's, which
-            the CSV's ``AUxx_r`` are measured from) instead of the row's, pose and light undone as without it, as
+            resampled at the person's neutral animation coefficients, those the row's ``AUxx_r`` are measured from (the
+            first frame's fit, the online start's re-estimate after its re-anchoring frame, a restart's:
+            :func:`_neutral_anim`) instead of the row's, pose and light undone as without it, as
             ``training_hooks``' ``FaceTrackingConfig(keep_expression=True)`` does. False (the default): the neutral
             face, the outputs as without it. Only the normalised video depends on it; the sidecar's
             ``config.keep_expression`` and the resume record say it, and a resume with another setting is refused.
@@ -3440,8 +3440,8 @@ def _write_step(
     to be filled), the rows' pose as written (a replayed row's as the CSV holds it) goes through the filter, whose
     state ``smooth`` (None: every stream starts) this returns for the next frame; the overlay and the meshes are
     drawn at the smoothed pose, the normalised face resampled at the raw one. With ``keep_expression``
-    (:attr:`JobConfig.keep_expression`) the normalised face is resampled at the state's neutral animation
-    coefficients instead of the rows'."""
+    (:attr:`JobConfig.keep_expression`) the normalised face is resampled at the rows' neutral animation
+    coefficients (:func:`_neutral_anim`) instead of their ``anim_*``."""
     live = [not s.done for s in streams]
     if not any(live):
         return smooth
