@@ -10,6 +10,7 @@ Examples::
     torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
     torchface track clip.mp4 --out results --landmarks lm.csv --smooth   # + the pose smoothed over time (smooth_*)
     torchface track clips/*.mp4 --out results --detector dlib --keep-going   # skip the bad ones (status 3)
+    torchface track clip.mp4 --out results --landmarks lm.csv --keep-expression   # normalised face keeps expressions
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
@@ -269,6 +270,13 @@ def build_parser() -> argparse.ArgumentParser:
         "sidecar's config.smoothing says it (default: off)",
     )  # fmt: skip
     track.add_argument(
+        "--keep-expression", action="store_true",
+        help="write the normalised face with the expression kept: resampled at the person's neutral (the one "
+        "the CSV's AUxx_r are measured from) instead of each row's expression, pose and light undone (for expression classifiers; "
+        "training_hooks' FaceTrackingConfig(keep_expression=True)); the sidecar's config.keep_expression says it "
+        "(default: off, the neutral face)",
+    )  # fmt: skip
+    track.add_argument(
         "--keep-going", action="store_true",
         help="skip the inputs that cannot be tracked (unreadable, empty, a bad landmarks file, no face found, ...), "
         "each named on stderr as it is skipped, and track the others; the summary lists them with why, and the "
@@ -378,7 +386,7 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
     online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None, smooth=False,
-    keep_going=False,
+    keep_going=False, keep_expression=False,
 ) -> int:
     from torchface.job import InputSkipped, JobConfig, VideosStopped, track_videos
     from torchface.template.management import TemplateConfig
@@ -397,7 +405,7 @@ def _run_track(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker, model=model,
-        smoothing=SmoothingConfig() if smooth else None, keep_going=keep_going,
+        smoothing=SmoothingConfig() if smooth else None, keep_going=keep_going, keep_expression=keep_expression,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = None
@@ -650,7 +658,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _run_track(args.videos, args.out, args.landmarks, args.detector, args.focal, args.device,
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
                           not args.no_online_refine, args.max_batch, args.restart_after_unmatched,
-                          args.motion_prediction, args.model, args.smooth, args.keep_going)  # fmt: skip
+                          args.motion_prediction, args.model, args.smooth, args.keep_going,
+                          args.keep_expression)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

@@ -273,6 +273,13 @@ class JobConfig:
             an unsuccessful row, after the online start's re-anchoring frame and after a row where a re-detection
             was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
             with another setting is refused.
+        keep_expression: write the normalised face with the expression kept (``torchface track --keep-expression``):
+            resampled at the person's neutral animation coefficients, those the row's ``AUxx_r`` are measured from (the
+            first frame's fit, the online start's re-estimate after its re-anchoring frame, a restart's:
+            :func:`_neutral_anim`) instead of the row's, pose and light undone as without it, as
+            ``training_hooks``' ``FaceTrackingConfig(keep_expression=True)`` does. False (the default): the neutral
+            face, the outputs as without it. Only the normalised video depends on it; the sidecar's
+            ``config.keep_expression`` and the resume record say it, and a resume with another setting is refused.
         keep_going: go on past inputs that cannot be tracked (``torchface track --keep-going``): an input that the
             checks before tracking refuse (unreadable, empty, a bad first frame or landmarks file, no face found by
             the detector; with ``resume``, rows or complete outputs that cannot be resumed) is skipped with an
@@ -307,6 +314,7 @@ class JobConfig:
     model: str | os.PathLike[str] | None = None
     smoothing: SmoothingConfig | None = None
     keep_going: bool = False
+    keep_expression: bool = False
 
     def __post_init__(self) -> None:
         if self.smoothing is not None and not isinstance(self.smoothing, SmoothingConfig):
@@ -344,7 +352,7 @@ class JobConfig:
         object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
-        for name in ("resume", "convert", "meshes", "keep_going"):  # "no" was true
+        for name in ("resume", "convert", "meshes", "keep_going", "keep_expression"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         for name, low in (("normalised_size", None), ("redetect_after", 0), ("max_batch", 1)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
@@ -1023,6 +1031,7 @@ class _Stream:
     anchor: _Anchor | None = None  # the online start's re-anchoring, once recorded (_write_record)
     settings: dict[str, object] = field(default_factory=dict)  # what its rows depend on (_settings), in the record
     first_shape: list[float] | None = None  # the shape coefficients its first rows were tracked with
+    first_neutral: list[float] | None = None  # the neutral animation coefficients of its first rows (their AUxx_r's)
     redetections: int = 0
     detector_calls: int = 0  # the detector asked about its frames (first frame, re-detections, recoveries)
     detection_warned: bool = False  # a re-detection's unusable landmarks were warned about (once per video)
@@ -1545,6 +1554,7 @@ def _setting_values(config: JobConfig) -> dict[str, object]:
         "normalised size": config.normalised_size,
         # (only when on: the records of runs without it, and of earlier versions, hold none)
         **({"--smooth": config.smoothing} if config.smoothing is not None else {}),
+        **({"--keep-expression": True} if config.keep_expression else {}),
     }  # fmt: skip
 
 
@@ -1645,7 +1655,7 @@ def _said_difference(name: str, then: object, now: object) -> str:
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal)
-    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)"}.get(name, "none")
+    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)", "--keep-expression": "False"}.get(name, "none")
     return f"{name} {unset if then is None else then} then, {unset if now is None else now} now"
 
 
@@ -1733,6 +1743,9 @@ def _anchor_problem(anchor: object, num_shape: int, num_animation: int) -> str |
     first = anchor.get("first_shape_coeffs")
     if first is not None and not _numbers(first, (num_shape,)):
         return f"anchor.first_shape_coeffs is not {num_shape} finite numbers"
+    first = anchor.get("first_anim_coeffs")  # (absent in records of earlier versions)
+    if first is not None and not _numbers(first, (num_animation,)):
+        return f"anchor.first_anim_coeffs is not {num_animation} finite numbers"
     params, size = anchor.get("params"), 6 + num_animation + NUM_ILLUMINATION_TERMS
     if params is not None and not _numbers(params, (size,)):  # (the replay put them into the state: a traceback)
         return f"anchor.params is not {size} finite numbers"
@@ -1806,7 +1819,8 @@ def _read_record(
     _check_made_from(made_from, video, f"{path}: the partial results were")
     # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
     differ = _changed_settings(made_with, settings)
-    differ += ["--model"] if "--model" in made_with and "--model" not in settings else []  # (made with a model)
+    # (made with a model, or with the expression kept: settings a record holds only when given)
+    differ += [k for k in ("--model", "--keep-expression") if k in made_with and k not in settings]
     if differ:
         what = "; ".join(_said_difference(k, made_with.get(k), settings.get(k)) for k in differ)
         raise InputError(
@@ -1996,12 +2010,12 @@ def _check_resumable(
             raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from other first-frame "
                              f"landmarks than {os.fspath(landmarks)} holds now ({what}): run without --resume")
     now = _as_json(_result_settings(config))  # as the sidecar holds them
-    made_with = {"smoothing": None, **made_with}  # (sidecars before --smooth: made without it)
+    made_with = {"smoothing": None, "keep_expression": False, **made_with}  # (sidecars before them: without)
     made_with = _with_defaults(made_with, _result_settings(config))  # (a field added since: at its default)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
-                 "detector": "--detector", "smoothing": "--smooth"}  # fmt: skip
+                 "detector": "--detector", "smoothing": "--smooth", "keep_expression": "--keep-expression"}  # fmt: skip
         what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
@@ -2034,7 +2048,8 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
     return {"tracker": config.tracker, "focal": config.focal, "detector": config.detector,
             "lookahead": config.lookahead, "online_start": config.refine_first, "convert": config.convert,
             "normalised_size": config.normalised_size, "redetect_after": config.redetect_after,
-            "redetect_below": config.redetect_below, "smoothing": config.smoothing}  # fmt: skip
+            "redetect_below": config.redetect_below, "smoothing": config.smoothing,
+            "keep_expression": config.keep_expression}  # fmt: skip
 
 
 def _open_inputs(
@@ -2485,6 +2500,21 @@ def _with_recorded_fits(fit: LandmarkFit, recorded: list[tuple[int, _Anchor]]) -
     return LandmarkFit(**fields)
 
 
+def _neutral_anim(state: TrackerState, streams: list[_Stream], alpha: Tensor, t: int) -> Tensor:
+    """``(B, A)`` the neutral animation coefficients that the rows ``t`` of ``streams`` measure their ``AUxx_r`` from
+    (``alpha (B, A)``: their ``anim_*``, for the dtype and device), which :attr:`JobConfig.keep_expression` resamples
+    the normalised face at: the state's (:meth:`~torchface.tracker.TrackerState.neutral_anim_coeffs`: the first
+    frame's fit, a restart's, the online start's re-estimate after its re-anchoring frame), but the first fit's
+    (:attr:`_Stream.first_neutral`) for the rows up to and including the re-anchoring frame (estimated before it; a
+    run resumed from the record holds the re-estimate in its state)."""
+    neutral = state.neutral_anim_coeffs(alpha).clone()
+    for k, s in enumerate(streams):
+        a = s.anchor
+        if a is not None and s.first_neutral is not None and a.get("frame") is not None and t <= a["frame"]:
+            neutral[k] = torch.as_tensor(s.first_neutral, dtype=alpha.dtype, device=alpha.device)
+    return neutral
+
+
 def _head_offset(s: _Stream, t: int) -> tuple[list, list] | None:
     """The offset ``(D, d)`` (the sidecar's ``start.head_rotation``, ``start.head_translation``) that turns row
     ``t``'s pose into the pose placing its mesh, or None where the row places it with its own pose and the first
@@ -2740,6 +2770,7 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
             "shape_coeffs": state.shape_coeffs[k].tolist(), "anim_coeffs": neutral[k].tolist(),
             "head_rotation": D.tolist(), "head_translation": d.tolist(), "frame": frame,
             "first_shape_coeffs": s.first_shape,  # the rows up to ``frame`` place the mesh with it
+            "first_anim_coeffs": s.first_neutral,  # their AUxx_r are measured from it (JobConfig.keep_expression)
             "params": state.params[k].tolist(),  # the frame's refined parameters, which its row does not hold
         }  # fmt: skip
         _write_record(_record_path(paths[k]["csv"]), s.reader.info.path, s.anchor, s.settings, _first_face(s))
@@ -2813,10 +2844,13 @@ def _track_group(
         if online is not None and any(s.replay is not None and not s.retrack for s in streams):
             state = _without_online_start(state, [s.replay is not None and not s.retrack for s in streams])
         first_R, first_t = result.rotation.detach().clone(), result.translation.detach().clone()
+        first_neutral = state.neutral_anim_coeffs(state.params[:, layout.animation]).tolist()
         for k, s in enumerate(streams):  # (the online start's re-anchoring replaces them; the sidecar keeps both)
-            s.first_shape = state.shape_coeffs[k].tolist()
+            s.first_shape, s.first_neutral = state.shape_coeffs[k].tolist(), first_neutral[k]
             if k in anchored and anchored[k].get("first_shape_coeffs") is not None:  # resumed from the record
                 s.first_shape = list(anchored[k]["first_shape_coeffs"])  # (the state's: the refined shape)
+            if k in anchored and anchored[k].get("first_anim_coeffs") is not None:  # (the state's: the refined one)
+                s.first_neutral = list(anchored[k]["first_anim_coeffs"])
         current = _Current(frames)  # the frames being tracked: which stream a recovery's frame is (_recovery_near)
         smooth: SmoothingState | None = None  # the pose filter's state (JobConfig.smoothing), stream by stream
         for s in streams:  # (a landmarks file's given points: a detector's `near` is told no missing one, NaN)
@@ -2867,7 +2901,7 @@ def _track_group(
             smooth = _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
                                  normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
                                  "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
-                                 smooth)  # fmt: skip
+                                 smooth, config.keep_expression)  # fmt: skip
             if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
                 state, smooth, first_R, first_t = joined
                 idx = [k for k, s in enumerate(streams) if any(s is x for x in live)]
@@ -3409,13 +3443,16 @@ def _write_step(
     columns: tuple[str, ...], rows: np.ndarray, t: int, intr: Intrinsics, edges: np.ndarray,
     normaliser: NormalisedFace, layout: ParamLayout, mesh_dirs: list[Path] | None, redetect_below: float,
     conf_label: str, smoothing: SmoothingConfig | None = None, smooth: SmoothingState | None = None,
+    keep_expression: bool = False,
 ) -> SmoothingState | None:
     """Write frame ``t`` of every live stream (its frame ``t + start``, ``_Stream.start``): its CSV row (unless
     replayed), then its overlay, normalised face and mesh, drawn from that row as the CSV holds it
     (:func:`_drawn_pose`). With ``smoothing`` (``rows`` then end with :data:`~torchface.io.table.SMOOTH_COLUMNS`,
     to be filled), the rows' pose as written (a replayed row's as the CSV holds it) goes through the filter, whose
     state ``smooth`` (None: every stream starts) this returns for the next frame; the overlay and the meshes are
-    drawn at the smoothed pose, the normalised face resampled at the raw one."""
+    drawn at the smoothed pose, the normalised face resampled at the raw one. With ``keep_expression``
+    (:attr:`JobConfig.keep_expression`) the normalised face is resampled at the rows' neutral animation
+    coefficients (:func:`_neutral_anim`) instead of their ``anim_*``."""
     live = [not s.done for s in streams]
     if not any(live):
         return smooth
@@ -3460,7 +3497,8 @@ def _write_step(
     verts_uv, _ = overlay_geometry(model, shape, alpha, R_mesh_s, t_mesh_s, intr)
     axes_uv = axes_geometry(R_s, trans_s, intr)  # the axes of the CSV's pose, not of the mesh's placement
     aa = matrix_to_axis_angle(R_mesh.to(torch.float64)).to(R_mesh.dtype)
-    norm = normaliser.from_params(frames, shape, alpha, aa, t_mesh, light, intr)
+    norm_alpha = _neutral_anim(state, streams, alpha, t) if keep_expression else alpha
+    norm = normaliser.from_params(frames, shape, norm_alpha, aa, t_mesh, light, intr)
     norm_img = (norm.image * norm.mask).clamp(0, 1)
     verts_px, axes_px = verts_uv.detach().cpu().numpy(), axes_uv.detach().cpu().numpy()
     ci = columns.index("confidence")

@@ -185,7 +185,17 @@ class LayerResult:
         params: ``(B, P)`` the parameters the faces were resampled with (in the graph in ``UNROLLED`` mode).
         state: the detached tracker state after this frame (pass it with the next frame).
         track: the detached tracker's :class:`~torchface.tracker.TrackResult` of this frame (confidence,
-            status, pose, ... of the estimate carried in ``state``).
+            status, pose, ... of the estimate carried in ``state``); of a clip (:meth:`NormalisedFaceLayer.forward_clip`),
+            the last frame's.
+        success: ``(B,)`` bool, ``track.success`` (the estimate is usable); of a clip ``(B, T)``, one per frame
+            (frame 0: the initialisation's), to leave failed frames out of a loss (e.g. as the ``mask`` of
+            :func:`~training_hooks.hooks.confidence_weighted_loss`).
+        confidence: ``(B,)`` float, ``track.confidence`` in ``[0, 1]``; of a clip ``(B, T)``, one per frame (frame 0:
+            the landmark fit's, :func:`~torchface.tracker.initialise`). Not differentiable.
+
+    Per frame, a clip's ``success`` and ``confidence`` are those of the frame-by-frame steps (``initialise``, then
+    ``forward``): ``{"confidence": out.confidence, "success": out.success}`` is a clip batch for
+    :func:`~training_hooks.hooks.drop_low_confidence` and :func:`~training_hooks.hooks.sample_confidence`.
     """
 
     image: Tensor
@@ -193,6 +203,8 @@ class LayerResult:
     params: Tensor
     state: TrackerState
     track: TrackResult
+    success: Tensor
+    confidence: Tensor
 
 
 _F = TypeVar("_F", bound=Callable)
@@ -414,7 +426,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
                 self.model, tracker, state, frames, start, cfg.unrolled_iterations, cfg.unrolled_levels
             )
         image, mask = self.normalise(frames, state, params)
-        return LayerResult(image, mask, params, new_state, track)
+        return LayerResult(image, mask, params, new_state, track, track.success, track.confidence.detach())
 
     def forward_clip(self, clips: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics | None = None) -> LayerResult:
         """Normalised faces of whole clips, initialised from their first frames' landmarks.
@@ -429,7 +441,12 @@ class NormalisedFaceLayer(DeviceCheckedModule):
 
         Returns:
             :class:`LayerResult` with ``image (B, T, C, G, G)``, ``mask (B, T, 1, G, G)``, ``params (B, T, P)``,
-            the state after the last frame and the last frame's ``track``.
+            ``success (B, T)`` bool and ``confidence (B, T)`` per frame (frame 0: the initialisation's result), the
+            state after the last frame and the last frame's ``track``.
+
+        Example:
+            >>> out = layer.forward_clip(clips, landmarks)                       # doctest: +SKIP
+            >>> loss = confidence_weighted_loss(per_frame_loss, out.confidence, out.success)   # (B, T) each  # doctest: +SKIP
         """
         if not isinstance(clips, Tensor):  # (a numpy clip was a ValueError, as a wrong shape; forward's a TypeError)
             raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
@@ -447,10 +464,16 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         state, track = self.initialise(clips[:, 0], landmarks_px, intrinsics)
         image, mask = self.normalise(clips[:, 0], state, state.params)
         images, masks, params = [image], [mask], [state.params]
+        success, confidence = [track.success], [track.confidence.detach()]
         for t in range(1, clips.shape[1]):
             out = self(clips[:, t], state)
             state, track = out.state, out.track
             images.append(out.image)
             masks.append(out.mask)
             params.append(out.params)
-        return LayerResult(torch.stack(images, 1), torch.stack(masks, 1), torch.stack(params, 1), state, track)
+            success.append(out.success)
+            confidence.append(out.confidence)
+        return LayerResult(
+            torch.stack(images, 1), torch.stack(masks, 1), torch.stack(params, 1), state, track,
+            torch.stack(success, 1), torch.stack(confidence, 1),
+        )  # fmt: skip

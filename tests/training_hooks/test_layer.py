@@ -28,6 +28,7 @@ from torchface.synth.background import BackgroundSpec
 from torchface.synth.scenarios import default_light
 from torchface.synth.sequence import SequenceSpec, render_sequence
 from torchface.tracker import FitConfig, TrackerConfig, warp_points
+from training_hooks.hooks import confidence_weighted_loss, drop_low_confidence
 from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer, UnrollStart, unrolled_params
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces
 
@@ -288,17 +289,35 @@ def test_keep_expression_resamples_at_the_persons_neutral(model):
 
 
 def test_forward_clip_shapes_and_first_frame(model):
+    """Shapes, frame 0, and the per-frame ``success`` / ``confidence`` ``(B, T)``: those of the frame-by-frame steps
+    (before, only the last frame's ``track`` came back: a failed frame inside a clip could not be left out)."""
     frames, landmarks = _clip(32, num_frames=2)
-    clips = torch.stack([frames, frames.roll(1, dims=-1)])  # (2, 2, 3, 32, 32); the second shifted 1 px right
+    clips = torch.stack([frames, frames.roll(1, dims=-1)])  # (2, 2, 3, 32, 32); the second shifted 1 px right,
+    clips[1, 1] = 0.0  # its frame 1 black (no face: FAILED)
     lms = torch.stack([landmarks[0], landmarks[0] + torch.tensor([1.0, 0.0], dtype=D)])
     layer = NormalisedFaceLayer(LayerConfig(mode=LayerMode.UNROLLED, size=G, tracker=SMALL), model)
     out = layer.forward_clip(clips, lms)
     P = layer.param_layout.size
     assert out.image.shape == (2, 2, 3, G, G) and out.mask.shape == (2, 2, 1, G, G)
     assert out.params.shape == (2, 2, P) and out.state.frame_index == 2
+    assert out.success.shape == (2, 2) and out.success.dtype == torch.bool
+    assert out.confidence.shape == (2, 2) and out.confidence.is_floating_point()
     assert torch.isfinite(out.image).all()
-    state, _ = layer.initialise(clips[:, 0], lms)
+    state, first = layer.initialise(clips[:, 0], lms)
     torch.testing.assert_close(out.image[:, 0], layer.normalise(clips[:, 0], state, state.params).image)
+    step = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), model)(clips[:, 1], state)  # same tracking, cheaper
+    assert step.success.shape == (2,) and torch.equal(step.success, step.track.success)
+    assert torch.equal(step.confidence, step.track.confidence)
+    for t, want in ((0, first), (1, step.track)):
+        assert torch.equal(out.success[:, t], want.success) and torch.equal(out.confidence[:, t], want.confidence), t
+    assert out.success.tolist() == [[True, True], [True, False]] and float(out.confidence[1, 1]) == 0.0
+    assert bool((out.confidence[out.success] > 0).all())
+    # the hooks take them as a clip batch: the failed frame weighs 0 (even at a NaN loss), the clips are kept
+    loss = torch.tensor([[1.0, 2.0], [3.0, float("nan")]], dtype=D)
+    want_loss = (loss * out.confidence)[out.success].sum() / out.confidence[out.success].sum()
+    torch.testing.assert_close(confidence_weighted_loss(loss, out.confidence, out.success), want_loss)
+    kept = drop_low_confidence({"confidence": out.confidence, "success": out.success, "face": out.image}, 0.0)
+    assert kept.indices.tolist() == [0, 1]
     # 2 sets of landmarks for 1 clip of 2 frames (as a (T, B, ...) stack gives): told one set per clip and the
     # transpose (initialise's "with B = 1 (one set per frame)" suggested a set per frame)
     with pytest.raises(ValueError, match=r"one set per clip.*B = 1 clips of T = 2 frames.*clips.transpose\(0, 1\)"):
