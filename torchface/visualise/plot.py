@@ -28,7 +28,8 @@ _LEFT, _RIGHT, _BOTTOM, _HSPACE = 0.09, 0.98, 0.085, 0.12
 _TOP_PX, _TITLE_PAD_PX = 15.0, 14.0
 #: Title font size (points; matplotlib's ``large``) and the least it is shrunk to for a long title (wrapped below it).
 _TITLE_PT, _TITLE_MIN_PT = 12.0, 8.0
-#: zlib level of the PNG (1: fastest; PIL's default, 6, took twice as long for a 9-13 % smaller file).
+#: zlib level of the PNG (1: fastest): encoding a 200-frame track's plot took 21 ms, 30 ms at PIL's default (6), a
+#: 5000-frame one's 24 ms, 43 ms, for 8 % (149 against 138 KiB) and 11 % (225 against 202 KiB) larger files.
 _PNG_COMPRESS_LEVEL = 1
 
 
