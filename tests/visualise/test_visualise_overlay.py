@@ -280,3 +280,16 @@ def test_plot_track_lays_out_without_tight_layout_and_everything_fits(tmp_path, 
         assert (len(tight) > n) == needs_tight, name
         assert _what_does_not_fit(figures[-1]) == [], name
     assert figures[2]._suptitle.get_text().count("\n") >= 1  # shrunk to 8 pt, then wrapped
+    # no AU measured (15 columns of NaN, "equal"): one series labelled "AU01_r = AU02_r = ... = AU15_r", a legend
+    # wider than the figure; a series without a value is not drawn
+    aus = tuple(f"AU{k:02d}_r" for k in range(1, 16))
+    nan = np.column_stack([rows, np.full((len(rows), len(aus)), np.nan)])
+    plot_module.plot_track((*cols, *aus), nan, tmp_path / "no AU.png", title="t")
+    assert _what_does_not_fit(figures[-1]) == []
+    assert [line.get_label() for line in figures[-1].axes[1].get_lines()] == ["AU26_r"]
+    # one series of many columns (another tool's table) is labelled with its first two and last
+    same = np.column_stack([rows, np.repeat(rows[:, [cols.index("AU26_r")]], len(aus), axis=1)])
+    plot_module.plot_track((*cols, *aus), same, tmp_path / "many.png", title="t", num_aus=1)
+    assert [line.get_label() for line in figures[-1].axes[1].get_lines()] == [
+        "AU26_r = AU01_r = ... = AU15_r (16 columns)"]
+    assert _what_does_not_fit(figures[-1]) == []

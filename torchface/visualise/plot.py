@@ -151,12 +151,15 @@ def plot_track(
         axes[0].plot(t, rows[:, idx[name]], label=name.replace("_deg", ""))
     axes[0].set_ylabel("degrees")
     axes[0].legend(loc="upper right", fontsize=8)
-    groups = au_groups(columns, rows)
-    if groups and len(rows) and num_aus:  # (0: no legend of nothing, which matplotlib warned about)
-        series = [rows[:, idx[g[0]]] for g in groups]  # (an all-NaN one last: nanstd warned "Degrees of freedom")
-        spread = np.array([np.nanstd(x) if np.isfinite(x).any() else -1.0 for x in series])
+    # (an all-NaN series is not drawn: nothing to draw, and the columns without a value were one "linked" series,
+    # labelled with every AU's name, a legend wider than the figure; nanstd warned "Degrees of freedom" of it)
+    groups = [g for g in au_groups(columns, rows) if np.isfinite(rows[:, idx[g[0]]]).any()]
+    if groups and num_aus:  # (0: no legend of nothing, which matplotlib warned about)
+        spread = np.array([np.nanstd(rows[:, idx[g[0]]]) for g in groups])
         for k in np.argsort(-spread, kind="stable")[:num_aus]:
-            axes[1].plot(t, rows[:, idx[groups[k][0]]], label=" = ".join(groups[k]))
+            g = groups[k]  # (more than 4 columns of one series, a table of another tool's: the first two, the last)
+            label = " = ".join(g) if len(g) <= 4 else f"{g[0]} = {g[1]} = ... = {g[-1]} ({len(g)} columns)"
+            axes[1].plot(t, rows[:, idx[g[0]]], label=label)
         axes[1].legend(loc="upper right", fontsize=8)
     # (it read "AU intensity": these are not OpenFace's 0-5 intensities but the linked animation unit's signed change
     # from the first frame, dimensionless, docs/cli.md "Differences from OpenFace's per-frame CSV")
