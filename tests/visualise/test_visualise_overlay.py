@@ -269,7 +269,6 @@ def test_plot_track_lays_out_without_tight_layout_and_everything_fits(tmp_path, 
     rows[:, cols.index("AU26_r")] = np.linspace(0.0, 0.6, len(rows))
     cases = {
         "usual": (rows, "clip (5 frames)", False),
-        "no title": (rows, "", False),
         "long title": (rows, "a_long_file_name_without_a_space_" * 8 + " (5 frames)", False),
         "tiny AUs": (rows * np.where(np.array(cols) == "AU26_r", 1e-4, 1.0), "t", False),  # a "1e-5" offset
         "wide ticks": (rows * np.where(np.array(cols) == "yaw_deg", 1e4, 1.0), "t", True),  # "-400000"
@@ -279,7 +278,7 @@ def test_plot_track_lays_out_without_tight_layout_and_everything_fits(tmp_path, 
         plot_module.plot_track(cols, table, tmp_path / f"{name}.png", title=title)
         assert (len(tight) > n) == needs_tight, name
         assert _what_does_not_fit(figures[-1]) == [], name
-    assert figures[2]._suptitle.get_text().count("\n") >= 1  # shrunk to 8 pt, then wrapped
+    assert figures[1]._suptitle.get_text().count("\n") >= 1  # shrunk to 8 pt, then wrapped
     # no AU measured (15 columns of NaN, "equal"): one series labelled "AU01_r = AU02_r = ... = AU15_r", a legend
     # wider than the figure; a series without a value is not drawn
     aus = tuple(f"AU{k:02d}_r" for k in range(1, 16))
