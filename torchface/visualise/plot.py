@@ -9,11 +9,19 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from torchface._names import name_tuple
 from torchface.geometry._checks import check_int
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.backend_bases import RendererBase
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.text import Text
 
 __all__ = ["au_groups", "plot_track"]
 
@@ -42,20 +50,20 @@ def _figure_class():
     return Figure
 
 
-def _agg_canvas(fig):
+def _agg_canvas(fig: Figure) -> FigureCanvasAgg:
     """An Agg canvas for ``fig`` (matplotlib's object API: no pyplot)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     return FigureCanvasAgg(fig)
 
 
-def _title(fig, title: str, renderer) -> float:
+def _title(fig: Figure, title: str, renderer: RendererBase) -> tuple[float, Text | None]:
     """Set ``fig``'s title ``title`` (none where empty) so that it fits the figure's width (a long one in a smaller
-    font, down to :data:`_TITLE_MIN_PT`, then wrapped onto more lines), and return the top of the subplots below it
-    (a figure fraction)."""
+    font, down to :data:`_TITLE_MIN_PT`, then wrapped onto more lines). Returns the top of the subplots below it (a
+    figure fraction) and the title's text (None where there is none)."""
     W, H = fig.bbox.width, fig.bbox.height
     if not title:
-        return 1.0 - _TOP_PX / H
+        return 1.0 - _TOP_PX / H, None
     text = fig.suptitle(title, fontsize=_TITLE_PT)
     room = W - 2 * _TITLE_PAD_PX
     width = text.get_window_extent(renderer).width
@@ -67,15 +75,14 @@ def _title(fig, title: str, renderer) -> float:
             per_line = max(int(len(title) * room / width), 1)
             text.set_text("\n".join(title[i:i + per_line] for i in range(0, len(title), per_line)))
     box = text.get_window_extent(renderer)
-    return (box.y0 - _TITLE_PAD_PX) / H
+    return (box.y0 - _TITLE_PAD_PX) / H, text
 
 
-def _fits(fig, axes, renderer) -> bool:
+def _fits(fig: Figure, axes: list[Axes], title: Text | None, renderer: RendererBase) -> bool:
     """Whether ``fig``'s ``axes`` (drawn: their labels placed) have every label, tick label, offset (``1e-5``) and
-    the title inside the figure, none over another axes."""
+    legend, and the ``title``, inside the figure, none over the axes above it (or the title)."""
     W, H = fig.bbox.width, fig.bbox.height
-    boxes = []  # (box, the bottom it must stay under: the axes above it, or the title)
-    title = getattr(fig, "_suptitle", None)
+    boxes = []  # (box, the height it must stay under: the axes above it, or the title)
     ceiling = H if title is None else title.get_window_extent(renderer).y0
     if title is not None:
         boxes.append((title.get_window_extent(renderer), H))
@@ -88,6 +95,8 @@ def _fits(fig, axes, renderer) -> bool:
             span = (hi - lo) * 1e-9
             texts += [t.label1 for t, x in zip(axis.get_major_ticks(len(locs)), locs) if lo - span <= x <= hi + span]
         boxes += [(t.get_window_extent(renderer), above) for t in texts if t.get_visible() and t.get_text()]
+        if (legend := ax.get_legend()) is not None:
+            boxes.append((legend.get_window_extent(renderer), H))
     return all(b.x0 >= 0 and b.x1 <= W and b.y0 >= 0 and b.y1 <= top for b, top in boxes)
 
 
@@ -184,14 +193,14 @@ def plot_track(
     kwargs: dict = {"pil_kwargs": {"compress_level": _PNG_COMPRESS_LEVEL}} if fmt == "png" else {}
     with warnings.catch_warnings():  # a title in a script the font lacks (a video named in Chinese, an emoji):
         warnings.filterwarnings("ignore", message=r"Glyph \d+ .* missing from", category=UserWarning)  # boxes
-        top = _title(fig, title, canvas.get_renderer())
+        top, text = _title(fig, title, canvas.get_renderer())
         fig.subplots_adjust(left=_LEFT, right=_RIGHT, bottom=_BOTTOM, top=top, hspace=_HSPACE)
         try:
             fig.savefig(tmp, dpi=100, format=fmt, **kwargs)
             # the fixed margins suit the usual labels; where one did not fit (wide tick labels, an offset such as
             # "1e-5" over the axes above), the figure is laid out as it always was before (tight_layout) and saved
             # again
-            if not _fits(fig, axes, canvas.get_renderer()):
+            if not _fits(fig, list(axes), text, canvas.get_renderer()):
                 fig.tight_layout()
                 fig.savefig(tmp, dpi=100, format=fmt, **kwargs)
         except BaseException:  # a full disk, an interruption: no partial file left behind
