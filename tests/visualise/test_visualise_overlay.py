@@ -234,3 +234,61 @@ def test_plot_track_draws_the_aus_one_unit_links_as_one_line(tmp_path, monkeypat
     # unit's signed change from the first frame (negative for the opposite movement), and the axis says so
     ylabel = figures[0].axes[1].get_ylabel()
     assert "intensity" not in ylabel and "frame 0" in ylabel, ylabel
+
+
+def _what_does_not_fit(fig) -> list[str]:
+    """What of a drawn ``fig`` (matplotlib's own measure: each axes' tight box, its tick and axis labels and offsets,
+    and the title) is not wholly inside the figure, or overlaps the axes above it."""
+    renderer, (x0, y0), (x1, y1) = fig.canvas.get_renderer(), *fig.bbox.get_points()
+    boxes = [("title", fig._suptitle.get_window_extent(renderer))] if fig._suptitle is not None else []
+    boxes += [(f"axes {i}", ax.get_tightbbox(renderer)) for i, ax in enumerate(fig.axes)]
+    bad = [name for name, e in boxes if not (x0 <= e.x0 and e.x1 <= x1 and y0 <= e.y0 and e.y1 <= y1)]
+    return bad + [f"{a} over {b}" for (a, e), (b, f) in zip(boxes, boxes[1:]) if e.y0 < f.y1]
+
+
+def test_plot_track_lays_out_without_tight_layout_and_everything_fits(tmp_path, monkeypatch):
+    """The layout: fixed margins that fit a track's usual labels, not tight_layout on every plot (which drew the
+    figure's text once more to measure it: ~0.1 s of the ~0.3 s each video's plot took); where a label does not fit
+    them (tick labels of six digits and more, an offset), tight_layout as before. A title wider than the figure
+    (a long file name, without a space) was cut at both sides: it is shrunk, then wrapped, to fit."""
+    import torchface.visualise.plot as plot_module
+    from matplotlib.figure import Figure
+
+    figures, tight = [], []
+    make = plot_module._figure_class()
+
+    def capture(*args, **kwargs):
+        figures.append(make(*args, **kwargs))
+        return figures[-1]
+
+    monkeypatch.setattr(plot_module, "_figure_class", lambda: capture)
+    layout = Figure.tight_layout
+    monkeypatch.setattr(Figure, "tight_layout", lambda self, *a, **k: tight.append(1) or layout(self, *a, **k))
+    cols, rows = _small_track()
+    rows[:, cols.index("yaw_deg")] = np.linspace(-40.0, 60.0, len(rows))
+    rows[:, cols.index("AU26_r")] = np.linspace(0.0, 0.6, len(rows))
+    cases = {
+        "usual": (rows, "clip (5 frames)", False),
+        "long title": (rows, "a_long_file_name_without_a_space_" * 8 + " (5 frames)", False),
+        "tiny AUs": (rows * np.where(np.array(cols) == "AU26_r", 1e-4, 1.0), "t", False),  # a "1e-5" offset
+        "wide ticks": (rows * np.where(np.array(cols) == "yaw_deg", 1e4, 1.0), "t", True),  # "-400000"
+    }  # fmt: skip
+    for name, (table, title, needs_tight) in cases.items():
+        n = len(tight)
+        plot_module.plot_track(cols, table, tmp_path / f"{name}.png", title=title)
+        assert (len(tight) > n) == needs_tight, name
+        assert _what_does_not_fit(figures[-1]) == [], name
+    assert figures[1]._suptitle.get_text().count("\n") >= 1  # shrunk to 8 pt, then wrapped
+    # no AU measured (15 columns of NaN, "equal"): one series labelled "AU01_r = AU02_r = ... = AU15_r", a legend
+    # wider than the figure; a series without a value is not drawn
+    aus = tuple(f"AU{k:02d}_r" for k in range(1, 16))
+    nan = np.column_stack([rows, np.full((len(rows), len(aus)), np.nan)])
+    plot_module.plot_track((*cols, *aus), nan, tmp_path / "no AU.png", title="t")
+    assert _what_does_not_fit(figures[-1]) == []
+    assert [line.get_label() for line in figures[-1].axes[1].get_lines()] == ["AU26_r"]
+    # one series of many columns (another tool's table) is labelled with its first two and last
+    same = np.column_stack([rows, np.repeat(rows[:, [cols.index("AU26_r")]], len(aus), axis=1)])
+    plot_module.plot_track((*cols, *aus), same, tmp_path / "many.png", title="t", num_aus=1)
+    assert [line.get_label() for line in figures[-1].axes[1].get_lines()] == [
+        "AU26_r = AU01_r = ... = AU15_r (16 columns)"]
+    assert _what_does_not_fit(figures[-1]) == []

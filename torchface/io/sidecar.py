@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import json
 import math
 import os
@@ -23,7 +24,16 @@ DEPENDENCIES: tuple[str, ...] = (
 
 
 def package_versions() -> dict[str, str | None]:
-    """``{"python": ..., "<distribution>": version or None}`` for :data:`DEPENDENCIES`."""
+    """``{"python": ..., "<distribution>": version or None}`` for :data:`DEPENDENCIES`: those of this process, looked
+    up once (a new dict each call)."""
+    return dict(_versions())
+
+
+@functools.cache
+def _versions() -> dict[str, str | None]:
+    """:func:`package_versions`, looked up once per process (~13 ms: ``importlib.metadata`` reads every installed
+    distribution's record, for every video's sidecar; an upgrade installed while the process runs is not what it
+    runs: the modules imported before it stay)."""
     out: dict[str, str | None] = {"python": platform.python_version()}
     for name in DEPENDENCIES:
         try:
