@@ -167,3 +167,20 @@ def count_job_steps(monkeypatch) -> list[int]:
 
     monkeypatch.setattr(torchface.job, "managed_step", counted)
     return steps
+
+
+def lossless_scenario_clip(root: Path, scenario: str, frames: int, width: int, height: int) -> tuple[Path, Path]:
+    """A standard scenario's first ``frames`` frames written into ``root`` as ``clip.npy`` (``(T, H, W, 3)`` uint8,
+    lossless: a ``.npy`` video tracks without the codec's rounding) and its first frame's true landmarks as
+    ``first_frame.csv`` (``x,y`` header, as ``torchface track --landmarks`` reads it). Returns ``(video, landmarks)``."""
+    from torchface.synth.io import read_video
+    from torchface.synth.scenarios import make_scenario
+    from torchface.synth.sequence import load_ground_truth, write_sequence
+
+    files = write_sequence(make_scenario(scenario, frames, width, height), root)
+    gt = load_ground_truth(files.ground_truth)
+    lm = root / "first_frame.csv"
+    np.savetxt(lm, gt.landmarks_px[0].numpy(), delimiter=",", header="x,y", comments="")
+    video = root / "clip.npy"
+    np.save(video, (read_video(files.video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
+    return video, lm

@@ -5,8 +5,9 @@ output as without it, the sidecar's ``config.keep_expression``, and ``--resume``
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
@@ -15,9 +16,9 @@ from torchface.io import read_track_csv
 from torchface.job import JobConfig, track_videos
 from torchface.model.candide import load_candide3
 from torchface.normalise.face import NormalisedFace
-from torchface.synth.io import read_video
-from torchface.synth.scenarios import make_scenario
-from torchface.synth.sequence import load_ground_truth, write_sequence
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+from _helpers import lossless_scenario_clip  # noqa: E402
 
 T, W, H = 8, 160, 120
 OUTPUTS = ("clip.csv", "clip_overlay.mp4", "clip_plot.png")  # (the normalised video is the one that differs)
@@ -26,14 +27,7 @@ OUTPUTS = ("clip.csv", "clip_overlay.mp4", "clip_plot.png")  # (the normalised v
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
     """The ``expressions`` scenario's first frames, lossless as an ``.npy`` array, and its first landmarks."""
-    root = tmp_path_factory.mktemp("clip")
-    files = write_sequence(make_scenario("expressions", T, W, H), root)
-    gt = load_ground_truth(files.ground_truth)
-    lm = root / "first_frame.csv"
-    np.savetxt(lm, gt.landmarks_px[0].numpy(), delimiter=",", header="x,y", comments="")
-    video = root / "clip.npy"
-    np.save(video, (read_video(files.video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
-    return video, lm
+    return lossless_scenario_clip(tmp_path_factory.mktemp("clip"), "expressions", T, W, H)
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,8 @@ as without it, the overlay drawn at the smoothed pose, the filter restored on ``
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,10 +16,10 @@ from torchface.cli import main
 from torchface.io import read_track_csv, to_jsonable
 from torchface.io.table import POSE_COLUMNS, ROTATION_COLUMNS, SMOOTH_COLUMNS
 from torchface.job import JobConfig, track_videos
-from torchface.synth.io import read_video
-from torchface.synth.scenarios import make_scenario
-from torchface.synth.sequence import load_ground_truth, write_sequence
 from torchface.tracker import OneEuroConfig, SmoothingConfig, smooth_pose_series
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
+from _helpers import load_script, lossless_scenario_clip  # noqa: E402
 
 T, W, H = 10, 160, 120
 
@@ -26,14 +28,7 @@ T, W, H = 10, 160, 120
 def clip(tmp_path_factory):
     """The ``expressions`` scenario's first frames (its head turns past 10 degrees at frame 2: the online start
     re-anchors there), lossless as an ``.npy`` array, and its first landmarks."""
-    root = tmp_path_factory.mktemp("clip")
-    files = write_sequence(make_scenario("expressions", T, W, H), root)
-    gt = load_ground_truth(files.ground_truth)
-    lm = root / "first_frame.csv"
-    np.savetxt(lm, gt.landmarks_px[0].numpy(), delimiter=",", header="x,y", comments="")
-    video = root / "clip.npy"
-    np.save(video, (read_video(files.video).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
-    return video, lm
+    return lossless_scenario_clip(tmp_path_factory.mktemp("clip"), "expressions", T, W, H)
 
 
 @pytest.fixture(scope="module")
@@ -213,12 +208,6 @@ def test_track_grid_smooths_offline_as_the_job_did(runs) -> None:
     """scripts/track_grid.py --smoothing filters a run's CSV rows offline: given the sidecar's
     start.reanchored_at_frame it starts afresh where ``--smooth`` did (the row after the re-anchoring frame), so its
     rotations are the job's smooth_r* cells; without it (as before) they part after the re-anchoring."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
-    from _helpers import load_script
-
     track_grid = load_script("track_grid")
     _, smooth, _ = runs
     cols, rows = read_track_csv(smooth / "clip.csv")
