@@ -17,6 +17,7 @@ import contextlib
 import os
 import re
 import secrets
+import threading
 from collections.abc import Collection, Iterator
 from pathlib import Path
 
@@ -57,6 +58,7 @@ def written_whole(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 LOCK_FILE = ".torchface-lock"
 """The file :func:`folder_locked` locks where the folder itself cannot be locked (left in the folder)."""
+_RECORD_LOCKS = threading.Lock()  # (held by the thread of this process that holds a LOCK_FILE's record lock)
 
 
 @contextlib.contextmanager
@@ -68,7 +70,8 @@ def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
     the folder cannot be locked so (NFS, whose ``flock`` is a record lock that wants a file open for writing: EBADF
     on a folder; a folder that cannot be opened for reading; a file system without ``flock``), and where there is no
     ``fcntl`` (Windows), a file :data:`LOCK_FILE` in the folder is locked instead (``lockf``, ``msvcrt``) and left
-    there. Advisory: it orders only the writers that ask for it.
+    there. Advisory: it orders only the writers that ask for it; the threads of one process are ordered too. Not
+    re-entrant: a block that asks again for a folder it holds waits for itself.
 
     Example:
         >>> # with folder_locked(out): os.replace(tmp_video, video); os.replace(tmp_truth, truth)
@@ -103,12 +106,14 @@ def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
             os.close(fd)
             fd = None
     if fd is None:  # (the folder itself cannot be locked: a record lock on a file in it, as NFS's lock manager holds)
-        fd = os.open(os.path.join(folder, LOCK_FILE), os.O_RDWR | os.O_CREAT, 0o666)
-        try:
-            fcntl.lockf(fd, fcntl.LOCK_EX)
-        except BaseException:
-            os.close(fd)
-            raise
+        with _RECORD_LOCKS:  # (a record lock is its process's: every thread of it would hold it at once)
+            fd = os.open(os.path.join(folder, LOCK_FILE), os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fcntl.lockf(fd, fcntl.LOCK_EX)
+                yield
+            finally:
+                os.close(fd)  # (releases the lock)
+        return
     try:
         yield
     finally:

@@ -362,11 +362,12 @@ def test_two_writers_finishing_together_leave_one_writers_video_and_ground_truth
 def test_a_folder_that_cannot_be_flocked_is_locked_by_a_file_in_it(tmp_path, monkeypatch):
     """NFS's flock is a record lock, which wants a file open for writing: on a folder it is EBADF (and a folder
     without read permission cannot be opened): folder_locked raised, and write_sequence into such a folder failed.
-    Now it locks a file in the folder, and another process waits for it."""
+    Now it locks a file in the folder, and another process, or another thread of this one, waits for it."""
     import errno
     import fcntl
     import subprocess
     import sys
+    import threading
 
     from torchface._atomic import LOCK_FILE, folder_locked
 
@@ -375,8 +376,19 @@ def test_a_folder_that_cannot_be_flocked_is_locked_by_a_file_in_it(tmp_path, mon
 
     monkeypatch.setattr(fcntl, "flock", nfs_flock)
     other = "import fcntl, os, sys; fcntl.lockf(os.open(sys.argv[1], os.O_RDWR), fcntl.LOCK_EX | fcntl.LOCK_NB)"
+    entered = threading.Event()
+
+    def second() -> None:
+        with folder_locked(tmp_path):
+            entered.set()
+
     with folder_locked(tmp_path):
         held = subprocess.run([sys.executable, "-c", other, str(tmp_path / LOCK_FILE)], capture_output=True, text=True)
+        thread = threading.Thread(target=second)
+        thread.start()
+        assert not entered.wait(0.2)  # (another thread of this process waits too: a record lock is the process's)
+    thread.join(10)
+    assert entered.is_set()
     assert held.returncode != 0 and "BlockingIOError" in held.stderr  # (held while in the block)
     assert subprocess.run([sys.executable, "-c", other, str(tmp_path / LOCK_FILE)]).returncode == 0  # (then free)
     files = write_sequence(make_scenario("light_switch", 2, 32, 24), tmp_path / "seq")
