@@ -14,6 +14,7 @@ their heavy imports.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import secrets
@@ -87,8 +88,9 @@ def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
                 try:
                     msvcrt.locking(f.fileno(), msvcrt.LK_LOCK, 1)  # type: ignore[attr-defined]
                     break
-                except OSError:  # (LK_LOCK tries for 10 s, then raises)
-                    continue
+                except OSError as exc:  # (LK_LOCK tries for 10 s, then raises EDEADLOCK: held; another error is)
+                    if exc.errno not in (errno.EDEADLOCK, errno.EACCES):
+                        raise
             try:
                 yield
             finally:

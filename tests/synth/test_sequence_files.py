@@ -395,6 +395,29 @@ def test_a_folder_that_cannot_be_flocked_is_locked_by_a_file_in_it(tmp_path, mon
     assert load_ground_truth(files.ground_truth).num_frames == 2
 
 
+def test_a_lock_file_that_cannot_be_locked_on_windows_says_so(tmp_path, monkeypatch):
+    """Where there is no fcntl, msvcrt's LK_LOCK raises EDEADLOCK after 10 s of waiting and is asked again; any
+    other error (a bad descriptor, a share without locks) was asked again too, for ever: now it is raised."""
+    import errno
+    import sys
+    import types
+
+    from torchface._atomic import folder_locked
+
+    calls = []
+
+    def locking(fd, mode, n):
+        calls.append(mode)
+        if len(calls) == 1:
+            raise OSError(errno.EBADF, "Bad file descriptor")
+
+    monkeypatch.setitem(sys.modules, "fcntl", None)  # (import fcntl: ImportError)
+    monkeypatch.setitem(sys.modules, "msvcrt", types.SimpleNamespace(LK_LOCK=1, LK_UNLCK=0, locking=locking))
+    with pytest.raises(OSError, match="Bad file descriptor"), folder_locked(tmp_path):
+        pass
+    assert calls == [1]
+
+
 def test_two_writers_of_one_ground_truth_each_write_their_own(tmp_path, monkeypatch):
     """save_ground_truth's temporary ``.gt.npz.partial.npz`` was every writer's: another writer's save between this
     one's write and rename took this one's file (its rename: FileNotFoundError); another writer failing partway left
