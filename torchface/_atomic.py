@@ -14,9 +14,11 @@ their heavy imports.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import secrets
+import threading
 from collections.abc import Collection, Iterator
 from pathlib import Path
 
@@ -55,14 +57,22 @@ def written_whole(path: str | os.PathLike[str]) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+LOCK_FILE = ".torchface-lock"
+"""The file :func:`folder_locked` locks where the folder itself cannot be locked (left in the folder)."""
+_RECORD_LOCKS = threading.Lock()  # (held by the thread of this process that holds a LOCK_FILE's record lock)
+
+
 @contextlib.contextmanager
 def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
     """Hold an exclusive lock on ``folder`` (an existing folder) for the block: a second process asking for it waits
     until the first's block ends, so that the files one writer puts in place together (write_sequence's video and
     ground truth) are never interleaved with another writer's. On POSIX the lock is ``flock`` on the folder itself:
     nothing is written in it, and the system releases it when its process ends however it ends (``kill -9``). Where
-    there is no ``fcntl`` (Windows), a file ``.torchface-lock`` in the folder is locked (``msvcrt``) and left there.
-    Advisory: it orders only the writers that ask for it.
+    the folder cannot be locked so (NFS, whose ``flock`` is a record lock that wants a file open for writing: EBADF
+    on a folder; a folder that cannot be opened for reading; a file system without ``flock``), and where there is no
+    ``fcntl`` (Windows), a file :data:`LOCK_FILE` in the folder is locked instead (``lockf``, ``msvcrt``) and left
+    there. Advisory: it orders only the writers that ask for it; the threads of one process are ordered too. Not
+    re-entrant: a block that asks again for a folder it holds waits for itself.
 
     Example:
         >>> # with folder_locked(out): os.replace(tmp_video, video); os.replace(tmp_truth, truth)
@@ -72,23 +82,41 @@ def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
     except ImportError:  # (Windows)
         import msvcrt
 
-        with open(os.path.join(folder, ".torchface-lock"), "a+b") as f:
+        with open(os.path.join(folder, LOCK_FILE), "a+b") as f:
             f.seek(0)  # (the byte locked: the first; append mode opened it at its end)
             while True:
                 try:
                     msvcrt.locking(f.fileno(), msvcrt.LK_LOCK, 1)  # type: ignore[attr-defined]
                     break
-                except OSError:  # (LK_LOCK tries for 10 s, then raises)
-                    continue
+                except OSError as exc:  # (LK_LOCK tries for 10 s, then raises EDEADLOCK: held; another error is)
+                    if exc.errno not in (errno.EDEADLOCK, errno.EACCES):
+                        raise
             try:
                 yield
             finally:
                 f.seek(0)
                 msvcrt.locking(f.fileno(), msvcrt.LK_UNLCK, 1)  # type: ignore[attr-defined]
         return
-    fd = os.open(folder, os.O_RDONLY)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # (a folder without read permission: a lock file in it, which needs only write permission)
+        fd = None
+    if fd is not None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:  # (NFS: EBADF, a record lock wants a file open for writing; ENOLCK, EOPNOTSUPP elsewhere)
+            os.close(fd)
+            fd = None
+    if fd is None:  # (the folder itself cannot be locked: a record lock on a file in it, as NFS's lock manager holds)
+        with _RECORD_LOCKS:  # (a record lock is its process's: every thread of it would hold it at once)
+            fd = os.open(os.path.join(folder, LOCK_FILE), os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fcntl.lockf(fd, fcntl.LOCK_EX)
+                yield
+            finally:
+                os.close(fd)  # (releases the lock)
+        return
+    try:
         yield
     finally:
         os.close(fd)  # (releases the lock)

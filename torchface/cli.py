@@ -271,10 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     track.add_argument(
         "--keep-expression", action="store_true",
-        help="write the normalised face with the expression kept: resampled at the person's neutral (the one "
-        "the CSV's AUxx_r are measured from) instead of each row's expression, pose and light undone (for expression classifiers; "
-        "training_hooks' FaceTrackingConfig(keep_expression=True)); the sidecar's config.keep_expression says it "
-        "(default: off, the neutral face)",
+        help="write the normalised face with the expression kept: each frame resampled at the person's neutral "
+        "expression (the one the CSV's AUxx_r are measured from) instead of its row's, so that the expression shows; "
+        "pose and light undone as without it (for expression classifiers; training_hooks' "
+        "FaceTrackingConfig(keep_expression=True)); the sidecar's config.keep_expression says it (default: off, the "
+        "face at its neutral expression)",
     )  # fmt: skip
     track.add_argument(
         "--keep-going", action="store_true",

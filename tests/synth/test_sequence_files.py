@@ -358,6 +358,66 @@ def test_two_writers_finishing_together_leave_one_writers_video_and_ground_truth
     assert sorted(p.name for p in folder.iterdir()) == [f"light_switch{s}" for s in (".avi", ".gt.json", ".gt.npz")]
 
 
+@pytest.mark.skipif(os.name != "posix", reason="fcntl")
+def test_a_folder_that_cannot_be_flocked_is_locked_by_a_file_in_it(tmp_path, monkeypatch):
+    """NFS's flock is a record lock, which wants a file open for writing: on a folder it is EBADF (and a folder
+    without read permission cannot be opened): folder_locked raised, and write_sequence into such a folder failed.
+    Now it locks a file in the folder, and another process, or another thread of this one, waits for it."""
+    import errno
+    import fcntl
+    import subprocess
+    import sys
+    import threading
+
+    from torchface._atomic import LOCK_FILE, folder_locked
+
+    def nfs_flock(fd, op):
+        raise OSError(errno.EBADF, "Bad file descriptor")
+
+    monkeypatch.setattr(fcntl, "flock", nfs_flock)
+    other = "import fcntl, os, sys; fcntl.lockf(os.open(sys.argv[1], os.O_RDWR), fcntl.LOCK_EX | fcntl.LOCK_NB)"
+    entered = threading.Event()
+
+    def second() -> None:
+        with folder_locked(tmp_path):
+            entered.set()
+
+    with folder_locked(tmp_path):
+        held = subprocess.run([sys.executable, "-c", other, str(tmp_path / LOCK_FILE)], capture_output=True, text=True)
+        thread = threading.Thread(target=second)
+        thread.start()
+        assert not entered.wait(0.2)  # (another thread of this process waits too: a record lock is the process's)
+    thread.join(10)
+    assert entered.is_set()
+    assert held.returncode != 0 and "BlockingIOError" in held.stderr  # (held while in the block)
+    assert subprocess.run([sys.executable, "-c", other, str(tmp_path / LOCK_FILE)]).returncode == 0  # (then free)
+    files = write_sequence(make_scenario("light_switch", 2, 32, 24), tmp_path / "seq")
+    assert load_ground_truth(files.ground_truth).num_frames == 2
+
+
+def test_a_lock_file_that_cannot_be_locked_on_windows_says_so(tmp_path, monkeypatch):
+    """Where there is no fcntl, msvcrt's LK_LOCK raises EDEADLOCK after 10 s of waiting and is asked again; any
+    other error (a bad descriptor, a share without locks) was asked again too, for ever: now it is raised."""
+    import errno
+    import sys
+    import types
+
+    from torchface._atomic import folder_locked
+
+    calls = []
+
+    def locking(fd, mode, n):
+        calls.append(mode)
+        if len(calls) == 1:
+            raise OSError(errno.EBADF, "Bad file descriptor")
+
+    monkeypatch.setitem(sys.modules, "fcntl", None)  # (import fcntl: ImportError)
+    monkeypatch.setitem(sys.modules, "msvcrt", types.SimpleNamespace(LK_LOCK=1, LK_UNLCK=0, locking=locking))
+    with pytest.raises(OSError, match="Bad file descriptor"), folder_locked(tmp_path):
+        pass
+    assert calls == [1]
+
+
 def test_two_writers_of_one_ground_truth_each_write_their_own(tmp_path, monkeypatch):
     """save_ground_truth's temporary ``.gt.npz.partial.npz`` was every writer's: another writer's save between this
     one's write and rename took this one's file (its rename: FileNotFoundError); another writer failing partway left
