@@ -893,7 +893,14 @@ class VideoDataset(IterableDataset):
     def _named_short(self, short: list[int]) -> str:
         """``short`` videos (all shorter than ``clip_length``) with their frame counts, for a message."""
         frames = self._frames[1:]
-        said = ", ".join(f"{self.videos[i]} ({int(frames[i])} frames)" for i in short[:3])
+
+        def counted(i: int) -> str:
+            # (with a detector the frames are those from its first face: "3 frames" of a 10-frame video read wrong)
+            start = int(self._found_at[i, 0]) if self._found_at.shape[0] else 0
+            late = f" from frame {start}, the detector's first with a face" if start > 0 else ""
+            return f"{self.videos[i]} ({int(frames[i])} frames{late})"
+
+        said = ", ".join(counted(i) for i in short[:3])
         more = f" and {len(short) - 3} more" if len(short) > 3 else ""
         n, total = len(short), len(self.videos)
         if n == total == 1:

@@ -1328,3 +1328,22 @@ def test_videos_shorter_than_clip_length_are_named_once_and_a_dataset_of_none_el
         list(DataLoader(none, batch_size=None, num_workers=1, multiprocessing_context="fork"))
     with pytest.warns(ShortVideoWarning, match="all 2 videos are shorter"):  # counting says so, and does not raise
         assert VideoDataset(videos, landmarks, none.config).count_items() == [0, 0]
+
+
+def test_a_short_video_found_by_a_detector_is_named_with_the_frame_its_face_appears_in(clips, config, tmp_path):
+    """With a detector a video's frames are counted from its first face: a 9-frame video whose face appears at frame
+    3 was named "(6 frames)" against clip_length=7, a count the user could not match to the file. The frame the
+    count starts at is said (from a video file and from a folder of frames, counted without tracking)."""
+    from training_hooks import ShortVideoWarning
+
+    video, folder = _black_first(clips[0], tmp_path, 3)
+    cfg = replace(config, cache_dir=None, clip_length=FRAMES + 1)
+    for data in (VideoDataset([video], _FaceWhereShown(clips[0].landmarks, tmp_path / "calls.txt"), cfg),
+                 FrameFolderDataset([folder], _FaceWhereShown(clips[0].landmarks, tmp_path / "calls.txt"), cfg)):
+        with pytest.warns(ShortVideoWarning) as caught:
+            assert data.count_items() == [0]
+        assert [str(w.message) for w in caught] == [
+            f"{type(data).__name__}: its only video is shorter than clip_length and gives no clip: {data.videos[0]} "
+            f"({FRAMES} frames from frame 3, the detector's first with a face) (DatasetConfig.clip_length={FRAMES + 1})"
+            ": left out. DatasetConfig(keep_short_clips=True) yields each as one shorter clip (collate_clips pads them)"
+        ]
