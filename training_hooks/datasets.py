@@ -89,7 +89,10 @@ memory as it is counted (:meth:`VideoDataset.num_items`) or tracked, and the pro
 count of its rank's videos) warns once per dataset (:class:`ShortVideoWarning`) of how many were too short, which,
 and their frames. Where none of the dataset's videos gives a clip (all too short, or skipped), the dataset yields
 nothing and a loop over it would take no step without a word: the end of the epoch's pass raises a ``ValueError``
-naming the videos and the way out, each epoch (:meth:`~VideoDataset.count_items` only warns).
+naming the videos and the way out, each epoch (:meth:`~VideoDataset.count_items` only warns). Under DDP a rank
+none of whose own videos gives a clip counts the other ranks' videos (until one gives a clip), so that the error
+comes on every rank there too. With a detector a video's frames are those from its first face (the message says
+which frame). A pass cut short says nothing (a later whole pass, or :meth:`~VideoDataset.count_items`, does).
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -920,6 +923,8 @@ class VideoDataset(IterableDataset):
             return
         frames = self._frames[1:]
         if final:
+            if world > 1:
+                self._count_others(rank, world)
             error = self._no_clip_error()
             if error is not None:
                 raise error
@@ -937,6 +942,26 @@ class VideoDataset(IterableDataset):
             ShortVideoWarning,
             stacklevel=3,
         )
+
+    def _count_others(self, rank: int, world: int) -> None:
+        """Under DDP a rank knows its own videos' frame counts (``i % world == rank``), and the others' only where it
+        counted them (:attr:`DatasetConfig.rank_balance` ``PAD`` / ``DROP``; ``UNEVEN`` counts none): where none of
+        its own gives a clip, count the others (:meth:`num_items`, each once: the counts are kept) until one does,
+        so that a dataset with no clip at all is :meth:`_no_clip_error` on every rank, as in one process. A video
+        that cannot be counted stops the search (its own rank says why)."""
+        frames, length = self._frames[1:], self.config.clip_length
+        own = frames[rank::world]
+        if bool((own == -1).any()) or bool((frames >= length).any()):  # type: ignore[operator]
+            return  # (not every own count known yet, or a clip known)
+        for i in range(len(self.videos)):
+            if int(frames[i]) != -1:
+                continue
+            try:
+                self.num_items(i)
+            except (InputError, OSError):
+                return
+            if int(frames[i]) >= length:  # type: ignore[operator]
+                return
 
     def _balanced_count(self, worker_id: int, num_workers: int, world_size: int) -> int | None:
         """Items every rank's worker ``worker_id`` yields under :attr:`DatasetConfig.rank_balance`; None when the
