@@ -465,8 +465,17 @@ def _check_exists(path: Path) -> None:
     """Refuse a video or folder that is not there by saying so (a mistyped path was told "VideoDataset takes video
     files or .npy arrays (use FrameFolderDataset for folders)", or the other way round)."""
     if not path.exists():
-        link = " (a symbolic link to a missing target)" if path.is_symlink() else ""
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(path)
         raise InputError(f"{path}: no such file or folder{link}")
+
+
+def _tilde(path: Path) -> str:
+    """A hint for a missing ``path`` one of whose parts starts with ``~`` (the paths are made absolute against the
+    working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was
+    ``<working folder>/~/a.avi``); "" otherwise."""
+    if not any(part.startswith("~") for part in path.parts):
+        return ""
+    return " ('~' is not expanded here: os.path.expanduser(path) names the home folder)"
 
 
 def _as_numpy(points: Tensor) -> np.ndarray:
@@ -492,7 +501,7 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():  # (read_landmarks' words)
-            problem = "a folder, not a landmarks file" if path.is_dir() else "no such landmarks file"
+            problem = "a folder, not a landmarks file" if path.is_dir() else f"no such landmarks file{_tilde(path)}"
             raise InputError(f"{where}: {path}: {problem}")
         return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):

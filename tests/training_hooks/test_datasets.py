@@ -470,6 +470,12 @@ def test_bad_arguments(clips, tmp_path):
     (tmp_path / "gone.avi").symlink_to(tmp_path / "moved.avi")
     with pytest.raises(InputError, match=r"gone\.avi: no such file or folder \(a symbolic link to a missing target\)"):
         VideoDataset([tmp_path / "gone.avi"], [lm])
+    # "~" is not expanded (made absolute against the working folder): the message says so, for a landmarks file too
+    tilde = r" \('~' is not expanded here: os\.path\.expanduser\(path\) names the home folder\)$"
+    with pytest.raises(InputError, match=r"/~/no_such_r3\.avi: no such file or folder" + tilde):
+        VideoDataset(["~/no_such_r3.avi"], [lm])
+    with pytest.raises(InputError, match=r"landmarks: ~/no_such_r3\.csv: no such landmarks file" + tilde):
+        VideoDataset([video], ["~/no_such_r3.csv"])
     with pytest.raises(ValueError, match="empty"):
         VideoDataset([], [])
     with pytest.raises(ValueError, match="clip_stride needs clip_length"):
