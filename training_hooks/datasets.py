@@ -87,7 +87,8 @@ leaves out a video shorter than ``clip_length`` (it gives no clip). Each video's
 memory as it is counted (:meth:`VideoDataset.num_items`) or tracked, and the process that first knows every count
 (:meth:`VideoDataset.count_items`, or the ``DataLoader`` worker that ends an epoch's pass last; under DDP, every
 count of its rank's videos) warns once per dataset (:class:`ShortVideoWarning`) of how many were too short, which,
-and their frames. Where none of the dataset's videos gives a clip (all too short, or skipped), the dataset yields
+and their frames. Where none of the dataset's videos gives a clip (too short, or skipped, at least one too
+short: a dataset all of whose videos were skipped has its :class:`SkippedVideoWarning` alone), the dataset yields
 nothing and a loop over it would take no step without a word: the end of the epoch's pass raises a ``ValueError``
 naming the videos and the way out, each epoch (:meth:`~VideoDataset.count_items` only warns). Under DDP a rank
 none of whose own videos gives a clip counts the other ranks' videos (until one gives a clip), so that the error
