@@ -142,7 +142,7 @@ from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
 from torchface.model.face_model import FaceModel
-from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
+from training_hooks.cache import CacheStats, TrackCache, _check_no_tilde, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
 
 __all__ = [
@@ -385,7 +385,8 @@ class DatasetConfig:
             absolute ``Path``: a relative one is taken against the working folder when the config is made
             (``Path.absolute()``: symbolic links are kept as named), so a later ``os.chdir``, or a ``DataLoader``
             worker in another folder, uses the same cache. None tracks every epoch. An empty string is refused
-            (``Path("")`` is the working folder: say ``"."`` for it).
+            (``Path("")`` is the working folder: say ``"."`` for it), and so is one starting with ``~`` (not
+            expanded: it named a folder ``~`` in the working folder; give ``os.path.expanduser(...)``).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
@@ -439,6 +440,7 @@ class DatasetConfig:
             if isinstance(self.cache_dir, str) and not self.cache_dir:  # (Path("") is ".": the cache went there)
                 raise ValueError('cache_dir is empty (the working folder): give a folder, or None for no cache ("." '
                                  "for the working folder)")  # fmt: skip
+            _check_no_tilde(self.cache_dir, "cache_dir")  # ("~/cache" was a folder "~" in the working folder)
             # (absolute now: a relative one was taken against the working folder when the cache was first used, so a
             # dataset iterated after an os.chdir, or in a worker that had changed folder, filled a cache elsewhere)
             object.__setattr__(self, "cache_dir", Path(self.cache_dir).absolute())

@@ -1214,6 +1214,9 @@ def test_relative_paths_are_the_files_they_named_when_the_dataset_was_made(clips
     assert config.cache_dir == tmp_path / "cache" and config.cache_dir.is_absolute()
     assert DatasetConfig(cache_dir=Path("a/../b")).cache_dir == tmp_path / "a/../b"  # (as named: no symlink resolved)
     assert DatasetConfig(cache_dir=".").cache_dir == tmp_path
+    with pytest.raises(ValueError, match=r"^cache_dir '~/cache' starts with '~', which is not expanded .*expanduser"):
+        DatasetConfig(cache_dir="~/cache")  # (was a folder "~" in the working folder, without a word)
+    assert not (tmp_path / "~").exists()
     (tmp_path / "a.avi").write_bytes(clips[0].video.read_bytes())
     np.save(tmp_path / "a.npy", clips[0].landmarks)
     data = VideoDataset(["a.avi"], ["a.npy"], config)
