@@ -271,6 +271,20 @@ class CacheStats:
     writes: int = 0
 
 
+def _check_no_tilde(folder: str | os.PathLike[str], name: str) -> None:
+    """Refuse a relative cache folder that starts with ``~`` (``"~/cache"``): it is not expanded (by ``pathlib``, as
+    by a shell), so the cache went, without a word, to a folder named ``~`` in the working folder.
+
+    Raises:
+        ValueError: ``folder`` starts with ``~``, naming ``os.path.expanduser``."""
+    parts = Path(folder).parts
+    if parts and parts[0].startswith("~"):
+        raise ValueError(
+            f"{name} {os.fspath(folder)!r} starts with '~', which is not expanded (it named a folder '{parts[0]}' in "
+            f"the working folder): give os.path.expanduser({os.fspath(folder)!r})"
+        )
+
+
 class TrackCache:
     """A folder of tracked sequences keyed by :func:`cache_key` (module docstring).
 
@@ -282,7 +296,7 @@ class TrackCache:
 
     Raises:
         TypeError: ``root`` is not a ``str`` or path-like.
-        ValueError: ``root`` is an empty string.
+        ValueError: ``root`` is an empty string, or starts with ``~`` (not expanded: ``os.path.expanduser``).
 
     Example:
         >>> # cache = TrackCache("cache"); seq = cache.load(key) or track(...); cache.store(key, seq)
@@ -293,6 +307,7 @@ class TrackCache:
             raise TypeError(f"root must be a folder (a str or path-like), got {type(root).__name__}")
         if isinstance(root, str) and not root:  # (Path("") is ".": the cache filled the working folder unasked)
             raise ValueError('root is empty (the working folder): give a folder ("." for the working folder)')
+        _check_no_tilde(root, "root")
         self.root = Path(root).absolute()
         self.stats = CacheStats()
         self._swept = False

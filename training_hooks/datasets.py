@@ -87,9 +87,13 @@ leaves out a video shorter than ``clip_length`` (it gives no clip). Each video's
 memory as it is counted (:meth:`VideoDataset.num_items`) or tracked, and the process that first knows every count
 (:meth:`VideoDataset.count_items`, or the ``DataLoader`` worker that ends an epoch's pass last; under DDP, every
 count of its rank's videos) warns once per dataset (:class:`ShortVideoWarning`) of how many were too short, which,
-and their frames. Where none of the dataset's videos gives a clip (all too short, or skipped), the dataset yields
+and their frames. Where none of the dataset's videos gives a clip (too short, or skipped, at least one too
+short: a dataset all of whose videos were skipped has its :class:`SkippedVideoWarning` alone), the dataset yields
 nothing and a loop over it would take no step without a word: the end of the epoch's pass raises a ``ValueError``
-naming the videos and the way out, each epoch (:meth:`~VideoDataset.count_items` only warns).
+naming the videos and the way out, each epoch (:meth:`~VideoDataset.count_items` only warns). Under DDP a rank
+none of whose own videos gives a clip counts the other ranks' videos (until one gives a clip), so that the error
+comes on every rank there too. With a detector a video's frames are those from its first face (the message says
+which frame). A pass cut short says nothing (a later whole pass, or :meth:`~VideoDataset.count_items`, does).
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -138,7 +142,7 @@ from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
 from torchface.model.face_model import FaceModel
-from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
+from training_hooks.cache import CacheStats, TrackCache, _check_no_tilde, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
 
 __all__ = [
@@ -381,7 +385,8 @@ class DatasetConfig:
             absolute ``Path``: a relative one is taken against the working folder when the config is made
             (``Path.absolute()``: symbolic links are kept as named), so a later ``os.chdir``, or a ``DataLoader``
             worker in another folder, uses the same cache. None tracks every epoch. An empty string is refused
-            (``Path("")`` is the working folder: say ``"."`` for it).
+            (``Path("")`` is the working folder: say ``"."`` for it), and so is one starting with ``~`` (not
+            expanded: it named a folder ``~`` in the working folder; give ``os.path.expanduser(...)``).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
@@ -435,6 +440,7 @@ class DatasetConfig:
             if isinstance(self.cache_dir, str) and not self.cache_dir:  # (Path("") is ".": the cache went there)
                 raise ValueError('cache_dir is empty (the working folder): give a folder, or None for no cache ("." '
                                  "for the working folder)")  # fmt: skip
+            _check_no_tilde(self.cache_dir, "cache_dir")  # ("~/cache" was a folder "~" in the working folder)
             # (absolute now: a relative one was taken against the working folder when the cache was first used, so a
             # dataset iterated after an os.chdir, or in a worker that had changed folder, filled a cache elsewhere)
             object.__setattr__(self, "cache_dir", Path(self.cache_dir).absolute())
@@ -462,8 +468,17 @@ def _check_exists(path: Path) -> None:
     """Refuse a video or folder that is not there by saying so (a mistyped path was told "VideoDataset takes video
     files or .npy arrays (use FrameFolderDataset for folders)", or the other way round)."""
     if not path.exists():
-        link = " (a symbolic link to a missing target)" if path.is_symlink() else ""
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(path)
         raise InputError(f"{path}: no such file or folder{link}")
+
+
+def _tilde(path: Path) -> str:
+    """A hint for a missing ``path`` one of whose parts starts with ``~`` (the paths are made absolute against the
+    working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was
+    ``<working folder>/~/a.avi``); "" otherwise."""
+    if not any(part.startswith("~") for part in path.parts):
+        return ""
+    return " ('~' is not expanded here: os.path.expanduser(path) names the home folder)"
 
 
 def _as_numpy(points: Tensor) -> np.ndarray:
@@ -489,7 +504,7 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():  # (read_landmarks' words)
-            problem = "a folder, not a landmarks file" if path.is_dir() else "no such landmarks file"
+            problem = "a folder, not a landmarks file" if path.is_dir() else f"no such landmarks file{_tilde(path)}"
             raise InputError(f"{where}: {path}: {problem}")
         return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):
@@ -893,7 +908,14 @@ class VideoDataset(IterableDataset):
     def _named_short(self, short: list[int]) -> str:
         """``short`` videos (all shorter than ``clip_length``) with their frame counts, for a message."""
         frames = self._frames[1:]
-        said = ", ".join(f"{self.videos[i]} ({int(frames[i])} frames)" for i in short[:3])
+
+        def counted(i: int) -> str:
+            # (with a detector the frames are those from its first face: "3 frames" of a 10-frame video read wrong)
+            start = int(self._found_at[i, 0]) if self._found_at.shape[0] else 0
+            late = f" from frame {start}, the detector's first with a face" if start > 0 else ""
+            return f"{self.videos[i]} ({int(frames[i])} frames{late})"
+
+        said = ", ".join(counted(i) for i in short[:3])
         more = f" and {len(short) - 3} more" if len(short) > 3 else ""
         n, total = len(short), len(self.videos)
         if n == total == 1:
@@ -913,6 +935,8 @@ class VideoDataset(IterableDataset):
             return
         frames = self._frames[1:]
         if final:
+            if world > 1:
+                self._count_others(rank, world)
             error = self._no_clip_error()
             if error is not None:
                 raise error
@@ -930,6 +954,26 @@ class VideoDataset(IterableDataset):
             ShortVideoWarning,
             stacklevel=3,
         )
+
+    def _count_others(self, rank: int, world: int) -> None:
+        """Under DDP a rank knows its own videos' frame counts (``i % world == rank``), and the others' only where it
+        counted them (:attr:`DatasetConfig.rank_balance` ``PAD`` / ``DROP``; ``UNEVEN`` counts none): where none of
+        its own gives a clip, count the others (:meth:`num_items`, each once: the counts are kept) until one does,
+        so that a dataset with no clip at all is :meth:`_no_clip_error` on every rank, as in one process. A video
+        that cannot be counted stops the search (its own rank says why)."""
+        frames, length = self._frames[1:], self.config.clip_length
+        own = frames[rank::world]
+        if bool((own == -1).any()) or bool((frames >= length).any()):  # type: ignore[operator]
+            return  # (not every own count known yet, or a clip known)
+        for i in range(len(self.videos)):
+            if int(frames[i]) != -1:
+                continue
+            try:
+                self.num_items(i)
+            except (InputError, OSError):
+                return
+            if int(frames[i]) >= length:  # type: ignore[operator]
+                return
 
     def _balanced_count(self, worker_id: int, num_workers: int, world_size: int) -> int | None:
         """Items every rank's worker ``worker_id`` yields under :attr:`DatasetConfig.rank_balance`; None when the

@@ -85,6 +85,9 @@ def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_m
     # one frame as torchface.io.open_frames yields it, (3, H, W) float: told the conversion, detector_image
     with pytest.raises(TypeError, match=r"\(3, 12, 16\).*torchface.detect.detector_image\(frame\)"):
         detect(torch.zeros(3, 12, 16))
+    last = r"\(12, 16, 3\).*an \(H, W, 3\) uint8 tensor as that image: image\.cpu\(\)\.numpy\(\)$"
+    with pytest.raises(TypeError, match=last):  # (channels last already: detector_image would misread it)
+        detect(torch.zeros(12, 16, 3, dtype=torch.uint8))
     with pytest.raises(ValueError, match=r"channels first\? image.transpose\(1, 2, 0\)"):
         detect(np.zeros((3, 12, 16), np.uint8))
     with pytest.raises(ValueError, match=r"floats in \[0, 1\]\? \(image \* 255\).round\(\).astype\(np.uint8\)"):

@@ -467,3 +467,5 @@ def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkey
     with pytest.raises(TypeError, match=r"^root must be a folder \(a str or path-like\), got NoneType$"):
         TrackCache(None)  # type: ignore[arg-type]
     assert TrackCache(".").root == tmp_path / "elsewhere"
+    with pytest.raises(ValueError, match=r"^root '~user/c' starts with '~', which is not expanded .*'~user'"):
+        TrackCache(Path("~user/c"))

@@ -470,6 +470,12 @@ def test_bad_arguments(clips, tmp_path):
     (tmp_path / "gone.avi").symlink_to(tmp_path / "moved.avi")
     with pytest.raises(InputError, match=r"gone\.avi: no such file or folder \(a symbolic link to a missing target\)"):
         VideoDataset([tmp_path / "gone.avi"], [lm])
+    # "~" is not expanded (made absolute against the working folder): the message says so, for a landmarks file too
+    tilde = r" \('~' is not expanded here: os\.path\.expanduser\(path\) names the home folder\)$"
+    with pytest.raises(InputError, match=r"/~/no_such_r3\.avi: no such file or folder" + tilde):
+        VideoDataset(["~/no_such_r3.avi"], [lm])
+    with pytest.raises(InputError, match=r"landmarks: ~/no_such_r3\.csv: no such landmarks file" + tilde):
+        VideoDataset([video], ["~/no_such_r3.csv"])
     with pytest.raises(ValueError, match="empty"):
         VideoDataset([], [])
     with pytest.raises(ValueError, match="clip_stride needs clip_length"):
@@ -1208,6 +1214,9 @@ def test_relative_paths_are_the_files_they_named_when_the_dataset_was_made(clips
     assert config.cache_dir == tmp_path / "cache" and config.cache_dir.is_absolute()
     assert DatasetConfig(cache_dir=Path("a/../b")).cache_dir == tmp_path / "a/../b"  # (as named: no symlink resolved)
     assert DatasetConfig(cache_dir=".").cache_dir == tmp_path
+    with pytest.raises(ValueError, match=r"^cache_dir '~/cache' starts with '~', which is not expanded .*expanduser"):
+        DatasetConfig(cache_dir="~/cache")  # (was a folder "~" in the working folder, without a word)
+    assert not (tmp_path / "~").exists()
     (tmp_path / "a.avi").write_bytes(clips[0].video.read_bytes())
     np.save(tmp_path / "a.npy", clips[0].landmarks)
     data = VideoDataset(["a.avi"], ["a.npy"], config)
@@ -1328,3 +1337,22 @@ def test_videos_shorter_than_clip_length_are_named_once_and_a_dataset_of_none_el
         list(DataLoader(none, batch_size=None, num_workers=1, multiprocessing_context="fork"))
     with pytest.warns(ShortVideoWarning, match="all 2 videos are shorter"):  # counting says so, and does not raise
         assert VideoDataset(videos, landmarks, none.config).count_items() == [0, 0]
+
+
+def test_a_short_video_found_by_a_detector_is_named_with_the_frame_its_face_appears_in(clips, config, tmp_path):
+    """With a detector a video's frames are counted from its first face: a 9-frame video whose face appears at frame
+    3 was named "(6 frames)" against clip_length=7, a count the user could not match to the file. The frame the
+    count starts at is said (from a video file and from a folder of frames, counted without tracking)."""
+    from training_hooks import ShortVideoWarning
+
+    video, folder = _black_first(clips[0], tmp_path, 3)
+    cfg = replace(config, cache_dir=None, clip_length=FRAMES + 1)
+    for data in (VideoDataset([video], _FaceWhereShown(clips[0].landmarks, tmp_path / "calls.txt"), cfg),
+                 FrameFolderDataset([folder], _FaceWhereShown(clips[0].landmarks, tmp_path / "calls.txt"), cfg)):
+        with pytest.warns(ShortVideoWarning) as caught:
+            assert data.count_items() == [0]
+        assert [str(w.message) for w in caught] == [
+            f"{type(data).__name__}: its only video is shorter than clip_length and gives no clip: {data.videos[0]} "
+            f"({FRAMES} frames from frame 3, the detector's first with a face) (DatasetConfig.clip_length={FRAMES + 1})"
+            ": left out. DatasetConfig(keep_short_clips=True) yields each as one shorter clip (collate_clips pads them)"
+        ]

@@ -627,3 +627,17 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
         "items are left out; the dataset's .skipped records it)"
     ]
     assert data.skipped == {3: f"{videos[3]}: cannot decode"} and data.count_items()[3] == 0
+
+
+def test_a_rank_of_uneven_ranks_finds_a_dataset_with_no_clip_at_all(uneven, config, monkeypatch):
+    """Under DDP with RankBalance.UNEVEN a rank knew only its own videos' frame counts: a dataset none of whose
+    videos gives a clip yielded nothing on every rank without a word (the ValueError of one process never came).
+    A rank whose own videos give no clip counts the others' (until one gives a clip): the error where none does,
+    nothing where another rank's video has a clip."""
+    videos, landmarks = uneven
+    cfg = replace(config, rank_balance=RankBalance.UNEVEN)
+    simulate(monkeypatch, 1, 2)  # rank 1: videos 1 and 3 (2 and 3 frames)
+    with pytest.raises(ValueError, match=r"^VideoDataset yields no item: all 5 videos are shorter than clip_length"):
+        list(VideoDataset(videos, landmarks, replace(cfg, clip_length=max(LENGTHS) + 1)))
+    with pytest.warns(ShortVideoWarning):  # (video 0, 6 frames, gives rank 0 a clip: rank 1 yields none, no error)
+        assert list(VideoDataset(videos, landmarks, replace(cfg, clip_length=max(LENGTHS)))) == []

@@ -94,10 +94,13 @@ def _check_image(image_rgb: np.ndarray) -> None:
         shape = tuple(image_rgb.shape)
         # (one frame as torchface.io.open_frames yields it, (3, H, W) float, was told only of the batched adapter)
         frame = "torchface.detect.detector_image(frame)" if len(shape) == 3 else "detector_image(frames[i])"
+        way = f"a (3, H, W) float frame in [0, 1] as that image: {frame}"
+        if len(shape) == 3 and shape[-1] == 3 and shape[0] != 3:  # (channels last already: detector_image misreads it)
+            way = "an (H, W, 3) uint8 tensor as that image: image.cpu().numpy()"
         raise TypeError(
             f"this detector takes one (H, W, 3) uint8 RGB image, got a tensor of shape {shape}: "
             "FaceTracker(detector=) and managed_step re-initialise with a batched detector, "
-            f"torchface.detect.batched(detector); a (3, H, W) float frame in [0, 1] as that image: {frame}"
+            f"torchface.detect.batched(detector); {way}"
         )
     ok = isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[2] == 3
     if not ok or image_rgb.dtype != np.uint8:
