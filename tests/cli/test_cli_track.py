@@ -1984,8 +1984,9 @@ def test_a_detected_face_mostly_outside_the_frame_is_a_failed_start_warned_about
         warnings.simplefilter("always")
         track_videos([short], JobConfig(out_dir=tmp_path / "out", detector="half", redetect_after=2))
     said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
-    assert len(said) == 1 and said[0].startswith("half: the start from the landmarks of frame 0 failed (OUTSIDE_FRAME): "
-                                                 "the fitted face, or its landmarks, lie mostly outside the frame"), said
+    assert len(said) == 1, said
+    assert said[0].startswith("half: the start from the landmarks of frame 0 failed (OUTSIDE_FRAME): the fitted face, "
+                              "or its landmarks, lie mostly outside the frame"), said
     assert "texture" not in said[0]  # (its reason alone: the warning listed every cause it could be)
     start = json.loads(output_paths(tmp_path / "out", "half")["json"].read_text())["start"]
     assert start["failure"]["name"] == "OUTSIDE_FRAME", start["failure"]
