@@ -516,6 +516,7 @@ def track_sequence(
             if size is None:
                 size = (int(frame.shape[-2]), int(frame.shape[-1]))
                 first_shape = (int(frame.shape[1]), *size)
+            neutral: Tensor | None = None  # (the neutral before this frame's step; None: the frame starts)
             if state is None:
                 intrinsics = Intrinsics.default(size[1], size[0], config.focal)
                 lm = landmarks.to(dtype=model.dtype, device=model.device).unsqueeze(0)
@@ -532,10 +533,15 @@ def track_sequence(
                 # Donated (templates written in place at a mosaic entry change) only where the state is this
                 # function's own: a caller's state, and those that share its template tensors, are left as
                 # they were (a second call from it was 1.5 degrees off the first on a 55-degree turn).
+                neutral = state.neutral_anim_coeffs(state.params[:, layout.animation]).clone()
                 state, result = managed_step(model, tracker, state, frame, donate=own_state)
             aa, trans, alpha, light = layout.split(state.params)
             if config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
-                alpha = state.neutral_anim_coeffs(alpha)
+                # that this frame's expression (its facs) is measured from: the neutral before the step. (The online
+                # start's re-anchoring, at the end of its frame's step, re-estimates the neutral after that frame's
+                # result was measured: its face was resampled at the new one, 1.05 off its labels, as
+                # torchface track --keep-expression's rows up to the re-anchoring frame keep the first fit's.)
+                alpha = state.neutral_anim_coeffs(alpha) if neutral is None else neutral.to(alpha)
             face = normaliser.from_params(frame, state.shape_coeffs, alpha, aa, trans, light, state.intrinsics)
             per_frame["faces"].append(encode_faces(face.image[0], config.face_storage))
             per_frame["masks"].append(face.mask[0] > 0.5)

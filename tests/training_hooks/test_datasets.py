@@ -36,6 +36,7 @@ from training_hooks import (
 from training_hooks.transforms import PER_FRAME_KEYS
 
 from th_data import FRAMES, TRACKING, sideways_clip
+from _helpers import lossless_scenario_clip  # noqa: E402  (the tests folder is on sys.path: th_data puts it there)
 
 
 def collect(dataset, num_workers: int, key=("video", "frame")) -> dict[tuple[int, ...], dict[str, torch.Tensor]]:
@@ -854,6 +855,38 @@ def test_keep_expression_resamples_at_the_persons_neutral(clips):
 
     torch.testing.assert_close(seq.faces[0], face(neutral))
     assert not torch.allclose(seq.faces[0], face(torch.zeros_like(neutral)))
+
+
+def test_keep_expression_resamples_each_frame_at_the_neutral_its_expression_is_measured_from(tmp_path):
+    """Where the online start re-anchors (the ``expressions`` clip at 160x120 turns past its yaw at frame 1), the
+    neutral is re-estimated at the end of that frame's step, after its result (``expression``, ``facs``) was
+    measured from the first fit's: that frame's face was resampled at the new neutral, 1.05 off its labels. Now
+    every frame's ``expression`` is its ``anim_coeffs`` minus the coefficients its face was resampled at, as
+    ``torchface track --keep-expression``'s rows are."""
+    from torchface.model.candide import load_candide3
+    from torchface.normalise import NormalisedFace
+    from training_hooks.transforms import FaceStorage, FaceTrackingConfig, track_sequence
+
+    video, lm = lossless_scenario_clip(tmp_path, "expressions", 6, 160, 120)
+    frames = torch.from_numpy(np.load(video)).permute(0, 3, 1, 2).float() / 255
+    model = load_candide3()
+    config = FaceTrackingConfig(keep_expression=True, face_storage=FaceStorage.FLOAT32)
+    normaliser = NormalisedFace(model, config.face_size, config.face_margin)
+    resampled: list[torch.Tensor] = []
+    original = NormalisedFace.from_params
+
+    def record(self, fr, shape, alpha, *args, **kwargs):
+        resampled.append(alpha.detach().double().clone())
+        return original(self, fr, shape, alpha, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(NormalisedFace, "from_params", record)
+        seq, _ = track_sequence(frames, torch.from_numpy(np.loadtxt(lm, delimiter=",", skiprows=1)), config, model,
+                                normaliser)  # fmt: skip
+    at = torch.cat(resampled)
+    moved = (at - at[0]).abs().amax(-1)
+    assert bool((moved[:2] == 0).all()) and bool((moved[2:] > 0.5).all()), moved  # re-anchored in frame 1's step
+    torch.testing.assert_close(seq.expression.double(), seq.anim_coeffs.double() - at, atol=1e-6, rtol=0)
 
 
 def test_transform_inside_autocast_equals_full_precision(clips):
