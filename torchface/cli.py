@@ -513,8 +513,8 @@ def _path(text: str) -> Path:
 
 
 def _int_at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse ``type``: an integer >= ``minimum`` (``--threads``, ``--max-batch``: 1; ``--restart-after-unmatched``:
-    0), else a one-line usage error."""
+    """An argparse ``type``: an integer >= ``minimum`` (``--threads``, ``--max-batch``: 1;
+    ``--restart-after-unmatched``: 0), else a one-line usage error."""
 
     def parse(text: str) -> int:
         try:

@@ -686,8 +686,9 @@ class _VideoOut:
             if count != self.frames:
                 with contextlib.suppress(OSError):  # (a folder gone read-only: the error says why, not this)
                     self.tmp.unlink(missing_ok=True)
-                raise OutputError(f"{self.path}: the video could not be written completely ({counted(self.frames, 'frame')} "
-                                  f"written, {max(count, 0)} read back; is the disk full?)")  # fmt: skip
+                raise OutputError(f"{self.path}: the video could not be written completely "
+                                  f"({counted(self.frames, 'frame')} written, {max(count, 0)} read back; is the disk "
+                                  "full?)")  # fmt: skip
             os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
@@ -2268,7 +2269,8 @@ def track_videos(
     if not inputs:
         raise InputError("no input video given")
     if config.landmarks and len(config.landmarks) != len(inputs):
-        raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, {counted(len(config.landmarks), 'file')}")
+        raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, "
+                         f"{counted(len(config.landmarks), 'file')}")
     model = _job_model(config)  # (checked before the detector is loaded and any input opened)
     detector = None
     if config.detector is not None:
@@ -2616,8 +2618,8 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
     were = "was" if s.not_met_again == 1 else "were"
     warnings.warn(
-        f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, tracked again from "
-        f"its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm (frame {at}), "
+        f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, "
+        f"tracked again from its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm (frame {at}), "
         f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
         f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
         RuntimeWarning, stacklevel=2,

@@ -185,8 +185,8 @@ class LayerResult:
         params: ``(B, P)`` the parameters the faces were resampled with (in the graph in ``UNROLLED`` mode).
         state: the detached tracker state after this frame (pass it with the next frame).
         track: the detached tracker's :class:`~torchface.tracker.TrackResult` of this frame (confidence,
-            status, pose, ... of the estimate carried in ``state``); of a clip (:meth:`NormalisedFaceLayer.forward_clip`),
-            the last frame's.
+            status, pose, ... of the estimate carried in ``state``); of a clip
+            (:meth:`NormalisedFaceLayer.forward_clip`), the last frame's.
         success: ``(B,)`` bool, ``track.success`` (the estimate is usable); of a clip ``(B, T)``, one per frame
             (frame 0: the initialisation's), to leave failed frames out of a loss (e.g. as the ``mask`` of
             :func:`~training_hooks.hooks.confidence_weighted_loss`).
@@ -446,7 +446,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
 
         Example:
             >>> out = layer.forward_clip(clips, landmarks)                       # doctest: +SKIP
-            >>> loss = confidence_weighted_loss(per_frame_loss, out.confidence, out.success)   # (B, T) each  # doctest: +SKIP
+            >>> loss = confidence_weighted_loss(per_frame_loss, out.confidence, out.success)  # doctest: +SKIP
         """
         if not isinstance(clips, Tensor):  # (a numpy clip was a ValueError, as a wrong shape; forward's a TypeError)
             raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
