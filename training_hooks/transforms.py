@@ -126,7 +126,9 @@ class FaceTrackingConfig:
             file moved keeps its sequences). Kept as an absolute ``Path``, as :attr:`DatasetConfig.cache_dir
             <training_hooks.datasets.DatasetConfig.cache_dir>` is: a relative one is taken against the working folder
             when the config is made, so a model loaded after an ``os.chdir`` (Lightning, Hydra) or in a
-            ``DataLoader`` worker is the file it named.
+            ``DataLoader`` worker is the file it named; one that starts with ``~`` is refused (not expanded: give
+            ``os.path.expanduser(path)``), as :attr:`DatasetConfig.cache_dir
+            <training_hooks.datasets.DatasetConfig.cache_dir>` refuses it.
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -146,6 +148,10 @@ class FaceTrackingConfig:
         if self.model is not None:  # (a relative one was read against the working folder when first loaded)
             if isinstance(self.model, str) and not self.model:  # (Path("") is the working folder)
                 raise ValueError("model is empty: give a face model file, or None for CANDIDE-3")
+            parts = Path(self.model).parts
+            if parts and parts[0].startswith("~"):  # (made absolute as <cwd>/~/...: "no such file" at the first load)
+                raise ValueError(f"model {os.fspath(self.model)!r} starts with '~', which is not expanded: give "
+                                 f"os.path.expanduser({os.fspath(self.model)!r})")  # fmt: skip
             object.__setattr__(self, "model", Path(self.model).absolute())
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
