@@ -143,7 +143,7 @@ from torch import Tensor
 
 from torchface import _checkpoint
 from torchface._device import check_device
-from torchface._words import counted
+from torchface._words import counted, plural
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
@@ -2344,10 +2344,10 @@ def _kept_outputs(out_dir: Path, names: Sequence[str]) -> str:
         if p["json"].is_file() and p["csv"].is_file() and not partial.exists():
             complete.append(name)
         elif n:  # (the file a resumed run goes on from, where both are there)
-            rows.append(f"{partial} ({n} row{'s' if n > 1 else ''})")
+            rows.append(f"{partial} ({counted(n, 'row')})")
         elif p["csv"].is_file() and recorded:
             n = _complete_rows(p["csv"])
-            rows.append(f"{p['csv']} (all {n} row{'s' if n > 1 else ''}, not finalised)")
+            rows.append(f"{p['csv']} (all {counted(n, 'row')}, not finalised)")
         else:
             none.append(name)
 
@@ -2616,11 +2616,11 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
         return
     big_mm, big_deg, big_conf, at, first_other = s.retrack_gap
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
-    were = "was" if s.not_met_again == 1 else "were"
+    were = plural(s.not_met_again, "was", "were")
     warnings.warn(
         f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, "
-        f"tracked again from its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm (frame {at}), "
-        f"{big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
+        f"tracked again from its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm "
+        f"(frame {at}), {big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
         f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
         RuntimeWarning, stacklevel=2,
     )  # fmt: skip
