@@ -2620,8 +2620,9 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
     warnings.warn(
         f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, "
         f"tracked again from its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm "
-        f"(frame {at}), {big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps its rows and "
-        f"the next ones go on from the frames tracked again (track the video without --resume for rows of one run)",
+        f"(frame {at}), {big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps "
+        "its rows and the next ones go on from the frames tracked again (track the video without --resume for rows of "
+        "one run)",
         RuntimeWarning, stacklevel=2,
     )  # fmt: skip
 
