@@ -61,7 +61,7 @@ import torchface
 from torchface.backend import Backend, native_available
 from torchface.extending import check_int
 from torchface.io.video import image_files
-from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
+from training_hooks.transforms import FaceTrackingConfig, TrackedSequence, _check_no_tilde
 
 if TYPE_CHECKING:  # (importlib.resources.abc: Python 3.11 on)
     from importlib.resources.abc import Traversable
@@ -269,20 +269,6 @@ class CacheStats:
     misses: int = 0
     corrupt: int = 0
     writes: int = 0
-
-
-def _check_no_tilde(folder: str | os.PathLike[str], name: str) -> None:
-    """Refuse a relative cache folder that starts with ``~`` (``"~/cache"``): it is not expanded (by ``pathlib``, as
-    by a shell), so the cache went, without a word, to a folder named ``~`` in the working folder.
-
-    Raises:
-        ValueError: ``folder`` starts with ``~``, naming ``os.path.expanduser``."""
-    parts = Path(folder).parts
-    if parts and parts[0].startswith("~"):
-        raise ValueError(
-            f"{name} {os.fspath(folder)!r} starts with '~', which is not expanded (it named a folder '{parts[0]}' in "
-            f"the working folder): give os.path.expanduser({os.fspath(folder)!r})"
-        )
 
 
 class TrackCache:

@@ -142,8 +142,8 @@ from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
 from torchface.model.face_model import FaceModel
-from training_hooks.cache import CacheStats, TrackCache, _check_no_tilde, cache_key, content_hash
-from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
+from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
+from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _check_no_tilde
 
 __all__ = [
     "DatasetConfig",

@@ -87,6 +87,21 @@ class FaceStorage(enum.Enum):
         return {"uint8": torch.uint8, "float16": torch.float16, "float32": torch.float32}[self.value]
 
 
+def _check_no_tilde(path: str | os.PathLike[str], name: str) -> None:
+    """Refuse a path that starts with ``~`` (``"~/cache"``, ``"~/m.npz"``): it is not expanded (by ``pathlib``, as
+    by a shell), so made absolute it named a folder ``~`` in the working folder (a cache went there without a word;
+    a model file failed at its first load with "no such file").
+
+    Raises:
+        ValueError: ``path`` starts with ``~``, naming ``os.path.expanduser``."""
+    parts = Path(path).parts
+    if parts and parts[0].startswith("~"):
+        raise ValueError(
+            f"{name} {os.fspath(path)!r} starts with '~', which is not expanded (it named a folder '{parts[0]}' in "
+            f"the working folder): give os.path.expanduser({os.fspath(path)!r})"
+        )
+
+
 @dataclass(frozen=True)
 class FaceTrackingConfig:
     """How a sequence of frames becomes normalised faces (part of the disk cache's key: change any field and
@@ -148,10 +163,7 @@ class FaceTrackingConfig:
         if self.model is not None:  # (a relative one was read against the working folder when first loaded)
             if isinstance(self.model, str) and not self.model:  # (Path("") is the working folder)
                 raise ValueError("model is empty: give a face model file, or None for CANDIDE-3")
-            parts = Path(self.model).parts
-            if parts and parts[0].startswith("~"):  # (made absolute as <cwd>/~/...: "no such file" at the first load)
-                raise ValueError(f"model {os.fspath(self.model)!r} starts with '~', which is not expanded: give "
-                                 f"os.path.expanduser({os.fspath(self.model)!r})")  # fmt: skip
+            _check_no_tilde(self.model, "model")  # (made absolute as <cwd>/~/...: "no such file" at the first load)
             object.__setattr__(self, "model", Path(self.model).absolute())
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")

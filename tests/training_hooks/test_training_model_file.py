@@ -67,7 +67,7 @@ def test_a_printed_config_names_its_model_and_the_key_holds_its_content_not_its_
     assert relative.model == files[1] and relative == other
     with pytest.raises(ValueError, match="model is empty"):
         replace(TRACKING, model="")
-    with pytest.raises(ValueError, match=r"starts with '~', which is not expanded: give os.path.expanduser"):
+    with pytest.raises(ValueError, match=r"model '~/m.npz' starts with '~', which is not expanded .*: give os.path.expanduser"):
         replace(TRACKING, model="~/m.npz")  # (was <cwd>/~/m.npz: "no such file" only when first loaded)
     moved = tmp_path / "moved.npz"
     moved.write_bytes(files[1].read_bytes())
