@@ -58,9 +58,9 @@ def _check_setting(name: str, value: Any) -> None:
     if name == "detector" and value is not None:
         if not callable(value):
             raise TypeError(f"detector must be callable (frames -> landmarks), got {type(value).__name__}")
-        from torchface.detect import _DlibDetector  # (light: dlib itself is imported when one is made)
+        from torchface.detect import _PerImageDetector  # (light: dlib or mediapipe is imported when one is made)
 
-        if isinstance(value, _DlibDetector):  # one image at a time: it failed at the first loss, with a shape error
+        if isinstance(value, _PerImageDetector):  # one image at a time: it failed at the first loss, with a shape error
             raise TypeError(
                 "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
                 "load_detector in torchface.detect.batched(...)"
