@@ -227,7 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
         "sidecar: the landmarks that run started from), or OpenFace's per-frame CSV: its "
         "first row; a missing point as empty cells or NaN, at least 4 given); give it once per video, in order",
     )  # fmt: skip
-    track.add_argument("--detector", default=None, help="detector for initialisation and re-initialisation (dlib)")
+    track.add_argument("--detector", default=None,
+                       help="detector for initialisation and re-initialisation (dlib or mediapipe)")  # fmt: skip
     track.add_argument(
         "--model", type=_path, default=None, metavar="FILE",
         help="face model file to track with (torchface.model.save_face_model writes one; default: CANDIDE-3); "

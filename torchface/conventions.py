@@ -92,5 +92,6 @@ MEDIAPIPE_MESH_POINT_COUNTS: tuple[int, ...] = (468, 478)
 #: Said where such a count of landmarks arrives where the 68 iBUG points are wanted (it was told the count alone).
 MEDIAPIPE_MESH_HINT: str = (
     "MediaPipe's face mesh points? The 68 iBUG / 300-W landmarks are wanted, in their order (as dlib's 68-point "
-    "predictor, OpenFace and torchface.detect give them), in pixels"
+    "predictor, OpenFace and torchface.detect give them), in pixels; torchface.detect.facemesh.mesh_to_ibug68 maps "
+    "MediaPipe's 478 (or 468) points to them"
 )

@@ -146,18 +146,19 @@ def _fake_mediapipe(root) -> None:
     )
     (package / "tasks" / "python" / "vision.py").write_text(
         "import types\n"
-        "made, asked, faces = [], [], []\n"
+        "made, asked, faces, closed = [], [], [], []\n"
         "class RunningMode:\n    IMAGE = 'image'\n"
         "class FaceLandmarkerOptions:\n"
         "    def __init__(self, **kw):\n        self.__dict__.update(kw)\n"
         "class FaceLandmarker:\n"
         "    @classmethod\n"
         "    def create_from_options(cls, options):\n        made.append(options)\n        return cls()\n"
+        "    def __init__(self):\n        self._handle = object()\n"
         "    def detect(self, image):\n"
         "        asked.append(image.data.shape)\n"
         "        points = [[types.SimpleNamespace(x=x, y=y) for x, y in face] for face in faces]\n"
         "        return types.SimpleNamespace(face_landmarks=points)\n"
-        "    def close(self):\n        pass\n"
+        "    def close(self):\n        closed.append(self._handle)\n"
     )
     importlib.invalidate_caches()
 
@@ -228,10 +229,20 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
     assert len(vision.made) == 1 and vision.asked == [(20, 40, 3)] * 3  # one landmarker per detector
     with pytest.raises(ValueError, match=r"image must be \(H, W, 3\) uint8 RGB"):
         detect(image.astype(np.float32))
+    # In a process forked from this one (a DataLoader worker) the inherited landmarker is let go of unclosed (closing
+    # it there hung: its threads are the parent's) and a new one is made
+    inherited = detect._landmarker
+    monkeypatch.setattr(detect, "_pid", -1)
+    detect(image)
+    assert len(vision.made) == 2 and detect._landmarker is not inherited and vision.closed == []
+    assert inherited._handle is None  # (mediapipe's close() and __del__ then return at once)
+    detect.close()
+    assert len(vision.closed) == 1 and detect._landmarker is None  # its own is closed
+    vision.made.clear()
     copy = pickle.loads(pickle.dumps(batched(detect, "mediapipe")))  # (a checkpoint, a spawned DataLoader worker)
-    assert copy.takes_near and copy.detector is not detect and len(vision.made) == 1
+    assert copy.takes_near and copy.detector is not detect and vision.made == []
     out = copy(torch.zeros(1, 3, 20, 40))
-    assert len(vision.made) == 2 and torch.allclose(out[0], torch.as_tensor(largest, dtype=torch.float32))
+    assert len(vision.made) == 1 and torch.allclose(out[0], torch.as_tensor(largest, dtype=torch.float32))
     with pytest.raises(TypeError, match=r"wrap the per-image detector of load_detector in torchface\.detect\.batched"):
         from torchface import FaceTracker
 

@@ -184,7 +184,8 @@ class MediaPipeDetector(_PerImageDetector):
         model: the ``face_landmarker.task`` file (:func:`find_model` looks for one when None).
 
     The landmarker is made at the first call, once per object and process (a ``DataLoader`` worker forked from a
-    process that had used it makes its own). It pickles as its ``model`` argument: the copy finds the model again.
+    process that had used it makes its own, leaving the inherited one untouched). It pickles as its ``model``
+    argument (a spawned worker, a checkpoint): the copy finds the model again.
 
     Raises:
         DetectorUnavailable: mediapipe or the model file is missing (the message says how to install them).
@@ -201,7 +202,9 @@ class MediaPipeDetector(_PerImageDetector):
         return (MediaPipeDetector, (self._model,))
 
     def _get_landmarker(self) -> Any:
-        if self._landmarker is None or self._pid != os.getpid():
+        if self._landmarker is not None and self._pid != os.getpid():
+            self._disown()
+        if self._landmarker is None:
             from mediapipe.tasks.python import vision
             from mediapipe.tasks.python.core.base_options import BaseOptions
 
@@ -217,9 +220,21 @@ class MediaPipeDetector(_PerImageDetector):
 
     def close(self) -> None:
         """Free the landmarker (a later call makes another)."""
-        if self._landmarker is not None and self._pid == os.getpid():
+        if self._landmarker is not None and self._pid != os.getpid():
+            self._disown()
+        elif self._landmarker is not None:
             self._landmarker.close()
         self._landmarker = None
+
+    def _disown(self) -> None:
+        """Let go of a landmarker made in the process this one was forked from (a ``DataLoader`` worker's copy of
+        the detector) without closing it: its threads are the parent's, and closing it, or its ``__del__`` when
+        replaced, waited for them for ever (mediapipe 1.2.2: a forked worker hung at its first image). Its handle is
+        cleared so that its ``close`` returns at once, and it is kept referenced so that it is never collected."""
+        landmarker, self._landmarker = self._landmarker, None
+        if getattr(landmarker, "_handle", None) is not None:
+            landmarker._handle = None  # (mediapipe 1.2.2's close() returns at once without one)
+        _DISOWNED.append(landmarker)
 
     def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
@@ -239,6 +254,10 @@ class MediaPipeDetector(_PerImageDetector):
 #: "Exception ignored in: <function FaceLandmarker.__del__ ...> TypeError: 'NoneType' object is not callable" (its
 #: ``__del__`` ran after the modules it calls were torn down; mediapipe 1.2.2).
 _OPEN: "weakref.WeakSet[MediaPipeDetector]" = weakref.WeakSet()
+
+
+#: Landmarkers inherited through a fork and let go of (:meth:`MediaPipeDetector._disown`), never collected.
+_DISOWNED: list[Any] = []
 
 
 @atexit.register
