@@ -4,9 +4,7 @@ installed, the real one on a frame of our own renderer."""
 
 import importlib
 import pickle
-import struct
 import sys
-import zipfile
 
 import numpy as np
 import pytest
@@ -14,7 +12,9 @@ import pytest
 import torch
 
 from torchface.detect import DetectorUnavailable, batched, detector_image, load_detector
-from torchface.detect.facemesh import MODEL_ENV, MediaPipeDetector, find_model, mesh_to_ibug68, read_mesh_table
+from torchface.detect.facemesh import (
+    MODEL_ENV, MediaPipeDetector, canonical_mesh, find_model, mesh_to_ibug68, mirror_vertices, read_mesh_table,
+)  # fmt: skip
 
 #: iBUG-68's mirror image of each point (jaw k <-> 16 - k, brows, nose, eyes, mouth; midline points to themselves).
 IBUG_MIRROR = np.r_[
@@ -46,6 +46,20 @@ def test_mesh_table_is_68_convex_combinations_of_mesh_vertices_symmetric_left_ri
         mesh_to_ibug68(np.zeros((68, 2)))
 
 
+def test_mirror_vertices_pairs_a_symmetric_meshs_vertices_and_refuses_an_asymmetric_one():
+    rng = np.random.default_rng(0)
+    half = rng.normal(size=(230, 3)) + [2.0, 0.0, 0.0]  # x > 0
+    middle = rng.normal(size=(8, 3)) * [0.0, 1.0, 1.0]  # x = 0
+    mesh = np.concatenate([half, middle, half * [-1, 1, 1]])  # (468, 3)
+    mirror = mirror_vertices(mesh)
+    assert mirror.shape == (478,) and (mirror[mirror] == np.arange(478)).all()
+    assert (mirror[:230] == np.arange(238, 468)).all() and (mirror[230:238] == np.arange(230, 238)).all()
+    assert (mirror[468:] == np.r_[473:478, 468:473]).all()
+    mesh[0, 0] += 0.01
+    with pytest.raises(ValueError, match="not symmetric"):
+        mirror_vertices(mesh)
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [
@@ -66,47 +80,6 @@ def test_a_damaged_mesh_table_is_refused(edit, message):
         read_mesh_table("\n".join(header + edit(rows)) + "\n")
 
 
-def _canonical_mesh(task) -> np.ndarray:
-    """MediaPipe's canonical face mesh ``(468, 3)`` from a ``face_landmarker.task`` bundle (a zip): its
-    ``geometry_pipeline_metadata_landmarks.binarypb``'s field 1 (the mesh), whose field 3 is the vertex buffer,
-    5 floats a vertex (x, y, z, u, v), read from protobuf's wire format."""
-
-    def fields(data: bytes):
-        i = 0
-        while i < len(data):
-            key, i = _varint(data, i)
-            kind = key & 7
-            if kind == 0:
-                value, i = _varint(data, i)
-            elif kind in (1, 5):
-                size = 8 if kind == 1 else 4
-                value, i = data[i : i + size], i + size
-            elif kind == 2:
-                size, i = _varint(data, i)
-                value, i = data[i : i + size], i + size
-            else:
-                raise ValueError(f"wire type {kind}")
-            yield key >> 3, kind, value
-
-    def _varint(data: bytes, i: int) -> tuple[int, int]:
-        value = shift = 0
-        while True:
-            byte = data[i]
-            i += 1
-            value |= (byte & 0x7F) << shift
-            shift += 7
-            if byte < 0x80:
-                return value, i
-
-    metadata = zipfile.ZipFile(task).read("geometry_pipeline_metadata_landmarks.binarypb")
-    mesh = next(value for field, kind, value in fields(metadata) if field == 1 and kind == 2)
-    floats: list[float] = []
-    for field, kind, value in fields(mesh):
-        if field == 3:
-            floats.extend(struct.unpack(f"<{len(value) // 4}f", value) if kind == 2 else struct.unpack("<f", value))
-    return np.array(floats).reshape(-1, 5)[:, :3]
-
-
 def _model_or_skip():
     try:
         return find_model()
@@ -118,10 +91,15 @@ def test_mesh_table_maps_mediapipes_symmetric_canonical_face_to_a_symmetric_68()
     """With the model bundle: the table's points of MediaPipe's canonical face (symmetric about x = 0) are mirror
     images of their iBUG mirror points, midline points on the midline (the fit made each point and its mirror
     image of mirrored vertices)."""
-    canonical = _canonical_mesh(_model_or_skip())
+    canonical = canonical_mesh(_model_or_skip())
     assert canonical.shape == (468, 3)
     points = mesh_to_ibug68(canonical)
     np.testing.assert_allclose(points[IBUG_MIRROR] * [-1, 1, 1], points, atol=1e-4)
+    mirror = mirror_vertices(canonical)  # (the table's rows of mirror points use mirror vertices)
+    idx, wts, _ = read_mesh_table()
+    for k in range(68):
+        assert sorted(zip(mirror[idx[k]][wts[k] > 0], wts[k][wts[k] > 0])) == sorted(
+            zip(idx[IBUG_MIRROR[k]][wts[IBUG_MIRROR[k]] > 0], wts[IBUG_MIRROR[k]][wts[IBUG_MIRROR[k]] > 0])), k
     assert points[36, 0] < points[39, 0] < 0 < points[42, 0] < points[45, 0]  # subject's right at -x: image left
 
 

@@ -633,3 +633,15 @@ def test_benchmark_caches_lose_the_temporary_files_of_killed_runs(tmp_path, monk
     finally:
         running.kill()
         running.wait()
+
+
+def test_fit_mediapipe_table_refuses_bad_arguments_before_any_work(tmp_path, capsys):
+    script = _load("fit_mediapipe_table")
+    assert "no grid/*.mpg clips or photos/astronaut.png" in _usage_error(script.main, ["--assets", str(tmp_path)],
+                                                                          capsys)  # fmt: skip
+    (tmp_path / "grid").mkdir()
+    (tmp_path / "grid" / "c.mpg").write_bytes(b"")
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "astronaut.png").write_bytes(b"")
+    argv = ["--assets", str(tmp_path), "--threshold", "1.5"]
+    assert "--threshold must be in [0, 1), got 1.5" in _usage_error(script.main, argv, capsys)

