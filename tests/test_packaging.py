@@ -32,10 +32,11 @@ def test_the_built_metadata_declares_what_the_readme_says_without_deprecations(t
     assert meta["License-Expression"] == "MIT"
     assert meta.get_all("License-File") == ["LICENSE"]  # the MIT licence's text ships with the package
     assert "Permission is hereby granted" in (info / "licenses" / "LICENSE").read_text()
-    assert set(meta.get_all("Provides-Extra")) == {"dev", "lightning", "detect", "bench"}
+    assert set(meta.get_all("Provides-Extra")) == {"dev", "lightning", "detect", "mediapipe", "bench"}
     requires = meta.get_all("Requires-Dist")
     assert any(r.startswith("dlib-bin") and 'extra == "detect"' in r for r in requires)
     assert any(r.startswith("mediapipe") and 'extra == "bench"' in r for r in requires)
+    assert any(r.startswith("mediapipe") and 'extra == "mediapipe"' in r for r in requires)
     assert "torchface = torchface.cli:main" in (info / "entry_points.txt").read_text()
 
 
