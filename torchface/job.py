@@ -1528,9 +1528,19 @@ def _digest(model: FaceModel) -> str:
 
 
 @lru_cache(maxsize=1)
+def _candide3() -> FaceModel:
+    """:func:`load_candide3`'s model (float32, on the CPU: what it depends on is fixed here), loaded once per process:
+    the default model of every job (a load took 45 ms, and each job loaded it, and :func:`_candide_digest` once
+    more). Shared by the jobs, never changed: a :class:`FaceModel` is frozen, nothing of the job writes into its
+    tensors (another device or dtype is a copy, :meth:`FaceModel.to`), and no job returns it; its CPU tensors (43 KB)
+    stay alive, never a job's device copy."""
+    return load_candide3()
+
+
+@lru_cache(maxsize=1)
 def _candide_digest() -> str:
     """The digest of :func:`load_candide3`'s model, what every job tracked with before ``JobConfig.model``."""
-    return face_model_digest(load_candide3())
+    return _digest(_candide3())
 
 
 def _model_label(model: FaceModel) -> str:
@@ -2299,7 +2309,8 @@ def track_videos(
     locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
         try:
-            model = model.to(device=torch.device(config.device))
+            if model.device != torch.device(config.device):  # (a copy: the same object on its device, digested once)
+                model = model.to(device=torch.device(config.device))
             return _track_locked(inputs, names, config, detector, model, out_dir, progress)
         finally:
             _release_locks(locks)
@@ -2367,7 +2378,7 @@ def _job_model(config: JobConfig) -> FaceModel:
     the midline; the first frame's fit refused it, after the outputs of earlier runs were removed) or, with a
     detector, are not the detector's 68 iBUG points."""
     if config.model is None:
-        return load_candide3()
+        return _candide3()  # (loaded once per process; a model file is read again for each job: it may change)
     model = load_face_model(config.model)
     try:
         check_model_landmarks(model)
