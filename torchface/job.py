@@ -2248,9 +2248,9 @@ def _report_search(
 
 
 def _reopen(streams: Sequence[_Stream], convert: bool, keep_going: bool = False) -> None:
-    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame. With
-    ``keep_going``, one that cannot be is closed and skipped (:func:`_warn_skipped`; ``_Stream.refused``), the
-    others opened.
+    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame, or go on from it
+    where it held them open (:attr:`_Stream.held`: the first batch's). With ``keep_going``, one that cannot be is
+    closed and skipped (:func:`_warn_skipped`; ``_Stream.refused``), the others opened.
 
     Raises:
         InputError: an input that cannot be opened now, or whose frames have changed size since it was checked.
