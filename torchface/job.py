@@ -1044,6 +1044,9 @@ class _Stream:
     near: np.ndarray | None = None  # (N, 2) the face's last confident pixel position: a re-detection's `near`
     confidence: float = 0.0  # its last frame's (for the progress line; nothing per frame is kept in memory)
     ahead: list[Tensor] = field(default_factory=list)  # frames read ahead (look-ahead start), next first
+    # its first frame as _next_frame gives it (frame, time, 8-bit image), read by its check, its reader left open at
+    # it (_open_inputs: an input of the first batch): _reopen goes on from it instead of decoding it again
+    held: tuple[Tensor, float, np.ndarray | None] | None = None
     error: InputError | None = None  # a frame that could not be read: the video stops there, the batch goes on
     refused: str | None = None  # (keep_going) why it was skipped as its batch opened: nothing of it tracked
     index: int = 0  # its place among the inputs checked (Progress.index)
@@ -1528,9 +1531,19 @@ def _digest(model: FaceModel) -> str:
 
 
 @lru_cache(maxsize=1)
+def _candide3() -> FaceModel:
+    """:func:`load_candide3`'s model (float32, on the CPU: what it depends on is fixed here), loaded once per process:
+    the default model of every job (a load took 45 ms, and each job loaded it, and :func:`_candide_digest` once
+    more). Shared by the jobs, never changed: a :class:`FaceModel` is frozen, nothing of the job writes into its
+    tensors (another device or dtype is a copy, :meth:`FaceModel.to`), and no job returns it; its CPU tensors (43 KB)
+    stay alive, never a job's device copy."""
+    return load_candide3()
+
+
+@lru_cache(maxsize=1)
 def _candide_digest() -> str:
     """The digest of :func:`load_candide3`'s model, what every job tracked with before ``JobConfig.model``."""
-    return face_model_digest(load_candide3())
+    return _digest(_candide3())
 
 
 def _model_label(model: FaceModel) -> str:
@@ -2060,7 +2073,11 @@ def _open_inputs(
     """Check every input before any tracking starts: open it, read its first frame, find its first-frame landmarks;
     then close it again (its batch reopens it, :func:`_reopen`): with all of them held open until the end, a run
     over many videos ran out of file descriptors (1024 inputs at the usual ``ulimit -n``: "Too many open files",
-    blamed on one of them) and held every video's first frame and decoder while the other sizes were tracked.
+    blamed on one of them) and held every video's first frame and decoder while the other sizes were tracked. Those
+    of the first batch (the first :func:`_batch_size` of the first input's :func:`_batch_key`) are held open at
+    their first frame (:attr:`_Stream.held`), that batch going on from them: reopened, each was decoded again (a
+    4K video's first frame took 0.5 s, 1080p 0.1 s); never more than ``max_batch`` inputs open at once, as when
+    tracking, and none on a resume (its checkpoints' batches come first).
 
     Where the detector finds no face in the first frame (a title card, a black frame, an empty room), it is asked
     about each next frame until it finds one (``progress`` reports the search, :attr:`Progress.searching`): the
@@ -2081,17 +2098,36 @@ def _open_inputs(
     names = [output_name(v) for v in videos]  # distinct: track_videos checked all the inputs' names
     streams: list[_Stream] = []
     refused: list[str] = []  # (every input is checked: one error names them all, not the first alone)
-    for k, (path, name) in enumerate(zip(videos, names)):
-        try:
-            stream = _open_input(path, name, k, videos, config, detector, model, progress)
-        except InputError as exc:
-            if skipped is not None:  # (keep_going: said as it is skipped, the others tracked)
-                _report_skipped(progress, k, len(videos), name)
-                skipped[k] = _warn_skipped(path, exc)
+    first: tuple[int, int, int] | None = None  # the first batch's _batch_key
+    first_count = held = 0  # the inputs of that key checked, those held
+    try:
+        for k, (path, name) in enumerate(zip(videos, names)):
+            try:
+                stream = _open_input(path, name, k, videos, config, detector, model, progress)
+            except InputError as exc:
+                if skipped is not None:  # (keep_going: said as it is skipped, the others tracked)
+                    _report_skipped(progress, k, len(videos), name)
+                    skipped[k] = _warn_skipped(path, exc)
+                    continue
+                refused.append(str(exc))
                 continue
-            refused.append(str(exc))
-            continue
-        streams.append(stream)
+            streams.append(stream)
+            key = _batch_key(stream, config)
+            first = key if first is None else first
+            in_first = key == first and first_count < _batch_size(key, config)  # (in the first batch)
+            first_count += key == first
+            # (the next input's check opens one more: at most max_batch open at once, as when tracking)
+            room = held < config.max_batch - 1 or k == len(videos) - 1
+            if stream.held is not None and (refused or config.resume or not in_first or not room):
+                _let_go(stream)
+            held += stream.held is not None
+    except BaseException:
+        for s in streams:
+            _let_go(s)
+        raise
+    if refused:
+        for s in streams:
+            _let_go(s)
     if len(refused) == 1:
         raise InputError(refused[0])
     if refused:
@@ -2099,6 +2135,26 @@ def _open_inputs(
         more = f" and {len(refused) - MAX_REFUSED_SHOWN} more" if len(refused) > MAX_REFUSED_SHOWN else ""
         raise InputError(f"{len(refused)} of the {len(videos)} inputs refused, nothing tracked: {shown}{more}")
     return streams
+
+
+def _let_go(s: _Stream) -> None:
+    """Close the reader of ``s`` held open since its check (:attr:`_Stream.held`; nothing where it is not): its batch
+    reopens it."""
+    if s.held is not None:
+        s.held = None
+        s.reader.close()
+
+
+def _batch_key(s: _Stream, config: JobConfig) -> tuple[int, int, int]:
+    """What the videos of one batch share: frame height, width and pyramid levels (:func:`~torchface.tracker.step.
+    pyramid_for_faces` of the video's own face, so that a video's results do not depend on the others')."""
+    H, W = s.reader.info.height, s.reader.info.width
+    return H, W, pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
+
+
+def _batch_size(key: tuple[int, int, int], config: JobConfig) -> int:
+    """The most videos of :func:`_batch_key` ``key`` in one batch: ``max_batch``, and :data:`BATCH_PIXELS` allow."""
+    return max(1, min(config.max_batch, BATCH_PIXELS // (key[0] * key[1])))
 
 
 #: The refused inputs that :func:`_open_inputs`' error names (the others are counted).
@@ -2144,12 +2200,15 @@ def _open_input(
     path: Path, name: str, k: int, videos: Sequence[Path], config: JobConfig, detector, model: FaceModel,
     progress: Callable[[Progress], None] | None,
 ) -> _Stream:
-    """:func:`_open_inputs`' check of input ``k`` (``path``, output stem ``name``), closed again: its stream.
+    """:func:`_open_inputs`' check of input ``k`` (``path``, output stem ``name``): its stream, its reader closed
+    again, or left open where the check read its first frame alone and the face is on it (its :attr:`_Stream.held`
+    set: :func:`_open_inputs` holds it or closes it).
 
     Raises:
         InputError: the input cannot be tracked (unreadable, a bad first frame or landmarks file, no face found).
     """
-    with open_frames(path, convert=config.convert) as reader:
+    reader = open_frames(path, convert=config.convert)
+    try:
         frame = next(reader)
         lm = config.landmarks[k] if config.landmarks else None
         t0 = time.perf_counter()
@@ -2168,7 +2227,15 @@ def _open_input(
                 " (give the 68 landmarks of its first frame with --landmarks FILE if it shows one)", searching,
             )  # fmt: skip
             calls = start + 1 if lm is None else 0
-    return _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start, index=k)
+    except BaseException:
+        reader.close()
+        raise
+    stream = _Stream(name, reader, points, source, reader.info.num_frames, detector_calls=calls, start=start, index=k)
+    if start == 0 and reader.frames_read == 1:  # (what _next_frame keeps of it, as a batch reopening it would)
+        stream.held = frame, 0.0 if reader.timestamp is None else reader.timestamp, reader.image
+    else:
+        reader.close()
+    return stream
 
 
 def _report_search(
@@ -2181,9 +2248,9 @@ def _report_search(
 
 
 def _reopen(streams: Sequence[_Stream], convert: bool, keep_going: bool = False) -> None:
-    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame. With
-    ``keep_going``, one that cannot be is closed and skipped (:func:`_warn_skipped`; ``_Stream.refused``), the
-    others opened.
+    """Open the inputs of a batch again (:func:`_open_inputs` closed them) at their first frame, or go on from it
+    where it held them open (:attr:`_Stream.held`: the first batch's). With ``keep_going``, one that cannot be is
+    closed and skipped (:func:`_warn_skipped`; ``_Stream.refused``), the others opened.
 
     Raises:
         InputError: an input that cannot be opened now, or whose frames have changed size since it was checked.
@@ -2192,15 +2259,22 @@ def _reopen(streams: Sequence[_Stream], convert: bool, keep_going: bool = False)
         for s in streams:
             info = s.reader.info
             try:
-                s.reader = open_frames(info.path, convert=convert)
-                if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
-                    raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} "
-                                     f"now, {info.width}x{info.height} when the run started: was it replaced?")
-                if READ_AHEAD > 0 and len(streams) <= READ_AHEAD_STREAMS:
-                    s.reader = _ReadAhead(s.reader)
+                first, s.held = s.held, None
+                if first is None:  # (else open since its check, at its first frame: not opened and decoded again)
+                    s.reader = open_frames(info.path, convert=convert)
+                    if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
+                        raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} "
+                                         f"now, {info.width}x{info.height} when the run started: was it replaced?")
+                if READ_AHEAD > 0 and len(streams) <= READ_AHEAD_STREAMS:  # (a held reader is a FrameReader too)
+                    s.reader = _ReadAhead(cast(FrameReader, s.reader))
                 s.stamps.clear()
                 s.images.clear()
-                s.last_frame = _next_frame(s)
+                if first is None:
+                    s.last_frame = _next_frame(s)
+                else:
+                    s.last_frame = first[0]
+                    s.stamps.append(first[1])
+                    s.images.append(first[2])
             except InputError as exc:
                 if not keep_going:
                     raise
@@ -2299,7 +2373,8 @@ def track_videos(
     locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
         try:
-            model = model.to(device=torch.device(config.device))
+            if model.device != torch.device(config.device):  # (a copy: the same object on its device, digested once)
+                model = model.to(device=torch.device(config.device))
             return _track_locked(inputs, names, config, detector, model, out_dir, progress)
         finally:
             _release_locks(locks)
@@ -2367,7 +2442,7 @@ def _job_model(config: JobConfig) -> FaceModel:
     the midline; the first frame's fit refused it, after the outputs of earlier runs were removed) or, with a
     detector, are not the detector's 68 iBUG points."""
     if config.model is None:
-        return load_candide3()
+        return _candide3()  # (loaded once per process; a model file is read again for each job: it may change)
     model = load_face_model(config.model)
     try:
         check_model_landmarks(model)
@@ -2431,9 +2506,10 @@ def _track_opened(
     """:func:`_track_locked` once its inputs are checked (``streams``, :func:`_open_inputs`, of the ``count`` inputs
     checked; ``summaries``: of the videos ``resume`` skipped, and those ``keep_going`` skipped): track and write them,
     batch by batch."""
-    if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
-        _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values() if x.refused])
     try:
+        if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
+            _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values()
+                                                                         if x.refused])  # fmt: skip
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
         # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
         if config.resume:  # (a video resumed from its checkpoint is tracked with its batch's others again)
@@ -2445,15 +2521,16 @@ def _track_opened(
         for i, s in enumerate(streams):
             if i in grouped:
                 continue
-            H, W = s.reader.info.height, s.reader.info.width
-            levels = pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
-            groups.setdefault((H, W, levels), []).append(i)
-        batches = [m[i : i + n] for (H, W, _), m in groups.items()
-                   for n in [max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))] for i in range(0, len(m), n)]
+            groups.setdefault(_batch_key(s, config), []).append(i)
+        batches = [m[i : i + n] for key, m in groups.items() for n in [_batch_size(key, config)]
+                   for i in range(0, len(m), n)]  # fmt: skip
         for m in reversed(again):  # (first; as many as max_batch and BATCH_PIXELS allow now: a part joined alone)
             H, W = streams[m[0]].reader.info.height, streams[m[0]].reader.info.width
             n = max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))
             batches[:0] = [m[i : i + n] for i in range(0, len(m), n)]
+        for i, s in enumerate(streams):  # (held open since its check for the first batch: _open_inputs)
+            if not batches or i not in batches[0]:
+                _let_go(s)
         for members in batches:
             _reopen([streams[i] for i in members], config.convert, config.keep_going)
             for i in members:

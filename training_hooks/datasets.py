@@ -95,6 +95,16 @@ none of whose own videos gives a clip counts the other ranks' videos (until one 
 comes on every rank there too. With a detector a video's frames are those from its first face (the message says
 which frame). A pass cut short says nothing (a later whole pass, or :meth:`~VideoDataset.count_items`, does).
 
+Progress (:attr:`DatasetConfig.progress_after`): counting the videos' items decodes each video file through, and
+with a detector searches each for its first face; :meth:`VideoDataset.count_items` does it for every video, and under
+DDP each ``DataLoader`` worker does it for its videos on every rank before its first batch. Over hundreds of videos
+that takes minutes, so a count that has taken more than ``progress_after`` seconds (5 by default) says how far it
+has got, in whole lines on stderr (``VideoDataset: counting the items of 200 videos: 37 counted in 6 s (...)``),
+another every :data:`PROGRESS_EVERY_S` seconds and one when it ends. One process speaks: rank 0's, and where the
+``DataLoader`` workers count, its worker 0 (the others count their own videos meanwhile, at about its pace). A
+shorter count (a test, a few videos, counts known already) says nothing; ``progress_after=None`` never does.
+Tracking itself says nothing (:attr:`VideoDataset.stats`, :func:`loader_throughput` measure it).
+
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
 back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
@@ -118,7 +128,9 @@ import copy
 import enum
 import functools
 import itertools
+import math
 import os
+import sys
 import pickle
 import random
 import time
@@ -137,7 +149,8 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
 from torchface.detect import detector_image, search_first_face
-from torchface.extending import check_bool, check_int, check_optional_int
+from torchface.extending import check_bool, check_int, check_optional_int, check_optional_real
+from torchface._words import counted
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
@@ -362,6 +375,50 @@ def _detector_name(detector: object) -> str:
     return f"(an instance of {name})"
 
 
+#: Seconds between the lines of a long count's progress after its first (:attr:`DatasetConfig.progress_after`).
+PROGRESS_EVERY_S = 30.0
+
+
+class _CountProgress:
+    """The progress of a count of ``total`` videos' items (:attr:`DatasetConfig.progress_after`), as whole lines on
+    stderr (a log file and a terminal alike; a warning given meanwhile stays readable): none until the count has
+    taken ``after`` seconds (None: never), then one every :data:`PROGRESS_EVERY_S` seconds and one at its end.
+    ``name``: the dataset's class, which begins each line; ``why``: what the count is for, said in the first."""
+
+    def __init__(self, name: str, total: int, why: str, after: float | None) -> None:
+        self.name, self.total, self.why = name, total, why
+        self.t0 = time.monotonic()
+        self.due = after  # seconds into the count of the next line (None: no line)
+        self.said = False
+
+    def _say(self, line: str) -> None:
+        try:
+            print(f"{self.name}: {line}", file=sys.stderr, flush=True)
+        except (OSError, ValueError):  # (a closed or broken stderr: the count goes on without a word)
+            self.due = None
+
+    def step(self, done: int) -> None:
+        """``done`` of the ``total`` videos counted: a line if one is due (none for the last: :meth:`end`'s)."""
+        if self.due is None or done >= self.total:
+            return
+        elapsed = time.monotonic() - self.t0
+        if elapsed < self.due:
+            return
+        first = "" if self.said else (
+            f" ({self.why}; each video file is decoded through, and with a detector searched for its first face, "
+            "once per dataset: DatasetConfig(progress_after=None) says nothing)"
+        )  # fmt: skip
+        self._say(f"counting the items of {counted(self.total, 'video')}: {done} counted in {elapsed:.0f} s{first}")
+        self.said = True
+        if self.due is not None:
+            self.due = elapsed + PROGRESS_EVERY_S
+
+    def end(self) -> None:
+        """The count is over: its last line, where it said anything before."""
+        if self.said and self.due is not None:
+            self._say(f"counted the items of {counted(self.total, 'video')} in {time.monotonic() - self.t0:.0f} s")
+
+
 def _process_group() -> tuple[int, int] | None:
     """``(rank, world_size)`` in the default ``torch.distributed`` process group; None without one."""
     dist = torch.distributed
@@ -404,6 +461,13 @@ class DatasetConfig:
             are left out, a :class:`SkippedVideoWarning` says so and :attr:`VideoDataset.skipped` records it (module
             docstring, "Skipping"). False (the default): the error stops the epoch. An error writing
             :attr:`cache_dir` (a full disk, a read-only folder) is not the video's: it stops the epoch either way.
+        progress_after: seconds a count of the videos' items may take before it says how far it has got, on
+            stderr (module docstring, "Progress"): :meth:`VideoDataset.count_items`, :meth:`~VideoDataset.
+            worker_items`, and under DDP the counts that balance the ranks, which come before the first batch. Each
+            video file is decoded through to be counted, and with a detector searched for its first face: over
+            hundreds of videos, minutes without a word. A line once the count has taken this long, another every
+            :data:`PROGRESS_EVERY_S` seconds, and one when it ends; from one process only (rank 0's, its
+            ``DataLoader`` worker 0 where the workers count). A count that takes less says nothing. None: never.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -417,6 +481,7 @@ class DatasetConfig:
     shard_ranks: bool = True
     rank_balance: RankBalance = RankBalance.PAD
     keep_going: bool = False
+    progress_after: float | None = 5.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracking, FaceTrackingConfig):
@@ -431,6 +496,10 @@ class DatasetConfig:
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if self.keep_short_clips and self.clip_length is None:  # (was taken, and did nothing: every frame an item)
             raise ValueError("keep_short_clips needs clip_length")
+        after = check_optional_real(self.progress_after, "progress_after")
+        if after is not None and not 0 <= after < math.inf:  # (NaN too: never a count's time)
+            raise ValueError(f"progress_after must be a number of seconds >= 0, or None for no progress, got {after!r}")
+        object.__setattr__(self, "progress_after", after)
         if not isinstance(self.rank_balance, RankBalance):
             raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
         if self.cache_dir is not None:
@@ -873,10 +942,28 @@ class VideoDataset(IterableDataset):
         return cache_key(content, self.config.tracking, landmarks, self._key_extra(), first_frame=start,
                          model_content=self._model_content)  # fmt: skip
 
+    def _count(self, indices: Sequence[int], why: str) -> None:
+        """:meth:`num_items` of videos ``indices`` not counted yet (by any process of the dataset), saying on stderr
+        how far it has got where that takes long (:attr:`DatasetConfig.progress_after`; ``why``: what the count is
+        for), in one process only: rank 0's (the default group's, or the rank's that sent the dataset to a spawned
+        worker), its ``DataLoader`` worker 0 where the workers count (each counts its own videos, at about the same
+        pace: one speaks for them, as :meth:`_warn_distributed` does)."""
+        todo = [i for i in dict.fromkeys(indices) if int(self._shared[_COUNTS + i]) < 0]
+        group = _process_group() or getattr(self, "_sender_group", None)
+        info = get_worker_info()
+        speaks = (group is None or group[0] == 0) and (info is None or info.id == 0)
+        progress = _CountProgress(type(self).__name__, len(todo), why, self.config.progress_after if speaks else None)
+        for done, index in enumerate(todo, start=1):
+            self.num_items(index)
+            progress.step(done)
+        progress.end()
+
     def count_items(self) -> list[int]:
         """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch). Videos shorter than
         :attr:`DatasetConfig.clip_length` count 0 and are named by a :class:`ShortVideoWarning` (once per dataset),
-        also where none gives a clip (iterating the dataset then raises a ``ValueError``)."""
+        also where none gives a clip (iterating the dataset then raises a ``ValueError``). A count that takes long
+        says how far it has got (:attr:`DatasetConfig.progress_after`)."""
+        self._count(range(len(self.videos)), "count_items()")
         counts = [self.num_items(i) for i in range(len(self.videos))]
         self._report_short(*self.rank_and_world_size(), final=False)
         return counts
@@ -980,6 +1067,8 @@ class VideoDataset(IterableDataset):
         ranks are not balanced (one rank, or ``UNEVEN``)."""
         if world_size == 1 or self.config.rank_balance is RankBalance.UNEVEN:
             return None
+        slot = [i for r in range(world_size) for i in self.worker_videos(worker_id, num_workers, r, world_size)]
+        self._count(slot, f"to give every rank's worker {worker_id} as many items, DatasetConfig.rank_balance")
         per_rank = [
             sum(self.num_items(i) for i in self.worker_videos(worker_id, num_workers, r, world_size))
             for r in range(world_size)
@@ -999,6 +1088,8 @@ class VideoDataset(IterableDataset):
         """
         own = self.worker_videos(worker_id, num_workers, rank, world_size)
         target = self._balanced_count(worker_id, num_workers, world_size)
+        if target is None:
+            self._count(own, f"worker_items({worker_id}, ...)")
         return sum(self.num_items(i) for i in own) if target is None else target
 
     def _detection(self, index: int, content: str) -> tuple[int, np.ndarray] | None:

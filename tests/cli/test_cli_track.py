@@ -446,7 +446,10 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     """Every input was opened (its first frame read and held) before tracking and closed at the end of the run,
     and all the videos of one size were one batch: a run over many videos ran out of file descriptors ("Too many
     open files" at 1024 inputs, blamed on one of them) and held every first frame while the other sizes were
-    tracked. Now the inputs are checked one at a time, and a batch of up to ``max_batch`` is open at once."""
+    tracked. Now the inputs are checked one at a time, and a batch of up to ``max_batch`` is open at once. Those of
+    the first batch stay open from their check at their first frame (each was opened and its first frame decoded
+    again), within ``max_batch``, their outputs as those of a run that opens them again to the byte; none is left
+    open by an input refused after them."""
     import torchface.job as job
 
     video, lm, _ = clip
@@ -456,11 +459,12 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     np.save(tmp_path / "small.npy", frames[:, 4:-4, 8:-8])  # 144x112: a batch of its own
     small_lm = tmp_path / "small_lm.npy"
     np.save(small_lm, np.loadtxt(lm, delimiter=",", skiprows=1) - [8, 4])
-    is_open, most = set(), [0]
+    is_open, most, opened = set(), [0], []
     real_open = job.open_frames
 
     def counted(path, convert=False):
         reader = real_open(path, convert=convert)
+        opened.append(path.stem)
         is_open.add(id(reader))
         most[0] = max(most[0], len(is_open))
         close = reader.close
@@ -474,14 +478,39 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
 
     monkeypatch.setattr(job, "open_frames", counted)
     inputs = [tmp_path / "a.npy", tmp_path / "small.npy", tmp_path / "b.npy"]
+    # (the first batch's inputs held from their check: a and b with max_batch 128; none with 1, b's batch not first)
+    held = {128: ["a", "small", "b", "small"], 1: ["a", "small", "b", "a", "b", "small"]}
     for max_batch, out, batch in ((128, tmp_path / "out", 2), (1, tmp_path / "out1", 1)):
         most[0] = 0
+        opened.clear()
         config = JobConfig(out_dir=out, landmarks=(lm, small_lm, lm), refine_first=None, max_batch=max_batch)
         summaries = track_videos(inputs, config)
         assert [s.name for s in summaries] == ["a", "small", "b"] and [s.frames for s in summaries] == [2, 2, 2]
         assert most[0] == batch and not is_open  # (all three were open at once)
+        assert opened == held[max_batch]
         assert json.loads((out / "a.json").read_text())["config"]["batch_streams"] == batch
         assert json.loads((out / "small.json").read_text())["config"]["batch_streams"] == 1
+    real_check = job._open_input
+
+    def let_go(*args):  # every input opened again for its batch, as before
+        stream = real_check(*args)
+        job._let_go(stream)
+        return stream
+
+    monkeypatch.setattr(job, "_open_input", let_go)
+    opened.clear()
+    held_ones = [tmp_path / "a.npy", tmp_path / "b.npy"]  # (their batch of two, as in the first run)
+    track_videos(held_ones, JobConfig(out_dir=tmp_path / "again", landmarks=(lm, lm), refine_first=None))
+    assert opened == ["a", "b", "a", "b"] and not is_open
+    for name in ("a", "b"):
+        for kind in ("csv", "overlay", "normalised"):
+            mine, then = (output_paths(o, name)[kind].read_bytes() for o in (tmp_path / "out", tmp_path / "again"))
+            assert mine == then, (name, kind)
+    monkeypatch.setattr(job, "_open_input", real_check)
+    (tmp_path / "bad.npy").write_bytes(b"not an array")
+    with pytest.raises(InputError, match="bad.npy"):
+        track_videos([*inputs, tmp_path / "bad.npy"], JobConfig(tmp_path / "bad", landmarks=(lm, small_lm, lm, lm)))
+    assert not is_open  # (a and b were held when bad.npy was refused)
     with pytest.raises(ValueError, match="max_batch must be an int >= 1"):
         JobConfig(out_dir=tmp_path, max_batch=0)
     for bad in (1.5, True):  # a wrong type is a TypeError (it was a ValueError)

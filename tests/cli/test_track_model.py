@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import gc
 import json
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
 import torch
 
+import torchface.job
 from torchface.cli import main
 from torchface.io import InputError, read_track_csv
 from torchface.job import JobConfig, output_paths, track_videos
@@ -165,3 +166,23 @@ def test_a_job_keeps_no_model_alive_after_it(clip, tmp_path):
     track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm26.csv",), model=root / "other.npz"))
     gc.collect()
     assert not [o for o in gc.get_objects() if isinstance(o, FaceModel) and o.name.endswith("26 landmarks")]
+
+
+def test_the_default_model_is_loaded_once_per_process_and_left_as_loaded(clip, default_run, tmp_path, monkeypatch):
+    """Each job loaded CANDIDE-3 (45 ms), and the check of its digest loaded it once more. Now the first job loads it
+    and the later ones share it (a job's model is _job_model's): one load; it is left equal to a fresh load (nothing
+    of a job writes into it), and the job's outputs are the default run's byte for byte."""
+    video, root = clip
+    loads: list[int] = []
+    real = torchface.job.load_candide3
+    monkeypatch.setattr(torchface.job, "load_candide3", lambda *a, **k: loads.append(1) or real(*a, **k))
+    torchface.job._candide3.cache_clear()
+    torchface.job._candide_digest.cache_clear()
+    track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm68.csv",)))
+    for kind in ("csv", "overlay", "normalised"):
+        assert output_paths(tmp_path, NAME)[kind].read_bytes() == default_run[kind].read_bytes()
+    shared = torchface.job._job_model(JobConfig(tmp_path / "next"))  # (the next job's)
+    assert shared is torchface.job._candide3() and len(loads) == 1
+    fresh = load_candide3()
+    assert all(torch.equal(getattr(shared, f.name), getattr(fresh, f.name)) if isinstance(getattr(fresh, f.name),
+               torch.Tensor) else getattr(shared, f.name) == getattr(fresh, f.name) for f in fields(fresh))  # fmt: skip

@@ -485,6 +485,9 @@ def test_bad_arguments(clips, tmp_path):
         DatasetConfig(clip_length=0)
     with pytest.raises(TypeError, match="FaceTrackingConfig"):
         DatasetConfig(tracking="fast")
+    for after, error in (("5", TypeError), (True, TypeError), (-1.0, ValueError), (float("nan"), ValueError)):
+        with pytest.raises(error, match=r"progress_after must be a .* or None"):
+            DatasetConfig(progress_after=after)
     (tmp_path / "cache").write_text("a file")  # refused at once (it failed after the first video was tracked)
     with pytest.raises(ValueError, match="not a folder"):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))

@@ -4,6 +4,7 @@ statistics over every rank. Two real gloo processes on the CPU (one run shared b
 
 from __future__ import annotations
 
+import functools
 import pickle
 import re
 import warnings
@@ -522,6 +523,51 @@ def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, mo
         "DistributedWarning: VideoDataset has 1 videos for 2 torch.distributed ranks: rank 1 gets none and repeats "
         "items of other ranks' videos (tracking them again)"
     ]
+
+
+def test_a_long_count_says_how_far_it_has_got_from_one_process(uneven, config, monkeypatch, capsys):
+    """Counting the videos' items (each video file decoded through; with a detector, searched for its first face)
+    comes before the first batch under DDP and in count_items(): over 200 videos, minutes without a word. A count
+    that takes longer than DatasetConfig.progress_after (here 0: from its first video) says how far it has got on
+    stderr, in whole lines, from rank 0's DataLoader worker 0 alone; a count that takes less than the default 5 s,
+    one already made, and progress_after=None say nothing."""
+    videos, landmarks = uneven
+    cfg = replace(config, cache_dir=None, progress_after=0)
+    detector = functools.partial(_first_frame_face, {bytes(np.load(v)[0]): lm for v, lm in zip(videos, landmarks)})
+
+    def said() -> list[str]:  # (the seconds as N: a busy machine takes more than 0.5 s)
+        return [re.sub(r" in \d+ s\b", " in N s", line) for line in capsys.readouterr().err.splitlines()]
+
+    data = VideoDataset(videos, detector, cfg)
+    assert data.count_items() == list(LENGTHS) and data.stats.frames_tracked == 0
+    assert said() == [
+        "VideoDataset: counting the items of 5 videos: 1 counted in N s (count_items(); each video file is decoded "
+        "through, and with a detector searched for its first face, once per dataset: DatasetConfig("
+        "progress_after=None) says nothing)",
+        "VideoDataset: counted the items of 5 videos in N s",
+    ]
+    assert data.count_items() == list(LENGTHS) and said() == []  # (counted: nothing to say)
+    # under DDP each worker counts its videos on every rank before its first batch (the same path: __iter__)
+    for rank, worker in ((1, 0), (0, 1), (0, 0)):
+        simulate(monkeypatch, rank, 2, worker, 2)
+        assert VideoDataset(videos, landmarks, cfg).worker_items(worker, 2, rank, 2) == [10, 5][worker]
+        if (rank, worker) != (0, 0):
+            assert said() == []
+    assert said() == [
+        "VideoDataset: counting the items of 3 videos: 1 counted in N s (to give every rank's worker 0 as many "
+        "items, DatasetConfig.rank_balance; each video file is decoded through, and with a detector searched for "
+        "its first face, once per dataset: DatasetConfig(progress_after=None) says nothing)",
+        "VideoDataset: counted the items of 3 videos in N s",
+    ]
+    assert next(iter(VideoDataset(videos, landmarks, cfg)))["video"] == 0 and len(said()) == 2  # (the first batch)
+    for quiet in (replace(cfg, progress_after=None), replace(cfg, progress_after=DatasetConfig().progress_after)):
+        assert VideoDataset(videos, detector, quiet).count_items() == list(LENGTHS)
+        assert VideoDataset(videos, landmarks, quiet).worker_items(0, 2, 0, 2) == 10 and said() == []
+
+
+def _first_frame_face(faces: dict[bytes, np.ndarray], image: np.ndarray) -> np.ndarray | None:
+    """A stand-in detector: the ground-truth landmarks of a video whose first frame ``image`` is."""
+    return faces.get(bytes(image))
 
 
 def _tracking_log(data, monkeypatch) -> list[int]:
