@@ -214,7 +214,7 @@ def write_table(path: Path, idx: np.ndarray, wts: np.ndarray, names: tuple[str, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("--assets", type=Path, default=assets_folder(),
                         help="the shared assets (grid/*.mpg, photos/astronaut.png; default TORCHFACE_ASSETS, else "
                         "../shared/assets)")  # fmt: skip

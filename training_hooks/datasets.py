@@ -150,7 +150,6 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
 from torchface.detect import detector_image, search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int, check_optional_real
-from torchface._words import counted
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, open_capture, open_frames
@@ -408,7 +407,7 @@ class _CountProgress:
             f" ({self.why}; each video file is decoded through, and with a detector searched for its first face, "
             "once per dataset: DatasetConfig(progress_after=None) says nothing)"
         )  # fmt: skip
-        self._say(f"counting the items of {counted(self.total, 'video')}: {done} counted in {elapsed:.0f} s{first}")
+        self._say(f"counting the items of {self.total} video{'' if self.total == 1 else 's'}: {done} counted in {elapsed:.0f} s{first}")
         self.said = True
         if self.due is not None:
             self.due = elapsed + PROGRESS_EVERY_S
@@ -416,7 +415,7 @@ class _CountProgress:
     def end(self) -> None:
         """The count is over: its last line, where it said anything before."""
         if self.said and self.due is not None:
-            self._say(f"counted the items of {counted(self.total, 'video')} in {time.monotonic() - self.t0:.0f} s")
+            self._say(f"counted the items of {self.total} video{'' if self.total == 1 else 's'} in {time.monotonic() - self.t0:.0f} s")
 
 
 def _process_group() -> tuple[int, int] | None:
