@@ -1536,8 +1536,10 @@ def _candide3() -> FaceModel:
     the default model of every job (a load took 45 ms, and each job loaded it, and :func:`_candide_digest` once
     more). Shared by the jobs, never changed: a :class:`FaceModel` is frozen, nothing of the job writes into its
     tensors (another device or dtype is a copy, :meth:`FaceModel.to`), and no job returns it; its CPU tensors (43 KB)
-    stay alive, never a job's device copy."""
-    return load_candide3()
+    stay alive, never a job's device copy. On the CPU whatever torch's default device (``torch.set_default_device``,
+    a ``with torch.device("cuda"):`` block) is when the first job loads it: loaded there, a GPU copy stayed alive for
+    the process's life."""
+    return load_candide3(device="cpu")
 
 
 @lru_cache(maxsize=1)

@@ -130,9 +130,9 @@ import functools
 import itertools
 import math
 import os
-import sys
 import pickle
 import random
+import sys
 import time
 import types
 import warnings
@@ -147,6 +147,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from torchface._words import counted
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
 from torchface.detect import detector_image, search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int, check_optional_real
@@ -391,6 +392,9 @@ class _CountProgress:
         self.said = False
 
     def _say(self, line: str) -> None:
+        if sys.stderr is None:  # (pythonw, a detached process: print(file=None) wrote the line to stdout)
+            self.due = None
+            return
         try:
             print(f"{self.name}: {line}", file=sys.stderr, flush=True)
         except (OSError, ValueError):  # (a closed or broken stderr: the count goes on without a word)

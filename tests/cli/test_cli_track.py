@@ -449,7 +449,7 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     tracked. Now the inputs are checked one at a time, and a batch of up to ``max_batch`` is open at once. Those of
     the first batch stay open from their check at their first frame (each was opened and its first frame decoded
     again), within ``max_batch``, their outputs as those of a run that opens them again to the byte; none is left
-    open by an input refused after them."""
+    open by an input refused after them, or by Ctrl-C during a later input's check."""
     import torchface.job as job
 
     video, lm, _ = clip
@@ -511,6 +511,16 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     with pytest.raises(InputError, match="bad.npy"):
         track_videos([*inputs, tmp_path / "bad.npy"], JobConfig(tmp_path / "bad", landmarks=(lm, small_lm, lm, lm)))
     assert not is_open  # (a and b were held when bad.npy was refused)
+
+    def interrupted(path, *args):  # (Ctrl-C while b is checked, a held)
+        if path.name == "b.npy":
+            raise KeyboardInterrupt
+        return real_check(path, *args)
+
+    monkeypatch.setattr(job, "_open_input", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        track_videos(held_ones, JobConfig(tmp_path / "stop", landmarks=(lm, lm)))
+    assert opened[-1] == "a" and not is_open
     with pytest.raises(ValueError, match="max_batch must be an int >= 1"):
         JobConfig(out_dir=tmp_path, max_batch=0)
     for bad in (1.5, True):  # a wrong type is a TypeError (it was a ValueError)

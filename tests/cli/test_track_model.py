@@ -170,19 +170,29 @@ def test_a_job_keeps_no_model_alive_after_it(clip, tmp_path):
 
 def test_the_default_model_is_loaded_once_per_process_and_left_as_loaded(clip, default_run, tmp_path, monkeypatch):
     """Each job loaded CANDIDE-3 (45 ms), and the check of its digest loaded it once more. Now the first job loads it
-    and the later ones share it (a job's model is _job_model's): one load; it is left equal to a fresh load (nothing
-    of a job writes into it), and the job's outputs are the default run's byte for byte."""
+    and the later ones share it (a job's model is _job_model's): one load, on the CPU whatever torch's default device
+    then (a GPU copy loaded there stayed alive for the process's life; under "meta" the load failed); nothing of a
+    job writes into it (its tensors' version counters, which count in-place writes, even of equal values, are as
+    loaded; it equals a fresh load), and the job's outputs are the default run's byte for byte."""
     video, root = clip
     loads: list[int] = []
     real = torchface.job.load_candide3
     monkeypatch.setattr(torchface.job, "load_candide3", lambda *a, **k: loads.append(1) or real(*a, **k))
     torchface.job._candide3.cache_clear()
     torchface.job._candide_digest.cache_clear()
+    with torch.device("meta"):  # (the default device when the first job loads it; "cuda" where there is one)
+        shared = torchface.job._job_model(JobConfig(tmp_path))
+    assert shared.device == torch.device("cpu")
+    tensors = {f.name: getattr(shared, f.name) for f in fields(shared) if isinstance(getattr(shared, f.name),
+               torch.Tensor)}  # fmt: skip
+    versions = {name: t._version for name, t in tensors.items()}
     track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm68.csv",)))
     for kind in ("csv", "overlay", "normalised"):
         assert output_paths(tmp_path, NAME)[kind].read_bytes() == default_run[kind].read_bytes()
-    shared = torchface.job._job_model(JobConfig(tmp_path / "next"))  # (the next job's)
+    assert torchface.job._job_model(JobConfig(tmp_path / "next")) is shared  # (the next job's)
     assert shared is torchface.job._candide3() and len(loads) == 1
+    assert {name: t._version for name, t in tensors.items()} == versions
+    assert not any(t.requires_grad for t in tensors.values())
     fresh = load_candide3()
     assert all(torch.equal(getattr(shared, f.name), getattr(fresh, f.name)) if isinstance(getattr(fresh, f.name),
                torch.Tensor) else getattr(shared, f.name) == getattr(fresh, f.name) for f in fields(fresh))  # fmt: skip

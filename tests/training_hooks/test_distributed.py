@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 import pickle
 import re
+import sys
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -530,7 +531,7 @@ def test_a_long_count_says_how_far_it_has_got_from_one_process(uneven, config, m
     comes before the first batch under DDP and in count_items(): over 200 videos, minutes without a word. A count
     that takes longer than DatasetConfig.progress_after (here 0: from its first video) says how far it has got on
     stderr, in whole lines, from rank 0's DataLoader worker 0 alone; a count that takes less than the default 5 s,
-    one already made, and progress_after=None say nothing."""
+    one already made, and progress_after=None say nothing; without a stderr (pythonw) nothing is said on stdout."""
     videos, landmarks = uneven
     cfg = replace(config, cache_dir=None, progress_after=0)
     detector = functools.partial(_first_frame_face, {bytes(np.load(v)[0]): lm for v, lm in zip(videos, landmarks)})
@@ -563,6 +564,10 @@ def test_a_long_count_says_how_far_it_has_got_from_one_process(uneven, config, m
     for quiet in (replace(cfg, progress_after=None), replace(cfg, progress_after=DatasetConfig().progress_after)):
         assert VideoDataset(videos, detector, quiet).count_items() == list(LENGTHS)
         assert VideoDataset(videos, landmarks, quiet).worker_items(0, 2, 0, 2) == 10 and said() == []
+    with monkeypatch.context() as m:  # no stderr (pythonw, a detached process): nothing said, not on stdout instead
+        m.setattr(sys, "stderr", None)
+        assert VideoDataset(videos, detector, cfg).count_items() == list(LENGTHS)
+    assert capsys.readouterr() == ("", "")
 
 
 def _first_frame_face(faces: dict[bytes, np.ndarray], image: np.ndarray) -> np.ndarray | None:
