@@ -319,7 +319,7 @@ def test_mediapipe_finds_a_small_face_in_a_large_frame():
     """With mediapipe and its model installed: GRID's face at 3/4 size (83 px brow to chin) in a 1920x1080 frame,
     which the whole frame's scan misses, is found in a tile, its points 2.9 % of the eye distance from the packaged
     (dlib) points of the original frame moved with it on average (checked: under 6 %; 2.7-3.7 % at six places in
-    the frame; at half size 3.3-10.7 %)."""
+    the frame; at half size 3.3-10.7 %), also with a larger face beside it when asked for with ``near``."""
     pytest.importorskip("mediapipe", reason="mediapipe (torchface[mediapipe]) is not installed")
     _model_or_skip()
     import cv2
@@ -333,7 +333,16 @@ def test_mediapipe_finds_a_small_face_in_a_large_frame():
     frame[:] = image[0, 0]
     frame[700:916, 1300:1570] = small
     expected = (photo.landmarks_px.numpy() + 0.5) * 0.75 - 0.5 + [1300, 700]
-    points = load_detector("mediapipe")(frame)
+    detect = load_detector("mediapipe")
+    points = detect(frame)
     assert points is not None
     eyes = np.linalg.norm(expected[36:42].mean(axis=0) - expected[42:48].mean(axis=0))
+    assert (np.linalg.norm(points - expected, axis=1) / eyes).mean() < 0.06
+    # A larger face beside it, which the whole frame's scan finds: without `near` that one; `near` the small face
+    # (a lost stream's own), the small one again, from the tiles (it was the larger one)
+    from torchface.synth.subjects import james_frontal_photo
+
+    frame[100:612, 100:612] = detector_image(james_frontal_photo(512).image)
+    assert detect(frame)[:, 0].max() < 612
+    points = detect(frame, near=expected + 3.0)
     assert (np.linalg.norm(points - expected, axis=1) / eyes).mean() < 0.06
