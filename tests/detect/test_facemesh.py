@@ -313,6 +313,7 @@ def test_mediapipe_on_a_rendered_face_lands_near_the_true_landmarks():
     eyes = np.linalg.norm(truth[36:42].mean(axis=0) - truth[42:48].mean(axis=0))
     error = np.linalg.norm(points - truth, axis=1) / eyes
     assert error[17:].mean() < 0.05 and error.mean() < 0.10, (error[17:].mean(), error.mean())
+    assert error[17:].max() < 0.2, error[17:].argmax() + 17  # (measured 11 %, at 27: one table row gone astray)
 
 
 def test_mediapipe_finds_a_small_face_in_a_large_frame():
