@@ -67,6 +67,10 @@ def test_mirror_vertices_pairs_a_symmetric_meshs_vertices_and_refuses_an_asymmet
         (lambda rows: [rows[1], rows[0]] + rows[2:], "ordered 0..67, row 0 has ibug_index 1"),
         (lambda rows: [rows[0].replace(",1,", ",0.9,", 1)] + rows[1:], r"weights >= 0 summing to 1"),
         (lambda rows: [rows[0].replace("127", "478", 1)] + rows[1:], r"indices must be in \[0, 478\)"),
+        (lambda rows: [rows[0].replace(",1,", ",nan,", 1)] + rows[1:], r"weights >= 0 summing to 1"),  # (NaN: no < 0)
+        (lambda rows: [rows[0].replace(",1,", ",one,", 1)] + rows[1:], r"row 0: .* must be integers, w0-w2 numbers"),
+        (lambda rows: [rows[0].rsplit(",", 3)[0]] + rows[1:], r"row 0: .* must be integers, w0-w2 numbers"),
+        (lambda rows: None, r"must have the columns .*, lacks w2,meaning"),  # (the header cut after v2)
     ],
 )
 def test_a_damaged_mesh_table_is_refused(edit, message):
@@ -75,9 +79,12 @@ def test_a_damaged_mesh_table_is_refused(edit, message):
     lines = resources.files("torchface").joinpath("data", "mediapipe_landmarks68.csv").read_text("utf-8").splitlines()
     header = [line for line in lines if line.startswith("#") or line.startswith("ibug_index")]
     rows = [line for line in lines if line not in header]
-    assert rows[0].startswith("0,127,1,")  # (what the edits change)
+    assert rows[0].startswith("0,127,1,") and header[-1] == "ibug_index,v0,w0,v1,w1,v2,w2,meaning"
+    edited = edit(rows)
+    if edited is None:
+        header, edited = header[:-1] + ["ibug_index,v0,w0,v1,w1,v2"], rows
     with pytest.raises(ValueError, match=message):
-        read_mesh_table("\n".join(header + edit(rows)) + "\n")
+        read_mesh_table("\n".join(header + edited) + "\n")
 
 
 def _model_or_skip():
@@ -125,7 +132,7 @@ def _fake_mediapipe(root) -> None:
     )
     (package / "tasks" / "python" / "vision.py").write_text(
         "import types\n"
-        "made, asked, closed, faces = [], [], [], {}\n"
+        "made, asked, closed, faces, fail = [], [], [], {}, []\n"
         "class RunningMode:\n    IMAGE = 'image'\n"
         "class FaceLandmarkerOptions:\n"
         "    def __init__(self, **kw):\n        self.__dict__.update(kw)\n"
@@ -135,6 +142,7 @@ def _fake_mediapipe(root) -> None:
         "    def __init__(self):\n        self._handle = object()\n"
         "    def detect(self, image):\n"
         "        asked.append(image.data.shape)\n"
+        "        if fail:\n            raise RuntimeError(fail.pop())\n"
         "        found = faces.get(image.data.shape[:2], faces.get(None, []))\n"
         "        points = [[types.SimpleNamespace(x=x, y=y) for x, y in face] for face in found]\n"
         "        return types.SimpleNamespace(face_landmarks=points)\n"
@@ -209,6 +217,9 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
     assert len(vision.made) == 1 and vision.asked == [(20, 40, 3)] * 3  # one landmarker per detector
     with pytest.raises(ValueError, match=r"image must be \(H, W, 3\) uint8 RGB"):
         detect(image.astype(np.float32))
+    with pytest.raises(ValueError, match=r"with H, W >= 1, got \(0, 40, 3\)"):  # (it broke the real landmarker)
+        detect(image[:0])
+    assert len(vision.asked) == 3
     # In a process forked from this one (a DataLoader worker) the inherited landmarker is let go of unclosed (closing
     # it there hung: its threads are the parent's) and a new one is made
     inherited = detect._landmarker
@@ -216,6 +227,15 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
     detect(image)
     assert len(vision.made) == 2 and detect._landmarker is not inherited and vision.closed == []
     assert inherited._handle is None  # (mediapipe's close() and __del__ then return at once)
+    # A landmarker that raised is closed (the real one then fails at every image) and the next call makes another
+    failed = detect._landmarker
+    vision.fail.append("Graph has errors")
+    with pytest.raises(RuntimeError, match="Graph has errors"):
+        detect(image)
+    assert detect._landmarker is None and vision.closed == [failed._handle]
+    np.testing.assert_allclose(detect(image), largest)
+    assert len(vision.made) == 3 and detect._landmarker is not failed
+    vision.closed.clear()
     detect.close()
     assert len(vision.closed) == 1 and detect._landmarker is None  # its own is closed
     vision.made.clear()
@@ -259,6 +279,18 @@ def test_mediapipe_detector_scans_tiles_for_a_face_too_small_for_the_whole_frame
     vision.asked.clear()
     np.testing.assert_allclose(detect(image), mesh_to_ibug68(whole * [640, 480] - 0.5))
     assert vision.asked == [(480, 640, 3)]
+    # Another face in the whole frame, and `near` the one in the tiles (a lost stream's own face, too small for the
+    # whole frame's scan): the tiles are scanned too, and their face is the one returned
+    other = _face(0.2, 0.3, 0.1)
+    vision.faces[None] = [other]
+    vision.asked.clear()
+    points = detect(image, near=mesh_to_ibug68(whole * 240) + [x, y])
+    np.testing.assert_allclose(points, mesh_to_ibug68(whole * 240 - 0.5) + [x, y])
+    assert len(vision.asked) == 16
+    vision.asked.clear()  # `near` the whole frame's face (inside its box), or no `near`: no tiles
+    for near in (mesh_to_ibug68(other * [640, 480]) + [10.0, 5.0], None):
+        np.testing.assert_allclose(detect(image, near=near), mesh_to_ibug68(other * [640, 480] - 0.5))
+    assert vision.asked == [(480, 640, 3)] * 2
 
 
 # -- the real one ----------------------------------------------------------------------------------------------------
@@ -281,13 +313,14 @@ def test_mediapipe_on_a_rendered_face_lands_near_the_true_landmarks():
     eyes = np.linalg.norm(truth[36:42].mean(axis=0) - truth[42:48].mean(axis=0))
     error = np.linalg.norm(points - truth, axis=1) / eyes
     assert error[17:].mean() < 0.05 and error.mean() < 0.10, (error[17:].mean(), error.mean())
+    assert error[17:].max() < 0.2, error[17:].argmax() + 17  # (measured 11 %, at 27: one table row gone astray)
 
 
 def test_mediapipe_finds_a_small_face_in_a_large_frame():
     """With mediapipe and its model installed: GRID's face at 3/4 size (83 px brow to chin) in a 1920x1080 frame,
     which the whole frame's scan misses, is found in a tile, its points 2.9 % of the eye distance from the packaged
     (dlib) points of the original frame moved with it on average (checked: under 6 %; 2.7-3.7 % at six places in
-    the frame; at half size 3.3-10.7 %)."""
+    the frame; at half size 3.3-10.7 %), also with a larger face beside it when asked for with ``near``."""
     pytest.importorskip("mediapipe", reason="mediapipe (torchface[mediapipe]) is not installed")
     _model_or_skip()
     import cv2
@@ -301,7 +334,16 @@ def test_mediapipe_finds_a_small_face_in_a_large_frame():
     frame[:] = image[0, 0]
     frame[700:916, 1300:1570] = small
     expected = (photo.landmarks_px.numpy() + 0.5) * 0.75 - 0.5 + [1300, 700]
-    points = load_detector("mediapipe")(frame)
+    detect = load_detector("mediapipe")
+    points = detect(frame)
     assert points is not None
     eyes = np.linalg.norm(expected[36:42].mean(axis=0) - expected[42:48].mean(axis=0))
+    assert (np.linalg.norm(points - expected, axis=1) / eyes).mean() < 0.06
+    # A larger face beside it, which the whole frame's scan finds: without `near` that one; `near` the small face
+    # (a lost stream's own), the small one again, from the tiles (it was the larger one)
+    from torchface.synth.subjects import james_frontal_photo
+
+    frame[100:612, 100:612] = detector_image(james_frontal_photo(512).image)
+    assert detect(frame)[:, 0].max() < 612
+    points = detect(frame, near=expected + 3.0)
     assert (np.linalg.norm(points - expected, axis=1) / eyes).mean() < 0.06

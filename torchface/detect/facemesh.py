@@ -93,23 +93,35 @@ def read_mesh_table(text: str | None = None) -> tuple[np.ndarray, np.ndarray, tu
         ``(68, 3)`` int64 vertex indices, ``(68, 3)`` float64 weights (0 for an unused slot) and 68 names.
 
     Raises:
-        ValueError: rows missing or out of order, an index outside ``[0, 478)``, a negative weight, or a row's
-            weights not summing to one.
+        ValueError: columns or rows missing, rows out of order, a value that is not a number, an index outside
+            ``[0, 478)``, a negative or non-finite weight, or a row's weights not summing to one.
     """
     if text is None:
         text = resources.files("torchface").joinpath("data", "mediapipe_landmarks68.csv").read_text("utf-8")
-    rows = list(csv.DictReader(io.StringIO("".join(line for line in text.splitlines(True) if line[:1] != "#"))))
+    reader = csv.DictReader(io.StringIO("".join(line for line in text.splitlines(True) if line[:1] != "#")))
+    columns = ["ibug_index", "v0", "w0", "v1", "w1", "v2", "w2", "meaning"]
+    missing = [c for c in columns if c not in (reader.fieldnames or [])]
+    if missing:
+        raise ValueError(f"the MediaPipe landmark table must have the columns {','.join(columns)}, lacks "
+                         f"{','.join(missing)}")  # fmt: skip
+    rows = list(reader)
     if len(rows) != 68:
         raise ValueError(f"the MediaPipe landmark table must have 68 rows, got {len(rows)}")
     idx = np.zeros((68, 3), dtype=np.int64)
     wts = np.zeros((68, 3), dtype=np.float64)
     names = []
     for k, row in enumerate(rows):
-        if int(row["ibug_index"]) != k:
+        try:
+            index = int(row["ibug_index"])
+            idx[k] = [int(row[f"v{j}"]) for j in range(3)]
+            wts[k] = [float(row[f"w{j}"]) for j in range(3)]
+        except (TypeError, ValueError):  # (TypeError: a short row's None)
+            raise ValueError(f"landmark table row {k}: ibug_index and v0-v2 must be integers, w0-w2 numbers, got "
+                             f"{[row.get(c) for c in columns[:-1]]}") from None  # fmt: skip
+        if index != k:
             raise ValueError(f"landmark table rows must be ordered 0..67, row {k} has ibug_index {row['ibug_index']}")
-        idx[k] = [int(row[f"v{j}"]) for j in range(3)]
-        wts[k] = [float(row[f"w{j}"]) for j in range(3)]
-        if ((idx[k] < 0) | (idx[k] >= MESH_POINTS)).any() or (wts[k] < 0).any() or abs(wts[k].sum() - 1.0) > 1e-9:
+        bad_weights = not (np.isfinite(wts[k]).all() and (wts[k] >= 0).all() and abs(wts[k].sum() - 1.0) <= 1e-9)
+        if ((idx[k] < 0) | (idx[k] >= MESH_POINTS)).any() or bad_weights:  # (NaN weights: not >= 0, not summing)
             raise ValueError(f"landmark {k}: indices must be in [0, {MESH_POINTS}) and weights >= 0 summing to 1, "
                              f"got {idx[k].tolist()} {wts[k].tolist()}")  # fmt: skip
         names.append(row["meaning"])
@@ -251,17 +263,20 @@ def _mediapipe_parts() -> Any:
 class MediaPipeDetector(_PerImageDetector):
     """MediaPipe's FaceLandmarker (IMAGE mode) with the 468/478 -> 68 table (:class:`~torchface.detect.Detector`,
     with ``near``): ``(H, W, 3)`` uint8 RGB -> ``(68, 2)`` float64 pixels (pixel centres at integers:
-    ``x * W - 0.5``), or None where it finds no face. Where the whole frame shows none it scans overlapping tiles
-    of it (:func:`_tiles`: faces from about a twentieth of the frame's shorter side). Of the faces found (up to
+    ``x * W - 0.5``), or None where it finds no face. Where the whole frame shows none, or (given ``near``) none
+    whose points' box holds the centre of ``near``'s box, it also scans overlapping tiles of it (:func:`_tiles`:
+    faces from about a twentieth of the frame's shorter side; 15-21 more scans). Of the faces found (up to
     :data:`MAX_FACES` a scan) it returns the one whose points' box centre is nearest the centre of ``near``'s box,
-    else the largest.
+    else the largest. An empty image is a ValueError.
 
     Args:
         model: the ``face_landmarker.task`` file (:func:`find_model` looks for one when None).
 
     The landmarker is made at the first call, once per object and process (a ``DataLoader`` worker forked from a
     process that had used it makes its own, leaving the inherited one untouched). It pickles as its ``model``
-    argument (a spawned worker, a checkpoint): the copy finds the model again.
+    argument (a spawned worker, a checkpoint): the copy finds the model again. One detector is not for two threads
+    at once (they would share its landmarker). Where the landmarker raises, it is closed and the next call makes
+    another (a FaceLandmarker that has failed fails at every later image).
 
     Raises:
         DetectorUnavailable: mediapipe or the model file is missing (the message says how to install them).
@@ -315,10 +330,14 @@ class MediaPipeDetector(_PerImageDetector):
     def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
         height, width = image_rgb.shape[:2]
+        if height == 0 or width == 0:  # (an empty image left FaceLandmarker's graph failing at every later image)
+            raise ValueError(f"image must be (H, W, 3) uint8 RGB with H, W >= 1, got {image_rgb.shape}")
         points = self._faces(image_rgb, 0, 0, width, height)
-        if len(points) == 0:  # a face too small for the whole frame's scan: the frame's tiles (_tiles)
+        if len(points) == 0 or not _holds(points, near):
+            # no face, or none where `near` is (the face wanted, too small for the whole frame's scan, beside a
+            # larger one): the frame's tiles (_tiles) too
             found = [self._faces(image_rgb, x, y, side, side, inside=True) for x, y, side in _tiles(width, height)]
-            points = np.concatenate(found) if found else points
+            points = np.concatenate([points, *found])
         if len(points) == 0:
             return None
         low, high = points.min(axis=1), points.max(axis=1)
@@ -329,7 +348,18 @@ class MediaPipeDetector(_PerImageDetector):
         ``inside``: only those whose points all lie in that part (a face cut by a tile's edge is whole in
         another)."""
         part = np.ascontiguousarray(image_rgb[y : y + h, x : x + w])
-        found = self._get_landmarker().detect(self._mp.Image(image_format=self._mp.ImageFormat.SRGB, data=part))
+        landmarker = self._get_landmarker()
+        try:
+            found = landmarker.detect(self._mp.Image(image_format=self._mp.ImageFormat.SRGB, data=part))
+        except Exception:
+            # FaceLandmarker's graph, once it has failed, fails at every later image ("Graph has errors"): the next
+            # call makes a new one
+            self._landmarker = None
+            try:
+                landmarker.close()
+            except Exception:  # (a failed graph may not close cleanly either; the error raised is the first)
+                pass
+            raise
         if not found.face_landmarks:
             return np.zeros((0, 68, 2))
         mesh = np.array([[[p.x, p.y] for p in face] for face in found.face_landmarks], dtype=np.float64)  # [0, 1]
@@ -337,6 +367,19 @@ class MediaPipeDetector(_PerImageDetector):
         if inside:
             points = points[((points >= -0.5) & (points <= [w - 0.5, h - 0.5])).all(axis=(1, 2))]
         return points + [x, y]
+
+
+def _holds(points: np.ndarray, near: np.ndarray | None) -> bool:
+    """Whether one of the faces ``points`` ``(F, 68, 2)`` has the centre of ``near``'s box ``(N, 2)`` (its finite
+    rows; :class:`~torchface.detect.Detector`) inside its points' box; True without ``near``."""
+    if near is None:
+        return True
+    near = np.asarray(near, dtype=np.float64).reshape(-1, 2)
+    near = near[np.isfinite(near).all(axis=1)]
+    if len(near) == 0:
+        return True
+    centre = (near.min(axis=0) + near.max(axis=0)) / 2
+    return bool(((points.min(axis=1) <= centre) & (centre <= points.max(axis=1))).all(axis=1).any())
 
 
 def _tiles(width: int, height: int) -> list[tuple[int, int, int]]:
