@@ -384,7 +384,7 @@ def _holds(points: np.ndarray, near: np.ndarray | None) -> bool:
 
 def _tiles(width: int, height: int) -> list[tuple[int, int, int]]:
     """Square tiles ``(x, y, side)`` of a ``width x height`` frame that :class:`MediaPipeDetector` scans when the
-    whole frame shows no face. FaceLandmarker's short-range face detector scans the frame shrunk to 128 pixels
+    whole frame shows no face (or, given ``near``, none where it asks). FaceLandmarker's short-range face detector scans the frame shrunk to 128 pixels
     across: it missed GRID's face (brow to chin) under about a tenth of the frame's longer side (found at 0.12,
     missed at 0.09, in 640x480, 1920x1080 and 3840x2160 frames). The tiles are half the shorter side wide and
     overlap by at least half that (a face up to a quarter of the shorter side is whole in one); with them faces
