@@ -86,7 +86,7 @@ def collect(assets: Path, model: Path) -> dict[str, np.ndarray]:
                 found = landmarker.detect(mp.Image(image_format=mp.ImageFormat.SRGB, data=image)).face_landmarks
                 mesh = np.full((478, 2), np.nan)
                 if found:
-                    mesh = np.array([[p.x, p.y] for p in found[0]]) * [width, height] - 0.5
+                    mesh = np.array([[p.x, p.y] for p in found[0]]) * [width, height]  # (as MediaPipeDetector)
                 out["source"].append(source)
                 out["frame"].append(index)
                 out["flipped"].append(flipped)

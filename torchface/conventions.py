@@ -56,8 +56,9 @@ where they cannot be pixels of a trackable face: all within :data:`NORMALISED_LA
 (a little outside ``[0, 1]`` for a face partly out of the frame), spanning at most
 :data:`NORMALISED_LANDMARK_MAX_SPAN`, in frames of at least :data:`NORMALISED_CHECK_MIN_SIDE` pixels a side
 (:func:`torchface.tracker.fit.check_pixel_landmarks`, :func:`torchface.io.check_landmarks`); pixels of them:
-``x * W - 0.5``, ``y * H - 0.5``. One stream's among streams in pixels, or a detector's for a stream
-(:func:`torchface.tracker.fit.normalised_streams`), fail that stream alone (``TrackResult.start_failure``).
+``x * W``, ``y * H`` (MediaPipe's ``x / W`` is of pixel coordinates with centres at integers, measured:
+see :class:`torchface.detect.facemesh.MediaPipeDetector`). One stream's among streams in pixels, or a detector's
+for a stream (:func:`torchface.tracker.fit.normalised_streams`), fail that stream alone (``TrackResult.start_failure``).
 MediaPipe's face mesh points (:data:`MEDIAPIPE_MESH_POINT_COUNTS` of them) are not the iBUG-68 landmarks that
 CANDIDE-3 and the detectors use: a count of theirs where 68 are wanted is refused with :data:`MEDIAPIPE_MESH_HINT`.
 

@@ -34,9 +34,9 @@ def clip():
 
 
 def normalised(landmarks: torch.Tensor) -> torch.Tensor:
-    """``landmarks`` ``(..., 2)`` in pixels (centres at integers) as MediaPipe gives them: x / W, y / H of the image's
-    edges, in [0, 1]."""
-    return (landmarks + 0.5) / torch.tensor([float(W), float(H)])
+    """``landmarks`` ``(..., 2)`` in pixels (centres at integers) as MediaPipe gives them: x / W, y / H, in [0, 1]
+    (MediaPipe's convention, measured: torchface.detect.facemesh.MediaPipeDetector)."""
+    return landmarks / torch.tensor([float(W), float(H)])
 
 
 def test_inputs_on_the_meta_device_are_named(clip):
@@ -68,10 +68,10 @@ def test_landmarks_in_normalised_coordinates_are_told_how_to_make_pixels(clip):
     frames, lm = clip
     with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\] x \[-0.5, 1.5\]: normalised "
                                          r"coordinates .*landmarks \* torch.tensor\(\[160.0, 120.0\]\) "
-                                         r"- 0.5 for these 160x120"):
+                                         r"for these 160x120"):
         FaceTracker(CFG).initialise(frames[:1], normalised(lm)[None])
     tracker = FaceTracker(CFG)
-    converted = tracker.initialise(frames[:1], (normalised(lm) * torch.tensor([160.0, 120.0]) - 0.5)[None])
+    converted = tracker.initialise(frames[:1], (normalised(lm) * torch.tensor([160.0, 120.0]))[None])
     reference = FaceTracker(CFG).initialise(frames[:1], lm[None])
     assert int(converted.status) == CONVERGED
     assert torch.allclose(converted.translation, reference.translation, atol=1e-3)
@@ -123,7 +123,7 @@ def test_a_detector_answering_normalised_coordinates_is_named(clip):
     reasons = []
     with pytest.warns(RuntimeWarning, match=r"^the detector's landmarks of some streams lie within \[-0.5, 1.5\] x "
                                             r"\[-0.5, 1.5\]: normalised .*landmarks \* torch.tensor\(\[160.0, "
-                                            r"120.0\]\) - 0.5 for these 160x120 frames"):
+                                            r"120.0\]\) for these 160x120 frames"):
         for t in (1, 2, 1, 2, 1, 2):
             result = tracker(frames[t : t + 1])
             assert int(result.status) == LOST
@@ -230,14 +230,14 @@ def test_a_landmarks_file_of_normalised_coordinates_is_refused_naming_it(tmp_pat
     rows = normalised(lm).double().tolist()
     path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in rows))
     with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[-0.5, 1.5\] x \[-0.5, 1.5\]: "
-                                         r"normalised coordinates .* Give pixels, centres at integers: x \* 160 - 0.5, "
-                                         r"y \* 120 - 0.5$"):  # fmt: skip
+                                         r"normalised coordinates .* Give pixels, centres at integers: x \* 160, "
+                                         r"y \* 120$"):  # fmt: skip
         read_landmarks(path, W, H)
     x0 = min(x for x, _ in rows) + 0.05  # a face partly out of the frame: MediaPipe's points a little outside [0, 1]
     path.write_text("x,y\n" + "".join(f"{x - x0!r},{y!r}\n" for x, y in rows))
     with pytest.raises(InputError, match=r"mediapipe.csv: every point lies within \[-0.5, 1.5\]"):
         read_landmarks(path, W, H)
-    pixels = [[x * W - 0.5, y * H - 0.5] for x, y in rows]
+    pixels = [[x * W, y * H] for x, y in rows]
     path.write_text("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in pixels))
     assert torch.allclose(torch.from_numpy(read_landmarks(path, W, H)), lm.double(), atol=1e-4)
     path.write_text("x,y\n" + "".join("nan,nan\n" if k < 60 else f"{x!r},{y!r}\n" for k, (x, y) in enumerate(pixels)))
@@ -250,7 +250,7 @@ def test_landmarks_checked_before_the_frame_size_is_known_are_told_the_rule(clip
     from torchface.io import InputError, check_landmarks
 
     _, lm = clip
-    with pytest.raises(InputError, match=r"^a.avi: landmarks: every point .* x \* W - 0.5, y \* H - 0.5$"):
+    with pytest.raises(InputError, match=r"^a.avi: landmarks: every point .* x \* W, y \* H$"):
         check_landmarks(normalised(lm).numpy(), 1 << 30, 1 << 30, "a.avi: landmarks", missing=True)
 
 

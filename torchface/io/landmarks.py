@@ -609,7 +609,7 @@ def check_landmarks(
         w, h = (str(width), str(height)) if max(width, height) < 1 << 30 else ("W", "H")
         raise InputError(
             f"{where}: every point lies within [{low}, {high}] x [{low}, {high}]: normalised coordinates (x / W, "
-            f"y / H, as MediaPipe writes them)? Give pixels, centres at integers: x * {w} - 0.5, y * {h} - 0.5"
+            f"y / H, as MediaPipe writes them)? Give pixels, centres at integers: x * {w}, y * {h}"
         )
     return points
 

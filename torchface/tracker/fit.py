@@ -469,7 +469,7 @@ def check_pixel_landmarks(
         raise ValueError(
             f"{name} lie within [{low}, {high}] x [{low}, {high}]: normalised coordinates (x / W, y / H, as MediaPipe "
             f"gives them)? The tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) "
-            f"- 0.5 for these {width}x{height} frames (a fit to them failed: they span about a pixel at most)"
+            f"for these {width}x{height} frames (a fit to them failed: they span about a pixel at most)"
         )
 
 

@@ -778,7 +778,7 @@ def _check_detector_output(landmarks: object, count: int, k: int, width: int, he
         warnings.warn(
             f"the detector's landmarks of some streams lie within [{low}, {high}] x [{low}, {high}]: normalised "
             f"coordinates (x / W, y / H, as MediaPipe gives them)? The tracker takes pixels, centres at integers: "
-            f"landmarks * torch.tensor([{width}.0, {height}.0]) - 0.5 for these {width}x{height} frames. Those streams "
+            f"landmarks * torch.tensor([{width}.0, {height}.0]) for these {width}x{height} frames. Those streams "
             "are taken as no face found (a restart's TrackResult.start_failure: NORMALISED_LANDMARKS)",
             RuntimeWarning, stacklevel=2,
         )  # fmt: skip

@@ -133,8 +133,8 @@ class StartFailure(enum.IntEnum):
 _START_FAILURE_REASONS: dict[StartFailure, str | None] = {
     StartFailure.NONE: None,
     StartFailure.NO_LANDMARKS: "no face: too few finite landmarks of positive weight",
-    StartFailure.NORMALISED_LANDMARKS: "landmarks in normalised [0, 1] coordinates, not pixels (x * W - 0.5, "
-                                       "y * H - 0.5 makes pixels of them)",
+    StartFailure.NORMALISED_LANDMARKS: "landmarks in normalised [0, 1] coordinates, not pixels (x * W, y * H "
+                                       "makes pixels of them)",
     StartFailure.NO_POSE: "the landmark fit holds no pose (landmarks at one point, collinear, mirrored or seen from "
                           "behind: a fit turned away, edge-on or behind the camera)",
     StartFailure.FACE_TOO_SMALL: "the face is narrower than TrackerConfig.min_face_width_px",
