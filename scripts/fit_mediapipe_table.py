@@ -72,6 +72,7 @@ def collect(assets: Path, model: Path) -> dict[str, np.ndarray]:
     from mediapipe.tasks.python.core.base_options import BaseOptions
 
     from torchface.detect import load_detector
+    from torchface.detect.facemesh import mesh_pixels
 
     dlib = load_detector("dlib")
     options = vision.FaceLandmarkerOptions(base_options=BaseOptions(model_asset_path=str(model)),
@@ -86,7 +87,7 @@ def collect(assets: Path, model: Path) -> dict[str, np.ndarray]:
                 found = landmarker.detect(mp.Image(image_format=mp.ImageFormat.SRGB, data=image)).face_landmarks
                 mesh = np.full((478, 2), np.nan)
                 if found:
-                    mesh = np.array([[p.x, p.y] for p in found[0]]) * [width, height]  # (as MediaPipeDetector)
+                    mesh = mesh_pixels(found[:1], width, height)[0]  # (as MediaPipeDetector)
                 out["source"].append(source)
                 out["frame"].append(index)
                 out["flipped"].append(flipped)

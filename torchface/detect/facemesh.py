@@ -23,7 +23,7 @@ import os
 import weakref
 from importlib import resources
 from pathlib import Path
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -31,7 +31,7 @@ import numpy as np
 from torchface.detect import DetectorUnavailable, _check_image, _nearest, _PerImageDetector
 
 __all__ = [
-    "MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "canonical_mesh", "find_model", "mesh_to_ibug68",
+    "MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "canonical_mesh", "find_model", "mesh_pixels", "mesh_to_ibug68",
     "mirror_vertices", "read_mesh_table",
 ]  # fmt: skip
 
@@ -130,6 +130,13 @@ def read_mesh_table(text: str | None = None) -> tuple[np.ndarray, np.ndarray, tu
                              f"got {idx[k].tolist()} {wts[k].tolist()}")  # fmt: skip
         names.append(row["meaning"])
     return idx, wts, tuple(names)
+
+
+def mesh_pixels(face_landmarks: Sequence[Sequence[Any]], width: int, height: int) -> np.ndarray:
+    """FaceLandmarker's faces (``result.face_landmarks``: per face its points, each with normalised ``x, y``) in the
+    pixels of the ``width x height`` image they were found in, centres at integers: ``(F, P, 2)`` float64,
+    ``x * width, y * height`` (the convention :class:`MediaPipeDetector` measured)."""
+    return np.array([[[p.x, p.y] for p in face] for face in face_landmarks], dtype=np.float64) * [width, height]
 
 
 _TABLE: tuple[np.ndarray, np.ndarray] | None = None
@@ -274,9 +281,8 @@ class MediaPipeDetector(_PerImageDetector):
     James render its points lay 0.46 px left of the true landmarks on average, now 0.03 px right). Where the whole
     frame shows none, or (given ``near``) none whose points' box holds the centre of ``near``'s box, it also scans
     overlapping tiles of it (:func:`_tiles`: faces from about a twentieth of the frame's shorter side; 15-21 more
-    scans). Of the faces found (up to
-    :data:`MAX_FACES` a scan) it returns the one whose points' box centre is nearest the centre of ``near``'s box,
-    else the largest. An empty image is a ValueError.
+    scans). Of the faces found (up to :data:`MAX_FACES` a scan) it returns the one whose points' box centre is
+    nearest the centre of ``near``'s box, else the largest. An empty image is a ValueError.
 
     Args:
         model: the ``face_landmarker.task`` file (:func:`find_model` looks for one when None).
@@ -371,8 +377,7 @@ class MediaPipeDetector(_PerImageDetector):
             raise
         if not found.face_landmarks:
             return np.zeros((0, 68, 2))
-        mesh = np.array([[[p.x, p.y] for p in face] for face in found.face_landmarks], dtype=np.float64)  # [0, 1]
-        points = mesh_to_ibug68(mesh * [w, h])  # (F, 68, 2) pixels of the part (centres at integers: the class's)
+        points = mesh_to_ibug68(mesh_pixels(found.face_landmarks, w, h))  # (F, 68, 2) pixels of the part
         if inside:
             points = points[((points >= -0.5) & (points <= [w - 0.5, h - 0.5])).all(axis=(1, 2))]
         return points + [x, y]
