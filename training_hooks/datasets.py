@@ -386,6 +386,7 @@ class _CountProgress:
 
     def __init__(self, name: str, total: int, why: str, after: float | None) -> None:
         self.name, self.total, self.why = name, total, why
+        self.videos = f"{total} video{'' if total == 1 else 's'}"
         self.t0 = time.monotonic()
         self.due = after  # seconds into the count of the next line (None: no line)
         self.said = False
@@ -410,7 +411,7 @@ class _CountProgress:
             f" ({self.why}; each video file is decoded through, and with a detector searched for its first face, "
             "once per dataset: DatasetConfig(progress_after=None) says nothing)"
         )  # fmt: skip
-        self._say(f"counting the items of {self.total} video{'' if self.total == 1 else 's'}: {done} counted in {elapsed:.0f} s{first}")
+        self._say(f"counting the items of {self.videos}: {done} counted in {elapsed:.0f} s{first}")
         self.said = True
         if self.due is not None:
             self.due = elapsed + PROGRESS_EVERY_S
@@ -418,7 +419,7 @@ class _CountProgress:
     def end(self) -> None:
         """The count is over: its last line, where it said anything before."""
         if self.said and self.due is not None:
-            self._say(f"counted the items of {self.total} video{'' if self.total == 1 else 's'} in {time.monotonic() - self.t0:.0f} s")
+            self._say(f"counted the items of {self.videos} in {time.monotonic() - self.t0:.0f} s")
 
 
 def _process_group() -> tuple[int, int] | None:
