@@ -341,8 +341,8 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
             lines.append(f"    warning: {s.input} declares {counted(s.declared_frames, 'frame')}, {s.frames} could be "
                          "decoded (truncated or damaged?)")  # fmt: skip
         if s.not_met_again:  # (--resume: the rows tracked again for the online start; warned about as they were)
-            rows, were = ("row", "was") if s.not_met_again == 1 else ("rows", "were")
-            lines.append(f"    warning: {s.not_met_again} {rows} written before the interruption {were} not "
+            were = plural(s.not_met_again, "was", "were")
+            lines.append(f"    warning: {counted(s.not_met_again, 'row')} written before the interruption {were} not "
                          f"met again when tracked again: the CSV holds rows of two runs that disagree ({s.name}.json's "
                          "resumed says by how much; track it without --resume for rows of one run)")  # fmt: skip
     for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)

@@ -1509,7 +1509,6 @@ class VideoDataset(IterableDataset):
         rng.shuffle(buffer)
         yield from buffer
 
-
     def _then_report(
         self, items: Iterator[dict[str, Tensor]], rank: int, world: int
     ) -> Iterator[dict[str, Tensor]]:
