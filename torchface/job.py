@@ -2116,7 +2116,7 @@ def _open_inputs(
             streams.append(stream)
             key = _batch_key(stream, config)
             first = key if first is None else first
-            in_first = key == first and first_count < _batch_size(key, config)  # (in the first batch)
+            in_first = key == first and first_count < _batch_size(key[0], key[1], config)  # (in the first batch)
             first_count += key == first
             # (the next input's check opens one more: at most max_batch open at once, as when tracking)
             room = held < config.max_batch - 1 or k == len(videos) - 1
@@ -2154,9 +2154,9 @@ def _batch_key(s: _Stream, config: JobConfig) -> tuple[int, int, int]:
     return H, W, pyramid_for_faces(config.tracker, torch.as_tensor(s.landmarks)[None], (H, W)).num_levels
 
 
-def _batch_size(key: tuple[int, int, int], config: JobConfig) -> int:
-    """The most videos of :func:`_batch_key` ``key`` in one batch: ``max_batch``, and :data:`BATCH_PIXELS` allow."""
-    return max(1, min(config.max_batch, BATCH_PIXELS // (key[0] * key[1])))
+def _batch_size(height: int, width: int, config: JobConfig) -> int:
+    """The most videos of ``height x width`` frames in one batch: ``max_batch``, and :data:`BATCH_PIXELS` allow."""
+    return max(1, min(config.max_batch, BATCH_PIXELS // (height * width)))
 
 
 #: The refused inputs that :func:`_open_inputs`' error names (the others are counted).
@@ -2524,11 +2524,11 @@ def _track_opened(
             if i in grouped:
                 continue
             groups.setdefault(_batch_key(s, config), []).append(i)
-        batches = [m[i : i + n] for key, m in groups.items() for n in [_batch_size(key, config)]
+        batches = [m[i : i + n] for key, m in groups.items() for n in [_batch_size(key[0], key[1], config)]
                    for i in range(0, len(m), n)]  # fmt: skip
         for m in reversed(again):  # (first; as many as max_batch and BATCH_PIXELS allow now: a part joined alone)
             H, W = streams[m[0]].reader.info.height, streams[m[0]].reader.info.width
-            n = max(1, min(config.max_batch, BATCH_PIXELS // (H * W)))
+            n = _batch_size(H, W, config)
             batches[:0] = [m[i : i + n] for i in range(0, len(m), n)]
         for i, s in enumerate(streams):  # (held open since its check for the first batch: _open_inputs)
             if not batches or i not in batches[0]:
