@@ -6,9 +6,12 @@ import importlib
 import os
 import pickle
 import signal
+import subprocess
 import sys
 import threading
+import weakref
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -337,6 +340,14 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     assert list(detect._landmarkers) == [threading.current_thread()] and len(vision.made) == 5
     detect.close()
     assert len(vision.closed) == 3 and detect._landmarkers == {}
+    # At exit every landmarker is let go of unclosed (closing one there raised: mediapipe's thread pool was shut down)
+    from torchface.detect import facemesh
+
+    detect(images[0])
+    left = _own(detect)
+    monkeypatch.setattr(facemesh, "_OPEN", weakref.WeakSet([detect]))  # (this test's detector alone)
+    facemesh._close_all()
+    assert len(vision.closed) == 3 and left._handle is None and detect._landmarkers == {}
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork")
@@ -454,12 +465,52 @@ def test_mediapipe_points_are_pixels_with_centres_at_integers():
     detect = load_detector("mediapipe")
     points = detect(image)
     assert points is not None
+    frames = [image]
     for k in (2, 4):
-        up = cv2.resize(image, (image.shape[1] * k, image.shape[0] * k), interpolation=cv2.INTER_NEAREST)
-        moved = detect(up)
+        frames.append(cv2.resize(image, (image.shape[1] * k, image.shape[0] * k), interpolation=cv2.INTER_NEAREST))
+        moved = detect(frames[-1])
         assert moved is not None
         offset = (moved - (k * points + (k - 1) / 2)).mean(axis=0) / k  # (in the original frame's pixels)
         assert np.abs(offset).max() < 0.15, (k, offset)
+    # Two threads at once, each with its own landmarker: the points of one thread's calls, bit for bit
+    alone = [detect(frame) for frame in frames + frames[::-1]]
+    meet = threading.Barrier(2, timeout=30)
+
+    def detect_all(frames: list) -> list:
+        meet.wait()  # (both threads' landmarkers made and working at once)
+        return [detect(frame) for frame in frames]
+
+    with ThreadPoolExecutor(2) as pool:
+        together = sum(pool.map(detect_all, [frames, frames[::-1]]), [])
+    assert len(detect._landmarkers) == 3
+    for a, b in zip(together, alone):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_mediapipe_detector_leaves_no_error_at_exit():
+    """With mediapipe and its model installed: a process that used the detector from its own and a pool's threads
+    exits without printing an error, also where mediapipe was imported first (before, closing the landmarkers at
+    exit printed "RuntimeError: cannot schedule new futures after shutdown": mediapipe's thread pool had been shut
+    down; and their ``__del__`` then "TypeError: 'NoneType' object is not callable")."""
+    pytest.importorskip("mediapipe", reason="mediapipe (torchface[mediapipe]) is not installed")
+    _model_or_skip()
+    code = (
+        "import mediapipe\n"
+        "import numpy as np\n"
+        "from concurrent.futures import ThreadPoolExecutor\n"
+        "from torchface.detect import load_detector\n"
+        "detect = load_detector('mediapipe')\n"
+        "image = np.zeros((64, 64, 3), np.uint8)\n"
+        "assert detect(image) is None\n"
+        "with ThreadPoolExecutor(2) as pool:\n"
+        "    assert list(pool.map(detect, [image] * 4)) == [None] * 4\n"
+        "print('done')\n"
+    )
+    root = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 0 and run.stdout == "done\n", run.stderr
+    assert "Traceback" not in run.stderr and "Exception ignored" not in run.stderr, run.stderr
 
 
 def test_mediapipe_finds_a_small_face_in_a_large_frame():

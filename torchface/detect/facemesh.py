@@ -296,7 +296,8 @@ class MediaPipeDetector(_PerImageDetector):
     made at its first call (FaceLandmarker serialises the calls of one landmarker inside: 2 threads sharing one ran
     GRID frames no faster than 1 thread, where one landmarker a thread ran them 1.6-1.8 times as fast on 2 cores;
     about 35 ms to make one); its results are those of the same calls in one thread. A thread's landmarker is
-    closed when a later thread makes one after it has ended, and all of them by :meth:`close` and at exit. The
+    closed when a later thread makes one after it has ended, and all of them by :meth:`close` (at exit they are
+    let go of: :func:`_close_all`). The
     landmarkers are made in the process they serve (a ``DataLoader`` worker forked from a process that had used
     them makes its own, leaving the inherited ones untouched). It pickles as its ``model`` and ``max_faces``
     arguments (a spawned worker, a checkpoint): the copy finds the model again. Where a landmarker raises, it is
@@ -368,11 +369,11 @@ class MediaPipeDetector(_PerImageDetector):
             landmarker.close()
 
     def _disown(self) -> None:
-        """Let go of the landmarkers made in the process this one was forked from (a ``DataLoader`` worker's copy of
-        the detector) without closing them: their threads are the parent's, and closing one, or its ``__del__`` when
-        replaced, waited for them for ever (mediapipe 1.2.2: a forked worker hung at its first image). Their handles
-        are cleared so that their ``close`` returns at once, and they are kept referenced so that they are never
-        collected. Called holding :data:`_LOCK`."""
+        """Let go of the landmarkers without closing them: in a process forked from the one they were made in (a
+        ``DataLoader`` worker's copy of the detector), whose threads are the parent's (closing one, or its ``__del__``
+        when replaced, waited for them for ever: mediapipe 1.2.2, a forked worker hung at its first image), and at
+        exit (:func:`_close_all`). Their handles are cleared so that their ``close`` returns at once, and they are
+        kept referenced so that they are never collected. Called holding :data:`_LOCK`."""
         for landmarker in self._landmarkers.values():
             if getattr(landmarker, "_handle", None) is not None:
                 landmarker._handle = None  # (mediapipe 1.2.2's close() returns at once without one)
@@ -460,13 +461,12 @@ def _tiles(width: int, height: int) -> list[tuple[int, int, int]]:
     return [(int(x), int(y), side) for x in xs for y in ys]
 
 
-#: Detectors holding a landmarker, closed at exit: a landmarker left to the interpreter's shutdown printed
-#: "Exception ignored in: <function FaceLandmarker.__del__ ...> TypeError: 'NoneType' object is not callable" (its
-#: ``__del__`` ran after the modules it calls were torn down; mediapipe 1.2.2).
+#: Detectors holding landmarkers, let go of at exit (:func:`_close_all`).
 _OPEN: "weakref.WeakSet[MediaPipeDetector]" = weakref.WeakSet()
 
 
-#: Landmarkers inherited through a fork and let go of (:meth:`MediaPipeDetector._disown`), never collected.
+#: Landmarkers inherited through a fork, or left at exit, and let go of (:meth:`MediaPipeDetector._disown`), never
+#: collected.
 _DISOWNED: list[Any] = []
 
 #: Guards every detector's table of landmarkers (made, ended, closed) and :data:`_OPEN`; a new one in a forked
@@ -485,5 +485,14 @@ if hasattr(os, "register_at_fork"):  # (POSIX)
 
 @atexit.register
 def _close_all() -> None:
-    for detector in list(_OPEN):
-        detector.close()
+    """At exit, let go of every detector's landmarkers unclosed (:meth:`MediaPipeDetector._disown`). Closing one
+    there cannot work: mediapipe 1.2.2 runs a landmarker's calls on a thread pool of its own, which the interpreter
+    has shut down before the ``atexit`` functions run, so ``close()`` raised "RuntimeError: cannot schedule new
+    futures after shutdown" (printed as "Exception ignored in atexit callback", and again by its ``__del__``), unless
+    mediapipe's own ``atexit`` function had run first and made it a no-op (as where mediapipe was imported after this
+    module). A landmarker left to the interpreter's teardown, handle and all, printed "Exception ignored in: <function
+    FaceLandmarker.__del__ ...> TypeError: 'NoneType' object is not callable" (its ``__del__`` ran after the modules
+    it calls were torn down)."""
+    with _LOCK:
+        for detector in list(_OPEN):
+            detector._disown()
