@@ -124,8 +124,9 @@ def _fake_mediapipe(root) -> None:
     """A stand-in ``mediapipe`` package in ``root`` whose FaceLandmarker finds the faces of its module's ``faces``
     (``(478, 2)`` normalised points; the first ``num_faces``) listed under the image's ``(H, W)`` (else under None)
     and records how it was made and asked, and by which thread. Its ``detect`` is not for two threads at once (the
-    real one's calls wait for each other): it keeps the image on the landmarker, and, where ``barrier`` holds one, waits there before
-    reading it back (a landmarker shared by the threads meeting there answers each with the last image)."""
+    real one's calls wait for each other): it keeps the image on the landmarker, and, where ``barrier`` holds one,
+    waits there before reading it back (a landmarker shared by the threads meeting there answers each with the last
+    image)."""
     package = root / "mediapipe"
     (package / "tasks" / "python" / "core").mkdir(parents=True)
     (package / "__init__.py").write_text(

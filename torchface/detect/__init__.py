@@ -29,7 +29,8 @@ lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` 
   from dlib's points: 3.7 % of the inter-ocular distance on average on held-out real faces). About 10 ms a frame;
   its detector is a short-range one: faces under about a tenth of the frame's longer side are looked for in
   overlapping tiles of it (where the whole frame shows none, or none where ``near`` is), which found faces from
-  about a twentieth of its shorter side.
+  about a twentieth of its shorter side. ``load_detector("mediapipe", max_faces=...)`` sets the faces a scan places
+  its points on (default 4). One detector may be called from several threads at once (a landmarker a thread).
 """
 
 from __future__ import annotations

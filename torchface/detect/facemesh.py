@@ -288,20 +288,23 @@ class MediaPipeDetector(_PerImageDetector):
 
     Args:
         model: the ``face_landmarker.task`` file (:func:`find_model` looks for one when None).
-        max_faces: the faces FaceLandmarker looks for in one scan (its ``num_faces``; default :data:`MAX_FACES`,
-            4), an int >= 1. A face beyond them is not seen: with ``near`` on one of five faces in a frame, give 5 or
-            more (or 1 where a frame shows one face: a crowd's other faces are then never placed).
+        max_faces: the faces FaceLandmarker places its points on in one scan (its ``num_faces``; default
+            :data:`MAX_FACES`, 4), an int >= 1. Of more faces than that it keeps those of its own choosing, neither
+            the largest nor those nearest ``near``: in a 1920x1080 frame with two faces, ``max_faces=1`` returned the
+            one it chose where 4 returned the larger, and found the other, asked for with ``near``, only in the tiles
+            (210 ms against 29). Give more where ``near`` is to choose among the faces of a crowd.
 
-    Threads: one detector may be called from several threads at once. Each thread gets a landmarker of its own,
-    made at its first call (FaceLandmarker serialises the calls of one landmarker inside: 2 threads sharing one ran
-    GRID frames no faster than 1 thread, where one landmarker a thread ran them 1.6-1.8 times as fast on 2 cores;
-    about 35 ms to make one); its results are those of the same calls in one thread. A thread's landmarker is
-    closed when a later thread makes one after it has ended, and all of them by :meth:`close` (at exit they are
-    let go of: :func:`_close_all`). The
-    landmarkers are made in the process they serve (a ``DataLoader`` worker forked from a process that had used
-    them makes its own, leaving the inherited ones untouched). It pickles as its ``model`` and ``max_faces``
-    arguments (a spawned worker, a checkpoint): the copy finds the model again. Where a landmarker raises, it is
-    closed and that thread's next call makes another (a FaceLandmarker that has failed fails at every later image).
+    Threads: one detector may be called from several threads at once. Each thread gets a landmarker of its own, made at
+    its first call in that thread (about 30 ms, 10-20 MB, and a thread of mediapipe's own); its results are those of the
+    same calls in one thread, bit for bit. mediapipe 1.2.2 runs each landmarker's calls one after another on a thread of
+    its own: on 100 GRID frames (360x288, 2 cores, best of 7 runs), 2 threads sharing one, with or without a lock, took
+    10.4-10.6 ms a frame as 1 thread took 10.1, and 2 threads with one landmarker each 6.4 ms (9.7 against 12.8 ms at
+    the median, on a machine others were using). A thread's landmarker is closed when another thread makes one after it
+    has ended, and all of them by :meth:`close`; at exit they are let go of (:func:`_close_all`). The landmarkers are
+    made in the process they serve (a ``DataLoader`` worker forked from a process that had used them makes its own,
+    leaving the inherited ones untouched). It pickles as its ``model`` and ``max_faces`` arguments (a spawned worker, a
+    checkpoint): the copy finds the model again. Where a landmarker raises, it is closed and that thread's next call
+    makes another (a FaceLandmarker that has failed fails at every later image).
 
     Raises:
         TypeError: ``max_faces`` is not an int.
@@ -351,7 +354,7 @@ class MediaPipeDetector(_PerImageDetector):
             running_mode=vision.RunningMode.IMAGE,
             num_faces=self._max_faces,
         )
-        landmarker = vision.FaceLandmarker.create_from_options(options)  # (outside the lock: 35 ms)
+        landmarker = vision.FaceLandmarker.create_from_options(options)  # (outside the lock: about 30 ms)
         with _LOCK:
             self._landmarkers[thread] = landmarker
             _OPEN.add(self)
