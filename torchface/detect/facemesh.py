@@ -345,7 +345,10 @@ class MediaPipeDetector(_PerImageDetector):
                 self._pid = os.getpid()
             ended = [self._landmarkers.pop(t) for t in list(self._landmarkers) if not t.is_alive()]
         for landmarker in ended:  # (a pool's threads that have ended: no call of theirs can be running)
-            landmarker.close()
+            try:
+                landmarker.close()
+            except Exception:  # (another thread's leftover: its failure to close is not this call's to raise)
+                pass
         from mediapipe.tasks.python import vision
         from mediapipe.tasks.python.core.base_options import BaseOptions
 
