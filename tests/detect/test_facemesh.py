@@ -354,8 +354,8 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork")
 def test_mediapipe_detector_works_in_a_process_forked_while_another_thread_held_its_lock(fake_mediapipe, monkeypatch):
     """A fork copies the lock guarding the detectors' landmarkers as it was: held, where another thread was making
-    one, and in the child no thread would ever release it. The child gets a new lock (it answered here, where it
-    waited for ever before), and lets go of the inherited landmarker unclosed."""
+    one, and in the child no thread would ever release it. The child gets a new lock (it answered here; with the
+    copied one it waited for ever), and lets go of the inherited landmarker unclosed."""
     task = fake_mediapipe / "a.task"
     task.write_bytes(b"model")
     monkeypatch.setenv(MODEL_ENV, str(task))
