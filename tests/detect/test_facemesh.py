@@ -3,8 +3,15 @@ detector's logic with a stand-in ``mediapipe`` (not installed here), and, where 
 installed, the real one on a frame of our own renderer."""
 
 import importlib
+import os
 import pickle
+import signal
+import subprocess
 import sys
+import threading
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -115,8 +122,11 @@ def test_mesh_table_maps_mediapipes_symmetric_canonical_face_to_a_symmetric_68()
 
 def _fake_mediapipe(root) -> None:
     """A stand-in ``mediapipe`` package in ``root`` whose FaceLandmarker finds the faces of its module's ``faces``
-    (``(478, 2)`` normalised points) listed under the image's ``(H, W)`` (else under None) and records how it was
-    made and asked."""
+    (``(478, 2)`` normalised points; the first ``num_faces``) listed under the image's ``(H, W)`` (else under None)
+    and records how it was made and asked, and by which thread. Its ``detect`` is not for two threads at once (the
+    real one's calls wait for each other): it keeps the image on the landmarker, and, where ``barrier`` holds one,
+    waits there before reading it back (a landmarker shared by the threads meeting there answers each with the last
+    image)."""
     package = root / "mediapipe"
     (package / "tasks" / "python" / "core").mkdir(parents=True)
     (package / "__init__.py").write_text(
@@ -131,19 +141,23 @@ def _fake_mediapipe(root) -> None:
         "    def __init__(self, model_asset_path):\n        self.model_asset_path = model_asset_path\n"
     )
     (package / "tasks" / "python" / "vision.py").write_text(
-        "import types\n"
-        "made, asked, closed, faces, fail = [], [], [], {}, []\n"
+        "import threading, types\n"
+        "made, asked, closed, faces, fail, users, barrier = [], [], [], {}, [], [], []\n"
         "class RunningMode:\n    IMAGE = 'image'\n"
         "class FaceLandmarkerOptions:\n"
         "    def __init__(self, **kw):\n        self.__dict__.update(kw)\n"
         "class FaceLandmarker:\n"
         "    @classmethod\n"
-        "    def create_from_options(cls, options):\n        made.append(options)\n        return cls()\n"
-        "    def __init__(self):\n        self._handle = object()\n"
+        "    def create_from_options(cls, options):\n"
+        "        made.append(options)\n        return cls(options.num_faces)\n"
+        "    def __init__(self, num_faces):\n        self._handle, self.num_faces = object(), num_faces\n"
         "    def detect(self, image):\n"
         "        asked.append(image.data.shape)\n"
+        "        users.append((self._handle, threading.get_ident()))\n"
         "        if fail:\n            raise RuntimeError(fail.pop())\n"
-        "        found = faces.get(image.data.shape[:2], faces.get(None, []))\n"
+        "        self.image = image\n"
+        "        if barrier:\n            barrier[0].wait()\n"
+        "        found = faces.get(self.image.data.shape[:2], faces.get(None, []))[:self.num_faces]\n"
         "        points = [[types.SimpleNamespace(x=x, y=y) for x, y in face] for face in found]\n"
         "        return types.SimpleNamespace(face_landmarks=points)\n"
         "    def close(self):\n        closed.append(self._handle)\n"
@@ -169,6 +183,11 @@ def _face(cx: float, cy: float, half: float) -> np.ndarray:
     """``(478, 2)`` normalised points: the mesh of a face as a grid of half-size ``half`` around ``(cx, cy)``."""
     t = np.linspace(-half, half, 478)
     return np.stack([cx + t, cy + t[::-1] * 0.5], axis=1)
+
+
+def _own(detect: MediaPipeDetector):
+    """The calling thread's landmarker of ``detect`` (None before its first call)."""
+    return detect._landmarkers.get(threading.current_thread())
 
 
 def test_mediapipe_missing_names_the_install_commands(fake_mediapipe, monkeypatch):
@@ -207,6 +226,7 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
     image = np.zeros((20, 40, 3), np.uint8)
     assert detect(image) is None and len(vision.made) == 1
     assert vision.made[0].base_options.model_asset_path == str(task) and vision.made[0].running_mode == "image"
+    assert vision.made[0].num_faces == 4 and detect.max_faces == 4  # (MAX_FACES)
     small, large = _face(0.25, 0.5, 0.1), _face(0.75, 0.5, 0.2)
     vision.faces[None] = [small, large]
     largest = detect(image)
@@ -222,22 +242,22 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
     assert len(vision.asked) == 3
     # In a process forked from this one (a DataLoader worker) the inherited landmarker is let go of unclosed (closing
     # it there hung: its threads are the parent's) and a new one is made
-    inherited = detect._landmarker
+    inherited = _own(detect)
     monkeypatch.setattr(detect, "_pid", -1)
     detect(image)
-    assert len(vision.made) == 2 and detect._landmarker is not inherited and vision.closed == []
+    assert len(vision.made) == 2 and _own(detect) is not inherited and vision.closed == []
     assert inherited._handle is None  # (mediapipe's close() and __del__ then return at once)
     # A landmarker that raised is closed (the real one then fails at every image) and the next call makes another
-    failed = detect._landmarker
+    failed = _own(detect)
     vision.fail.append("Graph has errors")
     with pytest.raises(RuntimeError, match="Graph has errors"):
         detect(image)
-    assert detect._landmarker is None and vision.closed == [failed._handle]
+    assert _own(detect) is None and vision.closed == [failed._handle]
     np.testing.assert_allclose(detect(image), largest)
-    assert len(vision.made) == 3 and detect._landmarker is not failed
+    assert len(vision.made) == 3 and _own(detect) is not failed
     vision.closed.clear()
     detect.close()
-    assert len(vision.closed) == 1 and detect._landmarker is None  # its own is closed
+    assert len(vision.closed) == 1 and _own(detect) is None  # its own is closed
     vision.made.clear()
     copy = pickle.loads(pickle.dumps(batched(detect, "mediapipe")))  # (a checkpoint, a spawned DataLoader worker)
     assert copy.takes_near and copy.detector is not detect and vision.made == []
@@ -247,6 +267,121 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
         from torchface import FaceTracker
 
         FaceTracker(detector=detect)
+
+
+def test_mediapipe_max_faces_is_checked_and_is_the_landmarkers_num_faces(fake_mediapipe, monkeypatch):
+    task = fake_mediapipe / "a.task"
+    task.write_bytes(b"model")
+    monkeypatch.setenv(MODEL_ENV, str(task))
+    _fake_mediapipe(fake_mediapipe)
+    import mediapipe.tasks.python.vision as vision
+
+    for bad, error in ((0, ValueError), (-1, ValueError), (2.0, TypeError), ("3", TypeError), (True, TypeError)):
+        with pytest.raises(error, match=rf"max_faces must be an int >= 1 \(the faces one scan looks for\), got "
+                           rf"{bad!r}"):  # fmt: skip
+            load_detector("mediapipe", max_faces=bad)
+        with pytest.raises(error, match=r"max_faces must be an int >= 1"):
+            MediaPipeDetector(max_faces=bad)
+    with pytest.raises(ValueError, match=r"max_faces is an option of the 'mediapipe' detector, not of 'dlib' \(which "
+                       r"looks at every face it finds\), got max_faces=2"):  # fmt: skip
+        load_detector("dlib", max_faces=2)  # (said before dlib is looked for)
+    image = np.zeros((20, 40, 3), np.uint8)
+    small, large = _face(0.25, 0.5, 0.1), _face(0.75, 0.5, 0.2)
+    vision.faces[None] = [small, large]
+    one = load_detector("mediapipe", max_faces=np.int64(1))
+    assert one.max_faces == 1 and type(one.max_faces) is int
+    np.testing.assert_allclose(one(image), mesh_to_ibug68(small * [40, 20]))  # the larger one is not looked at
+    assert vision.made[-1].num_faces == 1
+    np.testing.assert_allclose(load_detector("mediapipe")(image), mesh_to_ibug68(large * [40, 20]))
+    assert vision.made[-1].num_faces == 4
+    copy = pickle.loads(pickle.dumps(MediaPipeDetector(task, 3)))  # (a checkpoint, a spawned DataLoader worker)
+    assert copy.max_faces == 3 and copy._model == task
+    copy(image)
+    assert vision.made[-1].num_faces == 3
+
+
+def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_mediapipe, monkeypatch):
+    """Two threads calling one detector at once each get their own landmarker and the results of single-threaded
+    calls (a shared one, whose stand-in keeps the image it was asked, answered both with the last image; a lock
+    around it never let the second in while the first waited at the barrier); a landmarker of a thread that has ended
+    is closed when a later one is made; a forked process lets go of all the inherited ones."""
+    task = fake_mediapipe / "a.task"
+    task.write_bytes(b"model")
+    monkeypatch.setenv(MODEL_ENV, str(task))
+    _fake_mediapipe(fake_mediapipe)
+    import mediapipe.tasks.python.vision as vision
+
+    images = [np.zeros((20, 40, 3), np.uint8), np.zeros((20, 48, 3), np.uint8)]
+    vision.faces[(20, 40)], vision.faces[(20, 48)] = [_face(0.25, 0.5, 0.1)], [_face(0.75, 0.5, 0.2)]
+    detect = load_detector("mediapipe")
+    alone = [detect(image) for image in images]  # (this thread's landmarker)
+    assert np.abs(alone[0][:, 0] - alone[1][:, 0]).min() > 10  # (different answers: faces at x = 1/4 and 3/4)
+    vision.barrier.append(threading.Barrier(2, timeout=5))
+    vision.users.clear()
+    with ThreadPoolExecutor(2) as pool:
+        together = list(pool.map(detect, images))
+    vision.barrier.clear()
+    for a, b in zip(together, alone):
+        np.testing.assert_array_equal(a, b)
+    assert len(vision.made) == 3 and len({handle for handle, _ in vision.users}) == 2
+    assert len(set(vision.users)) == 2 and len({thread for _, thread in vision.users}) == 2  # one each
+    assert len(detect._landmarkers) == 3 and vision.closed == []
+    # the pool's threads have ended: their landmarkers are closed when another thread makes one (this one keeps its)
+    pool_handles = {handle for handle, _ in vision.users}
+    later = threading.Thread(target=detect, args=(images[0],))
+    later.start()
+    later.join()
+    assert set(vision.closed) == pool_handles and len(vision.closed) == 2 and len(vision.made) == 4
+    assert _own(detect) is not None and len(detect._landmarkers) == 2  # this thread's, the later (ended) one's
+    # In a forked process (a DataLoader worker) every inherited landmarker is let go of unclosed, this thread's too
+    inherited = list(detect._landmarkers.values())
+    monkeypatch.setattr(detect, "_pid", -1)
+    np.testing.assert_array_equal(detect(images[1]), alone[1])
+    assert len(vision.closed) == 2 and all(landmarker._handle is None for landmarker in inherited)
+    assert list(detect._landmarkers) == [threading.current_thread()] and len(vision.made) == 5
+    detect.close()
+    assert len(vision.closed) == 3 and detect._landmarkers == {}
+    # At exit every landmarker is let go of unclosed (closing one there raised: mediapipe's thread pool was shut down)
+    from torchface.detect import facemesh
+
+    detect(images[0])
+    left = _own(detect)
+    monkeypatch.setattr(facemesh, "_OPEN", weakref.WeakSet([detect]))  # (this test's detector alone)
+    facemesh._close_all()
+    assert len(vision.closed) == 3 and left._handle is None and detect._landmarkers == {}
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork")
+def test_mediapipe_detector_works_in_a_process_forked_while_another_thread_held_its_lock(fake_mediapipe, monkeypatch):
+    """A fork copies the lock guarding the detectors' landmarkers as it was: held, where another thread was making
+    one, and in the child no thread would ever release it. The child gets a new lock (it answered here; with the
+    copied one it waited for ever), and lets go of the inherited landmarker unclosed."""
+    task = fake_mediapipe / "a.task"
+    task.write_bytes(b"model")
+    monkeypatch.setenv(MODEL_ENV, str(task))
+    _fake_mediapipe(fake_mediapipe)
+    import mediapipe.tasks.python.vision as vision
+
+    from torchface.detect import facemesh
+
+    image = np.zeros((20, 40, 3), np.uint8)
+    vision.faces[None] = [_face(0.25, 0.5, 0.1)]
+    detect = load_detector("mediapipe")
+    expected = detect(image)
+    inherited = _own(detect)
+    with facemesh._LOCK:  # (as another thread making its landmarker at the fork)
+        pid = os.fork()
+        if pid == 0:  # the child: exit status 0 where it worked, 1 where not, killed after 5 s where it hung
+            code = 1
+            try:
+                signal.alarm(5)
+                ok = np.array_equal(detect(image), expected) and _own(detect) is not inherited
+                code = 0 if ok and inherited._handle is None and vision.closed == [] else 1
+            finally:
+                os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0, os.waitstatus_to_exitcode(status)  # (-14: SIGALRM, it hung)
+    assert inherited._handle is not None and _own(detect) is inherited  # (the parent's own is kept)
 
 
 def test_mediapipe_detector_scans_tiles_for_a_face_too_small_for_the_whole_frame(fake_mediapipe, monkeypatch):
@@ -331,12 +466,52 @@ def test_mediapipe_points_are_pixels_with_centres_at_integers():
     detect = load_detector("mediapipe")
     points = detect(image)
     assert points is not None
+    frames = [image]
     for k in (2, 4):
-        up = cv2.resize(image, (image.shape[1] * k, image.shape[0] * k), interpolation=cv2.INTER_NEAREST)
-        moved = detect(up)
+        frames.append(cv2.resize(image, (image.shape[1] * k, image.shape[0] * k), interpolation=cv2.INTER_NEAREST))
+        moved = detect(frames[-1])
         assert moved is not None
         offset = (moved - (k * points + (k - 1) / 2)).mean(axis=0) / k  # (in the original frame's pixels)
         assert np.abs(offset).max() < 0.15, (k, offset)
+    # Two threads at once, each with its own landmarker: the points of one thread's calls, bit for bit
+    alone = [detect(frame) for frame in frames + frames[::-1]]
+    meet = threading.Barrier(2, timeout=30)
+
+    def detect_all(frames: list) -> list:
+        meet.wait()  # (both threads' landmarkers made and working at once)
+        return [detect(frame) for frame in frames]
+
+    with ThreadPoolExecutor(2) as pool:
+        together = sum(pool.map(detect_all, [frames, frames[::-1]]), [])
+    assert len(detect._landmarkers) == 3
+    for a, b in zip(together, alone):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_mediapipe_detector_leaves_no_error_at_exit():
+    """With mediapipe and its model installed: a process that used the detector from its own and a pool's threads
+    exits without printing an error, also where mediapipe was imported first (before, closing the landmarkers at
+    exit printed "RuntimeError: cannot schedule new futures after shutdown": mediapipe's thread pool had been shut
+    down; and their ``__del__`` then "TypeError: 'NoneType' object is not callable")."""
+    pytest.importorskip("mediapipe", reason="mediapipe (torchface[mediapipe]) is not installed")
+    _model_or_skip()
+    code = (
+        "import mediapipe\n"
+        "import numpy as np\n"
+        "from concurrent.futures import ThreadPoolExecutor\n"
+        "from torchface.detect import load_detector\n"
+        "detect = load_detector('mediapipe')\n"
+        "image = np.zeros((64, 64, 3), np.uint8)\n"
+        "assert detect(image) is None\n"
+        "with ThreadPoolExecutor(2) as pool:\n"
+        "    assert list(pool.map(detect, [image] * 4)) == [None] * 4\n"
+        "print('done')\n"
+    )
+    root = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 0 and run.stdout == "done\n", run.stderr
+    assert "Traceback" not in run.stderr and "Exception ignored" not in run.stderr, run.stderr
 
 
 def test_mediapipe_finds_a_small_face_in_a_large_frame():

@@ -29,7 +29,8 @@ lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` 
   from dlib's points: 3.7 % of the inter-ocular distance on average on held-out real faces). About 10 ms a frame;
   its detector is a short-range one: faces under about a tenth of the frame's longer side are looked for in
   overlapping tiles of it (where the whole frame shows none, or none where ``near`` is), which found faces from
-  about a twentieth of its shorter side.
+  about a twentieth of its shorter side. ``load_detector("mediapipe", max_faces=...)`` sets the faces a scan places
+  its points on (default 4). One detector may be called from several threads at once (a landmarker a thread).
 """
 
 from __future__ import annotations
@@ -252,10 +253,10 @@ def _dlib() -> Detector:
     return _DlibDetector()
 
 
-def _mediapipe() -> Detector:
-    from torchface.detect.facemesh import MediaPipeDetector
+def _mediapipe(max_faces: int | None = None) -> Detector:
+    from torchface.detect.facemesh import MAX_FACES, MediaPipeDetector
 
-    return MediaPipeDetector()
+    return MediaPipeDetector(max_faces=MAX_FACES if max_faces is None else max_faces)
 
 
 def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"], "Tensor"]:
@@ -433,13 +434,28 @@ class _Batched:
 DETECTORS: dict[str, Callable[[], Detector]] = {"dlib": _dlib, "mediapipe": _mediapipe}
 
 
-def load_detector(name: str) -> Detector:
+def load_detector(name: str, *, max_faces: int | None = None) -> Detector:
     """The detector called ``name`` (one of :data:`DETECTORS`).
 
+    Args:
+        name: ``"dlib"`` or ``"mediapipe"``.
+        max_faces: ``"mediapipe"`` only: the faces one scan looks for
+            (:class:`~torchface.detect.facemesh.MediaPipeDetector`; None: its default,
+            :data:`~torchface.detect.facemesh.MAX_FACES`, 4). dlib's looks at every face it finds.
+
+    Example:
+        >>> detect = load_detector("mediapipe", max_faces=8)  # doctest: +SKIP
+
     Raises:
-        ValueError: unknown name.
+        ValueError: unknown name; ``max_faces`` for another detector than ``"mediapipe"``, or < 1.
+        TypeError: ``max_faces`` is not an int.
         DetectorUnavailable: its packages are not installed (the message says how to install them).
     """
     if name not in DETECTORS:
         raise ValueError(f"unknown detector {name!r}; available: {', '.join(DETECTORS)}")
-    return DETECTORS[name]()
+    if max_faces is None:
+        return DETECTORS[name]()
+    if name != "mediapipe":
+        raise ValueError(f"max_faces is an option of the 'mediapipe' detector, not of {name!r} (which looks at every "
+                         f"face it finds), got max_faces={max_faces!r}")  # fmt: skip
+    return _mediapipe(max_faces)
