@@ -285,6 +285,11 @@ def test_mediapipe_max_faces_is_checked_and_is_the_landmarkers_num_faces(fake_me
     with pytest.raises(ValueError, match=r"max_faces is an option of the 'mediapipe' detector, not of 'dlib' \(which "
                        r"looks at every face it finds\), got max_faces=2"):  # fmt: skip
         load_detector("dlib", max_faces=2)  # (said before dlib is looked for)
+    for big in (2**31, 2**32 + 1):  # (mediapipe 1.2.2 took them as a C int: 2**32 + 1 scanned for 1 face, 2**31 failed)
+        with pytest.raises(ValueError, match=rf"max_faces must be at most 2147483647 \(FaceLandmarker's num_faces is a "
+                           rf"C int\), got {big}"):  # fmt: skip
+            load_detector("mediapipe", max_faces=big)
+    assert MediaPipeDetector(max_faces=2**31 - 1).max_faces == 2**31 - 1
     image = np.zeros((20, 40, 3), np.uint8)
     small, large = _face(0.25, 0.5, 0.1), _face(0.75, 0.5, 0.2)
     vision.faces[None] = [small, large]

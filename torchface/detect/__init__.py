@@ -447,7 +447,7 @@ def load_detector(name: str, *, max_faces: int | None = None) -> Detector:
         >>> detect = load_detector("mediapipe", max_faces=8)  # doctest: +SKIP
 
     Raises:
-        ValueError: unknown name; ``max_faces`` for another detector than ``"mediapipe"``, or < 1.
+        ValueError: unknown name; ``max_faces`` for another detector than ``"mediapipe"``, or not in 1..2**31 - 1.
         TypeError: ``max_faces`` is not an int.
         DetectorUnavailable: its packages are not installed (the message says how to install them).
     """

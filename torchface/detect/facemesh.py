@@ -51,6 +51,9 @@ _MODEL_URL = (
 #: ``near`` (else the largest) is returned.
 MAX_FACES = 4
 
+#: The largest ``max_faces`` (FaceLandmarker's ``num_faces`` is a C ``int``).
+_INT_MAX = 2**31 - 1
+
 
 def read_mesh_table(text: str | None = None) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
     """Read ``mediapipe_landmarks68.csv``: each iBUG-68 point as a weighted combination of up to three of
@@ -289,10 +292,11 @@ class MediaPipeDetector(_PerImageDetector):
     Args:
         model: the ``face_landmarker.task`` file (:func:`find_model` looks for one when None).
         max_faces: the faces FaceLandmarker places its points on in one scan (its ``num_faces``; default
-            :data:`MAX_FACES`, 4), an int >= 1. Of more faces than that it keeps those of its own choosing, neither
-            the largest nor those nearest ``near``: in a 1920x1080 frame with two faces, ``max_faces=1`` returned the
-            one it chose where 4 returned the larger, and found the other, asked for with ``near``, only in the tiles
-            (210 ms against 29). Give more where ``near`` is to choose among the faces of a crowd.
+            :data:`MAX_FACES`, 4), an int from 1 to 2**31 - 1. Of more faces than that it keeps those of its own
+            choosing, neither the largest nor those nearest ``near``: in a 1920x1080 frame with two faces,
+            ``max_faces=1`` returned the one it chose where 4 returned the larger, and found the other, asked for with
+            ``near``, only in the tiles (210 ms against 29). Give more where ``near`` is to choose among the faces of
+            a crowd.
 
     Threads: one detector may be called from several threads at once. Each thread gets a landmarker of its own, made at
     its first call in that thread (about 30 ms, 10-20 MB, and a thread of mediapipe's own); its results are those of the
@@ -308,7 +312,7 @@ class MediaPipeDetector(_PerImageDetector):
 
     Raises:
         TypeError: ``max_faces`` is not an int.
-        ValueError: ``max_faces`` < 1.
+        ValueError: ``max_faces`` < 1 or > 2**31 - 1.
         DetectorUnavailable: mediapipe or the model file is missing (the message says how to install them).
     """
 
@@ -317,6 +321,9 @@ class MediaPipeDetector(_PerImageDetector):
             raise TypeError(f"max_faces must be an int >= 1 (the faces one scan looks for), got {max_faces!r}")
         if max_faces < 1:
             raise ValueError(f"max_faces must be an int >= 1 (the faces one scan looks for), got {max_faces}")
+        if max_faces > _INT_MAX:  # (mediapipe 1.2.2 wrapped it: 2**32 + 1 scanned for 1 face, 2**31 failed each call)
+            raise ValueError(f"max_faces must be at most {_INT_MAX} (FaceLandmarker's num_faces is a C int), got "
+                             f"{max_faces}")  # fmt: skip
         self._model = model
         self._max_faces = int(max_faces)
         self._mp = _mediapipe_parts()
