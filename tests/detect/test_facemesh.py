@@ -126,7 +126,8 @@ def _fake_mediapipe(root) -> None:
     and records how it was made and asked, and by which thread. Its ``detect`` is not for two threads at once (the
     real one's calls wait for each other): it keeps the image on the landmarker, and, where ``barrier`` holds one,
     waits there before reading it back (a landmarker shared by the threads meeting there answers each with the last
-    image)."""
+    image). Where ``gate`` holds two events, ``detect`` sets the first and waits for the second as it starts; a closed
+    landmarker answers that it sees no face (as mediapipe 1.2.2's did: its closed dispatcher returns without asking)."""
     package = root / "mediapipe"
     (package / "tasks" / "python" / "core").mkdir(parents=True)
     (package / "__init__.py").write_text(
@@ -142,7 +143,7 @@ def _fake_mediapipe(root) -> None:
     )
     (package / "tasks" / "python" / "vision.py").write_text(
         "import threading, types\n"
-        "made, asked, closed, faces, fail, users, barrier = [], [], [], {}, [], [], []\n"
+        "made, asked, closed, faces, fail, users, barrier, gate = [], [], [], {}, [], [], [], []\n"
         "class RunningMode:\n    IMAGE = 'image'\n"
         "class FaceLandmarkerOptions:\n"
         "    def __init__(self, **kw):\n        self.__dict__.update(kw)\n"
@@ -155,6 +156,8 @@ def _fake_mediapipe(root) -> None:
         "        asked.append(image.data.shape)\n"
         "        users.append((self._handle, threading.get_ident()))\n"
         "        if fail:\n            raise RuntimeError(fail.pop())\n"
+        "        if gate:\n            gate[0].set()\n            gate[1].wait(5)\n"
+        "        if self._handle in closed:\n            return types.SimpleNamespace(face_landmarks=[])\n"
         "        self.image = image\n"
         "        if barrier:\n            barrier[0].wait()\n"
         "        found = faces.get(self.image.data.shape[:2], faces.get(None, []))[:self.num_faces]\n"
@@ -309,7 +312,8 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     """Two threads calling one detector at once each get their own landmarker and the results of single-threaded
     calls (a shared one, whose stand-in keeps the image it was asked, answered both with the last image; a lock
     around it never let the second in while the first waited at the barrier); a landmarker of a thread that has ended
-    is closed when a later one is made; a forked process lets go of all the inherited ones."""
+    is closed when a later one is made; a forked process lets go of all the inherited ones; ``close()`` during another
+    thread's call leaves that call its landmarker, closed as the call ends (closed under it, it answered "no face")."""
     task = fake_mediapipe / "a.task"
     task.write_bytes(b"model")
     monkeypatch.setenv(MODEL_ENV, str(task))
@@ -354,6 +358,23 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     monkeypatch.setattr(facemesh, "_OPEN", weakref.WeakSet([detect]))  # (this test's detector alone)
     facemesh._close_all()
     assert len(vision.closed) == 3 and left._handle is None and detect._landmarkers == {}
+    # close() while another thread's call runs: that call ends with its landmarker (closed under it, it answered "no
+    # face": mediapipe 1.2.2's closed landmarker returns no faces), which is closed as the call ends; the idle ones at
+    # once
+    detect(images[0])
+    vision.gate[:] = [threading.Event(), threading.Event()]
+    with ThreadPoolExecutor(1) as pool:
+        running = pool.submit(detect, images[1])
+        assert vision.gate[0].wait(5)  # (the pool's thread is in its landmarker's detect)
+        busy = next(detect._landmarkers[t] for t in detect._landmarkers if t is not threading.current_thread())
+        closed = len(vision.closed)
+        detect.close()
+        assert busy._handle not in vision.closed and len(vision.closed) == closed + 1  # (this thread's)
+        vision.gate[1].set()
+        np.testing.assert_array_equal(running.result(5), alone[1])
+    vision.gate.clear()
+    assert vision.closed[-1] == busy._handle and len(vision.closed) == closed + 2 and detect._landmarkers == {}
+    np.testing.assert_array_equal(detect(images[1]), alone[1])
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork")

@@ -304,11 +304,12 @@ class MediaPipeDetector(_PerImageDetector):
     its own: on 100 GRID frames (360x288, 2 cores, best of 7 runs), 2 threads sharing one, with or without a lock, took
     10.4-10.6 ms a frame as 1 thread took 10.1, and 2 threads with one landmarker each 6.4 ms (9.7 against 12.8 ms at
     the median, on a machine others were using). A thread's landmarker is closed when another thread makes one after it
-    has ended, and all of them by :meth:`close`; at exit they are let go of (:func:`_close_all`). The landmarkers are
-    made in the process they serve (a ``DataLoader`` worker forked from a process that had used them makes its own,
-    leaving the inherited ones untouched). It pickles as its ``model`` and ``max_faces`` arguments (a spawned worker, a
-    checkpoint): the copy finds the model again. Where a landmarker raises, it is closed and that thread's next call
-    makes another (a FaceLandmarker that has failed fails at every later image).
+    has ended, and all of them by :meth:`close` (one in a call, as that call ends); at exit they are let go of
+    (:func:`_close_all`). The landmarkers are made in the process they serve (a ``DataLoader`` worker forked from a
+    process that had used them makes its own, leaving the inherited ones untouched). It pickles as its ``model`` and
+    ``max_faces`` arguments (a spawned worker, a checkpoint): the copy finds the model again. Where a landmarker raises,
+    it is closed and that thread's next call makes another (a FaceLandmarker that has failed fails at every later
+    image).
 
     Raises:
         TypeError: ``max_faces`` is not an int.
@@ -329,6 +330,8 @@ class MediaPipeDetector(_PerImageDetector):
         self._mp = _mediapipe_parts()
         self._path = find_model(model)
         self._landmarkers: dict[threading.Thread, Any] = {}  # each thread's own, all made in process self._pid
+        self._busy: set[Any] = set()  # those in a call (_checkout to _checkin)
+        self._retired: set[Any] = set()  # busy ones that close() took: their call closes them as it ends
         self._pid = -1
 
     @property
@@ -339,17 +342,18 @@ class MediaPipeDetector(_PerImageDetector):
     def __reduce__(self) -> tuple[type, tuple[str | os.PathLike[str] | None, int]]:
         return (MediaPipeDetector, (self._model, self._max_faces))
 
-    def _get_landmarker(self) -> Any:
-        """The calling thread's landmarker, made at its first call in this process (:class:`MediaPipeDetector`)."""
+    def _checkout(self) -> Any:
+        """The calling thread's landmarker, made at its first call in this process (:class:`MediaPipeDetector`),
+        busy until :meth:`_checkin` (:meth:`close` leaves it open till then)."""
         thread = threading.current_thread()
-        if self._pid == os.getpid():
-            landmarker = self._landmarkers.get(thread)  # (no lock: a dict's get is atomic)
-            if landmarker is not None:
-                return landmarker
         with _LOCK:
             if self._pid != os.getpid():  # this process's first call, or a forked copy's (a DataLoader worker)
                 self._disown()
                 self._pid = os.getpid()
+            landmarker = self._landmarkers.get(thread)
+            if landmarker is not None:
+                self._busy.add(landmarker)
+                return landmarker
             ended = [self._landmarkers.pop(t) for t in list(self._landmarkers) if not t.is_alive()]
         for landmarker in ended:  # (a pool's threads that have ended: no call of theirs can be running)
             try:
@@ -367,16 +371,36 @@ class MediaPipeDetector(_PerImageDetector):
         landmarker = vision.FaceLandmarker.create_from_options(options)  # (outside the lock: about 30 ms)
         with _LOCK:
             self._landmarkers[thread] = landmarker
+            self._busy.add(landmarker)
             _OPEN.add(self)
         return landmarker
 
+    def _checkin(self, landmarker: Any, failed: bool) -> None:
+        """The calling thread's call with ``landmarker`` (:meth:`_checkout`) has ended; ``failed``: it raised (a
+        FaceLandmarker that has failed fails at every later image: closed, this thread's next call makes another).
+        Closes it also where :meth:`close` took it during the call."""
+        with _LOCK:
+            self._busy.discard(landmarker)
+            retired = landmarker in self._retired
+            self._retired.discard(landmarker)
+            thread = threading.current_thread()
+            if failed and self._landmarkers.get(thread) is landmarker:
+                del self._landmarkers[thread]
+        if failed or retired:
+            try:
+                landmarker.close()
+            except Exception:  # (a failed graph may not close cleanly either; the error raised is the call's)
+                pass
+
     def close(self) -> None:
-        """Free every thread's landmarker (a later call makes another). Not while another thread's call runs."""
+        """Free every thread's landmarker (a later call makes another). One in a call in another thread is closed
+        as that call ends (closed under it, mediapipe 1.2.2's answered that it saw no face)."""
         with _LOCK:
             if self._pid != os.getpid():
                 self._disown()
                 return
-            landmarkers = list(self._landmarkers.values())
+            landmarkers = [landmarker for landmarker in self._landmarkers.values() if landmarker not in self._busy]
+            self._retired.update(landmarker for landmarker in self._landmarkers.values() if landmarker in self._busy)
             self._landmarkers.clear()
         for landmarker in landmarkers:
             landmarker.close()
@@ -387,11 +411,13 @@ class MediaPipeDetector(_PerImageDetector):
         when replaced, waited for them for ever: mediapipe 1.2.2, a forked worker hung at its first image), and at
         exit (:func:`_close_all`). Their handles are cleared so that their ``close`` returns at once, and they are
         kept referenced so that they are never collected. Called holding :data:`_LOCK`."""
-        for landmarker in self._landmarkers.values():
+        for landmarker in [*self._landmarkers.values(), *self._retired]:
             if getattr(landmarker, "_handle", None) is not None:
                 landmarker._handle = None  # (mediapipe 1.2.2's close() returns at once without one)
             _DISOWNED.append(landmarker)
         self._landmarkers.clear()
+        self._busy.clear()
+        self._retired.clear()
 
     def __call__(self, image_rgb: np.ndarray, near: np.ndarray | None = None) -> np.ndarray | None:
         _check_image(image_rgb)
@@ -414,21 +440,16 @@ class MediaPipeDetector(_PerImageDetector):
         ``inside``: only those whose points all lie in that part (a face cut by a tile's edge is whole in
         another)."""
         part = np.ascontiguousarray(image_rgb[y : y + h, x : x + w])
-        landmarker = self._get_landmarker()
+        landmarker, failed = self._checkout(), False
         try:
             found = landmarker.detect(self._mp.Image(image_format=self._mp.ImageFormat.SRGB, data=part))
         except Exception:
-            # FaceLandmarker's graph, once it has failed, fails at every later image ("Graph has errors"): this
-            # thread's next call makes a new one
-            with _LOCK:
-                thread = threading.current_thread()
-                if self._landmarkers.get(thread) is landmarker:
-                    del self._landmarkers[thread]
-            try:
-                landmarker.close()
-            except Exception:  # (a failed graph may not close cleanly either; the error raised is the first)
-                pass
+            # FaceLandmarker's graph, once it has failed, fails at every later image ("Graph has errors"): closed,
+            # this thread's next call makes a new one
+            failed = True
             raise
+        finally:
+            self._checkin(landmarker, failed)
         if not found.face_landmarks:
             return np.zeros((0, 68, 2))
         points = mesh_to_ibug68(mesh_pixels(found.face_landmarks, w, h))  # (F, 68, 2) pixels of the part
