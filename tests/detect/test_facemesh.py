@@ -127,7 +127,9 @@ def _fake_mediapipe(root) -> None:
     real one's calls wait for each other): it keeps the image on the landmarker, and, where ``barrier`` holds one,
     waits there before reading it back (a landmarker shared by the threads meeting there answers each with the last
     image). Where ``gate`` holds two events, ``detect`` sets the first and waits for the second as it starts; a closed
-    landmarker answers that it sees no face (as mediapipe 1.2.2's did: its closed dispatcher returns without asking)."""
+    landmarker answers that it sees no face (as mediapipe 1.2.2's did: its closed dispatcher returns without asking).
+    ``overlaps`` has, for each landmarker made or closed, how many others were being closed then; where ``hold`` holds
+    two events, ``close`` sets the first and waits for the second (at most 0.5 s)."""
     package = root / "mediapipe"
     (package / "tasks" / "python" / "core").mkdir(parents=True)
     (package / "__init__.py").write_text(
@@ -144,13 +146,14 @@ def _fake_mediapipe(root) -> None:
     (package / "tasks" / "python" / "vision.py").write_text(
         "import threading, types\n"
         "made, asked, closed, faces, fail, users, barrier, gate = [], [], [], {}, [], [], [], []\n"
+        "closing, overlaps, hold = [0], [], []\n"
         "class RunningMode:\n    IMAGE = 'image'\n"
         "class FaceLandmarkerOptions:\n"
         "    def __init__(self, **kw):\n        self.__dict__.update(kw)\n"
         "class FaceLandmarker:\n"
         "    @classmethod\n"
         "    def create_from_options(cls, options):\n"
-        "        made.append(options)\n        return cls(options.num_faces)\n"
+        "        made.append(options)\n        overlaps.append(closing[0])\n        return cls(options.num_faces)\n"
         "    def __init__(self, num_faces):\n        self._handle, self.num_faces = object(), num_faces\n"
         "    def detect(self, image):\n"
         "        asked.append(image.data.shape)\n"
@@ -163,7 +166,10 @@ def _fake_mediapipe(root) -> None:
         "        found = faces.get(self.image.data.shape[:2], faces.get(None, []))[:self.num_faces]\n"
         "        points = [[types.SimpleNamespace(x=x, y=y) for x, y in face] for face in found]\n"
         "        return types.SimpleNamespace(face_landmarks=points)\n"
-        "    def close(self):\n        closed.append(self._handle)\n"
+        "    def close(self):\n"
+        "        overlaps.append(closing[0])\n        closing[0] += 1\n"
+        "        if hold:\n            hold[0].set()\n            hold[1].wait(0.5)\n"
+        "        closing[0] -= 1\n        closed.append(self._handle)\n"
     )
     importlib.invalidate_caches()
 
@@ -375,13 +381,24 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     vision.gate.clear()
     assert vision.closed[-1] == busy._handle and len(vision.closed) == closed + 2 and detect._landmarkers == {}
     np.testing.assert_array_equal(detect(images[1]), alone[1])
+    # A landmarker is never made or closed while another is being closed (mediapipe 1.2.2: 2 of 120 closes beside
+    # another thread making one, and 2 of 200 beside another close, took 5 s; none one after another): another
+    # thread's first call waits for close() to end
+    assert not any(vision.overlaps)
+    vision.hold[:] = [threading.Event(), threading.Event()]
+    with ThreadPoolExecutor(1) as pool:
+        first = pool.submit(lambda: vision.hold[0].wait(5) and detect(images[0]))
+        detect.close()  # (its close is held 0.5 s, as the pool's thread makes its landmarker)
+        np.testing.assert_array_equal(first.result(5), alone[0])
+    vision.hold.clear()
+    assert not any(vision.overlaps), vision.overlaps
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork")
 def test_mediapipe_detector_works_in_a_process_forked_while_another_thread_held_its_lock(fake_mediapipe, monkeypatch):
-    """A fork copies the lock guarding the detectors' landmarkers as it was: held, where another thread was making
-    one, and in the child no thread would ever release it. The child gets a new lock (it answered here; with the
-    copied one it waited for ever), and lets go of the inherited landmarker unclosed."""
+    """A fork copies the locks guarding the detectors' landmarkers as they were: held, where another thread was making
+    one, and in the child no thread would ever release them. The child gets new locks (it answered here; with the
+    copied ones it waited for ever), and lets go of the inherited landmarker unclosed."""
     task = fake_mediapipe / "a.task"
     task.write_bytes(b"model")
     monkeypatch.setenv(MODEL_ENV, str(task))
@@ -395,7 +412,7 @@ def test_mediapipe_detector_works_in_a_process_forked_while_another_thread_held_
     detect = load_detector("mediapipe")
     expected = detect(image)
     inherited = _own(detect)
-    with facemesh._LOCK:  # (as another thread making its landmarker at the fork)
+    with facemesh._LOCK, facemesh._LIFE:  # (as other threads changing the table, making a landmarker, at the fork)
         pid = os.fork()
         if pid == 0:  # the child: exit status 0 where it worked, 1 where not, killed after 5 s where it hung
             code = 1
