@@ -317,8 +317,8 @@ def test_mediapipe_max_faces_is_checked_and_is_the_landmarkers_num_faces(fake_me
 def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_mediapipe, monkeypatch):
     """Two threads calling one detector at once each get their own landmarker and the results of single-threaded
     calls (a shared one, whose stand-in keeps the image it was asked, answered both with the last image; a lock
-    around it never let the second in while the first waited at the barrier); a landmarker of a thread that has ended
-    is closed when a later one is made; a forked process lets go of all the inherited ones; ``close()`` during another
+    around it never let the second in while the first waited at the barrier); a thread's first call takes the
+    landmarker of a thread that has ended (a pool made again per video makes none); a forked process lets go of all the inherited ones; ``close()`` during another
     thread's call leaves that call its landmarker, closed as the call ends (closed under it, it answered "no face")."""
     task = fake_mediapipe / "a.task"
     task.write_bytes(b"model")
@@ -341,21 +341,27 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     assert len(vision.made) == 3 and len({handle for handle, _ in vision.users}) == 2
     assert len(set(vision.users)) == 2 and len({thread for _, thread in vision.users}) == 2  # one each
     assert len(detect._landmarkers) == 3 and vision.closed == []
-    # the pool's threads have ended: their landmarkers are closed when another thread makes one (this one keeps its)
+    # the pool's threads have ended: a later thread, and the threads of pools made again (per video), take their
+    # landmarkers, neither making nor closing any (this thread keeps its own)
     pool_handles = {handle for handle, _ in vision.users}
+    vision.users.clear()
     later = threading.Thread(target=detect, args=(images[0],))
     later.start()
     later.join()
-    assert set(vision.closed) == pool_handles and len(vision.closed) == 2 and len(vision.made) == 4
-    assert _own(detect) is not None and len(detect._landmarkers) == 2  # this thread's, the later (ended) one's
+    for _ in range(3):
+        with ThreadPoolExecutor(2) as pool:
+            for a, b in zip(pool.map(detect, images * 2), alone * 2):
+                np.testing.assert_array_equal(a, b)
+    assert {handle for handle, _ in vision.users} <= pool_handles and len(vision.made) == 3 and vision.closed == []
+    assert _own(detect) is not None and len(detect._landmarkers) == 3  # this thread's, 2 ended threads'
     # In a forked process (a DataLoader worker) every inherited landmarker is let go of unclosed, this thread's too
     inherited = list(detect._landmarkers.values())
     monkeypatch.setattr(detect, "_pid", -1)
     np.testing.assert_array_equal(detect(images[1]), alone[1])
-    assert len(vision.closed) == 2 and all(landmarker._handle is None for landmarker in inherited)
-    assert list(detect._landmarkers) == [threading.current_thread()] and len(vision.made) == 5
+    assert vision.closed == [] and all(landmarker._handle is None for landmarker in inherited)
+    assert list(detect._landmarkers) == [threading.current_thread()] and len(vision.made) == 4
     detect.close()
-    assert len(vision.closed) == 3 and detect._landmarkers == {}
+    assert len(vision.closed) == 1 and detect._landmarkers == {}
     # At exit every landmarker is let go of unclosed (closing one there raised: mediapipe's thread pool was shut down)
     from torchface.detect import facemesh
 
@@ -363,7 +369,7 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     left = _own(detect)
     monkeypatch.setattr(facemesh, "_OPEN", weakref.WeakSet([detect]))  # (this test's detector alone)
     facemesh._close_all()
-    assert len(vision.closed) == 3 and left._handle is None and detect._landmarkers == {}
+    assert len(vision.closed) == 1 and left._handle is None and detect._landmarkers == {}
     # close() while another thread's call runs: that call ends with its landmarker (closed under it, it answered "no
     # face": mediapipe 1.2.2's closed landmarker returns no faces), which is closed as the call ends; the idle ones at
     # once
@@ -528,6 +534,13 @@ def test_mediapipe_points_are_pixels_with_centres_at_integers():
         together = sum(pool.map(detect_all, [frames, frames[::-1]]), [])
     assert len(detect._landmarkers) == 3
     for a, b in zip(together, alone):
+        np.testing.assert_array_equal(a, b)
+    # A pool made again takes the ended threads' landmarkers, the same points again
+    made = set(map(id, detect._landmarkers.values()))
+    with ThreadPoolExecutor(2) as pool:
+        again = sum(pool.map(detect_all, [frames[::-1], frames]), [])
+    assert set(map(id, detect._landmarkers.values())) == made
+    for a, b in zip(again, alone[3:] + alone[:3]):
         np.testing.assert_array_equal(a, b)
 
 

@@ -299,17 +299,18 @@ class MediaPipeDetector(_PerImageDetector):
             a crowd.
 
     Threads: one detector may be called from several threads at once. Each thread gets a landmarker of its own, made at
-    its first call in that thread (about 30 ms, 10-20 MB, and a thread of mediapipe's own); its results are those of the
-    same calls in one thread, bit for bit. mediapipe 1.2.2 runs each landmarker's calls one after another on a thread of
-    its own: on 100 GRID frames (360x288, 2 cores, best of 7 runs), 2 threads sharing one, with or without a lock, took
-    10.4-10.6 ms a frame as 1 thread took 10.1, and 2 threads with one landmarker each 6.4 ms (9.7 against 12.8 ms at
-    the median, on a machine others were using). A thread's landmarker is closed when another thread makes one after it
-    has ended, and all of them by :meth:`close` (one in a call, as that call ends); at exit they are let go of
-    (:func:`_close_all`). The landmarkers are made in the process they serve (a ``DataLoader`` worker forked from a
-    process that had used them makes its own, leaving the inherited ones untouched). It pickles as its ``model`` and
-    ``max_faces`` arguments (a spawned worker, a checkpoint): the copy finds the model again. Where a landmarker raises,
-    it is closed and that thread's next call makes another (a FaceLandmarker that has failed fails at every later
-    image).
+    its first call in that thread (about 30 ms, 10-20 MB, and a thread of mediapipe's own), or takes that of a thread
+    that has ended (a pool made again per video makes none after the first); its results are those of the same calls in
+    one thread, bit for bit. mediapipe 1.2.2 runs each landmarker's calls one after another on a thread of its own: on
+    100 GRID frames (360x288, 2 cores, best of 7 runs), 2 threads sharing one, with or without a lock, took 10.4-10.6 ms
+    a frame as 1 thread took 10.1, and 2 threads with one landmarker each 6.4 ms (9.7 against 12.8 ms at the median, on
+    a machine others were using). A detector so holds as many landmarkers as threads have called it at once (mediapipe
+    1.2.2: its memory stayed flat over 200 pools of 2 threads made one after another), till :meth:`close` closes them
+    (one in a call, as that call ends); at exit they are let go of (:func:`_close_all`). The landmarkers are made in the
+    process they serve (a ``DataLoader`` worker forked from a process that had used them makes its own, leaving the
+    inherited ones untouched). It pickles as its ``model`` and ``max_faces`` arguments (a spawned worker, a checkpoint):
+    the copy finds the model again. Where a landmarker raises, it is closed and that thread's next call makes another (a
+    FaceLandmarker that has failed fails at every later image).
 
     Raises:
         TypeError: ``max_faces`` is not an int.
@@ -343,23 +344,21 @@ class MediaPipeDetector(_PerImageDetector):
         return (MediaPipeDetector, (self._model, self._max_faces))
 
     def _checkout(self) -> Any:
-        """The calling thread's landmarker, made at its first call in this process (:class:`MediaPipeDetector`),
-        busy until :meth:`_checkin` (:meth:`close` leaves it open till then)."""
+        """The calling thread's landmarker, busy until :meth:`_checkin` (:meth:`close` leaves it open till then): at
+        its first call in this process, an ended thread's, else a new one (:class:`MediaPipeDetector`)."""
         thread = threading.current_thread()
         with _LOCK:
             if self._pid != os.getpid():  # this process's first call, or a forked copy's (a DataLoader worker)
                 self._disown()
                 self._pid = os.getpid()
             landmarker = self._landmarkers.get(thread)
+            if landmarker is None:  # (an ended thread's: no call of its can be running; a pool made again per video)
+                ended = next((t for t in self._landmarkers if not t.is_alive()), None)
+                if ended is not None:
+                    landmarker = self._landmarkers[thread] = self._landmarkers.pop(ended)
             if landmarker is not None:
                 self._busy.add(landmarker)
                 return landmarker
-            ended = [self._landmarkers.pop(t) for t in list(self._landmarkers) if not t.is_alive()]
-        for landmarker in ended:  # (a pool's threads that have ended: no call of theirs can be running)
-            try:
-                _close(landmarker)
-            except Exception:  # (another thread's leftover: its failure to close is not this call's to raise)
-                pass
         from mediapipe.tasks.python import vision
         from mediapipe.tasks.python.core.base_options import BaseOptions
 
