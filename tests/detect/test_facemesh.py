@@ -315,8 +315,8 @@ def test_mediapipe_max_faces_is_checked_and_is_the_landmarkers_num_faces(fake_me
 
 
 def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_mediapipe, monkeypatch):
-    """Two threads calling one detector at once each get their own landmarker and the results of single-threaded calls (a
-    shared one, whose stand-in keeps the image it was asked, answered both with the last image; a lock around it
+    """Two threads calling one detector at once each get their own landmarker and the results of single-threaded calls
+    (a shared one, whose stand-in keeps the image it was asked, answered both with the last image; a lock around it
     never let the second in while the first waited at the barrier); a thread's first call takes the landmarker of a
     thread that has ended (a pool made again per video makes none); a forked process lets go of all the inherited
     ones; ``close()`` during another thread's call leaves that call its landmarker, closed as the call ends (closed
