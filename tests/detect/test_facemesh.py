@@ -371,6 +371,14 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     monkeypatch.setattr(facemesh, "_OPEN", weakref.WeakSet([detect]))  # (this test's detector alone)
     facemesh._close_all()
     assert len(vision.closed) == 1 and left._handle is None and detect._landmarkers == {}
+    detect(images[0])  # and where an atexit function of the user's closes the detector (the thread pools shut down)
+    left = _own(detect)
+    with monkeypatch.context() as exiting:
+        import concurrent.futures.thread
+
+        exiting.setattr(concurrent.futures.thread, "_shutdown", True)
+        detect.close()
+    assert len(vision.closed) == 1 and left._handle is None and detect._landmarkers == {}
     # close() while another thread's call runs: that call ends with its landmarker (closed under it, it answered "no
     # face": mediapipe 1.2.2's closed landmarker returns no faces), which is closed as the call ends; the idle ones at
     # once
@@ -549,10 +557,12 @@ def test_mediapipe_detector_leaves_no_error_at_exit():
     """With mediapipe and its model installed: a process that used the detector from its own and a pool's threads
     exits without printing an error, also where mediapipe was imported first (before, closing the landmarkers at
     exit printed "RuntimeError: cannot schedule new futures after shutdown": mediapipe's thread pool had been shut
-    down; and their ``__del__`` then "TypeError: 'NoneType' object is not callable")."""
+    down; and their ``__del__`` then "TypeError: 'NoneType' object is not callable"), and where the user's own
+    ``atexit`` function closes the detector (it printed the same two)."""
     pytest.importorskip("mediapipe", reason="mediapipe (torchface[mediapipe]) is not installed")
     _model_or_skip()
     code = (
+        "import atexit\n"
         "import mediapipe\n"
         "import numpy as np\n"
         "from concurrent.futures import ThreadPoolExecutor\n"
@@ -562,6 +572,7 @@ def test_mediapipe_detector_leaves_no_error_at_exit():
         "assert detect(image) is None\n"
         "with ThreadPoolExecutor(2) as pool:\n"
         "    assert list(pool.map(detect, [image] * 4)) == [None] * 4\n"
+        "atexit.register(detect.close)\n"
         "print('done')\n"
     )
     root = str(Path(__file__).resolve().parents[2])

@@ -20,6 +20,7 @@ import importlib.util
 import io
 import math
 import os
+import sys
 import threading
 import weakref
 from importlib import resources
@@ -394,9 +395,10 @@ class MediaPipeDetector(_PerImageDetector):
 
     def close(self) -> None:
         """Free every thread's landmarker (a later call makes another). One in a call in another thread is closed
-        as that call ends (closed under it, mediapipe 1.2.2's answered that it saw no face)."""
+        as that call ends (closed under it, mediapipe 1.2.2's answered that it saw no face). At exit (an ``atexit``
+        function's call), they are let go of as :func:`_close_all` does."""
         with _LOCK:
-            if self._pid != os.getpid():
+            if self._pid != os.getpid() or _exiting():
                 self._disown()
                 return
             landmarkers = [landmarker for landmarker in self._landmarkers.values() if landmarker not in self._busy]
@@ -513,6 +515,15 @@ _LOCK = threading.Lock()
 #: none of 120 one after another, none of 100 beside another's ``detect``, none of 200 makings beside a making). A new
 #: one in a forked child, as :data:`_LOCK`.
 _LIFE = threading.Lock()
+
+
+def _exiting() -> bool:
+    """Whether the interpreter has shut down the ``concurrent.futures`` thread pools (it does before the ``atexit``
+    functions run), where mediapipe 1.2.2's landmarkers run their calls, ``close`` included: it raised "cannot
+    schedule new futures after shutdown" then. (``concurrent.futures.thread._shutdown``, CPython 3.9-3.13; False
+    where that is not there.)"""
+    pools = sys.modules.get("concurrent.futures.thread")
+    return bool(getattr(pools, "_shutdown", False))
 
 
 def _close(landmarker: Any) -> None:
