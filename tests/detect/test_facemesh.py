@@ -129,7 +129,7 @@ def _fake_mediapipe(root) -> None:
     image). Where ``gate`` holds two events, ``detect`` sets the first and waits for the second as it starts; a closed
     landmarker answers that it sees no face (as mediapipe 1.2.2's did: its closed dispatcher returns without asking).
     ``overlaps`` has, for each landmarker made or closed, how many others were being closed then; where ``hold`` holds
-    two events, ``close`` sets the first and waits for the second (at most 0.5 s)."""
+    two events, ``close`` sets the first and waits for the second (at most 0.25 s)."""
     package = root / "mediapipe"
     (package / "tasks" / "python" / "core").mkdir(parents=True)
     (package / "__init__.py").write_text(
@@ -168,7 +168,7 @@ def _fake_mediapipe(root) -> None:
         "        return types.SimpleNamespace(face_landmarks=points)\n"
         "    def close(self):\n"
         "        overlaps.append(closing[0])\n        closing[0] += 1\n"
-        "        if hold:\n            hold[0].set()\n            hold[1].wait(0.5)\n"
+        "        if hold:\n            hold[0].set()\n            hold[1].wait(0.25)\n"
         "        closing[0] -= 1\n        closed.append(self._handle)\n"
     )
     importlib.invalidate_caches()
@@ -403,7 +403,7 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     vision.hold[:] = [threading.Event(), threading.Event()]
     with ThreadPoolExecutor(1) as pool:
         first = pool.submit(lambda: vision.hold[0].wait(5) and detect(images[0]))
-        detect.close()  # (its close is held 0.5 s, as the pool's thread makes its landmarker)
+        detect.close()  # (its close is held 0.25 s, as the pool's thread makes its landmarker)
         np.testing.assert_array_equal(first.result(5), alone[0])
     vision.hold.clear()
     assert not any(vision.overlaps), vision.overlaps

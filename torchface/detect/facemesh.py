@@ -310,7 +310,7 @@ class MediaPipeDetector(_PerImageDetector):
     (one in a call, as that call ends); at exit they are let go of (:func:`_close_all`). The landmarkers are made in the
     process they serve (a ``DataLoader`` worker forked from a process that had used them makes its own, leaving the
     inherited ones untouched). It pickles as its ``model`` and ``max_faces`` arguments (a spawned worker, a checkpoint):
-    the copy finds the model again. Where a landmarker raises, it is closed and that thread's next call makes another (a
+    the copy finds the model again. Where a landmarker raises, it is closed and that thread's next call gets another (a
     FaceLandmarker that has failed fails at every later image).
 
     Raises:
