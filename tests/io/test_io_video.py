@@ -252,6 +252,27 @@ def test_bad_inputs(tmp_path, make, message):
     assert "\n" not in str(info.value)
 
 
+def test_a_folder_of_videos_is_told_to_give_the_files(tmp_path):
+    """A folder of video files (``torchface track clips/``) was told only "folder holds no images ...: zero frames":
+    it names the videos and the glob that gives them as inputs (hidden files left out, the names in natural order)."""
+    for name in ("s10.mpg", "s2.mpg", "s1.mpg", "s3.mpg", "._s0.mpg", "notes.txt"):
+        (tmp_path / name).write_bytes(b"")
+    with pytest.raises(InputError) as info:
+        open_frames(tmp_path)
+    assert str(info.value) == (
+        f"{tmp_path}: folder holds no images (.png, .jpg, .jpeg, .bmp, .tif, .tiff) but 4 videos (s1.mpg, s2.mpg, "
+        f"s3.mpg, ...): a folder is one video of image frames; give each file as an input ({tmp_path}/*.mpg)"
+    )
+    (tmp_path / "frames.npy").write_bytes(b"")  # two kinds: every file
+    with pytest.raises(InputError, match=rf"but 5 videos \(frames\.npy, s1\.mpg, s2\.mpg, \.\.\.\): .*\({tmp_path}/\*\)$"):
+        open_frames(tmp_path)
+    for f in tmp_path.iterdir():  # an empty folder (but for its notes): as before
+        if f.name != "notes.txt":
+            f.unlink()
+    with pytest.raises(InputError, match=r"holds no images \(.*\): zero frames$"):
+        open_frames(tmp_path)
+
+
 def test_image_folder_order_is_numeric_and_hidden_files_are_skipped(tmp_path):
     """``ffmpeg ... %d.png`` names frames 1.png ... 12.png: read 1, 2, ..., 12 (a plain string sort read 1, 10,
     11, 12, 2, ...); macOS's ``._1.png`` companions are not frames; a bad frame's error names its file."""

@@ -462,6 +462,13 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([video], lm)
     with pytest.raises(ValueError, match="FrameFolderDataset"):
         VideoDataset([tmp_path], [lm])
+    # a folder of videos: told to give the files (it was told to use FrameFolderDataset, which found no images there)
+    (tmp_path / "videos").mkdir()
+    for name in ("b.mpg", "a.mpg"):
+        (tmp_path / "videos" / name).write_bytes(b"")
+    with pytest.raises(ValueError, match=r"videos: VideoDataset takes video files or \.npy arrays, not a folder but 2 "
+                       r"videos \(a\.mpg, b\.mpg\): .*give the files, one entry per video \(.*videos/\*\.mpg\)$"):
+        VideoDataset([tmp_path / "videos"], [lm])
     with pytest.raises(ValueError, match="VideoDataset"):
         FrameFolderDataset([video], [lm])
     # a mistyped path: said so (it was told to use the other dataset, "takes folders of frames", or the other way round)
