@@ -231,7 +231,15 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "z.npy", np.zeros((0, 40, 40, 3), np.uint8)) or p / "z.npy", "zero frames"),
         (lambda p: np.save(p / "t.npy", np.zeros((2, 20, 40, 3), np.uint8)) or p / "t.npy", "at least 32x32"),
         (lambda p: np.save(p / "i.npy", np.zeros((2, 40, 40, 3), np.int32)) or p / "i.npy", "unsupported pixel type"),
-        (lambda p: np.save(p / "f.npy", np.full((2, 40, 40), 2.0, np.float32)) or p / "f.npy", r"in \[0, 1\]"),
+        (lambda p: np.save(p / "f.npy", np.full((2, 40, 40), 2.0, np.float32)) or p / "f.npy",
+         r"in \[0, 1\], got values from 2 to 2$"),
+        # 0-255 floats (a uint8 clip's .astype(np.float32)): the range and what to do (it said "must be finite and in
+        # [0, 1]" alone); NaN pixels named
+        (lambda p: np.save(p / "g.npy", np.arange(2 * 40 * 40 * 3, dtype=np.float32).reshape(2, 40, 40, 3) % 256)
+         or p / "g.npy", r"frame 0: float frames must be finite and in \[0, 1\], got values from 0 to 255 \(0-255 "
+         r"values\? divide by 255, or save them as uint8\)$"),
+        (lambda p: np.save(p / "n.npy", np.where(np.eye(40)[None, :, :, None] > 0, np.nan, np.full((2, 40, 40, 3), .5)))
+         or p / "n.npy", r"got NaN and values from 0\.5 to 0\.5$"),
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),
         (lambda p: np.save(p / "one.npy", np.zeros((48, 64, 3), np.uint8)) or p / "one.npy", r"one colour image"),
         # a PyTorch clip's .numpy(), (T, 3, H, W): told to transpose it (it was "expected an (H, W) or (H, W, 1|3|4)
@@ -264,7 +272,7 @@ def test_a_folder_of_videos_is_told_to_give_the_files(tmp_path):
         f"s3.mpg, ...): a folder is one video of image frames; give each file as an input ({tmp_path}/*.mpg)"
     )
     (tmp_path / "frames.npy").write_bytes(b"")  # two kinds: every file
-    with pytest.raises(InputError, match=rf"but 5 videos \(frames\.npy, s1\.mpg, s2\.mpg, \.\.\.\): .*\({tmp_path}/\*\)$"):
+    with pytest.raises(InputError, match=rf"but 5 videos \(frames\.npy, s1\.mpg, s2\.mpg, \.\.\.\): .*/\*\)$"):
         open_frames(tmp_path)
     for f in tmp_path.iterdir():  # an empty folder (but for its notes): as before
         if f.name != "notes.txt":

@@ -157,6 +157,22 @@ def _problem_message(where: str, problems: list[str]) -> str:
     return f"{where}: frames are {what} (torchface takes 8-bit colour frames of even width and height): {CONVERT_HINT}"
 
 
+def _float_range_problem(array: np.ndarray) -> str:
+    """What a float frame outside [0, 1] holds, and what to do (:func:`frame_to_tensor`'s message; a clip of 0-255
+    floats, ``frames.astype(np.float32)`` of 8-bit ones, was told only "float frames must be finite and in [0, 1]")."""
+    finite = array[np.isfinite(array)]
+    parts = []
+    if finite.size < array.size:
+        parts.append("NaN" if np.isnan(array).any() else "infinite")
+    if finite.size:
+        lo, hi = float(finite.min()), float(finite.max())
+        parts.append(f"values from {lo:.4g} to {hi:.4g}")
+    hint = ""
+    if finite.size and float(finite.min()) >= 0.0 and 2.0 < float(finite.max()) <= 255.0:
+        hint = " (0-255 values? divide by 255, or save them as uint8)"
+    return "got " + " and ".join(parts) + hint
+
+
 def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = False) -> tuple[Tensor, str]:
     """One image array -> ``(3, H', W')`` float32 RGB in ``[0, 1]`` and a description of its stored format.
 
@@ -180,7 +196,7 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     if array.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):  # (float16: a half .npy clip)
         raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
     if array.dtype.kind == "f" and not (np.isfinite(array).all() and array.min() >= 0.0 and array.max() <= 1.0):
-        raise InputError(f"{where}: float frames must be finite and in [0, 1]")
+        raise InputError(f"{where}: float frames must be finite and in [0, 1], {_float_range_problem(array)}")
     problems = format_problems(array)
     if problems and not convert:
         raise InputError(_problem_message(where, problems))
