@@ -663,7 +663,9 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
     normalise = NormaliseFaces(TRACKING)
     for bad, hint in ((frames.permute(0, 2, 3, 1), r"frames\.permute\(0, 3, 1, 2\)"),
                       (torch.cat([frames, frames[:, :1]], 1), r"frames\[:, :3\]"),
-                      (frames[:, 0], r"frames\[:, None\]")):  # fmt: skip
+                      (frames[:, 0], r"frames\[:, None\]"),
+                      # a batch of clips (told its shape alone): one clip per call, or the layer
+                      (frames[None], r"one clip: frames\[i\].*NormalisedFaceLayer\.forward_clip")):  # fmt: skip
         with pytest.raises(ValueError, match=r"\(T, 3, H, W\).*" + hint):
             normalise(bad, clips[0].landmarks)
     fixed = normalise(frames[:, 0][:, None], clips[0].landmarks)  # the hint's gray clip is taken (gray faces)
