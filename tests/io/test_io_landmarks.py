@@ -292,6 +292,16 @@ def test_one_row_per_point_csv_refusals_say_what_is_wrong(tmp_path):
         with pytest.raises(InputError, match=message) as info:
             read_landmarks(tmp_path / "bad.csv", 100, 100)
         assert "\n" not in str(info.value)
+    # a named index counted from 1 (as many annotation tools number the points): said so (it was "point index 68 is
+    # not an iBUG index 0-67" alone); not where the file has an index 0 (a 0-based file with a stray 68)
+    one_based = "\n".join(f"{k + 1},{10 + k * 0.5},{20 + k * 0.25}" for k in range(68))
+    (tmp_path / "one.csv").write_text("point,x,y\n" + one_based + "\n")
+    said = r"line 69: point index 68 is not an iBUG index 0-67: numbered from 1\? The index column counts the points "
+    with pytest.raises(InputError, match=said + r"from 0 \(0-67\): subtract 1 from each index$"):
+        read_landmarks(tmp_path / "one.csv", 100, 100)
+    (tmp_path / "stray.csv").write_text("point,x,y\n" + body + "\n68,1,2\n")
+    with pytest.raises(InputError, match=r"line 70: point index 68 is not an iBUG index 0-67$"):
+        read_landmarks(tmp_path / "stray.csv", 100, 100)
     (tmp_path / "id.csv").write_text("id,x,y\n" + body + "\n")  # an index column of another name: says which
     with pytest.raises(InputError, match=r"rows of 'x, y' \(or, one row per point, a header naming ibug_index, x"):
         read_landmarks(tmp_path / "id.csv", 100, 100)
