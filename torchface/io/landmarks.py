@@ -607,8 +607,9 @@ def check_landmarks(
         k = int(np.flatnonzero(outside)[0])
         raise InputError(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
-            f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
-        )
+            f"({_coordinate(points[k, 0])}, {_coordinate(points[k, 1])}) (the frame spans x -0.5 to {width - 0.5}, "
+            f"y -0.5 to {height - 0.5}: pixel centres at integers)"
+        )  # (the point was written to 0.1: one 0.01 px outside read "at (-0.5, ...)", the frame's very edge)
     kept = points[given]
     low, high = NORMALISED_LANDMARK_RANGE
     if (len(kept) and min(width, height) >= NORMALISED_CHECK_MIN_SIDE and ((kept >= low) & (kept <= high)).all()
@@ -623,6 +624,13 @@ def check_landmarks(
             f"y / H, as MediaPipe writes them)? Give pixels, centres at integers: x * {w}, y * {h}"
         )
     return points
+
+
+def _coordinate(value: float) -> str:
+    """A coordinate as a message gives it: to 0.1 where that is its value, else to 10 digits (``-0.51``, not the
+    ``-0.5`` that reads as the frame's edge)."""
+    short = f"{value:.1f}"
+    return short if float(short) == value else f"{value:.10g}"
 
 
 def read_landmarks(
