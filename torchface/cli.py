@@ -511,7 +511,8 @@ def _path(text: str) -> Path:
     (``--out=~/res`` wrote the outputs to a folder ``~`` in the working folder)."""
     if not text:
         raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): give a file or folder")
-    if Path(text).parts[0].startswith("~"):  # (--out=~/res, or quoted: a folder '~' in the working folder was made)
+    parts = Path(text).parts  # (none for ".")
+    if parts and parts[0].startswith("~"):  # (--out=~/res, or quoted: a folder '~' in the working folder was made)
         raise argparse.ArgumentTypeError(
             f"{text!r} starts with '~', which the shell did not expand (quoted, or after '=' as in --out=~/...): give "
             "the path after a space, unquoted, or with $HOME"
