@@ -218,6 +218,26 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, capsys,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
 
 
+def test_a_path_starting_with_tilde_is_a_usage_error_not_a_folder_named_tilde(tmp_path, capsys, monkeypatch):
+    """The shell leaves ``~`` as it is after ``=`` and in quotes: ``--out=~/res`` wrote the outputs to a folder ``~``
+    in the working folder, without a word. Now a one-line usage error saying why (any path option, the inputs too),
+    nothing made."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a.npy").write_bytes(b"")
+    for argv in (["track", "a.npy", "--out=~/res", "--landmarks", "l.csv"], ["render-demo", "--out", "~/synth"],
+                 ["track", "~/a.npy", "--out", "o", "--landmarks", "l.csv"]):  # fmt: skip
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "Traceback" not in err, (argv, err)
+        assert err.splitlines()[-1].endswith("starts with '~', which the shell did not expand (quoted, or after '=' "
+                                             "as in --out=~/...): give the path after a space, unquoted, or with $HOME")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
+    with pytest.raises(SystemExit) as info:  # "." (a path of no parts) is the working folder, as before
+        main(["track", "a.npy", "--out", ".", "--landmarks", "l.csv", "--no-such-option"])
+    assert info.value.code == 2 and "unrecognized arguments: --no-such-option" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a Linux file system")
 def test_render_demo_and_video_sink_refuse_a_name_that_is_not_utf8_not_a_crash(tmp_path):
     """``render-demo --out`` / ``VideoSink`` with a name that is not valid UTF-8 (Latin-1 bytes) crashed the process in

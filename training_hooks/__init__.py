@@ -31,6 +31,7 @@ from training_hooks.hooks import (
     TrackingQualityLogger,
     confidence_weighted_loss,
     drop_low_confidence,
+    sample_confidence,
     tracking_quality,
 )
 from training_hooks.layer import LayerConfig, LayerMode, LayerResult, NormalisedFaceLayer, UnrollStart, unrolled_params
@@ -64,6 +65,7 @@ __all__ = [
     "content_hash",
     "drop_low_confidence",
     "loader_throughput",
+    "sample_confidence",
     "track_sequence",
     "tracking_quality",
     "unrolled_params",

@@ -152,7 +152,7 @@ from torchface.detect import detector_image, search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int, check_optional_real
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
-from torchface.io.video import CONVERT_HINT, open_capture, open_frames
+from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _check_no_tilde
@@ -748,8 +748,12 @@ class VideoDataset(IterableDataset):
     def _check_source(self, path: Path) -> None:
         _check_exists(path)
         if not path.is_file():
+            # (a folder of videos was told to use FrameFolderDataset, which then found no images in it)
+            videos = folder_of_videos_hint(path, "give the files, one entry per video")
+            if videos:
+                raise ValueError(f"{path}: VideoDataset takes video files or .npy arrays, not a folder{videos}")
             raise ValueError(
-                f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders)"
+                f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders of frames)"
             )
 
     def __getitem__(self, index: int) -> dict[str, Tensor]:

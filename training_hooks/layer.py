@@ -452,6 +452,19 @@ class NormalisedFaceLayer(DeviceCheckedModule):
             raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
         if clips.dim() != 5 or clips.shape[1] < 1:
             raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}")
+        # (told of a frame's layout, clips[:, 0]'s: channels last was "frames.permute(0, 3, 1, 2)", which a clip
+        # cannot take; uint8 clips, cast to the model's dtype first, were "values from 0 to 255")
+        hint = ""
+        if clips.shape[2] not in (1, 3) and clips.shape[-1] in (1, 3):
+            hint = " (channels last (B, T, H, W, C): clips.permute(0, 1, 4, 2, 3))"
+        elif clips.shape[2] == 4:
+            hint = " (RGBA: drop the alpha, clips[:, :, :3])"
+        if clips.shape[2] not in (1, 3):
+            raise ValueError(f"clips must be (B, T, 3, H, W) RGB or (B, T, 1, H, W) gray, got {tuple(clips.shape)}"
+                             f"{hint}")  # fmt: skip
+        if not clips.is_floating_point():
+            hint = " (uint8 clips: clips.float() / 255)" if clips.dtype == torch.uint8 else ""
+            raise ValueError(f"clips must be float in [0, 1], got {clips.dtype}{hint}")
         if isinstance(landmarks_px, Tensor) and landmarks_px.dim() == 3 and landmarks_px.shape[0] != clips.shape[0]:
             # (initialise's "with B = T (one set per frame)" read as if T landmark sets were wanted)
             B, T = clips.shape[:2]

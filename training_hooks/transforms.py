@@ -427,6 +427,9 @@ def _layout_hint(frames: Tensor) -> str:
         return " (RGBA: drop the alpha, frames[:, :3])"
     if frames.dim() == 3:
         return " (one frame (3, H, W): frames[None]; gray frames (T, H, W): frames[:, None])"
+    if frames.dim() == 5 and shape[2] in (1, 3):  # (a batch of clips was told its shape alone)
+        return (" (a batch of clips (B, T, C, H, W)? NormaliseFaces takes one clip: frames[i] with its landmarks; "
+                "NormalisedFaceLayer.forward_clip takes a batch)")
     return ""
 
 

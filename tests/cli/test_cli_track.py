@@ -3958,6 +3958,9 @@ def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, mo
     monkeypatch.chdir(tmp_path)
     for bad, error, said in ((dict(out_dir=None), TypeError, "out_dir must be a path"),
                              (dict(out_dir=""), ValueError, "out_dir is an empty path"),
+                             # (not expanded: the outputs went to a folder '~' in the working folder)
+                             (dict(out_dir="~/o"), ValueError, r"out_dir '~/o' starts with '~', which is not expanded "
+                                                               r".*give os\.path\.expanduser\('~/o'\)$"),
                              (dict(out_dir="o", landmarks=(None,)), TypeError, r"landmarks\[0\] must be a path"),
                              (dict(out_dir="o", landmarks=("a.csv", "")), ValueError, r"landmarks\[1\] is an empty"),
                              (dict(out_dir="o", landmarks=5), TypeError, "landmarks must be a tuple")):  # fmt: skip

@@ -75,6 +75,26 @@ def test_dlib_missing_names_the_install_command(isolated_modules):
         load_detector("dlib")
 
 
+def test_detector_image_refuses_what_it_would_misread():
+    """``detector_image`` took any tensor: a uint8 frame came out black and white (0 or 255), a channels-last one as an
+    image of shape (W, 3, H), 0-255 floats white, a batch or a NumPy image a NumPy or attribute error; the detector then
+    found no face. Each is now a one-line error saying what to pass; a frame a little outside [0, 1] is clamped."""
+    frame = torch.rand(3, 12, 16, generator=torch.Generator().manual_seed(0))
+    for bad, error, said in (
+        ((frame * 255).round().to(torch.uint8), ValueError, r"got torch\.uint8 \(uint8: frame\.float\(\) / 255\)$"),
+        (frame.permute(1, 2, 0), ValueError, r"\(12, 16, 3\) \(channels last \(H, W, 3\): frame\.permute\(2, 0, 1"),
+        (frame[None], ValueError, r"\(a batch \(B, 3, H, W\): one frame at a time, frames\[i\]\)$"),
+        (frame[:1], ValueError, r"\(gray \(1, H, W\): frame\.expand\(3, -1, -1\)\)$"),
+        (frame * 255, ValueError, r"0-255 values\? divide by 255"),
+        (frame.numpy(), TypeError, r"got ndarray \(an \(H, W, 3\) uint8 RGB image.* already the detector's image\)$"),
+    ):  # fmt: skip
+        with pytest.raises(error, match=said):
+            detector_image(bad)  # type: ignore[arg-type]
+    gray = detector_image(frame[:1].expand(3, -1, -1))  # (the hint's gray frame is taken)
+    np.testing.assert_array_equal(gray, detector_image(frame[:1].repeat(3, 1, 1)))
+    assert detector_image(frame * 1.02 - 0.01).shape == (12, 16, 3)  # (a little outside: clamped, as before)
+
+
 def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_modules):
     """FaceTracker(detector=load_detector("dlib")) was accepted and failed at the first loss, many frames in, with
     "image must be (H, W, 3) uint8 RGB, got torch.Size([1, 3, H, W])": the message now names the adapter."""

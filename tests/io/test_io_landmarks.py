@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -292,6 +294,16 @@ def test_one_row_per_point_csv_refusals_say_what_is_wrong(tmp_path):
         with pytest.raises(InputError, match=message) as info:
             read_landmarks(tmp_path / "bad.csv", 100, 100)
         assert "\n" not in str(info.value)
+    # a named index counted from 1 (as many annotation tools number the points): said so (it was "point index 68 is
+    # not an iBUG index 0-67" alone); not where the file has an index 0 (a 0-based file with a stray 68)
+    one_based = "\n".join(f"{k + 1},{10 + k * 0.5},{20 + k * 0.25}" for k in range(68))
+    (tmp_path / "one.csv").write_text("point,x,y\n" + one_based + "\n")
+    said = r"line 69: point index 68 is not an iBUG index 0-67: numbered from 1\? The index column counts the points "
+    with pytest.raises(InputError, match=said + r"from 0 \(0-67\): subtract 1 from each index$"):
+        read_landmarks(tmp_path / "one.csv", 100, 100)
+    (tmp_path / "stray.csv").write_text("point,x,y\n" + body + "\n68,1,2\n")
+    with pytest.raises(InputError, match=r"line 70: point index 68 is not an iBUG index 0-67$"):
+        read_landmarks(tmp_path / "stray.csv", 100, 100)
     (tmp_path / "id.csv").write_text("id,x,y\n" + body + "\n")  # an index column of another name: says which
     with pytest.raises(InputError, match=r"rows of 'x, y' \(or, one row per point, a header naming ibug_index, x"):
         read_landmarks(tmp_path / "id.csv", 100, 100)
@@ -407,6 +419,17 @@ def test_too_few_points_given_are_refused_naming_the_file_and_the_count(tmp_path
     np.save(tmp_path / "outside.npy", outside)
     with pytest.raises(InputError, match=r"1 landmark\(s\) outside the 100x100 frame, e.g. point 5"):
         read_landmarks(tmp_path / "outside.npy", 100, 100)
+    # just outside the frame's edge (pixel centres at integers: it spans -0.5 to 99.5): the point as given, and the
+    # frame's span (it was written to 0.1, "at (-0.5, 50.0)", which reads as inside); the edge itself is inside
+    for x, said in ((-0.51, "-0.51"), (99.5001, "99.5001")):
+        outside[5] = [x, 50.0]
+        np.save(tmp_path / "edge.npy", outside)
+        span = r"\(the frame spans x -0\.5 to 99\.5, y -0\.5 to 99\.5: pixel centres at integers\)$"
+        with pytest.raises(InputError, match=rf"e\.g\. point 5 at \({re.escape(said)}, 50\.0\) " + span):
+            read_landmarks(tmp_path / "edge.npy", 100, 100)
+        outside[5] = [round(x + 0.01) - 0.5 if x > 0 else -0.5, 50.0]
+        np.save(tmp_path / "edge.npy", outside)
+        assert read_landmarks(tmp_path / "edge.npy", 100, 100)[5, 0] == outside[5, 0]
     (tmp_path / "short.pts").write_text(_pts_text(_dyadic_points()[:60]))  # which 8 are missing is not known
     with pytest.raises(InputError, match=r"expected 68 iBUG landmarks, got 60 \(a missing point stays, as a NaN row"):
         read_landmarks(tmp_path / "short.pts", 100, 100)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -243,6 +244,18 @@ def test_a_damaged_complete_line_is_refused_not_read_as_the_end(tmp_path):
             TrackCsvWriter(tmp_path / "v.csv", cols, resume=True)
     part.write_text("frame,timestamp,success,confidence\n0,0.000,1,0.9\n\n\n")  # blank lines at the end: no rows
     assert read_track_csv(part)[1].shape == (1, 4)
+
+
+def test_a_track_csv_that_cannot_be_read_says_why_not_the_exception_class(tmp_path):
+    """A missing file, a folder or a file that is not text said the exception's class alone ("cannot read the
+    track CSV (FileNotFoundError)")."""
+    (tmp_path / "results.csv").mkdir()
+    (tmp_path / "clip.csv").write_bytes(b"frame,timestamp\n\xff\xfe0,0\n")
+    for name, said in (("nope.csv", r"cannot read the track CSV \(No such file or directory\)"),
+                       ("results.csv", r"cannot read the track CSV \(Is a directory\)"),
+                       ("clip.csv", r"not a track CSV \(not UTF-8 text\)")):  # fmt: skip
+        with pytest.raises(InputError, match=rf"^{re.escape(str(tmp_path / name))}: {said}$"):
+            read_track_csv(tmp_path / name)
 
 
 def test_an_openface_csv_is_read_by_column_name(tmp_path):

@@ -231,7 +231,15 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "z.npy", np.zeros((0, 40, 40, 3), np.uint8)) or p / "z.npy", "zero frames"),
         (lambda p: np.save(p / "t.npy", np.zeros((2, 20, 40, 3), np.uint8)) or p / "t.npy", "at least 32x32"),
         (lambda p: np.save(p / "i.npy", np.zeros((2, 40, 40, 3), np.int32)) or p / "i.npy", "unsupported pixel type"),
-        (lambda p: np.save(p / "f.npy", np.full((2, 40, 40), 2.0, np.float32)) or p / "f.npy", r"in \[0, 1\]"),
+        (lambda p: np.save(p / "f.npy", np.full((2, 40, 40), 2.0, np.float32)) or p / "f.npy",
+         r"in \[0, 1\], got values from 2 to 2$"),
+        # 0-255 floats (a uint8 clip's .astype(np.float32)): the range and what to do (it said "must be finite and in
+        # [0, 1]" alone); NaN pixels named
+        (lambda p: np.save(p / "g.npy", np.arange(2 * 40 * 40 * 3, dtype=np.float32).reshape(2, 40, 40, 3) % 256)
+         or p / "g.npy", r"frame 0: float frames must be finite and in \[0, 1\], got values from 0 to 255 \(0-255 "
+         r"values\? divide by 255, or save them as uint8\)$"),
+        (lambda p: np.save(p / "n.npy", np.where(np.eye(40)[None, :, :, None] > 0, np.nan, np.full((2, 40, 40, 3), .5)))
+         or p / "n.npy", r"got NaN and values from 0\.5 to 0\.5$"),
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),
         (lambda p: np.save(p / "one.npy", np.zeros((48, 64, 3), np.uint8)) or p / "one.npy", r"one colour image"),
         # a PyTorch clip's .numpy(), (T, 3, H, W): told to transpose it (it was "expected an (H, W) or (H, W, 1|3|4)
@@ -250,6 +258,27 @@ def test_bad_inputs(tmp_path, make, message):
     with pytest.raises(InputError, match=message) as info:
         open_frames(make(tmp_path))
     assert "\n" not in str(info.value)
+
+
+def test_a_folder_of_videos_is_told_to_give_the_files(tmp_path):
+    """A folder of video files (``torchface track clips/``) was told only "folder holds no images ...: zero frames":
+    it names the videos and the glob that gives them as inputs (hidden files left out, the names in natural order)."""
+    for name in ("s10.mpg", "s2.mpg", "s1.mpg", "s3.mpg", "._s0.mpg", "notes.txt"):
+        (tmp_path / name).write_bytes(b"")
+    with pytest.raises(InputError) as info:
+        open_frames(tmp_path)
+    assert str(info.value) == (
+        f"{tmp_path}: folder holds no images (.png, .jpg, .jpeg, .bmp, .tif, .tiff) but 4 videos (s1.mpg, s2.mpg, "
+        f"s3.mpg, ...): a folder is one video of image frames; give each file as an input ({tmp_path}/*.mpg)"
+    )
+    (tmp_path / "frames.npy").write_bytes(b"")  # two kinds: every file
+    with pytest.raises(InputError, match=rf"but 5 videos \(frames\.npy, s1\.mpg, s2\.mpg, \.\.\.\): .*/\*\)$"):
+        open_frames(tmp_path)
+    for f in tmp_path.iterdir():  # an empty folder (but for its notes): as before
+        if f.name != "notes.txt":
+            f.unlink()
+    with pytest.raises(InputError, match=r"holds no images \(.*\): zero frames$"):
+        open_frames(tmp_path)
 
 
 def test_image_folder_order_is_numeric_and_hidden_files_are_skipped(tmp_path):

@@ -462,6 +462,13 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([video], lm)
     with pytest.raises(ValueError, match="FrameFolderDataset"):
         VideoDataset([tmp_path], [lm])
+    # a folder of videos: told to give the files (it was told to use FrameFolderDataset, which found no images there)
+    (tmp_path / "videos").mkdir()
+    for name in ("b.mpg", "a.mpg"):
+        (tmp_path / "videos" / name).write_bytes(b"")
+    with pytest.raises(ValueError, match=r"videos: VideoDataset takes video files or \.npy arrays, not a folder but 2 "
+                       r"videos \(a\.mpg, b\.mpg\): .*give the files, one entry per video \(.*videos/\*\.mpg\)$"):
+        VideoDataset([tmp_path / "videos"], [lm])
     with pytest.raises(ValueError, match="VideoDataset"):
         FrameFolderDataset([video], [lm])
     # a mistyped path: said so (it was told to use the other dataset, "takes folders of frames", or the other way round)
@@ -656,7 +663,9 @@ def test_the_transform_says_how_to_lay_out_refused_frames(clips):
     normalise = NormaliseFaces(TRACKING)
     for bad, hint in ((frames.permute(0, 2, 3, 1), r"frames\.permute\(0, 3, 1, 2\)"),
                       (torch.cat([frames, frames[:, :1]], 1), r"frames\[:, :3\]"),
-                      (frames[:, 0], r"frames\[:, None\]")):  # fmt: skip
+                      (frames[:, 0], r"frames\[:, None\]"),
+                      # a batch of clips (told its shape alone): one clip per call, or the layer
+                      (frames[None], r"one clip: frames\[i\].*NormalisedFaceLayer\.forward_clip")):  # fmt: skip
         with pytest.raises(ValueError, match=r"\(T, 3, H, W\).*" + hint):
             normalise(bad, clips[0].landmarks)
     fixed = normalise(frames[:, 0][:, None], clips[0].landmarks)  # the hint's gray clip is taken (gray faces)

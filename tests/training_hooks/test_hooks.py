@@ -41,6 +41,20 @@ def frame_batch(B: int = 6, seed: int = 0) -> dict[str, torch.Tensor]:
 # --------------------------------------------------------------------------------------------- loss
 
 
+
+def test_every_hook_is_exported_by_the_package():
+    """The hooks are used together (``drop_low_confidence`` keeps clips by ``sample_confidence``, which the layer's
+    result names beside it), but ``from training_hooks import sample_confidence`` was an ImportError: every name of
+    the hooks module is the package's too."""
+    import training_hooks
+    import training_hooks.hooks
+
+    hooks = training_hooks.hooks
+    missing = [n for n in hooks.__all__ if n not in training_hooks.__all__ or getattr(training_hooks, n, None) is not
+               getattr(hooks, n)]  # fmt: skip
+    assert not missing, missing
+
+
 def test_weighted_loss_known_answer_and_gradient():
     loss = torch.tensor([1.0, 2.0, 4.0], dtype=torch.float64, requires_grad=True)
     conf = torch.tensor([0.5, 0.25, 0.0], dtype=torch.float64)

@@ -383,6 +383,17 @@ def test_exceptions(model, small):
         unrolled_params(model, SMALL, state, frames[1:2], state.params[:, :5], iterations=1)
     with pytest.raises(ValueError, match="clips must be"):
         layer.forward_clip(frames, torch.zeros(1, 68, 2, dtype=D))
+    # A clip's layout (it was told of its first frame's: channels last "frames.permute(0, 3, 1, 2)", which a clip
+    # cannot take; uint8 clips "values from 0 to 255")
+    clips = frames[None]
+    with pytest.raises(ValueError, match=r"got \(1, 2, 32, 32, 3\) \(channels last \(B, T, H, W, C\): "
+                                        r"clips\.permute\(0, 1, 4, 2, 3\)\)$"):
+        layer.forward_clip(clips.permute(0, 1, 3, 4, 2), torch.zeros(1, 68, 2, dtype=D))
+    with pytest.raises(ValueError, match=r"\(RGBA: drop the alpha, clips\[:, :, :3\]\)$"):
+        layer.forward_clip(torch.cat([clips, clips[:, :, :1]], 2), torch.zeros(1, 68, 2, dtype=D))
+    with pytest.raises(ValueError, match=r"clips must be float in \[0, 1\], got torch\.uint8 \(uint8 clips: "
+                                        r"clips\.float\(\) / 255\)$"):
+        layer.forward_clip((clips * 255).to(torch.uint8), torch.zeros(1, 68, 2, dtype=D))
     # Not tensors: TypeErrors as forward's numpy frames are (both were ValueErrors, as a wrong shape).
     with pytest.raises(TypeError, match="clips must be a torch.Tensor"):
         layer.forward_clip(frames[None].numpy(), torch.zeros(1, 68, 2, dtype=D))  # type: ignore[arg-type]

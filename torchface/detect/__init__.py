@@ -282,9 +282,15 @@ def batched(detector: Detector, name: str | None = None) -> Callable[["Tensor"],
 
 
 def detector_image(frame: "Tensor") -> np.ndarray:
-    """A ``(3, H, W)`` float RGB frame in ``[0, 1]`` (any device; values outside clamped) as the image a
-    :data:`Detector` takes: ``(H, W, 3)`` uint8 RGB, rounded, C-contiguous as an image from OpenCV or PIL is (a view
-    of the ``(3, H, W)`` frame was not: OpenCV refused to draw on it).
+    """A ``(3, H, W)`` float RGB frame in ``[0, 1]`` (any device; values a little outside, as far as the tracker's
+    frames may go, clamped) as the image a :data:`Detector` takes: ``(H, W, 3)`` uint8 RGB, rounded, C-contiguous as
+    an image from OpenCV or PIL is (a view of the ``(3, H, W)`` frame was not: OpenCV refused to draw on it).
+
+    Raises:
+        TypeError: ``frame`` is not a tensor (a NumPy image is already the detector's).
+        ValueError: not ``(3, H, W)``, not floating point, or values outside the tracker's frames' range (0-255;
+            checked on the rows a tracking step checks): each was made an image without a word (a uint8 frame black
+            and white, a channels-last one of shape ``(W, 3, H)``), in which the detector found no face.
 
     Example:
         >>> import torch
@@ -292,6 +298,30 @@ def detector_image(frame: "Tensor") -> np.ndarray:
         >>> image.shape, image.dtype, int(image[0, 0, 0]), image.flags.c_contiguous
         ((2, 4, 3), dtype('uint8'), 128, True)
     """
+    import torch
+
+    from torchface.tracker.step import STEP_VALUE_ROW_STRIDE, check_frame_values
+
+    if not isinstance(frame, torch.Tensor):
+        hint = (" (an (H, W, 3) uint8 RGB image, as PIL gives it, or OpenCV's BGR one flipped, image[..., ::-1], is "
+                "already the detector's image)" if isinstance(frame, np.ndarray) else "")  # fmt: skip
+        raise TypeError(f"frame must be a (3, H, W) float tensor in [0, 1], got {type(frame).__name__}{hint}")
+    shape = tuple(frame.shape)
+    if len(shape) != 3 or shape[0] != 3:
+        hint = ""
+        if len(shape) == 4:
+            hint = " (a batch (B, 3, H, W): one frame at a time, frames[i])"
+        elif len(shape) == 3 and shape[-1] == 3:
+            hint = " (channels last (H, W, 3): frame.permute(2, 0, 1))"
+        elif len(shape) == 3 and shape[0] == 1:
+            hint = " (gray (1, H, W): frame.expand(3, -1, -1))"
+        elif len(shape) == 2:
+            hint = " (gray (H, W): frame.expand(3, -1, -1))"
+        raise ValueError(f"frame must be (3, H, W) RGB, got {shape}{hint}")
+    if not frame.is_floating_point():
+        hint = " (uint8: frame.float() / 255)" if frame.dtype == torch.uint8 else ""
+        raise ValueError(f"frame must be float in [0, 1], got {frame.dtype}{hint}")
+    check_frame_values(frame, STEP_VALUE_ROW_STRIDE)  # (the rows a tracking step checks: what it took, this takes)
     return np.ascontiguousarray(_uint8_planes(frame).transpose(1, 2, 0))
 
 

@@ -382,12 +382,23 @@ def _parse_long(
             one_based = (f": a 1-based index (R's row names?), read only as 1..{count} in order on "
                          f"{count} rows; write it 0-based or leave it out (write.csv(..., row.names = FALSE))"
                          if unnamed and k == count else "")  # fmt: skip
+            if not unnamed and k == count and not any(_index_cell(line, delimiter, index) == "0" for _, line in lines):
+                # (a named index counted 1..68, as many annotation tools number the points: it said only that 68 is
+                # not an iBUG index)
+                one_based = (f": numbered from 1? The index column counts the points from 0 (0-{count - 1}): "
+                             "subtract 1 from each index")
             raise InputError(f"{p}: line {number}: point index {k} is not {what}{one_based}")
         if k in seen:
             raise InputError(f"{p}: line {number}: point {k} again (first on line {seen[k]})")
         seen[k] = number
         points[k] = point
     return points  # (a point without a row stays NaN: missing)
+
+
+def _index_cell(line: str, delimiter: str | None, index: int) -> str | None:
+    """The index cell of a one-row-per-point CSV's ``line`` (:func:`_parse_long`), None where it has none."""
+    cells = _split(line, delimiter)
+    return cells[index] if index < len(cells) else None
 
 
 def _parse_csv(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
@@ -596,8 +607,9 @@ def check_landmarks(
         k = int(np.flatnonzero(outside)[0])
         raise InputError(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
-            f"({points[k, 0]:.1f}, {points[k, 1]:.1f})"
-        )
+            f"({_coordinate(points[k, 0])}, {_coordinate(points[k, 1])}) (the frame spans x -0.5 to {width - 0.5}, "
+            f"y -0.5 to {height - 0.5}: pixel centres at integers)"
+        )  # (the point was written to 0.1: one 0.01 px outside read "at (-0.5, ...)", the frame's very edge)
     kept = points[given]
     low, high = NORMALISED_LANDMARK_RANGE
     if (len(kept) and min(width, height) >= NORMALISED_CHECK_MIN_SIDE and ((kept >= low) & (kept <= high)).all()
@@ -612,6 +624,13 @@ def check_landmarks(
             f"y / H, as MediaPipe writes them)? Give pixels, centres at integers: x * {w}, y * {h}"
         )
     return points
+
+
+def _coordinate(value: float) -> str:
+    """A coordinate as a message gives it: to 0.1 where that is its value, else to 10 digits (``-0.51``, not the
+    ``-0.5`` that reads as the frame's edge)."""
+    short = f"{value:.1f}"
+    return short if float(short) == value else f"{value:.10g}"
 
 
 def read_landmarks(

@@ -288,8 +288,10 @@ def _read_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray
                 except ValueError as exc:
                     why = f"line {n} is not a row of the track CSV ({exc}): the file is damaged"
                     raise InputError(f"{p}: {why}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read the track CSV ({exc.__class__.__name__})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{p}: not a track CSV (not UTF-8 text)") from None
+    except OSError as exc:  # (it said the exception's class alone: "(FileNotFoundError)", "(IsADirectoryError)")
+        raise InputError(f"{p}: cannot read the track CSV ({exc.strerror or exc.__class__.__name__})") from None
     data = np.frombuffer(rows, dtype=np.float64) if rows else np.zeros(0)
     return columns, data.reshape(-1, len(columns)), end  # (a view of the rows read: no copy of them)
 

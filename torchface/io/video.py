@@ -46,11 +46,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._words import counted
 from torchface.io.errors import InputError
 
 __all__ = [
     "CONVERT_HINT",
     "IMAGE_SUFFIXES",
+    "VIDEO_SUFFIXES",
+    "folder_of_videos_hint",
     "image_files",
     "MIN_SIZE",
     "FrameReader",
@@ -63,6 +66,11 @@ __all__ = [
 
 #: Image file suffixes read from a folder input.
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: Suffixes of video files and frame arrays, each one input of its own: a folder holding them is not an image-folder
+#: input (:func:`folder_of_videos_hint`).
+VIDEO_SUFFIXES: tuple[str, ...] = (
+    ".mp4", ".avi", ".mov", ".mkv", ".mpg", ".mpeg", ".m4v", ".webm", ".wmv", ".flv", ".mts", ".ts", ".npy",
+)
 #: Smallest accepted frame side in pixels (the tracker's coarsest pyramid level needs a few pixels).
 MIN_SIZE: int = 32
 #: How to proceed when a frame is grayscale, RGBA, 16-bit or odd-sized (ends every such error message).
@@ -149,6 +157,22 @@ def _problem_message(where: str, problems: list[str]) -> str:
     return f"{where}: frames are {what} (torchface takes 8-bit colour frames of even width and height): {CONVERT_HINT}"
 
 
+def _float_range_problem(array: np.ndarray) -> str:
+    """What a float frame outside [0, 1] holds, and what to do (:func:`frame_to_tensor`'s message; a clip of 0-255
+    floats, ``frames.astype(np.float32)`` of 8-bit ones, was told only "float frames must be finite and in [0, 1]")."""
+    finite = array[np.isfinite(array)]
+    parts = []
+    if finite.size < array.size:
+        parts.append("NaN" if np.isnan(array).any() else "infinite")
+    if finite.size:
+        lo, hi = float(finite.min()), float(finite.max())
+        parts.append(f"values from {lo:.4g} to {hi:.4g}")
+    hint = ""
+    if finite.size and float(finite.min()) >= 0.0 and 2.0 < float(finite.max()) <= 255.0:
+        hint = " (0-255 values? divide by 255, or save them as uint8)"
+    return "got " + " and ".join(parts) + hint
+
+
 def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = False) -> tuple[Tensor, str]:
     """One image array -> ``(3, H', W')`` float32 RGB in ``[0, 1]`` and a description of its stored format.
 
@@ -172,7 +196,7 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     if array.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):  # (float16: a half .npy clip)
         raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
     if array.dtype.kind == "f" and not (np.isfinite(array).all() and array.min() >= 0.0 and array.max() <= 1.0):
-        raise InputError(f"{where}: float frames must be finite and in [0, 1]")
+        raise InputError(f"{where}: float frames must be finite and in [0, 1], {_float_range_problem(array)}")
     problems = format_problems(array)
     if problems and not convert:
         raise InputError(_problem_message(where, problems))
@@ -357,6 +381,30 @@ def image_files(folder: str | os.PathLike[str]) -> list[Path]:
     return sorted(files, key=lambda f: _natural_key(f.name))
 
 
+def folder_of_videos_hint(folder: str | os.PathLike[str], usage: str = "give each file as an input") -> str:
+    """What to say of a folder given as one input that holds video files or ``.npy`` arrays (``VIDEO_SUFFIXES``,
+    hidden files left out) rather than frames: ``" but 11 videos (bbaf2n.mpg, brbk7n.mpg, ...): ..."`` ending in
+    ``usage``, with the glob that names them; ``""`` where it holds none. A folder is one input, its images the
+    frames of one video (a folder of videos was told only that it "holds no images").
+
+    Example:
+        >>> # folder_of_videos_hint("clips") -> " but 2 videos (a.mp4, b.mp4): ... (clips/*.mp4)"
+    """
+    p = Path(folder)
+    try:
+        found = [f for f in p.iterdir() if f.suffix.lower() in VIDEO_SUFFIXES and not f.name.startswith(".")
+                 and f.is_file()]  # fmt: skip
+    except OSError:
+        return ""
+    if not found:
+        return ""
+    found.sort(key=lambda f: _natural_key(f.name))
+    names = ", ".join(f.name for f in found[:3]) + (", ..." if len(found) > 3 else "")
+    suffixes = sorted({f.suffix for f in found})
+    glob = f"{p / ('*' + suffixes[0])}" if len(suffixes) == 1 else f"{p / '*'}"
+    return f" but {counted(len(found), 'video')} ({names}): a folder is one video of image frames; {usage} ({glob})"
+
+
 def opencv_path(path: str | os.PathLike[str], error: type[Exception] = InputError) -> str:
     """``path`` as the ``str`` OpenCV takes, refused with ``error`` where its name is not valid UTF-8 (bytes that
     Python keeps as lone surrogates, ``'clip\\udcff.avi'``): OpenCV crashed the process on such a name (a
@@ -462,6 +510,9 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     if p.is_dir():
         files = image_files(p)
         if not files:
+            videos = folder_of_videos_hint(p)
+            if videos:
+                raise InputError(f"{p}: folder holds no images ({', '.join(IMAGE_SUFFIXES)}){videos}")
             raise InputError(f"{p}: folder holds no images ({', '.join(IMAGE_SUFFIXES)}): zero frames")
         for f in files:  # before the first frame, not when the run reaches that one
             opencv_path(f)
