@@ -233,6 +233,11 @@ def test_a_path_starting_with_tilde_is_a_usage_error_not_a_folder_named_tilde(tm
         assert err.splitlines()[-1].endswith("starts with '~', which the shell did not expand (quoted, or after '=' "
                                              "as in --out=~/...): give the path after a space, unquoted, or with $HOME")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
+    # a name that no user's home expands ('~draft.npy', as editors name their copies) is a name as any other
+    with pytest.raises(SystemExit) as info:
+        main(["track", "~torchface-no-such-user.npy", "--out", "~torchface-no-such-user-out", "--landmarks", "l.csv",
+              "--no-such-option"])  # fmt: skip
+    assert info.value.code == 2 and "unrecognized arguments: --no-such-option" in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:  # "." (a path of no parts) is the working folder, as before
         main(["track", "a.npy", "--out", ".", "--landmarks", "l.csv", "--no-such-option"])
     assert info.value.code == 2 and "unrecognized arguments: --no-such-option" in capsys.readouterr().err

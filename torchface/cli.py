@@ -507,12 +507,12 @@ def _render_demo(args: argparse.Namespace) -> int:
 def _path(text: str) -> Path:
     """An argparse ``type``: a path, refused (a one-line usage error) where it is empty: ``Path("")`` is ``.``, so
     ``torchface track "$VIDEO" --out "$OUT"`` with the variables unset tracked the current folder's images and wrote
-    its outputs there; or where it starts with ``~``, which the shell leaves as it is after ``=`` and in quotes
-    (``--out=~/res`` wrote the outputs to a folder ``~`` in the working folder)."""
+    its outputs there; or where it starts with a ``~`` or ``~user`` that a shell would expand, which it leaves as it is
+    after ``=`` and in quotes (``--out=~/res`` wrote the outputs to a folder ``~`` in the working folder)."""
     if not text:
         raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): give a file or folder")
-    parts = Path(text).parts  # (none for ".")
-    if parts and parts[0].startswith("~"):  # (--out=~/res, or quoted: a folder '~' in the working folder was made)
+    if os.path.expanduser(text) != text:  # (--out=~/res, or quoted: a folder '~' in the working folder was made;
+        # a name such as '~draft.mp4', which no user's home expands, is a name as any other)
         raise argparse.ArgumentTypeError(
             f"{text!r} starts with '~', which the shell did not expand (quoted, or after '=' as in --out=~/...): give "
             "the path after a space, unquoted, or with $HOME"

@@ -329,10 +329,10 @@ class JobConfig:
         # (the paths: out_dir=None was a TypeError of Path's once the job ran, and out_dir="" the current folder,
         # which the command line refuses as an unset variable's; a list of landmarks files is kept as a tuple)
         _check_path(self.out_dir, "out_dir", "'.' for the current folder")
-        first = Path(self.out_dir).parts[:1]
-        if first and first[0].startswith("~"):  # (nothing expands it: the outputs went to a folder '~' in the working
-            # folder, as training_hooks' cache_dir once did)
-            text = os.fspath(self.out_dir)
+        text = os.fspath(self.out_dir)
+        first = Path(text).parts[:1]
+        if os.path.expanduser(text) != text:  # (nothing expands it: the outputs went to a folder '~' in the working
+            # folder, as training_hooks' cache_dir once did; '~x', no user's home, is a name as any other)
             raise ValueError(f"out_dir {text!r} starts with '~', which is not expanded (it named a folder "
                              f"'{first[0]}' in the working folder): give os.path.expanduser({text!r})")  # fmt: skip
         try:

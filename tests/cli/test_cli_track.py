@@ -3975,6 +3975,8 @@ def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, mo
     assert [p.name for p in tmp_path.iterdir()] == ["frames.npy"]
     config = JobConfig(out_dir=".", landmarks=["a.csv", Path("b.csv")])
     assert config.landmarks == ("a.csv", Path("b.csv")) and isinstance(config.landmarks, tuple)
+    # a '~x' that no user's home expands is a folder's name as any other
+    assert JobConfig(out_dir="~torchface-no-such-user").out_dir == "~torchface-no-such-user"
 
 
 def test_a_detector_restart_that_fails_is_counted_in_the_sidecar(clip, tmp_path, monkeypatch):
