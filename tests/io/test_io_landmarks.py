@@ -421,7 +421,9 @@ def test_too_few_points_given_are_refused_naming_the_file_and_the_count(tmp_path
         read_landmarks(tmp_path / "outside.npy", 100, 100)
     # just outside the frame's edge (pixel centres at integers: it spans -0.5 to 99.5): the point as given, and the
     # frame's span (it was written to 0.1, "at (-0.5, 50.0)", which reads as inside); the edge itself is inside
-    for x, said in ((-0.51, "-0.51"), (99.5001, "99.5001")):
+    # (one outside by less than 10 digits show, 99.50000000001, was "at (99.5, 50.0)": all its digits)
+    for x, said in ((-0.51, "-0.51"), (99.5001, "99.5001"), (99.50000000001, "99.50000000001"),
+                    (-0.5000000000001, "-0.5000000000001")):  # fmt: skip
         outside[5] = [x, 50.0]
         np.save(tmp_path / "edge.npy", outside)
         span = r"\(the frame spans x -0\.5 to 99\.5, y -0\.5 to 99\.5: pixel centres at integers\)$"

@@ -607,8 +607,8 @@ def check_landmarks(
         k = int(np.flatnonzero(outside)[0])
         raise InputError(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
-            f"({_coordinate(points[k, 0])}, {_coordinate(points[k, 1])}) (the frame spans x -0.5 to {width - 0.5}, "
-            f"y -0.5 to {height - 0.5}: pixel centres at integers)"
+            f"({_coordinate(points[k, 0], width)}, {_coordinate(points[k, 1], height)}) (the frame spans x -0.5 to "
+            f"{width - 0.5}, y -0.5 to {height - 0.5}: pixel centres at integers)"
         )  # (the point was written to 0.1: one 0.01 px outside read "at (-0.5, ...)", the frame's very edge)
     kept = points[given]
     low, high = NORMALISED_LANDMARK_RANGE
@@ -626,11 +626,18 @@ def check_landmarks(
     return points
 
 
-def _coordinate(value: float) -> str:
-    """A coordinate as a message gives it: to 0.1 where that is its value, else to 10 digits (``-0.51``, not the
-    ``-0.5`` that reads as the frame's edge)."""
+def _coordinate(value: float, side: int) -> str:
+    """A coordinate of a frame ``side`` pixels across as a message gives it: to 0.1 where that is its value, else to
+    10 digits (``-0.51``, not the ``-0.5`` that reads as the frame's edge), or more where a value outside the frame
+    (``-0.5 .. side - 0.5``) would read as inside it (``99.50000000001``, not ``99.5``)."""
     short = f"{value:.1f}"
-    return short if float(short) == value else f"{value:.10g}"
+    if float(short) == value:
+        return short
+    text = f"{value:.10g}"
+    outside = not -0.5 <= value <= side - 0.5
+    if outside and -0.5 <= float(text) <= side - 0.5:  # (written to 10 digits it reads as the edge: all of them)
+        text = repr(float(value))
+    return text
 
 
 def read_landmarks(
