@@ -304,6 +304,10 @@ def test_one_row_per_point_csv_refusals_say_what_is_wrong(tmp_path):
     (tmp_path / "stray.csv").write_text("point,x,y\n" + body + "\n68,1,2\n")
     with pytest.raises(InputError, match=r"line 70: point index 68 is not an iBUG index 0-67$"):
         read_landmarks(tmp_path / "stray.csv", 100, 100)
+    # (its 0 written "00", which is read as 0: it was told it was numbered from 1)
+    (tmp_path / "stray.csv").write_text("point,x,y\n" + body.replace("0,", "00,", 1) + "\n68,1,2\n")
+    with pytest.raises(InputError, match=r"line 70: point index 68 is not an iBUG index 0-67$"):
+        read_landmarks(tmp_path / "stray.csv", 100, 100)
     (tmp_path / "id.csv").write_text("id,x,y\n" + body + "\n")  # an index column of another name: says which
     with pytest.raises(InputError, match=r"rows of 'x, y' \(or, one row per point, a header naming ibug_index, x"):
         read_landmarks(tmp_path / "id.csv", 100, 100)

@@ -382,7 +382,7 @@ def _parse_long(
             one_based = (f": a 1-based index (R's row names?), read only as 1..{count} in order on "
                          f"{count} rows; write it 0-based or leave it out (write.csv(..., row.names = FALSE))"
                          if unnamed and k == count else "")  # fmt: skip
-            if not unnamed and k == count and not any(_index_cell(line, delimiter, index) == "0" for _, line in lines):
+            if not unnamed and k == count and not any(_index_cell(line, delimiter, index) == 0 for _, line in lines):
                 # (a named index counted 1..68, as many annotation tools number the points: it said only that 68 is
                 # not an iBUG index)
                 one_based = (f": numbered from 1? The index column counts the points from 0 (0-{count - 1}): "
@@ -395,10 +395,14 @@ def _parse_long(
     return points  # (a point without a row stays NaN: missing)
 
 
-def _index_cell(line: str, delimiter: str | None, index: int) -> str | None:
-    """The index cell of a one-row-per-point CSV's ``line`` (:func:`_parse_long`), None where it has none."""
+def _index_cell(line: str, delimiter: str | None, index: int) -> int | None:
+    """The index of a one-row-per-point CSV's ``line`` as :func:`_parse_long` reads it (``int``: ``"00"`` and ``"+0"``
+    are 0), None where it has none or not an integer."""
     cells = _split(line, delimiter)
-    return cells[index] if index < len(cells) else None
+    try:
+        return int(cells[index]) if index < len(cells) else None
+    except ValueError:
+        return None
 
 
 def _parse_csv(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
