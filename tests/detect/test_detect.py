@@ -86,7 +86,10 @@ def test_detector_image_refuses_what_it_would_misread():
         (frame[None], ValueError, r"\(a batch \(B, 3, H, W\): one frame at a time, frames\[i\]\)$"),
         (frame[:1], ValueError, r"\(gray \(1, H, W\): frame\.expand\(3, -1, -1\)\)$"),
         (frame * 255, ValueError, r"0-255 values\? divide by 255"),
-        (frame.numpy(), TypeError, r"got ndarray \(an \(H, W, 3\) uint8 RGB image.* already the detector's image\)$"),
+        ((frame.permute(1, 2, 0) * 255).to(torch.uint8).numpy(), TypeError,
+         r"got ndarray \(an \(H, W, 3\) uint8 RGB image.* already the detector's image\)$"),
+        # (a frame's .numpy() was told that it was already the detector's image)
+        (frame.numpy(), TypeError, r"got ndarray \(float32 \(3, 12, 16\): torch\.from_numpy\(frame\) of a \(3, H, W\)"),
     ):  # fmt: skip
         with pytest.raises(error, match=said):
             detector_image(bad)  # type: ignore[arg-type]

@@ -303,8 +303,13 @@ def detector_image(frame: "Tensor") -> np.ndarray:
     from torchface.tracker.step import STEP_VALUE_ROW_STRIDE, check_frame_values
 
     if not isinstance(frame, torch.Tensor):
-        hint = (" (an (H, W, 3) uint8 RGB image, as PIL gives it, or OpenCV's BGR one flipped, image[..., ::-1], is "
-                "already the detector's image)" if isinstance(frame, np.ndarray) else "")  # fmt: skip
+        hint = ""
+        if isinstance(frame, np.ndarray) and frame.ndim == 3 and frame.shape[-1] == 3 and frame.dtype == np.uint8:
+            hint = (" (an (H, W, 3) uint8 RGB image, as PIL gives it, or OpenCV's BGR one flipped, image[..., ::-1], "
+                    "is already the detector's image)")  # fmt: skip
+        elif isinstance(frame, np.ndarray):  # (a frame's .numpy(), (3, H, W) float: told it was the detector's image)
+            hint = (f" ({frame.dtype} {frame.shape}: torch.from_numpy(frame) of a (3, H, W) float frame in [0, 1]; an "
+                    "(H, W, 3) uint8 RGB image is already the detector's)")  # fmt: skip
         raise TypeError(f"frame must be a (3, H, W) float tensor in [0, 1], got {type(frame).__name__}{hint}")
     shape = tuple(frame.shape)
     if len(shape) != 3 or shape[0] != 3:
