@@ -152,7 +152,7 @@ from torchface.detect import detector_image, search_first_face
 from torchface.extending import check_bool, check_int, check_optional_int, check_optional_real
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
-from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, open_capture, open_frames
+from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, image_files, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _check_no_tilde
@@ -544,6 +544,15 @@ def _check_exists(path: Path) -> None:
         raise InputError(f"{path}: no such file or folder{link}")
 
 
+def _holds_images(folder: Path) -> bool:
+    """Whether ``folder`` holds a frame :func:`torchface.io.open_frames` would read (False where it cannot be
+    listed)."""
+    try:
+        return bool(image_files(folder))
+    except OSError:
+        return False
+
+
 def _tilde(path: Path) -> str:
     """A hint for a missing ``path`` one of whose parts starts with ``~`` (the paths are made absolute against the
     working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was
@@ -748,8 +757,9 @@ class VideoDataset(IterableDataset):
     def _check_source(self, path: Path) -> None:
         _check_exists(path)
         if not path.is_file():
-            # (a folder of videos was told to use FrameFolderDataset, which then found no images in it)
-            videos = folder_of_videos_hint(path, "give the files, one entry per video")
+            # (a folder of videos was told to use FrameFolderDataset, which then found no images in it; a folder of
+            # frames is told to use it, a stray video among them or not)
+            videos = "" if _holds_images(path) else folder_of_videos_hint(path, "give the files, one entry per video")
             if videos:
                 raise ValueError(f"{path}: VideoDataset takes video files or .npy arrays, not a folder{videos}")
             raise ValueError(

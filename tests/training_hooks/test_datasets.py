@@ -469,6 +469,9 @@ def test_bad_arguments(clips, tmp_path):
     with pytest.raises(ValueError, match=r"videos: VideoDataset takes video files or \.npy arrays, not a folder but 2 "
                        r"videos \(a\.mpg, b\.mpg\): .*give the files, one entry per video \(.*videos/\*\.mpg\)$"):
         VideoDataset([tmp_path / "videos"], [lm])
+    (tmp_path / "videos" / "0001.png").write_bytes(b"")  # frames beside them: FrameFolderDataset (not "give the files")
+    with pytest.raises(ValueError, match=r"videos: VideoDataset .*\(use FrameFolderDataset for folders of frames\)$"):
+        VideoDataset([tmp_path / "videos"], [lm])
     with pytest.raises(ValueError, match="VideoDataset"):
         FrameFolderDataset([video], [lm])
     # a mistyped path: said so (it was told to use the other dataset, "takes folders of frames", or the other way round)
