@@ -41,7 +41,6 @@ def frame_batch(B: int = 6, seed: int = 0) -> dict[str, torch.Tensor]:
 # --------------------------------------------------------------------------------------------- loss
 
 
-
 def test_every_hook_is_exported_by_the_package():
     """The hooks are used together (``drop_low_confidence`` keeps clips by ``sample_confidence``, which the layer's
     result names beside it), but ``from training_hooks import sample_confidence`` was an ImportError: every name of

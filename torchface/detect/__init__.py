@@ -288,9 +288,10 @@ def detector_image(frame: "Tensor") -> np.ndarray:
 
     Raises:
         TypeError: ``frame`` is not a tensor (a NumPy image is already the detector's).
-        ValueError: not ``(3, H, W)``, not floating point, or values outside the tracker's frames' range (0-255;
-            checked on the rows a tracking step checks): each was made an image without a word (a uint8 frame black
-            and white, a channels-last one of shape ``(W, 3, H)``), in which the detector found no face.
+        ValueError: not ``(3, H, W)``, not floating point, or values outside the tracker's frames' range,
+            :data:`~torchface.tracker.step.FRAME_VALUE_RANGE` (-0.5 to 1.5: 0-255 ones, say; checked on the rows a
+            tracking step checks): each was made an image without a word (a uint8 frame black and white, a
+            channels-last one of shape ``(W, 3, H)``, 0-255 floats white), in which the detector found no face.
 
     Example:
         >>> import torch
