@@ -282,7 +282,8 @@ class TrackCache:
 
     Raises:
         TypeError: ``root`` is not a ``str`` or path-like.
-        ValueError: ``root`` is an empty string, or starts with ``~`` (not expanded: ``os.path.expanduser``).
+        ValueError: ``root`` is an empty string, or starts with a ``~`` that ``os.path.expanduser``
+            expands (not expanded here).
 
     Example:
         >>> # cache = TrackCache("cache"); seq = cache.load(key) or track(...); cache.store(key, seq)

@@ -445,8 +445,9 @@ class DatasetConfig:
             absolute ``Path``: a relative one is taken against the working folder when the config is made
             (``Path.absolute()``: symbolic links are kept as named), so a later ``os.chdir``, or a ``DataLoader``
             worker in another folder, uses the same cache. None tracks every epoch. An empty string is refused
-            (``Path("")`` is the working folder: say ``"."`` for it), and so is one starting with ``~`` (not
-            expanded: it named a folder ``~`` in the working folder; give ``os.path.expanduser(...)``).
+            (``Path("")`` is the working folder: say ``"."`` for it), and so is one starting with a ``~`` or
+            ``~user`` that ``os.path.expanduser`` expands (not expanded here: it named a folder ``~`` in the working
+            folder; give ``os.path.expanduser(...)``).
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size

@@ -88,14 +88,16 @@ class FaceStorage(enum.Enum):
 
 
 def _check_no_tilde(path: str | os.PathLike[str], name: str) -> None:
-    """Refuse a path that starts with ``~`` (``"~/cache"``, ``"~/m.npz"``): it is not expanded (by ``pathlib``, as
-    by a shell), so made absolute it named a folder ``~`` in the working folder (a cache went there without a word;
-    a model file failed at its first load with "no such file").
+    """Refuse a path that starts with a ``~`` or ``~user`` that ``os.path.expanduser`` would expand (``"~/cache"``,
+    ``"~/m.npz"``): it is not expanded (by ``pathlib``, as by a shell), so made absolute it named a folder ``~`` in
+    the working folder (a cache went there without a word; a model file failed at its first load with "no such
+    file"). A name such as ``"~cache"``, which no user's home expands, is a name as any other, as
+    ``torchface track`` and :class:`~torchface.job.JobConfig` take it.
 
     Raises:
-        ValueError: ``path`` starts with ``~``, naming ``os.path.expanduser``."""
+        ValueError: ``path`` starts with ``~`` that expands, naming ``os.path.expanduser``."""
     parts = Path(path).parts
-    if parts and parts[0].startswith("~"):
+    if os.path.expanduser(os.fspath(path)) != os.fspath(path):  # (any leading '~' once: '~cache' refused)
         raise ValueError(
             f"{name} {os.fspath(path)!r} starts with '~', which is not expanded (it named a folder '{parts[0]}' in "
             f"the working folder): give os.path.expanduser({os.fspath(path)!r})"
@@ -141,7 +143,7 @@ class FaceTrackingConfig:
             file moved keeps its sequences). Kept as an absolute ``Path``, as :attr:`DatasetConfig.cache_dir
             <training_hooks.datasets.DatasetConfig.cache_dir>` is: a relative one is taken against the working folder
             when the config is made, so a model loaded after an ``os.chdir`` (Lightning, Hydra) or in a
-            ``DataLoader`` worker is the file it named; one that starts with ``~`` is refused (not expanded: give
+            ``DataLoader`` worker is the file it named; one that starts with a ``~`` that expands is refused (give
             ``os.path.expanduser(path)``), as :attr:`DatasetConfig.cache_dir
             <training_hooks.datasets.DatasetConfig.cache_dir>` refuses it.
     """

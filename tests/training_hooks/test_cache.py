@@ -467,5 +467,8 @@ def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkey
     with pytest.raises(TypeError, match=r"^root must be a folder \(a str or path-like\), got NoneType$"):
         TrackCache(None)  # type: ignore[arg-type]
     assert TrackCache(".").root == tmp_path / "elsewhere"
-    with pytest.raises(ValueError, match=r"^root '~user/c' starts with '~', which is not expanded .*'~user'"):
-        TrackCache(Path("~user/c"))
+    with pytest.raises(ValueError, match=r"^root '~root/c' starts with '~', which is not expanded .*'~root'"):
+        TrackCache(Path("~root/c"))  # (a user's home: ~root expands wherever root is a user)
+    # a name that no user's home expands is a folder's name as any other (it was refused, as any leading '~' was;
+    # JobConfig's out_dir and the command line take it)
+    assert TrackCache("~torchface-no-such-user").root == tmp_path / "elsewhere" / "~torchface-no-such-user"
