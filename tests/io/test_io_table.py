@@ -250,10 +250,14 @@ def test_a_track_csv_that_cannot_be_read_says_why_not_the_exception_class(tmp_pa
     """A missing file, a folder or a file that is not text said the exception's class alone ("cannot read the
     track CSV (FileNotFoundError)")."""
     (tmp_path / "results.csv").mkdir()
-    (tmp_path / "clip.csv").write_bytes(b"frame,timestamp\n\xff\xfe0,0\n")
+    (tmp_path / "clip.csv").write_bytes(b"\xff\xfeframe,timestamp\n0,0\n")
+    # (bytes that are not UTF-8 under a track CSV's header: a damaged row, as other damage is; it was "not a track CSV")
+    (tmp_path / "damaged.csv").write_bytes(b"frame,timestamp\n0,0\n\xff\xfe1,0\n2,0\n")
     for name, said in (("nope.csv", r"cannot read the track CSV \(No such file or directory\)"),
                        ("results.csv", r"cannot read the track CSV \(Is a directory\)"),
-                       ("clip.csv", r"not a track CSV \(not UTF-8 text\)")):  # fmt: skip
+                       ("clip.csv", r"not a track CSV \(not UTF-8 text\)"),
+                       ("damaged.csv", r"line 3 is not a row of the track CSV \(not UTF-8 text\): the file is "
+                                       "damaged")):  # fmt: skip
         with pytest.raises(InputError, match=rf"^{re.escape(str(tmp_path / name))}: {said}$"):
             read_track_csv(tmp_path / name)
 

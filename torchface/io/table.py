@@ -272,7 +272,11 @@ def _read_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray
                 if not raw.endswith(b"\n"):  # the last line, cut off (or empty)
                     break
                 offset += len(raw)
-                line = raw[:-1].decode("utf-8")
+                try:
+                    line = raw[:-1].decode("utf-8")
+                except UnicodeDecodeError:  # (under a track CSV's header: a damaged row, not "not a track CSV")
+                    raise InputError(f"{p}: line {n} is not a row of the track CSV (not UTF-8 text): the file is "
+                                     "damaged") from None  # fmt: skip
                 if not line:
                     blank += 1
                     continue
