@@ -455,7 +455,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         # (told of a frame's layout, clips[:, 0]'s: channels last was "frames.permute(0, 3, 1, 2)", which a clip
         # cannot take; uint8 clips, cast to the model's dtype first, were "values from 0 to 255")
         hint = ""
-        if clips.shape[2] not in (1, 3) and clips.shape[-1] in (1, 3):
+        if clips.shape[2] not in (1, 3, 4) and clips.shape[-1] in (1, 3, 4):  # (RGBA too, as NormaliseFaces says)
             hint = " (channels last (B, T, H, W, C): clips.permute(0, 1, 4, 2, 3))"
         elif clips.shape[2] == 4:
             hint = " (RGBA: drop the alpha, clips[:, :, :3])"

@@ -389,6 +389,9 @@ def test_exceptions(model, small):
     with pytest.raises(ValueError, match=r"got \(1, 2, 32, 32, 3\) \(channels last \(B, T, H, W, C\): "
                                         r"clips\.permute\(0, 1, 4, 2, 3\)\)$"):
         layer.forward_clip(clips.permute(0, 1, 3, 4, 2), torch.zeros(1, 68, 2, dtype=D))
+    rgba = torch.cat([clips, clips[:, :, :1]], 2)  # (RGBA channels last: its shape alone, NormaliseFaces' said it)
+    with pytest.raises(ValueError, match=r"\(channels last \(B, T, H, W, C\): clips\.permute\(0, 1, 4, 2, 3\)\)$"):
+        layer.forward_clip(rgba.permute(0, 1, 3, 4, 2), torch.zeros(1, 68, 2, dtype=D))
     with pytest.raises(ValueError, match=r"\(RGBA: drop the alpha, clips\[:, :, :3\]\)$"):
         layer.forward_clip(torch.cat([clips, clips[:, :, :1]], 2), torch.zeros(1, 68, 2, dtype=D))
     with pytest.raises(ValueError, match=r"clips must be float in \[0, 1\], got torch\.uint8 \(uint8 clips: "
