@@ -557,8 +557,9 @@ def _holds_images(folder: Path) -> bool:
 def _tilde(path: Path) -> str:
     """A hint for a missing ``path`` one of whose parts starts with ``~`` (the paths are made absolute against the
     working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was
-    ``<working folder>/~/a.avi``); "" otherwise."""
-    if not any(part.startswith("~") for part in path.parts):
+    ``<working folder>/~/a.avi``); "" otherwise, and where no such part names a home folder (``~draft.avi``, as
+    ``os.path.expanduser`` reads it: a name as any other)."""
+    if not any(part.startswith("~") and os.path.expanduser(part) != part for part in path.parts):
         return ""
     return " ('~' is not expanded here: os.path.expanduser(path) names the home folder)"
 

@@ -487,6 +487,8 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset(["~/no_such_r3.avi"], [lm])
     with pytest.raises(InputError, match=r"landmarks: ~/no_such_r3\.csv: no such landmarks file" + tilde):
         VideoDataset([video], ["~/no_such_r3.csv"])
+    with pytest.raises(InputError, match=r"/~torchface-no-such-user\.avi: no such file or folder$"):  # (not a home)
+        VideoDataset(["~torchface-no-such-user.avi"], [lm])
     with pytest.raises(ValueError, match="empty"):
         VideoDataset([], [])
     with pytest.raises(ValueError, match="clip_stride needs clip_length"):
