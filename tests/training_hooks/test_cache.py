@@ -467,8 +467,12 @@ def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkey
     with pytest.raises(TypeError, match=r"^root must be a folder \(a str or path-like\), got NoneType$"):
         TrackCache(None)  # type: ignore[arg-type]
     assert TrackCache(".").root == tmp_path / "elsewhere"
-    with pytest.raises(ValueError, match=r"^root '~root/c' starts with '~', which is not expanded .*'~root'"):
-        TrackCache(Path("~root/c"))  # (a user's home: ~root expands wherever root is a user)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # ('~' expands wherever HOME is set)
+    with pytest.raises(ValueError, match=r"^root '~/c' starts with '~', which is not expanded "):
+        TrackCache(Path("~/c"))
+    if os.path.expanduser("~root") != "~root":  # (a user's home: ~root expands wherever root is a user)
+        with pytest.raises(ValueError, match=r"^root '~root/c' starts with '~', which is not expanded .*'~root'"):
+            TrackCache(Path("~root/c"))
     # a name that no user's home expands is a folder's name as any other (it was refused, as any leading '~' was;
     # JobConfig's out_dir and the command line take it)
     assert TrackCache("~torchface-no-such-user").root == tmp_path / "elsewhere" / "~torchface-no-such-user"
