@@ -1729,10 +1729,10 @@ class StepWorkspace:
     its pages in: measured at B = 128, 2 threads (``benchmark.py``'s frames), 245 ms per step, of which 82 ms in
     the pyramid, against 181 and 51 ms with the workspace (521 -> 708 frames/s; glibc's
     ``MALLOC_MMAP_THRESHOLD_=268435456`` in the environment, which keeps every large block, gave 775). The others
-    (about 50 MB at 128 streams, each under 32 MB) were not mapped afresh but still cost as much in a smaller way:
-    freed together, they left more free memory at the top of glibc's heap than its trim threshold (twice the
-    largest block it has ``mmap``-ed and freed, about 40 MB there), which it gave back to the system and faulted in
-    again at the next step: about 11000 page faults per step (docs/speed.md).
+    (about 60 MB at 128 streams, each under 32 MB) were not mapped afresh, but freed together they left more free
+    memory at the top of glibc's heap than its trim threshold (twice the largest block it has ``mmap``-ed and freed,
+    about 40 MB there), which it gave back to the system and faulted in again at the next step: about 11000 page
+    faults per step, none with them here (docs/speed.md).
 
     A :class:`TrackerState` holds one (``workspace``) and the states its steps make share it. A step borrows it
     for its duration; a step that finds it borrowed (another thread stepping a state that shares it) allocates
