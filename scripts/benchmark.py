@@ -18,10 +18,13 @@ and peak memory, and management's time as a share of the managed step's own solv
 
 Allocator rows (``--malloc-batches``, default 128; Linux with glibc): the same batches again with glibc's
 ``MALLOC_MMAP_THRESHOLD_`` set to 256 MB in the run's environment. At many streams a step's largest tensors are
-above glibc's largest mmap threshold (32 MB), so each is mapped fresh and its pages are faulted and zeroed again
-every step; with the setting they are reused from the heap. The largest, the gray crop pyramid (about 170 MB at
-128 streams), is kept from step to step by torchface itself (``StepWorkspace``); the setting still helps the
-others. It is a setting of the process the user runs, not of the library (torchface does not change it).
+above glibc's largest mmap threshold (32 MB), so each would be mapped fresh and its pages faulted and zeroed again
+every step, and smaller ones freed together can leave more free memory at the top of glibc's heap than its trim
+threshold, which glibc gives back and faults in again; with the setting they are reused from the heap. torchface
+keeps a step's large tensors from step to step itself (``StepWorkspace``: the gray crop pyramid, about 170 MB at
+128 streams, the visibility's z-buffer, the kept Jacobian), so the row shows what the setting still changes (a
+step's faults and the rest: docs/speed.md). It is a setting of the process the user runs, not of the library
+(torchface does not change it).
 
 Frames: the ``pose_sweep`` scenario rendered by torchface's own renderer (cached under ``--cache``); stream b
 starts b frames later, so the streams are not identical.

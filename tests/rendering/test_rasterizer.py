@@ -9,6 +9,7 @@ import trimesh
 import torchface.rendering.rasterizer as rasterizer_module
 from torchface import _native
 from torchface.backend import Backend
+from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering import Fragments, rasterize, rasterize_coverage, rasterize_reference
 
@@ -628,7 +629,8 @@ def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypa
     """The native z-buffer tests every pixel of each box with the torch code's arithmetic: the same fragments bit
     for bit as either torch path, on random soups and surfaces, triangles crossing the near plane, and the
     CANDIDE-3 mesh at random poses (turned away, close to the camera, partly off the image), with and without
-    back-face culling."""
+    back-face culling. Its coverage made in a caller's memory (``scratch``, holding stale values) is the same: the
+    kernel writes every element there."""
     if candidate_path != "native":
         pytest.skip("compares the native path with the torch paths itself")
     from torchface.model.candide import load_candide3
@@ -643,6 +645,17 @@ def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypa
             for cull in (False, True):
                 native = rasterize(verts.to(dtype), faces, cam, cull_backfaces=cull, backend=Backend.NATIVE)
                 covered |= bool((native.pix_to_face >= 0).any())
+                held = {}
+
+                def scratch(name, shape, dt):
+                    held[name] = torch.full(shape, 7, dtype=dt)  # (7: a face index, front-facing, depth 7 mm)
+                    return held[name]
+
+                cov = rasterizer_module._cover(verts.to(dtype), faces, cam, cull, NEAR_PLANE_MM, Backend.NATIVE,
+                                               pixels=False, scratch=scratch)[0]  # fmt: skip
+                assert sorted(held) == ["depth", "facing", "pix_to_face"]
+                assert cov.pix_to_face.data_ptr() == held["pix_to_face"].data_ptr()
+                assert torch.equal(cov.pix_to_face, native.pix_to_face) and torch.equal(cov.facing, native.facing)
                 for path, limit in (("boxes", 1 << 40), ("spans", -1)):
                     monkeypatch.setattr(rasterizer_module, "_BBOX_MAX_PAIRS", limit)
                     ref = rasterize(verts.to(dtype), faces, cam, cull_backfaces=cull, backend=Backend.TORCH)

@@ -196,13 +196,13 @@ def _synthetic_problem(B: int = 2, N: int = 400, seed: int = 3, coupled: float |
     return tpl, image, cam, x_true, light_basis
 
 
-def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30, backend=Backend.TORCH):
+def _solve(tpl, image, cam, x0, light_basis, robust=None, iterations=30, backend=Backend.TORCH, workspace=None):
     R, t, a, lam = split(x0)
     free = torch.ones(LAYOUT.size, dtype=torch.bool)
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
     return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=iterations, free=free,
                        alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0, robust=robust, step_tolerance=1e-8,
-                       function_tolerance=0.0, backend=backend)
+                       function_tolerance=0.0, backend=backend, workspace=workspace)
 
 
 def _perturbed(x_true: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
@@ -608,9 +608,23 @@ def test_per_unit_prior_is_the_per_stream_prior_where_equal_and_pins_a_heavily_w
 @pytest.mark.parametrize("robust", [None, RobustLoss(RobustKind.TUKEY, 4.685)])
 def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_again(robust, backend):
     """``solve_level(start=out.linearisation)`` (the refinement pass after the finest level) gives exactly what
-    linearising at the start again gives, and the linearisation is the one at the returned estimate."""
+    linearising at the start again gives, and the linearisation is the one at the returned estimate. In a
+    StepWorkspace whose buffers hold stale values (NaN) the pass is the same bit for bit; the native solver's
+    Jacobian is then the workspace's memory (the torch code does not use it), and the refinement pass, in the
+    same workspace, starts from it as from new memory."""
+    from torchface.tracker.step import StepWorkspace
+
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam, first = _solve(tpl, image, cam, _perturbed(x_true), light_basis, robust=robust, iterations=3, backend=backend)
+    ws = StepWorkspace()
+    for name in ("jacobian", "neg_light_basis"):
+        ws.buffer(name, (1 << 18,), D, torch.device("cpu")).fill_(float("nan"))  # (more than the pass needs)
+    in_ws = _solve(tpl, image, cam, _perturbed(x_true), light_basis, robust=robust, iterations=3, backend=backend,
+                   workspace=ws)  # fmt: skip
+    for got, want in zip(in_ws[:4] + in_ws[4].linearisation, (R, t, a, lam) + first.linearisation):
+        assert torch.equal(got, want)
+    native_ws = in_ws[4].linearisation[1].data_ptr() == ws.buffer("jacobian", (1,), D, torch.device("cpu")).data_ptr()
+    assert native_ws == (backend is not Backend.TORCH)
     r, J, valid, sampled = first.linearisation
     again = linearise(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid)
     if backend is Backend.TORCH:
@@ -626,13 +640,15 @@ def test_a_pass_started_from_the_last_linearisation_equals_one_that_linearises_a
     free[0:6] = False  # a refinement pass: expression and light only
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
 
-    def refine(start):
+    def refine(start, workspace=None):
         return solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3, free=free,
                            alpha_lower=lo, alpha_upper=hi, alpha_prior=0.1, robust=robust, start=start,
-                           backend=backend)
+                           backend=backend, workspace=workspace)
 
     reused, fresh = refine(first.linearisation), refine(None)
     for got, want in zip(reused[:4], fresh[:4]):
+        assert torch.equal(got, want)
+    for got, want in zip(refine(in_ws[4].linearisation, ws)[:4], fresh[:4]):  # as the step's refinement pass
         assert torch.equal(got, want)
     assert torch.equal(reused[4].iterations, fresh[4].iterations)
     assert float((reused[2] - a).abs().max()) > 1e-6  # the pass moved (so equality says something)

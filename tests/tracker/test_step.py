@@ -8,6 +8,7 @@ the tracker is already ~2 degrees, too close to the tolerances to be a useful kn
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import replace
 
 import numpy as np
@@ -1036,10 +1037,12 @@ def test_gray_crop_pyramid_in_a_workspace_equals_new_memory_and_reuses_it():
 
 def test_steps_of_a_large_batch_share_a_workspace_and_equal_steps_in_new_memory(model, two_streams):
     """More than _PYRAMID_CHUNK streams: the first step gives the state a StepWorkspace that later states share;
-    the steps equal those that find it borrowed (another thread's, here held by the test) and allocate their own.
-    The workspace is not part of the state's value: a deep copy gets an empty one, a pickle an unborrowed one. (A
-    state compares by identity, test_states_and_results_compare_by_identity: the field-wise equality this test
-    checked held only while every tensor field was the same object, and raised otherwise.)"""
+    the steps equal those that find it borrowed (another thread's, here held by the test) and allocate their own,
+    every result and parameter bit for bit. Besides the crop pyramid, the workspace holds the visibility's z-buffer
+    and points and the native solver's Jacobian and light basis, the same memory from step to step. The workspace
+    is not part of the state's value: a deep copy gets an empty one, a pickle an unborrowed one. (A state compares
+    by identity, test_states_and_results_compare_by_identity: the field-wise equality this test checked held only
+    while every tensor field was the same object, and raised otherwise.)"""
     import copy
     import pickle
 
@@ -1051,6 +1054,10 @@ def test_steps_of_a_large_batch_share_a_workspace_and_equal_steps_in_new_memory(
     state, _ = initialise(model, L2, frames[:, 0], lm, Intrinsics.default(W, H))
     assert state.workspace is None
     reused, fresh = state, state
+    f32, cpu = model.dtype, torch.device("cpu")
+    kept = {"visibility_pix_to_face": torch.int64, "visibility_facing": torch.int8, "visibility_depth": f32,
+            "visibility_points": f32, "visibility_faces": torch.int64, "jacobian": f32, "neg_light_basis": f32}
+    pointers = []
     for i in range(1, 4):
         reused, want = track_step(model, L2, reused, frames[:, i])
         ws = reused.workspace
@@ -1060,7 +1067,14 @@ def test_steps_of_a_large_batch_share_a_workspace_and_equal_steps_in_new_memory(
         finally:
             ws.release()
         assert fresh.workspace is ws
-        assert torch.equal(got.rotation, want.rotation) and torch.equal(got.expression, want.expression)
+        for field in dataclasses.fields(want):
+            if isinstance(getattr(want, field.name), torch.Tensor):
+                assert torch.equal(getattr(got, field.name), getattr(want, field.name)), field.name
+        assert torch.equal(fresh.params, reused.params)
+        if _native_available():
+            assert all(name in ws for name in kept) and "pyramid0" in ws and "solver" not in ws
+            pointers.append({name: ws.buffer(name, (1,), dtype, cpu).data_ptr() for name, dtype in kept.items()})
+    assert not pointers or pointers[0] == pointers[1] == pointers[2]
     twin = copy.deepcopy(reused)
     assert twin.workspace is not reused.workspace and "0 MB" in repr(twin.workspace)
     assert pickle.loads(pickle.dumps(reused.workspace)).acquire()

@@ -61,7 +61,7 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass, replace
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Literal, overload
 
 import torch
@@ -72,6 +72,11 @@ from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.camera import Intrinsics
+
+#: A caller's memory for the native z-buffer's outputs: ``scratch(name, shape, dtype)`` returns a contiguous CPU tensor
+#: of that shape and dtype whose values do not matter (every element is written); a coverage made in it is valid
+#: while that memory is (:class:`torchface.tracker.step.StepWorkspace`'s buffers, for the tracker's visibility).
+Scratch = Callable[[str, tuple[int, ...], torch.dtype], Tensor]
 
 __all__ = ["Coverage", "Fragments", "rasterize", "rasterize_coverage"]
 
@@ -577,14 +582,15 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
 def _native_cover(
     coeffs: Tensor, front: Tensor, skip: Tensor, x_first: Tensor, x_last: Tensor, y_first: Tensor, y_last: Tensor,
     ray_a: Tensor, ray_b: Tensor, B: int, F: int, H: int, W: int, near: float,
-    windows: Sequence[tuple[int, int, int]] | None = None,
+    windows: Sequence[tuple[int, int, int]] | None = None, scratch: Scratch | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``pix_to_face (B H W,)`` int64 and ``facing (B H W,)`` int8 by the native kernel (``_native/coverage.h``):
     every pixel of each ``(sample, face)`` row's box ``[x_first, x_last] x [y_first, y_last]`` (int64 ``(B F,)``
     each, inside the image) tested with the torch code's arithmetic, unless ``skip``. ``windows``: per group of
     consecutive samples, ``(count, height, width)``: those samples' images are the top-left ``height x width`` of
     the ``H x W`` one, each stored whole (C order) after the previous sample's: outputs of ``sum(count height
-    width)`` elements (:func:`_cover_windows`)."""
+    width)`` elements (:func:`_cover_windows`). ``scratch``: the outputs' and the kernel's depth buffer's memory
+    (None: new tensors)."""
     from torchface import _native
 
     dtype = coeffs.dtype
@@ -598,9 +604,14 @@ def _native_cover(
         areas = sizes.prod(-1)
         starts = torch.cumsum(areas, 0) - areas
         total = int(areas.sum())
-    pix_to_face = torch.empty(total, dtype=torch.int64)
-    facing = torch.empty(total, dtype=torch.int8)
-    depth = torch.empty(total, dtype=dtype)
+    if scratch is None:
+        pix_to_face = torch.empty(total, dtype=torch.int64)
+        facing = torch.empty(total, dtype=torch.int8)
+        depth = torch.empty(total, dtype=dtype)
+    else:  # (at 128 samples of 160x120 pixels, 30 MB that glibc otherwise gave back and faulted in again each step)
+        pix_to_face = scratch("pix_to_face", (total,), torch.int64)
+        facing = scratch("facing", (total,), torch.int8)
+        depth = scratch("depth", (total,), dtype)
     names = ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last", "y_first", "y_last")
     prob = _native.CoverProblem(B=B, F=F, H=H, W=W, near=float(near), **{n: x.data_ptr() for n, x in zip(names, args)},
                                 pix_to_face=pix_to_face.data_ptr(), facing=facing.data_ptr(), depth=depth.data_ptr(),
@@ -613,26 +624,29 @@ def _native_cover(
 @overload
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
-    backend: Backend = ..., pixels: Literal[True] = ..., windows: None = ...,
+    backend: Backend = ..., pixels: Literal[True] = ..., windows: None = ..., scratch: None = ...,
 ) -> tuple[Coverage, tuple[Tensor, Tensor, Tensor]]: ...
 @overload
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
-    backend: Backend = ..., *, pixels: Literal[False], windows: None = ...,
+    backend: Backend = ..., *, pixels: Literal[False], windows: None = ..., scratch: Scratch | None = ...,
 ) -> tuple[Coverage, None]: ...
 @overload
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
     backend: Backend = ..., *, pixels: Literal[False], windows: Sequence[tuple[int, int, int]],
+    scratch: None = ...,
 ) -> tuple[list[Coverage], None]: ...
 def _cover(
     verts_cam: Tensor, faces: Tensor, intrinsics: Intrinsics, cull_backfaces: bool, near: float,
     backend: Backend = Backend.AUTO, pixels: bool = True, windows: Sequence[tuple[int, int, int]] | None = None,
+    scratch: Scratch | None = None,
 ) -> tuple[Coverage | list[Coverage], tuple[Tensor, Tensor, Tensor] | None]:
     """:func:`rasterize_coverage`, and its covered pixels as found: flat index ``(M,)`` over ``B H W``, sample
     ``(M,)`` and column of their triangle in the coefficient table ``(M,)`` (int64 each); None without ``pixels``
     where the native kernel found the coverage (listing them is a pass over every pixel). With ``windows``
-    (without ``pixels``): :func:`_cover_windows`' list of coverages instead."""
+    (without ``pixels``): :func:`_cover_windows`' list of coverages instead. ``scratch`` (without ``pixels`` and
+    ``windows``): the native kernel's memory (:data:`Scratch`; the torch code makes new tensors)."""
     _check_mesh(verts_cam, faces, "verts_cam")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -672,7 +686,7 @@ def _cover(
         if use_native(backend, (verts_cam.detach(),), "rasterizer"):  # the same coverage, bit for bit (tests)
             pix_to_face, facing = _native_cover(
                 coeffs.detach(), front, skip | (heights == 0), box_first, x_last.clamp(-1, W - 1), y_first, y_last,
-                ray_a, ray_b, B, F, H, W, near, windows,
+                ray_a, ray_b, B, F, H, W, near, windows, None if pixels or windows is not None else scratch,
             )  # fmt: skip
             if windows is not None:  # each group's samples stored whole at their window's size, one after another
                 parts, start, at = [], 0, 0

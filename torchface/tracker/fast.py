@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import Tensor
@@ -39,6 +39,9 @@ from torchface.geometry.so3 import axis_angle_to_matrix
 from torchface.solver.least_squares import _usable_bounds
 from torchface.solver.robust import MAD_TO_SIGMA, RobustLoss, SwitchedRobustLoss
 from torchface.template.points import Template
+
+if TYPE_CHECKING:
+    from torchface.tracker.step import StepWorkspace
 
 
 #: Default convergence test of :func:`solve_level`: every increment below these, rotation (radians), translation
@@ -369,6 +372,7 @@ def solve_level(
     constants: _LevelConstants | None = None,
     keep_linearisation: bool = True,
     backend: Backend = Backend.AUTO,
+    workspace: StepWorkspace | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """Levenberg-Marquardt iterations at one pyramid level for every stream at once.
 
@@ -434,6 +438,9 @@ def solve_level(
             (a stream that has stopped keeps its estimate; only where the loop goes on for others can its last
             step still be undone in the loop rather than by the final check, which gives the same estimate with
             ``final_check``).
+        workspace: a borrowed :class:`~torchface.tracker.step.StepWorkspace` in which the native solver keeps
+            its copy of the light basis and the Jacobian it hands on (:attr:`LevelOutcome.linearisation`, then valid
+            until the workspace's next use); None: new tensors. The torch code does not use it.
 
     Returns:
         The new ``R, t, alpha, light`` and a :class:`LevelOutcome`.
@@ -455,7 +462,7 @@ def solve_level(
             alpha_lower=alpha_lower, alpha_upper=alpha_upper, alpha_prior=alpha_prior, robust=robust,
             alpha_mean=alpha_mean, scale_floor=scale_floor, damping=damping, final_check=final_check,
             step_tolerance=step_tolerance, function_tolerance=function_tolerance, start=start, constants=constants,
-            keep_linearisation=keep_linearisation,
+            keep_linearisation=keep_linearisation, workspace=workspace,
         )
     # Everything that does not change across iterations is computed once here (what depends on the settings alone
     # once per setting: _solver_constants).
@@ -684,6 +691,7 @@ def _solve_level_native(
     start: tuple[Tensor, Tensor, Tensor, Tensor] | None,
     constants: _LevelConstants | None,
     keep_linearisation: bool,
+    workspace: StepWorkspace | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, LevelOutcome]:
     """:func:`solve_level` by the native solver (:mod:`torchface._native`); the same arguments and results."""
     B, N = mask.shape
@@ -697,7 +705,12 @@ def _solve_level_native(
     h, w = image.shape[-2:]
     points_t, normals_t, basis_t = (x.contiguous() for x in (k.points_t, k.normals_t, k.basis_t))
     intensity = tpl.intensity.contiguous()
-    nlb = light_basis.transpose(1, 2).neg().contiguous()  # (B, L, N)
+    # (B, L, N), negated straight into contiguous memory (the negation of the transposed view kept its layout, and
+    # .contiguous() copied it again: two 3.7 MB tensors per pass at 128 streams)
+    nlb_shape = (B, L, N)
+    nlb = torch.empty(nlb_shape, dtype=light_basis.dtype) if workspace is None else workspace.buffer(
+        "neg_light_basis", nlb_shape, light_basis.dtype, light_basis.device)
+    torch.neg(light_basis.transpose(1, 2), out=nlb)
     offsets = cam.offset.to(dtype).contiguous()
     mask_c = mask.contiguous()
     free_u8 = free.to(device="cpu", dtype=torch.uint8).contiguous()
@@ -726,7 +739,10 @@ def _solve_level_native(
     finite = torch.empty(B, dtype=torch.bool)
     iters = torch.empty(B, dtype=torch.int64)
     keep = final_check and keep_linearisation
-    J_out = torch.empty(B, P, N, dtype=dtype) if keep else None
+    J_out = None
+    if keep:
+        J_out = torch.empty(B, P, N, dtype=dtype) if workspace is None else workspace.buffer(
+            "jacobian", (B, P, N), dtype, R.device)
 
     def ptr(x: Tensor | None) -> int | None:
         return None if x is None else x.data_ptr()

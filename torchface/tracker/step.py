@@ -34,7 +34,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
-from torchface.rendering.rasterizer import rasterize_coverage
+from torchface.rendering.rasterizer import _cover, rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.solver.least_squares import SolveResult, SolverConfig, SolveStatus, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
@@ -1720,13 +1720,19 @@ _PYRAMID_CHUNK: int = 8
 
 
 class StepWorkspace:
-    """Scratch memory that the steps of one batch of streams reuse: the levels of its gray crop pyramid.
+    """Scratch memory that the steps of one batch of streams reuse: the step's large tensors that do not outlive it
+    (the levels of its gray crop pyramid, the visibility's coverage and points, the finest level's Jacobian and
+    light basis handed to the native solver).
 
     At 128 streams a step's pyramid takes about 170 MB (the finest level 126 MB at a 480x512 crop), more than
     glibc's largest automatic ``mmap`` threshold (32 MB), so without reuse every step maps it afresh and faults
     its pages in: measured at B = 128, 2 threads (``benchmark.py``'s frames), 245 ms per step, of which 82 ms in
     the pyramid, against 181 and 51 ms with the workspace (521 -> 708 frames/s; glibc's
-    ``MALLOC_MMAP_THRESHOLD_=268435456`` in the environment, which keeps every large block, gave 775).
+    ``MALLOC_MMAP_THRESHOLD_=268435456`` in the environment, which keeps every large block, gave 775). The others
+    (about 60 MB at 128 streams, each under 32 MB) were not mapped afresh, but freed together they left more free
+    memory at the top of glibc's heap than its trim threshold (twice the largest block it has ``mmap``-ed and freed,
+    about 40 MB there), which it gave back to the system and faulted in again at the next step: about 11000 page
+    faults per step, none with them here (docs/speed.md).
 
     A :class:`TrackerState` holds one (``workspace``) and the states its steps make share it. A step borrows it
     for its duration; a step that finds it borrowed (another thread stepping a state that shares it) allocates
@@ -1737,7 +1743,7 @@ class StepWorkspace:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._buffers: list[Tensor] = []
+        self._buffers: dict[str, Tensor] = {}
 
     def acquire(self) -> bool:
         """Borrow the workspace: True when it was free (then :meth:`release` it), False when in use."""
@@ -1747,22 +1753,26 @@ class StepWorkspace:
         """End a borrowing."""
         self._lock.release()
 
-    def buffers(self, shapes: Sequence[tuple[int, ...]], dtype: torch.dtype, device: torch.device) -> list[Tensor]:
-        """Contiguous tensors of ``shapes`` (one per shape, in order) on the workspace's memory; their values are
-        whatever the last use left."""
-        out = []
-        for i, shape in enumerate(shapes):
-            n = math.prod(shape)
-            buf = self._buffers[i] if i < len(self._buffers) else None
-            if buf is None or buf.numel() < n or buf.dtype != dtype or buf.device != device:
-                with torch.inference_mode(False):  # a normal tensor: written in and out of inference mode
-                    buf = torch.empty(n + n // 4, dtype=dtype, device=device)
-                if i < len(self._buffers):
-                    self._buffers[i] = buf
-                else:
-                    self._buffers.append(buf)
-            out.append(buf[:n].view(shape))
-        return out
+    def buffer(self, name: str, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+        """A contiguous tensor of ``shape`` on the workspace's memory named ``name`` (one buffer per name: the
+        tensor of the last call with that name is the same memory); its values are whatever the last use left."""
+        n = math.prod(shape)
+        buf = self._buffers.get(name)
+        if buf is None or buf.numel() < n or buf.dtype != dtype or buf.device != device:
+            with torch.inference_mode(False):  # a normal tensor: written in and out of inference mode
+                buf = torch.empty(n + n // 4, dtype=dtype, device=device)
+            self._buffers[name] = buf
+        return buf[:n].view(shape)
+
+    def buffers(
+        self, shapes: Sequence[tuple[int, ...]], dtype: torch.dtype, device: torch.device, name: str = "pyramid"
+    ) -> list[Tensor]:
+        """:meth:`buffer` for each of ``shapes``, in order (named ``name`` and the position)."""
+        return [self.buffer(f"{name}{i}", shape, dtype, device) for i, shape in enumerate(shapes)]
+
+    def __contains__(self, name: object) -> bool:
+        """Whether the workspace holds a buffer named ``name`` (:meth:`buffer`)."""
+        return name in self._buffers
 
     def __deepcopy__(self, memo: dict) -> "StepWorkspace":
         return StepWorkspace()
@@ -1771,7 +1781,7 @@ class StepWorkspace:
         return (StepWorkspace, ())
 
     def __repr__(self) -> str:
-        return f"StepWorkspace({sum(b.numel() * b.element_size() for b in self._buffers) / 2**20:.0f} MB)"
+        return f"StepWorkspace({sum(b.numel() * b.element_size() for b in self._buffers.values()) / 2**20:.0f} MB)"
 
 
 def gray_crop_pyramid(
@@ -1921,7 +1931,7 @@ def _fast_step(
             H, W = state.intrinsics.height, state.intrinsics.width
             vis_level = visibility_level(config.num_levels, H, W)
             h_l, w_l = H >> vis_level, W >> vis_level
-            masks = _visibility_at(model, state, layout, vis_level, h_l, w_l, R, verts, config.backend)
+            masks = _visibility_at(model, state, layout, vis_level, h_l, w_l, R, verts, config.backend, workspace)
             visibility = (state.templates, tuple(masks))
         else:
             masks, visibility = list(cached[1]), cached
@@ -1959,7 +1969,7 @@ def _fast_step(
             step_tolerance=tuple(v * 2**level for v in STEP_TOLERANCE),
             function_tolerance=config.function_tolerance * 2**level,
             keep_linearisation=level == 0 and refine,  # the refinement pass starts from it
-            backend=config.backend,
+            backend=config.backend, workspace=workspace,
         )
         if level == 1 and robust is not None and near_template is not None and _clean_rule(config, near_template):
             scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
@@ -1982,6 +1992,7 @@ def _fast_step(
             alpha_mean=alpha_mean, robust=robust,
             scale_floor=config.refine_scale_floor, start=out.linearisation, constants=out.constants,
             function_tolerance=config.function_tolerance, keep_linearisation=False, backend=config.backend,
+            workspace=workspace,
         )
     x = torch.cat([matrix_to_axis_angle(R), t, alpha, light], dim=-1)
     status = torch.where(out.converged, int(TrackStatus.CONVERGED), int(TrackStatus.MAX_ITERATIONS))
@@ -2060,20 +2071,34 @@ def visibility_level(num_levels: int, height: int, width: int) -> int:
 def _visibility_at(
     model: FaceModel, state: TrackerState, layout: ParamLayout, level: int, height: int, width: int,
     R: Tensor | None = None, verts: Tensor | None = None, backend: Backend = Backend.AUTO,
+    workspace: StepWorkspace | None = None,
 ) -> list[Tensor]:
     """Z-buffer visibility of every level's template points at the previous estimate (one rasterization).
 
     ``R (B, 3, 3)`` and ``verts (B, V, 3)``: the rotation and camera-frame vertices at that estimate, when the
-    caller has them."""
+    caller has them. ``workspace``: a borrowed :class:`StepWorkspace` for the z-buffer (the native kernel's) and the
+    levels' points and faces taken together (None: new tensors); the masks returned are new tensors either way."""
     intr = level_intrinsics(state.intrinsics, level, height, width)
     verts = _posed_vertices(model, state, layout, R) if verts is None else verts
     # The coverage alone: points_visible evaluates the depth at the points' pixels only (the same values as the
     # fragments' z-buffer there). At B = 128 the fragments' barycentric coordinates and depths at every covered
     # pixel took about a third of the visibility's time.
-    frags = rasterize_coverage(verts, model.faces, intr, backend=backend)
+    if workspace is None:
+        frags = rasterize_coverage(verts, model.faces, intr, backend=backend)
+    else:
+        def scratch(name: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
+            return workspace.buffer(f"visibility_{name}", shape, dtype, verts.device)
+
+        frags = _cover(verts, model.faces, intr, False, NEAR_PLANE_MM, backend, pixels=False, scratch=scratch)[0]
     # The levels' points are tested together (one call instead of one per level: the test is per point).
     cams = [warp_points(tpl, layout, state.params, R)[1] for tpl in state.templates]
-    faces = torch.cat([tpl.face_index for tpl in state.templates], 1)
-    visible = points_visible(torch.cat(cams, 1), faces, frags, intr, depth_tolerance=0.02, backend=backend)
+    faces = [tpl.face_index for tpl in state.templates]
     sizes = [c.shape[1] for c in cams]
+    if workspace is None:
+        points, point_faces = torch.cat(cams, 1), torch.cat(faces, 1)
+    else:
+        B, n, device = cams[0].shape[0], sum(sizes), verts.device
+        points = torch.cat(cams, 1, out=workspace.buffer("visibility_points", (B, n, 3), cams[0].dtype, device))
+        point_faces = torch.cat(faces, 1, out=workspace.buffer("visibility_faces", (B, n), faces[0].dtype, device))
+    visible = points_visible(points, point_faces, frags, intr, depth_tolerance=0.02, backend=backend)
     return [v & tpl.valid for v, tpl in zip(visible.split(sizes, 1), state.templates)]
