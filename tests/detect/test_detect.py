@@ -1,6 +1,7 @@
 """The optional detectors' loading (:mod:`torchface.detect`), with stand-in packages: dlib is not installed here."""
 
 import pickle
+import subprocess
 import sys
 
 import numpy as np
@@ -422,3 +423,16 @@ def test_dlib_on_4k_portrait_and_small_faces_finds_the_landmarks_of_the_original
         eyes = np.linalg.norm(expected[36:42].mean(axis=0) - expected[42:48].mean(axis=0))
         error = np.linalg.norm(points - expected, axis=1) / eyes
         assert error.mean() < 0.04 and error.max() < 0.1, (width, height, scale, error.mean(), error.max())
+
+
+def test_detector_image_does_not_import_the_tracker():
+    """``detector_image`` checks a frame's values as a tracking step does, from :mod:`torchface._frame_values`: it
+    imported :mod:`torchface.tracker.step` for that (1.3 s), which a user of the detectors alone did not need."""
+    code = (
+        "import sys, torch\n"
+        "from torchface.detect import detector_image\n"
+        "assert detector_image(torch.full((3, 4, 6), 0.5)).shape == (4, 6, 3)\n"
+        "print(sorted(m for m in sys.modules if m.startswith('torchface.tracker')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout

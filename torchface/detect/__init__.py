@@ -301,7 +301,7 @@ def detector_image(frame: "Tensor") -> np.ndarray:
     """
     import torch
 
-    from torchface.tracker.step import STEP_VALUE_ROW_STRIDE, check_frame_values
+    from torchface._frame_values import STEP_VALUE_ROW_STRIDE, check_frame_values
 
     if not isinstance(frame, torch.Tensor):
         hint = ""

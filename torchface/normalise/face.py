@@ -329,7 +329,7 @@ def _check_frame_values(frames: Tensor) -> None:
     out). Not under ``torch.compile`` or a ``torch.func`` transform of the frames (no values to read)."""
     if is_compiling() or _transformed(frames):
         return
-    from torchface.tracker.step import STEP_VALUE_ROW_STRIDE, check_frame_values  # (step imports this module)
+    from torchface._frame_values import STEP_VALUE_ROW_STRIDE, check_frame_values
 
     check_frame_values(frames, STEP_VALUE_ROW_STRIDE)
 

@@ -23,6 +23,7 @@ from torchface import _native
 from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
 from torchface._device import check_holds_data, check_to_arguments
+from torchface._frame_values import FRAME_VALUE_RANGE, STEP_VALUE_ROW_STRIDE, check_frame_values
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
@@ -847,16 +848,6 @@ def gray_pyramid_windows(
             for lv, (g, off, h, w) in enumerate(zip(crop, windows, heights, widths))]  # fmt: skip
 
 
-#: :func:`check_frames` with ``values=True`` refuses frames with values outside this interval: [0, 1] frames,
-#: with room for a resampling's overshoot (a bicubic resize can pass 1 by a few percent).
-FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
-
-#: :func:`track_step` and :func:`~torchface.tracker.managed.managed_step` check the values of every 16th row of
-#: their frames against :data:`FRAME_VALUE_RANGE` (0.01-0.03 ms at one 640x480 stream, against a step's 5-6 ms):
-#: 0-255 frames handed to a tracker started on [0, 1] ones were tracked without a word.
-STEP_VALUE_ROW_STRIDE: int = 16
-
-
 def not_tensor_hint(
     frames: object, per: str = "one frame per stream", to_float: bool = True, rgb_only: bool = False,
     layout: str = "(B, C, H, W)", *, one_frame: bool = False,
@@ -973,30 +964,6 @@ def check_frames(
         )
     if values:
         check_frame_values(frames, row_stride)
-
-
-def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
-    """Refuse float ``(..., H, W)`` frames with values outside :data:`FRAME_VALUE_RANGE` (:func:`check_frames`'
-    ``values``; also :func:`~torchface.normalise.normalised_face`'s, with :data:`STEP_VALUE_ROW_STRIDE`). NaN pixels
-    are in range; infinite ones too when ``row_stride`` is not 1."""
-    if frames.numel():
-        seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
-        lo, hi = torch.stack([seen.amin(), seen.amax()]).tolist()
-        if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN pixels: inside the range (the steps': non-finite)
-            pos, neg = (math.inf, -math.inf) if row_stride == 1 else (0.5, 0.5)
-            lo, hi = (float(v) for v in torch.aminmax(seen.nan_to_num(nan=0.5, posinf=pos, neginf=neg)))
-        if lo < FRAME_VALUE_RANGE[0] or hi > FRAME_VALUE_RANGE[1]:
-            # (frames of 0 to 1.8, an augmentation's brightness past 1, were told "0-255 values? divide by 255", and
-            # mean/std-normalised ones, -2 to 2, nothing)
-            if not (math.isfinite(lo) and math.isfinite(hi)):  # (an infinite pixel was "0-255 values? divide by 255")
-                hint = " (infinite pixels: mark missing ones NaN)"
-            elif lo < FRAME_VALUE_RANGE[0]:
-                hint = " (normalised with a mean and standard deviation? pass the frames in [0, 1], before that)"
-            elif hi > 2.0:
-                hint = " (0-255 values? divide by 255)"
-            else:
-                hint = " (brightened past 1? frames.clamp(0, 1))"
-            raise ValueError(f"frames must be float in [0, 1], got values from {lo:.4g} to {hi:.4g}{hint}")
 
 
 def check_model_precision(model: FaceModel) -> None:
