@@ -4,6 +4,7 @@ bad inputs rejected with one-line errors."""
 from __future__ import annotations
 
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -271,9 +272,20 @@ def test_a_folder_of_videos_is_told_to_give_the_files(tmp_path):
         f"{tmp_path}: folder holds no images (.png, .jpg, .jpeg, .bmp, .tif, .tiff) but 4 videos (s1.mpg, s2.mpg, "
         f"s3.mpg, ...): a folder is one video of image frames; give each file as an input ({tmp_path}/*.mpg)"
     )
-    (tmp_path / "frames.npy").write_bytes(b"")  # two kinds: every file
-    with pytest.raises(InputError, match=rf"but 5 videos \(frames\.npy, s1\.mpg, s2\.mpg, \.\.\.\): .*/\*\)$"):
+    (tmp_path / "frames.npy").write_bytes(b"")  # two kinds: a glob each (a '*' named the notes too)
+    with pytest.raises(InputError) as info:
         open_frames(tmp_path)
+    assert str(info.value).endswith(f"but 5 videos (frames.npy, s1.mpg, s2.mpg, ...): a folder is one video of image "
+                                    f"frames; give each file as an input ({tmp_path}/*.mpg {tmp_path}/*.npy)")
+    spaced = tmp_path / "my clips"  # quoted as a shell needs it (my clips/*.mp4 was two words)
+    spaced.mkdir()
+    (spaced / "a.mp4").write_bytes(b"")
+    with pytest.raises(InputError) as info:
+        open_frames(spaced)
+    glob = str(info.value).rsplit(" (", 1)[1].rstrip(")")
+    assert shlex.split(glob) == [f"{spaced}/*.mp4"], glob
+    spaced.joinpath("a.mp4").unlink()
+    spaced.rmdir()
     for f in tmp_path.iterdir():  # an empty folder (but for its notes): as before
         if f.name != "notes.txt":
             f.unlink()

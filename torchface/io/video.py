@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import shlex
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -400,8 +401,10 @@ def folder_of_videos_hint(folder: str | os.PathLike[str], usage: str = "give eac
         return ""
     found.sort(key=lambda f: _natural_key(f.name))
     names = ", ".join(f.name for f in found[:3]) + (", ..." if len(found) > 3 else "")
-    suffixes = sorted({f.suffix for f in found})
-    glob = f"{p / ('*' + suffixes[0])}" if len(suffixes) == 1 else f"{p / '*'}"
+    # one glob per suffix (.mp4 and .MP4 each: '*' named the folder's other files too), the folder quoted as a shell
+    # needs it ('my clips'/*.mp4: my clips/*.mp4 was two words)
+    folder = shlex.quote(str(p)) + os.sep
+    glob = " ".join(f"{folder}*{suffix}" for suffix in sorted({f.suffix for f in found}))
     return f" but {counted(len(found), 'video')} ({names}): a folder is one video of image frames; {usage} ({glob})"
 
 
