@@ -1676,9 +1676,14 @@ def _said_difference(name: str, then: object, now: object) -> str:
         return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
-    # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal)
-    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)", "--keep-expression": "False"}.get(name, "none")
-    return f"{name} {unset if then is None else then} then, {unset if now is None else now} now"
+    # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal; a flag says on /
+    # off, as --smooth does, not Python's True / False)
+    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)", "--keep-expression": "off"}.get(name, "none")
+
+    def said(value: object) -> object:
+        return unset if value is None else ("on" if value else "off") if isinstance(value, bool) else value
+
+    return f"{name} {said(then)} then, {said(now)} now"
 
 
 def _write_record(

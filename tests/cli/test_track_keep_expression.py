@@ -106,9 +106,9 @@ def test_keep_expression_resume_goes_on_and_another_setting_is_refused(clip, run
             track_videos([video], JobConfig(out_dir=tmp_path / name, landmarks=(lm,), keep_expression=keep),
                          progress=interrupt)  # fmt: skip
     assert main([*args, "--out", str(tmp_path / "keep")]) == 2
-    assert "--keep-expression True then, False now" in capsys.readouterr().err
+    assert "--keep-expression on then, off now" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "plain"), "--keep-expression"]) == 2
-    assert "--keep-expression False then, True now" in capsys.readouterr().err
+    assert "--keep-expression off then, on now" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "keep"), "--keep-expression"]) == 0
     for name in (*OUTPUTS, "clip_normalised.mp4"):
         assert (tmp_path / "keep" / name).read_bytes() == (out["keep"] / name).read_bytes(), name
@@ -119,7 +119,7 @@ def test_keep_expression_resume_goes_on_and_another_setting_is_refused(clip, run
         if f.is_file():
             (done / f.name).write_bytes(f.read_bytes())
     assert main([*args, "--out", str(done), "--keep-expression"]) == 2
-    assert "--keep-expression False then, True now" in capsys.readouterr().err
+    assert "--keep-expression off then, on now" in capsys.readouterr().err
     # interrupted after the online start's last frame (4) and its re-anchoring, resumed from the record without a
     # checkpoint (none before 25 rows): the rows up to the re-anchoring frame, replayed, are resampled at the neutral
     # their AUxx_r are measured from, the first fit's (the record's anchor.first_anim_coeffs; the state holds the
