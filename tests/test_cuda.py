@@ -10,7 +10,8 @@ test runs the same thing twice, once on the GPU and once on the CPU with :attr:`
 - the normalised face and its gradient with respect to the frame pixels, and ``NormalisedFaceLayer`` (the training
   use: a layer moved with ``.cuda()``, unrolled iterations, a backward pass);
 - ``torchface track --device cuda``: the CSV's poses against the CPU run's;
-- CPU frames and landmarks given to a model on the GPU are moved to it;
+- CPU frames and landmarks given to a model on the GPU are moved to it, and a batch's CPU confidence and mask to
+  a loss on the GPU (``training_hooks.confidence_weighted_loss``; added in session 56, not yet run on a GPU);
 - added after session 49's GPU time was spent, not yet run on a GPU: the layer inside CUDA's autocast, a
   ``torch.compile``d network holding the layer, and ``torch.use_deterministic_algorithms(True)``
   (:mod:`torchface._deterministic`).
@@ -297,3 +298,15 @@ def test_deterministic_algorithms_on_the_device(streams, monkeypatch):
     torch.testing.assert_close(first[0], free[0], rtol=0, atol=1e-4)
     torch.testing.assert_close(first[2], free[2], rtol=0, atol=1e-4)
     torch.testing.assert_close(first[3], free[3], rtol=1e-3, atol=1e-5)
+
+
+def test_confidence_weighted_loss_takes_a_cpu_confidence_to_the_loss_device():
+    """A training loop that moves its images alone to the GPU hands ``confidence_weighted_loss`` a loss there and the
+    batch's confidence and mask on the CPU: the weights go to the loss's device (it was torch's device error)."""
+    from training_hooks import confidence_weighted_loss
+
+    loss = torch.tensor([1.0, 3.0, 5.0], device=DEVICE, requires_grad=True)
+    out = confidence_weighted_loss(loss, torch.tensor([0.75, 0.25, 1.0]), torch.tensor([True, True, False]))
+    assert out.device == loss.device and abs(float(out) - 1.5) < 1e-6
+    out.backward()
+    assert loss.grad is not None and loss.grad.device == loss.device

@@ -113,11 +113,12 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         raise ValueError(
             f"loss, confidence and mask must have one shape, got {tuple(loss.shape)}, {tuple(confidence.shape)}, {got}"
         )
-    c = confidence.detach().to(loss.dtype)
+    # (on the loss's device: a batch's confidence stays on the CPU where a training loop moves its images alone)
+    c = confidence.detach().to(device=loss.device, dtype=loss.dtype)
     if not bool(torch.isfinite(c).all()) or bool((c < 0).any()) or bool((c > 1).any()):
         raise ValueError("confidence must be finite and in [0, 1]")
     if mask is not None:
-        c = c * mask.to(c.dtype)
+        c = c * mask.to(device=c.device, dtype=c.dtype)
     # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
     weighted = torch.where(c > 0, loss * c, 0.0).sum()
     total = c.sum()
