@@ -85,16 +85,23 @@ def accepts_near(detector: Detector) -> bool:
     return "near" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
+def _near_centre(near: np.ndarray | None) -> np.ndarray | None:
+    """``(2,)`` the centre of the bounding box of ``near`` ``(N, 2)`` (:data:`Detector`'s; its non-finite rows
+    ignored), None without it or without a finite row."""
+    if near is None:
+        return None
+    near = np.asarray(near, dtype=np.float64).reshape(-1, 2)
+    near = near[np.isfinite(near).all(axis=1)]
+    return (near.min(axis=0) + near.max(axis=0)) / 2 if len(near) else None
+
+
 def _nearest(centres: np.ndarray, areas: np.ndarray, near: np.ndarray | None) -> int:
     """Index of the face to take of boxes with centres ``(F, 2)`` and areas ``(F,)``: the one whose centre is
-    nearest the centre of the bounding box of ``near`` ``(N, 2)`` (its non-finite rows ignored), else the largest
-    (the first of equals)."""
-    if near is not None:
-        near = np.asarray(near, dtype=np.float64).reshape(-1, 2)
-        near = near[np.isfinite(near).all(axis=1)]
-    if near is None or len(near) == 0:
+    nearest the centre of the bounding box of ``near`` ``(N, 2)`` (:func:`_near_centre`), else the largest (the
+    first of equals)."""
+    centre = _near_centre(near)
+    if centre is None:
         return int(np.argmax(areas))
-    centre = (near.min(axis=0) + near.max(axis=0)) / 2
     return int(np.argmin(np.linalg.norm(centres - centre, axis=1)))
 
 

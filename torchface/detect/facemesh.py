@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from torchface.detect import DetectorUnavailable, _check_image, _nearest, _PerImageDetector
+from torchface.detect import DetectorUnavailable, _check_image, _near_centre, _nearest, _PerImageDetector
 
 __all__ = [
     "MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "canonical_mesh", "find_model", "mesh_pixels", "mesh_to_ibug68",
@@ -463,13 +463,9 @@ class MediaPipeDetector(_PerImageDetector):
 def _holds(points: np.ndarray, near: np.ndarray | None) -> bool:
     """Whether one of the faces ``points`` ``(F, 68, 2)`` has the centre of ``near``'s box ``(N, 2)`` (its finite
     rows; :class:`~torchface.detect.Detector`) inside its points' box; True without ``near``."""
-    if near is None:
+    centre = _near_centre(near)
+    if centre is None:
         return True
-    near = np.asarray(near, dtype=np.float64).reshape(-1, 2)
-    near = near[np.isfinite(near).all(axis=1)]
-    if len(near) == 0:
-        return True
-    centre = (near.min(axis=0) + near.max(axis=0)) / 2
     return bool(((points.min(axis=1) <= centre) & (centre <= points.max(axis=1))).all(axis=1).any())
 
 
