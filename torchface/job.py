@@ -143,6 +143,7 @@ from torch import Tensor
 
 from torchface import _checkpoint
 from torchface._device import check_device
+from torchface._paths import check_no_tilde
 from torchface._words import counted, plural
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
@@ -329,12 +330,8 @@ class JobConfig:
         # (the paths: out_dir=None was a TypeError of Path's once the job ran, and out_dir="" the current folder,
         # which the command line refuses as an unset variable's; a list of landmarks files is kept as a tuple)
         _check_path(self.out_dir, "out_dir", "'.' for the current folder")
-        text = os.fspath(self.out_dir)
-        first = Path(text).parts[:1]
-        if os.path.expanduser(text) != text:  # (nothing expands it: the outputs went to a folder '~' in the working
-            # folder, as training_hooks' cache_dir once did; '~x', no user's home, is a name as any other)
-            raise ValueError(f"out_dir {text!r} starts with '~', which is not expanded (it named a folder "
-                             f"'{first[0]}' in the working folder): give os.path.expanduser({text!r})")  # fmt: skip
+        check_no_tilde(self.out_dir, "out_dir")  # (nothing expands it: the outputs went to a folder '~' in the
+        # working folder, as training_hooks' cache_dir once did)
         try:
             object.__setattr__(self, "landmarks", tuple(self.landmarks))
         except TypeError:

@@ -59,9 +59,9 @@ import torch
 
 import torchface
 from torchface.backend import Backend, native_available
-from torchface.extending import check_int
+from torchface.extending import check_int, check_no_tilde
 from torchface.io.video import image_files
-from training_hooks.transforms import FaceTrackingConfig, TrackedSequence, _check_no_tilde
+from training_hooks.transforms import FaceTrackingConfig, TrackedSequence
 
 if TYPE_CHECKING:  # (importlib.resources.abc: Python 3.11 on)
     from importlib.resources.abc import Traversable
@@ -294,7 +294,7 @@ class TrackCache:
             raise TypeError(f"root must be a folder (a str or path-like), got {type(root).__name__}")
         if isinstance(root, str) and not root:  # (Path("") is ".": the cache filled the working folder unasked)
             raise ValueError('root is empty (the working folder): give a folder ("." for the working folder)')
-        _check_no_tilde(root, "root")
+        check_no_tilde(root, "root")
         self.root = Path(root).absolute()
         self.stats = CacheStats()
         self._swept = False

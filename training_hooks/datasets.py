@@ -149,13 +149,13 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
 from torchface.detect import detector_image, search_first_face
-from torchface.extending import check_bool, check_int, check_optional_int, check_optional_real
+from torchface.extending import check_bool, check_int, check_no_tilde, check_optional_int, check_optional_real
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, image_files, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
-from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _check_no_tilde
+from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
 
 __all__ = [
     "DatasetConfig",
@@ -513,7 +513,7 @@ class DatasetConfig:
             if isinstance(self.cache_dir, str) and not self.cache_dir:  # (Path("") is ".": the cache went there)
                 raise ValueError('cache_dir is empty (the working folder): give a folder, or None for no cache ("." '
                                  "for the working folder)")  # fmt: skip
-            _check_no_tilde(self.cache_dir, "cache_dir")  # ("~/cache" was a folder "~" in the working folder)
+            check_no_tilde(self.cache_dir, "cache_dir")  # ("~/cache" was a folder "~" in the working folder)
             # (absolute now: a relative one was taken against the working folder when the cache was first used, so a
             # dataset iterated after an os.chdir, or in a worker that had changed folder, filled a cache elsewhere)
             object.__setattr__(self, "cache_dir", Path(self.cache_dir).absolute())

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.extending import check_bool, check_int, check_optional_real, check_real
+from torchface.extending import check_bool, check_int, check_no_tilde, check_optional_real, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.io.landmarks import missing_points_problem
 from torchface.model.candide import load_candide3
@@ -85,23 +85,6 @@ class FaceStorage(enum.Enum):
     def dtype(self) -> torch.dtype:
         """The torch dtype of stored faces."""
         return {"uint8": torch.uint8, "float16": torch.float16, "float32": torch.float32}[self.value]
-
-
-def _check_no_tilde(path: str | os.PathLike[str], name: str) -> None:
-    """Refuse a path that starts with a ``~`` or ``~user`` that ``os.path.expanduser`` would expand (``"~/cache"``,
-    ``"~/m.npz"``): it is not expanded (by ``pathlib``, as by a shell), so made absolute it named a folder ``~`` in
-    the working folder (a cache went there without a word; a model file failed at its first load with "no such
-    file"). A name such as ``"~cache"``, which no user's home expands, is a name as any other, as
-    ``torchface track`` and :class:`~torchface.job.JobConfig` take it.
-
-    Raises:
-        ValueError: ``path`` starts with ``~`` that expands, naming ``os.path.expanduser``."""
-    parts = Path(path).parts
-    if os.path.expanduser(os.fspath(path)) != os.fspath(path):  # (any leading '~' once: '~cache' refused)
-        raise ValueError(
-            f"{name} {os.fspath(path)!r} starts with '~', which is not expanded (it named a folder '{parts[0]}' in "
-            f"the working folder): give os.path.expanduser({os.fspath(path)!r})"
-        )
 
 
 @dataclass(frozen=True)
@@ -165,7 +148,7 @@ class FaceTrackingConfig:
         if self.model is not None:  # (a relative one was read against the working folder when first loaded)
             if isinstance(self.model, str) and not self.model:  # (Path("") is the working folder)
                 raise ValueError("model is empty: give a face model file, or None for CANDIDE-3")
-            _check_no_tilde(self.model, "model")  # (made absolute as <cwd>/~/...: "no such file" at the first load)
+            check_no_tilde(self.model, "model")  # (made absolute as <cwd>/~/...: "no such file" at the first load)
             object.__setattr__(self, "model", Path(self.model).absolute())
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
