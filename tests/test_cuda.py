@@ -22,8 +22,10 @@ against themselves: a check of the tests' own code on a machine without a GPU).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -207,24 +209,40 @@ def _amp_dtype() -> torch.dtype:
     return torch.float16 if torch.device(DEVICE).type == "cuda" else torch.bfloat16
 
 
-def test_layer_inside_the_devices_autocast_equals_full_precision(streams):
+@contextlib.contextmanager
+def _deterministic_algorithms() -> Iterator[None]:
+    previous = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(previous)
+
+
+def test_layer_inside_the_devices_autocast_equals_full_precision(streams, monkeypatch):
     """A training step's ``torch.autocast`` on the device (float16 on CUDA): the float32 layer tracks, unrolls and
-    resamples in float32, bit-identical to the run outside it, while the caller's own products still autocast."""
+    resamples in float32, bit-identical to the run outside it, while the caller's own products still autocast.
+
+    Both runs use deterministic algorithms: without them two plain runs on CUDA differ in the last bits (session 57,
+    H200: ``index_add``'s atomic sums, the vertex normals', come in no fixed order), and bit identity would say
+    nothing."""
     from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
 
     frames, lm, _ = streams
     frames, lm = frames.to(DEVICE), lm.to(DEVICE)
     device_type = torch.device(DEVICE).type
+    monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # (cuBLAS's own condition for deterministic products)
     for mode in (LayerMode.DETACHED, LayerMode.UNROLLED):
-        layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=32, tracker=CFG)).to(DEVICE)
-        state, _ = layer.initialise(frames[:, 0], lm)
-        ref = layer(frames[:, 1], state)
-        with torch.autocast(device_type, dtype=_amp_dtype()):
-            state_amp, _ = layer.initialise(frames[:, 0], lm)
-            out = layer(frames[:, 1], state_amp)
-            ones = torch.ones(32 * 32 * 3, 1, device=DEVICE)
-            assert (out.image.flatten(1) @ ones).dtype == _amp_dtype()
-        assert torch.equal(state_amp.params, state.params), mode
+        with _deterministic_algorithms():
+            layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=32, tracker=CFG)).to(DEVICE)
+            state, _ = layer.initialise(frames[:, 0], lm)
+            ref = layer(frames[:, 1], state)
+            with torch.autocast(device_type, dtype=_amp_dtype()):
+                state_amp, _ = layer.initialise(frames[:, 0], lm)
+                out = layer(frames[:, 1], state_amp)
+                ones = torch.ones(32 * 32 * 3, 1, device=DEVICE)
+                assert (out.image.flatten(1) @ ones).dtype == _amp_dtype()
+            assert torch.equal(state_amp.params, state.params), mode
         assert torch.equal(out.params, ref.params) and torch.equal(out.image, ref.image), mode
 
 
@@ -297,7 +315,12 @@ def test_deterministic_algorithms_on_the_device(streams, monkeypatch):
     assert torch.equal(first[1], free[1])
     torch.testing.assert_close(first[0], free[0], rtol=0, atol=1e-4)
     torch.testing.assert_close(first[2], free[2], rtol=0, atol=1e-4)
-    torch.testing.assert_close(first[3], free[3], rtol=1e-3, atol=1e-5)
+    # The frame's gradient through the unrolled iterations: without the mode the atomic adds sum in another order, the
+    # pose moves by float rounding, and a sample near a pixel's edge can cross it, so a few pixels differ by more than
+    # rounding (session 57, H200: 5 of 460800, at most 2.8e-5 against a largest gradient of about 1.7), the whole not.
+    diff = first[3] - free[3]
+    assert float(diff.norm()) <= 1e-5 * float(free[3].norm())
+    assert float(diff.abs().max()) <= 1e-4 * float(free[3].abs().max())
 
 
 def test_confidence_weighted_loss_takes_a_cpu_confidence_to_the_loss_device():

@@ -101,10 +101,16 @@ def test_devices_that_are_here_and_calls_without_a_device_pass():
 def test_an_int_is_the_current_accelerators_index(monkeypatch):
     """``.to(0)`` / ``torch.device(0)`` is index 0 of the current accelerator (torch's reading): on Apple silicon
     ``mps:0`` (simulated), refused before as "device 'cuda:0' is not available"; without an accelerator one
-    ValueError saying what an int names."""
-    with pytest.raises(ValueError, match=r"^device 0 is not available: an int is an accelerator's \(a GPU's\) index, "
-                                         r"and this machine has none; devices here: cpu"):  # fmt: skip
-        check_device(0)
+    ValueError saying what an int names (simulated: on a GPU machine ``0`` is ``cuda:0``, checked first)."""
+    if torch.cuda.is_available():
+        assert check_device(0) == torch.device("cuda", 0)
+    with monkeypatch.context() as none_here:
+        none_here.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: None)
+        none_here.setattr(torch.cuda, "is_available", lambda: False)
+        none_here.setattr(torch.backends.mps, "is_available", lambda: False)
+        with pytest.raises(ValueError, match=r"^device 0 is not available: an int is an accelerator's \(a GPU's\) "
+                                             r"index, and this machine has none; devices here: cpu"):  # fmt: skip
+            check_device(0)
     monkeypatch.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: torch.device("mps"))
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
     assert check_device(0) == torch.device("mps", 0)

@@ -1366,6 +1366,9 @@ def test_videos_shorter_than_clip_length_are_named_once_and_a_dataset_of_none_el
     loaded = VideoDataset(videos, landmarks, cfg)  # video 0 -> worker 0, video 1 -> worker 1: the last one warns
     with warnings.catch_warnings():
         warnings.simplefilter("always")
+        warnings.filterwarnings(  # (Python 3.12+ warns of a fork() in a process with threads: torch's here)
+            "ignore", r"This process \(pid=\d+\) is multi-threaded, use of fork\(\)", DeprecationWarning
+        )
         warnings.showwarning = show
         assert len(list(DataLoader(loaded, batch_size=None, num_workers=2, multiprocessing_context="fork"))) == 1
         assert loaded.count_items() == [1, 0]  # (the workers' warning is the dataset's: not again)

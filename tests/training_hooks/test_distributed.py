@@ -514,6 +514,9 @@ def test_a_rank_without_a_video_warns_once_in_its_first_worker(clips, config, mo
     fresh = VideoDataset(videos, landmarks, config)  # PAD: rank 1 repeats video 0's frames
     with warnings.catch_warnings():
         warnings.simplefilter("always")
+        warnings.filterwarnings(  # (Python 3.12+ warns of a fork() in a process with threads: torch's here)
+            "ignore", r"This process \(pid=\d+\) is multi-threaded, use of fork\(\)", DeprecationWarning
+        )
         warnings.showwarning = show
         for _ in range(2):  # two epochs of 2 forked workers
             loader = DataLoader(fresh, batch_size=None, num_workers=2, multiprocessing_context="fork")
