@@ -70,6 +70,33 @@ def test_grid_sample_border_equals_torchs_values_and_gradients(forced):
     assert torch.autograd.gradcheck(grid_sample_border, (images, inner))
 
 
+def test_jacrev_with_respect_to_the_grid_alone_under_an_old_torch(monkeypatch):
+    """torch 2.11's ``vmap`` rule of ``grid_sample``'s backward raised where the grid asks for a gradient and the image
+    does not ("Expected a proper Tensor but got None"; ``torch.func.jacrev`` of the normalised face with respect to the
+    pose, session 57): there the gathered corners run, and their Jacobian is torch's. Simulated on this torch (the
+    flag forced, torch's sampler made to raise); the image's own gradient and plain autograd keep torch's sampler."""
+    from torch.func import grad, jacrev
+
+    gen = torch.Generator().manual_seed(3)
+    images = torch.rand(2, 3, 7, 9, generator=gen, dtype=D)
+    grid = torch.rand(2, 3, 4, 2, generator=gen, dtype=D) * 1.8 - 0.9
+    want = torch.autograd.functional.jacobian(lambda g: grid_sample_border(images, g), grid)
+    monkeypatch.setattr(_deterministic, "_GRID_SAMPLE_VMAP_BACKWARD_BROKEN", True)
+    real = F.grid_sample
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(_deterministic.F, "grid_sample", counted)
+    got = jacrev(lambda g: grid_sample_border(images, g))(grid)
+    assert not calls  # (the gathered corners)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    grad(lambda i: grid_sample_border(i, grid).sum())(images)  # the image's gradient: torch's sampler
+    grid_sample_border(images, grid.clone().requires_grad_())  # plain autograd: torch's sampler
+    assert len(calls) == 2
+
 def test_grid_sample_border_reads_non_finite_points_as_torch_does(forced):
     """A NaN coordinate (a diverged stream's point) reads column / row 0 and an infinite one the border, as
     grid_sample does; the substitute took NaN through ``clamp`` into the gather: "index -9223372036854775808 is out

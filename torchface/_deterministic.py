@@ -16,6 +16,10 @@ median (the same values), gathered corners for the bilinear sample (the same to 
 included), concatenated slices for the reflected border (the same values). Elsewhere they call torch's operation,
 so results off that path are unchanged bit for bit. ``tests/test_deterministic.py`` checks each substitute against
 torch's operation on the CPU (forced with :data:`FORCE`).
+
+The gathered corners serve one more case: under torch < 2.12 ``torch.func.jacrev`` with respect to the sampled
+points alone (the normalised face's Jacobian with respect to the pose) raised inside torch's ``grid_sample``
+backward (:data:`_GRID_SAMPLE_VMAP_BACKWARD_BROKEN`).
 """
 
 from __future__ import annotations
@@ -28,6 +32,11 @@ __all__ = ["grid_sample_border", "nanmedian_values", "reflect_pad"]
 
 #: Tests set this to True to run the substitutes on any device (module docstring).
 FORCE = False
+
+#: torch before 2.12: the ``vmap`` rule of ``grid_sample``'s backward fails where the image asks for no gradient and
+#: the grid does ("Expected a proper Tensor but got None ... argument #0 'self'"; seen with torch 2.11, not 2.12), so
+#: ``torch.func.jacrev`` with respect to the geometry raised. The gathered corners run there instead.
+_GRID_SAMPLE_VMAP_BACKWARD_BROKEN = torch.torch_version.TorchVersion(torch.__version__) < (2, 12)
 
 
 def _substitute(x: Tensor, backward: bool) -> bool:
@@ -69,7 +78,9 @@ def _clip(coordinate: Tensor, limit: int) -> Tensor:
 
 def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     """``F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)``, also where the
-    image's gradient is asked for under deterministic algorithms on CUDA (module docstring).
+    image's gradient is asked for under deterministic algorithms on CUDA (module docstring), and for a grid wrapped
+    by a ``torch.func`` transform that asks for the grid's gradient and not the image's, under torch < 2.12
+    (:data:`_GRID_SAMPLE_VMAP_BACKWARD_BROKEN`).
 
     Args:
         images: ``(B, C, H, W)``.
@@ -80,7 +91,9 @@ def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     Returns:
         ``(B, C, Ho, Wo)``.
     """
-    if not _substitute(images, backward=True):
+    old_jacrev = (_GRID_SAMPLE_VMAP_BACKWARD_BROKEN and grid.requires_grad and not images.requires_grad
+                  and torch._C._functorch.is_functorch_wrapped_tensor(grid))  # fmt: skip
+    if not old_jacrev and not _substitute(images, backward=True):
         return F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)
     B, C, H, W = images.shape
     Ho, Wo = grid.shape[1:3]

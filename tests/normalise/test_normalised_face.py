@@ -782,7 +782,8 @@ def test_under_torch_compile_the_normalised_face_is_the_torch_codes():
 def test_torch_func_grad_and_jacrev_equal_autograd():
     """``torch.func.grad`` / ``jacrev`` (per-sample gradients, Jacobians) of the face with its default z-buffer
     raised "Cannot access data pointer of Tensor that doesn't have storage" from the native rasterizer, which was
-    given torch.func's wrapped tensors: the torch z-buffer (the same fragments) serves them now."""
+    given torch.func's wrapped tensors: the torch z-buffer (the same fragments) serves them now. Under torch 2.11
+    ``jacrev`` raised inside torch's ``grid_sample`` backward (session 57): gathered corners serve it there."""
     from torch.func import grad, jacrev
 
     D = torch.float64
