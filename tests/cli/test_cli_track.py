@@ -619,6 +619,9 @@ def test_a_fresh_run_interrupted_in_its_first_batch_leaves_no_earlier_complete_o
 def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, tmp_path, capsys):
     """--resume refused a partial video made with other settings, but skipped a complete one as done: a run over
     many videos resumed with another --focal kept the old focal's results for every video already complete."""
+    from torchface.io.sidecar import to_jsonable
+    from torchface.tracker.lookahead import LookaheadConfig
+
     video, lm, _ = clip
     short = _short_npy(video, tmp_path / "short.npy", 2)
     out = tmp_path / "out"
@@ -632,6 +635,29 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
                           "made with other settings (--focal default then, 150.0 now)")  # fmt: skip
     _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(online start off then, on now)")
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
+    _assert_clean_failure(run("--no-online-refine", "--resume", "--lookahead"), capsys, tmp_path / "nothing",
+                          "(--lookahead off then, on now)")  # fmt: skip
+
+    # --lookahead starts without the online start: its sidecar said the online start's settings all the same
+    # (config.online_start), and now says none; its own run resumed skips it as complete, and one with
+    # --no-online-refine too (refine_first, unused with --lookahead, was compared: "online start on then, off now")
+    ahead = tmp_path / "ahead"
+    assert main(["track", str(short), "--out", str(ahead), "--landmarks", str(lm), "--quiet", "--lookahead"]) == 0
+    made = output_paths(ahead, "short")["json"]
+    sidecar = json.loads(made.read_text())
+    assert sidecar["config"]["online_start"] is None and sidecar["config"]["lookahead"] is not None
+
+    def skipped(*extra):
+        capsys.readouterr()
+        rc = main(["track", str(short), "--out", str(ahead), "--landmarks", str(lm), "--quiet", "--lookahead",
+                   "--resume", *extra])  # fmt: skip
+        return rc == 0 and "already complete" in capsys.readouterr().out
+
+    assert skipped() and skipped("--no-online-refine")
+    # as an earlier version wrote it (the online start's settings, where none ran): read as before
+    sidecar["config"]["online_start"] = json.loads(json.dumps(to_jsonable(LookaheadConfig())))
+    made.write_text(json.dumps(sidecar))
+    assert skipped()
 
 
 def test_resume_refuses_to_skip_complete_outputs_made_from_other_landmarks(clip, tmp_path, capsys):
