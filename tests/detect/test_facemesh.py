@@ -216,6 +216,30 @@ def test_mediapipe_model_missing_names_where_to_get_it(fake_mediapipe, monkeypat
         load_detector("mediapipe")
     with pytest.raises(DetectorUnavailable, match=r"model model='.*gone\.task': no such file"):
         MediaPipeDetector(model=fake_mediapipe / "gone.task")
+    # a '~' is expanded; a folder named '~name' that no user's home is, is a folder (pathlib's expanduser raised a
+    # bare RuntimeError, "Could not determine home directory", for it, and for '~' with no home folder known, which
+    # is now said so)
+    (fake_mediapipe / "home").mkdir()
+    (fake_mediapipe / "home" / "m.task").write_bytes(b"model")
+    (fake_mediapipe / "~torchface-no-such-user").mkdir()
+    (fake_mediapipe / "~torchface-no-such-user" / "m.task").write_bytes(b"model")
+    monkeypatch.setenv("HOME", str(fake_mediapipe / "home"))
+    monkeypatch.chdir(fake_mediapipe)
+    assert find_model("~/m.task") == fake_mediapipe / "home" / "m.task"
+    folder = fake_mediapipe / "~torchface-no-such-user"
+    assert find_model("~torchface-no-such-user/m.task").resolve() == folder / "m.task"
+    pwd = pytest.importorskip("pwd")
+
+    def missing(*args):
+        raise KeyError("no such entry")
+
+    monkeypatch.delenv("HOME")
+    monkeypatch.setattr(pwd, "getpwuid", missing)
+    monkeypatch.setenv(MODEL_ENV, "~/m.task")
+    with pytest.raises(DetectorUnavailable, match=rf"^the 'mediapipe' detector's model {MODEL_ENV}='~/m\.task': "
+                       r"nothing expands its '~' here \(HOME is not set and the password database has no entry for "
+                       r"this user\): give the file's full path$"):  # fmt: skip
+        load_detector("mediapipe")
 
 
 def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fake_mediapipe, monkeypatch):

