@@ -233,6 +233,23 @@ def test_a_path_starting_with_tilde_is_a_usage_error_not_a_folder_named_tilde(tm
         assert err.splitlines()[-1].endswith("starts with '~', which the shell did not expand (quoted, or after '=' "
                                              "as in --out=~/...): give the path after a space, unquoted, or with $HOME")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
+    # with HOME unset and the user not in the password database, nothing expands '~' (a shell neither): it was taken,
+    # os.path.expanduser leaving it as it was, and the outputs went to a folder '~'
+    pwd = pytest.importorskip("pwd")
+
+    def missing(*args):
+        raise KeyError("no such entry")
+
+    with monkeypatch.context() as m:
+        m.delenv("HOME", raising=False)
+        m.setattr(pwd, "getpwuid", missing)
+        with pytest.raises(SystemExit) as info:
+            main(["track", "a.npy", "--out", "~/res", "--landmarks", "l.csv"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.splitlines()[-1].endswith(
+        "'~/res' starts with '~', which nothing expanded (HOME is not set and the password database has no entry for "
+        "this user): give the home folder's path"), err  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]
     # a name that no user's home expands ('~draft.npy', as editors name their copies) is a name as any other
     with pytest.raises(SystemExit) as info:
         main(["track", "~torchface-no-such-user.npy", "--out", "~torchface-no-such-user-out", "--landmarks", "l.csv",

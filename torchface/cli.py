@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TextIO
 
 from torchface import __version__  # (torch is not imported: the package's names load on first use)
+from torchface._paths import no_home_reason, unexpanded_home
 from torchface._words import counted, plural
 
 __all__ = ["main", "build_parser", "ProgressDisplay"]
@@ -511,11 +512,16 @@ def _path(text: str) -> Path:
     after ``=`` and in quotes (``--out=~/res`` wrote the outputs to a folder ``~`` in the working folder)."""
     if not text:
         raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): give a file or folder")
-    if os.path.expanduser(text) != text:  # (--out=~/res, or quoted: a folder '~' in the working folder was made;
-        # a name such as '~draft.mp4', which no user's home expands, is a name as any other)
+    home = unexpanded_home(text)  # (--out=~/res, or quoted: a folder '~' in the working folder was made; a name
+    # such as '~draft.mp4', which no user's home expands, is a name as any other)
+    if home is not None and home[1]:
         raise argparse.ArgumentTypeError(
             f"{text!r} starts with '~', which the shell did not expand (quoted, or after '=' as in --out=~/...): give "
             "the path after a space, unquoted, or with $HOME"
+        )
+    if home is not None:  # (HOME unset, the user not in the password database: a shell cannot expand it either)
+        raise argparse.ArgumentTypeError(
+            f"{text!r} starts with '~', which nothing expanded ({no_home_reason(home[0])}): give the home folder's path"
         )
     return Path(text)
 

@@ -2035,7 +2035,8 @@ def _check_resumable(
                              f"landmarks than {os.fspath(landmarks)} holds now ({what}): run without --resume")
     now = _as_json(_result_settings(config))  # as the sidecar holds them
     made_with = {"smoothing": None, "keep_expression": False, **made_with}  # (sidecars before them: without)
-    made_with = _with_defaults(made_with, _result_settings(config))  # (a field added since: at its default)
+    made_with = _ran_online_start(_with_defaults(made_with, _result_settings(config)))  # (a field added since: at
+    # its default; an earlier version's online_start where none ran: none)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
@@ -2068,12 +2069,29 @@ def _landmarks_difference(then: np.ndarray, now: np.ndarray) -> str:
 
 def _result_settings(config: JobConfig) -> dict[str, object]:
     """The settings a video's results depend on, under the names of the sidecar's ``config`` (which also says the
-    device, the landmarks' source, ``resume`` and the batch size): :func:`_check_resumable` compares them."""
+    device, the landmarks' source, ``resume`` and the batch size): :func:`_check_resumable` compares them.
+    ``online_start``: the online start that ran (:func:`_online_start`), None with ``--lookahead`` or without
+    template management, where ``JobConfig.refine_first`` is not used (it was recorded there all the same, and the
+    sidecar of a ``--lookahead`` run said an online start it never made: :func:`_ran_online_start`)."""
     return {"tracker": config.tracker, "focal": config.focal, "detector": config.detector,
-            "lookahead": config.lookahead, "online_start": config.refine_first, "convert": config.convert,
+            "lookahead": config.lookahead, "online_start": _online_start(config), "convert": config.convert,
             "normalised_size": config.normalised_size, "redetect_after": config.redetect_after,
             "redetect_below": config.redetect_below, "smoothing": config.smoothing,
             "keep_expression": config.keep_expression}  # fmt: skip
+
+
+def _ran_online_start(made_with: dict) -> dict:
+    """A sidecar's ``config`` (as JSON, its fields filled in, :func:`_with_defaults`) with ``online_start`` None
+    where no online start ran (:func:`_online_start`: ``lookahead`` set, or ``tracker.template.enabled`` false), as
+    :func:`_result_settings` records it now: the sidecars of earlier versions held ``JobConfig.refine_first`` there
+    all the same, and a ``--lookahead`` run resumed over its own complete outputs was refused over a setting it
+    does not use ("online start on then, off now")."""
+    tracker = made_with.get("tracker")
+    template = tracker.get("template") if isinstance(tracker, dict) else None
+    templates_off = isinstance(template, dict) and template.get("enabled") is False
+    if "online_start" in made_with and (made_with.get("lookahead") is not None or templates_off):
+        return {**made_with, "online_start": None}
+    return made_with
 
 
 def _open_inputs(

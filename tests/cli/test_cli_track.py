@@ -619,6 +619,10 @@ def test_a_fresh_run_interrupted_in_its_first_batch_leaves_no_earlier_complete_o
 def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, tmp_path, capsys):
     """--resume refused a partial video made with other settings, but skipped a complete one as done: a run over
     many videos resumed with another --focal kept the old focal's results for every video already complete."""
+    import torchface.job as job
+    from torchface.io.sidecar import to_jsonable
+    from torchface.tracker.lookahead import LookaheadConfig
+
     video, lm, _ = clip
     short = _short_npy(video, tmp_path / "short.npy", 2)
     out = tmp_path / "out"
@@ -632,6 +636,31 @@ def test_resume_refuses_to_skip_complete_outputs_made_with_other_settings(clip, 
                           "made with other settings (--focal default then, 150.0 now)")  # fmt: skip
     _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing", "(online start off then, on now)")
     assert json.loads(output_paths(out, "short")["json"].read_text())["config"]["focal"] is None  # kept
+    _assert_clean_failure(run("--no-online-refine", "--resume", "--lookahead"), capsys, tmp_path / "nothing",
+                          "(--lookahead off then, on now)")  # fmt: skip
+
+    # --lookahead starts without the online start: its sidecar's config.online_start said the online start's
+    # settings all the same, and now says none (the sidecar's config is job._result_settings', device and the like)
+    ahead = JobConfig(out_dir=out, lookahead=LookaheadConfig())
+    assert job._result_settings(ahead)["online_start"] is None
+    assert job._result_settings(replace(ahead, lookahead=None))["online_start"] == LookaheadConfig()
+    # such outputs (here the sidecar made so) are skipped as complete by their run resumed, and by one with
+    # --no-online-refine too (refine_first, unused with --lookahead, was compared: "online start on then, off now");
+    # a sidecar of an earlier version, with the online start's settings, alike
+    made = output_paths(out, "short")["json"]
+    sidecar = json.loads(made.read_text())
+    as_json = json.loads(json.dumps(to_jsonable(LookaheadConfig())))
+
+    def skipped(*extra):
+        capsys.readouterr()
+        rc = main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--lookahead",
+                   "--resume", *extra])  # fmt: skip
+        return rc == 0 and "already complete" in capsys.readouterr().out
+
+    for online_start in (None, as_json):
+        sidecar["config"].update(lookahead=as_json, online_start=online_start)
+        made.write_text(json.dumps(sidecar))
+        assert skipped() and skipped("--no-online-refine"), online_start
 
 
 def test_resume_refuses_to_skip_complete_outputs_made_from_other_landmarks(clip, tmp_path, capsys):
@@ -2167,9 +2196,12 @@ def test_lookahead_never_falls_back_to_the_online_start(clip, tmp_path, monkeypa
     assert [s.frames for s in track_videos([one, two], config)] == [1, 1]
     assert given == [None]
     for name in ("one", "two"):
-        start = json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]
+        sidecar = json.loads(output_paths(tmp_path / "out", name)["json"].read_text())
+        start = sidecar["start"]
         assert start["method"] == "lookahead" and start["reanchored_at_frame"] is None
         assert start["lookahead_keyframes"] == []  # nothing to refine against: the landmark fit
+        # (and its config says no online start: it said the online start's settings, unused)
+        assert sidecar["config"]["online_start"] is None and sidecar["config"]["lookahead"]["max_frames"] == 6
 
 
 def test_lookahead_of_a_batch_is_not_capped_by_its_shortest_video(clip, tmp_path, monkeypatch):

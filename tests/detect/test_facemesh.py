@@ -196,7 +196,7 @@ def _face(cx: float, cy: float, half: float) -> np.ndarray:
 
 def _own(detect: MediaPipeDetector):
     """The calling thread's landmarker of ``detect`` (None before its first call)."""
-    return detect._landmarkers.get(threading.current_thread())
+    return detect._landmarkers.get(detect._thread_key())
 
 
 def test_mediapipe_missing_names_the_install_commands(fake_mediapipe, monkeypatch):
@@ -216,6 +216,30 @@ def test_mediapipe_model_missing_names_where_to_get_it(fake_mediapipe, monkeypat
         load_detector("mediapipe")
     with pytest.raises(DetectorUnavailable, match=r"model model='.*gone\.task': no such file"):
         MediaPipeDetector(model=fake_mediapipe / "gone.task")
+    # a '~' is expanded; a folder named '~name' that no user's home is, is a folder (pathlib's expanduser raised a
+    # bare RuntimeError, "Could not determine home directory", for it, and for '~' with no home folder known, which
+    # is now said so)
+    (fake_mediapipe / "home").mkdir()
+    (fake_mediapipe / "home" / "m.task").write_bytes(b"model")
+    (fake_mediapipe / "~torchface-no-such-user").mkdir()
+    (fake_mediapipe / "~torchface-no-such-user" / "m.task").write_bytes(b"model")
+    monkeypatch.setenv("HOME", str(fake_mediapipe / "home"))
+    monkeypatch.chdir(fake_mediapipe)
+    assert find_model("~/m.task") == fake_mediapipe / "home" / "m.task"
+    folder = fake_mediapipe / "~torchface-no-such-user"
+    assert find_model("~torchface-no-such-user/m.task").resolve() == folder / "m.task"
+    pwd = pytest.importorskip("pwd")
+
+    def missing(*args):
+        raise KeyError("no such entry")
+
+    monkeypatch.delenv("HOME")
+    monkeypatch.setattr(pwd, "getpwuid", missing)
+    monkeypatch.setenv(MODEL_ENV, "~/m.task")
+    with pytest.raises(DetectorUnavailable, match=rf"^the 'mediapipe' detector's model {MODEL_ENV}='~/m\.task': "
+                       r"nothing expands its '~' here \(HOME is not set and the password database has no entry for "
+                       r"this user\): give the file's full path$"):  # fmt: skip
+        load_detector("mediapipe")
 
 
 def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fake_mediapipe, monkeypatch):
@@ -360,7 +384,7 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     monkeypatch.setattr(detect, "_pid", -1)
     np.testing.assert_array_equal(detect(images[1]), alone[1])
     assert vision.closed == [] and all(landmarker._handle is None for landmarker in inherited)
-    assert list(detect._landmarkers) == [threading.current_thread()] and len(vision.made) == 4
+    assert list(detect._landmarkers) == [detect._thread_key()] and len(vision.made) == 4
     detect.close()
     assert len(vision.closed) == 1 and detect._landmarkers == {}
     # At exit every landmarker is let go of unclosed (closing one there raised: mediapipe's thread pool was shut down)
@@ -387,7 +411,7 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     with ThreadPoolExecutor(1) as pool:
         running = pool.submit(detect, images[1])
         assert vision.gate[0].wait(5)  # (the pool's thread is in its landmarker's detect)
-        busy = next(detect._landmarkers[t] for t in detect._landmarkers if t is not threading.current_thread())
+        busy = next(detect._landmarkers[t] for t in detect._landmarkers if t != detect._thread_key())
         closed = len(vision.closed)
         detect.close()
         assert busy._handle not in vision.closed and len(vision.closed) == closed + 1  # (this thread's)
@@ -407,6 +431,69 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
         np.testing.assert_array_equal(first.result(5), alone[0])
     vision.hold.clear()
     assert not any(vision.overlaps), vision.overlaps
+
+
+def _c_thread(run):
+    """Start ``run()`` in a thread made by C (``pthread_create`` through ctypes, as a C extension's own threads are:
+    no ``threading.Thread``; ctypes gives the callback a thread state for each call) and return a function that
+    waits for that thread to end (``pthread_join``)."""
+    import ctypes
+
+    libc = ctypes.CDLL(None)
+    start = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p)(lambda _: run())
+    handle = ctypes.c_ulong()  # (pthread_t: unsigned long on Linux)
+    assert libc.pthread_create(ctypes.byref(handle), None, start, None) == 0
+
+    def join(callback=start) -> None:  # (the callback kept alive while the thread runs)
+        assert libc.pthread_join(handle, None) == 0
+
+    return join
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="pthread_create through ctypes: Linux")
+def test_mediapipe_detector_takes_the_landmarker_of_an_ended_thread_that_threading_did_not_make(fake_mediapipe,
+                                                                                                 monkeypatch):
+    """A thread made outside the ``threading`` module (a C extension's; ``threading.current_thread()`` gives a
+    ``_DummyThread``, alive for ever in CPython 3.11) never gave up its landmarker: a later thread made another, and the
+    detector held one per such thread till ``close()``. Now the landmarker of one that has ended is taken, as that of
+    an ended ``threading.Thread``, by a C thread and by a ``threading.Thread`` alike."""
+    task = fake_mediapipe / "a.task"
+    task.write_bytes(b"model")
+    monkeypatch.setenv(MODEL_ENV, str(task))
+    _fake_mediapipe(fake_mediapipe)
+    import mediapipe.tasks.python.vision as vision
+
+    image = np.zeros((20, 40, 3), np.uint8)
+    vision.faces[None] = [_face(0.25, 0.5, 0.1)]
+    detect = load_detector("mediapipe")
+    alone = detect(image)  # (this thread's landmarker)
+    first_done, first_go, second_go = threading.Event(), threading.Event(), threading.Event()
+    got = []
+
+    def first():
+        got.append(detect(image))
+        first_done.set()
+        first_go.wait(5)  # (alive while the second starts: another thread, not one made again in its place)
+
+    def second():
+        second_go.wait(5)
+        got.append(detect(image))
+
+    join_first = _c_thread(first)
+    assert first_done.wait(5) and len(vision.made) == 2
+    join_second = _c_thread(second)
+    first_go.set()
+    join_first()  # (the first has ended)
+    second_go.set()
+    join_second()
+    assert len(got) == 2 and all(np.array_equal(points, alone) for points in got)
+    assert len(vision.made) == 2 and len(detect._landmarkers) == 2 and vision.closed == []  # the second took it
+    later = threading.Thread(target=detect, args=(image,))
+    later.start()
+    later.join()
+    assert len(vision.made) == 2 and len(detect._landmarkers) == 2 and vision.closed == []
+    detect.close()
+    assert len(vision.closed) == 2
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork")

@@ -18,6 +18,14 @@ from torchface.io import InputError, frame_to_tensor, open_frames
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _helpers import opencv_411_capture, write_rotated_mp4  # noqa: E402
 
+#: The per-channel (R, G, B) mean and standard deviation with which ImageNet networks' inputs are normalised.
+IMAGENET_MEAN, IMAGENET_STD = np.array([0.485, 0.456, 0.406]), np.array([0.229, 0.224, 0.225])
+
+
+def _ramp(lo: float, hi: float) -> np.ndarray:
+    """A 2-frame ``(2, 40, 40, 3)`` float64 clip whose every frame holds values from ``lo`` to ``hi``."""
+    return np.linspace(lo, hi, 40 * 40 * 3).reshape(40, 40, 3)[None].repeat(2, 0)
+
 
 def _frames(reader) -> torch.Tensor:
     with reader:
@@ -239,6 +247,13 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "g.npy", np.arange(2 * 40 * 40 * 3, dtype=np.float32).reshape(2, 40, 40, 3) % 256)
          or p / "g.npy", r"frame 0: float frames must be finite and in \[0, 1\], got values from 0 to 255 \(0-255 "
          r"values\? divide by 255, or save them as uint8\)$"),
+        # mean/std-normalised frames (ImageNet's, about -2.1 to 2.6), and frames brightened past 1: told the likely
+        # cause and how to undo it (their range alone was said)
+        (lambda p: np.save(p / "in.npy", (_ramp(0.0, 1.0) - IMAGENET_MEAN) / IMAGENET_STD) or p / "in.npy",
+         r"got values from -2\.118 to 2\.64 \(values below 0: normalised with a mean and standard deviation, as for "
+         r"an ImageNet network\? undo it, x \* std \+ mean per channel, to get values in \[0, 1\]\)$"),
+        (lambda p: np.save(p / "b.npy", _ramp(0.0, 1.2)) or p / "b.npy",
+         r"got values from 0 to 1\.2 \(brightened past 1\? np\.clip\(frames, 0, 1\)\)$"),
         (lambda p: np.save(p / "n.npy", np.where(np.eye(40)[None, :, :, None] > 0, np.nan, np.full((2, 40, 40, 3), .5)))
          or p / "n.npy", r"got NaN and values from 0\.5 to 0\.5$"),
         (lambda p: np.save(p / "c.npy", np.zeros((2, 40, 40, 2), np.uint8)) or p / "c.npy", "image, got shape"),

