@@ -36,7 +36,7 @@ FORCE = False
 #: torch before 2.12: the ``vmap`` rule of ``grid_sample``'s backward fails where the image asks for no gradient and
 #: the grid does ("Expected a proper Tensor but got None ... argument #0 'self'"; seen with torch 2.11, not 2.12), so
 #: ``torch.func.jacrev`` with respect to the geometry raised. The gathered corners run there instead.
-_GRID_SAMPLE_VMAP_BACKWARD_BROKEN = torch.torch_version.TorchVersion(torch.__version__) < (2, 12)
+_GRID_SAMPLE_VMAP_BACKWARD_BROKEN = torch.torch_version.TorchVersion(torch.__version__) < "2.12"
 
 
 def _substitute(x: Tensor, backward: bool) -> bool:
