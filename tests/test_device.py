@@ -7,6 +7,8 @@ be called on meta tensors" from the model's checks for ``"meta"``."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -75,12 +77,19 @@ def test_cuda_without_a_gpu_is_the_same_value_error(module, index):
         made.cuda(index)
 
 
+def _accelerator(monkeypatch, current: torch.device | None) -> None:
+    """Simulate ``torch.accelerator.current_accelerator()`` giving ``current`` (``torch.accelerator`` came with torch
+    2.6: on an older torch the attribute is added for the test, and torchface's reading of it is what is tested)."""
+    monkeypatch.setattr(torch, "accelerator", SimpleNamespace(current_accelerator=lambda check_available=False: current),
+                        raising=False)  # fmt: skip
+
+
 def test_a_cuda_index_beyond_the_gpus_says_how_many_there_are(monkeypatch):
     """``cuda:7`` on a machine of two GPUs (simulated: this check runs on machines without one)."""
     monkeypatch.setattr(torch.backends.cuda, "is_built", lambda: True)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    monkeypatch.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: torch.device("cuda"))
+    _accelerator(monkeypatch, torch.device("cuda"))
     with pytest.raises(ValueError, match=r"^device 'cuda:7' is not available: 2 CUDA device\(s\) here \(cuda:0 to "
                                          r"cuda:1\); devices here: cpu, cuda:0, cuda:1"):  # fmt: skip
         check_device("cuda:7")
@@ -105,13 +114,13 @@ def test_an_int_is_the_current_accelerators_index(monkeypatch):
     if torch.cuda.is_available():
         assert check_device(0) == torch.device("cuda", 0)
     with monkeypatch.context() as none_here:
-        none_here.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: None)
+        _accelerator(none_here, None)
         none_here.setattr(torch.cuda, "is_available", lambda: False)
         none_here.setattr(torch.backends.mps, "is_available", lambda: False)
         with pytest.raises(ValueError, match=r"^device 0 is not available: an int is an accelerator's \(a GPU's\) "
                                              r"index, and this machine has none; devices here: cpu"):  # fmt: skip
             check_device(0)
-    monkeypatch.setattr(torch.accelerator, "current_accelerator", lambda check_available=False: torch.device("mps"))
+    _accelerator(monkeypatch, torch.device("mps"))
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
     assert check_device(0) == torch.device("mps", 0)
     check_to_device(0, torch.float32)  # (FaceTracker.to(0, torch.float32)'s check)
