@@ -81,8 +81,11 @@ def _bounded_square_over_c(u: torch.Tensor, c: float) -> torch.Tensor:
     """``(u / c)**2`` with ``|u / c|`` clamped below ``sqrt(max) / 2`` of its dtype, where Cauchy's and
     Geman-McClure's ``rho_hat`` (functions of ``(u / c)**2``) have long saturated: a residual far beyond the scale (a
     zero scale is floored at ``sqrt(tiny)``) made ``u**2`` overflow, and ``rho`` inf (Cauchy) or NaN (Geman-McClure,
-    inf / inf), gradients too. Relative to ``c``, so that float16 keeps its range (|u / c| up to 128)."""
-    bound = torch.finfo(u.dtype).max ** 0.5 / 2
+    inf / inf), gradients too. Relative to ``c``, so that float16 keeps its range (|u / c| up to 128). In float32
+    and float64 the square stays below ``max / 256`` (``|u / c|`` at most 1.1e18 and 8.4e152): torch 2.5's ``log1p``
+    gave inf above about ``max / 64`` (Cauchy's ``rho`` of a residual 1e30 beyond a zero scale, float64)."""
+    root = torch.finfo(u.dtype).max ** 0.5
+    bound = min(root / 2, max(root / 16, 128.0))
     v = (u / c).clamp(-bound, bound)
     return v * v
 
