@@ -55,3 +55,30 @@ def test_torchface_runs_on_a_torch_without_torch_compiler_is_compiling():
     """)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
+
+
+def test_an_older_torchs_transforms_are_read_value_by_value_and_refused_by_a_step(monkeypatch):
+    """torch 2.5 to 2.9 could not ``.tolist()`` a ``torch.func`` transform's tensor ("Cannot access data pointer of
+    Tensor that doesn't have storage"; ``.item()`` worked): the frames' and faces' checks read one value at a time
+    there, and a tracking step, which reads values in many places, is refused in one line. Simulated on this torch
+    (the flag forced)."""
+    import pytest
+
+    from torchface import _compiling
+    from torchface._compiling import check_reverse_mode, host_values
+
+    monkeypatch.setattr(_compiling, "TRANSFORMS_READ_VALUES", False)
+    seen = []
+
+    def f(x: torch.Tensor) -> torch.Tensor:
+        values = torch.stack([x.amin(), x.amax()])
+        seen.append(host_values(values))
+        with pytest.raises(RuntimeError, match=r"^a step under a torch.func transform needs torch 2.10 or later \("):
+            check_reverse_mode("a step", x)
+        return x.sum()
+
+    x = torch.tensor([0.25, -1.5, 3.0], dtype=torch.float64)
+    torch.func.grad(f)(x)
+    assert seen == [[-1.5, 3.0]]
+    check_reverse_mode("a step", x)  # outside a transform: nothing to refuse
+    assert host_values(torch.tensor([1, 2])) == [1, 2]

@@ -80,8 +80,8 @@ def test_cuda_without_a_gpu_is_the_same_value_error(module, index):
 def _accelerator(monkeypatch, current: torch.device | None) -> None:
     """Simulate ``torch.accelerator.current_accelerator()`` giving ``current`` (``torch.accelerator`` came with torch
     2.6: on an older torch the attribute is added for the test, and torchface's reading of it is what is tested)."""
-    monkeypatch.setattr(torch, "accelerator", SimpleNamespace(current_accelerator=lambda check_available=False: current),
-                        raising=False)  # fmt: skip
+    stand_in = SimpleNamespace(current_accelerator=lambda check_available=False: current)
+    monkeypatch.setattr(torch, "accelerator", stand_in, raising=False)
 
 
 def test_a_cuda_index_beyond_the_gpus_says_how_many_there_are(monkeypatch):

@@ -20,13 +20,27 @@ import torch.autograd.forward_ad as forward_ad
 import torch.compiler
 from torch import Tensor
 
-__all__ = ["check_reverse_mode", "is_compiling", "is_transformed"]
+__all__ = ["TRANSFORMS_READ_VALUES", "check_reverse_mode", "is_compiling", "host_values", "is_transformed"]
 
 #: ``() -> bool``: whether torch.compile (or torch.export) is tracing the caller.
 is_compiling: Callable[[], bool] = getattr(torch.compiler, "is_compiling", None) or torch._utils.is_compiling
 
 _peek_interpreter_stack = torch._C._functorch.peek_interpreter_stack  # None when no torch.func transform runs
 _is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+
+#: Whether this torch reads a ``torch.func`` transform's tensors' values with ``.tolist()`` (torch 2.10 and later;
+#: 2.5 to 2.9 raised "Cannot access data pointer of Tensor that doesn't have storage"; ``bool``, ``int`` and
+#: ``.item()`` worked). A tracking step reads values so in many places: on an older torch it is refused under the
+#: transforms (:func:`check_reverse_mode`); the frames' and faces' checks read through :func:`host_values`.
+TRANSFORMS_READ_VALUES: bool = torch.torch_version.TorchVersion(torch.__version__) >= "2.10"
+
+
+def host_values(x: Tensor) -> list:
+    """``x.tolist()`` of a 1-D tensor, also for a ``torch.func`` transform's tensor on a torch before 2.10
+    (:data:`TRANSFORMS_READ_VALUES`; there one ``.item()`` per value, which those read)."""
+    if TRANSFORMS_READ_VALUES or not _is_wrapped(x):
+        return x.tolist()
+    return [v.item() for v in x.unbind()]
 
 
 def is_transformed(*tensors: object) -> bool:
@@ -61,7 +75,8 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
     derivative in torch; reverse mode (``torch.autograd``, ``torch.func.grad``, ``vjp``, ``jacrev``) works.
 
     Raises:
-        RuntimeError: under ``vmap`` or forward-mode AD.
+        RuntimeError: under ``vmap`` or forward-mode AD, or under any ``torch.func`` transform on a torch before 2.10
+            (:data:`TRANSFORMS_READ_VALUES`).
     """
     if _peek_interpreter_stack() is not None and any(isinstance(x, Tensor) and _vmapped(x) for x in tensors):
         raise RuntimeError(
@@ -74,4 +89,14 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
         raise RuntimeError(
             f"{what} has no forward-mode derivative (torch.func.jvp, jacfwd, forward_ad: torch's grid_sample has "
             "none): use reverse mode (torch.autograd.grad, torch.func.grad, vjp or jacrev)"
+        )
+    if (
+        not TRANSFORMS_READ_VALUES
+        and _peek_interpreter_stack() is not None
+        and any(isinstance(x, Tensor) and _is_wrapped(x) for x in tensors)
+    ):
+        raise RuntimeError(
+            f"{what} under a torch.func transform needs torch 2.10 or later (torch {torch.__version__} cannot read the "
+            f"values of a transform's tensors, which {what} reads per stream): use torch.autograd.grad, or a newer "
+            "torch"
         )

@@ -11,6 +11,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchface._compiling import host_values
+
 __all__ = ["FRAME_VALUE_RANGE", "STEP_VALUE_ROW_STRIDE", "check_frame_values"]
 
 #: :func:`~torchface.tracker.step.check_frames` with ``values=True`` refuses frames with values outside this interval: [0, 1] frames,
@@ -30,7 +32,7 @@ def check_frame_values(frames: Tensor, row_stride: int = 1) -> None:
     infinite ones too when ``row_stride`` is not 1."""
     if frames.numel():
         seen = frames.detach() if row_stride == 1 else frames.detach()[..., ::row_stride, :]
-        lo, hi = torch.stack([seen.amin(), seen.amax()]).tolist()
+        lo, hi = host_values(torch.stack([seen.amin(), seen.amax()]))
         if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN pixels: inside the range (the steps': non-finite)
             pos, neg = (math.inf, -math.inf) if row_stride == 1 else (0.5, 0.5)
             lo, hi = (float(v) for v in torch.aminmax(seen.nan_to_num(nan=0.5, posinf=pos, neginf=neg)))

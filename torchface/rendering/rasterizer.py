@@ -67,7 +67,7 @@ from typing import Literal, overload
 import torch
 from torch import Tensor
 
-from torchface._compiling import is_compiling, is_transformed
+from torchface._compiling import host_values, is_compiling, is_transformed
 from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
@@ -256,7 +256,7 @@ def _index_range(faces: Tensor) -> tuple[int, int]:
         cached = _INDEX_RANGES.get(id(faces))
         if cached is not None and cached[0]() is faces and cached[1] == stamp:
             return cached[2], cached[3]
-    lo, hi = (int(v) for v in torch.stack([faces.min(), faces.max()]).tolist())
+    lo, hi = (int(v) for v in host_values(torch.stack([faces.min(), faces.max()])))
     if trackable:
         key = id(faces)
         _INDEX_RANGES[key] = (weakref.ref(faces, lambda _: _INDEX_RANGES.pop(key, None)), stamp, lo, hi)
@@ -533,7 +533,7 @@ def _span_hits(
     total = int(ends[-1]) if ends.numel() else 0
     n_chunks = -(-total // _MAX_PAIRS_PER_CHUNK)
     marks = torch.arange(1, max(n_chunks, 1), device=device) * _MAX_PAIRS_PER_CHUNK
-    bounds = [0] + torch.searchsorted(ends, marks, right=True).tolist() + [widths.numel()]
+    bounds = [0] + host_values(torch.searchsorted(ends, marks, right=True)) + [widths.numel()]
     hit_pix, hit_depth, hit_face = [], [], []
     for lo, hi in zip(bounds[:-1], bounds[1:]):
         if hi <= lo:
