@@ -1,6 +1,7 @@
 """Whether ``torch.compile`` (or ``torch.export``) is tracing the running code, on every torch pyproject.toml accepts.
 
-``torch.compiler.is_compiling`` came with torch 2.3; torch 2.1 and 2.2 (``torch>=2.1``) have the same flag as
+``torch.compiler.is_compiling`` came with torch 2.3; torch 2.1 and 2.2 (which pyproject.toml accepted before it asked
+for 2.5.1) have the same flag as
 ``torch._utils.is_compiling``: Dynamo folds either to True while it traces, and either is False in eager code. The
 later torches deprecate the second with a warning at each call, so it is only the fallback. (The tracker's kernel
 dispatch, :func:`torchface.backend.use_native`, asks at each call: ``torch.compiler.is_compiling`` alone raised
