@@ -23,7 +23,9 @@ Each subcommand prints the table its text quotes (one thread, a minute or less o
                the animation units at a bound that limits them (a nonzero one, or the upper one), the mean |unit|, the
                RMS landmark error, and where dlib's lid points and CANDIDE-3's table put the eyes' lids (eye widths
                from the corners' line); then each clip tracked with each precision (FaceTracker, its default online
-               start): the frames, of all clips', at which each unit sits at such a bound.
+               start): the frames, of all clips', at which each unit's coefficient sits at such a bound, and its
+               expression (the readout, from the first fit) at an end of its range; --coefficient-bounds tracks with
+               the ranges bounding the coefficients (TrackerConfig.expression_range_from_start=False, as before).
   hard-cuts    docs/limitations.md's "Hard cuts": clip A (5 frames, CANDIDE-3 30 mm left of the axis at 450 mm,
                turning 4 degrees) cut straight to clip B (--frames frames) with the face moved --dx mm across,
                --dz mm in depth and turned --dyaw degrees (every combination), tracked as one stream at --size by a
@@ -274,17 +276,29 @@ def grid_bounds(args: argparse.Namespace) -> None:
         print(f"fit, expression prior precision {p:g}: {int(at.sum())} units at a bound on {int(at.any(1).sum())} "
               f"clips ({which or 'none'}); mean |unit| {float(fit.anim_coeffs.abs().mean()):.3f}; RMS "
               f"{float(fit.rms_px.mean()):.3f} px")
-    for p, fit_config in configs.items():
-        counts = torch.zeros(len(short), dtype=torch.int64)
-        total = 0
-        for clip, lm in zip(frames, landmarks):
-            tracker = FaceTracker(TrackerConfig(fit=fit_config))
-            rows = [tracker.initialise(clip[:1], lm[None]).anim_coeffs]
-            rows += [tracker(clip[i : i + 1]).anim_coeffs for i in range(1, clip.shape[0])]
-            counts += _at_bound(torch.cat(rows), model.animation_ranges).sum(0)
-            total += clip.shape[0]
+    def listed(counts: torch.Tensor) -> str:
         which = ", ".join(f"{short[j]} {int(counts[j])}" for j in range(len(short)) if int(counts[j]))
-        print(f"tracked, precision {p:g}: frames at a bound of {total}: {which or 'none'} ({int(counts.sum())} in all)")
+        return f"{which or 'none'} ({int(counts.sum())} in all)"
+
+    for p, fit_config in configs.items():
+        config = TrackerConfig(fit=fit_config, expression_range_from_start=not args.coefficient_bounds)
+        coefficient = torch.zeros(len(short), dtype=torch.int64)
+        expression = torch.zeros(len(short), dtype=torch.int64)
+        total, past = 0, torch.zeros(len(short))
+        for clip, lm in zip(frames, landmarks):
+            tracker = FaceTracker(config)
+            first = tracker.initialise(clip[:1], lm[None])
+            rows = [first] + [tracker(clip[i : i + 1]) for i in range(1, clip.shape[0])]
+            anim = torch.cat([r.anim_coeffs for r in rows])
+            coefficient += _at_bound(anim, model.animation_ranges).sum(0)
+            expression += _at_bound(torch.cat([r.expression for r in rows]), model.animation_ranges).sum(0)
+            ranges = model.animation_ranges.to(anim.dtype)
+            past = torch.maximum(past, torch.maximum(anim - ranges[:, 1], ranges[:, 0] - anim).amax(0))
+            total += clip.shape[0]
+        print(f"tracked, precision {p:g}, {'coefficients' if args.coefficient_bounds else 'expressions'} bounded; "
+              f"of {total} frames x {len(short)} units: coefficients at a bound: {listed(coefficient)}; expressions "
+              f"at an end of their range: {listed(expression)}; coefficients past the ranges by up to "
+              f"{float(past.max()):.2f}")
 
 
 def hard_cuts(args: argparse.Namespace) -> None:
@@ -513,6 +527,8 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("grid-bounds", help="animation units at their bounds after the GRID clips' first fits")
     p.add_argument("--precisions", type=_positives, default=_positives("2,20,64"),
                    help="the landmark fit's expression prior precisions, comma separated (the tracker's: 2)")
+    p.add_argument("--coefficient-bounds", action="store_true",
+                   help="track with the ranges bounding the coefficients (expression_range_from_start=False)")
     p.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips")
     p.add_argument("--landmarks-dir", type=Path, default=ROOT / "scripts" / "data" / "grid_landmarks",
                    help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
