@@ -821,12 +821,19 @@ def test_expression_prior_is_centred_on_the_first_frame(model, two_streams, l2_r
     assert states[-1].anim_prior_mean is states[0].anim_prior_mean
     centre = torch.full_like(results[0].anim_coeffs, 0.3)
     state = replace(states[0], anim_prior_mean=centre)
-    strong = replace(L2, expression_prior_precision=1e5, refine_prior_precision=None)
+    # (the units' ranges about the state's centre, expression_range_from_start, would hold the units whose range
+    # starts at 0 at that centre: the prior alone is tested with the coefficients' bounds)
+    strong = replace(L2, expression_prior_precision=1e5, refine_prior_precision=None, expression_range_from_start=False)
     for solver in (TrackSolver.FAST, TrackSolver.REFERENCE):
         _, at_start = track_step(model, replace(strong, solver=solver), state, frames[:, 1])
         _, at_zero = track_step(model, replace(strong, solver=solver, expression_prior_at_start=False), state, frames[:, 1])
         torch.testing.assert_close(at_start.anim_coeffs, centre, rtol=0, atol=0.02)
         assert float(at_zero.anim_coeffs.abs().max()) < 0.02
+        _, bounded = track_step(model, replace(strong, solver=solver, expression_prior_at_start=False,
+                                               expression_range_from_start=True), state, frames[:, 1])  # fmt: skip
+        from_zero = model.animation_ranges[:, 0] == 0  # jaw drop, eyes closed, lid tightener: no closing past neutral
+        torch.testing.assert_close(bounded.anim_coeffs[:, from_zero], centre[:, from_zero], rtol=0, atol=1e-6)
+        assert float(bounded.anim_coeffs[:, ~from_zero].abs().max()) < 0.02
     # The refinement pass has its own prior: dominant there alone, it brings the units back to the centre.
     _, refined = track_step(model, replace(L2, refine_prior_precision=1e5), state, frames[:, 1])
     _, free = track_step(model, replace(L2, refine_prior_precision=1e-3), state, frames[:, 1])

@@ -1945,6 +1945,10 @@ def _fast_step(
         free[layout.illumination] = False
     robust = None if config.robust is RobustKind.NONE else RobustLoss(config.robust, config.robust_c)
     lo, hi = animation_bounds(model, config, state)
+    if lo.dim() == 2 and config.use_expression:
+        # The start inside the bounds about the state's neutral: after a re-anchoring the coefficients go on from where
+        # they were about the old one (the solver holds a unit outside its bounds where the gradient pushes it out).
+        alpha = torch.maximum(torch.minimum(alpha, hi.to(alpha.dtype)), lo.to(alpha.dtype))
     alpha_mean = anim_prior_mean(config, state)
     intr = state.intrinsics
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
