@@ -1156,7 +1156,7 @@ def animation_bounds(model: FaceModel, config: TrackerConfig, state: TrackerStat
     origin = state.anim_prior_mean
     if not config.expression_range_from_start or origin is None:
         return lo, hi
-    origin = origin.to(device=lo.device, dtype=lo.dtype)
+    origin = origin.detach().to(device=lo.device, dtype=lo.dtype)  # (bounds: constants of the solve, no gradient)
     return origin + lo, origin + hi
 
 
