@@ -18,6 +18,14 @@ Each subcommand prints the table its text quotes (one thread, a minute or less o
                scripts/data/grid_landmarks) whose frames 30-39 are shifted --shift px sideways (a camera pan), tracked
                by a default FaceTracker (online start on): how far the rest of the clip's rotations are from the
                clean run's, with the view check, with it off (VIEW_TURN_FRACTION = 0) and without the online start.
+  grid-bounds  docs/limitations.md's "Expression units at their bounds from the first frame": the 11 GRID clips'
+               first-frame landmark fits (the tracker's FitConfig at each --precisions expression prior precision):
+               the animation units at a bound that limits them (a nonzero one, or the upper one), the mean |unit|, the
+               RMS landmark error, and where dlib's lid points and CANDIDE-3's table put the eyes' lids (eye widths
+               from the corners' line); then each clip tracked with each precision (FaceTracker, its default online
+               start): the frames, of all clips', at which each unit's coefficient sits at such a bound, and its
+               expression (the readout, from the first fit) at an end of its range; --coefficient-bounds tracks with
+               the ranges bounding the coefficients (TrackerConfig.expression_range_from_start=False, as before).
   hard-cuts    docs/limitations.md's "Hard cuts": clip A (5 frames, CANDIDE-3 30 mm left of the axis at 450 mm,
                turning 4 degrees) cut straight to clip B (--frames frames) with the face moved --dx mm across,
                --dz mm in depth and turned --dyaw degrees (every combination), tracked as one stream at --size by a
@@ -46,6 +54,7 @@ Examples:
     python scripts/doc_figures.py face-width
     python scripts/doc_figures.py small-frames --sizes 96x72,128x96,160x120
     python scripts/doc_figures.py grid-pan --clip bbaf2n --shift -120
+    python scripts/doc_figures.py grid-bounds --precisions 2,20,64
     python scripts/doc_figures.py hard-cuts --dx 90 --dz -120 --dyaw 0,21
     python scripts/doc_figures.py lid-fit --draws 100
     python scripts/doc_figures.py other-models --areas narrow_eyes --no-expression
@@ -218,6 +227,78 @@ def grid_pan(args: argparse.Namespace) -> None:
         view = (view_yaw_deg(R, t) - view_yaw_deg(R0, t0))[a - 1 : b - 1].mean()
         print(f"{label:<26} mean {float(off.mean()):.2f} max {float(off.max()):.2f}; re-anchored: {moved}; "
               f"frames {a}-{b - 1}: yaw {float(yaw):+.1f} in the camera frame, {float(view):+.1f} seen along the ray")
+
+
+def _at_bound(anim: torch.Tensor, ranges: torch.Tensor) -> torch.Tensor:
+    """``(..., A)`` bool: the units at a bound that stops them, within 1e-3 (a negative lower bound or the upper one; a
+    lower bound of 0 is the neutral face's, where a unit such as Eyes closed rests)."""
+    lo, hi = ranges[:, 0].to(anim.dtype), ranges[:, 1].to(anim.dtype)
+    return (((anim - lo).abs() < 1e-3) & (lo < 0)) | ((anim - hi).abs() < 1e-3)
+
+
+def grid_bounds(args: argparse.Namespace) -> None:
+    from torchface.io.landmarks import read_landmarks
+    from torchface.synth.io import read_video_uint8
+    from torchface.tracker import fit_landmarks
+
+    clips = sorted(p.stem for p in args.grid.glob("*.mpg") if (args.landmarks_dir / f"{p.stem}.csv").is_file())
+    frames = [read_video_uint8(args.grid / f"{c}.mpg").float() / 255.0 for c in clips]
+    H, W = frames[0].shape[-2:]
+    if any(f.shape[-2:] != (H, W) for f in frames):
+        raise SystemExit(f"doc_figures.py: error: the clips in {args.grid} are not all {W}x{H}")
+    landmarks = torch.stack([torch.from_numpy(read_landmarks(args.landmarks_dir / f"{c}.csv", W, H)).float()
+                             for c in clips])  # fmt: skip
+    model, cam = load_candide3(), Intrinsics.default(W, H)
+    short = [n.split(" ", 1)[1] for n in model.animation_names]
+    print(f"{len(clips)} GRID clips ({W}x{H}), first-frame landmarks of {args.landmarks_dir}")
+
+    def lids(points: torch.Tensor) -> list[float]:
+        """The lid points' mean height over the corners' line, eye widths: upper outer, upper inner, lower inner,
+        lower outer (iBUG 37, 38, 40, 41 and their mirror 44, 43, 47, 46)."""
+        out = []
+        for k, m in ((37, 44), (38, 43), (40, 47), (41, 46)):
+            v = []
+            for p, (c0, c1) in ((k, (36, 39)), (m, (42, 45))):
+                mid = (points[..., c0, :] + points[..., c1, :]) / 2
+                v.append((mid[..., 1] - points[..., p, 1]) / (points[..., c1, :] - points[..., c0, :]).norm(dim=-1))
+            out.append(float(torch.stack(v).mean()))
+        return out
+
+    table = model.landmarks_3d(model.mean[None])[0][None, :, :2]
+    print("lid points over the eye corners' line (eye widths; iBUG 37/44, 38/43, 40/47, 41/46; + up): "
+          f"dlib {' / '.join(f'{v:+.3f}' for v in lids(landmarks))}, CANDIDE-3's table "
+          f"{' / '.join(f'{v:+.3f}' for v in lids(table))}")
+    configs = {p: replace(TrackerConfig().fit, expression_prior_precision=p) for p in args.precisions}
+    for p, fit_config in configs.items():
+        fit = fit_landmarks(model, landmarks, cam, config=fit_config)
+        at = _at_bound(fit.anim_coeffs, model.animation_ranges)
+        which = ", ".join(f"{short[j]} {int(at[:, j].sum())}" for j in range(len(short)) if bool(at[:, j].any()))
+        print(f"fit, expression prior precision {p:g}: {int(at.sum())} units at a bound on {int(at.any(1).sum())} "
+              f"clips ({which or 'none'}); mean |unit| {float(fit.anim_coeffs.abs().mean()):.3f}; RMS "
+              f"{float(fit.rms_px.mean()):.3f} px")
+    def listed(counts: torch.Tensor) -> str:
+        which = ", ".join(f"{short[j]} {int(counts[j])}" for j in range(len(short)) if int(counts[j]))
+        return f"{which or 'none'} ({int(counts.sum())} in all)"
+
+    for p, fit_config in configs.items():
+        config = TrackerConfig(fit=fit_config, expression_range_from_start=not args.coefficient_bounds)
+        coefficient = torch.zeros(len(short), dtype=torch.int64)
+        expression = torch.zeros(len(short), dtype=torch.int64)
+        total, past = 0, torch.zeros(len(short))
+        for clip, lm in zip(frames, landmarks):
+            tracker = FaceTracker(config)
+            first = tracker.initialise(clip[:1], lm[None])
+            rows = [first] + [tracker(clip[i : i + 1]) for i in range(1, clip.shape[0])]
+            anim = torch.cat([r.anim_coeffs for r in rows])
+            coefficient += _at_bound(anim, model.animation_ranges).sum(0)
+            expression += _at_bound(torch.cat([r.expression for r in rows]), model.animation_ranges).sum(0)
+            ranges = model.animation_ranges.to(anim.dtype)
+            past = torch.maximum(past, torch.maximum(anim - ranges[:, 1], ranges[:, 0] - anim).amax(0))
+            total += clip.shape[0]
+        print(f"tracked, precision {p:g}, {'coefficients' if args.coefficient_bounds else 'expressions'} bounded; "
+              f"of {total} frames x {len(short)} units: coefficients at a bound: {listed(coefficient)}; expressions "
+              f"at an end of their range: {listed(expression)}; coefficients past the ranges by up to "
+              f"{float(past.max()):.2f}")
 
 
 def hard_cuts(args: argparse.Namespace) -> None:
@@ -402,6 +483,11 @@ def _names(allowed: tuple[str, ...]) -> Callable[[str], list[str]]:
     return parse
 
 
+def _positives(text: str) -> list[float]:
+    """An argparse type: a comma list of finite numbers > 0."""
+    return [_positive(v) for v in text.split(",")]
+
+
 def _positive(text: str) -> float:
     """An argparse type: a finite number > 0."""
     try:
@@ -438,6 +524,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--landmarks-dir", type=Path, default=ROOT / "scripts" / "data" / "grid_landmarks",
                    help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
     p.set_defaults(run=grid_pan)
+    p = sub.add_parser("grid-bounds", help="animation units at their bounds after the GRID clips' first fits")
+    p.add_argument("--precisions", type=_positives, default=_positives("2,20,64"),
+                   help="the landmark fit's expression prior precisions, comma separated (the tracker's: 2)")
+    p.add_argument("--coefficient-bounds", action="store_true",
+                   help="track with the ranges bounding the coefficients (expression_range_from_start=False)")
+    p.add_argument("--grid", type=Path, default=GRID, help="folder of GRID .mpg clips")
+    p.add_argument("--landmarks-dir", type=Path, default=ROOT / "scripts" / "data" / "grid_landmarks",
+                   help="folder of <clip>.csv first-frame landmarks")  # fmt: skip
+    p.set_defaults(run=grid_bounds)
     p = sub.add_parser("hard-cuts", help="a video cut to the face elsewhere (docs/limitations.md: Hard cuts)")
     p.add_argument("--size", type=frame_size, default=(320, 240), help="frame size WxH")
     p.add_argument("--dx", type=_numbers, default=_numbers("8,20,45"), help="jumps across, mm, comma separated")
@@ -480,6 +575,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"no GRID clip {args.clip}.mpg in {args.grid} (--grid, or TORCHFACE_ASSETS's grid folder)")
     if args.figure == "grid-pan" and not (args.landmarks_dir / f"{args.clip}.csv").is_file():
         parser.error(f"--landmarks-dir {args.landmarks_dir}: no {args.clip}.csv (the clip's first-frame landmarks)")
+    if args.figure == "grid-bounds" and not any((args.landmarks_dir / f"{p.stem}.csv").is_file()
+                                                for p in (args.grid.glob("*.mpg") if args.grid.is_dir() else ())):
+        parser.error(f"no GRID clip in {args.grid} with its <clip>.csv in --landmarks-dir {args.landmarks_dir}")
     if args.figure == "lid-fit" and args.cache != "none" and (problem := folder_problem(Path(args.cache))):
         parser.error(f"--cache {args.cache}: {problem}")
     torch.set_num_threads(1)

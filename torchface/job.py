@@ -62,7 +62,8 @@ and modification time, the first-frame landmarks (and the frame where the detect
 not look for them again, :func:`_recorded_first_face`) and every setting the rows depend on: a resume with other
 settings, or after the input file changed, is refused (settings compared field by field, by value; a field added to
 the settings since the interrupted run's version is compared at its default, what that version did where the
-field's default kept the earlier behaviour (most do; not, e.g., ``min_face_width_px`` or ``reference_focal_px``),
+field's default kept the earlier behaviour (most do; not, e.g., ``min_face_width_px``, ``reference_focal_px`` or
+``expression_range_from_start``),
 one removed since is not compared), as is a damaged or missing record
 or a damaged partial CSV: a row out of sequence, not finite, or whose rotation is not one, or whose ``timestamp`` is not
 its frame's time, :func:`_check_replayed_time`); the parameters of the rows
@@ -1618,7 +1619,8 @@ def _with_defaults(then: Any, value: object, default: object = None) -> Any:
     :func:`_result_settings`) has, at that field's default, as JSON, nested dataclasses alike: a field added to a
     settings dataclass since ``then`` was written is compared as what the earlier version did, where a version
     that added it kept that by default, as most did (not all: ``min_face_width_px``, ``max_rotation_std_deg``,
-    ``max_facing_deg`` and ``reference_focal_px`` changed what the tracker does at their defaults); a partial
+    ``max_facing_deg``, ``reference_focal_px`` and ``expression_range_from_start`` changed what the tracker does at
+    their defaults); a partial
     run's record from before ``motion_prediction`` existed, resumed with ``--motion-prediction 0.5``, mixed two
     settings in one video. A field without a default stays absent (not
     compared, :func:`_setting_differences`), as does one that ``then`` has and ``value``'s dataclass no longer

@@ -31,6 +31,8 @@ def _usage_error(main, argv, capsys) -> str:
     (["hard-cuts", "--max-error", "nan"], "must be a number > 0"),
     (["hard-cuts", "--size", "320x240,640x480"], "size must be WxH"),  # (ran at the first size, the rest unread)
     (["grid-pan", "--grid", str(SCRIPTS / "data"), "--clip", "x"], "no GRID clip x.mpg"),
+    (["grid-bounds", "--precisions", "2,0"], "must be a number > 0"),
+    (["grid-bounds", "--grid", str(SCRIPTS / "data")], "no GRID clip in"),
 ])  # fmt: skip
 def test_doc_figures_refuses_bad_arguments_before_any_work(argv, message, capsys, monkeypatch):
     """Each was a traceback (a bad --photos / --areas name, --frames 1, a negative --restart-after-unmatched) after

@@ -787,14 +787,37 @@ def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, b
                     robust=None, backend=backend)  # fmt: skip
 
 
-@pytest.mark.parametrize("shape", [(1,), (2, A), (A + 1,)])
+def test_per_stream_bounds_clip_each_stream_at_its_own(backend):
+    """``(B, A)`` bounds, one row a stream (the tracker's, about each stream's first fit: ``expression_range_from_start``):
+    rows equal to the shared ``(A,)`` bounds solve to the same estimates, and a row that moves one stream's bound
+    onto its estimate holds that stream's unit there and leaves the other stream as it was."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem()
+    R, t, a, lam = split(_perturbed(x_true))
+    kw = dict(iterations=6, free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_prior=0.0, robust=None,
+              backend=backend)  # fmt: skip
+    lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
+    shared = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, alpha_lower=lo, alpha_upper=hi, **kw)
+    rows = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, alpha_lower=lo.expand(2, A),
+                       alpha_upper=hi.expand(2, A), **kw)  # fmt: skip
+    for x, y in zip(shared[:4], rows[:4]):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+    cap = float(shared[2][0, 1]) - 0.05  # below stream 0's estimate of unit 1
+    upper = hi.expand(2, A).clone()
+    upper[0, 1] = cap
+    held = solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, alpha_lower=lo.expand(2, A),
+                       alpha_upper=upper, **kw)  # fmt: skip
+    assert float(held[2][0, 1]) <= cap + 1e-9 and abs(float(held[2][0, 1]) - cap) < 1e-6
+    torch.testing.assert_close(held[2][1], shared[2][1], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("shape", [(1,), (3, A), (A + 1,), (2, A + 1)])
 def test_bounds_of_another_shape_are_refused(shape, backend):
-    """The bounds are ``(A,)``: the native solver read ``A`` values wherever they were (past a shorter tensor's end;
-    a ``(B, A)`` one's first row for every stream)."""
+    """The bounds are ``(A,)`` or ``(B, A)`` (B = 2 here): the native solver read ``A`` values wherever they were
+    (past a shorter tensor's end; a ``(B, A)`` one's first row for every stream, before it took one row a stream)."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
     lo, hi = torch.full(shape, -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
-    with pytest.raises(ValueError, match=rf"alpha_lower must be \({A},\), one bound per animation unit, got"):
+    with pytest.raises(ValueError, match=rf"alpha_lower must be \({A},\) or \(2, {A}\), one bound per animation unit"):
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3,
                     free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0,
                     robust=None, backend=backend)  # fmt: skip

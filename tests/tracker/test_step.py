@@ -821,12 +821,19 @@ def test_expression_prior_is_centred_on_the_first_frame(model, two_streams, l2_r
     assert states[-1].anim_prior_mean is states[0].anim_prior_mean
     centre = torch.full_like(results[0].anim_coeffs, 0.3)
     state = replace(states[0], anim_prior_mean=centre)
-    strong = replace(L2, expression_prior_precision=1e5, refine_prior_precision=None)
+    # (the units' ranges about the state's centre, expression_range_from_start, would hold the units whose range
+    # starts at 0 at that centre: the prior alone is tested with the coefficients' bounds)
+    strong = replace(L2, expression_prior_precision=1e5, refine_prior_precision=None, expression_range_from_start=False)
     for solver in (TrackSolver.FAST, TrackSolver.REFERENCE):
         _, at_start = track_step(model, replace(strong, solver=solver), state, frames[:, 1])
         _, at_zero = track_step(model, replace(strong, solver=solver, expression_prior_at_start=False), state, frames[:, 1])
         torch.testing.assert_close(at_start.anim_coeffs, centre, rtol=0, atol=0.02)
         assert float(at_zero.anim_coeffs.abs().max()) < 0.02
+        _, bounded = track_step(model, replace(strong, solver=solver, expression_prior_at_start=False,
+                                               expression_range_from_start=True), state, frames[:, 1])  # fmt: skip
+        from_zero = model.animation_ranges[:, 0] == 0  # jaw drop, eyes closed, lid tightener: no closing past neutral
+        torch.testing.assert_close(bounded.anim_coeffs[:, from_zero], centre[:, from_zero], rtol=0, atol=1e-6)
+        assert float(bounded.anim_coeffs[:, ~from_zero].abs().max()) < 0.02
     # The refinement pass has its own prior: dominant there alone, it brings the units back to the centre.
     _, refined = track_step(model, replace(L2, refine_prior_precision=1e5), state, frames[:, 1])
     _, free = track_step(model, replace(L2, refine_prior_precision=1e-3), state, frames[:, 1])
@@ -859,6 +866,37 @@ def test_expression_is_measured_from_the_first_frames_fit(model, two_streams, l2
     torch.testing.assert_close(res.expression, res.anim_coeffs - 0.3, rtol=0, atol=1e-6)
     _, res = track_step(model, L2, replace(states[0], anim_prior_mean=None), frames[:, 1])
     torch.testing.assert_close(res.expression, res.anim_coeffs, rtol=0, atol=0)
+
+
+def test_the_units_ranges_bound_the_expression_from_the_first_frames_fit(model, two_streams, l2_runs):
+    """``expression_range_from_start`` (default): each unit's range bounds the expression, ``anim_coeffs`` minus the
+    first fit's coefficients, not the coefficient, so a first fit at a unit's bound leaves the readout its whole
+    range (docs/limitations.md, "Expression units at their bounds from the first frame"). Here the state's origin
+    puts jaw drop at 0.5 (range [0, 1.5]) where the next frame shows 0.14: the jaw cannot close past that neutral
+    (expression 0, coefficient 0.5), where the coefficients' bounds let it read -0.36; fast (native and torch code)
+    and reference solvers alike. Before, a unit fitted at its bound could not move further that way at all."""
+    frames, gts = two_streams
+    frames = frames[:1, 1]  # stream a's second frame
+    _, alone = l2_runs
+    state = alone[0][1][0]  # stream a's first state, tracked alone
+    jaw = model.animation_names.index(JAW)
+    origin = state.anim_prior_mean.clone()
+    origin[:, jaw] = 0.5
+    state = replace(state, anim_prior_mean=origin)
+    truth = float(gts[0].au[1, jaw])
+    assert abs(truth - 0.14) < 1e-6
+    for config in (L2, replace(L2, backend=Backend.TORCH), replace(L2, solver=TrackSolver.REFERENCE)):
+        _, res = track_step(model, config, state, frames)
+        assert float(res.expression[:, jaw].min()) >= -1e-6 and float(res.anim_coeffs[:, jaw].min()) >= 0.5 - 1e-6
+        lo, hi = model.animation_ranges[:, 0], model.animation_ranges[:, 1]
+        assert bool(((res.expression >= lo - 1e-6) & (res.expression <= hi + 1e-6)).all()), res.expression
+        _, old = track_step(model, replace(config, expression_range_from_start=False), state, frames)
+        assert abs(float(old.anim_coeffs[0, jaw]) - truth) < 0.05 and float(old.expression[0, jaw]) < -0.3
+    _, native = track_step(model, L2, state, frames)
+    _, torch_code = track_step(model, replace(L2, backend=Backend.TORCH), state, frames)
+    torch.testing.assert_close(native.anim_coeffs, torch_code.anim_coeffs, rtol=0, atol=1e-4)
+    with pytest.raises(TypeError, match="expression_range_from_start"):
+        TrackerConfig(expression_range_from_start="no")
 
 
 def test_conservative_streams_keep_the_pose_levels_prior_in_the_refinement_pass(model, two_streams, l2_runs):

@@ -11,7 +11,8 @@
  * Layouts (C order, every array contiguous): image (B, h, w); points, normals (B, 3, N); basis (B, A, 3, N);
  * intensity, mask (B, N); neg_light_basis (B, L, N); offsets (B, 2); R (B, 3, 3); t (B, 3); alpha (B, A);
  * light (B, L); Jacobians (B, P, N) with P = 6 + A + L, columns d_omega (3), d_t (3), alpha (A), light (L);
- * alpha_prior (B, A) float64, the prior precision of each stream's animation units.
+ * alpha_prior (B, A) float64, the prior precision of each stream's animation units; alpha_lower, alpha_upper (B, A),
+ * each stream's bounds on them.
  *
  * Inside, per-point quantities are rows of NP = N rounded up to a multiple of 8 values (the padding zero), and
  * every pass over the points that needs no gather is a plain loop over a row, which the compiler vectorises; only
@@ -452,7 +453,7 @@ static void FN(solve_one)(const TFLevelProblem *p, int b, REAL *work) {
     const int N = p->N, A = p->A, L = p->L, P = p->P;
     REAL *R = (REAL *)p->R + 9 * (size_t)b, *t = (REAL *)p->t + 3 * (size_t)b;
     REAL *alpha = (REAL *)p->alpha + (size_t)A * b, *light = (REAL *)p->light + (size_t)L * b;
-    const REAL *lo = (const REAL *)p->alpha_lower, *hi = (const REAL *)p->alpha_upper;
+    const REAL *lo = (const REAL *)p->alpha_lower + (size_t)A * b, *hi = (const REAL *)p->alpha_upper + (size_t)A * b;
     const REAL *amean = p->alpha_mean ? (const REAL *)p->alpha_mean + (size_t)A * b : NULL;
     const int kind = p->loss_kind[b];
     const double c = p->loss_c[b];

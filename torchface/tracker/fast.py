@@ -336,8 +336,10 @@ def _check_bounds(lower: Tensor, upper: Tensor) -> None:
     elementwise check costs about 15 per call, and the native solver checks at every call)."""
     if (lower.device.type != "cpu" or upper.device.type != "cpu") and bool(_bounds_valid(lower, upper)):
         return
-    lo, hi = lower.tolist(), upper.tolist()  # (from any device; tolist ignores autograd)
-    for j, (a, b) in enumerate(zip(lo, hi)):
+    A = lower.shape[-1]
+    lo, hi = lower.reshape(-1).tolist(), upper.reshape(-1).tolist()  # (from any device; tolist ignores autograd)
+    for i, (a, b) in enumerate(zip(lo, hi)):
+        j = i % A  # (per-stream bounds (B, A): the unit of row-major index i)
         if not (a <= b and a < float("inf") and b > float("-inf")):
             raise ValueError(
                 "alpha_lower and alpha_upper must be bounds, lower <= upper, neither NaN, a lower bound below inf and "
@@ -399,7 +401,7 @@ def solve_level(
         cam: the level camera; R ``(B, 3, 3)``, t ``(B, 3)``, alpha ``(B, A)``, light ``(B, L)``: the start.
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
-        alpha_lower, alpha_upper: ``(A,)`` bounds (``-inf`` / ``inf``: none on that side), ``lower <= upper``
+        alpha_lower, alpha_upper: ``(A,)`` bounds, or ``(B, A)`` per stream (``-inf`` / ``inf``: none on that side), ``lower <= upper``
             (``ValueError`` for another shape, a NaN, ``lower > upper`` or a lower bound at ``inf``, an upper at
             ``-inf``; the torch code finds the values' errors at its first host read, after the first
             linearisation, so that checking them costs no synchronisation of its own); alpha_prior: precision of
@@ -452,8 +454,9 @@ def solve_level(
     if isinstance(step_tolerance, (int, float)):
         step_tolerance = (float(step_tolerance),) * 3
     for name, bound in (("alpha_lower", alpha_lower), ("alpha_upper", alpha_upper)):
-        if tuple(bound.shape) != (A,):
-            raise ValueError(f"{name} must be ({A},), one bound per animation unit, got {tuple(bound.shape)}")
+        if tuple(bound.shape) not in ((A,), (B, A)):
+            raise ValueError(f"{name} must be ({A},) or ({B}, {A}), one bound per animation unit (per stream), got "
+                             f"{tuple(bound.shape)}")
     if use_native(backend, (tpl.points, tpl.basis, tpl.normals, tpl.intensity, image, R, t, alpha, light, light_basis,
                             alpha_lower, alpha_upper, alpha_mean, alpha_prior, cam.offset), "level solver", 64, P):
         _check_bounds(alpha_lower, alpha_upper)  # (host tensors: a read without a synchronisation)
@@ -716,7 +719,9 @@ def _solve_level_native(
     free_u8 = free.to(device="cpu", dtype=torch.uint8).contiguous()
     R_out, t_out, alpha_out, light_out = (x.detach().clone(memory_format=torch.contiguous_format)
                                           for x in (R, t, alpha, light))  # fmt: skip
-    lower, upper = alpha_lower.to(dtype).contiguous(), alpha_upper.to(dtype).contiguous()
+    # (B, A) for the kernel, one row per stream (shared (A,) bounds repeated)
+    lower = alpha_lower.to(dtype).expand(B, A).contiguous()
+    upper = alpha_upper.to(dtype).expand(B, A).contiguous()
     mean = None if alpha_mean is None else alpha_mean.to(dtype).expand(B, A).contiguous()
     if isinstance(alpha_prior, Tensor):  # (B, A) for the kernel
         ap = alpha_prior.to(torch.float64)

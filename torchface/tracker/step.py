@@ -226,6 +226,18 @@ class TrackerConfig:
             640x480 ``expressions`` scenario (landmark-noise seed 0, against None): rotation error 0.56 -> 0.42
             degrees mean, AU RMSE jaw drop 0.036 -> 0.007, lip stretcher 0.047 -> 0.007, brow lowerer 0.025 ->
             0.011, outer brow raiser 0.023 -> 0.012 (seeds 1 and 2 alike); eyes closed is not helped (0.231).
+        expression_range_from_start: each animation unit's range (``model.animation_ranges``) bounds the expression
+            measured from the first frame's fitted coefficients (:attr:`TrackResult.expression`, ``anim_coeffs -``
+            :attr:`TrackerState.anim_prior_mean`) rather than the coefficients themselves, so that the whole range is
+            left to the readout whatever the first fit holds (:func:`animation_bounds`). On a real face that fit
+            absorbs shape CANDIDE-3's shape units cannot and can end at a bound (on the 11 GRID clips' dlib landmarks
+            11 units on 7 clips: Upper lip raiser -0.5, Upper lid raiser 1, Lip presser -1, Lip stretcher 1), where
+            the coefficients' bounds stopped that unit's expression for the whole video: tracked, a unit sat at such
+            a bound in 427 of the clips' 825 frames x 11 units, its readout clipped; from the first fit, 44 (the
+            expression at the ends of its range), the coefficients going up to 0.47 past the model's ranges.
+            Measured on the rendered scenarios (``evaluate.py --scenarios standard --noise-seeds 0,1,2,3``): within
+            their draw-to-draw spread (docs/limitations.md, "Expression units at their bounds from the first
+            frame"). False: the coefficients in the ranges (before session 57).
         expression_prior_at_start: centre that prior on the first frame's fitted expression
             (:attr:`TrackerState.anim_prior_mean`) rather than on zero. On a face unlike CANDIDE-3 the fitted
             expression carries shape the shape units cannot, and a prior pulling it to zero tilts the pose:
@@ -335,6 +347,7 @@ class TrackerConfig:
     expression_prior_weights: tuple[float, ...] | None = None
     expression_sparsity: float | None = 0.1
     expression_prior_at_start: bool = True
+    expression_range_from_start: bool = True
     min_points: int = 50
     min_contrast: float = 0.01
     min_face_width_px: float = 20.0
@@ -354,7 +367,8 @@ class TrackerConfig:
             raise TypeError(f"fit must be a FitConfig, got {type(self.fit).__name__}")
         if not isinstance(self.template, TemplateConfig):
             raise TypeError(f"template must be a TemplateConfig, got {type(self.template).__name__}")
-        for name in ("use_illumination", "use_expression", "zbuffer_visibility", "expression_prior_at_start"):
+        for name in ("use_illumination", "use_expression", "zbuffer_visibility", "expression_prior_at_start",
+                     "expression_range_from_start"):
             object.__setattr__(self, name, check_bool(getattr(self, name), name))  # "no" was true
         for name, low in (("num_levels", 1), ("max_points", 8), ("min_points", 0), ("refine_iterations", 0),
                           ("visibility_interval", 1), ("selection_seed", 0)):  # fmt: skip
@@ -1129,8 +1143,26 @@ def _layout(model: FaceModel) -> ParamLayout:
     return ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
 
 
+def animation_bounds(model: FaceModel, config: TrackerConfig, state: TrackerState) -> tuple[Tensor, Tensor]:
+    """The bounds of the animation units in a step: the model's ranges ``(A,)`` (shared by the streams), or, with
+    :attr:`TrackerConfig.expression_range_from_start` and the state's :attr:`TrackerState.anim_prior_mean` (the first
+    fit's coefficients, the origin of :attr:`TrackResult.expression`), those ranges about it, ``(B, A)``: the
+    expression, not the coefficient, is bounded by each unit's range.
+
+    Returns:
+        ``(lower, upper)`` in the model's dtype and device: ``(A,)`` or ``(B, A)``.
+    """
+    lo, hi = model.animation_ranges[:, 0], model.animation_ranges[:, 1]
+    origin = state.anim_prior_mean
+    if not config.expression_range_from_start or origin is None:
+        return lo, hi
+    origin = origin.detach().to(device=lo.device, dtype=lo.dtype)  # (bounds: constants of the solve, no gradient)
+    return origin + lo, origin + hi
+
+
 def parameter_bounds(
-    model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: ParamLayout
+    model: FaceModel, config: TrackerConfig, x_prev: Tensor, layout: ParamLayout,
+    animation: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The box bounds of a REFERENCE step's solve (:func:`reference_levels`): the animation units in the model's
     ranges (``model.animation_ranges``), or pinned to ``x_prev``'s where ``config.use_expression`` is False; the
@@ -1141,6 +1173,8 @@ def parameter_bounds(
         config: the tracker settings (``use_expression``, ``use_illumination``).
         x_prev: ``(B, P)`` the previous estimate (``state.params``), ``P = layout.size``.
         layout: the packed parameters' :class:`~torchface.tracker.ParamLayout`.
+        animation: the animation units' ``(lower, upper)``, ``(A,)`` or ``(B, A)`` (:func:`animation_bounds`); None:
+            the model's ranges.
 
     Returns:
         ``(lower, upper)``, each ``(B, P)`` in ``x_prev``'s dtype and device (``-inf`` / ``inf`` where unbounded).
@@ -1160,8 +1194,9 @@ def parameter_bounds(
     lower = torch.full((B, P), float("-inf"), dtype=x_prev.dtype, device=x_prev.device)
     upper = torch.full((B, P), float("inf"), dtype=x_prev.dtype, device=x_prev.device)
     if config.use_expression:
-        lower[:, layout.animation] = model.animation_ranges[:, 0]
-        upper[:, layout.animation] = model.animation_ranges[:, 1]
+        lo, hi = (model.animation_ranges[:, 0], model.animation_ranges[:, 1]) if animation is None else animation
+        lower[:, layout.animation] = lo.to(x_prev.dtype)
+        upper[:, layout.animation] = hi.to(x_prev.dtype)
     else:
         lower[:, layout.animation] = x_prev[:, layout.animation]
         upper[:, layout.animation] = x_prev[:, layout.animation]
@@ -1544,7 +1579,7 @@ def reference_levels(
         else:
             masks = [t.valid for t in state.templates]
         R_prev = axis_angle_to_matrix(previous[:, layout.rotation])
-        lower, upper = parameter_bounds(model, config, previous, layout)
+        lower, upper = parameter_bounds(model, config, previous, layout, animation_bounds(model, config, state))
     prior = torch.zeros(layout.size, dtype=model.dtype, device=model.device)
     prior_mean = prior_mean_vector(config, state, layout)
     if config.use_expression:
@@ -1909,7 +1944,11 @@ def _fast_step(
     if not config.use_illumination:
         free[layout.illumination] = False
     robust = None if config.robust is RobustKind.NONE else RobustLoss(config.robust, config.robust_c)
-    lo, hi = model.animation_ranges[:, 0], model.animation_ranges[:, 1]
+    lo, hi = animation_bounds(model, config, state)
+    if lo.dim() == 2 and config.use_expression:
+        # The start inside the bounds about the state's neutral: after a re-anchoring the coefficients go on from where
+        # they were about the old one (the solver holds a unit outside its bounds where the gradient pushes it out).
+        alpha = torch.maximum(torch.minimum(alpha, hi.to(alpha.dtype)), lo.to(alpha.dtype))
     alpha_mean = anim_prior_mean(config, state)
     intr = state.intrinsics
     clean = None  # (B, 1): the streams whose finest level uses Huber (TemplateConfig.clean_radius_deg)
