@@ -93,6 +93,19 @@ def test_jacrev_with_respect_to_the_grid_alone_under_an_old_torch(monkeypatch):
     got = jacrev(lambda g: grid_sample_border(images, g))(grid)
     assert not calls  # (the gathered corners)
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    # an image that requires grad outside the transform (a frame a network made) asks for none inside it: torch
+    # 2.11 raised there too; the Jacobian's own gradient with respect to the image is autograd's
+    outer = images.clone().requires_grad_()
+    got = jacrev(lambda g: grid_sample_border(outer, g))(grid)
+    assert not calls
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    weights = torch.rand(got.shape, generator=gen, dtype=D)
+    (image_grad,) = torch.autograd.grad((got * weights).sum(), outer)
+    plain = torch.autograd.functional.jacobian(lambda g: real(outer, g, mode="bilinear", padding_mode="border",
+                                                              align_corners=True), grid, create_graph=True)  # fmt: skip
+    (want_grad,) = torch.autograd.grad((plain * weights).sum(), outer)
+    assert want_grad.abs().sum() > 0
+    torch.testing.assert_close(image_grad, want_grad, rtol=0, atol=1e-12)
     grad(lambda i: grid_sample_border(i, grid).sum())(images)  # the image's gradient: torch's sampler
     grid_sample_border(images, grid.clone().requires_grad_())  # plain autograd: torch's sampler
     assert len(calls) == 2
