@@ -73,8 +73,9 @@ def test_grid_sample_border_equals_torchs_values_and_gradients(forced):
 def test_jacrev_with_respect_to_the_grid_alone_under_an_old_torch(monkeypatch):
     """torch 2.11's ``vmap`` rule of ``grid_sample``'s backward raised where the grid asks for a gradient and the image
     does not ("Expected a proper Tensor but got None"; ``torch.func.jacrev`` of the normalised face with respect to the
-    pose, session 57): there the gathered corners run, and their Jacobian is torch's. Simulated on this torch (the
-    flag forced, torch's sampler made to raise); the image's own gradient and plain autograd keep torch's sampler."""
+    pose, session 57), and where the image requires grad outside the transform too: there the gathered corners run, and
+    their Jacobian is torch's. Simulated on this torch (the flag forced, torch's sampler's calls counted); the image's
+    own gradient and plain autograd keep torch's sampler."""
     from torch.func import grad, jacrev
 
     gen = torch.Generator().manual_seed(3)
@@ -93,9 +94,25 @@ def test_jacrev_with_respect_to_the_grid_alone_under_an_old_torch(monkeypatch):
     got = jacrev(lambda g: grid_sample_border(images, g))(grid)
     assert not calls  # (the gathered corners)
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    # an image that requires grad outside the transform (a frame a network made) asks for none inside it: torch
+    # 2.11 raised there too; the Jacobian's own gradient with respect to the image is autograd's
+    outer = images.clone().requires_grad_()
+    got = jacrev(lambda g: grid_sample_border(outer, g))(grid)
+    assert not calls
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    # (the Jacobian is linear in the image: its weighted sum's gradient G gives any image's weighted sum as <G, image>,
+    # checked against torch's sampler for another image; torch 2.11 has no double backward of grid_sample)
+    weights = torch.rand(got.shape, generator=gen, dtype=D)
+    (image_grad,) = torch.autograd.grad((got * weights).sum(), outer)
+    other = torch.rand(images.shape, generator=gen, dtype=D)
+    other_jacobian = torch.autograd.functional.jacobian(
+        lambda g: real(other, g, mode="bilinear", padding_mode="border", align_corners=True), grid
+    )
+    torch.testing.assert_close((image_grad * other).sum(), (other_jacobian * weights).sum(), rtol=1e-12, atol=0)
     grad(lambda i: grid_sample_border(i, grid).sum())(images)  # the image's gradient: torch's sampler
     grid_sample_border(images, grid.clone().requires_grad_())  # plain autograd: torch's sampler
     assert len(calls) == 2
+
 
 def test_grid_sample_border_reads_non_finite_points_as_torch_does(forced):
     """A NaN coordinate (a diverged stream's point) reads column / row 0 and an infinite one the border, as

@@ -76,6 +76,16 @@ def _clip(coordinate: Tensor, limit: int) -> Tensor:
     return torch.where(inside, coordinate, coordinate.detach().nan_to_num(nan=0.0).clamp(0, limit))
 
 
+def _grid_alone_under_a_transform(images: Tensor, grid: Tensor) -> bool:
+    """Whether a ``torch.func`` transform asks for ``grid``'s gradient and not ``images``': ``grid`` is wrapped by it
+    and ``images`` is not, at its level (an image that requires grad at an outer level, as a frame a network made,
+    asks for none at the transform's: torch < 2.12 raised there too, :data:`_GRID_SAMPLE_VMAP_BACKWARD_BROKEN`)."""
+    functorch = torch._C._functorch
+    if not (grid.requires_grad and functorch.is_functorch_wrapped_tensor(grid)):
+        return False
+    return not images.requires_grad or functorch.maybe_get_level(images) < functorch.maybe_get_level(grid)
+
+
 def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     """``F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)``, also where the
     image's gradient is asked for under deterministic algorithms on CUDA (module docstring), and for a grid wrapped
@@ -91,8 +101,7 @@ def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     Returns:
         ``(B, C, Ho, Wo)``.
     """
-    old_jacrev = (_GRID_SAMPLE_VMAP_BACKWARD_BROKEN and grid.requires_grad and not images.requires_grad
-                  and torch._C._functorch.is_functorch_wrapped_tensor(grid))  # fmt: skip
+    old_jacrev = _GRID_SAMPLE_VMAP_BACKWARD_BROKEN and _grid_alone_under_a_transform(images, grid)
     if not old_jacrev and not _substitute(images, backward=True):
         return F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)
     B, C, H, W = images.shape

@@ -1373,7 +1373,8 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
             if not isinstance(made, dict):
                 raise ValueError("its settings are not of its layout")
             # (settings the record refuses: the resume is refused, and the record's check says why)
-            if _changed_settings(_with_defaults(made, _setting_values(config)), settings):
+            if _changed_settings(_ran_online_start(_with_defaults(made, _setting_values(config)), _RECORD_KEYS),
+                                 settings):
                 return None
             raise ValueError("its settings are written otherwise than this run's")  # (the record accepts them)
         n, t, start = int(data["rows"]), int(data["t"]), int(data["start"])
@@ -1569,7 +1570,7 @@ def _setting_values(config: JobConfig) -> dict[str, object]:
     dataclasses themselves: :func:`_with_defaults` takes the defaults of the fields a record lacks from them)."""
     return {
         "--focal": None if config.focal is None else float(config.focal), "--convert": config.convert,
-        "--lookahead": config.lookahead, "online start": config.refine_first, "tracker settings": config.tracker,
+        "--lookahead": config.lookahead, "online start": _online_start(config), "tracker settings": config.tracker,
         "--detector": config.detector, "re-detection": (config.redetect_after, config.redetect_below),
         "normalised size": config.normalised_size,
         # (only when on: the records of runs without it, and of earlier versions, hold none)
@@ -1739,7 +1740,7 @@ def _recorded_first_face(
         return None
     found = _Stream(name, reader, points, f"detector:{config.detector}", reader.info.num_frames, start=frame)
     now = _settings(config, found, model)  # (the landmarks and the frame among them)
-    made_with = _with_defaults(made_with, _setting_values(config))
+    made_with = _ran_online_start(_with_defaults(made_with, _setting_values(config)), _RECORD_KEYS)
     if _changed_settings(made_with, now) or set(made_with) - set(now):
         return None
     return frame, points
@@ -1839,6 +1840,7 @@ def _read_record(
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{path}: cannot resume, this record is unreadable: run without --resume") from None
     made_with = _with_defaults(made_with, values)  # (a field added since: its default, what that version did)
+    made_with = _ran_online_start(made_with, _RECORD_KEYS)  # (an earlier version's online start where none ran)
     problem = _anchor_problem(anchor, num_shape, num_animation)
     if problem is not None:  # (it raised a bare TypeError or RuntimeError later, or resumed from NaN silently)
         raise InputError(f"{path}: cannot resume, this record is damaged ({problem}): run without --resume")
@@ -2082,17 +2084,27 @@ def _result_settings(config: JobConfig) -> dict[str, object]:
             "keep_expression": config.keep_expression}  # fmt: skip
 
 
-def _ran_online_start(made_with: dict) -> dict:
+#: The names of the look-ahead, the online start and the tracker settings in a partial run's record
+#: (:func:`_setting_values`), for :func:`_ran_online_start`; its defaults are the sidecar's (:func:`_result_settings`).
+_RECORD_KEYS: tuple[str, str, str] = ("--lookahead", "online start", "tracker settings")
+
+
+def _ran_online_start(
+    made_with: dict, keys: tuple[str, str, str] = ("lookahead", "online_start", "tracker")
+) -> dict:
     """A sidecar's ``config`` (as JSON, its fields filled in, :func:`_with_defaults`) with ``online_start`` None
     where no online start ran (:func:`_online_start`: ``lookahead`` set, or ``tracker.template.enabled`` false), as
     :func:`_result_settings` records it now: the sidecars of earlier versions held ``JobConfig.refine_first`` there
     all the same, and a ``--lookahead`` run resumed over its own complete outputs was refused over a setting it
-    does not use ("online start on then, off now")."""
-    tracker = made_with.get("tracker")
+    does not use ("online start on then, off now"). ``keys``: the names of the look-ahead, the online start and the
+    tracker settings; a partial run's record (:func:`_setting_values`) under its own (:data:`_RECORD_KEYS`), whose
+    ``--resume`` of a ``--lookahead`` run with or without ``--no-online-refine`` was refused alike."""
+    lookahead, online_start, tracker_key = keys
+    tracker = made_with.get(tracker_key)
     template = tracker.get("template") if isinstance(tracker, dict) else None
     templates_off = isinstance(template, dict) and template.get("enabled") is False
-    if "online_start" in made_with and (made_with.get("lookahead") is not None or templates_off):
-        return {**made_with, "online_start": None}
+    if online_start in made_with and (made_with.get(lookahead) is not None or templates_off):
+        return {**made_with, online_start: None}
     return made_with
 
 

@@ -264,3 +264,30 @@ def test_a_stream_tracked_again_without_its_reanchoring_records_none(clip, tmp_p
     np.testing.assert_allclose(rows[: REANCHOR + 3], plain[: REANCHOR + 3], rtol=0, atol=1e-6)
     # (the next row from the rows without the mosaic: 0.045 off at most, in any column; 12.3 taken as re-anchored)
     np.testing.assert_allclose(rows, plain, rtol=0, atol=0.1)
+
+
+def test_a_lookahead_runs_resume_is_not_refused_over_the_online_start_it_does_not_use(clip, tmp_path):
+    """A partial ``--lookahead`` run (which starts without the online start) resumed with ``--no-online-refine``, or
+    one without it resumed with it, was refused over the unused setting ("online start on then, off now"), as its
+    complete outputs were before (``test_resume_refuses_to_skip_complete_outputs_made_with_other_settings``): its
+    record now says no online start, and an earlier version's record, which held one, is read so. A partial run of
+    the online start resumed without it is still refused."""
+    import torchface.job as job
+    from torchface.io import InputError
+    from torchface.io.sidecar import to_jsonable
+
+    video, lm = clip
+    out = tmp_path / "out"
+    ahead = LookaheadConfig(max_frames=3)
+    _interrupted(video, out, lm, 2, lookahead=ahead)
+    record = out / "sweep.record.partial"
+    made = json.loads(record.read_text())
+    assert made["settings"]["online start"] is None and job._setting_values(
+        JobConfig(out_dir=out, lookahead=ahead))["online start"] is None  # fmt: skip
+    made["settings"]["online start"] = json.loads(json.dumps(to_jsonable(LookaheadConfig())))  # (as written before)
+    record.write_text(json.dumps(made))
+    track_videos([video], JobConfig(out_dir=out, landmarks=(lm,), lookahead=ahead, refine_first=None, resume=True))
+    assert read_track_csv(out / "sweep.csv")[1].shape[0] == N
+    _interrupted(video, tmp_path / "online", lm, 2)  # the online start's partial run: its setting is used
+    with pytest.raises(InputError, match=r"\(online start on then, off now\)"):
+        track_videos([video], JobConfig(out_dir=tmp_path / "online", landmarks=(lm,), refine_first=None, resume=True))
