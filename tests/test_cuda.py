@@ -319,10 +319,12 @@ def test_deterministic_algorithms_on_the_device(streams, monkeypatch):
     torch.testing.assert_close(first[2], free[2], rtol=0, atol=1e-4)
     # The frame's gradient through the unrolled iterations: without the mode the atomic adds sum in another order, the
     # pose moves by float rounding, and a sample near a pixel's edge can cross it, so a few pixels differ by more than
-    # rounding (session 57, H200: 5 of 460800, at most 2.8e-5 against a largest gradient of about 1.7), the whole not.
+    # rounding, the whole not. Session 57, H200, two runs (the free run differs from run to run): 5 of 460800 pixels
+    # at most 2.8e-5 apart against a largest gradient of about 1.7, the difference's norm 2e-6 of the gradient's; then
+    # 1.4e-5 of it (4.9e-4 against 34.5). A wrong sample (a corner's weight, a pixel off) moves it by its own size.
     diff = first[3] - free[3]
-    assert float(diff.norm()) <= 1e-5 * float(free[3].norm())
-    assert float(diff.abs().max()) <= 1e-4 * float(free[3].abs().max())
+    assert float(diff.norm()) <= 1e-4 * float(free[3].norm())
+    assert float(diff.abs().max()) <= 1e-3 * float(free[3].abs().max())
 
 
 def test_confidence_weighted_loss_takes_a_cpu_confidence_to_the_loss_device():
