@@ -252,6 +252,9 @@ def test_frame_size_change_mid_video(tmp_path):
         (lambda p: np.save(p / "in.npy", (_ramp(0.0, 1.0) - IMAGENET_MEAN) / IMAGENET_STD) or p / "in.npy",
          r"got values from -2\.118 to 2\.64 \(values below 0: normalised with a mean and standard deviation, as for "
          r"an ImageNet network\? undo it, x \* std \+ mean per channel, to get values in \[0, 1\]\)$"),
+        # a 0-255 frame less its mean: undone, 0-255 values (it was told that undoing it gave [0, 1])
+        (lambda p: np.save(p / "m.npy", _ramp(-128.0, 127.0)) or p / "m.npy",
+         r"got values from -128 to 127 \(values below 0: .* to get 0-255 values, then divide by 255\)$"),
         (lambda p: np.save(p / "b.npy", _ramp(0.0, 1.2)) or p / "b.npy",
          r"got values from 0 to 1\.2 \(brightened past 1\? np\.clip\(frames, 0, 1\)\)$"),
         # a bicubic resize's overshoot, a few values just below 0 (it was told of mean/std normalisation)

@@ -166,7 +166,7 @@ def _float_range_problem(array: np.ndarray) -> str:
     of them below 0, a resampling's or sharpening's overshoot (a bicubic resize of [0, 1] frames, measured to -0.36
     and 1.43 for OpenCV's of binary noise; they were told of mean/std normalisation, whose frames reach further below
     0 unless no pixel is darker than a quarter); else below 0 (to -255), mean/std normalisation (ImageNet's, -1 to
-    1's ``(x - 0.5) / 0.5``, a 0-255 frame less its mean); from 0, past 2 to 255, 0-255 values; from under 1 to at
+    1's ``(x - 0.5) / 0.5``, a 0-255 frame less its mean: past 3, undone to 0-255 values); from 0, past 2 to 255, 0-255 values; from under 1 to at
     most 2, a brightness past 1; others (a frame all 2, values past 255) none."""
     finite = array[np.isfinite(array)]
     parts = []
@@ -179,8 +179,10 @@ def _float_range_problem(array: np.ndarray) -> str:
         if -0.5 <= lo < 0.0 and hi <= 2.0 and (hi > 1.0 or np.count_nonzero(finite < 0.0) < 0.1 * finite.size):
             hint = " (a little outside [0, 1]: resampled, sharpened or brightened? np.clip(frames, 0, 1))"
         elif -255.0 <= lo < 0.0 and hi <= 255.0:
+            # (past 3: from 0-255 values, a frame less its mean; undoing it gives 0-255, not [0, 1])
+            back = "values in [0, 1]" if hi <= 3.0 else "0-255 values, then divide by 255"
             hint = (" (values below 0: normalised with a mean and standard deviation, as for an ImageNet network? "
-                    "undo it, x * std + mean per channel, to get values in [0, 1])")  # fmt: skip
+                    f"undo it, x * std + mean per channel, to get {back})")  # fmt: skip
         elif lo >= 0.0 and 2.0 < hi <= 255.0:
             hint = " (0-255 values? divide by 255, or save them as uint8)"
         elif 0.0 <= lo < 1.0 < hi <= 2.0:
