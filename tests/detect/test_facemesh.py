@@ -188,6 +188,18 @@ def fake_mediapipe(monkeypatch, tmp_path):
         sys.modules.pop(name, None)  # the stand-ins (monkeypatch then puts any real modules back)
 
 
+def _stand_in_vision(root, monkeypatch):
+    """The stand-in mediapipe (:func:`_fake_mediapipe`) under ``root`` with a model file ``a.task`` that
+    :data:`MODEL_ENV` names: its ``mediapipe.tasks.python.vision`` module (``faces``, ``made``, ``closed``)."""
+    task = root / "a.task"
+    task.write_bytes(b"model")
+    monkeypatch.setenv(MODEL_ENV, str(task))
+    _fake_mediapipe(root)
+    import mediapipe.tasks.python.vision as vision
+
+    return vision
+
+
 def _face(cx: float, cy: float, half: float) -> np.ndarray:
     """``(478, 2)`` normalised points: the mesh of a face as a grid of half-size ``half`` around ``(cx, cy)``."""
     t = np.linspace(-half, half, 478)
@@ -303,11 +315,8 @@ def test_mediapipe_detector_gives_pixels_of_the_face_nearest_near_and_pickles(fa
 
 
 def test_mediapipe_max_faces_is_checked_and_is_the_landmarkers_num_faces(fake_mediapipe, monkeypatch):
-    task = fake_mediapipe / "a.task"
-    task.write_bytes(b"model")
-    monkeypatch.setenv(MODEL_ENV, str(task))
-    _fake_mediapipe(fake_mediapipe)
-    import mediapipe.tasks.python.vision as vision
+    vision = _stand_in_vision(fake_mediapipe, monkeypatch)
+    task = fake_mediapipe / "a.task"  # (the model file MODEL_ENV names)
 
     for bad, error in ((0, ValueError), (-1, ValueError), (2.0, TypeError), ("3", TypeError), (True, TypeError)):
         with pytest.raises(error, match=rf"max_faces must be an int >= 1 \(the faces one scan looks for\), got "
@@ -345,11 +354,7 @@ def test_mediapipe_detector_gives_each_thread_a_landmarker_of_its_own(fake_media
     thread that has ended (a pool made again per video makes none); a forked process lets go of all the inherited
     ones; ``close()`` during another thread's call leaves that call its landmarker, closed as the call ends (closed
     under it, it answered "no face")."""
-    task = fake_mediapipe / "a.task"
-    task.write_bytes(b"model")
-    monkeypatch.setenv(MODEL_ENV, str(task))
-    _fake_mediapipe(fake_mediapipe)
-    import mediapipe.tasks.python.vision as vision
+    vision = _stand_in_vision(fake_mediapipe, monkeypatch)
 
     images = [np.zeros((20, 40, 3), np.uint8), np.zeros((20, 48, 3), np.uint8)]
     vision.faces[(20, 40)], vision.faces[(20, 48)] = [_face(0.25, 0.5, 0.1)], [_face(0.75, 0.5, 0.2)]
@@ -457,11 +462,7 @@ def test_mediapipe_detector_takes_the_landmarker_of_an_ended_thread_that_threadi
     ``_DummyThread``, alive for ever in CPython 3.11) never gave up its landmarker: a later thread made another, and the
     detector held one per such thread till ``close()``. Now the landmarker of one that has ended is taken, as that of
     an ended ``threading.Thread``, by a C thread and by a ``threading.Thread`` alike."""
-    task = fake_mediapipe / "a.task"
-    task.write_bytes(b"model")
-    monkeypatch.setenv(MODEL_ENV, str(task))
-    _fake_mediapipe(fake_mediapipe)
-    import mediapipe.tasks.python.vision as vision
+    vision = _stand_in_vision(fake_mediapipe, monkeypatch)
 
     image = np.zeros((20, 40, 3), np.uint8)
     vision.faces[None] = [_face(0.25, 0.5, 0.1)]
@@ -501,11 +502,7 @@ def test_mediapipe_detector_works_in_a_process_forked_while_another_thread_held_
     """A fork copies the locks guarding the detectors' landmarkers as they were: held, where another thread was making
     one, and in the child no thread would ever release them. The child gets new locks (it answered here; with the
     copied ones it waited for ever), and lets go of the inherited landmarker unclosed."""
-    task = fake_mediapipe / "a.task"
-    task.write_bytes(b"model")
-    monkeypatch.setenv(MODEL_ENV, str(task))
-    _fake_mediapipe(fake_mediapipe)
-    import mediapipe.tasks.python.vision as vision
+    vision = _stand_in_vision(fake_mediapipe, monkeypatch)
 
     from torchface.detect import facemesh
 
@@ -534,11 +531,7 @@ def test_mediapipe_detector_scans_tiles_for_a_face_too_small_for_the_whole_frame
     1920x1080: 166 px tall): where the whole frame shows none, its overlapping tiles half the shorter side wide are
     scanned, and of their faces those whole in their tile are taken (a face cut by a tile's edge is whole in
     another)."""
-    task = fake_mediapipe / "a.task"
-    task.write_bytes(b"model")
-    monkeypatch.setenv(MODEL_ENV, str(task))
-    _fake_mediapipe(fake_mediapipe)
-    import mediapipe.tasks.python.vision as vision
+    vision = _stand_in_vision(fake_mediapipe, monkeypatch)
 
     from torchface.detect.facemesh import _tiles
 
