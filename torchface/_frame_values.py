@@ -15,13 +15,13 @@ from torchface._compiling import host_values
 
 __all__ = ["FRAME_VALUE_RANGE", "STEP_VALUE_ROW_STRIDE", "check_frame_values"]
 
-#: :func:`~torchface.tracker.step.check_frames` with ``values=True`` refuses frames with values outside this interval: [0, 1] frames,
-#: with room for a resampling's overshoot (a bicubic resize can pass 1 by a few percent).
+#: :func:`~torchface.tracker.step.check_frames` with ``values=True`` refuses frames with values outside this interval:
+#: [0, 1] frames, with room for a resampling's overshoot (a bicubic resize can pass 1 by a few percent).
 FRAME_VALUE_RANGE: tuple[float, float] = (-0.5, 1.5)
 
-#: :func:`~torchface.tracker.step.track_step` and :func:`~torchface.tracker.managed.managed_step` check the values of every 16th row of
-#: their frames against :data:`FRAME_VALUE_RANGE` (0.01-0.03 ms at one 640x480 stream, against a step's 5-6 ms):
-#: 0-255 frames handed to a tracker started on [0, 1] ones were tracked without a word.
+#: :func:`~torchface.tracker.step.track_step` and :func:`~torchface.tracker.managed.managed_step` check the values of
+#: every 16th row of their frames against :data:`FRAME_VALUE_RANGE` (0.01-0.03 ms at one 640x480 stream, against a
+#: step's 5-6 ms): 0-255 frames handed to a tracker started on [0, 1] ones were tracked without a word.
 STEP_VALUE_ROW_STRIDE: int = 16
 
 

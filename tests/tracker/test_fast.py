@@ -788,9 +788,10 @@ def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, b
 
 
 def test_per_stream_bounds_clip_each_stream_at_its_own(backend):
-    """``(B, A)`` bounds, one row a stream (the tracker's, about each stream's first fit: ``expression_range_from_start``):
-    rows equal to the shared ``(A,)`` bounds solve to the same estimates, and a row that moves one stream's bound
-    onto its estimate holds that stream's unit there and leaves the other stream as it was."""
+    """``(B, A)`` bounds, one row a stream (the tracker's, about each stream's first fit:
+    ``expression_range_from_start``): rows equal to the shared ``(A,)`` bounds solve to the same estimates, and a row
+    that moves one stream's bound onto its estimate holds that stream's unit there and leaves the other stream as it
+    was."""
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
     kw = dict(iterations=6, free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_prior=0.0, robust=None,

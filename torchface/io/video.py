@@ -166,8 +166,8 @@ def _float_range_problem(array: np.ndarray) -> str:
     of them below 0, a resampling's or sharpening's overshoot (a bicubic resize of [0, 1] frames, measured to -0.36
     and 1.43 for OpenCV's of binary noise; they were told of mean/std normalisation, whose frames reach further below
     0 unless no pixel is darker than a quarter); else below 0 (to -255), mean/std normalisation (ImageNet's, -1 to
-    1's ``(x - 0.5) / 0.5``, a 0-255 frame less its mean: past 3, undone to 0-255 values); from 0, past 2 to 255, 0-255 values; from under 1 to at
-    most 2, a brightness past 1; others (a frame all 2, values past 255) none."""
+    1's ``(x - 0.5) / 0.5``, a 0-255 frame less its mean: past 3, undone to 0-255 values); from 0, past 2 to 255,
+    0-255 values; from under 1 to at most 2, a brightness past 1; others (a frame all 2, values past 255) none."""
     finite = array[np.isfinite(array)]
     parts = []
     if finite.size < array.size:

@@ -401,11 +401,11 @@ def solve_level(
         cam: the level camera; R ``(B, 3, 3)``, t ``(B, 3)``, alpha ``(B, A)``, light ``(B, L)``: the start.
         light_basis: ``(B, N, L)``; mask: ``(B, N)`` usable points (template validity, visibility).
         iterations: the most linearisations; free: ``(P,)`` bool, the parameters that may change (ablations).
-        alpha_lower, alpha_upper: ``(A,)`` bounds, or ``(B, A)`` per stream (``-inf`` / ``inf``: none on that side), ``lower <= upper``
-            (``ValueError`` for another shape, a NaN, ``lower > upper`` or a lower bound at ``inf``, an upper at
-            ``-inf``; the torch code finds the values' errors at its first host read, after the first
-            linearisation, so that checking them costs no synchronisation of its own); alpha_prior: precision of
-            a Gaussian prior on alpha, centred on ``alpha_mean`` ``(B, A)`` (None: zero); a float, ``(B,)`` for one
+        alpha_lower, alpha_upper: ``(A,)`` bounds, or ``(B, A)`` per stream (``-inf`` / ``inf``: none on that side),
+            ``lower <= upper`` (``ValueError`` for another shape, a NaN, ``lower > upper`` or a lower bound at ``inf``,
+            an upper at ``-inf``; the torch code finds the values' errors at its first host read, after the first
+            linearisation, so that checking them costs no synchronisation of its own); alpha_prior: precision of a
+            Gaussian prior on alpha, centred on ``alpha_mean`` ``(B, A)`` (None: zero); a float, ``(B,)`` for one
             precision per stream, or ``(B, A)`` for one per stream and unit.
         robust: IRLS loss or None; scale_floor: lower bound of the robust scale (intensity units), so that
             on clean frames legitimate appearance change (expression) is not rejected as an outlier.
