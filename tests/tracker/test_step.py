@@ -1691,7 +1691,9 @@ def test_frames_on_another_value_scale_are_told_what_they_look_like(model, two_s
     lm, cam, first = landmarks_of(gts), Intrinsics.default(W, H), frames[:, 0]
     with pytest.raises(ValueError, match=r"to 1\.[0-9]+ \(brightened past 1\? frames\.clamp\(0, 1\)\)$"):
         initialise(model, BASE, first * 1.8, lm, cam)
-    with pytest.raises(ValueError, match=r"values from -2.* \(normalised with a mean and standard deviation\? "):
+    with pytest.raises(ValueError, match=r"values from -2.* \(values below 0: normalised with a mean and standard "
+                                         r"deviation, as for an ImageNet network\? undo it, x \* std \+ mean per "
+                                         r"channel, to get values in \[0, 1\]\)$"):  # (as a .npy clip is told)
         initialise(model, BASE, (first - 0.5) / 0.25, lm, cam)
     with pytest.raises(ValueError, match=r"\(0-255 values\? divide by 255\)$"):
         initialise(model, BASE, first * 255.0, lm, cam)

@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchface._frame_values import value_scale, value_scale_hint
 from torchface._words import counted
 from torchface.io.errors import InputError
 
@@ -162,12 +163,9 @@ def _float_range_problem(array: np.ndarray) -> str:
     """What a float frame outside [0, 1] holds, and what to do (:func:`frame_to_tensor`'s message; a clip of 0-255
     floats, ``frames.astype(np.float32)`` of 8-bit ones, was told only "float frames must be finite and in [0, 1]",
     and frames normalised for a network, ImageNet's mean and standard deviation giving about -2.1 to 2.6, only their
-    range). The hint follows the finite values: just below 0 (to -0.5), none past 2, and past 1 too or under a tenth
-    of them below 0, a resampling's or sharpening's overshoot (a bicubic resize of [0, 1] frames, measured to -0.36
-    and 1.43 for OpenCV's of binary noise; they were told of mean/std normalisation, whose frames reach further below
-    0 unless no pixel is darker than a quarter); else below 0 (to -255), mean/std normalisation (ImageNet's, -1 to
-    1's ``(x - 0.5) / 0.5``, a 0-255 frame less its mean: past 3, undone to 0-255 values); from 0, past 2 to 255,
-    0-255 values; from under 1 to at most 2, a brightness past 1; others (a frame all 2, values past 255) none."""
+    range): NaN or infinite values named, the finite ones' range, and what they look like by the rule that the
+    tracker's checks of a tensor's frames share (:func:`torchface._frame_values.value_scale`: the same values are told
+    the same), with NumPy's remedies."""
     finite = array[np.isfinite(array)]
     parts = []
     if finite.size < array.size:
@@ -176,17 +174,8 @@ def _float_range_problem(array: np.ndarray) -> str:
     if finite.size:
         lo, hi = float(finite.min()), float(finite.max())
         parts.append(f"values from {lo:.4g} to {hi:.4g}")
-        if -0.5 <= lo < 0.0 and hi <= 2.0 and (hi > 1.0 or np.count_nonzero(finite < 0.0) < 0.1 * finite.size):
-            hint = " (a little outside [0, 1]: resampled, sharpened or brightened? np.clip(frames, 0, 1))"
-        elif -255.0 <= lo < 0.0 and hi <= 255.0:
-            # (past 3: from 0-255 values, a frame less its mean; undoing it gives 0-255, not [0, 1])
-            back = "values in [0, 1]" if hi <= 3.0 else "0-255 values, then divide by 255"
-            hint = (" (values below 0: normalised with a mean and standard deviation, as for an ImageNet network? "
-                    f"undo it, x * std + mean per channel, to get {back})")  # fmt: skip
-        elif lo >= 0.0 and 2.0 < hi <= 255.0:
-            hint = " (0-255 values? divide by 255, or save them as uint8)"
-        elif 0.0 <= lo < 1.0 < hi <= 2.0:
-            hint = " (brightened past 1? np.clip(frames, 0, 1))"
+        scale = value_scale(lo, hi, int(np.count_nonzero(finite < 0.0)), int(finite.size))
+        hint = value_scale_hint(scale, "np.clip(frames, 0, 1)", "divide by 255, or save them as uint8")
     return "got " + " and ".join(parts) + hint
 
 
