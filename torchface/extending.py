@@ -7,7 +7,8 @@ follow torchface's own rules:
 - the settings' argument checks (docs/python-api.md, "Results and settings"): :func:`check_bool` for flags,
   :func:`check_int` / :func:`check_optional_int` for counts, :func:`check_real` / :func:`check_optional_real` for
   numbers, :func:`check_intrinsics`, and :func:`check_no_tilde` for paths (a ``~`` nothing expanded), each a
-  ``TypeError`` or ``ValueError`` that names the setting;
+  ``TypeError`` or ``ValueError`` that names the setting; :func:`unexpanded_home`, the rule of that ``~``, and
+  :func:`no_home_reason`, why nothing here expands it, for messages of its own (a missing path's hint);
 - :func:`full_precision`, the decorator that runs torchface's public entry points in the dtype of their inputs
   inside a caller's ``torch.autocast`` region;
 - :func:`is_compiling`, whether ``torch.compile`` (or ``torch.export``) traces the running code, on every torch
@@ -37,7 +38,7 @@ from __future__ import annotations
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface._device import DeviceCheckedModule, check_cuda_device, check_device, check_to_device
-from torchface._paths import check_no_tilde
+from torchface._paths import check_no_tilde, no_home_reason, unexpanded_home
 from torchface.geometry._checks import (
     check_bool,
     check_int,
@@ -61,4 +62,6 @@ __all__ = [
     "check_to_device",
     "full_precision",
     "is_compiling",
+    "no_home_reason",
+    "unexpanded_home",
 ]

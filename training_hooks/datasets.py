@@ -149,7 +149,15 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
 from torchface.detect import detector_image, search_first_face
-from torchface.extending import check_bool, check_int, check_no_tilde, check_optional_int, check_optional_real
+from torchface.extending import (
+    check_bool,
+    check_int,
+    check_no_tilde,
+    check_optional_int,
+    check_optional_real,
+    no_home_reason,
+    unexpanded_home,
+)
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, image_files, open_capture, open_frames
@@ -537,11 +545,12 @@ class DatasetStats:
     cache: CacheStats = field(default_factory=CacheStats)
 
 
-def _check_exists(path: Path) -> None:
+def _check_exists(path: Path, given: str | os.PathLike[str]) -> None:
     """Refuse a video or folder that is not there by saying so (a mistyped path was told "VideoDataset takes video
-    files or .npy arrays (use FrameFolderDataset for folders)", or the other way round)."""
+    files or .npy arrays (use FrameFolderDataset for folders)", or the other way round); ``path`` is the absolute
+    path of the one ``given``."""
     if not path.exists():
-        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(path)
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(given)
         raise InputError(f"{path}: no such file or folder{link}")
 
 
@@ -554,14 +563,22 @@ def _holds_images(folder: Path) -> bool:
         return False
 
 
-def _tilde(path: Path) -> str:
-    """A hint for a missing ``path`` one of whose parts starts with ``~`` (the paths are made absolute against the
-    working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was
-    ``<working folder>/~/a.avi``); "" otherwise, and where no such part names a home folder (``~draft.avi``, as
-    ``os.path.expanduser`` reads it: a name as any other)."""
-    if not any(part.startswith("~") and os.path.expanduser(part) != part for part in path.parts):
+def _tilde(given: str | os.PathLike[str]) -> str:
+    """A hint for a missing path ``given`` starting with a ``~`` that names a home folder
+    (:func:`torchface._paths.unexpanded_home`, the rule of the path settings' :func:`check_no_tilde`; the paths are
+    made absolute against the working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV:
+    ``"~/a.avi"`` was ``<working folder>/~/a.avi``), also where ``os.path.expanduser`` cannot expand it (``HOME``
+    unset, no password entry: it gave no hint); "" otherwise: ``~draft.avi`` is a name as any other, and a ``~``
+    further on (``data/~/a.avi``) is one that neither a shell nor ``os.path.expanduser`` expands (each part was
+    looked at, and the hint said that ``expanduser`` would give the home folder)."""
+    home = unexpanded_home(os.fspath(given))
+    if home is None:
         return ""
-    return " ('~' is not expanded here: os.path.expanduser(path) names the home folder)"
+    first, expands = home
+    if expands:
+        return f" ('{first}' is not expanded here: os.path.expanduser(path) names the home folder)"
+    return (f" ('{first}' is not expanded here, and os.path.expanduser cannot expand it here "
+            f"({no_home_reason(first)}): give the home folder's path)")  # fmt: skip
 
 
 def _as_numpy(points: Tensor) -> np.ndarray:
@@ -587,7 +604,7 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():  # (read_landmarks' words)
-            problem = "a folder, not a landmarks file" if path.is_dir() else f"no such landmarks file{_tilde(path)}"
+            problem = "a folder, not a landmarks file" if path.is_dir() else f"no such landmarks file{_tilde(source)}"
             raise InputError(f"{where}: {path}: {problem}")
         return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):
@@ -692,7 +709,8 @@ class VideoDataset(IterableDataset):
         self.videos = tuple(Path(v).absolute() for v in videos)
         if not self.videos:
             raise ValueError("videos is empty")
-        for v in self.videos:
+        for given, v in zip(videos, self.videos):
+            _check_exists(v, given)
             self._check_source(v)
         cache_dir = None if self.config.cache_dir is None else Path(self.config.cache_dir)
         if cache_dir is not None and cache_dir.exists() and not cache_dir.is_dir():
@@ -757,7 +775,6 @@ class VideoDataset(IterableDataset):
         self._frames = _shared_frames(len(self.videos) if short else 0)
 
     def _check_source(self, path: Path) -> None:
-        _check_exists(path)
         if not path.is_file():
             # (a folder of videos was told to use FrameFolderDataset, which then found no images in it; a folder of
             # frames is told to use it, a stray video among them or not)
@@ -1560,7 +1577,6 @@ class FrameFolderDataset(VideoDataset):
     """
 
     def _check_source(self, path: Path) -> None:
-        _check_exists(path)
         if not path.is_dir():
             raise ValueError(f"{path}: FrameFolderDataset takes folders of frames (use VideoDataset for video files)")
 

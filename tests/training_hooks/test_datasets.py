@@ -489,6 +489,8 @@ def test_bad_arguments(clips, tmp_path):
         VideoDataset([video], ["~/no_such_r3.csv"])
     with pytest.raises(InputError, match=r"/~torchface-no-such-user\.avi: no such file or folder$"):  # (not a home)
         VideoDataset(["~torchface-no-such-user.avi"], [lm])
+    with pytest.raises(InputError, match=r"/~/no_such_r3\.avi: no such file or folder$"):  # (a '~' further on: as
+        VideoDataset([tmp_path / "~" / "no_such_r3.avi"], [lm])  # a shell, expanduser leaves it; it gave the hint)
     with pytest.raises(ValueError, match="empty"):
         VideoDataset([], [])
     with pytest.raises(ValueError, match="clip_stride needs clip_length"):
@@ -503,6 +505,29 @@ def test_bad_arguments(clips, tmp_path):
     (tmp_path / "cache").write_text("a file")  # refused at once (it failed after the first video was tracked)
     with pytest.raises(ValueError, match="not a folder"):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
+
+
+def test_a_missing_path_starting_with_an_unexpandable_tilde_is_told_so(tmp_path, monkeypatch):
+    """With ``HOME`` unset and no password entry (a container run as an uid without one), ``os.path.expanduser``
+    leaves ``~/x`` as it is, and a missing ``~/x`` was told nothing of the ``~`` (its own look at each part asked
+    ``expanduser``); it is told what the path settings' check says (:func:`torchface._paths.unexpanded_home`)."""
+    pwd = pytest.importorskip("pwd")
+
+    def missing(*args):
+        raise KeyError("no such entry")
+
+    monkeypatch.delenv("HOME", raising=False)
+    monkeypatch.setattr(pwd, "getpwuid", missing)
+    assert os.path.expanduser("~/x") == "~/x"
+    monkeypatch.chdir(tmp_path)
+    lm = np.zeros((68, 2), np.float32)
+    hint = (r" \('~' is not expanded here, and os\.path\.expanduser cannot expand it here \(HOME is not set and the "
+            r"password database has no entry for this user\): give the home folder's path\)$")
+    with pytest.raises(InputError, match=r"/~/no_such\.avi: no such file or folder" + hint):
+        VideoDataset(["~/no_such.avi"], [lm])
+    (tmp_path / "clip").mkdir()
+    with pytest.raises(InputError, match=r"landmarks: ~/no_such\.csv: no such landmarks file" + hint):
+        FrameFolderDataset([tmp_path / "clip"], ["~/no_such.csv"])
 
 
 def test_a_frame_to_convert_names_the_datasets_setting(clips, config, tmp_path):
