@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import signal
 import sys
@@ -97,6 +98,22 @@ def integer(minimum: int, even: bool = False) -> Callable[[str], int]:
         if value < minimum or (even and value % 2):
             kind = "an even integer" if even else "an integer"
             raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
+def positive(kind: str = "a number") -> Callable[[str], float]:
+    """An argparse type: a finite number > 0, else a one-line error naming ``kind`` ("must be a number of seconds >
+    0, got 'x'"; doc_figures.py and peers.py had one each)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0.0):
+            raise argparse.ArgumentTypeError(f"must be {kind} > 0, got {text!r}")
         return value
 
     return parse

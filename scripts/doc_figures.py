@@ -73,7 +73,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # evaluate.py beside this script, however it is run
-from _argtypes import assets_folder, folder_problem, frame_size, integer  # noqa: E402
+from _argtypes import assets_folder, folder_problem, frame_size, integer, positive  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import torch
@@ -488,15 +488,8 @@ def _positives(text: str) -> list[float]:
     return [_positive(v) for v in text.split(",")]
 
 
-def _positive(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
-    return value
+#: An argparse type: a finite number > 0.
+_positive = positive()
 
 
 def main(argv: list[str] | None = None) -> int:

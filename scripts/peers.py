@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _argtypes import positive  # (the scripts that import this module put its folder on sys.path)
+
 __all__ = ["MediaPipeRun", "MediaPipeTimeout", "run_mediapipe", "opencv_rotations"]
 
 #: How long :func:`run_mediapipe` waits for the peer by default (``--mediapipe-timeout``): ample for the scripts'
@@ -100,19 +102,9 @@ class MediaPipeTimeout(RuntimeError):
 def add_options(parser: argparse.ArgumentParser, help_python: str) -> None:
     """A script's ``--mediapipe-python PYTHON`` (help ``help_python``) and ``--mediapipe-timeout SECONDS``."""
     parser.add_argument("--mediapipe-python", default=None, metavar="PYTHON", help=help_python)
-    parser.add_argument("--mediapipe-timeout", type=_seconds, default=DEFAULT_TIMEOUT_S, metavar="SECONDS",
-                        help=f"stop MediaPipe's run on a clip after this long, with a one-line message and no peer "
-                        f"figures for it (default {DEFAULT_TIMEOUT_S:g})")  # fmt: skip
-
-
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value > 0.0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}")
-    return value
+    parser.add_argument("--mediapipe-timeout", type=positive("a number of seconds"), default=DEFAULT_TIMEOUT_S,
+                        metavar="SECONDS", help="stop MediaPipe's run on a clip after this long, with a one-line "
+                        f"message and no peer figures for it (default {DEFAULT_TIMEOUT_S:g})")  # fmt: skip
 
 
 def check_python(parser: argparse.ArgumentParser, python: str | None) -> None:
