@@ -56,11 +56,11 @@ def value_scale(lo: float, hi: float, below_zero: int, finite: int) -> ValueScal
 
     Just below 0 (to -0.5) and none past 2, with values past 1 too or under a tenth of them below 0: an overshoot (a
     bicubic resize of [0, 1] frames: measured to -0.36 and 1.43 for OpenCV's of binary noise; such frames were told of
-    mean/std normalisation, whose frames reach further below 0 unless no pixel is darker than a quarter). From -0.5 to
-    past 3 (to 255): 0-255 values (a 0-255 frame resampled; a 0-255 frame less its mean reaches far below 0, a
-    normalised [0, 1] frame not past 3). Else below 0 (to -255, none past 255): mean/std normalisation (ImageNet's, -1
-    to 1's ``(x - 0.5) / 0.5``; past 3, a 0-255 frame less its mean). From 0, past 2 to 255: 0-255 values. From under
-    1 to at most 2: a brightness past 1. Others (a frame all 1.8, values past 255): None.
+    mean/std normalisation, whose frames reach further below 0 unless no pixel is darker than a quarter). From 0, or
+    from -0.5 and past 3, past 2 to 255: 0-255 values (from -0.5: a 0-255 frame resampled; a 0-255 frame less its mean
+    reaches far below 0, a normalised [0, 1] frame not past 3). Else below 0 (to -255, none past 255): mean/std
+    normalisation (ImageNet's, -1 to 1's ``(x - 0.5) / 0.5``; past 3, a 0-255 frame less its mean). From under 1 to at
+    most 2: a brightness past 1. Others (a frame all 1.8, values past 255): None.
 
     Example:
         >>> value_scale(0.0, 255.0, 0, 100)
@@ -68,12 +68,10 @@ def value_scale(lo: float, hi: float, below_zero: int, finite: int) -> ValueScal
     """
     if -0.5 <= lo < 0.0 and hi <= 2.0 and (hi > 1.0 or below_zero < 0.1 * finite):
         return ValueScale.OVERSHOOT
-    if -0.5 <= lo and 3.0 < hi <= 255.0:
+    if -0.5 <= lo and 2.0 < hi <= 255.0 and (lo >= 0.0 or hi > 3.0):
         return ValueScale.SCALE_255
     if -255.0 <= lo < 0.0 and hi <= 255.0:
         return ValueScale.NORMALISED if hi <= 3.0 else ValueScale.NORMALISED_0_255
-    if lo >= 0.0 and 2.0 < hi <= 255.0:
-        return ValueScale.SCALE_255
     if 0.0 <= lo < 1.0 < hi <= 2.0:
         return ValueScale.BRIGHTENED
     return None
@@ -128,7 +126,6 @@ def _values_refused(seen: Tensor, lo: float, hi: float) -> str:
         return f"values from {lo:.4g} to {hi:.4g} (infinite pixels: mark missing ones NaN)"
     # (NaN pixels read as 0.5 said "values from 0.5" of frames whose values were all past 1, and told them so)
     finite = torch.isfinite(seen)
-    big = torch.finfo(seen.dtype).max
-    lo, hi = host_values(torch.stack([seen.where(finite, big).amin(), seen.where(finite, -big).amax()]))
+    lo, hi = host_values(torch.stack([seen.where(finite, math.inf).amin(), seen.where(finite, -math.inf).amax()]))
     below_zero, count = host_values(torch.stack([(seen < 0.0).logical_and(finite).sum(), finite.sum()]))
     return f"values from {lo:.4g} to {hi:.4g}{value_scale_hint(value_scale(lo, hi, below_zero, count), TENSOR_CLIP)}"
