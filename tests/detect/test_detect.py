@@ -1,5 +1,6 @@
 """The optional detectors' loading (:mod:`torchface.detect`), with stand-in packages: dlib is not installed here."""
 
+import importlib
 import pickle
 import subprocess
 import sys
@@ -73,6 +74,12 @@ def test_dlib_missing_names_the_install_command(isolated_modules):
     except ImportError:
         pass
     with pytest.raises(DetectorUnavailable, match=r"not installed: run  pip install \"torchface\[detect\]\""):
+        load_detector("dlib")
+    # installed, failing to import (a library of its own missing): said so, with what it raised
+    (isolated_modules / "dlib.py").write_text("raise ImportError('libcblas.so.3: cannot open shared object file')\n")
+    importlib.invalidate_caches()
+    with pytest.raises(DetectorUnavailable, match=r"^the 'dlib' detector's dlib could not be imported \(libcblas\."
+                       r"so\.3: cannot open shared object file\): run  pip install \"torchface\[detect\]\""):
         load_detector("dlib")
 
 

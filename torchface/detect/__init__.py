@@ -146,6 +146,15 @@ def _predictor_path() -> Path | None:
     return None
 
 
+def _not_importable(name: str, exc: ImportError, install: str) -> DetectorUnavailable:
+    """The error of detector ``name`` whose module ``name`` raised ``exc`` on import (dlib's, MediaPipe's): not
+    installed, or installed and failing (a missing library of its own, named), each with ``install``, the command
+    that installs it."""
+    if exc.name == name:
+        return DetectorUnavailable(f"the {name!r} detector is not installed: {install}")
+    return DetectorUnavailable(f"the {name!r} detector's {name} could not be imported ({exc}): {install}")
+
+
 def _dlib_parts():
     """dlib's module and the 68-point predictor's file. Raises DetectorUnavailable naming the install command."""
     install = (
@@ -155,9 +164,7 @@ def _dlib_parts():
     try:
         import dlib
     except ImportError as exc:
-        if exc.name == "dlib":
-            raise DetectorUnavailable(f"the 'dlib' detector is not installed: {install}") from None
-        raise DetectorUnavailable(f"the 'dlib' detector's dlib could not be imported ({exc}): {install}") from None
+        raise _not_importable("dlib", exc, install) from None
     model = _predictor_path()
     if model is None:
         raise DetectorUnavailable(

@@ -31,7 +31,14 @@ from typing import Any
 import numpy as np
 
 from torchface._paths import no_home_reason, unexpanded_home
-from torchface.detect import DetectorUnavailable, _check_image, _near_centre, _nearest, _PerImageDetector
+from torchface.detect import (
+    DetectorUnavailable,
+    _check_image,
+    _near_centre,
+    _nearest,
+    _not_importable,
+    _PerImageDetector,
+)
 
 __all__ = [
     "MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "canonical_mesh", "find_model", "mesh_pixels", "mesh_to_ibug68",
@@ -281,10 +288,7 @@ def _mediapipe_parts() -> Any:
         import mediapipe
         from mediapipe.tasks.python import vision  # noqa: F401 (the Tasks API: mediapipe 0.10 and later)
     except ImportError as exc:
-        if exc.name == "mediapipe":
-            raise DetectorUnavailable(f"the 'mediapipe' detector is not installed: {install}") from None
-        raise DetectorUnavailable(f"the 'mediapipe' detector's mediapipe could not be imported ({exc}): {install}") \
-            from None  # fmt: skip
+        raise _not_importable("mediapipe", exc, install) from None
     return mediapipe
 
 
