@@ -13,6 +13,7 @@ from types import ModuleType
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from torchface.geometry.camera import Intrinsics
@@ -32,6 +33,21 @@ ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
 
 #: The command-line scripts (scripts/ of the checkout).
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def without_home(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No home folder for ``~`` to expand to, as in a container run as an uid without a password entry: ``HOME``
+    unset and the password database without the user (``os.path.expanduser("~/x")`` gives ``"~/x"``). The test
+    skips where there is no password database (``pwd``: POSIX)."""
+    pwd = pytest.importorskip("pwd")
+
+    def missing(*args: object) -> None:
+        raise KeyError("no such entry")
+
+    monkeypatch.delenv("HOME", raising=False)
+    monkeypatch.setattr(pwd, "getpwuid", missing)
+    monkeypatch.setattr(pwd, "getpwnam", missing)
+    assert os.path.expanduser("~/x") == "~/x"
 
 
 def load_script(name: str) -> ModuleType:

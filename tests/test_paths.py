@@ -3,25 +3,24 @@
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
 
 import pytest
 
 from torchface._paths import check_no_tilde, unexpanded_home
 
-pwd = pytest.importorskip("pwd")  # (the password database: POSIX)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _helpers import without_home  # noqa: E402
+
+pytest.importorskip("pwd")  # (the password database: POSIX)
 
 
 @pytest.fixture
 def no_home(monkeypatch):
     """No home folder to expand ``~`` to: ``HOME`` unset and the password database without the user (as in a
     container run as an uid without an entry); the user named ``me`` by ``USER`` (and no other variable)."""
-
-    def missing(*args):
-        raise KeyError("no such entry")
-
-    monkeypatch.delenv("HOME", raising=False)
-    monkeypatch.setattr(pwd, "getpwuid", missing)
-    monkeypatch.setattr(pwd, "getpwnam", missing)
+    without_home(monkeypatch)
     for name in ("LOGNAME", "LNAME", "USERNAME"):
         monkeypatch.delenv(name, raising=False)
     monkeypatch.setenv("USER", "me")

@@ -23,6 +23,9 @@ from torchface.detect.facemesh import (
     MODEL_ENV, MediaPipeDetector, canonical_mesh, find_model, mesh_to_ibug68, mirror_vertices, read_mesh_table,
 )  # fmt: skip
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _helpers import without_home  # noqa: E402
+
 #: iBUG-68's mirror image of each point (jaw k <-> 16 - k, brows, nose, eyes, mouth; midline points to themselves).
 IBUG_MIRROR = np.r_[
     16:-1:-1, 26:16:-1, 27:31, 35:30:-1, 45:41:-1, 47, 46, 39:35:-1, 41, 40, 54:47:-1, 59:54:-1, 64:59:-1, 67:64:-1
@@ -240,13 +243,7 @@ def test_mediapipe_model_missing_names_where_to_get_it(fake_mediapipe, monkeypat
     assert find_model("~/m.task") == fake_mediapipe / "home" / "m.task"
     folder = fake_mediapipe / "~torchface-no-such-user"
     assert find_model("~torchface-no-such-user/m.task").resolve() == folder / "m.task"
-    pwd = pytest.importorskip("pwd")
-
-    def missing(*args):
-        raise KeyError("no such entry")
-
-    monkeypatch.delenv("HOME")
-    monkeypatch.setattr(pwd, "getpwuid", missing)
+    without_home(monkeypatch)
     monkeypatch.setenv(MODEL_ENV, "~/m.task")
     with pytest.raises(DetectorUnavailable, match=rf"^the 'mediapipe' detector's model {MODEL_ENV}='~/m\.task': "
                        r"nothing expands its '~' here \(HOME is not set and the password database has no entry for "

@@ -36,7 +36,7 @@ from training_hooks import (
 from training_hooks.transforms import PER_FRAME_KEYS
 
 from th_data import FRAMES, TRACKING, sideways_clip
-from _helpers import lossless_scenario_clip  # noqa: E402  (the tests folder is on sys.path: th_data puts it there)
+from _helpers import lossless_scenario_clip, without_home  # noqa: E402  (the tests folder is on sys.path: th_data puts it there)
 
 
 def collect(dataset, num_workers: int, key=("video", "frame")) -> dict[tuple[int, ...], dict[str, torch.Tensor]]:
@@ -511,14 +511,7 @@ def test_a_missing_path_starting_with_an_unexpandable_tilde_is_told_so(tmp_path,
     """With ``HOME`` unset and no password entry (a container run as an uid without one), ``os.path.expanduser``
     leaves ``~/x`` as it is, and a missing ``~/x`` was told nothing of the ``~`` (its own look at each part asked
     ``expanduser``); it is told what the path settings' check says (:func:`torchface._paths.unexpanded_home`)."""
-    pwd = pytest.importorskip("pwd")
-
-    def missing(*args):
-        raise KeyError("no such entry")
-
-    monkeypatch.delenv("HOME", raising=False)
-    monkeypatch.setattr(pwd, "getpwuid", missing)
-    assert os.path.expanduser("~/x") == "~/x"
+    without_home(monkeypatch)
     monkeypatch.chdir(tmp_path)
     lm = np.zeros((68, 2), np.float32)
     hint = (r" \('~' is not expanded here, and os\.path\.expanduser cannot expand it here \(HOME is not set and the "
