@@ -29,6 +29,7 @@ is_compiling: Callable[[], bool] = torch.compiler.is_compiling
 _peek_interpreter_stack = torch._C._functorch.peek_interpreter_stack  # None when no torch.func transform runs
 _is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
 
+
 def feature_probe(check: Callable[[], object]) -> bool:
     """Whether ``check()`` runs without a ``RuntimeError`` (the errors an unsupported operation of a ``torch.func``
     transform raises), apart from the caller's modes: grad mode on, inference mode and CPU autocast off (a caller's
