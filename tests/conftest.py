@@ -14,6 +14,14 @@ in its process:
 - the global random generators (torch's, NumPy's legacy one, :mod:`random`) are seeded before each test from its
   node id: the tests that draw from them (``torch.rand`` without a generator) saw whatever state the tests before
   them had left, a different draw at each run under xdist (one fixed order before).
+
+Where the tests' device is CUDA (``TORCHFACE_TEST_DEVICE``, ``cuda`` unless it names another, as
+tests/test_cuda.py reads it), ``CUBLAS_WORKSPACE_CONFIG=:4096:8``, cuBLAS's condition for deterministic products
+(tests/test_cuda.py's runs under ``torch.use_deterministic_algorithms(True)``), is set here, before any test runs,
+unless the environment sets it. Two tests set it themselves (``monkeypatch.setenv``), after whatever CUDA products
+earlier tests had run: torch allocates a stream's cuBLAS workspace at its first product, with the size the variable
+gave then, and keeps it (torch's own check of the mode reads the variable at each call, and passed). Under xdist
+each worker reads this file before its first test too.
 """
 
 from __future__ import annotations
@@ -25,6 +33,9 @@ import zlib
 import numpy as np
 import pytest
 import torch
+
+if os.environ.get("TORCHFACE_TEST_DEVICE", "cuda").split(":")[0] == "cuda":
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
 
 #: The worker's torch thread count (set by :func:`pytest_configure`), put back after each test.
 _THREADS = torch.get_num_threads()

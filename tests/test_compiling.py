@@ -1,14 +1,20 @@
-"""torchface._compiling: the ``torch.compile`` check on every torch pyproject.toml accepts (``torch>=2.1``)."""
+"""torchface._compiling: the ``torch.compile`` check, and the features of this torch under ``torch.func``'s transforms,
+probed rather than read from its version (``torch>=2.5.1``)."""
 
 from __future__ import annotations
 
+import functools
+import re
 import subprocess
 import sys
 import textwrap
 
+import pytest
 import torch
+import torch.nn.functional as F
 
-from torchface._compiling import is_compiling
+from torchface import _compiling, _deterministic
+from torchface._compiling import check_reverse_mode, feature_probe, host_values, is_compiling
 
 
 def test_is_compiling_is_false_in_eager_code_and_true_while_traced():
@@ -23,51 +29,156 @@ def test_is_compiling_is_false_in_eager_code_and_true_while_traced():
     assert seen[0] is False and seen[-1] is True
 
 
-def test_torchface_runs_on_a_torch_without_torch_compiler_is_compiling():
-    """``torch.compiler.is_compiling`` came with torch 2.3; on torch 2.1 and 2.2 (accepted by pyproject.toml) the
-    kernel dispatch asked it at the first native kernel and raised ``AttributeError``: no frame could be tracked.
-    A child process without it (``torch._utils.is_compiling``: False, as torch 2.2's in eager code) tracks, makes
-    a normalised face and runs training_hooks' layer check."""
+def _release() -> tuple[int, int] | None:
+    """This torch's (major, minor) where it is a release (``2.13.0``, ``2.11.0+cu130``), None for a pre-release."""
+    found = re.fullmatch(r"(\d+)\.(\d+)\.\d+(\+\S*)?", torch.__version__)
+    return (int(found[1]), int(found[2])) if found else None
+
+
+def _probes() -> tuple[bool, bool]:
+    """Both probes run afresh (not their cached answers)."""
+    reads = _compiling.transforms_read_values.__wrapped__()
+    return reads, _deterministic._grid_sample_vmap_backward_broken.__wrapped__()
+
+
+def test_the_probes_give_what_this_torch_does():
+    """The probes' answers: the releases' (torch 2.10 reads a transform's values, 2.12 mended grid_sample's vmap
+    backward: checked on 2.5.1, 2.11 and 2.13), and what the operations the tracker runs (a float64 ``.tolist()``
+    under ``grad``, ``jacrev`` of a (2, 3, 7, 9) frame's samples with respect to the grid) do on this torch. A
+    pre-release's version took a nightly for the older torch; the probes do not read it."""
+    reads, broken = _probes()
+    release = _release()
+    if release is not None:
+        assert (reads, broken) == (release >= (2, 10), release < (2, 12)), torch.__version__
+
+    def values(x: torch.Tensor) -> torch.Tensor:
+        assert x.tolist() == [0.25, -1.5, 3.0]
+        return x.sum()
+
+    x = torch.tensor([0.25, -1.5, 3.0], dtype=torch.float64)
+    if reads:
+        torch.func.grad(values)(x)
+    else:
+        with pytest.raises(RuntimeError, match="Cannot access data pointer of Tensor that doesn't have storage"):
+            torch.func.grad(values)(x)
+    gen = torch.Generator().manual_seed(0)
+    images = torch.rand(2, 3, 7, 9, generator=gen, dtype=torch.float64)
+    grid = torch.rand(2, 3, 4, 2, generator=gen, dtype=torch.float64) * 1.8 - 0.9
+
+    def sample(g: torch.Tensor) -> torch.Tensor:
+        return F.grid_sample(images, g, "bilinear", "border", align_corners=True)
+
+    if broken:
+        with pytest.raises(RuntimeError, match="Expected a proper Tensor but got None"):
+            torch.func.jacrev(sample)(grid)
+    else:
+        want = torch.autograd.functional.jacobian(sample, grid)
+        torch.testing.assert_close(torch.func.jacrev(sample)(grid), want, rtol=0, atol=1e-12)
+    with pytest.MonkeyPatch.context() as patch:
+        for version in ("2.10.0a0+git5e8f3c1", "2.12.0.dev20261101", "2.9.1"):
+            patch.setattr(torch, "__version__", version)
+            assert _probes() == (reads, broken), version
+
+
+def test_the_probes_leave_the_callers_modes_alone_and_answer_the_same_under_them():
+    """Asked under a caller's ``no_grad``, ``inference_mode`` (where ``jacrev`` of ``grid_sample`` passed on torch
+    2.5.1, which raises outside it), CPU autocast, float64 and meta defaults, and inside a transform of the
+    caller's (as they are: their first call comes under one): the same answers, and the modes as they were."""
+    want = _probes()
+    seen = []
+
+    def modes() -> tuple:
+        return (torch.is_grad_enabled(), torch.is_inference_mode_enabled(), torch.get_default_dtype(),
+                torch.is_autocast_enabled("cpu"), torch.zeros(()).device.type)  # fmt: skip
+
+    def under(context) -> None:
+        with context:
+            before = modes()
+            seen.append(_probes())
+            assert modes() == before
+
+    under(torch.no_grad())
+    under(torch.inference_mode())
+    under(torch.autocast("cpu", dtype=torch.bfloat16))
+    under(torch.device("meta"))
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        seen.append(_probes())
+        assert torch.get_default_dtype() == torch.float64
+    finally:
+        torch.set_default_dtype(previous)
+
+    def transformed(x: torch.Tensor) -> torch.Tensor:
+        seen.append(_probes())
+        return x.sum()
+
+    torch.func.grad(transformed)(torch.zeros(2))
+    torch.func.vmap(transformed)(torch.zeros(2, 3))
+    torch.func.jacrev(transformed)(torch.zeros(2))
+    assert seen == [want] * 8
+
+
+def test_feature_probe_is_false_for_a_runtime_error_alone():
+    """A torch error (what an unsupported operation under a transform raises) answers no; any other error is a
+    fault of the probe, raised."""
+
+    def not_a_torch_error() -> None:
+        raise ValueError("not a torch error")
+
+    assert feature_probe(lambda: None) is True
+    assert feature_probe(lambda: torch.zeros(2) + torch.zeros(3)) is False  # (a RuntimeError)
+    with pytest.raises(ValueError, match="not a torch error"):
+        feature_probe(not_a_torch_error)
+
+
+def test_the_probes_run_once_when_a_transform_first_asks_not_at_import(monkeypatch):
+    """Import time matters, and eager code never asks: importing torchface and training_hooks (in a fresh process)
+    runs neither probe, nor do reading, refusing and sampling outside a transform; the first call under a transform
+    runs each once, and later calls read the kept answer (fresh caches here: this process's may be filled)."""
     code = textwrap.dedent("""
-        import kornia  # (kornia 0.9 needs it: an older kornia comes with an older torch)
-        import torch
-        del torch.compiler.is_compiling
-        torch._utils.is_compiling = lambda: False  # torch 2.1 / 2.2's flag, False outside a traced region
-        torch.set_num_threads(1)
-        from torchface.backend import Backend, use_native
-        from torchface.geometry.camera import Intrinsics
-        from torchface.model import load_candide3
-        from torchface.normalise import build_normalised_layout, normalised_face
-        from torchface._scalar import scalar
-        from training_hooks.layer import _tracked
-        x = torch.zeros(2)
-        use_native(Backend.AUTO, (x,), "test")
-        assert float(scalar(0.5, x)) == 0.5
-        m = load_candide3()
-        lay = build_normalised_layout(m, 16)
-        cam = Intrinsics.default(64, 48)
-        frames = torch.rand(1, 3, 48, 64, generator=torch.Generator().manual_seed(0))
-        out = normalised_face(frames, m, lay, torch.zeros(1, m.num_shape), torch.zeros(1, m.num_animation),
-                              torch.tensor([[0.05, 0.1, 0.0]]), torch.tensor([[0.0, 0.0, 400.0]]), None, cam)
-        assert out.mask.sum() > 50
-        assert _tracked(len) is len
-        print("ok")
+        import torchface, torchface.tracker, training_hooks.layer
+        from torchface import _compiling, _deterministic
+        probes = (_compiling.transforms_read_values, _deterministic._grid_sample_vmap_backward_broken)
+        print([p.cache_info().misses for p in probes])
     """)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
+    assert run.returncode == 0 and run.stdout.strip() == "[0, 0]", (run.returncode, run.stdout, run.stderr[-2000:])
+
+    fresh = [functools.cache(_compiling.transforms_read_values.__wrapped__),
+             functools.cache(_deterministic._grid_sample_vmap_backward_broken.__wrapped__)]  # fmt: skip
+    monkeypatch.setattr(_compiling, "transforms_read_values", fresh[0])
+    monkeypatch.setattr(_deterministic, "_grid_sample_vmap_backward_broken", fresh[1])
+    images, grid = torch.rand(1, 1, 3, 3), torch.zeros(1, 2, 2, 2)
+    host_values(torch.tensor([1.0, 2.0]))
+    check_reverse_mode("a step", images, grid)
+    _deterministic.grid_sample_border(images, grid.requires_grad_()).sum().backward()
+    assert [p.cache_info().misses for p in fresh] == [0, 0]
+
+    def f(g: torch.Tensor) -> torch.Tensor:
+        host_values(g.flatten())
+        return _deterministic.grid_sample_border(images, g).sum()
+
+    for _ in range(2):
+        torch.func.grad(f)(torch.zeros(1, 2, 2, 2))
+    assert [(p.cache_info().misses, p.cache_info().hits) for p in fresh] == [(1, 1), (1, 1)]
 
 
 def test_an_older_torchs_transforms_are_read_value_by_value_and_refused_by_a_step(monkeypatch):
     """torch 2.5 to 2.9 could not ``.tolist()`` a ``torch.func`` transform's tensor ("Cannot access data pointer of
     Tensor that doesn't have storage"; ``.item()`` worked): the frames' and faces' checks read one value at a time
-    there, and a tracking step, which reads values in many places, is refused in one line. Simulated on this torch
-    (the flag forced)."""
-    import pytest
+    there, and a tracking step, which reads values in many places, is refused in one line. Simulated on this torch:
+    its ``.tolist()`` of a transform's tensor raises as theirs did, and the probe (run afresh) sees it."""
+    real = torch.Tensor.tolist
 
-    from torchface import _compiling
-    from torchface._compiling import check_reverse_mode, host_values
+    def old_tolist(self: torch.Tensor):
+        if torch._C._functorch.is_functorch_wrapped_tensor(self):
+            raise RuntimeError("Cannot access data pointer of Tensor that doesn't have storage")
+        return real(self)
 
-    monkeypatch.setattr(_compiling, "TRANSFORMS_READ_VALUES", False)
+    monkeypatch.setattr(torch.Tensor, "tolist", old_tolist)
+    fresh = functools.cache(_compiling.transforms_read_values.__wrapped__)  # (not this process's kept answer)
+    monkeypatch.setattr(_compiling, "transforms_read_values", fresh)
     seen = []
 
     def f(x: torch.Tensor) -> torch.Tensor:
@@ -80,5 +191,6 @@ def test_an_older_torchs_transforms_are_read_value_by_value_and_refused_by_a_ste
     x = torch.tensor([0.25, -1.5, 3.0], dtype=torch.float64)
     torch.func.grad(f)(x)
     assert seen == [[-1.5, 3.0]]
+    assert _compiling.transforms_read_values() is False
     check_reverse_mode("a step", x)  # outside a transform: nothing to refuse
     assert host_values(torch.tensor([1, 2])) == [1, 2]

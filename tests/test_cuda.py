@@ -221,7 +221,17 @@ def _deterministic_algorithms() -> Iterator[None]:
         torch.use_deterministic_algorithms(previous)
 
 
-def test_layer_inside_the_devices_autocast_equals_full_precision(streams, monkeypatch):
+def _check_cublas_config() -> None:
+    """cuBLAS's condition for deterministic products, set from the process's start (tests/conftest.py sets it where
+    the environment does not): torch sizes a stream's cuBLAS workspace at its first product and keeps it, so a test
+    that set it itself came too late once an earlier test's products had run."""
+    value = os.environ.get("CUBLAS_WORKSPACE_CONFIG")
+    if torch.device(DEVICE).type == "cuda" and value not in (":4096:8", ":16:8"):
+        pytest.fail(f"CUBLAS_WORKSPACE_CONFIG={value!r}: deterministic cuBLAS products need :4096:8 or :16:8 from the "
+                    "process's start (tests/conftest.py sets :4096:8 unless the environment sets it)")  # fmt: skip
+
+
+def test_layer_inside_the_devices_autocast_equals_full_precision(streams):
     """A training step's ``torch.autocast`` on the device (float16 on CUDA): the float32 layer tracks, unrolls and
     resamples in float32, bit-identical to the run outside it, while the caller's own products still autocast.
 
@@ -233,7 +243,7 @@ def test_layer_inside_the_devices_autocast_equals_full_precision(streams, monkey
     frames, lm, _ = streams
     frames, lm = frames.to(DEVICE), lm.to(DEVICE)
     device_type = torch.device(DEVICE).type
-    monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # (cuBLAS's own condition for deterministic products)
+    _check_cublas_config()
     for mode in (LayerMode.DETACHED, LayerMode.UNROLLED):
         with _deterministic_algorithms():
             layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=32, tracker=CFG)).to(DEVICE)
@@ -284,7 +294,7 @@ def test_a_compiled_network_holding_the_layer(streams):
     torch.testing.assert_close(gc, ge, rtol=1e-3, atol=1e-6)
 
 
-def test_deterministic_algorithms_on_the_device(streams, monkeypatch):
+def test_deterministic_algorithms_on_the_device(streams):
     """``torch.use_deterministic_algorithms(True)`` (a reproducible training run): torch's CUDA ``nanmedian`` and the
     image backward of ``grid_sample`` and of the reflected pad raise there, so the tracker could not track a frame
     nor the layer train; torchface._deterministic's substitutes run instead. Two runs are bit-identical, and equal
@@ -292,7 +302,7 @@ def test_deterministic_algorithms_on_the_device(streams, monkeypatch):
     from training_hooks.layer import LayerConfig, LayerMode, NormalisedFaceLayer
 
     frames, lm, _ = streams
-    monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # (cuBLAS's own condition for deterministic products)
+    _check_cublas_config()
 
     def run():
         torch.manual_seed(0)

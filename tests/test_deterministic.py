@@ -5,6 +5,7 @@ tests/test_cuda.py."""
 
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
 
@@ -74,23 +75,29 @@ def test_jacrev_with_respect_to_the_grid_alone_under_an_old_torch(monkeypatch):
     """torch 2.11's ``vmap`` rule of ``grid_sample``'s backward raised where the grid asks for a gradient and the image
     does not ("Expected a proper Tensor but got None"; ``torch.func.jacrev`` of the normalised face with respect to the
     pose, session 57), and where the image requires grad outside the transform too: there the gathered corners run, and
-    their Jacobian is torch's. Simulated on this torch (the flag forced, torch's sampler's calls counted); the image's
-    own gradient and plain autograd keep torch's sampler."""
+    their Jacobian is torch's. Simulated on this torch: its sampler raises as 2.11's did where the grid is a
+    transform's and the image is not at its level, the probe (run afresh) sees it, and torch's sampler's calls are
+    counted; the image's own gradient and plain autograd keep torch's sampler."""
     from torch.func import grad, jacrev
 
     gen = torch.Generator().manual_seed(3)
     images = torch.rand(2, 3, 7, 9, generator=gen, dtype=D)
     grid = torch.rand(2, 3, 4, 2, generator=gen, dtype=D) * 1.8 - 0.9
     want = torch.autograd.functional.jacobian(lambda g: grid_sample_border(images, g), grid)
-    monkeypatch.setattr(_deterministic, "_GRID_SAMPLE_VMAP_BACKWARD_BROKEN", True)
     real = F.grid_sample
     calls = []
 
-    def counted(*args, **kwargs):
+    def as_torch_2_11(image, points, *args, **kwargs):
+        if _deterministic._grid_alone_under_a_transform(image, points):
+            raise RuntimeError("Expected a proper Tensor but got None (or an undefined Tensor in C++) for argument #0")
         calls.append(1)
-        return real(*args, **kwargs)
+        return real(image, points, *args, **kwargs)
 
-    monkeypatch.setattr(_deterministic.F, "grid_sample", counted)
+    monkeypatch.setattr(_deterministic.F, "grid_sample", as_torch_2_11)
+    fresh = functools.cache(_deterministic._grid_sample_vmap_backward_broken.__wrapped__)  # (not the kept answer)
+    monkeypatch.setattr(_deterministic, "_grid_sample_vmap_backward_broken", fresh)
+    assert fresh() is True
+    calls.clear()
     got = jacrev(lambda g: grid_sample_border(images, g))(grid)
     assert not calls  # (the gathered corners)
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)

@@ -1,19 +1,18 @@
-"""Whether ``torch.compile`` (or ``torch.export``) is tracing the running code, on every torch pyproject.toml accepts.
-
-``torch.compiler.is_compiling`` came with torch 2.3; torch 2.1 and 2.2 (which pyproject.toml accepted before it asked
-for 2.5.1) have the same flag as
-``torch._utils.is_compiling``: Dynamo folds either to True while it traces, and either is False in eager code. The
-later torches deprecate the second with a warning at each call, so it is only the fallback. (The tracker's kernel
-dispatch, :func:`torchface.backend.use_native`, asks at each call: ``torch.compiler.is_compiling`` alone raised
-``AttributeError`` there on torch 2.1 and 2.2, at the first frame.)
+"""Whether ``torch.compile`` (or ``torch.export``) is tracing the running code (:func:`is_compiling`, torch's
+``torch.compiler.is_compiling``, asked at each native kernel's dispatch, :func:`torchface.backend.use_native`).
 
 Likewise whether ``torch.func``'s transforms or forward-mode AD run on given tensors (:func:`is_transformed`, the
 native kernels and inference mode are left out for them) and the refusal of those a tracking step cannot support
 (:func:`check_reverse_mode`).
+
+What this torch can do under the transforms is probed, not read from its version (:func:`feature_probe`): a
+pre-release's version (``2.10.0a0+git...``, ``2.12.0.dev20261101``) sorts before its release, so a version test
+took a nightly for the older torch, and a build's fix need not come with the release a version test names.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -21,25 +20,58 @@ import torch.autograd.forward_ad as forward_ad
 import torch.compiler
 from torch import Tensor
 
-__all__ = ["TRANSFORMS_READ_VALUES", "check_reverse_mode", "is_compiling", "host_values", "is_transformed"]
+__all__ = ["check_reverse_mode", "feature_probe", "host_values", "is_compiling", "is_transformed",
+           "transforms_read_values"]  # fmt: skip
 
 #: ``() -> bool``: whether torch.compile (or torch.export) is tracing the caller.
-is_compiling: Callable[[], bool] = getattr(torch.compiler, "is_compiling", None) or torch._utils.is_compiling
+is_compiling: Callable[[], bool] = torch.compiler.is_compiling
 
 _peek_interpreter_stack = torch._C._functorch.peek_interpreter_stack  # None when no torch.func transform runs
 _is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
 
-#: Whether this torch reads a ``torch.func`` transform's tensors' values with ``.tolist()`` (torch 2.10 and later;
-#: 2.5 to 2.9 raised "Cannot access data pointer of Tensor that doesn't have storage"; ``bool``, ``int`` and
-#: ``.item()`` worked). A tracking step reads values so in many places: on an older torch it is refused under the
-#: transforms (:func:`check_reverse_mode`); the frames' and faces' checks read through :func:`host_values`.
-TRANSFORMS_READ_VALUES: bool = torch.torch_version.TorchVersion(torch.__version__) >= "2.10"
+
+def feature_probe(check: Callable[[], object]) -> bool:
+    """Whether ``check()`` runs without a ``RuntimeError`` (the errors an unsupported operation of a ``torch.func``
+    transform raises), apart from the caller's modes: grad mode on, inference mode and CPU autocast off (a caller's
+    ``torch.no_grad`` or ``torch.inference_mode`` changed what a transform does: ``jacrev`` of ``grid_sample`` passed
+    in inference mode on torch 2.5.1, where it raises). ``check`` makes its own small CPU tensors (a dtype and
+    device given: the caller's defaults may be any) and changes no global state; the modes are put back on return.
+    A transform of the caller's around it is left alone: the probes' transforms nest inside it (their answers
+    were the same nested as alone on torch 2.5.1, 2.11 and 2.13)."""
+    try:
+        with torch.inference_mode(False), torch.enable_grad(), torch.autocast("cpu", enabled=False):
+            check()
+    except RuntimeError:
+        return False
+    return True
+
+
+def _tolist_under_grad() -> None:
+    def f(x: Tensor) -> Tensor:
+        x.tolist()
+        return x.sum()
+
+    torch.func.grad(f)(torch.zeros(2, dtype=torch.float32, device="cpu"))
+
+
+@functools.cache
+def transforms_read_values() -> bool:
+    """Whether this torch reads a ``torch.func`` transform's tensors' values with ``.tolist()`` (torch 2.10 and later
+    do; 2.5 to 2.9 raised "Cannot access data pointer of Tensor that doesn't have storage"; ``bool``, ``int`` and
+    ``.item()`` worked). A tracking step reads values so in many places: where it cannot, a step is refused under the
+    transforms (:func:`check_reverse_mode`); the frames' and faces' checks read through :func:`host_values`.
+
+    Probed (:func:`feature_probe`: a ``.tolist()`` inside ``torch.func.grad``, under a millisecond once torch.func
+    has run) at the first call, which comes under a transform (:func:`host_values`, :func:`check_reverse_mode` ask
+    only there), and kept for the process."""
+    return feature_probe(_tolist_under_grad)
 
 
 def host_values(x: Tensor) -> list:
-    """``x.tolist()`` of a 1-D tensor, also for a ``torch.func`` transform's tensor on a torch before 2.10
-    (:data:`TRANSFORMS_READ_VALUES`; there one ``.item()`` per value, which those read)."""
-    if TRANSFORMS_READ_VALUES or not _is_wrapped(x):
+    """``x.tolist()`` of a 1-D tensor, also for a ``torch.func`` transform's tensor on a torch that cannot
+    ``.tolist()`` it (:func:`transforms_read_values`, before 2.10; there one ``.item()`` per value, which those
+    read)."""
+    if not _is_wrapped(x) or transforms_read_values():
         return x.tolist()
     return [v.item() for v in x.unbind()]
 
@@ -76,8 +108,8 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
     derivative in torch; reverse mode (``torch.autograd``, ``torch.func.grad``, ``vjp``, ``jacrev``) works.
 
     Raises:
-        RuntimeError: under ``vmap`` or forward-mode AD, or under any ``torch.func`` transform on a torch before 2.10
-            (:data:`TRANSFORMS_READ_VALUES`).
+        RuntimeError: under ``vmap`` or forward-mode AD, or under any ``torch.func`` transform on a torch that
+            cannot read its tensors' values (:func:`transforms_read_values`, before 2.10).
     """
     if _peek_interpreter_stack() is not None and any(isinstance(x, Tensor) and _vmapped(x) for x in tensors):
         raise RuntimeError(
@@ -92,9 +124,9 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
             "none): use reverse mode (torch.autograd.grad, torch.func.grad, vjp or jacrev)"
         )
     if (
-        not TRANSFORMS_READ_VALUES
-        and _peek_interpreter_stack() is not None
+        _peek_interpreter_stack() is not None
         and any(isinstance(x, Tensor) and _is_wrapped(x) for x in tensors)
+        and not transforms_read_values()
     ):
         raise RuntimeError(
             f"{what} under a torch.func transform needs torch 2.10 or later (torch {torch.__version__} cannot read the "

@@ -19,24 +19,45 @@ torch's operation on the CPU (forced with :data:`FORCE`).
 
 The gathered corners serve one more case: under torch < 2.12 ``torch.func.jacrev`` with respect to the sampled
 points alone (the normalised face's Jacobian with respect to the pose) raised inside torch's ``grid_sample``
-backward (:data:`_GRID_SAMPLE_VMAP_BACKWARD_BROKEN`).
+backward (:func:`_grid_sample_vmap_backward_broken`, probed).
 """
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from torchface._compiling import feature_probe
 
 __all__ = ["grid_sample_border", "nanmedian_values", "reflect_pad"]
 
 #: Tests set this to True to run the substitutes on any device (module docstring).
 FORCE = False
 
-#: torch before 2.12: the ``vmap`` rule of ``grid_sample``'s backward fails where the image asks for no gradient and
-#: the grid does ("Expected a proper Tensor but got None ... argument #0 'self'"; seen with torch 2.11, not 2.12), so
-#: ``torch.func.jacrev`` with respect to the geometry raised. The gathered corners run there instead.
-_GRID_SAMPLE_VMAP_BACKWARD_BROKEN = torch.torch_version.TorchVersion(torch.__version__) < "2.12"
+def _jacrev_of_grid_sample_with_respect_to_the_grid() -> None:
+    grid = torch.zeros(1, 1, 1, 2, dtype=torch.float32, device="cpu")
+    for needs_grad in (False, True):  # (an image that requires grad outside the transform asks for none inside it)
+        images = torch.zeros(1, 1, 2, 2, dtype=torch.float32, device="cpu", requires_grad=needs_grad)
+        torch.func.jacrev(
+            lambda g, images=images: F.grid_sample(images, g, "bilinear", "border", align_corners=True)
+        )(grid)
+
+
+@functools.cache
+def _grid_sample_vmap_backward_broken() -> bool:
+    """Whether ``torch.func.jacrev`` of ``grid_sample`` with respect to the grid alone raises: torch before 2.12
+    (2.5.1 and 2.11 raise; 2.12, session 57, and 2.13 do not), whose ``vmap`` rule of ``grid_sample``'s backward
+    fails where the image asks for no gradient at the transform's level and the grid does ("Expected a proper Tensor
+    but got None ... argument #0 'self'"), also where the image requires grad outside the transform. The gathered
+    corners run there instead.
+
+    Probed (:func:`torchface._compiling.feature_probe`: both cases on a 2x2 image, about a millisecond) at the first
+    call, which comes under such a transform (:func:`grid_sample_border` asks only there), and kept for the process.
+    (On the CPU: the rule is the same on every device.)"""
+    return not feature_probe(_jacrev_of_grid_sample_with_respect_to_the_grid)
 
 
 def _substitute(x: Tensor, backward: bool) -> bool:
@@ -79,7 +100,7 @@ def _clip(coordinate: Tensor, limit: int) -> Tensor:
 def _grid_alone_under_a_transform(images: Tensor, grid: Tensor) -> bool:
     """Whether a ``torch.func`` transform asks for ``grid``'s gradient and not ``images``': ``grid`` is wrapped by it
     and ``images`` is not, at its level (an image that requires grad at an outer level, as a frame a network made,
-    asks for none at the transform's: torch < 2.12 raised there too, :data:`_GRID_SAMPLE_VMAP_BACKWARD_BROKEN`)."""
+    asks for none at the transform's: torch < 2.12 raised there too, :func:`_grid_sample_vmap_backward_broken`)."""
     functorch = torch._C._functorch
     if not (grid.requires_grad and functorch.is_functorch_wrapped_tensor(grid)):
         return False
@@ -89,8 +110,8 @@ def _grid_alone_under_a_transform(images: Tensor, grid: Tensor) -> bool:
 def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     """``F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)``, also where the
     image's gradient is asked for under deterministic algorithms on CUDA (module docstring), and for a grid wrapped
-    by a ``torch.func`` transform that asks for the grid's gradient and not the image's, under torch < 2.12
-    (:data:`_GRID_SAMPLE_VMAP_BACKWARD_BROKEN`).
+    by a ``torch.func`` transform that asks for the grid's gradient and not the image's, where torch's raises
+    there (:func:`_grid_sample_vmap_backward_broken`, torch < 2.12).
 
     Args:
         images: ``(B, C, H, W)``.
@@ -101,7 +122,7 @@ def grid_sample_border(images: Tensor, grid: Tensor) -> Tensor:
     Returns:
         ``(B, C, Ho, Wo)``.
     """
-    old_jacrev = _GRID_SAMPLE_VMAP_BACKWARD_BROKEN and _grid_alone_under_a_transform(images, grid)
+    old_jacrev = _grid_alone_under_a_transform(images, grid) and _grid_sample_vmap_backward_broken()
     if not old_jacrev and not _substitute(images, backward=True):
         return F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)
     B, C, H, W = images.shape

@@ -36,9 +36,8 @@ def available_devices() -> list[str]:
         names += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
     if torch.backends.mps.is_available():
         names.append("mps")
-    xpu = getattr(torch, "xpu", None)
-    if xpu is not None and xpu.is_available():
-        names += [f"xpu:{i}" for i in range(xpu.device_count())]
+    if torch.xpu.is_available():
+        names += [f"xpu:{i}" for i in range(torch.xpu.device_count())]
     return names
 
 

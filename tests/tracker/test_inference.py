@@ -12,7 +12,7 @@ from typing import NamedTuple
 import pytest
 import torch
 
-from torchface._compiling import TRANSFORMS_READ_VALUES
+from torchface._compiling import transforms_read_values
 from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.normalise import build_normalised_layout, normalised_face
@@ -186,7 +186,7 @@ def test_torch_func_grad_and_jacrev_of_a_step_equal_autograd(model, turn, manage
     """``torch.func.grad`` / ``jacrev`` through a step with the default backend give autograd's gradients. Before,
     the step handed the transform's wrapped frames (detached, so asking for no gradient) to the native rasterizer:
     "Cannot access data pointer of Tensor that doesn't have storage". On a torch before 2.10 the transforms are
-    refused with one line (torchface._compiling.TRANSFORMS_READ_VALUES)."""
+    refused with one line (torchface._compiling.transforms_read_values)."""
     frames, lm = turn
     init, step = (initialise_managed, managed_step) if managed else (initialise, track_step)
     state, _ = init(model, CFG, frames[:, 0], lm, Intrinsics.default(W, H))
@@ -197,7 +197,7 @@ def test_torch_func_grad_and_jacrev_of_a_step_equal_autograd(model, turn, manage
 
     pixels = frame.clone().requires_grad_(True)
     (want,) = torch.autograd.grad(translation(pixels).sum(), pixels)
-    if not TRANSFORMS_READ_VALUES:  # (torch < 2.10 cannot read a transform's values as a step does: refused)
+    if not transforms_read_values():  # (torch < 2.10 cannot read a transform's values as a step does: refused)
         with pytest.raises(RuntimeError, match=r"^a tracking step under a torch.func transform needs torch 2.10"):
             torch.func.grad(lambda x: translation(x).sum())(frame)
         return

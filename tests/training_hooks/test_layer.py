@@ -19,7 +19,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from torchface._compiling import TRANSFORMS_READ_VALUES
+from torchface._compiling import transforms_read_values
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import euler_to_matrix
@@ -206,7 +206,7 @@ def test_torch_func_grad_of_the_layer_equals_autograd(model, small, mode):
     layer = NormalisedFaceLayer(LayerConfig(mode=mode, size=G, tracker=SMALL), model)
     weights = torch.rand(1, 3, G, G, dtype=D, generator=torch.Generator().manual_seed(6))
     _, want = _grad(layer, frames[1:2], state, weights)
-    if not TRANSFORMS_READ_VALUES:  # (torch < 2.10: the tracking step under a transform is refused in one line)
+    if not transforms_read_values():  # (torch < 2.10: the tracking step under a transform is refused in one line)
         with pytest.raises(RuntimeError, match=r"^a tracking step under a torch.func transform needs torch 2.10"):
             torch.func.grad(lambda f: (layer(f, state).image * weights).sum())(frames[1:2].clone())
         return
