@@ -2530,7 +2530,7 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     try:
         seen = []
         monkeypatch.setattr(
-            torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM))
+            torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM)) or []
         )
         monkeypatch.setattr(torchface.cli, "_print_summary", lambda *a: None)
         assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 0
