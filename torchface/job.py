@@ -32,7 +32,9 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
 A video whose first frame shows no face to the detector (a title card, a black frame) is searched frame by frame
 and tracked from the first frame where it finds one (:func:`_open_inputs`; ``start.first_frame`` in the JSON), its
 rows before it without an estimate (:func:`_no_face_row`); one without any face is refused before anything is
-written.
+written. A video whose start failed (:func:`_warn_failed_starts`) and that nothing started afresh is written complete,
+every row unusable (``success`` 0): its :class:`VideoSummary`'s ``no_tracked_frame`` says it (``torchface track``
+exits with status 3).
 
 With ``JobConfig.keep_going`` (``torchface track --keep-going``) an input that is refused (by the checks before
 tracking, as its batch opens, or, resumed, as its partial run is read) is skipped with a warning (:class:`InputSkipped`)
