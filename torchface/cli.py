@@ -18,7 +18,8 @@ Errors about the input or the output folder print one line ``torchface: error: .
 be read partway stops that video only: the summary of the others, completed, is printed before the error); with
 ``--keep-going`` an input that cannot be tracked is skipped instead (one line ``torchface: warning: skipped ...``),
 the others tracked, and a run that skipped any, or in which a video stopped partway, exits with status 3 after its
-summary, which lists them with why;
+summary, which lists them with why; so does a run, with or without ``--keep-going``, in which a video has no tracked
+frame (its outputs written, every row unusable: its start failed, a black first frame, and nothing started it again);
 an interrupted run (Ctrl-C, or SIGTERM as ``timeout`` and ``docker stop`` send) exits with status 130 (143 for
 SIGTERM) and keeps its rows for ``--resume``, saying what it leaves (the partial CSVs and their rows, the videos
 complete, or that nothing was written). A progress display whose reader has gone (``2>&1 | head -1``) stops
@@ -51,6 +52,8 @@ __all__ = ["main", "build_parser", "ProgressDisplay"]
 
 EXIT_USAGE = 2
 #: ``torchface track --keep-going``: an input was skipped or a video stopped partway; every other one is complete.
+#: Also, with or without ``--keep-going``: a video's outputs were written with no tracked frame
+#: (:attr:`torchface.job.VideoSummary.no_tracked_frame`).
 EXIT_INCOMPLETE = 3
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
@@ -283,7 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--keep-going", action="store_true",
         help="skip the inputs that cannot be tracked (unreadable, empty, a bad landmarks file, no face found, ...), "
         "each named on stderr as it is skipped, and track the others; the summary lists them with why, and the "
-        "exit status is 3 where any was skipped or stopped partway (default: one refuses the run, status 2)",
+        "exit status is 3 where any was skipped or stopped partway (default: one refuses the run, status 2; a video "
+        "with no tracked frame gives 3 either way)",
     )  # fmt: skip
     track.add_argument("--quiet", action="store_true", help="no progress bars")
     track.add_argument(
@@ -335,9 +339,16 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
             continue
         if s.skipped:
             lines.append(f"  {s.name}: already complete ({counted(s.frames, 'frame')}), skipped")
+        else:
+            lines.append(f"  {s.name}: {counted(s.frames, 'frame')}, {s.fps:.1f} fps, "
+                         f"mean confidence {s.mean_confidence:.2f}, {counted(s.lost, 'lost frame')}")  # fmt: skip
+        if s.no_tracked_frame:  # (the run exits with status 3: its last line names it)
+            why = (f"its start failed ({s.start_failure}) and nothing started it again" if s.start_failure else
+                   "the face was lost at every frame")  # fmt: skip
+            lines.append(f"    warning: no tracked frame, every row unusable (success 0): {why}; its outputs are "
+                         "written")  # fmt: skip
+        if s.skipped:
             continue
-        lines.append(f"  {s.name}: {counted(s.frames, 'frame')}, {s.fps:.1f} fps, "
-                     f"mean confidence {s.mean_confidence:.2f}, {counted(s.lost, 'lost frame')}")  # fmt: skip
         if s.declared_frames is not None:
             lines.append(f"    warning: {s.input} declares {counted(s.declared_frames, 'frame')}, {s.frames} could be "
                          "decoded (truncated or damaged?)")  # fmt: skip
@@ -429,7 +440,9 @@ def _run_track(
         if display is not None:
             display.flush()  # the last reports, when a redraw was due later
         _print_summary(summaries, sys.stdout)
-        if keep_going and not all(s.complete for s in summaries):  # (without it, every one is: or an error)
+        # (without --keep-going every video is complete, or an error was raised; a video of no tracked frame is
+        # complete, its outputs written with every row unusable: a script over many videos took it for a tracked one)
+        if not all(s.complete and not s.no_tracked_frame for s in summaries):
             _say(f"torchface: {_incomplete(summaries)}")
             return EXIT_INCOMPLETE
     except KeyboardInterrupt as exc:  # (the job says what it leaves; interrupted once it has returned: complete)
@@ -450,15 +463,18 @@ def _run_track(
 
 
 def _incomplete(summaries) -> str:
-    """The last line of a ``--keep-going`` run that skipped inputs or whose videos stopped partway: how many of each,
-    named (the first 10), and that the others are complete."""
+    """The last line of a run (status 3) that skipped inputs or whose videos stopped partway (``--keep-going``), or in
+    which videos have no tracked frame (:attr:`~torchface.job.VideoSummary.no_tracked_frame`, their outputs
+    written): how many of each, named (the first 10), and how many others are complete."""
     said = []
     for what, names in (("skipped", [s.name for s in summaries if s.refused is not None]),
-                        ("stopped partway", [s.name for s in summaries if s.stopped is not None])):  # fmt: skip
+                        ("stopped partway", [s.name for s in summaries if s.stopped is not None]),
+                        ("with no tracked frame", [s.name for s in summaries if s.no_tracked_frame])):  # fmt: skip
         if names:
             shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
             said.append(f"{len(names)} {what} ({shown})")
-    done = sum(s.complete for s in summaries)
+    done = sum(s.complete and not s.no_tracked_frame for s in summaries)
+    said = [", ".join(said[:-1]), said[-1]] if len(said) > 1 else said
     return (f"{' and '.join(said)} of the {counted(len(summaries), 'input')}, {done} complete "
             f"(exit status {EXIT_INCOMPLETE}; the summary says why)")  # fmt: skip
 

@@ -32,7 +32,9 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
 A video whose first frame shows no face to the detector (a title card, a black frame) is searched frame by frame
 and tracked from the first frame where it finds one (:func:`_open_inputs`; ``start.first_frame`` in the JSON), its
 rows before it without an estimate (:func:`_no_face_row`); one without any face is refused before anything is
-written.
+written. A video whose start failed (:func:`_warn_failed_starts`) and that nothing started afresh is written complete,
+every row unusable (``success`` 0): its :class:`VideoSummary`'s ``no_tracked_frame`` says it (``torchface track``
+exits with status 3).
 
 With ``JobConfig.keep_going`` (``torchface track --keep-going``) an input that is refused (by the checks before
 tracking, as its batch opens, or, resumed, as its partial run is read) is skipped with a warning (:class:`InputSkipped`)
@@ -422,6 +424,10 @@ class VideoSummary:
         not_met_again: with ``resume``, how many of the rows kept from the interrupted run that this run tracked
             again for the online start it did not meet again (a ``RuntimeWarning`` said so; the sidecar's
             ``resumed`` says by how much); the video is complete all the same. 0 otherwise.
+        start_failure: why the video's start failed, the :class:`~torchface.tracker.step.StartFailure` name that the
+            sidecar's ``start.failure`` holds (``"TOO_FEW_POINTS"``, ...; a detector's restart may have started it
+            since: :attr:`no_tracked_frame` says whether any row was tracked); None where it started, and for a
+            video ``refused`` or ``stopped``.
     """
 
     name: str
@@ -436,12 +442,21 @@ class VideoSummary:
     refused: str | None = None
     stopped: str | None = None
     not_met_again: int = 0
+    start_failure: str | None = None
 
     @property
     def complete(self) -> bool:
         """Whether the video's outputs are complete: tracked by this run, or found complete by ``resume``
         (``skipped``); False for a video ``refused`` or ``stopped``."""
         return self.refused is None and self.stopped is None
+
+    @property
+    def no_tracked_frame(self) -> bool:
+        """Whether the video is complete but none of its rows is usable (``lost == frames``: every row ``success``
+        0), as where its start failed (:attr:`start_failure`: a black first frame, landmarks no face fits) and no
+        detector started it afresh: its outputs are written, with nothing tracked in them. ``torchface track``
+        exits with status 3 where any video is such (a video with one usable row or more is not)."""
+        return self.complete and self.lost >= self.frames
 
 
 class InputSkipped(UserWarning):
@@ -2523,7 +2538,8 @@ def _track_locked(
             lost = int((rows[:, cols.index("success")] < 0.5).sum()) if len(rows) else 0
             outs = tuple(p for p in paths.values() if p.exists())
             mean = float(conf.mean()) if len(conf) else 0.0
-            summaries[str(v)] = VideoSummary(name, v, outs, len(rows), lost, mean, 0.0, True)
+            summaries[str(v)] = VideoSummary(name, v, outs, len(rows), lost, mean, 0.0, True,
+                                             start_failure=_sidecar_start_failure(paths["json"]))
             continue
         pending.append(v)
         if config.landmarks:
@@ -3387,9 +3403,21 @@ def _finalise(
     _record_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
+    failed = None if s.start_failure == StartFailure.NONE else s.start_failure.name  # (the sidecar's start.failure)
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short,
-                        not_met_again=s.not_met_again)  # fmt: skip
+                        not_met_again=s.not_met_again, start_failure=failed)  # fmt: skip
+
+
+def _sidecar_start_failure(sidecar: Path) -> str | None:
+    """The name of the failure of the start that the complete outputs' ``sidecar`` records (its ``start.failure``,
+    :func:`_start_record`), for :attr:`VideoSummary.start_failure` of a video ``resume`` skips as complete; None
+    where it started, or the sidecar says nothing of it (made before it did; :func:`_check_resumable` read it)."""
+    try:
+        failure = json.loads(sidecar.read_text(encoding="utf-8"))["start"]["failure"]
+        return str(failure["name"]) if failure is not None else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def _resumed_record(s: _Stream) -> dict | None:

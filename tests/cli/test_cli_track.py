@@ -2005,6 +2005,8 @@ def test_a_video_whose_start_fails_is_warned_about_with_its_reason(clip, tmp_pat
                               f"{StartFailure.NO_POSE.reason}; "), said[1]
     assert "outside the frame" not in said[0] and "texture" not in said[1]
     assert [s.lost for s in summaries] == [4, 0, 4]
+    assert [(s.no_tracked_frame, s.start_failure) for s in summaries] == [
+        (True, "TOO_FEW_POINTS"), (False, None), (True, "NO_POSE")]  # (torchface track exits with 3)
     failure = {name: json.loads(output_paths(tmp_path / "out", name)["json"].read_text())["start"]["failure"]
                for name in ("black", "good", "spot")}
     assert failure == {"black": {"name": "TOO_FEW_POINTS", "reason": dark.reason}, "good": None,
@@ -2027,8 +2029,9 @@ def test_a_resumed_video_whose_start_failed_keeps_its_reason(clip, tmp_path):
         _interrupted(black, tmp_path / "out", lm, 3)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        track_videos([black], JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), resume=True))
+        (resumed,) = track_videos([black], JobConfig(out_dir=tmp_path / "out", landmarks=(lm,), resume=True))
     assert not [w for w in caught if "start from the landmarks" in str(w.message)]
+    assert resumed.no_tracked_frame and resumed.start_failure == "TOO_FEW_POINTS"  # (its summary: as uninterrupted)
     ref, side = (json.loads(output_paths(tmp_path / d, "black")["json"].read_text()) for d in ("ref", "out"))
     assert side["resumed"] and side["frames"] == 6
     assert side["start"]["failure"] == ref["start"]["failure"] and ref["start"]["failure"]["name"] == "TOO_FEW_POINTS"
@@ -2082,11 +2085,13 @@ def test_a_failed_start_is_said_to_be_restarted_only_where_the_detector_restarts
                                                  template=replace(config.tracker.template, enabled=managed)))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            track_videos([black], config)
+            (summary,) = track_videos([black], config)
         said = [str(w.message) for w in caught if "start from the landmarks" in str(w.message)]
         cols, rows = read_track_csv(output_paths(tmp_path / str(managed), "black")["csv"])
         restarted = bool((rows[:, cols.index("success")] > 0).any())
         assert len(said) == 1 and restarted == managed, (said, restarted)
+        # (restarted, it has tracked frames: not a video of no tracked frame, its start's failure still named)
+        assert summary.no_tracked_frame == (not managed) and summary.start_failure == "TOO_FEW_POINTS", summary
         assert ("lost until the detector finds a face" in said[0]) == managed, said[0]
         assert ("every row is unusable" in said[0]) == (not managed), said[0]
 
@@ -2525,7 +2530,7 @@ def test_sigterm_stops_like_ctrl_c_with_status_143(monkeypatch, capsys, tmp_path
     try:
         seen = []
         monkeypatch.setattr(
-            torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM))
+            torchface.job, "track_videos", lambda *a, **k: seen.append(signal.getsignal(signal.SIGTERM)) or []
         )
         monkeypatch.setattr(torchface.cli, "_print_summary", lambda *a: None)
         assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 0

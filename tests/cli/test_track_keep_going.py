@@ -364,3 +364,43 @@ def test_interrupted_once_the_job_has_returned_names_what_it_skipped_and_what_st
     assert said == (f"torchface: interrupted; every video is complete but gray, skipped (nothing written), and "
                     f"broken, stopped partway: its rows are kept in {out / 'broken.csv.partial'}"), said
     assert (out / "good.json").is_file() and (out / "broken.csv.partial").is_file()
+
+
+def test_a_video_with_no_tracked_frame_exits_with_3_and_is_named(clip, tmp_path, capsys):
+    """A video whose start failed (a black first frame: TOO_FEW_POINTS) and that nothing started again was written
+    complete, every row unusable (success 0), with a warning line, and the run exited with 0: a script over many
+    videos took it for a tracked one. The run now exits with 3, with or without ``--keep-going`` (its outputs still
+    written), the summary says it under the video's line and the last line names it, with ``--keep-going``'s skipped
+    inputs where there are some; a ``--resume`` that finds it complete says it again (3). (The Python API's
+    ``VideoSummary.no_tracked_frame``: test_cli_track's failed-start tests.)"""
+    frames, lm = clip
+    black_frames = frames.copy()
+    black_frames[0] = 0
+    np.save(tmp_path / "black.npy", black_frames)
+    np.save(tmp_path / "good.npy", frames)
+    np.save(tmp_path / "gray.npy", frames[..., 0])
+    out = tmp_path / "out"
+    rc = _track([tmp_path / "black.npy", tmp_path / "good.npy"], [lm, lm], out)
+    captured = capsys.readouterr()
+    assert rc == EXIT_INCOMPLETE, captured.err
+    warning = ("    warning: no tracked frame, every row unusable (success 0): its start failed (TOO_FEW_POINTS) and "
+               "nothing started it again; its outputs are written")  # fmt: skip
+    lines = captured.out.splitlines()
+    assert lines[2].startswith("  black: 3 frames, ") and lines[2].endswith(", 3 lost frames"), lines
+    assert lines[3] == warning and lines[4].startswith("  good: 3 frames, ") and "warning" not in lines[5], lines
+    assert captured.err.splitlines()[-1] == ("torchface: 1 with no tracked frame (black) of the 2 inputs, 1 complete "
+                                             "(exit status 3; the summary says why)")  # fmt: skip
+    assert "black: the start from the landmarks of frame 0 failed (TOO_FEW_POINTS)" in captured.err
+    assert sorted(_written(out, "black")) == ["black.csv", "black.json", "black_normalised.mp4", "black_overlay.mp4",
+                                              "black_plot.png"]  # fmt: skip
+
+    rc = _track([tmp_path / "black.npy", tmp_path / "good.npy"], [lm, lm], out, "--resume")  # (found complete)
+    captured = capsys.readouterr()
+    assert rc == EXIT_INCOMPLETE and "  black: already complete (3 frames), skipped\n" + warning in captured.out
+    assert captured.err.splitlines()[-1].startswith("torchface: 1 with no tracked frame (black) of the 2 inputs")
+    rc = _track([tmp_path / "gray.npy", tmp_path / "black.npy", tmp_path / "good.npy"], [lm] * 3, out, "--resume",
+                "--keep-going")  # fmt: skip
+    captured = capsys.readouterr()
+    assert rc == EXIT_INCOMPLETE and captured.err.splitlines()[-1] == (
+        "torchface: 1 skipped (gray) and 1 with no tracked frame (black) of the 3 inputs, 1 complete (exit status 3; "
+        "the summary says why)")  # fmt: skip
