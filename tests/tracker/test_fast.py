@@ -772,15 +772,25 @@ def test_no_iteration_without_the_final_check_reports_no_linearisation(backend):
                      (-math.inf, -math.inf)], ids=["nan-lower", "nan-upper", "nan-both", "crossed", "lower-inf",
                                                    "upper-minus-inf"],
 )  # fmt: skip
-def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, backend):
+@pytest.mark.parametrize("rows", [False, True], ids=["shared", "per-stream"])
+def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, rows, backend, monkeypatch):
     """A NaN bound, bounds the wrong way round or a bound at the wrong infinity are refused with a ValueError naming
     the unit. Before, the torch code failed every stream without a word (``finite`` False, the start handed back:
     the clip made the unit NaN) while the native solver ran on as if that side had no bound, and bounds the wrong
-    way round put the unit at its upper bound in both."""
+    way round put the unit at its upper bound in both. Per-stream ``(B, A)`` bounds (the second stream's unit 2
+    here) are checked elementwise before their values are read as lists (as more than
+    ``fast._LIST_CHECK_VALUES`` are: 0 here)."""
+    import torchface.tracker.fast as fast
+
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
-    lo[2], hi[2] = lower, upper
+    if rows:
+        monkeypatch.setattr(fast, "_LIST_CHECK_VALUES", 0)
+        lo, hi = lo.expand(2, A).clone(), hi.expand(2, A).clone()
+        lo[1, 2], hi[1, 2] = lower, upper
+    else:
+        lo[2], hi[2] = lower, upper
     with pytest.raises(ValueError, match=r"alpha_lower and alpha_upper must be bounds.*for animation unit 2"):
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=iterations,
                     free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0,
