@@ -186,7 +186,8 @@ def test_warp_points_expression_loop_equals_the_broadcast_matmul(dtype, monkeypa
     """The chunked loop over the point-last basis (many streams' points, no gradient) gives the broadcast matmul's
     values bit for bit: the same products summed in the same order with the same roundings (a fused multiply-add,
     or a reduction in another order, changes the last bit of some of these sums). Chunks of two streams here
-    (the last one shorter); where a gradient is asked for, the matmul runs itself (None)."""
+    (the last one shorter); where a gradient is asked for, the matmul runs itself (None). ``out=`` takes
+    ``points_cam`` into a view of a larger tensor (the visibility test's points of every level), the same values."""
     import torchface.tracker.objective as objective
 
     monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", 0)
@@ -210,6 +211,9 @@ def test_warp_points_expression_loop_equals_the_broadcast_matmul(dtype, monkeypa
     monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", B * N + 1)  # the matmul
     pm0, pc0, R0 = warp_points(tpl, layout, x)
     assert torch.equal(pm, pm0) and torch.equal(pc, pc0) and torch.equal(R, R0)
+    into = torch.zeros(B, N + 7, 3, dtype=dtype)  # points_cam written into a view of a larger tensor
+    pc1 = warp_points(tpl, layout, x, out=into[:, 3 : 3 + N])[1]
+    assert torch.equal(pc1, pc) and torch.equal(into[:, 3 : 3 + N], pc) and not into[:, :3].any()
     assert objective._expression_offsets(tpl, alpha) is None
     monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", 0)
     assert objective._expression_offsets(tpl, alpha.clone().requires_grad_()) is None

@@ -27,9 +27,11 @@ from torchface.template.points import Template
 from torchface.tracker.params import ParamLayout
 
 
-#: Values (streams times 3 N) per chunk of :func:`_expression_offsets`' loop: a chunk's sum and product (256 KB
-#: each in float32) stay in the cache across its ``A`` passes.
-_OFFSET_CHUNK_VALUES: int = 1 << 15
+#: Values (streams times 3 N) per chunk of :func:`_expression_offsets`' loop: a chunk's sum and product (512 KB
+#: each in float32) stay in a core's cache across its ``A`` passes, in few chunks (each pass over a chunk is
+#: four dispatched operations). At 128 streams, 1500 points, one thread: 2**15 to 2**20 values a chunk took
+#: 19-27 ms (median of 9, a loaded machine), 2**17 the least, against 31 ms for the matmul.
+_OFFSET_CHUNK_VALUES: int = 1 << 17
 
 #: The fewest streams times points for which :func:`_expression_offsets` takes its loop (below, the matmul: at one
 #: stream the loop's ``2 A`` dispatched operations per chunk cost more than the matmul's broadcast copy).
@@ -77,7 +79,7 @@ def _expression_offsets(template: Template, alpha: Tensor) -> Tensor | None:
 
 
 def warp_points(
-    template: Template, layout: ParamLayout, x: Tensor, R: Tensor | None = None
+    template: Template, layout: ParamLayout, x: Tensor, R: Tensor | None = None, *, out: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Template points under parameters ``x``.
 
@@ -85,6 +87,9 @@ def warp_points(
         template: ``N`` points per sample; layout: the packing of ``x``; x: ``(B, P)``.
         R: ``(B, 3, 3)`` the rotation of ``x``'s axis-angle, when the caller has it (not differentiated
             through ``x`` then).
+        out: a ``(B, N, 3)`` tensor (a view into a larger one may be) that ``points_cam`` is written into and
+            returned as, with the same values (without autograd: ``out=`` arguments do not support it); None: a new
+            tensor.
 
     Returns:
         ``points_model (B, N, 3)``, ``points_cam (B, N, 3)`` and the rotation ``(B, 3, 3)``.
@@ -96,7 +101,8 @@ def warp_points(
     else:
         points_model = template.points + offsets.transpose(1, 2)
     R = axis_angle_to_matrix(aa) if R is None else R
-    points_cam = torch.matmul(points_model, R.transpose(1, 2)) + t.unsqueeze(1)
+    points_cam = torch.matmul(points_model, R.transpose(1, 2))
+    points_cam = points_cam + t.unsqueeze(1) if out is None else torch.add(points_cam, t.unsqueeze(1), out=out)
     return points_model, points_cam, R
 
 

@@ -2120,14 +2120,17 @@ def _visibility_at(
 
         frags = _cover(verts, model.faces, intr, False, NEAR_PLANE_MM, backend, pixels=False, scratch=scratch)[0]
     # The levels' points are tested together (one call instead of one per level: the test is per point).
-    cams = [warp_points(tpl, layout, state.params, R)[1] for tpl in state.templates]
     faces = [tpl.face_index for tpl in state.templates]
-    sizes = [c.shape[1] for c in cams]
+    sizes = [f.shape[1] for f in faces]
     if workspace is None:
-        points, point_faces = torch.cat(cams, 1), torch.cat(faces, 1)
-    else:
-        B, n, device = cams[0].shape[0], sum(sizes), verts.device
-        points = torch.cat(cams, 1, out=workspace.buffer("visibility_points", (B, n, 3), cams[0].dtype, device))
+        points = torch.cat([warp_points(tpl, layout, state.params, R)[1] for tpl in state.templates], 1)
+        point_faces = torch.cat(faces, 1)
+    else:  # each level's points written where they go (not made apart and then copied)
+        B, n, device = faces[0].shape[0], sum(sizes), verts.device
+        dtype = torch.promote_types(state.templates[0].points.dtype, state.params.dtype)  # (warp_points' result's)
+        points = workspace.buffer("visibility_points", (B, n, 3), dtype, device)
+        for tpl, part in zip(state.templates, points.split(sizes, 1)):
+            warp_points(tpl, layout, state.params, R, out=part)
         point_faces = torch.cat(faces, 1, out=workspace.buffer("visibility_faces", (B, n), faces[0].dtype, device))
     visible = points_visible(points, point_faces, frags, intr, depth_tolerance=0.02, backend=backend)
     return [v & tpl.valid for v, tpl in zip(visible.split(sizes, 1), state.templates)]
