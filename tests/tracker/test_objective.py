@@ -197,10 +197,11 @@ def test_warp_points_expression_loop_equals_the_broadcast_matmul(dtype, monkeypa
     layout = ParamLayout(A11, 5)
     basis = (torch.randn(B, N, 3, A11, generator=gen, dtype=D) * 10.0 ** torch.randint(-3, 3, (B, N, 3, A11),
              generator=gen)).to(dtype)  # fmt: skip
-    tpl = Template(torch.zeros(B, N, dtype=torch.long), torch.full((B, N, 3), 1 / 3, dtype=dtype),
-                   (100 * torch.randn(B, N, 3, generator=gen, dtype=D)).to(dtype), basis,
-                   torch.randn(B, N, 3, generator=gen, dtype=D).to(dtype), torch.rand(B, N, generator=gen, dtype=D).to(dtype),
-                   torch.ones(B, N, dtype=torch.bool))  # fmt: skip
+    scale = torch.tensor([100.0, 1.0], dtype=D).view(2, 1, 1, 1)  # the points (mm) and the normals
+    points, normals = (torch.randn(2, B, N, 3, generator=gen, dtype=D) * scale).to(dtype)
+    intensity = torch.rand(B, N, generator=gen, dtype=D).to(dtype)
+    tpl = Template(torch.zeros(B, N, dtype=torch.long), torch.full((B, N, 3), 1 / 3, dtype=dtype), points, basis,
+                   normals, intensity, torch.ones(B, N, dtype=torch.bool))  # fmt: skip
     x = torch.randn(B, layout.size, generator=gen, dtype=D).to(dtype)
     x[:, 5] += 400.0
     alpha = x[:, layout.animation]

@@ -1085,9 +1085,11 @@ def test_level_light_basis_in_a_workspace_equals_illumination_basis(dtype):
     gen = torch.Generator().manual_seed(7)
     B, N = 3, 40
     normals = torch.nn.functional.normalize(torch.randn(B, N, 3, generator=gen, dtype=dtype), dim=-1)
-    tpl = Template(torch.zeros(B, N, dtype=torch.long), torch.full((B, N, 3), 1 / 3, dtype=dtype),
-                   torch.randn(B, N, 3, generator=gen, dtype=dtype), torch.randn(B, N, 3, 2, generator=gen, dtype=dtype),
-                   normals, torch.rand(B, N, generator=gen, dtype=dtype), torch.ones(B, N, dtype=torch.bool))  # fmt: skip
+    points = torch.randn(B, N, 3, generator=gen, dtype=dtype)
+    basis = torch.randn(B, N, 3, 2, generator=gen, dtype=dtype)
+    intensity = torch.rand(B, N, generator=gen, dtype=dtype)
+    tpl = Template(torch.zeros(B, N, dtype=torch.long), torch.full((B, N, 3), 1 / 3, dtype=dtype), points, basis,
+                   normals, intensity, torch.ones(B, N, dtype=torch.bool))  # fmt: skip
     R = axis_angle_to_matrix(0.3 * torch.randn(B, 3, generator=gen, dtype=dtype))
     want = illumination_basis(tpl.intensity, torch.matmul(tpl.normals, R.transpose(1, 2)))
     ws = step_module.StepWorkspace()
