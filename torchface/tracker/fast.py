@@ -685,7 +685,7 @@ def _loss_codes(robust: RobustLoss | SwitchedRobustLoss | None, B: int) -> tuple
     if robust is None:
         return _shared_loss_codes(0, 1.0, B)
     if not isinstance(robust, SwitchedRobustLoss):
-        return _shared_loss_codes(_native.LOSS_CODES[robust.kind.value], float(robust.c), B)
+        return _shared_loss_codes(_native.LOSS_CODES[robust.kind.value], cast(float, robust.c), B)  # (set: a float)
     kinds = [robust.base, robust.alternative]
     switch = robust.switch.reshape(B).cpu()
     code = torch.tensor([_native.LOSS_CODES[k.kind.value] for k in kinds], dtype=torch.int32)
