@@ -507,7 +507,10 @@ def solve_level(
         # gradient of the step was NaN. Sample a copy with 0 there, the holes kept for the masks (linearise).
         holes = image.detach()
         image = torch.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
-    neg_light_basis_t = light_basis.transpose(1, 2).neg()  # (B, L, N), contiguous
+    # (B, L, N) in (B, N, L)'s memory order (the negation keeps its input's): a point-last basis (a large batch's
+    # step: torchface.tracker.step._level_light_basis) is laid out as the other first, as the products below round
+    # by the layout (batched products of the other order changed the estimates' last bits)
+    neg_light_basis_t = light_basis.contiguous().transpose(1, 2).neg()
     # Where an animation unit counts as at its bound (the active set, below): within BOUND_MARGIN of its range
     # (in the dtype, as the native solver computes it); the pose and light columns of the held mask are never set.
     # An infinite range (a bound at -inf or inf: none on that side) has no margin: an infinite one put the other
