@@ -772,15 +772,25 @@ def test_no_iteration_without_the_final_check_reports_no_linearisation(backend):
                      (-math.inf, -math.inf)], ids=["nan-lower", "nan-upper", "nan-both", "crossed", "lower-inf",
                                                    "upper-minus-inf"],
 )  # fmt: skip
-def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, backend):
+@pytest.mark.parametrize("rows", [False, True], ids=["shared", "per-stream"])
+def test_unusable_bounds_are_refused_naming_the_unit(lower, upper, iterations, rows, backend, monkeypatch):
     """A NaN bound, bounds the wrong way round or a bound at the wrong infinity are refused with a ValueError naming
     the unit. Before, the torch code failed every stream without a word (``finite`` False, the start handed back:
     the clip made the unit NaN) while the native solver ran on as if that side had no bound, and bounds the wrong
-    way round put the unit at its upper bound in both."""
+    way round put the unit at its upper bound in both. Per-stream ``(B, A)`` bounds (the second stream's unit 2
+    here) are checked elementwise before their values are read as lists (as more than
+    ``fast._LIST_CHECK_VALUES`` are: 0 here)."""
+    import torchface.tracker.fast as fast
+
     tpl, image, cam, x_true, light_basis = _synthetic_problem()
     R, t, a, lam = split(_perturbed(x_true))
     lo, hi = torch.full((A,), -5.0, dtype=D), torch.full((A,), 5.0, dtype=D)
-    lo[2], hi[2] = lower, upper
+    if rows:
+        monkeypatch.setattr(fast, "_LIST_CHECK_VALUES", 0)
+        lo, hi = lo.expand(2, A).clone(), hi.expand(2, A).clone()
+        lo[1, 2], hi[1, 2] = lower, upper
+    else:
+        lo[2], hi[2] = lower, upper
     with pytest.raises(ValueError, match=r"alpha_lower and alpha_upper must be bounds.*for animation unit 2"):
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=iterations,
                     free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0,
@@ -822,3 +832,18 @@ def test_bounds_of_another_shape_are_refused(shape, backend):
         solve_level(tpl, image, cam, R, t, a, lam, light_basis, tpl.valid, iterations=3,
                     free=torch.ones(LAYOUT.size, dtype=torch.bool), alpha_lower=lo, alpha_upper=hi, alpha_prior=0.0,
                     robust=None, backend=backend)  # fmt: skip
+
+
+def test_torch_solver_gives_a_point_last_light_basis_the_same_estimates():
+    """The light basis as the transpose of a contiguous ``(B, L, N)`` (a large batch's step writes it so into its
+    workspace) gives the torch solver's estimates bit for bit as the contiguous ``(B, N, L)`` basis: the solver lays
+    it out as the latter before its batched products, whose roundings depend on the layout (the point-last
+    basis's own layout changed the last bits of 16 streams' estimates on the pose sweep)."""
+    tpl, image, cam, x_true, light_basis = _synthetic_problem(N=400)
+    x0 = _perturbed(x_true)
+    point_last = light_basis.transpose(1, 2).contiguous().transpose(1, 2)
+    want = _solve(tpl, image, cam, x0, light_basis, robust=RobustLoss(RobustKind.TUKEY), iterations=6)
+    got = _solve(tpl, image, cam, x0, point_last, robust=RobustLoss(RobustKind.TUKEY), iterations=6)
+    for w, g in zip(want[:4], got[:4]):
+        assert torch.equal(w, g)
+    assert torch.equal(want[4].residual, got[4].residual)

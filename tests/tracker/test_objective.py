@@ -181,6 +181,45 @@ def test_warp_points_matches_independent_formula():
     torch.testing.assert_close(pc, torch.einsum("bij,bnj->bni", R, X) + x[:, None, 3:6])
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_warp_points_expression_loop_equals_the_broadcast_matmul(dtype, monkeypatch):
+    """The chunked loop over the point-last basis (many streams' points, no gradient) gives the broadcast matmul's
+    values bit for bit: the same products summed in the same order with the same roundings (a fused multiply-add,
+    or a reduction in another order, changes the last bit of some of these sums). Chunks of two streams here
+    (the last one shorter); where a gradient is asked for, the matmul runs itself (None). ``out=`` takes
+    ``points_cam`` into a view of a larger tensor (the visibility test's points of every level), the same values."""
+    import torchface.tracker.objective as objective
+
+    monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", 0)
+    monkeypatch.setattr(objective, "_OFFSET_CHUNK_VALUES", 2 * 3 * 50)
+    gen = torch.Generator().manual_seed(3)
+    B, N, A11 = 5, 50, 11
+    layout = ParamLayout(A11, 5)
+    basis = (torch.randn(B, N, 3, A11, generator=gen, dtype=D) * 10.0 ** torch.randint(-3, 3, (B, N, 3, A11),
+             generator=gen)).to(dtype)  # fmt: skip
+    scale = torch.tensor([100.0, 1.0], dtype=D).view(2, 1, 1, 1)  # the points (mm) and the normals
+    points, normals = (torch.randn(2, B, N, 3, generator=gen, dtype=D) * scale).to(dtype)
+    intensity = torch.rand(B, N, generator=gen, dtype=D).to(dtype)
+    tpl = Template(torch.zeros(B, N, dtype=torch.long), torch.full((B, N, 3), 1 / 3, dtype=dtype), points, basis,
+                   normals, intensity, torch.ones(B, N, dtype=torch.bool))  # fmt: skip
+    x = torch.randn(B, layout.size, generator=gen, dtype=D).to(dtype)
+    x[:, 5] += 400.0
+    alpha = x[:, layout.animation]
+    offsets = objective._expression_offsets(tpl, alpha)
+    assert offsets is not None and offsets.shape == (B, 3, N)
+    assert torch.equal(offsets.transpose(1, 2), torch.matmul(tpl.basis, alpha[:, None, :, None]).squeeze(-1))
+    pm, pc, R = warp_points(tpl, layout, x)
+    monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", B * N + 1)  # the matmul
+    pm0, pc0, R0 = warp_points(tpl, layout, x)
+    assert torch.equal(pm, pm0) and torch.equal(pc, pc0) and torch.equal(R, R0)
+    into = torch.zeros(B, N + 7, 3, dtype=dtype)  # points_cam written into a view of a larger tensor
+    pc1 = warp_points(tpl, layout, x, out=into[:, 3 : 3 + N])[1]
+    assert torch.equal(pc1, pc) and torch.equal(into[:, 3 : 3 + N], pc) and not into[:, :3].any()
+    assert objective._expression_offsets(tpl, alpha) is None
+    monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", 0)
+    assert objective._expression_offsets(tpl, alpha.clone().requires_grad_()) is None
+
+
 def test_validity_mask():
     tpl, image = make_template(B=1, N=6), bilinear_image(B=1)
     x = params("zero", B=1)

@@ -1073,6 +1073,34 @@ def test_gray_crop_pyramid_in_a_workspace_equals_new_memory_and_reuses_it():
     assert "MB" in repr(ws)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_level_light_basis_in_a_workspace_equals_illumination_basis(dtype):
+    """A level's light basis written point-last into a workspace (a large batch's step) equals
+    :func:`illumination_basis` bit for bit, as the transpose of a contiguous ``(B, L, N)`` in the workspace's
+    memory (the layout the solvers read); each level its own buffer (the refinement pass reads level 0's after the
+    coarser ones were made); without a workspace, the basis itself."""
+    import torchface.tracker.step as step_module
+    from torchface.template import Template
+
+    gen = torch.Generator().manual_seed(7)
+    B, N = 3, 40
+    normals = torch.nn.functional.normalize(torch.randn(B, N, 3, generator=gen, dtype=dtype), dim=-1)
+    points = torch.randn(B, N, 3, generator=gen, dtype=dtype)
+    basis = torch.randn(B, N, 3, 2, generator=gen, dtype=dtype)
+    intensity = torch.rand(B, N, generator=gen, dtype=dtype)
+    tpl = Template(torch.zeros(B, N, dtype=torch.long), torch.full((B, N, 3), 1 / 3, dtype=dtype), points, basis,
+                   normals, intensity, torch.ones(B, N, dtype=torch.bool))  # fmt: skip
+    R = axis_angle_to_matrix(0.3 * torch.randn(B, 3, generator=gen, dtype=dtype))
+    want = illumination_basis(tpl.intensity, torch.matmul(tpl.normals, R.transpose(1, 2)))
+    ws = step_module.StepWorkspace()
+    with torch.inference_mode():
+        got = step_module._level_light_basis(tpl, R, 0, ws)
+        other = step_module._level_light_basis(tpl, R.flip(0), 1, ws)
+    assert torch.equal(got, want) and got.transpose(1, 2).is_contiguous() and not got.is_inference()
+    assert got.data_ptr() == ws.buffer("light_basis0", (B, 5, N), dtype, got.device).data_ptr() != other.data_ptr()
+    assert torch.equal(step_module._level_light_basis(tpl, R, 0, None), want)
+
+
 def test_steps_of_a_large_batch_share_a_workspace_and_equal_steps_in_new_memory(model, two_streams):
     """More than _PYRAMID_CHUNK streams: the first step gives the state a StepWorkspace that later states share;
     the steps equal those that find it borrowed (another thread's, here held by the test) and allocate their own,

@@ -330,11 +330,20 @@ def _bounds_valid(lower: Tensor, upper: Tensor) -> Tensor:
     return cast(Tensor, _usable_bounds(lower, upper)).all()
 
 
+#: The most bound values (lower and upper together) :func:`_check_bounds` reads as lists on the host; more are
+#: checked elementwise first.
+_LIST_CHECK_VALUES: int = 64
+
+
 def _check_bounds(lower: Tensor, upper: Tensor) -> None:
-    """Raise ``ValueError`` naming the first animation unit whose bounds ``(A,)`` are not usable (one host read
-    where they are; more to name it where not). Host tensors are read as lists at once (a few microseconds; the
-    elementwise check costs about 15 per call, and the native solver checks at every call)."""
-    if (lower.device.type != "cpu" or upper.device.type != "cpu") and bool(_bounds_valid(lower, upper)):
+    """Raise ``ValueError`` naming the first animation unit whose bounds ``(A,)`` or ``(B, A)`` are not usable (one
+    host read where they are; more to name it where not). A model's ``(A,)`` bounds on the host are read as lists at
+    once (a few microseconds; the elementwise check costs about 15 per call, and the native solver checks at every
+    call); per-stream bounds with more than :data:`_LIST_CHECK_VALUES` values elementwise first (at 128 streams, 11
+    units, the lists' loop took 0.3-0.7 ms per call, four calls a step)."""
+    if (
+        lower.device.type != "cpu" or upper.device.type != "cpu" or lower.numel() + upper.numel() > _LIST_CHECK_VALUES
+    ) and bool(_bounds_valid(lower, upper)):
         return
     A = lower.shape[-1]
     lo, hi = lower.reshape(-1).tolist(), upper.reshape(-1).tolist()  # (from any device; tolist ignores autograd)
@@ -498,7 +507,10 @@ def solve_level(
         # gradient of the step was NaN. Sample a copy with 0 there, the holes kept for the masks (linearise).
         holes = image.detach()
         image = torch.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
-    neg_light_basis_t = light_basis.transpose(1, 2).neg()  # (B, L, N), contiguous
+    # (B, L, N) in (B, N, L)'s memory order (the negation keeps its input's): a point-last basis (a large batch's
+    # step: torchface.tracker.step._level_light_basis) is laid out as the other first, as the products below round
+    # by the layout (batched products of the other order changed the estimates' last bits)
+    neg_light_basis_t = light_basis.contiguous().transpose(1, 2).neg()
     # Where an animation unit counts as at its bound (the active set, below): within BOUND_MARGIN of its range
     # (in the dtype, as the native solver computes it); the pose and light columns of the held mask are never set.
     # An infinite range (a bound at -inf or inf: none on that side) has no margin: an infinite one put the other
@@ -652,16 +664,33 @@ def solve_level(
     return R, t, alpha, light, outcome
 
 
+@functools.lru_cache(maxsize=64)
+def _shared_loss_codes(code: int, c: float, B: int) -> tuple[Tensor, Tensor]:
+    """:func:`_loss_codes` of one loss for every stream: ``(B,)`` int32 codes and ``(B,)`` float64 constants. Cached
+    (a tracked video's levels keep theirs), made outside inference mode; the kernel only reads them."""
+    with torch.inference_mode(False):
+        return torch.full((B,), code, dtype=torch.int32), torch.full((B,), c, dtype=torch.float64)
+
+
+@functools.lru_cache(maxsize=64)
+def _tolerance_row(step_tolerance: tuple[float, float, float], P: int, dtype: torch.dtype) -> Tensor:
+    """``(P,)`` float64: the native solver's step tolerances (rotation, translation, the rest) rounded to ``dtype``,
+    as the torch code compares them. Cached per setting, made outside inference mode; the kernel only reads it."""
+    with torch.inference_mode(False):
+        return torch.tensor(
+            [step_tolerance[0]] * 3 + [step_tolerance[1]] * 3 + [step_tolerance[2]] * (P - 6), dtype=dtype
+        ).to(torch.float64)
+
+
 def _loss_codes(robust: RobustLoss | SwitchedRobustLoss | None, B: int) -> tuple[Tensor, Tensor]:
-    """Per stream, the native solver's loss code ``(B,)`` int32 and tuning constant ``(B,)`` float64."""
+    """Per stream, the native solver's loss code ``(B,)`` int32 and tuning constant ``(B,)`` float64 (not to be
+    written: one loss's are shared, :func:`_shared_loss_codes`)."""
     if robust is None:
-        return torch.zeros(B, dtype=torch.int32), torch.ones(B, dtype=torch.float64)
-    if isinstance(robust, SwitchedRobustLoss):
-        kinds = [robust.base, robust.alternative]
-        switch = robust.switch.reshape(B).cpu()
-    else:
-        kinds = [robust, robust]
-        switch = torch.zeros(B, dtype=torch.bool)
+        return _shared_loss_codes(0, 1.0, B)
+    if not isinstance(robust, SwitchedRobustLoss):
+        return _shared_loss_codes(_native.LOSS_CODES[robust.kind.value], cast(float, robust.c), B)  # (set: a float)
+    kinds = [robust.base, robust.alternative]
+    switch = robust.switch.reshape(B).cpu()
     code = torch.tensor([_native.LOSS_CODES[k.kind.value] for k in kinds], dtype=torch.int32)
     c = torch.tensor([k.c for k in kinds], dtype=torch.float64)
     which = switch.long()
@@ -729,10 +758,7 @@ def _solve_level_native(
     else:
         prior = torch.full((B, A), float(alpha_prior), dtype=torch.float64)
     loss_kind, loss_c = _loss_codes(robust, B)
-    # the tolerances as the torch code compares them: rounded to the dtype
-    tol = torch.tensor(
-        [step_tolerance[0]] * 3 + [step_tolerance[1]] * 3 + [step_tolerance[2]] * (P - 6), dtype=dtype
-    ).to(torch.float64)
+    tol = _tolerance_row(tuple(step_tolerance), P, dtype)  # as the torch code compares them: rounded to the dtype
     if start is not None:
         start_r = start[0].to(dtype).contiguous()
         start_J = start[1].transpose(1, 2).to(dtype).contiguous()  # (B, P, N)

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._compiling import is_compiling, is_transformed
 from torchface._scalar import isfinite
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.geometry.camera import Intrinsics
@@ -26,8 +27,60 @@ from torchface.template.points import Template
 from torchface.tracker.params import ParamLayout
 
 
+#: Values (streams times 3 N) per chunk of :func:`_expression_offsets`' loop: a chunk's sum and product (512 KB
+#: each in float32) stay in a core's cache across its ``A`` passes, in few chunks (each pass over a chunk is
+#: four dispatched operations). At 128 streams, 1500 points, one thread: 2**15 to 2**20 values a chunk took
+#: 19-27 ms (median of 9, a loaded machine), 2**17 the least, against 31 ms for the matmul.
+_OFFSET_CHUNK_VALUES: int = 1 << 17
+
+#: The fewest streams times points for which :func:`_expression_offsets` takes its loop (below, the matmul: at one
+#: stream the loop's ``2 A`` dispatched operations per chunk cost more than the matmul's broadcast copy).
+_OFFSET_LOOP_MIN_POINTS: int = 16384
+
+
+def _expression_offsets(template: Template, alpha: Tensor) -> Tensor | None:
+    """``(B, 3, N)`` point-last ``sum_j alpha_j B_j`` with the same values as the broadcast matmul
+    ``torch.matmul(template.basis, alpha[:, None, :, None])``, or None where this does not hold or does not pay.
+
+    That matmul broadcasts ``alpha (B, 1, A, 1)`` over the ``N`` points: it copied ``alpha`` to ``(B N, A, 1)``
+    (8.4 MB at 128 streams, 1500 points, 11 units: three a step, one per level, in the visibility test) and ran
+    ``B N`` products of ``(3, A)`` by ``(A, 1)`` in torch's small-matrix kernel (``3 A < 400``), which sums the ``A``
+    products one after another from 0, each product and sum rounded to the dtype. Here the same sums run over the
+    template's point-last basis (:attr:`Template.point_last`, ``(B, A, 3, N)``, cached with the template: the fast
+    solver's), a chunk of streams at a time: its first product, then each next one added (separate multiplies and
+    adds: the same roundings; ``addcmul`` fuses them on a CPU with FMA, which changes the last bit; a sum of products
+    that are all -0 stays -0 here, +0 there: equal values). One call at 128
+    streams, 1500 points, one thread, on a loaded machine: 20 ms against the matmul's 31 (medians of 9).
+
+    Only on the CPU, for float32 or float64 tensors of one dtype that ask for no gradient (nor tangent, nor
+    ``torch.compile``), ``3 A < 400`` (the matmul's small-matrix kernel) and at least
+    :data:`_OFFSET_LOOP_MIN_POINTS` streams times points; None elsewhere (the caller runs the matmul)."""
+    basis = template.basis
+    B, N, _, A = basis.shape
+    tensors = (basis, template.points, alpha)
+    if (
+        B * N < _OFFSET_LOOP_MIN_POINTS or A == 0 or 3 * A >= 400 or basis.dtype not in (torch.float32, torch.float64)
+        or any(x.dtype != basis.dtype or x.device.type != "cpu" for x in tensors)
+        or (torch.is_grad_enabled() and any(x.requires_grad for x in tensors))
+        or is_compiling() or is_transformed(*tensors)
+    ):  # fmt: skip
+        return None
+    basis_t = template.point_last[2]  # (B, A, 3, N)
+    a = alpha.reshape(B, A, 1, 1)
+    out = torch.empty(B, 3, N, dtype=basis.dtype)
+    step = max(1, _OFFSET_CHUNK_VALUES // (3 * N))
+    product = torch.empty(min(step, B), 3, N, dtype=basis.dtype)
+    for first in range(0, B, step):
+        last = min(first + step, B)
+        acc, b, w, p = out[first:last], basis_t[first:last], a[first:last], product[: last - first]
+        torch.mul(b[:, 0], w[:, 0], out=acc)
+        for j in range(1, A):
+            acc.add_(torch.mul(b[:, j], w[:, j], out=p))
+    return out
+
+
 def warp_points(
-    template: Template, layout: ParamLayout, x: Tensor, R: Tensor | None = None
+    template: Template, layout: ParamLayout, x: Tensor, R: Tensor | None = None, *, out: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Template points under parameters ``x``.
 
@@ -35,14 +88,22 @@ def warp_points(
         template: ``N`` points per sample; layout: the packing of ``x``; x: ``(B, P)``.
         R: ``(B, 3, 3)`` the rotation of ``x``'s axis-angle, when the caller has it (not differentiated
             through ``x`` then).
+        out: a ``(B, N, 3)`` tensor (a view into a larger one may be) that ``points_cam`` is written into and
+            returned as, with the same values (without autograd: ``out=`` arguments do not support it); None: a new
+            tensor.
 
     Returns:
         ``points_model (B, N, 3)``, ``points_cam (B, N, 3)`` and the rotation ``(B, 3, 3)``.
     """
     aa, t, alpha, _ = layout.split(x)
-    points_model = template.points + torch.matmul(template.basis, alpha[:, None, :, None]).squeeze(-1)
+    offsets = _expression_offsets(template, alpha)
+    if offsets is None:
+        points_model = template.points + torch.matmul(template.basis, alpha[:, None, :, None]).squeeze(-1)
+    else:
+        points_model = template.points + offsets.transpose(1, 2)
     R = axis_angle_to_matrix(aa) if R is None else R
-    points_cam = torch.matmul(points_model, R.transpose(1, 2)) + t.unsqueeze(1)
+    points_cam = torch.matmul(points_model, R.transpose(1, 2))
+    points_cam = points_cam + t.unsqueeze(1) if out is None else torch.add(points_cam, t.unsqueeze(1), out=out)
     return points_model, points_cam, R
 
 
