@@ -132,10 +132,13 @@ import math
 import os
 import pickle
 import random
+import shutil
 import sys
+import tempfile
 import time
 import types
 import warnings
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -144,6 +147,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from multiprocessing.reduction import ForkingPickler
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
@@ -290,6 +294,66 @@ def _content_words(content: str) -> Tensor:
     """``(4,)`` int64: a :func:`~training_hooks.cache.content_hash` (64 hex digits) as :func:`_shared_detections`
     keeps it."""
     return torch.from_numpy(np.frombuffer(bytes.fromhex(content), dtype=np.int64).copy())
+
+
+def _remove_claims(folder: str, owner: int) -> None:
+    """Remove a :class:`_Claims` folder, in the process that made it only (a forked child that exits normally runs
+    its parent's ``atexit`` finalizers too)."""
+    if os.getpid() == owner:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+class _Claims:
+    """What makes a once-per-dataset warning exactly once across the dataset's processes (its ``DataLoader``
+    workers, forked or spawned, and the process that holds it): a private folder (``tempfile.mkdtemp``, made with
+    the dataset) in which the first process to act on ``what`` creates the marker ``what`` with
+    ``os.open(O_CREAT | O_EXCL)``, which the file system grants to exactly one. The shared-memory flags
+    (:func:`_shared_state`, ...) were checked, then set: two processes finishing within the microseconds between
+    the two both warned. The flags stay (a cheap first check, and what copies and old pickles read); the marker
+    decides.
+
+    The folder is removed when the dataset that made it is collected, or at the exit of its process (not by its
+    workers, nor a forked child's exit); a process killed (SIGKILL) leaves it, empty but for a few markers. It
+    travels as the tensors of shared memory do: by reference to the ``DataLoader`` workers
+    (``multiprocessing``'s pickler, :meth:`_shared_reduce`), while a plain ``pickle`` of the dataset (whose tensors
+    are then copied by value, an independent dataset) and ``copy.deepcopy`` make a new folder. Where no folder can
+    be made (an unwritable temporary folder) or it is gone, a claim is granted, as the flags alone did."""
+
+    def __init__(self, folder: str | None = None) -> None:
+        self.folder = folder
+        if folder is None:
+            try:
+                self.folder = tempfile.mkdtemp(prefix="torchface-dataset-")
+            except OSError:
+                return
+            weakref.finalize(self, _remove_claims, self.folder, os.getpid())
+
+    def claim(self, what: str) -> bool:
+        """True in exactly one of the dataset's processes for ``what`` (a file name): the first to ask."""
+        if self.folder is None:
+            return True
+        try:
+            os.close(os.open(os.path.join(self.folder, what), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        except FileExistsError:
+            return False
+        except OSError:  # (the folder gone: removed by a cleaner of old temporary files, say)
+            return True
+        return True
+
+    def __reduce__(self) -> tuple[type[_Claims], tuple[()]]:
+        return _Claims, ()  # (a plain pickle: an independent dataset, its own claims)
+
+    def _shared_reduce(self) -> tuple[type[_Claims], tuple[str | None]]:
+        return _Claims, (self.folder,)  # (multiprocessing's pickler: the same folder, not removed by the reader)
+
+    def __copy__(self) -> _Claims:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> _Claims:
+        return _Claims()
+
+
+ForkingPickler.register(_Claims, _Claims._shared_reduce)
 
 
 #: The end of :mod:`torchface.io`'s message for a frame to convert, as a dataset says it (the command line's
@@ -773,6 +837,7 @@ class VideoDataset(IterableDataset):
         self._skips = _shared_skips(len(self.videos) if self.config.keep_going else 0)
         short = self.config.clip_length is not None and not self.config.keep_short_clips
         self._frames = _shared_frames(len(self.videos) if short else 0)
+        self._claims: _Claims | None = _Claims()  # (the once-per-dataset warnings' markers)
 
     def _check_source(self, path: Path) -> None:
         if not path.is_file():
@@ -811,9 +876,30 @@ class VideoDataset(IterableDataset):
             state["_skips"] = _shared_skips(0)
         if "_frames" not in state:  # pickled before short videos were reported
             state["_frames"] = _shared_frames(0)
+        state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
         if isinstance(state.get("detector"), _SentDetector):  # (copied, not pickled: copy.copy of the dataset)
             state["detector"] = state["detector"].detector
         self.__dict__.update(state)
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> VideoDataset:
+        """An independent dataset (module docstring, "Copies"): its shared state (epoch, counts, detections, skips,
+        the warnings given) copied as it is now into new shared memory, which its own ``DataLoader`` workers share
+        with it and not with this dataset; new claims (:class:`_Claims`). The default deepcopy gave the copy tensors
+        out of shared memory: forked workers then each changed a private copy (a persistent worker missed each
+        ``set_epoch``, every worker counted and warned again, ``skipped`` stayed empty)."""
+        new = type(self).__new__(type(self))
+        memo[id(self)] = new
+        state = copy.deepcopy(self.__getstate__(), memo)
+        for name in ("_shared", "_found_at", "_found", "_skips", "_frames"):
+            state[name] = state[name].share_memory_()
+        new.__setstate__(state)
+        return new
+
+    def _claim(self, what: str) -> bool:
+        """Whether this process is the one of the dataset's processes to act on ``what`` (a once-per-dataset
+        warning: :class:`_Claims`); True where the dataset has no claims (one pickled before them)."""
+        claims = getattr(self, "_claims", None)
+        return True if claims is None else claims.claim(what)
 
     @property
     def epoch(self) -> int:
@@ -1068,9 +1154,9 @@ class VideoDataset(IterableDataset):
             return
         length = self.config.clip_length
         short = [i for i, n in enumerate(frames.tolist()) if 0 <= n < length]  # type: ignore[operator]
-        if not short:
+        if not short or not self._claim("short-videos"):  # (another process finishing meanwhile warns instead)
             return
-        self._frames[0] = 1  # (before warning: another process finishing meanwhile does not warn too)
+        self._frames[0] = 1
         warnings.warn(
             f"{type(self).__name__}: {self._named_short(short)} (DatasetConfig.clip_length={length}): left out. "
             "DatasetConfig(keep_short_clips=True) yields each as one shorter clip (collate_clips pads them)",
@@ -1240,12 +1326,15 @@ class VideoDataset(IterableDataset):
         """Record (:attr:`skipped`) and warn (:class:`SkippedVideoWarning`) that video ``index`` is skipped for
         ``exc`` (:attr:`DatasetConfig.keep_going`), unless a process of the dataset (a ``DataLoader`` worker, the
         caller counting) has recorded it already: it records before it warns, since a warning can take a while to
-        show (a busy stderr), and two processes that failed on one video at the same time both warned. (Two that
-        fail within the few microseconds it takes to record can still both warn: preventing that would take a
-        cross-process lock, and a ``multiprocessing`` lock held by the dataset would make it unpicklable but to the
-        processes ``multiprocessing`` starts. The ranks of a DDP group share nothing: each warns of a video it
-        cannot count, as each counts its workers' videos on every rank.)"""
+        show (a busy stderr), and two processes that failed on one video at the same time both warned. Two that
+        failed within the microseconds between finding it unrecorded and recording it both warned too: the first
+        to claim it (:class:`_Claims`, a marker file created exclusively) records and warns, the other says
+        nothing. (The ranks of a DDP group share nothing: each warns of a video it cannot count, as each counts its
+        workers' videos on every rank.)"""
         if self._is_skipped(index):
+            return
+        if not self._claim(f"skipped-{index}"):  # (another process records and warns: it failed on it meanwhile)
+            self._record_frames(index, _SKIPPED_FRAMES)
             return
         path = self.videos[index]
         said = " ".join(str(exc).split()).removeprefix(f"{path}: ")  # (most name the video first: not twice)
@@ -1494,6 +1583,8 @@ class VideoDataset(IterableDataset):
         """Warn once per dataset (and rank) when the group has more ranks than the dataset has videos."""
         n, mode = len(self.videos), self.config.rank_balance
         if n >= world or (rank < n and mode is not RankBalance.DROP) or int(self._shared[_WARNED]):
+            return
+        if not self._claim("distributed"):
             return
         self._shared[_WARNED] = 1
         if mode is RankBalance.DROP:

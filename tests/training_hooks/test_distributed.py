@@ -683,6 +683,69 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
     assert data.skipped == {3: f"{videos[3]}: cannot decode"} and data.count_items()[3] == 0
 
 
+def test_processes_that_find_a_warning_due_at_the_same_moment_give_it_once(uneven, config, monkeypatch, tmp_path):
+    """The once-per-dataset warnings (SkippedVideoWarning of a video, ShortVideoWarning, DistributedWarning) were
+    decided by a flag in shared memory, checked, then set: two processes (DataLoader workers ending their passes
+    together, a worker and the caller's count_items()) that both checked it within the microseconds before either
+    set it both warned. Here two forked processes are held at a barrier right there, after the check: with the
+    flags alone (the dataset's claims removed, as a dataset pickled before them has none) both warn; with the
+    claims (a marker created with O_CREAT | O_EXCL in the dataset's private folder) exactly one does."""
+    import multiprocessing
+
+    fork = multiprocessing.get_context("fork")
+    videos, landmarks = uneven
+    real = VideoDataset._claim
+
+    def fail(path, convert):
+        raise training_hooks.datasets.InputError(f"{path}: cannot decode")
+
+    def race(data: VideoDataset, act, name: str) -> list[str]:
+        log = tmp_path / f"{name}.txt"
+        barrier = fork.Barrier(2, timeout=20)
+
+        def claim(self, what: str) -> bool:  # both processes have found the flag unset: the window
+            barrier.wait()
+            return real(self, what)
+
+        def show(message, category, *args, **kwargs) -> None:
+            with log.open("a") as f:
+                f.write(f"{category.__name__}\n")
+
+        def run() -> None:
+            warnings.simplefilter("ignore")
+            warnings.simplefilter("always", UserWarning)  # (the dataset's warnings)
+            warnings.showwarning = show
+            act(data)
+
+        with monkeypatch.context() as m:
+            m.setattr(VideoDataset, "_claim", claim)
+            processes = [fork.Process(target=run) for _ in range(2)]
+            for p in processes:
+                p.start()
+            for p in processes:
+                p.join(30)
+        assert [p.exitcode for p in processes] == [0, 0]
+        return log.read_text().splitlines()
+
+    monkeypatch.setattr(training_hooks.datasets, "_count_frames", fail)
+    cases = {
+        "SkippedVideoWarning": (dict(keep_going=True), lambda data: data.num_items(3)),
+        "ShortVideoWarning": (dict(clip_length=5), lambda data: data._report_short(0, 1, final=False)),
+        "DistributedWarning": ({}, lambda data: data._warn_distributed(6, 8)),  # (8 ranks, 5 videos)
+    }
+    for category, (settings, act) in cases.items():
+        for claims, count in ((False, 2), (True, 1)):
+            data = VideoDataset(videos, landmarks, replace(config, cache_dir=None, **settings))
+            if category == "ShortVideoWarning":
+                for i, n in enumerate(LENGTHS):  # (every video's frames known: the warning is due)
+                    data._record_frames(i, n)
+            if not claims:
+                data._claims = None
+            assert race(data, act, f"{category}-{claims}") == [category] * count, (category, claims)
+        if category == "SkippedVideoWarning":
+            assert data.skipped == {3: f"{videos[3]}: cannot decode"}  # (recorded once, whole)
+
+
 def test_a_rank_of_uneven_ranks_finds_a_dataset_with_no_clip_at_all(uneven, config, monkeypatch):
     """Under DDP with RankBalance.UNEVEN a rank knew only its own videos' frame counts: a dataset none of whose
     videos gives a clip yielded nothing on every rank without a word (the ValueError of one process never came).
