@@ -454,7 +454,12 @@ class _CountProgress:
     """The progress of a count of ``total`` videos' items (:attr:`DatasetConfig.progress_after`), as whole lines on
     stderr (a log file and a terminal alike; a warning given meanwhile stays readable): none until the count has
     taken ``after`` seconds (None: never), then one every :data:`PROGRESS_EVERY_S` seconds and one at its end.
-    ``name``: the dataset's class, which begins each line; ``why``: what the count is for, said in the first."""
+    ``name``: the dataset's class, which begins each line; ``why``: what the count is for, said in the first.
+
+    A line is due as a video's count ends (:meth:`step`) or as a frame of the video being read is (:meth:`frame`:
+    decoded through to be counted, searched by the detector, tracked), so that one long video (a detector
+    searching it frame by frame, the only video of a count) says how far it has got too: ``, a.avi: 840 frames
+    searched for its first face``. A tick costs a clock reading."""
 
     def __init__(self, name: str, total: int, why: str, after: float | None) -> None:
         self.name, self.total, self.why = name, total, why
@@ -462,6 +467,9 @@ class _CountProgress:
         self.t0 = time.monotonic()
         self.due = after  # seconds into the count of the next line (None: no line)
         self.said = False
+        self.done = 0  # videos counted
+        self.current: tuple[str, str] | None = None  # (the video being read, what is done with its frames)
+        self.read = 0  # its frames read so far
 
     def _say(self, line: str) -> None:
         if sys.stderr is None:  # (pythonw, a detached process: print(file=None) wrote the line to stdout)
@@ -472,26 +480,77 @@ class _CountProgress:
         except (OSError, ValueError):  # (a closed or broken stderr: the count goes on without a word)
             self.due = None
 
-    def step(self, done: int) -> None:
-        """``done`` of the ``total`` videos counted: a line if one is due (none for the last: :meth:`end`'s)."""
-        if self.due is None or done >= self.total:
-            return
-        elapsed = time.monotonic() - self.t0
-        if elapsed < self.due:
-            return
+    def _now(self) -> str:
+        """The video being read and how far, for a line (empty between videos)."""
+        if self.current is None:
+            return ""
+        name, doing = self.current
+        return f", {name}: {self.read} frame{'' if self.read == 1 else 's'} {doing}"
+
+    def _line(self, elapsed: float) -> str:
         first = "" if self.said else (
             f" ({self.why}; each video file is decoded through, and with a detector searched for its first face, "
             "once per dataset: DatasetConfig(progress_after=None) says nothing)"
         )  # fmt: skip
-        self._say(f"counting the items of {self.videos}: {done} counted in {elapsed:.0f} s{first}")
+        return f"counting the items of {self.videos}: {self.done} counted in {elapsed:.0f} s{self._now()}{first}"
+
+    def _due(self) -> None:
+        if self.due is None:
+            return
+        elapsed = time.monotonic() - self.t0
+        if elapsed < self.due:
+            return
+        self._say(self._line(elapsed))
         self.said = True
         if self.due is not None:
             self.due = elapsed + PROGRESS_EVERY_S
+
+    def video(self, path: Path, doing: str) -> None:
+        """Video ``path``'s frames are read next, ``doing`` with them (``"decoded"``, ``"tracked"``, ...)."""
+        self.current, self.read = (path.name, doing), 0
+
+    def frame(self, read: int | None = None) -> None:
+        """One more frame of the current video read (``read``: the frames read so far): a line if one is due."""
+        self.read = self.read + 1 if read is None else read
+        self._due()
+
+    def step(self, done: int) -> None:
+        """``done`` of the ``total`` videos counted: a line if one is due (none for the last: :meth:`end`'s)."""
+        self.done, self.current = done, None
+        if done < self.total:
+            self._due()
 
     def end(self) -> None:
         """The count is over: its last line, where it said anything before."""
         if self.said and self.due is not None:
             self._say(f"counted the items of {self.videos} in {time.monotonic() - self.t0:.0f} s")
+
+
+class _FirstItemProgress(_CountProgress):
+    """The wait for a ``DataLoader`` worker's first item (:attr:`DatasetConfig.progress_after`): it searches and
+    tracks its first video whole (and with ``shuffle_buffer``, as many as fill the buffer) before it yields
+    anything, minutes for a long video. Lines as :class:`_CountProgress`'s (``VideoDataset: the first item: 2
+    videos tracked in 35 s, b.avi: 300 frames tracked (...)``), and ``VideoDataset: the first item came in 41 s``
+    at the end, where it said anything. A count made first (under DDP) says its own progress."""
+
+    def __init__(self, name: str, after: float | None) -> None:
+        super().__init__(name, 0, "", after)
+
+    def _line(self, elapsed: float) -> str:
+        first = "" if self.said else (
+            " (each video is tracked whole before its items are yielded, with a detector from its first face on: "
+            "DatasetConfig(progress_after=None) says nothing)"
+        )  # fmt: skip
+        tracked = f"{self.done} video{'' if self.done == 1 else 's'} tracked"
+        return f"the first item: {tracked} in {elapsed:.0f} s{self._now()}{first}"
+
+    def step(self, done: int) -> None:
+        self.done, self.current = done, None
+
+    def end(self) -> None:
+        if self.said and self.due is not None:
+            self._say(f"the first item came in {time.monotonic() - self.t0:.0f} s")
+        self.due = None
 
 
 def _process_group() -> tuple[int, int] | None:
@@ -838,6 +897,7 @@ class VideoDataset(IterableDataset):
         short = self.config.clip_length is not None and not self.config.keep_short_clips
         self._frames = _shared_frames(len(self.videos) if short else 0)
         self._claims: _Claims | None = _Claims()  # (the once-per-dataset warnings' markers)
+        self._progress: _CountProgress | None = None  # (what this process says the progress of now, if anything)
 
     def _check_source(self, path: Path) -> None:
         if not path.is_file():
@@ -877,6 +937,7 @@ class VideoDataset(IterableDataset):
         if "_frames" not in state:  # pickled before short videos were reported
             state["_frames"] = _shared_frames(0)
         state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
+        state["_progress"] = None  # (this process's own)
         if isinstance(state.get("detector"), _SentDetector):  # (copied, not pickled: copy.copy of the dataset)
             state["detector"] = state["detector"].detector
         self.__dict__.update(state)
@@ -949,6 +1010,7 @@ class VideoDataset(IterableDataset):
         # A DataLoader worker started by spawn / forkserver receives the dataset pickled by its rank, and has no
         # torch.distributed group of its own: the rank's (rank, world size) travel with the dataset.
         state = self.__dict__.copy()
+        state.pop("_progress", None)  # (this process's own)
         group = _process_group()
         if group is not None:
             state["_sender_group"] = group
@@ -1019,7 +1081,8 @@ class VideoDataset(IterableDataset):
                 frames = self._cached_frames(index)
                 if frames is None:
                     with _dataset_hint():
-                        frames = _count_frames(self.videos[index], c.convert) - start
+                        frames = _count_frames(self.videos[index], c.convert, self._frame_ticks(index, "decoded"))
+                    frames -= start
             except (InputError, OSError) as exc:
                 if not c.keep_going:
                     raise
@@ -1071,14 +1134,33 @@ class VideoDataset(IterableDataset):
         worker), its ``DataLoader`` worker 0 where the workers count (each counts its own videos, at about the same
         pace: one speaks for them, as :meth:`_warn_distributed` does)."""
         todo = [i for i in dict.fromkeys(indices) if int(self._shared[_COUNTS + i]) < 0]
+        after = self.config.progress_after if self._speaks() else None
+        progress = _CountProgress(type(self).__name__, len(todo), why, after)
+        outer, self._progress = getattr(self, "_progress", None), (None if after is None else progress)
+        try:
+            for done, index in enumerate(todo, start=1):
+                self.num_items(index)
+                progress.step(done)
+        finally:
+            self._progress = outer
+        progress.end()
+
+    def _speaks(self) -> bool:
+        """Whether this process says the dataset's progress (:attr:`DatasetConfig.progress_after`): rank 0's (the
+        default group's, or the rank's that sent the dataset to a spawned worker), its ``DataLoader`` worker 0 where
+        there are workers (each does as much at about the same pace: one speaks for them)."""
         group = _process_group() or getattr(self, "_sender_group", None)
         info = get_worker_info()
-        speaks = (group is None or group[0] == 0) and (info is None or info.id == 0)
-        progress = _CountProgress(type(self).__name__, len(todo), why, self.config.progress_after if speaks else None)
-        for done, index in enumerate(todo, start=1):
-            self.num_items(index)
-            progress.step(done)
-        progress.end()
+        return (group is None or group[0] == 0) and (info is None or info.id == 0)
+
+    def _frame_ticks(self, index: int, doing: str) -> Callable[..., None] | None:
+        """The tick to call at each frame of video ``index`` read (``doing`` with it) where this process says
+        progress now (a count's, or the first item's: :class:`_CountProgress`); None otherwise (no cost)."""
+        progress = getattr(self, "_progress", None)
+        if progress is None:
+            return None
+        progress.video(self.videos[index], doing)
+        return progress.frame
 
     def count_items(self) -> list[int]:
         """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch). Videos shorter than
@@ -1242,9 +1324,11 @@ class VideoDataset(IterableDataset):
             # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
             return None if points is None else check_landmarks(np.asarray(points), W, H, where, min_inside=0.5)
 
+        tick = self._frame_ticks(index, "searched for its first face")
         start, frame, points = search_first_face(
             itertools.chain([first], frames), find, f"{path}: the detector",
             " (leave it out of the videos, or give every video's first-frame landmarks instead of a detector)",
+            searching=None if tick is None else (lambda searched: tick(searched)),
         )  # fmt: skip
         self._found_at[index, 0] = -1  # (an entry of the video's earlier content, if any: void while rewritten)
         self._found[index] = torch.from_numpy(points)
@@ -1418,13 +1502,20 @@ class VideoDataset(IterableDataset):
                         self.stats.videos += 1
                         return stored, True, None
             t0 = time.perf_counter()
+            frames: Iterator[Tensor] = itertools.chain([first], reader)
+            tick = self._frame_ticks(index, "tracked")
+            if tick is not None:  # (the wait for the first item: :class:`_FirstItemProgress`)
+                frames = _ticking(frames, tick)
             with _dataset_hint():  # (a later frame's format is found as it is read)
-                sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
+                sequence, _ = self.transform.track(frames, landmarks)
             self.stats.tracking_s += time.perf_counter() - t0
         finally:
             reader.close()
         if start:  # (the frames' numbers in the video, as the stored sequence keeps them)
             sequence = replace(sequence, first_frame=start)
+        progress = getattr(self, "_progress", None)
+        if isinstance(progress, _FirstItemProgress):
+            progress.step(progress.done + 1)
         self.stats.videos += 1
         self.stats.frames_tracked += sequence.num_frames
         return sequence, False, key
@@ -1601,6 +1692,13 @@ class VideoDataset(IterableDataset):
         )
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        items = self._epoch_items()
+        if self.config.progress_after is not None and self._speaks():
+            items = self._then_first(items)
+        return items
+
+    def _epoch_items(self) -> Iterator[dict[str, Tensor]]:
+        """This process's items of the epoch (:meth:`__iter__`)."""
         rank, world = self.rank_and_world_size()
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
@@ -1633,6 +1731,21 @@ class VideoDataset(IterableDataset):
         rng.shuffle(buffer)
         yield from buffer
 
+    def _then_first(self, items: Iterator[dict[str, Tensor]]) -> Iterator[dict[str, Tensor]]:
+        """``items``, saying the progress of the wait for the first (:class:`_FirstItemProgress`: the videos it
+        tracks meanwhile, frame by frame) where it takes more than :attr:`DatasetConfig.progress_after`."""
+        progress = _FirstItemProgress(type(self).__name__, self.config.progress_after)
+        outer, self._progress = getattr(self, "_progress", None), progress
+        try:
+            first = next(items, None)
+        finally:
+            self._progress = outer
+        progress.end()
+        if first is None:
+            return
+        yield first
+        yield from items
+
     def _then_report(
         self, items: Iterator[dict[str, Tensor]], rank: int, world: int
     ) -> Iterator[dict[str, Tensor]]:
@@ -1641,7 +1754,14 @@ class VideoDataset(IterableDataset):
         self._report_short(rank, world, final=True)
 
 
-def _count_frames(path: Path, convert: bool) -> int:
+def _ticking(frames: Iterator[Tensor], tick: Callable[[], None]) -> Iterator[Tensor]:
+    """``frames``, calling ``tick`` after each is taken (the progress of the first item: it is tracked then)."""
+    for frame in frames:
+        yield frame
+        tick()
+
+
+def _count_frames(path: Path, convert: bool, tick: Callable[[], None] | None = None) -> int:
     """Frames of a video file, image folder or ``.npy`` array, read as :func:`torchface.io.open_frames` reads them
     (and refused as it refuses them) but not converted: a video file is decoded through, by ``read()`` as the
     reader does (``grab()`` alone could count a frame whose ``retrieve()`` fails, where the reader stops), so the
@@ -1654,6 +1774,8 @@ def _count_frames(path: Path, convert: bool) -> int:
         count = 0
         while cap.read()[0]:
             count += 1
+            if tick is not None:  # (a long count's progress, :class:`_CountProgress`)
+                tick()
         return count
     finally:
         cap.release()

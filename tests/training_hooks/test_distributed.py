@@ -563,10 +563,28 @@ def test_a_long_count_says_how_far_it_has_got_from_one_process(uneven, config, m
         "its first face, once per dataset: DatasetConfig(progress_after=None) says nothing)",
         "VideoDataset: counted the items of 3 videos in N s",
     ]
-    assert next(iter(VideoDataset(videos, landmarks, cfg)))["video"] == 0 and len(said()) == 2  # (the first batch)
+    # the first batch: the count, then the wait for the first item (its worker tracks its first video whole)
+    assert next(iter(VideoDataset(videos, landmarks, cfg)))["video"] == 0
+    assert said()[2:] == [
+        "VideoDataset: the first item: 0 videos tracked in N s, v0.npy: 1 frame tracked (each video is tracked whole "
+        "before its items are yielded, with a detector from its first face on: DatasetConfig(progress_after=None) "
+        "says nothing)",
+        "VideoDataset: the first item came in N s",
+    ]
+    # one long video (here a face from frame 2 on) said nothing until it was counted, a count's last video nothing
+    # at all: a line is due at each frame read too
+    late = {bytes(np.load(videos[0])[2]): landmarks[0]}
+    assert VideoDataset(videos[:1], functools.partial(_first_frame_face, late), cfg).count_items() == [4]
+    assert said() == [
+        "VideoDataset: counting the items of 1 video: 0 counted in N s, v0.npy: 1 frame searched for its first face "
+        "(count_items(); each video file is decoded through, and with a detector searched for its first face, once "
+        "per dataset: DatasetConfig(progress_after=None) says nothing)",
+        "VideoDataset: counted the items of 1 video in N s",
+    ]
     for quiet in (replace(cfg, progress_after=None), replace(cfg, progress_after=DatasetConfig().progress_after)):
         assert VideoDataset(videos, detector, quiet).count_items() == list(LENGTHS)
         assert VideoDataset(videos, landmarks, quiet).worker_items(0, 2, 0, 2) == 10 and said() == []
+        assert next(iter(VideoDataset(videos, landmarks, quiet)))["video"] == 0 and said() == []
     with monkeypatch.context() as m:  # no stderr (pythonw, a detached process): nothing said, not on stdout instead
         m.setattr(sys, "stderr", None)
         assert VideoDataset(videos, detector, cfg).count_items() == list(LENGTHS)
