@@ -100,10 +100,24 @@ with a detector searches each for its first face; :meth:`VideoDataset.count_item
 DDP each ``DataLoader`` worker does it for its videos on every rank before its first batch. Over hundreds of videos
 that takes minutes, so a count that has taken more than ``progress_after`` seconds (5 by default) says how far it
 has got, in whole lines on stderr (``VideoDataset: counting the items of 200 videos: 37 counted in 6 s (...)``),
-another every :data:`PROGRESS_EVERY_S` seconds and one when it ends. One process speaks: rank 0's, and where the
-``DataLoader`` workers count, its worker 0 (the others count their own videos meanwhile, at about its pace). A
-shorter count (a test, a few videos, counts known already) says nothing; ``progress_after=None`` never does.
-Tracking itself says nothing (:attr:`VideoDataset.stats`, :func:`loader_throughput` measure it).
+another every :data:`PROGRESS_EVERY_S` seconds and one when it ends; a line is due as a video is counted and as
+each of its frames is read (decoded, searched by the detector), so one long video says how far it has got too
+(``, a.avi: 840 frames searched for its first face``). The wait for a ``DataLoader`` worker's first item (it
+searches and tracks its first video whole, and with ``shuffle_buffer`` those that fill the buffer, before it yields
+anything) says its progress alike (``VideoDataset: the first item: 0 videos tracked in 6 s, a.avi: 150 frames
+tracked (...)``, and ``the first item came in 41 s``). One process speaks: rank 0's, and where there are
+``DataLoader`` workers, its worker 0 (the others do as much meanwhile, at about its pace). A shorter wait (a test,
+a few videos, counts known already) says nothing; ``progress_after=None`` never does. Tracking after the first
+item says nothing (:attr:`VideoDataset.stats`, :func:`loader_throughput` measure it).
+
+Copies: ``copy.copy(data)`` shares the dataset's state (the same shared memory: epoch, counts, detections, skips,
+the warnings given); ``copy.deepcopy(data)`` is an independent dataset, its state copied as it is then into shared
+memory of its own, which its own ``DataLoader`` workers share with it (not with ``data``). A ``DataLoader`` sends
+the dataset to its workers by reference to its shared memory (forked, or pickled by ``multiprocessing``); a plain
+``pickle`` of it reads back an independent dataset. The once-per-dataset warnings (:class:`SkippedVideoWarning`
+of a video, :class:`ShortVideoWarning`, :class:`DistributedWarning`) are given exactly once among a dataset's
+processes: the first to create a marker file in the dataset's private temporary folder (``torchface-dataset-*``,
+made with the dataset, removed when it is collected or its process exits) gives it.
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -129,6 +143,7 @@ import enum
 import functools
 import itertools
 import math
+import multiprocessing.util
 import os
 import pickle
 import random
@@ -138,16 +153,15 @@ import tempfile
 import time
 import types
 import warnings
-import weakref
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from multiprocessing.reduction import ForkingPickler
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
@@ -235,6 +249,10 @@ class RankBalance(enum.Enum):
     UNEVEN = "uneven"
 
 
+#: A dataset's attributes in shared memory (:func:`_shared_state`, :func:`_shared_detections`, :func:`_shared_skips`,
+#: :func:`_shared_frames`).
+_SHARED_STATE: tuple[str, ...] = ("_shared", "_found_at", "_found", "_skips", "_frames")
+
 #: Entries of a dataset's shared state (:func:`_shared_state`).
 _EPOCH, _WARNED, _COUNTS = 0, 1, 2
 
@@ -296,13 +314,6 @@ def _content_words(content: str) -> Tensor:
     return torch.from_numpy(np.frombuffer(bytes.fromhex(content), dtype=np.int64).copy())
 
 
-def _remove_claims(folder: str, owner: int) -> None:
-    """Remove a :class:`_Claims` folder, in the process that made it only (a forked child that exits normally runs
-    its parent's ``atexit`` finalizers too)."""
-    if os.getpid() == owner:
-        shutil.rmtree(folder, ignore_errors=True)
-
-
 class _Claims:
     """What makes a once-per-dataset warning exactly once across the dataset's processes (its ``DataLoader``
     workers, forked or spawned, and the process that holds it): a private folder (``tempfile.mkdtemp``, made with
@@ -326,7 +337,10 @@ class _Claims:
                 self.folder = tempfile.mkdtemp(prefix="torchface-dataset-")
             except OSError:
                 return
-            weakref.finalize(self, _remove_claims, self.folder, os.getpid())
+            # (multiprocessing's finalizer, not weakref.finalize: it also runs at the exit of a process multiprocessing
+            # started, which leaves by os._exit, without atexit: the folders of datasets made in a torch.multiprocessing
+            # rank were left; and only in the process that made it)
+            multiprocessing.util.Finalize(self, shutil.rmtree, (self.folder, True), exitpriority=0)
 
     def claim(self, what: str) -> bool:
         """True in exactly one of the dataset's processes for ``what`` (a file name): the first to ask."""
@@ -601,8 +615,10 @@ class DatasetConfig:
             worker_items`, and under DDP the counts that balance the ranks, which come before the first batch. Each
             video file is decoded through to be counted, and with a detector searched for its first face: over
             hundreds of videos, minutes without a word. A line once the count has taken this long, another every
-            :data:`PROGRESS_EVERY_S` seconds, and one when it ends; from one process only (rank 0's, its
-            ``DataLoader`` worker 0 where the workers count). A count that takes less says nothing. None: never.
+            :data:`PROGRESS_EVERY_S` seconds (at a video's end or a frame read), and one when it ends; from one
+            process only (rank 0's, its ``DataLoader`` worker 0 where the workers count). The wait for a worker's
+            first item (its first video searched and tracked whole) says its progress alike. A count or wait that
+            takes less says nothing. None: never.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -938,6 +954,9 @@ class VideoDataset(IterableDataset):
             state["_frames"] = _shared_frames(0)
         state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
         state["_progress"] = None  # (this process's own)
+        for name in _SHARED_STATE:  # (read back from a plain pickle, by value: an independent dataset, whose own
+            if not state[name].is_shared():  # DataLoader workers must share its state)
+                state[name] = state[name].share_memory_()
         if isinstance(state.get("detector"), _SentDetector):  # (copied, not pickled: copy.copy of the dataset)
             state["detector"] = state["detector"].detector
         self.__dict__.update(state)
@@ -950,10 +969,7 @@ class VideoDataset(IterableDataset):
         ``set_epoch``, every worker counted and warned again, ``skipped`` stayed empty)."""
         new = type(self).__new__(type(self))
         memo[id(self)] = new
-        state = copy.deepcopy(self.__getstate__(), memo)
-        for name in ("_shared", "_found_at", "_found", "_skips", "_frames"):
-            state[name] = state[name].share_memory_()
-        new.__setstate__(state)
+        new.__setstate__(copy.deepcopy(self.__getstate__(), memo))  # (the copied tensors moved to shared memory)
         return new
 
     def _claim(self, what: str) -> bool:

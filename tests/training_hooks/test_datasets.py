@@ -495,6 +495,10 @@ def test_a_deep_copy_is_an_independent_dataset_whose_workers_share_its_state(cli
     shallow = copy.copy(data)
     shallow.set_epoch(7)
     assert data.epoch == 7 and shallow._shared is data._shared and shallow._claims is data._claims
+    received = pickle.loads(pickle.dumps(data))  # a plain pickle: independent too, in shared memory of its own
+    assert received._shared.is_shared() and received._claims.folder != data._claims.folder
+    received.set_epoch(8)
+    assert data.epoch == 7
 
 
 # --------------------------------------------------------------------------------------------- exceptions

@@ -470,7 +470,7 @@ def test_a_cached_video_is_counted_without_decoding(clips, config, tmp_path, mon
         m.setattr(cv2, "VideoCapture", no_decoding)
         assert VideoDataset(videos[:2], sources[:2], config).count_items() == decoded[:2]
         assert VideoDataset(videos[:2], sources[:2], clip_config).count_items() == decoded_clips[:2]
-    monkeypatch.setattr(training_hooks.datasets, "_count_frames", lambda p, c: counted.append(p) or real_count(p, c))
+    monkeypatch.setattr(training_hooks.datasets, "_count_frames", lambda p, *a: counted.append(p) or real_count(p, *a))
     data = VideoDataset(videos, sources, config)
     assert data.count_items() == decoded and counted == [videos[2]] and data.stats.cache.hits == 0
     # a damaged record is not read (the file is left to load(), which deletes it), nor one of another key
@@ -670,7 +670,7 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
 
     delay = [0.3]  # (set per process: the second fails 0.2 s after the first, while the first's warning shows)
 
-    def slow_failure(path, convert):
+    def slow_failure(path, *args):
         time.sleep(delay[0])  # (both processes fail after both have begun)
         raise training_hooks.datasets.InputError(f"{path}: cannot decode")
 
@@ -714,7 +714,7 @@ def test_processes_that_find_a_warning_due_at_the_same_moment_give_it_once(uneve
     videos, landmarks = uneven
     real = VideoDataset._claim
 
-    def fail(path, convert):
+    def fail(path, *args):
         raise training_hooks.datasets.InputError(f"{path}: cannot decode")
 
     def race(data: VideoDataset, act, name: str) -> list[str]:
