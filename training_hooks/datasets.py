@@ -100,10 +100,24 @@ with a detector searches each for its first face; :meth:`VideoDataset.count_item
 DDP each ``DataLoader`` worker does it for its videos on every rank before its first batch. Over hundreds of videos
 that takes minutes, so a count that has taken more than ``progress_after`` seconds (5 by default) says how far it
 has got, in whole lines on stderr (``VideoDataset: counting the items of 200 videos: 37 counted in 6 s (...)``),
-another every :data:`PROGRESS_EVERY_S` seconds and one when it ends. One process speaks: rank 0's, and where the
-``DataLoader`` workers count, its worker 0 (the others count their own videos meanwhile, at about its pace). A
-shorter count (a test, a few videos, counts known already) says nothing; ``progress_after=None`` never does.
-Tracking itself says nothing (:attr:`VideoDataset.stats`, :func:`loader_throughput` measure it).
+another every :data:`PROGRESS_EVERY_S` seconds and one when it ends; a line is due as a video is counted and as
+each of its frames is read (decoded, searched by the detector), so one long video says how far it has got too
+(``, a.avi: 840 frames searched for its first face``). The wait for a ``DataLoader`` worker's first item (it
+searches and tracks its first video whole, and with ``shuffle_buffer`` those that fill the buffer, before it yields
+anything) says its progress alike (``VideoDataset: the first item: 0 videos tracked in 6 s, a.avi: 150 frames
+tracked (...)``, and ``the first item came in 41 s``). One process speaks: rank 0's, and where there are
+``DataLoader`` workers, its worker 0 (the others do as much meanwhile, at about its pace). A shorter wait (a test,
+a few videos, counts known already) says nothing; ``progress_after=None`` never does. Tracking after the first
+item says nothing (:attr:`VideoDataset.stats`, :func:`loader_throughput` measure it).
+
+Copies: ``copy.copy(data)`` shares the dataset's state (the same shared memory: epoch, counts, detections, skips,
+the warnings given); ``copy.deepcopy(data)`` is an independent dataset, its state copied as it is then into shared
+memory of its own, which its own ``DataLoader`` workers share with it (not with ``data``). A ``DataLoader`` sends
+the dataset to its workers by reference to its shared memory (forked, or pickled by ``multiprocessing``); a plain
+``pickle`` of it reads back an independent dataset. The once-per-dataset warnings (:class:`SkippedVideoWarning`
+of a video, :class:`ShortVideoWarning`, :class:`DistributedWarning`) are given exactly once among a dataset's
+processes: the first to create a marker file in the dataset's private temporary folder (``torchface-dataset-*``,
+made with the dataset, removed when it is collected or its process exits) gives it.
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -129,16 +143,20 @@ import enum
 import functools
 import itertools
 import math
+import multiprocessing.util
 import os
 import pickle
 import random
+import shutil
 import sys
+import tempfile
 import time
 import types
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
 from typing import Any
 
@@ -231,6 +249,10 @@ class RankBalance(enum.Enum):
     UNEVEN = "uneven"
 
 
+#: A dataset's attributes in shared memory (:func:`_shared_state`, :func:`_shared_detections`, :func:`_shared_skips`,
+#: :func:`_shared_frames`).
+_SHARED_STATE: tuple[str, ...] = ("_shared", "_found_at", "_found", "_skips", "_frames")
+
 #: Entries of a dataset's shared state (:func:`_shared_state`).
 _EPOCH, _WARNED, _COUNTS = 0, 1, 2
 
@@ -290,6 +312,62 @@ def _content_words(content: str) -> Tensor:
     """``(4,)`` int64: a :func:`~training_hooks.cache.content_hash` (64 hex digits) as :func:`_shared_detections`
     keeps it."""
     return torch.from_numpy(np.frombuffer(bytes.fromhex(content), dtype=np.int64).copy())
+
+
+class _Claims:
+    """What makes a once-per-dataset warning exactly once across the dataset's processes (its ``DataLoader``
+    workers, forked or spawned, and the process that holds it): a private folder (``tempfile.mkdtemp``, made with
+    the dataset) in which the first process to act on ``what`` creates the marker ``what`` with
+    ``os.open(O_CREAT | O_EXCL)``, which the file system grants to exactly one. The shared-memory flags
+    (:func:`_shared_state`, ...) were checked, then set: two processes finishing within the microseconds between
+    the two both warned. The flags stay (a cheap first check, and what copies and old pickles read); the marker
+    decides.
+
+    The folder is removed when the dataset that made it is collected, or at the exit of its process (not by its
+    workers, nor a forked child's exit); a process killed (SIGKILL) leaves it, empty but for a few markers. It
+    travels as the tensors of shared memory do: by reference to the ``DataLoader`` workers
+    (``multiprocessing``'s pickler, :meth:`_shared_reduce`), while a plain ``pickle`` of the dataset (whose tensors
+    are then copied by value, an independent dataset) and ``copy.deepcopy`` make a new folder. Where no folder can
+    be made (an unwritable temporary folder) or it is gone, a claim is granted, as the flags alone did."""
+
+    def __init__(self, folder: str | None = None) -> None:
+        self.folder = folder
+        if folder is None:
+            try:
+                self.folder = tempfile.mkdtemp(prefix="torchface-dataset-")
+            except OSError:
+                return
+            # (multiprocessing's finalizer, not weakref.finalize: it also runs at the exit of a process multiprocessing
+            # started, which leaves by os._exit, without atexit: the folders of datasets made in a torch.multiprocessing
+            # rank were left; and only in the process that made it)
+            multiprocessing.util.Finalize(self, shutil.rmtree, (self.folder, True), exitpriority=0)
+
+    def claim(self, what: str) -> bool:
+        """True in exactly one of the dataset's processes for ``what`` (a file name): the first to ask."""
+        if self.folder is None:
+            return True
+        try:
+            os.close(os.open(os.path.join(self.folder, what), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        except FileExistsError:
+            return False
+        except OSError:  # (the folder gone: removed by a cleaner of old temporary files, say)
+            return True
+        return True
+
+    def __reduce__(self) -> tuple[type[_Claims], tuple[()]]:
+        return _Claims, ()  # (a plain pickle: an independent dataset, its own claims)
+
+    def _shared_reduce(self) -> tuple[type[_Claims], tuple[str | None]]:
+        return _Claims, (self.folder,)  # (multiprocessing's pickler: the same folder, not removed by the reader)
+
+    def __copy__(self) -> _Claims:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> _Claims:
+        return _Claims()
+
+
+ForkingPickler.register(_Claims, _Claims._shared_reduce)
 
 
 #: The end of :mod:`torchface.io`'s message for a frame to convert, as a dataset says it (the command line's
@@ -390,7 +468,12 @@ class _CountProgress:
     """The progress of a count of ``total`` videos' items (:attr:`DatasetConfig.progress_after`), as whole lines on
     stderr (a log file and a terminal alike; a warning given meanwhile stays readable): none until the count has
     taken ``after`` seconds (None: never), then one every :data:`PROGRESS_EVERY_S` seconds and one at its end.
-    ``name``: the dataset's class, which begins each line; ``why``: what the count is for, said in the first."""
+    ``name``: the dataset's class, which begins each line; ``why``: what the count is for, said in the first.
+
+    A line is due as a video's count ends (:meth:`step`) or as a frame of the video being read is (:meth:`frame`:
+    decoded through to be counted, searched by the detector, tracked), so that one long video (a detector
+    searching it frame by frame, the only video of a count) says how far it has got too: ``, a.avi: 840 frames
+    searched for its first face``. A tick costs a clock reading."""
 
     def __init__(self, name: str, total: int, why: str, after: float | None) -> None:
         self.name, self.total, self.why = name, total, why
@@ -398,6 +481,9 @@ class _CountProgress:
         self.t0 = time.monotonic()
         self.due = after  # seconds into the count of the next line (None: no line)
         self.said = False
+        self.done = 0  # videos counted
+        self.current: tuple[str, str] | None = None  # (the video being read, what is done with its frames)
+        self.read = 0  # its frames read so far
 
     def _say(self, line: str) -> None:
         if sys.stderr is None:  # (pythonw, a detached process: print(file=None) wrote the line to stdout)
@@ -408,26 +494,77 @@ class _CountProgress:
         except (OSError, ValueError):  # (a closed or broken stderr: the count goes on without a word)
             self.due = None
 
-    def step(self, done: int) -> None:
-        """``done`` of the ``total`` videos counted: a line if one is due (none for the last: :meth:`end`'s)."""
-        if self.due is None or done >= self.total:
-            return
-        elapsed = time.monotonic() - self.t0
-        if elapsed < self.due:
-            return
+    def _now(self) -> str:
+        """The video being read and how far, for a line (empty between videos)."""
+        if self.current is None:
+            return ""
+        name, doing = self.current
+        return f", {name}: {self.read} frame{'' if self.read == 1 else 's'} {doing}"
+
+    def _line(self, elapsed: float) -> str:
         first = "" if self.said else (
             f" ({self.why}; each video file is decoded through, and with a detector searched for its first face, "
             "once per dataset: DatasetConfig(progress_after=None) says nothing)"
         )  # fmt: skip
-        self._say(f"counting the items of {self.videos}: {done} counted in {elapsed:.0f} s{first}")
+        return f"counting the items of {self.videos}: {self.done} counted in {elapsed:.0f} s{self._now()}{first}"
+
+    def _due(self) -> None:
+        if self.due is None:
+            return
+        elapsed = time.monotonic() - self.t0
+        if elapsed < self.due:
+            return
+        self._say(self._line(elapsed))
         self.said = True
         if self.due is not None:
             self.due = elapsed + PROGRESS_EVERY_S
+
+    def video(self, path: Path, doing: str) -> None:
+        """Video ``path``'s frames are read next, ``doing`` with them (``"decoded"``, ``"tracked"``, ...)."""
+        self.current, self.read = (path.name, doing), 0
+
+    def frame(self, read: int | None = None) -> None:
+        """One more frame of the current video read (``read``: the frames read so far): a line if one is due."""
+        self.read = self.read + 1 if read is None else read
+        self._due()
+
+    def step(self, done: int) -> None:
+        """``done`` of the ``total`` videos counted: a line if one is due (none for the last: :meth:`end`'s)."""
+        self.done, self.current = done, None
+        if done < self.total:
+            self._due()
 
     def end(self) -> None:
         """The count is over: its last line, where it said anything before."""
         if self.said and self.due is not None:
             self._say(f"counted the items of {self.videos} in {time.monotonic() - self.t0:.0f} s")
+
+
+class _FirstItemProgress(_CountProgress):
+    """The wait for a ``DataLoader`` worker's first item (:attr:`DatasetConfig.progress_after`): it searches and
+    tracks its first video whole (and with ``shuffle_buffer``, as many as fill the buffer) before it yields
+    anything, minutes for a long video. Lines as :class:`_CountProgress`'s (``VideoDataset: the first item: 2
+    videos tracked in 35 s, b.avi: 300 frames tracked (...)``), and ``VideoDataset: the first item came in 41 s``
+    at the end, where it said anything. A count made first (under DDP) says its own progress."""
+
+    def __init__(self, name: str, after: float | None) -> None:
+        super().__init__(name, 0, "", after)
+
+    def _line(self, elapsed: float) -> str:
+        first = "" if self.said else (
+            " (each video is tracked whole before its items are yielded, with a detector from its first face on: "
+            "DatasetConfig(progress_after=None) says nothing)"
+        )  # fmt: skip
+        tracked = f"{self.done} video{'' if self.done == 1 else 's'} tracked"
+        return f"the first item: {tracked} in {elapsed:.0f} s{self._now()}{first}"
+
+    def step(self, done: int) -> None:
+        self.done, self.current = done, None
+
+    def end(self) -> None:
+        if self.said and self.due is not None:
+            self._say(f"the first item came in {time.monotonic() - self.t0:.0f} s")
+        self.due = None
 
 
 def _process_group() -> tuple[int, int] | None:
@@ -478,8 +615,10 @@ class DatasetConfig:
             worker_items`, and under DDP the counts that balance the ranks, which come before the first batch. Each
             video file is decoded through to be counted, and with a detector searched for its first face: over
             hundreds of videos, minutes without a word. A line once the count has taken this long, another every
-            :data:`PROGRESS_EVERY_S` seconds, and one when it ends; from one process only (rank 0's, its
-            ``DataLoader`` worker 0 where the workers count). A count that takes less says nothing. None: never.
+            :data:`PROGRESS_EVERY_S` seconds (at a video's end or a frame read), and one when it ends; from one
+            process only (rank 0's, its ``DataLoader`` worker 0 where the workers count). The wait for a worker's
+            first item (its first video searched and tracked whole) says its progress alike. A count or wait that
+            takes less says nothing. None: never.
     """
 
     tracking: FaceTrackingConfig = field(default_factory=FaceTrackingConfig)
@@ -773,6 +912,8 @@ class VideoDataset(IterableDataset):
         self._skips = _shared_skips(len(self.videos) if self.config.keep_going else 0)
         short = self.config.clip_length is not None and not self.config.keep_short_clips
         self._frames = _shared_frames(len(self.videos) if short else 0)
+        self._claims: _Claims | None = _Claims()  # (the once-per-dataset warnings' markers)
+        self._progress: _CountProgress | None = None  # (what this process says the progress of now, if anything)
 
     def _check_source(self, path: Path) -> None:
         if not path.is_file():
@@ -811,9 +952,31 @@ class VideoDataset(IterableDataset):
             state["_skips"] = _shared_skips(0)
         if "_frames" not in state:  # pickled before short videos were reported
             state["_frames"] = _shared_frames(0)
+        state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
+        state["_progress"] = None  # (this process's own)
+        for name in _SHARED_STATE:  # (read back from a plain pickle, by value: an independent dataset, whose own
+            if not state[name].is_shared():  # DataLoader workers must share its state)
+                state[name] = state[name].share_memory_()
         if isinstance(state.get("detector"), _SentDetector):  # (copied, not pickled: copy.copy of the dataset)
             state["detector"] = state["detector"].detector
         self.__dict__.update(state)
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> VideoDataset:
+        """An independent dataset (module docstring, "Copies"): its shared state (epoch, counts, detections, skips,
+        the warnings given) copied as it is now into new shared memory, which its own ``DataLoader`` workers share
+        with it and not with this dataset; new claims (:class:`_Claims`). The default deepcopy gave the copy tensors
+        out of shared memory: forked workers then each changed a private copy (a persistent worker missed each
+        ``set_epoch``, every worker counted and warned again, ``skipped`` stayed empty)."""
+        new = type(self).__new__(type(self))
+        memo[id(self)] = new
+        new.__setstate__(copy.deepcopy(self.__getstate__(), memo))  # (the copied tensors moved to shared memory)
+        return new
+
+    def _claim(self, what: str) -> bool:
+        """Whether this process is the one of the dataset's processes to act on ``what`` (a once-per-dataset
+        warning: :class:`_Claims`); True where the dataset has no claims (one pickled before them)."""
+        claims = getattr(self, "_claims", None)
+        return True if claims is None else claims.claim(what)
 
     @property
     def epoch(self) -> int:
@@ -863,6 +1026,7 @@ class VideoDataset(IterableDataset):
         # A DataLoader worker started by spawn / forkserver receives the dataset pickled by its rank, and has no
         # torch.distributed group of its own: the rank's (rank, world size) travel with the dataset.
         state = self.__dict__.copy()
+        state.pop("_progress", None)  # (this process's own)
         group = _process_group()
         if group is not None:
             state["_sender_group"] = group
@@ -933,7 +1097,8 @@ class VideoDataset(IterableDataset):
                 frames = self._cached_frames(index)
                 if frames is None:
                     with _dataset_hint():
-                        frames = _count_frames(self.videos[index], c.convert) - start
+                        frames = _count_frames(self.videos[index], c.convert, self._frame_ticks(index, "decoded"))
+                    frames -= start
             except (InputError, OSError) as exc:
                 if not c.keep_going:
                     raise
@@ -985,14 +1150,33 @@ class VideoDataset(IterableDataset):
         worker), its ``DataLoader`` worker 0 where the workers count (each counts its own videos, at about the same
         pace: one speaks for them, as :meth:`_warn_distributed` does)."""
         todo = [i for i in dict.fromkeys(indices) if int(self._shared[_COUNTS + i]) < 0]
+        after = self.config.progress_after if self._speaks() else None
+        progress = _CountProgress(type(self).__name__, len(todo), why, after)
+        outer, self._progress = getattr(self, "_progress", None), (None if after is None else progress)
+        try:
+            for done, index in enumerate(todo, start=1):
+                self.num_items(index)
+                progress.step(done)
+        finally:
+            self._progress = outer
+        progress.end()
+
+    def _speaks(self) -> bool:
+        """Whether this process says the dataset's progress (:attr:`DatasetConfig.progress_after`): rank 0's (the
+        default group's, or the rank's that sent the dataset to a spawned worker), its ``DataLoader`` worker 0 where
+        there are workers (each does as much at about the same pace: one speaks for them)."""
         group = _process_group() or getattr(self, "_sender_group", None)
         info = get_worker_info()
-        speaks = (group is None or group[0] == 0) and (info is None or info.id == 0)
-        progress = _CountProgress(type(self).__name__, len(todo), why, self.config.progress_after if speaks else None)
-        for done, index in enumerate(todo, start=1):
-            self.num_items(index)
-            progress.step(done)
-        progress.end()
+        return (group is None or group[0] == 0) and (info is None or info.id == 0)
+
+    def _frame_ticks(self, index: int, doing: str) -> Callable[..., None] | None:
+        """The tick to call at each frame of video ``index`` read (``doing`` with it) where this process says
+        progress now (a count's, or the first item's: :class:`_CountProgress`); None otherwise (no cost)."""
+        progress = getattr(self, "_progress", None)
+        if progress is None:
+            return None
+        progress.video(self.videos[index], doing)
+        return progress.frame
 
     def count_items(self) -> list[int]:
         """:meth:`num_items` of every video, in list order (e.g. to plan the steps of an epoch). Videos shorter than
@@ -1068,9 +1252,9 @@ class VideoDataset(IterableDataset):
             return
         length = self.config.clip_length
         short = [i for i, n in enumerate(frames.tolist()) if 0 <= n < length]  # type: ignore[operator]
-        if not short:
+        if not short or not self._claim("short-videos"):  # (another process finishing meanwhile warns instead)
             return
-        self._frames[0] = 1  # (before warning: another process finishing meanwhile does not warn too)
+        self._frames[0] = 1
         warnings.warn(
             f"{type(self).__name__}: {self._named_short(short)} (DatasetConfig.clip_length={length}): left out. "
             "DatasetConfig(keep_short_clips=True) yields each as one shorter clip (collate_clips pads them)",
@@ -1156,9 +1340,11 @@ class VideoDataset(IterableDataset):
             # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
             return None if points is None else check_landmarks(np.asarray(points), W, H, where, min_inside=0.5)
 
+        tick = self._frame_ticks(index, "searched for its first face")
         start, frame, points = search_first_face(
             itertools.chain([first], frames), find, f"{path}: the detector",
             " (leave it out of the videos, or give every video's first-frame landmarks instead of a detector)",
+            searching=None if tick is None else (lambda searched: tick(searched)),
         )  # fmt: skip
         self._found_at[index, 0] = -1  # (an entry of the video's earlier content, if any: void while rewritten)
         self._found[index] = torch.from_numpy(points)
@@ -1240,12 +1426,15 @@ class VideoDataset(IterableDataset):
         """Record (:attr:`skipped`) and warn (:class:`SkippedVideoWarning`) that video ``index`` is skipped for
         ``exc`` (:attr:`DatasetConfig.keep_going`), unless a process of the dataset (a ``DataLoader`` worker, the
         caller counting) has recorded it already: it records before it warns, since a warning can take a while to
-        show (a busy stderr), and two processes that failed on one video at the same time both warned. (Two that
-        fail within the few microseconds it takes to record can still both warn: preventing that would take a
-        cross-process lock, and a ``multiprocessing`` lock held by the dataset would make it unpicklable but to the
-        processes ``multiprocessing`` starts. The ranks of a DDP group share nothing: each warns of a video it
-        cannot count, as each counts its workers' videos on every rank.)"""
+        show (a busy stderr), and two processes that failed on one video at the same time both warned. Two that
+        failed within the microseconds between finding it unrecorded and recording it both warned too: the first
+        to claim it (:class:`_Claims`, a marker file created exclusively) records and warns, the other says
+        nothing. (The ranks of a DDP group share nothing: each warns of a video it cannot count, as each counts its
+        workers' videos on every rank.)"""
         if self._is_skipped(index):
+            return
+        if not self._claim(f"skipped-{index}"):  # (another process records and warns: it failed on it meanwhile)
+            self._record_frames(index, _SKIPPED_FRAMES)
             return
         path = self.videos[index]
         said = " ".join(str(exc).split()).removeprefix(f"{path}: ")  # (most name the video first: not twice)
@@ -1329,13 +1518,20 @@ class VideoDataset(IterableDataset):
                         self.stats.videos += 1
                         return stored, True, None
             t0 = time.perf_counter()
+            frames: Iterator[Tensor] = itertools.chain([first], reader)
+            tick = self._frame_ticks(index, "tracked")
+            if tick is not None:  # (the wait for the first item: :class:`_FirstItemProgress`)
+                frames = _ticking(frames, tick)
             with _dataset_hint():  # (a later frame's format is found as it is read)
-                sequence, _ = self.transform.track(itertools.chain([first], reader), landmarks)
+                sequence, _ = self.transform.track(frames, landmarks)
             self.stats.tracking_s += time.perf_counter() - t0
         finally:
             reader.close()
         if start:  # (the frames' numbers in the video, as the stored sequence keeps them)
             sequence = replace(sequence, first_frame=start)
+        progress = getattr(self, "_progress", None)
+        if isinstance(progress, _FirstItemProgress):
+            progress.step(progress.done + 1)
         self.stats.videos += 1
         self.stats.frames_tracked += sequence.num_frames
         return sequence, False, key
@@ -1495,6 +1691,8 @@ class VideoDataset(IterableDataset):
         n, mode = len(self.videos), self.config.rank_balance
         if n >= world or (rank < n and mode is not RankBalance.DROP) or int(self._shared[_WARNED]):
             return
+        if not self._claim("distributed"):
+            return
         self._shared[_WARNED] = 1
         if mode is RankBalance.DROP:
             what = f"with RankBalance.DROP every rank yields no item (rank {rank} has no video)"
@@ -1510,6 +1708,13 @@ class VideoDataset(IterableDataset):
         )
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        items = self._epoch_items()
+        if self.config.progress_after is not None and self._speaks():
+            items = self._then_first(items)
+        return items
+
+    def _epoch_items(self) -> Iterator[dict[str, Tensor]]:
+        """This process's items of the epoch (:meth:`__iter__`)."""
         rank, world = self.rank_and_world_size()
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
@@ -1542,6 +1747,21 @@ class VideoDataset(IterableDataset):
         rng.shuffle(buffer)
         yield from buffer
 
+    def _then_first(self, items: Iterator[dict[str, Tensor]]) -> Iterator[dict[str, Tensor]]:
+        """``items``, saying the progress of the wait for the first (:class:`_FirstItemProgress`: the videos it
+        tracks meanwhile, frame by frame) where it takes more than :attr:`DatasetConfig.progress_after`."""
+        progress = _FirstItemProgress(type(self).__name__, self.config.progress_after)
+        outer, self._progress = getattr(self, "_progress", None), progress
+        try:
+            first = next(items, None)
+        finally:
+            self._progress = outer
+        progress.end()
+        if first is None:
+            return
+        yield first
+        yield from items
+
     def _then_report(
         self, items: Iterator[dict[str, Tensor]], rank: int, world: int
     ) -> Iterator[dict[str, Tensor]]:
@@ -1550,7 +1770,14 @@ class VideoDataset(IterableDataset):
         self._report_short(rank, world, final=True)
 
 
-def _count_frames(path: Path, convert: bool) -> int:
+def _ticking(frames: Iterator[Tensor], tick: Callable[[], None]) -> Iterator[Tensor]:
+    """``frames``, calling ``tick`` after each is taken (the progress of the first item: it is tracked then)."""
+    for frame in frames:
+        yield frame
+        tick()
+
+
+def _count_frames(path: Path, convert: bool, tick: Callable[[], None] | None = None) -> int:
     """Frames of a video file, image folder or ``.npy`` array, read as :func:`torchface.io.open_frames` reads them
     (and refused as it refuses them) but not converted: a video file is decoded through, by ``read()`` as the
     reader does (``grab()`` alone could count a frame whose ``retrieve()`` fails, where the reader stops), so the
@@ -1563,6 +1790,8 @@ def _count_frames(path: Path, convert: bool) -> int:
         count = 0
         while cap.read()[0]:
             count += 1
+            if tick is not None:  # (a long count's progress, :class:`_CountProgress`)
+                tick()
         return count
     finally:
         cap.release()

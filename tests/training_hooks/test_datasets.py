@@ -27,6 +27,7 @@ from training_hooks import (
     DatasetConfig,
     FrameFolderDataset,
     NormaliseFaces,
+    ShortVideoWarning,
     VideoDataset,
     cache_key,
     clip_bounds,
@@ -449,6 +450,55 @@ def test_set_epoch_reaches_persistent_workers(clips, config):
     for epoch in range(2):
         shuffled.set_epoch(epoch)
         assert [(int(i["video"]), int(i["frame"])) for i in loader] == expected[epoch]
+
+
+def test_a_deep_copy_is_an_independent_dataset_whose_workers_share_its_state(clips, config, tmp_path):
+    """copy.deepcopy(data) (a validation copy, a framework copying its datasets) gave the copy its state out of
+    shared memory: its forked DataLoader workers each changed a private copy (a persistent worker missed every
+    set_epoch, each worker counted and warned again). The copy is now an independent dataset in shared memory of
+    its own: it starts from the original's state (epoch, counts), its processes share it with it, and neither it
+    nor the original sees the other's later changes. copy.copy shares the original's state, as before."""
+    import multiprocessing
+
+    from training_hooks.datasets import _COUNTS
+
+    videos = [tmp_path / f"v{i}.npy" for i in range(3)]  # (.npy: no decoder whose threads a fork would hang)
+    for path in videos:
+        np.save(path, np.zeros((FRAMES, 32, 32, 3), np.uint8))
+    data = VideoDataset(videos, [c.landmarks for c in clips], replace(config, cache_dir=None, clip_length=FRAMES + 1))
+    data.set_epoch(2)
+    data.num_items(0)  # (counted before the copy: the copy keeps it)
+    copied = copy.deepcopy(data)
+    assert copied._shared.is_shared() and copied._frames.is_shared() and copied._claims is not data._claims
+    assert copied.epoch == 2 and copied._shared[_COUNTS:].tolist() == [0, -1, -1]
+    copied.set_epoch(5)
+    assert data.epoch == 2
+    log = tmp_path / "warnings.txt"
+
+    def count() -> None:  # (a forked DataLoader worker of the copy, counting its videos)
+        warnings.simplefilter("ignore")
+        warnings.simplefilter("always", UserWarning)
+        warnings.showwarning = lambda message, category, *args, **kwargs: log.write_text(category.__name__)
+        assert copied.count_items() == [0, 0, 0] and copied.epoch == 5
+
+    process = multiprocessing.get_context("fork").Process(target=count)
+    process.start()
+    process.join(30)
+    assert process.exitcode == 0 and log.read_text() == "ShortVideoWarning"
+    assert copied._shared[_COUNTS:].tolist() == [0, 0, 0] and int(copied._frames[0]) == 1  # (seen by the copy)
+    assert data._shared[_COUNTS:].tolist() == [0, -1, -1] and int(data._frames[0]) == 0  # (not by the original)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert copied.count_items() == [0, 0, 0]  # (the copy's warning given: by its worker)
+    with pytest.warns(ShortVideoWarning):
+        assert data.count_items() == [0, 0, 0]  # (the original's own)
+    shallow = copy.copy(data)
+    shallow.set_epoch(7)
+    assert data.epoch == 7 and shallow._shared is data._shared and shallow._claims is data._claims
+    received = pickle.loads(pickle.dumps(data))  # a plain pickle: independent too, in shared memory of its own
+    assert received._shared.is_shared() and received._claims.folder != data._claims.folder
+    received.set_epoch(8)
+    assert data.epoch == 7
 
 
 # --------------------------------------------------------------------------------------------- exceptions
@@ -965,7 +1015,7 @@ def test_a_dataset_pickled_without_the_shared_state_still_loads(clips, config):
     unpickles with its epoch and counts its items."""
     data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
     state = data.__getstate__()
-    del state["_shared"]
+    del state["_shared"], state["_claims"]  # (nor the claims of the once-per-dataset warnings)
     state["epoch"] = 3
     old = VideoDataset.__new__(VideoDataset)
     old.__setstate__(state)

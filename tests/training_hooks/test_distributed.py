@@ -470,7 +470,7 @@ def test_a_cached_video_is_counted_without_decoding(clips, config, tmp_path, mon
         m.setattr(cv2, "VideoCapture", no_decoding)
         assert VideoDataset(videos[:2], sources[:2], config).count_items() == decoded[:2]
         assert VideoDataset(videos[:2], sources[:2], clip_config).count_items() == decoded_clips[:2]
-    monkeypatch.setattr(training_hooks.datasets, "_count_frames", lambda p, c: counted.append(p) or real_count(p, c))
+    monkeypatch.setattr(training_hooks.datasets, "_count_frames", lambda p, *a: counted.append(p) or real_count(p, *a))
     data = VideoDataset(videos, sources, config)
     assert data.count_items() == decoded and counted == [videos[2]] and data.stats.cache.hits == 0
     # a damaged record is not read (the file is left to load(), which deletes it), nor one of another key
@@ -563,10 +563,28 @@ def test_a_long_count_says_how_far_it_has_got_from_one_process(uneven, config, m
         "its first face, once per dataset: DatasetConfig(progress_after=None) says nothing)",
         "VideoDataset: counted the items of 3 videos in N s",
     ]
-    assert next(iter(VideoDataset(videos, landmarks, cfg)))["video"] == 0 and len(said()) == 2  # (the first batch)
+    # the first batch: the count, then the wait for the first item (its worker tracks its first video whole)
+    assert next(iter(VideoDataset(videos, landmarks, cfg)))["video"] == 0
+    assert said()[2:] == [
+        "VideoDataset: the first item: 0 videos tracked in N s, v0.npy: 1 frame tracked (each video is tracked whole "
+        "before its items are yielded, with a detector from its first face on: DatasetConfig(progress_after=None) "
+        "says nothing)",
+        "VideoDataset: the first item came in N s",
+    ]
+    # one long video (here a face from frame 2 on) said nothing until it was counted, a count's last video nothing
+    # at all: a line is due at each frame read too
+    late = {bytes(np.load(videos[0])[2]): landmarks[0]}
+    assert VideoDataset(videos[:1], functools.partial(_first_frame_face, late), cfg).count_items() == [4]
+    assert said() == [
+        "VideoDataset: counting the items of 1 video: 0 counted in N s, v0.npy: 1 frame searched for its first face "
+        "(count_items(); each video file is decoded through, and with a detector searched for its first face, once "
+        "per dataset: DatasetConfig(progress_after=None) says nothing)",
+        "VideoDataset: counted the items of 1 video in N s",
+    ]
     for quiet in (replace(cfg, progress_after=None), replace(cfg, progress_after=DatasetConfig().progress_after)):
         assert VideoDataset(videos, detector, quiet).count_items() == list(LENGTHS)
         assert VideoDataset(videos, landmarks, quiet).worker_items(0, 2, 0, 2) == 10 and said() == []
+        assert next(iter(VideoDataset(videos, landmarks, quiet)))["video"] == 0 and said() == []
     with monkeypatch.context() as m:  # no stderr (pythonw, a detached process): nothing said, not on stdout instead
         m.setattr(sys, "stderr", None)
         assert VideoDataset(videos, detector, cfg).count_items() == list(LENGTHS)
@@ -652,7 +670,7 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
 
     delay = [0.3]  # (set per process: the second fails 0.2 s after the first, while the first's warning shows)
 
-    def slow_failure(path, convert):
+    def slow_failure(path, *args):
         time.sleep(delay[0])  # (both processes fail after both have begun)
         raise training_hooks.datasets.InputError(f"{path}: cannot decode")
 
@@ -681,6 +699,69 @@ def test_two_processes_counting_a_video_that_cannot_be_read_warn_once(uneven, co
         "items are left out; the dataset's .skipped records it)"
     ]
     assert data.skipped == {3: f"{videos[3]}: cannot decode"} and data.count_items()[3] == 0
+
+
+def test_processes_that_find_a_warning_due_at_the_same_moment_give_it_once(uneven, config, monkeypatch, tmp_path):
+    """The once-per-dataset warnings (SkippedVideoWarning of a video, ShortVideoWarning, DistributedWarning) were
+    decided by a flag in shared memory, checked, then set: two processes (DataLoader workers ending their passes
+    together, a worker and the caller's count_items()) that both checked it within the microseconds before either
+    set it both warned. Here two forked processes are held at a barrier right there, after the check: with the
+    flags alone (the dataset's claims removed, as a dataset pickled before them has none) both warn; with the
+    claims (a marker created with O_CREAT | O_EXCL in the dataset's private folder) exactly one does."""
+    import multiprocessing
+
+    fork = multiprocessing.get_context("fork")
+    videos, landmarks = uneven
+    real = VideoDataset._claim
+
+    def fail(path, *args):
+        raise training_hooks.datasets.InputError(f"{path}: cannot decode")
+
+    def race(data: VideoDataset, act, name: str) -> list[str]:
+        log = tmp_path / f"{name}.txt"
+        barrier = fork.Barrier(2, timeout=20)
+
+        def claim(self, what: str) -> bool:  # both processes have found the flag unset: the window
+            barrier.wait()
+            return real(self, what)
+
+        def show(message, category, *args, **kwargs) -> None:
+            with log.open("a") as f:
+                f.write(f"{category.__name__}\n")
+
+        def run() -> None:
+            warnings.simplefilter("ignore")
+            warnings.simplefilter("always", UserWarning)  # (the dataset's warnings)
+            warnings.showwarning = show
+            act(data)
+
+        with monkeypatch.context() as m:
+            m.setattr(VideoDataset, "_claim", claim)
+            processes = [fork.Process(target=run) for _ in range(2)]
+            for p in processes:
+                p.start()
+            for p in processes:
+                p.join(30)
+        assert [p.exitcode for p in processes] == [0, 0]
+        return log.read_text().splitlines()
+
+    monkeypatch.setattr(training_hooks.datasets, "_count_frames", fail)
+    cases = {
+        "SkippedVideoWarning": (dict(keep_going=True), lambda data: data.num_items(3)),
+        "ShortVideoWarning": (dict(clip_length=5), lambda data: data._report_short(0, 1, final=False)),
+        "DistributedWarning": ({}, lambda data: data._warn_distributed(6, 8)),  # (8 ranks, 5 videos)
+    }
+    for category, (settings, act) in cases.items():
+        for claims, count in ((False, 2), (True, 1)):
+            data = VideoDataset(videos, landmarks, replace(config, cache_dir=None, **settings))
+            if category == "ShortVideoWarning":
+                for i, n in enumerate(LENGTHS):  # (every video's frames known: the warning is due)
+                    data._record_frames(i, n)
+            if not claims:
+                data._claims = None
+            assert race(data, act, f"{category}-{claims}") == [category] * count, (category, claims)
+        if category == "SkippedVideoWarning":
+            assert data.skipped == {3: f"{videos[3]}: cannot decode"}  # (recorded once, whole)
 
 
 def test_a_rank_of_uneven_ranks_finds_a_dataset_with_no_clip_at_all(uneven, config, monkeypatch):
