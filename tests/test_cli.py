@@ -13,6 +13,9 @@ from torchface.cli import FFMPEG_LOG_QUIET, build_parser, main
 from torchface.synth.io import read_video
 from torchface.synth.sequence import load_ground_truth
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _helpers import without_home  # noqa: E402
+
 
 def test_render_demo_writes_a_sequence(tmp_path, capsys):
     out = tmp_path / "demo"
@@ -235,14 +238,8 @@ def test_a_path_starting_with_tilde_is_a_usage_error_not_a_folder_named_tilde(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy"]  # nothing written
     # with HOME unset and the user not in the password database, nothing expands '~' (a shell neither): it was taken,
     # os.path.expanduser leaving it as it was, and the outputs went to a folder '~'
-    pwd = pytest.importorskip("pwd")
-
-    def missing(*args):
-        raise KeyError("no such entry")
-
     with monkeypatch.context() as m:
-        m.delenv("HOME", raising=False)
-        m.setattr(pwd, "getpwuid", missing)
+        without_home(m)
         with pytest.raises(SystemExit) as info:
             main(["track", "a.npy", "--out", "~/res", "--landmarks", "l.csv"])
     err = capsys.readouterr().err

@@ -42,7 +42,8 @@ class ValueScale(enum.Enum):
     OVERSHOOT = "overshoot"
     #: Below 0 to at most 3: normalised with a mean and standard deviation (ImageNet's: about -2.1 to 2.6).
     NORMALISED = "normalised"
-    #: Below 0 and past 3: a 0-255 frame less its mean (undone: 0-255 values).
+    #: Below -0.5 (to -255) and past 3 (to 255): a 0-255 frame less its mean (undone: 0-255 values; from -0.5 and
+    #: past 3 is :attr:`SCALE_255`, a 0-255 frame resampled).
     NORMALISED_0_255 = "normalised 0-255"
     #: From about 0 to past 2: 0-255 values.
     SCALE_255 = "0-255"

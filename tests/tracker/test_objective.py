@@ -218,6 +218,22 @@ def test_warp_points_expression_loop_equals_the_broadcast_matmul(dtype, monkeypa
     assert objective._expression_offsets(tpl, alpha) is None
     monkeypatch.setattr(objective, "_OFFSET_LOOP_MIN_POINTS", 0)
     assert objective._expression_offsets(tpl, alpha.clone().requires_grad_()) is None
+    # the matmul's cases: a tangent, a torch.func transform, half precision, one template broadcast over the streams
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():
+        assert objective._expression_offsets(tpl, fwAD.make_dual(alpha, torch.ones_like(alpha))) is None
+    seen = []
+    torch.func.vmap(lambda a: seen.append(objective._expression_offsets(tpl, a[None])) or a)(alpha)
+    assert seen == [None]
+    half = Template(*(f.to(torch.bfloat16) if f.is_floating_point() else f for f in (tpl.face_index, tpl.bary,
+                    tpl.points, tpl.basis, tpl.normals, tpl.intensity, tpl.valid)))  # fmt: skip
+    assert objective._expression_offsets(half, alpha.to(torch.bfloat16)) is None
+    one = Template(*(f[:1] for f in (tpl.face_index, tpl.bary, tpl.points, tpl.basis, tpl.normals, tpl.intensity,
+                                      tpl.valid)))  # fmt: skip
+    pc_one = warp_points(one, layout, x)[1]  # (the loop raised: alpha (5, A) is not the template's (1, A))
+    assert torch.equal(pc_one, torch.matmul(one.points + torch.matmul(one.basis, alpha[:, None, :, None]).squeeze(-1),
+                                            R.transpose(1, 2)) + x[:, None, 3:6])  # fmt: skip
 
 
 def test_validity_mask():

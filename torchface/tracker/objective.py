@@ -53,13 +53,15 @@ def _expression_offsets(template: Template, alpha: Tensor) -> Tensor | None:
     streams, 1500 points, one thread, on a loaded machine: 20 ms against the matmul's 31 (medians of 9).
 
     Only on the CPU, for float32 or float64 tensors of one dtype that ask for no gradient (nor tangent, nor
-    ``torch.compile``), ``3 A < 400`` (the matmul's small-matrix kernel) and at least
+    ``torch.compile``), ``alpha`` ``(B, A)`` as the template's ``B`` (the matmul broadcasts a template of one sample
+    over the streams' parameters; this does not), ``3 A < 400`` (the matmul's small-matrix kernel) and at least
     :data:`_OFFSET_LOOP_MIN_POINTS` streams times points; None elsewhere (the caller runs the matmul)."""
     basis = template.basis
     B, N, _, A = basis.shape
     tensors = (basis, template.points, alpha)
     if (
-        B * N < _OFFSET_LOOP_MIN_POINTS or A == 0 or 3 * A >= 400 or basis.dtype not in (torch.float32, torch.float64)
+        B * N < _OFFSET_LOOP_MIN_POINTS or A == 0 or 3 * A >= 400 or alpha.shape != (B, A)
+        or basis.dtype not in (torch.float32, torch.float64)
         or any(x.dtype != basis.dtype or x.device.type != "cpu" for x in tensors)
         or (torch.is_grad_enabled() and any(x.requires_grad for x in tensors))
         or is_compiling() or is_transformed(*tensors)
@@ -67,9 +69,9 @@ def _expression_offsets(template: Template, alpha: Tensor) -> Tensor | None:
         return None
     basis_t = template.point_last[2]  # (B, A, 3, N)
     a = alpha.reshape(B, A, 1, 1)
-    out = torch.empty(B, 3, N, dtype=basis.dtype)
+    out = torch.empty(B, 3, N, dtype=basis.dtype, device=basis.device)
     step = max(1, _OFFSET_CHUNK_VALUES // (3 * N))
-    product = torch.empty(min(step, B), 3, N, dtype=basis.dtype)
+    product = torch.empty(min(step, B), 3, N, dtype=basis.dtype, device=basis.device)
     for first in range(0, B, step):
         last = min(first + step, B)
         acc, b, w, p = out[first:last], basis_t[first:last], a[first:last], product[: last - first]
