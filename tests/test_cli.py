@@ -343,6 +343,9 @@ def test_the_summary_is_written_in_one_piece():
     assert lines[5] == ("    warning: no tracked frame, every row unusable (success 0): the face was lost at every "
                         "frame; its outputs are written")  # fmt: skip
     assert lines[6] == "  g: stopped partway, not completed (its 1 row so far is kept in g.csv.partial): a bad frame"
+    # no_tracked_frame: every row lost of a complete video; not a stopped one, nor one of no frames (refused earlier)
+    assert [s.no_tracked_frame for s in one] == [False, True, False]
+    assert not VideoSummary("h", Path("h.mp4"), (Path("o/h.csv"),), 0, 0, 0.0, 0.0).no_tracked_frame
 
 
 def test_a_damaged_videos_error_is_one_line_without_ffmpegs_log(tmp_path):

@@ -455,8 +455,9 @@ class VideoSummary:
         """Whether the video is complete but none of its rows is usable (``lost == frames``: every row ``success``
         0), as where its start failed (:attr:`start_failure`: a black first frame, landmarks no face fits) and no
         detector started it afresh: its outputs are written, with nothing tracked in them. ``torchface track``
-        exits with status 3 where any video is such (a video with one usable row or more is not)."""
-        return self.complete and self.lost >= self.frames
+        exits with status 3 where any video is such (a video with one usable row or more is not; one of no frames,
+        which the job refuses before tracking, is not either)."""
+        return self.complete and self.frames > 0 and self.lost >= self.frames
 
 
 class InputSkipped(UserWarning):
