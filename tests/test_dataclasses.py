@@ -219,3 +219,34 @@ def test_settings_that_hold_settings_or_names_refuse_other_types_naming_them():
                     cls(**{**base, f.name: bad})
             checked += 1
     assert checked >= 8
+
+
+def test_settings_of_several_numbers_refuse_other_types_naming_them():
+    """The settings that hold a tuple of numbers took a string as its characters (``TrackerConfig(
+    expression_prior_weights="1" * 11)``: eleven ones, silently; bytes: their codes, 49.0), a bool element as 0 or 1
+    (``robust_scale_floor=(True, True)``: floors of 1) and a string element was "'<' not supported between instances
+    of 'int' and 'str'", naming no setting (``robust_scale_floor``, ``TemplateConfig.search_depth_factors``). Now
+    each is a TypeError naming the setting (and the element); a list, numpy array or tensor of numbers is taken, as
+    a tuple, and a default's repr is unchanged."""
+    checked = 0
+    for cls, base in _settings().items():
+        default = cls(**base)
+        for f in dataclasses.fields(cls):
+            if not str(f.type).startswith("tuple[float"):
+                continue
+            value = getattr(default, f.name)
+            value = (1.0,) * 11 if value is None else value  # (expression_prior_weights: CANDIDE-3's 11 units)
+            for bad in ("1" * len(value), b"1" * len(value), ("0.5", *value[1:]), (True, *value[1:]), 3.0):
+                with pytest.raises(TypeError, match=rf"^{f.name}(\[0\])? must be (a (tuple of )?real number|three numbers)"):
+                    cls(**{**base, f.name: bad})
+            for same in (list(value), np.array(value), torch.tensor(value, dtype=torch.float64)):
+                if cls.__name__ == "ClipSpec":  # (a test clip's spec keeps what it is given)
+                    continue
+                assert getattr(cls(**{**base, f.name: same}), f.name) == tuple(value), (cls.__name__, f.name)
+            checked += 1
+    assert checked >= 5
+    assert repr(default) == repr(type(default)(**base))
+    from torchface.tracker.fit import FitConfig
+
+    with pytest.raises(ValueError, match="prior precisions must be finite and non-negative: held_shape_precision is -1"):
+        FitConfig(held_shape_precision=-1.0)  # (the message named none)

@@ -124,6 +124,26 @@ def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, 
     return tuple(check_int(v, f"{name}[{i}]", low) for i, v in enumerate(values))
 
 
+def check_reals(values: object, name: str) -> tuple[float, ...]:
+    """``values`` (a tuple or list, or a 1-D numpy array or tensor) as a tuple of numbers, each checked and converted
+    as :func:`check_real` does (``name[i]`` in the messages; an int stays an int, so that a default's ``repr`` stays
+    what it was).
+
+    The rule for the settings that hold several numbers (``TrackerConfig.robust_scale_floor``,
+    ``expression_prior_weights``, ``TemplateConfig.search_depth_factors``, ...): a string was taken as its characters
+    (``expression_prior_weights="1" * 11``: eleven ones; bytes: their codes), a string element was "'<' not supported
+    between instances of 'int' and 'str'", and a bool element was taken as 0 or 1.
+
+    Raises:
+        TypeError: ``values`` is not a tuple, list or 1-D array, or an element is not a real number.
+    """
+    if isinstance(values, (np.ndarray, torch.Tensor)) and values.ndim == 1:
+        values = values.tolist()
+    if not isinstance(values, (tuple, list)):
+        raise TypeError(f"{name} must be a tuple of real numbers, got {type(values).__name__} {values!r}")
+    return tuple(check_real(v, f"{name}[{i}]") for i, v in enumerate(values))
+
+
 def check_exact_dim(x: torch.Tensor, name: str, dims: tuple[int, ...], shape_doc: str) -> None:
     """Raise ``ValueError`` unless ``x.dim()`` is one of ``dims`` (``shape_doc`` names the expected shapes)."""
     if x.dim() not in dims:

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchface.geometry._checks import check_bool, check_int, check_real
+from torchface.geometry._checks import check_bool, check_int, check_real, check_reals
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import euler_to_matrix
@@ -275,7 +275,7 @@ class ClipSpec:
         for name in ("ypr_deg", "translation_mm", "light_direction"):
             value = getattr(self, name)
             try:
-                triple = tuple(float(check_real(v, name)) for v in value)
+                triple = tuple(float(v) for v in check_reals(value, name))  # (b"111": three 49s)
             except TypeError:
                 raise TypeError(f"{name} must be three numbers, got {value!r}") from None
             if len(triple) != 3 or not all(math.isfinite(v) for v in triple):

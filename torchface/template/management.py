@@ -56,7 +56,9 @@ from torch import Tensor
 
 from torchface.appearance.illumination import remove_illumination
 from torchface.backend import Backend, use_native
-from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_optional_int, check_real
+from torchface.geometry._checks import (
+    check_bool, check_int, check_intrinsics, check_optional_int, check_real, check_reals,
+)
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -364,7 +366,7 @@ class TemplateConfig:
             raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
         if not self.clean_radius_deg >= 0:
             raise ValueError(f"clean_radius_deg must be >= 0, got {self.clean_radius_deg}")
-        turn = tuple(float(check_real(v, "plausible_turn_deg")) for v in self.plausible_turn_deg)
+        turn = tuple(float(v) for v in check_reals(self.plausible_turn_deg, "plausible_turn_deg"))  # (b"11": 49s)
         if len(turn) != 2 or not all(math.isfinite(v) and v >= 0 for v in turn):
             raise ValueError(f"plausible_turn_deg must be two finite values >= 0, got {self.plausible_turn_deg}")
         object.__setattr__(self, "plausible_turn_deg", turn)
@@ -379,7 +381,9 @@ class TemplateConfig:
                      "clean_rejected_fraction"):  # fmt: skip
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        if not self.search_depth_factors or any(not f > 0 for f in self.search_depth_factors):
+        for name in ("search_depth_factors", "search_depth_widening"):  # (strings: "'>' not supported"; bools: 1)
+            object.__setattr__(self, name, check_reals(getattr(self, name), name))
+        if not self.search_depth_factors or any(not (math.isfinite(f) and f > 0) for f in self.search_depth_factors):
             raise ValueError(f"search_depth_factors must be positive factors, got {self.search_depth_factors}")
         if any(not (isinstance(f, (int, float)) and math.isfinite(f) and f > 0) for f in self.search_depth_widening):
             raise ValueError(f"search_depth_widening must be positive factors, got {self.search_depth_widening}")

@@ -178,12 +178,13 @@ class FitConfig:
         if held is not None and (not isinstance(held, tuple) or any(not isinstance(n, str) for n in held)
                                  or len(set(held)) != len(held)):
             raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
-        if any(
-            isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0
-            for p in (*precisions, self.expression_prior_precision, self.held_shape_precision,
-                      self.sparse_shape_prior_precision, self.sparse_expression_prior_precision)
-        ):
-            raise ValueError("prior precisions must be finite and non-negative")
+        named = [("shape_prior_precision", p) for p in precisions] + [
+            (name, getattr(self, name)) for name in ("expression_prior_precision", "held_shape_precision",
+                                                     "sparse_shape_prior_precision", "sparse_expression_prior_precision")
+        ]  # fmt: skip
+        for name, p in named:  # (the message named no setting)
+            if isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0:
+                raise ValueError(f"prior precisions must be finite and non-negative: {name} is {p!r}")
         if not self.shape_bound > 0:
             raise ValueError(f"shape_bound must be positive, got {self.shape_bound}")
 

@@ -29,7 +29,7 @@ from torchface.appearance.sampling import image_with_gradients, pyr_down, sample
 from torchface.backend import Backend, use_native
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM
 from torchface.geometry._checks import (
-    check_bool, check_int, check_intrinsics, check_ints, check_optional_real, check_real,
+    check_bool, check_int, check_intrinsics, check_ints, check_optional_real, check_real, check_reals,
 )
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
@@ -374,6 +374,8 @@ class TrackerConfig:
                           ("visibility_interval", 1), ("selection_seed", 0)):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations"))  # 6.5 was taken here
+        # ((True, True) was taken as floors of 1, ("0.1", "0.02") was "'<' not supported between 'int' and 'str'")
+        object.__setattr__(self, "robust_scale_floor", check_reals(self.robust_scale_floor, "robust_scale_floor"))
         for name in ("gradient_threshold", "function_tolerance", "refine_scale_floor", "expression_priority",
                      "expression_quota", "expression_prior_precision", "min_contrast", "min_face_width_px",
                      "crop_margin", "motion_prediction"):  # fmt: skip
@@ -392,7 +394,8 @@ class TrackerConfig:
         if self.refine_prior_precision is not None and not self.refine_prior_precision >= 0.0:
             raise ValueError(f"refine_prior_precision must be >= 0 or None, got {self.refine_prior_precision}")
         if self.expression_prior_weights is not None:
-            weights = tuple(float(w) for w in self.expression_prior_weights)
+            # (a string was taken as its characters: "1" * 11 as eleven ones, bytes as their codes)
+            weights = tuple(float(w) for w in check_reals(self.expression_prior_weights, "expression_prior_weights"))
             if not weights or not all(math.isfinite(w) and w >= 0.0 for w in weights):
                 raise ValueError(f"expression_prior_weights must be finite factors >= 0, got {self.expression_prior_weights}")
             object.__setattr__(self, "expression_prior_weights", weights)
