@@ -323,3 +323,63 @@ def test_the_packaged_grid_clip_tracks_from_python_as_the_docs_say():
     recipe = torch.from_numpy(np.ascontiguousarray(image[..., ::-1])).permute(2, 0, 1)[None].float() / 255
     assert torch.equal(recipe[0], first)
     assert all(bool(r.success) for r in results) and len(results) == 4
+
+
+def test_a_first_call_with_landmarks_or_a_clip_is_told_what_to_pass(clip):
+    """Session 58's audit: ``tracker(frames0, landmarks0)`` (the start given to the call, as other trackers' modules
+    take it) was "forward() takes 2 positional arguments but 3 were given", and a clip ``(B, T, C, H, W)`` (a video
+    dataset's batch) was told its shape alone. Each names what to pass, and what it names tracks."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    with pytest.raises(TypeError, match=r"^FaceTracker's call takes the frames alone, got 2 arguments: start the "
+                                        r"streams with tracker.initialise\(frames, landmarks_px\), then"):
+        tracker(frames[:1], lm[None])
+    with pytest.raises(ValueError, match=r"got \(1, 3, 3, 120, 160\) torch.float32 \(a clip \(B, T, C, H, W\)\? one "
+                                         r"frame per stream per call: frames\[:, t\]\)$"):
+        tracker.initialise(frames[None], lm[None])
+    tracker.initialise(frames[None][:, 0], lm[None])
+    assert bool(tracker(frames[None][:, 1]).success)
+
+
+def test_a_choice_given_as_a_string_is_told_the_member_to_pass():
+    """``TrackerConfig(solver="fast")`` was "solver must be a TrackSolver, got 'fast'" (``robust="huber"``: "got str"),
+    and ``TrackSolver`` and ``TemplateConfig``, which docs/python-api.md names among the settings, did not import from
+    ``torchface.tracker``. The member named is the one to pass, and it imports from where the message says."""
+    from torchface.solver import RobustKind
+    from torchface.tracker import Backend, TemplateConfig, TrackSolver
+
+    for name, value, member in (("solver", "fast", "TrackSolver.FAST"), ("robust", "Huber", "RobustKind.HUBER"),
+                                ("backend", "native", "Backend.NATIVE")):  # fmt: skip
+        with pytest.raises(TypeError, match=rf"^{name} must be a \w+, got str '{value}' \(pass {member}, from "):
+            TrackerConfig(**{name: value})
+    with pytest.raises(TypeError, match=r"\(pass TrackSolver.FAST or TrackSolver.REFERENCE, from torchface.tracker\)"):
+        TrackerConfig(solver="gauss-newton")
+    config = TrackerConfig(solver=TrackSolver.FAST, robust=RobustKind.HUBER, backend=Backend.NATIVE,
+                           template=TemplateConfig(enabled=False))  # fmt: skip
+    assert config.robust is RobustKind.HUBER and not config.template.enabled
+
+
+def test_results_become_the_csvs_rows_as_the_docs_say(clip):
+    """docs/python-api.md, "Results and settings": ``result_rows`` and ``track_columns`` give a result's table in the
+    CSV's columns, a failed stream's row finite with ``success`` 0; a list of results, or frame numbers of another
+    count than the streams, were an AttributeError and torch.cat's "Sizes of tensors must match"."""
+    import numpy as np
+
+    from torchface.io import result_rows, track_columns
+
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    both = lm[None].repeat(2, 1, 1)
+    both[1] = float("nan")  # stream 1 without a face: its start fails
+    results = [tracker.initialise(frames[:1].expand(2, -1, -1, -1), both), tracker(frames[1:2].expand(2, -1, -1, -1))]
+    r = results[-1]
+    columns = track_columns(r.anim_names, r.facs_names, r.illumination_names)
+    rows = np.concatenate([result_rows(r, [t] * 2, 25.0) for t, r in enumerate(results)])
+    assert rows.shape == (4, len(columns)) and np.isfinite(rows[:, :-3]).all()
+    table = dict(zip(columns, rows.T))
+    assert table["success"].tolist() == [1, 0, 1, 0] and table["timestamp"].tolist() == [0, 0, 0.04, 0.04]
+    assert table["pose_Tz"][2] == float(r.translation[0, 2]) and table["yaw_deg"][2] == float(r.ypr_deg[0, 0])
+    with pytest.raises(TypeError, match=r"^result must be one step's TrackResult, got list"):
+        result_rows(results, [0, 1], 25.0)
+    with pytest.raises(ValueError, match=r"^frame_indices must give one frame index per stream \(2\), got 1$"):
+        result_rows(r, [1], 25.0)

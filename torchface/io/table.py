@@ -185,11 +185,16 @@ def result_rows(result, frame_indices: Tensor | np.ndarray, fps: float) -> np.nd
         frame_indices: ``(B,)`` frame index of each row.
         fps: frames per second (``timestamp = frame / fps``; the job writes the frame's time from its reader).
     """
+    if not isinstance(getattr(result, "rotation", None), Tensor):  # (a list of results: an AttributeError)
+        raise TypeError(f"result must be one step's TrackResult, got {type(result).__name__} (rows of several: "
+                        "np.concatenate([result_rows(r, ...) for r in results]))")  # fmt: skip
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps}")
     frames = torch.as_tensor(np.asarray(frame_indices), dtype=torch.float64).reshape(-1, 1)
     R = result.rotation.detach().to("cpu", torch.float64)
     B = R.shape[0]
+    if frames.shape[0] != B:  # (torch.cat's "Sizes of tensors must match")
+        raise ValueError(f"frame_indices must give one frame index per stream ({B}), got {frames.shape[0]}")
 
     def col(x: Tensor) -> Tensor:
         return x.detach().to("cpu", torch.float64).reshape(B, -1)

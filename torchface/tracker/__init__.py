@@ -28,11 +28,13 @@ from torchface.tracker.smoothing import (
     smooth_pose_series,
     smooth_result,
 )
+from torchface.template.management import TemplateConfig
 from torchface.tracker.step import (
     StartFailure,
     TrackerConfig,
     TrackerState,
     TrackResult,
+    TrackSolver,
     TrackStatus,
     face_width_px,
     gray_pyramid,
@@ -58,7 +60,9 @@ __all__ = [
     "SmoothingConfig",
     "SmoothingState",
     "StartFailure",
+    "TemplateConfig",
     "TrackResult",
+    "TrackSolver",
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",

@@ -305,9 +305,16 @@ class FaceTracker(DeviceCheckedModule):
         return result
 
     @torch.no_grad()
-    def forward(self, frames: Tensor) -> TrackResult:
+    def forward(self, frames: Tensor, *misplaced: object) -> TrackResult:
         """Track the next frame of every stream: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray ->
-        :class:`TrackResult`."""
+        :class:`TrackResult`. ``misplaced``: nothing (landmarks given here, ``tracker(frames, landmarks)``, are
+        refused saying that :meth:`initialise` takes them: it was "forward() takes 2 positional arguments but 3 were
+        given")."""
+        if misplaced:
+            raise TypeError(
+                f"FaceTracker's call takes the frames alone, got {1 + len(misplaced)} arguments: start the streams "
+                "with tracker.initialise(frames, landmarks_px), then track each next frame with tracker(frames)"
+            )
         if self._state is None:
             raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
         config = self.tracking_config

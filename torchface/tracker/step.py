@@ -427,12 +427,23 @@ class TrackerConfig:
         if self.motion_prediction > 0.0 and not self.template.enabled:
             raise ValueError("motion_prediction needs template management (template.enabled): its confidence "
                              "decides where the prediction applies")
-        if not isinstance(self.robust, RobustKind):
-            raise TypeError(f"robust must be a RobustKind, got {type(self.robust).__name__}")
-        if not isinstance(self.backend, Backend):
-            raise TypeError(f"backend must be a Backend, got {type(self.backend).__name__}")
-        if not isinstance(self.solver, TrackSolver):  # "fast" ran the reference solver without a word
-            raise TypeError(f"solver must be a TrackSolver, got {self.solver!r}")
+        for name, kind, where in (("robust", RobustKind, "torchface.solver"), ("backend", Backend, "torchface.tracker"),
+                                  ("solver", TrackSolver, "torchface.tracker")):  # fmt: skip
+            _check_choice(getattr(self, name), name, kind, where)  # (solver="fast" ran the reference solver)
+
+
+def _check_choice(value: object, name: str, kind: type[enum.Enum], where: str) -> None:
+    """Refuse a :class:`TrackerConfig` choice ``name`` that is not a ``kind`` member (a TypeError), naming the member
+    a string names (``solver="fast"``: ``TrackSolver.FAST``) or, for another string, the members (they were told
+    "must be a TrackSolver, got 'fast'", or "got str", not what to pass); ``where``: the module to import it from."""
+    if isinstance(value, kind):
+        return
+    hint = ""
+    if isinstance(value, str):
+        named = [m for m in kind if value.strip().lower() in (str(m.value).lower(), m.name.lower())]
+        members = [named[0]] if named else list(kind)
+        hint = f" (pass {' or '.join(f'{kind.__name__}.{m.name}' for m in members)}, from {where})"
+    raise TypeError(f"{name} must be a {kind.__name__}, got {type(value).__name__} {value!r}{hint}")
 
 
 def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
@@ -936,6 +947,8 @@ def _frame_hint(frames: Tensor) -> str:
         hints.append("channels last (B, H, W, C): frames.permute(0, 3, 1, 2)")
     elif frames.dim() == 4 and shape[1] == 4:
         hints.append("RGBA: drop the alpha, frames[:, :3]")
+    elif frames.dim() == 5:  # (a clip, as a video dataset's batch holds it, was told the shape alone)
+        hints.append("a clip (B, T, C, H, W)? one frame per stream per call: frames[:, t]")
     if frames.dtype == torch.uint8:
         hints.append("uint8 frames: pass frames.float() / 255")
     elif frames.dtype == torch.uint16:
