@@ -383,3 +383,32 @@ def test_results_become_the_csvs_rows_as_the_docs_say(clip):
         result_rows(results, [0, 1], 25.0)
     with pytest.raises(ValueError, match=r"^frame_indices must give one frame index per stream \(2\), got 1$"):
         result_rows(r, [1], 25.0)
+
+
+def test_landmarks_as_row_and_column_fail_saying_to_give_x_and_y(clip):
+    """``(row, col)`` landmarks (a NumPy image's index order) cannot be told from a mirrored face before the fit:
+    the stream fails for no pose, and its reason said "mirrored or seen from behind" alone. It names the order and
+    the flip, and the flipped landmarks start."""
+    frames, lm = clip
+    result = FaceTracker(CFG).initialise(frames[:1], lm.flip(-1)[None])
+    assert int(result.status) == FAILED and int(result.start_failure) == int(StartFailure.NO_POSE)
+    reason = result.start_failure_reasons[0]
+    assert reason is not None and "(row, col) ones give a mirrored face: landmarks.flip(-1)" in reason
+    assert int(FaceTracker(CFG).initialise(frames[:1], lm.flip(-1).flip(-1)[None]).status) == CONVERGED
+
+
+def test_normalised_face_mistakes_are_told_what_to_pass(clip):
+    """The README's ``NormalisedFace(tracker.model)(frames1, tracker.state)`` given the tracker for its model, the
+    state before ``initialise`` (None) or its arguments swapped was told the type alone; each says what to pass, and
+    what it says gives the face."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    with pytest.raises(TypeError, match=r"^model must be a FaceModel, got FaceTracker: pass its model, tracker.model$"):
+        NormalisedFace(tracker)  # type: ignore[arg-type]
+    normaliser = NormalisedFace(tracker.model)
+    with pytest.raises(TypeError, match=r"got NoneType: tracker.state is None until tracker.initialise\(...\)$"):
+        normaliser(frames[:1], tracker.state)  # type: ignore[arg-type]
+    tracker.initialise(frames[:1], lm[None])
+    with pytest.raises(TypeError, match=r"got Tensor: the frames come first, normaliser\(frames, tracker.state\)$"):
+        normaliser(tracker.state, frames[:1])  # type: ignore[arg-type]
+    assert normaliser(frames[:1], tracker.state).image.shape == (1, 3, 128, 128)

@@ -264,8 +264,9 @@ def build_normalised_layout(
         >>> layout.intrinsics.size, layout.num_pixels > 0
         ((32, 32), True)
     """
-    if not isinstance(model, FaceModel):
-        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}")
+    if not isinstance(model, FaceModel):  # (a FaceTracker, as the README's example holds one: its model)
+        hint = ": pass its model, tracker.model" if isinstance(getattr(model, "model", None), FaceModel) else ""
+        raise TypeError(f"model must be a FaceModel, got {type(model).__name__}{hint}")
     _check_precision(model)
     size = check_int(size, "size", 4)
     if not 0.0 <= float(margin) <= 0.45:
@@ -836,7 +837,11 @@ class NormalisedFace(DeviceCheckedModule):
                 frames, shape_coeffs, estimate.anim_coeffs, estimate.axis_angle, estimate.translation,
                 estimate.illumination, intrinsics,
             )  # fmt: skip
-        raise TypeError(f"estimate must be a TrackResult or a TrackerState, got {type(estimate).__name__}")
+        # (tracker.state before initialise, and the arguments swapped, were told the type alone)
+        hint = (": tracker.state is None until tracker.initialise(...)" if estimate is None
+                else ": the frames come first, normaliser(frames, tracker.state)" if isinstance(estimate, Tensor)
+                and isinstance(frames, (TrackResult, TrackerState)) else "")  # fmt: skip
+        raise TypeError(f"estimate must be a TrackResult or a TrackerState, got {type(estimate).__name__}{hint}")
 
     def from_params(
         self,
