@@ -838,10 +838,14 @@ class VideoDataset(IterableDataset):
     ) -> None:
         super().__init__()
         self.config = DatasetConfig() if config is None else config
-        if not isinstance(self.config, DatasetConfig):
-            raise TypeError(f"config must be a DatasetConfig, got {type(self.config).__name__}")
+        if not isinstance(self.config, DatasetConfig):  # (a FaceTrackingConfig, the README's inner one, was told no more)
+            hint = (", which goes inside it: DatasetConfig(tracking=FaceTrackingConfig(...))"
+                    if isinstance(self.config, FaceTrackingConfig) else "")  # fmt: skip
+            raise TypeError(f"config must be a DatasetConfig, got {type(self.config).__name__}{hint}")
         if isinstance(videos, (str, os.PathLike)) or not isinstance(videos, Sequence):
-            raise TypeError(f"videos must be a sequence of paths, got {type(videos).__name__}")
+            # (one video's path was told no more)
+            hint = f": one video's, [{videos!r}]" if isinstance(videos, (str, os.PathLike)) else ""
+            raise TypeError(f"videos must be a sequence of paths, got {type(videos).__name__}{hint}")
         # (absolute, as cache_dir is: a relative path was taken against the working folder when the video was read,
         # so a dataset iterated after an os.chdir (Lightning, Hydra), or in a worker that had changed folder, read
         # another file or none; Path.absolute(): symbolic links kept as named)

@@ -637,6 +637,22 @@ def test_landmarks_of_another_kind_are_refused_when_the_dataset_is_made(tmp_path
     VideoDataset([video] * 4, [points, torch.zeros(68, 2), str(tmp_path / "a.csv"), tmp_path / "a.npy"])  # its kinds
 
 
+def test_a_dataset_given_its_inner_config_or_one_video_is_told_what_to_pass(tmp_path):
+    """Session 58's audit of the README's example: ``VideoDataset(videos, landmarks, FaceTrackingConfig(...))`` (the
+    inner config) and ``VideoDataset("a.avi", ...)`` (one video's path) were told the type alone."""
+    from training_hooks import FaceTrackingConfig
+
+    video = tmp_path / "a.avi"
+    video.write_bytes(b"")  # (never opened)
+    points = np.zeros((68, 2))
+    with pytest.raises(TypeError, match=r"^config must be a DatasetConfig, got FaceTrackingConfig, which goes inside "
+                                        r"it: DatasetConfig\(tracking=FaceTrackingConfig\(...\)\)$"):
+        VideoDataset([video], [points], FaceTrackingConfig())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^videos must be a sequence of paths, got str: one video's, \['.*a.avi'\]$"):
+        VideoDataset(str(video), [points])
+    VideoDataset([str(video)], [points], DatasetConfig(tracking=FaceTrackingConfig()))  # (the ways named)
+
+
 def test_landmarks_of_another_count_or_a_missing_file_are_refused_when_the_dataset_is_made(tmp_path):
     """A video's landmarks of another count of points (dlib's 5, a (67, 2) slice) or a landmarks file that is not
     there were taken by VideoDataset and refused in the DataLoader worker once their video came up, after every
