@@ -838,7 +838,7 @@ class VideoDataset(IterableDataset):
     ) -> None:
         super().__init__()
         self.config = DatasetConfig() if config is None else config
-        if not isinstance(self.config, DatasetConfig):  # (a FaceTrackingConfig, the README's inner one, was told no more)
+        if not isinstance(self.config, DatasetConfig):  # (a FaceTrackingConfig, the inner one, was told no more)
             hint = (", which goes inside it: DatasetConfig(tracking=FaceTrackingConfig(...))"
                     if isinstance(self.config, FaceTrackingConfig) else "")  # fmt: skip
             raise TypeError(f"config must be a DatasetConfig, got {type(self.config).__name__}{hint}")

@@ -412,3 +412,22 @@ def test_normalised_face_mistakes_are_told_what_to_pass(clip):
     with pytest.raises(TypeError, match=r"got Tensor: the frames come first, normaliser\(frames, tracker.state\)$"):
         normaliser(tracker.state, frames[:1])  # type: ignore[arg-type]
     assert normaliser(frames[:1], tracker.state).image.shape == (1, 3, 128, 128)
+
+
+def test_landmarks_far_too_large_fail_the_start_and_the_next_step_runs(clip):
+    """Landmarks in the wrong unit, 255 times too large (a 0-255 scale taken for pixels), gave the automatic pyramid
+    7 levels on 160x120 frames, more than the step's least crop (64 pixels) can make: the start failed as it should
+    (OUTSIDE_FRAME), and the next step failed deep inside ("images must be (B, C, H, W) with H, W >= 3, got (1, 1, 2,
+    2)"). The pyramid stops where that crop does; the stream is LOST as any failed start is."""
+    from torchface.tracker import pyramid_for_faces
+    from torchface.tracker.step import MIN_CROP_PX
+
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    first = tracker.initialise(frames[:1], lm[None] * 255)
+    assert int(first.status) == FAILED and int(first.start_failure) == int(StartFailure.OUTSIDE_FRAME)
+    levels = tracker.state.num_levels
+    assert levels == 6 and MIN_CROP_PX >= 3 * 2 ** (levels - 2)
+    assert int(tracker(frames[1:2]).status) == LOST
+    big = torch.tensor([[[0.0, 0.0], [3000.0, 3000.0]]])  # (a face that large in 8K frames still gets its levels)
+    assert pyramid_for_faces(CFG, big, (4320, 7680)).num_levels == 6

@@ -1069,6 +1069,11 @@ def check_initialise_inputs(
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
 
+#: The least side, in pixels, of the crop a step tracks a stream in (:func:`face_crop`: the largest face's box, its
+#: margins and this many pixels; the frame where smaller): :func:`pyramid_for_faces` adds no level a crop this small
+#: cannot make.
+MIN_CROP_PX: int = 64
+
 #: The face size :class:`TrackerConfig`'s pyramid is made for: the larger side, in pixels, of the first frame's
 #: landmark box in the 640x480 scenarios (160-200 pixels). :func:`pyramid_for_faces` adds coarser levels for larger
 #: faces.
@@ -1085,12 +1090,12 @@ def pyramid_for_faces(
     at 1280x720 (13 mm a frame sideways at 450 mm, 37 pixels; 18 at 640x360) with the default three levels, and
     tracked with four. One level is added per doubling of the face's size over
     :data:`PYRAMID_REFERENCE_FACE_PX` (rounded: faces smaller than 180·√2 = 254.56 pixels keep ``config``; a
-    1280x720 face at 450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size allows
-    (:func:`check_initialise_inputs`). The added levels take the coarsest level's ``iterations``; the robust scale
-    floors stay those of the coarsest and the finest level. ``torchface track`` does this for every video (and
-    batches only videos of one pyramid), :class:`~torchface.tracker.FaceTracker` and ``training_hooks``'
-    tracking do by default (their ``pyramid="auto"``); :func:`initialise` and the other functions use the config
-    as given.
+    1280x720 face at 450 mm, 380 pixels, gets one, 1920x1080 two, 3840x2160 three), as many as the frame's size
+    (:func:`check_initialise_inputs`) and the step's least crop (:data:`MIN_CROP_PX`: 6 levels at most) allow.
+    The added levels take the coarsest level's ``iterations``; the robust scale floors stay those of the coarsest
+    and the finest level. ``torchface track`` does this for every video (and batches only videos of one pyramid),
+    :class:`~torchface.tracker.FaceTracker` and ``training_hooks``' tracking do by default (their
+    ``pyramid="auto"``); :func:`initialise` and the other functions use the config as given.
 
     Args:
         config: the settings to extend.
@@ -1130,7 +1135,11 @@ def pyramid_for_faces(
     if faces.numel() == 0:
         return config
     extra = max(0, math.floor(math.log2(float(faces.min()) / PYRAMID_REFERENCE_FACE_PX) + 0.5))
-    while extra > 0 and min(size) < 3 * 2 ** (config.num_levels + extra - 2):  # pyr_down's 3 pixels a side
+    # pyr_down's 3 pixels a side, in the frame and in the step's crop, which is at least MIN_CROP_PX a side
+    # (face_crop) whatever the face: a failed start holding a degenerate fit is cropped so, and levels past what that
+    # crop allows failed the next step deep inside ("images must be (B, C, H, W) with H, W >= 3, got (1, 1, 2, 2)":
+    # landmarks 255 times too large, on 160x120 frames, gave 7 levels)
+    while extra > 0 and min(*size, MIN_CROP_PX) < 3 * 2 ** (config.num_levels + extra - 2):
         extra -= 1
     return add_coarser_levels(config, extra)
 
