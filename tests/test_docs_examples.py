@@ -338,7 +338,7 @@ def test_settings_the_docs_quote_are_valid():
     from torchface.job import JobConfig
     from torchface.model import load_candide3
     from torchface.template import DissimilarityConfig, TemplateConfig
-    from torchface.tracker import Backend, FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
+    from torchface.tracker import Backend, FaceTracker, FitConfig, LookaheadConfig, TrackerConfig, TrackSolver
     from training_hooks import DatasetConfig, FaceStorage, FaceTrackingConfig, LayerConfig
 
     scope = {c.__name__: c for c in (JobConfig, DissimilarityConfig, TemplateConfig, FaceTracker, FitConfig,
@@ -347,6 +347,7 @@ def test_settings_the_docs_quote_are_valid():
     scope.update(k=0.5, model=load_candide3(), path="model.npz")  # (placeholders the text names; a path: not opened)
     scope["Backend"] = Backend  # (a value the settings take: `TrackerConfig(backend=Backend.TORCH)`)
     scope["FaceStorage"] = FaceStorage  # (one too: `FaceTrackingConfig(face_storage=FaceStorage.FLOAT32)`)
+    scope["TrackSolver"] = TrackSolver  # (and one: `TrackerConfig(solver=TrackSolver.REFERENCE)`)
 
     def job_config(*args: object, **kwargs: object) -> JobConfig:  # (the docs name a field, `JobConfig(model=path)`,
         return JobConfig(*args, **kwargs) if args or "out_dir" in kwargs else JobConfig(".", **kwargs)  # no out_dir)
