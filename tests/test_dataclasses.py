@@ -240,13 +240,19 @@ def test_settings_of_several_numbers_refuse_other_types_naming_them():
                 message = rf"^{f.name}(\[0\])? must be (a (tuple of )?real number|three numbers)"
                 with pytest.raises(TypeError, match=message):
                     cls(**{**base, f.name: bad})
-            for same in (list(value), np.array(value), torch.tensor(value, dtype=torch.float64)):
+            # (0-d elements, as iterating a tensor or array gives them, were taken before: float(w), f > 0)
+            tensor = torch.tensor(value, dtype=torch.float64)
+            for same in (list(value), np.array(value), tensor, tuple(tensor), tuple(np.array(v) for v in value)):
                 if cls.__name__ == "ClipSpec":  # (a test clip's spec keeps what it is given)
+                    cls(**{**base, f.name: same})
                     continue
                 assert getattr(cls(**{**base, f.name: same}), f.name) == tuple(value), (cls.__name__, f.name)
+            with pytest.raises(TypeError, match=message):
+                cls(**{**base, f.name: (torch.tensor(True), *value[1:])})  # (a 0-d bool: not a number either)
+            if f.default is not dataclasses.MISSING:  # (the default's repr: part of training_hooks' cache key)
+                assert repr(getattr(default, f.name)) == repr(f.default), (cls.__name__, f.name)
             checked += 1
     assert checked >= 5
-    assert repr(default) == repr(type(default)(**base))
     from torchface.tracker.fit import FitConfig
 
     with pytest.raises(ValueError, match="prior precisions must be finite and non-negative: held_shape_precision is"):

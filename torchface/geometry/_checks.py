@@ -134,6 +134,9 @@ def check_reals(values: object, name: str) -> tuple[float, ...]:
     (``expression_prior_weights="1" * 11``: eleven ones; bytes: their codes), a string element was "'<' not supported
     between instances of 'int' and 'str'", and a bool element was taken as 0 or 1.
 
+    An element may be a 0-d array or tensor (``tuple(torch.tensor([0.1, 0.02]))``, as iterating one gives), taken
+    as its Python number: the settings that took ``float(w)`` or compared their elements had taken them.
+
     Raises:
         TypeError: ``values`` is not a tuple, list or 1-D array, or an element is not a real number.
     """
@@ -141,7 +144,13 @@ def check_reals(values: object, name: str) -> tuple[float, ...]:
         values = values.tolist()
     if not isinstance(values, (tuple, list)):
         raise TypeError(f"{name} must be a tuple of real numbers, got {type(values).__name__} {values!r}")
-    return tuple(check_real(v, f"{name}[{i}]") for i, v in enumerate(values))
+    return tuple(check_real(_item(v), f"{name}[{i}]") for i, v in enumerate(values))
+
+
+def _item(value: object) -> object:
+    """A 0-d array or tensor as its Python number (a bool one as a bool, refused by :func:`check_real`); any other
+    ``value`` as it is."""
+    return value.item() if isinstance(value, (np.ndarray, torch.Tensor)) and value.ndim == 0 else value
 
 
 def check_exact_dim(x: torch.Tensor, name: str, dims: tuple[int, ...], shape_doc: str) -> None:
