@@ -51,6 +51,7 @@ import contextlib
 import math
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import TextIO
@@ -177,12 +178,12 @@ def pose_values(R: Tensor, t: Tensor) -> np.ndarray:
     return torch.cat([t, openface_euler(R), matrix_to_euler(R), R.reshape(-1, 9)], dim=1).numpy()
 
 
-def result_rows(result, frame_indices: Tensor | np.ndarray, fps: float) -> np.ndarray:
+def result_rows(result, frame_indices: Tensor | np.ndarray | Sequence[int], fps: float) -> np.ndarray:
     """``(B, C)`` float64 rows (columns of :func:`track_columns`) for one step's ``TrackResult``.
 
     Args:
         result: a :class:`~torchface.tracker.TrackResult` with batch B.
-        frame_indices: ``(B,)`` frame index of each row.
+        frame_indices: ``(B,)`` frame index of each row (a tensor, array or list: ``[t] * B``).
         fps: frames per second (``timestamp = frame / fps``; the job writes the frame's time from its reader).
     """
     if not isinstance(getattr(result, "rotation", None), Tensor):  # (a list of results: an AttributeError)
