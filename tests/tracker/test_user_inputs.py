@@ -431,3 +431,16 @@ def test_landmarks_far_too_large_fail_the_start_and_the_next_step_runs(clip):
     assert int(tracker(frames[1:2]).status) == LOST
     big = torch.tensor([[[0.0, 0.0], [3000.0, 3000.0]]])  # (a face that large in 8K frames still gets its levels)
     assert pyramid_for_faces(CFG, big, (4320, 7680)).num_levels == 6
+
+
+def test_many_levels_asked_for_a_tiny_face_fail_its_start_without_a_crash():
+    """``TrackerConfig(num_levels=8)`` asked for (not the automatic pyramid, which stops at 6) with a face a tenth of
+    its size: the start's crop was 128 pixels, whose 7th halving left 1 pixel, and ``initialise`` raised inside the
+    pyramid ("H, W >= 3, got (1, 1, 2, 2)"). The crop now keeps 3 pixels at the last halving: the start fails as
+    for any face that small (FAILED, narrower than ``min_face_width_px``) and the next step is LOST."""
+    frames, lm, _ = sideways_clip(640, 480, 2)
+    tiny = (lm - lm.mean(0)) * 0.1 + lm.mean(0)
+    tracker = FaceTracker(TrackerConfig(num_levels=8, iterations=(3,) * 8), refine_first=None, pyramid="config")
+    first = tracker.initialise(frames[:1], tiny[None])
+    assert int(first.status) == FAILED and int(first.start_failure) == int(StartFailure.FACE_TOO_SMALL)
+    assert tracker.state.num_levels == 8 and int(tracker(frames[1:2]).status) == LOST

@@ -1686,7 +1686,9 @@ def face_crop(
     lo, hi = uv.amin(1), uv.amax(1)  # (B, 2)
     size = (hi - lo).amax(-1)  # (B,)
     q = 2 ** (config.num_levels - 1)
-    side = int(torch.ceil(size.max() * (1 + 2 * config.crop_margin) + 64).item()) if size.numel() else W
+    side = int(torch.ceil(size.max() * (1 + 2 * config.crop_margin) + MIN_CROP_PX).item()) if size.numel() else W
+    # (a level pyr_down halves has 3 pixels a side or more: a tiny face with TrackerConfig(num_levels=8) crashed)
+    side = max(side, 3 * 2 ** (config.num_levels - 2))
     side = ((side + q - 1) // q) * q
     cw, ch = min(W, side), min(H, side)
     centre = 0.5 * (lo + hi)
