@@ -33,6 +33,12 @@ def test_basis_shape_and_columns():
     torch.testing.assert_close(basis[..., 0], tpl)
     torch.testing.assert_close(basis[..., 1], torch.ones_like(tpl))
     torch.testing.assert_close(basis[..., 2:], tpl.unsqueeze(-1) * n)
+    # out=: the same values written into a given tensor, here a point-last buffer's transpose, and returned as it
+    buffer = torch.full((2, NUM_ILLUMINATION_TERMS, 7), float("nan"), dtype=D)
+    written = illumination_basis(tpl, n, out=buffer.transpose(1, 2))
+    assert written.data_ptr() == buffer.data_ptr() and torch.equal(written, basis)
+    with pytest.raises(ValueError, match=r"out must be \(B, N, 5\), got \(2, 5, 7\)"):
+        illumination_basis(tpl, n, out=buffer)
 
 
 def test_zero_params_reproduce_the_template():

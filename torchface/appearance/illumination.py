@@ -24,12 +24,15 @@ ILLUMINATION_TERM_NAMES: tuple[str, ...] = ("gain", "bias", "light_x", "light_y"
 NUM_ILLUMINATION_TERMS: int = len(ILLUMINATION_TERM_NAMES)
 
 
-def illumination_basis(template: Tensor, normals_cam: Tensor) -> Tensor:
+def illumination_basis(template: Tensor, normals_cam: Tensor, *, out: Tensor | None = None) -> Tensor:
     """The illumination basis images ``B_i(x)`` of Eq. 11 at template points.
 
     Args:
         template: ``(B, N)`` template intensities ``T``.
         normals_cam: ``(B, N, 3)`` unit surface normals in the camera frame.
+        out: a ``(B, N, L)`` tensor of their dtype (any strides: the transpose of a point-last ``(B, L, N)`` buffer,
+            a large batch's step) that the same values are written into and returned as (without autograd:
+            ``out=`` arguments do not support it); None: a new tensor.
 
     Returns:
         ``(B, N, L)`` with ``L = 5``: ``[T, 1, T n_x, T n_y, T n_z]``.
@@ -40,7 +43,14 @@ def illumination_basis(template: Tensor, normals_cam: Tensor) -> Tensor:
             f"{tuple(normals_cam.shape)}"
         )
     t = template.unsqueeze(-1)
-    return torch.cat([t, torch.ones_like(t), t * normals_cam], dim=-1)
+    if out is None:
+        return torch.cat([t, torch.ones_like(t), t * normals_cam], dim=-1)
+    if tuple(out.shape) != (*template.shape, NUM_ILLUMINATION_TERMS):
+        raise ValueError(f"out must be (B, N, {NUM_ILLUMINATION_TERMS}), got {tuple(out.shape)}")
+    out[..., 0] = template
+    out[..., 1] = 1.0
+    torch.mul(t, normals_cam, out=out[..., 2:])
+    return out
 
 
 def apply_illumination(template: Tensor, basis: Tensor, params: Tensor) -> Tensor:

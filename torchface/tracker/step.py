@@ -2053,10 +2053,7 @@ def _level_light_basis(tpl: Template, R: Tensor, level: int, workspace: StepWork
         return illumination_basis(intensity, normals_cam)
     B, N = intensity.shape
     out = workspace.buffer(f"light_basis{level}", (B, NUM_ILLUMINATION_TERMS, N), intensity.dtype, intensity.device)
-    out[:, 0] = intensity
-    out[:, 1] = 1.0
-    torch.mul(intensity.unsqueeze(1), normals_cam.transpose(1, 2), out=out[:, 2:])
-    return out.transpose(1, 2)
+    return illumination_basis(intensity, normals_cam, out=out.transpose(1, 2))
 
 
 def _finish(
