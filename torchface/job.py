@@ -2018,7 +2018,7 @@ def _check_inputs_kept(
 def _check_resumable(
     video: Path, paths: dict[str, Path], config: JobConfig, model: FaceModel,
     landmarks: str | os.PathLike[str] | None = None,
-) -> None:
+) -> str | None:
     """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from other
     first-frame landmarks than the file ``landmarks`` now holds (the sidecar's ``initial_landmarks_px``, compared
     exactly, as the sidecar stores them, a missing point's ``[null, null]`` equal to a NaN row; a file fixed in place
@@ -2026,7 +2026,13 @@ def _check_resumable(
     ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a sidecar without
     one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
     :func:`_with_defaults`), with another face model than ``model`` (the sidecar's ``model.sha256``; a sidecar without
-    it was made with CANDIDE-3), or without the meshes ``config.meshes`` asks for."""
+    it was made with CANDIDE-3), or without the meshes ``config.meshes`` asks for.
+
+    Returns:
+        The name of the failure of the start that the sidecar records (its ``start.failure``, :func:`_start_record`;
+        :attr:`VideoSummary.start_failure` of the video skipped as complete); None where it started, or the sidecar
+        says nothing of it (made before it did).
+    """
     try:
         sidecar = json.loads(paths["json"].read_text(encoding="utf-8"))
         made, made_with = sidecar["input"], sidecar.get("config", {})
@@ -2068,6 +2074,9 @@ def _check_resumable(
     if config.meshes and not (paths["meshes"].is_dir() and _frame_meshes(paths["meshes"])):
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made without --meshes (no "
                          f"{paths['meshes'].name}/): run without --meshes, or without --resume")  # fmt: skip
+    start = sidecar.get("start")
+    failure = start.get("failure") if isinstance(start, dict) else None
+    return str(failure["name"]) if isinstance(failure, dict) and "name" in failure else None
 
 
 def _landmarks_difference(then: np.ndarray, now: np.ndarray) -> str:
@@ -2528,7 +2537,7 @@ def _track_locked(
         paths = output_paths(out_dir, name)
         if config.resume and paths["json"].is_file() and paths["csv"].is_file():
             try:
-                _check_resumable(v, paths, config, model, config.landmarks[k] if config.landmarks else None)
+                failed = _check_resumable(v, paths, config, model, config.landmarks[k] if config.landmarks else None)
                 cols, rows = read_track_csv(paths["csv"])
             except InputError as exc:
                 if not config.keep_going:
@@ -2540,7 +2549,7 @@ def _track_locked(
             outs = tuple(p for p in paths.values() if p.exists())
             mean = float(conf.mean()) if len(conf) else 0.0
             summaries[str(v)] = VideoSummary(name, v, outs, len(rows), lost, mean, 0.0, True,
-                                             start_failure=_sidecar_start_failure(paths["json"]))
+                                             start_failure=failed)
             continue
         pending.append(v)
         if config.landmarks:
@@ -3408,17 +3417,6 @@ def _finalise(
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short,
                         not_met_again=s.not_met_again, start_failure=failed)  # fmt: skip
-
-
-def _sidecar_start_failure(sidecar: Path) -> str | None:
-    """The name of the failure of the start that the complete outputs' ``sidecar`` records (its ``start.failure``,
-    :func:`_start_record`), for :attr:`VideoSummary.start_failure` of a video ``resume`` skips as complete; None
-    where it started, or the sidecar says nothing of it (made before it did; :func:`_check_resumable` read it)."""
-    try:
-        failure = json.loads(sidecar.read_text(encoding="utf-8"))["start"]["failure"]
-        return str(failure["name"]) if failure is not None else None
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
 
 
 def _resumed_record(s: _Stream) -> dict | None:
