@@ -37,6 +37,7 @@ __all__ = ["grid_sample_border", "nanmedian_values", "reflect_pad"]
 #: Tests set this to True to run the substitutes on any device (module docstring).
 FORCE = False
 
+
 def _jacrev_of_grid_sample_with_respect_to_the_grid() -> None:
     grid = torch.zeros(1, 1, 1, 2, dtype=torch.float32, device="cpu")
     for needs_grad in (False, True):  # (an image that requires grad outside the transform asks for none inside it)

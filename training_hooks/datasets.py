@@ -1348,7 +1348,7 @@ class VideoDataset(IterableDataset):
         start, frame, points = search_first_face(
             itertools.chain([first], frames), find, f"{path}: the detector",
             " (leave it out of the videos, or give every video's first-frame landmarks instead of a detector)",
-            searching=None if tick is None else (lambda searched: tick(searched)),
+            searching=tick,  # (called with the frames searched so far: _CountProgress.frame's read)
         )  # fmt: skip
         self._found_at[index, 0] = -1  # (an entry of the video's earlier content, if any: void while rewritten)
         self._found[index] = torch.from_numpy(points)
