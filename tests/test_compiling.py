@@ -168,8 +168,14 @@ def test_an_older_torchs_transforms_are_read_value_by_value_and_refused_by_a_ste
     """torch 2.5 to 2.9 could not ``.tolist()`` a ``torch.func`` transform's tensor ("Cannot access data pointer of
     Tensor that doesn't have storage"; ``.item()`` worked): the frames' and faces' checks read one value at a time
     there, and a tracking step, which reads values in many places, is refused in one line. Simulated on this torch:
-    its ``.tolist()`` of a transform's tensor raises as theirs did, and the probe (run afresh) sees it."""
+    its ``.tolist()`` of a transform's tensor raises as theirs did, and the probe (run afresh) sees it. The refusal
+    names the feature this build lacks, as a 2.10 nightly without it reads it too (it said "needs torch 2.10 or
+    later (torch 2.10.0a0+git5e8f3c1 ...)")."""
     real = torch.Tensor.tolist
+    monkeypatch.setattr(torch, "__version__", "2.10.0a0+git5e8f3c1")  # (a nightly of 2.10 before the feature)
+    refused = (r"^a step cannot run under a torch\.func transform on this torch \(2\.10\.0a0\+git5e8f3c1\): it cannot "
+               r"read the values of a transform's tensors \(\.tolist\(\) under torch\.func\.grad\), which a step "
+               r"reads per stream; torch releases 2\.10 and later can: use torch\.autograd\.grad, or such a torch$")
 
     def old_tolist(self: torch.Tensor):
         if torch._C._functorch.is_functorch_wrapped_tensor(self):
@@ -184,7 +190,7 @@ def test_an_older_torchs_transforms_are_read_value_by_value_and_refused_by_a_ste
     def f(x: torch.Tensor) -> torch.Tensor:
         values = torch.stack([x.amin(), x.amax()])
         seen.append(host_values(values))
-        with pytest.raises(RuntimeError, match=r"^a step under a torch.func transform needs torch 2.10 or later \("):
+        with pytest.raises(RuntimeError, match=refused):
             check_reverse_mode("a step", x)
         return x.sum()
 

@@ -109,7 +109,8 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
 
     Raises:
         RuntimeError: under ``vmap`` or forward-mode AD, or under any ``torch.func`` transform on a torch that
-            cannot read its tensors' values (:func:`transforms_read_values`, before 2.10).
+            cannot read its tensors' values (:func:`transforms_read_values`: releases before 2.10, or a build
+            without the feature, a nightly before it).
     """
     if _peek_interpreter_stack() is not None and any(isinstance(x, Tensor) and _vmapped(x) for x in tensors):
         raise RuntimeError(
@@ -129,7 +130,7 @@ def check_reverse_mode(what: str, *tensors: object) -> None:
         and not transforms_read_values()
     ):
         raise RuntimeError(
-            f"{what} under a torch.func transform needs torch 2.10 or later (torch {torch.__version__} cannot read the "
-            f"values of a transform's tensors, which {what} reads per stream): use torch.autograd.grad, or a newer "
-            "torch"
-        )
+            f"{what} cannot run under a torch.func transform on this torch ({torch.__version__}): it cannot read the "
+            f"values of a transform's tensors (.tolist() under torch.func.grad), which {what} reads per stream; torch "
+            "releases 2.10 and later can: use torch.autograd.grad, or such a torch"
+        )  # (probed, not read from the version: a 2.10 nightly without the feature is refused too, as this build)
