@@ -602,20 +602,27 @@ def test_npy_landmarks_that_are_no_real_points_array_say_so(tmp_path):
 def test_pandas_to_csv_with_its_index_is_read(tmp_path):
     """``pd.DataFrame(points).to_csv(path)`` (pandas' default keeps its index: a header ``,0,1`` or, with named
     columns, ``,x,y``, then rows ``k,x,y``) was refused ("got rows of [3] values"): its index is the point's, as in a
-    one-row-per-point CSV (a missing point: empty cells, or no row after ``dropna()``)."""
+    one-row-per-point CSV (a missing point: empty cells, or no row after ``dropna()`` while the index keeps 0 or
+    68; without both it may be R's 1-based row names: :func:`test_r_write_csv_with_its_1_based_row_names_is_read`)."""
     pts = _dyadic_points()
     want = _with_missing(pts)
 
-    def rows(empty: bool) -> str:
-        gone = set(_MISSING)
+    def rows(empty: bool, kept: frozenset[int] = frozenset()) -> str:
+        gone = set(_MISSING) - kept
         return "".join(f"{k},," + "\n" if k in gone and empty else "" if k in gone else f"{k},{x!r},{y!r}\n"
                        for k, (x, y) in enumerate(pts.tolist()))  # fmt: skip
 
-    files = {"numbered.csv": ",0,1\n" + rows(True), "named.csv": ",x,y\n" + rows(False),
-             "semicolons.csv": ";x;y\n" + rows(True).replace(",", ";"), "crlf.csv": ",0,1\r\n" + rows(False)}
-    for name, text in files.items():
+    with_0 = _with_missing(pts)
+    with_0[0] = pts[0]
+    files = {"numbered.csv": (",0,1\n" + rows(True), want), "named.csv": (",x,y\n" + rows(False, {0}), with_0),
+             "semicolons.csv": (";x;y\n" + rows(True).replace(",", ";"), want),
+             "crlf.csv": (",0,1\r\n" + rows(False, {0}), with_0)}  # fmt: skip
+    for name, (text, expected) in files.items():
         (tmp_path / name).write_text(text)
-        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), expected, err_msg=name)
+    (tmp_path / "dropped.csv").write_text(",x,y\n" + rows(False))  # (points 0 and 67 without rows: 1..66)
+    with pytest.raises(InputError, match=r"has neither 0 nor 68, so whether it counts the points from 0"):
+        read_landmarks(tmp_path / "dropped.csv", 100, 100)
     (tmp_path / "no_index.csv").write_text(",x,y\n" + "".join(f",{x!r},{y!r}\n" for x, y in pts.tolist()))
     np.testing.assert_array_equal(read_landmarks(tmp_path / "no_index.csv", 100, 100), pts)  # (column B, as before)
 
@@ -752,31 +759,50 @@ def test_json_of_one_frame_of_points_is_read_as_an_npy_of_that_shape(tmp_path):
 
 def test_r_write_csv_with_its_1_based_row_names_is_read(tmp_path):
     """R's ``write.csv(points)`` (a header ``"","x","y"``, rows ``"1",x,y`` ... ``"68",x,y``: its row names, 1-based)
-    was taken for pandas' 0-based index and refused: "point index 68 is not an iBUG index 0-67". An index column of
-    exactly 1..68 in order under an empty header cell cannot be a 0-based one (0-67 has no 68, and 68 rows leave no
-    point out): 1 is subtracted. An index that reaches 68 otherwise (rows left out, reordered) is refused, the
-    message naming a 1-based index; pandas' 0-based files read as before."""
+    was taken for pandas' 0-based index and refused: "point index 68 is not an iBUG index 0-67". An unnamed index
+    with 0 is 0-based; one reaching 68 without 0 cannot be (0-67 has no 68): 1 is subtracted, also with rows left out
+    (``na.omit``: R keeps the other rows' names) or reordered, which were refused. One with neither 0 nor 68 is
+    refused: R's 1..67 (point 68 left out) was read as pandas' 0-based 1..67 (point 0 left out), every point one
+    place off, silently; the two files differ only in R's quotes, which neither always writes. A missing point's NA
+    row (``"68",NA,NA``) keeps the index unambiguous, as does a named ``ibug_index``."""
     pts = _dyadic_points()
     want = pts.copy()
     want[5] = np.nan
     cells = [("NA", "NA") if k == 5 else (repr(x), repr(y)) for k, (x, y) in enumerate(pts.tolist())]
     rows = [f'"{k + 1}",{x},{y}\n' for k, (x, y) in enumerate(cells)]
-    files = {"r.csv": '"","x","y"\n' + "".join(rows),
-             "r_semicolons.csv": '"";"x";"y"\n' + "".join(rows).replace(",", ";"),
-             "pandas_from_1.csv": ",x,y\n" + "".join(r.replace('"', "") for r in rows)}  # fmt: skip
-    for name, text in files.items():
+    last_na = [f'"{k + 1}",{x!r},{y!r}\n' for k, (x, y) in enumerate(pts[:67].tolist())] + ['"68",NA,NA\n']
+    want_last = pts.copy()
+    want_last[67] = np.nan
+    pandas = [f"{k},{x},{y}\n" for k, (x, y) in enumerate(cells)]
+    files = {"r.csv": ('"","x","y"\n' + "".join(rows), want),
+             "r_semicolons.csv": ('"";"x";"y"\n' + "".join(rows).replace(",", ";"), want),
+             "pandas_from_1.csv": (",x,y\n" + "".join(r.replace('"', "") for r in rows), want),
+             "r_last_na.csv": ('"","x","y"\n' + "".join(last_na), want_last),  # (point 68 missing, its row kept)
+             "r_omitted.csv": ('"","x","y"\n' + "".join(rows[:4] + rows[6:]), np.where(np.arange(68)[:, None] == 4,
+                                                                                        np.nan, want)),  # (na.omit)
+             "r_swapped.csv": ('"","x","y"\n' + "".join(rows[:66] + rows[67:] + rows[66:67]), want),
+             "pandas.csv": (",x,y\n" + "".join(pandas), want),  # (0-based, as before)
+             "pandas_without_67.csv": (",x,y\n" + "".join(pandas[:67]), np.where(np.arange(68)[:, None] == 67,
+                                                                                   np.nan, want))}  # fmt: skip
+    for name, (text, expected) in files.items():
         (tmp_path / name).write_text(text)
-        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), want, err_msg=name)
-    (tmp_path / "pandas.csv").write_text(",x,y\n" + "".join(f"{k},{x},{y}\n" for k, (x, y) in enumerate(cells)))
-    np.testing.assert_array_equal(read_landmarks(tmp_path / "pandas.csv", 100, 100), want)  # (0-based, as before)
-    bad = {"r_dropped.csv": '"","x","y"\n' + "".join(rows[:5] + rows[6:]),  # na.omit: 1..68 without 6, 67 rows
-           "r_swapped.csv": '"","x","y"\n' + "".join(rows[:66] + rows[67:] + rows[66:67])}  # fmt: skip
-    for name, text in bad.items():
+        np.testing.assert_array_equal(read_landmarks(tmp_path / name, 100, 100), expected, err_msg=name)
+    ambiguous = {"r_without_68.csv": '"","x","y"\n' + "".join(rows[:67]),
+                 "pandas_without_0.csv": ",x,y\n" + "".join(pandas[1:])}  # fmt: skip
+    for name, text in ambiguous.items():
         (tmp_path / name).write_text(text)
-        with pytest.raises(InputError, match=r"point index 68 is not an iBUG index 0-67: a 1-based index \(R's row "
-                                             r"names\?\)") as info:  # fmt: skip
+        with pytest.raises(InputError, match=r"index column \(unnamed: pandas' index or R's row names\) has neither 0 "
+                                             r'nor 68, .* \(R: "68",NA,NA\), or name the column ibug_index') as info:
             read_landmarks(tmp_path / name, 100, 100)
         assert "\n" not in str(info.value)
+    bad = {"both.csv": (",x,y\n" + "".join(pandas) + "68,1.0,2.0\n", r"line 70: point index 68 is not an iBUG index "
+                        r"0-67: the index has 0 and 68, neither 0-based \(pandas: 0-67\) nor 1-based"),
+           "r_69.csv": ('"","x","y"\n' + "".join(rows[:67]) + '"69",1.0,2.0\n', r"line 69: row name 69 is not 1-68 "
+                        r"\(an index reaching 68 without 0 counts the points from 1, as R's row names do\)$")}
+    for name, (text, message) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=message):
+            read_landmarks(tmp_path / name, 100, 100)
 
 
 def test_count_reads_a_face_models_landmarks(tmp_path):

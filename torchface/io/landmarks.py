@@ -19,8 +19,10 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   in any order; each point once at most, a point without a row missing (the hand-marked
   ``torchface/data/photos/astronaut_landmarks.csv`` gives 22); also pandas' ``DataFrame.to_csv`` with its index
   (a header ``,x,y``, ``,y,x`` or ``,0,1``, then rows ``k, x, y``): the index is the point's; R's ``write.csv``
-  with its row names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): an index of exactly 1..68 in order,
-  68 rows, is 1-based (a 0-based one has no 68), 1 subtracted; another index reaching 68 is refused;
+  with its row names (``"","x","y"``, then rows ``"1",x,y`` ... ``"68",x,y``): such an unnamed index with 0 is
+  0-based, one reaching 68 without 0 is 1-based (a 0-based one has no 68), 1 subtracted; one with neither (R's 1..67
+  without point 68 is pandas' 1..67 without point 0) is refused, saying to keep a missing point's row (``"68",NA,NA``)
+  or name the column ``ibug_index``;
 - iBUG / 300-W ``.pts`` (the layout every 68-point data set ships: ``version: 1``, ``n_points: 68``, ``{``, 68 lines
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
@@ -365,7 +367,7 @@ def _parse_long(
     ``count``: the 68 iBUG points, or a face model's landmarks, indexed in its order); a point without a row, or with
     empty or ``nan`` ``x`` and ``y`` cells, is a NaN row (missing). ``decimal_comma``: see :func:`_decimal_comma`.
     ``base``: the index of point 0 (1: R's row names, 1..count). ``unnamed``: the index column's header cell is
-    empty (pandas' index, or R's row names: an index ``count`` is said to be 1-based)."""
+    empty (pandas' index, or R's row names: an index with 0 and ``count`` is said to be neither)."""
     delimiter, index, x, y = columns
     points = np.full((count, 2), np.nan)
     what = "an iBUG index" if count == NUM_LANDMARKS else f"an index of the face model's {count} landmarks,"
@@ -379,9 +381,11 @@ def _parse_long(
         except (IndexError, ValueError):
             raise InputError(f"{p}: line {number} is not 'index, x, y' numbers: {line[:60]!r}") from None
         if not 0 <= k < count:
-            one_based = (f": a 1-based index (R's row names?), read only as 1..{count} in order on "
-                         f"{count} rows; write it 0-based or leave it out (write.csv(..., row.names = FALSE))"
-                         if unnamed and k == count else "")  # fmt: skip
+            if base:  # (R's row names: 1..count)
+                raise InputError(f"{p}: line {number}: row name {k + base} is not 1-{count} (an index reaching "
+                                 f"{count} without 0 counts the points from 1, as R's row names do)")  # fmt: skip
+            one_based = (f": the index has 0 and {count}, neither 0-based (pandas: 0-{count - 1}) nor 1-based (R's "
+                         f"row names: 1-{count})" if unnamed and k == count else "")  # fmt: skip
             if not unnamed and k == count and not any(_index_cell(line, delimiter, index) == 0 for _, line in lines):
                 # (a named index counted 1..68, as many annotation tools number the points: it said only that 68 is
                 # not an iBUG index)
@@ -468,13 +472,23 @@ def _parse_csv_as(p: Path, text: str, comma: bool, count: int = NUM_LANDMARKS) -
         indexed = long_lines if header is not None else long_lines[1:]
         index_rows = data[len(data) - len(indexed) :]
         if indexed and all(len(_trimmed(c, 3)) == 3 and c[0].isdigit() for c in index_rows):
-            # R's write.csv: its row names 1..68 (``"1",x,y``; 1..count), 1-based; 68 rows cannot be a 0-based index
-            # (0-67 has no 68, and each of its points has a row); another index reaching 68 is refused, said to be
-            # 1-based
-            one_based = [c[0] for c in index_rows] == [str(k) for k in range(1, count + 1)]
+            # pandas' index counts the points from 0, R's write.csv's row names (``"1",x,y``) from 1 (1..68; 1..count),
+            # and either may leave a point's row out (dropna, na.omit: R keeps the others' names): an index with 0 is
+            # 0-based, one reaching 68 and without 0 1-based (0-67 has no 68); one with neither (R's 1..67 without
+            # point 68, pandas' 1..67 without point 0: the same file but for R's quotes, which neither always writes)
+            # is refused
+            indices = {int(c[0]) for c in index_rows}
+            if 0 not in indices and max(indices) < count:
+                raise InputError(
+                    f"{p}: its index column (unnamed: pandas' index or R's row names) has neither 0 nor {count}, so "
+                    f"whether it counts the points from 0 (pandas; point 0 missing) or from 1 (R's write.csv; its "
+                    f"last point missing) is not known: keep a row for every point, a missing one's x and y NA or "
+                    f'empty (R: "{count}",NA,NA), or name the column ibug_index, 0-based '
+                    '(to_csv(index_label="ibug_index"))'
+                )
             x, y = (2, 1) if first[1].lower() == "y" else (1, 2)
             columns = (_delimiter(indexed[0][1], comma), 0, x, y)
-            return _parse_long(p, indexed, columns, comma, base=int(one_based), unnamed=True, count=count)
+            return _parse_long(p, indexed, columns, comma, base=int(0 not in indices), unnamed=True, count=count)
     # A row's empty cells are missing values (NaN) in their places, but not those a separator ending every line
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
