@@ -117,7 +117,8 @@ the dataset to its workers by reference to its shared memory (forked, or pickled
 ``pickle`` of it reads back an independent dataset. The once-per-dataset warnings (:class:`SkippedVideoWarning`
 of a video, :class:`ShortVideoWarning`, :class:`DistributedWarning`) are given exactly once among a dataset's
 processes: the first to create a marker file in the dataset's private temporary folder (``torchface-dataset-*``,
-made with the dataset, removed when it is collected or its process exits) gives it.
+made with the dataset, removed when it is collected or its process exits; one a killed process left is removed by
+a later dataset, once its maker is certainly gone) gives it.
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -147,7 +148,9 @@ import multiprocessing.util
 import os
 import pickle
 import random
+import re
 import shutil
+import stat
 import sys
 import tempfile
 import time
@@ -314,6 +317,86 @@ def _content_words(content: str) -> Tensor:
     return torch.from_numpy(np.frombuffer(bytes.fromhex(content), dtype=np.int64).copy())
 
 
+#: The start of a dataset's private folder's name (:class:`_Claims`), in :func:`tempfile.gettempdir`.
+_CLAIMS_PREFIX: str = "torchface-dataset-"
+
+#: A folder name :func:`_claims_owner` wrote: ``torchface-dataset-<boot id>-<pid namespace>-<pid>-<start>-`` then
+#: ``mkdtemp``'s random part.
+_CLAIMS_NAME: re.Pattern[str] = re.compile(
+    re.escape(_CLAIMS_PREFIX) + r"([0-9a-f]{32})-([0-9]+)-([0-9]+)-([0-9]+)-[A-Za-z0-9_]+"
+)
+
+
+def _process_start(pid: int) -> int | None:
+    """When process ``pid`` (of this ``/proc``) started, in clock ticks after boot (``/proc/<pid>/stat``'s 22nd
+    field: a pid reused by a later process has a later one), or None where there is no such process.
+
+    Raises:
+        OSError: where ``/proc`` cannot tell (no ``/proc``, not readable); ValueError, IndexError: a ``stat`` not
+            read as Linux writes it."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            text = f.read()
+    except (FileNotFoundError, ProcessLookupError):
+        if not os.path.isdir("/proc/self"):  # (no /proc at all: not known)
+            raise
+        return None
+    return int(text[text.rindex(b")") + 2 :].split()[19])  # (after the command's parentheses: fields 3 on)
+
+
+def _claims_owner() -> tuple[str, int, int, int] | None:
+    """This process as a folder's name records its maker (:data:`_CLAIMS_NAME`): the kernel's boot id, the inode of
+    its pid namespace, its pid and start (:func:`_process_start`); None where they cannot be read (not Linux, a
+    ``/proc`` of another pid namespace than this process's), and no folder records its maker."""
+    try:
+        pid = os.getpid()
+        if os.readlink("/proc/self") != str(pid):  # (a /proc mounted from another pid namespace: its pids are not ours)
+            return None
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip().replace("-", "").lower()
+        start = _process_start(pid)
+        if start is None or not re.fullmatch(r"[0-9a-f]{32}", boot):
+            return None
+        return boot, os.stat("/proc/self/ns/pid").st_ino, pid, start
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _remove_stale_claims(folder: str, owner: tuple[str, int, int, int]) -> list[str]:
+    """Remove the private folders of datasets (:class:`_Claims`) in ``folder`` whose makers are certainly gone
+    (killed by SIGKILL: a dataset's folder is otherwise removed with it or at its process's exit); returns their
+    names. ``owner``: this process (:func:`_claims_owner`).
+
+    A folder is removed only where it is this user's (a directory, not a link), its name records its maker
+    (:data:`_CLAIMS_NAME`: an older torchface's does not), made under this boot and in this pid namespace (another
+    machine's, a container's of its own pid namespace sharing the temporary folder, or one of a boot before: whether
+    its maker lives is not known here) and ``/proc`` shows no process of that pid, or one that started at another
+    time (the pid reused). One whose maker lives, or whose maker ``/proc`` cannot tell, is left. The maker's
+    ``DataLoader`` workers end with it; a process it passed the dataset to by ``multiprocessing`` (a spawned rank,
+    given it as an argument) that outlives it finds the folder gone and gives its once-per-dataset warnings itself,
+    as where no folder could be made."""
+    boot, namespace, _, _ = owner
+    removed: list[str] = []
+    uid = os.geteuid()
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            match = _CLAIMS_NAME.fullmatch(entry.name) if entry.name.startswith(_CLAIMS_PREFIX) else None
+            if match is None or match[1] != boot or int(match[2]) != namespace:
+                continue
+            try:
+                info = entry.stat(follow_symlinks=False)
+                if not stat.S_ISDIR(info.st_mode) or info.st_uid != uid:
+                    continue
+                start = _process_start(int(match[3]))
+            except (OSError, ValueError, IndexError):  # (not known: left)
+                continue
+            if start == int(match[4]):  # (its maker, alive)
+                continue
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed.append(entry.name)
+    return removed
+
+
 class _Claims:
     """What makes a once-per-dataset warning exactly once across the dataset's processes (its ``DataLoader``
     workers, forked or spawned, and the process that holds it): a private folder (``tempfile.mkdtemp``, made with
@@ -324,7 +407,9 @@ class _Claims:
     decides.
 
     The folder is removed when the dataset that made it is collected, or at the exit of its process (not by its
-    workers, nor a forked child's exit); a process killed (SIGKILL) leaves it, empty but for a few markers. It
+    workers, nor a forked child's exit); a process killed (SIGKILL) leaves it, empty but for a few markers, and a
+    later dataset made on the machine, in the same pid namespace, removes it (:func:`_remove_stale_claims`: its name
+    records its maker, once certainly gone; where that cannot be known, it stays). It
     travels as the tensors of shared memory do: by reference to the ``DataLoader`` workers
     (``multiprocessing``'s pickler, :meth:`_shared_reduce`), while a plain ``pickle`` of the dataset (whose tensors
     are then copied by value, an independent dataset) and ``copy.deepcopy`` make a new folder. Where no folder can
@@ -333,14 +418,21 @@ class _Claims:
     def __init__(self, folder: str | None = None) -> None:
         self.folder = folder
         if folder is None:
+            owner = _claims_owner()
+            name = _CLAIMS_PREFIX if owner is None else _CLAIMS_PREFIX + "-".join(map(str, owner)) + "-"
             try:
-                self.folder = tempfile.mkdtemp(prefix="torchface-dataset-")
+                self.folder = tempfile.mkdtemp(prefix=name)
             except OSError:
                 return
             # (multiprocessing's finalizer, not weakref.finalize: it also runs at the exit of a process multiprocessing
             # started, which leaves by os._exit, without atexit: the folders of datasets made in a torch.multiprocessing
             # rank were left; and only in the process that made it)
             multiprocessing.util.Finalize(self, shutil.rmtree, (self.folder, True), exitpriority=0)
+            if owner is not None:
+                try:
+                    _remove_stale_claims(os.path.dirname(self.folder), owner)
+                except Exception:  # (a cleanup of others' leftovers: never the dataset's failure)
+                    pass
 
     def claim(self, what: str) -> bool:
         """True in exactly one of the dataset's processes for ``what`` (a file name): the first to ask."""

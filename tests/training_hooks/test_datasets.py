@@ -501,6 +501,60 @@ def test_a_deep_copy_is_an_independent_dataset_whose_workers_share_its_state(cli
     assert data.epoch == 7
 
 
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="a process's start is read from Linux's /proc")
+def test_a_killed_processs_dataset_folder_is_removed_by_the_next_dataset(tmp_path, monkeypatch):
+    """A dataset's private folder of once-only warning markers (``torchface-dataset-*``, in the temporary folder) is
+    removed with it or at its process's exit; a process killed by SIGKILL left it, one more in /tmp per killed
+    training run. Its name now records its maker (boot, pid namespace, pid, start), and a new dataset removes those
+    whose maker is certainly gone: a subprocess killed and reaped, or a pid now another process's (a later start).
+    It leaves those of live processes (a running subprocess, this one), of another boot or pid namespace (another
+    machine's or container's sharing the folder: not known here), without a recorded maker (an older torchface's),
+    another user's, and what is not a folder; and a failing cleanup does not fail the dataset."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from training_hooks import datasets
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # (where mkdtemp makes the dataset's folder)
+    boot, namespace, me, my_start = datasets._claims_owner()
+    sleep = [sys.executable, "-c", "import time; time.sleep(60)"]
+    dead, live = subprocess.Popen(sleep), subprocess.Popen(sleep)
+    try:
+        dead_start, live_start = datasets._process_start(dead.pid), datasets._process_start(live.pid)
+        dead.kill()
+        dead.wait(30)  # (reaped: a zombie's pid still shows its start, and its folder waits for the next dataset)
+
+        def name(pid: int, start: int, of_boot: str = boot, of_namespace: int = namespace) -> str:
+            return f"torchface-dataset-{of_boot}-{of_namespace}-{pid}-{start}-ab_c12Z9"
+
+        stale = [name(dead.pid, dead_start), name(live.pid, live_start - 1)]  # (the second: its pid reused since)
+        kept = [name(live.pid, live_start), name(me, my_start), name(dead.pid, dead_start, "0" * 32),
+                name(dead.pid, dead_start, of_namespace=namespace + 1), "torchface-dataset-k2j4x_9q"]
+        for folder in stale + kept:
+            (tmp_path / folder).mkdir()
+            (tmp_path / folder / "short-videos").touch()  # (a marker: not empty)
+        (tmp_path / name(dead.pid, dead_start).replace("ab_c", "ab_d")).touch()  # (a file: not a dataset's folder)
+        (tmp_path / name(dead.pid, dead_start).replace("ab_c", "ab_e")).symlink_to(tmp_path / kept[0])
+        monkeypatch.setattr(os, "geteuid", lambda: os.getuid() + 1)  # (another user: none of its folders)
+        assert datasets._remove_stale_claims(str(tmp_path), datasets._claims_owner()) == []
+        monkeypatch.undo()
+        monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+        video = tmp_path / "v.npy"
+        np.save(video, np.zeros((FRAMES, 32, 32, 3), np.uint8))
+        before = {p.name for p in tmp_path.iterdir()}
+        points = np.random.default_rng(0).uniform(4.0, 28.0, (68, 2))
+        data = VideoDataset([video], [points], DatasetConfig(tracking=TRACKING))
+        after = {p.name for p in tmp_path.iterdir()}
+        mine = Path(data._claims.folder).name
+        assert after == before - set(stale) | {mine} and mine.startswith(name(me, my_start)[:-9])
+    finally:
+        live.kill()
+        live.wait(30)
+    monkeypatch.setattr(datasets, "_remove_stale_claims", lambda *args: 1 / 0)
+    assert os.path.isdir(datasets._Claims().folder)  # (its cleanup failed: the dataset's folder made all the same)
+
 # --------------------------------------------------------------------------------------------- exceptions
 
 
