@@ -378,22 +378,28 @@ def _remove_stale_claims(folder: str, owner: tuple[str, int, int, int]) -> list[
     boot, namespace, _, _ = owner
     removed: list[str] = []
     uid = os.geteuid()
+    starts: dict[int, int | None] = {}  # (a pid's start, read once: a process's datasets' folders share it)
+    unknown = -1  # (a start /proc cannot tell: left)
     with os.scandir(folder) as entries:
         for entry in entries:
             match = _CLAIMS_NAME.fullmatch(entry.name) if entry.name.startswith(_CLAIMS_PREFIX) else None
             if match is None or match[1] != boot or int(match[2]) != namespace:
                 continue
+            pid = int(match[3])
+            if pid not in starts:
+                try:
+                    starts[pid] = _process_start(pid)
+                except (OSError, ValueError, IndexError):
+                    starts[pid] = unknown
+            if starts[pid] in (unknown, int(match[4])):  # (its maker alive, or not known)
+                continue
             try:
                 info = entry.stat(follow_symlinks=False)
-                if not stat.S_ISDIR(info.st_mode) or info.st_uid != uid:
-                    continue
-                start = _process_start(int(match[3]))
-            except (OSError, ValueError, IndexError):  # (not known: left)
+            except OSError:
                 continue
-            if start == int(match[4]):  # (its maker, alive)
-                continue
-            shutil.rmtree(entry.path, ignore_errors=True)
-            removed.append(entry.name)
+            if stat.S_ISDIR(info.st_mode) and info.st_uid == uid:
+                shutil.rmtree(entry.path, ignore_errors=True)
+                removed.append(entry.name)
     return removed
 
 
