@@ -60,10 +60,11 @@ def test_a_result_compares_and_hashes_without_error():
 
 
 def _settings() -> dict[type, dict]:
-    """The settings dataclasses, each with the arguments it needs."""
+    """The settings dataclasses (and the synthetic clips' specs), each with the arguments it needs."""
     from torchface.job import JobConfig
     from torchface.solver.least_squares import SolverConfig
     from torchface.solver.robust import RobustLoss
+    from torchface.synth.background import BackgroundSpec, OccluderSpec
     from torchface.synth.labelled import ClipSpec
     from torchface.template.dissimilarity import DissimilarityConfig
     from torchface.template.management import TemplateConfig
@@ -80,7 +81,8 @@ def _settings() -> dict[type, dict]:
                 light_intensity=0.55)  # fmt: skip
     return {TrackerConfig: {}, FitConfig: {}, TemplateConfig: {}, DissimilarityConfig: {}, LookaheadConfig: {},
             SolverConfig: {}, JobConfig: {"out_dir": "out"}, DatasetConfig: {"clip_length": 4}, LayerConfig: {},
-            FaceTrackingConfig: {}, ClipSpec: clip, OneEuroConfig: {}, SmoothingConfig: {}, RobustLoss: {}}  # fmt: skip
+            FaceTrackingConfig: {}, ClipSpec: clip, OneEuroConfig: {}, SmoothingConfig: {}, RobustLoss: {},
+            BackgroundSpec: {}, OccluderSpec: {"first_frame": 1, "last_frame": 3}}  # fmt: skip
 
 
 #: A valid value of the int fields whose default is None.

@@ -142,6 +142,14 @@ def check_number(value: object, name: str, interval: str, optional: bool = False
     Raises:
         TypeError: ``value`` is not a real number (or None with ``optional``).
         ValueError: it lies outside ``interval``.
+
+    Example:
+        >>> check_number(0.5, "texture_blend", "(0, 1]"), check_number(None, "focal", "(0, inf)", True)
+        (0.5, None)
+        >>> check_number(float("inf"), "search_step_px", "(0, inf)", unit="pixels")
+        Traceback (most recent call last):
+            ...
+        ValueError: search_step_px must be a finite number > 0 (pixels), got inf
     """
     if optional and value is None:
         return None
@@ -187,6 +195,15 @@ def check_choice(value: object, name: str, kind: type[E]) -> E:
 
     Raises:
         TypeError: ``value`` is not a ``kind`` member.
+
+    Example:
+        >>> from torchface.solver import RobustKind
+        >>> check_choice(RobustKind.HUBER, "robust", RobustKind)
+        <RobustKind.HUBER: 'huber'>
+        >>> check_choice("Huber", "robust", RobustKind)
+        Traceback (most recent call last):
+            ...
+        TypeError: robust must be a RobustKind, got str 'Huber' (pass RobustKind.HUBER, from torchface.solver)
     """
     if isinstance(value, kind):
         return value
