@@ -411,7 +411,7 @@ def test_config_validation():
     for bad in (1.0, True):  # a wrong type is a TypeError (it was a ValueError)
         with pytest.raises(TypeError, match="selection_seed"):
             TrackerConfig(selection_seed=bad)  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="non-negative"):
+    with pytest.raises(ValueError, match=r"^gradient_threshold must be a finite number >= 0, got -1.0$"):
         TrackerConfig(gradient_threshold=-1.0)
     with pytest.raises(TypeError, match="RobustKind"):
         TrackerConfig(robust="tukey")
