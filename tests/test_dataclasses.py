@@ -5,9 +5,13 @@ identity (``eq=False``, as :class:`torchface.model.FaceModel`), since a field-wi
 from __future__ import annotations
 
 import dataclasses
+import enum
 import importlib
 import inspect
+import math
 import pkgutil
+import re
+import sys
 
 import numpy as np
 import pytest
@@ -56,9 +60,11 @@ def test_a_result_compares_and_hashes_without_error():
 
 
 def _settings() -> dict[type, dict]:
-    """The settings dataclasses, each with the arguments it needs."""
+    """The settings dataclasses (and the synthetic clips' specs), each with the arguments it needs."""
     from torchface.job import JobConfig
     from torchface.solver.least_squares import SolverConfig
+    from torchface.solver.robust import RobustLoss
+    from torchface.synth.background import BackgroundSpec, OccluderSpec
     from torchface.synth.labelled import ClipSpec
     from torchface.template.dissimilarity import DissimilarityConfig
     from torchface.template.management import TemplateConfig
@@ -75,7 +81,8 @@ def _settings() -> dict[type, dict]:
                 light_intensity=0.55)  # fmt: skip
     return {TrackerConfig: {}, FitConfig: {}, TemplateConfig: {}, DissimilarityConfig: {}, LookaheadConfig: {},
             SolverConfig: {}, JobConfig: {"out_dir": "out"}, DatasetConfig: {"clip_length": 4}, LayerConfig: {},
-            FaceTrackingConfig: {}, ClipSpec: clip, OneEuroConfig: {}, SmoothingConfig: {}}  # fmt: skip
+            FaceTrackingConfig: {}, ClipSpec: clip, OneEuroConfig: {}, SmoothingConfig: {}, RobustLoss: {},
+            BackgroundSpec: {}, OccluderSpec: {"first_frame": 1, "last_frame": 3}}  # fmt: skip
 
 
 #: A valid value of the int fields whose default is None.
@@ -255,5 +262,93 @@ def test_settings_of_several_numbers_refuse_other_types_naming_them():
     assert checked >= 5
     from torchface.tracker.fit import FitConfig
 
-    with pytest.raises(ValueError, match="prior precisions must be finite and non-negative: held_shape_precision is"):
-        FitConfig(held_shape_precision=-1.0)  # (the message named none)
+    with pytest.raises(ValueError, match="^held_shape_precision must be a finite number >= 0, got -1.0$"):
+        FitConfig(held_shape_precision=-1.0)  # (the message named none: "prior precisions must be ...")
+
+
+# --- Settings: ranges and choices ------------------------------------------------------------------------------------
+# A number lies in its range (check_number: each field's interval stated once), which is finite unless its
+# documentation gives inf a meaning, and NaN lies in none: ">= 0" and "> 0" alone had taken inf as a tolerance, a
+# scale, a focal length or a threshold (search_step_px, max_damping, FaceTrackingConfig.focal, ...), and "< 0" NaN.
+# A choice is a member of its enum; a string or another value is a TypeError naming the member the string spells (or
+# every member) and the module to import the enum from (check_choice).
+
+#: ``(class, field)`` of the number settings whose documentation gives ``inf`` a meaning ("no limit"); none does.
+_INF_MEANS: set[tuple[str, str]] = set()
+
+
+def _number_fields(cls: type) -> list[str]:
+    """The fields of ``cls`` that hold a number or numbers (``float``, ``float | None``, tuples of floats, and
+    ``FitConfig.shape_prior_precision``'s one number or one per unit)."""
+    return [f.name for f in dataclasses.fields(cls) if "float" in str(f.type)]
+
+
+@pytest.mark.parametrize("bad, error", [(math.nan, ValueError), (math.inf, ValueError), (-math.inf, ValueError),
+                                        ("1", TypeError)], ids=["nan", "inf", "-inf", "str"])  # fmt: skip
+def test_number_settings_refuse_nan_infinities_and_strings_naming_them(bad, error):
+    """Every number field of every setting, as one number or as the first of several: NaN and an infinite value are
+    ValueErrors and a string a TypeError (``FitConfig(shape_prior_precision="2")`` was a ValueError), each naming the
+    field (and the element)."""
+    wrong, checked = [], 0
+    for cls, base in _settings().items():
+        made = cls(**base)
+        for name in _number_fields(cls):
+            value = getattr(made, name)
+            value = (1.0,) * 11 if value is None and "tuple" in str(cls.__dataclass_fields__[name].type) else value
+            given = (bad, *value[1:]) if isinstance(value, tuple) else bad
+            checked += 1
+            if (cls.__name__, name) in _INF_MEANS and bad == math.inf:
+                assert getattr(cls(**{**base, name: given}), name) == given, (cls.__name__, name)
+                continue
+            try:
+                cls(**{**base, name: given})
+            except error as e:
+                if not re.match(rf"{name}(\[0\])? must be ", str(e)):
+                    wrong.append(f"{cls.__name__}.{name}: {e}")
+            except Exception as e:  # (the wrong kind of error)
+                wrong.append(f"{cls.__name__}.{name}: {type(e).__name__} {e}")
+            else:
+                wrong.append(f"{cls.__name__}.{name}: {given!r} taken")
+    assert wrong == []
+    assert checked >= 80
+
+
+def _choice_fields(cls: type) -> dict[str, type[enum.Enum]]:
+    """``{field: enum}`` of the fields of ``cls`` that hold an enum member."""
+    names = vars(sys.modules[cls.__module__])
+    kinds = {f.name: names.get(str(f.type)) for f in dataclasses.fields(cls)}
+    return {name: k for name, k in kinds.items() if inspect.isclass(k) and issubclass(k, enum.Enum)}
+
+
+def test_choice_settings_and_arguments_name_the_member_to_pass_and_where_it_imports_from():
+    """A string for a choice was "must be a FaceStorage, got str" (``LayerMode``, ``UnrollStart``, ``RankBalance``,
+    ``SolverMethod``, ``RobustKind``, ``load_candide3(animation=)``; a ``backend`` argument "got 'native'"): only
+    ``TrackerConfig``'s said what to pass. Now every one names the member its value or name spells (any case), or
+    every member, and the module the message names exports the enum."""
+    from torchface.backend import Backend
+    from torchface.geometry.camera import Intrinsics
+    from torchface.model.candide import AnimationSet, load_candide3
+    from torchface.rendering.rasterizer import rasterize_coverage
+
+    verts, faces = torch.tensor([[[0.0, 0.0, 500.0], [10.0, 0.0, 500.0], [0.0, 10.0, 500.0]]]), torch.tensor([[0, 1, 2]])
+    calls = [(lambda v: load_candide3(animation=v), "animation", AnimationSet),
+             (lambda v: rasterize_coverage(verts, faces, Intrinsics.default(16, 16), backend=v), "backend", Backend)]
+    for cls, base in _settings().items():
+        calls += [(lambda v, c=cls, b=base, n=name: c(**{**b, n: v}), name, kind)
+                  for name, kind in _choice_fields(cls).items()]  # fmt: skip
+    for make, name, kind in calls:
+        must = rf"^{name} must be an? {kind.__name__}, got "
+        for member in kind:
+            for spelled in (str(member.value).upper(), f" {member.name.lower()}"):
+                with pytest.raises(TypeError, match=must + rf"str '{spelled}' \(pass {kind.__name__}\.{member.name}, "
+                                                           r"from [\w.]+\)$") as caught:  # fmt: skip
+                    make(spelled)
+        home = re.search(r"from ([\w.]+)\)$", str(caught.value))[1]
+        assert getattr(importlib.import_module(home), kind.__name__) is kind, (name, home)
+        every = re.escape(" or ".join(f"{kind.__name__}.{m.name}" for m in kind))
+        for bad in ("gauss-newton", None, 1):
+            with pytest.raises(TypeError, match=must + rf"{type(bad).__name__} .*\(pass {every}, from {home}\)$"):
+                make(bad)
+    assert {kind.__name__ for _, _, kind in calls} >= {"TrackSolver", "Backend", "RobustKind", "SolverMethod",
+                                                        "LayerMode", "UnrollStart", "FaceStorage", "RankBalance",
+                                                        "AnimationSet"}  # fmt: skip

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from torchface import _native
 from torchface._compiling import is_compiling, is_transformed
+from torchface.geometry._checks import check_choice
 
 __all__ = ["Backend", "native_available", "native_unavailable_reason", "use_native"]
 
@@ -72,8 +73,7 @@ def use_native(backend: Backend, tensors: tuple[Tensor | float | None, ...], wha
     ``max_params``, at most that many parameters). With :attr:`Backend.NATIVE`, inputs that do not suit it raise ``RuntimeError``."""
     if backend is Backend.TORCH:
         return False
-    if not isinstance(backend, Backend):
-        raise TypeError(f"backend must be a Backend, got {backend!r}")
+    check_choice(backend, "backend", Backend)
     arrays = [x for x in tensors if isinstance(x, Tensor)]
     dtype = arrays[0].dtype if arrays else torch.float32
     why = None

@@ -6,7 +6,8 @@ follow torchface's own rules:
 
 - the settings' argument checks (docs/python-api.md, "Results and settings"): :func:`check_bool` for flags,
   :func:`check_int` / :func:`check_optional_int` for counts, :func:`check_real` / :func:`check_optional_real` for
-  numbers, :func:`check_intrinsics`, and :func:`check_no_tilde` for paths (a ``~`` nothing expanded), each a
+  numbers, :func:`check_number` for a number and its range (``"[0, 1]"``, ``"(0, inf)"``: finite unless the
+  interval closes on ``inf``), :func:`check_choice` for an enum member, :func:`check_intrinsics`, and :func:`check_no_tilde` for paths (a ``~`` nothing expanded), each a
   ``TypeError`` or ``ValueError`` that names the setting; :func:`unexpanded_home`, the rule of that ``~``, and
   :func:`no_home_reason`, why nothing here expands it, for messages of its own (a missing path's hint);
 - :func:`full_precision`, the decorator that runs torchface's public entry points in the dtype of their inputs
@@ -41,8 +42,10 @@ from torchface._device import DeviceCheckedModule, check_cuda_device, check_devi
 from torchface._paths import check_no_tilde, no_home_reason, unexpanded_home
 from torchface.geometry._checks import (
     check_bool,
+    check_choice,
     check_int,
     check_intrinsics,
+    check_number,
     check_optional_int,
     check_optional_real,
     check_real,
@@ -51,11 +54,13 @@ from torchface.geometry._checks import (
 __all__ = [
     "DeviceCheckedModule",
     "check_bool",
+    "check_choice",
     "check_cuda_device",
     "check_device",
     "check_int",
     "check_intrinsics",
     "check_no_tilde",
+    "check_number",
     "check_optional_int",
     "check_optional_real",
     "check_real",

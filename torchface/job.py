@@ -150,7 +150,7 @@ from torchface._paths import check_no_tilde
 from torchface._words import counted, plural
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
-from torchface.geometry._checks import check_bool, check_int, check_optional_real, check_real
+from torchface.geometry._checks import check_bool, check_int, check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError, dangling_link
@@ -354,18 +354,15 @@ class JobConfig:
         if not isinstance(self.device, (str, torch.device)):
             raise TypeError(f"device must be a device name (str) or a torch.device, got {type(self.device).__name__}")
         check_device(self.device)  # (it was refused only when the job ran; kept as given: the sidecar writes it)
-        object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))
-        object.__setattr__(self, "redetect_below", check_real(self.redetect_below, "redetect_below"))
-        if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
-            raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
+        object.__setattr__(self, "focal", check_number(self.focal, "focal", "(0, inf)", True, "pixels"))
+        # (NaN: every frame counted low, the detector asked without end)
+        object.__setattr__(self, "redetect_below", check_number(self.redetect_below, "redetect_below", "(-inf, inf)"))
         for name in ("resume", "convert", "meshes", "keep_going", "keep_expression"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         for name, low in (("normalised_size", None), ("redetect_after", 0), ("max_batch", 1)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         if self.normalised_size < 16 or self.normalised_size % 2:  # mp4v keeps even sides: 17 was written 16x16
             raise ValueError(f"normalised_size must be an even number >= 16, got {self.normalised_size}")
-        if not math.isfinite(self.redetect_below):  # NaN: every frame counted low, the detector asked without end
-            raise ValueError(f"redetect_below must be a finite confidence, got {self.redetect_below}")
 
 
 def _check_path(path: object, name: str, give: str) -> None:

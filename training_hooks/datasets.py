@@ -143,7 +143,6 @@ import copy
 import enum
 import functools
 import itertools
-import math
 import multiprocessing.util
 import os
 import pickle
@@ -172,10 +171,11 @@ from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUN
 from torchface.detect import detector_image, search_first_face
 from torchface.extending import (
     check_bool,
+    check_choice,
     check_int,
     check_no_tilde,
+    check_number,
     check_optional_int,
-    check_optional_real,
     no_home_reason,
     unexpanded_home,
 )
@@ -745,12 +745,10 @@ class DatasetConfig:
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if self.keep_short_clips and self.clip_length is None:  # (was taken, and did nothing: every frame an item)
             raise ValueError("keep_short_clips needs clip_length")
-        after = check_optional_real(self.progress_after, "progress_after")
-        if after is not None and not 0 <= after < math.inf:  # (NaN too: never a count's time)
-            raise ValueError(f"progress_after must be a number of seconds >= 0, or None for no progress, got {after!r}")
+        # (None: no progress. NaN or inf: never a count's time)
+        after = check_number(self.progress_after, "progress_after", "[0, inf)", True, "seconds")
         object.__setattr__(self, "progress_after", after)
-        if not isinstance(self.rank_balance, RankBalance):
-            raise TypeError(f"rank_balance must be a RankBalance, got {type(self.rank_balance).__name__}")
+        check_choice(self.rank_balance, "rank_balance", RankBalance)
         if self.cache_dir is not None:
             if not isinstance(self.cache_dir, (str, os.PathLike)):  # (was pathlib's "expected str, bytes or ...")
                 raise TypeError(f"cache_dir must be a folder (a str or path-like) or None, got "

@@ -48,9 +48,10 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.extending import (
     DeviceCheckedModule,
     check_bool,
+    check_choice,
     check_int,
     check_intrinsics,
-    check_real,
+    check_number,
     full_precision,
     is_compiling,
 )
@@ -148,19 +149,16 @@ class LayerConfig:
 
     def __post_init__(self) -> None:
         check_pyramid(self.pyramid)
-        if not isinstance(self.mode, LayerMode):
-            raise TypeError(f"mode must be a LayerMode, got {type(self.mode).__name__}")
-        if not isinstance(self.start, UnrollStart):
-            raise TypeError(f"start must be an UnrollStart, got {type(self.start).__name__}")
+        check_choice(self.mode, "mode", LayerMode)
+        check_choice(self.start, "start", UnrollStart)
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         for name, low in (("size", 4), ("unrolled_iterations", 0), ("unrolled_levels", None)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         for name in ("keep_expression", "normalise_light"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
-        object.__setattr__(self, "margin", check_real(self.margin, "margin"))  # "0.05" was taken (a str)
-        if not 0.0 <= float(self.margin) <= 0.45:  # (was found only when a layer was built from it)
-            raise ValueError(f"margin must be in [0, 0.45] (a fraction of the image size), got {self.margin}")
+        # ("0.05" was taken, a str; out of range was found only when a layer was built from it)
+        object.__setattr__(self, "margin", check_number(self.margin, "margin", "[0, 0.45]", unit="a fraction of the image size"))
         if self.mode is LayerMode.UNROLLED and self.start is UnrollStart.PREVIOUS and self.unrolled_iterations == 0:
             # (each frame was resampled at the previous frame's estimate: no tracking at all, a frame's motion off)
             raise ValueError(

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
-from torchface.extending import check_bool, check_int, check_no_tilde, check_optional_real, check_real
+from torchface.extending import check_bool, check_choice, check_int, check_no_tilde, check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.io.landmarks import missing_points_problem
 from torchface.model.candide import load_candide3
@@ -156,14 +156,10 @@ class FaceTrackingConfig:
         check_refine_first(self.refine_first)
         object.__setattr__(self, "face_size", check_int(self.face_size, "face_size", 16))
         object.__setattr__(self, "keep_expression", check_bool(self.keep_expression, "keep_expression"))
-        object.__setattr__(self, "face_margin", check_real(self.face_margin, "face_margin"))  # "0.05" was taken (a str)
-        object.__setattr__(self, "focal", check_optional_real(self.focal, "focal"))  # and focal="300"
-        if not 0.0 <= float(self.face_margin) <= 0.45:
-            raise ValueError(f"face_margin must be in [0, 0.45], got {self.face_margin}")
-        if not isinstance(self.face_storage, FaceStorage):
-            raise TypeError(f"face_storage must be a FaceStorage, got {type(self.face_storage).__name__}")
-        if self.focal is not None and not float(self.focal) > 0:
-            raise ValueError(f"focal must be positive pixels or None, got {self.focal}")
+        # ("0.05" and focal="300" were taken, strs; focal=inf passed "> 0")
+        object.__setattr__(self, "face_margin", check_number(self.face_margin, "face_margin", "[0, 0.45]", unit="a fraction of the image size"))
+        object.__setattr__(self, "focal", check_number(self.focal, "focal", "(0, inf)", True, "pixels"))
+        check_choice(self.face_storage, "face_storage", FaceStorage)
         object.__setattr__(self, "num_threads", check_int(self.num_threads, "num_threads", 1))
 
     def __repr__(self) -> str:

@@ -159,7 +159,7 @@ def test_bad_inputs_give_one_line_errors(clip, tmp_path, capsys):
     for focal in ("-5", "inf", "nan"):
         _assert_clean_failure(
             main(["track", str(video), "--landmarks", str(lm), "--out", str(out), "--focal", focal, "--quiet"]),
-            capsys, out, "focal must be a positive number",
+            capsys, out, "focal must be a finite number > 0 (pixels)",
         )  # fmt: skip
     taken = tmp_path / "taken"
     (taken / f"{video.stem}.csv").mkdir(parents=True)  # an output's name taken by a folder: refused before tracking
@@ -1638,7 +1638,7 @@ def test_redetect_below_must_be_finite(tmp_path):
     """``redetect_below=nan`` counted every frame low (``conf >= nan`` is False): the detector was asked every
     ``redetect_after`` frames whatever the confidence, silently."""
     for bad in (float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="redetect_below must be a finite confidence"):
+        with pytest.raises(ValueError, match=r"^redetect_below must be a finite number, got"):
             JobConfig(out_dir=tmp_path, redetect_below=bad)
     assert JobConfig(out_dir=tmp_path, redetect_below=1.01).redetect_below == 1.01
 

@@ -355,8 +355,12 @@ def test_module_with_track_result_and_state(model, subject, layout):
         normaliser(frame.expand(2, -1, -1, -1), state)
     with pytest.raises(TypeError, match="the state is torch.float32 on cpu, this normaliser's model torch.float64"):
         NormalisedFace(model.to(dtype=torch.float64), size=G)(frame, state)  # (named the state's shape_coeffs)
-    with pytest.raises(ValueError, match="depth_tolerance"):
-        NormalisedFace(model, size=G, depth_tolerance=-1.0)
+    for bad in (-1.0, float("inf"), float("nan")):  # (inf passed ">= 0")
+        with pytest.raises(ValueError, match=r"^depth_tolerance must be a finite number >= 0 \(a fraction of the depth\), got"):
+            NormalisedFace(model, size=G, depth_tolerance=bad)
+    for name in ("depth_tolerance", "min_facing_cos"):  # ("5" was taken by float(), "x" a ValueError)
+        with pytest.raises(TypeError, match=rf"^{name} must be a real number, got str '0.5'"):
+            NormalisedFace(model, size=G, **{name: "0.5"})
     for bad in (1.0, -0.5, float("nan")):
         with pytest.raises(ValueError, match="min_facing_cos"):
             NormalisedFace(model, size=G, min_facing_cos=bad)
@@ -482,6 +486,10 @@ def test_errors(model, layout):
         build_normalised_layout(model, 32, margin=0.6)
     with pytest.raises(ValueError, match="distance_mm"):
         build_normalised_layout(model, 32, distance_mm=10.0)
+    with pytest.raises(ValueError, match=r"^distance_mm must be a finite number > 0 \(mm\), got inf"):
+        build_normalised_layout(model, 32, distance_mm=float("inf"))
+    with pytest.raises(TypeError, match=r"^margin must be a real number, got str '0.05'"):  # (was taken)
+        build_normalised_layout(model, 32, margin="0.05")  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="FaceModel"):
         build_normalised_layout("candide", 32)
     with pytest.raises(ValueError, match="mask must be"):

@@ -347,7 +347,7 @@ def test_dissimilarity_bad_inputs_raise():
         dissimilarity(face, face, mask)
     with pytest.raises(ValueError, match="odd"):
         DissimilarityConfig(patch_size=10)
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match=r"^d0 must be a finite number > 0, got 0.0"):
         DissimilarityConfig(d0=0.0)
     with pytest.raises(ValueError, match="min_support"):
         DissimilarityConfig(min_support=0.0)

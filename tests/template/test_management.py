@@ -107,7 +107,7 @@ def test_config_defaults_and_validation():
     # NaN margins passed "< 0" (every comparison with NaN is False: the tracker never changed entry, or never
     # aligned against the first frame's near it)
     for name in ("switch_margin_deg", "reference_radius_deg", "adopt_min_angle_deg"):
-        with pytest.raises(ValueError, match=r"switch_margin_deg, reference_radius_deg and adopt_min_angle_deg must"):
+        with pytest.raises(ValueError, match=rf"^{name} must be a finite number >= 0, got nan"):
             TemplateConfig(**{name: float("nan")})
 
 

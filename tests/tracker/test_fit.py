@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -407,15 +408,21 @@ def test_bad_inputs_raise(model):
         FitConfig(shape_bound=0.0)
     with pytest.raises(ValueError, match="max_iterations"):
         FitConfig(max_iterations=0)
-    with pytest.raises(ValueError, match="non-negative"):
-        FitConfig(shape_prior_precision=-1.0)
-    with pytest.raises(ValueError, match="non-negative"):
-        FitConfig(shape_prior_precision=(2.0,) * 13 + (-1.0,))
-    with pytest.raises(ValueError, match="non-negative"):
-        FitConfig(shape_prior_precision=float("nan"))
-    for bad in ((), (2.0, "2"), True, "2"):
-        with pytest.raises(ValueError, match="a number or a non-empty tuple"):
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"^shape_prior_precision must be a finite number >= 0, got"):
             FitConfig(shape_prior_precision=bad)
+    with pytest.raises(ValueError, match=r"^shape_prior_precision\[13\] must be a finite number >= 0, got -1.0"):
+        FitConfig(shape_prior_precision=(2.0,) * 13 + (-1.0,))
+    with pytest.raises(ValueError, match="a number or a non-empty tuple"):
+        FitConfig(shape_prior_precision=())
+    # (a wrong type was a ValueError, the settings' only one: now a TypeError, as every setting's, naming it)
+    for bad in (True, "2", None, {"a": 2.0}):
+        with pytest.raises(TypeError, match=r"^shape_prior_precision must be a real number or a tuple of them \(one per "
+                                            r"shape unit\), got "):
+            FitConfig(shape_prior_precision=bad)
+    with pytest.raises(TypeError, match=r"^shape_prior_precision\[1\] must be a real number, got str '2'"):
+        FitConfig(shape_prior_precision=(2.0, "2"))
+    assert FitConfig(shape_prior_precision=[2, np.float32(3.0)]).shape_prior_precision == (2, 3.0)  # (as the others)
     with pytest.raises(ValueError, match="13 values; the model has 14 shape units"):
         fit_landmarks(model, torch.rand(1, 68, 2, dtype=D) * 100 + 200, CAM, config=FitConfig(shape_prior_precision=(2.0,) * 13))
 
@@ -649,7 +656,7 @@ def test_layout_that_does_not_determine_the_rotation_fails(model):
             assert fit.status.tolist() == [0] * 5
             for name in LandmarkFit.__dataclass_fields__:
                 assert torch.equal(getattr(fit, name), getattr(unchecked, name)), name
-    with pytest.raises(ValueError, match="max_rotation_std_deg must be positive or None"):
+    with pytest.raises(ValueError, match=r"^max_rotation_std_deg must be a finite number > 0 or None, got 0.0"):
         FitConfig(max_rotation_std_deg=0.0)
     with pytest.raises(ValueError, match="max_rotation_std_deg"):
         FitConfig(max_rotation_std_deg=float("nan"))
@@ -854,7 +861,7 @@ def test_fits_from_enough_landmarks_do_not_depend_on_the_sparse_settings(model):
         FitConfig(sparse_landmark_count=-1)
     for name in ("sparse_shape_prior_precision", "sparse_expression_prior_precision"):
         for bad in (-1.0, float("nan"), float("inf")):
-            with pytest.raises(ValueError, match="prior precisions must be finite and non-negative"):
+            with pytest.raises(ValueError, match=rf"^{name} must be a finite number >= 0, got"):
                 FitConfig(**{name: bad})
 
 

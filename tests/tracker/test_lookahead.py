@@ -469,7 +469,7 @@ def test_initialise_rejects_a_fit_of_another_batch_and_casts_its_dtype(model):
         (dict(shape_units=(1, 1)), "shape_units"), (dict(max_points=0), "max_points"),
         (dict(silhouette_margin=-1), "silhouette_margin"),
         # (a NaN threshold passed "< 0", and no point passes it: the refinement had none)
-        (dict(gradient_threshold=float("nan")), r"gradient_threshold must be >= 0, got nan"),
+        (dict(gradient_threshold=float("nan")), r"gradient_threshold must be a finite number >= 0, got nan"),
     ],
 )  # fmt: skip
 def test_settings_are_validated(kwargs, match):

@@ -3,13 +3,20 @@ hot loops)."""
 
 from __future__ import annotations
 
+import enum
+import functools
+import math
 import numbers
-from typing import cast
+import re
+import sys
+from typing import Literal, TypeVar, cast, overload
 
 import numpy as np
 import torch
 
 from torchface.geometry.camera import Intrinsics
+
+E = TypeVar("E", bound=enum.Enum)
 
 
 def check_tensor(x: object, name: str, trailing: tuple[int, ...], min_dim: int | None = None) -> torch.Tensor:
@@ -111,6 +118,113 @@ def _check_real(value: object, name: str, extra: str) -> float:
     return cast(float, value) if type(value) in (int, float) else float(value)
 
 
+@overload
+def check_number(value: object, name: str, interval: str, optional: Literal[False] = ..., unit: str = ...) -> float: ...
+@overload
+def check_number(value: object, name: str, interval: str, optional: bool, unit: str = ...) -> float | None: ...
+def check_number(value: object, name: str, interval: str, optional: bool = False, unit: str = "") -> float | None:
+    """``value`` checked and converted as :func:`check_real` does (a ``TypeError`` for another type), then refused
+    (``ValueError``) unless it lies in ``interval``, written as in mathematics: ``"[0, 1]"``, ``"(0, 0.5]"``,
+    ``"[0, inf)"``. The settings' one rule for a number's range, each field's ``interval`` stated once.
+
+    NaN lies in no interval. An infinite value lies in one only where the interval closes on it (``"[0, inf]"``:
+    for a setting whose documented meaning of ``inf`` is "no limit"); ``"[0, inf)"`` is a finite number >= 0
+    (``>= 0`` alone had taken ``inf`` as a tolerance, a threshold or a scale, which then failed or did nothing).
+
+    Args:
+        value: the setting's value.
+        name: the setting's name, for the messages (``name[i]`` for an element).
+        interval: the values allowed.
+        optional: ``None`` is allowed too (and returned).
+        unit: what the number counts, for the range's message (``"pixels"``: "focal must be a finite number > 0
+            (pixels), got -5.0").
+
+    Raises:
+        TypeError: ``value`` is not a real number (or None with ``optional``).
+        ValueError: it lies outside ``interval``.
+
+    Example:
+        >>> check_number(0.5, "texture_blend", "(0, 1]"), check_number(None, "focal", "(0, inf)", True)
+        (0.5, None)
+        >>> check_number(float("inf"), "search_step_px", "(0, inf)", unit="pixels")
+        Traceback (most recent call last):
+            ...
+        ValueError: search_step_px must be a finite number > 0 (pixels), got inf
+    """
+    if optional and value is None:
+        return None
+    number = _check_real(value, name, " or None" if optional else "")
+    low, high, low_open, high_open = _interval(interval)
+    above = number > low if low_open else number >= low
+    below = number < high if high_open else number <= high
+    if not (above and below):  # (NaN: both False)
+        unit = f" ({unit})" if unit else ""
+        raise ValueError(f"{name} must be {_interval_words(interval)}{unit}{' or None' if optional else ''}, got {value!r}")
+    return number
+
+
+@functools.lru_cache(maxsize=None)
+def _interval(interval: str) -> tuple[float, float, bool, bool]:
+    """``(low, high, low_open, high_open)`` of an interval written ``"[a, b)"`` (``inf`` and ``-inf`` allowed)."""
+    match = re.fullmatch(r"([\[(])\s*(\S+)\s*,\s*(\S+)\s*([\])])", interval)
+    if match is None:
+        raise ValueError(f"not an interval: {interval!r}")
+    return float(match[2]), float(match[3]), match[1] == "(", match[4] == ")"
+
+
+def _interval_words(interval: str) -> str:
+    """How a message says ``interval``: "a finite number >= 0" for ``"[0, inf)"``, "in (0, 90)" for a bounded one."""
+    low, high, low_open, high_open = _interval(interval)
+    if high == math.inf and high_open:
+        if low == -math.inf:
+            return "a finite number"
+        return f"a finite number {'>' if low_open else '>='} {low:g}"
+    if low == -math.inf and low_open:
+        return f"a finite number {'<' if high_open else '<='} {high:g}"
+    return f"in {interval}"
+
+
+def check_choice(value: object, name: str, kind: type[E]) -> E:
+    """``value`` if it is a member of the enum ``kind``: the settings' one rule for choices (``TrackerConfig.solver``,
+    ``LayerConfig.mode``, ``load_candide3(animation=)``, a ``backend`` argument, ...).
+
+    Anything else is a ``TypeError`` that says what to pass and where to import it from: the member a string names
+    (its value or name, any case: ``solver="fast"`` names ``TrackSolver.FAST``), else every member. A string is not
+    taken for the member: a choice is spelled one way (a string was "must be a TrackSolver, got 'fast'", or "got
+    str", not what to pass).
+
+    Raises:
+        TypeError: ``value`` is not a ``kind`` member.
+
+    Example:
+        >>> from torchface.solver import RobustKind
+        >>> check_choice(RobustKind.HUBER, "robust", RobustKind)
+        <RobustKind.HUBER: 'huber'>
+        >>> check_choice("Huber", "robust", RobustKind)
+        Traceback (most recent call last):
+            ...
+        TypeError: robust must be a RobustKind, got str 'Huber' (pass RobustKind.HUBER, from torchface.solver)
+    """
+    if isinstance(value, kind):
+        return value
+    named = [m for m in kind if isinstance(value, str) and value.strip().lower() in (str(m.value).lower(), m.name.lower())]
+    members = " or ".join(f"{kind.__name__}.{m.name}" for m in (named[:1] or list(kind)))
+    article = "an" if kind.__name__[0] in "AEIOU" else "a"
+    raise TypeError(f"{name} must be {article} {kind.__name__}, got {type(value).__name__} {value!r} (pass {members}, "
+                    f"from {_home(kind)})")
+
+
+def _home(kind: type) -> str:
+    """The shortest package or module path that ``kind`` imports from (``torchface.tracker`` for ``TrackSolver``,
+    defined in ``torchface.tracker.step``): the one its users are told to import from."""
+    parts = kind.__module__.split(".")
+    for n in range(1, len(parts) + 1):
+        module = sys.modules.get(".".join(parts[:n]))
+        if module is not None and getattr(module, kind.__name__, None) is kind:
+            return module.__name__
+    return kind.__module__
+
+
 def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, ...]:
     """``values`` (a tuple or list) as a tuple of Python ints, each checked as :func:`check_int` does (``name[i]`` in
     the messages).
@@ -124,7 +238,7 @@ def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, 
     return tuple(check_int(v, f"{name}[{i}]", low) for i, v in enumerate(values))
 
 
-def check_reals(values: object, name: str) -> tuple[float, ...]:
+def check_reals(values: object, name: str, interval: str | None = None) -> tuple[float, ...]:
     """``values`` (a tuple or list, or a 1-D numpy array or tensor) as a tuple of numbers, each checked and converted
     as :func:`check_real` does (``name[i]`` in the messages; an int stays an int, so that a default's ``repr`` stays
     what it was).
@@ -137,14 +251,20 @@ def check_reals(values: object, name: str) -> tuple[float, ...]:
     An element may be a 0-d array or tensor (``tuple(torch.tensor([0.1, 0.02]))``, as iterating one gives), taken
     as its Python number: the settings that took ``float(w)`` or compared their elements had taken them.
 
+    With ``interval``, each element must lie in it, as :func:`check_number` checks (a ``ValueError`` naming the
+    element otherwise).
+
     Raises:
         TypeError: ``values`` is not a tuple, list or 1-D array, or an element is not a real number.
+        ValueError: an element lies outside ``interval``.
     """
     if isinstance(values, (np.ndarray, torch.Tensor)) and values.ndim == 1:
         values = values.tolist()
     if not isinstance(values, (tuple, list)):
         raise TypeError(f"{name} must be a tuple of real numbers, got {type(values).__name__} {values!r}")
-    return tuple(check_real(_item(v), f"{name}[{i}]") for i, v in enumerate(values))
+    if interval is None:
+        return tuple(check_real(_item(v), f"{name}[{i}]") for i, v in enumerate(values))
+    return tuple(check_number(_item(v), f"{name}[{i}]", interval) for i, v in enumerate(values))
 
 
 def _item(value: object) -> object:

@@ -32,6 +32,7 @@ import torch
 
 from torchface._device import check_device
 from torchface.conventions import MM_PER_CANDIDE_UNIT
+from torchface.geometry._checks import check_choice
 from torchface.model.face_model import FaceModel
 from torchface.model.topology import make_winding_consistent, orient_outward, unused_vertices
 
@@ -480,8 +481,7 @@ def load_candide3(
         >>> model.animation_names[1]
         'AUV11 Jaw drop'
     """
-    if not isinstance(animation, AnimationSet):
-        raise TypeError(f"animation must be an AnimationSet, got {type(animation).__name__}")
+    check_choice(animation, "animation", AnimationSet)
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
     device = check_device(device)

@@ -66,7 +66,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_ill
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_int, check_intrinsics
+from torchface.geometry._checks import check_int, check_intrinsics, check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.mesh import vertex_normals_and_backfacing
 from torchface.geometry.projection import project_points
@@ -269,8 +269,9 @@ def build_normalised_layout(
         raise TypeError(f"model must be a FaceModel, got {type(model).__name__}{hint}")
     _check_precision(model)
     size = check_int(size, "size", 4)
-    if not 0.0 <= float(margin) <= 0.45:
-        raise ValueError(f"margin must be in [0, 0.45] (a fraction of the image size), got {margin}")
+    # ("0.05" was taken as a number, float("x") a ValueError; distance_mm=inf passed, and its faces were empty)
+    margin = check_number(margin, "margin", "[0, 0.45]", unit="a fraction of the image size")
+    distance_mm = check_number(distance_mm, "distance_mm", "(0, inf)", unit="mm")
     used = model.mean[model.surface_vertex_mask]
     z_extent = float((used[:, 2].amax() - used[:, 2].amin()).abs())
     if not float(distance_mm) > float(used[:, 2].abs().amax()) + NEAR_PLANE_MM:
@@ -308,6 +309,13 @@ def build_normalised_layout(
         size=size, margin=float(margin), intrinsics=cam, translation=translation, num_faces=model.num_faces,
         pixel_index=pixel_index, face_index=face_index, bary=bary, mask=seen,
     )  # fmt: skip
+
+
+def _check_visibility_settings(depth_tolerance: object, min_facing_cos: object) -> tuple[float, float]:
+    """``(depth_tolerance, min_facing_cos)`` of :func:`normalised_face` and :class:`NormalisedFace`, each in its range
+    (a wrong type a ``TypeError``; NaN or inf a ``ValueError``: an infinite tolerance passed ">= 0")."""
+    return (check_number(depth_tolerance, "depth_tolerance", "[0, inf)", unit="a fraction of the depth"),
+            check_number(min_facing_cos, "min_facing_cos", "[0, 1)"))  # fmt: skip
 
 
 def _check_precision(model: FaceModel) -> None:
@@ -488,10 +496,7 @@ def normalised_face(
         )
     if layout.face_index.device != model.device:
         raise ValueError(f"layout must be on the model's device {model.device}, got {layout.face_index.device}")
-    if not depth_tolerance >= 0:
-        raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
-    if not 0.0 <= min_facing_cos < 1.0:
-        raise ValueError(f"min_facing_cos must be in [0, 1), got {min_facing_cos}")
+    _check_visibility_settings(depth_tolerance, min_facing_cos)
     B, C = frames.shape[:2]
     _check_params("shape_coeffs", shape_coeffs, model.num_shape, B, model)
     _check_params("anim_coeffs", anim_coeffs, model.num_animation, B, model)
@@ -763,12 +768,9 @@ class NormalisedFace(DeviceCheckedModule):
         super().__init__()
         self.model = model
         self.layout = build_normalised_layout(model, size, margin, distance_mm)
-        self.depth_tolerance = float(depth_tolerance)
-        self.min_facing_cos = float(min_facing_cos)
-        if not self.depth_tolerance >= 0:  # (checked by normalised_face too, but only at the first call)
-            raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
-        if not 0.0 <= self.min_facing_cos < 1.0:
-            raise ValueError(f"min_facing_cos must be in [0, 1), got {min_facing_cos}")
+        # (checked by normalised_face too, but only at the first call; "5" was taken by float())
+        tolerance, facing = _check_visibility_settings(depth_tolerance, min_facing_cos)
+        self.depth_tolerance, self.min_facing_cos = float(tolerance), float(facing)
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""

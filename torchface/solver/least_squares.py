@@ -32,7 +32,7 @@ from typing import Callable
 import torch
 
 from torchface._scalar import scalar
-from torchface.geometry._checks import check_bool, check_int, check_optional_int, check_real
+from torchface.geometry._checks import check_bool, check_choice, check_int, check_number, check_optional_int
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 
 __all__ = [
@@ -107,25 +107,21 @@ class SolverConfig:
     differentiable: bool = False
 
     def __post_init__(self) -> None:
-        if not isinstance(self.method, SolverMethod):
-            raise TypeError(f"method must be a SolverMethod, got {type(self.method).__name__}")
+        check_choice(self.method, "method", SolverMethod)
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 0))
         for name in ("marquardt_scaling", "differentiable"):  # "no" was true
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
-        for name in ("initial_damping", "damping_increase_factor", "damping_decrease_factor", "min_damping",
-                     "max_damping", "step_tolerance", "cost_tolerance"):  # fmt: skip
-            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "10" or "1e-8" was taken (a str)
-        if not (0.0 < self.min_damping <= self.initial_damping <= self.max_damping):
+        # Each number's range, stated once ("10" or "1e-8" was taken, a str; inf passed "> 1" and ">= 0": an infinite
+        # damping factor made the damping inf and the step NaN)
+        for name, interval in (("initial_damping", "(0, inf)"), ("min_damping", "(0, inf)"), ("max_damping", "(0, inf)"),
+                               ("damping_increase_factor", "(1, inf)"), ("damping_decrease_factor", "(1, inf)"),
+                               ("step_tolerance", "[0, inf)"), ("cost_tolerance", "[0, inf)")):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval))
+        if not (self.min_damping <= self.initial_damping <= self.max_damping):
             raise ValueError(
                 "damping must satisfy 0 < min_damping <= initial_damping <= max_damping, got "
                 f"{self.min_damping}, {self.initial_damping}, {self.max_damping}"
             )
-        for name in ("damping_increase_factor", "damping_decrease_factor"):
-            if not float(getattr(self, name)) > 1.0:
-                raise ValueError(f"{name} must be > 1, got {getattr(self, name)}")
-        for name in ("step_tolerance", "cost_tolerance"):
-            if not float(getattr(self, name)) >= 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -19,8 +19,6 @@ Shape vocabulary: ``B`` batch, ``N`` residuals per sample (see :mod:`torchface.c
 from __future__ import annotations
 
 import enum
-import math
-import numbers
 from dataclasses import dataclass
 from typing import cast
 
@@ -28,7 +26,7 @@ import torch
 
 from torchface._deterministic import nanmedian_values
 from torchface._scalar import scalar
-from torchface.geometry._checks import check_real
+from torchface.geometry._checks import check_choice, check_number
 
 __all__ = ["RobustKind", "RobustLoss", "SwitchedRobustLoss", "robust_scale", "MAD_TO_SIGMA"]
 
@@ -112,18 +110,13 @@ class RobustLoss:
     min_scale: float = 1e-6
 
     def __post_init__(self) -> None:
-        if not isinstance(self.kind, RobustKind):
-            raise TypeError(f"kind must be a RobustKind, got {type(self.kind).__name__}")
-        if self.c is None:
-            object.__setattr__(self, "c", _DEFAULT_C[self.kind])
-        # Infinite ones gave NaN losses or weights (Huber's weight inf / inf, the others' rho inf * 0). Any real
-        # number but a bool, as TrackerConfig.robust_c takes (a numpy float32 passed the config and was refused here).
-        if isinstance(self.c, bool) or not (isinstance(self.c, numbers.Real) and 0.0 < float(self.c) < math.inf):
-            raise ValueError(f"c must be a finite positive number, got {self.c!r}")
-        object.__setattr__(self, "c", float(self.c))
-        object.__setattr__(self, "min_scale", check_real(self.min_scale, "min_scale"))  # "0.5" was taken (a str)
-        if not (0.0 < float(self.min_scale) < math.inf):
-            raise ValueError(f"min_scale must be finite and positive, got {self.min_scale!r}")
+        check_choice(self.kind, "kind", RobustKind)
+        # Infinite constants gave NaN losses or weights (Huber's weight inf / inf, the others' rho inf * 0); a numpy
+        # float is taken as TrackerConfig.robust_c takes it (a numpy float32 passed the config and was refused here),
+        # a bool or a string is a TypeError (was a ValueError).
+        c = check_number(self.c, "c", "(0, inf)", optional=True)
+        object.__setattr__(self, "c", _DEFAULT_C[self.kind] if c is None else float(c))
+        object.__setattr__(self, "min_scale", check_number(self.min_scale, "min_scale", "(0, inf)"))
 
     @property
     def _c(self) -> float:

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor
 
+from torchface.geometry._checks import check_int, check_number, check_reals
 from torchface.synth.textures import background_texture, occluder_texture, serial
 
 __all__ = ["BackgroundSpec", "background_frames", "OccluderSpec", "ellipse_mask", "place_occluder"]
@@ -36,8 +37,17 @@ class BackgroundSpec:
     pan_px_per_frame: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.margin <= 4.0:
-            raise ValueError(f"margin must be in [0, 4], got {self.margin}")
+        object.__setattr__(self, "seed", check_int(self.seed, "seed"))
+        object.__setattr__(self, "margin", check_number(self.margin, "margin", "[0, 4]"))
+        _set_pair(self, "pan_px_per_frame", "(-inf, inf)")  # (NaN or inf: NaN frames)
+
+
+def _set_pair(spec: object, name: str, interval: str) -> None:
+    """Check ``spec``'s field ``name``, two numbers each in ``interval`` (a list or array kept as a tuple)."""
+    pair = check_reals(getattr(spec, name), name, interval)
+    if len(pair) != 2:
+        raise ValueError(f"{name} must be two numbers (x, y), got {getattr(spec, name)!r}")
+    object.__setattr__(spec, name, pair)
 
 
 #: Backgrounds are generated at most this large (longest side) and upsampled: they are smooth anyway.
@@ -114,10 +124,15 @@ class OccluderSpec:
     seed: int = 5
 
     def __post_init__(self) -> None:
+        for name in ("first_frame", "last_frame", "seed"):
+            object.__setattr__(self, name, check_int(getattr(self, name), name))
         if not 0 <= self.first_frame < self.last_frame:
             raise ValueError(f"need 0 <= first_frame < last_frame, got {self.first_frame}, {self.last_frame}")
-        if not 0.0 < self.target_fraction < 1.0:
-            raise ValueError(f"target_fraction must be in (0, 1), got {self.target_fraction}")
+        # (an aspect was not checked: 0 or inf gave NaN masks)
+        for name, interval in (("target_fraction", "(0, 1)"), ("aspect", "(0, inf)")):
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval))
+        for name in ("path_start", "path_end"):
+            _set_pair(self, name, "(-inf, inf)")
 
     def active(self, frame_index: Tensor) -> Tensor:
         """``(B,)`` bool: is the occluder present in these frames."""

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from torchface._atomic import folder_locked, remove_dead_partials, written_whole
+from torchface.geometry._checks import check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -124,8 +125,7 @@ class SequenceSpec:
         for (_, end), (start, _) in zip(spans[:-1], spans[1:]):
             if start < end:
                 raise ValueError(f"occluder frame ranges must not overlap, got {spans}")
-        if self.fps <= 0:
-            raise ValueError(f"fps must be positive, got {self.fps}")
+        object.__setattr__(self, "fps", check_number(self.fps, "fps", "(0, inf)"))  # (inf and NaN were taken)
 
     @property
     def num_frames(self) -> int:

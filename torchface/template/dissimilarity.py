@@ -63,7 +63,7 @@ from torchface._autocast import full_precision
 from torchface import _native
 from torchface._scalar import isfinite, scalar
 from torchface.backend import Backend, use_native
-from torchface.geometry._checks import check_bool, check_int, check_optional_int, check_real
+from torchface.geometry._checks import check_bool, check_int, check_number, check_optional_int
 
 __all__ = [
     "LKResult",
@@ -467,33 +467,18 @@ class DissimilarityConfig:
     trim_fraction: float = 0.25
 
     def __post_init__(self) -> None:
-        for name in ("patch_size", "num_patches", "iterations", "min_patches", "border"):
-            object.__setattr__(self, name, check_int(getattr(self, name), name))
+        for name, low in (("patch_size", 3), ("num_patches", 1), ("iterations", 1), ("min_patches", 1), ("border", 0)):
+            object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         object.__setattr__(self, "min_separation", check_optional_int(self.min_separation, "min_separation", 1))
         object.__setattr__(self, "project_out_bias", check_bool(self.project_out_bias, "project_out_bias"))
-        for name in ("tolerance", "max_displacement", "d0", "min_support", "min_present_fraction", "smoothing_sigma",
-                     "trim_fraction"):  # fmt: skip
-            object.__setattr__(self, name, check_real(getattr(self, name), name))
-        if self.patch_size < 3 or self.patch_size % 2 == 0:
+        # Each number's range, stated once (inf passed "> 0": a tolerance met at once, a d0 that scored every
+        # displacement 1, an infinite search range or smoothing)
+        for name, interval in (("tolerance", "(0, inf)"), ("max_displacement", "(0, inf)"), ("d0", "(0, inf)"),
+                               ("min_support", "(0, 1]"), ("min_present_fraction", "[0, 1]"),
+                               ("smoothing_sigma", "[0, inf)"), ("trim_fraction", "[0, 1)")):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval))
+        if self.patch_size % 2 == 0:
             raise ValueError(f"patch_size must be an odd int >= 3, got {self.patch_size}")
-        if self.num_patches < 1 or self.iterations < 1 or self.min_patches < 1 or self.border < 0:
-            raise ValueError(
-                "num_patches, iterations and min_patches must be >= 1 and border >= 0, got "
-                f"{self.num_patches}, {self.iterations}, {self.min_patches}, {self.border}"
-            )
-        if not (self.tolerance > 0 and self.max_displacement > 0 and self.d0 > 0):
-            raise ValueError(
-                f"tolerance, max_displacement and d0 must be positive, got {self.tolerance}, "
-                f"{self.max_displacement}, {self.d0}"
-            )
-        if not 0.0 < self.min_support <= 1.0:
-            raise ValueError(f"min_support must be in (0, 1], got {self.min_support}")
-        if not 0.0 <= self.trim_fraction < 1.0:
-            raise ValueError(f"trim_fraction must be in [0, 1), got {self.trim_fraction}")
-        if not 0.0 <= self.min_present_fraction <= 1.0:
-            raise ValueError(f"min_present_fraction must be in [0, 1], got {self.min_present_fraction}")
-        if not self.smoothing_sigma >= 0:
-            raise ValueError(f"smoothing_sigma must be >= 0, got {self.smoothing_sigma}")
 
     @property
     def separation(self) -> int:

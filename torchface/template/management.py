@@ -57,7 +57,7 @@ from torch import Tensor
 from torchface.appearance.illumination import remove_illumination
 from torchface.backend import Backend, use_native
 from torchface.geometry._checks import (
-    check_bool, check_int, check_intrinsics, check_optional_int, check_real, check_reals,
+    check_bool, check_int, check_intrinsics, check_number, check_optional_int, check_reals,
 )
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
@@ -329,64 +329,33 @@ class TemplateConfig:
             object.__setattr__(self, name, check_bool(getattr(self, name), name))
         if not isinstance(self.dissimilarity, DissimilarityConfig):
             raise TypeError(f"dissimilarity must be a DissimilarityConfig, got {type(self.dissimilarity).__name__}")
-        for name in ("texture_blend", "yaw_bin_deg", "pitch_bin_deg", "bin_centre_fraction", "switch_margin_deg",
-                     "reference_radius_deg", "min_facing_cos", "confidence_threshold", "add_confidence", "entry_reach",
-                     "very_low_confidence", "min_inside_fraction", "adopt_min_angle_deg", "adopt_min_confidence",
-                     "recover_confidence", "search_step_px", "search_min_inside", "clean_radius_deg",
-                     "clean_rejected_fraction"):  # fmt: skip
-            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.5": "'<' not supported"
-        for name in ("max_entries", "normalised_size", "entry_stride", "lost_after", "lost_after_very_low",
-                     "recovery_every", "search_points", "restart_after_unmatched", "recover_min_patches"):  # fmt: skip
-            object.__setattr__(self, name, check_int(getattr(self, name), name))
-        if min(self.max_entries, self.lost_after, self.lost_after_very_low, self.recovery_every) < 1:
-            raise ValueError(
-                "max_entries, lost_after, lost_after_very_low and recovery_every must be >= 1, got "
-                f"{self.max_entries}, {self.lost_after}, {self.lost_after_very_low}, {self.recovery_every}"
-            )
-        if self.recover_min_patches < 0:
-            raise ValueError(f"recover_min_patches must be >= 0 (0: off), got {self.recover_min_patches}")
-        if self.restart_after_unmatched < 0:
-            raise ValueError(f"restart_after_unmatched must be >= 0 (0: off), got {self.restart_after_unmatched}")
-        if self.entry_stride < 1:
-            raise ValueError(f"entry_stride must be >= 1, got {self.entry_stride}")
-        if self.search_points < 8:
-            raise ValueError(f"search_points must be >= 8, got {self.search_points}")
+        # Each number's range, stated once (check_number: "0.5" was "'<' not supported", NaN passed "< 0" checks,
+        # inf ">0" and ">= 0" ones: search_step_px inf made an empty coarse grid and a fine one int(inf) wide)
+        for name, interval in (
+            ("texture_blend", "(0, 1]"), ("yaw_bin_deg", "(0, inf)"), ("pitch_bin_deg", "(0, inf)"),
+            ("bin_centre_fraction", "(0, 0.5]"), ("switch_margin_deg", "[0, inf)"), ("reference_radius_deg", "[0, inf)"),
+            ("min_facing_cos", "[0, 1]"), ("confidence_threshold", "[0, 1]"), ("add_confidence", "[0, 1]"),
+            ("entry_reach", "(0, inf)"), ("very_low_confidence", "[0, 1]"), ("min_inside_fraction", "[0, 1]"),
+            ("adopt_min_angle_deg", "[0, inf)"), ("adopt_min_confidence", "[0, 1]"), ("recover_confidence", "[0, 1]"),
+            ("search_step_px", "(0, inf)"), ("search_min_inside", "[0, 1]"), ("clean_radius_deg", "[0, inf)"),
+            ("clean_rejected_fraction", "[0, 1]"),
+        ):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval))
+        for name, low in (("max_entries", 1), ("normalised_size", None), ("entry_stride", 1), ("lost_after", 1),
+                          ("lost_after_very_low", 1), ("recovery_every", 1), ("search_points", 8),
+                          ("restart_after_unmatched", 0), ("recover_min_patches", 0)):  # fmt: skip
+            object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         if self.normalised_size < 48:
             raise ValueError(f"normalised_size must be >= 48 (smaller faces hold too few fiducial patches for a "
                              f"confidence), got {self.normalised_size}")  # fmt: skip
-        if not (self.yaw_bin_deg > 0 and self.pitch_bin_deg > 0 and self.search_step_px > 0):
-            raise ValueError("yaw_bin_deg, pitch_bin_deg and search_step_px must be positive")
-        if not math.isfinite(self.search_step_px):  # (inf: an empty coarse grid, a fine one int(inf) wide)
-            raise ValueError(f"search_step_px must be finite, got {self.search_step_px}")
-        if not 0 < self.bin_centre_fraction <= 0.5:
-            raise ValueError(f"bin_centre_fraction must be in (0, 0.5], got {self.bin_centre_fraction}")
-        if not self.entry_reach > 0:
-            raise ValueError(f"entry_reach must be positive, got {self.entry_reach}")
-        if not 0 < self.texture_blend <= 1:
-            raise ValueError(f"texture_blend must be in (0, 1], got {self.texture_blend}")
-        if not self.clean_radius_deg >= 0:
-            raise ValueError(f"clean_radius_deg must be >= 0, got {self.clean_radius_deg}")
-        turn = tuple(float(v) for v in check_reals(self.plausible_turn_deg, "plausible_turn_deg"))  # (b"11": 49s)
-        if len(turn) != 2 or not all(math.isfinite(v) and v >= 0 for v in turn):
-            raise ValueError(f"plausible_turn_deg must be two finite values >= 0, got {self.plausible_turn_deg}")
+        turn = tuple(float(v) for v in check_reals(self.plausible_turn_deg, "plausible_turn_deg", "[0, inf)"))
+        if len(turn) != 2:  # (b"11": two 49s, refused by check_reals)
+            raise ValueError(f"plausible_turn_deg must be two values (base, per frame), got {self.plausible_turn_deg}")
         object.__setattr__(self, "plausible_turn_deg", turn)
-        # (not >= 0: NaN passed "< 0", and every comparison with it is False)
-        if not (self.switch_margin_deg >= 0 and self.reference_radius_deg >= 0 and self.adopt_min_angle_deg >= 0):
-            raise ValueError(
-                "switch_margin_deg, reference_radius_deg and adopt_min_angle_deg must be >= 0, got "
-                f"{self.switch_margin_deg}, {self.reference_radius_deg}, {self.adopt_min_angle_deg}"
-            )
-        for name in ("confidence_threshold", "add_confidence", "recover_confidence", "min_inside_fraction",
-                     "search_min_inside", "min_facing_cos", "very_low_confidence", "adopt_min_confidence",
-                     "clean_rejected_fraction"):  # fmt: skip
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("search_depth_factors", "search_depth_widening"):  # (strings: "'>' not supported"; bools: 1)
-            object.__setattr__(self, name, check_reals(getattr(self, name), name))
-        if not self.search_depth_factors or any(not (math.isfinite(f) and f > 0) for f in self.search_depth_factors):
-            raise ValueError(f"search_depth_factors must be positive factors, got {self.search_depth_factors}")
-        if any(not (isinstance(f, (int, float)) and math.isfinite(f) and f > 0) for f in self.search_depth_widening):
-            raise ValueError(f"search_depth_widening must be positive factors, got {self.search_depth_widening}")
+            object.__setattr__(self, name, check_reals(getattr(self, name), name, "(0, inf)"))
+        if not self.search_depth_factors:
+            raise ValueError("search_depth_factors must be positive factors, got ()")
 
     def depth_scale(self, attempts: int) -> float:
         """The factor a recovery attempt scales ``search_depth_factors`` by besides 1, after ``attempts`` attempts

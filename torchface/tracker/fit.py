@@ -13,6 +13,7 @@ import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -23,7 +24,7 @@ from torchface.conventions import (
     NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
 )
 from torchface.geometry._checks import (
-    check_bool, check_int, check_intrinsics, check_optional_int, check_optional_real, check_real,
+    check_bool, check_int, check_intrinsics, check_number, check_optional_int, check_reals,
 )
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
@@ -145,48 +146,50 @@ class FitConfig:
     sparse_expression_prior_precision: float = 200.0
 
     def __post_init__(self) -> None:
-        for name in ("held_shape_precision", "shape_bound", "expression_prior_precision"):  # "1": "'<' not supported"
-            object.__setattr__(self, name, check_real(getattr(self, name), name))
-        refine = check_optional_real(self.refine_shape_prior_precision, "refine_shape_prior_precision")
-        object.__setattr__(self, "refine_shape_prior_precision", refine)
-        std = check_optional_real(self.max_rotation_std_deg, "max_rotation_std_deg")
-        if std is not None and not std > 0:  # NaN would fail nothing, 0 everything
-            raise ValueError(f"max_rotation_std_deg must be positive or None, got {std!r}")
-        object.__setattr__(self, "max_rotation_std_deg", std)
-        facing = check_optional_real(self.max_facing_deg, "max_facing_deg")
-        if facing is not None and not 0 < facing < 90:  # 90 and more: the turned-away check does it
-            raise ValueError(f"max_facing_deg must be in (0, 90) degrees or None, got {facing!r}")
-        object.__setattr__(self, "max_facing_deg", facing)
-        if refine is not None and (isinstance(refine, bool) or not isinstance(refine, (int, float))
-                                   or not math.isfinite(refine) or refine < 0):  # NaN failed in the solver
-            raise ValueError(f"refine_shape_prior_precision must be finite and non-negative or None, got {refine!r}")
-        focal = check_optional_real(self.reference_focal_px, "reference_focal_px")
-        object.__setattr__(self, "reference_focal_px", focal)
-        if focal is not None and not (math.isfinite(focal) and focal > 0):
-            raise ValueError(f"reference_focal_px must be a positive number of pixels or None, got {focal!r}")
+        # Each number's range, stated once (check_number: a wrong type a TypeError naming it, NaN or an infinite
+        # value a ValueError: inf passed "> 0" as a bound, a layout check or a focal length). A precision's NaN failed
+        # in the solver; max_rotation_std_deg NaN would fail nothing, 0 everything; max_facing_deg 90 and more: the
+        # turned-away check does it.
+        for name, interval, optional in (
+            ("held_shape_precision", "[0, inf)", False), ("shape_bound", "(0, inf)", False),
+            ("expression_prior_precision", "[0, inf)", False), ("refine_shape_prior_precision", "[0, inf)", True),
+            ("max_rotation_std_deg", "(0, inf)", True), ("max_facing_deg", "(0, 90)", True),
+            ("reference_focal_px", "(0, inf)", True), ("sparse_shape_prior_precision", "[0, inf)", False),
+            ("sparse_expression_prior_precision", "[0, inf)", False),
+        ):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval, optional))
+        object.__setattr__(self, "shape_prior_precision", check_precisions(self.shape_prior_precision,
+                                                                           "shape_prior_precision"))  # fmt: skip
         object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))  # "no" was true
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
         count = check_optional_int(self.sparse_landmark_count, "sparse_landmark_count", 0)
         object.__setattr__(self, "sparse_landmark_count", count)
-        for name in ("sparse_shape_prior_precision", "sparse_expression_prior_precision"):
-            object.__setattr__(self, name, check_real(getattr(self, name), name))
-        shape = self.shape_prior_precision
-        precisions = shape if isinstance(shape, tuple) else (shape,)
-        if not precisions or any(isinstance(p, bool) or not isinstance(p, (int, float)) for p in precisions):
-            raise ValueError(f"shape_prior_precision must be a number or a non-empty tuple of numbers, got {shape!r}")
         held = self.held_shape_units
         if held is not None and (not isinstance(held, tuple) or any(not isinstance(n, str) for n in held)
                                  or len(set(held)) != len(held)):
             raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
-        named = [("shape_prior_precision", p) for p in precisions] + [
-            (name, getattr(self, name)) for name in ("expression_prior_precision", "held_shape_precision",
-                                                     "sparse_shape_prior_precision", "sparse_expression_prior_precision")
-        ]  # fmt: skip
-        for name, p in named:  # (the message named no setting)
-            if isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0:
-                raise ValueError(f"prior precisions must be finite and non-negative: {name} is {p!r}")
-        if not self.shape_bound > 0:
-            raise ValueError(f"shape_bound must be positive, got {self.shape_bound}")
+
+
+def check_precisions(value: object, name: str) -> float | tuple[float, ...]:
+    """A shape prior setting of one precision for every unit, or one per unit (:attr:`FitConfig.shape_prior_precision`,
+    :attr:`~torchface.tracker.lookahead.LookaheadConfig.shape_prior_precision`): a number, or a non-empty tuple, list
+    or 1-D array of numbers (kept as a tuple), each finite and >= 0.
+
+    Raises:
+        TypeError: ``value`` is neither a number nor a sequence of numbers (it was a ``ValueError``, the settings'
+            only one for a wrong type).
+        ValueError: it is empty, or a precision is negative, NaN or infinite.
+    """
+    if isinstance(value, (tuple, list)) or (isinstance(value, (np.ndarray, Tensor)) and value.ndim == 1):
+        precisions = check_reals(value, name, "[0, inf)")
+        if not precisions:
+            raise ValueError(f"{name} must be a number or a non-empty tuple of numbers (one per shape unit), got ()")
+        return precisions
+    try:
+        return check_number(value, name, "[0, inf)")
+    except TypeError:
+        raise TypeError(f"{name} must be a real number or a tuple of them (one per shape unit), got "
+                        f"{type(value).__name__} {value!r}") from None
 
 
 @dataclass(frozen=True, eq=False)

@@ -45,7 +45,7 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.backend import Backend
-from torchface.geometry._checks import check_bool, check_int, check_ints, check_real
+from torchface.geometry._checks import check_bool, check_int, check_ints, check_number, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import (
@@ -56,8 +56,8 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, check_landmark_type, fit_landmarks, held_shape_indices, landmark_targets, prior_scale,
-    shape_precisions, shape_prior_vector, sparse_samples,
+    FitConfig, LandmarkFit, check_landmark_type, check_precisions, fit_landmarks, held_shape_indices, landmark_targets,
+    prior_scale, shape_precisions, shape_prior_vector, sparse_samples,
 )
 from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics
 
@@ -146,11 +146,12 @@ class LookaheadConfig:
     silhouette_margin: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("yaw_deg", "min_confidence", "photometric_weight", "gradient_threshold", "huber_k",
-                     "min_facing_cos"):  # fmt: skip
-            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "10": "'<' not supported"
-        if not 0.0 < self.yaw_deg < 90.0:
-            raise ValueError(f"yaw_deg must be in (0, 90), got {self.yaw_deg}")
+        # Each number's range, stated once (check_number: a wrong type a TypeError, NaN or an infinite value a
+        # ValueError; a NaN gradient_threshold passed "< 0", and no point passes it: the refinement had none).
+        for name, interval in (("yaw_deg", "(0, 90)"), ("min_confidence", "[0, 1]"), ("photometric_weight", "(0, inf)"),
+                               ("gradient_threshold", "[0, inf)"), ("huber_k", "(0, inf)"),
+                               ("min_facing_cos", "[0, 1)")):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval))
         object.__setattr__(self, "fit_expression", check_bool(self.fit_expression, "fit_expression"))
         for name, low in (("max_frames", 2), ("min_keyframes", 1), ("max_points", 1), ("silhouette_margin", 0)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
@@ -165,22 +166,14 @@ class LookaheadConfig:
                              f"shape_units={self.shape_units} given, leave the kept units out of it")  # fmt: skip
         if self.min_keyframes not in (1, 2):
             raise ValueError(f"min_keyframes must be 1 or 2 (one keyframe per side), got {self.min_keyframes!r}")
-        if not 0.0 <= self.min_confidence <= 1.0:
-            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
-        if not self.photometric_weight > 0 or not self.huber_k > 0 or not 0.0 <= self.min_facing_cos < 1.0:
-            raise ValueError(
-                "photometric_weight and huber_k must be positive and min_facing_cos in [0, 1), got "
-                f"{self.photometric_weight}, {self.huber_k}, {self.min_facing_cos}"
-            )
         if not self.iterations:
             raise ValueError(f"iterations must be a non-empty tuple of ints >= 0, got {self.iterations!r}")
-        if not self.gradient_threshold >= 0:  # (NaN passed "< 0": no point passes a NaN threshold)
-            raise ValueError(f"gradient_threshold must be >= 0, got {self.gradient_threshold}")
         units = self.shape_units
         if units is not None and len(set(units)) != len(units):
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")
-        if self.shape_prior_precision is not None:
-            FitConfig(shape_prior_precision=self.shape_prior_precision)  # the same validation
+        if self.shape_prior_precision is not None:  # (FitConfig's rule)
+            object.__setattr__(self, "shape_prior_precision", check_precisions(self.shape_prior_precision,
+                                                                               "shape_prior_precision"))  # fmt: skip
 
 
 def check_refine_first(refine_first: object) -> None:

@@ -54,7 +54,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchface.geometry._checks import check_real
+from torchface.geometry._checks import check_number, check_real
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.tracker.step import TrackerState, TrackResult
@@ -91,14 +91,9 @@ class OneEuroConfig:
     d_cutoff: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("min_cutoff", "beta", "d_cutoff"):
-            object.__setattr__(self, name, check_real(getattr(self, name), name))
-        for name in ("min_cutoff", "d_cutoff"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive, finite frequency in Hz, got {value}")
-        if not (math.isfinite(self.beta) and self.beta >= 0):
-            raise ValueError(f"beta must be a finite number >= 0 (Hz per unit/s), got {self.beta}")
+        for name, interval, unit in (("min_cutoff", "(0, inf)", "Hz"), ("beta", "[0, inf)", "Hz per unit/s"),
+                                     ("d_cutoff", "(0, inf)", "Hz")):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval, unit=unit))
 
 
 @dataclass(frozen=True)

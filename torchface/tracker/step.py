@@ -29,7 +29,7 @@ from torchface.appearance.sampling import image_with_gradients, pyr_down, sample
 from torchface.backend import Backend, use_native
 from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM
 from torchface.geometry._checks import (
-    check_bool, check_int, check_intrinsics, check_ints, check_optional_real, check_real, check_reals,
+    check_bool, check_choice, check_int, check_intrinsics, check_ints, check_number, check_reals,
 )
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
@@ -375,76 +375,41 @@ class TrackerConfig:
                           ("visibility_interval", 1), ("selection_seed", 0)):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations"))  # 6.5 was taken here
+        # Each number's range, stated once (check_number: a wrong type a TypeError naming it, "0.2" included; NaN or
+        # an infinite value a ValueError: inf passed ">= 0" as a tolerance, a precision or a margin).
+        for name, interval, optional in (
+            ("gradient_threshold", "[0, inf)", False), ("function_tolerance", "[0, inf)", False),
+            ("refine_scale_floor", "[0, inf)", False), ("expression_priority", "(-inf, inf)", False),
+            ("expression_quota", "[0, 1]", False), ("expression_prior_precision", "[0, inf)", False),
+            ("min_contrast", "[0, inf)", False), ("min_face_width_px", "[0, inf)", False),
+            ("crop_margin", "[0, inf)", False), ("motion_prediction", "[0, 1]", False),
+            ("robust_c", "(0, inf)", True), ("refine_prior_precision", "[0, inf)", True),
+            ("expression_sparsity", "(0, inf)", True),
+        ):  # fmt: skip
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval, optional))
         # ((True, True) was taken as floors of 1, ("0.1", "0.02") was "'<' not supported between 'int' and 'str'")
-        object.__setattr__(self, "robust_scale_floor", check_reals(self.robust_scale_floor, "robust_scale_floor"))
-        for name in ("gradient_threshold", "function_tolerance", "refine_scale_floor", "expression_priority",
-                     "expression_quota", "expression_prior_precision", "min_contrast", "min_face_width_px",
-                     "crop_margin", "motion_prediction"):  # fmt: skip
-            object.__setattr__(self, name, check_real(getattr(self, name), name))  # "0.2": "must be real number"
-        for name in ("robust_c", "refine_prior_precision", "expression_sparsity"):
-            object.__setattr__(self, name, check_optional_real(getattr(self, name), name))
-        for name in ("gradient_threshold", "min_contrast", "refine_scale_floor"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):  # (types: check_real above)
-                raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
-        if self.robust_c is not None and not (math.isfinite(self.robust_c) and self.robust_c > 0.0):
-            # (was refused at the first frame as "c must be a positive number")
-            raise ValueError(f"robust_c must be a finite number > 0 or None (the loss's default), got {self.robust_c!r}")
-        if not math.isfinite(self.expression_priority):
-            raise ValueError(f"expression_priority must be a finite number, got {self.expression_priority!r}")
-        if self.refine_prior_precision is not None and not self.refine_prior_precision >= 0.0:
-            raise ValueError(f"refine_prior_precision must be >= 0 or None, got {self.refine_prior_precision}")
+        floors = check_reals(self.robust_scale_floor, "robust_scale_floor", "(0, inf)")
+        if len(floors) != 2:
+            raise ValueError(f"robust_scale_floor must be two floors (coarsest, finest), got {self.robust_scale_floor}")
+        object.__setattr__(self, "robust_scale_floor", floors)
         if self.expression_prior_weights is not None:
             # (a string was taken as its characters: "1" * 11 as eleven ones, bytes as their codes)
-            weights = tuple(float(w) for w in check_reals(self.expression_prior_weights, "expression_prior_weights"))
-            if not weights or not all(math.isfinite(w) and w >= 0.0 for w in weights):
-                raise ValueError(f"expression_prior_weights must be finite factors >= 0, got {self.expression_prior_weights}")
-            object.__setattr__(self, "expression_prior_weights", weights)
-        if self.expression_sparsity is not None and not (
-            math.isfinite(self.expression_sparsity) and self.expression_sparsity > 0.0
-        ):
-            raise ValueError(f"expression_sparsity must be a finite delta > 0 or None, got {self.expression_sparsity}")
-        if not 0.0 <= self.expression_quota <= 1.0:
-            raise ValueError(f"expression_quota must be a fraction in [0, 1], got {self.expression_quota}")
+            weights = check_reals(self.expression_prior_weights, "expression_prior_weights", "[0, inf)")
+            if not weights:
+                raise ValueError("expression_prior_weights must be one factor per animation unit or None, got ()")
+            object.__setattr__(self, "expression_prior_weights", tuple(float(w) for w in weights))
         if len(self.iterations) != self.num_levels or any(i < 1 for i in self.iterations):
             raise ValueError(
                 f"iterations must give a positive count per level ({self.num_levels}), got {self.iterations}"
             )
-        if len(self.robust_scale_floor) != 2 or any(not 0 < f < math.inf for f in self.robust_scale_floor):
-            raise ValueError(f"robust_scale_floor must be two finite positive floors (coarsest, finest), got {self.robust_scale_floor}")
-        if not self.function_tolerance >= 0.0:
-            raise ValueError(f"function_tolerance must be >= 0, got {self.function_tolerance}")
         if not 0 <= self.min_points <= self.max_points:
             raise ValueError(f"min_points must be in [0, max_points = {self.max_points}] (with more, every frame fails), "
                              f"got {self.min_points}")  # fmt: skip
-        if not (math.isfinite(self.expression_prior_precision) and self.expression_prior_precision >= 0.0):
-            raise ValueError(f"expression_prior_precision must be finite and >= 0, got {self.expression_prior_precision}")
-        if not (math.isfinite(self.crop_margin) and self.crop_margin >= 0.0):
-            raise ValueError(f"crop_margin must be finite and >= 0 (a fraction of the face's size), got {self.crop_margin}")
-        if not (math.isfinite(self.min_face_width_px) and self.min_face_width_px >= 0.0):
-            raise ValueError(f"min_face_width_px must be finite and >= 0 (pixels), got {self.min_face_width_px}")
-        if not 0.0 <= self.motion_prediction <= 1.0:  # (NaN too)
-            raise ValueError(f"motion_prediction must be a fraction in [0, 1] (0: off), got {self.motion_prediction}")
         if self.motion_prediction > 0.0 and not self.template.enabled:
             raise ValueError("motion_prediction needs template management (template.enabled): its confidence "
                              "decides where the prediction applies")
-        for name, kind, where in (("robust", RobustKind, "torchface.solver"), ("backend", Backend, "torchface.tracker"),
-                                  ("solver", TrackSolver, "torchface.tracker")):  # fmt: skip
-            _check_choice(getattr(self, name), name, kind, where)  # (solver="fast" ran the reference solver)
-
-
-def _check_choice(value: object, name: str, kind: type[enum.Enum], where: str) -> None:
-    """Refuse a :class:`TrackerConfig` choice ``name`` that is not a ``kind`` member (a TypeError), naming the member
-    a string names (``solver="fast"``: ``TrackSolver.FAST``) or, for another string, the members (they were told
-    "must be a TrackSolver, got 'fast'", or "got str", not what to pass); ``where``: the module to import it from."""
-    if isinstance(value, kind):
-        return
-    hint = ""
-    if isinstance(value, str):
-        named = [m for m in kind if value.strip().lower() in (str(m.value).lower(), m.name.lower())]
-        members = [named[0]] if named else list(kind)
-        hint = f" (pass {' or '.join(f'{kind.__name__}.{m.name}' for m in members)}, from {where})"
-    raise TypeError(f"{name} must be a {kind.__name__}, got {type(value).__name__} {value!r}{hint}")
+        for name, kind in (("robust", RobustKind), ("backend", Backend), ("solver", TrackSolver)):
+            check_choice(getattr(self, name), name, kind)  # (solver="fast" ran the reference solver)
 
 
 def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
