@@ -122,8 +122,8 @@ class Intrinsics:
         last = v[2].tolist()
         if last[:2] != [0.0, 0.0] or last[2] != 1.0:
             if last[2] == 1.0 and v[0, 2] == 0 and v[1, 2] == 0 and v[1, 0] == 0 and v[0, 1] == 0:
-                hint = f": the transpose of a calibration matrix (cx, cy = {last[0]:g}, {last[1]:g} in its last row)? " \
-                       "Pass K.T"
+                hint = (f": the transpose of a calibration matrix (cx, cy = {last[0]:g}, {last[1]:g} in its last "
+                        "row)? Pass K.T")
             elif last[:2] == [0.0, 0.0] and last[2] != 0:
                 hint = f": a matrix scaled by {last[2]:g}? Pass K / K[2, 2]"
             else:
@@ -221,7 +221,8 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     if _fits(w, h, fx, fy, cx, cy, tight=False):
         return None
     readings = (
-        ("OpenCV's matrix order (fx, cx, fy, cy), K's entries row by row, given as (fx, fy, cx, cy)?", (fx, cx, fy, cy)),
+        ("OpenCV's matrix order (fx, cx, fy, cy), K's entries row by row, given as (fx, fy, cx, cy)?",
+         (fx, cx, fy, cy)),
         ("the focal lengths and the principal point swapped (cx, cy, fx, fy)?", (cx, cy, fx, fy)),
         ("normalised intrinsics (fx / W, fy / H, cx / W, cy / H)?", (fx * w, fy * h, cx * w - 0.5, cy * h - 0.5)),
     )
